@@ -1,0 +1,1 @@
+"""irtrack ground simulator: JSBSim flight, IR rendering, MAVLink + zenoh emitters, evaluation."""

@@ -1,0 +1,1 @@
+"""irtrack onboard service: tracking and single-camera 3-D trajectory reconstruction."""

@@ -1,0 +1,26 @@
+#!/usr/bin/env bash
+# One install path for developers, CI and the Dockerfile.
+#   scripts/install.sh VENV_DIR [EXTRAS]     e.g. scripts/install.sh .venv dev
+# Creates VENV_DIR when missing and installs irtrack (editable) with its pinned ranges.
+# opencv-contrib-python-headless is the only OpenCV wheel we allow: KCF lives in contrib,
+# and a second OpenCV wheel beside it would shadow cv2. We check that at the end.
+set -euo pipefail
+venv="${1:-.venv}"
+extras="${2:-}"
+python="${PYTHON:-python3}"
+if [ ! -x "$venv/bin/python" ]; then
+    echo "install: creating $venv"
+    "$python" -m venv "$venv"
+fi
+"$venv/bin/python" -m pip install --quiet --upgrade pip
+spec="."
+[ -n "$extras" ] && spec=".[$extras]"
+"$venv/bin/python" -m pip install --quiet -e "$spec"
+others=$("$venv/bin/python" -m pip list --format=freeze 2>/dev/null | grep -iE '^opencv-(python|python-headless|contrib-python)==' || true)
+if [ -n "$others" ]; then
+    echo "install: another OpenCV wheel is installed beside opencv-contrib-python-headless:" >&2
+    echo "$others" >&2
+    exit 1
+fi
+"$venv/bin/python" -c "import cv2, sys; ok = hasattr(cv2, 'TrackerKCF') or hasattr(cv2, 'TrackerKCF_create') or hasattr(getattr(cv2, 'legacy', None), 'TrackerKCF_create'); sys.exit(0 if ok else 'install: cv2 has no KCF tracker (need opencv-contrib-python-headless)')"
+echo "install: $venv ready"
