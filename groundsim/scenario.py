@@ -138,10 +138,6 @@ class _Fail:
         raise ScenarioError(self.source, path, expected, got_text=got_text, hint=hint)
 
 
-Fail = _Fail
-_failer = _Fail
-
-
 def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path else key
 
@@ -165,7 +161,7 @@ def _bounds_text(lo, lo_open, hi, hi_open) -> str:
     return ""
 
 
-def _number(v, path, fail: Fail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
+def _number(v, path, fail: _Fail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
     what = f"a finite number{_bounds_text(lo, lo_open, hi, hi_open)}{(' ' + unit) if unit else ''}"
     if not _is_number(v):
         fail(path, what, v)
@@ -182,7 +178,7 @@ def _number(v, path, fail: Fail, *, lo=None, lo_open=False, hi=None, hi_open=Fal
     return x
 
 
-def _integer(v, path, fail: Fail, *, lo=None, hi=None) -> int:
+def _integer(v, path, fail: _Fail, *, lo=None, hi=None) -> int:
     what = f"an integer{_bounds_text(lo, False, hi, False)}"
     if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
         fail(path, what, v)
@@ -192,7 +188,7 @@ def _integer(v, path, fail: Fail, *, lo=None, hi=None) -> int:
     return i
 
 
-def _string(v, path, fail: Fail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
+def _string(v, path, fail: _Fail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
     if choices is not None:
         what = "one of " + ", ".join(choices)
     if not isinstance(v, str):
@@ -204,7 +200,7 @@ def _string(v, path, fail: Fail, *, choices=None, pattern: re.Pattern | None = N
     return v
 
 
-def _vector(v, path, fail: Fail, n: int = 3, *, lo=None, lo_open=False, unit="", what=None) -> tuple[float, ...]:
+def _vector(v, path, fail: _Fail, n: int = 3, *, lo=None, lo_open=False, unit="", what=None) -> tuple[float, ...]:
     what = what or f"a list of {n} finite numbers{_bounds_text(lo, lo_open, None, False)}{(' ' + unit) if unit else ''}"
     if not isinstance(v, (list, tuple)) or len(v) != n:
         fail(path, what, v)
@@ -220,7 +216,7 @@ def _did_you_mean(word: str, options) -> str | None:
     return f"did you mean '{close[0]}'?" if close else None
 
 
-def _mapping(v, path, fail: Fail, allowed, required=()) -> dict:
+def _mapping(v, path, fail: _Fail, allowed, required=()) -> dict:
     """A dict with string keys, all in ``allowed``, all of ``required`` present."""
     allowed = tuple(allowed)
     if not isinstance(v, dict):
@@ -251,7 +247,7 @@ class SingerDisturbance:
     tau_s: float
 
     def __post_init__(self) -> None:
-        fail = _failer("<SingerDisturbance>")
+        fail = _Fail("<SingerDisturbance>")
         _number(self.sigma_horizontal_mps2, "sigma_horizontal_mps2", fail, lo=0.0)
         _number(self.sigma_vertical_mps2, "sigma_vertical_mps2", fail, lo=0.0)
         _number(self.tau_s, "tau_s", fail, lo=0.0, lo_open=True)
@@ -281,7 +277,7 @@ class VehicleSpec:
     disturbance: SingerDisturbance | None = None
 
     def __post_init__(self) -> None:
-        fail = _failer("<VehicleSpec>")
+        fail = _Fail("<VehicleSpec>")
         for name in ("motion", "base_motion"):
             m = getattr(self, name)
             if m is not None and not callable(getattr(m, "state", None)):
@@ -310,7 +306,7 @@ class GimbalSpec:
     pointing_error_period_s: tuple[float, float, float]
 
     def __post_init__(self) -> None:
-        fail = _failer("<GimbalSpec>")
+        fail = _Fail("<GimbalSpec>")
         _vector(self.pointing_error_frac_of_range, "pointing_error_frac_of_range", fail, lo=0.0)
         _vector(self.pointing_error_period_s, "pointing_error_period_s", fail, lo=0.0, lo_open=True, unit="s")
 
@@ -329,7 +325,7 @@ class CameraSpec:
     gimbal: GimbalSpec | None = REFERENCE_GIMBAL
 
     def __post_init__(self) -> None:
-        fail = _failer("<CameraSpec>")
+        fail = _Fail("<CameraSpec>")
         if not isinstance(self.intrinsics, PinholeIntrinsics):
             fail("intrinsics", "a PinholeIntrinsics", self.intrinsics)
         if not isinstance(self.mount, CameraMount):
@@ -362,7 +358,7 @@ class Scenario:
     source_path: Path | None = None
 
     def __post_init__(self) -> None:
-        fail = _failer(self.source_path if self.source_path is not None else "<Scenario>")
+        fail = _Fail(self.source_path if self.source_path is not None else "<Scenario>")
         _string(self.name, "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
         _string(self.description, "description", fail)
         if not isinstance(self.origin, GeodeticOrigin):
@@ -394,7 +390,7 @@ class Scenario:
         Streams used here: ``"target.disturbance"``.  Other components pick their own names
         (e.g. ``"noise.pixel"``) so adding a stream never shifts another.
         """
-        run_seed = _integer(run_seed, "run_seed", _failer(f"<Scenario {self.name}>"), lo=0)
+        run_seed = _integer(run_seed, "run_seed", _Fail(f"<Scenario {self.name}>"), lo=0)
         key = zlib.crc32(stream.encode("utf-8"))
         return np.random.default_rng(np.random.SeedSequence([int(self.seed), run_seed, key]))
 
@@ -431,7 +427,7 @@ class NoiseCase:
     description: str = ""
 
     def __post_init__(self) -> None:
-        fail = _failer("<NoiseCase>")
+        fail = _Fail("<NoiseCase>")
         _string(self.name, "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
         _string(self.description, "description", fail)
         for f in fields(self):
@@ -459,7 +455,7 @@ _MOTION_KEYS: dict[str, dict[str, tuple[str, bool]]] = {
 MOTION_MODELS: tuple[str, ...] = tuple(_MOTION_KEYS)
 
 
-def _motion_from_dict(d, path: str, fail: Fail) -> Motion:
+def _motion_from_dict(d, path: str, fail: _Fail) -> Motion:
     if not isinstance(d, dict):
         fail(path, f"a mapping with 'model' (one of {', '.join(MOTION_MODELS)}) and its parameters", d)
     if "model" not in d:
@@ -494,7 +490,7 @@ def _motion_from_dict(d, path: str, fail: Fail) -> Motion:
     return Waypoints(v["points_ned_m"], v["speed_mps"])
 
 
-def _disturbance_from_dict(d, path: str, fail: Fail) -> SingerDisturbance | None:
+def _disturbance_from_dict(d, path: str, fail: _Fail) -> SingerDisturbance | None:
     if d is None:
         return None
     keys = ("model", "sigma_horizontal_mps2", "sigma_vertical_mps2", "tau_s")
@@ -510,7 +506,7 @@ def _disturbance_from_dict(d, path: str, fail: Fail) -> SingerDisturbance | None
 # --------------------------------------------------------------------------- camera, IR, origin
 
 
-def _intrinsics_from_dict(d, path: str, fail: Fail) -> PinholeIntrinsics:
+def _intrinsics_from_dict(d, path: str, fail: _Fail) -> PinholeIntrinsics:
     vue = PinholeIntrinsics.vue_pro_640()
     if d is None:
         return vue
@@ -527,7 +523,7 @@ def _intrinsics_from_dict(d, path: str, fail: Fail) -> PinholeIntrinsics:
     return PinholeIntrinsics(fx, fy, cx, cy, w, h, dist)
 
 
-def _mount_from_dict(d, path: str, fail: Fail, gimballed: bool) -> CameraMount:
+def _mount_from_dict(d, path: str, fail: _Fail, gimballed: bool) -> CameraMount:
     if d is None:
         d = {}
     keys = ("lever_arm_frd_m", "roll_deg", "pitch_deg", "yaw_deg")
@@ -537,7 +533,7 @@ def _mount_from_dict(d, path: str, fail: Fail, gimballed: bool) -> CameraMount:
     return CameraMount.from_euler_deg(arm, *ang, gimballed=gimballed)
 
 
-def _gimbal_from_dict(d, path: str, fail: Fail) -> GimbalSpec | None:
+def _gimbal_from_dict(d, path: str, fail: _Fail) -> GimbalSpec | None:
     if d is None:
         return None
     keys = ("pointing_error_frac_of_range", "pointing_error_period_s")
@@ -550,7 +546,7 @@ def _gimbal_from_dict(d, path: str, fail: Fail) -> GimbalSpec | None:
     )
 
 
-def _camera_from_dict(d, path: str, fail: Fail) -> CameraSpec:
+def _camera_from_dict(d, path: str, fail: _Fail) -> CameraSpec:
     if d is None:
         d = {}
     _mapping(d, path, fail, ("intrinsics", "mount", "gimbal"))
@@ -566,7 +562,7 @@ def _camera_from_dict(d, path: str, fail: Fail) -> CameraSpec:
 _PART_KEYS = ("name", "shape", "center_frd_m", "half_extent_m", "temperature_k", "emissivity")
 
 
-def _parts_from_list(v, path: str, fail: Fail) -> tuple[TargetPart, ...]:
+def _parts_from_list(v, path: str, fail: _Fail) -> tuple[TargetPart, ...]:
     if not isinstance(v, list) or not v:
         fail(path, "a non-empty list of parts (mappings with " + ", ".join(_PART_KEYS) + ")", v)
     parts, names = [], set()
@@ -588,7 +584,7 @@ def _parts_from_list(v, path: str, fail: Fail) -> tuple[TargetPart, ...]:
     return tuple(parts)
 
 
-def _ir_from_dict(d, path: str, fail: Fail) -> IrSettings:
+def _ir_from_dict(d, path: str, fail: _Fail) -> IrSettings:
     if d is None:
         return IrSettings()
     names = tuple(f.name for f in fields(IrSettings))
@@ -625,7 +621,7 @@ def _ir_from_dict(d, path: str, fail: Fail) -> IrSettings:
     return IrSettings(**kw)
 
 
-def _origin_from_dict(d, path: str, fail: Fail) -> GeodeticOrigin:
+def _origin_from_dict(d, path: str, fail: _Fail) -> GeodeticOrigin:
     if d is None:
         return DEFAULT_ORIGIN
     _mapping(d, path, fail, ("lat_deg", "lon_deg", "alt_m"))
@@ -636,7 +632,7 @@ def _origin_from_dict(d, path: str, fail: Fail) -> GeodeticOrigin:
     )
 
 
-def _wind_from_dict(d, path: str, fail: Fail) -> tuple[float, float, float]:
+def _wind_from_dict(d, path: str, fail: _Fail) -> tuple[float, float, float]:
     if d is None:
         return _VEC0
     keys = ("n_mps", "e_mps", "d_mps")
@@ -650,7 +646,7 @@ _TOP_KEYS = ("name", "description", "origin", "duration_s", "frame_rate_hz", "se
              "observer", "target", "camera", "ir", "wind")
 
 
-def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: Fail) -> None:
+def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail) -> None:
     """The commanded paths stay finite and apart at every frame."""
     with np.errstate(all="ignore"):
         p_obs = observer.state(t_s).p_ned_m
@@ -672,7 +668,7 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     ``source`` names the origin in error messages (a file path, or ``"<dict>"``); a ``Path``
     becomes ``Scenario.source_path``.  ``d`` is not modified.
     """
-    fail = _failer(source)
+    fail = _Fail(source)
     _mapping(d, "", fail, _TOP_KEYS, ("name", "observer", "target"))
     name = _string(d["name"], "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
     description = _string(d.get("description", ""), "description", fail)
@@ -791,7 +787,7 @@ _NOISE_KEYS = ("description", "pixel_sigma_px", "attitude_white_sigma_deg", "att
 
 def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
     """Validate a parsed noise-case mapping ``{name: {fields}}`` (angles in degrees) into NoiseCases."""
-    fail = _failer(source)
+    fail = _Fail(source)
     if not isinstance(d, dict) or not d:
         fail("", "a non-empty mapping of case name -> fields", d)
     out: dict[str, NoiseCase] = {}
