@@ -499,11 +499,14 @@ class PoseBuffer:
         if not (self.config.min_alt_m <= alt <= self.config.max_alt_m):
             self.counter.count("position_alt_out_of_range", f"alt={alt} m")
             return False
+        v = self._velocity(v_ned_mps)
+        if not self._admit(self._pos, t):  # first: a reboot may reset the origin
+            return False
         if self._origin is None:  # the position stream is empty whenever the origin is unset
             self._origin = GeodeticOrigin(lat, lon, alt)
             log.info("local NED origin fixed at the first valid position: %s", self._origin)
         p = np.asarray(ned_from_geodetic(lat, lon, alt, self._origin), dtype=float).reshape(3)
-        return self._add_position(t, p, v_ned_mps)
+        return self._store_position(t, p, v)
 
     def add_position_ned(self, time_boot_us: int, p_ned_m, v_ned_mps=None) -> bool:
         """Store a local NED position (needs an origin: configured or fixed by an earlier geodetic sample)."""
@@ -521,21 +524,26 @@ class PoseBuffer:
         if not np.all(np.isfinite(p)):
             self.counter.count("position_not_finite", f"p_ned_m={p.tolist()}")
             return False
-        return self._add_position(t, p.copy(), v_ned_mps)
-
-    def _add_position(self, t: int, p: np.ndarray, v_ned_mps) -> bool:
-        v = np.full(3, np.nan)
-        if v_ned_mps is not None:
-            try:
-                v_in = np.asarray(v_ned_mps, dtype=float).reshape(3)
-                if np.all(np.isfinite(v_in)):
-                    v = v_in.copy()
-                else:
-                    self.counter.count("position_velocity_invalid", f"v_ned_mps={v_in.tolist()}; velocity dropped")
-            except (TypeError, ValueError):
-                self.counter.count("position_velocity_invalid", f"v_ned_mps={v_ned_mps!r}; velocity dropped")
+        v = self._velocity(v_ned_mps)
         if not self._admit(self._pos, t):
             return False
+        return self._store_position(t, p.copy(), v)
+
+    def _velocity(self, v_ned_mps) -> np.ndarray:
+        """(3,) velocity, NaN when unknown or invalid (counted; the position is still used)."""
+        if v_ned_mps is None:
+            return np.full(3, np.nan)
+        try:
+            v = np.array(v_ned_mps, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            self.counter.count("position_velocity_invalid", f"v_ned_mps={v_ned_mps!r}; velocity dropped")
+            return np.full(3, np.nan)
+        if not np.all(np.isfinite(v)):
+            self.counter.count("position_velocity_invalid", f"v_ned_mps={v.tolist()}; velocity dropped")
+            return np.full(3, np.nan)
+        return v
+
+    def _store_position(self, t: int, p: np.ndarray, v: np.ndarray) -> bool:
         if self._pos.t_us:
             dt_s = (t - self._pos.t_us[-1]) / US_PER_S
             step_m = float(np.linalg.norm(p - self._pos.values[-1][:3]))

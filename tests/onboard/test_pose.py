@@ -1,0 +1,562 @@
+"""PoseBuffer, RejectCounter and ClockSync: pure, no sockets."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from onboard.errors import ConfigError, InputError
+from onboard.frames import (
+    CameraMount,
+    GeodeticOrigin,
+    euler_from_quat,
+    geodetic_from_ned,
+    quat_conjugate,
+    quat_from_euler,
+    quat_from_rotvec,
+    quat_multiply,
+    quat_rotate,
+    rotvec_from_quat,
+)
+from onboard.pose import (
+    ClockSync,
+    ClockSyncConfig,
+    GimbalReference,
+    PoseBuffer,
+    PoseBufferConfig,
+    PoseSample,
+    RejectCounter,
+)
+
+ATOL_M = 1e-6  # 1 um
+ATOL_GEO_M = 1e-4  # 0.1 mm: geodetic -> NED round trip through pymap3d
+ATOL_RAD = 1e-9
+ATOL_MPS = 1e-6
+ORIGIN = GeodeticOrigin(47.3977, 8.5456, 488.0)
+DEG = math.pi / 180.0
+CAM_Z = np.array([0.0, 0.0, 1.0])  # optical axis in the camera frame
+
+
+def quat_angle(q0, q1) -> float:
+    """Angle (rad) of the rotation between two unit quaternions (atan2 form: accurate near 0)."""
+    dq = quat_multiply(quat_conjugate(q0), q1)
+    return 2.0 * math.atan2(float(np.linalg.norm(dq[1:])), abs(float(dq[0])))
+
+
+class FakeClock:
+    def __init__(self, t: float = 100.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+# --------------------------------------------------------------------------- analytic trajectory
+
+# cubic position (Hermite is exact for cubics) and constant body rate about a fixed axis (SLERP exact)
+P_COEF = np.array([[10.0, -5.0, -100.0], [12.0, 3.0, -1.0], [0.5, -0.8, 0.1], [0.03, 0.01, -0.005]])
+OMEGA_AXIS = np.array([0.2, -0.3, 0.9]) / np.linalg.norm([0.2, -0.3, 0.9])
+OMEGA_RADPS = 0.4
+Q0 = quat_from_euler(0.1, -0.05, 0.7)
+
+
+def p_true(t_s):
+    return P_COEF[0] + P_COEF[1] * t_s + P_COEF[2] * t_s**2 + P_COEF[3] * t_s**3
+
+
+def v_true(t_s):
+    return P_COEF[1] + 2 * P_COEF[2] * t_s + 3 * P_COEF[3] * t_s**2
+
+
+def q_true(t_s):
+    # rotation about a NED-fixed axis: q(t) = Exp(w t) (x) q0
+    return quat_multiply(quat_from_rotvec(OMEGA_AXIS * OMEGA_RADPS * t_s), Q0)
+
+
+def filled_buffer(att_hz=50.0, pos_hz=25.0, t_end_s=4.0, **kw) -> PoseBuffer:
+    buf = PoseBuffer(origin=ORIGIN, **kw)
+    for k in range(int(t_end_s * att_hz) + 1):
+        t_us = int(round(k * 1e6 / att_hz))
+        assert buf.add_attitude(t_us, q_true(t_us / 1e6))
+    for k in range(int(t_end_s * pos_hz) + 1):
+        t_us = int(round(k * 1e6 / pos_hz)) + 7_000  # position stamped off the attitude grid
+        assert buf.add_position_ned(t_us, p_true(t_us / 1e6), v_true(t_us / 1e6))
+    return buf
+
+
+def test_interpolation_matches_analytic_trajectory():
+    buf = filled_buffer()
+    rng = np.random.default_rng(1)
+    for t_us in rng.integers(10_000, 3_990_000, size=200):
+        pose = buf.pose_at(int(t_us))
+        assert pose is not None, buf.last_miss_reason
+        t_s = t_us / 1e6
+        np.testing.assert_allclose(pose.body.p_ned_m, p_true(t_s), atol=ATOL_M)
+        np.testing.assert_allclose(pose.body.v_ned_mps, v_true(t_s), atol=ATOL_MPS)
+        assert quat_angle(pose.body.q_ned_from_body, q_true(t_s)) < ATOL_RAD
+        assert pose.att_span_us == 20_000 or pose.att_span_us == 0
+        assert pose.pos_span_us == 40_000 or pose.pos_span_us == 0
+    assert buf.counter.total == 0
+
+
+def test_linear_mode_is_not_exact_on_a_curved_path_but_hermite_is():
+    t_us = 1_027_000
+    lin = filled_buffer(config=PoseBufferConfig(position_interp="linear")).pose_at(t_us)
+    her = filled_buffer().pose_at(t_us)
+    err_lin = np.linalg.norm(lin.body.p_ned_m - p_true(t_us / 1e6))
+    err_her = np.linalg.norm(her.body.p_ned_m - p_true(t_us / 1e6))
+    assert err_her < ATOL_M
+    assert err_lin > 100 * ATOL_M  # the chord of a curved path: ~0.1 mm here, so the test can tell them apart
+
+
+def test_geodetic_input_about_first_position_origin():
+    buf = PoseBuffer()
+    t_grid = np.arange(0, 2_000_001, 40_000)
+    for t_us in t_grid:
+        lat, lon, alt = geodetic_from_ned(p_true(t_us / 1e6), ORIGIN)
+        assert buf.add_position(int(t_us), float(lat), float(lon), float(alt), v_true(t_us / 1e6))
+    for t_us in np.arange(0, 2_000_001, 20_000):
+        assert buf.add_attitude(int(t_us), q_true(t_us / 1e6))
+    origin = buf.origin
+    lat0, lon0, alt0 = geodetic_from_ned(p_true(0.0), ORIGIN)
+    assert origin.lat_deg == pytest.approx(float(lat0), abs=1e-12)
+    assert origin.alt_m == pytest.approx(float(alt0), abs=1e-9)
+    pose = buf.pose_at(1_234_000)
+    # the local frame is about the first fix, so positions are relative to p_true(0)
+    np.testing.assert_allclose(pose.body.p_ned_m, p_true(1.234) - p_true(0.0), atol=ATOL_GEO_M * 10)
+
+
+def test_slerp_midpoint_between_two_known_attitudes_is_exact():
+    buf = PoseBuffer(origin=ORIGIN)
+    buf.add_attitude(1_000_000, quat_from_euler(0.0, 0.0, 0.0))
+    buf.add_attitude(1_080_000, quat_from_euler(0.0, 0.0, 90 * DEG))
+    buf.add_position_ned(1_000_000, [0, 0, -50])
+    buf.add_position_ned(1_080_000, [0, 0, -50])
+    pose = buf.pose_at(1_040_000)
+    roll, pitch, yaw = euler_from_quat(pose.body.q_ned_from_body)
+    assert yaw == pytest.approx(45 * DEG, abs=ATOL_RAD)
+    assert roll == pytest.approx(0.0, abs=ATOL_RAD) and pitch == pytest.approx(0.0, abs=ATOL_RAD)
+    # a quarter of the way: 22.5 deg (constant rate, not a chord)
+    assert euler_from_quat(buf.pose_at(1_020_000).body.q_ned_from_body)[2] == pytest.approx(22.5 * DEG, abs=ATOL_RAD)
+
+
+def test_position_signs_and_units_north_east_up():
+    buf = PoseBuffer(origin=GeodeticOrigin(47.0, 8.0, 500.0))
+    buf.add_attitude(0, [1, 0, 0, 0])
+    buf.add_attitude(100_000, [1, 0, 0, 0])
+    buf.add_position(0, 47.0, 8.0, 500.0, (0.0, 0.0, 0.0))
+    # 1e-5 deg of latitude is M * 1e-5 * pi/180 m north (M: meridional radius); 10 m higher is -10 m down
+    buf.add_position(100_000, 47.00001, 8.0, 510.0, None)
+    p = buf.pose_at(100_000).body.p_ned_m
+    a_m, e2 = 6378137.0, 6.69437999014e-3
+    m_m = a_m * (1 - e2) / (1 - e2 * math.sin(47 * DEG) ** 2) ** 1.5 + 500.0
+    assert p[0] == pytest.approx(m_m * 1e-5 * DEG, abs=1e-4)
+    assert abs(p[1]) < 1e-6
+    assert p[2] == pytest.approx(-10.0, abs=1e-4)
+    # without a second velocity: linear, and v from the chord (north +, up = -down)
+    mid = buf.pose_at(50_000).body
+    np.testing.assert_allclose(mid.p_ned_m, p / 2, atol=ATOL_M)
+    np.testing.assert_allclose(mid.v_ned_mps, p / 0.1, atol=ATOL_MPS)
+
+
+def test_camera_pose_uses_mount_lever_arm_and_rotation():
+    mount = CameraMount.from_euler_deg((1.0, 0.0, 0.2), pitch_deg=-30.0)  # 1 m forward, 0.2 m below, 30 deg down
+    buf = PoseBuffer(mount=mount, origin=ORIGIN)
+    q_nb = quat_from_euler(0.0, 0.0, 90 * DEG)  # nose east
+    for t in (0, 20_000):
+        buf.add_attitude(t, q_nb)
+        buf.add_position_ned(t, [5.0, 6.0, -100.0])
+    pose = buf.pose_at(10_000)
+    np.testing.assert_allclose(pose.p_cam_ned_m, [5.0, 7.0, -99.8], atol=ATOL_M)
+    axis = quat_rotate(pose.q_ned_from_cam, CAM_Z)
+    np.testing.assert_allclose(axis, [0.0, math.cos(30 * DEG), math.sin(30 * DEG)], atol=1e-9)
+    assert pose.q_mount_from_gimbal is None and pose.gimbal_span_us is None
+
+
+# --------------------------------------------------------------------------- gimbal
+
+
+def gimballed_buffer(q_nb, ref, q_g):
+    buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN)
+    for t in (0, 20_000):
+        buf.add_attitude(t, q_nb)
+        buf.add_position_ned(t, [0.0, 0.0, -100.0])
+    for t in (0, 50_000):
+        if ref == GimbalReference.MOUNT:
+            assert buf.add_gimbal(t, q_g)
+        else:
+            assert buf.add_gimbal_status(t, q_g, ref)
+    return buf
+
+
+def test_gimbal_relative_to_mount_adds_to_body_attitude():
+    q_nb = quat_from_euler(0.0, 0.0, 0.0)
+    buf = gimballed_buffer(q_nb, GimbalReference.MOUNT, quat_from_euler(0.0, -30 * DEG, 0.0))
+    axis = quat_rotate(buf.pose_at(10_000).q_ned_from_cam, CAM_Z)
+    np.testing.assert_allclose(axis, [math.cos(30 * DEG), 0.0, math.sin(30 * DEG)], atol=1e-9)
+
+
+def test_gimbal_in_earth_frame_ignores_body_attitude():
+    q_nb = quat_from_euler(10 * DEG, 5 * DEG, 45 * DEG)
+    buf = gimballed_buffer(q_nb, GimbalReference.EARTH, quat_from_euler(0.0, -90 * DEG, 0.0))
+    pose = buf.pose_at(10_000)
+    np.testing.assert_allclose(quat_rotate(pose.q_ned_from_cam, CAM_Z), [0.0, 0.0, 1.0], atol=1e-9)
+    # and q_mount_from_gimbal is what a body-fixed mount would need to look straight down
+    q_ng = quat_multiply(quat_multiply(q_nb, [1, 0, 0, 0]), pose.q_mount_from_gimbal)
+    assert quat_angle(q_ng, quat_from_euler(0.0, -90 * DEG, 0.0)) < 1e-9
+
+
+def test_gimbal_in_vehicle_frame_follows_heading_not_roll():
+    q_nb = quat_from_euler(20 * DEG, -4 * DEG, 60 * DEG)
+    buf = gimballed_buffer(q_nb, GimbalReference.VEHICLE, quat_from_euler(0.0, -20 * DEG, 0.0))
+    axis = quat_rotate(buf.pose_at(10_000).q_ned_from_cam, CAM_Z)
+    expected = [math.cos(20 * DEG) * math.cos(60 * DEG), math.cos(20 * DEG) * math.sin(60 * DEG), math.sin(20 * DEG)]
+    np.testing.assert_allclose(axis, expected, atol=1e-9)
+
+
+def test_gimballed_mount_without_gimbal_samples_has_no_pose():
+    buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN)
+    for t in (0, 20_000):
+        buf.add_attitude(t, [1, 0, 0, 0])
+        buf.add_position_ned(t, [0, 0, 0])
+    assert buf.pose_at(10_000) is None
+    assert buf.last_miss_reason == "gimbal_empty"
+    assert buf.counter["pose_gimbal_empty"] == 1
+
+
+def test_gimbal_reference_change_restarts_stream():
+    buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN)
+    buf.add_gimbal_status(0, [1, 0, 0, 0], GimbalReference.EARTH)
+    buf.add_gimbal_status(10_000, [1, 0, 0, 0], GimbalReference.VEHICLE)
+    assert buf.sizes()["gimbal"] == 1
+    assert buf.counter["gimbal_reference_changed"] == 1
+
+
+# --------------------------------------------------------------------------- tolerances and misses
+
+
+def sparse_buffer() -> PoseBuffer:
+    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(att_max_gap_us=100_000, pos_max_gap_us=300_000))
+    for t in (1_000_000, 1_050_000, 1_550_000, 1_600_000):  # a 500 ms attitude hole
+        buf.add_attitude(t, [1, 0, 0, 0])
+    for t in range(1_000_000, 1_700_001, 100_000):
+        buf.add_position_ned(t, [0, 0, 0], [0, 0, 0])
+    return buf
+
+
+@pytest.mark.parametrize(
+    "t_us, reason, retry",
+    [
+        (999_999, "attitude_before_buffer", False),
+        (1_300_000, "attitude_gap", False),  # bracket 1.05 .. 1.55 s is wider than 100 ms
+        (1_650_000, "attitude_not_yet", True),  # newer than the last sample, within the gap: ask again
+        (1_800_000, "attitude_gap", False),  # newer by more than the gap: a telemetry gap
+        (-5, "time_invalid", False),
+    ],
+)
+def test_lookup_misses_name_a_reason(t_us, reason, retry):
+    buf = sparse_buffer()
+    res = buf.lookup(t_us)
+    assert res.pose is None and res.reason == reason and res.retry == retry
+    assert buf.counter.total == 0  # lookup has no side effects
+    assert buf.pose_at(t_us) is None
+    assert buf.counter[f"pose_{reason}"] == 1 and buf.last_miss_reason == reason
+
+
+def test_lookup_at_exact_sample_times_and_ends():
+    buf = sparse_buffer()
+    for t in (1_000_000, 1_050_000, 1_600_000):
+        pose = buf.pose_at(t)
+        assert pose is not None and pose.time_boot_us == t
+    assert buf.pose_at(1_025_000).att_span_us == 50_000
+
+
+def test_position_gap_gives_none():
+    buf = PoseBuffer(origin=ORIGIN)
+    for t in range(0, 1_000_001, 20_000):
+        buf.add_attitude(t, [1, 0, 0, 0])
+    buf.add_position_ned(0, [0, 0, 0])
+    buf.add_position_ned(900_000, [10, 0, 0])  # GPS dropout of 0.9 s
+    assert buf.pose_at(450_000) is None and buf.last_miss_reason == "position_gap"
+
+
+def test_no_origin_no_pose():
+    buf = PoseBuffer()
+    buf.add_attitude(0, [1, 0, 0, 0])
+    assert buf.lookup(0).reason == "no_origin"
+
+
+# --------------------------------------------------------------------------- rejections
+
+
+@pytest.mark.parametrize(
+    "q, reason",
+    [
+        ([math.nan, 0, 0, 0], "attitude_not_finite"),
+        ([1, math.inf, 0, 0], "attitude_not_finite"),
+        ([0, 0, 0, 0], "attitude_zero"),
+        ([1.1, 0, 0, 0], "attitude_not_unit"),
+        ([1, 0, 0], "attitude_shape"),
+        ("abcd", "attitude_shape"),
+    ],
+)
+def test_bad_quaternions_are_counted_not_stored(q, reason):
+    buf = PoseBuffer(origin=ORIGIN)
+    assert not buf.add_attitude(1000, q)
+    assert buf.counter.counts == {reason: 1}
+    assert buf.sizes()["attitude"] == 0
+
+
+@pytest.mark.parametrize(
+    "lat, lon, alt, reason",
+    [
+        (0.0, 0.0, 0.0, "position_zero"),  # GPS dropout
+        (2147483647e-7, 2147483647e-7, 100.0, "position_out_of_range"),  # INT32_MAX sentinel
+        (47.0, 181.0, 100.0, "position_out_of_range"),
+        (math.nan, 8.0, 100.0, "position_not_finite"),
+        (47.0, 8.0, 2147483.647, "position_alt_out_of_range"),
+    ],
+)
+def test_bad_positions_are_counted_not_stored(lat, lon, alt, reason):
+    buf = PoseBuffer()
+    assert not buf.add_position(1000, lat, lon, alt, (0, 0, 0))
+    assert buf.counter.counts == {reason: 1}
+    assert buf.origin is None  # a rejected fix never becomes the origin
+
+
+def test_bad_times_are_counted():
+    buf = PoseBuffer(origin=ORIGIN)
+    assert not buf.add_attitude(-1, [1, 0, 0, 0])
+    assert not buf.add_attitude(1.5, [1, 0, 0, 0])
+    assert not buf.add_position_ned(None, [0, 0, 0])
+    assert buf.counter.counts == {"attitude_time_invalid": 2, "position_time_invalid": 1}
+
+
+def test_duplicates_and_small_reordering_are_rejected_without_reboot():
+    buf = PoseBuffer(origin=ORIGIN)
+    assert buf.add_attitude(1_000_000, [1, 0, 0, 0])
+    assert buf.add_attitude(1_020_000, [1, 0, 0, 0])
+    assert not buf.add_attitude(1_020_000, [1, 0, 0, 0])
+    assert not buf.add_attitude(1_010_000, [1, 0, 0, 0])
+    assert buf.counter.counts == {"attitude_duplicate": 1, "attitude_out_of_order": 1}
+    assert buf.sizes()["attitude"] == 2 and buf.reboots == 0
+
+
+def test_reboot_clears_buffers_keeps_origin_and_counts():
+    buf = filled_buffer(t_end_s=3.0)
+    assert buf.pose_at(2_000_000) is not None
+    assert buf.add_attitude(200_000, [1, 0, 0, 0])  # time_boot went back 2.8 s
+    assert buf.reboots == 1 and buf.counter["reboot"] == 1
+    assert buf.sizes() == {"attitude": 1, "position": 0, "gimbal": 0}
+    assert buf.origin == ORIGIN
+    # position after the reboot is accepted without a second reboot count
+    assert buf.add_position_ned(210_000, [0, 0, -10])
+    assert buf.reboots == 1
+    assert buf.pose_at(2_000_000) is None
+
+
+def test_reboot_without_keep_origin_refixes_at_next_position():
+    buf = PoseBuffer(config=PoseBufferConfig(keep_origin_on_reboot=False))
+    buf.add_position(5_000_000, 47.0, 8.0, 400.0)
+    buf.add_position(4_000_000 - 1, 46.0, 7.0, 300.0)  # back 1 s + 1 us: reboot
+    assert buf.reboots == 1 and buf.origin == GeodeticOrigin(46.0, 7.0, 300.0)
+
+
+def test_position_jump_rejected_then_stream_restarts_after_persisting():
+    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=100.0, jump_reset_count=3))
+    assert buf.add_position_ned(0, [0, 0, 0])
+    assert buf.add_position_ned(100_000, [5, 0, 0])  # 50 m/s: fine
+    assert not buf.add_position_ned(200_000, [5_000, 0, 0])  # 50 km/s: glitch
+    assert buf.add_position_ned(300_000, [15, 0, 0])  # back on track; counter of jumps resets
+    assert not buf.add_position_ned(400_000, [9_000, 0, 0])
+    assert not buf.add_position_ned(500_000, [9_010, 0, 0])
+    assert buf.add_position_ned(600_000, [9_020, 0, 0])  # third in a row: accepted, stream restarted
+    assert buf.counter.counts == {"position_jump": 3, "position_reset": 1}
+    assert buf.sizes()["position"] == 1
+
+
+def test_invalid_velocity_is_dropped_and_interpolation_falls_back_to_linear():
+    buf = PoseBuffer(origin=ORIGIN)
+    buf.add_attitude(0, [1, 0, 0, 0])
+    buf.add_attitude(100_000, [1, 0, 0, 0])
+    assert buf.add_position_ned(0, [0, 0, 0], [math.nan, 0, 0])
+    assert buf.add_position_ned(100_000, [2, 0, 0], [20, 0, 0])
+    assert buf.counter.counts == {"position_velocity_invalid": 1}
+    np.testing.assert_allclose(buf.pose_at(50_000).body.p_ned_m, [1, 0, 0], atol=ATOL_M)
+
+
+def test_window_bounds_every_stream():
+    buf = filled_buffer(t_end_s=12.0)
+    sizes = buf.sizes()
+    assert sizes["attitude"] == 5 * 50 + 1 and sizes["position"] == 5 * 25 + 1
+    assert buf.lookup(6_000_000).reason == "attitude_before_buffer"
+    assert buf.pose_at(11_000_000) is not None
+
+
+def test_pose_sample_validation_names_the_field():
+    with pytest.raises(InputError, match="p_ned_m"):
+        PoseSample(0, [0, 0, math.nan], [0, 0, 0], [1, 0, 0, 0])
+    with pytest.raises(InputError, match="q_ned_from_body"):
+        PoseSample(0, [0, 0, 0], [0, 0, 0], [2, 0, 0, 0])
+    with pytest.raises(InputError, match="time_boot_us"):
+        PoseSample(-3, [0, 0, 0], [0, 0, 0], [1, 0, 0, 0])
+    s = PoseSample(3, [0, 0, 0], [math.nan] * 3, [1, 0, 0, 0])
+    with pytest.raises(ValueError):
+        s.p_ned_m[0] = 1.0  # read-only: the noun cannot be mutated through its arrays
+
+
+def test_configs_validate():
+    with pytest.raises(ConfigError, match="att_max_gap_us"):
+        PoseBufferConfig(att_max_gap_us=0)
+    with pytest.raises(ConfigError, match="position_interp"):
+        PoseBufferConfig(position_interp="cubic")
+    with pytest.raises(ConfigError, match="pos_max_gap_us"):
+        PoseBufferConfig(window_us=100_000, pos_max_gap_us=300_000)
+    with pytest.raises(ConfigError, match="min_samples"):
+        ClockSyncConfig(window=2, min_samples=3)
+
+
+# --------------------------------------------------------------------------- reject counter
+
+
+def test_reject_counter_logs_once_per_reason_per_interval(caplog):
+    clock = FakeClock()
+    rc = RejectCounter(log_interval_s=10.0, clock=clock)
+    with caplog.at_level(logging.WARNING, logger="onboard.pose"):
+        for _ in range(5):
+            rc.count("attitude_zero", "zero quaternion")
+        rc.count("position_zero")
+        clock.t += 10.0
+        rc.count("attitude_zero")
+    assert rc.counts == {"attitude_zero": 6, "position_zero": 1} and rc.total == 7
+    msgs = [r.getMessage() for r in caplog.records]
+    assert len(msgs) == 3
+    assert msgs[2].startswith("attitude_zero") and "total 6, 5 since last report" in msgs[2]
+
+
+# --------------------------------------------------------------------------- clock sync
+
+
+def simulate_timesync(cs: ClockSync, rng, n, t0_local_ns, offset_ns, skew_ppm, period_ns=1_000_000_000, max_delay_ns=4_000_000):
+    """Autopilot clock = local + offset + skew * (local - t0); random one-way delays."""
+    t = t0_local_ns
+    for _ in range(n):
+        d_up, d_down = rng.integers(100_000, max_delay_ns, size=2)
+        t_remote_local = t + int(d_up)
+        tc1 = t_remote_local + offset_ns + int(skew_ppm * 1e-6 * (t_remote_local - t0_local_ns))
+        cs.add_exchange(int(t), int(tc1), int(t_remote_local + d_down))
+        t += period_ns
+    return t
+
+
+def test_clock_sync_offset_and_skew():
+    rng = np.random.default_rng(3)
+    cs = ClockSync()
+    t0 = 5_000_000_000_000
+    offset = -4_321_987_654_321  # autopilot booted long after the local clock's epoch
+    assert cs.to_boot_us(t0) is None  # not synced yet
+    t_end = simulate_timesync(cs, rng, 60, t0, offset, skew_ppm=40.0)
+    assert cs.synced
+    assert cs.skew_ppm == pytest.approx(40.0, abs=15.0)
+    for t_local in (t_end, t_end + 2_000_000_000):
+        truth_us = (t_local + offset + 40e-6 * (t_local - t0)) / 1e3
+        assert abs(cs.to_boot_us(t_local) - truth_us) < 2_000  # 2 ms; one-way delays are up to 4 ms
+    assert abs(cs.to_local_ns(cs.to_boot_us(t_end)) - t_end) < 2_000
+
+
+def test_clock_sync_rejects_long_and_negative_round_trips():
+    cs = ClockSync(ClockSyncConfig(max_rtt_ns=10_000_000))
+    assert not cs.add_exchange(1_000, 5_000_000, 1_000 + 20_000_000)
+    assert not cs.add_exchange(1_000, 5_000_000, 500)
+    assert not cs.add_exchange(1_000, 0, 2_000)  # tc1 = 0 is a request, not an answer
+    assert cs.counter.counts == {"timesync_rtt": 2, "timesync_invalid": 1}
+    assert cs.n_samples == 0
+
+
+def test_clock_sync_reseeds_after_remote_clock_restart():
+    rng = np.random.default_rng(4)
+    cs = ClockSync()
+    t = simulate_timesync(cs, rng, 10, 10**12, offset_ns=7 * 10**9, skew_ppm=0.0)
+    # autopilot reboots: its clock now reads ~0 -> offset jumps by -7 s
+    t = simulate_timesync(cs, rng, 2, t, offset_ns=-10**12 + 3 * 10**9, skew_ppm=0.0)
+    assert cs.counter["timesync_outlier"] == 2 and cs.resets == 0
+    assert abs(cs.to_boot_us(t) - (t + 7 * 10**9) / 1e3) < 5_000  # old estimate still in force
+    t = simulate_timesync(cs, rng, 1, t, offset_ns=-10**12 + 3 * 10**9, skew_ppm=0.0)
+    assert cs.resets == 1 and cs.counter["timesync_reset"] == 1
+    assert abs(cs.to_boot_us(t) - (t - 10**12 + 3 * 10**9) / 1e3) < 5_000
+    cs.reset()
+    assert not cs.synced and cs.to_boot_us(t) is None
+
+
+# --------------------------------------------------------------------------- properties
+
+finite = st.floats(-1e3, 1e3, allow_nan=False)
+vec3 = st.tuples(finite, finite, finite)
+
+
+@settings(max_examples=150, deadline=None)
+@given(p0=vec3, p1=vec3, v0=vec3, v1=vec3, dt_ms=st.integers(1, 300), s=st.floats(0.0, 1.0))
+def test_hermite_stays_within_its_bound_of_the_chord(p0, p1, v0, v1, dt_ms, s):
+    cfg = PoseBufferConfig(max_speed_mps=1e9, att_max_gap_us=300_000)
+    buf = PoseBuffer(origin=ORIGIN, config=cfg)
+    dt_us = dt_ms * 1000
+    buf.add_attitude(0, [1, 0, 0, 0])
+    buf.add_attitude(dt_us, [1, 0, 0, 0])
+    buf.add_position_ned(0, p0, v0)
+    buf.add_position_ned(dt_us, p1, v1)
+    t_us = int(round(s * dt_us))
+    pose = buf.pose_at(t_us)
+    assert pose is not None
+    sa = t_us / dt_us
+    p0, p1, v0, v1 = map(np.asarray, (p0, p1, v0, v1))
+    dt_s = dt_us / 1e6
+    m = (p1 - p0) / dt_s
+    chord = (1 - sa) * p0 + sa * p1
+    bound = 4 / 27 * dt_s * (np.linalg.norm(v0 - m) + np.linalg.norm(v1 - m))
+    assert np.linalg.norm(pose.body.p_ned_m - chord) <= bound + 1e-9 * (1 + np.abs(chord).max())
+    # ends are hit exactly
+    if t_us in (0, dt_us):
+        np.testing.assert_allclose(pose.body.p_ned_m, p0 if t_us == 0 else p1, atol=1e-9)
+
+
+@settings(max_examples=150, deadline=None)
+@given(p0=vec3, p1=vec3, s=st.floats(0.0, 1.0))
+def test_linear_interpolation_stays_in_the_box_of_its_ends(p0, p1, s):
+    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=1e9, position_interp="linear"))
+    buf.add_attitude(0, [1, 0, 0, 0])
+    buf.add_attitude(100_000, [1, 0, 0, 0])
+    buf.add_position_ned(0, p0, (1.0, 2.0, 3.0))
+    buf.add_position_ned(100_000, p1, (-4.0, 5.0, 6.0))
+    p = buf.pose_at(int(round(s * 100_000))).body.p_ned_m
+    lo, hi = np.minimum(p0, p1), np.maximum(p0, p1)
+    assert np.all(p >= lo - 1e-9) and np.all(p <= hi + 1e-9)
+
+
+unit_rotvec = st.tuples(st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+
+
+@settings(max_examples=150, deadline=None)
+@given(r0=unit_rotvec, r1=unit_rotvec, s=st.floats(0.0, 1.0))
+def test_slerp_splits_the_angle_in_proportion(r0, r1, s):
+    q0, q1 = quat_from_rotvec(np.array(r0)), quat_from_rotvec(np.array(r1))
+    buf = PoseBuffer(origin=ORIGIN)
+    buf.add_attitude(0, q0)
+    buf.add_attitude(80_000, q1)
+    buf.add_position_ned(0, [0, 0, 0])
+    buf.add_position_ned(80_000, [0, 0, 0])
+    t_us = int(round(s * 80_000))
+    sa = t_us / 80_000
+    q = buf.pose_at(t_us).body.q_ned_from_body
+    theta = quat_angle(q0, q1)
+    assert quat_angle(q0, q) == pytest.approx(sa * theta, abs=1e-6)
+    assert quat_angle(q, q1) == pytest.approx((1 - sa) * theta, abs=1e-6)
+    # and the rotation axis is the one between the ends
+    if theta > 1e-3 and 0 < sa < 1:
+        axis01 = rotvec_from_quat(quat_multiply(q1, [q0[0], -q0[1], -q0[2], -q0[3]]))
+        axis0q = rotvec_from_quat(quat_multiply(q, [q0[0], -q0[1], -q0[2], -q0[3]]))
+        np.testing.assert_allclose(axis0q, sa * axis01, atol=1e-6)
