@@ -334,6 +334,15 @@ class CameraSpec:
             fail("gimbal", "a GimbalSpec or None", self.gimbal)
 
 
+def _frame_count(duration_s: float, frame_rate_hz: float) -> int:
+    return max(1, math.ceil(duration_s * frame_rate_hz - FRAME_COUNT_EPS))
+
+
+def _stream_rng(seed: int, stream: str, run_seed: int) -> np.random.Generator:
+    key = zlib.crc32(stream.encode("utf-8"))
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(run_seed), key]))
+
+
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
     """One simulated encounter (see the module docstring and ``docs/scenarios.md``).
@@ -378,7 +387,7 @@ class Scenario:
     @property
     def frame_count(self) -> int:
         """Number of frames: every k >= 0 with k < duration_s * frame_rate_hz."""
-        return max(1, math.ceil(self.duration_s * self.frame_rate_hz - FRAME_COUNT_EPS))
+        return _frame_count(self.duration_s, self.frame_rate_hz)
 
     def frame_times_s(self) -> np.ndarray:
         """Frame times ``k / frame_rate_hz`` (s since start) for k < duration_s * frame_rate_hz, shape (F,)."""
@@ -391,8 +400,7 @@ class Scenario:
         (e.g. ``"noise.pixel"``) so adding a stream never shifts another.
         """
         run_seed = _integer(run_seed, "run_seed", _Fail(f"<Scenario {self.name}>"), lo=0)
-        key = zlib.crc32(stream.encode("utf-8"))
-        return np.random.default_rng(np.random.SeedSequence([int(self.seed), run_seed, key]))
+        return _stream_rng(self.seed, stream, run_seed)
 
     def target_motion(self, run_seed: int = 0) -> Motion:
         """The target's path for run ``run_seed``: its base model plus that run's disturbance
@@ -689,16 +697,18 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     ir = _ir_from_dict(d.get("ir"), "ir", fail)
     wind = _wind_from_dict(d.get("wind"), "wind", fail)
 
-    sc = Scenario(name=name, description=description, origin=origin, duration_s=duration_s,
-                  frame_rate_hz=rate_hz, seed=seed, observer=VehicleSpec(obs_motion),
-                  target=VehicleSpec(tgt_base), camera=camera, ir=ir, wind_ned_mps=wind,
-                  source_path=Path(source) if isinstance(source, Path) else None)
-    _check_paths(obs_motion, tgt_base, sc.frame_times_s(), fail)
-    if disturbance is not None:
-        rng = sc.rng("target.disturbance", 0)
+    t_s = np.arange(_frame_count(duration_s, rate_hz)) / rate_hz
+    _check_paths(obs_motion, tgt_base, t_s, fail)
+    if disturbance is None:
+        target = VehicleSpec(tgt_base)
+    else:
+        rng = _stream_rng(seed, "target.disturbance", 0)
         target = VehicleSpec(Perturbed(tgt_base, disturbance.realise(duration_s + SINGER_MARGIN_S, rng)),
                              tgt_base, disturbance)
-        object.__setattr__(sc, "target", target)  # still a fresh, unshared object: frozen from here on
+    sc = Scenario(name=name, description=description, origin=origin, duration_s=duration_s,
+                  frame_rate_hz=rate_hz, seed=seed, observer=VehicleSpec(obs_motion), target=target,
+                  camera=camera, ir=ir, wind_ned_mps=wind,
+                  source_path=Path(source) if isinstance(source, Path) else None)
     log.debug("scenario %s from %s: %d frames", name, source, sc.frame_count)
     return sc
 

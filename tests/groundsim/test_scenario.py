@@ -578,7 +578,7 @@ def _base_docs():
 _BASES = _base_docs()
 
 
-@settings(max_examples=150, deadline=None)
+@settings(max_examples=120, deadline=None)
 @given(base=st.sampled_from(range(len(_BASES))), picks=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 2), _JUNK), min_size=1, max_size=3))
 def test_random_mutations_raise_only_scenario_error(base, picks):
     d = copy.deepcopy(_BASES[base])
@@ -609,7 +609,7 @@ _TMP = tempfile.TemporaryDirectory(prefix="irtrack-test-scenario-")
 _P1_TEXT = (REPO / "config/scenarios/P1.yaml").read_text()
 
 
-@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(edits=st.lists(st.tuples(st.integers(0, len(_P1_TEXT)), st.integers(0, 4), st.text(max_size=3)), min_size=1, max_size=3))
 def test_random_text_edits_raise_only_scenario_error(edits):
     text = _P1_TEXT
