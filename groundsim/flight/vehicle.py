@@ -302,10 +302,6 @@ class FlownVehicle:
     def _set_ic(self, p_ned, v_ned, roll, pitch, yaw, rates_frd_radps=(0.0, 0.0, 0.0)) -> None:
         fdm = self._fdm
         lat, lon, alt = (float(x) for x in geodetic_from_ned(np.asarray(p_ned, dtype=float), self.origin))
-        w = self.wind_ned_mps
-        fdm["atmosphere/wind-north-fps"] = w[0] / FT_M
-        fdm["atmosphere/wind-east-fps"] = w[1] / FT_M
-        fdm["atmosphere/wind-down-fps"] = w[2] / FT_M
         fdm["ic/lat-geod-deg"] = lat
         fdm["ic/long-gc-deg"] = lon
         fdm["ic/h-sl-ft"] = alt / FT_M
@@ -326,9 +322,15 @@ class FlownVehicle:
             fdm["ic/lat-geod-deg"] = lat
             self._run_ic()
 
-    def _run_ic(self) -> None:
-        if not self._fdm.run_ic():
+    def _run_ic(self, wind_ned_mps=None) -> None:
+        fdm = self._fdm
+        if not fdm.run_ic():
             raise FlightError(f"{self.name}: JSBSim rejected the initial conditions")
+        # run_ic resets the wind to the IC's (horizontal-only) wind: set ours after it
+        w = self.wind_ned_mps if wind_ned_mps is None else wind_ned_mps
+        fdm["atmosphere/wind-north-fps"] = w[0] / FT_M
+        fdm["atmosphere/wind-east-fps"] = w[1] / FT_M
+        fdm["atmosphere/wind-down-fps"] = w[2] / FT_M
 
     def _set_throttle(self, thr: float) -> None:
         thr = max(0.0, min(1.0, thr))
@@ -344,12 +346,9 @@ class FlownVehicle:
         p0, v0 = ref0.p_ned_m, ref0.v_ned_mps
         self._mass_kg = fdm["inertia/mass-slugs"] * SLUG_KG
         # drag per unit mass, measured: |F_aero| = k m |v_air|^2 (the airframe's drag is isotropic)
-        w = self.wind_ned_mps
-        v_air = (v0[0] - w[0], v0[1] - w[1], v0[2] - w[2])
-        s_air = math.sqrt(sum(x * x for x in v_air))
-        v_probe = v0 if s_air > 2.0 else (w[0] + 5.0, w[1], w[2])
-        s_probe = s_air if s_air > 2.0 else 5.0
-        self._set_ic(p0, v_probe, 0.0, 0.0, 0.0)
+        s_probe = 5.0
+        self._set_ic(p0, (s_probe, 0.0, 0.0), 0.0, 0.0, 0.0)
+        self._run_ic(wind_ned_mps=(0.0, 0.0, 0.0))  # aero forces of run_ic, in still air
         f_aero_n = math.sqrt(sum(fdm[f"forces/fb{a}-aero-lbs"] ** 2 for a in "xyz")) * LBF_N
         k_drag = f_aero_n / (self._mass_kg * s_probe**2)
         self.controller = MulticopterController(self.gains, self.dt_control_s, k_drag, self.wind_ned_mps)
