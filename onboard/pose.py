@@ -37,7 +37,8 @@ With ``s = (t - t0) / (t1 - t0)`` and ``dt = t1 - t0`` (s), the cubic Hermite po
 ``h10 = s^3 - 2s^2 + s``, ``h01 = -2s^3 + 3s^2``, ``h11 = s^3 - s^2`` (exact for any cubic
 trajectory).  Its departure from the chord is ``dt * (h10 (v0 - m) + h11 (v1 - m))`` with
 ``m = (p1 - p0) / dt``, bounded by ``4/27 * dt * (|v0 - m| + |v1 - m|)``; so a wrong velocity can
-move the answer by at most that much.  Attitude: ``quat_slerp(q0, q1, s)`` (Shoemake 1985).
+move the answer by at most that much.  Velocity: the reported velocities interpolated linearly
+(the chord slope when one is unknown).  Attitude: ``quat_slerp(q0, q1, s)`` (Shoemake 1985).
 
 Rejection reasons (keys of :attr:`RejectCounter.counts`)
 -------------------------------------------------------
@@ -649,16 +650,14 @@ class PoseBuffer:
         r1 = self._pos.values[j1]
         p0, v0, p1, v1 = r0[:3], r0[3:], r1[:3], r1[3:]
         have_v = bool(np.all(np.isfinite(v0)) and np.all(np.isfinite(v1)))
+        # velocity: the autopilot's own estimate, interpolated linearly, when both ends have it
+        # (differentiating the Hermite would amplify the 1e-7 deg quantisation of #33 over a short dt)
+        v = (1.0 - s) * v0 + s * v1 if have_v else (p1 - p0) / dt_s
         if have_v and self.config.position_interp == "hermite":
             s2, s3 = s * s, s * s * s
             h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
-            p = h00 * p0 + h10 * dt_s * v0 + h01 * p1 + h11 * dt_s * v1
-            d00, d10, d01, d11 = 6 * s2 - 6 * s, 3 * s2 - 4 * s + 1, -6 * s2 + 6 * s, 3 * s2 - 2 * s
-            v = (d00 * p0 + d01 * p1) / dt_s + d10 * v0 + d11 * v1
-            return p, v
-        p = (1.0 - s) * p0 + s * p1
-        v = (1.0 - s) * v0 + s * v1 if have_v else (p1 - p0) / dt_s
-        return p, v
+            return h00 * p0 + h10 * dt_s * v0 + h01 * p1 + h11 * dt_s * v1, v
+        return (1.0 - s) * p0 + s * p1, v
 
     def _q_mount_from_gimbal(self, q_ref_from_gimbal: np.ndarray, q_ned_from_body: np.ndarray) -> np.ndarray:
         if self._gim_ref == GimbalReference.MOUNT:

@@ -1,0 +1,431 @@
+"""MavlinkLink against a pymavlink 'autopilot' on 127.0.0.1 (same process, no threads, fake clock)."""
+
+from __future__ import annotations
+
+import math
+import os
+import select
+import socket
+import time
+
+import numpy as np
+import pytest
+
+os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the link
+
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mav  # noqa: E402
+
+from onboard.errors import ConfigError, InputError  # noqa: E402
+from onboard.frames import CameraMount, GeodeticOrigin, ned_from_geodetic, quat_from_euler, quat_rotate  # noqa: E402
+from onboard.mavlink_link import (  # noqa: E402
+    LINK_CONNECTED,
+    LINK_LOST,
+    LINK_WAITING,
+    MavlinkEndpoint,
+    MavlinkLink,
+    MavlinkLinkConfig,
+    parse_connection,
+)
+from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
+
+WAIT_S = 3.0  # upper bound on any single wait for a loopback event
+AP_SYSID = 7
+ATOL_M = 0.02  # GLOBAL_POSITION_INT quantisation: 1e-7 deg ~ 1.1 cm, alt 1 mm
+ATOL_RAD = 1e-6  # float32 quaternion on the wire
+TIMESYNC_TOL_US = 20_000  # one-way delay asymmetry on a loaded 2-core box, generous
+LAT0, LON0, ALT0 = 47.3977, 8.5456, 488.0
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class FakeAutopilot:
+    """Sends what a PX4/ArduPilot would; answers SET_MESSAGE_INTERVAL and TIMESYNC."""
+
+    def __init__(self, port: int, sysid: int = AP_SYSID) -> None:
+        self.conn = mavutil.mavlink_connection(
+            f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=1, dialect="common"
+        )
+        self.boot_ns = time.monotonic_ns() - 5_000_000_000  # "booted" 5 s ago
+        self.commands: list[tuple[int, int, int]] = []  # (message id, interval us, confirmation)
+        self.results: dict[int, list[int | None]] = {}  # per message id: results to give, None = stay silent
+        self.received: list = []
+
+    def boot_ns_now(self) -> int:
+        return time.monotonic_ns() - self.boot_ns
+
+    def as_component(self, sysid: int, compid: int):
+        self.conn.mav.srcSystem, self.conn.mav.srcComponent = sysid, compid
+
+    def heartbeat(self, mav_type=mav.MAV_TYPE_FIXED_WING, autopilot=mav.MAV_AUTOPILOT_PX4) -> None:
+        self.conn.mav.heartbeat_send(mav_type, autopilot, 0, 0, mav.MAV_STATE_ACTIVE)
+
+    def attitude(self, t_ms: int, q) -> None:
+        self.conn.mav.attitude_quaternion_send(t_ms, *[float(c) for c in q], 0.0, 0.0, 0.0)
+
+    def position(self, t_ms: int, lat_deg, lon_deg, alt_m, v_ned_mps=(0.0, 0.0, 0.0), lat_raw=None, lon_raw=None) -> None:
+        lat = int(round(lat_deg * 1e7)) if lat_raw is None else lat_raw
+        lon = int(round(lon_deg * 1e7)) if lon_raw is None else lon_raw
+        vx, vy, vz = (int(round(c * 100)) for c in v_ned_mps)
+        self.conn.mav.global_position_int_send(t_ms, lat, lon, int(round(alt_m * 1000)), 0, vx, vy, vz, 0)
+
+    def raw(self, data: bytes) -> None:
+        self.conn.write(data)
+
+    def pump(self) -> None:
+        while True:
+            m = self.conn.recv_match(blocking=False)
+            if m is None:
+                return
+            self.received.append(m)
+            t = m.get_type()
+            if t == "COMMAND_LONG" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+                mid = int(m.param1)
+                self.commands.append((mid, int(m.param2), m.confirmation))
+                queue = self.results.get(mid, [])
+                result = queue.pop(0) if queue else mav.MAV_RESULT_ACCEPTED
+                if result is not None:
+                    self.conn.mav.command_ack_send(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
+            elif t == "TIMESYNC" and m.tc1 == 0:
+                self.conn.mav.timesync_send(self.boot_ns_now(), m.ts1)
+
+    def got(self, mtype: str) -> list:
+        return [m for m in self.received if m.get_type() == mtype]
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Rig:
+    def __init__(self, gimballed: bool = False, config: MavlinkLinkConfig | None = None) -> None:
+        self.port = free_udp_port()
+        self.clock = FakeClock()
+        self.counters = RejectCounter(clock=self.clock)
+        mount = CameraMount(gimballed=gimballed)
+        self.pose = PoseBuffer(mount=mount, origin=GeodeticOrigin(LAT0, LON0, ALT0), counter=self.counters)
+        self.link = MavlinkLink(
+            f"udpin:127.0.0.1:{self.port}", self.pose, self.counters, gimballed=gimballed, clock=self.clock,
+            config=config,
+        )
+        self.ap = FakeAutopilot(self.port)
+
+    def step(self) -> None:
+        self.link.poll()
+        self.link.tick()
+        self.ap.pump()
+
+    def drive(self, cond, timeout_s: float = WAIT_S) -> bool:
+        """Run both ends until cond() holds; waits on the sockets, bounded in time."""
+        deadline = time.monotonic() + timeout_s
+        fds = [self.link._conn.port.fileno(), self.ap.conn.port.fileno()]
+        while time.monotonic() < deadline:
+            self.step()
+            if cond():
+                return True
+            select.select(fds, [], [], 0.005)
+        return False
+
+    def connect(self) -> None:
+        self.ap.heartbeat()
+        assert self.drive(lambda: self.link.state == LINK_CONNECTED and self.link.rates_confirmed == set(self.link.rate_plan))
+
+    def close(self) -> None:
+        self.link.close()
+        self.ap.close()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+# --------------------------------------------------------------------------- connection
+
+
+def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
+    assert rig.link.state == LINK_WAITING
+    rig.connect()
+    ap = rig.ap
+    assert sorted((mid, us) for mid, us, _ in ap.commands) == [(31, 20_000), (33, 40_000)]
+    assert all(conf == 0 for *_, conf in ap.commands)
+    # heartbeat as an onboard computer, with the autopilot's system id
+    assert rig.drive(lambda: ap.got("HEARTBEAT"))
+    hb = ap.got("HEARTBEAT")[0]
+    assert (hb.type, hb.autopilot) == (mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID)
+    assert (hb.get_srcSystem(), hb.get_srcComponent()) == (AP_SYSID, mav.MAV_COMP_ID_ONBOARD_COMPUTER)
+    cmd = [m for m in ap.got("COMMAND_LONG")][0]
+    assert (cmd.target_system, cmd.target_component) == (AP_SYSID, 1)
+
+    # 10 m/s north, nose 30 deg right, 1 s of telemetry
+    q = quat_from_euler(0.0, 0.0, math.radians(30.0))
+    dlat_per_m = 1.0 / 111_180.0
+    for k in range(51):
+        ap.attitude(1000 + 20 * k, q)
+        if k % 2 == 0:
+            ap.position(1000 + 20 * k, LAT0 + 10.0 * 0.02 * k * dlat_per_m, LON0, ALT0 + 1.0, (10.0, 0.0, 0.0))
+    assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 51 and rig.pose.sizes()["position"] == 26)
+    pose = rig.pose.pose_at(1_510_000)
+    assert pose is not None
+    expected = ned_from_geodetic(LAT0 + 10.0 * 0.51 * dlat_per_m, LON0, ALT0 + 1.0, GeodeticOrigin(LAT0, LON0, ALT0))
+    assert expected[0] == pytest.approx(5.1, abs=0.01)  # ~111.18 km per degree of latitude here
+    np.testing.assert_allclose(pose.body.p_ned_m, expected, atol=ATOL_M)
+    assert pose.body.p_ned_m[2] == pytest.approx(-1.0, abs=ATOL_M)  # 1 m above the origin: down is negative
+    np.testing.assert_allclose(pose.body.v_ned_mps, [10.0, 0.0, 0.0], atol=1e-6)  # cm/s on the wire
+    np.testing.assert_allclose(pose.body.q_ned_from_body, q, atol=ATOL_RAD)
+    assert rig.counters.total == 0
+
+
+def test_survives_random_bytes_bad_crc_and_bad_values(rig):
+    rig.connect()
+    ap = rig.ap
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        ap.raw(bytes(rng.integers(0, 256, size=120, dtype=np.uint8)))
+    good = ap.conn.mav.heartbeat_encode(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
+    bad = bytearray(good.pack(ap.conn.mav))
+    bad[-3] ^= 0xFF  # a payload byte: the CRC no longer matches
+    ap.raw(bytes(bad))
+    ap.attitude(2000, [math.nan, 0, 0, 0])
+    ap.attitude(2020, [0, 0, 0, 0])
+    ap.position(2000, 0.0, 0.0, 0.0)  # GPS dropout
+    ap.position(2040, 0.0, 0.0, 0.0, lat_raw=2**31 - 1, lon_raw=2**31 - 1)  # INT32_MAX sentinels
+    for k in range(20):  # then good telemetry again (a junk datagram may swallow one)
+        ap.attitude(3000 + 20 * k, [1, 0, 0, 0])
+    assert rig.drive(lambda: rig.pose.sizes()["attitude"] >= 18 and rig.counters["attitude_zero"] == 1)
+    c = rig.counters
+    assert c["mavlink_bad_data"] >= 2  # the CRC failure and at least one junk datagram
+    assert c["attitude_not_finite"] == 1 and c["attitude_zero"] == 1
+    assert c["position_zero"] == 1 and c["position_out_of_range"] == 1
+    assert rig.pose.sizes()["position"] == 0  # no bad fix became a sample
+    assert rig.link.state == LINK_CONNECTED
+
+
+def test_lost_after_heartbeat_timeout_then_recovers_and_rerequests(rig):
+    rig.connect()
+    rig.clock.t += 4.9
+    rig.link.tick()
+    assert rig.link.state == LINK_CONNECTED
+    rig.clock.t += 0.2  # 5.1 s without a heartbeat
+    rig.link.tick()
+    assert rig.link.state == LINK_LOST and rig.counters["autopilot_lost"] == 1
+    assert rig.link.status().rates_confirmed == ()
+    n_before = len(rig.ap.commands)
+    rig.ap.heartbeat()
+    assert rig.drive(lambda: rig.link.state == LINK_CONNECTED and rig.link.rates_confirmed == {31, 33})
+    assert len(rig.ap.commands) == n_before + 2
+    st = rig.link.status()
+    assert st.link_losses == 1 and st.state == LINK_CONNECTED and st.heartbeat_age_s == 0.0
+
+
+def test_rate_request_retried_until_accepted_and_refusal_counted(rig):
+    ap = rig.ap
+    ap.results[31] = [None, mav.MAV_RESULT_TEMPORARILY_REJECTED]  # silence, then "try later"
+    ap.results[33] = [mav.MAV_RESULT_DENIED]
+    ap.heartbeat()
+    assert rig.drive(lambda: len(ap.commands) == 1)
+    rig.clock.t += 1.01
+    assert rig.drive(lambda: len(ap.commands) == 2)
+    rig.clock.t += 1.01
+    assert rig.drive(lambda: 31 in rig.link.rates_confirmed and 33 in rig.link.rates_refused)
+    assert [(mid, conf) for mid, _, conf in ap.commands] == [(31, 0), (31, 1), (31, 2), (33, 0)]
+    assert rig.counters["rate_request_refused"] == 1
+    assert rig.link.status().rates_refused == (33,)
+
+
+def test_ack_for_another_requester_is_ignored(rig):
+    ap = rig.ap
+    ap.results[31] = [None]
+    ap.heartbeat()
+    assert rig.drive(lambda: len(ap.commands) == 1)
+    ap.conn.mav.command_ack_send(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)  # for a GCS
+    rig.drive(lambda: False, timeout_s=0.2)
+    assert rig.link.rates_confirmed == set() and rig.link.status().rates_pending == (31, 33)
+
+
+def test_timesync_maps_local_clock_to_autopilot_boot_clock(rig):
+    rig.connect()
+    for k in range(4):
+        rig.clock.t += 1.0
+        assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
+    assert rig.link.status().clock_synced
+    now_ns = time.monotonic_ns()
+    truth_us = (now_ns - rig.ap.boot_ns) / 1000
+    assert abs(rig.link.to_boot_us(now_ns) - truth_us) < TIMESYNC_TOL_US
+    # the autopilot's own request is answered with our time and its ts1 mirrored
+    rig.ap.conn.mav.timesync_send(0, 123_456_789)
+    assert rig.drive(lambda: any(m.ts1 == 123_456_789 for m in rig.ap.got("TIMESYNC")))
+    reply = [m for m in rig.ap.got("TIMESYNC") if m.ts1 == 123_456_789][0]
+    assert abs(reply.tc1 - time.monotonic_ns()) < 1_000_000_000
+
+
+def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
+    rig.connect()
+    for k in range(3):
+        rig.clock.t += 1.0
+        assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
+    n_before = len(rig.ap.commands)
+    rig.ap.attitude(60_000, [1, 0, 0, 0])
+    rig.ap.attitude(800, [1, 0, 0, 0])  # time_boot_ms went back: the autopilot rebooted
+    assert rig.drive(lambda: rig.pose.reboots == 1 and len(rig.ap.commands) == n_before + 2)
+    assert rig.counters["reboot"] == 1
+    assert rig.pose.sizes()["attitude"] == 1
+    assert rig.link.clock_sync.n_samples == 0 and rig.link.to_boot_us(time.monotonic_ns()) is None
+
+
+def test_other_systems_and_non_autopilot_heartbeats_are_ignored(rig):
+    ap = rig.ap
+    ap.as_component(AP_SYSID, 190)
+    ap.heartbeat(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID)
+    ap.as_component(AP_SYSID, 1)
+    ap.heartbeat(mav.MAV_TYPE_ONBOARD_CONTROLLER, mav.MAV_AUTOPILOT_INVALID)
+    rig.drive(lambda: False, timeout_s=0.2)
+    assert rig.link.state == LINK_WAITING and rig.link.autopilot_sysid is None
+    rig.connect()
+    ap.as_component(42, 1)  # another vehicle on the same link
+    ap.attitude(5000, [1, 0, 0, 0])
+    ap.as_component(AP_SYSID, 1)
+    ap.attitude(5020, [1, 0, 0, 0])
+    assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
+    rig.drive(lambda: False, timeout_s=0.1)
+    assert rig.pose.sizes()["attitude"] == 1 and rig.link.autopilot_sysid == AP_SYSID
+
+
+def test_gimbal_status_reaches_the_pose_buffer():
+    r = Rig(gimballed=True)
+    try:
+        r.connect()
+        assert (285, 100_000) in [(mid, us) for mid, us, _ in r.ap.commands]
+        q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
+        for k in range(3):
+            r.ap.conn.mav.gimbal_device_attitude_status_send(
+                0, 0, 1000 + 100 * k, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [float(c) for c in q_g],
+                math.nan, math.nan, math.nan, 0, math.nan, math.nan, 0,
+            )
+        # a separate gimbal component: its clock is unknown until TIMESYNC converged
+        r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
+        r.ap.conn.mav.gimbal_device_attitude_status_send(
+            0, 0, 77, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [1.0, 0.0, 0.0, 0.0],
+            math.nan, math.nan, math.nan, 0, math.nan, math.nan, 0,
+        )
+        assert r.drive(lambda: r.pose.sizes()["gimbal"] == 3 and r.counters["gimbal_clock_unsynced"] == 1)
+        for t in (1000, 1050, 1100, 1150, 1200):
+            r.pose.add_attitude(t * 1000, quat_from_euler(0.0, 0.0, math.radians(90.0)))
+            r.pose.add_position_ned(t * 1000, [0.0, 0.0, -50.0])
+        pose = r.pose.pose_at(1_100_000)
+        # vehicle frame: 40 deg down, along the nose (east)
+        axis = quat_rotate(pose.q_ned_from_cam, [0.0, 0.0, 1.0])
+        np.testing.assert_allclose(axis, [0.0, math.cos(math.radians(40)), math.sin(math.radians(40))], atol=1e-6)
+    finally:
+        r.close()
+
+
+# --------------------------------------------------------------------------- output
+
+
+def test_tracking_status_messages_on_the_wire(rig):
+    rig.connect()
+    assert rig.link.send_tracking_geo_status(47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5,
+                                             dist_m=800.0, hdg_rad=0.3)
+    assert rig.link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_POINT,
+                                               point_x=0.25, point_y=0.75, radius=0.01)
+    assert rig.drive(lambda: rig.ap.got("CAMERA_TRACKING_GEO_STATUS") and rig.ap.got("CAMERA_TRACKING_IMAGE_STATUS"))
+    geo = rig.ap.got("CAMERA_TRACKING_GEO_STATUS")[0]
+    assert (geo.lat, geo.lon) == (471234568, -1225000000)
+    assert geo.alt == pytest.approx(512.25) and geo.tracking_status == mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    assert (geo.vel_n, geo.vel_e, geo.vel_d) == pytest.approx((10.0, -2.0, 0.5))
+    assert geo.dist == pytest.approx(800.0) and math.isnan(geo.hdg_acc)
+    assert (geo.get_srcSystem(), geo.get_srcComponent()) == (AP_SYSID, 191)
+    img = rig.ap.got("CAMERA_TRACKING_IMAGE_STATUS")[0]
+    assert (img.tracking_mode, img.target_data) == (mav.CAMERA_TRACKING_MODE_POINT, mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
+    assert (img.point_x, img.point_y) == pytest.approx((0.25, 0.75)) and math.isnan(img.rec_top_x)
+
+
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        (dict(lat_deg=91.0), "lat_deg"),
+        (dict(lon_deg=math.nan), "lon_deg"),
+        (dict(h_acc_m=-1.0), "h_acc_m"),
+        (dict(vel_n_mps=math.inf), "vel_n_mps"),
+        (dict(tracking_status=256), "tracking_status"),
+    ],
+)
+def test_geo_status_rejects_bad_fields_by_name(rig, kwargs, field):
+    args = dict(lat_deg=47.0, lon_deg=8.0, alt_m=500.0, h_acc_m=1.0, v_acc_m=1.0, vel_n_mps=0.0, vel_e_mps=0.0,
+                vel_d_mps=0.0, vel_acc_mps=0.1)
+    args.update(kwargs)
+    with pytest.raises(InputError, match=field):
+        rig.link.send_tracking_geo_status(**args)
+
+
+def test_image_status_rejects_bad_fields_by_name(rig):
+    with pytest.raises(InputError, match="point_x"):
+        rig.link.send_tracking_image_status(1, 1, point_x=1.5)
+    with pytest.raises(InputError, match="tracking_mode"):
+        rig.link.send_tracking_image_status(1, 3)
+
+
+# --------------------------------------------------------------------------- connection strings (pure)
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("udpin:0.0.0.0:14540", MavlinkEndpoint("udpin", "udpin:0.0.0.0:14540")),
+        ("udp:127.0.0.1:14550", MavlinkEndpoint("udpin", "udpin:127.0.0.1:14550")),
+        ("udpout:10.0.0.2:14555", MavlinkEndpoint("udpout", "udpout:10.0.0.2:14555")),
+        ("tcp:127.0.0.1:5760", MavlinkEndpoint("tcp", "tcp:127.0.0.1:5760")),
+        ("tcpin:0.0.0.0:5760", MavlinkEndpoint("tcpin", "tcpin:0.0.0.0:5760")),
+        ("serial:/dev/ttyS1:921600", MavlinkEndpoint("serial", "/dev/ttyS1", 921600)),
+        ("serial:///dev/ttyACM0:57600", MavlinkEndpoint("serial", "/dev/ttyACM0", 57600)),
+        ("/dev/ttyUSB0,115200", MavlinkEndpoint("serial", "/dev/ttyUSB0", 115200)),
+        ("/dev/ttyTHS1", MavlinkEndpoint("serial", "/dev/ttyTHS1", 115200)),
+    ],
+)
+def test_parse_connection_forms(text, expected):
+    assert parse_connection(text) == expected
+
+
+@pytest.mark.parametrize("text", ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1",
+                                  "serial:/dev/ttyS1:fast", "serial:"])
+def test_parse_connection_rejects_with_field_name(text):
+    with pytest.raises(ConfigError, match="--mavlink"):
+        parse_connection(text)
+
+
+def test_bad_rates_and_config_are_config_errors():
+    pose = PoseBuffer()
+    with pytest.raises(ConfigError, match="att_rate_hz"):
+        MavlinkLink("udpin:127.0.0.1:1", pose, RejectCounter(), att_rate_hz=0)
+    with pytest.raises(ConfigError, match="heartbeat_timeout_s"):
+        MavlinkLinkConfig(heartbeat_timeout_s=-1)
+
+
+def test_unopenable_connection_is_counted_and_retried():
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    port = free_udp_port()  # nothing listens on this TCP port: connect is refused
+    link = MavlinkLink(f"tcp:127.0.0.1:{port}", PoseBuffer(), counters, clock=clock)
+    assert counters["mavlink_open_failed"] == 1 and link.poll() == 0
+    link.tick()  # too early to retry
+    assert counters["mavlink_open_failed"] == 1
+    clock.t += 2.5
+    link.tick()
+    assert counters["mavlink_open_failed"] == 2 and link.state == LINK_WAITING
+    link.close()
