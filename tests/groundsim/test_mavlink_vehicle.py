@@ -1,0 +1,531 @@
+"""The simulator's MAVLink vehicle on 127.0.0.1: identity, field units, rates, services, MAVSDK."""
+
+from __future__ import annotations
+
+import math
+import os
+import socket
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from groundsim.mavlink_vehicle import (
+    MavlinkConfigError,
+    MavlinkLinkError,
+    MavlinkVehicle,
+    open_mavlink2,
+    parse_connection,
+)
+from onboard.errors import InputError, IrtrackError
+from onboard.frames import quat_from_euler
+
+pytestmark = pytest.mark.timeout(60)
+
+F32_REL = 1e-6  # float32 fields: ~7 significant digits
+WAIT_S = 5.0  # any single datagram exchange on loopback completes well within this
+GCS_SYS, GCS_COMP = 255, 190
+STEP_US = 5000  # lockstep poll period: 200 Hz, a divisor of every stream interval used here
+
+LAT_DEG, LON_DEG = 47.3977419, 8.5455938
+ALT_AMSL_M, ALT_REL_M = 488.123, 30.25
+V_NED_MPS = (12.34, -5.67, -0.89)
+Q_NED_FROM_BODY = tuple(float(x) for x in quat_from_euler(0.1, -0.2, 2.5))
+RATES_RADPS = (0.01, -0.02, 0.3)
+HEADING_RAD = 2.5
+
+
+def _timesync(rx, tc1: int, ts1: int) -> None:
+    if "target_system" in rx.mav.timesync_encode.__code__.co_varnames:
+        rx.mav.timesync_send(tc1, ts1, 1, 1)
+    else:  # pymavlink 2.4.50's common.xml predates TIMESYNC's target extension fields
+        rx.mav.timesync_send(tc1, ts1)
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _state(vehicle: MavlinkVehicle, t_us: int, **over):
+    kw = dict(
+        time_boot_us=t_us,
+        lat_deg=LAT_DEG,
+        lon_deg=LON_DEG,
+        alt_amsl_m=ALT_AMSL_M,
+        alt_rel_m=ALT_REL_M,
+        v_ned_mps=V_NED_MPS,
+        q_ned_from_body=Q_NED_FROM_BODY,
+        body_rates_radps=RATES_RADPS,
+        heading_rad=HEADING_RAD,
+    )
+    kw.update(over)
+    return vehicle.update_state(**kw)
+
+
+@pytest.fixture
+def link():
+    """(receiver, vehicle): a pymavlink 'GCS' on a free udpin port and the vehicle sending to it."""
+    port = _free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", unix_time_at_boot_us=1_700_000_000_000_000)
+    try:
+        yield rx, vehicle
+    finally:
+        vehicle.close()
+        rx.close()
+
+
+def _drain(rx, quiet_s: float = 0.1, limit_s: float = WAIT_S) -> list:
+    """Every message that arrives until ``quiet_s`` passes with none."""
+    out, last, t_end = [], time.monotonic(), time.monotonic() + limit_s
+    while time.monotonic() < t_end:
+        m = rx.recv_match(blocking=False)
+        if m is None:
+            if time.monotonic() - last > quiet_s:
+                break
+            time.sleep(0.002)
+            continue
+        last = time.monotonic()
+        if m.get_type() != "BAD_DATA":
+            out.append(m)
+    return out
+
+
+def _lockstep(vehicle, t0_us: int, t1_us: int, step_us: int = STEP_US, gimbal=None) -> None:
+    for t in range(t0_us, t1_us, step_us):
+        _state(vehicle, t, **({"q_gimbal": gimbal} if gimbal is not None else {}))
+        vehicle.poll(t)
+
+
+def _of(msgs, mtype):
+    return [m for m in msgs if m.get_type() == mtype]
+
+
+def _until(vehicle, now_us: int, rx, mtype: str, pred=lambda m: True):
+    """Poll the vehicle at a fixed boot time until ``rx`` sees a matching reply (bounded)."""
+    t_end = time.monotonic() + WAIT_S
+    while time.monotonic() < t_end:
+        vehicle.poll(now_us)
+        m = rx.recv_match(type=mtype, blocking=False)
+        if m is not None and pred(m):
+            return m
+        time.sleep(0.002)
+    raise AssertionError(f"no {mtype} within {WAIT_S} s")
+
+
+def _prime(rx, vehicle, t_us: int = 0) -> None:
+    """Let the receiver learn the vehicle's address (udpin replies go to known clients)."""
+    vehicle.poll(t_us)
+    _until(vehicle, t_us, rx, "HEARTBEAT")
+
+
+# ----------------------------------------------------------------------------- identity and units
+
+
+def test_heartbeat_identifies_an_active_quadrotor_autopilot_in_mavlink2(link):
+    rx, vehicle = link
+    vehicle.poll(0)
+    hb = _until(vehicle, 0, rx, "HEARTBEAT")
+    assert hb.get_srcSystem() == 1 and hb.get_srcComponent() == 1
+    assert hb.type == 2  # MAV_TYPE_QUADROTOR
+    assert hb.autopilot in (0, 12)  # GENERIC or PX4
+    assert hb.system_status == 4  # MAV_STATE_ACTIVE
+    assert hb.base_mode & 128  # armed
+    assert hb.get_msgbuf()[0] == 0xFD  # MAVLink 2 magic
+
+
+def test_attitude_and_position_fields_in_spec_units(link):
+    rx, vehicle = link
+    t_us = 12_345_678
+    _state(vehicle, t_us)
+    vehicle.poll(t_us + 500)
+    msgs = _drain(rx)
+    (att,) = _of(msgs, "ATTITUDE_QUATERNION")
+    (pos,) = _of(msgs, "GLOBAL_POSITION_INT")
+    (st,) = _of(msgs, "SYSTEM_TIME")
+    assert att.time_boot_ms == pos.time_boot_ms == 12_345  # the state's stamp, not poll time
+    assert (att.q1, att.q2, att.q3, att.q4) == pytest.approx(Q_NED_FROM_BODY, rel=F32_REL, abs=1e-7)
+    assert (att.rollspeed, att.pitchspeed, att.yawspeed) == pytest.approx(RATES_RADPS, rel=F32_REL)
+    assert pos.lat == 473977419 and pos.lon == 85455938  # degE7
+    assert pos.alt == 488123 and pos.relative_alt == 30250  # mm
+    assert (pos.vx, pos.vy, pos.vz) == (1234, -567, -89)  # cm/s NED
+    assert pos.hdg == round(math.degrees(HEADING_RAD) * 100)  # cdeg
+    assert st.time_boot_ms == 12_346 and st.time_unix_usec == 1_700_000_000_000_000 + t_us + 500
+
+
+@pytest.mark.parametrize(
+    "heading_rad, hdg_cdeg",
+    [(0.0, 0), (math.pi / 2, 9000), (-0.1, round((360 - math.degrees(0.1)) * 100)), (2 * math.pi - 1e-9, 0), (float("nan"), 65535)],
+)
+def test_heading_wraps_to_0_35999_and_unknown_is_uint16_max(link, heading_rad, hdg_cdeg):
+    rx, vehicle = link
+    _state(vehicle, 1000, heading_rad=heading_rad)
+    vehicle.poll(1000)
+    (pos,) = _of(_drain(rx), "GLOBAL_POSITION_INT")
+    assert pos.hdg == hdg_cdeg
+
+
+def test_velocity_beyond_int16_saturates(link):
+    rx, vehicle = link
+    _state(vehicle, 1000, v_ned_mps=(400.0, -400.0, 1.0))
+    vehicle.poll(1000)
+    (pos,) = _of(_drain(rx), "GLOBAL_POSITION_INT")
+    assert (pos.vx, pos.vy, pos.vz) == (32767, -32767, 100)
+
+
+# ----------------------------------------------------------------------------- rates
+
+
+def test_lockstep_rates_are_exact_on_the_boot_clock(link):
+    """2 s of boot time polled at 200 Hz, faster than real time: 50 Hz / 25 Hz / 1 Hz exactly."""
+    rx, vehicle = link
+    _lockstep(vehicle, 0, 2_000_000)
+    msgs = _drain(rx)
+    att = [m.time_boot_ms for m in _of(msgs, "ATTITUDE_QUATERNION")]
+    pos = [m.time_boot_ms for m in _of(msgs, "GLOBAL_POSITION_INT")]
+    assert len(att) == 100 and len(pos) == 50
+    assert set(np.diff(att)) == {20} and set(np.diff(pos)) == {40}
+    assert len(_of(msgs, "HEARTBEAT")) == 2 and len(_of(msgs, "SYSTEM_TIME")) == 2
+    assert not _of(msgs, "GIMBAL_DEVICE_ATTITUDE_STATUS")
+
+
+def test_unchanged_state_is_not_resent(link):
+    rx, vehicle = link
+    _state(vehicle, 0)
+    for t in range(0, 1_000_000, STEP_US):
+        vehicle.poll(t)
+    msgs = _drain(rx)
+    assert len(_of(msgs, "ATTITUDE_QUATERNION")) == 1 and len(_of(msgs, "GLOBAL_POSITION_INT")) == 1
+    assert len(_of(msgs, "HEARTBEAT")) == 1
+
+
+def test_custom_rates_from_the_constructor():
+    port = _free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", att_rate_hz=100, pos_rate_hz=10) as vehicle:
+        _lockstep(vehicle, 0, 1_000_000)
+        msgs = _drain(rx)
+    rx.close()
+    assert len(_of(msgs, "ATTITUDE_QUATERNION")) == 100 and len(_of(msgs, "GLOBAL_POSITION_INT")) == 10
+
+
+def test_real_time_threaded_rates(link):
+    """Pumped by a thread on a monotonic clock; counted over a 1 s window of received stamps."""
+    rx, vehicle = link
+    stop = threading.Event()
+
+    def pump():
+        t0 = time.monotonic()
+        while not stop.is_set():
+            now = int((time.monotonic() - t0) * 1e6)
+            _state(vehicle, now)
+            vehicle.poll(now)
+            time.sleep(0.001)
+
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    try:
+        msgs, t_end = [], time.monotonic() + 1.8
+        while time.monotonic() < t_end:
+            m = rx.recv_match(blocking=True, timeout=0.1)
+            if m is not None:
+                msgs.append(m)
+    finally:
+        stop.set()
+        th.join(timeout=WAIT_S)
+    att = [m.time_boot_ms for m in _of(msgs, "ATTITUDE_QUATERNION")]
+    pos = [m.time_boot_ms for m in _of(msgs, "GLOBAL_POSITION_INT")]
+    w0 = 500  # ms; skip the start-up, then count over [w0, w0 + 1000)
+    n_att = sum(w0 <= t < w0 + 1000 for t in att)
+    n_pos = sum(w0 <= t < w0 + 1000 for t in pos)
+    # a shared 2-core machine can starve the pump thread; allow 20 % under, nothing over
+    assert 40 <= n_att <= 51, att
+    assert 20 <= n_pos <= 26, pos
+
+
+# ----------------------------------------------------------------------------- services
+
+
+def test_timesync_request_is_answered_with_our_boot_time(link):
+    rx, vehicle = link
+    _prime(rx, vehicle, 5_000_000)
+    _timesync(rx, 0, 987_654_321_000)
+    reply = _until(vehicle, 5_000_000, rx, "TIMESYNC")
+    assert reply.tc1 == 5_000_000 * 1000  # ns on the vehicle's boot clock
+    assert reply.ts1 == 987_654_321_000
+    if hasattr(reply, "target_system"):
+        assert (reply.target_system, reply.target_component) == (GCS_SYS, GCS_COMP)
+
+
+def test_timesync_response_is_not_answered(link):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    _timesync(rx, 123, 456)  # tc1 != 0: somebody's reply, not a request
+    deadline = time.monotonic() + 0.5
+    while time.monotonic() < deadline and vehicle.counters["rx_TIMESYNC"] == 0:
+        vehicle.poll(0)
+        time.sleep(0.002)
+    assert vehicle.counters["rx_TIMESYNC"] == 1
+    assert not _of(_drain(rx, quiet_s=0.1), "TIMESYNC")
+
+
+def _command(rx, vehicle, now_us, cmd, p1=0.0, p2=0.0, target=(1, 1), use_int=False):
+    if use_int:
+        rx.mav.command_int_send(*target, 0, cmd, 0, 0, p1, p2, 0, 0, 0, 0, 0)
+    else:
+        rx.mav.command_long_send(*target, cmd, 0, p1, p2, 0, 0, 0, 0, 0)
+    return _until(vehicle, now_us, rx, "COMMAND_ACK", lambda m: m.command == cmd)
+
+
+@pytest.mark.parametrize("use_int", [False, True], ids=["COMMAND_LONG", "COMMAND_INT"])
+def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    ack = _command(rx, vehicle, 0, 511, 31, 100_000, use_int=use_int)  # #31 at 10 Hz
+    assert ack.result == 0  # ACCEPTED
+    assert (ack.target_system, ack.target_component) == (GCS_SYS, GCS_COMP)
+    assert vehicle.message_interval_us(31) == 100_000
+    _drain(rx, quiet_s=0.05)
+    _lockstep(vehicle, 0, 1_000_000)
+    assert len(_of(_drain(rx), "ATTITUDE_QUATERNION")) == 10
+
+    # commands arrive at the last polled time of the previous window, so no stream is due
+    assert _command(rx, vehicle, 1_000_000 - STEP_US, 511, 33, -1, use_int=use_int).result == 0  # disable #33
+    _drain(rx, quiet_s=0.05)
+    _lockstep(vehicle, 1_000_000, 2_000_000)
+    msgs = _drain(rx)
+    assert len(_of(msgs, "GLOBAL_POSITION_INT")) == 0 and len(_of(msgs, "ATTITUDE_QUATERNION")) == 10
+
+    assert _command(rx, vehicle, 2_000_000 - STEP_US, 511, 31, 0, use_int=use_int).result == 0  # back to default
+    assert vehicle.message_interval_us(31) == 20_000
+    _drain(rx, quiet_s=0.05)
+    _lockstep(vehicle, 2_000_000, 3_000_000)
+    assert len(_of(_drain(rx), "ATTITUDE_QUATERNION")) == 50
+
+
+@pytest.mark.parametrize(
+    "cmd, p1, p2, result",
+    [
+        (511, 30, 100_000, 2),  # ATTITUDE (#30): we do not emit it -> DENIED
+        (511, 285, 100_000, 2),  # gimbal status, but not gimballed -> DENIED
+        (511, 31.5, 100_000, 2),  # not an integer message id
+        (511, 31, -2, 2),  # bad interval
+        (511, float("nan"), 1, 2),
+        (176, 1, 0, 3),  # MAV_CMD_DO_SET_MODE: UNSUPPORTED
+        (520, 1, 0, 3),  # REQUEST_AUTOPILOT_CAPABILITIES: UNSUPPORTED
+    ],
+)
+def test_unsupported_requests_are_refused_with_an_ack(link, cmd, p1, p2, result):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    ack = _command(rx, vehicle, 0, cmd, p1, p2)
+    assert ack.result == result
+    assert vehicle.message_interval_us(31) == 20_000
+
+
+def test_command_for_another_system_is_ignored(link):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    rx.mav.command_long_send(7, 1, 511, 0, 31, 100_000, 0, 0, 0, 0, 0)
+    deadline = time.monotonic() + WAIT_S
+    while vehicle.counters["rx_COMMAND_LONG"] == 0 and time.monotonic() < deadline:
+        vehicle.poll(0)
+        time.sleep(0.002)
+    assert vehicle.counters["rx_COMMAND_LONG"] == 1
+    assert vehicle.message_interval_us(31) == 20_000
+    assert not _of(_drain(rx, quiet_s=0.1), "COMMAND_ACK")
+
+
+def test_request_message_sends_one_now(link):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    _state(vehicle, 0)
+    vehicle.poll(0)
+    _drain(rx, quiet_s=0.05)
+    ack = _command(rx, vehicle, 1000, 512, 33)
+    assert ack.result == 0
+    (pos,) = _of(_drain(rx), "GLOBAL_POSITION_INT")
+    assert pos.lat == 473977419
+
+
+def test_gimballed_vehicle_sends_gimbal_device_attitude_status():
+    port = _free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
+    q_gimbal = tuple(float(x) for x in quat_from_euler(0.0, -0.5, 0.3))
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10) as vehicle:
+        _lockstep(vehicle, 0, 1_000_000, gimbal=q_gimbal)
+        msgs = _drain(rx)
+    rx.close()
+    gim = _of(msgs, "GIMBAL_DEVICE_ATTITUDE_STATUS")
+    assert len(gim) == 10
+    assert tuple(gim[3].q) == pytest.approx(q_gimbal, rel=F32_REL, abs=1e-7)
+    assert gim[3].flags & 32  # GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
+    assert gim[3].time_boot_ms == 300
+    assert math.isnan(gim[3].delta_yaw)
+
+
+def test_garbage_on_the_wire_is_counted_and_survived(link):
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    (addr,) = rx.clients
+    rng = np.random.default_rng(3)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        for _ in range(50):
+            s.sendto(rng.integers(0, 256, rng.integers(1, 300), dtype=np.uint8).tobytes(), addr)
+        good = bytearray(rx.mav.timesync_encode(0, 42).pack(rx.mav))
+        good[-1] ^= 0xFF  # bad CRC
+        s.sendto(bytes(good), addr)
+    deadline = time.monotonic() + 0.3
+    while time.monotonic() < deadline:
+        vehicle.poll(0)  # must not raise
+        time.sleep(0.002)
+    assert vehicle.counters["rx_bad_data"] >= 1
+    assert not any(k.startswith("rx_UNKNOWN") for k in vehicle.counters)  # bounded counter keys
+    # still serving; pymavlink's parser may swallow a few frames after garbage before it
+    # resyncs, so request periodically, as a real TIMESYNC requester does
+    t_end = time.monotonic() + WAIT_S
+    reply, k = None, 0
+    while reply is None and time.monotonic() < t_end:
+        k += 1
+        _timesync(rx, 0, 1000 + k)
+        for _ in range(20):
+            vehicle.poll(0)
+            time.sleep(0.002)
+        reply = rx.recv_match(type="TIMESYNC", blocking=False)
+    assert reply is not None and 1000 < reply.ts1 <= 1000 + k
+    assert k <= 10, f"took {k} requests to resync"
+
+
+# ----------------------------------------------------------------------------- errors
+
+
+@pytest.mark.parametrize(
+    "connection",
+    ["", "udpout:127.0.0.1", "udpout:127.0.0.1:notaport", "udpout:127.0.0.1:0", "udpout:127.0.0.1:70000", "bogus:1:2", "14540", "udpout::14540"],
+)
+def test_malformed_connection_strings(connection):
+    with pytest.raises(MavlinkConfigError) as e:
+        MavlinkVehicle(connection)
+    assert isinstance(e.value, IrtrackError) and "\n" not in str(e.value)
+
+
+def test_parse_connection_forms():
+    assert parse_connection("udpout:127.0.0.1:14540") == ("udpout", "127.0.0.1", 14540)
+    assert parse_connection("udp:0.0.0.0:14540") == ("udpin", "0.0.0.0", 14540)
+    assert parse_connection("tcp:localhost:5760") == ("tcp", "localhost", 5760)
+    assert parse_connection("/dev/ttyUSB0,57600") == ("serial", None, None)
+
+
+def test_udpin_port_in_use_is_a_typed_one_line_error():
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        with pytest.raises(MavlinkLinkError) as e:
+            MavlinkVehicle(f"udpin:127.0.0.1:{port}")
+    assert "in use" in str(e.value) and str(port) in str(e.value) and "\n" not in str(e.value)
+
+
+def test_udpin_port_held_by_another_pymavlink_is_in_use_too():
+    port = _free_udp_port()
+    first = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 1)  # SO_REUSEADDR, like any pymavlink udpin
+    try:
+        with pytest.raises(MavlinkLinkError):
+            MavlinkVehicle(f"udpin:127.0.0.1:{port}")
+    finally:
+        first.close()
+
+
+def test_tcp_refused_is_a_link_error():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]  # bound, not listening: connect is refused
+        with pytest.raises(MavlinkLinkError):
+            MavlinkVehicle(f"tcp:127.0.0.1:{port}")
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("lat_deg", 91.0),
+        ("lon_deg", float("nan")),
+        ("alt_amsl_m", float("inf")),
+        ("v_ned_mps", (1.0, 2.0)),
+        ("q_ned_from_body", (0.0, 0.0, 0.0, 0.0)),
+        ("q_ned_from_body", (1.0, 1.0, 0.0, 0.0)),
+        ("body_rates_radps", (0.0, float("nan"), 0.0)),
+        ("heading_rad", float("inf")),
+        ("time_boot_us", -1),
+        ("q_gimbal", (2.0, 0.0, 0.0, 0.0)),
+    ],
+)
+def test_bad_state_is_an_input_error_naming_the_field(link, field, value):
+    _, vehicle = link
+    with pytest.raises(InputError) as e:
+        _state(vehicle, 0, **{field: value})
+    assert field in str(e.value)
+
+
+@pytest.mark.parametrize("kw", [dict(att_rate_hz=0), dict(pos_rate_hz=-1), dict(sysid=0), dict(compid=256), dict(att_rate_hz=float("nan"))])
+def test_bad_options(kw):
+    with pytest.raises(MavlinkConfigError):
+        MavlinkVehicle("udpout:127.0.0.1:9", **kw)
+
+
+def test_no_environment_side_effects():
+    before = os.environ.get("MAVLINK20")
+    port = _free_udp_port()
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}") as v:
+        v.poll(0)
+    assert os.environ.get("MAVLINK20") == before
+
+
+# ----------------------------------------------------------------------------- MAVSDK
+
+
+@pytest.mark.integration
+def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
+    mavsdk = pytest.importorskip("mavsdk")
+    from mavsdk.plugins.telemetry.telemetry import Telemetry
+
+    port = _free_udp_port()
+    sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
+    stop = threading.Event()
+
+    def pump():
+        t0 = time.monotonic()
+        while not stop.is_set():
+            now = int((time.monotonic() - t0) * 1e6)
+            _state(vehicle, now)
+            vehicle.poll(now)
+            time.sleep(0.002)
+
+    th = threading.Thread(target=pump, daemon=True)
+    try:
+        sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        th.start()
+        system = sdk.first_autopilot(WAIT_S)
+        assert system is not None, "MAVSDK did not discover the vehicle"
+        assert system.has_autopilot() and system.get_system_id() == 1
+        assert int(system.vehicle_type()) == int(mavsdk.Vehicle.MULTICOPTER)
+        tel = Telemetry(system)
+        deadline = time.monotonic() + WAIT_S
+        pos = att = None
+        while time.monotonic() < deadline:
+            pos, att = tel.position(), tel.attitude_quaternion()
+            if not math.isnan(pos.latitude_deg) and not math.isnan(att.w):
+                break
+            time.sleep(0.05)
+        assert pos.latitude_deg == pytest.approx(LAT_DEG, abs=1e-7)
+        assert pos.longitude_deg == pytest.approx(LON_DEG, abs=1e-7)
+        assert pos.absolute_altitude_m == pytest.approx(ALT_AMSL_M, abs=1e-3)
+        assert pos.relative_altitude_m == pytest.approx(ALT_REL_M, abs=1e-3)
+        assert (att.w, att.x, att.y, att.z) == pytest.approx(Q_NED_FROM_BODY, abs=1e-6)
+    finally:
+        stop.set()
+        th.join(timeout=WAIT_S)
+        sdk.destroy()
+        vehicle.close()
