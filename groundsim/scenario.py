@@ -65,6 +65,7 @@ log = logging.getLogger(__name__)
 
 MAX_DURATION_S = 3600.0  # one hour: longer runs are not scenarios but campaigns
 MAX_FRAME_RATE_HZ = 1000.0
+MAX_SINGER_SIGMA_MPS2 = 100.0  # ~10 g: beyond it a "disturbance" is not one
 MIN_SEPARATION_M = 1.0  # observer and target (commanded paths) must stay this far apart at every frame
 SINGER_MARGIN_S = 1.0  # a disturbance is realised this long past duration_s (no clamping at the end)
 FRAME_COUNT_EPS = 1e-9  # k < duration * rate, robust to 0.1 * 30 = 3.0000000000000004
@@ -248,8 +249,8 @@ class SingerDisturbance:
 
     def __post_init__(self) -> None:
         fail = _Fail("<SingerDisturbance>")
-        _number(self.sigma_horizontal_mps2, "sigma_horizontal_mps2", fail, lo=0.0)
-        _number(self.sigma_vertical_mps2, "sigma_vertical_mps2", fail, lo=0.0)
+        _number(self.sigma_horizontal_mps2, "sigma_horizontal_mps2", fail, lo=0.0, hi=MAX_SINGER_SIGMA_MPS2)
+        _number(self.sigma_vertical_mps2, "sigma_vertical_mps2", fail, lo=0.0, hi=MAX_SINGER_SIGMA_MPS2)
         _number(self.tau_s, "tau_s", fail, lo=0.0, lo_open=True)
 
     @property
@@ -405,6 +406,7 @@ class Scenario:
     def target_motion(self, run_seed: int = 0) -> Motion:
         """The target's path for run ``run_seed``: its base model plus that run's disturbance
         realisation (the base model alone when it has none).  ``target_motion(0) is target.motion``."""
+        run_seed = _integer(run_seed, "run_seed", _Fail(f"<Scenario {self.name}>"), lo=0)
         if run_seed == 0 or self.target.disturbance is None:
             return self.target.motion
         return self.target.realise(self.duration_s + SINGER_MARGIN_S, self.rng("target.disturbance", run_seed))
@@ -505,8 +507,10 @@ def _disturbance_from_dict(d, path: str, fail: _Fail) -> SingerDisturbance | Non
     _mapping(d, path, fail, keys, keys)
     _string(d["model"], _join(path, "model"), fail, choices=("singer",))
     return SingerDisturbance(
-        _number(d["sigma_horizontal_mps2"], _join(path, "sigma_horizontal_mps2"), fail, lo=0.0, unit="m/s^2"),
-        _number(d["sigma_vertical_mps2"], _join(path, "sigma_vertical_mps2"), fail, lo=0.0, unit="m/s^2"),
+        _number(d["sigma_horizontal_mps2"], _join(path, "sigma_horizontal_mps2"), fail, lo=0.0,
+                hi=MAX_SINGER_SIGMA_MPS2, unit="m/s^2"),
+        _number(d["sigma_vertical_mps2"], _join(path, "sigma_vertical_mps2"), fail, lo=0.0,
+                hi=MAX_SINGER_SIGMA_MPS2, unit="m/s^2"),
         _number(d["tau_s"], _join(path, "tau_s"), fail, lo=0.0, lo_open=True, unit="s"),
     )
 

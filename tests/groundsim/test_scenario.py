@@ -228,6 +228,8 @@ def test_rng_streams_are_independent_and_reproducible(shipped):
     assert not np.allclose(x, sc.rng("noise.pixel", 4).standard_normal(4))
     with pytest.raises(ScenarioError, match="run_seed"):
         sc.rng("noise.pixel", -1)
+    with pytest.raises(ScenarioError, match=r"run_seed: expected an integer >= 0, got 1.5"):
+        sc.target_motion(1.5)
 
 
 def test_frame_times_count_k_below_duration_times_rate():
@@ -370,6 +372,8 @@ BAD_CASES = [
      "target.disturbance.model", "expected one of singer, got 'gauss'"),
     ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": -2},
      "target.disturbance.tau_s", "> 0 s"),
+    ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 1e300, "sigma_vertical_mps2": 0.1, "tau_s": 2},
+     "target.disturbance.sigma_horizontal_mps2", "in [0, 100] m/s^2"),
     ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 0.1}, "target.disturbance.sigma_vertical_mps2", "required"),
     ("ir.t_max_k", 200.0, "ir.t_max_k", "a temperature > ir.t_min_k (243.15 K), got 200.0"),
     ("ir", {"t_min_k": 400.0}, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 400.0"),
