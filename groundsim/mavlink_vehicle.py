@@ -98,6 +98,12 @@ _DATA_STREAMS = (MSG_ATTITUDE_QUATERNION, MSG_GLOBAL_POSITION_INT, MSG_GIMBAL_DE
 #: response carries only tc1/ts1, which is all the offset estimate needs.
 _TIMESYNC_HAS_TARGET = "target_system" in mavlink2.MAVLink_timesync_message.fieldnames
 
+_ACK_COUNTER = {
+    mavlink2.MAV_RESULT_ACCEPTED: "ack_accepted",
+    mavlink2.MAV_RESULT_DENIED: "ack_denied",
+    mavlink2.MAV_RESULT_UNSUPPORTED: "ack_unsupported",
+}
+
 _INT16_MAX = 32767
 _INT32_MAX = 2**31 - 1
 _UINT16_MAX = 65535
@@ -540,7 +546,7 @@ class MavlinkVehicle:
         else:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
         self._conn.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
-        self.counters[f"ack_{cmd}_{result}"] += 1
+        self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
         return 1
 
     def _message_id(self, param: float) -> int | None:

@@ -48,6 +48,7 @@ __all__ = [
     "IrFrameError",
     "encode_irframe",
     "decode_irframe",
+    "check_payload_size",
 ]
 
 HEADER = struct.Struct("<4sHHIIIQ4x")
@@ -158,6 +159,19 @@ def encode_irframe(frame: IrFrame) -> bytes:
     return b"".join((header, memoryview(px).cast("B")))
 
 
+def check_payload_size(nbytes: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    """Refuse a payload on its length alone, before anything copies it.
+
+    For a transport whose payload object is not a buffer (zenoh ``ZBytes``: call this with
+    ``len(sample.payload)`` before ``.to_bytes()``).  Raises :class:`IrFrameError`
+    ``'too_large'`` or ``'short'``.
+    """
+    if nbytes > max_bytes:
+        raise IrFrameError("too_large", f"IR frame payload is {nbytes} bytes, above the limit of {max_bytes}")
+    if nbytes < HEADER.size:
+        raise IrFrameError("short", f"IR frame payload is {nbytes} bytes, shorter than the {HEADER.size}-byte header")
+
+
 def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEFAULT_MAX_BYTES) -> IrFrame:
     """Parse and validate one wire payload; never copies before every check has passed.
 
@@ -178,10 +192,7 @@ def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEF
         except TypeError as exc:
             raise IrFrameError("field", "IR frame payload must be a contiguous byte buffer") from exc
     n = mv.nbytes
-    if n > max_bytes:
-        raise IrFrameError("too_large", f"IR frame payload is {n} bytes, above the limit of {max_bytes}")
-    if n < HEADER.size:
-        raise IrFrameError("short", f"IR frame payload is {n} bytes, shorter than the {HEADER.size}-byte header")
+    check_payload_size(n, max_bytes)
     magic, version, encoding, width, height, seq, time_boot_us = HEADER.unpack_from(mv, 0)
     if magic != MAGIC:
         raise IrFrameError("magic", f"IR frame magic is {bytes(magic)!r}, expected {MAGIC!r}")

@@ -324,6 +324,7 @@ def test_unsupported_requests_are_refused_with_an_ack(link, cmd, p1, p2, result)
     ack = _command(rx, vehicle, 0, cmd, p1, p2)
     assert ack.result == result
     assert vehicle.message_interval_us(31) == 20_000
+    assert vehicle.counters[{2: "ack_denied", 3: "ack_unsupported"}[result]] == 1
 
 
 def test_command_for_another_system_is_ignored(link):

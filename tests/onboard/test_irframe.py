@@ -20,6 +20,7 @@ from onboard.irframe import (
     REJECT_REASONS,
     IrFrame,
     IrFrameError,
+    check_payload_size,
     decode_irframe,
     encode_irframe,
 )
@@ -142,6 +143,14 @@ def test_oversize_payload_is_rejected_on_length_before_parsing():
     assert len(payload) > DEFAULT_MAX_BYTES
     assert _reason(payload) == "too_large"
     assert _reason(encode_irframe(_frame(h=64, w=64)), max_bytes=HEADER_BYTES + 64 * 64 * 2 - 1) == "too_large"
+
+
+def test_length_precheck_for_non_buffer_payloads():
+    check_payload_size(HEADER_BYTES)
+    for n, reason in ((HEADER_BYTES - 1, "short"), (DEFAULT_MAX_BYTES + 1, "too_large")):
+        with pytest.raises(IrFrameError) as e:
+            check_payload_size(n)
+        assert e.value.reason == reason
 
 
 def test_memoryview_input_is_accepted():
