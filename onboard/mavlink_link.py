@@ -92,7 +92,6 @@ _GIMBAL_BAD_ATTITUDE = (
 _RESULT_NAMES = {
     v: k[len("MAV_RESULT_"):] for k, v in vars(mavlink2).items() if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
 }
-INT32_MAX = 2**31 - 1
 
 
 # --------------------------------------------------------------------------- connection strings
@@ -250,6 +249,11 @@ class MavlinkLink:
         config: MavlinkLinkConfig | None = None,
     ) -> None:
         self.endpoint = parse_connection(connection)
+        if bool(gimballed) != pose_buffer.mount.gimballed:
+            raise ConfigError(
+                f"MavlinkLink.gimballed={bool(gimballed)} disagrees with the pose buffer's mount "
+                f"(CameraMount.gimballed={pose_buffer.mount.gimballed}); take both from the same config"
+            )
         self.config = config if config is not None else MavlinkLinkConfig()
         self._pose = pose_buffer
         self._counters = counters

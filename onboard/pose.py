@@ -42,15 +42,19 @@ move the answer by at most that much.  Velocity: the reported velocities interpo
 
 Rejection reasons (keys of :attr:`RejectCounter.counts`)
 -------------------------------------------------------
-``attitude_|position_|gimbal_`` + ``time_invalid``, ``duplicate`` (same time again),
-``out_of_order`` (earlier by less than the reboot threshold), ``not_finite``, ``zero``,
-``not_unit``, ``shape``; position also ``zero`` (lat = lon = 0: GPS dropout), ``out_of_range``
-(INT32_MAX sentinels), ``alt_out_of_range``, ``jump`` (implied speed above ``max_speed_mps``),
-``reset`` (a jump persisted: the stream restarts), ``velocity_invalid`` (sample kept, velocity
-dropped); ``gimbal_time_reset``, ``gimbal_reference_changed``.  ``reboot``: time went back by more
-than the threshold on the attitude or position stream (buffers cleared).  Lookups that fail are
-counted by :meth:`PoseBuffer.pose_at` as ``pose_<reason>``.  :class:`ClockSync` counts
-``timesync_invalid``, ``timesync_rtt``, ``timesync_outlier``, ``timesync_reset``.
+Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid``, ``duplicate``
+(same time again), ``out_of_order`` (earlier by less than the reboot threshold), ``not_finite``,
+``shape``; quaternions also ``zero``, ``not_unit``.  Position also ``zero`` (lat = lon = 0: GPS
+dropout), ``out_of_range`` (e.g. INT32_MAX sentinels), ``alt_out_of_range``, ``jump`` (implied speed
+above ``max_speed_mps``), ``reset`` (a jump persisted: the stream restarts), ``velocity_invalid``
+(sample kept, velocity dropped), ``no_origin``.  Gimbal also ``time_reset``, ``reference_changed``,
+``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
+position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
+with reason ``time_invalid``, ``no_origin`` or ``<stream>_empty|before_buffer|not_yet|gap``.
+:class:`ClockSync` counts ``timesync_invalid``, ``timesync_rtt``, ``timesync_outlier``,
+``timesync_reset``.
+
+Limits: ``time_boot_ms`` is uint32 and wraps after 49.7 days; a wrap looks like a reboot.
 """
 
 from __future__ import annotations

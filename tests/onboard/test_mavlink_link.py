@@ -415,6 +415,8 @@ def test_bad_rates_and_config_are_config_errors():
         MavlinkLink("udpin:127.0.0.1:1", pose, RejectCounter(), att_rate_hz=0)
     with pytest.raises(ConfigError, match="heartbeat_timeout_s"):
         MavlinkLinkConfig(heartbeat_timeout_s=-1)
+    with pytest.raises(ConfigError, match="gimballed"):
+        MavlinkLink("udpin:127.0.0.1:1", pose, RejectCounter(), gimballed=True)
 
 
 def test_unopenable_connection_is_counted_and_retried():
