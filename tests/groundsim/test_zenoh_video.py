@@ -9,7 +9,6 @@ import time
 
 import numpy as np
 import pytest
-import zenoh
 
 from groundsim.zenoh_video import FramePublisher
 from onboard.errors import ConfigError, IrtrackError
