@@ -17,9 +17,11 @@ ATTITUDE_QUATERNION (#31)                    50 Hz     q1..q4 = w, x, y, z of ``
 GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AMSL; relative_alt mm;
                                                        vx, vy, vz cm/s NED (int16, saturated);
                                                        hdg cdeg 0..35999 (UINT16_MAX if unknown)
-GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = ``q_mount_from_gimbal``
-                                                       (w, x, y, z), flags YAW_IN_VEHICLE_FRAME,
-                                                       rates / delta_yaw NaN, gimbal_device_id 1
+GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
+                                                       (w, x, y, z) in the earth frame (flag
+                                                       YAW_IN_EARTH_FRAME, default) or the vehicle
+                                                       frame (YAW_IN_VEHICLE_FRAME); delta_yaw =
+                                                       vehicle yaw; rates NaN; gimbal_device_id 1
 ===========================================  ========  =============================================
 
 Data messages (#31, #33, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
@@ -40,9 +42,13 @@ Services (read on every poll):
   and one message now when we can produce it, DENIED otherwise; any other command ->
   UNSUPPORTED.
 
-The gimbal quaternion is the pod's gimbal relative to its mount (``q_mount_from_gimbal``,
-:mod:`onboard.frames`), which is what the onboard reader expects; with a mount aligned to the
-body that is MAVLink's "vehicle frame" (yaw relative to the vehicle heading).
+Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in NED
+(gimbal axes as the mount's in :mod:`onboard.frames`: x optical axis, y right, z down), i.e.
+``q_ned_from_body (x) q_body_from_mount (x) q_mount_from_gimbal``.  MAVLink gimbal protocol v2
+frames: "earth frame" is NED, so q is sent as is; "vehicle frame" is NED turned by the vehicle's
+yaw (roll and pitch still relative to the horizon), so q is sent as
+``conj(q_yaw) (x) q_ned_from_gimbal`` with ``q_yaw = quat_from_euler(0, 0, yaw)``.  In both,
+``delta_yaw`` = the vehicle yaw, the spec's ``q_earth = q_delta_yaw (x) q_vehicle``.
 
 Garbage on the link is counted (``counters['rx_bad_data']``, ``['rx_unknown']``) and skipped by
 pymavlink's resynchronising parser; a partial frame left by garbage can swallow the next two
@@ -70,7 +76,15 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.errors import ConfigError, InputError, IrtrackError
-from onboard.frames import FrameError, check_unit_quat
+from onboard.frames import (
+    FrameError,
+    check_unit_quat,
+    euler_from_quat,
+    quat_conjugate,
+    quat_from_euler,
+    quat_multiply,
+    quat_normalize,
+)
 
 __all__ = [
     "DEFAULT_CONNECTION",
@@ -242,7 +256,7 @@ class VehicleState:
 
     time_boot_us: int, boot clock; lat_deg, lon_deg: WGS84; alt_amsl_m, alt_rel_m: metres;
     v_ned_mps: (3,) NED; q_ned_from_body: (4,) w, x, y, z; body_rates_radps: (3,) FRD p, q, r;
-    heading_rad: yaw over ground, or NaN if unknown; q_mount_from_gimbal: (4,) or None.
+    heading_rad: yaw over ground, or NaN if unknown; q_ned_from_gimbal: (4,) or None.
     """
 
     time_boot_us: int
@@ -254,7 +268,7 @@ class VehicleState:
     q_ned_from_body: tuple[float, float, float, float]
     body_rates_radps: tuple[float, float, float]
     heading_rad: float
-    q_mount_from_gimbal: tuple[float, float, float, float] | None = None
+    q_ned_from_gimbal: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         t = self.time_boot_us
@@ -278,8 +292,8 @@ class VehicleState:
         if math.isinf(h):
             raise InputError(f"vehicle state heading_rad must be finite or NaN (unknown), got {h}")
         object.__setattr__(self, "heading_rad", h)
-        if self.q_mount_from_gimbal is not None:
-            object.__setattr__(self, "q_mount_from_gimbal", _quat("q_gimbal", self.q_mount_from_gimbal))
+        if self.q_ned_from_gimbal is not None:
+            object.__setattr__(self, "q_ned_from_gimbal", _quat("q_gimbal", self.q_ned_from_gimbal))
 
 
 # --------------------------------------------------------------------------- vehicle
@@ -301,6 +315,7 @@ class MavlinkVehicle:
         pos_rate_hz: float = 25.0,
         gimballed: bool = False,
         gimbal_rate_hz: float = 10.0,
+        gimbal_yaw_frame: str = "earth",
         unix_time_at_boot_us: int | None = None,
     ) -> None:
         for name, v in (("sysid", sysid), ("compid", compid)):
@@ -310,6 +325,9 @@ class MavlinkVehicle:
         for name, v in rates.items():
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= 1000:
                 raise MavlinkConfigError(f"MavlinkVehicle.{name} must be in (0, 1000] Hz, got {v!r}")
+        if gimbal_yaw_frame not in ("earth", "vehicle"):
+            raise MavlinkConfigError(f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}")
+        self.gimbal_yaw_frame = gimbal_yaw_frame
         self.connection = connection
         self.sysid = sysid
         self.compid = compid
@@ -350,7 +368,11 @@ class MavlinkVehicle:
         heading_rad: float,
         q_gimbal=None,
     ) -> VehicleState:
-        """Store the latest truth (validated; raises InputError naming a bad field)."""
+        """Store the latest truth (validated; raises InputError naming a bad field).
+
+        Units and frames as :class:`VehicleState`; ``q_gimbal`` is ``q_ned_from_gimbal`` (the
+        gimbal's attitude in NED, see the module docstring), needed only when ``gimballed``.
+        """
         state = VehicleState(
             time_boot_us=time_boot_us,
             lat_deg=lat_deg,
@@ -361,7 +383,7 @@ class MavlinkVehicle:
             q_ned_from_body=q_ned_from_body,
             body_rates_radps=body_rates_radps,
             heading_rad=heading_rad,
-            q_mount_from_gimbal=q_gimbal,
+            q_ned_from_gimbal=q_gimbal,
         )
         self._state = state
         return state
@@ -424,7 +446,7 @@ class MavlinkVehicle:
         if msg_id in _DATA_STREAMS:
             if state is None:
                 return 0
-            if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_mount_from_gimbal is None:
+            if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None:
                 return 0
             if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
                 return 0
@@ -447,20 +469,10 @@ class MavlinkVehicle:
             elif msg_id == MSG_GLOBAL_POSITION_INT:
                 mav.global_position_int_send(*self._global_position_int_fields(state))
             elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
+                flags, q, delta_yaw_rad = self._gimbal_fields(state)
                 nan = math.nan
                 mav.gimbal_device_attitude_status_send(
-                    0,
-                    0,
-                    _time_boot_ms(state.time_boot_us),
-                    mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
-                    list(state.q_mount_from_gimbal),
-                    nan,
-                    nan,
-                    nan,
-                    0,
-                    nan,
-                    nan,
-                    1,
+                    0, 0, _time_boot_ms(state.time_boot_us), flags, q, nan, nan, nan, 0, delta_yaw_rad, nan, 1
                 )
             else:  # pragma: no cover - streams are fixed at construction
                 return 0
@@ -470,6 +482,16 @@ class MavlinkVehicle:
             return 0
         self.counters[f"tx_{msg_id}"] += 1
         return 1
+
+    def _gimbal_fields(self, s: VehicleState) -> tuple[int, list[float], float]:
+        """(flags, q, delta_yaw_rad) of GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame."""
+        _, _, yaw_rad = euler_from_quat(np.asarray(s.q_ned_from_body))
+        yaw_rad = float(yaw_rad)
+        if self.gimbal_yaw_frame == "earth":
+            return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, list(s.q_ned_from_gimbal), yaw_rad
+        q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
+        q_vehicle_from_gimbal = quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal)))
+        return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [float(c) for c in q_vehicle_from_gimbal], yaw_rad
 
     def _global_position_int_fields(self, s: VehicleState) -> tuple:
         v_cmps = []
@@ -576,7 +598,7 @@ class MavlinkVehicle:
         if msg_id is None:
             return mavlink2.MAV_RESULT_DENIED
         if msg_id in _DATA_STREAMS and (
-            state is None or (msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_mount_from_gimbal is None)
+            state is None or (msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None)
         ):
             return mavlink2.MAV_RESULT_DENIED
         self._oneshot.add(msg_id)

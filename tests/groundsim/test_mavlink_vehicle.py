@@ -19,7 +19,7 @@ from groundsim.mavlink_vehicle import (
     parse_connection,
 )
 from onboard.errors import InputError, IrtrackError
-from onboard.frames import quat_from_euler
+from onboard.frames import euler_from_quat, quat_from_euler, quat_multiply
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -352,20 +352,37 @@ def test_request_message_sends_one_now(link):
     assert pos.lat == 473977419
 
 
-def test_gimballed_vehicle_sends_gimbal_device_attitude_status():
+@pytest.mark.parametrize("yaw_frame, flag", [("earth", 64), ("vehicle", 32)])
+def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
+    """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame), or with the vehicle's
+    yaw taken out (vehicle frame); delta_yaw = vehicle yaw either way."""
     port = _free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
-    q_gimbal = tuple(float(x) for x in quat_from_euler(0.0, -0.5, 0.3))
-    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10) as vehicle:
-        _lockstep(vehicle, 0, 1_000_000, gimbal=q_gimbal)
+    q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10, gimbal_yaw_frame=yaw_frame) as vehicle:
+        _lockstep(vehicle, 0, 1_000_000, gimbal=q_ned_from_gimbal)
         msgs = _drain(rx)
     rx.close()
     gim = _of(msgs, "GIMBAL_DEVICE_ATTITUDE_STATUS")
     assert len(gim) == 10
-    assert tuple(gim[3].q) == pytest.approx(q_gimbal, rel=F32_REL, abs=1e-7)
-    assert gim[3].flags & 32  # GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
-    assert gim[3].time_boot_ms == 300
-    assert math.isnan(gim[3].delta_yaw)
+    g = gim[3]
+    assert g.time_boot_ms == 300 and g.flags & flag and not g.flags & (96 ^ flag)
+    yaw_rad = float(euler_from_quat(np.asarray(Q_NED_FROM_BODY))[2])
+    assert g.delta_yaw == pytest.approx(yaw_rad, abs=1e-6)
+    q_wire = np.asarray(g.q, dtype=float)
+    q_back = q_wire if yaw_frame == "earth" else quat_multiply(quat_from_euler(0.0, 0.0, yaw_rad), q_wire)
+    # same rotation (q and -q are equal)
+    assert abs(float(np.dot(q_back, q_ned_from_gimbal))) == pytest.approx(1.0, abs=1e-6)
+    if yaw_frame == "vehicle":  # roll/pitch stay horizon-relative, yaw becomes relative to the nose
+        r, p, y = (float(a) for a in euler_from_quat(q_wire))
+        assert (r, p) == pytest.approx((0.05, -0.5), abs=1e-5)
+        assert y == pytest.approx(2.2 - yaw_rad, abs=1e-5)
+
+
+def test_gimbal_status_is_not_sent_when_not_gimballed(link):
+    rx, vehicle = link
+    _lockstep(vehicle, 0, 200_000, gimbal=(1.0, 0.0, 0.0, 0.0))
+    assert not _of(_drain(rx), "GIMBAL_DEVICE_ATTITUDE_STATUS")
 
 
 def test_garbage_on_the_wire_is_counted_and_survived(link):
@@ -469,7 +486,10 @@ def test_bad_state_is_an_input_error_naming_the_field(link, field, value):
     assert field in str(e.value)
 
 
-@pytest.mark.parametrize("kw", [dict(att_rate_hz=0), dict(pos_rate_hz=-1), dict(sysid=0), dict(compid=256), dict(att_rate_hz=float("nan"))])
+@pytest.mark.parametrize(
+    "kw",
+    [dict(att_rate_hz=0), dict(pos_rate_hz=-1), dict(sysid=0), dict(compid=256), dict(att_rate_hz=float("nan")), dict(gimbal_yaw_frame="body")],
+)
 def test_bad_options(kw):
     with pytest.raises(MavlinkConfigError):
         MavlinkVehicle("udpout:127.0.0.1:9", **kw)
