@@ -5,6 +5,6 @@ control law it runs.  Importing this package does not import or start JSBSim.
 """
 
 from groundsim.flight.guidance import GuidanceGains, TrackingStats
-from groundsim.flight.vehicle import FlightError, FlownState, FlownTrajectory, FlownVehicle, fly
+from groundsim.flight.vehicle import FlightError, FlownState, FlownTrajectory, FlownVehicle, fly, fly_pair
 
-__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "GuidanceGains", "TrackingStats", "fly"]
+__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "GuidanceGains", "TrackingStats", "fly", "fly_pair"]

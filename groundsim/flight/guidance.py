@@ -37,8 +37,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
 
 from onboard.errors import IrtrackError
+from onboard.frames import CameraMount, camera_pose_ned, quat_conjugate, quat_from_euler, quat_multiply, quat_rotate
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -56,6 +60,8 @@ __all__ = [
     "yaw_along",
     "yaw_rate_along",
     "MulticopterController",
+    "gimbal_pointing",
+    "sinusoidal_pointing_error_ned_m",
 ]
 
 #: standard gravity; the controller's model of it (JSBSim's own J2 gravity differs by < 0.3 %,
@@ -152,14 +158,13 @@ class ReferencePoint(tuple):
         return self[2]
 
 
-@dataclass(frozen=True)
-class ControlCommand:
-    """One controller output.
+class ControlCommand(NamedTuple):
+    """One controller output (a NamedTuple: built 100-250 times per simulated second).
 
     ``rates_frd_radps``: (p, q, r) body-rate command; ``specific_thrust_mps2``: thrust / mass;
     ``roll_rad``, ``pitch_rad``: the tilt the loop is steering to (in the current heading's
-    frame), ``yaw_rad``: the heading it is turning to;
-    ``accel_cmd_ned_mps2``: the acceleration the outer loop asked for.
+    frame), ``yaw_rad``: the heading it is turning to; ``accel_cmd_ned_mps2``: the acceleration
+    the outer loop asked for.
     """
 
     rates_frd_radps: tuple
@@ -291,15 +296,29 @@ class MulticopterController:
         self.k_drag_per_m = float(k_drag_per_m)
         self.wind_ned_mps = w
         self._integral = [0.0, 0.0, 0.0]
+        self._kp, self._kd, self._ki = gains.kp, gains.kd, gains.ki
+        self._integral_lim = gains.integral_limit_mps2 / gains.ki if gains.ki > 0 else 0.0
+        self._tan_max_tilt = math.tan(gains.max_tilt_rad)
+        self._ff_ref = None
+        self._ff_force = (0.0, 0.0, -GRAVITY_MPS2)
 
     # -- feed-forward along the reference alone (no feedback): used for trim and rate feed-forward
-    def feedforward_tilt(self, ref: ReferencePoint, yaw_rad: float) -> tuple:
-        """(roll_rad, pitch_rad, c_mps2) that fly ``ref`` exactly if the vehicle were on it."""
+    def feedforward_force(self, ref: ReferencePoint) -> tuple:
+        """Thrust specific force (NED, m/s^2) that flies ``ref`` exactly if the vehicle were on it.
+
+        Cached for the last reference point asked (the next tick asks for it again)."""
+        if ref is self._ff_ref:
+            return self._ff_force
         v, a = ref[1], ref[2]
         w = self.wind_ned_mps
         d = drag_accel_ned((v[0] - w[0], v[1] - w[1], v[2] - w[2]), self.k_drag_per_m)
         f = (a[0] - d[0], a[1] - d[1], a[2] - GRAVITY_MPS2 - d[2])
-        return tilt_from_specific_thrust(f, yaw_rad)
+        self._ff_ref, self._ff_force = ref, f
+        return f
+
+    def feedforward_tilt(self, ref: ReferencePoint, yaw_rad: float) -> tuple:
+        """(roll_rad, pitch_rad, c_mps2) that fly ``ref`` exactly if the vehicle were on it."""
+        return tilt_from_specific_thrust(self.feedforward_force(ref), yaw_rad)
 
     def update(
         self,
@@ -317,46 +336,91 @@ class MulticopterController:
         g = self.gains
         dt = self.dt_s
         pr, vr, ar = ref
-        ep = (pr[0] - p_ned_m[0], pr[1] - p_ned_m[1], pr[2] - p_ned_m[2])
-        ev = (vr[0] - v_ned_mps[0], vr[1] - v_ned_mps[1], vr[2] - v_ned_mps[2])
-        kp, kd, ki = g.kp, g.kd, g.ki
+        kp, kd, ki = self._kp, self._kd, self._ki
         integ = self._integral
-        lim = g.integral_limit_mps2 / ki if ki > 0 else 0.0
+        lim = self._integral_lim
         a_fb = [0.0, 0.0, 0.0]
         for i in range(3):
-            if ki > 0:
-                integ[i] = max(-lim, min(lim, integ[i] + ep[i] * dt))
-            a_fb[i] = kp * ep[i] + kd * ev[i] + ki * integ[i]
+            ep = pr[i] - p_ned_m[i]
+            if ki > 0.0:
+                x = integ[i] + ep * dt
+                integ[i] = lim if x > lim else (-lim if x < -lim else x)
+            a_fb[i] = kp * ep + kd * (vr[i] - v_ned_mps[i]) + ki * integ[i]
         # bound the feedback, never the feed-forward
-        n_fb = math.sqrt(a_fb[0] ** 2 + a_fb[1] ** 2 + a_fb[2] ** 2)
+        n_fb = math.sqrt(a_fb[0] * a_fb[0] + a_fb[1] * a_fb[1] + a_fb[2] * a_fb[2])
         if n_fb > g.max_accel_mps2:
-            a_fb = [x * g.max_accel_mps2 / n_fb for x in a_fb]
+            s = g.max_accel_mps2 / n_fb
+            a_fb = [x * s for x in a_fb]
         a_cmd = (ar[0] + a_fb[0], ar[1] + a_fb[1], ar[2] + a_fb[2])
 
         w = self.wind_ned_mps
         d = drag_accel_ned((v_ned_mps[0] - w[0], v_ned_mps[1] - w[1], v_ned_mps[2] - w[2]), self.k_drag_per_m)
-        f = [a_cmd[0] - d[0], a_cmd[1] - d[1], a_cmd[2] - GRAVITY_MPS2 - d[2]]
+        fn, fe = a_cmd[0] - d[0], a_cmd[1] - d[1]
         # tilt limit: keep the vertical component, shrink the horizontal one
-        f_h = math.hypot(f[0], f[1])
-        up = max(-f[2], _MIN_SPECIFIC_THRUST_MPS2)
-        f[2] = -up
-        max_h = up * math.tan(g.max_tilt_rad)
+        up = GRAVITY_MPS2 + d[2] - a_cmd[2]
+        if up < _MIN_SPECIFIC_THRUST_MPS2:
+            up = _MIN_SPECIFIC_THRUST_MPS2
+        f_h = math.sqrt(fn * fn + fe * fe)
+        max_h = up * self._tan_max_tilt
         if f_h > max_h:
-            f[0] *= max_h / f_h
-            f[1] *= max_h / f_h
+            fn *= max_h / f_h
+            fe *= max_h / f_h
+
         yaw_dot = g.yaw_gain_radps * wrap_pi(yaw_des_rad - yaw_rad) + yaw_rate_ff_radps
-        yaw_dot = max(-g.max_yaw_rate_radps, min(g.max_yaw_rate_radps, yaw_dot))
+        m = g.max_yaw_rate_radps
+        yaw_dot = m if yaw_dot > m else (-m if yaw_dot < -m else yaw_dot)
         # roll and pitch are taken in the *current* heading's frame: while the heading is still
         # turning toward yaw_des, tilting for yaw_des would point the thrust the wrong way
-        roll_d, pitch_d, c = tilt_from_specific_thrust(f, yaw_rad)
+        roll_d, pitch_d, c = tilt_from_specific_thrust((fn, fe, -up), yaw_rad)
 
         # rates the reference itself needs (tilt along the reference, one tick ahead, as the
         # heading turns at the commanded rate)
-        roll_0, pitch_0, _ = self.feedforward_tilt(ref, yaw_rad)
-        roll_1, pitch_1, _ = self.feedforward_tilt(ref_next, yaw_rad + yaw_dot * dt)
-        roll_dot = g.att_gain_radps * (roll_d - roll_rad) + (roll_1 - roll_0) / dt
-        pitch_dot = g.att_gain_radps * (pitch_d - pitch_rad) + (pitch_1 - pitch_0) / dt
+        roll_0, pitch_0, _ = tilt_from_specific_thrust(self.feedforward_force(ref), yaw_rad)
+        roll_1, pitch_1, _ = tilt_from_specific_thrust(self.feedforward_force(ref_next), yaw_rad + yaw_dot * dt)
+        k_att = g.att_gain_radps
+        roll_dot = k_att * (roll_d - roll_rad) + (roll_1 - roll_0) / dt
+        pitch_dot = k_att * (pitch_d - pitch_rad) + (pitch_1 - pitch_0) / dt
         p, q, r = body_rates_from_euler_rates(roll_rad, pitch_rad, roll_dot, pitch_dot, yaw_dot)
         m = g.max_rate_radps
-        rates = (max(-m, min(m, p)), max(-m, min(m, q)), max(-m, min(m, r)))
+        rates = (
+            m if p > m else (-m if p < -m else p),
+            m if q > m else (-m if q < -m else q),
+            m if r > m else (-m if r < -m else r),
+        )
         return ControlCommand(rates, c, roll_d, pitch_d, yaw_des_rad, a_cmd)
+
+
+# --------------------------------------------------------------------------- optional gimbal
+
+
+def gimbal_pointing(p_body_ned_m, q_ned_from_body, mount: CameraMount, aim_ned_m) -> np.ndarray:
+    """``q_mount_from_gimbal`` (..., 4) that puts the optical axis on ``aim_ned_m``.
+
+    A two-axis pan/tilt gimbal: pan about the mount's z (down) axis, then tilt about the panned
+    y axis, ``q_mount_from_gimbal = quat_from_euler(0, tilt, pan)`` (tilt > 0 looks up).  The
+    camera centre is the mount's lever arm (see :func:`onboard.frames.camera_pose_ned`); with
+    the result, ``camera_pose_ned(p, q, mount, q_mount_from_gimbal)`` looks exactly at the aim
+    point.  Vectorised over a leading axis.
+    """
+    q_nb = np.asarray(q_ned_from_body, dtype=float)
+    p_cam, _ = camera_pose_ned(p_body_ned_m, q_nb, mount)
+    q_nm = np.asarray(mount.q_body_from_mount, dtype=float)
+    q_ned_from_mount = quat_multiply(q_nb, q_nm)
+    d_mount = quat_rotate(quat_conjugate(q_ned_from_mount), np.asarray(aim_ned_m, dtype=float) - p_cam)
+    pan = np.arctan2(d_mount[..., 1], d_mount[..., 0])
+    tilt = np.arctan2(-d_mount[..., 2], np.hypot(d_mount[..., 0], d_mount[..., 1]))
+    return quat_from_euler(np.zeros_like(pan), tilt, pan)
+
+
+def sinusoidal_pointing_error_ned_m(t_s, range_m, frac_of_range, period_s, phase_rad) -> np.ndarray:
+    """The reference study's slowly varying gimbal error (``groundsim.scenario.GimbalSpec``).
+
+    Per NED axis ``i``: ``frac_of_range[i] * range_m * sin(2 pi t / period_s[i] + phase_rad[i])``
+    metres, added to the target position to get the aim point.  Shape ``t_s.shape + (3,)``.
+    """
+    t = np.asarray(t_s, dtype=float)[..., None]
+    rng = np.asarray(range_m, dtype=float)[..., None]
+    frac, period, phase = (np.asarray(x, dtype=float).reshape(3) for x in (frac_of_range, period_s, phase_rad))
+    if np.any(period <= 0) or not np.all(np.isfinite(period)):
+        raise GuidanceError(f"period_s must be 3 finite numbers > 0, got {period_s!r}")
+    return frac * rng * np.sin(2.0 * np.pi * t / period + phase)

@@ -53,7 +53,7 @@ from groundsim.flight.guidance import (
 from onboard.errors import IrtrackError
 from onboard.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic, quat_from_euler
 
-__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "fly", "YAW_MODES", "DEFAULT_MODEL"]
+__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "fly", "fly_pair", "YAW_MODES", "DEFAULT_MODEL"]
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +68,9 @@ _SPINUP_S = 0.6
 _CALIBRATION_ITERATIONS = 3
 _DIVERGED_M = 50.0  # farther than this from the reference: the flight has failed
 _T_EPS_S = 1e-9
+#: JSBSim's terrain is put this far below the ellipsoid: the vehicles never meet the ground model
+#: (the scenario decides altitudes; the renderer draws its own ground)
+_TERRAIN_BELOW_M = -2000.0
 
 
 class FlightError(IrtrackError, RuntimeError):
@@ -302,6 +305,7 @@ class FlownVehicle:
     def _set_ic(self, p_ned, v_ned, roll, pitch, yaw, rates_frd_radps=(0.0, 0.0, 0.0)) -> None:
         fdm = self._fdm
         lat, lon, alt = (float(x) for x in geodetic_from_ned(np.asarray(p_ned, dtype=float), self.origin))
+        fdm["ic/terrain-elevation-ft"] = _TERRAIN_BELOW_M / FT_M  # no ground to touch anywhere
         fdm["ic/lat-geod-deg"] = lat
         fdm["ic/long-gc-deg"] = lon
         fdm["ic/h-sl-ft"] = alt / FT_M
@@ -498,10 +502,10 @@ class FlownVehicle:
         ``look_at_ned_m`` / ``look_at_v_ned_mps``: None or arrays (N, 3), one row per time.
         """
         times = np.asarray(times_s, dtype=float).reshape(-1)
-        if times.size == 0:
-            raise FlightError(f"{self.name}: step_through needs at least one time")
-        la_p = None if look_at_ned_m is None else np.asarray(look_at_ned_m, dtype=float).reshape(times.size, 3)
-        la_v = None if look_at_v_ned_mps is None else np.asarray(look_at_v_ned_mps, dtype=float).reshape(times.size, 3)
+        if times.size == 0 or not np.all(np.isfinite(times)) or np.any(np.diff(times) < 0):
+            raise FlightError(f"{self.name}: step_through times_s must be finite, non-decreasing and not empty")
+        la_p = self._rows(look_at_ned_m, times.size, "look_at_ned_m")
+        la_v = self._rows(look_at_v_ned_mps, times.size, "look_at_v_ned_mps")
         raws, accs = [], []
         for i, t in enumerate(times.tolist()):
             raw, acc = self._advance(t, None if la_p is None else la_p[i], None if la_v is None else la_v[i])
@@ -515,6 +519,14 @@ class FlownVehicle:
             raise FlightError(f"{self.name}: JSBSim state is not finite")
         self._last_state = traj.state(len(traj) - 1)
         return traj
+
+    def _rows(self, value, n: int, what: str):
+        if value is None:
+            return None
+        arr = np.asarray(value, dtype=float)
+        if arr.shape != (n, 3):
+            raise FlightError(f"{self.name}: {what} must have shape ({n}, 3), one row per time, got {arr.shape}")
+        return arr
 
     def _advance(self, t_s, look_at_ned_m, look_at_v_ned_mps) -> tuple:
         """Fly to ``t_s``; the raw SI state there (interpolated within one JSBSim step) and the
@@ -597,3 +609,41 @@ def fly(
     if look_at is None:
         return vehicle.step_through(t)
     return vehicle.step_through(t, la_p, la_v)
+
+
+def fly_pair(
+    observer_reference,
+    target_reference,
+    duration_s: float,
+    sample_rate_hz: float,
+    origin: GeodeticOrigin,
+    wind_ned_mps=(0.0, 0.0, 0.0),
+    observer_yaw_mode: str = "target",
+    seed: int = 0,
+    **vehicle_kwargs,
+) -> tuple[FlownTrajectory, FlownTrajectory]:
+    """Fly a scenario's two vehicles; returns ``(observer, target)`` truth sampled from t = 0.
+
+    The target flies first (heading along its velocity); the observer then flies with
+    ``observer_yaw_mode`` (default ``"target"``: it yaws toward the target's *flown* position
+    and velocity at every sample, exactly as a frame-by-frame loop calling ``step_to`` would).
+    Both use the batch path, so this is the cheapest way to get a scenario's truth.
+    """
+    if not (math.isfinite(duration_s) and duration_s >= 0):
+        raise FlightError(f"fly_pair: duration_s must be >= 0, got {duration_s!r}")
+    if not (math.isfinite(sample_rate_hz) and sample_rate_hz > 0):
+        raise FlightError(f"fly_pair: sample_rate_hz must be > 0, got {sample_rate_hz!r}")
+    t = np.arange(int(math.floor(duration_s * sample_rate_hz + 1e-9)) + 1) / sample_rate_hz
+    target = FlownVehicle(
+        target_reference, origin, wind_ned_mps, yaw_mode="velocity", name="target", seed=seed, **vehicle_kwargs
+    ).step_through(t)
+    if observer_yaw_mode == "target":
+        vehicle_kwargs.setdefault("look_at_ned_m", target.p_ned_m[0])
+    observer_vehicle = FlownVehicle(
+        observer_reference, origin, wind_ned_mps, yaw_mode=observer_yaw_mode, name="observer", seed=seed, **vehicle_kwargs
+    )
+    if observer_yaw_mode == "target":
+        observer = observer_vehicle.step_through(t, target.p_ned_m, target.v_ned_mps)
+    else:
+        observer = observer_vehicle.step_through(t)
+    return observer, target
