@@ -19,6 +19,9 @@ interpolated linearly in (lat, lon, alt, v, Euler angles, body rates) over one s
 (<= 1/240 s: the interpolation error is micrometres); the acceleration is the velocity
 difference over the last JSBSim step.
 
+Console: JSBSim's process-wide debug level is set to 0 when the first vehicle is built, and the
+``irquad`` model is written so that JSBSim prints nothing while loading or flying it.
+
 Start: the vehicle is initialised on the reference at t = 0, at its velocity and with the trim
 attitude the reference needs; the rotors are spun up and the collective is calibrated (secant
 on the measured thrust) before t = 0, so the first seconds show no transient.
@@ -29,8 +32,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from dataclasses import dataclass, field
-from importlib import resources
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -152,7 +154,7 @@ class FlownTrajectory:
 
 def models_dir() -> Path:
     """The directory holding irtrack's JSBSim aircraft (``<dir>/aircraft/<model>/<model>.xml``)."""
-    return Path(str(resources.files("groundsim") / "models"))
+    return Path(__file__).resolve().parent.parent / "models"  # JSBSim needs a real directory
 
 
 def _vec3(value, what: str) -> tuple:
@@ -446,7 +448,6 @@ class FlownVehicle:
 
     def _control_tick(self) -> None:
         """Navigation update, tracking statistics and one controller step at tick ``self._tick``."""
-        fdm = self._fdm
         j = self._tick
         v = [n.get_double_value() * FT_M for n in self._n_vel]
         if j % self.anchor_every == 0:
