@@ -14,11 +14,17 @@ The thrust must supply what gravity and drag do not::
 
     f_thrust = a_cmd - g_ned - a_drag(v - wind),    a_drag(v_air) = -k_drag |v_air| v_air
 
-Thrust acts along body -z, so with yaw ``psi`` the tilt that points it along ``f_thrust`` is
-(``f'`` = ``f_thrust`` rotated by ``-psi`` about down; Beard & McLain, *Small Unmanned Aircraft*,
-2012, sec. 3.2 and 14.2; Mellinger & Kumar, ICRA 2011, eq. 6-8)::
+The feedback part is bounded (``max_accel_mps2``) and the horizontal part of ``f_thrust`` is cut
+to ``max_tilt_rad``.  Thrust acts along body -z, so with heading ``psi`` the tilt that points it
+along ``f_thrust`` is (``f'`` = ``f_thrust`` rotated by ``-psi`` about down; Beard & McLain,
+*Small Unmanned Aircraft*, 2012, sec. 3.2 and 14.2; Mellinger & Kumar, ICRA 2011, eq. 6-8)::
 
     roll  = asin(f'_y / |f|),    pitch = atan2(-f'_x, -f'_d),    specific thrust c = |f|
+
+``psi`` is the *current* heading, not the desired one: while the heading turns, tilting for the
+desired heading would point the thrust the wrong way.  The heading has its own loop::
+
+    yaw_dot = k_yaw wrap(psi_des - psi) + psi_des_dot
 
 Inner loop: Euler-angle errors -> Euler-angle rates (proportional, plus the rates the reference
 itself needs, from differencing the feed-forward tilt along the reference), then the Euler

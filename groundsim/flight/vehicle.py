@@ -124,10 +124,18 @@ class FlownTrajectory:
     tracking: TrackingStats
 
     def __post_init__(self) -> None:
-        n = np.asarray(self.t_s).shape[0]
-        for name, w in (("p_ned_m", 3), ("v_ned_mps", 3), ("a_ned_mps2", 3), ("q_ned_from_body", 4), ("omega_frd_radps", 3)):
-            if np.asarray(getattr(self, name)).shape != (n, w):
-                raise FlightError(f"FlownTrajectory.{name} must have shape ({n}, {w})")
+        t = np.array(self.t_s, dtype=float).reshape(-1)
+        t.flags.writeable = False
+        object.__setattr__(self, "t_s", t)
+        n = t.shape[0]
+        for name, w in _STATE_FIELDS:
+            arr = np.array(getattr(self, name), dtype=float)
+            if arr.shape != (n, w):
+                raise FlightError(f"FlownTrajectory.{name} must have shape ({n}, {w}), got {arr.shape}")
+            arr.flags.writeable = False
+            object.__setattr__(self, name, arr)
+        if not isinstance(self.tracking, TrackingStats):
+            raise FlightError(f"FlownTrajectory.tracking must be a TrackingStats, got {type(self.tracking).__name__}")
 
     def __len__(self) -> int:
         return int(self.t_s.shape[0])
