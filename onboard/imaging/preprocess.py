@@ -1,0 +1,443 @@
+"""Pre-processing of one IR frame: mean filter, background removal, double threshold.
+
+The paper (PAPER.md s.3) smooths the frame with a mean filter over a neighbourhood S,
+``g_m(x, y) = (1/|S|) * sum_S g``, then applies a double threshold ``Th_low`` / ``Th_high`` that
+keeps the target's grey band and suppresses the background.  Made robust here:
+
+* Background.  A sky that varies with elevation defeats one absolute threshold, so thresholds
+  apply to the *residual* ``r = g_m - b`` where ``b`` is a smooth background estimate:
+  full frame: block means over ``background_cell_px`` cells, a median over
+  ``background_median_cells`` x ``background_median_cells`` cells (rejects a target up to a few
+  cells wide), bilinear upsampling; region of interest: a plane through the medians of the
+  region's four border strips (:func:`ring_plane`).
+* Thresholds relative to the noise.  ``sigma`` is the robust 1-sigma of ``r``
+  (1.4826 * MAD, Hampel's estimator) and::
+
+      Th_low  = max(threshold_low_sigma  * sigma, min_threshold_low_grey8  * s)
+      Th_high = max(threshold_high_sigma * sigma, min_threshold_high_grey8 * s)
+
+  with ``s = 1`` for mono8 and ``s = mono16_counts_per_grey8`` for mono16 (the floors keep a
+  quantised, nearly noise-free frame, whose MAD is 0, from detecting its own rounding).
+* Hysteresis instead of a band.  A blob is an 8-connected set of ``r >= Th_low`` containing at
+  least one pixel ``r >= Th_high`` (see :mod:`onboard.imaging.detect`).  The paper's upper cut
+  would punch a hole into a saturated (hottest) target and bias its centroid, so it is not used.
+
+All grey values are in the input's own units (0..255 for mono8, 0..65535 for mono16).
+Pixel indices are ``(row i, column j)``; the frames.py pixel centre of (i, j) is (j+0.5, i+0.5).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, fields
+from typing import Any, Mapping
+
+import cv2
+import numpy as np
+
+from onboard.errors import ConfigError, InputError
+
+__all__ = [
+    "ImagingParams",
+    "Region",
+    "Preprocessed",
+    "check_frame",
+    "grey_scale",
+    "mean_filter",
+    "background_coarse",
+    "ring_plane",
+    "fast_median",
+    "robust_sigma",
+    "preprocess",
+    "kcf_image_u8",
+]
+
+log = logging.getLogger(__name__)
+
+MAD_TO_SIGMA = 1.4826  # 1-sigma of a normal distribution per unit median absolute deviation
+MIN_FRAME_SIDE_PX = 16
+NOISE_SUBSAMPLE_FULL_FRAME = 8  # every 8th row/column for the full-frame noise estimate (~5k px)
+SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
+
+
+@dataclass(frozen=True)
+class ImagingParams:
+    """Parameters of the image chain (config section ``imaging``); lengths in pixels.
+
+    Thresholds (see the module docstring): residual above the robust background, in units of
+    the residual's robust noise ``sigma`` with absolute floors in 8-bit grey levels.
+
+    Blob acceptance: ``min_area_px <= area <= max_area_px`` (pixels at or above ``Th_low`` in
+    the mean-filtered residual), bounding-box side <= ``max_blob_side_px``, long/short side
+    <= ``max_aspect_ratio`` (rejects horizon and ridge lines).
+
+    Centroid: raw pixels in the blob's box grown by ``centroid_margin_px``, minus a plane fitted
+    to a ring ``background_ring_px`` wide around it.
+
+    Tracking: the KCF box side is ``clip(kcf_box_scale * blob side, kcf_box_px, kcf_max_box_px)``;
+    the detection region of interest is the KCF search patch (twice the box) grown by
+    ``roi_margin_px``.  KCF is re-seeded on the blob when its centre is farther than
+    ``max_drift_px`` from the blob's centroid or when it fails.  After a frame without a blob
+    the track is ``coasting``; a target re-acquired within ``coast_frames`` frames and
+    ``reacquire_gate_px`` of the prediction keeps its track id; after ``lost_frames``
+    frames without a blob the track is ``lost``.
+    """
+
+    mean_kernel_px: int = 3
+    threshold_low_sigma: float = 3.0
+    threshold_high_sigma: float = 6.0
+    min_threshold_low_grey8: float = 1.5
+    min_threshold_high_grey8: float = 3.0
+    mono16_counts_per_grey8: float = 257.0
+    background_cell_px: int = 16
+    background_median_cells: int = 5
+    min_area_px: int = 2
+    max_area_px: int = 1024
+    max_blob_side_px: int = 48
+    max_aspect_ratio: float = 6.0
+    max_candidates: int = 8
+    centroid_margin_px: int = 1
+    centroid_window_sigma_px: float = 1.0
+    background_ring_px: int = 3
+    kcf_box_px: int = 16
+    kcf_box_scale: float = 1.5
+    kcf_max_box_px: int = 48
+    kcf_detect_threshold: float = 0.3
+    roi_margin_px: int = 12
+    max_drift_px: float = 3.0
+    reacquire_gate_px: float = 64.0
+    coast_frames: int = 5
+    lost_frames: int = 15
+
+    def __post_init__(self) -> None:
+        ints = {
+            "mean_kernel_px": 1,
+            "background_cell_px": 2,
+            "min_area_px": 1,
+            "max_area_px": 1,
+            "max_blob_side_px": 3,
+            "max_candidates": 1,
+            "centroid_margin_px": 0,
+            "background_ring_px": 1,
+            "kcf_box_px": 4,
+            "kcf_max_box_px": 4,
+            "roi_margin_px": 0,
+            "coast_frames": 0,
+            "lost_frames": 1,
+        }
+        for name, lo in ints.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
+                raise ConfigError(f"imaging.{name} must be an integer, got {v!r}")
+            if v < lo:
+                raise ConfigError(f"imaging.{name} must be >= {lo}, got {v}")
+        floats = {
+            "threshold_low_sigma": 0.0,
+            "threshold_high_sigma": 0.0,
+            "min_threshold_low_grey8": 0.0,
+            "min_threshold_high_grey8": 0.0,
+            "mono16_counts_per_grey8": 1e-9,
+            "max_aspect_ratio": 1.0,
+            "centroid_window_sigma_px": 0.0,
+            "kcf_box_scale": 0.0,
+            "kcf_detect_threshold": 0.0,
+            "max_drift_px": 0.0,
+            "reacquire_gate_px": 0.0,
+        }
+        for name, lo in floats.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise ConfigError(f"imaging.{name} must be a number, got {v!r}")
+            if not math.isfinite(v) or v < lo:
+                raise ConfigError(f"imaging.{name} must be a finite number >= {lo}, got {v!r}")
+        if self.mean_kernel_px % 2 != 1:
+            raise ConfigError(f"imaging.mean_kernel_px must be odd (a centred neighbourhood), got {self.mean_kernel_px}")
+        if self.background_median_cells not in (1, 3, 5):
+            raise ConfigError(f"imaging.background_median_cells must be 1, 3 or 5, got {self.background_median_cells!r}")
+        if self.threshold_high_sigma < self.threshold_low_sigma:
+            raise ConfigError(
+                f"imaging.threshold_high_sigma ({self.threshold_high_sigma}) must be >= threshold_low_sigma ({self.threshold_low_sigma})"
+            )
+        if self.min_threshold_high_grey8 < self.min_threshold_low_grey8:
+            raise ConfigError(
+                f"imaging.min_threshold_high_grey8 ({self.min_threshold_high_grey8}) must be >= "
+                f"min_threshold_low_grey8 ({self.min_threshold_low_grey8})"
+            )
+        if self.threshold_high_sigma <= 0 and self.min_threshold_high_grey8 <= 0:
+            raise ConfigError("imaging.threshold_high_sigma and imaging.min_threshold_high_grey8 cannot both be 0 (every pixel would seed a blob)")
+        if self.max_area_px < self.min_area_px:
+            raise ConfigError(f"imaging.max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
+        if self.kcf_max_box_px < self.kcf_box_px:
+            raise ConfigError(f"imaging.kcf_max_box_px ({self.kcf_max_box_px}) must be >= kcf_box_px ({self.kcf_box_px})")
+        if self.kcf_detect_threshold > 1.0:
+            raise ConfigError(f"imaging.kcf_detect_threshold must be in [0, 1] (KCF peak response), got {self.kcf_detect_threshold}")
+        if self.lost_frames < self.coast_frames:
+            raise ConfigError(f"imaging.lost_frames ({self.lost_frames}) must be >= coast_frames ({self.coast_frames})")
+
+    @classmethod
+    def from_mapping(cls, mapping: Mapping[str, Any] | None, where: str = "imaging") -> "ImagingParams":
+        """Build from a config mapping (e.g. the ``imaging:`` section of onboard.yaml).
+
+        Unknown keys and wrong types raise :class:`ConfigError` naming ``where`` and the field.
+        Integers given as floats with an integral value (``3.0``) are accepted for int fields.
+        """
+        if mapping is None:
+            return cls()
+        if not isinstance(mapping, Mapping):
+            raise ConfigError(f"{where} must be a mapping of imaging parameters, got {type(mapping).__name__}")
+        known = {f.name: f for f in fields(cls)}
+        unknown = sorted(set(mapping) - set(known))
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(known)}")
+        defaults = cls()
+        kwargs: dict[str, Any] = {}
+        for key, value in mapping.items():
+            want_int = isinstance(getattr(defaults, key), int)
+            if want_int and isinstance(value, float) and value.is_integer():
+                value = int(value)
+            if isinstance(value, bool) or not isinstance(value, (int, float)):
+                raise ConfigError(f"{where}.{key} must be a number, got {value!r}")
+            if want_int and not isinstance(value, int):
+                raise ConfigError(f"{where}.{key} must be an integer, got {value!r}")
+            kwargs[key] = value
+        try:
+            return cls(**kwargs)
+        except ConfigError as exc:
+            raise ConfigError(str(exc).replace("imaging.", f"{where}.", 1)) from None
+
+
+@dataclass(frozen=True)
+class Region:
+    """A rectangle of whole pixels ``[x0_px, x1_px) x [y0_px, y1_px)`` (columns x, rows y)."""
+
+    x0_px: int
+    y0_px: int
+    x1_px: int
+    y1_px: int
+
+    def __post_init__(self) -> None:
+        if not (self.x1_px > self.x0_px and self.y1_px > self.y0_px):
+            raise InputError(f"Region must be non-empty, got x [{self.x0_px}, {self.x1_px}) y [{self.y0_px}, {self.y1_px})")
+
+    @property
+    def width_px(self) -> int:
+        return self.x1_px - self.x0_px
+
+    @property
+    def height_px(self) -> int:
+        return self.y1_px - self.y0_px
+
+    @classmethod
+    def around(cls, u_px: float, v_px: float, half_px: int, width_px: int, height_px: int) -> "Region":
+        """Square of side ``2 * half_px`` centred on (u, v), clipped to a width x height image."""
+        cx, cy = int(math.floor(u_px)), int(math.floor(v_px))
+        x0 = min(max(cx - half_px, 0), width_px - 1)
+        y0 = min(max(cy - half_px, 0), height_px - 1)
+        x1 = max(min(cx + half_px, width_px), x0 + 1)
+        y1 = max(min(cy + half_px, height_px), y0 + 1)
+        return cls(x0, y0, x1, y1)
+
+    def union(self, other: "Region") -> "Region":
+        return Region(min(self.x0_px, other.x0_px), min(self.y0_px, other.y0_px), max(self.x1_px, other.x1_px), max(self.y1_px, other.y1_px))
+
+    def slices(self) -> tuple[slice, slice]:
+        return slice(self.y0_px, self.y1_px), slice(self.x0_px, self.x1_px)
+
+
+@dataclass(frozen=True)
+class Preprocessed:
+    """The thresholding input of one region.
+
+    ``residual``: float32 (height, width) mean-filtered grey minus background, input grey units;
+    ``region``: where it sits in the full frame; ``noise_sigma``: robust 1-sigma of the residual;
+    ``threshold_low`` / ``threshold_high``: the double threshold applied to it (input grey units);
+    ``frame_shape``: (height, width) of the full frame the region was cut from.
+    """
+
+    residual: np.ndarray
+    region: Region
+    noise_sigma: float
+    threshold_low: float
+    threshold_high: float
+    frame_shape: tuple[int, int]
+
+
+def check_frame(image: Any) -> np.ndarray:
+    """Return ``image`` as a C-contiguous 2-D uint8/uint16 array, or raise :class:`InputError`.
+
+    Accepts (H, W) and (H, W, 1); H and W must be >= 16.  The input is not modified.
+    """
+    if not isinstance(image, np.ndarray):
+        raise InputError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.dtype not in SUPPORTED_DTYPES:
+        raise InputError(f"image.dtype must be uint8 (mono8) or uint16 (mono16), got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim != 2:
+        raise InputError(f"image.shape must be (height, width) mono, got {image.shape}")
+    if image.shape[0] < MIN_FRAME_SIDE_PX or image.shape[1] < MIN_FRAME_SIDE_PX:
+        raise InputError(f"image.shape must be at least {MIN_FRAME_SIDE_PX} x {MIN_FRAME_SIDE_PX}, got {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+def grey_scale(dtype: np.dtype, params: ImagingParams) -> float:
+    """Input grey units per 8-bit grey level: 1 for mono8, ``mono16_counts_per_grey8`` for mono16."""
+    return 1.0 if np.dtype(dtype) == np.uint8 else float(params.mono16_counts_per_grey8)
+
+
+def mean_filter(image: np.ndarray, region: Region, kernel_px: int) -> np.ndarray:
+    """Box mean over ``kernel_px`` x ``kernel_px`` of ``image`` inside ``region``, float32.
+
+    Pixels outside the region but inside the image are used, so the result inside the region
+    does not depend on where the region was cut; the image border reflects (BORDER_REFLECT_101).
+    """
+    h, w = image.shape
+    p = kernel_px // 2
+    ex0, ey0 = max(region.x0_px - p, 0), max(region.y0_px - p, 0)
+    ex1, ey1 = min(region.x1_px + p, w), min(region.y1_px + p, h)
+    src = image[ey0:ey1, ex0:ex1]
+    if kernel_px == 1:
+        out = src.astype(np.float32)
+    else:
+        out = cv2.boxFilter(src, cv2.CV_32F, (kernel_px, kernel_px), normalize=True, borderType=cv2.BORDER_REFLECT_101)
+    return out[region.y0_px - ey0 : region.y1_px - ey0, region.x0_px - ex0 : region.x1_px - ex0]
+
+
+def background_coarse(filtered: np.ndarray, cell_px: int, median_cells: int) -> np.ndarray:
+    """Smooth background of a whole frame, float32, same shape as ``filtered``.
+
+    Block means over cell_px x cell_px cells (INTER_AREA), a median over median_cells x
+    median_cells cells (a target narrower than about median_cells/2 cells does not raise it),
+    then bilinear upsampling.  Exact for a linear ramp away from the outermost half cell.
+    """
+    h, w = filtered.shape
+    cw, ch = max(1, w // cell_px), max(1, h // cell_px)
+    cell_x, cell_y = w // cw, h // ch  # whole-pixel cells; up to cell-1 trailing pixels are extrapolated
+    coarse = cv2.resize(filtered[: ch * cell_y, : cw * cell_x], (cw, ch), interpolation=cv2.INTER_AREA)
+    if median_cells > 1 and min(cw, ch) >= median_cells:
+        coarse = cv2.medianBlur(coarse, median_cells)
+    # one extrapolated cell on every side, so the bilinear upsampling is linear up to the image
+    # edge instead of flat over the outermost half cell
+    padded = np.empty((ch + 2, cw + 2), dtype=np.float32)
+    padded[1:-1, 1:-1] = coarse
+    if cw > 1:
+        padded[1:-1, 0] = 2 * coarse[:, 0] - coarse[:, 1]
+        padded[1:-1, -1] = 2 * coarse[:, -1] - coarse[:, -2]
+    else:
+        padded[1:-1, 0] = padded[1:-1, -1] = coarse[:, 0]
+    if ch > 1:
+        padded[0, :] = 2 * padded[1, :] - padded[2, :]
+        padded[-1, :] = 2 * padded[-2, :] - padded[-3, :]
+    else:
+        padded[0, :] = padded[-1, :] = padded[1, :]
+    up = cv2.resize(padded, ((cw + 2) * cell_x, (ch + 2) * cell_y), interpolation=cv2.INTER_LINEAR)
+    return up[cell_y : cell_y + h, cell_x : cell_x + w]
+
+
+def ring_plane(values: np.ndarray, x0: int, y0: int, x1: int, y1: int, ring_px: int, use_median: bool = True):
+    """Plane through a ring around the rectangle ``[x0, x1) x [y0, y1)`` of ``values`` (index coords).
+
+    The ring is four strips ``ring_px`` wide just outside the rectangle (clipped to the array):
+    left/right span the rectangle's rows, top/bottom its columns, so each strip's median (or mean)
+    estimates the background at the strip's centre.  Returns ``(level, gx, gy)`` with the plane
+    ``b(x, y) = level + gx * (x - xc) + gy * (y - yc)``, ``xc = (x0 + x1 - 1) / 2``,
+    ``yc = (y0 + y1 - 1) / 2``; an axis with a strip on one side only gets gradient 0; no strip
+    at all returns the median of ``values`` and zero gradients.  Exact for a noise-free plane.
+    """
+    h, w = values.shape
+    stat = fast_median if use_median else np.mean
+    xc, yc = 0.5 * (x0 + x1 - 1), 0.5 * (y0 + y1 - 1)
+    lx0, ry1 = max(x0 - ring_px, 0), min(x1 + ring_px, w)
+    ty0, by1 = max(y0 - ring_px, 0), min(y1 + ring_px, h)
+    left = values[y0:y1, lx0:x0] if x0 > lx0 else None
+    right = values[y0:y1, x1:ry1] if ry1 > x1 else None
+    top = values[ty0:y0, x0:x1] if y0 > ty0 else None
+    bottom = values[y1:by1, x0:x1] if by1 > y1 else None
+    levels: list[float] = []
+    gx = gy = 0.0
+    if left is not None and right is not None:
+        L, R = float(stat(left)), float(stat(right))
+        xl, xr = 0.5 * (lx0 + x0 - 1), 0.5 * (x1 + ry1 - 1)
+        gx = (R - L) / (xr - xl)
+        levels.append(L + gx * (xc - xl))
+    elif left is not None or right is not None:
+        levels.append(float(stat(left if left is not None else right)))
+    if top is not None and bottom is not None:
+        T, B = float(stat(top)), float(stat(bottom))
+        yt, yb = 0.5 * (ty0 + y0 - 1), 0.5 * (y1 + by1 - 1)
+        gy = (B - T) / (yb - yt)
+        levels.append(T + gy * (yc - yt))
+    elif top is not None or bottom is not None:
+        levels.append(float(stat(top if top is not None else bottom)))
+    if not levels:
+        return fast_median(values), 0.0, 0.0
+    return float(sum(levels) / len(levels)), gx, gy
+
+
+def fast_median(values: np.ndarray) -> float:
+    """Median of all elements (np.median's result) via one np.partition; far less overhead on
+    the small arrays of a region of interest."""
+    a = np.asarray(values).ravel()
+    n = a.size
+    if n == 0:
+        raise InputError("median of an empty array")
+    k = n // 2
+    if n % 2:
+        return float(np.partition(a, k)[k])
+    part = np.partition(a, (k - 1, k))
+    return 0.5 * (float(part[k - 1]) + float(part[k]))
+
+
+def robust_sigma(residual: np.ndarray, step: int = 1) -> float:
+    """1.4826 * median absolute deviation of ``residual[::step, ::step]`` (Hampel 1974)."""
+    r = residual[::step, ::step] if step > 1 else residual
+    r = np.asarray(r, dtype=np.float32).ravel()
+    med = fast_median(r)
+    return float(MAD_TO_SIGMA * fast_median(np.abs(r - np.float32(med))))
+
+
+def preprocess(image: np.ndarray, params: ImagingParams, region: Region | None = None) -> Preprocessed:
+    """Mean filter, background removal and thresholds of ``image`` (checked 2-D uint8/uint16).
+
+    ``region`` None processes the full frame with :func:`background_coarse`; a region of interest
+    uses a plane through its border strips (:func:`ring_plane`, ``background_ring_px`` wide).
+    """
+    h, w = image.shape
+    if region is None:
+        region = Region(0, 0, w, h)
+        filtered = mean_filter(image, region, params.mean_kernel_px)
+        background = background_coarse(filtered, params.background_cell_px, params.background_median_cells)
+        residual = filtered - background
+        sigma = robust_sigma(residual, NOISE_SUBSAMPLE_FULL_FRAME)
+    else:
+        filtered = mean_filter(image, region, params.mean_kernel_px)
+        r = params.background_ring_px
+        rh, rw = filtered.shape
+        if rh > 2 * r + 2 and rw > 2 * r + 2:
+            level, gx, gy = ring_plane(filtered, r, r, rw - r, rh - r, r)
+            xc, yc = 0.5 * (rw - 1), 0.5 * (rh - 1)
+            xs = (np.arange(rw, dtype=np.float32) - xc) * np.float32(gx)
+            ys = (np.arange(rh, dtype=np.float32) - yc) * np.float32(gy)
+            residual = filtered - (np.float32(level) + ys[:, None] + xs[None, :])
+        else:
+            residual = filtered - np.float32(fast_median(filtered))
+        sigma = robust_sigma(residual)
+    s = grey_scale(image.dtype, params)
+    low = max(params.threshold_low_sigma * sigma, params.min_threshold_low_grey8 * s)
+    high = max(params.threshold_high_sigma * sigma, params.min_threshold_high_grey8 * s, low)
+    return Preprocessed(residual, region, sigma, float(low), float(high), (h, w))
+
+
+def kcf_image_u8(pre: Preprocessed, full_scale: float) -> np.ndarray:
+    """The double-thresholded residual as the 8-bit image KCF tracks (the paper's KCF input).
+
+    Residual below ``threshold_low`` (background) becomes 0; above, ``255 * r / full_scale``
+    clipped to 255, so a hot target is bright on black whatever the input depth (mono16 needs
+    no separate display scaling).  ``full_scale`` > 0 in input grey units (e.g. the contrast of
+    the blob KCF was seeded on).
+    """
+    r = pre.residual
+    gain = np.float32(255.0 / max(full_scale, 1e-6))
+    out = np.where(r >= np.float32(pre.threshold_low), r * gain, np.float32(0.0))
+    return np.clip(out, 0.0, 255.0).astype(np.uint8)
