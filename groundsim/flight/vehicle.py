@@ -23,8 +23,14 @@ Console: JSBSim's process-wide debug level is set to 0 when the first vehicle is
 ``irquad`` model is written so that JSBSim prints nothing while loading or flying it.
 
 Start: the vehicle is initialised on the reference at t = 0, at its velocity and with the trim
-attitude the reference needs; the rotors are spun up and the collective is calibrated (secant
-on the measured thrust) before t = 0, so the first seconds show no transient.
+attitude and body rates the reference needs; the rotors are spun up and the collective is
+calibrated (secant on the measured thrust) before t = 0, so the first seconds show no transient.
+JSBSim's terrain is put 2 km below the ellipsoid: the vehicles never touch its ground model.
+
+Use: :meth:`FlownVehicle.step_to` once per frame (simple; each call converts one state), or
+:meth:`FlownVehicle.step_through` / :func:`fly` / :func:`fly_pair` for a whole scenario at once
+(the same flight, with the geodetic and Euler conversions vectorised: about half the cost).
+Truth never depends on rendering, so a simulator can fly both vehicles first and render after.
 """
 
 from __future__ import annotations
