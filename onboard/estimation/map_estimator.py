@@ -143,6 +143,27 @@ def _rodrigues(phi: np.ndarray) -> np.ndarray:
     return np.eye(3) + (math.sin(a) / a) * K + ((1 - math.cos(a)) / (a * a)) * (K @ K)
 
 
+def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray, jacobian: bool):
+    """Angular residuals of directions ``w_rot`` (F, 3) in NED seen by cameras ``R_cn`` (F, 3, 3).
+
+    Returns (residual (F, 2) in standard units, d residual / d w_rot (F, 2, 3) or None, valid).
+    """
+    y = np.einsum("fij,fj->fi", R_cn, w_rot)
+    z = y[:, 2]
+    valid = bool(np.all(z * z > 1e-12 * np.einsum("fi,fi->f", w_rot, w_rot)) and np.all(z > 0))
+    zs = np.where(z > 1e-9, z, 1e-9)
+    pred = y[:, :2] / zs[:, None]
+    res = (pred - xy) * s
+    if not jacobian:
+        return res, None, valid
+    k = 1.0 / zs
+    M = np.empty((z.shape[0], 2, 3))
+    # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y
+    M[:, 0, :] = (R_cn[:, 0, :] - pred[:, 0, None] * R_cn[:, 2, :]) * (k * s[:, 0])[:, None]
+    M[:, 1, :] = (R_cn[:, 1, :] - pred[:, 1, None] * R_cn[:, 2, :]) * (k * s[:, 1])[:, None]
+    return res, M, valid
+
+
 def _skew(w: np.ndarray) -> np.ndarray:
     """(..., 3) -> (..., 3, 3) cross-product matrices."""
     z = np.zeros(w.shape[:-1])
@@ -150,6 +171,29 @@ def _skew(w: np.ndarray) -> np.ndarray:
         [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1), np.stack([-w[..., 1], w[..., 0], z], -1)],
         axis=-2,
     )
+
+
+class _SpanPrior:
+    """The parts of the prior that depend only on the control span (cached across frames)."""
+
+    def __init__(self, grid: KnotGrid, first: int, count: int, prior: MotionPrior):
+        # quadrature over every knot interval of the span
+        nodes, weights = gauss_legendre_3()
+        seg = np.arange(first, first + count - 3)
+        tq = (grid.t_origin_s + (seg[:, None] + nodes[None, :]) * grid.spacing_s).reshape(-1)
+        self.Bq1 = grid.dense_basis(tq, first, count, 1)
+        self.Bq2 = grid.dense_basis(tq, first, count, 2)
+        wq = np.tile(weights, seg.size) * grid.spacing_s
+        self.sq_h = np.sqrt(wq / prior.q_horizontal_m2ps3)
+        self.sq_v = np.sqrt(wq / prior.q_vertical_m2ps3)
+        G = self.G = tq.size
+        # prior rows are linear in the controls: J_prior_c(omega) = P_acc + omega * P_turn
+        self.P_acc = np.zeros((3 * G, 3 * count))
+        self.P_turn = np.zeros((3 * G, 3 * count))
+        for ax, sq in ((0, self.sq_h), (1, self.sq_h), (2, self.sq_v)):
+            self.P_acc[ax::3, ax::3] = sq[:, None] * self.Bq2
+        self.P_turn[0::3, 1::3] = self.sq_h[:, None] * self.Bq1
+        self.P_turn[1::3, 0::3] = -self.sq_h[:, None] * self.Bq1
 
 
 class WindowProblem:
@@ -160,36 +204,27 @@ class WindowProblem:
     """
 
     def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int, prior: MotionPrior,
-                 noise: NoiseModel, config: MapConfig):
+                 noise: NoiseModel, config: MapConfig, span_cache: dict | None = None):
         self.obs, self.grid, self.first, self.count = obs, grid, first, count
         self.prior, self.noise, self.config = prior, noise, config
         F = len(obs)
         self.F = F
         self.rows = grid.basis(obs.t_s, first, count)
-        self.B0 = grid.dense_basis(obs.t_s, first, count)  # (F, count)
+        self.B0 = np.zeros((F, count))  # (F, count) dense basis of p(t_i)
+        np.put_along_axis(self.B0, self.rows.index, self.rows.w0, axis=1)
         self.R_cn = np.transpose(obs.R_ned_from_cam, (0, 2, 1))
         self.f = np.stack([obs.fx_px, obs.fy_px], axis=1)
         self.t_ref = 0.5 * (obs.t_s[0] + obs.t_s[-1])
         self.dt = obs.t_s - self.t_ref
-        # quadrature over every knot interval of the span
-        nodes, weights = gauss_legendre_3()
-        seg = np.arange(first, first + count - 3)
-        tq = grid.t_origin_s + (seg[:, None] + nodes[None, :]) * grid.spacing_s
-        self.qrows = grid.basis(tq.reshape(-1), first, count)
-        self.Bq1 = grid.dense_basis(tq.reshape(-1), first, count, 1)
-        self.Bq2 = grid.dense_basis(tq.reshape(-1), first, count, 2)
-        wq = np.tile(weights, seg.size) * grid.spacing_s
-        self.sq_h = np.sqrt(wq / prior.q_horizontal_m2ps3)
-        self.sq_v = np.sqrt(wq / prior.q_vertical_m2ps3)
-        self.G = tq.size
-        # prior rows are linear in the controls: J_prior_c(omega) = P_acc + omega * P_turn
-        G = self.G
-        self.P_acc = np.zeros((3 * G, 3 * count))
-        self.P_turn = np.zeros((3 * G, 3 * count))
-        for ax, sq in ((0, self.sq_h), (1, self.sq_h), (2, self.sq_v)):
-            self.P_acc[ax::3, ax::3] = sq[:, None] * self.Bq2
-        self.P_turn[0::3, 1::3] = self.sq_h[:, None] * self.Bq1
-        self.P_turn[1::3, 0::3] = -self.sq_h[:, None] * self.Bq1
+        span = None if span_cache is None else span_cache.get((grid, first, count, prior))
+        if span is None:
+            span = _SpanPrior(grid, first, count, prior)
+            if span_cache is not None:
+                if len(span_cache) > 64:
+                    span_cache.clear()
+                span_cache[(grid, first, count, prior)] = span
+        self.Bq1, self.Bq2, self.sq_h, self.sq_v = span.Bq1, span.Bq2, span.sq_h, span.sq_v
+        self.G, self.P_acc, self.P_turn = span.G, span.P_acc, span.P_turn
         ref = grid.basis(np.array([self.t_ref]), first, count)
         self.ref_idx, self.ref_w0, self.ref_w1 = ref.index[0], ref.w0[0], ref.w1[0]
         self.p_ref = obs.p_cam_ned_m.mean(axis=0)
@@ -208,6 +243,7 @@ class WindowProblem:
         self.n_rows = 2 * F + 3 * self.G + 6 + (self.n_params - self.nc)
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
+        self.last_jacobian: np.ndarray | None = None
         rows_fi = np.arange(2 * F).reshape(F, 2)
         self._meas_flat = (rows_fi[:, :, None, None] * self.n_params
                            + 3 * self.rows.index[:, None, :, None] + np.arange(3)[None, None, None, :])
@@ -267,13 +303,9 @@ class WindowProblem:
             w_rot = w @ Rphi.T
         else:
             w_rot = w
-        y = np.einsum("fij,fj->fi", self.R_cn, w_rot)
-        z = y[:, 2]
-        valid = bool(np.all(z * z > 1e-12 * np.einsum("fi,fi->f", w, w)) and np.all(z > 0))
-        zs = np.where(z > 1e-9, z, 1e-9)
-        pred = y[:, :2] / zs[:, None]
+        res, M, valid = _project(w_rot, self.R_cn, self.obs.xy_norm, self.s, jacobian)
         r = np.empty(self.n_rows)
-        r[: 2 * F] = ((pred - self.obs.xy_norm) * self.s).reshape(-1)
+        r[: 2 * F] = res.reshape(-1)
         # prior rows
         v = self.Bq1 @ c
         a = self.Bq2 @ c
@@ -295,11 +327,6 @@ class WindowProblem:
             return r, None, valid
 
         J = self._J
-        inv_z = 1.0 / zs
-        # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y; scaled to residual units
-        M = np.empty((F, 2, 3))
-        M[:, 0, :] = (self.R_cn[:, 0, :] - pred[:, 0, None] * self.R_cn[:, 2, :]) * (inv_z * self.s[:, 0])[:, None]
-        M[:, 1, :] = (self.R_cn[:, 1, :] - pred[:, 1, None] * self.R_cn[:, 2, :]) * (inv_z * self.s[:, 1])[:, None]
         if self.i_phi is not None:
             Mw = M @ Rphi  # d r / d w
             # d r / d phi = -M [w_rot]x, whose rows are w_rot x m
@@ -318,6 +345,40 @@ class WindowProblem:
             J[o : o + 3 * G : 3, self.i_omega] = self.sq_h * v[:, 1]
             J[o + 1 : o + 3 * G : 3, self.i_omega] = -self.sq_h * v[:, 0]
         return r, J, valid
+
+    def measurement_rows(self, theta: np.ndarray, t_s: float, xy_norm, f_px, p_cam_ned_m, R_ned_from_cam):
+        """Residual (2,) and Jacobian (2, n_params) of one extra observation at ``t_s`` inside the span
+        (the incremental update of the sliding window), weighted like the window's own rows."""
+        rows = self.grid.basis(np.array([t_s]), self.first, self.count)
+        c = theta[: self.nc].reshape(self.count, 3)
+        off = np.zeros(3)
+        if self.i_beta is not None:
+            off += theta[self.i_beta : self.i_beta + 3]
+        if self.i_gamma is not None:
+            off += (t_s - self.t_ref) * theta[self.i_gamma : self.i_gamma + 3]
+        w = rows.w0[0] @ c[rows.index[0]] - np.asarray(p_cam_ned_m, float) + off
+        Rphi = _rodrigues(theta[self.i_phi : self.i_phi + 3]) if self.i_phi is not None else None
+        w_rot = w if Rphi is None else Rphi @ w
+        f = np.asarray(f_px, float).reshape(1, 2)
+        n = self.noise
+        var = n.pixel_sigma_px**2 + (f * n.attitude_white_sigma_rad) ** 2
+        if n.camera_position_white_sigma_m > 0:
+            var = var + (f * n.camera_position_white_sigma_m / max(float(np.linalg.norm(w)), 1.0)) ** 2
+        s = f / np.sqrt(var)
+        R_cn = np.asarray(R_ned_from_cam, float).T[None]
+        res, M, valid = _project(w_rot[None], R_cn, np.asarray(xy_norm, float).reshape(1, 2), s, True)
+        Jr = np.zeros((2, self.n_params))
+        Mw = M[0] if Rphi is None else M[0] @ Rphi
+        for m in range(4):
+            k = rows.index[0, m]
+            Jr[:, 3 * k : 3 * k + 3] = Mw * rows.w0[0, m]
+        if self.i_phi is not None:
+            Jr[:, self.i_phi : self.i_phi + 3] = np.cross(w_rot[None, :], M[0])
+        if self.i_beta is not None:
+            Jr[:, self.i_beta : self.i_beta + 3] = Mw
+        if self.i_gamma is not None:
+            Jr[:, self.i_gamma : self.i_gamma + 3] = Mw * (t_s - self.t_ref)
+        return res[0], Jr, valid
 
     def _constant_jacobian_rows(self) -> np.ndarray:
         """The Jacobian buffer with the rows that never change (weak and nuisance priors) filled in."""
@@ -368,12 +429,14 @@ class WindowProblem:
         return out
 
     # ------------------------------------------------------------------ Levenberg-Marquardt
-    def solve(self, theta0: np.ndarray, max_iterations: int, lam0: float = 0.0, cost_tol: float = 1e-4):
+    def solve(self, theta0: np.ndarray, max_iterations: int, lam0: float = 0.0, cost_tol: float = 1e-4,
+              want_factor: bool = True):
         """Levenberg-Marquardt from theta0 (More's column scaling).
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
         damping finds a lower cost, or after ``max_iterations``.  Returns (theta, cost, iterations,
-        converged, factor) with factor = (Cholesky of the scaled Gauss-Newton Hessian, scales) at theta.
+        converged, factor) with factor = (square-root information R, scales) at theta, or None when
+        ``want_factor`` is False.  Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
         """
         theta = theta0.copy()
         r, J, valid = self.evaluate(theta)
@@ -415,7 +478,8 @@ class WindowProblem:
             if decrease < cost_tol:
                 converged = True
                 break
-        return theta, cost, it, converged, self.factor(J)
+        self.last_jacobian = J
+        return theta, cost, it, converged, (self.factor(J) if want_factor else None)
 
     def factor(self, J: np.ndarray):
         """Square-root information at the solution: upper-triangular R of the column-scaled J (QR),
@@ -452,13 +516,14 @@ class MapEstimator:
     def __init__(self, config: MapConfig | None = None, noise: NoiseModel | None = None):
         self.config = config or MapConfig()
         self.noise = noise or NoiseModel()
+        self._span_cache: dict = {}
 
     def problem(self, obs: Observations, prior: MotionPrior, grid: KnotGrid | None = None) -> WindowProblem:
         if len(obs) < self.config.min_frames:
             raise EstimationError(f"need at least {self.config.min_frames} observations, got {len(obs)}")
         grid = grid or KnotGrid(float(obs.t_s[0]), self.config.knot_spacing_s)
         first, count = grid.control_span(float(obs.t_s[0]), float(obs.t_s[-1]))
-        return WindowProblem(obs, grid, first, count, prior, self.noise, self.config)
+        return WindowProblem(obs, grid, first, count, prior, self.noise, self.config, self._span_cache)
 
     def initial_guesses(self, prob: WindowProblem) -> list[np.ndarray]:
         b = prob.obs.bearings_ned()
@@ -496,41 +561,44 @@ class MapEstimator:
         modes.sort(key=lambda m: -m[6])
         return modes[0][:7], [m[:7] for m in modes[:max_modes]]
 
-    def solve(self, obs: Observations, prior: MotionPrior | None = None) -> MapResult:
+    def solve(self, obs: Observations, prior: MotionPrior | None = None, grid: KnotGrid | None = None,
+              warm: np.ndarray | None = None) -> MapResult:
         """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
 
         Two model families: constant velocity (CV) and coordinated turn (CT, turn rate estimated),
         each over the q grid.  A family's evidence sums its grid points (a log-uniform hyperprior on
         q); CT, which contains CV, is chosen only when it beats CV by ``turn_model_margin_nats``
         (prior odds for the simpler model: most of the time targets do not turn).  Within the chosen
-        family the q with the largest evidence is kept.
+        family the q with the largest evidence is kept.  ``warm`` (a solution on the same ``grid``,
+        e.g. the sliding window's current one) replaces the cold multi-start of the first family.
         """
         if prior is not None:
-            best, _ = self.solve_prior(obs, prior)
-            return self.result(*best)
+            best, _ = self.solve_prior(obs, prior, grid=grid)
+            return self.result(*best[:6])
         cfg = self.config
         families = {"cv": 0.0}
         if cfg.turn_rate_sigma_radps > 0:
             families["ct"] = cfg.turn_rate_sigma_radps
         tops: dict[str, list] = {}
-        carry: list[np.ndarray] = []
+        carry: list[np.ndarray] = [] if warm is None else [warm]
         for fam, sig_om in families.items():
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
             # loose to stiff: a stiff prior's basin is narrow, the looser solution starts it well
             for q in sorted(cfg.q_grid_m2ps3, reverse=True):
                 pr = MotionPrior(q, q * cfg.vertical_ratio, sig_om)
-                prob = self.problem(obs, pr)
-                fresh = self.initial_guesses(prob)
-                if seeds is None and not carry:
-                    starts = fresh
+                prob = self.problem(obs, pr, grid)
+                if seeds is not None:  # the previous q's modes
+                    starts = [self._adapt(th, prob) for th in seeds]
+                elif carry:  # the other family's (or the caller's) best, plus one fresh range hypothesis
+                    fresh = self.initial_guesses(prob)
+                    starts = [self._adapt(th, prob) for th in carry] + [fresh[len(fresh) // 2]]
                 else:
-                    warm = [self._adapt(th, prob) for th in (seeds if seeds is not None else carry)]
-                    starts = warm + [fresh[len(fresh) // 2]]
-                top, modes = self.solve_prior(obs, pr, starts=starts, max_modes=2)
+                    starts = self.initial_guesses(prob)
+                top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
                 seeds = [m[1] for m in modes]
                 tops[fam].append(top)
-            carry = [m[1] for m in sorted((t for t in tops[fam]), key=lambda m: -m[6])[:3]]
+            carry = [m[1] for m in sorted(tops[fam], key=lambda m: -m[6])[:2]]
         fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
         chosen = "cv"
         if "ct" in fam_ev and fam_ev["ct"] > fam_ev["cv"] + cfg.turn_model_margin_nats:
@@ -558,6 +626,8 @@ class MapEstimator:
         return out
 
     def result(self, prob: WindowProblem, theta, cost, its, conv, fac) -> MapResult:
+        # the problem object served several starts: its weights must be this solution's
+        prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - prob.obs.p_cam_ned_m, axis=1))
         Sigma = prob.covariance(fac)
         P = prob.point_covariances(Sigma)
         p = prob.positions(theta)

@@ -69,6 +69,24 @@ class Observations:
         object.__setattr__(self, "xy_norm", xy)
         object.__setattr__(self, "R_ned_from_cam", rotmat_from_quat(self.q_ned_from_cam))
 
+    @classmethod
+    def from_checked_rows(cls, t_s, uv_px, fx_px, fy_px, cx_px, cy_px, p_cam_ned_m, q_ned_from_cam, R_ned_from_cam) -> "Observations":
+        """Build without re-validating rows that were validated one by one on arrival (sliding window).
+
+        The caller guarantees what ``__post_init__`` checks: finite values, increasing times, unit
+        quaternions and ``R_ned_from_cam == R(q_ned_from_cam)``.
+        """
+        self = object.__new__(cls)
+        fx, fy = np.asarray(fx_px, float), np.asarray(fy_px, float)
+        uv = np.asarray(uv_px, float)
+        xy = np.stack([(uv[:, 0] - np.asarray(cx_px, float)) / fx, (uv[:, 1] - np.asarray(cy_px, float)) / fy], axis=1)
+        for name, value in (("t_s", np.asarray(t_s, float)), ("uv_px", uv), ("fx_px", fx), ("fy_px", fy),
+                            ("cx_px", np.asarray(cx_px, float)), ("cy_px", np.asarray(cy_px, float)),
+                            ("p_cam_ned_m", np.asarray(p_cam_ned_m, float)), ("q_ned_from_cam", np.asarray(q_ned_from_cam, float)),
+                            ("xy_norm", xy), ("R_ned_from_cam", np.asarray(R_ned_from_cam, float))):
+            object.__setattr__(self, name, value)
+        return self
+
     def __len__(self) -> int:
         return self.t_s.shape[0]
 

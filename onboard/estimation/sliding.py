@@ -1,0 +1,278 @@
+"""Online use of the MAP reconstruction: a sliding window that takes one observation at a time.
+
+Every observation gets a fresh estimate of the target's state at its own time:
+
+- the window keeps the last ``window_s`` seconds (at most ``max_frames`` rows): bounded memory;
+- the spline's knot grid is anchored once, so when the window slides, control points are carried
+  over (old ones dropped, new ones extrapolated) and the previous solution warm-starts the next;
+- each frame runs ``iterations_per_frame`` Gauss-Newton/LM iterations on the whole window with the
+  current motion model (a few hundred microseconds to a millisecond for 300 frames);
+- at most every ``reselect_period_s`` (1 Hz by default) the full multi-start, evidence-based model
+  selection of :class:`~onboard.estimation.map_estimator.MapEstimator` re-solves the window (the
+  expensive part, ~0.1-0.5 s, amortised over the frames of that second).
+
+The reported covariance is the Laplace posterior of the window; ``observable`` is true only when the
+posterior range sigma at this time is below ``observability_max_sigma_range_ratio`` of the range
+and the last model selection also found the window observable.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+
+from onboard.errors import InputError
+from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel, WindowProblem
+from onboard.estimation.observations import Observations
+from onboard.estimation.spline import KnotGrid
+from onboard.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+
+__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SlidingConfig:
+    window_s: float = 10.0
+    max_frames: int = 300
+    min_frames: int = 30
+    min_span_s: float = 1.5
+    reselect_period_s: float = 1.0
+    iterations_per_frame: int = 1
+    resolve_every_frames: int = 3
+
+    def __post_init__(self) -> None:
+        if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0
+                and self.iterations_per_frame >= 1 and self.min_span_s >= 0 and self.resolve_every_frames >= 1):
+            raise InputError(f"SlidingConfig: invalid values {self}")
+
+
+@dataclass(frozen=True)
+class TrackEstimate:
+    """The target's state at ``t_s`` from the window ending there (NED metres about the local origin)."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    v_ned_mps: np.ndarray
+    cov_p_ned_m2: np.ndarray
+    cov_v_ned_m2ps2: np.ndarray
+    observable: bool
+    range_m: float
+    range_sigma_ratio: float
+    window_frames: int
+    model: str
+
+    @property
+    def sigma_ned_m(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
+
+
+class SlidingWindowEstimator:
+    """Feed observations with :meth:`add`; read the latest :class:`TrackEstimate`."""
+
+    def __init__(self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None):
+        self.config = config or SlidingConfig()
+        self.map = MapEstimator(map_config or MapConfig(), noise or NoiseModel())
+        self.reset()
+
+    def reset(self) -> None:
+        c = self.config
+        self._t: deque = deque(maxlen=c.max_frames)
+        self._uv: deque = deque(maxlen=c.max_frames)
+        self._k: deque = deque(maxlen=c.max_frames)  # (fx, fy, cx, cy)
+        self._p: deque = deque(maxlen=c.max_frames)
+        self._q: deque = deque(maxlen=c.max_frames)
+        self._R: deque = deque(maxlen=c.max_frames)
+        self._grid: KnotGrid | None = None
+        self._theta: np.ndarray | None = None
+        self._first = 0
+        self._prior: MotionPrior | None = None
+        self._model = "none"
+        self._last_select_t = -math.inf
+        self._window_observable = False
+        self._prob: WindowProblem | None = None
+        self._H: np.ndarray | None = None
+        self._since_full = 0
+        self.stats = {"selections": 0, "updates": 0, "incremental": 0, "failures": 0}
+
+    # ------------------------------------------------------------------ input
+    def add(self, t_s: float, uv_px, intrinsics: PinholeIntrinsics, p_cam_ned_m, q_ned_from_cam) -> TrackEstimate | None:
+        """Add one observation; returns the estimate at ``t_s`` (None until the window can be solved).
+
+        Raises InputError for a non-increasing time or non-finite values (the row is not added).
+        """
+        t = float(t_s)
+        uv = np.asarray(uv_px, dtype=float).reshape(2)
+        p = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
+        q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
+        if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
+            raise InputError("SlidingWindowEstimator.add: non-finite observation")
+        try:
+            q = check_unit_quat(q, "SlidingWindowEstimator.add: q_ned_from_cam")
+        except FrameError as exc:
+            raise InputError(str(exc)) from None
+        if self._t and t <= self._t[-1]:
+            raise InputError(f"SlidingWindowEstimator.add: time {t} is not after the previous {self._t[-1]}")
+        if intrinsics.has_distortion:
+            uv = intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0], \
+                intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1]
+            uv = np.asarray(uv, dtype=float)
+        self._t.append(t)
+        self._uv.append(uv)
+        self._k.append((intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px))
+        self._p.append(p)
+        self._q.append(q)
+        self._R.append(rotmat_from_quat(q))
+        while self._t and self._t[0] < t - self.config.window_s:
+            for d in (self._t, self._uv, self._k, self._p, self._q, self._R):
+                d.popleft()
+        if self._grid is None:
+            self._grid = KnotGrid(t, self.map.config.knot_spacing_s)
+        if len(self._t) < self.config.min_frames or t - self._t[0] < self.config.min_span_s:
+            return None
+        try:
+            return self._update(t)
+        except (EstimationError, np.linalg.LinAlgError, FloatingPointError) as exc:
+            self.stats["failures"] += 1
+            log.debug("sliding window update failed: %s", exc)
+            self._theta = None
+            return None
+
+    def _observations(self) -> Observations:
+        k = np.asarray(self._k)
+        return Observations.from_checked_rows(
+            np.fromiter(self._t, float, len(self._t)), np.asarray(self._uv), k[:, 0], k[:, 1], k[:, 2], k[:, 3],
+            np.asarray(self._p), np.asarray(self._q), np.asarray(self._R),
+        )
+
+    # ------------------------------------------------------------------ solve
+    def _update(self, t: float) -> TrackEstimate:
+        due = t - self._last_select_t >= self.config.reselect_period_s
+        if self._theta is None or self._prior is None or due:
+            obs = self._observations()
+            warm = None
+            if self._theta is not None and self._prob is not None:
+                warm = self._shift(self.map.problem(obs, self._prior, self._grid))
+            res = self.map.solve(obs, grid=self._grid, warm=warm)
+            prob: WindowProblem = res.extras["problem"]
+            theta = res.extras["theta"]
+            self._prior = res.prior
+            self._model = res.extras.get("model", "map")
+            self._window_observable = res.observable
+            self._last_select_t = t
+            self.stats["selections"] += 1
+            # the problem object served several starts: re-linearise at the chosen solution
+            prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
+            _, J, _ = prob.evaluate(theta)
+            prob.last_jacobian = J
+        elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
+            return self._incremental(t)
+        else:
+            obs = self._observations()
+            prob = self.map.problem(obs, self._prior, self._grid)
+            theta = self._shift(prob)
+            prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
+            theta, cost, _, _, _ = prob.solve(theta, max_iterations=self.config.iterations_per_frame, want_factor=False)
+            if not math.isfinite(cost) or prob.last_jacobian is None:
+                raise EstimationError("warm-started window solution is invalid (target behind the camera)")
+            self.stats["updates"] += 1
+        J = prob.last_jacobian
+        self._H = J.T @ J
+        self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
+        return self._estimate(prob, theta, t, self._H)
+
+    def _span_end(self, prob: WindowProblem) -> float:
+        return self._grid.t_origin_s + (prob.first + prob.count - 3) * self._grid.spacing_s
+
+    def _incremental(self, t: float) -> TrackEstimate:
+        """One Gauss-Newton step adding only the newest observation to the last full solve's
+        information (a rank-2 update); the next full iteration rebuilds the window exactly."""
+        prob, theta = self._prob, self._theta
+        k = self._k[-1]
+        xy = ((self._uv[-1][0] - k[2]) / k[0], (self._uv[-1][1] - k[3]) / k[1])
+        r, Jr, ok = prob.measurement_rows(theta, t, xy, (k[0], k[1]), self._p[-1], self._R[-1])
+        if not ok:
+            raise EstimationError("new observation is behind the camera for the current solution")
+        H = self._H + Jr.T @ Jr
+        d = np.sqrt(np.diag(H))
+        d[d == 0] = 1.0
+        ch = sla.cho_factor(H / np.outer(d, d), lower=True, check_finite=False)
+        theta = theta - sla.cho_solve(ch, (Jr.T @ r) / d, check_finite=False) / d
+        self._theta, self._H = theta, H
+        self._since_full += 1
+        self.stats["incremental"] += 1
+        return self._estimate(prob, theta, t, H, chol=(ch, d))
+
+    def _shift(self, prob: WindowProblem) -> np.ndarray:
+        """Carry the previous solution to this window's control span; extrapolate new controls."""
+        old = self._theta
+        old_nc = old.size - (prob.n_params - prob.nc)
+        c_old = old[:old_nc].reshape(-1, 3)
+        c = np.empty((prob.count, 3))
+        off = prob.first - self._first
+        for k in range(prob.count):
+            j = k + off
+            if 0 <= j < c_old.shape[0]:
+                c[k] = c_old[j]
+            elif j >= c_old.shape[0]:
+                c[k] = 2 * c[k - 1] - c[k - 2] if k >= 2 else c_old[-1]
+            else:
+                c[k] = c_old[0]
+        theta = np.empty(prob.n_params)
+        theta[: prob.nc] = c.reshape(-1)
+        theta[prob.nc :] = old[old_nc:]
+        return theta
+
+    def _estimate(self, prob: WindowProblem, theta: np.ndarray, t: float, H: np.ndarray, p_cam_ned_m=None,
+                  chol=None) -> TrackEstimate:
+        """State and covariance at ``t`` from the information matrix H of the window's parameters."""
+        rows = self._grid.basis(np.array([t]), prob.first, prob.count)
+        idx = rows.index[0]
+        cols = (3 * idx[:, None] + np.arange(3)).reshape(-1)  # the 12 control coordinates that matter
+        if chol is None:
+            d = np.sqrt(np.diag(H))
+            d[d == 0] = 1.0
+        else:
+            d = chol[1]
+        E = np.zeros((prob.n_params, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0 / d[cols]
+        try:
+            ch = chol[0] if chol is not None else sla.cho_factor(H / np.outer(d, d), lower=True, check_finite=False)
+            X = sla.cho_solve(ch, E, check_finite=False)
+        except np.linalg.LinAlgError:
+            J = prob.last_jacobian
+            R = sla.qr(J / d, mode="r", check_finite=False)[0][: prob.n_params]
+            X = sla.cho_solve((R.T, True), E, check_finite=False)
+        S = (X[cols] / d[cols][:, None]).reshape(4, 3, 4, 3)  # covariance of the 4 controls
+        w0, w1 = rows.w0[0], rows.w1[0]
+        P = np.einsum("m,l,milj->ij", w0, w0, S)
+        V = np.einsum("m,l,milj->ij", w1, w1, S)
+        c = theta[: prob.nc].reshape(prob.count, 3)[idx]
+        p = w0 @ c
+        v = w1 @ c
+        los = p - np.asarray(self._p[-1] if p_cam_ned_m is None else p_cam_ned_m, dtype=float)
+        rng = float(np.linalg.norm(los))
+        u = los / max(rng, 1e-9)
+        ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / max(rng, 1e-9))
+        neg = bool(np.any(np.diag(P) <= 0))
+        observable = bool(self._window_observable and not neg
+                          and ratio < self.map.config.observability_max_sigma_range_ratio)
+        return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model)
+
+    def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
+        """The current solution evaluated at ``t_s`` (no new measurement), for coasting frames.
+
+        ``p_cam_ned_m`` (the camera at ``t_s``) sets the range; default: the last observation's camera.
+        None outside the spline's span (no extrapolation beyond the last knot interval)."""
+        if self._theta is None or self._prior is None or not self._t:
+            return None
+        t = float(t_s)
+        if self._prob is None or t < self._t[0] or t >= self._span_end(self._prob):
+            return None
+        return self._estimate(self._prob, self._theta, t, self._H, p_cam_ned_m)
