@@ -1,0 +1,56 @@
+# syntax=docker/dockerfile:1
+# irtrack onboard image: the daemon `python -m onboard` (default) and, with another entry point,
+# the ground simulator `python -m groundsim` (see deploy/compose.yaml and deploy/README.md).
+#
+#   docker build -t irtrack:0.1.0 .                       (from the repository root)
+#   docker run --rm --network host -v "$PWD/deploy/onboard.container.yaml:/config/onboard.yaml:ro" irtrack:0.1.0
+#
+# Dependencies are installed by scripts/install.sh, the same script `make test` (and so CI) runs:
+# CI exercises this image's install step without a container engine.
+FROM python:3.11-slim-bookworm
+
+# Single-threaded numerics by design (one pipeline thread, one MAVLink thread): no BLAS/OpenMP/OpenCV
+# thread pools competing with them for the companion computer's cores.
+ENV PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    OPENBLAS_NUM_THREADS=1 \
+    OMP_NUM_THREADS=1 \
+    MKL_NUM_THREADS=1 \
+    OPENCV_FOR_THREADS_NUM=1 \
+    MPLCONFIGDIR=/tmp/matplotlib \
+    IRTRACK_HEALTH_FILE=/tmp/irtrack-alive \
+    PATH=/opt/venv/bin:$PATH
+
+# Fixed uid/gid 10001 so host-side files (certificates, logs) can be chowned to it; dialout for
+# serial autopilot links (/dev/ttyACM*, /dev/ttyAMA*).
+RUN groupadd --system --gid 10001 irtrack \
+ && useradd --system --uid 10001 --gid irtrack --groups dialout \
+        --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin irtrack
+
+WORKDIR /opt/irtrack
+# Only what the install and the runtime need (README.md: the package metadata's long description).
+COPY pyproject.toml README.md ./
+COPY scripts/ scripts/
+COPY onboard/ onboard/
+COPY groundsim/ groundsim/
+COPY bench/ bench/
+COPY config/ config/
+
+# The same install path as developers and CI, without the dev extras; the script ends by checking
+# that cv2 is the contrib build with KCF. The pip cache mount keeps rebuilds fast and out of the image.
+RUN --mount=type=cache,target=/root/.cache/pip \
+    bash scripts/install.sh /opt/venv \
+ && python -m compileall -q onboard groundsim bench \
+ && install -d -m 0755 /config \
+ && cp config/onboard.yaml /config/onboard.yaml
+
+# /config is normally a read-only bind mount (deploy/compose.yaml); the copy above is the default.
+USER 10001:10001
+
+HEALTHCHECK --interval=5s --timeout=3s --start-period=30s --retries=3 \
+    CMD ["python", "-m", "onboard.health"]
+
+STOPSIGNAL SIGTERM
+ENTRYPOINT ["python", "-m", "onboard"]
+CMD ["--config", "/config/onboard.yaml"]
