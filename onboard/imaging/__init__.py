@@ -1,12 +1,12 @@
 """Onboard image chain: pre-processing, warm-blob detection and KCF tracking (pure, no I/O).
 
 ``TargetTracker(ImagingParams()).update(frame) -> TrackUpdate`` is the whole chain for one
-frame; :func:`detect` is the detector on its own.  See the submodules' docstrings for the
+frame; :func:`detect_targets` is the detector on its own.  See the submodules' docstrings for the
 maths (preprocess: mean filter, background, double threshold; detect: sub-pixel centroid;
 tracker: states and KCF).
 """
 
-from onboard.imaging.detect import Blob, Detection, detect, find_blobs, measure_blob
+from onboard.imaging.detect import Blob, Detection, detect_targets, find_blobs, measure_blob
 from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, preprocess
 from onboard.imaging.tracker import TargetTracker, TrackState, TrackUpdate
 
@@ -18,7 +18,7 @@ __all__ = [
     "preprocess",
     "Blob",
     "Detection",
-    "detect",
+    "detect_targets",
     "find_blobs",
     "measure_blob",
     "TrackState",

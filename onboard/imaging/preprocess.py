@@ -58,6 +58,7 @@ log = logging.getLogger(__name__)
 MAD_TO_SIGMA = 1.4826  # 1-sigma of a normal distribution per unit median absolute deviation
 MIN_FRAME_SIDE_PX = 16
 NOISE_SUBSAMPLE_FULL_FRAME = 8  # every 8th row/column for the full-frame noise estimate (~5k px)
+NOISE_SUBSAMPLE_REGION = 2  # every 2nd row/column of a region of interest (~1k px)
 SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 
@@ -101,8 +102,8 @@ class ImagingParams:
     centroid_window_sigma_px: float = 1.0
     background_ring_px: int = 3
     kcf_box_px: int = 16
-    kcf_box_scale: float = 1.5
-    kcf_max_box_px: int = 48
+    kcf_box_scale: float = 1.0
+    kcf_max_box_px: int = 32
     kcf_detect_threshold: float = 0.3
     roi_margin_px: int = 12
     max_drift_px: float = 3.0
@@ -309,28 +310,19 @@ def background_coarse(filtered: np.ndarray, cell_px: int, median_cells: int) -> 
 
     Block means over cell_px x cell_px cells (INTER_AREA), a median over median_cells x
     median_cells cells (a target narrower than about median_cells/2 cells does not raise it),
-    then bilinear upsampling.  Exact for a linear ramp away from the outermost half cell.
+    then bilinear upsampling; the coarse grid is extended by linear extrapolation first, so the
+    result is exact for a plane up to the image edges.
     """
     h, w = filtered.shape
     cw, ch = max(1, w // cell_px), max(1, h // cell_px)
     cell_x, cell_y = w // cw, h // ch  # whole-pixel cells; up to cell-1 trailing pixels are extrapolated
     coarse = cv2.resize(filtered[: ch * cell_y, : cw * cell_x], (cw, ch), interpolation=cv2.INTER_AREA)
-    if median_cells > 1 and min(cw, ch) >= median_cells:
-        coarse = cv2.medianBlur(coarse, median_cells)
-    # one extrapolated cell on every side, so the bilinear upsampling is linear up to the image
-    # edge instead of flat over the outermost half cell
-    padded = np.empty((ch + 2, cw + 2), dtype=np.float32)
-    padded[1:-1, 1:-1] = coarse
-    if cw > 1:
-        padded[1:-1, 0] = 2 * coarse[:, 0] - coarse[:, 1]
-        padded[1:-1, -1] = 2 * coarse[:, -1] - coarse[:, -2]
-    else:
-        padded[1:-1, 0] = padded[1:-1, -1] = coarse[:, 0]
-    if ch > 1:
-        padded[0, :] = 2 * padded[1, :] - padded[2, :]
-        padded[-1, :] = 2 * padded[-2, :] - padded[-3, :]
-    else:
-        padded[0, :] = padded[-1, :] = padded[1, :]
+    # pad by linear extrapolation (odd reflection) so that neither the median nor the bilinear
+    # upsampling sees a flat (replicated) border: both stay exact for a plane up to the edges
+    m = median_cells // 2 if median_cells > 1 and min(cw, ch) >= median_cells else 0
+    padded = np.pad(coarse, m + 1, mode="reflect", reflect_type="odd") if min(cw, ch) > 1 else np.pad(coarse, m + 1, mode="edge")
+    if m:
+        padded = cv2.medianBlur(np.ascontiguousarray(padded, dtype=np.float32), median_cells)[m:-m, m:-m]
     up = cv2.resize(padded, ((cw + 2) * cell_x, (ch + 2) * cell_y), interpolation=cv2.INTER_LINEAR)
     return up[cell_y : cell_y + h, cell_x : cell_x + w]
 
@@ -422,7 +414,7 @@ def preprocess(image: np.ndarray, params: ImagingParams, region: Region | None =
             residual = filtered - (np.float32(level) + ys[:, None] + xs[None, :])
         else:
             residual = filtered - np.float32(fast_median(filtered))
-        sigma = robust_sigma(residual)
+        sigma = robust_sigma(residual, NOISE_SUBSAMPLE_REGION)
     s = grey_scale(image.dtype, params)
     low = max(params.threshold_low_sigma * sigma, params.min_threshold_low_grey8 * s)
     high = max(params.threshold_high_sigma * sigma, params.min_threshold_high_grey8 * s, low)

@@ -1,0 +1,535 @@
+"""Tests of the onboard image chain on synthetic frames with a known sub-pixel target centre.
+
+Frames: 640 x 512, a sky that brightens smoothly towards the horizon (bottom), a Gaussian or
+elliptical warm blob point-sampled at pixel centres (frames.py convention: the centre of pixel
+(i, j) is (j + 0.5, i + 0.5)), optional NETD-like Gaussian noise, rounded to the dtype.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from onboard.errors import ConfigError, InputError
+from onboard.imaging import (
+    Detection,
+    ImagingParams,
+    Region,
+    TargetTracker,
+    TrackState,
+    TrackUpdate,
+    check_frame,
+    detect_targets,
+    preprocess,
+)
+from onboard.imaging.preprocess import background_coarse, fast_median, ring_plane, robust_sigma
+
+H_PX, W_PX = 512, 640
+CENTROID_NOISE_FREE_TOL_PX = 0.1  # brief: < 0.1 px without noise
+CENTROID_NOISY_TOL_PX = 0.3  # brief: < 0.3 px with ~1 grey NETD
+CENTROID_NOISY_RMS_TOL_PX = 0.1  # what the windowed centroid actually achieves at SNR >= 50
+PLANE_TOL = 1e-9  # grey; ring_plane is exact for a noise-free plane
+RAMP_BACKGROUND_TOL = 0.05  # grey; coarse background of a linear ramp (float input)
+
+_YY, _XX = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+
+
+def sky(gradient=40.0, base=60.0, h=H_PX, w=W_PX):
+    """Sky grey rising by ``gradient`` from top to bottom, with a mild horizontal curvature."""
+    yy, xx = (_YY, _XX) if (h, w) == (H_PX, W_PX) else np.mgrid[0:h, 0:w].astype(np.float64)
+    return base + gradient * yy / h + 4.0 * (xx / w - 0.5) ** 2
+
+
+def add_blob(img, u, v, amp, sigma_u, sigma_v=None, angle_rad=0.0):
+    """Add a (rotated, elliptical) Gaussian of peak ``amp`` centred at (u, v) in pixel coords."""
+    sigma_v = sigma_u if sigma_v is None else sigma_v
+    h, w = img.shape
+    r = int(math.ceil(5 * max(sigma_u, sigma_v))) + 2
+    i0, i1 = max(int(v) - r, 0), min(int(v) + r + 1, h)
+    j0, j1 = max(int(u) - r, 0), min(int(u) + r + 1, w)
+    yy, xx = np.mgrid[i0:i1, j0:j1].astype(np.float64)
+    dx, dy = xx + 0.5 - u, yy + 0.5 - v
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    a, b = c * dx + s * dy, -s * dx + c * dy
+    img[i0:i1, j0:j1] += amp * np.exp(-0.5 * ((a / sigma_u) ** 2 + (b / sigma_v) ** 2))
+    return img
+
+
+def make_frame(u=None, v=None, amp=80.0, sigma=1.2, noise=1.0, rng=None, dtype=np.uint8, sigma_v=None, angle_rad=0.0, gradient=40.0):
+    img = sky(gradient).copy()
+    if u is not None:
+        add_blob(img, u, v, amp, sigma, sigma_v, angle_rad)
+    if noise > 0:
+        img += (rng if rng is not None else np.random.default_rng(0)).normal(0.0, noise, img.shape)
+    if dtype == np.uint16:
+        img = img * 257.0
+    return np.clip(np.round(img), 0, np.iinfo(dtype).max).astype(dtype)
+
+
+# ----------------------------------------------------------------------------- parameters
+
+
+def test_default_params_are_valid():
+    p = ImagingParams()
+    assert p.mean_kernel_px == 3 and p.coast_frames <= p.lost_frames
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("mean_kernel_px", 4),  # must be odd
+        ("mean_kernel_px", 0),
+        ("mean_kernel_px", 3.5),
+        ("threshold_low_sigma", -1.0),
+        ("threshold_high_sigma", 1.0),  # < threshold_low_sigma
+        ("threshold_low_sigma", float("nan")),
+        ("min_threshold_high_grey8", 1.0),  # < min_threshold_low_grey8
+        ("min_area_px", 0),
+        ("max_area_px", 1),  # < min_area_px
+        ("background_median_cells", 4),
+        ("kcf_detect_threshold", 1.5),
+        ("kcf_max_box_px", 8),  # < kcf_box_px
+        ("lost_frames", 2),  # < coast_frames
+        ("max_aspect_ratio", 0.5),
+        ("coast_frames", True),
+    ],
+)
+def test_params_reject_bad_values_naming_the_field(field, value):
+    with pytest.raises(ConfigError, match=field):
+        ImagingParams(**{field: value})
+
+
+def test_params_from_mapping():
+    p = ImagingParams.from_mapping({"mean_kernel_px": 5.0, "threshold_low_sigma": 2, "lost_frames": 30})
+    assert p.mean_kernel_px == 5 and isinstance(p.mean_kernel_px, int)
+    assert p.threshold_low_sigma == 2 and p.lost_frames == 30
+    assert ImagingParams.from_mapping(None) == ImagingParams()
+    with pytest.raises(ConfigError, match=r"onboard.yaml:imaging: unknown key\(s\) \['mean_kernel'\]"):
+        ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml:imaging")
+    with pytest.raises(ConfigError, match=r"cfg\.coast_frames must be an integer"):
+        ImagingParams.from_mapping({"coast_frames": 2.5}, where="cfg")
+    with pytest.raises(ConfigError, match=r"cfg\.max_drift_px must be a number"):
+        ImagingParams.from_mapping({"max_drift_px": "3"}, where="cfg")
+    with pytest.raises(ConfigError, match=r"cfg\.lost_frames"):
+        ImagingParams.from_mapping({"lost_frames": 1, "coast_frames": 3}, where="cfg")
+    with pytest.raises(ConfigError, match="mapping"):
+        ImagingParams.from_mapping([1, 2], where="cfg")
+
+
+# ----------------------------------------------------------------------------- frame checks
+
+
+@pytest.mark.parametrize(
+    "image, field",
+    [
+        (np.zeros((512, 640), np.float32), "image.dtype"),
+        (np.zeros((512, 640), np.int16), "image.dtype"),
+        (np.zeros((512, 640), bool), "image.dtype"),
+        (np.zeros((512, 640, 3), np.uint8), "image.shape"),
+        (np.zeros((640,), np.uint8), "image.shape"),
+        (np.zeros((8, 640), np.uint8), "image.shape"),
+        ([[0] * 32] * 32, "numpy array"),
+    ],
+)
+def test_check_frame_rejects_naming_the_field(image, field):
+    with pytest.raises(InputError, match=field):
+        check_frame(image)
+
+
+def test_check_frame_accepts_single_channel_and_strided_views():
+    img = np.zeros((64, 80, 1), np.uint8)
+    assert check_frame(img).shape == (64, 80)
+    strided = np.zeros((128, 160), np.uint16)[::2, ::2]
+    out = check_frame(strided)
+    assert out.shape == (64, 80) and out.flags.c_contiguous
+
+
+# ----------------------------------------------------------------------------- background
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    level=st.floats(-100, 100),
+    gx=st.floats(-5, 5),
+    gy=st.floats(-5, 5),
+    x0=st.integers(0, 30),
+    y0=st.integers(0, 30),
+    wx=st.integers(1, 20),
+    wy=st.integers(1, 20),
+    ring=st.integers(1, 5),
+    use_median=st.booleans(),
+)
+def test_ring_plane_is_exact_for_a_plane(level, gx, gy, x0, y0, wx, wy, ring, use_median):
+    """Any rectangle, clipped rings included: a noise-free plane is recovered exactly."""
+    h, w = 40, 50
+    x1, y1 = min(x0 + wx, w), min(y0 + wy, h)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    xc, yc = 0.5 * (x0 + x1 - 1), 0.5 * (y0 + y1 - 1)
+    values = level + gx * (xx - xc) + gy * (yy - yc)
+    lv, ggx, ggy = ring_plane(values, x0, y0, x1, y1, ring, use_median)
+    has_lr = x0 > 0 and x1 < w
+    has_tb = y0 > 0 and y1 < h
+    if has_lr and has_tb:
+        assert lv == pytest.approx(level, abs=PLANE_TOL * (1 + abs(level)) * 1e3)
+    if has_lr:
+        assert ggx == pytest.approx(gx, abs=1e-9)
+    if has_tb:
+        assert ggy == pytest.approx(gy, abs=1e-9)
+
+
+def test_fast_median_matches_numpy():
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 100, 101):
+        a = rng.normal(size=n).astype(np.float32)
+        assert fast_median(a) == pytest.approx(float(np.median(a)), abs=1e-6)
+
+
+def test_coarse_background_follows_a_ramp_up_to_the_edges():
+    ramp = (60.0 + 40.0 * _YY / H_PX + 10.0 * _XX / W_PX).astype(np.float32)
+    bg = background_coarse(ramp, 16, 5)
+    assert bg.shape == ramp.shape
+    assert np.max(np.abs(bg - ramp)) < RAMP_BACKGROUND_TOL
+
+
+def test_coarse_background_ignores_a_small_target():
+    img = sky().astype(np.float32)
+    add_blob(img, 300.3, 200.7, 200.0, 3.0)
+    bg = background_coarse(img, 16, 5)
+    assert abs(bg[200, 300] - sky()[200, 300]) < 1.0  # grey; the 200-grey target barely raises it
+
+
+def test_robust_sigma_of_gaussian_noise():
+    rng = np.random.default_rng(4)
+    r = rng.normal(0, 2.0, (256, 256)).astype(np.float32)
+    r[100:110, 100:110] += 500  # a target must not inflate the noise estimate
+    assert robust_sigma(r) == pytest.approx(2.0, rel=0.05)
+
+
+def test_preprocess_region_matches_full_frame_thresholds_roughly():
+    rng = np.random.default_rng(5)
+    img = make_frame(noise=1.0, rng=rng)
+    p = ImagingParams()
+    full = preprocess(img, p)
+    roi = preprocess(img, p, Region(200, 200, 264, 264))
+    assert roi.residual.shape == (64, 64) and roi.region == Region(200, 200, 264, 264)
+    # mean-filtered noise: ~1 grey / 3, plus 8-bit rounding
+    assert 0.25 < full.noise_sigma < 0.5 and 0.25 < roi.noise_sigma < 0.5
+    assert abs(float(np.median(roi.residual))) < 0.2
+
+
+# ----------------------------------------------------------------------------- detection
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    u=st.floats(40, 600),
+    v=st.floats(40, 470),
+    amp=st.floats(15, 150),
+    sigma=st.floats(0.7, 4.0),
+    gradient=st.floats(-40, 40),
+)
+def test_centroid_noise_free_mono16(u, v, amp, sigma, gradient):
+    """mono16 rounding is 1/257 grey: this is the centroid's own (pixel-sampling) accuracy."""
+    img = make_frame(u, v, amp=amp, sigma=sigma, noise=0.0, dtype=np.uint16, gradient=gradient)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert len(dets) == 1
+    d = dets[0]
+    assert abs(d.u_px - u) < CENTROID_NOISE_FREE_TOL_PX and abs(d.v_px - v) < CENTROID_NOISE_FREE_TOL_PX
+    assert not d.touches_border and not d.saturated
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(u=st.floats(40, 600), v=st.floats(40, 470), amp=st.floats(30, 150), sigma=st.floats(0.7, 4.0))
+def test_centroid_noise_free_mono8(u, v, amp, sigma):
+    img = make_frame(u, v, amp=amp, sigma=sigma, noise=0.0)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert len(dets) == 1
+    assert abs(dets[0].u_px - u) < CENTROID_NOISE_FREE_TOL_PX and abs(dets[0].v_px - v) < CENTROID_NOISE_FREE_TOL_PX
+
+
+@pytest.mark.parametrize("sigma, sigma_v, angle", [(1.2, None, 0.0), (0.7, None, 0.0), (3.0, 1.0, 0.4), (5.0, 1.5, 0.0)])
+def test_centroid_with_netd_noise(sigma, sigma_v, angle):
+    """Round and elongated (side-on quad-rotor) blobs, amplitude 50 grey over 1 grey noise."""
+    rng = np.random.default_rng(11)
+    errs = []
+    for _ in range(12):
+        u, v = rng.uniform(60, 580), rng.uniform(60, 450)
+        img = make_frame(u, v, amp=50.0, sigma=sigma, sigma_v=sigma_v, angle_rad=angle, noise=1.0, rng=rng)
+        dets, pre = detect_targets(img, ImagingParams())
+        assert len(dets) == 1, "exactly the target, no noise blob"
+        errs.append((dets[0].u_px - u, dets[0].v_px - v))
+        assert dets[0].snr > 20
+    e = np.abs(np.array(errs))
+    assert e.max() < CENTROID_NOISY_TOL_PX
+    assert math.sqrt(float((e**2).mean())) < CENTROID_NOISY_RMS_TOL_PX
+
+
+def test_detection_fields():
+    img = make_frame(321.25, 200.75, amp=100.0, sigma=1.5, noise=0.0)
+    (d,), _ = detect_targets(img, ImagingParams())
+    assert isinstance(d, Detection)
+    x, y, w, h = d.bbox
+    assert x <= d.u_px <= x + w and y <= d.v_px <= y + h
+    peak_sample = 100.0 * math.exp(-(0.25**2 + 0.25**2) / (2 * 1.5**2))  # the pixel centre nearest (u, v)
+    assert d.contrast == pytest.approx(peak_sample, abs=0.6)  # grey above the local sky (+- rounding)
+    assert d.flux == pytest.approx(2 * math.pi * 1.5**2 * 100.0, rel=0.03)  # integral of the Gaussian
+    assert d.peak == pytest.approx(sky()[200, 321] + peak_sample, abs=1.0)
+    assert 9 <= d.area_px <= 80
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("noise", [0.0, 1.0, 3.0])
+def test_no_detection_on_a_noise_only_sky(seed, noise):
+    img = make_frame(noise=noise, rng=np.random.default_rng(seed), gradient=60.0)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert dets == []
+
+
+@pytest.mark.parametrize(
+    "image",
+    [
+        np.zeros((H_PX, W_PX), np.uint8),
+        np.full((H_PX, W_PX), 255, np.uint8),
+        np.full((H_PX, W_PX), 65535, np.uint16),
+        np.zeros((H_PX, W_PX), np.uint16),
+    ],
+    ids=["zero8", "sat8", "sat16", "zero16"],
+)
+def test_no_detection_on_flat_frames(image):
+    assert detect_targets(image, ImagingParams())[0] == []
+
+
+def test_horizon_step_is_not_a_target():
+    rng = np.random.default_rng(6)
+    img = np.where(_YY < 300, 80.0, 150.0) + rng.normal(0, 1, _YY.shape)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    assert detect_targets(img, ImagingParams())[0] == []
+
+
+def test_strongest_of_two_targets_first_and_saturation_flag():
+    img = sky()
+    add_blob(img, 100.5, 100.5, 40.0, 1.0)
+    add_blob(img, 500.5, 400.5, 400.0, 1.5)  # clips at 255
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert len(dets) == 2
+    assert dets[0].u_px == pytest.approx(500.5, abs=0.1) and dets[0].saturated
+    assert dets[1].u_px == pytest.approx(100.5, abs=0.1) and not dets[1].saturated
+
+
+def test_target_cut_by_the_border_is_flagged():
+    img = make_frame(1.0, 200.3, amp=80.0, sigma=1.5, noise=0.0)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert len(dets) == 1 and dets[0].touches_border
+
+
+def test_detect_does_not_modify_its_input():
+    img = make_frame(300.5, 200.5, noise=1.0)
+    before = img.copy()
+    detect_targets(img, ImagingParams())
+    TargetTracker().update(img)
+    assert np.array_equal(img, before)
+
+
+# ----------------------------------------------------------------------------- tracker
+
+
+def run(tracker, frames):
+    return [tracker.update(f) for f in frames]
+
+
+def path_uv(k):
+    """A target drifting ~0.8 px/frame, as when the gimbal keeps it near the centre."""
+    return 300.0 + 0.7 * k + 3.0 * math.sin(0.2 * k), 240.0 + 0.4 * k
+
+
+def test_searching_on_noise_then_tracking_with_subpixel_centres():
+    rng = np.random.default_rng(21)
+    tr = TargetTracker(ImagingParams())
+    outs = run(tr, [make_frame(noise=1.0, rng=rng) for _ in range(3)])
+    assert [o.state for o in outs] == [TrackState.SEARCHING] * 3
+    assert all(o.track_id is None and o.u_px is None and not o.measurement_valid for o in outs)
+    errs = []
+    for k in range(30):
+        u, v = path_uv(k)
+        o = tr.update(make_frame(u, v, amp=60.0, noise=1.0, rng=rng))
+        assert o.state == TrackState.TRACKING and o.measurement_valid and o.track_id == 1
+        assert o.frames_since_measurement == 0 and o.detection is not None
+        assert (o.u_px, o.v_px) == (o.detection.u_px, o.detection.v_px)
+        errs.append(math.hypot(o.u_px - u, o.v_px - v))
+    assert max(errs) < CENTROID_NOISY_TOL_PX
+    assert o.frame_index == 32
+    assert o.kcf_ok and tr.kcf_reseeds <= 3  # KCF follows the slow drift by itself
+
+
+def test_coasting_through_a_hidden_target_then_tracking_again():
+    rng = np.random.default_rng(22)
+    p = ImagingParams(coast_frames=5, lost_frames=15)
+    tr = TargetTracker(p)
+    for k in range(10):
+        assert tr.update(make_frame(*path_uv(k), noise=1.0, rng=rng)).state == TrackState.TRACKING
+    hidden = run(tr, [make_frame(noise=1.0, rng=rng) for _ in range(4)])
+    assert [o.state for o in hidden] == [TrackState.COASTING] * 4
+    assert [o.frames_since_measurement for o in hidden] == [1, 2, 3, 4]
+    assert all(not o.measurement_valid and o.detection is None and o.track_id == 1 for o in hidden)
+    assert all(o.bbox is not None for o in hidden)
+    back = tr.update(make_frame(*path_uv(14), noise=1.0, rng=rng))
+    assert back.state == TrackState.TRACKING and back.track_id == 1 and back.measurement_valid
+    assert math.hypot(back.u_px - path_uv(14)[0], back.v_px - path_uv(14)[1]) < CENTROID_NOISY_TOL_PX
+
+
+def test_lost_after_lost_frames_then_new_track():
+    rng = np.random.default_rng(23)
+    p = ImagingParams(coast_frames=2, lost_frames=6)
+    tr = TargetTracker(p)
+    run(tr, [make_frame(*path_uv(k), noise=1.0, rng=rng) for k in range(5)])
+    outs = run(tr, [make_frame(noise=1.0, rng=rng) for _ in range(8)])
+    states = [o.state for o in outs]
+    assert states == [TrackState.COASTING] * 5 + [TrackState.LOST] * 3
+    # past coast_frames KCF's centre is no longer reported
+    assert all(o.u_px is None for o in outs[2:])
+    assert all(o.track_id is None and o.frames_since_measurement is None for o in outs[5:])
+    o = tr.update(make_frame(*path_uv(20), noise=1.0, rng=rng))
+    assert o.state == TrackState.TRACKING and o.track_id == 2
+
+
+def test_reacquisition_after_a_jump():
+    rng = np.random.default_rng(24)
+    p = ImagingParams(reacquire_gate_px=64.0)
+    tr = TargetTracker(p)
+    run(tr, [make_frame(300.0 + k, 250.0, noise=1.0, rng=rng) for k in range(6)])
+    # a jump beyond the region of interest but inside the gate keeps the track
+    near = tr.update(make_frame(350.3, 250.2, noise=1.0, rng=rng))
+    assert near.state == TrackState.TRACKING and near.track_id == 1
+    assert near.u_px == pytest.approx(350.3, abs=0.2) and near.v_px == pytest.approx(250.2, abs=0.2)
+    # a jump across the frame re-acquires at once, as a new track
+    far = tr.update(make_frame(100.7, 420.4, noise=1.0, rng=rng))
+    assert far.state == TrackState.TRACKING and far.track_id == 2 and far.measurement_valid
+    assert far.u_px == pytest.approx(100.7, abs=0.2) and far.v_px == pytest.approx(420.4, abs=0.2)
+    nxt = tr.update(make_frame(101.7, 420.4, noise=1.0, rng=rng))
+    assert nxt.track_id == 2 and nxt.u_px == pytest.approx(101.7, abs=0.2)
+    assert tr.reacquisitions == 2
+
+
+def test_fast_target_is_followed_and_kcf_reseeded_on_drift():
+    rng = np.random.default_rng(25)
+    tr = TargetTracker(ImagingParams())
+    errs, ids = [], set()
+    for k in range(25):
+        u, v = 150.0 + 9.0 * k, 260.0 + 4.0 * math.sin(0.5 * k)  # 9 px/frame and wobbling
+        o = tr.update(make_frame(u, v, amp=60.0, noise=1.0, rng=rng))
+        assert o.state == TrackState.TRACKING
+        ids.add(o.track_id)
+        errs.append(math.hypot(o.u_px - u, o.v_px - v))
+    assert ids == {1}
+    assert max(errs) < CENTROID_NOISY_TOL_PX
+
+
+def test_nearest_blob_is_followed_when_a_brighter_one_appears():
+    rng = np.random.default_rng(26)
+    tr = TargetTracker(ImagingParams())
+    for k in range(5):
+        img = make_frame(300.0 + k, 250.0, amp=40.0, noise=1.0, rng=rng).astype(np.float64)
+        if k >= 2:
+            add_blob(img, 500.0, 100.0, 150.0, 2.0)
+        o = tr.update(np.clip(img, 0, 255).astype(np.uint8))
+        assert o.track_id == 1 and o.u_px == pytest.approx(300.0 + k, abs=0.2)
+
+
+def test_mono16_tracks_like_mono8():
+    rng8, rng16 = np.random.default_rng(27), np.random.default_rng(27)
+    t8, t16 = TargetTracker(), TargetTracker()
+    for k in range(8):
+        u, v = path_uv(k)
+        o8 = t8.update(make_frame(u, v, noise=1.0, rng=rng8))
+        o16 = t16.update(make_frame(u, v, noise=1.0, rng=rng16, dtype=np.uint16))
+        assert o16.state == TrackState.TRACKING and o16.measurement_valid
+        assert math.hypot(o16.u_px - u, o16.v_px - v) < CENTROID_NOISY_TOL_PX
+        # mono16 keeps the sub-grey precision mono8 rounds away: same frame, centres within 0.1 px
+        assert math.hypot(o16.u_px - o8.u_px, o16.v_px - o8.v_px) < 0.1
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [np.zeros((H_PX, W_PX), np.float32), np.zeros((H_PX, W_PX, 3), np.uint8), np.zeros((4, 4), np.uint8), None],
+    ids=["float32", "rgb", "tiny", "none"],
+)
+def test_bad_frames_are_rejected_and_counted_without_losing_the_track(bad):
+    rng = np.random.default_rng(28)
+    tr = TargetTracker()
+    run(tr, [make_frame(*path_uv(k), noise=1.0, rng=rng) for k in range(3)])
+    with pytest.raises(InputError, match="image"):
+        tr.update(bad)
+    assert tr.rejected_frames == 1 and tr.state == TrackState.TRACKING
+    o = tr.update(make_frame(*path_uv(3), noise=1.0, rng=rng))
+    assert o.state == TrackState.TRACKING and o.track_id == 1 and o.frame_index == 3
+
+
+@pytest.mark.parametrize("value, dtype", [(0, np.uint8), (255, np.uint8), (65535, np.uint16), (0, np.uint16)])
+def test_flat_frames_never_break_a_track(value, dtype):
+    rng = np.random.default_rng(29)
+    tr = TargetTracker(ImagingParams(coast_frames=2, lost_frames=4))
+    run(tr, [make_frame(*path_uv(k), noise=1.0, rng=rng, dtype=dtype) for k in range(3)])
+    outs = run(tr, [np.full((H_PX, W_PX), value, dtype) for _ in range(5)])
+    assert [o.state for o in outs] == [TrackState.COASTING] * 3 + [TrackState.LOST] * 2
+    o = tr.update(make_frame(*path_uv(9), noise=1.0, rng=rng, dtype=dtype))
+    assert o.state == TrackState.TRACKING and o.track_id == 2
+
+
+def test_random_garbage_frames_do_not_raise():
+    rng = np.random.default_rng(30)
+    tr = TargetTracker()
+    for dtype in (np.uint8, np.uint16):
+        for _ in range(3):
+            img = rng.integers(0, np.iinfo(dtype).max, size=(H_PX, W_PX), endpoint=True).astype(dtype)
+            o = tr.update(img)
+            assert isinstance(o, TrackUpdate)
+
+
+def test_frame_size_change_ends_the_track():
+    rng = np.random.default_rng(31)
+    tr = TargetTracker()
+    run(tr, [make_frame(*path_uv(k), noise=1.0, rng=rng) for k in range(3)])
+    small = np.clip(np.round(sky(h=256, w=320)), 0, 255).astype(np.uint8)
+    o = tr.update(small)
+    assert o.state == TrackState.LOST and o.track_id is None
+    img = sky(h=256, w=320).copy()
+    add_blob(img, 100.5, 80.5, 60.0, 1.2)
+    o = tr.update(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    assert o.state == TrackState.TRACKING and o.track_id == 2 and o.u_px == pytest.approx(100.5, abs=0.1)
+
+
+def test_reset_returns_to_searching_with_fresh_id():
+    rng = np.random.default_rng(32)
+    tr = TargetTracker()
+    run(tr, [make_frame(*path_uv(k), noise=1.0, rng=rng) for k in range(3)])
+    tr.reset()
+    assert tr.state == TrackState.SEARCHING
+    assert tr.update(make_frame(noise=1.0, rng=rng)).state == TrackState.SEARCHING
+    assert tr.update(make_frame(*path_uv(5), noise=1.0, rng=rng)).track_id == 2
+
+
+def test_target_at_the_border_is_tracked_but_not_valid_for_reconstruction():
+    tr = TargetTracker()
+    o = tr.update(make_frame(0.8, 200.0, amp=80.0, sigma=1.5, noise=0.0))
+    assert o.state == TrackState.TRACKING and not o.measurement_valid and o.detection.touches_border
+
+
+def test_no_false_track_over_a_noisy_sequence():
+    rng = np.random.default_rng(33)
+    tr = TargetTracker()
+    outs = run(tr, [make_frame(noise=2.0, rng=rng, gradient=80.0) for _ in range(10)])
+    assert all(o.state == TrackState.SEARCHING for o in outs)
+
+
+def test_track_update_invariants():
+    with pytest.raises(InputError, match="measurement_valid"):
+        TrackUpdate(TrackState.COASTING, 1.0, 2.0, None, None, True, 1, 1, 0)
+    with pytest.raises(InputError, match="u_px and v_px"):
+        TrackUpdate(TrackState.COASTING, 1.0, None, None, None, False, 1, 1, 0)
+    with pytest.raises(InputError, match="track_id"):
+        TrackUpdate(TrackState.LOST, None, None, None, None, False, 3, None, 0)
