@@ -1,0 +1,192 @@
+"""Command line of the ground simulator: ``python -m groundsim <command> [options]``.
+
+Commands are argparse subparsers registered in :data:`COMMANDS`: one ``(name, help, add)`` entry
+per command, where ``add(parser)`` declares the command's options and sets
+``parser.set_defaults(handler=fn)``; ``fn(args) -> int`` is the command's exit code.  ``run`` is
+here; ``demo`` and ``eval`` are added the same way (a function ``_add_demo`` / ``_add_eval`` and
+one line in :data:`COMMANDS`), without touching ``run``'s code.  Every command gets ``--log-level``.
+
+Errors: any :class:`~onboard.errors.IrtrackError` escaping a handler (bad scenario, unknown key,
+port in use, unreachable zenoh peer, ...) and any command-line mistake are printed as ONE line
+``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Heavy
+modules (JSBSim, zenoh, OpenCV) are imported by the handlers, not here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from onboard.errors import ConfigError, IrtrackError
+
+__all__ = ["COMMANDS", "EXIT_ERROR", "build_parser", "main", "resolve_scenario_path"]
+
+log = logging.getLogger(__name__)
+
+EXIT_ERROR = 2  # bad input of any kind: one line on stderr
+DEFAULT_SCENARIO = "P1"
+DEFAULT_ZENOH_CONNECT_TIMEOUT_S = 5.0
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class _OneLineError(Exception):
+    """Raised by the parser instead of printing usage and exiting."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose mistakes become one line + exit code 2 (raised, printed by main)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise _OneLineError(f"{self.prog}: error: {message} (see --help)")
+
+
+# --------------------------------------------------------------------------- run
+
+
+def resolve_scenario_path(text: str) -> Path:
+    """``--scenario``: a file path, or the name of a shipped scenario (``P1``, ``H2``, ...)."""
+    p = Path(text)
+    if p.exists() or p.suffix:
+        return p
+    from groundsim.scenario import reference_scenario_paths
+
+    shipped = reference_scenario_paths()
+    return shipped.get(text, p)
+
+
+def _add_run(p: argparse.ArgumentParser) -> None:
+    from groundsim.mavlink_vehicle import DEFAULT_CONNECTION  # light: pymavlink only
+    from onboard.zenoh_session import DEFAULT_VEHICLE
+
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
+                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="simulated seconds (default and maximum: the scenario's duration_s)")
+    p.add_argument("--rate", default="realtime", metavar="realtime|max|FACTOR",
+                   help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)")
+    p.add_argument("--mavlink", default=DEFAULT_CONNECTION, metavar="CONN",
+                   help="pymavlink connection string (default: %(default)s)")
+    p.add_argument("--vehicle", default=DEFAULT_VEHICLE, help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--zenoh-connect-timeout", type=float, default=DEFAULT_ZENOH_CONNECT_TIMEOUT_S, metavar="S",
+                   help="with --zenoh-connect: fail (exit 2) unless a peer answers within S seconds;"
+                        " 0 = do not wait, zenoh retries in the background (default: %(default)s)")
+    p.add_argument("--zenoh-multicast-scouting", action="store_true",
+                   help="enable zenoh multicast scouting (off by default)")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
+    p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
+    p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
+    p.set_defaults(handler=_cmd_run)
+
+
+def _run_config(args):
+    """argparse namespace -> RunConfig (scenario loaded, every option validated)."""
+    from groundsim.run import RateSpec, RunConfig
+    from groundsim.scenario import load_scenario
+    from onboard.zenoh_session import ZenohSettings
+
+    rate = RateSpec.parse(args.rate)
+    if args.zenoh_connect_timeout < 0 or args.zenoh_connect_timeout != args.zenoh_connect_timeout:
+        raise ConfigError(f"--zenoh-connect-timeout: expected >= 0 seconds, got {args.zenoh_connect_timeout}")
+    timeout = args.zenoh_connect_timeout if (args.zenoh_connect and args.zenoh_connect_timeout > 0) else None
+    zenoh = ZenohSettings(
+        connect=tuple(args.zenoh_connect), listen=tuple(args.zenoh_listen), config_file=args.zenoh_config,
+        multicast_scouting=True if args.zenoh_multicast_scouting else None, connect_timeout_s=timeout,
+    )
+    scenario = load_scenario(resolve_scenario_path(args.scenario))
+    return RunConfig(
+        scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
+        vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
+        render=not args.no_render,
+    )
+
+
+def _install_stop_signals(stop: threading.Event):
+    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly); returns a function restoring the old handlers."""
+    old = {}
+
+    def on_signal(signum, _frame):
+        if not stop.is_set():
+            log.info("%s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, on_signal)
+        except ValueError:  # not the main thread (embedded use): the caller owns stopping
+            pass
+
+    def restore() -> None:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+    return restore
+
+
+def _cmd_run(args) -> int:
+    stop = threading.Event()
+    restore = _install_stop_signals(stop)
+    try:
+        config = _run_config(args)
+        if stop.is_set():
+            return 0
+        from groundsim.run import run
+
+        run(config, stop=stop)
+    finally:
+        restore()
+    return 0
+
+
+# --------------------------------------------------------------------------- registry and entry point
+
+#: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
+COMMANDS = (
+    ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--log-level", default="info", choices=LOG_LEVELS, help="logging level (default: info)")
+    parser = _Parser(prog="groundsim", description="irtrack ground simulator")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, help_text, add in COMMANDS:
+        p = sub.add_parser(name, help=help_text, description=help_text, parents=[common])
+        add(p)
+    return parser
+
+
+def _configure_logging(level: str) -> None:
+    logging.basicConfig(level=getattr(logging, level.upper()), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def main(argv=None) -> int:
+    """Parse, configure logging, dispatch; IrtrackError and usage errors -> one line, exit 2."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    prefix = f"groundsim {command}" if command in {c[0] for c in COMMANDS} else "groundsim"
+    try:
+        args = build_parser().parse_args(argv)
+    except _OneLineError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_ERROR
+    _configure_logging(args.log_level)
+    try:
+        return int(args.handler(args))
+    except IrtrackError as exc:
+        print(f"{prefix}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:  # a second Ctrl-C during set-up, before the handlers were installed
+        return 0
