@@ -83,26 +83,41 @@ class NoiseModel:
 
 @dataclass(frozen=True)
 class MotionPrior:
-    """Coordinated-turn white-noise-acceleration prior: PSDs in m^2/s^3, turn-rate prior sigma."""
+    """One motion model of the family set.
+
+    ``jerk=False``: white-noise acceleration with PSDs ``q_*`` in m^2/s^3, plus a coordinated turn
+    when ``turn_rate_sigma_radps > 0`` (CV when 0).  ``jerk=True``: white-noise jerk (constant
+    acceleration, CA) with PSDs in m^2/s^5 and no turn.
+    """
 
     q_horizontal_m2ps3: float
     q_vertical_m2ps3: float
     turn_rate_sigma_radps: float = 0.3
+    jerk: bool = False
+
+    @property
+    def family(self) -> str:
+        return "ca" if self.jerk else ("ct" if self.turn_rate_sigma_radps > 0 else "cv")
 
 
 @dataclass(frozen=True)
 class MapConfig:
     knot_spacing_s: float = 0.5
     q_grid_m2ps3: tuple[float, ...] = (1e-6, 1e-3, 1e-1)
-    turn_model_margin_nats: float = 10.0
+    model_margin_nats: float = 10.0
     vertical_ratio: float = 0.25
     turn_rate_sigma_radps: float = 0.3
     init_ranges_m: tuple[float, ...] = (40.0, 100.0, 250.0, 600.0, 1500.0)
     max_iterations: int = 20
     min_frames: int = 10
     observability_max_sigma_range_ratio: float = 0.05
-    position_prior_sigma_m: float = 1e4
-    velocity_prior_sigma_mps: float = 100.0
+    # weak priors that make the posterior proper, in physical terms: the target is within ~1 km of
+    # the camera (a Vue Pro 640 does not resolve a small drone much farther), flies below ~30 m/s and
+    # does not sustain more than ~3 m/s^2 (0.3 g).  They decide nothing where range is observable.
+    position_prior_sigma_m: float = 1000.0
+    velocity_prior_sigma_mps: float = 30.0
+    acceleration_prior_sigma_mps2: float = 3.0
+    families: tuple[str, ...] = ("cv", "ca", "ct")
 
     def prior(self, q_h: float) -> MotionPrior:
         return MotionPrior(q_h, q_h * self.vertical_ratio, self.turn_rate_sigma_radps)
@@ -180,10 +195,21 @@ class _SpanPrior:
         # quadrature over every knot interval of the span
         nodes, weights = gauss_legendre_3()
         seg = np.arange(first, first + count - 3)
-        tq = (grid.t_origin_s + (seg[:, None] + nodes[None, :]) * grid.spacing_s).reshape(-1)
-        self.Bq1 = grid.dense_basis(tq, first, count, 1)
-        self.Bq2 = grid.dense_basis(tq, first, count, 2)
-        wq = np.tile(weights, seg.size) * grid.spacing_s
+        if prior.jerk:
+            # the third derivative is constant on each knot interval: one row per interval, whose
+            # square times h is the exact integral; "Bq2" then holds the jerk basis
+            h = grid.spacing_s
+            tq = grid.t_origin_s + (seg + 0.5) * h
+            self.Bq1 = np.zeros((seg.size, count))
+            self.Bq2 = np.zeros((seg.size, count))
+            for m, w3 in enumerate((-1.0, 3.0, -3.0, 1.0)):
+                self.Bq2[np.arange(seg.size), seg - first + m] = w3 / h**3
+            wq = np.full(seg.size, h)
+        else:
+            tq = (grid.t_origin_s + (seg[:, None] + nodes[None, :]) * grid.spacing_s).reshape(-1)
+            self.Bq1 = grid.dense_basis(tq, first, count, 1)
+            self.Bq2 = grid.dense_basis(tq, first, count, 2)
+            wq = np.tile(weights, seg.size) * grid.spacing_s
         self.sq_h = np.sqrt(wq / prior.q_horizontal_m2ps3)
         self.sq_v = np.sqrt(wq / prior.q_vertical_m2ps3)
         G = self.G = tq.size
@@ -226,7 +252,7 @@ class WindowProblem:
         self.Bq1, self.Bq2, self.sq_h, self.sq_v = span.Bq1, span.Bq2, span.sq_h, span.sq_v
         self.G, self.P_acc, self.P_turn = span.G, span.P_acc, span.P_turn
         ref = grid.basis(np.array([self.t_ref]), first, count)
-        self.ref_idx, self.ref_w0, self.ref_w1 = ref.index[0], ref.w0[0], ref.w1[0]
+        self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = ref.index[0], ref.w0[0], ref.w1[0], ref.w2[0]
         self.p_ref = obs.p_cam_ned_m.mean(axis=0)
         # parameter layout
         self.nc = 3 * count
@@ -240,7 +266,7 @@ class WindowProblem:
         self.i_gamma = k if noise.camera_position_drift_sigma_mps > 0 else None
         k += 3 * (self.i_gamma is not None)
         self.n_params = k
-        self.n_rows = 2 * F + 3 * self.G + 6 + (self.n_params - self.nc)
+        self.n_rows = 2 * F + 3 * self.G + 9 + (self.n_params - self.nc)
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
@@ -319,7 +345,8 @@ class WindowProblem:
         cr = c[self.ref_idx]
         r[o : o + 3] = (self.ref_w0 @ cr - self.p_ref) / self.config.position_prior_sigma_m
         r[o + 3 : o + 6] = (self.ref_w1 @ cr) / self.config.velocity_prior_sigma_mps
-        o += 6
+        r[o + 6 : o + 9] = (self.ref_w2 @ cr) / self.config.acceleration_prior_sigma_mps2
+        o += 9
         for i0, n, sig in self._nuisances():
             r[o : o + n] = theta[i0 : i0 + n] / sig
             o += n
@@ -387,7 +414,8 @@ class WindowProblem:
         for k in range(3):
             J[o + k, 3 * self.ref_idx + k] = self.ref_w0 / self.config.position_prior_sigma_m
             J[o + 3 + k, 3 * self.ref_idx + k] = self.ref_w1 / self.config.velocity_prior_sigma_mps
-        o += 6
+            J[o + 6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.config.acceleration_prior_sigma_mps2
+        o += 9
         for i0, n, sig in self._nuisances():
             J[o : o + n, i0 : i0 + n] = np.eye(n) / sig
             o += n
@@ -401,10 +429,11 @@ class WindowProblem:
         """log det of the prior precision of all parameters at this turn rate (for the evidence)."""
         om = theta[self.i_omega] if self.i_omega is not None else 0.0
         Jp = self._prior_c_jacobian(om)
-        Jw = np.zeros((6, self.nc))
+        Jw = np.zeros((9, self.nc))
         for k in range(3):
             Jw[k, 3 * self.ref_idx + k] = self.ref_w0 / self.config.position_prior_sigma_m
             Jw[3 + k, 3 * self.ref_idx + k] = self.ref_w1 / self.config.velocity_prior_sigma_mps
+            Jw[6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.config.acceleration_prior_sigma_mps2
         A = np.vstack([Jp, Jw])
         d = np.sqrt(np.einsum("ij,ij->j", A, A))
         R = sla.qr(A / d, mode="r", check_finite=False)[0][: A.shape[1]]
@@ -517,6 +546,11 @@ class MapEstimator:
         self.config = config or MapConfig()
         self.noise = noise or NoiseModel()
         self._span_cache: dict = {}
+        self._weight_range_m: np.ndarray | None = None
+
+    @staticmethod
+    def _ranges(prob: "WindowProblem", theta: np.ndarray) -> np.ndarray:
+        return np.linalg.norm(prob.positions(theta) - prob.obs.p_cam_ned_m, axis=1)
 
     def problem(self, obs: Observations, prior: MotionPrior, grid: KnotGrid | None = None) -> WindowProblem:
         if len(obs) < self.config.min_frames:
@@ -540,13 +574,14 @@ class MapEstimator:
         prob = self.problem(obs, prior, grid)
         starts = starts if starts is not None else self.initial_guesses(prob)
         modes: list = []
-        reweight = self.noise.camera_position_white_sigma_m > 0
+        fixed = self._weight_range_m
+        reweight = self.noise.camera_position_white_sigma_m > 0 and fixed is None
         for th0 in starts:
             th = th0
             # the pixel weights depend on range (camera-position noise): iterate them to the mode,
-            # so every mode's cost and evidence use the weights of its own geometry
+            # unless a common weighting range is fixed (model comparison, see solve())
             for _ in range(2 if reweight else 1):
-                prob.set_measurement_weights(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1))
+                prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
                 th, cost, its, conv, fac = prob.solve(th, max_iterations=self.config.max_iterations)
                 if fac is None or not math.isfinite(cost):
                     break
@@ -565,28 +600,35 @@ class MapEstimator:
               warm: np.ndarray | None = None) -> MapResult:
         """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
 
-        Two model families: constant velocity (CV) and coordinated turn (CT, turn rate estimated),
-        each over the q grid.  A family's evidence sums its grid points (a log-uniform hyperprior on
-        q); CT, which contains CV, is chosen only when it beats CV by ``turn_model_margin_nats``
-        (prior odds for the simpler model: most of the time targets do not turn).  Within the chosen
+        Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
+        coordinated turn (CT, turn rate estimated), each over the q grid.  A family's evidence sums
+        its grid points (a log-uniform hyperprior on q); CA or CT is chosen only when it beats CV by
+        ``model_margin_nats`` (prior odds for the simpler model: most of the time targets neither
+        turn nor accelerate), and then the better of them.  Within the chosen
         family the q with the largest evidence is kept.  ``warm`` (a solution on the same ``grid``,
         e.g. the sliding window's current one) replaces the cold multi-start of the first family.
         """
+        self._weight_range_m = None
         if prior is not None:
             best, _ = self.solve_prior(obs, prior, grid=grid)
             return self.result(*best[:6])
+        try:
+            return self._select(obs, grid, warm)
+        finally:
+            self._weight_range_m = None
+
+    def _select(self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None) -> MapResult:
         cfg = self.config
-        families = {"cv": 0.0}
-        if cfg.turn_rate_sigma_radps > 0:
-            families["ct"] = cfg.turn_rate_sigma_radps
+        all_families = {"cv": (0.0, False), "ca": (0.0, True), "ct": (cfg.turn_rate_sigma_radps, False)}
+        families = {f: all_families[f] for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0}
         tops: dict[str, list] = {}
         carry: list[np.ndarray] = [] if warm is None else [warm]
-        for fam, sig_om in families.items():
+        for fam, (sig_om, jerk) in families.items():
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
             # loose to stiff: a stiff prior's basin is narrow, the looser solution starts it well
             for q in sorted(cfg.q_grid_m2ps3, reverse=True):
-                pr = MotionPrior(q, q * cfg.vertical_ratio, sig_om)
+                pr = MotionPrior(q, q * cfg.vertical_ratio, sig_om, jerk)
                 prob = self.problem(obs, pr, grid)
                 if seeds is not None:  # the previous q's modes
                     starts = [self._adapt(th, prob) for th in seeds]
@@ -596,13 +638,20 @@ class MapEstimator:
                 else:
                     starts = self.initial_guesses(prob)
                 top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
+                if self._weight_range_m is None and self.noise.camera_position_white_sigma_m > 0:
+                    # one weighting geometry for every model compared: the range-dependent pixel
+                    # weights would otherwise reward far solutions through the likelihood's
+                    # normaliser (a few hundredths of a pixel per row, tens of nats over a window)
+                    self._weight_range_m = self._ranges(top[0], top[1])
+                    top, modes = self.solve_prior(obs, pr, starts=[m[1] for m in modes], grid=grid, max_modes=2)
                 seeds = [m[1] for m in modes]
                 tops[fam].append(top)
-            carry = [m[1] for m in sorted(tops[fam], key=lambda m: -m[6])[:2]]
+            carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
         fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
-        chosen = "cv"
-        if "ct" in fam_ev and fam_ev["ct"] > fam_ev["cv"] + cfg.turn_model_margin_nats:
-            chosen = "ct"
+        # the first family (CV, the simplest) unless another beats it by the margin; then the best
+        simplest = next(iter(fam_ev))
+        rivals = {f: ev for f, ev in fam_ev.items() if f == simplest or ev > fam_ev[simplest] + cfg.model_margin_nats}
+        chosen = max(rivals, key=rivals.get)
         best = max(tops[chosen], key=lambda m: m[6])
         res = self.result(*best[:6])
         res.extras["family_log_evidence"] = fam_ev
@@ -627,7 +676,7 @@ class MapEstimator:
 
     def result(self, prob: WindowProblem, theta, cost, its, conv, fac) -> MapResult:
         # the problem object served several starts: its weights must be this solution's
-        prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - prob.obs.p_cam_ned_m, axis=1))
+        prob.set_measurement_weights(self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta))
         Sigma = prob.covariance(fac)
         P = prob.point_covariances(Sigma)
         p = prob.positions(theta)
