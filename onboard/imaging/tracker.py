@@ -46,6 +46,7 @@ __all__ = ["TrackState", "TrackUpdate", "TargetTracker", "create_kcf"]
 log = logging.getLogger(__name__)
 
 VELOCITY_SMOOTHING = 0.5  # weight of the newest pixel-velocity sample in the constant-velocity prediction
+KCF_FULL_SCALE_HIGHS = 2.0  # KCF sees the residual saturated at this many Th_high: the blob's shape, not its heat
 
 
 class TrackState(str, Enum):
@@ -326,7 +327,7 @@ class TargetTracker:
             pre.region.x0_px <= region.x0_px and pre.region.y0_px <= region.y0_px and pre.region.x1_px >= region.x1_px and pre.region.y1_px >= region.y1_px
         ):
             pre = preprocess(image, p, region)
-        self._kcf_scale = max(det.contrast, pre.threshold_high, 1e-6)
+        self._kcf_scale = max(KCF_FULL_SCALE_HIGHS * pre.threshold_high, 1e-6)
         self._fill_buffer(pre)
         box = (int(round(det.u_px - side / 2)), int(round(det.v_px - side / 2)), side, side)
         try:
