@@ -229,7 +229,11 @@ class IrRenderer:
         s_f = np.linspace(-1.0, 1.0, _FINE_SIZE)
         self._s_fine = s_f
         T_sky = s.sky_horizon_k + (s.sky_zenith_k - s.sky_horizon_k) * np.abs(s_f)
-        self._L_sky_abs = band_radiance(T_sky, s.band_um)  # L_sky(|s|): sky above, mirrored sky below
+        # L_sky(|s|): sky above, mirrored sky below; Planck on 257 temperatures, then linear in T
+        # (0.18 K steps for the default 45 K span: interpolation error ~ L'' dT^2 / 8 < 1e-3 grey)
+        T_lo = min(s.sky_horizon_k, s.sky_zenith_k)
+        T_grid = np.linspace(T_lo, max(s.sky_horizon_k, s.sky_zenith_k, T_lo + 1.0), 257)
+        self._L_sky_abs = np.interp(T_sky, T_grid, band_radiance(T_grid, s.band_um))
         self._ground = (s.ground_emissivity * float(band_radiance(s.ground_temperature_k, s.band_um)),
                         1.0 - s.ground_emissivity)
         # smoothing: Gaussian in elevation of sigma_eff px -> sample the fine grid at sin(el_k + sig x_m)
@@ -260,7 +264,7 @@ class IrRenderer:
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
-        self._ell_c, self._ell_h = centre[~is_box].astype(np.float32), half[~is_box].astype(np.float32)
+        self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
         hi = (centre + half).max(axis=0)
         self._bbox_corners_b = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
@@ -469,12 +473,16 @@ class IrRenderer:
                     t_best = np.where(closer, t[k], t_best)
                     part = np.where(closer, p, part)
             if self._ell_idx.size:
-                oe = (o_b - self._ell_c) / self._ell_h  # (Pe, 3)
+                oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
                 de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
                 a = de[:, 0] ** 2 + de[:, 1] ** 2 + de[:, 2] ** 2
                 b = de[:, 0] * oe[:, 0, None] + de[:, 1] * oe[:, 1, None] + de[:, 2] * oe[:, 2, None]
-                c = (np.sum(oe * oe, axis=1) - 1.0)[:, None]
-                disc = b * b - a * c
+                # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
+                # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
+                cx = oe[:, 1, None] * de[:, 2] - oe[:, 2, None] * de[:, 1]
+                cy = oe[:, 2, None] * de[:, 0] - oe[:, 0, None] * de[:, 2]
+                cz = oe[:, 0, None] * de[:, 1] - oe[:, 1, None] * de[:, 0]
+                disc = a - (cx * cx + cy * cy + cz * cz)
                 sq = np.sqrt(np.maximum(disc, 0.0))
                 t_out = (sq - b) / a
                 t = np.where((disc >= 0.0) & (t_out > 0.0), np.maximum(-(b + sq) / a, 0.0), np.inf)
