@@ -1,0 +1,659 @@
+"""The onboard daemon's wiring and event loop (``python -m onboard``).
+
+Threads (nothing else runs concurrently):
+
+* **zenoh subscriber callback** (zenoh's thread) on ``irtrack/<vehicle>/ir/frame``: counts the
+  payload, refuses it on its length alone (:func:`onboard.irframe.check_payload_size`: a frame
+  100x too large is never copied), copies it out and pushes ``(payload, received_mono_ns)`` into a
+  bounded :class:`FrameQueue`; when full the *oldest* frame is dropped and counted
+  (``dropped_queue``).  It never decodes and never blocks.
+* **pipeline thread**: pops frames, runs :meth:`FramePipeline.process_payload` (decode, admission,
+  imaging, pose at capture time -- waiting up to ``pose.wait_ms`` for telemetry that lags, on a
+  condition signalled by every new pose sample -- and the estimator), publishes the track JSON on
+  ``irtrack/<vehicle>/track`` and hands the newest :class:`Track` to the main thread.  It touches
+  the liveness file (:func:`onboard.health.mark_alive`) at least every ``output.health_interval_s``,
+  busy or idle.
+* **estimator worker** (with ``estimator.threaded``, the default): :class:`ThreadedEstimator` runs
+  the sliding-window estimator's ``add`` in its own thread, so its periodic model re-selection
+  (tenths of a second) never stalls the frame loop.  A frame waits up to
+  ``estimator.result_wait_ms`` for its own estimate; past that it gets the latest estimate
+  propagated to its time at constant velocity (``P + dt^2 V``), and the observation is still
+  used by the worker: no measurement is lost.
+* **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
+  :meth:`MavlinkLink.tick`, CAMERA_TRACKING_IMAGE_STATUS / GEO_STATUS of the newest track at
+  ``output.tracking_*_status_hz``, the status JSON on ``irtrack/<vehicle>/status`` every
+  ``output.status_interval_s``.  It owns the pymavlink connection alone; pose samples go into the
+  shared :class:`SharedPoseBuffer` under a lock held for one ``add`` or one lookup (microseconds),
+  so a pose lookup never blocks MAVLink.
+
+Shutdown: :meth:`OnboardService.request_stop` (the SIGTERM/SIGINT handler of ``__main__``) ends the
+main loop; :meth:`OnboardService.close` stops the threads, undeclares the zenoh entities, closes
+the session and the MAVLink connection, and removes the liveness file.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import replace
+from typing import Any, Callable
+
+import numpy as np
+
+from onboard.config import OnboardConfig
+from onboard.errors import InputError
+from onboard.irframe import IrFrameError, check_payload_size
+from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+from onboard.pose import PoseBuffer, RejectCounter
+from onboard.track import (
+    RollingStats,
+    Track,
+    build_status,
+    geo_status_fields,
+    image_status_fields,
+    track_to_bytes,
+)
+
+__all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "OnboardService"]
+
+log = logging.getLogger(__name__)
+
+NS_PER_S = 1_000_000_000
+ESTIMATE_QUEUE_MAX = 1000  # observations waiting for the estimator worker (about 30 s at 30 Hz)
+
+
+# --------------------------------------------------------------------------- thread-safe pieces
+
+
+class LockedCounter(RejectCounter):
+    """A :class:`RejectCounter` that several threads may count into."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self._lock = threading.Lock()
+
+    def count(self, reason: str, detail: str = "", n: int = 1) -> None:
+        with self._lock:
+            super().count(reason, detail, n)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)
+
+
+class SharedPoseBuffer:
+    """A :class:`PoseBuffer` shared by the MAVLink thread (writer) and the pipeline (reader).
+
+    Each ``add_*``, ``lookup`` and ``pose_at`` runs under one lock; every stored sample notifies
+    :meth:`wait_for`.  Other attributes (``mount``, ``reboots``, ``origin``, ``counter`` ...) are
+    read through.
+    """
+
+    _WRAPPED = ("add_attitude", "add_position", "add_position_ned", "add_gimbal", "add_gimbal_status", "clear")
+
+    def __init__(self, buffer: PoseBuffer) -> None:
+        self._buffer = buffer
+        self._cond = threading.Condition(threading.Lock())
+        for name in self._WRAPPED:
+            setattr(self, name, self._writer(getattr(buffer, name)))
+
+    def _writer(self, fn: Callable) -> Callable:
+        def locked(*args, **kwargs):
+            with self._cond:
+                out = fn(*args, **kwargs)
+                self._cond.notify_all()
+            return out
+
+        locked.__name__ = fn.__name__
+        locked.__doc__ = fn.__doc__
+        return locked
+
+    def lookup(self, time_boot_us: int):
+        with self._cond:
+            return self._buffer.lookup(time_boot_us)
+
+    def pose_at(self, time_boot_us: int):
+        with self._cond:
+            return self._buffer.pose_at(time_boot_us)
+
+    def wait_for(self, time_boot_us: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> bool:
+        """Wait until a lookup at ``time_boot_us`` is decided (pose, or a miss that waiting cannot
+        fix) or ``timeout_s`` passed; True when a pose is there."""
+        deadline = clock() + max(timeout_s, 0.0)
+        with self._cond:
+            while True:
+                res = self._buffer.lookup(time_boot_us)
+                if res.pose is not None:
+                    return True
+                left = deadline - clock()
+                if not res.retry or left <= 0:
+                    return False
+                self._cond.wait(left)
+
+    def __getattr__(self, name: str):
+        return getattr(self._buffer, name)
+
+
+class FrameQueue:
+    """Bounded FIFO of ``(payload, received_mono_ns)``; pushing onto a full queue drops the oldest."""
+
+    def __init__(self, maxlen: int) -> None:
+        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+            raise InputError(f"FrameQueue maxlen must be a positive integer, got {maxlen!r}")
+        self._d: collections.deque = collections.deque()
+        self._maxlen = maxlen
+        self._cond = threading.Condition(threading.Lock())
+        self._closed = False
+
+    def push(self, item) -> int:
+        """Append; returns how many old items were dropped to make room (0 or 1)."""
+        with self._cond:
+            dropped = 0
+            while len(self._d) >= self._maxlen:
+                self._d.popleft()
+                dropped += 1
+            self._d.append(item)
+            self._cond.notify()
+            return dropped
+
+    def pop(self, timeout_s: float):
+        """The oldest item, or None after ``timeout_s`` or once closed."""
+        with self._cond:
+            if not self._d and not self._closed:
+                self._cond.wait(timeout_s)
+            if self._d:
+                return self._d.popleft()
+            return None
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+
+# --------------------------------------------------------------------------- estimator worker
+
+
+class _Extrapolated:
+    """A TrackEstimate propagated at constant velocity (same attribute names)."""
+
+    __slots__ = ("t_s", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "cov_v_ned_m2ps2", "observable", "range_m",
+                 "range_sigma_ratio", "window_frames", "model")
+
+    def __init__(self, est, t_s: float, p_cam_ned_m=None) -> None:
+        dt = t_s - float(est.t_s)
+        v = np.asarray(est.v_ned_mps, dtype=float)
+        V = np.asarray(est.cov_v_ned_m2ps2, dtype=float)
+        self.t_s = t_s
+        self.p_ned_m = np.asarray(est.p_ned_m, dtype=float) + v * dt
+        self.v_ned_mps = v
+        self.cov_p_ned_m2 = np.asarray(est.cov_p_ned_m2, dtype=float) + dt * dt * V
+        self.cov_v_ned_m2ps2 = V
+        self.observable = bool(est.observable)
+        self.window_frames = int(est.window_frames)
+        self.model = getattr(est, "model", None)
+        if p_cam_ned_m is None:
+            # keep the old line of sight's length, moved by the target's displacement only
+            self.range_m = float(est.range_m)
+        else:
+            self.range_m = float(np.linalg.norm(self.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)))
+        if p_cam_ned_m is not None and self.range_m > 0:
+            u = (self.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)) / self.range_m
+            self.range_sigma_ratio = float(math.sqrt(max(u @ self.cov_p_ned_m2 @ u, 0.0)) / self.range_m)
+        else:
+            self.range_sigma_ratio = float(getattr(est, "range_sigma_ratio", math.nan))
+
+
+class ThreadedEstimator:
+    """The estimator interface (``add`` / ``predict`` / ``reset``) with the work in a worker thread.
+
+    ``add`` queues the observation and waits up to ``result_wait_s`` for its estimate; if the
+    worker is busy (model re-selection) it returns the newest estimate propagated to ``t_s``
+    instead (None when that is older than ``max_extrapolation_s``).  ``predict`` never waits.
+    Estimator exceptions are counted (``estimator_input`` / ``estimator_error``), never raised.
+    """
+
+    def __init__(self, estimator, counter: RejectCounter, result_wait_s: float = 0.005,
+                 max_extrapolation_s: float = 1.0, max_pending: int = ESTIMATE_QUEUE_MAX) -> None:
+        self._est = estimator
+        self._counter = counter
+        self.result_wait_s = float(result_wait_s)
+        self.max_extrapolation_s = float(max_extrapolation_s)
+        self._max_pending = max_pending
+        self._q: collections.deque = collections.deque()
+        self._cond = threading.Condition(threading.Lock())
+        self._epoch = 0
+        self._latest = None  # (epoch, estimate): the newest non-None estimate
+        self._result = None  # (epoch, t_s, estimate or None): the last processed observation
+        self._stop = False
+        self.worker_cpu_s = 0.0
+        self.late_results = 0
+        self._thread = threading.Thread(target=self._run, name="irtrack-estimator", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ caller side
+
+    def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        t = float(t_s)
+        args = (t, tuple(float(x) for x in uv_px), intrinsics, np.array(p_cam_ned_m, dtype=float),
+                np.array(q_ned_from_cam, dtype=float))
+        deadline = time.monotonic() + self.result_wait_s
+        with self._cond:
+            if len(self._q) >= self._max_pending:
+                self._q.popleft()
+                self._counter.count("estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped")
+            epoch = self._epoch
+            self._q.append(("add", epoch, t, args))
+            self._cond.notify_all()
+            while True:
+                r = self._result
+                if r is not None and r[0] == epoch and r[1] == t:
+                    return r[2]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            self.late_results += 1
+            return self._extrapolate(t, p_cam_ned_m)
+
+    def predict(self, t_s: float, p_cam_ned_m=None):
+        with self._cond:
+            return self._extrapolate(float(t_s), p_cam_ned_m)
+
+    def reset(self) -> None:
+        with self._cond:
+            self._epoch += 1
+            self._q.clear()
+            self._q.append(("reset", self._epoch, None, None))
+            self._latest = None
+            self._result = None
+            self._cond.notify_all()
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout_s)
+
+    def _extrapolate(self, t: float, p_cam_ned_m):
+        latest = self._latest
+        if latest is None or latest[0] != self._epoch:
+            return None
+        est = latest[1]
+        dt = t - float(est.t_s)
+        if abs(dt) > self.max_extrapolation_s:
+            return None
+        if dt == 0.0 and p_cam_ned_m is None:
+            return est
+        try:
+            return _Extrapolated(est, t, p_cam_ned_m)
+        except (TypeError, ValueError, AttributeError) as exc:
+            self._counter.count("estimator_error", f"extrapolation: {exc}")
+            return None
+
+    # ------------------------------------------------------------------ worker
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._q and not self._stop:
+                    self._cond.wait(0.5)
+                if self._stop:
+                    return
+                kind, epoch, t, args = self._q.popleft()
+            c0 = time.thread_time()
+            est = None
+            try:
+                if kind == "reset":
+                    self._est.reset()
+                    continue
+                est = self._est.add(*args)
+            except InputError as exc:
+                self._counter.count("estimator_input", str(exc))
+            except Exception as exc:  # noqa: BLE001 - the worker must never die
+                self._counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+            finally:
+                self.worker_cpu_s += time.thread_time() - c0
+            if kind != "add":
+                continue
+            with self._cond:
+                if epoch == self._epoch:
+                    self._result = (epoch, t, est)
+                    if est is not None:
+                        self._latest = (epoch, est)
+                    self._cond.notify_all()
+
+    @property
+    def pending(self) -> int:
+        return len(self._q)
+
+
+# --------------------------------------------------------------------------- the service
+
+
+class OnboardService:
+    """The daemon: build with a validated :class:`OnboardConfig`, then :meth:`start`, :meth:`run`, :meth:`close`.
+
+    ``clock`` (s) and ``clock_ns`` are monotonic clocks (fakeable); ``clock_ns`` stamps frame
+    receipt and TIMESYNC, so the two are on one clock.
+    """
+
+    def __init__(self, config: OnboardConfig, *, clock: Callable[[], float] = time.monotonic,
+                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+        if not isinstance(config, OnboardConfig):
+            raise InputError(f"OnboardService needs an OnboardConfig, got {type(config).__name__}")
+        self.config = config
+        self._clock = clock
+        self._clock_ns = clock_ns
+        self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock)
+        self.mount = config.camera.camera_mount()
+        buffer = PoseBuffer(mount=self.mount, config=config.pose.buffer_config(),
+                            origin=config.pose.geodetic_origin(), counter=self.counter)
+        self.pose = SharedPoseBuffer(buffer)
+        self.queue = FrameQueue(config.input.queue_length)
+        est = make_estimator(config)
+        self.estimator_kind = "disabled" if est is None else type(est).__name__
+        if est is not None and config.estimator.threaded:
+            est = ThreadedEstimator(est, self.counter, config.estimator.result_wait_ms / 1000.0,
+                                    config.estimator.max_extrapolation_s)
+            self.estimator_kind += " (threaded)"
+        self.estimator = est
+        wait_s = config.pose.wait_ms / 1000.0
+        self.pipeline = FramePipeline(
+            config, self.pose, make_tracker(config), est, config.pose.geodetic_origin(),
+            counter=self.counter,
+            pose_wait=(lambda t_us: self.pose.wait_for(t_us, wait_s, self._clock)) if wait_s > 0 else None,
+            clock_ns=clock_ns,
+        )
+        self.link = None
+        self.session = None
+        self._sub = None
+        self._track_pub = None
+        self._status_pub = None
+        self._stop = threading.Event()
+        self._pipe_thread: threading.Thread | None = None
+        self._pipe_stop = threading.Event()
+        self._stats_lock = threading.Lock()
+        self.frames_in = 0
+        self.frames_dropped = 0
+        self.tracks_published = 0
+        self.latency_ms = RollingStats(1000)
+        self.capture_to_track_ms = RollingStats(1000)
+        self._done = collections.deque(maxlen=1000)  # (time_boot_us, published_mono_ns) for capture-to-track
+        self._latest: tuple[Track, float] | None = None
+        self._pipeline_cpu_s = 0.0
+        self._health_path = config.output.health_file
+        self._health_failed = False
+        self._started_s = clock()
+        self.status_count = 0
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        """Open MAVLink and zenoh, declare the subscriber/publishers, start the pipeline thread.
+
+        Raises the zenoh adapter's typed errors (port in use ...); a missing peer is not an error.
+        """
+        import zenoh
+
+        from onboard.mavlink_link import MavlinkLink
+        from onboard.zenoh_session import frame_key, open_session, status_key, track_key
+
+        cfg = self.config
+        self.link = MavlinkLink(
+            cfg.mavlink.connection, self.pose, self.counter, gimballed=self.mount.gimballed,
+            att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
+            clock=self._clock, clock_ns=self._clock_ns, config=cfg.mavlink.link_config(),
+        )
+        self.session = open_session(cfg.zenoh.settings())
+        self._track_pub = self.session.declare_publisher(
+            track_key(cfg.vehicle), encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+        )
+        self._status_pub = self.session.declare_publisher(status_key(cfg.vehicle), encoding=zenoh.Encoding.APPLICATION_JSON)
+        self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
+        self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
+        self._pipe_thread.start()
+        self._started_s = self._clock()
+        log.info("onboard service started: vehicle=%s mavlink=%s frames=%s estimator=%s",
+                 cfg.vehicle, cfg.mavlink.connection, frame_key(cfg.vehicle), self.estimator_kind)
+
+    def request_stop(self) -> None:
+        """Ask :meth:`run` to return (signal-handler safe)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Stop threads and close everything; bounded by about ``timeout_s`` plus zenoh's close."""
+        self._stop.set()
+        self._pipe_stop.set()
+        self.queue.close()
+        if self._pipe_thread is not None:
+            self._pipe_thread.join(timeout_s)
+            if self._pipe_thread.is_alive():
+                log.warning("pipeline thread did not stop within %.1f s", timeout_s)
+        if isinstance(self.estimator, ThreadedEstimator):
+            self.estimator.close(timeout_s / 2)
+        for ent in (self._sub, self._track_pub, self._status_pub):
+            if ent is not None:
+                try:
+                    ent.undeclare()
+                except Exception as exc:  # noqa: BLE001 - already gone with the session
+                    log.debug("zenoh undeclare failed: %s", exc)
+        self._sub = self._track_pub = self._status_pub = None
+        if self.session is not None:
+            try:
+                self.session.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("zenoh session close failed: %s", exc)
+            self.session = None
+        if self.link is not None:
+            self.link.close()
+        if self._health_path:
+            try:
+                os.unlink(self._health_path)
+            except OSError:
+                pass
+        log.info("onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published)
+
+    # ------------------------------------------------------------------ frames in (zenoh thread)
+
+    def _on_frame(self, sample) -> None:
+        received = self._clock_ns()
+        with self._stats_lock:
+            self.frames_in += 1
+        try:
+            payload = sample.payload
+            check_payload_size(len(payload), self.config.input.max_frame_bytes)
+            data = payload.to_bytes()
+        except IrFrameError as exc:
+            self.counter.count(f"frame_{exc.reason}", str(exc))
+            return
+        except Exception as exc:  # noqa: BLE001 - a callback must never raise into zenoh
+            self.counter.count("frame_receive_error", f"{type(exc).__name__}: {exc}")
+            return
+        dropped = self.queue.push((data, received))
+        if dropped:
+            with self._stats_lock:
+                self.frames_dropped += dropped
+            self.counter.count("dropped_queue", f"pipeline behind: oldest frame dropped (queue of {self.config.input.queue_length})", dropped)
+
+    # ------------------------------------------------------------------ pipeline thread
+
+    def _pipeline_loop(self) -> None:
+        health_every_s = self.config.output.health_interval_s
+        next_health = -math.inf
+        publish = self.config.output.publish_track
+        while not self._pipe_stop.is_set():
+            now = self._clock()
+            if now >= next_health:
+                self._touch_health()
+                next_health = now + health_every_s
+            item = self.queue.pop(min(health_every_s, 0.5))
+            if item is None:
+                continue
+            payload, received_ns = item
+            c0 = time.thread_time()
+            try:
+                track = self.pipeline.process_payload(payload, received_ns)
+            except FrameRejected:
+                continue
+            except Exception as exc:  # noqa: BLE001 - never let one frame kill the loop
+                self.counter.count("pipeline_error", f"{type(exc).__name__}: {exc}")
+                log.exception("pipeline error (frame skipped)") if self.counter["pipeline_error"] == 1 else None
+                continue
+            finally:
+                self._pipeline_cpu_s += time.thread_time() - c0
+            if publish and self._track_pub is not None:
+                try:
+                    self._track_pub.put(track_to_bytes(track))
+                    with self._stats_lock:
+                        self.tracks_published += 1
+                except Exception as exc:  # noqa: BLE001
+                    self.counter.count("track_publish_error", f"{type(exc).__name__}: {exc}")
+            done = self._clock_ns()
+            self.latency_ms.add((done - received_ns) / 1e6)
+            self._done.append((track.time_boot_us, done))
+            self._latest = (track, self._clock())
+
+    def _touch_health(self) -> None:
+        if not self._health_path:
+            return
+        try:
+            from onboard.health import mark_alive
+
+            mark_alive(self._health_path)
+            self._health_failed = False
+        except OSError as exc:
+            if not self._health_failed:
+                log.warning("cannot touch liveness file %s: %s", self._health_path, exc)
+            self._health_failed = True
+
+    # ------------------------------------------------------------------ main thread
+
+    def run(self, max_duration_s: float | None = None) -> None:
+        """The main loop: MAVLink poll/tick, tracking status out, status JSON; returns when stopped."""
+        cfg = self.config
+        period = 1.0 / cfg.mavlink.poll_rate_hz
+        img_every = 1.0 / cfg.output.tracking_image_status_hz if cfg.output.tracking_image_status_hz > 0 else math.inf
+        geo_every = 1.0 / cfg.output.tracking_geo_status_hz if cfg.output.tracking_geo_status_hz > 0 else math.inf
+        now = self._clock()
+        end = math.inf if max_duration_s is None else now + max_duration_s
+        next_img, next_geo = now, now
+        next_status = now + cfg.output.status_interval_s
+        last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
+        while not self._stop.is_set() and now < end:
+            try:
+                self.link.poll()
+                self.link.tick()
+            except Exception as exc:  # noqa: BLE001 - the link adapter should not raise; be sure
+                self.counter.count("mavlink_loop_error", f"{type(exc).__name__}: {exc}")
+            now = self._clock()
+            if now >= next_img or now >= next_geo:
+                self._send_tracking_status(now, now >= next_img, now >= next_geo)
+                if now >= next_img:
+                    next_img = max(next_img + img_every, now)
+                if now >= next_geo:
+                    next_geo = max(next_geo + geo_every, now)
+            if now >= next_status:
+                last_cpu = self._publish_status(now, last_cpu)
+                next_status = max(next_status + cfg.output.status_interval_s, now)
+            self._stop.wait(period)
+            now = self._clock()
+
+    def _worker_cpu(self) -> float:
+        return self.estimator.worker_cpu_s if isinstance(self.estimator, ThreadedEstimator) else 0.0
+
+    def _current_track(self, now: float) -> Track | None:
+        latest = self._latest
+        if latest is None or now - latest[1] > self.config.output.track_stale_s:
+            return None
+        return latest[0]
+
+    def _send_tracking_status(self, now: float, image: bool, geo: bool) -> None:
+        if self.link is None or self.link.autopilot_sysid is None:
+            return
+        track = self._current_track(now)
+        K = self.pipeline.intrinsics
+        dev = self.config.output.camera_device_id
+        try:
+            if image:
+                self.link.send_tracking_image_status(**image_status_fields(track, K.width_px, K.height_px), camera_device_id=dev)
+            if geo:
+                fields = geo_status_fields(track)
+                if fields is not None:
+                    self.link.send_tracking_geo_status(**fields, camera_device_id=dev)
+        except InputError as exc:
+            self.counter.count("tracking_status_invalid", str(exc))
+
+    def status(self, now: float | None = None, cpu_share: float | None = None, pipeline_share: float | None = None) -> dict[str, Any]:
+        """The ``irtrack.status/1`` dict now (see :func:`onboard.track.build_status`)."""
+        now = self._clock() if now is None else now
+        self._drain_capture_latency()
+        counts = self.counter.counts
+        link = None
+        if self.link is not None:
+            st = self.link.status()
+            link = {k: getattr(st, k) for k in st.__dataclass_fields__}
+        latest = self._latest
+        with self._stats_lock:
+            frames_in, dropped, published = self.frames_in, self.frames_dropped, self.tracks_published
+        return build_status(
+            vehicle=self.config.vehicle,
+            uptime_s=now - self._started_s,
+            frames_in=frames_in,
+            frames_processed=self.pipeline.frames_processed,
+            frames_dropped=dropped,
+            frames_rejected=sum(v for k, v in counts.items() if k.startswith("frame_") and k not in _ACCEPTED_EVENTS),
+            tracks_published=published,
+            processing_ms=self.pipeline.processing_ms.summary(),
+            latency_ms=self.latency_ms.summary(),
+            pose_wait_ms=self.pipeline.pose_wait_ms.summary(),
+            capture_to_track_ms=self.capture_to_track_ms.summary() if len(self.capture_to_track_ms) else None,
+            rejected=counts,
+            link=link,
+            cpu_share=cpu_share,
+            pipeline_cpu_share=pipeline_share,
+            last_track=None if latest is None else latest[0],
+            estimator=self.estimator_kind,
+            queue_length=len(self.queue),
+        )
+
+    def _drain_capture_latency(self) -> None:
+        sync = getattr(self.link, "clock_sync", None)
+        while self._done:
+            t_boot_us, done_ns = self._done.popleft()
+            if sync is None or not sync.synced:
+                continue
+            boot_us = sync.to_boot_us(done_ns)
+            if boot_us is not None:
+                self.capture_to_track_ms.add((boot_us - t_boot_us) / 1000.0)
+
+    def _publish_status(self, now: float, last_cpu: tuple[float, float, float]) -> tuple[float, float, float]:
+        t0, p0, w0 = last_cpu
+        p1, w1 = time.process_time(), self._pipeline_cpu_s + self._worker_cpu()
+        wall = max(now - t0, 1e-9)
+        status = self.status(now, (p1 - p0) / wall, (w1 - w0) / wall)
+        if self._status_pub is not None:
+            try:
+                self._status_pub.put(json.dumps(status, separators=(",", ":"), allow_nan=False).encode())
+                self.status_count += 1
+            except Exception as exc:  # noqa: BLE001
+                self.counter.count("status_publish_error", f"{type(exc).__name__}: {exc}")
+        return now, p1, w1
+
+
+#: ``frame_*`` counter keys that are accepted events, not refusals
+_ACCEPTED_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame_stream_restart"})
