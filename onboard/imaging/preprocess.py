@@ -426,8 +426,9 @@ def kcf_image_u8(pre: Preprocessed, full_scale: float) -> np.ndarray:
 
     Residual below ``threshold_low`` (background) becomes 0; above, ``255 * r / full_scale``
     clipped to 255, so a hot target is bright on black whatever the input depth (mono16 needs
-    no separate display scaling).  ``full_scale`` > 0 in input grey units (e.g. the contrast of
-    the blob KCF was seeded on).
+    no separate display scaling).  ``full_scale`` > 0 in input grey units; the tracker uses
+    2 * Th_high at seeding, so KCF sees the blob's shape rather than its heat and still locks
+    on a target fading between Th_low and Th_high.
     """
     r = pre.residual
     gain = np.float32(255.0 / max(full_scale, 1e-6))

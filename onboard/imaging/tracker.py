@@ -24,7 +24,7 @@ new one (the association is no longer trusted; the estimator should start a new 
 
 ``update`` raises :class:`~onboard.errors.InputError` only for a frame that is not a 2-D
 uint8/uint16 array (the tracker state is then unchanged and ``rejected_frames`` counts it); any
-pixel content is handled.  A change of frame size resets the tracker.
+pixel content is handled.  A change of frame size ends the current track (state ``lost``).
 """
 
 from __future__ import annotations
@@ -66,7 +66,8 @@ class TrackUpdate:
     ``measurement_valid``: True only when the centre is a blob centroid fit for 3-D
     reconstruction; ``track_id``: id of the current track (increments per new track), None
     without one; ``frames_since_measurement``: 0 on a measured frame, None without a track;
-    ``frame_index``: 0-based count of accepted frames; ``kcf_ok``: KCF located the target.
+    ``frame_index``: 0-based count of accepted frames; ``kcf_ok``: KCF's update located the
+    target in this frame (False on a frame where KCF is (re-)seeded from a detection).
     """
 
     state: TrackState
@@ -179,7 +180,7 @@ class TargetTracker:
         if det is None:
             return TrackUpdate(self._state, None, None, None, None, False, None, None, self._frame_index)
         self._start_track(image, det)
-        return self._measured(det, kcf_ok=True)
+        return self._measured(det, kcf_ok=False)
 
     def _follow(self, image: np.ndarray) -> TrackUpdate:
         p = self.params
@@ -198,7 +199,7 @@ class TargetTracker:
             if not kcf_ok or math.hypot(ref[0] - det.u_px, ref[1] - det.v_px) > p.max_drift_px:
                 self.kcf_reseeds += 1
                 self._seed_kcf(image, det, pre)
-                kcf_ok = True
+                kcf_ok = False  # KCF missed or drifted off the blob on this frame
             else:
                 self._kcf_box = kcf_box
             self._advance(det)
@@ -207,14 +208,14 @@ class TargetTracker:
         full, _ = self._full_frame_best(image)
         if full is not None:
             self.reacquisitions += 1
-            keep = self._misses < p.coast_frames and math.hypot(full.u_px - pu, full.v_px - pv) <= p.reacquire_gate_px
+            keep = self._misses <= p.coast_frames and math.hypot(full.u_px - pu, full.v_px - pv) <= p.reacquire_gate_px
             if keep:
                 self._advance(full)
                 self._seed_kcf(image, full, None)
             else:
                 self._start_track(image, full)
             log.debug("re-acquired at (%.1f, %.1f), track %s", full.u_px, full.v_px, self._track_id)
-            return self._measured(full, True)
+            return self._measured(full, False)
         self._misses += 1
         if self._misses >= p.lost_frames:
             log.info("track %s lost after %d frames without a blob", self._track_id, self._misses)
@@ -222,7 +223,8 @@ class TargetTracker:
             self._clear_buffer()
             return TrackUpdate(TrackState.LOST, None, None, None, None, False, None, None, self._frame_index)
         self._state = TrackState.COASTING
-        if kcf_ok and self._misses <= p.coast_frames:
+        kcf_ok = kcf_ok and self._misses <= p.coast_frames
+        if kcf_ok:
             self._kcf_box = kcf_box
             u, v = kcf_box[0] + kcf_box[2] / 2, kcf_box[1] + kcf_box[3] / 2
             box = tuple(float(x) for x in kcf_box)

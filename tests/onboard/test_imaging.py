@@ -555,3 +555,30 @@ def test_track_update_invariants():
         TrackUpdate(TrackState.COASTING, 1.0, None, None, None, False, 1, 1, 0)
     with pytest.raises(InputError, match="track_id"):
         TrackUpdate(TrackState.LOST, None, None, None, None, False, 3, None, 0)
+
+
+class _BrokenKcf:
+    def __init__(self, fail_in: str):
+        self.fail_in = fail_in
+
+    def init(self, image, box):
+        if self.fail_in == "init":
+            raise __import__("cv2").error("synthetic KCF init failure")
+
+    def update(self, image):
+        raise __import__("cv2").error("synthetic KCF update failure")
+
+
+@pytest.mark.parametrize("fail_in", ["init", "update"])
+def test_a_failing_kcf_degrades_to_detection_only(monkeypatch, fail_in):
+    import onboard.imaging.tracker as tracker_mod
+
+    monkeypatch.setattr(tracker_mod, "create_kcf", lambda params: _BrokenKcf(fail_in))
+    rng = np.random.default_rng(34)
+    tr = TargetTracker()
+    for k in range(6):
+        u, v = path_uv(k)
+        o = tr.update(make_frame(u, v, noise=1.0, rng=rng))
+        assert o.state == TrackState.TRACKING and o.measurement_valid and o.track_id == 1
+        assert not o.kcf_ok
+        assert math.hypot(o.u_px - u, o.v_px - v) < CENTROID_NOISY_TOL_PX
