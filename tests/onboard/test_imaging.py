@@ -436,6 +436,18 @@ def test_reacquisition_after_a_jump():
     assert tr.reacquisitions == 2
 
 
+@pytest.mark.parametrize("hidden_frames, same_id", [(3, True), (5, True), (6, False), (9, False)])
+def test_track_id_survives_a_gap_only_up_to_coast_frames(hidden_frames, same_id):
+    rng = np.random.default_rng(35)
+    tr = TargetTracker(ImagingParams(coast_frames=5, lost_frames=15, reacquire_gate_px=64.0))
+    run(tr, [make_frame(300.0, 250.0, noise=1.0, rng=rng) for _ in range(4)])
+    hidden = run(tr, [make_frame(noise=1.0, rng=rng) for _ in range(hidden_frames)])
+    assert all(o.state == TrackState.COASTING for o in hidden)
+    o = tr.update(make_frame(340.0, 250.0, noise=1.0, rng=rng))  # 40 px off: outside the ROI, inside the gate
+    assert o.state == TrackState.TRACKING and o.u_px == pytest.approx(340.0, abs=0.2)
+    assert o.track_id == (1 if same_id else 2)
+
+
 def test_fast_target_is_followed_and_kcf_reseeded_on_drift():
     rng = np.random.default_rng(25)
     tr = TargetTracker(ImagingParams())
