@@ -22,6 +22,7 @@ import shlex
 import shutil
 import socket
 import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass
@@ -444,6 +445,20 @@ def test_container_config_loads_with_compose_env(container_config, instructions)
 
     assert container_config.output.health_file == env_of(instructions)["IRTRACK_HEALTH_FILE"] == DEFAULT_HEALTH_FILE
     assert container_config.zenoh.multicast_scouting is False
+
+
+def test_daemon_accepts_the_container_config_as_the_image_runs_it(compose_env, instructions):
+    """ENTRYPOINT + CMD with the mounted file's path swapped for the repository copy, compose's
+    environment on top of the image's: ``--check`` validates and exits 0 without opening links."""
+    entry = exec_form(_one(instructions, "ENTRYPOINT").args)
+    cmd = exec_form(_one(instructions, "CMD").args)
+    args = [str(CONTAINER_CONFIG) if a == "/config/onboard.yaml" else a for a in cmd]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
+    env.update({k: v for k, v in env_of(instructions).items() if k.startswith("IRTRACK_")})
+    env.update(compose_env)
+    done = subprocess.run([sys.executable, *entry[1:], *args, "--check"], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S)
+    assert done.returncode == 0, done.stdout + done.stderr
 
 
 def test_mavlink_ports_agree(compose, container_config):
