@@ -29,6 +29,8 @@ log = logging.getLogger(__name__)
 
 EXIT_ERROR = 2  # bad input of any kind: one line on stderr
 DEFAULT_SCENARIO = "P1"
+DEFAULT_MAVLINK = "udpout:127.0.0.1:14540"  # = groundsim.mavlink_vehicle.DEFAULT_CONNECTION (not imported: pymavlink is slow to load)
+DEFAULT_VEHICLE = "uav1"  # = onboard.zenoh_session.DEFAULT_VEHICLE
 DEFAULT_ZENOH_CONNECT_TIMEOUT_S = 5.0
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
@@ -59,9 +61,6 @@ def resolve_scenario_path(text: str) -> Path:
 
 
 def _add_run(p: argparse.ArgumentParser) -> None:
-    from groundsim.mavlink_vehicle import DEFAULT_CONNECTION  # light: pymavlink only
-    from onboard.zenoh_session import DEFAULT_VEHICLE
-
     p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
                    help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="N",
@@ -70,7 +69,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
                    help="simulated seconds (default and maximum: the scenario's duration_s)")
     p.add_argument("--rate", default="realtime", metavar="realtime|max|FACTOR",
                    help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)")
-    p.add_argument("--mavlink", default=DEFAULT_CONNECTION, metavar="CONN",
+    p.add_argument("--mavlink", default=DEFAULT_MAVLINK, metavar="CONN",
                    help="pymavlink connection string (default: %(default)s)")
     p.add_argument("--vehicle", default=DEFAULT_VEHICLE, help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)")
     p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
@@ -90,8 +89,11 @@ def _add_run(p: argparse.ArgumentParser) -> None:
 
 def _run_config(args):
     """argparse namespace -> RunConfig (scenario loaded, every option validated)."""
-    from groundsim.run import RateSpec, RunConfig
     from groundsim.scenario import load_scenario
+
+    scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
+
+    from groundsim.run import RateSpec, RunConfig
     from onboard.zenoh_session import ZenohSettings
 
     rate = RateSpec.parse(args.rate)
@@ -102,7 +104,6 @@ def _run_config(args):
         connect=tuple(args.zenoh_connect), listen=tuple(args.zenoh_listen), config_file=args.zenoh_config,
         multicast_scouting=True if args.zenoh_multicast_scouting else None, connect_timeout_s=timeout,
     )
-    scenario = load_scenario(resolve_scenario_path(args.scenario))
     return RunConfig(
         scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
         vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
@@ -132,6 +133,17 @@ def _install_stop_signals(stop: threading.Event):
     return restore
 
 
+def _single_threaded_opencv() -> None:
+    """One OpenCV thread: the loop is single-threaded by design and its images are small; worker
+    threads only add wake-up latency to a paced run on a busy machine."""
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # noqa: BLE001 - an optimisation only
+        pass
+
+
 def _cmd_run(args) -> int:
     stop = threading.Event()
     restore = _install_stop_signals(stop)
@@ -139,6 +151,7 @@ def _cmd_run(args) -> int:
         config = _run_config(args)
         if stop.is_set():
             return 0
+        _single_threaded_opencv()
         from groundsim.run import run
 
         run(config, stop=stop)

@@ -1,0 +1,154 @@
+"""Benchmark of ``groundsim run``: real-time factor at ``--rate max`` and pacing jitter at ``--rate realtime``.
+
+``python -m bench.simrate [--scenario P1] [--duration 10] [--skip-realtime]``.  In process, on
+127.0.0.1 only: the simulator publishes its frames to a zenoh subscriber in this process (a
+listening session it connects to) and its MAVLink to a UDP socket drained by a thread, so both
+emit paths run for real.  Prints:
+
+* ``--rate max``: set-up (JSBSim vehicles, renderer, first frame), loop wall time, real-time
+  factor of the loop (``sim_s / loop wall s``) and end to end (set-up included), process CPU
+  seconds of the loop, mean ms per frame of flight / render / publish / MAVLink / truth, frames
+  received;
+* baseline in the same run: the same frames flown and rendered with no sockets and no truth file
+  (``SimCore.frame`` in a tight loop), and the loop's cost relative to it;
+* ``--rate realtime``: frame-period jitter ``|interval between publications - 1/30 s|`` p50 / p99 /
+  max and lateness behind the deadlines, over the scenario.
+
+The machine's load average is printed with the numbers: on a shared machine the wall-clock
+figures move with it.  Numbers only: nothing here asserts on time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+import socket
+import threading
+import time
+
+import cv2
+
+from groundsim.cli import resolve_scenario_path
+from groundsim.run import RateSpec, RunConfig, SimCore, run
+from groundsim.scenario import load_scenario
+from onboard.zenoh_session import ZenohSettings, frame_key, open_session
+
+
+def _free_port(kind=socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _load() -> str:
+    try:
+        return "load average %.2f %.2f %.2f on %d CPUs" % (*os.getloadavg(), os.cpu_count() or 0)
+    except OSError:  # pragma: no cover - not on Linux
+        return "load average unknown"
+
+
+class _Receivers:
+    """A zenoh subscriber (frames) and a UDP drain (MAVLink datagrams) on 127.0.0.1."""
+
+    def __init__(self, vehicle: str = "uav1") -> None:
+        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.session = open_session(ZenohSettings(listen=(self.endpoint,)))
+        self.frames = 0
+        self.sub = self.session.declare_subscriber(frame_key(vehicle), self._on_frame)
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind(("127.0.0.1", 0))
+        self.udp.settimeout(0.05)
+        self.mavlink = f"udpout:127.0.0.1:{self.udp.getsockname()[1]}"
+        self.datagrams = 0
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._drain, daemon=True)
+        self._thread.start()
+
+    def _on_frame(self, sample) -> None:
+        self.frames += 1
+
+    def _drain(self) -> None:
+        while not self._done.is_set():
+            try:
+                self.udp.recv(65536)
+                self.datagrams += 1
+            except OSError:
+                pass
+
+    def reset(self) -> None:
+        self.frames = 0
+        self.datagrams = 0
+
+    def close(self) -> None:
+        self._done.set()
+        self._thread.join(1.0)
+        self.udp.close()
+        self.sub.undeclare()
+        self.session.close()
+
+
+def _run(scenario, duration_s: float, rate: str, rx: _Receivers):
+    config = RunConfig(scenario, duration_s=duration_s, rate=RateSpec.parse(rate), mavlink=rx.mavlink,
+                       zenoh=ZenohSettings(connect=(rx.endpoint,), connect_timeout_s=5.0))
+    rx.reset()
+    c0, w0 = time.process_time(), time.perf_counter()
+    report = run(config)
+    cpu_s, wall_s = time.process_time() - c0, time.perf_counter() - w0
+    time.sleep(0.3)  # frames in flight
+    return report, cpu_s, wall_s
+
+
+def _baseline(scenario, duration_s: float) -> tuple[float, float, int]:
+    """Fly + render + truth rows of every frame, no sockets: (set-up s, loop s, frames)."""
+    core = SimCore(scenario, 0, duration_s, flight_chunk_s=1.0)
+    t0 = time.perf_counter()
+    core.frame(0)
+    t1 = time.perf_counter()
+    for k in range(1, core.frame_count):
+        core.frame(k)
+    return t1 - t0, time.perf_counter() - t1, core.frame_count
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(prog="python -m bench.simrate", description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", default="P1")
+    ap.add_argument("--duration", type=float, default=10.0)
+    ap.add_argument("--skip-realtime", action="store_true")
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    cv2.setNumThreads(1)  # as the CLI does (groundsim.cli)
+    sc = load_scenario(resolve_scenario_path(args.scenario))
+    print(f"bench.simrate: scenario {sc.name}, {args.duration:g} s, {sc.frame_rate_hz:g} Hz, "
+          f"{sc.camera.intrinsics.width_px} x {sc.camera.intrinsics.height_px} {sc.ir.encoding}; {_load()}")
+
+    rx = _Receivers()
+    try:
+        rep, cpu_s, wall_s = _run(sc, args.duration, "max", rx)
+        pf = rep.per_frame_ms
+        print(f"--rate max:  set-up {rep.setup_s:.2f} s, loop {rep.wall_s:.2f} s for {rep.sim_s:.2f} s simulated:"
+              f" real-time factor x{rep.rt_factor:.2f} (loop), x{rep.sim_s / (rep.setup_s + rep.wall_s):.2f} with set-up,"
+              f" x{rep.sim_s / wall_s:.2f} with socket opening too")
+        print(f"             process CPU {cpu_s:.2f} s (all threads); per frame ms: "
+              + ", ".join(f"{k} {v:.2f}" for k, v in pf.items())
+              + f"; frames received {rx.frames}/{rep.frames}, MAVLink datagrams {rx.datagrams}; {_load()}")
+        b_setup, b_loop, n = _baseline(sc, args.duration)
+        print(f"baseline (fly + render + truth rows, no sockets): set-up {b_setup:.2f} s, loop {b_loop:.2f} s"
+              f" ({1e3 * b_loop / max(n - 1, 1):.2f} ms/frame, x{args.duration / b_loop:.2f} real time);"
+              f" --rate max loop / baseline loop = {rep.wall_s / b_loop:.2f}")
+        if not args.skip_realtime:
+            rep, cpu_s, _ = _run(sc, args.duration, "realtime", rx)
+            j = rep.jitter
+            print(f"--rate realtime: {rep.frames} frames in {rep.wall_s:.2f} s (rt x{rep.rt_factor:.3f}), CPU {cpu_s:.2f} s;"
+                  f" frames received {rx.frames}; per frame ms: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in rep.per_frame_ms.items()) + f"; {_load()}")
+            if j is not None:
+                print(f"             frame-period jitter p50 {j.jitter_p50_ms:.3f} ms, p99 {j.jitter_p99_ms:.3f} ms,"
+                      f" max {j.jitter_max_ms:.3f} ms; lateness p50 {j.late_p50_ms:.3f} ms, p99 {j.late_p99_ms:.3f} ms,"
+                      f" max {j.late_max_ms:.3f} ms")
+    finally:
+        rx.close()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,652 @@
+"""``python -m groundsim run``: the loop, its CLI, its truth file; real processes on 127.0.0.1.
+
+The end-to-end run (a 2 s P1 at --rate max as a subprocess) is shared by several tests: it is
+received by a pymavlink udpin listener and a zenoh subscriber in this process, and its truth CSV
+is checked against both.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from groundsim import cli
+from groundsim.mavlink_vehicle import open_mavlink2
+from groundsim.run import (
+    BOOT_START_US,
+    JitterStats,
+    Pacer,
+    RateSpec,
+    RunConfig,
+    SimCore,
+    frame_count,
+    run,
+    run_loop,
+)
+from groundsim.scenario import load_scenario, scenarios_dir
+from groundsim.truth import REQUIRED_COLUMNS, TRUTH_COLUMNS, TruthRow, TruthWriter, read_truth_csv, truth_row
+from onboard.errors import ConfigError, InputError
+from onboard.frames import (
+    GeodeticOrigin,
+    PinholeIntrinsics,
+    Q_MOUNT_FROM_CAM,
+    quat_multiply,
+    rotmat_from_quat,
+)
+from onboard.irframe import ENCODING_MONO8, decode_irframe
+from onboard.zenoh_session import ZenohSettings, frame_key, open_session
+
+pytestmark = pytest.mark.timeout(120)
+
+REPO = Path(__file__).resolve().parents[2]
+P1 = scenarios_dir() / "P1.yaml"
+FRAME_RATE_HZ = 30.0
+E2E_DURATION_S = 2.0
+E2E_FRAMES = 60
+PROCESS_TIMEOUT_S = 90.0  # a 2 s scenario at --rate max on a loaded 2-core machine ends well within this
+DELIVERY_WAIT_S = 5.0  # frames still in flight after the process exits arrive within this
+STAMP_TOL_US = 1  # capture stamps are rounded to whole microseconds
+PIXEL_TOL_PX = 1.0  # truth pixel vs the rendered blob's centroid
+LATLON_TOL_DEG = 3e-7  # #33 degE7 quantisation (0.5e-7) + time_boot_ms truncation (<= 1 ms at <= 10 m/s ~ 1e-7 deg)
+ALT_TOL_M = 0.02  # #33 mm quantisation + 1 ms of climb
+QUAT_F32_TOL = 1e-5  # float32 quaternion fields
+STOP_EXIT_S = 3.0  # SIGTERM -> exit (the loop sees the flag within STOP_POLL_S; closing sockets takes the rest)
+SHORT_TIMEOUT_S = 60.0
+
+
+def _free_port(kind=socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
+
+
+def _groundsim(*args: str, timeout: float = SHORT_TIMEOUT_S) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "groundsim", *args], cwd=REPO, env=_env(), capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def _assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
+    assert proc.returncode == 2, proc.stderr
+    assert "Traceback" not in proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if "error:" in ln]
+    assert len(errors) == 1, proc.stderr
+    assert errors[0].startswith("groundsim"), errors[0]
+    for needle in needles:
+        assert needle in errors[0], errors[0]
+    return errors[0]
+
+
+def _blob_centroid_px(img: np.ndarray, near_uv=None, window: int = 7) -> tuple[float, float]:
+    """Centroid (u, v) of the brightest compact blob: the frame minus its 5 x 5 median (which
+    removes the sky gradient and the horizon), peak, then the weighted centroid of the window's
+    pixels above 30 % of the peak, with pixel centres at (j + 0.5, i + 0.5)."""
+    hp = img.astype(np.float32) - cv2.medianBlur(img, 5).astype(np.float32)
+    i, j = np.unravel_index(int(np.argmax(hp)), hp.shape)
+    h = window // 2
+    i0, j0 = max(0, i - h), max(0, j - h)
+    w = hp[i0:i + h + 1, j0:j + h + 1]
+    w = np.where(w > 0.3 * w.max(), w, 0.0)
+    ii, jj = np.mgrid[i0:i0 + w.shape[0], j0:j0 + w.shape[1]]
+    return float((w * (jj + 0.5)).sum() / w.sum()), float((w * (ii + 0.5)).sum() / w.sum())
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+@pytest.fixture(scope="module")
+def e2e(tmp_path_factory):
+    """One 2 s P1 run at --rate max, received over 127.0.0.1: (proc, frames, mavlink msgs, truth)."""
+    out = tmp_path_factory.mktemp("run")
+    truth_path = out / "truth.csv"
+    zport, mport = _free_port(), _free_port(socket.SOCK_DGRAM)
+    endpoint = f"tcp/127.0.0.1:{zport}"
+    session = open_session(ZenohSettings(listen=(endpoint,)))
+    payloads: list[bytes] = []
+    lock = threading.Lock()
+
+    def on_sample(sample):
+        with lock:
+            payloads.append(sample.payload.to_bytes())
+
+    sub = session.declare_subscriber(frame_key("uav1"), on_sample)
+    rx = open_mavlink2(f"udpin:127.0.0.1:{mport}", 255, 190)
+    msgs = []
+    done = threading.Event()
+
+    def drain():  # keep the UDP buffer empty while the simulator runs
+        while not done.is_set():
+            m = rx.recv_match(blocking=True, timeout=0.05)
+            if m is not None and m.get_type() != "BAD_DATA":
+                msgs.append(m)
+
+    reader = threading.Thread(target=drain, daemon=True)
+    reader.start()
+    try:
+        proc = _groundsim("run", "--scenario", str(P1), "--duration", str(E2E_DURATION_S), "--rate", "max",
+                          "--mavlink", f"udpout:127.0.0.1:{mport}", "--zenoh-connect", endpoint,
+                          "--truth", str(truth_path), timeout=PROCESS_TIMEOUT_S)
+        deadline = time.monotonic() + DELIVERY_WAIT_S
+        while time.monotonic() < deadline:
+            with lock:
+                if len(payloads) >= E2E_FRAMES:
+                    break
+            time.sleep(0.05)
+        time.sleep(0.2)  # last datagrams
+    finally:
+        done.set()
+        reader.join(2.0)
+        sub.undeclare()
+        session.close()
+        rx.close()
+    with lock:
+        frames = [decode_irframe(p) for p in payloads]
+    truth = read_truth_csv(truth_path) if truth_path.exists() else None
+    return proc, frames, msgs, truth, truth_path
+
+
+def test_run_exits_cleanly_with_status_lines(e2e):
+    proc, _, _, _, _ = e2e
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "done: 60/60 frames" in proc.stderr
+    assert "rt x" in proc.stderr
+
+
+def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
+    _, frames, _, _, _ = e2e
+    assert len(frames) == E2E_FRAMES, f"{len(frames)} of {E2E_FRAMES} frames delivered"
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(set(seqs)) and seqs[0] == 0
+    for f in frames:
+        assert (f.width_px, f.height_px, f.encoding) == (640, 512, ENCODING_MONO8)
+        expected_us = BOOT_START_US + f.seq * 1e6 / FRAME_RATE_HZ
+        assert abs(f.time_boot_us - expected_us) <= STAMP_TOL_US
+    gaps_us = np.diff([f.time_boot_us for f in frames]) / np.diff(seqs)
+    assert np.all(np.abs(gaps_us - 1e6 / FRAME_RATE_HZ) <= STAMP_TOL_US)
+
+
+def test_truth_csv_has_header_and_one_row_per_frame(e2e):
+    _, frames, _, truth, truth_path = e2e
+    header = truth_path.read_text().splitlines()[0].split(",")
+    assert tuple(header[: len(REQUIRED_COLUMNS)]) == REQUIRED_COLUMNS
+    assert tuple(header) == TRUTH_COLUMNS
+    assert len(truth["seq"]) == E2E_FRAMES
+    np.testing.assert_array_equal(truth["seq"], np.arange(E2E_FRAMES))
+    by_seq = {f.seq: f.time_boot_us for f in frames}
+    for s, t in zip(truth["seq"], truth["time_boot_us"]):
+        if s in by_seq:
+            assert by_seq[s] == t
+    assert np.all(truth["target_visible"] == 1)  # P1's gimbal keeps the target near the centre
+    # the target, 5 m/s, over 2 s: geodetic and NED columns agree on its displacement
+    d_n_m = truth["target_n_m"][-1] - truth["target_n_m"][0]
+    d_lat_m = (truth["target_lat_deg"][-1] - truth["target_lat_deg"][0]) * math.pi / 180 * 6.3555e6  # N radius at 32 deg
+    assert abs(d_n_m - d_lat_m) < 0.05
+    assert 7.0 < abs(d_n_m) < 9.0  # -4 m/s north for 59/30 s
+
+
+def test_truth_pixel_matches_rendered_blob(e2e):
+    _, frames, _, truth, _ = e2e
+    uv = {int(s): (u, v) for s, u, v in zip(truth["seq"], truth["target_u_px"], truth["target_v_px"])}
+    errs = []
+    for f in frames:
+        u, v = _blob_centroid_px(np.asarray(f.pixels))
+        errs.append(math.hypot(u - uv[f.seq][0], v - uv[f.seq][1]))
+    assert max(errs) <= PIXEL_TOL_PX, f"max {max(errs):.2f} px"
+    # and the gimbal keeps it within the reference study's ~25 px of the centre (320, 256)
+    assert max(math.hypot(u - 320.0, v - 256.0) for u, v in uv.values()) < 40.0
+
+
+def _interp_truth(truth, t_us, name):
+    return float(np.interp(t_us, truth["time_boot_us"], truth[name]))
+
+
+def test_mavlink_position_and_attitude_streams(e2e):
+    _, _, msgs, truth, _ = e2e
+    by_type: dict[str, list] = {}
+    for m in msgs:
+        by_type.setdefault(m.get_type(), []).append(m)
+    assert {"HEARTBEAT", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "GIMBAL_DEVICE_ATTITUDE_STATUS"} <= set(by_type)
+    assert all(m.get_srcSystem() == 1 for m in msgs)
+    t_first, t_last = int(truth["time_boot_us"][0]), int(truth["time_boot_us"][-1])
+    # #31 at 50 Hz of sim time: ~100 samples in 2 s, unit quaternions, increasing stamps
+    att = by_type["ATTITUDE_QUATERNION"]
+    assert 90 <= len(att) <= 101
+    stamps = [m.time_boot_ms for m in att]
+    assert stamps == sorted(stamps) and stamps[0] == BOOT_START_US // 1000
+    for m in att:
+        assert abs(math.sqrt(m.q1**2 + m.q2**2 + m.q3**2 + m.q4**2) - 1.0) < QUAT_F32_TOL
+    # #33 at 25 Hz: position equals the truth observer's at its time
+    pos = by_type["GLOBAL_POSITION_INT"]
+    assert 45 <= len(pos) <= 51
+    checked = 0
+    for m in pos:
+        t_us = m.time_boot_ms * 1000
+        if not t_first <= t_us <= t_last:
+            continue
+        assert abs(m.lat * 1e-7 - _interp_truth(truth, t_us, "observer_lat_deg")) < LATLON_TOL_DEG
+        assert abs(m.lon * 1e-7 - _interp_truth(truth, t_us, "observer_lon_deg")) < LATLON_TOL_DEG
+        assert abs(m.alt * 1e-3 - _interp_truth(truth, t_us, "observer_alt_m")) < ALT_TOL_M
+        assert abs(m.relative_alt * 1e-3 - _interp_truth(truth, t_us, "observer_alt_m")) < ALT_TOL_M  # origin alt 0
+        checked += 1
+    assert checked >= 45
+
+
+def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
+    """#285 (earth frame) q_ned_from_gimbal composed with the mount->camera axes is the truth's q_ned_from_cam."""
+    _, _, msgs, truth, _ = e2e
+    gim = [m for m in msgs if m.get_type() == "GIMBAL_DEVICE_ATTITUDE_STATUS"]
+    assert 18 <= len(gim) <= 21  # 10 Hz over 2 s
+    rows = {int(t) // 1000: i for i, t in enumerate(truth["time_boot_us"])}
+    matched = 0
+    for m in gim:
+        i = rows.get(m.time_boot_ms)
+        if i is None or int(truth["time_boot_us"][i]) % 1000:
+            continue  # only stamps that fall exactly on a frame
+        q_nc = quat_multiply(np.array(m.q, dtype=float), Q_MOUNT_FROM_CAM)
+        q_true = np.array([truth[f"q_ned_from_cam_{c}"][i] for c in "wxyz"])
+        np.testing.assert_allclose(rotmat_from_quat(q_nc), rotmat_from_quat(q_true), atol=1e-5)
+        matched += 1
+    assert matched >= 6  # every 100 ms falls on a frame: 0, 100, ..., 1900 ms
+
+
+# --------------------------------------------------------------------------- stopping
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM])
+def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
+    truth_path = tmp_path / "truth.csv"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "groundsim", "run", "--scenario", str(P1), "--rate", "realtime",
+         "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", "--truth", str(truth_path),
+         "--log-level", "warning"],
+        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    try:
+        deadline = time.monotonic() + SHORT_TIMEOUT_S
+        while time.monotonic() < deadline and proc.poll() is None:
+            if truth_path.exists() and truth_path.read_text().count("\n") >= 10:
+                break
+            time.sleep(0.05)
+        assert proc.poll() is None, proc.communicate()[1]
+        t_sig = time.monotonic()
+        proc.send_signal(sig)
+        _, err = proc.communicate(timeout=SHORT_TIMEOUT_S)
+        exit_s = time.monotonic() - t_sig
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err
+    assert exit_s < STOP_EXIT_S, f"exit took {exit_s:.2f} s"
+    text = truth_path.read_text()
+    assert text.endswith("\n")
+    lines = text.splitlines()
+    assert lines[0].split(",") == list(TRUTH_COLUMNS)
+    assert all(len(ln.split(",")) == len(TRUTH_COLUMNS) for ln in lines)
+    truth = read_truth_csv(truth_path)
+    n = len(truth["seq"])
+    assert 9 <= n < 300  # stopped mid-run
+    np.testing.assert_array_equal(truth["seq"], np.arange(n))
+
+
+# --------------------------------------------------------------------------- bad input: one line, exit 2
+
+
+def test_unknown_scenario_key_is_one_line_exit_2(tmp_path):
+    """As a process: exit code 2, one line, no traceback."""
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(P1.read_text().replace("frame_rate_hz:", "frame_rate_hzz:"))
+    proc = _groundsim("run", "--scenario", str(bad), "--rate", "max")
+    _assert_one_line_error(proc, "frame_rate_hzz", "did you mean 'frame_rate_hz'")
+
+
+def _main_err(capsys, *argv) -> tuple[int, str]:
+    rc = cli.main(list(argv))
+    return rc, capsys.readouterr().err
+
+
+def _assert_main_one_line(capsys, argv, *needles) -> None:
+    """In process (same code path as ``python -m groundsim``, which is ``sys.exit(main())``)."""
+    rc, err = _main_err(capsys, *argv)
+    assert rc == 2, (argv, err)
+    assert err.count("\n") == 1 and "error:" in err and "Traceback" not in err, (argv, err)
+    for needle in needles:
+        assert needle in err, (argv, err)
+
+
+def test_missing_scenario_file_is_one_line_exit_2(tmp_path, capsys):
+    _assert_main_one_line(capsys, ["run", "--scenario", str(tmp_path / "nope.yaml")], "nope.yaml", "no such file")
+
+
+def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
+                                       "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+                                       "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
+                              "port already in use")
+
+
+def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
+    _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
+                                   "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}", "--zenoh-connect-timeout", "0.5",
+                                   "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
+                          "no peer reachable")
+
+
+def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        rc, err = _main_err(capsys, "run", "--scenario", str(P1), "--rate", "max",
+                            "--mavlink", f"udpin:127.0.0.1:{s.getsockname()[1]}", "--log-level", "error")
+    assert rc == 2 and err.count("\n") == 1 and "already in use" in err
+    for argv, needle in (
+        (["run", "--rate", "fast"], "--rate"),
+        (["run", "--rate", "0"], "--rate"),
+        (["run", "--duration", "11"], "--duration"),
+        (["run", "--duration", "-1"], "--duration"),
+        (["run", "--seed", "-3"], "--seed"),
+        (["run", "--vehicle", "a/b"], "vehicle name"),
+        (["run", "--mavlink", "bogus:1"], "--mavlink"),
+        (["run", "--zenoh-listen", "nonsense"], "--zenoh-listen"),
+        (["run", "--bogus-option"], "unrecognized arguments"),
+        (["fly"], "invalid choice"),
+    ):
+        rc, err = _main_err(capsys, *argv, *(["--log-level", "error"] if argv[0] == "run" else []))
+        assert rc == 2, (argv, err)
+        assert err.count("\n") == 1 and "error:" in err and needle in err, (argv, err)
+
+
+# --------------------------------------------------------------------------- determinism and chunking
+
+
+def test_same_seed_same_truth_and_chunking_does_not_change_it(tmp_path, capsys):
+    """Same seed -> byte-identical truth, whether flown in 1 s chunks (--rate max) or 0.1 s chunks;
+    another seed of a disturbed scenario -> another target path."""
+    p1g = scenarios_dir() / "P1g.yaml"
+    common = ["--scenario", str(p1g), "--duration", "1", "--rate", "max", "--no-render", "--log-level", "warning",
+              "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"]
+    a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
+    assert cli.main(["run", *common, "--seed", "3", "--truth", str(a)]) == 0
+    config = RunConfig(load_scenario(p1g), run_seed=3, duration_s=1.0, rate=RateSpec.parse("max"), render=False,
+                       mavlink=f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", truth_path=b, flight_chunk_s=0.1)
+    assert run(config).frames == 30
+    assert cli.main(["run", *common, "--seed", "4", "--truth", str(c)]) == 0
+    assert a.read_bytes() == b.read_bytes()
+    ta, tc = read_truth_csv(a), read_truth_csv(c)
+    np.testing.assert_array_equal(ta["time_boot_us"], tc["time_boot_us"])
+    np.testing.assert_array_equal(ta["observer_n_m"], tc["observer_n_m"])  # the observer has no disturbance
+    assert np.max(np.abs(ta["target_n_m"] - tc["target_n_m"])) > 1e-4
+
+
+def test_same_seed_same_pixels():
+    sc = load_scenario(P1)
+    frames = [SimCore(sc, seed, 0.1).frame(1).pixels for seed in (0, 0, 1)]
+    np.testing.assert_array_equal(frames[0], frames[1])
+    assert np.any(frames[0] != frames[2])  # the noise follows the seed
+
+
+# --------------------------------------------------------------------------- the loop, in process
+
+
+class FakeClock:
+    """Wall clock that advances only when slept (and by ``work_s`` per reading, if set)."""
+
+    def __init__(self) -> None:
+        self.t = 100.0
+        self.sleeps: list[float] = []
+
+    def now_s(self) -> float:
+        return self.t
+
+    def sleep(self, s: float) -> None:
+        assert s > 0
+        self.sleeps.append(s)
+        self.t += s
+
+
+class FakeVehicle:
+    def __init__(self, stop_after_polls=None, stop=None) -> None:
+        self.states, self.polls = [], []
+        self.stop_after, self.stop = stop_after_polls, stop
+
+    def update_state(self, **state):
+        self.states.append(state)
+
+    def poll(self, now_us):
+        self.polls.append(now_us)
+        if self.stop_after is not None and len(self.polls) >= self.stop_after:
+            self.stop.set()
+
+
+class FakePublisher:
+    def __init__(self) -> None:
+        self.frames = []
+
+    def publish(self, frame):
+        self.frames.append(frame)
+
+
+def test_loop_feeds_ticks_and_frames_in_order_on_the_boot_clock():
+    sc = load_scenario(P1)
+    core = SimCore(sc, 0, 0.2)
+    clock, vehicle, pub = FakeClock(), FakeVehicle(), FakePublisher()
+    report = run_loop(core, RateSpec.parse("realtime"), mavlink=vehicle, publisher=pub, clock=clock)
+    assert (core.ticks_per_frame, core.tick_rate_hz, core.frame_count) == (4, 120.0, 6)
+    assert len(vehicle.polls) == 24 and len(pub.frames) == 6 and report.frames == 6 and not report.stopped
+    expected_us = [BOOT_START_US + round(i * 1e6 / 120.0) for i in range(24)]
+    assert vehicle.polls == expected_us
+    assert [s["time_boot_us"] for s in vehicle.states] == expected_us
+    assert all(s["q_gimbal"] is not None for s in vehicle.states)  # P1 is gimballed
+    assert [f.seq for f in pub.frames] == list(range(6))
+    assert [f.time_boot_us for f in pub.frames] == expected_us[::4]
+    # a fake clock that only moves when slept: the pacer hits every deadline exactly
+    assert report.jitter is not None and report.jitter.jitter_max_ms < 1e-6 and report.jitter.late_max_ms < 1e-6
+    assert clock.t - 100.0 == pytest.approx(23 / 120.0)
+
+
+def test_loop_stops_when_asked_and_reports_it():
+    sc = load_scenario(P1)
+    core = SimCore(sc, 0, 1.0, render=False)
+    stop = threading.Event()
+    vehicle = FakeVehicle(stop_after_polls=10, stop=stop)
+    report = run_loop(core, RateSpec.parse("max"), mavlink=vehicle, stop=stop)
+    assert len(vehicle.polls) == 10
+    assert report.frames == 3 and report.stopped and report.frames_total == 30  # frames at ticks 0, 4, 8
+
+
+# --------------------------------------------------------------------------- pure pieces
+
+
+@pytest.mark.parametrize("text, factor, paced", [("realtime", 1.0, True), ("max", None, False), ("2", 2.0, True),
+                                                 ("0.5x", 0.5, True), ("MAX", None, False)])
+def test_rate_parse(text, factor, paced):
+    r = RateSpec.parse(text)
+    assert r.factor == factor and r.paced is paced
+
+
+@pytest.mark.parametrize("text", ["fast", "", "0", "-1", "nan", "inf", "1e9"])
+def test_rate_parse_rejects(text):
+    with pytest.raises(ConfigError, match="--rate"):
+        RateSpec.parse(text)
+
+
+def test_pacer_waits_for_deadlines_and_reports_lateness():
+    clock = FakeClock()
+    p = Pacer(2.0, clock)  # twice real time
+    p.start(0.0)
+    assert p.wait_until(1.0) == 0.0 and clock.t == pytest.approx(100.5)
+    clock.t += 0.3  # work overran the next deadline (t = 1.5 s -> wall 100.75) by 0.05 s
+    assert p.wait_until(1.5) == pytest.approx(0.05)
+    stop = threading.Event()
+    stop.set()
+    t = clock.t
+    assert p.wait_until(100.0, stop) == 0.0 and clock.t == t  # stop: no sleeping
+    free = Pacer(None, clock)
+    free.start()
+    assert free.wait_until(1e6) == 0.0 and clock.t == t
+
+
+def test_pacer_sleeps_in_slices_so_stop_is_seen():
+    clock = FakeClock()
+    p = Pacer(1.0, clock)
+    p.start()
+    p.wait_until(1.0)
+    assert max(clock.sleeps) <= 0.05 + 1e-12 and sum(clock.sleeps) == pytest.approx(1.0)
+
+
+def test_jitter_stats():
+    j = JitterStats(0.1)
+    assert j.summary() is None
+    for w, late in ((0.0, 0.0), (0.1, 0.0), (0.203, 0.003), (0.3, 0.0)):
+        j.add(w, late)
+    s = j.summary()
+    assert s.frames == 4 and s.period_ms == pytest.approx(100.0)
+    assert s.jitter_max_ms == pytest.approx(3.0) and s.late_max_ms == pytest.approx(3.0)
+    assert s.jitter_p50_ms == pytest.approx(3.0)  # intervals 100, 103, 97 ms
+
+
+def test_frame_count_matches_scenario():
+    sc = load_scenario(P1)
+    assert frame_count(sc.duration_s, sc.frame_rate_hz) == sc.frame_count == 300
+    assert frame_count(0.1, 30.0) == 3 and frame_count(0.01, 30.0) == 1 and frame_count(2.0, 30.0) == 60
+
+
+def test_run_config_validates():
+    sc = load_scenario(P1)
+    assert RunConfig(sc).duration_s == 10.0
+    for kw, needle in (({"duration_s": 10.5}, "--duration"), ({"duration_s": 0.0}, "--duration"),
+                       ({"run_seed": -1}, "--seed"), ({"run_seed": True}, "--seed")):
+        with pytest.raises(ConfigError, match=needle):
+            RunConfig(sc, **kw)
+
+
+ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
+K = PinholeIntrinsics.vue_pro_640()
+# camera looking north (cam z = N, cam x = E, cam y = D): q_ned_from_cam = q_ned_from_mount(identity) x mount->cam
+Q_NORTH = Q_MOUNT_FROM_CAM
+
+
+def test_truth_row_projection_and_visibility():
+    p_cam = np.array([0.0, 0.0, -50.0])
+    # 100 m north, 10 m east, 5 m below: u = cx + f * 10/100, v = cy + f * 5/100
+    row = truth_row(7, 1_234_567, 0.5, ORIGIN, K, p_cam + [100.0, 10.0, 5.0], [1.0, 2.0, 3.0], p_cam, p_cam, Q_NORTH)
+    assert row.target_u_px == pytest.approx(320.0 + K.fx_px * 0.1, abs=1e-9)
+    assert row.target_v_px == pytest.approx(256.0 + K.fy_px * 0.05, abs=1e-9)
+    assert row.target_visible == 1 and row.seq == 7 and row.time_boot_us == 1_234_567
+    assert row.range_m == pytest.approx(math.sqrt(100**2 + 10**2 + 5**2))
+    assert row.target_lat_deg > ORIGIN.lat_deg and row.target_alt_m == pytest.approx(45.0, abs=1e-2)
+    behind = truth_row(0, 1, 0.0, ORIGIN, K, p_cam + [-100.0, 0.0, 0.0], [0, 0, 0], p_cam, p_cam, Q_NORTH)
+    assert math.isnan(behind.target_u_px) and behind.target_visible == 0
+    outside = truth_row(0, 1, 0.0, ORIGIN, K, p_cam + [10.0, 10.0, 0.0], [0, 0, 0], p_cam, p_cam, Q_NORTH)
+    assert outside.target_u_px > 640 and outside.target_visible == 0
+
+
+def test_truth_row_rejects_bad_fields():
+    p = np.zeros(3)
+    with pytest.raises(InputError, match="time_boot_us"):
+        truth_row(0, -1, 0.0, ORIGIN, K, [100.0, 0, 0], p, p, p, Q_NORTH)
+    ok = {c: 0 for c in TRUTH_COLUMNS}
+    TruthRow(**ok)
+    for name, value in (("target_n_m", math.inf), ("range_m", math.nan), ("target_visible", 2), ("seq", 1.5)):
+        with pytest.raises(InputError, match=name):
+            TruthRow(**{**ok, name: value})
+    TruthRow(**{**ok, "target_u_px": math.nan, "target_v_px": math.nan})  # behind the camera: allowed
+
+
+def test_truth_writer_round_trip_and_flush(tmp_path):
+    path = tmp_path / "sub" / "t.csv"
+    p_cam = np.array([0.0, 0.0, -50.0])
+    rows = [truth_row(k, 1_000_000 + 33_333 * k, k / 30, ORIGIN, K, p_cam + [100.0, 0.1 * k, 0.0], [0, 3.0, 0],
+                      p_cam, p_cam, Q_NORTH) for k in range(3)]
+    w = TruthWriter(path)
+    assert path.read_text() == ",".join(TRUTH_COLUMNS) + "\n"  # header flushed at open
+    w.write(rows[0])
+    assert path.read_text().count("\n") == 2  # each row flushed as written
+    for r in rows[1:]:
+        w.write(r)
+    w.close()
+    back = read_truth_csv(path)
+    for name in TRUTH_COLUMNS:
+        np.testing.assert_array_equal(back[name], [getattr(r, name) for r in rows])  # repr round-trips exactly
+    assert back["seq"].dtype == np.int64
+    with pytest.raises(InputError, match="closed"):
+        w.write(rows[0])
+
+
+def test_truth_writer_unwritable_path_is_config_error(tmp_path):
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(ConfigError, match="--truth"):
+        TruthWriter(tmp_path / "file" / "t.csv")
+
+
+def test_read_truth_csv_names_bad_lines(tmp_path):
+    p = tmp_path / "t.csv"
+    p.write_text("time_boot_us,x\n1,2\n")
+    with pytest.raises(InputError, match="header lacks"):
+        read_truth_csv(p)
+    p.write_text(",".join(TRUTH_COLUMNS) + "\n" + ",".join(["1"] * (len(TRUTH_COLUMNS) - 1)) + "\n")
+    with pytest.raises(InputError, match="line 2"):
+        read_truth_csv(p)
+
+
+def test_scenario_name_resolves_to_shipped_file():
+    assert cli.resolve_scenario_path("P2g") == scenarios_dir() / "P2g.yaml"
+    assert cli.resolve_scenario_path("x/y.yaml") == Path("x/y.yaml")
+
+
+def test_heading_in_vehicle_state_is_body_yaw():
+    sc = load_scenario(P1)
+    core = SimCore(sc, 0, 0.1, render=False)
+    s = core.vehicle_state(5)
+    # the body's forward axis projected on the horizontal points along the heading
+    fwd = rotmat_from_quat(s["q_ned_from_body"])[:, 0]
+    assert math.atan2(fwd[1], fwd[0]) == pytest.approx(s["heading_rad"], abs=1e-9)
+    assert abs(s["heading_rad"] - math.pi / 2) < 0.1  # P1's observer flies east, heading along its path
+    assert s["alt_rel_m"] == pytest.approx(s["alt_amsl_m"] - sc.origin.alt_m)
+
+
+def test_cli_defaults_match_the_adapters():
+    from groundsim.mavlink_vehicle import DEFAULT_CONNECTION
+    from onboard.zenoh_session import DEFAULT_VEHICLE
+
+    assert cli.DEFAULT_MAVLINK == DEFAULT_CONNECTION == "udpout:127.0.0.1:14540"
+    assert cli.DEFAULT_VEHICLE == DEFAULT_VEHICLE == "uav1"
+
+
+def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
+    stop = threading.Event()
+    before = signal.getsignal(signal.SIGINT)
+    restore = cli._install_stop_signals(stop)
+    try:
+        os.kill(os.getpid(), signal.SIGINT)
+        deadline = time.monotonic() + 2.0
+        while not stop.is_set() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert stop.is_set()
+    finally:
+        restore()
+    assert signal.getsignal(signal.SIGINT) is before
