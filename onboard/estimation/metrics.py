@@ -146,7 +146,7 @@ def evaluate(truth_p_ned_m, est_p_ned_m, cam_p_ned_m, cov=None, origin_ned_m=(0.
     n = X.shape[0]
     Xh = _points("est_p_ned_m", est_p_ned_m, n)
     C = _points("cam_p_ned_m", cam_p_ned_m, n)
-    O = _points("origin_ned_m", np.reshape(np.asarray(origin_ned_m, dtype=float), (1, 3)))[0]
+    O = _points("origin_ned_m", np.atleast_2d(np.asarray(origin_ned_m, dtype=object)), 1)[0]
     e = Xh - X
     en = np.linalg.norm(e, axis=1)
     d_origin = np.linalg.norm(X - O, axis=1)

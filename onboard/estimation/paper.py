@@ -137,13 +137,14 @@ class PaperResult:
 
 def projection_matrices(obs: Observations) -> np.ndarray:
     """``P_i = K_i [R_cam_from_ned | -R_cam_from_ned C_i]`` in pixels, shape (F, 3, 4)."""
-    F = len(obs)
-    K = np.zeros((F, 3, 3))
-    K[:, 0, 0], K[:, 1, 1] = obs.fx_px, obs.fy_px
-    K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = obs.cx_px, obs.cy_px, 1.0
     R_cn = np.transpose(obs.R_ned_from_cam, (0, 2, 1))
     Rt = np.concatenate([R_cn, -np.einsum("fij,fj->fi", R_cn, obs.p_cam_ned_m)[:, :, None]], axis=2)
-    return np.einsum("fij,fjk->fik", K, Rt)
+    # K @ Rt with K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], row by row
+    P = np.empty_like(Rt)
+    P[:, 0] = obs.fx_px[:, None] * Rt[:, 0] + obs.cx_px[:, None] * Rt[:, 2]
+    P[:, 1] = obs.fy_px[:, None] * Rt[:, 1] + obs.cy_px[:, None] * Rt[:, 2]
+    P[:, 2] = Rt[:, 2]
+    return P
 
 
 def projection_rows(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
@@ -198,16 +199,16 @@ def normal_matrix_banded(Q: np.ndarray, q: np.ndarray, delta: float, order: int)
     Returns ``ab`` (3 order + 1, 3F) with ``ab[d, j] = A[j + d, j]``, and ``b`` (3F,).
     """
     F = Q.shape[0]
-    M = np.einsum("fri,frj->fij", Q, Q)
     ab = np.zeros((3 * order + 1, 3 * F))
-    ab[0, 0::3], ab[0, 1::3], ab[0, 2::3] = M[:, 0, 0], M[:, 1, 1], M[:, 2, 2]
-    ab[1, 0::3], ab[1, 1::3] = M[:, 1, 0], M[:, 2, 1]
-    ab[2, 0::3] = M[:, 2, 0]
+    # lower triangle of the 3 x 3 blocks Q_i^T Q_i: ab[a - c, 3i + c] = sum_r Q[i, r, a] Q[i, r, c]
+    for a in range(3):
+        for c in range(a + 1):
+            ab[a - c, c::3] = Q[:, 0, a] * Q[:, 0, c] + Q[:, 1, a] * Q[:, 1, c]
     bands = _dtd_bands(F, order)
     for m in range(order + 1):
         for k in range(3):
             ab[3 * m, k::3] += delta * bands[m]
-    b = np.einsum("fri,fr->fi", Q, q).reshape(-1)
+    b = (Q[:, 0, :] * q[:, 0:1] + Q[:, 1, :] * q[:, 1:2]).reshape(-1)
     return ab, b
 
 
