@@ -161,7 +161,7 @@ class SyntheticScene:
     def telemetry(self, t0_us: int, t1_us: int, rate_hz: float):
         """Samples ``(time_boot_us, p_body_ned_m, v_ned_mps, q_ned_from_body)`` every 1/rate_hz in [t0, t1]."""
         step = int(round(1e6 / rate_hz))
-        t = t0_us - (t0_us - self.boot_us0) % step
+        t = t0_us + (-(t0_us - self.boot_us0)) % step  # the first sample time >= t0 on the grid
         while t <= t1_us:
             p, v, q = self.body((t - self.boot_us0) / 1e6)
             yield t, p, v, q

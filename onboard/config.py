@@ -99,6 +99,9 @@ def _show(v: Any) -> str:
 
 
 def _did_you_mean(word: str, options) -> str | None:
+    same_case = [o for o in options if str(o).lower() == str(word).lower()]
+    if same_case:
+        return f"did you mean '{same_case[0]}'?"
     close = difflib.get_close_matches(str(word), [str(o) for o in options], n=1, cutoff=0.6)
     return f"did you mean '{close[0]}'?" if close else None
 

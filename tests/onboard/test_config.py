@@ -1,0 +1,240 @@
+"""onboard.config: strict YAML -> typed config, one-line errors, env/CLI overrides; the shipped file."""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from onboard.config import (
+    OnboardConfig,
+    OnboardConfigError,
+    _leaf_paths,
+    build_config,
+    config_to_dict,
+    env_overrides,
+    load_config,
+    parse_set_option,
+)
+from onboard.errors import ConfigError
+from onboard.frames import quat_from_euler
+
+REPO = Path(__file__).resolve().parents[2]
+SHIPPED = REPO / "config" / "onboard.yaml"
+ATOL_DEG_AS_RAD = 1e-12  # exact conversion
+ATOL_Q = 1e-12
+ONE_LINE = re.compile(r"^[^\n]+$")
+
+
+def write(tmp_path: Path, text: str, name: str = "c.yaml") -> str:
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return str(p)
+
+
+# --------------------------------------------------------------------------- defaults and the shipped file
+
+
+def test_defaults_are_valid_and_convert_to_core_objects():
+    c = OnboardConfig()
+    assert c.vehicle == "uav1"
+    assert c.mavlink.connection == "udpin:0.0.0.0:14540"
+    assert c.zenoh.multicast_scouting is False and c.zenoh.connect == () and c.zenoh.listen == ()
+    K = c.camera.pinhole()
+    assert (K.width_px, K.height_px, K.cx_px, K.cy_px) == (640, 512, 320.0, 256.0)
+    assert K.fx_px == pytest.approx(13e-3 / 17e-6, rel=1e-12)
+    b = c.pose.buffer_config()
+    assert (b.att_max_gap_us, b.pos_max_gap_us, b.window_us, b.reboot_threshold_us) == (100_000, 300_000, 5_000_000, 1_000_000)
+    n = c.estimator.noise_model()
+    assert n.attitude_bias_sigma_rad == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
+    assert n.pixel_sigma_px == 0.3
+    lc = c.mavlink.link_config()
+    assert (lc.component_id, lc.autopilot_compid, lc.heartbeat_timeout_s) == (191, 1, 5.0)
+
+
+def test_shipped_file_equals_defaults():
+    assert config_to_dict(load_config(SHIPPED, environ={})) == config_to_dict(OnboardConfig())
+
+
+def test_shipped_file_documents_every_field():
+    """Every leaf field appears in config/onboard.yaml as a key with a comment on its line."""
+    text = SHIPPED.read_text(encoding="utf-8")
+    for path in _leaf_paths():
+        key = path.rsplit(".", 1)[-1]
+        lines = [ln for ln in text.splitlines() if re.match(rf"^\s*(# )?{re.escape(key)}:", ln)]
+        assert lines, f"{path} is not in {SHIPPED.name}"
+        assert any("#" in ln.split(":", 1)[1] for ln in lines), f"{path} has no comment in {SHIPPED.name}"
+
+
+def test_print_config_round_trips(tmp_path):
+    data = config_to_dict(OnboardConfig())
+    p = write(tmp_path, yaml.safe_dump(data))
+    assert config_to_dict(load_config(p, environ={})) == data
+
+
+def test_conversions_of_non_default_values(tmp_path):
+    p = write(tmp_path, """
+camera:
+  intrinsics: {fx_px: 800, fy_px: 790, width_px: 320, height_px: 256, cx_px: 161.5}
+  mount: {lever_arm_frd_m: [0.1, 0, 0.05], pitch_deg: -10, gimballed: true}
+pose: {attitude_max_gap_ms: 40.5, origin: {lat_deg: 32, lon_deg: 118.8, alt_m: 12}}
+estimator: {attitude_white_sigma_deg: 0.5}
+""")
+    c = load_config(p, environ={})
+    K = c.camera.pinhole()
+    assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px) == (800.0, 790.0, 161.5, 128.0, 320)
+    m = c.camera.camera_mount()
+    assert m.gimballed and m.lever_arm_frd_m == (0.1, 0.0, 0.05)
+    q = quat_from_euler(0.0, math.radians(-10.0), 0.0)
+    assert max(abs(a - b) for a, b in zip(m.q_body_from_mount, q)) < ATOL_Q
+    assert c.pose.buffer_config().att_max_gap_us == 40_500
+    o = c.pose.geodetic_origin()
+    assert (o.lat_deg, o.lon_deg, o.alt_m) == (32.0, 118.8, 12.0)
+    assert c.estimator.noise_model().attitude_white_sigma_rad == pytest.approx(math.radians(0.5), abs=ATOL_DEG_AS_RAD)
+
+
+def test_empty_file_and_empty_sections_mean_defaults(tmp_path):
+    assert config_to_dict(load_config(write(tmp_path, ""), environ={})) == config_to_dict(OnboardConfig())
+    assert config_to_dict(load_config(write(tmp_path, "mavlink:\nimaging:\n"), environ={})) == config_to_dict(OnboardConfig())
+
+
+# --------------------------------------------------------------------------- errors
+
+
+BAD = [
+    # (yaml text, field path, fragment of "expected ...", fragment of "got ...", hint or None)
+    ("mavlnk: {}", "mavlnk", "a key of the document", "unknown key 'mavlnk'", "did you mean 'mavlink'?"),
+    ("mavlink: {conection: udpin:1.2.3.4:5}", "mavlink.conection", "a key of mavlink", "unknown key", "did you mean 'connection'?"),
+    ("mavlink: {attitude_rate_hz: -1}", "mavlink.attitude_rate_hz", "a number in (0, 1000]", "-1", None),
+    ("mavlink: {attitude_rate_hz: true}", "mavlink.attitude_rate_hz", "a number", "true", None),
+    ("mavlink: {connection: 'udpin:nohost'}", "mavlink.connection", "a connection like", "'udpin:nohost'", None),
+    ("mavlink: {heartbeat_interval_s: 5, heartbeat_timeout_s: 2}", "mavlink.heartbeat_timeout_s", "> mavlink.heartbeat_interval_s", "2", None),
+    ("mavlink: {poll_rate_hz: 50}", "mavlink.poll_rate_hz", "[100, 10000]", "50", None),
+    ("mavlink: {autopilot_sysid: 256}", "mavlink.autopilot_sysid", "an integer in [1, 255] or null", "256", None),
+    ("zenoh: {connect: [bogus]}", "zenoh.connect[0]", "<protocol>/<address>", "'bogus'", None),
+    ("zenoh: {listen: 7}", "zenoh.listen", "a list of strings", "7", None),
+    ("camera: {intrinsics: {width_px: 640.0}}", "camera.intrinsics.width_px", "an integer", "640.0", None),
+    ("camera: {intrinsics: {cx_px: 900}}", "camera.intrinsics.cx_px", "inside the image", "900", None),
+    ("camera: {intrinsics: {distortion: [0, 0, 0]}}", "camera.intrinsics.distortion", "a list of 5 finite numbers", "[0, 0, 0]", None),
+    ("camera: {intrinsics: {distortion: [0, 0, .nan, 0, 0]}}", "camera.intrinsics.distortion[2]", "a finite number", "nan", None),
+    ("camera: {mount: {lever_arm_frd_m: [1, 2]}}", "camera.mount.lever_arm_frd_m", "a list of 3 finite numbers", "[1, 2]", None),
+    ("camera: {mount: {gimballed: 'yes'}}", "camera.mount.gimballed", "true or false", "'yes'", None),
+    ("camera: {lens: {}}", "camera.lens", "a key of camera", "unknown key 'lens'", None),
+    ("imaging: {min_area_px: 0}", "imaging.min_area_px", ">= 1", "0", None),
+    ("imaging: {min_areapx: 3}", "imaging.min_areapx", "a key of imaging", "unknown key", "did you mean 'min_area_px'?"),
+    ("imaging: {mean_kernel_px: 4}", "imaging.mean_kernel_px", "odd", "4", None),
+    ("imaging: {threshold_high_sigma: 1.0}", "imaging.threshold_high_sigma", ">= threshold_low_sigma", "1.0", None),
+    ("estimator: {window_s: 0}", "estimator.window_s", "a number in (0, 600]", "0", None),
+    ("estimator: {sliding: {windw: 3}}", "estimator.sliding.windw", "a SlidingConfig field", "unknown key", None),
+    ("pose: {position_interp: hermit}", "pose.position_interp", "one of hermite, linear", "'hermit'", "did you mean 'hermite'?"),
+    ("pose: {attitude_max_gap_ms: 9000}", "pose.attitude_max_gap_ms", "<= pose.window_s", "9000", None),
+    ("pose: {origin: {lat_deg: 91, lon_deg: 0}}", "pose.origin.lat_deg", "[-90, 90]", "91", None),
+    ("pose: {origin: [1, 2]}", "pose.origin", "a mapping", "[1, 2]", None),
+    ("output: {tracking_geo_status_hz: -5}", "output.tracking_geo_status_hz", "[0, 100]", "-5", None),
+    ("logging: {level: info}", "logging.level", "one of DEBUG, INFO", "'info'", "did you mean 'INFO'?"),
+    ("vehicle: 'uav 1'", "vehicle", "one zenoh key chunk", "'uav 1'", None),
+    ("- a\n- b", "(document)", "a mapping of sections", "['a', 'b']", None),
+    ("vehicle: a\nvehicle: b\n", "line 2, column 1", "valid YAML", "duplicate key 'vehicle'", None),
+    ("mavlink: [1, 2\n", "line 2, column 1", "valid YAML", "expected ',' or ']'", None),
+]
+
+
+@pytest.mark.parametrize("text, path, expected, got, hint", BAD, ids=[b[1] + ":" + b[3][:12] for b in BAD])
+def test_bad_file_gives_one_line_naming_file_field_and_expectation(tmp_path, text, path, expected, got, hint):
+    p = write(tmp_path, text)
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(p, environ={})
+    msg = str(ei.value)
+    assert ONE_LINE.match(msg), msg
+    assert msg.startswith(f"{p}: {path}: expected "), msg
+    assert expected in ei.value.expected, msg
+    assert got in ei.value.got, msg
+    if hint:
+        assert msg.endswith(hint), msg
+    assert ei.value.exit_code == 2 and isinstance(ei.value, ConfigError)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(OnboardConfigError, match=r"nope\.yaml: \(file\): expected an existing file, got no such file$"):
+        load_config(tmp_path / "nope.yaml", environ={})
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.recursive(
+    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | st.text(max_size=8),
+    lambda kids: st.lists(kids, max_size=3) | st.dictionaries(
+        st.sampled_from(["vehicle", "mavlink", "zenoh", "camera", "intrinsics", "mount", "imaging", "pose", "origin",
+                         "connection", "fx_px", "width_px", "min_area_px", "window_s", "level", "x"]), kids, max_size=4),
+    max_leaves=12,
+))
+def test_any_document_either_builds_or_fails_with_one_config_line(doc):
+    try:
+        cfg = build_config(doc, "fuzz.yaml")
+    except OnboardConfigError as exc:
+        assert ONE_LINE.match(str(exc)) and str(exc).startswith("fuzz.yaml: ")
+    else:
+        assert isinstance(cfg, OnboardConfig)
+
+
+# --------------------------------------------------------------------------- overrides
+
+
+def test_environment_overrides_file_and_cli_overrides_environment(tmp_path):
+    p = write(tmp_path, "vehicle: fromfile\nmavlink: {connection: 'udpin:0.0.0.0:1000', attitude_rate_hz: 20}\n")
+    env = {"IRTRACK_MAVLINK_CONNECTION": "udpin:127.0.0.1:2000", "IRTRACK_VEHICLE": "fromenv",
+           "IRTRACK_CAMERA_INTRINSICS_FX_PX": "500", "IRTRACK_ZENOH_CONNECT": "[tcp/10.0.0.2:7447]",
+           "IRTRACK_HEALTH_FILE": "/run/alive", "IRTRACK_SOMETHING_ELSE": "ignored", "PATH": os.environ.get("PATH", "")}
+    c = load_config(p, {"vehicle": ("fromcli", "--vehicle")}, environ=env)
+    assert c.vehicle == "fromcli"
+    assert c.mavlink.connection == "udpin:127.0.0.1:2000"
+    assert c.mavlink.attitude_rate_hz == 20.0  # the file's, untouched by env
+    assert c.camera.intrinsics.fx_px == 500.0 and c.camera.intrinsics.fy_px == pytest.approx(764.70588, rel=1e-6)
+    assert c.zenoh.connect == ("tcp/10.0.0.2:7447",)
+    assert c.output.health_file == "/run/alive"
+
+
+def test_bad_environment_value_names_the_variable():
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(None, environ={"IRTRACK_MAVLINK_ATTITUDE_RATE_HZ": "-3"})
+    assert str(ei.value) == "env IRTRACK_MAVLINK_ATTITUDE_RATE_HZ: mavlink.attitude_rate_hz: expected a number in (0, 1000], got -3"
+
+
+def test_unknown_variable_of_a_known_section_is_an_error_with_a_hint():
+    with pytest.raises(OnboardConfigError, match=r"did you mean 'IRTRACK_MAVLINK_CONNECTION'\?$"):
+        env_overrides({"IRTRACK_MAVLINK_CONECTION": "x"})
+
+
+def test_cli_error_names_the_option():
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(None, {"zenoh.listen": (["nope"], "--zenoh-listen")}, environ={})
+    assert str(ei.value).startswith("--zenoh-listen: zenoh.listen[0]: expected a zenoh endpoint")
+
+
+def test_set_option_parses_yaml_values_and_refuses_unknown_paths():
+    assert parse_set_option("estimator.window_s=8") == ("estimator.window_s", 8)
+    assert parse_set_option("zenoh.connect=[tcp/1.2.3.4:7447]") == ("zenoh.connect", ["tcp/1.2.3.4:7447"])
+    assert parse_set_option("pose.origin=null") == ("pose.origin", None)
+    with pytest.raises(OnboardConfigError, match="did you mean 'estimator.window_s'"):
+        parse_set_option("estimator.windw_s=3")
+    with pytest.raises(OnboardConfigError, match="FIELD.PATH=VALUE"):
+        parse_set_option("estimator.window_s")
+
+
+@pytest.mark.timeout(60)
+def test_daemon_exits_2_with_one_line_on_a_bad_config(tmp_path):
+    p = write(tmp_path, "mavlink:\n  attitude_rate_hz: fast\n")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
+    proc = subprocess.run([sys.executable, "-m", "onboard", "--config", p], capture_output=True, text=True,
+                          timeout=60, env=env, cwd=REPO)
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert lines == [f"{p}: mavlink.attitude_rate_hz: expected a number in (0, 1000], got 'fast'"]
+    assert proc.stdout == ""

@@ -1,0 +1,493 @@
+"""FramePipeline in lockstep (no sockets, no threads): synthetic frames + poses -> Track, every refusal counted.
+
+Also the pure pieces of onboard.track: the Track noun, irtrack.track/1 JSON, the MAVLink #275/#276
+mapping and the status builder.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from bench.onboard import SyntheticScene
+from onboard.config import OnboardConfig, build_config
+from onboard.errors import InputError
+from onboard.estimation.sliding import TrackEstimate
+from onboard.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
+from onboard.irframe import HEADER, MAGIC, IrFrame, encode_irframe
+from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+from onboard.pose import PoseBuffer, RejectCounter
+from onboard.track import (
+    STATUS_SCHEMA,
+    TRACK_SCHEMA,
+    RollingStats,
+    Track,
+    build_status,
+    geo_status_fields,
+    image_status_fields,
+    track_from_json,
+    track_to_bytes,
+    track_to_json,
+)
+
+CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
+GEO_TOL_DEG = 1e-9  # ~0.1 mm: the same conversion both ways
+NED_TOL_M = 1e-6
+RECON_TOL_M = 3.0  # real estimator, 0.3 px pixel noise assumed, ~160 m range, a few seconds of orbit
+REQUIRED_KEYS = {"schema", "vehicle", "track_id", "time_boot_us", "state", "u_px", "v_px", "bbox", "lat_deg",
+                 "lon_deg", "alt_m", "ned_m", "origin", "vel_ned_mps", "sigma_ned_m", "range_m", "observable",
+                 "window_frames"}
+POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m", "ned_m", "vel_ned_mps", "sigma_ned_m", "range_m")
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+class FakeEstimator:
+    """Records calls; after ``ready_after`` adds returns the scene's true target with a fixed covariance."""
+
+    def __init__(self, scene: SyntheticScene, ready_after: int = 10, observable: bool = True, fail: bool = False):
+        self.scene = scene
+        self.ready_after = ready_after
+        self.observable = observable
+        self.fail = fail
+        self.calls: list[tuple[str, float]] = []
+        self.n = 0
+
+    def _estimate(self, t_s: float, p_cam=None):
+        if self.n < self.ready_after:
+            return None
+        ts = t_s - self.scene.boot_us0 / 1e6
+        p, v = self.scene.target(ts)
+        cam = self.scene.observer(ts)[0] if p_cam is None else np.asarray(p_cam)
+        P = np.diag([4.0, 9.0, 1.0])
+        return TrackEstimate(t_s, p, v, P, np.diag([0.25, 0.25, 0.04]), self.observable,
+                             float(np.linalg.norm(p - cam)), 0.01, self.n, "cv")
+
+    def add(self, t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        self.calls.append(("add", t_s))
+        if self.fail:
+            raise RuntimeError("boom")
+        self.n += 1
+        return self._estimate(t_s, p_cam_ned_m)
+
+    def predict(self, t_s, p_cam_ned_m=None):
+        self.calls.append(("predict", t_s))
+        return self._estimate(t_s, p_cam_ned_m)
+
+    def reset(self):
+        self.calls.append(("reset", math.nan))
+        self.n = 0
+
+
+class Rig:
+    """Scene + pose buffer fed just ahead of each frame + pipeline."""
+
+    def __init__(self, estimator="fake", config: OnboardConfig | None = None, **fake_kw):
+        self.scene = SyntheticScene()
+        self.config = config or OnboardConfig()
+        self.counter = RejectCounter(log_interval_s=60.0)
+        self.pose = PoseBuffer(mount=self.scene.mount, config=self.config.pose.buffer_config(),
+                               origin=self.scene.origin, counter=self.counter)
+        if estimator == "fake":
+            self.est = FakeEstimator(self.scene, **fake_kw)
+        elif estimator == "real":
+            self.est = make_estimator(self.config)
+        else:
+            self.est = None
+        self.pipe = FramePipeline(self.config, self.pose, make_tracker(self.config), self.est, counter=self.counter)
+        self.fed_us = None
+
+    def feed_until(self, t_us: int, skip=None) -> None:
+        start = self.scene.t_us(0) - 100_000 if self.fed_us is None else self.fed_us + 1
+        if t_us < start:
+            return
+        for t, p, v, q in self.scene.telemetry(start, t_us, 50.0):
+            if skip is None or not skip(t):
+                self.pose.add_attitude(t, q)
+                if (t // 20_000) % 2 == 0:  # position at 25 Hz
+                    self.pose.add_position_ned(t, p, v)
+        self.fed_us = t_us
+
+    def step(self, k: int, lead_us: int = 45_000, **frame_kw) -> Track:
+        self.feed_until(self.scene.t_us(k) + lead_us)
+        return self.pipe.process(self.scene.frame(k, **frame_kw), 0)
+
+    def run(self, n: int, start: int = 0) -> list[Track]:
+        return [self.step(k) for k in range(start, start + n)]
+
+    def truth_uv(self, k: int) -> np.ndarray:
+        return self.scene.uv((self.scene.t_us(k) - self.scene.boot_us0) / 1e6)
+
+
+# --------------------------------------------------------------------------- lockstep: fields, units, nulls
+
+
+def test_lockstep_tracks_have_image_fields_and_nulls_before_an_estimate():
+    rig = Rig(ready_after=10)
+    tracks = rig.run(20)
+    for k, tr in enumerate(tracks):
+        j = track_to_json(tr)
+        assert REQUIRED_KEYS <= set(j) and j["schema"] == TRACK_SCHEMA
+        assert j["vehicle"] == "uav1" and j["seq"] == k and j["time_boot_us"] == rig.scene.t_us(k)
+        assert j["state"] == "tracking" and j["track_id"] == 1 and j["measurement_valid"] and j["pose_valid"]
+        assert np.hypot(j["u_px"] - rig.truth_uv(k)[0], j["v_px"] - rig.truth_uv(k)[1]) < CENTROID_TOL_PX
+        x, y, w, h = j["bbox"]
+        assert x <= j["u_px"] <= x + w and y <= j["v_px"] <= y + h
+        assert j["origin"] == {"lat_deg": 32.0, "lon_deg": 118.8, "alt_m": 0.0}
+        if k < 9:  # the fake needs 10 observations
+            assert all(j[key] is None for key in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 0
+        else:
+            assert all(j[key] is not None for key in POSITION_KEYS)
+    assert [c[0] for c in rig.est.calls] == ["add"] * 20
+    assert rig.est.calls[3][1] == rig.scene.t_us(3) / 1e6  # estimator time = capture time on the boot clock, s
+    assert rig.counter.total == 0
+
+
+def test_position_fields_are_wgs84_of_the_ned_estimate_with_one_sigma():
+    rig = Rig(ready_after=1)
+    tr = rig.run(3)[-1]
+    j = json.loads(track_to_bytes(tr))
+    ts = (rig.scene.t_us(2) - rig.scene.boot_us0) / 1e6
+    p, v = rig.scene.target(ts)
+    lat, lon, alt = geodetic_from_ned(p, rig.scene.origin)
+    assert abs(j["lat_deg"] - float(lat)) < GEO_TOL_DEG and abs(j["lon_deg"] - float(lon)) < GEO_TOL_DEG
+    assert j["alt_m"] == pytest.approx(85.0, abs=0.01)  # 85 m up = NED d -85 about a 0 m origin
+    assert np.allclose(j["ned_m"], p, atol=NED_TOL_M)
+    back = ned_from_geodetic(j["lat_deg"], j["lon_deg"], j["alt_m"], rig.scene.origin)
+    assert np.allclose(back, j["ned_m"], atol=1e-3)
+    assert j["vel_ned_mps"] == [5.0, 0.0, 0.0]
+    assert j["sigma_ned_m"] == [2.0, 3.0, 1.0]  # sqrt of the diagonal of diag(4, 9, 1)
+    assert j["sigma_vel_ned_mps"] == [0.5, 0.5, 0.2]
+    assert j["cov_ned_m2"] == [[4.0, 0.0, 0.0], [0.0, 9.0, 0.0], [0.0, 0.0, 1.0]]
+    cam = rig.scene.camera(ts)[0]
+    assert j["range_m"] == pytest.approx(np.linalg.norm(p - cam), rel=1e-9)
+    assert j["observable"] is True and j["window_frames"] == 3 and j["model"] == "cv"
+
+
+def test_unobservable_estimate_is_null_unless_configured():
+    rig = Rig(ready_after=1, observable=False)
+    j = track_to_json(rig.run(3)[-1])
+    assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
+    cfg = build_config({"output": {"unobservable_positions": True}})
+    rig = Rig(config=cfg, ready_after=1, observable=False)
+    j = track_to_json(rig.run(3)[-1])
+    assert j["ned_m"] is not None and j["observable"] is False
+
+
+def test_configured_origin_overrides_the_pose_origin():
+    rig = Rig(ready_after=1)
+    other = GeodeticOrigin(32.001, 118.8, 10.0)
+    rig.pipe.origin = other
+    j = track_to_json(rig.run(2)[-1])
+    assert j["origin"] == {"lat_deg": 32.001, "lon_deg": 118.8, "alt_m": 10.0}
+    lat, lon, alt = geodetic_from_ned(j["ned_m"], other)
+    assert abs(j["lat_deg"] - float(lat)) < GEO_TOL_DEG and j["alt_m"] == pytest.approx(float(alt), abs=1e-6)
+
+
+@pytest.mark.timeout(120)
+def test_real_estimator_reconstructs_the_target_in_lockstep():
+    cfg = build_config({"estimator": {"sliding": {"reselect_period_s": 2.0}}})
+    rig = Rig(estimator="real", config=cfg)
+    tracks = rig.run(180)
+    with_pos = [t for t in tracks if t.has_position]
+    assert with_pos, "no observable estimate in 6 s of a circling observer"
+    last = tracks[-1]
+    assert last.has_position and last.observable
+    ts = (last.time_boot_us - rig.scene.boot_us0) / 1e6
+    err = np.linalg.norm(np.asarray(last.p_ned_m) - rig.scene.target(ts)[0])
+    assert err < RECON_TOL_M, f"3-D error {err:.2f} m"
+    assert err < 5 * math.sqrt(np.trace(last.cov_p_ned_m2)) + 0.5  # the sigma is not absurdly optimistic
+    assert last.window_frames > 100 and last.range_m == pytest.approx(np.linalg.norm(
+        rig.scene.target(ts)[0] - rig.scene.camera(ts)[0]), rel=0.03)
+    assert rig.counter.total == 0
+
+
+# --------------------------------------------------------------------------- refused frames, each counted
+
+
+def _good(rig: Rig, k: int) -> bytes:
+    rig.feed_until(rig.scene.t_us(k) + 45_000)
+    return rig.scene.payload(k)
+
+
+def _with_header(payload: bytes, **changes) -> bytes:
+    magic, version, enc, w, h, seq, t = HEADER.unpack_from(payload, 0)
+    vals = dict(magic=magic, version=version, enc=enc, w=w, h=h, seq=seq, t=t)
+    vals.update(changes)
+    return HEADER.pack(vals["magic"], vals["version"], vals["enc"], vals["w"], vals["h"], vals["seq"], vals["t"]) + payload[HEADER.size:]
+
+
+BAD_PAYLOADS = {
+    "random_bytes": (lambda p: np.random.default_rng(1).integers(0, 256, 5000, dtype=np.uint8).tobytes(), "magic"),
+    "short": (lambda p: p[:20], "short"),
+    "bad_magic": (lambda p: b"XXXX" + p[4:], "magic"),
+    "bad_version": (lambda p: _with_header(p, version=2), "version"),
+    "bad_encoding": (lambda p: _with_header(p, enc=9), "encoding"),
+    "zero_width": (lambda p: _with_header(p, w=0), "dims"),
+    "wrong_size_truncated": (lambda p: p[:-640], "size"),
+    "wrong_size_header": (lambda p: _with_header(p, h=511), "size"),
+    "too_large_100x": (lambda p: p + bytes(len(p) * 99), "too_large"),
+}
+
+
+@pytest.mark.parametrize("name", list(BAD_PAYLOADS))
+def test_bad_payload_is_refused_counted_once_and_survived(name):
+    make, reason = BAD_PAYLOADS[name]
+    rig = Rig(ready_after=1)
+    rig.pipe.process_payload(_good(rig, 0))
+    with pytest.raises(FrameRejected) as ei:
+        rig.pipe.process_payload(make(_good(rig, 1)))
+    assert ei.value.reason == reason
+    assert rig.counter.counts == {f"frame_{reason}": 1}
+    tr = rig.pipe.process_payload(_good(rig, 2))  # the stream goes on
+    assert tr.seq == 2 and tr.state == "tracking" and rig.pipe.frames_processed == 2 and rig.pipe.frames_rejected == 1
+
+
+def test_frame_of_another_size_than_the_camera_is_refused():
+    rig = Rig()
+    small = IrFrame(seq=0, time_boot_us=rig.scene.t_us(0), pixels=np.zeros((256, 320), np.uint8))
+    with pytest.raises(FrameRejected, match="320 x 256"):
+        rig.pipe.process(small)
+    assert rig.counter.counts == {"frame_dims_mismatch": 1}
+
+
+def test_duplicate_and_out_of_order_frames_are_refused():
+    rig = Rig(ready_after=100)
+    for k in range(4):
+        rig.step(k)
+    with pytest.raises(FrameRejected) as ei:
+        rig.step(3)
+    assert ei.value.reason == "duplicate"
+    with pytest.raises(FrameRejected) as ei:
+        rig.step(1)
+    assert ei.value.reason == "out_of_order"
+    assert rig.step(4).seq == 4
+    assert rig.counter.counts == {"frame_duplicate": 1, "frame_out_of_order": 1}
+    assert [c[0] for c in rig.est.calls] == ["add"] * 5  # refused frames never reach the estimator
+
+
+def test_reboot_time_going_back_is_accepted_and_restarts_the_estimator():
+    rig = Rig(ready_after=100)
+    rig.run(3)
+    rebooted = rig.scene.boot_us0 - 15_000_000  # 15 s earlier on the boot clock, seq moves on
+    tr = rig.pipe.process(IrFrame(seq=3, time_boot_us=rebooted, pixels=rig.scene.image(3)))
+    assert tr.time_boot_us == rebooted and tr.pose_valid is False  # no telemetry of the new boot yet
+    assert rig.counter["frame_time_reset"] == 1
+    assert ("reset", math.nan) in [(c[0], math.nan) for c in rig.est.calls]
+
+
+def test_sender_restart_with_sequence_going_back_is_accepted():
+    rig = Rig(ready_after=100)
+    rig.run(5)
+    tr = rig.step(5, seq=0)
+    assert tr.seq == 0 and rig.counter.counts == {"frame_sequence_reset": 1}
+
+
+def test_a_stream_of_old_frames_is_taken_as_a_restart_after_n_in_a_row():
+    rig = Rig(ready_after=100)
+    rig.run(10)
+    n = rig.config.input.sequence_restart_count
+    for i in range(n - 1):
+        with pytest.raises(FrameRejected):
+            rig.pipe.process(rig.scene.frame(i))
+    tr = rig.pipe.process(rig.scene.frame(n - 1))
+    assert tr.seq == n - 1
+    assert rig.counter["frame_out_of_order"] == n - 1 and rig.counter["frame_stream_restart"] == 1
+
+
+# --------------------------------------------------------------------------- bad telemetry: counted, frames survive
+
+
+def test_nan_and_zero_quaternions_and_gps_dropout_are_counted_and_frames_keep_their_pose():
+    rig = Rig(ready_after=100)
+    rig.run(3)
+    t = rig.fed_us
+    assert not rig.pose.add_attitude(t + 1000, (math.nan, 0.0, 0.0, 1.0))
+    assert not rig.pose.add_attitude(t + 2000, (0.0, 0.0, 0.0, 0.0))
+    assert not rig.pose.add_position(t + 3000, 0.0, 0.0, 50.0)  # GNSS dropout sentinel
+    tracks = rig.run(5, start=3)
+    assert all(tr.pose_valid for tr in tracks)
+    assert {k: v for k, v in rig.counter.counts.items()} == {"attitude_not_finite": 1, "attitude_zero": 1, "position_zero": 1}
+
+
+def test_telemetry_gap_gives_2d_tracks_and_predictions_then_recovers():
+    rig = Rig(ready_after=2)
+    rig.run(5)
+    gap0, gap1 = rig.scene.t_us(5) - 50_000, rig.scene.t_us(20)
+    rig.feed_until(rig.scene.t_us(25), skip=lambda t: gap0 <= t <= gap1)  # 0.55 s without telemetry
+    tracks = [rig.pipe.process(rig.scene.frame(k), 0) for k in range(5, 20)]
+    assert all(tr.state == "tracking" and tr.u_px is not None for tr in tracks)
+    assert not any(tr.pose_valid for tr in tracks)
+    assert rig.counter["pose_attitude_gap"] + rig.counter["pose_position_gap"] == 15
+    kinds = [c[0] for c in rig.est.calls]
+    assert kinds[:5] == ["add"] * 5 and kinds[5:20] == ["predict"] * 15  # no pose: predict, never add
+    after = rig.run(3, start=25)
+    assert all(tr.pose_valid for tr in after) and [c[0] for c in rig.est.calls][-3:] == ["add"] * 3
+
+
+def test_a_lost_target_resets_the_estimator_and_nulls_the_position():
+    rig = Rig(ready_after=2)
+    rig.run(5)
+    lost = [rig.step(k, with_target=False) for k in range(5, 5 + rig.config.imaging.lost_frames + 1)]
+    assert lost[0].state == "coasting" and lost[-1].state in ("lost", "searching")
+    assert lost[-1].track_id is None and not lost[-1].has_position
+    assert "reset" in [c[0] for c in rig.est.calls]
+    back = rig.run(2, start=40)
+    assert back[-1].track_id == 2 and back[-1].state == "tracking"  # a new association, a new id
+
+
+def test_estimator_failure_is_counted_and_never_stops_the_frames():
+    rig = Rig(fail=True)
+    tracks = rig.run(4)
+    assert all(tr.state == "tracking" and not tr.has_position for tr in tracks)
+    assert rig.counter["estimator_error"] == 4
+
+
+def test_pose_wait_hook_is_called_with_the_capture_time_after_imaging():
+    order = []
+    rig = Rig()
+    update = rig.pipe.tracker.update
+    rig.pipe.tracker.update = lambda px: (order.append("imaging"), update(px))[1]
+    rig.pipe.pose_wait = lambda t_us: order.append(("wait", t_us))
+    rig.step(0)
+    assert order == ["imaging", ("wait", rig.scene.t_us(0))]
+    assert len(rig.pipe.pose_wait_ms) == 1 and len(rig.pipe.processing_ms) == 1
+
+
+def test_without_estimator_or_pose_source_the_pipeline_gives_2d_tracks():
+    scene = SyntheticScene()
+    pipe = FramePipeline(OnboardConfig(), None, make_tracker(OnboardConfig()), None)
+    tr = pipe.process(scene.frame(0))
+    assert tr.state == "tracking" and not tr.pose_valid and tr.origin is None and not tr.has_position
+
+
+# --------------------------------------------------------------------------- Track noun and JSON
+
+
+def _track(**kw) -> Track:
+    base = dict(vehicle="uav1", seq=7, time_boot_us=123, state="tracking", track_id=1, measurement_valid=True,
+                u_px=10.5, v_px=20.25, bbox=(5.0, 15.0, 16.0, 16.0), pose_valid=True,
+                origin=GeodeticOrigin(32.0, 118.8, 0.0), lat_deg=32.001, lon_deg=118.801, alt_m=80.0,
+                p_ned_m=(110.0, 95.0, -80.0), v_ned_mps=(3.0, 4.0, 0.0),
+                cov_p_ned_m2=np.diag([4.0, 9.0, 16.0]), cov_v_ned_m2ps2=np.diag([0.01, 0.04, 0.09]),
+                range_m=150.0, range_sigma_ratio=0.02, observable=True, window_frames=90, model="cv")
+    base.update(kw)
+    return Track(**base)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"state": "flying"}, "Track.state"),
+    ({"u_px": None}, "both be set"),
+    ({"u_px": math.nan}, "u_px must be a finite"),
+    ({"track_id": 0}, "track_id"),
+    ({"seq": -1}, "seq"),
+    ({"time_boot_us": 1.5}, "time_boot_us"),
+    ({"lat_deg": None}, "all set or all None"),
+    ({"cov_p_ned_m2": np.eye(2)}, "3 x 3"),
+    ({"cov_p_ned_m2": -np.eye(3)}, "negative variance"),
+    ({"origin": None}, "needs its origin"),
+    ({"bbox": (0, 0, -1, 3)}, "bbox width"),
+    ({"lat_deg": 95.0}, "lat/lon out of range"),
+])
+def test_track_validation_names_the_field(kw, match):
+    with pytest.raises(InputError, match=match):
+        _track(**kw)
+
+
+def test_json_has_no_nan_and_round_trips():
+    tr = _track(range_sigma_ratio=math.inf)
+    text = track_to_bytes(tr)
+    j = json.loads(text)
+    assert j["range_sigma_ratio"] is None  # inf is not JSON: null
+    back = track_from_json(text)
+    assert back.p_ned_m == tr.p_ned_m and np.allclose(back.cov_p_ned_m2, tr.cov_p_ned_m2)
+    assert track_to_json(back)["sigma_vel_ned_mps"] == j["sigma_vel_ned_mps"]
+    with pytest.raises(InputError, match="schema"):
+        track_from_json({**j, "schema": "irtrack.track/2"})
+    with pytest.raises(InputError, match="missing key 'state'"):
+        track_from_json({k: v for k, v in j.items() if k != "state"})
+    with pytest.raises(InputError, match="not JSON"):
+        track_from_json(b"{nope")
+
+
+finite = st.floats(-1e6, 1e6, allow_nan=False)
+
+
+@settings(max_examples=80, deadline=None)
+@given(u=finite, v=finite, n=finite, e=finite, d=finite, s=st.floats(0, 1e3), state=st.sampled_from(["tracking", "coasting"]),
+       seq=st.integers(0, 2**32 - 1), t=st.integers(0, 2**63))
+def test_json_round_trip_any_valid_track(u, v, n, e, d, s, state, seq, t):
+    tr = _track(u_px=u, v_px=v, p_ned_m=(n, e, d), cov_p_ned_m2=np.eye(3) * s, state=state, seq=seq, time_boot_us=t)
+    back = track_from_json(track_to_bytes(tr))
+    j0, j1 = track_to_json(tr), track_to_json(back)
+    assert j0 == j1
+
+
+# --------------------------------------------------------------------------- MAVLink mapping
+
+
+def test_image_status_is_normalised_and_flags_follow_the_state():
+    tr = _track(u_px=320.0, v_px=128.0, bbox=(312.0, 120.0, 16.0, 16.0))
+    f = image_status_fields(tr, 640, 512)
+    assert (f["tracking_status"], f["tracking_mode"]) == (1, 2)  # ACTIVE, RECTANGLE
+    assert (f["point_x"], f["point_y"]) == (0.5, 0.25)
+    assert (f["rec_top_x"], f["rec_top_y"], f["rec_bottom_x"], f["rec_bottom_y"]) == (312 / 640, 120 / 512, 328 / 640, 136 / 512)
+    coast = image_status_fields(_track(state="coasting", measurement_valid=False, bbox=None), 640, 512)
+    assert coast["tracking_status"] == 1 | 8 and coast["tracking_mode"] == 1  # ACTIVE|COASTING, POINT
+    edge = image_status_fields(_track(u_px=-3.0, bbox=(-10.0, 500.0, 20.0, 20.0)), 640, 512)
+    assert edge["point_x"] == 0.0 and edge["rec_bottom_y"] == 1.0  # clipped into [0, 1]
+    idle = image_status_fields(None, 640, 512)
+    assert idle["tracking_status"] == 0 and idle["tracking_mode"] == 0 and math.isnan(idle["point_x"])
+
+
+def test_geo_status_accuracies_are_one_sigma_root_sum_squares():
+    tr = _track()
+    f = geo_status_fields(tr)
+    assert f["h_acc_m"] == pytest.approx(math.sqrt(4 + 9)) and f["v_acc_m"] == pytest.approx(4.0)
+    assert f["vel_acc_mps"] == pytest.approx(math.sqrt(0.01 + 0.04 + 0.09))
+    assert (f["vel_n_mps"], f["vel_e_mps"], f["vel_d_mps"]) == (3.0, 4.0, 0.0)
+    assert f["hdg_rad"] == pytest.approx(math.atan2(4.0, 3.0))
+    # d(atan2(e, n)) = (-e dn + n de) / |v|^2: sigma^2 = (16 * 0.01 + 9 * 0.04) / 625
+    assert f["hdg_acc_rad"] == pytest.approx(math.sqrt((16 * 0.01 + 9 * 0.04) / 625))
+    assert f["dist_m"] == 150.0 and (f["lat_deg"], f["lon_deg"], f["alt_m"]) == (32.001, 118.801, 80.0)
+    slow = geo_status_fields(_track(v_ned_mps=(0.05, 0.0, 0.0)))
+    assert math.isnan(slow["hdg_rad"]) and math.isnan(slow["hdg_acc_rad"])  # speed below 2 sigma: no heading
+    assert geo_status_fields(_track(lat_deg=None, lon_deg=None, alt_m=None, p_ned_m=None, v_ned_mps=None,
+                                    cov_p_ned_m2=None, cov_v_ned_m2ps2=None, range_m=None)) is None
+
+
+# --------------------------------------------------------------------------- status
+
+
+def test_rolling_stats_and_status_document():
+    r = RollingStats(100)
+    for x in range(1, 201):
+        r.add(x)
+    s = r.summary()
+    assert s["n"] == 100 and s["max"] == 200.0 and s["p50"] == pytest.approx(150.5) and s["p99"] == pytest.approx(199.01)
+    assert RollingStats().summary() == {"n": 0, "p50": None, "p99": None, "max": None}
+    st_ = build_status(vehicle="uav1", uptime_s=3.0, frames_in=10, frames_processed=7, frames_dropped=1,
+                       frames_rejected=2, tracks_published=7, processing_ms=s, latency_ms=s, pose_wait_ms=s,
+                       capture_to_track_ms=None, rejected={"frame_magic": 2, "dropped_queue": 1},
+                       link={"state": "connected", "rates_confirmed": (31, 33), "heartbeat_age_s": math.nan},
+                       cpu_share=0.5, pipeline_cpu_share=0.25, last_track=_track(), estimator="x", queue_length=0)
+    text = json.dumps(st_, allow_nan=False)
+    back = json.loads(text)
+    assert back["schema"] == STATUS_SCHEMA
+    assert back["frames"] == {"in": 10, "processed": 7, "dropped": 1, "rejected": 2, "published": 7, "queue_length": 0}
+    assert back["link"] == {"state": "connected", "rates_confirmed": [31, 33], "heartbeat_age_s": None}
+    assert back["track"]["has_position"] is True and back["cpu"]["share"] == 0.5
+    assert back["rejected"] == {"dropped_queue": 1, "frame_magic": 2}
+
+
+def test_encode_of_scene_frames_is_irf1():
+    scene = SyntheticScene()
+    p = scene.payload(3)
+    assert p[:4] == MAGIC and len(p) == 32 + 640 * 512
+    assert encode_irframe(scene.frame(3)) == p
