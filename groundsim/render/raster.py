@@ -30,20 +30,28 @@ Pixel aperture (box) and a Gaussian optics PSF (``blur_sigma_px``), then tempora
 
 How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``python -m bench.render``)
 ----------------------------------------------------------------------------------------------------
-* The background depends only on ``s`` of each pixel's ray, ``s = -(row 3 of R_ned_from_cam) . d_cam``
-  (one outer sum and one product per pixel with precomputed camera-frame rays), then a 1-D look-up
-  table of grey values over ``s`` (``LUT_SIZE`` entries, nearest entry: <= 0.03 px at the horizon).
-  The pixel aperture and the PSF are applied *to the table*: a Gaussian of
-  ``sqrt(blur_sigma_px^2 + 1/12)`` pixels converted to elevation with ``1 / sqrt(fx fy)`` rad per
-  pixel (exact for the 1-D profile at the image centre; the kernel is up to ~25 % too wide, in
-  pixels, at the corners of a 45 deg lens, where pixels subtend less angle).  The table is rebuilt
-  only when the camera height changed by more than ``ALT_REUSE_ABS_M + ALT_REUSE_REL * h``; the
-  background image is reused while the third row of ``R_ned_from_cam`` moved less than
-  ``background_reuse_tol_rad`` (a pure yaw change is an exact reuse).
-* The target is rendered only in the bounding box of its projected body-frame bounding box, with
-  ``supersample x supersample`` stratified rays per pixel (reduced when the box is large), as a
-  *difference* to the background; the difference is blurred over its ROI padded by 3 sigma and
-  added, so the background is never blurred per frame.
+* The background depends only on ``s`` of each pixel's ray, ``s = -(row 3 of R_ned_from_cam) . d_cam``,
+  through a 1-D table of grey values over ``s`` (``LUT_SIZE`` entries, nearest entry: <= 0.025 px
+  at the horizon).  The pixel aperture and the PSF act on the horizon's step through the table:
+  ``Phi(el / sigma_el)`` blends the sky and ground sides, ``sigma_el = sqrt(blur_sigma_px^2 + 1/12)
+  / sqrt(fx fy)`` rad (a Gaussian stand-in for box x PSF, exact in angle at the image centre; at
+  the corners of a 45 deg lens pixels subtend ~20 % less angle, so the edge is that much wider in
+  pixels there).  Smooth parts of sky and ground are not smoothed (they change by far less than a
+  grey level across a pixel).  The table is rebuilt only when the camera height changed by more
+  than ``ALT_REUSE_ABS_M + ALT_REUSE_REL * h``.
+* Per frame, the table is looked up on a 4 x 4 px coarse grid (plus a ring outside the image),
+  upsampled bilinearly (cv2.resize), and looked up per pixel only in the blocks whose interpolation
+  could err by more than ``COARSE_TOL_FS`` of full scale (flags precomputed over the table from
+  its curvature: the horizon band, a few px wide).  Max difference to a per-pixel look-up:
+  0.03 grey in mono8 (``tests/groundsim/test_raster.py``).  The background image is reused while
+  the third row of ``R_ned_from_cam`` moved less than ``background_reuse_tol_rad`` (a pure yaw
+  change is an exact reuse).
+* The target is cast only in the bounding box of its projected body-frame bounding box, with
+  ``supersample x supersample`` stratified rays per pixel (16 x 16 unless the box needs more than
+  ``max_target_rays``), as a *difference* to the background.  PSF and pixel aperture act on the
+  sub-samples in one separable linear map (two small matrix products with ``K = box * Gaussian``
+  weights), so the sub-pixel position of a target thinner than a pixel survives; the result,
+  over the box padded by 3 sigma, is added to the background, which is never blurred per frame.
 * Noise: one bank of standard-normal samples (``noise_bank_frames`` frames long, scaled to grey
   levels) drawn once; each frame reads a contiguous window at a random offset (deterministic from
   ``seed``): no per-frame normal draw.  ``cv2.add(..., dtype=CV_8U/16U)`` fuses the noise addition,
@@ -74,8 +82,6 @@ log = logging.getLogger(__name__)
 
 LUT_SIZE = 32768  # entries of the background table over s = sin(elevation) in [-1, 1]
 _LUT_PAD = 2  # guard entries at each end (float rounding of |s| slightly above 1)
-_FINE_SIZE = 65537  # unsmoothed radiance grid over s, step 3.05e-5 (0.023 px at the horizon)
-_HERMITE_NODES = 9  # Gauss-Hermite nodes of the table smoothing
 ALT_REUSE_ABS_M = 0.5  # the background table is rebuilt when the camera height changed by more than
 ALT_REUSE_REL = 0.01  # ALT_REUSE_ABS_M + ALT_REUSE_REL * height
 COARSE_STEP = 4  # background computed on a 4 x 4 px coarse grid, bilinear upsampling, exact near the horizon
@@ -224,30 +230,24 @@ class IrRenderer:
         self._coarse_ds = st / min(intr.fx_px, intr.fy_px)  # upper bound of the change of s between samples
 
     def _init_sky(self) -> None:
-        """Static parts of the background table: the unsmoothed sky radiance and the smoothing stencil."""
+        """Static parts of the background table: sky radiance at the table's s and the horizon's edge profile."""
         s = self.settings
-        s_f = np.linspace(-1.0, 1.0, _FINE_SIZE)
-        self._s_fine = s_f
-        T_sky = s.sky_horizon_k + (s.sky_zenith_k - s.sky_horizon_k) * np.abs(s_f)
+        s_k = np.linspace(-1.0, 1.0, LUT_SIZE)
+        self._lut_s = s_k
+        T_sky = s.sky_horizon_k + (s.sky_zenith_k - s.sky_horizon_k) * np.abs(s_k)
         # L_sky(|s|): sky above, mirrored sky below; Planck on 257 temperatures, then linear in T
         # (0.18 K steps for the default 45 K span: interpolation error ~ L'' dT^2 / 8 < 1e-3 grey)
         T_lo = min(s.sky_horizon_k, s.sky_zenith_k)
         T_grid = np.linspace(T_lo, max(s.sky_horizon_k, s.sky_zenith_k, T_lo + 1.0), 257)
         self._L_sky_abs = np.interp(T_sky, T_grid, band_radiance(T_grid, s.band_um))
+        self._L_sky_horizon = float(band_radiance(s.sky_horizon_k, s.band_um))
         self._ground = (s.ground_emissivity * float(band_radiance(s.ground_temperature_k, s.band_um)),
                         1.0 - s.ground_emissivity)
-        # smoothing: Gaussian in elevation of sigma_eff px -> sample the fine grid at sin(el_k + sig x_m)
+        # the horizon seen through the pixel aperture and the PSF: a Gaussian of sigma_eff px in
+        # elevation applied to the sky/ground step -> weight Phi(el / sigma_el) of the sky side
         sigma_px = math.sqrt(s.blur_sigma_px**2 + 1.0 / 12.0)
         sigma_el = sigma_px / math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
-        x_m, w_m = np.polynomial.hermite_e.hermegauss(_HERMITE_NODES)
-        w_m = w_m / w_m.sum()
-        s_k = np.linspace(-1.0, 1.0, LUT_SIZE)
-        el = np.arcsin(s_k)[:, None] + sigma_el * x_m[None, :]
-        pos = (np.sin(el) + 1.0) * (0.5 * (_FINE_SIZE - 1))
-        i0 = np.clip(np.floor(pos).astype(np.int64), 0, _FINE_SIZE - 2)
-        self._smooth_i0 = i0
-        self._smooth_a = np.clip(pos - i0, 0.0, 1.0)
-        self._smooth_w = w_m
+        self._sky_weight = ndtr(np.arcsin(s_k) / sigma_el)
 
     def _init_target(self) -> None:
         s = self.settings
@@ -285,18 +285,25 @@ class IrRenderer:
     # ------------------------------------------------------------------ background
 
     def background_table(self, height_m: float) -> np.ndarray:
-        """Smoothed grey values (float32, ``LUT_SIZE`` + guards) over s = sin(elevation) for a camera ``height_m`` above ground."""
+        """Grey values (float32, ``LUT_SIZE`` + guards) over s = sin(elevation) for a camera ``height_m`` above ground.
+
+        ``Phi(el / sigma_el) L_sky(s) + (1 - Phi) L_ground(s)``, each side continued across the
+        horizon by its value there: the step smoothed exactly, the smooth parts (which change by
+        far less than a grey level over a pixel) unsmoothed.
+        """
         s = self.settings
-        s_f = self._s_fine
+        s_k = self._lut_s
         h = max(float(height_m), 0.0)
-        with np.errstate(divide="ignore"):
-            range_km = np.where(s_f < 0.0, h / np.maximum(-s_f, 1e-300), np.inf) * 1e-3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            range_km = np.where(s_k < 0.0, h / np.maximum(-s_k, 1e-300), 0.0) * 1e-3
         tau = np.exp(-s.extinction_per_km * range_km)
         L_ground = tau * (self._ground[0] + self._ground[1] * self._L_sky_abs) + (1.0 - tau) * self._L_air
-        L = np.where(s_f >= 0.0, self._L_sky_abs, L_ground)
-        G = (L - self._L_min) * self._grey_per_L
-        i0, a = self._smooth_i0, self._smooth_a
-        table = ((G[i0] * (1.0 - a) + G[i0 + 1] * a) @ self._smooth_w).astype(np.float32)
+        # ground just below the horizon: all air unless the camera is on the ground (h = 0: no air)
+        edge = self._L_air if (h > 0.0 and s.extinction_per_km > 0.0) else self._ground[0] + self._ground[1] * self._L_sky_horizon
+        L_ground = np.where(s_k < 0.0, L_ground, edge)
+        L_sky = np.where(s_k >= 0.0, self._L_sky_abs, self._L_sky_horizon)
+        w = self._sky_weight
+        table = ((w * L_sky + (1.0 - w) * L_ground - self._L_min) * self._grey_per_L).astype(np.float32)
         return np.concatenate([np.full(_LUT_PAD, table[0]), table, np.full(_LUT_PAD, table[-1])]).astype(np.float32)
 
     def _background(self, R_nc: np.ndarray, height_m: float) -> tuple[np.ndarray, bool, bool]:
