@@ -56,7 +56,7 @@ import numpy as np
 
 from groundsim.scenario import Scenario
 from groundsim.truth import TruthRow, TruthWriter, truth_row
-from onboard.errors import ConfigError, IrtrackError
+from onboard.errors import ConfigError, InputError, IrtrackError
 from onboard.frames import (
     camera_pose_ned,
     euler_from_quat,
@@ -146,7 +146,8 @@ class RunConfig:
     ``duration_s`` None = the scenario's; otherwise in (0, scenario.duration_s].  ``run_seed``
     >= 0 selects the realisation (see the module docstring).  ``zenoh`` is an
     :class:`onboard.zenoh_session.ZenohSettings` (None: no endpoints, scouting off).
-    ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic.
+    ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic (``PACED_CHUNK_S`` or
+    ``MAX_MODE_CHUNK_S``).
     """
 
     scenario: Scenario
@@ -188,6 +189,11 @@ class RunConfig:
             raise ConfigError(f"RunConfig.flight_chunk_s must be > 0 s or None, got {c!r}")
         if self.truth_path is not None:
             object.__setattr__(self, "truth_path", Path(self.truth_path))
+        if self.zenoh is not None:
+            from onboard.zenoh_session import ZenohSettings
+
+            if not isinstance(self.zenoh, ZenohSettings):
+                raise ConfigError(f"RunConfig.zenoh must be a ZenohSettings or None, got {type(self.zenoh).__name__}")
 
 
 # --------------------------------------------------------------------------- clock, pacing, jitter
@@ -425,6 +431,22 @@ class PairFlight:
         )
 
 
+class _Limited:
+    """Counts one kind of error and logs it at most every _ERROR_LOG_EVERY_S (never raises)."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self.count = 0
+        self._last = -math.inf
+
+    def __call__(self, what: str, exc: BaseException) -> None:
+        self.count += 1
+        now = time.monotonic()
+        if now - self._last >= _ERROR_LOG_EVERY_S:
+            self._last = now
+            log.warning("%s: %s (%d %s so far)", what, exc, self.count, self.kind)
+
+
 # --------------------------------------------------------------------------- the simulation core
 
 
@@ -473,6 +495,7 @@ class SimCore:
         self.gimballed = self.flight.gimballed
         self._renderer = None
         self.render_s = 0.0  # wall seconds spent rendering
+        self.render_errors = _Limited("render_error")
 
     def time_boot_us(self, i: int) -> int:
         return self.boot_start_us + round(float(self.times_s[i]) * 1e6)
@@ -512,8 +535,11 @@ class SimCore:
         if self.render_enabled:
             renderer = self.renderer()
             t0 = time.perf_counter()
-            pixels = renderer.render(c.cam_p_ned_m[j], rotmat_from_quat(c.cam_q_ned_from_cam[j]), c.tgt_p_ned_m[j],
-                                     rotmat_from_quat(c.tgt_q_ned_from_body[j]), GROUND_D_M)
+            try:
+                pixels = renderer.render(c.cam_p_ned_m[j], rotmat_from_quat(c.cam_q_ned_from_cam[j]), c.tgt_p_ned_m[j],
+                                         rotmat_from_quat(c.tgt_q_ned_from_body[j]), GROUND_D_M)
+            except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept
+                self.render_errors(f"frame {k}: render failed", exc)
             self.render_s += time.perf_counter() - t0
         row = truth_row(k, t_us, float(c.t_s[j]), self.scenario.origin, self.scenario.camera.intrinsics,
                         c.tgt_p_ned_m[j], c.tgt_v_ned_mps[j], c.obs_p_ned_m[j], c.cam_p_ned_m[j],
@@ -555,29 +581,15 @@ class RunReport:
         return s
 
 
-class _Limited:
-    """Counts errors by kind and logs each kind at most every _ERROR_LOG_EVERY_S."""
-
-    def __init__(self) -> None:
-        self.counts: dict[str, int] = {}
-        self._last: dict[str, float] = {}
-
-    def __call__(self, kind: str, exc: BaseException) -> None:
-        self.counts[kind] = self.counts.get(kind, 0) + 1
-        now = time.monotonic()
-        if now - self._last.get(kind, -math.inf) >= _ERROR_LOG_EVERY_S:
-            self._last[kind] = now
-            log.warning("%s (%d so far): %s", kind, self.counts[kind], exc)
-
-
 def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, truth: TruthWriter | None = None,
              stop: threading.Event | None = None, clock=None) -> RunReport:
     """Drive ``core`` tick by tick into the sinks (any may be None); see the module docstring.
 
     ``mavlink``: has ``update_state(**state)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
     ``publisher``: has ``publish(IrFrame)`` (a FramePublisher); ``truth``: a TruthWriter.
-    Per-event errors from the sinks (IrtrackError, zenoh errors) are counted and logged, never
-    raised; a flight failure (FlightError) ends the run by raising.
+    Per-event errors (a sink's IrtrackError or zenoh error, a frame the renderer refuses) are
+    counted in ``RunReport.errors`` and logged at most every 10 s, never raised; a flight failure
+    (FlightError) or a truth file that cannot be written ends the run by raising.
     """
     from onboard.irframe import IrFrame
 
@@ -593,7 +605,7 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
     n_frames = core.frame_count
     pacer = Pacer(rate.factor, clock)
     jitter = JitterStats(1.0 / core.frame_rate_hz / (rate.factor or 1.0)) if rate.paced else None
-    errors = _Limited()
+    mavlink_errors, publish_errors = _Limited("mavlink_error"), _Limited("publish_error")
     acc = {"publish": 0.0, "mavlink": 0.0, "truth": 0.0}
     published = 0
 
@@ -622,7 +634,7 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
                 mavlink.update_state(**core.vehicle_state(i))
                 mavlink.poll(core.time_boot_us(i))
             except sink_errors as exc:
-                errors("mavlink_error", exc)
+                mavlink_errors(f"tick {i}: mavlink", exc)
             acc["mavlink"] += clock.now_s() - t0
         if r == 0:
             frame = pending
@@ -634,7 +646,7 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
                     publisher.publish(IrFrame(frame.seq, frame.time_boot_us, frame.pixels))
                     published += 1
                 except sink_errors as exc:
-                    errors("publish_error", exc)
+                    publish_errors(f"frame {frame.seq}: publish", exc)
             t1 = clock.now_s()
             acc["publish"] += t1 - wall
             if truth is not None:
@@ -666,7 +678,8 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
     report = RunReport(
         frames=frames, frames_total=n_frames, sim_s=sim_s, wall_s=wall_s, setup_s=setup_s,
         rt_factor=sim_s / wall_s, stopped=frames < n_frames, rate=rate.text,
-        jitter=jitter.summary() if jitter is not None else None, per_frame_ms=per_frame, errors=dict(errors.counts),
+        jitter=jitter.summary() if jitter is not None else None, per_frame_ms=per_frame,
+        errors={e.kind: e.count for e in (mavlink_errors, publish_errors, core.render_errors) if e.count},
         mavlink_counters=dict(getattr(mavlink, "counters", {}) or {}), frames_published=published,
     )
     log.info("%s", report.line())

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.errors import ConfigError, InputError
+from onboard.errors import ConfigError, InputError, IrtrackError
 from onboard.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
 
 __all__ = [
@@ -48,6 +48,7 @@ __all__ = [
     "REQUIRED_COLUMNS",
     "TruthRow",
     "TruthWriter",
+    "TruthWriteError",
     "truth_row",
     "read_truth_csv",
 ]
@@ -198,6 +199,10 @@ def _fmt(value) -> str:
     return repr(float(value))  # shortest round-trip; 'nan' for NaN
 
 
+class TruthWriteError(IrtrackError):
+    """The truth file could not be written (disk full, file system gone); one line."""
+
+
 class TruthWriter:
     """Writes :class:`TruthRow` lines to ``path`` (parent directories created; an existing file
     is replaced).  The header is written and flushed at open; every :meth:`write` appends one
@@ -222,8 +227,11 @@ class TruthWriter:
             raise InputError(f"truth writer for {self.path} is closed")
         if not isinstance(row, TruthRow):
             raise InputError(f"TruthWriter.write expects a TruthRow, got {type(row).__name__}")
-        self._f.write(",".join(_fmt(v) for v in row.values()) + "\n")  # one write: one whole line
-        self._f.flush()
+        try:
+            self._f.write(",".join(_fmt(v) for v in row.values()) + "\n")  # one write: one whole line
+            self._f.flush()
+        except OSError as exc:
+            raise TruthWriteError(f"--truth {self.path}: write failed: {exc.strerror or exc}") from None
         self.rows_written += 1
 
     def close(self) -> None:

@@ -650,3 +650,37 @@ def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     finally:
         restore()
     assert signal.getsignal(signal.SIGINT) is before
+
+
+class _Failing:
+    """A sink whose every call fails the way a real one can (an IrtrackError)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def _fail(self, *a, **k):
+        self.calls += 1
+        raise InputError("sink refused")
+
+    update_state = poll = publish = _fail
+
+
+def test_loop_survives_failing_sinks_and_unrenderable_frames(tmp_path):
+    sc = load_scenario(P1)
+    core = SimCore(sc, 0, 0.2)
+    real_render = core.renderer().render
+    calls = []
+
+    def render(*args, **kw):  # frames 2 and 4 cannot be rendered
+        calls.append(1)
+        if len(calls) - 1 in (2, 4):
+            raise InputError("R_ned_from_cam: not a proper rotation")
+        return real_render(*args, **kw)
+
+    core.renderer().render = render
+    truth_path = tmp_path / "t.csv"
+    with TruthWriter(truth_path) as w:
+        report = run_loop(core, RateSpec.parse("max"), mavlink=_Failing(), publisher=_Failing(), truth=w)
+    assert report.frames == 6 and not report.stopped
+    assert report.errors == {"mavlink_error": 24, "publish_error": 4, "render_error": 2}
+    assert len(read_truth_csv(truth_path)["seq"]) == 6  # every frame keeps its truth row
