@@ -182,8 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         service.start()
     except IrtrackError as exc:
-        print(str(exc), file=sys.stderr)
         service.close(0.5)
+        print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
     try:
         service.run()

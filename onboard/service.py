@@ -4,10 +4,12 @@ Threads (nothing else runs concurrently):
 
 * **zenoh subscriber callback** (zenoh's thread) on ``irtrack/<vehicle>/ir/frame``: counts the
   payload, refuses it on its length alone (:func:`onboard.irframe.check_payload_size`: a frame
-  100x too large is never copied), copies it out and pushes ``(payload, received_mono_ns)`` into a
-  bounded :class:`FrameQueue`; when full the *oldest* frame is dropped and counted
-  (``dropped_queue``).  It never decodes and never blocks.
-* **pipeline thread**: pops frames, runs :meth:`FramePipeline.process_payload` (decode, admission,
+  100x too large is never copied), copies it out once and checks its header and size
+  (:func:`onboard.irframe.decode_irframe`: microseconds, the pixels stay a view), counting each
+  refusal as ``frame_<reason>``, and pushes ``(IrFrame, received_mono_ns)`` into a bounded
+  :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``).
+  It never blocks.
+* **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,
   imaging, pose at capture time -- waiting up to ``pose.wait_ms`` for telemetry that lags, on a
   condition signalled by every new pose sample -- and the estimator), publishes the track JSON on
   ``irtrack/<vehicle>/track`` and hands the newest :class:`Track` to the main thread.  It touches
@@ -47,7 +49,7 @@ import numpy as np
 
 from onboard.config import OnboardConfig
 from onboard.errors import InputError
-from onboard.irframe import IrFrameError, check_payload_size
+from onboard.irframe import IrFrameError, check_payload_size, decode_irframe
 from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from onboard.pose import PoseBuffer, RejectCounter
 from onboard.track import (
@@ -141,7 +143,7 @@ class SharedPoseBuffer:
 
 
 class FrameQueue:
-    """Bounded FIFO of ``(payload, received_mono_ns)``; pushing onto a full queue drops the oldest."""
+    """Bounded FIFO (of ``(IrFrame, received_mono_ns)`` in the service); pushing onto a full queue drops the oldest."""
 
     def __init__(self, maxlen: int) -> None:
         if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
@@ -466,7 +468,8 @@ class OnboardService:
                 os.unlink(self._health_path)
             except OSError:
                 pass
-        log.info("onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published)
+        if self._pipe_thread is not None:
+            log.info("onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published)
 
     # ------------------------------------------------------------------ frames in (zenoh thread)
 
@@ -476,15 +479,16 @@ class OnboardService:
             self.frames_in += 1
         try:
             payload = sample.payload
-            check_payload_size(len(payload), self.config.input.max_frame_bytes)
-            data = payload.to_bytes()
+            max_bytes = self.config.input.max_frame_bytes
+            check_payload_size(len(payload), max_bytes)  # before any copy: a 100x frame costs nothing
+            frame = decode_irframe(payload.to_bytes(), max_bytes)  # header checks; pixels stay a view
         except IrFrameError as exc:
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
         except Exception as exc:  # noqa: BLE001 - a callback must never raise into zenoh
             self.counter.count("frame_receive_error", f"{type(exc).__name__}: {exc}")
             return
-        dropped = self.queue.push((data, received))
+        dropped = self.queue.push((frame, received))
         if dropped:
             with self._stats_lock:
                 self.frames_dropped += dropped
@@ -504,10 +508,10 @@ class OnboardService:
             item = self.queue.pop(min(health_every_s, 0.5))
             if item is None:
                 continue
-            payload, received_ns = item
+            frame, received_ns = item
             c0 = time.thread_time()
             try:
-                track = self.pipeline.process_payload(payload, received_ns)
+                track = self.pipeline.process(frame, received_ns)
             except FrameRejected:
                 continue
             except Exception as exc:  # noqa: BLE001 - never let one frame kill the loop

@@ -1,0 +1,416 @@
+"""The daemon: thread-safe pieces in-process, then ``python -m onboard`` end to end on 127.0.0.1.
+
+End to end: the daemon starts first, connecting to a zenoh peer that is not there yet (the test
+opens it afterwards), with a pymavlink fake autopilot on UDP and a zenoh publisher of synthetic
+frames; tracks and status are read back, bad input of every kind is sent and must show up in the
+status counters while tracks keep flowing; SIGTERM must end it with exit code 0 within 2 s.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the daemon
+
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mav  # noqa: E402
+
+from bench.onboard import SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
+from onboard.errors import InputError  # noqa: E402
+from onboard.estimation.sliding import TrackEstimate  # noqa: E402
+from onboard.frames import geodetic_from_ned  # noqa: E402
+from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
+from onboard.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+WAIT_S = 5.0  # upper bound of one in-process wait
+STOP_BUDGET_S = 2.0  # SIGTERM -> exit, from the issue
+CENTROID_TOL_PX = 0.3  # synthetic blob, live daemon
+LOG_LINE = re.compile(r'^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z level=[A-Z]+ logger=\S+ msg=".*"$')
+
+
+# --------------------------------------------------------------------------- in-process pieces
+
+
+def test_frame_queue_drops_the_oldest_and_says_so():
+    q = FrameQueue(2)
+    assert [q.push(i) for i in range(4)] == [0, 0, 1, 1]
+    assert [q.pop(0.0), q.pop(0.0), q.pop(0.0)] == [2, 3, None]
+    with pytest.raises(InputError):
+        FrameQueue(0)
+
+
+def test_frame_queue_pop_wakes_on_push_and_on_close():
+    q = FrameQueue(4)
+    threading.Timer(0.05, q.push, args=("x",)).start()
+    t0 = time.monotonic()
+    assert q.pop(WAIT_S) == "x" and time.monotonic() - t0 < WAIT_S
+    threading.Timer(0.05, q.close).start()
+    assert q.pop(WAIT_S) is None
+
+
+def test_locked_counter_counts_exactly_from_many_threads():
+    c = LockedCounter(log_interval_s=3600.0)
+    threads = [threading.Thread(target=lambda: [c.count("x") for _ in range(2000)]) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert c.counts == {"x": 8000}
+
+
+def _shared_pose(scene: SyntheticScene):
+    counter = RejectCounter()
+    buf = PoseBuffer(mount=scene.mount, origin=scene.origin, counter=counter)
+    return SharedPoseBuffer(buf), buf
+
+
+def test_shared_pose_buffer_wait_returns_when_late_telemetry_arrives():
+    scene = SyntheticScene()
+    shared, buf = _shared_pose(scene)
+    t_frame = scene.t_us(10)
+    for t, p, v, q in scene.telemetry(t_frame - 100_000, t_frame - 10_000, 50.0):
+        shared.add_attitude(t, q)
+        shared.add_position_ned(t, p, v)
+    assert shared.lookup(t_frame).retry  # the bracket is not there yet
+
+    def late():
+        for t, p, v, q in scene.telemetry(t_frame, t_frame + 20_000, 50.0):
+            shared.add_attitude(t, q)
+            shared.add_position_ned(t, p, v)
+
+    threading.Timer(0.05, late).start()
+    t0 = time.monotonic()
+    assert shared.wait_for(t_frame, WAIT_S) is True
+    assert time.monotonic() - t0 < WAIT_S
+    assert shared.pose_at(t_frame) is not None and shared.mount is buf.mount and shared.reboots == 0
+
+
+def test_shared_pose_buffer_wait_gives_up_after_its_timeout_and_at_once_on_a_gap():
+    scene = SyntheticScene()
+    shared, _ = _shared_pose(scene)
+    t0_us = scene.t_us(0)
+    for t, p, v, q in scene.telemetry(t0_us, t0_us + 40_000, 50.0):
+        shared.add_attitude(t, q)
+        shared.add_position_ned(t, p, v)
+    t0 = time.monotonic()
+    assert shared.wait_for(t0_us + 60_000, 0.05) is False  # retry, but nothing comes
+    assert 0.04 <= time.monotonic() - t0 < WAIT_S
+    t0 = time.monotonic()
+    assert shared.wait_for(t0_us + 2_000_000, WAIT_S) is False  # beyond max gap: no point waiting
+    assert time.monotonic() - t0 < 0.5
+
+
+class _SlowEstimator:
+    """add() blocks on ``gate`` after the first call; returns an estimate at t with p = (t, 0, 0)."""
+
+    def __init__(self) -> None:
+        self.gate = threading.Event()
+        self.gate.set()
+        self.adds: list[float] = []
+        self.resets = 0
+
+    def add(self, t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        self.gate.wait(WAIT_S)
+        self.adds.append(t_s)
+        if t_s < 0:
+            raise InputError("negative time")
+        return TrackEstimate(t_s, np.array([t_s, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.eye(3),
+                             0.01 * np.eye(3), True, 100.0, 0.01, len(self.adds), "cv")
+
+    def reset(self):
+        self.resets += 1
+
+
+def test_threaded_estimator_returns_its_own_result_when_fast_and_propagates_when_busy():
+    slow = _SlowEstimator()
+    counter = LockedCounter()
+    te = ThreadedEstimator(slow, counter, result_wait_s=1.0, max_extrapolation_s=2.0)
+    try:
+        K = SyntheticScene().intrinsics
+        e1 = te.add(1.0, (1, 2), K, np.zeros(3), np.array([1.0, 0, 0, 0]))
+        assert e1.t_s == 1.0 and e1.p_ned_m[0] == 1.0
+        slow.gate.clear()  # the worker is now "re-selecting the model"
+        te.result_wait_s = 0.02
+        e2 = te.add(1.5, (1, 2), K, np.array([0.0, 0.0, 0.0]), np.array([1.0, 0, 0, 0]))
+        # propagated from t = 1.0 at 1 m/s: p = 1.5, cov P + dt^2 V
+        assert e2.t_s == 1.5 and e2.p_ned_m[0] == pytest.approx(1.5)
+        assert e2.cov_p_ned_m2[0, 0] == pytest.approx(1.0 + 0.25 * 0.01)
+        assert e2.range_m == pytest.approx(1.5)  # from the camera at the origin
+        assert te.late_results == 1
+        p = te.predict(1.6)
+        assert p.p_ned_m[0] == pytest.approx(1.6)
+        assert te.predict(5.0) is None  # beyond max_extrapolation_s
+        slow.gate.set()
+        deadline = time.monotonic() + WAIT_S
+        while len(slow.adds) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert slow.adds == [1.0, 1.5]  # the late observation was still used
+        te.result_wait_s = 1.0
+        assert te.add(-1.0, (1, 2), K, np.zeros(3), np.array([1.0, 0, 0, 0])) is None  # refused, counted
+        assert counter["estimator_input"] == 1
+        te.reset()
+        assert te.predict(1.6) is None  # nothing of the old epoch survives a reset
+    finally:
+        te.close()
+
+
+# --------------------------------------------------------------------------- end to end
+
+
+class FakeAutopilot:
+    """PX4-like: HEARTBEAT, attitude #31 and position #33 on a boot clock; ACKs rate requests, answers TIMESYNC."""
+
+    def __init__(self, port: int, scene: SyntheticScene) -> None:
+        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1,
+                                               dialect="common")
+        self.scene = scene
+        self.boot_mono_ns = time.monotonic_ns() - scene.boot_us0 * 1000  # boot time now = the scene's start
+        self.received: list = []
+
+    def boot_us(self) -> int:
+        return (time.monotonic_ns() - self.boot_mono_ns) // 1000
+
+    def heartbeat(self) -> None:
+        self.conn.mav.heartbeat_send(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
+
+    def attitude(self, t_us: int, q=None) -> None:
+        if q is None:
+            q = self.scene.body((t_us - self.scene.boot_us0) / 1e6)[2]
+        self.conn.mav.attitude_quaternion_send(t_us // 1000, *[float(c) for c in q], 0.0, 0.0, 0.0)
+
+    def position(self, t_us: int, latlon_raw=None) -> None:
+        p, v, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
+        lat, lon, alt = self.scene.geodetic(p)
+        la, lo = (int(round(lat * 1e7)), int(round(lon * 1e7))) if latlon_raw is None else latlon_raw
+        self.conn.mav.global_position_int_send(t_us // 1000, la, lo, int(round(alt * 1000)), int(round(-p[2] * 1000)),
+                                               *(int(round(c * 100)) for c in v), 0)
+
+    def junk(self) -> None:
+        self.conn.write(np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8).tobytes())
+        msg = self.conn.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
+        buf = bytearray(msg.pack(self.conn.mav))
+        buf[-1] ^= 0xFF  # bad CRC
+        self.conn.write(bytes(buf))
+
+    def pump(self) -> None:
+        while True:
+            m = self.conn.recv_match(blocking=False)
+            if m is None:
+                return
+            t = m.get_type()
+            self.received.append(m)
+            if t == "COMMAND_LONG" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self.conn.mav.command_ack_send(m.command, mav.MAV_RESULT_ACCEPTED, 0, 0, m.get_srcSystem(), m.get_srcComponent())
+            elif t == "TIMESYNC" and m.tc1 == 0:
+                self.conn.mav.timesync_send(self.boot_us() * 1000, m.ts1)
+
+    def got(self, mtype: str) -> list:
+        return [m for m in self.received if m.get_type() == mtype]
+
+
+class Daemon:
+    def __init__(self, args: list[str], env: dict) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "onboard", *args], cwd=REPO, env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.lines: list[str] = []
+        self.started = threading.Event()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            self.lines.append(line.rstrip("\n"))
+            if "onboard service started" in line:
+                self.started.set()
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(5)
+
+
+@pytest.fixture
+def daemon_env(tmp_path):
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
+    env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    return env
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(90)
+def test_daemon_end_to_end(tmp_path, daemon_env):
+    import zenoh
+
+    from onboard.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+
+    scene = SyntheticScene()
+    mport, zport = free_udp_port(), free_tcp_port()
+    alive = tmp_path / "alive"
+    d = Daemon(["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
+                "--set", f"output.health_file={alive}", "--set", "output.status_interval_s=0.5",
+                "--set", "logging.reject_log_interval_s=60"], daemon_env)
+    session = None
+    try:
+        assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
+        # the zenoh peer appears only now: the daemon must have started without it and connect later
+        session = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{zport}",)))
+        tracks: queue.Queue = queue.Queue()
+        statuses: queue.Queue = queue.Queue()
+        subs = [session.declare_subscriber(track_key(), lambda s: tracks.put(s.payload.to_bytes())),
+                session.declare_subscriber(status_key(), lambda s: statuses.put(s.payload.to_bytes()))]
+        pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
+        ap = FakeAutopilot(mport, scene)
+
+        got_tracks: list = []
+        got_status: list = []
+        state = {"k": 0, "next_frame": time.monotonic(), "next_tel": time.monotonic(), "next_hb": 0.0, "tel_n": 0,
+                 "last_payload": None}
+
+        def drain():
+            while not tracks.empty():
+                got_tracks.append(track_from_json(tracks.get()))
+            while not statuses.empty():
+                got_status.append(json.loads(statuses.get()))
+
+        def tick():
+            """One 5 ms turn of the fake world: MAVLink pump, heartbeat, telemetry at 50/25 Hz, frames at 30 Hz."""
+            now = time.monotonic()
+            ap.pump()
+            if now >= state["next_hb"]:
+                ap.heartbeat()
+                state["next_hb"] = now + 1.0
+            if now >= state["next_tel"]:
+                t = ap.boot_us()
+                ap.attitude(t)
+                if state["tel_n"] % 2 == 0:
+                    ap.position(t)
+                state["tel_n"] += 1
+                state["next_tel"] += 0.02
+            if now >= state["next_frame"]:
+                k = state["k"]
+                payload = scene.payload(k, time_boot_us=ap.boot_us())
+                pub.put(payload)
+                state["last_payload"] = payload
+                state["k"] += 1
+                state["next_frame"] += 1 / 30
+            drain()
+            time.sleep(0.005)
+
+        def run_until(pred, timeout_s: float, what: str):
+            deadline = time.monotonic() + timeout_s
+            while not pred():
+                assert time.monotonic() < deadline, f"timed out waiting for {what}; daemon log:\n" + "\n".join(d.lines[-30:])
+                assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
+                tick()
+
+        # 1. tracks flow, with the pose at capture time from the fake autopilot
+        run_until(lambda: sum(t.pose_valid for t in got_tracks) >= 20, 30, "20 tracks with a pose")
+        good = [t for t in got_tracks if t.pose_valid]
+        assert all(t.vehicle == "uav1" and t.state == "tracking" and t.track_id == 1 for t in good)
+        for t in good[-5:]:
+            truth = scene.uv((t.time_boot_us - scene.boot_us0) / 1e6)
+            assert math.hypot(t.u_px - truth[0], t.v_px - truth[1]) < CENTROID_TOL_PX
+        assert good[-1].origin is not None and abs(good[-1].origin.lat_deg - 32.0) < 0.01
+
+        # 2. bad input of every kind, each survived
+        ap.junk()
+        t = ap.boot_us()
+        ap.attitude(t + 1, q=(math.nan, 0.0, 0.0, 1.0))
+        ap.attitude(t + 2, q=(0.0, 0.0, 0.0, 0.0))
+        ap.position(t + 3, latlon_raw=(0, 0))  # GNSS dropout
+        last = state["last_payload"]
+        pub.put(last)  # duplicate
+        pub.put(scene.payload(0, seq=1, time_boot_us=scene.boot_us0 + 1))  # out of order (long ago, seq back)
+        for _ in range(20):  # repeated: counted 20 times, logged once
+            pub.put(np.random.default_rng(5).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+        pub.put(last[:-640])  # wrong size
+        pub.put(last + bytes(len(last) * 99))  # 100x too large
+
+        want = {"mavlink_bad_data": 1, "attitude_not_finite": 1, "attitude_zero": 1, "position_zero": 1,
+                "frame_duplicate": 1, "frame_out_of_order": 1, "frame_magic": 20, "frame_size": 1, "frame_too_large": 1}
+
+        def counted():
+            return got_status and all(got_status[-1]["rejected"].get(k, 0) >= n for k, n in want.items())
+
+        run_until(counted, 20, "the bad input in the status counters")
+        n_before = len(got_tracks)
+        run_until(lambda: len(got_tracks) >= n_before + 10, 10, "tracks after the bad input")
+        assert got_tracks[-1].state == "tracking" and got_tracks[-1].pose_valid
+
+        # 3. status document and MAVLink tracking status
+        st = got_status[-1]
+        assert st["schema"] == STATUS_SCHEMA and st["vehicle"] == "uav1"
+        assert st["rejected"]["frame_magic"] == 20 and st["rejected"]["frame_too_large"] == 1
+        assert st["frames"]["rejected"] >= 24 and st["frames"]["processed"] >= 30
+        assert st["frames"]["in"] >= st["frames"]["processed"] + st["frames"]["rejected"]
+        assert st["link"]["state"] == "connected" and st["link"]["autopilot_sysid"] == 1
+        assert st["processing_ms"]["n"] > 0 and st["processing_ms"]["p50"] > 0
+        assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None
+        run_until(lambda: got_status[-1]["capture_to_track_ms"] is not None, 10, "TIMESYNC-based capture latency")
+        assert 0 < got_status[-1]["capture_to_track_ms"]["p50"] < 1000
+        run_until(lambda: len(ap.got("CAMERA_TRACKING_IMAGE_STATUS")) >= 3, 10, "CAMERA_TRACKING_IMAGE_STATUS")
+        img = ap.got("CAMERA_TRACKING_IMAGE_STATUS")[-1]
+        assert img.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+        assert img.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE
+        u_last = got_tracks[-1].u_px / 640
+        assert abs(img.point_x - u_last) < 0.05  # the image moves slowly; #275 carries a recent frame
+        assert alive.exists()
+        flood = [ln for ln in d.lines if "frame_magic" in ln]
+        assert len(flood) == 1, flood  # no log flood on repeated bad input
+        for s in subs:
+            s.undeclare()
+        pub.undeclare()
+    finally:
+        if d.proc.poll() is None:
+            t0 = time.monotonic()
+            d.proc.send_signal(signal.SIGTERM)
+            try:
+                rc = d.proc.wait(STOP_BUDGET_S + 3)
+            except subprocess.TimeoutExpired:
+                rc = None
+            took = time.monotonic() - t0
+        else:
+            rc, took = d.proc.returncode, 0.0
+        d.stop()
+        if session is not None:
+            session.close()
+    assert rc == 0, "\n".join(d.lines[-20:])
+    assert took < STOP_BUDGET_S, f"SIGTERM -> exit took {took:.2f} s"
+    assert not alive.exists()  # removed on clean shutdown
+    d._reader.join(2)
+    assert not any("Traceback" in ln for ln in d.lines), "\n".join(d.lines)
+    bad_lines = [ln for ln in d.lines if not LOG_LINE.match(ln)]
+    assert not bad_lines, bad_lines  # structured: one line per event
+    assert any("signal SIGTERM" in ln for ln in d.lines) and any("onboard service stopped" in ln for ln in d.lines)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen(1)
+        port = s.getsockname()[1]
+        proc = subprocess.run([sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}",
+                               "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--set", "output.health_file=null"],
+                              cwd=REPO, env=daemon_env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
