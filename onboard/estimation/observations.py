@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from onboard.errors import InputError
-from onboard.frames import PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.frames import QUAT_NORM_TOL, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
 
 __all__ = ["Observations"]
 
@@ -61,6 +61,11 @@ class Observations:
             object.__setattr__(self, name, arr(name, shape))
         if np.any(self.fx_px <= 0) or np.any(self.fy_px <= 0):
             raise InputError("Observations.fx_px/fy_px: focal lengths must be > 0")
+        norms = np.linalg.norm(self.q_ned_from_cam, axis=1)
+        bad = np.flatnonzero(np.abs(norms - 1.0) > QUAT_NORM_TOL)
+        if bad.size:
+            raise InputError(f"Observations.q_ned_from_cam: row {int(bad[0])} quaternion norm {norms[bad[0]]:.6g} "
+                             f"is not 1 within {QUAT_NORM_TOL}")
         object.__setattr__(self, "q_ned_from_cam", check_unit_quat(self.q_ned_from_cam, "Observations.q_ned_from_cam"))
         if self.xy_norm is None:
             xy = np.stack([(self.uv_px[:, 0] - self.cx_px) / self.fx_px, (self.uv_px[:, 1] - self.cy_px) / self.fy_px], axis=1)

@@ -1,0 +1,193 @@
+"""Reconstruction core: spline basis, observation validation, Jacobians, MAP accuracy and honesty,
+observability verdicts and the sliding window."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.synth import estimator_noise_model, synthesize
+from onboard.errors import InputError
+from onboard.estimation.map_estimator import MapConfig, MapEstimator, MotionPrior, NoiseModel
+from onboard.estimation.observations import Observations
+from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+from onboard.estimation.spline import KnotGrid
+
+BASIS_ATOL = 1e-12  # partition of unity, exact in floating point up to rounding
+JAC_RTOL = 1e-4  # finite-difference Jacobian check, relative to the largest entry
+
+
+def _synth(name: str, noise: str, seed: int, times=None):
+    sc = load_scenario(reference_scenario_paths()[name])
+    nc = load_noise_cases()[noise]
+    g = sc.camera.gimbal
+    t = sc.frame_times_s() if times is None else times
+    truth, obs = synthesize(sc.observer_motion(seed), sc.target_motion(seed), t, sc.camera.intrinsics, nc,
+                            sc.rng("synth.noise", seed), g.pointing_error_frac_of_range, g.pointing_error_period_s)
+    return sc, nc, truth, obs
+
+
+# ---------------------------------------------------------------------------------------- spline
+
+
+@given(st.floats(0.0, 9.999), st.floats(0.1, 1.0))
+@settings(max_examples=100, deadline=None)
+def test_basis_is_a_partition_of_unity(t, h):
+    grid = KnotGrid(0.0, h)
+    first, count = grid.control_span(0.0, 10.0)
+    rows = grid.basis(np.array([t]), first, count)
+    assert rows.w0.sum() == pytest.approx(1.0, abs=BASIS_ATOL)
+    assert rows.w1.sum() == pytest.approx(0.0, abs=1e-9 / h)
+    assert rows.w2.sum() == pytest.approx(0.0, abs=1e-9 / h**2)
+
+
+def test_spline_reproduces_quadratics_and_their_derivatives():
+    grid = KnotGrid(0.0, 0.5)
+    first, count = grid.control_span(0.0, 10.0)
+    t = np.linspace(0.0, 10.0, 301)
+    p = np.stack([1 + 2 * t + 0.3 * t**2, -4 * t, 0.5 * t**2], axis=1)
+    B = grid.dense_basis(t, first, count)
+    c, *_ = np.linalg.lstsq(B, p, rcond=None)
+    assert np.allclose(B @ c, p, atol=1e-9)
+    v = grid.dense_basis(t, first, count, 1) @ c
+    a = grid.dense_basis(t, first, count, 2) @ c
+    assert np.allclose(v, np.stack([2 + 0.6 * t, -4 + 0 * t, t], axis=1), atol=1e-8)
+    assert np.allclose(a, np.tile([0.6, 0.0, 1.0], (t.size, 1)), atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------- input
+
+
+def _obs_rows(n=20):
+    t = np.arange(n) / 30.0
+    return dict(t_s=t, uv_px=np.full((n, 2), 320.0), fx_px=764.7, fy_px=764.7, cx_px=320.0, cy_px=256.0,
+                p_cam_ned_m=np.zeros((n, 3)), q_ned_from_cam=np.tile([0.5, 0.5, 0.5, 0.5], (n, 1)))
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda d: d["t_s"].__setitem__(5, d["t_s"][3]), "row 5"),
+        (lambda d: d["uv_px"].__setitem__((7, 0), np.nan), "uv_px: row 7"),
+        (lambda d: d["q_ned_from_cam"].__setitem__(2, [1.0, 0.1, 0.0, 0.0]), "quaternion norm"),
+        (lambda d: d["q_ned_from_cam"].__setitem__(2, [0.0, 0.0, 0.0, 0.0]), "q_ned_from_cam"),
+    ],
+)
+def test_observations_reject_bad_rows_naming_them(mutate, message):
+    d = _obs_rows()
+    mutate(d)
+    with pytest.raises(InputError, match=message):
+        Observations(**d)
+
+
+# ---------------------------------------------------------------------------------------- model
+
+
+def test_jacobian_matches_finite_differences_with_every_nuisance():
+    noise = NoiseModel(0.3, math.radians(0.05), math.radians(0.1), 0.02, 0.8, 0.03)
+    _, _, truth, obs = _synth("P3", "RTK", 0)
+    est = MapEstimator(noise=noise)
+    for prior in (MotionPrior(1e-3, 2.5e-4, 0.3), MotionPrior(1e-3, 2.5e-4, 0.0, jerk=True)):
+        prob = est.problem(obs, prior)
+        theta = prob.theta_from_positions(truth.p_target_ned_m, omega=-0.1)
+        theta[prob.nc:] += 1e-5
+        r0, J, _ = prob.evaluate(theta)
+        J = J.copy()
+        Jn = np.empty_like(J)
+        for k in range(theta.size):
+            step = 1e-6 * max(1.0, abs(theta[k]))
+            tp = theta.copy()
+            tp[k] += step
+            Jn[:, k] = (prob.evaluate(tp, jacobian=False)[0] - r0) / step
+        assert np.max(np.abs(Jn - J)) < JAC_RTOL * np.max(np.abs(J))
+
+
+def _beyond_3sigma(res, truth):
+    e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
+    return float(np.mean(e > 3 * np.sqrt(np.einsum("fii->f", res.cov_p_ned_m2)))), e
+
+
+@pytest.mark.parametrize("name, family", [("P1", "cv"), ("P2", "ca"), ("P3", "ct")])
+def test_map_recovers_the_reference_trajectories_honestly(name, family):
+    _, nc, truth, obs = _synth(name, "px0.3", 2)
+    res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    frac, e = _beyond_3sigma(res, truth)
+    assert res.extras["model"] == family
+    assert res.observable
+    assert np.mean(e / truth.range_m) < 0.02  # 2 % of range; the medians are far lower (bench)
+    assert frac <= 0.01
+
+
+def test_uneven_timestamps_and_dropped_frames_still_reconstruct():
+    rng = np.random.default_rng(7)
+    t = np.arange(300) / 30.0
+    keep = np.sort(rng.choice(300, 220, replace=False))  # drop 27 % of the frames
+    t = t[keep] + rng.uniform(-0.004, 0.004, keep.size)  # and jitter the rest by +-4 ms
+    _, nc, truth, obs = _synth("P3", "px0.3", 3, times=t)
+    res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    frac, e = _beyond_3sigma(res, truth)
+    assert res.observable
+    assert np.mean(e / truth.range_m) < 0.02
+    assert frac <= 0.01
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_straight_constant_velocity_observer_is_flagged_unobservable(seed):
+    _, nc, truth, obs = _synth("H3", "px0.3", seed)
+    res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    assert not res.observable
+    assert res.range_sigma_ratio > MapConfig().observability_max_sigma_range_ratio
+
+
+def test_hovering_observer_is_flagged_unobservable():
+    from groundsim.motion import Cubic
+
+    sc = load_scenario(reference_scenario_paths()["P1"])
+    nc = load_noise_cases()["px0.3"]
+    t = sc.frame_times_s()
+    truth, obs = synthesize(Cubic((0, 0, -60)), sc.target_motion(0), t, sc.camera.intrinsics, nc, np.random.default_rng(0))
+    res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    assert not res.observable
+
+
+# ---------------------------------------------------------------------------------------- online
+
+
+def test_sliding_window_gives_a_fresh_bounded_estimate_every_frame():
+    t = np.arange(450) / 30.0
+    sc, nc, truth, obs = _synth("P3", "px0.3", 4, times=t)
+    cfg = SlidingConfig(max_frames=300)
+    sw = SlidingWindowEstimator(cfg, noise=estimator_noise_model(nc))
+    got = []
+    for i in range(t.size):
+        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
+        assert len(sw._t) <= cfg.max_frames
+        if est is not None:
+            assert est.t_s == t[i]
+            assert est.window_frames <= cfg.max_frames
+            got.append((i, est))
+    assert got and got[0][0] < 60  # estimates start within two seconds
+    assert len(got) == t.size - got[0][0]  # and then every frame gets one
+    i, last = got[-1]
+    err = np.linalg.norm(last.p_ned_m - truth.p_target_ned_m[i])
+    assert last.observable
+    assert err < 3 * math.sqrt(np.trace(last.cov_p_ned_m2))
+    assert err / truth.range_m[i] < 0.03
+    assert sw.stats["incremental"] > 0 and sw.stats["updates"] > 0
+
+
+def test_sliding_window_rejects_time_going_backwards_without_losing_state():
+    sc, nc, truth, obs = _synth("P1", "px0.3", 0)
+    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
+    K = sc.camera.intrinsics
+    sw.add(1.0, obs.uv_px[0], K, obs.p_cam_ned_m[0], obs.q_ned_from_cam[0])
+    with pytest.raises(InputError, match="not after"):
+        sw.add(0.5, obs.uv_px[1], K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1])
+    with pytest.raises(InputError):
+        sw.add(2.0, obs.uv_px[1], K, obs.p_cam_ned_m[1], [0.0, 0.0, 0.0, 0.0])
+    assert len(sw._t) == 1
