@@ -443,7 +443,7 @@ class IrRenderer:
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
-        pad = int(math.ceil(3.0 * s.blur_sigma_px))
+        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
         pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
         pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
         A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
