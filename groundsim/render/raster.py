@@ -87,7 +87,7 @@ ALT_REUSE_REL = 0.01  # ALT_REUSE_ABS_M + ALT_REUSE_REL * height
 COARSE_STEP = 4  # background computed on a 4 x 4 px coarse grid, bilinear upsampling, exact near the horizon
 MAX_EXACT_STRIPS = 16  # ... in at most this many block strips, else the whole image exactly
 COARSE_TOL_FS = 4e-4  # ... where the interpolation error could exceed this fraction of full scale (0.1 grey)
-ROT_TOL = 1e-5  # max |R^T R - I| accepted for a rotation matrix input
+ROT_TOL = 5e-3  # max |R^T R - I| accepted (a quaternion off unit norm by frames.QUAT_NORM_TOL gives ~2e-3)
 NEAR_M = 1e-3  # target bounding-box corners closer than this (camera z) -> whole-image ROI
 
 
