@@ -1,0 +1,397 @@
+"""``python -m onboard.reconstruct``: round trips on synthesized P1, every rejected input, fuzzing.
+
+Round trips run the real command as a subprocess (OPENBLAS_NUM_THREADS=1: BLAS threads contend
+badly on small shared machines); rejected inputs run ``main()`` in-process (no MAP solve is
+reached, so they are fast), plus one subprocess to show a real process prints no traceback.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.synth import synthesize
+from onboard.estimation.map_estimator import MapConfig
+from onboard.estimation.metrics import evaluate
+from onboard.estimation.paper import PaperEstimator
+from onboard.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
+
+REPO = Path(__file__).resolve().parents[2]
+SUBPROCESS_TIMEOUT_S = 120
+ROUND_TRIP_MAX_RANGE_ERROR = 0.05  # MAP on P1 px0.3 (reference study 0.34 %; this draw ~1-2 %)
+PAPER_MATCH_M = 1e-5  # CLI output (printed to 1 um) vs the in-process closed form
+MIN_ROWS = MapConfig().min_frames
+
+
+try:  # BLAS threads contend badly on small shared machines (a MAP solve ran ~9x slower)
+    from threadpoolctl import threadpool_limits
+except ImportError:  # optional: the tests only run slower without it
+    threadpool_limits = None
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_blas_thread():
+    if threadpool_limits is None:
+        yield
+        return
+    with threadpool_limits(limits=1):
+        yield
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _row_values(obs, i):
+    return [obs.t_s[i], obs.uv_px[i, 0], obs.uv_px[i, 1], obs.fx_px[i], obs.fy_px[i], obs.cx_px[i], obs.cy_px[i],
+            *obs.p_cam_ned_m[i], *obs.q_ned_from_cam[i]]
+
+
+def obs_csv_text(obs, columns=OBS_COLUMNS, extra: dict | None = None) -> str:
+    """OBS.csv text for ``obs`` with the columns in the given order (+ extra constant columns)."""
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    extra = extra or {}
+    w.writerow(list(columns) + list(extra))
+    for i in range(len(obs)):
+        vals = dict(zip(OBS_COLUMNS, _row_values(obs, i)))
+        w.writerow([repr(float(vals[c])) for c in columns] + list(extra.values()))
+    return out.getvalue()
+
+
+def run_cli(*args, timeout=SUBPROCESS_TIMEOUT_S):
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
+    return subprocess.run([sys.executable, "-m", "onboard.reconstruct", *map(str, args)], cwd=REPO, env=env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def run_main(*args):
+    err, out = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
+        rc = main([str(a) for a in args])
+    return rc, err.getvalue()
+
+
+def read_out(path):
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    assert tuple(rows[0]) == OUT_COLUMNS
+    return np.array([[float(c) for c in r] for r in rows[1:]])
+
+
+@pytest.fixture(scope="module")
+def p1_uneven():
+    """P1, 0.3 px, uneven timestamps (+-8 ms jitter), 30 % of rows dropped and a 1 s gap."""
+    sc = load_scenario(reference_scenario_paths()["P1"])
+    rng = np.random.default_rng(11)
+    t = sc.frame_times_s() + rng.uniform(-0.008, 0.008, sc.frame_count)
+    t[0] = 0.0
+    keep = rng.uniform(size=t.size) > 0.3
+    keep[(t > 4.0) & (t < 5.0)] = False
+    truth, obs = synthesize(sc.observer_motion(), sc.target_motion(), t[keep], sc.camera.intrinsics,
+                            load_noise_cases()["px0.3"], np.random.default_rng(5))
+    assert np.ptp(np.diff(obs.t_s)) > 0.9  # uneven, with the gap
+    return truth, obs
+
+
+@pytest.fixture(scope="module")
+def small_obs(p1_uneven):
+    """The first 12 rows: enough for both methods; used to build bad inputs."""
+    return p1_uneven[1].select(slice(0, 12))
+
+
+# --------------------------------------------------------------------------- round trips (subprocess)
+
+
+def test_map_round_trip_any_column_order_extra_column(p1_uneven, tmp_path):
+    truth, obs = p1_uneven
+    cols = tuple(reversed(OBS_COLUMNS))
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(obs, cols, extra={"note": "x"}))
+    out, summ = tmp_path / "out.csv", tmp_path / "s.json"
+    r = run_cli(src, "-o", out, "--summary-json", summ, "--pixel-sigma", "0.3")
+    assert r.returncode == 0, r.stderr
+    assert "Traceback" not in r.stderr
+    assert r.stderr.count("\n") == 1 and "ignoring unknown column(s) 'note'" in r.stderr
+    a = read_out(out)
+    assert a.shape == (len(obs), 7)
+    np.testing.assert_array_equal(a[:, 0], obs.t_s)  # echoed exactly, input order
+    rep = evaluate(truth.p_target_ned_m, a[:, 1:4], truth.p_cam_ned_m)
+    assert rep.range_normalised_error < ROUND_TRIP_MAX_RANGE_ERROR
+    sig = a[:, 4:7]
+    assert np.all(np.isfinite(sig)) and np.all(sig > 0)
+    s = json.loads(summ.read_text())
+    assert (s["observable"], s["method"], s["frames"]) == (True, "map", len(obs))
+    assert s["range_sigma_ratio"] < MapConfig().observability_max_sigma_range_ratio
+    for k in ("model", "q_horizontal_m2ps3", "turn_rate_radps", "iterations", "solve_ms"):
+        assert k in s
+
+
+def test_paper_round_trip(p1_uneven, tmp_path):
+    truth, obs = p1_uneven
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(obs))
+    out, summ = tmp_path / "out.csv", tmp_path / "s.json"
+    r = run_cli(src, "--method", "paper", "--delta", "1", "--order", "1", "-o", out, "--summary-json", summ)
+    assert r.returncode == 0, r.stderr
+    assert r.stderr == ""
+    a = read_out(out)
+    np.testing.assert_array_equal(a[:, 0], obs.t_s)
+    assert np.all(np.isnan(a[:, 4:7]))  # no covariance for the algebraic cost
+    ref = PaperEstimator().solve(parse_observations_csv(src.read_text()))
+    np.testing.assert_allclose(a[:, 1:4], ref.p_ned_m, rtol=0, atol=PAPER_MATCH_M)
+    s = json.loads(summ.read_text())
+    assert (s["method"], s["frames"], s["delta"], s["order"]) == ("paper", len(obs), 1.0, 1)
+    assert s["observability_source"] == "map" and s["observable"] is True
+    assert s["paper_solver"] == "banded_cholesky"
+
+
+def test_bad_input_in_a_real_process_is_one_line_exit_2(small_obs, tmp_path):
+    text = obs_csv_text(small_obs).splitlines()
+    text[4] = text[4].replace(text[4].split(",")[1], "abc", 1)
+    src = tmp_path / "obs.csv"
+    src.write_text("\n".join(text) + "\n")
+    r = run_cli(src, "-o", tmp_path / "out.csv")
+    assert r.returncode == 2
+    assert r.stderr.count("\n") == 1 and "Traceback" not in r.stderr
+    assert "line 5, column u_px" in r.stderr
+    assert not (tmp_path / "out.csv").exists()
+
+
+# --------------------------------------------------------------------------- unobservable is not an error
+
+
+def test_unobservable_geometry_exits_0_with_observable_false(tmp_path):
+    sc = load_scenario(reference_scenario_paths()["H3"])  # straight, constant-velocity observer
+    t = sc.frame_times_s()[::3]
+    _, obs = synthesize(sc.observer_motion(), sc.target_motion(), t, sc.camera.intrinsics,
+                        load_noise_cases()["px0.3"], np.random.default_rng(2))
+    src = tmp_path / "h3.csv"
+    src.write_text(obs_csv_text(obs))
+    rc, err = run_main(src, "-o", tmp_path / "out.csv", "--summary-json", tmp_path / "s.json")
+    assert rc == 0 and err == ""
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["observable"] is False and s["frames"] == len(obs)
+    assert s["range_sigma_ratio"] > MapConfig().observability_max_sigma_range_ratio
+    assert read_out(tmp_path / "out.csv").shape == (len(obs), 7)
+
+
+# --------------------------------------------------------------------------- rejected inputs (in-process)
+
+
+def _lines(obs):
+    return obs_csv_text(obs).splitlines()
+
+
+def _set_cell(lines, line_no, column, value):
+    """Replace one cell; ``line_no`` is the 1-based physical line (header = 1)."""
+    cells = lines[line_no - 1].split(",")
+    cells[OBS_COLUMNS.index(column)] = value
+    lines[line_no - 1] = ",".join(cells)
+    return lines
+
+
+def _scale_quat(lines, line_no, k):
+    cells = lines[line_no - 1].split(",")
+    for c in ("q_w", "q_x", "q_y", "q_z"):
+        i = OBS_COLUMNS.index(c)
+        cells[i] = repr(float(cells[i]) * k)
+    lines[line_no - 1] = ",".join(cells)
+    return lines
+
+
+def _swap_t(lines, a, b):
+    ia = OBS_COLUMNS.index("t_s")
+    ca, cb = lines[a - 1].split(","), lines[b - 1].split(",")
+    ca[ia], cb[ia] = cb[ia], ca[ia]
+    lines[a - 1], lines[b - 1] = ",".join(ca), ",".join(cb)
+    return lines
+
+
+def _drop_column(lines, column):
+    i = OBS_COLUMNS.index(column)
+    return [",".join(c for j, c in enumerate(line.split(",")) if j != i) for line in lines]
+
+
+BAD_TEXT_CASES = {
+    "missing column": (lambda L: _drop_column(L, "cam_d_m"), ["line 1 (header)", "cam_d_m"]),
+    "semicolons": (lambda L: [x.replace(",", ";") for x in L], ["line 1 (header)", "comma-separated"]),
+    "duplicate column": (lambda L: [L[0] + ",u_px"] + [x + ",1" for x in L[1:]], ["line 1 (header)", "'u_px' appears twice"]),
+    "nan cell": (lambda L: _set_cell(L, 6, "v_px", "nan"), ["line 6, column v_px", "not finite"]),
+    "inf cell": (lambda L: _set_cell(L, 3, "cam_e_m", "-inf"), ["line 3, column cam_e_m", "not finite"]),
+    "non-numeric": (lambda L: _set_cell(L, 8, "cx_px", "320px"), ["line 8, column cx_px", "not a number"]),
+    "empty cell": (lambda L: _set_cell(L, 2, "t_s", " "), ["line 2, column t_s", "empty cell"]),
+    "beyond bound": (lambda L: _set_cell(L, 4, "cam_n_m", "1e300"), ["line 4, column cam_n_m", "sanity bound"]),
+    "negative focal": (lambda L: _set_cell(L, 5, "fy_px", "-764.7"), ["line 5, column fy_px", "> 0"]),
+    "zero focal": (lambda L: _set_cell(L, 5, "fx_px", "0"), ["line 5, column fx_px", "> 0"]),
+    "non-unit quaternion": (lambda L: _scale_quat(L, 7, 1.01), ["line 7, column q_w..q_z", "quaternion norm 1.01"]),
+    "zero quaternion": (lambda L: _scale_quat(L, 9, 0.0), ["line 9, column q_w..q_z", "quaternion norm 0"]),
+    "decreasing time": (lambda L: _swap_t(L, 5, 6), ["line 6, column t_s", "strictly increase"]),
+    "repeated time": (lambda L: _set_cell(L, 4, "t_s", L[2].split(",")[0]), ["line 4, column t_s", "strictly increase"]),
+    "short row": (lambda L: L[:3] + [L[3].rsplit(",", 1)[0]] + L[4:], ["line 4:", "13 cells", "has 14"]),
+    "long row": (lambda L: L[:9] + [L[9] + ",1"] + L[10:], ["line 10:", "15 cells"]),
+    "blank lines keep physical numbering": (
+        lambda L: L[:3] + ["", "  "] + _set_cell(L, 4, "u_px", "x")[3:], ["line 6, column u_px"]),
+    "too few rows": (lambda L: L[: MIN_ROWS], [f"{MIN_ROWS - 1} data rows", f"at least {MIN_ROWS}"]),
+    "header only": (lambda L: L[:1], ["no data rows"]),
+    "empty file": (lambda L: [], ["empty file"]),
+    "whitespace only": (lambda L: ["   ", ""], ["empty file"]),
+    "unterminated quote": (lambda L: L[:5] + ['"' + L[5]] + L[6:], ["line 6"]),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_TEXT_CASES))
+def test_bad_input_exit_2_one_line_naming_row_and_column(small_obs, tmp_path, case):
+    mutate, expected = BAD_TEXT_CASES[case]
+    src = tmp_path / "obs.csv"
+    src.write_text("\n".join(mutate(_lines(small_obs))) + "\n")
+    out = tmp_path / "out.csv"
+    rc, err = run_main(src, "-o", out)
+    assert rc == 2, err
+    assert err.count("\n") == 1 and err.startswith("error: "), err
+    for e in expected:
+        assert e in err, err
+    assert "Traceback" not in err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case, payload, expected", [
+    ("not utf-8", b"t_s,u_px\n\xff\xfe\x00garbage\n", "not UTF-8"),
+    ("nul byte", b"t_s,u_px,v_px\n1,2\x003\n", "line 2: contains a NUL byte"),
+])
+def test_binary_files_are_rejected(tmp_path, case, payload, expected):
+    src = tmp_path / "obs.csv"
+    src.write_bytes(payload)
+    rc, err = run_main(src, "-o", tmp_path / "out.csv")
+    assert rc == 2 and err.count("\n") == 1 and expected in err, err
+
+
+def test_bom_and_crlf_are_accepted(small_obs, tmp_path):
+    src = tmp_path / "obs.csv"
+    src.write_bytes(b"\xef\xbb\xbf" + obs_csv_text(small_obs).replace("\n", "\r\n").encode())
+    obs = parse_observations_csv(src.read_bytes().decode("utf-8-sig"))
+    np.testing.assert_array_equal(obs.t_s, small_obs.t_s)
+    np.testing.assert_allclose(obs.q_ned_from_cam, small_obs.q_ned_from_cam, rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("where", ["missing", "directory"])
+def test_unreadable_file(tmp_path, where):
+    src = tmp_path / "nope.csv" if where == "missing" else tmp_path
+    rc, err = run_main(src, "-o", tmp_path / "out.csv")
+    assert rc == 2 and err.count("\n") == 1 and err.startswith(f"error: cannot read {src}"), err
+
+
+@pytest.mark.parametrize("args, expected", [
+    (["--pixel-sigma", "0"], "--pixel-sigma must be > 0"),
+    (["--pixel-sigma", "abc"], "--pixel-sigma must be a number"),
+    (["--attitude-bias-deg", "-1"], "--attitude-bias-deg must be a finite number >= 0"),
+    (["--delta", "nan"], "--delta must be a finite number >= 0"),
+    (["--order", "3"], "--order"),
+    (["--method", "ekf"], "--method"),
+    ([], "-o/--output"),
+])
+def test_bad_arguments_exit_2_one_line(small_obs, tmp_path, args, expected):
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(small_obs))
+    out = [] if args == [] else ["-o", str(tmp_path / "out.csv")]
+    rc, err = run_main(src, *out, *args)
+    assert rc == 2 and err.count("\n") == 1 and expected in err, err
+
+
+def test_unwritable_output_exit_1(small_obs, tmp_path):
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(small_obs))
+    rc, err = run_main(src, "-o", tmp_path / "no_such_dir" / "out.csv")
+    assert rc == 1 and err.count("\n") == 1 and err.startswith("error: cannot write outputs"), err
+
+
+# --------------------------------------------------------------------------- fuzzing: exit 0 or 2, never a traceback
+
+
+def _fuzz_run(text: str | bytes) -> tuple[int, str]:
+    with tempfile.TemporaryDirectory(prefix="hcli_fuzz_") as d:
+        src = Path(d) / "obs.csv"
+        if isinstance(text, bytes):
+            src.write_bytes(text)
+        else:
+            src.write_text(text, encoding="utf-8", errors="surrogatepass")
+        return run_main(src, "-o", Path(d) / "out.csv", "--summary-json", Path(d) / "s.json")
+
+
+def _check(rc, err):
+    assert rc in (0, 2), err
+    assert "Traceback" not in err
+    if rc == 2:
+        assert err.count("\n") == 1 and err.startswith("error: "), err
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(st.one_of(
+    st.binary(max_size=300),
+    st.text(max_size=300),
+    st.lists(st.lists(st.text(st.characters(blacklist_categories=("Cs",)), max_size=8), max_size=16), max_size=14).map(
+        lambda rows: ",".join(OBS_COLUMNS) + "\n" + "\n".join(",".join(r) for r in rows)),
+))
+def test_random_garbage_never_crashes(payload):
+    text = payload if isinstance(payload, bytes) else payload.encode("utf-8", errors="surrogatepass")
+    _check(*_fuzz_run(text))
+
+
+@pytest.fixture(scope="module")
+def valid_lines(p1_uneven):
+    return _lines(p1_uneven[1].select(slice(0, 12)))
+
+
+CELL_VALUES = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**6, 10**6).map(str),
+    st.sampled_from(["", " ", "-", "1e999", "0x10", "1_0", "nan", "None", '"1"', "1,2", "\t3"]),
+    st.text(max_size=6),
+)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@given(data=st.data())
+def test_mutated_valid_file_never_crashes(valid_lines, data):
+    """Mutations of a valid 12-row file: some stay valid and reach the solvers (exit 0)."""
+    lines = list(valid_lines)
+    for _ in range(data.draw(st.integers(1, 3))):
+        kind = data.draw(st.sampled_from(["cell", "cell", "drop_line", "dup_line", "swap_lines", "truncate"]))
+        i = data.draw(st.integers(1, len(lines) - 1)) if len(lines) > 1 else 0
+        if kind == "cell" and lines:
+            cells = lines[i].split(",")
+            cells[data.draw(st.integers(0, len(cells) - 1))] = data.draw(CELL_VALUES)
+            lines[i] = ",".join(cells)
+        elif kind == "drop_line":
+            del lines[i]
+        elif kind == "dup_line":
+            lines.insert(i, lines[i])
+        elif kind == "swap_lines" and len(lines) > 2:
+            j = data.draw(st.integers(1, len(lines) - 1))
+            lines[i], lines[j] = lines[j], lines[i]
+        elif kind == "truncate":
+            text = "\n".join(lines)
+            lines = text[: data.draw(st.integers(0, len(text)))].split("\n")
+    method = data.draw(st.sampled_from(["map", "paper"]))
+    with tempfile.TemporaryDirectory(prefix="hcli_fuzz_") as d:
+        src = Path(d) / "obs.csv"
+        src.write_text("\n".join(lines) + "\n", encoding="utf-8", errors="surrogatepass")
+        rc, err = run_main(src, "-o", Path(d) / "out.csv", "--method", method)
+        _check(rc, err)
+        if rc == 0:
+            a = read_out(Path(d) / "out.csv")
+            assert np.all(np.isfinite(a[:, :4]))
+            assert np.all(np.diff(a[:, 0]) > 0)
+            assert (method == "paper") == bool(np.all(np.isnan(a[:, 4:])))
