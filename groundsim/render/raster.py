@@ -360,7 +360,7 @@ class IrRenderer:
 
     def _background_coarse(self, row: np.ndarray) -> np.ndarray:
         """Table look-up on the coarse grid, bilinear upsampling, exact look-up in the blocks next to
-        coarse samples whose s lies in ``_exact_s`` (the horizon and the fast-changing ground near it)."""
+        coarse samples flagged by ``_exact_table`` (the horizon and the fast-changing ground near it)."""
         k = np.float32(-0.5 * (LUT_SIZE - 1))
         off = np.float32(0.5 * (LUT_SIZE - 1) + 0.5 + _LUT_PAD)
         r0, r1, r2 = (np.float32(v) for v in row)
@@ -389,7 +389,7 @@ class IrRenderer:
     # ------------------------------------------------------------------ target
 
     def _target_delta(self, bg, p_cam, R_nc, p_t, R_nt):
-        """Blurred grey difference (target minus background) over the target ROI, or None if not in view.
+        """Grey difference (target minus background, through PSF and pixel aperture) over the target ROI, or None.
 
         Returns ``(rows slice, cols slice, delta float32, supersample)``.
         """
