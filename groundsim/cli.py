@@ -160,11 +160,47 @@ def _cmd_run(args) -> int:
     return 0
 
 
+# --------------------------------------------------------------------------- eval and demo (groundsim.eval, groundsim.demo)
+
+
+def _add_eval(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
+                   help="scenario YAML file(s) or shipped names, repeatable (default: P1 P2 P3)")
+    p.add_argument("--seeds", type=int, default=5, metavar="N", help="run seeds 0..N-1 per scenario (default: %(default)s)")
+    p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes (default: min(2, CPUs))")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="simulated seconds per run (default: the scenario's duration_s)")
+    p.add_argument("--pixel-sigma", type=float, default=0.3, metavar="PX",
+                   help="perfect-centroid baseline noise, px per axis (default: %(default)s)")
+    p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
+    p.add_argument("--onboard-config", default=None, metavar="FILE",
+                   help="the daemon's configuration (default: config/onboard.yaml if present, else built-in)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.eval", fromlist=["cmd_eval"]).cmd_eval(args))
+
+
+def _add_demo(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
+                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+                   help="wall seconds to run (capped at the scenario's duration_s; default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
+    p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
+    p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
+                   help="the daemon's configuration (default: %(default)s; built-in defaults when absent)")
+    p.add_argument("--eval", dest="with_eval", action="store_true",
+                   help="afterwards, also run the lockstep evaluation (P1-P3, one seed) and print its table")
+    p.set_defaults(handler=lambda args: __import__("groundsim.demo", fromlist=["cmd_demo"]).cmd_demo(args))
+
+
 # --------------------------------------------------------------------------- registry and entry point
 
 #: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
 COMMANDS = (
     ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
+    ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
+    ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
 )
 
 
