@@ -16,8 +16,9 @@ Per frame while a track exists: predict the centre (last centroid + constant pix
 pre-process a region of interest around it (the KCF search patch grown by ``roi_margin_px``);
 run KCF on the double-thresholded residual of that region (:func:`kcf_image_u8`, the paper's
 KCF input; the rest of KCF's 8-bit frame stays black); detect blobs in the region and take the
-one nearest KCF's centre (or the prediction when KCF fails).  KCF is re-seeded on the blob when
-it failed or drifted more than ``max_drift_px`` from the centroid.  No blob in the region: the
+one nearest KCF's centre (or the prediction when KCF fails or lands farther than
+``kcf_gate_px`` from the prediction).  KCF is re-seeded on the blob when it failed or drifted
+more than ``max_drift_px`` from the centroid.  No blob in the region: the
 full frame is searched (re-acquisition after a jump); a blob found within ``coast_frames``
 frames and ``reacquire_gate_px`` of the prediction keeps the track id, otherwise it starts a
 new one (the association is no longer trusted; the estimator should start a new segment).
@@ -193,6 +194,8 @@ class TargetTracker:
             roi = roi.union(Region.around(bx + bw / 2, by + bh / 2, int(math.ceil(max(bw, bh))), w, h))
         pre = preprocess(image, p, roi)
         kcf_ok, kcf_box = self._kcf_step(pre)
+        if kcf_ok and math.hypot(kcf_box[0] + kcf_box[2] / 2 - pu, kcf_box[1] + kcf_box[3] / 2 - pv) > p.kcf_gate_px:
+            kcf_ok = False  # KCF jumped (onto noise or clutter): not a plausible motion
         ref = (kcf_box[0] + kcf_box[2] / 2, kcf_box[1] + kcf_box[3] / 2) if kcf_ok else (pu, pv)
         det = self._nearest(image, pre, ref)
         if det is not None:
