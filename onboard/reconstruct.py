@@ -45,7 +45,7 @@ Exit codes and errors
     the header as line 1 (so the first data row is line 2), e.g.
     ``error: obs.csv line 7, column q_w..q_z: quaternion norm 1.02 is not 1 within 0.001``.
     Outputs are written atomically (a temporary file renamed), so a failed run leaves no partial
-    OUT.csv.
+    OUT.csv (and leaves a previous run's files untouched: trust the exit code, not the file).
 
 Rows needed: both methods need at least ``MapConfig.min_frames`` (10) rows, because the MAP
 observability analysis runs on the same rows.
@@ -376,7 +376,10 @@ def build_parser() -> argparse.ArgumentParser:
                "arguments or not reconstructable, 1 cannot write outputs / internal error. "
                "Unobservable geometry exits 0 with observable false in the summary.",
     )
-    p.add_argument("obs_csv", metavar="OBS.csv", help="observations (see the module docstring for the columns)")
+    p.add_argument("obs_csv", metavar="OBS.csv",
+                   help=f"observations: a header line with (any order) {','.join(OBS_COLUMNS)}; cam_* the camera centre "
+                        "in local NED (m), q_* q_ned_from_cam (w first, camera x right/y down/z forward); times strictly "
+                        "increasing")
     p.add_argument("-o", "--output", metavar="OUT.csv", required=True, help="reconstructed positions and sigmas")
     p.add_argument("--summary-json", metavar="S.json", help="write a JSON summary (observable, method, frames, diagnostics)")
     p.add_argument("--method", choices=("map", "paper"), default="map", help="MAP estimator (default) or the paper's closed form")
