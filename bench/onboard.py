@@ -23,6 +23,7 @@ import argparse
 import json
 import math
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -31,9 +32,13 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
+if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the numpy import
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
-from onboard.frames import (
+import numpy as np  # noqa: E402
+
+from onboard.frames import (  # noqa: E402
     CameraMount,
     GeodeticOrigin,
     PinholeIntrinsics,
@@ -44,9 +49,9 @@ from onboard.frames import (
     quat_normalize,
     rotmat_from_quat,
 )
-from onboard.irframe import IrFrame, encode_irframe
+from onboard.irframe import IrFrame, encode_irframe  # noqa: E402
 
-__all__ = ["SyntheticScene", "free_udp_port", "free_tcp_port", "main"]
+__all__ = ["SyntheticScene", "FakeAutopilot", "free_udp_port", "free_tcp_port", "bench_processing", "bench_latency", "main"]
 
 ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
 BOOT_US0 = 20_000_000  # the scene starts 20 s after the autopilot booted
@@ -189,3 +194,295 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+# --------------------------------------------------------------------------- fake autopilot (also used by the tests)
+
+
+class FakeAutopilot:
+    """A PX4-like autopilot over UDP (pymavlink, MAVLink 2) flying :class:`SyntheticScene`'s observer.
+
+    Sends HEARTBEAT, ATTITUDE_QUATERNION (#31) and GLOBAL_POSITION_INT (#33) stamped on its boot
+    clock, which reads ``scene.boot_us0`` when the object is made; ACKs SET_MESSAGE_INTERVAL and
+    answers TIMESYNC.  Keeps what it receives in ``received``.
+    """
+
+    def __init__(self, port: int, scene: SyntheticScene, host: str = "127.0.0.1") -> None:
+        os.environ["MAVLINK20"] = "1"
+        from pymavlink import mavutil
+        from pymavlink.dialects.v20 import common as mav
+
+        self.mav = mav
+        self.conn = mavutil.mavlink_connection(f"udpout:{host}:{port}", source_system=1, source_component=1, dialect="common")
+        self.scene = scene
+        self.boot_mono_ns = time.monotonic_ns() - scene.boot_us0 * 1000
+        self.received: list = []
+
+    def boot_us(self) -> int:
+        return (time.monotonic_ns() - self.boot_mono_ns) // 1000
+
+    def heartbeat(self) -> None:
+        m = self.mav
+        self.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
+
+    def attitude(self, t_us: int, q=None) -> None:
+        if q is None:
+            q = self.scene.body((t_us - self.scene.boot_us0) / 1e6)[2]
+        self.conn.mav.attitude_quaternion_send(t_us // 1000, *[float(c) for c in q], 0.0, 0.0, 0.0)
+
+    def position(self, t_us: int, latlon_raw=None) -> None:
+        p, v, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
+        lat, lon, alt = self.scene.geodetic(p)
+        la, lo = (int(round(lat * 1e7)), int(round(lon * 1e7))) if latlon_raw is None else latlon_raw
+        self.conn.mav.global_position_int_send(t_us // 1000, la, lo, int(round(alt * 1000)), int(round(-p[2] * 1000)),
+                                               *(int(round(c * 100)) for c in v), 0)
+
+    def junk(self) -> None:
+        """300 random bytes, then a HEARTBEAT with a broken CRC."""
+        m = self.mav
+        self.conn.write(np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8).tobytes())
+        msg = self.conn.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
+        buf = bytearray(msg.pack(self.conn.mav))
+        buf[-1] ^= 0xFF
+        self.conn.write(bytes(buf))
+
+    def pump(self) -> None:
+        m = self.mav
+        while True:
+            msg = self.conn.recv_match(blocking=False)
+            if msg is None:
+                return
+            t = msg.get_type()
+            self.received.append(msg)
+            if len(self.received) > 10_000:
+                del self.received[:5_000]
+            if t == "COMMAND_LONG" and msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
+                self.conn.mav.command_ack_send(msg.command, m.MAV_RESULT_ACCEPTED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+            elif t == "TIMESYNC" and msg.tc1 == 0:
+                self.conn.mav.timesync_send(self.boot_us() * 1000, msg.ts1)
+
+    def got(self, mtype: str) -> list:
+        return [msg for msg in self.received if msg.get_type() == mtype]
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+# --------------------------------------------------------------------------- benchmark 1: per-frame processing
+
+
+class _Timed:
+    """Wraps one method of an object and records its wall time per call (ms)."""
+
+    def __init__(self, obj, method: str) -> None:
+        self._obj, self._fn = obj, getattr(obj, method)
+        self.ms: list[float] = []
+        setattr(self, method, self._call)
+
+    def _call(self, *a, **kw):
+        t0 = time.perf_counter()
+        try:
+            return self._fn(*a, **kw)
+        finally:
+            self.ms.append((time.perf_counter() - t0) * 1e3)
+
+    def __getattr__(self, name):
+        return getattr(self._obj, name)
+
+
+def _pct(a, q) -> float:
+    return float(np.percentile(np.asarray(a, dtype=float), q)) if len(a) else math.nan
+
+
+def bench_processing(n_frames: int) -> None:
+    import cv2
+
+    from onboard.config import OnboardConfig, build_config
+    from onboard.irframe import decode_irframe
+    from onboard.pipeline import FramePipeline, make_estimator, make_tracker
+    from onboard.pose import PoseBuffer, RejectCounter
+
+    cv2.setNumThreads(1)
+    try:
+        cpu = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {cpu})
+        pinned = f"pinned to CPU {cpu}"
+    except (AttributeError, OSError):
+        pinned = "not pinned"
+    scene = SyntheticScene()
+    print(f"1. per-frame processing, 640 x 512 mono8, {n_frames} frames at 30 Hz scene time, one thread, {pinned}")
+    payloads = [scene.payload(k) for k in range(n_frames)]
+
+    def run(cfg: OnboardConfig, with_estimator: bool):
+        counter = RejectCounter(log_interval_s=3600.0)
+        pose = PoseBuffer(mount=scene.mount, config=cfg.pose.buffer_config(), origin=scene.origin, counter=counter)
+        tracker = _Timed(make_tracker(cfg), "update")
+        est = _Timed(make_estimator(cfg), "add") if with_estimator else None
+        pipe = FramePipeline(cfg, pose, tracker, est, counter=counter)
+        total, fed = [], scene.t_us(0) - 100_000
+        n_pos = 0
+        for k, payload in enumerate(payloads):
+            t_hi = scene.t_us(k) + 45_000
+            for t, p, v, q in scene.telemetry(fed + 1, t_hi, 50.0):
+                pose.add_attitude(t, q)
+                pose.add_position_ned(t, p, v)
+            fed = t_hi
+            t0 = time.perf_counter()
+            tr = pipe.process_payload(payload, 0)
+            total.append((time.perf_counter() - t0) * 1e3)
+            n_pos += tr.has_position
+        return total, tracker.ms, (est.ms if est else []), n_pos, counter.total, tr
+
+    decode_ms = []
+    for p in payloads[:200]:
+        t0 = time.perf_counter()
+        decode_irframe(p)
+        decode_ms.append((time.perf_counter() - t0) * 1e3)
+    cfg = OnboardConfig()
+    base, base_img, _, _, _, _ = run(build_config({"estimator": {"enabled": False}}), False)
+    total, img, est, n_pos, rejects, last = run(cfg, True)
+    fps = 1000.0 / _pct(total, 50)
+    print(f"   full chain (decode + filter + detect + track + pose + estimator):")
+    print(f"     per frame ms  p10 {_pct(total, 10):6.2f}  p50 {_pct(total, 50):6.2f}  p90 {_pct(total, 90):6.2f}"
+          f"  p99 {_pct(total, 99):7.1f}  max {max(total):7.1f}   mean {np.mean(total):6.2f}")
+    print(f"     frames/s from the median: {fps:6.0f}   from the mean: {1000.0 / np.mean(total):6.0f}   (target >= 300 median)")
+    print(f"     stages, median ms: decode {_pct(decode_ms, 50):.3f}  imaging {_pct(img, 50):.2f}"
+          f"  estimator add {_pct(est, 50):.2f} (p90 {_pct(est, 90):.1f}, max {max(est) if est else math.nan:.0f})")
+    slow = sum(1 for x in est if x > 50.0)
+    print(f"     estimator adds > 50 ms (model re-selection): {slow} of {len(est)} "
+          f"({100.0 * slow / max(len(est), 1):.1f} %), {sum(x for x in est if x > 50.0) / max(sum(est), 1e-9) * 100:.0f} % of estimator time")
+    print(f"     frames with a 3-D position: {n_pos} of {n_frames}; refusals counted: {rejects}")
+    if last.has_position:
+        ts = (last.time_boot_us - scene.boot_us0) / 1e6
+        err = float(np.linalg.norm(np.asarray(last.p_ned_m) - scene.target(ts)[0]))
+        print(f"     last frame: 3-D error {err:.2f} m, 1-sigma {math.sqrt(np.trace(last.cov_p_ned_m2)):.2f} m, range {last.range_m:.0f} m")
+    print(f"   baseline without estimator: p50 {_pct(base, 50):.2f} ms -> {1000.0 / _pct(base, 50):.0f} frames/s;"
+          f" ratio full / baseline (median) {_pct(total, 50) / _pct(base, 50):.2f}")
+
+
+# --------------------------------------------------------------------------- benchmark 2: loopback latency
+
+
+def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0) -> None:
+    import queue
+
+    import zenoh
+
+    from onboard.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+
+    scene = SyntheticScene()
+    mport, zport = free_udp_port(), free_tcp_port()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
+    env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    health = os.path.join(tempfile.gettempdir(), f"irtrack-bench-alive-{os.getpid()}")
+    cmd = [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen",
+           f"tcp/127.0.0.1:{zport}", "--set", f"output.health_file={health}", "--log-level", "WARNING"]
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    err_lines: list[str] = []
+    threading.Thread(target=lambda: [err_lines.append(ln) for ln in proc.stderr], daemon=True).start()
+    session = None
+    try:
+        session = open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{zport}",)))
+        arrivals: queue.Queue = queue.Queue()
+        statuses: list = []
+
+        def on_track(sample):
+            arrivals.put((time.monotonic_ns(), sample.payload.to_bytes()))
+
+        subs = [session.declare_subscriber(track_key(), on_track),
+                session.declare_subscriber(status_key(), lambda s: statuses.append(json.loads(s.payload.to_bytes())))]
+        pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
+        ap = FakeAutopilot(mport, scene)
+        put_ns: dict[int, int] = {}
+        lat_ms: list[float] = []
+        first_track = None
+        t_start = time.monotonic()
+        next_frame = next_tel = t_start
+        next_hb = 0.0
+        k = tel_n = 0
+        measuring_from = None
+        lag_us = int(capture_lag_ms * 1000)
+        while True:
+            now = time.monotonic()
+            ap.pump()
+            if now >= next_hb:
+                ap.heartbeat()
+                next_hb = now + 1.0
+            if now >= next_tel:
+                t = ap.boot_us()
+                ap.attitude(t)
+                if tel_n % 2 == 0:
+                    ap.position(t)
+                tel_n += 1
+                next_tel += 0.02
+            if now >= next_frame:
+                payload = scene.payload(k, time_boot_us=ap.boot_us() - lag_us)
+                put_ns[k] = time.monotonic_ns()
+                pub.put(payload)
+                k += 1
+                next_frame += 1.0 / rate_hz
+            while not arrivals.empty():
+                t_ns, data = arrivals.get()
+                j = json.loads(data)
+                if first_track is None:
+                    first_track = now
+                    measuring_from = now + 2.0  # let the daemon settle (first track, rates, TIMESYNC)
+                if measuring_from is not None and now >= measuring_from and j["seq"] in put_ns:
+                    lat_ms.append((t_ns - put_ns.pop(j["seq"])) / 1e6)
+            if measuring_from is not None and now >= measuring_from + duration_s:
+                break
+            if now - t_start > duration_s + 60:
+                print("   daemon produced no track within a minute; stderr:", *err_lines[-10:], sep="\n   ")
+                return
+            time.sleep(0.001)
+        sent = k
+        st = statuses[-1] if statuses else {}
+        print(f"   capture lag {capture_lag_ms:.0f} ms (frame stamped that long before it is sent): "
+              f"{len(lat_ms)} tracks timed over {duration_s:.0f} s of {sent} frames sent")
+        print(f"     put -> track received, ms: p50 {_pct(lat_ms, 50):.2f}  p90 {_pct(lat_ms, 90):.2f}"
+              f"  p99 {_pct(lat_ms, 99):.2f}  max {max(lat_ms) if lat_ms else math.nan:.1f}   (target p99 <= 10)")
+        if st:
+            f = st["frames"]
+            print(f"     daemon status: in {f['in']} processed {f['processed']} dropped {f['dropped']} rejected {f['rejected']};"
+                  f" processing p50 {st['processing_ms']['p50']:.2f} p99 {st['processing_ms']['p99']:.2f} ms;"
+                  f" pose wait p50 {st['pose_wait_ms']['p50']:.2f} p99 {st['pose_wait_ms']['p99']:.2f} ms;"
+                  f" receipt->published p99 {st['latency_ms']['p99']:.2f} ms")
+            c2t = st.get("capture_to_track_ms") or {}
+            print(f"     capture->track (TIMESYNC) p50 {c2t.get('p50') or math.nan:.1f} ms; cpu share {st['cpu']['share']:.2f}"
+                  f" (pipeline + estimator threads {st['cpu']['pipeline_share']:.2f}); link {st['link']['state']};"
+                  f" rejected {st['rejected']}")
+        for s in subs:
+            s.undeclare()
+        pub.undeclare()
+        ap.close()
+    finally:
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        try:
+            rc = proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            rc = proc.wait(5)
+        print(f"     SIGTERM -> exit {rc} in {time.monotonic() - t0:.2f} s")
+        if session is not None:
+            session.close()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="python -m bench.onboard", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--frames", type=int, default=600, help="frames for the processing benchmark (default 600 = 20 s)")
+    ap.add_argument("--latency-s", type=float, default=20.0, help="seconds of 30 Hz frames timed through the daemon")
+    ap.add_argument("--no-latency", action="store_true", help="skip the daemon loopback benchmark")
+    args = ap.parse_args(argv)
+    print(f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load)")
+    if not args.no_latency:
+        # first, before this process pins itself to one core
+        print("2. loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")
+        for lag in (50.0, 0.0):
+            bench_latency(args.latency_s, lag)
+    bench_processing(args.frames)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

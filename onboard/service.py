@@ -356,7 +356,8 @@ class OnboardService:
         self.config = config
         self._clock = clock
         self._clock_ns = clock_ns
-        self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock)
+        self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock,
+                                     logger=logging.getLogger("onboard.rejects"))
         self.mount = config.camera.camera_mount()
         buffer = PoseBuffer(mount=self.mount, config=config.pose.buffer_config(),
                             origin=config.pose.geodetic_origin(), counter=self.counter)

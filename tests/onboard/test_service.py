@@ -28,7 +28,7 @@ os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the d
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from bench.onboard import SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
+from bench.onboard import FakeAutopilot, SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
 from onboard.errors import InputError  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from onboard.frames import geodetic_from_ned  # noqa: E402
@@ -172,57 +172,6 @@ def test_threaded_estimator_returns_its_own_result_when_fast_and_propagates_when
 # --------------------------------------------------------------------------- end to end
 
 
-class FakeAutopilot:
-    """PX4-like: HEARTBEAT, attitude #31 and position #33 on a boot clock; ACKs rate requests, answers TIMESYNC."""
-
-    def __init__(self, port: int, scene: SyntheticScene) -> None:
-        self.conn = mavutil.mavlink_connection(f"udpout:127.0.0.1:{port}", source_system=1, source_component=1,
-                                               dialect="common")
-        self.scene = scene
-        self.boot_mono_ns = time.monotonic_ns() - scene.boot_us0 * 1000  # boot time now = the scene's start
-        self.received: list = []
-
-    def boot_us(self) -> int:
-        return (time.monotonic_ns() - self.boot_mono_ns) // 1000
-
-    def heartbeat(self) -> None:
-        self.conn.mav.heartbeat_send(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
-
-    def attitude(self, t_us: int, q=None) -> None:
-        if q is None:
-            q = self.scene.body((t_us - self.scene.boot_us0) / 1e6)[2]
-        self.conn.mav.attitude_quaternion_send(t_us // 1000, *[float(c) for c in q], 0.0, 0.0, 0.0)
-
-    def position(self, t_us: int, latlon_raw=None) -> None:
-        p, v, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
-        lat, lon, alt = self.scene.geodetic(p)
-        la, lo = (int(round(lat * 1e7)), int(round(lon * 1e7))) if latlon_raw is None else latlon_raw
-        self.conn.mav.global_position_int_send(t_us // 1000, la, lo, int(round(alt * 1000)), int(round(-p[2] * 1000)),
-                                               *(int(round(c * 100)) for c in v), 0)
-
-    def junk(self) -> None:
-        self.conn.write(np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8).tobytes())
-        msg = self.conn.mav.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
-        buf = bytearray(msg.pack(self.conn.mav))
-        buf[-1] ^= 0xFF  # bad CRC
-        self.conn.write(bytes(buf))
-
-    def pump(self) -> None:
-        while True:
-            m = self.conn.recv_match(blocking=False)
-            if m is None:
-                return
-            t = m.get_type()
-            self.received.append(m)
-            if t == "COMMAND_LONG" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-                self.conn.mav.command_ack_send(m.command, mav.MAV_RESULT_ACCEPTED, 0, 0, m.get_srcSystem(), m.get_srcComponent())
-            elif t == "TIMESYNC" and m.tc1 == 0:
-                self.conn.mav.timesync_send(self.boot_us() * 1000, m.ts1)
-
-    def got(self, mtype: str) -> list:
-        return [m for m in self.received if m.get_type() == mtype]
-
-
 class Daemon:
     def __init__(self, args: list[str], env: dict) -> None:
         self.proc = subprocess.Popen([sys.executable, "-m", "onboard", *args], cwd=REPO, env=env,
@@ -263,7 +212,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
     alive = tmp_path / "alive"
     d = Daemon(["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
                 "--set", f"output.health_file={alive}", "--set", "output.status_interval_s=0.5",
-                "--set", "logging.reject_log_interval_s=60"], daemon_env)
+                "--set", "logging.reject_log_interval_s=60", "--set", "output.unobservable_positions=true"], daemon_env)
     session = None
     try:
         assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
@@ -369,6 +318,16 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert img.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE
         u_last = got_tracks[-1].u_px / 640
         assert abs(img.point_x - u_last) < 0.05  # the image moves slowly; #275 carries a recent frame
+        # 4. a 3-D estimate (observable or not: unobservable_positions is on) and its #276
+        run_until(lambda: any(t.has_position for t in got_tracks[-5:]), 20, "a track with a 3-D position")
+        withpos = [t for t in got_tracks if t.has_position][-1]
+        assert withpos.window_frames >= 30 and withpos.origin is not None
+        lat, lon, _ = geodetic_from_ned(withpos.p_ned_m, withpos.origin)
+        assert abs(float(lat) - withpos.lat_deg) < 1e-9 and abs(float(lon) - withpos.lon_deg) < 1e-9
+        run_until(lambda: len(ap.got("CAMERA_TRACKING_GEO_STATUS")) >= 1, 10, "CAMERA_TRACKING_GEO_STATUS")
+        geo = ap.got("CAMERA_TRACKING_GEO_STATUS")[-1]
+        assert abs(geo.lat * 1e-7 - 32.0) < 0.01 and abs(geo.lon * 1e-7 - 118.8) < 0.01
+        assert geo.h_acc > 0 and geo.v_acc > 0 and math.isfinite(geo.vel_acc) and geo.dist > 0
         assert alive.exists()
         flood = [ln for ln in d.lines if "frame_magic" in ln]
         assert len(flood) == 1, flood  # no log flood on repeated bad input
