@@ -1,6 +1,6 @@
 """Benchmark of ``groundsim run``: real-time factor at ``--rate max`` and pacing jitter at ``--rate realtime``.
 
-``python -m bench.simrate [--scenario P1] [--duration 10] [--skip-realtime]``.  In process, on
+``python -m bench.simrate [--scenario P1] [--duration 10] [--modes max,realtime] [--rt-priority N]``.  In process, on
 127.0.0.1 only: the simulator publishes its frames to a zenoh subscriber in this process (a
 listening session it connects to) and its MAVLink to a UDP socket drained by a thread, so both
 emit paths run for real.  Prints:
@@ -12,7 +12,8 @@ emit paths run for real.  Prints:
 * baseline in the same run: the same frames flown and rendered with no sockets and no truth file
   (``SimCore.frame`` in a tight loop), and the loop's cost relative to it;
 * ``--rate realtime``: frame-period jitter ``|interval between publications - 1/30 s|`` p50 / p99 /
-  max and lateness behind the deadlines, over the scenario.
+  max and lateness behind the deadlines, over the scenario; with ``--rt-priority N`` a second
+  realtime run at SCHED_FIFO priority N (``groundsim run --rt-priority``), for comparison.
 
 The machine's load average is printed with the numbers: on a shared machine the wall-clock
 figures move with it.  Numbers only: nothing here asserts on time.
@@ -29,7 +30,7 @@ import time
 
 import cv2
 
-from groundsim.cli import resolve_scenario_path
+from groundsim.cli import _realtime_priority, resolve_scenario_path
 from groundsim.run import RateSpec, RunConfig, SimCore, run
 from groundsim.scenario import load_scenario
 from onboard.zenoh_session import ZenohSettings, frame_key, open_session
@@ -110,12 +111,27 @@ def _baseline(scenario, duration_s: float) -> tuple[float, float, int]:
     return t1 - t0, time.perf_counter() - t1, core.frame_count
 
 
+def _realtime(sc, duration_s: float, rx: _Receivers, label: str) -> None:
+    rep, cpu_s, _ = _run(sc, duration_s, "realtime", rx)
+    j = rep.jitter
+    print(f"--rate realtime ({label}): {rep.frames} frames in {rep.wall_s:.2f} s (rt x{rep.rt_factor:.3f}),"
+          f" CPU {cpu_s:.2f} s; frames received {rx.frames}; per frame ms: "
+          + ", ".join(f"{k} {v:.2f}" for k, v in rep.per_frame_ms.items()) + f"; {_load()}")
+    if j is not None:
+        print(f"             frame-period jitter p50 {j.jitter_p50_ms:.3f} ms, p99 {j.jitter_p99_ms:.3f} ms,"
+              f" max {j.jitter_max_ms:.3f} ms; lateness p50 {j.late_p50_ms:.3f} ms, p99 {j.late_p99_ms:.3f} ms,"
+              f" max {j.late_max_ms:.3f} ms")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(prog="python -m bench.simrate", description=__doc__.splitlines()[0])
     ap.add_argument("--scenario", default="P1")
     ap.add_argument("--duration", type=float, default=10.0)
-    ap.add_argument("--skip-realtime", action="store_true")
+    ap.add_argument("--modes", default="max,realtime", help="comma-separated: max, realtime (default: both)")
+    ap.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                    help="also run realtime at SCHED_FIFO priority N (as groundsim run --rt-priority)")
     args = ap.parse_args(argv)
+    modes = {m.strip() for m in args.modes.split(",") if m.strip()}
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cv2.setNumThreads(1)  # as the CLI does (groundsim.cli)
     sc = load_scenario(resolve_scenario_path(args.scenario))
@@ -124,28 +140,28 @@ def main(argv=None) -> None:
 
     rx = _Receivers()
     try:
-        rep, cpu_s, wall_s = _run(sc, args.duration, "max", rx)
-        pf = rep.per_frame_ms
-        print(f"--rate max:  set-up {rep.setup_s:.2f} s, loop {rep.wall_s:.2f} s for {rep.sim_s:.2f} s simulated:"
-              f" real-time factor x{rep.rt_factor:.2f} (loop), x{rep.sim_s / (rep.setup_s + rep.wall_s):.2f} with set-up,"
-              f" x{rep.sim_s / wall_s:.2f} with socket opening too")
-        print(f"             process CPU {cpu_s:.2f} s (all threads); per frame ms: "
-              + ", ".join(f"{k} {v:.2f}" for k, v in pf.items())
-              + f"; frames received {rx.frames}/{rep.frames}, MAVLink datagrams {rx.datagrams}; {_load()}")
-        b_setup, b_loop, n = _baseline(sc, args.duration)
-        print(f"baseline (fly + render + truth rows, no sockets): set-up {b_setup:.2f} s, loop {b_loop:.2f} s"
-              f" ({1e3 * b_loop / max(n - 1, 1):.2f} ms/frame, x{args.duration / b_loop:.2f} real time);"
-              f" --rate max loop / baseline loop = {rep.wall_s / b_loop:.2f}")
-        if not args.skip_realtime:
-            rep, cpu_s, _ = _run(sc, args.duration, "realtime", rx)
-            j = rep.jitter
-            print(f"--rate realtime: {rep.frames} frames in {rep.wall_s:.2f} s (rt x{rep.rt_factor:.3f}), CPU {cpu_s:.2f} s;"
-                  f" frames received {rx.frames}; per frame ms: "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in rep.per_frame_ms.items()) + f"; {_load()}")
-            if j is not None:
-                print(f"             frame-period jitter p50 {j.jitter_p50_ms:.3f} ms, p99 {j.jitter_p99_ms:.3f} ms,"
-                      f" max {j.jitter_max_ms:.3f} ms; lateness p50 {j.late_p50_ms:.3f} ms, p99 {j.late_p99_ms:.3f} ms,"
-                      f" max {j.late_max_ms:.3f} ms")
+        if "max" in modes:
+            rep, cpu_s, wall_s = _run(sc, args.duration, "max", rx)
+            pf = rep.per_frame_ms
+            print(f"--rate max:  set-up {rep.setup_s:.2f} s, loop {rep.wall_s:.2f} s for {rep.sim_s:.2f} s simulated:"
+                  f" real-time factor x{rep.rt_factor:.2f} (loop), x{rep.sim_s / (rep.setup_s + rep.wall_s):.2f} with set-up,"
+                  f" x{rep.sim_s / wall_s:.2f} with socket opening too")
+            print(f"             process CPU {cpu_s:.2f} s (all threads); per frame ms: "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in pf.items())
+                  + f"; frames received {rx.frames}/{rep.frames}, MAVLink datagrams {rx.datagrams}; {_load()}")
+            b_setup, b_loop, n = _baseline(sc, args.duration)
+            print(f"baseline (fly + render + truth rows, no sockets): set-up {b_setup:.2f} s, loop {b_loop:.2f} s"
+                  f" ({1e3 * b_loop / max(n - 1, 1):.2f} ms/frame, x{args.duration / b_loop:.2f} real time);"
+                  f" --rate max loop / baseline loop = {rep.wall_s / b_loop:.2f}")
+        if "realtime" in modes:
+            _realtime(sc, args.duration, rx, "normal priority")
+            if args.rt_priority is not None:
+                _realtime_priority(args.rt_priority, True)
+                try:
+                    _realtime(sc, args.duration, rx, f"SCHED_FIFO {args.rt_priority}")
+                finally:
+                    if hasattr(os, "sched_setscheduler"):
+                        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     finally:
         rx.close()
 

@@ -84,6 +84,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
     p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                   help="paced runs: ask Linux for SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE, otherwise a"
+                        " warning and normal priority) so a busy machine does not delay the frames")
     p.set_defaults(handler=_cmd_run)
 
 
@@ -144,6 +147,29 @@ def _single_threaded_opencv() -> None:
         pass
 
 
+def _realtime_priority(priority: int | None, paced: bool) -> None:
+    """``--rt-priority``: SCHED_FIFO for this process (threads started later inherit it).
+
+    Opt-in only: a paced loop sleeps most of the time, so it takes little CPU, but a loop that
+    cannot keep up would hold a core; not allowed with ``--rate max``.
+    """
+    if priority is None:
+        return
+    if not 1 <= priority <= 99:
+        raise ConfigError(f"--rt-priority: expected 1..99 (SCHED_FIFO priority), got {priority}")
+    if not paced:
+        raise ConfigError("--rt-priority: only for a paced --rate (realtime or a factor), not max")
+    import os
+
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        log.warning("--rt-priority %d not applied (%s): running at normal priority", priority,
+                    getattr(exc, "strerror", None) or exc)
+    else:
+        log.info("SCHED_FIFO priority %d", priority)
+
+
 def _cmd_run(args) -> int:
     stop = threading.Event()
     restore = _install_stop_signals(stop)
@@ -151,6 +177,7 @@ def _cmd_run(args) -> int:
         config = _run_config(args)
         if stop.is_set():
             return 0
+        _realtime_priority(args.rt_priority, config.rate.paced)
         _single_threaded_opencv()
         from groundsim.run import run
 

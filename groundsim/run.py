@@ -45,6 +45,7 @@ holds whole lines for every frame published, and :func:`run` closes the sockets.
 
 from __future__ import annotations
 
+import gc
 import logging
 import math
 import threading
@@ -601,70 +602,79 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
         sink_errors = (IrtrackError,)
     stop = stop if stop is not None else threading.Event()
     clock = clock if clock is not None else SystemClock()
-    m = core.ticks_per_frame
-    n_frames = core.frame_count
     pacer = Pacer(rate.factor, clock)
     jitter = JitterStats(1.0 / core.frame_rate_hz / (rate.factor or 1.0)) if rate.paced else None
-    mavlink_errors, publish_errors = _Limited("mavlink_error"), _Limited("publish_error")
-    acc = {"publish": 0.0, "mavlink": 0.0, "truth": 0.0}
-    published = 0
 
     t_setup = clock.now_s()
     pending = core.frame(0) if not stop.is_set() else None
     setup_s = clock.now_s() - t_setup
     flight_setup_s, render_setup_s = core.flight.flight_s, core.render_s
     log.info("set-up %.2f s (flight %.2f s); %d frames at %g Hz, %d ticks at %g Hz, rate %s",
-             setup_s, flight_setup_s, n_frames, core.frame_rate_hz, core.tick_count, core.tick_rate_hz, rate.text)
+             setup_s, flight_setup_s, core.frame_count, core.frame_rate_hz, core.tick_count, core.tick_rate_hz, rate.text)
 
+    if rate.paced:
+        # the set-up left a large heap (SciPy, OpenCV, zenoh, JSBSim); a full collection of it stalls
+        # the loop for tens of ms (measured: 37 ms).  Freeze it so collections only scan new objects.
+        gc.collect()
+        gc.freeze()
+    m = core.ticks_per_frame
+    n_frames = core.frame_count
+    mavlink_errors, publish_errors = _Limited("mavlink_error"), _Limited("publish_error")
+    acc = {"publish": 0.0, "mavlink": 0.0, "truth": 0.0}
+    published = 0
+    frames = 0
     pacer.start(0.0)
     wall0 = clock.now_s()
     next_status = wall0 + STATUS_EVERY_S
     next_jitter_log = wall0 + JITTER_LOG_EVERY_S
-    frames = 0
-    for i in range(core.tick_count):
-        if stop.is_set():
-            break
-        k, r = divmod(i, m)
-        late = pacer.wait_until(core.tick_time_s(i), stop)
-        if stop.is_set():
-            break
-        if mavlink is not None:
-            t0 = clock.now_s()
-            try:
-                mavlink.update_state(**core.vehicle_state(i))
-                mavlink.poll(core.time_boot_us(i))
-            except sink_errors as exc:
-                mavlink_errors(f"tick {i}: mavlink", exc)
-            acc["mavlink"] += clock.now_s() - t0
-        if r == 0:
-            frame = pending
-            wall = clock.now_s()
-            if jitter is not None:
-                jitter.add(wall, late)
-            if publisher is not None and frame.pixels is not None:
+    try:
+        for i in range(core.tick_count):
+            if stop.is_set():
+                break
+            k, r = divmod(i, m)
+            late = pacer.wait_until(core.tick_time_s(i), stop)
+            if stop.is_set():
+                break
+            if mavlink is not None:
+                t0 = clock.now_s()
                 try:
-                    publisher.publish(IrFrame(frame.seq, frame.time_boot_us, frame.pixels))
-                    published += 1
+                    mavlink.update_state(**core.vehicle_state(i))
+                    mavlink.poll(core.time_boot_us(i))
                 except sink_errors as exc:
-                    publish_errors(f"frame {frame.seq}: publish", exc)
-            t1 = clock.now_s()
-            acc["publish"] += t1 - wall
-            if truth is not None:
-                truth.write(frame.truth)
-            acc["truth"] += clock.now_s() - t1
-            frames += 1
-            pending = core.frame(k + 1) if k + 1 < n_frames else None
-        now = clock.now_s()
-        if now >= next_status:
-            next_status = now + STATUS_EVERY_S
-            sim_s = frames / core.frame_rate_hz
-            log.info("frames %d/%d, sim %.2f/%.2f s, rt x%.2f", frames, n_frames, sim_s, core.duration_s,
-                     sim_s / max(now - wall0, 1e-9))
-        if jitter is not None and now >= next_jitter_log:
-            next_jitter_log = now + JITTER_LOG_EVERY_S
-            s = jitter.summary()
-            if s is not None:
-                log.info("pacing: %s", s.line())
+                    mavlink_errors(f"tick {i}: mavlink", exc)
+                acc["mavlink"] += clock.now_s() - t0
+            if r == 0:
+                frame = pending
+                wall = clock.now_s()
+                if jitter is not None:
+                    jitter.add(wall, late)
+                if publisher is not None and frame.pixels is not None:
+                    try:
+                        publisher.publish(IrFrame(frame.seq, frame.time_boot_us, frame.pixels))
+                        published += 1
+                    except sink_errors as exc:
+                        publish_errors(f"frame {frame.seq}: publish", exc)
+                t1 = clock.now_s()
+                acc["publish"] += t1 - wall
+                if truth is not None:
+                    truth.write(frame.truth)
+                acc["truth"] += clock.now_s() - t1
+                frames += 1
+                pending = core.frame(k + 1) if k + 1 < n_frames else None
+            now = clock.now_s()
+            if now >= next_status:
+                next_status = now + STATUS_EVERY_S
+                sim_s = frames / core.frame_rate_hz
+                log.info("frames %d/%d, sim %.2f/%.2f s, rt x%.2f", frames, n_frames, sim_s, core.duration_s,
+                         sim_s / max(now - wall0, 1e-9))
+            if jitter is not None and now >= next_jitter_log:
+                next_jitter_log = now + JITTER_LOG_EVERY_S
+                summary = jitter.summary()
+                if summary is not None:
+                    log.info("pacing: %s", summary.line())
+    finally:
+        if rate.paced:
+            gc.unfreeze()
     wall_s = max(clock.now_s() - wall0, 1e-9)
     sim_s = frames / core.frame_rate_hz
     nf = max(frames, 1)

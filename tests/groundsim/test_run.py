@@ -373,6 +373,8 @@ def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
         (["run", "--mavlink", "bogus:1"], "--mavlink"),
         (["run", "--zenoh-listen", "nonsense"], "--zenoh-listen"),
         (["run", "--bogus-option"], "unrecognized arguments"),
+        (["run", "--rt-priority", "0"], "--rt-priority"),
+        (["run", "--rt-priority", "10", "--rate", "max"], "--rt-priority"),
         (["fly"], "invalid choice"),
     ):
         rc, err = _main_err(capsys, *argv, *(["--log-level", "error"] if argv[0] == "run" else []))
