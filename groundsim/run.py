@@ -32,7 +32,10 @@ flown and rendered right after the current one is published (its pose is known i
 the publication instant does not depend on the render time.  Frame-period jitter (``|interval
 between publications - period / F|``) and lateness behind the deadline are reported every
 ``JITTER_LOG_EVERY_S`` and at exit.  A status line (frames, sim time, real-time factor) is logged
-once per ``STATUS_EVERY_S`` of wall time.
+once per ``STATUS_EVERY_S`` of wall time.  While paced, the heap left by the set-up is frozen
+(``gc.freeze``): a full collection of it stalled the loop by tens of ms.  On a busy machine the
+wake-ups themselves come late; ``groundsim run --rt-priority N`` (opt-in SCHED_FIFO) fixes that
+(``python -m bench.simrate`` measures both).
 
 Determinism.  Truth rows and frames depend only on the scenario, ``--seed`` (the run seed: the
 target's disturbance realisation, the render noise ``scenario.rng("render.noise", seed)``, the
