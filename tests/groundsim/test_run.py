@@ -20,6 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from groundsim import cli
 from groundsim.mavlink_vehicle import open_mavlink2
@@ -686,3 +688,35 @@ def test_loop_survives_failing_sinks_and_unrenderable_frames(tmp_path):
     assert report.frames == 6 and not report.stopped
     assert report.errors == {"mavlink_error": 24, "publish_error": 4, "render_error": 2}
     assert len(read_truth_csv(truth_path)["seq"]) == 6  # every frame keeps its truth row
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.text(max_size=12), st.floats(allow_nan=True, allow_infinity=True).map(repr)))
+def test_rate_parse_never_fails_otherwise(text):
+    """Any text either parses to a valid rate or raises ConfigError naming --rate."""
+    try:
+        r = RateSpec.parse(text)
+    except ConfigError as exc:
+        assert "--rate" in str(exc)
+    else:
+        assert r.factor is None or 0.01 <= r.factor <= 1000.0
+
+
+_finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 2**63 - 1), _finite, st.one_of(_finite, st.just(math.nan))), min_size=1, max_size=5))
+def test_truth_csv_round_trips_any_values_exactly(tmp_path_factory, rows):
+    path = tmp_path_factory.mktemp("rt") / "t.csv"
+    written = []
+    with TruthWriter(path) as w:
+        for n, (t_us, x, u) in enumerate(rows):
+            vals = {c: x for c in TRUTH_COLUMNS}
+            vals.update(time_boot_us=t_us, seq=n, target_visible=n % 2, target_u_px=u, target_v_px=u)
+            row = TruthRow(**vals)
+            w.write(row)
+            written.append(row)
+    back = read_truth_csv(path)
+    for name in TRUTH_COLUMNS:
+        np.testing.assert_array_equal(back[name], [getattr(r, name) for r in written])
