@@ -72,26 +72,33 @@ SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 @dataclass(frozen=True)
 class ImagingParams:
-    """Parameters of the image chain (config section ``imaging``); lengths in pixels.
+    """Parameters of the image chain (config section ``imaging``; build it with
+    :meth:`from_mapping`); lengths in pixels, grey values in the input's units.
 
-    Thresholds (see the module docstring): residual above the robust background, in units of
-    the residual's robust noise ``sigma`` with absolute floors in input LSB.
+    Pre-processing (module docstring): ``mean_kernel_px`` square mean filter; white top-hat by a
+    ``background_opening_px`` square, which must be wider than the largest target (a target
+    within about half of it from a brighter region is measured against that region); double
+    threshold ``threshold_low_sigma`` / ``threshold_high_sigma`` times the residual's robust
+    noise, floored at ``min_threshold_low_lsb`` / ``min_threshold_high_lsb``.
 
     Blob acceptance: ``min_area_px <= area <= max_area_px`` (pixels at or above ``Th_low`` in
     the mean-filtered residual), bounding-box side <= ``max_blob_side_px``, long/short side
-    <= ``max_aspect_ratio`` (rejects horizon and ridge lines).
+    <= ``max_aspect_ratio`` (rejects ridge lines); at most ``max_candidates`` per region.
 
-    Centroid: raw pixels in the blob's box grown by ``centroid_margin_px``, minus a plane fitted
-    to a ring ``background_ring_px`` wide around it.
+    Centre (:mod:`onboard.imaging.detect`): raw pixels minus a plane through a ring
+    ``background_ring_px`` wide around the blob's box grown by ``centroid_margin_px``; plain
+    centroid there, then a Gaussian-windowed centroid of sigma
+    ``max(centroid_window_sigma_px, blob rms radius)``.
 
-    Tracking: the KCF box side is ``clip(kcf_box_scale * blob side, kcf_box_px, kcf_max_box_px)``;
-    the detection region of interest is the KCF search patch (twice the box) grown by
-    ``roi_margin_px``.  KCF's answer is ignored when its centre is farther than ``kcf_gate_px``
-    from the constant-velocity prediction (a jump onto noise); KCF is re-seeded on the blob when
-    its centre is farther than ``max_drift_px`` from the blob's centroid or when it fails.  After a frame without a blob
-    the track is ``coasting``; a target re-acquired within ``coast_frames`` frames and
-    ``reacquire_gate_px`` of the prediction keeps its track id; after ``lost_frames``
-    frames without a blob the track is ``lost``.
+    Tracking (:mod:`onboard.imaging.tracker`): the KCF box side is
+    ``clip(kcf_box_scale * blob side, kcf_box_px, kcf_max_box_px)`` and KCF reports a miss below
+    a peak response of ``kcf_detect_threshold``; the detection region of interest is the KCF
+    search patch (twice the box) grown by ``roi_margin_px``.  KCF's answer is ignored when its
+    centre is farther than ``kcf_gate_px`` from the constant-velocity prediction (a jump onto
+    noise); KCF is re-seeded on the blob when it missed or its centre is farther than
+    ``max_drift_px`` from the centroid.  After a frame without a blob the track is ``coasting``;
+    a target re-acquired within ``coast_frames`` frames and ``reacquire_gate_px`` of the
+    prediction keeps its track id; after ``lost_frames`` frames without a blob it is ``lost``.
     """
 
     mean_kernel_px: int = 3

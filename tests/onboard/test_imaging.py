@@ -612,3 +612,32 @@ def test_a_failing_kcf_degrades_to_detection_only(monkeypatch, fail_in):
         assert o.state == TrackState.TRACKING and o.measurement_valid and o.track_id == 1
         assert not o.kcf_ok
         assert math.hypot(o.u_px - u, o.v_px - v) < CENTROID_NOISY_TOL_PX
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    h=st.integers(16, 48),
+    w=st.integers(16, 48),
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    seed=st.integers(0, 2**31 - 1),
+    kind=st.sampled_from(["uniform", "sparse", "blob"]),
+)
+def test_update_never_raises_on_any_pixels(h, w, dtype, seed, kind):
+    """Small frames of arbitrary content, several in a row (so the tracking path runs too)."""
+    rng = np.random.default_rng(seed)
+    top = np.iinfo(dtype).max
+    tr = TargetTracker()
+    for _ in range(3):
+        if kind == "uniform":
+            img = rng.integers(0, top, size=(h, w), endpoint=True).astype(dtype)
+        elif kind == "sparse":
+            img = np.zeros((h, w), dtype)
+            img[rng.integers(0, h, 5), rng.integers(0, w, 5)] = top
+        else:
+            f = np.full((h, w), 0.3 * top)
+            add_blob(f, rng.uniform(0, w), rng.uniform(0, h), 0.5 * top, rng.uniform(0.5, 3.0))
+            img = np.clip(f, 0, top).astype(dtype)
+        o = tr.update(img)
+        assert isinstance(o, TrackUpdate)
+        if o.u_px is not None:
+            assert math.isfinite(o.u_px) and math.isfinite(o.v_px)
