@@ -103,8 +103,8 @@ class MotionPrior:
 @dataclass(frozen=True)
 class MapConfig:
     knot_spacing_s: float = 0.5
-    q_grid_m2ps3: tuple[float, ...] = (1e-6, 1e-3, 1e-1)
-    model_margin_nats: float = 10.0
+    q_grid_m2ps3: tuple[float, ...] = (1e-6, 1e-3, 1e-2, 1e-1)
+    model_margin_nats: float = 15.0
     vertical_ratio: float = 0.25
     turn_rate_sigma_radps: float = 0.3
     init_ranges_m: tuple[float, ...] = (40.0, 100.0, 250.0, 600.0, 1500.0)
@@ -117,6 +117,10 @@ class MapConfig:
     position_prior_sigma_m: float = 1000.0
     velocity_prior_sigma_mps: float = 30.0
     acceleration_prior_sigma_mps2: float = 3.0
+    # the CA family's own acceleration level: a cruising multirotor's sustained acceleration is
+    # typically below ~0.5 m/s^2; without it CA explains any range by a target whose acceleration
+    # happens to mirror the observer's (the scaled-trajectory ridge of a straight accelerating observer)
+    ca_acceleration_sigma_mps2: float = 0.5
     families: tuple[str, ...] = ("cv", "ca", "ct")
 
     def prior(self, q_h: float) -> MotionPrior:
@@ -254,6 +258,7 @@ class WindowProblem:
         ref = grid.basis(np.array([self.t_ref]), first, count)
         self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = ref.index[0], ref.w0[0], ref.w1[0], ref.w2[0]
         self.p_ref = obs.p_cam_ned_m.mean(axis=0)
+        self.sigma_a = config.ca_acceleration_sigma_mps2 if prior.jerk else config.acceleration_prior_sigma_mps2
         # parameter layout
         self.nc = 3 * count
         k = self.nc
@@ -345,7 +350,7 @@ class WindowProblem:
         cr = c[self.ref_idx]
         r[o : o + 3] = (self.ref_w0 @ cr - self.p_ref) / self.config.position_prior_sigma_m
         r[o + 3 : o + 6] = (self.ref_w1 @ cr) / self.config.velocity_prior_sigma_mps
-        r[o + 6 : o + 9] = (self.ref_w2 @ cr) / self.config.acceleration_prior_sigma_mps2
+        r[o + 6 : o + 9] = (self.ref_w2 @ cr) / self.sigma_a
         o += 9
         for i0, n, sig in self._nuisances():
             r[o : o + n] = theta[i0 : i0 + n] / sig
@@ -414,7 +419,7 @@ class WindowProblem:
         for k in range(3):
             J[o + k, 3 * self.ref_idx + k] = self.ref_w0 / self.config.position_prior_sigma_m
             J[o + 3 + k, 3 * self.ref_idx + k] = self.ref_w1 / self.config.velocity_prior_sigma_mps
-            J[o + 6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.config.acceleration_prior_sigma_mps2
+            J[o + 6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.sigma_a
         o += 9
         for i0, n, sig in self._nuisances():
             J[o : o + n, i0 : i0 + n] = np.eye(n) / sig
@@ -426,20 +431,20 @@ class WindowProblem:
         return self.P_acc + omega * self.P_turn
 
     def prior_logdet(self, theta: np.ndarray) -> float:
-        """log det of the prior precision of all parameters at this turn rate (for the evidence)."""
+        """log det of the prior precision of the model's own parameters (controls, turn rate) at this turn rate."""
         om = theta[self.i_omega] if self.i_omega is not None else 0.0
         Jp = self._prior_c_jacobian(om)
         Jw = np.zeros((9, self.nc))
         for k in range(3):
             Jw[k, 3 * self.ref_idx + k] = self.ref_w0 / self.config.position_prior_sigma_m
             Jw[3 + k, 3 * self.ref_idx + k] = self.ref_w1 / self.config.velocity_prior_sigma_mps
-            Jw[6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.config.acceleration_prior_sigma_mps2
+            Jw[6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.sigma_a
         A = np.vstack([Jp, Jw])
         d = np.sqrt(np.einsum("ij,ij->j", A, A))
         R = sla.qr(A / d, mode="r", check_finite=False)[0][: A.shape[1]]
         logdet = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
-        for i0, n, sig in self._nuisances():
-            logdet += -2 * n * math.log(sig)
+        if self.i_omega is not None:
+            logdet += -2 * math.log(self.prior.turn_rate_sigma_radps)
         return float(logdet)
 
     def _nuisances(self):
@@ -532,8 +537,29 @@ class WindowProblem:
         blocks = S[idx[:, :, None], :, idx[:, None, :], :]  # (N, 4, 4, 3, 3)
         return np.einsum("nm,nl,nmlij->nij", w, w, blocks)
 
+    @property
+    def n_model_params(self) -> int:
+        """Trajectory controls and turn rate: the parameters a motion model owns (the navigation
+        nuisances phi, beta, gamma come after them)."""
+        return self.nc + (self.i_omega is not None)
+
     def log_evidence(self, theta: np.ndarray, cost: float, fac) -> float:
-        R, d = fac
+        """Laplace log evidence of the motion model, conditional on the navigation nuisances at their
+        MAP values (type-II maximum likelihood for them).
+
+        Marginalising the nuisances too would charge their Occam factor only to models that can
+        identify them: a model under which range is unobservable leaves the attitude bias free and so
+        "wins" by several nats for knowing less.  Conditioning puts every model on the same footing.
+        """
+        k = self.n_model_params
+        if k == self.n_params:
+            R, d = fac
+        else:
+            _, J, _ = self.evaluate(theta)
+            Jk = J[:, :k]
+            d = np.sqrt(np.einsum("ij,ij->j", Jk, Jk))
+            d[d == 0] = 1.0
+            R = sla.qr(Jk / d, mode="r", check_finite=False)[0][:k]
         logdet_H = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         meas_norm = -np.sum(np.log(1.0 / self.s))  # -sum log sigma (normalised units)
         return float(-cost + 0.5 * self.prior_logdet(theta) - 0.5 * logdet_H + meas_norm)
@@ -648,16 +674,50 @@ class MapEstimator:
                 tops[fam].append(top)
             carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
         fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
-        # the first family (CV, the simplest) unless another beats it by the margin; then the best
-        simplest = next(iter(fam_ev))
-        rivals = {f: ev for f, ev in fam_ev.items() if f == simplest or ev > fam_ev[simplest] + cfg.model_margin_nats}
-        chosen = max(rivals, key=rivals.get)
-        best = max(tops[chosen], key=lambda m: m[6])
-        res = self.result(*best[:6])
+        fam_best = {f: max(ts, key=lambda m: m[6]) for f, ts in tops.items()}
+        top_ev = max(m[6] for m in fam_best.values())
+        # the point estimate: among the models (family and q) the data cannot tell from the best one
+        # (within model_margin_nats of its evidence), the one that pins range best under its own posterior.
+        # A family that explains the data only by leaving range free (a target whose acceleration
+        # mirrors the observer's, for instance) wins evidence by being vague, not by fitting better.
+        close = [(f, m) for f, ts in tops.items() for m in ts if m[6] >= top_ev - cfg.model_margin_nats]
+        ratios = [self._moments(m)[2] for _, m in close]
+        chosen, best = close[int(np.argmin(ratios))]
+        # its uncertainty: every candidate's posterior weight (evidence; a log-uniform hyperprior on q,
+        # equal family odds) and the spread of their trajectories about the chosen one -- the chosen
+        # mean with a Bayesian-model-averaged covariance, so model doubt shows in sigma
+        cands = [m for ts in tops.values() for m in ts]
+        logw = np.array([m[6] for m in cands])
+        w = np.exp(logw - np.logaddexp.reduce(logw))
+        p_best = best[0].positions(best[1])
+        extra = np.zeros((len(obs), 3, 3))
+        w_best = 0.0
+        for m, wk in zip(cands, w):
+            if m is best:
+                w_best = float(wk)
+                continue
+            if wk < 1e-4:
+                continue
+            p_m, P_m, _ = self._moments(m)
+            d = p_m - p_best
+            extra += wk * (P_m + np.einsum("fi,fj->fij", d, d))
+        res = self.result(*best[:6], mix=(w_best, extra))
         res.extras["family_log_evidence"] = fam_ev
+        res.extras["best_model_weight"] = w_best
         res.extras["model"] = chosen
         res.extras["grid_log_evidence"] = {f: [(t[0].prior.q_horizontal_m2ps3, t[6]) for t in ts] for f, ts in tops.items()}
         return res
+
+    def _moments(self, mode):
+        """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
+        prob, theta, fac = mode[0], mode[1], mode[5]
+        p = prob.positions(theta)
+        P = prob.point_covariances(prob.covariance(fac))
+        los = p - prob.obs.p_cam_ned_m
+        rng = np.linalg.norm(los, axis=1)
+        u = los / rng[:, None]
+        ratio = float(np.max(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / rng))
+        return p, P, ratio
 
     @staticmethod
     def _adapt(theta: np.ndarray, prob: WindowProblem) -> np.ndarray:
@@ -674,11 +734,15 @@ class MapEstimator:
             out[prob.nc :] = theta[prob.nc + 1 :]
         return out
 
-    def result(self, prob: WindowProblem, theta, cost, its, conv, fac) -> MapResult:
+    def result(self, prob: WindowProblem, theta, cost, its, conv, fac, mix=None) -> MapResult:
+        """The named result of one solution; ``mix = (weight, extra)`` turns its point covariance into
+        ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`)."""
         # the problem object served several starts: its weights must be this solution's
         prob.set_measurement_weights(self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta))
         Sigma = prob.covariance(fac)
         P = prob.point_covariances(Sigma)
+        if mix is not None:
+            P = mix[0] * P + mix[1]
         p = prob.positions(theta)
         v = prob.velocities(theta)
         r, _, _ = prob.evaluate(theta, jacobian=False)
