@@ -7,7 +7,7 @@ tracker: states and KCF).
 """
 
 from onboard.imaging.detect import Blob, Detection, detect_targets, find_blobs, measure_blob
-from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, preprocess
+from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, preprocess_frame
 from onboard.imaging.tracker import TargetTracker, TrackState, TrackUpdate
 
 __all__ = [
@@ -15,7 +15,7 @@ __all__ = [
     "Region",
     "Preprocessed",
     "check_frame",
-    "preprocess",
+    "preprocess_frame",
     "Blob",
     "Detection",
     "detect_targets",

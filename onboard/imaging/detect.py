@@ -40,7 +40,7 @@ from onboard.imaging.preprocess import (
     Preprocessed,
     Region,
     check_frame,
-    preprocess,
+    preprocess_frame,
     ring_plane,
 )
 
@@ -248,7 +248,7 @@ def detect_targets(image: np.ndarray, params: ImagingParams, region: Region | No
     pre-processing they came from.  Raises :class:`InputError` for a frame that is not 2-D
     uint8/uint16 (see :func:`check_frame`)."""
     image = check_frame(image)
-    pre = preprocess(image, params, region)
+    pre = preprocess_frame(image, params, region)
     dets = [d for b in find_blobs(pre, params) if (d := measure_blob(image, b, params, pre.noise_sigma)) is not None]
     dets.sort(key=lambda d: -d.flux)
     return dets, pre

@@ -57,7 +57,7 @@ __all__ = [
     "ring_plane",
     "fast_median",
     "robust_sigma",
-    "preprocess",
+    "preprocess_frame",
     "kcf_image_u8",
 ]
 
@@ -392,7 +392,7 @@ def robust_sigma(residual: np.ndarray, step: int = 1) -> tuple[float, float]:
     return med, float(MAD_TO_SIGMA * fast_median(np.abs(r - np.float32(med))))
 
 
-def preprocess(image: np.ndarray, params: ImagingParams, region: Region | None = None) -> Preprocessed:
+def preprocess_frame(image: np.ndarray, params: ImagingParams, region: Region | None = None) -> Preprocessed:
     """Top-hat residual, its noise and the double threshold of ``image`` (checked 2-D uint8/uint16)
     over ``region`` (None: the full frame; the noise is then estimated on every
     ``NOISE_SUBSAMPLE_FULL_FRAME``-th row and column)."""

@@ -40,7 +40,7 @@ import numpy as np
 
 from onboard.errors import InputError
 from onboard.imaging.detect import Detection, find_blobs, measure_blob
-from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, kcf_image_u8, preprocess
+from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, kcf_image_u8, preprocess_frame
 
 __all__ = ["TrackState", "TrackUpdate", "TargetTracker", "create_kcf"]
 
@@ -192,7 +192,7 @@ class TargetTracker:
         if self._kcf_box is not None:  # KCF searches twice its box around its last box
             bx, by, bw, bh = self._kcf_box
             roi = roi.union(Region.around(bx + bw / 2, by + bh / 2, int(math.ceil(max(bw, bh))), w, h))
-        pre = preprocess(image, p, roi)
+        pre = preprocess_frame(image, p, roi)
         kcf_ok, kcf_box = self._kcf_step(pre)
         if kcf_ok and math.hypot(kcf_box[0] + kcf_box[2] / 2 - pu, kcf_box[1] + kcf_box[3] / 2 - pv) > p.kcf_gate_px:
             kcf_ok = False  # KCF jumped (onto noise or clutter): not a plausible motion
@@ -244,7 +244,7 @@ class TargetTracker:
     # ------------------------------------------------------------------ helpers
 
     def _full_frame_best(self, image: np.ndarray) -> tuple[Detection | None, Preprocessed]:
-        pre = preprocess(image, self.params, None)
+        pre = preprocess_frame(image, self.params, None)
         best = None
         for blob in find_blobs(pre, self.params):
             d = measure_blob(image, blob, self.params, pre.noise_sigma)
@@ -331,7 +331,7 @@ class TargetTracker:
         if pre is None or not (
             pre.region.x0_px <= region.x0_px and pre.region.y0_px <= region.y0_px and pre.region.x1_px >= region.x1_px and pre.region.y1_px >= region.y1_px
         ):
-            pre = preprocess(image, p, region)
+            pre = preprocess_frame(image, p, region)
         self._kcf_scale = max(KCF_FULL_SCALE_HIGHS * pre.threshold_high, 1e-6)
         self._fill_buffer(pre)
         box = (int(round(det.u_px - side / 2)), int(round(det.v_px - side / 2)), side, side)

@@ -24,7 +24,7 @@ from onboard.imaging import (
     TrackUpdate,
     check_frame,
     detect_targets,
-    preprocess,
+    preprocess_frame,
 )
 from onboard.imaging.preprocess import fast_median, ring_plane, robust_sigma, tophat_residual
 
@@ -228,8 +228,8 @@ def test_preprocess_region_and_full_frame_agree_on_noise():
     rng = np.random.default_rng(5)
     img = make_frame(noise=1.0, rng=rng)
     p = ImagingParams()
-    full = preprocess(img, p)
-    roi = preprocess(img, p, Region(200, 200, 264, 264))
+    full = preprocess_frame(img, p)
+    roi = preprocess_frame(img, p, Region(200, 200, 264, 264))
     assert roi.residual.shape == (64, 64) and roi.region == Region(200, 200, 264, 264)
     # mean-filtered noise: ~1 grey / 3, plus 8-bit rounding
     assert 0.25 < full.noise_sigma < 0.5 and 0.25 < roi.noise_sigma < 0.5
