@@ -211,13 +211,13 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
                    help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
     p.add_argument("--duration", type=float, default=20.0, metavar="S",
-                   help="wall seconds to run (capped at the scenario's duration_s; default: %(default)s)")
+                   help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
     p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
     p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
                    help="the daemon's configuration (default: %(default)s; built-in defaults when absent)")
-    p.add_argument("--eval", dest="with_eval", action="store_true",
-                   help="afterwards, also run the lockstep evaluation (P1-P3, one seed) and print its table")
+    p.add_argument("--no-eval", dest="with_eval", action="store_false",
+                   help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")
     p.set_defaults(handler=lambda args: __import__("groundsim.demo", fromlist=["cmd_demo"]).cmd_demo(args))
 
 

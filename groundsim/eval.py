@@ -696,7 +696,10 @@ def summarise(scores: list[dict]) -> list[dict]:
             row[key] = _med(_get(s, *path) for s in ok)
         on, pf = row["online_common_err_range_pct"], row["perfect_common_err_range_pct"]
         row["ratio_to_perfect"] = (on / pf) if (on is not None and pf not in (None, 0.0)) else None
-        row["within_ratio"] = None if row["ratio_to_perfect"] is None else bool(row["ratio_to_perfect"] <= RATIO_LIMIT)
+        bo, bp = row["batch_err_range_pct"], row["batch_perfect_err_range_pct"]
+        row["batch_ratio_to_perfect"] = (bo / bp) if (bo is not None and bp not in (None, 0.0)) else None
+        ratios = [x for x in (row["ratio_to_perfect"], row["batch_ratio_to_perfect"]) if x is not None]
+        row["within_ratio"] = bool(all(x <= RATIO_LIMIT for x in ratios)) if ratios else None
         rows.append(row)
     return rows
 

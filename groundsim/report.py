@@ -55,6 +55,7 @@ PAPER_TABLE2_PCT = {"P1": 0.89, "P2": 1.09, "P3": 1.45}
 #: The reference study's best MAP estimator and Bayesian CRB, px0.3 case (REFERENCE_SCENARIOS.md).
 REFERENCE_PX03 = {"P1": (0.34, 0.85), "P2": (0.43, 1.5), "P3": (6.7, 6.1)}
 SCHEMA = "irtrack.eval/1"
+RATIO_LIMIT = 1.5  # issue #5: the image chain within this factor of perfect centroids
 PNG_DPI = 110
 
 
@@ -159,18 +160,23 @@ def format_table2(summary: list[dict], descriptions: dict[str, str] | None = Non
     descriptions = descriptions or {}
     head = ("| scenario | geometry | paper Table 2 | ours: paper metric | ours: err / range | RMSE m | NEES | "
             "continuity | perfect centroids: err / range | ratio (<= 1.5) | CRB RMS m | batch err / range | "
-            "batch perfect err / range |")
-    lines = [head, "|" + "---|" * 13]
+            "batch perfect err / range | batch ratio (<= 1.5) |")
+    lines = [head, "|" + "---|" * 14]
     for r in summary:
         paper = PAPER_TABLE2_PCT.get(r["scenario"])
         ratio = r.get("ratio_to_perfect")
-        verdict = "" if r.get("within_ratio") is None else (" ok" if r["within_ratio"] else " **over**")
+        bratio = r.get("batch_ratio_to_perfect")
+
+        def verdict(x):
+            return "" if x is None else (" ok" if x <= RATIO_LIMIT else " **over**")
+
         lines.append(
             f"| {r['scenario']} | {descriptions.get(r['scenario'], '')} | {_f(paper, '.2f', ' %')} | "
             f"{_f(r.get('err_paper_pct'), '.2f', ' %')} | {_f(r.get('err_range_pct'), '.2f', ' %')} | "
             f"{_f(r.get('rmse_m'))} | {_f(r.get('nees'), '.2f')} | {_f(_pct(r.get('continuity')), '.0f', ' %')} | "
-            f"{_f(r.get('perfect_err_range_pct'), '.2f', ' %')} | {_f(ratio, '.2f')}{verdict} | {_f(r.get('crb_rms_m'))} | "
-            f"{_f(r.get('batch_err_range_pct'), '.2f', ' %')} | {_f(r.get('batch_perfect_err_range_pct'), '.2f', ' %')} |"
+            f"{_f(r.get('perfect_err_range_pct'), '.2f', ' %')} | {_f(ratio, '.2f')}{verdict(ratio)} | {_f(r.get('crb_rms_m'))} | "
+            f"{_f(r.get('batch_err_range_pct'), '.2f', ' %')} | {_f(r.get('batch_perfect_err_range_pct'), '.2f', ' %')} | "
+            f"{_f(bratio, '.2f')}{verdict(bratio)} |"
         )
     return "\n".join(lines)
 
@@ -397,8 +403,9 @@ DEFINITIONS = {
     "continuity 2-D": "frames with a valid centroid / frames with the target inside the image",
     "perfect centroids": "the same sliding-window estimator fed with the true pixel + white noise of pixel_sigma_px, "
                          "through the same camera poses as the pipeline; scored on its observable frames",
-    "ratio": "image chain err/range / perfect-centroid err/range, both on the frames where both are observable "
-             "(median over seeds of each, then the ratio); issue #5 asks for <= 1.5",
+    "ratio": "online track: image chain err/range / perfect-centroid err/range, both on the frames where both are "
+             "observable (median over seeds of each, then the ratio); batch ratio: the same for the whole-flight "
+             "smoother on all frames with a centroid; issue #5 asks for <= 1.5 (the verdict needs every ratio available)",
     "CRB": "Bayesian Cramer-Rao bound of the flown trajectory (RMS over the flight of sqrt(trace)), with the "
            "simulated noise (pixel_sigma_px, exact navigation) and the motion prior the batch estimator selected "
            "on perfect centroids",
@@ -439,23 +446,25 @@ def write_eval_report(out_dir, result) -> dict:
         ape[f"{run.scenario}/seed{run.seed}"] = {"rmse_m": rmse, "matched": n, "dir": str(d.relative_to(out))}
 
     descriptions = {}
+    tasks: list[tuple] = []  # (key, plot function name, path, args...)
     for name, runs in by_scenario.items():
         descriptions[name] = _short_geometry(runs[0].description)
         ok = [r for r in runs if r.error is None]
         if not ok:
             continue
         r0 = ok[0]
-        files[f"{name}_trajectory"] = str(plot_trajectory(out / f"{name}_trajectory.png", r0,
-                                                          f"{name} seed {r0.seed}: {descriptions[name]}").name)
-        files[f"{name}_error"] = str(plot_errors(out / f"{name}_error.png", r0, f"{name} seed {r0.seed}: error over time").name)
+        tasks.append((f"{name}_trajectory", "plot_trajectory", out / f"{name}_trajectory.png", r0,
+                      f"{name} seed {r0.seed}: {descriptions[name]}"))
+        tasks.append((f"{name}_error", "plot_errors", out / f"{name}_error.png", r0, f"{name} seed {r0.seed}: error over time"))
         if r0.frame is not None:
-            files[f"{name}_frame"] = str(plot_frame(out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame").name)
-
+            tasks.append((f"{name}_frame", "plot_frame", out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame"))
     perf = _performance(result)
     lat = {name: np.concatenate([np.asarray(r.timing["process_ms"]) for r in runs if r.error is None] or [np.zeros(0)])
            for name, runs in by_scenario.items()}
-    files["performance"] = str(plot_performance(out / "performance.png", perf["per_scenario"], lat,
-                                                "processing performance (analogue of the paper's Fig. 9)").name)
+    tasks.append(("performance", "plot_performance", out / "performance.png", perf["per_scenario"], lat,
+                  "processing performance (analogue of the paper's Fig. 9)"))
+    for key, path in _run_plots(tasks, getattr(result, "workers", 1)):
+        files[key] = path
 
     summary = result.summary
     for row in summary:
@@ -482,6 +491,22 @@ def write_eval_report(out_dir, result) -> dict:
     (out / "report.md").write_text(_markdown(report, descriptions, result), encoding="utf-8")
     files["report.md"] = "report.md"
     return {k: str(out / v) for k, v in files.items()}
+
+
+def _plot_task(task: tuple) -> tuple[str, str]:
+    key, fn, path, *args = task
+    return key, str(globals()[fn](path, *args).name)
+
+
+def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:
+    """Draw the plots, over ``workers`` forked processes when more than one (each plot is ~0.5-1 s of CPU)."""
+    workers = max(1, min(int(workers or 1), len(tasks)))
+    if workers == 1:
+        return [_plot_task(t) for t in tasks]
+    import multiprocessing as mp
+
+    with mp.get_context("fork").Pool(workers) as pool:
+        return pool.map(_plot_task, tasks)
 
 
 def _performance(result) -> dict:
