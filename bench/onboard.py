@@ -363,7 +363,7 @@ def bench_processing(n_frames: int) -> None:
 # --------------------------------------------------------------------------- benchmark 2: loopback latency
 
 
-def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0) -> None:
+def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0, extra_args: tuple[str, ...] = ()) -> None:
     import queue
 
     import zenoh
@@ -376,7 +376,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
     env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     health = os.path.join(tempfile.gettempdir(), f"irtrack-bench-alive-{os.getpid()}")
     cmd = [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen",
-           f"tcp/127.0.0.1:{zport}", "--set", f"output.health_file={health}", "--log-level", "WARNING"]
+           f"tcp/127.0.0.1:{zport}", "--set", f"output.health_file={health}", "--log-level", "WARNING", *extra_args]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     err_lines: list[str] = []
     threading.Thread(target=lambda: [err_lines.append(ln) for ln in proc.stderr], daemon=True).start()

@@ -393,8 +393,8 @@ class EstimatorConfig(_Section):
     camera_position_offset_sigma_m: float = F(0.0, "float", lo=0.0, hi=1000.0)
     camera_position_drift_sigma_mps: float = F(0.0, "float", lo=0.0, hi=100.0)
     reset_on_new_track: bool = F(True, "bool")
-    threaded: bool = F(True, "bool")
-    result_wait_ms: float = F(5.0, "float", lo=0.0, hi=1000.0)
+    worker: str = F("process", "str", choices=("process", "thread", "inline"))
+    result_wait_ms: float = F(2.0, "float", lo=0.0, hi=1000.0)
     max_extrapolation_s: float = F(1.0, "float", lo=0.0, hi=60.0)
     sliding: Mapping[str, Any] = field(default_factory=dict, metadata={"free": True})
 

@@ -65,9 +65,16 @@ def test_shipped_file_equals_defaults():
 
 
 def test_shipped_file_documents_every_field():
-    """Every leaf field appears in config/onboard.yaml as a key with a comment on its line."""
+    """Every leaf field appears in config/onboard.yaml as a key with a comment on its line.
+
+    ``imaging`` is the exception by design: its fields belong to (and are documented in)
+    ``ImagingParams``, which the file points to, so the file cannot go stale when they change.
+    """
     text = SHIPPED.read_text(encoding="utf-8")
+    assert re.search(r"^imaging: \{\}\s+#.*ImagingParams", text, re.M)
     for path in _leaf_paths():
+        if path.startswith("imaging."):
+            continue
         key = path.rsplit(".", 1)[-1]
         lines = [ln for ln in text.splitlines() if re.match(rf"^\s*(# )?{re.escape(key)}:", ln)]
         assert lines, f"{path} is not in {SHIPPED.name}"

@@ -25,7 +25,6 @@ import pytest
 
 os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the daemon
 
-from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from bench.onboard import FakeAutopilot, SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
@@ -373,3 +372,44 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
+
+
+@pytest.mark.timeout(120)
+def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
+    """Same observations, same answers: the child process runs the same deterministic estimator."""
+    from onboard.config import OnboardConfig
+    from onboard.pipeline import make_estimator
+    from onboard.service import ProcessEstimator
+
+    scene = SyntheticScene()
+    cfg = OnboardConfig()
+    inline = make_estimator(cfg)
+    counter = LockedCounter()
+    pe = ProcessEstimator(cfg, counter, result_wait_s=30.0)  # wait as long as it takes: no propagation
+    try:
+        K = scene.intrinsics
+        n_same = 0
+        for k in range(60):
+            ts = k / 30.0
+            p_cam, q = scene.camera(ts)
+            uv = scene.uv(ts) + 0.2 * np.sin(np.array([k, 2.0 * k]))
+            t_s = scene.t_us(k) / 1e6
+            a = inline.add(t_s, uv, K, p_cam, q)
+            b = pe.add(t_s, uv, K, p_cam, q)
+            assert (a is None) == (b is None)
+            if a is not None:
+                assert np.array_equal(a.p_ned_m, b.p_ned_m) and np.array_equal(a.cov_p_ned_m2, b.cov_p_ned_m2)
+                n_same += 1
+        assert n_same >= 10 and pe.late_results == 0 and counter.total == 0
+        assert pe.worker_cpu_s > 0
+        p = pe.predict(scene.t_us(59) / 1e6 + 0.1)
+        assert p is not None and p.p_ned_m[0] == pytest.approx(b.p_ned_m[0] + 0.1 * b.v_ned_mps[0])
+        pe.reset()
+        assert pe.predict(scene.t_us(59) / 1e6) is None
+        assert pe.add(1.0, (1.0, 2.0), K, np.zeros(3), np.array([1.0, 0, 0, 0])) is None  # a fresh window
+        pe._proc.kill()  # a dead worker is noticed, counted and restarted
+        pe._proc.join(5)
+        assert pe.add(2.0, (1.0, 2.0), K, np.zeros(3), np.array([1.0, 0, 0, 0])) is None
+        assert counter["estimator_error"] == 1 and pe.restarts == 1
+    finally:
+        pe.close()
