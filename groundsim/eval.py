@@ -52,8 +52,8 @@ Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.m
   consistent covariance), fraction beyond 3 sigma;
 - centroid error: image-chain centre minus truth pixel on frames with a valid centroid.
 
-Runs are independent jobs over a process pool (``fork``, ``workers`` processes); a tqdm bar on stderr
-counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
+Runs are independent jobs over a process pool (``workers`` processes from a fork server, see
+:func:`mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
 """
 
 from __future__ import annotations
@@ -754,6 +754,7 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
              workers: int = 2, progress: bool = True, config_source: str = "(defaults)") -> EvalResult:
     """All (scenario, seed) runs, over ``workers`` processes (1 = in this process), then scored."""
     options = options if options is not None else EvalOptions()
+    limit_blas_threads(1)  # here and, through the environment, in the worker processes
     seeds = [int(s) for s in seeds]
     if not scenarios:
         raise ConfigError("--scenario: expected at least one scenario")
@@ -801,11 +802,22 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
     return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
 
 
-def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
+def mp_context():
+    """Worker processes come from a fork server (a fresh process that imported our modules once),
+    never from a plain fork of this one: a process that already ran OpenCV, JSBSim or OpenBLAS has
+    threads and locks a forked child would inherit half-held (a pool forked after a lockstep run in
+    the same process hung)."""
     import multiprocessing as mp
+
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["groundsim.eval", "groundsim.report"])
+    return ctx
+
+
+def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
     import queue as queue_mod
 
-    ctx = mp.get_context("fork")
+    ctx = mp_context()
     q = ctx.Queue()
     pool = ctx.Pool(workers, initializer=_init_worker, initargs=(q,))
     bar = None

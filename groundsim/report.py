@@ -503,9 +503,9 @@ def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:
     workers = max(1, min(int(workers or 1), len(tasks)))
     if workers == 1:
         return [_plot_task(t) for t in tasks]
-    import multiprocessing as mp
+    from groundsim.eval import mp_context
 
-    with mp.get_context("fork").Pool(workers) as pool:
+    with mp_context().Pool(workers) as pool:
         return pool.map(_plot_task, tasks)
 
 

@@ -1,0 +1,415 @@
+"""``groundsim eval`` and its report: telemetry feed, scoring, TUM/APE, report files, a real lockstep run.
+
+Scoring and report tests use hand-built runs whose errors are known exactly; one short P1 run goes
+through the real chain (JSBSim -> render -> telemetry -> FramePipeline) and is repeated to show the
+lockstep is deterministic.  evo (if installed) must read our TUM files and agree with our APE RMSE.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import json
+import math
+import contextlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundsim import cli
+from groundsim.eval import (
+    EvalOptions,
+    EvalResult,
+    RunResult,
+    TelemetryFeed,
+    onboard_config_for,
+    run_eval,
+    run_lockstep,
+    score_run,
+    summarise,
+)
+from groundsim.report import ape_rmse_m, read_tum, write_eval_report, write_tum
+from groundsim.scenario import load_scenario, scenarios_dir
+from onboard.config import OnboardConfig
+from onboard.errors import ConfigError, InputError
+from onboard.frames import GeodeticOrigin, quat_from_euler
+from onboard.pose import PoseBuffer, PoseBufferConfig
+
+pytestmark = pytest.mark.timeout(120)
+
+P1 = scenarios_dir() / "P1.yaml"
+TUM_ATOL_M = 1e-6  # TUM files keep micrometres
+TUM_ATOL_S = 1e-6  # and microseconds
+SCORE_RTOL = 1e-12  # scoring is exact arithmetic on known errors
+MAX_CENTROID_RMS_PX = 0.5  # the image chain on P1's bright target (measured ~0.05 px)
+MIN_MEASURED_FRACTION = 0.9  # frames with a valid centroid among frames with the target in view
+LOCKSTEP_DURATION_S = 1.5  # 45 frames: enough for the chain, short for the suite
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _synthetic_run(name="S1", seed=0, F=40, err_m=(1.0, 0.0, 0.0), obs_from=10, base_err_m=(0.0, 2.0, 0.0),
+                   base_from=5, cov_diag_m2=1.0, batch=None) -> RunResult:
+    """A run with exactly known errors: the estimate is truth + err_m from frame obs_from on
+    (observable), the baseline truth + base_err_m from base_from on; isotropic covariance."""
+    t = np.arange(F) / 30.0
+    truth = np.column_stack([100.0 + 2.0 * t, 50.0 - t, -80.0 + 0.0 * t])
+    cam = np.column_stack([0.0 * t, 4.0 * t, -60.0 + 0.0 * t])
+    rng = np.linalg.norm(truth - cam, axis=1)
+    est = np.full((F, 3), np.nan)
+    est[obs_from:] = truth[obs_from:] + np.asarray(err_m)
+    cov = np.full((F, 3, 3), np.nan)
+    cov[obs_from:] = np.eye(3) * cov_diag_m2
+    observable = np.zeros(F, bool)
+    observable[obs_from:] = True
+    base = np.full((F, 3), np.nan)
+    base[base_from:] = truth[base_from:] + np.asarray(base_err_m)
+    base_cov = np.full((F, 3, 3), np.nan)
+    base_cov[base_from:] = np.eye(3)
+    base_obs = np.zeros(F, bool)
+    base_obs[base_from:] = True
+    uv = np.column_stack([320.0 + 0.0 * t, 256.0 + 0.0 * t])
+    meas = np.ones(F, bool)
+    meas[:2] = False
+    pm = np.linspace(1.0, 10.0, F)
+    pixels = np.full((64, 80), 40, np.uint8)
+    pixels[30:33, 40:43] = 120
+    return RunResult(
+        scenario=name, description=f"{name}: synthetic", seed=seed, frames=F, t_s=t,
+        time_boot_us=(1_000_000 + np.round(t * 1e6)).astype(np.int64), truth_p_ned_m=truth, cam_p_ned_m=cam,
+        observer_p_ned_m=cam.copy(), range_m=rng, truth_uv_px=uv + 0.1, visible=np.ones(F, bool),
+        state=np.full(F, "tracking"), measurement_valid=meas, uv_px=uv, bbox=np.tile([312.0, 248.0, 16.0, 16.0], (F, 1)),
+        pose_valid=np.ones(F, bool), est_p_ned_m=est, est_cov_ned_m2=cov, observable=observable,
+        range_sigma_ratio=np.full(F, 0.01), base_p_ned_m=base, base_cov_ned_m2=base_cov, base_observable=base_obs,
+        batch=batch,
+        timing=dict(wall_s=2.0, cpu_s=1.5, flight_s=0.1, render_s=0.2, pipeline_s=float(pm.sum() / 1e3), baseline_s=0.1,
+                    batch_s=0.0, render_ms=np.full(F, 5.0), process_ms=pm, baseline_ms=np.full(F, 2.0)),
+        counters={"pose_position_not_yet": 1},
+        frame=dict(k=F // 2, t_s=float(t[F // 2]), pixels=pixels, bbox=(33.0, 23.0, 16.0, 16.0), uv_px=(41.5, 31.5),
+                   truth_uv_px=(41.4, 31.6), state="tracking", range_m=float(rng[F // 2])),
+    )
+
+
+def _batch_for(run: RunResult, err_pipeline=0.5, err_perfect=0.4) -> dict:
+    idx = np.arange(run.frames)
+    return {
+        "pipeline": {"frames": idx, "p_ned_m": run.truth_p_ned_m + [err_pipeline, 0, 0],
+                     "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)), "observable": True, "model": "cv",
+                     "solve_s": 0.1, "error": None},
+        "perfect": {"frames": idx, "p_ned_m": run.truth_p_ned_m + [0, err_perfect, 0],
+                    "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)), "observable": True, "model": "cv",
+                    "solve_s": 0.1, "error": None, "crb_rms_m": 0.3, "crb_model_rms_m": 0.9},
+    }
+
+
+# --------------------------------------------------------------------------- TUM and APE
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)), min_size=1, max_size=30))
+def test_tum_round_trip_keeps_micrometres(tmp_path_factory, points):
+    path = tmp_path_factory.mktemp("tum") / "x.tum"
+    p = np.asarray(points, dtype=float)
+    t = 1.0 + np.arange(len(p)) / 30.0
+    assert write_tum(path, t, p) == len(p)
+    t2, p2 = read_tum(path)
+    np.testing.assert_allclose(t2, t, atol=TUM_ATOL_S, rtol=0)
+    np.testing.assert_allclose(p2, p, atol=TUM_ATOL_M, rtol=0)
+    first = next(line for line in path.read_text().splitlines() if not line.startswith("#"))
+    assert first.split()[4:] == ["0", "0", "0", "1"]  # identity quaternion, qw last
+
+
+def test_tum_skips_rows_without_a_position(tmp_path):
+    t = np.arange(5) / 30.0
+    p = np.arange(15, dtype=float).reshape(5, 3)
+    p[1, 2] = np.nan
+    assert write_tum(tmp_path / "e.tum", t, p) == 4
+    t2, _ = read_tum(tmp_path / "e.tum")
+    np.testing.assert_allclose(t2, t[[0, 2, 3, 4]], atol=TUM_ATOL_S)
+
+
+def test_read_tum_names_the_bad_line(tmp_path):
+    f = tmp_path / "bad.tum"
+    f.write_text("# header\n0.0 1 2 3 0 0 0 1\n0.1 1 2 3 0 0 0\n")
+    with pytest.raises(InputError, match=r"bad.tum: line 3: expected 8 numbers"):
+        read_tum(f)
+    f.write_text("0.0 1 2 x 0 0 0 1\n")
+    with pytest.raises(InputError, match=r"line 1: not numbers"):
+        read_tum(f)
+
+
+def test_ape_rmse_is_evo_default_association_without_alignment():
+    t = np.arange(100) / 30.0
+    ref = np.column_stack([t, 2 * t, 0 * t])
+    est_t = t[20:60] + 0.004  # within evo's 0.01 s
+    est = ref[20:60] + np.array([3.0, 4.0, 0.0])  # a constant 5 m offset: no alignment may remove it
+    rmse, n = ape_rmse_m(t, ref, est_t, est)
+    assert n == 40
+    assert rmse == pytest.approx(5.0, rel=SCORE_RTOL)
+    # beyond max_diff nothing matches; the order of the arguments does not matter for the RMSE
+    assert ape_rmse_m(t, ref, t[20:60] + 0.02, est)[1] == 0
+    assert ape_rmse_m(est_t, est, t, ref) == pytest.approx((5.0, 40), rel=SCORE_RTOL)
+
+
+def test_evo_reads_our_tum_files_and_agrees(tmp_path):
+    evo_file_interface = pytest.importorskip("evo.tools.file_interface",
+                                             reason="evo not installed (pip install evo to run this cross-check)")
+    from evo.core import metrics, sync
+
+    run = _synthetic_run()
+    t = run.time_boot_us / 1e6
+    obs = run.observable
+    write_tum(tmp_path / "truth.tum", t, run.truth_p_ned_m)
+    write_tum(tmp_path / "estimate.tum", t[obs], run.est_p_ned_m[obs])
+    ref = evo_file_interface.read_tum_trajectory_file(str(tmp_path / "truth.tum"))
+    est = evo_file_interface.read_tum_trajectory_file(str(tmp_path / "estimate.tum"))
+    ref, est = sync.associate_trajectories(ref, est)
+    ape = metrics.APE(metrics.PoseRelation.translation_part)
+    ape.process_data((ref, est))
+    ours = score_run(run)["online_observable"]["rmse_m"]
+    assert ape.get_statistic(metrics.StatisticsType.rmse) == pytest.approx(ours, rel=1e-6)
+
+
+# --------------------------------------------------------------------------- telemetry feed
+
+
+class _FakeCore:
+    """SimCore's telemetry interface on a 120 Hz tick grid: a level observer flying north at 10 m/s."""
+
+    tick_rate_hz = 120.0
+
+    def __init__(self, seconds: float, gimbal=True) -> None:
+        self.tick_count = int(seconds * self.tick_rate_hz)
+        self.origin = GeodeticOrigin(32.0, 118.8, 0.0)
+        self.gimbal = gimbal
+
+    def vehicle_state(self, i: int) -> dict:
+        from onboard.frames import geodetic_from_ned
+
+        t = i / self.tick_rate_hz
+        lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
+        return dict(time_boot_us=1_000_000 + round(t * 1e6), lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt),
+                    alt_rel_m=float(alt), v_ned_mps=np.array([10.0, 0.0, 0.0]), q_ned_from_body=np.array([1.0, 0, 0, 0]),
+                    body_rates_radps=np.zeros(3), heading_rad=0.0,
+                    q_gimbal=quat_from_euler(0.0, -0.2, 0.3) if self.gimbal else None)
+
+
+def test_telemetry_feed_rates_stamps_and_quantisation():
+    core = _FakeCore(2.0)
+    from onboard.frames import CameraMount
+
+    buf = PoseBuffer(CameraMount(gimballed=True), PoseBufferConfig(), core.origin)
+    feed = TelemetryFeed(core, buf, gimballed=True)
+    while not feed.exhausted:
+        feed.feed_next()
+    sizes = buf.sizes()
+    assert sizes == {"attitude": 100, "position": 50, "gimbal": 20}  # 50, 25, 10 Hz over 2 s
+    # stamps are MAVLink time_boot_ms: whole milliseconds
+    for stream in (buf._att, buf._pos, buf._gim):
+        assert all(t % 1000 == 0 for t in stream.t_us)
+    # positions within the 1e-7 deg (~1.1 cm) / 1 mm quantisation of the truth
+    pose = buf.pose_at(1_500_000)  # t = 0.5 s
+    assert pose is not None
+    np.testing.assert_allclose(pose.body.p_ned_m, [5.0, 0.0, -60.0], atol=0.03)
+
+
+def test_telemetry_feed_for_waits_for_the_bracketing_sample():
+    core = _FakeCore(1.0, gimbal=False)
+    from onboard.frames import CameraMount
+
+    buf = PoseBuffer(CameraMount(), PoseBufferConfig(), core.origin)
+    feed = TelemetryFeed(core, buf, gimballed=False)
+    t_frame_us = 1_000_000 + round(10 / 30 * 1e6)  # frame 10, tick 40
+    feed.feed_for(40, t_frame_us)
+    assert buf.lookup(t_frame_us).pose is not None
+    assert feed.next_tick <= 40 + 6  # fed only until a position sample after the frame (40 ms = 5 ticks)
+
+
+# --------------------------------------------------------------------------- configuration
+
+
+def test_onboard_config_takes_the_scenarios_camera_and_origin():
+    sc = load_scenario(P1)
+    cfg = onboard_config_for(sc, OnboardConfig())
+    K = cfg.camera.pinhole()
+    assert (K.fx_px, K.cx_px, K.width_px, K.height_px) == (sc.camera.intrinsics.fx_px, sc.camera.intrinsics.cx_px, 640, 512)
+    m = cfg.camera.camera_mount()
+    q, q_sc = np.asarray(m.q_body_from_mount), np.asarray(sc.camera.mount.q_body_from_mount)
+    assert min(np.abs(q - q_sc).max(), np.abs(q + q_sc).max()) < 1e-12
+    np.testing.assert_allclose(m.lever_arm_frd_m, sc.camera.mount.lever_arm_frd_m, atol=1e-15)
+    assert m.gimballed is True
+    assert cfg.pose.geodetic_origin() == sc.origin
+    assert cfg.output.unobservable_positions is True
+    assert cfg.output.health_file is None
+
+
+def test_eval_options_reject_bad_values():
+    with pytest.raises(ConfigError, match="--duration"):
+        EvalOptions(duration_s=0.0)
+    with pytest.raises(ConfigError, match="--pixel-sigma"):
+        EvalOptions(pixel_sigma_px=-1.0)
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def test_score_run_on_known_errors():
+    run = _synthetic_run(batch=None)
+    F = run.frames
+    s = score_run(run)
+    on = s["online_observable"]
+    assert on["frames"] == F - 10
+    assert on["rmse_m"] == pytest.approx(1.0, rel=SCORE_RTOL)
+    assert on["err_range_pct"] == pytest.approx(100 * np.mean(1.0 / run.range_m[10:]), rel=SCORE_RTOL)
+    paper = 100 * np.mean(1.0 / np.linalg.norm(run.truth_p_ned_m[10:], axis=1))
+    assert on["err_paper_pct"] == pytest.approx(paper, rel=SCORE_RTOL)
+    assert on["mean_nees"] == pytest.approx(1.0, rel=SCORE_RTOL)  # e = (1, 0, 0), P = I
+    assert s["perfect_observable"]["rmse_m"] == pytest.approx(2.0, rel=SCORE_RTOL)
+    assert s["common_frames"] == F - 10
+    assert s["online_common_err_range_pct"] / s["perfect_common_err_range_pct"] == pytest.approx(0.5, rel=1e-9)
+    assert s["continuity"] == pytest.approx((F - 10) / F)
+    assert s["perfect_continuity"] == pytest.approx((F - 5) / F)
+    assert s["continuity_2d"] == pytest.approx((F - 2) / F)
+    assert s["first_observable_s"] == pytest.approx(10 / 30.0)
+    assert s["centroid_rms_px"] == pytest.approx(math.sqrt(0.02), rel=1e-9)
+    assert s["timing"]["latency_ms"]["max"] == pytest.approx(10.0)
+    json.dumps(s, default=float)  # JSON-ready
+
+
+def test_score_run_reports_a_refused_covariance_instead_of_failing():
+    run = _synthetic_run()
+    bad = run.est_cov_ned_m2.copy()
+    bad[20] = -np.eye(3)
+    s = score_run(dataclasses.replace(run, est_cov_ned_m2=bad))
+    assert s["online_observable"]["rmse_m"] == pytest.approx(1.0)
+    assert s["online_observable"]["mean_nees"] is None
+    assert "not positive definite" in s["online_observable"]["note"]
+
+
+def test_score_run_without_observable_frames_and_a_failed_run():
+    run = _synthetic_run(obs_from=40)  # never observable
+    s = score_run(run)
+    assert s["online_observable"] is None and s["continuity"] == 0.0 and s["first_observable_s"] is None
+    failed = dataclasses.replace(run, error="FlightError: boom")
+    assert score_run(failed) == {"scenario": "S1", "seed": 0, "error": "FlightError: boom"}
+
+
+def test_summarise_medians_ratios_and_verdict():
+    runs = [_synthetic_run("A", seed=k, err_m=(e, 0, 0)) for k, e in enumerate((1.0, 3.0, 2.0))]
+    runs = [dataclasses.replace(r, batch=_batch_for(r, 0.5, 0.4)) for r in runs]
+    runs.append(dataclasses.replace(_synthetic_run("B", err_m=(4.0, 0, 0)), batch=None))
+    scores = [score_run(r) for r in runs]
+    rows = {r["scenario"]: r for r in summarise(scores)}
+    a = rows["A"]
+    assert a["runs"] == 3 and a["failed_runs"] == 0
+    assert a["rmse_m"] == pytest.approx(2.0)  # median of 1, 3, 2
+    assert a["ratio_to_perfect"] == pytest.approx(1.0, rel=1e-9)  # 2 m vs 2 m on common frames
+    assert a["batch_ratio_to_perfect"] == pytest.approx(0.5 / 0.4, rel=1e-9)
+    assert a["crb_rms_m"] == pytest.approx(0.3)
+    assert a["within_ratio"] is True
+    b = rows["B"]
+    assert b["ratio_to_perfect"] == pytest.approx(2.0, rel=1e-9) and b["batch_ratio_to_perfect"] is None
+    assert b["within_ratio"] is False
+
+
+# --------------------------------------------------------------------------- report files
+
+
+def test_write_eval_report_files_tables_and_ape(tmp_path):
+    runs = [dataclasses.replace(_synthetic_run("A", seed=k), batch=None) for k in range(2)]
+    runs.append(_synthetic_run("B", seed=0))
+    scores = [score_run(r) for r in runs]
+    result = EvalResult(runs, scores, summarise(scores), 3.0, 1, EvalOptions(), "built-in defaults")
+    files = write_eval_report(tmp_path, result)
+    for key in ("A_trajectory", "A_error", "A_frame", "B_trajectory", "performance"):
+        data = Path(files[key]).read_bytes()
+        assert data[:8] == PNG_MAGIC and len(data) > 10_000, key
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["schema"] == "irtrack.eval/1"
+    assert [r["scenario"] for r in rep["summary"]] == ["A", "B"]
+    # the APE of the TUM files (evo's way) equals the online RMSE of the report
+    for s in rep["runs"]:
+        ape = rep["tum_ape"][f"{s['scenario']}/seed{s['seed']}"]
+        assert ape["rmse_m"] == pytest.approx(s["online_observable"]["rmse_m"], rel=1e-6)
+        assert ape["matched"] == s["online_observable"]["frames"]
+    assert (tmp_path / "A" / "seed1" / "estimate_perfect.tum").is_file()
+    md = (tmp_path / "report.md").read_text()
+    assert "| scenario | geometry | paper Table 2 |" in md
+    assert "| A | synthetic | - | " in md
+    assert "![performance](performance.png)" in md and "evo_ape tum A/seed0/truth.tum A/seed0/estimate.tum" in md
+
+
+# --------------------------------------------------------------------------- the real chain
+
+
+@pytest.fixture(scope="module")
+def lockstep_pair():
+    sc = load_scenario(P1)
+    opts = EvalOptions(duration_s=LOCKSTEP_DURATION_S, batch=False)
+    return sc, run_lockstep(sc, 3, opts), run_lockstep(sc, 3, opts)
+
+
+def test_lockstep_run_goes_through_the_image_chain(lockstep_pair):
+    sc, r, _ = lockstep_pair
+    F = round(LOCKSTEP_DURATION_S * sc.frame_rate_hz)
+    assert r.frames == F and r.error is None
+    np.testing.assert_allclose(np.diff(r.t_s), 1 / sc.frame_rate_hz, atol=1e-9)
+    assert np.all(np.isfinite(r.truth_p_ned_m)) and np.all(r.visible)
+    assert r.pose_valid[: F - 2].all()  # the last frame or two may lack a later telemetry sample
+    measured = r.measurement_valid & r.visible
+    assert measured.sum() >= MIN_MEASURED_FRACTION * r.visible.sum()
+    d = r.uv_px[measured] - r.truth_uv_px[measured]
+    assert math.sqrt(np.mean(np.sum(d**2, axis=1))) < MAX_CENTROID_RMS_PX
+    assert set(np.unique(r.state)) <= {"tracking", "coasting", "searching", "lost"}
+    s = score_run(r)
+    assert 0.0 <= s["continuity"] <= 1.0 and s["continuity_2d"] >= MIN_MEASURED_FRACTION
+    assert r.frame is not None and r.frame["pixels"].shape == (512, 640)
+    assert r.timing["pipeline_s"] > 0 and len(r.timing["process_ms"]) == F
+
+
+def test_lockstep_is_deterministic(lockstep_pair):
+    _, a, b = lockstep_pair
+    for name in ("truth_p_ned_m", "uv_px", "est_p_ned_m", "est_cov_ned_m2", "base_p_ned_m", "observable",
+                 "measurement_valid", "state"):
+        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=name not in ("observable",
+                              "measurement_valid", "state")), name
+
+
+def test_run_eval_in_a_pool_matches_in_process(lockstep_pair):
+    sc, a, _ = lockstep_pair
+    opts = EvalOptions(duration_s=0.5, batch=False, keep_frame=False)
+    pooled = run_eval([sc], [3], opts, workers=2, progress=False)
+    assert pooled.workers == 1  # one job: no pool needed
+    two = run_eval([sc, sc], [3], opts, workers=2, progress=False)
+    assert two.workers == 2 and len(two.runs) == 2
+    np.testing.assert_array_equal(two.runs[0].uv_px, two.runs[1].uv_px)
+    np.testing.assert_array_equal(two.runs[0].uv_px, a.uv_px[:15])  # same frames as the longer run's first 15
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def _cli(argv):
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        code = cli.main(argv)
+    return code, err.getvalue()
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["eval", "--seeds", "0"], "--seeds: expected an integer >= 1"),
+    (["eval", "--scenario", "no_such_scenario.yaml"], "no_such_scenario.yaml"),
+    (["eval", "--scenario", "P1", "--duration", "99"], "--duration: expected at most P1's duration_s"),
+    (["eval", "--workers", "0"], "--workers: expected an integer >= 1"),
+    (["eval", "--pixel-sigma", "-1"], "--pixel-sigma"),
+])
+def test_eval_cli_rejects_bad_options_in_one_line(tmp_path, argv, needle):
+    code, err = _cli(argv + ["--out", str(tmp_path / "o"), "--no-progress"])
+    assert code == cli.EXIT_ERROR
+    lines = [line for line in err.splitlines() if line.strip() and "INFO" not in line]
+    assert len(lines) == 1 and lines[0].startswith("groundsim eval: error:") and needle in lines[0], err
