@@ -99,6 +99,9 @@ class SlidingWindowEstimator:
         self._prob: WindowProblem | None = None
         self._H: np.ndarray | None = None
         self._since_full = 0
+        # per-frame covariances come from the chosen model's information, inflated like the batch
+        # result's; model doubt is the 1 Hz selection's job (its observability verdict gates ours)
+        self._cov_scale = self.map.config.sigma_inflation ** 2
         self.stats = {"selections": 0, "updates": 0, "incremental": 0, "failures": 0}
 
     # ------------------------------------------------------------------ input
@@ -171,6 +174,7 @@ class SlidingWindowEstimator:
             prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
             _, J, _ = prob.evaluate(theta)
             prob.last_jacobian = J
+
         elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
             return self._incremental(t)
         else:
@@ -230,7 +234,7 @@ class SlidingWindowEstimator:
         return theta
 
     def _estimate(self, prob: WindowProblem, theta: np.ndarray, t: float, H: np.ndarray, p_cam_ned_m=None,
-                  chol=None) -> TrackEstimate:
+                  chol=None, scale: float | None = None) -> TrackEstimate:
         """State and covariance at ``t`` from the information matrix H of the window's parameters."""
         rows = self._grid.basis(np.array([t]), prob.first, prob.count)
         idx = rows.index[0]
@@ -251,8 +255,9 @@ class SlidingWindowEstimator:
             X = sla.cho_solve((R.T, True), E, check_finite=False)
         S = (X[cols] / d[cols][:, None]).reshape(4, 3, 4, 3)  # covariance of the 4 controls
         w0, w1 = rows.w0[0], rows.w1[0]
-        P = np.einsum("m,l,milj->ij", w0, w0, S)
-        V = np.einsum("m,l,milj->ij", w1, w1, S)
+        k = self._cov_scale if scale is None else scale
+        P = k * np.einsum("m,l,milj->ij", w0, w0, S)
+        V = k * np.einsum("m,l,milj->ij", w1, w1, S)
         c = theta[: prob.nc].reshape(prob.count, 3)[idx]
         p = w0 @ c
         v = w1 @ c
