@@ -1,0 +1,250 @@
+"""``groundsim demo``: the pure pieces (plan, status line, truth tail, track store, scoring) and one
+real run of both processes on 127.0.0.1, stopped with SIGINT part-way (bounded in time)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from groundsim.demo import (
+    DemoOutcome,
+    ProcCpu,
+    TrackStore,
+    TruthTail,
+    _aligned,
+    daemon_command,
+    format_demo_table,
+    free_port,
+    plan_demo,
+    score_demo,
+    sim_command,
+    status_line,
+)
+from groundsim.scenario import load_scenario, scenarios_dir
+from groundsim.truth import TruthWriter, truth_row
+from onboard.config import load_config
+from onboard.errors import ConfigError
+from onboard.frames import geodetic_from_ned, quat_from_euler
+
+pytestmark = pytest.mark.timeout(90)
+
+REPO = Path(__file__).resolve().parents[2]
+P1 = scenarios_dir() / "P1.yaml"
+DEMO_WALL_LIMIT_S = 60.0  # the whole real demo test, start to exit
+SIGINT_AFTER_LINES = 4  # live status lines seen before Ctrl-C
+STOP_LIMIT_S = 10.0  # SIGINT -> the demo has stopped both children, printed its table and exited
+
+
+# --------------------------------------------------------------------------- plan
+
+
+def test_plan_writes_a_valid_daemon_config_and_extends_the_scenario(tmp_path):
+    plan = plan_demo("P1", 25.0, 2, tmp_path, None)
+    sc = load_scenario(P1)
+    assert plan.scenario.duration_s == 25.0 and plan.duration_s == 25.0
+    assert plan.scenario_path == tmp_path / "scenario.yaml"
+    t = np.array([0.0, 5.0, 9.9])
+    np.testing.assert_array_equal(plan.scenario.observer.motion.state(t).p_ned_m, sc.observer.motion.state(t).p_ned_m)
+    cfg = load_config(plan.onboard_config_path, environ={})
+    assert cfg.mavlink.connection == f"udpin:127.0.0.1:{plan.mavlink_port}"
+    assert cfg.zenoh.listen == (f"tcp/127.0.0.1:{plan.zenoh_port}",) and cfg.zenoh.multicast_scouting is False
+    assert cfg.camera.mount.gimballed is True and cfg.camera.mount.pitch_deg == pytest.approx(-10.0, abs=1e-9)
+    assert cfg.pose.geodetic_origin() == sc.origin
+    assert cfg.output.health_file == str((tmp_path / "onboard.alive").resolve())
+    d, s = daemon_command(plan), sim_command(plan)
+    assert d[1:] == ["-m", "onboard", "--config", str(plan.onboard_config_path)]
+    assert ["--rate", "realtime"] == s[s.index("--rate"):s.index("--rate") + 2]
+    assert f"udpout:127.0.0.1:{plan.mavlink_port}" in s and plan.zenoh_endpoint in s and "--truth" in s
+
+
+def test_plan_keeps_a_long_enough_scenario_and_rejects_bad_options(tmp_path):
+    plan = plan_demo("P1", 4.0, 0, tmp_path, None)
+    assert plan.scenario_path == P1 and plan.duration_s == 4.0
+    with pytest.raises(ConfigError, match="--duration"):
+        plan_demo("P1", -1.0, 0, tmp_path, None)
+    with pytest.raises(ConfigError, match="--seed"):
+        plan_demo("P1", 4.0, -3, tmp_path, None)
+    with pytest.raises(ConfigError, match="--onboard-config nope.yaml: no such file"):
+        plan_demo("P1", 4.0, 0, tmp_path, "nope.yaml")
+
+
+def test_free_ports_are_bindable():
+    import socket
+
+    for kind, typ in (("tcp", socket.SOCK_STREAM), ("udp", socket.SOCK_DGRAM)):
+        port = free_port(kind)
+        with socket.socket(socket.AF_INET, typ) as s:
+            s.bind(("127.0.0.1", port))
+
+
+# --------------------------------------------------------------------------- collectors and formatting
+
+
+def _truth_file(path: Path, n: int):
+    sc = load_scenario(P1)
+    rows = []
+    with TruthWriter(path) as w:
+        for k in range(n):
+            t = k / 30.0
+            p_t = np.array([120.0 - 4 * t, 30.0 - 3 * t, -85.0])
+            p_c = np.array([0.0, 4 * t, -60.0])
+            r = truth_row(k, 1_000_000 + round(t * 1e6), t, sc.origin, sc.camera.intrinsics, p_t, [-4, -3, 0], p_c, p_c,
+                          quat_from_euler(0.0, 0.3, 0.2))
+            w.write(r)
+            rows.append(r)
+    return sc, rows
+
+
+def test_truth_tail_reads_whole_lines_only(tmp_path):
+    path = tmp_path / "truth.csv"
+    _, rows = _truth_file(path, 5)
+    text = path.read_text()
+    cut = text.index("\n", text.index("\n", text.index("\n") + 1) + 1) + 10  # header, 2 rows, 10 chars of the third
+    partial = tmp_path / "partial.csv"
+    partial.write_text(text[:cut])
+    tail = TruthTail(partial)
+    assert tail.poll() == 2
+    with open(partial, "a") as f:
+        f.write(text[cut:])
+    assert tail.poll() == 3
+    assert tail.order == [r.time_boot_us for r in rows]
+    assert tail.rows[rows[4].time_boot_us]["range_m"] == pytest.approx(rows[4].range_m, rel=1e-15)
+    assert TruthTail(tmp_path / "missing.csv").poll() == 0
+
+
+def _track_msg(row, err_ned=(0.0, 0.0, 0.0), observable=True, origin=None, with_position=True) -> dict:
+    msg = {"schema": "irtrack.track/1", "vehicle": "uav1", "seq": row.seq, "time_boot_us": row.time_boot_us,
+           "track_id": 1, "state": "tracking", "measurement_valid": True, "u_px": 320.0, "v_px": 256.0,
+           "bbox": [312, 248, 16, 16], "pose_valid": True, "observable": observable, "window_frames": 40}
+    if with_position:
+        p = np.array([row.target_n_m, row.target_e_m, row.target_d_m]) + np.asarray(err_ned)
+        lat, lon, alt = geodetic_from_ned(p, origin)
+        msg.update(lat_deg=float(lat), lon_deg=float(lon), alt_m=float(alt), ned_m=p.tolist(),
+                   origin={"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "alt_m": origin.alt_m},
+                   vel_ned_mps=[0.0, 0.0, 0.0], cov_ned_m2=np.eye(3).tolist(), range_m=float(row.range_m),
+                   range_sigma_ratio=0.01, model="cv")
+    return msg
+
+
+def test_track_store_validates_messages():
+    store = TrackStore()
+    store.on_track(b"not json")
+    store.on_track(json.dumps({"schema": "irtrack.track/1"}).encode())  # missing keys
+    store.on_status(b"{")
+    assert store.bad == 3 and store.tracks == [] and not store.ready.is_set()
+    store.on_status(json.dumps({"frames": {"processed": 3}}).encode())
+    assert store.ready.is_set() and store.snapshot()[1]["frames"]["processed"] == 3
+
+
+def test_scoring_matches_truth_by_capture_time(tmp_path):
+    path = tmp_path / "truth.csv"
+    sc, rows = _truth_file(path, 30)
+    tail = TruthTail(path)
+    tail.poll()
+    store = TrackStore()
+    for r in rows[:5]:  # no 3-D yet
+        store.on_track(json.dumps(_track_msg(r, with_position=False)).encode())
+    for r in rows[5:15]:  # 3-D, not yet observable, 2 m off
+        store.on_track(json.dumps(_track_msg(r, (2.0, 0.0, 0.0), observable=False, origin=sc.origin)).encode())
+    for r in rows[15:]:  # observable, 0.5 m off
+        store.on_track(json.dumps(_track_msg(r, (0.0, 0.3, 0.4), observable=True, origin=sc.origin)).encode())
+    assert store.bad == 0
+    a = _aligned(tail, store.tracks, sc.origin)
+    s = score_demo(a)
+    assert (s["frames"], s["frames_with_estimate"], s["frames_observable"]) == (30, 25, 15)
+    assert s["continuity"] == pytest.approx(0.5)
+    assert s["observable"]["rmse_m"] == pytest.approx(0.5, abs=1e-6)  # geodetic round trip: micrometres
+    assert s["observable"]["mean_nees"] == pytest.approx(0.25, abs=1e-5)
+    expect_all = np.sqrt((10 * 4.0 + 15 * 0.25) / 25)
+    assert s["all"]["rmse_m"] == pytest.approx(expect_all, abs=1e-6)
+    out = DemoOutcome("P1", 0, 1.0, 1.0, 30, 30, False, 0, 0, cpu_share={"sim": 0.3, "daemon": 0.25, "demo": 0.02},
+                      last_status={"processing_ms": {"p50": 4.2, "p99": 30.0}})
+    table = format_demo_table(s, out)
+    assert "| observable frames (published by default) | 15 |" in table
+    assert "continuity 50 %" in table and "daemon 25 %" in table and "p50 4.2 ms" in table
+
+
+def test_status_line_shows_error_and_observability():
+    line = status_line(3.0, 90, 600, {"frames": {"processed": 88, "dropped": 1}, "processing_ms": {"p50": 5.25}},
+                       {"state": "tracking", "track_id": 2, "lat_deg": 32.0, "observable": False}, 101.5, 100.0, 2.0,
+                       0.31, None)
+    assert line.startswith("[  3.0 s] | sim 90/600 fr | daemon 88 proc 1 drop 5.2 ms | tracking #2")
+    assert "range 101.5 m (truth 100.0)" in line and "err 2.00 m 2.00 % unobservable" in line
+    assert line.endswith("cpu sim 31 % daemon - %")
+    assert "track -" in status_line(0.5, 0, 600, None, None, None, None, None, None, None)
+    assert "no 3-D yet (7 obs)" in status_line(1, 1, 2, None, {"state": "coasting", "window_frames": 7}, None, None,
+                                                  None, None, None)
+
+
+def test_proc_cpu_reads_this_process():
+    meter = ProcCpu(os.getpid())
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.05:  # burn a little CPU
+        pass
+    share = meter.share_since_last()
+    if share is None:
+        pytest.skip("no /proc on this system")
+    assert share > 0.0 and meter.share_overall() is not None
+    assert ProcCpu(2**22 + 12345).cpu_s() is None  # no such process
+
+
+# --------------------------------------------------------------------------- the real thing
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(DEMO_WALL_LIMIT_S + 30)
+def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
+    """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 0."""
+    out = tmp_path / "demo"
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    cmd = [sys.executable, "-m", "groundsim", "demo", "--duration", "30", "--out", str(out), "--no-eval",
+           "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
+    lines: list[str] = []
+    t0 = time.monotonic()
+    try:
+        live = 0
+        while live < SIGINT_AFTER_LINES:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line.rstrip("\n"))
+            if line.startswith("[") and "sim " in line:
+                live += 1
+            assert time.monotonic() - t0 < DEMO_WALL_LIMIT_S, "\n".join(lines)
+        if live < SIGINT_AFTER_LINES:
+            text = "\n".join(lines)
+            if "exited with code" in text or "published no status" in text:
+                pytest.skip(f"a demo child failed to start on this machine:\n{text}")
+            pytest.fail(f"no live status lines:\n{text}")
+        t_sig = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rest, _ = proc.communicate(timeout=STOP_LIMIT_S)
+        stop_s = time.monotonic() - t_sig
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = "\n".join(lines) + "\n" + rest
+    assert proc.returncode == 0, text
+    assert stop_s < STOP_LIMIT_S
+    assert "daemon ready" in text and "| online track vs truth |" in text and "report: " in text, text
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["stopped_early"] is True
+    # both children were reaped (exit codes known) and ended by our SIGTERM (or the terminal's SIGINT): 0 or -15
+    assert rep["exit_codes"]["daemon"] in (0, -signal.SIGTERM) and rep["exit_codes"]["sim"] in (0, -signal.SIGTERM)
+    s = rep["scores"]
+    assert s["frames"] > 30 and s["frames_with_track_message"] > 0.5 * s["frames"], s
+    assert rep["daemon_status"]["frames"]["processed"] > 0
+    assert (out / "truth.csv").is_file() and (out / "tracks.jsonl").stat().st_size > 0
+    cfg = yaml.safe_load((out / "onboard.yaml").read_text())
+    assert not Path(cfg["output"]["health_file"]).exists()  # the daemon removed its liveness file on exit
