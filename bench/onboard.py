@@ -401,6 +401,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
         next_hb = 0.0
         k = tel_n = 0
         measuring_from = None
+        status_at_start = None
         lag_us = int(capture_lag_ms * 1000)
         while True:
             now = time.monotonic()
@@ -427,6 +428,8 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
                 if first_track is None:
                     first_track = now
                     measuring_from = now + 2.0  # let the daemon settle (first track, rates, TIMESYNC)
+                if measuring_from is not None and now >= measuring_from and status_at_start is None and statuses:
+                    status_at_start = statuses[-1]
                 if measuring_from is not None and now >= measuring_from and j["seq"] in put_ns:
                     lat_ms.append((t_ns - put_ns.pop(j["seq"])) / 1e6)
             if measuring_from is not None and now >= measuring_from + duration_s:
@@ -443,8 +446,18 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
               f"  p99 {_pct(lat_ms, 99):.2f}  max {max(lat_ms) if lat_ms else math.nan:.1f}   (target p99 <= 10)")
         if st:
             f = st["frames"]
-            print(f"     daemon status: in {f['in']} processed {f['processed']} dropped {f['dropped']} rejected {f['rejected']};"
-                  f" processing p50 {st['processing_ms']['p50']:.2f} p99 {st['processing_ms']['p99']:.2f} ms;"
+            f0 = (status_at_start or {}).get("frames", {"in": 0, "processed": 0, "dropped": 0})
+            print(f"     daemon during the timed window: in {f['in'] - f0['in']} processed {f['processed'] - f0['processed']}"
+                  f" dropped {f['dropped'] - f0['dropped']} (since start: dropped {f['dropped']}, rejected {f['rejected']})")
+            qw, pb = st.get("queue_wait_ms") or {}, st.get("publish_ms") or {}
+            print(f"     daemon: queue wait p50 {qw.get('p50') or math.nan:.2f} p99 {qw.get('p99') or math.nan:.2f} max "
+                  f"{qw.get('max') or math.nan:.1f} ms; track put p99 {pb.get('p99') or math.nan:.2f} max {pb.get('max') or math.nan:.1f} ms")
+            sg = st.get("stages_ms") or {}
+            for name, v in sg.items():
+                print(f"     daemon stage {name}: p50 {v['p50'] or math.nan:.2f} p99 {v['p99'] or math.nan:.2f} max {v['max'] or math.nan:.1f} ms")
+            print(f"     daemon status (last 1000 frames):"
+                  f" processing p50 {st['processing_ms']['p50']:.2f} p99 {st['processing_ms']['p99']:.2f}"
+                  f" max {st['processing_ms']['max']:.1f} ms;"
                   f" pose wait p50 {st['pose_wait_ms']['p50']:.2f} p99 {st['pose_wait_ms']['p99']:.2f} ms;"
                   f" receipt->published p99 {st['latency_ms']['p99']:.2f} ms")
             c2t = st.get("capture_to_track_ms") or {}

@@ -156,6 +156,8 @@ class FramePipeline:
         self._clock_ns = clock_ns
         self.processing_ms = RollingStats(stats_window)
         self.pose_wait_ms = RollingStats(stats_window)
+        self.imaging_ms = RollingStats(stats_window)
+        self.estimator_ms = RollingStats(stats_window)
         self.frames_processed = 0
         self.frames_rejected = 0
         self.estimator_resets = 0
@@ -197,10 +199,12 @@ class FramePipeline:
                          f"{K.width_px} x {K.height_px} (camera.intrinsics)")
         self._admit(frame)
 
+        i0 = self._clock_ns()
         try:
             upd = self.tracker.update(frame.pixels)
         except InputError as exc:
             self._refuse("image", f"tracker refused the frame: {exc}")
+        self.imaging_ms.add((self._clock_ns() - i0) / 1e6)
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us
@@ -219,7 +223,9 @@ class FramePipeline:
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
                 self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
 
+        e0 = self._clock_ns()
         est = self._estimate(upd, pose, t_us)
+        self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
         track = self._track(frame, upd, state, pose, est)
         self.last_track = track
         self.frames_processed += 1

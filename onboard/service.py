@@ -381,6 +381,9 @@ class ProcessEstimator:
                  max_extrapolation_s: float = 1.0) -> None:
         import multiprocessing as mp
 
+        # results are unpickled here: import their module now, not on the first result (~0.4 s stall)
+        import onboard.estimation.sliding  # noqa: F401
+
         self._config = config
         self._counter = counter
         self.result_wait_s = float(result_wait_s)
@@ -556,6 +559,8 @@ class OnboardService:
         self.frames_dropped = 0
         self.tracks_published = 0
         self.latency_ms = RollingStats(1000)
+        self.queue_wait_ms = RollingStats(1000)
+        self.publish_ms = RollingStats(1000)
         self.capture_to_track_ms = RollingStats(1000)
         self._done = collections.deque(maxlen=1000)  # (time_boot_us, published_mono_ns) for capture-to-track
         self._latest: tuple[Track, float] | None = None
@@ -676,6 +681,7 @@ class OnboardService:
             if item is None:
                 continue
             frame, received_ns = item
+            self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
             c0 = time.thread_time()
             try:
                 track = self.pipeline.process(frame, received_ns)
@@ -689,7 +695,9 @@ class OnboardService:
                 self._pipeline_cpu_s += time.thread_time() - c0
             if publish and self._track_pub is not None:
                 try:
+                    p0 = self._clock_ns()
                     self._track_pub.put(track_to_bytes(track))
+                    self.publish_ms.add((self._clock_ns() - p0) / 1e6)
                     with self._stats_lock:
                         self.tracks_published += 1
                 except Exception as exc:  # noqa: BLE001
@@ -800,6 +808,9 @@ class OnboardService:
             last_track=None if latest is None else latest[0],
             estimator=self.estimator_kind,
             queue_length=len(self.queue),
+            queue_wait_ms=self.queue_wait_ms.summary(),
+            publish_ms=self.publish_ms.summary(),
+            stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
         )
 
     def _drain_capture_latency(self) -> None:

@@ -474,6 +474,9 @@ def build_status(
     last_track: Track | None,
     estimator: str,
     queue_length: int,
+    queue_wait_ms: Mapping[str, Any] | None = None,
+    publish_ms: Mapping[str, Any] | None = None,
+    stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
@@ -481,7 +484,9 @@ def build_status(
     (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames: sum of the
     ``frame_*`` reasons), ``published`` (track messages put on zenoh).  ``processing_ms``: decode +
     imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
-    monotonic clock); ``pose_wait_ms``: time a frame waited for lagging telemetry;
+    monotonic clock); ``queue_wait_ms``: receipt to the start of processing; ``publish_ms``: the
+    zenoh ``put`` of the track; ``stages_ms``: parts of the processing (``imaging``, ``estimator``);
+    ``pose_wait_ms``: time a frame waited for lagging telemetry;
     ``capture_to_track_ms``: capture (boot clock) to track published, via TIMESYNC (null until
     synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
     rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
@@ -505,6 +510,9 @@ def build_status(
         "processing_ms": dict(processing_ms),
         "latency_ms": dict(latency_ms),
         "pose_wait_ms": dict(pose_wait_ms),
+        "queue_wait_ms": None if queue_wait_ms is None else dict(queue_wait_ms),
+        "publish_ms": None if publish_ms is None else dict(publish_ms),
+        "stages_ms": None if stages_ms is None else {k: dict(v) for k, v in stages_ms.items()},
         "capture_to_track_ms": None if capture_to_track_ms is None else dict(capture_to_track_ms),
         "rejected": {str(k): int(v) for k, v in sorted(rejected.items())},
         "link": None if link is None else _jsonable(link),
