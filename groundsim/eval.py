@@ -15,7 +15,9 @@ with the wire's quantisation, exactly what :mod:`onboard.mavlink_link` hands the
 longitude in 1e-7 degrees, altitude in millimetres, velocity in cm/s, gimbal in the earth frame.
 Before frame ``k`` is processed, telemetry is fed up to its capture tick and then further, tick by
 tick, until the pose lookup at the capture time succeeds or stops asking to retry -- the lockstep
-analogue of the daemon's ``pose.wait_ms``.
+analogue of the daemon's ``pose.wait_ms``.  The last frame or two of a run, after the simulation's
+last telemetry sample, can have no pose; they are not processed (``RunResult.frames`` counts the
+frames that were).
 
 The onboard configuration is the daemon's (``config/onboard.yaml`` when present, else the
 built-in defaults) with the scenario's camera (intrinsics, pod mount, gimbal), the scenario's origin
@@ -399,13 +401,21 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     base_has_data = False
     done_since = 0
 
+    n_done = F
     for k in range(F):
         i = k * core.ticks_per_frame
+        t_frame_us = core.time_boot_us(i)
+        feed.feed_for(i, t_frame_us)
+        if feed.exhausted and buffer.lookup(t_frame_us).pose is None:
+            # the simulation ends before a telemetry sample after this frame: the run's last frame or two
+            # can have no pose in lockstep (nor in a real run that stops there); they are not processed
+            n_done = k
+            log.debug("%s seed %d: frames %d.. after the last telemetry sample are not processed", scenario.name, seed, k)
+            break
         r0 = core.render_s
         fr = core.frame(k)
         render_ms[k] = (core.render_s - r0) * 1e3
         tr = fr.truth
-        feed.feed_for(i, fr.time_boot_us)
         t_s[k], t_us[k] = tr.t_s, fr.time_boot_us
         truth_p[k] = (tr.target_n_m, tr.target_e_m, tr.target_d_m)
         cam_p[k] = (tr.cam_n_m, tr.cam_e_m, tr.cam_d_m)
@@ -463,10 +473,20 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
                         truth_uv_px=(tr.target_u_px, tr.target_v_px), state=None if track is None else track.state,
                         range_m=tr.range_m)
         done_since += 1
-        if progress is not None and (done_since >= PROGRESS_EVERY_FRAMES or k == F - 1):
+        if progress is not None and done_since >= PROGRESS_EVERY_FRAMES:
             progress(done_since)
             done_since = 0
+    if progress is not None and done_since + (F - n_done) > 0:
+        progress(done_since + (F - n_done))  # the bar counts the frames planned
 
+
+    if n_done < F:
+        (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv, bbox, est_p, est_P,
+         observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q, render_ms, process_ms, baseline_ms) = (
+            a[:n_done] for a in (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv,
+                                 bbox, est_p, est_P, observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q,
+                                 render_ms, process_ms, baseline_ms))
+        F = n_done
 
     batch = None
     batch_s = 0.0

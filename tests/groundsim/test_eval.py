@@ -356,11 +356,13 @@ def lockstep_pair():
 
 def test_lockstep_run_goes_through_the_image_chain(lockstep_pair):
     sc, r, _ = lockstep_pair
-    F = round(LOCKSTEP_DURATION_S * sc.frame_rate_hz)
-    assert r.frames == F and r.error is None
+    planned = round(LOCKSTEP_DURATION_S * sc.frame_rate_hz)
+    F = r.frames
+    # the last frame or two, after the run's last telemetry sample, are not processed
+    assert planned - 2 <= F <= planned and r.error is None
     np.testing.assert_allclose(np.diff(r.t_s), 1 / sc.frame_rate_hz, atol=1e-9)
     assert np.all(np.isfinite(r.truth_p_ned_m)) and np.all(r.visible)
-    assert r.pose_valid[: F - 2].all()  # the last frame or two may lack a later telemetry sample
+    assert r.pose_valid.all()
     measured = r.measurement_valid & r.visible
     assert measured.sum() >= MIN_MEASURED_FRACTION * r.visible.sum()
     d = r.uv_px[measured] - r.truth_uv_px[measured]
@@ -388,7 +390,8 @@ def test_run_eval_in_a_pool_matches_in_process(lockstep_pair):
     two = run_eval([sc, sc], [3], opts, workers=2, progress=False)
     assert two.workers == 2 and len(two.runs) == 2
     np.testing.assert_array_equal(two.runs[0].uv_px, two.runs[1].uv_px)
-    np.testing.assert_array_equal(two.runs[0].uv_px, a.uv_px[:15])  # same frames as the longer run's first 15
+    n = two.runs[0].frames
+    np.testing.assert_array_equal(two.runs[0].uv_px, a.uv_px[:n])  # the same frames as the longer run's first ones
 
 
 # --------------------------------------------------------------------------- command line
