@@ -304,6 +304,12 @@ def bench_processing(n_frames: int) -> None:
 
     cv2.setNumThreads(1)
     try:
+        from groundsim.eval import limit_blas_threads
+
+        limit_blas_threads(1)
+    except ImportError:  # the environment variables set at start are then all there is
+        pass
+    try:
         cpu = min(os.sched_getaffinity(0))
         os.sched_setaffinity(0, {cpu})
         pinned = f"pinned to CPU {cpu}"
