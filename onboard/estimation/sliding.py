@@ -139,13 +139,16 @@ class SlidingWindowEstimator:
             self._grid = KnotGrid(t, self.map.config.knot_spacing_s)
         if len(self._t) < self.config.min_frames or t - self._t[0] < self.config.min_span_s:
             return None
-        try:
-            return self._update(t)
-        except (EstimationError, np.linalg.LinAlgError, FloatingPointError) as exc:
-            self.stats["failures"] += 1
-            log.debug("sliding window update failed: %s", exc)
-            self._theta = None
-            return None
+        for attempt in range(2):
+            try:
+                return self._update(t)
+            except (EstimationError, np.linalg.LinAlgError, FloatingPointError) as exc:
+                # a warm update that went wrong (the target behind the camera for the carried-over
+                # solution, a singular step): start this frame over from a cold model selection
+                self.stats["failures"] += 1
+                log.debug("sliding window update failed (attempt %d): %s", attempt + 1, exc)
+                self._theta = None
+        return None
 
     def _observations(self) -> Observations:
         k = np.asarray(self._k)
