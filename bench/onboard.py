@@ -1,20 +1,28 @@
-"""Benchmark of the onboard daemon's per-frame pipeline and of its loopback latency.
+"""Benchmark of the onboard daemon: loopback latency through it, and per-frame processing on one core.
 
 ``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency]``.  Prints:
 
-1. Per-frame processing on one core, synthetic 640 x 512 mono8 frames (a Gaussian blob moving on
-   a smooth background with 1 grey-level noise; P2-like geometry: observer circling at 8 m/s,
-   target 150-170 m away), through ``FramePipeline.process_payload`` = decode + filter + detect +
-   track + pose lookup + sliding-window estimator: frames/s from the median and the p10/p90/p99
-   per-frame times, with each stage's median measured in the same run (decode, imaging, estimator
-   ``add``) and the share of frames hit by the estimator's periodic model re-selection.
-2. Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1):
-   a fake autopilot (pymavlink, UDP) sends attitude/position at 50/25 Hz ahead of the frames, a
-   zenoh publisher sends frames at 30 Hz; the time from ``put`` of a frame to the arrival of its
-   track message, p50/p99/max, plus the daemon's own status numbers.
+* Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1,
+  default configuration: estimator in a worker process): a fake autopilot (pymavlink, UDP) sends
+  attitude/position at 50/25 Hz, a zenoh publisher sends 640 x 512 frames at 30 Hz; the time from
+  the ``put`` of a frame to the arrival of its track message, p50/p90/p99/max, over ``--latency-s``
+  seconds after a 2 s settling time; twice: frames stamped 50 ms before they are sent (a camera's
+  own latency, telemetry already there) and at send time (each frame waits for the next attitude
+  and position sample).  Also the daemon's own status numbers: frames dropped in the window,
+  queue wait, processing and its imaging/estimator stages, pose wait, CPU share.
+* Per-frame processing on one core (the process pinned to one CPU, one BLAS and one OpenCV
+  thread), synthetic frames (a Gaussian blob moving on a smooth background with 1 grey-level
+  noise; observer circling at 8 m/s, target 150-180 m away), through
+  ``FramePipeline.process_payload`` with the estimator inline = decode + filter + detect + track +
+  pose lookup + sliding-window estimator: per-frame p10/p50/p90/p99, frames/s from the median and
+  the mean, each stage's median (decode, imaging, estimator ``add``), the share of frames hit by
+  the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
+  without the estimator as a baseline measured in the same run.
 
-Numbers only; nothing asserts on time.  :class:`SyntheticScene` is also the test fixture of
-``tests/onboard/test_pipeline.py`` and ``test_service.py``.
+Numbers only; nothing asserts on time.  The machine's load average is printed first: on a shared
+2-core box the tails (p99, max) follow the other load.  :class:`SyntheticScene` and
+:class:`FakeAutopilot` are also the fixtures of ``tests/onboard/test_pipeline.py`` and
+``test_service.py``.
 """
 
 from __future__ import annotations
@@ -316,7 +324,7 @@ def bench_processing(n_frames: int) -> None:
     except (AttributeError, OSError):
         pinned = "not pinned"
     scene = SyntheticScene()
-    print(f"1. per-frame processing, 640 x 512 mono8, {n_frames} frames at 30 Hz scene time, one thread, {pinned}")
+    print(f"per-frame processing, 640 x 512 mono8, {n_frames} frames at 30 Hz scene time, one thread, {pinned}")
     payloads = [scene.payload(k) for k in range(n_frames)]
 
     def run(cfg: OnboardConfig, with_estimator: bool):
@@ -496,7 +504,7 @@ def main(argv=None) -> int:
     print(f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load)")
     if not args.no_latency:
         # first, before this process pins itself to one core
-        print("2. loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")
+        print("loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")
         for lag in (50.0, 0.0):
             bench_latency(args.latency_s, lag)
     bench_processing(args.frames)

@@ -342,6 +342,9 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
     import signal as _signal
 
     _signal.signal(_signal.SIGINT, _signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    from onboard.__main__ import setup_logging  # this process is an entry point of its own: same log lines
+
+    setup_logging(config.logging.level, config.logging.format)
     est = make_estimator(config)
     while True:
         try:
