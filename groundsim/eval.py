@@ -782,16 +782,15 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
         raise ConfigError("--seeds: expected at least one seed")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
+    from groundsim.run import frame_count
+
     jobs = [(sc, seed, options, base_config) for sc in scenarios for seed in seeds]
     total = 0
     for sc in scenarios:
-        from groundsim.run import frame_count
-
-        d = sc.duration_s if options.duration_s is None else min(options.duration_s, sc.duration_s)
-        total += frame_count(d, sc.frame_rate_hz) * len(seeds)
-    for sc in scenarios:
         if options.duration_s is not None and options.duration_s > sc.duration_s + 1e-9:
             raise ConfigError(f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}")
+        d = sc.duration_s if options.duration_s is None else options.duration_s
+        total += frame_count(d, sc.frame_rate_hz) * len(seeds)
     t0 = time.perf_counter()
     bar = None
     results: list = [None] * len(jobs)
