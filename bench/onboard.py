@@ -335,6 +335,7 @@ def bench_processing(n_frames: int) -> None:
         pipe = FramePipeline(cfg, pose, tracker, est, counter=counter)
         total, fed = [], scene.t_us(0) - 100_000
         n_pos = 0
+        last_pos = None
         for k, payload in enumerate(payloads):
             t_hi = scene.t_us(k) + 45_000
             for t, p, v, q in scene.telemetry(fed + 1, t_hi, 50.0):
@@ -345,7 +346,8 @@ def bench_processing(n_frames: int) -> None:
             tr = pipe.process_payload(payload, 0)
             total.append((time.perf_counter() - t0) * 1e3)
             n_pos += tr.has_position
-        return total, tracker.ms, (est.ms if est else []), n_pos, counter.total, tr
+            last_pos = tr if tr.has_position else last_pos
+        return total, tracker.ms, (est.ms if est else []), n_pos, counter.total, last_pos
 
     decode_ms = []
     for p in payloads[:200]:
@@ -366,10 +368,11 @@ def bench_processing(n_frames: int) -> None:
     print(f"     estimator adds > 50 ms (model re-selection): {slow} of {len(est)} "
           f"({100.0 * slow / max(len(est), 1):.1f} %), {sum(x for x in est if x > 50.0) / max(sum(est), 1e-9) * 100:.0f} % of estimator time")
     print(f"     frames with a 3-D position: {n_pos} of {n_frames}; refusals counted: {rejects}")
-    if last.has_position:
+    if last is not None:
         ts = (last.time_boot_us - scene.boot_us0) / 1e6
         err = float(np.linalg.norm(np.asarray(last.p_ned_m) - scene.target(ts)[0]))
-        print(f"     last frame: 3-D error {err:.2f} m, 1-sigma {math.sqrt(np.trace(last.cov_p_ned_m2)):.2f} m, range {last.range_m:.0f} m")
+        print(f"     last frame with a position (seq {last.seq}): 3-D error {err:.2f} m,"
+              f" 1-sigma (rss) {math.sqrt(np.trace(last.cov_p_ned_m2)):.2f} m, range {last.range_m:.0f} m")
     print(f"   baseline without estimator: p50 {_pct(base, 50):.2f} ms -> {1000.0 / _pct(base, 50):.0f} frames/s;"
           f" ratio full / baseline (median) {_pct(total, 50) / _pct(base, 50):.2f}")
 

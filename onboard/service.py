@@ -692,7 +692,8 @@ class OnboardService:
                 continue
             except Exception as exc:  # noqa: BLE001 - never let one frame kill the loop
                 self.counter.count("pipeline_error", f"{type(exc).__name__}: {exc}")
-                log.exception("pipeline error (frame skipped)") if self.counter["pipeline_error"] == 1 else None
+                if self.counter["pipeline_error"] == 1:  # the first one with its traceback, on one line
+                    log.exception("pipeline error (frame skipped)")
                 continue
             finally:
                 self._pipeline_cpu_s += time.thread_time() - c0

@@ -57,7 +57,7 @@ import math
 import os
 from collections import deque
 from dataclasses import dataclass
-from typing import Any, Iterable, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
@@ -548,7 +548,3 @@ def _jsonable(v):
         return v
     return str(v)
 
-
-def iter_reasons(counts: Mapping[str, int], prefix: str) -> Iterable[tuple[str, int]]:
-    """(reason, count) pairs whose reason starts with ``prefix``."""
-    return ((k, v) for k, v in counts.items() if k.startswith(prefix))
