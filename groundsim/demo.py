@@ -18,7 +18,7 @@ shorter than ``--duration`` is extended (its motion models simply continue) into
 Each second one line: simulated frames, frames the daemon processed/dropped and its processing
 latency, the track state, the estimated and true range, the live error of the newest 3-D estimate
 against the truth row of the same frame (matched on ``time_boot_us``), and the CPU share of the two
-children (``/proc/<pid>/stat``: CPU seconds / wall seconds, 1.0 = one core).
+children, each with its own child processes (``/proc``: CPU seconds / wall seconds, 1.0 = one core).
 
 At the end (the simulator finished, or Ctrl-C / SIGTERM): the daemon gets SIGTERM (SIGKILL after
 ``KILL_AFTER_S``), the table is printed and OUT gets ``report.json``, ``report.md``, ``tracks.jsonl``,
@@ -268,8 +268,20 @@ class TruthTail:
         return n
 
 
+def _proc_stat(pid: int) -> list[str] | None:
+    """Fields of ``/proc/<pid>/stat`` after the command name (field 3 onwards), or None."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 class ProcCpu:
-    """CPU seconds of a child process from ``/proc/<pid>/stat`` (utime + stime); None off Linux."""
+    """CPU seconds of a process and all its descendants (the daemon runs its estimator in a child
+    process): utime + stime of every living process of the tree (``/proc/<pid>/stat``, parents found
+    by scanning ``/proc``) plus the root's cutime + cstime (children already reaped).  None off Linux
+    or once the root is gone."""
 
     def __init__(self, pid: int) -> None:
         self.pid = pid
@@ -279,13 +291,38 @@ class ProcCpu:
         self.last = (self.t0, self.cpu0)
         self.final: float | None = None
 
-    def cpu_s(self) -> float | None:
+    def _descendants(self) -> list[int]:
+        parent: dict[int, int] = {}
         try:
-            with open(f"/proc/{self.pid}/stat", encoding="ascii") as f:
-                fields_ = f.read().rsplit(")", 1)[1].split()
-            return (int(fields_[11]) + int(fields_[12])) / self._tick
-        except (OSError, IndexError, ValueError):
+            names = os.listdir("/proc")
+        except OSError:
+            return []
+        for name in names:
+            if name.isdigit():
+                st = _proc_stat(int(name))
+                if st is not None and len(st) > 1 and st[1].isdigit():
+                    parent[int(name)] = int(st[1])
+        out, frontier = [], [self.pid]
+        while frontier:
+            p = frontier.pop()
+            kids = [c for c, pp in parent.items() if pp == p]
+            out += kids
+            frontier += kids
+        return out
+
+    def cpu_s(self) -> float | None:
+        root = _proc_stat(self.pid)
+        try:
+            if root is None:
+                return None
+            total = sum(int(x) for x in root[11:15])  # utime, stime, cutime, cstime
+            for pid in self._descendants():
+                st = _proc_stat(pid)
+                if st is not None:
+                    total += int(st[11]) + int(st[12])
+        except (IndexError, ValueError):
             return None
+        return total / self._tick
 
     def share_since_last(self) -> float | None:
         now, c = time.monotonic(), self.cpu_s()
