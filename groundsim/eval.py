@@ -87,6 +87,8 @@ __all__ = [
     "score_run",
     "summarise",
     "run_eval",
+    "mp_context",
+    "cmd_eval",
 ]
 
 log = logging.getLogger(__name__)
@@ -96,7 +98,6 @@ DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise (reference study
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
 US_PER_S = 1_000_000
-NAN3 = (math.nan, math.nan, math.nan)
 
 
 # --------------------------------------------------------------------------- BLAS threads
@@ -124,8 +125,7 @@ def limit_blas_threads(n: int = 1) -> int:
     done = 0
     try:
         with open("/proc/self/maps", encoding="ascii", errors="replace") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and line.rstrip().endswith(".so")
-                     or "openblas" in line.lower() and ".so" in line.split()[-1]}
+            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and ".so" in line.split()[-1]}
     except OSError:  # not Linux: the environment variables are all we can do
         return 0
     for path in sorted(paths):
