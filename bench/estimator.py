@@ -50,7 +50,7 @@ def speed(noise_name: str = "px0.3") -> dict:
     est = MapEstimator(noise=estimator_noise_model(nc))
     from onboard.estimation import paper
 
-    solve_paper = getattr(paper, "solve_paper", None) or getattr(paper, "reconstruct_paper", None) or paper.solve
+    solve_paper = paper.PaperEstimator().solve
     out = {"frames": len(obs)}
     out["paper_ms"] = float(np.median(_timeit(lambda: solve_paper(obs), 50)))
     pr = MotionPrior(1e-6, 2.5e-7, 0.0)

@@ -56,10 +56,10 @@ class CaseResult:
 
 
 def _paper_solve(obs):
-    from onboard.estimation import paper
+    """The paper's closed form with its defaults (first-order D, delta = 1)."""
+    from onboard.estimation.paper import PaperEstimator
 
-    solve = getattr(paper, "solve_paper", None) or getattr(paper, "reconstruct_paper", None) or getattr(paper, "solve")
-    return solve(obs)
+    return PaperEstimator().solve(obs)
 
 
 def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool = True, with_crb: bool = True) -> CaseResult:
