@@ -157,6 +157,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     setup_logging(config.logging.level, config.logging.format)
     sys.setswitchinterval(0.001)  # the pipeline, estimator and MAVLink threads share the GIL
+    import cv2
+
+    cv2.setNumThreads(1)  # OpenCV's own pool would fight the pipeline for the cores
 
     from onboard.service import OnboardService
 
