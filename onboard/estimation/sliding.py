@@ -170,13 +170,22 @@ class SlidingWindowEstimator:
             theta = res.extras["theta"]
             self._prior = res.prior
             self._model = res.extras.get("model", "map")
-            self._window_observable = res.observable
+            # the window's verdict for the online track: the model fits (adequacy) and the chosen model
+            # is not a long shot; range itself is judged per frame, at the frame's own time
+            cfg = self.map.config
+            self._window_observable = bool(res.extras.get("adequacy_p", 1.0) >= cfg.adequacy_p_min
+                                           and res.extras.get("best_model_weight", 1.0) >= 0.05)
             self._last_select_t = t
             self.stats["selections"] += 1
             # the problem object served several starts: re-linearise at the chosen solution
             prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
             _, J, _ = prob.evaluate(theta)
             prob.last_jacobian = J
+            # per-frame covariances come from this model's information; scale them so that at this
+            # frame they equal the batch result's model-averaged, inflated covariance
+            own = self._estimate(prob, theta, t, J.T @ J, scale=1.0)
+            self._cov_scale = max(self.map.config.sigma_inflation ** 2,
+                                  float(np.trace(res.cov_p_ned_m2[-1]) / max(np.trace(own.cov_p_ned_m2), 1e-30)))
 
         elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
             return self._incremental(t)
