@@ -202,7 +202,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
                    help="perfect-centroid baseline noise, px per axis (default: %(default)s)")
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
     p.add_argument("--onboard-config", default=None, metavar="FILE",
-                   help="the daemon's configuration (default: config/onboard.yaml if present, else built-in)")
+                   help="the daemon's configuration (default: config/onboard_sim.yaml if present, else built-in)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=lambda args: __import__("groundsim.eval", fromlist=["cmd_eval"]).cmd_eval(args))
 
@@ -214,7 +214,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
                    help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
     p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
-    p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
+    p.add_argument("--onboard-config", default="config/onboard_sim.yaml", metavar="FILE",
                    help="the daemon's configuration (default: %(default)s; built-in defaults when absent)")
     p.add_argument("--no-eval", dest="with_eval", action="store_false",
                    help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")

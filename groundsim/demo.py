@@ -10,7 +10,7 @@ Wiring (free ports on 127.0.0.1, picked at start)::
 
 The daemon starts first; the simulator is started once the daemon's first status message arrives
 (so no frame is sent before anyone listens).  ``OUT/onboard.yaml`` is the daemon's configuration
-(``--onboard-config``, default ``config/onboard.yaml``) with the scenario's camera, pod mount and
+(``--onboard-config``, default ``config/onboard_sim.yaml``) with the scenario's camera, pod mount and
 origin, the loopback endpoints, a liveness file inside OUT and ``output.unobservable_positions``
 on (so the live line can show the range before it is observable; the table scores both).  A scenario
 shorter than ``--duration`` is extended (its motion models simply continue) into ``OUT/scenario.yaml``.
@@ -147,7 +147,7 @@ def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_conf
     duration = min(float(duration_s), sc.duration_s)
     if onboard_config is not None and Path(onboard_config).is_file():
         base = load_config(onboard_config, environ={})
-    elif onboard_config is not None and onboard_config != "config/onboard.yaml":
+    elif onboard_config is not None and onboard_config != "config/onboard_sim.yaml":
         raise ConfigError(f"--onboard-config {onboard_config}: no such file")
     else:
         base = OnboardConfig()

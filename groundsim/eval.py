@@ -19,7 +19,7 @@ analogue of the daemon's ``pose.wait_ms``.  The last frame or two of a run, afte
 last telemetry sample, can have no pose; they are not processed (``RunResult.frames`` counts the
 frames that were).
 
-The onboard configuration is the daemon's (``config/onboard.yaml`` when present, else the
+The onboard configuration is the daemon's (``config/onboard_sim.yaml``, its noise model matched to the simulator, when present, else the
 built-in defaults) with the scenario's camera (intrinsics, pod mount, gimbal), the scenario's origin
 as ``pose.origin`` and ``output.unobservable_positions`` on, so that "all frames with an estimate"
 can be scored beside the default output ("observable frames").  The estimator runs synchronously
@@ -93,7 +93,7 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")
+DEFAULT_ONBOARD_CONFIG = Path("config/onboard_sim.yaml")
 DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise (reference study, case px0.3)
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
@@ -166,7 +166,7 @@ class EvalOptions:
 
 
 def load_base_config(path: str | os.PathLike | None = None):
-    """The daemon's configuration: ``path``, else ``config/onboard.yaml`` if it exists, else the
+    """The daemon's configuration: ``path``, else ``config/onboard_sim.yaml`` if it exists, else the
     built-in defaults.  Environment variables are ignored (a lockstep run must be reproducible)."""
     from onboard.config import OnboardConfig, load_config
 
