@@ -1,0 +1,327 @@
+"""Helpers of ``tests/test_integration.py`` (issue #4's acceptance test).
+
+Two real processes on 127.0.0.1, wired as ``python -m groundsim demo`` wires them
+(:mod:`groundsim.demo`: :func:`~groundsim.demo.plan_demo` writes the daemon's configuration with the
+scenario's camera, pod mount, gimbal and origin, loopback endpoints and
+``output.unobservable_positions`` on)::
+
+    python -m onboard --config OUT/onboard.yaml      MAVLink udpin:127.0.0.1:M, zenoh listen tcp/127.0.0.1:Z
+    python -m groundsim run --rate R ...             MAVLink udpout:127.0.0.1:M, zenoh connect tcp/127.0.0.1:Z
+    this process                                     zenoh connect tcp/127.0.0.1:Z: irtrack/<v>/track, /status
+
+The daemon starts first; the simulator once the daemon's first status message arrived (no frame is
+sent before anyone listens).  Both are stopped with SIGTERM, then SIGKILL, whatever happens.
+
+The yardstick (:func:`perfect_centroid_baseline`): the daemon's own sliding-window estimator
+(:func:`onboard.pipeline.make_estimator` on the very configuration file the daemon read, so the same
+window and noise model) fed from the simulator's truth CSV -- the true target pixel plus white noise,
+the true camera centre and attitude, each frame's capture time -- exactly as the pipeline feeds it
+(``add`` on frames where the target is in the image, ``predict`` on the others).
+
+Scoring (:func:`score_against_truth`): range-normalised error ``mean ||p_hat - p|| / ||p - c||``
+(:func:`onboard.estimation.metrics.evaluate`) of the daemon's track and of the baseline, on the same
+frames.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import signal
+import subprocess
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
+           "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
+
+REPO = Path(__file__).resolve().parents[1]
+ONBOARD_CONFIG = REPO / "config" / "onboard.yaml"
+
+KILL_AFTER_S = 3.0  # SIGTERM, then SIGKILL after this
+DAEMON_READY_TIMEOUT_S = 30.0  # imports on a busy 2-core machine
+SIM_SETUP_ALLOWANCE_S = 20.0  # wall seconds beyond duration / rate before the simulator counts as stuck
+DRAIN_QUIET_S = 0.5  # after the simulator ended: no track for this long = the daemon is done
+DRAIN_MAX_S = 3.0
+LOG_TAIL_LINES = 20
+
+
+class PairRunError(AssertionError):
+    """A child failed to start, died or hung; the message carries the tail of its log."""
+
+
+class _DaemonExitedEarly(PairRunError):
+    """The daemon exited before its first status (a port taken between picking and binding it?)."""
+
+
+@dataclass
+class PairRun:
+    """What one two-process run produced."""
+
+    scenario: object  # groundsim.scenario.Scenario
+    config_path: Path  # the daemon's configuration file
+    truth: dict  # groundsim.truth.read_truth_csv of the simulator's truth file
+    tracks: list  # irtrack.track/1 dicts in arrival order (schema-validated)
+    status: dict | None  # the daemon's last irtrack.status/1
+    bad_messages: int
+    exit_codes: dict = field(default_factory=dict)
+    wall_s: float = 0.0
+    sim_wall_s: float = 0.0
+    logs: dict = field(default_factory=dict)
+
+
+def _tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
+    try:
+        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
+    except OSError:
+        return "    (no log)"
+    return "\n".join("    " + line for line in lines[-n:])
+
+
+def _child_env() -> dict:
+    env = dict(os.environ)
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        env.setdefault(var, "1")
+    env["PYTHONUNBUFFERED"] = "1"
+    return env
+
+
+def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
+    with open(log_path, "wb") as f:  # the child keeps its own descriptor
+        return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+
+
+def stop_process(proc: subprocess.Popen | None) -> int | None:
+    """SIGTERM, then SIGKILL after KILL_AFTER_S; the exit code (None if never started)."""
+    if proc is None:
+        return None
+    if proc.poll() is None:
+        try:
+            proc.send_signal(signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        try:
+            proc.wait(KILL_AFTER_S)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def sim_command_at_rate(plan, rate: str) -> list[str]:
+    """The demo's simulator command with ``--rate`` replaced (the demo always runs in real time)."""
+    from groundsim.demo import sim_command
+
+    cmd = sim_command(plan)
+    cmd[cmd.index("--rate") + 1] = str(rate)
+    return cmd
+
+
+def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0) -> PairRun:
+    """Run the scenario's whole duration through both processes; raise PairRunError on a child failure.
+
+    A daemon that exits before it is ready is given one more try on fresh ports (the ports are free when
+    picked, not necessarily when bound, on a machine shared with other test runs)."""
+    try:
+        return _run_pair_once(scenario, Path(out_dir) / "try1", rate, seed)
+    except _DaemonExitedEarly:
+        return _run_pair_once(scenario, Path(out_dir) / "try2", rate, seed)
+
+
+def _run_pair_once(scenario: str, out_dir, rate: str, seed: int) -> PairRun:
+    from groundsim.demo import TrackStore, daemon_command, plan_demo
+    from groundsim.scenario import load_scenario
+    from groundsim.cli import resolve_scenario_path
+    from groundsim.truth import read_truth_csv
+    from onboard.zenoh_session import ZenohSettings, open_session, status_key, track_key
+
+    out = Path(out_dir)
+    duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
+    plan = plan_demo(scenario, duration_s, seed, out, str(ONBOARD_CONFIG))
+    factor = 1.0 if rate == "realtime" else float(rate)
+    env = _child_env()
+    logs = {"daemon": out / "onboard.log", "sim": out / "sim.log"}
+    store = TrackStore()
+    daemon = sim = session = None
+    subs = []
+    run = PairRun(plan.scenario, plan.onboard_config_path, {}, [], None, 0, logs={k: str(v) for k, v in logs.items()})
+    wall0 = time.monotonic()
+    try:
+        daemon = _start(daemon_command(plan), logs["daemon"], env)
+        session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
+        subs.append(session.declare_subscriber(track_key(plan.vehicle), lambda s: store.on_track(s.payload.to_bytes())))
+        subs.append(session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes())))
+        t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
+        while not store.ready.wait(0.1):
+            if daemon.poll() is not None:
+                raise _DaemonExitedEarly(f"the onboard daemon exited with code {daemon.returncode} before it was ready:\n"
+                                   f"{_tail(logs['daemon'])}")
+            if time.monotonic() > t_ready:
+                raise PairRunError(f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
+                                   f"{_tail(logs['daemon'])}")
+        sim0 = time.monotonic()
+        sim = _start(sim_command_at_rate(plan, rate), logs["sim"], env)
+        deadline = sim0 + plan.duration_s / factor + SIM_SETUP_ALLOWANCE_S
+        while sim.poll() is None:
+            if daemon.poll() is not None:
+                raise PairRunError(f"the onboard daemon exited with code {daemon.returncode} during the run:\n"
+                                   f"{_tail(logs['daemon'])}")
+            if time.monotonic() > deadline:
+                raise PairRunError(f"the simulator still runs {SIM_SETUP_ALLOWANCE_S:g} s past its duration:\n"
+                                   f"{_tail(logs['sim'])}")
+            time.sleep(0.1)
+        run.sim_wall_s = time.monotonic() - sim0
+        if sim.returncode != 0:
+            raise PairRunError(f"the simulator exited with code {sim.returncode}:\n{_tail(logs['sim'])}")
+        t_end = time.monotonic() + DRAIN_MAX_S  # let the daemon finish the last frames
+        while time.monotonic() < t_end:
+            last = store.last_track_mono
+            if last is not None and time.monotonic() - last > DRAIN_QUIET_S:
+                break
+            time.sleep(0.05)
+        time.sleep(0.1)
+    finally:
+        for s in subs:
+            try:
+                s.undeclare()
+            except Exception:  # noqa: BLE001 - closing
+                pass
+        if session is not None:
+            try:
+                session.close()
+            except Exception:  # noqa: BLE001 - closing
+                pass
+        run.exit_codes = {"sim": stop_process(sim), "daemon": stop_process(daemon)}
+        run.wall_s = time.monotonic() - wall0
+    run.tracks, run.status = store.snapshot()
+    run.bad_messages = store.bad
+    run.truth = read_truth_csv(plan.truth_path)
+    return run
+
+
+# --------------------------------------------------------------------------- truth, baseline, scoring
+
+
+def truth_arrays(truth: dict) -> dict:
+    """Per-frame arrays of a truth CSV: time_boot_us (F,), target / camera NED (F, 3), q_ned_from_cam (F, 4),
+    truth pixel (F, 2), visible (F,)."""
+    def stack(*names):
+        return np.column_stack([np.asarray(truth[n], dtype=float) for n in names])
+
+    return dict(
+        time_boot_us=np.asarray(truth["time_boot_us"], dtype=np.int64),
+        target_p_ned_m=stack("target_n_m", "target_e_m", "target_d_m"),
+        cam_p_ned_m=stack("cam_n_m", "cam_e_m", "cam_d_m"),
+        q_ned_from_cam=stack("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z"),
+        uv_px=stack("target_u_px", "target_v_px"),
+        visible=np.asarray(truth["target_visible"]) > 0,
+    )
+
+
+def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
+    """The daemon's tracks on the truth frames (matched on time_boot_us): position in the scenario's NED
+    frame from the WGS84 fields (independent of the daemon's own origin), NaN without one; observable."""
+    from onboard.frames import ned_from_geodetic
+
+    idx = {int(t): i for i, t in enumerate(time_boot_us)}
+    F = len(time_boot_us)
+    p = np.full((F, 3), np.nan)
+    observable = np.zeros(F, dtype=bool)
+    tracked = np.zeros(F, dtype=bool)
+    for tr in tracks:
+        i = idx.get(int(tr["time_boot_us"]))
+        if i is None:
+            continue
+        tracked[i] = True
+        if tr.get("lat_deg") is None:
+            continue
+        p[i] = np.asarray(ned_from_geodetic(tr["lat_deg"], tr["lon_deg"], tr["alt_m"], origin), dtype=float).reshape(3)
+        observable[i] = bool(tr.get("observable"))
+    return dict(p_ned_m=p, observable=observable, tracked=tracked)
+
+
+def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, rng: np.random.Generator) -> dict:
+    """The daemon's estimator (same configuration file) on the truth rows: true pixel + N(0, sigma^2) per
+    axis (drawn from ``rng``), true camera pose, capture time ``time_boot_us``; ``add`` where the target
+    is in the image, else ``predict`` -- as :class:`onboard.pipeline.FramePipeline` feeds it.
+
+    Returns ``p_ned_m`` (F, 3, NaN = no estimate) and ``observable`` (F,)."""
+    from onboard.config import load_config
+    from onboard.errors import IrtrackError
+    from onboard.pipeline import make_estimator
+
+    cfg = load_config(config_path, environ={})
+    K = cfg.camera.pinhole()
+    est = make_estimator(cfg)
+    a = truth_arrays(truth)
+    F = a["time_boot_us"].size
+    noise = rng.standard_normal((F, 2)) * pixel_sigma_px
+    p = np.full((F, 3), np.nan)
+    observable = np.zeros(F, dtype=bool)
+    has_data = False
+    for k in range(F):
+        t_s = int(a["time_boot_us"][k]) / 1e6
+        r = None
+        try:
+            if a["visible"][k]:
+                r = est.add(t_s, a["uv_px"][k] + noise[k], K, a["cam_p_ned_m"][k], a["q_ned_from_cam"][k])
+                has_data = True
+            elif has_data:
+                r = est.predict(t_s, a["cam_p_ned_m"][k])
+        except IrtrackError:
+            r = None
+        if r is not None and np.all(np.isfinite(r.p_ned_m)):
+            p[k] = r.p_ned_m
+            observable[k] = bool(r.observable)
+    return dict(p_ned_m=p, observable=observable)
+
+
+def range_normalised_error(truth_p, est_p, cam_p, sel) -> float:
+    """``mean ||p_hat - p|| / ||p - c||`` over the selected frames (NaN when none)."""
+    from onboard.estimation.metrics import evaluate
+
+    idx = np.flatnonzero(sel)
+    if idx.size == 0:
+        return math.nan
+    return float(evaluate(truth_p[idx], est_p[idx], cam_p[idx]).range_normalised_error)
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """The daemon against the perfect-centroid baseline on one frame selection.
+
+    ``daemon_err``: range-normalised error of the daemon's track (fraction); ``baseline_errs``: the
+    baseline's, one per noise draw, on the same frames; ``baseline_err``: their median (the yardstick:
+    one unlucky draw can pick another motion model and be 10x off, either way)."""
+
+    selection: str
+    frames: int
+    daemon_err: float
+    baseline_errs: tuple
+
+    @property
+    def baseline_err(self) -> float:
+        return float(np.median(self.baseline_errs)) if self.baseline_errs else math.nan
+
+    @property
+    def ratio(self) -> float:
+        return self.daemon_err / self.baseline_err if self.baseline_err > 0 else math.inf
+
+    def line(self) -> str:
+        draws = " ".join(f"{100 * e:.3f}" for e in self.baseline_errs)
+        return (f"{self.selection:>10s}: {self.frames:3d} frames, daemon {100 * self.daemon_err:7.3f} %, baseline "
+                f"{100 * self.baseline_err:7.3f} % (draws {draws}), ratio {self.ratio:.2f}")
+
+
+def compare(selection: str, truth: dict, daemon: dict, baselines: list, sel) -> Comparison:
+    """Daemon vs every baseline draw on the frames of ``sel`` where all of them have a position."""
+    a = truth_arrays(truth)
+    sel = np.asarray(sel, dtype=bool) & np.all(np.isfinite(daemon["p_ned_m"]), axis=1)
+    for b in baselines:
+        sel = sel & np.all(np.isfinite(b["p_ned_m"]), axis=1)
+    tp, cp = a["target_p_ned_m"], a["cam_p_ned_m"]
+    return Comparison(selection, int(sel.sum()), range_normalised_error(tp, daemon["p_ned_m"], cp, sel),
+                      tuple(range_normalised_error(tp, b["p_ned_m"], cp, sel) for b in baselines))

@@ -1,0 +1,143 @@
+"""Issue #4's acceptance test: the ground simulator and the onboard daemon as two processes over UDP
+MAVLink and zenoh on 127.0.0.1; this process subscribes to the track key and scores the track against
+the simulator's truth on the three reference scenarios (P1, P2, P3, 10 s each).
+
+Criterion (issue #4): the daemon's range-normalised error ``mean ||p_hat - p|| / ||p - c||`` is within
+1.5x of what the foundation's estimator reaches from perfect centroids on the same scenario.  The
+yardstick (:func:`tests.integration_helpers.perfect_centroid_baseline`) is the daemon's own sliding-window
+estimator, built from the very configuration file the daemon read, fed from the truth CSV of the same
+run: the true target pixel + 0.3 px white noise (the lockstep evaluation's default, the reference
+study's px0.3 case, the lightest of config/noise_cases.yaml), the true camera pose, each frame's capture
+time.  It is scored on exactly the frames
+the daemon's track is scored on; its error is the median of ``BASELINE_DRAWS`` noise draws (one draw can
+select another motion model and be 10x off in either direction: P1 measured 1.4-2.6 % for four draws and
+25 % for the fifth).
+
+Which frames: the daemon's observable frames (what it publishes by default) when there are at least
+``MIN_OBSERVABLE_FRAMES`` of them; otherwise every frame with a 3-D position, observable or not (the
+daemon's configuration from :func:`groundsim.demo.plan_demo` has ``output.unobservable_positions: true``).
+Measured on this 2-core machine: within the scenarios' 10 s the range reaches the 3 % observability
+threshold only in the last frames, if at all (0-10 observable frames of 300 for the daemon, 0-17 for the
+perfect-centroid estimator), so the comparison is in practice on all frames with a position.  Both
+comparisons are printed (``pytest -s``).
+
+Pacing: real time (``--rate 1.0``).  At 2x the daemon dropped up to 26 of 300 frames and its estimator
+process fell more than ``estimator.max_extrapolation_s`` behind (P1: no 3-D position at all), which is a
+test of the machine rather than of the daemon.  Wall time: about 15 s per scenario for the two processes
+plus about 4 x 2-3 s for the baselines (the three draws and a noiseless one, printed only).
+"""
+
+from __future__ import annotations
+
+import math
+import signal
+
+import numpy as np
+import pytest
+
+from tests.integration_helpers import (
+    Comparison,
+    compare,
+    perfect_centroid_baseline,
+    run_pair,
+    track_arrays,
+    truth_arrays,
+)
+
+SCENARIOS = ("P1", "P2", "P3")
+RATE = "1.0"  # --rate of the simulator: real time (see the module docstring)
+PIXEL_SIGMA_PX = 0.3  # = groundsim.eval.DEFAULT_PIXEL_SIGMA_PX, perfect-centroid noise per axis
+BASELINE_DRAWS = 3  # noise draws of the baseline; the yardstick is their median error
+MAX_ERROR_RATIO = 1.5  # issue #4: daemon error / perfect-centroid error
+MIN_OBSERVABLE_FRAMES = 30  # 1 s at 30 fps: fewer observable frames -> compare on all frames with a position
+MIN_SCORED_FRAMES = 30  # the compared selection must hold at least this many frames
+MIN_TRACKED_FRACTION = 0.9  # frames of the truth that got a track message from the daemon
+SCENARIO_TIMEOUT_S = 80  # one scenario: both processes (~15 s) and the baselines (~10 s), on a busy machine
+EXIT_OK = (0, -signal.SIGTERM)  # 0, or ended by our SIGTERM before its handler was installed
+ATOL_M = 1e-6  # 1 um: geodetic round trip of the synthetic scoring test
+
+
+def _choose(observable: Comparison, every: Comparison) -> Comparison:
+    """The observable comparison when the daemon published enough observable frames, else all frames."""
+    return observable if observable.frames >= MIN_OBSERVABLE_FRAMES else every
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(SCENARIO_TIMEOUT_S)
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_daemon_track_matches_truth_within_1p5x_of_perfect_centroids(name, tmp_path):
+    from groundsim.eval import limit_blas_threads
+
+    limit_blas_threads(1)  # the baselines run here; the children get OPENBLAS_NUM_THREADS=1 too
+    run = run_pair(name, tmp_path, rate=RATE)
+    truth = truth_arrays(run.truth)
+    F = truth["time_boot_us"].size
+    daemon = track_arrays(run.tracks, truth["time_boot_us"], run.scenario.origin)
+    bases = [perfect_centroid_baseline(run.config_path, run.truth, PIXEL_SIGMA_PX,
+                                       run.scenario.rng("eval.centroid_noise", draw)) for draw in range(BASELINE_DRAWS)]
+    obs_cmp = compare("observable", run.truth, daemon, bases, daemon["observable"])
+    all_cmp = compare("all", run.truth, daemon, bases, np.ones(F, dtype=bool))
+    # for the record, not asserted: the same estimator on noiseless truth pixels (the image chain's own
+    # centroids measured 0.05 px RMS, far better than the 0.3 px of the yardstick)
+    exact = perfect_centroid_baseline(run.config_path, run.truth, 0.0, np.random.default_rng(0))
+    exact_cmp = compare("all, 0 px", run.truth, daemon, [exact], np.ones(F, dtype=bool))
+    chosen = _choose(obs_cmp, all_cmp)
+    frames = (run.status or {}).get("frames") or {}
+    base_obs = [int(b["observable"].sum()) for b in bases]
+    report = "\n".join([
+        f"{name}: {F} frames simulated, {int(daemon['tracked'].sum())} with a track message, "
+        f"{int(np.isfinite(daemon['p_ned_m'][:, 0]).sum())} with a position, {int(daemon['observable'].sum())} "
+        f"observable (perfect-centroid estimator: {base_obs} observable); daemon status frames {frames}; "
+        f"wall {run.wall_s:.1f} s (simulator {run.sim_wall_s:.1f} s)",
+        "  " + obs_cmp.line(), "  " + all_cmp.line(),
+        f"  scored on: {chosen.selection} frames (not asserted: {exact_cmp.line().strip()})",
+    ])
+    print("\n" + report)
+
+    assert run.exit_codes["sim"] == 0 and run.exit_codes["daemon"] in EXIT_OK, f"{run.exit_codes}\n{report}"
+    assert run.bad_messages == 0, f"{run.bad_messages} track/status messages failed the schema\n{report}"
+    assert F == round(run.scenario.duration_s * run.scenario.frame_rate_hz), report
+    assert daemon["tracked"].sum() >= MIN_TRACKED_FRACTION * F, report
+    assert chosen.frames >= MIN_SCORED_FRAMES, report
+    assert math.isfinite(chosen.daemon_err) and chosen.baseline_err > 0, report
+    assert chosen.ratio <= MAX_ERROR_RATIO, report
+
+
+def test_scoring_matches_tracks_to_truth_frames_and_uses_the_median_draw():
+    """The scoring itself on a synthetic run: positions from the WGS84 fields, frames matched on
+    time_boot_us (an unknown time is ignored), errors normalised by the truth range."""
+    from groundsim.scenario import load_scenario, scenarios_dir
+    from onboard.frames import geodetic_from_ned
+
+    origin = load_scenario(scenarios_dir() / "P1.yaml").origin
+    F = 4
+    t_us = 1_000_000 + np.arange(F, dtype=np.int64) * 33_333
+    target = np.array([[100.0, 0.0, -50.0]] * F)
+    cam = np.array([[0.0, 0.0, -50.0]] * F)  # range 100 m
+    truth = {"time_boot_us": t_us, "target_u_px": np.full(F, 320.0), "target_v_px": np.full(F, 256.0),
+             "target_visible": np.ones(F, dtype=np.int64)}
+    for i, axis in enumerate("ned"):
+        truth[f"target_{axis}_m"], truth[f"cam_{axis}_m"] = target[:, i], cam[:, i]
+    for c in "wxyz":
+        truth[f"q_ned_from_cam_{c}"] = np.full(F, 1.0 if c == "w" else 0.0)
+    errs = [2.0, 4.0, 0.0, 9.0]  # metres along east; frame 2 has no position, frame 3 arrives with a wrong time
+    tracks = []
+    for k in range(F):
+        msg = {"time_boot_us": int(t_us[k]) + (7 if k == 3 else 0), "observable": k == 0, "lat_deg": None}
+        if k != 2:
+            lat, lon, alt = geodetic_from_ned(target[k] + [0.0, errs[k], 0.0], origin)
+            msg.update(lat_deg=float(lat), lon_deg=float(lon), alt_m=float(alt))
+        tracks.append(msg)
+    daemon = track_arrays(tracks, t_us, origin)
+    assert daemon["tracked"].tolist() == [True, True, True, False]
+    assert daemon["observable"].tolist() == [True, False, False, False]
+    np.testing.assert_allclose(daemon["p_ned_m"][1], target[1] + [0.0, 4.0, 0.0], atol=ATOL_M)
+    assert np.isnan(daemon["p_ned_m"][2]).all() and np.isnan(daemon["p_ned_m"][3]).all()
+    bases = [{"p_ned_m": target + [[0.0, 0.0, e]] * F, "observable": np.zeros(F, bool)} for e in (1.0, 10.0, 2.0)]
+    c = compare("all", truth, daemon, bases, np.ones(F, dtype=bool))
+    assert c.frames == 2
+    assert c.daemon_err == pytest.approx((2.0 + 4.0) / 2 / 100.0, abs=1e-8)
+    assert c.baseline_err == pytest.approx(0.02, abs=1e-12)  # median of 1, 10 and 2 m over 100 m
+    assert c.ratio == pytest.approx(1.5, abs=1e-6)
+    obs = compare("observable", truth, daemon, bases, daemon["observable"])
+    assert obs.frames == 1 and _choose(obs, c) is c
