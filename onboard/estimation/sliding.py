@@ -45,7 +45,7 @@ class SlidingConfig:
     min_span_s: float = 1.5
     reselect_period_s: float = 1.0
     iterations_per_frame: int = 1
-    resolve_every_frames: int = 3
+    resolve_every_frames: int = 5
 
     def __post_init__(self) -> None:
         if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0
