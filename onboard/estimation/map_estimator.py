@@ -15,36 +15,42 @@ is angular: the difference of ideal normalised image coordinates ``y_xy / y_z - 
 ``f / sigma_eff`` with ``sigma_eff^2 = sigma_px^2 + (f sigma_att)^2 + (f sigma_pos / range)^2``
 (pixel noise, white attitude noise and white camera-position noise mapped to pixels).
 
-Prior (physical units, real timestamps): a coordinated-turn white-noise-acceleration model,
+Priors (physical units, real timestamps), three families over a grid of intensities ``q``:
 
-    v_h' = omega J v_h + w_h,   v_d' = w_d,    E[w w^T] = diag(q_h, q_h, q_v) delta(t - s)
+- CV, white-noise acceleration:  ``v' = w``;
+- CT, coordinated turn:  ``v_h' = omega J v_h + w_h``, ``v_d' = w_d`` (``J`` rotates north into east;
+  ``omega`` a constant turn rate, estimated, prior N(0, sigma_omega^2));
+- CA, white-noise jerk (constant acceleration):  ``a' = w``;
 
-(``J`` rotates north into east; ``omega`` is a constant turn rate, estimated, prior N(0,
-sigma_omega^2); ``omega = 0`` is the constant-velocity model), i.e. the negative log prior is
-``1/2 integral ||v' - omega J v||^2_{Q^-1} dt``, integrated exactly by 3-point Gauss-Legendre on
-each knot interval.  Weak priors on the window's mean position and velocity make the posterior
-proper (they decide nothing when range is observable, and show up as a huge range sigma when it
-is not).
+with ``E[w w^T] = diag(q_h, q_h, q_v) delta(t - s)``, i.e. the negative log prior is
+``1/2 integral ||L p||^2_{Q^-1} dt``, integrated exactly on each knot interval (3-point Gauss-Legendre;
+the jerk of a cubic spline is constant per interval).  Weak priors on the window's mean position
+(1 km), velocity (30 m/s) and acceleration (3 m/s^2; 0.5 m/s^2 for CA) make the posterior proper.
 
-Solve: Levenberg-Marquardt (Marquardt 1963; More 1978 scaling) on the stacked residuals, normal
-equations on the column-scaled Jacobian with Cholesky (the reduced spline basis keeps the system at
-~80 unknowns for a 10 s window, so a solve costs well under a millisecond); covariance is the
-inverse Gauss-Newton Hessian (Laplace approximation).  Initialisation: several range hypotheses
-along the measured lines of sight, best posterior kept.  The process-noise intensity ``q`` is
-chosen by Laplace-approximated evidence (MacKay 1992), never by lowest cost (which favours the
-collapsed solution).
+Solve: Gauss-Newton first, Levenberg-Marquardt damping only when a step fails (Marquardt 1963;
+More 1978 column scaling), normal equations by Cholesky on the column-scaled Jacobian (~80 unknowns
+for a 10 s window); the covariance and the evidence come from a QR square-root factor, which stays
+sound where the prior and the data span ~14 decades.  Initialisation: several range hypotheses along
+the measured lines of sight; each local mode is kept with its Laplace log evidence (MacKay 1992).
 
-Observability: the posterior range sigma over range, maximised over the window
-(``range_sigma_ratio``).  Above ``observability_max_sigma_range_ratio`` the estimate is flagged
-unobservable (e.g. a straight, constant-velocity or hovering observer: the relative trajectory
-can be scaled freely and only the weak priors hold it).
+Selection (:meth:`MapEstimator.solve`): every family x q model is solved (loose to stiff, warm
+started).  The point estimate is the model that pins range best among those within
+``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
+near-camera solution, and never blindly the highest evidence, which a vague model can win by
+leaving range free.  Its covariance is model-averaged: ``w P + sum_k w_k (P_k + d_k d_k^T)`` over
+the models' evidence weights, then inflated by ``sigma_inflation`` (Laplace tails).
+
+Verdict: observable when the posterior range sigma over range, maximised over the window, is below
+``observability_max_sigma_range_ratio`` and the residuals pass a block-whiteness adequacy test.  A
+straight constant-velocity or hovering observer (the relative trajectory scales freely) and a target
+whose random manoeuvres cannot be told from range are flagged, not answered confidently.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
@@ -133,9 +139,6 @@ class MapConfig:
     adequacy_block_frames: int = 15
     adequacy_p_min: float = 1e-3
 
-    def prior(self, q_h: float) -> MotionPrior:
-        return MotionPrior(q_h, q_h * self.vertical_ratio, self.turn_rate_sigma_radps)
-
 
 @dataclass(frozen=True)
 class MapResult:
@@ -191,15 +194,6 @@ def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray,
     M[:, 0, :] = (R_cn[:, 0, :] - pred[:, 0, None] * R_cn[:, 2, :]) * (k * s[:, 0])[:, None]
     M[:, 1, :] = (R_cn[:, 1, :] - pred[:, 1, None] * R_cn[:, 2, :]) * (k * s[:, 1])[:, None]
     return res, M, valid
-
-
-def _skew(w: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices."""
-    z = np.zeros(w.shape[:-1])
-    return np.stack(
-        [np.stack([z, -w[..., 2], w[..., 1]], -1), np.stack([w[..., 2], z, -w[..., 0]], -1), np.stack([-w[..., 1], w[..., 0], z], -1)],
-        axis=-2,
-    )
 
 
 class _SpanPrior:
