@@ -11,9 +11,11 @@ Every observation gets a fresh estimate of the target's state at its own time:
   selection of :class:`~onboard.estimation.map_estimator.MapEstimator` re-solves the window (the
   expensive part, ~0.1-0.5 s, amortised over the frames of that second).
 
-The reported covariance is the Laplace posterior of the window; ``observable`` is true only when the
-posterior range sigma at this time is below ``observability_max_sigma_range_ratio`` of the range
-and the last model selection also found the window observable.
+The reported covariance is the chosen model's Laplace posterior at this time, scaled at each model
+selection to the batch result's model-averaged, inflated covariance.  ``observable`` is true only
+when the posterior range sigma at this time is below ``observability_max_sigma_range_ratio`` of the
+range, the last selection's residuals passed the adequacy test and its model carried at least 5 %
+of the posterior weight.
 """
 
 from __future__ import annotations
