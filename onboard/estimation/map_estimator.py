@@ -678,14 +678,20 @@ class MapEstimator:
                 tops[fam].append(top)
             carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
         fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
-        fam_best = {f: max(ts, key=lambda m: m[6]) for f, ts in tops.items()}
-        top_ev = max(m[6] for m in fam_best.values())
+        top_ev = max(m[6] for ts in tops.values() for m in ts)
         # the point estimate: among the models (family and q) the data cannot tell from the best one
         # (within model_margin_nats of its evidence), the one that pins range best under its own posterior.
         # A family that explains the data only by leaving range free (a target whose acceleration
         # mirrors the observer's, for instance) wins evidence by being vague, not by fitting better.
+        memo: dict[int, tuple] = {}
+
+        def moments(m):  # each mode's positions, covariances and range ratio, computed once
+            if id(m) not in memo:
+                memo[id(m)] = self._moments(m)
+            return memo[id(m)]
+
         close = [(f, m) for f, ts in tops.items() for m in ts if m[6] >= top_ev - cfg.model_margin_nats]
-        ratios = [self._moments(m)[2] for _, m in close]
+        ratios = [moments(m)[2] for _, m in close]
         chosen, best = close[int(np.argmin(ratios))]
         # its uncertainty: every candidate's posterior weight (evidence; a log-uniform hyperprior on q,
         # equal family odds) and the spread of their trajectories about the chosen one -- the chosen
@@ -702,7 +708,7 @@ class MapEstimator:
                 continue
             if wk < 1e-4:
                 continue
-            p_m, P_m, _ = self._moments(m)
+            p_m, P_m, _ = moments(m)
             d = p_m - p_best
             extra += wk * (P_m + np.einsum("fi,fj->fij", d, d))
         res = self.result(*best[:6], mix=(w_best, extra))
