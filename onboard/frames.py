@@ -54,6 +54,7 @@ All functions are pure and vectorised over a leading axis where the docstring sa
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -133,30 +134,39 @@ def geodetic_from_ecef(p_ecef_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)
 
 
+@functools.lru_cache(maxsize=64)
+def _origin_ecef_m(origin: GeodeticOrigin) -> np.ndarray:
+    """The origin's ECEF position (cached per origin: conversions are called per telemetry sample)."""
+    out = ecef_from_geodetic(origin.lat_deg, origin.lon_deg, origin.alt_m)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
 def _R_ned_from_ecef(origin: GeodeticOrigin) -> np.ndarray:
     lat, lon = math.radians(origin.lat_deg), math.radians(origin.lon_deg)
     sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
-    return np.array(
+    R = np.array(
         [
             [-sl * co, -sl * so, cl],
             [-so, co, 0.0],
             [-cl * co, -cl * so, -sl],
         ]
     )
+    R.setflags(write=False)
+    return R
 
 
 def ned_from_geodetic(lat_deg, lon_deg, alt_m, origin: GeodeticOrigin) -> np.ndarray:
     """WGS84 geodetic -> local NED metres about ``origin``, shape (..., 3)."""
-    d_ecef = ecef_from_geodetic(lat_deg, lon_deg, alt_m) - ecef_from_geodetic(
-        origin.lat_deg, origin.lon_deg, origin.alt_m
-    )
+    d_ecef = ecef_from_geodetic(lat_deg, lon_deg, alt_m) - _origin_ecef_m(origin)
     return d_ecef @ _R_ned_from_ecef(origin).T
 
 
 def geodetic_from_ned(p_ned_m, origin: GeodeticOrigin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Local NED metres (..., 3) about ``origin`` -> WGS84 (lat_deg, lon_deg, alt_m)."""
     p = np.asarray(p_ned_m, dtype=float)
-    p_ecef = ecef_from_geodetic(origin.lat_deg, origin.lon_deg, origin.alt_m) + p @ _R_ned_from_ecef(origin)
+    p_ecef = _origin_ecef_m(origin) + p @ _R_ned_from_ecef(origin)
     return geodetic_from_ecef(p_ecef)
 
 
