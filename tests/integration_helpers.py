@@ -26,7 +26,6 @@ frames.
 from __future__ import annotations
 
 import math
-import os
 import signal
 import subprocess
 import time
@@ -34,6 +33,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+
+from groundsim.demo import _child_env, _tail  # the demo's own child environment and log tail
 
 __all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
            "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
@@ -46,7 +47,6 @@ DAEMON_READY_TIMEOUT_S = 30.0  # imports on a busy 2-core machine
 SIM_SETUP_ALLOWANCE_S = 20.0  # wall seconds beyond duration / rate before the simulator counts as stuck
 DRAIN_QUIET_S = 0.5  # after the simulator ended: no track for this long = the daemon is done
 DRAIN_MAX_S = 3.0
-LOG_TAIL_LINES = 20
 
 
 class PairRunError(AssertionError):
@@ -71,22 +71,6 @@ class PairRun:
     wall_s: float = 0.0
     sim_wall_s: float = 0.0
     logs: dict = field(default_factory=dict)
-
-
-def _tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
-    try:
-        lines = Path(path).read_text(encoding="utf-8", errors="replace").splitlines()
-    except OSError:
-        return "    (no log)"
-    return "\n".join("    " + line for line in lines[-n:])
-
-
-def _child_env() -> dict:
-    env = dict(os.environ)
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(var, "1")
-    env["PYTHONUNBUFFERED"] = "1"
-    return env
 
 
 def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:

@@ -47,21 +47,6 @@ NOISE_FREE_ORDER1_MIN_BIAS = 0.1  # first-order D is biased even without noise (
 ZERO_NOISE = NoiseCase(name="zero", pixel_sigma_px=0.0)
 
 
-try:  # BLAS threads contend badly on small shared machines (a MAP solve ran ~9x slower)
-    from threadpoolctl import threadpool_limits
-except ImportError:  # optional: the tests only run slower without it
-    threadpool_limits = None
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _one_blas_thread():
-    if threadpool_limits is None:
-        yield
-        return
-    with threadpool_limits(limits=1):
-        yield
-
-
 @pytest.fixture(scope="module")
 def p1():
     return load_scenario(reference_scenario_paths()["P1"])

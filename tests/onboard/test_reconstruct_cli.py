@@ -36,21 +36,6 @@ PAPER_MATCH_M = 1e-5  # CLI output (printed to 1 um) vs the in-process closed fo
 MIN_ROWS = MapConfig().min_frames
 
 
-try:  # BLAS threads contend badly on small shared machines (a MAP solve ran ~9x slower)
-    from threadpoolctl import threadpool_limits
-except ImportError:  # optional: the tests only run slower without it
-    threadpool_limits = None
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _one_blas_thread():
-    if threadpool_limits is None:
-        yield
-        return
-    with threadpool_limits(limits=1):
-        yield
-
-
 # --------------------------------------------------------------------------- helpers
 
 
