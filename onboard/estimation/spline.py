@@ -20,6 +20,11 @@ import numpy as np
 
 __all__ = ["KnotGrid", "BasisRows", "gauss_legendre_3"]
 
+# uniform cubic B-spline blending: weights = (1, u, u^2, u^3) @ _M0, and its derivatives in u
+_M0 = np.array([[1.0, 4.0, 1.0, 0.0], [-3.0, 0.0, 3.0, 0.0], [3.0, -6.0, 3.0, 0.0], [-1.0, 3.0, -3.0, 1.0]]) / 6.0
+_M1 = np.array([[-3.0, 0.0, 3.0, 0.0], [6.0, -12.0, 6.0, 0.0], [-3.0, 9.0, -9.0, 3.0]]) / 6.0
+_M2 = np.array([[6.0, -12.0, 6.0, 0.0], [-6.0, 18.0, -18.0, 6.0]]) / 6.0
+
 
 class BasisRows(NamedTuple):
     """Per-time rows of the basis: local control indices (N, 4) and weights for p, p', p''."""
@@ -54,11 +59,12 @@ class KnotGrid:
         j = np.floor(x).astype(np.int64)
         # a time exactly on the window's last knot belongs to the last segment
         j = np.minimum(j, first_index + count - 4)
-        u = x - j
-        u2, u3 = u * u, u * u * u
-        w0 = np.stack([(1 - u) ** 3, 3 * u3 - 6 * u2 + 4, -3 * u3 + 3 * u2 + 3 * u + 1, u3], axis=-1) / 6.0
-        w1 = np.stack([-(1 - u) ** 2, 3 * u2 - 4 * u, -3 * u2 + 2 * u + 1, u2], axis=-1) / (2.0 * h)
-        w2 = np.stack([1 - u, 3 * u - 2, -3 * u + 1, u], axis=-1) / (h * h)
+        u = (x - j)[..., None]
+        # rows of the blending matrices times (1, u, u^2, u^3): one small matmul each, no stacking
+        U = np.concatenate([np.ones_like(u), u, u * u, u * u * u], axis=-1)
+        w0 = U @ _M0
+        w1 = U[..., :3] @ _M1 / h
+        w2 = U[..., :2] @ _M2 / (h * h)
         local = (j - first_index)[..., None] + np.arange(4)
         if np.any(local < 0) or np.any(local >= count):
             raise ValueError("time outside the spline's control span")
