@@ -26,7 +26,6 @@ frames.
 from __future__ import annotations
 
 import math
-import signal
 import subprocess
 import time
 from dataclasses import dataclass, field
@@ -34,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.demo import _child_env, _tail  # the demo's own child environment and log tail
+from groundsim.demo import _child_env, _stop, _tail  # the demo's own child environment, stop and log tail
 
 __all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
            "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
@@ -42,7 +41,6 @@ __all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_a
 REPO = Path(__file__).resolve().parents[1]
 ONBOARD_CONFIG = REPO / "config" / "onboard.yaml"
 
-KILL_AFTER_S = 3.0  # SIGTERM, then SIGKILL after this
 DAEMON_READY_TIMEOUT_S = 30.0  # imports on a busy 2-core machine
 SIM_SETUP_ALLOWANCE_S = 20.0  # wall seconds beyond duration / rate before the simulator counts as stuck
 DRAIN_QUIET_S = 0.5  # after the simulator ended: no track for this long = the daemon is done
@@ -78,21 +76,9 @@ def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
         return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
 
 
-def stop_process(proc: subprocess.Popen | None) -> int | None:
-    """SIGTERM, then SIGKILL after KILL_AFTER_S; the exit code (None if never started)."""
-    if proc is None:
-        return None
-    if proc.poll() is None:
-        try:
-            proc.send_signal(signal.SIGTERM)
-        except ProcessLookupError:
-            pass
-        try:
-            proc.wait(KILL_AFTER_S)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
-    return proc.returncode
+def stop_process(proc: subprocess.Popen | None, name: str = "child process") -> int | None:
+    """SIGTERM, then SIGKILL after the demo's KILL_AFTER_S; the exit code (None if never started)."""
+    return _stop(proc, name)
 
 
 def sim_command_at_rate(plan, rate: str) -> list[str]:
@@ -178,7 +164,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int) -> PairRun:
                 session.close()
             except Exception:  # noqa: BLE001 - closing
                 pass
-        run.exit_codes = {"sim": stop_process(sim), "daemon": stop_process(daemon)}
+        run.exit_codes = {"sim": stop_process(sim, "simulator"), "daemon": stop_process(daemon, "onboard daemon")}
         run.wall_s = time.monotonic() - wall0
     run.tracks, run.status = store.snapshot()
     run.bad_messages = store.bad
