@@ -603,13 +603,18 @@ def _ir_from_dict(d, path: str, fail: _Fail) -> IrSettings:
     _mapping(d, path, fail, names)
     base = IrSettings()
     kw: dict[str, Any] = {}
-    temps = ("t_min_k", "t_max_k", "air_temperature_k", "sky_zenith_k", "sky_horizon_k", "ground_temperature_k")
+    temps = ("t_min_k", "t_max_k", "air_temperature_k", "sky_zenith_k", "sky_horizon_k", "ground_temperature_k",
+             "netd_reference_k")
     for k in temps:
         if k in d:
             kw[k] = _number(d[k], _join(path, k), fail, lo=0.0, lo_open=True, unit="K")
-    for k in ("netd_k", "blur_sigma_px", "extinction_per_km"):
+    for k in ("netd_k", "blur_sigma_px", "extinction_per_km", "background_reuse_tol_rad"):
         if k in d:
             kw[k] = _number(d[k], _join(path, k), fail, lo=0.0)
+    # the renderer's tuning knobs (groundsim.render.settings.IrSettings)
+    for k in ("supersample", "max_target_rays", "noise_bank_frames"):
+        if k in d:
+            kw[k] = _integer(d[k], _join(path, k), fail, lo=1, hi=1_000_000)
     if "ground_emissivity" in d:
         kw["ground_emissivity"] = _number(d["ground_emissivity"], _join(path, "ground_emissivity"), fail,
                                           lo=0.0, lo_open=True, hi=1.0)

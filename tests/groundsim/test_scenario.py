@@ -304,6 +304,16 @@ def test_ir_section_and_target_parts_are_built():
     assert ir.netd_k == IrSettings().netd_k
 
 
+def test_ir_renderer_knobs_are_read_not_ignored():
+    d = minimal()
+    knobs = {"netd_reference_k": 300.0, "supersample": 4, "max_target_rays": 1000, "background_reuse_tol_rad": 2e-5,
+             "noise_bank_frames": 3}
+    d["ir"] = dict(knobs)
+    ir = scenario_from_dict(d).ir
+    assert {k: getattr(ir, k) for k in knobs} == knobs
+    assert {k: getattr(IrSettings(), k) for k in knobs} != knobs  # the test would pass on defaults otherwise
+
+
 def test_input_dict_is_not_modified():
     d = p1_dict()
     d["target"]["disturbance"] = {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.05, "tau_s": 2.0}
@@ -389,6 +399,9 @@ BAD_CASES = [
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
     ("ir.encoding", "mono12", "ir.encoding", "one of mono8, mono16, got 'mono12'"),
     ("ir.netd_k", -0.1, "ir.netd_k", ">= 0"),
+    ("ir.supersample", 0, "ir.supersample", "an integer in [1, 1e+06], got 0"),
+    ("ir.noise_bank_frames", 2.5, "ir.noise_bank_frames", "an integer"),
+    ("ir.netd_reference_k", -3.0, "ir.netd_reference_k", "> 0"),
     ("origin.lat_deg", 95.0, "origin.lat_deg", "in [-90, 90] deg, got 95.0"),
     ("camera.intrinsics.width_px", 640.5, "camera.intrinsics.width_px", "an integer"),
     ("camera.intrinsics.cx_px", 700, "camera.intrinsics.cx_px", "in [0, 640]"),
