@@ -32,6 +32,8 @@ More 1978 column scaling), normal equations by Cholesky on the column-scaled Jac
 for a 10 s window); the covariance and the evidence come from a QR square-root factor, which stays
 sound where the prior and the data span ~14 decades.  Initialisation: several range hypotheses along
 the measured lines of sight; each local mode is kept with its Laplace log evidence (MacKay 1992).
+A mode whose mean range falls below ``min_range_m`` is the collapsed solution (the trajectory shrunk
+onto the camera track, where the cost keeps falling); the solve stops there and drops it.
 
 Selection (:meth:`MapEstimator.solve`): every family x q model is solved (loose to stiff, warm
 started).  The point estimate is the model that pins range best among those within
@@ -48,6 +50,7 @@ whose random manoeuvres cannot be told from range are flagged, not answered conf
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass, field
@@ -116,6 +119,17 @@ class MapConfig:
     init_ranges_m: tuple[float, ...] = (40.0, 100.0, 250.0, 600.0, 1500.0)
     max_iterations: int = 20
     min_frames: int = 10
+    # a solution whose mean range falls below this is the collapsed one of the bearing-only problem (the
+    # cost keeps falling as the trajectory shrinks onto the camera track; the reference study's pitfall):
+    # the solve stops there and drops it instead of crawling down that valley.  A target this close
+    # fills tens of pixels and is a collision, not a tracking problem.
+    min_range_m: float = 10.0
+    # camera positions with white noise (NoiseModel.camera_position_white_sigma_m > 0) are smoothed, as
+    # an INS would, by a least-squares cubic B-spline with this knot spacing before use; 0 turns it off.
+    # Raw jittery positions bias every model towards far targets: the measured bearings do not show the
+    # parallax the jitter implies, which a distant target explains best (the reference study's pitfall;
+    # measured here: P1 RTK's CA/CT "mirror" solutions at 2-4x the range won by 10-20 nats without it)
+    camera_track_knot_s: float = 0.5
     # posterior range sigma / range above which the geometry is called unobservable (the reference
     # study: below 2 % the median actual error was 0.56 %; 3 % keeps our gusty-target runs honest)
     observability_max_sigma_range_ratio: float = 0.03
@@ -468,13 +482,15 @@ class WindowProblem:
 
     # ------------------------------------------------------------------ Levenberg-Marquardt
     def solve(self, theta0: np.ndarray, max_iterations: int, lam0: float = 0.0, cost_tol: float = 1e-4,
-              want_factor: bool = True):
+              want_factor: bool = True, min_range_m: float | None = None):
         """Levenberg-Marquardt from theta0 (More's column scaling).
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
         damping finds a lower cost, or after ``max_iterations``.  Returns (theta, cost, iterations,
         converged, factor) with factor = (square-root information R, scales) at theta, or None when
         ``want_factor`` is False.  Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
+        With ``min_range_m``, a step that takes the mean range below it ends the solve as collapsed:
+        cost inf and factor None, like a start that put the target behind the camera.
         """
         theta = theta0.copy()
         r, J, valid = self.evaluate(theta)
@@ -500,12 +516,21 @@ class WindowProblem:
                 except np.linalg.LinAlgError:
                     lam = max(lam * 10, 1e-9)
                     continue
-                cand = theta - sla.cho_solve(ch, g, check_finite=False) / d
+                step = sla.cho_solve(ch, g, check_finite=False)
+                if lam == 0.0 and 0.5 * float(g @ step) < 0.1 * cost_tol:
+                    # the Gauss-Newton model predicts less than the tolerance: at the minimum already
+                    # (saves the damping ladder that would otherwise have to prove it)
+                    break
+                cand = theta - step / d
                 r2, _, ok = self.evaluate(cand, jacobian=False)
                 c2 = 0.5 * float(r2 @ r2) if ok else math.inf
                 if c2 < cost:
                     decrease = cost - c2
                     theta, cost = cand, c2
+                    if min_range_m is not None and float(np.mean(np.linalg.norm(
+                            self.positions(theta) - self.obs.p_cam_ned_m, axis=1))) < min_range_m:
+                        self.last_jacobian = None
+                        return theta, math.inf, it, False, None
                     lam = lam / 10 if lam > 1e-9 else 0.0
                     break
                 lam = max(lam * 10, 1e-6)
@@ -577,6 +602,7 @@ class MapEstimator:
         self.noise = noise or NoiseModel()
         self._span_cache: dict = {}
         self._weight_range_m: np.ndarray | None = None
+        self._camera_cache: tuple | None = None
 
     @staticmethod
     def _ranges(prob: "WindowProblem", theta: np.ndarray) -> np.ndarray:
@@ -587,7 +613,35 @@ class MapEstimator:
             raise EstimationError(f"need at least {self.config.min_frames} observations, got {len(obs)}")
         grid = grid or KnotGrid(float(obs.t_s[0]), self.config.knot_spacing_s)
         first, count = grid.control_span(float(obs.t_s[0]), float(obs.t_s[-1]))
-        return WindowProblem(obs, grid, first, count, prior, self.noise, self.config, self._span_cache)
+        obs, noise = self._smoothed_camera(obs)
+        return WindowProblem(obs, grid, first, count, prior, noise, self.config, self._span_cache)
+
+    def _smoothed_camera(self, obs: Observations) -> tuple[Observations, NoiseModel]:
+        """``obs`` with its camera track smoothed and the matching noise model (see
+        ``MapConfig.camera_track_knot_s``); unchanged when the positions carry no white noise.
+
+        The spline has ``count`` controls per axis for F positions, so the smoothed positions keep
+        about ``count / F`` of the white variance: the noise model's sigma is scaled by its root.
+        Cached for the last window (one selection builds a dozen problems on the same observations).
+        """
+        h = self.config.camera_track_knot_s
+        if self.noise.camera_position_white_sigma_m <= 0 or h <= 0:
+            return obs, self.noise
+        cached = self._camera_cache
+        if cached is not None and cached[0] is obs:
+            return cached[1], cached[2]
+        t = obs.t_s
+        grid = KnotGrid(float(t[0]), h)
+        first, count = grid.control_span(float(t[0]), float(t[-1]))
+        B = grid.dense_basis(t, first, count)
+        # a whisper of second-difference smoothing keeps controls of knot intervals without samples defined
+        D = np.diff(np.eye(count), n=2, axis=0) * 1e-3
+        c, *_ = np.linalg.lstsq(np.vstack([B, D]), np.vstack([obs.p_cam_ned_m, np.zeros((D.shape[0], 3))]), rcond=None)
+        smoothed = obs.with_camera_positions(B @ c)
+        noise = dataclasses.replace(self.noise, camera_position_white_sigma_m=self.noise.camera_position_white_sigma_m
+                                    * math.sqrt(min(1.0, count / len(obs))))
+        self._camera_cache = (obs, smoothed, noise)
+        return smoothed, noise
 
     def initial_guesses(self, prob: WindowProblem) -> list[np.ndarray]:
         b = prob.obs.bearings_ned()
@@ -612,7 +666,8 @@ class MapEstimator:
             # unless a common weighting range is fixed (model comparison, see solve())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
-                th, cost, its, conv, fac = prob.solve(th, max_iterations=self.config.max_iterations)
+                th, cost, its, conv, fac = prob.solve(th, max_iterations=self.config.max_iterations,
+                                                      min_range_m=self.config.min_range_m)
                 if fac is None or not math.isfinite(cost):
                     break
             if fac is None or not math.isfinite(cost):
@@ -631,12 +686,12 @@ class MapEstimator:
         """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
-        coordinated turn (CT, turn rate estimated), each over the q grid.  A family's evidence sums
-        its grid points (a log-uniform hyperprior on q); CA or CT is chosen only when it beats CV by
-        ``model_margin_nats`` (prior odds for the simpler model: most of the time targets neither
-        turn nor accelerate), and then the better of them.  Within the chosen
-        family the q with the largest evidence is kept.  ``warm`` (a solution on the same ``grid``,
-        e.g. the sliding window's current one) replaces the cold multi-start of the first family.
+        coordinated turn (CT, turn rate estimated), each over the q grid, solved loose to stiff with
+        warm starts plus one fresh range hypothesis per model.  The point estimate is the model that
+        pins range best among those within ``model_margin_nats`` of the highest evidence; its
+        covariance is averaged over all models by evidence (see the module docstring).  ``warm`` (a
+        solution on the same ``grid``, e.g. the sliding window's current one) replaces the cold
+        multi-start of the first family.
         """
         self._weight_range_m = None
         if prior is not None:
@@ -660,14 +715,17 @@ class MapEstimator:
             for q in sorted(cfg.q_grid_m2ps3, reverse=True):
                 pr = MotionPrior(q, q * cfg.vertical_ratio, sig_om, jerk)
                 prob = self.problem(obs, pr, grid)
-                if seeds is not None:  # the previous q's modes
-                    starts = [self._adapt(th, prob) for th in seeds]
+                if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose
+                    # prior's best mode can be a far or collapsed one whose basin misses the stiffer prior's
+                    starts = [self._adapt(th, prob) for th in seeds] + [self._fresh(prob)]
                 elif carry:  # the other family's (or the caller's) best, plus one fresh range hypothesis
-                    fresh = self.initial_guesses(prob)
-                    starts = [self._adapt(th, prob) for th in carry] + [fresh[len(fresh) // 2]]
+                    starts = [self._adapt(th, prob) for th in carry] + [self._fresh(prob)]
                 else:
                     starts = self.initial_guesses(prob)
-                top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
+                try:
+                    top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
+                except EstimationError:  # every start collapsed or left the field of view: no mode here
+                    continue
                 if self._weight_range_m is None and self.noise.camera_position_white_sigma_m > 0:
                     # one weighting geometry for every model compared: the range-dependent pixel
                     # weights would otherwise reward far solutions through the likelihood's
@@ -677,6 +735,10 @@ class MapEstimator:
                 seeds = [m[1] for m in modes]
                 tops[fam].append(top)
             carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
+        tops = {f: ts for f, ts in tops.items() if ts}
+        if not tops:
+            raise EstimationError("no motion model found a solution in front of the camera and beyond "
+                                  f"{cfg.min_range_m:g} m (degenerate bearings?)")
         fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
         top_ev = max(m[6] for ts in tops.values() for m in ts)
         # the point estimate: among the models (family and q) the data cannot tell from the best one
@@ -728,6 +790,11 @@ class MapEstimator:
         u = los / rng[:, None]
         ratio = float(np.max(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / rng))
         return p, P, ratio
+
+    def _fresh(self, prob: WindowProblem) -> np.ndarray:
+        """The middle range hypothesis of :meth:`initial_guesses` (the cheap fresh start of a warm chain)."""
+        r0 = self.config.init_ranges_m[len(self.config.init_ranges_m) // 2]
+        return prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * prob.obs.bearings_ned())
 
     @staticmethod
     def _adapt(theta: np.ndarray, prob: WindowProblem) -> np.ndarray:

@@ -118,6 +118,17 @@ class Observations:
         b = np.einsum("fij,fj->fi", self.R_ned_from_cam, b)
         return b / np.linalg.norm(b, axis=1, keepdims=True)
 
+    def with_camera_positions(self, p_cam_ned_m: np.ndarray) -> "Observations":
+        """The same observations with other (finite, same-shape) camera positions; nothing is re-derived."""
+        p = np.asarray(p_cam_ned_m, dtype=float)
+        if p.shape != self.p_cam_ned_m.shape or not np.all(np.isfinite(p)):
+            raise InputError(f"Observations.with_camera_positions: expected finite {self.p_cam_ned_m.shape}, got {p.shape}")
+        out = object.__new__(type(self))
+        for name in ("t_s", "uv_px", "fx_px", "fy_px", "cx_px", "cy_px", "q_ned_from_cam", "xy_norm", "R_ned_from_cam"):
+            object.__setattr__(out, name, getattr(self, name))
+        object.__setattr__(out, "p_cam_ned_m", p)
+        return out
+
     def select(self, index) -> "Observations":
         """A subset (slice or index array), keeping order."""
         return Observations(
