@@ -501,18 +501,21 @@ class WindowProblem:
         converged = False
         it = 0
         eye = np.eye(self.n_params)
+        # evaluate() fills one Jacobian buffer in place: J_current says whether it still holds theta's
+        J_current = True
+        gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
         for it in range(1, max_iterations + 1):
-            d = np.sqrt(np.einsum("ij,ij->j", J, J))
+            H = J.T @ J
+            d = np.sqrt(np.diag(H))
             d[d == 0] = 1.0
-            Js = J / d
-            H = Js.T @ Js
-            g = Js.T @ r
+            Hs = H / np.outer(d, d)
+            g = (J.T @ r) / d
             decrease = None
             # Gauss-Newton first (lam = 0): the range direction of a stiff prior has a tiny scaled
             # eigenvalue, and any fixed damping makes LM crawl along it
             for _ in range(12):
                 try:
-                    ch = sla.cho_factor(H + lam * eye, lower=True, check_finite=False)
+                    ch = sla.cho_factor(Hs + lam * eye, lower=True, check_finite=False)
                 except np.linalg.LinAlgError:
                     lam = max(lam * 10, 1e-9)
                     continue
@@ -522,8 +525,12 @@ class WindowProblem:
                     # (saves the damping ladder that would otherwise have to prove it)
                     break
                 cand = theta - step / d
-                r2, _, ok = self.evaluate(cand, jacobian=False)
+                # while undamped steps are being taken, evaluate the Jacobian with the residual (one call)
+                r2, J2, ok = self.evaluate(cand, jacobian=lam == 0.0 and gn_taken)
+                J_current = J2 is None and J_current
                 c2 = 0.5 * float(r2 @ r2) if ok else math.inf
+                if lam == 0.0:
+                    gn_taken = c2 < cost
                 if c2 < cost:
                     decrease = cost - c2
                     theta, cost = cand, c2
@@ -532,15 +539,21 @@ class WindowProblem:
                         self.last_jacobian = None
                         return theta, math.inf, it, False, None
                     lam = lam / 10 if lam > 1e-9 else 0.0
+                    if J2 is not None:
+                        r, J, J_current = r2, J2, True
+                    else:
+                        r, J, _ = self.evaluate(theta)
+                        J_current = True
                     break
                 lam = max(lam * 10, 1e-6)
             if decrease is None:
                 converged = True
                 break
-            r, J, valid = self.evaluate(theta)
             if decrease < cost_tol:
                 converged = True
                 break
+        if not J_current:
+            r, J, _ = self.evaluate(theta)
         self.last_jacobian = J
         return theta, cost, it, converged, (self.factor(J) if want_factor else None)
 
