@@ -770,6 +770,14 @@ def _job(args) -> RunResult:
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
 
+
+def _bar_pacing() -> dict:
+    """tqdm pacing: live on a terminal; one update every 10 s into a log file or pipe (a redrawn bar
+    there is thousands of carriage-return segments)."""
+    import sys
+
+    return {} if sys.stderr.isatty() else {"mininterval": 10.0, "maxinterval": 30.0}
+
 def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = None, base_config=None,
              workers: int = 2, progress: bool = True, config_source: str = "(defaults)") -> EvalResult:
     """All (scenario, seed) runs, over ``workers`` processes (1 = in this process), then scored."""
@@ -800,7 +808,7 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True)
+            bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True, **_bar_pacing())
         try:
             for n, j in enumerate(jobs):
                 sc, seed = j[0], j[1]
@@ -844,7 +852,8 @@ def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=total, unit="frame", desc=f"eval ({workers} workers)", leave=True, dynamic_ncols=True)
+            bar = tqdm(total=total, unit="frame", desc=f"eval ({workers} workers)", leave=True, dynamic_ncols=True,
+                       **_bar_pacing())
         pending = [pool.apply_async(_job, (j,)) for j in jobs]
         results: list = [None] * len(jobs)
         left = set(range(len(jobs)))
