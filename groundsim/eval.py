@@ -770,13 +770,13 @@ def _job(args) -> RunResult:
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
 
-
 def _bar_pacing() -> dict:
     """tqdm pacing: live on a terminal; one update every 10 s into a log file or pipe (a redrawn bar
     there is thousands of carriage-return segments)."""
     import sys
 
     return {} if sys.stderr.isatty() else {"mininterval": 10.0, "maxinterval": 30.0}
+
 
 def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = None, base_config=None,
              workers: int = 2, progress: bool = True, config_source: str = "(defaults)") -> EvalResult:
