@@ -107,6 +107,26 @@ def test_jacobian_matches_finite_differences_with_every_nuisance():
         assert np.max(np.abs(Jn - J)) < JAC_RTOL * np.max(np.abs(J))
 
 
+@pytest.mark.parametrize("q, start_m, cost_tol", [(1e-6, 250.0, 1e-4), (1e-1, 40.0, 1e-4), (1e-1, 1500.0, 1e-4),
+                                                   (1e-2, 600.0, 1e-4), (1e-6, 250.0, 0.0)])
+def test_lm_returns_the_jacobian_and_factor_of_the_solution_it_returns(q, start_m, cost_tol):
+    """The Jacobian buffer is refilled in place by every evaluation, accepted or not: what solve() hands
+    back (last_jacobian, the QR factor) must belong to the returned theta, also after rejected steps
+    (cost_tol = 0 runs on until an undamped step, evaluated with its Jacobian, fails at the minimum)."""
+    _, nc, truth, obs = _synth("P2", "RTK", 1)
+    est = MapEstimator(noise=estimator_noise_model(nc))
+    prob = est.problem(obs, MotionPrior(q, q / 4, 0.3))
+    th0 = prob.theta_from_positions(obs.p_cam_ned_m + start_m * obs.bearings_ned())
+    th, cost, its, conv, fac = prob.solve(th0, 40, cost_tol=cost_tol)
+    assert math.isfinite(cost) and fac is not None
+    J_returned = prob.last_jacobian.copy()
+    r, J, _ = prob.evaluate(th)
+    assert 0.5 * float(r @ r) == pytest.approx(cost, rel=1e-12)
+    np.testing.assert_allclose(J_returned, J, rtol=1e-12, atol=1e-12 * np.abs(J).max())
+    R, d = prob.factor(J)
+    np.testing.assert_allclose(np.abs(fac[0]), np.abs(R), rtol=1e-9, atol=1e-9 * np.abs(R).max())
+
+
 def _beyond_3sigma(res, truth):
     e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
     return float(np.mean(e > 3 * np.sqrt(np.einsum("fii->f", res.cov_p_ned_m2)))), e
