@@ -127,6 +127,20 @@ def test_lm_returns_the_jacobian_and_factor_of_the_solution_it_returns(q, start_
     np.testing.assert_allclose(np.abs(fac[0]), np.abs(R), rtol=1e-9, atol=1e-9 * np.abs(R).max())
 
 
+def test_a_solve_collapsing_onto_the_camera_track_is_stopped_and_dropped():
+    """A loose prior's cost keeps falling as the trajectory shrinks onto the camera track (the bearing-only
+    collapse): with the floor the solve ends there as invalid instead of crawling on."""
+    _, nc, truth, obs = _synth("P1", "px0.3", 0)
+    est = MapEstimator(noise=estimator_noise_model(nc))
+    prob = est.problem(obs, MotionPrior(0.1, 0.025, 0.0))
+    th0 = prob.theta_from_positions(obs.p_cam_ned_m + 40.0 * obs.bearings_ned())
+    th, cost, its, conv, fac = prob.solve(th0, 60)
+    assert np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)) < est.config.min_range_m
+    th, cost, its_floor, conv, fac = prob.solve(th0, 60, min_range_m=est.config.min_range_m)
+    assert cost == math.inf and fac is None and prob.last_jacobian is None
+    assert its_floor < its
+
+
 def _beyond_3sigma(res, truth):
     e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
     return float(np.mean(e > 3 * np.sqrt(np.einsum("fii->f", res.cov_p_ned_m2)))), e
