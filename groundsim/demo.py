@@ -815,6 +815,6 @@ def _paper_baseline_table(scenarios) -> None:
     from groundsim.scenario import load_noise_cases
 
     print("\ndemo: the reconstruction core against the paper's closed form (analytic truth, 0.3 px, one seed;"
-          " `make bench` runs ten)", flush=True)
+          " `make bench` runs fifty)", flush=True)
     rows = summarise(run_cases(scenarios, [load_noise_cases()["px0.3"]], [0], workers=1))
     print(format_table(rows), flush=True)
