@@ -41,7 +41,7 @@ def test_summarise_pools_rmse_and_counts_dishonest_observable_runs():
 
 def test_run_case_p1_is_accurate_honest_and_beats_the_closed_form():
     sc = load_scenario(reference_scenario_paths()["P1"])
-    r = run_case(sc, load_noise_cases()["px0.3"], 2)  # a seed the bench finds observable (31/50 are)
+    r = run_case(sc, load_noise_cases()["px0.3"], 2)  # a seed the bench finds observable (32/50 are)
     assert r.model == "cv" and r.observable
     assert r.err_range_pct < 1.0 < 10 < r.paper_err_range_pct
     assert r.beyond_3sigma <= 0.01

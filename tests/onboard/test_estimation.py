@@ -146,7 +146,7 @@ def _beyond_3sigma(res, truth):
     return float(np.mean(e > 3 * np.sqrt(np.einsum("fii->f", res.cov_p_ned_m2)))), e
 
 
-# seeds whose windows the 50-seed bench finds observable (P1 in 31/50 runs, P2 17/50, P3 49/50: the rest
+# seeds whose windows the 50-seed bench finds observable (P1 in 32/50 runs, P2 17/50, P3 49/50: the rest
 # keep a few percent of posterior weight on a target accelerating in mirror of the observer, and say so)
 @pytest.mark.parametrize("name, family, seed", [("P1", "cv", 2), ("P2", "ca", 4), ("P3", "ct", 2)])
 def test_map_recovers_the_reference_trajectories_honestly(name, family, seed):
