@@ -46,3 +46,18 @@ def test_run_case_p1_is_accurate_honest_and_beats_the_closed_form():
     assert r.err_range_pct < 1.0 < 10 < r.paper_err_range_pct
     assert r.beyond_3sigma <= 0.01
     assert 0.5 < r.crb_rms_m < 1.5 and 0.2 < r.crb_err_range_pct < 1.0
+
+
+def test_bench_statistical_floor_reads_each_goal_against_an_efficient_estimator():
+    from bench.estimator import ACCURACY_GOALS_PCT, statistical_floor
+
+    sc = load_scenario(reference_scenario_paths()["P3"])
+    results = [run_case(sc, load_noise_cases()["px0.3"], 0, with_paper=False)]
+    (line,) = statistical_floor(results, seeds=10)
+    goal = ACCURACY_GOALS_PCT[("P3", "px0.3")]
+    assert line.startswith(f"P3 px0.3  goal <= {goal:.2f} %: ours {results[0].err_range_pct:.2f} %")
+    assert "10-seed median 5-95 %" in line
+    # P3's goal (3 %) is ten times the efficient median: met with certainty
+    assert line.endswith("probability 1.00")
+    # cells without a goal, and failed runs, print nothing
+    assert statistical_floor([r for r in results if r.scenario == "H3"], seeds=10) == []
