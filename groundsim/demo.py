@@ -523,6 +523,31 @@ def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
         f.close()  # the child has its own descriptor
 
 
+def _drain(store: "TrackStore", stop: threading.Event | None = None) -> None:
+    """After the simulator ends, let the daemon finish the last frames: wait until no track arrived for
+    DRAIN_QUIET_S, at most DRAIN_MAX_S (or until ``stop`` is set)."""
+    t_end = time.monotonic() + DRAIN_MAX_S
+    while time.monotonic() < t_end and not (stop is not None and stop.is_set()):
+        last = store.last_track_mono
+        if last is not None and time.monotonic() - last > DRAIN_QUIET_S:
+            break
+        time.sleep(0.05)
+
+
+def _close_zenoh(subscribers, session) -> None:
+    """Undeclare the subscribers and close the session, ignoring errors (shutdown path)."""
+    for s in subscribers:
+        try:
+            s.undeclare()
+        except Exception:  # noqa: BLE001 - closing
+            pass
+    if session is not None:
+        try:
+            session.close()
+        except Exception:  # noqa: BLE001 - closing
+            pass
+
+
 def _stop(proc: subprocess.Popen | None, name: str) -> int | None:
     """SIGTERM, then SIGKILL after KILL_AFTER_S; returns the exit code (None if never started)."""
     if proc is None:
@@ -624,25 +649,11 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
             if time.monotonic() > deadline:
                 out(f"demo: the simulator is still running {SIM_SETUP_ALLOWANCE_S:g} s past its duration: stopping it")
                 break
-        if not outcome.stopped_early and outcome.error is None:  # let the daemon finish the last frames
-            t_end = time.monotonic() + DRAIN_MAX_S
-            while time.monotonic() < t_end and not stop.is_set():
-                last = store.last_track_mono
-                if last is not None and time.monotonic() - last > DRAIN_QUIET_S:
-                    break
-                time.sleep(0.05)
+        if not outcome.stopped_early and outcome.error is None:
+            _drain(store, stop)
         return _finish(plan, outcome, store, truth, daemon, sim, cpu_daemon, cpu_sim, wall0, cpu_demo0, out)
     finally:
-        for s in subs:
-            try:
-                s.undeclare()
-            except Exception:  # noqa: BLE001 - closing
-                pass
-        if session is not None:
-            try:
-                session.close()
-            except Exception:  # noqa: BLE001
-                pass
+        _close_zenoh(subs, session)
         _stop(sim, "simulator")
         _stop(daemon, "onboard daemon")
 

@@ -33,7 +33,8 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.demo import _child_env, _stop, _tail  # the demo's own child environment, stop and log tail
+# the demo's own child environment, stop, log tail, end-of-run drain and zenoh teardown
+from groundsim.demo import _child_env, _close_zenoh, _drain, _stop, _tail
 
 __all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
            "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
@@ -43,8 +44,6 @@ ONBOARD_CONFIG = REPO / "config" / "onboard.yaml"
 
 DAEMON_READY_TIMEOUT_S = 30.0  # imports on a busy 2-core machine
 SIM_SETUP_ALLOWANCE_S = 20.0  # wall seconds beyond duration / rate before the simulator counts as stuck
-DRAIN_QUIET_S = 0.5  # after the simulator ended: no track for this long = the daemon is done
-DRAIN_MAX_S = 3.0
 
 
 class PairRunError(AssertionError):
@@ -146,24 +145,10 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int) -> PairRun:
         run.sim_wall_s = time.monotonic() - sim0
         if sim.returncode != 0:
             raise PairRunError(f"the simulator exited with code {sim.returncode}:\n{_tail(logs['sim'])}")
-        t_end = time.monotonic() + DRAIN_MAX_S  # let the daemon finish the last frames
-        while time.monotonic() < t_end:
-            last = store.last_track_mono
-            if last is not None and time.monotonic() - last > DRAIN_QUIET_S:
-                break
-            time.sleep(0.05)
+        _drain(store)  # let the daemon finish the last frames
         time.sleep(0.1)
     finally:
-        for s in subs:
-            try:
-                s.undeclare()
-            except Exception:  # noqa: BLE001 - closing
-                pass
-        if session is not None:
-            try:
-                session.close()
-            except Exception:  # noqa: BLE001 - closing
-                pass
+        _close_zenoh(subs, session)
         run.exit_codes = {"sim": stop_process(sim, "simulator"), "daemon": stop_process(daemon, "onboard daemon")}
         run.wall_s = time.monotonic() - wall0
     run.tracks, run.status = store.snapshot()
