@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from groundsim.scenario import NoiseCase, Scenario
-from groundsim.synth import estimator_noise_model, synthesize
+from groundsim.synth import estimator_noise_model, synthesize_scenario
 from onboard.estimation.crb import bayesian_crb_rms_m, efficient_error_range_pct
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 
@@ -66,13 +66,7 @@ def _paper_solve(obs):
 
 
 def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool = True, with_crb: bool = True) -> CaseResult:
-    t = scenario.frame_times_s()
-    gimbal = scenario.camera.gimbal
-    frac = gimbal.pointing_error_frac_of_range if gimbal else (0.0, 0.0, 0.0)
-    period = gimbal.pointing_error_period_s if gimbal else (1.0, 1.0, 1.0)
-    rng = scenario.rng("synth.noise", seed)
-    truth, obs = synthesize(scenario.observer_motion(seed), scenario.target_motion(seed), t, scenario.camera.intrinsics,
-                            noise, rng, frac, period)
+    truth, obs = synthesize_scenario(scenario, noise, seed)
     est = MapEstimator(noise=estimator_noise_model(noise))
     t0 = time.perf_counter()
     try:

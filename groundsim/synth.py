@@ -25,7 +25,8 @@ from onboard.estimation.map_estimator import NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.frames import PinholeIntrinsics, quat_from_rotmat, rotmat_from_rotvec
 
-__all__ = ["Truth", "look_at_R_ned_from_cam", "pointing_offsets_ned_m", "synthesize", "estimator_noise_model"]
+__all__ = ["Truth", "look_at_R_ned_from_cam", "pointing_offsets_ned_m", "synthesize", "synthesize_scenario",
+           "estimator_noise_model"]
 
 
 @dataclass(frozen=True)
@@ -100,3 +101,17 @@ def synthesize(observer_motion, target_motion, t_s, intrinsics: PinholeIntrinsic
     cam_meas = cam + offset + (t - t[0])[:, None] * drift + noise_case.camera_position_white_sigma_m * rng.standard_normal((F, 3))
     obs = Observations.from_intrinsics(t, uv, intrinsics, cam_meas, quat_from_rotmat(R_meas))
     return truth, obs
+
+
+def synthesize_scenario(scenario, noise_case, seed: int, t_s=None, rng: np.random.Generator | None = None
+                        ) -> tuple[Truth, Observations]:
+    """:func:`synthesize` for a :class:`groundsim.scenario.Scenario`: its motions for ``seed``, its camera and
+    gimbal pointing error (none without a gimbal), at its frame times unless ``t_s`` is given; the noise
+    stream is the scenario's ``synth.noise`` stream for ``seed`` unless ``rng`` is given."""
+    t = scenario.frame_times_s() if t_s is None else np.asarray(t_s, dtype=float)
+    gimbal = scenario.camera.gimbal
+    frac = gimbal.pointing_error_frac_of_range if gimbal else (0.0, 0.0, 0.0)
+    period = gimbal.pointing_error_period_s if gimbal else (1.0, 1.0, 1.0)
+    rng = scenario.rng("synth.noise", seed) if rng is None else rng
+    return synthesize(scenario.observer_motion(seed), scenario.target_motion(seed), t, scenario.camera.intrinsics,
+                      noise_case, rng, frac, period)

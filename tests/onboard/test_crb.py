@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import estimator_noise_model, synthesize
+from groundsim.synth import estimator_noise_model, synthesize_scenario
 from onboard.estimation.crb import bayesian_crb_covariance, bayesian_crb_rms_m, efficient_error_range_pct
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior
 
@@ -16,11 +16,8 @@ MC_RATIO = (0.7, 1.4)  # 30-seed RMS of an efficient estimator over the bound: c
 
 
 def _p1(seed: int, noise: str = "px0.3"):
-    sc = load_scenario(reference_scenario_paths()["P1"])
     nc = load_noise_cases()[noise]
-    g = sc.camera.gimbal
-    truth, obs = synthesize(sc.observer_motion(seed), sc.target_motion(seed), sc.frame_times_s(), sc.camera.intrinsics,
-                            nc, sc.rng("synth.noise", seed), g.pointing_error_frac_of_range, g.pointing_error_period_s)
+    truth, obs = synthesize_scenario(load_scenario(reference_scenario_paths()["P1"]), nc, seed)
     return MapEstimator(noise=estimator_noise_model(nc)), truth, obs
 
 

@@ -11,7 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import estimator_noise_model, synthesize
+from groundsim.synth import estimator_noise_model, synthesize, synthesize_scenario
 from onboard.errors import InputError
 from onboard.estimation.map_estimator import MapConfig, MapEstimator, MotionPrior, NoiseModel
 from onboard.estimation.observations import Observations
@@ -25,10 +25,7 @@ JAC_RTOL = 1e-4  # finite-difference Jacobian check, relative to the largest ent
 def _synth(name: str, noise: str, seed: int, times=None):
     sc = load_scenario(reference_scenario_paths()[name])
     nc = load_noise_cases()[noise]
-    g = sc.camera.gimbal
-    t = sc.frame_times_s() if times is None else times
-    truth, obs = synthesize(sc.observer_motion(seed), sc.target_motion(seed), t, sc.camera.intrinsics, nc,
-                            sc.rng("synth.noise", seed), g.pointing_error_frac_of_range, g.pointing_error_period_s)
+    truth, obs = synthesize_scenario(sc, nc, seed, t_s=times)
     return sc, nc, truth, obs
 
 
