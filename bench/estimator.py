@@ -26,9 +26,9 @@ import numpy as np  # noqa: E402
 
 from groundsim.estimator_eval import format_table, run_cases, summarise  # noqa: E402
 from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
-from groundsim.synth import estimator_noise_model, synthesize  # noqa: E402
+from groundsim.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
 from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
-from onboard.estimation.map_estimator import MapConfig, MapEstimator, MotionPrior  # noqa: E402
+from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402
 
 
@@ -54,12 +54,8 @@ def statistical_floor(results, seeds: int) -> list[str]:
             continue
         done.add(key)
         sc, nc = load_scenario(paths[r.scenario]), ncs[r.noise]
-        g = sc.camera.gimbal
-        truth, obs = synthesize(sc.observer_motion(r.seed), sc.target_motion(r.seed), sc.frame_times_s(),
-                                sc.camera.intrinsics, nc, sc.rng("synth.noise", r.seed),
-                                g.pointing_error_frac_of_range, g.pointing_error_period_s)
-        prior = MotionPrior(r.q_m2ps3, r.q_m2ps3 * cfg.vertical_ratio,
-                            cfg.turn_rate_sigma_radps if r.model == "ct" else 0.0, r.model == "ca")
+        truth, obs = synthesize_scenario(sc, nc, r.seed)
+        prior = cfg.motion_prior(r.model, r.q_m2ps3)
         pct = efficient_error_range_pct(MapEstimator(cfg, estimator_noise_model(nc)), obs, truth.p_target_ned_m, prior,
                                         r.turn_rate_radps, draws=8000, rng=np.random.default_rng(1))
         rng = np.random.default_rng(2)
@@ -85,23 +81,19 @@ def _timeit(fn, repeat: int) -> list[float]:
 def speed(noise_name: str = "px0.3") -> dict:
     sc = load_scenario(reference_scenario_paths()["P1"])
     nc = load_noise_cases()[noise_name]
-    g = sc.camera.gimbal
-    t = sc.frame_times_s()
-    truth, obs = synthesize(sc.observer_motion(0), sc.target_motion(0), t, sc.camera.intrinsics, nc,
-                            sc.rng("synth.noise", 0), g.pointing_error_frac_of_range, g.pointing_error_period_s)
+    truth, obs = synthesize_scenario(sc, nc, 0)
     est = MapEstimator(noise=estimator_noise_model(nc))
     from onboard.estimation import paper
 
     solve_paper = paper.PaperEstimator().solve
     out = {"frames": len(obs)}
     out["paper_ms"] = float(np.median(_timeit(lambda: solve_paper(obs), 50)))
-    pr = MotionPrior(1e-6, 2.5e-7, 0.0)
+    pr = MapConfig().motion_prior("cv", 1e-6)
     out["map_cold_single_prior_ms"] = float(np.median(_timeit(lambda: est.solve(obs, pr), 5)))
     out["map_model_selection_ms"] = float(np.median(_timeit(lambda: est.solve(obs), 3)))
     # sliding window over 20 s (600 frames): per-frame cost
     t2 = np.arange(600) / 30.0
-    truth2, obs2 = synthesize(sc.observer_motion(0), sc.target_motion(0), t2, sc.camera.intrinsics, nc,
-                              np.random.default_rng(1), g.pointing_error_frac_of_range, g.pointing_error_period_s)
+    truth2, obs2 = synthesize_scenario(sc, nc, 0, t_s=t2, rng=np.random.default_rng(1))
     sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
     per = []
     kinds = []

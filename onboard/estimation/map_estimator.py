@@ -60,7 +60,7 @@ import scipy.linalg as sla
 
 from onboard.errors import IrtrackError
 from onboard.estimation.observations import Observations
-from onboard.estimation.spline import KnotGrid, gauss_legendre_3
+from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
 __all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem"]
 
@@ -152,6 +152,14 @@ class MapConfig:
     # that cannot follow the target -- a gusty target under a stiff prior -- buys its fit with range)
     adequacy_block_frames: int = 15
     adequacy_p_min: float = 1e-3
+
+
+    def motion_prior(self, family: str, q_horizontal_m2ps3: float) -> MotionPrior:
+        """The prior of ``family`` ("cv", "ca" or "ct") at horizontal intensity q (vertical: q x vertical_ratio)."""
+        if family not in ("cv", "ca", "ct"):
+            raise ValueError(f"MapConfig.motion_prior: family must be cv, ca or ct, got {family!r}")
+        return MotionPrior(q_horizontal_m2ps3, q_horizontal_m2ps3 * self.vertical_ratio,
+                           self.turn_rate_sigma_radps if family == "ct" else 0.0, family == "ca")
 
 
 @dataclass(frozen=True)
@@ -324,12 +332,7 @@ class WindowProblem:
 
     def theta_from_positions(self, p_ned_m: np.ndarray, omega: float = 0.0) -> np.ndarray:
         """Least-squares control points through per-observation positions (F, 3); nuisances zero."""
-        B = self.grid.dense_basis(self.obs.t_s, self.first, self.count)
-        # a whisper of second-difference smoothing keeps controls without data well defined
-        D = np.diff(np.eye(self.count), n=2, axis=0) * 1e-3
-        A = np.vstack([B, D])
-        rhs = np.vstack([p_ned_m, np.zeros((D.shape[0], 3))])
-        c, *_ = np.linalg.lstsq(A, rhs, rcond=None)
+        c = fit_controls(self.B0, p_ned_m)
         theta = np.zeros(self.n_params)
         theta[: self.nc] = c.reshape(-1)
         if self.i_omega is not None:
@@ -647,20 +650,17 @@ class MapEstimator:
         grid = KnotGrid(float(t[0]), h)
         first, count = grid.control_span(float(t[0]), float(t[-1]))
         B = grid.dense_basis(t, first, count)
-        # a whisper of second-difference smoothing keeps controls of knot intervals without samples defined;
-        # normal equations are safe here (a B-spline basis is well conditioned) and ~10x cheaper than SVD
-        D = np.diff(np.eye(count), n=2, axis=0) * 1e-3
-        c = sla.cho_solve(sla.cho_factor(B.T @ B + D.T @ D, check_finite=False), B.T @ obs.p_cam_ned_m,
-                          check_finite=False)
-        smoothed = obs.with_camera_positions(B @ c)
+        smoothed = obs.with_camera_positions(B @ fit_controls(B, obs.p_cam_ned_m))
         noise = dataclasses.replace(self.noise, camera_position_white_sigma_m=self.noise.camera_position_white_sigma_m
                                     * math.sqrt(min(1.0, count / len(obs))))
         self._camera_cache = (obs, smoothed, noise)
         return smoothed, noise
 
-    def initial_guesses(self, prob: WindowProblem) -> list[np.ndarray]:
+    def initial_guesses(self, prob: WindowProblem, ranges_m=None) -> list[np.ndarray]:
+        """Trajectories along the measured lines of sight at each range hypothesis (default: init_ranges_m)."""
         b = prob.obs.bearings_ned()
-        return [prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * b) for r0 in self.config.init_ranges_m]
+        ranges = self.config.init_ranges_m if ranges_m is None else ranges_m
+        return [prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * b) for r0 in ranges]
 
     def solve_prior(self, obs: Observations, prior: MotionPrior, starts: list[np.ndarray] | None = None,
                     grid: KnotGrid | None = None, max_modes: int = 3):
@@ -719,16 +719,15 @@ class MapEstimator:
 
     def _select(self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None) -> MapResult:
         cfg = self.config
-        all_families = {"cv": (0.0, False), "ca": (0.0, True), "ct": (cfg.turn_rate_sigma_radps, False)}
-        families = {f: all_families[f] for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0}
+        families = [f for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0]
         tops: dict[str, list] = {}
         carry: list[np.ndarray] = [] if warm is None else [warm]
-        for fam, (sig_om, jerk) in families.items():
+        for fam in families:
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
             # loose to stiff: a stiff prior's basin is narrow, the looser solution starts it well
             for q in sorted(cfg.q_grid_m2ps3, reverse=True):
-                pr = MotionPrior(q, q * cfg.vertical_ratio, sig_om, jerk)
+                pr = cfg.motion_prior(fam, q)
                 prob = self.problem(obs, pr, grid)
                 if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose
                     # prior's best mode can be a far or collapsed one whose basin misses the stiffer prior's
@@ -808,8 +807,7 @@ class MapEstimator:
 
     def _fresh(self, prob: WindowProblem) -> np.ndarray:
         """The middle range hypothesis of :meth:`initial_guesses` (the cheap fresh start of a warm chain)."""
-        r0 = self.config.init_ranges_m[len(self.config.init_ranges_m) // 2]
-        return prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * prob.obs.bearings_ned())
+        return self.initial_guesses(prob, [self.config.init_ranges_m[len(self.config.init_ranges_m) // 2]])[0]
 
     @staticmethod
     def _adapt(theta: np.ndarray, prob: WindowProblem) -> np.ndarray:

@@ -79,6 +79,17 @@ class KnotGrid:
         return B
 
 
+def fit_controls(B: np.ndarray, values: np.ndarray, smoothing: float = 1e-3) -> np.ndarray:
+    """Least-squares control points (count, k) of the spline whose basis matrix at the samples is ``B``
+    (N, count), through ``values`` (N, k).  A whisper of second-difference smoothing keeps the controls
+    of knot intervals without samples defined."""
+    values = np.asarray(values, dtype=float)
+    D = np.diff(np.eye(B.shape[1]), n=2, axis=0) * smoothing
+    c, *_ = np.linalg.lstsq(np.vstack([B, D]), np.vstack([values, np.zeros((D.shape[0],) + values.shape[1:])]),
+                            rcond=None)
+    return c
+
+
 def gauss_legendre_3() -> tuple[np.ndarray, np.ndarray]:
     """Nodes on [0, 1] and weights (summing to 1) of 3-point Gauss-Legendre quadrature (exact to degree 5)."""
     x = np.array([-np.sqrt(3 / 5), 0.0, np.sqrt(3 / 5)])
