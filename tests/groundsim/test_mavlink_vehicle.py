@@ -49,6 +49,20 @@ def _free_udp_port() -> int:
         return s.getsockname()[1]
 
 
+def _pump_thread(vehicle: MavlinkVehicle, stop: threading.Event, period_s: float) -> threading.Thread:
+    """A (not yet started) thread feeding the vehicle its state and polling it on a monotonic clock until ``stop``."""
+
+    def pump():
+        t0 = time.monotonic()
+        while not stop.is_set():
+            now = int((time.monotonic() - t0) * 1e6)
+            _state(vehicle, now)
+            vehicle.poll(now)
+            time.sleep(period_s)
+
+    return threading.Thread(target=pump, daemon=True)
+
+
 def _state(vehicle: MavlinkVehicle, t_us: int, **over):
     kw = dict(
         time_boot_us=t_us,
@@ -217,15 +231,7 @@ def test_real_time_threaded_rates(link):
     rx, vehicle = link
     stop = threading.Event()
 
-    def pump():
-        t0 = time.monotonic()
-        while not stop.is_set():
-            now = int((time.monotonic() - t0) * 1e6)
-            _state(vehicle, now)
-            vehicle.poll(now)
-            time.sleep(0.001)
-
-    th = threading.Thread(target=pump, daemon=True)
+    th = _pump_thread(vehicle, stop, 0.001)
     th.start()
     try:
         msgs, t_end = [], time.monotonic() + 1.8
@@ -516,15 +522,7 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
     stop = threading.Event()
 
-    def pump():
-        t0 = time.monotonic()
-        while not stop.is_set():
-            now = int((time.monotonic() - t0) * 1e6)
-            _state(vehicle, now)
-            vehicle.poll(now)
-            time.sleep(0.002)
-
-    th = threading.Thread(target=pump, daemon=True)
+    th = _pump_thread(vehicle, stop, 0.002)
     try:
         sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
         th.start()
