@@ -82,6 +82,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-multicast-scouting", action="store_true",
                    help="enable zenoh multicast scouting (off by default)")
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
+                        " default: the scenario's nav_noise, RTK unless it says otherwise)")
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
     p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
     p.add_argument("--rt-priority", type=int, default=None, metavar="N",
@@ -110,7 +113,7 @@ def _run_config(args):
     return RunConfig(
         scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
         vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
-        render=not args.no_render,
+        render=not args.no_render, nav_noise=args.nav_noise,
     )
 
 

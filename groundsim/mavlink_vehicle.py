@@ -24,6 +24,15 @@ GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: 
                                                        vehicle yaw; rates NaN; gimbal_device_id 1
 ===========================================  ========  =============================================
 
+Navigation errors: ``update_state(..., nav_error=sample)`` reports the state with a
+:class:`groundsim.nav_errors.NavErrorSample` applied (attitude error on #31 and on #285's gimbal
+attitude, position offset/drift/white noise on #33's lat/lon/alt, drift rate on its velocity);
+``groundsim.run`` passes the run's :class:`~groundsim.nav_errors.NavErrorModel` sample of each tick.
+
+Rates: SET_MESSAGE_INTERVAL may set any stream up to the poll rate (``groundsim.run`` polls and
+updates the state at 120 Hz at 30 fps, so #285 at 100 Hz is honoured: a sample per 10 ms due
+time, each with a fresh state).
+
 Data messages (#31, #33, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
 and are not repeated for an unchanged state: a stream is due by its interval but waits for a
 new :meth:`MavlinkVehicle.update_state` sample.  HEARTBEAT and SYSTEM_TIME carry poll time.
@@ -367,12 +376,25 @@ class MavlinkVehicle:
         body_rates_radps,
         heading_rad: float,
         q_gimbal=None,
+        nav_error=None,
     ) -> VehicleState:
-        """Store the latest truth (validated; raises InputError naming a bad field).
+        """Store the latest truth, as the autopilot reports it (validated; raises InputError naming a bad field).
 
         Units and frames as :class:`VehicleState`; ``q_gimbal`` is ``q_ned_from_gimbal`` (the
         gimbal's attitude in NED, see the module docstring), needed only when ``gimballed``.
+        ``nav_error``: a :class:`groundsim.nav_errors.NavErrorSample` (or None: exact) applied by
+        :func:`groundsim.nav_errors.reported_state` before anything is stored: #31, #33 and #285 carry
+        the reported attitude, position, velocity and gimbal attitude; the returned state is the reported one.
         """
+        if nav_error is not None:
+            from groundsim.nav_errors import reported_state
+
+            kw = reported_state(dict(lat_deg=lat_deg, lon_deg=lon_deg, alt_amsl_m=alt_amsl_m, alt_rel_m=alt_rel_m,
+                                     v_ned_mps=v_ned_mps, q_ned_from_body=q_ned_from_body, heading_rad=heading_rad,
+                                     q_gimbal=q_gimbal), nav_error)
+            lat_deg, lon_deg, alt_amsl_m, alt_rel_m = kw["lat_deg"], kw["lon_deg"], kw["alt_amsl_m"], kw["alt_rel_m"]
+            v_ned_mps, q_ned_from_body, heading_rad, q_gimbal = (kw["v_ned_mps"], kw["q_ned_from_body"], kw["heading_rad"],
+                                                                 kw["q_gimbal"])
         state = VehicleState(
             time_boot_us=time_boot_us,
             lat_deg=lat_deg,

@@ -37,9 +37,17 @@ once per ``STATUS_EVERY_S`` of wall time.  While paced, the heap left by the set
 wake-ups themselves come late; ``groundsim run --rt-priority N`` (opt-in SCHED_FIFO) fixes that
 (``python -m bench.simrate`` measures both).
 
+Navigation errors.  The state handed to the MAVLink vehicle is the truth; the vehicle reports it
+with the run's navigation errors (:mod:`groundsim.nav_errors`: attitude bias + white noise on #31
+and #285, position offset + drift + white noise on #33, velocity + drift rate), case
+``--nav-noise`` (default: the scenario's ``nav_noise``, itself RTK by default) drawn from
+``scenario.rng("nav.errors", seed)``.  The truth CSV keeps the exact values and records the
+injected errors of each frame's tick (``nav_*`` columns, :mod:`groundsim.truth`).
+
 Determinism.  Truth rows and frames depend only on the scenario, ``--seed`` (the run seed: the
 target's disturbance realisation, the render noise ``scenario.rng("render.noise", seed)``, the
-gimbal phases) and ``--duration``; never on the rate, the wall clock or chunking.
+gimbal phases, the navigation errors), ``--nav-noise`` and ``--duration``; never on the rate, the
+wall clock or chunking.
 
 Stopping.  ``stop`` (a ``threading.Event``, set by SIGINT/SIGTERM in the CLI) is checked at every
 tick and while sleeping (at most ``STOP_POLL_S``); the loop then returns at once, the truth file
@@ -151,7 +159,8 @@ class RunConfig:
     >= 0 selects the realisation (see the module docstring).  ``zenoh`` is an
     :class:`onboard.zenoh_session.ZenohSettings` (None: no endpoints, scouting off).
     ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic (``PACED_CHUNK_S`` or
-    ``MAX_MODE_CHUNK_S``).
+    ``MAX_MODE_CHUNK_S``).  ``nav_noise``: a case name of ``config/noise_cases.yaml`` for the
+    telemetry's navigation errors; None = the scenario's ``nav_noise``.
     """
 
     scenario: Scenario
@@ -165,6 +174,7 @@ class RunConfig:
     render: bool = True
     boot_start_us: int = BOOT_START_US
     flight_chunk_s: float | None = None
+    nav_noise: str | None = None
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -193,6 +203,10 @@ class RunConfig:
             raise ConfigError(f"RunConfig.flight_chunk_s must be > 0 s or None, got {c!r}")
         if self.truth_path is not None:
             object.__setattr__(self, "truth_path", Path(self.truth_path))
+        if self.nav_noise is not None:
+            from groundsim.nav_errors import resolve_nav_noise
+
+            resolve_nav_noise(self.nav_noise)  # an unknown name fails here, naming the file and the choices
         if self.zenoh is not None:
             from onboard.zenoh_session import ZenohSettings
 
@@ -473,13 +487,18 @@ def frame_count(duration_s: float, frame_rate_hz: float) -> int:
 class SimCore:
     """The simulated world on the tick grid, with step methods and no sockets or files.
 
-    ``vehicle_state(i)``: keyword arguments of ``MavlinkVehicle.update_state`` at tick ``i``;
-    ``frame(k)``: fly (if needed), render and compute the truth of frame ``k``.  Ticks and frames
-    must be asked for in non-decreasing order (older flight chunks are dropped).
+    ``vehicle_state(i)``: keyword arguments of ``MavlinkVehicle.update_state`` at tick ``i`` (the
+    truth); ``nav_error(i)``: the navigation error the vehicle reports it with
+    (:class:`groundsim.nav_errors.NavErrorSample`); ``frame(k)``: fly (if needed), render and compute
+    the truth of frame ``k``.  Ticks and frames must be asked for in non-decreasing order (older
+    flight chunks are dropped).  ``nav_noise``: a :class:`~groundsim.scenario.NoiseCase`, a case name,
+    or None (the scenario's ``nav_noise``).
     """
 
     def __init__(self, scenario: Scenario, run_seed: int = 0, duration_s: float | None = None, render: bool = True,
-                 boot_start_us: int = BOOT_START_US, flight_chunk_s: float | None = None) -> None:
+                 boot_start_us: int = BOOT_START_US, flight_chunk_s: float | None = None, nav_noise=None) -> None:
+        from groundsim.nav_errors import NAV_ERROR_STREAM, NavErrorModel, resolve_nav_noise
+
         cfg = RunConfig(scenario, run_seed=run_seed, duration_s=duration_s, render=render, boot_start_us=boot_start_us)
         self.scenario = scenario
         self.run_seed = cfg.run_seed
@@ -497,6 +516,10 @@ class SimCore:
         chunk_ticks = chunk_frames * self.ticks_per_frame
         self.flight = PairFlight(scenario, self.run_seed, self.times_s, chunk_ticks)
         self.gimballed = self.flight.gimballed
+        nav_noise = scenario.nav_noise if nav_noise is None else nav_noise
+        case = resolve_nav_noise(nav_noise) if isinstance(nav_noise, str) else nav_noise
+        self.nav_noise = case
+        self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
         self._renderer = None
         self.render_s = 0.0  # wall seconds spent rendering
         self.render_errors = _Limited("render_error")
@@ -518,6 +541,10 @@ class SimCore:
             body_rates_radps=c.obs_omega_frd_radps[j], heading_rad=float(c.obs_yaw_rad[j]),
             q_gimbal=None if c.q_ned_from_gimbal is None else c.q_ned_from_gimbal[j],
         )
+
+    def nav_error(self, i: int):
+        """The navigation error the vehicle reports tick ``i``'s state with (a NavErrorSample)."""
+        return self.nav_errors.sample(i)
 
     def renderer(self):
         """The IR renderer (built on first use; seeded by ``scenario.rng("render.noise", seed)``)."""
@@ -549,7 +576,8 @@ class SimCore:
                         c.tgt_p_ned_m[j], c.tgt_v_ned_mps[j], c.obs_p_ned_m[j], c.cam_p_ned_m[j],
                         c.cam_q_ned_from_cam[j],
                         target_lla=(c.tgt_lat_deg[j], c.tgt_lon_deg[j], c.tgt_alt_m[j]),
-                        observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]))
+                        observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
+                        nav_error=self.nav_error(i))
         return SimFrame(k, t_us, pixels, row)
 
 
@@ -589,7 +617,7 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
              stop: threading.Event | None = None, clock=None) -> RunReport:
     """Drive ``core`` tick by tick into the sinks (any may be None); see the module docstring.
 
-    ``mavlink``: has ``update_state(**state)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
+    ``mavlink``: has ``update_state(**state, nav_error=sample)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
     ``publisher``: has ``publish(IrFrame)`` (a FramePublisher); ``truth``: a TruthWriter.
     Per-event errors (a sink's IrtrackError or zenoh error, a frame the renderer refuses) are
     counted in ``RunReport.errors`` and logged at most every 10 s, never raised; a flight failure
@@ -641,7 +669,7 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
             if mavlink is not None:
                 t0 = clock.now_s()
                 try:
-                    mavlink.update_state(**core.vehicle_state(i))
+                    mavlink.update_state(**core.vehicle_state(i), nav_error=core.nav_error(i))
                     mavlink.poll(core.time_boot_us(i))
                 except sink_errors as exc:
                     mavlink_errors(f"tick {i}: mavlink", exc)
@@ -717,7 +745,8 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
     if chunk_s is None:
         chunk_s = PACED_CHUNK_S if config.rate.paced else MAX_MODE_CHUNK_S
     sc = config.scenario
-    core = SimCore(sc, config.run_seed, config.duration_s, config.render, config.boot_start_us, chunk_s)
+    core = SimCore(sc, config.run_seed, config.duration_s, config.render, config.boot_start_us, chunk_s,
+                   nav_noise=config.nav_noise)
 
     zs = config.zenoh if config.zenoh is not None else ZenohSettings()
     session = publisher = vehicle = writer = None
@@ -728,9 +757,9 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed)
         if config.truth_path is not None:
             writer = TruthWriter(config.truth_path)
-        log.info("scenario %s (seed %d), %.2f s, %s, mavlink %s, zenoh key %s%s", sc.name, config.run_seed,
-                 core.duration_s, "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
-                 config.mavlink, frame_key(config.vehicle), "" if config.render else " (rendering off: no frames)")
+        log.info("scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s", sc.name,
+                 config.run_seed, core.duration_s, "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
+                 core.nav_noise.name, config.mavlink, frame_key(config.vehicle), "" if config.render else " (rendering off: no frames)")
         return run_loop(core, config.rate, mavlink=vehicle, publisher=publisher, truth=writer, stop=stop, clock=clock)
     finally:
         for closer in (writer, publisher, vehicle, session):

@@ -75,6 +75,7 @@ DEFAULT_ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)  # Nanjing, see REFERENCE_SCEN
 DEFAULT_DURATION_S = 10.0
 DEFAULT_FRAME_RATE_HZ = 30.0
 DEFAULT_SEED = 0
+DEFAULT_NAV_NOISE = "RTK"  # navigation errors of the telemetry when nothing else is asked (groundsim.nav_errors)
 
 _CONFIG_DIR = Path(__file__).resolve().parent.parent / "config"
 _REFERENCE_ORDER = ("P1", "P2", "P3", "P1g", "P2g", "P3g", "H1", "H2", "H3")
@@ -365,6 +366,7 @@ class Scenario:
     camera: CameraSpec = field(default_factory=CameraSpec)
     ir: IrSettings = field(default_factory=IrSettings)
     wind_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    nav_noise: str = DEFAULT_NAV_NOISE
     source_path: Path | None = None
 
     def __post_init__(self) -> None:
@@ -384,6 +386,7 @@ class Scenario:
         if not isinstance(self.ir, IrSettings):
             fail("ir", "an IrSettings", self.ir)
         object.__setattr__(self, "wind_ned_mps", _vector(self.wind_ned_mps, "wind_ned_mps", fail, unit="m/s"))
+        _string(self.nav_noise, "nav_noise", fail, pattern=NAME_PATTERN, what="a noise-case name of config/noise_cases.yaml")
 
     @property
     def frame_count(self) -> int:
@@ -660,7 +663,7 @@ def _wind_from_dict(d, path: str, fail: _Fail) -> tuple[float, float, float]:
 # --------------------------------------------------------------------------- scenario
 
 _TOP_KEYS = ("name", "description", "origin", "duration_s", "frame_rate_hz", "seed",
-             "observer", "target", "camera", "ir", "wind")
+             "observer", "target", "camera", "ir", "wind", "nav_noise")
 
 
 def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail) -> None:
@@ -705,6 +708,9 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     camera = _camera_from_dict(d.get("camera"), "camera", fail)
     ir = _ir_from_dict(d.get("ir"), "ir", fail)
     wind = _wind_from_dict(d.get("wind"), "wind", fail)
+    nav_noise = DEFAULT_NAV_NOISE
+    if "nav_noise" in d:  # a case of config/noise_cases.yaml: the telemetry's navigation errors (groundsim.nav_errors)
+        nav_noise = _string(d["nav_noise"], "nav_noise", fail, choices=tuple(load_noise_cases()))
 
     t_s = np.arange(_frame_count(duration_s, rate_hz)) / rate_hz
     _check_paths(obs_motion, tgt_base, t_s, fail)
@@ -716,7 +722,7 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
                              tgt_base, disturbance)
     sc = Scenario(name=name, description=description, origin=origin, duration_s=duration_s,
                   frame_rate_hz=rate_hz, seed=seed, observer=VehicleSpec(obs_motion), target=target,
-                  camera=camera, ir=ir, wind_ned_mps=wind,
+                  camera=camera, ir=ir, wind_ned_mps=wind, nav_noise=nav_noise,
                   source_path=Path(source) if isinstance(source, Path) else None)
     log.debug("scenario %s from %s: %d frames", name, source, sc.frame_count)
     return sc

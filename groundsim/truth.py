@@ -20,6 +20,13 @@ follow them and may grow at the end only)::
     cam_{n,e,d}_m                  camera optical centre (pod lever arm applied)
     q_ned_from_cam_{w,x,y,z}       camera attitude, Hamilton, w first (``onboard.frames``)
     range_m                        camera to target centre
+    nav_att_err_{n,e,d}_rad        navigation error injected into the telemetry at this frame's tick
+                                   (``groundsim.nav_errors``): rotation vector of R_reported R_true^T in
+                                   NED, radians (constant bias + white), applied to #31 and #285
+    nav_p_err_{n,e,d}_m            reported minus true observer position, NED metres (offset + drift
+                                   * t_s + white), applied to #33; the velocity error is the drift rate
+                                   All six are 0 with ``--nav-noise exact``.  Every other column is the
+                                   truth, never the reported value.
 
 Altitudes are WGS84 ellipsoidal heights (treated as AMSL, as ``onboard.frames`` says).  Numbers
 are written with Python's shortest round-trip ``repr`` (deterministic, lossless), NaN as ``nan``.
@@ -108,6 +115,12 @@ class TruthRow:
     q_ned_from_cam_y: float
     q_ned_from_cam_z: float
     range_m: float
+    nav_att_err_n_rad: float = 0.0
+    nav_att_err_e_rad: float = 0.0
+    nav_att_err_d_rad: float = 0.0
+    nav_p_err_n_m: float = 0.0
+    nav_p_err_e_m: float = 0.0
+    nav_p_err_d_m: float = 0.0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -154,6 +167,7 @@ def truth_row(
     *,
     target_lla=None,
     observer_lla=None,
+    nav_error=None,
 ) -> TruthRow:
     """The truth row of one frame from true poses (pure).
 
@@ -161,7 +175,8 @@ def truth_row(
     :func:`groundsim.render.truth_pixel` (the renderer's own projection); visibility as the module
     docstring says.  ``target_lla`` / ``observer_lla``: ``(lat_deg, lon_deg, alt_m)`` already
     computed with :func:`onboard.frames.geodetic_from_ned` about ``origin`` (a caller converting
-    many rows at once passes them; otherwise they are computed here).
+    many rows at once passes them; otherwise they are computed here).  ``nav_error``: the
+    :class:`groundsim.nav_errors.NavErrorSample` injected into the telemetry at this frame (None: zero).
     """
     from groundsim.render import truth_pixel  # the renderer's projection; imported on first use
 
@@ -190,6 +205,10 @@ def truth_row(
         cam_n_m=p_c[0], cam_e_m=p_c[1], cam_d_m=p_c[2],
         q_ned_from_cam_w=q_c[0], q_ned_from_cam_x=q_c[1], q_ned_from_cam_y=q_c[2], q_ned_from_cam_z=q_c[3],
         range_m=float(np.linalg.norm(p_t - p_c)),
+        **({} if nav_error is None else dict(
+            nav_att_err_n_rad=nav_error.att_err_ned_rad[0], nav_att_err_e_rad=nav_error.att_err_ned_rad[1],
+            nav_att_err_d_rad=nav_error.att_err_ned_rad[2], nav_p_err_n_m=nav_error.p_err_ned_m[0],
+            nav_p_err_e_m=nav_error.p_err_ned_m[1], nav_p_err_d_m=nav_error.p_err_ned_m[2])),
     )
 
 

@@ -25,6 +25,7 @@ from hypothesis import strategies as st
 
 from groundsim import cli
 from groundsim.mavlink_vehicle import open_mavlink2
+from groundsim.nav_errors import offset_geodetic
 from groundsim.run import (
     BOOT_START_US,
     JitterStats,
@@ -45,6 +46,7 @@ from onboard.frames import (
     Q_MOUNT_FROM_CAM,
     quat_multiply,
     rotmat_from_quat,
+    rotmat_from_rotvec,
 )
 from onboard.irframe import ENCODING_MONO8, decode_irframe
 from onboard.zenoh_session import ZenohSettings, frame_key, open_session
@@ -240,24 +242,29 @@ def test_mavlink_position_and_attitude_streams(e2e):
     assert stamps == sorted(stamps) and stamps[0] == BOOT_START_US // 1000
     for m in att:
         assert abs(math.sqrt(m.q1**2 + m.q2**2 + m.q3**2 + m.q4**2) - 1.0) < QUAT_F32_TOL
-    # #33 at 25 Hz: position equals the truth observer's at its time
+    # #33 at 25 Hz: the truth observer's position moved by the navigation error the truth CSV records
+    # (default RTK), checked where a sample's stamp falls on a frame (every 200 ms)
     pos = by_type["GLOBAL_POSITION_INT"]
     assert 45 <= len(pos) <= 51
-    checked = 0
+    rows = {int(t): i for i, t in enumerate(truth["time_boot_us"])}
+    checked = moved = 0
     for m in pos:
-        t_us = m.time_boot_ms * 1000
-        if not t_first <= t_us <= t_last:
+        i = rows.get(m.time_boot_ms * 1000)
+        if i is None:
             continue
-        assert abs(m.lat * 1e-7 - _interp_truth(truth, t_us, "observer_lat_deg")) < LATLON_TOL_DEG
-        assert abs(m.lon * 1e-7 - _interp_truth(truth, t_us, "observer_lon_deg")) < LATLON_TOL_DEG
-        assert abs(m.alt * 1e-3 - _interp_truth(truth, t_us, "observer_alt_m")) < ALT_TOL_M
-        assert abs(m.relative_alt * 1e-3 - _interp_truth(truth, t_us, "observer_alt_m")) < ALT_TOL_M  # origin alt 0
+        err = [truth[f"nav_p_err_{c}_m"][i] for c in "ned"]
+        lat, lon, alt = offset_geodetic(truth["observer_lat_deg"][i], truth["observer_lon_deg"][i],
+                                        truth["observer_alt_m"][i], err)
+        assert abs(m.lat * 1e-7 - lat) < LATLON_TOL_DEG and abs(m.lon * 1e-7 - lon) < LATLON_TOL_DEG
+        assert abs(m.alt * 1e-3 - alt) < ALT_TOL_M and abs(m.relative_alt * 1e-3 - alt) < ALT_TOL_M  # origin alt 0
+        moved += 0.0 < np.linalg.norm(err) < 0.2  # RTK: 2 cm white per axis
         checked += 1
-    assert checked >= 45
+    assert checked >= 9 and moved == checked
 
 
 def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
-    """#285 (earth frame) q_ned_from_gimbal composed with the mount->camera axes is the truth's q_ned_from_cam."""
+    """#285 (earth frame) q_ned_from_gimbal composed with the mount->camera axes is the truth's q_ned_from_cam
+    turned by the navigation attitude error the truth CSV records (R_reported = Exp(phi) R_true)."""
     _, _, msgs, truth, _ = e2e
     gim = [m for m in msgs if m.get_type() == "GIMBAL_DEVICE_ATTITUDE_STATUS"]
     assert 18 <= len(gim) <= 21  # 10 Hz over 2 s
@@ -269,7 +276,9 @@ def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
             continue  # only stamps that fall exactly on a frame
         q_nc = quat_multiply(np.array(m.q, dtype=float), Q_MOUNT_FROM_CAM)
         q_true = np.array([truth[f"q_ned_from_cam_{c}"][i] for c in "wxyz"])
-        np.testing.assert_allclose(rotmat_from_quat(q_nc), rotmat_from_quat(q_true), atol=1e-5)
+        phi = np.array([truth[f"nav_att_err_{c}_rad"][i] for c in "ned"])
+        assert 0 < np.linalg.norm(phi) < 0.02  # RTK: 0.1 deg bias + 0.05 deg white per axis
+        np.testing.assert_allclose(rotmat_from_quat(q_nc), rotmat_from_rotvec(phi) @ rotmat_from_quat(q_true), atol=1e-5)
         matched += 1
     assert matched >= 6  # every 100 ms falls on a frame: 0, 100, ..., 1900 ms
 

@@ -520,7 +520,7 @@ def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
     assert main([str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"error: {bad}: wnid: expected a key of the document (name, description, origin, duration_s, "
-                   "frame_rate_hz, seed, observer, target, camera, ir, wind), got unknown key 'wnid'; "
+                   "frame_rate_hz, seed, observer, target, camera, ir, wind, nav_noise), got unknown key 'wnid'; "
                    "did you mean 'wind'?"]
     assert main([str(REPO / "config/scenarios/P1.yaml")]) == 0
 
@@ -539,7 +539,8 @@ def test_module_entry_point_exit_code(tmp_path):
 
 def test_shipped_noise_cases():
     cases = load_noise_cases()
-    assert list(cases) == ["px0.3", "RTK", "GNSS"]
+    assert list(cases) == ["px0.3", "RTK", "GNSS", "exact"]
+    assert cases["exact"] == NoiseCase("exact", 0.0, description=cases["exact"].description)
     assert cases["px0.3"] == NoiseCase("px0.3", 0.3, description=cases["px0.3"].description)
     rtk, gnss = cases["RTK"], cases["GNSS"]
     assert rtk.pixel_sigma_px == 0.3 and gnss.pixel_sigma_px == 1.0
