@@ -240,7 +240,7 @@ class MavlinkConfig(_Section):
     connection: str = F("udpin:0.0.0.0:14540", "str")
     attitude_rate_hz: float = F(50.0, "float", lo=0.0, lo_open=True, hi=1000.0)
     position_rate_hz: float = F(25.0, "float", lo=0.0, lo_open=True, hi=1000.0)
-    gimbal_rate_hz: float = F(10.0, "float", lo=0.0, lo_open=True, hi=1000.0)
+    gimbal_rate_hz: float = F(50.0, "float", lo=0.0, lo_open=True, hi=1000.0)
     heartbeat_interval_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
     heartbeat_timeout_s: float = F(5.0, "float", lo=0.0, lo_open=True, hi=600.0)
     command_retry_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
@@ -444,7 +444,14 @@ class PoseConfig(_Section):
     jump_reset_count: int = F(5, "int", lo=1, hi=1000)
     keep_origin_on_reboot: bool = F(True, "bool")
     position_interp: str = F("hermite", "str", choices=("hermite", "linear"))
-    wait_ms: float = F(60.0, "float", lo=0.0, hi=1000.0)
+    wait_ms: float = F(5.0, "float", lo=0.0, hi=1000.0)
+    max_extrapolation_ms: float = F(50.0, "float", lo=0.0, hi=10000.0)
+    extrapolation_noise_fraction: float = F(0.25, "float", lo=0.0, hi=10.0)
+    body_rate_sigma_dps: float = F(0.1, "float", lo=0.0, hi=1000.0)
+    gimbal_rate_sigma_dps: float = F(0.5, "float", lo=0.0, hi=1000.0)
+    angular_accel_sigma_dps2: float = F(20.0, "float", lo=0.0, hi=100000.0)
+    velocity_sigma_mps: float = F(0.1, "float", lo=0.0, hi=1000.0)
+    accel_sigma_mps2: float = F(2.0, "float", lo=0.0, hi=1000.0)
     origin: OriginConfig | None = field(default=None, metadata={"section": OriginConfig, "nullable": True})
 
     def __post_init__(self) -> None:  # origin may be None
@@ -458,12 +465,35 @@ class PoseConfig(_Section):
             if getattr(self, name) > self.window_s * 1000.0:
                 raise FieldError(f"pose.{name}", f"a gap <= pose.window_s ({_g(self.window_s)} s)", getattr(self, name))
 
-    def buffer_config(self):
-        """The :class:`~onboard.pose.PoseBufferConfig` (ms/s -> us)."""
-        from onboard.pose import PoseBufferConfig
+    def buffer_config(self, bearing_white_sigma_rad: float | None = None):
+        """The :class:`~onboard.pose.PoseBufferConfig` (ms/s -> us, deg -> rad).
+
+        Extrapolation horizons (each capped by its stream's max gap): position
+        ``max_extrapolation_ms``; attitude and gimbal the same, shortened so that their added 1-sigma stays <= ``extrapolation_noise_fraction`` x
+        ``bearing_white_sigma_rad`` (:func:`onboard.pose.attitude_horizon_us`; the service passes
+        :meth:`OnboardConfig.bearing_white_sigma_rad`; None: not shortened).
+        """
+        from onboard.pose import PoseBufferConfig, attitude_horizon_us
 
         us = lambda ms: max(1, int(round(ms * 1000.0)))  # noqa: E731
+        cap_us = int(round(self.max_extrapolation_ms * 1000.0))
+        body_rps, gim_rps = math.radians(self.body_rate_sigma_dps), math.radians(self.gimbal_rate_sigma_dps)
+        acc_rps2 = math.radians(self.angular_accel_sigma_dps2)
+        if bearing_white_sigma_rad is None:
+            att_us = gim_us = cap_us
+        else:
+            limit = self.extrapolation_noise_fraction * bearing_white_sigma_rad
+            att_us = attitude_horizon_us(limit, body_rps, acc_rps2, cap_us)
+            gim_us = attitude_horizon_us(limit, gim_rps, acc_rps2, cap_us)
         return PoseBufferConfig(
+            att_max_extrapolation_us=min(att_us, us(self.attitude_max_gap_ms)),
+            pos_max_extrapolation_us=min(cap_us, us(self.position_max_gap_ms)),
+            gimbal_max_extrapolation_us=min(gim_us, us(self.gimbal_max_gap_ms)),
+            body_rate_sigma_rps=body_rps,
+            gimbal_rate_sigma_rps=gim_rps,
+            angular_accel_sigma_rps2=acc_rps2,
+            velocity_sigma_mps=self.velocity_sigma_mps,
+            accel_sigma_mps2=self.accel_sigma_mps2,
             window_us=us(self.window_s * 1000.0),
             att_max_gap_us=us(self.attitude_max_gap_ms),
             pos_max_gap_us=us(self.position_max_gap_ms),
@@ -485,7 +515,12 @@ class OutputConfig(_Section):
 
     _path: ClassVar[str] = "output"
     publish_track: bool = F(True, "bool")
-    unobservable_positions: bool = F(False, "bool")
+    # a finite 3-D estimate is published with observable=false as its quality verdict (irtrack.track/2);
+    # false: positions only when observable, as irtrack.track/1 did
+    unobservable_positions: bool = F(True, "bool")
+    # CAMERA_TRACKING_GEO_STATUS (#276) for unobservable positions too (a ground station shows #276 as
+    # a fix and cannot read the verdict: off by default)
+    geo_status_unobservable: bool = F(False, "bool")
     status_interval_s: float = F(1.0, "float", lo=0.05, hi=3600.0)
     tracking_image_status_hz: float = F(10.0, "float", lo=0.0, hi=100.0)
     tracking_geo_status_hz: float = F(5.0, "float", lo=0.0, hi=100.0)
@@ -521,6 +556,17 @@ class OnboardConfig(_Section):
     pose: PoseConfig = _section(PoseConfig)
     output: OutputConfig = _section(OutputConfig)
     logging: LoggingConfig = _section(LoggingConfig)
+
+    def bearing_white_sigma_rad(self) -> float:
+        """The white noise of one bearing the estimator assumes, 1 sigma per axis (rad):
+        ``sqrt(attitude_white^2 + (pixel_sigma / f)^2)``, ``f`` the mean focal length in pixels."""
+        e, k = self.estimator, self.camera.intrinsics
+        f_px = 0.5 * (k.fx_px + k.fy_px)
+        return math.hypot(math.radians(e.attitude_white_sigma_deg), e.pixel_sigma_px / f_px)
+
+    def pose_buffer_config(self):
+        """:meth:`PoseConfig.buffer_config` with the horizons bounded by this configuration's bearing noise."""
+        return self.pose.buffer_config(self.bearing_white_sigma_rad())
 
 
 # --------------------------------------------------------------------------- building from mappings

@@ -3,7 +3,9 @@
 Wire -> core translation happens here and only here (MAVLink common, v2 framing):
 
 * ``ATTITUDE_QUATERNION`` (#31): ``time_boot_ms * 1000`` -> ``time_boot_us``; ``(q1, q2, q3, q4)`` is
-  already ``q_ned_from_body`` (w, x, y, z; FRD body in NED) -> :meth:`PoseBuffer.add_attitude`.
+  already ``q_ned_from_body`` (w, x, y, z; FRD body in NED); ``rollspeed, pitchspeed, yawspeed``
+  (rad/s, body FRD: common.xml) -> ``omega_frd_rps`` (the pose buffer extrapolates with them) ->
+  :meth:`PoseBuffer.add_attitude`.
 * ``GLOBAL_POSITION_INT`` (#33): ``lat``/``lon`` degE7 -> deg, ``alt`` mm AMSL -> m,
   ``vx, vy, vz`` cm/s (north, east, down) -> ``v_ned_mps`` -> :meth:`PoseBuffer.add_position`.
   Dropout sentinels (0, INT32_MAX) are passed through and rejected (counted) by the core.
@@ -12,7 +14,9 @@ Wire -> core translation happens here and only here (MAVLink common, v2 framing)
   either frame flag) is set, else to the heading-turned "vehicle frame" ->
   :meth:`PoseBuffer.add_gimbal_status`.  Stamped with ``time_boot_ms`` when the autopilot itself
   sends it; a separate gimbal component has its own clock, so its samples are stamped on receipt
-  through :class:`ClockSync` instead.
+  through :class:`ClockSync` instead.  ``angular_velocity_x/y/z`` (rad/s, same frame as ``q``; NaN =
+  unknown) -> ``omega_ref_rps``.  Requested at ``gimbal_rate_hz`` (50 Hz: a sample at most 20 ms
+  before any frame, so a frame's gimbal extrapolation stays within its horizon).
 * ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; answers feed :class:`ClockSync`;
   the autopilot's requests are answered with ``tc1 = clock_ns()``.
 
@@ -171,7 +175,7 @@ class MavlinkLinkConfig:
     command_retry_s: float = 1.0
     timesync_interval_s: float = 1.0
     reopen_interval_s: float = 2.0
-    gimbal_rate_hz: float = 10.0
+    gimbal_rate_hz: float = 50.0
     max_outstanding_timesync: int = 16
 
     def __post_init__(self) -> None:
@@ -405,7 +409,8 @@ class MavlinkLink:
             return
         from_autopilot = src_comp == self.config.autopilot_compid
         if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
-            self._pose.add_attitude(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4))
+            self._pose.add_attitude(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4),
+                                    (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
             self._pose.add_position(
                 int(msg.time_boot_ms) * 1000,
@@ -463,7 +468,8 @@ class MavlinkLink:
             if t_us is None:
                 self._counters.count("gimbal_clock_unsynced", "gimbal sample from a separate component before TIMESYNC")
                 return
-        self._pose.add_gimbal_status(t_us, tuple(msg.q), ref)
+        self._pose.add_gimbal_status(t_us, tuple(msg.q), ref,
+                                     (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z))
 
     def _on_timesync(self, msg) -> None:
         now_ns = int(self._clock_ns())

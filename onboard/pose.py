@@ -40,6 +40,47 @@ trajectory).  Its departure from the chord is ``dt * (h10 (v0 - m) + h11 (v1 - m
 move the answer by at most that much.  Velocity: the reported velocities interpolated linearly
 (the chord slope when one is unknown).  Attitude: ``quat_slerp(q0, q1, s)`` (Shoemake 1985).
 
+Extrapolation (a frame newer than the telemetry)
+------------------------------------------------
+A frame must not wait for the sample after it (issue 9: a 60 ms wait cost 19-33 % of gimballed
+frames their pose and ~50 ms of latency).  :meth:`PoseBuffer.pose_at` (not :meth:`~PoseBuffer.lookup`,
+which stays interpolation-only so that a caller can wait for a bracket) extrapolates from the
+newest sample ``h = t - t_last`` ahead, within a bounded horizon per stream:
+
+* attitude with the reported body rates (ATTITUDE_QUATERNION #31 ``rollspeed, pitchspeed,
+  yawspeed`` = ``omega_frd_rps``, body FRD): ``q(t) = q_last (x) Exp(omega_frd h)`` (a body-frame
+  rate multiplies on the right; exact for a constant body rate);
+* position with the reported velocity (#33 ``vx, vy, vz``): ``p(t) = p_last + v_last h``;
+* gimbal (#285) with its reported angular velocity (a vector in the quaternion's reference frame,
+  so ``q(t) = Exp(omega_ref h) (x) q_last``) or, when the gimbal reports NaN, the rate of a
+  least-squares fit through the samples of the last ``gimbal_rate_window_us``, anchored at the
+  newest one.
+
+No rate (or velocity) known: no extrapolation, the miss stays ``<stream>_not_yet``.  Beyond the
+horizon: no pose, reason ``<stream>_extrapolation_limit``.  Every extrapolated pose is counted as
+``pose_extrapolated`` (logged at DEBUG only: it is a normal event) and says so in
+:attr:`PoseAt.mode` and the ``*_extrapolated_us`` horizons.
+
+Added uncertainty (1 sigma, per axis).  Attitude: ``sigma_rad(h) = sqrt((sigma_w h)^2 +
+(sigma_alpha h^2 / 2)^2)`` -- the rate's error over the horizon and an unmodelled angular
+acceleration; position: ``sigma_m(h) = sqrt((sigma_v h)^2 + (sigma_a h^2 / 2)^2)``.  The
+estimator's noise model is not widened per observation (the estimator is not this module's);
+instead the horizon is *bounded* so that the added attitude sigma stays below a stated fraction of
+the bearing white noise the estimator is configured with, ``sqrt(attitude_white^2 +
+(pixel_sigma / f)^2)`` (:func:`attitude_horizon_us`; ``pose.extrapolation_noise_fraction``, 0.25:
+the total sigma grows by at most ``sqrt(1 + 0.25^2) - 1 = 3 %``).  With the shipped
+``config/onboard.yaml`` (0.05 deg white attitude, 0.3 px at f = 764.7 px: bearing white noise
+0.0548 deg; limit 0.0137 deg) and the assumed rate errors -- body rates 0.1 deg/s (a MEMS gyro after
+the autopilot's filter), gimbal rates 0.5 deg/s (reported, or the 100 ms least-squares fit of
+0.05 deg-noisy samples at 50 Hz: 0.46 deg/s), unmodelled angular acceleration 20 deg/s^2 -- the
+horizons come out at 36 ms (attitude) and 25 ms (gimbal); at the ~15 ms a frame actually needs
+with 50 Hz telemetry and a 5 ms wait, the attitude adds 0.0027 deg (5 % of the white noise).
+Position: ``pose.max_extrapolation_ms`` (50 ms) bounds it; with 0.1 m/s velocity error and
+2 m/s^2 unmodelled acceleration it adds 5.6 mm at 50 ms, i.e. 0.0032 deg of bearing at 100 m
+(6 % of the white noise; 25 Hz #33 needs up to ~40 ms).  :attr:`PoseAt.sigma_extrapolation_rad` and
+:attr:`PoseAt.sigma_extrapolation_m` carry the figures of each pose, should the estimator want
+to weight by them.
+
 Rejection reasons (keys of :attr:`RejectCounter.counts`)
 -------------------------------------------------------
 Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid``, ``duplicate``
@@ -50,7 +91,9 @@ above ``max_speed_mps``), ``reset`` (a jump persisted: the stream restarts), ``v
 (sample kept, velocity dropped), ``no_origin``.  Gimbal also ``time_reset``, ``reference_changed``,
 ``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
 position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
-with reason ``time_invalid``, ``no_origin`` or ``<stream>_empty|before_buffer|not_yet|gap``.
+with reason ``time_invalid``, ``no_origin`` or
+``<stream>_empty|before_buffer|not_yet|gap|extrapolation_limit``; an extrapolated pose is counted as
+``pose_extrapolated``.
 :class:`ClockSync` counts ``timesync_invalid``, ``timesync_rtt``, ``timesync_outlier``,
 ``timesync_reset``.
 
@@ -81,8 +124,10 @@ from onboard.frames import (
     quat_conjugate,
     quat_from_euler,
     quat_multiply,
+    quat_from_rotvec,
     quat_normalize,
     quat_slerp,
+    rotvec_from_quat,
 )
 
 __all__ = [
@@ -95,6 +140,8 @@ __all__ = [
     "PoseBuffer",
     "ClockSyncConfig",
     "ClockSync",
+    "extrapolation_sigma",
+    "attitude_horizon_us",
 ]
 
 log = logging.getLogger(__name__)
@@ -129,7 +176,8 @@ class RejectCounter:
         self._last_log_s: dict[str, float] = {}
         self._unlogged: dict[str, int] = {}
 
-    def count(self, reason: str, detail: str = "", n: int = 1) -> None:
+    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
+        """Count ``n`` of ``reason``; log it at ``level`` (WARNING: a rejection; DEBUG: a normal event)."""
         self._counts[reason] = self._counts.get(reason, 0) + n
         try:
             now = float(self._clock())
@@ -138,8 +186,8 @@ class RejectCounter:
         last = self._last_log_s.get(reason)
         if last is None or not now - last < self.log_interval_s:
             since = self._unlogged.get(reason, 0) + n
-            self._log.warning(
-                "%s: %s (total %d, %d since last report)", reason, detail or "-", self._counts[reason], since
+            self._log.log(
+                level, "%s: %s (total %d, %d since last report)", reason, detail or "-", self._counts[reason], since
             )
             self._last_log_s[reason] = now
             self._unlogged[reason] = 0
@@ -213,7 +261,11 @@ class PoseAt:
     ``q_mount_from_gimbal`` (4,) or None without a gimbal; ``att_span_us`` / ``pos_span_us`` /
     ``gimbal_span_us``: spacing of the bracketing samples (0 when the query hit a sample);
     ``epoch``: number of autopilot reboots seen so far (poses of different epochs share the origin
-    only when ``keep_origin_on_reboot``).
+    only when ``keep_origin_on_reboot``).  ``att_extrapolated_us`` / ``pos_extrapolated_us`` /
+    ``gimbal_extrapolated_us``: how far past its newest sample each stream was extrapolated (0 =
+    interpolated; the span is then 0 too); ``sigma_extrapolation_rad`` / ``sigma_extrapolation_m``:
+    the 1-sigma attitude / position error that extrapolation adds (module docstring; 0 when
+    interpolated).
     """
 
     body: PoseSample
@@ -225,6 +277,11 @@ class PoseAt:
     pos_span_us: int
     gimbal_span_us: int | None
     epoch: int
+    att_extrapolated_us: int = 0
+    pos_extrapolated_us: int = 0
+    gimbal_extrapolated_us: int | None = None
+    sigma_extrapolation_rad: float = 0.0
+    sigma_extrapolation_m: float = 0.0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "p_cam_ned_m", _frozen_vec(self.p_cam_ned_m, (3,), "PoseAt.p_cam_ned_m"))
@@ -237,6 +294,39 @@ class PoseAt:
     @property
     def time_boot_us(self) -> int:
         return self.body.time_boot_us
+
+    @property
+    def extrapolated(self) -> bool:
+        return bool(self.att_extrapolated_us or self.pos_extrapolated_us or self.gimbal_extrapolated_us)
+
+    @property
+    def mode(self) -> str:
+        """``"interpolated"`` (every stream bracketed the time) or ``"extrapolated"``."""
+        return "extrapolated" if self.extrapolated else "interpolated"
+
+
+def extrapolation_sigma(horizon_s: float, rate_sigma: float, accel_sigma: float) -> float:
+    """1-sigma error of a constant-rate extrapolation over ``horizon_s``:
+    ``sqrt((rate_sigma h)^2 + (accel_sigma h^2 / 2)^2)`` (rate error over the horizon plus an
+    unmodelled second derivative; units of the rate times s: rad from rad/s and rad/s^2, m from
+    m/s and m/s^2)."""
+    h = max(float(horizon_s), 0.0)
+    return math.hypot(rate_sigma * h, 0.5 * accel_sigma * h * h)
+
+
+def attitude_horizon_us(limit: float, rate_sigma: float, accel_sigma: float, cap_us: int) -> int:
+    """The longest horizon (us, at most ``cap_us``) whose :func:`extrapolation_sigma` stays <= ``limit``.
+
+    Solves ``rate^2 h^2 + accel^2 h^4 / 4 = limit^2`` for ``h^2`` (a quadratic; monotone in h).
+    """
+    if limit <= 0.0:
+        return 0
+    a, b = 0.25 * accel_sigma**2, rate_sigma**2
+    if a == 0.0:
+        h2 = math.inf if b == 0.0 else limit**2 / b
+    else:
+        h2 = (-b + math.sqrt(b * b + 4.0 * a * limit**2)) / (2.0 * a)
+    return int(min(cap_us, math.floor(math.sqrt(h2) * US_PER_S))) if math.isfinite(h2) else int(cap_us)
 
 
 @dataclass(frozen=True)
@@ -275,6 +365,14 @@ class PoseBufferConfig:
     ``max_speed_mps``: a position implying a faster move from the previous one is a jump;
     ``jump_reset_count`` consecutive jumps restart the position stream.
     ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.
+
+    Extrapolation past the newest sample (module docstring; 0 disables it for that stream):
+    ``att_max_extrapolation_us`` (with the reported body rates), ``pos_max_extrapolation_us`` (with
+    the reported velocity), ``gimbal_max_extrapolation_us`` (with the reported or fitted gimbal
+    rate; ``gimbal_rate_window_us`` of samples feed the fit).  The error model of
+    :attr:`PoseAt.sigma_extrapolation_rad` / ``_m``: ``body_rate_sigma_rps``,
+    ``gimbal_rate_sigma_rps``, ``angular_accel_sigma_rps2``, ``velocity_sigma_mps``,
+    ``accel_sigma_mps2``.
     """
 
     window_us: int = 5 * US_PER_S
@@ -289,6 +387,15 @@ class PoseBufferConfig:
     position_interp: str = "hermite"
     min_alt_m: float = -1_000.0
     max_alt_m: float = 50_000.0
+    att_max_extrapolation_us: int = 36_000
+    pos_max_extrapolation_us: int = 50_000
+    gimbal_max_extrapolation_us: int = 25_000
+    gimbal_rate_window_us: int = 100_000
+    body_rate_sigma_rps: float = math.radians(0.1)
+    gimbal_rate_sigma_rps: float = math.radians(0.5)
+    angular_accel_sigma_rps2: float = math.radians(20.0)
+    velocity_sigma_mps: float = 0.1
+    accel_sigma_mps2: float = 2.0
 
     def __post_init__(self) -> None:
         for name in ("window_us", "max_samples", "att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us",
@@ -305,6 +412,18 @@ class PoseBufferConfig:
         for name in ("att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us"):
             if getattr(self, name) > self.window_us:
                 raise ConfigError(f"PoseBufferConfig.{name} must be <= window_us ({self.window_us}), got {getattr(self, name)}")
+        for name, gap in (("att_max_extrapolation_us", "att_max_gap_us"), ("pos_max_extrapolation_us", "pos_max_gap_us"),
+                          ("gimbal_max_extrapolation_us", "gimbal_max_gap_us"), ("gimbal_rate_window_us", "window_us")):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(f"PoseBufferConfig.{name} must be an integer >= 0, got {v!r}")
+            if v > getattr(self, gap):
+                raise ConfigError(f"PoseBufferConfig.{name} must be <= {gap} ({getattr(self, gap)}), got {v}")
+        for name in ("body_rate_sigma_rps", "gimbal_rate_sigma_rps", "angular_accel_sigma_rps2", "velocity_sigma_mps",
+                     "accel_sigma_mps2"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"PoseBufferConfig.{name} must be a number >= 0, got {v!r}")
 
 
 # --------------------------------------------------------------------------- streams
@@ -356,6 +475,8 @@ class _Stream:
 
 
 # --------------------------------------------------------------------------- pose buffer
+
+_AFTER = "after"  # bracket marker: the time is past the newest sample (extrapolate from it)
 
 
 class PoseBuffer:
@@ -471,15 +592,33 @@ class PoseBuffer:
             self.counter.count(f"{stream}_not_unit", str(exc))
             return None
 
-    def add_attitude(self, time_boot_us: int, q_ned_from_body) -> bool:
-        """Store ``q_ned_from_body`` (w, x, y, z) at ``time_boot_us``."""
+    def _rates(self, stream: str, omega_rps) -> np.ndarray:
+        """(3,) angular velocity, NaN when unknown or invalid (counted as ``<stream>_rate_invalid``)."""
+        if omega_rps is None:
+            return np.full(3, np.nan)
+        try:
+            w = np.array(omega_rps, dtype=float).reshape(3)
+        except (TypeError, ValueError):
+            self.counter.count(f"{stream}_rate_invalid", f"angular velocity {omega_rps!r} is not 3 numbers; dropped")
+            return np.full(3, np.nan)
+        if np.any(np.isinf(w)) or (np.any(np.isnan(w)) and not np.all(np.isnan(w))):
+            self.counter.count(f"{stream}_rate_invalid", f"angular velocity {w.tolist()}; dropped")
+            return np.full(3, np.nan)
+        return w
+
+    def add_attitude(self, time_boot_us: int, q_ned_from_body, omega_frd_rps=None) -> bool:
+        """Store ``q_ned_from_body`` (w, x, y, z) at ``time_boot_us`` and the body rates
+        ``omega_frd_rps`` (3,; body FRD, rad/s; None or NaN = unknown: no extrapolation)."""
         t = self._time("attitude", time_boot_us)
         if t is None:
             return False
         q = self._quat("attitude", q_ned_from_body)
-        if q is None or not self._admit(self._att, t):
+        if q is None:
             return False
-        self._att.append(t, q, self.config.window_us, self.config.max_samples)
+        w = self._rates("attitude", omega_frd_rps)
+        if not self._admit(self._att, t):
+            return False
+        self._att.append(t, np.concatenate([q, w]), self.config.window_us, self.config.max_samples)
         return True
 
     def add_position(self, time_boot_us: int, lat_deg: float, lon_deg: float, alt_m: float, v_ned_mps=None) -> bool:
@@ -567,8 +706,11 @@ class PoseBuffer:
         """Store the gimbal attitude relative to the pod mount."""
         return self.add_gimbal_status(time_boot_us, q_mount_from_gimbal, GimbalReference.MOUNT)
 
-    def add_gimbal_status(self, time_boot_us: int, q_ref_from_gimbal, reference: GimbalReference) -> bool:
-        """Store a gimbal attitude relative to ``reference`` (see :class:`GimbalReference`).
+    def add_gimbal_status(self, time_boot_us: int, q_ref_from_gimbal, reference: GimbalReference,
+                          omega_ref_rps=None) -> bool:
+        """Store a gimbal attitude relative to ``reference`` (see :class:`GimbalReference`) and its
+        angular velocity ``omega_ref_rps`` (3,; rad/s, a vector in the reference frame as #285
+        defines it; None or NaN = unknown: extrapolation fits a rate to recent samples).
 
         The stream holds one reference at a time; a change of reference restarts it.
         """
@@ -583,6 +725,7 @@ class PoseBuffer:
         q = self._quat("gimbal", q_ref_from_gimbal)
         if q is None:
             return False
+        w = self._rates("gimbal", omega_ref_rps)
         if ref != self._gim_ref:
             if self._gim.t_us:
                 self.counter.count("gimbal_reference_changed", f"{self._gim_ref} -> {ref}; gimbal stream restarted")
@@ -590,61 +733,139 @@ class PoseBuffer:
             self._gim_ref = ref
         if not self._admit(self._gim, t):
             return False
-        self._gim.append(t, q, self.config.window_us, self.config.max_samples)
+        self._gim.append(t, np.concatenate([q, w]), self.config.window_us, self.config.max_samples)
         return True
 
     # ------------------------------------------------------------------ queries
 
-    def lookup(self, time_boot_us: int) -> PoseLookup:
-        """Interpolated pose at ``time_boot_us`` or the reason there is none.  No side effects."""
+    def lookup(self, time_boot_us: int, extrapolate: bool = False) -> PoseLookup:
+        """Pose at ``time_boot_us`` or the reason there is none.  No side effects.
+
+        Interpolation only by default (a miss newer than the telemetry says ``retry``: a caller may
+        wait for the bracket); ``extrapolate=True`` extrapolates a stream whose newest sample is
+        older than the time by at most its horizon (module docstring), else names the miss
+        ``<stream>_extrapolation_limit``.
+        """
         if isinstance(time_boot_us, bool) or not isinstance(time_boot_us, (int, np.integer)) or time_boot_us < 0:
             return PoseLookup(None, "time_invalid")
         t = int(time_boot_us)
         if self._origin is None:
             return PoseLookup(None, "no_origin")
-        ba = self._att.bracket(t)
+        c = self.config
+        ba = self._bracket_or_extrapolate(self._att, t, extrapolate, c.att_max_extrapolation_us,
+                                          lambda: bool(np.all(np.isfinite(self._att.values[-1][4:]))))
         if ba[0] is None:
             return PoseLookup(None, ba[1], ba[2])
-        bp = self._pos.bracket(t)
+        bp = self._bracket_or_extrapolate(self._pos, t, extrapolate, c.pos_max_extrapolation_us,
+                                          lambda: bool(np.all(np.isfinite(self._pos.values[-1][3:]))))
         if bp[0] is None:
             return PoseLookup(None, bp[1], bp[2])
         bg = None
         if self.mount.gimballed:
-            bg = self._gim.bracket(t)
+            bg = self._bracket_or_extrapolate(self._gim, t, extrapolate, c.gimbal_max_extrapolation_us,
+                                              lambda: self._gimbal_rate() is not None)
             if bg[0] is None:
                 return PoseLookup(None, bg[1], bg[2])
 
+        att_x_us = pos_x_us = 0
         i0, i1, a = ba
-        q_nb = self._att.values[i0] if i0 == i1 else quat_slerp(self._att.values[i0], self._att.values[i1], a)
-        att_span = self._att.t_us[i1] - self._att.t_us[i0]
+        if i1 is _AFTER:
+            att_x_us = t - self._att.t_us[i0]
+            row = self._att.values[i0]
+            q_nb = quat_normalize(quat_multiply(row[:4], quat_from_rotvec(row[4:] * (att_x_us / US_PER_S))))
+            att_span = 0
+        else:
+            q_nb = self._att.values[i0][:4] if i0 == i1 else quat_slerp(self._att.values[i0][:4], self._att.values[i1][:4], a)
+            att_span = self._att.t_us[i1] - self._att.t_us[i0]
 
         j0, j1, s = bp
-        pos_span = self._pos.t_us[j1] - self._pos.t_us[j0]
-        p_ned, v_ned = self._interp_position(j0, j1, s, pos_span / US_PER_S)
+        if j1 is _AFTER:
+            pos_x_us = t - self._pos.t_us[j0]
+            row = self._pos.values[j0]
+            p_ned, v_ned = row[:3] + row[3:] * (pos_x_us / US_PER_S), row[3:].copy()
+            pos_span = 0
+        else:
+            pos_span = self._pos.t_us[j1] - self._pos.t_us[j0]
+            p_ned, v_ned = self._interp_position(j0, j1, s, pos_span / US_PER_S)
 
         q_mg = None
         gim_span = None
+        gim_x_us = None
+        sigma_rad = extrapolation_sigma(att_x_us / US_PER_S, c.body_rate_sigma_rps, c.angular_accel_sigma_rps2)
         if bg is not None:
             k0, k1, g = bg
-            gim_span = self._gim.t_us[k1] - self._gim.t_us[k0]
-            q_ref = self._gim.values[k0] if k0 == k1 else quat_slerp(self._gim.values[k0], self._gim.values[k1], g)
+            if k1 is _AFTER:
+                gim_x_us = t - self._gim.t_us[k0]
+                w_ref = self._gimbal_rate()
+                q_ref = quat_normalize(quat_multiply(quat_from_rotvec(w_ref * (gim_x_us / US_PER_S)), self._gim.values[k0][:4]))
+                gim_span = 0
+                sigma_rad = math.hypot(sigma_rad, extrapolation_sigma(gim_x_us / US_PER_S, c.gimbal_rate_sigma_rps,
+                                                                      c.angular_accel_sigma_rps2))
+            else:
+                gim_x_us = 0
+                gim_span = self._gim.t_us[k1] - self._gim.t_us[k0]
+                q_ref = self._gim.values[k0][:4] if k0 == k1 else quat_slerp(self._gim.values[k0][:4], self._gim.values[k1][:4], g)
             q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
 
         p_cam, q_nc = camera_pose_ned(p_ned, q_nb, self.mount, q_mg)
         body = PoseSample(t, p_ned, v_ned, q_nb)
-        pose = PoseAt(body, p_cam, q_nc, q_mg, self._origin, att_span, pos_span, gim_span, self.reboots)
+        sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
+        pose = PoseAt(body, p_cam, q_nc, q_mg, self._origin, att_span, pos_span, gim_span, self.reboots,
+                      att_x_us, pos_x_us, gim_x_us, sigma_rad, sigma_m)
         return PoseLookup(pose)
 
-    def pose_at(self, time_boot_us: int) -> PoseAt | None:
-        """:meth:`lookup`, counting a miss as ``pose_<reason>`` and keeping it in ``last_miss_reason``.
+    def _bracket_or_extrapolate(self, stream: _Stream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]):
+        """``stream.bracket(t)``; past the newest sample with ``extrapolate``: ``(i_last, _AFTER, 0.0)``
+        within ``horizon_us`` when ``can()``, else the miss (``<name>_extrapolation_limit`` beyond it)."""
+        b = stream.bracket(t)
+        if b[0] is not None or not extrapolate or b[1] != f"{stream.name}_not_yet":
+            return b
+        if not can():
+            return b
+        if t - stream.t_us[-1] > horizon_us:
+            return None, f"{stream.name}_extrapolation_limit", True
+        return len(stream.t_us) - 1, _AFTER, 0.0
+
+    def _gimbal_rate(self) -> np.ndarray | None:
+        """The gimbal's angular velocity (rad/s, reference frame) for extrapolation: the newest
+        sample's reported one, else the least-squares rate through the samples of the last
+        ``gimbal_rate_window_us`` anchored at the newest (``phi_i = Log(q_i (x) q_last^-1) = w tau_i``,
+        ``w = sum tau_i phi_i / sum tau_i^2``); None with fewer than two samples there."""
+        g = self._gim
+        if not g.t_us:
+            return None
+        last = g.values[-1]
+        if np.all(np.isfinite(last[4:])):
+            return last[4:]
+        t_last = g.t_us[-1]
+        k = bisect.bisect_left(g.t_us, t_last - self.config.gimbal_rate_window_us)
+        if len(g.t_us) - k < 2:
+            return None
+        q_inv = quat_conjugate(last[:4])
+        num = np.zeros(3)
+        den = 0.0
+        for i in range(k, len(g.t_us) - 1):
+            tau = (g.t_us[i] - t_last) / US_PER_S
+            dq = quat_multiply(g.values[i][:4], q_inv)
+            num += tau * rotvec_from_quat(dq if dq[0] >= 0 else -dq)
+            den += tau * tau
+        return num / den if den > 0 else None
+
+    def pose_at(self, time_boot_us: int, extrapolate: bool = True) -> PoseAt | None:
+        """:meth:`lookup` (extrapolating by default), counting a miss as ``pose_<reason>`` (kept in
+        ``last_miss_reason``) and an extrapolated pose as ``pose_extrapolated``.
 
         A service that waits for late telemetry should call :meth:`lookup` while ``retry`` is True
         and this only once it gives up, so that each frame is counted once.
         """
-        res = self.lookup(time_boot_us)
+        res = self.lookup(time_boot_us, extrapolate=extrapolate)
         self.last_miss_reason = res.reason
         if res.pose is None:
             self.counter.count(f"pose_{res.reason}", f"no pose at time_boot_us={time_boot_us!r}")
+        elif res.pose.extrapolated:
+            p = res.pose
+            self.counter.count("pose_extrapolated", f"attitude {p.att_extrapolated_us} us, position {p.pos_extrapolated_us} us, "
+                               f"gimbal {p.gimbal_extrapolated_us} us past the newest sample", level=logging.DEBUG)
         return res.pose
 
     def _interp_position(self, j0: int, j1: int, s: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -10,8 +10,9 @@ Threads (nothing else runs concurrently):
   :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``).
   It never blocks.
 * **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,
-  imaging, pose at capture time -- waiting up to ``pose.wait_ms`` for telemetry that lags, on a
-  condition signalled by every new pose sample -- and the estimator), publishes the track JSON on
+  imaging, pose at capture time -- waiting up to ``pose.wait_ms`` (a few ms) for telemetry that
+  brackets it, on a condition signalled by every new pose sample, then extrapolating the newest
+  samples over a bounded horizon (:mod:`onboard.pose`) -- and the estimator), publishes the track JSON on
   ``irtrack/<vehicle>/track`` and hands the newest :class:`Track` to the main thread.  It touches
   the liveness file (:func:`onboard.health.mark_alive`) at least every ``output.health_interval_s``,
   busy or idle.
@@ -80,9 +81,9 @@ class LockedCounter(RejectCounter):
         super().__init__(*args, **kwargs)
         self._lock = threading.Lock()
 
-    def count(self, reason: str, detail: str = "", n: int = 1) -> None:
+    def count(self, reason: str, detail: str = "", n: int = 1, **kw) -> None:
         with self._lock:
-            super().count(reason, detail, n)
+            super().count(reason, detail, n, **kw)
 
     @property
     def counts(self) -> dict[str, int]:
@@ -117,18 +118,19 @@ class SharedPoseBuffer:
         locked.__doc__ = fn.__doc__
         return locked
 
-    def lookup(self, time_boot_us: int):
+    def lookup(self, time_boot_us: int, extrapolate: bool = False):
         with self._cond:
-            return self._buffer.lookup(time_boot_us)
+            return self._buffer.lookup(time_boot_us, extrapolate)
 
-    def pose_at(self, time_boot_us: int):
+    def pose_at(self, time_boot_us: int, extrapolate: bool = True):
         with self._cond:
-            return self._buffer.pose_at(time_boot_us)
+            return self._buffer.pose_at(time_boot_us, extrapolate)
 
     def wait_for(self, time_boot_us: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> bool:
         """Wait until a lookup at ``time_boot_us`` is decided by the data (the telemetry reaches that
         time, or a miss that waiting cannot fix) or ``timeout_s`` passed.  True when the telemetry
-        covers the time (``pose_at`` then answers; it may still be a gap), False otherwise."""
+        covers the time (``pose_at`` then answers; it may still be a gap), False otherwise (then
+        ``pose_at`` extrapolates within its horizon).  Never longer than ``timeout_s``."""
         deadline = clock() + max(timeout_s, 0.0)
         buf = self._buffer
         cheap = not buf.mount.gimballed  # newest_time_boot_us covers attitude and position only
@@ -528,7 +530,7 @@ class OnboardService:
         self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock,
                                      logger=logging.getLogger("onboard.rejects"))
         self.mount = config.camera.camera_mount()
-        buffer = PoseBuffer(mount=self.mount, config=config.pose.buffer_config(),
+        buffer = PoseBuffer(mount=self.mount, config=config.pose_buffer_config(),
                             origin=config.pose.geodetic_origin(), counter=self.counter)
         self.pose = SharedPoseBuffer(buffer)
         self.queue = FrameQueue(config.input.queue_length)

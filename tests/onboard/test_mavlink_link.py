@@ -17,7 +17,14 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from onboard.errors import ConfigError, InputError  # noqa: E402
-from onboard.frames import CameraMount, GeodeticOrigin, ned_from_geodetic, quat_from_euler, quat_rotate  # noqa: E402
+from onboard.frames import (  # noqa: E402
+    CameraMount,
+    GeodeticOrigin,
+    euler_from_quat,
+    ned_from_geodetic,
+    quat_from_euler,
+    quat_rotate,
+)
 from onboard.mavlink_link import (  # noqa: E402
     LINK_CONNECTED,
     LINK_LOST,
@@ -68,8 +75,8 @@ class FakeAutopilot:
     def heartbeat(self, mav_type=mav.MAV_TYPE_FIXED_WING, autopilot=mav.MAV_AUTOPILOT_PX4) -> None:
         self.conn.mav.heartbeat_send(mav_type, autopilot, 0, 0, mav.MAV_STATE_ACTIVE)
 
-    def attitude(self, t_ms: int, q) -> None:
-        self.conn.mav.attitude_quaternion_send(t_ms, *[float(c) for c in q], 0.0, 0.0, 0.0)
+    def attitude(self, t_ms: int, q, omega_frd_rps=(0.0, 0.0, 0.0)) -> None:
+        self.conn.mav.attitude_quaternion_send(t_ms, *[float(c) for c in q], *[float(c) for c in omega_frd_rps])
 
     def position(self, t_ms: int, lat_deg, lon_deg, alt_m, v_ned_mps=(0.0, 0.0, 0.0), lat_raw=None, lon_raw=None) -> None:
         lat = int(round(lat_deg * 1e7)) if lat_raw is None else lat_raw
@@ -310,7 +317,7 @@ def test_gimbal_status_reaches_the_pose_buffer():
     r = Rig(gimballed=True)
     try:
         r.connect()
-        assert (285, 100_000) in [(mid, us) for mid, us, _ in r.ap.commands]
+        assert (285, 20_000) in [(mid, us) for mid, us, _ in r.ap.commands]  # 50 Hz: a sample within 20 ms of a frame
         q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
         for k in range(3):
             r.ap.conn.mav.gimbal_device_attitude_status_send(
@@ -331,6 +338,34 @@ def test_gimbal_status_reaches_the_pose_buffer():
         # vehicle frame: 40 deg down, along the nose (east)
         axis = quat_rotate(pose.q_ned_from_cam, [0.0, 0.0, 1.0])
         np.testing.assert_allclose(axis, [0.0, math.cos(math.radians(40)), math.sin(math.radians(40))], atol=1e-6)
+    finally:
+        r.close()
+
+
+def test_body_rates_and_gimbal_rates_reach_the_pose_buffer_for_extrapolation():
+    """#31 rollspeed/pitchspeed/yawspeed are body FRD rad/s; #285 angular_velocity is in q's frame."""
+    r = Rig(gimballed=True)
+    try:
+        r.connect()
+        w_frd = np.array([0.0, 0.0, 0.5])  # yawing right at 0.5 rad/s
+        w_earth = np.array([0.0, 0.2, 0.0])  # gimbal pitching up at 0.2 rad/s about east
+        q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
+        r.ap.attitude(1000, [1, 0, 0, 0], w_frd)
+        r.ap.conn.mav.gimbal_device_attitude_status_send(
+            0, 0, 1000, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, [float(c) for c in q_g],
+            *[float(c) for c in w_earth], 0, math.nan, math.nan, 0,
+        )
+        assert r.drive(lambda: r.pose.sizes()["attitude"] == 1 and r.pose.sizes()["gimbal"] == 1)
+        r.pose.add_position_ned(1_000_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+        pose = r.pose.pose_at(1_020_000)  # 20 ms past every sample
+        assert pose is not None and pose.mode == "extrapolated", r.pose.last_miss_reason
+        assert pose.att_extrapolated_us == 20_000 and pose.gimbal_extrapolated_us == 20_000
+        yaw = float(euler_from_quat(pose.body.q_ned_from_body)[2])
+        assert yaw == pytest.approx(0.5 * 0.020, abs=1e-6)  # float32 on the wire
+        # earth-frame gimbal: the optical axis (gimbal x) pitched up by 0.2 rad/s x 20 ms
+        axis = quat_rotate(pose.q_ned_from_cam, [0.0, 0.0, 1.0])
+        el = math.asin(-axis[2])
+        assert el == pytest.approx(math.radians(-40.0) + 0.2 * 0.020, abs=1e-6)
     finally:
         r.close()
 
