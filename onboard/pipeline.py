@@ -23,8 +23,19 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
 4. Estimator: reset on a new track id (a new target association), on a lost track and on a reboot;
    ``add`` only when the tracker's ``measurement_valid`` and a pose exist; otherwise ``predict``
    (coasting, or no pose).
-5. Track: image fields always; position fields (WGS84 through :func:`onboard.frames.geodetic_from_ned`)
-   only when the estimate is finite and observable (or ``output.unobservable_positions``).
+5. Track: image fields always; the line of sight in local NED with its 1-sigma
+   (:func:`onboard.track.line_of_sight_ned`, from ``estimator.pixel_sigma_px`` and the attitude white
+   and bias sigmas) whenever there is a target centre and a pose, with or without an estimate;
+   position fields (WGS84 through :func:`onboard.frames.geodetic_from_ned`) whenever the estimate is
+   finite and an origin is known, ``observable`` grading them (``output.unobservable_positions:
+   false`` publishes them only when observable, as ``irtrack.track/1`` did).
+6. Residual consistency: ``residual_rms_norm`` is the estimator's own figure when it gives one (RMS
+   of the standardised residuals at its last model selection), else the RMS over the last
+   ``RESIDUAL_WINDOW_S`` of frames of ``|uv_measured - uv_projected| / s``, the estimate projected
+   through the frame's pose, per image axis, with ``s^2 = s_px^2 + f^2 (s_w^2 + s_b^2) +
+   f^2 s_perp^2 / range^2`` (``s_perp^2`` the estimate's position variance across the line of
+   sight, per axis).  About 1 or below when camera and noise model match; a mount or intrinsics
+   mismatch drives it far above (:mod:`onboard.watchdog` warns).
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
 in the shared :class:`~onboard.pose.RejectCounter`: ``frame_short``, ``frame_magic``,
@@ -37,6 +48,7 @@ are counted as ``estimator_input`` / ``estimator_error`` and the frame gets no 3
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import time
@@ -47,10 +59,10 @@ import numpy as np
 
 from onboard.config import OnboardConfig
 from onboard.errors import InputError
-from onboard.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned
+from onboard.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
 from onboard.irframe import IrFrame, IrFrameError, decode_irframe
 from onboard.pose import PoseAt, RejectCounter
-from onboard.track import RollingStats, Track
+from onboard.track import LineOfSight, RollingStats, Track, line_of_sight_ned
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 
@@ -58,6 +70,7 @@ log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
 SEQ_MOD = 2**32
+RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
 
 
 class FrameRejected(InputError):
@@ -168,6 +181,10 @@ class FramePipeline:
         self._est_track_id: int | None = None
         self._est_epoch: int | None = None
         self._est_has_data = False
+        ec = config.estimator
+        self._pixel_sigma_px = float(ec.pixel_sigma_px)
+        self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
+        self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
 
     # ------------------------------------------------------------------ public
 
@@ -287,6 +304,7 @@ class FramePipeline:
             log.info("estimator reset: %s", why)
         self._est_has_data = False
         self._est_track_id = None
+        self._residuals.clear()
 
     def _estimate(self, upd, pose: PoseAt | None, t_us: int):
         if self.estimator is None:
@@ -327,6 +345,49 @@ class FramePipeline:
             return pose.origin
         return getattr(self.pose_source, "origin", None)
 
+    def _line_of_sight(self, upd, pose: PoseAt | None) -> LineOfSight | None:
+        if pose is None or upd.u_px is None:
+            return None
+        try:
+            return line_of_sight_ned((upd.u_px, upd.v_px), self.intrinsics, pose.q_ned_from_cam, pose.p_cam_ned_m,
+                                     self._pixel_sigma_px, self._attitude_sigma_rad)
+        except (InputError, ValueError, FloatingPointError) as exc:
+            self.counter.count("los_invalid", str(exc))
+            return None
+
+    def _residual_rms_norm(self, upd, pose: PoseAt | None, est, t_us: int) -> float | None:
+        """The estimator's ``residual_rms_norm`` if it has one, else ours (module docstring, step 6)."""
+        if est is None:
+            return None
+        theirs = getattr(est, "residual_rms_norm", math.nan)
+        if theirs is not None and math.isfinite(theirs):
+            return float(theirs)
+        if upd.measurement_valid and pose is not None and _finite_estimate(est):
+            z2 = self._standardised_residual_sq(upd, pose, est)
+            if z2 is not None:
+                self._residuals.append((t_us, z2))
+        while self._residuals and self._residuals[0][0] < t_us - RESIDUAL_WINDOW_S * US_PER_S:
+            self._residuals.popleft()
+        if not self._residuals:
+            return None
+        return math.sqrt(sum(z for _, z in self._residuals) / (2.0 * len(self._residuals)))
+
+    def _standardised_residual_sq(self, upd, pose: PoseAt, est) -> float | None:
+        K = self.intrinsics
+        R = rotmat_from_quat(pose.q_ned_from_cam)
+        d_ned = np.asarray(est.p_ned_m, dtype=float) - pose.p_cam_ned_m
+        rng = float(np.linalg.norm(d_ned))
+        uv = K.project(R.T @ d_ned)
+        if rng <= 0 or not np.all(np.isfinite(uv)):
+            return None  # the estimate behind the camera: no reprojection
+        los = d_ned / rng
+        C = np.asarray(est.cov_p_ned_m2, dtype=float)
+        perp_var_m2 = max(float(np.trace(C) - los @ C @ los), 0.0) / 2.0
+        f2 = K.fx_px * K.fy_px
+        s2 = self._pixel_sigma_px**2 + f2 * (self._attitude_sigma_rad**2 + perp_var_m2 / rng**2)
+        du, dv = upd.u_px - uv[0], upd.v_px - uv[1]
+        return float((du * du + dv * dv) / s2)
+
     def _track(self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est) -> Track:
         origin = self._origin(pose)
         base = dict(
@@ -340,11 +401,13 @@ class FramePipeline:
             v_px=upd.v_px,
             bbox=upd.bbox,
             pose_valid=pose is not None,
+            los=self._line_of_sight(upd, pose),
             origin=origin,
         )
         if est is None:
             return Track(**base)
-        base.update(observable=bool(est.observable), window_frames=int(est.window_frames))
+        base.update(observable=bool(est.observable), window_frames=int(est.window_frames),
+                    residual_rms_norm=self._residual_rms_norm(upd, pose, est, frame.time_boot_us))
         show = est.observable or self.config.output.unobservable_positions
         if not (show and origin is not None and _finite_estimate(est)):
             return Track(**base)

@@ -1,16 +1,16 @@
-"""The ``Track`` noun, its wire schema ``irtrack.track/1``, the status JSON and the MAVLink mapping.
+"""The ``Track`` noun, its wire schema ``irtrack.track/2``, the status JSON and the MAVLink mapping.
 
 Pure: no zenoh, no pymavlink, no clocks.  The pipeline builds one :class:`Track` per processed frame;
 the service serialises it with :func:`track_to_json` onto ``irtrack/<vehicle>/track`` and maps it
 onto CAMERA_TRACKING_IMAGE_STATUS (#275) / CAMERA_TRACKING_GEO_STATUS (#276) with
 :func:`image_status_fields` / :func:`geo_status_fields`.
 
-Schema ``irtrack.track/1`` (one UTF-8 JSON object per processed frame)
+Schema ``irtrack.track/2`` (one UTF-8 JSON object per processed frame)
 ---------------------------------------------------------------------
 ==================  ===========================  ===================================================
 key                 type                         meaning
 ==================  ===========================  ===================================================
-schema              "irtrack.track/1"
+schema              "irtrack.track/2"
 vehicle             string                       vehicle name (the key's ``<vehicle>``)
 seq                 integer                      the IR frame's sequence number
 time_boot_us        integer                      the frame's capture time, us on the autopilot boot clock
@@ -21,6 +21,13 @@ u_px, v_px          number or null               target centre, pixels (u right,
                                                  top-left corner of the top-left pixel; onboard.frames)
 bbox                [x, y, w, h] or null         tracking box, pixels
 pose_valid          bool                         the camera pose at ``time_boot_us`` was known
+los_ned             [n, e, d] or null            (new in /2) unit line of sight camera -> target, local NED
+los_az_deg          number or null               (new in /2) its azimuth, degrees from north towards east,
+                                                 (-180, 180]
+los_el_deg          number or null               (new in /2) its elevation, degrees, positive up, [-90, 90]
+los_sigma_az_deg    number or null               (new in /2) 1-sigma of ``los_az_deg`` (formula below)
+los_sigma_el_deg    number or null               (new in /2) 1-sigma of ``los_el_deg``
+camera_ned_m        [n, e, d] or null            (new in /2) the line of sight's origin: the camera, local NED
 lat_deg, lon_deg    number or null               target WGS84 latitude / longitude, degrees
 alt_m               number or null               target altitude, metres AMSL (treated as WGS84, see frames)
 ned_m               [n, e, d] or null            target position in the local NED frame, metres
@@ -32,22 +39,48 @@ sigma_vel_ned_mps   [n, e, d] or null            1-sigma velocity uncertainty pe
 cov_ned_m2          3 x 3 list or null           position covariance, m^2
 range_m             number or null               camera-to-target distance, metres
 range_sigma_ratio   number or null               posterior range sigma / range (observability measure)
-observable          bool                         the window's geometry makes range observable
+observable          bool                         quality verdict on the 3-D position: the window's geometry
+                                                 makes range observable and the model fits (changed in /2:
+                                                 no longer a condition for the position to be present)
+residual_rms_norm   number or null               (new in /2) RMS of the standardised residuals at the
+                                                 estimator's last model selection (~1 when the camera model
+                                                 and noise model match; null when unknown)
 window_frames       integer >= 0                 observations in the estimator's window
 model               string or null               the estimator's motion model for this estimate
 ==================  ===========================  ===================================================
 
-Position fields (``lat_deg .. model`` except ``observable``/``window_frames``) are null while no
-3-D estimate is valid: no estimate yet, the track lost, or the estimate unobservable (unless the
-daemon's ``output.unobservable_positions`` is true, in which case ``observable`` says so).
-Non-finite numbers are never written (JSON has no NaN): they become null.
+What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
+"position present" changed: position fields (``lat_deg .. model`` except ``observable``/
+``window_frames``) are set whenever the estimator has a finite solution and a local origin is
+known, observable or not; ``observable`` grades that position (trust it when true; when false it is
+the best estimate with its honest covariance, typically with a large range sigma).  They are null
+with no estimate (none yet, the track lost, the estimator off).  The daemon's
+``output.unobservable_positions: false`` restores the /1 behaviour (positions only when observable).
+The line-of-sight keys (``los_*``, ``camera_ned_m``) are set on every frame with a target centre
+(``u_px``) and a pose, with or without a 3-D estimate: they need no range.
+Non-finite numbers are never written (JSON has no NaN): they become null.  :func:`track_from_json`
+reads /1 and /2.
+
+Line of sight and its 1-sigma (:func:`line_of_sight_ned`): the ideal normalised image point
+``(x, y)`` of ``(u_px, v_px)`` (distortion removed) gives ``l = R_ned_from_cam (x, y, 1) / |(x, y, 1)|``;
+its covariance is ``C_l = s_px^2 J J^T + (s_w^2 + s_b^2) (I - l l^T)``, with ``J = dl/d(u, v)`` (pinhole:
+``R (I - b b^T) / |(x, y, 1)| [[1/fx, 0], [0, 1/fy], [0, 0]]``, ``b`` the unit camera bearing),
+``s_px`` the configured ``estimator.pixel_sigma_px``, ``s_w`` / ``s_b`` the attitude white and bias
+sigmas (rad) of the estimator's noise model (an attitude error ``phi`` in NED moves ``l`` by
+``phi x l``; see frames, small-angle errors).  Azimuth ``az = atan2(l_e, l_n)`` and elevation
+``el = atan2(-l_d, hypot(l_n, l_e))`` get first-order sigmas ``sqrt(g C_l g^T)`` with
+``g_az = (-l_e, l_n, 0) / h^2`` and ``g_el = (l_d l_n / h, l_d l_e / h, -h)``, ``h = hypot(l_n, l_e)``.
+Near the optical axis this is ``s_el = sqrt((s_px / f)^2 + s_w^2 + s_b^2)`` and ``s_az = s_el / cos(el)``
+(capped at 180 deg).  Camera position noise does not enter a direction.
 
 Schema ``irtrack.status/1`` is built by :func:`build_status` (see its docstring).
 
 MAVLink accuracies (#276) are 1-sigma, root-sum-square over axes as PX4 reports ``eph``/``evh``:
 ``h_acc = sqrt(C_nn + C_ee)``, ``v_acc = sqrt(C_dd)``, ``vel_acc = sqrt(trace C_v)``; the heading
 ``hdg = atan2(v_e, v_n)`` with ``hdg_acc = sqrt(J C_v,ne J^T)``, ``J = (-v_e, v_n) / |v_h|^2``
-(first-order propagation), NaN when the horizontal speed is below twice its own sigma.
+(first-order propagation), NaN when the horizontal speed is below twice its own sigma.  ``dist`` is
+the estimate's camera-to-target range.  #276 carries only observable positions unless asked
+(:func:`geo_status_fields` ``observable_only``): a ground station cannot read a quality flag.
 """
 
 from __future__ import annotations
@@ -62,12 +95,15 @@ from typing import Any, Mapping
 import numpy as np
 
 from onboard.errors import InputError
-from onboard.frames import GeodeticOrigin
+from onboard.frames import GeodeticOrigin, PinholeIntrinsics, rotmat_from_quat
 
 __all__ = [
     "TRACK_SCHEMA",
+    "READABLE_TRACK_SCHEMAS",
     "STATUS_SCHEMA",
     "TRACK_STATES",
+    "LineOfSight",
+    "line_of_sight_ned",
     "Track",
     "track_to_json",
     "track_to_bytes",
@@ -78,7 +114,8 @@ __all__ = [
     "build_status",
 ]
 
-TRACK_SCHEMA = "irtrack.track/1"
+TRACK_SCHEMA = "irtrack.track/2"
+READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same keys minus the /2 additions
 STATUS_SCHEMA = "irtrack.status/1"
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
 
@@ -124,6 +161,86 @@ def _cov(c, what: str) -> np.ndarray:
     return a
 
 
+SIGMA_AZ_CAP_DEG = 180.0  # an azimuth near the zenith/nadir is unknown, not infinitely uncertain
+_UNIT_TOL = 1e-6
+
+
+@dataclass(frozen=True)
+class LineOfSight:
+    """The target's direction from the camera in local NED at one frame; needs no range.
+
+    ``u_ned``: unit vector (3,) camera -> target.  ``azimuth_deg``: from north towards east,
+    (-180, 180]; ``elevation_deg``: positive up, [-90, 90] (conventions in :mod:`onboard.frames`).
+    ``sigma_azimuth_deg`` / ``sigma_elevation_deg``: 1-sigma (module docstring).  ``p_cam_ned_m``:
+    the camera's position (3,), the ray's origin.
+    """
+
+    u_ned: tuple[float, float, float]
+    azimuth_deg: float
+    elevation_deg: float
+    sigma_azimuth_deg: float
+    sigma_elevation_deg: float
+    p_cam_ned_m: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        u = _vec(self.u_ned, 3, "los.u_ned")
+        if abs(math.sqrt(sum(c * c for c in u)) - 1.0) > _UNIT_TOL:
+            raise InputError(f"LineOfSight.u_ned must be a unit vector, got {u}")
+        object.__setattr__(self, "u_ned", u)
+        object.__setattr__(self, "p_cam_ned_m", _vec(self.p_cam_ned_m, 3, "los.p_cam_ned_m"))
+        az = _finite(self.azimuth_deg, "los.azimuth_deg")
+        el = _finite(self.elevation_deg, "los.elevation_deg")
+        if not -180.0 <= az <= 180.0 or not -90.0 <= el <= 90.0:
+            raise InputError(f"LineOfSight azimuth/elevation out of range: {az}, {el} deg")
+        object.__setattr__(self, "azimuth_deg", az)
+        object.__setattr__(self, "elevation_deg", el)
+        for name in ("sigma_azimuth_deg", "sigma_elevation_deg"):
+            v = _finite(getattr(self, name), f"los.{name}")
+            if v < 0:
+                raise InputError(f"LineOfSight.{name} must be >= 0, got {v}")
+            object.__setattr__(self, name, v)
+
+
+def line_of_sight_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_cam_ned_m,
+                      pixel_sigma_px: float, attitude_sigma_rad: float) -> LineOfSight:
+    """The line of sight of pixel ``uv_px`` seen by a camera at ``(p_cam_ned_m, q_ned_from_cam)``.
+
+    ``attitude_sigma_rad``: the total 1-sigma attitude error per axis, ``sqrt(s_w^2 + s_b^2)``.
+    First-order covariance propagation as in the module docstring; raises :class:`InputError` on
+    non-finite input.
+    """
+    uv = np.asarray(uv_px, dtype=float).reshape(2)
+    if not np.all(np.isfinite(uv)):
+        raise InputError(f"line_of_sight_ned: pixel must be finite, got {uv.tolist()}")
+    R = rotmat_from_quat(np.asarray(q_ned_from_cam, dtype=float))
+    xy = np.asarray(intrinsics.normalized_from_pixel(uv), dtype=float)
+    if intrinsics.has_distortion:
+        step = 0.5  # px, central differences of the undistortion
+        dxy = np.stack([(np.asarray(intrinsics.normalized_from_pixel(uv + d)) - np.asarray(intrinsics.normalized_from_pixel(uv - d)))
+                        / (2 * step) for d in (np.array([step, 0.0]), np.array([0.0, step]))], axis=1)
+    else:
+        dxy = np.diag([1.0 / intrinsics.fx_px, 1.0 / intrinsics.fy_px])
+    b = np.array([xy[0], xy[1], 1.0])
+    nb = float(np.linalg.norm(b))
+    b_unit = b / nb
+    l = R @ b_unit
+    J = R @ ((np.eye(3) - np.outer(b_unit, b_unit)) / nb)[:, :2] @ dxy  # dl/d(u, v), 3 x 2
+    C = pixel_sigma_px**2 * (J @ J.T) + attitude_sigma_rad**2 * (np.eye(3) - np.outer(l, l))
+    n, e, d = (float(c) for c in l)
+    h = math.hypot(n, e)
+    az = math.degrees(math.atan2(e, n)) if h > 0 else 0.0
+    el = math.degrees(math.atan2(-d, h))
+    g_el = np.array([d * n / h, d * e / h, -h]) if h > 0 else np.array([0.0, 0.0, -1.0])
+    s_el = math.degrees(math.sqrt(max(float(g_el @ C @ g_el), 0.0)))
+    if h > 1e-9:
+        g_az = np.array([-e, n, 0.0]) / h**2
+        s_az = min(math.degrees(math.sqrt(max(float(g_az @ C @ g_az), 0.0))), SIGMA_AZ_CAP_DEG)
+    else:
+        s_az = SIGMA_AZ_CAP_DEG
+    return LineOfSight(u_ned=l, azimuth_deg=az, elevation_deg=el, sigma_azimuth_deg=s_az,
+                       sigma_elevation_deg=s_el, p_cam_ned_m=np.asarray(p_cam_ned_m, dtype=float))
+
+
 @dataclass(frozen=True, eq=False)
 class Track:
     """The daemon's answer for one frame (see the module docstring for the meaning of each field).
@@ -131,6 +248,7 @@ class Track:
     Vectors are tuples of floats; covariances read-only (3, 3) arrays.  The position group
     (``lat_deg, lon_deg, alt_m, p_ned_m, v_ned_mps, cov_p_ned_m2, range_m``) is either all set or
     all None; ``cov_v_ned_m2ps2``, ``range_sigma_ratio`` and ``model`` are optional within it.
+    ``los`` (the line of sight) needs ``pose_valid`` and ``u_px``; it is independent of the position.
     """
 
     vehicle: str
@@ -143,6 +261,7 @@ class Track:
     v_px: float | None = None
     bbox: tuple[float, float, float, float] | None = None
     pose_valid: bool = False
+    los: LineOfSight | None = None
     origin: GeodeticOrigin | None = None
     lat_deg: float | None = None
     lon_deg: float | None = None
@@ -154,6 +273,7 @@ class Track:
     range_m: float | None = None
     range_sigma_ratio: float | None = None
     observable: bool = False
+    residual_rms_norm: float | None = None
     window_frames: int = 0
     model: str | None = None
 
@@ -188,6 +308,16 @@ class Track:
             if bb[2] < 0 or bb[3] < 0:
                 raise InputError(f"Track.bbox width and height must be >= 0, got {bb}")
             object.__setattr__(self, "bbox", bb)
+        if self.los is not None:
+            if not isinstance(self.los, LineOfSight):
+                raise InputError(f"Track.los must be a LineOfSight or None, got {type(self.los).__name__}")
+            if not self.pose_valid or self.u_px is None:
+                raise InputError("Track.los needs a pose (pose_valid) and a target centre (u_px, v_px)")
+        rr = self.residual_rms_norm
+        if rr is not None:
+            if isinstance(rr, bool) or not isinstance(rr, (int, float, np.integer, np.floating)) or math.isnan(rr) or rr < 0:
+                raise InputError(f"Track.residual_rms_norm must be None or >= 0, got {rr!r}")
+            object.__setattr__(self, "residual_rms_norm", float(rr))
         if self.origin is not None and not isinstance(self.origin, GeodeticOrigin):
             raise InputError(f"Track.origin must be a GeodeticOrigin or None, got {type(self.origin).__name__}")
         have = [getattr(self, n) is not None for n in _POSITION_FIELDS]
@@ -251,8 +381,9 @@ def _list(v) -> list | None:
 
 
 def track_to_json(track: Track) -> dict[str, Any]:
-    """The ``irtrack.track/1`` object of ``track`` (a dict ready for ``json.dumps``)."""
+    """The ``irtrack.track/2`` object of ``track`` (a dict ready for ``json.dumps``)."""
     o = track.origin
+    los = track.los
     return {
         "schema": TRACK_SCHEMA,
         "vehicle": track.vehicle,
@@ -265,6 +396,12 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "v_px": _num(track.v_px),
         "bbox": _list(track.bbox),
         "pose_valid": track.pose_valid,
+        "los_ned": None if los is None else _list(los.u_ned),
+        "los_az_deg": None if los is None else _num(los.azimuth_deg),
+        "los_el_deg": None if los is None else _num(los.elevation_deg),
+        "los_sigma_az_deg": None if los is None else _num(los.sigma_azimuth_deg),
+        "los_sigma_el_deg": None if los is None else _num(los.sigma_elevation_deg),
+        "camera_ned_m": None if los is None else _list(los.p_cam_ned_m),
         "lat_deg": _num(track.lat_deg),
         "lon_deg": _num(track.lon_deg),
         "alt_m": _num(track.alt_m),
@@ -277,6 +414,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "range_m": _num(track.range_m),
         "range_sigma_ratio": _num(track.range_sigma_ratio),
         "observable": track.observable,
+        "residual_rms_norm": _num(track.residual_rms_norm),
         "window_frames": track.window_frames,
         "model": track.model,
     }
@@ -288,10 +426,11 @@ def track_to_bytes(track: Track) -> bytes:
 
 
 def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
-    """Parse and validate an ``irtrack.track/1`` message (dict, str or bytes) back into a :class:`Track`.
+    """Parse and validate an ``irtrack.track/2`` (or ``/1``) message (dict, str or bytes) into a :class:`Track`.
 
     Raises :class:`InputError` naming the offending key.  Extra keys are ignored (forward
-    compatibility within version 1); ``sigma_*`` are derived and not read back.
+    compatibility within a version); ``sigma_*`` are derived and not read back, except the line of
+    sight's, which are read as sent.  A /1 message has no line of sight.
     """
     if isinstance(obj, (bytes, bytearray, str)):
         try:
@@ -300,8 +439,9 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
             raise InputError(f"track message is not JSON: {exc}") from None
     if not isinstance(obj, Mapping):
         raise InputError(f"track message must be a JSON object, got {type(obj).__name__}")
-    if obj.get("schema") != TRACK_SCHEMA:
-        raise InputError(f"track message schema: expected {TRACK_SCHEMA!r}, got {obj.get('schema')!r}")
+    if obj.get("schema") not in READABLE_TRACK_SCHEMAS:
+        raise InputError(f"track message schema: expected one of {', '.join(READABLE_TRACK_SCHEMAS)}, "
+                         f"got {obj.get('schema')!r}")
     required = ("vehicle", "seq", "time_boot_us", "state", "observable", "window_frames")
     for key in required:
         if key not in obj:
@@ -315,6 +455,16 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
     sig_v = obj.get("sigma_vel_ned_mps")
     cov_v = None if sig_v is None else np.diag(np.square(np.asarray(sig_v, dtype=float)))
     bbox = obj.get("bbox")
+    los = None
+    if obj.get("los_ned") is not None:
+        try:
+            los = LineOfSight(
+                u_ned=obj["los_ned"], azimuth_deg=obj["los_az_deg"], elevation_deg=obj["los_el_deg"],
+                sigma_azimuth_deg=obj["los_sigma_az_deg"], sigma_elevation_deg=obj["los_sigma_el_deg"],
+                p_cam_ned_m=obj["camera_ned_m"],
+            )
+        except KeyError as exc:
+            raise InputError(f"track message: los_ned without {exc.args[0]!r}") from None
     return Track(
         vehicle=obj["vehicle"],
         seq=obj["seq"],
@@ -326,6 +476,7 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         v_px=obj.get("v_px"),
         bbox=None if bbox is None else tuple(bbox),
         pose_valid=obj.get("pose_valid", False),
+        los=los,
         origin=origin,
         lat_deg=obj.get("lat_deg"),
         lon_deg=obj.get("lon_deg"),
@@ -337,6 +488,7 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         range_m=obj.get("range_m"),
         range_sigma_ratio=obj.get("range_sigma_ratio"),
         observable=obj["observable"],
+        residual_rms_norm=obj.get("residual_rms_norm"),
         window_frames=obj["window_frames"],
         model=obj.get("model"),
     )
@@ -381,12 +533,15 @@ def image_status_fields(track: Track | None, width_px: int, height_px: int) -> d
     return out
 
 
-def geo_status_fields(track: Track | None) -> dict[str, Any] | None:
-    """Keyword arguments of ``MavlinkLink.send_tracking_geo_status``, or None without a position.
+def geo_status_fields(track: Track | None, observable_only: bool = True) -> dict[str, Any] | None:
+    """Keyword arguments of ``MavlinkLink.send_tracking_geo_status``, or None when nothing is to be sent.
 
-    Accuracies are 1-sigma root-sum-squares (module docstring); unknown values are NaN.
+    Nothing without a position, nor (``observable_only``, the default) for a position the estimator
+    does not call observable: a ground station shows #276 as a fix and cannot read a quality flag.
+    Accuracies are 1-sigma root-sum-squares of the estimate's covariance (module docstring);
+    ``dist_m`` its range; unknown values are NaN.
     """
-    if track is None or not track.has_position:
+    if track is None or not track.has_position or (observable_only and not track.observable):
         return None
     C = track.cov_p_ned_m2
     v = np.asarray(track.v_ned_mps)
@@ -477,6 +632,7 @@ def build_status(
     queue_wait_ms: Mapping[str, Any] | None = None,
     publish_ms: Mapping[str, Any] | None = None,
     stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
+    warnings: list[Mapping[str, str]] | tuple = (),
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
@@ -492,7 +648,9 @@ def build_status(
     rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
     ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
     ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
-    latest track's state in short.
+    latest track's state in short.  ``warnings``: the conditions active now that an operator must
+    fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.watchdog`);
+    empty when all is well.
     """
     t = last_track
     return {
@@ -518,10 +676,12 @@ def build_status(
         "link": None if link is None else _jsonable(link),
         "cpu": {"share": _num(cpu_share), "pipeline_share": _num(pipeline_cpu_share), "cores": _cores()},
         "estimator": estimator,
+        "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
         "track": None if t is None else {
             "time_boot_us": t.time_boot_us,
             "state": t.state,
             "track_id": t.track_id,
+            "has_los": t.los is not None,
             "has_position": t.has_position,
             "observable": t.observable,
             "window_frames": t.window_frames,

@@ -179,14 +179,14 @@ def test_position_fields_are_wgs84_of_the_ned_estimate_with_one_sigma():
     assert j["observable"] is True and j["window_frames"] == 3 and j["model"] == "cv"
 
 
-def test_unobservable_estimate_is_null_unless_configured():
+def test_unobservable_estimate_is_published_graded_unless_configured_off():
     rig = Rig(ready_after=1, observable=False)
     j = track_to_json(rig.run(3)[-1])
-    assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
-    cfg = build_config({"output": {"unobservable_positions": True}})
+    assert all(j[k] is not None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
+    cfg = build_config({"output": {"unobservable_positions": False}})  # the irtrack.track/1 behaviour
     rig = Rig(config=cfg, ready_after=1, observable=False)
     j = track_to_json(rig.run(3)[-1])
-    assert j["ned_m"] is not None and j["observable"] is False
+    assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
 
 
 def test_configured_origin_overrides_the_pose_origin():
@@ -418,8 +418,10 @@ def test_json_has_no_nan_and_round_trips():
     back = track_from_json(text)
     assert back.p_ned_m == tr.p_ned_m and np.allclose(back.cov_p_ned_m2, tr.cov_p_ned_m2)
     assert track_to_json(back)["sigma_vel_ned_mps"] == j["sigma_vel_ned_mps"]
+    assert j["schema"] == "irtrack.track/2"
+    assert track_from_json({**j, "schema": "irtrack.track/1"}).p_ned_m == tr.p_ned_m  # /1 still reads
     with pytest.raises(InputError, match="schema"):
-        track_from_json({**j, "schema": "irtrack.track/2"})
+        track_from_json({**j, "schema": "irtrack.track/3"})
     with pytest.raises(InputError, match="missing key 'state'"):
         track_from_json({k: v for k, v in j.items() if k != "state"})
     with pytest.raises(InputError, match="not JSON"):
@@ -470,6 +472,9 @@ def test_geo_status_accuracies_are_one_sigma_root_sum_squares():
     assert math.isnan(slow["hdg_rad"]) and math.isnan(slow["hdg_acc_rad"])  # speed below 2 sigma: no heading
     assert geo_status_fields(_track(lat_deg=None, lon_deg=None, alt_m=None, p_ned_m=None, v_ned_mps=None,
                                     cov_p_ned_m2=None, cov_v_ned_m2ps2=None, range_m=None)) is None
+    unobs = _track(observable=False)
+    assert geo_status_fields(unobs) is None  # #276 only for observable positions by default
+    assert geo_status_fields(unobs, observable_only=False)["h_acc_m"] == pytest.approx(math.sqrt(4 + 9))
 
 
 # --------------------------------------------------------------------------- status

@@ -1,0 +1,140 @@
+"""Output policy of irtrack.track/2 (issue 9 item 2): the line of sight with every pose, positions graded not
+gated, #276 only for observable positions; and the camera-mismatch warning fed by the pipeline's residuals."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import pytest
+
+from onboard.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
+from onboard.pipeline import FramePipeline, make_tracker
+from onboard.pose import PoseBuffer
+from onboard.track import (
+    TRACK_SCHEMA,
+    LineOfSight,
+    Track,
+    geo_status_fields,
+    line_of_sight_ned,
+    track_from_json,
+    track_to_bytes,
+    track_to_json,
+)
+from onboard.watchdog import Watchdog
+from tests.onboard.test_pipeline import Rig
+
+LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
+SIGMA_REL_TOL = 1e-6
+LOS_KEYS = ("los_ned", "los_az_deg", "los_el_deg", "los_sigma_az_deg", "los_sigma_el_deg", "camera_ned_m")
+
+
+def _az_el_deg(d_ned) -> tuple[float, float]:
+    n, e, d = d_ned
+    return math.degrees(math.atan2(e, n)), math.degrees(math.atan2(-d, math.hypot(n, e)))
+
+
+def test_schema_is_version_2():
+    assert TRACK_SCHEMA == "irtrack.track/2"
+
+
+def test_line_of_sight_is_published_with_every_pose_even_without_an_estimate():
+    rig = Rig(estimator=None)  # no 3-D at all
+    for k, tr in enumerate(rig.run(12)):
+        j = track_to_json(tr)
+        assert j["ned_m"] is None and all(j[key] is not None for key in LOS_KEYS)
+        ts = (tr.time_boot_us - rig.scene.boot_us0) / 1e6
+        p_cam, _ = rig.scene.camera(ts)
+        truth = rig.scene.target(ts)[0] - p_cam
+        az, el = _az_el_deg(truth)
+        assert abs(j["los_az_deg"] - az) < LOS_TOL_DEG and abs(j["los_el_deg"] - el) < LOS_TOL_DEG
+        assert el > 0  # the target flies 15 m above the camera: elevation positive up
+        assert np.allclose(j["los_ned"], truth / np.linalg.norm(truth), atol=math.radians(LOS_TOL_DEG))
+        assert np.allclose(j["camera_ned_m"], p_cam, atol=1e-3)
+        back = track_from_json(track_to_bytes(tr))
+        assert back.los is not None and back.los.azimuth_deg == pytest.approx(j["los_az_deg"])
+
+
+def test_no_line_of_sight_without_a_pose():
+    rig = Rig(estimator=None)
+    tr = rig.pipe.process(rig.scene.frame(0), 0)  # no telemetry fed
+    j = track_to_json(tr)
+    assert j["u_px"] is not None and not j["pose_valid"] and all(j[key] is None for key in LOS_KEYS)
+
+
+def test_line_of_sight_sigma_follows_the_documented_formula():
+    K = PinholeIntrinsics.vue_pro_640()
+    s_px, s_att = 0.3, math.radians(math.hypot(0.05, 0.1))
+    # a camera looking north and 30 deg up (camera z forward, y down): the principal point's ray
+    q = quat_from_euler(0.0, math.radians(30.0), 0.0)  # body FRD pitched up
+    R_body_from_cam = rotmat_from_quat(CameraMount().q_body_from_cam())
+    q_ned_from_cam = quat_from_rotmat(rotmat_from_quat(q) @ R_body_from_cam)
+    los = line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (1.0, 2.0, -3.0), s_px, s_att)
+    assert los.azimuth_deg == pytest.approx(0.0, abs=1e-9) and los.elevation_deg == pytest.approx(30.0, abs=1e-9)
+    s = math.sqrt((s_px / K.fx_px) ** 2 + s_att**2)  # on the axis: isotropic angular noise
+    assert los.sigma_elevation_deg == pytest.approx(math.degrees(s), rel=SIGMA_REL_TOL)
+    assert los.sigma_azimuth_deg == pytest.approx(math.degrees(s) / math.cos(math.radians(30.0)), rel=SIGMA_REL_TOL)
+    # more pixel noise, more sigma; no noise, no sigma
+    assert line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (0, 0, 0), 3.0, s_att).sigma_elevation_deg > los.sigma_elevation_deg
+    zero = line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (0, 0, 0), 0.0, 0.0)
+    assert zero.sigma_azimuth_deg == 0.0 and zero.sigma_elevation_deg == 0.0
+
+
+def test_line_of_sight_validation_names_the_field():
+    with pytest.raises(Exception, match="unit vector"):
+        LineOfSight((1.0, 1.0, 0.0), 45.0, 0.0, 0.1, 0.1, (0.0, 0.0, 0.0))
+    los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, 0.0))
+    with pytest.raises(Exception, match="Track.los needs a pose"):
+        Track(vehicle="uav1", seq=1, time_boot_us=1, state="searching", los=los)
+
+
+def test_positions_are_published_when_finite_with_observable_false():
+    rig = Rig(ready_after=1, observable=False)
+    tracks = rig.run(4)
+    last = tracks[-1]
+    assert last.has_position and not last.observable and last.los is not None
+    j = track_to_json(last)
+    assert j["ned_m"] is not None and j["sigma_ned_m"] == [2.0, 3.0, 1.0] and j["observable"] is False
+    assert geo_status_fields(last) is None  # #276: not for an unobservable position
+    f = geo_status_fields(last, observable_only=False)
+    assert f["h_acc_m"] == pytest.approx(math.sqrt(4 + 9)) and f["v_acc_m"] == pytest.approx(1.0)
+    assert f["dist_m"] == pytest.approx(j["range_m"])
+
+
+def _mismatched_rig(pitch_deg: float) -> Rig:
+    """Frames and telemetry of the scene's (identity) mount, a pipeline configured with another."""
+    rig = Rig(ready_after=5)  # the fake estimator returns the true target: an estimate the frames agree with
+    mount = CameraMount.from_euler_deg((0.0, 0.0, 0.0), 0.0, pitch_deg, 0.0)
+    rig.pose = PoseBuffer(mount=mount, config=rig.config.pose.buffer_config(), origin=rig.scene.origin,
+                          counter=rig.counter)
+    rig.pipe = FramePipeline(rig.config, rig.pose, make_tracker(rig.config), rig.est, counter=rig.counter)
+    return rig
+
+
+def _watch(rig: Rig, n: int, caplog) -> tuple[Watchdog, list]:
+    wd = Watchdog(started_s=0.0, frame_key="irtrack/uav1/ir/frame", zenoh_where="peer", mavlink_connection="udpin:x",
+                  camera_size_px=(640, 512))
+    rr = []
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for k in range(n):
+            tr = rig.step(k)
+            now_s = (tr.time_boot_us - rig.scene.boot_us0) / 1e6  # fake clock: the frames' own
+            wd.residual(now_s, tr.residual_rms_norm)
+            rr.append(tr.residual_rms_norm)
+    return wd, rr
+
+
+def test_mount_mismatch_triggers_the_camera_warning_exactly_once(caplog):
+    wd, rr = _watch(_mismatched_rig(-10.0), 240, caplog)  # 8 s
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "camera_mismatch" in warnings[0].getMessage()
+    assert "camera.mount" in warnings[0].getMessage()
+    assert [w.code for w in wd.active] == ["camera_mismatch"]
+    assert min(r for r in rr if r is not None) > 3
+
+
+def test_matching_mount_raises_no_camera_warning(caplog):
+    wd, rr = _watch(_mismatched_rig(0.0), 240, caplog)
+    assert not [r for r in caplog.records if r.levelno == logging.WARNING] and wd.active == ()
+    assert max(r for r in rr if r is not None) < 1

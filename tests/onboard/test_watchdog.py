@@ -1,0 +1,95 @@
+"""onboard.watchdog: each condition warned once (fake clock), naming what to check; active list follows the condition."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from onboard.errors import InputError
+from onboard.watchdog import Watchdog
+
+KEY = "irtrack/uav1/ir/frame"
+WHERE = "zenoh mode peer, connect tcp/10.0.0.2:7447, listen none, multicast scouting off"
+CONN = "udpin:0.0.0.0:14540"
+
+
+def _wd(**kw) -> Watchdog:
+    return Watchdog(started_s=100.0, frame_key=KEY, zenoh_where=WHERE, mavlink_connection=CONN,
+                    camera_size_px=(640, 512), **kw)
+
+
+def _warnings(caplog) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+
+
+def test_no_frames_and_no_mavlink_warn_once_after_5_s(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for i in range(49):  # 100.0 .. 104.8 s: quiet
+            wd.step(100.0 + 0.1 * i, frames_in=0, mavlink_rx=0)
+        assert _warnings(caplog) == [] and wd.active == ()
+        for i in range(50, 200):  # 105 .. 120 s
+            wd.step(100.0 + 0.1 * i, frames_in=0, mavlink_rx=0)
+    msgs = _warnings(caplog)
+    assert len(msgs) == 2
+    frames = next(m for m in msgs if m.startswith("no_frames"))
+    assert KEY in frames and "tcp/10.0.0.2:7447" in frames and "mode peer" in frames
+    mav = next(m for m in msgs if m.startswith("no_mavlink"))
+    assert CONN in mav
+    assert {w.code for w in wd.active} == {"no_frames", "no_mavlink"}
+
+
+def test_inputs_clear_the_warnings_and_a_relapse_is_not_warned_again(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        wd.step(106.0, frames_in=0, mavlink_rx=0)
+        wd.step(107.0, frames_in=3, mavlink_rx=10)
+        assert wd.active == ()
+        wd.step(111.0, frames_in=3, mavlink_rx=10)  # 4 s quiet: fine
+        assert wd.active == ()
+        wd.step(112.5, frames_in=3, mavlink_rx=10)  # 5.5 s quiet: active again, no second WARNING
+    assert {w.code for w in wd.active} == {"no_frames", "no_mavlink"}
+    assert len(_warnings(caplog)) == 2
+    assert "since the last one" in wd.active[0].message
+
+
+def test_frames_arriving_in_time_never_warn(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for i in range(300):
+            wd.step(100.0 + 0.1 * i, frames_in=i + 1, mavlink_rx=2 * i + 1)
+    assert _warnings(caplog) == [] and wd.active == ()
+
+
+def test_frame_size_mismatch_names_both_sizes_once(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for i in range(10):
+            wd.frame_size(100.0 + i, 320, 256)
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and "320 x 256" in msgs[0] and "640 x 512" in msgs[0]
+    assert [w.code for w in wd.active] == ["frame_size"]
+    wd.frame_size(111.0, 640, 512)
+    assert wd.active == ()
+
+
+@pytest.mark.parametrize("values, warned", [
+    ([5.0] * 60, True),  # 6 s above 3
+    ([5.0] * 40, False),  # 4 s: not yet persistent
+    ([5.0] * 30 + [1.0] + [5.0] * 30, False),  # broken run: counts again from the dip
+    ([5.0] * 30 + [float("nan"), None] * 5 + [5.0] * 30, True),  # unknowns neither count nor reset
+    ([1.0] * 100, False),
+])
+def test_camera_mismatch_needs_a_persistent_run(caplog, values, warned):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for i, v in enumerate(values):
+            wd.residual(100.0 + 0.1 * i, v)
+    msgs = [m for m in _warnings(caplog) if m.startswith("camera_mismatch")]
+    assert len(msgs) == (1 if warned else 0)
+
+
+def test_watchdog_refuses_bad_settings():
+    with pytest.raises(InputError, match="input_timeout_s"):
+        _wd(input_timeout_s=0.0)
