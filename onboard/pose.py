@@ -317,15 +317,14 @@ def extrapolation_sigma(horizon_s: float, rate_sigma: float, accel_sigma: float)
 def attitude_horizon_us(limit: float, rate_sigma: float, accel_sigma: float, cap_us: int) -> int:
     """The longest horizon (us, at most ``cap_us``) whose :func:`extrapolation_sigma` stays <= ``limit``.
 
-    Solves ``rate^2 h^2 + accel^2 h^4 / 4 = limit^2`` for ``h^2`` (a quadratic; monotone in h).
+    Solves ``rate^2 h^2 + accel^2 h^4 / 4 = limit^2`` for ``h^2`` (a quadratic; monotone in h), in
+    the cancellation-free form ``h^2 = 2 limit^2 / (rate^2 + sqrt(rate^4 + accel^2 limit^2))``.
     """
     if limit <= 0.0:
         return 0
     a, b = 0.25 * accel_sigma**2, rate_sigma**2
-    if a == 0.0:
-        h2 = math.inf if b == 0.0 else limit**2 / b
-    else:
-        h2 = (-b + math.sqrt(b * b + 4.0 * a * limit**2)) / (2.0 * a)
+    den = b + math.sqrt(b * b + 4.0 * a * limit**2)
+    h2 = math.inf if den == 0.0 else 2.0 * limit**2 / den
     return int(min(cap_us, math.floor(math.sqrt(h2) * US_PER_S))) if math.isfinite(h2) else int(cap_us)
 
 

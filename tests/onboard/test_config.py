@@ -60,6 +60,24 @@ def test_defaults_are_valid_and_convert_to_core_objects():
     assert (lc.component_id, lc.autopilot_compid, lc.heartbeat_timeout_s) == (191, 1, 5.0)
 
 
+def test_pose_wait_and_extrapolation_defaults():
+    """Issue 9 item 4: a frame is held a few ms at most, then extrapolated; #285 at 50 Hz."""
+    c = OnboardConfig()
+    assert c.pose.wait_ms == 5.0 and c.mavlink.gimbal_rate_hz == 50.0
+    assert c.mavlink.link_config().gimbal_rate_hz == 50.0
+    b = c.pose_buffer_config()
+    assert (b.att_max_extrapolation_us, b.gimbal_max_extrapolation_us, b.pos_max_extrapolation_us) == (36_351, 24_595, 50_000)
+    assert b.body_rate_sigma_rps == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
+    # without a bearing noise to bound them, the horizons are the configured cap
+    assert c.pose.buffer_config().att_max_extrapolation_us == 50_000
+    # a tighter noise fraction shortens attitude and gimbal, never position
+    t = build_config({"pose": {"extrapolation_noise_fraction": 0.1}}).pose_buffer_config()
+    assert t.att_max_extrapolation_us < b.att_max_extrapolation_us and t.gimbal_max_extrapolation_us < b.gimbal_max_extrapolation_us
+    assert t.pos_max_extrapolation_us == 50_000
+    off = build_config({"pose": {"max_extrapolation_ms": 0}}).pose_buffer_config()
+    assert (off.att_max_extrapolation_us, off.pos_max_extrapolation_us, off.gimbal_max_extrapolation_us) == (0, 0, 0)
+
+
 def test_shipped_file_equals_defaults():
     assert config_to_dict(load_config(SHIPPED, environ={})) == config_to_dict(OnboardConfig())
 
@@ -103,6 +121,10 @@ estimator: {attitude_white_sigma_deg: 0.5}
     q = quat_from_euler(0.0, math.radians(-10.0), 0.0)
     assert max(abs(a - b) for a, b in zip(m.q_body_from_mount, q)) < ATOL_Q
     assert c.pose.buffer_config().att_max_gap_us == 40_500
+    # the 50 ms extrapolation horizon is capped by the attitude gap; 0.5 deg white attitude noise
+    # widens the bearing noise, so the noise bound does not shorten it further
+    b = c.pose_buffer_config()
+    assert b.att_max_extrapolation_us == 40_500 and b.pos_max_extrapolation_us == 50_000
     o = c.pose.geodetic_origin()
     assert (o.lat_deg, o.lon_deg, o.alt_m) == (32.0, 118.8, 12.0)
     assert c.estimator.noise_model().attitude_white_sigma_rad == pytest.approx(math.radians(0.5), abs=ATOL_DEG_AS_RAD)
@@ -144,6 +166,10 @@ BAD = [
     ("pose: {position_interp: hermit}", "pose.position_interp", "one of hermite, linear", "'hermit'", "did you mean 'hermite'?"),
     ("pose: {attitude_max_gap_ms: 9000}", "pose.attitude_max_gap_ms", "<= pose.window_s", "9000", None),
     ("pose: {origin: {lat_deg: 91, lon_deg: 0}}", "pose.origin.lat_deg", "[-90, 90]", "91", None),
+    ("pose: {max_extrapolation_ms: -1}", "pose.max_extrapolation_ms", "[0, 10000]", "-1", None),
+    ("pose: {body_rate_sigma_dps: .nan}", "pose.body_rate_sigma_dps", "a number in [0, 1000]", "nan", None),
+    ("pose: {extrapolation_noise_fraction: 'a'}", "pose.extrapolation_noise_fraction", "a number", "'a'", None),
+    ("mavlink: {gimbal_rate_hz: 0}", "mavlink.gimbal_rate_hz", "(0, 1000]", "0", None),
     ("pose: {origin: [1, 2]}", "pose.origin", "a mapping", "[1, 2]", None),
     ("output: {tracking_geo_status_hz: -5}", "output.tracking_geo_status_hz", "[0, 100]", "-5", None),
     ("logging: {level: info}", "logging.level", "one of DEBUG, INFO", "'info'", "did you mean 'INFO'?"),
