@@ -201,11 +201,16 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes (default: min(2, CPUs))")
     p.add_argument("--duration", type=float, default=None, metavar="S",
                    help="simulated seconds per run (default: the scenario's duration_s)")
-    p.add_argument("--pixel-sigma", type=float, default=0.3, metavar="PX",
-                   help="perfect-centroid baseline noise, px per axis (default: %(default)s)")
+    p.add_argument("--pixel-sigma", type=float, default=None, metavar="PX",
+                   help="perfect-centroid baseline noise, px per axis (default: the image chain's own centroid error,"
+                        " measured per run)")
+    p.add_argument("--nav-noise", nargs="+", default=None, metavar="NAME",
+                   help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
+                        " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)")
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
     p.add_argument("--onboard-config", default=None, metavar="FILE",
-                   help="the daemon's configuration (default: config/onboard_sim.yaml if present, else built-in)")
+                   help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
+                        " scenario's camera, mount and origin)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=lambda args: __import__("groundsim.eval", fromlist=["cmd_eval"]).cmd_eval(args))
 
@@ -217,8 +222,12 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
                    help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
     p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
-    p.add_argument("--onboard-config", default="config/onboard_sim.yaml", metavar="FILE",
-                   help="the daemon's configuration (default: %(default)s; built-in defaults when absent)")
+    p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
+                   help="the daemon's configuration, with the scenario's camera, mount and origin (default:"
+                        " %(default)s, the shipped one; built-in defaults when absent)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="the simulator's navigation errors, a case of config/noise_cases.yaml (default: the"
+                        " scenario's nav_noise, RTK)")
     p.add_argument("--no-eval", dest="with_eval", action="store_false",
                    help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")
     p.set_defaults(handler=lambda args: __import__("groundsim.demo", fromlist=["cmd_demo"]).cmd_demo(args))

@@ -10,8 +10,8 @@ Wiring (free ports on 127.0.0.1, picked at start)::
 
 The daemon starts first; the simulator is started once the daemon's first status message arrives
 (so no frame is sent before anyone listens).  ``OUT/onboard.yaml`` is the daemon's configuration
-(``--onboard-config``, default ``config/onboard_sim.yaml``) with the scenario's camera, pod mount and
-origin, the loopback endpoints, a liveness file inside OUT and ``output.unobservable_positions``
+(``--onboard-config``, default the shipped ``config/onboard.yaml``, noise model included) with the
+scenario's camera, pod mount and origin, the loopback endpoints, a liveness file inside OUT and ``output.unobservable_positions``
 on (so the live line can show the range before it is observable; the table scores both).  A scenario
 shorter than ``--duration`` is extended (its motion models simply continue) into ``OUT/scenario.yaml``.
 
@@ -90,6 +90,7 @@ class DemoPlan:
     onboard_config_path: Path
     truth_path: Path
     python: str = sys.executable
+    nav_noise: str = "RTK"  # the simulator's navigation-error case (groundsim run --nav-noise)
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -126,8 +127,15 @@ def _extended_scenario(scenario_path: Path, duration_s: float, out_dir: Path):
         return sc, scenario_path
 
 
-def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_config: str | None) -> DemoPlan:
-    """Load and check everything, write OUT/onboard.yaml (and OUT/scenario.yaml), pick the ports."""
+DEFAULT_DEMO_ONBOARD_CONFIG = "config/onboard.yaml"
+
+
+def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_config: str | None,
+              nav_noise: str | None = None) -> DemoPlan:
+    """Load and check everything, write OUT/onboard.yaml (and OUT/scenario.yaml), pick the ports.
+    ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default)."""
+    from groundsim.nav_errors import resolve_nav_noise
+
     import yaml
 
     from groundsim.cli import resolve_scenario_path
@@ -147,10 +155,11 @@ def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_conf
     duration = min(float(duration_s), sc.duration_s)
     if onboard_config is not None and Path(onboard_config).is_file():
         base = load_config(onboard_config, environ={})
-    elif onboard_config is not None and onboard_config != "config/onboard_sim.yaml":
+    elif onboard_config is not None and onboard_config != DEFAULT_DEMO_ONBOARD_CONFIG:
         raise ConfigError(f"--onboard-config {onboard_config}: no such file")
     else:
         base = OnboardConfig()
+    nav = resolve_nav_noise(sc.nav_noise if nav_noise is None else nav_noise).name
     cfg = onboard_config_for(sc, base)
     mav, zport = free_port("udp"), free_port("tcp")
     raw = config_to_dict(cfg)
@@ -163,7 +172,8 @@ def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_conf
               f"# scenario {sc.name}'s camera, mount and origin; loopback endpoints; positions published even when unobservable\n")
     path.write_text(header + yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
     load_config(path, environ={})  # what the daemon will read must be valid
-    return DemoPlan(sc, Path(sc_path), duration, int(seed), out, mav, zport, cfg.vehicle, path, out / "truth.csv")
+    return DemoPlan(sc, Path(sc_path), duration, int(seed), out, mav, zport, cfg.vehicle, path, out / "truth.csv",
+                    nav_noise=nav)
 
 
 def daemon_command(plan: DemoPlan) -> list[str]:
@@ -174,7 +184,7 @@ def sim_command(plan: DemoPlan) -> list[str]:
     return [plan.python, "-m", "groundsim", "run", "--scenario", str(plan.scenario_path), "--seed", str(plan.seed),
             "--duration", f"{plan.duration_s:g}", "--rate", "realtime", "--mavlink", f"udpout:127.0.0.1:{plan.mavlink_port}",
             "--zenoh-connect", plan.zenoh_endpoint, "--zenoh-connect-timeout", "10", "--vehicle", plan.vehicle,
-            "--truth", str(plan.truth_path)]
+            "--truth", str(plan.truth_path), "--nav-noise", plan.nav_noise]
 
 
 # --------------------------------------------------------------------------- collectors
@@ -791,10 +801,11 @@ def cmd_demo(args) -> int:
     try:
         for name in ("onboard", "groundsim.run", "groundsim.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
-        plan = plan_demo(args.scenario, args.duration, args.seed, args.out, args.onboard_config)
+        plan = plan_demo(args.scenario, args.duration, args.seed, args.out, args.onboard_config,
+                         getattr(args, "nav_noise", None))
         outcome = run_demo(plan, stop)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
-            _quick_eval(plan.out_dir / "eval", stop)
+            _quick_eval(plan.out_dir / "eval", stop, plan.nav_noise)
         if outcome.error is not None:
             return EXIT_FAILED
         return EXIT_OK
@@ -803,18 +814,22 @@ def cmd_demo(args) -> int:
             signal.signal(sig, handler)
 
 
-def _quick_eval(out_dir: Path, stop: threading.Event) -> None:
-    """The lockstep evaluation of P1-P3, one seed, and its Table-2 style table."""
+def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") -> None:
+    """The lockstep evaluation of P1-P3, one seed, and its Table-2 style and closed-loop tables."""
     from groundsim.eval import EvalOptions, load_base_config, run_eval
-    from groundsim.report import format_table2, write_eval_report
+    from groundsim.report import format_closed_loop, format_table2, write_eval_report
     from groundsim.scenario import load_scenario, reference_scenario_paths
 
     paths = reference_scenario_paths()
     scenarios = [load_scenario(paths[n]) for n in ("P1", "P2", "P3") if n in paths]
-    print("\ndemo: lockstep evaluation of P1-P3 (one seed; `python -m groundsim eval` runs five)", flush=True)
-    result = run_eval(scenarios, [0], EvalOptions(), load_base_config(), workers=max(1, min(2, os.cpu_count() or 1)))
+    print(f"\ndemo: lockstep evaluation of P1-P3 (one seed, navigation errors {nav_noise};"
+          " `python -m groundsim eval` runs five)", flush=True)
+    result = run_eval(scenarios, [0], EvalOptions(nav_noise=nav_noise), load_base_config(),
+                      workers=max(1, min(2, os.cpu_count() or 1)))
     files = write_eval_report(out_dir, result)
     print(format_table2(result.summary, {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}))
+    print()
+    print(format_closed_loop(result.summary))
     print(f"\nevaluation report: {files['report.md']}", flush=True)
     _paper_baseline_table(scenarios)
 

@@ -19,28 +19,38 @@ analogue of the daemon's ``pose.wait_ms``.  The last frame or two of a run, afte
 last telemetry sample, can have no pose; they are not processed (``RunResult.frames`` counts the
 frames that were).
 
-The onboard configuration is the daemon's (``config/onboard_sim.yaml``, its noise model matched to the simulator, when present, else the
-built-in defaults) with the scenario's camera (intrinsics, pod mount, gimbal), the scenario's origin
-as ``pose.origin`` and ``output.unobservable_positions`` on, so that "all frames with an estimate"
-can be scored beside the default output ("observable frames").  The estimator runs synchronously
-(the daemon runs it in a worker thread that may hand a frame an extrapolated estimate when it is
-late; lockstep never is).
+Navigation errors.  The telemetry is what the simulated vehicle reports: the truth with the run's
+navigation errors (``EvalOptions.nav_noise``, ``--nav-noise``, default RTK; :mod:`groundsim.nav_errors`,
+drawn from ``scenario.rng("nav.errors", seed)``), applied by the very function the MAVLink vehicle
+uses.  Stream rates are the ones the daemon's configuration requests (``mavlink.attitude_rate_hz``,
+``position_rate_hz``, ``gimbal_rate_hz``), which the simulated vehicle honours.
+
+The onboard configuration is the daemon's shipped one (``config/onboard.yaml``: its estimator noise
+model assumes INS-class navigation errors; ``--onboard-config`` for another, built-in defaults when
+absent) with the scenario's camera (intrinsics, pod mount, gimbal), the scenario's origin as
+``pose.origin`` and unobservable positions published, so that "all frames with an estimate" can be
+scored beside the observable ones.  The estimator runs synchronously (the daemon runs it in a worker
+that may hand a frame an extrapolated estimate when it is late; lockstep never is).
 
 Perfect-centroid baseline (the yardstick of the image chain).  The same sliding-window estimator,
 configured identically, fed on every frame where the target is in the image with the truth pixel
-(:func:`groundsim.render.truth_pixel` at the true camera pose) plus white Gaussian noise of
-``pixel_sigma_px`` (0.3 px by default, the reference study's px0.3 case; *not* the renderer's own
-centroid noise), through the SAME camera poses the pipeline got from its pose buffer for that frame.
-The ratio "image chain / perfect centroids" compares errors on the frames where both report
-observable, so a late acquisition by the image chain is not counted against it twice (continuity
-is reported separately).
+(:func:`groundsim.render.truth_pixel` at the true camera pose) plus white Gaussian noise of the image
+chain's own centroid error, measured in the same run (:func:`centroid_sigma_px`: RMS per axis of
+centroid - truth pixel over the frames with a valid centroid; ``DEFAULT_PIXEL_SIGMA_PX`` when there is
+none; ``--pixel-sigma`` overrides it), through the SAME camera poses the pipeline got from its pose
+buffer for that frame (navigation errors included), so the baseline differs from the chain only in
+where the centroid came from.  It runs after the frame loop (the noise level is known then), on the
+recorded poses.  The ratio "image chain / perfect centroids" compares errors on the frames where
+both report observable, so a late acquisition by the image chain is not counted against it twice
+(continuity is reported separately).  A baseline with no observable frame, or worse than
+``BASELINE_FAIL_PCT`` of range, "failed": its ratio gets no verdict.
 
 Batch columns (``batch=True``): :class:`~onboard.estimation.map_estimator.MapEstimator` with model
 selection on the whole flight, once on the pipeline's measured centroids and once on the perfect
 centroids; the Bayesian Cramer-Rao bound (:func:`~onboard.estimation.crb.bayesian_crb_rms_m`) of
 the flown trajectory is taken with the perfect-centroid solution's motion prior, for the noise
-actually simulated (``pixel_sigma_px``, exact navigation: ``crb_rms_m``) and for the noise model the
-estimator assumes (``crb_model_rms_m``, larger: it includes attitude noise and bias).
+actually simulated (the baseline's pixel noise and the run's navigation-error case: ``crb_rms_m``) and
+for the noise model the estimator assumes (``crb_model_rms_m``).
 
 Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.metrics.evaluate`):
 
@@ -52,7 +62,10 @@ Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.m
 - paper metric ``mean ||e|| / ||X||`` (world origin = the scenario's NED origin, on the ground under
   the observer's start), range-normalised error ``mean ||e|| / range``, RMSE, mean NEES (3 for a
   consistent covariance), fraction beyond 3 sigma;
-- centroid error: image-chain centre minus truth pixel on frames with a valid centroid.
+- centroid error: image-chain centre minus truth pixel on frames with a valid centroid;
+- closed-loop figures of issue 9 (:func:`closed_loop_figures`): published 3-D positions on tracking
+  frames after 3 s, their honesty (beyond 3 sqrt(trace cov)), observable share after 5 s, median
+  error / range on observable frames.
 
 Runs are independent jobs over a process pool (``workers`` processes from a fork server, see
 :func:`mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
@@ -70,7 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.scenario import Scenario
+from groundsim.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
@@ -93,8 +106,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ONBOARD_CONFIG = Path("config/onboard_sim.yaml")
-DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise (reference study, case px0.3)
+DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")  # the daemon's shipped configuration (noise model included)
+DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain measured no centroid (reference px0.3)
+BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
 US_PER_S = 1_000_000
@@ -148,26 +162,33 @@ def limit_blas_threads(n: int = 1) -> int:
 @dataclass(frozen=True)
 class EvalOptions:
     """How each run is made.  ``duration_s`` None = the scenario's; ``pixel_sigma_px`` the baseline's
-    centroid noise; ``batch`` adds the whole-flight MAP columns and the CRB; ``keep_frame`` keeps one
-    IR frame per run for the report's picture."""
+    centroid noise (None: the image chain's own centroid error measured in the run, see the module
+    docstring); ``batch`` adds the whole-flight MAP columns and the CRB; ``keep_frame`` keeps one IR
+    frame per run for the report's picture; ``nav_noise``: the telemetry's navigation-error case
+    (``config/noise_cases.yaml``; None = the scenario's ``nav_noise``, RTK by default)."""
 
     duration_s: float | None = None
-    pixel_sigma_px: float = DEFAULT_PIXEL_SIGMA_PX
+    pixel_sigma_px: float | None = None
     batch: bool = True
     keep_frame: bool = True
+    nav_noise: str | None = DEFAULT_NAV_NOISE
 
     def __post_init__(self) -> None:
         d = self.duration_s
         if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0):
             raise ConfigError(f"--duration: expected a positive number of seconds, got {d!r}")
         s = self.pixel_sigma_px
-        if isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0:
+        if s is not None and (isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0):
             raise ConfigError(f"--pixel-sigma: expected a number of pixels >= 0, got {s!r}")
+        if self.nav_noise is not None:
+            from groundsim.nav_errors import resolve_nav_noise
+
+            resolve_nav_noise(self.nav_noise)
 
 
 def load_base_config(path: str | os.PathLike | None = None):
-    """The daemon's configuration: ``path``, else ``config/onboard_sim.yaml`` if it exists, else the
-    built-in defaults.  Environment variables are ignored (a lockstep run must be reproducible)."""
+    """The daemon's configuration: ``path``, else ``config/onboard.yaml`` (the shipped one) if it exists,
+    else the built-in defaults.  Environment variables are ignored (a lockstep run must be reproducible)."""
     from onboard.config import OnboardConfig, load_config
 
     if path is not None:
@@ -196,7 +217,10 @@ def onboard_config_for(scenario: Scenario, base=None):
     )
     o = scenario.origin
     pose = dataclasses.replace(base.pose, origin=OriginConfig(lat_deg=o.lat_deg, lon_deg=o.lon_deg, alt_m=o.alt_m))
-    output = dataclasses.replace(base.output, unobservable_positions=True, health_file=None)
+    out_kw = {"health_file": None}
+    if hasattr(base.output, "unobservable_positions"):  # the field may go with the output policy of issue 9
+        out_kw["unobservable_positions"] = True
+    output = dataclasses.replace(base.output, **out_kw)
     return dataclasses.replace(base, camera=camera, pose=pose, output=output)
 
 
@@ -205,16 +229,25 @@ def onboard_config_for(scenario: Scenario, base=None):
 
 class TelemetryFeed:
     """Offers a :class:`~groundsim.run.SimCore`'s observer state to a pose buffer, tick by tick, on
-    MavlinkVehicle's stream schedule and with the wire's quantisation (module docstring)."""
+    MavlinkVehicle's stream schedule and with the wire's quantisation (module docstring).
 
-    def __init__(self, core, pose_buffer, gimballed: bool) -> None:
+    The state is what the simulated vehicle reports: the truth with the core's navigation error of
+    that tick (``core.nav_error(i)``, when the core has one) applied by the same function the MAVLink
+    vehicle uses, :func:`groundsim.nav_errors.reported_state`.  ``rates_hz``: ``(attitude, position,
+    gimbal)`` -- the rates the daemon requests (``mavlink.*_rate_hz`` of its configuration), which the
+    simulated vehicle honours; default MavlinkVehicle's own defaults.
+    """
+
+    def __init__(self, core, pose_buffer, gimballed: bool,
+                 rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ)) -> None:
         self.core = core
         self.pose = pose_buffer
         self.gimballed = gimballed
         self.next_tick = 0
-        self._interval_us = {"att": round(US_PER_S / ATT_RATE_HZ), "pos": round(US_PER_S / POS_RATE_HZ)}
+        att_hz, pos_hz, gim_hz = (float(x) for x in rates_hz)
+        self._interval_us = {"att": round(US_PER_S / att_hz), "pos": round(US_PER_S / pos_hz)}
         if gimballed:
-            self._interval_us["gim"] = round(US_PER_S / GIMBAL_RATE_HZ)
+            self._interval_us["gim"] = round(US_PER_S / gim_hz)
         self._due_us = {k: 0 for k in self._interval_us}
 
     @property
@@ -225,9 +258,12 @@ class TelemetryFeed:
         """Offer the next tick's state (streams due at that tick only)."""
         from onboard.pose import GimbalReference
 
+        from groundsim.nav_errors import reported_state
+
         i = self.next_tick
         self.next_tick += 1
-        st = self.core.vehicle_state(i)
+        nav_error = getattr(self.core, "nav_error", None)
+        st = reported_state(self.core.vehicle_state(i), None if nav_error is None else nav_error(i))
         now = int(st["time_boot_us"])
         t_wire_us = (now // 1000) * 1000  # MAVLink time_boot_ms
         for name, interval in self._interval_us.items():
@@ -288,7 +324,9 @@ class RunResult:
     Perfect-centroid baseline: ``base_p_ned_m``, ``base_cov_ned_m2``, ``base_observable``.
     ``batch``: dict of whole-flight results (or None); ``timing``: seconds and per-frame ms arrays;
     ``counters``: reject/event counts; ``frame``: one IR frame with its track for the picture (or None);
-    ``error``: a one-line failure (then most arrays are empty).
+    ``error``: a one-line failure (then most arrays are empty); ``nav_noise``: the telemetry's
+    navigation-error case; ``chain_centroid_sigma_px``: the image chain's centroid error per axis
+    (RMS over valid centroids, NaN when none); ``baseline_pixel_sigma_px``: the baseline's noise.
     """
 
     scenario: str
@@ -320,6 +358,9 @@ class RunResult:
     counters: dict = field(default_factory=dict)
     frame: dict | None = None
     error: str | None = None
+    nav_noise: str = ""
+    baseline_pixel_sigma_px: float = math.nan
+    chain_centroid_sigma_px: float = math.nan
 
     @property
     def has_estimate(self) -> np.ndarray:
@@ -336,6 +377,16 @@ def _empty_result(scenario: Scenario, seed: int, error: str) -> RunResult:
     return RunResult(scenario.name, scenario.description, seed, 0, np.zeros(0), np.zeros(0, dtype=np.int64), z3, z3, z3,
                      np.zeros(0), z2, zb, np.zeros(0, dtype="<U9"), zb, z2, np.zeros((0, 4)), zb, z3,
                      np.zeros((0, 3, 3)), zb, np.zeros(0), z3, np.zeros((0, 3, 3)), zb, error=error)
+
+
+def centroid_sigma_px(uv_px, truth_uv_px, sel) -> float | None:
+    """The image chain's centroid error, 1 sigma per axis: RMS of (centroid - truth pixel) over both
+    axes of the selected frames (bias included); None when no frame is selected."""
+    ok = np.asarray(sel, dtype=bool) & np.all(np.isfinite(uv_px), axis=1) & np.all(np.isfinite(truth_uv_px), axis=1)
+    if not ok.any():
+        return None
+    d = np.asarray(uv_px)[ok] - np.asarray(truth_uv_px)[ok]
+    return float(np.sqrt(np.mean(d**2)))
 
 
 def _estimate_row(est) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -375,12 +426,13 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     wall0, cpu0 = time.perf_counter(), time.process_time()
     cfg = onboard_config_for(scenario, base_config)
     K = cfg.camera.pinhole()
-    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0)
+    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose.buffer_config(), cfg.pose.geodetic_origin())
     source = _RecordingPoseSource(buffer)
     pipeline = FramePipeline(cfg, source, make_tracker(cfg), make_estimator(cfg), scenario.origin, counter=buffer.counter)
     baseline = make_estimator(cfg)
-    feed = TelemetryFeed(core, buffer, core.gimballed)
+    m = cfg.mavlink
+    feed = TelemetryFeed(core, buffer, core.gimballed, (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz))
     rng = scenario.rng("eval.centroid_noise", seed)
 
     F = core.frame_count
@@ -395,10 +447,10 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     est_p, est_P, observable, ratio = np.full((F, 3), nan), np.full((F, 3, 3), nan), np.zeros(F, dtype=bool), np.full(F, nan)
     base_p, base_P, base_obs = np.full((F, 3), nan), np.full((F, 3, 3), nan), np.zeros(F, dtype=bool)
     cam_pose_p, cam_pose_q = np.full((F, 3), nan), np.full((F, 4), nan)
+    unit_noise = rng.standard_normal((F, 2))  # the baseline's centroid noise, scaled once the chain's error is known
     render_ms, process_ms, baseline_ms = np.zeros(F), np.zeros(F), np.zeros(F)
     rejected = 0
     kept = None
-    base_has_data = False
     done_since = 0
 
     n_done = F
@@ -450,22 +502,6 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
         if pose is not None:
             cam_pose_p[k], cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
 
-        # perfect-centroid baseline: truth pixel + noise, the same camera pose
-        noise = rng.standard_normal(2) * options.pixel_sigma_px  # drawn every frame: independent of outcomes
-        b0 = time.perf_counter()
-        if baseline is not None:
-            est = None
-            try:
-                if pose is not None and visible[k]:
-                    est = baseline.add(tr.t_s, truth_uv[k] + noise, K, pose.p_cam_ned_m, pose.q_ned_from_cam)
-                    base_has_data = True
-                elif base_has_data:
-                    est = baseline.predict(tr.t_s, None if pose is None else pose.p_cam_ned_m)
-            except IrtrackError as exc:
-                log.debug("baseline frame %d: %s", k, exc)
-            base_p[k], base_P[k], base_obs[k] = _estimate_row(est)
-        baseline_ms[k] = (time.perf_counter() - b0) * 1e3
-
         if options.keep_frame and _better_frame(kept, k, F, track):
             kept = dict(k=k, t_s=float(tr.t_s), pixels=fr.pixels.copy(),
                         bbox=None if track is None or track.bbox is None else tuple(track.bbox),
@@ -482,18 +518,42 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
 
     if n_done < F:
         (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv, bbox, est_p, est_P,
-         observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q, render_ms, process_ms, baseline_ms) = (
+         observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q, render_ms, process_ms, baseline_ms,
+         unit_noise) = (
             a[:n_done] for a in (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv,
                                  bbox, est_p, est_P, observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q,
-                                 render_ms, process_ms, baseline_ms))
+                                 render_ms, process_ms, baseline_ms, unit_noise))
         F = n_done
+
+    # perfect-centroid baseline: truth pixel + white noise of the chain's own centroid error (or the
+    # --pixel-sigma override), through the SAME camera poses the pipeline got for each frame
+    chain_sigma_px = centroid_sigma_px(uv, truth_uv, meas & visible)
+    if options.pixel_sigma_px is not None:
+        base_sigma_px = float(options.pixel_sigma_px)
+    else:
+        base_sigma_px = DEFAULT_PIXEL_SIGMA_PX if chain_sigma_px is None else chain_sigma_px
+    base_has_data = False
+    for k in range(F):
+        b0 = time.perf_counter()
+        has_pose = bool(np.all(np.isfinite(cam_pose_p[k])))
+        est = None
+        try:
+            if has_pose and visible[k]:
+                est = baseline.add(float(t_s[k]), truth_uv[k] + base_sigma_px * unit_noise[k], K, cam_pose_p[k], cam_pose_q[k])
+                base_has_data = True
+            elif base_has_data:
+                est = baseline.predict(float(t_s[k]), cam_pose_p[k] if has_pose else None)
+        except IrtrackError as exc:
+            log.debug("baseline frame %d: %s", k, exc)
+        base_p[k], base_P[k], base_obs[k] = _estimate_row(est)
+        baseline_ms[k] = (time.perf_counter() - b0) * 1e3
 
     batch = None
     batch_s = 0.0
     if options.batch:
         b0 = time.perf_counter()
         batch = _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_pose_p, cam_pose_q, truth_p, scenario, seed,
-                       options.pixel_sigma_px)
+                       base_sigma_px, core.nav_noise)
         batch_s = time.perf_counter() - b0
 
     wall = time.perf_counter() - wall0
@@ -513,11 +573,15 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
         est_p_ned_m=est_p, est_cov_ned_m2=est_P, observable=observable, range_sigma_ratio=ratio,
         base_p_ned_m=base_p, base_cov_ned_m2=base_P, base_observable=base_obs,
         batch=batch, timing=timing, counters=counters, frame=kept,
+        nav_noise=core.nav_noise.name, baseline_pixel_sigma_px=base_sigma_px,
+        chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
     )
 
 
-def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px) -> dict:
+def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px,
+           nav_case=None) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
+    from groundsim.synth import estimator_noise_model
     from onboard.estimation.crb import bayesian_crb_rms_m
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
@@ -546,12 +610,14 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
         entry.update(p_ned_m=np.asarray(res.p_ned_m), cov_ned_m2=np.asarray(res.cov_p_ned_m2), observable=bool(res.observable),
                      model=str(res.extras.get("model", res.prior.family)), range_sigma_ratio=float(res.range_sigma_ratio))
         if name == "perfect":
-            # the bound of the flown trajectory for the noise actually simulated (pixel noise, exact
-            # navigation), and for the noise model the estimator assumes (its own yardstick)
+            # the bound of the flown trajectory for the noise actually simulated (the baseline's pixel
+            # noise and the telemetry's navigation errors), and for the noise model the estimator assumes
             entry["crb_rms_m"] = entry["crb_model_rms_m"] = math.nan
             try:
                 if pixel_sigma_px > 0:
-                    sim = MapEstimator(est.config, NoiseModel(pixel_sigma_px=pixel_sigma_px))
+                    simulated = NoiseModel(pixel_sigma_px=pixel_sigma_px) if nav_case is None else \
+                        dataclasses.replace(estimator_noise_model(nav_case), pixel_sigma_px=pixel_sigma_px)
+                    sim = MapEstimator(est.config, simulated)
                     entry["crb_rms_m"] = bayesian_crb_rms_m(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps)
                 entry["crb_model_rms_m"] = bayesian_crb_rms_m(est, obs, truth_p[idx], res.prior, res.turn_rate_radps)
             except (EstimationError, InputError, np.linalg.LinAlgError) as exc:
@@ -584,6 +650,40 @@ def _metrics(truth_p, est_p, cam_p, cov, sel) -> dict | None:
     return d
 
 
+#: the closed-loop windows of issue 9 item 5: published positions after the track settles, observability later
+PUBLISHED_AFTER_S, OBSERVABLE_AFTER_S = 3.0, 5.0
+
+
+def closed_loop_figures(r: RunResult) -> dict:
+    """Issue 9 item 5's figures of one run, from the pipeline's per-frame outputs (JSON-ready; None = no frame).
+
+    *published*: a finite 3-D position in the frame's Track (lockstep publishes unobservable positions
+    too, so this is what the daemon publishes once positions go out whenever the estimate is finite;
+    with a daemon that publishes only observable positions it is an upper bound of that);
+    ``published_share_after_3s``: published / tracking frames (state ``tracking``) at t >= 3 s;
+    ``beyond_3sigma_published``: fraction of published positions with ``||e|| > 3 sqrt(trace cov)``
+    (honesty; <= 0.01 asked); ``observable_share_after_5s``: observable / all frames at t >= 5 s;
+    ``median_err_range_observable_pct``: median over observable frames of ``||e|| / range``, per cent.
+    """
+    t = r.t_s - r.t_s[0] if r.t_s.size else r.t_s
+    has = r.has_estimate
+    obs = has & r.observable
+    tracked = (r.state == "tracking") & (t >= PUBLISHED_AFTER_S)
+    late = t >= OBSERVABLE_AFTER_S
+    e = np.linalg.norm(r.est_p_ned_m - r.truth_p_ned_m, axis=1)
+    with np.errstate(invalid="ignore"):
+        sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", r.est_cov_ned_m2), 0.0))
+    pub = has & np.isfinite(sig3)
+    return {
+        "tracking_frames_after_3s": int(tracked.sum()),
+        "published_share_after_3s": float((tracked & has).sum() / tracked.sum()) if tracked.any() else None,
+        "published_frames": int(has.sum()),
+        "beyond_3sigma_published": float((e[pub] > sig3[pub]).mean()) if pub.any() else None,
+        "observable_share_after_5s": float((late & obs).sum() / late.sum()) if late.any() else None,
+        "median_err_range_observable_pct": float(np.median(100.0 * e[obs] / r.range_m[obs])) if obs.any() else None,
+    }
+
+
 def score_run(r: RunResult) -> dict:
     """The figures of one run (definitions in the module docstring); JSON-ready."""
     if r.error is not None:
@@ -593,7 +693,10 @@ def score_run(r: RunResult) -> dict:
     obs = has & r.observable
     base_obs = r.base_has_estimate & r.base_observable
     common = obs & base_obs
-    out: dict = {"scenario": r.scenario, "seed": r.seed, "frames": F}
+    out: dict = {"scenario": r.scenario, "seed": r.seed, "frames": F, "nav_noise": r.nav_noise,
+                 "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
+                 "chain_centroid_sigma_px": r.chain_centroid_sigma_px}
+    out["closed_loop"] = closed_loop_figures(r)
     out["online_observable"] = _metrics(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
     out["online_all"] = _metrics(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
     out["perfect_observable"] = _metrics(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs)
@@ -693,6 +796,12 @@ SUMMARY_FIELDS = {
     "batch_err_range_pct": ("batch", "pipeline", "metrics", "err_range_pct"),
     "batch_perfect_err_range_pct": ("batch", "perfect", "metrics", "err_range_pct"),
     "crb_rms_m": ("batch", "crb_rms_m"),
+    "published_share_after_3s": ("closed_loop", "published_share_after_3s"),
+    "beyond_3sigma_published": ("closed_loop", "beyond_3sigma_published"),
+    "observable_share_after_5s": ("closed_loop", "observable_share_after_5s"),
+    "median_err_range_observable_pct": ("closed_loop", "median_err_range_observable_pct"),
+    "baseline_pixel_sigma_px": ("baseline_pixel_sigma_px",),
+    "chain_centroid_sigma_px": ("chain_centroid_sigma_px",),
     "crb_model_rms_m": ("batch", "crb_model_rms_m"),
     "batch_perfect_rmse_m": ("batch", "perfect", "metrics", "rmse_m"),
 }
@@ -701,24 +810,40 @@ SUMMARY_FIELDS = {
 RATIO_LIMIT = 1.5
 
 
+def _baseline_failed(pct) -> bool:
+    return pct is None or pct > BASELINE_FAIL_PCT
+
+
 def summarise(scores: list[dict]) -> list[dict]:
-    """One row per scenario (first-seen order): medians over seeds, ratio and its verdict."""
-    names: list[str] = []
+    """One row per (scenario, navigation-error case) (first-seen order): medians over seeds, ratios
+    and their verdict.  ``label`` is the scenario's name, or ``<scenario>_<nav case>`` when the runs
+    mix navigation cases.  A ratio gets no verdict when its baseline failed (perfect centroids
+    unobservable or worse than ``BASELINE_FAIL_PCT`` err / range): ``baseline_failed`` /
+    ``batch_baseline_failed`` say so, and ``within_ratio`` is None when no ratio has a sound baseline.
+    """
+    keys: list[tuple[str, str]] = []
     for s in scores:
-        if s["scenario"] not in names:
-            names.append(s["scenario"])
+        k = (s["scenario"], s.get("nav_noise", ""))
+        if k not in keys:
+            keys.append(k)
+    multi = len({k[1] for k in keys}) > 1
     rows = []
-    for name in names:
-        runs = [s for s in scores if s["scenario"] == name]
+    for name, nav in keys:
+        runs = [s for s in scores if s["scenario"] == name and s.get("nav_noise", "") == nav]
         ok = [s for s in runs if "error" not in s]
-        row: dict = {"scenario": name, "runs": len(runs), "failed_runs": len(runs) - len(ok)}
+        row: dict = {"scenario": name, "nav_noise": nav, "label": f"{name}_{nav}" if multi else name,
+                     "runs": len(runs), "failed_runs": len(runs) - len(ok)}
         for key, path in SUMMARY_FIELDS.items():
             row[key] = _med(_get(s, *path) for s in ok)
         on, pf = row["online_common_err_range_pct"], row["perfect_common_err_range_pct"]
         row["ratio_to_perfect"] = (on / pf) if (on is not None and pf not in (None, 0.0)) else None
         bo, bp = row["batch_err_range_pct"], row["batch_perfect_err_range_pct"]
         row["batch_ratio_to_perfect"] = (bo / bp) if (bo is not None and bp not in (None, 0.0)) else None
-        ratios = [x for x in (row["ratio_to_perfect"], row["batch_ratio_to_perfect"]) if x is not None]
+        row["baseline_failed"] = _baseline_failed(row["perfect_err_range_pct"])
+        row["batch_baseline_failed"] = _baseline_failed(bp)
+        ratios = [x for x, failed in ((row["ratio_to_perfect"], row["baseline_failed"]),
+                                      (row["batch_ratio_to_perfect"], row["batch_baseline_failed"]))
+                  if x is not None and not failed]
         row["within_ratio"] = bool(all(x <= RATIO_LIMIT for x in ratios)) if ratios else None
         rows.append(row)
     return rows
@@ -779,9 +904,12 @@ def _bar_pacing() -> dict:
 
 
 def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = None, base_config=None,
-             workers: int = 2, progress: bool = True, config_source: str = "(defaults)") -> EvalResult:
-    """All (scenario, seed) runs, over ``workers`` processes (1 = in this process), then scored."""
+             workers: int = 2, progress: bool = True, config_source: str = "(defaults)",
+             nav_noises=None) -> EvalResult:
+    """All (navigation case, scenario, seed) runs, over ``workers`` processes (1 = in this process), then
+    scored.  ``nav_noises``: case names to run each scenario with (default: ``options.nav_noise`` only)."""
     options = options if options is not None else EvalOptions()
+    variants = [options] if not nav_noises else [dataclasses.replace(options, nav_noise=n) for n in nav_noises]
     limit_blas_threads(1)  # here and, through the environment, in the worker processes
     seeds = [int(s) for s in seeds]
     if not scenarios:
@@ -792,13 +920,13 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
     from groundsim.run import frame_count
 
-    jobs = [(sc, seed, options, base_config) for sc in scenarios for seed in seeds]
+    jobs = [(sc, seed, o, base_config) for o in variants for sc in scenarios for seed in seeds]
     total = 0
     for sc in scenarios:
         if options.duration_s is not None and options.duration_s > sc.duration_s + 1e-9:
             raise ConfigError(f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}")
         d = sc.duration_s if options.duration_s is None else options.duration_s
-        total += frame_count(d, sc.frame_rate_hz) * len(seeds)
+        total += frame_count(d, sc.frame_rate_hz) * len(seeds) * len(variants)
     t0 = time.perf_counter()
     bar = None
     results: list = [None] * len(jobs)
@@ -811,11 +939,11 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
             bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True, **_bar_pacing())
         try:
             for n, j in enumerate(jobs):
-                sc, seed = j[0], j[1]
+                sc, seed, opts = j[0], j[1], j[2]
                 if bar is not None:
                     bar.set_postfix_str(f"{sc.name} seed {seed}")
                 try:
-                    results[n] = run_lockstep(sc, seed, options, base_config, bar.update if bar is not None else None)
+                    results[n] = run_lockstep(sc, seed, opts, base_config, bar.update if bar is not None else None)
                 except IrtrackError as exc:
                     log.error("%s seed %d: %s", sc.name, seed, exc)
                     results[n] = _empty_result(sc, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
@@ -897,7 +1025,7 @@ def cmd_eval(args) -> int:
     import sys
 
     from groundsim.cli import resolve_scenario_path
-    from groundsim.report import format_table2, write_eval_report
+    from groundsim.report import format_closed_loop, format_table2, write_eval_report
     from groundsim.scenario import load_scenario
 
     limit_blas_threads(1)
@@ -911,7 +1039,11 @@ def cmd_eval(args) -> int:
     workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
     if workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
-    options = EvalOptions(duration_s=args.duration, pixel_sigma_px=args.pixel_sigma, batch=not args.no_batch)
+    nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
+    options = EvalOptions(duration_s=args.duration, pixel_sigma_px=args.pixel_sigma, batch=not args.no_batch,
+                          nav_noise=nav_noises[0])
+    for n in nav_noises[1:]:
+        dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
     base = load_base_config(args.onboard_config)
     source = args.onboard_config or (str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults")
     out = Path(args.out)
@@ -921,10 +1053,12 @@ def cmd_eval(args) -> int:
         raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
     log.info("eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s", len(scenarios), args.seeds, workers, source)
     result = run_eval(scenarios, range(args.seeds), options, base, workers=workers, progress=not args.no_progress,
-                      config_source=source)
+                      config_source=source, nav_noises=nav_noises)
     files = write_eval_report(out, result)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))
+    print()
+    print(format_closed_loop(result.summary))
     failed = sum(1 for s in result.scores if "error" in s)
     print(f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s; report: {files['report.md']}")
     sys.stdout.flush()
