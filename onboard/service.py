@@ -26,8 +26,11 @@ Threads (nothing else runs concurrently):
   the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).
 * **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
   :meth:`MavlinkLink.tick`, CAMERA_TRACKING_IMAGE_STATUS / GEO_STATUS of the newest track at
-  ``output.tracking_*_status_hz``, the status JSON on ``irtrack/<vehicle>/status`` every
-  ``output.status_interval_s``.  It owns the pymavlink connection alone; pose samples go into the
+  ``output.tracking_*_status_hz`` (#276 only for observable positions unless
+  ``output.geo_status_unobservable``), the status JSON on ``irtrack/<vehicle>/status`` every
+  ``output.status_interval_s``, and the :class:`~onboard.watchdog.Watchdog`'s input checks (no frames
+  / no MAVLink for 5 s; frame size and residual checks are fed by the pipeline thread): each
+  condition is logged once at WARNING and listed in the status JSON's ``warnings`` while it holds.  It owns the pymavlink connection alone; pose samples go into the
   shared :class:`SharedPoseBuffer` under a lock held for one ``add`` or one lookup (microseconds),
   so a pose lookup never blocks MAVLink.
 
@@ -62,6 +65,7 @@ from onboard.track import (
     image_status_fields,
     track_to_bytes,
 )
+from onboard.watchdog import Watchdog
 
 __all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "ProcessEstimator", "OnboardService"]
 
@@ -574,6 +578,11 @@ class OnboardService:
         self._health_failed = False
         self._started_s = clock()
         self.status_count = 0
+        self.watchdog = Watchdog(
+            started_s=self._started_s, frame_key=frame_key_of(config.vehicle), zenoh_where=_zenoh_where(config),
+            mavlink_connection=config.mavlink.connection,
+            camera_size_px=(self.pipeline.intrinsics.width_px, self.pipeline.intrinsics.height_px),
+        )
 
     # ------------------------------------------------------------------ life cycle
 
@@ -603,6 +612,7 @@ class OnboardService:
         self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
         self._pipe_thread.start()
         self._started_s = self._clock()
+        self.watchdog.restart(self._started_s)  # the 5 s of the input checks run from here
         log.info("onboard service started: vehicle=%s mavlink=%s frames=%s estimator=%s",
                  cfg.vehicle, cfg.mavlink.connection, frame_key(cfg.vehicle), self.estimator_kind)
 
@@ -690,7 +700,12 @@ class OnboardService:
             c0 = time.thread_time()
             try:
                 track = self.pipeline.process(frame, received_ns)
-            except FrameRejected:
+                now_s = self._clock()
+                self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
+                self.watchdog.residual(now_s, track.residual_rms_norm)
+            except FrameRejected as exc:
+                if exc.reason == "dims_mismatch":
+                    self.watchdog.frame_size(self._clock(), frame.width_px, frame.height_px)
                 continue
             except Exception as exc:  # noqa: BLE001 - never let one frame kill the loop
                 self.counter.count("pipeline_error", f"{type(exc).__name__}: {exc}")
@@ -752,11 +767,23 @@ class OnboardService:
                     next_img = max(next_img + img_every, now)
                 if now >= next_geo:
                     next_geo = max(next_geo + geo_every, now)
+            self._watch(now)
             if now >= next_status:
                 last_cpu = self._publish_status(now, last_cpu)
                 next_status = max(next_status + cfg.output.status_interval_s, now)
             self._stop.wait(period)
             now = self._clock()
+
+    def _watch(self, now: float) -> None:
+        with self._stats_lock:
+            frames_in = self.frames_in
+        rx = None
+        if self.link is not None:
+            try:
+                rx = int(self.link.status().messages_rx)
+            except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
+                self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
+        self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx)
 
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)
@@ -777,7 +804,7 @@ class OnboardService:
             if image:
                 self.link.send_tracking_image_status(**image_status_fields(track, K.width_px, K.height_px), camera_device_id=dev)
             if geo:
-                fields = geo_status_fields(track)
+                fields = geo_status_fields(track, observable_only=not self.config.output.geo_status_unobservable)
                 if fields is not None:
                     self.link.send_tracking_geo_status(**fields, camera_device_id=dev)
         except InputError as exc:
@@ -817,6 +844,7 @@ class OnboardService:
             queue_wait_ms=self.queue_wait_ms.summary(),
             publish_ms=self.publish_ms.summary(),
             stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
+            warnings=self.watchdog.active_dicts(),
         )
 
     def _drain_capture_latency(self) -> None:
@@ -845,3 +873,19 @@ class OnboardService:
 
 #: ``frame_*`` counter keys that are accepted events, not refusals
 _ACCEPTED_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame_stream_restart"})
+
+
+def frame_key_of(vehicle: str) -> str:
+    """The frames' zenoh key (:func:`onboard.zenoh_session.frame_key`, without importing zenoh here)."""
+    return f"irtrack/{vehicle}/ir/frame"
+
+
+def _zenoh_where(config: OnboardConfig) -> str:
+    """The zenoh session's endpoints and mode in words, for the no-frames warning."""
+    z = config.zenoh
+    parts = [f"zenoh mode as {z.config_file} sets it (peer by default)" if z.config_file else "zenoh mode peer"]
+    parts.append("connect " + (", ".join(z.connect) if z.connect else "none (--zenoh-connect)"))
+    parts.append("listen " + (", ".join(z.listen) if z.listen else "none (--zenoh-listen)"))
+    scout = {True: "on", False: "off", None: "as the config file says"}[z.multicast_scouting]
+    parts.append(f"multicast scouting {scout}")
+    return "; ".join(parts)

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from dataclasses import dataclass
 
 from onboard.errors import InputError
@@ -91,7 +92,12 @@ class Watchdog:
         self._high_n = 0
         self._high_max = 0.0
         self._active: dict[str, WatchdogWarning] = {}
+        self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
         self.warned: set[str] = set()
+
+    def restart(self, now_s: float) -> None:
+        """The inputs were (re)opened at ``now_s``: the input timeouts run from here."""
+        self._last_frame_s = self._last_mavlink_s = float(now_s)
 
     # ------------------------------------------------------------------ inputs
 
@@ -157,22 +163,27 @@ class Watchdog:
     @property
     def active(self) -> tuple[WatchdogWarning, ...]:
         """The conditions holding now, in the order they were raised."""
-        return tuple(self._active.values())
+        with self._lock:
+            return tuple(self._active.values())
 
     def active_dicts(self) -> list[dict[str, str]]:
-        return [w.as_dict() for w in self._active.values()]
+        return [w.as_dict() for w in self.active]
 
     def _raise(self, code: str, message: str) -> None:
-        was_active = code in self._active
-        self._active[code] = WatchdogWarning(code, message)
+        with self._lock:
+            was_active = code in self._active
+            self._active[code] = WatchdogWarning(code, message)
+            first = code not in self.warned
+            self.warned.add(code)
         if was_active:
             return
-        if code not in self.warned:
-            self.warned.add(code)
+        if first:
             self._log.warning("%s: %s", code, message)
         else:
             self._log.info("%s again (warned before): %s", code, message)
 
     def _clear(self, code: str) -> None:
-        if self._active.pop(code, None) is not None:
+        with self._lock:
+            gone = self._active.pop(code, None) is not None
+        if gone:
             self._log.info("%s cleared", code)

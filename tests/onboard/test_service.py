@@ -9,6 +9,7 @@ status counters while tracks keep flowing; SIGTERM must end it with exit code 0 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import queue
@@ -422,3 +423,116 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
         assert counter["estimator_error"] == 1 and pe.restarts == 1
     finally:
         pe.close()
+
+
+# --------------------------------------------------------------------------- warnings and #276 policy (no sockets)
+
+
+class _FakeClock:
+    def __init__(self, t_s: float = 1000.0) -> None:
+        self.t_s = t_s
+
+    def __call__(self) -> float:
+        return self.t_s
+
+    def ns(self) -> int:
+        return int(self.t_s * 1e9)
+
+
+class _FakeLink:
+    autopilot_sysid = 1
+
+    def __init__(self) -> None:
+        self.rx = 0
+        self.geo: list[dict] = []
+
+    def status(self):
+        from onboard.mavlink_link import LinkStatus
+
+        return LinkStatus(state="connected" if self.rx else "waiting", autopilot_sysid=1, heartbeat_age_s=None,
+                          rates_confirmed=(), rates_pending=(), rates_refused=(), clock_synced=False,
+                          messages_rx=self.rx, link_losses=0, reboots=0)
+
+    def send_tracking_image_status(self, **kw) -> None:
+        pass
+
+    def send_tracking_geo_status(self, **kw) -> None:
+        self.geo.append(kw)
+
+
+def _quiet_service(overrides=None):
+    from onboard.config import build_config
+    from onboard.service import OnboardService
+
+    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
+                        "zenoh": {"connect": ["tcp/10.1.2.3:7447"]}, "mavlink": {"connection": "udpin:0.0.0.0:14999"},
+                        **(overrides or {})})
+    clock = _FakeClock()
+    svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
+    svc.link = _FakeLink()
+    return svc, clock
+
+
+def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(caplog):
+    svc, clock = _quiet_service()
+    svc.watchdog.restart(clock())
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for _ in range(200):  # 20 s of the main loop's checks
+            clock.t_s += 0.1
+            svc._watch(clock())
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.watchdog"]
+    assert len(warned) == 2
+    assert any("irtrack/uav1/ir/frame" in m and "tcp/10.1.2.3:7447" in m for m in warned)
+    assert any("udpin:0.0.0.0:14999" in m for m in warned)
+    codes = [w["code"] for w in svc.status(clock())["warnings"]]
+    assert sorted(codes) == ["no_frames", "no_mavlink"]
+    svc.link.rx = 5
+    with svc._stats_lock:
+        svc.frames_in = 1
+    svc._watch(clock())
+    assert svc.status(clock())["warnings"] == []
+
+
+def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
+    from onboard.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+        for k in range(4):  # input.queue_length
+            svc.queue.push((IrFrame(seq=k, time_boot_us=1000 + k, pixels=np.zeros((256, 320), np.uint8)), clock.ns()))
+        t = threading.Thread(target=svc._pipeline_loop)  # the service's own frame loop
+        t.start()
+        deadline = time.monotonic() + 10.0
+        while svc.counter["frame_dims_mismatch"] < 4 and time.monotonic() < deadline:
+            svc._pipe_stop.wait(0.01)
+        svc._pipe_stop.set()
+        svc.queue.close()
+        t.join(10)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.watchdog"]
+    assert len(warned) == 1 and "320 x 256" in warned[0] and "640 x 512" in warned[0]
+    assert svc.counter["frame_dims_mismatch"] == 4
+    assert [w["code"] for w in svc.status(clock())["warnings"]] == ["frame_size"]
+
+
+def test_service_sends_276_only_for_observable_positions_by_default():
+    from onboard.frames import GeodeticOrigin
+    from onboard.track import Track
+
+    def track(observable: bool) -> Track:
+        return Track(vehicle="uav1", seq=1, time_boot_us=10, state="tracking", track_id=1, measurement_valid=True,
+                     u_px=300.0, v_px=200.0, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0),
+                     lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
+                     cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]), range_m=130.0, observable=observable, window_frames=60)
+
+    svc, clock = _quiet_service()
+    svc._latest = (track(False), clock())
+    svc._send_tracking_status(clock(), False, True)
+    assert svc.link.geo == []  # unobservable: no #276
+    svc._latest = (track(True), clock())
+    svc._send_tracking_status(clock(), False, True)
+    assert len(svc.link.geo) == 1 and svc.link.geo[0]["h_acc_m"] == pytest.approx(math.sqrt(800.0))
+    assert svc.link.geo[0]["dist_m"] == 130.0
+    svc, clock = _quiet_service({"output": {"health_file": None, "geo_status_unobservable": True}})
+    svc._latest = (track(False), clock())
+    svc._send_tracking_status(clock(), False, True)
+    assert len(svc.link.geo) == 1
