@@ -29,6 +29,10 @@ Image
     Pixels ``(u_px, v_px)``: u to the right, v down, origin at the top-left pixel's top-left
     corner, so the centre of pixel (i, j) is (j + 0.5, i + 0.5) and the principal point of a
     640 x 512 sensor is (320, 256).
+Line of sight (azimuth / elevation)
+    A direction ``l`` in local NED as ``az_deg = atan2(l_e, l_n)``: from north towards east,
+    (-180, 180]; ``el_deg = atan2(-l_d, hypot(l_n, l_e))``: positive up, [-90, 90].  Used by the
+    track's ``los_az_deg`` / ``los_el_deg`` (:func:`onboard.track.line_of_sight_ned`).
 
 Quaternions
 -----------
