@@ -1,0 +1,268 @@
+"""Navigation errors of the simulated telemetry (groundsim.nav_errors) and where they are applied."""
+
+from __future__ import annotations
+
+import math
+import socket
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundsim import cli
+from groundsim.eval import EvalOptions, TelemetryFeed
+from groundsim.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
+from groundsim.nav_errors import (
+    NAV_ERROR_STREAM,
+    NavErrorModel,
+    NavErrorSample,
+    offset_geodetic,
+    reported_state,
+    resolve_nav_noise,
+)
+from groundsim.run import SimCore
+from groundsim.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
+from onboard.config import OnboardConfig
+from onboard.errors import ConfigError
+from onboard.frames import (
+    CameraMount,
+    GeodeticOrigin,
+    ned_from_geodetic,
+    quat_conjugate,
+    quat_from_euler,
+    quat_multiply,
+    rotvec_from_quat,
+)
+from onboard.pose import PoseBuffer, PoseBufferConfig
+
+P1 = scenarios_dir() / "P1.yaml"
+N_TICKS = 20_000  # statistics over this many samples: sample std within ~1 % (3 sigma ~ 1.5 %)
+STD_RTOL = 0.03
+ATOL_RAD = 1e-12
+ATOL_M = 1e-5  # 10 um: offset_geodetic drops the curvature term |d|^2 / 2R (6 um at 8.7 m)
+T_GRID_S = np.arange(N_TICKS) / 120.0
+
+
+@pytest.fixture(scope="module")
+def cases():
+    return load_noise_cases()
+
+
+def _model(case, seed: int, scenario=None):
+    sc = scenario if scenario is not None else load_scenario(P1)
+    return NavErrorModel(case, sc.rng(NAV_ERROR_STREAM, seed), T_GRID_S)
+
+
+# --------------------------------------------------------------------------- the model
+
+
+def test_deterministic_per_seed_and_different_across_seeds(cases):
+    a, b, c = _model(cases["GNSS"], 3), _model(cases["GNSS"], 3), _model(cases["GNSS"], 4)
+    np.testing.assert_array_equal(a.att_err_ned_rad(), b.att_err_ned_rad())
+    np.testing.assert_array_equal(a.p_err_ned_m(), b.p_err_ned_m())
+    assert not np.allclose(a.bias_ned_rad, c.bias_ned_rad)
+    assert not np.allclose(a.offset_ned_m, c.offset_ned_m) and not np.allclose(a.drift_ned_mps, c.drift_ned_mps)
+    assert not np.allclose(a.att_white_ned_rad[:10], c.att_white_ned_rad[:10])
+
+
+def test_own_stream_leaves_the_other_streams_alone():
+    sc = load_scenario(P1)
+    before = sc.rng("render.noise", 2).standard_normal(5)
+    _model(load_noise_cases()["RTK"], 2, sc)
+    np.testing.assert_array_equal(sc.rng("render.noise", 2).standard_normal(5), before)
+
+
+@pytest.mark.parametrize("name", ["RTK", "GNSS"])
+def test_statistics_match_the_noise_case(cases, name):
+    case = cases[name]
+    m = _model(case, 0)
+    # white attitude noise: per-axis sample std; the bias is the same at every sample
+    att = m.att_err_ned_rad()
+    white = att - m.bias_ned_rad
+    np.testing.assert_allclose(white.std(axis=0), case.attitude_white_sigma_rad, rtol=STD_RTOL)
+    np.testing.assert_allclose(att.mean(axis=0), m.bias_ned_rad, atol=4 * case.attitude_white_sigma_rad / math.sqrt(N_TICKS))
+    # the bias over many runs has the case's sigma
+    biases = np.array([_model(case, s).bias_ned_rad for s in range(300)])
+    np.testing.assert_allclose(biases.std(), case.attitude_bias_sigma_rad, rtol=0.1)
+    # position: offset and drift of the case's size, white noise of its sigma
+    assert np.linalg.norm(m.offset_ned_m) == pytest.approx(case.camera_position_offset_m, rel=1e-12)
+    assert np.linalg.norm(m.drift_ned_mps) == pytest.approx(case.camera_position_drift_mps, rel=1e-12)
+    p = m.p_err_ned_m()
+    wpos = p - m.offset_ned_m - T_GRID_S[:, None] * m.drift_ned_mps
+    if case.camera_position_white_sigma_m > 0:
+        np.testing.assert_allclose(wpos.std(axis=0), case.camera_position_white_sigma_m, rtol=STD_RTOL)
+    else:
+        np.testing.assert_allclose(wpos, 0.0, atol=1e-12)
+
+
+def test_exact_case_is_zero(cases):
+    m = _model(cases["exact"], 5)
+    assert np.all(m.att_err_ned_rad() == 0) and np.all(m.p_err_ned_m() == 0)
+    assert m.sample(7).is_zero
+
+
+def test_reported_velocity_is_the_derivative_of_the_reported_position_without_its_white_part(cases):
+    m = _model(cases["GNSS"], 1)
+    i, j = 100, 1300
+    si, sj = m.sample(i), m.sample(j)
+    slope = ((sj.p_err_ned_m - m.p_white_ned_m[j]) - (si.p_err_ned_m - m.p_white_ned_m[i])) / (T_GRID_S[j] - T_GRID_S[i])
+    np.testing.assert_allclose(slope, si.v_err_ned_mps, atol=1e-12)
+    np.testing.assert_array_equal(si.v_err_ned_mps, sj.v_err_ned_mps)
+
+
+# --------------------------------------------------------------------------- applying a sample
+
+
+def _truth_state():
+    return dict(time_boot_us=2_000_000, lat_deg=32.001, lon_deg=118.802, alt_amsl_m=60.0, alt_rel_m=60.0,
+                v_ned_mps=np.array([0.0, 4.0, 0.0]), q_ned_from_body=quat_from_euler(0.02, -0.05, 1.0),
+                body_rates_radps=np.zeros(3), heading_rad=1.0, q_gimbal=quat_from_euler(0.0, -0.3, 0.7))
+
+
+def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitudes():
+    err = NavErrorSample(np.array([1e-3, -2e-3, 3e-3]), np.array([1.5, -0.7, 0.4]), np.array([0.03, -0.04, 0.01]))
+    st = _truth_state()
+    rep = reported_state(st, err)
+    origin = GeodeticOrigin(st["lat_deg"], st["lon_deg"], st["alt_amsl_m"])
+    np.testing.assert_allclose(ned_from_geodetic(rep["lat_deg"], rep["lon_deg"], rep["alt_amsl_m"], origin),
+                               err.p_err_ned_m, atol=ATOL_M)
+    assert rep["alt_rel_m"] - st["alt_rel_m"] == pytest.approx(-0.4, abs=1e-12)
+    np.testing.assert_allclose(rep["v_ned_mps"], st["v_ned_mps"] + err.v_err_ned_mps, atol=1e-15)
+    for key in ("q_ned_from_body", "q_gimbal"):  # R_rep R_true^T = Exp(phi), in NED
+        dq = quat_multiply(rep[key], quat_conjugate(st[key]))
+        np.testing.assert_allclose(rotvec_from_quat(dq), err.att_err_ned_rad, atol=1e-12)
+    assert rep["heading_rad"] != st["heading_rad"] and abs(rep["heading_rad"] - st["heading_rad"]) < 0.01
+    assert st["lat_deg"] == 32.001 and rep is not st  # the input is not modified
+    assert reported_state(st, None) == st
+
+
+@settings(max_examples=60, deadline=None)
+@given(lat=st.floats(-80, 80), lon=st.floats(-180, 179.999), alt=st.floats(-100, 5000),
+       d=st.lists(st.floats(-5, 5), min_size=3, max_size=3))
+def test_offset_geodetic_is_the_ned_offset_at_the_point(lat, lon, alt, d):
+    lat2, lon2, alt2 = offset_geodetic(lat, lon, alt, d)
+    assert -180.0 <= lon2 < 180.0
+    np.testing.assert_allclose(ned_from_geodetic(lat2, lon2, alt2, GeodeticOrigin(lat, lon, alt)), d, atol=ATOL_M)
+
+
+# --------------------------------------------------------------------------- simulator, truth, vehicle, feed
+
+
+def test_simcore_truth_rows_record_the_injected_errors_and_stay_exact():
+    sc = load_scenario(P1)
+    exact, rtk = SimCore(sc, 2, 0.5, render=False, nav_noise="exact"), SimCore(sc, 2, 0.5, render=False)
+    assert rtk.nav_noise.name == "RTK" == sc.nav_noise  # the default
+    assert rtk.vehicle_state(3)["lat_deg"] == exact.vehicle_state(3)["lat_deg"]  # vehicle_state is the truth
+    for k in (0, 5, 14):
+        i = k * rtk.ticks_per_frame
+        row, row0 = rtk.frame(k).truth, exact.frame(k).truth
+        err = rtk.nav_error(i)
+        np.testing.assert_array_equal([row.nav_att_err_n_rad, row.nav_att_err_e_rad, row.nav_att_err_d_rad], err.att_err_ned_rad)
+        np.testing.assert_array_equal([row.nav_p_err_n_m, row.nav_p_err_e_m, row.nav_p_err_d_m], err.p_err_ned_m)
+        assert np.linalg.norm(err.att_err_ned_rad) > 0
+        # the truth itself does not depend on the navigation errors
+        assert (row.observer_lat_deg, row.cam_n_m, row.q_ned_from_cam_w, row.target_u_px) == \
+            (row0.observer_lat_deg, row0.cam_n_m, row0.q_ned_from_cam_w, row0.target_u_px)
+        assert row0.nav_att_err_n_rad == row0.nav_p_err_d_m == 0.0
+
+
+def test_vehicle_reports_the_state_with_the_error_applied():
+    port = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    port.bind(("127.0.0.1", 0))
+    err = NavErrorSample(np.array([2e-3, 0.0, -1e-3]), np.array([0.5, 0.2, -0.1]), np.array([0.05, 0.0, 0.0]))
+    st = _truth_state()
+    with MavlinkVehicle(f"udpout:127.0.0.1:{port.getsockname()[1]}", gimballed=True) as v:
+        s = v.update_state(**st, nav_error=err)
+    port.close()
+    rep = reported_state(st, err)
+    assert (s.lat_deg, s.lon_deg, s.alt_amsl_m) == (rep["lat_deg"], rep["lon_deg"], rep["alt_amsl_m"])
+    np.testing.assert_allclose(s.q_ned_from_gimbal, rep["q_gimbal"], atol=1e-15)
+    np.testing.assert_allclose(s.v_ned_mps, rep["v_ned_mps"], atol=1e-15)
+
+
+def test_vehicle_honours_gimbal_status_at_100_hz():
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    st = _truth_state()
+    with MavlinkVehicle(f"udpout:127.0.0.1:{rx.getsockname()[1]}", gimballed=True) as v:
+        v.poll(1_000_000)
+        assert v._set_message_interval(float(MSG_GIMBAL_DEVICE_ATTITUDE_STATUS), 10_000.0) == 0  # ACCEPTED
+        for i in range(240):  # 2 s of the simulator's 120 Hz ticks, a new state every tick
+            t_us = 1_000_000 + round(i * 1e6 / 120)
+            st["time_boot_us"] = t_us
+            v.update_state(**st)
+            v.poll(t_us)
+        sent = v.counters[f"tx_{MSG_GIMBAL_DEVICE_ATTITUDE_STATUS}"]
+    rx.close()
+    assert 180 <= sent <= 201  # ~100 Hz over 2 s (a 10 ms schedule sampled on 8.3 ms ticks)
+
+
+class _Core:
+    """A level observer flying north at 10 m/s, with navigation errors (SimCore's telemetry interface)."""
+
+    tick_rate_hz = 120.0
+
+    def __init__(self, seconds: float, case) -> None:
+        self.tick_count = int(seconds * self.tick_rate_hz)
+        self.origin = GeodeticOrigin(32.0, 118.8, 0.0)
+        self.model = NavErrorModel(case, np.random.default_rng(9), np.arange(self.tick_count) / self.tick_rate_hz)
+
+    def vehicle_state(self, i: int) -> dict:
+        from onboard.frames import geodetic_from_ned
+
+        t = i / self.tick_rate_hz
+        lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
+        return dict(time_boot_us=1_000_000 + round(t * 1e6), lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt),
+                    alt_rel_m=float(alt), v_ned_mps=np.array([10.0, 0.0, 0.0]), q_ned_from_body=np.array([1.0, 0, 0, 0]),
+                    body_rates_radps=np.zeros(3), heading_rad=0.0, q_gimbal=None)
+
+    def nav_error(self, i: int):
+        return self.model.sample(i)
+
+
+def test_telemetry_feed_injects_the_same_errors_as_the_vehicle():
+    case = resolve_nav_noise("GNSS")
+    core = _Core(1.0, case)
+    buf = PoseBuffer(CameraMount(), PoseBufferConfig(), core.origin)
+    feed = TelemetryFeed(core, buf, gimballed=False)
+    while not feed.exhausted:
+        feed.feed_next()
+    i = 60  # t = 0.5 s: a #33 sample (every 40 ms = 4.8 ticks: tick 60 is due) and a #31 one
+    pose = buf.pose_at(core.vehicle_state(i)["time_boot_us"])
+    err = core.nav_error(i)
+    # the offset (1.5 m) and drift dominate: the reported position is the truth moved by the error
+    np.testing.assert_allclose(pose.body.p_ned_m, np.array([5.0, 0.0, -60.0]) + err.p_err_ned_m, atol=0.03)
+    np.testing.assert_allclose(rotvec_from_quat(pose.body.q_ned_from_body), err.att_err_ned_rad, atol=1e-6)
+
+
+# --------------------------------------------------------------------------- options and files
+
+
+def test_bad_nav_noise_name_is_one_line_exit_2(capsys):
+    assert cli.main(["run", "--nav-noise", "rtk", "--no-render"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "noise_cases.yaml: --nav-noise: expected one of px0.3, RTK, GNSS, exact, got 'rtk'; did you mean 'RTK'?" in err[0]
+    with pytest.raises(ConfigError, match=r"noise_cases.yaml: --nav-noise: expected one of .*got 'nope'"):
+        EvalOptions(nav_noise="nope")
+
+
+def test_scenario_nav_noise_key_is_validated():
+    doc = {"name": "x", "observer": {"motion": {"model": "cubic", "p0_ned_m": [0, 0, -60]}},
+           "target": {"motion": {"model": "cubic", "p0_ned_m": [100, 0, -60]}}}
+    assert scenario_from_dict(doc).nav_noise == "RTK"
+    assert scenario_from_dict({**doc, "nav_noise": "GNSS"}).nav_noise == "GNSS"
+    with pytest.raises(ScenarioError, match=r"^<dict>: nav_noise: expected one of px0.3, RTK, GNSS, exact, got 'gps'"):
+        scenario_from_dict({**doc, "nav_noise": "gps"})
+
+
+def test_eval_and_demo_default_to_rtk_and_the_shipped_daemon_config():
+    from groundsim.eval import DEFAULT_ONBOARD_CONFIG
+
+    assert EvalOptions().nav_noise == "RTK"
+    assert str(DEFAULT_ONBOARD_CONFIG) == "config/onboard.yaml"
+    parser = cli.build_parser()
+    assert parser.parse_args(["eval"]).nav_noise is None  # cmd_eval: None -> [DEFAULT_NAV_NOISE]
+    assert parser.parse_args(["demo"]).onboard_config == "config/onboard.yaml"
+    assert isinstance(OnboardConfig().mavlink.gimbal_rate_hz, float)

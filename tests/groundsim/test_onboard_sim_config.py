@@ -1,0 +1,38 @@
+"""config/onboard_sim.yaml is config/onboard.yaml with exactly the reference scenarios' camera and a loopback
+zenoh listener: the simulator and the daemon agree on the camera, and the noise model is the shipped one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from groundsim.eval import onboard_config_for
+from groundsim.scenario import load_scenario, scenarios_dir
+from onboard.config import config_to_dict, load_config
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_onboard_sim_differs_from_the_shipped_config_only_in_camera_and_zenoh_listen():
+    shipped = config_to_dict(load_config(REPO / "config/onboard.yaml", environ={}))
+    sim = config_to_dict(load_config(REPO / "config/onboard_sim.yaml", environ={}))
+    differing = {k for k in shipped if shipped[k] != sim[k]}
+    assert differing == {"camera", "zenoh"}
+    assert {k for k in shipped["zenoh"] if shipped["zenoh"][k] != sim["zenoh"][k]} == {"listen"}
+    assert sim["estimator"] == shipped["estimator"]  # the daemon's shipped noise model
+
+
+def test_onboard_sim_camera_is_the_reference_scenarios_camera():
+    sim = load_config(REPO / "config/onboard_sim.yaml", environ={}).camera
+    shipped = load_config(REPO / "config/onboard.yaml", environ={})
+    for name in ("P1", "P2", "P3"):
+        want = onboard_config_for(load_scenario(scenarios_dir() / f"{name}.yaml"), shipped).camera
+        K, K0 = sim.pinhole(), want.pinhole()
+        assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px, K.height_px) == \
+            pytest.approx((K0.fx_px, K0.fy_px, K0.cx_px, K0.cy_px, K0.width_px, K0.height_px), abs=1e-9), name
+        m, m0 = sim.camera_mount(), want.camera_mount()
+        np.testing.assert_allclose(m.lever_arm_frd_m, m0.lever_arm_frd_m, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(np.abs(np.dot(m.q_body_from_mount, m0.q_body_from_mount)), 1.0, atol=1e-12, err_msg=name)
+        assert m.gimballed == m0.gimballed is True, name
