@@ -412,6 +412,9 @@ def test_compose_groundsim_command(compose):
     assert _opt(cmd, "--rate") == ["realtime"]
     assert _opt(cmd, "--mavlink") == ["udpout:127.0.0.1:14540"]
     assert _opt(cmd, "--zenoh-connect") == ["tcp/127.0.0.1:7447"]
+    from groundsim.nav_errors import resolve_nav_noise
+
+    assert _opt(cmd, "--nav-noise") == ["RTK"] and resolve_nav_noise("RTK")  # realistic telemetry, a shipped case
     scenario = _opt(cmd, "--scenario")
     assert len(scenario) == 1 and (REPO / scenario[0]).is_file(), "scenario path relative to the image WORKDIR"
     assert sim["healthcheck"] == {"disable": True}, "the image's HEALTHCHECK is the daemon's"
