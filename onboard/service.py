@@ -134,7 +134,11 @@ class SharedPoseBuffer:
         """Wait until a lookup at ``time_boot_us`` is decided by the data (the telemetry reaches that
         time, or a miss that waiting cannot fix) or ``timeout_s`` passed.  True when the telemetry
         covers the time (``pose_at`` then answers; it may still be a gap), False otherwise (then
-        ``pose_at`` extrapolates within its horizon).  Never longer than ``timeout_s``."""
+        ``pose_at`` extrapolates within its horizon).  Never longer than ``timeout_s``, and not at
+        all once the newest samples can be extrapolated to the time: waiting would buy a bracket
+        whose gain (a few thousandths of a degree, :mod:`onboard.pose`) is not worth the latency;
+        it waits only for streams that cannot be extrapolated (no rates, no velocity, beyond the
+        horizon)."""
         deadline = clock() + max(timeout_s, 0.0)
         buf = self._buffer
         cheap = not buf.mount.gimballed  # newest_time_boot_us covers attitude and position only
@@ -150,6 +154,8 @@ class SharedPoseBuffer:
                 left = deadline - clock()
                 if not res.retry or left <= 0:
                     return False
+                if buf.lookup(time_boot_us, extrapolate=True).pose is not None:
+                    return False  # decided: pose_at extrapolates, no need to hold the frame
                 self._cond.wait(left)
 
     def __getattr__(self, name: str):
