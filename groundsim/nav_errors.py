@@ -84,10 +84,14 @@ class NavErrorSample:
                 raise InputError(f"NavErrorSample.{name} must be 3 finite numbers, got {getattr(self, name)!r}")
             a.setflags(write=False)
             object.__setattr__(self, name, a)
+        # per-tick hot path (reported_state at 120 Hz): which parts are non-zero, computed once
+        object.__setattr__(self, "has_attitude_error", bool(self.att_err_ned_rad.any()))
+        object.__setattr__(self, "has_position_error", bool(self.p_err_ned_m.any()))
+        object.__setattr__(self, "has_velocity_error", bool(self.v_err_ned_mps.any()))
 
     @property
     def is_zero(self) -> bool:
-        return not (np.any(self.att_err_ned_rad) or np.any(self.p_err_ned_m) or np.any(self.v_err_ned_mps))
+        return not (self.has_attitude_error or self.has_position_error or self.has_velocity_error)
 
 
 ZERO_ERROR = NavErrorSample(np.zeros(3), np.zeros(3), np.zeros(3))
@@ -194,13 +198,13 @@ def reported_state(state: dict, err: NavErrorSample | None) -> dict:
     out = dict(state)
     if err is None or err.is_zero:
         return out
-    if np.any(err.p_err_ned_m):
+    if err.has_position_error:
         lat, lon, alt = offset_geodetic(float(state["lat_deg"]), float(state["lon_deg"]), float(state["alt_amsl_m"]),
                                         err.p_err_ned_m)
         out["lat_deg"], out["lon_deg"], out["alt_amsl_m"] = lat, lon, alt
         out["alt_rel_m"] = float(state["alt_rel_m"]) + (alt - float(state["alt_amsl_m"]))
     out["v_ned_mps"] = np.asarray(state["v_ned_mps"], dtype=float) + err.v_err_ned_mps
-    if np.any(err.att_err_ned_rad):
+    if err.has_attitude_error:
         dq = quat_from_rotvec(err.att_err_ned_rad)
         q_true = np.asarray(state["q_ned_from_body"], dtype=float)
         q_rep = quat_normalize(quat_multiply(dq, q_true))
