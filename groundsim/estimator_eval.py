@@ -12,7 +12,9 @@ Figures per run (all means over the window's points):
 - ``err_paper_pct``: ||X_hat - X|| / ||X|| with the scenario's world origin (the paper's metric);
 - ``rmse_m``, ``crb_rms_m``; ``crb_err_range_pct``: the median ``err_range_pct`` an efficient estimator
   (errors distributed as the Bayesian CRB) would reach on this window -- the statistical floor;
-- ``observable`` and ``range_sigma_ratio`` (the estimator's own verdict);
+- ``observable`` and ``range_sigma_ratio`` (the estimator's own verdict and its input), ``ambiguity``
+  (posterior mass of far solutions), ``crb_range_sigma_pct`` (the bound's range sigma / range,
+  median over the window: the smallest ratio an estimator knowing the motion model could report);
 - ``beyond_3sigma``: fraction of points with ||e|| > 3 sqrt(trace P) (the honesty check);
 - ``nees``: mean e^T P^-1 e (3 for a consistent 3-D covariance).
 """
@@ -27,10 +29,11 @@ import numpy as np
 
 from groundsim.scenario import NoiseCase, Scenario
 from groundsim.synth import estimator_noise_model, synthesize_scenario
-from onboard.estimation.crb import bayesian_crb_rms_m, efficient_error_range_pct
+from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_rms_m, efficient_error_range_pct
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 
-__all__ = ["CaseResult", "run_case", "run_cases", "summarise", "format_table", "PAPER_TABLE2"]
+__all__ = ["CaseResult", "run_case", "run_cases", "summarise", "format_table", "verdict_rows", "format_verdict_table",
+           "PAPER_TABLE2", "VERDICT_GOOD_PCT"]
 
 #: The paper's Table 2 (relative error, world origin) by scenario key.
 PAPER_TABLE2 = {"P1": 0.89, "P2": 1.09, "P3": 1.45}
@@ -56,6 +59,8 @@ class CaseResult:
     paper_err_range_pct: float
     paper_solve_ms: float
     crb_err_range_pct: float = math.nan
+    ambiguity: float = math.nan
+    crb_range_sigma_pct: float = math.nan
 
 
 def _paper_solve(obs):
@@ -65,7 +70,8 @@ def _paper_solve(obs):
     return PaperEstimator().solve(obs)
 
 
-def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool = True, with_crb: bool = True) -> CaseResult:
+def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool = True, with_crb: bool = True,
+             with_efficient: bool = True) -> CaseResult:
     truth, obs = synthesize_scenario(scenario, noise, seed)
     est = MapEstimator(noise=estimator_noise_model(noise))
     t0 = time.perf_counter()
@@ -79,7 +85,7 @@ def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool =
         nan = math.nan
         e_rng = e_pap = rmse = crb = ratio = b3 = nees = nan
         observable, model, q, om = False, "failed", nan, nan
-        crb_pct = nan
+        crb_pct = amb = crb_sig = nan
     else:
         e = res.p_ned_m - truth.p_target_ned_m
         en = np.linalg.norm(e, axis=1)
@@ -95,7 +101,10 @@ def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool =
         crb = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, om) if with_crb else math.nan
         crb_pct = (float(np.median(efficient_error_range_pct(est, obs, truth.p_target_ned_m, res.prior, om,
                                                              rng=np.random.default_rng(seed))))
+                   if with_crb and with_efficient else math.nan)
+        crb_sig = (100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior, om)
                    if with_crb else math.nan)
+        amb = res.ambiguity
     p_err, p_ms = math.nan, math.nan
     if with_paper:
         t1 = time.perf_counter()
@@ -103,17 +112,18 @@ def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool =
         p_ms = (time.perf_counter() - t1) * 1e3
         p_err = float(np.mean(np.linalg.norm(pres.p_ned_m - truth.p_target_ned_m, axis=1) / rng_m) * 100)
     return CaseResult(scenario.name, noise.name, seed, e_rng, e_pap, rmse, crb, bool(observable), ratio, b3, nees,
-                      model, q, om, solve_ms, p_err, p_ms, crb_pct)
+                      model, q, om, solve_ms, p_err, p_ms, crb_pct, amb, crb_sig)
 
 
 def _run_one(args):
-    scenario, noise, seed, with_paper = args
-    return run_case(scenario, noise, seed, with_paper)
+    scenario, noise, seed, with_paper, with_efficient = args
+    return run_case(scenario, noise, seed, with_paper, with_efficient=with_efficient)
 
 
-def run_cases(scenarios, noises, seeds, workers: int = 1, with_paper: bool = True, progress=None) -> list[CaseResult]:
+def run_cases(scenarios, noises, seeds, workers: int = 1, with_paper: bool = True, progress=None,
+              with_efficient: bool = True) -> list[CaseResult]:
     """All combinations; ``workers`` > 1 uses a process pool; ``progress(done, total)`` if given."""
-    jobs = [(s, n, k, with_paper) for s in scenarios for n in noises for k in seeds]
+    jobs = [(s, n, k, with_paper, with_efficient) for s in scenarios for n in noises for k in seeds]
     out: list[CaseResult] = []
     if workers > 1:
         import multiprocessing as mp
@@ -192,4 +202,61 @@ def format_table(rows: list[dict]) -> str:
             f"{r['observable_runs'] - r['dishonest_runs']}/{r['observable_runs']} | {r['nees']:.1f} | "
             f"{r['paper_err_range_pct']:.0f} % | {f'{paper:.2f} %' if paper else '-'} |"
         )
+    return "\n".join(lines)
+
+
+#: the verdict table's "good run": mean error / range at most this (issue 9), percent
+VERDICT_GOOD_PCT = 2.0
+
+
+def verdict_rows(results: list[CaseResult], good_pct: float = VERDICT_GOOD_PCT) -> list[dict]:
+    """Precision and recall of the observability verdict per (scenario, noise).
+
+    precision: the runs called observable, their median error / range and how many are honest (<= 1 %
+    of points beyond 3 sqrt(trace P)); recall: of the runs whose error is <= ``good_pct``, the share
+    called observable; honesty of every published result (observable or not); the evidence for a
+    verdict that says no: the median reported range sigma ratio, the bound's (an estimator that knows
+    the motion model) and the median ambiguity (posterior mass of far solutions).
+    """
+    rows = []
+    keys = list(dict.fromkeys((r.scenario, r.noise) for r in results))
+    for sc, nz in keys:
+        rs = [r for r in results if (r.scenario, r.noise) == (sc, nz)]
+        ok = [r for r in rs if r.model != "failed"]
+        obs_runs = [r for r in ok if r.observable]
+        good = [r for r in ok if r.err_range_pct <= good_pct]
+
+        def med(vals):
+            v = [x for x in vals if math.isfinite(x)]
+            return float(np.median(v)) if v else math.nan
+
+        rows.append({
+            "scenario": sc, "noise": nz, "runs": len(rs), "failed": len(rs) - len(ok),
+            "observable": len(obs_runs),
+            "err_observable_pct": med([r.err_range_pct for r in obs_runs]),
+            "honest_observable": sum(1 for r in obs_runs if r.beyond_3sigma <= 0.01),
+            "good": len(good), "good_observable": sum(1 for r in good if r.observable),
+            "recall": (sum(1 for r in good if r.observable) / len(good)) if good else math.nan,
+            "honest_all": sum(1 for r in ok if r.beyond_3sigma <= 0.01),
+            "range_sigma_pct": med([100 * r.range_sigma_ratio for r in ok]),
+            "crb_range_sigma_pct": med([r.crb_range_sigma_pct for r in ok]),
+            "ambiguity": med([r.ambiguity for r in ok]),
+            "err_pct": med([r.err_range_pct for r in ok]),
+        })
+    return rows
+
+
+def format_verdict_table(rows: list[dict], threshold_pct: float) -> str:
+    """Markdown table of :func:`verdict_rows`; ``threshold_pct`` is the verdict's range-sigma threshold."""
+    head = ("| scenario | noise | runs | called observable | their median err/range | honest (observable) | "
+            f"runs with err <= {VERDICT_GOOD_PCT:g} % | recall | honest (all published) | median err/range | "
+            f"reported range sigma (median; verdict < {threshold_pct:g} %) | CRB range sigma | ambiguity |")
+    lines = [head, "|" + "---|" * 13]
+    for r in rows:
+        rec = "-" if not r["good"] else f"{100 * r['recall']:.0f} %"
+        eo = "-" if not r["observable"] else f"{r['err_observable_pct']:.2f} %"
+        lines.append(
+            f"| {r['scenario']} | {r['noise']} | {r['runs']} | {r['observable']} | {eo} | "
+            f"{r['honest_observable']}/{r['observable']} | {r['good']} | {rec} | {r['honest_all']}/{r['runs'] - r['failed']} | "
+            f"{r['err_pct']:.2f} % | {r['range_sigma_pct']:.1f} % | {r['crb_range_sigma_pct']:.1f} % | {r['ambiguity']:.2f} |")
     return "\n".join(lines)

@@ -205,36 +205,6 @@ class FrameQueue:
 # --------------------------------------------------------------------------- estimator worker
 
 
-class _Extrapolated:
-    """A TrackEstimate propagated at constant velocity (same attribute names)."""
-
-    __slots__ = ("t_s", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "cov_v_ned_m2ps2", "observable", "range_m",
-                 "range_sigma_ratio", "window_frames", "model")
-
-    def __init__(self, est, t_s: float, p_cam_ned_m=None) -> None:
-        dt = t_s - float(est.t_s)
-        v = np.asarray(est.v_ned_mps, dtype=float)
-        V = np.asarray(est.cov_v_ned_m2ps2, dtype=float)
-        self.t_s = t_s
-        self.p_ned_m = np.asarray(est.p_ned_m, dtype=float) + v * dt
-        self.v_ned_mps = v
-        self.cov_p_ned_m2 = np.asarray(est.cov_p_ned_m2, dtype=float) + dt * dt * V
-        self.cov_v_ned_m2ps2 = V
-        self.observable = bool(est.observable)
-        self.window_frames = int(est.window_frames)
-        self.model = getattr(est, "model", None)
-        if p_cam_ned_m is None:
-            # keep the old line of sight's length, moved by the target's displacement only
-            self.range_m = float(est.range_m)
-        else:
-            self.range_m = float(np.linalg.norm(self.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)))
-        if p_cam_ned_m is not None and self.range_m > 0:
-            u = (self.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)) / self.range_m
-            self.range_sigma_ratio = float(math.sqrt(max(u @ self.cov_p_ned_m2 @ u, 0.0)) / self.range_m)
-        else:
-            self.range_sigma_ratio = float(getattr(est, "range_sigma_ratio", math.nan))
-
-
 class ThreadedEstimator:
     """The estimator interface (``add`` / ``predict`` / ``reset``) with the work in a worker thread.
 
@@ -514,7 +484,7 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
     if dt == 0.0 and p_cam_ned_m is None:
         return est
     try:
-        return _Extrapolated(est, t, p_cam_ned_m)
+        return est.propagated(t, p_cam_ned_m)
     except (TypeError, ValueError, AttributeError) as exc:
         counter.count("estimator_error", f"extrapolation: {exc}")
         return None

@@ -22,7 +22,7 @@ import numpy as np
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior
 from onboard.estimation.observations import Observations
 
-__all__ = ["bayesian_crb_rms_m", "bayesian_crb_covariance", "efficient_error_range_pct"]
+__all__ = ["bayesian_crb_rms_m", "bayesian_crb_covariance", "bayesian_crb_range_sigma_ratio", "efficient_error_range_pct"]
 
 
 def bayesian_crb_covariance(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray, prior: MotionPrior,
@@ -41,6 +41,19 @@ def bayesian_crb_rms_m(estimator: MapEstimator, obs: Observations, p_true_ned_m:
     prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true_ned_m, prior, turn_rate_radps, grid)
     P = prob.point_covariances(Sigma)
     return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
+
+
+def bayesian_crb_range_sigma_ratio(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray,
+                                   prior: MotionPrior, turn_rate_radps: float = 0.0, grid=None) -> float:
+    """Median over the window of the bound's range sigma over the true range: the smallest
+    ``range_sigma_ratio`` an estimator that knows the motion model could honestly report."""
+    p_true = np.asarray(p_true_ned_m, dtype=float)
+    prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true, prior, turn_rate_radps, grid)
+    P = prob.point_covariances(Sigma)
+    los = p_true - obs.p_cam_ned_m
+    r = np.linalg.norm(los, axis=1)
+    u = los / r[:, None]
+    return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
 
 
 def efficient_error_range_pct(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray, prior: MotionPrior,

@@ -12,14 +12,17 @@ Every observation gets a fresh estimate of the target's state at its own time:
   expensive part, ~0.1-0.5 s, amortised over the frames of that second).
 
 The reported covariance is the chosen model's Laplace posterior at this time, scaled at each model
-selection to the batch result's model-averaged, inflated covariance.  ``observable`` is true only
-when the posterior range sigma at this time is below ``observability_max_sigma_range_ratio`` of the
-range, the last selection's residuals passed the adequacy test and its model carried at least 5 %
-of the posterior weight.
+selection to the batch result's model-averaged, inflated covariance (over the solutions near the
+chosen one; ``MapResult.ambiguity`` is the mass of the far ones).  ``observable`` is true only when
+the range sigma at this time is below ``observability_max_sigma_range_ratio`` of the range, and the
+last selection's residuals passed the adequacy test with an ambiguity of at most ``max_ambiguity``.
+An unobservable estimate keeps its position, with its range sigma raised to at least
+``unobservable_range_sigma_floor`` of the range (honest, not confident).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -69,10 +72,35 @@ class TrackEstimate:
     range_sigma_ratio: float
     window_frames: int
     model: str
+    #: RMS of the standardised residuals at the last model selection (~1 when the camera model and the
+    #: noise model are right; NaN before the first selection)
+    residual_rms_norm: float = math.nan
+    #: p-value of the last selection's block-whiteness adequacy test (low: the model cannot follow the data)
+    adequacy_p: float = math.nan
+    #: posterior mass of far solutions at the last selection (``MapResult.ambiguity``)
+    ambiguity: float = math.nan
 
     @property
     def sigma_ned_m(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
+
+    def propagated(self, t_s: float, p_cam_ned_m=None) -> "TrackEstimate":
+        """This estimate carried to ``t_s`` at constant velocity: ``p + v dt``, ``P + dt^2 V`` (the
+        velocity's uncertainty only; the estimator's own prediction is :meth:`SlidingWindowEstimator.predict`).
+
+        ``p_cam_ned_m`` (the camera at ``t_s``) sets the new range and range sigma ratio; without it the
+        range keeps the old line of sight's length."""
+        dt = float(t_s) - self.t_s
+        p = self.p_ned_m + self.v_ned_mps * dt
+        P = self.cov_p_ned_m2 + dt * dt * self.cov_v_ned_m2ps2
+        rng, ratio = self.range_m, self.range_sigma_ratio
+        if p_cam_ned_m is not None:
+            los = p - np.asarray(p_cam_ned_m, dtype=float)
+            rng = float(np.linalg.norm(los))
+            if rng > 0:
+                u = los / rng
+                ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / rng)
+        return dataclasses.replace(self, t_s=float(t_s), p_ned_m=p, cov_p_ned_m2=P, range_m=rng, range_sigma_ratio=ratio)
 
 
 class SlidingWindowEstimator:
@@ -98,6 +126,7 @@ class SlidingWindowEstimator:
         self._model = "none"
         self._last_select_t = -math.inf
         self._window_observable = False
+        self._diag = (math.nan, math.nan, math.nan)  # residual_rms_norm, adequacy_p, ambiguity of the last selection
         self._prob: WindowProblem | None = None
         self._H: np.ndarray | None = None
         self._since_full = 0
@@ -175,8 +204,8 @@ class SlidingWindowEstimator:
             # the window's verdict for the online track: the model fits (adequacy) and the chosen model
             # is not a long shot; range itself is judged per frame, at the frame's own time
             cfg = self.map.config
-            self._window_observable = bool(res.extras.get("adequacy_p", 1.0) >= cfg.adequacy_p_min
-                                           and res.extras.get("best_model_weight", 1.0) >= 0.05)
+            self._window_observable = bool(res.adequacy_p >= cfg.adequacy_p_min and res.ambiguity <= cfg.max_ambiguity)
+            self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
             self._last_select_t = t
             self.stats["selections"] += 1
             # the problem object served several starts: re-linearise at the chosen solution
@@ -186,8 +215,10 @@ class SlidingWindowEstimator:
             # per-frame covariances come from this model's information; scale them so that at this
             # frame they equal the batch result's model-averaged, inflated covariance
             own = self._estimate(prob, theta, t, J.T @ J, scale=1.0)
+            # the batch covariance before the unobservable range floor (the floor is applied per frame)
+            P_last = res.extras["cov_p_model_ned_m2"][-1]
             self._cov_scale = max(self.map.config.sigma_inflation ** 2,
-                                  float(np.trace(res.cov_p_ned_m2[-1]) / max(np.trace(own.cov_p_ned_m2), 1e-30)))
+                                  float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30)))
 
         elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
             return self._incremental(t)
@@ -280,9 +311,14 @@ class SlidingWindowEstimator:
         u = los / max(rng, 1e-9)
         ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / max(rng, 1e-9))
         neg = bool(np.any(np.diag(P) <= 0))
-        observable = bool(self._window_observable and not neg
-                          and ratio < self.map.config.observability_max_sigma_range_ratio)
-        return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model)
+        cfg = self.map.config
+        observable = bool(self._window_observable and not neg and ratio < cfg.observability_max_sigma_range_ratio)
+        if not observable and cfg.unobservable_range_sigma_floor > 0:  # honest, not confident (module docstring)
+            floor = cfg.unobservable_range_sigma_floor * rng
+            if ratio * rng < floor:
+                P = P + (floor**2 - (ratio * rng) ** 2) * np.outer(u, u)
+                ratio = cfg.unobservable_range_sigma_floor
+        return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
 
     def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
         """The current solution evaluated at ``t_s`` (no new measurement), for coasting frames.
