@@ -27,6 +27,15 @@ time (an ACK does not say which message it is for), retried every ``command_retr
 ``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot;
 ``CAMERA_TRACKING_IMAGE_STATUS`` (#275) and ``CAMERA_TRACKING_GEO_STATUS`` (#276).
 
+Input (issue 12, hostile links): UDP links use a socket of our own and parse **each datagram
+alone** with a fresh parser, so a truncated or garbage datagram costs only itself
+(``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
+parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
+not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
+Output goes only to the locked autopilot's address (the source of its latest heartbeat, ``udpin``)
+or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
+system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkLinkConfig`.
+
 Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`` (no heartbeat for
 ``heartbeat_timeout_s``) -> ``connected`` ...  :meth:`MavlinkLink.poll` never blocks and never
 raises on bad input: random bytes and bad CRCs come back from pymavlink as ``BAD_DATA`` and are
@@ -39,14 +48,16 @@ same process (they get MAVLink 2 as well, which every current autopilot speaks).
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
 import os
 import re
 import select
+import socket
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
@@ -63,6 +74,8 @@ __all__ = [
     "MavlinkLinkConfig",
     "LinkStatus",
     "MavlinkLink",
+    "load_signing_key",
+    "signing_key_from_text",
 ]
 
 log = logging.getLogger(__name__)
@@ -164,7 +177,17 @@ def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
 class MavlinkLinkConfig:
     """Timing and identity.  Seconds on the injected ``clock``; ids are MAVLink system/component ids.
 
-    ``autopilot_sysid``: None locks onto the first autopilot heartbeat from ``autopilot_compid``.
+    ``autopilot_sysid``: the system to follow.  None: lock onto a system whose ``autopilot_compid``
+    heartbeats as an autopilot (MAV_TYPE not GCS/onboard/gimbal/camera/ADS-B, MAV_AUTOPILOT not INVALID)
+    for ``lock_settle_s`` (first to latest heartbeat, no gap over ``heartbeat_timeout_s``) while no
+    other system does so with two or more heartbeats (then nothing is locked and
+    ``autopilot_ambiguous`` is counted: pin the id).  A stray heartbeat cannot win.  After the lock,
+    another system heartbeating as an autopilot is counted (``second_autopilot``), never followed.
+
+    ``signing_key`` (32 bytes): MAVLink 2 signing on: unsigned, MAVLink 1, wrongly signed, replayed
+    and stale packets are refused and counted; everything we send is signed with ``signing_link_id``.
+    ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
+    (UDP links only; e.g. a ground-station endpoint of mavlink-router).
     """
 
     component_id: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
@@ -177,6 +200,10 @@ class MavlinkLinkConfig:
     reopen_interval_s: float = 2.0
     gimbal_rate_hz: float = 50.0
     max_outstanding_timesync: int = 16
+    lock_settle_s: float = 1.5
+    signing_key: bytes | None = field(default=None, repr=False)
+    signing_link_id: int = 0
+    extra_destinations: tuple[tuple[str, int], ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("component_id", "autopilot_compid"):
@@ -192,6 +219,17 @@ class MavlinkLinkConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise ConfigError(f"MavlinkLinkConfig.{name} must be a positive number, got {v!r}")
+        if isinstance(self.lock_settle_s, bool) or not isinstance(self.lock_settle_s, (int, float)) \
+                or not math.isfinite(self.lock_settle_s) or self.lock_settle_s < 0:
+            raise ConfigError(f"MavlinkLinkConfig.lock_settle_s must be a number >= 0, got {self.lock_settle_s!r}")
+        if self.signing_key is not None and (not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32):
+            raise ConfigError("MavlinkLinkConfig.signing_key must be None or 32 bytes")
+        if isinstance(self.signing_link_id, bool) or not isinstance(self.signing_link_id, int) or not 0 <= self.signing_link_id <= 255:
+            raise ConfigError(f"MavlinkLinkConfig.signing_link_id must be an integer in 0..255, got {self.signing_link_id!r}")
+        for i, dest in enumerate(self.extra_destinations):
+            if (not isinstance(dest, tuple) or len(dest) != 2 or not isinstance(dest[0], str)
+                    or isinstance(dest[1], bool) or not isinstance(dest[1], int) or not 1 <= dest[1] <= 65535):
+                raise ConfigError(f"MavlinkLinkConfig.extra_destinations[{i}] must be (host, port 1..65535), got {dest!r}")
         if not isinstance(self.max_outstanding_timesync, int) or self.max_outstanding_timesync <= 0:
             raise ConfigError(f"MavlinkLinkConfig.max_outstanding_timesync must be a positive integer, got {self.max_outstanding_timesync!r}")
 
@@ -224,6 +262,187 @@ def _check_rate(name: str, v) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
         raise ConfigError(f"MavlinkLink.{name} must be a positive rate in Hz, got {v!r}")
     return float(v)
+
+
+# --------------------------------------------------------------------------- wire: parser and transports
+
+#: MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC
+_SIGNING_EPOCH_S = 1420070400
+#: a new signed stream may lag our signing clock by this much (pymavlink's rule), 10 us units
+_SIGNING_NEW_STREAM_LAG = 6_000_000
+_MAX_DATAGRAM_BYTES = 65535
+_STREAM_READ_BYTES = 4096
+#: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
+_MAX_DATAGRAM_PARSE_BYTES = 16 * 280
+
+
+class _Parser(mavlink2.MAVLink):
+    """pymavlink's parser with the signature checked before the replay table is touched.
+
+    pymavlink's own ``check_signature`` records a packet's timestamp before it compares the
+    signature, so one packet with a wrong key and a far-future timestamp would make every genuine
+    packet of that stream look replayed.  Here an entry is only made for a verified packet, which
+    also bounds ``stream_timestamps`` to the genuine (link id, system, component) streams.
+    ``sig_reject`` names why the last signed packet was refused.
+    """
+
+    sig_reject = ""
+
+    def check_signature(self, msgbuf, srcSystem, srcComponent):  # noqa: N803 - pymavlink's signature
+        signing = self.signing
+        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        if digest != bytes(msgbuf[-6:]):
+            self.sig_reject = "mavlink_signature_bad"
+            return False
+        link_id = msgbuf[-13]
+        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
+        timestamp = tlow + (thigh << 32)
+        key = (link_id, srcSystem, srcComponent)
+        last = signing.stream_timestamps.get(key)
+        if last is not None and timestamp <= last:
+            self.sig_reject = "mavlink_signature_replay"
+            return False
+        if last is None and timestamp + _SIGNING_NEW_STREAM_LAG < signing.timestamp:
+            self.sig_reject = "mavlink_signature_stale"
+            return False
+        signing.stream_timestamps[key] = timestamp
+        signing.timestamp = max(signing.timestamp, timestamp)
+        return True
+
+
+def _new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:
+    p = _Parser(file, src_system, src_component)
+    p.robust_parsing = True
+    p.signing = signing
+    return p
+
+
+def signing_key_from_text(text: str | bytes, field: str) -> bytes:
+    """A 32-byte MAVLink 2 signing key from 64 hex digits, 32 raw bytes, or a passphrase (SHA-256 of it,
+    as MAVProxy's ``signing setup`` and QGroundControl derive it).  Raises :class:`ConfigError` naming ``field``."""
+    if isinstance(text, bytes):
+        if len(text) == 32:
+            return bytes(text)
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError:
+            raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got {len(text)} undecodable bytes") from None
+    text = text.strip()
+    if not text:
+        raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got an empty key")
+    if re.fullmatch(r"[0-9a-fA-F]{64}", text):
+        return bytes.fromhex(text)
+    return hashlib.sha256(text.encode("utf-8")).digest()
+
+
+def load_signing_key(key_file: str | None, key_env: str | None, environ=None) -> bytes | None:
+    """The signing key named by the config (``mavlink.signing_key_file`` / ``mavlink.signing_key_env``), or
+    None when neither is set.  Reads the file or the environment: call it at the entry point."""
+    environ = os.environ if environ is None else environ
+    if key_file and key_env:
+        raise ConfigError("mavlink.signing_key_file: set either it or mavlink.signing_key_env, not both")
+    if key_file:
+        try:
+            with open(key_file, "rb") as fh:
+                data = fh.read(4096)
+        except OSError as exc:
+            raise ConfigError(f"mavlink.signing_key_file: cannot read {key_file!r}: {exc.strerror or exc}") from None
+        return signing_key_from_text(data if len(data) == 32 else data.strip(), f"mavlink.signing_key_file ({key_file})")
+    if key_env:
+        if key_env not in environ:
+            raise ConfigError(f"mavlink.signing_key_env: environment variable {key_env!r} is not set")
+        return signing_key_from_text(environ[key_env], f"mavlink.signing_key_env ({key_env})")
+    return None
+
+
+class _UdpTransport:
+    """One UDP socket of our own.  ``udpin`` binds HOST:PORT and answers only the locked autopilot's
+    address (``peer``); ``udpout`` sends to its fixed HOST:PORT.  Each datagram is parsed alone."""
+
+    datagrams = True
+
+    def __init__(self, kind: str, host: str, port: int, extra: tuple[tuple[str, int], ...]) -> None:
+        self.kind = kind
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.fixed: tuple[str, int] | None = None
+        try:
+            if kind == "udpin":
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                self.sock.bind((host, port))
+            else:
+                self.fixed = (socket.gethostbyname(host), port)
+        except Exception:
+            self.sock.close()
+            raise
+        self.peer: tuple[str, int] | None = None
+        self.extra = extra
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def read(self) -> tuple[bytes, object] | None:
+        try:
+            data, addr = self.sock.recvfrom(_MAX_DATAGRAM_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except ConnectionRefusedError:  # ICMP port unreachable from an earlier send: not our input
+            return b"", None
+        return data, addr
+
+    def write(self, buf: bytes) -> None:
+        dest = self.fixed if self.fixed is not None else self.peer
+        if dest is not None:
+            self.sock.sendto(buf, dest)
+        for addr in self.extra:
+            self.sock.sendto(buf, addr)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class _StreamTransport:
+    """Serial or TCP through pymavlink's port classes, used only for bytes (its message store is never
+    fed); one parser per stream, kept across reads."""
+
+    datagrams = False
+
+    def __init__(self, conn) -> None:
+        self.conn = conn
+
+    def fileno(self) -> int | None:
+        fd = getattr(self.conn, "fd", None)
+        return fd
+
+    def read(self) -> tuple[bytes, object] | None:
+        fd = self.fileno()
+        if fd is not None:
+            r, _, _ = select.select([fd], [], [], 0)
+            if not r:
+                return None
+        data = self.conn.recv(_STREAM_READ_BYTES)
+        if not data:
+            return None
+        return bytes(data), None
+
+    def write(self, buf: bytes) -> None:
+        self.conn.write(buf)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class _Writer:
+    """The ``file`` of the sending parser: whatever it packs goes to the transport (if open)."""
+
+    def __init__(self, link: "MavlinkLink") -> None:
+        self._link = link
+
+    def write(self, buf) -> None:
+        t = self._link._transport
+        if t is None:
+            raise OSError("link not open")
+        t.write(bytes(buf))
 
 
 # --------------------------------------------------------------------------- the adapter
@@ -273,7 +492,17 @@ class MavlinkLink:
             rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, float(self.config.gimbal_rate_hz)))
         self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
 
-        self._conn = None
+        self._signing = mavlink2.MAVLinkSigning()
+        if self.config.signing_key is not None:
+            self._signing.secret_key = self.config.signing_key
+            self._signing.sign_outgoing = True
+            self._signing.link_id = self.config.signing_link_id
+            # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
+            self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
+        self._transport: _UdpTransport | _StreamTransport | None = None
+        self._stream_parser: _Parser | None = None
+        self._mav = _new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
+        self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
         self._next_open_s = -math.inf
         self.state = LINK_WAITING
         self.autopilot_sysid: int | None = self.config.autopilot_sysid
@@ -296,36 +525,36 @@ class MavlinkLink:
         return float(self._clock())
 
     def _open(self, now: float) -> None:
-        from pymavlink import mavutil  # imported here: no pymavlink state is touched at import time
-
-        os.environ["MAVLINK20"] = "1"
         ep = self.endpoint
-        kwargs = dict(
-            source_system=self.autopilot_sysid or 1,
-            source_component=self.config.component_id,
-            dialect="common",
-        )
-        if ep.kind == "tcp":
-            kwargs.update(autoreconnect=True, retries=0, reconnect_delay=0.1)
-        if ep.kind == "serial":
-            kwargs.update(baud=ep.baud)
         try:
-            self._conn = mavutil.mavlink_connection(ep.device, **kwargs)
-            self._conn.robust_parsing = True
-            self._conn.mav.robust_parsing = True
-            log.info("MAVLink %s open on %s", ep.kind, ep.device)
+            if ep.kind in ("udpin", "udpout"):
+                _, host, port = ep.device.split(":")
+                self._transport = _UdpTransport(ep.kind, host, int(port), self.config.extra_destinations)
+            else:
+                from pymavlink import mavutil  # imported here: no pymavlink state is touched at import time
+
+                os.environ["MAVLINK20"] = "1"
+                kwargs = dict(source_system=self.autopilot_sysid or 1, source_component=self.config.component_id,
+                              dialect="common")
+                if ep.kind == "tcp":
+                    kwargs.update(autoreconnect=True, retries=0, reconnect_delay=0.1)
+                if ep.kind == "serial":
+                    kwargs.update(baud=ep.baud)
+                self._transport = _StreamTransport(mavutil.mavlink_connection(ep.device, **kwargs))
+                self._stream_parser = _new_parser(self._signing)
+            log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
-            self._conn = None
+            self._transport = None
             self._next_open_s = now + self.config.reopen_interval_s
             self._counters.count("mavlink_open_failed", f"{ep.device}: {exc}")
 
     def close(self) -> None:
-        if self._conn is not None:
+        if self._transport is not None:
             try:
-                self._conn.close()
+                self._transport.close()
             except Exception:  # noqa: BLE001
                 pass
-            self._conn = None
+            self._transport = None
 
     def __enter__(self) -> "MavlinkLink":
         return self
@@ -333,18 +562,18 @@ class MavlinkLink:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def _readable(self) -> bool:
-        fd = getattr(self._conn, "fd", None)
-        if fd is None:
-            return False
-        try:
-            r, _, _ = select.select([fd], [], [], 0)
-        except (OSError, ValueError):
-            return False
-        return bool(r)
+    def fileno(self) -> int | None:
+        """The input file descriptor (for select), None while closed."""
+        return None if self._transport is None else self._transport.fileno()
+
+    @property
+    def peer_address(self):
+        """Where UDP output goes besides ``extra_destinations``: the locked autopilot's address (udpin)."""
+        t = self._transport
+        return None if t is None else (t.fixed if getattr(t, "fixed", None) else getattr(t, "peer", None))
 
     def _send(self, what: str, fn, *args) -> bool:
-        if self._conn is None:
+        if self._transport is None:
             return False
         try:
             fn(*args)
@@ -355,55 +584,91 @@ class MavlinkLink:
 
     def _set_autopilot(self, sysid: int) -> None:
         self.autopilot_sysid = sysid
-        # pymavlink rebuilds conn.mav from conn.source_* when it switches protocol: set both
-        self._conn.source_system = sysid
-        self._conn.source_component = self.config.component_id
-        self._conn.mav.srcSystem = sysid
-        self._conn.mav.srcComponent = self.config.component_id
+        self._mav.srcSystem = sysid
+        self._mav.srcComponent = self.config.component_id
         log.info("autopilot is system %d; heartbeating as %d/%d", sysid, sysid, self.config.component_id)
 
     # ------------------------------------------------------------------ input
 
     def poll(self, max_messages: int = 200) -> int:
-        """Handle up to ``max_messages`` waiting messages without blocking; returns how many."""
-        if self._conn is None:
+        """Handle up to ``max_messages`` waiting messages (and at most as many reads) without blocking.
+
+        UDP: each datagram is parsed alone by a fresh parser, so a truncated or garbage datagram
+        costs only itself (``mavlink_truncated``, ``mavlink_bad_data``); datagrams over
+        ``_MAX_DATAGRAM_PARSE_BYTES`` are dropped unparsed (``mavlink_datagram_too_large``).
+        Serial/TCP: one parser per stream.  Returns how many messages were handled."""
+        if self._transport is None:
             return 0
         now = self._now()
         handled = 0
-        spins = 0
-        while handled < max_messages and spins < 2 * max_messages:
-            spins += 1
+        reads = 0
+        while handled < max_messages and reads < max_messages:
+            reads += 1
             try:
-                msg = self._conn.recv_msg()
-            except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage and on I/O errors
+                got = self._transport.read()
+            except Exception as exc:  # noqa: BLE001 - I/O errors are counted, never fatal
                 self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
-                handled += 1
-                if isinstance(exc, OSError):
-                    break
-                continue
-            if msg is None:
-                if self._readable():
-                    continue
                 break
-            handled += 1
-            self.messages_rx += 1
-            try:
-                self._handle(msg, now)
-            except Exception as exc:  # noqa: BLE001 - a message we cannot translate is counted and dropped
-                self._counters.count("mavlink_handler_error", f"{msg.get_type()}: {type(exc).__name__}: {exc}")
-            self._check_reboot(now)
+            if got is None:
+                break
+            data, addr = got
+            if data:
+                handled += self._feed(data, addr, now)
         if self.state == LINK_CONNECTED:
             self._service_commands(now)
         return handled
 
-    def _handle(self, msg, now: float) -> None:
+    def _feed(self, data: bytes, addr, now: float) -> int:
+        datagram = self._transport.datagrams
+        if datagram:
+            if len(data) > _MAX_DATAGRAM_PARSE_BYTES:
+                self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
+                return 0
+            parser = _new_parser(self._signing)
+        else:
+            parser = self._stream_parser
+        n = 0
+        parser.sig_reject = ""
+        try:
+            msg = parser.parse_char(data)
+            while msg is not None:
+                n += 1
+                self._dispatch(msg, parser.sig_reject, addr, now)
+                parser.sig_reject = ""
+                msg = parser.parse_char(b"")
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage
+            self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
+            if not datagram:
+                self._stream_parser = _new_parser(self._signing)
+        if datagram and parser.buf_len() > 0:
+            self._counters.count("mavlink_truncated", f"{parser.buf_len()} bytes left over in a datagram from {addr}")
+        return n
+
+    def _dispatch(self, msg, sig_reject: str, addr, now: float) -> None:
+        self.messages_rx += 1
+        try:
+            self._handle(msg, now, sig_reject, addr)
+        except Exception as exc:  # noqa: BLE001 - a message we cannot translate is counted and dropped
+            self._counters.count("mavlink_handler_error", f"{msg.get_type()}: {type(exc).__name__}: {exc}")
+        self._check_reboot(now)
+
+    def _handle(self, msg, now: float, sig_reject: str = "", addr=None) -> None:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
-            self._counters.count("mavlink_bad_data", str(getattr(msg, "reason", "")))
+            reason = str(getattr(msg, "reason", ""))
+            if reason == "Invalid signature":
+                raw = bytes(getattr(msg, "data", b"")[:1])
+                name = sig_reject or ("mavlink_v1_refused" if raw == b"\xfe" else "mavlink_unsigned")
+                self._counters.count(name, "packet refused: MAVLink 2 signing is on")
+            else:
+                self._counters.count("mavlink_bad_data", reason)
+            return
+        if mtype.startswith("UNKNOWN_"):
+            self._counters.count("mavlink_unknown_id", f"message id {mtype[len('UNKNOWN_'):]} not in the common dialect")
             return
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if mtype == "HEARTBEAT":
-            self._on_heartbeat(msg, src_sys, src_comp, now)
+            self._on_heartbeat(msg, src_sys, src_comp, now, addr)
             return
         if self.autopilot_sysid is None or src_sys != self.autopilot_sysid:
             return
@@ -426,17 +691,50 @@ class MavlinkLink:
         elif mtype == "COMMAND_ACK" and from_autopilot:
             self._on_ack(msg, now)
 
-    def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float) -> None:
+    def _settled(self, sysid: int, now: float) -> bool:
+        """Unpinned identity rule (see :class:`MavlinkLinkConfig`): True when ``sysid`` may be locked."""
+        timeout = self.config.heartbeat_timeout_s
+        c = self._candidates.get(sysid)
+        if c is None or now - c[1] > timeout:
+            c = self._candidates[sysid] = [now, now, 0]
+        c[1] = now
+        c[2] += 1
+        for s in [s for s, v in self._candidates.items() if now - v[1] > timeout]:
+            del self._candidates[s]
+        rivals = sorted(s for s, v in self._candidates.items() if s != sysid and v[2] >= 2)
+        if rivals and c[2] >= 2:
+            self._counters.count(
+                "autopilot_ambiguous",
+                f"systems {sorted([sysid, *rivals])} all heartbeat as autopilots; none followed: set mavlink.autopilot_sysid",
+            )
+            return False
+        return not rivals and now - c[0] >= self.config.lock_settle_s
+
+    def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float, addr=None) -> None:
         if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
             return
         if src_comp != self.config.autopilot_compid:
             return
         if self.autopilot_sysid is None:
+            if not self._settled(src_sys, now):
+                return
+            self._candidates.clear()
             self._set_autopilot(src_sys)
         elif src_sys != self.autopilot_sysid:
+            self._counters.count(
+                "second_autopilot",
+                f"system {src_sys} heartbeats as an autopilot; following system {self.autopilot_sysid} only",
+            )
             return
-        elif self._conn.mav.srcSystem != src_sys:
+        elif self._mav.srcSystem != src_sys:
             self._set_autopilot(src_sys)
+        t = self._transport
+        if addr is not None and isinstance(t, _UdpTransport) and t.kind == "udpin" and t.peer != addr:
+            if t.peer is not None:
+                self._counters.count("autopilot_address_changed", f"system {src_sys}: {t.peer} -> {addr}")
+            else:
+                log.info("autopilot %d at %s:%d: our output goes there only", src_sys, *addr)
+            t.peer = addr
         self._last_hb_rx_s = now
         if self.state != LINK_CONNECTED:
             previous = self.state
@@ -474,7 +772,7 @@ class MavlinkLink:
     def _on_timesync(self, msg) -> None:
         now_ns = int(self._clock_ns())
         if msg.tc1 == 0:
-            self._send("TIMESYNC reply", self._conn.mav.timesync_send, now_ns, msg.ts1)
+            self._send("TIMESYNC reply", self._mav.timesync_send, now_ns, msg.ts1)
             return
         if msg.ts1 in self._ts_outstanding:
             del self._ts_outstanding[msg.ts1]
@@ -518,7 +816,7 @@ class MavlinkLink:
     def tick(self, now: float | None = None) -> None:
         """Timers: heartbeat out, heartbeat timeout, rate-request retries, TIMESYNC requests, reopen."""
         now = self._now() if now is None else float(now)
-        if self._conn is None:
+        if self._transport is None:
             if now >= self._next_open_s:
                 self._open(now)
             return
@@ -534,7 +832,7 @@ class MavlinkLink:
             self._last_hb_tx_s = now
             self._send(
                 "HEARTBEAT",
-                self._conn.mav.heartbeat_send,
+                self._mav.heartbeat_send,
                 mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
                 mavlink2.MAV_AUTOPILOT_INVALID,
                 0,
@@ -550,7 +848,7 @@ class MavlinkLink:
             self._ts_outstanding[ts1] = None
             while len(self._ts_outstanding) > self.config.max_outstanding_timesync:
                 self._ts_outstanding.popitem(last=False)
-            self._send("TIMESYNC", self._conn.mav.timesync_send, 0, ts1)
+            self._send("TIMESYNC", self._mav.timesync_send, 0, ts1)
 
     def _request_rates(self) -> None:
         self.rates_confirmed.clear()
@@ -576,7 +874,7 @@ class MavlinkLink:
     def _send_interval(self, inf: _Inflight) -> None:
         self._send(
             "SET_MESSAGE_INTERVAL",
-            self._conn.mav.command_long_send,
+            self._mav.command_long_send,
             self.autopilot_sysid,
             self.config.autopilot_compid,
             mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -618,11 +916,11 @@ class MavlinkLink:
                       rec_bottom_x=rec_bottom_x, rec_bottom_y=rec_bottom_y)
         for name, v in values.items():
             _check_optional(name, v, 0.0, 1.0)
-        if self._conn is None:
+        if self._transport is None:
             return False
         return self._send(
             "CAMERA_TRACKING_IMAGE_STATUS",
-            self._conn.mav.camera_tracking_image_status_send,
+            self._mav.camera_tracking_image_status_send,
             int(tracking_status), int(tracking_mode), int(target_data),
             *(float(v) for v in values.values()),
             int(camera_device_id),
@@ -661,11 +959,11 @@ class MavlinkLink:
             _check_optional(name, v, -math.inf, math.inf)
         _check_uint("tracking_status", tracking_status, 255)
         _check_uint("camera_device_id", camera_device_id, 6)
-        if self._conn is None:
+        if self._transport is None:
             return False
         return self._send(
             "CAMERA_TRACKING_GEO_STATUS",
-            self._conn.mav.camera_tracking_geo_status_send,
+            self._mav.camera_tracking_geo_status_send,
             int(tracking_status),
             int(round(lat_deg * 1e7)),
             int(round(lon_deg * 1e7)),

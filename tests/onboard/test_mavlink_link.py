@@ -138,7 +138,7 @@ class Rig:
     def drive(self, cond, timeout_s: float = WAIT_S) -> bool:
         """Run both ends until cond() holds; waits on the sockets, bounded in time."""
         deadline = time.monotonic() + timeout_s
-        fds = [self.link._conn.port.fileno(), self.ap.conn.port.fileno()]
+        fds = [self.link.fileno(), self.ap.conn.port.fileno()]
         while time.monotonic() < deadline:
             self.step()
             if cond():
@@ -146,8 +146,23 @@ class Rig:
             select.select(fds, [], [], 0.005)
         return False
 
+    def heartbeats(self, n: int, sysid: int = AP_SYSID) -> None:
+        """``n`` autopilot heartbeats 1 s apart on the fake clock, each handled before the next."""
+        for k in range(n):
+            if k:
+                self.clock.t += 1.0
+            before = self.link.messages_rx
+            self.ap.as_component(sysid, 1)
+            self.ap.heartbeat()
+            self.ap.as_component(AP_SYSID, 1)
+            assert self.drive(lambda: self.link.messages_rx > before)
+
     def connect(self) -> None:
-        self.ap.heartbeat()
+        """Heartbeats until the unpinned lock settles (1.5 s: the third one), then the rate requests."""
+        if self.link.autopilot_sysid is None:
+            self.heartbeats(3)
+        else:
+            self.ap.heartbeat()
         assert self.drive(lambda: self.link.state == LINK_CONNECTED and self.link.rates_confirmed == set(self.link.rate_plan))
 
     def close(self) -> None:
@@ -244,7 +259,7 @@ def test_rate_request_retried_until_accepted_and_refusal_counted(rig):
     ap = rig.ap
     ap.results[31] = [None, mav.MAV_RESULT_TEMPORARILY_REJECTED]  # silence, then "try later"
     ap.results[33] = [mav.MAV_RESULT_DENIED]
-    ap.heartbeat()
+    rig.heartbeats(3)
     assert rig.drive(lambda: len(ap.commands) == 1)
     rig.clock.t += 1.01
     assert rig.drive(lambda: len(ap.commands) == 2)
@@ -258,7 +273,7 @@ def test_rate_request_retried_until_accepted_and_refusal_counted(rig):
 def test_ack_for_another_requester_is_ignored(rig):
     ap = rig.ap
     ap.results[31] = [None]
-    ap.heartbeat()
+    rig.heartbeats(3)
     assert rig.drive(lambda: len(ap.commands) == 1)
     ap.conn.mav.command_ack_send(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)  # for a GCS
     rig.drive(lambda: False, timeout_s=0.2)
