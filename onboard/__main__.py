@@ -1,8 +1,9 @@
 """``python -m onboard``: the onboard daemon (entry point; see :mod:`onboard.service`).
 
-    python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:0.0.0.0:14540]
+    python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:127.0.0.1:14540]
                       [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                       [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
+                      [--gcs ENDPOINT]...
                       [--log-level LEVEL] [--log-format text|json] [--set FIELD.PATH=VALUE]...
                       [--check] [--print-config]
 
@@ -53,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="FILE", help="YAML configuration (default: built-in defaults; see config/onboard.yaml)")
     p.add_argument("--vehicle", help="vehicle name in the zenoh keys irtrack/<vehicle>/... (config: vehicle; default uav1)")
     p.add_argument("--mavlink", metavar="CONNECTION",
-                   help="autopilot link, e.g. udpin:0.0.0.0:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
+                   help="autopilot link, e.g. udpin:127.0.0.1:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
                         "serial:/dev/ttyS0:921600 (config: mavlink.connection)")
     p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
                    help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)")
@@ -64,6 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)")
     p.add_argument("--no-zenoh-multicast-scouting", dest="zenoh_scouting", action="store_false",
                    help="disable zenoh multicast scouting")
+    p.add_argument("--gcs", metavar="ENDPOINT", action="append",
+                   help="ground-station endpoint of the MAVLink camera component, e.g. udpout:127.0.0.1:14550; "
+                        "repeatable (config: gcs.endpoints)")
     p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
                    help="log level (config: logging.level)")
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
@@ -88,6 +92,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("zenoh.listen", args.zenoh_listen, "--zenoh-listen"),
         ("zenoh.config_file", args.zenoh_config, "--zenoh-config"),
         ("zenoh.multicast_scouting", args.zenoh_scouting, "--zenoh-multicast-scouting"),
+        ("gcs.endpoints", args.gcs, "--gcs"),
         ("logging.level", args.log_level, "--log-level"),
         ("logging.format", args.log_format, "--log-format"),
     )

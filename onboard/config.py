@@ -49,6 +49,7 @@ __all__ = [
     "EstimatorConfig",
     "PoseConfig",
     "OutputConfig",
+    "GcsConfig",
     "LoggingConfig",
     "OnboardConfig",
     "load_config",
@@ -237,7 +238,7 @@ class MavlinkConfig(_Section):
     """``mavlink``: the autopilot link (see :mod:`onboard.mavlink_link`)."""
 
     _path: ClassVar[str] = "mavlink"
-    connection: str = F("udpin:0.0.0.0:14540", "str")
+    connection: str = F("udpin:127.0.0.1:14540", "str")
     attitude_rate_hz: float = F(50.0, "float", lo=0.0, lo_open=True, hi=1000.0)
     position_rate_hz: float = F(25.0, "float", lo=0.0, lo_open=True, hi=1000.0)
     gimbal_rate_hz: float = F(50.0, "float", lo=0.0, lo_open=True, hi=1000.0)
@@ -246,7 +247,10 @@ class MavlinkConfig(_Section):
     command_retry_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
     timesync_interval_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
     reopen_interval_s: float = F(2.0, "float", lo=0.0, lo_open=True, hi=60.0)
-    autopilot_sysid: int | None = F(None, "int", lo=1, hi=255, nullable=True)
+    autopilot_sysid: int | None = F(1, "int", lo=1, hi=255, nullable=True)
+    lock_settle_s: float = F(1.5, "float", lo=0.0, hi=60.0)
+    signing_key_file: str | None = F(None, "str", nullable=True)
+    signing_key_env: str | None = F(None, "str", nullable=True)
     autopilot_compid: int = F(1, "int", lo=1, hi=255)
     component_id: int = F(191, "int", lo=1, hi=255)
     poll_rate_hz: float = F(200.0, "float", lo=100.0, hi=10000.0)
@@ -265,6 +269,18 @@ class MavlinkConfig(_Section):
             raise FieldError("mavlink.heartbeat_timeout_s",
                              f"a timeout > mavlink.heartbeat_interval_s ({_g(self.heartbeat_interval_s)})",
                              self.heartbeat_timeout_s)
+        self.signing_key()  # an unreadable or empty key fails at --check, naming its field
+
+    def signing_key(self) -> bytes | None:
+        """The MAVLink 2 signing key (reads ``signing_key_file`` or the ``signing_key_env`` variable), None = unsigned."""
+        from onboard.mavlink_link import load_signing_key
+
+        try:
+            return load_signing_key(self.signing_key_file, self.signing_key_env)
+        except ConfigError as exc:
+            field, _, what = str(exc).partition(": ")
+            raise FieldError(field, "a readable MAVLink 2 signing key (64 hex digits, 32 raw bytes or a passphrase)",
+                             None, got_text=what) from None
 
     def link_config(self):
         """The :class:`~onboard.mavlink_link.MavlinkLinkConfig` of this section."""
@@ -280,6 +296,8 @@ class MavlinkConfig(_Section):
             timesync_interval_s=self.timesync_interval_s,
             reopen_interval_s=self.reopen_interval_s,
             gimbal_rate_hz=self.gimbal_rate_hz,
+            lock_settle_s=self.lock_settle_s,
+            signing_key=self.signing_key(),
         )
 
 
@@ -531,6 +549,35 @@ class OutputConfig(_Section):
 
 
 @dataclass(frozen=True)
+class GcsConfig(_Section):
+    """``gcs``: the MAVLink camera component for ground stations (see :mod:`onboard.camera_protocol`)."""
+
+    _path: ClassVar[str] = "gcs"
+    endpoints: tuple[str, ...] = F((), "str_list")
+    component_id: int = F(100, "int", lo=100, hi=105)
+    vendor_name: str = F("irtrack", "str")
+    model_name: str = F("IR tracker", "str")
+    pixel_pitch_um: float = F(17.0, "float", lo=0.0, lo_open=True, hi=1000.0)
+    heartbeat_interval_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
+    tracker_mode: str = F("auto", "str", choices=("auto", "operator"))
+    track_request_timeout_s: float = F(1.0, "float", lo=0.0, lo_open=True, hi=60.0)
+
+    def _check(self) -> None:
+        from onboard.mavlink_link import parse_connection
+
+        for i, ep in enumerate(self.endpoints):
+            try:
+                parse_connection(ep, f"gcs.endpoints[{i}]")
+            except ConfigError as exc:
+                msg = str(exc).split(": ", 1)[-1]
+                raise FieldError(f"gcs.endpoints[{i}]", "an endpoint like udpout:127.0.0.1:14550, udpin:0.0.0.0:14551 "
+                                 "or tcp:HOST:PORT", ep, got_text=f"{ep!r} ({msg})") from None
+        for name in ("vendor_name", "model_name"):
+            if len(getattr(self, name).encode()) > 32:
+                raise FieldError(f"gcs.{name}", "at most 32 bytes (CAMERA_INFORMATION)", getattr(self, name))
+
+
+@dataclass(frozen=True)
 class LoggingConfig(_Section):
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
@@ -555,6 +602,7 @@ class OnboardConfig(_Section):
     estimator: EstimatorConfig = _section(EstimatorConfig)
     pose: PoseConfig = _section(PoseConfig)
     output: OutputConfig = _section(OutputConfig)
+    gcs: GcsConfig = _section(GcsConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

@@ -98,10 +98,10 @@ class Estimator(Protocol):
 
 
 def make_tracker(config: OnboardConfig):
-    """The image chain of ``config`` (a fresh :class:`~onboard.imaging.TargetTracker`)."""
+    """The image chain of ``config`` (a fresh :class:`~onboard.imaging.TargetTracker`, ``gcs.tracker_mode``)."""
     from onboard.imaging import TargetTracker
 
-    return TargetTracker(config.imaging)
+    return TargetTracker(config.imaging, mode=config.gcs.tracker_mode)
 
 
 def make_estimator(config: OnboardConfig):
@@ -185,6 +185,8 @@ class FramePipeline:
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
         self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
+        self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
+        self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
 
     # ------------------------------------------------------------------ public
 
@@ -196,6 +198,59 @@ class FramePipeline:
         if hasattr(self.tracker, "reset"):
             self.tracker.reset()
         self._reset_estimator("pipeline reset")
+
+    def request_selection(self, request, on_done: Callable[[Any], None]) -> None:
+        """Queue an operator's :class:`~onboard.camera_protocol.TrackRequest` (point, rectangle or stop)
+        for the next processed frame; ``on_done`` gets its :class:`~onboard.camera_protocol.TrackResult`
+        from the thread that runs :meth:`process`.  Thread-safe (one deque append).
+
+        On that frame, before imaging: ``stop`` ends the track and holds the tracker idle (accepted);
+        ``point`` / ``rectangle`` select on the frame (:meth:`TargetTracker.select_point` /
+        ``select_rectangle``): found, the new track is this frame's and the 3-D estimate restarts;
+        nothing there, refused with the reason and the frame is tracked as usual.
+        """
+        self._selections.append((request, on_done))
+
+    def _apply_selections(self, pixels):
+        """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target."""
+        from onboard.camera_protocol import TrackResult
+
+        upd = None
+        while self._selections:
+            req, on_done = self._selections.popleft()
+            result = None
+            try:
+                if req.kind == "stop":
+                    if hasattr(self.tracker, "stop"):
+                        self.tracker.stop()
+                    upd = None
+                    self._reset_estimator("operator stop")
+                    result = TrackResult(req.request_id, True)
+                else:
+                    if req.kind == "point":
+                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px)
+                        where = f"within {req.radius_px:.0f} px of ({req.u_px:.0f}, {req.v_px:.0f})"
+                    else:
+                        sel = self.tracker.select_rectangle(pixels, req.rect_px)
+                        x0, y0, x1, y1 = req.rect_px
+                        where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
+                    if sel is None:
+                        result = TrackResult(req.request_id, False, f"no warm object {where} px")
+                    else:
+                        upd = sel
+                        self._reset_estimator(f"operator selection ({req.kind})")
+                        result = TrackResult(req.request_id, True, u_px=sel.u_px, v_px=sel.v_px)
+            except InputError as exc:
+                result = TrackResult(req.request_id, False, f"frame refused: {exc}")
+            except Exception as exc:  # noqa: BLE001 - a selection bug must not stop the frame loop
+                self.counter.count("selection_error", f"{type(exc).__name__}: {exc}")
+                result = TrackResult(req.request_id, False, f"selection failed: {type(exc).__name__}")
+            self.last_selection = {"kind": req.kind, "accepted": result.accepted, "reason": result.reason or None}
+            try:
+                on_done(result)
+            except Exception as exc:  # noqa: BLE001
+                self.counter.count("selection_error", f"on_done: {type(exc).__name__}: {exc}")
+        return upd
 
     def process_payload(self, payload, received_mono_ns: int | None = None) -> Track:
         """Decode a wire payload (:func:`onboard.irframe.decode_irframe`), then :meth:`process`."""
@@ -218,7 +273,9 @@ class FramePipeline:
 
         i0 = self._clock_ns()
         try:
-            upd = self.tracker.update(frame.pixels)
+            upd = self._apply_selections(frame.pixels) if self._selections else None
+            if upd is None:
+                upd = self.tracker.update(frame.pixels)
         except InputError as exc:
             self._refuse("image", f"tracker refused the frame: {exc}")
         self.imaging_ms.add((self._clock_ns() - i0) / 1e6)

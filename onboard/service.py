@@ -25,8 +25,13 @@ Threads (nothing else runs concurrently):
   worker either way, no measurement is lost.  A process also keeps the estimator's Python work off
   the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).
 * **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
-  :meth:`MavlinkLink.tick`, CAMERA_TRACKING_IMAGE_STATUS / GEO_STATUS of the newest track at
-  ``output.tracking_*_status_hz`` (#276 only for observable positions unless
+  :meth:`MavlinkLink.tick` (the autopilot link, component 191: heartbeat, rate requests, TIMESYNC);
+  the camera component (:meth:`OnboardService.camera_step`, with ``gcs.endpoints``): commands from
+  ground stations through :class:`~onboard.gcs_link.GcsLink` into
+  :class:`~onboard.camera_protocol.CameraProtocol`, tracking requests queued to the pipeline
+  (:meth:`FramePipeline.request_selection`, decided on its next frame and ACKed here), heartbeat,
+  CAMERA_TRACKING_IMAGE_STATUS / GEO_STATUS of the newest track while tracking at the rates asked
+  (defaults ``output.tracking_*_status_hz``; #276 only for observable positions unless
   ``output.geo_status_unobservable``), the status JSON on ``irtrack/<vehicle>/status`` every
   ``output.status_interval_s``, and the :class:`~onboard.watchdog.Watchdog`'s input checks (no frames
   / no MAVLink for 5 s; frame size and residual checks are fed by the pipeline thread): each
@@ -57,14 +62,7 @@ from onboard.errors import InputError
 from onboard.irframe import IrFrameError, check_payload_size, decode_irframe
 from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from onboard.pose import PoseBuffer, RejectCounter
-from onboard.track import (
-    RollingStats,
-    Track,
-    build_status,
-    geo_status_fields,
-    image_status_fields,
-    track_to_bytes,
-)
+from onboard.track import RollingStats, Track, build_status, track_to_bytes
 from onboard.watchdog import Watchdog
 
 __all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "ProcessEstimator", "OnboardService"]
@@ -532,6 +530,9 @@ class OnboardService:
             clock_ns=clock_ns,
         )
         self.link = None
+        self.gcs = None  # onboard.gcs_link.GcsLink: the camera component's sockets (gcs.endpoints)
+        self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
+        self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
         self.session = None
         self._sub = None
         self._track_pub = None
@@ -578,6 +579,10 @@ class OnboardService:
             att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
             clock=self._clock, clock_ns=self._clock_ns, config=cfg.mavlink.link_config(),
         )
+        if self.camera is not None:
+            from onboard.gcs_link import GcsLink
+
+            self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
         self.session = open_session(cfg.zenoh.settings())
         self._track_pub = self.session.declare_publisher(
             track_key(cfg.vehicle), encoding=zenoh.Encoding.APPLICATION_JSON,
@@ -626,6 +631,9 @@ class OnboardService:
             self.session = None
         if self.link is not None:
             self.link.close()
+        if self.gcs is not None:
+            self.gcs.close()
+            self.gcs = None
         if self._health_path:
             try:
                 os.unlink(self._health_path)
@@ -723,11 +731,8 @@ class OnboardService:
         """The main loop: MAVLink poll/tick, tracking status out, status JSON; returns when stopped."""
         cfg = self.config
         period = 1.0 / cfg.mavlink.poll_rate_hz
-        img_every = 1.0 / cfg.output.tracking_image_status_hz if cfg.output.tracking_image_status_hz > 0 else math.inf
-        geo_every = 1.0 / cfg.output.tracking_geo_status_hz if cfg.output.tracking_geo_status_hz > 0 else math.inf
         now = self._clock()
         end = math.inf if max_duration_s is None else now + max_duration_s
-        next_img, next_geo = now, now
         next_status = now + cfg.output.status_interval_s
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         while not self._stop.is_set() and now < end:
@@ -737,12 +742,10 @@ class OnboardService:
             except Exception as exc:  # noqa: BLE001 - the link adapter should not raise; be sure
                 self.counter.count("mavlink_loop_error", f"{type(exc).__name__}: {exc}")
             now = self._clock()
-            if now >= next_img or now >= next_geo:
-                self._send_tracking_status(now, now >= next_img, now >= next_geo)
-                if now >= next_img:
-                    next_img = max(next_img + img_every, now)
-                if now >= next_geo:
-                    next_geo = max(next_geo + geo_every, now)
+            try:
+                self.camera_step(now)
+            except Exception as exc:  # noqa: BLE001 - the camera component must not stop the loop
+                self.counter.count("camera_loop_error", f"{type(exc).__name__}: {exc}")
             self._watch(now)
             if now >= next_status:
                 last_cpu = self._publish_status(now, last_cpu)
@@ -770,21 +773,34 @@ class OnboardService:
             return None
         return latest[0]
 
-    def _send_tracking_status(self, now: float, image: bool, geo: bool) -> None:
-        if self.link is None or self.link.autopilot_sysid is None:
-            return
+    def camera_step(self, now: float) -> int:
+        """The camera component's turn in the main loop: commands in (tracking requests queued to the
+        pipeline), the pipeline's decisions ACKed, heartbeat and #275/#276 out, with the autopilot's
+        system id (the link's, else ``mavlink.autopilot_sysid``; a ground station ties the camera to
+        that vehicle); silent while neither is known.  Returns
+        the number of messages sent."""
+        cam, gcs = self.camera, self.gcs
+        if cam is None or gcs is None:
+            return 0
+        sysid = getattr(self.link, "autopilot_sysid", None) or self.config.mavlink.autopilot_sysid
+        if sysid is None:
+            return 0
+        gcs.set_system_id(sysid)
+        boot_ms = int((now - self._started_s) * 1000)
         track = self._current_track(now)
-        K = self.pipeline.intrinsics
-        dev = self.config.output.camera_device_id
-        try:
-            if image:
-                self.link.send_tracking_image_status(**image_status_fields(track, K.width_px, K.height_px), camera_device_id=dev)
-            if geo:
-                fields = geo_status_fields(track, observable_only=not self.config.output.geo_status_unobservable)
-                if fields is not None:
-                    self.link.send_tracking_geo_status(**fields, camera_device_id=dev)
-        except InputError as exc:
-            self.counter.count("tracking_status_invalid", str(exc))
+        sent = 0
+        for cmd in gcs.poll():
+            out, request = cam.handle(cmd, now, boot_ms, track)
+            for msg in out:
+                sent += gcs.send(msg) > 0
+            if request is not None:
+                self.pipeline.request_selection(request, self._selection_results.append)
+        while self._selection_results:
+            for msg in cam.complete(self._selection_results.popleft()):
+                sent += gcs.send(msg) > 0
+        for msg in cam.tick(now, track):
+            sent += gcs.send(msg) > 0
+        return sent
 
     def status(self, now: float | None = None, cpu_share: float | None = None, pipeline_share: float | None = None) -> dict[str, Any]:
         """The ``irtrack.status/1`` dict now (see :func:`onboard.track.build_status`)."""
@@ -821,7 +837,15 @@ class OnboardService:
             publish_ms=self.publish_ms.summary(),
             stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
             warnings=self.watchdog.active_dicts(),
-        )
+        ) | ({"camera": self._camera_status()} if self.camera is not None else {})
+
+    def _camera_status(self) -> dict[str, Any]:
+        st = self.camera.status()
+        st["endpoints"] = list(self.config.gcs.endpoints)
+        st["tracker_mode"] = self.config.gcs.tracker_mode
+        st["tracker_holding"] = bool(getattr(self.pipeline.tracker, "holding", False))
+        st["last_selection"] = self.pipeline.last_selection
+        return st
 
     def _drain_capture_latency(self) -> None:
         sync = getattr(self.link, "clock_sync", None)
@@ -849,6 +873,20 @@ class OnboardService:
 
 #: ``frame_*`` counter keys that are accepted events, not refusals
 _ACCEPTED_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame_stream_restart"})
+
+
+def make_camera_protocol(config: OnboardConfig, intrinsics):
+    """The :class:`~onboard.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera)."""
+    from onboard.camera_protocol import CameraIdentity, CameraProtocol
+
+    g, o = config.gcs, config.output
+    identity = CameraIdentity.from_intrinsics(intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px,
+                                              g.pixel_pitch_um, g.vendor_name, g.model_name)
+    return CameraProtocol(identity, intrinsics.width_px, intrinsics.height_px, component_id=g.component_id,
+                          stream=None, image_status_hz=o.tracking_image_status_hz,
+                          geo_status_hz=o.tracking_geo_status_hz, observable_only=not o.geo_status_unobservable,
+                          heartbeat_interval_s=g.heartbeat_interval_s,
+                          track_request_timeout_s=g.track_request_timeout_s)
 
 
 def frame_key_of(vehicle: str) -> str:

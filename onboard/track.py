@@ -501,12 +501,17 @@ def _unit(x: float, size: float) -> float:
     return min(max(x / size, 0.0), 1.0)
 
 
-def image_status_fields(track: Track | None, width_px: int, height_px: int) -> dict[str, Any]:
-    """Keyword arguments of ``MavlinkLink.send_tracking_image_status`` for ``track`` (None = idle).
+def image_status_fields(track: Track | None, width_px: int, height_px: int, mode: int | None = None,
+                        radius: float = math.nan) -> dict[str, Any]:
+    """Keyword arguments of CAMERA_TRACKING_IMAGE_STATUS (#275) for ``track`` (None = idle).
 
     Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
-    [0, 1].  Status ACTIVE while tracking, ACTIVE | COASTING while coasting, IDLE otherwise; mode
-    RECTANGLE with a box, POINT with only a centre, NONE without either.
+    [0, 1].  Status ACTIVE while tracking, ACTIVE | COASTING while coasting, IDLE otherwise.
+    ``mode`` (CAMERA_TRACKING_MODE): POINT fills ``point_x/point_y`` (and ``radius``: normalised to
+    the image width; NaN = half the box's larger side, or unknown), RECTANGLE fills ``rec_*`` from the
+    box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
+    centre.  A mode whose data the track lacks (RECTANGLE without a box) falls back to the other one;
+    NONE without either.
     """
     nan = math.nan
     out = dict(
@@ -521,11 +526,21 @@ def image_status_fields(track: Track | None, width_px: int, height_px: int) -> d
     out["tracking_status"] = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
     if track.state == "coasting":
         out["tracking_status"] |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
-    if track.u_px is not None:
+    if mode is None or mode == CAMERA_TRACKING_MODE_NONE:
+        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_POINT
+    if mode == CAMERA_TRACKING_MODE_RECTANGLE and track.bbox is None:
+        mode = CAMERA_TRACKING_MODE_POINT
+    if mode == CAMERA_TRACKING_MODE_POINT and track.u_px is None:
+        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_NONE
+    if mode == CAMERA_TRACKING_MODE_POINT:
         out["tracking_mode"] = CAMERA_TRACKING_MODE_POINT
         out["point_x"] = _unit(track.u_px, width_px)
         out["point_y"] = _unit(track.v_px, height_px)
-    if track.bbox is not None:
+        if math.isfinite(radius):
+            out["radius"] = min(max(float(radius), 0.0), 1.0)
+        elif track.bbox is not None:
+            out["radius"] = _unit(max(track.bbox[2], track.bbox[3]) / 2.0, width_px)
+    elif mode == CAMERA_TRACKING_MODE_RECTANGLE:
         x, y, w, h = track.bbox
         out["tracking_mode"] = CAMERA_TRACKING_MODE_RECTANGLE
         out["rec_top_x"], out["rec_top_y"] = _unit(x, width_px), _unit(y, height_px)

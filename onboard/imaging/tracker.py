@@ -1,6 +1,11 @@
 """Single-target tracker: detection for precision, OpenCV KCF for continuity.
 
-One call of :meth:`TargetTracker.update` per frame.  States (:class:`TrackState`):
+One call of :meth:`TargetTracker.update` per frame.  Modes (``mode``): ``auto`` acquires by
+itself (below); ``operator`` never does: a track starts only by :meth:`TargetTracker.select_point`
+(the warm object nearest a point within a radius) or :meth:`TargetTracker.select_rectangle` (the
+object in a rectangle), each called instead of ``update`` on a frame, and re-acquisition never
+jumps to another object.  :meth:`TargetTracker.stop` ends the track and holds either mode idle
+until the next selection.  States (:class:`TrackState`):
 
 ``searching``  no track yet (or after :meth:`reset`): full-frame detection; the detection with
                the largest flux starts a track (new ``track_id``) and seeds KCF.
@@ -42,11 +47,12 @@ from onboard.errors import InputError
 from onboard.imaging.detect import Detection, find_blobs, measure_blob
 from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, kcf_image_u8, preprocess_frame
 
-__all__ = ["TrackState", "TrackUpdate", "TargetTracker", "create_kcf"]
+__all__ = ["TRACKER_MODES", "TrackState", "TrackUpdate", "TargetTracker", "create_kcf"]
 
 log = logging.getLogger(__name__)
 
 VELOCITY_SMOOTHING = 0.5  # weight of the newest pixel-velocity sample in the constant-velocity prediction
+TRACKER_MODES = ("auto", "operator")  # automatic acquisition, or only what an operator selects
 KCF_FULL_SCALE_HIGHS = 2.0  # KCF sees the residual saturated at this many Th_high: the blob's shape, not its heat
 
 
@@ -114,10 +120,15 @@ def create_kcf(params: ImagingParams):
 class TargetTracker:
     """Detection + KCF single-target tracker (see the module docstring). Not thread-safe."""
 
-    def __init__(self, params: ImagingParams | None = None) -> None:
+    def __init__(self, params: ImagingParams | None = None, mode: str = "auto") -> None:
         self.params = params if params is not None else ImagingParams()
         if not isinstance(self.params, ImagingParams):
             raise InputError(f"params must be an ImagingParams, got {type(self.params).__name__}")
+        if mode not in TRACKER_MODES:
+            raise InputError(f"tracker mode must be one of {', '.join(TRACKER_MODES)}, got {mode!r}")
+        self.mode = mode
+        self._hold = False  # STOP_TRACKING: no automatic acquisition until the next selection
+        self.selections = 0
         self.rejected_frames = 0
         self.kcf_reseeds = 0
         self.reacquisitions = 0
@@ -139,8 +150,12 @@ class TargetTracker:
     def state(self) -> TrackState:
         return self._state
 
-    def update(self, image: np.ndarray) -> TrackUpdate:
-        """Process one frame (2-D uint8/uint16, see the module docstring)."""
+    @property
+    def holding(self) -> bool:
+        """True after :meth:`stop` until the next selection (no automatic acquisition meanwhile)."""
+        return self._hold
+
+    def _admit(self, image: np.ndarray) -> np.ndarray:
         try:
             image = check_frame(image)
         except InputError:
@@ -154,6 +169,72 @@ class TargetTracker:
             self._buf_region = None
             if self._track_id is not None:
                 self._drop_track(TrackState.LOST)
+        return image
+
+    # ------------------------------------------------------------------ operator selection
+
+    def select_point(self, image: np.ndarray, u_px: float, v_px: float, radius_px: float) -> TrackUpdate | None:
+        """Track the warm object nearest ``(u_px, v_px)`` within ``radius_px`` on this frame.
+
+        Distance = from the point to the object's thresholded box (0 inside it), ties broken by the
+        distance to its centroid.  Found: a new track starts on it (a new ``track_id``) and its
+        :class:`TrackUpdate` for this frame is returned (the frame is consumed, do not ``update`` it
+        too).  Nothing within the radius: None, the tracker unchanged and the frame not consumed.
+        """
+        image = self._admit(image)
+        best, best_key = None, None
+        for d in self._all_detections(image):
+            x, y, w, h = d.bbox
+            dx = max(x - u_px, 0.0, u_px - (x + w))
+            dy = max(y - v_px, 0.0, v_px - (y + h))
+            gap = math.hypot(dx, dy)
+            if gap > radius_px:
+                continue
+            key = (gap, math.hypot(d.u_px - u_px, d.v_px - v_px))
+            if best_key is None or key < best_key:
+                best, best_key = d, key
+        return self._select(image, best)
+
+    def select_rectangle(self, image: np.ndarray, rect_px: tuple[float, float, float, float]) -> TrackUpdate | None:
+        """Track the warm object whose centroid lies in ``rect_px`` = (x0, y0, x1, y1) (the strongest,
+        by flux, when several do); as :meth:`select_point` otherwise."""
+        image = self._admit(image)
+        x0, y0, x1, y1 = rect_px
+        inside = [d for d in self._all_detections(image) if x0 <= d.u_px <= x1 and y0 <= d.v_px <= y1]
+        return self._select(image, max(inside, key=lambda d: d.flux) if inside else None)
+
+    def stop(self) -> None:
+        """End the current track (state ``searching``) and hold: no automatic acquisition until the
+        next :meth:`select_point` / :meth:`select_rectangle`."""
+        self._drop_track(TrackState.SEARCHING)
+        self._clear_buffer()
+        self._hold = True
+
+    def _all_detections(self, image: np.ndarray) -> list[Detection]:
+        pre = preprocess_frame(image, self.params, None)
+        out = []
+        for blob in find_blobs(pre, self.params):
+            d = measure_blob(image, blob, self.params, pre.noise_sigma)
+            if d is not None:
+                out.append(d)
+        return out
+
+    def _select(self, image: np.ndarray, det: Detection | None) -> TrackUpdate | None:
+        if det is None:
+            return None
+        self._hold = False
+        self.selections += 1
+        try:
+            self._start_track(image, det)
+            return self._measured(det, kcf_ok=False)
+        finally:
+            self._frame_index += 1
+
+    # ------------------------------------------------------------------ frames
+
+    def update(self, image: np.ndarray) -> TrackUpdate:
+        """Process one frame (2-D uint8/uint16, see the module docstring)."""
+        image = self._admit(image)
         try:
             if self._track_id is None:
                 out = self._search(image)
@@ -177,6 +258,8 @@ class TargetTracker:
         self._misses = 0
 
     def _search(self, image: np.ndarray) -> TrackUpdate:
+        if self._hold or self.mode == "operator":  # wait for an operator's selection
+            return TrackUpdate(self._state, None, None, None, None, False, None, None, self._frame_index)
         det, _ = self._full_frame_best(image)
         if det is None:
             return TrackUpdate(self._state, None, None, None, None, False, None, None, self._frame_index)
@@ -212,6 +295,9 @@ class TargetTracker:
         if full is not None:
             self.reacquisitions += 1
             keep = self._misses <= p.coast_frames and math.hypot(full.u_px - pu, full.v_px - pv) <= p.reacquire_gate_px
+            if not keep and self.mode == "operator":
+                full = None  # never jump to another object than the operator's: coast, then lose it
+        if full is not None:
             if keep:
                 self._advance(full)
                 self._seed_kcf(image, full, None)

@@ -46,7 +46,7 @@ def write(tmp_path: Path, text: str, name: str = "c.yaml") -> str:
 def test_defaults_are_valid_and_convert_to_core_objects():
     c = OnboardConfig()
     assert c.vehicle == "uav1"
-    assert c.mavlink.connection == "udpin:0.0.0.0:14540"
+    assert c.mavlink.connection == "udpin:127.0.0.1:14540" and c.mavlink.autopilot_sysid == 1
     assert c.zenoh.multicast_scouting is False and c.zenoh.connect == () and c.zenoh.listen == ()
     K = c.camera.pinhole()
     assert (K.width_px, K.height_px, K.cx_px, K.cy_px) == (640, 512, 320.0, 256.0)

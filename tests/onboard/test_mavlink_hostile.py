@@ -228,3 +228,83 @@ def test_unknown_message_ids_are_counted_and_leave_memory_bounded(rig, stranger)
     assert counted >= 0.95 * N_UNKNOWN  # loopback may drop a few under load; none is kept either way
     assert grown <= RSS_BUDGET_BYTES
     assert rig.link.state == LINK_CONNECTED
+
+
+# --------------------------------------------------------------------------- MAVLink 2 signing
+
+KEY = bytes(range(32))
+OTHER_KEY = bytes(range(1, 33))
+
+
+@pytest.fixture
+def signed_rig():
+    r = Rig(config=MavlinkLinkConfig(autopilot_sysid=AP_SYSID, signing_key=KEY, signing_link_id=3))
+    r.ap.conn.setup_signing(KEY, sign_outgoing=True, link_id=1)
+    r.close_also = None
+    yield r
+    if r.close_also is not None:
+        r.close_also.close()
+    r.close()
+
+
+def _signed(msg, key: bytes, timestamp: int, sysid: int = AP_SYSID, link_id: int = 2) -> bytes:
+    m = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
+    m.signing.secret_key, m.signing.sign_outgoing, m.signing.link_id, m.signing.timestamp = key, True, link_id, timestamp
+    return bytes(msg.pack(m))
+
+
+def test_signed_link_uses_signed_packets_and_signs_its_own(signed_rig):
+    r = signed_rig
+    r.connect()
+    r.ap.attitude(9_000, [1, 0, 0, 0])
+    assert r.drive(lambda: r.pose.sizes()["attitude"] == 1)
+    assert r.drive(lambda: r.ap.got("HEARTBEAT"))
+    assert all(m._signed for m in r.ap.received)  # the fake autopilot verified every one with the key
+    assert r.ap.conn.mav.signing.badsig_count == 0 and r.ap.conn.mav.signing.goodsig_count >= 2
+
+
+def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_rig):
+    r = signed_rig
+    stranger = Stranger(r.port)
+    r.close_also = stranger
+    r.connect()
+    now_ts = r.ap.conn.mav.signing.timestamp
+    stranger.send(stranger.pack(attitude_msg(9_000), sysid=AP_SYSID))  # unsigned MAVLink 2
+    v1 = mav.MAVLink(None, srcSystem=AP_SYSID, srcComponent=1)
+    stranger.send(bytes(attitude_msg(9_010).pack(v1, force_mavlink1=True)))  # MAVLink 1 (downgrade, CVE-2020-10283)
+    stranger.send(_signed(attitude_msg(9_020), OTHER_KEY, now_ts + 10**9))  # unknown key, far-future stamp
+    good = _signed(attitude_msg(9_030), KEY, now_ts + 100)
+    stranger.send(good)
+    assert r.drive(lambda: r.pose.sizes()["attitude"] == 1)  # only the genuine one, despite the future-stamped forgery
+    stranger.send(good)  # replayed verbatim
+    stranger.send(_signed(attitude_msg(9_040), KEY, now_ts - 10**8, link_id=9))  # a new stream stamped 1000 s in the past
+    assert r.drive(lambda: r.counters["mavlink_signature_replay"] == 1 and r.counters["mavlink_signature_stale"] == 1)
+    c = r.counters
+    assert (c["mavlink_unsigned"], c["mavlink_v1_refused"], c["mavlink_signature_bad"]) == (1, 1, 1)
+    assert r.pose.sizes()["attitude"] == 1
+    assert stranger.received() == []
+
+
+def test_signing_key_sources_and_errors(tmp_path):
+    from onboard.config import build_config
+    from onboard.errors import ConfigError
+    from onboard.mavlink_link import load_signing_key
+
+    hexkey = KEY.hex()
+    f = tmp_path / "key"
+    f.write_text(hexkey + "\n")
+    assert load_signing_key(str(f), None) == KEY
+    f.write_bytes(KEY)
+    assert load_signing_key(str(f), None) == KEY
+    assert load_signing_key(None, "K", {"K": hexkey}) == KEY
+    assert len(load_signing_key(None, "K", {"K": "a passphrase"})) == 32
+    assert load_signing_key(None, None) is None
+    with pytest.raises(ConfigError, match="mavlink.signing_key_env"):
+        load_signing_key(None, "MISSING", {})
+    with pytest.raises(ConfigError, match="mavlink.signing_key_file"):
+        build_config({"mavlink": {"signing_key_file": str(tmp_path / "absent")}})
+    f.write_text("\n")
+    with pytest.raises(ConfigError, match="mavlink.signing_key_file"):
+        build_config({"mavlink": {"signing_key_file": str(f)}})
+    f.write_text(hexkey)
+    assert build_config({"mavlink": {"signing_key_file": str(f)}}).mavlink.link_config().signing_key == KEY

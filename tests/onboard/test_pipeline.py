@@ -448,12 +448,17 @@ def test_image_status_is_normalised_and_flags_follow_the_state():
     tr = _track(u_px=320.0, v_px=128.0, bbox=(312.0, 120.0, 16.0, 16.0))
     f = image_status_fields(tr, 640, 512)
     assert (f["tracking_status"], f["tracking_mode"]) == (1, 2)  # ACTIVE, RECTANGLE
-    assert (f["point_x"], f["point_y"]) == (0.5, 0.25)
+    assert math.isnan(f["point_x"]) and math.isnan(f["point_y"]) and math.isnan(f["radius"])  # not this mode's fields
     assert (f["rec_top_x"], f["rec_top_y"], f["rec_bottom_x"], f["rec_bottom_y"]) == (312 / 640, 120 / 512, 328 / 640, 136 / 512)
+    pt = image_status_fields(tr, 640, 512, mode=1, radius=20 / 640)  # POINT: point fields only
+    assert (pt["tracking_mode"], pt["point_x"], pt["point_y"], pt["radius"]) == (1, 0.5, 0.25, 20 / 640)
+    assert math.isnan(pt["rec_top_x"]) and math.isnan(pt["rec_bottom_y"])
+    assert image_status_fields(tr, 640, 512, mode=1)["radius"] == 8 / 640  # half the box when no radius was asked
     coast = image_status_fields(_track(state="coasting", measurement_valid=False, bbox=None), 640, 512)
     assert coast["tracking_status"] == 1 | 8 and coast["tracking_mode"] == 1  # ACTIVE|COASTING, POINT
     edge = image_status_fields(_track(u_px=-3.0, bbox=(-10.0, 500.0, 20.0, 20.0)), 640, 512)
-    assert edge["point_x"] == 0.0 and edge["rec_bottom_y"] == 1.0  # clipped into [0, 1]
+    assert edge["rec_top_x"] == 0.0 and edge["rec_bottom_y"] == 1.0  # clipped into [0, 1]
+    assert image_status_fields(_track(u_px=-3.0, bbox=None), 640, 512)["point_x"] == 0.0
     idle = image_status_fields(None, 640, 512)
     assert idle["tracking_status"] == 0 and idle["tracking_mode"] == 0 and math.isnan(idle["point_x"])
 

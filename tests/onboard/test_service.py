@@ -217,9 +217,14 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
     from onboard.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
-    mport, zport = free_udp_port(), free_tcp_port()
+    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
     alive = tmp_path / "alive"
+    from pymavlink import mavutil
+
+    gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gport}")  # a ground station listening, as QGC on 14550
+    gcs_got: list = []
     d = Daemon(["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
+                "--gcs", f"udpout:127.0.0.1:{gport}",
                 "--set", f"output.health_file={alive}", "--set", "output.status_interval_s=0.5",
                 "--set", "logging.reject_log_interval_s=60", "--set", "output.unobservable_positions=true"], daemon_env)
     session = None
@@ -249,6 +254,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
             """One 5 ms turn of the fake world: MAVLink pump, heartbeat, telemetry at 50/25 Hz, frames at 30 Hz."""
             now = time.monotonic()
             ap.pump()
+            while (m := gcs.recv_match(blocking=False)) is not None:
+                gcs_got.append(m)
             if now >= state["next_hb"]:
                 ap.heartbeat()
                 state["next_hb"] = now + 1.0
@@ -321,20 +328,26 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None
         run_until(lambda: got_status[-1]["capture_to_track_ms"] is not None, 10, "TIMESYNC-based capture latency")
         assert 0 < got_status[-1]["capture_to_track_ms"]["p50"] < 1000
-        run_until(lambda: len(ap.got("CAMERA_TRACKING_IMAGE_STATUS")) >= 3, 10, "CAMERA_TRACKING_IMAGE_STATUS")
-        img = ap.got("CAMERA_TRACKING_IMAGE_STATUS")[-1]
+        def on_gcs(mtype):
+            return [m for m in gcs_got if m.get_type() == mtype]
+
+        run_until(lambda: len(on_gcs("CAMERA_TRACKING_IMAGE_STATUS")) >= 3, 10, "CAMERA_TRACKING_IMAGE_STATUS")
+        img = on_gcs("CAMERA_TRACKING_IMAGE_STATUS")[-1]
+        assert img.get_srcComponent() == 100 and img.get_srcSystem() == 1  # the camera component of the vehicle
         assert img.tracking_status & mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
-        assert img.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE
+        assert img.tracking_mode == mav.CAMERA_TRACKING_MODE_RECTANGLE and math.isnan(img.point_x)  # auto: the box
         u_last = got_tracks[-1].u_px / 640
-        assert abs(img.point_x - u_last) < 0.05  # the image moves slowly; #275 carries a recent frame
+        assert abs((img.rec_top_x + img.rec_bottom_x) / 2 - u_last) < 0.05  # the image moves slowly
+        assert any(m.get_type() == "HEARTBEAT" and m.type == mav.MAV_TYPE_CAMERA for m in gcs_got)
+        assert not ap.got("CAMERA_TRACKING_IMAGE_STATUS")  # the autopilot link carries only what the autopilot needs
         # 4. a 3-D estimate (observable or not: unobservable_positions is on) and its #276
         run_until(lambda: any(t.has_position for t in got_tracks[-5:]), 20, "a track with a 3-D position")
         withpos = [t for t in got_tracks if t.has_position][-1]
         assert withpos.window_frames >= 30 and withpos.origin is not None
         lat, lon, _ = geodetic_from_ned(withpos.p_ned_m, withpos.origin)
         assert abs(float(lat) - withpos.lat_deg) < 1e-9 and abs(float(lon) - withpos.lon_deg) < 1e-9
-        run_until(lambda: len(ap.got("CAMERA_TRACKING_GEO_STATUS")) >= 1, 10, "CAMERA_TRACKING_GEO_STATUS")
-        geo = ap.got("CAMERA_TRACKING_GEO_STATUS")[-1]
+        run_until(lambda: len(on_gcs("CAMERA_TRACKING_GEO_STATUS")) >= 1, 10, "CAMERA_TRACKING_GEO_STATUS")
+        geo = on_gcs("CAMERA_TRACKING_GEO_STATUS")[-1]
         assert abs(geo.lat * 1e-7 - 32.0) < 0.01 and abs(geo.lon * 1e-7 - 118.8) < 0.01
         assert geo.h_acc > 0 and geo.v_acc > 0 and math.isfinite(geo.vel_acc) and geo.dist > 0
         assert alive.exists()
@@ -355,6 +368,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         else:
             rc, took = d.proc.returncode, 0.0
         d.stop()
+        gcs.close()
         if session is not None:
             session.close()
     assert rc == 0, "\n".join(d.lines[-20:])
@@ -514,25 +528,4 @@ def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
     assert [w["code"] for w in svc.status(clock())["warnings"]] == ["frame_size"]
 
 
-def test_service_sends_276_only_for_observable_positions_by_default():
-    from onboard.frames import GeodeticOrigin
-    from onboard.track import Track
-
-    def track(observable: bool) -> Track:
-        return Track(vehicle="uav1", seq=1, time_boot_us=10, state="tracking", track_id=1, measurement_valid=True,
-                     u_px=300.0, v_px=200.0, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0),
-                     lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
-                     cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]), range_m=130.0, observable=observable, window_frames=60)
-
-    svc, clock = _quiet_service()
-    svc._latest = (track(False), clock())
-    svc._send_tracking_status(clock(), False, True)
-    assert svc.link.geo == []  # unobservable: no #276
-    svc._latest = (track(True), clock())
-    svc._send_tracking_status(clock(), False, True)
-    assert len(svc.link.geo) == 1 and svc.link.geo[0]["h_acc_m"] == pytest.approx(math.sqrt(800.0))
-    assert svc.link.geo[0]["dist_m"] == 130.0
-    svc, clock = _quiet_service({"output": {"health_file": None, "geo_status_unobservable": True}})
-    svc._latest = (track(False), clock())
-    svc._send_tracking_status(clock(), False, True)
-    assert len(svc.link.geo) == 1
+# #276 only for observable positions: tests/onboard/test_selection.py (through the camera component)

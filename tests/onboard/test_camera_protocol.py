@@ -1,0 +1,326 @@
+"""The MAVLink camera component: the pure protocol (commands -> replies), its constants against the
+dialect, and the socket adapter on 127.0.0.1 with a pymavlink ground station."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pymavlink.dialects.v20 import common as mav
+
+import onboard.camera_protocol as cp
+from onboard.camera_protocol import (
+    CameraCommand,
+    CameraIdentity,
+    CameraProtocol,
+    TrackResult,
+    VideoStream,
+)
+from onboard.frames import GeodeticOrigin
+from onboard.track import Track
+
+W, H = 640, 512
+GCS = (255, 190)  # QGC's system / component
+FX_PX = 764.7058823529411
+PITCH_UM = 17.0
+ATOL_MM = 1e-9
+
+
+def _identity() -> CameraIdentity:
+    return CameraIdentity.from_intrinsics(FX_PX, W, H, PITCH_UM, "irtrack", "IR tracker")
+
+
+def _stream() -> VideoStream:
+    return VideoStream(cp.VIDEO_STREAM_TYPE_MPEG_TS, "5600", 30.0, 2_000_000, W, H,
+                       math.degrees(2 * math.atan(W / (2 * FX_PX))))
+
+
+def _proto(**kw) -> CameraProtocol:
+    args = dict(component_id=100, stream=_stream(), image_status_hz=10.0, geo_status_hz=5.0)
+    args.update(kw)
+    return CameraProtocol(_identity(), W, H, **args)
+
+
+def _cmd(command: int, *params: float) -> CameraCommand:
+    p = list(params) + [0.0] * (7 - len(params))
+    return CameraCommand(command, tuple(p), *GCS)
+
+
+def _track(state="tracking", u=320.0, v=256.0, bbox=(310.0, 246.0, 20.0, 20.0), observable=True, position=True) -> Track:
+    kw = dict(vehicle="uav1", seq=1, time_boot_us=10, state=state, track_id=1, measurement_valid=state == "tracking",
+              u_px=u, v_px=v, bbox=bbox, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0))
+    if position:
+        kw.update(lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
+                  cov_p_ned_m2=np.diag([4.0, 4.0, 1.0]), range_m=130.0, observable=observable, window_frames=60)
+    if state in ("searching", "lost"):
+        kw.update(track_id=None, u_px=None, v_px=None, bbox=None, measurement_valid=False)
+    return Track(**kw)
+
+
+def _names(out) -> list[str]:
+    return [o.msg for o in out]
+
+
+def _ack(out):
+    acks = [o for o in out if o.msg == "command_ack"]
+    assert len(acks) == 1
+    return acks[0].fields
+
+
+# --------------------------------------------------------------------------- constants
+
+
+def test_constants_are_the_dialects():
+    for name in dir(cp):
+        if name.isupper() and hasattr(mav, name):
+            assert getattr(cp, name) == getattr(mav, name), name
+    assert cp.MSG_CAMERA_INFORMATION == mav.MAVLINK_MSG_ID_CAMERA_INFORMATION
+    assert cp.MSG_VIDEO_STREAM_INFORMATION == mav.MAVLINK_MSG_ID_VIDEO_STREAM_INFORMATION
+    assert cp.MSG_TRACKING_IMAGE_STATUS == mav.MAVLINK_MSG_ID_CAMERA_TRACKING_IMAGE_STATUS
+    assert cp.MSG_TRACKING_GEO_STATUS == mav.MAVLINK_MSG_ID_CAMERA_TRACKING_GEO_STATUS
+
+
+def test_every_outgoing_message_packs_with_pymavlink():
+    """The fields of each message are its dialect field names, in types pymavlink packs."""
+    codec = mav.MAVLink(None, srcSystem=1, srcComponent=100)
+    proto = _proto()
+    out = []
+    for msg_id in (259, 260, 261, 262, 269, 270, 275, 276):
+        out += proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, msg_id), 0.0, 1234, _track())[0]
+    out += proto.tick(0.0, _track())
+    out += proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 2.0), 0.0, 0)[0]  # refused: STATUSTEXT
+    assert {"camera_information", "camera_settings", "storage_information", "camera_capture_status",
+            "video_stream_information", "video_stream_status", "camera_tracking_image_status",
+            "camera_tracking_geo_status", "heartbeat", "command_ack", "statustext"} <= set(_names(out))
+    for o in out:
+        msg = getattr(codec, f"{o.msg}_encode")(**o.fields)
+        raw = msg.pack(codec)
+        back = mav.MAVLink(None).parse_char(raw)
+        assert back is not None and back.get_type() == o.msg.upper()
+
+
+# --------------------------------------------------------------------------- discovery
+
+
+@pytest.mark.parametrize("command", [(cp.MAV_CMD_REQUEST_MESSAGE, 259), (cp.MAV_CMD_REQUEST_CAMERA_INFORMATION, 1)])
+def test_camera_information_on_request_message_and_the_legacy_command(command):
+    out, req = _proto().handle(_cmd(*command), 5.0, 4321)
+    assert req is None and _names(out) == ["command_ack", "camera_information"]  # the ACK first
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED and _ack(out)["command"] == command[0]
+    assert out[0].reply_to == GCS and _ack(out)["target_system"] == GCS[0]
+    f = out[1].fields
+    flags = f["flags"]
+    for bit in (mav.CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
+                mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS):
+        assert flags & bit
+    assert (f["resolution_h"], f["resolution_v"]) == (W, H)
+    assert f["focal_length"] == pytest.approx(13.0, abs=ATOL_MM)  # 764.7 px x 17 um
+    assert f["sensor_size_h"] == pytest.approx(W * PITCH_UM / 1000) and f["sensor_size_v"] == pytest.approx(H * PITCH_UM / 1000)
+    assert bytes(f["vendor_name"]).rstrip(b"\0") == b"irtrack" and f["camera_device_id"] == 0
+    assert f["time_boot_ms"] == 4321
+
+
+def test_no_video_stream_no_video_flag_and_stream_requests_denied():
+    proto = _proto(stream=None)
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 259), 0.0, 0)
+    assert not out[1].fields["flags"] & mav.CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 269), 0.0, 0)
+    assert _names(out) == ["command_ack"] and _ack(out)["result"] == mav.MAV_RESULT_DENIED
+
+
+@pytest.mark.parametrize("command", [(cp.MAV_CMD_REQUEST_MESSAGE, 269, 0), (cp.MAV_CMD_REQUEST_MESSAGE, 269, 1),
+                                     (cp.MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION, 0)])
+def test_video_stream_information_is_thermal_h264_with_the_port_as_uri(command):
+    out, _ = _proto().handle(_cmd(*command), 0.0, 0)
+    assert _names(out) == ["command_ack", "video_stream_information"]
+    f = out[1].fields
+    assert f["flags"] == mav.VIDEO_STREAM_STATUS_FLAGS_RUNNING | mav.VIDEO_STREAM_STATUS_FLAGS_THERMAL
+    assert f["type"] == mav.VIDEO_STREAM_TYPE_MPEG_TS and f["uri"] == b"5600"
+    assert f["encoding"] == mav.VIDEO_STREAM_ENCODING_H264 and (f["stream_id"], f["count"]) == (1, 1)
+    assert f["hfov"] == 45 and (f["resolution_h"], f["resolution_v"]) == (W, H)  # 2 atan(320 / 764.7) = 45.4 deg
+
+
+def test_stream_two_does_not_exist():
+    out, _ = _proto().handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 269, 2), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_DENIED
+
+
+@pytest.mark.parametrize("command, reply", [
+    ((cp.MAV_CMD_REQUEST_CAMERA_SETTINGS, 1), "camera_settings"),
+    ((cp.MAV_CMD_REQUEST_STORAGE_INFORMATION, 0, 1), "storage_information"),
+    ((cp.MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS, 1), "camera_capture_status"),
+    ((cp.MAV_CMD_REQUEST_VIDEO_STREAM_STATUS, 1), "video_stream_status"),
+    ((cp.MAV_CMD_REQUEST_MESSAGE, 260), "camera_settings"),
+    ((cp.MAV_CMD_REQUEST_MESSAGE, 261), "storage_information"),
+    ((cp.MAV_CMD_REQUEST_MESSAGE, 262), "camera_capture_status"),
+])
+def test_what_qgc_discovery_asks_after_camera_information_is_answered(command, reply):
+    out, _ = _proto().handle(_cmd(*command), 0.0, 0)
+    assert _names(out) == ["command_ack", reply] and _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+
+
+def test_unknown_commands_are_unsupported_and_unknown_messages_denied():
+    proto = _proto()
+    out, _ = proto.handle(_cmd(mav.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_UNSUPPORTED
+    for bad in (33, math.nan, -1, 2.5):
+        out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, bad), 0.0, 0)
+        assert _ack(out)["result"] == mav.MAV_RESULT_DENIED
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_CAMERA_INFORMATION, 7), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_DENIED  # MAV_BOOL: only 0 or 1
+
+
+@settings(max_examples=300, deadline=None)
+@given(command=st.sampled_from([0, 16, 400, 511, 512, 521, 522, 525, 527, 2004, 2005, 2010, 2504, 2505, 65535]),
+       params=st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10, 300).map(float)),
+                       min_size=7, max_size=7))
+def test_every_command_gets_exactly_one_ack_or_a_deferred_request(command, params):
+    proto = _proto()
+    out, req = proto.handle(CameraCommand(command, tuple(params), *GCS), 0.0, 0)
+    acks = [o for o in out if o.msg == "command_ack"]
+    if req is None:
+        assert len(acks) == 1 and acks[0].fields["command"] == command
+        assert acks[0].fields["result"] in (0, 1, 2, 3, 4)
+    else:  # a tracking request: no ACK until the pipeline decides, then exactly one
+        assert acks == [] and command in (2004, 2005, 2010)
+        done = proto.complete(TrackResult(req.request_id, False, "nothing there"))
+        assert [o.fields["result"] for o in done if o.msg == "command_ack"] == [mav.MAV_RESULT_FAILED]
+        assert proto.complete(TrackResult(req.request_id, True)) == []  # answered once only
+
+
+# --------------------------------------------------------------------------- tracking commands
+
+
+def test_track_point_is_converted_to_pixels_and_acked_when_the_pipeline_decides():
+    proto = _proto()
+    out, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.0, 0)
+    assert out == [] and req.kind == "point"
+    assert (req.u_px, req.v_px, req.radius_px) == pytest.approx((160.0, 256.0, 20.0))
+    again, req2 = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.1, 0)
+    assert again == [] and req2 is None  # QGC's retransmission while pending: the coming ACK answers it
+    done = proto.complete(TrackResult(req.request_id, True, u_px=161.0, v_px=255.0))
+    assert _ack(done)["result"] == mav.MAV_RESULT_ACCEPTED and _ack(done)["command"] == cp.MAV_CMD_CAMERA_TRACK_POINT
+    img = [o for o in proto.tick(1.2, _track(u=160.0, v=256.0)) if o.msg == "camera_tracking_image_status"][0].fields
+    assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
+    assert (img["point_x"], img["point_y"], img["radius"]) == pytest.approx((0.25, 0.5, 20 / W))
+    assert math.isnan(img["rec_top_x"]) and img["camera_device_id"] == 0
+
+
+def test_track_rectangle_gives_rectangle_mode_with_point_fields_nan():
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.4, 0.4, 0.6, 0.6), 0.0, 0)
+    assert req.kind == "rectangle" and req.rect_px == pytest.approx((256.0, 204.8, 384.0, 307.2))
+    proto.complete(TrackResult(req.request_id, True))
+    img = [o for o in proto.tick(0.0, _track()) if o.msg == "camera_tracking_image_status"][0].fields
+    assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_RECTANGLE and math.isnan(img["point_x"])
+    assert (img["rec_top_x"], img["rec_bottom_x"]) == pytest.approx((310 / W, 330 / W))
+
+
+@pytest.mark.parametrize("params", [(1.5, 0.5, 0.1), (0.5, math.nan, 0.1), (0.5, 0.5, -0.1)])
+def test_bad_track_point_is_denied_with_a_statustext(params):
+    out, req = _proto().handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *params), 0.0, 0)
+    assert req is None and _ack(out)["result"] == mav.MAV_RESULT_DENIED
+    assert [o.msg for o in out] == ["command_ack", "statustext"]
+
+
+def test_track_point_for_another_camera_is_denied():
+    out, req = _proto().handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1, 101), 0.0, 0)
+    assert req is None and _ack(out)["result"] == mav.MAV_RESULT_DENIED
+    _, req = _proto().handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1, 100), 0.0, 0)
+    assert req is not None
+
+
+def test_refused_selection_is_failed_with_the_reason_in_statustext_and_status():
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.1, 0.1, 0.03), 0.0, 0)
+    out = proto.complete(TrackResult(req.request_id, False, "no warm object within 20 px of (64, 51) px"))
+    assert _ack(out)["result"] == mav.MAV_RESULT_FAILED
+    text = [o for o in out if o.msg == "statustext"][0].fields["text"]
+    assert text.startswith(b"irtrack: no warm object") and len(text) <= 50
+    assert "no warm object" in proto.status()["last_refusal"]
+
+
+def test_a_request_nobody_decides_is_temporarily_rejected_after_the_timeout():
+    proto = _proto(track_request_timeout_s=1.0)
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.03), 10.0, 0)
+    assert not any(o.msg == "command_ack" for o in proto.tick(10.9, None))
+    out = proto.tick(11.0, None)
+    assert _ack(out)["result"] == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    assert proto.complete(TrackResult(req.request_id, True)) == []  # too late: already answered
+
+
+# --------------------------------------------------------------------------- #275 / #276 streams
+
+
+def _count(out, name):
+    return sum(o.msg == name for o in out)
+
+
+def test_status_streams_only_while_tracking_at_the_asked_rate_and_minus_one_stops():
+    proto = _proto(image_status_hz=10.0, geo_status_hz=0.0)
+    t, dt = 0.0, 0.01
+    idle = []
+    for _ in range(100):  # 1 s idle: heartbeats only
+        idle += proto.tick(t, None)
+        t += dt
+    assert _count(idle, "camera_tracking_image_status") == 0 and _count(idle, "heartbeat") == 1
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 500_000), t, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+    got = []
+    for _ in range(400):  # 4 s tracking at 2 Hz
+        got += proto.tick(t, _track())
+        t += dt
+    assert 7 <= _count(got, "camera_tracking_image_status") <= 9
+    assert _count(got, "camera_tracking_geo_status") == 0  # default 0 Hz: off until asked
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 276, 1_000_000), t, 0)
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, -1), t, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+    got = []
+    for _ in range(300):
+        got += proto.tick(t, _track())
+        t += dt
+    assert _count(got, "camera_tracking_image_status") == 0 and 2 <= _count(got, "camera_tracking_geo_status") <= 4
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 0), t, 0)  # 0 = back to the default 10 Hz
+    got = []
+    for _ in range(100):
+        got += proto.tick(t, _track())
+        t += dt
+    assert 9 <= _count(got, "camera_tracking_image_status") <= 11
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 33, 1000), t, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_DENIED  # not ours to stream
+
+
+def test_idle_is_sent_once_when_tracking_ends_and_coasting_is_flagged():
+    proto = _proto()
+    img = [o.fields for o in proto.tick(0.0, _track(state="coasting")) if o.msg == "camera_tracking_image_status"]
+    assert img[0]["tracking_status"] == mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE | mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
+    out = proto.tick(0.5, _track(state="lost")) + proto.tick(1.0, None) + proto.tick(2.0, None)
+    idle = [o.fields for o in out if o.msg == "camera_tracking_image_status"]
+    assert len(idle) == 1 and idle[0]["tracking_status"] == 0 and idle[0]["tracking_mode"] == 0
+
+
+def test_geo_status_only_for_observable_positions_by_default():
+    proto = _proto(geo_status_hz=100.0)
+    assert _count(proto.tick(0.0, _track(observable=False)), "camera_tracking_geo_status") == 0
+    geo = [o.fields for o in proto.tick(1.0, _track()) if o.msg == "camera_tracking_geo_status"][0]
+    assert geo["lat"] == 320010000 and geo["h_acc"] == pytest.approx(math.sqrt(8.0)) and geo["dist"] == 130.0
+    assert geo["camera_device_id"] == 0
+    loose = _proto(geo_status_hz=100.0, observable_only=False)
+    assert _count(loose.tick(0.0, _track(observable=False)), "camera_tracking_geo_status") == 1
+
+
+def test_heartbeat_is_a_camera():
+    hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"][0].fields
+    assert hb["type"] == mav.MAV_TYPE_CAMERA and hb["autopilot"] == mav.MAV_AUTOPILOT_INVALID
+
+
+def test_identity_refuses_bad_values_naming_the_field():
+    with pytest.raises(Exception, match="pixel_pitch_um"):
+        CameraIdentity.from_intrinsics(FX_PX, W, H, 0.0)
+    with pytest.raises(Exception, match="vendor_name"):
+        CameraIdentity("x" * 40, "m", 0, 1.0, 1.0, 1.0, 1, 1)
+    with pytest.raises(Exception, match="stream_type"):
+        VideoStream(0, "5600", 30.0, 0, W, H, 45.0)

@@ -1,0 +1,284 @@
+"""Click-to-track: the tracker's operator selection, the pipeline's request queue, the service's
+camera step (command in -> pipeline -> COMMAND_ACK out), with synthetic frames and a fake clock."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import common as mav
+
+from onboard.camera_protocol import CameraCommand, TrackRequest
+from onboard.config import build_config
+from onboard.imaging import TargetTracker
+from onboard.imaging.preprocess import ImagingParams
+from onboard.irframe import IrFrame
+from onboard.pipeline import FramePipeline
+from onboard.track import Track
+
+W, H = 640, 512
+HOT = (200.0, 150.0)  # the two warm objects' true centres, px
+WARM = (450.0, 380.0)
+CENTRE_TOL_PX = 0.5
+
+
+def _frame(k: int, objects=(HOT, WARM), amps=(80.0, 50.0), shift_px: float = 0.0) -> np.ndarray:
+    rng = np.random.default_rng(k)
+    img = 100.0 + rng.normal(0.0, 1.0, (H, W))
+    jj, ii = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    for (u, v), a in zip(objects, amps):
+        img += a * np.exp(-((jj - u - shift_px * k) ** 2 + (ii - v) ** 2) / (2 * 1.5**2))
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+# --------------------------------------------------------------------------- tracker
+
+
+def test_auto_mode_acquires_the_strongest_operator_mode_waits():
+    auto = TargetTracker(ImagingParams())
+    upd = auto.update(_frame(0))
+    assert upd.state.value == "tracking" and math.hypot(upd.u_px - HOT[0], upd.v_px - HOT[1]) < CENTRE_TOL_PX
+    op = TargetTracker(ImagingParams(), mode="operator")
+    for k in range(5):
+        assert op.update(_frame(k)).state.value == "searching"
+
+
+def test_select_point_takes_the_object_nearest_the_click_within_the_radius():
+    tr = TargetTracker(ImagingParams(), mode="operator")
+    assert tr.select_point(_frame(0), 300.0, 300.0, 20.0) is None  # empty sky: nothing, nothing changed
+    assert tr.update(_frame(1)).state.value == "searching"
+    upd = tr.select_point(_frame(2), WARM[0] + 12.0, WARM[1] - 5.0, 20.0)
+    assert upd is not None and upd.track_id == 1 and upd.measurement_valid
+    assert math.hypot(upd.u_px - WARM[0], upd.v_px - WARM[1]) < CENTRE_TOL_PX  # the weaker one, as clicked
+    for k in range(3, 10):  # it stays on it, not on the stronger one
+        upd = tr.update(_frame(k))
+        assert upd.track_id == 1 and math.hypot(upd.u_px - WARM[0], upd.v_px - WARM[1]) < CENTRE_TOL_PX
+
+
+def test_select_rectangle_and_a_new_selection_starts_a_new_track():
+    tr = TargetTracker(ImagingParams())
+    first = tr.update(_frame(0))
+    assert first.track_id == 1
+    upd = tr.select_rectangle(_frame(1), (400.0, 330.0, 500.0, 430.0))
+    assert upd.track_id == 2 and math.hypot(upd.u_px - WARM[0], upd.v_px - WARM[1]) < CENTRE_TOL_PX
+    assert tr.select_rectangle(_frame(2), (0.0, 0.0, 50.0, 50.0)) is None
+    assert tr.update(_frame(3)).track_id == 2  # a refused selection leaves the track alone
+
+
+def test_stop_holds_even_auto_mode_until_the_next_selection():
+    tr = TargetTracker(ImagingParams())
+    assert tr.update(_frame(0)).state.value == "tracking"
+    tr.stop()
+    assert tr.holding
+    for k in range(1, 5):
+        assert tr.update(_frame(k)).state.value == "searching"
+    assert tr.select_point(_frame(5), *HOT, 10.0).state.value == "tracking" and not tr.holding
+
+
+def test_operator_track_is_not_handed_to_another_object_when_it_vanishes():
+    p = ImagingParams()
+    tr = TargetTracker(p, mode="operator")
+    tr.select_point(_frame(0), *WARM, 10.0)
+    ids = set()
+    for k in range(1, p.lost_frames + 5):
+        upd = tr.update(_frame(k, objects=(HOT,), amps=(80.0,)))  # the selected object is gone
+        ids.add(upd.track_id)
+        assert upd.u_px is None or math.hypot(upd.u_px - HOT[0], upd.v_px - HOT[1]) > 50
+    assert upd.state.value in ("lost", "searching") and ids <= {1, None}
+
+
+def test_bad_mode_is_refused():
+    with pytest.raises(Exception, match="tracker mode"):
+        TargetTracker(ImagingParams(), mode="manual")
+
+
+# --------------------------------------------------------------------------- pipeline
+
+
+class _CountingEstimator:
+    def __init__(self) -> None:
+        self.resets = 0
+        self.adds = 0
+
+    def add(self, *a, **k):
+        self.adds += 1
+        return None
+
+    def predict(self, *a, **k):
+        return None
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+class _Pose:
+    """The same pose for every frame: what the pipeline reads of a :class:`~onboard.pose.PoseAt`."""
+
+    def pose_at(self, t_us):
+        from types import SimpleNamespace
+
+        from onboard.frames import GeodeticOrigin
+
+        return SimpleNamespace(p_cam_ned_m=np.zeros(3), q_ned_from_cam=np.array([1.0, 0.0, 0.0, 0.0]),
+                               origin=GeodeticOrigin(32.0, 118.8, 0.0), epoch=0)
+
+
+def _pipeline(mode="auto"):
+    cfg = build_config({"gcs": {"tracker_mode": mode}, "estimator": {"enabled": False}})
+    est = _CountingEstimator()
+    return FramePipeline(cfg, None, TargetTracker(cfg.imaging, mode=mode), est), est
+
+
+def _ir(k: int, **kw) -> IrFrame:
+    return IrFrame(seq=k, time_boot_us=1_000_000 + k * 33_333, pixels=_frame(k, **kw))
+
+
+def test_pipeline_decides_queued_requests_on_the_next_frame_and_answers_each():
+    pipe, _ = _pipeline("operator")
+    results = []
+    assert pipe.process(_ir(0)).state == "searching"
+    pipe.request_selection(TrackRequest(1, "point", u_px=300.0, v_px=300.0, radius_px=20.0), results.append)
+    tr = pipe.process(_ir(1))
+    assert tr.state == "searching" and len(results) == 1 and not results[0].accepted
+    assert "no warm object" in results[0].reason and pipe.last_selection["accepted"] is False
+    pipe.request_selection(TrackRequest(2, "point", u_px=HOT[0] + 3, v_px=HOT[1], radius_px=20.0), results.append)
+    tr = pipe.process(_ir(2))
+    assert results[-1].accepted and results[-1].request_id == 2
+    assert tr.state == "tracking" and math.hypot(tr.u_px - HOT[0], tr.v_px - HOT[1]) < CENTRE_TOL_PX
+    pipe.request_selection(TrackRequest(3, "stop"), results.append)
+    assert pipe.process(_ir(3)).state == "searching" and results[-1].accepted
+    assert pipe.process(_ir(4)).state == "searching"
+
+
+def test_a_new_selection_restarts_the_estimate():
+    cfg = build_config({"estimator": {"enabled": False, "reset_on_new_track": False}})
+    est = _CountingEstimator()
+    pipe = FramePipeline(cfg, _Pose(), TargetTracker(cfg.imaging), est)
+    for k in range(5):
+        pipe.process(_ir(k))
+    assert est.adds == 5 and est.resets == 0
+    pipe.request_selection(TrackRequest(1, "rectangle", rect_px=(400.0, 330.0, 500.0, 430.0)), lambda r: None)
+    tr = pipe.process(_ir(5))
+    assert est.resets == 1 and tr.track_id == 2  # reset although reset_on_new_track is off: the operator chose
+
+
+# --------------------------------------------------------------------------- service camera step
+
+
+class _FakeClock:
+    def __init__(self, t_s: float = 1000.0) -> None:
+        self.t_s = t_s
+
+    def __call__(self) -> float:
+        return self.t_s
+
+    def ns(self) -> int:
+        return int(self.t_s * 1e9)
+
+
+class _FakeGcs:
+    def __init__(self) -> None:
+        self.inbox: list[CameraCommand] = []
+        self.sent = []
+        self.system_id = None
+
+    def set_system_id(self, sysid: int) -> None:
+        self.system_id = sysid
+
+    def poll(self):
+        out, self.inbox = self.inbox, []
+        return out
+
+    def send(self, out) -> int:
+        self.sent.append(out)
+        return 1
+
+    def close(self) -> None:
+        pass
+
+
+class _FakeLink:
+    autopilot_sysid = 7
+
+    def status(self):
+        from onboard.mavlink_link import LinkStatus
+
+        return LinkStatus(state="connected", autopilot_sysid=7, heartbeat_age_s=None, rates_confirmed=(),
+                          rates_pending=(), rates_refused=(), clock_synced=False, messages_rx=1, link_losses=0, reboots=0)
+
+
+def _service(mode="auto"):
+    from onboard.service import OnboardService
+
+    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
+                        "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
+                        "mavlink": {"connection": "udpin:0.0.0.0:14999", "autopilot_sysid": None}})
+    clock = _FakeClock()
+    svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
+    svc.gcs = _FakeGcs()
+    return svc, clock
+
+
+def _acks(sent):
+    return [o.fields for o in sent if o.msg == "command_ack"]
+
+
+def test_camera_is_silent_until_the_autopilot_is_known_then_speaks_as_its_system():
+    svc, clock = _service()
+    assert svc.camera_step(clock()) == 0
+    svc.link = _FakeLink()
+    assert svc.camera_step(clock()) >= 1 and svc.gcs.system_id == 7
+    assert svc.gcs.sent[0].msg == "heartbeat" and svc.gcs.sent[0].fields["type"] == mav.MAV_TYPE_CAMERA
+
+
+def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
+    svc, clock = _service("operator")
+    svc.link = _FakeLink()
+    svc.pipeline.process(_ir(0))
+    svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (HOT[0] / W, HOT[1] / H, 20 / W, 0, 0, 0, 0), 255, 190))
+    svc.camera_step(clock())
+    assert _acks(svc.gcs.sent) == []  # decided by the pipeline thread on its next frame
+    tr = svc.pipeline.process(_ir(1))
+    svc._latest = (tr, clock())
+    clock.t_s += 0.01
+    svc.camera_step(clock())
+    acks = _acks(svc.gcs.sent)
+    assert [(a["command"], a["result"]) for a in acks] == [(mav.MAV_CMD_CAMERA_TRACK_POINT, mav.MAV_RESULT_ACCEPTED)]
+    img = [o.fields for o in svc.gcs.sent if o.msg == "camera_tracking_image_status"][-1]
+    assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
+    assert abs(img["point_x"] - HOT[0] / W) < 0.01 and abs(img["point_y"] - HOT[1] / H) < 0.01
+    st = svc.status(clock())["camera"]
+    assert st["selection_mode"] == "point" and st["last_selection"]["accepted"] is True
+    # a click on empty sky: FAILED, the status says why
+    svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (0.5, 0.9, 20 / W, 0, 0, 0, 0), 255, 190))
+    svc.camera_step(clock())
+    svc.pipeline.process(_ir(2))
+    svc.camera_step(clock())
+    assert _acks(svc.gcs.sent)[-1]["result"] == mav.MAV_RESULT_FAILED
+    assert "no warm object" in svc.status(clock())["camera"]["last_refusal"]
+
+
+def test_276_only_for_observable_positions_through_the_camera():
+    from onboard.frames import GeodeticOrigin
+
+    def track(observable: bool) -> Track:
+        return Track(vehicle="uav1", seq=1, time_boot_us=10, state="tracking", track_id=1, measurement_valid=True,
+                     u_px=300.0, v_px=200.0, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0),
+                     lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
+                     cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]), range_m=130.0, observable=observable, window_frames=60)
+
+    svc, clock = _service()
+    svc.link = _FakeLink()
+    svc._latest = (track(False), clock())
+    for _ in range(20):
+        clock.t_s += 0.05
+        svc._latest = (svc._latest[0], clock())
+        svc.camera_step(clock())
+    assert not any(o.msg == "camera_tracking_geo_status" for o in svc.gcs.sent)
+    svc._latest = (track(True), clock())
+    clock.t_s += 0.5
+    svc._latest = (svc._latest[0], clock())
+    svc.camera_step(clock())
+    geo = [o.fields for o in svc.gcs.sent if o.msg == "camera_tracking_geo_status"]
+    assert geo and geo[-1]["h_acc"] == pytest.approx(math.sqrt(800.0)) and geo[-1]["dist"] == 130.0
