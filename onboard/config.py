@@ -317,10 +317,17 @@ class ZenohConfig(_Section):
             for i, ep in enumerate(getattr(self, name)):
                 if "/" not in ep or not ep.split("/", 1)[1]:
                     raise FieldError(f"zenoh.{name}[{i}]", "a zenoh endpoint <protocol>/<address>, e.g. tcp/127.0.0.1:7447", ep)
+                proto, addr = ep.split("/", 1)
+                if proto in ("tcp", "udp", "tls", "quic", "ws"):
+                    hostport = addr.split("?", 1)[0].split("#", 1)[0]
+                    port = hostport.rsplit(":", 1)[1] if ":" in hostport else ""
+                    if not port.isdigit() or int(port) > 65535:
+                        raise FieldError(f"zenoh.{name}[{i}]", f"a {proto} endpoint {proto}/HOST:PORT with PORT in 0..65535", ep)
 
-    def settings(self):
-        """The :class:`~onboard.zenoh_session.ZenohSettings` of this section."""
-        from onboard.zenoh_session import ZenohSettings
+    def settings(self, max_payload_bytes: int | None = None):
+        """The :class:`~onboard.zenoh_session.ZenohSettings` of this section; ``max_payload_bytes`` (the
+        daemon passes ``input.max_frame_bytes``) becomes zenoh's own receive limit, plus framing."""
+        from onboard.zenoh_session import MESSAGE_OVERHEAD_BYTES, ZenohSettings
 
         return ZenohSettings(
             connect=self.connect,
@@ -328,6 +335,7 @@ class ZenohConfig(_Section):
             config_file=self.config_file,
             multicast_scouting=self.multicast_scouting,
             connect_timeout_s=self.connect_timeout_s,
+            max_message_bytes=None if max_payload_bytes is None else int(max_payload_bytes) + MESSAGE_OVERHEAD_BYTES,
         )
 
 

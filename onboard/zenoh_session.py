@@ -119,6 +119,10 @@ class ZenohSettings:
     connect_timeout_s
         None: opening never waits for a connect endpoint (zenoh retries in the background).
         A positive number: opening fails unless a connect endpoint answers within it.
+    max_message_bytes
+        zenoh's own receive limit (``transport/link/rx/max_message_size``, default 1 GiB): a larger
+        message is dropped by the transport before the application sees it.  The daemon sets it from
+        ``input.max_frame_bytes`` (plus ``MESSAGE_OVERHEAD_BYTES``); None keeps the file's or zenoh's.
     """
 
     connect: tuple[str, ...] = ()
@@ -126,6 +130,7 @@ class ZenohSettings:
     config_file: str | None = None
     multicast_scouting: bool | None = None
     connect_timeout_s: float | None = None
+    max_message_bytes: int | None = None
 
     def __post_init__(self) -> None:
         for name in ("connect", "listen"):
@@ -146,6 +151,13 @@ class ZenohSettings:
         t = self.connect_timeout_s
         if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
             raise ZenohConfigError(f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}")
+        m = self.max_message_bytes
+        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 1024):
+            raise ZenohConfigError(f"ZenohSettings.max_message_bytes must be None or an integer >= 1024, got {m!r}")
+
+
+#: key expression, encoding and framing of one zenoh put around its payload, bytes (generous)
+MESSAGE_OVERHEAD_BYTES = 4096
 
 
 def _insert(config, key: str, value, what: str) -> None:
@@ -199,6 +211,9 @@ def build_config(settings: ZenohSettings):
     if settings.connect_timeout_s is not None:
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")
         _insert(config, "connect/timeout_ms", int(round(settings.connect_timeout_s * 1000)), "connect/timeout_ms")
+    if settings.max_message_bytes is not None:
+        _insert(config, "transport/link/rx/max_message_size", int(settings.max_message_bytes),
+                "transport/link/rx/max_message_size")
     return config
 
 

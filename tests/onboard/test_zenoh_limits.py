@@ -1,0 +1,88 @@
+"""zenoh's own message-size limit and endpoint checks (issue 12).  Loopback sessions only."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from onboard.config import build_config
+from onboard.errors import ConfigError
+from onboard.zenoh_session import ZenohSettings, open_session
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+
+LIMIT_BYTES = 1 << 20  # 1 MiB payloads allowed at the receiver
+WAIT_S = 5.0
+
+
+def _free_tcp_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_transport_drops_a_message_over_the_receivers_limit():
+    port = _free_tcp_port()
+    rx = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), max_message_bytes=LIMIT_BYTES + 4096))
+    tx = open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=WAIT_S))
+    got: list[int] = []
+    small = threading.Event()
+
+    def on_sample(sample) -> None:
+        n = len(sample.payload.to_bytes())
+        got.append(n)
+        if n < 100:
+            small.set()
+
+    try:
+        sub = rx.declare_subscriber("irtrack/test/ir/frame", on_sample)
+        warm = threading.Event()
+        probe = rx.declare_subscriber("irtrack/test/probe", lambda s: warm.set())
+        for _ in range(50):  # wait until the route exists
+            tx.put("irtrack/test/probe", b"x")
+            if warm.wait(0.1):
+                break
+        assert warm.is_set()
+        tx.put("irtrack/test/ir/frame", bytes(8 * LIMIT_BYTES))  # 8 MiB: fragmented, over the limit
+        tx.put("irtrack/test/ir/frame", bytes(LIMIT_BYTES // 2))  # within it
+        tx.put("irtrack/test/ir/frame", b"small")
+        assert small.wait(WAIT_S)
+        assert LIMIT_BYTES // 2 in got and 8 * LIMIT_BYTES not in got
+        sub.undeclare()
+        probe.undeclare()
+    finally:
+        tx.close()
+        rx.close()
+
+
+def test_config_passes_max_frame_bytes_to_zenoh():
+    cfg = build_config({"input": {"max_frame_bytes": 2_000_000}})
+    st = cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes)
+    assert st.max_message_bytes == 2_000_000 + 4096
+    from onboard.zenoh_session import build_config as zenoh_config
+
+    assert zenoh_config(st).get_json("transport/link/rx/max_message_size") == str(2_000_000 + 4096)
+
+
+@pytest.mark.parametrize("section, value, field", [
+    ("zenoh", {"listen": ["tcp/127.0.0.1:99999"]}, "zenoh.listen[0]"),
+    ("zenoh", {"connect": ["tcp/127.0.0.1:7447", "tls/host"]}, "zenoh.connect[1]"),
+    ("mavlink", {"connection": "udpin:127.0.0.1:99999"}, "mavlink.connection"),
+])
+def test_bad_ports_fail_naming_the_field(section, value, field):
+    with pytest.raises(ConfigError, match=field.replace("[", r"\[").replace("]", r"\]")):
+        build_config({section: value})
+
+
+def test_check_exits_2_naming_the_port_field(tmp_path):
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_text("zenoh:\n  listen: [tcp/127.0.0.1:99999]\n")
+    r = subprocess.run([sys.executable, "-m", "onboard", "--config", str(cfg), "--check"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2
+    assert "zenoh.listen[0]" in r.stderr and "99999" in r.stderr
