@@ -156,6 +156,10 @@ class MapConfig:
     # uncertainty but of its ambiguity; the verdict wants their posterior mass at most max_ambiguity
     near_solution_ratio: float = 0.3
     max_ambiguity: float = 0.5
+    # the reported solution's neighbourhood must hold at least this posterior mass; otherwise the next
+    # close model that does is reported (the online window met a stiff CT model with ~0 weight, 37 % off,
+    # while the evidence sat on solutions at the true range)
+    min_solution_mass: float = 0.1
     # a position the verdict calls unobservable is still published, with a covariance that must stay
     # honest: its range sigma is at least this fraction of the range (the Laplace posterior of a model
     # that cannot follow the target -- a gusty target, a figure-eight -- is confidently wrong along range)
@@ -737,9 +741,9 @@ class MapEstimator:
         coordinated turn (CT, turn rate estimated), each over the q grid, solved loose to stiff with
         warm starts plus one fresh range hypothesis per model.  The point estimate is the model that
         pins range best among those within ``model_margin_nats`` of the highest evidence; its
-        covariance is averaged over all models by evidence (see the module docstring).  ``warm`` (a
-        solution on the same ``grid``, e.g. the sliding window's current one) replaces the cold
-        multi-start of the first family.
+        covariance is averaged over the models near it by evidence (see the module docstring).  ``warm``
+        (a solution on the same ``grid``, e.g. the sliding window's current one) is one more start of the
+        first family's cold multi-start.
         """
         self._weight_range_m = None
         if prior is not None:
@@ -765,10 +769,11 @@ class MapEstimator:
                 if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose
                     # prior's best mode can be a far or collapsed one whose basin misses the stiffer prior's
                     starts = [self._adapt(th, prob) for th in seeds] + [self._fresh(prob)]
-                elif carry:  # the other family's (or the caller's) best, plus one fresh range hypothesis
+                elif carry and fam != families[0]:  # the other family's best, plus one fresh range hypothesis
                     starts = [self._adapt(th, prob) for th in carry] + [self._fresh(prob)]
-                else:
-                    starts = self.initial_guesses(prob)
+                else:  # the first family: every range hypothesis, plus the caller's warm solution if any (a
+                    # warm start alone kept an online window in a wrong basin for seconds)
+                    starts = self.initial_guesses(prob) + [self._adapt(th, prob) for th in carry]
                 try:
                     top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
                 except EstimationError:  # every start collapsed or left the field of view: no mode here
@@ -801,23 +806,48 @@ class MapEstimator:
 
         close = [(f, m) for f, ts in tops.items() for m in ts if m[6] >= top_ev - cfg.model_margin_nats]
         ratios = [moments(m)[2] for _, m in close]
-        chosen, best = close[int(np.argmin(ratios))]
-        # its uncertainty: every candidate's posterior weight (evidence; a log-uniform hyperprior on q,
-        # equal family odds) and the spread of their trajectories about the chosen one -- the chosen
-        # mean with a Bayesian-model-averaged covariance, so model doubt shows in sigma
         cands = [m for ts in tops.values() for m in ts]
         logw = np.array([m[6] for m in cands])
         w = np.exp(logw - np.logaddexp.reduce(logw))
+        cam = close[0][1][0].obs.p_cam_ned_m  # the (smoothed) camera track every problem shares
+        # the reported solution: the close model pinning range best, unless its neighbourhood holds less
+        # than min_solution_mass of the posterior (a stiff low-weight model far from where the evidence
+        # sits would report its own narrow sigma about the wrong range): then the next one that does,
+        # failing that the highest-evidence model
+        order = [close[i] for i in np.argsort(ratios)]
+        top = max(close, key=lambda fm: fm[1][6])
+        chosen, best = order[0]
+        split = self._split(best, cands, w, cam, moments)
+        if 1.0 - split[2] < cfg.min_solution_mass:
+            for f, m in order[1:] + [top]:
+                sp = self._split(m, cands, w, cam, moments)
+                if 1.0 - sp[2] >= cfg.min_solution_mass or m is top[1]:
+                    chosen, best, split = f, m, sp
+                    break
+        w_best, extra_near, ambiguity, extra_far, w_near = split
+        if ambiguity <= cfg.max_ambiguity:
+            mix = (w_best / w_near, extra_near / w_near)
+        else:
+            mix = (w_best, extra_near + extra_far)
+        res = self.result(*best[:6], mix=mix, ambiguity=ambiguity)
+        res.extras["family_log_evidence"] = fam_ev
+        res.extras["best_model_weight"] = w_best
+        res.extras["model"] = chosen
+        res.extras["grid_log_evidence"] = {f: [(t[0].prior.q_horizontal_m2ps3, t[6]) for t in ts] for f, ts in tops.items()}
+        return res
+
+    def _split(self, best, cands, w, cam: np.ndarray, moments):
+        """(w_best, extra_near, ambiguity, extra_far, w_near) of reporting ``best``: the evidence-weighted
+        spread terms ``w_k (P_k + d_k d_k^T)`` of the models near it (median range along its lines of sight
+        within ``near_solution_ratio`` of its own) and of the far ones, and the far models' mass."""
+        cfg = self.config
         p_best = best[0].positions(best[1])
-        cam = best[0].obs.p_cam_ned_m
         los = p_best - cam
         r_best = np.linalg.norm(los, axis=1)
         u_best = los / r_best[:, None]
-        # split the models into the reported solution's neighbourhood and far explanations of the same
-        # bearings; the reported covariance averages the near ones (renormalised), the far mass is the
-        # solution's ambiguity (all of them when the far mass dominates: no solution to speak of)
-        extra_near = np.zeros((len(obs), 3, 3))
-        extra_far = np.zeros((len(obs), 3, 3))
+        F = p_best.shape[0]
+        extra_near = np.zeros((F, 3, 3))
+        extra_far = np.zeros((F, 3, 3))
         w_best = w_near = 0.0
         for m, wk in zip(cands, w):
             if m is best:
@@ -835,17 +865,7 @@ class MapEstimator:
             else:
                 extra_far += term
         w_near += w_best
-        ambiguity = float(max(0.0, 1.0 - w_near))
-        if ambiguity <= cfg.max_ambiguity:
-            mix = (w_best / w_near, extra_near / w_near)
-        else:
-            mix = (w_best, extra_near + extra_far)
-        res = self.result(*best[:6], mix=mix, ambiguity=ambiguity)
-        res.extras["family_log_evidence"] = fam_ev
-        res.extras["best_model_weight"] = w_best
-        res.extras["model"] = chosen
-        res.extras["grid_log_evidence"] = {f: [(t[0].prior.q_horizontal_m2ps3, t[6]) for t in ts] for f, ts in tops.items()}
-        return res
+        return w_best, extra_near, float(max(0.0, 1.0 - w_near)), extra_far, w_near
 
     def _moments(self, mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""

@@ -7,9 +7,11 @@ Every observation gets a fresh estimate of the target's state at its own time:
   over (old ones dropped, new ones extrapolated) and the previous solution warm-starts the next;
 - each frame runs ``iterations_per_frame`` Gauss-Newton/LM iterations on the whole window with the
   current motion model (a few hundred microseconds to a millisecond for 300 frames);
-- at most every ``reselect_period_s`` (1 Hz by default) the full multi-start, evidence-based model
-  selection of :class:`~onboard.estimation.map_estimator.MapEstimator` re-solves the window (the
-  expensive part, ~0.1-0.5 s, amortised over the frames of that second).
+- the full multi-start, evidence-based model selection of
+  :class:`~onboard.estimation.map_estimator.MapEstimator` re-solves the window every
+  ``warmup_reselect_period_s`` (1 s) while the window is still filling (the estimate changes fastest
+  then), every ``reselect_period_s`` (5 s) afterwards: it is the expensive part (~0.2-0.4 s of one
+  core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget (issue 9 item 7).
 
 The reported covariance is the chosen model's Laplace posterior at this time, scaled at each model
 selection to the batch result's model-averaged, inflated covariance (over the solutions near the
@@ -48,12 +50,17 @@ class SlidingConfig:
     max_frames: int = 300
     min_frames: int = 30
     min_span_s: float = 1.5
-    reselect_period_s: float = 1.0
+    reselect_period_s: float = 5.0
+    warmup_reselect_period_s: float = 1.0
     iterations_per_frame: int = 1
     resolve_every_frames: int = 5
+    # a frame is observable when the last selection's window was and its own range sigma (at the window's
+    # newest edge, the least constrained point: ~1.4x the window median on P2) is below this many times
+    # MapConfig.observability_max_sigma_range_ratio
+    edge_sigma_factor: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0
+        if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0 and self.warmup_reselect_period_s > 0
                 and self.iterations_per_frame >= 1 and self.min_span_s >= 0 and self.resolve_every_frames >= 1):
             raise InputError(f"SlidingConfig: invalid values {self}")
 
@@ -190,7 +197,9 @@ class SlidingWindowEstimator:
 
     # ------------------------------------------------------------------ solve
     def _update(self, t: float) -> TrackEstimate:
-        due = t - self._last_select_t >= self.config.reselect_period_s
+        filling = (t - self._t[0]) < self.config.window_s - self.config.warmup_reselect_period_s
+        period = self.config.warmup_reselect_period_s if filling else self.config.reselect_period_s
+        due = t - self._last_select_t >= period
         if self._theta is None or self._prior is None or due:
             obs = self._observations()
             warm = None
@@ -204,7 +213,10 @@ class SlidingWindowEstimator:
             # the window's verdict for the online track: the model fits (adequacy) and the chosen model
             # is not a long shot; range itself is judged per frame, at the frame's own time
             cfg = self.map.config
-            self._window_observable = bool(res.adequacy_p >= cfg.adequacy_p_min and res.ambiguity <= cfg.max_ambiguity)
+            # the window's verdict (batch: median range sigma over the window, ambiguity, adequacy) gates the
+            # frames until the next selection; each frame's own range sigma, at the window's newest edge
+            # where it is largest, must also stay below edge_sigma_factor x the threshold
+            self._window_observable = bool(res.observable)
             self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
             self._last_select_t = t
             self.stats["selections"] += 1
@@ -312,7 +324,8 @@ class SlidingWindowEstimator:
         ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / max(rng, 1e-9))
         neg = bool(np.any(np.diag(P) <= 0))
         cfg = self.map.config
-        observable = bool(self._window_observable and not neg and ratio < cfg.observability_max_sigma_range_ratio)
+        observable = bool(self._window_observable and not neg
+                          and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio)
         if not observable and cfg.unobservable_range_sigma_floor > 0:  # honest, not confident (module docstring)
             floor = cfg.unobservable_range_sigma_floor * rng
             if ratio * rng < floor:
