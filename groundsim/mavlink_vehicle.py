@@ -22,7 +22,23 @@ GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: 
                                                        YAW_IN_EARTH_FRAME, default) or the vehicle
                                                        frame (YAW_IN_VEHICLE_FRAME); delta_yaw =
                                                        vehicle yaw; rates NaN; gimbal_device_id 1
+SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, GPS, AHRS, battery
+                                                       present/enabled/healthy; 4S battery volts,
+                                                       current, remaining (linear drain from 100 %)
+EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
+GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position
+ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
+BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
+HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon/alt (and on request)
+AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | COMMAND_INT | PARAM_FLOAT
 ===========================================  ========  =============================================
+
+A ground station's other requests: PARAM_REQUEST_LIST -> PARAM_VALUE for each of
+:data:`DEFAULT_PARAMS` (REAL32), PARAM_REQUEST_READ (name or index) and PARAM_SET (stored, echoed);
+MISSION_REQUEST_LIST -> MISSION_COUNT 0 of the asked mission type (no mission, fence or rally);
+MISSION_CLEAR_ALL -> MISSION_ACK ACCEPTED; MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES -> AUTOPILOT_VERSION;
+MAV_CMD_GET_HOME_POSITION -> HOME_POSITION.  MAVSDK reads health, home, GPS and battery with no
+request DENIED (tested).
 
 Navigation errors: ``update_state(..., nav_error=sample)`` reports the state with a
 :class:`groundsim.nav_errors.NavErrorSample` applied (attitude error on #31 and on #285's gimbal
@@ -48,8 +64,8 @@ Services (read on every poll):
   ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param1 message id, param2 interval us: -1 disables, 0
   restores the default, > 0 sets) -> COMMAND_ACK ACCEPTED for a message id we emit, DENIED for
   any other id or a bad interval; ``MAV_CMD_REQUEST_MESSAGE`` (param1 message id) -> ACCEPTED
-  and one message now when we can produce it, DENIED otherwise; any other command ->
-  UNSUPPORTED.
+  and one message now when we can produce it, DENIED otherwise; REQUEST_AUTOPILOT_CAPABILITIES and
+  GET_HOME_POSITION as above; any other command -> UNSUPPORTED.
 
 Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in NED
 (gimbal axes as the mount's in :mod:`onboard.frames`: x optical axis, y right, z down), i.e.
@@ -115,6 +131,37 @@ MSG_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
 MSG_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
 MSG_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
 _DATA_STREAMS = (MSG_ATTITUDE_QUATERNION, MSG_GLOBAL_POSITION_INT, MSG_GIMBAL_DEVICE_ATTITUDE_STATUS)
+# what a ground station reads of a whole vehicle (issue 11): streams at the usual rates, or on request
+MSG_SYS_STATUS = mavlink2.MAVLINK_MSG_ID_SYS_STATUS  # 1
+MSG_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT  # 24
+MSG_ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE  # 30
+MSG_BATTERY_STATUS = mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS  # 147
+MSG_AUTOPILOT_VERSION = mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION  # 148
+MSG_HOME_POSITION = mavlink2.MAVLINK_MSG_ID_HOME_POSITION  # 242
+MSG_EXTENDED_SYS_STATE = mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE  # 245
+_NEEDS_STATE = (MSG_GPS_RAW_INT, MSG_ATTITUDE, MSG_HOME_POSITION)
+#: default intervals of the ground-station streams, us (None: only on request)
+_GCS_STREAM_INTERVAL_US = {
+    MSG_SYS_STATUS: 1_000_000,
+    MSG_EXTENDED_SYS_STATE: 1_000_000,
+    MSG_GPS_RAW_INT: 200_000,
+    MSG_ATTITUDE: 100_000,
+    MSG_BATTERY_STATUS: 1_000_000,
+    MSG_HOME_POSITION: 5_000_000,
+    MSG_AUTOPILOT_VERSION: None,
+}
+_SENSORS = (mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+            | mavlink2.MAV_SYS_STATUS_SENSOR_GPS | mavlink2.MAV_SYS_STATUS_AHRS | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY)
+_CAPABILITIES = (mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                 | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
+BATTERY_CELLS = 4
+BATTERY_FULL_V, BATTERY_EMPTY_V = 4.2, 3.5  # per cell
+BATTERY_DRAIN_PCT_PER_S = 0.05  # 100 % -> 0 % in 2000 s: a long simulated flight never runs flat
+BATTERY_CURRENT_A = 12.0
+#: the small parameter set PARAM_REQUEST_LIST returns (name -> value; all MAV_PARAM_TYPE_REAL32)
+DEFAULT_PARAMS = (("MAV_SYS_ID", 1.0), ("MAV_COMP_ID", 1.0), ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
+                  ("BAT_N_CELLS", float(BATTERY_CELLS)), ("BAT_CAPACITY", 5000.0), ("SIM_FRAME_RATE", 30.0))
 
 #: TIMESYNC's target_system/target_component are extension fields of the current spec; the
 #: common.xml shipped with some pymavlink releases (2.4.50) predates them.  Without them the
@@ -349,6 +396,10 @@ class MavlinkVehicle:
         }
         if self.gimballed:
             self._default_interval_us[MSG_GIMBAL_DEVICE_ATTITUDE_STATUS] = round(1e6 / gimbal_rate_hz)
+        self._default_interval_us.update(_GCS_STREAM_INTERVAL_US)
+        self._params: dict[str, float] = dict(DEFAULT_PARAMS)
+        self._params["MAV_SYS_ID"], self._params["MAV_COMP_ID"] = float(sysid), float(compid)
+        self._home: VehicleState | None = None
         #: current interval per stream, microseconds; None = disabled by SET_MESSAGE_INTERVAL -1
         self._interval_us: dict[int, int | None] = dict(self._default_interval_us)
         self._next_due_us: dict[int, int] = {m: 0 for m in self._interval_us}
@@ -408,6 +459,8 @@ class MavlinkVehicle:
             q_ned_from_gimbal=q_gimbal,
         )
         self._state = state
+        if self._home is None:
+            self._home = state  # home = where the first sample was
         return state
 
     def message_interval_us(self, msg_id: int) -> int | None:
@@ -473,6 +526,8 @@ class MavlinkVehicle:
             if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
                 return 0
             self._last_state_us_sent[msg_id] = state.time_boot_us
+        if msg_id in _NEEDS_STATE and state is None:
+            return 0
         try:
             if msg_id == MSG_HEARTBEAT:
                 mav.heartbeat_send(
@@ -496,7 +551,7 @@ class MavlinkVehicle:
                 mav.gimbal_device_attitude_status_send(
                     0, 0, _time_boot_ms(state.time_boot_us), flags, q, nan, nan, nan, 0, delta_yaw_rad, nan, 1
                 )
-            else:  # pragma: no cover - streams are fixed at construction
+            elif not self._send_gcs_stream(msg_id, mav, now, state):  # pragma: no cover - streams fixed at construction
                 return 0
         except OSError as exc:
             self._log_limited("tx_error", "mavlink send failed: %s", exc)
@@ -504,6 +559,47 @@ class MavlinkVehicle:
             return 0
         self.counters[f"tx_{msg_id}"] += 1
         return 1
+
+    def battery_remaining_pct(self, now_us: int) -> float:
+        """The simulated battery's charge, %: linear drain from 100 % at boot."""
+        return max(100.0 - BATTERY_DRAIN_PCT_PER_S * now_us / 1e6, 0.0)
+
+    def _send_gcs_stream(self, msg_id: int, mav, now: int, state: VehicleState | None) -> bool:
+        """The messages a ground station reads of a whole vehicle (module docstring); False: not ours."""
+        pct = self.battery_remaining_pct(now)
+        cell_v = BATTERY_EMPTY_V + (BATTERY_FULL_V - BATTERY_EMPTY_V) * pct / 100.0
+        if msg_id == MSG_SYS_STATUS:
+            mav.sys_status_send(_SENSORS, _SENSORS, _SENSORS, 250, round(cell_v * BATTERY_CELLS * 1000),
+                                round(BATTERY_CURRENT_A * 100), round(pct), 0, 0, 0, 0, 0, 0)
+        elif msg_id == MSG_EXTENDED_SYS_STATE:
+            mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, mavlink2.MAV_LANDED_STATE_IN_AIR)
+        elif msg_id == MSG_BATTERY_STATUS:
+            cells = [round(cell_v * 1000)] * BATTERY_CELLS + [_UINT16_MAX] * (10 - BATTERY_CELLS)
+            used_mah = round(BATTERY_CURRENT_A * 1000 * now / 1e6 / 3600)
+            mav.battery_status_send(0, mavlink2.MAV_BATTERY_FUNCTION_ALL, mavlink2.MAV_BATTERY_TYPE_LIPO, _INT16_MAX,
+                                    cells, round(BATTERY_CURRENT_A * 100), used_mah, -1, round(pct),
+                                    round(pct / BATTERY_DRAIN_PCT_PER_S), mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
+                                    [0, 0, 0, 0], 0, 0)
+        elif msg_id == MSG_GPS_RAW_INT:
+            _, lat, lon, alt_mm, _, vx, vy, _, _ = self._global_position_int_fields(state)
+            vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
+            cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
+            mav.gps_raw_int_send(self._unix_at_boot_us + state.time_boot_us, mavlink2.GPS_FIX_TYPE_3D_FIX, lat, lon,
+                                 alt_mm, 80, 120, vel, cog, 14, alt_mm, 500, 800, 200, 0, 0)
+        elif msg_id == MSG_ATTITUDE:
+            roll, pitch, yaw = (float(a) for a in euler_from_quat(np.asarray(state.q_ned_from_body)))
+            p, q, r = state.body_rates_radps
+            mav.attitude_send(_time_boot_ms(state.time_boot_us), roll, pitch, yaw, p, q, r)
+        elif msg_id == MSG_HOME_POSITION:
+            h = self._home
+            mav.home_position_send(round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0),
+                                   0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self._unix_at_boot_us + now)
+        elif msg_id == MSG_AUTOPILOT_VERSION:
+            mav.autopilot_version_send(_CAPABILITIES, 0x01000000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                                       0x1A2B3C4D, [0] * 18)
+        else:
+            return False
+        return True
 
     def _gimbal_fields(self, s: VehicleState) -> tuple[int, list[float], float]:
         """(flags, q, delta_yaw_rad) of GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame."""
@@ -562,6 +658,10 @@ class MavlinkVehicle:
                     sent += self._on_timesync(msg)
                 elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
                     sent += self._on_command(msg)
+                elif mtype in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
+                    sent += self._on_param(msg, mtype)
+                elif mtype in ("MISSION_REQUEST_LIST", "MISSION_CLEAR_ALL"):
+                    sent += self._on_mission(msg, mtype)
             except Exception as exc:  # noqa: BLE001 - a malformed request must not stop the pump
                 self.counters["rx_handler_error"] += 1
                 self._log_limited("rx_handler_error", "mavlink: cannot handle %s: %s", mtype, exc)
@@ -579,6 +679,49 @@ class MavlinkVehicle:
         self.counters["tx_111"] += 1
         return 1
 
+    def _for_us(self, msg) -> bool:
+        return msg.target_system in (0, self.sysid) and msg.target_component in (0, self.compid)
+
+    def _param_value(self, index: int) -> None:
+        name, value = list(self._params.items())[index]
+        self._conn.mav.param_value_send(name.encode(), value, mavlink2.MAV_PARAM_TYPE_REAL32, len(self._params), index)
+        self.counters["tx_22"] += 1
+
+    def _on_param(self, msg, mtype: str) -> int:
+        """PARAM_REQUEST_LIST -> every PARAM_VALUE; _READ -> one (by name, or index when -1 ... ); _SET -> stored
+        (REAL32) and echoed; an unknown name is ignored, as the parameter protocol says."""
+        if not self._for_us(msg):
+            return 0
+        names = list(self._params)
+        if mtype == "PARAM_REQUEST_LIST":
+            for i in range(len(names)):
+                self._param_value(i)
+            return len(names)
+        name = msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else bytes(msg.param_id).rstrip(b"\0").decode()
+        if mtype == "PARAM_REQUEST_READ":
+            index = msg.param_index if msg.param_index >= 0 else (names.index(name) if name in names else -1)
+            if not 0 <= index < len(names):
+                return 0
+            self._param_value(index)
+            return 1
+        if name not in names or not math.isfinite(msg.param_value):
+            return 0
+        self._params[name] = float(msg.param_value)
+        self._param_value(names.index(name))
+        return 1
+
+    def _on_mission(self, msg, mtype: str) -> int:
+        """No mission: MISSION_REQUEST_LIST -> MISSION_COUNT 0; MISSION_CLEAR_ALL -> MISSION_ACK accepted."""
+        if not self._for_us(msg):
+            return 0
+        mission_type = getattr(msg, "mission_type", 0)
+        if mtype == "MISSION_REQUEST_LIST":
+            self._conn.mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), 0, mission_type)
+        else:
+            self._conn.mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(),
+                                            mavlink2.MAV_MISSION_ACCEPTED, mission_type)
+        return 1
+
     def _on_command(self, msg) -> int:
         if msg.target_system not in (0, self.sysid) or msg.target_component not in (0, self.compid):
             return 0
@@ -587,6 +730,10 @@ class MavlinkVehicle:
             result = self._set_message_interval(msg.param1, msg.param2)
         elif cmd == mavlink2.MAV_CMD_REQUEST_MESSAGE:
             result = self._request_message(msg.param1)
+        elif cmd == mavlink2.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            result = self._request_message(float(MSG_AUTOPILOT_VERSION))
+        elif cmd == mavlink2.MAV_CMD_GET_HOME_POSITION:
+            result = self._request_message(float(MSG_HOME_POSITION))
         else:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
         self._conn.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
@@ -619,7 +766,7 @@ class MavlinkVehicle:
         state = self._state
         if msg_id is None:
             return mavlink2.MAV_RESULT_DENIED
-        if msg_id in _DATA_STREAMS and (
+        if (msg_id in _DATA_STREAMS or msg_id in _NEEDS_STATE) and (
             state is None or (msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None)
         ):
             return mavlink2.MAV_RESULT_DENIED

@@ -315,13 +315,13 @@ def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
 @pytest.mark.parametrize(
     "cmd, p1, p2, result",
     [
-        (511, 30, 100_000, 2),  # ATTITUDE (#30): we do not emit it -> DENIED
+        (511, 32, 100_000, 2),  # LOCAL_POSITION_NED (#32): we do not emit it -> DENIED
         (511, 285, 100_000, 2),  # gimbal status, but not gimballed -> DENIED
         (511, 31.5, 100_000, 2),  # not an integer message id
         (511, 31, -2, 2),  # bad interval
         (511, float("nan"), 1, 2),
         (176, 1, 0, 3),  # MAV_CMD_DO_SET_MODE: UNSUPPORTED
-        (520, 1, 0, 3),  # REQUEST_AUTOPILOT_CAPABILITIES: UNSUPPORTED
+        (400, 1, 0, 3),  # MAV_CMD_COMPONENT_ARM_DISARM: UNSUPPORTED (520 is answered since issue 11)
     ],
 )
 def test_unsupported_requests_are_refused_with_an_ack(link, cmd, p1, p2, result):
