@@ -360,7 +360,11 @@ class PoseBufferConfig:
 
     ``window_us``: history kept per stream.  ``*_max_gap_us``: the widest bracket a lookup accepts
     (the "pose tolerance": a frame whose bracket is wider has no pose and is not used for 3-D).
-    ``reboot_threshold_us``: time going back by more than this is an autopilot reboot.
+    ``reboot_threshold_us``: a sample more than this before or after its stream's newest one is far
+    from the running clock: an outlier, refused (``<stream>_time_outlier``), unless
+    ``time_confirm_count`` consecutive such samples agree with each other (each after the previous,
+    by at most the threshold): then it is a clock step, backwards an autopilot reboot (buffers
+    cleared, ``reboot``), forwards a gap (``<stream>_time_step``).  One bad stamp costs one sample.
     ``max_speed_mps``: a position implying a faster move from the previous one is a jump;
     ``jump_reset_count`` consecutive jumps restart the position stream.
     ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.
@@ -380,6 +384,7 @@ class PoseBufferConfig:
     pos_max_gap_us: int = 300_000
     gimbal_max_gap_us: int = 300_000
     reboot_threshold_us: int = 1 * US_PER_S
+    time_confirm_count: int = 3
     max_speed_mps: float = 200.0
     jump_reset_count: int = 5
     keep_origin_on_reboot: bool = True
@@ -398,7 +403,7 @@ class PoseBufferConfig:
 
     def __post_init__(self) -> None:
         for name in ("window_us", "max_samples", "att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us",
-                     "reboot_threshold_us", "jump_reset_count"):
+                     "reboot_threshold_us", "jump_reset_count", "time_confirm_count"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ConfigError(f"PoseBufferConfig.{name} must be a positive integer, got {v!r}")
@@ -436,6 +441,7 @@ class _Stream:
         self.max_gap_us = max_gap_us
         self.t_us: list[int] = []
         self.values: list[np.ndarray] = []
+        self.pending_t_us: list[int] = []  # a run of far-off stamps that may confirm a clock step
 
     @property
     def last_t(self) -> int | None:
@@ -444,6 +450,7 @@ class _Stream:
     def clear(self) -> None:
         self.t_us.clear()
         self.values.clear()
+        self.pending_t_us.clear()
 
     def append(self, t_us: int, value: np.ndarray, window_us: int, max_samples: int) -> None:
         self.t_us.append(t_us)
@@ -543,22 +550,39 @@ class PoseBuffer:
             return None
 
     def _admit(self, s: _Stream, t: int) -> bool:
-        """Ordering check; detects reboots.  Mutates only on reboot / gimbal clock reset."""
+        """Ordering and outlier check (see :class:`PoseBufferConfig` ``reboot_threshold_us``); detects
+        reboots and clock steps.  Mutates only the pending run, and on a confirmed reboot / step."""
         last = s.last_t
-        if last is None or t > last:
+        thr = self.config.reboot_threshold_us
+        if last is None or last < t <= last + thr:
+            s.pending_t_us.clear()
             return True
         if t == last:
             self.counter.count(f"{s.name}_duplicate", f"time_boot_us={t} repeated")
             return False
-        back = last - t
-        if back <= self.config.reboot_threshold_us:
-            self.counter.count(f"{s.name}_out_of_order", f"time_boot_us={t} is {back} us before {last}")
+        if last - thr <= t < last:
+            self.counter.count(f"{s.name}_out_of_order", f"time_boot_us={t} is {last - t} us before {last}")
             return False
+        run = s.pending_t_us
+        if run and run[-1] < t <= run[-1] + thr:
+            run.append(t)
+        else:
+            run[:] = [t]
+        if len(run) < self.config.time_confirm_count:
+            self.counter.count(f"{s.name}_time_outlier",
+                               f"time_boot_us={t} is {(t - last) / US_PER_S:+.3f} s from the stream's newest {last}")
+            return False
+        run.clear()
+        if t > last:
+            self.counter.count(f"{s.name}_time_step", f"time_boot_us stepped {(t - last) / US_PER_S:+.3f} s ({last} -> {t})",
+                               level=logging.INFO)
+            return True
         if s is self._gim:
             s.clear()
-            self.counter.count("gimbal_time_reset", f"gimbal time went back {back} us; gimbal stream restarted")
+            self.counter.count("gimbal_time_reset", f"gimbal time went back {last - t} us; gimbal stream restarted")
             return True
-        self._reboot(f"{s.name} time_boot_us went back {back} us ({last} -> {t})")
+        self._reboot(f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), "
+                     f"confirmed by {self.config.time_confirm_count} samples")
         return True
 
     def _reboot(self, detail: str) -> None:

@@ -303,7 +303,8 @@ def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
         assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
     n_before = len(rig.ap.commands)
     rig.ap.attitude(60_000, [1, 0, 0, 0])
-    rig.ap.attitude(800, [1, 0, 0, 0])  # time_boot_ms went back: the autopilot rebooted
+    for t_ms in (800, 820, 840):  # time_boot_ms went back, three samples agree: the autopilot rebooted
+        rig.ap.attitude(t_ms, [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.reboots == 1 and len(rig.ap.commands) == n_before + 2)
     assert rig.counters["reboot"] == 1
     assert rig.pose.sizes()["attitude"] == 1

@@ -351,7 +351,10 @@ def test_duplicates_and_small_reordering_are_rejected_without_reboot():
 def test_reboot_clears_buffers_keeps_origin_and_counts():
     buf = filled_buffer(t_end_s=3.0)
     assert buf.pose_at(2_000_000) is not None
-    assert buf.add_attitude(200_000, [1, 0, 0, 0])  # time_boot went back 2.8 s
+    assert not buf.add_attitude(200_000, [1, 0, 0, 0])  # time_boot went back 2.8 s: an outlier so far
+    assert not buf.add_attitude(220_000, [1, 0, 0, 0])
+    assert buf.reboots == 0 and buf.counter["attitude_time_outlier"] == 2
+    assert buf.add_attitude(240_000, [1, 0, 0, 0])  # the third consistent sample confirms the reboot
     assert buf.reboots == 1 and buf.counter["reboot"] == 1
     assert buf.sizes() == {"attitude": 1, "position": 0, "gimbal": 0}
     assert buf.origin == ORIGIN
@@ -364,7 +367,8 @@ def test_reboot_clears_buffers_keeps_origin_and_counts():
 def test_reboot_without_keep_origin_refixes_at_next_position():
     buf = PoseBuffer(config=PoseBufferConfig(keep_origin_on_reboot=False))
     buf.add_position(5_000_000, 47.0, 8.0, 400.0)
-    buf.add_position(4_000_000 - 1, 46.0, 7.0, 300.0)  # back 1 s + 1 us: reboot
+    for k in range(3):  # back ~2 s, three consistent samples in a row: reboot
+        buf.add_position(3_000_000 + 100_000 * k, 46.0, 7.0, 300.0)
     assert buf.reboots == 1 and buf.origin == GeodeticOrigin(46.0, 7.0, 300.0)
 
 
@@ -819,3 +823,49 @@ def test_shipped_noise_numbers_of_the_docstring():
     pos_50ms_m = extrapolation_sigma(0.05, b.velocity_sigma_mps, b.accel_sigma_mps2)
     assert pos_50ms_m == pytest.approx(0.0056, abs=1e-4)
     assert math.degrees(pos_50ms_m / 100.0) / white_deg == pytest.approx(0.06, abs=0.005)
+
+
+# --------------------------------------------------------------------------- timestamp outliers (issue 12)
+
+ONE_HOUR_US = 3600 * 1_000_000
+
+
+@pytest.mark.parametrize("offset_us", [3 * ONE_HOUR_US, -2_500_000, 5_000_000], ids=["+3h", "-2.5s", "+5s"])
+def test_a_single_far_stamp_costs_one_sample(offset_us):
+    buf = filled_buffer(t_end_s=3.0)
+    n_att = buf.sizes()["attitude"]
+    t_last = 3_000_000
+    assert not buf.add_attitude(t_last + offset_us, [1, 0, 0, 0])
+    assert not buf.add_position_ned(t_last + offset_us, p_true(3.04))
+    assert buf.add_attitude(t_last + 20_000, q_true(3.02))  # the next normal sample is simply the next one
+    assert buf.add_position_ned(t_last + 40_000, p_true(3.04), v_true(3.04))
+    assert buf.reboots == 0 and buf.sizes()["attitude"] == n_att + 1
+    assert buf.counter["attitude_time_outlier"] == 1 and buf.counter["position_time_outlier"] == 1
+    assert buf.pose_at(2_900_000) is not None
+
+
+def test_a_forward_clock_step_is_accepted_once_confirmed():
+    buf = filled_buffer(t_end_s=3.0)
+    t0 = 3_000_000 + 10_000_000  # the autopilot's stream resumes 10 s later (link outage)
+    assert not buf.add_attitude(t0, [1, 0, 0, 0])
+    assert not buf.add_attitude(t0 + 20_000, [1, 0, 0, 0])
+    assert buf.add_attitude(t0 + 40_000, [1, 0, 0, 0])
+    assert buf.counter["attitude_time_step"] == 1 and buf.reboots == 0
+    assert buf.add_attitude(t0 + 60_000, [1, 0, 0, 0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.integers(min_value=-4 * ONE_HOUR_US, max_value=4 * ONE_HOUR_US), min_size=1, max_size=2))
+def test_isolated_outliers_never_reboot_or_block_the_stream(outliers):
+    """Up to two far stamps (never three agreeing) between normal 50 Hz samples: no reboot, every normal sample kept."""
+    buf = PoseBuffer(origin=ORIGIN)
+    t = 10_000_000
+    kept = 0
+    for k in range(10):
+        kept += buf.add_attitude(t, [1, 0, 0, 0])
+        if k == 4:
+            for o in outliers:
+                if abs(o) > 1_000_000:
+                    buf.add_attitude(t + o, [1, 0, 0, 0])
+        t += 20_000
+    assert buf.reboots == 0 and kept == 10
