@@ -11,9 +11,11 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
 
 1. Admission (stateful, needs no pixels): frame size equals the configured camera; capture time
    strictly increasing -- a frame at or before the last accepted time is a duplicate (same
-   ``seq``) or out of order and is refused; time back by more than
-   ``input.time_reset_threshold_s`` with the sequence still moving forward is an autopilot reboot
-   (accepted; the estimator restarts); time moving forward with the sequence going back is a sender
+   ``seq``) or out of order and is refused; a capture time more than
+   ``input.time_reset_threshold_s`` after the last accepted one, or before it with the sequence still
+   moving forward, is an outlier (refused, ``frame_time_outlier``: one bad stamp costs one frame)
+   until ``TIME_CONFIRM_FRAMES`` such frames in a row agree with each other: then it is a clock step
+   or an autopilot reboot (accepted, ``frame_time_reset``; the estimator restarts); time moving forward with the sequence going back is a sender
    restart (accepted).  ``input.sequence_restart_count`` refusals in a row are taken as a restart
    too, so a stream never locks out for good.
 2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`).
@@ -70,6 +72,8 @@ log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
 SEQ_MOD = 2**32
+#: consecutive, mutually consistent frames far from the running clock that confirm a clock step
+TIME_CONFIRM_FRAMES = 3
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
 
 
@@ -178,6 +182,7 @@ class FramePipeline:
         self._last_seq: int | None = None
         self._last_t_us: int | None = None
         self._refused_in_row = 0
+        self._far_run: list[int] = []  # capture times of a run of far-off frames that may confirm a clock step
         self._est_track_id: int | None = None
         self._est_epoch: int | None = None
         self._est_has_data = False
@@ -323,15 +328,26 @@ class FramePipeline:
             return
         seq_forward = 0 < (seq - last_seq) % SEQ_MOD < SEQ_MOD // 2
         threshold_us = int(self.config.input.time_reset_threshold_s * US_PER_S)
+        if t > last_t + threshold_us or (t < last_t - threshold_us and seq_forward):
+            # far from the running clock: one such frame is an outlier; a run of TIME_CONFIRM_FRAMES
+            # frames agreeing with each other is a clock step (back: an autopilot reboot)
+            run = self._far_run
+            if run and run[-1] < t <= run[-1] + threshold_us:
+                run.append(t)
+            else:
+                run[:] = [t]
+            if len(run) < TIME_CONFIRM_FRAMES:
+                self._refuse("time_outlier", f"frame seq {seq} at time_boot_us {t} is {(t - last_t) / 1e6:+.3f} s "
+                                             f"from the last accepted one ({last_t})")
+            run.clear()
+            self.counter.count("frame_time_reset", f"capture time stepped {(t - last_t) / 1e6:+.3f} s with seq "
+                               f"{last_seq} -> {seq}, confirmed by {TIME_CONFIRM_FRAMES} frames; estimator restarted")
+            self._reset_estimator("time reset")
+            self._accept(seq, t)
+            return
         if t > last_t:
             if not seq_forward:
                 self.counter.count("frame_sequence_reset", f"seq {last_seq} -> {seq} while time moved forward; sender restarted")
-            self._accept(seq, t)
-            return
-        if t < last_t - threshold_us and seq_forward:
-            self.counter.count("frame_time_reset", f"capture time went back {(last_t - t) / 1e6:.3f} s with seq "
-                               f"{last_seq} -> {seq}: autopilot reboot; estimator restarted")
-            self._reset_estimator("time reset")
             self._accept(seq, t)
             return
         self._refused_in_row += 1
@@ -348,6 +364,7 @@ class FramePipeline:
     def _accept(self, seq: int, t: int) -> None:
         self._last_seq, self._last_t_us = seq, t
         self._refused_in_row = 0
+        self._far_run.clear()
 
     # ------------------------------------------------------------------ estimation
 

@@ -286,8 +286,12 @@ def test_reboot_time_going_back_is_accepted_and_restarts_the_estimator():
     rig = Rig(ready_after=100)
     rig.run(3)
     rebooted = rig.scene.boot_us0 - 15_000_000  # 15 s earlier on the boot clock, seq moves on
-    tr = rig.pipe.process(IrFrame(seq=3, time_boot_us=rebooted, pixels=rig.scene.image(3)))
-    assert tr.time_boot_us == rebooted and tr.pose_valid is False  # no telemetry of the new boot yet
+    for k in range(2):  # the first frames of the new boot are outliers until three agree
+        with pytest.raises(FrameRejected):
+            rig.pipe.process(IrFrame(seq=3 + k, time_boot_us=rebooted + 33_333 * k, pixels=rig.scene.image(3)))
+    assert rig.counter["frame_time_outlier"] == 2
+    tr = rig.pipe.process(IrFrame(seq=5, time_boot_us=rebooted + 66_666, pixels=rig.scene.image(3)))
+    assert tr.time_boot_us == rebooted + 66_666 and tr.pose_valid is False  # no telemetry of the new boot yet
     assert rig.counter["frame_time_reset"] == 1
     assert ("reset", math.nan) in [(c[0], math.nan) for c in rig.est.calls]
 
@@ -511,3 +515,17 @@ def test_encode_of_scene_frames_is_irf1():
     p = scene.payload(3)
     assert p[:4] == MAGIC and len(p) == 32 + 640 * 512
     assert encode_irframe(scene.frame(3)) == p
+
+
+
+@pytest.mark.parametrize("offset_us", [3600 * 1_000_000, -3600 * 1_000_000 // 1000, 5_000_000], ids=["+1h", "-3.6s", "+5s"])
+def test_a_single_far_frame_stamp_costs_one_frame(offset_us):
+    rig = Rig(ready_after=100)
+    rig.run(5)
+    n_resets = rig.pipe.estimator_resets
+    t_last = rig.pipe._last_t_us
+    with pytest.raises(FrameRejected):
+        rig.pipe.process(IrFrame(seq=5, time_boot_us=t_last + offset_us, pixels=rig.scene.image(5)))
+    tr = rig.step(6)  # the next normal frame goes through, nothing restarted
+    assert tr.seq == 6 and rig.pipe.estimator_resets == n_resets
+    assert rig.counter["frame_time_outlier"] == 1 and rig.counter["frame_time_reset"] == 0
