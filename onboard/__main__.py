@@ -12,7 +12,7 @@ variables < command-line options (each option overrides its config field; ``--ze
 ``--zenoh-listen`` given once or more replace the file's list).  ``--check`` validates and exits
 0; ``--print-config`` prints the effective configuration as YAML and exits.
 
-Exit codes: 0 clean shutdown (SIGTERM / SIGINT) or successful ``--check``; 2 invalid configuration
+Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP) or successful ``--check``; 2 invalid configuration
 or options, or a zenoh session that cannot open (port in use ...), printed as one line on stderr;
 1 an unexpected error.
 """
@@ -186,6 +186,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGHUP, on_signal)  # a closed terminal / session: the same clean exit, no reload
 
     try:
         service.start()
