@@ -3,7 +3,7 @@
     python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:127.0.0.1:14540]
                       [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                       [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
-                      [--gcs ENDPOINT]...
+                      [--gcs ENDPOINT]... [--video-udp HOST:PORT]
                       [--log-level LEVEL] [--log-format text|json] [--set FIELD.PATH=VALUE]...
                       [--check] [--print-config]
 
@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcs", metavar="ENDPOINT", action="append",
                    help="ground-station endpoint of the MAVLink camera component, e.g. udpout:127.0.0.1:14550; "
                         "repeatable (config: gcs.endpoints)")
+    p.add_argument("--video-udp", metavar="HOST:PORT",
+                   help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
+                        "(config: video.destination)")
     p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
                    help="log level (config: logging.level)")
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
@@ -93,6 +96,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("zenoh.config_file", args.zenoh_config, "--zenoh-config"),
         ("zenoh.multicast_scouting", args.zenoh_scouting, "--zenoh-multicast-scouting"),
         ("gcs.endpoints", args.gcs, "--gcs"),
+        ("video.destination", args.video_udp, "--video-udp"),
         ("logging.level", args.log_level, "--log-level"),
         ("logging.format", args.log_format, "--log-format"),
     )

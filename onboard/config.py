@@ -50,6 +50,7 @@ __all__ = [
     "PoseConfig",
     "OutputConfig",
     "GcsConfig",
+    "VideoConfig",
     "LoggingConfig",
     "OnboardConfig",
     "load_config",
@@ -586,6 +587,20 @@ class GcsConfig(_Section):
 
 
 @dataclass(frozen=True)
+class VideoConfig(_Section):
+    """``video``: the IR video for ground stations (see :mod:`onboard.video`)."""
+
+    _path: ClassVar[str] = "video"
+    destination: str | None = F(None, "str", nullable=True, pattern=r"^[^\s:]+:\d{1,5}$",
+                                what="HOST:PORT")
+    fps: float = F(30.0, "float", lo=1.0, hi=120.0)
+    bitrate_bps: int = F(2_000_000, "int", lo=100_000, hi=50_000_000)
+    gop_s: float = F(1.0, "float", lo=0.1, hi=1.0)
+    overlay: bool = F(True, "bool")
+    queue_length: int = F(2, "int", lo=1, hi=30)
+
+
+@dataclass(frozen=True)
 class LoggingConfig(_Section):
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
@@ -611,6 +626,7 @@ class OnboardConfig(_Section):
     pose: PoseConfig = _section(PoseConfig)
     output: OutputConfig = _section(OutputConfig)
     gcs: GcsConfig = _section(GcsConfig)
+    video: VideoConfig = _section(VideoConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

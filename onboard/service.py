@@ -533,6 +533,7 @@ class OnboardService:
         self.gcs = None  # onboard.gcs_link.GcsLink: the camera component's sockets (gcs.endpoints)
         self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
         self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
+        self.video = None  # onboard.video.VideoStreamer (video.destination)
         self.session = None
         self._sub = None
         self._track_pub = None
@@ -579,6 +580,12 @@ class OnboardService:
             att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
             clock=self._clock, clock_ns=self._clock_ns, config=cfg.mavlink.link_config(),
         )
+        if cfg.video.destination:
+            from onboard.video import VideoStreamer
+
+            v, K = cfg.video, self.pipeline.intrinsics
+            self.video = VideoStreamer(v.destination, K.width_px, K.height_px, v.fps, v.bitrate_bps, v.gop_s,
+                                       v.overlay, v.queue_length)
         if self.camera is not None:
             from onboard.gcs_link import GcsLink
 
@@ -634,6 +641,8 @@ class OnboardService:
         if self.gcs is not None:
             self.gcs.close()
             self.gcs = None
+        if self.video is not None:
+            self.video.close(timeout_s / 2)
         if self._health_path:
             try:
                 os.unlink(self._health_path)
@@ -698,6 +707,8 @@ class OnboardService:
                 continue
             finally:
                 self._pipeline_cpu_s += time.thread_time() - c0
+            if self.video is not None:
+                self.video.submit(frame.pixels, track)  # never blocks: the encoder drops its oldest frame
             if publish and self._track_pub is not None:
                 try:
                     p0 = self._clock_ns()
@@ -837,7 +848,8 @@ class OnboardService:
             publish_ms=self.publish_ms.summary(),
             stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
             warnings=self.watchdog.active_dicts(),
-        ) | ({"camera": self._camera_status()} if self.camera is not None else {})
+        ) | ({"camera": self._camera_status()} if self.camera is not None else {}) | (
+            {"video": self.video.status()} if self.video is not None else {})
 
     def _camera_status(self) -> dict[str, Any]:
         st = self.camera.status()
@@ -877,13 +889,18 @@ _ACCEPTED_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame
 
 def make_camera_protocol(config: OnboardConfig, intrinsics):
     """The :class:`~onboard.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera)."""
-    from onboard.camera_protocol import CameraIdentity, CameraProtocol
+    from onboard.camera_protocol import VIDEO_STREAM_TYPE_MPEG_TS, CameraIdentity, CameraProtocol, VideoStream
 
-    g, o = config.gcs, config.output
+    g, o, v = config.gcs, config.output, config.video
     identity = CameraIdentity.from_intrinsics(intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px,
                                               g.pixel_pitch_um, g.vendor_name, g.model_name)
+    stream = None
+    if v.destination:  # the ground station listens on the destination's port (QGC: udp://0.0.0.0:PORT)
+        hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width_px / (2.0 * intrinsics.fx_px)))
+        stream = VideoStream(VIDEO_STREAM_TYPE_MPEG_TS, v.destination.rpartition(":")[2], v.fps, v.bitrate_bps,
+                             intrinsics.width_px, intrinsics.height_px, hfov_deg)
     return CameraProtocol(identity, intrinsics.width_px, intrinsics.height_px, component_id=g.component_id,
-                          stream=None, image_status_hz=o.tracking_image_status_hz,
+                          stream=stream, image_status_hz=o.tracking_image_status_hz,
                           geo_status_hz=o.tracking_geo_status_hz, observable_only=not o.geo_status_unobservable,
                           heartbeat_interval_s=g.heartbeat_interval_s,
                           track_request_timeout_s=g.track_request_timeout_s)
