@@ -54,7 +54,8 @@ Verdict (``MapResult.observable``): the reported range sigma over range, median 
 ``max_ambiguity``; the residuals pass a block-whiteness adequacy test; no negative variance.  A
 straight constant-velocity or hovering observer (the relative trajectory scales freely) is flagged,
 not answered confidently.  An unobservable solution is still returned, with its range sigma raised to
-at least ``unobservable_range_sigma_floor`` (50 %) of the range so that its covariance stays honest
+at least ``unobservable_range_sigma_floor`` (50 %) of the range and ``unobservable_range_sigma_min_m``
+(150 m) so that its covariance stays honest
 (the Laplace posterior of a model that cannot follow a gusty target is confidently wrong along range);
 ``range_sigma_ratio`` is the verdict's input, before that floor.  What the verdict cannot do: a target
 whose random acceleration (P*g: 0.1 m/s^2) mirrors the observer's manoeuvre is indistinguishable
@@ -164,6 +165,11 @@ class MapConfig:
     # honest: its range sigma is at least this fraction of the range (the Laplace posterior of a model
     # that cannot follow the target -- a gusty target, a figure-eight -- is confidently wrong along range)
     unobservable_range_sigma_floor: float = 0.5
+    # ... and at least this many metres: an unobservable solution can also sit collapsed towards the camera
+    # (H1's figure-eight: 2-16 % of the true range), where a fraction of its own range says nothing.  The
+    # range is then known only to lie between the collapse floor (min_range_m) and the ~500 m at which
+    # the Vue Pro 640 still detects a small drone
+    unobservable_range_sigma_min_m: float = 150.0
     # weak priors that make the posterior proper, in physical terms: the target is within ~1 km of
     # the camera (a Vue Pro 640 does not resolve a small drone much farther), flies below ~30 m/s and
     # does not sustain more than ~3 m/s^2 (0.3 g).  They decide nothing where range is observable.
@@ -939,8 +945,9 @@ class MapEstimator:
 
     def _range_floor(self, P: np.ndarray, u: np.ndarray, sig_r: np.ndarray, rng: np.ndarray) -> np.ndarray:
         """The range-direction covariance to add (F, 3, 3) so that an unobservable solution's range sigma is
-        at least ``unobservable_range_sigma_floor`` of its range (the bearing part is left as it is)."""
-        floor = self.config.unobservable_range_sigma_floor * rng
+        at least ``unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``
+        (the bearing part is left as it is)."""
+        floor = np.maximum(self.config.unobservable_range_sigma_floor * rng, self.config.unobservable_range_sigma_min_m)
         add = np.maximum(floor**2 - sig_r**2, 0.0)
         return add[:, None, None] * np.einsum("fi,fj->fij", u, u)
 

@@ -19,7 +19,8 @@ chosen one; ``MapResult.ambiguity`` is the mass of the far ones).  ``observable`
 the range sigma at this time is below ``observability_max_sigma_range_ratio`` of the range, and the
 last selection's residuals passed the adequacy test with an ambiguity of at most ``max_ambiguity``.
 An unobservable estimate keeps its position, with its range sigma raised to at least
-``unobservable_range_sigma_floor`` of the range (honest, not confident).
+``unobservable_range_sigma_floor`` of the range and ``unobservable_range_sigma_min_m`` (honest, not
+confident).
 """
 
 from __future__ import annotations
@@ -326,11 +327,11 @@ class SlidingWindowEstimator:
         cfg = self.map.config
         observable = bool(self._window_observable and not neg
                           and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio)
-        if not observable and cfg.unobservable_range_sigma_floor > 0:  # honest, not confident (module docstring)
-            floor = cfg.unobservable_range_sigma_floor * rng
+        if not observable:  # honest, not confident (module docstring)
+            floor = max(cfg.unobservable_range_sigma_floor * rng, cfg.unobservable_range_sigma_min_m)
             if ratio * rng < floor:
                 P = P + (floor**2 - (ratio * rng) ** 2) * np.outer(u, u)
-                ratio = cfg.unobservable_range_sigma_floor
+                ratio = floor / max(rng, 1e-9)
         return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
 
     def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
