@@ -1,0 +1,104 @@
+"""The observability verdict and the honesty of every published result (issue 9 item 3).
+
+Rates over seeds, not chosen seeds: the bench (``python -m bench.estimator --verdict``, 50 seeds per
+cell) prints the full table; these run a few seeds per cell so that a regression shows in CI.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.synth import estimator_noise_model, synthesize_scenario
+from onboard.estimation.map_estimator import MapConfig, MapEstimator
+from onboard.estimation.sliding import SlidingWindowEstimator
+
+HONEST_BEYOND_3SIGMA = 0.01  # at most 1 % of points beyond 3 sqrt(trace P)
+GOOD_ERR = 0.02  # 2 % of range
+
+
+def _run(name: str, noise: str, seed: int):
+    sc = load_scenario(reference_scenario_paths()[name])
+    nc = load_noise_cases()[noise]
+    truth, obs = synthesize_scenario(sc, nc, seed)
+    res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
+    beyond = float(np.mean(e > 3 * np.sqrt(np.einsum("fii->f", res.cov_p_ned_m2))))
+    return res, float(np.mean(e / truth.range_m)), beyond
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, noise, seeds, min_observable", [
+    ("P3", "RTK", range(6), 5),  # bench: 50/50
+    ("P2", "px0.3", range(4), 4),  # bench: 50/50
+    ("P2", "RTK", range(6), 3),  # bench: 38/50 (82 % of its good runs)
+])
+def test_observable_runs_are_accurate_and_honest_at_a_rate(name, noise, seeds, min_observable):
+    got = [_run(name, noise, s) for s in seeds]
+    observable = [(err, beyond) for res, err, beyond in got if res.observable]
+    assert len(observable) >= min_observable
+    assert np.median([err for err, _ in observable]) <= GOOD_ERR  # precision: the median, as the bench states it
+    for err, beyond in observable:
+        assert err <= 2 * GOOD_ERR
+        assert beyond <= HONEST_BEYOND_3SIGMA
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, noise, seeds", [("H3", "RTK", range(4)), ("H3", "px0.3", range(2)), ("H1", "px0.3", range(2))])
+def test_unobservable_results_are_flagged_and_still_honest(name, noise, seeds):
+    """A straight observer (H3) and a figure-eight target (H1, whose solutions collapse towards the camera)
+    are never called observable, and the published covariance still covers the error (range floor)."""
+    cfg = MapConfig()
+    for s in seeds:
+        res, err, beyond = _run(name, noise, s)
+        assert not res.observable
+        assert beyond <= HONEST_BEYOND_3SIGMA, f"{name} {noise} seed {s}: {beyond:.1%} beyond 3 sigma (err {err:.0%})"
+        los = res.p_ned_m - res.extras["problem"].obs.p_cam_ned_m
+        r = np.linalg.norm(los, axis=1)
+        u = los / r[:, None]
+        sig_r = np.sqrt(np.einsum("fi,fij,fj->f", u, res.cov_p_ned_m2, u))
+        floor = np.maximum(cfg.unobservable_range_sigma_floor * r, cfg.unobservable_range_sigma_min_m)
+        assert np.all(sig_r >= floor * (1 - 1e-9))
+
+
+def test_a_far_mirror_mode_is_ambiguity_not_spread():
+    """P1 under RTK attitude errors: a target accelerating in mirror of the observer at ~2x the range
+    explains the same bearings (P1 RTK seed 13 puts ~60 % of the posterior there).  The reported solution
+    stays the constant-velocity one near the truth; the far mass is its ambiguity and does not widen its
+    covariance (the old model average gave it a ~45 % range sigma), and the verdict says unobservable."""
+    res, err, beyond = _run("P1", "RTK", 13)
+    assert res.ambiguity > MapConfig().max_ambiguity
+    assert not res.observable
+    assert err < GOOD_ERR
+    assert beyond <= HONEST_BEYOND_3SIGMA
+
+
+def test_ambiguity_is_zero_when_all_models_agree():
+    res, err, _ = _run("P3", "px0.3", 0)
+    assert res.ambiguity < 0.01
+    assert res.observable and err < GOOD_ERR
+    assert 0.5 < res.residual_rms_norm < 1.5  # standardised residuals of a correct model
+    assert res.adequacy_p > MapConfig().adequacy_p_min
+
+
+def test_sliding_estimates_carry_the_diagnostics_and_propagate():
+    sc = load_scenario(reference_scenario_paths()["P3"])
+    nc = load_noise_cases()["px0.3"]
+    t = np.arange(120) / 30.0
+    truth, obs = synthesize_scenario(sc, nc, 1, t_s=t)
+    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
+    est = None
+    for i in range(t.size):
+        est = sw.add(t[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i]) or est
+    assert est is not None
+    assert math.isfinite(est.residual_rms_norm) and math.isfinite(est.adequacy_p) and math.isfinite(est.ambiguity)
+    if not est.observable:  # a 4 s window: unobservable estimates carry the range floor
+        assert est.range_sigma_ratio * est.range_m >= MapConfig().unobservable_range_sigma_min_m * (1 - 1e-9)
+    later = est.propagated(est.t_s + 0.5)
+    assert later.t_s == pytest.approx(est.t_s + 0.5)
+    np.testing.assert_allclose(later.p_ned_m, est.p_ned_m + 0.5 * est.v_ned_mps)
+    np.testing.assert_allclose(later.cov_p_ned_m2, est.cov_p_ned_m2 + 0.25 * est.cov_v_ned_m2ps2)
+    assert later.residual_rms_norm == est.residual_rms_norm  # diagnostics travel with the estimate
