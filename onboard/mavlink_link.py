@@ -481,6 +481,8 @@ class MavlinkLink:
         self._pose = pose_buffer
         self._counters = counters
         self.gimballed = bool(gimballed)
+        #: GIMBAL_DEVICE_ATTITUDE_STATUS messages received, used or not (the watchdog's gimbal check)
+        self.gimbal_reports = 0
         self._clock = clock
         self._clock_ns = clock_ns
         self.clock_sync = clock_sync if clock_sync is not None else ClockSync(counter=counters)
@@ -684,8 +686,10 @@ class MavlinkLink:
                 msg.alt * 1e-3,
                 (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
             )
-        elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS" and self.gimballed:
-            self._on_gimbal(msg, from_autopilot)
+        elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
+            self.gimbal_reports += 1  # the watchdog checks it against the configured mount
+            if self.gimballed:
+                self._on_gimbal(msg, from_autopilot)
         elif mtype == "TIMESYNC":
             self._on_timesync(msg)
         elif mtype == "COMMAND_ACK" and from_autopilot:

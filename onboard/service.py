@@ -508,6 +508,7 @@ class OnboardService:
         self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock,
                                      logger=logging.getLogger("onboard.rejects"))
         self.mount = config.camera.camera_mount()
+        self._first_telemetry_s: float | None = None  # when the first attitude/position arrived (watchdog)
         buffer = PoseBuffer(mount=self.mount, config=config.pose_buffer_config(),
                             origin=config.pose.geodetic_origin(), counter=self.counter)
         self.pose = SharedPoseBuffer(buffer)
@@ -774,6 +775,11 @@ class OnboardService:
             except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
                 self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
         self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx)
+        if self.link is not None:
+            if self._first_telemetry_s is None and self.pose.newest_time_boot_us() is not None:
+                self._first_telemetry_s = now
+            self.watchdog.gimbal(now, gimballed=self.mount.gimballed, gimbal_reports=int(getattr(self.link, "gimbal_reports", 0)),
+                                 telemetry_since_s=self._first_telemetry_s)
 
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)

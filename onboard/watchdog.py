@@ -20,6 +20,14 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     One estimate at or below the threshold starts the count again; estimates without the figure
     (None/NaN) neither count nor reset.
 
+``gimbal_mismatch``
+    The configured mount and the vehicle disagree about a gimbal: GIMBAL_DEVICE_ATTITUDE_STATUS (#285)
+    arrives although ``camera.mount.gimballed`` is false (the camera's attitude is then taken as the
+    airframe's plus the fixed mount: 3-D positions off by the gimbal's angles, ~100 % of range in the
+    reference scenarios), or none has arrived ``input_timeout_s`` after the first telemetry although it
+    is true (no frame gets a pose).  The residuals cannot show a mount error (a constant pitch offset
+    of the camera is explained exactly by a target higher up), so this is checked on the messages.
+
 Each code is logged at WARNING the first time only (``warned``); it is in :attr:`active` while the
 condition holds (the status JSON lists them) and leaves it when the condition clears (logged at
 INFO), coming back without a new WARNING.
@@ -121,6 +129,21 @@ class Watchdog:
             self._raise("no_mavlink", f"no MAVLink message for {now_s - self._last_mavlink_s:.0f} s ({ever}) on "
                         f"'{self.mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or "
                         f"mavlink-router sends there; without telemetry no frame gets a pose or a 3-D position")
+
+    def gimbal(self, now_s: float, *, gimballed: bool, gimbal_reports: int, telemetry_since_s: float | None) -> None:
+        """Check the mount against the vehicle: ``gimbal_reports`` #285 messages received so far,
+        ``telemetry_since_s`` when the first attitude/position arrived (None: none yet)."""
+        if not gimballed and gimbal_reports > 0:
+            self._raise("gimbal_mismatch", f"the vehicle reports a gimbal ({gimbal_reports} GIMBAL_DEVICE_ATTITUDE_STATUS "
+                        f"messages) but camera.mount.gimballed is false: the camera attitude ignores the gimbal and "
+                        f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod")
+        elif gimballed and gimbal_reports == 0 and telemetry_since_s is not None \
+                and now_s - telemetry_since_s >= self.input_timeout_s:
+            self._raise("gimbal_mismatch", f"camera.mount.gimballed is true but no GIMBAL_DEVICE_ATTITUDE_STATUS (#285) "
+                        f"arrived in {now_s - telemetry_since_s:.0f} s of telemetry: no frame gets a pose; check the "
+                        f"gimbal's MAVLink output or set camera.mount.gimballed false for a fixed pod")
+        elif gimballed and gimbal_reports > 0:
+            self._clear("gimbal_mismatch")
 
     def frame_received(self, now_s: float) -> None:
         self._last_frame_s = float(now_s)

@@ -93,3 +93,26 @@ def test_camera_mismatch_needs_a_persistent_run(caplog, values, warned):
 def test_watchdog_refuses_bad_settings():
     with pytest.raises(InputError, match="input_timeout_s"):
         _wd(input_timeout_s=0.0)
+
+
+def test_gimbal_reports_with_a_fixed_mount_warn_once_naming_the_mount(caplog):
+    wd = _wd()
+    wd.gimbal(1.0, gimballed=False, gimbal_reports=0, telemetry_since_s=0.5)
+    assert "gimbal_mismatch" not in {w.code for w in wd.active}
+    for n in (3, 10, 50):
+        wd.gimbal(2.0, gimballed=False, gimbal_reports=n, telemetry_since_s=0.5)
+    (w,) = [w for w in wd.active if w.code == "gimbal_mismatch"]
+    assert "camera.mount.gimballed is false" in w.message
+    assert sum("gimbal_mismatch" in r.getMessage() or "GIMBAL_DEVICE" in r.getMessage() for r in caplog.records
+               if r.levelname == "WARNING") == 1
+
+
+def test_a_gimballed_mount_without_gimbal_messages_warns_after_the_timeout():
+    wd = _wd()
+    wd.gimbal(3.0, gimballed=True, gimbal_reports=0, telemetry_since_s=None)  # no telemetry yet: nothing to say
+    wd.gimbal(4.0, gimballed=True, gimbal_reports=0, telemetry_since_s=1.0)  # 3 s of telemetry: not yet
+    assert "gimbal_mismatch" not in {w.code for w in wd.active}
+    wd.gimbal(6.5, gimballed=True, gimbal_reports=0, telemetry_since_s=1.0)
+    assert "gimbal_mismatch" in {w.code for w in wd.active}
+    wd.gimbal(7.0, gimballed=True, gimbal_reports=4, telemetry_since_s=1.0)  # the gimbal speaks: cleared
+    assert "gimbal_mismatch" not in {w.code for w in wd.active}
