@@ -23,7 +23,10 @@ Threads (nothing else runs concurrently):
   ``estimator.result_wait_ms`` for its own estimate, past that it gets the newest estimate
   propagated to its time at constant velocity (``P + dt^2 V``); the observation is used by the
   worker either way, no measurement is lost.  A process also keeps the estimator's Python work off
-  the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).
+  the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).  A
+  worker process that dies is replaced on the next frame from a fork server, with its window rebuilt
+  from the parent's copy of the observations (``estimator_restart``; 3-D resumes in ~0.3-0.5 s,
+  bridged by the propagated last estimate).
 * **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
   :meth:`MavlinkLink.tick` (the autopilot link, component 191: heartbeat, rate requests, TIMESYNC);
   the camera component (:meth:`OnboardService.camera_step`, with ``gcs.endpoints``): commands from
@@ -71,6 +74,10 @@ log = logging.getLogger(__name__)
 
 NS_PER_S = 1_000_000_000
 ESTIMATE_QUEUE_MAX = 1000  # observations waiting for the estimator worker (about 30 s at 30 Hz)
+# imported once by the estimator workers' fork server, so a replacement worker neither imports them nor
+# pays their first use inside its first model selection (measured: first window rebuild 0.6-0.75 s with
+# a cold scipy.stats, 0.16-0.18 s preloaded); onboard.__main__ first: it sets one BLAS thread
+FORKSERVER_PRELOAD = ["onboard.__main__", "onboard.service", "onboard.estimation.sliding", "scipy.stats"]
 
 
 # --------------------------------------------------------------------------- thread-safe pieces
@@ -317,8 +324,37 @@ class ThreadedEstimator:
         return len(self._q)
 
 
+def _rebuild_window(est, rows) -> Any:
+    """Replay ``rows`` (the parent's copy of the window, oldest first) into a fresh estimator ``est``
+    with one model selection, on the newest row, instead of one per second of replayed data.
+
+    The earlier rows go in with ``config.min_frames`` raised out of reach, so ``add`` only stores them
+    (the window trims itself as in normal running); the last row, with the real config, solves the
+    whole window cold.  Rows the estimator refuses were counted when they first arrived: skipped
+    silently here.  Returns the estimate at the newest row (or None)."""
+    import dataclasses as _dc
+
+    cfg = est.config
+    est.config = _dc.replace(cfg, min_frames=1 << 30)
+    try:
+        for args in rows[:-1]:
+            try:
+                est.add(*args)
+            except InputError:
+                pass
+    finally:
+        est.config = cfg
+    return est.add(*rows[-1]) if rows else None
+
+
+def _unpack_rows(packed) -> list:
+    t, uv, p, q, k_index, intrinsics = packed
+    return [(float(t[i]), (float(uv[i, 0]), float(uv[i, 1])), intrinsics[int(k_index[i])], p[i], q[i])
+            for i in range(len(t))]
+
+
 def _estimator_process_main(conn, config: OnboardConfig) -> None:
-    """Child process of :class:`ProcessEstimator`: builds the estimator, serves add/reset until "stop"."""
+    """Child process of :class:`ProcessEstimator`: builds the estimator, serves add/reset/rebuild until "stop"."""
     import signal as _signal
 
     _signal.signal(_signal.SIGINT, _signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
@@ -337,14 +373,26 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
         if kind == "reset":
             est.reset()
             continue
-        _, epoch, t, args = msg
         out, err = None, None
-        try:
-            out = est.add(*args)
-        except InputError as exc:
-            err = ("estimator_input", str(exc))
-        except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
-            err = ("estimator_error", f"{type(exc).__name__}: {exc}")
+        if kind == "rebuild":  # a replacement worker: the window the dead one had, from the parent's copy
+            _, epoch, packed = msg
+            est.reset()
+            rows = _unpack_rows(packed)
+            t = rows[-1][0] if rows else math.nan
+            try:
+                out = _rebuild_window(est, rows)
+            except InputError:
+                pass  # the newest row was refused when it first arrived (and counted then)
+            except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+                err = ("estimator_error", f"rebuild: {type(exc).__name__}: {exc}")
+        else:
+            _, epoch, t, args = msg
+            try:
+                out = est.add(*args)
+            except InputError as exc:
+                err = ("estimator_input", str(exc))
+            except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+                err = ("estimator_error", f"{type(exc).__name__}: {exc}")
         try:
             conn.send((epoch, t, out, err, time.process_time()))
         except (OSError, ValueError):
@@ -356,12 +404,26 @@ class ProcessEstimator:
 
     Same contract as :class:`ThreadedEstimator`: ``add`` sends the observation and waits up to
     ``result_wait_s`` for its estimate, else returns the newest estimate propagated to ``t_s``;
-    ``predict`` never waits.  Results are read by the caller's thread (no extra thread here).  A
-    child that dies is counted (``estimator_error``) and restarted on the next ``add``.
+    ``predict`` never waits.  Results are read by the caller's thread (no extra thread here).
+
+    **A worker that dies** (killed, OOM, crashed) is noticed on the next ``add``, counted
+    (``estimator_restart``, logged with its exit code) and replaced at once.  The parent keeps its
+    own copy of the window (the observations of the last ``window_s``, at most ``max_frames``,
+    about 25 kB), and the new worker is handed that copy first and rebuilds the window with a single
+    model selection (:func:`_rebuild_window`), so 3-D output resumes as soon as the child has started
+    and solved once (measured: see ``tests/onboard/test_worker_restart.py``) instead of after a new
+    window has filled.  In between, the newest estimate keeps being propagated (up to
+    ``max_extrapolation_s``), as when the worker is busy.  A worker that dies before it answered
+    anything (a crash at start, or on an observation the rebuild replays) is replaced after a delay
+    that starts at ``RESTART_BACKOFF_MIN_S`` and doubles each time (up to ``RESTART_BACKOFF_MAX_S``),
+    so a crash loop cannot spawn a process per frame.
     """
 
+    RESTART_BACKOFF_MIN_S = 1.0
+    RESTART_BACKOFF_MAX_S = 30.0
+
     def __init__(self, config: OnboardConfig, counter: RejectCounter, result_wait_s: float = 0.002,
-                 max_extrapolation_s: float = 1.0) -> None:
+                 max_extrapolation_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
         import multiprocessing as mp
 
         # results are unpickled here: import their module now, not on the first result (~0.4 s stall)
@@ -369,17 +431,33 @@ class ProcessEstimator:
 
         self._config = config
         self._counter = counter
+        self._clock = clock
         self.result_wait_s = float(result_wait_s)
         self.max_extrapolation_s = float(max_extrapolation_s)
-        self._ctx = mp.get_context("spawn")  # never fork a process that runs zenoh threads
+        # never fork this process (it runs zenoh's threads): the workers fork from a fork server, a
+        # fresh single-threaded interpreter that has imported the estimator once, so a replacement
+        # starts in milliseconds instead of re-importing numpy/scipy (~0.5-1 s on a loaded core)
+        self._ctx = mp.get_context("forkserver")
+        self._ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
         self._epoch = 0
         self._latest = None  # (epoch, estimate)
         self.worker_cpu_s = 0.0
         self.late_results = 0
         self.restarts = 0
+        limits = make_estimator(config).config  # the child's own window limits
+        self._window_s = float(limits.window_s)
+        self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
+        self._backoff_s = 0.0
+        self._next_start_s = -math.inf
+        self._started_s = -math.inf
         self._proc = None
         self._conn = None
         self._start()
+
+    @property
+    def pid(self) -> int | None:
+        """The worker's process id (None while there is none)."""
+        return None if self._proc is None else self._proc.pid
 
     def _start(self) -> None:
         parent, child = self._ctx.Pipe()
@@ -389,13 +467,74 @@ class ProcessEstimator:
         child.close()
         self._conn = parent
         self._cpu_base = self.worker_cpu_s
+        self._started_s = self._clock()
+        self._answered = False  # no result from this worker yet
 
     def _alive(self) -> bool:
         return self._proc is not None and self._proc.is_alive()
 
+    def _replace_dead_worker(self) -> bool:
+        """Start a new worker with the window rebuilt; False while a crash loop's back-off lasts."""
+        now = self._clock()
+        if self._proc is not None:  # just found dead: count it once, choose the back-off
+            code = self._proc.exitcode
+            lived_s = now - self._started_s
+            self._backoff_s = (0.0 if self._answered else
+                               min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S))
+            self._next_start_s = now + self._backoff_s
+            self.restarts += 1
+            self._counter.count(
+                "estimator_restart",
+                f"estimator process died (exit code {code}, after {lived_s:.1f} s); replaced"
+                + (f" in {self._backoff_s:.0f} s" if self._backoff_s else "")
+                + f", window rebuilt from the last {len(self._window)} observations")
+            try:
+                self._conn.close()
+            except OSError:
+                pass
+            self._proc.join(0)
+            self._proc, self._conn = None, None
+        if now < self._next_start_s:
+            return False
+        self._start()
+        if self._window:
+            try:
+                self._conn.send(("rebuild", self._epoch, self._packed_window()))
+            except (OSError, ValueError) as exc:
+                self._counter.count("estimator_error", f"send to the estimator process: {exc}")
+        return True
+
+    def _packed_window(self):
+        """The window as arrays (about 80 B per row; the intrinsics, nearly always one object, once)."""
+        rows = list(self._window)
+        intrinsics: list = []
+        index = np.empty(len(rows), dtype=np.int32)
+        for i, r in enumerate(rows):
+            k = r[2]
+            for j, known in enumerate(intrinsics):
+                if known is k or known == k:
+                    index[i] = j
+                    break
+            else:
+                intrinsics.append(k)
+                index[i] = len(intrinsics) - 1
+        return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]).reshape(-1, 2),
+                np.array([r[3] for r in rows]).reshape(-1, 3), np.array([r[4] for r in rows]).reshape(-1, 4),
+                index, intrinsics)
+
+    def _remember(self, args) -> None:
+        w = self._window
+        if w and not args[0] > w[-1][0]:
+            return  # the estimator refuses it too (time not after the previous)
+        w.append(args)
+        while w and w[0][0] < args[0] - self._window_s:
+            w.popleft()
+
     def _drain(self, until_t: float | None = None, wait_s: float = 0.0):
         """Read every available result; with ``until_t`` wait up to ``wait_s`` for that one.
         Returns (found, estimate) for ``until_t``."""
+        if self._conn is None:
+            return False, None
         deadline = time.monotonic() + wait_s
         found, value = False, None
         while True:
@@ -411,6 +550,7 @@ class ProcessEstimator:
             except (OSError, EOFError):
                 return found, value
             self.worker_cpu_s = self._cpu_base + cpu_s
+            self._answered = True
             if err is not None:
                 self._counter.count(*err)
             if epoch != self._epoch:
@@ -422,14 +562,13 @@ class ProcessEstimator:
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         t = float(t_s)
-        if not self._alive():
-            self._counter.count("estimator_error", "estimator process not running; restarted (window lost)")
-            self.restarts += 1
-            self._epoch += 1
-            self._latest = None
-            self._start()
         args = (t, tuple(float(x) for x in uv_px), intrinsics, np.array(p_cam_ned_m, dtype=float),
                 np.array(q_ned_from_cam, dtype=float))
+        if not self._alive() and not self._replace_dead_worker():
+            self._remember(args)  # kept for the replacement
+            self.late_results += 1
+            return self._extrapolate(t, p_cam_ned_m)
+        self._remember(args)
         try:
             self._conn.send(("add", self._epoch, t, args))
         except (OSError, ValueError) as exc:
@@ -448,6 +587,9 @@ class ProcessEstimator:
     def reset(self) -> None:
         self._epoch += 1
         self._latest = None
+        self._window.clear()
+        if self._conn is None:
+            return
         try:
             self._conn.send(("reset",))
         except (OSError, ValueError):

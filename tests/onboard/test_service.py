@@ -436,7 +436,7 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
         pe._proc.kill()  # a dead worker is noticed, counted and restarted
         pe._proc.join(5)
         assert pe.add(2.0, (1.0, 2.0), K, np.zeros(3), np.array([1.0, 0, 0, 0])) is None
-        assert counter["estimator_error"] == 1 and pe.restarts == 1
+        assert counter["estimator_restart"] == 1 and counter["estimator_error"] == 0 and pe.restarts == 1
     finally:
         pe.close()
 
