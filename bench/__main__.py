@@ -1,6 +1,6 @@
 """`make bench`: every benchmark in turn, each in its own process (they pin threads and CPUs).
 
-    python -m bench [NAME ...]      NAME in: estimator render imaging flight simrate onboard (default: all)
+    python -m bench [NAME ...]      NAME in: estimator render imaging flight simrate onboard video (default: all)
 
 Prints numbers; asserts nothing; exit code 1 if a benchmark crashed.
 """
@@ -12,7 +12,7 @@ import subprocess
 import sys
 import time
 
-BENCHES = ("estimator", "render", "imaging", "flight", "simrate", "onboard")
+BENCHES = ("estimator", "render", "imaging", "flight", "simrate", "onboard", "video")
 
 
 def main(argv=None) -> int:
