@@ -412,11 +412,11 @@ class EstimatorConfig(_Section):
 
     _path: ClassVar[str] = "estimator"
     enabled: bool = F(True, "bool")
-    window_s: float = F(10.0, "float", lo=0.0, lo_open=True, hi=600.0)
+    window_s: float = F(20.0, "float", lo=0.0, lo_open=True, hi=600.0)
     pixel_sigma_px: float = F(0.3, "float", lo=0.0, lo_open=True, hi=100.0)
     attitude_white_sigma_deg: float = F(0.05, "float", lo=0.0, hi=30.0)
     attitude_bias_sigma_deg: float = F(0.1, "float", lo=0.0, hi=30.0)
-    camera_position_white_sigma_m: float = F(0.0, "float", lo=0.0, hi=1000.0)
+    camera_position_white_sigma_m: float = F(0.02, "float", lo=0.0, hi=1000.0)
     camera_position_offset_sigma_m: float = F(0.0, "float", lo=0.0, hi=1000.0)
     camera_position_drift_sigma_mps: float = F(0.0, "float", lo=0.0, hi=100.0)
     reset_on_new_track: bool = F(True, "bool")
