@@ -25,6 +25,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   REQUEST_MESSAGE 270 / REQUEST_VIDEO_STREAM_ST. 2505 VIDEO_STREAM_STATUS
   REQUEST_MESSAGE 275 / 276                          one CAMERA_TRACKING_*_STATUS now
   SET_MESSAGE_INTERVAL (511) 275 / 276               ACCEPTED; param2 us, -1 stops, 0 = default
+  GET_MESSAGE_INTERVAL (510) param1 = message id     MESSAGE_INTERVAL (#244): interval_us of #275 / #276
+  / REQUEST_MESSAGE 244, param2 = message id         (-1 = off), of HEARTBEAT (0); 0 = "not available" for
+                                                     every other message (we stream none)
   MAV_CMD_CAMERA_TRACK_POINT (2004)                  a :class:`TrackRequest`; ACK when the pipeline
   MAV_CMD_CAMERA_TRACK_RECTANGLE (2005)              has decided (:meth:`CameraProtocol.complete`):
   MAV_CMD_CAMERA_STOP_TRACKING (2010)                ACCEPTED, or FAILED with the reason
@@ -85,6 +88,7 @@ MAV_RESULT_FAILED = 4
 MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
 
+MAV_CMD_GET_MESSAGE_INTERVAL = 510
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_CMD_REQUEST_CAMERA_INFORMATION = 521
@@ -97,6 +101,8 @@ MAV_CMD_CAMERA_STOP_TRACKING = 2010
 MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION = 2504
 MAV_CMD_REQUEST_VIDEO_STREAM_STATUS = 2505
 
+MSG_HEARTBEAT = 0
+MSG_MESSAGE_INTERVAL = 244
 MSG_CAMERA_INFORMATION = 259
 MSG_CAMERA_SETTINGS = 260
 MSG_STORAGE_INFORMATION = 261
@@ -371,8 +377,12 @@ class CameraProtocol:
             return self._track_command(cmd, now_s)
         if c == MAV_CMD_SET_MESSAGE_INTERVAL:
             return [self._ack(c, self._set_interval(p[0], p[1], now_s), to)], None
+        if c == MAV_CMD_GET_MESSAGE_INTERVAL:
+            return self._reply_interval(c, p[0], to), None
         if c == MAV_CMD_REQUEST_MESSAGE:
             msg_id = _msg_id(p[0])
+            if msg_id == MSG_MESSAGE_INTERVAL:
+                return self._reply_interval(c, p[1], to), None
             index = p[1] if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS) else 0.0
             return self._request(c, msg_id, index, to, time_boot_ms, track), None
         legacy = {
@@ -440,6 +450,24 @@ class CameraProtocol:
         return Outgoing("video_stream_information", dict(common, count=1, type=s.stream_type,
                                                          name=s.name.encode()[:32], uri=s.uri.encode()[:160],
                                                          encoding=s.encoding))
+
+    def message_interval_us(self, msg_id: int) -> int:
+        """MESSAGE_INTERVAL.interval_us for ``msg_id``: #275 / #276 as set (-1 = off), the heartbeat's,
+        0 (common.xml: "not available") for every other message."""
+        if msg_id in self.interval_s:
+            every = self.interval_s[msg_id]
+            return -1 if every is None else int(round(every * 1e6))
+        if msg_id == MSG_HEARTBEAT:
+            return int(round(self.heartbeat_interval_s * 1e6))
+        return 0
+
+    def _reply_interval(self, command: int, p_msg_id: float, to) -> list[Outgoing]:
+        msg_id = _msg_id(p_msg_id)
+        if msg_id is None or msg_id > 0xFFFF:  # MESSAGE_INTERVAL.message_id is a uint16
+            return [self._ack(command, MAV_RESULT_DENIED, to)]
+        return [self._ack(command, MAV_RESULT_ACCEPTED, to),
+                Outgoing("message_interval", dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)),
+                         reply_to=to)]
 
     def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
         msg_id = _msg_id(p1)

@@ -30,7 +30,8 @@ stream is MPEG-TS on the advertised UDP port, thermal, H.264; before any click n
 (operator mode); the click on the target is ACCEPTED and #275 follows it at 2 Hz in POINT mode, each
 normalised point within 0.01 of the simulator's truth pixel of a frame at most :data:`TRUTH_LAG_FRAMES`
 before the message arrived; in the decoded video the target stands out at each #275 point; STOP is
-ACCEPTED and an IDLE #275 follows, then silence; a click on empty sky is FAILED (the command was
+ACCEPTED and an IDLE #275 follows, then silence; MAV_CMD_GET_MESSAGE_INTERVAL(275) answers
+500000 us while tracking and -1 after the stop; a click on empty sky is FAILED (the command was
 valid, nothing warm there: MAV_RESULT_FAILED, with a STATUSTEXT saying why); >= 95 % of the frames the
 simulator rendered were decoded; both children ran to the end (a crash fails the test) and are
 stopped by PID.
@@ -80,7 +81,7 @@ OFFSET_PX = 40  # the control: the same measure this far beside the #275 point
 DECODED_FRACTION_MIN = 0.95
 
 MAV_RESULT_ACCEPTED, MAV_RESULT_FAILED = 0, 4
-MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 511, 512
+MAV_CMD_GET_MESSAGE_INTERVAL, MAV_CMD_SET_MESSAGE_INTERVAL, MAV_CMD_REQUEST_MESSAGE = 510, 511, 512
 MAV_CMD_REQUEST_CAMERA_INFORMATION = 521
 MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_STOP_TRACKING = 2004, 2010
 TRACKING_FLAGS = 512 | 1024 | 2048
@@ -183,6 +184,20 @@ def _start(cmd: list[str], log_path: Path) -> subprocess.Popen:
     with open(log_path, "wb") as f:
         return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                 env=_child_env())
+
+
+def _get_interval(qgc: QgcCamera, alive) -> int | None:
+    """MAV_CMD_GET_MESSAGE_INTERVAL(275) -> MESSAGE_INTERVAL.interval_us (None: no reply)."""
+    t0 = time.monotonic()
+    assert qgc.wait_ack(qgc.send(MAV_CMD_GET_MESSAGE_INTERVAL, 275), alive) == MAV_RESULT_ACCEPTED
+    end = t0 + 2.0
+    while time.monotonic() < end:
+        got = [m for _, m in qgc.since("MESSAGE_INTERVAL", t0) if m.message_id == 275]
+        if got:
+            return got[0].interval_us
+        alive()
+        qgc.pump(0.05)
+    return None
 
 
 def _contrast(luma: np.ndarray, x_norm: float, y_norm: float, r_px: int = VIDEO_DISC_PX) -> float:
@@ -296,6 +311,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         assert qgc.wait_ack(track, alive) == MAV_RESULT_ACCEPTED, f"TRACK_POINT acks {track.acks}"
         assert qgc.wait_ack(rate, alive) == MAV_RESULT_ACCEPTED
         t_acked = time.monotonic()
+        got_interval = _get_interval(qgc, alive)
         qgc_until = t_acked + STATUS_COLLECT_S
         pump_until(lambda: time.monotonic() >= qgc_until, STATUS_COLLECT_S + 1.0, "the status window")
         window = [(t, m, n) for t, m, n in status_275 if t_acked + 0.6 <= t <= qgc_until]
@@ -308,6 +324,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         assert qgc.wait_ack(off, alive) == MAV_RESULT_ACCEPTED
         pump_until(lambda: any(m.tracking_status == 0 for t, m, _ in status_275 if t >= t_stop), 2.0, "an IDLE #275")
         t_idle = max(t for t, m, _ in status_275 if t >= t_stop and m.tracking_status == 0)
+        stopped_interval = _get_interval(qgc, alive)
         qgc.pump(1.5)
         after_idle = [m for t, m, _ in status_275 if t > t_idle]
 
@@ -361,6 +378,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
           f"(normalised); sky click result {sky_result} {sky_text}; decoded {rx.frames} frames of "
           f"{len(tail.order)} rendered; target contrast at #275 points min {min(contrasts, default=math.nan):.0f} (all {np.round(contrasts).tolist()}), "
           f"at the sky point {sky_contrast:.0f}, beside the target max {max(off_target, default=math.nan):.0f}; truth {truth}")
+    assert (got_interval, stopped_interval) == (TRACKING_STATUS_INTERVAL_US, -1)  # GET_MESSAGE_INTERVAL
     assert 8 <= len(window) <= 10, f"#275 at 2 Hz over {STATUS_COLLECT_S - 0.6:.1f} s: got {len(window)}"
     assert np.all(np.abs(gaps - 0.5) < 0.1), f"#275 intervals {gaps}"
     assert max(errors) <= POINT_TOL, f"#275 points off the truth pixel by {errors}"
