@@ -1,0 +1,47 @@
+"""FOLLOW_TARGET (#144) encoding (onboard.follow): only observable positions; degE7, m AMSL, NED
+velocity, eph / epv from the covariance; packs with pymavlink and decodes to the same numbers."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+from pymavlink.dialects.v20 import common as mav
+
+from onboard.follow import FOLLOW_TARGET_CAP_POS, FOLLOW_TARGET_CAP_VEL, follow_target_fields
+from tests.onboard.test_camera_protocol import _track
+
+ATOL_DEGE7 = 1  # rounding of lat/lon to 1e-7 deg
+ATOL_M = 1e-4  # float32 on the wire
+
+
+def _roundtrip(fields: dict):
+    codec = mav.MAVLink(None, srcSystem=1, srcComponent=191)
+    return mav.MAVLink(None).parse_char(codec.follow_target_encode(**fields).pack(codec))
+
+
+def test_observable_track_encodes_position_velocity_and_accuracies():
+    tr = _track(observable=True)  # cov diag(4, 4, 1) m^2, v (1, 0, 0) m/s, time_boot_us 10
+    f = follow_target_fields(tr)
+    assert f["est_capabilities"] == FOLLOW_TARGET_CAP_POS | FOLLOW_TARGET_CAP_VEL == 3
+    assert f["timestamp"] == tr.time_boot_us // 1000
+    back = _roundtrip(f)
+    assert back.get_type() == "FOLLOW_TARGET"
+    assert abs(back.lat - round(tr.lat_deg * 1e7)) <= ATOL_DEGE7 and abs(back.lon - round(tr.lon_deg * 1e7)) <= ATOL_DEGE7
+    assert back.alt == pytest.approx(tr.alt_m, abs=ATOL_M)
+    assert list(back.vel) == pytest.approx([1.0, 0.0, 0.0], abs=ATOL_M)
+    assert list(back.position_cov) == pytest.approx([math.sqrt(8.0), 1.0, 0.0], abs=ATOL_M)  # eph = sqrt(4 + 4), epv
+    assert list(back.attitude_q) == [1.0, 0.0, 0.0, 0.0] and list(back.acc) == [0.0, 0.0, 0.0]
+
+
+def test_timestamp_is_the_capture_time_in_ms_on_the_boot_clock():
+    tr = _track()
+    tr2 = type(tr)(**{**{k: getattr(tr, k) for k in tr.__dataclass_fields__}, "time_boot_us": 123_456_789})
+    assert follow_target_fields(tr2)["timestamp"] == 123_456
+
+
+@pytest.mark.parametrize("kw", [dict(observable=False), dict(position=False), dict(state="lost", position=False)])
+def test_nothing_without_an_observable_position(kw):
+    assert follow_target_fields(_track(**kw)) is None
+    assert follow_target_fields(None) is None
+
