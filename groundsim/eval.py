@@ -616,7 +616,7 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
             try:
                 if pixel_sigma_px > 0:
                     simulated = NoiseModel(pixel_sigma_px=pixel_sigma_px) if nav_case is None else \
-                        dataclasses.replace(estimator_noise_model(nav_case), pixel_sigma_px=pixel_sigma_px)
+                        estimator_noise_model(nav_case, pixel_sigma_px=pixel_sigma_px)
                     sim = MapEstimator(est.config, simulated)
                     entry["crb_rms_m"] = bayesian_crb_rms_m(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps)
                 entry["crb_model_rms_m"] = bayesian_crb_rms_m(est, obs, truth_p[idx], res.prior, res.turn_rate_radps)

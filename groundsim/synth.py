@@ -62,10 +62,12 @@ def pointing_offsets_ned_m(t_s, range_m, frac=(0.03, 0.02, 0.015), period_s=(7.0
     return np.asarray(range_m, dtype=float)[:, None] * np.asarray(frac) * np.sin(2 * np.pi * t / np.asarray(period_s))
 
 
-def estimator_noise_model(noise_case) -> NoiseModel:
-    """The noise model an estimator should assume for a noise case (offsets as per-axis sigmas)."""
+def estimator_noise_model(noise_case, pixel_sigma_px: float | None = None) -> NoiseModel:
+    """The noise model an estimator should assume for a noise case (offsets as per-axis sigmas);
+    ``pixel_sigma_px`` replaces the case's pixel noise (the ``exact`` navigation case has none, the
+    closed loop's pixel noise is the image chain's)."""
     return NoiseModel(
-        pixel_sigma_px=noise_case.pixel_sigma_px,
+        pixel_sigma_px=noise_case.pixel_sigma_px if pixel_sigma_px is None else pixel_sigma_px,
         attitude_white_sigma_rad=noise_case.attitude_white_sigma_rad,
         attitude_bias_sigma_rad=noise_case.attitude_bias_sigma_rad,
         camera_position_white_sigma_m=noise_case.camera_position_white_sigma_m,
