@@ -166,14 +166,28 @@ def truth_arrays(truth: dict) -> dict:
     def stack(*names):
         return np.column_stack([np.asarray(truth[n], dtype=float) for n in names])
 
-    return dict(
+    from onboard.frames import quat_from_rotmat, rotmat_from_quat, rotmat_from_rotvec
+
+    cam = stack("cam_n_m", "cam_e_m", "cam_d_m")
+    q = stack("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z")
+    out = dict(
         time_boot_us=np.asarray(truth["time_boot_us"], dtype=np.int64),
         target_p_ned_m=stack("target_n_m", "target_e_m", "target_d_m"),
-        cam_p_ned_m=stack("cam_n_m", "cam_e_m", "cam_d_m"),
-        q_ned_from_cam=stack("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z"),
+        cam_p_ned_m=cam, q_ned_from_cam=q,
         uv_px=stack("target_u_px", "target_v_px"),
         visible=np.asarray(truth["target_visible"]) > 0,
     )
+    # what the vehicle reported (the simulator's navigation errors, recorded in the truth CSV): the
+    # attitude error is a NED rotation vector on the left, the position error the observer's (the lever
+    # arm's rotation by the attitude error, < 0.1 mm, is left out)
+    if "nav_p_err_n_m" in truth:
+        phi = stack("nav_att_err_n_rad", "nav_att_err_e_rad", "nav_att_err_d_rad")
+        out["reported_cam_p_ned_m"] = cam + stack("nav_p_err_n_m", "nav_p_err_e_m", "nav_p_err_d_m")
+        out["reported_q_ned_from_cam"] = np.array([quat_from_rotmat(rotmat_from_rotvec(f) @ rotmat_from_quat(qq))
+                                                   for f, qq in zip(phi, q)])
+    else:
+        out["reported_cam_p_ned_m"], out["reported_q_ned_from_cam"] = cam, q
+    return out
 
 
 def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
@@ -200,7 +214,8 @@ def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
 
 def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, rng: np.random.Generator) -> dict:
     """The daemon's estimator (same configuration file) on the truth rows: true pixel + N(0, sigma^2) per
-    axis (drawn from ``rng``), true camera pose, capture time ``time_boot_us``; ``add`` where the target
+    axis (drawn from ``rng``), the camera pose the vehicle reported (truth plus the simulator's recorded
+    navigation errors: the daemon saw no better), capture time ``time_boot_us``; ``add`` where the target
     is in the image, else ``predict`` -- as :class:`onboard.pipeline.FramePipeline` feeds it.
 
     Returns ``p_ned_m`` (F, 3, NaN = no estimate) and ``observable`` (F,)."""
@@ -222,10 +237,10 @@ def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, r
         r = None
         try:
             if a["visible"][k]:
-                r = est.add(t_s, a["uv_px"][k] + noise[k], K, a["cam_p_ned_m"][k], a["q_ned_from_cam"][k])
+                r = est.add(t_s, a["uv_px"][k] + noise[k], K, a["reported_cam_p_ned_m"][k], a["reported_q_ned_from_cam"][k])
                 has_data = True
             elif has_data:
-                r = est.predict(t_s, a["cam_p_ned_m"][k])
+                r = est.predict(t_s, a["reported_cam_p_ned_m"][k])
         except IrtrackError:
             r = None
         if r is not None and np.all(np.isfinite(r.p_ned_m)):

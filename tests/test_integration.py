@@ -6,9 +6,9 @@ Criterion (issue #4): the daemon's range-normalised error ``mean ||p_hat - p|| /
 1.5x of what the foundation's estimator reaches from perfect centroids on the same scenario.  The
 yardstick (:func:`tests.integration_helpers.perfect_centroid_baseline`) is the daemon's own sliding-window
 estimator, built from the very configuration file the daemon read, fed from the truth CSV of the same
-run: the true target pixel + 0.3 px white noise (the lockstep evaluation's default, the reference
-study's px0.3 case, the lightest of config/noise_cases.yaml), the true camera pose, each frame's capture
-time.  It is scored on exactly the frames
+run: the true target pixel + 0.3 px white noise (the reference study's px0.3 case), the camera pose the
+vehicle reported (the truth plus the simulator's navigation errors, RTK by default, recorded in the
+truth CSV: the daemon could not have known better), each frame's capture time.  It is scored on exactly the frames
 the daemon's track is scored on; its error is the median of ``BASELINE_DRAWS`` noise draws (one draw can
 select another motion model and be 10x off in either direction: P1 measured 1.4-2.6 % for four draws and
 25 % for the fifth).
