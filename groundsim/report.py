@@ -198,8 +198,9 @@ def format_closed_loop(summary: list[dict]) -> str:
     g = CLOSED_LOOP_GOALS
     lines = ["| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
              "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
-             "median err / range, observable frames (<= 2 %) | centroid sigma px (chain; baseline) |",
-             "|" + "---|" * 7]
+             "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
+             "first observable s | centroid sigma px (chain; baseline) |",
+             "|" + "---|" * 9]
     for r in summary:
         obs_goal = g["observable"].get(r["scenario"], g["observable_default"])
 
@@ -214,6 +215,7 @@ def format_closed_loop(summary: list[dict]) -> str:
             f"{_f(_pct(bey), '.1f', ' %')}{mark(bey, lambda x: x <= g['beyond'])} | "
             f"{_f(_pct(obs), '.0f', ' %')}{mark(obs, lambda x: x >= obs_goal)} | "
             f"{_f(err, '.2f', ' %')}{mark(err, lambda x: x <= g['err_pct'])} | "
+            f"{_f(r.get('median_err_range_published_after_5s_pct'), '.2f', ' %')} | {_f(r.get('first_observable_s'), '.1f')} | "
             f"{_f(r.get('chain_centroid_sigma_px'), '.3f')}; {_f(r.get('baseline_pixel_sigma_px'), '.3f')} |")
     return "\n".join(lines)
 
