@@ -379,8 +379,12 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
             est.reset()
             rows = _unpack_rows(packed)
             t = rows[-1][0] if rows else math.nan
+            c0, w0 = time.process_time(), time.monotonic()
             try:
                 out = _rebuild_window(est, rows)
+                log.info("estimator worker %d: window rebuilt from %d observations in %.3f s (%.3f CPU s); %s",
+                         os.getpid(), len(rows), time.monotonic() - w0, time.process_time() - c0,
+                         "estimate ready" if out is not None else "no estimate yet")
             except InputError:
                 pass  # the newest row was refused when it first arrived (and counted then)
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
@@ -408,8 +412,8 @@ class ProcessEstimator:
 
     **A worker that dies** (killed, OOM, crashed) is noticed on the next ``add``, counted
     (``estimator_restart``, logged with its exit code) and replaced at once.  The parent keeps its
-    own copy of the window (the observations of the last ``window_s``, at most ``max_frames``,
-    about 25 kB), and the new worker is handed that copy first and rebuilds the window with a single
+    own copy of the window (the rows the estimator keeps: the last ``window_s``, one per
+    ``min_spacing_s``, at most ``max_frames``; about 25 kB), and the new worker is handed that copy first and rebuilds the window with a single
     model selection (:func:`_rebuild_window`), so 3-D output resumes as soon as the child has started
     and solved once (measured: see ``tests/onboard/test_worker_restart.py``) instead of after a new
     window has filled.  In between, the newest estimate keeps being propagated (up to
@@ -444,8 +448,11 @@ class ProcessEstimator:
         self.worker_cpu_s = 0.0
         self.late_results = 0
         self.restarts = 0
-        limits = make_estimator(config).config  # the child's own window limits
+        # the child's own window rules, mirrored so that the copy holds the rows its window holds: the
+        # last window_s, at most max_frames, a row kept only min_spacing_s after the previous kept one
+        limits = make_estimator(config).config
         self._window_s = float(limits.window_s)
+        self._min_spacing_s = float(getattr(limits, "min_spacing_s", 0.0))
         self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
         self._backoff_s = 0.0
         self._next_start_s = -math.inf
@@ -524,8 +531,8 @@ class ProcessEstimator:
 
     def _remember(self, args) -> None:
         w = self._window
-        if w and not args[0] > w[-1][0]:
-            return  # the estimator refuses it too (time not after the previous)
+        if w and not args[0] - w[-1][0] >= max(self._min_spacing_s, 1e-12):
+            return  # the estimator does not keep it either (too soon after its previous row, or not after it)
         w.append(args)
         while w and w[0][0] < args[0] - self._window_s:
             w.popleft()

@@ -408,6 +408,7 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     from onboard.service import ProcessEstimator
 
     scene = SyntheticScene()
+    N_FRAMES = 120  # 4 s: the window keeps a row per 0.06 s, min_frames 30 of them before the first estimate
     cfg = OnboardConfig()
     inline = make_estimator(cfg)
     counter = LockedCounter()
@@ -415,7 +416,7 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     try:
         K = scene.intrinsics
         n_same = 0
-        for k in range(60):
+        for k in range(N_FRAMES):
             ts = k / 30.0
             p_cam, q = scene.camera(ts)
             uv = scene.uv(ts) + 0.2 * np.sin(np.array([k, 2.0 * k]))
@@ -428,10 +429,10 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
                 n_same += 1
         assert n_same >= 10 and pe.late_results == 0 and counter.total == 0
         assert pe.worker_cpu_s > 0
-        p = pe.predict(scene.t_us(59) / 1e6 + 0.1)
+        p = pe.predict(scene.t_us(N_FRAMES - 1) / 1e6 + 0.1)
         assert p is not None and p.p_ned_m[0] == pytest.approx(b.p_ned_m[0] + 0.1 * b.v_ned_mps[0])
         pe.reset()
-        assert pe.predict(scene.t_us(59) / 1e6) is None
+        assert pe.predict(scene.t_us(N_FRAMES - 1) / 1e6) is None
         assert pe.add(1.0, (1.0, 2.0), K, np.zeros(3), np.array([1.0, 0, 0, 0])) is None  # a fresh window
         pe._proc.kill()  # a dead worker is noticed, counted and restarted
         pe._proc.join(5)
