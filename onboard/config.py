@@ -601,6 +601,15 @@ class VideoConfig(_Section):
 
 
 @dataclass(frozen=True)
+class FollowConfig(_Section):
+    """``follow``: FOLLOW_TARGET (#144) to the autopilot from observable 3-D positions (see :mod:`onboard.follow`)."""
+
+    _path: ClassVar[str] = "follow"
+    enabled: bool = F(False, "bool")
+    rate_hz: float = F(5.0, "float", lo=0.0, lo_open=True, hi=50.0)
+
+
+@dataclass(frozen=True)
 class LoggingConfig(_Section):
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
@@ -627,6 +636,7 @@ class OnboardConfig(_Section):
     output: OutputConfig = _section(OutputConfig)
     gcs: GcsConfig = _section(GcsConfig)
     video: VideoConfig = _section(VideoConfig)
+    follow: FollowConfig = _section(FollowConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

@@ -930,6 +930,13 @@ class MavlinkLink:
             int(camera_device_id),
         )
 
+    def send_follow_target(self, fields: dict) -> bool:
+        """FOLLOW_TARGET (#144) from :func:`onboard.follow.follow_target_fields`'s keyword arguments
+        (pymavlink's ``follow_target_send``); True when written."""
+        if self._transport is None:
+            return False
+        return self._send("FOLLOW_TARGET", lambda: self._mav.follow_target_send(**fields))
+
     def send_tracking_geo_status(
         self,
         lat_deg: float,

@@ -24,9 +24,9 @@ Threads (nothing else runs concurrently):
   propagated to its time at constant velocity (``P + dt^2 V``); the observation is used by the
   worker either way, no measurement is lost.  A process also keeps the estimator's Python work off
   the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).  A
-  worker process that dies is replaced on the next frame from a fork server, with its window rebuilt
-  from the parent's copy of the observations (``estimator_restart``; 3-D resumes in ~0.3-0.5 s,
-  bridged by the propagated last estimate).
+  worker process that dies is replaced on the next frame from a fork server, restored from its last
+  state (a snapshot every second) and the parent's copy of the observations (``estimator_restart``;
+  bridged by the propagated last estimate meanwhile).
 * **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
   :meth:`MavlinkLink.tick` (the autopilot link, component 191: heartbeat, rate requests, TIMESYNC);
   the camera component (:meth:`OnboardService.camera_step`, with ``gcs.endpoints``): commands from
@@ -353,8 +353,41 @@ def _unpack_rows(packed) -> list:
             for i in range(len(t))]
 
 
+SNAPSHOT_PERIOD_S = 1.0  # observation time between two snapshots of the worker's state sent to the parent
+_NOT_SNAPSHOTTED = ("map",)  # the MAP solver (config + caches, ~11 MB pickled): the new worker builds its own
+
+
+def _snapshot(est) -> bytes:
+    """The sliding-window estimator's state (its attributes but the solver) as bytes (~1.6 MB for a
+    full window: the rows, the spline solution, the model, the last linearisation)."""
+    import pickle
+
+    return pickle.dumps({k: v for k, v in vars(est).items() if k not in _NOT_SNAPSHOTTED}, protocol=pickle.HIGHEST_PROTOCOL)
+
+
+def _restore(est, snapshot: bytes, rows) -> Any:
+    """``est`` (fresh) put back in the snapshotted state, then the ``rows`` that came after it added
+    as usual.  Returns the estimate at the newest row (or None)."""
+    import pickle
+
+    state = pickle.loads(snapshot)
+    if not isinstance(state, dict) or set(state) & set(_NOT_SNAPSHOTTED):
+        raise ValueError("not an estimator snapshot")
+    vars(est).update(state)
+    out = None
+    for args in rows:
+        try:
+            out = est.add(*args)
+        except InputError:
+            pass
+    return out
+
+
 def _estimator_process_main(conn, config: OnboardConfig) -> None:
-    """Child process of :class:`ProcessEstimator`: builds the estimator, serves add/reset/rebuild until "stop"."""
+    """Child process of :class:`ProcessEstimator`: builds the estimator, serves add/reset/rebuild until "stop".
+
+    Every ``SNAPSHOT_PERIOD_S`` of observation time, an answer with an estimate also carries a
+    snapshot of the estimator's state (:func:`_snapshot`), which the parent keeps for a replacement."""
     import signal as _signal
 
     _signal.signal(_signal.SIGINT, _signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
@@ -362,6 +395,7 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
 
     setup_logging(config.logging.level, config.logging.format)
     est = make_estimator(config)
+    last_snapshot_t = -math.inf
     while True:
         try:
             msg = conn.recv()
@@ -372,19 +406,33 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
             return
         if kind == "reset":
             est.reset()
+            last_snapshot_t = -math.inf
             continue
         out, err = None, None
-        if kind == "rebuild":  # a replacement worker: the window the dead one had, from the parent's copy
-            _, epoch, packed = msg
-            est.reset()
+        if kind == "rebuild":  # a replacement worker: the dead one's state, or its window from the parent's copy
+            _, epoch, packed, snapshot = msg
             rows = _unpack_rows(packed)
             t = rows[-1][0] if rows else math.nan
             c0, w0 = time.process_time(), time.monotonic()
+            how, n_rows = "rebuilt from", len(rows)
             try:
-                out = _rebuild_window(est, rows)
-                log.info("estimator worker %d: window rebuilt from %d observations in %.3f s (%.3f CPU s); %s",
-                         os.getpid(), len(rows), time.monotonic() - w0, time.process_time() - c0,
-                         "estimate ready" if out is not None else "no estimate yet")
+                if snapshot is not None:
+                    snap_t, snap_bytes = snapshot
+                    later = [r for r in rows if r[0] > snap_t]
+                    try:
+                        est.reset()
+                        out = _restore(est, snap_bytes, later)
+                        how, n_rows = f"restored from its state at {snap_t:.3f} s +", len(later)
+                    except Exception as exc:  # noqa: BLE001 - an unusable snapshot: rebuild instead
+                        log.warning("estimator worker %d: snapshot unusable (%s: %s); rebuilding the window",
+                                    os.getpid(), type(exc).__name__, exc)
+                        snapshot = None
+                if snapshot is None:
+                    est.reset()
+                    out = _rebuild_window(est, rows)
+                log.info("estimator worker %d: window %s %d observations in %.3f s (%.3f CPU s); %s",
+                         os.getpid(), how, n_rows, time.monotonic() - w0, time.process_time() - c0,
+                         "estimate ready" if out is not None else "no estimate yet" if n_rows else "nothing to add")
             except InputError:
                 pass  # the newest row was refused when it first arrived (and counted then)
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
@@ -397,8 +445,15 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
                 err = ("estimator_input", str(exc))
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
                 err = ("estimator_error", f"{type(exc).__name__}: {exc}")
+        snap = None
+        if out is not None and t - last_snapshot_t >= SNAPSHOT_PERIOD_S:
+            try:
+                snap = (t, _snapshot(est))
+                last_snapshot_t = t
+            except Exception as exc:  # noqa: BLE001 - no snapshot: a replacement rebuilds the window instead
+                err = err or ("estimator_error", f"snapshot: {type(exc).__name__}: {exc}")
         try:
-            conn.send((epoch, t, out, err, time.process_time()))
+            conn.send((epoch, t, out, err, time.process_time(), snap))
         except (OSError, ValueError):
             return
 
@@ -413,10 +468,12 @@ class ProcessEstimator:
     **A worker that dies** (killed, OOM, crashed) is noticed on the next ``add``, counted
     (``estimator_restart``, logged with its exit code) and replaced at once.  The parent keeps its
     own copy of the window (the rows the estimator keeps: the last ``window_s``, one per
-    ``min_spacing_s``, at most ``max_frames``; about 25 kB), and the new worker is handed that copy first and rebuilds the window with a single
-    model selection (:func:`_rebuild_window`), so 3-D output resumes as soon as the child has started
-    and solved once (measured: see ``tests/onboard/test_worker_restart.py``) instead of after a new
-    window has filled.  In between, the newest estimate keeps being propagated (up to
+    ``min_spacing_s``, at most ``max_frames``; about 25 kB) and the worker's newest state (a snapshot
+    the worker sends every ``SNAPSHOT_PERIOD_S`` of observation time, ~1.6 MB; :func:`_snapshot`).  The
+    new worker is handed both: it restores the state and adds the rows that came after it
+    (milliseconds; :func:`_restore`), or, without a usable snapshot, rebuilds the window with a single
+    cold model selection (:func:`_rebuild_window`: 0.2-1 CPU s for a full 20 s window).  Either way 3-D
+    output resumes without waiting for a new window to fill.  In between, the newest estimate keeps being propagated (up to
     ``max_extrapolation_s``), as when the worker is busy.  A worker that dies before it answered
     anything (a crash at start, or on an observation the rebuild replays) is replaced after a delay
     that starts at ``RESTART_BACKOFF_MIN_S`` and doubles each time (up to ``RESTART_BACKOFF_MAX_S``),
@@ -454,6 +511,7 @@ class ProcessEstimator:
         self._window_s = float(limits.window_s)
         self._min_spacing_s = float(getattr(limits, "min_spacing_s", 0.0))
         self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
+        self._snapshot = None  # (t_s, bytes): the worker's state, every SNAPSHOT_PERIOD_S
         self._backoff_s = 0.0
         self._next_start_s = -math.inf
         self._started_s = -math.inf
@@ -505,8 +563,11 @@ class ProcessEstimator:
             return False
         self._start()
         if self._window:
+            snap = self._snapshot
+            if snap is not None and snap[0] < self._window[0][0]:
+                snap = None  # older than the window: rebuild instead (a reset clears both)
             try:
-                self._conn.send(("rebuild", self._epoch, self._packed_window()))
+                self._conn.send(("rebuild", self._epoch, self._packed_window(), snap))
             except (OSError, ValueError) as exc:
                 self._counter.count("estimator_error", f"send to the estimator process: {exc}")
         return True
@@ -553,7 +614,7 @@ class ProcessEstimator:
             if not ready:
                 return found, value
             try:
-                epoch, t, est, err, cpu_s = self._conn.recv()
+                epoch, t, est, err, cpu_s, snapshot = self._conn.recv()
             except (OSError, EOFError):
                 return found, value
             self.worker_cpu_s = self._cpu_base + cpu_s
@@ -562,6 +623,8 @@ class ProcessEstimator:
                 self._counter.count(*err)
             if epoch != self._epoch:
                 continue
+            if snapshot is not None:
+                self._snapshot = snapshot  # (t_s of its newest row, bytes)
             if est is not None:
                 self._latest = (epoch, est)
             if until_t is not None and t == until_t:
@@ -595,6 +658,7 @@ class ProcessEstimator:
         self._epoch += 1
         self._latest = None
         self._window.clear()
+        self._snapshot = None
         if self._conn is None:
             return
         try:
@@ -658,6 +722,7 @@ class OnboardService:
                                      logger=logging.getLogger("onboard.rejects"))
         self.mount = config.camera.camera_mount()
         self._first_telemetry_s: float | None = None  # when the first attitude/position arrived (watchdog)
+        self._next_follow_s = -math.inf  # FOLLOW_TARGET pacing (follow_step)
         buffer = PoseBuffer(mount=self.mount, config=config.pose_buffer_config(),
                             origin=config.pose.geodetic_origin(), counter=self.counter)
         self.pose = SharedPoseBuffer(buffer)
@@ -908,6 +973,10 @@ class OnboardService:
             except Exception as exc:  # noqa: BLE001 - the camera component must not stop the loop
                 self.counter.count("camera_loop_error", f"{type(exc).__name__}: {exc}")
             self._watch(now)
+            try:
+                self.follow_step(now)
+            except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
+                self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
             if now >= next_status:
                 last_cpu = self._publish_status(now, last_cpu)
                 next_status = max(next_status + cfg.output.status_interval_s, now)
@@ -938,6 +1007,21 @@ class OnboardService:
         if latest is None or now - latest[1] > self.config.output.track_stale_s:
             return None
         return latest[0]
+
+    def follow_step(self, now: float) -> bool:
+        """FOLLOW_TARGET (#144) to the autopilot when ``follow.enabled``: the newest track's position at
+        most every 1 / ``follow.rate_hz`` s, only when it is observable and not stale (an autopilot
+        chasing an unobservable range would chase a guess).  Returns True when one was sent."""
+        fc = self.config.follow
+        if not fc.enabled or self.link is None or now < self._next_follow_s:
+            return False
+        from onboard.follow import follow_target_fields
+
+        fields = follow_target_fields(self._current_track(now))
+        if fields is None:
+            return False
+        self._next_follow_s = now + 1.0 / fc.rate_hz
+        return bool(self.link.send_follow_target(fields))
 
     def camera_step(self, now: float) -> int:
         """The camera component's turn in the main loop: commands in (tracking requests queued to the

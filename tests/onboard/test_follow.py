@@ -45,3 +45,44 @@ def test_nothing_without_an_observable_position(kw):
     assert follow_target_fields(_track(**kw)) is None
     assert follow_target_fields(None) is None
 
+
+
+class _FollowLink:
+    def __init__(self) -> None:
+        self.sent: list[dict] = []
+
+    def send_follow_target(self, fields: dict) -> bool:
+        self.sent.append(fields)
+        return True
+
+
+def _follow_service(enabled: bool):
+    from onboard.config import build_config
+    from onboard.service import OnboardService
+    from tests.onboard.test_selection import _FakeClock
+
+    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
+                        "follow": {"enabled": enabled, "rate_hz": 2.0}})
+    clock = _FakeClock()
+    svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
+    svc.link = _FollowLink()
+    return svc, clock
+
+
+def test_the_service_sends_follow_target_paced_and_only_for_observable_fresh_tracks():
+    svc, clock = _follow_service(True)
+    t0 = clock()
+    svc._latest = (_track(observable=False), t0)
+    assert not svc.follow_step(t0)  # unobservable: nothing
+    svc._latest = (_track(observable=True), t0)
+    assert svc.follow_step(t0) and len(svc.link.sent) == 1
+    assert not svc.follow_step(t0 + 0.2)  # 2 Hz: not before 0.5 s
+    assert svc.follow_step(t0 + 0.5) and len(svc.link.sent) == 2
+    assert not svc.follow_step(t0 + 5.0)  # the track is stale (output.track_stale_s, 1 s)
+    assert svc.link.sent[0] == follow_target_fields(_track(observable=True))
+
+
+def test_follow_target_is_off_by_default():
+    svc, clock = _follow_service(False)
+    svc._latest = (_track(observable=True), clock())
+    assert not svc.follow_step(clock()) and svc.link.sent == []
