@@ -165,6 +165,19 @@ class StatusReader:
             gap = max(gap, after[-1][0] - last)
         return gap, missing, len(after)
 
+    def episodes(self, t0: float) -> list[tuple[float, float]]:
+        """Stretches of consecutive tracks without a 3-D position: (start s after ``t0``, length s)."""
+        with self._lock:
+            tracks = list(self.tracks)
+        out, start = [], None
+        for t, has in tracks:
+            if not has and start is None:
+                start = t
+            elif has and start is not None:
+                out.append((start - t0, t - start))
+                start = None
+        return out
+
     def close(self) -> None:
         self.track_sub.undeclare()
         self.sub.undeclare()
@@ -227,7 +240,7 @@ def main(argv=None) -> int:
         sim = None
         reader = None
         samples: list[tuple[float, dict[str, tuple[int, int]], dict | None]] = []
-        elapsed, final, gaps = 0.0, None, []
+        elapsed, final, gaps, episodes = 0.0, None, [], []
         try:
             reader = _connect(plan, daemon)  # the daemon's listener is up
             sim = subprocess.Popen(sim_command(plan), stdout=slog, stderr=subprocess.STDOUT, env=env)
@@ -269,7 +282,12 @@ def main(argv=None) -> int:
             elapsed = time.monotonic() - t0
             time.sleep(1.5)  # one more status after the last frames
             final = reader.get()
-            gaps = [(pid, *reader.gap_after(t_kill)) for t_kill, pid in killed]
+            gaps = [(pid, *reader.gap_after(t_kill), *reader.gap_after(t_kill - 10.0)) for t_kill, pid in killed]
+            episodes = reader.episodes(t0)
+            with open(out / "tracks.csv", "w") as f:  # arrival (s from the start), has a 3-D position; kills marked
+                f.write("t_s,has_position\n")
+                f.writelines(f"{t - t0:.4f},{int(has)}\n" for t, has in list(reader.tracks))
+                f.writelines(f"{t - t0:.4f},kill\n" for t, _pid in killed)
         finally:
             if reader is not None:
                 reader.close()
@@ -293,9 +311,13 @@ def main(argv=None) -> int:
     last_mem = samples[-1][1] if samples else {}
     for k, (rss, pss) in sorted(last_mem.items()):
         print(f"  last sample {k:28s} RSS {rss / KB_PER_MB:7.1f} MB  PSS {pss / KB_PER_MB:7.1f} MB")
-    for pid, gap, missing, n in gaps:
+    for pid, gap, missing, n, gap0, missing0, n0 in gaps:
         print(f"killed worker {pid}: longest time without a 3-D position in the track stream {gap:.2f} s "
-              f"(30 Hz: {1 / FRAME_RATE_HZ:.3f} s between frames); {missing} of the next {n} tracks without one")
+              f"(30 Hz: {1 / FRAME_RATE_HZ:.3f} s between frames); {missing} of the next {n} tracks without one; "
+              f"the 10 s before the kill: {gap0:.2f} s, {missing0} of {n0}")
+    if episodes:
+        print(f"stretches of tracks without a 3-D position (start s, length s): {len(episodes)}; "
+              + ", ".join(f"{a:.1f}+{d:.2f}" for a, d in episodes[:40]) + (" ..." if len(episodes) > 40 else ""))
     fr = (final or {}).get("frames", {})
     expected = int(elapsed * FRAME_RATE_HZ)
     print(f"frames: ~{expected} sent at {FRAME_RATE_HZ:g} Hz; daemon in {fr.get('in')}, processed {fr.get('processed')}, "

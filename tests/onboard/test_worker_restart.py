@@ -20,7 +20,7 @@ from groundsim.scenario import load_noise_cases, load_scenario, reference_scenar
 from groundsim.synth import synthesize_scenario
 from onboard.config import OnboardConfig
 from onboard.pipeline import make_estimator
-from onboard.service import LockedCounter, ProcessEstimator
+from onboard.service import SNAPSHOT_PERIOD_S, LockedCounter, ProcessEstimator
 
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
 JOIN_S = 10.0  # upper bound for a SIGKILLed child to be reaped
@@ -61,10 +61,12 @@ def _own_estimate(pe, obs, K, i):
     return est, pe.late_results == late
 
 
-def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(scene, caplog):
-    """After SIGKILL the very next observation is answered by the new worker from the rebuilt window
-    (0 observations of refill; the old behaviour needed min_frames / min_span_s of new ones: 1.5 s),
-    over the same window rows as a worker that was never killed."""
+@pytest.mark.parametrize("with_snapshot", [True, False], ids=["restored-state", "rebuilt-window"])
+def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(scene, caplog, with_snapshot):
+    """After SIGKILL the very next observation is answered by the new worker (0 observations of refill;
+    the old behaviour needed min_frames / min_span_s of new ones), over the same window rows as a
+    worker that was never killed.  From the dead worker's last state (snapshot + the rows after it),
+    the answer is exactly the never-killed worker's; without a snapshot the window is rebuilt cold."""
     K, truth, obs = scene
     counter = LockedCounter(logger=logging.getLogger("onboard.rejects"))
     pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=RESULT_WAIT_S)
@@ -74,18 +76,24 @@ def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(s
             est = _add(pe, obs, K, i)
             ref = _add(reference, obs, K, i)
         assert est is not None, "no estimate before the kill: the scene is too short"
+        if with_snapshot:
+            assert pe._snapshot is not None and obs.t_s[FRAMES_BEFORE_KILL] - pe._snapshot[0] <= SNAPSHOT_PERIOD_S + 0.1
+        else:
+            pe._snapshot = None  # as before the first snapshot: the cold rebuild
         old_pid = pe.pid
         _kill(pe)
         t0 = time.monotonic()
         with caplog.at_level(logging.WARNING, logger="onboard.rejects"):
             est, own = _own_estimate(pe, obs, K, FRAMES_BEFORE_KILL)
         restart_s = time.monotonic() - t0
-        print(f"\nworker replaced: first own estimate {restart_s:.3f} s after the kill was noticed "
-              f"(spawn + window rebuild with one model selection)")
+        print(f"\nworker replaced ({'restored state' if with_snapshot else 'cold rebuild'}): first own estimate "
+              f"{restart_s:.3f} s after the kill was noticed")
         ref = _add(reference, obs, K, FRAMES_BEFORE_KILL)
         assert own and est is not None
         assert est.t_s == obs.t_s[FRAMES_BEFORE_KILL]
         assert est.window_frames == ref.window_frames  # the whole window, not a fresh one
+        if with_snapshot:
+            assert np.array_equal(est.p_ned_m, ref.p_ned_m) and np.array_equal(est.cov_p_ned_m2, ref.cov_p_ned_m2)
         err_m = float(np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[FRAMES_BEFORE_KILL]))
         assert err_m <= HONEST_SIGMAS * float(np.sqrt(np.trace(est.cov_p_ned_m2)))
         assert pe.pid != old_pid and pe.restarts == 1
@@ -97,6 +105,8 @@ def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(s
             est, own = _own_estimate(pe, obs, K, i)
             ref = _add(reference, obs, K, i)
             assert own and est is not None and est.window_frames == ref.window_frames
+            if with_snapshot:
+                assert np.array_equal(est.p_ned_m, ref.p_ned_m)
         assert counter["estimator_restart"] == 1
     finally:
         pe.close()
