@@ -353,6 +353,7 @@ def _unpack_rows(packed) -> list:
             for i in range(len(t))]
 
 
+WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
 SNAPSHOT_PERIOD_S = 1.0  # observation time between two snapshots of the worker's state sent to the parent
 _NOT_SNAPSHOTTED = ("map",)  # the MAP solver (config + caches, ~11 MB pickled): the new worker builds its own
 
@@ -961,6 +962,7 @@ class OnboardService:
         end = math.inf if max_duration_s is None else now + max_duration_s
         next_status = now + cfg.output.status_interval_s
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
+        next_watch = now
         while not self._stop.is_set() and now < end:
             try:
                 self.link.poll()
@@ -972,7 +974,9 @@ class OnboardService:
                 self.camera_step(now)
             except Exception as exc:  # noqa: BLE001 - the camera component must not stop the loop
                 self.counter.count("camera_loop_error", f"{type(exc).__name__}: {exc}")
-            self._watch(now)
+            if now >= next_watch:  # 5 s timeouts: 2 Hz is plenty, the loop itself turns at poll_rate_hz
+                self._watch(now)
+                next_watch = now + WATCH_PERIOD_S
             try:
                 self.follow_step(now)
             except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
