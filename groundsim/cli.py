@@ -233,6 +233,24 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
     p.set_defaults(handler=lambda args: __import__("groundsim.demo", fromlist=["cmd_demo"]).cmd_demo(args))
 
 
+def _add_dataset(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
+                   help="scenario YAML file(s) or shipped names, repeatable (default: P1)")
+    p.add_argument("--seeds", type=int, default=1, metavar="N", help="run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)")
+    p.add_argument("--seed0", type=int, default=0, metavar="N", help="first run seed (default: %(default)s)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
+                        " (default: the scenario's nav_noise, RTK)")
+    p.add_argument("--format", nargs="+", default=["mot"], choices=("mot", "coco"),
+                   help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, or both (default: mot)")
+    p.add_argument("--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds per sequence (default: the scenario's)")
+    p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes, one sequence each (default: min(2, CPUs))")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args))
+
+
 # --------------------------------------------------------------------------- registry and entry point
 
 #: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
@@ -240,6 +258,7 @@ COMMANDS = (
     ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
     ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
     ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
+    ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
 )
 
 

@@ -1,0 +1,212 @@
+"""groundsim.dataset: labelled IR sequences, read back by independent readers (pycocotools, TrackEval)."""
+
+from __future__ import annotations
+
+import configparser
+import csv
+import hashlib
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from groundsim.cli import main as cli_main
+from groundsim.dataset import DatasetOptions, TargetLabel, body_box_corners_frd_m, export_dataset, target_label
+from groundsim.scenario import load_scenario, reference_scenario_paths
+from onboard.errors import ConfigError
+from onboard.frames import PinholeIntrinsics, rotmat_from_quat
+
+LABEL_ATOL_PX = 0.05  # issue 14: labels match the truth pixel within 0.05 px
+LEVER_ATOL_M = 1e-3  # measured - true camera position = injected error, up to the lever arm's rotation (~um)
+DURATION_S = 1.0
+SEEDS = (0, 1)
+
+
+def _scenario(name="P1"):
+    return load_scenario(reference_scenario_paths()[name])
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ds")
+    summaries, _ = export_dataset([_scenario()], SEEDS, out, DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+                                  workers=2, progress=False)
+    return out, summaries
+
+
+def _read_csv(path: Path) -> dict[str, np.ndarray]:
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    return {k: np.array([float(r[k]) for r in rows]) for k in rows[0]}
+
+
+def _tree_digest(root: Path) -> dict[str, str]:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _independent_pixel(cams: dict, truth: dict, i: int) -> tuple[float, float]:
+    """Pinhole projection written here from the files alone (cameras.csv intrinsics + truth.csv 3-D)."""
+    p_t = np.array([truth["target_n_m"][i], truth["target_e_m"][i], truth["target_d_m"][i]])
+    p_c = np.array([cams["true_n_m"][i], cams["true_e_m"][i], cams["true_d_m"][i]])
+    w, x, y, z = (cams[f"true_q{c}"][i] for c in "wxyz")
+    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # R_ned_from_cam
+    pc = R.T @ (p_t - p_c)
+    return cams["fx_px"][i] * pc[0] / pc[2] + cams["cx_px"][i], cams["fy_px"][i] * pc[1] / pc[2] + cams["cy_px"][i]
+
+
+def test_layout_and_manifest(dataset):
+    out, summaries = dataset
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["schema"] == "irtrack.dataset/1"
+    assert man["seeds"] == list(SEEDS) and man["scenarios"][0]["name"] == "P1" and man["scenarios"][0]["sha256"]
+    names = [s["name"] for s in man["sequences"]]
+    assert names == ["P1-RTK-s0", "P1-RTK-s1"]
+    for s in summaries:
+        d = out / s.name
+        assert len(list((d / "img1").glob("*.png"))) == s.frames == 30
+        for f in ("labels.csv", "cameras.csv", "truth.csv", "seqinfo.ini", "gt/gt.txt"):
+            assert (d / f).is_file(), f
+
+
+def test_coco_loads_in_pycocotools_and_centroids_match_truth(dataset):
+    COCO = pytest.importorskip("pycocotools.coco").COCO
+    out, summaries = dataset
+    coco = COCO(str(out / "coco.json"))
+    assert len(coco.getImgIds()) == sum(s.frames for s in summaries)
+    ann_ids = coco.getAnnIds(catIds=coco.getCatIds(catNms=["target"]))
+    assert len(ann_ids) == sum(s.labelled for s in summaries) > 0
+    cams = {s.name: _read_csv(out / s.name / "cameras.csv") for s in summaries}
+    truth = {s.name: _read_csv(out / s.name / "truth.csv") for s in summaries}
+    worst = 0.0
+    for ann in coco.loadAnns(ann_ids):
+        img = coco.loadImgs(ann["image_id"])[0]
+        i = img["frame_index"] - 1
+        u, v = _independent_pixel(cams[img["sequence"]], truth[img["sequence"]], i)
+        ku, kv, flag = ann["keypoints"]
+        worst = max(worst, abs(ku - u), abs(kv - v))
+        x, y, w, h = ann["bbox"]
+        assert flag == 2 and x <= ku <= x + w and y <= kv <= y + h  # the centroid inside its box
+        assert (out / img["file_name"]).is_file()
+        assert coco.annToMask(ann).sum() > 0  # pycocotools rasterises the box
+    assert worst < LABEL_ATOL_PX
+    # COCO's own evaluator: the ground truth submitted as detections is a perfect score
+    from pycocotools.cocoeval import COCOeval
+
+    dets = coco.loadRes([dict(image_id=a["image_id"], category_id=a["category_id"], bbox=a["bbox"], score=1.0)
+                         for a in coco.loadAnns(ann_ids)])
+    ev = COCOeval(coco, dets, "bbox")
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    assert ev.stats[0] == pytest.approx(1.0)  # AP at IoU .50:.95
+
+
+def test_mot_layout_read_by_trackeval(dataset, tmp_path):
+    trackeval = pytest.importorskip("trackeval")  # installed with --no-deps (it pins opencv-python, which shadows contrib)
+    out, summaries = dataset
+    seqmap = tmp_path / "seqmap.txt"
+    seqmap.write_text("name\n" + "".join(f"{s.name}\n" for s in summaries))
+    trk = tmp_path / "trackers" / "gt_copy" / "data"
+    trk.mkdir(parents=True)
+    for s in summaries:  # a "tracker" that outputs the ground truth: TrackEval must score it perfect
+        rows = [line.split(",") for line in (out / s.name / "gt" / "gt.txt").read_text().splitlines()]
+        (trk / f"{s.name}.txt").write_text("".join(",".join(r[:6] + ["1", "-1", "-1", "-1"]) + "\n" for r in rows))
+    cfg = dict(GT_FOLDER=str(out), TRACKERS_FOLDER=str(tmp_path / "trackers"), SKIP_SPLIT_FOL=True, SEQMAP_FILE=str(seqmap),
+               TRACKERS_TO_EVAL=["gt_copy"], PRINT_CONFIG=False, OUTPUT_FOLDER=str(tmp_path / "te_out"))
+    ds = trackeval.datasets.MotChallenge2DBox(cfg)
+    for s in summaries:
+        raw = ds.get_raw_seq_data("gt_copy", s.name)
+        assert raw["num_timesteps"] == s.frames
+        labels = _read_csv(out / s.name / "labels.csv")
+        for t in range(s.frames):
+            boxes = raw["gt_dets"][t]
+            if labels["in_image"][t]:
+                assert boxes.shape == (1, 4) and raw["gt_ids"][t].tolist() == [1]
+                # MOT's 1-based pixel coordinates: bb_left = x_px + 1
+                np.testing.assert_allclose(boxes[0], [labels["x_px"][t] + 1, labels["y_px"][t] + 1, labels["w_px"][t],
+                                                      labels["h_px"][t]], atol=1e-3)
+    ev = trackeval.Evaluator(dict(USE_PARALLEL=False, PRINT_RESULTS=False, PRINT_CONFIG=False, OUTPUT_SUMMARY=False,
+                                  OUTPUT_DETAILED=False, PLOT_CURVES=False, TIME_PROGRESS=False, DISPLAY_LESS_PROGRESS=True))
+    res, msg = ev.evaluate([ds], [trackeval.metrics.CLEAR(dict(PRINT_CONFIG=False))])
+    assert msg["MotChallenge2DBox"]["gt_copy"] == "Success"
+    clear = res["MotChallenge2DBox"]["gt_copy"]["COMBINED_SEQ"]["pedestrian"]["CLEAR"]
+    assert clear["MOTA"] == pytest.approx(1.0) and clear["CLR_TP"] == sum(s.labelled for s in summaries)
+
+
+def test_seqinfo_ini_is_what_mot_readers_parse(dataset):
+    out, summaries = dataset
+    ini = configparser.ConfigParser()
+    ini.read(out / summaries[0].name / "seqinfo.ini")
+    seq = ini["Sequence"]
+    assert (seq["name"], seq["imDir"], int(seq["seqLength"]), int(seq["frameRate"])) == (summaries[0].name, "img1", 30, 30)
+    assert (int(seq["imWidth"]), int(seq["imHeight"]), seq["imExt"]) == (640, 512, ".png")
+
+
+def test_measured_pose_carries_the_injected_navigation_error(dataset):
+    out, summaries = dataset
+    cams = _read_csv(out / summaries[0].name / "cameras.csv")
+    truth = _read_csv(out / summaries[0].name / "truth.csv")
+    d = np.stack([cams[f"meas_{c}_m"] - cams[f"true_{c}_m"] for c in "ned"], axis=1)
+    err = np.stack([truth[f"nav_p_err_{c}_m"] for c in "ned"], axis=1)
+    assert np.abs(err).max() > 0.01  # RTK: a real error, so the check below can fail
+    np.testing.assert_allclose(d, err, atol=LEVER_ATOL_M)
+    q_t = np.stack([cams[f"true_q{c}"] for c in "wxyz"], axis=1)
+    q_m = np.stack([cams[f"meas_q{c}"] for c in "wxyz"], axis=1)
+    ang = [math.acos(min(1.0, (np.trace(rotmat_from_quat(a) @ rotmat_from_quat(b).T) - 1) / 2)) for a, b in zip(q_m, q_t)]
+    want = np.linalg.norm(np.stack([truth[f"nav_att_err_{c}_rad"] for c in "ned"], axis=1), axis=1)
+    np.testing.assert_allclose(ang, want, atol=1e-6)
+
+
+def test_same_seed_identical_files_other_seed_differs(dataset, tmp_path):
+    out, _ = dataset
+    again = tmp_path / "again"
+    export_dataset([_scenario()], [0], again, DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+                   workers=1, progress=False)
+    a = {k: v for k, v in _tree_digest(out).items() if k.startswith("P1-RTK-s0/")}
+    b = {k: v for k, v in _tree_digest(again).items() if k.startswith("P1-RTK-s0/")}
+    assert len(a) == 30 + 5 and a == b
+    other = {k.replace("-s1/", "-s0/"): v for k, v in _tree_digest(out).items() if k.startswith("P1-RTK-s1/img1/")}
+    assert sum(other[k] != a[k] for k in other) == 30  # another seed: other render noise in every frame
+
+
+def test_sixteen_bit_pngs(tmp_path):
+    import cv2
+
+    summaries, _ = export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.2, bit_depth=16), progress=False)
+    img = cv2.imread(str(tmp_path / summaries[0].name / "img1" / "000001.png"), cv2.IMREAD_UNCHANGED)
+    assert img.dtype == np.uint16 and img.shape == (512, 640) and img.max() > 255
+
+
+def test_label_box_clipped_at_the_image_edge():
+    K = PinholeIntrinsics(fx_px=500.0, fy_px=500.0, cx_px=320.0, cy_px=256.0, width_px=640, height_px=512)
+    corners = body_box_corners_frd_m(_scenario().ir.target_parts)
+    R_nc = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera looking north, x east, y down
+    centred = target_label(K, np.zeros(3), R_nc, [20.0, 0.0, 0.0], np.eye(3), corners)
+    assert centred.has_box and centred.visibility == 1.0
+    assert centred.u_px == pytest.approx(320.0) and centred.x_px < centred.u_px < centred.x_px + centred.w_px
+    # east offset so the centre sits 1 px inside the right edge: about half the box is outside
+    edge = target_label(K, np.zeros(3), R_nc, [20.0, 319.0 * 20.0 / 500.0, 0.0], np.eye(3), corners)
+    assert edge.in_image and 0.3 < edge.visibility < 0.7 and edge.x_px + edge.w_px == pytest.approx(640.0)
+    behind = target_label(K, np.zeros(3), R_nc, [-20.0, 0.0, 0.0], np.eye(3), corners)
+    assert not behind.in_image and not behind.has_box and math.isnan(behind.u_px)
+    with pytest.raises(Exception, match="visibility"):
+        TargetLabel(1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 1.5, True)
+
+
+def test_options_refuse_bad_values():
+    with pytest.raises(ConfigError, match="--format"):
+        DatasetOptions(formats=("yolo",))
+    with pytest.raises(ConfigError, match="--bit-depth"):
+        DatasetOptions(bit_depth=12)
+    with pytest.raises(ConfigError, match="--nav-noise"):
+        DatasetOptions(nav_noise="nope")
+
+
+def test_cli_bad_format_is_one_line(capsys):
+    assert cli_main(["dataset", "--format", "yolo"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--format" in err[0]
