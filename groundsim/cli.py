@@ -86,6 +86,8 @@ def _add_run(p: argparse.ArgumentParser) -> None:
                    help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
                         " default: the scenario's nav_noise, RTK unless it says otherwise)")
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/record.py)")
     p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
     p.add_argument("--rt-priority", type=int, default=None, metavar="N",
                    help="paced runs: ask Linux for SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE, otherwise a"
@@ -114,6 +116,7 @@ def _run_config(args):
         scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
         vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
         render=not args.no_render, nav_noise=args.nav_noise,
+        record_path=Path(args.record) if args.record else None,
     )
 
 
@@ -207,6 +210,9 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
     p.add_argument("--nav-noise", nargs="+", default=None, metavar="NAME",
                    help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
                         " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)")
+    p.add_argument("--estimator", default=None, metavar="NAME",
+                   help="trajectory estimator plug-in: a name registered under the irtrack.estimators entry point"
+                        " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)")
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
     p.add_argument("--onboard-config", default=None, metavar="FILE",
                    help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"

@@ -175,6 +175,7 @@ class RunConfig:
     boot_start_us: int = BOOT_START_US
     flight_chunk_s: float | None = None
     nav_noise: str | None = None
+    record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.record)
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -203,6 +204,10 @@ class RunConfig:
             raise ConfigError(f"RunConfig.flight_chunk_s must be > 0 s or None, got {c!r}")
         if self.truth_path is not None:
             object.__setattr__(self, "truth_path", Path(self.truth_path))
+        if self.record_path is not None:
+            if not str(self.record_path).endswith(".mcap"):
+                raise ConfigError(f"--record: expected a file name ending in .mcap, got {str(self.record_path)!r}")
+            object.__setattr__(self, "record_path", Path(self.record_path))
         if self.nav_noise is not None:
             from groundsim.nav_errors import resolve_nav_noise
 
@@ -749,7 +754,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                    nav_noise=config.nav_noise)
 
     zs = config.zenoh if config.zenoh is not None else ZenohSettings()
-    session = publisher = vehicle = writer = None
+    session = publisher = vehicle = writer = recorder = None
     try:
         session = open_session(zs)
         if config.render:
@@ -757,14 +762,101 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed)
         if config.truth_path is not None:
             writer = TruthWriter(config.truth_path)
+        if config.record_path is not None:
+            recorder = _start_recorder(config, core)
+            publisher, writer = _RecordingPublisher(publisher, recorder), _RecordingTruth(writer, recorder)
+            _tap_mavlink(vehicle, recorder)
         log.info("scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s", sc.name,
                  config.run_seed, core.duration_s, "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
                  core.nav_noise.name, config.mavlink, frame_key(config.vehicle), "" if config.render else " (rendering off: no frames)")
         return run_loop(core, config.rate, mavlink=vehicle, publisher=publisher, truth=writer, stop=stop, clock=clock)
     finally:
-        for closer in (writer, publisher, vehicle, session):
+        for closer in (writer, publisher, vehicle, session, recorder):
             if closer is not None:
                 try:
                     closer.close()
                 except Exception as exc:  # noqa: BLE001 - closing must not mask the run's outcome
                     log.debug("close %s: %s", type(closer).__name__, exc)
+
+
+# --------------------------------------------------------------------------- --record (onboard.record)
+
+
+def _start_recorder(config: RunConfig, core: SimCore):
+    import time as _time
+
+    from onboard.record import FlightRecorder, RecordSettings
+
+    meta = {"scenario": config.scenario.name, "run_seed": str(config.run_seed), "duration_s": f"{core.duration_s:g}",
+            "nav_noise": core.nav_noise.name, "rate": config.rate.text}
+    rec = FlightRecorder(RecordSettings(str(config.record_path)), vehicle=config.vehicle, metadata=meta,
+                         recorder="groundsim", clock_ns=_time.monotonic_ns)
+    rec.start()
+    return rec
+
+
+class _RecordingPublisher:
+    """The frame publisher, each published frame also recorded (foxglove.RawImage)."""
+
+    def __init__(self, publisher, recorder) -> None:
+        self._pub, self._rec = publisher, recorder
+
+    def publish(self, frame) -> None:
+        import time as _time
+
+        if self._pub is not None:
+            self._pub.publish(frame)
+        self._rec.on_frame(frame, _time.monotonic_ns())
+
+    def close(self) -> None:
+        if self._pub is not None:
+            self._pub.close()
+
+
+class _RecordingTruth:
+    """The truth writer (or none), each frame's truth row also recorded (``irtrack.truth/1``)."""
+
+    def __init__(self, writer, recorder) -> None:
+        self._writer, self._rec = writer, recorder
+
+    def write(self, row: TruthRow) -> None:
+        from onboard.record import TRUTH_SCHEMA, TRUTH_TOPIC
+
+        if self._writer is not None:
+            self._writer.write(row)
+        self._rec.on_json(TRUTH_TOPIC, TRUTH_SCHEMA, truth_json(row))
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+
+
+def truth_json(row: TruthRow) -> dict:
+    """A truth row as ``irtrack.truth/1``: every CSV column (NaN as null) plus vectors for viewers."""
+    import dataclasses as _dc
+
+    out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in _dc.asdict(row).items()}
+    out["target_ned_m"] = [row.target_n_m, row.target_e_m, row.target_d_m]
+    out["target_vel_ned_mps"] = [row.target_vn_mps, row.target_ve_mps, row.target_vd_mps]
+    out["camera_ned_m"] = [row.cam_n_m, row.cam_e_m, row.cam_d_m]
+    return out
+
+
+def _tap_mavlink(vehicle, recorder) -> None:
+    """Record every datagram the vehicle's pymavlink connection writes (tx) and reads (rx)."""
+    conn = getattr(vehicle, "_conn", None)
+    if conn is None:
+        return
+    write, recv = conn.write, conn.recv
+
+    def tapped_write(buf):
+        recorder.on_mavlink(bytes(buf), "vehicle", None, "tx")
+        return write(buf)
+
+    def tapped_recv(n=None):
+        data = recv(n)
+        if data:
+            recorder.on_mavlink(bytes(data), "vehicle", None, "rx")
+        return data
+
+    conn.write, conn.recv = tapped_write, tapped_recv

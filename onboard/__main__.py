@@ -3,7 +3,7 @@
     python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:127.0.0.1:14540]
                       [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                       [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
-                      [--gcs ENDPOINT]... [--video-udp HOST:PORT]
+                      [--gcs ENDPOINT]... [--video-udp HOST:PORT] [--record FILE.mcap]
                       [--log-level LEVEL] [--log-format text|json] [--set FIELD.PATH=VALUE]...
                       [--check] [--print-config]
 
@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--video-udp", metavar="HOST:PORT",
                    help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
                         "(config: video.destination)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record inputs and outputs to this MCAP file (config: record.path; see onboard/record.py)")
     p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
                    help="log level (config: logging.level)")
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
@@ -97,6 +99,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("zenoh.multicast_scouting", args.zenoh_scouting, "--zenoh-multicast-scouting"),
         ("gcs.endpoints", args.gcs, "--gcs"),
         ("video.destination", args.video_udp, "--video-udp"),
+        ("record.path", args.record, "--record"),
         ("logging.level", args.log_level, "--log-level"),
         ("logging.format", args.log_format, "--log-format"),
     )

@@ -610,6 +610,22 @@ class FollowConfig(_Section):
 
 
 @dataclass(frozen=True)
+class RecordConfig(_Section):
+    """``record``: the flight recording, an MCAP file of the daemon's inputs and outputs (see :mod:`onboard.record`)."""
+
+    _path: ClassVar[str] = "record"
+    path: str | None = F(None, "str", nullable=True, pattern=r"^.*\.mcap$", what="a file name ending in .mcap")
+    frames: bool = F(True, "bool")
+    max_file_mb: float = F(2000.0, "float", lo=1.0, hi=1_000_000.0)
+    max_file_s: float = F(600.0, "float", lo=1.0, hi=86_400.0)
+    max_files: int = F(0, "int", lo=0, hi=100_000)
+    chunk_kb: int = F(1024, "int", lo=16, hi=65_536)
+    flush_interval_s: float = F(1.0, "float", lo=0.05, hi=60.0)
+    compression: str = F("lz4", "str", choices=("none", "lz4", "zstd"))
+    queue_mb: float = F(64.0, "float", lo=1.0, hi=4096.0)
+
+
+@dataclass(frozen=True)
 class LoggingConfig(_Section):
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
@@ -637,6 +653,7 @@ class OnboardConfig(_Section):
     gcs: GcsConfig = _section(GcsConfig)
     video: VideoConfig = _section(VideoConfig)
     follow: FollowConfig = _section(FollowConfig)
+    record: RecordConfig = _section(RecordConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

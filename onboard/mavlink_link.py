@@ -58,7 +58,7 @@ import socket
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, field
-from typing import Callable
+from typing import Any, Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -471,6 +471,8 @@ class MavlinkLink:
         clock_sync: ClockSync | None = None,
         config: MavlinkLinkConfig | None = None,
     ) -> None:
+        #: called with (bytes, link name, peer address) for every read, before parsing (the flight recorder)
+        self.raw_tap: Callable[[bytes, str, Any], Any] | None = None
         self.endpoint = parse_connection(connection)
         if bool(gimballed) != pose_buffer.mount.gimballed:
             raise ConfigError(
@@ -615,6 +617,8 @@ class MavlinkLink:
                 break
             data, addr = got
             if data:
+                if self.raw_tap is not None:  # the flight recorder: the bytes as read, before any parsing
+                    self.raw_tap(data, "autopilot", addr)
                 handled += self._feed(data, addr, now)
         if self.state == LINK_CONNECTED:
             self._service_commands(now)

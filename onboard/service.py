@@ -739,8 +739,16 @@ class OnboardService:
         self.estimator_kind = "disabled" if est is None else f"sliding window ({ec.worker})"
         self.estimator = est
         wait_s = config.pose.wait_ms / 1000.0
+        self.recorder = None  # onboard.record.FlightRecorder (record.path / --record)
+        pose_source = self.pose
+        if config.record.path:
+            from onboard.record import FlightRecorder, RecordingPoseSource, RecordSettings
+
+            self.recorder = FlightRecorder(RecordSettings.from_config(config.record), vehicle=config.vehicle,
+                                           metadata=_record_metadata(config), clock_ns=clock_ns)
+            pose_source = RecordingPoseSource(self.pose)  # remembers each frame's pose for the recording
         self.pipeline = FramePipeline(
-            config, self.pose, make_tracker(config), est, config.pose.geodetic_origin(),
+            config, pose_source, make_tracker(config), est, config.pose.geodetic_origin(),
             counter=self.counter,
             pose_wait=(lambda t_us: self.pose.wait_for(t_us, wait_s, self._clock)) if wait_s > 0 else None,
             clock_ns=clock_ns,
@@ -791,11 +799,19 @@ class OnboardService:
         from onboard.zenoh_session import frame_key, open_session, status_key, track_key
 
         cfg = self.config
+        if self.recorder is not None:
+            try:
+                self.recorder.start()  # a file that cannot be opened fails the start, in one line
+            except OSError as exc:
+                raise InputError(f"record.path: cannot write {exc.filename or cfg.record.path}: "
+                                 f"{exc.strerror or exc}") from None
         self.link = MavlinkLink(
             cfg.mavlink.connection, self.pose, self.counter, gimballed=self.mount.gimballed,
             att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
             clock=self._clock, clock_ns=self._clock_ns, config=cfg.mavlink.link_config(),
         )
+        if self.recorder is not None:
+            self.link.raw_tap = self.recorder.on_mavlink
         if cfg.video.destination:
             from onboard.video import VideoStreamer
 
@@ -859,6 +875,8 @@ class OnboardService:
             self.gcs = None
         if self.video is not None:
             self.video.close(timeout_s / 2)
+        if self.recorder is not None:
+            self.recorder.close(max(timeout_s, 2.0))  # after the pipeline: its last frames are in the file
         if self._health_path:
             try:
                 os.unlink(self._health_path)
@@ -878,6 +896,8 @@ class OnboardService:
             max_bytes = self.config.input.max_frame_bytes
             check_payload_size(len(payload), max_bytes)  # before any copy: a 100x frame costs nothing
             frame = decode_irframe(payload.to_bytes(), max_bytes)  # header checks; pixels stay a view
+            if self.recorder is not None:
+                self.recorder.on_frame(frame, received)  # never blocks: queued for the writer thread
         except IrFrameError as exc:
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
@@ -923,17 +943,23 @@ class OnboardService:
                 continue
             finally:
                 self._pipeline_cpu_s += time.thread_time() - c0
+                if self.recorder is not None:
+                    self.recorder.on_frame_input(frame, received_ns, *self.pipeline.pose_source.take())
             if self.video is not None:
                 self.video.submit(frame.pixels, track)  # never blocks: the encoder drops its oldest frame
+            payload = None
             if publish and self._track_pub is not None:
                 try:
                     p0 = self._clock_ns()
-                    self._track_pub.put(track_to_bytes(track))
+                    payload = track_to_bytes(track)
+                    self._track_pub.put(payload)
                     self.publish_ms.add((self._clock_ns() - p0) / 1e6)
                     with self._stats_lock:
                         self.tracks_published += 1
                 except Exception as exc:  # noqa: BLE001
                     self.counter.count("track_publish_error", f"{type(exc).__name__}: {exc}")
+            if self.recorder is not None:
+                self.recorder.on_track(track, payload)
             done = self._clock_ns()
             self.latency_ms.add((done - received_ns) / 1e6)
             self._done.append((track.time_boot_us, done))
@@ -1092,7 +1118,8 @@ class OnboardService:
             stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
             warnings=self.watchdog.active_dicts(),
         ) | ({"camera": self._camera_status()} if self.camera is not None else {}) | (
-            {"video": self.video.status()} if self.video is not None else {})
+            {"video": self.video.status()} if self.video is not None else {}) | (
+            {"record": self.recorder.stats()} if self.recorder is not None else {})
 
     def _camera_status(self) -> dict[str, Any]:
         st = self.camera.status()
@@ -1117,9 +1144,16 @@ class OnboardService:
         p1, w1 = time.process_time(), self._pipeline_cpu_s + self._worker_cpu()
         wall = max(now - t0, 1e-9)
         status = self.status(now, (p1 - p0) / wall, (w1 - w0) / wall)
+        try:
+            data = json.dumps(status, separators=(",", ":"), allow_nan=False).encode()
+        except (TypeError, ValueError) as exc:
+            self.counter.count("status_publish_error", f"{type(exc).__name__}: {exc}")
+            return now, p1, w1
+        if self.recorder is not None:
+            self.recorder.on_status(data)
         if self._status_pub is not None:
             try:
-                self._status_pub.put(json.dumps(status, separators=(",", ":"), allow_nan=False).encode())
+                self._status_pub.put(data)
                 self.status_count += 1
             except Exception as exc:  # noqa: BLE001
                 self.counter.count("status_publish_error", f"{type(exc).__name__}: {exc}")
@@ -1147,6 +1181,15 @@ def make_camera_protocol(config: OnboardConfig, intrinsics):
                           geo_status_hz=o.tracking_geo_status_hz, observable_only=not o.geo_status_unobservable,
                           heartbeat_interval_s=g.heartbeat_interval_s,
                           track_request_timeout_s=g.track_request_timeout_s)
+
+
+def _record_metadata(config: OnboardConfig) -> dict[str, str]:
+    """The recording's ``irtrack`` metadata: the effective configuration (replay's default), as YAML."""
+    import yaml
+
+    from onboard.config import config_to_dict
+
+    return {"config_yaml": yaml.safe_dump(config_to_dict(config), sort_keys=False), "vehicle": config.vehicle}
 
 
 def frame_key_of(vehicle: str) -> str:

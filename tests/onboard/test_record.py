@@ -1,0 +1,209 @@
+"""onboard.record: the flight recorder's MCAP files, read back with the `mcap` package's own readers and the
+foxglove protobuf schemas (independent of our writer), drop-and-count, rotation, and a SIGKILLed writer."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from onboard.frames import GeodeticOrigin
+from onboard.irframe import IrFrame
+from onboard.pose import PoseAt, PoseSample
+from onboard.record import (FRAME_INPUT_TOPIC, FlightRecorder, RecordSettings, irframe_from_rawimage,
+                            pose_from_json, pose_to_json, rotated_path)
+from onboard.track import Track
+
+mcap_reader = pytest.importorskip("mcap.reader")
+from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix  # noqa: E402
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
+CHILD_TIMEOUT_S = 60.0
+
+
+def _pose(t_us: int, k: int = 0) -> PoseAt:
+    rng = np.random.default_rng(k)
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    body = PoseSample(t_us, rng.normal(size=3) * 100, np.array([1.0, np.nan, 0.5]), q)
+    return PoseAt(body, rng.normal(size=3) * 100, q, None, ORIGIN, 20000, 40000, None, 0,
+                  sigma_extrapolation_rad=1e-5)
+
+
+def _frame(seq: int, dtype=np.uint8) -> IrFrame:
+    rng = np.random.default_rng(seq)
+    px = rng.integers(0, 255 if dtype == np.uint8 else 16000, size=(48, 64)).astype(dtype)
+    return IrFrame(seq, 1_000_000 + seq * 33_333, px)
+
+
+def _read_all(path) -> list:
+    with open(path, "rb") as f:
+        r = mcap_reader.make_reader(f)
+        return [(s, c, m) for s, c, m in r.iter_messages()]
+
+
+def test_pose_json_round_trip_is_bit_exact():
+    p = _pose(123_456_789, 3)
+    q = pose_from_json(json.loads(json.dumps(pose_to_json(p))))
+    for name in ("p_cam_ned_m", "q_ned_from_cam"):
+        assert np.array_equal(getattr(p, name), getattr(q, name))
+    assert np.array_equal(p.body.q_ned_from_body, q.body.q_ned_from_body)
+    assert np.array_equal(p.body.v_ned_mps, q.body.v_ned_mps, equal_nan=True)
+    assert (q.origin, q.epoch, q.att_span_us, q.sigma_extrapolation_rad) == (p.origin, 0, 20000, 1e-5)
+
+
+def test_pose_from_json_names_the_missing_field():
+    obj = pose_to_json(_pose(1000))
+    del obj["q_ned_from_cam"]
+    with pytest.raises(Exception, match="frame 7.*q_ned_from_cam"):
+        pose_from_json(obj, "frame 7")
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path, dtype):
+    path = tmp_path / "f.mcap"
+    rec = FlightRecorder(RecordSettings(str(path), chunk_bytes=64 * 1024), vehicle="uav7", metadata={"config_yaml": "a: 1\n"})
+    rec.start()
+    frames = [_frame(i, dtype) for i in range(20)]
+    for i, fr in enumerate(frames):
+        rec.on_mavlink(bytes([0xFD, i, 2, 3]), "autopilot", ("127.0.0.1", 14550))
+        rec.on_frame(fr, 10_000 + i)
+        rec.on_frame_input(fr, 10_000 + i, True, _pose(fr.time_boot_us, i))
+        cov = np.diag([4.0, 9.0, 16.0])
+        rec.on_track(Track("uav7", fr.seq, fr.time_boot_us, "tracking", track_id=1, lat_deg=47.4, lon_deg=8.5, alt_m=500.0,
+                           p_ned_m=(1.0, 2.0, 3.0), v_ned_mps=(0.0, 0.0, 0.0), cov_p_ned_m2=cov, range_m=300.0,
+                           origin=ORIGIN))
+    rec.on_status(b'{"schema":"irtrack.status/1"}')
+    rec.close()
+    assert rec.dropped == 0 and rec.write_errors == 0
+    msgs = _read_all(path)
+    by_topic: dict = {}
+    for s, c, m in msgs:
+        by_topic.setdefault(c.topic, []).append((s, c, m))
+    assert {t: len(v) for t, v in by_topic.items()} == {
+        "/mavlink/autopilot": 20, "irtrack/uav7/ir/frame": 20, FRAME_INPUT_TOPIC: 20, "/onboard/camera_fix": 20,
+        "irtrack/uav7/track": 20, "/onboard/target_fix": 20, "irtrack/uav7/status": 1}
+    s, c, m = by_topic["irtrack/uav7/ir/frame"][5]
+    assert (s.name, s.encoding, c.message_encoding) == ("foxglove.RawImage", "protobuf", "protobuf")
+    img = RawImage()
+    img.ParseFromString(m.data)
+    assert img.encoding == ("mono8" if dtype == np.uint8 else "mono16")
+    assert (img.width, img.height, img.step) == (64, 48, 64 * np.dtype(dtype).itemsize)
+    back = irframe_from_rawimage(m.sequence, img)
+    assert back.seq == 5 and back.time_boot_us == frames[5].time_boot_us and m.publish_time == 10_005
+    assert np.array_equal(back.pixels, frames[5].pixels) and back.pixels.dtype == dtype
+    s, c, m = by_topic["/mavlink/autopilot"][3]
+    obj = json.loads(m.data)
+    assert (s.name, s.encoding, c.message_encoding) == ("irtrack.mavlink_raw/1", "jsonschema", "json")
+    assert json.loads(s.data)["properties"]["data"]["contentEncoding"] == "base64"
+    import base64
+
+    assert base64.b64decode(obj["data"]) == bytes([0xFD, 3, 2, 3]) and obj["source"] == "127.0.0.1:14550"
+    s, c, m = by_topic["/onboard/target_fix"][0]
+    fix = LocationFix()
+    fix.ParseFromString(m.data)
+    assert (fix.latitude, fix.longitude, fix.altitude) == (47.4, 8.5, 500.0)
+    assert list(fix.position_covariance) == [9.0, 0, 0, 0, 4.0, 0, 0, 0, 16.0]  # ENU
+    times = [m.log_time for _, _, m in msgs]
+    assert times == sorted(times)
+    with open(path, "rb") as f:
+        meta = list(mcap_reader.make_reader(f).iter_metadata())
+    assert meta[0].name == "irtrack" and meta[0].metadata["config_yaml"] == "a: 1\n"
+    assert meta[0].metadata["vehicle"] == "uav7"
+
+
+def test_backlog_beyond_queue_is_dropped_and_counted_without_blocking(tmp_path):
+    rec = FlightRecorder(RecordSettings(str(tmp_path / "d.mcap"), queue_bytes=10_000), vehicle="uav1")
+    # not started: nothing drains the queue, so the bound is what stops it
+    fr = _frame(1)  # 3072 pixel bytes + 100
+    t0 = time.perf_counter()
+    ok = [rec.on_frame(fr, i) for i in range(10)]
+    took_s = time.perf_counter() - t0
+    assert ok == [True, True, True] + [False] * 7
+    assert rec.dropped == 7 and rec.dropped_by_topic == {"irtrack/uav1/ir/frame": 7}
+    assert rec.stats()["dropped"] == 7
+    print(f"10 on_frame calls: {took_s * 1e6 / 10:.1f} us each")
+
+
+def test_rotation_by_size_keeps_max_files(tmp_path):
+    path = str(tmp_path / "r.mcap")
+    rec = FlightRecorder(RecordSettings(path, max_file_bytes=20_000, max_files=2, compression="none",
+                                        chunk_bytes=4096, flush_interval_s=0.05), vehicle="uav1")
+    rec.start()
+    for i in range(30):
+        rec.on_frame(_frame(i), i)
+        time.sleep(0.01)  # let the writer turn (rotation is checked after each batch)
+    rec.close()
+    assert rotated_path(path, 3) == str(tmp_path / "r.3.mcap")
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert len(left) == 2 and sorted(Path(f).name for f in rec.files) == left
+    assert rec.files[-1] != path and rec.files[0] != path  # rotated past the first file, which was deleted
+    seqs = []
+    for name in left:
+        for _, c, m in _read_all(tmp_path / name):
+            seqs.append(m.sequence)
+    assert seqs == sorted(seqs) and seqs[-1] == 29  # the newest files, whole and readable
+
+
+_CHILD = textwrap.dedent("""
+    import sys, time
+    sys.path.insert(0, {repo!r})
+    from tests.onboard.test_record import _frame
+    from onboard.record import FlightRecorder, RecordSettings
+    rec = FlightRecorder(RecordSettings({path!r}, chunk_bytes=16 * 1024, flush_interval_s=0.1), vehicle="uav1")
+    rec.start()
+    i = 0
+    while True:
+        rec.on_frame(_frame(i), i)
+        i += 1
+        if i == 50:
+            print("written", flush=True)
+        time.sleep(0.005)
+""")
+
+
+def test_sigkill_leaves_a_file_that_reads_up_to_its_last_chunk(tmp_path):
+    path = tmp_path / "k.mcap"
+    child = subprocess.Popen([sys.executable, "-c", _CHILD.format(repo=str(REPO), path=str(path))],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    try:
+        t_end = time.monotonic() + CHILD_TIMEOUT_S
+        line = b""
+        while not line and time.monotonic() < t_end:
+            line = child.stdout.readline()
+            if child.poll() is not None:
+                break
+        assert line.strip() == b"written", f"child failed: {child.stderr.read().decode()[-2000:]}"
+        time.sleep(0.5)  # some flushes after the 50th frame
+        assert child.poll() is None, "the recording child crashed"
+        os.kill(child.pid, signal.SIGKILL)
+        child.wait(10)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.wait(10)
+    assert child.returncode == -signal.SIGKILL
+    from mcap.exceptions import McapError
+    from mcap.stream_reader import StreamReader
+
+    seqs, ended = [], None
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f).records:
+                if type(rec).__name__ == "Message":
+                    seqs.append(rec.sequence)
+        except (McapError, EOFError, ValueError) as exc:
+            ended = exc
+    assert ended is not None  # no footer: it was killed, not closed
+    assert len(seqs) >= 50 and seqs == list(range(len(seqs)))
+    print(f"killed writer: {len(seqs)} frames readable, file {path.stat().st_size} bytes, ended by {type(ended).__name__}")
