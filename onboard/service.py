@@ -359,7 +359,7 @@ _NOT_SNAPSHOTTED = ("map",)  # the MAP solver (config + caches, ~11 MB pickled):
 
 
 def _snapshot(est) -> bytes:
-    """The sliding-window estimator's state (its attributes but the solver) as bytes (~1.6 MB for a
+    """The sliding-window estimator's state (its attributes but the solver) as bytes (~0.9 MB for a
     full window: the rows, the spline solution, the model, the last linearisation)."""
     import pickle
 
@@ -470,7 +470,7 @@ class ProcessEstimator:
     (``estimator_restart``, logged with its exit code) and replaced at once.  The parent keeps its
     own copy of the window (the rows the estimator keeps: the last ``window_s``, one per
     ``min_spacing_s``, at most ``max_frames``; about 25 kB) and the worker's newest state (a snapshot
-    the worker sends every ``SNAPSHOT_PERIOD_S`` of observation time, ~1.6 MB; :func:`_snapshot`).  The
+    the worker sends every ``SNAPSHOT_PERIOD_S`` of observation time, ~0.9 MB, 4-5 ms to make; :func:`_snapshot`).  The
     new worker is handed both: it restores the state and adds the rows that came after it
     (milliseconds; :func:`_restore`), or, without a usable snapshot, rebuilds the window with a single
     cold model selection (:func:`_rebuild_window`: 0.2-1 CPU s for a full 20 s window).  Either way 3-D
