@@ -172,6 +172,9 @@ class EvalOptions:
     batch: bool = True
     keep_frame: bool = True
     nav_noise: str | None = DEFAULT_NAV_NOISE
+    #: the trajectory estimator, a plug-in name (``onboard.plugins``: an ``irtrack.estimators`` entry point or
+    #: ``module:Attribute``); None = the daemon's own (the configuration's sliding-window MAP estimator)
+    estimator: str | None = None
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -184,6 +187,10 @@ class EvalOptions:
             from groundsim.nav_errors import resolve_nav_noise
 
             resolve_nav_noise(self.nav_noise)
+        if self.estimator is not None:
+            from onboard.plugins import load_factory
+
+            load_factory(self.estimator)  # an unknown name fails here, before any run
 
 
 def load_base_config(path: str | os.PathLike | None = None):
@@ -361,6 +368,7 @@ class RunResult:
     nav_noise: str = ""
     baseline_pixel_sigma_px: float = math.nan
     chain_centroid_sigma_px: float = math.nan
+    estimator: str = "map"  # EvalOptions.estimator: the plug-in that made est_* and base_* (batch columns stay MAP)
 
     @property
     def has_estimate(self) -> np.ndarray:
@@ -429,6 +437,10 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose.buffer_config(), cfg.pose.geodetic_origin())
     source = _RecordingPoseSource(buffer)
+    if options.estimator is not None:  # a plug-in (onboard.plugins), for the pipeline and its perfect-centroid baseline
+        from onboard.plugins import build
+
+        make_estimator = lambda c: build(options.estimator, c)  # noqa: E731
     pipeline = FramePipeline(cfg, source, make_tracker(cfg), make_estimator(cfg), scenario.origin, counter=buffer.counter)
     baseline = make_estimator(cfg)
     m = cfg.mavlink
@@ -575,6 +587,7 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
         batch=batch, timing=timing, counters=counters, frame=kept,
         nav_noise=core.nav_noise.name, baseline_pixel_sigma_px=base_sigma_px,
         chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
+        estimator=options.estimator or "map",
     )
 
 
@@ -701,6 +714,7 @@ def score_run(r: RunResult) -> dict:
     base_obs = r.base_has_estimate & r.base_observable
     common = obs & base_obs
     out: dict = {"scenario": r.scenario, "seed": r.seed, "frames": F, "nav_noise": r.nav_noise,
+                 "estimator": getattr(r, "estimator", "map"),
                  "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
                  "chain_centroid_sigma_px": r.chain_centroid_sigma_px}
     out["closed_loop"] = closed_loop_figures(r)
@@ -1050,7 +1064,7 @@ def cmd_eval(args) -> int:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
     nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
     options = EvalOptions(duration_s=args.duration, pixel_sigma_px=args.pixel_sigma, batch=not args.no_batch,
-                          nav_noise=nav_noises[0])
+                          nav_noise=nav_noises[0], estimator=getattr(args, "estimator", None))
     for n in nav_noises[1:]:
         dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
     base = load_base_config(args.onboard_config)
@@ -1069,6 +1083,7 @@ def cmd_eval(args) -> int:
     print()
     print(format_closed_loop(result.summary))
     failed = sum(1 for s in result.scores if "error" in s)
-    print(f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s; report: {files['report.md']}")
+    print(f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
+          f"report: {files['report.md']}")
     sys.stdout.flush()
     return 0

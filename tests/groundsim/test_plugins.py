@@ -1,0 +1,141 @@
+"""onboard.plugins: estimators discovered by entry point or module:Attribute and run through the lockstep eval."""
+
+from __future__ import annotations
+
+import math
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from groundsim.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
+from groundsim.cli import main as cli_main
+from groundsim.eval import EvalOptions, run_lockstep, score_run
+from groundsim.scenario import load_scenario, reference_scenario_paths
+from onboard.config import OnboardConfig
+from onboard.errors import ConfigError
+from onboard.frames import PinholeIntrinsics, quat_from_rotmat
+from onboard.plugins import ESTIMATORS, TrajectoryEstimator, available, build, load_factory
+
+SHORT_S = 3.0  # a short lockstep run: enough frames (> 30) for every registered estimator to answer
+
+
+def _p1():
+    return load_scenario(reference_scenario_paths()["P1"])
+
+
+def test_our_three_are_registered_as_entry_points():
+    assert {"map", "paper", "rpekf"} <= set(available(ESTIMATORS))
+    for name in ("map", "paper", "rpekf"):
+        assert isinstance(build(name, OnboardConfig()), TrajectoryEstimator)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["map", "paper", "rpekf"])
+def test_each_registered_estimator_runs_a_short_eval(name):
+    r = run_lockstep(_p1(), 0, EvalOptions(duration_s=SHORT_S, batch=False, keep_frame=False, estimator=name))
+    s = score_run(r)
+    assert r.error is None and s["estimator"] == name
+    assert s["online_all"] is not None and s["online_all"]["err_range_pct"] >= 0  # estimates were published
+    assert s["estimate_fraction"] > 0.3
+
+
+def _write_outside_package(root, dist="outside_est-0.1"):
+    """A tiny out-of-tree distribution: a module and a dist-info with an irtrack.estimators entry point."""
+    (root / "outside_est.py").write_text(textwrap.dedent('''
+        import numpy as np
+
+        class Est:
+            """Fixed 150 m along the bearing: knows nothing, says so (never observable)."""
+            def __init__(self):
+                self.n = 0
+            def reset(self):
+                self.n = 0
+            def add(self, t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+                self.n += 1
+                w, x, y, z = q_ned_from_cam
+                R = np.array([[1-2*(y*y+z*z), 2*(x*y-w*z), 2*(x*z+w*y)], [2*(x*y+w*z), 1-2*(x*x+z*z), 2*(y*z-w*x)],
+                              [2*(x*z-w*y), 2*(y*z+w*x), 1-2*(x*x+y*y)]])
+                d = R @ np.array([(uv_px[0]-intrinsics.cx_px)/intrinsics.fx_px, (uv_px[1]-intrinsics.cy_px)/intrinsics.fy_px, 1.0])
+                self.last = Out(t_s, np.asarray(p_cam_ned_m) + 150.0 * d / np.linalg.norm(d), self.n)
+                return self.last
+            def predict(self, t_s, p_cam_ned_m=None):
+                return None
+
+        class Out:
+            def __init__(self, t_s, p, n):
+                self.t_s, self.p_ned_m, self.v_ned_mps = t_s, p, np.zeros(3)
+                self.cov_p_ned_m2 = self.cov_v_ned_m2ps2 = 150.0**2 * np.eye(3)
+                self.observable, self.range_m, self.range_sigma_ratio = False, 150.0, 1.0
+                self.window_frames, self.model = n, "fixed150"
+    '''))
+    info = root / f"{dist}.dist-info"
+    info.mkdir()
+    info.joinpath("METADATA").write_text("Metadata-Version: 2.1\nName: outside-est\nVersion: 0.1\n")
+    info.joinpath("entry_points.txt").write_text("[irtrack.estimators]\nfixed150 = outside_est:Est\n")
+
+
+@pytest.mark.slow
+def test_out_of_tree_estimator_through_an_entry_point(tmp_path, monkeypatch):
+    _write_outside_package(tmp_path)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    sys.modules.pop("outside_est", None)
+    assert "fixed150" in available(ESTIMATORS)
+    r = run_lockstep(_p1(), 0, EvalOptions(duration_s=2.0, batch=False, keep_frame=False, estimator="fixed150"))
+    s = score_run(r)
+    assert r.error is None and s["estimator"] == "fixed150" and s["online_all"] is not None
+    assert s["continuity"] == 0.0  # it never claims observability, and the report says so
+    assert isinstance(build("outside_est:Est", OnboardConfig()), TrajectoryEstimator)  # the module:Attribute form
+
+
+def test_bad_names_are_one_line_config_errors(tmp_path, monkeypatch, capsys):
+    with pytest.raises(ConfigError, match="--estimator: expected a name registered"):
+        load_factory("nope")
+    with pytest.raises(ConfigError, match="does not import"):
+        load_factory("no_such_module_xyz:Thing")
+    with pytest.raises(ConfigError, match="has no attribute"):
+        load_factory("math:nothing_here")
+    (tmp_path / "half_est.py").write_text("class Half:\n    def add(self, *a):\n        return None\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    with pytest.raises(ConfigError, match="does not implement TrajectoryEstimator"):
+        build("half_est:Half", OnboardConfig())
+    assert cli_main(["eval", "--estimator", "nope", "--seeds", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--estimator" in err[0]
+
+
+def _look_at_q(p_cam, p_tgt):
+    z = p_tgt - p_cam
+    z /= np.linalg.norm(z)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return quat_from_rotmat(np.stack([x, y, z], axis=1))  # columns: camera axes in NED
+
+
+def test_rpekf_converges_on_perfect_bearings_from_a_manoeuvring_observer():
+    """Exact bearings of a constant-velocity target seen from a circling observer: range becomes
+    observable and the bank's mixture converges (a filter stuck on its first hypotheses fails this)."""
+    K = PinholeIntrinsics(fx_px=765.0, fy_px=765.0, cx_px=320.0, cy_px=256.0, width_px=640, height_px=512)
+    est = RangeParameterisedEkf(RpEkfConfig(pixel_sigma_px=0.05))
+    out, filtered, truth = None, [], []
+    for k in range(600):  # 20 s at 30 Hz
+        t = k / 30.0
+        p_cam = np.array([30.0 * math.cos(0.5 * t), 30.0 * math.sin(0.5 * t), -60.0 - 5.0 * math.sin(0.3 * t)])
+        p_tgt = np.array([200.0 + 3.0 * t, 50.0 + 2.0 * t, -80.0])
+        q = _look_at_q(p_cam, p_tgt)
+        out = est.add(t, (320.0, 256.0), K, p_cam, q)  # the target at the principal point: exact bearing
+        filtered.append(out.p_ned_m)
+        truth.append(p_tgt)
+    err = np.linalg.norm(out.p_ned_m - p_tgt)
+    assert err / out.range_m < 0.03, (err, out.range_m, out.weights)  # started with hypotheses from 20 m to 2 km
+    assert max(out.weights) > 0.9  # the bank settled on one range hypothesis
+    assert err < 3.0 * math.sqrt(np.trace(out.cov_p_ned_m2))  # and its covariance is honest about the rest
+    assert out.range_sigma_ratio < 0.1
+    t_s, p_s, cov_s = est.smoothed()
+    assert p_s.shape == (600, 3) and np.all(np.isfinite(cov_s))
+    e_filt = np.linalg.norm(np.array(filtered) - truth, axis=1)
+    e_smooth = np.linalg.norm(p_s - truth, axis=1)
+    assert e_smooth[-1] == pytest.approx(e_filt[-1])  # the last step is the filter's
+    assert e_smooth.mean() < 0.5 * e_filt.mean()  # the RTS pass carries the converged range back in time
