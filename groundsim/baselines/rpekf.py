@@ -99,8 +99,9 @@ class RangeParameterisedEkf:
     def from_config(cls, config) -> "RangeParameterisedEkf":
         """From irtrack's OnboardConfig: the pixel and white attitude noise its estimator assumes."""
         noise = config.estimator.noise_model()
-        return cls(RpEkfConfig(pixel_sigma_px=float(getattr(noise, "pixel_sigma_px", 0.3)),
-                               attitude_sigma_rad=float(getattr(noise, "attitude_white_sigma_rad", 0.0))))
+        # the filter has no bias state: the attitude bias the estimator models is folded into white noise
+        att = math.hypot(float(getattr(noise, "attitude_white_sigma_rad", 0.0)), float(getattr(noise, "attitude_bias_sigma_rad", 0.0)))
+        return cls(RpEkfConfig(pixel_sigma_px=float(getattr(noise, "pixel_sigma_px", 0.3)), attitude_sigma_rad=att))
 
     def reset(self) -> None:
         self._x: np.ndarray | None = None  # (n, 6)
