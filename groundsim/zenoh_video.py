@@ -15,7 +15,7 @@ import logging
 import zenoh
 
 from onboard.irframe import IrFrame, encode_irframe
-from onboard.zenoh_session import DEFAULT_VEHICLE, frame_key
+from onboard.zenoh_session import DEFAULT_VEHICLE, FRAME_ENCODING, frame_key
 
 __all__ = ["FramePublisher"]
 
@@ -29,7 +29,7 @@ class FramePublisher:
         self.key = frame_key(vehicle)
         self._publisher = session.declare_publisher(
             self.key,
-            encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+            encoding=zenoh.Encoding(FRAME_ENCODING),  # typed: application/octet-stream;irtrack.irf1/1
             congestion_control=zenoh.CongestionControl.DROP,
         )
         self.frames_published = 0

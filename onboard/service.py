@@ -739,6 +739,9 @@ class OnboardService:
         self.estimator_kind = "disabled" if est is None else f"sliding window ({ec.worker})"
         self.estimator = est
         wait_s = config.pose.wait_ms / 1000.0
+        from onboard.zenoh_session import FRAME_SCHEMA
+
+        self._frame_schema = FRAME_SCHEMA  # frames typed with another schema are refused (frame_schema)
         self.recorder = None  # onboard.record.FlightRecorder (record.path / --record)
         pose_source = self.pose
         if config.record.path:
@@ -796,7 +799,7 @@ class OnboardService:
         import zenoh
 
         from onboard.mavlink_link import MavlinkLink
-        from onboard.zenoh_session import frame_key, open_session, status_key, track_key
+        from onboard.zenoh_session import STATUS_ENCODING, TRACK_ENCODING, frame_key, open_session, status_key, track_key
 
         cfg = self.config
         if self.recorder is not None:
@@ -824,10 +827,10 @@ class OnboardService:
             self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
         self.session = open_session(cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes))
         self._track_pub = self.session.declare_publisher(
-            track_key(cfg.vehicle), encoding=zenoh.Encoding.APPLICATION_JSON,
+            track_key(cfg.vehicle), encoding=zenoh.Encoding(TRACK_ENCODING),
             congestion_control=zenoh.CongestionControl.DROP,
         )
-        self._status_pub = self.session.declare_publisher(status_key(cfg.vehicle), encoding=zenoh.Encoding.APPLICATION_JSON)
+        self._status_pub = self.session.declare_publisher(status_key(cfg.vehicle), encoding=zenoh.Encoding(STATUS_ENCODING))
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
         self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
         self._pipe_thread.start()
@@ -892,6 +895,12 @@ class OnboardService:
         with self._stats_lock:
             self.frames_in += 1
         try:
+            enc = getattr(sample, "encoding", None)
+            if enc is not None:  # typed: it must name the IRF1 schema; untyped (octet-stream) is accepted too
+                schema = str(enc).partition(";")[2]
+                if schema and schema != self._frame_schema:
+                    self.counter.count("frame_schema", f"frame encoding {enc} names another schema than {self._frame_schema}")
+                    return
             payload = sample.payload
             max_bytes = self.config.input.max_frame_bytes
             check_payload_size(len(payload), max_bytes)  # before any copy: a 100x frame costs nothing

@@ -6,6 +6,13 @@ Key expressions (``vehicle`` defaults to ``uav1``)::
     irtrack/<vehicle>/track      track / 3-D estimate (JSON)
     irtrack/<vehicle>/status     service status (JSON)
 
+Payload encodings name their schema (zenoh ``Encoding`` with a schema suffix), so generic recorders and
+bridges that keep only typed payloads keep ours: frames ``application/octet-stream;irtrack.irf1/1``
+(:data:`FRAME_ENCODING`, the IRF1 layout of :mod:`onboard.irframe`), tracks
+``application/json;irtrack.track/2``, status ``application/json;irtrack.status/1``.  Readers accept
+untyped payloads too (:func:`encoding_schema` is None for them); the daemon refuses only a frame whose
+encoding names another schema (``frame_schema``).
+
 Options map one to one onto the command line: ``--zenoh-connect ENDPOINT`` and
 ``--zenoh-listen ENDPOINT`` (repeatable, zenoh locators such as ``tcp/127.0.0.1:7447``),
 ``--zenoh-config FILE`` (a zenoh JSON5/JSON/YAML configuration).  Endpoints given on the command
@@ -45,6 +52,7 @@ from dataclasses import dataclass
 import zenoh
 
 from onboard.errors import ConfigError, IrtrackError
+from onboard.track import STATUS_SCHEMA, TRACK_SCHEMA
 
 __all__ = [
     "DEFAULT_VEHICLE",
@@ -57,11 +65,28 @@ __all__ = [
     "track_key",
     "status_key",
     "check_vehicle_name",
+    "FRAME_SCHEMA",
+    "FRAME_ENCODING",
+    "TRACK_ENCODING",
+    "STATUS_ENCODING",
+    "encoding_schema",
 ]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_VEHICLE = "uav1"
+FRAME_SCHEMA = "irtrack.irf1/1"  # the IRF1 frame, version 1 (onboard.irframe)
+FRAME_ENCODING = f"application/octet-stream;{FRAME_SCHEMA}"
+TRACK_ENCODING = f"application/json;{TRACK_SCHEMA}"
+STATUS_ENCODING = f"application/json;{STATUS_SCHEMA}"
+
+
+def encoding_schema(encoding) -> str | None:
+    """The schema a zenoh ``Encoding`` (or its text) names after ``;``; None for an untyped one."""
+    if encoding is None:
+        return None
+    return str(encoding).partition(";")[2] or None
+
 _VEHICLE_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _RUST_LOCATION_RE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
 

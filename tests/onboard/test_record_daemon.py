@@ -35,6 +35,7 @@ class RecordedRun:
     daemon_rc: int | None
     sim_rc: int | None
     config_path: Path
+    encodings: set  # zenoh encodings the track and status samples came with
 
 
 def _start(cmd, log_path: Path, env) -> subprocess.Popen:
@@ -76,8 +77,11 @@ def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_
     try:
         daemon = _start(dcmd, out / "onboard.log", env)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
-        subs.append(session.declare_subscriber(track_key(plan.vehicle), lambda s: store.on_track(s.payload.to_bytes())))
-        subs.append(session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes())))
+        encodings: set = set()
+        subs.append(session.declare_subscriber(
+            track_key(plan.vehicle), lambda s: (encodings.add(str(s.encoding)), store.on_track(s.payload.to_bytes()))))
+        subs.append(session.declare_subscriber(
+            status_key(plan.vehicle), lambda s: (encodings.add(str(s.encoding)), store.on_status(s.payload.to_bytes()))))
         t_ready = time.monotonic() + READY_TIMEOUT_S
         while not store.ready.wait(0.1):
             assert daemon.poll() is None, f"daemon exited {daemon.returncode}:\n{_tail(out / 'onboard.log')}"
@@ -107,7 +111,7 @@ def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_
         if daemon_rc is None:
             daemon_rc = _kill(daemon)
     tracks, status = store.snapshot()
-    return RecordedRun(out, d_mcap, s_mcap, tracks, status, daemon_rc, sim_rc, plan.onboard_config_path)
+    return RecordedRun(out, d_mcap, s_mcap, tracks, status, daemon_rc, sim_rc, plan.onboard_config_path, encodings)
 
 
 @pytest.fixture(scope="module")
@@ -125,6 +129,8 @@ def _messages(path: Path) -> list:
 def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(recorded_run):
     r = recorded_run
     assert r.daemon_rc == 0 and r.sim_rc == 0
+    # issue 13 item 3: typed payloads, as a generic zenoh recorder sees them
+    assert r.encodings == {"application/json;irtrack.track/2", "application/json;irtrack.status/1"}
     msgs = _messages(r.daemon_mcap)
     by: dict = {}
     for s, c, m in msgs:
