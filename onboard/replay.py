@@ -1,7 +1,7 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.record`) fed again through the pipeline.
 
     python -m onboard.replay FILE.mcap [--rate max|realtime] [--config FILE] [--set FIELD=VALUE]...
-                             [--out tracks.jsonl] [--compare] [--report DIR]
+                             [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
 which order, and the pose it interpolated for each; the frames themselves are the
@@ -19,7 +19,8 @@ such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded pos
 
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
 the pipeline goes and prints the speed against real time.  ``--report DIR``: plots of the flight
-(:mod:`onboard.flight_report`).  Exit codes: 0 done; 2 an unreadable file or a bad option (one line).
+(:mod:`groundsim.flight_report`: the eval report's plots; ``--truth SIM.mcap``, the simulator's
+recording of the same run, adds the error plot).  Exit codes: 0 done; 2 an unreadable file or a bad option (one line).
 
 A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so).
 """
@@ -300,6 +301,23 @@ def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None
           + (f" (max |d ned| {max(dp):.6g} m)" if dp else "") + f", {unmatched} unmatched", file=file)
 
 
+def write_report(out_dir, rec: Recording, tracks: list, truth: list | None) -> list:
+    """:func:`groundsim.flight_report.write_flight_report` on a recording (the eval report's plots; a desk
+    tool's only use of the simulator package, imported here and nowhere in the daemon)."""
+    from groundsim.flight_report import write_flight_report
+
+    poses = {}
+    for inp in rec.inputs:
+        if inp.get("pose") is not None:
+            poses[(int(inp["seq"]), int(inp["time_boot_us"]))] = inp["pose"]["p_cam_ned_m"]
+    frames = {}
+    for key, lst in rec.frames.items():
+        img, _ = lst[0]
+        frames[key] = irframe_from_rawimage(key[0], img, rec.path).pixels
+    name = os.path.basename(rec.path)
+    return write_flight_report(out_dir, tracks, poses, frames, truth or None, name)
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -312,6 +330,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
     p.add_argument("--report", metavar="DIR", help="write plots of the flight (trajectory, error vs truth, a frame)")
+    p.add_argument("--truth", metavar="SIM.mcap", help="the simulator's recording of the same run (groundsim run --record): "
+                                                       "its /groundsim/truth channel gives the error plot")
     return p
 
 
@@ -349,9 +369,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.compare:
         _print_compare(*compare_tracks(rec.tracks, res.tracks))
     if args.report:
-        from onboard.flight_report import write_flight_report
-
-        paths = write_flight_report(args.report, rec, res.tracks)
+        try:
+            truth = load_recording(args.truth).truth if args.truth else rec.truth
+        except IrtrackError as exc:
+            print(str(exc), file=sys.stderr)
+            return EXIT_CONFIG
+        paths = write_report(args.report, rec, res.tracks, truth)
         print(f"report: {', '.join(str(p) for p in paths)}")
     return EXIT_OK
 

@@ -66,3 +66,18 @@ def test_replay_with_another_configuration_shows_the_differences(recorded, tmp_p
     last = p.stdout.strip().splitlines()[-1]
     assert last.startswith("compare: ") and " 0 differ" not in last, last
     assert "ned_m" in p.stdout and "|d ned|" in p.stdout
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_replay_report_plots_a_recorded_flight_against_the_simulators_truth(recorded, tmp_path):
+    out = tmp_path / "report"
+    p = _replay(recorded.daemon_mcap, "--report", out, "--truth", recorded.sim_mcap)
+    assert "report:" in p.stdout
+    for name in ("trajectory.png", "errors.png", "frame.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["truth"] is True and summary["with_3d"] > 50
+    assert summary["median_track_to_truth_px"] < 1.0  # truth matched frame by frame
+    p2 = _replay(recorded.daemon_mcap, "--report", tmp_path / "no_truth")
+    assert not (tmp_path / "no_truth" / "errors.png").exists() and (tmp_path / "no_truth" / "trajectory.png").exists()
