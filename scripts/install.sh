@@ -16,6 +16,11 @@ fi
 spec="."
 [ -n "$extras" ] && spec=".[$extras]"
 "$venv/bin/python" -m pip install --quiet -e "$spec"
+# TrackEval (MOT Challenge's reference reader, for the dataset tests) pins opencv-python, which would shadow
+# the contrib cv2 below: dev installs take it without its dependencies (it needs only numpy, scipy, tabulate)
+case ",$extras," in
+    *,dev,*) "$venv/bin/python" -m pip install --quiet --no-deps "trackeval==1.3.0" "tabulate>=0.9,<1" ;;
+esac
 others=$("$venv/bin/python" -m pip list --format=freeze 2>/dev/null | grep -iE '^opencv-(python|python-headless|contrib-python)==' || true)
 if [ -n "$others" ]; then
     echo "install: another OpenCV wheel is installed beside opencv-contrib-python-headless:" >&2
