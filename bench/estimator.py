@@ -12,7 +12,8 @@ threadpoolctl when available, OPENBLAS_NUM_THREADS otherwise) on the P1 window (
 - the paper's closed form, one solve;
 - one MAP solve with a fixed prior (cold start: multi-start from range hypotheses);
 - the full model selection (three families x the q grid, evidence) on a batch window (online: every 1-5 s, 1 s knots);
-- the sliding window (20 s at 15 Hz) per frame, median and mean amortised over its model re-selections, and its CPU
+- the sliding window (20 s at 15 Hz) per frame, median and mean amortised over its model re-selections, and
+  its CPU seconds per second of flight while the window fills and once it is full.
 """
 
 from __future__ import annotations
