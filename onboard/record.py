@@ -407,6 +407,7 @@ class FlightRecorder:
         self.dropped = 0
         self.dropped_by_topic: collections.Counter = collections.Counter()
         self.write_errors = 0
+        self.writer_cpu_s = 0.0  # CPU time of the writer thread (encoding, compression, writing)
         self.files: list[str] = []
         self.max_queue_bytes = 0
         self._writer = None
@@ -473,7 +474,8 @@ class FlightRecorder:
         return {"path": self.settings.path, "files": len(self.files), "current_file": self.files[-1] if self.files else None,
                 "messages_written": self.messages_written, "bytes_written": self.bytes_written,
                 "dropped": dropped, "dropped_by_topic": by_topic, "queue_bytes": queued,
-                "max_queue_bytes": self.max_queue_bytes, "write_errors": self.write_errors}
+                "max_queue_bytes": self.max_queue_bytes, "write_errors": self.write_errors,
+                "writer_cpu_s": round(self.writer_cpu_s, 3)}
 
     # ------------------------------------------------------------------ life cycle
 
@@ -511,6 +513,7 @@ class FlightRecorder:
                 self._q.clear()
                 self._queued_bytes = 0
                 stop = self._stop
+            c0 = time.thread_time()
             for kind, topic, _n, item in batch:
                 try:
                     self._write(kind, topic, item)
@@ -527,6 +530,7 @@ class FlightRecorder:
             except Exception as exc:  # noqa: BLE001
                 self.write_errors += 1
                 log.warning("recorder: flush/rotate failed: %s: %s", type(exc).__name__, exc)
+            self.writer_cpu_s += time.thread_time() - c0
             if stop:
                 return
 
