@@ -1,8 +1,11 @@
 # syntax=docker/dockerfile:1
-# irtrack onboard image: the daemon `python -m onboard` (default) and, with another entry point,
-# the ground simulator `python -m groundsim` (see deploy/compose.yaml and deploy/README.md).
+# irtrack onboard image: the daemon `python -m onboard`, with the onboard runtime only (`pip install .`:
+# no simulator, no plotting, no test tools -- every one of its dependencies has a linux/aarch64 wheel).
+# The ground simulator `python -m groundsim` needs the `sim` extras: build a second image with
+# --build-arg IRTRACK_EXTRAS=sim (deploy/compose.yaml does, for its `sim` profile).
 #
 #   docker build -t irtrack:0.1.0 .                       (from the repository root)
+#   docker build --build-arg IRTRACK_EXTRAS=sim -t irtrack-sim:0.1.0 .
 #   docker run --rm --network host -v "$PWD/deploy/onboard.container.yaml:/config/onboard.yaml:ro" irtrack:0.1.0
 #
 # Dependencies are installed by scripts/install.sh, the same script `make test` (and so CI) runs:
@@ -37,10 +40,12 @@ COPY groundsim/ groundsim/
 COPY bench/ bench/
 COPY config/ config/
 
-# The same install path as developers and CI, without the dev extras; the script ends by checking
-# that cv2 is the contrib build with KCF. The pip cache mount keeps rebuilds fast and out of the image.
+# The same install path as developers and CI; by default no extras (the onboard runtime alone), never
+# the dev extras. The script ends by checking that cv2 is the contrib build with KCF. The pip cache
+# mount keeps rebuilds fast and out of the image.
+ARG IRTRACK_EXTRAS=""
 RUN --mount=type=cache,target=/root/.cache/pip \
-    bash scripts/install.sh /opt/venv \
+    bash scripts/install.sh /opt/venv "$IRTRACK_EXTRAS" \
  && python -m compileall -q onboard groundsim bench \
  && install -d -m 0755 /config \
  && cp config/onboard.yaml /config/onboard.yaml

@@ -10,8 +10,10 @@ STAMP := $(VENV)/.irtrack-installed
 export OPENBLAS_NUM_THREADS ?= 1
 export OMP_NUM_THREADS ?= 1
 
+# Development and CI: the onboard runtime plus the simulator (sim) and the test tools (dev); the
+# Dockerfile installs the onboard runtime alone (scripts/install.sh /opt/venv).
 $(STAMP): pyproject.toml scripts/install.sh
-	bash scripts/install.sh $(VENV) dev
+	bash scripts/install.sh $(VENV) sim,dev
 	@touch $(STAMP)
 
 venv: $(STAMP)

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # One install path for developers, CI and the Dockerfile.
-#   scripts/install.sh VENV_DIR [EXTRAS]     e.g. scripts/install.sh .venv dev
-# Creates VENV_DIR when missing and installs irtrack (editable) with its pinned ranges.
+#   scripts/install.sh VENV_DIR [EXTRAS]     e.g. scripts/install.sh .venv sim,dev
+# Creates VENV_DIR when missing and installs irtrack (editable) with its pinned ranges. No EXTRAS: the
+# onboard runtime alone (the Dockerfile); sim: + the ground simulator and its plots; dev: + the test
+# tools (make test / CI install sim,dev).
 # opencv-contrib-python-headless is the only OpenCV wheel we allow: KCF lives in contrib,
 # and a second OpenCV wheel beside it would shadow cv2. We check that at the end.
 set -euo pipefail

@@ -222,18 +222,43 @@ def test_env_is_accepted_by_the_daemon_config(instructions):
     assert overrides["output.health_file"][0] == DEFAULT_HEALTH_FILE
 
 
-def test_run_installs_with_the_ci_script_without_dev_extras(instructions):
-    runs = [i for i in instructions if i.keyword == "RUN"]
+def _build_args(instrs: list[Instruction]) -> dict[str, str]:
+    """``ARG NAME=default`` declarations (a default in quotes unquoted; no default -> "")."""
+    out: dict[str, str] = {}
+    for ins in instrs:
+        if ins.keyword == "ARG":
+            name, _, default = ins.args.partition("=")
+            out[name.strip()] = shlex.split(default)[0] if default.strip() else ""
+    return out
+
+
+def _install_extras(instrs: list[Instruction], build_args: dict[str, str]) -> str:
+    """The extras the image's install RUN passes to install.sh, with the build args substituted."""
+    runs = [i for i in instrs if i.keyword == "RUN"]
     calls = [i for i in runs if "scripts/install.sh" in i.args]
     assert len(calls) == 1, "exactly one RUN calls scripts/install.sh"
     m = re.search(r"bash scripts/install\.sh\s+(\S+)(?:\s+(\S+))?", calls[0].args)
     assert m and m.group(1) == "/opt/venv"
-    assert m.group(2) in (None, "&&"), f"no extras in the image, got {m.group(2)!r}"
+    extras = m.group(2)
+    if extras in (None, "&&"):
+        return ""
+    args = {**_build_args(instrs), **build_args}
+    words = shlex.split(re.sub(r"\$\{?(\w+)\}?", lambda v: args.get(v.group(1), ""), extras))
+    return words[0] if words else ""
+
+
+def test_run_installs_the_onboard_runtime_only(instructions):
+    """The default build installs ``pip install .`` (no extras: not sim, not dev); the one build arg
+    the RUN reads selects extras for the simulator's image, and only ``sim``."""
+    assert _install_extras(instructions, {}) == "", "no extras in the default (onboard) image"
+    assert _install_extras(instructions, {"IRTRACK_EXTRAS": "sim"}) == "sim"
+    assert set(_build_args(instructions)) <= {"IRTRACK_EXTRAS"}
+    runs = [i for i in instructions if i.keyword == "RUN"]
     assert not any(re.search(r"\bpip3? install\b", i.args) for i in runs), "installs go through install.sh only"
     script = (REPO / "scripts" / "install.sh").read_text(encoding="utf-8")
     assert 'venv="${1:-.venv}"' in script and 'extras="${2:-}"' in script  # the interface relied on
     makefile = (REPO / "Makefile").read_text(encoding="utf-8")
-    assert "bash scripts/install.sh" in makefile, "CI (make test) runs the same script"
+    assert "bash scripts/install.sh $(VENV) sim,dev" in makefile, "CI (make test) runs the same script, with sim and dev"
 
 
 def test_copy_sources_exist_and_are_only_what_install_needs(instructions):
@@ -384,12 +409,18 @@ def test_compose_services_host_network_and_limits(compose):
     assert _memory_bytes(services["onboard"]["deploy"]["resources"]["limits"]["memory"]) >= 384 << 20
 
 
-def test_compose_builds_the_repository_dockerfile(compose):
+def test_compose_builds_the_repository_dockerfile(compose, instructions):
+    """The daemon's image is the onboard runtime (no extras); the simulator's is another image from
+    the same Dockerfile with the ``sim`` extras (jsbsim and the plots are never in the daemon's)."""
     for name in ("onboard", "groundsim"):
         build = compose["services"][name]["build"]
         assert (DEPLOY / build["context"]).resolve() == REPO
         assert (DEPLOY / build["context"] / build["dockerfile"]).resolve() == DOCKERFILE
-    assert compose["services"]["onboard"]["image"] == compose["services"]["groundsim"]["image"]
+    onboard_args = compose["services"]["onboard"]["build"].get("args", {})
+    sim_args = compose["services"]["groundsim"]["build"].get("args", {})
+    assert _install_extras(instructions, onboard_args) == ""
+    assert _install_extras(instructions, sim_args) == "sim"
+    assert compose["services"]["onboard"]["image"] != compose["services"]["groundsim"]["image"]
 
 
 def test_compose_mounts_config_read_only(compose):
