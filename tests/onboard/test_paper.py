@@ -226,18 +226,37 @@ def test_no_covariance_and_timestamps_ignored(p1_noisy):
 
 
 def test_large_windows_keep_the_refined_cholesky_with_a_warning(p1_clean, caplog):
+    """Noise-free P1 with second-order D: the Cholesky succeeds but its refinement is far above the
+    tolerance (0.72 relative); with more frames than the dense fallback takes, the refined solution is
+    kept and a warning says so."""
     truth, obs = p1_clean
     est = PaperEstimator(PaperConfig(delta=1.0, order=2))
     est.max_dense_frames = 10
+    assert len(obs) > est.max_dense_frames
     with caplog.at_level(logging.WARNING, logger="onboard.estimation.paper"):
-        try:
-            res = est.solve(obs)
-        except EstimationError as e:  # Cholesky itself failed: refused, not a silent answer
-            assert "dense fallback" in str(e)
-            return
+        res = est.solve(obs)
     assert res.solver == "banded_cholesky_inaccurate"
     assert res.refinement_rel > est.refinement_tol
     assert any("inaccurate" in r.getMessage() for r in caplog.records)
+
+
+def test_large_windows_refuse_when_the_cholesky_itself_fails(p1_clean, monkeypatch):
+    """The Cholesky factorisation fails (forced: a singular normal matrix) and the window is too large
+    for the dense fallback: an EstimationError naming the limit, not a silent answer."""
+    import onboard.estimation.paper as paper_module
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("forced: not positive definite")
+
+    truth, obs = p1_clean
+    est = PaperEstimator(PaperConfig(delta=1.0, order=2))
+    est.max_dense_frames = 10
+    monkeypatch.setattr(paper_module.sla, "cholesky_banded", singular)
+    with pytest.raises(EstimationError, match="dense fallback"):
+        est.solve(obs)
+    # control: with the dense fallback allowed the same forced failure is solved by QR
+    est.max_dense_frames = len(obs)
+    assert est.solve(obs).solver == "dense_qr"
 
 
 # --------------------------------------------------------------------------- rejected inputs
