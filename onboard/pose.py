@@ -874,14 +874,15 @@ class PoseBuffer:
             den += tau * tau
         return num / den if den > 0 else None
 
-    def pose_at(self, time_boot_us: int, extrapolate: bool = True) -> PoseAt | None:
+    def pose_at(self, time_boot_us: int, extrapolate: bool = True, result: PoseLookup | None = None) -> PoseAt | None:
         """:meth:`lookup` (extrapolating by default), counting a miss as ``pose_<reason>`` (kept in
-        ``last_miss_reason``) and an extrapolated pose as ``pose_extrapolated``.
+        ``last_miss_reason``) and an extrapolated pose as ``pose_extrapolated``.  ``result``: that
+        look-up already made (same time, same data), not repeated.
 
         A service that waits for late telemetry should call :meth:`lookup` while ``retry`` is True
         and this only once it gives up, so that each frame is counted once.
         """
-        res = self.lookup(time_boot_us, extrapolate=extrapolate)
+        res = self.lookup(time_boot_us, extrapolate=extrapolate) if result is None else result
         self.last_miss_reason = res.reason
         if res.pose is None:
             self.counter.count(f"pose_{res.reason}", f"no pose at time_boot_us={time_boot_us!r}")

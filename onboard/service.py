@@ -113,6 +113,11 @@ class SharedPoseBuffer:
     def __init__(self, buffer: PoseBuffer) -> None:
         self._buffer = buffer
         self._cond = threading.Condition(threading.Lock())
+        # the last look-up and the buffer's version it was made at: a frame's wait and its pose_at ask the
+        # same question, and a full look-up (brackets, SLERP, Hermite, gimbal, camera pose) was a third of
+        # the pipeline thread's CPU when made three times per frame
+        self._version = 0
+        self._memo: tuple | None = None  # (time_boot_us, extrapolate, version, PoseLookup)
         for name in self._WRAPPED:
             setattr(self, name, self._writer(getattr(buffer, name)))
 
@@ -120,6 +125,7 @@ class SharedPoseBuffer:
         def locked(*args, **kwargs):
             with self._cond:
                 out = fn(*args, **kwargs)
+                self._version += 1
                 self._cond.notify_all()
             return out
 
@@ -127,13 +133,22 @@ class SharedPoseBuffer:
         locked.__doc__ = fn.__doc__
         return locked
 
+    def _lookup(self, time_boot_us: int, extrapolate: bool):
+        """PoseBuffer.lookup, memoised for the buffer's current version (call under the lock)."""
+        m = self._memo
+        if m is not None and m[0] == time_boot_us and m[1] == extrapolate and m[2] == self._version:
+            return m[3]
+        res = self._buffer.lookup(time_boot_us, extrapolate)
+        self._memo = (time_boot_us, extrapolate, self._version, res)
+        return res
+
     def lookup(self, time_boot_us: int, extrapolate: bool = False):
         with self._cond:
-            return self._buffer.lookup(time_boot_us, extrapolate)
+            return self._lookup(time_boot_us, extrapolate)
 
     def pose_at(self, time_boot_us: int, extrapolate: bool = True):
         with self._cond:
-            return self._buffer.pose_at(time_boot_us, extrapolate)
+            return self._buffer.pose_at(time_boot_us, extrapolate, result=self._lookup(time_boot_us, extrapolate))
 
     def wait_for(self, time_boot_us: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> bool:
         """Wait until a lookup at ``time_boot_us`` is decided by the data (the telemetry reaches that
@@ -153,14 +168,15 @@ class SharedPoseBuffer:
                     newest = buf.newest_time_boot_us()
                     if newest is not None and newest >= time_boot_us:
                         return True  # bracketed (or decided): the caller's pose_at tells which
-                res = buf.lookup(time_boot_us)
+                res = self._lookup(time_boot_us, True)  # memoised: the caller's pose_at asks the same
                 if res.pose is not None:
+                    return not res.pose.extrapolated  # bracketed, or decided: pose_at extrapolates
+                plain = buf.lookup(time_boot_us)  # no pose even extrapolating: can waiting bring a bracket?
+                if plain.pose is not None:
                     return True
                 left = deadline - clock()
-                if not res.retry or left <= 0:
+                if not plain.retry or left <= 0:
                     return False
-                if buf.lookup(time_boot_us, extrapolate=True).pose is not None:
-                    return False  # decided: pose_at extrapolates, no need to hold the frame
                 self._cond.wait(left)
 
     def __getattr__(self, name: str):

@@ -124,6 +124,31 @@ def test_shared_pose_buffer_wait_gives_up_after_its_timeout_and_at_once_on_a_gap
     assert time.monotonic() - t0 < 0.5
 
 
+def test_shared_pose_buffer_memoises_a_lookup_until_the_next_sample():
+    """A frame's wait and its pose_at ask the same question: one look-up serves both, and any new
+    sample makes the next look-up fresh (the answer may have changed)."""
+    scene = SyntheticScene()
+    shared, buf = _shared_pose(scene)
+    t0_us = scene.t_us(0)
+    samples = list(scene.telemetry(t0_us, t0_us + 60_000, 50.0))
+    for t, p, v, q in samples[:-1]:
+        shared.add_attitude(t, q, (0.0, 0.0, 0.1))  # body rates: extrapolation allowed
+        shared.add_position_ned(t, p, v)
+    t_frame = samples[-2][0] + 5_000  # past the newest sample: extrapolated
+    first = shared.lookup(t_frame, extrapolate=True)
+    assert first.pose is not None and first.pose.extrapolated
+    assert shared.lookup(t_frame, extrapolate=True) is first  # memoised
+    assert shared.lookup(t_frame) is not first  # another question (interpolation only)
+    before = buf.counter["pose_extrapolated"]
+    pose = shared.pose_at(t_frame)
+    assert pose is not None and pose.extrapolated and buf.counter["pose_extrapolated"] == before + 1  # still counted
+    t, p, v, q = samples[-1]
+    shared.add_attitude(t, q, (0.0, 0.0, 0.1))
+    shared.add_position_ned(t, p, v)
+    fresh = shared.lookup(t_frame, extrapolate=True)
+    assert fresh is not first and fresh.pose is not None and not fresh.pose.extrapolated  # now bracketed
+
+
 class _SlowEstimator:
     """add() blocks on ``gate`` after the first call; returns an estimate at t with p = (t, 0, 0)."""
 
