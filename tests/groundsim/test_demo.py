@@ -39,10 +39,10 @@ pytestmark = pytest.mark.timeout(90)
 
 REPO = Path(__file__).resolve().parents[2]
 P1 = scenarios_dir() / "P1.yaml"
-DEMO_WALL_LIMIT_S = 60.0  # the whole real demo test, start to exit
+DEMO_WALL_LIMIT_S = 60.0  # the whole real demo test, start to exit (the pytest timeout's basis: a hang guard)
 SIGINT_AFTER_LINES = 3  # live status lines with frames flowing before Ctrl-C
-STOP_LIMIT_S = 10.0
-CHILD_CPU_S = 0.5  # of the 0.6 s a child burns, counted for its parent  # SIGINT -> the demo has stopped both children, printed its table and exited
+STOP_LIMIT_S = 10.0  # SIGINT -> the demo has stopped both children, printed its table and exited (a hang guard)
+CHILD_CPU_S = 0.5  # of the 0.6 s a child burns, counted for its parent
 
 
 # --------------------------------------------------------------------------- plan
@@ -78,6 +78,7 @@ def test_plan_keeps_a_long_enough_scenario_and_rejects_bad_options(tmp_path):
         plan_demo("P1", 4.0, 0, tmp_path, "nope.yaml")
 
 
+@pytest.mark.integration
 def test_free_ports_are_bindable():
     import socket
 
@@ -198,6 +199,7 @@ def test_proc_cpu_reads_this_process():
     assert ProcCpu(2**22 + 12345).cpu_s() is None  # no such process
 
 
+@pytest.mark.integration
 def test_proc_cpu_counts_child_processes():
     meter = ProcCpu(os.getpid())
     if meter.cpu_s() is None:
@@ -231,9 +233,8 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
            "--log-level", "warning"]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     lines: list[str] = []
-    t0 = time.monotonic()
     try:
-        live = 0  # live lines once frames flow
+        live = 0  # live lines once frames flow; a demo that hangs is caught by the test's timeout
         while live < SIGINT_AFTER_LINES:
             line = proc.stdout.readline()
             if not line:
@@ -241,23 +242,19 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
             lines.append(line.rstrip("\n"))
             if line.startswith("[") and "| sim " in line and not line.split("| sim ")[1].startswith("0/"):
                 live += 1
-            assert time.monotonic() - t0 < DEMO_WALL_LIMIT_S, "\n".join(lines)
         if live < SIGINT_AFTER_LINES:
             text = "\n".join(lines)
             if "exited with code" in text or "published no status" in text:
-                pytest.skip(f"a demo child failed to start on this machine:\n{text}")
+                pytest.fail(f"a demo child crashed or never started:\n{text}")  # a failure, never a skip
             pytest.fail(f"no live status lines:\n{text}")
-        t_sig = time.monotonic()
         proc.send_signal(signal.SIGINT)
-        rest, _ = proc.communicate(timeout=STOP_LIMIT_S)
-        stop_s = time.monotonic() - t_sig
+        rest, _ = proc.communicate(timeout=STOP_LIMIT_S)  # a guard against a hang, not a measured property
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     text = "\n".join(lines) + "\n" + rest
     assert proc.returncode == 0, text
-    assert stop_s < STOP_LIMIT_S
     assert "daemon ready" in text and "| online track vs truth |" in text and "report: " in text, text
     rep = json.loads((out / "report.json").read_text())
     assert rep["stopped_early"] is True

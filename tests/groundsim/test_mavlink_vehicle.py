@@ -139,6 +139,7 @@ def _prime(rx, vehicle, t_us: int = 0) -> None:
 # ----------------------------------------------------------------------------- identity and units
 
 
+@pytest.mark.integration
 def test_heartbeat_identifies_an_active_quadrotor_autopilot_in_mavlink2(link):
     rx, vehicle = link
     vehicle.poll(0)
@@ -151,6 +152,7 @@ def test_heartbeat_identifies_an_active_quadrotor_autopilot_in_mavlink2(link):
     assert hb.get_msgbuf()[0] == 0xFD  # MAVLink 2 magic
 
 
+@pytest.mark.integration
 def test_attitude_and_position_fields_in_spec_units(link):
     rx, vehicle = link
     t_us = 12_345_678
@@ -170,6 +172,7 @@ def test_attitude_and_position_fields_in_spec_units(link):
     assert st.time_boot_ms == 12_346 and st.time_unix_usec == 1_700_000_000_000_000 + t_us + 500
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     "heading_rad, hdg_cdeg",
     [(0.0, 0), (math.pi / 2, 9000), (-0.1, round((360 - math.degrees(0.1)) * 100)), (2 * math.pi - 1e-9, 0), (float("nan"), 65535)],
@@ -182,6 +185,7 @@ def test_heading_wraps_to_0_35999_and_unknown_is_uint16_max(link, heading_rad, h
     assert pos.hdg == hdg_cdeg
 
 
+@pytest.mark.integration
 def test_velocity_beyond_int16_saturates(link):
     rx, vehicle = link
     _state(vehicle, 1000, v_ned_mps=(400.0, -400.0, 1.0))
@@ -193,6 +197,7 @@ def test_velocity_beyond_int16_saturates(link):
 # ----------------------------------------------------------------------------- rates
 
 
+@pytest.mark.integration
 def test_lockstep_rates_are_exact_on_the_boot_clock(link):
     """2 s of boot time polled at 200 Hz, faster than real time: 50 Hz / 25 Hz / 1 Hz exactly."""
     rx, vehicle = link
@@ -206,6 +211,7 @@ def test_lockstep_rates_are_exact_on_the_boot_clock(link):
     assert not _of(msgs, "GIMBAL_DEVICE_ATTITUDE_STATUS")
 
 
+@pytest.mark.integration
 def test_unchanged_state_is_not_resent(link):
     rx, vehicle = link
     _state(vehicle, 0)
@@ -216,6 +222,7 @@ def test_unchanged_state_is_not_resent(link):
     assert len(_of(msgs, "HEARTBEAT")) == 1
 
 
+@pytest.mark.integration
 def test_custom_rates_from_the_constructor():
     port = _free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
@@ -226,6 +233,7 @@ def test_custom_rates_from_the_constructor():
     assert len(_of(msgs, "ATTITUDE_QUATERNION")) == 100 and len(_of(msgs, "GLOBAL_POSITION_INT")) == 10
 
 
+@pytest.mark.integration
 def test_real_time_threaded_rates(link):
     """Pumped by a thread on a monotonic clock; counted over a 1 s window of received stamps."""
     rx, vehicle = link
@@ -255,6 +263,7 @@ def test_real_time_threaded_rates(link):
 # ----------------------------------------------------------------------------- services
 
 
+@pytest.mark.integration
 def test_timesync_request_is_answered_with_our_boot_time(link):
     rx, vehicle = link
     _prime(rx, vehicle, 5_000_000)
@@ -266,6 +275,7 @@ def test_timesync_request_is_answered_with_our_boot_time(link):
         assert (reply.target_system, reply.target_component) == (GCS_SYS, GCS_COMP)
 
 
+@pytest.mark.integration
 def test_timesync_response_is_not_answered(link):
     rx, vehicle = link
     _prime(rx, vehicle)
@@ -286,6 +296,7 @@ def _command(rx, vehicle, now_us, cmd, p1=0.0, p2=0.0, target=(1, 1), use_int=Fa
     return _until(vehicle, now_us, rx, "COMMAND_ACK", lambda m: m.command == cmd)
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("use_int", [False, True], ids=["COMMAND_LONG", "COMMAND_INT"])
 def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
     rx, vehicle = link
@@ -312,6 +323,7 @@ def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
     assert len(_of(_drain(rx), "ATTITUDE_QUATERNION")) == 50
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     "cmd, p1, p2, result",
     [
@@ -333,6 +345,7 @@ def test_unsupported_requests_are_refused_with_an_ack(link, cmd, p1, p2, result)
     assert vehicle.counters[{2: "ack_denied", 3: "ack_unsupported"}[result]] == 1
 
 
+@pytest.mark.integration
 def test_command_for_another_system_is_ignored(link):
     rx, vehicle = link
     _prime(rx, vehicle)
@@ -346,6 +359,7 @@ def test_command_for_another_system_is_ignored(link):
     assert not _of(_drain(rx, quiet_s=0.1), "COMMAND_ACK")
 
 
+@pytest.mark.integration
 def test_request_message_sends_one_now(link):
     rx, vehicle = link
     _prime(rx, vehicle)
@@ -358,6 +372,7 @@ def test_request_message_sends_one_now(link):
     assert pos.lat == 473977419
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("yaw_frame, flag", [("earth", 64), ("vehicle", 32)])
 def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
     """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame), or with the vehicle's
@@ -385,12 +400,14 @@ def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
         assert y == pytest.approx(2.2 - yaw_rad, abs=1e-5)
 
 
+@pytest.mark.integration
 def test_gimbal_status_is_not_sent_when_not_gimballed(link):
     rx, vehicle = link
     _lockstep(vehicle, 0, 200_000, gimbal=(1.0, 0.0, 0.0, 0.0))
     assert not _of(_drain(rx), "GIMBAL_DEVICE_ATTITUDE_STATUS")
 
 
+@pytest.mark.integration
 def test_garbage_on_the_wire_is_counted_and_survived(link):
     rx, vehicle = link
     _prime(rx, vehicle)
@@ -443,6 +460,7 @@ def test_parse_connection_forms():
     assert parse_connection("/dev/ttyUSB0,57600") == ("serial", None, None)
 
 
+@pytest.mark.integration
 def test_udpin_port_in_use_is_a_typed_one_line_error():
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -452,6 +470,7 @@ def test_udpin_port_in_use_is_a_typed_one_line_error():
     assert "in use" in str(e.value) and str(port) in str(e.value) and "\n" not in str(e.value)
 
 
+@pytest.mark.integration
 def test_udpin_port_held_by_another_pymavlink_is_in_use_too():
     port = _free_udp_port()
     first = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 1)  # SO_REUSEADDR, like any pymavlink udpin
@@ -462,6 +481,7 @@ def test_udpin_port_held_by_another_pymavlink_is_in_use_too():
         first.close()
 
 
+@pytest.mark.integration
 def test_tcp_refused_is_a_link_error():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -470,6 +490,7 @@ def test_tcp_refused_is_a_link_error():
             MavlinkVehicle(f"tcp:127.0.0.1:{port}")
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize(
     "field, value",
     [
@@ -501,6 +522,7 @@ def test_bad_options(kw):
         MavlinkVehicle("udpout:127.0.0.1:9", **kw)
 
 
+@pytest.mark.integration
 def test_no_environment_side_effects():
     before = os.environ.get("MAVLINK20")
     port = _free_udp_port()

@@ -169,6 +169,7 @@ def test_simcore_truth_rows_record_the_injected_errors_and_stay_exact():
         assert row0.nav_att_err_n_rad == row0.nav_p_err_d_m == 0.0
 
 
+@pytest.mark.integration
 def test_vehicle_reports_the_state_with_the_error_applied():
     port = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     port.bind(("127.0.0.1", 0))
@@ -183,6 +184,7 @@ def test_vehicle_reports_the_state_with_the_error_applied():
     np.testing.assert_allclose(s.v_ned_mps, rep["v_ned_mps"], atol=1e-15)
 
 
+@pytest.mark.integration
 def test_vehicle_honours_gimbal_status_at_100_hz():
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))

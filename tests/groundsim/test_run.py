@@ -169,6 +169,7 @@ def e2e(tmp_path_factory):
     return proc, frames, msgs, truth, truth_path
 
 
+@pytest.mark.integration
 def test_run_exits_cleanly_with_status_lines(e2e):
     proc, _, _, _, _ = e2e
     assert proc.returncode == 0, proc.stderr
@@ -177,6 +178,7 @@ def test_run_exits_cleanly_with_status_lines(e2e):
     assert "rt x" in proc.stderr
 
 
+@pytest.mark.integration
 def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
     _, frames, _, _, _ = e2e
     # zenoh congestion control is DROP (groundsim.zenoh_video): at --rate max on a busy machine an
@@ -192,6 +194,7 @@ def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
     assert np.all(np.abs(gaps_us - 1e6 / FRAME_RATE_HZ) <= STAMP_TOL_US)
 
 
+@pytest.mark.integration
 def test_truth_csv_has_header_and_one_row_per_frame(e2e):
     _, frames, _, truth, truth_path = e2e
     header = truth_path.read_text().splitlines()[0].split(",")
@@ -211,6 +214,7 @@ def test_truth_csv_has_header_and_one_row_per_frame(e2e):
     assert 7.0 < abs(d_n_m) < 9.0  # -4 m/s north for 59/30 s
 
 
+@pytest.mark.integration
 def test_truth_pixel_matches_rendered_blob(e2e):
     _, frames, _, truth, _ = e2e
     uv = {int(s): (u, v) for s, u, v in zip(truth["seq"], truth["target_u_px"], truth["target_v_px"])}
@@ -227,6 +231,7 @@ def _interp_truth(truth, t_us, name):
     return float(np.interp(t_us, truth["time_boot_us"], truth[name]))
 
 
+@pytest.mark.integration
 def test_mavlink_position_and_attitude_streams(e2e):
     _, _, msgs, truth, _ = e2e
     by_type: dict[str, list] = {}
@@ -262,6 +267,7 @@ def test_mavlink_position_and_attitude_streams(e2e):
     assert checked >= 9 and moved == checked
 
 
+@pytest.mark.integration
 def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
     """#285 (earth frame) q_ned_from_gimbal composed with the mount->camera axes is the truth's q_ned_from_cam
     turned by the navigation attitude error the truth CSV records (R_reported = Exp(phi) R_true)."""
@@ -286,6 +292,7 @@ def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
 # --------------------------------------------------------------------------- stopping
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("sig", [signal.SIGTERM])
 def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
     truth_path = tmp_path / "truth.csv"
@@ -327,6 +334,7 @@ def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
 # --------------------------------------------------------------------------- bad input: one line, exit 2
 
 
+@pytest.mark.integration
 def test_unknown_scenario_key_is_one_line_exit_2(tmp_path):
     """As a process: exit code 2, one line, no traceback."""
     bad = tmp_path / "bad.yaml"
@@ -353,6 +361,7 @@ def test_missing_scenario_file_is_one_line_exit_2(tmp_path, capsys):
     _assert_main_one_line(capsys, ["run", "--scenario", str(tmp_path / "nope.yaml")], "nope.yaml", "no such file")
 
 
+@pytest.mark.integration
 def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -364,6 +373,7 @@ def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
                               "port already in use")
 
 
+@pytest.mark.integration
 def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
     _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
                                    "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}", "--zenoh-connect-timeout", "0.5",
@@ -371,6 +381,7 @@ def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
                           "no peer reachable")
 
 
+@pytest.mark.integration
 def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
@@ -399,6 +410,7 @@ def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
 # --------------------------------------------------------------------------- determinism and chunking
 
 
+@pytest.mark.integration
 def test_same_seed_same_truth_and_chunking_does_not_change_it(tmp_path, capsys):
     """Same seed -> byte-identical truth, whether flown in 1 s chunks (--rate max) or 0.1 s chunks;
     another seed of a disturbed scenario -> another target path."""

@@ -84,6 +84,7 @@ def test_keys():
             check_vehicle_name(bad)
 
 
+@pytest.mark.integration
 def test_frame_crosses_loopback_byte_exact(peers):
     listener, connector = peers
     pub = FramePublisher(listener, "uav1")
@@ -107,6 +108,7 @@ def test_frame_crosses_loopback_byte_exact(peers):
     assert pub.frames_published == len(sent)
 
 
+@pytest.mark.integration
 def test_other_vehicle_key_does_not_receive(peers):
     listener, connector = peers
     pub = FramePublisher(listener, "uav2")
@@ -127,6 +129,7 @@ def test_other_vehicle_key_does_not_receive(peers):
     pub.close()
 
 
+@pytest.mark.integration
 def test_listen_port_in_use_is_a_typed_one_line_error():
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -139,6 +142,7 @@ def test_listen_port_in_use_is_a_typed_one_line_error():
     assert "\n" not in msg and ep in msg and "in use" in msg and ".rs" not in msg
 
 
+@pytest.mark.integration
 def test_unreachable_peer_does_not_fail_open_and_joins_later():
     ep = f"tcp/127.0.0.1:{_free_tcp_port()}"
     late = open_session(ZenohSettings(connect=(ep,)))  # nobody listening yet
@@ -155,6 +159,7 @@ def test_unreachable_peer_does_not_fail_open_and_joins_later():
         late.close()
 
 
+@pytest.mark.integration
 def test_connect_timeout_makes_an_unreachable_peer_a_typed_error():
     ep = f"tcp/127.0.0.1:{_free_tcp_port()}"
     t0 = time.monotonic()
@@ -238,6 +243,7 @@ def test_settings_validation(kwargs):
         ZenohSettings(**kwargs)
 
 
+@pytest.mark.integration
 def test_publish_after_close_raises(peers):
     listener, _ = peers
     pub = FramePublisher(listener)

@@ -172,6 +172,7 @@ _CHILD = textwrap.dedent("""
 """)
 
 
+@pytest.mark.integration
 def test_sigkill_leaves_a_file_that_reads_up_to_its_last_chunk(tmp_path):
     path = tmp_path / "k.mcap"
     child = subprocess.Popen([sys.executable, "-c", _CHILD.format(repo=str(REPO), path=str(path))],

@@ -425,6 +425,7 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
 
 
+@pytest.mark.integration
 @pytest.mark.timeout(120)
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     """Same observations, same answers: the child process runs the same deterministic estimator."""

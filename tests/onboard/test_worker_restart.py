@@ -61,6 +61,7 @@ def _own_estimate(pe, obs, K, i):
     return est, pe.late_results == late
 
 
+@pytest.mark.integration
 @pytest.mark.parametrize("with_snapshot", [True, False], ids=["restored-state", "rebuilt-window"])
 def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(scene, caplog, with_snapshot):
     """After SIGKILL the very next observation is answered by the new worker (0 observations of refill;
@@ -112,6 +113,7 @@ def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(s
         pe.close()
 
 
+@pytest.mark.integration
 def test_while_the_worker_restarts_the_newest_estimate_is_propagated(scene):
     """With the daemon's short result wait, the frames right after the kill are not left without 3-D:
     the last estimate before the kill is propagated (as when the worker is busy) until the new
@@ -149,6 +151,7 @@ def test_while_the_worker_restarts_the_newest_estimate_is_propagated(scene):
         pe.close()
 
 
+@pytest.mark.integration
 def test_a_crash_loop_backs_off_instead_of_spawning_a_process_per_frame(scene):
     """A worker that dies before answering anything makes the next replacement wait (fake clock),
     1 s then doubling; observations are still kept for it; each death is counted once.  A worker
