@@ -257,6 +257,18 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
     p.set_defaults(handler=lambda args: __import__("groundsim.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args))
 
 
+def _add_campaign(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", metavar="SPEC.yaml", help="campaign spec (schema: docs/campaigns.md)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
+    p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
+    p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args))
+
+
 # --------------------------------------------------------------------------- registry and entry point
 
 #: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
@@ -265,6 +277,7 @@ COMMANDS = (
     ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
     ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
     ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
+    ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
 )
 
 

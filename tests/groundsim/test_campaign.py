@@ -1,0 +1,252 @@
+"""groundsim.campaign: spec validation, geometry variants, scoring, resumability, pool == serial."""
+
+from __future__ import annotations
+
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from groundsim.campaign import (LOG_NAME, REPORT_NAME, TABLE_NAME, TIMING_COLUMNS, Geometry, ManoeuvreScaled,
+                                MovedTarget, append_rows, derive_scenario, load_spec, plan_runs, read_log, run_campaign,
+                                run_id, score_track, spec_from_dict)
+from groundsim.cli import main as cli_main
+from groundsim.eval import load_base_config
+from groundsim.motion import Circular, Cubic
+from groundsim.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
+from onboard.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[2]
+ATOL_M = 1e-9  # 1 nm: the variants are exact transformations of the reference paths
+ATOL_MPS2 = 1e-9
+
+
+def _sc(name="P1"):
+    return load_scenario(reference_scenario_paths()[name])
+
+
+def _spec(tmp_path, **over):
+    d = {"name": "t", "scenarios": ["P1", "P2"], "noise": ["RTK", "px0.3"], "algorithms": ["paper", "rpekf"],
+         "seeds": 2, "duration_s": 3.0, "geometry": {"manoeuvre_scale": [0.5, 1.0]}}
+    d.update(over)
+    return spec_from_dict(d, source=tmp_path / "spec.yaml", spec_dir=tmp_path)
+
+
+def _comparable(df: pd.DataFrame) -> pd.DataFrame:
+    return df.drop(columns=[c for c in TIMING_COLUMNS if c in df.columns]).reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def test_manoeuvre_scale_scales_the_acceleration_from_the_same_start():
+    base = Circular((21.6, 33.7, -70.0), 40.0, 4.14, -0.2)
+    t = np.linspace(0.0, 10.0, 101)
+    for m in (0.0, 0.5, 2.0):
+        s, b = ManoeuvreScaled(base, m).state(t), base.state(t)
+        np.testing.assert_allclose(s.a_ned_mps2, m * b.a_ned_mps2, atol=ATOL_MPS2)
+        np.testing.assert_allclose(s.p_ned_m[0], b.p_ned_m[0], atol=ATOL_M)
+        np.testing.assert_allclose(s.v_ned_mps[0], b.v_ned_mps[0], atol=ATOL_M)
+        # the path integrates its own velocity (a consistent kinematic state)
+        np.testing.assert_allclose(np.gradient(s.p_ned_m, t, axis=0)[1:-1], s.v_ned_mps[1:-1], atol=0.05)
+    straight = ManoeuvreScaled(base, 0.0).state(t)
+    np.testing.assert_allclose(straight.v_ned_mps, np.broadcast_to(base.state(t).v_ned_mps[0], (t.size, 3)), atol=ATOL_M)
+
+
+def test_moved_target_rotates_north_towards_east_about_its_start():
+    base = Cubic((120.0, 30.0, -85.0), (5.0, 0.0, 0.0))  # heading north
+    m = MovedTarget(base, (120.0, 30.0, -85.0), math.radians(90.0), (0.0, 0.0, 0.0))
+    s = m.state(np.array([0.0, 2.0]))
+    np.testing.assert_allclose(s.p_ned_m[0], (120.0, 30.0, -85.0), atol=ATOL_M)
+    np.testing.assert_allclose(s.v_ned_mps[1], (0.0, 5.0, 0.0), atol=ATOL_M)  # now east
+    np.testing.assert_allclose(s.p_ned_m[1], (120.0, 40.0, -85.0), atol=ATOL_M)
+
+
+def test_range_scale_multiplies_the_initial_range_and_keeps_the_target_motion():
+    sc = _sc("P1")
+    v = derive_scenario(sc, Geometry(range_scale=2.0))
+    t = sc.frame_times_s()
+    r0 = np.linalg.norm(sc.target_motion(0).state(t).p_ned_m[0] - sc.observer_motion(0).state(t).p_ned_m[0])
+    r1 = np.linalg.norm(v.target_motion(0).state(t).p_ned_m[0] - v.observer_motion(0).state(t).p_ned_m[0])
+    assert r1 == pytest.approx(2.0 * r0, rel=1e-12)
+    np.testing.assert_allclose(v.target_motion(0).state(t).v_ned_mps, sc.target_motion(0).state(t).v_ned_mps, atol=ATOL_M)
+    assert v.name == "P1_r2_a0_m1"
+
+
+def test_reference_geometry_is_the_scenario_itself_and_gusty_targets_keep_their_disturbance():
+    sc = _sc("P1")
+    assert derive_scenario(sc, Geometry()) is sc
+    g = _sc("P2g")
+    v = derive_scenario(g, Geometry(aspect_deg=30.0))
+    assert v.target.disturbance == g.target.disturbance
+    t = g.frame_times_s()
+    # run 3's disturbance is the reference's realisation (same stream), on the rotated base path
+    d_ref = g.target_motion(3).state(t).p_ned_m - g.target.base_motion.state(t).p_ned_m
+    d_var = v.target_motion(3).state(t).p_ned_m - v.target.base_motion.state(t).p_ned_m
+    np.testing.assert_allclose(d_var, d_ref, atol=ATOL_M)
+
+
+def test_a_geometry_that_collides_or_goes_underground_is_refused_naming_it():
+    with pytest.raises(ConfigError, match=r"geometry: .*P1 with range_scale 0\.01.*m at t ="):
+        derive_scenario(_sc("P1"), Geometry(range_scale=0.01))
+    low = scenario_from_dict({"name": "low", "observer": {"motion": {"model": "uniform_linear", "p0_ned_m": [0, 0, -60]}},
+                              "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [100, 0, -5]}}})
+    with pytest.raises(ConfigError, match=r"above the ground.*the target at -50 m up"):
+        derive_scenario(low, Geometry(range_scale=2.0))  # the line of sight goes down: twice the range is underground
+
+
+# --------------------------------------------------------------------------- spec
+
+
+@pytest.mark.parametrize("change, field", [
+    ({"mode": "batch"}, "mode"),
+    ({"noise": ["RTK", "RTKK"]}, r"noise\[1\]"),
+    ({"scenarios": ["P9"]}, r"scenarios\[0\]"),
+    ({"algorithms": ["nope"]}, r"algorithms\[0\]"),
+    ({"seeds": 0}, "seeds"),
+    ({"seeds": [1, 1]}, "seeds"),
+    ({"geometry": {"range_scale": {"min": 2.0, "max": 1.0}, "draws": 2}}, r"geometry\.range_scale\.max"),
+    ({"geometry": {"aspect_deg": {"min": 0.0, "max": 90.0}}}, r"geometry\.draws"),
+    ({"geometry": {"manoeuvre_scale": [-1.0]}}, r"geometry\.manoeuvre_scale\[0\]"),
+    ({"geometry": {"manouvre_scale": [1.0]}}, r"geometry\.manouvre_scale.*did you mean 'manoeuvre_scale'"),
+    ({"duration_s": 60.0}, "duration_s"),
+    ({"mode": "closed_loop", "noise_model": "case"}, "noise_model"),
+    ({"crb": "yes"}, "crb"),
+    ({"seed": 3}, "seed.*did you mean 'seeds'"),
+])
+def test_bad_specs_name_the_file_and_the_field(tmp_path, change, field):
+    with pytest.raises(ConfigError, match=rf"spec\.yaml: .*{field}"):
+        _spec(tmp_path, **change)
+
+
+def test_cli_bad_spec_is_one_line_and_exit_2(tmp_path, capsys):
+    p = tmp_path / "bad.yaml"
+    p.write_text("scenarios: [P1]\nnoise: [RTK]\nalgorithms: [map]\ngeometry: {range_scale: [0]}\n")
+    assert cli_main(["campaign", str(p)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "bad.yaml: geometry.range_scale[0]: expected" in err
+
+
+def test_random_geometry_draws_are_deterministic_and_in_range(tmp_path):
+    geo = {"range_scale": {"min": 0.8, "max": 1.5}, "aspect_deg": {"min": -45.0, "max": 45.0},
+           "manoeuvre_scale": [1.0, 2.0], "draws": 3, "seed": 11}
+    a, b = _spec(tmp_path, geometry=geo), _spec(tmp_path, geometry=geo)
+    assert a.geometries == b.geometries and len(a.geometries) == 6
+    assert all(0.8 <= g.range_scale <= 1.5 and -45 <= g.aspect_deg <= 45 for g in a.geometries)
+    assert _spec(tmp_path, geometry={**geo, "seed": 12}).geometries != a.geometries
+
+
+def test_run_ids_are_stable_and_differ_by_every_parameter(tmp_path):
+    spec = _spec(tmp_path)
+    runs = plan_runs(spec, "x")
+    ids = [run_id(r) for r in runs]
+    assert len(runs) == spec.run_count == 2 * 2 * 2 * 2 * 2 and len(set(ids)) == len(ids)
+    assert ids == [run_id(r) for r in plan_runs(_spec(tmp_path), "x")]
+    assert set(ids).isdisjoint(run_id(r) for r in plan_runs(spec, "another onboard config"))
+
+
+def test_the_shipped_example_spec_is_valid():
+    spec = load_spec(REPO / "config/campaigns/example.yaml")
+    assert spec.mode == "synthetic" and set(spec.algorithms) == {"map", "paper", "rpekf"} and len(spec.geometries) == 3
+
+
+# --------------------------------------------------------------------------- scoring
+
+
+def test_score_track_figures_on_a_constructed_track():
+    F = 100
+    t = np.arange(F) / 10.0  # 10 s
+    truth = np.tile([100.0, 0.0, 0.0], (F, 1))
+    cam = np.zeros((F, 3))
+    est = truth + [1.0, 0.0, 0.0]  # 1 % of range everywhere
+    cov = np.tile(np.eye(3) * 0.25, (F, 1, 1))  # sigma 0.5 m per axis: e = 2 sigma on one axis
+    est[:20] = np.nan  # no estimate for 2 s
+    obs = np.zeros(F, dtype=bool)
+    obs[70:] = True
+    s = score_track(t, truth, cam, est, cov, obs)
+    assert s["published_frames"] == 80 and s["observable_frames"] == 30
+    assert s["err_range_observable_pct"] == pytest.approx(1.0) and s["err_range_final_pct"] == pytest.approx(1.0)
+    assert s["observable_share_settled"] == pytest.approx(30 / 50)
+    assert s["nees_observable"] == pytest.approx(4.0)  # (1 / 0.5)^2
+    assert s["beyond_3sigma_published"] == 0.0  # 1 m < 3 sqrt(0.75)
+    assert s["first_observable_s"] == pytest.approx(7.0) and s["settle_s"] == 5.0
+    cov_small = np.tile(np.eye(3) * 0.01, (F, 1, 1))
+    assert score_track(t, truth, cam, est, cov_small, obs)["beyond_3sigma_published"] == 1.0
+
+
+# --------------------------------------------------------------------------- the log and resumability
+
+
+def test_a_torn_last_line_is_skipped_and_rows_round_trip(tmp_path):
+    p = tmp_path / LOG_NAME
+    append_rows(p, [{"run_id": "a", "x": 1.5}, {"run_id": "b", "x": None}])
+    with p.open("a") as f:
+        f.write('{"run_id": "c", "x"')  # a kill in the middle of a write
+    done, bad = read_log(p)
+    assert set(done) == {"a", "b"} and bad == 1 and done["a"]["x"] == 1.5
+
+
+@pytest.mark.slow
+def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp_path):
+    spec = _spec(tmp_path)
+    r1 = run_campaign(spec, tmp_path / "serial", workers=1, progress=False)
+    r2 = run_campaign(spec, tmp_path / "pool", workers=2, progress=False)
+    assert r1.ran == r2.ran == spec.run_count and r1.failed == 0
+    a = pd.read_csv(tmp_path / "serial" / TABLE_NAME)
+    b = pd.read_csv(tmp_path / "pool" / TABLE_NAME)
+    pd.testing.assert_frame_equal(_comparable(a), _comparable(b))
+    # the numbers are real: every run published estimates, the bound is finite
+    assert (a["published_frames"] > 0).all() and np.isfinite(a["crb_rms_m"]).all()
+    r3 = run_campaign(spec, tmp_path / "serial", workers=2, progress=False)
+    assert r3.ran == 0 and r3.reused == spec.run_count
+    c = pd.read_csv(tmp_path / "serial" / TABLE_NAME)
+    pd.testing.assert_frame_equal(_comparable(a), _comparable(c))
+    report = (tmp_path / "serial" / REPORT_NAME).read_text()
+    assert "### paper" in report and "### rpekf" in report and (tmp_path / "serial" / "manoeuvre.png").stat().st_size > 0
+
+
+@pytest.mark.slow
+def test_an_interrupted_campaign_resumes_where_it_stopped(tmp_path):
+    """SIGINT (Ctrl-C) in the middle: exit 130, the finished runs kept; the same command runs only the
+    rest, and the table equals an uninterrupted campaign's."""
+    spec_path = tmp_path / "spec.yaml"
+    spec_path.write_text("name: t\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [map, paper]\nseeds: 3\n"
+                         "duration_s: 4.0\ngeometry: {manoeuvre_scale: [0.5, 1.0, 2.0]}\n")
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "groundsim", "campaign", str(spec_path), "--out", str(out), "--workers", "1",
+           "--no-progress", "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log_path = out / LOG_NAME
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log_path.is_file() and len(read_log(log_path)[0]) >= 4:  # two cases of 9 done
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the campaign finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    done_before = len(read_log(log_path)[0])
+    assert 4 <= done_before < 18 and "the same command resumes" in err
+    assert len(pd.read_csv(out / TABLE_NAME)) == done_before  # the partial table is there too
+
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert f"{done_before} reused" in res.stdout and f"{18 - done_before} run now" in res.stdout
+    resumed = pd.read_csv(out / TABLE_NAME)
+    ref = run_campaign(load_spec(spec_path), tmp_path / "ref", workers=1, progress=False,
+                       base_config=load_base_config(REPO / "config/onboard.yaml"), onboard_digest=_digest_of_config())
+    assert ref.ran == 18
+    pd.testing.assert_frame_equal(_comparable(resumed), _comparable(pd.read_csv(tmp_path / "ref" / TABLE_NAME)))
+
+
+def _digest_of_config() -> str:
+    import hashlib
+
+    return hashlib.sha256((REPO / "config/onboard.yaml").read_bytes()).hexdigest()[:12]
