@@ -985,6 +985,7 @@ def manoeuvre_rows(rows: list[dict]) -> list[dict]:
                     "accel_mps2": _med(r.get("observer_accel_rms_mps2") for r in rs),
                     "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
                     "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
+                    "err_final": _med(r.get("err_range_final_pct") for r in rs),
                     "obs_share": _med(r.get("observable_share_settled") for r in rs),
                     "crb_pct": _med(crb_pct)})
     return out
@@ -1030,7 +1031,9 @@ def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
                         key=lambda r: r["accel_perp_mps2"])
             x = [r["accel_perp_mps2"] for r in rs]
             y = [r["err_pub"] for r in rs]
-            ax.plot(x, y, marker="o", label=a)
+            line, = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
+            ax.plot(x, [r["err_final"] for r in rs], marker="o", mfc="none", ls=":", color=line.get_color(),
+                    label=f"{a} (last frame)")
         rs = sorted((r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
                     key=lambda r: r["accel_perp_mps2"])
         ax.plot([r["accel_perp_mps2"] for r in rs], [r["crb_pct"] for r in rs], "k--", lw=1, label="CRB (RMS / range)")
@@ -1040,7 +1043,7 @@ def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
         ax.set_xlabel("observer acceleration normal to LOS, RMS (m/s$^2$)")
         ax.set_ylabel("median err / range, settled (%)")
         ax.grid(True, which="both", alpha=0.3)
-    axes.flat[0].legend(fontsize=8)
+    axes.flat[0].legend(fontsize=7)
     fig.suptitle("Reconstruction error vs observer manoeuvre (measured; median over seeds)", fontsize=11)
     fig.savefig(path, dpi=110)
     return True
@@ -1103,11 +1106,11 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                      f"{_num(w['works_from_scale'], 3)} |")
         L.append("")
         L.append("| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
-                 "err/range observable | observable share | CRB / range |")
-        L.append("|" + "---|" * 10)
+                 "err/range last frame | err/range observable | observable share | CRB / range |")
+        L.append("|" + "---|" * 11)
         for r in mrows:
             L.append(f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
-                     f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_obs'])} | "
+                     f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
                      f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |")
         L.append("")
     if failed:

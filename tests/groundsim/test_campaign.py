@@ -250,3 +250,16 @@ def _digest_of_config() -> str:
     import hashlib
 
     return hashlib.sha256((REPO / "config/onboard.yaml").read_bytes()).hexdigest()[:12]
+
+
+@pytest.mark.slow
+def test_closed_loop_mode_flies_the_variant_through_the_lockstep_pipeline(tmp_path):
+    spec = _spec(tmp_path, mode="closed_loop", scenarios=["P1"], noise=["RTK"], algorithms=["paper"], seeds=1,
+                 duration_s=2.0, crb=False, geometry={"manoeuvre_scale": [1.0, 1.5]})
+    res = run_campaign(spec, tmp_path / "cl", workers=1, progress=False)
+    df = pd.read_csv(tmp_path / "cl" / TABLE_NAME)
+    assert res.ran == 2 and (df["status"] == "ok").all() and (df["mode"] == "closed_loop").all()
+    assert (df["published_frames"] > 0).all() and df["chain_centroid_sigma_px"].lt(0.5).all()
+    # the variant is the scaled one: 1.5 x the reference observer's commanded acceleration (RMS)
+    a = df.set_index("manoeuvre_scale")["observer_accel_rms_mps2"]
+    assert a[1.5] == pytest.approx(1.5 * a[1.0], rel=1e-9)
