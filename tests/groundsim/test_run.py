@@ -66,7 +66,6 @@ PIXEL_TOL_PX = 1.0  # truth pixel vs the rendered blob's centroid
 LATLON_TOL_DEG = 3e-7  # #33 degE7 quantisation (0.5e-7) + time_boot_ms truncation (<= 1 ms at <= 10 m/s ~ 1e-7 deg)
 ALT_TOL_M = 0.02  # #33 mm quantisation + 1 ms of climb
 QUAT_F32_TOL = 1e-5  # float32 quaternion fields
-STOP_EXIT_S = 3.0  # SIGTERM -> exit (the loop sees the flag within STOP_POLL_S; closing sockets takes the rest)
 SHORT_TIMEOUT_S = 60.0
 
 
@@ -156,10 +155,14 @@ def e2e(tmp_path_factory):
                 if len(payloads) >= E2E_FRAMES:
                     break
             time.sleep(0.05)
-        time.sleep(0.2)  # last datagrams
     finally:
         done.set()
-        reader.join(2.0)
+        reader.join(PROCESS_TIMEOUT_S)  # a hang guard: it stops within one 0.05 s receive
+        # the simulator has exited: every MAVLink datagram it sent to loopback is already in our
+        # socket's buffer (a sendto on loopback queues at the receiver), so draining it gets them all
+        while (m := rx.recv_match(blocking=False)) is not None:
+            if m.get_type() != "BAD_DATA":
+                msgs.append(m)
         sub.undeclare()
         session.close()
         rx.close()
@@ -309,17 +312,14 @@ def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
                 break
             time.sleep(0.05)
         assert proc.poll() is None, proc.communicate()[1]
-        t_sig = time.monotonic()
         proc.send_signal(sig)
-        _, err = proc.communicate(timeout=SHORT_TIMEOUT_S)
-        exit_s = time.monotonic() - t_sig
+        _, err = proc.communicate(timeout=SHORT_TIMEOUT_S)  # a hang guard, not a measured property
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.wait()
     assert proc.returncode == 0, err
     assert "Traceback" not in err
-    assert exit_s < STOP_EXIT_S, f"exit took {exit_s:.2f} s"
     text = truth_path.read_text()
     assert text.endswith("\n")
     lines = text.splitlines()
@@ -671,10 +671,7 @@ def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     restore = cli._install_stop_signals(stop)
     try:
         os.kill(os.getpid(), signal.SIGINT)
-        deadline = time.monotonic() + 2.0
-        while not stop.is_set() and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert stop.is_set()
+        assert stop.wait(SHORT_TIMEOUT_S)  # the handler sets the event (the timeout is a hang guard)
     finally:
         restore()
     assert signal.getsignal(signal.SIGINT) is before
