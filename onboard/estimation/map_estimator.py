@@ -740,7 +740,7 @@ class MapEstimator:
         return modes[0][:7], [m[:7] for m in modes[:max_modes]]
 
     def solve(self, obs: Observations, prior: MotionPrior | None = None, grid: KnotGrid | None = None,
-              warm: np.ndarray | None = None) -> MapResult:
+              warm: np.ndarray | None = None, trust_warm: bool = False) -> MapResult:
         """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
@@ -749,18 +749,20 @@ class MapEstimator:
         pins range best among those within ``model_margin_nats`` of the highest evidence; its
         covariance is averaged over the models near it by evidence (see the module docstring).  ``warm``
         (a solution on the same ``grid``, e.g. the sliding window's current one) is one more start of the
-        first family's cold multi-start.
+        first family's cold multi-start; with ``trust_warm`` (the caller's last selection was observable)
+        it replaces that multi-start, beside one fresh range hypothesis.
         """
         self._weight_range_m = None
         if prior is not None:
             best, _ = self.solve_prior(obs, prior, grid=grid)
             return self.result(*best[:6])
         try:
-            return self._select(obs, grid, warm)
+            return self._select(obs, grid, warm, trust_warm)
         finally:
             self._weight_range_m = None
 
-    def _select(self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None) -> MapResult:
+    def _select(self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None,
+                trust_warm: bool = False) -> MapResult:
         cfg = self.config
         families = [f for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0]
         tops: dict[str, list] = {}
@@ -775,7 +777,8 @@ class MapEstimator:
                 if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose
                     # prior's best mode can be a far or collapsed one whose basin misses the stiffer prior's
                     starts = [self._adapt(th, prob) for th in seeds] + [self._fresh(prob)]
-                elif carry and fam != families[0]:  # the other family's best, plus one fresh range hypothesis
+                elif carry and (fam != families[0] or trust_warm):  # the other family's (or a trusted warm)
+                    # best, plus one fresh range hypothesis
                     starts = [self._adapt(th, prob) for th in carry] + [self._fresh(prob)]
                 else:  # the first family: every range hypothesis, plus the caller's warm solution if any (a
                     # warm start alone kept an online window in a wrong basin for seconds)

@@ -229,7 +229,9 @@ class SlidingWindowEstimator:
             warm = None
             if self._theta is not None and self._prob is not None:
                 warm = self._shift(self.map.problem(obs, self._prior, self._grid))
-            res = self.map.solve(obs, grid=self._grid, warm=warm)
+            # a window the last selection called observable is warm-started alone (plus one fresh range
+            # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
+            res = self.map.solve(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
             prob: WindowProblem = res.extras["problem"]
             theta = res.extras["theta"]
             self._prior = res.prior
