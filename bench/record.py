@@ -1,6 +1,6 @@
 """Benchmark of the flight recorder (:mod:`onboard.record`): what recording costs per frame.
 
-``python -m bench.record [--frames N] [--compression lz4|zstd|none]``.  Frames are 640 x 512 mono8 with
+``python -m bench.record [--frames N] [--compression none|lz4|zstd] [--sync-mb MB] [--dir DIR]``.  Frames are 640 x 512 mono8 with
 NETD-like noise (the simulator's noise does not compress much either) at 30 Hz worth of messages:
 per frame one RawImage, one frame_input with a pose, one track with a position, three MAVLink datagrams.
 Prints:
@@ -10,6 +10,11 @@ Prints:
 * the writer thread's CPU per frame (protobuf/JSON encoding, chunk compression, write: its own
   ``time.thread_time``), and whether it kept up (drops);
 * file size per frame and per minute at 30 Hz.
+
+``--replay FILE.mcap``: instead, replay speed (``onboard.replay`` at ``--rate max``) on a recording: load time, then
+two replays in one process (the first pays the lazy imports of the estimator's scipy modules), wall and CPU s,
+x real time, and where the loop's time goes (cProfile cumulative on a third run): the pipeline (its estimator,
+its imaging and tracker) and replay's own decoding, poses and JSON.
 
 Numbers only: nothing asserts on time.
 """
@@ -27,7 +32,7 @@ from onboard.frames import GeodeticOrigin
 from onboard.irframe import IrFrame
 from onboard.pose import PoseAt, PoseSample
 from onboard.record import FlightRecorder, RecordSettings
-from onboard.track import Track
+from onboard.track import Track, track_to_bytes
 
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
@@ -35,16 +40,22 @@ ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.record")
     ap.add_argument("--frames", type=int, default=600)
-    ap.add_argument("--compression", default="lz4", choices=("lz4", "zstd", "none"))
+    ap.add_argument("--compression", default="none", choices=("none", "lz4", "zstd"))
+    ap.add_argument("--sync-mb", type=float, default=8.0, help="record.sync_mb (0: never sync/drop pages)")
+    ap.add_argument("--dir", default=None, help="where the file goes (default: a temporary directory)")
+    ap.add_argument("--replay", metavar="FILE.mcap", help="measure replay speed on this recording instead")
     args = ap.parse_args(argv)
+    if args.replay:
+        return bench_replay(args.replay)
     rng = np.random.default_rng(0)
     base = np.clip(np.linspace(60, 140, 512)[:, None] + np.zeros((1, 640)), 0, 255)
     frames = [IrFrame(i, 1_000_000 + i * 33_333, np.clip(base + rng.normal(0, 1.0, base.shape), 0, 255).astype(np.uint8))
               for i in range(min(args.frames, 60))]
     q = np.array([1.0, 0.0, 0.0, 0.0])
-    with tempfile.TemporaryDirectory() as d:
+    with tempfile.TemporaryDirectory(dir=args.dir) as d:
         path = os.path.join(d, "bench.mcap")
-        rec = FlightRecorder(RecordSettings(path, compression=args.compression), vehicle="uav1")
+        rec = FlightRecorder(RecordSettings(path, compression=args.compression, sync_bytes=int(args.sync_mb * 1e6)),
+                             vehicle="uav1")
         rec.start()
         dg = bytes(range(60))
         caller_us = []
@@ -58,12 +69,13 @@ def main(argv=None) -> int:
                           bbox=(310.0, 246.0, 20.0, 20.0), lat_deg=47.4, lon_deg=8.55, alt_m=600.0,
                           p_ned_m=(100.0, 50.0, -100.0), v_ned_mps=(5.0, 0.0, 0.0), cov_p_ned_m2=np.eye(3), range_m=150.0,
                           origin=ORIGIN)
+            payload = track_to_bytes(track)  # the daemon hands the recorder the bytes it published
             t0 = time.perf_counter_ns()
             for _ in range(3):
                 rec.on_mavlink(dg, "autopilot", ("127.0.0.1", 14540))
             rec.on_frame(fr, t0)
             rec.on_frame_input(fr, t0, True, pose)
-            rec.on_track(track, None)
+            rec.on_track(track, payload)
             caller_us.append((time.perf_counter_ns() - t0) / 1e3)
             time.sleep(max(0.0, (i + 1) / 30.0 - (time.perf_counter() - w0)))  # 30 Hz, as a camera
         rec.close(30.0)
@@ -72,11 +84,47 @@ def main(argv=None) -> int:
         size = os.path.getsize(path)
     caller = np.array(caller_us)
     writer_ms = rec.writer_cpu_s / args.frames * 1e3
-    print(f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, compression {args.compression}, load {os.getloadavg()[0]:.1f}")
+    print(f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, compression {args.compression}, sync every "
+          f"{args.sync_mb:g} MB ({rec.syncs} syncs), load {os.getloadavg()[0]:.1f}")
     print(f"  callers (on_* of one frame): median {np.median(caller):.1f} us, p99 {np.percentile(caller, 99):.1f} us")
     print(f"  writer thread CPU per frame: {writer_ms:.2f} ms (thread_time; whole process {cpu_s:.2f} CPU s over "
           f"{wall_s:.1f} s wall, making the test messages included); dropped {rec.dropped}, write errors {rec.write_errors}")
     print(f"  file: {size / args.frames / 1e3:.0f} kB per frame, {size / args.frames * 30 * 60 / 1e6:.0f} MB per minute at 30 Hz")
+    return 0
+
+
+def bench_replay(path: str) -> int:
+    import cProfile
+    import logging
+    import pstats
+
+    from onboard.replay import config_of, load_recording, replay
+
+    logging.disable(logging.WARNING)
+    t0 = time.perf_counter()
+    rec = load_recording(path)
+    cfg = config_of(rec)
+    print(f"replay of {path}: {len(rec.inputs)} frames; load {time.perf_counter() - t0:.2f} s; load {os.getloadavg()[0]:.1f}")
+    for i in range(2):
+        c0 = time.process_time()
+        r = replay(rec, cfg)
+        print(f"  run {i + 1}{' (cold imports)' if i == 0 else ''}: {r.wall_s:.2f} s wall, {time.process_time() - c0:.2f} CPU s"
+              f" for {r.flight_s:.1f} s of flight: x{r.speed_x:.1f} real time (x{r.flight_s / max(time.process_time() - c0, 1e-9):.1f}"
+              f" per CPU s)")
+    pr = cProfile.Profile()
+    pr.enable()
+    replay(rec, cfg)
+    pr.disable()
+    st = pstats.Stats(pr).stats
+
+    def cum(name: str, where: str = "onboard") -> float:  # cumulative time of the functions ``name`` in files ``where``
+        return sum(v[3] for k, v in st.items() if k[2] == name and where in k[0])
+
+    total, process = cum("replay", "onboard/replay"), cum("process", "onboard/pipeline")
+    est, trk = cum("_estimate", "onboard/pipeline"), cum("update", "onboard/imaging/tracker")
+    print(f"  where the time goes (cProfile cumulative, of the replay loop): pipeline {process / total * 100:.0f} % "
+          f"(estimator {est / total * 100:.0f} %, tracker {trk / total * 100:.0f} %, rest of the pipeline "
+          f"{(process - est - trk) / total * 100:.0f} %), replay's own decoding/poses/JSON {(total - process) / total * 100:.0f} %")
     return 0
 
 

@@ -28,6 +28,8 @@ Ctrl-C; 1 when a child failed to start or died (its log tail is printed).
 
 from __future__ import annotations
 
+import dataclasses
+
 import json
 import logging
 import math
@@ -91,6 +93,7 @@ class DemoPlan:
     truth_path: Path
     python: str = sys.executable
     nav_noise: str = "RTK"  # the simulator's navigation-error case (groundsim run --nav-noise)
+    live_view_port: int | None = None  # passed to the daemon as --live-view PORT (Foxglove WebSocket on 127.0.0.1)
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -177,7 +180,8 @@ def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_conf
 
 
 def daemon_command(plan: DemoPlan) -> list[str]:
-    return [plan.python, "-m", "onboard", "--config", str(plan.onboard_config_path)]
+    live = [] if plan.live_view_port is None else ["--live-view", str(int(plan.live_view_port))]
+    return [plan.python, "-m", "onboard", "--config", str(plan.onboard_config_path), *live]
 
 
 def sim_command(plan: DemoPlan) -> list[str]:
@@ -803,6 +807,11 @@ def cmd_demo(args) -> int:
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
         plan = plan_demo(args.scenario, args.duration, args.seed, args.out, args.onboard_config,
                          getattr(args, "nav_noise", None))
+        live_port = getattr(args, "live_view", None)  # --live-view PORT: passed through to the daemon
+        if live_port is not None:
+            plan = dataclasses.replace(plan, live_view_port=int(live_port))
+            print(f"demo: live view for Foxglove at ws://127.0.0.1:{int(live_port)} (Open connection -> Foxglove WebSocket)",
+                  flush=True)
         outcome = run_demo(plan, stop)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
             _quick_eval(plan.out_dir / "eval", stop, plan.nav_noise)

@@ -3,7 +3,7 @@
     python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:127.0.0.1:14540]
                       [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                       [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
-                      [--gcs ENDPOINT]... [--video-udp HOST:PORT] [--record FILE.mcap]
+                      [--gcs ENDPOINT]... [--video-udp HOST:PORT] [--record FILE.mcap] [--live-view PORT]
                       [--log-level LEVEL] [--log-format text|json] [--set FIELD.PATH=VALUE]...
                       [--check] [--print-config]
 
@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(config: video.destination)")
     p.add_argument("--record", metavar="FILE.mcap",
                    help="record inputs and outputs to this MCAP file (config: record.path; see onboard/record.py)")
+    p.add_argument("--live-view", metavar="PORT", type=int,
+                   help="serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
+                        "(bound to live_view.host, 127.0.0.1 by default; config: live_view.port; see onboard/live_view.py)")
     p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
                    help="log level (config: logging.level)")
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
@@ -100,6 +103,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("gcs.endpoints", args.gcs, "--gcs"),
         ("video.destination", args.video_udp, "--video-udp"),
         ("record.path", args.record, "--record"),
+        ("live_view.port", args.live_view, "--live-view"),
         ("logging.level", args.log_level, "--log-level"),
         ("logging.format", args.log_format, "--log-format"),
     )

@@ -621,8 +621,21 @@ class RecordConfig(_Section):
     max_files: int = F(0, "int", lo=0, hi=100_000)
     chunk_kb: int = F(1024, "int", lo=16, hi=65_536)
     flush_interval_s: float = F(1.0, "float", lo=0.05, hi=60.0)
-    compression: str = F("lz4", "str", choices=("none", "lz4", "zstd"))
+    compression: str = F("none", "str", choices=("none", "lz4", "zstd"))
     queue_mb: float = F(64.0, "float", lo=1.0, hi=4096.0)
+    sync_mb: float = F(8.0, "float", lo=0.0, hi=4096.0)
+
+
+@dataclass(frozen=True)
+class LiveViewConfig(_Section):
+    """``live_view``: the Foxglove WebSocket server for watching live (see :mod:`onboard.live_view`)."""
+
+    _path: ClassVar[str] = "live_view"
+    port: int | None = F(None, "int", nullable=True, lo=1, hi=65535)
+    host: str = F("127.0.0.1", "str")
+    queue_length: int = F(32, "int", lo=1, hi=10_000)
+    los_length_m: float = F(500.0, "float", lo=0.0, lo_open=True, hi=1_000_000.0)
+    trail_points: int = F(600, "int", lo=2, hi=100_000)
 
 
 @dataclass(frozen=True)
@@ -654,6 +667,7 @@ class OnboardConfig(_Section):
     video: VideoConfig = _section(VideoConfig)
     follow: FollowConfig = _section(FollowConfig)
     record: RecordConfig = _section(RecordConfig)
+    live_view: LiveViewConfig = _section(LiveViewConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

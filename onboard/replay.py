@@ -1,7 +1,7 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.record`) fed again through the pipeline.
 
     python -m onboard.replay FILE.mcap [--rate max|realtime] [--config FILE] [--set FIELD=VALUE]...
-                             [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]]
+                             [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]] [--live-view PORT]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
 which order, and the pose it interpolated for each; the frames themselves are the
@@ -195,8 +195,9 @@ class ReplayResult:
         return self.flight_s / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def replay(rec: Recording, config, *, rate: str = "max", on_track=None) -> ReplayResult:
-    """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring."""
+def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=None) -> ReplayResult:
+    """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring.
+    ``live``: an :class:`onboard.live_view.LiveView` shown each frame, its pose and track (never waited for)."""
     from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
     from onboard.pose import RejectCounter
     from onboard.track import track_to_json
@@ -229,11 +230,18 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None) -> Repla
             if ahead > 0:
                 time.sleep(ahead)
         fed += 1
+        if live is not None:
+            live.on_frame(frame)
         try:
             track = pipe.process(frame, int(inp["received_ns"]))
         except FrameRejected:
             refused += 1
             continue
+        finally:
+            if live is not None:
+                live.on_pose(frame, poses.pose)
+        if live is not None:
+            live.on_track(track)
         obj = json.loads(json.dumps(track_to_json(track), allow_nan=False))
         out.append(obj)
         if on_track is not None:
@@ -330,6 +338,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
     p.add_argument("--report", metavar="DIR", help="write plots of the flight (trajectory, error vs truth, a frame)")
+    p.add_argument("--live-view", metavar="PORT", type=int,
+                   help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/live_view.py; "
+                        "with --rate realtime to watch it as flown)")
     p.add_argument("--truth", metavar="SIM.mcap", help="the simulator's recording of the same run (groundsim run --record): "
                                                        "its /groundsim/truth channel gives the error plot")
     return p
@@ -353,11 +364,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
           f"{len(rec.tracks)} recorded tracks" + (f"; file cut short ({rec.truncated}): read to its last chunk"
                                                    if rec.truncated else ""))
+    live = None
     try:
-        res = replay(rec, config, rate=args.rate)
+        if args.live_view is not None:
+            from onboard.live_view import LiveView, LiveViewSettings
+            live = LiveView(LiveViewSettings.from_config(config.live_view, port=args.live_view), vehicle=config.vehicle,
+                            intrinsics=config.camera.pinhole())
+            live.start()
+            print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
+        res = replay(rec, config, rate=args.rate, live=live)
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
+    finally:
+        if live is not None:
+            live.close()
     print(f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
           f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
           f"x{res.speed_x:.1f} real time")

@@ -766,12 +766,22 @@ class OnboardService:
             self.recorder = FlightRecorder(RecordSettings.from_config(config.record), vehicle=config.vehicle,
                                            metadata=_record_metadata(config), clock_ns=clock_ns)
             pose_source = RecordingPoseSource(self.pose)  # remembers each frame's pose for the recording
+        self.live_view = None  # onboard.live_view.LiveView (live_view.port / --live-view)
+        if config.live_view.port is not None:
+            from onboard.live_view import LiveView, LiveViewSettings
+            from onboard.record import RecordingPoseSource
+
+            if not isinstance(pose_source, RecordingPoseSource):
+                pose_source = RecordingPoseSource(self.pose)  # the frame's pose for the 3-D scene
         self.pipeline = FramePipeline(
             config, pose_source, make_tracker(config), est, config.pose.geodetic_origin(),
             counter=self.counter,
             pose_wait=(lambda t_us: self.pose.wait_for(t_us, wait_s, self._clock)) if wait_s > 0 else None,
             clock_ns=clock_ns,
         )
+        if config.live_view.port is not None:
+            self.live_view = LiveView(LiveViewSettings.from_config(config.live_view), vehicle=config.vehicle,
+                                      intrinsics=self.pipeline.intrinsics)
         self.link = None
         self.gcs = None  # onboard.gcs_link.GcsLink: the camera component's sockets (gcs.endpoints)
         self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
@@ -824,6 +834,8 @@ class OnboardService:
             except OSError as exc:
                 raise InputError(f"record.path: cannot write {exc.filename or cfg.record.path}: "
                                  f"{exc.strerror or exc}") from None
+        if self.live_view is not None:
+            self.live_view.start()  # a port in use fails the start, in one line (InputError)
         self.link = MavlinkLink(
             cfg.mavlink.connection, self.pose, self.counter, gimballed=self.mount.gimballed,
             att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
@@ -896,6 +908,8 @@ class OnboardService:
             self.video.close(timeout_s / 2)
         if self.recorder is not None:
             self.recorder.close(max(timeout_s, 2.0))  # after the pipeline: its last frames are in the file
+        if self.live_view is not None:
+            self.live_view.close()
         if self._health_path:
             try:
                 os.unlink(self._health_path)
@@ -923,6 +937,8 @@ class OnboardService:
             frame = decode_irframe(payload.to_bytes(), max_bytes)  # header checks; pixels stay a view
             if self.recorder is not None:
                 self.recorder.on_frame(frame, received)  # never blocks: queued for the writer thread
+            if self.live_view is not None:
+                self.live_view.on_frame(frame)  # never blocks: dropped and counted when the publisher is behind
         except IrFrameError as exc:
             self.counter.count(f"frame_{exc.reason}", str(exc))
             return
@@ -968,8 +984,12 @@ class OnboardService:
                 continue
             finally:
                 self._pipeline_cpu_s += time.thread_time() - c0
-                if self.recorder is not None:
-                    self.recorder.on_frame_input(frame, received_ns, *self.pipeline.pose_source.take())
+                if self.recorder is not None or self.live_view is not None:
+                    looked_up, pose = self.pipeline.pose_source.take()
+                    if self.recorder is not None:
+                        self.recorder.on_frame_input(frame, received_ns, looked_up, pose)
+                    if self.live_view is not None:
+                        self.live_view.on_pose(frame, pose)
             if self.video is not None:
                 self.video.submit(frame.pixels, track)  # never blocks: the encoder drops its oldest frame
             payload = None
@@ -985,6 +1005,8 @@ class OnboardService:
                     self.counter.count("track_publish_error", f"{type(exc).__name__}: {exc}")
             if self.recorder is not None:
                 self.recorder.on_track(track, payload)
+            if self.live_view is not None:
+                self.live_view.on_track(track, payload)
             done = self._clock_ns()
             self.latency_ms.add((done - received_ns) / 1e6)
             self._done.append((track.time_boot_us, done))
@@ -1144,7 +1166,8 @@ class OnboardService:
             warnings=self.watchdog.active_dicts(),
         ) | ({"camera": self._camera_status()} if self.camera is not None else {}) | (
             {"video": self.video.status()} if self.video is not None else {}) | (
-            {"record": self.recorder.stats()} if self.recorder is not None else {})
+            {"record": self.recorder.stats()} if self.recorder is not None else {}) | (
+            {"live_view": self.live_view.stats()} if self.live_view is not None else {})
 
     def _camera_status(self) -> dict[str, Any]:
         st = self.camera.status()
@@ -1176,6 +1199,8 @@ class OnboardService:
             return now, p1, w1
         if self.recorder is not None:
             self.recorder.on_status(data)
+        if self.live_view is not None:
+            self.live_view.on_status(data)
         if self._status_pub is not None:
             try:
                 self._status_pub.put(data)

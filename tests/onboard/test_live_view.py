@@ -1,0 +1,273 @@
+"""Issue 13 item 5, live view (onboard/live_view.py): the scene geometry (pure), the publisher's drop-and-count, and
+a plain WebSocket client (the `websockets` package, no Foxglove code) speaking the Foxglove WebSocket protocol
+(foxglove.websocket.v1's messages, under the subprotocol name foxglove.sdk.v1 the SDK
+speaks: serverInfo/advertise -> subscribe -> binary message data, opcode 1) to the
+server in-process and to a daemon started with --live-view in a closed loop with the simulator on 127.0.0.1."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import struct
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from onboard.errors import InputError
+from onboard.frames import rotmat_from_quat
+from onboard.live_view import (Q_ENU_FROM_NED, SCENE_TOPIC, LiveView, LiveViewSettings, ellipsoid_of_cov,
+                               frustum_lines_ned, los_segment_ned)
+
+REPO = Path(__file__).resolve().parents[2]
+ATOL = 1e-9  # dimensionless / metres, round-off
+WS_TIMEOUT_S = 60.0  # hang guard of one client session
+# foxglove-sdk >= 0.x (0.30 here) names the v1 protocol foxglove.sdk.v1 and refuses the old name foxglove.websocket.v1
+# (HTTP 400): the messages are those of foxglove.websocket.v1 (https://github.com/orgs/foxglove/discussions/1131).
+SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
+
+
+# --------------------------------------------------------------------------- geometry (pure)
+
+
+def test_ellipsoid_of_cov_rebuilds_the_covariance_and_is_right_handed():
+    rng = np.random.default_rng(1)
+    A = rng.normal(size=(3, 3))
+    cov = A @ A.T + 0.1 * np.eye(3)
+    diam, q = ellipsoid_of_cov(cov, n_sigma=2.0)
+    R = rotmat_from_quat(q)
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=ATOL)
+    semi = diam / 2.0 / 2.0  # 2-sigma diameters -> 1-sigma semi-axes
+    np.testing.assert_allclose(R @ np.diag(semi**2) @ R.T, cov, atol=1e-9)
+
+
+def test_ellipsoid_of_cov_refuses_a_non_finite_matrix():
+    with pytest.raises(InputError):
+        ellipsoid_of_cov(np.full((3, 3), np.nan))
+
+
+def test_los_and_frustum_point_where_the_camera_looks():
+    # camera looking north (OpenCV z forward = NED north; x right = east; y down = down)
+    R_ned_from_cam = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    from onboard.frames import quat_from_rotmat
+
+    q = quat_from_rotmat(R_ned_from_cam)
+    p = np.array([10.0, 20.0, -100.0])
+    seg = los_segment_ned(p, [1.0, 0.0, 0.0], 50.0)
+    np.testing.assert_allclose(seg, [p, p + [50.0, 0.0, 0.0]], atol=ATOL)
+    lines = frustum_lines_ned(p, q, 640, 512, 500.0, 500.0, 320.0, 256.0, depth_m=5.0)
+    assert lines.shape == (16, 3)
+    np.testing.assert_allclose(lines[0::2][:4], np.tile(p, (4, 1)), atol=ATOL)  # rays start at the apex
+    far = lines[1:8:2]
+    np.testing.assert_allclose(far[:, 0] - p[0], 5.0, atol=ATOL)  # all 5 m ahead (north)
+    # top-left image corner: left (west, -east) and up (-down)
+    assert far[0, 1] < p[1] and far[0, 2] < p[2]
+
+
+def test_enu_from_ned_maps_north_to_y_and_down_to_minus_z():
+    R = rotmat_from_quat(Q_ENU_FROM_NED)
+    np.testing.assert_allclose(R @ [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], atol=ATOL)
+    np.testing.assert_allclose(R @ [0.0, 0.0, 1.0], [0.0, 0.0, -1.0], atol=ATOL)
+
+
+def test_settings_refuse_a_bad_port():
+    with pytest.raises(InputError, match="live_view.port"):
+        LiveViewSettings(port=70000)
+
+
+# --------------------------------------------------------------------------- never stalls: drop and count
+
+
+class _Frame:
+    seq, time_boot_us = 1, 1_000_000
+    pixels = np.zeros((4, 4), np.uint8)
+
+
+class _Sinks:
+    def has_sinks(self) -> bool:
+        return True
+
+
+def test_a_full_queue_drops_and_counts_instead_of_waiting():
+    lv = LiveView(LiveViewSettings(port=0, queue_length=3))  # not started: nothing drains the queue
+    lv._ch["frame"] = _Sinks()
+    assert lv.on_frame(_Frame())
+    assert not lv.on_frame(_Frame())  # one frame queued at most
+    assert lv.on_status(b"{}") and lv.on_status(b"{}")
+    assert not lv.on_status(b"{}")  # queue_length reached
+    st = lv.stats()
+    assert st["dropped"] == 2 and st["dropped_by_kind"] == {"frame": 1, "status": 1}
+
+
+# --------------------------------------------------------------------------- the protocol, by a plain client
+
+
+async def _watch(url: str, topics: set[str], want: dict[str, int], feed=None, timeout_s: float = WS_TIMEOUT_S) -> dict:
+    """Connect, wait for the advertisements of ``topics``, subscribe, collect binary message data until ``want``
+    (topic -> count) is met; ``feed()`` is called between receives (in-process producer).  Returns
+    {"advertised": {topic: channel}, "messages": {topic: [payload bytes]}}."""
+    import websockets
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            ws = await websockets.connect(url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=5)
+            break
+        except (OSError, asyncio.TimeoutError, websockets.exceptions.InvalidHandshake):
+            if time.monotonic() > deadline:
+                raise
+            await asyncio.sleep(0.2)
+    advertised: dict = {}
+    messages: dict = {t: [] for t in topics}
+    by_sub: dict = {}
+    async with ws:
+        assert ws.subprotocol in SUBPROTOCOLS
+        subscribed = False
+        while not all(len(messages[t]) >= n for t, n in want.items()):
+            assert time.monotonic() < deadline, f"within {timeout_s} s: advertised {sorted(advertised)}, " \
+                                                f"received {{t: len(v) for t, v in messages.items()}} = " \
+                                                f"{ {t: len(v) for t, v in messages.items()} }"
+            if feed is not None:
+                feed()
+            try:
+                msg = await asyncio.wait_for(ws.recv(), 0.05 if feed is not None else 1.0)
+            except asyncio.TimeoutError:
+                continue
+            if isinstance(msg, str):
+                obj = json.loads(msg)
+                if obj.get("op") == "advertise":
+                    for ch in obj["channels"]:
+                        advertised[ch["topic"]] = ch
+                if not subscribed and topics <= set(advertised):
+                    subs = [{"id": i + 1, "channelId": advertised[t]["id"]} for i, t in enumerate(sorted(topics))]
+                    by_sub = {i + 1: t for i, t in enumerate(sorted(topics))}
+                    await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
+                    subscribed = True
+            elif msg and msg[0] == 0x01:  # message data: opcode, uint32 subscription id, uint64 log time, payload
+                (sub_id,) = struct.unpack_from("<I", msg, 1)
+                messages[by_sub[sub_id]].append(bytes(msg[13:]))
+    return {"advertised": advertised, "messages": messages}
+
+
+def _track(seq: int):
+    from onboard.frames import GeodeticOrigin
+    from onboard.track import LineOfSight, Track
+
+    o = GeodeticOrigin(47.4, 8.5, 500.0)
+    los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0))
+    return Track("uav1", seq, 1_000_000 + seq * 33_333, "tracking", track_id=1, measurement_valid=True, u_px=320.0,
+                 v_px=256.0, bbox=(310.0, 246.0, 20.0, 20.0), pose_valid=True, los=los, origin=o, lat_deg=47.401,
+                 lon_deg=8.5, alt_m=600.0, p_ned_m=(150.0, 0.0, -100.0), v_ned_mps=(5.0, 0.0, 0.0),
+                 cov_p_ned_m2=np.diag([4.0, 1.0, 1.0]), range_m=150.0, observable=True)
+
+
+@pytest.mark.integration
+def test_a_plain_websocket_client_subscribes_and_receives_frames_tracks_and_the_scene():
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+    from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+
+    from onboard.irframe import IrFrame
+
+    lv = LiveView(LiveViewSettings(port=0), vehicle="uav1")
+    lv.start()
+    try:
+        assert lv.port > 0
+        px = (np.arange(512 * 640) % 251).astype(np.uint8).reshape(512, 640)
+        n = [0]
+
+        def feed():
+            n[0] += 1
+            lv.on_frame(IrFrame(n[0], 1_000_000 + n[0] * 33_333, px))
+            lv.on_track(_track(n[0]))
+
+        topics = {lv.frame_topic, lv.track_topic, SCENE_TOPIC}
+        got = asyncio.run(_watch(f"ws://127.0.0.1:{lv.port}", topics, {t: 2 for t in topics}, feed))
+    finally:
+        lv.close()
+    adv = got["advertised"]
+    assert adv[lv.frame_topic]["schemaName"] == "foxglove.RawImage" and adv[lv.frame_topic]["encoding"] == "protobuf"
+    assert adv[lv.track_topic]["schemaName"] == "irtrack.track/2" and adv[lv.track_topic]["encoding"] == "json"
+    img = RawImage()
+    img.ParseFromString(got["messages"][lv.frame_topic][0])
+    assert (img.width, img.height, img.encoding) == (640, 512, "mono8") and img.data == px.tobytes()
+    tr = json.loads(got["messages"][lv.track_topic][0])
+    assert tr["schema"] == "irtrack.track/2" and tr["state"] == "tracking" and tr["ned_m"] == [150.0, 0.0, -100.0]
+    sc = SceneUpdate()
+    sc.ParseFromString(got["messages"][SCENE_TOPIC][0])
+    ents = {e.id: e for e in sc.entities}
+    assert {"camera", "line_of_sight", "target", "target_trail", "camera_trail"} <= set(ents)
+    sph = ents["target"].spheres[0]
+    assert sph.pose.position.x == 150.0
+    size = np.array([sph.size.x, sph.size.y, sph.size.z])
+    o = sph.pose.orientation
+    R = rotmat_from_quat([o.w, o.x, o.y, o.z])
+    np.testing.assert_allclose(sorted(size), [2.0, 2.0, 4.0], atol=1e-6)  # 1-sigma diameters of diag(4, 1, 1) m^2
+    np.testing.assert_allclose(abs(R[:, int(np.argmax(size))]), [1.0, 0.0, 0.0], atol=1e-6)  # the long axis: north
+    assert ents["line_of_sight"].lines[0].points[1].x == pytest.approx(150.0)  # drawn to the range
+
+
+# --------------------------------------------------------------------------- the daemon, closed loop
+
+
+def _kill(proc, sig=signal.SIGTERM, wait_s: float = 10.0):
+    if proc is None or proc.poll() is not None:
+        return None if proc is None else proc.returncode
+    try:
+        os.kill(proc.pid, sig)
+        proc.wait(wait_s)
+    except subprocess.TimeoutExpired:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(wait_s)
+    except ProcessLookupError:
+        pass
+    return proc.returncode
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
+    """``python -m onboard --live-view PORT`` with the simulator on loopback: the client receives frames (RawImage),
+    tracks (irtrack.track/2) and scene updates as they happen; the daemon still exits 0 on SIGTERM."""
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    from groundsim.demo import _child_env, daemon_command, free_port, plan_demo, sim_command
+
+    port = free_port("tcp")
+    plan = plan_demo("P1", 30.0, 0, tmp_path, str(REPO / "config" / "onboard_sim.yaml"))
+    import dataclasses
+
+    plan = dataclasses.replace(plan, live_view_port=port)
+    env = _child_env()
+    daemon = sim = None
+    with open(tmp_path / "onboard.log", "wb") as dlog, open(tmp_path / "sim.log", "wb") as slog:
+        try:
+            daemon = subprocess.Popen(daemon_command(plan), cwd=REPO, stdout=dlog, stderr=subprocess.STDOUT,
+                                      stdin=subprocess.DEVNULL, env=env)
+            started = [False]
+
+            def feed():  # start the simulator once the client is connected; fail fast on a dead daemon
+                nonlocal sim
+                assert daemon.poll() is None, (tmp_path / "onboard.log").read_text()[-3000:]
+                if not started[0]:
+                    started[0] = True
+                    sim = subprocess.Popen(sim_command(plan), cwd=REPO, stdout=slog, stderr=subprocess.STDOUT,
+                                           stdin=subprocess.DEVNULL, env=env)
+
+            frame_t, track_t = f"irtrack/{plan.vehicle}/ir/frame", f"irtrack/{plan.vehicle}/track"
+            topics = {frame_t, track_t, SCENE_TOPIC}
+            got = asyncio.run(_watch(f"ws://127.0.0.1:{port}", topics, {frame_t: 3, track_t: 30, SCENE_TOPIC: 30}, feed,
+                                     timeout_s=120.0))
+        finally:
+            _kill(sim)
+            rc = _kill(daemon)
+    assert rc == 0, (tmp_path / "onboard.log").read_text()[-3000:]
+    img = RawImage()
+    img.ParseFromString(got["messages"][frame_t][0])
+    assert img.encoding in ("mono8", "mono16") and img.width > 0 and len(img.data) == img.step * img.height
+    tracks = [json.loads(m) for m in got["messages"][track_t]]
+    assert all(t["schema"] == "irtrack.track/2" and t["vehicle"] == plan.vehicle for t in tracks)
+    assert any(t["state"] == "tracking" for t in tracks)
