@@ -48,11 +48,15 @@ log every time, in the spec's order, so the table does not depend on the order r
 on interruptions.
 
 Execution.  One *job* is a case (scenario variant, noise case, seed): it synthesises once, computes the
-bound once and runs each pending algorithm.  Jobs go to a process pool (forkserver, one BLAS thread per
-worker) or, with ``--workers 1``, run in this process; a tqdm bar counts runs.  Scaling out: the job
-function :func:`run_job` is a pure function of picklable arguments, so any executor that maps it
-(``dask.distributed.Client.map`` / ``as_completed``) and hands the rows back to :func:`append_rows` on
-the coordinating machine is a drop-in; the append-only log stays on that machine.  Not built here.
+bound once and runs each pending algorithm.  :func:`run_job` is a pure function of a picklable job.
+Jobs go to a local process pool (forkserver, one BLAS thread per worker), or, with ``--workers 1``, run
+in this process, or, with ``--scheduler tcp://HOST:PORT``, to the workers of a Dask distributed cluster
+(``dask scheduler`` / ``dask worker``; docs/campaigns.md).  Pool and cluster take one path: every job
+submitted as a future, the rows taken as each completes and appended by this process (the coordinator)
+with :func:`append_rows`; workers never see the output directory, so the log, the resumption and the
+table are the same whichever executor ran the jobs.  Before submitting, the coordinator asks every
+connected worker for its :func:`code_fingerprint` and refuses workers running other irtrack code.
+A tqdm bar counts runs.
 """
 
 from __future__ import annotations
@@ -80,7 +84,7 @@ __all__ = [
     "Geometry", "REFERENCE_GEOMETRY", "ManoeuvreScaled", "MovedTarget", "derive_scenario",
     "CampaignSpec", "load_spec", "spec_from_dict", "RunParams", "run_id", "plan_runs",
     "score_track", "run_job", "read_log", "append_rows", "run_campaign", "CampaignResult",
-    "table_rows", "write_table", "write_report", "cmd_campaign", "RESULT_SCHEMA", "MODES",
+    "table_rows", "write_table", "write_report", "cmd_campaign", "RESULT_SCHEMA", "MODES", "code_fingerprint",
 ]
 
 log = logging.getLogger(__name__)
@@ -95,6 +99,7 @@ MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
 GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
 LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = (
     "runs.jsonl", "runs.csv", "runs.parquet", "report.md", "manoeuvre.png")
+SCHEDULER_CONNECT_TIMEOUT_S = 10.0  # --scheduler: how long to wait for the Dask scheduler to answer
 #: columns that are measurements of the machine, not results: left out when tables are compared
 TIMING_COLUMNS = ("wall_s", "case_wall_s")
 
@@ -807,11 +812,83 @@ def _jobs(spec: CampaignSpec, runs: list[RunParams], base_config) -> list[Job]:
     return jobs
 
 
+def _cluster_client(scheduler: str):
+    """A ``distributed.Client`` on ``scheduler`` (``tcp://HOST:PORT``); ConfigError naming ``--scheduler``
+    when dask is missing, the address is malformed or nothing answers there."""
+    if "://" not in scheduler:
+        raise ConfigError(f"--scheduler: expected an address tcp://HOST:PORT, got {scheduler!r}")
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("--scheduler: needs dask.distributed (pip install 'irtrack[sim]')") from None
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(f"--scheduler {scheduler}: no scheduler answered within {SCHEDULER_CONNECT_TIMEOUT_S:g} s "
+                          f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+    return client
+
+
+def code_fingerprint() -> str:
+    """Digest of the irtrack code a process runs (every ``.py`` under ``onboard/`` and ``groundsim/`` as
+    imported, path and bytes), so a coordinator can refuse cluster workers running other code."""
+    import groundsim
+    import onboard
+
+    h = hashlib.sha256()
+    for pkg in (onboard, groundsim):
+        root = Path(pkg.__file__).resolve().parent
+        for f in sorted(root.rglob("*.py")):
+            h.update(str(f.relative_to(root.parent)).encode("utf-8") + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _remote_job(job: Job) -> list[dict]:
+    """:func:`run_job` on a cluster worker, with one BLAS thread (as the local pool's initializer sets)."""
+    from groundsim.eval import limit_blas_threads
+
+    limit_blas_threads(1)
+    return run_job(job)
+
+
+def _check_workers(client, scheduler: str) -> int:
+    """Threads the cluster offers; ConfigError when it has none or a worker runs other irtrack code."""
+    nthreads = client.nthreads()
+    if not nthreads:
+        raise ConfigError(f"--scheduler {scheduler}: the scheduler has no workers (start some: dask worker {scheduler})")
+    mine = code_fingerprint()
+    theirs = client.run(code_fingerprint)
+    other = sorted(w for w, fp in theirs.items() if fp != mine)
+    if other:
+        raise ConfigError(f"--scheduler {scheduler}: worker(s) {', '.join(other)} run other irtrack code than this "
+                          f"coordinator (fingerprint {mine}); install the same checkout there")
+    return sum(nthreads.values())
+
+
+def _pool_futures(pool, jobs: list[Job]):
+    """Each job submitted to a multiprocessing pool, as a ``concurrent.futures.Future`` of its rows."""
+    import concurrent.futures as cf
+
+    futs = []
+    for j in jobs:
+        f = cf.Future()
+        f.set_running_or_notify_cancel()
+        pool.apply_async(run_job, (j,), callback=f.set_result, error_callback=f.set_exception)
+        futs.append(f)
+    return futs
+
+
 def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool = True, fresh: bool = False,
-                 retry_failed: bool = False, base_config=None, onboard_digest: str = "defaults") -> CampaignResult:
-    """Plan, skip what the log has, run the rest over ``workers`` processes (1 = here), append each
-    case's rows as they come, then rebuild the table and the report.  Ctrl-C stops cleanly: the runs
-    finished so far are kept, the table and report show them, and the same command resumes."""
+                 retry_failed: bool = False, base_config=None, onboard_digest: str = "defaults",
+                 scheduler: str | None = None) -> CampaignResult:
+    """Plan, skip what the log has, run the rest, append each case's rows as they come, then rebuild the
+    table and the report.  Ctrl-C stops cleanly: the runs finished so far are kept, the table and report
+    show them, and the same command resumes.
+
+    Executors: ``workers`` processes of a local pool (1 = in this process), or, with ``scheduler``
+    (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
+    cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
+    taken as they complete and appended here; workers never touch ``out``."""
     from groundsim.eval import limit_blas_threads
 
     out.mkdir(parents=True, exist_ok=True)
@@ -828,15 +905,27 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
     pending = [p for p, i in zip(planned, ids) if i not in done]
     reused = len(planned) - len(pending)
     jobs = _jobs(spec, pending, base_config)
-    workers = max(1, min(workers, len(jobs))) if jobs else 1
-    log.info("campaign %s: %d runs planned, %d already done, %d to run in %d jobs on %d worker(s)",
-             spec.name, len(planned), reused, len(pending), len(jobs), workers)
     limit_blas_threads(1)
+    client = None
+    if scheduler is not None:
+        client = _cluster_client(scheduler)
+        try:
+            workers = _check_workers(client, scheduler)
+        except BaseException:
+            client.close()
+            raise
+        where = f"the cluster at {scheduler}"
+    else:
+        workers = max(1, min(workers, len(jobs))) if jobs else 1
+        where = "this process" if workers == 1 else "a local process pool"
+    log.info("campaign %s: %d runs planned, %d already done, %d to run in %d jobs on %d worker(s) (%s)",
+             spec.name, len(planned), reused, len(pending), len(jobs), workers, where)
     bar = None
     ran = failed = 0
     interrupted = False
     t0 = time.perf_counter()
     pool = None
+    futures: list = []
     try:
         if progress and pending:
             from tqdm import tqdm
@@ -845,11 +934,23 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
 
             bar = tqdm(total=len(pending), unit="run", desc=f"campaign {spec.name} ({workers} worker(s))", leave=True,
                        dynamic_ncols=True, **_bar_pacing())
-        if workers == 1:
-            results = (run_job(j) for j in jobs)
-        else:
+        if client is not None:  # submit every job, take them as they complete
+            import uuid
+
+            from distributed import as_completed
+
+            batch = uuid.uuid4().hex[:8]
+            futures = [client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
+                       for k, j in enumerate(jobs)]
+            results = (f.result() for f in as_completed(futures, loop=client.loop))
+        elif workers > 1:  # the same, on a local pool
+            import concurrent.futures as cf
+
             pool = _pool_context().Pool(workers, initializer=_init_worker)
-            results = pool.imap_unordered(run_job, jobs, chunksize=1)
+            futures = _pool_futures(pool, jobs)
+            results = (f.result() for f in cf.as_completed(futures))
+        else:
+            results = (run_job(j) for j in jobs)
         for rows in results:
             append_rows(log_path, rows)
             ran += len(rows)
@@ -860,12 +961,19 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
         if pool is not None:
             pool.close()
             pool.join()
+            pool = None
     except KeyboardInterrupt:
         interrupted = True
+    finally:  # interrupted or failed: drop what is still queued or running (its runs are redone on resume)
         if pool is not None:
             pool.terminate()
             pool.join()
-    finally:
+        if client is not None:
+            try:
+                if futures:
+                    client.cancel(futures)
+            finally:
+                client.close()
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
@@ -1137,6 +1245,9 @@ def cmd_campaign(args) -> int:
         for name in ("onboard", "groundsim.run", "groundsim.flight", "groundsim.render", "groundsim.eval"):
             logging.getLogger(name).setLevel(logging.WARNING)
     spec = load_spec(args.spec)
+    scheduler = getattr(args, "scheduler", None)
+    if scheduler is not None and args.workers is not None:
+        raise ConfigError(f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}")
     workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
     if workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
@@ -1151,11 +1262,12 @@ def cmd_campaign(args) -> int:
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
     res = run_campaign(spec, out, workers=workers, progress=not args.no_progress, fresh=args.fresh,
-                       retry_failed=args.retry_failed, base_config=base, onboard_digest=digest)
+                       retry_failed=args.retry_failed, base_config=base, onboard_digest=digest, scheduler=scheduler)
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan
     print(f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
           f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
+          f"{f' of {scheduler}' if scheduler else ''}"
           f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})")
     print(f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
           f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}")

@@ -263,6 +263,8 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
                    help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)")
     p.add_argument("--workers", type=int, default=None, metavar="N",
                    help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run the jobs on this Dask distributed scheduler's workers instead of a local pool (docs/campaigns.md)")
     p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
     p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")

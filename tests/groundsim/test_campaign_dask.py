@@ -1,0 +1,171 @@
+"""groundsim.campaign on a Dask distributed cluster (``--scheduler``): the same tables as the local process
+pool, resumption after an interruption, the Parquet table, and the refusals (one line, naming the option)."""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from groundsim.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, _check_workers, code_fingerprint,
+                                load_spec, read_log, run_campaign, run_id, plan_runs, table_rows, write_table)
+from groundsim.cli import main as cli_main
+from groundsim.eval import load_base_config
+from onboard.errors import ConfigError
+
+distributed = pytest.importorskip("distributed")
+
+REPO = Path(__file__).resolve().parents[2]
+ONBOARD = REPO / "config/onboard.yaml"
+# the issue's campaign: 2 scenarios x 2 noise cases x 3 algorithms x 3 seeds = 36 runs (12 jobs) of 3 s flights
+SPEC_TEXT = ("name: scaleout\nscenarios: [P1, P2]\nnoise: [RTK, px0.3]\nalgorithms: [map, paper, rpekf]\nseeds: 3\n"
+             "duration_s: 3.0\n")
+RUNS = 2 * 2 * 3 * 3
+
+
+def _comparable(df: pd.DataFrame) -> pd.DataFrame:
+    return df.drop(columns=[c for c in TIMING_COLUMNS if c in df.columns]).reset_index(drop=True)
+
+
+def _digest() -> str:  # what cmd_campaign records for config/onboard.yaml
+    return hashlib.sha256(ONBOARD.read_bytes()).hexdigest()[:12]
+
+
+@pytest.fixture(scope="module")
+def spec_path(tmp_path_factory):
+    p = tmp_path_factory.mktemp("spec") / "scaleout.yaml"
+    p.write_text(SPEC_TEXT)
+    return p
+
+
+@pytest.fixture(scope="module")
+def pool_table(spec_path, tmp_path_factory):
+    """The reference: the campaign on the local process pool (2 workers), as the CLI would run it."""
+    out = tmp_path_factory.mktemp("pool")
+    res = run_campaign(load_spec(spec_path), out, workers=2, progress=False, base_config=load_base_config(ONBOARD),
+                       onboard_digest=_digest())
+    assert res.ran == RUNS and res.failed == 0
+    return pd.read_csv(out / TABLE_NAME)
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    """Two single-threaded worker processes and a scheduler, on 127.0.0.1 only (no dashboard)."""
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as c:
+        yield c
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_dask_cluster_gives_the_pool_s_table_and_parquet_round_trips(spec_path, pool_table, cluster, tmp_path):
+    out = tmp_path / "dask"
+    res = run_campaign(load_spec(spec_path), out, progress=False, base_config=load_base_config(ONBOARD),
+                       onboard_digest=_digest(), scheduler=cluster.scheduler_address)
+    assert res.ran == RUNS and res.failed == 0 and res.workers == 2 and not res.interrupted
+    dask_table = pd.read_csv(out / TABLE_NAME)
+    pd.testing.assert_frame_equal(_comparable(pool_table), _comparable(dask_table))
+    # the numbers are real: every run published estimates, the bound is finite, all three algorithms ran
+    assert (dask_table["published_frames"] > 0).all() and np.isfinite(dask_table["crb_rms_m"]).all()
+    assert sorted(dask_table["algorithm"].unique()) == ["map", "paper", "rpekf"]
+    # the log was written by the coordinator only: one line per run, in the table's run ids
+    done, bad = read_log(out / LOG_NAME)
+    assert bad == 0 and len(done) == RUNS and set(done) == set(dask_table["run_id"])
+    # runs.parquet beside runs.csv holds the same table, with its types (CSV loses None vs "" and bools)
+    assert PARQUET_NAME in res.files
+    pq = pd.read_parquet(out / PARQUET_NAME)
+    ids = [run_id(p) for p in plan_runs(load_spec(spec_path), _digest())]
+    pd.testing.assert_frame_equal(pq, table_rows([done[i] for i in ids]))
+    # a rerun on the cluster reuses everything
+    again = run_campaign(load_spec(spec_path), out, progress=False, base_config=load_base_config(ONBOARD),
+                         onboard_digest=_digest(), scheduler=cluster.scheduler_address)
+    assert again.ran == 0 and again.reused == RUNS
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_a_campaign_on_the_cluster_interrupted_resumes_to_the_pool_s_table(spec_path, pool_table, cluster, tmp_path):
+    """``groundsim campaign SPEC --scheduler ADDR``, SIGINT once the first case is logged: exit 130, the finished
+    runs kept; the same command runs only the rest, and the table equals the pool's."""
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-m", "groundsim", "campaign", str(spec_path), "--out", str(out), "--scheduler",
+           cluster.scheduler_address, "--no-progress", "--log-level", "warning"]
+    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    log_path = out / LOG_NAME
+    deadline = time.monotonic() + 240  # hang guard only
+    while time.monotonic() < deadline and proc.poll() is None:
+        if log_path.is_file() and len(read_log(log_path)[0]) >= 3:  # one case (3 algorithms) of 12 done
+            break
+        time.sleep(0.05)
+    assert proc.poll() is None, "the campaign finished before it could be interrupted"
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    done_before = len(read_log(log_path)[0])
+    assert 3 <= done_before < RUNS and "the same command resumes" in err
+    assert len(pd.read_csv(out / TABLE_NAME)) == done_before
+
+    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    assert f"{done_before} reused" in res.stdout and f"{RUNS - done_before} run now" in res.stdout
+    assert f"of {cluster.scheduler_address}" in res.stdout
+    pd.testing.assert_frame_equal(_comparable(pool_table), _comparable(pd.read_csv(out / TABLE_NAME)))
+
+
+# --------------------------------------------------------------------------- refusals and the table (fast)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--scheduler", "127.0.0.1:8786"], r"--scheduler: expected an address tcp://HOST:PORT, got '127\.0\.0\.1:8786'"),
+    (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], r"--workers: not with --scheduler"),
+])
+def test_bad_scheduler_options_are_one_line_and_exit_2(spec_path, tmp_path, capsys, extra, message):
+    import re
+
+    assert cli_main(["campaign", str(spec_path), "--out", str(tmp_path / "o"), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and re.search(message, err), err
+
+
+class _FakeClient:
+    def __init__(self, fingerprints: dict):
+        self.fp = fingerprints
+
+    def nthreads(self):
+        return {w: 1 for w in self.fp}
+
+    def run(self, fn):
+        assert fn is code_fingerprint
+        return dict(self.fp)
+
+
+def test_workers_running_other_code_or_no_workers_are_refused_naming_them():
+    mine = code_fingerprint()
+    assert len(mine) == 16 and mine == code_fingerprint()
+    assert _check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": mine}), "tcp://s:1") == 2
+    with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: worker\(s\) tcp://10\.0\.0\.3:1 run other irtrack code"):
+        _check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": "0" * 16}), "tcp://s:1")
+    with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: the scheduler has no workers"):
+        _check_workers(_FakeClient({}), "tcp://s:1")
+
+
+def test_the_parquet_table_round_trips_missing_values_bools_and_strings(tmp_path):
+    pytest.importorskip("pyarrow")
+    rows = [{"run_id": "a", "scenario": "P1", "seed": 0, "status": "ok", "err_range_final_pct": 1.25,
+             "batch_observable": True, "error": "", "bound_note": "", "wall_s": 0.5},
+            {"run_id": "b", "scenario": "P2", "seed": 1, "status": "failed", "err_range_final_pct": None,
+             "batch_observable": None, "error": "ValueError: x", "bound_note": "CRB failed", "wall_s": 0.25}]
+    files = write_table(tmp_path, rows)
+    back = pd.read_parquet(files[PARQUET_NAME])
+    pd.testing.assert_frame_equal(back, table_rows(rows))
+    assert back["batch_observable"].iloc[0] == True  # noqa: E712 - a bool survived (numpy or python)
+    assert pd.isna(back["batch_observable"].iloc[1]) and math.isnan(back["err_range_final_pct"].iloc[1])
+    assert back["error"].tolist() == ["", "ValueError: x"]
