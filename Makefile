@@ -18,8 +18,9 @@ $(STAMP): pyproject.toml scripts/install.sh
 
 venv: $(STAMP)
 
+# make demo LIVE_VIEW=8765: Foxglove's live view of the daemon on ws://127.0.0.1:8765
 demo: $(STAMP)
-	$(PY) -m groundsim demo
+	$(PY) -m groundsim demo $(if $(LIVE_VIEW),--live-view $(LIVE_VIEW))
 
 # pytest exit 5 means "no tests were collected": say so plainly, neither a failure nor a pass.
 test: $(STAMP)

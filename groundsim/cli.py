@@ -236,6 +236,8 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
                         " scenario's nav_noise, RTK)")
     p.add_argument("--no-eval", dest="with_eval", action="store_false",
                    help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")
+    p.add_argument("--live-view", type=int, default=None, metavar="PORT",
+                   help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT")
     p.set_defaults(handler=lambda args: __import__("groundsim.demo", fromlist=["cmd_demo"]).cmd_demo(args))
 
 
