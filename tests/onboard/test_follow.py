@@ -59,11 +59,11 @@ class _FollowLink:
 def _follow_service(enabled: bool):
     from onboard.config import build_config
     from onboard.service import OnboardService
-    from tests.onboard.test_selection import _FakeClock
+    from tests.fakes import FakeClock
 
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
                         "follow": {"enabled": enabled, "rate_hz": 2.0}})
-    clock = _FakeClock()
+    clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.link = _FollowLink()
     return svc, clock

@@ -16,6 +16,7 @@ from onboard.imaging.preprocess import ImagingParams
 from onboard.irframe import IrFrame
 from onboard.pipeline import FramePipeline
 from onboard.track import Track
+from tests.fakes import FakeClock  # noqa: E402
 
 W, H = 640, 512
 HOT = (200.0, 150.0)  # the two warm objects' true centres, px
@@ -166,17 +167,6 @@ def test_a_new_selection_restarts_the_estimate():
 # --------------------------------------------------------------------------- service camera step
 
 
-class _FakeClock:
-    def __init__(self, t_s: float = 1000.0) -> None:
-        self.t_s = t_s
-
-    def __call__(self) -> float:
-        return self.t_s
-
-    def ns(self) -> int:
-        return int(self.t_s * 1e9)
-
-
 class _FakeGcs:
     def __init__(self) -> None:
         self.inbox: list[CameraCommand] = []
@@ -214,7 +204,7 @@ def _service(mode="auto"):
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
                         "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
                         "mavlink": {"connection": "udpin:0.0.0.0:14999", "autopilot_sysid": None}})
-    clock = _FakeClock()
+    clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.gcs = _FakeGcs()
     return svc, clock

@@ -35,6 +35,7 @@ from onboard.frames import geodetic_from_ned  # noqa: E402
 from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
 from onboard.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
 from onboard.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+from tests.fakes import FakeClock  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 5.0  # upper bound of one in-process wait
@@ -523,17 +524,6 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
 # --------------------------------------------------------------------------- warnings and #276 policy (no sockets)
 
 
-class _FakeClock:
-    def __init__(self, t_s: float = 1000.0) -> None:
-        self.t_s = t_s
-
-    def __call__(self) -> float:
-        return self.t_s
-
-    def ns(self) -> int:
-        return int(self.t_s * 1e9)
-
-
 class _FakeLink:
     autopilot_sysid = 1
 
@@ -562,7 +552,7 @@ def _quiet_service(overrides=None):
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
                         "zenoh": {"connect": ["tcp/10.1.2.3:7447"]}, "mavlink": {"connection": "udpin:0.0.0.0:14999"},
                         **(overrides or {})})
-    clock = _FakeClock()
+    clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.link = _FakeLink()
     return svc, clock
