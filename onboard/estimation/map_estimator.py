@@ -827,13 +827,14 @@ class MapEstimator:
         top = max(close, key=lambda fm: fm[1][6])
         chosen, best = order[0]
         split = self._split(best, cands, w, cam, moments)
-        if 1.0 - split[2] < cfg.min_solution_mass:
+        if split[1] < cfg.min_solution_mass:
             for f, m in order[1:] + [top]:
                 sp = self._split(m, cands, w, cam, moments)
-                if 1.0 - sp[2] >= cfg.min_solution_mass or m is top[1]:
+                if sp[1] >= cfg.min_solution_mass or m is top[1]:
                     chosen, best, split = f, m, sp
                     break
-        w_best, extra_near, ambiguity, extra_far, w_near = split
+        w_best, w_near, extra_near, extra_far = split
+        ambiguity = float(max(0.0, 1.0 - w_near))
         if ambiguity <= cfg.max_ambiguity:
             mix = (w_best / w_near, extra_near / w_near)
         else:
@@ -846,11 +847,12 @@ class MapEstimator:
         return res
 
     def _split(self, best, cands, w, cam: np.ndarray, moments):
-        """(w_best, extra_near, ambiguity, extra_far, w_near) of reporting ``best``: the evidence-weighted
-        spread terms ``w_k (P_k + d_k d_k^T)`` of the models near it (median range along its lines of sight
-        within ``near_solution_ratio`` of its own) and of the far ones, and the far models' mass."""
+        """(w_best, w_near, extra_near, extra_far) of reporting ``best``: its evidence weight, the mass of the
+        models near it (itself included; median range along its lines of sight within
+        ``near_solution_ratio`` of its own), and the evidence-weighted spread terms ``w_k (P_k + d_k d_k^T)``
+        of the near and of the far models.  The far models' mass is the ambiguity."""
         cfg = self.config
-        p_best = best[0].positions(best[1])
+        p_best = moments(best)[0]
         los = p_best - cam
         r_best = np.linalg.norm(los, axis=1)
         u_best = los / r_best[:, None]
@@ -873,8 +875,7 @@ class MapEstimator:
                 extra_near += term
             else:
                 extra_far += term
-        w_near += w_best
-        return w_best, extra_near, float(max(0.0, 1.0 - w_near)), extra_far, w_near
+        return w_best, w_near + w_best, extra_near, extra_far
 
     def _moments(self, mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
@@ -934,7 +935,7 @@ class MapEstimator:
                           and adequacy_p >= cfg.adequacy_p_min and ambiguity <= cfg.max_ambiguity)
         P_model = P
         if not observable and cfg.unobservable_range_sigma_floor > 0:
-            P = P + self._range_floor(P, u, sig_r, rng)
+            P = P + self.range_floor(u, sig_r, rng)[0]
         om = float(theta[prob.i_omega]) if prob.i_omega is not None else 0.0
         phi = theta[prob.i_phi : prob.i_phi + 3].copy() if prob.i_phi is not None else np.zeros(3)
         return MapResult(
@@ -946,13 +947,14 @@ class MapEstimator:
             ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
         )
 
-    def _range_floor(self, P: np.ndarray, u: np.ndarray, sig_r: np.ndarray, rng: np.ndarray) -> np.ndarray:
-        """The range-direction covariance to add (F, 3, 3) so that an unobservable solution's range sigma is
-        at least ``unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``
-        (the bearing part is left as it is)."""
-        floor = np.maximum(self.config.unobservable_range_sigma_floor * rng, self.config.unobservable_range_sigma_min_m)
-        add = np.maximum(floor**2 - sig_r**2, 0.0)
-        return add[:, None, None] * np.einsum("fi,fj->fij", u, u)
+    def range_floor(self, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the range-direction covariance to add (F, 3, 3), the range sigma after it (F,)) so that an
+        unobservable solution's range sigma (``sig_r_m`` along the unit lines of sight ``u``) is at least
+        ``unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``; the
+        bearing part is left as it is.  The batch result and the sliding window's frames both use it."""
+        floor = np.maximum(self.config.unobservable_range_sigma_floor * range_m, self.config.unobservable_range_sigma_min_m)
+        add = np.maximum(floor**2 - sig_r_m**2, 0.0)
+        return add[:, None, None] * np.einsum("fi,fj->fij", u, u), np.maximum(sig_r_m, floor)
 
     def _adequacy_p(self, r_std: np.ndarray) -> float:
         """p-value that the standardised residuals (F, 2) carry no more low-frequency power than white

@@ -353,10 +353,9 @@ class SlidingWindowEstimator:
         observable = bool(self._window_observable and not neg
                           and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio)
         if not observable:  # honest, not confident (module docstring)
-            floor = max(cfg.unobservable_range_sigma_floor * rng, cfg.unobservable_range_sigma_min_m)
-            if ratio * rng < floor:
-                P = P + (floor**2 - (ratio * rng) ** 2) * np.outer(u, u)
-                ratio = floor / max(rng, 1e-9)
+            add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
+            P = P + add[0]
+            ratio = float(sig_r[0]) / max(rng, 1e-9)
         return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
 
     def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
