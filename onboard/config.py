@@ -422,7 +422,7 @@ class EstimatorConfig(_Section):
     reset_on_new_track: bool = F(True, "bool")
     worker: str = F("process", "str", choices=("process", "thread", "inline"))
     result_wait_ms: float = F(2.0, "float", lo=0.0, hi=1000.0)
-    max_extrapolation_s: float = F(2.0, "float", lo=0.0, hi=60.0)
+    max_extrapolation_s: float = F(1.0, "float", lo=0.0, hi=60.0)
     sliding: Mapping[str, Any] = field(default_factory=dict, metadata={"free": True})
 
     def _check(self) -> None:
