@@ -238,6 +238,7 @@ class ThreadedEstimator:
     def __init__(self, estimator, counter: RejectCounter, result_wait_s: float = 0.005,
                  max_extrapolation_s: float = 1.0, max_pending: int = ESTIMATE_QUEUE_MAX) -> None:
         self._est = estimator
+        self._noise = getattr(getattr(estimator, "map", None), "noise", None)  # for the bearing update (_propagate)
         self._counter = counter
         self.result_wait_s = float(result_wait_s)
         self.max_extrapolation_s = float(max_extrapolation_s)
@@ -276,7 +277,7 @@ class ThreadedEstimator:
                     break
                 self._cond.wait(left)
             self.late_results += 1
-            return self._extrapolate(t, p_cam_ned_m)
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
 
     def predict(self, t_s: float, p_cam_ned_m=None):
         with self._cond:
@@ -297,11 +298,11 @@ class ThreadedEstimator:
             self._cond.notify_all()
         self._thread.join(timeout_s)
 
-    def _extrapolate(self, t: float, p_cam_ned_m):
+    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
         if latest is None or latest[0] != self._epoch:
             return None
-        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter)
+        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
 
     # ------------------------------------------------------------------ worker
 
@@ -508,6 +509,7 @@ class ProcessEstimator:
         import onboard.estimation.sliding  # noqa: F401
 
         self._config = config
+        self._noise = config.estimator.noise_model()  # the worker's noise model, for the bearing update (_propagate)
         self._counter = counter
         self._clock = clock
         self.result_wait_s = float(result_wait_s)
@@ -654,18 +656,18 @@ class ProcessEstimator:
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
             self.late_results += 1
-            return self._extrapolate(t, p_cam_ned_m)
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
         self._remember(args)
         try:
             self._conn.send(("add", self._epoch, t, args))
         except (OSError, ValueError) as exc:
             self._counter.count("estimator_error", f"send to the estimator process: {exc}")
-            return self._extrapolate(t, p_cam_ned_m)
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
         found, est = self._drain(t, self.result_wait_s)
         if found:
             return est
         self.late_results += 1
-        return self._extrapolate(t, p_cam_ned_m)
+        return self._extrapolate(t, p_cam_ned_m, args[1:])
 
     def predict(self, t_s: float, p_cam_ned_m=None):
         self._drain()
@@ -683,11 +685,11 @@ class ProcessEstimator:
         except (OSError, ValueError):
             pass
 
-    def _extrapolate(self, t: float, p_cam_ned_m):
+    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
         if latest is None or latest[0] != self._epoch:
             return None
-        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter)
+        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
 
     def close(self, timeout_s: float = 1.0) -> None:
         if self._proc is None:
@@ -704,16 +706,33 @@ class ProcessEstimator:
         self._proc = None
 
 
-def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: RejectCounter):
-    """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s``."""
+def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: RejectCounter, obs=None, noise=None):
+    """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s``.
+
+    ``obs`` (the frame's ``(uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)``, which ``est`` was solved
+    without) with the estimator's ``noise`` model: the propagated position is corrected by the frame's own
+    line of sight (:meth:`~onboard.estimation.sliding.TrackEstimate.with_bearing`), so an estimate carried
+    over a busy worker's re-selection keeps the target on its current bearing; a bearing outside the
+    estimate's gate is counted (``bearing_gate``) and not fused."""
     dt = t - float(est.t_s)
     if abs(dt) > max_extrapolation_s:
         return None
     if dt == 0.0 and p_cam_ned_m is None:
         return est
     try:
-        return est.propagated(t, p_cam_ned_m)
-    except (TypeError, ValueError, AttributeError) as exc:
+        out = est.propagated(t, p_cam_ned_m)
+        if obs is not None and noise is not None and dt > 0:
+            from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
+
+            uv, intrinsics, p_cam, q = obs
+            fused = out.with_bearing(p_cam, line_of_sight_unit_ned(uv, intrinsics, q), bearing_sigma_rad(noise, intrinsics),
+                                     noise.camera_position_white_sigma_m)
+            if fused is None:
+                counter.count("bearing_gate", f"the frame's line of sight is outside the propagated estimate's gate at t={t:.3f} s")
+            else:
+                out = fused
+        return out
+    except (TypeError, ValueError, AttributeError, np.linalg.LinAlgError) as exc:
         counter.count("estimator_error", f"extrapolation: {exc}")
         return None
 

@@ -89,18 +89,35 @@ def sim_command_at_rate(plan, rate: str) -> list[str]:
     return cmd
 
 
-def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0) -> PairRun:
+def lengthened_scenario(name: str, duration_s: float, out_dir) -> Path:
+    """A copy of the shipped scenario ``name`` in ``out_dir/scenarios/`` flown for ``duration_s``; same file
+    name, so the run's seeds (and everything else in it) are the shipped scenario's."""
+    import re
+
+    from groundsim.scenario import reference_scenario_paths
+
+    src = reference_scenario_paths()[name]
+    text, n = re.subn(r"(?m)^duration_s:.*$", f"duration_s: {duration_s!r}", src.read_text())
+    if n != 1:
+        raise ValueError(f"{src}: expected one top-level duration_s line, found {n}")
+    dst = Path(out_dir) / "scenarios" / src.name
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    dst.write_text(text)
+    return dst
+
+
+def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0, nav_noise: str | None = None) -> PairRun:
     """Run the scenario's whole duration through both processes; raise PairRunError on a child failure.
 
     A daemon that exits before it is ready is given one more try on fresh ports (the ports are free when
     picked, not necessarily when bound, on a machine shared with other test runs)."""
     try:
-        return _run_pair_once(scenario, Path(out_dir) / "try1", rate, seed)
+        return _run_pair_once(scenario, Path(out_dir) / "try1", rate, seed, nav_noise)
     except _DaemonExitedEarly:
-        return _run_pair_once(scenario, Path(out_dir) / "try2", rate, seed)
+        return _run_pair_once(scenario, Path(out_dir) / "try2", rate, seed, nav_noise)
 
 
-def _run_pair_once(scenario: str, out_dir, rate: str, seed: int) -> PairRun:
+def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str | None = None) -> PairRun:
     from groundsim.demo import TrackStore, daemon_command, plan_demo
     from groundsim.scenario import load_scenario
     from groundsim.cli import resolve_scenario_path
@@ -109,7 +126,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int) -> PairRun:
 
     out = Path(out_dir)
     duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
-    plan = plan_demo(scenario, duration_s, seed, out, str(ONBOARD_CONFIG))
+    plan = plan_demo(scenario, duration_s, seed, out, str(ONBOARD_CONFIG), nav_noise=nav_noise)
     factor = 1.0 if rate == "realtime" else float(rate)
     env = _child_env()
     logs = {"daemon": out / "onboard.log", "sim": out / "sim.log"}
@@ -192,7 +209,8 @@ def truth_arrays(truth: dict) -> dict:
 
 def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
     """The daemon's tracks on the truth frames (matched on time_boot_us): position in the scenario's NED
-    frame from the WGS84 fields (independent of the daemon's own origin), NaN without one; observable."""
+    frame from the WGS84 fields (independent of the daemon's own origin), NaN without one; observable;
+    ``sqrt_trace_cov_m`` = sqrt(trace(cov)) from ``sigma_ned_m`` (NaN without)."""
     from onboard.frames import ned_from_geodetic
 
     idx = {int(t): i for i, t in enumerate(time_boot_us)}
@@ -200,6 +218,7 @@ def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
     p = np.full((F, 3), np.nan)
     observable = np.zeros(F, dtype=bool)
     tracked = np.zeros(F, dtype=bool)
+    sqrt_trace = np.full(F, np.nan)
     for tr in tracks:
         i = idx.get(int(tr["time_boot_us"]))
         if i is None:
@@ -209,7 +228,9 @@ def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
             continue
         p[i] = np.asarray(ned_from_geodetic(tr["lat_deg"], tr["lon_deg"], tr["alt_m"], origin), dtype=float).reshape(3)
         observable[i] = bool(tr.get("observable"))
-    return dict(p_ned_m=p, observable=observable, tracked=tracked)
+        if tr.get("sigma_ned_m") is not None:
+            sqrt_trace[i] = float(np.linalg.norm(np.asarray(tr["sigma_ned_m"], dtype=float)))
+    return dict(p_ned_m=p, observable=observable, tracked=tracked, sqrt_trace_cov_m=sqrt_trace)
 
 
 def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, rng: np.random.Generator) -> dict:

@@ -47,7 +47,10 @@ from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
 from onboard.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
 
-__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator"]
+__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad"]
+
+#: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
+BEARING_GATE_CHI2 = 18.42
 
 log = logging.getLogger(__name__)
 
@@ -123,6 +126,62 @@ class TrackEstimate:
                 u = los / rng
                 ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / rng)
         return dataclasses.replace(self, t_s=float(t_s), p_ned_m=p, cov_p_ned_m2=P, range_m=rng, range_sigma_ratio=ratio)
+
+    def with_bearing(self, p_cam_ned_m, u_ned, sigma_rad: float, cam_sigma_m: float = 0.0,
+                     gate_chi2: float = BEARING_GATE_CHI2) -> "TrackEstimate | None":
+        """This estimate corrected by one line of sight it does not contain (a frame newer than the window
+        it was solved from, e.g. an estimate propagated while the worker was busy): the Kalman update of
+        the position with the measurement "the target is on the ray ``c + r u``", written linearly as the
+        two cross-range offsets ``B (p - c) = 0`` (``B``: an orthonormal basis across ``u``) with noise
+        ``(r sigma_rad)^2 + cam_sigma_m^2`` per axis.  The bearing fixes the cross-range position to the
+        bearing's accuracy and leaves the range (the along-ray direction) to the window; the velocity
+        is unchanged (its correlation with the position is not kept here).
+
+        ``sigma_rad``: the line of sight's 1-sigma per axis (pixel noise over focal length with the
+        attitude noise); None when the innovation's Mahalanobis distance^2 exceeds ``gate_chi2`` (the
+        bearing and the estimate disagree: not fused)."""
+        c = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
+        u = np.asarray(u_ned, dtype=float).reshape(3)
+        u = u / np.linalg.norm(u)
+        d = self.p_ned_m - c
+        r = float(np.linalg.norm(d))
+        if not (r > 0 and math.isfinite(r) and sigma_rad >= 0):
+            return None
+        # two unit vectors across u: the null space of u^T
+        a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+        b1 = np.cross(u, a)
+        b1 /= np.linalg.norm(b1)
+        B = np.vstack([b1, np.cross(u, b1)])
+        z = B @ d
+        P = self.cov_p_ned_m2
+        R = np.eye(2) * ((r * sigma_rad) ** 2 + cam_sigma_m ** 2)
+        S = B @ P @ B.T + R
+        try:
+            cS = sla.cho_factor(S)
+        except np.linalg.LinAlgError:
+            return None
+        if float(z @ sla.cho_solve(cS, z)) > gate_chi2:
+            return None
+        K = sla.cho_solve(cS, B @ P).T  # P B^T S^-1
+        p = self.p_ned_m - K @ z
+        IKH = np.eye(3) - K @ B
+        P = IKH @ P @ IKH.T + K @ R @ K.T  # Joseph form: symmetric, positive
+        los = p - c
+        rng = float(np.linalg.norm(los))
+        ratio = float(math.sqrt(max(los @ P @ los, 0.0)) / (rng * rng)) if rng > 0 else self.range_sigma_ratio
+        return dataclasses.replace(self, p_ned_m=p, cov_p_ned_m2=0.5 * (P + P.T), range_m=rng, range_sigma_ratio=ratio)
+
+
+def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
+    """One frame's line-of-sight 1-sigma per axis under ``noise``: the pixel noise over the focal length with
+    the attitude's white noise and bias (the bias is kept: conservative)."""
+    f = math.sqrt(intrinsics.fx_px * intrinsics.fy_px)
+    return math.sqrt((noise.pixel_sigma_px / f) ** 2 + noise.attitude_white_sigma_rad ** 2 + noise.attitude_bias_sigma_rad ** 2)
+
+
+def line_of_sight_unit_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam) -> np.ndarray:
+    """The unit line of sight in NED through pixel ``uv_px`` (lens distortion removed)."""
+    return rotmat_from_quat(np.asarray(q_ned_from_cam, dtype=float)) @ intrinsics.bearing_cam_from_pixel(uv_px)
 
 
 class SlidingWindowEstimator:

@@ -1,0 +1,82 @@
+"""TrackEstimate.with_bearing: the correction of a propagated estimate by a frame's own line of sight."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
+from onboard.estimation.map_estimator import NoiseModel
+from onboard.frames import PinholeIntrinsics
+
+
+def _estimate(p, cov) -> TrackEstimate:
+    return TrackEstimate(t_s=1.0, p_ned_m=np.asarray(p, float), v_ned_mps=np.zeros(3), cov_p_ned_m2=np.asarray(cov, float),
+                         cov_v_ned_m2ps2=np.eye(3), observable=True, range_m=float(np.linalg.norm(p)),
+                         range_sigma_ratio=0.01, window_frames=100, model="cv")
+
+
+def _unit(v):
+    v = np.asarray(v, float)
+    return v / np.linalg.norm(v)
+
+
+vec = st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(lambda v: np.linalg.norm(v) > 0.2)
+
+
+@settings(max_examples=200, deadline=None)
+@given(u=vec, rng=st.floats(50.0, 2000.0), off=st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3)),
+       sig=st.floats(0.2, 5.0), sigma_mrad=st.floats(0.05, 2.0))
+def test_the_update_moves_the_position_towards_the_ray_and_never_grows_the_covariance(u, rng, off, sig, sigma_mrad):
+    u = _unit(u)
+    c = np.array([10.0, -5.0, -80.0])
+    p0 = c + rng * u + np.asarray(off)
+    P0 = np.eye(3) * sig ** 2
+    est = _estimate(p0, P0)
+    out = est.with_bearing(c, u, sigma_mrad * 1e-3, gate_chi2=math.inf)
+    assert out is not None
+
+    def cross(p):
+        d = p - c
+        return np.linalg.norm(d - (d @ u) * u)
+
+    assert cross(out.p_ned_m) <= cross(p0) + 1e-9
+    # the correction is across the ray only: the along-ray coordinate is kept (isotropic prior)
+    assert abs((out.p_ned_m - c) @ u - (p0 - c) @ u) < 1e-6 * rng
+    # P0 - P+ is positive semi-definite, and P+ is symmetric
+    assert np.linalg.eigvalsh(P0 - out.cov_p_ned_m2).min() > -1e-9 * sig ** 2
+    np.testing.assert_allclose(out.cov_p_ned_m2, out.cov_p_ned_m2.T, atol=1e-12 * sig ** 2)
+    assert math.isclose(out.range_m, float(np.linalg.norm(out.p_ned_m - c)), rel_tol=1e-12)
+
+
+def test_a_position_on_the_ray_is_kept_and_its_cross_range_sigma_drops_to_the_bearing_accuracy():
+    c = np.zeros(3)
+    u = _unit([1.0, 0.0, 0.0])
+    est = _estimate([200.0, 0.0, 0.0], np.diag([4.0, 4.0, 4.0]))
+    out = est.with_bearing(c, u, 1e-3)
+    np.testing.assert_allclose(out.p_ned_m, [200.0, 0.0, 0.0], atol=1e-12)
+    # prior 2 m, measurement 0.2 m (200 m x 1 mrad) across: posterior 1/sqrt(1/4 + 1/0.04) m
+    expect = 1.0 / math.sqrt(1 / 4.0 + 1 / 0.04)
+    np.testing.assert_allclose(np.sqrt(np.diag(out.cov_p_ned_m2)), [2.0, expect, expect], rtol=1e-9)
+
+
+def test_a_bearing_outside_the_gate_is_not_fused():
+    c = np.zeros(3)
+    est = _estimate([200.0, 0.0, 0.0], np.eye(3) * 0.01)  # 0.1 m sigma
+    assert est.with_bearing(c, _unit([200.0, 5.0, 0.0]), 1e-4) is None  # 5 m across, sigma ~0.1 m
+    assert est.with_bearing(c, _unit([200.0, 0.05, 0.0]), 1e-4) is not None
+
+
+def test_the_line_of_sight_and_its_sigma_follow_the_camera_model():
+    K = PinholeIntrinsics(fx_px=500.0, fy_px=500.0, cx_px=320.0, cy_px=256.0, width_px=640, height_px=512)
+    # camera looking north with x east, y down (frames: camera z forward): q of R = [[0,0,1],[1,0,0],[0,1,0]]
+    R = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    w = math.sqrt(1 + np.trace(R)) / 2
+    q = np.array([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)])
+    np.testing.assert_allclose(line_of_sight_unit_ned([320.0, 256.0], K, q), [1.0, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(line_of_sight_unit_ned([820.0, 256.0], K, q), _unit([1.0, 1.0, 0.0]), atol=1e-12)
+    noise = NoiseModel(pixel_sigma_px=0.5, attitude_white_sigma_rad=3e-4, attitude_bias_sigma_rad=4e-4)
+    assert math.isclose(bearing_sigma_rad(noise, K), math.sqrt(1e-6 + 9e-8 + 1.6e-7), rel_tol=1e-12)
