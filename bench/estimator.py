@@ -29,9 +29,9 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from groundsim.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
-from groundsim.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
+from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
+from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
 from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
 from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402

@@ -1,4 +1,4 @@
-"""Benchmark of groundsim.flight: guidance tracking error and cost of flying with JSBSim.
+"""Benchmark of groundsim.world.flight: guidance tracking error and cost of flying with JSBSim.
 
 ``python -m bench.flight``.  Prints, for each reference path flown 10 s (defaults: JSBSim at
 240 Hz, controller at 120 Hz, truth sampled at 30 Hz):
@@ -22,9 +22,9 @@ import time
 
 import numpy as np
 
-from groundsim.flight import FlownVehicle, fly, fly_pair
-from groundsim.motion import Circular, Cubic
-from onboard.frames import GeodeticOrigin, euler_from_quat
+from groundsim.world.flight import FlownVehicle, fly, fly_pair
+from groundsim.world.motion import Circular, Cubic
+from onboard.core.frames import GeodeticOrigin, euler_from_quat
 
 ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)  # the reference scenarios' origin
 DURATION_S = 10.0
@@ -78,7 +78,7 @@ def _smoothness(tr) -> tuple[float, float]:
 
 
 def main() -> None:
-    print(f"groundsim.flight benchmark: {DURATION_S:.0f} s per path, truth at {FRAME_RATE_HZ:.0f} Hz, origin {ORIGIN}")
+    print(f"groundsim.world.flight benchmark: {DURATION_S:.0f} s per path, truth at {FRAME_RATE_HZ:.0f} Hz, origin {ORIGIN}")
     for cname, kw in CONFIGS.items():
         dt = kw.get("dt_s", 1.0 / 240.0)
         bare = _bare_jsbsim_s(dt)

@@ -10,7 +10,7 @@ the image centre as under a pointing gimbal (+- 25 px, up to ~1.5 px/frame), NET
 * the centre error against the known truth (rms, max) and the states seen;
 * baselines measured in the same run: bare OpenCV KCF ``update`` on the raw frame (the paper's
   chain without detection), and one full-frame detection (the ``searching`` path);
-* on frames from the simulator's IR renderer (``groundsim.render``, default F450 target and
+* on frames from the simulator's IR renderer (``groundsim.world.render``, default F450 target and
   FLIR Vue Pro settings, horizon in view) at 100-500 m: states, centre minus the projected body
   centre (mean, std) and the blob's contrast, for mono8 and mono16.
 
@@ -101,9 +101,9 @@ def _full_frame_ms(frames, params, n: int = 30) -> float:
 def _rendered(encoding: str, range_m: float, n: int = 40):
     """Track n rendered frames of a target ``range_m`` ahead, 15 m above a camera at 70 m,
     with a slowly wandering pointing error; return (states, errors (n, 2), last detection)."""
-    from groundsim.render.raster import IrRenderer, truth_pixel
-    from groundsim.render.settings import IrSettings
-    from onboard.frames import R_MOUNT_FROM_CAM, PinholeIntrinsics, quat_from_euler, rotmat_from_quat
+    from groundsim.world.render.raster import IrRenderer, truth_pixel
+    from groundsim.world.render.settings import IrSettings
+    from onboard.core.frames import R_MOUNT_FROM_CAM, PinholeIntrinsics, quat_from_euler, rotmat_from_quat
 
     K = PinholeIntrinsics.vue_pro_640()
     renderer = IrRenderer(K, IrSettings(encoding=encoding), seed=1)
@@ -156,7 +156,7 @@ def main() -> None:
             print(f"  baseline bare KCF update on the raw frame: {kcf_ms:.3f} ms (update / bare KCF = {wall[1:].mean() / kcf_ms:.2f})")
             print(f"  full-frame detect (searching / re-acquisition path): {full_ms:.3f} ms wall")
         print()
-    print("frames from groundsim.render (F450 quad, default IrSettings, horizon in view), 40 frames each:")
+    print("frames from groundsim.world.render (F450 quad, default IrSettings, horizon in view), 40 frames each:")
     for encoding in ("mono8", "mono16"):
         for range_m in (100.0, 160.0, 300.0, 500.0):
             states, e, det = _rendered(encoding, range_m)

@@ -50,7 +50,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
-from onboard.frames import (  # noqa: E402
+from onboard.core.frames import (  # noqa: E402
     CameraMount,
     GeodeticOrigin,
     PinholeIntrinsics,
@@ -62,7 +62,7 @@ from onboard.frames import (  # noqa: E402
     rotmat_from_quat,
     rotvec_from_quat,
 )
-from onboard.irframe import IrFrame, encode_irframe  # noqa: E402
+from onboard.core.irframe import IrFrame, encode_irframe  # noqa: E402
 
 __all__ = ["SyntheticScene", "FakeAutopilot", "free_udp_port", "free_tcp_port", "bench_processing", "bench_latency", "main"]
 
@@ -71,7 +71,7 @@ BOOT_US0 = 20_000_000  # the scene starts 20 s after the autopilot booted
 
 
 def _look_at(p_cam: np.ndarray, p_aim: np.ndarray) -> np.ndarray:
-    """R_ned_from_cam looking from p_cam at p_aim, image x level (same as groundsim.synth.look_at)."""
+    """R_ned_from_cam looking from p_cam at p_aim, image x level (same as groundsim.evaluation.synth.look_at)."""
     z = p_aim - p_cam
     z = z / np.linalg.norm(z)
     x = np.cross(np.array([0.0, 0.0, 1.0]), z)
@@ -318,14 +318,14 @@ def _pct(a, q) -> float:
 def bench_processing(n_frames: int) -> None:
     import cv2
 
-    from onboard.config import OnboardConfig, build_config
-    from onboard.irframe import decode_irframe
-    from onboard.pipeline import FramePipeline, make_estimator, make_tracker
-    from onboard.pose import PoseBuffer, RejectCounter
+    from onboard.app.config import OnboardConfig, build_config
+    from onboard.core.irframe import decode_irframe
+    from onboard.pipeline.frame_pipeline import FramePipeline, make_estimator, make_tracker
+    from onboard.core.pose import PoseBuffer, RejectCounter
 
     cv2.setNumThreads(1)
     try:
-        from groundsim.eval import limit_blas_threads
+        from groundsim.evaluation.eval import limit_blas_threads
 
         limit_blas_threads(1)
     except ImportError:  # the environment variables set at start are then all there is
@@ -425,7 +425,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
 
     import zenoh
 
-    from onboard.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()

@@ -1,4 +1,4 @@
-"""Benchmark of the flight recorder (:mod:`onboard.record`): what recording costs per frame.
+"""Benchmark of the flight recorder (:mod:`onboard.io.record`): what recording costs per frame.
 
 ``python -m bench.record [--frames N] [--compression none|lz4|zstd] [--sync-mb MB] [--dir DIR]``.  Frames are 640 x 512 mono8 with
 NETD-like noise (the simulator's noise does not compress much either) at 30 Hz worth of messages:
@@ -11,7 +11,7 @@ Prints:
   ``time.thread_time``), and whether it kept up (drops);
 * file size per frame and per minute at 30 Hz.
 
-``--replay FILE.mcap``: instead, replay speed (``onboard.replay`` at ``--rate max``) on a recording: load time, then
+``--replay FILE.mcap``: instead, replay speed (``onboard.app.replay`` at ``--rate max``) on a recording: load time, then
 two replays in one process (the first pays the lazy imports of the estimator's scipy modules), wall and CPU s,
 x real time, and where the loop's time goes (cProfile cumulative on a third run): the pipeline (its estimator,
 its imaging and tracker) and replay's own decoding, poses and JSON.
@@ -28,11 +28,11 @@ import time
 
 import numpy as np
 
-from onboard.frames import GeodeticOrigin
-from onboard.irframe import IrFrame
-from onboard.pose import PoseAt, PoseSample
-from onboard.record import FlightRecorder, RecordSettings
-from onboard.track import Track, track_to_bytes
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.irframe import IrFrame
+from onboard.core.pose import PoseAt, PoseSample
+from onboard.io.record import FlightRecorder, RecordSettings
+from onboard.core.track import Track, track_to_bytes
 
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
@@ -98,7 +98,7 @@ def bench_replay(path: str) -> int:
     import logging
     import pstats
 
-    from onboard.replay import config_of, load_recording, replay
+    from onboard.app.replay import config_of, load_recording, replay
 
     logging.disable(logging.WARNING)
     t0 = time.perf_counter()

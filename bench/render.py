@@ -1,4 +1,4 @@
-"""Benchmark of groundsim.render: frames/s of the IR rasteriser on one core.
+"""Benchmark of groundsim.world.render: frames/s of the IR rasteriser on one core.
 
 ``python -m bench.render``.  Renders 640 x 512 frames (FLIR Vue Pro 640 intrinsics) of a default
 F450-class target in view, with NETD noise (40 mK) and optics blur (0.6 px) on, and prints ms/frame
@@ -30,7 +30,7 @@ WARMUP_FRAMES = 10
 
 def _scenario(n: int, range_m: tuple[float, float], wobble_rad: float, seed: int = 7, static_camera: bool = False):
     """Per-frame (p_cam, R_ned_from_cam, p_target, R_ned_from_target, ground_d) with the target in view."""
-    from onboard.frames import CameraMount, camera_pose_ned, quat_from_euler, rotmat_from_quat
+    from onboard.core.frames import CameraMount, camera_pose_ned, quat_from_euler, rotmat_from_quat
 
     rng = np.random.default_rng(seed)
     mount = CameraMount.from_euler_deg((0.1, 0.0, 0.05), pitch_deg=-5.0)
@@ -96,12 +96,12 @@ def main() -> None:
     cv2.setNumThreads(1)
     from dataclasses import replace
 
-    from groundsim.render import IrRenderer, IrSettings
-    from onboard.frames import PinholeIntrinsics
+    from groundsim.world.render import IrRenderer, IrSettings
+    from onboard.core.frames import PinholeIntrinsics
 
     intr = PinholeIntrinsics.vue_pro_640()
     base = IrSettings()
-    print(f"groundsim.render benchmark: {intr.width_px} x {intr.height_px}, {N_FRAMES} frames per case, "
+    print(f"groundsim.world.render benchmark: {intr.width_px} x {intr.height_px}, {N_FRAMES} frames per case, "
           f"{pinned}, cv2 threads {cv2.getNumThreads()}")
     print(f"NETD {base.netd_k * 1e3:.0f} mK, blur sigma {base.blur_sigma_px} px, supersample <= {base.supersample},"
           f" target rays <= {base.max_target_rays}")

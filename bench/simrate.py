@@ -30,10 +30,10 @@ import time
 
 import cv2
 
-from groundsim.cli import _realtime_priority, resolve_scenario_path
-from groundsim.run import RateSpec, RunConfig, SimCore, run
-from groundsim.scenario import load_scenario
-from onboard.zenoh_session import ZenohSettings, frame_key, open_session
+from groundsim.app.cli import _realtime_priority, resolve_scenario_path
+from groundsim.app.run import RateSpec, RunConfig, SimCore, run
+from groundsim.world.scenario import load_scenario
+from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 
 
 def _free_port(kind=socket.SOCK_STREAM) -> int:
@@ -133,7 +133,7 @@ def main(argv=None) -> None:
     args = ap.parse_args(argv)
     modes = {m.strip() for m in args.modes.split(",") if m.strip()}
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    cv2.setNumThreads(1)  # as the CLI does (groundsim.cli)
+    cv2.setNumThreads(1)  # as the CLI does (groundsim.app.cli)
     sc = load_scenario(resolve_scenario_path(args.scenario))
     print(f"bench.simrate: scenario {sc.name}, {args.duration:g} s, {sc.frame_rate_hz:g} Hz, "
           f"{sc.camera.intrinsics.width_px} x {sc.camera.intrinsics.height_px} {sc.ir.encoding}; {_load()}")

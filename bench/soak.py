@@ -3,7 +3,7 @@
     python -m bench.soak --minutes 30 [--scenario H1] [--interval 10] [--out out/soak] [--kill-worker-at S]
 
 Not part of CI (issue 12: "a 30-minute soak shows RSS slope <= 0.1 MB/min and 0 frames dropped at
-30 Hz").  The pair is planned as ``python -m groundsim demo`` plans it (:func:`groundsim.demo.plan_demo`:
+30 Hz").  The pair is planned as ``python -m groundsim demo`` plans it (:func:`groundsim.evaluation.demo.plan_demo`:
 the scenario's camera, loopback MAVLink and zenoh ports, the shipped onboard config otherwise), with
 the scenario extended to the soak's length: H1 by default, a circling observer and a figure-eight
 target, periodic, so it can fly for hours.  The simulator runs in real time (30 Hz frames, 50 / 25 Hz
@@ -224,7 +224,7 @@ def main(argv=None) -> int:
     if not args.minutes > 0 or not args.interval > 0:
         ap.error("--minutes and --interval must be positive")
 
-    from groundsim.demo import daemon_command, plan_demo, sim_command
+    from groundsim.evaluation.demo import daemon_command, plan_demo, sim_command
 
     duration_s = args.minutes * 60.0
     plan = plan_demo(args.scenario, duration_s + 15.0, args.seed, args.out, None)

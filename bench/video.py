@@ -5,8 +5,8 @@
    thread, on frames of a 14-bit sky with sensor noise and a moving warm object (noise is the hard
    case for an encoder).  p50 / p99 over ``--frames``; the issue's budget is <= 3 ms per frame.
 2. Latency on loopback, the daemon's own video path: frames handed to
-   :class:`onboard.video.VideoStreamer` (encoder thread, UDP MPEG-TS to 127.0.0.1) at 30 Hz in real
-   time, received and decoded by an independent decoder (:class:`groundsim.video_rx.UdpTsDecoder`:
+   :class:`onboard.io.video.VideoStreamer` (encoder thread, UDP MPEG-TS to 127.0.0.1) at 30 Hz in real
+   time, received and decoded by an independent decoder (:class:`groundsim.io.video_rx.UdpTsDecoder`:
    FFmpeg's H.264 through PyAV, in this process's own thread).  Each frame carries its index as 16
    black/white blocks in its top row, read back from the decoded picture, so a dropped frame cannot
    shift the pairing.  Printed: submit -> decoded p50 / p99 / max after the first second (the
@@ -51,7 +51,7 @@ def _frame(base, noise, k: int) -> tuple[np.ndarray, tuple[int, int]]:
 
 
 def _track(k: int, u: int, v: int):
-    from onboard.track import Track
+    from onboard.core.track import Track
 
     return Track(vehicle="uav1", seq=k, time_boot_us=k, state="tracking", track_id=1, u_px=float(u), v_px=float(v),
                  bbox=(u - 8.0, v - 8.0, 16.0, 16.0))
@@ -78,7 +78,7 @@ def read_index(luma: np.ndarray) -> int:
 
 
 def encode_cost(frames: int) -> None:
-    from onboard.video import AgcState, H264TsEncoder, agc_u8, draw_overlay
+    from onboard.io.video import AgcState, H264TsEncoder, agc_u8, draw_overlay
 
     base, noise = _scene(np.random.default_rng(0))
     sink = io.BytesIO()
@@ -105,8 +105,8 @@ def encode_cost(frames: int) -> None:
 
 
 def loopback_latency(frames: int, fps: float = 30.0) -> None:
-    from groundsim.video_rx import UdpTsDecoder
-    from onboard.video import VideoStreamer
+    from groundsim.io.video_rx import UdpTsDecoder
+    from onboard.io.video import VideoStreamer
 
     base, noise = _scene(np.random.default_rng(1))
     submit_ns: dict[int, int] = {}

@@ -1,4 +1,4 @@
-"""``python -m groundsim <command>``: the ground simulator's entry point (commands in groundsim.cli)."""
+"""``python -m groundsim <command>``: the ground simulator's entry point (commands in groundsim.app.cli)."""
 
 import os
 
@@ -9,7 +9,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import sys  # noqa: E402
 
-from groundsim.cli import main  # noqa: E402
+from groundsim.app.cli import main  # noqa: E402
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,7 +1,7 @@
 """Helpers of ``tests/test_integration.py`` (issue #4's acceptance test).
 
 Two real processes on 127.0.0.1, wired as ``python -m groundsim demo`` wires them
-(:mod:`groundsim.demo`: :func:`~groundsim.demo.plan_demo` writes the daemon's configuration with the
+(:mod:`groundsim.evaluation.demo`: :func:`~groundsim.evaluation.demo.plan_demo` writes the daemon's configuration with the
 scenario's camera, pod mount, gimbal and origin, loopback endpoints and
 ``output.unobservable_positions`` on)::
 
@@ -13,7 +13,7 @@ The daemon starts first; the simulator once the daemon's first status message ar
 sent before anyone listens).  Both are stopped with SIGTERM, then SIGKILL, whatever happens.
 
 The yardstick (:func:`perfect_centroid_baseline`): the daemon's own sliding-window estimator
-(:func:`onboard.pipeline.make_estimator` on the very configuration file the daemon read, so the same
+(:func:`onboard.pipeline.frame_pipeline.make_estimator` on the very configuration file the daemon read, so the same
 window and noise model) fed from the simulator's truth CSV -- the true target pixel plus white noise,
 the true camera centre and attitude, each frame's capture time -- exactly as the pipeline feeds it
 (``add`` on frames where the target is in the image, ``predict`` on the others).
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 # the demo's own child environment, stop, log tail, end-of-run drain and zenoh teardown
-from groundsim.demo import _child_env, _close_zenoh, _drain, _stop, _tail
+from groundsim.evaluation.demo import _child_env, _close_zenoh, _drain, _stop, _tail
 
 __all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
            "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
@@ -58,9 +58,9 @@ class _DaemonExitedEarly(PairRunError):
 class PairRun:
     """What one two-process run produced."""
 
-    scenario: object  # groundsim.scenario.Scenario
+    scenario: object  # groundsim.world.scenario.Scenario
     config_path: Path  # the daemon's configuration file
-    truth: dict  # groundsim.truth.read_truth_csv of the simulator's truth file
+    truth: dict  # groundsim.world.truth.read_truth_csv of the simulator's truth file
     tracks: list  # irtrack.track/1 dicts in arrival order (schema-validated)
     status: dict | None  # the daemon's last irtrack.status/1
     bad_messages: int
@@ -82,7 +82,7 @@ def stop_process(proc: subprocess.Popen | None, name: str = "child process") -> 
 
 def sim_command_at_rate(plan, rate: str) -> list[str]:
     """The demo's simulator command with ``--rate`` replaced (the demo always runs in real time)."""
-    from groundsim.demo import sim_command
+    from groundsim.evaluation.demo import sim_command
 
     cmd = sim_command(plan)
     cmd[cmd.index("--rate") + 1] = str(rate)
@@ -94,7 +94,7 @@ def lengthened_scenario(name: str, duration_s: float, out_dir) -> Path:
     name, so the run's seeds (and everything else in it) are the shipped scenario's."""
     import re
 
-    from groundsim.scenario import reference_scenario_paths
+    from groundsim.world.scenario import reference_scenario_paths
 
     src = reference_scenario_paths()[name]
     text, n = re.subn(r"(?m)^duration_s:.*$", f"duration_s: {duration_s!r}", src.read_text())
@@ -118,11 +118,11 @@ def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0, nav_no
 
 
 def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str | None = None) -> PairRun:
-    from groundsim.demo import TrackStore, daemon_command, plan_demo
-    from groundsim.scenario import load_scenario
-    from groundsim.cli import resolve_scenario_path
-    from groundsim.truth import read_truth_csv
-    from onboard.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
+    from groundsim.world.scenario import load_scenario
+    from groundsim.app.cli import resolve_scenario_path
+    from groundsim.world.truth import read_truth_csv
+    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
 
     out = Path(out_dir)
     duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
@@ -183,7 +183,7 @@ def truth_arrays(truth: dict) -> dict:
     def stack(*names):
         return np.column_stack([np.asarray(truth[n], dtype=float) for n in names])
 
-    from onboard.frames import quat_from_rotmat, rotmat_from_quat, rotmat_from_rotvec
+    from onboard.core.frames import quat_from_rotmat, rotmat_from_quat, rotmat_from_rotvec
 
     cam = stack("cam_n_m", "cam_e_m", "cam_d_m")
     q = stack("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z")
@@ -211,7 +211,7 @@ def track_arrays(tracks: list, time_boot_us: np.ndarray, origin) -> dict:
     """The daemon's tracks on the truth frames (matched on time_boot_us): position in the scenario's NED
     frame from the WGS84 fields (independent of the daemon's own origin), NaN without one; observable;
     ``sqrt_trace_cov_m`` = sqrt(trace(cov)) from ``sigma_ned_m`` (NaN without)."""
-    from onboard.frames import ned_from_geodetic
+    from onboard.core.frames import ned_from_geodetic
 
     idx = {int(t): i for i, t in enumerate(time_boot_us)}
     F = len(time_boot_us)
@@ -237,12 +237,12 @@ def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, r
     """The daemon's estimator (same configuration file) on the truth rows: true pixel + N(0, sigma^2) per
     axis (drawn from ``rng``), the camera pose the vehicle reported (truth plus the simulator's recorded
     navigation errors: the daemon saw no better), capture time ``time_boot_us``; ``add`` where the target
-    is in the image, else ``predict`` -- as :class:`onboard.pipeline.FramePipeline` feeds it.
+    is in the image, else ``predict`` -- as :class:`onboard.pipeline.frame_pipeline.FramePipeline` feeds it.
 
     Returns ``p_ned_m`` (F, 3, NaN = no estimate) and ``observable`` (F,)."""
-    from onboard.config import load_config
-    from onboard.errors import IrtrackError
-    from onboard.pipeline import make_estimator
+    from onboard.app.config import load_config
+    from onboard.core.errors import IrtrackError
+    from onboard.pipeline.frame_pipeline import make_estimator
 
     cfg = load_config(config_path, environ={})
     K = cfg.camera.pinhole()

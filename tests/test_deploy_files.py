@@ -5,7 +5,7 @@ what the issue asks.  .dockerignore: Docker's matching rules (last matching patt
 pattern matching a parent directory matches its contents, ``**``) re-implemented for the patterns
 we use, so every COPY source is known to reach the build context.  compose.yaml,
 onboard.container.yaml, zenoh-router.json5 and deploy/README.md: loaded with the same libraries
-that consume them (yaml, onboard.config, zenoh, configparser) and checked for agreement with each
+that consume them (yaml, onboard.app.config, zenoh, configparser) and checked for agreement with each
 other.  Two loopback tests run real zenoh sessions: the router file relaying between sessions set
 up as the daemon and the simulator are, and the README's TLS example (certificates from the
 README's own script).
@@ -197,7 +197,7 @@ def test_healthcheck_runs_the_probe(instructions):
     assert timeout_s < interval_s
     assert seconds(opts["start-period"]) >= 10.0  # imports take seconds on a small ARM board
     assert int(opts["retries"]) >= 2  # one failure from a wall-clock step must not flip the state
-    from onboard import health
+    from onboard.app import health
 
     # the probe's freshness limit must exceed the interval of the daemon's touches, which is 1 s
     assert health.DEFAULT_MAX_AGE_S > 1.0
@@ -212,8 +212,8 @@ def test_env_single_threaded_and_venv_on_path(instructions):
 
 def test_env_is_accepted_by_the_daemon_config(instructions):
     """Every IRTRACK_* variable the image sets is a known override (a typo would stop the daemon)."""
-    from onboard.config import env_overrides
-    from onboard.health import DEFAULT_HEALTH_FILE, HEALTH_FILE_ENV
+    from onboard.app.config import env_overrides
+    from onboard.app.health import DEFAULT_HEALTH_FILE, HEALTH_FILE_ENV
 
     env = env_of(instructions)
     ours = {k: v for k, v in env.items() if k.startswith("IRTRACK_")}
@@ -443,7 +443,7 @@ def test_compose_groundsim_command(compose):
     assert _opt(cmd, "--rate") == ["realtime"]
     assert _opt(cmd, "--mavlink") == ["udpout:127.0.0.1:14540"]
     assert _opt(cmd, "--zenoh-connect") == ["tcp/127.0.0.1:7447"]
-    from groundsim.nav_errors import resolve_nav_noise
+    from groundsim.world.nav_errors import resolve_nav_noise
 
     assert _opt(cmd, "--nav-noise") == ["RTK"] and resolve_nav_noise("RTK")  # realistic telemetry, a shipped case
     scenario = _opt(cmd, "--scenario")
@@ -469,13 +469,13 @@ def compose_env(compose) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def container_config(compose_env):
-    from onboard.config import load_config
+    from onboard.app.config import load_config
 
     return load_config(CONTAINER_CONFIG, environ=compose_env)
 
 
 def test_container_config_loads_with_compose_env(container_config, instructions):
-    from onboard.health import DEFAULT_HEALTH_FILE
+    from onboard.app.health import DEFAULT_HEALTH_FILE
 
     assert container_config.output.health_file == env_of(instructions)["IRTRACK_HEALTH_FILE"] == DEFAULT_HEALTH_FILE
     assert container_config.zenoh.multicast_scouting is False
@@ -497,7 +497,7 @@ def test_daemon_accepts_the_container_config_as_the_image_runs_it(compose_env, i
 
 
 def test_mavlink_ports_agree(compose, container_config):
-    from onboard.mavlink_link import parse_connection
+    from onboard.io.mavlink_link import parse_connection
 
     sim_out = parse_connection(_opt(compose["services"]["groundsim"]["command"], "--mavlink")[0])
     daemon_in = parse_connection(container_config.mavlink.connection)
@@ -518,7 +518,7 @@ def test_zenoh_endpoints_agree(compose, container_config):
 
 def test_container_camera_matches_the_sim_scenario(compose, container_config):
     """`--profile sim` flies scenario P1; the daemon must assume the same camera and mount."""
-    from groundsim.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario
 
     scenario = load_scenario(REPO / _opt(compose["services"]["groundsim"]["command"], "--scenario")[0])
     want_k, got_k = scenario.camera.intrinsics, container_config.camera.pinhole()
@@ -583,7 +583,7 @@ def test_router_relays_daemon_simulator_and_ground(compose, container_config):
     """The stack on loopback: router from the shipped file, the daemon's and the simulator's
     sessions built from their shipped settings, a ground client; only ports are changed."""
     import zenoh
-    from onboard.zenoh_session import ZenohSettings, build_config, frame_key, status_key
+    from onboard.io.zenoh_session import ZenohSettings, build_config, frame_key, status_key
 
     port = _free_port()
     local = f"tcp/127.0.0.1:{port}"
@@ -647,7 +647,7 @@ def test_readme_json5_blocks_load_with_zenoh():
 
 
 def test_readme_mavlink_connections_parse():
-    from onboard.mavlink_link import parse_connection
+    from onboard.io.mavlink_link import parse_connection
 
     text = DEPLOY_README.read_text(encoding="utf-8")
     found = set(re.findall(r"\b((?:serial|udpin|udpout):[^\s`'\",)]+)", text))
@@ -657,7 +657,7 @@ def test_readme_mavlink_connections_parse():
 
 
 def test_readme_mavlink_router_block_targets_the_daemon(container_config):
-    from onboard.mavlink_link import parse_connection
+    from onboard.io.mavlink_link import parse_connection
 
     (block,) = _fenced_blocks("ini")
     ini = configparser.ConfigParser()
@@ -677,7 +677,7 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
     only paths and ports replaced; a daemon-like peer publishes status, the ground client gets it
     over mutual TLS; without a client certificate the ground client is refused."""
     import zenoh
-    from onboard.zenoh_session import ZenohSettings, build_config, status_key
+    from onboard.io.zenoh_session import ZenohSettings, build_config, status_key
 
     (script,) = _fenced_blocks("sh")
     env = {**os.environ, "VEHICLE_DNS": "localhost", "VEHICLE_IP": "127.0.0.1"}

@@ -1,14 +1,14 @@
 """Fuzz target: the IRF1 decoder and the daemon's frame receive path (issue 12), with hypothesis.
 
-Subjects: :func:`onboard.irframe.decode_irframe` on any bytes-like payload (random bytes and valid
+Subjects: :func:`onboard.core.irframe.decode_irframe` on any bytes-like payload (random bytes and valid
 frames mutated: header fields flipped, truncated, extended, spliced; as ``bytes``, ``bytearray`` or
-``memoryview``; any ``max_bytes``), and :meth:`onboard.service.OnboardService._on_frame`, the zenoh
+``memoryview``; any ``max_bytes``), and :meth:`onboard.app.service.OnboardService._on_frame`, the zenoh
 subscriber callback (length check before any copy, decode, count by reason, queue), fed with a
 stand-in for zenoh's sample whose payload has ``len`` and ``to_bytes`` as ``ZBytes`` has.
 
 Properties:
 
-* the decoder raises nothing but :class:`~onboard.irframe.IrFrameError` with a documented
+* the decoder raises nothing but :class:`~onboard.core.irframe.IrFrameError` with a documented
   ``reason``; what it accepts re-encodes to the same bytes (pad bytes zeroed) and obeys ``max_bytes``;
 * the callback never raises; each payload is either queued or counted exactly once, as
   ``frame_<reason>`` (never the catch-all ``frame_receive_error``);
@@ -25,9 +25,9 @@ from hypothesis import given
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from onboard.config import build_config
-from onboard.irframe import HEADER, REJECT_REASONS, IrFrame, IrFrameError, decode_irframe, encode_irframe
-from onboard.service import OnboardService
+from onboard.app.config import build_config
+from onboard.core.irframe import HEADER, REJECT_REASONS, IrFrame, IrFrameError, decode_irframe, encode_irframe
+from onboard.app.service import OnboardService
 from tests.fuzz_budget import fuzz_settings, timeout_s
 
 pytestmark = pytest.mark.timeout(timeout_s(120))

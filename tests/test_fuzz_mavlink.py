@@ -1,8 +1,8 @@
 """Fuzz target: the MAVLink input, datagram by datagram (issue 12), with hypothesis.
 
-The subject is :meth:`onboard.mavlink_link.MavlinkLink.poll` on a UDP link: each datagram goes
+The subject is :meth:`onboard.io.mavlink_link.MavlinkLink.poll` on a UDP link: each datagram goes
 through the per-datagram parser, the signing check, the identity rules and the handlers into a
-real :class:`~onboard.pose.PoseBuffer`.  The link's socket is real (bound on 127.0.0.1) but its
+real :class:`~onboard.core.pose.PoseBuffer`.  The link's socket is real (bound on 127.0.0.1) but its
 ``read`` is fed from memory, so thousands of datagrams run per second; the socket path itself is
 tested in ``tests/onboard/test_mavlink_hostile.py``.
 
@@ -36,9 +36,9 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from onboard.frames import CameraMount, GeodeticOrigin  # noqa: E402
-from onboard.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
-from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.core.frames import CameraMount, GeodeticOrigin  # noqa: E402
+from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
+from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
 from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
 from tests.onboard.test_mavlink_link import FakeClock, free_udp_port  # noqa: E402
 

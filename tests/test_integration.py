@@ -15,7 +15,7 @@ select another motion model and be 10x off in either direction: P1 measured 1.4-
 
 Which frames: the daemon's observable frames (what it publishes by default) when there are at least
 ``MIN_OBSERVABLE_FRAMES`` of them; otherwise every frame with a 3-D position, observable or not (the
-daemon's configuration from :func:`groundsim.demo.plan_demo` has ``output.unobservable_positions: true``).
+daemon's configuration from :func:`groundsim.evaluation.demo.plan_demo` has ``output.unobservable_positions: true``).
 Both comparisons are printed (``pytest -s``).
 
 Why 20 s and exact navigation for this comparison (``FLIGHT_S``, ``NAV_NOISE``): range comes from the
@@ -65,7 +65,7 @@ RTK_MIN_OBSERVABLE_FRAMES = 30
 RTK_MAX_MEDIAN_ERROR = 0.02  # issue 9: observable runs' median error <= 2 % of range
 RTK_MAX_BEYOND_3SIGMA = 0.01  # issue 9: <= 1 % of the points beyond 3 sqrt(trace(cov))
 RATE = "1.0"  # --rate of the simulator: real time (see the module docstring)
-PIXEL_SIGMA_PX = 0.3  # = groundsim.eval.DEFAULT_PIXEL_SIGMA_PX, perfect-centroid noise per axis
+PIXEL_SIGMA_PX = 0.3  # = groundsim.evaluation.eval.DEFAULT_PIXEL_SIGMA_PX, perfect-centroid noise per axis
 BASELINE_DRAWS = 3  # noise draws of the baseline; the yardstick is their median error
 MAX_ERROR_RATIO = 1.5  # issue #4: daemon error / perfect-centroid error
 MIN_OBSERVABLE_FRAMES = 30  # 1 s at 30 fps: fewer observable frames -> compare on all frames with a position
@@ -85,7 +85,7 @@ def _choose(observable: Comparison, every: Comparison) -> Comparison:
 @pytest.mark.timeout(SCENARIO_TIMEOUT_S)
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_daemon_track_matches_truth_within_1p5x_of_perfect_centroids(name, tmp_path):
-    from groundsim.eval import limit_blas_threads
+    from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)  # the baselines run here; the children get OPENBLAS_NUM_THREADS=1 too
     run = run_pair(str(lengthened_scenario(name, FLIGHT_S[name], tmp_path)), tmp_path, rate=RATE, nav_noise=NAV_NOISE)
@@ -153,8 +153,8 @@ def test_daemon_under_rtk_navigation_publishes_precise_honest_observable_positio
 def test_scoring_matches_tracks_to_truth_frames_and_uses_the_median_draw():
     """The scoring itself on a synthetic run: positions from the WGS84 fields, frames matched on
     time_boot_us (an unknown time is ignored), errors normalised by the truth range."""
-    from groundsim.scenario import load_scenario, scenarios_dir
-    from onboard.frames import geodetic_from_ned
+    from groundsim.world.scenario import load_scenario, scenarios_dir
+    from onboard.core.frames import geodetic_from_ned
 
     origin = load_scenario(scenarios_dir() / "P1.yaml").origin
     F = 4

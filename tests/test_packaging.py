@@ -112,7 +112,7 @@ def test_undeclared_import_is_caught():
     """Control: the scan finds a function-local import of a package the runtime list lacks."""
     source = textwrap.dedent("""
         import os, numpy as np
-        from onboard.frames import x
+        from onboard.core.frames import x
         def plot():
             import matplotlib.pyplot as plt
             from tqdm import tqdm
@@ -216,7 +216,7 @@ def test_every_onboard_module_imports_without_the_simulator(refusing_env):
     env, log = refusing_env
     modules = sorted(".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
                      for p in ONBOARD.rglob("*.py"))
-    assert "onboard.service" in modules and "onboard.replay" in modules
+    assert "onboard.app.service" in modules and "onboard.app.replay" in modules
     code = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\nprint(len(sys.argv) - 1)"
     done = _run(["-c", code, *modules], env)
     assert done.returncode == 0, done.stderr

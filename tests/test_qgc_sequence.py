@@ -1,7 +1,7 @@
 """Issue 11's "Done when": QGroundControl's camera sequence, played as QGC's source plays it, against
 the real daemon and the real simulator on 127.0.0.1, with an independent decoder on the video.
 
-Wiring (ports picked by the test; ``groundsim.demo.plan_demo`` writes the daemon's configuration from
+Wiring (ports picked by the test; ``groundsim.evaluation.demo.plan_demo`` writes the daemon's configuration from
 the shipped ``config/onboard_sim.yaml`` with loopback ports and the scenario's camera)::
 
     python -m onboard --config OUT/onboard.yaml          MAVLink udpin:127.0.0.1:M, zenoh listen tcp/127.0.0.1:Z,
@@ -49,8 +49,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundsim.demo import TruthTail, daemon_command, free_port, plan_demo, sim_command
-from groundsim.demo import _child_env, _tail
+from groundsim.evaluation.demo import TruthTail, daemon_command, free_port, plan_demo, sim_command
+from groundsim.evaluation.demo import _child_env, _tail
 from tests.integration_helpers import REPO, stop_process
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
@@ -209,7 +209,7 @@ def _contrast(luma: np.ndarray, x_norm: float, y_norm: float, r_px: int = VIDEO_
 
 
 def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
-    from groundsim.video_rx import UdpTsDecoder
+    from groundsim.io.video_rx import UdpTsDecoder
 
     plan = plan_demo(SCENARIO, DURATION_S, 0, tmp_path, str(ONBOARD_SIM_CONFIG))
     W, H = plan.scenario.camera.intrinsics.width_px, plan.scenario.camera.intrinsics.height_px

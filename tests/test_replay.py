@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from onboard.replay import compare_tracks
+from onboard.app.replay import compare_tracks
 from tests.onboard.test_record_daemon import record_pair
 
 REPO = Path(__file__).resolve().parents[1]

@@ -215,7 +215,7 @@ def test_a_node_without_a_certificate_cannot_connect(tls_dir):
 def test_the_daemon_opens_its_session_from_the_sample_client_file(tls_dir, tmp_path):
     """``zenoh.config_file`` = the client sample (connect/listen left empty): the daemon's own session
     builder keeps the file's mode and TLS, adds only its receive limit, and reaches the router."""
-    from onboard.zenoh_session import ZenohSettings, build_config
+    from onboard.io.zenoh_session import ZenohSettings, build_config
 
     port = _free_port()
     client_file = tmp_path / "daemon.json5"

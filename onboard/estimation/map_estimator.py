@@ -73,7 +73,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
-from onboard.errors import IrtrackError
+from onboard.core.errors import IrtrackError
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 

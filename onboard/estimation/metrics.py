@@ -26,7 +26,7 @@ With a covariance ``P_i`` (N, 3, 3) of each estimated point:
 
 Covariances must be finite, symmetric and positive definite at every point (a reported zero or
 negative variance is a bug in the estimator, not something to average over): anything else raises
-:class:`onboard.errors.InputError` naming the point.  ``bayesian_crb`` is not here (the lead's).
+:class:`onboard.core.errors.InputError` naming the point.  ``bayesian_crb`` is not here (the lead's).
 """
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy.special import gammaincinv
 
-from onboard.errors import InputError
+from onboard.core.errors import InputError
 
 __all__ = ["ErrorReport", "evaluate", "nees_interval_95"]
 

@@ -1,6 +1,6 @@
 """The input noun of the reconstruction core: timestamped bearing observations from a moving camera.
 
-Frames and units follow ``onboard.frames``: the camera centre ``p_cam_ned_m`` in local NED metres,
+Frames and units follow ``onboard.core.frames``: the camera centre ``p_cam_ned_m`` in local NED metres,
 ``q_ned_from_cam`` (w, x, y, z) rotating camera-frame vectors (x right, y down, z forward) into
 NED, pixels ``(u_px, v_px)`` with the intrinsics of that instant.
 """
@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from onboard.errors import InputError
-from onboard.frames import QUAT_NORM_TOL, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.core.errors import InputError
+from onboard.core.frames import QUAT_NORM_TOL, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
 
 __all__ = ["Observations"]
 

@@ -63,7 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-from onboard.errors import ConfigError
+from onboard.core.errors import ConfigError
 from onboard.estimation.map_estimator import EstimationError
 from onboard.estimation.observations import Observations
 

@@ -41,11 +41,11 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
-from onboard.errors import InputError
+from onboard.core.errors import InputError
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel, WindowProblem
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
-from onboard.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
 
 __all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad"]
 

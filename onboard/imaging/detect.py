@@ -22,7 +22,7 @@ by ``centroid_margin_px``:
    amplitude 30-80 grey, NETD 1 grey): 0.01-0.04 px rms, against 0.05-0.25 px for stage 1 alone.
 
 Weights are not clipped at 0 (clipping noise at 0 biases the centre towards the window).
-Pixel convention of onboard.frames: the centre of pixel (i, j) is (u, v) = (j + 0.5, i + 0.5).
+Pixel convention of onboard.core.frames: the centre of pixel (i, j) is (u, v) = (j + 0.5, i + 0.5).
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from onboard.errors import InputError
+from onboard.core.errors import InputError
 from onboard.imaging.preprocess import (
     ImagingParams,
     Preprocessed,

@@ -46,7 +46,7 @@ from typing import Any, Mapping
 import cv2
 import numpy as np
 
-from onboard.errors import ConfigError, InputError
+from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
     "ImagingParams",

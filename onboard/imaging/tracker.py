@@ -28,7 +28,7 @@ full frame is searched (re-acquisition after a jump); a blob found within ``coas
 frames and ``reacquire_gate_px`` of the prediction keeps the track id, otherwise it starts a
 new one (the association is no longer trusted; the estimator should start a new segment).
 
-``update`` raises :class:`~onboard.errors.InputError` only for a frame that is not a 2-D
+``update`` raises :class:`~onboard.core.errors.InputError` only for a frame that is not a 2-D
 uint8/uint16 array (the tracker state is then unchanged and ``rejected_frames`` counts it); any
 pixel content is handled.  A change of frame size ends the current track (state ``lost``).
 """
@@ -43,7 +43,7 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from onboard.errors import InputError
+from onboard.core.errors import InputError
 from onboard.imaging.detect import Detection, find_blobs, measure_blob
 from onboard.imaging.preprocess import ImagingParams, Preprocessed, Region, check_frame, kcf_image_u8, preprocess_frame
 

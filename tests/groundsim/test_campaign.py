@@ -1,4 +1,4 @@
-"""groundsim.campaign: spec validation, geometry variants, scoring, resumability, pool == serial."""
+"""groundsim.evaluation.campaign: spec validation, geometry variants, scoring, resumability, pool == serial."""
 
 from __future__ import annotations
 
@@ -13,14 +13,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from groundsim.campaign import (LOG_NAME, REPORT_NAME, TABLE_NAME, TIMING_COLUMNS, Geometry, ManoeuvreScaled,
+from groundsim.evaluation.campaign import (LOG_NAME, REPORT_NAME, TABLE_NAME, TIMING_COLUMNS, Geometry, ManoeuvreScaled,
                                 MovedTarget, append_rows, derive_scenario, load_spec, plan_runs, read_log, run_campaign,
                                 run_id, score_track, spec_from_dict)
-from groundsim.cli import main as cli_main
-from groundsim.eval import load_base_config
-from groundsim.motion import Circular, Cubic
-from groundsim.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
-from onboard.errors import ConfigError
+from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.eval import load_base_config
+from groundsim.world.motion import Circular, Cubic
+from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
+from onboard.core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 ATOL_M = 1e-9  # 1 nm: the variants are exact transformations of the reference paths

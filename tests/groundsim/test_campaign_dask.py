@@ -1,4 +1,4 @@
-"""groundsim.campaign on a Dask distributed cluster (``--scheduler``): the same tables as the local process
+"""groundsim.evaluation.campaign on a Dask distributed cluster (``--scheduler``): the same tables as the local process
 pool, resumption after an interruption, the Parquet table, and the refusals (one line, naming the option)."""
 
 from __future__ import annotations
@@ -15,11 +15,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from groundsim.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, _check_workers, code_fingerprint,
+from groundsim.evaluation.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, _check_workers, code_fingerprint,
                                 load_spec, read_log, run_campaign, run_id, plan_runs, table_rows, write_table)
-from groundsim.cli import main as cli_main
-from groundsim.eval import load_base_config
-from onboard.errors import ConfigError
+from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.eval import load_base_config
+from onboard.core.errors import ConfigError
 
 distributed = pytest.importorskip("distributed")
 

@@ -1,4 +1,4 @@
-"""groundsim.dataset: labelled IR sequences, read back by independent readers (pycocotools, TrackEval)."""
+"""groundsim.evaluation.dataset: labelled IR sequences, read back by independent readers (pycocotools, TrackEval)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundsim.cli import main as cli_main
-from groundsim.dataset import DatasetOptions, TargetLabel, body_box_corners_frd_m, export_dataset, target_label
-from groundsim.scenario import load_scenario, reference_scenario_paths
-from onboard.errors import ConfigError
-from onboard.frames import PinholeIntrinsics, rotmat_from_quat
+from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.dataset import DatasetOptions, TargetLabel, body_box_corners_frd_m, export_dataset, target_label
+from groundsim.world.scenario import load_scenario, reference_scenario_paths
+from onboard.core.errors import ConfigError
+from onboard.core.frames import PinholeIntrinsics, rotmat_from_quat
 
 LABEL_ATOL_PX = 0.05  # issue 14: labels match the truth pixel within 0.05 px
 LEVER_ATOL_M = 1e-3  # measured - true camera position = injected error, up to the lever arm's rotation (~um)

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
-from groundsim.demo import (
+from groundsim.evaluation.demo import (
     DemoOutcome,
     ProcCpu,
     TrackStore,
@@ -29,11 +29,11 @@ from groundsim.demo import (
     sim_command,
     status_line,
 )
-from groundsim.scenario import load_scenario, scenarios_dir
-from groundsim.truth import TruthWriter, truth_row
-from onboard.config import load_config
-from onboard.errors import ConfigError
-from onboard.frames import geodetic_from_ned, quat_from_euler
+from groundsim.world.scenario import load_scenario, scenarios_dir
+from groundsim.world.truth import TruthWriter, truth_row
+from onboard.app.config import load_config
+from onboard.core.errors import ConfigError
+from onboard.core.frames import geodetic_from_ned, quat_from_euler
 
 pytestmark = pytest.mark.timeout(90)
 

@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from groundsim.estimator_eval import CaseResult, format_table, median_interval, run_case, summarise
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.estimator_eval import CaseResult, format_table, median_interval, run_case, summarise
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 
 
 def _result(seed: int, err: float, rmse: float, observable=True, beyond=0.0) -> CaseResult:

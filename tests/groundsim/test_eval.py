@@ -19,8 +19,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim import cli
-from groundsim.eval import (
+from groundsim.app import cli
+from groundsim.evaluation.eval import (
     EvalOptions,
     EvalResult,
     RunResult,
@@ -31,12 +31,12 @@ from groundsim.eval import (
     score_run,
     summarise,
 )
-from groundsim.report import ape_rmse_m, read_tum, write_eval_report, write_tum
-from groundsim.scenario import load_scenario, scenarios_dir
-from onboard.config import OnboardConfig
-from onboard.errors import ConfigError, InputError
-from onboard.frames import GeodeticOrigin, quat_from_euler
-from onboard.pose import PoseBuffer, PoseBufferConfig
+from groundsim.evaluation.report import ape_rmse_m, read_tum, write_eval_report, write_tum
+from groundsim.world.scenario import load_scenario, scenarios_dir
+from onboard.app.config import OnboardConfig
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.frames import GeodeticOrigin, quat_from_euler
+from onboard.core.pose import PoseBuffer, PoseBufferConfig
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -189,7 +189,7 @@ class _FakeCore:
         self.gimbal = gimbal
 
     def vehicle_state(self, i: int) -> dict:
-        from onboard.frames import geodetic_from_ned
+        from onboard.core.frames import geodetic_from_ned
 
         t = i / self.tick_rate_hz
         lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
@@ -201,7 +201,7 @@ class _FakeCore:
 
 def test_telemetry_feed_rates_stamps_and_quantisation():
     core = _FakeCore(2.0)
-    from onboard.frames import CameraMount
+    from onboard.core.frames import CameraMount
 
     buf = PoseBuffer(CameraMount(gimballed=True), PoseBufferConfig(), core.origin)
     feed = TelemetryFeed(core, buf, gimballed=True)
@@ -220,7 +220,7 @@ def test_telemetry_feed_rates_stamps_and_quantisation():
 
 def test_telemetry_feed_for_waits_for_the_bracketing_sample():
     core = _FakeCore(1.0, gimbal=False)
-    from onboard.frames import CameraMount
+    from onboard.core.frames import CameraMount
 
     buf = PoseBuffer(CameraMount(), PoseBufferConfig(), core.origin)
     feed = TelemetryFeed(core, buf, gimballed=False)

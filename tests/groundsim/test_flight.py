@@ -1,4 +1,4 @@
-"""groundsim.flight: JSBSim flies the references; guidance maths; units, yaw, determinism, errors."""
+"""groundsim.world.flight: JSBSim flies the references; guidance maths; units, yaw, determinism, errors."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.flight import FlightError, FlownState, FlownVehicle, GuidanceGains, fly, fly_pair
-from groundsim.flight.guidance import (
+from groundsim.world.flight import FlightError, FlownState, FlownVehicle, GuidanceGains, fly, fly_pair
+from groundsim.world.flight.guidance import (
     GRAVITY_MPS2,
     GuidanceError,
     MulticopterController,
@@ -24,9 +24,9 @@ from groundsim.flight.guidance import (
     yaw_rate_toward,
     yaw_toward,
 )
-from groundsim.flight.vehicle import FT_M
-from groundsim.motion import Circular, Cubic
-from onboard.frames import (
+from groundsim.world.flight.vehicle import FT_M
+from groundsim.world.motion import Circular, Cubic
+from onboard.core.frames import (
     CameraMount,
     GeodeticOrigin,
     camera_pose_ned,
@@ -327,7 +327,7 @@ yaws = st.floats(-math.pi, math.pi, allow_nan=False)
 @given(roll=angles, pitch=angles, yaw=yaws, c=st.floats(1.0, 30.0))
 @settings(max_examples=100, deadline=None)
 def test_tilt_round_trip_with_frames(roll, pitch, yaw, c):
-    """The tilt that points body -z along f, rebuilt through onboard.frames, gives back f."""
+    """The tilt that points body -z along f, rebuilt through onboard.core.frames, gives back f."""
     R = rotmat_from_quat(quat_from_euler(roll, pitch, yaw))
     f = -c * R[:, 2]
     r2, p2, c2 = tilt_from_specific_thrust(tuple(f), yaw)

@@ -11,15 +11,15 @@ import time
 import numpy as np
 import pytest
 
-from groundsim.mavlink_vehicle import (
+from groundsim.io.mavlink_vehicle import (
     MavlinkConfigError,
     MavlinkLinkError,
     MavlinkVehicle,
     open_mavlink2,
     parse_connection,
 )
-from onboard.errors import InputError, IrtrackError
-from onboard.frames import euler_from_quat, quat_from_euler, quat_multiply
+from onboard.core.errors import InputError, IrtrackError
+from onboard.core.frames import euler_from_quat, quat_from_euler, quat_multiply
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -1,4 +1,4 @@
-"""Navigation errors of the simulated telemetry (groundsim.nav_errors) and where they are applied."""
+"""Navigation errors of the simulated telemetry (groundsim.world.nav_errors) and where they are applied."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim import cli
-from groundsim.eval import EvalOptions, TelemetryFeed
-from groundsim.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
-from groundsim.nav_errors import (
+from groundsim.app import cli
+from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
+from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
+from groundsim.world.nav_errors import (
     NAV_ERROR_STREAM,
     NavErrorModel,
     NavErrorSample,
@@ -21,11 +21,11 @@ from groundsim.nav_errors import (
     reported_state,
     resolve_nav_noise,
 )
-from groundsim.run import SimCore
-from groundsim.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
-from onboard.config import OnboardConfig
-from onboard.errors import ConfigError
-from onboard.frames import (
+from groundsim.app.run import SimCore
+from groundsim.world.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
+from onboard.app.config import OnboardConfig
+from onboard.core.errors import ConfigError
+from onboard.core.frames import (
     CameraMount,
     GeodeticOrigin,
     ned_from_geodetic,
@@ -34,7 +34,7 @@ from onboard.frames import (
     quat_multiply,
     rotvec_from_quat,
 )
-from onboard.pose import PoseBuffer, PoseBufferConfig
+from onboard.core.pose import PoseBuffer, PoseBufferConfig
 
 P1 = scenarios_dir() / "P1.yaml"
 N_TICKS = 20_000  # statistics over this many samples: sample std within ~1 % (3 sigma ~ 1.5 %)
@@ -213,7 +213,7 @@ class _Core:
         self.model = NavErrorModel(case, np.random.default_rng(9), np.arange(self.tick_count) / self.tick_rate_hz)
 
     def vehicle_state(self, i: int) -> dict:
-        from onboard.frames import geodetic_from_ned
+        from onboard.core.frames import geodetic_from_ned
 
         t = i / self.tick_rate_hz
         lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
@@ -262,7 +262,7 @@ def test_scenario_nav_noise_key_is_validated():
 
 
 def test_eval_and_demo_default_to_rtk_and_the_shipped_daemon_config():
-    from groundsim.eval import DEFAULT_ONBOARD_CONFIG
+    from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
 
     assert EvalOptions().nav_noise == "RTK"
     assert str(DEFAULT_ONBOARD_CONFIG) == "config/onboard.yaml"

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundsim.eval import onboard_config_for
-from groundsim.scenario import load_scenario, scenarios_dir
-from onboard.config import config_to_dict, load_config
+from groundsim.evaluation.eval import onboard_config_for
+from groundsim.world.scenario import load_scenario, scenarios_dir
+from onboard.app.config import config_to_dict, load_config
 
 REPO = Path(__file__).resolve().parents[2]
 

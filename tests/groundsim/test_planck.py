@@ -1,4 +1,4 @@
-"""Planck band radiometry and the paper's grey map (groundsim.render.planck).
+"""Planck band radiometry and the paper's grey map (groundsim.world.render.planck).
 
 Independent references: scipy.integrate.quad of Planck's law in wavelength; the closed-form series
 of the black-body fractional function F(0 -> lambda T) and its tabulated values (Incropera et al.,
@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.integrate import quad
 
-from groundsim.render.planck import (
+from groundsim.world.render.planck import (
     C1_W_M2,
     C2_M_K,
     band_exitance,
@@ -26,8 +26,8 @@ from groundsim.render.planck import (
     grey_from_radiance,
     noise_sigma_grey,
 )
-from groundsim.render.settings import IrSettings
-from onboard.errors import InputError
+from groundsim.world.render.settings import IrSettings
+from onboard.core.errors import InputError
 
 QUAD_RTOL = 1e-9  # our quadrature vs scipy's adaptive quad
 SERIES_RTOL = 1e-9  # vs the fractional-function series (200 terms: exact to double precision)

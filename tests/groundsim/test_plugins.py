@@ -1,4 +1,4 @@
-"""onboard.plugins: estimators discovered by entry point or module:Attribute and run through the lockstep eval."""
+"""onboard.pipeline.plugins: estimators discovered by entry point or module:Attribute and run through the lockstep eval."""
 
 from __future__ import annotations
 
@@ -9,14 +9,14 @@ import textwrap
 import numpy as np
 import pytest
 
-from groundsim.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
-from groundsim.cli import main as cli_main
-from groundsim.eval import EvalOptions, run_lockstep, score_run
-from groundsim.scenario import load_scenario, reference_scenario_paths
-from onboard.config import OnboardConfig
-from onboard.errors import ConfigError
-from onboard.frames import PinholeIntrinsics, quat_from_rotmat
-from onboard.plugins import ESTIMATORS, TrajectoryEstimator, available, build, load_factory
+from groundsim.evaluation.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
+from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
+from groundsim.world.scenario import load_scenario, reference_scenario_paths
+from onboard.app.config import OnboardConfig
+from onboard.core.errors import ConfigError
+from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat
+from onboard.pipeline.plugins import ESTIMATORS, TrajectoryEstimator, available, build, load_factory
 
 SHORT_S = 3.0  # a short lockstep run: enough frames (> 30) for every registered estimator to answer
 

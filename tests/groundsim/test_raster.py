@@ -1,4 +1,4 @@
-"""The IR rasteriser (groundsim.render.raster): geometry and sign conventions, sub-pixel centroid
+"""The IR rasteriser (groundsim.world.render.raster): geometry and sign conventions, sub-pixel centroid
 accuracy, radiometry of sky/ground/target, sensor noise, determinism and input validation.
 
 Centroid tests: ``truth_pixel`` (the projection of the target body centre) against an intensity-
@@ -20,10 +20,10 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from groundsim.render import IrRenderer, IrSettings, TargetPart, truth_pixel
-from groundsim.render.planck import band_radiance, grey_float_from_radiance, noise_sigma_grey
-from onboard.errors import InputError
-from onboard.frames import CameraMount, PinholeIntrinsics, camera_pose_ned, quat_from_euler, rotmat_from_quat
+from groundsim.world.render import IrRenderer, IrSettings, TargetPart, truth_pixel
+from groundsim.world.render.planck import band_radiance, grey_float_from_radiance, noise_sigma_grey
+from onboard.core.errors import InputError
+from onboard.core.frames import CameraMount, PinholeIntrinsics, camera_pose_ned, quat_from_euler, rotmat_from_quat
 
 CENTROID_TOL_PX = 0.25  # the issue's requirement, default (asymmetric) target
 SYMMETRIC_CENTROID_TOL_PX = 0.08  # a point-symmetric target: anti-aliasing within the ray budget (measured <= 0.05)

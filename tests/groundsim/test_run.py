@@ -23,10 +23,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim import cli
-from groundsim.mavlink_vehicle import open_mavlink2
-from groundsim.nav_errors import offset_geodetic
-from groundsim.run import (
+from groundsim.app import cli
+from groundsim.io.mavlink_vehicle import open_mavlink2
+from groundsim.world.nav_errors import offset_geodetic
+from groundsim.app.run import (
     BOOT_START_US,
     JitterStats,
     Pacer,
@@ -37,10 +37,10 @@ from groundsim.run import (
     run,
     run_loop,
 )
-from groundsim.scenario import load_scenario, scenarios_dir
-from groundsim.truth import REQUIRED_COLUMNS, TRUTH_COLUMNS, TruthRow, TruthWriter, read_truth_csv, truth_row
-from onboard.errors import ConfigError, InputError
-from onboard.frames import (
+from groundsim.world.scenario import load_scenario, scenarios_dir
+from groundsim.world.truth import REQUIRED_COLUMNS, TRUTH_COLUMNS, TruthRow, TruthWriter, read_truth_csv, truth_row
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.frames import (
     GeodeticOrigin,
     PinholeIntrinsics,
     Q_MOUNT_FROM_CAM,
@@ -48,8 +48,8 @@ from onboard.frames import (
     rotmat_from_quat,
     rotmat_from_rotvec,
 )
-from onboard.irframe import ENCODING_MONO8, decode_irframe
-from onboard.zenoh_session import ZenohSettings, frame_key, open_session
+from onboard.core.irframe import ENCODING_MONO8, decode_irframe
+from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -184,7 +184,7 @@ def test_run_exits_cleanly_with_status_lines(e2e):
 @pytest.mark.integration
 def test_frames_have_valid_headers_monotonic_seq_and_30hz_stamps(e2e):
     _, frames, _, _, _ = e2e
-    # zenoh congestion control is DROP (groundsim.zenoh_video): at --rate max on a busy machine an
+    # zenoh congestion control is DROP (groundsim.io.zenoh_video): at --rate max on a busy machine an
     # occasional frame may be dropped (a gap in seq, as a real link shows); nearly all must arrive
     assert len(frames) >= MIN_DELIVERED_FRACTION * E2E_FRAMES, f"{len(frames)} of {E2E_FRAMES} frames delivered"
     seqs = [f.seq for f in frames]
@@ -658,8 +658,8 @@ def test_heading_in_vehicle_state_is_body_yaw():
 
 
 def test_cli_defaults_match_the_adapters():
-    from groundsim.mavlink_vehicle import DEFAULT_CONNECTION
-    from onboard.zenoh_session import DEFAULT_VEHICLE
+    from groundsim.io.mavlink_vehicle import DEFAULT_CONNECTION
+    from onboard.io.zenoh_session import DEFAULT_VEHICLE
 
     assert cli.DEFAULT_MAVLINK == DEFAULT_CONNECTION == "udpout:127.0.0.1:14540"
     assert cli.DEFAULT_VEHICLE == DEFAULT_VEHICLE == "uav1"

@@ -16,9 +16,9 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from groundsim.motion import Circular, Cubic, FigureEight, Perturbed, Waypoints
-from groundsim.render.settings import IrSettings
-from groundsim.scenario import (
+from groundsim.world.motion import Circular, Cubic, FigureEight, Perturbed, Waypoints
+from groundsim.world.render.settings import IrSettings
+from groundsim.world.scenario import (
     REFERENCE_GIMBAL,
     CameraSpec,
     GimbalSpec,
@@ -34,8 +34,8 @@ from groundsim.scenario import (
     reference_scenario_paths,
     scenario_from_dict,
 )
-from onboard.errors import ConfigError
-from onboard.frames import GeodeticOrigin, PinholeIntrinsics
+from onboard.core.errors import ConfigError
+from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics
 
 REPO = Path(__file__).resolve().parents[2]
 ATOL_M = 1e-9  # positions computed two ways (file vs. reference formula)
@@ -529,7 +529,7 @@ def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
 def test_module_entry_point_exit_code(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [\n")
-    r = subprocess.run([sys.executable, "-m", "groundsim.scenario", str(bad)], cwd=REPO,
+    r = subprocess.run([sys.executable, "-m", "groundsim.world.scenario", str(bad)], cwd=REPO,
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and str(bad) in r.stderr and "line 2" in r.stderr

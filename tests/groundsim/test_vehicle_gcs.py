@@ -13,7 +13,7 @@ import pytest
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
-from groundsim.mavlink_vehicle import BATTERY_CELLS, DEFAULT_PARAMS, MavlinkVehicle
+from groundsim.io.mavlink_vehicle import BATTERY_CELLS, DEFAULT_PARAMS, MavlinkVehicle
 from tests.groundsim.test_mavlink_vehicle import (
     ALT_AMSL_M,
     LAT_DEG,

@@ -1,5 +1,5 @@
-"""The independent video receiver (groundsim.video_rx): the daemon's encoder thread and UDP sink
-(onboard.video.VideoStreamer) on 127.0.0.1 -> FFmpeg's decoder through PyAV; every frame comes back,
+"""The independent video receiver (groundsim.io.video_rx): the daemon's encoder thread and UDP sink
+(onboard.io.video.VideoStreamer) on 127.0.0.1 -> FFmpeg's decoder through PyAV; every frame comes back,
 in order, with its index readable from the picture (bench.video's stamp)."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from bench.video import H, W, read_index, stamp_index
-from groundsim.video_rx import UdpTsDecoder
-from onboard.video import VideoStreamer
+from groundsim.io.video_rx import UdpTsDecoder
+from onboard.io.video import VideoStreamer
 
 FRAMES = 45  # one and a half GOPs at 30 Hz
 WAIT_S = 10.0

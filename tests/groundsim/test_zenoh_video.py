@@ -10,10 +10,10 @@ import time
 import numpy as np
 import pytest
 
-from groundsim.zenoh_video import FramePublisher
-from onboard.errors import ConfigError, IrtrackError
-from onboard.irframe import IrFrame, decode_irframe, encode_irframe
-from onboard.zenoh_session import (
+from groundsim.io.zenoh_video import FramePublisher
+from onboard.core.errors import ConfigError, IrtrackError
+from onboard.core.irframe import IrFrame, decode_irframe, encode_irframe
+from onboard.io.zenoh_session import (
     ZenohConfigError,
     ZenohSessionError,
     ZenohSettings,

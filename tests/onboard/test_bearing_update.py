@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
 from onboard.estimation.map_estimator import NoiseModel
-from onboard.frames import PinholeIntrinsics
+from onboard.core.frames import PinholeIntrinsics
 
 
 def _estimate(p, cov) -> TrackEstimate:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-import onboard.camera_protocol as cp
+import onboard.io.camera_protocol as cp
 from tests.onboard.test_camera_protocol import _ack, _cmd, _proto
 
 

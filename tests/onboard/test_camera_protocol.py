@@ -11,16 +11,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
-import onboard.camera_protocol as cp
-from onboard.camera_protocol import (
+import onboard.io.camera_protocol as cp
+from onboard.io.camera_protocol import (
     CameraCommand,
     CameraIdentity,
     CameraProtocol,
     TrackResult,
     VideoStream,
 )
-from onboard.frames import GeodeticOrigin
-from onboard.track import Track
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.track import Track
 
 W, H = 640, 512
 GCS = (255, 190)  # QGC's system / component

@@ -1,4 +1,4 @@
-"""onboard.config: strict YAML -> typed config, one-line errors, env/CLI overrides; the shipped file."""
+"""onboard.app.config: strict YAML -> typed config, one-line errors, env/CLI overrides; the shipped file."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from onboard.config import (
+from onboard.app.config import (
     OnboardConfig,
     OnboardConfigError,
     _leaf_paths,
@@ -24,8 +24,8 @@ from onboard.config import (
     load_config,
     parse_set_option,
 )
-from onboard.errors import ConfigError
-from onboard.frames import quat_from_euler
+from onboard.core.errors import ConfigError
+from onboard.core.frames import quat_from_euler
 
 REPO = Path(__file__).resolve().parents[2]
 SHIPPED = REPO / "config" / "onboard.yaml"

@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import estimator_noise_model, synthesize, synthesize_scenario
-from onboard.errors import InputError
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.synth import estimator_noise_model, synthesize, synthesize_scenario
+from onboard.core.errors import InputError
 from onboard.estimation.map_estimator import MapConfig, MapEstimator, MotionPrior, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
@@ -212,7 +212,7 @@ def test_straight_constant_velocity_observer_is_flagged_unobservable(seed):
 
 
 def test_hovering_observer_is_flagged_unobservable():
-    from groundsim.motion import Cubic
+    from groundsim.world.motion import Cubic
 
     sc = load_scenario(reference_scenario_paths()["P1"])
     nc = load_noise_cases()["px0.3"]

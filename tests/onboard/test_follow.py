@@ -1,4 +1,4 @@
-"""FOLLOW_TARGET (#144) encoding (onboard.follow): only observable positions; degE7, m AMSL, NED
+"""FOLLOW_TARGET (#144) encoding (onboard.io.follow): only observable positions; degE7, m AMSL, NED
 velocity, eph / epv from the covariance; packs with pymavlink and decodes to the same numbers."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from onboard.follow import FOLLOW_TARGET_CAP_POS, FOLLOW_TARGET_CAP_VEL, follow_target_fields
+from onboard.io.follow import FOLLOW_TARGET_CAP_POS, FOLLOW_TARGET_CAP_VEL, follow_target_fields
 from tests.onboard.test_camera_protocol import _track
 
 ATOL_DEGE7 = 1  # rounding of lat/lon to 1e-7 deg
@@ -57,8 +57,8 @@ class _FollowLink:
 
 
 def _follow_service(enabled: bool):
-    from onboard.config import build_config
-    from onboard.service import OnboardService
+    from onboard.app.config import build_config
+    from onboard.app.service import OnboardService
     from tests.fakes import FakeClock
 
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},

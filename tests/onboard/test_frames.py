@@ -1,4 +1,4 @@
-"""Frame conventions (onboard/frames.py): round trips, sign conventions and property tests."""
+"""Frame conventions (onboard/core/frames.py): round trips, sign conventions and property tests."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from onboard import frames as fr
+from onboard.core import frames as fr
 
 ATOL_M = 1e-6  # 1 um: geodesy round trips
 ATOL_DEG = 1e-9  # ~0.1 mm of latitude

@@ -1,4 +1,4 @@
-"""onboard.health: the liveness probe the container's HEALTHCHECK runs."""
+"""onboard.app.health: the liveness probe the container's HEALTHCHECK runs."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 from hypothesis import given, strategies as st
 
-from onboard import health
-from onboard.errors import ConfigError
+from onboard.app import health
+from onboard.core.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE_TIMEOUT_S = 20.0  # generous: a cold interpreter on a loaded 2-core box
@@ -184,7 +184,7 @@ def test_probe_subprocess_fresh_stale_missing(tmp_path):
 def test_probe_imports_only_the_standard_library():
     """The probe runs every few seconds on the drone: it must not drag numpy/zenoh/cv2 in."""
     code = (
-        "import sys, onboard.health; "
+        "import sys, onboard.app.health; "
         "heavy = {'numpy', 'zenoh', 'cv2', 'scipy', 'pymavlink', 'yaml'} & set(sys.modules); "
         "print(sorted(heavy))"
     )

@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from onboard.errors import ConfigError, InputError
+from onboard.core.errors import ConfigError, InputError
 from onboard.imaging import (
     Detection,
     ImagingParams,

@@ -10,8 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from onboard.errors import InputError
-from onboard.irframe import (
+from onboard.core.errors import InputError
+from onboard.core.irframe import (
     DEFAULT_MAX_BYTES,
     ENCODING_MONO8,
     ENCODING_MONO16,

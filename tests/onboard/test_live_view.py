@@ -1,4 +1,4 @@
-"""Issue 13 item 5, live view (onboard/live_view.py): the scene geometry (pure), the publisher's drop-and-count, and
+"""Issue 13 item 5, live view (onboard/io/live_view.py): the scene geometry (pure), the publisher's drop-and-count, and
 a plain WebSocket client (the `websockets` package, no Foxglove code) speaking the Foxglove WebSocket protocol
 (foxglove.websocket.v1's messages, under the subprotocol name foxglove.sdk.v1 the SDK
 speaks: serverInfo/advertise -> subscribe -> binary message data, opcode 1) to the
@@ -18,9 +18,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.errors import InputError
-from onboard.frames import rotmat_from_quat
-from onboard.live_view import (Q_ENU_FROM_NED, SCENE_TOPIC, LiveView, LiveViewSettings, ellipsoid_of_cov,
+from onboard.core.errors import InputError
+from onboard.core.frames import rotmat_from_quat
+from onboard.io.live_view import (Q_ENU_FROM_NED, SCENE_TOPIC, LiveView, LiveViewSettings, ellipsoid_of_cov,
                                frustum_lines_ned, los_segment_ned)
 
 REPO = Path(__file__).resolve().parents[2]
@@ -53,7 +53,7 @@ def test_ellipsoid_of_cov_refuses_a_non_finite_matrix():
 def test_los_and_frustum_point_where_the_camera_looks():
     # camera looking north (OpenCV z forward = NED north; x right = east; y down = down)
     R_ned_from_cam = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
-    from onboard.frames import quat_from_rotmat
+    from onboard.core.frames import quat_from_rotmat
 
     q = quat_from_rotmat(R_ned_from_cam)
     p = np.array([10.0, 20.0, -100.0])
@@ -154,8 +154,8 @@ async def _watch(url: str, topics: set[str], want: dict[str, int], feed=None, ti
 
 
 def _track(seq: int):
-    from onboard.frames import GeodeticOrigin
-    from onboard.track import LineOfSight, Track
+    from onboard.core.frames import GeodeticOrigin
+    from onboard.core.track import LineOfSight, Track
 
     o = GeodeticOrigin(47.4, 8.5, 500.0)
     los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0))
@@ -170,7 +170,7 @@ def test_a_plain_websocket_client_subscribes_and_receives_frames_tracks_and_the_
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
     from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 
-    from onboard.irframe import IrFrame
+    from onboard.core.irframe import IrFrame
 
     lv = LiveView(LiveViewSettings(port=0), vehicle="uav1")
     lv.start()
@@ -234,7 +234,7 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
     tracks (irtrack.track/2) and scene updates as they happen; the daemon still exits 0 on SIGTERM."""
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-    from groundsim.demo import _child_env, daemon_command, free_port, plan_demo, sim_command
+    from groundsim.evaluation.demo import _child_env, daemon_command, free_port, plan_demo, sim_command
 
     port = free_port("tcp")
     plan = plan_demo("P1", 30.0, 0, tmp_path, str(REPO / "config" / "onboard_sim.yaml"))

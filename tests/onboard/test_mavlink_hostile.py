@@ -15,7 +15,7 @@ os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from onboard.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkLinkConfig  # noqa: E402
+from onboard.io.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkLinkConfig  # noqa: E402
 from tests.onboard.test_mavlink_link import AP_SYSID, WAIT_S, Rig  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -286,9 +286,9 @@ def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_r
 
 
 def test_signing_key_sources_and_errors(tmp_path):
-    from onboard.config import build_config
-    from onboard.errors import ConfigError
-    from onboard.mavlink_link import load_signing_key
+    from onboard.app.config import build_config
+    from onboard.core.errors import ConfigError
+    from onboard.io.mavlink_link import load_signing_key
 
     hexkey = KEY.hex()
     f = tmp_path / "key"

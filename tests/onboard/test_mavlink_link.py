@@ -16,8 +16,8 @@ os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the l
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from onboard.errors import ConfigError, InputError  # noqa: E402
-from onboard.frames import (  # noqa: E402
+from onboard.core.errors import ConfigError, InputError  # noqa: E402
+from onboard.core.frames import (  # noqa: E402
     CameraMount,
     GeodeticOrigin,
     euler_from_quat,
@@ -25,7 +25,7 @@ from onboard.frames import (  # noqa: E402
     quat_from_euler,
     quat_rotate,
 )
-from onboard.mavlink_link import (  # noqa: E402
+from onboard.io.mavlink_link import (  # noqa: E402
     LINK_CONNECTED,
     LINK_LOST,
     LINK_WAITING,
@@ -34,7 +34,7 @@ from onboard.mavlink_link import (  # noqa: E402
     MavlinkLinkConfig,
     parse_connection,
 )
-from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.stats import chi2
 
-from onboard.errors import InputError
+from onboard.core.errors import InputError
 from onboard.estimation.metrics import ErrorReport, evaluate, nees_interval_95
 
 EXACT_TOL = 1e-12

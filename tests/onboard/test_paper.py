@@ -1,7 +1,7 @@
 """The paper's smooth-constraint closed form (onboard.estimation.paper): algebra, solver, known failure.
 
 Scenario P1 (REFERENCE_SCENARIOS.md): camera accelerating at 0.05 g, target uniform linear at
-5 m/s, ranges 100-126 m, 300 frames at 30 Hz, analytic synthesis (groundsim.synth).
+5 m/s, ranges 100-126 m, 300 frames at 30 Hz, analytic synthesis (groundsim.evaluation.synth).
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.scenario import NoiseCase, load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import estimator_noise_model, synthesize
-from onboard.errors import ConfigError
+from groundsim.world.scenario import NoiseCase, load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.synth import estimator_noise_model, synthesize
+from onboard.core.errors import ConfigError
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 from onboard.estimation.metrics import evaluate
 from onboard.estimation.observations import Observations
@@ -31,7 +31,7 @@ from onboard.estimation.paper import (
     projection_matrices,
     projection_rows,
 )
-from onboard.frames import quat_from_rotvec, rotmat_from_quat
+from onboard.core.frames import quat_from_rotvec, rotmat_from_quat
 
 ROW_REL_TOL = 1e-9  # residual of Q_i X - q_i relative to |Q_i| |X - C_i|: float64 rounding
 BAND_REL_TOL = 1e-12  # banded vs dense normal matrix

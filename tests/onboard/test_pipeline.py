@@ -1,6 +1,6 @@
 """FramePipeline in lockstep (no sockets, no threads): synthetic frames + poses -> Track, every refusal counted.
 
-Also the pure pieces of onboard.track: the Track noun, irtrack.track/1 JSON, the MAVLink #275/#276
+Also the pure pieces of onboard.core.track: the Track noun, irtrack.track/1 JSON, the MAVLink #275/#276
 mapping and the status builder.
 """
 
@@ -15,14 +15,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from bench.onboard import SyntheticScene
-from onboard.config import OnboardConfig, build_config
-from onboard.errors import InputError
+from onboard.app.config import OnboardConfig, build_config
+from onboard.core.errors import InputError
 from onboard.estimation.sliding import TrackEstimate
-from onboard.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
-from onboard.irframe import HEADER, MAGIC, IrFrame, encode_irframe
-from onboard.pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
-from onboard.pose import PoseBuffer, RejectCounter
-from onboard.track import (
+from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
+from onboard.core.irframe import HEADER, MAGIC, IrFrame, encode_irframe
+from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.core.track import (
     STATUS_SCHEMA,
     TRACK_SCHEMA,
     RollingStats,
@@ -51,7 +51,7 @@ POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m", "ned_m", "vel_ned_mps", "sigma_n
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.eval import limit_blas_threads
+    from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)
 

@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.errors import ConfigError, InputError
-from onboard.frames import (
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.frames import (
     CameraMount,
     GeodeticOrigin,
     euler_from_quat,
@@ -23,7 +23,7 @@ from onboard.frames import (
     quat_rotate,
     rotvec_from_quat,
 )
-from onboard.pose import (
+from onboard.core.pose import (
     ClockSync,
     ClockSyncConfig,
     GimbalReference,
@@ -432,7 +432,7 @@ def test_configs_validate():
 def test_reject_counter_logs_once_per_reason_per_interval(caplog):
     clock = FakeClock()
     rc = RejectCounter(log_interval_s=10.0, clock=clock)
-    with caplog.at_level(logging.WARNING, logger="onboard.pose"):
+    with caplog.at_level(logging.WARNING, logger="onboard.core.pose"):
         for _ in range(5):
             rc.count("attitude_zero", "zero quaternion")
         rc.count("position_zero")
@@ -796,7 +796,7 @@ def test_position_extrapolation_is_the_velocity_line(p0, v, h_us):
 @settings(max_examples=200, deadline=None)
 @given(limit_deg=st.floats(1e-4, 1.0), rate_dps=st.floats(0.0, 10.0), accel_dps2=st.floats(0.0, 500.0))
 def test_the_horizon_is_the_longest_whose_added_sigma_stays_within_the_limit(limit_deg, rate_dps, accel_dps2):
-    from onboard.pose import attitude_horizon_us, extrapolation_sigma
+    from onboard.core.pose import attitude_horizon_us, extrapolation_sigma
 
     limit, rate, acc = limit_deg * DEG, rate_dps * DEG, accel_dps2 * DEG
     cap = 1_000_000
@@ -809,8 +809,8 @@ def test_the_horizon_is_the_longest_whose_added_sigma_stays_within_the_limit(lim
 
 def test_shipped_noise_numbers_of_the_docstring():
     """The figures the pose module docstring states for config/onboard.yaml."""
-    from onboard.config import OnboardConfig
-    from onboard.pose import extrapolation_sigma
+    from onboard.app.config import OnboardConfig
+    from onboard.core.pose import extrapolation_sigma
 
     cfg = OnboardConfig()
     white_deg = math.degrees(cfg.bearing_white_sigma_rad())

@@ -22,12 +22,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import synthesize
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.synth import synthesize
 from onboard.estimation.map_estimator import MapConfig
 from onboard.estimation.metrics import evaluate
 from onboard.estimation.paper import PaperEstimator
-from onboard.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
+from onboard.app.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
 
 REPO = Path(__file__).resolve().parents[2]
 SUBPROCESS_TIMEOUT_S = 120

@@ -1,4 +1,4 @@
-"""onboard.record: the flight recorder's MCAP files, read back with the `mcap` package's own readers and the
+"""onboard.io.record: the flight recorder's MCAP files, read back with the `mcap` package's own readers and the
 foxglove protobuf schemas (independent of our writer), drop-and-count, rotation, and a SIGKILLed writer."""
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.frames import GeodeticOrigin
-from onboard.irframe import IrFrame
-from onboard.pose import PoseAt, PoseSample
-from onboard.record import (FRAME_INPUT_TOPIC, FlightRecorder, RecordSettings, irframe_from_rawimage,
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.irframe import IrFrame
+from onboard.core.pose import PoseAt, PoseSample
+from onboard.io.record import (FRAME_INPUT_TOPIC, FlightRecorder, RecordSettings, irframe_from_rawimage,
                             pose_from_json, pose_to_json, rotated_path)
-from onboard.track import Track
+from onboard.core.track import Track
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix  # noqa: E402
@@ -159,7 +159,7 @@ _CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {repo!r})
     from tests.onboard.test_record import _frame
-    from onboard.record import FlightRecorder, RecordSettings
+    from onboard.io.record import FlightRecorder, RecordSettings
     rec = FlightRecorder(RecordSettings({path!r}, chunk_bytes=16 * 1024, flush_interval_s=0.1), vehicle="uav1")
     rec.start()
     i = 0

@@ -61,8 +61,8 @@ def _kill(proc: subprocess.Popen | None, sig=signal.SIGTERM, wait_s: float = 10.
 def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_s: float | None = None,
                 extra_daemon_args: tuple = ()) -> RecordedRun:
     """Daemon (worker inline, --record) then simulator (--record, real time) on loopback; returns what they wrote."""
-    from groundsim.demo import TrackStore, _child_env, _close_zenoh, _tail, daemon_command, plan_demo, sim_command
-    from onboard.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from groundsim.evaluation.demo import TrackStore, _child_env, _close_zenoh, _tail, daemon_command, plan_demo, sim_command
+    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
 
     out.mkdir(parents=True, exist_ok=True)
     plan = plan_demo("P1", duration_s, 0, out, str(ONBOARD_CONFIG))

@@ -1,5 +1,5 @@
 """The recorder's faster paths (issue 13, recording cost): the hand-appended RawImage data field parses to the same
-message as the protobuf library's encoding, the scalar camera-fix geodesy equals onboard.frames', and the periodic
+message as the protobuf library's encoding, the scalar camera-fix geodesy equals onboard.core.frames', and the periodic
 sync (fdatasync + page-cache drop) leaves a file the mcap reader reads whole."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from onboard.frames import GeodeticOrigin, geodetic_from_ned
-from onboard.irframe import IrFrame
-from onboard.record import FlightRecorder, RecordSettings, geodetic_from_ned_scalar, rawimage_bytes, rawimage_fields
+from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
+from onboard.core.irframe import IrFrame
+from onboard.io.record import FlightRecorder, RecordSettings, geodetic_from_ned_scalar, rawimage_bytes, rawimage_fields
 
 ATOL_DEG = 1e-11  # ~1 um on the ground
 ATOL_M = 1e-6  # 1 um

@@ -10,10 +10,10 @@ import threading
 import numpy as np
 import pytest
 
-from onboard.config import build_config
-from onboard.irframe import IrFrame, encode_irframe
-from onboard.service import OnboardService
-from onboard.zenoh_session import (FRAME_ENCODING, STATUS_ENCODING, TRACK_ENCODING, ZenohSettings, encoding_schema,
+from onboard.app.config import build_config
+from onboard.core.irframe import IrFrame, encode_irframe
+from onboard.app.service import OnboardService
+from onboard.io.zenoh_session import (FRAME_ENCODING, STATUS_ENCODING, TRACK_ENCODING, ZenohSettings, encoding_schema,
                                    frame_key, open_session)
 
 WAIT_S = 10.0
@@ -36,7 +36,7 @@ def test_encoding_schema_reads_typed_and_untyped():
 def test_frame_publisher_sends_typed_frames_that_a_generic_subscriber_sees():
     import zenoh
 
-    from groundsim.zenoh_video import FramePublisher
+    from groundsim.io.zenoh_video import FramePublisher
 
     ep = f"tcp/127.0.0.1:{_free_port()}"
     a = open_session(ZenohSettings(listen=(ep,)))

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from onboard.camera_protocol import CameraCommand, TrackRequest
-from onboard.config import build_config
+from onboard.io.camera_protocol import CameraCommand, TrackRequest
+from onboard.app.config import build_config
 from onboard.imaging import TargetTracker
 from onboard.imaging.preprocess import ImagingParams
-from onboard.irframe import IrFrame
-from onboard.pipeline import FramePipeline
-from onboard.track import Track
+from onboard.core.irframe import IrFrame
+from onboard.pipeline.frame_pipeline import FramePipeline
+from onboard.core.track import Track
 from tests.fakes import FakeClock  # noqa: E402
 
 W, H = 640, 512
@@ -114,12 +114,12 @@ class _CountingEstimator:
 
 
 class _Pose:
-    """The same pose for every frame: what the pipeline reads of a :class:`~onboard.pose.PoseAt`."""
+    """The same pose for every frame: what the pipeline reads of a :class:`~onboard.core.pose.PoseAt`."""
 
     def pose_at(self, t_us):
         from types import SimpleNamespace
 
-        from onboard.frames import GeodeticOrigin
+        from onboard.core.frames import GeodeticOrigin
 
         return SimpleNamespace(p_cam_ned_m=np.zeros(3), q_ned_from_cam=np.array([1.0, 0.0, 0.0, 0.0]),
                                origin=GeodeticOrigin(32.0, 118.8, 0.0), epoch=0)
@@ -192,14 +192,14 @@ class _FakeLink:
     autopilot_sysid = 7
 
     def status(self):
-        from onboard.mavlink_link import LinkStatus
+        from onboard.io.mavlink_link import LinkStatus
 
         return LinkStatus(state="connected", autopilot_sysid=7, heartbeat_age_s=None, rates_confirmed=(),
                           rates_pending=(), rates_refused=(), clock_synced=False, messages_rx=1, link_losses=0, reboots=0)
 
 
 def _service(mode="auto"):
-    from onboard.service import OnboardService
+    from onboard.app.service import OnboardService
 
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
                         "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
@@ -250,7 +250,7 @@ def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
 
 
 def test_276_only_for_observable_positions_through_the_camera():
-    from onboard.frames import GeodeticOrigin
+    from onboard.core.frames import GeodeticOrigin
 
     def track(observable: bool) -> Track:
         return Track(vehicle="uav1", seq=1, time_boot_us=10, state="tracking", track_id=1, measurement_valid=True,

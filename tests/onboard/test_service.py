@@ -29,12 +29,12 @@ os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the d
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from bench.onboard import FakeAutopilot, SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
-from onboard.errors import InputError  # noqa: E402
+from onboard.core.errors import InputError  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
-from onboard.frames import geodetic_from_ned  # noqa: E402
-from onboard.pose import PoseBuffer, RejectCounter  # noqa: E402
-from onboard.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
-from onboard.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+from onboard.core.frames import geodetic_from_ned  # noqa: E402
+from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
+from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
 from tests.fakes import FakeClock  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -51,7 +51,7 @@ LOG_LINE = re.compile(r'^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z level=[A-Z]+ log
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.eval import limit_blas_threads
+    from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)
 
@@ -292,7 +292,7 @@ def daemon_env(tmp_path):
 def test_daemon_end_to_end(tmp_path, daemon_env):
     import zenoh
 
-    from onboard.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
     mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
@@ -449,7 +449,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         gcs.close()
         if session is not None:
             session.close()
-    # the 2 s budget is enforced by the daemon itself (onboard.__main__.SHUTDOWN_BUDGET_S): over it,
+    # the 2 s budget is enforced by the daemon itself (onboard.app.main.SHUTDOWN_BUDGET_S): over it,
     # it logs "shutdown took longer" and exits 1 -- so exit 0 without that line is the budget kept
     assert rc == 0, "\n".join(d.lines[-20:])
     assert not any("shutdown took longer" in ln for ln in d.lines), "\n".join(d.lines[-20:])
@@ -482,9 +482,9 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
 @pytest.mark.timeout(120)
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     """Same observations, same answers: the child process runs the same deterministic estimator."""
-    from onboard.config import OnboardConfig
-    from onboard.pipeline import make_estimator
-    from onboard.service import ProcessEstimator
+    from onboard.app.config import OnboardConfig
+    from onboard.pipeline.frame_pipeline import make_estimator
+    from onboard.app.service import ProcessEstimator
 
     scene = SyntheticScene()
     N_FRAMES = 120  # 4 s: the window keeps a row per 0.06 s, min_frames 30 of them before the first estimate
@@ -532,7 +532,7 @@ class _FakeLink:
         self.geo: list[dict] = []
 
     def status(self):
-        from onboard.mavlink_link import LinkStatus
+        from onboard.io.mavlink_link import LinkStatus
 
         return LinkStatus(state="connected" if self.rx else "waiting", autopilot_sysid=1, heartbeat_age_s=None,
                           rates_confirmed=(), rates_pending=(), rates_refused=(), clock_synced=False,
@@ -546,8 +546,8 @@ class _FakeLink:
 
 
 def _quiet_service(overrides=None):
-    from onboard.config import build_config
-    from onboard.service import OnboardService
+    from onboard.app.config import build_config
+    from onboard.app.service import OnboardService
 
     cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
                         "zenoh": {"connect": ["tcp/10.1.2.3:7447"]}, "mavlink": {"connection": "udpin:0.0.0.0:14999"},
@@ -561,11 +561,11 @@ def _quiet_service(overrides=None):
 def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(caplog):
     svc, clock = _quiet_service()
     svc.watchdog.restart(clock())
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for _ in range(200):  # 20 s of the main loop's checks
             clock.t_s += 0.1
             svc._watch(clock())
-    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.watchdog"]
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"]
     assert len(warned) == 2
     assert any("irtrack/uav1/ir/frame" in m and "tcp/10.1.2.3:7447" in m for m in warned)
     assert any("udpin:0.0.0.0:14999" in m for m in warned)
@@ -579,10 +579,10 @@ def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(
 
 
 def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
-    from onboard.irframe import IrFrame
+    from onboard.core.irframe import IrFrame
 
     svc, clock = _quiet_service()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for k in range(4):  # input.queue_length
             svc.queue.push((IrFrame(seq=k, time_boot_us=1000 + k, pixels=np.zeros((256, 320), np.uint8)), clock.ns()))
         t = threading.Thread(target=svc._pipeline_loop)  # the service's own frame loop
@@ -593,7 +593,7 @@ def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
         svc._pipe_stop.set()
         svc.queue.close()
         t.join(10)
-    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.watchdog"]
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"]
     assert len(warned) == 1 and "320 x 256" in warned[0] and "640 x 512" in warned[0]
     assert svc.counter["frame_dims_mismatch"] == 4
     assert [w["code"] for w in svc.status(clock())["warnings"]] == ["frame_size"]

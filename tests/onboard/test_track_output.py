@@ -9,10 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from onboard.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
-from onboard.pipeline import FramePipeline, make_tracker
-from onboard.pose import PoseBuffer
-from onboard.track import (
+from onboard.core.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
+from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
+from onboard.core.pose import PoseBuffer
+from onboard.core.track import (
     TRACK_SCHEMA,
     LineOfSight,
     Track,
@@ -22,7 +22,7 @@ from onboard.track import (
     track_to_bytes,
     track_to_json,
 )
-from onboard.watchdog import Watchdog
+from onboard.app.watchdog import Watchdog
 from tests.onboard.test_pipeline import Rig
 
 LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
@@ -116,7 +116,7 @@ def _watch(rig: Rig, n: int, caplog) -> tuple[Watchdog, list]:
     wd = Watchdog(started_s=0.0, frame_key="irtrack/uav1/ir/frame", zenoh_where="peer", mavlink_connection="udpin:x",
                   camera_size_px=(640, 512))
     rr = []
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for k in range(n):
             tr = rig.step(k)
             now_s = (tr.time_boot_us - rig.scene.boot_us0) / 1e6  # fake clock: the frames' own

@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import estimator_noise_model, synthesize_scenario
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
 from onboard.estimation.map_estimator import MapConfig, MapEstimator
 from onboard.estimation.sliding import SlidingWindowEstimator
 

@@ -15,7 +15,7 @@ import pytest
 
 av = pytest.importorskip("av")
 
-from onboard.video import AgcState, H264TsEncoder, VideoStreamer, agc_limits, agc_u8, draw_overlay  # noqa: E402
+from onboard.io.video import AgcState, H264TsEncoder, VideoStreamer, agc_limits, agc_u8, draw_overlay  # noqa: E402
 
 W, H = 640, 512
 N_FRAMES = 90  # 3 s at 30 Hz: three IDR periods
@@ -51,7 +51,7 @@ def test_agc_maps_percentiles_onto_the_display_range_and_keeps_flat_frames_dark_
 
 
 def test_overlay_draws_the_box_only_while_tracking():
-    from onboard.track import Track
+    from onboard.core.track import Track
 
     img = np.zeros((H, W), np.uint8)
     tr = Track(vehicle="uav1", seq=1, time_boot_us=1, state="tracking", track_id=1, u_px=110.0, v_px=110.0,
@@ -154,7 +154,7 @@ def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
         def close(self) -> None:
             pass
 
-    monkeypatch.setattr("onboard.video.H264TsEncoder", SlowEncoder)
+    monkeypatch.setattr("onboard.io.video.H264TsEncoder", SlowEncoder)
     streamer = VideoStreamer("127.0.0.1:9", W, H, queue_length=2)
     try:
         img, _ = _mono16(0)
@@ -170,8 +170,8 @@ def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
 
 
 def test_camera_advertises_the_stream_on_the_destination_port():
-    from onboard.config import build_config
-    from onboard.service import make_camera_protocol
+    from onboard.app.config import build_config
+    from onboard.app.service import make_camera_protocol
 
     cfg = build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]}, "video": {"destination": "10.0.0.5:5600"}})
     K = cfg.camera.pinhole()

@@ -1,4 +1,4 @@
-"""onboard.watchdog: each condition warned once (fake clock), naming what to check; active list follows the condition."""
+"""onboard.app.watchdog: each condition warned once (fake clock), naming what to check; active list follows the condition."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import logging
 
 import pytest
 
-from onboard.errors import InputError
-from onboard.watchdog import Watchdog
+from onboard.core.errors import InputError
+from onboard.app.watchdog import Watchdog
 
 KEY = "irtrack/uav1/ir/frame"
 WHERE = "zenoh mode peer, connect tcp/10.0.0.2:7447, listen none, multicast scouting off"
@@ -25,7 +25,7 @@ def _warnings(caplog) -> list[str]:
 
 def test_no_frames_and_no_mavlink_warn_once_after_5_s(caplog):
     wd = _wd()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for i in range(49):  # 100.0 .. 104.8 s: quiet
             wd.step(100.0 + 0.1 * i, frames_in=0, mavlink_rx=0)
         assert _warnings(caplog) == [] and wd.active == ()
@@ -42,7 +42,7 @@ def test_no_frames_and_no_mavlink_warn_once_after_5_s(caplog):
 
 def test_inputs_clear_the_warnings_and_a_relapse_is_not_warned_again(caplog):
     wd = _wd()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         wd.step(106.0, frames_in=0, mavlink_rx=0)
         wd.step(107.0, frames_in=3, mavlink_rx=10)
         assert wd.active == ()
@@ -56,7 +56,7 @@ def test_inputs_clear_the_warnings_and_a_relapse_is_not_warned_again(caplog):
 
 def test_frames_arriving_in_time_never_warn(caplog):
     wd = _wd()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for i in range(300):
             wd.step(100.0 + 0.1 * i, frames_in=i + 1, mavlink_rx=2 * i + 1)
     assert _warnings(caplog) == [] and wd.active == ()
@@ -64,7 +64,7 @@ def test_frames_arriving_in_time_never_warn(caplog):
 
 def test_frame_size_mismatch_names_both_sizes_once(caplog):
     wd = _wd()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for i in range(10):
             wd.frame_size(100.0 + i, 320, 256)
     msgs = _warnings(caplog)
@@ -83,7 +83,7 @@ def test_frame_size_mismatch_names_both_sizes_once(caplog):
 ])
 def test_camera_mismatch_needs_a_persistent_run(caplog, values, warned):
     wd = _wd()
-    with caplog.at_level(logging.INFO, logger="onboard.watchdog"):
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for i, v in enumerate(values):
             wd.residual(100.0 + 0.1 * i, v)
     msgs = [m for m in _warnings(caplog) if m.startswith("camera_mismatch")]

@@ -1,7 +1,7 @@
 """A dead estimator worker is replaced with its window rebuilt (issue 12 item 6).
 
-The estimator interface (:class:`onboard.service.ProcessEstimator`) is driven directly with
-synthetic observations of a reference scenario (:func:`groundsim.synth.synthesize_scenario`); the
+The estimator interface (:class:`onboard.app.service.ProcessEstimator`) is driven directly with
+synthetic observations of a reference scenario (:func:`groundsim.evaluation.synth.synthesize_scenario`); the
 worker is killed with SIGKILL.  Waits are bounded (``RESULT_WAIT_S``); how long the replacement
 takes in wall time is printed (``pytest -s``), not asserted.
 """
@@ -16,11 +16,11 @@ import time
 import numpy as np
 import pytest
 
-from groundsim.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from groundsim.synth import synthesize_scenario
-from onboard.config import OnboardConfig
-from onboard.pipeline import make_estimator
-from onboard.service import SNAPSHOT_PERIOD_S, LockedCounter, ProcessEstimator
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from groundsim.evaluation.synth import synthesize_scenario
+from onboard.app.config import OnboardConfig
+from onboard.pipeline.frame_pipeline import make_estimator
+from onboard.app.service import SNAPSHOT_PERIOD_S, LockedCounter, ProcessEstimator
 
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
 JOIN_S = 10.0  # upper bound for a SIGKILLed child to be reaped
@@ -30,7 +30,7 @@ HONEST_SIGMAS = 4.0  # the rebuilt estimate is within this many reported sigma (
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
-    from groundsim.eval import limit_blas_threads
+    from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)
 

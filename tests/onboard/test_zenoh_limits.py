@@ -8,9 +8,9 @@ import threading
 
 import pytest
 
-from onboard.config import build_config
-from onboard.errors import ConfigError
-from onboard.zenoh_session import ZenohSettings, open_session
+from onboard.app.config import build_config
+from onboard.core.errors import ConfigError
+from onboard.io.zenoh_session import ZenohSettings, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -64,7 +64,7 @@ def test_config_passes_max_frame_bytes_to_zenoh():
     cfg = build_config({"input": {"max_frame_bytes": 2_000_000}})
     st = cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes)
     assert st.max_message_bytes == 2_000_000 + 4096
-    from onboard.zenoh_session import build_config as zenoh_config
+    from onboard.io.zenoh_session import build_config as zenoh_config
 
     assert zenoh_config(st).get_json("transport/link/rx/max_message_size") == str(2_000_000 + 4096)
 

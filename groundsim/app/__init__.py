@@ -1,0 +1,1 @@
+"""The simulator's command line (python -m groundsim) and its real-time run loop."""

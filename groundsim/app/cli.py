@@ -1,0 +1,322 @@
+"""Command line of the ground simulator: ``python -m groundsim <command> [options]``.
+
+Commands are argparse subparsers registered in :data:`COMMANDS`: one ``(name, help, add)`` entry
+per command, where ``add(parser)`` declares the command's options and sets
+``parser.set_defaults(handler=fn)``; ``fn(args) -> int`` is the command's exit code.  ``run`` is
+here; ``demo`` and ``eval`` are added the same way (a function ``_add_demo`` / ``_add_eval`` and
+one line in :data:`COMMANDS`), without touching ``run``'s code.  Every command gets ``--log-level``.
+
+Errors: any :class:`~onboard.core.errors.IrtrackError` escaping a handler (bad scenario, unknown key,
+port in use, unreachable zenoh peer, ...) and any command-line mistake are printed as ONE line
+``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Heavy
+modules (JSBSim, zenoh, OpenCV) are imported by the handlers, not here.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+from pathlib import Path
+
+from onboard.core.errors import ConfigError, IrtrackError
+
+__all__ = ["COMMANDS", "EXIT_ERROR", "build_parser", "main", "resolve_scenario_path"]
+
+log = logging.getLogger(__name__)
+
+EXIT_ERROR = 2  # bad input of any kind: one line on stderr
+DEFAULT_SCENARIO = "P1"
+DEFAULT_MAVLINK = "udpout:127.0.0.1:14540"  # = groundsim.io.mavlink_vehicle.DEFAULT_CONNECTION (not imported: pymavlink is slow to load)
+DEFAULT_VEHICLE = "uav1"  # = onboard.io.zenoh_session.DEFAULT_VEHICLE
+DEFAULT_ZENOH_CONNECT_TIMEOUT_S = 5.0
+LOG_LEVELS = ("debug", "info", "warning", "error")
+
+
+class _OneLineError(Exception):
+    """Raised by the parser instead of printing usage and exiting."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """An ArgumentParser whose mistakes become one line + exit code 2 (raised, printed by main)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise _OneLineError(f"{self.prog}: error: {message} (see --help)")
+
+
+# --------------------------------------------------------------------------- run
+
+
+def resolve_scenario_path(text: str) -> Path:
+    """``--scenario``: a file path, or the name of a shipped scenario (``P1``, ``H2``, ...)."""
+    p = Path(text)
+    if p.exists() or p.suffix:
+        return p
+    from groundsim.world.scenario import reference_scenario_paths
+
+    shipped = reference_scenario_paths()
+    return shipped.get(text, p)
+
+
+def _add_run(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
+                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="N",
+                   help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="simulated seconds (default and maximum: the scenario's duration_s)")
+    p.add_argument("--rate", default="realtime", metavar="realtime|max|FACTOR",
+                   help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)")
+    p.add_argument("--mavlink", default=DEFAULT_MAVLINK, metavar="CONN",
+                   help="pymavlink connection string (default: %(default)s)")
+    p.add_argument("--vehicle", default=DEFAULT_VEHICLE, help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)")
+    p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
+                   help="zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--zenoh-connect-timeout", type=float, default=DEFAULT_ZENOH_CONNECT_TIMEOUT_S, metavar="S",
+                   help="with --zenoh-connect: fail (exit 2) unless a peer answers within S seconds;"
+                        " 0 = do not wait, zenoh retries in the background (default: %(default)s)")
+    p.add_argument("--zenoh-multicast-scouting", action="store_true",
+                   help="enable zenoh multicast scouting (off by default)")
+    p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
+                        " default: the scenario's nav_noise, RTK unless it says otherwise)")
+    p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
+    p.add_argument("--record", default=None, metavar="FILE.mcap",
+                   help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py)")
+    p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
+    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
+                   help="paced runs: ask Linux for SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE, otherwise a"
+                        " warning and normal priority) so a busy machine does not delay the frames")
+    p.set_defaults(handler=_cmd_run)
+
+
+def _run_config(args):
+    """argparse namespace -> RunConfig (scenario loaded, every option validated)."""
+    from groundsim.world.scenario import load_scenario
+
+    scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
+
+    from groundsim.app.run import RateSpec, RunConfig
+    from onboard.io.zenoh_session import ZenohSettings
+
+    rate = RateSpec.parse(args.rate)
+    if args.zenoh_connect_timeout < 0 or args.zenoh_connect_timeout != args.zenoh_connect_timeout:
+        raise ConfigError(f"--zenoh-connect-timeout: expected >= 0 seconds, got {args.zenoh_connect_timeout}")
+    timeout = args.zenoh_connect_timeout if (args.zenoh_connect and args.zenoh_connect_timeout > 0) else None
+    zenoh = ZenohSettings(
+        connect=tuple(args.zenoh_connect), listen=tuple(args.zenoh_listen), config_file=args.zenoh_config,
+        multicast_scouting=True if args.zenoh_multicast_scouting else None, connect_timeout_s=timeout,
+    )
+    return RunConfig(
+        scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
+        vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
+        render=not args.no_render, nav_noise=args.nav_noise,
+        record_path=Path(args.record) if args.record else None,
+    )
+
+
+def _install_stop_signals(stop: threading.Event):
+    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly); returns a function restoring the old handlers."""
+    old = {}
+
+    def on_signal(signum, _frame):
+        if not stop.is_set():
+            log.info("%s: stopping", signal.Signals(signum).name)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, on_signal)
+        except ValueError:  # not the main thread (embedded use): the caller owns stopping
+            pass
+
+    def restore() -> None:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+    return restore
+
+
+def _single_threaded_opencv() -> None:
+    """One OpenCV thread: the loop is single-threaded by design and its images are small; worker
+    threads only add wake-up latency to a paced run on a busy machine."""
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # noqa: BLE001 - an optimisation only
+        pass
+
+
+def _realtime_priority(priority: int | None, paced: bool) -> None:
+    """``--rt-priority``: SCHED_FIFO for this process (threads started later inherit it).
+
+    Opt-in only: a paced loop sleeps most of the time, so it takes little CPU, but a loop that
+    cannot keep up would hold a core; not allowed with ``--rate max``.
+    """
+    if priority is None:
+        return
+    if not 1 <= priority <= 99:
+        raise ConfigError(f"--rt-priority: expected 1..99 (SCHED_FIFO priority), got {priority}")
+    if not paced:
+        raise ConfigError("--rt-priority: only for a paced --rate (realtime or a factor), not max")
+    import os
+
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except (AttributeError, OSError) as exc:
+        log.warning("--rt-priority %d not applied (%s): running at normal priority", priority,
+                    getattr(exc, "strerror", None) or exc)
+    else:
+        log.info("SCHED_FIFO priority %d", priority)
+
+
+def _cmd_run(args) -> int:
+    stop = threading.Event()
+    restore = _install_stop_signals(stop)
+    try:
+        config = _run_config(args)
+        if stop.is_set():
+            return 0
+        _realtime_priority(args.rt_priority, config.rate.paced)
+        _single_threaded_opencv()
+        from groundsim.app.run import run
+
+        run(config, stop=stop)
+    finally:
+        restore()
+    return 0
+
+
+# --------------------------------------------------------------------------- eval and demo (groundsim.evaluation.eval, groundsim.evaluation.demo)
+
+
+def _add_eval(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
+                   help="scenario YAML file(s) or shipped names, repeatable (default: P1 P2 P3)")
+    p.add_argument("--seeds", type=int, default=5, metavar="N", help="run seeds 0..N-1 per scenario (default: %(default)s)")
+    p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes (default: min(2, CPUs))")
+    p.add_argument("--duration", type=float, default=None, metavar="S",
+                   help="simulated seconds per run (default: the scenario's duration_s)")
+    p.add_argument("--pixel-sigma", type=float, default=None, metavar="PX",
+                   help="perfect-centroid baseline noise, px per axis (default: the image chain's own centroid error,"
+                        " measured per run)")
+    p.add_argument("--nav-noise", nargs="+", default=None, metavar="NAME",
+                   help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
+                        " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)")
+    p.add_argument("--estimator", default=None, metavar="NAME",
+                   help="trajectory estimator plug-in: a name registered under the irtrack.estimators entry point"
+                        " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)")
+    p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
+    p.add_argument("--onboard-config", default=None, metavar="FILE",
+                   help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
+                        " scenario's camera, mount and origin)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.eval", fromlist=["cmd_eval"]).cmd_eval(args))
+
+
+def _add_demo(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
+                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+                   help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
+    p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
+    p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
+                   help="the daemon's configuration, with the scenario's camera, mount and origin (default:"
+                        " %(default)s, the shipped one; built-in defaults when absent)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="the simulator's navigation errors, a case of config/noise_cases.yaml (default: the"
+                        " scenario's nav_noise, RTK)")
+    p.add_argument("--no-eval", dest="with_eval", action="store_false",
+                   help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")
+    p.add_argument("--live-view", type=int, default=None, metavar="PORT",
+                   help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT")
+    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.demo", fromlist=["cmd_demo"]).cmd_demo(args))
+
+
+def _add_dataset(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
+                   help="scenario YAML file(s) or shipped names, repeatable (default: P1)")
+    p.add_argument("--seeds", type=int, default=1, metavar="N", help="run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)")
+    p.add_argument("--seed0", type=int, default=0, metavar="N", help="first run seed (default: %(default)s)")
+    p.add_argument("--nav-noise", default=None, metavar="NAME",
+                   help="navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
+                        " (default: the scenario's nav_noise, RTK)")
+    p.add_argument("--format", nargs="+", default=["mot"], choices=("mot", "coco"),
+                   help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, or both (default: mot)")
+    p.add_argument("--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)")
+    p.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds per sequence (default: the scenario's)")
+    p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
+    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes, one sequence each (default: min(2, CPUs))")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args))
+
+
+def _add_campaign(p: argparse.ArgumentParser) -> None:
+    p.add_argument("spec", metavar="SPEC.yaml", help="campaign spec (schema: docs/campaigns.md)")
+    p.add_argument("--out", default=None, metavar="DIR",
+                   help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
+    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                   help="run the jobs on this Dask distributed scheduler's workers instead of a local pool (docs/campaigns.md)")
+    p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
+    p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args))
+
+
+# --------------------------------------------------------------------------- registry and entry point
+
+#: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
+COMMANDS = (
+    ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
+    ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
+    ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
+    ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
+    ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--log-level", default="info", choices=LOG_LEVELS, help="logging level (default: info)")
+    parser = _Parser(prog="groundsim", description="irtrack ground simulator")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    sub.required = True
+    for name, help_text, add in COMMANDS:
+        p = sub.add_parser(name, help=help_text, description=help_text, parents=[common])
+        add(p)
+    return parser
+
+
+def _configure_logging(level: str) -> None:
+    logging.basicConfig(level=getattr(logging, level.upper()), stream=sys.stderr,
+                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+
+
+def main(argv=None) -> int:
+    """Parse, configure logging, dispatch; IrtrackError and usage errors -> one line, exit 2."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    command = next((a for a in argv if not a.startswith("-")), None)
+    prefix = f"groundsim {command}" if command in {c[0] for c in COMMANDS} else "groundsim"
+    try:
+        args = build_parser().parse_args(argv)
+    except _OneLineError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_ERROR
+    _configure_logging(args.log_level)
+    try:
+        return int(args.handler(args))
+    except IrtrackError as exc:
+        print(f"{prefix}: error: {' '.join(str(exc).split())}", file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:  # a second Ctrl-C during set-up, before the handlers were installed
+        return 0

@@ -1,0 +1,1 @@
+"""Evaluation: lockstep eval, estimator harness, scoring, reports, demo, campaigns, datasets, baselines."""

@@ -1,0 +1,1278 @@
+"""``python -m groundsim campaign SPEC.yaml``: a sweep of runs, one tidy table, resumable, and its report.
+
+A campaign crosses scenarios (and variants of their geometry), navigation-noise cases
+(``config/noise_cases.yaml``), trajectory-estimator plug-ins (``onboard.pipeline.plugins``) and run seeds.
+The spec file's schema is in ``docs/campaigns.md``; :func:`load_spec` validates it completely before
+anything runs (errors are one line ``<spec>: <field>: expected <what>, got <value>``, exit 2).
+
+Geometry variants (:func:`derive_scenario`) are made from a reference scenario's motion models, so
+every model (straight, accelerating, cubic, circle, figure-eight, waypoints, Singer-disturbed) works:
+
+- ``range_scale`` k: the target's whole path is moved along the initial line of sight, by
+  ``(k - 1) (p_target(0) - p_observer(0))``: the initial range is k times the reference's, the
+  target's motion (speed, turns) unchanged, so the bearing rates shrink roughly as 1/k;
+- ``aspect_deg`` psi: the target's path is rotated about the vertical through its start point by psi
+  (positive from north towards east): the same speed and manoeuvre, another heading relative to the
+  line of sight (the aspect);
+- ``manoeuvre_scale`` m: the observer's acceleration history is multiplied by m, from the same start
+  position and velocity: ``p(t) = p0 + v0 t + m (p_ref(t) - p0 - v0 t)``.  m = 0 is the straight line
+  at constant velocity (no range information from the observer's motion), m = 1 the reference.
+
+``(1, 0, 1)`` is the reference scenario itself, unchanged (same name, same runs as ``groundsim eval``).
+
+Modes.  ``synthetic`` (default; fast): the analytic truth and noisy observations of
+:func:`groundsim.evaluation.synth.synthesize_scenario` (the noise case's pixel and navigation errors) fed frame by
+frame to the plug-in through its step interface (``add``), exactly as the daemon's pipeline would feed
+it; the estimator assumes the noise case (``noise_model: case``, the pixel sigma floored at
+:data:`MIN_ASSUMED_PIXEL_SIGMA_PX`) or the onboard configuration's model (``noise_model: config``).
+``closed_loop``: :func:`groundsim.evaluation.eval.run_lockstep` (JSBSim, rendered frames, the image chain, the
+noise case as the telemetry's navigation errors, the shipped daemon configuration).
+
+Metrics of a run (:func:`score_track`, the same for both modes; the closed-loop windows of issue 9):
+median err/range on observable frames, median err/range of every published (finite) estimate after
+5 s (half the run when it is shorter than 10 s: :func:`settle_s`), err/range at the last frame, RMSE,
+observable share after that, honesty (fraction of published
+estimates beyond 3 sqrt(trace cov); a run is honest at <= 1 %), mean NEES, first observable time.
+The bound: the Bayesian CRB (``onboard.estimation.crb``) of the case's window, at the truth, with the
+motion prior a whole-window MAP solve selects (synthetic: computed once per case and shared by its
+algorithms; closed loop: ``groundsim eval``'s batch columns); ``crb_range_sigma_pct`` is the smallest
+range sigma an estimator knowing the motion model could report.
+
+Resumability.  A run is identified by :func:`run_id`, a SHA-256 of its parameters (scenario and the
+digest of its file, geometry, noise case and the digest of its numbers, algorithm, seed, mode, duration,
+noise model, the onboard configuration's digest, :data:`RESULT_SCHEMA`).  Each finished run is appended
+to ``OUT/runs.jsonl`` as one line, flushed and fsynced, the moment its result arrives; a new invocation
+reads it (a torn last line is skipped) and runs only what is missing.  ``runs.csv`` (and
+``runs.parquet`` when pyarrow is installed), ``report.md`` and ``manoeuvre.png`` are rebuilt from the
+log every time, in the spec's order, so the table does not depend on the order runs finished in, nor
+on interruptions.
+
+Execution.  One *job* is a case (scenario variant, noise case, seed): it synthesises once, computes the
+bound once and runs each pending algorithm.  :func:`run_job` is a pure function of a picklable job.
+Jobs go to a local process pool (forkserver, one BLAS thread per worker), or, with ``--workers 1``, run
+in this process, or, with ``--scheduler tcp://HOST:PORT``, to the workers of a Dask distributed cluster
+(``dask scheduler`` / ``dask worker``; docs/campaigns.md).  Pool and cluster take one path: every job
+submitted as a future, the rows taken as each completes and appended by this process (the coordinator)
+with :func:`append_rows`; workers never see the output directory, so the log, the resumption and the
+table are the same whichever executor ran the jobs.  Before submitting, the coordinator asks every
+connected worker for its :func:`code_fingerprint` and refuses workers running other irtrack code.
+A tqdm bar counts runs.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from groundsim.world.motion import KinematicState, Motion, Perturbed
+from groundsim.world.scenario import (MIN_SEPARATION_M, SINGER_MARGIN_S, NoiseCase, Scenario, VehicleSpec, _Fail,
+                                _integer, _mapping, _number, _read_yaml, _string, load_noise_cases, load_scenario,
+                                reference_scenario_paths)
+from onboard.core.errors import ConfigError
+
+__all__ = [
+    "Geometry", "REFERENCE_GEOMETRY", "ManoeuvreScaled", "MovedTarget", "derive_scenario",
+    "CampaignSpec", "load_spec", "spec_from_dict", "RunParams", "run_id", "plan_runs",
+    "score_track", "run_job", "read_log", "append_rows", "run_campaign", "CampaignResult",
+    "table_rows", "write_table", "write_report", "cmd_campaign", "RESULT_SCHEMA", "MODES", "code_fingerprint",
+]
+
+log = logging.getLogger(__name__)
+
+RESULT_SCHEMA = 1  # bump when a metric's definition changes: every run's id changes, nothing is reused
+MODES = ("synthetic", "closed_loop")
+NOISE_MODELS = ("case", "config")
+MIN_ASSUMED_PIXEL_SIGMA_PX = 0.05  # the estimator is never told "no pixel noise" (a zero weight is singular)
+GOOD_ERR_PCT = 2.0  # "reconstruction works": median err/range at most this (the verdict table's good run)
+HONEST_BEYOND_3SIGMA = 0.01  # a run is honest when at most this fraction of published estimates is beyond 3 sigma
+MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
+GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
+LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = (
+    "runs.jsonl", "runs.csv", "runs.parquet", "report.md", "manoeuvre.png")
+SCHEDULER_CONNECT_TIMEOUT_S = 10.0  # --scheduler: how long to wait for the Dask scheduler to answer
+#: columns that are measurements of the machine, not results: left out when tables are compared
+TIMING_COLUMNS = ("wall_s", "case_wall_s")
+
+
+# --------------------------------------------------------------------------- geometry variants (pure)
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """A variant of a scenario's geometry (module docstring): ``range_scale`` (> 0), ``aspect_deg``,
+    ``manoeuvre_scale`` (>= 0)."""
+
+    range_scale: float = 1.0
+    aspect_deg: float = 0.0
+    manoeuvre_scale: float = 1.0
+
+    def __post_init__(self) -> None:
+        fail = _Fail("<Geometry>")
+        _number(self.range_scale, "range_scale", fail, lo=0.0, lo_open=True)
+        _number(self.aspect_deg, "aspect_deg", fail, lo=-360.0, hi=360.0, unit="deg")
+        _number(self.manoeuvre_scale, "manoeuvre_scale", fail, lo=0.0)
+
+    @property
+    def is_reference(self) -> bool:
+        return self.range_scale == 1.0 and self.aspect_deg == 0.0 and self.manoeuvre_scale == 1.0
+
+    @property
+    def label(self) -> str:
+        return f"r{self.range_scale:g}_a{self.aspect_deg:g}_m{self.manoeuvre_scale:g}"
+
+
+REFERENCE_GEOMETRY = Geometry()
+
+
+def _rot_z(yaw_rad: float) -> np.ndarray:
+    """R rotating NED vectors about +d by ``yaw_rad`` (north towards east)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class ManoeuvreScaled:
+    """``base`` with its acceleration history times ``scale``, from the same start position and velocity:
+    ``p(t) = p0 + v0 t + scale (p_base(t) - p0 - v0 t)`` (so ``a(t) = scale a_base(t)``)."""
+
+    base: Motion
+    scale: float
+
+    def state(self, t_s) -> KinematicState:
+        t = np.asarray(t_s, dtype=float)
+        s0 = self.base.state(np.zeros(1))
+        p0, v0 = s0.p_ned_m[0], s0.v_ned_mps[0]
+        b = self.base.state(t)
+        tt = t[..., None]
+        line = p0 + v0 * tt
+        k = float(self.scale)
+        return KinematicState(line + k * (b.p_ned_m - line), v0 + k * (b.v_ned_mps - v0) + 0.0 * tt, k * b.a_ned_mps2)
+
+
+@dataclass(frozen=True)
+class MovedTarget:
+    """``base`` rotated about the vertical through ``pivot_ned_m`` by ``yaw_rad`` (north towards east),
+    then translated by ``offset_ned_m``."""
+
+    base: Motion
+    pivot_ned_m: tuple
+    yaw_rad: float
+    offset_ned_m: tuple
+
+    def state(self, t_s) -> KinematicState:
+        b = self.base.state(t_s)
+        R = _rot_z(self.yaw_rad)
+        pivot = np.asarray(self.pivot_ned_m, dtype=float)
+        p = pivot + np.asarray(self.offset_ned_m, dtype=float) + (b.p_ned_m - pivot) @ R.T
+        return KinematicState(p, b.v_ned_mps @ R.T, b.a_ned_mps2 @ R.T)
+
+
+def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geometry") -> Scenario:
+    """The variant of ``scenario`` with ``geometry`` (module docstring); the reference geometry returns
+    ``scenario`` itself.  Raises :class:`~groundsim.world.scenario.ScenarioError` naming ``source`` when the
+    variant's commanded paths come closer than ``MIN_SEPARATION_M`` or go below the ground."""
+    if geometry.is_reference:
+        return scenario
+    obs_ref = scenario.observer.motion
+    observer = obs_ref if geometry.manoeuvre_scale == 1.0 else ManoeuvreScaled(obs_ref, float(geometry.manoeuvre_scale))
+    base = scenario.target.base_motion
+    p_t0 = np.asarray(base.state(np.zeros(1)).p_ned_m[0], dtype=float)
+    p_o0 = np.asarray(obs_ref.state(np.zeros(1)).p_ned_m[0], dtype=float)
+    offset = (geometry.range_scale - 1.0) * (p_t0 - p_o0)
+    tgt_base = MovedTarget(base, tuple(float(x) for x in p_t0), math.radians(geometry.aspect_deg),
+                           tuple(float(x) for x in offset))
+    dist = scenario.target.disturbance
+    if dist is None:
+        target = VehicleSpec(tgt_base)
+    else:  # the disturbance spec is kept: run r's realisation is drawn as for the reference scenario
+        run0 = dist.realise(scenario.duration_s + SINGER_MARGIN_S, scenario.rng("target.disturbance", 0))
+        target = VehicleSpec(Perturbed(tgt_base, run0), tgt_base, dist)
+    name = f"{scenario.name}_{geometry.label}"
+    fail = _Fail(source)
+    t = scenario.frame_times_s()
+    with np.errstate(all="ignore"):
+        po, pt = observer.state(t).p_ned_m, tgt_base.state(t).p_ned_m
+    what = f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, " \
+           f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
+    r = np.linalg.norm(pt - po, axis=1)
+    k = int(np.argmin(r))
+    if not r[k] >= MIN_SEPARATION_M:
+        fail.text(source, f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
+                  f"{what}: {r[k]:.3g} m at t = {t[k]:.2f} s")
+    for who, p in (("observer", po), ("target", pt)):
+        k = int(np.argmax(p[:, 2]))
+        if not p[k, 2] < -GROUND_CLEARANCE_M:
+            fail.text(source, f"a geometry whose paths stay {GROUND_CLEARANCE_M:g} m above the ground",
+                      f"{what}: the {who} at {-p[k, 2]:.3g} m up at t = {t[k]:.2f} s")
+    return dataclasses.replace(scenario, name=name, description=f"{scenario.description} [{geometry.label}]",
+                               observer=VehicleSpec(observer), target=target)
+
+
+# --------------------------------------------------------------------------- the spec
+
+
+@dataclass(frozen=True)
+class CampaignSpec:
+    """A validated campaign spec (``docs/campaigns.md``).  ``scenario_paths`` resolve ``scenarios``;
+    ``geometries`` is the expanded list (grid x draws); ``seeds`` the run seeds."""
+
+    name: str
+    mode: str
+    scenarios: tuple[str, ...]
+    scenario_paths: tuple[Path, ...]
+    noise: tuple[str, ...]
+    algorithms: tuple[str, ...]
+    seeds: tuple[int, ...]
+    geometries: tuple[Geometry, ...]
+    duration_s: float | None = None
+    noise_model: str = "case"
+    crb: bool = True
+    workers: int | None = None
+    onboard_config: Path | None = None
+    source: str = "<dict>"
+
+    @property
+    def run_count(self) -> int:
+        return len(self.scenarios) * len(self.geometries) * len(self.noise) * len(self.algorithms) * len(self.seeds)
+
+
+_SPEC_KEYS = ("name", "description", "mode", "scenarios", "noise", "algorithms", "seeds", "geometry", "duration_s",
+              "noise_model", "crb", "workers", "onboard_config")
+_GEOMETRY_AXES = ("range_scale", "aspect_deg", "manoeuvre_scale")
+_AXIS_BOUNDS = {"range_scale": dict(lo=0.0, lo_open=True, hi=100.0), "aspect_deg": dict(lo=-360.0, hi=360.0),
+                "manoeuvre_scale": dict(lo=0.0, hi=100.0)}
+
+
+def _name_list(v, path, fail, what) -> tuple[str, ...]:
+    if isinstance(v, str):
+        v = [v]
+    if not isinstance(v, list) or not v:
+        fail(path, f"a non-empty list of {what}", v)
+    out = tuple(_string(x, f"{path}[{i}]", fail, what=what) for i, x in enumerate(v))
+    dup = [x for x in out if out.count(x) > 1]
+    if dup:
+        fail(path, f"a list of distinct {what}", dup[0])
+    return out
+
+
+def _geometries(d, path, fail) -> tuple[Geometry, ...]:
+    """``geometry:`` -> the expanded list: the grid of list axes x ``draws`` random draws of the {min, max} axes."""
+    if d is None:
+        return (REFERENCE_GEOMETRY,)
+    _mapping(d, path, fail, _GEOMETRY_AXES + ("draws", "seed"))
+    grid: dict[str, list[float]] = {}
+    ranges: dict[str, tuple[float, float]] = {}
+    for axis in _GEOMETRY_AXES:
+        p = f"{path}.{axis}"
+        v = d.get(axis, [REFERENCE_GEOMETRY.__dict__[axis]])
+        b = _AXIS_BOUNDS[axis]
+        if isinstance(v, dict):
+            _mapping(v, p, fail, ("min", "max"), ("min", "max"))
+            lo = _number(v["min"], f"{p}.min", fail, **b)
+            hi = _number(v["max"], f"{p}.max", fail, **b)
+            if not hi > lo:
+                fail(f"{p}.max", f"a number > min ({lo:g})", v["max"])
+            ranges[axis] = (lo, hi)
+        else:
+            if not isinstance(v, list) or not v:
+                fail(p, "a non-empty list of numbers (grid) or {min: .., max: ..} (random draws)", v)
+            vals = [_number(x, f"{p}[{i}]", fail, **b) for i, x in enumerate(v)]
+            if len(set(vals)) != len(vals):
+                fail(p, "distinct values", v)
+            grid[axis] = vals
+    draws = 1
+    if "draws" in d:
+        if not ranges:
+            fail(f"{path}.draws", "no draws unless an axis is random ({min: .., max: ..})", d["draws"])
+        draws = _integer(d["draws"], f"{path}.draws", fail, lo=1, hi=MAX_RUNS)
+    elif ranges:
+        fail(f"{path}.draws", "a number of random draws (required when an axis is {min: .., max: ..})")
+    seed = _integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=2**63 - 1)
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6E0]))
+    out: list[Geometry] = []
+    import itertools
+
+    axes = list(grid)
+    for combo in itertools.product(*(grid[a] for a in axes)):
+        base = dict(zip(axes, combo))
+        for _ in range(draws):
+            g = dict(base)
+            for axis, (lo, hi) in ranges.items():  # 4 significant digits: readable labels, stable hashes
+                g[axis] = float(f"{rng.uniform(lo, hi):.4g}")
+            out.append(Geometry(**g))
+    return tuple(dict.fromkeys(out))
+
+
+def _resolve_scenario(text: str, spec_dir: Path) -> Path:
+    p = Path(text)
+    if p.suffix or "/" in text:
+        return p if p.is_absolute() or p.exists() else spec_dir / p
+    shipped = reference_scenario_paths()
+    return shipped.get(text, spec_dir / p)
+
+
+def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> CampaignSpec:
+    """Validate a parsed spec mapping (``docs/campaigns.md``); raises ScenarioError (a ConfigError) naming
+    ``source`` and the field.  Scenario files, noise cases and plug-in names are checked too."""
+    fail = _Fail(source)
+    spec_dir = spec_dir or Path(".")
+    _mapping(d, "", fail, _SPEC_KEYS, ("scenarios", "noise", "algorithms"))
+    name = _string(d.get("name", Path(str(source)).stem or "campaign"), "name", fail,
+                   what="a name of letters, digits, '_', '.', '-'")
+    from groundsim.world.scenario import NAME_PATTERN
+
+    if not NAME_PATTERN.match(name):
+        fail("name", "a name of letters, digits, '_', '.', '-'", name)
+    _string(d.get("description", ""), "description", fail)
+    mode = _string(d.get("mode", "synthetic"), "mode", fail, choices=MODES)
+    scenarios = _name_list(d["scenarios"], "scenarios", fail, "scenario names or files")
+    paths = []
+    for i, s in enumerate(scenarios):
+        p = _resolve_scenario(s, spec_dir)
+        if not p.is_file():
+            known = ", ".join(reference_scenario_paths())
+            fail(f"scenarios[{i}]", f"a shipped scenario ({known}) or a scenario file", s)
+        paths.append(p)
+    noise = _name_list(d["noise"], "noise", fail, "noise-case names")
+    cases = load_noise_cases()
+    for i, n in enumerate(noise):
+        _string(n, f"noise[{i}]", fail, choices=tuple(cases))
+    algorithms = _name_list(d["algorithms"], "algorithms", fail, "estimator plug-in names")
+    from onboard.pipeline.plugins import load_factory
+
+    for i, a in enumerate(algorithms):
+        load_factory(a, option=f"{source}: algorithms[{i}]")  # an unknown plug-in fails here, before any run
+    seeds_v = d.get("seeds", 1)
+    if isinstance(seeds_v, list):
+        if not seeds_v:
+            fail("seeds", "a count >= 1 or a non-empty list of run seeds >= 0", seeds_v)
+        seeds = tuple(_integer(s, f"seeds[{i}]", fail, lo=0) for i, s in enumerate(seeds_v))
+        if len(set(seeds)) != len(seeds):
+            fail("seeds", "distinct run seeds", seeds_v)
+    else:
+        seeds = tuple(range(_integer(seeds_v, "seeds", fail, lo=1, hi=MAX_RUNS)))
+    geometries = _geometries(d.get("geometry"), "geometry", fail)
+    duration = d.get("duration_s")
+    if duration is not None:
+        duration = _number(duration, "duration_s", fail, lo=0.0, lo_open=True, unit="s")
+    noise_model = _string(d.get("noise_model", "case" if mode == "synthetic" else "config"), "noise_model", fail,
+                          choices=NOISE_MODELS)
+    if mode == "closed_loop" and noise_model != "config":
+        fail("noise_model", "config in closed_loop mode (the daemon's configuration is what runs)", noise_model)
+    crb = d.get("crb", True)
+    if not isinstance(crb, bool):
+        fail("crb", "true or false", crb)
+    workers = d.get("workers")
+    if workers is not None:
+        workers = _integer(workers, "workers", fail, lo=1, hi=1024)
+    onboard = d.get("onboard_config")
+    if onboard is not None:
+        onboard = Path(_string(onboard, "onboard_config", fail, what="a path to an onboard configuration file"))
+        onboard = onboard if onboard.is_absolute() or onboard.exists() else spec_dir / onboard
+        if not onboard.is_file():
+            fail("onboard_config", "an existing onboard configuration file", str(onboard))
+    spec = CampaignSpec(name=name, mode=mode, scenarios=scenarios, scenario_paths=tuple(paths), noise=noise,
+                        algorithms=algorithms, seeds=seeds, geometries=geometries, duration_s=duration,
+                        noise_model=noise_model, crb=crb, workers=workers, onboard_config=onboard, source=str(source))
+    if spec.run_count > MAX_RUNS:
+        fail("(document)", f"at most {MAX_RUNS} runs", f"{spec.run_count} runs")
+    for i, p in enumerate(paths):  # every scenario loads, every variant is a valid geometry, the duration fits
+        sc = load_scenario(p)
+        if duration is not None and duration > sc.duration_s + 1e-9:
+            fail("duration_s", f"at most {sc.name}'s duration_s ({sc.duration_s:g} s)", duration)
+        for g in geometries:
+            derive_scenario(sc, g, source=f"{source}: geometry")
+    return spec
+
+
+def load_spec(path) -> CampaignSpec:
+    """Read and validate a campaign spec file; one-line ConfigError (exit 2) on any problem."""
+    p = Path(path)
+    return spec_from_dict(_read_yaml(p), source=p, spec_dir=p.parent)
+
+
+# --------------------------------------------------------------------------- runs and their identity
+
+
+def _digest(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()[:12]
+
+
+@dataclass(frozen=True)
+class RunParams:
+    """Everything that determines one run's result (its identity, :func:`run_id`)."""
+
+    mode: str
+    scenario: str
+    scenario_digest: str
+    range_scale: float
+    aspect_deg: float
+    manoeuvre_scale: float
+    noise: str
+    noise_digest: str
+    algorithm: str
+    seed: int
+    duration_s: float | None
+    noise_model: str
+    crb: bool
+    onboard_digest: str
+    schema: int = RESULT_SCHEMA
+
+    @property
+    def geometry(self) -> Geometry:
+        return Geometry(self.range_scale, self.aspect_deg, self.manoeuvre_scale)
+
+    def case_key(self) -> tuple:
+        """The run's case: everything but the algorithm (runs of one case share observations and bound)."""
+        d = dataclasses.asdict(self)
+        d.pop("algorithm")
+        return tuple(sorted(d.items()))
+
+
+def run_id(params: RunParams) -> str:
+    """Stable 16-hex id of a run: SHA-256 of its parameters as sorted JSON."""
+    text = json.dumps(dataclasses.asdict(params), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]
+
+
+def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
+    """Every run of the spec, in the table's order: scenario, geometry, noise, algorithm, seed."""
+    cases = load_noise_cases()
+    out = []
+    for sname, path in zip(spec.scenarios, spec.scenario_paths):
+        sdig = _digest(Path(path).read_bytes())
+        sc_name = load_scenario(path).name
+        for g in spec.geometries:
+            for n in spec.noise:
+                ndig = _digest(repr(cases[n]).encode("utf-8"))
+                for a in spec.algorithms:
+                    for s in spec.seeds:
+                        out.append(RunParams(spec.mode, sc_name, sdig, g.range_scale, g.aspect_deg, g.manoeuvre_scale,
+                                             n, ndig, a, int(s), spec.duration_s, spec.noise_model, spec.crb,
+                                             onboard_digest))
+    return out
+
+
+# --------------------------------------------------------------------------- scoring (pure)
+
+
+OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.eval.OBSERVABLE_AFTER_S (issue 9's windows)
+
+
+def settle_s(duration_s: float) -> float:
+    """Where the "settled" figures start: 5 s (issue 9's window), or half the run when it is shorter than 10 s."""
+    return min(OBSERVABLE_AFTER_S, 0.5 * float(duration_s))
+
+
+def _nan_to_none(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def score_track(t_s, truth_p_ned_m, cam_p_ned_m, est_p_ned_m, est_cov_ned_m2, observable) -> dict:
+    """One run's figures from its per-frame estimates (F frames; NaN rows = no estimate).
+
+    ``err_range_observable_pct``: median over observable frames of ||e|| / range, per cent;
+    ``err_range_published_settled_pct``: the same over every finite estimate at t >= :func:`settle_s` (5 s);
+    ``err_range_final_pct``: at the last frame (NaN without an estimate there); ``rmse_observable_m``,
+    ``rmse_published_settled_m``; ``observable_share_settled``: observable / all frames at t >= settle_s;
+    ``beyond_3sigma_published``: fraction of finite estimates with ||e|| > 3 sqrt(trace cov);
+    ``nees_observable`` / ``nees_published_settled``: mean e^T P^-1 e (3 when consistent);
+    ``first_observable_s``.  Missing figures are NaN.
+    """
+    t = np.asarray(t_s, dtype=float)
+    truth = np.asarray(truth_p_ned_m, dtype=float)
+    est = np.asarray(est_p_ned_m, dtype=float)
+    P = np.asarray(est_cov_ned_m2, dtype=float)
+    obs_flag = np.asarray(observable, dtype=bool)
+    F = t.size
+    rel_t = t - t[0] if F else t
+    has = np.all(np.isfinite(est), axis=1) & np.all(np.isfinite(P.reshape(F, 9)), axis=1)
+    obs = has & obs_flag
+    settle = settle_s(rel_t[-1] + (rel_t[1] - rel_t[0] if F > 1 else 0.0)) if F else OBSERVABLE_AFTER_S
+    late = rel_t >= settle - 1e-9
+    e_vec = est - truth
+    e = np.linalg.norm(e_vec, axis=1)
+    rng_m = np.linalg.norm(truth - np.asarray(cam_p_ned_m, dtype=float), axis=1)
+    rel = 100.0 * e / rng_m
+    nees = np.full(F, np.nan)
+    for k in np.flatnonzero(has):
+        try:
+            nees[k] = float(e_vec[k] @ np.linalg.solve(P[k], e_vec[k]))
+        except np.linalg.LinAlgError:
+            pass
+    with np.errstate(invalid="ignore"):
+        sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", P), 0.0))
+    nan = math.nan
+
+    def med(sel):
+        return float(np.median(rel[sel])) if sel.any() else nan
+
+    def rms(sel):
+        return float(np.sqrt(np.mean(e[sel] ** 2))) if sel.any() else nan
+
+    def mean_finite(x):
+        x = x[np.isfinite(x)]
+        return float(np.mean(x)) if x.size else nan
+
+    pub_late = has & late
+    return {
+        "frames": int(F),
+        "published_frames": int(has.sum()),
+        "observable_frames": int(obs.sum()),
+        "settle_s": float(settle),
+        "observable_share_settled": float((late & obs).sum() / late.sum()) if late.any() else nan,
+        "err_range_observable_pct": med(obs),
+        "err_range_published_settled_pct": med(pub_late),
+        "err_range_final_pct": float(rel[-1]) if F and has[-1] else nan,
+        "rmse_observable_m": rms(obs),
+        "rmse_published_settled_m": rms(pub_late),
+        "beyond_3sigma_published": float(np.mean(e[has] > sig3[has])) if has.any() else nan,
+        "nees_observable": mean_finite(nees[obs]),
+        "nees_published_settled": mean_finite(nees[pub_late]),
+        "first_observable_s": float(rel_t[obs][0]) if obs.any() else nan,
+    }
+
+
+def geometry_figures(scenario: Scenario, seed: int, t_s) -> dict:
+    """What a variant's geometry measures on its commanded paths: initial and median range, the observer's
+    RMS acceleration (total, and normal to the line of sight: what makes range observable), the aspect
+    at the start (angle between the target's velocity and its line of sight to the observer, degrees)."""
+    t = np.asarray(t_s, dtype=float)
+    o = scenario.observer_motion(seed).state(t)
+    g = scenario.target_motion(seed).state(t)
+    los = g.p_ned_m - o.p_ned_m
+    r = np.linalg.norm(los, axis=1)
+    u = los / r[:, None]
+    a = o.a_ned_mps2
+    a_perp = a - np.sum(a * u, axis=1)[:, None] * u
+    v0 = g.v_ned_mps[0]
+    sp = float(np.linalg.norm(v0))
+    aspect = math.degrees(math.acos(float(np.clip(np.dot(v0, -u[0]) / sp, -1, 1)))) if sp > 1e-9 else math.nan
+    return {
+        "range_start_m": float(r[0]), "range_median_m": float(np.median(r)),
+        "observer_accel_rms_mps2": float(np.sqrt(np.mean(np.sum(a**2, axis=1)))),
+        "observer_accel_perp_los_rms_mps2": float(np.sqrt(np.mean(np.sum(a_perp**2, axis=1)))),
+        "aspect_start_deg": aspect,
+    }
+
+
+# --------------------------------------------------------------------------- one job: a case, its algorithms
+
+
+@dataclass(frozen=True)
+class Job:
+    """One case and the algorithms still to run on it (all picklable: any executor can carry it)."""
+
+    scenario: Scenario  # the variant
+    noise: NoiseCase
+    runs: tuple  # RunParams of the pending algorithms, same case
+    base_config: Any  # OnboardConfig
+
+
+def _assumed_config(cfg, noise: NoiseCase, noise_model: str):
+    """The onboard configuration with the estimator's noise model set to the case (``noise_model: case``)."""
+    if noise_model == "config":
+        return cfg
+    e = dataclasses.replace(
+        cfg.estimator,
+        pixel_sigma_px=max(float(noise.pixel_sigma_px), MIN_ASSUMED_PIXEL_SIGMA_PX),
+        attitude_white_sigma_deg=math.degrees(noise.attitude_white_sigma_rad),
+        attitude_bias_sigma_deg=math.degrees(noise.attitude_bias_sigma_rad),
+        camera_position_white_sigma_m=noise.camera_position_white_sigma_m,
+        camera_position_offset_sigma_m=noise.camera_position_offset_m / math.sqrt(3.0),
+        camera_position_drift_sigma_mps=noise.camera_position_drift_mps / math.sqrt(3.0),
+    )
+    return dataclasses.replace(cfg, estimator=e)
+
+
+def _case_bound(cfg, obs, truth) -> dict:
+    """Whole-window MAP (model selection) and the Bayesian CRB at the truth with the prior it selected."""
+    from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_rms_m
+    from onboard.estimation.map_estimator import EstimationError, MapEstimator
+
+    nan = math.nan
+    out = {"crb_rms_m": nan, "crb_range_sigma_pct": nan, "batch_err_range_pct": nan, "batch_observable": None,
+           "bound_note": ""}
+    est = MapEstimator(noise=cfg.estimator.noise_model())
+    try:
+        res = est.solve(obs)
+    except (EstimationError, ConfigError, ValueError, np.linalg.LinAlgError) as exc:
+        out["bound_note"] = f"batch MAP failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
+        return out
+    e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
+    out["batch_err_range_pct"] = float(np.mean(e / truth.range_m) * 100)
+    out["batch_observable"] = bool(res.observable)
+    try:
+        out["crb_rms_m"] = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps)
+        out["crb_range_sigma_pct"] = 100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior,
+                                                                          res.turn_rate_radps)
+    except (EstimationError, ValueError, np.linalg.LinAlgError) as exc:
+        out["bound_note"] = f"CRB failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
+    return out
+
+
+def _frame_times(scenario: Scenario, duration_s: float | None) -> np.ndarray:
+    t = scenario.frame_times_s()
+    if duration_s is not None:
+        t = t[t < duration_s - 1e-9]
+    return t
+
+
+def _run_synthetic(job: Job) -> list[dict]:
+    from groundsim.evaluation.eval import onboard_config_for
+    from groundsim.evaluation.synth import synthesize_scenario
+    from onboard.pipeline.plugins import build
+
+    p0 = job.runs[0]
+    sc, noise, seed = job.scenario, job.noise, p0.seed
+    c0 = time.perf_counter()
+    t = _frame_times(sc, p0.duration_s)
+    truth, obs = synthesize_scenario(sc, noise, seed, t_s=t)
+    cfg = _assumed_config(onboard_config_for(sc, job.base_config), noise, p0.noise_model)
+    case = geometry_figures(sc, seed, t)
+    case.update(_case_bound(cfg, obs, truth) if p0.crb else {})
+    K = sc.camera.intrinsics
+    F = len(obs)
+    rows = []
+    for params in job.runs:
+        w0 = time.perf_counter()
+        est_p, est_P, observable = np.full((F, 3), np.nan), np.full((F, 3, 3), np.nan), np.zeros(F, dtype=bool)
+        errors = 0
+        first_error = ""
+        try:
+            est = build(params.algorithm, cfg, option="algorithms")
+            for k in range(F):
+                try:
+                    e = est.add(float(obs.t_s[k]), obs.uv_px[k], K, obs.p_cam_ned_m[k], obs.q_ned_from_cam[k])
+                except Exception as exc:  # noqa: BLE001 - as the pipeline: the frame goes on without 3-D
+                    errors += 1
+                    first_error = first_error or f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+                    continue
+                if e is None:
+                    continue
+                p, P = np.asarray(e.p_ned_m, dtype=float), np.asarray(e.cov_p_ned_m2, dtype=float)
+                if p.shape == (3,) and P.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(P)):
+                    est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
+        except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built fails its runs alone
+            rows.append(_row(params, {**case, "status": "failed",
+                                      "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                                      "wall_s": time.perf_counter() - w0}))
+            continue
+        m = score_track(truth.t_s, truth.p_target_ned_m, truth.p_cam_ned_m, est_p, est_P, observable)
+        m.update(case)
+        m.update(status="ok", error=first_error, estimator_errors=errors, wall_s=time.perf_counter() - w0)
+        rows.append(_row(params, m))
+    wall = time.perf_counter() - c0
+    for r in rows:
+        r["case_wall_s"] = wall
+    return rows
+
+
+def _run_closed_loop(job: Job) -> list[dict]:
+    from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
+
+    rows = []
+    for params in job.runs:
+        w0 = time.perf_counter()
+        opts = EvalOptions(duration_s=params.duration_s, batch=params.crb, keep_frame=False, nav_noise=job.noise.name,
+                           estimator=params.algorithm)
+        try:
+            r = run_lockstep(job.scenario, params.seed, opts, job.base_config)
+        except Exception as exc:  # noqa: BLE001 - a run that cannot be made (flight envelope, plug-in) fails alone
+            rows.append(_row(params, {"status": "failed", "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                                      "wall_s": time.perf_counter() - w0}))
+            continue
+        s = score_run(r)
+        m = score_track(r.t_s, r.truth_p_ned_m, r.cam_p_ned_m, r.est_p_ned_m, r.est_cov_ned_m2, r.observable)
+        m.update(geometry_figures(job.scenario, params.seed, r.t_s - r.t_s[0]))
+        b = s.get("batch") or {}
+        bm = (b.get("pipeline") or {}).get("metrics") or {}
+        m.update(crb_rms_m=b.get("crb_rms_m"), crb_range_sigma_pct=math.nan,
+                 batch_err_range_pct=bm.get("err_range_pct"), batch_observable=(b.get("pipeline") or {}).get("observable"),
+                 published_share_after_3s=s["closed_loop"]["published_share_after_3s"],
+                 chain_centroid_sigma_px=s.get("chain_centroid_sigma_px"),
+                 status="ok", error="", estimator_errors=0, wall_s=time.perf_counter() - w0)
+        rows.append(_row(params, m))
+    for row in rows:
+        row["case_wall_s"] = sum(x["wall_s"] for x in rows)
+    return rows
+
+
+def _row(params: RunParams, metrics: dict) -> dict:
+    row = {"run_id": run_id(params)}
+    row.update(dataclasses.asdict(params))
+    row["geometry"] = params.geometry.label
+    row.update(metrics)
+    return {k: _nan_to_none(float(v) if isinstance(v, (np.floating, np.integer)) and not isinstance(v, np.bool_) else v)
+            for k, v in row.items()}
+
+
+def run_job(job: Job) -> list[dict]:
+    """Run one case's pending algorithms; one row (dict, JSON-ready) per run.  Never raises for a run's
+    own failure: that run's row says ``status: failed`` and why."""
+    if job.runs[0].mode == "closed_loop":
+        return _run_closed_loop(job)
+    return _run_synthetic(job)
+
+
+# --------------------------------------------------------------------------- the append-only log
+
+
+def read_log(path: Path) -> tuple[dict[str, dict], int]:
+    """``runs.jsonl`` -> ({run_id: row}, lines skipped).  A torn or foreign line is skipped, not fatal."""
+    done: dict[str, dict] = {}
+    bad = 0
+    if not path.is_file():
+        return done, 0
+    with path.open("r", encoding="utf-8") as f:
+        for line in f:
+            line = line.strip()
+            if not line:
+                continue
+            try:
+                row = json.loads(line)
+                rid = row["run_id"]
+            except (ValueError, KeyError, TypeError):
+                bad += 1
+                continue
+            done[rid] = row
+    return done, bad
+
+
+def append_rows(path: Path, rows: Iterable[dict]) -> None:
+    """Append rows to the log, one JSON line each, flushed and fsynced (a kill loses no finished run)."""
+    with path.open("a", encoding="utf-8") as f:
+        for row in rows:
+            f.write(json.dumps(row, sort_keys=True, allow_nan=False) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+# --------------------------------------------------------------------------- execution
+
+
+def _init_worker() -> None:
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the coordinator's: it terminates the pool
+    from groundsim.evaluation.eval import limit_blas_threads
+
+    limit_blas_threads(1)
+
+
+def _pool_context():
+    import multiprocessing as mp
+
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(["groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding"])
+    return ctx
+
+
+@dataclass(frozen=True)
+class CampaignResult:
+    """What one invocation did: ``planned`` runs, ``reused`` from the log, ``ran`` now (``failed`` of
+    them), ``wall_s`` of the runs' execution, ``workers``, ``interrupted``, and the files written."""
+
+    planned: int
+    reused: int
+    ran: int
+    failed: int
+    wall_s: float
+    workers: int
+    interrupted: bool
+    files: dict = field(default_factory=dict)
+
+
+def _jobs(spec: CampaignSpec, runs: list[RunParams], base_config) -> list[Job]:
+    cases = load_noise_cases()
+    scen = {}
+    for p in spec.scenario_paths:
+        sc = load_scenario(p)
+        scen[sc.name] = sc
+    groups: dict[tuple, list[RunParams]] = {}
+    for r in runs:
+        groups.setdefault(r.case_key(), []).append(r)
+    jobs = []
+    for rs in groups.values():
+        r0 = rs[0]
+        variant = derive_scenario(scen[r0.scenario], r0.geometry)
+        jobs.append(Job(variant, cases[r0.noise], tuple(rs), base_config))
+    return jobs
+
+
+def _cluster_client(scheduler: str):
+    """A ``distributed.Client`` on ``scheduler`` (``tcp://HOST:PORT``); ConfigError naming ``--scheduler``
+    when dask is missing, the address is malformed or nothing answers there."""
+    if "://" not in scheduler:
+        raise ConfigError(f"--scheduler: expected an address tcp://HOST:PORT, got {scheduler!r}")
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ConfigError("--scheduler: needs dask.distributed (pip install 'irtrack[sim]')") from None
+    try:
+        client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise ConfigError(f"--scheduler {scheduler}: no scheduler answered within {SCHEDULER_CONNECT_TIMEOUT_S:g} s "
+                          f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+    return client
+
+
+def code_fingerprint() -> str:
+    """Digest of the irtrack code a process runs (every ``.py`` under ``onboard/`` and ``groundsim/`` as
+    imported, path and bytes), so a coordinator can refuse cluster workers running other code."""
+    import groundsim
+    import onboard
+
+    h = hashlib.sha256()
+    for pkg in (onboard, groundsim):
+        root = Path(pkg.__file__).resolve().parent
+        for f in sorted(root.rglob("*.py")):
+            h.update(str(f.relative_to(root.parent)).encode("utf-8") + b"\0" + f.read_bytes())
+    return h.hexdigest()[:16]
+
+
+def _remote_job(job: Job) -> list[dict]:
+    """:func:`run_job` on a cluster worker, with one BLAS thread (as the local pool's initializer sets)."""
+    from groundsim.evaluation.eval import limit_blas_threads
+
+    limit_blas_threads(1)
+    return run_job(job)
+
+
+def _check_workers(client, scheduler: str) -> int:
+    """Threads the cluster offers; ConfigError when it has none or a worker runs other irtrack code."""
+    nthreads = client.nthreads()
+    if not nthreads:
+        raise ConfigError(f"--scheduler {scheduler}: the scheduler has no workers (start some: dask worker {scheduler})")
+    mine = code_fingerprint()
+    theirs = client.run(code_fingerprint)
+    other = sorted(w for w, fp in theirs.items() if fp != mine)
+    if other:
+        raise ConfigError(f"--scheduler {scheduler}: worker(s) {', '.join(other)} run other irtrack code than this "
+                          f"coordinator (fingerprint {mine}); install the same checkout there")
+    return sum(nthreads.values())
+
+
+def _pool_futures(pool, jobs: list[Job]):
+    """Each job submitted to a multiprocessing pool, as a ``concurrent.futures.Future`` of its rows."""
+    import concurrent.futures as cf
+
+    futs = []
+    for j in jobs:
+        f = cf.Future()
+        f.set_running_or_notify_cancel()
+        pool.apply_async(run_job, (j,), callback=f.set_result, error_callback=f.set_exception)
+        futs.append(f)
+    return futs
+
+
+def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool = True, fresh: bool = False,
+                 retry_failed: bool = False, base_config=None, onboard_digest: str = "defaults",
+                 scheduler: str | None = None) -> CampaignResult:
+    """Plan, skip what the log has, run the rest, append each case's rows as they come, then rebuild the
+    table and the report.  Ctrl-C stops cleanly: the runs finished so far are kept, the table and report
+    show them, and the same command resumes.
+
+    Executors: ``workers`` processes of a local pool (1 = in this process), or, with ``scheduler``
+    (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
+    cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
+    taken as they complete and appended here; workers never touch ``out``."""
+    from groundsim.evaluation.eval import limit_blas_threads
+
+    out.mkdir(parents=True, exist_ok=True)
+    log_path = out / LOG_NAME
+    if fresh and log_path.exists():
+        log_path.unlink()
+    done, bad = read_log(log_path)
+    if bad:
+        log.warning("%s: %d unreadable line(s) skipped (a run cut short by an interruption is redone)", log_path, bad)
+    planned = plan_runs(spec, onboard_digest)
+    ids = [run_id(p) for p in planned]
+    if retry_failed:
+        done = {k: v for k, v in done.items() if v.get("status") == "ok"}
+    pending = [p for p, i in zip(planned, ids) if i not in done]
+    reused = len(planned) - len(pending)
+    jobs = _jobs(spec, pending, base_config)
+    limit_blas_threads(1)
+    client = None
+    if scheduler is not None:
+        client = _cluster_client(scheduler)
+        try:
+            workers = _check_workers(client, scheduler)
+        except BaseException:
+            client.close()
+            raise
+        where = f"the cluster at {scheduler}"
+    else:
+        workers = max(1, min(workers, len(jobs))) if jobs else 1
+        where = "this process" if workers == 1 else "a local process pool"
+    log.info("campaign %s: %d runs planned, %d already done, %d to run in %d jobs on %d worker(s) (%s)",
+             spec.name, len(planned), reused, len(pending), len(jobs), workers, where)
+    bar = None
+    ran = failed = 0
+    interrupted = False
+    t0 = time.perf_counter()
+    pool = None
+    futures: list = []
+    try:
+        if progress and pending:
+            from tqdm import tqdm
+
+            from groundsim.evaluation.eval import _bar_pacing
+
+            bar = tqdm(total=len(pending), unit="run", desc=f"campaign {spec.name} ({workers} worker(s))", leave=True,
+                       dynamic_ncols=True, **_bar_pacing())
+        if client is not None:  # submit every job, take them as they complete
+            import uuid
+
+            from distributed import as_completed
+
+            batch = uuid.uuid4().hex[:8]
+            futures = [client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
+                       for k, j in enumerate(jobs)]
+            results = (f.result() for f in as_completed(futures, loop=client.loop))
+        elif workers > 1:  # the same, on a local pool
+            import concurrent.futures as cf
+
+            pool = _pool_context().Pool(workers, initializer=_init_worker)
+            futures = _pool_futures(pool, jobs)
+            results = (f.result() for f in cf.as_completed(futures))
+        else:
+            results = (run_job(j) for j in jobs)
+        for rows in results:
+            append_rows(log_path, rows)
+            ran += len(rows)
+            failed += sum(1 for r in rows if r.get("status") != "ok")
+            if bar is not None:
+                bar.update(len(rows))
+                bar.set_postfix_str(f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}")
+        if pool is not None:
+            pool.close()
+            pool.join()
+            pool = None
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:  # interrupted or failed: drop what is still queued or running (its runs are redone on resume)
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+        if client is not None:
+            try:
+                if futures:
+                    client.cancel(futures)
+            finally:
+                client.close()
+        if bar is not None:
+            bar.close()
+    wall = time.perf_counter() - t0
+    done, _ = read_log(log_path)
+    rows = [done[i] for i in ids if i in done]
+    files = write_table(out, rows)
+    files.update(write_report(out, spec, rows, dict(planned=len(planned), reused=reused, ran=ran, failed=failed,
+                                                    wall_s=wall, workers=workers, interrupted=interrupted)))
+    return CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted, files)
+
+
+# --------------------------------------------------------------------------- the table
+
+
+#: the table's columns, in order: identity and parameters, geometry measured, the run's figures, the case's
+#: bound, status, provenance, timings (columns a newer version adds come after, alphabetically)
+COLUMN_ORDER = (
+    "run_id", "mode", "scenario", "geometry", "range_scale", "aspect_deg", "manoeuvre_scale", "noise", "algorithm",
+    "seed", "duration_s", "noise_model", "status",
+    "range_start_m", "range_median_m", "aspect_start_deg", "observer_accel_rms_mps2", "observer_accel_perp_los_rms_mps2",
+    "frames", "published_frames", "observable_frames", "settle_s", "err_range_observable_pct",
+    "err_range_published_settled_pct", "err_range_final_pct", "rmse_observable_m", "rmse_published_settled_m",
+    "observable_share_settled", "beyond_3sigma_published", "nees_observable", "nees_published_settled",
+    "first_observable_s", "published_share_after_3s", "chain_centroid_sigma_px",
+    "crb", "crb_rms_m", "crb_range_sigma_pct", "batch_err_range_pct", "batch_observable", "bound_note",
+    "error", "estimator_errors", "scenario_digest", "noise_digest", "onboard_digest", "schema",
+) + TIMING_COLUMNS
+
+
+def table_rows(rows: list[dict]):
+    """Rows -> a pandas DataFrame with a fixed column order (parameters, then figures, then timings)."""
+    import pandas as pd
+
+    df = pd.DataFrame(rows)
+    if df.empty:
+        return pd.DataFrame(columns=list(COLUMN_ORDER))
+    known = [c for c in COLUMN_ORDER if c in df.columns]
+    return df[known + sorted(c for c in df.columns if c not in COLUMN_ORDER)]
+
+
+def write_table(out: Path, rows: list[dict]) -> dict:
+    """``runs.csv`` (always) and ``runs.parquet`` (when pyarrow is installed)."""
+    df = table_rows(rows)
+    files = {TABLE_NAME: out / TABLE_NAME}
+    df.to_csv(out / TABLE_NAME, index=False)
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        df.to_parquet(out / PARQUET_NAME, index=False)
+        files[PARQUET_NAME] = out / PARQUET_NAME
+    return files
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def _med(values) -> float:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(np.median(v)) if v else math.nan
+
+
+def _pct(x, nd=2) -> str:
+    return "-" if not math.isfinite(x) else f"{x:.{nd}f} %"
+
+
+def _num(x, nd=2) -> str:
+    return "-" if not math.isfinite(x) else f"{x:.{nd}f}"
+
+
+def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
+    """Per (algorithm, scenario, noise): medians over the runs at the reference geometry (or over every
+    geometry when the campaign has no reference-geometry runs: the flag says which)."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    ref = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0 and r["manoeuvre_scale"] == 1.0]
+    use, at_ref = (ref, True) if ref else (ok, False)
+    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in use))
+    out = []
+    for a, s, n in keys:
+        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"]) == (a, s, n)]
+        honest = [r for r in rs if r.get("beyond_3sigma_published") is not None
+                  and r["beyond_3sigma_published"] <= HONEST_BEYOND_3SIGMA]
+        out.append({
+            "algorithm": a, "scenario": s, "noise": n, "runs": len(rs),
+            "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
+            "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
+            "err_final": _med(r.get("err_range_final_pct") for r in rs),
+            "rmse_obs": _med(r.get("rmse_observable_m") for r in rs),
+            "rmse_pub": _med(r.get("rmse_published_settled_m") for r in rs),
+            "obs_share": _med(r.get("observable_share_settled") for r in rs),
+            "honest": len(honest),
+            "nees": _med(r.get("nees_observable") for r in rs),
+            "nees_pub": _med(r.get("nees_published_settled") for r in rs),
+            "crb": _med(r.get("crb_rms_m") for r in rs),
+            "crb_sig": _med(r.get("crb_range_sigma_pct") for r in rs),
+            "batch": _med(r.get("batch_err_range_pct") for r in rs),
+        })
+    return out, at_ref
+
+
+def manoeuvre_rows(rows: list[dict]) -> list[dict]:
+    """Per (algorithm, scenario, noise, manoeuvre_scale) over reference range and aspect if swept at
+    those (else all): the measured observer acceleration (RMS normal to the line of sight, median) and
+    the median err/range of the published estimates once settled; the CRB as RMS / median range."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    base = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0]
+    use = base if len({r["manoeuvre_scale"] for r in base}) > 1 else ok
+    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) for r in use))
+    out = []
+    for a, s, n, m in keys:
+        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) == (a, s, n, m)]
+        crb_pct = [100 * r["crb_rms_m"] / r["range_median_m"] for r in rs
+                   if r.get("crb_rms_m") is not None and r.get("range_median_m")]
+        out.append({"algorithm": a, "scenario": s, "noise": n, "manoeuvre_scale": m, "runs": len(rs),
+                    "accel_perp_mps2": _med(r.get("observer_accel_perp_los_rms_mps2") for r in rs),
+                    "accel_mps2": _med(r.get("observer_accel_rms_mps2") for r in rs),
+                    "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
+                    "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
+                    "err_final": _med(r.get("err_range_final_pct") for r in rs),
+                    "obs_share": _med(r.get("observable_share_settled") for r in rs),
+                    "crb_pct": _med(crb_pct)})
+    return out
+
+
+def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
+    """Per (algorithm, scenario, noise): the smallest measured manoeuvre (RMS acceleration normal to the
+    line of sight) from which every larger swept level has a median err/range <= ``good_pct``."""
+    out = []
+    for key in dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in mrows):
+        rs = sorted((r for r in mrows if (r["algorithm"], r["scenario"], r["noise"]) == key),
+                    key=lambda r: r["accel_perp_mps2"])
+        good = [math.isfinite(r["err_pub"]) and r["err_pub"] <= good_pct for r in rs]
+        start = None
+        for i in range(len(rs) - 1, -1, -1):
+            if not good[i]:
+                break
+            start = rs[i]
+        out.append({"algorithm": key[0], "scenario": key[1], "noise": key[2], "levels": len(rs),
+                    "works_from_mps2": start["accel_perp_mps2"] if start else math.nan,
+                    "works_from_scale": start["manoeuvre_scale"] if start else math.nan})
+    return out
+
+
+def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
+    """Error vs observer manoeuvre: one panel per (scenario, noise), one line per algorithm, the CRB and the
+    2 % line.  False (no file) when fewer than two manoeuvre levels were swept."""
+    if len({r["manoeuvre_scale"] for r in mrows}) < 2:
+        return False
+    from matplotlib.figure import Figure
+
+    panels = list(dict.fromkeys((r["scenario"], r["noise"]) for r in mrows))
+    algos = list(dict.fromkeys(r["algorithm"] for r in mrows))
+    ncol = min(3, len(panels))
+    nrow = math.ceil(len(panels) / ncol)
+    fig = Figure(figsize=(4.2 * ncol, 3.4 * nrow), layout="constrained")
+    axes = fig.subplots(nrow, ncol, squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.set_visible(False)
+    for ax, (s, n) in zip(axes.flat, panels):
+        for a in algos:
+            rs = sorted((r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, a)),
+                        key=lambda r: r["accel_perp_mps2"])
+            x = [r["accel_perp_mps2"] for r in rs]
+            y = [r["err_pub"] for r in rs]
+            line, = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
+            ax.plot(x, [r["err_final"] for r in rs], marker="o", mfc="none", ls=":", color=line.get_color(),
+                    label=f"{a} (last frame)")
+        rs = sorted((r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
+                    key=lambda r: r["accel_perp_mps2"])
+        ax.plot([r["accel_perp_mps2"] for r in rs], [r["crb_pct"] for r in rs], "k--", lw=1, label="CRB (RMS / range)")
+        ax.axhline(GOOD_ERR_PCT, color="tab:green", lw=0.8, ls=":", label=f"{GOOD_ERR_PCT:g} % (works)")
+        ax.set_yscale("log")
+        ax.set_title(f"{s}, {n}", fontsize=10)
+        ax.set_xlabel("observer acceleration normal to LOS, RMS (m/s$^2$)")
+        ax.set_ylabel("median err / range, settled (%)")
+        ax.grid(True, which="both", alpha=0.3)
+    axes.flat[0].legend(fontsize=7)
+    fig.suptitle("Reconstruction error vs observer manoeuvre (measured; median over seeds)", fontsize=11)
+    fig.savefig(path, dpi=110)
+    return True
+
+
+def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict) -> dict:
+    """``report.md`` (+ ``manoeuvre.png`` when two or more manoeuvre levels were swept)."""
+    from groundsim.evaluation.estimator_eval import PAPER_TABLE2
+
+    files = {}
+    ok = [r for r in rows if r.get("status") == "ok"]
+    failed = [r for r in rows if r.get("status") != "ok"]
+    t2, at_ref = table2_rows(rows)
+    mrows = manoeuvre_rows(rows)
+    has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows)
+    if has_fig:
+        files[FIGURE_NAME] = out / FIGURE_NAME
+    L = [f"# Campaign {spec.name}\n"]
+    L.append(f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "
+             f"{', '.join(spec.noise)}, algorithms {', '.join(spec.algorithms)}, seeds {len(spec.seeds)}, "
+             f"{len(spec.geometries)} geometr{'y' if len(spec.geometries) == 1 else 'ies'}, estimator noise model: "
+             f"{spec.noise_model}.\n")
+    ri = run_info
+    rate = 60.0 * ri["ran"] / ri["wall_s"] if ri["wall_s"] > 0 and ri["ran"] else math.nan
+    L.append(f"{len(rows)} of {ri['planned']} runs in the table ({len(failed)} failed); this invocation reused "
+             f"{ri['reused']}, ran {ri['ran']} in {ri['wall_s']:.1f} s on {ri['workers']} worker(s)"
+             f"{f' ({rate:.1f} runs/min)' if math.isfinite(rate) else ''}"
+             f"{'; INTERRUPTED: run the same command to resume' if ri['interrupted'] else ''}. "
+             f"Table: `{TABLE_NAME}` (one row per run).\n")
+    L.append("## Table 2 analogue, per algorithm\n")
+    L.append(("Runs at the reference geometry (range, aspect and manoeuvre of the shipped scenario)." if at_ref else
+              "No run at the reference geometry: medians over every geometry of the campaign.") +
+             " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
+             "every finite estimate after 5 s (half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
+             "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n")
+    for a in dict.fromkeys(r["algorithm"] for r in t2):
+        L.append(f"### {a}\n")
+        L.append("| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
+                 "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
+                 "CRB range sigma | batch MAP err/range |")
+        L.append("|" + "---|" * 14)
+        for r in (x for x in t2 if x["algorithm"] == a):
+            paper = PAPER_TABLE2.get(r["scenario"])
+            L.append(f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
+                     f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
+                     f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
+                     f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |")
+        L.append("")
+    if mrows and len({r["manoeuvre_scale"] for r in mrows}) > 1:
+        L.append("## Error vs observer manoeuvre\n")
+        L.append(f"![error vs manoeuvre]({FIGURE_NAME})\n")
+        L.append("The observer's acceleration is scaled (manoeuvre_scale), measured as its RMS normal to the line "
+                 f"of sight over the window. *Works from*: the smallest measured level from which every larger "
+                 f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n")
+        L.append("| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |")
+        L.append("|---|---|---|---|---|---|")
+        for w in works_from(mrows):
+            L.append(f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
+                     f"{_num(w['works_from_mps2'], 3) if math.isfinite(w['works_from_mps2']) else 'not in the range swept'} | "
+                     f"{_num(w['works_from_scale'], 3)} |")
+        L.append("")
+        L.append("| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
+                 "err/range last frame | err/range observable | observable share | CRB / range |")
+        L.append("|" + "---|" * 11)
+        for r in mrows:
+            L.append(f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
+                     f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
+                     f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |")
+        L.append("")
+    if failed:
+        L.append("## Failed runs\n")
+        for r in failed[:50]:
+            L.append(f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}")
+        L.append("")
+    (out / REPORT_NAME).write_text("\n".join(L), encoding="utf-8")
+    files[REPORT_NAME] = out / REPORT_NAME
+    log.debug("report: %d ok rows", len(ok))
+    return files
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def cmd_campaign(args) -> int:
+    """``groundsim campaign SPEC``: validate, run what is missing, write table + report, print the summary."""
+    import sys
+
+    from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
+
+    if logging.getLogger().getEffectiveLevel() >= logging.INFO:
+        for name in ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render", "groundsim.evaluation.eval"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    spec = load_spec(args.spec)
+    scheduler = getattr(args, "scheduler", None)
+    if scheduler is not None and args.workers is not None:
+        raise ConfigError(f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}")
+    workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
+    if workers < 1:
+        raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
+    cfg_path = spec.onboard_config
+    if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
+        cfg_path = DEFAULT_ONBOARD_CONFIG
+    base = load_base_config(cfg_path)
+    digest = _digest(Path(cfg_path).read_bytes()) if cfg_path is not None else "defaults"
+    out = Path(args.out) if args.out else Path("out/campaigns") / spec.name
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    res = run_campaign(spec, out, workers=workers, progress=not args.no_progress, fresh=args.fresh,
+                       retry_failed=args.retry_failed, base_config=base, onboard_digest=digest, scheduler=scheduler)
+    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+    rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan
+    print(f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
+          f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
+          f"{f' of {scheduler}' if scheduler else ''}"
+          f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})")
+    print(f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
+          f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}")
+    sys.stdout.flush()
+    if res.interrupted:
+        print(f"interrupted: {res.reused + res.ran} of {res.planned} runs done; the same command resumes", file=sys.stderr)
+        return 130
+    return 0

@@ -1,0 +1,547 @@
+"""``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains (issue 14 item 1).
+
+One *sequence* per (scenario, run seed): :class:`groundsim.app.run.SimCore` flies, renders and gives the
+truth of every frame (the same flight, frames and navigation errors as ``groundsim run`` and
+``groundsim eval`` for that seed and ``--nav-noise``), and this module writes it out.  Layout of ``--out DIR``::
+
+    DIR/manifest.json                 schema irtrack.dataset/1: scenarios (name, file, sha256), seeds,
+                                      nav-noise case, bit depth, formats, sequences (name, frames, size)
+    DIR/<seq>/img1/000001.png ...     the IR frames, PNG mono 8 or 16 bit (MOT's 1-based file names)
+    DIR/<seq>/labels.csv              per frame: target id, sub-pixel centroid, box, visibility
+    DIR/<seq>/cameras.csv             per frame: intrinsics, camera pose true and measured (NED + WGS84)
+    DIR/<seq>/truth.csv               the 3-D truth (groundsim.world.truth columns, as ``groundsim run --truth``)
+    DIR/<seq>/seqinfo.ini, gt/gt.txt  --format mot: MOT Challenge layout (TrackEval's MotChallenge2DBox reads it)
+    DIR/coco.json                     --format coco: COCO detection + 1-keypoint ("centroid") JSON, every sequence
+
+``<seq>`` is ``<scenario>-<nav case>-s<seed>``.  Conventions (``onboard.core.frames``): pixel (i, j) is centred at
+(j + 0.5, i + 0.5), so the image spans [0, W] x [0, H] in continuous pixel coordinates; NED about the
+scenario origin; quaternions w first, ``q_ned_from_cam`` (OpenCV camera: x right, y down, z forward).
+
+Labels (:func:`target_label`, pure):
+
+* ``u_px, v_px``: the target centre's projection at the TRUE camera pose (:func:`groundsim.world.render.truth_pixel`,
+  the renderer's own projection): the sub-pixel centroid a perfect detector would report; NaN behind the camera;
+* box ``x_px, y_px, w_px, h_px``: the projected 8 corners of the target's body bounding box (the union of
+  ``scenario.ir.target_parts``), clipped to the image: a tight box for an oblique view is smaller;
+* ``visibility``: clipped box area / unclipped box area (MOT's meaning: the visible fraction), 0 behind
+  the camera or outside the image; ``in_image``: the centre is inside the image (``truth.target_visible``).
+
+A frame whose target is not in the image has no gt.txt line and no COCO annotation; labels.csv keeps it.
+gt.txt (MOT 1.1 ground truth): ``frame, id, bb_left, bb_top, bb_width, bb_height, consider, class,
+visibility`` with MOT's 1-based pixel coordinates (``bb_left = x_px + 1``), class 1 (the one class
+TrackEval's MOT reader evaluates; here: "the target"), consider 1.  COCO: boxes ``[x, y, w, h]`` in
+continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
+``visibility``, ``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
+each image.
+
+Camera pose.  *True*: the flown camera (truth.csv ``cam_*``, ``q_ned_from_cam_*``).  *Measured*: what the
+daemon rebuilds from the telemetry the simulated vehicle sends (:func:`groundsim.world.nav_errors.reported_state`
+applied to the tick's true state): ``p = p_body_true + dp_err + R_reported lever_arm``, ``q = q(phi_err) (x)
+q_ned_from_cam_true`` (the gimbal's earth-frame attitude carries the same error as the body,
+:mod:`groundsim.world.nav_errors`).  WGS84 columns from :func:`onboard.core.frames.geodetic_from_ned` of the NED ones.
+
+Deterministic per (scenario, seed, nav case, duration, bit depth): no wall time in any file, PNGs from
+OpenCV's encoder at a fixed compression level; sequences are written in parallel by a process pool
+(one sequence per job, ``--workers``), frames counted by a tqdm bar on stderr.
+"""
+
+from __future__ import annotations
+
+import configparser
+import csv
+import dataclasses
+import hashlib
+import io
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from onboard.core.errors import ConfigError, InputError, IrtrackError
+
+__all__ = [
+    "DATASET_SCHEMA",
+    "FORMATS",
+    "TARGET_ID",
+    "DatasetOptions",
+    "TargetLabel",
+    "SequenceSummary",
+    "target_label",
+    "measured_camera_pose",
+    "sequence_name",
+    "export_sequence",
+    "export_dataset",
+    "cmd_dataset",
+]
+
+log = logging.getLogger(__name__)
+
+DATASET_SCHEMA = "irtrack.dataset/1"
+FORMATS = ("mot", "coco")
+TARGET_ID = 1  # the one target of a scenario: its MOT id / COCO track_id
+MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestrian" there; "the target" here)
+PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
+PROGRESS_EVERY_FRAMES = 10
+
+LABEL_COLUMNS = ("frame", "seq", "time_boot_us", "t_s", "target_id", "u_px", "v_px", "x_px", "y_px", "w_px", "h_px",
+                 "visibility", "in_image", "range_m")
+_INTRINSIC_COLUMNS = ("fx_px", "fy_px", "cx_px", "cy_px", "width_px", "height_px", "k1", "k2", "p1", "p2", "k3")
+_POSE_COLUMNS = ("n_m", "e_m", "d_m", "qw", "qx", "qy", "qz", "lat_deg", "lon_deg", "alt_m")
+CAMERA_COLUMNS = (("frame", "seq", "time_boot_us", "t_s") + _INTRINSIC_COLUMNS
+                  + tuple(f"true_{c}" for c in _POSE_COLUMNS) + tuple(f"meas_{c}" for c in _POSE_COLUMNS))
+
+
+# --------------------------------------------------------------------------- pure core
+
+
+@dataclass(frozen=True)
+class TargetLabel:
+    """One frame's 2-D label.  ``u_px, v_px``: sub-pixel centroid (NaN behind the camera); box
+    ``(x_px, y_px, w_px, h_px)`` clipped to the image (zeros when none); ``visibility`` in [0, 1];
+    ``in_image``: the centroid lies in [0, W) x [0, H)."""
+
+    u_px: float
+    v_px: float
+    x_px: float
+    y_px: float
+    w_px: float
+    h_px: float
+    visibility: float
+    in_image: bool
+
+    def __post_init__(self) -> None:
+        for name in ("x_px", "y_px", "w_px", "h_px", "visibility"):
+            v = float(getattr(self, name))
+            if not math.isfinite(v) or (name in ("w_px", "h_px") and v < 0):
+                raise InputError(f"TargetLabel.{name}: expected a finite number (>= 0 for sizes), got {v!r}")
+        if not 0.0 <= self.visibility <= 1.0:
+            raise InputError(f"TargetLabel.visibility: expected a fraction in [0, 1], got {self.visibility!r}")
+
+    @property
+    def has_box(self) -> bool:
+        return self.in_image and self.w_px > 0.0 and self.h_px > 0.0
+
+
+def body_box_corners_frd_m(target_parts) -> np.ndarray:
+    """(8, 3) corners of the axis-aligned body-frame box around every part (body FRD metres)."""
+    centre = np.array([p.center_frd_m for p in target_parts], dtype=float)
+    half = np.array([p.half_extent_m for p in target_parts], dtype=float)
+    lo, hi = (centre - half).min(axis=0), (centre + half).max(axis=0)
+    return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+
+
+def target_label(intrinsics, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body,
+                 corners_frd_m) -> TargetLabel:
+    """The label of one frame at the true poses (pure; see the module docstring).
+
+    ``p_*`` (3,) NED metres; ``R_*`` (3, 3); ``corners_frd_m`` (8, 3) from :func:`body_box_corners_frd_m`.
+    """
+    from groundsim.world.render import truth_pixel
+
+    p_c = np.asarray(p_cam_ned_m, dtype=float)
+    R_nc = np.asarray(R_ned_from_cam, dtype=float)
+    p_t = np.asarray(p_target_ned_m, dtype=float)
+    u, v = truth_pixel(intrinsics, p_c, R_nc, p_t)
+    W, H = float(intrinsics.width_px), float(intrinsics.height_px)
+    in_image = bool(math.isfinite(u) and math.isfinite(v) and 0.0 <= u < W and 0.0 <= v < H)
+    corners_cam = (p_t + np.asarray(corners_frd_m, dtype=float) @ np.asarray(R_ned_from_target_body).T - p_c) @ R_nc
+    if np.any(corners_cam[:, 2] <= 0.0):  # a corner behind the camera: no meaningful box
+        return TargetLabel(u, v, 0.0, 0.0, 0.0, 0.0, 0.0, in_image)
+    uv = intrinsics.project(corners_cam)
+    x0, y0 = float(uv[:, 0].min()), float(uv[:, 1].min())
+    x1, y1 = float(uv[:, 0].max()), float(uv[:, 1].max())
+    area = (x1 - x0) * (y1 - y0)
+    cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, W), min(y1, H)
+    if cx1 <= cx0 or cy1 <= cy0 or area <= 0.0:
+        return TargetLabel(u, v, 0.0, 0.0, 0.0, 0.0, 0.0, in_image)
+    vis = min(1.0, (cx1 - cx0) * (cy1 - cy0) / area)
+    return TargetLabel(u, v, cx0, cy0, cx1 - cx0, cy1 - cy0, vis, in_image)
+
+
+def measured_camera_pose(state_true: dict, nav_error, p_body_true_ned_m, mount, q_mount_from_gimbal=None):
+    """The camera pose the daemon rebuilds from the telemetry: ``(p_cam_ned_m, q_ned_from_cam)`` (pure).
+
+    ``state_true``: ``SimCore.vehicle_state(i)``; ``nav_error``: ``SimCore.nav_error(i)`` (None = exact);
+    ``p_body_true_ned_m`` (3,): the true observer position; the reported position is it plus the error's
+    NED offset (:func:`groundsim.world.nav_errors.reported_state` moves lat/lon/alt by the same offset).
+    """
+    from groundsim.world.nav_errors import reported_state
+    from onboard.core.frames import camera_pose_ned
+
+    rep = reported_state(state_true, nav_error)
+    p_body = np.asarray(p_body_true_ned_m, dtype=float)
+    if nav_error is not None:
+        p_body = p_body + np.asarray(nav_error.p_err_ned_m, dtype=float)
+    return camera_pose_ned(p_body, np.asarray(rep["q_ned_from_body"], dtype=float), mount, q_mount_from_gimbal)
+
+
+def sequence_name(scenario_name: str, nav_case: str, seed: int) -> str:
+    return f"{scenario_name}-{nav_case}-s{int(seed)}"
+
+
+def seqinfo_ini(name: str, frame_rate_hz: float, frames: int, width_px: int, height_px: int) -> str:
+    """MOT Challenge ``seqinfo.ini`` text (``[Sequence]``: name, imDir, frameRate, seqLength, imWidth,
+    imHeight, imExt).  frameRate is an integer there; a non-integer rate is rounded (labels carry t_s)."""
+    return (f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(round(frame_rate_hz))}\nseqLength={frames}\n"
+            f"imWidth={width_px}\nimHeight={height_px}\nimExt=.png\n")
+
+
+def mot_gt_lines(labels: list[tuple[int, TargetLabel]]) -> str:
+    """gt.txt text from ``(frame 1-based, label)`` pairs; frames without a box are left out."""
+    out = io.StringIO()
+    for frame, lab in labels:
+        if lab.has_box:
+            out.write(f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
+                      f"1,{MOT_CLASS},{lab.visibility:.4f}\n")
+    return out.getvalue()
+
+
+# --------------------------------------------------------------------------- options
+
+
+@dataclass(frozen=True)
+class DatasetOptions:
+    """How a dataset is made.  ``duration_s`` None = the scenario's; ``bit_depth`` None = the scenario's
+    encoding, else 8 or 16 (the renderer's mono8/mono16); ``formats``: subset of :data:`FORMATS`."""
+
+    nav_noise: str | None = None
+    duration_s: float | None = None
+    bit_depth: int | None = None
+    formats: tuple[str, ...] = ("mot",)
+
+    def __post_init__(self) -> None:
+        d = self.duration_s
+        if d is not None and (isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0):
+            raise ConfigError(f"--duration: expected a positive number of seconds, got {d!r}")
+        if self.bit_depth not in (None, 8, 16):
+            raise ConfigError(f"--bit-depth: expected 8 or 16, got {self.bit_depth!r}")
+        bad = [f for f in self.formats if f not in FORMATS]
+        if bad or not self.formats:
+            raise ConfigError(f"--format: expected one or more of {', '.join(FORMATS)}, got {', '.join(bad) or 'none'}")
+        if self.nav_noise is not None:
+            from groundsim.world.nav_errors import resolve_nav_noise
+
+            resolve_nav_noise(self.nav_noise)
+
+
+def _with_bit_depth(scenario, bit_depth: int | None):
+    if bit_depth is None:
+        return scenario
+    enc = "mono8" if bit_depth == 8 else "mono16"
+    return dataclasses.replace(scenario, ir=dataclasses.replace(scenario.ir, encoding=enc))
+
+
+# --------------------------------------------------------------------------- one sequence (adapter: files)
+
+
+@dataclass(frozen=True)
+class SequenceSummary:
+    """What one sequence wrote: ``name``, ``frames``, frames ``labelled`` (a box in the image), image size,
+    and the wall seconds it took (printed, never written into the dataset)."""
+
+    name: str
+    scenario: str
+    seed: int
+    nav_noise: str
+    frames: int
+    labelled: int
+    width_px: int
+    height_px: int
+    frame_rate_hz: float
+    wall_s: float
+    labels: tuple = ()  # ((frame 1-based, TargetLabel, time_boot_us), ...) for the COCO writer
+
+
+def _fmt(x) -> str:
+    if isinstance(x, (bool, np.bool_)):
+        return str(int(x))
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    return repr(float(x))
+
+
+def _pose_values(p_ned_m, q, origin) -> list:
+    from onboard.core.frames import geodetic_from_ned
+
+    lat, lon, alt = geodetic_from_ned(np.asarray(p_ned_m, dtype=float)[None, :], origin)
+    return [*map(float, p_ned_m), *map(float, q), float(lat[0]), float(lon[0]), float(alt[0])]
+
+
+def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progress=None) -> SequenceSummary:
+    """Fly, render and write one sequence under ``out_dir / sequence_name(...)`` (see the module docstring).
+    ``progress(n)`` is called with frames done.  Raises IrtrackError for a run that cannot be made."""
+    import cv2
+
+    from groundsim.app.run import SimCore
+    from groundsim.world.truth import TruthWriter
+    from onboard.core.frames import rotmat_from_quat
+
+    t0 = time.perf_counter()
+    scenario = _with_bit_depth(scenario, options.bit_depth)
+    if options.duration_s is not None and options.duration_s > scenario.duration_s + 1e-9:
+        raise ConfigError(f"--duration: expected at most {scenario.name}'s duration_s ({scenario.duration_s:g} s), "
+                          f"got {options.duration_s:g}")
+    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
+    name = sequence_name(scenario.name, core.nav_noise.name, seed)
+    seq_dir = Path(out_dir) / name
+    img_dir = seq_dir / "img1"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    K = scenario.camera.intrinsics
+    mount = scenario.camera.mount
+    corners = body_box_corners_frd_m(scenario.ir.target_parts)
+    origin = scenario.origin
+    labels: list[tuple[int, TargetLabel, int]] = []
+    intr = [K.fx_px, K.fy_px, K.cx_px, K.cy_px, int(K.width_px), int(K.height_px), *map(float, K.distortion)]
+    done = 0
+    with open(seq_dir / "labels.csv", "w", encoding="ascii", newline="") as f_lab, \
+            open(seq_dir / "cameras.csv", "w", encoding="ascii", newline="") as f_cam, \
+            TruthWriter(seq_dir / "truth.csv") as truth:
+        w_lab, w_cam = csv.writer(f_lab, lineterminator="\n"), csv.writer(f_cam, lineterminator="\n")
+        w_lab.writerow(LABEL_COLUMNS)
+        w_cam.writerow(CAMERA_COLUMNS)
+        for k in range(core.frame_count):
+            fr = core.frame(k)
+            i = k * core.ticks_per_frame
+            c = core.flight.chunk_of(i)
+            j = i - c.i0
+            tr = fr.truth
+            frame = k + 1
+            if fr.pixels is None:
+                raise InputError(f"{name}: frame {k} could not be rendered")
+            if not cv2.imwrite(str(img_dir / f"{frame:06d}.png"), fr.pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]):
+                raise ConfigError(f"--out {out_dir}: cannot write {img_dir / f'{frame:06d}.png'}")
+            truth.write(tr)
+            p_cam = np.array([tr.cam_n_m, tr.cam_e_m, tr.cam_d_m])
+            q_cam = np.array([tr.q_ned_from_cam_w, tr.q_ned_from_cam_x, tr.q_ned_from_cam_y, tr.q_ned_from_cam_z])
+            lab = target_label(K, p_cam, rotmat_from_quat(q_cam), [tr.target_n_m, tr.target_e_m, tr.target_d_m],
+                               rotmat_from_quat(c.tgt_q_ned_from_body[j]), corners)
+            labels.append((frame, lab, fr.time_boot_us))
+            w_lab.writerow([frame, fr.seq, fr.time_boot_us, _fmt(tr.t_s), TARGET_ID, _fmt(lab.u_px), _fmt(lab.v_px),
+                            _fmt(lab.x_px), _fmt(lab.y_px), _fmt(lab.w_px), _fmt(lab.h_px), _fmt(lab.visibility),
+                            int(lab.in_image), _fmt(tr.range_m)])
+            q_mg = None if c.q_mount_from_gimbal is None else c.q_mount_from_gimbal[j]
+            p_meas, q_meas = measured_camera_pose(core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, q_mg)
+            w_cam.writerow([frame, fr.seq, fr.time_boot_us, _fmt(tr.t_s), *map(_fmt, intr),
+                            *map(_fmt, _pose_values(p_cam, q_cam, origin)),
+                            *map(_fmt, _pose_values(p_meas, q_meas, origin))])
+            done += 1
+            if progress is not None and done >= PROGRESS_EVERY_FRAMES:
+                progress(done)
+                done = 0
+    if progress is not None and done:
+        progress(done)
+    if "mot" in options.formats:
+        (seq_dir / "seqinfo.ini").write_text(
+            seqinfo_ini(name, scenario.frame_rate_hz, core.frame_count, int(K.width_px), int(K.height_px)), encoding="ascii")
+        (seq_dir / "gt").mkdir(exist_ok=True)
+        (seq_dir / "gt" / "gt.txt").write_text(mot_gt_lines([(f, lab) for f, lab, _ in labels]), encoding="ascii")
+    return SequenceSummary(name=name, scenario=scenario.name, seed=int(seed), nav_noise=core.nav_noise.name,
+                           frames=core.frame_count, labelled=sum(1 for _, lab, _ in labels if lab.has_box),
+                           width_px=int(K.width_px), height_px=int(K.height_px),
+                           frame_rate_hz=float(scenario.frame_rate_hz), wall_s=time.perf_counter() - t0,
+                           labels=tuple(labels))
+
+
+# --------------------------------------------------------------------------- whole dataset
+
+
+def _box_polygon(lab: TargetLabel) -> list[float]:
+    x0, y0, x1, y1 = (round(a, 4) for a in (lab.x_px, lab.y_px, lab.x_px + lab.w_px, lab.y_px + lab.h_px))
+    return [x0, y0, x1, y0, x1, y1, x0, y1]
+
+
+def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
+    """The COCO JSON of the sequences (pure): images in sequence then frame order, ids from 1."""
+    images, annotations = [], []
+    for s in summaries:
+        for frame, lab, t_us in s.labels:
+            image_id = len(images) + 1
+            images.append({"id": image_id, "file_name": f"{s.name}/img1/{frame:06d}.png", "width": s.width_px,
+                           "height": s.height_px, "sequence": s.name, "frame_index": frame, "time_boot_us": int(t_us)})
+            if lab.has_box:
+                annotations.append({
+                    "id": len(annotations) + 1, "image_id": image_id, "category_id": TARGET_ID,
+                    "bbox": [round(lab.x_px, 4), round(lab.y_px, 4), round(lab.w_px, 4), round(lab.h_px, 4)],
+                    "area": round(lab.w_px * lab.h_px, 4), "iscrowd": 0, "segmentation": [_box_polygon(lab)],
+                    "keypoints": [float(lab.u_px), float(lab.v_px), 2], "num_keypoints": 1,
+                    "centroid_px": [float(lab.u_px), float(lab.v_px)], "visibility": round(lab.visibility, 4),
+                    "track_id": TARGET_ID,
+                })
+    return {
+        "info": {"description": description, "version": DATASET_SCHEMA},
+        "licenses": [],
+        "images": images,
+        "annotations": annotations,
+        "categories": [{"id": TARGET_ID, "name": "target", "supercategory": "aircraft", "keypoints": ["centroid"],
+                        "skeleton": []}],
+    }
+
+
+def _sha256(path) -> str | None:
+    if path is None or not Path(path).is_file():
+        return None
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[SequenceSummary]) -> dict:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        ver = version("irtrack")
+    except PackageNotFoundError:
+        ver = None
+    return {
+        "schema": DATASET_SCHEMA,
+        "irtrack_version": ver,
+        "scenarios": [{"name": sc.name, "file": None if sc.source_path is None else str(sc.source_path),
+                       "sha256": _sha256(sc.source_path), "scenario_seed": int(sc.seed)} for sc in scenarios],
+        "seeds": [int(s) for s in seeds],
+        "nav_noise": options.nav_noise,
+        "duration_s": options.duration_s,
+        "bit_depth": options.bit_depth,
+        "formats": list(options.formats),
+        "target_id": TARGET_ID,
+        "sequences": [{"name": s.name, "scenario": s.scenario, "seed": s.seed, "nav_noise": s.nav_noise,
+                       "frames": s.frames, "labelled_frames": s.labelled, "width_px": s.width_px,
+                       "height_px": s.height_px, "frame_rate_hz": s.frame_rate_hz} for s in summaries],
+        "files": {"labels": "<seq>/labels.csv", "cameras": "<seq>/cameras.csv", "truth": "<seq>/truth.csv",
+                  "images": "<seq>/img1/%06d.png", "mot": "<seq>/gt/gt.txt, <seq>/seqinfo.ini", "coco": "coco.json"},
+    }
+
+
+_WORKER_QUEUE = None
+
+
+def _init_worker(queue) -> None:
+    global _WORKER_QUEUE
+    _WORKER_QUEUE = queue
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # noqa: BLE001 - an optimisation only
+        pass
+
+
+def _job(args) -> SequenceSummary:
+    scenario, seed, out_dir, options = args
+    q = _WORKER_QUEUE
+    return export_sequence(scenario, seed, out_dir, options, (lambda n: q.put(n)) if q is not None else None)
+
+
+def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = None, workers: int = 1,
+                   progress: bool = True) -> tuple[list[SequenceSummary], float]:
+    """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
+    format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
+    from groundsim.evaluation.eval import _bar_pacing
+    from groundsim.evaluation.parallel import mp_context
+    from groundsim.app.run import frame_count
+
+    options = options if options is not None else DatasetOptions()
+    seeds = [int(s) for s in seeds]
+    if not scenarios:
+        raise ConfigError("--scenario: expected at least one scenario")
+    if not seeds or min(seeds) < 0:
+        raise ConfigError(f"--seeds: expected at least one seed >= 0, got {seeds}")
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    jobs = [(sc, seed, out, options) for sc in scenarios for seed in seeds]
+    total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=total, unit="frame", desc=f"dataset ({min(workers, len(jobs))} workers)", leave=True,
+                   dynamic_ncols=True, **_bar_pacing())
+    t0 = time.perf_counter()
+    try:
+        workers = min(workers, len(jobs))
+        if workers == 1:
+            summaries = [export_sequence(sc, seed, o_dir, opts, bar.update if bar is not None else None)
+                         for sc, seed, o_dir, opts in jobs]
+        else:
+            summaries = _run_pool(jobs, workers, bar, mp_context())
+    finally:
+        if bar is not None:
+            bar.close()
+    if "coco" in options.formats:
+        desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
+        (out / "coco.json").write_text(json.dumps(coco_document(summaries, desc), indent=1) + "\n", encoding="ascii")
+    (out / "manifest.json").write_text(json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n",
+                                       encoding="ascii")
+    return summaries, time.perf_counter() - t0
+
+
+def _run_pool(jobs, workers: int, bar, ctx) -> list:
+    import queue as queue_mod
+
+    q = ctx.Queue()
+    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(q,))
+    try:
+        pending = [pool.apply_async(_job, (j,)) for j in jobs]
+        left = set(range(len(jobs)))
+        results: list = [None] * len(jobs)
+        while left:
+            try:
+                n = q.get(timeout=0.2)
+                if bar is not None:
+                    bar.update(n)
+            except queue_mod.Empty:
+                pass
+            for i in [i for i in left if pending[i].ready()]:
+                results[i] = pending[i].get()  # re-raises a worker's IrtrackError here
+                left.discard(i)
+        while True:
+            try:
+                n = q.get_nowait()
+            except queue_mod.Empty:
+                break
+            if bar is not None:
+                bar.update(n)
+        pool.close()
+        pool.join()
+        return results
+    except BaseException:
+        pool.terminate()
+        pool.join()
+        raise
+
+
+def cmd_dataset(args) -> int:
+    """The ``dataset`` command: export, print one line per sequence and the frames/s."""
+    import sys
+
+    from groundsim.app.cli import resolve_scenario_path
+    from groundsim.world.scenario import load_scenario
+
+    if logging.getLogger().getEffectiveLevel() >= logging.INFO:
+        for name in ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render", "groundsim.world.truth"):
+            logging.getLogger(name).setLevel(logging.WARNING)
+    names = [n for group in (args.scenario or [["P1"]]) for n in group]
+    scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
+    if isinstance(args.seeds, bool) or args.seeds < 1:
+        raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
+    workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
+    options = DatasetOptions(nav_noise=args.nav_noise, duration_s=args.duration, bit_depth=args.bit_depth,
+                             formats=tuple(dict.fromkeys(args.format)))
+    summaries, wall_s = export_dataset(scenarios, range(args.seed0, args.seed0 + args.seeds), args.out, options,
+                                       workers=workers, progress=not args.no_progress)
+    frames = sum(s.frames for s in summaries)
+    for s in summaries:
+        print(f"{s.name}: {s.frames} frames ({s.labelled} with the target in the image), {s.wall_s:.1f} s, "
+              f"{s.frames / s.wall_s:.1f} frames/s in its worker")
+    w = min(workers, len(summaries))
+    print(f"{frames} frames in {wall_s:.1f} s with {w} worker(s): {frames / wall_s:.1f} frames/s, "
+          f"{frames / wall_s / w:.1f} frames/s per worker; dataset: {Path(args.out) / 'manifest.json'}")
+    sys.stdout.flush()
+    return 0

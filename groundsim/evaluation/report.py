@@ -1,0 +1,739 @@
+"""Evaluation report files: ``report.json``, ``report.md``, PNG plots and TUM trajectories.
+
+Pure writers over the results of :mod:`groundsim.evaluation.eval` (and the demo's live table); no simulation
+here.  Plots use matplotlib's object API on the Agg canvas (``matplotlib.figure.Figure``): no
+pyplot state, no display needed.
+
+TUM trajectory format (one pose per line, as read by evo's ``file_interface.read_tum_trajectory_file``)::
+
+    timestamp tx ty tz qx qy qz qw
+
+``timestamp``: the frame's capture time in seconds on the vehicle's boot clock (``time_boot_us /
+1e6``, microsecond resolution); ``tx ty tz``: the target's position in the scenario's local NED frame,
+metres (north, east, down); the orientation is the identity (``0 0 0 1``: evo wants a unit
+quaternion, the target's attitude is not estimated).  ``truth.tum`` holds every frame,
+``estimate.tum`` the frames where the online track reported an observable 3-D position (what the
+daemon publishes), ``estimate_perfect.tum`` the perfect-centroid baseline's observable frames.
+
+:func:`ape_rmse_m` scores a pair the way ``evo_ape tum truth.tum estimate.tum`` does by default: each
+stamp of the shorter trajectory is matched to the nearest stamp of the longer within
+``max_diff_s`` = 0.01 s, no alignment, error = translation difference, RMSE over the matches.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from onboard.core.errors import ConfigError, InputError
+
+__all__ = [
+    "EVO_MAX_DIFF_S",
+    "PAPER_TABLE2_PCT",
+    "write_tum",
+    "read_tum",
+    "ape_rmse_m",
+    "write_eval_report",
+    "format_table2",
+    "format_closed_loop",
+    "plot_trajectory",
+    "plot_errors",
+    "plot_frame",
+    "plot_performance",
+    "json_ready",
+]
+
+log = logging.getLogger(__name__)
+
+EVO_MAX_DIFF_S = 0.01  # evo's default --t_max_diff
+#: The paper's Table 2 (relative error with its world origin, per cent) by scenario key.
+PAPER_TABLE2_PCT = {"P1": 0.89, "P2": 1.09, "P3": 1.45}
+#: The reference study's best MAP estimator and Bayesian CRB, px0.3 case (REFERENCE_SCENARIOS.md).
+REFERENCE_PX03 = {"P1": (0.34, 0.85), "P2": (0.43, 1.5), "P3": (6.7, 6.1)}
+SCHEMA = "irtrack.eval/1"
+RATIO_LIMIT = 1.5  # issue #5: the image chain within this factor of perfect centroids
+BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
+PNG_DPI = 110
+
+
+# --------------------------------------------------------------------------- TUM
+
+
+def write_tum(path, t_s, p_ned_m) -> int:
+    """Write ``t_s`` (N,) and ``p_ned_m`` (N, 3) as a TUM file (rows with any NaN skipped); returns rows written."""
+    t = np.asarray(t_s, dtype=float).reshape(-1)
+    p = np.asarray(p_ned_m, dtype=float)
+    if p.shape != (t.size, 3):
+        raise InputError(f"write_tum {path}: p_ned_m must have shape ({t.size}, 3), got {p.shape}")
+    ok = np.isfinite(t) & np.all(np.isfinite(p), axis=1)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", encoding="ascii") as f:
+        f.write("# timestamp tx ty tz qx qy qz qw  (boot-clock seconds; local NED metres; identity attitude)\n")
+        for ti, pi in zip(t[ok], p[ok]):
+            f.write(f"{ti:.6f} {pi[0]:.6f} {pi[1]:.6f} {pi[2]:.6f} 0 0 0 1\n")
+    return int(ok.sum())
+
+
+def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
+    """A TUM file -> ``(t_s (N,), p (N, 3))``; comment lines (``#``) and blank lines are skipped.
+
+    Raises InputError naming the file and line for a row that is not 8 numbers.
+    """
+    path = Path(path)
+    t, p = [], []
+    try:
+        lines = path.read_text(encoding="ascii").splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: cannot read TUM file: {exc}") from None
+    for n, line in enumerate(lines, start=1):
+        s = line.strip()
+        if not s or s.startswith("#"):
+            continue
+        parts = s.replace(",", " ").split()
+        if len(parts) != 8:
+            raise InputError(f"{path}: line {n}: expected 8 numbers (timestamp tx ty tz qx qy qz qw), got {len(parts)}")
+        try:
+            vals = [float(x) for x in parts]
+        except ValueError:
+            raise InputError(f"{path}: line {n}: not numbers: {s!r}") from None
+        t.append(vals[0])
+        p.append(vals[1:4])
+    return np.asarray(t, dtype=float), np.asarray(p, dtype=float).reshape(-1, 3)
+
+
+def ape_rmse_m(t_ref_s, p_ref, t_est_s, p_est, max_diff_s: float = EVO_MAX_DIFF_S) -> tuple[float, int]:
+    """Absolute position error RMSE (metres) and the number of matched poses, evo's default way
+    (see the module docstring).  NaN and 0 when nothing matches."""
+    t1, p1 = np.asarray(t_ref_s, dtype=float), np.asarray(p_ref, dtype=float).reshape(-1, 3)
+    t2, p2 = np.asarray(t_est_s, dtype=float), np.asarray(p_est, dtype=float).reshape(-1, 3)
+    if t1.size == 0 or t2.size == 0:
+        return math.nan, 0
+    second_longer = t2.size > t1.size
+    ts, ps, tl, pl = (t1, p1, t2, p2) if second_longer else (t2, p2, t1, p1)
+    d = np.abs(tl[None, :] - ts[:, None])
+    j = np.argmin(d, axis=1)
+    ok = d[np.arange(ts.size), j] <= max_diff_s
+    if not ok.any():
+        return math.nan, 0
+    e = np.linalg.norm(ps[ok] - pl[j[ok]], axis=1)
+    return float(np.sqrt(np.mean(e**2))), int(ok.sum())
+
+
+# --------------------------------------------------------------------------- JSON
+
+
+def json_ready(obj):
+    """numpy -> Python, non-finite floats -> None, recursively (for ``json.dumps(allow_nan=False)``)."""
+    if isinstance(obj, dict):
+        return {str(k): json_ready(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_ready(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return json_ready(obj.tolist())
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        x = float(obj)
+        return x if math.isfinite(x) else None
+    if obj is None or isinstance(obj, str):
+        return obj
+    return str(obj)
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _f(x, fmt: str = ".2f", unit: str = "") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "-"
+    return f"{x:{fmt}}{unit}"
+
+
+def _ratio_text(x, baseline_failed: bool) -> str:
+    """A ratio with its verdict; never "ok" on a failed baseline."""
+    if x is None:
+        return "-"
+    if baseline_failed:
+        return f"{x:.2f} (baseline failed)"
+    return f"{x:.2f}" + (" ok" if x <= RATIO_LIMIT else " **over**")
+
+
+def format_table2(summary: list[dict], descriptions: dict[str, str] | None = None) -> str:
+    """The Table-2 style markdown table of :func:`groundsim.evaluation.eval.summarise` rows, the paper's figure beside ours."""
+    descriptions = descriptions or {}
+    head = ("| scenario | geometry | paper Table 2 | ours: paper metric | ours: err / range | RMSE m | NEES | "
+            "continuity | perfect centroids: err / range | ratio (<= 1.5) | CRB RMS m | batch err / range | "
+            "batch perfect err / range | batch ratio (<= 1.5) |")
+    lines = [head, "|" + "---|" * 14]
+    for r in summary:
+        paper = PAPER_TABLE2_PCT.get(r["scenario"])
+        lines.append(
+            f"| {r.get('label', r['scenario'])} | {descriptions.get(r.get('label', r['scenario']), descriptions.get(r['scenario'], ''))} | {_f(paper, '.2f', ' %')} | "
+            f"{_f(r.get('err_paper_pct'), '.2f', ' %')} | {_f(r.get('err_range_pct'), '.2f', ' %')} | "
+            f"{_f(r.get('rmse_m'))} | {_f(r.get('nees'), '.2f')} | {_f(_pct(r.get('continuity')), '.0f', ' %')} | "
+            f"{_f(r.get('perfect_err_range_pct'), '.2f', ' %')} | "
+            f"{_ratio_text(r.get('ratio_to_perfect'), bool(r.get('baseline_failed')))} | {_f(r.get('crb_rms_m'))} | "
+            f"{_f(r.get('batch_err_range_pct'), '.2f', ' %')} | {_f(r.get('batch_perfect_err_range_pct'), '.2f', ' %')} | "
+            f"{_ratio_text(r.get('batch_ratio_to_perfect'), bool(r.get('batch_baseline_failed')))} |"
+        )
+    return "\n".join(lines)
+
+
+#: issue 9 item 5's goals: published after 3 s, beyond 3 sigma, observable after 5 s (P2: 40 %), median err / range
+CLOSED_LOOP_GOALS = {"published": 0.95, "beyond": 0.01, "observable": {"P2": 0.40}, "observable_default": 0.60,
+                     "err_pct": 2.0}
+
+
+def format_closed_loop(summary: list[dict]) -> str:
+    """Issue 9 item 5's closed-loop figures per (scenario, navigation case), medians over seeds, with
+    the goal beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them)."""
+    g = CLOSED_LOOP_GOALS
+    lines = ["| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
+             "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
+             "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
+             "first observable s | centroid sigma px (chain; baseline) |",
+             "|" + "---|" * 9]
+    for r in summary:
+        obs_goal = g["observable"].get(r["scenario"], g["observable_default"])
+
+        def mark(x, ok):
+            return "" if x is None else ("" if ok(x) else " **miss**")
+
+        pub, bey = r.get("published_share_after_3s"), r.get("beyond_3sigma_published")
+        obs, err = r.get("observable_share_after_5s"), r.get("median_err_range_observable_pct")
+        lines.append(
+            f"| {r.get('label', r['scenario'])} | {r.get('nav_noise') or '-'} | "
+            f"{_f(_pct(pub), '.0f', ' %')}{mark(pub, lambda x: x >= g['published'])} | "
+            f"{_f(_pct(bey), '.1f', ' %')}{mark(bey, lambda x: x <= g['beyond'])} | "
+            f"{_f(_pct(obs), '.0f', ' %')}{mark(obs, lambda x: x >= obs_goal)} | "
+            f"{_f(err, '.2f', ' %')}{mark(err, lambda x: x <= g['err_pct'])} | "
+            f"{_f(r.get('median_err_range_published_after_5s_pct'), '.2f', ' %')} | {_f(r.get('first_observable_s'), '.1f')} | "
+            f"{_f(r.get('chain_centroid_sigma_px'), '.3f')}; {_f(r.get('baseline_pixel_sigma_px'), '.3f')} |")
+    return "\n".join(lines)
+
+
+def _pct(x):
+    return None if x is None else 100.0 * x
+
+
+def _short_geometry(description: str) -> str:
+    d = description.split(":", 1)[-1].strip() if ":" in description else description
+    return d.replace("|", "/")
+
+
+# --------------------------------------------------------------------------- plots
+
+
+def _figure(w_in: float, h_in: float):
+    from matplotlib.figure import Figure
+
+    return Figure(figsize=(w_in, h_in), layout="constrained")
+
+
+def _enu(p_ned):
+    """(east, north, up) columns of NED points, for plots that read like a map."""
+    p = np.asarray(p_ned, dtype=float)
+    return p[:, 1], p[:, 0], -p[:, 2]
+
+
+def _lbl(label: str, *values) -> str:
+    """``label`` when any of ``values`` has a finite number (the series is drawn), else matplotlib's
+    "no legend" label: a legend lists only what is drawn."""
+    for v in values:
+        a = np.asarray(v, dtype=float)
+        if a.size and np.isfinite(a).any():
+            return label
+    return "_nolegend_"
+
+
+def _legend(ax, **kw) -> None:
+    """A legend when something labelled is drawn (an empty one warns and shows a blank box)."""
+    handles, labels = ax.get_legend_handles_labels()
+    if handles:
+        ax.legend(**kw)
+
+
+def plot_trajectory(path, run, title: str = "") -> Path:
+    """Fig. 8 analogue: 3-D and top view of the target's truth, the online reconstruction (observable
+    frames; all frames with an estimate faint), the batch reconstruction and the observer's path."""
+    import mpl_toolkits.mplot3d  # noqa: F401 - registers the 3-D projection
+
+    fig = _figure(12.0, 5.4)
+    ax3 = fig.add_subplot(1, 2, 1, projection="3d")
+    ax2 = fig.add_subplot(1, 2, 2)
+    has = np.all(np.isfinite(run.est_p_ned_m), axis=1)
+    obs = has & run.observable
+    series = [
+        (run.truth_p_ned_m, dict(color="k", lw=2.0, label="target truth")),
+        (run.observer_p_ned_m, dict(color="0.55", lw=1.5, ls="--", label="observer (camera) path")),
+    ]
+    for p, kw in series:
+        e, n, u = _enu(p)
+        ax3.plot(e, n, u, **kw)
+        ax2.plot(e, n, **kw)
+    if (has & ~obs).any():
+        e, n, u = _enu(run.est_p_ned_m[has & ~obs])
+        ax3.scatter(e, n, u, s=4, color="tab:orange", alpha=0.25, label="online, not observable")
+        ax2.scatter(e, n, s=4, color="tab:orange", alpha=0.25, label="online, not observable")
+    if obs.any():
+        e, n, u = _enu(run.est_p_ned_m[obs])
+        ax3.scatter(e, n, u, s=5, color="tab:red", label="online track (observable)")
+        ax2.scatter(e, n, s=5, color="tab:red", label="online track (observable)")
+    b = (run.batch or {}).get("pipeline") or {}
+    if b.get("p_ned_m") is not None:
+        e, n, u = _enu(b["p_ned_m"])
+        ax3.plot(e, n, u, color="tab:blue", lw=1.2, label="batch (whole flight)")
+        ax2.plot(e, n, color="tab:blue", lw=1.2, label="batch (whole flight)")
+    e0, n0, _ = _enu(run.truth_p_ned_m[:1])
+    ax2.scatter(e0, n0, marker="o", color="k", s=20, zorder=5)
+    ax2.annotate("target start", (e0[0], n0[0]), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    eo, no, _ = _enu(run.observer_p_ned_m[:1])
+    ax2.annotate("observer start", (eo[0], no[0]), textcoords="offset points", xytext=(5, -12), fontsize=8)
+    ax3.set_xlabel("east m")
+    ax3.set_ylabel("north m")
+    ax3.set_zlabel("up m")
+    ax3.set_title("3-D (local frame about the scenario origin)")
+    ax2.set_xlabel("east m")
+    ax2.set_ylabel("north m")
+    ax2.set_aspect("equal", adjustable="datalim")
+    ax2.grid(True, alpha=0.3)
+    ax2.set_title("top view")
+    _legend(ax2, fontsize=8, loc="best")
+    fig.suptitle(title or f"{run.scenario} seed {run.seed}: truth vs reconstruction")
+    return _save(fig, path)
+
+
+def plot_errors(path, run, title: str = "") -> Path:
+    """Error over time: per NED axis with the reported 1-sigma band, and the range-normalised error of
+    the online track, the perfect-centroid baseline and the batch reconstruction."""
+    fig = _figure(11.0, 8.0)
+    axes = fig.subplots(4, 1, sharex=True)
+    t = run.t_s - run.t_s[0]
+    has = np.all(np.isfinite(run.est_p_ned_m), axis=1)
+    obs = has & run.observable
+    e = run.est_p_ned_m - run.truth_p_ned_m
+    with np.errstate(invalid="ignore"):
+        sig = np.sqrt(np.maximum(np.einsum("fii->fi", run.est_cov_ned_m2), 0.0))  # NaN where no estimate
+    for k, name in enumerate(("north", "east", "down")):
+        ax = axes[k]
+        ek = np.where(has, e[:, k], np.nan)
+        sk = np.where(has, sig[:, k], np.nan)
+        ax.fill_between(t, -sk, sk, color="tab:red", alpha=0.15, lw=0, label=_lbl("reported 1 sigma", sk))
+        e_obs, e_not = np.where(obs, ek, np.nan), np.where(has & ~obs, ek, np.nan)
+        ax.plot(t, e_obs, color="tab:red", lw=1.2, label=_lbl("error, observable", e_obs))
+        ax.plot(t, e_not, color="tab:orange", lw=0.8, alpha=0.7, label=_lbl("error, not observable", e_not))
+        ax.axhline(0.0, color="k", lw=0.5)
+        ax.set_ylabel(f"{name} m")
+        finite = np.abs(ek[obs]) if obs.any() else np.abs(ek[has]) if has.any() else np.array([1.0])
+        lim = max(1.0, 3.0 * float(np.nanpercentile(finite, 95))) if finite.size else 1.0
+        ax.set_ylim(-lim, lim)
+        ax.grid(True, alpha=0.3)
+    _legend(axes[0], fontsize=8, loc="upper right", ncol=3)
+    ax = axes[3]
+    rng = run.range_m
+    en = np.linalg.norm(e, axis=1) / rng * 100.0
+    en_obs, en_not = np.where(obs, en, np.nan), np.where(has & ~obs, en, np.nan)
+    ax.plot(t, en_obs, color="tab:red", lw=1.2, label=_lbl("online track (observable)", en_obs))
+    ax.plot(t, en_not, color="tab:orange", lw=0.8, alpha=0.7, label=_lbl("online, not observable", en_not))
+    bh = np.all(np.isfinite(run.base_p_ned_m), axis=1) & run.base_observable
+    eb = np.where(bh, np.linalg.norm(run.base_p_ned_m - run.truth_p_ned_m, axis=1) / rng * 100.0, np.nan)
+    ax.plot(t, eb, color="tab:green", lw=1.0, label=_lbl("perfect centroids (observable)", eb))
+    b = (run.batch or {}).get("pipeline") or {}
+    if b.get("p_ned_m") is not None:
+        idx = b["frames"]
+        ebt = np.linalg.norm(b["p_ned_m"] - run.truth_p_ned_m[idx], axis=1) / rng[idx] * 100.0
+        ax.plot(t[idx], ebt, color="tab:blue", lw=1.0, label=_lbl("batch (whole flight)", ebt))
+    ax.set_yscale("log")
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    ax.yaxis.set_major_formatter(FuncFormatter(lambda y, _pos: f"{y:g}"))
+    ax.yaxis.set_minor_formatter(NullFormatter())
+    ax.set_ylabel("||e|| / range %")
+    ax.set_xlabel("time s")
+    ax.grid(True, which="both", alpha=0.3)
+    _legend(ax, fontsize=8, loc="upper right", ncol=2)
+    fig.suptitle(title or f"{run.scenario} seed {run.seed}: reconstruction error")
+    return _save(fig, path)
+
+
+def plot_frame(path, frame: dict, title: str = "") -> Path:
+    """One IR frame with the track box and the true target pixel, and a zoom on the target."""
+    from matplotlib.patches import Rectangle
+
+    img = np.asarray(frame["pixels"])
+    fig = _figure(11.0, 4.6)
+    gs = fig.add_gridspec(1, 3)
+    ax = fig.add_subplot(gs[0, :2])
+    az = fig.add_subplot(gs[0, 2])
+    tu, tv = frame.get("truth_uv_px") or (math.nan, math.nan)
+    half = 24
+    # display stretch only (the grey values are not changed): whole frame 0.5-99.95 %, zoom min-max
+    lo, hi = np.percentile(img, [0.5, 99.95])
+    ax.imshow(img, cmap="gray", vmin=lo, vmax=max(hi, lo + 1), interpolation="nearest",
+              extent=(0, img.shape[1], img.shape[0], 0))
+    zlo, zhi = lo, hi
+    if math.isfinite(tu):
+        u0, v0 = int(max(tu - half, 0)), int(max(tv - half, 0))
+        patch = img[v0:int(tv + half) + 1, u0:int(tu + half) + 1]
+        if patch.size:
+            zlo, zhi = float(patch.min()), float(patch.max())
+    az.imshow(img, cmap="gray", vmin=zlo, vmax=max(zhi, zlo + 1), interpolation="nearest",
+              extent=(0, img.shape[1], img.shape[0], 0))
+    box = frame.get("bbox")
+    if box is not None:
+        for a in (ax, az):
+            a.add_patch(Rectangle((box[0], box[1]), box[2], box[3], fill=False, ec="tab:red", lw=1.5))
+    if frame.get("uv_px") is not None:
+        for a in (ax, az):
+            a.plot(*frame["uv_px"], "+", color="tab:red", ms=10, mew=1.5, label="track centre")
+    if math.isfinite(tu):
+        for a in (ax, az):
+            a.plot(tu, tv, "x", color="tab:cyan", ms=8, mew=1.5, label="true target pixel")
+        az.set_xlim(tu - half, tu + half)
+        az.set_ylim(tv + half, tv - half)
+    _legend(az, fontsize=8, loc="lower right")
+    ax.set_xlabel("u px")
+    ax.set_ylabel("v px")
+    az.set_title("zoom on the target")
+    ax.set_title(f"frame {frame['k']} at t = {frame['t_s']:.2f} s, state {frame.get('state')}, range {frame['range_m']:.0f} m"
+                 " (contrast stretched for display)", fontsize=10)
+    fig.suptitle(title)
+    return _save(fig, path)
+
+
+def plot_performance(path, summary_perf: list[dict], latencies: dict[str, np.ndarray], title: str = "") -> Path:
+    """Fig. 9 analogue: per-frame processing latency distribution, and wall ms per frame by stage."""
+    fig = _figure(12.0, 4.6)
+    a1, a2 = fig.subplots(1, 2)
+    for name, lat in latencies.items():
+        lat = np.asarray(lat, dtype=float)
+        if lat.size:
+            a1.hist(lat, bins=np.logspace(np.log10(max(lat.min(), 0.05)), np.log10(max(lat.max(), 1.0)), 40),
+                    histtype="step", lw=1.5, label=f"{name} (p50 {np.percentile(lat, 50):.1f} ms)")
+    a1.set_xscale("log")
+    a1.set_xlabel("pipeline processing per frame, ms (imaging + pose + estimator)")
+    a1.set_ylabel("frames")
+    a1.grid(True, which="both", alpha=0.3)
+    _legend(a1, fontsize=8)
+    names = [r["scenario"] for r in summary_perf]
+    stages = ("flight", "render", "pipeline", "baseline")
+    colors = ("0.6", "tab:purple", "tab:red", "tab:green")
+    bottom = np.zeros(len(names))
+    for st, c in zip(stages, colors):
+        vals = np.array([r.get(f"{st}_ms_per_frame") or 0.0 for r in summary_perf])
+        a2.bar(names, vals, bottom=bottom, color=c, label=st)
+        bottom += vals
+    a2.axhline(1000.0 / 30.0, color="k", ls="--", lw=1, label="30 fps budget")
+    a2.set_ylabel("wall ms per frame (lockstep, one process)")
+    a2.legend(fontsize=8)
+    a2.grid(True, axis="y", alpha=0.3)
+    fig.suptitle(title or "performance")
+    return _save(fig, path)
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=PNG_DPI)
+    return path
+
+
+# --------------------------------------------------------------------------- the eval report
+
+
+DEFINITIONS = {
+    "observable frames": "frames whose online Track has a 3-D position flagged observable (what the daemon "
+                         "publishes with the default output.unobservable_positions: false); the headline",
+    "all frames with an estimate": "frames with any finite 3-D estimate, observable or not",
+    "paper metric": "mean ||X_hat - X|| / ||X|| x 100 %, X relative to the scenario's local origin (on the ground "
+                    "under the observer's start), as the paper's relative error",
+    "err / range": "mean ||X_hat - X|| / range x 100 % (range = camera to target)",
+    "RMSE": "sqrt(mean ||X_hat - X||^2), metres; equals evo_ape's RMSE on the TUM files",
+    "NEES": "mean e^T P^-1 e with the reported covariance P (3 when consistent; < 3 conservative)",
+    "continuity": "observable frames / all frames of the run",
+    "continuity 2-D": "frames with a valid centroid / frames with the target inside the image",
+    "perfect centroids": "the same sliding-window estimator fed with the true pixel + white noise of the image "
+                         "chain's own centroid error (measured per run: RMS per axis of centroid - truth pixel; "
+                         "--pixel-sigma overrides it), through the same camera poses as the pipeline (navigation "
+                         "errors included); scored on its observable frames",
+    "baseline failed": f"the perfect-centroid baseline had no observable frame or an error over {BASELINE_FAIL_PCT:g} % of range: "
+                       "a ratio to it says nothing, so it gets no verdict",
+    "navigation errors": "the simulated telemetry's errors (config/noise_cases.yaml case, groundsim/world/nav_errors.py): "
+                         "attitude bias + white noise on #31/#285, position offset + drift + white noise on #33",
+    "published (closed loop)": "frames whose Track carries a finite 3-D position (lockstep publishes unobservable "
+                               "positions too); share over frames in state tracking after the first 3 s",
+    "beyond 3 sigma (published)": "fraction of published positions with ||e|| > 3 sqrt(trace cov): honesty",
+    "observable after 5 s": "observable frames / all frames after the first 5 s",
+    "ratio": "online track: image chain err/range / perfect-centroid err/range, both on the frames where both are "
+             "observable (median over seeds of each, then the ratio); batch ratio: the same for the whole-flight "
+             "smoother on all frames with a centroid; issue #5 asks for <= 1.5 (the verdict needs every ratio available)",
+    "CRB": "Bayesian Cramer-Rao bound of the flown trajectory (RMS over the flight of sqrt(trace)), with the "
+           "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
+           "on perfect centroids",
+    "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids)",
+    "medians": "every table figure is the median over seeds",
+}
+
+
+def write_eval_report(out_dir, result) -> dict:
+    """Write everything for an :class:`groundsim.evaluation.eval.EvalResult` into ``out_dir``; returns ``{what: path}``.
+
+    Files: ``report.json``, ``report.md``, ``<scenario>_trajectory.png``, ``<scenario>_error.png``,
+    ``<scenario>_frame.png`` (first seed of each scenario), ``performance.png``, and
+    ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run.
+    """
+    out = Path(out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    files: dict[str, str] = {}
+    ape: dict[str, dict] = {}
+    by_scenario: dict[str, list] = {}  # by label: the scenario, or <scenario>_<nav case> when cases are mixed
+    multi = len({getattr(r, "nav_noise", "") for r in result.runs}) > 1
+    for run in result.runs:
+        label = f"{run.scenario}_{run.nav_noise}" if multi else run.scenario
+        by_scenario.setdefault(label, []).append(run)
+        if run.error is not None:
+            continue
+        d = out / label / f"seed{run.seed}"
+        t = run.time_boot_us / 1e6
+        write_tum(d / "truth.tum", t, run.truth_p_ned_m)
+        obs = np.all(np.isfinite(run.est_p_ned_m), axis=1) & run.observable
+        write_tum(d / "estimate.tum", t[obs], run.est_p_ned_m[obs])
+        bobs = np.all(np.isfinite(run.base_p_ned_m), axis=1) & run.base_observable
+        write_tum(d / "estimate_perfect.tum", t[bobs], run.base_p_ned_m[bobs])
+        tt, pt = read_tum(d / "truth.tum")
+        te, pe = read_tum(d / "estimate.tum")
+        rmse, n = ape_rmse_m(tt, pt, te, pe)
+        ape[f"{label}/seed{run.seed}"] = {"rmse_m": rmse, "matched": n, "dir": str(d.relative_to(out))}
+
+    descriptions = {}
+    tasks: list[tuple] = []  # (key, plot function name, path, args...)
+    for name, runs in by_scenario.items():
+        descriptions[name] = _short_geometry(runs[0].description)
+        ok = [r for r in runs if r.error is None]
+        if not ok:
+            continue
+        r0 = ok[0]
+        tasks.append((f"{name}_trajectory", "plot_trajectory", out / f"{name}_trajectory.png", r0,
+                      f"{name} seed {r0.seed}: {descriptions[name]}"))
+        tasks.append((f"{name}_error", "plot_errors", out / f"{name}_error.png", r0, f"{name} seed {r0.seed}: error over time"))
+        if r0.frame is not None:
+            tasks.append((f"{name}_frame", "plot_frame", out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame"))
+    perf = _performance(result)
+    lat = {name: np.concatenate([np.asarray(r.timing["process_ms"]) for r in runs if r.error is None] or [np.zeros(0)])
+           for name, runs in by_scenario.items()}
+    tasks.append(("performance", "plot_performance", out / "performance.png", perf["per_scenario"], lat,
+                  "processing performance (analogue of the paper's Fig. 9)"))
+    for key, path in _run_plots(tasks, getattr(result, "workers", 1)):
+        files[key] = path
+
+    summary = result.summary
+    for row in summary:
+        keys = [k for k in ape if k.startswith(row.get("label", row["scenario"]) + "/")]
+        vals = [ape[k]["rmse_m"] for k in keys if ape[k]["rmse_m"] is not None and math.isfinite(ape[k]["rmse_m"])]
+        row["ape_rmse_m"] = float(np.median(vals)) if vals else None
+    report = {
+        "schema": SCHEMA,
+        "generated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        "options": {"seeds": sorted({r.seed for r in result.runs}), "workers": result.workers,
+                    "duration_s": result.options.duration_s, "pixel_sigma_px": result.options.pixel_sigma_px,
+                    "nav_noise": sorted({getattr(r, "nav_noise", "") for r in result.runs}),
+                    "batch": result.options.batch, "onboard_config": result.config_source},
+        "wall_s": result.wall_s,
+        "paper_table2_pct": PAPER_TABLE2_PCT,
+        "summary": summary,
+        "performance": perf,
+        "runs": result.scores,
+        "tum_ape": ape,
+        "definitions": DEFINITIONS,
+        "files": files,
+    }
+    (out / "report.json").write_text(json.dumps(json_ready(report), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    files["report.json"] = "report.json"
+    (out / "report.md").write_text(_markdown(report, descriptions, result), encoding="utf-8")
+    files["report.md"] = "report.md"
+    return {k: str(out / v) for k, v in files.items()}
+
+
+def _plot_task(task: tuple) -> tuple[str, str]:
+    key, fn, path, *args = task
+    return key, str(globals()[fn](path, *args).name)
+
+
+def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:
+    """Draw the plots, over ``workers`` forked processes when more than one (each plot is ~0.5-1 s of CPU)."""
+    workers = max(1, min(int(workers or 1), len(tasks)))
+    if workers == 1:
+        return [_plot_task(t) for t in tasks]
+    from groundsim.evaluation.parallel import mp_context
+
+    with mp_context().Pool(workers) as pool:
+        return pool.map(_plot_task, tasks)
+
+
+def _performance(result) -> dict:
+    per = []
+    names: list[str] = []
+    for r in result.runs:
+        if r.scenario not in names:
+            names.append(r.scenario)
+    for name in names:
+        runs = [r for r in result.runs if r.scenario == name and r.error is None]
+        if not runs:
+            continue
+        frames = sum(r.frames for r in runs)
+        pm = np.concatenate([np.asarray(r.timing["process_ms"]) for r in runs])
+        p50, p90, p99 = np.percentile(pm, [50, 90, 99])
+        wall = sum(r.timing["wall_s"] for r in runs)
+        cpu = sum(r.timing["cpu_s"] for r in runs)
+        per.append({
+            "scenario": name, "runs": len(runs), "frames": frames,
+            "pipeline_fps": frames / max(pm.sum() / 1e3, 1e-9),
+            "latency_ms": {"p50": p50, "p90": p90, "p99": p99, "max": float(pm.max()), "mean": float(pm.mean())},
+            "flight_ms_per_frame": 1e3 * sum(r.timing["flight_s"] for r in runs) / frames,
+            "render_ms_per_frame": 1e3 * sum(r.timing["render_s"] for r in runs) / frames,
+            "pipeline_ms_per_frame": 1e3 * sum(r.timing["pipeline_s"] for r in runs) / frames,
+            "baseline_ms_per_frame": 1e3 * sum(r.timing["baseline_s"] for r in runs) / frames,
+            "batch_s_per_run": sum(r.timing["batch_s"] for r in runs) / len(runs),
+            "run_wall_s": wall / len(runs),
+            "run_cpu_share": cpu / max(wall, 1e-9),
+            "loop_fps": frames / max(wall, 1e-9),
+        })
+    total_cpu = sum(r.timing.get("cpu_s", 0.0) for r in result.runs if r.error is None)
+    return {
+        "per_scenario": per,
+        "eval_wall_s": result.wall_s,
+        "eval_frames": sum(r.frames for r in result.runs),
+        "eval_fps": sum(r.frames for r in result.runs) / max(result.wall_s, 1e-9),
+        "workers": result.workers,
+        "worker_cpu_share": total_cpu / max(result.wall_s * result.workers, 1e-9),
+    }
+
+
+def _markdown(report: dict, descriptions: dict, result) -> str:
+    o = report["options"]
+    perf = report["performance"]
+    L = []
+    L.append("# irtrack evaluation: lockstep closed loop against the truth\n")
+    L.append(f"Generated {report['generated_utc']} by `python -m groundsim eval`; scenarios "
+             f"{', '.join(r['scenario'] for r in report['summary'])}; seeds {o['seeds']}; {o['workers']} worker process(es); "
+             f"wall {report['wall_s']:.1f} s for {perf['eval_frames']} frames ({perf['eval_fps']:.1f} frames/s overall). "
+             f"Onboard configuration: {o['onboard_config']} (with the scenario's camera, mount and origin). "
+             f"Navigation errors of the telemetry: {', '.join(o['nav_noise'])} (config/noise_cases.yaml). Perfect-centroid "
+             f"noise: " + ("the image chain's measured centroid error per run (table below)"
+                           if o['pixel_sigma_px'] is None else f"{o['pixel_sigma_px']:g} px per axis") + ".\n")
+    L.append("## Closed loop: what a user gets\n")
+    L.append("Medians over seeds, from the pipeline's per-frame Tracks (definitions below), with issue 9's goals. "
+             "Run `groundsim eval --nav-noise RTK exact` to see realistic and exact navigation side by side.\n")
+    L.append(format_closed_loop(report["summary"]))
+    L.append("")
+    L.append("## Reconstruction error beside the paper's Table 2\n")
+    L.append("Medians over seeds. Headline: the online track on its observable frames (what the daemon publishes). "
+             "The paper's figure is its relative error with its own world origin; ours in the same metric is the "
+             "\"paper metric\" column (definitions below).\n")
+    L.append(format_table2(report["summary"], descriptions))
+    L.append("")
+    L.append("| scenario | all frames with an estimate: err / range | RMSE m | 2-D continuity | first observable s | "
+             "centroid error RMS px | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |")
+    L.append("|" + "---|" * 10)
+    for r in report["summary"]:
+        ref = REFERENCE_PX03.get(r["scenario"])
+        L.append(f"| {r.get('label', r['scenario'])} | {_f(r.get('all_err_range_pct'), '.2f', ' %')} | {_f(r.get('all_rmse_m'))} | "
+                 f"{_f(_pct(r.get('continuity_2d')), '.0f', ' %')} | {_f(r.get('first_observable_s'), '.2f')} | "
+                 f"{_f(r.get('centroid_rms_px'), '.3f')} | {_f(_pct(r.get('perfect_continuity')), '.0f', ' %')} | "
+                 f"{_f(r.get('ape_rmse_m'), '.3f')} | {r['failed_runs']}/{r['runs']} | "
+                 f"{'-' if ref is None else f'{ref[0]:.2f} % / {ref[1]:.2f}'} |")
+    L.append("")
+    verdicts = []
+    for r in report["summary"]:
+        lab = r.get("label", r["scenario"])
+        used = [name for name, key, failed in (("online", "ratio_to_perfect", "baseline_failed"),
+                                               ("batch", "batch_ratio_to_perfect", "batch_baseline_failed"))
+                if r.get(key) is not None and not r.get(failed)]
+        failed = [name for name, failed in (("online", "baseline_failed"), ("batch", "batch_baseline_failed"))
+                  if r.get(failed)]
+        note = f"; {' and '.join(failed)} baseline failed" if failed else ""
+        if r.get("within_ratio") is None:
+            verdicts.append(f"{lab}: no verdict (no ratio with a sound baseline{note})")
+        else:
+            verdicts.append(f"{lab}: {'within' if r['within_ratio'] else '**NOT within**'} "
+                            f"{RATIO_LIMIT:g}x ({' and '.join(used)} ratio{note})")
+    L.append("Image chain vs perfect centroids: " + "; ".join(verdicts) + ".\n")
+    L.append("## Performance (the analogue of the paper's Fig. 9)\n")
+    L.append("Lockstep: one process per run does everything in turn, so these are single-core figures. "
+             "\"pipeline\" = `FramePipeline.process` (imaging + pose lookup + estimator), the daemon's per-frame work. "
+             "Lockstep runs the estimator synchronously, so its model re-selection (about once a second, tenths of a "
+             "second) lands on single frames: that is the p99 / max; the daemon runs it in a worker thread (see "
+             "`python -m groundsim demo` for its real-time latency).\n")
+    L.append("| scenario | pipeline fps | latency p50 / p90 / p99 / max ms | flight ms/frame | render ms/frame | "
+             "pipeline ms/frame | baseline ms/frame | batch s/run | run wall s | CPU share of the run's process |")
+    L.append("|" + "---|" * 10)
+    for p in perf["per_scenario"]:
+        lm = p["latency_ms"]
+        L.append(f"| {p['scenario']} | {p['pipeline_fps']:.0f} | {lm['p50']:.1f} / {lm['p90']:.1f} / {lm['p99']:.1f} / "
+                 f"{lm['max']:.0f} | {p['flight_ms_per_frame']:.1f} | {p['render_ms_per_frame']:.1f} | "
+                 f"{p['pipeline_ms_per_frame']:.1f} | {p['baseline_ms_per_frame']:.1f} | {p['batch_s_per_run']:.2f} | "
+                 f"{p['run_wall_s']:.1f} | {100 * p['run_cpu_share']:.0f} % |")
+    L.append("")
+    L.append(f"Whole evaluation: {perf['eval_frames']} frames in {perf['eval_wall_s']:.1f} s with {perf['workers']} worker "
+             f"process(es); worker CPU share {100 * perf['worker_cpu_share']:.0f} % of {perf['workers']} core(s) "
+             "(below 100 % = the machine was shared or workers idled at the end).\n")
+    L.append("![performance](performance.png)\n")
+    L.append("## Figures (the analogue of the paper's Fig. 8)\n")
+    for name in descriptions:
+        for kind in ("trajectory", "error", "frame"):
+            f = report["files"].get(f"{name}_{kind}")
+            if f:
+                L.append(f"![{name} {kind}]({f})")
+        L.append("")
+    L.append("## Runs\n")
+    L.append("| scenario | seed | err / range | RMSE m | NEES | continuity | perfect err / range | batch err / range | CRB m | "
+             "centroid RMS px | pipeline fps | wall s | note |")
+    L.append("|" + "---|" * 13)
+    for s in report["runs"]:
+        if "error" in s:
+            L.append(f"| {s['scenario']} | {s['seed']} | - | - | - | - | - | - | - | - | - | - | failed: {s['error']} |")
+            continue
+        on = s.get("online_observable") or {}
+        pf = s.get("perfect_observable") or {}
+        b = s.get("batch") or {}
+        L.append(f"| {s['scenario']} | {s['seed']} | {_f(on.get('err_range_pct'), '.2f', ' %')} | {_f(on.get('rmse_m'))} | "
+                 f"{_f(on.get('mean_nees'))} | {_f(_pct(s.get('continuity')), '.0f', ' %')} | "
+                 f"{_f(pf.get('err_range_pct'), '.2f', ' %')} | "
+                 f"{_f(_get(b, 'pipeline', 'metrics', 'err_range_pct'), '.2f', ' %')} | {_f(b.get('crb_rms_m'))} | "
+                 f"{_f(s.get('centroid_rms_px'), '.3f')} | {s['timing']['pipeline_fps']:.0f} | {s['timing']['wall_s']:.1f} | "
+                 f"{on.get('note', '')} |")
+    L.append("")
+    L.append("## TUM trajectories\n")
+    L.append("Per run: `<scenario>/seed<N>/truth.tum` (every frame), `estimate.tum` (online track, observable frames), "
+             "`estimate_perfect.tum` (perfect-centroid baseline). Columns `timestamp tx ty tz qx qy qz qw`: boot-clock "
+             "seconds, local NED metres about the scenario origin, identity attitude. Score one with evo:\n")
+    first = next(iter(report["tum_ape"].items()), None)
+    if first is not None:
+        key, v = first
+        L.append(f"    evo_ape tum {v['dir']}/truth.tum {v['dir']}/estimate.tum\n")
+        L.append(f"Our APE RMSE for {key} the same way (nearest stamp within {EVO_MAX_DIFF_S} s, no alignment, "
+                 f"translation): {_f(v['rmse_m'], '.4f')} m over {v['matched']} poses.\n")
+    L.append("## Definitions\n")
+    for k, v in DEFINITIONS.items():
+        L.append(f"- **{k}**: {v}")
+    L.append("")
+    return "\n".join(L)
+
+
+def _get(d, *keys):
+    for k in keys:
+        if not isinstance(d, dict):
+            return None
+        d = d.get(k)
+    return d

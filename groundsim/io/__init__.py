@@ -1,0 +1,1 @@
+"""The simulator's adapters: the simulated MAVLink vehicle and camera stream over zenoh, the video receiver."""

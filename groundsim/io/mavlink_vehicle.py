@@ -1,0 +1,785 @@
+"""The simulator's observer as a MAVLink 2 autopilot (pymavlink, common dialect; thin adapter).
+
+The observer is system 1, component 1 (``MAV_COMP_ID_AUTOPILOT1``) and emits, on the
+simulation's boot clock (the caller passes ``time_boot_us``; nothing here reads a wall clock
+for stamps, so lockstep and faster-than-real-time runs stay consistent):
+
+===========================================  ========  =============================================
+message                                      default   content
+===========================================  ========  =============================================
+HEARTBEAT (#0)                               1 Hz      MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC,
+                                                       armed + guided + stabilised, MAV_STATE_ACTIVE
+SYSTEM_TIME (#2)                             1 Hz      time_unix_usec = unix time at boot + boot time
+ATTITUDE_QUATERNION (#31)                    50 Hz     q1..q4 = w, x, y, z of ``q_ned_from_body``
+                                                       (body FRD -> NED, Hamilton); rollspeed,
+                                                       pitchspeed, yawspeed = body rates p, q, r rad/s;
+                                                       repr_offset_q = 0 (not supported, per spec)
+GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AMSL; relative_alt mm;
+                                                       vx, vy, vz cm/s NED (int16, saturated);
+                                                       hdg cdeg 0..35999 (UINT16_MAX if unknown)
+GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
+                                                       (w, x, y, z) in the earth frame (flag
+                                                       YAW_IN_EARTH_FRAME, default) or the vehicle
+                                                       frame (YAW_IN_VEHICLE_FRAME); delta_yaw =
+                                                       vehicle yaw; rates NaN; gimbal_device_id 1
+SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, GPS, AHRS, battery
+                                                       present/enabled/healthy; 4S battery volts,
+                                                       current, remaining (linear drain from 100 %)
+EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
+GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position
+ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
+BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
+HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon/alt (and on request)
+AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | COMMAND_INT | PARAM_FLOAT
+===========================================  ========  =============================================
+
+A ground station's other requests: PARAM_REQUEST_LIST -> PARAM_VALUE for each of
+:data:`DEFAULT_PARAMS` (REAL32), PARAM_REQUEST_READ (name or index) and PARAM_SET (stored, echoed);
+MISSION_REQUEST_LIST -> MISSION_COUNT 0 of the asked mission type (no mission, fence or rally);
+MISSION_CLEAR_ALL -> MISSION_ACK ACCEPTED; MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES -> AUTOPILOT_VERSION;
+MAV_CMD_GET_HOME_POSITION -> HOME_POSITION.  MAVSDK reads health, home, GPS and battery with no
+request DENIED (tested).
+
+Navigation errors: ``update_state(..., nav_error=sample)`` reports the state with a
+:class:`groundsim.world.nav_errors.NavErrorSample` applied (attitude error on #31 and on #285's gimbal
+attitude, position offset/drift/white noise on #33's lat/lon/alt, drift rate on its velocity);
+``groundsim.app.run`` passes the run's :class:`~groundsim.world.nav_errors.NavErrorModel` sample of each tick.
+
+Rates: SET_MESSAGE_INTERVAL may set any stream up to the poll rate (``groundsim.app.run`` polls and
+updates the state at 120 Hz at 30 fps, so #285 at 100 Hz is honoured: a sample per 10 ms due
+time, each with a fresh state).
+
+Data messages (#31, #33, #285) carry the *state's* ``time_boot_ms`` (when the sample is true)
+and are not repeated for an unchanged state: a stream is due by its interval but waits for a
+new :meth:`MavlinkVehicle.update_state` sample.  HEARTBEAT and SYSTEM_TIME carry poll time.
+At most one message per stream per :meth:`~MavlinkVehicle.poll`: poll at least as fast as the
+fastest stream.  A stream that fell behind restarts its schedule instead of bursting.
+
+Services (read on every poll):
+
+* TIMESYNC (#111) request (``tc1 == 0``): answered with ``tc1`` = our boot time in ns,
+  ``ts1`` echoed, target = the requester's system/component (when the installed dialect has
+  those extension fields; pymavlink 2.4.50's does not).
+* COMMAND_LONG / COMMAND_INT addressed to us (target system 1 or 0, component 1 or 0):
+  ``MAV_CMD_SET_MESSAGE_INTERVAL`` (param1 message id, param2 interval us: -1 disables, 0
+  restores the default, > 0 sets) -> COMMAND_ACK ACCEPTED for a message id we emit, DENIED for
+  any other id or a bad interval; ``MAV_CMD_REQUEST_MESSAGE`` (param1 message id) -> ACCEPTED
+  and one message now when we can produce it, DENIED otherwise; REQUEST_AUTOPILOT_CAPABILITIES and
+  GET_HOME_POSITION as above; any other command -> UNSUPPORTED.
+
+Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in NED
+(gimbal axes as the mount's in :mod:`onboard.core.frames`: x optical axis, y right, z down), i.e.
+``q_ned_from_body (x) q_body_from_mount (x) q_mount_from_gimbal``.  MAVLink gimbal protocol v2
+frames: "earth frame" is NED, so q is sent as is; "vehicle frame" is NED turned by the vehicle's
+yaw (roll and pitch still relative to the horizon), so q is sent as
+``conj(q_yaw) (x) q_ned_from_gimbal`` with ``q_yaw = quat_from_euler(0, 0, yaw)``.  In both,
+``delta_yaw`` = the vehicle yaw, the spec's ``q_earth = q_delta_yaw (x) q_vehicle``.
+
+Garbage on the link is counted (``counters['rx_bad_data']``, ``['rx_unknown']``) and skipped by
+pymavlink's resynchronising parser; a partial frame left by garbage can swallow the next two
+or three real messages before it resyncs (measured), which periodic requesters ride out.
+
+Errors: a malformed connection string is a :class:`MavlinkConfigError` (a ConfigError); a
+port in use or a device that cannot be opened is a :class:`MavlinkLinkError`; both
+:class:`~onboard.core.errors.IrtrackError`, one line, for the CLI to map to exit code 2.  Invalid
+state is an :class:`~onboard.core.errors.InputError` naming the field.  Nothing received from the
+network raises out of :meth:`~MavlinkVehicle.poll`.
+"""
+
+from __future__ import annotations
+
+import errno
+import logging
+import math
+import socket
+import time
+from collections import Counter
+from dataclasses import dataclass
+
+import numpy as np
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
+
+from onboard.core.errors import ConfigError, InputError, IrtrackError
+from onboard.core.frames import (
+    FrameError,
+    check_unit_quat,
+    euler_from_quat,
+    quat_conjugate,
+    quat_from_euler,
+    quat_multiply,
+    quat_normalize,
+)
+
+__all__ = [
+    "DEFAULT_CONNECTION",
+    "MavlinkConfigError",
+    "MavlinkLinkError",
+    "VehicleState",
+    "MavlinkVehicle",
+    "open_mavlink2",
+    "parse_connection",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_CONNECTION = "udpout:127.0.0.1:14540"
+
+MSG_HEARTBEAT = mavlink2.MAVLINK_MSG_ID_HEARTBEAT  # 0
+MSG_SYSTEM_TIME = mavlink2.MAVLINK_MSG_ID_SYSTEM_TIME  # 2
+MSG_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
+MSG_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
+MSG_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
+_DATA_STREAMS = (MSG_ATTITUDE_QUATERNION, MSG_GLOBAL_POSITION_INT, MSG_GIMBAL_DEVICE_ATTITUDE_STATUS)
+# what a ground station reads of a whole vehicle (issue 11): streams at the usual rates, or on request
+MSG_SYS_STATUS = mavlink2.MAVLINK_MSG_ID_SYS_STATUS  # 1
+MSG_GPS_RAW_INT = mavlink2.MAVLINK_MSG_ID_GPS_RAW_INT  # 24
+MSG_ATTITUDE = mavlink2.MAVLINK_MSG_ID_ATTITUDE  # 30
+MSG_BATTERY_STATUS = mavlink2.MAVLINK_MSG_ID_BATTERY_STATUS  # 147
+MSG_AUTOPILOT_VERSION = mavlink2.MAVLINK_MSG_ID_AUTOPILOT_VERSION  # 148
+MSG_HOME_POSITION = mavlink2.MAVLINK_MSG_ID_HOME_POSITION  # 242
+MSG_EXTENDED_SYS_STATE = mavlink2.MAVLINK_MSG_ID_EXTENDED_SYS_STATE  # 245
+_NEEDS_STATE = (MSG_GPS_RAW_INT, MSG_ATTITUDE, MSG_HOME_POSITION)
+#: default intervals of the ground-station streams, us (None: only on request)
+_GCS_STREAM_INTERVAL_US = {
+    MSG_SYS_STATUS: 1_000_000,
+    MSG_EXTENDED_SYS_STATE: 1_000_000,
+    MSG_GPS_RAW_INT: 200_000,
+    MSG_ATTITUDE: 100_000,
+    MSG_BATTERY_STATUS: 1_000_000,
+    MSG_HOME_POSITION: 5_000_000,
+    MSG_AUTOPILOT_VERSION: None,
+}
+_SENSORS = (mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+            | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+            | mavlink2.MAV_SYS_STATUS_SENSOR_GPS | mavlink2.MAV_SYS_STATUS_AHRS | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY)
+_CAPABILITIES = (mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                 | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
+BATTERY_CELLS = 4
+BATTERY_FULL_V, BATTERY_EMPTY_V = 4.2, 3.5  # per cell
+BATTERY_DRAIN_PCT_PER_S = 0.05  # 100 % -> 0 % in 2000 s: a long simulated flight never runs flat
+BATTERY_CURRENT_A = 12.0
+#: the small parameter set PARAM_REQUEST_LIST returns (name -> value; all MAV_PARAM_TYPE_REAL32)
+DEFAULT_PARAMS = (("MAV_SYS_ID", 1.0), ("MAV_COMP_ID", 1.0), ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
+                  ("BAT_N_CELLS", float(BATTERY_CELLS)), ("BAT_CAPACITY", 5000.0), ("SIM_FRAME_RATE", 30.0))
+
+#: TIMESYNC's target_system/target_component are extension fields of the current spec; the
+#: common.xml shipped with some pymavlink releases (2.4.50) predates them.  Without them the
+#: response carries only tc1/ts1, which is all the offset estimate needs.
+_TIMESYNC_HAS_TARGET = "target_system" in mavlink2.MAVLink_timesync_message.fieldnames
+
+_ACK_COUNTER = {
+    mavlink2.MAV_RESULT_ACCEPTED: "ack_accepted",
+    mavlink2.MAV_RESULT_DENIED: "ack_denied",
+    mavlink2.MAV_RESULT_UNSUPPORTED: "ack_unsupported",
+}
+
+_INT16_MAX = 32767
+_INT32_MAX = 2**31 - 1
+_UINT16_MAX = 65535
+_LOG_EVERY_S = 10.0  # a repeated network complaint is logged at most this often per reason
+
+_BASE_MODE = (
+    mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+    | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
+    | mavlink2.MAV_MODE_FLAG_GUIDED_ENABLED
+)
+
+
+class MavlinkConfigError(ConfigError):
+    """The MAVLink connection string or a vehicle option is invalid."""
+
+
+class MavlinkLinkError(IrtrackError):
+    """The MAVLink connection could not be opened (port in use, no such device, ...)."""
+
+
+# --------------------------------------------------------------------------- connection
+
+
+def parse_connection(connection: str) -> tuple[str, str | None, int | None]:
+    """Split a pymavlink connection string into ``(kind, host, port)``; validates it.
+
+    Accepted: ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``udp:HOST:PORT`` (= udpin),
+    ``udpbcast:HOST:PORT``, ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``, and serial devices
+    ``/dev/...`` (optionally ``,BAUD``) with host and port None.
+    """
+    if not isinstance(connection, str) or not connection:
+        raise MavlinkConfigError(f"--mavlink: expected a pymavlink connection string, got {connection!r}")
+    if connection.startswith("/dev/") or connection.upper().startswith("COM"):
+        return "serial", None, None
+    kind, sep, rest = connection.partition(":")
+    if not sep or kind not in ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin"):
+        raise MavlinkConfigError(
+            f"--mavlink {connection!r}: expected udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT,"
+            " tcpin:HOST:PORT or a /dev/ serial device"
+        )
+    host, sep, port_text = rest.rpartition(":")
+    if not sep or not host:
+        raise MavlinkConfigError(f"--mavlink {connection!r}: expected {kind}:HOST:PORT")
+    try:
+        port = int(port_text)
+    except ValueError:
+        raise MavlinkConfigError(f"--mavlink {connection!r}: port {port_text!r} is not a number") from None
+    in_kind = kind in ("udpin", "udp", "tcpin")
+    if not (0 if in_kind else 1) <= port <= 65535:
+        raise MavlinkConfigError(f"--mavlink {connection!r}: port {port} out of range")
+    return ("udpin" if kind == "udp" else kind), host, port
+
+
+def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
+    """pymavlink binds with SO_REUSEADDR, which lets a second UDP socket share a busy port on
+    Linux and hides the clash; probe with a plain bind first so "port in use" is an error."""
+    if port == 0:
+        return
+    stype = socket.SOCK_DGRAM if kind == "udpin" else socket.SOCK_STREAM
+    try:
+        infos = socket.getaddrinfo(host, port, 0, stype)
+    except socket.gaierror as exc:
+        raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: cannot resolve {host!r} ({exc.strerror})") from None
+    family, _, _, _, addr = infos[0]
+    with socket.socket(family, stype) as s:
+        try:
+            s.bind(addr)
+        except OSError as exc:
+            if exc.errno == errno.EADDRINUSE:
+                raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: port {port} already in use") from None
+            raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {exc.strerror or exc}") from None
+
+
+def open_mavlink2(connection: str, sysid: int, compid: int):
+    """Open ``connection`` with pymavlink, speaking MAVLink 2 / common whatever the environment.
+
+    pymavlink picks its dialect and wire version from process-wide environment variables
+    (``MAVLINK20``, ``MAVLINK_DIALECT``); instead of setting them for everybody, the
+    connection's codec is replaced by a MAVLink 2 common one and version auto-switching is
+    turned off.  Returns the pymavlink ``mavfile``.
+    """
+    kind, host, port = parse_connection(connection)
+    if kind in ("udpin", "tcpin"):
+        _probe_bind(kind, host, port, connection)
+    try:
+        conn = mavutil.mavlink_connection(
+            connection, source_system=sysid, source_component=compid, autoreconnect=False, retries=0
+        )
+    except (OSError, ValueError) as exc:
+        raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {getattr(exc, 'strerror', None) or exc}") from None
+    except Exception as exc:  # noqa: BLE001 - pyserial and friends raise their own types
+        raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {exc}") from None
+    conn.mav = mavlink2.MAVLink(conn, srcSystem=sysid, srcComponent=compid)
+    conn.mav.robust_parsing = True
+    conn.WIRE_PROTOCOL_VERSION = "2.0"
+    conn.first_byte = False  # no auto-switch (it would rewrite os.environ)
+    return conn
+
+
+# --------------------------------------------------------------------------- state
+
+
+def _finite(name: str, value, lo: float = -math.inf, hi: float = math.inf) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InputError(f"vehicle state {name} must be a number, got {value!r}") from None
+    if not math.isfinite(v) or not lo <= v <= hi:
+        raise InputError(f"vehicle state {name} must be finite in [{lo}, {hi}], got {value!r}")
+    return v
+
+
+def _vec(name: str, value, n: int) -> tuple[float, ...]:
+    try:
+        v = tuple(float(x) for x in value)
+    except (TypeError, ValueError):
+        v = ()
+    if len(v) != n or not all(math.isfinite(x) for x in v):
+        raise InputError(f"vehicle state {name} must be {n} finite numbers, got {value!r}")
+    return v
+
+
+def _quat(name: str, value) -> tuple[float, float, float, float]:
+    try:
+        q = check_unit_quat(np.asarray(value, dtype=float), f"vehicle state {name}")
+    except (FrameError, TypeError, ValueError) as exc:
+        raise InputError(f"vehicle state {name}: {exc}") from None
+    if q.shape != (4,):
+        raise InputError(f"vehicle state {name} must be one quaternion (w, x, y, z), got shape {q.shape}")
+    return tuple(float(x) for x in q)
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """One truth sample of the observer, as the simulator knows it.
+
+    time_boot_us: int, boot clock; lat_deg, lon_deg: WGS84; alt_amsl_m, alt_rel_m: metres;
+    v_ned_mps: (3,) NED; q_ned_from_body: (4,) w, x, y, z; body_rates_radps: (3,) FRD p, q, r;
+    heading_rad: yaw over ground, or NaN if unknown; q_ned_from_gimbal: (4,) or None.
+    """
+
+    time_boot_us: int
+    lat_deg: float
+    lon_deg: float
+    alt_amsl_m: float
+    alt_rel_m: float
+    v_ned_mps: tuple[float, float, float]
+    q_ned_from_body: tuple[float, float, float, float]
+    body_rates_radps: tuple[float, float, float]
+    heading_rad: float
+    q_ned_from_gimbal: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        t = self.time_boot_us
+        if isinstance(t, bool) or not isinstance(t, (int, np.integer)) or not 0 <= int(t) < 2**63:
+            raise InputError(f"vehicle state time_boot_us must be a non-negative integer, got {t!r}")
+        object.__setattr__(self, "time_boot_us", int(t))
+        object.__setattr__(self, "lat_deg", _finite("lat_deg", self.lat_deg, -90.0, 90.0))
+        object.__setattr__(self, "lon_deg", _finite("lon_deg", self.lon_deg, -180.0, 180.0))
+        alt_lim = _INT32_MAX / 1000.0
+        object.__setattr__(self, "alt_amsl_m", _finite("alt_amsl_m", self.alt_amsl_m, -alt_lim, alt_lim))
+        object.__setattr__(self, "alt_rel_m", _finite("alt_rel_m", self.alt_rel_m, -alt_lim, alt_lim))
+        object.__setattr__(self, "v_ned_mps", _vec("v_ned_mps", self.v_ned_mps, 3))
+        object.__setattr__(self, "q_ned_from_body", _quat("q_ned_from_body", self.q_ned_from_body))
+        object.__setattr__(self, "body_rates_radps", _vec("body_rates_radps", self.body_rates_radps, 3))
+        h = self.heading_rad
+        h = math.nan if h is None else h
+        try:
+            h = float(h)
+        except (TypeError, ValueError):
+            raise InputError(f"vehicle state heading_rad must be a number or NaN, got {self.heading_rad!r}") from None
+        if math.isinf(h):
+            raise InputError(f"vehicle state heading_rad must be finite or NaN (unknown), got {h}")
+        object.__setattr__(self, "heading_rad", h)
+        if self.q_ned_from_gimbal is not None:
+            object.__setattr__(self, "q_ned_from_gimbal", _quat("q_gimbal", self.q_ned_from_gimbal))
+
+
+# --------------------------------------------------------------------------- vehicle
+
+
+class MavlinkVehicle:
+    """The observer's autopilot: feed it truth with :meth:`update_state`, pump it with :meth:`poll`.
+
+    ``update_state`` may be called from another thread than ``poll`` (it swaps one immutable
+    reference); ``poll`` itself is single-threaded.
+    """
+
+    def __init__(
+        self,
+        connection: str = DEFAULT_CONNECTION,
+        sysid: int = 1,
+        compid: int = 1,
+        att_rate_hz: float = 50.0,
+        pos_rate_hz: float = 25.0,
+        gimballed: bool = False,
+        gimbal_rate_hz: float = 10.0,
+        gimbal_yaw_frame: str = "earth",
+        unix_time_at_boot_us: int | None = None,
+    ) -> None:
+        for name, v in (("sysid", sysid), ("compid", compid)):
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
+                raise MavlinkConfigError(f"MavlinkVehicle.{name} must be an integer in [1, 255], got {v!r}")
+        rates = {"att_rate_hz": att_rate_hz, "pos_rate_hz": pos_rate_hz, "gimbal_rate_hz": gimbal_rate_hz}
+        for name, v in rates.items():
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= 1000:
+                raise MavlinkConfigError(f"MavlinkVehicle.{name} must be in (0, 1000] Hz, got {v!r}")
+        if gimbal_yaw_frame not in ("earth", "vehicle"):
+            raise MavlinkConfigError(f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}")
+        self.gimbal_yaw_frame = gimbal_yaw_frame
+        self.connection = connection
+        self.sysid = sysid
+        self.compid = compid
+        self.gimballed = bool(gimballed)
+        self._default_interval_us: dict[int, int] = {
+            MSG_HEARTBEAT: 1_000_000,
+            MSG_SYSTEM_TIME: 1_000_000,
+            MSG_ATTITUDE_QUATERNION: round(1e6 / att_rate_hz),
+            MSG_GLOBAL_POSITION_INT: round(1e6 / pos_rate_hz),
+        }
+        if self.gimballed:
+            self._default_interval_us[MSG_GIMBAL_DEVICE_ATTITUDE_STATUS] = round(1e6 / gimbal_rate_hz)
+        self._default_interval_us.update(_GCS_STREAM_INTERVAL_US)
+        self._params: dict[str, float] = dict(DEFAULT_PARAMS)
+        self._params["MAV_SYS_ID"], self._params["MAV_COMP_ID"] = float(sysid), float(compid)
+        self._home: VehicleState | None = None
+        #: current interval per stream, microseconds; None = disabled by SET_MESSAGE_INTERVAL -1
+        self._interval_us: dict[int, int | None] = dict(self._default_interval_us)
+        self._next_due_us: dict[int, int] = {m: 0 for m in self._interval_us}
+        self._last_state_us_sent: dict[int, int] = {}
+        self._oneshot: set[int] = set()
+        self._state: VehicleState | None = None
+        self._now_us: int | None = None
+        self._unix_at_boot_us = unix_time_at_boot_us
+        self._last_log: dict[str, float] = {}
+        self.counters: Counter[str] = Counter()
+        self._conn = open_mavlink2(connection, sysid, compid)
+        log.info("mavlink vehicle %d/%d on %s", sysid, compid, connection)
+
+    # -- inputs ---------------------------------------------------------------
+
+    def update_state(
+        self,
+        time_boot_us: int,
+        lat_deg: float,
+        lon_deg: float,
+        alt_amsl_m: float,
+        alt_rel_m: float,
+        v_ned_mps,
+        q_ned_from_body,
+        body_rates_radps,
+        heading_rad: float,
+        q_gimbal=None,
+        nav_error=None,
+    ) -> VehicleState:
+        """Store the latest truth, as the autopilot reports it (validated; raises InputError naming a bad field).
+
+        Units and frames as :class:`VehicleState`; ``q_gimbal`` is ``q_ned_from_gimbal`` (the
+        gimbal's attitude in NED, see the module docstring), needed only when ``gimballed``.
+        ``nav_error``: a :class:`groundsim.world.nav_errors.NavErrorSample` (or None: exact) applied by
+        :func:`groundsim.world.nav_errors.reported_state` before anything is stored: #31, #33 and #285 carry
+        the reported attitude, position, velocity and gimbal attitude; the returned state is the reported one.
+        """
+        if nav_error is not None:
+            from groundsim.world.nav_errors import reported_state
+
+            kw = reported_state(dict(lat_deg=lat_deg, lon_deg=lon_deg, alt_amsl_m=alt_amsl_m, alt_rel_m=alt_rel_m,
+                                     v_ned_mps=v_ned_mps, q_ned_from_body=q_ned_from_body, heading_rad=heading_rad,
+                                     q_gimbal=q_gimbal), nav_error)
+            lat_deg, lon_deg, alt_amsl_m, alt_rel_m = kw["lat_deg"], kw["lon_deg"], kw["alt_amsl_m"], kw["alt_rel_m"]
+            v_ned_mps, q_ned_from_body, heading_rad, q_gimbal = (kw["v_ned_mps"], kw["q_ned_from_body"], kw["heading_rad"],
+                                                                 kw["q_gimbal"])
+        state = VehicleState(
+            time_boot_us=time_boot_us,
+            lat_deg=lat_deg,
+            lon_deg=lon_deg,
+            alt_amsl_m=alt_amsl_m,
+            alt_rel_m=alt_rel_m,
+            v_ned_mps=v_ned_mps,
+            q_ned_from_body=q_ned_from_body,
+            body_rates_radps=body_rates_radps,
+            heading_rad=heading_rad,
+            q_ned_from_gimbal=q_gimbal,
+        )
+        self._state = state
+        if self._home is None:
+            self._home = state  # home = where the first sample was
+        return state
+
+    def message_interval_us(self, msg_id: int) -> int | None:
+        """Current interval of a stream we emit (None: disabled); KeyError for others."""
+        return self._interval_us[msg_id]
+
+    # -- pump -----------------------------------------------------------------
+
+    def poll(self, now_boot_us: int, max_messages: int = 100) -> int:
+        """Service up to ``max_messages`` incoming messages, then send what is due at ``now_boot_us``.
+
+        Returns the number of messages sent.  Never raises for anything received.
+        """
+        if isinstance(now_boot_us, bool) or not isinstance(now_boot_us, (int, np.integer)) or now_boot_us < 0:
+            raise InputError(f"poll now_boot_us must be a non-negative integer, got {now_boot_us!r}")
+        now = int(now_boot_us)
+        if self._now_us is not None and now < self._now_us:
+            log.info("boot clock went back from %d to %d us: schedules restart", self._now_us, now)
+            self._next_due_us = {m: now for m in self._next_due_us}
+            self._last_state_us_sent.clear()
+        self._now_us = now
+        if self._unix_at_boot_us is None:
+            self._unix_at_boot_us = time.time_ns() // 1000 - now
+        sent = self._service_incoming(max_messages)
+        for msg_id in list(self._oneshot):
+            self._oneshot.discard(msg_id)
+            sent += self._send(msg_id, forced=True)
+        for msg_id, interval in self._interval_us.items():
+            if interval is None or now < self._next_due_us[msg_id]:
+                continue
+            if self._send(msg_id, forced=False):
+                sent += 1
+                nxt = self._next_due_us[msg_id] + interval
+                self._next_due_us[msg_id] = nxt if nxt > now else now + interval
+        return sent
+
+    def close(self) -> None:
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            try:
+                conn.close()
+            except OSError:
+                pass
+
+    def __enter__(self) -> "MavlinkVehicle":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- sending --------------------------------------------------------------
+
+    def _send(self, msg_id: int, forced: bool) -> int:
+        """Send one message of stream ``msg_id``; 1 if sent, 0 if there is nothing to send."""
+        mav = self._conn.mav
+        now = self._now_us
+        state = self._state
+        if msg_id in _DATA_STREAMS:
+            if state is None:
+                return 0
+            if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None:
+                return 0
+            if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
+                return 0
+            self._last_state_us_sent[msg_id] = state.time_boot_us
+        if msg_id in _NEEDS_STATE and state is None:
+            return 0
+        try:
+            if msg_id == MSG_HEARTBEAT:
+                mav.heartbeat_send(
+                    mavlink2.MAV_TYPE_QUADROTOR,
+                    mavlink2.MAV_AUTOPILOT_GENERIC,
+                    _BASE_MODE,
+                    0,
+                    mavlink2.MAV_STATE_ACTIVE,
+                )
+            elif msg_id == MSG_SYSTEM_TIME:
+                mav.system_time_send(self._unix_at_boot_us + now, _time_boot_ms(now))
+            elif msg_id == MSG_ATTITUDE_QUATERNION:
+                w, x, y, z = state.q_ned_from_body
+                p, q, r = state.body_rates_radps
+                mav.attitude_quaternion_send(_time_boot_ms(state.time_boot_us), w, x, y, z, p, q, r, (0.0, 0.0, 0.0, 0.0))
+            elif msg_id == MSG_GLOBAL_POSITION_INT:
+                mav.global_position_int_send(*self._global_position_int_fields(state))
+            elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
+                flags, q, delta_yaw_rad = self._gimbal_fields(state)
+                nan = math.nan
+                mav.gimbal_device_attitude_status_send(
+                    0, 0, _time_boot_ms(state.time_boot_us), flags, q, nan, nan, nan, 0, delta_yaw_rad, nan, 1
+                )
+            elif not self._send_gcs_stream(msg_id, mav, now, state):  # pragma: no cover - streams fixed at construction
+                return 0
+        except OSError as exc:
+            self._log_limited("tx_error", "mavlink send failed: %s", exc)
+            self.counters["tx_error"] += 1
+            return 0
+        self.counters[f"tx_{msg_id}"] += 1
+        return 1
+
+    def battery_remaining_pct(self, now_us: int) -> float:
+        """The simulated battery's charge, %: linear drain from 100 % at boot."""
+        return max(100.0 - BATTERY_DRAIN_PCT_PER_S * now_us / 1e6, 0.0)
+
+    def _send_gcs_stream(self, msg_id: int, mav, now: int, state: VehicleState | None) -> bool:
+        """The messages a ground station reads of a whole vehicle (module docstring); False: not ours."""
+        pct = self.battery_remaining_pct(now)
+        cell_v = BATTERY_EMPTY_V + (BATTERY_FULL_V - BATTERY_EMPTY_V) * pct / 100.0
+        if msg_id == MSG_SYS_STATUS:
+            mav.sys_status_send(_SENSORS, _SENSORS, _SENSORS, 250, round(cell_v * BATTERY_CELLS * 1000),
+                                round(BATTERY_CURRENT_A * 100), round(pct), 0, 0, 0, 0, 0, 0)
+        elif msg_id == MSG_EXTENDED_SYS_STATE:
+            mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, mavlink2.MAV_LANDED_STATE_IN_AIR)
+        elif msg_id == MSG_BATTERY_STATUS:
+            cells = [round(cell_v * 1000)] * BATTERY_CELLS + [_UINT16_MAX] * (10 - BATTERY_CELLS)
+            used_mah = round(BATTERY_CURRENT_A * 1000 * now / 1e6 / 3600)
+            mav.battery_status_send(0, mavlink2.MAV_BATTERY_FUNCTION_ALL, mavlink2.MAV_BATTERY_TYPE_LIPO, _INT16_MAX,
+                                    cells, round(BATTERY_CURRENT_A * 100), used_mah, -1, round(pct),
+                                    round(pct / BATTERY_DRAIN_PCT_PER_S), mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
+                                    [0, 0, 0, 0], 0, 0)
+        elif msg_id == MSG_GPS_RAW_INT:
+            _, lat, lon, alt_mm, _, vx, vy, _, _ = self._global_position_int_fields(state)
+            vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
+            cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
+            mav.gps_raw_int_send(self._unix_at_boot_us + state.time_boot_us, mavlink2.GPS_FIX_TYPE_3D_FIX, lat, lon,
+                                 alt_mm, 80, 120, vel, cog, 14, alt_mm, 500, 800, 200, 0, 0)
+        elif msg_id == MSG_ATTITUDE:
+            roll, pitch, yaw = (float(a) for a in euler_from_quat(np.asarray(state.q_ned_from_body)))
+            p, q, r = state.body_rates_radps
+            mav.attitude_send(_time_boot_ms(state.time_boot_us), roll, pitch, yaw, p, q, r)
+        elif msg_id == MSG_HOME_POSITION:
+            h = self._home
+            mav.home_position_send(round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0),
+                                   0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self._unix_at_boot_us + now)
+        elif msg_id == MSG_AUTOPILOT_VERSION:
+            mav.autopilot_version_send(_CAPABILITIES, 0x01000000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
+                                       0x1A2B3C4D, [0] * 18)
+        else:
+            return False
+        return True
+
+    def _gimbal_fields(self, s: VehicleState) -> tuple[int, list[float], float]:
+        """(flags, q, delta_yaw_rad) of GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame."""
+        _, _, yaw_rad = euler_from_quat(np.asarray(s.q_ned_from_body))
+        yaw_rad = float(yaw_rad)
+        if self.gimbal_yaw_frame == "earth":
+            return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, list(s.q_ned_from_gimbal), yaw_rad
+        q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
+        q_vehicle_from_gimbal = quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal)))
+        return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [float(c) for c in q_vehicle_from_gimbal], yaw_rad
+
+    def _global_position_int_fields(self, s: VehicleState) -> tuple:
+        v_cmps = []
+        for name, v in zip(("vx", "vy", "vz"), s.v_ned_mps):
+            c = round(v * 100.0)
+            if abs(c) > _INT16_MAX:
+                self._log_limited("velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v)
+                c = _INT16_MAX if c > 0 else -_INT16_MAX
+            v_cmps.append(c)
+        if math.isnan(s.heading_rad):
+            hdg = _UINT16_MAX
+        else:
+            hdg = round(math.degrees(s.heading_rad) % 360.0 * 100.0) % 36000
+        return (
+            _time_boot_ms(s.time_boot_us),
+            round(s.lat_deg * 1e7),
+            round(s.lon_deg * 1e7),
+            round(s.alt_amsl_m * 1000.0),
+            round(s.alt_rel_m * 1000.0),
+            *v_cmps,
+            hdg,
+        )
+
+    # -- receiving ------------------------------------------------------------
+
+    def _service_incoming(self, max_messages: int) -> int:
+        sent = 0
+        for _ in range(max_messages):
+            try:
+                msg = self._conn.recv_match(blocking=False)
+            except Exception as exc:  # noqa: BLE001 - nothing from the wire may stop the pump
+                self.counters["rx_error"] += 1
+                self._log_limited("rx_error", "mavlink receive failed: %s", exc)
+                break
+            if msg is None:
+                break
+            mtype = msg.get_type()
+            if mtype == "BAD_DATA":
+                self.counters["rx_bad_data"] += 1
+                self._log_limited("rx_bad_data", "mavlink: undecodable bytes received")
+                continue
+            # garbage decodes as UNKNOWN_<id>: one counter for all, so noise cannot grow the dict
+            self.counters["rx_unknown" if mtype.startswith("UNKNOWN") else f"rx_{mtype}"] += 1
+            try:
+                if mtype == "TIMESYNC":
+                    sent += self._on_timesync(msg)
+                elif mtype in ("COMMAND_LONG", "COMMAND_INT"):
+                    sent += self._on_command(msg)
+                elif mtype in ("PARAM_REQUEST_LIST", "PARAM_REQUEST_READ", "PARAM_SET"):
+                    sent += self._on_param(msg, mtype)
+                elif mtype in ("MISSION_REQUEST_LIST", "MISSION_CLEAR_ALL"):
+                    sent += self._on_mission(msg, mtype)
+            except Exception as exc:  # noqa: BLE001 - a malformed request must not stop the pump
+                self.counters["rx_handler_error"] += 1
+                self._log_limited("rx_handler_error", "mavlink: cannot handle %s: %s", mtype, exc)
+        return sent
+
+    def _on_timesync(self, msg) -> int:
+        if msg.tc1 != 0:  # a response to somebody's request, not a request
+            return 0
+        if getattr(msg, "target_system", 0) not in (0, self.sysid):
+            return 0
+        if _TIMESYNC_HAS_TARGET:
+            self._conn.mav.timesync_send(self._now_us * 1000, msg.ts1, msg.get_srcSystem(), msg.get_srcComponent())
+        else:
+            self._conn.mav.timesync_send(self._now_us * 1000, msg.ts1)
+        self.counters["tx_111"] += 1
+        return 1
+
+    def _for_us(self, msg) -> bool:
+        return msg.target_system in (0, self.sysid) and msg.target_component in (0, self.compid)
+
+    def _param_value(self, index: int) -> None:
+        name, value = list(self._params.items())[index]
+        self._conn.mav.param_value_send(name.encode(), value, mavlink2.MAV_PARAM_TYPE_REAL32, len(self._params), index)
+        self.counters["tx_22"] += 1
+
+    def _on_param(self, msg, mtype: str) -> int:
+        """PARAM_REQUEST_LIST -> every PARAM_VALUE; _READ -> one (by name, or index when -1 ... ); _SET -> stored
+        (REAL32) and echoed; an unknown name is ignored, as the parameter protocol says."""
+        if not self._for_us(msg):
+            return 0
+        names = list(self._params)
+        if mtype == "PARAM_REQUEST_LIST":
+            for i in range(len(names)):
+                self._param_value(i)
+            return len(names)
+        name = msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else bytes(msg.param_id).rstrip(b"\0").decode()
+        if mtype == "PARAM_REQUEST_READ":
+            index = msg.param_index if msg.param_index >= 0 else (names.index(name) if name in names else -1)
+            if not 0 <= index < len(names):
+                return 0
+            self._param_value(index)
+            return 1
+        if name not in names or not math.isfinite(msg.param_value):
+            return 0
+        self._params[name] = float(msg.param_value)
+        self._param_value(names.index(name))
+        return 1
+
+    def _on_mission(self, msg, mtype: str) -> int:
+        """No mission: MISSION_REQUEST_LIST -> MISSION_COUNT 0; MISSION_CLEAR_ALL -> MISSION_ACK accepted."""
+        if not self._for_us(msg):
+            return 0
+        mission_type = getattr(msg, "mission_type", 0)
+        if mtype == "MISSION_REQUEST_LIST":
+            self._conn.mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), 0, mission_type)
+        else:
+            self._conn.mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(),
+                                            mavlink2.MAV_MISSION_ACCEPTED, mission_type)
+        return 1
+
+    def _on_command(self, msg) -> int:
+        if msg.target_system not in (0, self.sysid) or msg.target_component not in (0, self.compid):
+            return 0
+        cmd = msg.command
+        if cmd == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
+            result = self._set_message_interval(msg.param1, msg.param2)
+        elif cmd == mavlink2.MAV_CMD_REQUEST_MESSAGE:
+            result = self._request_message(msg.param1)
+        elif cmd == mavlink2.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
+            result = self._request_message(float(MSG_AUTOPILOT_VERSION))
+        elif cmd == mavlink2.MAV_CMD_GET_HOME_POSITION:
+            result = self._request_message(float(MSG_HOME_POSITION))
+        else:
+            result = mavlink2.MAV_RESULT_UNSUPPORTED
+        self._conn.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
+        return 1
+
+    def _message_id(self, param: float) -> int | None:
+        if not math.isfinite(param) or param != int(param):
+            return None
+        msg_id = int(param)
+        return msg_id if msg_id in self._interval_us else None
+
+    def _set_message_interval(self, param1: float, param2: float) -> int:
+        msg_id = self._message_id(param1)
+        if msg_id is None or not math.isfinite(param2) or param2 < -1:
+            return mavlink2.MAV_RESULT_DENIED
+        interval = round(param2)
+        if interval == -1:
+            self._interval_us[msg_id] = None
+        elif interval == 0:
+            self._interval_us[msg_id] = self._default_interval_us[msg_id]
+        else:
+            self._interval_us[msg_id] = interval
+        self._next_due_us[msg_id] = self._now_us
+        log.info("message %d interval set to %s us", msg_id, self._interval_us[msg_id])
+        return mavlink2.MAV_RESULT_ACCEPTED
+
+    def _request_message(self, param1: float) -> int:
+        msg_id = self._message_id(param1)
+        state = self._state
+        if msg_id is None:
+            return mavlink2.MAV_RESULT_DENIED
+        if (msg_id in _DATA_STREAMS or msg_id in _NEEDS_STATE) and (
+            state is None or (msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None)
+        ):
+            return mavlink2.MAV_RESULT_DENIED
+        self._oneshot.add(msg_id)
+        return mavlink2.MAV_RESULT_ACCEPTED
+
+    def _log_limited(self, reason: str, fmt: str, *args) -> None:
+        t = time.monotonic()
+        if t - self._last_log.get(reason, -math.inf) >= _LOG_EVERY_S:
+            self._last_log[reason] = t
+            log.warning(fmt, *args)
+
+
+def _time_boot_ms(time_boot_us: int) -> int:
+    """MAVLink time_boot_ms: uint32 milliseconds, wrapping after ~49.7 days."""
+    return (time_boot_us // 1000) % 2**32

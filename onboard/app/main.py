@@ -1,0 +1,193 @@
+"""``python -m onboard``: the onboard daemon (entry point; see :mod:`onboard.app.service`).
+
+    python -m onboard --config config/onboard.yaml [--vehicle uav1] [--mavlink udpin:127.0.0.1:14540]
+                      [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
+                      [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
+                      [--gcs ENDPOINT]... [--video-udp HOST:PORT] [--record FILE.mcap] [--live-view PORT]
+                      [--log-level LEVEL] [--log-format text|json] [--set FIELD.PATH=VALUE]...
+                      [--check] [--print-config]
+
+Configuration: built-in defaults < ``--config`` file < ``IRTRACK_<SECTION>_<FIELD>`` environment
+variables < command-line options (each option overrides its config field; ``--zenoh-connect`` /
+``--zenoh-listen`` given once or more replace the file's list).  ``--check`` validates and exits
+0; ``--print-config`` prints the effective configuration as YAML and exits.
+
+Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP) or successful ``--check``; 2 invalid configuration
+or options, or a zenoh session that cannot open (port in use ...), printed as one line on stderr;
+1 an unexpected error.
+"""
+
+from __future__ import annotations
+
+import os
+
+# the pipeline is single-threaded by design: one BLAS thread, set before numpy is imported
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import signal  # noqa: E402
+import sys  # noqa: E402
+import threading  # noqa: E402
+import time  # noqa: E402
+from typing import Sequence  # noqa: E402
+
+EXIT_OK = 0
+EXIT_ERROR = 1
+EXIT_CONFIG = 2
+SHUTDOWN_BUDGET_S = 1.8  # SIGTERM -> exit; the issue allows 2 s
+
+log = logging.getLogger("onboard")
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, but errors are one line with our exit code (2, as argparse's own)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(prog="python -m onboard", description="irtrack onboard daemon: IR target tracking and 3-D reconstruction.")
+    p.add_argument("--config", metavar="FILE", help="YAML configuration (default: built-in defaults; see config/onboard.yaml)")
+    p.add_argument("--vehicle", help="vehicle name in the zenoh keys irtrack/<vehicle>/... (config: vehicle; default uav1)")
+    p.add_argument("--mavlink", metavar="CONNECTION",
+                   help="autopilot link, e.g. udpin:127.0.0.1:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
+                        "serial:/dev/ttyS0:921600 (config: mavlink.connection)")
+    p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
+                   help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)")
+    p.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
+                   help="zenoh endpoint to listen on; repeatable (config: zenoh.listen)")
+    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file (config: zenoh.config_file)")
+    p.add_argument("--zenoh-multicast-scouting", dest="zenoh_scouting", action="store_true", default=None,
+                   help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)")
+    p.add_argument("--no-zenoh-multicast-scouting", dest="zenoh_scouting", action="store_false",
+                   help="disable zenoh multicast scouting")
+    p.add_argument("--gcs", metavar="ENDPOINT", action="append",
+                   help="ground-station endpoint of the MAVLink camera component, e.g. udpout:127.0.0.1:14550; "
+                        "repeatable (config: gcs.endpoints)")
+    p.add_argument("--video-udp", metavar="HOST:PORT",
+                   help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
+                        "(config: video.destination)")
+    p.add_argument("--record", metavar="FILE.mcap",
+                   help="record inputs and outputs to this MCAP file (config: record.path; see onboard/io/record.py)")
+    p.add_argument("--live-view", metavar="PORT", type=int,
+                   help="serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
+                        "(bound to live_view.host, 127.0.0.1 by default; config: live_view.port; see onboard/io/live_view.py)")
+    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
+                   help="log level (config: logging.level)")
+    p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
+    p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[],
+                   help="override any config field, e.g. --set estimator.window_s=8; repeatable")
+    p.add_argument("--check", action="store_true", help="validate the configuration and exit 0")
+    p.add_argument("--print-config", action="store_true", help="print the effective configuration as YAML and exit")
+    return p
+
+
+def _overrides(args: argparse.Namespace) -> dict:
+    from onboard.app.config import parse_set_option
+
+    out: dict = {}
+    for text in args.set:
+        path, value = parse_set_option(text)
+        out[path] = (value, "--set")
+    pairs = (
+        ("vehicle", args.vehicle, "--vehicle"),
+        ("mavlink.connection", args.mavlink, "--mavlink"),
+        ("zenoh.connect", args.zenoh_connect, "--zenoh-connect"),
+        ("zenoh.listen", args.zenoh_listen, "--zenoh-listen"),
+        ("zenoh.config_file", args.zenoh_config, "--zenoh-config"),
+        ("zenoh.multicast_scouting", args.zenoh_scouting, "--zenoh-multicast-scouting"),
+        ("gcs.endpoints", args.gcs, "--gcs"),
+        ("video.destination", args.video_udp, "--video-udp"),
+        ("record.path", args.record, "--record"),
+        ("live_view.port", args.live_view, "--live-view"),
+        ("logging.level", args.log_level, "--log-level"),
+        ("logging.format", args.log_format, "--log-format"),
+    )
+    for path, value, src in pairs:
+        if value is not None:
+            out[path] = (value, src)
+    return out
+
+
+# --------------------------------------------------------------------------- main
+
+
+from onboard.app.logs import setup_logging  # noqa: E402  (the daemon and its estimator process log alike)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from onboard.app.config import OnboardConfigError, config_to_dict, load_config
+    from onboard.core.errors import IrtrackError
+
+    try:
+        config = load_config(args.config, _overrides(args))
+    except OnboardConfigError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
+    if args.print_config:
+        import yaml
+
+        sys.stdout.write(yaml.safe_dump(config_to_dict(config), sort_keys=False))
+        return EXIT_OK
+    if args.check:
+        print(f"{args.config or '(defaults)'}: ok")
+        return EXIT_OK
+
+    setup_logging(config.logging.level, config.logging.format)
+    sys.setswitchinterval(0.001)  # the pipeline, estimator and MAVLink threads share the GIL
+    import cv2
+
+    cv2.setNumThreads(1)  # OpenCV's own pool would fight the pipeline for the cores
+
+    from onboard.app.service import OnboardService
+
+    try:
+        service = OnboardService(config)
+    except IrtrackError as exc:
+        print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
+        return EXIT_CONFIG
+
+    def on_signal(signum, _frame) -> None:
+        if service.stopping:
+            return
+        log.info("signal %s: shutting down", signal.Signals(signum).name)
+        service.request_stop()
+        # a last resort: whatever hangs, the process is gone within the budget
+        timer = threading.Timer(SHUTDOWN_BUDGET_S, _force_exit)
+        timer.daemon = True
+        timer.start()
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGHUP, on_signal)  # a closed terminal / session: the same clean exit, no reload
+
+    try:
+        service.start()
+    except IrtrackError as exc:
+        service.close(0.5)
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
+    try:
+        service.run()
+    except Exception:  # noqa: BLE001 - log, close, non-zero exit
+        log.exception("onboard service failed")
+        service.close(0.5)
+        return EXIT_ERROR
+    service.close(0.5)
+    logging.shutdown()
+    return EXIT_OK
+
+
+def _force_exit() -> None:
+    log.error("shutdown took longer than %.1f s: exiting now", SHUTDOWN_BUDGET_S)
+    logging.shutdown()
+    os._exit(EXIT_ERROR)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,473 @@
+"""Offline reconstruction: ``python -m onboard.reconstruct OBS.csv -o OUT.csv [options]``.
+
+Reads timestamped target pixels with the camera's pose, reconstructs the target's 3-D path with
+the MAP estimator (default) or the paper's closed form, and writes one position (and 1-sigma) per
+input row.
+
+Input (OBS.csv)
+    UTF-8 text (a byte-order mark is allowed), comma-separated, a header line, then one row per
+    observation.  Required columns, in any order::
+
+        t_s,u_px,v_px,fx_px,fy_px,cx_px,cy_px,cam_n_m,cam_e_m,cam_d_m,q_w,q_x,q_y,q_z
+
+    ``t_s`` seconds, strictly increasing (uneven steps and gaps are fine); ``u_px, v_px`` the
+    target pixel (ideal pinhole, no lens distortion); ``fx_px .. cy_px`` that row's intrinsics;
+    ``cam_*_m`` the camera centre in a local NED frame (metres); ``q_*`` ``q_ned_from_cam``
+    (Hamilton, w first) rotating camera-frame vectors (x right, y down, z forward) into NED,
+    unit norm within ``onboard.core.frames.QUAT_NORM_TOL`` (renormalised).  See ``onboard.core.frames``.
+    Unknown extra columns are ignored, with one warning naming them.  Blank lines are skipped.
+    Cells may carry surrounding spaces.  Sanity bounds (anything beyond is an error, not an
+    overflow later): ``|t_s| <= 1e9``, pixels and intrinsics within ``1e6`` px (focal lengths
+    > 0), camera coordinates within ``1e7`` m.
+
+Output (OUT.csv)
+    Header, then ``t_s,n_m,e_m,d_m,sigma_n_m,sigma_e_m,sigma_d_m``: one row per input row, in input
+    order, ``t_s`` echoed exactly.  Sigmas are the estimator's marginal 1-sigma per NED axis; the
+    paper's closed form has no noise model and therefore no covariance: its sigmas are ``nan``.
+
+Summary (--summary-json)
+    ``observable``, ``method``, ``frames`` and diagnostics (no truth needed): the MAP analysis'
+    ``range_sigma_ratio`` (max over the window of the posterior range sigma over range), its
+    motion ``model`` (``cv``/``ct``), ``q_horizontal_m2ps3``, ``turn_rate_radps``, ``iterations``,
+    ``converged``, ``solve_ms``; for ``--method paper`` also ``delta``, ``order``, ``paper_cost``,
+    ``paper_solver``, ``paper_refinement_rel`` and ``map_solve_ms``.  ``observable`` always comes
+    from the MAP observability analysis run on the same rows (``observability_source: "map"``):
+    the closed form has none.  Non-finite numbers are written as ``null``.
+
+Unobservable geometry (e.g. a straight, constant-velocity observer) is not an error: the command
+exits 0, writes the (unreliable) estimate with its large sigmas, and reports ``observable: false``.
+
+Exit codes and errors
+    0 success; 2 the input or the arguments are rejected, or the rows cannot be reconstructed; 1
+    the outputs cannot be written, or an internal error.  An error prints exactly one line on
+    stderr and no traceback (``-v`` logs the traceback of an internal error).  Row-level errors
+    name the line and the column: ``line N`` is the physical line number in the file, counting
+    the header as line 1 (so the first data row is line 2), e.g.
+    ``error: obs.csv line 7, column q_w..q_z: quaternion norm 1.02 is not 1 within 0.001``.
+    Outputs are written atomically (a temporary file renamed), so a failed run leaves no partial
+    OUT.csv (and leaves a previous run's files untouched: trust the exit code, not the file).
+
+Rows needed: both methods need at least ``MapConfig.min_frames`` (10) rows, because the MAP
+observability analysis runs on the same rows.
+
+Performance note: OpenBLAS threads contend badly on small shared machines (a MAP solve took
+~9x longer with default threading under load); set ``OPENBLAS_NUM_THREADS=1`` there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import csv
+import io
+import json
+import logging
+import math
+import os
+import sys
+import tempfile
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from onboard.core.errors import InputError, IrtrackError
+from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
+from onboard.estimation.observations import Observations
+from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
+from onboard.core.frames import QUAT_NORM_TOL
+
+__all__ = [
+    "OBS_COLUMNS",
+    "OUT_COLUMNS",
+    "ReconstructOptions",
+    "Reconstruction",
+    "parse_observations_csv",
+    "read_observations_csv",
+    "reconstruct",
+    "format_output_csv",
+    "main",
+]
+
+log = logging.getLogger(__name__)
+
+OBS_COLUMNS = ("t_s", "u_px", "v_px", "fx_px", "fy_px", "cx_px", "cy_px",
+               "cam_n_m", "cam_e_m", "cam_d_m", "q_w", "q_x", "q_y", "q_z")
+OUT_COLUMNS = ("t_s", "n_m", "e_m", "d_m", "sigma_n_m", "sigma_e_m", "sigma_d_m")
+QUAT_COLUMNS = ("q_w", "q_x", "q_y", "q_z")
+
+#: |value| bounds per column: beyond them a value is an input error (no overflow downstream)
+ABS_LIMITS = {"t_s": 1e9, "u_px": 1e6, "v_px": 1e6, "fx_px": 1e6, "fy_px": 1e6, "cx_px": 1e6, "cy_px": 1e6,
+              "cam_n_m": 1e7, "cam_e_m": 1e7, "cam_d_m": 1e7, "q_w": 2.0, "q_x": 2.0, "q_y": 2.0, "q_z": 2.0}
+
+EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
+
+
+class CsvInputError(InputError):
+    """A rejected OBS.csv; the message already names the file, line and column."""
+
+
+# --------------------------------------------------------------------------- parsing (pure)
+
+
+def _number(cell: str, source: str, line: int, column: str) -> float:
+    text = cell.strip()
+    if not text:
+        raise CsvInputError(f"{source} line {line}, column {column}: empty cell")
+    try:
+        value = float(text)
+    except ValueError:
+        shown = text if len(text) <= 30 else text[:27] + "..."
+        raise CsvInputError(f"{source} line {line}, column {column}: {shown!r} is not a number") from None
+    if not math.isfinite(value):
+        raise CsvInputError(f"{source} line {line}, column {column}: {text!r} is not finite")
+    if abs(value) > ABS_LIMITS[column]:
+        raise CsvInputError(f"{source} line {line}, column {column}: {value:g} is beyond the sanity bound "
+                            f"|{column}| <= {ABS_LIMITS[column]:g}")
+    return value
+
+
+def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
+    """Parse OBS.csv text (see the module docstring) into :class:`Observations`.
+
+    Pure; raises :class:`CsvInputError` (one line naming ``source``, the line and the column) on
+    the first problem.  Unknown columns are ignored with one warning.
+    """
+    if not text.strip():
+        raise CsvInputError(f"{source}: empty file; expected a header line {','.join(OBS_COLUMNS)}")
+    reader = csv.reader(io.StringIO(text, newline=""))
+    header: list[str] | None = None
+    header_line = 0
+    index: dict[str, int] = {}
+    rows: list[list[float]] = []
+    lines: list[int] = []
+    prev_line_num = 0
+    try:
+        for record in reader:
+            line = prev_line_num + 1  # first physical line of this record
+            prev_line_num = reader.line_num
+            if not record or all(not c.strip() for c in record):
+                continue  # blank line
+            if header is None:
+                header, header_line = [c.strip() for c in record], line
+                seen: dict[str, int] = {}
+                for i, name in enumerate(header):
+                    if name in seen and name:
+                        raise CsvInputError(f"{source} line {line} (header): column {name!r} appears twice "
+                                            f"(columns {seen[name] + 1} and {i + 1})")
+                    seen[name] = i
+                missing = [c for c in OBS_COLUMNS if c not in seen]
+                if missing:
+                    hint = " (is the file comma-separated?)" if len(header) == 1 else ""
+                    raise CsvInputError(f"{source} line {line} (header): missing column(s) {', '.join(missing)}{hint}")
+                extra = [c for c in header if c not in OBS_COLUMNS]
+                if extra:
+                    log.warning("%s: ignoring unknown column(s) %s", source, ", ".join(repr(c) for c in extra))
+                index = {c: seen[c] for c in OBS_COLUMNS}
+                continue
+            if len(record) != len(header):
+                raise CsvInputError(f"{source} line {line}: {len(record)} cells, the header (line {header_line}) "
+                                    f"has {len(header)}")
+            vals = [_number(record[index[c]], source, line, c) for c in OBS_COLUMNS]
+            t, fx, fy = vals[0], vals[3], vals[4]
+            if fx <= 0:
+                raise CsvInputError(f"{source} line {line}, column fx_px: focal length must be > 0, got {fx:g}")
+            if fy <= 0:
+                raise CsvInputError(f"{source} line {line}, column fy_px: focal length must be > 0, got {fy:g}")
+            qn = math.sqrt(sum(v * v for v in vals[10:14]))
+            if abs(qn - 1.0) > QUAT_NORM_TOL:
+                raise CsvInputError(f"{source} line {line}, column q_w..q_z: quaternion norm {qn:.6g} is not 1 "
+                                    f"within {QUAT_NORM_TOL:g}")
+            if rows and not t > rows[-1][0]:
+                raise CsvInputError(f"{source} line {line}, column t_s: {t!r} is not after {rows[-1][0]!r} "
+                                    f"(line {lines[-1]}); times must strictly increase")
+            rows.append(vals)
+            lines.append(line)
+    except csv.Error as e:
+        raise CsvInputError(f"{source} line {reader.line_num}: malformed CSV: {e}") from None
+    if header is None:
+        raise CsvInputError(f"{source}: empty file; expected a header line {','.join(OBS_COLUMNS)}")
+    if not rows:
+        raise CsvInputError(f"{source}: no data rows after the header (line {header_line})")
+    a = np.asarray(rows, dtype=float)
+    try:
+        return Observations(
+            t_s=a[:, 0], uv_px=a[:, 1:3], fx_px=a[:, 3], fy_px=a[:, 4], cx_px=a[:, 5], cy_px=a[:, 6],
+            p_cam_ned_m=a[:, 7:10], q_ned_from_cam=a[:, 10:14],
+        )
+    except IrtrackError as e:  # every check above should have caught it first
+        raise CsvInputError(f"{source}: {e}") from None
+
+
+def read_observations_csv(path) -> Observations:
+    """Read and parse OBS.csv; unreadable or non-UTF-8 files raise :class:`CsvInputError`."""
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as e:
+        raise CsvInputError(f"cannot read {p}: {e.strerror or e}") from None
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise CsvInputError(f"{p}: not UTF-8 text (byte offset {e.start})") from None
+    if "\x00" in text:
+        line = text.count("\n", 0, text.index("\x00")) + 1
+        raise CsvInputError(f"{p} line {line}: contains a NUL byte (binary file?)")
+    return parse_observations_csv(text, str(p))
+
+
+# --------------------------------------------------------------------------- reconstruction (pure)
+
+
+@dataclass(frozen=True)
+class ReconstructOptions:
+    """What to run: ``method`` "map" or "paper"; the MAP noise model; the paper's delta and order."""
+
+    method: str = "map"
+    noise: NoiseModel = field(default_factory=NoiseModel)
+    paper: PaperConfig = field(default_factory=PaperConfig)
+    map_config: MapConfig = field(default_factory=MapConfig)
+
+    def __post_init__(self) -> None:
+        if self.method not in ("map", "paper"):
+            raise InputError(f"ReconstructOptions.method must be 'map' or 'paper', got {self.method!r}")
+
+    @property
+    def min_frames(self) -> int:
+        return max(self.map_config.min_frames, self.paper.min_frames if self.method == "paper" else 0)
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """Positions (F, 3) and 1-sigmas (F, 3, NaN for the paper) per observation, plus the summary."""
+
+    t_s: np.ndarray
+    p_ned_m: np.ndarray
+    sigma_ned_m: np.ndarray
+    summary: dict
+
+
+def _finite_or_none(x):
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _map_summary(res: MapResult, solve_ms: float) -> dict:
+    return {
+        "observable": bool(res.observable),
+        "observability_source": "map",
+        "range_sigma_ratio": _finite_or_none(res.range_sigma_ratio),
+        "model": res.extras.get("model"),
+        "q_horizontal_m2ps3": _finite_or_none(res.prior.q_horizontal_m2ps3),
+        "q_vertical_m2ps3": _finite_or_none(res.prior.q_vertical_m2ps3),
+        "turn_rate_radps": _finite_or_none(res.turn_rate_radps),
+        "iterations": int(res.iterations),
+        "converged": bool(res.converged),
+        "map_cost": _finite_or_none(res.cost),
+        "map_solve_ms": round(solve_ms, 3),
+    }
+
+
+def reconstruct(obs: Observations, options: ReconstructOptions | None = None) -> Reconstruction:
+    """Run the chosen method (and the MAP observability analysis) on ``obs``.
+
+    Raises :class:`EstimationError` when the rows cannot be reconstructed (too few, degenerate,
+    or a non-finite result).
+    """
+    options = options or ReconstructOptions()
+    F = len(obs)
+    if F < options.min_frames:
+        raise EstimationError(f"{F} data rows; --method {options.method} needs at least {options.min_frames}"
+                              + (" (the MAP observability analysis runs on the same rows)" if options.method == "paper" else ""))
+    t0 = time.perf_counter()
+    res = _guarded(lambda: MapEstimator(options.map_config, options.noise).solve(obs), "map")
+    map_ms = (time.perf_counter() - t0) * 1e3
+    summary = {"method": options.method, "frames": F}
+    summary.update(_map_summary(res, map_ms))
+    summary["noise"] = {k: float(v) for k, v in vars(options.noise).items()}
+    if options.noise.attitude_bias_sigma_rad > 0:
+        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in res.attitude_bias_rad]
+    if options.method == "map":
+        p, sigma = res.p_ned_m, res.sigma_ned_m
+        summary["solve_ms"] = round(map_ms, 3)
+    else:
+        pr: PaperResult = _guarded(lambda: PaperEstimator(options.paper).solve(obs), "paper")
+        p, sigma = pr.p_ned_m, pr.sigma_ned_m
+        summary.update({
+            "delta": pr.delta, "order": pr.order, "paper_cost": _finite_or_none(pr.cost),
+            "paper_solver": pr.solver, "paper_refinement_rel": _finite_or_none(pr.refinement_rel),
+            "solve_ms": round(pr.solve_ms, 3),
+        })
+    if not np.all(np.isfinite(p)):
+        raise EstimationError(f"the {options.method} reconstruction is not finite (degenerate geometry)")
+    if options.method == "map" and not np.all(np.isfinite(sigma)):
+        raise EstimationError("the MAP covariance is not finite (degenerate geometry)")
+    return Reconstruction(t_s=obs.t_s.copy(), p_ned_m=np.array(p, dtype=float), sigma_ned_m=np.array(sigma, dtype=float),
+                          summary=summary)
+
+
+def _guarded(fn, what: str):
+    """Run a solver; numerical failures on valid-but-degenerate rows become EstimationError."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            return fn()
+        except EstimationError:
+            raise
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError, OverflowError, ZeroDivisionError) as e:
+            raise EstimationError(f"the {what} solver failed on these rows: {type(e).__name__}: {e}") from e
+
+
+def _fmt_m(x: float) -> str:
+    return f"{x:.6f}" if math.isfinite(x) else "nan"
+
+
+def format_output_csv(t_s: np.ndarray, p_ned_m: np.ndarray, sigma_ned_m: np.ndarray) -> str:
+    """OUT.csv text: header and one row per observation (t_s echoed exactly, metres to 1 um)."""
+    out = io.StringIO()
+    out.write(",".join(OUT_COLUMNS) + "\n")
+    for t, p, s in zip(t_s, p_ned_m, sigma_ned_m):
+        out.write(",".join([repr(float(t))] + [_fmt_m(float(v)) for v in p] + [_fmt_m(float(v)) for v in s]) + "\n")
+    return out.getvalue()
+
+
+# --------------------------------------------------------------------------- entry point (I/O)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse whose usage errors are one line on stderr (exit 2)."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"error: {self.prog}: {message}\n")
+
+
+def _nonneg(name):
+    def conv(text):
+        try:
+            v = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
+        if not math.isfinite(v) or v < 0:
+            raise argparse.ArgumentTypeError(f"{name} must be a finite number >= 0, got {text!r}")
+        return v
+    return conv
+
+
+def _positive(name):
+    base = _nonneg(name)
+
+    def conv(text):
+        v = base(text)
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"{name} must be > 0, got {text!r}")
+        return v
+    return conv
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="python -m onboard.reconstruct",
+        description="Reconstruct a target's 3-D path (local NED) from one moving camera's observations.",
+        epilog="Errors name 'line N' = physical line in OBS.csv (header = line 1). Exit 0 ok, 2 bad input/"
+               "arguments or not reconstructable, 1 cannot write outputs / internal error. "
+               "Unobservable geometry exits 0 with observable false in the summary.",
+    )
+    p.add_argument("obs_csv", metavar="OBS.csv",
+                   help=f"observations: a header line with (any order) {','.join(OBS_COLUMNS)}; cam_* the camera centre "
+                        "in local NED (m), q_* q_ned_from_cam (w first, camera x right/y down/z forward); times strictly "
+                        "increasing")
+    p.add_argument("-o", "--output", metavar="OUT.csv", required=True, help="reconstructed positions and sigmas")
+    p.add_argument("--summary-json", metavar="S.json", help="write a JSON summary (observable, method, frames, diagnostics)")
+    p.add_argument("--method", choices=("map", "paper"), default="map", help="MAP estimator (default) or the paper's closed form")
+    p.add_argument("--pixel-sigma", type=_positive("--pixel-sigma"), default=NoiseModel().pixel_sigma_px, metavar="PX",
+                   help="pixel noise, 1 sigma per axis (default %(default)s)")
+    p.add_argument("--attitude-sigma-deg", type=_nonneg("--attitude-sigma-deg"), default=0.0, metavar="DEG",
+                   help="white attitude noise per axis, 1 sigma (default 0)")
+    p.add_argument("--attitude-bias-deg", type=_nonneg("--attitude-bias-deg"), default=0.0, metavar="DEG",
+                   help="prior sigma of a constant attitude bias per axis, estimated (default 0: none)")
+    p.add_argument("--position-sigma-m", type=_nonneg("--position-sigma-m"), default=0.0, metavar="M",
+                   help="white camera-position noise per axis, 1 sigma (default 0)")
+    p.add_argument("--delta", type=_positive("--delta"), default=PaperConfig().delta,
+                   help="paper: smoothness weight (default %(default)s)")
+    p.add_argument("--order", type=int, choices=(1, 2), default=PaperConfig().order,
+                   help="paper: finite-difference order of D (default %(default)s)")
+    p.add_argument("-v", "--verbose", action="store_true", help="log progress (and tracebacks of internal errors)")
+    return p
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+def main(argv=None) -> int:
+    """Entry point; returns the exit code (see the module docstring)."""
+    handler = logging.StreamHandler(sys.stderr)  # the stderr of this call (tests redirect it)
+    handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+    root = logging.getLogger()
+    old_level = root.level
+    root.addHandler(handler)
+    try:
+        try:
+            args = build_parser().parse_args(argv)
+        except SystemExit as e:
+            return int(e.code) if isinstance(e.code, int) else EXIT_INPUT
+        root.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+        handler.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
+        return _run(args)
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+
+
+def _run(args) -> int:
+    try:
+        options = ReconstructOptions(
+            method=args.method,
+            noise=NoiseModel(
+                pixel_sigma_px=args.pixel_sigma,
+                attitude_white_sigma_rad=math.radians(args.attitude_sigma_deg),
+                attitude_bias_sigma_rad=math.radians(args.attitude_bias_deg),
+                camera_position_white_sigma_m=args.position_sigma_m,
+            ),
+            paper=PaperConfig(delta=args.delta, order=args.order),
+        )
+        obs = read_observations_csv(args.obs_csv)
+        log.info("%s: %d observations, %.3f s to %.3f s", args.obs_csv, len(obs), obs.t_s[0], obs.t_s[-1])
+        try:
+            rec = reconstruct(obs, options)
+        except EstimationError as e:
+            raise CsvInputError(f"{args.obs_csv}: cannot reconstruct: {e}") from None
+    except IrtrackError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as e:  # noqa: BLE001 - an entry point never shows a traceback
+        log.debug("internal error", exc_info=True)
+        print(f"error: internal error: {type(e).__name__}: {e}", file=sys.stderr)
+        return EXIT_OUTPUT
+    summary = {"input": str(args.obs_csv), **rec.summary}
+    try:
+        _write_atomic(Path(args.output), format_output_csv(rec.t_s, rec.p_ned_m, rec.sigma_ned_m))
+        if args.summary_json:
+            _write_atomic(Path(args.summary_json), json.dumps(summary, indent=2, allow_nan=False) + "\n")
+    except (OSError, ValueError) as e:
+        print(f"error: cannot write outputs: {e}", file=sys.stderr)
+        return EXIT_OUTPUT
+    log.info("%s: %d rows, method %s, observable %s", args.output, len(rec.t_s), args.method, summary["observable"])
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

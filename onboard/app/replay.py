@@ -1,0 +1,412 @@
+"""``python -m onboard.replay``: a recorded flight (:mod:`onboard.io.record`) fed again through the pipeline.
+
+    python -m onboard.replay FILE.mcap [--rate max|realtime] [--config FILE] [--set FIELD=VALUE]...
+                             [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]] [--live-view PORT]
+
+The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
+which order, and the pose it interpolated for each; the frames themselves are the
+``foxglove.RawImage`` messages.  Replay builds a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline` with the
+recording's configuration (its ``irtrack`` metadata; ``--config`` replaces it, ``--set`` overrides
+fields), the estimator **inline** (lockstep: no worker, no waiting), and feeds it exactly those frames
+with exactly those poses.  With the recording's configuration and a daemon that ran the inline
+estimator (``estimator.worker: inline``), the tracks come out equal, field for field, to the recorded
+ones; with a worker (``process``/``thread``) the live tracks used propagated estimates whenever the
+worker was late, so they differ where it was.  A changed estimator or tracker shows as differences:
+``--compare`` prints them per frame (a regression check on yesterday's flights).
+
+Not replayed: operator selections (MAVLink camera TRACK_POINT/RECTANGLE/STOP are not recorded as
+such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).
+
+``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
+the pipeline goes and prints the speed against real time.  ``--report DIR``: plots of the flight
+(:mod:`groundsim.evaluation.flight_report`: the eval report's plots; ``--truth SIM.mcap``, the simulator's
+recording of the same run, adds the error plot).  Exit codes: 0 done; 2 an unreadable file or a bad option (one line).
+
+A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so).
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import logging  # noqa: E402
+import math  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from typing import Any, Iterator, Sequence  # noqa: E402
+
+from onboard.core.errors import InputError, IrtrackError  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, irframe_from_rawimage, pose_from_json  # noqa: E402
+
+__all__ = ["RecordedMessage", "read_recording", "Recording", "load_recording", "ReplayResult", "replay",
+           "compare_tracks", "main"]
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_ERROR, EXIT_CONFIG = 0, 1, 2
+
+
+class ReportUnavailable(IrtrackError):
+    """``--report`` on an install without the simulator's plotting (``pip install .`` alone)."""
+
+
+@dataclass(frozen=True)
+class RecordedMessage:
+    topic: str
+    schema: str
+    log_time_ns: int
+    publish_time_ns: int
+    sequence: int
+    data: bytes
+
+
+def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
+    """Every message of an MCAP file in file order (metadata records as ``{"metadata": name, ...}``),
+    with the `mcap` package's stream reader; a file cut short ends at its last complete record and
+    yields ``{"truncated": "<reason>"}`` last."""
+    from mcap.stream_reader import StreamReader
+
+    schemas: dict[int, str] = {}
+    channels: dict[int, tuple[str, str]] = {}
+    try:
+        f = open(path, "rb")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    with f:
+        try:
+            for rec in StreamReader(f, validate_crcs=False).records:
+                kind = type(rec).__name__
+                if kind == "Schema":
+                    schemas[rec.id] = rec.name
+                elif kind == "Channel":
+                    channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+                elif kind == "Message":
+                    topic, schema = channels.get(rec.channel_id, ("?", ""))
+                    yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data)
+                elif kind == "Metadata":
+                    yield {"metadata": rec.name, **rec.metadata}
+        except Exception as exc:  # noqa: BLE001 - the end of a file cut short: whatever the reader raised
+            if type(exc).__name__ in ("EndOfFile", "InvalidMagic") or isinstance(exc, (EOFError, ValueError)):
+                yield {"truncated": f"{type(exc).__name__} {exc}".strip()}
+                return
+            raise InputError(f"{path}: not a readable MCAP file: {type(exc).__name__}: {exc}") from None
+
+
+@dataclass
+class Recording:
+    """What replay needs of a file: config text, frames by (seq, time), the pipeline's inputs, tracks, truth."""
+
+    path: str
+    metadata: dict[str, str]
+    frames: dict  # (seq, time_boot_us) -> list of RawImage messages (duplicates kept in order)
+    inputs: list  # frame_input dicts in file order
+    tracks: list  # recorded track dicts in file order
+    truth: list  # irtrack.truth/1 dicts (groundsim recordings)
+    first_log_ns: int | None
+    last_log_ns: int | None
+    truncated: str | None
+    counts: dict
+
+
+def load_recording(path: str) -> Recording:
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    meta: dict[str, str] = {}
+    frames: dict = {}
+    inputs, tracks, truth = [], [], []
+    counts: dict[str, int] = {}
+    first = last = None
+    truncated = None
+    for m in read_recording(path):
+        if isinstance(m, dict):
+            if "truncated" in m:
+                truncated = m["truncated"]
+            elif m.get("metadata") == "irtrack" and not meta:
+                meta = {k: v for k, v in m.items() if k != "metadata"}
+            continue
+        counts[m.topic] = counts.get(m.topic, 0) + 1
+        first = m.log_time_ns if first is None else first
+        last = m.log_time_ns
+        if m.schema == "foxglove.RawImage":
+            img = RawImage()
+            img.ParseFromString(m.data)
+            t_us = int(img.timestamp.seconds) * 1_000_000 + int(img.timestamp.nanos) // 1000
+            frames.setdefault((m.sequence, t_us), []).append((img, m.publish_time_ns))
+        elif m.topic == FRAME_INPUT_TOPIC:
+            inputs.append(json.loads(m.data))
+        elif m.schema.startswith("irtrack.track/"):
+            tracks.append(json.loads(m.data))
+        elif m.topic == TRUTH_TOPIC:
+            truth.append(json.loads(m.data))
+    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts)
+
+
+def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
+    """The replay's :class:`OnboardConfig`: ``config_path``, else the recording's metadata; ``overrides``
+    (``{path: (value, source)}``) on top; the estimator inline and no recording, whatever they said."""
+    import yaml
+
+    from onboard.app.config import build_config, load_config
+
+    ov = dict(overrides or {})
+    ov["estimator.worker"] = ("inline", "replay")
+    ov["record.path"] = (None, "replay")
+    if config_path is not None:
+        return load_config(config_path, ov, environ={})
+    text = rec.metadata.get("config_yaml")
+    if text is None:
+        raise InputError(f"{rec.path}: no configuration in its metadata (not a daemon recording?); give --config")
+    raw = yaml.safe_load(text)
+    for p, (value, _src) in ov.items():
+        node = raw
+        keys = p.split(".")
+        for k in keys[:-1]:
+            node = node.setdefault(k, {})
+        node[keys[-1]] = value
+    return build_config(raw, f"{rec.path} (metadata config_yaml)")
+
+
+class _RecordedPose:
+    """A pose source answering with the pose recorded for the frame being replayed."""
+
+    def __init__(self) -> None:
+        self.pose = None
+        self.counter = None
+        self.origin = None
+
+    def pose_at(self, time_boot_us: int, *args, **kwargs):
+        return self.pose
+
+
+@dataclass
+class ReplayResult:
+    tracks: list  # track dicts (irtrack.track/2) in processing order
+    frames_fed: int
+    frames_missing: int  # frame_input entries whose frame is not in the file (the recorder dropped it)
+    frames_refused: int
+    wall_s: float
+    flight_s: float
+    counts: dict = field(default_factory=dict)
+
+    @property
+    def speed_x(self) -> float:
+        return self.flight_s / self.wall_s if self.wall_s > 0 else math.inf
+
+
+def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=None) -> ReplayResult:
+    """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring.
+    ``live``: an :class:`onboard.io.live_view.LiveView` shown each frame, its pose and track (never waited for)."""
+    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+    from onboard.core.pose import RejectCounter
+    from onboard.core.track import track_to_json
+
+    counter = RejectCounter(log_interval_s=3600.0)
+    poses = _RecordedPose()
+    poses.counter = counter
+    pipe = FramePipeline(config, poses, make_tracker(config), make_estimator(config), config.pose.geodetic_origin(),
+                         counter=counter)
+    used: dict = {}
+    out: list = []
+    missing = refused = fed = 0
+    wall0 = time.perf_counter()
+    rx0 = None
+    for i, inp in enumerate(rec.inputs):
+        key = (int(inp["seq"]), int(inp["time_boot_us"]))
+        cands = rec.frames.get(key, [])
+        k = used.get(key, 0)
+        if k >= len(cands):
+            missing += 1
+            continue
+        used[key] = k + 1
+        img, _rx_ns = cands[k]
+        frame = irframe_from_rawimage(key[0], img, f"{rec.path}: frame seq {key[0]}")
+        poses.pose = pose_from_json(inp.get("pose"), f"{rec.path}: frame_input {i} pose")
+        if rate == "realtime":
+            rx = int(inp["received_ns"])
+            rx0 = rx if rx0 is None else rx0
+            ahead = (rx - rx0) / 1e9 - (time.perf_counter() - wall0)
+            if ahead > 0:
+                time.sleep(ahead)
+        fed += 1
+        if live is not None:
+            live.on_frame(frame)
+        try:
+            track = pipe.process(frame, int(inp["received_ns"]))
+        except FrameRejected:
+            refused += 1
+            continue
+        finally:
+            if live is not None:
+                live.on_pose(frame, poses.pose)
+        if live is not None:
+            live.on_track(track)
+        obj = json.loads(json.dumps(track_to_json(track), allow_nan=False))
+        out.append(obj)
+        if on_track is not None:
+            on_track(obj)
+    wall = time.perf_counter() - wall0
+    flight_s = 0.0
+    if rec.inputs:
+        flight_s = (int(rec.inputs[-1]["received_ns"]) - int(rec.inputs[0]["received_ns"])) / 1e9
+    return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts if hasattr(counter, "counts") else {})
+
+
+# --------------------------------------------------------------------------- comparison (pure)
+
+
+@dataclass(frozen=True)
+class FrameDiff:
+    seq: int
+    time_boot_us: int
+    fields: tuple  # names of the differing fields
+    d_pos_m: float | None  # |ned_m difference|, when both have one
+    d_uv_px: float | None
+
+
+def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
+    """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
+    unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
+    def key(t):
+        return (t.get("seq"), t.get("time_boot_us"))
+
+    theirs: dict = {}
+    for t in replayed:
+        theirs.setdefault(key(t), []).append(t)
+    diffs, matched, unmatched = [], 0, 0
+    for a in recorded:
+        lst = theirs.get(key(a))
+        if not lst:
+            unmatched += 1
+            continue
+        b = lst.pop(0)
+        matched += 1
+        names = tuple(sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k)))
+        if not names:
+            continue
+        dp = duv = None
+        if a.get("ned_m") and b.get("ned_m"):
+            dp = math.dist(a["ned_m"], b["ned_m"])
+        if a.get("u_px") is not None and b.get("u_px") is not None:
+            duv = math.hypot(a["u_px"] - b["u_px"], a["v_px"] - b["v_px"])
+        diffs.append(FrameDiff(int(a["seq"]), int(a["time_boot_us"]), names, dp, duv))
+    unmatched += sum(len(v) for v in theirs.values())
+    return diffs, matched, unmatched
+
+
+def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None:
+    for d in diffs:
+        extra = []
+        if d.d_pos_m is not None:
+            extra.append(f"|d ned| {d.d_pos_m:.6g} m")
+        if d.d_uv_px is not None:
+            extra.append(f"|d uv| {d.d_uv_px:.6g} px")
+        print(f"seq {d.seq} t {d.time_boot_us} us: {', '.join(d.fields)}" + (f" ({'; '.join(extra)})" if extra else ""),
+              file=file)
+    dp = [d.d_pos_m for d in diffs if d.d_pos_m is not None]
+    print(f"compare: {matched - len(diffs)}/{matched} frames identical, {len(diffs)} differ"
+          + (f" (max |d ned| {max(dp):.6g} m)" if dp else "") + f", {unmatched} unmatched", file=file)
+
+
+def write_report(out_dir, rec: Recording, tracks: list, truth: list | None) -> list:
+    """:func:`groundsim.evaluation.flight_report.write_flight_report` on a recording (the eval report's plots; a desk
+    tool's only use of the simulator package, imported here and nowhere in the daemon)."""
+    try:
+        from groundsim.evaluation.flight_report import write_flight_report
+    except ImportError as exc:  # the onboard-only install (pip install .): no simulator, no matplotlib
+        raise ReportUnavailable(f"--report draws with the simulator's plotting, which is not installed here ({exc}); "
+                                "install it with: pip install 'irtrack[sim]'") from None
+
+    poses = {}
+    for inp in rec.inputs:
+        if inp.get("pose") is not None:
+            poses[(int(inp["seq"]), int(inp["time_boot_us"]))] = inp["pose"]["p_cam_ned_m"]
+    frames = {}
+    for key, lst in rec.frames.items():
+        img, _ = lst[0]
+        frames[key] = irframe_from_rawimage(key[0], img, rec.path).pixels
+    name = os.path.basename(rec.path)
+    return write_flight_report(out_dir, tracks, poses, frames, truth or None, name)
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m onboard.replay", description=__doc__.split("\n\n")[0])
+    p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
+    p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
+    p.add_argument("--config", metavar="FILE", help="configuration to replay with (default: the recording's)")
+    p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable")
+    p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
+    p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
+    p.add_argument("--report", metavar="DIR", help="write plots of the flight (trajectory, error vs truth, a frame)")
+    p.add_argument("--live-view", metavar="PORT", type=int,
+                   help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
+                        "with --rate realtime to watch it as flown)")
+    p.add_argument("--truth", metavar="SIM.mcap", help="the simulator's recording of the same run (groundsim run --record): "
+                                                       "its /groundsim/truth channel gives the error plot")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from onboard.app.config import OnboardConfigError, parse_set_option
+
+    try:
+        overrides = {}
+        for text in args.set:
+            path, value = parse_set_option(text)
+            overrides[path] = (value, "--set")
+        rec = load_recording(args.mcap)
+        config = config_of(rec, args.config, overrides)
+    except (OnboardConfigError, IrtrackError) as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
+    print(f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
+          f"{len(rec.tracks)} recorded tracks" + (f"; file cut short ({rec.truncated}): read to its last chunk"
+                                                   if rec.truncated else ""))
+    live = None
+    try:
+        if args.live_view is not None:
+            from onboard.io.live_view import LiveView, LiveViewSettings
+            live = LiveView(LiveViewSettings.from_config(config.live_view, port=args.live_view), vehicle=config.vehicle,
+                            intrinsics=config.camera.pinhole())
+            live.start()
+            print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
+        res = replay(rec, config, rate=args.rate, live=live)
+    except IrtrackError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
+    finally:
+        if live is not None:
+            live.close()
+    print(f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
+          f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
+          f"x{res.speed_x:.1f} real time")
+    if args.out:
+        with open(args.out, "w", encoding="utf-8") as f:
+            for t in res.tracks:
+                f.write(json.dumps(t, separators=(",", ":")) + "\n")
+        print(f"tracks: {args.out}")
+    if args.compare:
+        _print_compare(*compare_tracks(rec.tracks, res.tracks))
+    if args.report:
+        try:
+            truth = load_recording(args.truth).truth if args.truth else rec.truth
+            paths = write_report(args.report, rec, res.tracks, truth)
+        except IrtrackError as exc:
+            print(str(exc), file=sys.stderr)
+            return EXIT_CONFIG
+        print(f"report: {', '.join(str(p) for p in paths)}")
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,212 @@
+"""Nothing fails silently: conditions an operator must fix, each warned once, naming what to check.
+
+Pure: no clocks, no sockets.  The service feeds a :class:`Watchdog` with the time (monotonic
+seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condition has a code:
+
+``no_frames``
+    No IR frame received for ``input_timeout_s`` (5 s), from the start or since the last one.  The
+    message names the zenoh key subscribed to and the session's endpoints, mode and scouting.
+``no_mavlink``
+    No MAVLink message for ``input_timeout_s``; the message names the connection string.
+``frame_size``
+    A frame whose size is not the configured camera's (refused as ``frame_dims_mismatch``); the
+    message names both sizes.  Cleared by the next frame of the right size.
+``camera_mismatch``
+    The residuals are persistently inconsistent with the configured camera: every estimate for at
+    least ``residual_persist_s`` (5 s, at least ``residual_min_samples`` estimates, so about five
+    model selections at the estimator's 1 Hz) has ``residual_rms_norm`` above
+    ``residual_threshold`` (3: under the configured noise model the statistic is about 1 and
+    stays below 3 with overwhelming probability).  Mount angles or intrinsics wrong are suspected.
+    One estimate at or below the threshold starts the count again; estimates without the figure
+    (None/NaN) neither count nor reset.
+
+``gimbal_mismatch``
+    The configured mount and the vehicle disagree about a gimbal: GIMBAL_DEVICE_ATTITUDE_STATUS (#285)
+    arrives although ``camera.mount.gimballed`` is false (the camera's attitude is then taken as the
+    airframe's plus the fixed mount: 3-D positions off by the gimbal's angles, ~100 % of range in the
+    reference scenarios), or none has arrived ``input_timeout_s`` after the first telemetry although it
+    is true (no frame gets a pose).  The residuals cannot show a mount error (a constant pitch offset
+    of the camera is explained exactly by a target higher up), so this is checked on the messages.
+
+Each code is logged at WARNING the first time only (``warned``); it is in :attr:`active` while the
+condition holds (the status JSON lists them) and leaves it when the condition clears (logged at
+INFO), coming back without a new WARNING.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from dataclasses import dataclass
+
+from onboard.core.errors import InputError
+
+__all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "RESIDUAL_THRESHOLD"]
+
+INPUT_TIMEOUT_S = 5.0
+RESIDUAL_THRESHOLD = 3.0
+RESIDUAL_PERSIST_S = 5.0
+RESIDUAL_MIN_SAMPLES = 10
+
+_log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class WatchdogWarning:
+    """One active condition: ``code`` (module docstring) and a one-line ``message`` saying what to check."""
+
+    code: str
+    message: str
+
+    def __post_init__(self) -> None:
+        if not self.code or not isinstance(self.code, str) or not isinstance(self.message, str):
+            raise InputError(f"WatchdogWarning needs a code and a message, got {self.code!r}, {self.message!r}")
+
+    def as_dict(self) -> dict[str, str]:
+        return {"code": self.code, "message": self.message}
+
+
+class Watchdog:
+    """See the module docstring.  ``started_s``: the time the inputs were opened (same clock as ``now_s``).
+
+    ``frame_key``: the zenoh key of the frames; ``zenoh_where``: the session's endpoints/mode in
+    words; ``mavlink_connection``: the connection string; ``camera_size_px``: ``(width, height)``
+    configured.  ``logger``: where the warnings go.
+    """
+
+    def __init__(self, *, started_s: float, frame_key: str, zenoh_where: str, mavlink_connection: str,
+                 camera_size_px: tuple[int, int], input_timeout_s: float = INPUT_TIMEOUT_S,
+                 residual_threshold: float = RESIDUAL_THRESHOLD, residual_persist_s: float = RESIDUAL_PERSIST_S,
+                 residual_min_samples: int = RESIDUAL_MIN_SAMPLES, logger: logging.Logger | None = None) -> None:
+        for name, v in (("input_timeout_s", input_timeout_s), ("residual_threshold", residual_threshold),
+                        ("residual_persist_s", residual_persist_s)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InputError(f"Watchdog.{name} must be a positive number, got {v!r}")
+        self.frame_key = frame_key
+        self.zenoh_where = zenoh_where
+        self.mavlink_connection = mavlink_connection
+        self.camera_size_px = (int(camera_size_px[0]), int(camera_size_px[1]))
+        self.input_timeout_s = float(input_timeout_s)
+        self.residual_threshold = float(residual_threshold)
+        self.residual_persist_s = float(residual_persist_s)
+        self.residual_min_samples = int(residual_min_samples)
+        self._log = logger or _log
+        self._last_frame_s = float(started_s)
+        self._last_mavlink_s = float(started_s)
+        self._frames_seen = 0
+        self._mavlink_seen = 0
+        self._high_since_s: float | None = None
+        self._high_n = 0
+        self._high_max = 0.0
+        self._active: dict[str, WatchdogWarning] = {}
+        self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
+        self.warned: set[str] = set()
+
+    def restart(self, now_s: float) -> None:
+        """The inputs were (re)opened at ``now_s``: the input timeouts run from here."""
+        self._last_frame_s = self._last_mavlink_s = float(now_s)
+
+    # ------------------------------------------------------------------ inputs
+
+    def step(self, now_s: float, *, frames_in: int | None = None, mavlink_rx: int | None = None) -> None:
+        """Update with the running counts of frames received and MAVLink messages, then check the timeouts."""
+        if frames_in is not None and frames_in > self._frames_seen:
+            self._frames_seen = frames_in
+            self.frame_received(now_s)
+        if mavlink_rx is not None and mavlink_rx > self._mavlink_seen:
+            self._mavlink_seen = mavlink_rx
+            self._last_mavlink_s = float(now_s)
+            self._clear("no_mavlink")
+        t = self.input_timeout_s
+        if now_s - self._last_frame_s >= t:
+            ever = "since the last one" if self._frames_seen else "since start"
+            self._raise("no_frames", f"no IR frame for {now_s - self._last_frame_s:.0f} s ({ever}) on zenoh key "
+                        f"'{self.frame_key}' ({self.zenoh_where}): check that the camera or simulator publishes "
+                        f"there and that a zenoh endpoint connects the two")
+        if now_s - self._last_mavlink_s >= t:
+            ever = "since the last one" if self._mavlink_seen else "since start"
+            self._raise("no_mavlink", f"no MAVLink message for {now_s - self._last_mavlink_s:.0f} s ({ever}) on "
+                        f"'{self.mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or "
+                        f"mavlink-router sends there; without telemetry no frame gets a pose or a 3-D position")
+
+    def gimbal(self, now_s: float, *, gimballed: bool, gimbal_reports: int, telemetry_since_s: float | None) -> None:
+        """Check the mount against the vehicle: ``gimbal_reports`` #285 messages received so far,
+        ``telemetry_since_s`` when the first attitude/position arrived (None: none yet)."""
+        if not gimballed and gimbal_reports > 0:
+            self._raise("gimbal_mismatch", f"the vehicle reports a gimbal ({gimbal_reports} GIMBAL_DEVICE_ATTITUDE_STATUS "
+                        f"messages) but camera.mount.gimballed is false: the camera attitude ignores the gimbal and "
+                        f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod")
+        elif gimballed and gimbal_reports == 0 and telemetry_since_s is not None \
+                and now_s - telemetry_since_s >= self.input_timeout_s:
+            self._raise("gimbal_mismatch", f"camera.mount.gimballed is true but no GIMBAL_DEVICE_ATTITUDE_STATUS (#285) "
+                        f"arrived in {now_s - telemetry_since_s:.0f} s of telemetry: no frame gets a pose; check the "
+                        f"gimbal's MAVLink output or set camera.mount.gimballed false for a fixed pod")
+        elif gimballed and gimbal_reports > 0:
+            self._clear("gimbal_mismatch")
+
+    def frame_received(self, now_s: float) -> None:
+        self._last_frame_s = float(now_s)
+        self._clear("no_frames")
+
+    def frame_size(self, now_s: float, width_px: int, height_px: int) -> None:
+        """A frame of ``width_px x height_px`` arrived (any, accepted or not)."""
+        cw, ch = self.camera_size_px
+        if (int(width_px), int(height_px)) == (cw, ch):
+            self._clear("frame_size")
+            return
+        self._raise("frame_size", f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "
+                    f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
+                    f"camera that sends them")
+
+    def residual(self, now_s: float, residual_rms_norm: float | None) -> None:
+        """One estimate's residual statistic (None or NaN: unknown, ignored)."""
+        r = residual_rms_norm
+        if r is None or (isinstance(r, float) and math.isnan(r)):
+            return
+        r = float(r)
+        if r <= self.residual_threshold:
+            self._high_since_s, self._high_n, self._high_max = None, 0, 0.0
+            self._clear("camera_mismatch")
+            return
+        if self._high_since_s is None:
+            self._high_since_s = float(now_s)
+        self._high_n += 1
+        self._high_max = max(self._high_max, r)
+        lasted = now_s - self._high_since_s
+        if lasted >= self.residual_persist_s and self._high_n >= self.residual_min_samples:
+            self._raise("camera_mismatch", f"image residuals inconsistent with the configured camera for {lasted:.0f} s "
+                        f"(residual_rms_norm up to {self._high_max:.1f}, > {self.residual_threshold:g} on all "
+                        f"{self._high_n} estimates; ~1 expected): a camera mount (camera.mount roll/pitch/yaw, "
+                        f"gimballed) or intrinsics (camera.intrinsics) mismatch is suspected, or the noise model "
+                        f"(estimator.*_sigma_*) is too optimistic; 3-D positions are not to be trusted")
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def active(self) -> tuple[WatchdogWarning, ...]:
+        """The conditions holding now, in the order they were raised."""
+        with self._lock:
+            return tuple(self._active.values())
+
+    def active_dicts(self) -> list[dict[str, str]]:
+        return [w.as_dict() for w in self.active]
+
+    def _raise(self, code: str, message: str) -> None:
+        with self._lock:
+            was_active = code in self._active
+            self._active[code] = WatchdogWarning(code, message)
+            first = code not in self.warned
+            self.warned.add(code)
+        if was_active:
+            return
+        if first:
+            self._log.warning("%s: %s", code, message)
+        else:
+            self._log.info("%s again (warned before): %s", code, message)
+
+    def _clear(self, code: str) -> None:
+        with self._lock:
+            gone = self._active.pop(code, None) is not None
+        if gone:
+            self._log.info("%s cleared", code)

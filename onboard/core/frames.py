@@ -1,0 +1,471 @@
+"""Every frame convention irtrack uses, in one place.
+
+Frames
+------
+WGS84
+    Geodetic latitude ``lat_deg`` (north positive), longitude ``lon_deg`` (east positive), both
+    in degrees, and ``alt_m``: height above the WGS84 ellipsoid in metres.  MAVLink
+    ``GLOBAL_POSITION_INT.alt`` is AMSL; irtrack treats AMSL as ellipsoidal height (the geoid
+    undulation is a constant offset over a flight and cancels in a local frame).
+ECEF
+    Earth-centred, earth-fixed, metres (``p_ecef_m``).
+Local NED
+    North, East, Down in metres about a :class:`GeodeticOrigin` (lat, lon, alt); the tangent
+    plane of the WGS84 ellipsoid at the origin (``p_ned_m``, ``v_ned_mps``).
+Body FRD
+    Forward, Right, Down, fixed to the airframe.  MAVLink ``ATTITUDE_QUATERNION`` gives
+    ``q_ned_from_body``; Euler angles are the aerospace Z-Y-X sequence (yaw, then pitch, then
+    roll), so ``R_ned_from_body = Rz(yaw) @ Ry(pitch) @ Rx(roll)``.
+Mount
+    The camera pod's own FRD-like frame: x along the optical axis, y right, z down.  The mount
+    is fixed to the body by ``CameraMount``: a lever arm (the camera centre in body FRD metres)
+    and ``q_body_from_mount``.  An optional gimbal adds ``q_mount_from_gimbal`` (same axes);
+    with no gimbal the gimbal frame equals the mount frame.
+Camera (OpenCV)
+    x right, y down, z forward (optical axis), metres; origin at the optical centre.  The fixed
+    axis permutation from camera to mount is ``R_mount_from_cam`` (cam z -> mount x, cam x ->
+    mount y, cam y -> mount z).
+Image
+    Pixels ``(u_px, v_px)``: u to the right, v down, origin at the top-left pixel's top-left
+    corner, so the centre of pixel (i, j) is (j + 0.5, i + 0.5) and the principal point of a
+    640 x 512 sensor is (320, 256).
+Line of sight (azimuth / elevation)
+    A direction ``l`` in local NED as ``az_deg = atan2(l_e, l_n)``: from north towards east,
+    (-180, 180]; ``el_deg = atan2(-l_d, hypot(l_n, l_e))``: positive up, [-90, 90].  Used by the
+    track's ``los_az_deg`` / ``los_el_deg`` (:func:`onboard.core.track.line_of_sight_ned`).
+
+Quaternions
+-----------
+Hamilton convention, scalar first ``(w, x, y, z)``, unit norm.  ``q_a_from_b`` rotates vectors
+expressed in frame b into frame a: ``v_a = R(q_a_from_b) @ v_b``; composition is
+``q_a_from_c = q_a_from_b (x) q_b_from_c``.  ``q`` and ``-q`` are the same rotation.
+
+Small-angle errors
+------------------
+An attitude error ``phi`` (rotation vector, rad) expressed in NED perturbs the true attitude as
+``R_meas = Exp(phi) @ R_true`` (the navigation-frame psi-angle error model of strapdown INS,
+Titterton & Weston, Strapdown Inertial Navigation Technology, 2nd ed., ch. 11).
+
+Intrinsics
+----------
+Pinhole: ``u = fx * x/z + cx``, ``v = fy * y/z + cy`` on distorted normalised coordinates;
+radial-tangential (Brown-Conrady, OpenCV order ``k1, k2, p1, p2, k3``) distortion is optional.
+The default camera is the FLIR Vue Pro 640: 13 mm lens, 17 um pitch, 640 x 512 pixels, so
+``fx = fy = 13e-3 / 17e-6 = 764.7 px`` and the principal point is the image centre.
+
+All functions are pure and vectorised over a leading axis where the docstring says ``(..., 3)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import pymap3d
+
+from onboard.core.errors import IrtrackError
+
+__all__ = [
+    "GeodeticOrigin",
+    "CameraMount",
+    "PinholeIntrinsics",
+    "FrameError",
+    "ecef_from_geodetic",
+    "geodetic_from_ecef",
+    "ned_from_geodetic",
+    "geodetic_from_ned",
+    "quat_normalize",
+    "quat_multiply",
+    "quat_conjugate",
+    "quat_rotate",
+    "rotmat_from_quat",
+    "quat_from_rotmat",
+    "quat_from_euler",
+    "euler_from_quat",
+    "quat_from_rotvec",
+    "rotvec_from_quat",
+    "rotmat_from_rotvec",
+    "quat_slerp",
+    "R_MOUNT_FROM_CAM",
+    "camera_pose_ned",
+]
+
+QUAT_NORM_TOL = 1e-3  # a MAVLink quaternion whose norm is off by more than this is rejected
+VUE_PRO_640_FOCAL_M = 13e-3
+VUE_PRO_640_PITCH_M = 17e-6
+
+
+class FrameError(IrtrackError, ValueError):
+    """An input to a frame conversion is not a valid rotation, pose or camera."""
+
+
+# --------------------------------------------------------------------------- geodesy (WGS84)
+
+
+@dataclass(frozen=True)
+class GeodeticOrigin:
+    """Origin of a local NED frame: WGS84 latitude/longitude in degrees, altitude in metres."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("lat_deg", "lon_deg", "alt_m"):
+            if not math.isfinite(getattr(self, name)):
+                raise FrameError(f"GeodeticOrigin.{name} must be finite, got {getattr(self, name)!r}")
+        if not -90.0 <= self.lat_deg <= 90.0:
+            raise FrameError(f"GeodeticOrigin.lat_deg must be in [-90, 90], got {self.lat_deg}")
+        if not -180.0 <= self.lon_deg <= 360.0:
+            raise FrameError(f"GeodeticOrigin.lon_deg must be in [-180, 360], got {self.lon_deg}")
+
+
+_ELL = pymap3d.Ellipsoid.from_name("wgs84")
+
+
+def ecef_from_geodetic(lat_deg, lon_deg, alt_m) -> np.ndarray:
+    """WGS84 geodetic -> ECEF metres, shape (..., 3)."""
+    x, y, z = pymap3d.geodetic2ecef(lat_deg, lon_deg, alt_m, ell=_ELL, deg=True)
+    return np.stack(np.broadcast_arrays(x, y, z), axis=-1).astype(float)
+
+
+def geodetic_from_ecef(p_ecef_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ECEF metres (..., 3) -> (lat_deg, lon_deg, alt_m)."""
+    p = np.asarray(p_ecef_m, dtype=float)
+    lat, lon, alt = pymap3d.ecef2geodetic(p[..., 0], p[..., 1], p[..., 2], ell=_ELL, deg=True)
+    return np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)
+
+
+@functools.lru_cache(maxsize=64)
+def _origin_ecef_m(origin: GeodeticOrigin) -> np.ndarray:
+    """The origin's ECEF position (cached per origin: conversions are called per telemetry sample)."""
+    out = ecef_from_geodetic(origin.lat_deg, origin.lon_deg, origin.alt_m)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=64)
+def _R_ned_from_ecef(origin: GeodeticOrigin) -> np.ndarray:
+    lat, lon = math.radians(origin.lat_deg), math.radians(origin.lon_deg)
+    sl, cl, so, co = math.sin(lat), math.cos(lat), math.sin(lon), math.cos(lon)
+    R = np.array(
+        [
+            [-sl * co, -sl * so, cl],
+            [-so, co, 0.0],
+            [-cl * co, -cl * so, -sl],
+        ]
+    )
+    R.setflags(write=False)
+    return R
+
+
+def ned_from_geodetic(lat_deg, lon_deg, alt_m, origin: GeodeticOrigin) -> np.ndarray:
+    """WGS84 geodetic -> local NED metres about ``origin``, shape (..., 3)."""
+    d_ecef = ecef_from_geodetic(lat_deg, lon_deg, alt_m) - _origin_ecef_m(origin)
+    return d_ecef @ _R_ned_from_ecef(origin).T
+
+
+def geodetic_from_ned(p_ned_m, origin: GeodeticOrigin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Local NED metres (..., 3) about ``origin`` -> WGS84 (lat_deg, lon_deg, alt_m)."""
+    p = np.asarray(p_ned_m, dtype=float)
+    p_ecef = _origin_ecef_m(origin) + p @ _R_ned_from_ecef(origin)
+    return geodetic_from_ecef(p_ecef)
+
+
+# --------------------------------------------------------------------------- quaternions
+
+
+def quat_normalize(q) -> np.ndarray:
+    """Unit quaternion(s) (..., 4), sign fixed so that w >= 0.  Zero or non-finite -> FrameError."""
+    q = np.asarray(q, dtype=float)
+    n = np.linalg.norm(q, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(q)) or np.any(n < 1e-12):
+        raise FrameError("quaternion is zero or not finite")
+    q = q / n
+    return np.where(q[..., :1] < 0.0, -q, q)
+
+
+def quat_multiply(q1, q2) -> np.ndarray:
+    """Hamilton product q1 (x) q2, (w, x, y, z), broadcast over leading axes."""
+    q1 = np.asarray(q1, dtype=float)
+    q2 = np.asarray(q2, dtype=float)
+    w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
+    w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
+    return np.stack(
+        [
+            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+        ],
+        axis=-1,
+    )
+
+
+def quat_conjugate(q) -> np.ndarray:
+    """Conjugate (the inverse of a unit quaternion): q_b_from_a from q_a_from_b."""
+    q = np.asarray(q, dtype=float)
+    return q * np.array([1.0, -1.0, -1.0, -1.0])
+
+
+def rotmat_from_quat(q) -> np.ndarray:
+    """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4): ``R(q_a_from_b) = R_a_from_b``."""
+    q = np.asarray(q, dtype=float)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+    R = np.stack(
+        [
+            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
+            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
+            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+        ],
+        axis=-1,
+    )
+    return R.reshape(q.shape[:-1] + (3, 3))
+
+
+def quat_rotate(q, v) -> np.ndarray:
+    """Rotate vector(s) v (..., 3) by q: ``v_a = q_a_from_b * v_b``."""
+    R = rotmat_from_quat(q)
+    return np.einsum("...ij,...j->...i", R, np.asarray(v, dtype=float))
+
+
+def quat_from_rotmat(R) -> np.ndarray:
+    """Unit quaternion (..., 4), w >= 0, of rotation matrix/matrices (..., 3, 3) (Shepperd's method)."""
+    R = np.asarray(R, dtype=float)
+    flat = R.reshape(-1, 3, 3)
+    out = np.empty((flat.shape[0], 4))
+    for k, m in enumerate(flat):
+        tr = m[0, 0] + m[1, 1] + m[2, 2]
+        i = int(np.argmax([tr, m[0, 0], m[1, 1], m[2, 2]]))
+        if i == 0:
+            s = 2.0 * math.sqrt(max(1.0 + tr, 0.0))
+            q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
+        elif i == 1:
+            s = 2.0 * math.sqrt(max(1.0 + m[0, 0] - m[1, 1] - m[2, 2], 0.0))
+            q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
+        elif i == 2:
+            s = 2.0 * math.sqrt(max(1.0 + m[1, 1] - m[0, 0] - m[2, 2], 0.0))
+            q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
+        else:
+            s = 2.0 * math.sqrt(max(1.0 + m[2, 2] - m[0, 0] - m[1, 1], 0.0))
+            q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
+        out[k] = q
+    return quat_normalize(out).reshape(R.shape[:-2] + (4,))
+
+
+def quat_from_euler(roll_rad, pitch_rad, yaw_rad) -> np.ndarray:
+    """``q_ned_from_body`` from aerospace Z-Y-X Euler angles (yaw, pitch, roll), radians."""
+    cr, sr = np.cos(np.asarray(roll_rad) / 2), np.sin(np.asarray(roll_rad) / 2)
+    cp, sp = np.cos(np.asarray(pitch_rad) / 2), np.sin(np.asarray(pitch_rad) / 2)
+    cy, sy = np.cos(np.asarray(yaw_rad) / 2), np.sin(np.asarray(yaw_rad) / 2)
+    q = np.stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ],
+        axis=-1,
+    )
+    return quat_normalize(q)
+
+
+def euler_from_quat(q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(roll_rad, pitch_rad, yaw_rad), aerospace Z-Y-X, of ``q_ned_from_body``."""
+    w, x, y, z = np.moveaxis(np.asarray(q, dtype=float), -1, 0)
+    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
+    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def quat_from_rotvec(phi_rad) -> np.ndarray:
+    """Exp map: rotation vector (..., 3) in radians -> unit quaternion (..., 4)."""
+    phi = np.asarray(phi_rad, dtype=float)
+    angle = np.linalg.norm(phi, axis=-1, keepdims=True)
+    half = 0.5 * angle
+    # sin(half)/angle with its series near zero
+    k = np.where(angle > 1e-8, np.sin(half) / np.where(angle > 1e-8, angle, 1.0), 0.5 - angle**2 / 48.0)
+    return np.concatenate([np.cos(half), k * phi], axis=-1)
+
+
+def rotvec_from_quat(q) -> np.ndarray:
+    """Log map: unit quaternion (..., 4) -> rotation vector (..., 3), angle in [0, pi]."""
+    q = quat_normalize(q)
+    w = np.clip(q[..., :1], -1.0, 1.0)
+    s = np.linalg.norm(q[..., 1:], axis=-1, keepdims=True)
+    angle = 2.0 * np.arctan2(s, w)
+    k = np.where(s > 1e-12, angle / np.where(s > 1e-12, s, 1.0), 2.0)
+    return k * q[..., 1:]
+
+
+def rotmat_from_rotvec(phi_rad) -> np.ndarray:
+    """Exp map to a rotation matrix (..., 3, 3)."""
+    return rotmat_from_quat(quat_from_rotvec(phi_rad))
+
+
+def quat_slerp(q0, q1, alpha) -> np.ndarray:
+    """Spherical linear interpolation from q0 (alpha = 0) to q1 (alpha = 1), shortest arc."""
+    q0 = quat_normalize(q0)
+    q1 = quat_normalize(q1)
+    alpha = np.asarray(alpha, dtype=float)[..., None]
+    dot = np.sum(q0 * q1, axis=-1, keepdims=True)
+    q1 = np.where(dot < 0.0, -q1, q1)
+    dot = np.abs(dot)
+    theta = np.arccos(np.clip(dot, -1.0, 1.0))
+    sin_t = np.sin(theta)
+    small = sin_t < 1e-9
+    safe = np.where(small, 1.0, sin_t)
+    w0 = np.where(small, 1.0 - alpha, np.sin((1.0 - alpha) * theta) / safe)
+    w1 = np.where(small, alpha, np.sin(alpha * theta) / safe)
+    return quat_normalize(w0 * q0 + w1 * q1)
+
+
+def check_unit_quat(q, what: str, tol: float = QUAT_NORM_TOL) -> np.ndarray:
+    """Validate a quaternion from outside (wire, file): finite and |norm - 1| <= tol; returns it normalised."""
+    q = np.asarray(q, dtype=float)
+    if q.shape[-1] != 4 or not np.all(np.isfinite(q)):
+        raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
+    n = np.linalg.norm(q, axis=-1)
+    if np.any(np.abs(n - 1.0) > tol):
+        raise FrameError(f"{what}: quaternion norm {float(np.max(np.abs(n - 1.0))) + 1:.6g} is not 1 within {tol}")
+    return quat_normalize(q)
+
+
+# --------------------------------------------------------------------------- camera pod and camera
+
+#: cam z (forward) -> mount x, cam x (right) -> mount y, cam y (down) -> mount z
+R_MOUNT_FROM_CAM = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+Q_MOUNT_FROM_CAM = np.array([0.5, 0.5, 0.5, 0.5])
+
+
+@dataclass(frozen=True)
+class CameraMount:
+    """Where the camera pod sits on the airframe.
+
+    ``lever_arm_frd_m``: optical centre in body FRD metres.  ``q_body_from_mount``: rotation of the
+    pod's mount frame (x optical axis, y right, z down) into body FRD.  Identity means the camera
+    looks straight ahead; a mount pitched down by ``p`` rad is ``quat_from_euler(0, -p, 0)``.
+    """
+
+    lever_arm_frd_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    q_body_from_mount: tuple[float, float, float, float] = (1.0, 0.0, 0.0, 0.0)
+    gimballed: bool = False
+
+    def __post_init__(self) -> None:
+        arm = np.asarray(self.lever_arm_frd_m, dtype=float)
+        if arm.shape != (3,) or not np.all(np.isfinite(arm)):
+            raise FrameError(f"CameraMount.lever_arm_frd_m must be 3 finite metres, got {self.lever_arm_frd_m!r}")
+        check_unit_quat(self.q_body_from_mount, "CameraMount.q_body_from_mount")
+
+    @classmethod
+    def from_euler_deg(cls, lever_arm_frd_m, roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0, gimballed=False) -> "CameraMount":
+        q = quat_from_euler(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
+        return cls(tuple(float(a) for a in lever_arm_frd_m), tuple(float(c) for c in q), gimballed)
+
+    def q_body_from_cam(self, q_mount_from_gimbal=None) -> np.ndarray:
+        """Camera attitude on the airframe, optionally through a gimbal (..., 4)."""
+        q = np.asarray(self.q_body_from_mount, dtype=float)
+        if q_mount_from_gimbal is not None:
+            q = quat_multiply(q, q_mount_from_gimbal)
+        return quat_multiply(q, Q_MOUNT_FROM_CAM)
+
+
+def camera_pose_ned(p_body_ned_m, q_ned_from_body, mount: CameraMount, q_mount_from_gimbal=None):
+    """Camera centre and attitude in local NED from the vehicle's pose and the pod mount.
+
+    ``p_cam_ned_m = p_body_ned_m + R_ned_from_body @ lever_arm_frd_m`` and
+    ``q_ned_from_cam = q_ned_from_body (x) q_body_from_mount [(x) q_mount_from_gimbal] (x) q_mount_from_cam``.
+    Vectorised over a leading axis.  Returns ``(p_cam_ned_m, q_ned_from_cam)``.
+    """
+    q_nb = np.asarray(q_ned_from_body, dtype=float)
+    p_cam = np.asarray(p_body_ned_m, dtype=float) + quat_rotate(q_nb, np.asarray(mount.lever_arm_frd_m, dtype=float))
+    q_nc = quat_normalize(quat_multiply(q_nb, mount.q_body_from_cam(q_mount_from_gimbal)))
+    return p_cam, q_nc
+
+
+@dataclass(frozen=True)
+class PinholeIntrinsics:
+    """Pinhole camera with optional radial-tangential distortion (OpenCV order k1, k2, p1, p2, k3)."""
+
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    width_px: int
+    height_px: int
+    distortion: tuple[float, float, float, float, float] = field(default=(0.0, 0.0, 0.0, 0.0, 0.0))
+
+    def __post_init__(self) -> None:
+        for name in ("fx_px", "fy_px", "cx_px", "cy_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v)):
+                raise FrameError(f"PinholeIntrinsics.{name} must be a finite number, got {v!r}")
+        if self.fx_px <= 0 or self.fy_px <= 0:
+            raise FrameError(f"PinholeIntrinsics focal lengths must be > 0, got fx={self.fx_px}, fy={self.fy_px}")
+        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
+            raise FrameError(f"PinholeIntrinsics size must be positive, got {self.width_px} x {self.height_px}")
+        if len(self.distortion) != 5 or not all(math.isfinite(float(k)) for k in self.distortion):
+            raise FrameError(f"PinholeIntrinsics.distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {self.distortion!r}")
+
+    @classmethod
+    def vue_pro_640(cls) -> "PinholeIntrinsics":
+        """FLIR Vue Pro 640: 13 mm, 17 um pitch, 640 x 512, principal point at the centre."""
+        f = VUE_PRO_640_FOCAL_M / VUE_PRO_640_PITCH_M
+        return cls(f, f, 320.0, 256.0, 640, 512)
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx_px, 0.0, self.cx_px], [0.0, self.fy_px, self.cy_px], [0.0, 0.0, 1.0]])
+
+    @property
+    def has_distortion(self) -> bool:
+        return any(k != 0.0 for k in self.distortion)
+
+    def distort_normalized(self, xy) -> np.ndarray:
+        """Ideal normalised coordinates (..., 2) -> distorted normalised coordinates."""
+        xy = np.asarray(xy, dtype=float)
+        if not self.has_distortion:
+            return xy
+        k1, k2, p1, p2, k3 = self.distortion
+        x, y = xy[..., 0], xy[..., 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([xd, yd], axis=-1)
+
+    def undistort_normalized(self, xy_d, iterations: int = 20) -> np.ndarray:
+        """Distorted normalised coordinates -> ideal ones (fixed-point iteration, as OpenCV)."""
+        xy_d = np.asarray(xy_d, dtype=float)
+        if not self.has_distortion:
+            return xy_d
+        xy = xy_d.copy()
+        for _ in range(iterations):
+            xy = xy + (xy_d - self.distort_normalized(xy))
+        return xy
+
+    def project(self, p_cam_m) -> np.ndarray:
+        """Camera-frame points (..., 3) -> pixels (..., 2).  Points with z <= 0 give NaN."""
+        p = np.asarray(p_cam_m, dtype=float)
+        z = p[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = np.where((z > 0)[..., None], p[..., :2] / z[..., None], np.nan)
+        xy = self.distort_normalized(xy)
+        return np.stack([self.fx_px * xy[..., 0] + self.cx_px, self.fy_px * xy[..., 1] + self.cy_px], axis=-1)
+
+    def normalized_from_pixel(self, uv_px) -> np.ndarray:
+        """Pixels (..., 2) -> ideal normalised coordinates (x/z, y/z)."""
+        uv = np.asarray(uv_px, dtype=float)
+        xy_d = np.stack([(uv[..., 0] - self.cx_px) / self.fx_px, (uv[..., 1] - self.cy_px) / self.fy_px], axis=-1)
+        return self.undistort_normalized(xy_d)
+
+    def bearing_cam_from_pixel(self, uv_px) -> np.ndarray:
+        """Pixels (..., 2) -> unit bearing vectors in the camera frame (..., 3)."""
+        xy = self.normalized_from_pixel(uv_px)
+        b = np.concatenate([xy, np.ones(xy.shape[:-1] + (1,))], axis=-1)
+        return b / np.linalg.norm(b, axis=-1, keepdims=True)

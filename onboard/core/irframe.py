@@ -1,0 +1,223 @@
+"""The IR frame and its wire format (zenoh key ``irtrack/<vehicle>/ir/frame``), pure.
+
+Wire format, version 1: a 32-byte little-endian header, ``struct '<4sHHIIIQ4x'``
+
+======  ======  =====================================================================
+offset  type    field
+======  ======  =====================================================================
+0       4s      magic ``b"IRF1"``
+4       u16     version, 1
+6       u16     encoding: 1 = mono8 (uint8), 2 = mono16 (uint16, little-endian)
+8       u32     width, pixels
+12      u32     height, pixels
+16      u32     sequence number (the sender's frame counter; wraps at 2**32)
+20      u64     capture time in microseconds on the vehicle's boot clock (the clock of
+                MAVLink ``time_boot_ms``), ``time_boot_us``
+28      4x      padding (zero on send, ignored on receive)
+======  ======  =====================================================================
+
+then ``height * width * depth`` bytes of pixels, row-major (row 0 is the top of the image,
+see "Image" in :mod:`onboard.core.frames`), nothing after them.
+
+Decoding validates, in this order and without copying the pixels: length against
+``max_bytes`` (so a frame 100x too large is refused on its ``len`` alone), header length,
+magic, version, encoding, dimensions, then the exact payload size.  Every refusal raises
+:class:`IrFrameError` whose ``reason`` is one of :data:`REJECT_REASONS`, so a service can
+count rejections by reason.  The monotonic-sequence check needs state and belongs to the
+receiver, not to this module.
+"""
+
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.errors import InputError
+
+__all__ = [
+    "HEADER",
+    "MAGIC",
+    "VERSION",
+    "ENCODING_MONO8",
+    "ENCODING_MONO16",
+    "DEFAULT_MAX_BYTES",
+    "REJECT_REASONS",
+    "IrFrame",
+    "IrFrameError",
+    "encode_irframe",
+    "decode_irframe",
+    "check_payload_size",
+]
+
+HEADER = struct.Struct("<4sHHIIIQ4x")
+if HEADER.size != 32:  # pragma: no cover - a typo in the format string, caught at import
+    raise RuntimeError(f"IR frame header must be 32 bytes, struct gives {HEADER.size}")
+
+MAGIC = b"IRF1"
+VERSION = 1
+ENCODING_MONO8 = 1
+ENCODING_MONO16 = 2
+#: encoding code -> little-endian numpy dtype of one pixel
+_DTYPE_OF_ENCODING = {ENCODING_MONO8: np.dtype("<u1"), ENCODING_MONO16: np.dtype("<u2")}
+
+#: Largest payload (header + pixels) accepted by default: 16 MiB, i.e. a 4096 x 2048 mono16
+#: frame; a 640 x 512 mono16 frame is 655 392 bytes.
+DEFAULT_MAX_BYTES = 16 * 1024 * 1024
+
+_U32_MAX = 2**32 - 1
+_U64_MAX = 2**64 - 1
+
+#: Every value ``IrFrameError.reason`` can take.
+REJECT_REASONS = frozenset({"short", "magic", "version", "encoding", "size", "too_large", "dims", "field"})
+
+
+class IrFrameError(InputError):
+    """An IR frame (payload or fields) is invalid.
+
+    ``reason`` is a short code from :data:`REJECT_REASONS`: ``'short'`` (fewer bytes than the
+    header), ``'magic'``, ``'version'``, ``'encoding'`` (unknown code or pixel dtype),
+    ``'dims'`` (zero width/height or pixels not 2-D), ``'size'`` (payload length differs from
+    header + width x height x depth), ``'too_large'`` (above ``max_bytes``), ``'field'``
+    (a constructor field out of range: seq, time_boot_us).
+    """
+
+    def __init__(self, reason: str, message: str) -> None:
+        if reason not in REJECT_REASONS:  # pragma: no cover - programming error
+            raise ValueError(f"unknown IrFrameError reason {reason!r}")
+        super().__init__(message)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class IrFrame:
+    """One IR image and its capture stamp.
+
+    seq
+        Sender's frame counter, 0 .. 2**32 - 1.
+    time_boot_us
+        Capture time, microseconds on the vehicle's boot clock, 0 .. 2**64 - 1.
+    pixels
+        ``(H, W)`` numpy array, dtype uint8 (mono8) or native uint16 (mono16), H, W >= 1.
+        Stored as a read-only view (the caller's array is not modified, but must not be
+        written to afterwards if it is shared).
+    """
+
+    seq: int
+    time_boot_us: int
+    pixels: np.ndarray
+
+    def __post_init__(self) -> None:
+        for name, hi in (("seq", _U32_MAX), ("time_boot_us", _U64_MAX)):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+                raise IrFrameError("field", f"IrFrame.{name} must be an integer, got {type(v).__name__}")
+            if not 0 <= int(v) <= hi:
+                raise IrFrameError("field", f"IrFrame.{name} must be in [0, {hi}], got {v}")
+            object.__setattr__(self, name, int(v))
+        px = self.pixels
+        if not isinstance(px, np.ndarray):
+            raise IrFrameError("field", f"IrFrame.pixels must be a numpy array, got {type(px).__name__}")
+        if px.dtype != np.uint8 and px.dtype != np.uint16:
+            raise IrFrameError("encoding", f"IrFrame.pixels dtype must be uint8 or native uint16, got {px.dtype}")
+        if px.ndim != 2 or px.shape[0] < 1 or px.shape[1] < 1:
+            raise IrFrameError("dims", f"IrFrame.pixels must be 2-D (H, W) with H, W >= 1, got shape {px.shape}")
+        if px.shape[0] > _U32_MAX or px.shape[1] > _U32_MAX:  # pragma: no cover - memory bound first
+            raise IrFrameError("dims", f"IrFrame.pixels shape {px.shape} exceeds the u32 header fields")
+        if px.flags.writeable:
+            px = px.view()
+            px.flags.writeable = False
+            object.__setattr__(self, "pixels", px)
+
+    @property
+    def encoding(self) -> int:
+        """Wire encoding code: :data:`ENCODING_MONO8` or :data:`ENCODING_MONO16`."""
+        return ENCODING_MONO8 if self.pixels.dtype == np.uint8 else ENCODING_MONO16
+
+    @property
+    def height_px(self) -> int:
+        return int(self.pixels.shape[0])
+
+    @property
+    def width_px(self) -> int:
+        return int(self.pixels.shape[1])
+
+
+def encode_irframe(frame: IrFrame) -> bytes:
+    """Serialise ``frame`` to the version-1 wire format.
+
+    One copy of the pixels (into the returned ``bytes``); a non-contiguous or big-endian
+    array costs one more (made C-contiguous little-endian first).
+    """
+    if not isinstance(frame, IrFrame):
+        raise IrFrameError("field", f"encode_irframe expects an IrFrame, got {type(frame).__name__}")
+    px = frame.pixels
+    dtype = _DTYPE_OF_ENCODING[frame.encoding]
+    px = np.ascontiguousarray(px, dtype=dtype)
+    header = HEADER.pack(MAGIC, VERSION, frame.encoding, px.shape[1], px.shape[0], frame.seq, frame.time_boot_us)
+    return b"".join((header, memoryview(px).cast("B")))
+
+
+def check_payload_size(nbytes: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
+    """Refuse a payload on its length alone, before anything copies it.
+
+    For a transport whose payload object is not a buffer (zenoh ``ZBytes``: call this with
+    ``len(sample.payload)`` before ``.to_bytes()``).  Raises :class:`IrFrameError`
+    ``'too_large'`` or ``'short'``.
+    """
+    if nbytes > max_bytes:
+        raise IrFrameError("too_large", f"IR frame payload is {nbytes} bytes, above the limit of {max_bytes}")
+    if nbytes < HEADER.size:
+        raise IrFrameError("short", f"IR frame payload is {nbytes} bytes, shorter than the {HEADER.size}-byte header")
+
+
+def decode_irframe(payload: bytes | bytearray | memoryview, max_bytes: int = DEFAULT_MAX_BYTES) -> IrFrame:
+    """Parse and validate one wire payload; never copies before every check has passed.
+
+    Zero-copy when ``payload`` is immutable (``bytes`` or a read-only memoryview): the pixels
+    are a read-only ``np.frombuffer`` view that keeps ``payload`` alive.  A writable buffer
+    (``bytearray``, writable memoryview) is copied once, since its owner may reuse it.
+
+    Raises :class:`IrFrameError` (an :class:`~onboard.core.errors.InputError`) with ``reason`` set;
+    no other exception for any ``bytes`` input.
+    """
+    try:
+        mv = payload if isinstance(payload, memoryview) else memoryview(payload)
+    except TypeError as exc:
+        raise IrFrameError("field", f"IR frame payload must be bytes-like, got {type(payload).__name__}") from exc
+    if mv.ndim != 1 or mv.itemsize != 1:
+        try:
+            mv = mv.cast("B")
+        except TypeError as exc:
+            raise IrFrameError("field", "IR frame payload must be a contiguous byte buffer") from exc
+    n = mv.nbytes
+    check_payload_size(n, max_bytes)
+    magic, version, encoding, width, height, seq, time_boot_us = HEADER.unpack_from(mv, 0)
+    if magic != MAGIC:
+        raise IrFrameError("magic", f"IR frame magic is {bytes(magic)!r}, expected {MAGIC!r}")
+    if version != VERSION:
+        raise IrFrameError("version", f"IR frame version is {version}, this reader supports {VERSION}")
+    dtype = _DTYPE_OF_ENCODING.get(encoding)
+    if dtype is None:
+        raise IrFrameError("encoding", f"IR frame encoding is {encoding}, expected 1 (mono8) or 2 (mono16)")
+    if width == 0 or height == 0:
+        raise IrFrameError("dims", f"IR frame dimensions {width} x {height} must both be >= 1")
+    pixel_bytes = width * height * dtype.itemsize
+    if HEADER.size + pixel_bytes > max_bytes:
+        raise IrFrameError(
+            "too_large",
+            f"IR frame header claims {width} x {height} x {dtype.itemsize} bytes, above the limit of {max_bytes}",
+        )
+    if n != HEADER.size + pixel_bytes:
+        raise IrFrameError(
+            "size",
+            f"IR frame payload is {n} bytes, expected {HEADER.size} + {width} x {height} x {dtype.itemsize}"
+            f" = {HEADER.size + pixel_bytes}",
+        )
+    pixels = np.frombuffer(mv, dtype=dtype, count=width * height, offset=HEADER.size).reshape(height, width)
+    if not mv.readonly:
+        pixels = pixels.copy()
+    if not pixels.dtype.isnative:  # big-endian host only: one conversion to native order
+        pixels = pixels.astype(pixels.dtype.newbyteorder("="))
+    return IrFrame(seq=seq, time_boot_us=time_boot_us, pixels=pixels)

@@ -1,0 +1,46 @@
+"""Operator selection (click-to-track): a ground station's request in pixels, and the pipeline's answer.
+
+The MAVLink side (:mod:`onboard.io.camera_protocol`) turns MAV_CMD_CAMERA_TRACK_POINT / _RECTANGLE /
+STOP_TRACKING into a :class:`TrackRequest`; the pipeline (:meth:`onboard.pipeline.frame_pipeline.FramePipeline.request_track`)
+answers with a :class:`TrackResult`, which becomes the COMMAND_ACK."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from onboard.core.errors import InputError
+
+__all__ = ["TrackRequest", "TrackResult"]
+
+
+@dataclass(frozen=True)
+class TrackRequest:
+    """An operator's tracking command for the pipeline, in pixels of the camera image.
+
+    ``kind``: ``"point"`` (``u_px, v_px`` and ``radius_px``), ``"rectangle"`` (``rect_px`` =
+    ``(x0, y0, x1, y1)``, top-left and bottom-right) or ``"stop"``.  ``request_id`` matches the answer.
+    """
+
+    request_id: int
+    kind: str
+    u_px: float = math.nan
+    v_px: float = math.nan
+    radius_px: float = math.nan
+    rect_px: tuple[float, float, float, float] | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("point", "rectangle", "stop"):
+            raise InputError(f"TrackRequest.kind must be point, rectangle or stop, got {self.kind!r}")
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """The pipeline's answer to a :class:`TrackRequest`: ``accepted`` and, when not, ``reason`` (text);
+    ``u_px, v_px`` the selected object's centre when accepted."""
+
+    request_id: int
+    accepted: bool
+    reason: str = ""
+    u_px: float | None = None
+    v_px: float | None = None

@@ -1,0 +1,725 @@
+"""The ``Track`` noun, its wire schema ``irtrack.track/2``, the status JSON and the MAVLink mapping.
+
+Pure: no zenoh, no pymavlink, no clocks.  The pipeline builds one :class:`Track` per processed frame;
+the service serialises it with :func:`track_to_json` onto ``irtrack/<vehicle>/track`` and maps it
+onto CAMERA_TRACKING_IMAGE_STATUS (#275) / CAMERA_TRACKING_GEO_STATUS (#276) with
+:func:`image_status_fields` / :func:`geo_status_fields`.
+
+Schema ``irtrack.track/2`` (one UTF-8 JSON object per processed frame)
+---------------------------------------------------------------------
+==================  ===========================  ===================================================
+key                 type                         meaning
+==================  ===========================  ===================================================
+schema              "irtrack.track/2"
+vehicle             string                       vehicle name (the key's ``<vehicle>``)
+seq                 integer                      the IR frame's sequence number
+time_boot_us        integer                      the frame's capture time, us on the autopilot boot clock
+track_id            integer >= 1 or null         current track (a new id = a new target association)
+state               string                       ``searching`` | ``tracking`` | ``coasting`` | ``lost``
+measurement_valid   bool                         (u, v) is a blob centroid fit for 3-D (fed to the estimator)
+u_px, v_px          number or null               target centre, pixels (u right, v down, origin at the
+                                                 top-left corner of the top-left pixel; onboard.core.frames)
+bbox                [x, y, w, h] or null         tracking box, pixels
+pose_valid          bool                         the camera pose at ``time_boot_us`` was known
+los_ned             [n, e, d] or null            (new in /2) unit line of sight camera -> target, local NED
+los_az_deg          number or null               (new in /2) its azimuth, degrees from north towards east,
+                                                 (-180, 180]
+los_el_deg          number or null               (new in /2) its elevation, degrees, positive up, [-90, 90]
+los_sigma_az_deg    number or null               (new in /2) 1-sigma of ``los_az_deg`` (formula below)
+los_sigma_el_deg    number or null               (new in /2) 1-sigma of ``los_el_deg``
+camera_ned_m        [n, e, d] or null            (new in /2) the line of sight's origin: the camera, local NED
+lat_deg, lon_deg    number or null               target WGS84 latitude / longitude, degrees
+alt_m               number or null               target altitude, metres AMSL (treated as WGS84, see frames)
+ned_m               [n, e, d] or null            target position in the local NED frame, metres
+origin              {lat_deg, lon_deg, alt_m}    the local NED frame's origin, or null before one is known
+                    or null
+vel_ned_mps         [n, e, d] or null            target velocity, m/s
+sigma_ned_m         [n, e, d] or null            1-sigma position uncertainty per axis, metres
+sigma_vel_ned_mps   [n, e, d] or null            1-sigma velocity uncertainty per axis, m/s
+cov_ned_m2          3 x 3 list or null           position covariance, m^2
+range_m             number or null               camera-to-target distance, metres
+range_sigma_ratio   number or null               posterior range sigma / range (observability measure)
+observable          bool                         quality verdict on the 3-D position: the window's geometry
+                                                 makes range observable and the model fits (changed in /2:
+                                                 no longer a condition for the position to be present)
+residual_rms_norm   number or null               (new in /2) RMS of the standardised residuals at the
+                                                 estimator's last model selection (~1 when the camera model
+                                                 and noise model match; null when unknown)
+window_frames       integer >= 0                 observations in the estimator's window
+model               string or null               the estimator's motion model for this estimate
+==================  ===========================  ===================================================
+
+What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
+"position present" changed: position fields (``lat_deg .. model`` except ``observable``/
+``window_frames``) are set whenever the estimator has a finite solution and a local origin is
+known, observable or not; ``observable`` grades that position (trust it when true; when false it is
+the best estimate with its honest covariance, typically with a large range sigma).  They are null
+with no estimate (none yet, the track lost, the estimator off).  The daemon's
+``output.unobservable_positions: false`` restores the /1 behaviour (positions only when observable).
+The line-of-sight keys (``los_*``, ``camera_ned_m``) are set on every frame with a target centre
+(``u_px``) and a pose, with or without a 3-D estimate: they need no range.
+Non-finite numbers are never written (JSON has no NaN): they become null.  :func:`track_from_json`
+reads /1 and /2.
+
+Line of sight and its 1-sigma (:func:`line_of_sight_ned`): the ideal normalised image point
+``(x, y)`` of ``(u_px, v_px)`` (distortion removed) gives ``l = R_ned_from_cam (x, y, 1) / |(x, y, 1)|``;
+its covariance is ``C_l = s_px^2 J J^T + (s_w^2 + s_b^2) (I - l l^T)``, with ``J = dl/d(u, v)`` (pinhole:
+``R (I - b b^T) / |(x, y, 1)| [[1/fx, 0], [0, 1/fy], [0, 0]]``, ``b`` the unit camera bearing),
+``s_px`` the configured ``estimator.pixel_sigma_px``, ``s_w`` / ``s_b`` the attitude white and bias
+sigmas (rad) of the estimator's noise model (an attitude error ``phi`` in NED moves ``l`` by
+``phi x l``; see frames, small-angle errors).  Azimuth ``az = atan2(l_e, l_n)`` and elevation
+``el = atan2(-l_d, hypot(l_n, l_e))`` get first-order sigmas ``sqrt(g C_l g^T)`` with
+``g_az = (-l_e, l_n, 0) / h^2`` and ``g_el = (l_d l_n / h, l_d l_e / h, -h)``, ``h = hypot(l_n, l_e)``.
+Near the optical axis this is ``s_el = sqrt((s_px / f)^2 + s_w^2 + s_b^2)`` and ``s_az = s_el / cos(el)``
+(capped at 180 deg).  Camera position noise does not enter a direction.
+
+Schema ``irtrack.status/1`` is built by :func:`build_status` (see its docstring).
+
+MAVLink accuracies (#276) are 1-sigma, root-sum-square over axes as PX4 reports ``eph``/``evh``:
+``h_acc = sqrt(C_nn + C_ee)``, ``v_acc = sqrt(C_dd)``, ``vel_acc = sqrt(trace C_v)``; the heading
+``hdg = atan2(v_e, v_n)`` with ``hdg_acc = sqrt(J C_v,ne J^T)``, ``J = (-v_e, v_n) / |v_h|^2``
+(first-order propagation), NaN when the horizontal speed is below twice its own sigma.  ``dist`` is
+the estimate's camera-to-target range.  #276 carries only observable positions unless asked
+(:func:`geo_status_fields` ``observable_only``): a ground station cannot read a quality flag.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections import deque
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, rotmat_from_quat
+
+__all__ = [
+    "TRACK_SCHEMA",
+    "READABLE_TRACK_SCHEMAS",
+    "STATUS_SCHEMA",
+    "TRACK_STATES",
+    "LineOfSight",
+    "line_of_sight_ned",
+    "Track",
+    "track_to_json",
+    "track_to_bytes",
+    "track_from_json",
+    "image_status_fields",
+    "geo_status_fields",
+    "RollingStats",
+    "build_status",
+]
+
+TRACK_SCHEMA = "irtrack.track/2"
+READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same keys minus the /2 additions
+STATUS_SCHEMA = "irtrack.status/1"
+TRACK_STATES = ("searching", "tracking", "coasting", "lost")
+
+# MAVLink CAMERA_TRACKING_* enums (common.xml); numbers, so this module needs no pymavlink
+CAMERA_TRACKING_STATUS_FLAGS_IDLE = 0
+CAMERA_TRACKING_STATUS_FLAGS_ACTIVE = 1
+CAMERA_TRACKING_STATUS_FLAGS_COASTING = 8
+CAMERA_TRACKING_MODE_NONE = 0
+CAMERA_TRACKING_MODE_POINT = 1
+CAMERA_TRACKING_MODE_RECTANGLE = 2
+CAMERA_TRACKING_TARGET_DATA_IN_STATUS = 4
+
+_POSITION_FIELDS = ("lat_deg", "lon_deg", "alt_m", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
+_U64_MAX = 2**64 - 1
+
+
+def _finite(x: float, what: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)) or not math.isfinite(x):
+        raise InputError(f"Track.{what} must be a finite number, got {x!r}")
+    return float(x)
+
+
+def _vec(v, n: int, what: str) -> tuple[float, ...]:
+    try:
+        a = np.asarray(v, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"Track.{what} must be {n} finite numbers, got {v!r}") from None
+    if a.shape != (n,) or not np.all(np.isfinite(a)):
+        raise InputError(f"Track.{what} must be {n} finite numbers, got {v!r}")
+    return tuple(float(x) for x in a)
+
+
+def _cov(c, what: str) -> np.ndarray:
+    try:
+        a = np.array(c, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"Track.{what} must be a 3 x 3 matrix, got {c!r}") from None
+    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+        raise InputError(f"Track.{what} must be a finite 3 x 3 matrix, got shape {a.shape}")
+    if np.any(np.diag(a) < 0):
+        raise InputError(f"Track.{what} has a negative variance on its diagonal: {np.diag(a).tolist()}")
+    a.setflags(write=False)
+    return a
+
+
+SIGMA_AZ_CAP_DEG = 180.0  # an azimuth near the zenith/nadir is unknown, not infinitely uncertain
+_UNIT_TOL = 1e-6
+
+
+@dataclass(frozen=True)
+class LineOfSight:
+    """The target's direction from the camera in local NED at one frame; needs no range.
+
+    ``u_ned``: unit vector (3,) camera -> target.  ``azimuth_deg``: from north towards east,
+    (-180, 180]; ``elevation_deg``: positive up, [-90, 90] (conventions in :mod:`onboard.core.frames`).
+    ``sigma_azimuth_deg`` / ``sigma_elevation_deg``: 1-sigma (module docstring).  ``p_cam_ned_m``:
+    the camera's position (3,), the ray's origin.
+    """
+
+    u_ned: tuple[float, float, float]
+    azimuth_deg: float
+    elevation_deg: float
+    sigma_azimuth_deg: float
+    sigma_elevation_deg: float
+    p_cam_ned_m: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        u = _vec(self.u_ned, 3, "los.u_ned")
+        if abs(math.sqrt(sum(c * c for c in u)) - 1.0) > _UNIT_TOL:
+            raise InputError(f"LineOfSight.u_ned must be a unit vector, got {u}")
+        object.__setattr__(self, "u_ned", u)
+        object.__setattr__(self, "p_cam_ned_m", _vec(self.p_cam_ned_m, 3, "los.p_cam_ned_m"))
+        az = _finite(self.azimuth_deg, "los.azimuth_deg")
+        el = _finite(self.elevation_deg, "los.elevation_deg")
+        if not -180.0 <= az <= 180.0 or not -90.0 <= el <= 90.0:
+            raise InputError(f"LineOfSight azimuth/elevation out of range: {az}, {el} deg")
+        object.__setattr__(self, "azimuth_deg", az)
+        object.__setattr__(self, "elevation_deg", el)
+        for name in ("sigma_azimuth_deg", "sigma_elevation_deg"):
+            v = _finite(getattr(self, name), f"los.{name}")
+            if v < 0:
+                raise InputError(f"LineOfSight.{name} must be >= 0, got {v}")
+            object.__setattr__(self, name, v)
+
+
+def line_of_sight_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_cam_ned_m,
+                      pixel_sigma_px: float, attitude_sigma_rad: float) -> LineOfSight:
+    """The line of sight of pixel ``uv_px`` seen by a camera at ``(p_cam_ned_m, q_ned_from_cam)``.
+
+    ``attitude_sigma_rad``: the total 1-sigma attitude error per axis, ``sqrt(s_w^2 + s_b^2)``.
+    First-order covariance propagation as in the module docstring; raises :class:`InputError` on
+    non-finite input.
+    """
+    uv = np.asarray(uv_px, dtype=float).reshape(2)
+    if not np.all(np.isfinite(uv)):
+        raise InputError(f"line_of_sight_ned: pixel must be finite, got {uv.tolist()}")
+    R = rotmat_from_quat(np.asarray(q_ned_from_cam, dtype=float))
+    xy = np.asarray(intrinsics.normalized_from_pixel(uv), dtype=float)
+    if intrinsics.has_distortion:
+        step = 0.5  # px, central differences of the undistortion
+        dxy = np.stack([(np.asarray(intrinsics.normalized_from_pixel(uv + d)) - np.asarray(intrinsics.normalized_from_pixel(uv - d)))
+                        / (2 * step) for d in (np.array([step, 0.0]), np.array([0.0, step]))], axis=1)
+    else:
+        dxy = np.diag([1.0 / intrinsics.fx_px, 1.0 / intrinsics.fy_px])
+    b = np.array([xy[0], xy[1], 1.0])
+    nb = float(np.linalg.norm(b))
+    b_unit = b / nb
+    l = R @ b_unit
+    J = R @ ((np.eye(3) - np.outer(b_unit, b_unit)) / nb)[:, :2] @ dxy  # dl/d(u, v), 3 x 2
+    C = pixel_sigma_px**2 * (J @ J.T) + attitude_sigma_rad**2 * (np.eye(3) - np.outer(l, l))
+    n, e, d = (float(c) for c in l)
+    h = math.hypot(n, e)
+    az = math.degrees(math.atan2(e, n)) if h > 0 else 0.0
+    el = math.degrees(math.atan2(-d, h))
+    g_el = np.array([d * n / h, d * e / h, -h]) if h > 0 else np.array([0.0, 0.0, -1.0])
+    s_el = math.degrees(math.sqrt(max(float(g_el @ C @ g_el), 0.0)))
+    if h > 1e-9:
+        g_az = np.array([-e, n, 0.0]) / h**2
+        s_az = min(math.degrees(math.sqrt(max(float(g_az @ C @ g_az), 0.0))), SIGMA_AZ_CAP_DEG)
+    else:
+        s_az = SIGMA_AZ_CAP_DEG
+    return LineOfSight(u_ned=l, azimuth_deg=az, elevation_deg=el, sigma_azimuth_deg=s_az,
+                       sigma_elevation_deg=s_el, p_cam_ned_m=np.asarray(p_cam_ned_m, dtype=float))
+
+
+@dataclass(frozen=True, eq=False)
+class Track:
+    """The daemon's answer for one frame (see the module docstring for the meaning of each field).
+
+    Vectors are tuples of floats; covariances read-only (3, 3) arrays.  The position group
+    (``lat_deg, lon_deg, alt_m, p_ned_m, v_ned_mps, cov_p_ned_m2, range_m``) is either all set or
+    all None; ``cov_v_ned_m2ps2``, ``range_sigma_ratio`` and ``model`` are optional within it.
+    ``los`` (the line of sight) needs ``pose_valid`` and ``u_px``; it is independent of the position.
+    """
+
+    vehicle: str
+    seq: int
+    time_boot_us: int
+    state: str
+    track_id: int | None = None
+    measurement_valid: bool = False
+    u_px: float | None = None
+    v_px: float | None = None
+    bbox: tuple[float, float, float, float] | None = None
+    pose_valid: bool = False
+    los: LineOfSight | None = None
+    origin: GeodeticOrigin | None = None
+    lat_deg: float | None = None
+    lon_deg: float | None = None
+    alt_m: float | None = None
+    p_ned_m: tuple[float, float, float] | None = None
+    v_ned_mps: tuple[float, float, float] | None = None
+    cov_p_ned_m2: np.ndarray | None = None
+    cov_v_ned_m2ps2: np.ndarray | None = None
+    range_m: float | None = None
+    range_sigma_ratio: float | None = None
+    observable: bool = False
+    residual_rms_norm: float | None = None
+    window_frames: int = 0
+    model: str | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.vehicle, str) or not self.vehicle:
+            raise InputError(f"Track.vehicle must be a non-empty string, got {self.vehicle!r}")
+        for name, hi in (("seq", 2**32 - 1), ("time_boot_us", _U64_MAX), ("window_frames", 2**31)):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v <= hi:
+                raise InputError(f"Track.{name} must be an integer in [0, {hi}], got {v!r}")
+            object.__setattr__(self, name, int(v))
+        if self.state not in TRACK_STATES:
+            raise InputError(f"Track.state must be one of {', '.join(TRACK_STATES)}, got {self.state!r}")
+        tid = self.track_id
+        if tid is not None:
+            if isinstance(tid, (bool, np.bool_)) or not isinstance(tid, (int, np.integer)) or tid < 1:
+                raise InputError(f"Track.track_id must be None or an integer >= 1, got {tid!r}")
+            object.__setattr__(self, "track_id", int(tid))
+        for name in ("measurement_valid", "pose_valid", "observable"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"Track.{name} must be a bool, got {getattr(self, name)!r}")
+            object.__setattr__(self, name, bool(getattr(self, name)))
+        if (self.u_px is None) != (self.v_px is None):
+            raise InputError("Track.u_px and Track.v_px must both be set or both be None")
+        if self.u_px is not None:
+            object.__setattr__(self, "u_px", _finite(self.u_px, "u_px"))
+            object.__setattr__(self, "v_px", _finite(self.v_px, "v_px"))
+        if self.measurement_valid and self.u_px is None:
+            raise InputError("Track.measurement_valid requires u_px and v_px")
+        if self.bbox is not None:
+            bb = _vec(self.bbox, 4, "bbox")
+            if bb[2] < 0 or bb[3] < 0:
+                raise InputError(f"Track.bbox width and height must be >= 0, got {bb}")
+            object.__setattr__(self, "bbox", bb)
+        if self.los is not None:
+            if not isinstance(self.los, LineOfSight):
+                raise InputError(f"Track.los must be a LineOfSight or None, got {type(self.los).__name__}")
+            if not self.pose_valid or self.u_px is None:
+                raise InputError("Track.los needs a pose (pose_valid) and a target centre (u_px, v_px)")
+        rr = self.residual_rms_norm
+        if rr is not None:
+            if isinstance(rr, bool) or not isinstance(rr, (int, float, np.integer, np.floating)) or math.isnan(rr) or rr < 0:
+                raise InputError(f"Track.residual_rms_norm must be None or >= 0, got {rr!r}")
+            object.__setattr__(self, "residual_rms_norm", float(rr))
+        if self.origin is not None and not isinstance(self.origin, GeodeticOrigin):
+            raise InputError(f"Track.origin must be a GeodeticOrigin or None, got {type(self.origin).__name__}")
+        have = [getattr(self, n) is not None for n in _POSITION_FIELDS]
+        if any(have) and not all(have):
+            missing = [n for n, h in zip(_POSITION_FIELDS, have) if not h]
+            raise InputError(f"Track position fields must be all set or all None; missing {missing}")
+        if all(have):
+            for name in ("lat_deg", "lon_deg", "alt_m", "range_m"):
+                object.__setattr__(self, name, _finite(getattr(self, name), name))
+            if not -90.0 <= self.lat_deg <= 90.0 or not -180.0 <= self.lon_deg <= 180.0:
+                raise InputError(f"Track lat/lon out of range: {self.lat_deg}, {self.lon_deg}")
+            if self.range_m < 0:
+                raise InputError(f"Track.range_m must be >= 0, got {self.range_m}")
+            object.__setattr__(self, "p_ned_m", _vec(self.p_ned_m, 3, "p_ned_m"))
+            object.__setattr__(self, "v_ned_mps", _vec(self.v_ned_mps, 3, "v_ned_mps"))
+            object.__setattr__(self, "cov_p_ned_m2", _cov(self.cov_p_ned_m2, "cov_p_ned_m2"))
+            if self.cov_v_ned_m2ps2 is not None:
+                object.__setattr__(self, "cov_v_ned_m2ps2", _cov(self.cov_v_ned_m2ps2, "cov_v_ned_m2ps2"))
+            if self.origin is None:
+                raise InputError("Track with a position needs its origin")
+        elif self.cov_v_ned_m2ps2 is not None:
+            raise InputError("Track.cov_v_ned_m2ps2 without a position")
+        if self.range_sigma_ratio is not None:
+            r = self.range_sigma_ratio
+            if isinstance(r, bool) or not isinstance(r, (int, float, np.floating)) or math.isnan(r) or r < 0:
+                raise InputError(f"Track.range_sigma_ratio must be None or >= 0 (inf allowed), got {r!r}")
+            object.__setattr__(self, "range_sigma_ratio", float(r))
+        if self.model is not None and not isinstance(self.model, str):
+            raise InputError(f"Track.model must be a string or None, got {self.model!r}")
+
+    @property
+    def has_position(self) -> bool:
+        return self.p_ned_m is not None
+
+    @property
+    def sigma_ned_m(self) -> tuple[float, float, float] | None:
+        if self.cov_p_ned_m2 is None:
+            return None
+        return tuple(float(math.sqrt(max(d, 0.0))) for d in np.diag(self.cov_p_ned_m2))
+
+    @property
+    def sigma_vel_ned_mps(self) -> tuple[float, float, float] | None:
+        if self.cov_v_ned_m2ps2 is None:
+            return None
+        return tuple(float(math.sqrt(max(d, 0.0))) for d in np.diag(self.cov_v_ned_m2ps2))
+
+
+# --------------------------------------------------------------------------- JSON
+
+
+def _num(x) -> float | None:
+    """A JSON-safe number: non-finite -> None."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _list(v) -> list | None:
+    return None if v is None else [_num(x) for x in v]
+
+
+def track_to_json(track: Track) -> dict[str, Any]:
+    """The ``irtrack.track/2`` object of ``track`` (a dict ready for ``json.dumps``)."""
+    o = track.origin
+    los = track.los
+    return {
+        "schema": TRACK_SCHEMA,
+        "vehicle": track.vehicle,
+        "seq": track.seq,
+        "time_boot_us": track.time_boot_us,
+        "track_id": track.track_id,
+        "state": track.state,
+        "measurement_valid": track.measurement_valid,
+        "u_px": _num(track.u_px),
+        "v_px": _num(track.v_px),
+        "bbox": _list(track.bbox),
+        "pose_valid": track.pose_valid,
+        "los_ned": None if los is None else _list(los.u_ned),
+        "los_az_deg": None if los is None else _num(los.azimuth_deg),
+        "los_el_deg": None if los is None else _num(los.elevation_deg),
+        "los_sigma_az_deg": None if los is None else _num(los.sigma_azimuth_deg),
+        "los_sigma_el_deg": None if los is None else _num(los.sigma_elevation_deg),
+        "camera_ned_m": None if los is None else _list(los.p_cam_ned_m),
+        "lat_deg": _num(track.lat_deg),
+        "lon_deg": _num(track.lon_deg),
+        "alt_m": _num(track.alt_m),
+        "ned_m": _list(track.p_ned_m),
+        "origin": None if o is None else {"lat_deg": o.lat_deg, "lon_deg": o.lon_deg, "alt_m": o.alt_m},
+        "vel_ned_mps": _list(track.v_ned_mps),
+        "sigma_ned_m": _list(track.sigma_ned_m),
+        "sigma_vel_ned_mps": _list(track.sigma_vel_ned_mps),
+        "cov_ned_m2": None if track.cov_p_ned_m2 is None else [_list(r) for r in track.cov_p_ned_m2],
+        "range_m": _num(track.range_m),
+        "range_sigma_ratio": _num(track.range_sigma_ratio),
+        "observable": track.observable,
+        "residual_rms_norm": _num(track.residual_rms_norm),
+        "window_frames": track.window_frames,
+        "model": track.model,
+    }
+
+
+def track_to_bytes(track: Track) -> bytes:
+    """Compact UTF-8 JSON of :func:`track_to_json` (``allow_nan=False``: never emits NaN)."""
+    return json.dumps(track_to_json(track), separators=(",", ":"), allow_nan=False).encode()
+
+
+def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
+    """Parse and validate an ``irtrack.track/2`` (or ``/1``) message (dict, str or bytes) into a :class:`Track`.
+
+    Raises :class:`InputError` naming the offending key.  Extra keys are ignored (forward
+    compatibility within a version); ``sigma_*`` are derived and not read back, except the line of
+    sight's, which are read as sent.  A /1 message has no line of sight.
+    """
+    if isinstance(obj, (bytes, bytearray, str)):
+        try:
+            obj = json.loads(obj)
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise InputError(f"track message is not JSON: {exc}") from None
+    if not isinstance(obj, Mapping):
+        raise InputError(f"track message must be a JSON object, got {type(obj).__name__}")
+    if obj.get("schema") not in READABLE_TRACK_SCHEMAS:
+        raise InputError(f"track message schema: expected one of {', '.join(READABLE_TRACK_SCHEMAS)}, "
+                         f"got {obj.get('schema')!r}")
+    required = ("vehicle", "seq", "time_boot_us", "state", "observable", "window_frames")
+    for key in required:
+        if key not in obj:
+            raise InputError(f"track message: missing key {key!r}")
+    o = obj.get("origin")
+    try:
+        origin = None if o is None else GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"]))
+    except (TypeError, KeyError, ValueError) as exc:
+        raise InputError(f"track message origin: expected {{lat_deg, lon_deg, alt_m}}, got {o!r} ({exc})") from None
+    cov = obj.get("cov_ned_m2")
+    sig_v = obj.get("sigma_vel_ned_mps")
+    cov_v = None if sig_v is None else np.diag(np.square(np.asarray(sig_v, dtype=float)))
+    bbox = obj.get("bbox")
+    los = None
+    if obj.get("los_ned") is not None:
+        try:
+            los = LineOfSight(
+                u_ned=obj["los_ned"], azimuth_deg=obj["los_az_deg"], elevation_deg=obj["los_el_deg"],
+                sigma_azimuth_deg=obj["los_sigma_az_deg"], sigma_elevation_deg=obj["los_sigma_el_deg"],
+                p_cam_ned_m=obj["camera_ned_m"],
+            )
+        except KeyError as exc:
+            raise InputError(f"track message: los_ned without {exc.args[0]!r}") from None
+    return Track(
+        vehicle=obj["vehicle"],
+        seq=obj["seq"],
+        time_boot_us=obj["time_boot_us"],
+        state=obj["state"],
+        track_id=obj.get("track_id"),
+        measurement_valid=obj.get("measurement_valid", False),
+        u_px=obj.get("u_px"),
+        v_px=obj.get("v_px"),
+        bbox=None if bbox is None else tuple(bbox),
+        pose_valid=obj.get("pose_valid", False),
+        los=los,
+        origin=origin,
+        lat_deg=obj.get("lat_deg"),
+        lon_deg=obj.get("lon_deg"),
+        alt_m=obj.get("alt_m"),
+        p_ned_m=obj.get("ned_m"),
+        v_ned_mps=obj.get("vel_ned_mps"),
+        cov_p_ned_m2=cov,
+        cov_v_ned_m2ps2=cov_v if obj.get("ned_m") is not None else None,
+        range_m=obj.get("range_m"),
+        range_sigma_ratio=obj.get("range_sigma_ratio"),
+        observable=obj["observable"],
+        residual_rms_norm=obj.get("residual_rms_norm"),
+        window_frames=obj["window_frames"],
+        model=obj.get("model"),
+    )
+
+
+# --------------------------------------------------------------------------- MAVLink mapping (pure)
+
+
+def _unit(x: float, size: float) -> float:
+    return min(max(x / size, 0.0), 1.0)
+
+
+def image_status_fields(track: Track | None, width_px: int, height_px: int, mode: int | None = None,
+                        radius: float = math.nan) -> dict[str, Any]:
+    """Keyword arguments of CAMERA_TRACKING_IMAGE_STATUS (#275) for ``track`` (None = idle).
+
+    Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
+    [0, 1].  Status ACTIVE while tracking, ACTIVE | COASTING while coasting, IDLE otherwise.
+    ``mode`` (CAMERA_TRACKING_MODE): POINT fills ``point_x/point_y`` (and ``radius``: normalised to
+    the image width; NaN = half the box's larger side, or unknown), RECTANGLE fills ``rec_*`` from the
+    box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
+    centre.  A mode whose data the track lacks (RECTANGLE without a box) falls back to the other one;
+    NONE without either.
+    """
+    nan = math.nan
+    out = dict(
+        tracking_status=CAMERA_TRACKING_STATUS_FLAGS_IDLE,
+        tracking_mode=CAMERA_TRACKING_MODE_NONE,
+        target_data=CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
+        point_x=nan, point_y=nan, radius=nan,
+        rec_top_x=nan, rec_top_y=nan, rec_bottom_x=nan, rec_bottom_y=nan,
+    )
+    if track is None or track.state in ("searching", "lost"):
+        return out
+    out["tracking_status"] = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    if track.state == "coasting":
+        out["tracking_status"] |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
+    if mode is None or mode == CAMERA_TRACKING_MODE_NONE:
+        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_POINT
+    if mode == CAMERA_TRACKING_MODE_RECTANGLE and track.bbox is None:
+        mode = CAMERA_TRACKING_MODE_POINT
+    if mode == CAMERA_TRACKING_MODE_POINT and track.u_px is None:
+        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_NONE
+    if mode == CAMERA_TRACKING_MODE_POINT:
+        out["tracking_mode"] = CAMERA_TRACKING_MODE_POINT
+        out["point_x"] = _unit(track.u_px, width_px)
+        out["point_y"] = _unit(track.v_px, height_px)
+        if math.isfinite(radius):
+            out["radius"] = min(max(float(radius), 0.0), 1.0)
+        elif track.bbox is not None:
+            out["radius"] = _unit(max(track.bbox[2], track.bbox[3]) / 2.0, width_px)
+    elif mode == CAMERA_TRACKING_MODE_RECTANGLE:
+        x, y, w, h = track.bbox
+        out["tracking_mode"] = CAMERA_TRACKING_MODE_RECTANGLE
+        out["rec_top_x"], out["rec_top_y"] = _unit(x, width_px), _unit(y, height_px)
+        out["rec_bottom_x"], out["rec_bottom_y"] = _unit(x + w, width_px), _unit(y + h, height_px)
+    return out
+
+
+def geo_status_fields(track: Track | None, observable_only: bool = True) -> dict[str, Any] | None:
+    """Keyword arguments of ``MavlinkLink.send_tracking_geo_status``, or None when nothing is to be sent.
+
+    Nothing without a position, nor (``observable_only``, the default) for a position the estimator
+    does not call observable: a ground station shows #276 as a fix and cannot read a quality flag.
+    Accuracies are 1-sigma root-sum-squares of the estimate's covariance (module docstring);
+    ``dist_m`` its range; unknown values are NaN.
+    """
+    if track is None or not track.has_position or (observable_only and not track.observable):
+        return None
+    C = track.cov_p_ned_m2
+    v = np.asarray(track.v_ned_mps)
+    nan = math.nan
+    vel_acc = hdg = hdg_acc = nan
+    speed_h = float(math.hypot(v[0], v[1]))
+    if speed_h > 0:
+        hdg = math.atan2(v[1], v[0])
+    if track.cov_v_ned_m2ps2 is not None:
+        Cv = track.cov_v_ned_m2ps2
+        vel_acc = math.sqrt(max(float(np.trace(Cv)), 0.0))
+        if speed_h > 0:
+            J = np.array([-v[1], v[0]]) / speed_h**2
+            hdg_acc = math.sqrt(max(float(J @ Cv[:2, :2] @ J), 0.0))
+            u = v[:2] / speed_h
+            sigma_speed = math.sqrt(max(float(u @ Cv[:2, :2] @ u), 0.0))
+            if speed_h < 2.0 * sigma_speed or hdg_acc > math.pi:
+                hdg = hdg_acc = nan
+    tracking_status = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    if track.state == "coasting":
+        tracking_status |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
+    return dict(
+        lat_deg=track.lat_deg,
+        lon_deg=track.lon_deg,
+        alt_m=track.alt_m,
+        h_acc_m=math.sqrt(max(float(C[0, 0] + C[1, 1]), 0.0)),
+        v_acc_m=math.sqrt(max(float(C[2, 2]), 0.0)),
+        vel_n_mps=float(v[0]),
+        vel_e_mps=float(v[1]),
+        vel_d_mps=float(v[2]),
+        vel_acc_mps=vel_acc,
+        dist_m=track.range_m,
+        hdg_rad=hdg,
+        hdg_acc_rad=hdg_acc,
+        tracking_status=tracking_status,
+    )
+
+
+# --------------------------------------------------------------------------- status
+
+
+class RollingStats:
+    """The last ``maxlen`` samples of a quantity; percentiles on demand (thread-safe appends)."""
+
+    def __init__(self, maxlen: int = 1000) -> None:
+        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+            raise InputError(f"RollingStats.maxlen must be a positive integer, got {maxlen!r}")
+        self._d: deque[float] = deque(maxlen=maxlen)
+
+    def add(self, x: float) -> None:
+        self._d.append(float(x))
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def values(self) -> np.ndarray:
+        return np.array(list(self._d), dtype=float)
+
+    def summary(self) -> dict[str, float | int | None]:
+        """``{n, p50, p99, max}`` over the window; None values when empty."""
+        a = self.values()
+        if a.size == 0:
+            return {"n": 0, "p50": None, "p99": None, "max": None}
+        p50, p99 = np.percentile(a, [50, 99])
+        return {"n": int(a.size), "p50": _num(p50), "p99": _num(p99), "max": _num(a.max())}
+
+
+def build_status(
+    *,
+    vehicle: str,
+    uptime_s: float,
+    frames_in: int,
+    frames_processed: int,
+    frames_dropped: int,
+    frames_rejected: int,
+    tracks_published: int,
+    processing_ms: Mapping[str, Any],
+    latency_ms: Mapping[str, Any],
+    pose_wait_ms: Mapping[str, Any],
+    capture_to_track_ms: Mapping[str, Any] | None,
+    rejected: Mapping[str, int],
+    link: Mapping[str, Any] | None,
+    cpu_share: float | None,
+    pipeline_cpu_share: float | None,
+    last_track: Track | None,
+    estimator: str,
+    queue_length: int,
+    queue_wait_ms: Mapping[str, Any] | None = None,
+    publish_ms: Mapping[str, Any] | None = None,
+    stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
+    warnings: list[Mapping[str, str]] | tuple = (),
+) -> dict[str, Any]:
+    """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
+
+    ``frames``: ``in`` (payloads received), ``processed`` (a Track was produced), ``dropped``
+    (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames: sum of the
+    ``frame_*`` reasons), ``published`` (track messages put on zenoh).  ``processing_ms``: decode +
+    imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
+    monotonic clock); ``queue_wait_ms``: receipt to the start of processing; ``publish_ms``: the
+    zenoh ``put`` of the track; ``stages_ms``: parts of the processing (``imaging``, ``estimator``);
+    ``pose_wait_ms``: time a frame waited for lagging telemetry;
+    ``capture_to_track_ms``: capture (boot clock) to track published, via TIMESYNC (null until
+    synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
+    rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
+    ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
+    ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
+    latest track's state in short.  ``warnings``: the conditions active now that an operator must
+    fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
+    empty when all is well.
+    """
+    t = last_track
+    return {
+        "schema": STATUS_SCHEMA,
+        "vehicle": vehicle,
+        "uptime_s": _num(uptime_s),
+        "frames": {
+            "in": int(frames_in),
+            "processed": int(frames_processed),
+            "dropped": int(frames_dropped),
+            "rejected": int(frames_rejected),
+            "published": int(tracks_published),
+            "queue_length": int(queue_length),
+        },
+        "processing_ms": dict(processing_ms),
+        "latency_ms": dict(latency_ms),
+        "pose_wait_ms": dict(pose_wait_ms),
+        "queue_wait_ms": None if queue_wait_ms is None else dict(queue_wait_ms),
+        "publish_ms": None if publish_ms is None else dict(publish_ms),
+        "stages_ms": None if stages_ms is None else {k: dict(v) for k, v in stages_ms.items()},
+        "capture_to_track_ms": None if capture_to_track_ms is None else dict(capture_to_track_ms),
+        "rejected": {str(k): int(v) for k, v in sorted(rejected.items())},
+        "link": None if link is None else _jsonable(link),
+        "cpu": {"share": _num(cpu_share), "pipeline_share": _num(pipeline_cpu_share), "cores": _cores()},
+        "estimator": estimator,
+        "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
+        "track": None if t is None else {
+            "time_boot_us": t.time_boot_us,
+            "state": t.state,
+            "track_id": t.track_id,
+            "has_los": t.los is not None,
+            "has_position": t.has_position,
+            "observable": t.observable,
+            "window_frames": t.window_frames,
+        },
+    }
+
+
+def _cores() -> int | None:
+    return os.cpu_count()
+
+
+def _jsonable(v):
+    if isinstance(v, Mapping):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, set, frozenset)):
+        return [_jsonable(x) for x in (sorted(v) if isinstance(v, (set, frozenset)) else v)]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return _num(v)
+    if v is None or isinstance(v, str):
+        return v
+    return str(v)
+

@@ -1,0 +1,586 @@
+"""The daemon as a MAVLink camera, pure: commands in -> replies, tracking requests and status out.
+
+No sockets, no pymavlink, no clocks: :mod:`onboard.io.gcs_link` translates COMMAND_LONG / COMMAND_INT
+into :class:`CameraCommand` and sends each :class:`Outgoing` with the pymavlink ``<msg>_send`` of the
+same name (``fields`` are that message's field names, in its wire units).  Times (``now_s``,
+``time_boot_ms``) are passed in.
+
+What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera discovery):
+
+* HEARTBEAT every ``heartbeat_interval_s`` as MAV_TYPE_CAMERA (30), MAV_AUTOPILOT_INVALID, from the
+  camera component (``gcs.component_id``, default 100 = MAV_COMP_ID_CAMERA) with the autopilot's
+  system id.  QGC handles camera messages only from components 100..105 (or the autopilot).
+* Requests, each answered by a COMMAND_ACK (MAV_RESULT) and, when ACCEPTED, the message:
+
+  =================================================  ======================================
+  command (param)                                    reply
+  =================================================  ======================================
+  MAV_CMD_REQUEST_MESSAGE (512) param1 = 259         CAMERA_INFORMATION
+  MAV_CMD_REQUEST_CAMERA_INFORMATION (521)           CAMERA_INFORMATION
+  REQUEST_MESSAGE 260 / REQUEST_CAMERA_SETTINGS 522  CAMERA_SETTINGS (mode video, no zoom/focus)
+  REQUEST_MESSAGE 261 / REQUEST_STORAGE_INF. 525     STORAGE_INFORMATION (storage_count 0: none)
+  REQUEST_MESSAGE 262 / REQUEST_CAMERA_CAPT. 527     CAMERA_CAPTURE_STATUS (idle)
+  REQUEST_MESSAGE 269 (param2 stream id, 0 = all)    VIDEO_STREAM_INFORMATION (when a stream is
+  / REQUEST_VIDEO_STREAM_INFORMATION 2504 (param1)   configured; else DENIED)
+  REQUEST_MESSAGE 270 / REQUEST_VIDEO_STREAM_ST. 2505 VIDEO_STREAM_STATUS
+  REQUEST_MESSAGE 275 / 276                          one CAMERA_TRACKING_*_STATUS now
+  SET_MESSAGE_INTERVAL (511) 275 / 276               ACCEPTED; param2 us, -1 stops, 0 = default
+  GET_MESSAGE_INTERVAL (510) param1 = message id     MESSAGE_INTERVAL (#244): interval_us of #275 / #276
+  / REQUEST_MESSAGE 244, param2 = message id         (-1 = off), of HEARTBEAT (0); 0 = "not available" for
+                                                     every other message (we stream none)
+  MAV_CMD_CAMERA_TRACK_POINT (2004)                  a :class:`TrackRequest`; ACK when the pipeline
+  MAV_CMD_CAMERA_TRACK_RECTANGLE (2005)              has decided (:meth:`CameraProtocol.complete`):
+  MAV_CMD_CAMERA_STOP_TRACKING (2010)                ACCEPTED, or FAILED with the reason
+  anything else                                      UNSUPPORTED
+  =================================================  ======================================
+
+  A request for a message id we do not produce is DENIED; a malformed parameter (NaN, a point
+  outside 0..1, a rectangle with no area) is DENIED; a tracking command for another camera id
+  (param "target camera ID" not 0 nor our component id) is DENIED.  A tracking request that the
+  pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED.
+  A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
+* CAMERA_INFORMATION: vendor/model, ``firmware_version``, focal length (mm) = ``fx_px x pixel
+  pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
+  a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
+  ``camera_device_id`` 0 (we are the camera component).
+* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type (RTPUDP 1 or MPEG_TS 3: ``uri`` is the UDP
+  port the ground station listens on, as QGC reads it), flags RUNNING | THERMAL, frame rate, bitrate,
+  resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``, encoding H264.
+* CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, at the
+  intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the
+  tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
+  #275's mode is the selection's (POINT for TRACK_POINT, RECTANGLE for TRACK_RECTANGLE and for an
+  automatic acquisition); fields of the other mode are NaN.  ACTIVE | COASTING (8) while the
+  tracker predicts.  #276 only for a position the estimator calls observable (unless
+  ``observable_only`` is off); ``camera_device_id`` 0 in both (common.xml: 0 = the sender is a
+  MAVLink camera, its component id identifies it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+from onboard.core.errors import InputError
+from onboard.core.selection import TrackRequest, TrackResult
+from onboard.core.track import Track, geo_status_fields, image_status_fields
+
+__all__ = [
+    "CameraIdentity",
+    "VideoStream",
+    "CameraCommand",
+    "Outgoing",
+    "TrackRequest",
+    "TrackResult",
+    "CameraProtocol",
+    "camera_information",
+]
+
+# common.xml numbers (a test checks them against pymavlink's dialect; the core does not import it)
+MAV_TYPE_CAMERA = 30
+MAV_AUTOPILOT_INVALID = 8
+MAV_STATE_ACTIVE = 4
+MAV_RESULT_ACCEPTED = 0
+MAV_RESULT_TEMPORARILY_REJECTED = 1
+MAV_RESULT_DENIED = 2
+MAV_RESULT_UNSUPPORTED = 3
+MAV_RESULT_FAILED = 4
+MAV_SEVERITY_WARNING = 4
+MAV_SEVERITY_INFO = 6
+
+MAV_CMD_GET_MESSAGE_INTERVAL = 510
+MAV_CMD_SET_MESSAGE_INTERVAL = 511
+MAV_CMD_REQUEST_MESSAGE = 512
+MAV_CMD_REQUEST_CAMERA_INFORMATION = 521
+MAV_CMD_REQUEST_CAMERA_SETTINGS = 522
+MAV_CMD_REQUEST_STORAGE_INFORMATION = 525
+MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS = 527
+MAV_CMD_CAMERA_TRACK_POINT = 2004
+MAV_CMD_CAMERA_TRACK_RECTANGLE = 2005
+MAV_CMD_CAMERA_STOP_TRACKING = 2010
+MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION = 2504
+MAV_CMD_REQUEST_VIDEO_STREAM_STATUS = 2505
+
+MSG_HEARTBEAT = 0
+MSG_MESSAGE_INTERVAL = 244
+MSG_CAMERA_INFORMATION = 259
+MSG_CAMERA_SETTINGS = 260
+MSG_STORAGE_INFORMATION = 261
+MSG_CAMERA_CAPTURE_STATUS = 262
+MSG_VIDEO_STREAM_INFORMATION = 269
+MSG_VIDEO_STREAM_STATUS = 270
+MSG_TRACKING_IMAGE_STATUS = 275
+MSG_TRACKING_GEO_STATUS = 276
+
+CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM = 256
+CAMERA_CAP_FLAGS_HAS_TRACKING_POINT = 512
+CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = 1024
+CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS = 2048
+VIDEO_STREAM_TYPE_RTPUDP = 1
+VIDEO_STREAM_TYPE_MPEG_TS = 3
+VIDEO_STREAM_STATUS_FLAGS_RUNNING = 1
+VIDEO_STREAM_STATUS_FLAGS_THERMAL = 2
+VIDEO_STREAM_ENCODING_H264 = 1
+CAMERA_MODE_VIDEO = 1
+CAMERA_TRACKING_MODE_NONE = 0
+CAMERA_TRACKING_MODE_POINT = 1
+CAMERA_TRACKING_MODE_RECTANGLE = 2
+CAMERA_TRACKING_STATUS_FLAGS_IDLE = 0
+
+TRACKING_FLAGS = (CAMERA_CAP_FLAGS_HAS_TRACKING_POINT | CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
+                  | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS)
+STATUSTEXT_MAX_CHARS = 50
+_TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, MAV_CMD_CAMERA_STOP_TRACKING)
+
+
+def _finite_positive(name: str, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise InputError(f"{name} must be a finite number > 0, got {v!r}")
+    return float(v)
+
+
+def _int_in(name: str, v, lo: int, hi: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise InputError(f"{name} must be an integer in {lo}..{hi}, got {v!r}")
+    return v
+
+
+@dataclass(frozen=True)
+class CameraIdentity:
+    """What CAMERA_INFORMATION says about the sensor.  Lengths in mm, resolution in px.
+
+    ``firmware_version``: uint32, (major << 24) | (minor << 16) | build, as QGC decodes it.
+    """
+
+    vendor_name: str
+    model_name: str
+    firmware_version: int
+    focal_length_mm: float
+    sensor_size_h_mm: float
+    sensor_size_v_mm: float
+    resolution_h_px: int
+    resolution_v_px: int
+
+    def __post_init__(self) -> None:
+        for name in ("vendor_name", "model_name"):
+            v = getattr(self, name)
+            if not isinstance(v, str) or not v or len(v.encode()) > 32:
+                raise InputError(f"CameraIdentity.{name} must be 1..32 bytes of text, got {v!r}")
+        _int_in("CameraIdentity.firmware_version", self.firmware_version, 0, 2**32 - 1)
+        for name in ("focal_length_mm", "sensor_size_h_mm", "sensor_size_v_mm"):
+            object.__setattr__(self, name, _finite_positive(f"CameraIdentity.{name}", getattr(self, name)))
+        _int_in("CameraIdentity.resolution_h_px", self.resolution_h_px, 1, 65535)
+        _int_in("CameraIdentity.resolution_v_px", self.resolution_v_px, 1, 65535)
+
+    @classmethod
+    def from_intrinsics(cls, fx_px: float, width_px: int, height_px: int, pixel_pitch_um: float,
+                        vendor_name: str = "irtrack", model_name: str = "IR tracker",
+                        firmware_version: int = 0) -> "CameraIdentity":
+        """Focal length and sensor size from the pinhole model and the detector's pixel pitch."""
+        pitch_mm = _finite_positive("pixel_pitch_um", pixel_pitch_um) / 1000.0
+        return cls(vendor_name, model_name, firmware_version, float(fx_px) * pitch_mm, width_px * pitch_mm,
+                   height_px * pitch_mm, int(width_px), int(height_px))
+
+
+@dataclass(frozen=True)
+class VideoStream:
+    """The one video stream we advertise (VIDEO_STREAM_INFORMATION).
+
+    ``stream_type``: VIDEO_STREAM_TYPE (RTPUDP 1, MPEG_TS 3); ``uri``: what the ground station opens
+    (for UDP types the port number it listens on, e.g. ``"5600"``); ``hfov_deg`` horizontal field of
+    view; ``thermal`` sets VIDEO_STREAM_STATUS_FLAGS_THERMAL.
+    """
+
+    stream_type: int
+    uri: str
+    framerate_hz: float
+    bitrate_bps: int
+    resolution_h_px: int
+    resolution_v_px: int
+    hfov_deg: float
+    name: str = "IR"
+    thermal: bool = True
+    encoding: int = VIDEO_STREAM_ENCODING_H264
+
+    def __post_init__(self) -> None:
+        if self.stream_type not in (VIDEO_STREAM_TYPE_RTPUDP, VIDEO_STREAM_TYPE_MPEG_TS):
+            raise InputError(f"VideoStream.stream_type must be RTPUDP (1) or MPEG_TS (3), got {self.stream_type!r}")
+        if not isinstance(self.uri, str) or not self.uri or len(self.uri.encode()) > 160:
+            raise InputError(f"VideoStream.uri must be 1..160 bytes of text, got {self.uri!r}")
+        object.__setattr__(self, "framerate_hz", _finite_positive("VideoStream.framerate_hz", self.framerate_hz))
+        _int_in("VideoStream.bitrate_bps", self.bitrate_bps, 0, 2**32 - 1)
+        _int_in("VideoStream.resolution_h_px", self.resolution_h_px, 1, 65535)
+        _int_in("VideoStream.resolution_v_px", self.resolution_v_px, 1, 65535)
+        hfov = _finite_positive("VideoStream.hfov_deg", self.hfov_deg)
+        if hfov >= 360.0:
+            raise InputError(f"VideoStream.hfov_deg must be below 360, got {hfov}")
+        object.__setattr__(self, "hfov_deg", hfov)
+
+    @property
+    def flags(self) -> int:
+        return VIDEO_STREAM_STATUS_FLAGS_RUNNING | (VIDEO_STREAM_STATUS_FLAGS_THERMAL if self.thermal else 0)
+
+
+@dataclass(frozen=True)
+class CameraCommand:
+    """A COMMAND_LONG / COMMAND_INT addressed to the camera (``params``: its 7 parameters as floats;
+    COMMAND_INT's x/y are passed as received, they are not used by any command we support)."""
+
+    command: int
+    params: tuple[float, float, float, float, float, float, float]
+    src_system: int
+    src_component: int
+
+    def __post_init__(self) -> None:
+        if len(self.params) != 7:
+            raise InputError(f"CameraCommand.params must be 7 numbers, got {len(self.params)}")
+        object.__setattr__(self, "params", tuple(float(p) for p in self.params))
+
+
+@dataclass(frozen=True)
+class Outgoing:
+    """One message to send: pymavlink name (``"command_ack"``), its fields, and to whom.
+
+    ``reply_to``: ``(system, component)`` of the requester (the adapter sends it on the endpoint the
+    request came from), or None for everybody (every ground-station endpoint).
+    """
+
+    msg: str
+    fields: Mapping[str, Any]
+    reply_to: tuple[int, int] | None = None
+
+
+def camera_information(identity: CameraIdentity, time_boot_ms: int, has_video: bool) -> dict[str, Any]:
+    """CAMERA_INFORMATION (#259) fields."""
+    flags = TRACKING_FLAGS | (CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM if has_video else 0)
+    return dict(
+        time_boot_ms=int(time_boot_ms) % 2**32,
+        vendor_name=_pad(identity.vendor_name, 32),
+        model_name=_pad(identity.model_name, 32),
+        firmware_version=identity.firmware_version,
+        focal_length=identity.focal_length_mm,
+        sensor_size_h=identity.sensor_size_h_mm,
+        sensor_size_v=identity.sensor_size_v_mm,
+        resolution_h=identity.resolution_h_px,
+        resolution_v=identity.resolution_v_px,
+        lens_id=0,
+        flags=flags,
+        cam_definition_version=0,
+        cam_definition_uri=b"",
+        gimbal_device_id=0,
+        camera_device_id=0,
+    )
+
+
+def _pad(text: str, n: int) -> list[int]:
+    """A uint8_t[n] char array (pymavlink packs lists of ints for those fields)."""
+    b = text.encode()[:n]
+    return list(b) + [0] * (n - len(b))
+
+
+def _interval_s(hz: float) -> float | None:
+    return None if hz <= 0 else 1.0 / hz
+
+
+@dataclass
+class _Pending:
+    request: TrackRequest
+    command: int
+    requester: tuple[int, int]
+    deadline_s: float
+
+
+@dataclass
+class CameraProtocol:
+    """The camera component's state machine.  Drive it from one thread:
+
+    * :meth:`handle` for each command addressed to us -> (replies, a :class:`TrackRequest` or None);
+    * :meth:`complete` with the pipeline's :class:`TrackResult` -> the deferred COMMAND_ACK;
+    * :meth:`tick` periodically -> heartbeat, due #275/#276, expired requests' ACKs.
+
+    ``width_px``/``height_px``: the image the normalised coordinates refer to.
+    ``image_status_hz`` / ``geo_status_hz``: default rates of #275 / #276 (0 = off until asked).
+    """
+
+    identity: CameraIdentity
+    width_px: int
+    height_px: int
+    component_id: int = 100
+    stream: VideoStream | None = None
+    image_status_hz: float = 10.0
+    geo_status_hz: float = 5.0
+    observable_only: bool = True
+    heartbeat_interval_s: float = 1.0
+    track_request_timeout_s: float = 1.0
+    interval_s: dict[int, float | None] = field(init=False)
+    counters: dict[str, int] = field(init=False, default_factory=dict)
+    last_refusal: str | None = field(init=False, default=None)
+    selection_mode: int = field(init=False, default=CAMERA_TRACKING_MODE_NONE)
+
+    def __post_init__(self) -> None:
+        _int_in("CameraProtocol.component_id", self.component_id, 1, 255)
+        for name in ("image_status_hz", "geo_status_hz"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise InputError(f"CameraProtocol.{name} must be a rate >= 0 Hz, got {v!r}")
+        self._default_interval_s = {MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
+                                    MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz)}
+        self.interval_s = dict(self._default_interval_s)
+        self._next_due_s = {m: -math.inf for m in self.interval_s}
+        self._next_hb_s = -math.inf
+        self._pending: dict[int, _Pending] = {}
+        self._next_request_id = 1
+        self._was_tracking = False
+        self._radius_norm = math.nan
+
+    # ------------------------------------------------------------------ commands
+
+    def handle(self, cmd: CameraCommand, now_s: float, time_boot_ms: int,
+               track: Track | None = None) -> tuple[list[Outgoing], TrackRequest | None]:
+        """Answer one command (``track``: the newest track, for a one-shot #275/#276 request)."""
+        self._count(f"cmd_{cmd.command}")
+        to = (cmd.src_system, cmd.src_component)
+        c, p = cmd.command, cmd.params
+        if c in _TRACK_COMMANDS:
+            return self._track_command(cmd, now_s)
+        if c == MAV_CMD_SET_MESSAGE_INTERVAL:
+            return [self._ack(c, self._set_interval(p[0], p[1], now_s), to)], None
+        if c == MAV_CMD_GET_MESSAGE_INTERVAL:
+            return self._reply_interval(c, p[0], to), None
+        if c == MAV_CMD_REQUEST_MESSAGE:
+            msg_id = _msg_id(p[0])
+            if msg_id == MSG_MESSAGE_INTERVAL:
+                return self._reply_interval(c, p[1], to), None
+            index = p[1] if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS) else 0.0
+            return self._request(c, msg_id, index, to, time_boot_ms, track), None
+        legacy = {
+            MAV_CMD_REQUEST_CAMERA_INFORMATION: MSG_CAMERA_INFORMATION,
+            MAV_CMD_REQUEST_CAMERA_SETTINGS: MSG_CAMERA_SETTINGS,
+            MAV_CMD_REQUEST_STORAGE_INFORMATION: MSG_STORAGE_INFORMATION,
+            MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS: MSG_CAMERA_CAPTURE_STATUS,
+            MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION: MSG_VIDEO_STREAM_INFORMATION,
+            MAV_CMD_REQUEST_VIDEO_STREAM_STATUS: MSG_VIDEO_STREAM_STATUS,
+        }
+        if c in legacy:
+            msg_id = legacy[c]
+            if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
+                return self._request(c, msg_id, p[0], to, time_boot_ms, track), None
+            if msg_id == MSG_STORAGE_INFORMATION:
+                ok = p[1] in (0.0, 1.0)  # param2 = request (MAV_BOOL); 0 from old senders is tolerated
+            else:
+                ok = p[0] in (0.0, 1.0)
+            if not ok:
+                return [self._ack(c, MAV_RESULT_DENIED, to)], None
+            return self._request(c, msg_id, 0.0, to, time_boot_ms, track), None
+        return [self._ack(c, MAV_RESULT_UNSUPPORTED, to)], None
+
+    def _request(self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int,
+                 track: Track | None) -> list[Outgoing]:
+        msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
+        if msgs is None:
+            return [self._ack(command, MAV_RESULT_DENIED, to)]
+        # the ACK first, then the message (common.xml: "the message is sent after the ACK")
+        return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + msgs
+
+    def _message(self, msg_id: int, index: float, time_boot_ms: int, track: Track | None) -> list[Outgoing] | None:
+        ms = int(time_boot_ms) % 2**32
+        if msg_id == MSG_CAMERA_INFORMATION:
+            return [Outgoing("camera_information", camera_information(self.identity, ms, self.stream is not None))]
+        if msg_id == MSG_CAMERA_SETTINGS:
+            return [Outgoing("camera_settings", dict(time_boot_ms=ms, mode_id=CAMERA_MODE_VIDEO, zoomLevel=math.nan,
+                                                     focusLevel=math.nan, camera_device_id=0))]
+        if msg_id == MSG_STORAGE_INFORMATION:
+            return [Outgoing("storage_information", dict(
+                time_boot_ms=ms, storage_id=1, storage_count=0, status=0, total_capacity=0.0, used_capacity=0.0,
+                available_capacity=0.0, read_speed=0.0, write_speed=0.0, type=0, name=b"", storage_usage=0))]
+        if msg_id == MSG_CAMERA_CAPTURE_STATUS:
+            return [Outgoing("camera_capture_status", dict(
+                time_boot_ms=ms, image_status=0, video_status=0, image_interval=0.0, recording_time_ms=0,
+                available_capacity=0.0, image_count=0, camera_device_id=0))]
+        if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
+            if self.stream is None or not math.isfinite(index) or index not in (0.0, 1.0):
+                return None
+            return [self._stream_message(msg_id)]
+        if msg_id == MSG_TRACKING_IMAGE_STATUS:
+            return [self._image_status(track)]
+        if msg_id == MSG_TRACKING_GEO_STATUS:
+            out = self._geo_status(track)
+            return None if out is None else [out]
+        return None
+
+    def _stream_message(self, msg_id: int) -> Outgoing:
+        s = self.stream
+        common = dict(stream_id=1, flags=s.flags, framerate=s.framerate_hz, resolution_h=s.resolution_h_px,
+                      resolution_v=s.resolution_v_px, bitrate=s.bitrate_bps, rotation=0, hfov=int(round(s.hfov_deg)),
+                      camera_device_id=0)
+        if msg_id == MSG_VIDEO_STREAM_STATUS:
+            return Outgoing("video_stream_status", common)
+        return Outgoing("video_stream_information", dict(common, count=1, type=s.stream_type,
+                                                         name=s.name.encode()[:32], uri=s.uri.encode()[:160],
+                                                         encoding=s.encoding))
+
+    def message_interval_us(self, msg_id: int) -> int:
+        """MESSAGE_INTERVAL.interval_us for ``msg_id``: #275 / #276 as set (-1 = off), the heartbeat's,
+        0 (common.xml: "not available") for every other message."""
+        if msg_id in self.interval_s:
+            every = self.interval_s[msg_id]
+            return -1 if every is None else int(round(every * 1e6))
+        if msg_id == MSG_HEARTBEAT:
+            return int(round(self.heartbeat_interval_s * 1e6))
+        return 0
+
+    def _reply_interval(self, command: int, p_msg_id: float, to) -> list[Outgoing]:
+        msg_id = _msg_id(p_msg_id)
+        if msg_id is None or msg_id > 0xFFFF:  # MESSAGE_INTERVAL.message_id is a uint16
+            return [self._ack(command, MAV_RESULT_DENIED, to)]
+        return [self._ack(command, MAV_RESULT_ACCEPTED, to),
+                Outgoing("message_interval", dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)),
+                         reply_to=to)]
+
+    def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
+        msg_id = _msg_id(p1)
+        if msg_id not in self.interval_s or not math.isfinite(p2) or p2 < -1:
+            return MAV_RESULT_DENIED
+        us = round(p2)
+        if us == -1:
+            self.interval_s[msg_id] = None
+        elif us == 0:
+            self.interval_s[msg_id] = self._default_interval_s[msg_id]
+        else:
+            self.interval_s[msg_id] = us / 1e6
+        self._next_due_s[msg_id] = now_s
+        return MAV_RESULT_ACCEPTED
+
+    def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
+        c, p, to = cmd.command, cmd.params, (cmd.src_system, cmd.src_component)
+        cam_param = {MAV_CMD_CAMERA_TRACK_POINT: p[3], MAV_CMD_CAMERA_TRACK_RECTANGLE: p[4],
+                     MAV_CMD_CAMERA_STOP_TRACKING: p[0]}[c]
+        if cam_param not in (0.0, float(self.component_id)):
+            return self._refuse(c, MAV_RESULT_DENIED, f"camera id {cam_param:g} is not this camera", to), None
+        for pend in self._pending.values():
+            if pend.command == c and pend.requester == to:
+                return [], None  # a retransmission of a request being decided: its ACK is coming
+        rid = self._next_request_id
+        self._next_request_id += 1
+        W, H = self.width_px, self.height_px
+        if c == MAV_CMD_CAMERA_TRACK_POINT:
+            x, y, r = p[0], p[1], p[2]
+            if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in (x, y, r)):
+                return self._refuse(c, MAV_RESULT_DENIED, f"point ({x:g}, {y:g}) radius {r:g} not in 0..1", to), None
+            req = TrackRequest(rid, "point", u_px=x * W, v_px=y * H, radius_px=max(r * W, 1.0))
+        elif c == MAV_CMD_CAMERA_TRACK_RECTANGLE:
+            x0, y0, x1, y1 = p[0], p[1], p[2], p[3]
+            if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
+                return self._refuse(c, MAV_RESULT_DENIED, f"rectangle ({x0:g},{y0:g})-({x1:g},{y1:g}) invalid", to), None
+            req = TrackRequest(rid, "rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H))
+        else:
+            req = TrackRequest(rid, "stop")
+        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s)
+        if c == MAV_CMD_CAMERA_TRACK_POINT:
+            self._radius_norm = p[2]
+        return [], req
+
+    def complete(self, result: TrackResult) -> list[Outgoing]:
+        """The pipeline decided ``result.request_id``: its COMMAND_ACK (and a STATUSTEXT when refused)."""
+        pend = self._pending.pop(result.request_id, None)
+        if pend is None:
+            return []  # expired already (ACKed TEMPORARILY_REJECTED)
+        if not result.accepted:
+            return self._refuse(pend.command, MAV_RESULT_FAILED, result.reason or "refused", pend.requester)
+        kind = pend.request.kind
+        self.selection_mode = {"point": CAMERA_TRACKING_MODE_POINT, "rectangle": CAMERA_TRACKING_MODE_RECTANGLE,
+                               "stop": CAMERA_TRACKING_MODE_NONE}[kind]
+        self._count(f"track_{kind}_accepted")
+        return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
+
+    def pending_requests(self) -> int:
+        return len(self._pending)
+
+    # ------------------------------------------------------------------ periodic
+
+    def tick(self, now_s: float, track: Track | None) -> list[Outgoing]:
+        """Heartbeat when due, expired tracking requests' ACKs, #275/#276 when due (``track``: the
+        newest one, None when there is none or it is stale)."""
+        out: list[Outgoing] = []
+        if now_s >= self._next_hb_s:
+            out.append(Outgoing("heartbeat", dict(type=MAV_TYPE_CAMERA, autopilot=MAV_AUTOPILOT_INVALID, base_mode=0,
+                                                  custom_mode=0, system_status=MAV_STATE_ACTIVE)))
+            self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
+        for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
+            pend = self._pending.pop(rid)
+            out += self._refuse(pend.command, MAV_RESULT_TEMPORARILY_REJECTED,
+                                "no frame to select on (no IR frames arriving)", pend.requester)
+        tracking = track is not None and track.state in ("tracking", "coasting")
+        if not tracking:
+            if self._was_tracking:  # one IDLE status: a ground station clears its box on it
+                out.append(self._image_status(None))
+                self._was_tracking = False
+            if self.selection_mode != CAMERA_TRACKING_MODE_NONE and track is not None and track.state == "lost":
+                self.selection_mode = CAMERA_TRACKING_MODE_NONE
+            return out
+        self._was_tracking = True
+        for msg_id, build in ((MSG_TRACKING_IMAGE_STATUS, self._image_status), (MSG_TRACKING_GEO_STATUS, self._geo_status)):
+            every = self.interval_s[msg_id]
+            if every is None or now_s < self._next_due_s[msg_id]:
+                continue
+            self._next_due_s[msg_id] = _next_due(self._next_due_s[msg_id], every, now_s)
+            msg = build(track)
+            if msg is not None:
+                out.append(msg)
+        return out
+
+    def _image_status(self, track: Track | None) -> Outgoing:
+        mode = self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
+        f = image_status_fields(track, self.width_px, self.height_px, mode=mode, radius=self._radius_norm)
+        return Outgoing("camera_tracking_image_status", dict(f, camera_device_id=0))
+
+    def _geo_status(self, track: Track | None) -> Outgoing | None:
+        f = geo_status_fields(track, observable_only=self.observable_only)
+        if f is None:
+            return None
+        return Outgoing("camera_tracking_geo_status", dict(
+            tracking_status=f["tracking_status"], lat=int(round(f["lat_deg"] * 1e7)), lon=int(round(f["lon_deg"] * 1e7)),
+            alt=f["alt_m"], h_acc=f["h_acc_m"], v_acc=f["v_acc_m"], vel_n=f["vel_n_mps"], vel_e=f["vel_e_mps"],
+            vel_d=f["vel_d_mps"], vel_acc=f["vel_acc_mps"], dist=f["dist_m"], hdg=f["hdg_rad"], hdg_acc=f["hdg_acc_rad"],
+            camera_device_id=0))
+
+    # ------------------------------------------------------------------ helpers
+
+    def _ack(self, command: int, result: int, to: tuple[int, int]) -> Outgoing:
+        self._count(f"ack_{result}")
+        return Outgoing("command_ack", dict(command=command, result=result, progress=0, result_param2=0,
+                                            target_system=to[0], target_component=to[1]), reply_to=to)
+
+    def _refuse(self, command: int, result: int, reason: str, to: tuple[int, int]) -> list[Outgoing]:
+        self.last_refusal = f"command {command}: {reason}"
+        text = f"irtrack: {reason}"[:STATUSTEXT_MAX_CHARS]
+        return [self._ack(command, result, to),
+                Outgoing("statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to)]
+
+    def _count(self, key: str) -> None:
+        self.counters[key] = self.counters.get(key, 0) + 1
+
+    def status(self) -> dict[str, Any]:
+        """For the status JSON: rates, selection mode, pending requests, the last refusal, counters."""
+        return {
+            "component_id": self.component_id,
+            "selection_mode": {0: "none", 1: "point", 2: "rectangle"}[self.selection_mode],
+            "image_status_interval_s": self.interval_s[MSG_TRACKING_IMAGE_STATUS],
+            "geo_status_interval_s": self.interval_s[MSG_TRACKING_GEO_STATUS],
+            "pending_track_requests": len(self._pending),
+            "last_refusal": self.last_refusal,
+            "counters": dict(self.counters),
+        }
+
+
+def _next_due(due_s: float, every_s: float, now_s: float) -> float:
+    """The next due time on the schedule; one that fell behind restarts from now instead of bursting."""
+    nxt = due_s + every_s
+    return nxt if nxt > now_s else now_s + every_s
+
+
+def _msg_id(p: float) -> int | None:
+    if not math.isfinite(p) or p != int(p) or not 0 <= p < 2**24:
+        return None
+    return int(p)

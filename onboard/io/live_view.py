@@ -1,0 +1,407 @@
+"""Live view: the daemon's (or a replay's) channels served over the Foxglove WebSocket protocol (adapter).
+
+``python -m onboard ... --live-view PORT`` (config ``live_view.port``), ``python -m onboard.replay FILE.mcap
+--live-view PORT`` and ``make demo`` (``LIVE_VIEW=PORT``) start a WebSocket server (foxglove-sdk,
+https://docs.foxglove.dev/docs/sdk/python; subprotocol ``foxglove.websocket.v1``) bound to
+``live_view.host`` (127.0.0.1 unless configured otherwise).  Foxglove: *Open connection* ->
+*Foxglove WebSocket* -> ``ws://127.0.0.1:PORT``.
+
+Channels: the recording's (:mod:`onboard.io.record`, same topics and schemas) plus three for display:
+
+=============================  ==========================  ==============================================
+topic                          schema                      what
+=============================  ==========================  ==============================================
+``irtrack/<v>/ir/frame``       ``foxglove.RawImage``       the IR frames as received
+``irtrack/<v>/track``          ``irtrack.track/2`` (JSON)  the tracks as published
+``irtrack/<v>/status``         ``irtrack.status/1`` (JSON) the status as published
+``/onboard/target_fix``        ``foxglove.LocationFix``    track positions (Map panel)
+``/onboard/camera_fix``        ``foxglove.LocationFix``    camera positions
+``/onboard/annotations``       ``foxglove.ImageAnnotations``  the box and centre on the frame (Image panel)
+``/onboard/scene``             ``foxglove.SceneUpdate``    3-D: camera frustum, line of sight, the target's
+                                                           1-sigma ellipsoid, both trails (frame ``ned``)
+``/tf``                        ``foxglove.FrameTransform`` ``ned`` in ``enu`` (so the 3-D panel shows up as up)
+=============================  ==========================  ==============================================
+
+**Never stalls the pipeline**: every ``on_*`` call appends to a bounded queue and returns; a publisher
+thread encodes and hands the messages to the SDK (whose own per-client backlog drops the oldest data
+for a slow client).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
+dropped and counted (:meth:`LiveView.stats`: ``dropped``, per kind).  Frames are only queued while a
+client subscribes to them.
+
+The geometry (frustum, line of sight, ellipsoid) is pure numpy, in the functions below.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import logging
+import math
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import quat_from_rotmat, rotmat_from_quat
+
+__all__ = ["LiveViewSettings", "LiveView", "ellipsoid_of_cov", "frustum_lines_ned", "los_segment_ned",
+           "SCENE_TOPIC", "ANNOTATIONS_TOPIC", "TF_TOPIC", "Q_ENU_FROM_NED"]
+
+log = logging.getLogger(__name__)
+
+SCENE_TOPIC = "/onboard/scene"
+ANNOTATIONS_TOPIC = "/onboard/annotations"
+TF_TOPIC = "/tf"
+NED_FRAME_ID = "ned"
+# x_enu = y_ned, y_enu = x_ned, z_enu = -z_ned; (w, x, y, z)
+Q_ENU_FROM_NED = quat_from_rotmat(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
+
+
+@dataclasses.dataclass(frozen=True)
+class LiveViewSettings:
+    """``port``: TCP port (0: any free one, see :attr:`LiveView.port`); ``host``: the address to bind.
+    ``queue_length``: items the publisher may lag behind; ``los_length_m``: the line of sight drawn
+    without a range; ``trail_points``: positions kept per trail; ``frustum_depth_m``: drawn camera size."""
+
+    port: int
+    host: str = "127.0.0.1"
+    queue_length: int = 32
+    los_length_m: float = 500.0
+    trail_points: int = 600
+    frustum_depth_m: float = 10.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
+            raise InputError(f"live_view.port: expected 0..65535, got {self.port!r}")
+        if not isinstance(self.host, str) or not self.host:
+            raise InputError(f"live_view.host: expected an address, got {self.host!r}")
+        if self.queue_length < 1 or self.trail_points < 2:
+            raise InputError("live_view: queue_length must be >= 1 and trail_points >= 2")
+        if not (self.los_length_m > 0 and self.frustum_depth_m > 0):
+            raise InputError("live_view: los_length_m and frustum_depth_m must be > 0")
+
+    @classmethod
+    def from_config(cls, lc, port: int | None = None) -> "LiveViewSettings":
+        """From an :class:`onboard.app.config.LiveViewConfig` (``port`` overrides ``lc.port``)."""
+        return cls(port=int(lc.port if port is None else port), host=lc.host, queue_length=lc.queue_length,
+                   los_length_m=lc.los_length_m, trail_points=lc.trail_points)
+
+
+# --------------------------------------------------------------------------- geometry (pure)
+
+
+def ellipsoid_of_cov(cov_ned_m2, n_sigma: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """The ``n_sigma`` ellipsoid of a 3x3 position covariance (NED, m^2): ``(diameters_m (3,),
+    q_ned_from_axes (w, x, y, z))``, the diameters along the axes the quaternion turns into NED
+    (eigenvectors, right-handed).  Negative eigenvalues (round-off) count as zero."""
+    c = np.asarray(cov_ned_m2, dtype=float)
+    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        raise InputError(f"covariance: expected a finite 3x3 matrix, got shape {c.shape}")
+    w, V = np.linalg.eigh(0.5 * (c + c.T))
+    if np.linalg.det(V) < 0:
+        V[:, 2] = -V[:, 2]
+    return 2.0 * n_sigma * np.sqrt(np.clip(w, 0.0, None)), quat_from_rotmat(V)
+
+
+def los_segment_ned(p_cam_ned_m, u_ned, length_m: float) -> np.ndarray:
+    """The two end points (2, 3) of the line of sight drawn ``length_m`` from the camera along ``u_ned``."""
+    p = np.asarray(p_cam_ned_m, dtype=float)
+    return np.stack([p, p + float(length_m) * np.asarray(u_ned, dtype=float)])
+
+
+def frustum_lines_ned(p_cam_ned_m, q_ned_from_cam, width_px: int, height_px: int, fx_px: float, fy_px: float,
+                      cx_px: float, cy_px: float, depth_m: float) -> np.ndarray:
+    """Line-list points (16, 3) of the camera's field of view as a pyramid ``depth_m`` deep (OpenCV
+    camera frame: x right, y down, z forward): apex to each image corner, then the corners' rectangle."""
+    corners_px = np.array([[0.0, 0.0], [width_px, 0.0], [width_px, height_px], [0.0, height_px]])
+    rays_cam = np.column_stack([(corners_px[:, 0] - cx_px) / fx_px, (corners_px[:, 1] - cy_px) / fy_px, np.ones(4)])
+    p = np.asarray(p_cam_ned_m, dtype=float)
+    far = p + depth_m * rays_cam @ rotmat_from_quat(q_ned_from_cam).T
+    out = []
+    for i in range(4):
+        out += [p, far[i]]
+    for i in range(4):
+        out += [far[i], far[(i + 1) % 4]]
+    return np.array(out)
+
+
+# --------------------------------------------------------------------------- the server
+
+
+class LiveView:
+    """A foxglove-sdk WebSocket server fed by non-blocking ``on_*`` calls (module docstring).
+
+    ``intrinsics``: a :class:`~onboard.core.frames.PinholeIntrinsics` for the frustum (None: no frustum)."""
+
+    def __init__(self, settings: LiveViewSettings, *, vehicle: str = "uav1", intrinsics=None) -> None:
+        if not isinstance(settings, LiveViewSettings):
+            raise InputError(f"LiveView needs LiveViewSettings, got {type(settings).__name__}")
+        self.settings = settings
+        self.vehicle = vehicle
+        self.intrinsics = intrinsics
+        self.frame_topic = f"irtrack/{vehicle}/ir/frame"
+        self.track_topic = f"irtrack/{vehicle}/track"
+        self.status_topic = f"irtrack/{vehicle}/status"
+        self._q: collections.deque = collections.deque()
+        self._cond = threading.Condition(threading.Lock())
+        self._frames_queued = 0
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._server = None
+        self._ctx = None
+        self._ch: dict[str, Any] = {}
+        self.published = 0
+        self.dropped = 0
+        self.dropped_by_kind: collections.Counter = collections.Counter()
+        self.errors = 0
+        self._pose = None  # the last frame's pose (publisher thread)
+        self._target_trail: collections.deque = collections.deque(maxlen=settings.trail_points)
+        self._camera_trail: collections.deque = collections.deque(maxlen=settings.trail_points)
+
+    # ------------------------------------------------------------------ life cycle
+
+    def start(self) -> None:
+        """Bind the server (an address in use raises :class:`InputError` naming it) and start the thread."""
+        import foxglove
+        from foxglove.channels import (FrameTransformChannel, ImageAnnotationsChannel, LocationFixChannel,
+                                       RawImageChannel, SceneUpdateChannel)
+
+        from onboard.io.record import CAMERA_FIX_TOPIC, JSON_SCHEMAS, TARGET_FIX_TOPIC
+
+        ctx = self._ctx = foxglove.Context()  # held: a collected context closes its channels
+        s = self.settings
+        try:
+            self._server = foxglove.start_server(name=f"irtrack {self.vehicle}", host=s.host, port=s.port, context=ctx)
+        except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a bind failure
+            raise InputError(f"live_view: cannot serve on {s.host}:{s.port}: {exc}") from None
+
+        def json_channel(topic: str, schema: str):
+            return foxglove.Channel(topic, schema=foxglove.Schema(name=schema, encoding="jsonschema",
+                                                                  data=_json_bytes(JSON_SCHEMAS[schema])),
+                                    message_encoding="json", context=ctx)
+
+        self._ch = {
+            "frame": RawImageChannel(self.frame_topic, context=ctx),
+            "track": json_channel(self.track_topic, "irtrack.track/2"),
+            "status": json_channel(self.status_topic, "irtrack.status/1"),
+            "target_fix": LocationFixChannel(TARGET_FIX_TOPIC, context=ctx),
+            "camera_fix": LocationFixChannel(CAMERA_FIX_TOPIC, context=ctx),
+            "annotations": ImageAnnotationsChannel(ANNOTATIONS_TOPIC, context=ctx),
+            "scene": SceneUpdateChannel(SCENE_TOPIC, context=ctx),
+            "tf": FrameTransformChannel(TF_TOPIC, context=ctx),
+        }
+        self._thread = threading.Thread(target=self._run, name="irtrack-live-view", daemon=True)
+        self._thread.start()
+        log.info("live view: ws://%s:%d (Foxglove WebSocket)", s.host, self.port)
+
+    @property
+    def port(self) -> int:
+        return int(self._server.port) if self._server is not None else self.settings.port
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout_s)
+        if self._server is not None:
+            self._server.stop()
+            self._server = None
+
+    def stats(self) -> dict[str, Any]:
+        with self._cond:
+            return {"port": self.port, "published": self.published, "dropped": self.dropped,
+                    "dropped_by_kind": dict(self.dropped_by_kind), "errors": self.errors}
+
+    # ------------------------------------------------------------------ producers (any thread)
+
+    def _put(self, kind: str, item: tuple) -> bool:
+        with self._cond:
+            if self._stop:
+                return False
+            if len(self._q) >= self.settings.queue_length or (kind == "frame" and self._frames_queued >= 1):
+                self.dropped += 1
+                self.dropped_by_kind[kind] += 1
+                return False
+            if kind == "frame":
+                self._frames_queued += 1
+            self._q.append((kind, item))
+            self._cond.notify()
+            return True
+
+    def on_frame(self, frame) -> bool:
+        """An :class:`~onboard.core.irframe.IrFrame` (its pixels must not change afterwards); only while watched."""
+        ch = self._ch.get("frame")
+        if ch is None or not ch.has_sinks():
+            return False
+        return self._put("frame", (frame,))
+
+    def on_pose(self, frame, pose) -> bool:
+        """The pose the pipeline used for ``frame`` (None when it had none): camera fix, frustum, trail."""
+        return self._put("pose", (int(frame.time_boot_us), pose))
+
+    def on_track(self, track, payload: bytes | None = None) -> bool:
+        """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
+        return self._put("track", (track, payload))
+
+    def on_status(self, payload: bytes) -> bool:
+        return self._put("status", (bytes(payload),))
+
+    # ------------------------------------------------------------------ publisher thread
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                while not self._q and not self._stop:
+                    self._cond.wait()
+                if not self._q:
+                    return
+                kind, item = self._q.popleft()
+                if kind == "frame":
+                    self._frames_queued -= 1
+            try:
+                getattr(self, f"_pub_{kind}")(*item)
+                with self._cond:
+                    self.published += 1
+            except Exception as exc:  # noqa: BLE001 - the live view must not die on one message
+                with self._cond:
+                    self.errors += 1
+                if self.errors == 1:
+                    log.exception("live view: cannot publish a %s (%s: %s); counted", kind, type(exc).__name__, exc)
+
+    def _pub_frame(self, frame) -> None:
+        from foxglove.messages import RawImage
+
+        from onboard.io.record import rawimage_fields
+
+        f = rawimage_fields(frame)
+        sec, nsec = f.pop("timestamp")
+        self._ch["frame"].log(RawImage(timestamp=_ts(sec, nsec), **f))
+
+    def _pub_status(self, payload: bytes) -> None:
+        self._ch["status"].log(payload)
+
+    def _pub_pose(self, t_us: int, pose) -> None:
+        from foxglove.messages import LocationFix
+
+        from onboard.core.frames import geodetic_from_ned
+
+        self._pose = pose
+        if pose is None:
+            return
+        p = np.asarray(pose.p_cam_ned_m, dtype=float)
+        if np.all(np.isfinite(p)):
+            self._camera_trail.append(p)
+            lat, lon, alt = geodetic_from_ned(p, pose.origin)
+            self._ch["camera_fix"].log(LocationFix(timestamp=_ts_us(t_us), frame_id="camera", latitude=float(lat),
+                                                   longitude=float(lon), altitude=float(alt)))
+
+    def _pub_track(self, track, payload: bytes | None) -> None:
+        from foxglove.messages import LocationFix
+
+        from onboard.io.record import _fix_fields
+        from onboard.core.track import track_to_bytes
+
+        self._ch["track"].log(payload if payload is not None else track_to_bytes(track))
+        if track.lat_deg is not None:
+            f = _fix_fields(track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2)
+            sec, nsec = f.pop("timestamp")
+            if "position_covariance_type" in f:
+                from foxglove.messages import LocationFixPositionCovarianceType
+
+                f["position_covariance_type"] = LocationFixPositionCovarianceType.Known
+            self._ch["target_fix"].log(LocationFix(timestamp=_ts(sec, nsec), **f))
+        self._pub_annotations(track)
+        self._pub_scene(track)
+
+    def _pub_annotations(self, track) -> None:
+        from foxglove.messages import (CircleAnnotation, Color, ImageAnnotations, Point2, PointsAnnotation,
+                                       PointsAnnotationType)
+
+        ts = _ts_us(track.time_boot_us)
+        points, circles = [], []
+        if track.bbox is not None:
+            x, y, w, h = track.bbox
+            points.append(PointsAnnotation(timestamp=ts, type=PointsAnnotationType.LineLoop, thickness=2.0,
+                                           outline_color=Color(**dict(zip("rgba", _STATE_RGBA.get(track.state, _GREY_RGBA)))),
+                                           points=[Point2(x=x, y=y), Point2(x=x + w, y=y), Point2(x=x + w, y=y + h),
+                                                   Point2(x=x, y=y + h)]))
+        if track.u_px is not None and track.v_px is not None:
+            circles.append(CircleAnnotation(timestamp=ts, position=Point2(x=track.u_px, y=track.v_px), diameter=4.0,
+                                            thickness=1.0, outline_color=Color(r=1.0, g=0.2, b=0.2, a=1.0)))
+        self._ch["annotations"].log(ImageAnnotations(circles=circles, points=points))
+
+    def _pub_scene(self, track) -> None:
+        from foxglove.messages import (Color, FrameTransform, LinePrimitive, LinePrimitiveLineType, Point3, Pose,
+                                       Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Vector3)
+
+        ts = _ts_us(track.time_boot_us)
+        s = self.settings
+
+        def pts(a) -> list:
+            return [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2])) for p in a]
+
+        def quat(q) -> Quaternion:
+            return Quaternion(w=float(q[0]), x=float(q[1]), y=float(q[2]), z=float(q[3]))
+
+        def entity(eid: str, **prims) -> SceneEntity:
+            return SceneEntity(timestamp=ts, frame_id=NED_FRAME_ID, id=eid, **prims)
+
+        ents = []
+        pose, K = self._pose, self.intrinsics
+        cam_lines = []
+        if pose is not None and K is not None and np.all(np.isfinite(pose.p_cam_ned_m)):
+            fr = frustum_lines_ned(pose.p_cam_ned_m, pose.q_ned_from_cam, K.width_px, K.height_px, K.fx_px, K.fy_px,
+                                   K.cx_px, K.cy_px, s.frustum_depth_m)
+            cam_lines.append(LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True,
+                                           points=pts(fr), color=Color(r=0.3, g=0.6, b=1.0, a=1.0)))
+        ents.append(entity("camera", lines=cam_lines))
+        los_lines = []
+        if track.los is not None:
+            length = track.range_m if track.range_m is not None and math.isfinite(track.range_m) else s.los_length_m
+            los_lines.append(LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=1.5, scale_invariant=True,
+                                           points=pts(los_segment_ned(track.los.p_cam_ned_m, track.los.u_ned, length)),
+                                           color=Color(r=1.0, g=0.9, b=0.2, a=0.9)))
+        ents.append(entity("line_of_sight", lines=los_lines))
+        spheres = []
+        if track.p_ned_m is not None:
+            p = np.asarray(track.p_ned_m, dtype=float)
+            self._target_trail.append(p)
+            size, q = (np.full(3, 2.0), np.array([1.0, 0.0, 0.0, 0.0]))
+            if track.cov_p_ned_m2 is not None:
+                size, q = ellipsoid_of_cov(track.cov_p_ned_m2)
+                size = np.maximum(size, 0.5)  # visible when tiny
+            color = Color(r=0.2, g=0.9, b=0.3, a=0.5) if track.observable else Color(r=1.0, g=0.5, b=0.1, a=0.35)
+            spheres.append(SpherePrimitive(pose=Pose(position=Vector3(x=p[0], y=p[1], z=p[2]), orientation=quat(q)),
+                                           size=Vector3(x=size[0], y=size[1], z=size[2]), color=color))
+        ents.append(entity("target", spheres=spheres))
+        for eid, trail, color in (("target_trail", self._target_trail, Color(r=0.2, g=0.9, b=0.3, a=0.8)),
+                                  ("camera_trail", self._camera_trail, Color(r=0.3, g=0.6, b=1.0, a=0.8))):
+            lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=1.0, scale_invariant=True,
+                                   points=pts(trail), color=color)] if len(trail) >= 2 else []
+            ents.append(entity(eid, lines=lines))
+        self._ch["scene"].log(SceneUpdate(entities=ents))
+        self._ch["tf"].log(FrameTransform(timestamp=ts, parent_frame_id="enu", child_frame_id=NED_FRAME_ID,
+                                          translation=Vector3(), rotation=quat(Q_ENU_FROM_NED)))
+
+
+def _ts(sec: int, nsec: int):
+    from foxglove.messages import Timestamp
+
+    return Timestamp(sec=int(sec), nsec=int(nsec))
+
+
+def _ts_us(t_us: int):
+    return _ts(int(t_us) // 1_000_000, (int(t_us) % 1_000_000) * 1000)
+
+
+def _json_bytes(obj) -> bytes:
+    import json
+
+    return json.dumps(obj).encode()
+
+
+_STATE_RGBA = {"tracking": (0.2, 1.0, 0.3, 1.0), "coasting": (1.0, 0.8, 0.1, 1.0), "lost": (1.0, 0.2, 0.2, 1.0)}
+_GREY_RGBA = (0.6, 0.6, 0.6, 1.0)

@@ -1,0 +1,1025 @@
+"""Thin pymavlink adapter: autopilot telemetry in, heartbeats / rate requests / tracking status out.
+
+Wire -> core translation happens here and only here (MAVLink common, v2 framing):
+
+* ``ATTITUDE_QUATERNION`` (#31): ``time_boot_ms * 1000`` -> ``time_boot_us``; ``(q1, q2, q3, q4)`` is
+  already ``q_ned_from_body`` (w, x, y, z; FRD body in NED); ``rollspeed, pitchspeed, yawspeed``
+  (rad/s, body FRD: common.xml) -> ``omega_frd_rps`` (the pose buffer extrapolates with them) ->
+  :meth:`PoseBuffer.add_attitude`.
+* ``GLOBAL_POSITION_INT`` (#33): ``lat``/``lon`` degE7 -> deg, ``alt`` mm AMSL -> m,
+  ``vx, vy, vz`` cm/s (north, east, down) -> ``v_ned_mps`` -> :meth:`PoseBuffer.add_position`.
+  Dropout sentinels (0, INT32_MAX) are passed through and rejected (counted) by the core.
+* ``GIMBAL_DEVICE_ATTITUDE_STATUS`` (#285), only when the pod is gimballed: ``q`` relative to the
+  earth frame when ``GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME`` (or, legacy, ``YAW_LOCK`` without
+  either frame flag) is set, else to the heading-turned "vehicle frame" ->
+  :meth:`PoseBuffer.add_gimbal_status`.  Stamped with ``time_boot_ms`` when the autopilot itself
+  sends it; a separate gimbal component has its own clock, so its samples are stamped on receipt
+  through :class:`ClockSync` instead.  ``angular_velocity_x/y/z`` (rad/s, same frame as ``q``; NaN =
+  unknown) -> ``omega_ref_rps``.  Requested at ``gimbal_rate_hz`` (50 Hz: a sample at most 20 ms
+  before any frame, so a frame's gimbal extrapolation stays within its horizon).
+* ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; answers feed :class:`ClockSync`;
+  the autopilot's requests are answered with ``tc1 = clock_ns()``.
+
+Out: ``HEARTBEAT`` at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER`` / ``MAV_AUTOPILOT_INVALID`` from
+component 191 (``MAV_COMP_ID_ONBOARD_COMPUTER``) with the autopilot's system id;
+``COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL, param1 = message id, param2 = interval us)``, one at a
+time (an ACK does not say which message it is for), retried every ``command_retry_s`` until
+``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot;
+``CAMERA_TRACKING_IMAGE_STATUS`` (#275) and ``CAMERA_TRACKING_GEO_STATUS`` (#276).
+
+Input (issue 12, hostile links): UDP links use a socket of our own and parse **each datagram
+alone** with a fresh parser, so a truncated or garbage datagram costs only itself
+(``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
+parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
+not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
+Output goes only to the locked autopilot's address (the source of its latest heartbeat, ``udpin``)
+or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
+system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkLinkConfig`.
+
+Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`` (no heartbeat for
+``heartbeat_timeout_s``) -> ``connected`` ...  :meth:`MavlinkLink.poll` never blocks and never
+raises on bad input: random bytes and bad CRCs come back from pymavlink as ``BAD_DATA`` and are
+counted as ``mavlink_bad_data``; anything else that throws is counted as ``mavlink_recv_error``.
+
+pymavlink note: MAVLink 2 is selected by ``MAVLINK20=1`` in the environment before the connection
+is made (pymavlink reads it there); this module sets it, which affects other pymavlink users in the
+same process (they get MAVLink 2 as well, which every current autopilot speaks).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import os
+import re
+import select
+import socket
+import time
+from collections import OrderedDict
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+from pymavlink.dialects.v20 import common as mavlink2
+
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.pose import ClockSync, GimbalReference, PoseBuffer, RejectCounter
+
+__all__ = [
+    "LINK_WAITING",
+    "LINK_CONNECTED",
+    "LINK_LOST",
+    "MavlinkEndpoint",
+    "parse_connection",
+    "MavlinkLinkConfig",
+    "LinkStatus",
+    "MavlinkLink",
+    "load_signing_key",
+    "signing_key_from_text",
+]
+
+log = logging.getLogger(__name__)
+
+LINK_WAITING = "waiting"
+LINK_CONNECTED = "connected"
+LINK_LOST = "lost"
+
+DEFAULT_CONNECTION = "udpin:127.0.0.1:14540"
+DEFAULT_SERIAL_BAUD = 115200
+
+MSG_ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
+MSG_ID_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
+MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS = mavlink2.MAVLINK_MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS  # 285
+
+_NOT_AUTOPILOT_TYPES = frozenset(
+    {
+        mavlink2.MAV_TYPE_GCS,
+        mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+        mavlink2.MAV_TYPE_GIMBAL,
+        mavlink2.MAV_TYPE_CAMERA,
+        mavlink2.MAV_TYPE_ADSB,
+    }
+)
+#: gimbal failures that make its reported attitude unusable (limits alone do not)
+_GIMBAL_BAD_ATTITUDE = (
+    mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR
+    | mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR
+    | mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING
+)
+_RESULT_NAMES = {
+    v: k[len("MAV_RESULT_"):] for k, v in vars(mavlink2).items() if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
+}
+
+
+# --------------------------------------------------------------------------- connection strings
+
+
+@dataclass(frozen=True)
+class MavlinkEndpoint:
+    """A parsed ``--mavlink`` value: ``kind`` (udpin, udpout, tcp, tcpin, serial), pymavlink ``device``, ``baud``."""
+
+    kind: str
+    device: str
+    baud: int = DEFAULT_SERIAL_BAUD
+
+
+_HOSTPORT = re.compile(r"^(?P<host>[^:\s]+):(?P<port>\d+)$")
+
+
+def parse_connection(connection: str, field: str = "--mavlink") -> MavlinkEndpoint:
+    """Validate a connection string.
+
+    Accepted: ``udpin:HOST:PORT`` (listen; the default ``udpin:0.0.0.0:14540``), ``udpout:HOST:PORT``,
+    ``udp:HOST:PORT`` (= udpin), ``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (listen),
+    ``serial:/dev/ttyX[:BAUD]`` (also ``serial:///dev/ttyX:BAUD``), ``/dev/ttyX[:BAUD]`` and
+    ``/dev/ttyX,BAUD``.  Raises :class:`ConfigError` naming ``field``.
+    """
+    if not isinstance(connection, str) or not connection.strip():
+        raise ConfigError(f"{field}: expected a MAVLink connection like {DEFAULT_CONNECTION!r}, got {connection!r}")
+    text = connection.strip()
+    for prefix in ("udpin", "udpout", "udp", "tcpin", "tcp"):
+        if text.startswith(prefix + ":"):
+            rest = text[len(prefix) + 1:]
+            m = _HOSTPORT.match(rest)
+            if not m or not 1 <= int(m["port"]) <= 65535:
+                raise ConfigError(f"{field}: {prefix} needs HOST:PORT with PORT in 1..65535, got {connection!r}")
+            kind = "udpin" if prefix == "udp" else prefix
+            return MavlinkEndpoint(kind, f"{kind}:{m['host']}:{int(m['port'])}")
+    if text.startswith("serial:"):
+        rest = text[len("serial:"):]
+        if rest.startswith("//"):
+            rest = rest[2:]
+        return _parse_serial(rest, connection, field)
+    if text.startswith("/dev/") or text.upper().startswith("COM"):
+        return _parse_serial(text, connection, field)
+    raise ConfigError(
+        f"{field}: unknown MAVLink connection {connection!r}; expected udpin:HOST:PORT, udpout:HOST:PORT, "
+        "tcp:HOST:PORT, tcpin:HOST:PORT or serial:/dev/ttyX[:BAUD]"
+    )
+
+
+def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
+    baud = DEFAULT_SERIAL_BAUD
+    m = re.match(r"^(?P<dev>[^,:]+)(?:[,:](?P<baud>[^,:]*))?$", rest)
+    if not m or not m["dev"]:
+        raise ConfigError(f"{field}: serial needs a device path like /dev/ttyS0[:BAUD], got {original!r}")
+    if m["baud"] is not None:
+        if not m["baud"].isdigit() or int(m["baud"]) <= 0:
+            raise ConfigError(f"{field}: serial baud must be a positive integer, got {m['baud']!r} in {original!r}")
+        baud = int(m["baud"])
+    return MavlinkEndpoint("serial", m["dev"], baud)
+
+
+# --------------------------------------------------------------------------- config and status
+
+
+@dataclass(frozen=True)
+class MavlinkLinkConfig:
+    """Timing and identity.  Seconds on the injected ``clock``; ids are MAVLink system/component ids.
+
+    ``autopilot_sysid``: the system to follow.  None: lock onto a system whose ``autopilot_compid``
+    heartbeats as an autopilot (MAV_TYPE not GCS/onboard/gimbal/camera/ADS-B, MAV_AUTOPILOT not INVALID)
+    for ``lock_settle_s`` (first to latest heartbeat, no gap over ``heartbeat_timeout_s``) while no
+    other system does so with two or more heartbeats (then nothing is locked and
+    ``autopilot_ambiguous`` is counted: pin the id).  A stray heartbeat cannot win.  After the lock,
+    another system heartbeating as an autopilot is counted (``second_autopilot``), never followed.
+
+    ``signing_key`` (32 bytes): MAVLink 2 signing on: unsigned, MAVLink 1, wrongly signed, replayed
+    and stale packets are refused and counted; everything we send is signed with ``signing_link_id``.
+    ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
+    (UDP links only; e.g. a ground-station endpoint of mavlink-router).
+    """
+
+    component_id: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
+    autopilot_sysid: int | None = None
+    autopilot_compid: int = mavlink2.MAV_COMP_ID_AUTOPILOT1
+    heartbeat_interval_s: float = 1.0
+    heartbeat_timeout_s: float = 5.0
+    command_retry_s: float = 1.0
+    timesync_interval_s: float = 1.0
+    reopen_interval_s: float = 2.0
+    gimbal_rate_hz: float = 50.0
+    max_outstanding_timesync: int = 16
+    lock_settle_s: float = 1.5
+    signing_key: bytes | None = field(default=None, repr=False)
+    signing_link_id: int = 0
+    extra_destinations: tuple[tuple[str, int], ...] = ()
+
+    def __post_init__(self) -> None:
+        for name in ("component_id", "autopilot_compid"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
+                raise ConfigError(f"MavlinkLinkConfig.{name} must be an integer in 1..255, got {v!r}")
+        if self.autopilot_sysid is not None and (
+            isinstance(self.autopilot_sysid, bool) or not isinstance(self.autopilot_sysid, int) or not 1 <= self.autopilot_sysid <= 255
+        ):
+            raise ConfigError(f"MavlinkLinkConfig.autopilot_sysid must be None or 1..255, got {self.autopilot_sysid!r}")
+        for name in ("heartbeat_interval_s", "heartbeat_timeout_s", "command_retry_s", "timesync_interval_s",
+                     "reopen_interval_s", "gimbal_rate_hz"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise ConfigError(f"MavlinkLinkConfig.{name} must be a positive number, got {v!r}")
+        if isinstance(self.lock_settle_s, bool) or not isinstance(self.lock_settle_s, (int, float)) \
+                or not math.isfinite(self.lock_settle_s) or self.lock_settle_s < 0:
+            raise ConfigError(f"MavlinkLinkConfig.lock_settle_s must be a number >= 0, got {self.lock_settle_s!r}")
+        if self.signing_key is not None and (not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32):
+            raise ConfigError("MavlinkLinkConfig.signing_key must be None or 32 bytes")
+        if isinstance(self.signing_link_id, bool) or not isinstance(self.signing_link_id, int) or not 0 <= self.signing_link_id <= 255:
+            raise ConfigError(f"MavlinkLinkConfig.signing_link_id must be an integer in 0..255, got {self.signing_link_id!r}")
+        for i, dest in enumerate(self.extra_destinations):
+            if (not isinstance(dest, tuple) or len(dest) != 2 or not isinstance(dest[0], str)
+                    or isinstance(dest[1], bool) or not isinstance(dest[1], int) or not 1 <= dest[1] <= 65535):
+                raise ConfigError(f"MavlinkLinkConfig.extra_destinations[{i}] must be (host, port 1..65535), got {dest!r}")
+        if not isinstance(self.max_outstanding_timesync, int) or self.max_outstanding_timesync <= 0:
+            raise ConfigError(f"MavlinkLinkConfig.max_outstanding_timesync must be a positive integer, got {self.max_outstanding_timesync!r}")
+
+
+@dataclass(frozen=True)
+class LinkStatus:
+    """Snapshot for the status topic.  ``rates_*`` are MAVLink message ids."""
+
+    state: str
+    autopilot_sysid: int | None
+    heartbeat_age_s: float | None
+    rates_confirmed: tuple[int, ...]
+    rates_pending: tuple[int, ...]
+    rates_refused: tuple[int, ...]
+    clock_synced: bool
+    messages_rx: int
+    link_losses: int
+    reboots: int
+
+
+@dataclass
+class _Inflight:
+    msg_id: int
+    interval_us: int
+    sent_s: float
+    attempts: int
+
+
+def _check_rate(name: str, v) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise ConfigError(f"MavlinkLink.{name} must be a positive rate in Hz, got {v!r}")
+    return float(v)
+
+
+# --------------------------------------------------------------------------- wire: parser and transports
+
+#: MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC
+_SIGNING_EPOCH_S = 1420070400
+#: a new signed stream may lag our signing clock by this much (pymavlink's rule), 10 us units
+_SIGNING_NEW_STREAM_LAG = 6_000_000
+_MAX_DATAGRAM_BYTES = 65535
+_STREAM_READ_BYTES = 4096
+#: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
+_MAX_DATAGRAM_PARSE_BYTES = 16 * 280
+
+
+class _Parser(mavlink2.MAVLink):
+    """pymavlink's parser with the signature checked before the replay table is touched.
+
+    pymavlink's own ``check_signature`` records a packet's timestamp before it compares the
+    signature, so one packet with a wrong key and a far-future timestamp would make every genuine
+    packet of that stream look replayed.  Here an entry is only made for a verified packet, which
+    also bounds ``stream_timestamps`` to the genuine (link id, system, component) streams.
+    ``sig_reject`` names why the last signed packet was refused.
+    """
+
+    sig_reject = ""
+
+    def check_signature(self, msgbuf, srcSystem, srcComponent):  # noqa: N803 - pymavlink's signature
+        signing = self.signing
+        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        if digest != bytes(msgbuf[-6:]):
+            self.sig_reject = "mavlink_signature_bad"
+            return False
+        link_id = msgbuf[-13]
+        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
+        timestamp = tlow + (thigh << 32)
+        key = (link_id, srcSystem, srcComponent)
+        last = signing.stream_timestamps.get(key)
+        if last is not None and timestamp <= last:
+            self.sig_reject = "mavlink_signature_replay"
+            return False
+        if last is None and timestamp + _SIGNING_NEW_STREAM_LAG < signing.timestamp:
+            self.sig_reject = "mavlink_signature_stale"
+            return False
+        signing.stream_timestamps[key] = timestamp
+        signing.timestamp = max(signing.timestamp, timestamp)
+        return True
+
+
+def _new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:
+    p = _Parser(file, src_system, src_component)
+    p.robust_parsing = True
+    p.signing = signing
+    return p
+
+
+def signing_key_from_text(text: str | bytes, field: str) -> bytes:
+    """A 32-byte MAVLink 2 signing key from 64 hex digits, 32 raw bytes, or a passphrase (SHA-256 of it,
+    as MAVProxy's ``signing setup`` and QGroundControl derive it).  Raises :class:`ConfigError` naming ``field``."""
+    if isinstance(text, bytes):
+        if len(text) == 32:
+            return bytes(text)
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError:
+            raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got {len(text)} undecodable bytes") from None
+    text = text.strip()
+    if not text:
+        raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got an empty key")
+    if re.fullmatch(r"[0-9a-fA-F]{64}", text):
+        return bytes.fromhex(text)
+    return hashlib.sha256(text.encode("utf-8")).digest()
+
+
+def load_signing_key(key_file: str | None, key_env: str | None, environ=None) -> bytes | None:
+    """The signing key named by the config (``mavlink.signing_key_file`` / ``mavlink.signing_key_env``), or
+    None when neither is set.  Reads the file or the environment: call it at the entry point."""
+    environ = os.environ if environ is None else environ
+    if key_file and key_env:
+        raise ConfigError("mavlink.signing_key_file: set either it or mavlink.signing_key_env, not both")
+    if key_file:
+        try:
+            with open(key_file, "rb") as fh:
+                data = fh.read(4096)
+        except OSError as exc:
+            raise ConfigError(f"mavlink.signing_key_file: cannot read {key_file!r}: {exc.strerror or exc}") from None
+        return signing_key_from_text(data if len(data) == 32 else data.strip(), f"mavlink.signing_key_file ({key_file})")
+    if key_env:
+        if key_env not in environ:
+            raise ConfigError(f"mavlink.signing_key_env: environment variable {key_env!r} is not set")
+        return signing_key_from_text(environ[key_env], f"mavlink.signing_key_env ({key_env})")
+    return None
+
+
+class _UdpTransport:
+    """One UDP socket of our own.  ``udpin`` binds HOST:PORT and answers only the locked autopilot's
+    address (``peer``); ``udpout`` sends to its fixed HOST:PORT.  Each datagram is parsed alone."""
+
+    datagrams = True
+
+    def __init__(self, kind: str, host: str, port: int, extra: tuple[tuple[str, int], ...]) -> None:
+        self.kind = kind
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.setblocking(False)
+        self.fixed: tuple[str, int] | None = None
+        try:
+            if kind == "udpin":
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                self.sock.bind((host, port))
+            else:
+                self.fixed = (socket.gethostbyname(host), port)
+        except Exception:
+            self.sock.close()
+            raise
+        self.peer: tuple[str, int] | None = None
+        self.extra = extra
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def read(self) -> tuple[bytes, object] | None:
+        try:
+            data, addr = self.sock.recvfrom(_MAX_DATAGRAM_BYTES)
+        except (BlockingIOError, InterruptedError):
+            return None
+        except ConnectionRefusedError:  # ICMP port unreachable from an earlier send: not our input
+            return b"", None
+        return data, addr
+
+    def write(self, buf: bytes) -> None:
+        dest = self.fixed if self.fixed is not None else self.peer
+        if dest is not None:
+            self.sock.sendto(buf, dest)
+        for addr in self.extra:
+            self.sock.sendto(buf, addr)
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class _StreamTransport:
+    """Serial or TCP through pymavlink's port classes, used only for bytes (its message store is never
+    fed); one parser per stream, kept across reads."""
+
+    datagrams = False
+
+    def __init__(self, conn) -> None:
+        self.conn = conn
+
+    def fileno(self) -> int | None:
+        fd = getattr(self.conn, "fd", None)
+        return fd
+
+    def read(self) -> tuple[bytes, object] | None:
+        fd = self.fileno()
+        if fd is not None:
+            r, _, _ = select.select([fd], [], [], 0)
+            if not r:
+                return None
+        data = self.conn.recv(_STREAM_READ_BYTES)
+        if not data:
+            return None
+        return bytes(data), None
+
+    def write(self, buf: bytes) -> None:
+        self.conn.write(buf)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+class _Writer:
+    """The ``file`` of the sending parser: whatever it packs goes to the transport (if open)."""
+
+    def __init__(self, link: "MavlinkLink") -> None:
+        self._link = link
+
+    def write(self, buf) -> None:
+        t = self._link._transport
+        if t is None:
+            raise OSError("link not open")
+        t.write(bytes(buf))
+
+
+# --------------------------------------------------------------------------- the adapter
+
+
+class MavlinkLink:
+    """The autopilot link.  Drive it with :meth:`poll` (drain input) and :meth:`tick` (timers).
+
+    ``pose_buffer`` receives the telemetry; ``counters`` counts rejected input (share it with the
+    buffer).  ``clock`` (s, monotonic) drives heartbeats, timeouts and retries and can be faked in
+    tests; ``clock_ns`` stamps TIMESYNC and must be the clock that stamps camera frames, so that
+    :meth:`to_boot_us` maps them onto the boot clock.
+    """
+
+    def __init__(
+        self,
+        connection: str,
+        pose_buffer: PoseBuffer,
+        counters: RejectCounter,
+        gimballed: bool = False,
+        att_rate_hz: float = 50.0,
+        pos_rate_hz: float = 25.0,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        clock_sync: ClockSync | None = None,
+        config: MavlinkLinkConfig | None = None,
+    ) -> None:
+        #: called with (bytes, link name, peer address) for every read, before parsing (the flight recorder)
+        self.raw_tap: Callable[[bytes, str, Any], Any] | None = None
+        self.endpoint = parse_connection(connection)
+        if bool(gimballed) != pose_buffer.mount.gimballed:
+            raise ConfigError(
+                f"MavlinkLink.gimballed={bool(gimballed)} disagrees with the pose buffer's mount "
+                f"(CameraMount.gimballed={pose_buffer.mount.gimballed}); take both from the same config"
+            )
+        self.config = config if config is not None else MavlinkLinkConfig()
+        self._pose = pose_buffer
+        self._counters = counters
+        self.gimballed = bool(gimballed)
+        #: GIMBAL_DEVICE_ATTITUDE_STATUS messages received, used or not (the watchdog's gimbal check)
+        self.gimbal_reports = 0
+        self._clock = clock
+        self._clock_ns = clock_ns
+        self.clock_sync = clock_sync if clock_sync is not None else ClockSync(counter=counters)
+        rates = [
+            (MSG_ID_ATTITUDE_QUATERNION, _check_rate("att_rate_hz", att_rate_hz)),
+            (MSG_ID_GLOBAL_POSITION_INT, _check_rate("pos_rate_hz", pos_rate_hz)),
+        ]
+        if self.gimballed:
+            rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, float(self.config.gimbal_rate_hz)))
+        self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
+
+        self._signing = mavlink2.MAVLinkSigning()
+        if self.config.signing_key is not None:
+            self._signing.secret_key = self.config.signing_key
+            self._signing.sign_outgoing = True
+            self._signing.link_id = self.config.signing_link_id
+            # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
+            self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
+        self._transport: _UdpTransport | _StreamTransport | None = None
+        self._stream_parser: _Parser | None = None
+        self._mav = _new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
+        self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
+        self._next_open_s = -math.inf
+        self.state = LINK_WAITING
+        self.autopilot_sysid: int | None = self.config.autopilot_sysid
+        self._last_hb_rx_s: float | None = None
+        self._last_hb_tx_s = -math.inf
+        self._last_ts_tx_s = -math.inf
+        self._rate_queue: list[int] = []
+        self._inflight: _Inflight | None = None
+        self.rates_confirmed: set[int] = set()
+        self.rates_refused: dict[int, int] = {}
+        self._ts_outstanding: OrderedDict[int, None] = OrderedDict()
+        self._seen_reboots = pose_buffer.reboots
+        self.messages_rx = 0
+        self.link_losses = 0
+        self._open(self._now())
+
+    # ------------------------------------------------------------------ plumbing
+
+    def _now(self) -> float:
+        return float(self._clock())
+
+    def _open(self, now: float) -> None:
+        ep = self.endpoint
+        try:
+            if ep.kind in ("udpin", "udpout"):
+                _, host, port = ep.device.split(":")
+                self._transport = _UdpTransport(ep.kind, host, int(port), self.config.extra_destinations)
+            else:
+                from pymavlink import mavutil  # imported here: no pymavlink state is touched at import time
+
+                os.environ["MAVLINK20"] = "1"
+                kwargs = dict(source_system=self.autopilot_sysid or 1, source_component=self.config.component_id,
+                              dialect="common")
+                if ep.kind == "tcp":
+                    kwargs.update(autoreconnect=True, retries=0, reconnect_delay=0.1)
+                if ep.kind == "serial":
+                    kwargs.update(baud=ep.baud)
+                self._transport = _StreamTransport(mavutil.mavlink_connection(ep.device, **kwargs))
+                self._stream_parser = _new_parser(self._signing)
+            log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
+        except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
+            self._transport = None
+            self._next_open_s = now + self.config.reopen_interval_s
+            self._counters.count("mavlink_open_failed", f"{ep.device}: {exc}")
+
+    def close(self) -> None:
+        if self._transport is not None:
+            try:
+                self._transport.close()
+            except Exception:  # noqa: BLE001
+                pass
+            self._transport = None
+
+    def __enter__(self) -> "MavlinkLink":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def fileno(self) -> int | None:
+        """The input file descriptor (for select), None while closed."""
+        return None if self._transport is None else self._transport.fileno()
+
+    @property
+    def peer_address(self):
+        """Where UDP output goes besides ``extra_destinations``: the locked autopilot's address (udpin)."""
+        t = self._transport
+        return None if t is None else (t.fixed if getattr(t, "fixed", None) else getattr(t, "peer", None))
+
+    def _send(self, what: str, fn, *args) -> bool:
+        if self._transport is None:
+            return False
+        try:
+            fn(*args)
+            return True
+        except Exception as exc:  # noqa: BLE001 - a send failure is counted, the loop goes on
+            self._counters.count("mavlink_send_error", f"{what}: {exc}")
+            return False
+
+    def _set_autopilot(self, sysid: int) -> None:
+        self.autopilot_sysid = sysid
+        self._mav.srcSystem = sysid
+        self._mav.srcComponent = self.config.component_id
+        log.info("autopilot is system %d; heartbeating as %d/%d", sysid, sysid, self.config.component_id)
+
+    # ------------------------------------------------------------------ input
+
+    def poll(self, max_messages: int = 200) -> int:
+        """Handle up to ``max_messages`` waiting messages (and at most as many reads) without blocking.
+
+        UDP: each datagram is parsed alone by a fresh parser, so a truncated or garbage datagram
+        costs only itself (``mavlink_truncated``, ``mavlink_bad_data``); datagrams over
+        ``_MAX_DATAGRAM_PARSE_BYTES`` are dropped unparsed (``mavlink_datagram_too_large``).
+        Serial/TCP: one parser per stream.  Returns how many messages were handled."""
+        if self._transport is None:
+            return 0
+        now = self._now()
+        handled = 0
+        reads = 0
+        while handled < max_messages and reads < max_messages:
+            reads += 1
+            try:
+                got = self._transport.read()
+            except Exception as exc:  # noqa: BLE001 - I/O errors are counted, never fatal
+                self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
+                break
+            if got is None:
+                break
+            data, addr = got
+            if data:
+                if self.raw_tap is not None:  # the flight recorder: the bytes as read, before any parsing
+                    self.raw_tap(data, "autopilot", addr)
+                handled += self._feed(data, addr, now)
+        if self.state == LINK_CONNECTED:
+            self._service_commands(now)
+        return handled
+
+    def _feed(self, data: bytes, addr, now: float) -> int:
+        datagram = self._transport.datagrams
+        if datagram:
+            if len(data) > _MAX_DATAGRAM_PARSE_BYTES:
+                self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
+                return 0
+            parser = _new_parser(self._signing)
+        else:
+            parser = self._stream_parser
+        n = 0
+        parser.sig_reject = ""
+        try:
+            msg = parser.parse_char(data)
+            while msg is not None:
+                n += 1
+                self._dispatch(msg, parser.sig_reject, addr, now)
+                parser.sig_reject = ""
+                msg = parser.parse_char(b"")
+        except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage
+            self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
+            if not datagram:
+                self._stream_parser = _new_parser(self._signing)
+        if datagram and parser.buf_len() > 0:
+            self._counters.count("mavlink_truncated", f"{parser.buf_len()} bytes left over in a datagram from {addr}")
+        return n
+
+    def _dispatch(self, msg, sig_reject: str, addr, now: float) -> None:
+        self.messages_rx += 1
+        try:
+            self._handle(msg, now, sig_reject, addr)
+        except Exception as exc:  # noqa: BLE001 - a message we cannot translate is counted and dropped
+            self._counters.count("mavlink_handler_error", f"{msg.get_type()}: {type(exc).__name__}: {exc}")
+        self._check_reboot(now)
+
+    def _handle(self, msg, now: float, sig_reject: str = "", addr=None) -> None:
+        mtype = msg.get_type()
+        if mtype == "BAD_DATA":
+            reason = str(getattr(msg, "reason", ""))
+            if reason == "Invalid signature":
+                raw = bytes(getattr(msg, "data", b"")[:1])
+                name = sig_reject or ("mavlink_v1_refused" if raw == b"\xfe" else "mavlink_unsigned")
+                self._counters.count(name, "packet refused: MAVLink 2 signing is on")
+            else:
+                self._counters.count("mavlink_bad_data", reason)
+            return
+        if mtype.startswith("UNKNOWN_"):
+            self._counters.count("mavlink_unknown_id", f"message id {mtype[len('UNKNOWN_'):]} not in the common dialect")
+            return
+        src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
+        if mtype == "HEARTBEAT":
+            self._on_heartbeat(msg, src_sys, src_comp, now, addr)
+            return
+        if self.autopilot_sysid is None or src_sys != self.autopilot_sysid:
+            return
+        from_autopilot = src_comp == self.config.autopilot_compid
+        if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
+            self._pose.add_attitude(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4),
+                                    (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+        elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
+            self._pose.add_position(
+                int(msg.time_boot_ms) * 1000,
+                msg.lat * 1e-7,
+                msg.lon * 1e-7,
+                msg.alt * 1e-3,
+                (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
+            )
+        elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
+            self.gimbal_reports += 1  # the watchdog checks it against the configured mount
+            if self.gimballed:
+                self._on_gimbal(msg, from_autopilot)
+        elif mtype == "TIMESYNC":
+            self._on_timesync(msg)
+        elif mtype == "COMMAND_ACK" and from_autopilot:
+            self._on_ack(msg, now)
+
+    def _settled(self, sysid: int, now: float) -> bool:
+        """Unpinned identity rule (see :class:`MavlinkLinkConfig`): True when ``sysid`` may be locked."""
+        timeout = self.config.heartbeat_timeout_s
+        c = self._candidates.get(sysid)
+        if c is None or now - c[1] > timeout:
+            c = self._candidates[sysid] = [now, now, 0]
+        c[1] = now
+        c[2] += 1
+        for s in [s for s, v in self._candidates.items() if now - v[1] > timeout]:
+            del self._candidates[s]
+        rivals = sorted(s for s, v in self._candidates.items() if s != sysid and v[2] >= 2)
+        if rivals and c[2] >= 2:
+            self._counters.count(
+                "autopilot_ambiguous",
+                f"systems {sorted([sysid, *rivals])} all heartbeat as autopilots; none followed: set mavlink.autopilot_sysid",
+            )
+            return False
+        return not rivals and now - c[0] >= self.config.lock_settle_s
+
+    def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float, addr=None) -> None:
+        if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
+            return
+        if src_comp != self.config.autopilot_compid:
+            return
+        if self.autopilot_sysid is None:
+            if not self._settled(src_sys, now):
+                return
+            self._candidates.clear()
+            self._set_autopilot(src_sys)
+        elif src_sys != self.autopilot_sysid:
+            self._counters.count(
+                "second_autopilot",
+                f"system {src_sys} heartbeats as an autopilot; following system {self.autopilot_sysid} only",
+            )
+            return
+        elif self._mav.srcSystem != src_sys:
+            self._set_autopilot(src_sys)
+        t = self._transport
+        if addr is not None and isinstance(t, _UdpTransport) and t.kind == "udpin" and t.peer != addr:
+            if t.peer is not None:
+                self._counters.count("autopilot_address_changed", f"system {src_sys}: {t.peer} -> {addr}")
+            else:
+                log.info("autopilot %d at %s:%d: our output goes there only", src_sys, *addr)
+            t.peer = addr
+        self._last_hb_rx_s = now
+        if self.state != LINK_CONNECTED:
+            previous = self.state
+            self.state = LINK_CONNECTED
+            if previous == LINK_LOST:
+                log.warning("autopilot %d back; re-requesting message rates", src_sys)
+            else:
+                log.info("autopilot %d connected", src_sys)
+            self._request_rates()
+            self._last_ts_tx_s = -math.inf
+
+    def _on_gimbal(self, msg, from_autopilot: bool) -> None:
+        if msg.failure_flags & _GIMBAL_BAD_ATTITUDE:
+            self._counters.count("gimbal_failure", f"failure_flags=0x{msg.failure_flags:x}")
+            return
+        flags = msg.flags
+        if flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME:
+            ref = GimbalReference.EARTH
+        elif flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME:
+            ref = GimbalReference.VEHICLE
+        elif flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK:
+            ref = GimbalReference.EARTH
+        else:
+            ref = GimbalReference.VEHICLE
+        if from_autopilot:
+            t_us = int(msg.time_boot_ms) * 1000
+        else:
+            t_us = self.clock_sync.to_boot_us(self._clock_ns())
+            if t_us is None:
+                self._counters.count("gimbal_clock_unsynced", "gimbal sample from a separate component before TIMESYNC")
+                return
+        self._pose.add_gimbal_status(t_us, tuple(msg.q), ref,
+                                     (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z))
+
+    def _on_timesync(self, msg) -> None:
+        now_ns = int(self._clock_ns())
+        if msg.tc1 == 0:
+            self._send("TIMESYNC reply", self._mav.timesync_send, now_ns, msg.ts1)
+            return
+        if msg.ts1 in self._ts_outstanding:
+            del self._ts_outstanding[msg.ts1]
+            self.clock_sync.add_exchange(int(msg.ts1), int(msg.tc1), now_ns)
+
+    def _on_ack(self, msg, now: float) -> None:
+        if msg.command != mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL or self._inflight is None:
+            return
+        tgt_sys = getattr(msg, "target_system", 0)
+        tgt_comp = getattr(msg, "target_component", 0)
+        if tgt_sys not in (0, self.autopilot_sysid) or tgt_comp not in (0, self.config.component_id):
+            return  # an answer to somebody else's command
+        inf = self._inflight
+        result = msg.result
+        if result == mavlink2.MAV_RESULT_ACCEPTED:
+            self.rates_confirmed.add(inf.msg_id)
+            self._inflight = None
+            log.info("rate of message %d set to %d us", inf.msg_id, inf.interval_us)
+        elif result == mavlink2.MAV_RESULT_IN_PROGRESS:
+            inf.sent_s = now
+        elif result == mavlink2.MAV_RESULT_TEMPORARILY_REJECTED:
+            pass  # retried on the next timeout
+        else:
+            self.rates_refused[inf.msg_id] = result
+            self._inflight = None
+            self._counters.count(
+                "rate_request_refused", f"message {inf.msg_id}: {_RESULT_NAMES.get(result, result)}"
+            )
+
+    def _check_reboot(self, now: float) -> None:
+        if self._pose.reboots != self._seen_reboots:
+            self._seen_reboots = self._pose.reboots
+            log.warning("autopilot reboot detected; clock sync reset, message rates re-requested")
+            self.clock_sync.reset()
+            self._ts_outstanding.clear()
+            if self.state == LINK_CONNECTED:
+                self._request_rates()
+
+    # ------------------------------------------------------------------ timers and output
+
+    def tick(self, now: float | None = None) -> None:
+        """Timers: heartbeat out, heartbeat timeout, rate-request retries, TIMESYNC requests, reopen."""
+        now = self._now() if now is None else float(now)
+        if self._transport is None:
+            if now >= self._next_open_s:
+                self._open(now)
+            return
+        if self.state == LINK_CONNECTED and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s:
+            self.state = LINK_LOST
+            self.link_losses += 1
+            self._inflight = None
+            self._rate_queue.clear()
+            self.rates_confirmed.clear()
+            self._ts_outstanding.clear()
+            self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
+        if self.autopilot_sysid is not None and now - self._last_hb_tx_s >= self.config.heartbeat_interval_s:
+            self._last_hb_tx_s = now
+            self._send(
+                "HEARTBEAT",
+                self._mav.heartbeat_send,
+                mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
+                mavlink2.MAV_AUTOPILOT_INVALID,
+                0,
+                0,
+                mavlink2.MAV_STATE_ACTIVE,
+            )
+        if self.state != LINK_CONNECTED:
+            return
+        self._service_commands(now)
+        if now - self._last_ts_tx_s >= self.config.timesync_interval_s:
+            self._last_ts_tx_s = now
+            ts1 = int(self._clock_ns())
+            self._ts_outstanding[ts1] = None
+            while len(self._ts_outstanding) > self.config.max_outstanding_timesync:
+                self._ts_outstanding.popitem(last=False)
+            self._send("TIMESYNC", self._mav.timesync_send, 0, ts1)
+
+    def _request_rates(self) -> None:
+        self.rates_confirmed.clear()
+        self.rates_refused.clear()
+        self._inflight = None
+        self._rate_queue = list(self.rate_plan)
+
+    def _service_commands(self, now: float) -> None:
+        inf = self._inflight
+        if inf is not None:
+            if now - inf.sent_s < self.config.command_retry_s:
+                return
+            inf.attempts += 1
+            inf.sent_s = now
+            self._send_interval(inf)
+            return
+        if not self._rate_queue:
+            return
+        mid = self._rate_queue.pop(0)
+        self._inflight = _Inflight(mid, self.rate_plan[mid], now, 0)
+        self._send_interval(self._inflight)
+
+    def _send_interval(self, inf: _Inflight) -> None:
+        self._send(
+            "SET_MESSAGE_INTERVAL",
+            self._mav.command_long_send,
+            self.autopilot_sysid,
+            self.config.autopilot_compid,
+            mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+            min(inf.attempts, 255),  # confirmation: 0 first, +1 per retransmission
+            float(inf.msg_id),
+            float(inf.interval_us),
+            0.0, 0.0, 0.0, 0.0,
+            0.0,  # param7 response target: flight-stack default
+        )
+
+    # ------------------------------------------------------------------ tracking status out
+
+    def send_tracking_image_status(
+        self,
+        tracking_status: int,
+        tracking_mode: int,
+        target_data: int = mavlink2.CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
+        point_x: float = math.nan,
+        point_y: float = math.nan,
+        radius: float = math.nan,
+        rec_top_x: float = math.nan,
+        rec_top_y: float = math.nan,
+        rec_bottom_x: float = math.nan,
+        rec_bottom_y: float = math.nan,
+        camera_device_id: int = 0,
+    ) -> bool:
+        """CAMERA_TRACKING_IMAGE_STATUS (#275).  Coordinates are normalised image units: x 0 = left ..
+        1 = right, y 0 = top .. 1 = bottom (``u_px / width_px``); NaN = unknown.  ``tracking_status``:
+        CAMERA_TRACKING_STATUS_FLAGS bits (IDLE 0, ACTIVE 1, ERROR 2, MTI 4, COASTING 8);
+        ``tracking_mode``: CAMERA_TRACKING_MODE (NONE 0, POINT 1, RECTANGLE 2); ``target_data``:
+        CAMERA_TRACKING_TARGET_DATA bits.  Returns True when written.  Bad values raise InputError.
+        """
+        _check_uint("tracking_status", tracking_status, 255)
+        if tracking_mode not in (0, 1, 2) or isinstance(tracking_mode, bool):
+            raise InputError(f"tracking_mode must be CAMERA_TRACKING_MODE 0, 1 or 2, got {tracking_mode!r}")
+        _check_uint("target_data", target_data, 255)
+        _check_uint("camera_device_id", camera_device_id, 6)
+        values = dict(point_x=point_x, point_y=point_y, radius=radius, rec_top_x=rec_top_x, rec_top_y=rec_top_y,
+                      rec_bottom_x=rec_bottom_x, rec_bottom_y=rec_bottom_y)
+        for name, v in values.items():
+            _check_optional(name, v, 0.0, 1.0)
+        if self._transport is None:
+            return False
+        return self._send(
+            "CAMERA_TRACKING_IMAGE_STATUS",
+            self._mav.camera_tracking_image_status_send,
+            int(tracking_status), int(tracking_mode), int(target_data),
+            *(float(v) for v in values.values()),
+            int(camera_device_id),
+        )
+
+    def send_follow_target(self, fields: dict) -> bool:
+        """FOLLOW_TARGET (#144) from :func:`onboard.io.follow.follow_target_fields`'s keyword arguments
+        (pymavlink's ``follow_target_send``); True when written."""
+        if self._transport is None:
+            return False
+        return self._send("FOLLOW_TARGET", lambda: self._mav.follow_target_send(**fields))
+
+    def send_tracking_geo_status(
+        self,
+        lat_deg: float,
+        lon_deg: float,
+        alt_m: float,
+        h_acc_m: float,
+        v_acc_m: float,
+        vel_n_mps: float,
+        vel_e_mps: float,
+        vel_d_mps: float,
+        vel_acc_mps: float,
+        dist_m: float = math.nan,
+        hdg_rad: float = math.nan,
+        hdg_acc_rad: float = math.nan,
+        tracking_status: int = mavlink2.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
+        camera_device_id: int = 0,
+    ) -> bool:
+        """CAMERA_TRACKING_GEO_STATUS (#276): target WGS84 lat/lon (deg, sent as degE7), altitude AMSL
+        (m), accuracies (m, m/s, rad; NaN = unknown), NED velocity (m/s; NaN = unknown), camera-target
+        distance (m) and heading (rad, NED).  Returns True when written.  Bad values raise InputError.
+        """
+        for name, v, lo, hi in (("lat_deg", lat_deg, -90.0, 90.0), ("lon_deg", lon_deg, -180.0, 180.0),
+                                ("alt_m", alt_m, -1e6, 1e6)):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+                raise InputError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
+        for name, v in (("h_acc_m", h_acc_m), ("v_acc_m", v_acc_m), ("vel_acc_mps", vel_acc_mps),
+                        ("dist_m", dist_m), ("hdg_acc_rad", hdg_acc_rad)):
+            _check_optional(name, v, 0.0, math.inf)
+        for name, v in (("vel_n_mps", vel_n_mps), ("vel_e_mps", vel_e_mps), ("vel_d_mps", vel_d_mps),
+                        ("hdg_rad", hdg_rad)):
+            _check_optional(name, v, -math.inf, math.inf)
+        _check_uint("tracking_status", tracking_status, 255)
+        _check_uint("camera_device_id", camera_device_id, 6)
+        if self._transport is None:
+            return False
+        return self._send(
+            "CAMERA_TRACKING_GEO_STATUS",
+            self._mav.camera_tracking_geo_status_send,
+            int(tracking_status),
+            int(round(lat_deg * 1e7)),
+            int(round(lon_deg * 1e7)),
+            float(alt_m), float(h_acc_m), float(v_acc_m),
+            float(vel_n_mps), float(vel_e_mps), float(vel_d_mps), float(vel_acc_mps),
+            float(dist_m), float(hdg_rad), float(hdg_acc_rad),
+            int(camera_device_id),
+        )
+
+    # ------------------------------------------------------------------ queries
+
+    def to_boot_us(self, local_ns: int) -> int | None:
+        """A ``clock_ns`` time (e.g. a frame stamp) on the autopilot boot clock; None until TIMESYNC converged."""
+        return self.clock_sync.to_boot_us(local_ns)
+
+    def status(self) -> LinkStatus:
+        now = self._now()
+        return LinkStatus(
+            state=self.state,
+            autopilot_sysid=self.autopilot_sysid,
+            heartbeat_age_s=None if self._last_hb_rx_s is None else now - self._last_hb_rx_s,
+            rates_confirmed=tuple(sorted(self.rates_confirmed)),
+            rates_pending=tuple(([self._inflight.msg_id] if self._inflight else []) + self._rate_queue),
+            rates_refused=tuple(sorted(self.rates_refused)),
+            clock_synced=self.clock_sync.synced,
+            messages_rx=self.messages_rx,
+            link_losses=self.link_losses,
+            reboots=self._pose.reboots,
+        )
+
+
+def _check_uint(name: str, v, hi: int) -> None:
+    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= hi:
+        raise InputError(f"{name} must be an integer in 0..{hi}, got {v!r}")
+
+
+def _check_optional(name: str, v, lo: float, hi: float) -> None:
+    """NaN (unknown) or a number in [lo, hi]."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise InputError(f"{name} must be a number or NaN, got {v!r}")
+    if math.isnan(v):
+        return
+    if not (lo <= v <= hi) or math.isinf(v):
+        raise InputError(f"{name} must be NaN or a finite number in [{lo}, {hi}], got {v!r}")

@@ -1,0 +1,269 @@
+"""Zenoh session plumbing shared by the simulator and the onboard daemon (thin adapter).
+
+Key expressions (``vehicle`` defaults to ``uav1``)::
+
+    irtrack/<vehicle>/ir/frame   IR frames, payload per onboard.core.irframe
+    irtrack/<vehicle>/track      track / 3-D estimate (JSON)
+    irtrack/<vehicle>/status     service status (JSON)
+
+Payload encodings name their schema (zenoh ``Encoding`` with a schema suffix), so generic recorders and
+bridges that keep only typed payloads keep ours: frames ``application/octet-stream;irtrack.irf1/1``
+(:data:`FRAME_ENCODING`, the IRF1 layout of :mod:`onboard.core.irframe`), tracks
+``application/json;irtrack.track/2``, status ``application/json;irtrack.status/1``.  Readers accept
+untyped payloads too (:func:`encoding_schema` is None for them); the daemon refuses only a frame whose
+encoding names another schema (``frame_schema``).
+
+Options map one to one onto the command line: ``--zenoh-connect ENDPOINT`` and
+``--zenoh-listen ENDPOINT`` (repeatable, zenoh locators such as ``tcp/127.0.0.1:7447``),
+``--zenoh-config FILE`` (a zenoh JSON5/JSON/YAML configuration).  Endpoints given on the command
+line are appended to those of the file.  Multicast scouting is off unless asked for (by the
+option, or by the file when the option is not given).  With no ``listen`` endpoint from either
+source the session listens on nothing (zenoh's own peer default is every interface on a random
+port), so a process that only connects opens no port.
+
+Behaviour measured with eclipse-zenoh 1.10 (peer mode):
+
+* A listen endpoint whose port is taken fails ``zenoh.open`` at once ("Address already in
+  use"): :func:`open_session` raises :class:`ZenohSessionError`.
+* A connect endpoint with nobody listening does NOT fail ``zenoh.open`` (it returns after
+  about 0.5 s) and zenoh keeps retrying in the background: a peer that starts later is joined
+  within about a second or two.  This is what the daemon wants (start before the simulator).
+  With ``connect_timeout_s`` set, the session instead requires a peer within that time
+  (zenoh ``connect/exit_on_failure`` + ``connect/timeout_ms``) and raises
+  :class:`ZenohSessionError` otherwise.
+* A malformed endpoint (``bogus``) is refused when inserted into the config: raises
+  :class:`ZenohConfigError`.  A well-formed but unresolvable host is accepted and retried.
+* A missing, unreadable, unknown-extension or invalid config file: :class:`ZenohConfigError`
+  naming the file.
+
+Both errors are :class:`~onboard.core.errors.IrtrackError`; entry points print them on one line and
+exit with code 2.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import re
+from dataclasses import dataclass
+
+import zenoh
+
+from onboard.core.errors import ConfigError, IrtrackError
+from onboard.core.track import STATUS_SCHEMA, TRACK_SCHEMA
+
+__all__ = [
+    "DEFAULT_VEHICLE",
+    "ZenohSettings",
+    "ZenohConfigError",
+    "ZenohSessionError",
+    "build_config",
+    "open_session",
+    "frame_key",
+    "track_key",
+    "status_key",
+    "check_vehicle_name",
+    "FRAME_SCHEMA",
+    "FRAME_ENCODING",
+    "TRACK_ENCODING",
+    "STATUS_ENCODING",
+    "encoding_schema",
+]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_VEHICLE = "uav1"
+FRAME_SCHEMA = "irtrack.irf1/1"  # the IRF1 frame, version 1 (onboard.core.irframe)
+FRAME_ENCODING = f"application/octet-stream;{FRAME_SCHEMA}"
+TRACK_ENCODING = f"application/json;{TRACK_SCHEMA}"
+STATUS_ENCODING = f"application/json;{STATUS_SCHEMA}"
+
+
+def encoding_schema(encoding) -> str | None:
+    """The schema a zenoh ``Encoding`` (or its text) names after ``;``; None for an untyped one."""
+    if encoding is None:
+        return None
+    return str(encoding).partition(";")[2] or None
+
+_VEHICLE_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
+_RUST_LOCATION_RE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+class ZenohConfigError(ConfigError):
+    """A zenoh option or config file is invalid (the message names it)."""
+
+
+class ZenohSessionError(IrtrackError):
+    """The zenoh session could not be opened (port in use, no peer within the timeout, ...)."""
+
+
+def _one_line(exc: BaseException) -> str:
+    """zenoh errors are multi-line and carry Rust source locations: keep the useful words."""
+    text = " ".join(part.strip() for part in str(exc).splitlines() if part.strip())
+    text = _RUST_LOCATION_RE.sub("", text)
+    return re.sub(r"\s+", " ", text).strip()
+
+
+def check_vehicle_name(vehicle: str) -> str:
+    """A vehicle name is one key-expression chunk: letters, digits, ``_ . -``; returns it."""
+    if not isinstance(vehicle, str) or not _VEHICLE_RE.match(vehicle):
+        raise ZenohConfigError(
+            f"vehicle name must be non-empty letters, digits, '_', '.', '-' (one zenoh key chunk), got {vehicle!r}"
+        )
+    return vehicle
+
+
+def frame_key(vehicle: str = DEFAULT_VEHICLE) -> str:
+    """``irtrack/<vehicle>/ir/frame``: IR frames (onboard.core.irframe wire format)."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/ir/frame"
+
+
+def track_key(vehicle: str = DEFAULT_VEHICLE) -> str:
+    """``irtrack/<vehicle>/track``: tracks and 3-D estimates, JSON."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/track"
+
+
+def status_key(vehicle: str = DEFAULT_VEHICLE) -> str:
+    """``irtrack/<vehicle>/status``: service status, JSON."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/status"
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """What the ``--zenoh-*`` options say.
+
+    connect, listen
+        Zenoh endpoints (``<protocol>/<address>[?<metadata>][#<config>]``), appended to the
+        file's.
+    config_file
+        Path of a zenoh config (``.json5``, ``.json`` or ``.yaml``), or None.
+    multicast_scouting
+        True/False forces it; None means off unless the config file enables it.
+    connect_timeout_s
+        None: opening never waits for a connect endpoint (zenoh retries in the background).
+        A positive number: opening fails unless a connect endpoint answers within it.
+    max_message_bytes
+        zenoh's own receive limit (``transport/link/rx/max_message_size``, default 1 GiB): a larger
+        message is dropped by the transport before the application sees it.  The daemon sets it from
+        ``input.max_frame_bytes`` (plus ``MESSAGE_OVERHEAD_BYTES``); None keeps the file's or zenoh's.
+    """
+
+    connect: tuple[str, ...] = ()
+    listen: tuple[str, ...] = ()
+    config_file: str | None = None
+    multicast_scouting: bool | None = None
+    connect_timeout_s: float | None = None
+    max_message_bytes: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("connect", "listen"):
+            value = getattr(self, name)
+            if isinstance(value, str):
+                raise ZenohConfigError(f"ZenohSettings.{name} must be a sequence of endpoints, not one string")
+            value = tuple(value)
+            for ep in value:
+                if not isinstance(ep, str) or "/" not in ep or not ep.split("/", 1)[1]:
+                    raise ZenohConfigError(
+                        f"--zenoh-{name} {ep!r}: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447"
+                    )
+            object.__setattr__(self, name, value)
+        if self.config_file is not None and not isinstance(self.config_file, (str, os.PathLike)):
+            raise ZenohConfigError(f"--zenoh-config must be a path, got {type(self.config_file).__name__}")
+        if self.multicast_scouting not in (None, True, False):
+            raise ZenohConfigError(f"ZenohSettings.multicast_scouting must be a bool or None, got {self.multicast_scouting!r}")
+        t = self.connect_timeout_s
+        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
+            raise ZenohConfigError(f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}")
+        m = self.max_message_bytes
+        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 1024):
+            raise ZenohConfigError(f"ZenohSettings.max_message_bytes must be None or an integer >= 1024, got {m!r}")
+
+
+#: key expression, encoding and framing of one zenoh put around its payload, bytes (generous)
+MESSAGE_OVERHEAD_BYTES = 4096
+
+
+def _insert(config, key: str, value, what: str) -> None:
+    try:
+        config.insert_json5(key, json.dumps(value))
+    except zenoh.ZError as exc:
+        raise ZenohConfigError(f"{what}: {_one_line(exc)}") from None
+
+
+def _file_list(config, key: str) -> list[str]:
+    """The file's endpoint list at ``key``; zenoh's per-mode defaults (a dict) count as none."""
+    try:
+        value = json.loads(config.get_json(key))
+    except Exception:  # noqa: BLE001 - absent key or odd JSON: treat as unset
+        return []
+    return [str(v) for v in value] if isinstance(value, list) else []
+
+
+def build_config(settings: ZenohSettings):
+    """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file."""
+    file_sets_listen = False
+    if settings.config_file is not None:
+        path = os.fspath(settings.config_file)
+        if not os.path.isfile(path):
+            raise ZenohConfigError(f"--zenoh-config {path}: no such file")
+        try:
+            config = zenoh.Config.from_file(path)
+        except zenoh.ZError as exc:
+            raise ZenohConfigError(f"--zenoh-config {path}: {_one_line(exc)}") from None
+        file_sets_listen = config.get_json("listen/endpoints") != zenoh.Config().get_json("listen/endpoints")
+        scouting_in_file = json.loads(config.get_json("scouting/multicast/enabled") or "null")
+    else:
+        config = zenoh.Config()
+        scouting_in_file = None
+
+    for name in ("connect", "listen"):
+        mine = list(getattr(settings, name))
+        if mine:
+            endpoints = _file_list(config, f"{name}/endpoints") + mine
+            for ep in mine:  # one at a time, so the error names the bad one
+                _insert(config, f"{name}/endpoints", [ep], f"--zenoh-{name} {ep!r}")
+            _insert(config, f"{name}/endpoints", endpoints, f"--zenoh-{name}")
+    if not settings.listen and not file_sets_listen:
+        _insert(config, "listen/endpoints", [], "listen/endpoints")
+
+    scouting = settings.multicast_scouting
+    if scouting is None:
+        scouting = bool(scouting_in_file)
+    _insert(config, "scouting/multicast/enabled", scouting, "scouting/multicast/enabled")
+
+    if settings.connect_timeout_s is not None:
+        _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")
+        _insert(config, "connect/timeout_ms", int(round(settings.connect_timeout_s * 1000)), "connect/timeout_ms")
+    if settings.max_message_bytes is not None:
+        _insert(config, "transport/link/rx/max_message_size", int(settings.max_message_bytes),
+                "transport/link/rx/max_message_size")
+    return config
+
+
+def open_session(settings: ZenohSettings):
+    """Open a zenoh session for ``settings``; typed, one-line errors (see the module docstring)."""
+    config = build_config(settings)
+    try:
+        session = zenoh.open(config)
+    except zenoh.ZError as exc:
+        msg = _one_line(exc)
+        low = msg.lower()
+        if "address already in use" in low or "address in use" in low:
+            where = ", ".join(settings.listen) or "the configured listen endpoint"
+            raise ZenohSessionError(f"zenoh: cannot listen on {where}: port already in use") from None
+        if "unable to connect" in low:
+            raise ZenohSessionError(
+                f"zenoh: no peer reachable at {', '.join(settings.connect) or 'the configured endpoints'}"
+                f" within {settings.connect_timeout_s:g} s"
+            ) from None
+        raise ZenohSessionError(f"zenoh: cannot open session: {msg}") from None
+    if settings.connect and settings.connect_timeout_s is None:
+        try:
+            peers = list(session.info.peers_zid()) + list(session.info.routers_zid())
+        except Exception:  # noqa: BLE001 - informational only
+            peers = []
+        if not peers:
+            log.info("zenoh: no peer at %s yet; zenoh keeps retrying in the background", ", ".join(settings.connect))
+    return session

@@ -1,0 +1,515 @@
+"""Per-frame processing, pure: IR frame -> pose at capture time -> imaging -> estimator -> Track.
+
+No sockets, no threads, no sleeping: the daemon (:mod:`onboard.app.service`) drives a
+:class:`FramePipeline` from its pipeline thread, and the lockstep evaluation drives the very same
+object frame by frame.  One call::
+
+    track = pipeline.process(frame, received_mono_ns)          # an IrFrame
+    track = pipeline.process_payload(payload, received_mono_ns)  # wire bytes, decoded here
+
+Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot clock):
+
+1. Admission (stateful, needs no pixels): frame size equals the configured camera; capture time
+   strictly increasing -- a frame at or before the last accepted time is a duplicate (same
+   ``seq``) or out of order and is refused; a capture time more than
+   ``input.time_reset_threshold_s`` after the last accepted one, or before it with the sequence still
+   moving forward, is an outlier (refused, ``frame_time_outlier``: one bad stamp costs one frame)
+   until ``TIME_CONFIRM_FRAMES`` such frames in a row agree with each other: then it is a clock step
+   or an autopilot reboot (accepted, ``frame_time_reset``; the estimator restarts); time moving forward with the sequence going back is a sender
+   restart (accepted).  ``input.sequence_restart_count`` refusals in a row are taken as a restart
+   too, so a stream never locks out for good.
+2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`).
+3. Pose at ``t`` (after imaging, so that late telemetry has more time to arrive): the optional
+   ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
+   (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
+4. Estimator: reset on a new track id (a new target association), on a lost track and on a reboot;
+   ``add`` only when the tracker's ``measurement_valid`` and a pose exist; otherwise ``predict``
+   (coasting, or no pose).
+5. Track: image fields always; the line of sight in local NED with its 1-sigma
+   (:func:`onboard.core.track.line_of_sight_ned`, from ``estimator.pixel_sigma_px`` and the attitude white
+   and bias sigmas) whenever there is a target centre and a pose, with or without an estimate;
+   position fields (WGS84 through :func:`onboard.core.frames.geodetic_from_ned`) whenever the estimate is
+   finite and an origin is known, ``observable`` grading them (``output.unobservable_positions:
+   false`` publishes them only when observable, as ``irtrack.track/1`` did).
+6. Residual consistency: ``residual_rms_norm`` is the estimator's own figure when it gives one (RMS
+   of the standardised residuals at its last model selection), else the RMS over the last
+   ``RESIDUAL_WINDOW_S`` of frames of ``|uv_measured - uv_projected| / s``, the estimate projected
+   through the frame's pose, per image axis, with ``s^2 = s_px^2 + f^2 (s_w^2 + s_b^2) +
+   f^2 s_perp^2 / range^2`` (``s_perp^2`` the estimate's position variance across the line of
+   sight, per axis).  About 1 or below when camera and noise model match; a mount or intrinsics
+   mismatch drives it far above (:mod:`onboard.app.watchdog` warns).
+
+Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
+in the shared :class:`~onboard.core.pose.RejectCounter`: ``frame_short``, ``frame_magic``,
+``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
+``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
+``frame_out_of_order``, ``frame_image``.  Notable accepted events: ``frame_time_reset``,
+``frame_sequence_reset``, ``frame_stream_restart``.  Estimator problems never refuse a frame: they
+are counted as ``estimator_input`` / ``estimator_error`` and the frame gets no 3-D.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import time
+from dataclasses import fields
+from typing import Any, Callable, Protocol
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
+from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
+from onboard.core.pose import PoseAt, RejectCounter
+from onboard.core.track import LineOfSight, RollingStats, Track, line_of_sight_ned
+
+__all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
+
+log = logging.getLogger(__name__)
+
+US_PER_S = 1_000_000
+SEQ_MOD = 2**32
+#: consecutive, mutually consistent frames far from the running clock that confirm a clock step
+TIME_CONFIRM_FRAMES = 3
+RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
+
+
+class FrameRejected(InputError):
+    """A frame refused by the pipeline; ``reason`` is the counter key without the ``frame_`` prefix."""
+
+    def __init__(self, reason: str, message: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
+class PoseSource(Protocol):
+    """What the pipeline needs of a pose buffer (:class:`~onboard.core.pose.PoseBuffer` is one)."""
+
+    def pose_at(self, time_boot_us: int) -> PoseAt | None: ...
+
+
+class Estimator(Protocol):
+    """The sliding-window estimator's interface (:class:`~onboard.estimation.sliding.SlidingWindowEstimator`)."""
+
+    def add(self, t_s: float, uv_px, intrinsics: PinholeIntrinsics, p_cam_ned_m, q_ned_from_cam): ...
+
+    def predict(self, t_s: float, p_cam_ned_m=None): ...
+
+    def reset(self) -> None: ...
+
+
+def make_tracker(config: Any):
+    """The image chain of ``config`` (a fresh :class:`~onboard.imaging.TargetTracker`, ``gcs.tracker_mode``)."""
+    from onboard.imaging import TargetTracker
+
+    return TargetTracker(config.imaging, mode=config.gcs.tracker_mode)
+
+
+def make_estimator(config: Any):
+    """The sliding-window estimator of ``config.estimator`` (None when disabled)."""
+    if not config.estimator.enabled:
+        return None
+    from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+
+    known = {f.name for f in fields(SlidingConfig)}
+    kwargs = {"window_s": config.estimator.window_s} if "window_s" in known else {}
+    kwargs.update(config.estimator.sliding)
+    return SlidingWindowEstimator(SlidingConfig(**kwargs), noise=config.estimator.noise_model())
+
+
+def _finite_estimate(est: Any) -> bool:
+    try:
+        return bool(
+            np.all(np.isfinite(est.p_ned_m))
+            and np.all(np.isfinite(est.v_ned_mps))
+            and np.all(np.isfinite(est.cov_p_ned_m2))
+            and math.isfinite(float(est.range_m))
+        )
+    except (AttributeError, TypeError, ValueError):
+        return False
+
+
+#: the configuration sections the pipeline reads (of the daemon's ``onboard.app.config.OnboardConfig``: the
+#: pipeline depends on their fields, not on the application's config class)
+CONFIG_SECTIONS = ("vehicle", "camera", "imaging", "gcs", "estimator", "input", "output")
+
+
+class FramePipeline:
+    """Frame -> Track, one call per frame (see the module docstring).  Not thread-safe.
+
+    ``config``: the daemon's :class:`OnboardConfig` (``OnboardConfig()`` for defaults).
+    ``pose_source``: has ``pose_at(time_boot_us)``; ``origin``: the local NED origin to report
+    (default: the pose's own origin).  ``tracker``: has ``update(pixels) -> TrackUpdate``.
+    ``estimator``: the sliding-window interface, or None (2-D only).  ``counter``: where refusals
+    are counted (default: the pose source's ``counter`` if it has one).  ``pose_wait``: called with
+    the frame time before the pose lookup (the daemon waits there for lagging telemetry).
+    ``clock_ns``: monotonic clock for the timing statistics.
+    """
+
+    def __init__(
+        self,
+        config: Any,
+        pose_source: PoseSource | None,
+        tracker,
+        estimator: Estimator | None = None,
+        origin: GeodeticOrigin | None = None,
+        *,
+        counter: RejectCounter | None = None,
+        pose_wait: Callable[[int], None] | None = None,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        stats_window: int = 1000,
+    ) -> None:
+        missing = [name for name in CONFIG_SECTIONS if not hasattr(config, name)]
+        if missing:
+            raise InputError(f"FramePipeline config lacks the section(s) {missing} "
+                             f"(an onboard.app.config.OnboardConfig has them), got {type(config).__name__}")
+        if origin is not None and not isinstance(origin, GeodeticOrigin):
+            raise InputError(f"FramePipeline origin must be a GeodeticOrigin or None, got {type(origin).__name__}")
+        self.config = config
+        self.vehicle = config.vehicle
+        self.intrinsics = config.camera.pinhole()
+        self.pose_source = pose_source
+        self.tracker = tracker
+        self.estimator = estimator
+        self.origin = origin
+        self.counter = counter if counter is not None else getattr(pose_source, "counter", None) or RejectCounter()
+        self.pose_wait = pose_wait
+        self._clock_ns = clock_ns
+        self.processing_ms = RollingStats(stats_window)
+        self.pose_wait_ms = RollingStats(stats_window)
+        self.imaging_ms = RollingStats(stats_window)
+        self.estimator_ms = RollingStats(stats_window)
+        self.frames_processed = 0
+        self.frames_rejected = 0
+        self.estimator_resets = 0
+        self.last_track: Track | None = None
+        self._last_seq: int | None = None
+        self._last_t_us: int | None = None
+        self._refused_in_row = 0
+        self._far_run: list[int] = []  # capture times of a run of far-off frames that may confirm a clock step
+        self._est_track_id: int | None = None
+        self._est_epoch: int | None = None
+        self._est_has_data = False
+        ec = config.estimator
+        self._pixel_sigma_px = float(ec.pixel_sigma_px)
+        self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
+        self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
+        self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
+        self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
+
+    # ------------------------------------------------------------------ public
+
+    def reset(self) -> None:
+        """Forget the stream (sequence/time), the track and the estimate; counters continue."""
+        self._last_seq = None
+        self._last_t_us = None
+        self._refused_in_row = 0
+        if hasattr(self.tracker, "reset"):
+            self.tracker.reset()
+        self._reset_estimator("pipeline reset")
+
+    def request_selection(self, request, on_done: Callable[[Any], None]) -> None:
+        """Queue an operator's :class:`~onboard.io.camera_protocol.TrackRequest` (point, rectangle or stop)
+        for the next processed frame; ``on_done`` gets its :class:`~onboard.io.camera_protocol.TrackResult`
+        from the thread that runs :meth:`process`.  Thread-safe (one deque append).
+
+        On that frame, before imaging: ``stop`` ends the track and holds the tracker idle (accepted);
+        ``point`` / ``rectangle`` select on the frame (:meth:`TargetTracker.select_point` /
+        ``select_rectangle``): found, the new track is this frame's and the 3-D estimate restarts;
+        nothing there, refused with the reason and the frame is tracked as usual.
+        """
+        self._selections.append((request, on_done))
+
+    def _apply_selections(self, pixels):
+        """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target."""
+        from onboard.core.selection import TrackResult
+
+        upd = None
+        while self._selections:
+            req, on_done = self._selections.popleft()
+            result = None
+            try:
+                if req.kind == "stop":
+                    if hasattr(self.tracker, "stop"):
+                        self.tracker.stop()
+                    upd = None
+                    self._reset_estimator("operator stop")
+                    result = TrackResult(req.request_id, True)
+                else:
+                    if req.kind == "point":
+                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px)
+                        where = f"within {req.radius_px:.0f} px of ({req.u_px:.0f}, {req.v_px:.0f})"
+                    else:
+                        sel = self.tracker.select_rectangle(pixels, req.rect_px)
+                        x0, y0, x1, y1 = req.rect_px
+                        where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
+                    if sel is None:
+                        result = TrackResult(req.request_id, False, f"no warm object {where} px")
+                    else:
+                        upd = sel
+                        self._reset_estimator(f"operator selection ({req.kind})")
+                        result = TrackResult(req.request_id, True, u_px=sel.u_px, v_px=sel.v_px)
+            except InputError as exc:
+                result = TrackResult(req.request_id, False, f"frame refused: {exc}")
+            except Exception as exc:  # noqa: BLE001 - a selection bug must not stop the frame loop
+                self.counter.count("selection_error", f"{type(exc).__name__}: {exc}")
+                result = TrackResult(req.request_id, False, f"selection failed: {type(exc).__name__}")
+            self.last_selection = {"kind": req.kind, "accepted": result.accepted, "reason": result.reason or None}
+            try:
+                on_done(result)
+            except Exception as exc:  # noqa: BLE001
+                self.counter.count("selection_error", f"on_done: {type(exc).__name__}: {exc}")
+        return upd
+
+    def process_payload(self, payload, received_mono_ns: int | None = None) -> Track:
+        """Decode a wire payload (:func:`onboard.core.irframe.decode_irframe`), then :meth:`process`."""
+        try:
+            frame = decode_irframe(payload, max_bytes=self.config.input.max_frame_bytes)
+        except IrFrameError as exc:
+            self._refuse(exc.reason, str(exc))
+        return self.process(frame, received_mono_ns)
+
+    def process(self, frame: IrFrame, received_mono_ns: int | None = None) -> Track:
+        """One frame -> its :class:`Track`; raises :class:`FrameRejected` (counted) for a refused frame."""
+        t0 = self._clock_ns()
+        if not isinstance(frame, IrFrame):
+            self._refuse("field", f"expected an IrFrame, got {type(frame).__name__}")
+        K = self.intrinsics
+        if frame.width_px != K.width_px or frame.height_px != K.height_px:
+            self._refuse("dims_mismatch", f"frame is {frame.width_px} x {frame.height_px}, the camera is "
+                         f"{K.width_px} x {K.height_px} (camera.intrinsics)")
+        self._admit(frame)
+
+        i0 = self._clock_ns()
+        try:
+            upd = self._apply_selections(frame.pixels) if self._selections else None
+            if upd is None:
+                upd = self.tracker.update(frame.pixels)
+        except InputError as exc:
+            self._refuse("image", f"tracker refused the frame: {exc}")
+        self.imaging_ms.add((self._clock_ns() - i0) / 1e6)
+        state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
+
+        t_us = frame.time_boot_us
+        waited_ns = 0
+        if self.pose_wait is not None and self.pose_source is not None:
+            w0 = self._clock_ns()
+            try:
+                self.pose_wait(t_us)
+            except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
+                self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
+            waited_ns = self._clock_ns() - w0
+        pose = None
+        if self.pose_source is not None:
+            try:
+                pose = self.pose_source.pose_at(t_us)
+            except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
+                self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
+
+        e0 = self._clock_ns()
+        est = self._estimate(upd, pose, t_us)
+        self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
+        track = self._track(frame, upd, state, pose, est)
+        self.last_track = track
+        self.frames_processed += 1
+        self._refused_in_row = 0
+        self.pose_wait_ms.add(waited_ns / 1e6)
+        self.processing_ms.add((self._clock_ns() - t0 - waited_ns) / 1e6)
+        return track
+
+    # ------------------------------------------------------------------ admission
+
+    def _refuse(self, reason: str, message: str):
+        self.frames_rejected += 1
+        self.counter.count(f"frame_{reason}", message)
+        raise FrameRejected(reason, message)
+
+    def _admit(self, frame: IrFrame) -> None:
+        seq, t = frame.seq, frame.time_boot_us
+        last_seq, last_t = self._last_seq, self._last_t_us
+        if last_t is None:
+            self._accept(seq, t)
+            return
+        seq_forward = 0 < (seq - last_seq) % SEQ_MOD < SEQ_MOD // 2
+        threshold_us = int(self.config.input.time_reset_threshold_s * US_PER_S)
+        if t > last_t + threshold_us or (t < last_t - threshold_us and seq_forward):
+            # far from the running clock: one such frame is an outlier; a run of TIME_CONFIRM_FRAMES
+            # frames agreeing with each other is a clock step (back: an autopilot reboot)
+            run = self._far_run
+            if run and run[-1] < t <= run[-1] + threshold_us:
+                run.append(t)
+            else:
+                run[:] = [t]
+            if len(run) < TIME_CONFIRM_FRAMES:
+                self._refuse("time_outlier", f"frame seq {seq} at time_boot_us {t} is {(t - last_t) / 1e6:+.3f} s "
+                                             f"from the last accepted one ({last_t})")
+            run.clear()
+            self.counter.count("frame_time_reset", f"capture time stepped {(t - last_t) / 1e6:+.3f} s with seq "
+                               f"{last_seq} -> {seq}, confirmed by {TIME_CONFIRM_FRAMES} frames; estimator restarted")
+            self._reset_estimator("time reset")
+            self._accept(seq, t)
+            return
+        if t > last_t:
+            if not seq_forward:
+                self.counter.count("frame_sequence_reset", f"seq {last_seq} -> {seq} while time moved forward; sender restarted")
+            self._accept(seq, t)
+            return
+        self._refused_in_row += 1
+        if self._refused_in_row >= self.config.input.sequence_restart_count:
+            self.counter.count("frame_stream_restart", f"{self._refused_in_row} frames in a row before the last "
+                               f"accepted one (seq {last_seq}, t {last_t} us): stream restarted")
+            self._reset_estimator("stream restart")
+            self._accept(seq, t)
+            return
+        if seq == last_seq:
+            self._refuse("duplicate", f"frame seq {seq} (time_boot_us {t}) again")
+        self._refuse("out_of_order", f"frame seq {seq} at time_boot_us {t} is not after seq {last_seq} at {last_t}")
+
+    def _accept(self, seq: int, t: int) -> None:
+        self._last_seq, self._last_t_us = seq, t
+        self._refused_in_row = 0
+        self._far_run.clear()
+
+    # ------------------------------------------------------------------ estimation
+
+    def _reset_estimator(self, why: str) -> None:
+        if self.estimator is not None and self._est_has_data:
+            try:
+                self.estimator.reset()
+            except Exception as exc:  # noqa: BLE001
+                self.counter.count("estimator_error", f"reset: {type(exc).__name__}: {exc}")
+            self.estimator_resets += 1
+            log.info("estimator reset: %s", why)
+        self._est_has_data = False
+        self._est_track_id = None
+        self._residuals.clear()
+
+    def _estimate(self, upd, pose: PoseAt | None, t_us: int):
+        if self.estimator is None:
+            return None
+        tid = upd.track_id
+        if tid is None:
+            if self._est_has_data:
+                self._reset_estimator("no track")
+            return None
+        if pose is not None:
+            if self._est_epoch is not None and pose.epoch != self._est_epoch:
+                self._reset_estimator("autopilot reboot")
+            self._est_epoch = pose.epoch
+        if tid != self._est_track_id:
+            if self._est_track_id is not None and self.config.estimator.reset_on_new_track:
+                self._reset_estimator(f"new track {tid}")
+            self._est_track_id = tid
+        t_s = t_us / US_PER_S
+        try:
+            if upd.measurement_valid and pose is not None:
+                self._est_has_data = True
+                return self.estimator.add(t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam)
+            if not self._est_has_data:
+                return None
+            return self.estimator.predict(t_s, None if pose is None else pose.p_cam_ned_m)
+        except InputError as exc:
+            self.counter.count("estimator_input", str(exc))
+        except Exception as exc:  # noqa: BLE001 - the estimator must never stop the frame loop
+            self.counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+        return None
+
+    # ------------------------------------------------------------------ output
+
+    def _origin(self, pose: PoseAt | None) -> GeodeticOrigin | None:
+        if self.origin is not None:
+            return self.origin
+        if pose is not None:
+            return pose.origin
+        return getattr(self.pose_source, "origin", None)
+
+    def _line_of_sight(self, upd, pose: PoseAt | None) -> LineOfSight | None:
+        if pose is None or upd.u_px is None:
+            return None
+        try:
+            return line_of_sight_ned((upd.u_px, upd.v_px), self.intrinsics, pose.q_ned_from_cam, pose.p_cam_ned_m,
+                                     self._pixel_sigma_px, self._attitude_sigma_rad)
+        except (InputError, ValueError, FloatingPointError) as exc:
+            self.counter.count("los_invalid", str(exc))
+            return None
+
+    def _residual_rms_norm(self, upd, pose: PoseAt | None, est, t_us: int) -> float | None:
+        """The estimator's ``residual_rms_norm`` if it has one, else ours (module docstring, step 6)."""
+        if est is None:
+            return None
+        theirs = getattr(est, "residual_rms_norm", math.nan)
+        if theirs is not None and math.isfinite(theirs):
+            return float(theirs)
+        if upd.measurement_valid and pose is not None and _finite_estimate(est):
+            z2 = self._standardised_residual_sq(upd, pose, est)
+            if z2 is not None:
+                self._residuals.append((t_us, z2))
+        while self._residuals and self._residuals[0][0] < t_us - RESIDUAL_WINDOW_S * US_PER_S:
+            self._residuals.popleft()
+        if not self._residuals:
+            return None
+        return math.sqrt(sum(z for _, z in self._residuals) / (2.0 * len(self._residuals)))
+
+    def _standardised_residual_sq(self, upd, pose: PoseAt, est) -> float | None:
+        K = self.intrinsics
+        R = rotmat_from_quat(pose.q_ned_from_cam)
+        d_ned = np.asarray(est.p_ned_m, dtype=float) - pose.p_cam_ned_m
+        rng = float(np.linalg.norm(d_ned))
+        uv = K.project(R.T @ d_ned)
+        if rng <= 0 or not np.all(np.isfinite(uv)):
+            return None  # the estimate behind the camera: no reprojection
+        los = d_ned / rng
+        C = np.asarray(est.cov_p_ned_m2, dtype=float)
+        perp_var_m2 = max(float(np.trace(C) - los @ C @ los), 0.0) / 2.0
+        f2 = K.fx_px * K.fy_px
+        s2 = self._pixel_sigma_px**2 + f2 * (self._attitude_sigma_rad**2 + perp_var_m2 / rng**2)
+        du, dv = upd.u_px - uv[0], upd.v_px - uv[1]
+        return float((du * du + dv * dv) / s2)
+
+    def _track(self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est) -> Track:
+        origin = self._origin(pose)
+        base = dict(
+            vehicle=self.vehicle,
+            seq=frame.seq,
+            time_boot_us=frame.time_boot_us,
+            state=state,
+            track_id=upd.track_id,
+            measurement_valid=bool(upd.measurement_valid),
+            u_px=upd.u_px,
+            v_px=upd.v_px,
+            bbox=upd.bbox,
+            pose_valid=pose is not None,
+            los=self._line_of_sight(upd, pose),
+            origin=origin,
+        )
+        if est is None:
+            return Track(**base)
+        base.update(observable=bool(est.observable), window_frames=int(est.window_frames),
+                    residual_rms_norm=self._residual_rms_norm(upd, pose, est, frame.time_boot_us))
+        show = est.observable or self.config.output.unobservable_positions
+        if not (show and origin is not None and _finite_estimate(est)):
+            return Track(**base)
+        try:
+            p = np.asarray(est.p_ned_m, dtype=float)
+            lat, lon, alt = geodetic_from_ned(p, origin)
+            lon = (float(lon) + 180.0) % 360.0 - 180.0
+            cov_v = getattr(est, "cov_v_ned_m2ps2", None)
+            ratio = getattr(est, "range_sigma_ratio", None)
+            return Track(
+                **base,
+                lat_deg=float(lat),
+                lon_deg=lon,
+                alt_m=float(alt),
+                p_ned_m=p,
+                v_ned_mps=est.v_ned_mps,
+                cov_p_ned_m2=est.cov_p_ned_m2,
+                cov_v_ned_m2ps2=cov_v if cov_v is not None and np.all(np.isfinite(cov_v)) else None,
+                range_m=float(est.range_m),
+                range_sigma_ratio=None if ratio is None or math.isnan(ratio) else float(ratio),
+                model=getattr(est, "model", None),
+            )
+        except (InputError, ValueError, TypeError) as exc:
+            self.counter.count("estimator_output_invalid", str(exc))
+            return Track(**base)

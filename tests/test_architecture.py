@@ -1,0 +1,156 @@
+"""The layout's rules (README "Where things are"), checked on the source with the ast module:
+
+- which package may import which (``ALLOWED``): the core imports no adapter, no application, and none of
+  zenoh, pymavlink, OpenCV, sockets, threads or processes; nothing in onboard imports groundsim or bench;
+- no import cycles between modules, function-local imports included (a cycle hidden in a function is
+  still a cycle).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGES = ("onboard", "groundsim", "bench")
+
+# room -> the rooms (and third-party top-level modules) it may import; a room is the longest matching prefix
+ALLOWED = {
+    "onboard.core": {"onboard.core"},
+    "onboard.imaging": {"onboard.core", "onboard.imaging"},
+    "onboard.estimation": {"onboard.core", "onboard.estimation"},
+    "onboard.pipeline": {"onboard.core", "onboard.imaging", "onboard.estimation", "onboard.pipeline"},
+    "onboard.io": {"onboard.core", "onboard.pipeline", "onboard.estimation", "onboard.io"},
+    "onboard.app": {"onboard"},
+    "onboard": {"onboard"},  # the entry-point shims
+    "groundsim.world": {"onboard.core", "groundsim.world"},
+    "groundsim.io": {"onboard.core", "onboard.io", "groundsim.world", "groundsim.io"},
+    "groundsim.evaluation": {"onboard", "groundsim"},
+    "groundsim.app": {"onboard", "groundsim"},
+    "groundsim": {"groundsim"},
+    "bench": {"onboard", "groundsim", "bench"},
+}
+# third-party or standard modules a room must not import
+FORBIDDEN = {
+    "onboard.core": {"zenoh", "pymavlink", "cv2", "av", "mcap", "foxglove", "socket", "threading", "multiprocessing",
+                     "subprocess", "asyncio"},
+    "onboard.imaging": {"zenoh", "pymavlink", "socket", "threading", "multiprocessing", "subprocess"},
+    "onboard.estimation": {"zenoh", "pymavlink", "cv2", "socket", "threading", "multiprocessing", "subprocess"},
+    "onboard.pipeline": {"zenoh", "pymavlink", "socket", "threading", "multiprocessing", "subprocess"},
+    "groundsim.world": {"zenoh", "pymavlink", "socket", "threading", "multiprocessing", "subprocess"},
+}
+# onboard must install and run without the simulator's packages (issue 10 item 6)
+ONBOARD_NEVER = {"groundsim", "bench", "jsbsim", "matplotlib", "tqdm", "dask", "pandas", "pyarrow"}
+# the one exception, a desk tool's option: `python -m onboard.replay --report` draws with the eval report's
+# plots when the simulator is installed, and says how to install it when not (ReportUnavailable, exit 2)
+EXCEPTIONS = {("onboard.app.replay", "groundsim.evaluation.flight_report")}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for p in sorted((REPO / pkg).rglob("*.py")):
+            rel = p.relative_to(REPO).with_suffix("")
+            parts = list(rel.parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = p
+    return out
+
+
+MODULES = _modules()
+
+
+def _imports(mod: str, path: Path) -> list[tuple[str, int]]:
+    """Every imported module name (absolute; relative ones resolved), function-local ones included."""
+    tree = ast.parse(path.read_text(), filename=str(path))
+    pkg = mod if path.name == "__init__.py" else mod.rpartition(".")[0]
+    out = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            out += [(a.name, node.lineno) for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = pkg.split(".")[: len(pkg.split(".")) - (node.level - 1)]
+                base = ".".join(anchor + ([base] if base else []))
+            out.append((base, node.lineno))
+            # ``from pkg import module`` imports the module
+            out += [(f"{base}.{a.name}", node.lineno) for a in node.names if f"{base}.{a.name}" in MODULES]
+    return out
+
+
+def _room(mod: str) -> str:
+    return max((r for r in ALLOWED if mod == r or mod.startswith(r + ".")), key=len)
+
+
+def _internal(name: str) -> str | None:
+    """The module of ours that ``name`` refers to (the longest known prefix), else None."""
+    parts = name.split(".")
+    for k in range(len(parts), 0, -1):
+        cand = ".".join(parts[:k])
+        if cand in MODULES:
+            return cand
+    return None
+
+
+def test_every_package_directory_is_a_package():
+    for pkg in PACKAGES:
+        for d in (REPO / pkg).rglob("*"):
+            if d.is_dir() and any(d.glob("*.py")) and "__pycache__" not in d.parts:
+                assert (d / "__init__.py").is_file(), f"{d} has modules but no __init__.py"
+
+
+@pytest.mark.parametrize("mod", sorted(MODULES))
+def test_module_imports_respect_the_layout(mod):
+    room = _room(mod)
+    bad = []
+    for name, line in _imports(mod, MODULES[mod]):
+        top = name.split(".")[0]
+        where = f"{MODULES[mod].relative_to(REPO)}:{line}"
+        if (mod, _internal(name)) in EXCEPTIONS:
+            continue
+        if top in PACKAGES:
+            target = _internal(name) or name
+            if not any(target == a or target.startswith(a + ".") for a in ALLOWED[room]):
+                bad.append(f"{where}: {room} may not import {target}")
+        if top in FORBIDDEN.get(room, ()):
+            bad.append(f"{where}: {room} may not import {top}")
+        if mod.startswith("onboard") and top in ONBOARD_NEVER:
+            bad.append(f"{where}: onboard may not import {top} (the onboard install has no simulator packages)")
+    assert not bad, "\n".join(bad)
+
+
+def test_there_are_no_import_cycles():
+    graph = {m: sorted({t for n, _ in _imports(m, p) if (t := _internal(n)) and t != m}) for m, p in MODULES.items()}
+    # a package's __init__ importing its own modules is not a cycle with them
+    for m in graph:
+        graph[m] = [t for t in graph[m] if not (MODULES[m].name == "__init__.py" and t.startswith(m + "."))]
+    state: dict[str, int] = {}
+    stack: list[str] = []
+    cycles = []
+
+    def visit(m):
+        state[m] = 1
+        stack.append(m)
+        for t in graph.get(m, ()):
+            if state.get(t) == 1:
+                cycles.append(" -> ".join(stack[stack.index(t):] + [t]))
+            elif t not in state:
+                visit(t)
+        stack.pop()
+        state[m] = 2
+
+    for m in sorted(graph):
+        if m not in state:
+            visit(m)
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+def test_the_checker_sees_function_local_and_relative_imports(tmp_path):
+    p = tmp_path / "m.py"
+    p.write_text("def f():\n    import zenoh\n    from onboard.core import frames\n")
+    names = [n for n, _ in _imports("onboard.core.fake", p)]
+    assert "zenoh" in names and "onboard.core.frames" in names
