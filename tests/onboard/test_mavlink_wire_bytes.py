@@ -182,5 +182,67 @@ def test_golden_file_covers_every_case():
     if os.environ.get("IRTRACK_WRITE_GOLDEN") == "1":
         pytest.skip("writing the golden file")
     golden = json.loads(GOLDEN.read_text())
-    assert set(golden) == {"vehicle_earth", "vehicle_vehicle", "autopilot_link", "camera_component"}
+    assert set(golden) == {"vehicle_earth", "vehicle_vehicle", "autopilot_link", "camera_component", "lockstep_feed"}
     assert all(np.all([len(h) > 0 for h in v]) for v in golden.values())
+
+
+# --------------------------------------------------------------------------- the lockstep eval's telemetry feed
+
+
+class _RecordingPose:
+    """What TelemetryFeed hands the pose buffer, as exact text (floats in hex)."""
+
+    def __init__(self) -> None:
+        self.calls: list[bytes] = []
+
+    @staticmethod
+    def _text(v) -> str:
+        if v is None:
+            return "None"
+        if isinstance(v, (int, np.integer)) and not isinstance(v, bool):
+            return str(int(v))
+        if isinstance(v, (float, np.floating)):
+            return float(v).hex()
+        if hasattr(v, "value"):  # GimbalReference
+            return str(v.value)
+        return "[" + ",".join(_RecordingPose._text(x) for x in np.asarray(v, dtype=float).ravel()) + "]"
+
+    def _add(self, name, *args) -> bool:
+        self.calls.append(f"{name}({';'.join(self._text(a) for a in args)})".encode())
+        return True
+
+    def add_attitude(self, *args):
+        return self._add("attitude", *args)
+
+    def add_position(self, *args):
+        return self._add("position", *args)
+
+    def add_gimbal_status(self, *args):
+        return self._add("gimbal", *args)
+
+
+class _TurningCore:
+    """SimCore's telemetry interface: a banking, climbing observer with a slewing gimbal, 120 Hz ticks."""
+
+    tick_rate_hz = 120.0
+    tick_count = 240
+
+    def vehicle_state(self, i: int) -> dict:
+        from onboard.core.frames import quat_from_euler, quat_multiply
+
+        t = i / self.tick_rate_hz
+        q_body = quat_from_euler(0.2 * math.sin(t), 0.05 * t, 1.0 + 0.3 * t)
+        return dict(time_boot_us=1_000_123 + round(t * 1e6), lat_deg=32.0 + 1.234567e-5 * t, lon_deg=118.8 - 3.3e-6 * t,
+                    alt_amsl_m=100.0 + 1.23456 * t, alt_rel_m=60.0 + t, v_ned_mps=np.array([10.0 + t, -3.456, -1.23456]),
+                    q_ned_from_body=q_body, body_rates_radps=np.array([0.2 * math.cos(t), 0.05, 0.3]), heading_rad=1.0,
+                    q_gimbal=quat_multiply(q_body, quat_from_euler(0.0, -0.3 - 0.1 * t, 0.2)))
+
+
+def test_lockstep_telemetry_feed_hands_the_pose_buffer_the_same_values():
+    from groundsim.evaluation.eval import TelemetryFeed
+
+    rec = _RecordingPose()
+    feed = TelemetryFeed(_TurningCore(), rec, gimballed=True)
+    while not feed.exhausted:
+        feed.feed_next()
+    _check("lockstep_feed", rec.calls)
