@@ -26,6 +26,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import faulthandler  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import signal  # noqa: E402
@@ -38,6 +39,7 @@ EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_CONFIG = 2
 SHUTDOWN_BUDGET_S = 1.8  # SIGTERM -> exit; the issue allows 2 s
+HARD_EXIT_MARGIN_S = 0.7  # past the budget: faulthandler dumps the stacks and exits (the timer could not)
 
 log = logging.getLogger("onboard")
 
@@ -161,6 +163,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         timer = threading.Timer(SHUTDOWN_BUDGET_S, _force_exit)
         timer.daemon = True
         timer.start()
+        # and if the timer cannot run (a thread stuck in native code holding the GIL, a log write blocked on a
+        # full pipe), faulthandler's own C thread dumps every thread's stack to stderr and exits with status 1,
+        # without the GIL: the hang is then diagnosable instead of a process that never ends
+        faulthandler.dump_traceback_later(SHUTDOWN_BUDGET_S + HARD_EXIT_MARGIN_S, exit=True)
 
     signal.signal(signal.SIGTERM, on_signal)
     signal.signal(signal.SIGINT, on_signal)
