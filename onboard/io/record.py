@@ -296,11 +296,12 @@ def _varint(n: int) -> bytes:
             return bytes(out)
 
 
-def rawimage_bytes(frame, header_cls=None) -> bytes:
-    """The serialized foxglove.RawImage of an :class:`~onboard.core.irframe.IrFrame` (:func:`rawimage_fields`),
-    with the pixels copied once: the protobuf library serializes the small fields, the ``data`` field
-    (tag, length, the pixel buffer) is appended by hand -- a protobuf parser merges the concatenation
-    into the same message (field order is free on the wire).  ``header_cls``: the RawImage class."""
+def rawimage_pieces(frame, header_cls=None) -> tuple[bytes, memoryview]:
+    """The serialized foxglove.RawImage of an :class:`~onboard.core.irframe.IrFrame` (:func:`rawimage_fields`) as two
+    buffers whose concatenation is the message, the pixels not copied: the protobuf library serializes the small
+    fields, the ``data`` field's tag and length are appended by hand (first buffer), the pixel buffer itself is the
+    second (a memoryview of the frame's array) -- a protobuf parser merges the concatenation into the same
+    message (field order is free on the wire).  ``header_cls``: the RawImage class."""
     if header_cls is None:
         from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as header_cls
     px = frame.pixels
@@ -311,7 +312,12 @@ def rawimage_bytes(frame, header_cls=None) -> bytes:
                      step=int(w * (2 if mono16 else 1)))
     msg.timestamp.seconds, msg.timestamp.nanos = t_us // 1_000_000, (t_us % 1_000_000) * 1000
     buf = memoryview(np.ascontiguousarray(px, dtype="<u2" if mono16 else np.uint8)).cast("B")
-    return b"".join((msg.SerializeToString(), _RAWIMAGE_DATA_TAG, _varint(buf.nbytes), buf))
+    return msg.SerializeToString() + _RAWIMAGE_DATA_TAG + _varint(buf.nbytes), buf
+
+
+def rawimage_bytes(frame, header_cls=None) -> bytes:
+    """:func:`rawimage_pieces` joined: the serialized foxglove.RawImage of a frame, the pixels copied once."""
+    return b"".join(rawimage_pieces(frame, header_cls))
 
 
 def irframe_from_rawimage(seq: int, img, where: str = "frame"):
@@ -472,6 +478,9 @@ class FlightRecorder:
         self._q: collections.deque = collections.deque()
         self._cond = threading.Condition(threading.Lock())
         self._queued_bytes = 0
+        # the writer is woken when a chunk's worth is queued or at its flush deadline, not per message: a wake-up
+        # per message (6 a frame) cost the writer and the callers GIL hand-offs (python -m bench.record)
+        self._wake_bytes = min(settings.chunk_bytes, settings.queue_bytes // 4)
         self._stop = False
         self._thread: threading.Thread | None = None
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
@@ -513,7 +522,8 @@ class FlightRecorder:
             if self._queued_bytes > self.max_queue_bytes:
                 self.max_queue_bytes = self._queued_bytes
             self._q.append((kind, topic, nbytes, item))
-            self._cond.notify()
+            if self._queued_bytes >= self._wake_bytes:
+                self._cond.notify()  # a chunk's worth: the writer turns (else at its flush deadline)
             return True
 
     def on_mavlink(self, data: bytes, link: str = "autopilot", source=None, direction: str = "rx",
@@ -582,7 +592,7 @@ class FlightRecorder:
         next_flush = time.monotonic() + s.flush_interval_s
         while True:
             with self._cond:
-                while not self._q and not self._stop:
+                while self._queued_bytes < self._wake_bytes and not self._stop:
                     left = next_flush - time.monotonic()
                     if left <= 0:
                         break
@@ -601,9 +611,10 @@ class FlightRecorder:
                         log.exception("recorder: cannot write a %s message (%s: %s); counted", kind, type(exc).__name__, exc)
             now = time.monotonic()
             try:
-                if self._writer is not None and now >= next_flush:
-                    self._writer.flush()
+                if now >= next_flush:
                     next_flush = now + s.flush_interval_s
+                    if self._writer is not None:
+                        self._writer.flush()
                 self._maybe_sync()
                 self._maybe_rotate()
             except Exception as exc:  # noqa: BLE001
@@ -614,16 +625,17 @@ class FlightRecorder:
                 return
 
     def _open(self, index: int) -> None:
-        from mcap.writer import CompressionType, Writer
+        from onboard.io.mcap_chunks import ChunkWriter
 
         s = self.settings
         path = rotated_path(s.path, index)
         d = os.path.dirname(os.path.abspath(path))
         os.makedirs(d, exist_ok=True)
-        self._file = open(path, "wb")
-        comp = {"none": CompressionType.NONE, "lz4": CompressionType.LZ4, "zstd": CompressionType.ZSTD}[s.compression]
-        # no CRCs: the chunk CRC alone is ~0.1 ms per 330 kB frame (MCAP: a CRC of 0 means "not computed")
-        self._writer = Writer(self._file, chunk_size=s.chunk_bytes, compression=comp, enable_crcs=False)
+        self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)
+        # the mcap package's layout, the frames' pixels written from where they lie (onboard.io.mcap_chunks); no CRCs:
+        # the chunk CRC alone is ~0.1 ms per 330 kB frame (MCAP: a CRC of 0 means "not computed")
+        self._writer = ChunkWriter(self._file.fileno(), chunk_size=s.chunk_bytes, compression=s.compression,
+                                   enable_crcs=False)
         self._writer.start(profile="", library="irtrack onboard.io.record")
         meta = dict(self._meta)
         meta["file_index"] = str(index)
@@ -649,7 +661,7 @@ class FlightRecorder:
             return
         try:
             self._writer.finish()
-            self._closed_bytes += self._file.tell()
+            self._closed_bytes += self._writer.position
             self._file.close()
         except Exception as exc:  # noqa: BLE001
             self.write_errors += 1
@@ -666,10 +678,9 @@ class FlightRecorder:
         s = self.settings
         if self._file is None or s.sync_bytes <= 0:
             return
-        pos = self._file.tell()
+        pos = self._writer.position
         if pos - self._synced < s.sync_bytes:
             return
-        self._file.flush()
         fd = self._file.fileno()
         os.fdatasync(fd)
         if hasattr(os, "posix_fadvise"):
@@ -681,7 +692,7 @@ class FlightRecorder:
         if self._writer is None:
             return
         s = self.settings
-        size = self._file.tell()
+        size = self._writer.position
         self.bytes_written = self._closed_bytes + size
         if size >= s.max_file_bytes or time.monotonic() - self._file_started_s >= s.max_file_s:
             index = self._index + 1
@@ -716,7 +727,7 @@ class FlightRecorder:
         self._channels[topic] = cid
         return cid
 
-    def _add(self, topic: str, schema: str, data: bytes, mono_ns: int, sequence: int = 0, publish_ns: int | None = None) -> None:
+    def _add(self, topic: str, schema: str, data, mono_ns: int, sequence: int = 0, publish_ns: int | None = None) -> None:
         t = self.log_time_ns(mono_ns)
         self._writer.add_message(self._channel(topic, schema), t, data, t if publish_ns is None else publish_ns, sequence)
         self.messages_written += 1
@@ -733,7 +744,7 @@ class FlightRecorder:
             return
         if kind == "frame":
             frame, received_ns = item
-            self._add(topic, "foxglove.RawImage", rawimage_bytes(frame, self._protobuf()["foxglove.RawImage"]),
+            self._add(topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]),
                       received_ns, sequence=int(frame.seq), publish_ns=received_ns)
         elif kind == "frame_input":
             seq, t_us, received_ns, looked_up, pose = item
