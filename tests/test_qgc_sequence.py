@@ -209,13 +209,13 @@ def _contrast(luma: np.ndarray, x_norm: float, y_norm: float, r_px: int = VIDEO_
 
 
 def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
-    from groundsim.io.video_rx import UdpTsDecoder
+    from groundsim.io.video_rx import SdpRtpDecoder
 
     plan = plan_demo(SCENARIO, DURATION_S, 0, tmp_path, str(ONBOARD_SIM_CONFIG))
     W, H = plan.scenario.camera.intrinsics.width_px, plan.scenario.camera.intrinsics.height_px
     gcs_port = free_port("udp")
     frames_seen: collections.deque = collections.deque(maxlen=120)  # (decoded_s, luma)
-    rx = UdpTsDecoder(lambda f: frames_seen.append((f.decoded_ns / 1e9, f.luma)))
+    rx = SdpRtpDecoder(lambda f: frames_seen.append((f.decoded_ns / 1e9, f.luma)))
     qgc = QgcCamera(gcs_port)
     tail = TruthTail(plan.truth_path)
     logs = {"daemon": tmp_path / "onboard.log", "sim": tmp_path / "sim.log"}
@@ -291,7 +291,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         assert qgc.wait_ack(qgc.send(MAV_CMD_REQUEST_MESSAGE, 269, 0), alive) == MAV_RESULT_ACCEPTED
         pump_until(lambda: qgc.since("VIDEO_STREAM_INFORMATION", t0), 2.0, "VIDEO_STREAM_INFORMATION")
         vsi = qgc.since("VIDEO_STREAM_INFORMATION", t0)[0][1]
-        assert vsi.type == 3 and vsi.uri == str(rx.port)  # MPEG_TS; QGC opens udp://0.0.0.0:<uri>
+        assert vsi.type == 1 and vsi.uri == str(rx.port)  # RTPUDP: QGC opens udp://0.0.0.0:<uri> as RTP H.264
         assert vsi.flags & 2 and vsi.encoding == 1 and (vsi.resolution_h, vsi.resolution_v) == (W, H)
 
         # 3. the simulator flies; frames reach the daemon (decoded video is the proof)

@@ -593,6 +593,7 @@ class VideoConfig(_Section):
     _path: ClassVar[str] = "video"
     destination: str | None = F(None, "str", nullable=True, pattern=r"^[^\s:]+:\d{1,5}$",
                                 what="HOST:PORT")
+    transport: str = F("rtp", "str", choices=("rtp", "mpegts"))  # RTP/UDP (RFC 6184) or MPEG-TS/UDP; onboard.io.video
     fps: float = F(30.0, "float", lo=1.0, hi=120.0)
     bitrate_bps: int = F(2_000_000, "int", lo=100_000, hi=50_000_000)
     gop_s: float = F(1.0, "float", lo=0.1, hi=1.0)
