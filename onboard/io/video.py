@@ -16,9 +16,10 @@ the pipeline thread, never blocks) keeps at most ``queue_length`` frames and dro
 encoder is behind (counted as ``dropped``); the thread maps, overlays, encodes and sends to
 ``destination``, by ``transport``:
 
-* ``rtp`` (default): one RTP packet per datagram, at most 1400 bytes.  A receiver (QGroundControl's
-  GStreamer ``rtph264depay``) has a picture complete at its marker bit: capture -> decoded p99 ~40 ms
-  on loopback (``python -m bench.video``).  QGroundControl opens it as VIDEO_STREAM_INFORMATION type
+* ``rtp`` (default): one RTP packet per datagram, at most 1400 bytes.  A receiver that assembles the
+  picture at its marker bit (QGroundControl's GStreamer ``rtph264depay``) decodes it at once: capture
+  -> decoded p99 ~25-40 ms on loopback; FFmpeg's RTP demuxer (``ffplay stream.sdp``), whose parser waits
+  for the next picture, p99 ~60-65 ms (``python -m bench.video``, a loaded 2-core machine).  QGroundControl opens it as VIDEO_STREAM_INFORMATION type
   RTPUDP (1) with uri = the port (it listens on ``udp://0.0.0.0:PORT``); FFmpeg / VLC through the
   session description of :func:`onboard.io.rtp_h264.sdp`.
 * ``mpegts``: MPEG-TS in datagrams of 7 x 188 bytes (1316, the customary MPEG-TS-over-UDP payload);
