@@ -19,9 +19,10 @@ encoder is behind (counted as ``dropped``); the thread maps, overlays, encodes a
 * ``rtp`` (default): one RTP packet per datagram, at most 1400 bytes.  A receiver that assembles the
   picture at its marker bit (QGroundControl's GStreamer ``rtph264depay``) decodes it at once: capture
   -> decoded p99 ~25-40 ms on loopback; FFmpeg's RTP demuxer (``ffplay stream.sdp``), whose parser waits
-  for the next picture, p99 ~60-65 ms (``python -m bench.video``, a loaded 2-core machine).  QGroundControl opens it as VIDEO_STREAM_INFORMATION type
-  RTPUDP (1) with uri = the port (it listens on ``udp://0.0.0.0:PORT``); FFmpeg / VLC through the
-  session description of :func:`onboard.io.rtp_h264.sdp`.
+  for the next picture, p99 ~60-65 ms (``python -m bench.video``, a loaded 2-core machine).
+  QGroundControl opens it as VIDEO_STREAM_INFORMATION type RTPUDP (1) with uri = the port (it listens
+  on ``udp://0.0.0.0:PORT``); FFmpeg / VLC through the session description of
+  :func:`onboard.io.rtp_h264.sdp`.
 * ``mpegts``: MPEG-TS in datagrams of 7 x 188 bytes (1316, the customary MPEG-TS-over-UDP payload);
   type MPEG_TS (3), QGC opens ``mpegts://0.0.0.0:PORT``.  MPEG-TS carries video without a length, so a
   demuxer knows a picture is complete only when the next one starts: about two frame periods more
