@@ -5,10 +5,14 @@ A scenario is a YAML file in ``config/scenarios/`` (schema and examples: ``docs/
 the same for an already-parsed mapping.  Geometry is in local NED about ``origin`` (see
 ``onboard.core.frames``), angles in degrees in the file and radians inside, a unit in every key.
 
-Validation is complete at load: unknown keys (with a "did you mean"), wrong types, wrong vector
-lengths, non-finite numbers, out-of-range values, unknown model names, inconsistent pairs
-(``t_min_k >= t_max_k``), bad YAML syntax and unreadable files all raise :class:`ScenarioError`,
-whose message is one line::
+The file schema is a set of models of the one config system (:mod:`onboard.core.schema`: strict
+pydantic v2 dataclasses, ``extra="forbid"``, one YAML loader): :class:`ScenarioFile` and the models
+it nests (one per YAML mapping, the motion models told apart by ``model``), and :class:`NoiseCaseFile`
+for ``config/noise_cases.yaml``; they build the runtime objects (:class:`Scenario`, :class:`NoiseCase`
+...), which are models of the same system too.  Validation is complete at load: unknown keys (with a
+"did you mean"), wrong types, wrong vector lengths, non-finite numbers, out-of-range values, unknown
+model names, inconsistent pairs (``t_min_k >= t_max_k``), bad YAML syntax and unreadable files all
+raise :class:`ScenarioError` (a :class:`~onboard.core.schema.SchemaError`), whose message is one line::
 
     <file>: <field.path>: expected <what>, got <value>
 
@@ -23,23 +27,38 @@ drawn from ``scenario.rng("target.disturbance", run_seed)``, which depends only 
 
 from __future__ import annotations
 
-import difflib
+import dataclasses
 import logging
 import math
 import re
 import sys
 import zlib
-from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
-import yaml
+from pydantic import BeforeValidator, PlainValidator
 
 from groundsim.world.motion import Circular, Cubic, FigureEight, Motion, Perturbed, SingerPerturbation, Waypoints
 from groundsim.world.render.settings import IrSettings, TargetPart
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.frames import CameraMount, GeodeticOrigin, PinholeIntrinsics
+from onboard.core.schema import (
+    MISSING_TEXT,
+    Instance,
+    Integer,
+    Invalid,
+    Number,
+    Numbers,
+    SchemaError,
+    Text,
+    build,
+    check_value,
+    config_dataclass,
+    did_you_mean,
+    read_yaml,
+    show,
+)
 
 __all__ = [
     "ScenarioError",
@@ -84,175 +103,43 @@ _REFERENCE_ORDER = ("P1", "P2", "P3", "P1g", "P2g", "P3g", "H1", "H2", "H3")
 # --------------------------------------------------------------------------- the error
 
 
-class _Missing:
-    def __repr__(self) -> str:  # pragma: no cover - never shown
-        return "<missing>"
-
-
-_MISSING: Any = _Missing()
-
-
-def _show(value: Any, limit: int = 60) -> str:
-    """A value as one short line for an error message."""
-    if isinstance(value, _Missing):
-        return "nothing (the key is missing)"
-    text = " ".join(repr(value).split())
-    return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-class ScenarioError(ConfigError):
-    """A scenario or noise-case file (or dict) is invalid.
+class ScenarioError(SchemaError):
+    """A scenario or noise-case file (or dict) is invalid (the one config error, :class:`~onboard.core.schema.SchemaError`).
 
     ``str(err)`` is one line: ``"<source>: <field>: expected <expected>, got <got>[; <hint>]"``.
     Attributes: ``source`` (file or ``"<dict>"``), ``field`` (dotted path, ``"(document)"`` for the
-    whole file, ``"line L, column C"`` for YAML syntax), ``expected``, ``got`` (the offending
-    value or ``None``), ``hint`` (e.g. a "did you mean"), ``line`` (1-based, YAML errors only).
+    whole file, ``"line L, column C"`` for YAML syntax), ``expected``, ``got`` (the value as shown),
+    ``hint`` (e.g. a "did you mean"), ``line`` (1-based, YAML errors only).
     """
 
-    exit_code = 2
-
-    def __init__(self, source, field_path: str, expected: str, got: Any = _MISSING, hint: str | None = None,
+    def __init__(self, source, field_path: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None,
                  *, got_text: str | None = None, line: int | None = None):
-        self.source = str(source)
-        self.field = field_path or "(document)"
-        self.expected = expected
-        self.got = None if isinstance(got, _Missing) else got
-        self.hint = hint
-        self.line = line
-        got_part = got_text if got_text is not None else _show(got)
-        msg = f"{self.source}: {self.field}: expected {expected}, got {got_part}"
-        if hint:
-            msg += f"; {hint}"
-        super().__init__(" ".join(msg.split()))
+        if got_text is None:
+            got_text = MISSING_TEXT if got is dataclasses.MISSING else show(got)
+        super().__init__(source, field_path, expected, got_text, hint, line=line)
 
 
-class _Fail:
-    """Raises ScenarioError for one source: ``fail(path, expected, got, hint)``; ``fail.text(...)``
-    when the 'got' part is a description rather than a value."""
-
-    def __init__(self, source) -> None:
-        self.source = source
-
-    def __call__(self, path: str, expected: str, got: Any = _MISSING, hint: str | None = None):
-        raise ScenarioError(self.source, path, expected, got, hint)
-
-    def text(self, path: str, expected: str, got_text: str, hint: str | None = None):
-        raise ScenarioError(self.source, path, expected, got_text=got_text, hint=hint)
+_NAME = Text(pattern=NAME_PATTERN.pattern, what="a name of letters, digits, '_', '.', '-'")
+_VEC3 = Numbers(3)
+_VEC3_M = Numbers(3, unit="m")
+_ZERO3 = (0.0, 0.0, 0.0)
 
 
-def _join(path: str, key: str) -> str:
-    return f"{path}.{key}" if path else key
-
-
-# --------------------------------------------------------------------------- value checkers
-# Each takes (value, path, fail, ...) and returns the clean value or calls fail().  They are shared
-# by the loader (paths like "target.motion.p0_ned_m") and the dataclasses' __post_init__.
-
-
-def _is_number(v: Any) -> bool:
-    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-
-
-def _bounds_text(lo, lo_open, hi, hi_open) -> str:
-    if lo is not None and hi is not None:
-        return f" in {'(' if lo_open else '['}{lo:g}, {hi:g}{')' if hi_open else ']'}"
-    if lo is not None:
-        return f" {'>' if lo_open else '>='} {lo:g}"
-    if hi is not None:
-        return f" {'<' if hi_open else '<='} {hi:g}"
-    return ""
-
-
-def _number(v, path, fail: _Fail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
-    what = f"a finite number{_bounds_text(lo, lo_open, hi, hi_open)}{(' ' + unit) if unit else ''}"
-    if not _is_number(v):
-        fail(path, what, v)
-    try:
-        x = float(v)
-    except OverflowError:
-        fail(path, what, v)
-    if not math.isfinite(x):
-        fail(path, what, v)
-    if lo is not None and (x < lo or (lo_open and x == lo)):
-        fail(path, what, v)
-    if hi is not None and (x > hi or (hi_open and x == hi)):
-        fail(path, what, v)
-    return x
-
-
-def _integer(v, path, fail: _Fail, *, lo=None, hi=None) -> int:
-    what = f"an integer{_bounds_text(lo, False, hi, False)}"
-    if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
-        fail(path, what, v)
-    i = int(v)
-    if (lo is not None and i < lo) or (hi is not None and i > hi):
-        fail(path, what, v)
-    return i
-
-
-def _string(v, path, fail: _Fail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
-    if choices is not None:
-        what = "one of " + ", ".join(choices)
-    if not isinstance(v, str):
-        fail(path, what, v)
-    if choices is not None and v not in choices:
-        fail(path, what, v, _did_you_mean(v, choices))
-    if pattern is not None and not pattern.match(v):
-        fail(path, what, v)
-    return v
-
-
-def _vector(v, path, fail: _Fail, n: int = 3, *, lo=None, lo_open=False, unit="", what=None) -> tuple[float, ...]:
-    what = what or f"a list of {n} finite numbers{_bounds_text(lo, lo_open, None, False)}{(' ' + unit) if unit else ''}"
-    if not isinstance(v, (list, tuple)) or len(v) != n:
-        fail(path, what, v)
-    for i, x in enumerate(v):
-        if not _is_number(x):
-            fail(path, what, v)
-        _number(x, f"{path}[{i}]", fail, lo=lo, lo_open=lo_open, unit=unit)
-    return tuple(float(x) for x in v)
-
-
-def _did_you_mean(word: str, options) -> str | None:
-    close = difflib.get_close_matches(word, list(options), n=1, cutoff=0.6)
-    return f"did you mean '{close[0]}'?" if close else None
-
-
-def _mapping(v, path, fail: _Fail, allowed, required=()) -> dict:
-    """A dict with string keys, all in ``allowed``, all of ``required`` present."""
-    allowed = tuple(allowed)
-    if not isinstance(v, dict):
-        fail(path, f"a mapping with keys {', '.join(allowed)}", v)
-    for k in v:
-        if not isinstance(k, str):
-            fail(path, f"string keys (one of {', '.join(allowed)})", k)
-    for k in v:
-        if k not in allowed:
-            fail.text(_join(path, k), f"a key of {path or 'the document'} ({', '.join(allowed)})",
-                      f"unknown key {k!r}", _did_you_mean(k, allowed))
-    for k in required:
-        if k not in v:
-            fail(_join(path, k), "a value (required)")
-    return v
+def _scenario_model(cls=None, /, **kw):
+    return config_dataclass(cls, error=ScenarioError, **kw)
 
 
 # --------------------------------------------------------------------------- typed objects
 
 
-@dataclass(frozen=True)
+@_scenario_model
 class SingerDisturbance:
     """Random (Singer) target acceleration, as data: 1-sigma per horizontal axis (N, E) and for D,
     correlation time ``tau_s``.  :meth:`realise` turns it into a ``SingerPerturbation`` path."""
 
-    sigma_horizontal_mps2: float
-    sigma_vertical_mps2: float
-    tau_s: float
-
-    def __post_init__(self) -> None:
-        fail = _Fail("<SingerDisturbance>")
-        _number(self.sigma_horizontal_mps2, "sigma_horizontal_mps2", fail, lo=0.0, hi=MAX_SINGER_SIGMA_MPS2)
-        _number(self.sigma_vertical_mps2, "sigma_vertical_mps2", fail, lo=0.0, hi=MAX_SINGER_SIGMA_MPS2)
-        _number(self.tau_s, "tau_s", fail, lo=0.0, lo_open=True)
+    sigma_horizontal_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
+    sigma_vertical_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
+    tau_s: Number(0.0, lo_open=True, unit="s")
 
     @property
     def sigma_ned_mps2(self) -> tuple[float, float, float]:
@@ -264,7 +151,14 @@ class SingerDisturbance:
         return SingerPerturbation(duration_s, self.sigma_ned_mps2, float(self.tau_s), rng)
 
 
-@dataclass(frozen=True)
+def _is_motion(m: Any) -> bool:
+    return callable(getattr(m, "state", None))
+
+
+_MOTION = Instance(object, what="a motion model with a state(t_s) method", check=_is_motion)
+
+
+@_scenario_model
 class VehicleSpec:
     """One vehicle's path.
 
@@ -274,21 +168,15 @@ class VehicleSpec:
     of the random part, or ``None``.  Other realisations: :meth:`realise`.
     """
 
-    motion: Motion
-    base_motion: Motion | None = None
-    disturbance: SingerDisturbance | None = None
+    motion: _MOTION
+    base_motion: Instance(object, what="a motion model with a state(t_s) method", check=_is_motion,
+                          nullable=True) = None
+    disturbance: Instance(SingerDisturbance, what="a SingerDisturbance", nullable=True) = None
 
     def __post_init__(self) -> None:
-        fail = _Fail("<VehicleSpec>")
-        for name in ("motion", "base_motion"):
-            m = getattr(self, name)
-            if m is not None and not callable(getattr(m, "state", None)):
-                fail(name, "a motion model with a state(t_s) method", m)
-        if self.disturbance is not None and not isinstance(self.disturbance, SingerDisturbance):
-            fail("disturbance", "a SingerDisturbance or None", self.disturbance)
         if self.base_motion is None:
             if self.disturbance is not None:
-                fail("base_motion", "the unperturbed model when a disturbance is given")
+                raise Invalid("base_motion", "the unperturbed model when a disturbance is given")
             object.__setattr__(self, "base_motion", self.motion)
 
     def realise(self, duration_s: float, rng: np.random.Generator) -> Motion:
@@ -298,42 +186,30 @@ class VehicleSpec:
         return Perturbed(self.base_motion, self.disturbance.realise(duration_s, rng))
 
 
-@dataclass(frozen=True)
+@_scenario_model
 class GimbalSpec:
     """A gimbal that keeps the target near the image centre with a slowly varying pointing error:
     per NED axis a sinusoid of amplitude ``pointing_error_frac_of_range[i] * range`` and period
-    ``pointing_error_period_s[i]`` (phase: the pointing model's choice)."""
+    ``pointing_error_period_s[i]`` (phase: the pointing model's choice).  Defaults: the reference
+    study's pointing, 3 %, 2 %, 1.5 % of the range, periods 7 s, 5 s, 3 s."""
 
-    pointing_error_frac_of_range: tuple[float, float, float]
-    pointing_error_period_s: tuple[float, float, float]
-
-    def __post_init__(self) -> None:
-        fail = _Fail("<GimbalSpec>")
-        _vector(self.pointing_error_frac_of_range, "pointing_error_frac_of_range", fail, lo=0.0)
-        _vector(self.pointing_error_period_s, "pointing_error_period_s", fail, lo=0.0, lo_open=True, unit="s")
+    pointing_error_frac_of_range: Numbers(3, lo=0.0) = (0.03, 0.02, 0.015)
+    pointing_error_period_s: Numbers(3, lo=0.0, lo_open=True, unit="s") = (7.0, 5.0, 3.0)
 
 
 #: The reference study's pointing: 3 %, 2 %, 1.5 % of the range, periods 7 s, 5 s, 3 s.
-REFERENCE_GIMBAL = GimbalSpec((0.03, 0.02, 0.015), (7.0, 5.0, 3.0))
+REFERENCE_GIMBAL = GimbalSpec()
 
 
-@dataclass(frozen=True)
+@_scenario_model
 class CameraSpec:
     """The camera: intrinsics, its pod mount on the observer, and an optional gimbal (``None`` = a
     fixed pod; the observer then yaws toward the target)."""
 
-    intrinsics: PinholeIntrinsics = field(default_factory=PinholeIntrinsics.vue_pro_640)
-    mount: CameraMount = field(default_factory=CameraMount)
-    gimbal: GimbalSpec | None = REFERENCE_GIMBAL
-
-    def __post_init__(self) -> None:
-        fail = _Fail("<CameraSpec>")
-        if not isinstance(self.intrinsics, PinholeIntrinsics):
-            fail("intrinsics", "a PinholeIntrinsics", self.intrinsics)
-        if not isinstance(self.mount, CameraMount):
-            fail("mount", "a CameraMount", self.mount)
-        if self.gimbal is not None and not isinstance(self.gimbal, GimbalSpec):
-            fail("gimbal", "a GimbalSpec or None", self.gimbal)
+    intrinsics: Instance(PinholeIntrinsics, what="a PinholeIntrinsics") = dataclasses.field(
+        default_factory=PinholeIntrinsics.vue_pro_640)
+    mount: Instance(CameraMount, what="a CameraMount") = dataclasses.field(default_factory=CameraMount)
+    gimbal: Instance(GimbalSpec, what="a GimbalSpec", nullable=True) = REFERENCE_GIMBAL
 
 
 def _frame_count(duration_s: float, frame_rate_hz: float) -> int:
@@ -345,7 +221,7 @@ def _stream_rng(seed: int, stream: str, run_seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), int(run_seed), key]))
 
 
-@dataclass(frozen=True, kw_only=True)
+@_scenario_model(kw_only=True)
 class Scenario:
     """One simulated encounter (see the module docstring and ``docs/scenarios.md``).
 
@@ -355,38 +231,19 @@ class Scenario:
     from, or ``None``.
     """
 
-    name: str
-    description: str = ""
-    origin: GeodeticOrigin = DEFAULT_ORIGIN
-    duration_s: float = DEFAULT_DURATION_S
-    frame_rate_hz: float = DEFAULT_FRAME_RATE_HZ
-    seed: int = DEFAULT_SEED
-    observer: VehicleSpec
-    target: VehicleSpec
-    camera: CameraSpec = field(default_factory=CameraSpec)
-    ir: IrSettings = field(default_factory=IrSettings)
-    wind_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    nav_noise: str = DEFAULT_NAV_NOISE
-    source_path: Path | None = None
-
-    def __post_init__(self) -> None:
-        fail = _Fail(self.source_path if self.source_path is not None else "<Scenario>")
-        _string(self.name, "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
-        _string(self.description, "description", fail)
-        if not isinstance(self.origin, GeodeticOrigin):
-            fail("origin", "a GeodeticOrigin", self.origin)
-        _number(self.duration_s, "duration_s", fail, lo=0.0, lo_open=True, hi=MAX_DURATION_S)
-        _number(self.frame_rate_hz, "frame_rate_hz", fail, lo=0.0, lo_open=True, hi=MAX_FRAME_RATE_HZ)
-        _integer(self.seed, "seed", fail, lo=0)
-        for name in ("observer", "target"):
-            if not isinstance(getattr(self, name), VehicleSpec):
-                fail(name, "a VehicleSpec", getattr(self, name))
-        if not isinstance(self.camera, CameraSpec):
-            fail("camera", "a CameraSpec", self.camera)
-        if not isinstance(self.ir, IrSettings):
-            fail("ir", "an IrSettings", self.ir)
-        object.__setattr__(self, "wind_ned_mps", _vector(self.wind_ned_mps, "wind_ned_mps", fail, unit="m/s"))
-        _string(self.nav_noise, "nav_noise", fail, pattern=NAME_PATTERN, what="a noise-case name of config/noise_cases.yaml")
+    name: _NAME
+    description: Text(empty=True) = ""
+    origin: Instance(GeodeticOrigin, what="a GeodeticOrigin") = DEFAULT_ORIGIN
+    duration_s: Number(0.0, MAX_DURATION_S, lo_open=True, unit="s") = DEFAULT_DURATION_S
+    frame_rate_hz: Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz") = DEFAULT_FRAME_RATE_HZ
+    seed: Integer(0, 2**63 - 1) = DEFAULT_SEED
+    observer: Instance(VehicleSpec, what="a VehicleSpec")
+    target: Instance(VehicleSpec, what="a VehicleSpec")
+    camera: Instance(CameraSpec, what="a CameraSpec") = dataclasses.field(default_factory=CameraSpec)
+    ir: Instance(IrSettings, what="an IrSettings") = dataclasses.field(default_factory=IrSettings)
+    wind_ned_mps: Numbers(3, unit="m/s") = _ZERO3
+    nav_noise: Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml") = DEFAULT_NAV_NOISE
+    source_path: Instance(Path, what="a path", nullable=True) = None
 
     @property
     def frame_count(self) -> int:
@@ -403,13 +260,13 @@ class Scenario:
         Streams used here: ``"target.disturbance"``.  Other components pick their own names
         (e.g. ``"noise.pixel"``) so adding a stream never shifts another.
         """
-        run_seed = _integer(run_seed, "run_seed", _Fail(f"<Scenario {self.name}>"), lo=0)
+        run_seed = check_value(Integer(lo=0), run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError)
         return _stream_rng(self.seed, stream, run_seed)
 
     def target_motion(self, run_seed: int = 0) -> Motion:
         """The target's path for run ``run_seed``: its base model plus that run's disturbance
         realisation (the base model alone when it has none).  ``target_motion(0) is target.motion``."""
-        run_seed = _integer(run_seed, "run_seed", _Fail(f"<Scenario {self.name}>"), lo=0)
+        run_seed = check_value(Integer(lo=0), run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError)
         if run_seed == 0 or self.target.disturbance is None:
             return self.target.motion
         return self.target.realise(self.duration_s + SINGER_MARGIN_S, self.rng("target.disturbance", run_seed))
@@ -419,7 +276,7 @@ class Scenario:
         return self.observer.motion
 
 
-@dataclass(frozen=True)
+@_scenario_model
 class NoiseCase:
     """Measurement noise of one evaluation case (``config/noise_cases.yaml``).
 
@@ -430,240 +287,275 @@ class NoiseCase:
     size of a constant position drift rate (the noise model draws their directions per run).
     """
 
-    name: str
-    pixel_sigma_px: float
-    attitude_white_sigma_rad: float = 0.0
-    attitude_bias_sigma_rad: float = 0.0
-    camera_position_white_sigma_m: float = 0.0
-    camera_position_offset_m: float = 0.0
-    camera_position_drift_mps: float = 0.0
-    description: str = ""
+    name: _NAME
+    pixel_sigma_px: Number(lo=0.0)
+    attitude_white_sigma_rad: Number(lo=0.0) = 0.0
+    attitude_bias_sigma_rad: Number(lo=0.0) = 0.0
+    camera_position_white_sigma_m: Number(lo=0.0) = 0.0
+    camera_position_offset_m: Number(lo=0.0) = 0.0
+    camera_position_drift_mps: Number(lo=0.0) = 0.0
+    description: Text(empty=True) = ""
+
+
+# --------------------------------------------------------------------------- the file schema
+# One model per YAML mapping (docs/scenarios.md); each builds the runtime object above.  Defaults are
+# the runtime defaults: an absent key and its default value give the same scenario.
+
+_VUE = PinholeIntrinsics.vue_pro_640()
+_IR = IrSettings()
+_SCALE_K = Number(0.0, lo_open=True, unit="K")
+
+
+@_scenario_model(kw_only=True)
+class UniformLinearFile:
+    model: Text(choices=("uniform_linear",)) = "uniform_linear"
+    p0_ned_m: _VEC3
+    v0_ned_mps: _VEC3 = _ZERO3
+
+    def motion(self) -> Motion:
+        return Cubic(self.p0_ned_m, self.v0_ned_mps, _ZERO3, _ZERO3)
+
+
+@_scenario_model(kw_only=True)
+class UniformAccelerationFile:
+    model: Text(choices=("uniform_acceleration",)) = "uniform_acceleration"
+    p0_ned_m: _VEC3
+    v0_ned_mps: _VEC3 = _ZERO3
+    a0_ned_mps2: _VEC3 = _ZERO3
+
+    def motion(self) -> Motion:
+        return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, _ZERO3)
+
+
+@_scenario_model(kw_only=True)
+class CubicFile:
+    model: Text(choices=("cubic",)) = "cubic"
+    p0_ned_m: _VEC3
+    v0_ned_mps: _VEC3 = _ZERO3
+    a0_ned_mps2: _VEC3 = _ZERO3
+    j_ned_mps3: _VEC3 = _ZERO3
+
+    def motion(self) -> Motion:
+        return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, self.j_ned_mps3)
+
+
+@_scenario_model(kw_only=True)
+class CircularFile:
+    model: Text(choices=("circular",)) = "circular"
+    center_ned_m: _VEC3
+    radius_m: Number(0.0, lo_open=True)
+    azimuth0_deg: Number(-360.0, 360.0, unit="deg") = 0.0
+    rate_degps: Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")
+
+    def motion(self) -> Motion:
+        return Circular(self.center_ned_m, self.radius_m, math.radians(self.azimuth0_deg), math.radians(self.rate_degps))
+
+
+@_scenario_model(kw_only=True)
+class FigureEightFile:
+    model: Text(choices=("figure_eight",)) = "figure_eight"
+    center_ned_m: _VEC3
+    amp1_ned_m: _VEC3
+    amp2_ned_m: _VEC3 = _ZERO3
+    period_s: Number(0.0, lo_open=True)
+
+    def motion(self) -> Motion:
+        return FigureEight(self.center_ned_m, self.amp1_ned_m, self.amp2_ned_m, self.period_s)
+
+
+def _points(value: Any) -> tuple[tuple[float, ...], ...]:
+    if not isinstance(value, (list, tuple)) or len(value) < 2:
+        raise Invalid("", "a list of at least 2 points [n, e, d]", value)
+    out = []
+    for i, q in enumerate(value):
+        try:
+            out.append(check_value(_VEC3, q, f"[{i}]", "<points>"))
+        except SchemaError as exc:
+            raise Invalid(exc.field, exc.expected, got_text=exc.got) from None
+    return tuple(out)
+
+
+@_scenario_model(kw_only=True)
+class WaypointsFile:
+    model: Text(choices=("waypoints",)) = "waypoints"
+    points_ned_m: Annotated[tuple, PlainValidator(_points)]
+    speed_mps: Number(0.0, lo_open=True)
+
+    def motion(self) -> Motion:
+        return Waypoints(self.points_ned_m, self.speed_mps)
+
+
+_MOTION_FILES = (UniformLinearFile, UniformAccelerationFile, CubicFile, CircularFile, FigureEightFile, WaypointsFile)
+MOTION_MODELS: tuple[str, ...] = tuple(dataclasses.fields(m)[0].default for m in _MOTION_FILES)
+MotionFile = UniformLinearFile | UniformAccelerationFile | CubicFile | CircularFile | FigureEightFile | WaypointsFile
+
+
+@_scenario_model(kw_only=True)
+class DisturbanceFile:
+    model: Text(choices=("singer",))
+    sigma_horizontal_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
+    sigma_vertical_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
+    tau_s: Number(0.0, lo_open=True, unit="s")
+
+    def spec(self) -> SingerDisturbance:
+        return SingerDisturbance(self.sigma_horizontal_mps2, self.sigma_vertical_mps2, self.tau_s)
+
+
+@_scenario_model(kw_only=True)
+class ObserverFile:
+    motion: MotionFile
+
+
+@_scenario_model(kw_only=True)
+class TargetFile:
+    motion: MotionFile
+    disturbance: DisturbanceFile | None = None
+
+
+@_scenario_model(kw_only=True)
+class IntrinsicsFile:
+    fx_px: Number(0.0, lo_open=True) = _VUE.fx_px
+    fy_px: Number(0.0, lo_open=True) = _VUE.fy_px
+    cx_px: Number(nullable=True) = None
+    cy_px: Number(nullable=True) = None
+    width_px: Integer(1, 100_000) = _VUE.width_px
+    height_px: Integer(1, 100_000) = _VUE.height_px
+    distortion: Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)") = tuple(_VUE.distortion)
 
     def __post_init__(self) -> None:
-        fail = _Fail("<NoiseCase>")
-        _string(self.name, "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
-        _string(self.description, "description", fail)
-        for f in fields(self):
-            if f.name not in ("name", "description"):
-                _number(getattr(self, f.name), f.name, fail, lo=0.0)
+        for name, size in (("cx_px", self.width_px), ("cy_px", self.height_px)):
+            v = getattr(self, name)
+            if v is not None and not 0.0 <= v <= size:
+                raise Invalid(name, f"a number in [0, {size}] (inside the image)", v)
+
+    def pinhole(self) -> PinholeIntrinsics:
+        cx = self.width_px / 2 if self.cx_px is None else self.cx_px
+        cy = self.height_px / 2 if self.cy_px is None else self.cy_px
+        return PinholeIntrinsics(self.fx_px, self.fy_px, cx, cy, self.width_px, self.height_px, self.distortion)
 
 
-# --------------------------------------------------------------------------- motion from YAML
-
-_VEC0 = (0.0, 0.0, 0.0)
-
-# model -> {key: (kind, required)}; kinds: "vec3", "pos", "ang", "rate", "period", "speed", "points"
-_MOTION_KEYS: dict[str, dict[str, tuple[str, bool]]] = {
-    "uniform_linear": {"p0_ned_m": ("vec3", True), "v0_ned_mps": ("vec3", False)},
-    "uniform_acceleration": {"p0_ned_m": ("vec3", True), "v0_ned_mps": ("vec3", False),
-                             "a0_ned_mps2": ("vec3", False)},
-    "cubic": {"p0_ned_m": ("vec3", True), "v0_ned_mps": ("vec3", False), "a0_ned_mps2": ("vec3", False),
-              "j_ned_mps3": ("vec3", False)},
-    "circular": {"center_ned_m": ("vec3", True), "radius_m": ("pos", True), "azimuth0_deg": ("ang", False),
-                 "rate_degps": ("rate", True)},
-    "figure_eight": {"center_ned_m": ("vec3", True), "amp1_ned_m": ("vec3", True), "amp2_ned_m": ("vec3", False),
-                     "period_s": ("pos", True)},
-    "waypoints": {"points_ned_m": ("points", True), "speed_mps": ("pos", True)},
-}
-MOTION_MODELS: tuple[str, ...] = tuple(_MOTION_KEYS)
+@_scenario_model(kw_only=True)
+class MountFile:
+    lever_arm_frd_m: _VEC3_M = _ZERO3
+    roll_deg: Number(-360.0, 360.0, unit="deg") = 0.0
+    pitch_deg: Number(-360.0, 360.0, unit="deg") = 0.0
+    yaw_deg: Number(-360.0, 360.0, unit="deg") = 0.0
 
 
-def _motion_from_dict(d, path: str, fail: _Fail) -> Motion:
-    if not isinstance(d, dict):
-        fail(path, f"a mapping with 'model' (one of {', '.join(MOTION_MODELS)}) and its parameters", d)
-    if "model" not in d:
-        fail(_join(path, "model"), f"one of {', '.join(MOTION_MODELS)} (required)")
-    model = _string(d["model"], _join(path, "model"), fail, choices=MOTION_MODELS)
-    spec = _MOTION_KEYS[model]
-    _mapping(d, path, fail, ("model",) + tuple(spec), [k for k, (_, req) in spec.items() if req])
-    v: dict[str, Any] = {}
-    for key, (kind, _) in spec.items():
-        p = _join(path, key)
-        if key not in d:
-            v[key] = _VEC0 if kind == "vec3" else 0.0
-        elif kind == "vec3":
-            v[key] = _vector(d[key], p, fail)
-        elif kind == "pos":
-            v[key] = _number(d[key], p, fail, lo=0.0, lo_open=True)
-        elif kind == "ang":
-            v[key] = _number(d[key], p, fail, lo=-360.0, hi=360.0, unit="deg")
-        elif kind == "rate":
-            v[key] = _number(d[key], p, fail, lo=-360.0, hi=360.0, unit="deg/s (signed: > 0 clockwise from above)")
-        elif kind == "points":
-            pts = d[key]
-            if not isinstance(pts, list) or len(pts) < 2:
-                fail(p, "a list of at least 2 points [n, e, d]", pts)
-            v[key] = tuple(_vector(q, f"{p}[{i}]", fail) for i, q in enumerate(pts))
-    if model in ("uniform_linear", "uniform_acceleration", "cubic"):
-        return Cubic(v["p0_ned_m"], v["v0_ned_mps"], v.get("a0_ned_mps2", _VEC0), v.get("j_ned_mps3", _VEC0))
-    if model == "circular":
-        return Circular(v["center_ned_m"], v["radius_m"], math.radians(v["azimuth0_deg"]), math.radians(v["rate_degps"]))
-    if model == "figure_eight":
-        return FigureEight(v["center_ned_m"], v["amp1_ned_m"], v["amp2_ned_m"], v["period_s"])
-    return Waypoints(v["points_ned_m"], v["speed_mps"])
+@_scenario_model(kw_only=True)
+class CameraFile:
+    intrinsics: IntrinsicsFile = dataclasses.field(default_factory=IntrinsicsFile)
+    mount: MountFile = dataclasses.field(default_factory=MountFile)
+    # absent: the reference pointing; explicit null: a fixed pod
+    gimbal: GimbalSpec | None = REFERENCE_GIMBAL
+
+    def spec(self) -> CameraSpec:
+        m = self.mount
+        mount = CameraMount.from_euler_deg(m.lever_arm_frd_m, m.roll_deg, m.pitch_deg, m.yaw_deg,
+                                           gimballed=self.gimbal is not None)
+        return CameraSpec(self.intrinsics.pinhole(), mount, self.gimbal)
 
 
-def _disturbance_from_dict(d, path: str, fail: _Fail) -> SingerDisturbance | None:
-    if d is None:
-        return None
-    keys = ("model", "sigma_horizontal_mps2", "sigma_vertical_mps2", "tau_s")
-    _mapping(d, path, fail, keys, keys)
-    _string(d["model"], _join(path, "model"), fail, choices=("singer",))
-    return SingerDisturbance(
-        _number(d["sigma_horizontal_mps2"], _join(path, "sigma_horizontal_mps2"), fail, lo=0.0,
-                hi=MAX_SINGER_SIGMA_MPS2, unit="m/s^2"),
-        _number(d["sigma_vertical_mps2"], _join(path, "sigma_vertical_mps2"), fail, lo=0.0,
-                hi=MAX_SINGER_SIGMA_MPS2, unit="m/s^2"),
-        _number(d["tau_s"], _join(path, "tau_s"), fail, lo=0.0, lo_open=True, unit="s"),
-    )
+@_scenario_model(kw_only=True)
+class TargetPartFile:
+    name: Text(empty=True, what="a string")
+    shape: Text(choices=("ellipsoid", "box"))
+    center_frd_m: _VEC3_M
+    half_extent_m: Numbers(3, lo=0.0, lo_open=True, unit="m")
+    temperature_k: _SCALE_K
+    emissivity: Number(0.0, 1.0, lo_open=True)
+
+    def part(self) -> TargetPart:
+        return TargetPart(self.name, self.shape, self.center_frd_m, self.half_extent_m, self.temperature_k, self.emissivity)
 
 
-# --------------------------------------------------------------------------- camera, IR, origin
+def _nonempty(value: Any) -> Any:
+    if isinstance(value, (list, tuple)) and not value:
+        raise Invalid("", "a non-empty list of parts (mappings with name, shape, center_frd_m, half_extent_m, "
+                      "temperature_k, emissivity)", value)
+    return tuple(value) if isinstance(value, list) else value
 
 
-def _intrinsics_from_dict(d, path: str, fail: _Fail) -> PinholeIntrinsics:
-    vue = PinholeIntrinsics.vue_pro_640()
-    if d is None:
-        return vue
-    keys = ("fx_px", "fy_px", "cx_px", "cy_px", "width_px", "height_px", "distortion")
-    _mapping(d, path, fail, keys)
-    w = _integer(d.get("width_px", vue.width_px), _join(path, "width_px"), fail, lo=1, hi=100_000)
-    h = _integer(d.get("height_px", vue.height_px), _join(path, "height_px"), fail, lo=1, hi=100_000)
-    fx = _number(d.get("fx_px", vue.fx_px), _join(path, "fx_px"), fail, lo=0.0, lo_open=True)
-    fy = _number(d.get("fy_px", vue.fy_px), _join(path, "fy_px"), fail, lo=0.0, lo_open=True)
-    cx = _number(d.get("cx_px", w / 2), _join(path, "cx_px"), fail, lo=0.0, hi=float(w))
-    cy = _number(d.get("cy_px", h / 2), _join(path, "cy_px"), fail, lo=0.0, hi=float(h))
-    dist = _vector(d.get("distortion", vue.distortion), _join(path, "distortion"), fail, 5,
-                   what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")
-    return PinholeIntrinsics(fx, fy, cx, cy, w, h, dist)
+@_scenario_model(kw_only=True)
+class IrFile:
+    """``ir``: the renderer's settings (:class:`~groundsim.world.render.settings.IrSettings`, which keeps its own
+    consistency checks); target parts replace the default quadcopter."""
+
+    band_um: Numbers(2, lo=0.0, lo_open=True, unit="um") = _IR.band_um
+    t_min_k: _SCALE_K = _IR.t_min_k
+    t_max_k: _SCALE_K = _IR.t_max_k
+    encoding: Text(choices=("mono8", "mono16")) = _IR.encoding
+    netd_k: Number(lo=0.0) = _IR.netd_k
+    blur_sigma_px: Number(lo=0.0) = _IR.blur_sigma_px
+    extinction_per_km: Number(lo=0.0) = _IR.extinction_per_km
+    air_temperature_k: _SCALE_K = _IR.air_temperature_k
+    sky_zenith_k: _SCALE_K = _IR.sky_zenith_k
+    sky_horizon_k: _SCALE_K = _IR.sky_horizon_k
+    ground_temperature_k: _SCALE_K = _IR.ground_temperature_k
+    ground_emissivity: Number(0.0, 1.0, lo_open=True) = _IR.ground_emissivity
+    target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
+    netd_reference_k: _SCALE_K = _IR.netd_reference_k
+    supersample: Integer(1, 1_000_000) = _IR.supersample
+    max_target_rays: Integer(1, 1_000_000) = _IR.max_target_rays
+    background_reuse_tol_rad: Number(lo=0.0) = _IR.background_reuse_tol_rad
+    noise_bank_frames: Integer(1, 1_000_000) = _IR.noise_bank_frames
+
+    def __post_init__(self) -> None:
+        if self.band_um[1] <= self.band_um[0]:
+            raise Invalid("band_um", "[lower, upper] with lower < upper (micrometres)", list(self.band_um))
+        if self.t_min_k >= self.t_max_k:
+            if self.t_max_k != _IR.t_max_k:
+                raise Invalid("t_max_k", f"a temperature > ir.t_min_k ({self.t_min_k:g} K)", self.t_max_k)
+            raise Invalid("t_min_k", f"a temperature < ir.t_max_k ({self.t_max_k:g} K)", self.t_min_k)
+        names = [p.name for p in self.target_parts]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise Invalid(f"target_parts[{i}].name", "a part name not used before in the list", name)
+
+    def settings(self) -> IrSettings:
+        kw = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "target_parts"}
+        if self.target_parts:
+            kw["target_parts"] = tuple(p.part() for p in self.target_parts)
+        return IrSettings(**kw)
 
 
-def _mount_from_dict(d, path: str, fail: _Fail, gimballed: bool) -> CameraMount:
-    if d is None:
-        d = {}
-    keys = ("lever_arm_frd_m", "roll_deg", "pitch_deg", "yaw_deg")
-    _mapping(d, path, fail, keys)
-    arm = _vector(d.get("lever_arm_frd_m", _VEC0), _join(path, "lever_arm_frd_m"), fail, unit="m")
-    ang = [_number(d.get(k, 0.0), _join(path, k), fail, lo=-360.0, hi=360.0, unit="deg") for k in keys[1:]]
-    return CameraMount.from_euler_deg(arm, *ang, gimballed=gimballed)
+@_scenario_model(kw_only=True)
+class OriginFile:
+    lat_deg: Number(-90.0, 90.0, unit="deg") = DEFAULT_ORIGIN.lat_deg
+    lon_deg: Number(-180.0, 180.0, unit="deg") = DEFAULT_ORIGIN.lon_deg
+    alt_m: Number(-1000.0, 100_000.0, unit="m") = DEFAULT_ORIGIN.alt_m
 
 
-def _gimbal_from_dict(d, path: str, fail: _Fail) -> GimbalSpec | None:
-    if d is None:
-        return None
-    keys = ("pointing_error_frac_of_range", "pointing_error_period_s")
-    _mapping(d, path, fail, keys)
-    frac = d.get("pointing_error_frac_of_range", REFERENCE_GIMBAL.pointing_error_frac_of_range)
-    per = d.get("pointing_error_period_s", REFERENCE_GIMBAL.pointing_error_period_s)
-    return GimbalSpec(
-        _vector(frac, _join(path, "pointing_error_frac_of_range"), fail, lo=0.0),
-        _vector(per, _join(path, "pointing_error_period_s"), fail, lo=0.0, lo_open=True, unit="s"),
-    )
+@_scenario_model(kw_only=True)
+class WindFile:
+    n_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
+    e_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
+    d_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
 
 
-def _camera_from_dict(d, path: str, fail: _Fail) -> CameraSpec:
-    if d is None:
-        d = {}
-    _mapping(d, path, fail, ("intrinsics", "mount", "gimbal"))
-    # absent gimbal -> the reference pointing; explicit null -> a fixed pod
-    gimbal = _gimbal_from_dict(d["gimbal"], _join(path, "gimbal"), fail) if "gimbal" in d else REFERENCE_GIMBAL
-    return CameraSpec(
-        _intrinsics_from_dict(d.get("intrinsics"), _join(path, "intrinsics"), fail),
-        _mount_from_dict(d.get("mount"), _join(path, "mount"), fail, gimballed=gimbal is not None),
-        gimbal,
-    )
+@_scenario_model(kw_only=True)
+class ScenarioFile:
+    """A scenario file's top level (``docs/scenarios.md``)."""
 
+    name: _NAME
+    description: Text(empty=True) = ""
+    origin: OriginFile = dataclasses.field(default_factory=OriginFile)
+    duration_s: Number(0.0, MAX_DURATION_S, lo_open=True, unit="s") = DEFAULT_DURATION_S
+    frame_rate_hz: Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz") = DEFAULT_FRAME_RATE_HZ
+    seed: Integer(0, 2**63 - 1) = DEFAULT_SEED
+    observer: ObserverFile
+    target: TargetFile
+    camera: CameraFile = dataclasses.field(default_factory=CameraFile)
+    ir: IrFile = dataclasses.field(default_factory=IrFile)
+    wind: WindFile = dataclasses.field(default_factory=WindFile)
+    # a case of config/noise_cases.yaml: the telemetry's navigation errors (groundsim.world.nav_errors)
+    nav_noise: Text() = DEFAULT_NAV_NOISE
 
-_PART_KEYS = ("name", "shape", "center_frd_m", "half_extent_m", "temperature_k", "emissivity")
-
-
-def _parts_from_list(v, path: str, fail: _Fail) -> tuple[TargetPart, ...]:
-    if not isinstance(v, list) or not v:
-        fail(path, "a non-empty list of parts (mappings with " + ", ".join(_PART_KEYS) + ")", v)
-    parts, names = [], set()
-    for i, d in enumerate(v):
-        p = f"{path}[{i}]"
-        _mapping(d, p, fail, _PART_KEYS, _PART_KEYS)
-        name = _string(d["name"], _join(p, "name"), fail)
-        if name in names:
-            fail(_join(p, "name"), "a part name not used before in the list", name)
-        names.add(name)
-        parts.append(TargetPart(
-            name,
-            _string(d["shape"], _join(p, "shape"), fail, choices=("ellipsoid", "box")),
-            _vector(d["center_frd_m"], _join(p, "center_frd_m"), fail, unit="m"),
-            _vector(d["half_extent_m"], _join(p, "half_extent_m"), fail, lo=0.0, lo_open=True, unit="m"),
-            _number(d["temperature_k"], _join(p, "temperature_k"), fail, lo=0.0, lo_open=True, unit="K"),
-            _number(d["emissivity"], _join(p, "emissivity"), fail, lo=0.0, lo_open=True, hi=1.0),
-        ))
-    return tuple(parts)
-
-
-def _ir_from_dict(d, path: str, fail: _Fail) -> IrSettings:
-    if d is None:
-        return IrSettings()
-    names = tuple(f.name for f in fields(IrSettings))
-    _mapping(d, path, fail, names)
-    base = IrSettings()
-    kw: dict[str, Any] = {}
-    temps = ("t_min_k", "t_max_k", "air_temperature_k", "sky_zenith_k", "sky_horizon_k", "ground_temperature_k",
-             "netd_reference_k")
-    for k in temps:
-        if k in d:
-            kw[k] = _number(d[k], _join(path, k), fail, lo=0.0, lo_open=True, unit="K")
-    for k in ("netd_k", "blur_sigma_px", "extinction_per_km", "background_reuse_tol_rad"):
-        if k in d:
-            kw[k] = _number(d[k], _join(path, k), fail, lo=0.0)
-    # the renderer's tuning knobs (groundsim.world.render.settings.IrSettings)
-    for k in ("supersample", "max_target_rays", "noise_bank_frames"):
-        if k in d:
-            kw[k] = _integer(d[k], _join(path, k), fail, lo=1, hi=1_000_000)
-    if "ground_emissivity" in d:
-        kw["ground_emissivity"] = _number(d["ground_emissivity"], _join(path, "ground_emissivity"), fail,
-                                          lo=0.0, lo_open=True, hi=1.0)
-    if "encoding" in d:
-        kw["encoding"] = _string(d["encoding"], _join(path, "encoding"), fail, choices=("mono8", "mono16"))
-    if "band_um" in d:
-        band = _vector(d["band_um"], _join(path, "band_um"), fail, 2, lo=0.0, lo_open=True, unit="um")
-        if band[1] <= band[0]:
-            fail(_join(path, "band_um"), "[lower, upper] with lower < upper (micrometres)", d["band_um"])
-        kw["band_um"] = band
-    if "target_parts" in d:
-        kw["target_parts"] = _parts_from_list(d["target_parts"], _join(path, "target_parts"), fail)
-    t_min = kw.get("t_min_k", base.t_min_k)
-    t_max = kw.get("t_max_k", base.t_max_k)
-    if t_min >= t_max:
-        key = "t_max_k" if "t_max_k" in d else "t_min_k"
-        other = "t_min_k" if key == "t_max_k" else "t_max_k"
-        rel = ">" if key == "t_max_k" else "<"
-        fail(_join(path, key), f"a temperature {rel} {path}.{other} ({kw.get(other, getattr(base, other)):g} K)",
-             d[key])
-    return IrSettings(**kw)
-
-
-def _origin_from_dict(d, path: str, fail: _Fail) -> GeodeticOrigin:
-    if d is None:
-        return DEFAULT_ORIGIN
-    _mapping(d, path, fail, ("lat_deg", "lon_deg", "alt_m"))
-    return GeodeticOrigin(
-        _number(d.get("lat_deg", DEFAULT_ORIGIN.lat_deg), _join(path, "lat_deg"), fail, lo=-90.0, hi=90.0, unit="deg"),
-        _number(d.get("lon_deg", DEFAULT_ORIGIN.lon_deg), _join(path, "lon_deg"), fail, lo=-180.0, hi=180.0, unit="deg"),
-        _number(d.get("alt_m", DEFAULT_ORIGIN.alt_m), _join(path, "alt_m"), fail, lo=-1000.0, hi=100_000.0, unit="m"),
-    )
-
-
-def _wind_from_dict(d, path: str, fail: _Fail) -> tuple[float, float, float]:
-    if d is None:
-        return _VEC0
-    keys = ("n_mps", "e_mps", "d_mps")
-    _mapping(d, path, fail, keys)
-    return tuple(_number(d.get(k, 0.0), _join(path, k), fail, lo=-100.0, hi=100.0, unit="m/s") for k in keys)
-
-
-# --------------------------------------------------------------------------- scenario
-
-_TOP_KEYS = ("name", "description", "origin", "duration_s", "frame_rate_hz", "seed",
-             "observer", "target", "camera", "ir", "wind", "nav_noise")
+    def __post_init__(self) -> None:
+        if self.nav_noise != DEFAULT_NAV_NOISE:
+            cases = tuple(load_noise_cases())
+            if self.nav_noise not in cases:
+                raise Invalid("nav_noise", "one of " + ", ".join(cases), self.nav_noise, did_you_mean(self.nav_noise, cases))
 
 
 def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail) -> None:
@@ -682,6 +574,9 @@ def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail)
                   f"{r[k]:.3g} m at t = {t_s[k]:.3f} s")
 
 
+# --------------------------------------------------------------------------- scenario
+
+
 def scenario_from_dict(d, source="<dict>") -> Scenario:
     """Validate a parsed scenario mapping and build the :class:`Scenario`; raises :class:`ScenarioError`.
 
@@ -689,98 +584,42 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     becomes ``Scenario.source_path``.  ``d`` is not modified.
     """
     fail = _Fail(source)
-    _mapping(d, "", fail, _TOP_KEYS, ("name", "observer", "target"))
-    name = _string(d["name"], "name", fail, pattern=NAME_PATTERN, what="a name of letters, digits, '_', '.', '-'")
-    description = _string(d.get("description", ""), "description", fail)
-    origin = _origin_from_dict(d.get("origin"), "origin", fail)
-    duration_s = _number(d.get("duration_s", DEFAULT_DURATION_S), "duration_s", fail,
-                         lo=0.0, lo_open=True, hi=MAX_DURATION_S, unit="s")
-    rate_hz = _number(d.get("frame_rate_hz", DEFAULT_FRAME_RATE_HZ), "frame_rate_hz", fail,
-                      lo=0.0, lo_open=True, hi=MAX_FRAME_RATE_HZ, unit="Hz")
-    seed = _integer(d.get("seed", DEFAULT_SEED), "seed", fail, lo=0, hi=2**63 - 1)
-
-    _mapping(d["observer"], "observer", fail, ("motion",), ("motion",))
-    obs_motion = _motion_from_dict(d["observer"]["motion"], "observer.motion", fail)
-    _mapping(d["target"], "target", fail, ("motion", "disturbance"), ("motion",))
-    tgt_base = _motion_from_dict(d["target"]["motion"], "target.motion", fail)
-    disturbance = _disturbance_from_dict(d["target"].get("disturbance"), "target.disturbance", fail)
-
-    camera = _camera_from_dict(d.get("camera"), "camera", fail)
-    ir = _ir_from_dict(d.get("ir"), "ir", fail)
-    wind = _wind_from_dict(d.get("wind"), "wind", fail)
-    nav_noise = DEFAULT_NAV_NOISE
-    if "nav_noise" in d:  # a case of config/noise_cases.yaml: the telemetry's navigation errors (groundsim.world.nav_errors)
-        nav_noise = _string(d["nav_noise"], "nav_noise", fail, choices=tuple(load_noise_cases()))
-
-    t_s = np.arange(_frame_count(duration_s, rate_hz)) / rate_hz
+    try:
+        f = build(ScenarioFile, d, none_is_default=False)
+    except SchemaError as exc:
+        raise exc.as_(ScenarioError, source) from None
+    obs_motion = f.observer.motion.motion()
+    tgt_base = f.target.motion.motion()
+    disturbance = None if f.target.disturbance is None else f.target.disturbance.spec()
+    t_s = np.arange(_frame_count(f.duration_s, f.frame_rate_hz)) / f.frame_rate_hz
     _check_paths(obs_motion, tgt_base, t_s, fail)
     if disturbance is None:
         target = VehicleSpec(tgt_base)
     else:
-        rng = _stream_rng(seed, "target.disturbance", 0)
-        target = VehicleSpec(Perturbed(tgt_base, disturbance.realise(duration_s + SINGER_MARGIN_S, rng)),
+        rng = _stream_rng(f.seed, "target.disturbance", 0)
+        target = VehicleSpec(Perturbed(tgt_base, disturbance.realise(f.duration_s + SINGER_MARGIN_S, rng)),
                              tgt_base, disturbance)
-    sc = Scenario(name=name, description=description, origin=origin, duration_s=duration_s,
-                  frame_rate_hz=rate_hz, seed=seed, observer=VehicleSpec(obs_motion), target=target,
-                  camera=camera, ir=ir, wind_ned_mps=wind, nav_noise=nav_noise,
-                  source_path=Path(source) if isinstance(source, Path) else None)
-    log.debug("scenario %s from %s: %d frames", name, source, sc.frame_count)
+    try:
+        sc = Scenario(name=f.name, description=f.description,
+                      origin=GeodeticOrigin(f.origin.lat_deg, f.origin.lon_deg, f.origin.alt_m),
+                      duration_s=f.duration_s, frame_rate_hz=f.frame_rate_hz, seed=f.seed,
+                      observer=VehicleSpec(obs_motion), target=target, camera=f.camera.spec(), ir=f.ir.settings(),
+                      wind_ned_mps=(f.wind.n_mps, f.wind.e_mps, f.wind.d_mps), nav_noise=f.nav_noise,
+                      source_path=Path(source) if isinstance(source, Path) else None)
+    except ConfigError as exc:  # a library object's own consistency check (IrSettings, CameraMount ...)
+        if isinstance(exc, SchemaError):
+            raise exc.as_(ScenarioError, source) from None
+        raise ScenarioError(source, "(document)", "a consistent scenario", got_text=" ".join(str(exc).split())) from None
+    log.debug("scenario %s from %s: %d frames", f.name, source, sc.frame_count)
     return sc
 
 
 # --------------------------------------------------------------------------- YAML files
 
 
-class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that rejects duplicate keys and reads ``1e-3`` as a float (YAML 1.2 style)."""
-
-
-def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False):
-    loader.flatten_mapping(node)
-    seen: set = set()
-    for key_node, _ in node.value:
-        key = loader.construct_object(key_node, deep=True)
-        try:
-            dup = key in seen
-        except TypeError:  # unhashable key: let the base constructor report it
-            break
-        if dup:
-            raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
-                                                    f"found duplicate key {key!r}", key_node.start_mark)
-        seen.add(key)
-    return yaml.SafeLoader.construct_mapping(loader, node, deep)
-
-
-_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
-_StrictLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float",
-    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
-    list("-+0123456789"),
-)
-
-
 def _read_yaml(path) -> Any:
-    p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except FileNotFoundError:
-        raise ScenarioError(path, "(file)", "an existing file", got_text="no such file") from None
-    except IsADirectoryError:
-        raise ScenarioError(path, "(file)", "a file", got_text="a directory") from None
-    except UnicodeDecodeError as e:
-        raise ScenarioError(path, "(file)", "UTF-8 text", got_text=f"undecodable byte at offset {e.start}") from None
-    except OSError as e:
-        raise ScenarioError(path, "(file)", "a readable file", got_text=e.strerror or type(e).__name__) from None
-    try:
-        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
-    except yaml.MarkedYAMLError as e:
-        mark = e.problem_mark or e.context_mark
-        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
-        problem = " ".join(f"{e.context or ''} {e.problem or ''}".split())
-        raise ScenarioError(path, where, "valid YAML", got_text=problem or "a syntax error",
-                            line=mark.line + 1 if mark else None) from None
-    except yaml.YAMLError as e:
-        raise ScenarioError(path, "(file)", "valid YAML", got_text=" ".join(str(e).split())) from None
+    """The one YAML loader (:func:`onboard.core.schema.read_yaml`), errors as :class:`ScenarioError`."""
+    return read_yaml(path, ScenarioError)
 
 
 def load_scenario(path) -> Scenario:
@@ -806,31 +645,44 @@ def reference_scenario_paths() -> dict[str, Path]:
 
 # --------------------------------------------------------------------------- noise cases
 
-_NOISE_KEYS = ("description", "pixel_sigma_px", "attitude_white_sigma_deg", "attitude_bias_sigma_deg",
-               "camera_position_white_sigma_m", "camera_position_offset_m", "camera_position_drift_mps")
+
+@_scenario_model(kw_only=True)
+class NoiseCaseFile:
+    """One case of ``config/noise_cases.yaml`` (angles in degrees; :meth:`case` holds radians)."""
+
+    description: Text(empty=True) = ""
+    pixel_sigma_px: Number(lo=0.0)
+    attitude_white_sigma_deg: Number(lo=0.0) = 0.0
+    attitude_bias_sigma_deg: Number(lo=0.0) = 0.0
+    camera_position_white_sigma_m: Number(lo=0.0) = 0.0
+    camera_position_offset_m: Number(lo=0.0) = 0.0
+    camera_position_drift_mps: Number(lo=0.0) = 0.0
+
+    def case(self, name: str) -> NoiseCase:
+        return NoiseCase(
+            name=name,
+            pixel_sigma_px=self.pixel_sigma_px,
+            attitude_white_sigma_rad=math.radians(self.attitude_white_sigma_deg),
+            attitude_bias_sigma_rad=math.radians(self.attitude_bias_sigma_deg),
+            camera_position_white_sigma_m=self.camera_position_white_sigma_m,
+            camera_position_offset_m=self.camera_position_offset_m,
+            camera_position_drift_mps=self.camera_position_drift_mps,
+            description=self.description,
+        )
 
 
 def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
     """Validate a parsed noise-case mapping ``{name: {fields}}`` (angles in degrees) into NoiseCases."""
-    fail = _Fail(source)
     if not isinstance(d, dict) or not d:
-        fail("", "a non-empty mapping of case name -> fields", d)
+        raise ScenarioError(source, "", "a non-empty mapping of case name -> fields", d)
     out: dict[str, NoiseCase] = {}
     for name, c in d.items():
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
-            fail("", "case names of letters, digits, '_', '.', '-'", name)
-        _mapping(c, name, fail, _NOISE_KEYS, ("pixel_sigma_px",))
-        num = {k: _number(c.get(k, 0.0), _join(name, k), fail, lo=0.0) for k in _NOISE_KEYS[1:]}
-        out[name] = NoiseCase(
-            name=name,
-            pixel_sigma_px=num["pixel_sigma_px"],
-            attitude_white_sigma_rad=math.radians(num["attitude_white_sigma_deg"]),
-            attitude_bias_sigma_rad=math.radians(num["attitude_bias_sigma_deg"]),
-            camera_position_white_sigma_m=num["camera_position_white_sigma_m"],
-            camera_position_offset_m=num["camera_position_offset_m"],
-            camera_position_drift_mps=num["camera_position_drift_mps"],
-            description=_string(c.get("description", ""), _join(name, "description"), fail),
-        )
+            raise ScenarioError(source, "", "case names of letters, digits, '_', '.', '-'", name)
+        try:
+            out[name] = build(NoiseCaseFile, c, name, none_is_default=False).case(name)
+        except SchemaError as exc:
+            raise exc.as_(ScenarioError, source) from None
     return out
 
 
@@ -838,6 +690,56 @@ def load_noise_cases(path=None) -> dict[str, NoiseCase]:
     """Read ``config/noise_cases.yaml`` (or ``path``): case name -> :class:`NoiseCase`."""
     p = Path(path) if path is not None else _CONFIG_DIR / "noise_cases.yaml"
     return noise_cases_from_dict(_read_yaml(p), source=p)
+
+
+# --------------------------------------------------------------------------- value checks for other spec files
+# The campaign spec (groundsim.evaluation.campaign) still validates its mapping field by field with these;
+# they check through the one system's field types, so the texts are the same as the models'.
+
+
+class _Fail:
+    """Raises ScenarioError for one source: ``fail(path, expected, got, hint)``; ``fail.text(...)``
+    when the 'got' part is a description rather than a value."""
+
+    def __init__(self, source) -> None:
+        self.source = source
+
+    def __call__(self, path: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None):
+        raise ScenarioError(self.source, path, expected, got, hint)
+
+    def text(self, path: str, expected: str, got_text: str, hint: str | None = None):
+        raise ScenarioError(self.source, path, expected, got_text=got_text, hint=hint)
+
+
+def _number(v, path, fail: _Fail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
+    return check_value(Number(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit), v, path, fail.source, ScenarioError)
+
+
+def _integer(v, path, fail: _Fail, *, lo=None, hi=None) -> int:
+    return check_value(Integer(lo, hi), v, path, fail.source, ScenarioError)
+
+
+def _string(v, path, fail: _Fail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
+    tp = Text(choices=tuple(choices or ()), pattern=None if pattern is None else pattern.pattern, what=what, empty=True)
+    return check_value(tp, v, path, fail.source, ScenarioError)
+
+
+def _mapping(v, path, fail: _Fail, allowed, required=()) -> dict:
+    """A dict with string keys, all in ``allowed``, all of ``required`` present."""
+    allowed = tuple(allowed)
+    if not isinstance(v, dict):
+        fail(path, f"a mapping with keys {', '.join(allowed)}", v)
+    for k in v:
+        if not isinstance(k, str):
+            fail(path, f"string keys (one of {', '.join(allowed)})", k)
+    for k in v:
+        if k not in allowed:
+            fail.text(f"{path}.{k}" if path else k, f"a key of {path or 'the document'} ({', '.join(allowed)})",
+                      f"unknown key {k!r}", did_you_mean(k, allowed))
+    for k in required:
+        if k not in v:
+            fail(f"{path}.{k}" if path else k, "a value (required)")
+    return v
 
 
 # --------------------------------------------------------------------------- entry point

@@ -123,12 +123,13 @@ from onboard.core.frames import (
     ned_from_geodetic,
     quat_conjugate,
     quat_from_euler,
-    quat_multiply,
     quat_from_rotvec,
+    quat_multiply,
     quat_normalize,
     quat_slerp,
     rotvec_from_quat,
 )
+from onboard.core.schema import Flag, Integer, Invalid, Number, Text, config_dataclass
 
 __all__ = [
     "RejectCounter",
@@ -137,6 +138,8 @@ __all__ = [
     "PoseLookup",
     "GimbalReference",
     "PoseBufferConfig",
+    "PoseConfig",
+    "OriginConfig",
     "PoseBuffer",
     "ClockSyncConfig",
     "ClockSync",
@@ -354,7 +357,7 @@ class GimbalReference(str, enum.Enum):
     EARTH = "earth"
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class PoseBufferConfig:
     """Bounds and tolerances.  All times in microseconds on the boot clock.
 
@@ -376,58 +379,130 @@ class PoseBufferConfig:
     :attr:`PoseAt.sigma_extrapolation_rad` / ``_m``: ``body_rate_sigma_rps``,
     ``gimbal_rate_sigma_rps``, ``angular_accel_sigma_rps2``, ``velocity_sigma_mps``,
     ``accel_sigma_mps2``.
+
+    The daemon builds it from the ``pose`` section (:class:`PoseConfig`, milliseconds and degrees) with
+    :meth:`PoseConfig.buffer_config`; a :func:`~onboard.core.schema.config_dataclass`: a bad value raises
+    :class:`~onboard.core.schema.SchemaError` naming the field.
     """
 
-    window_us: int = 5 * US_PER_S
-    max_samples: int = 4096
-    att_max_gap_us: int = 100_000
-    pos_max_gap_us: int = 300_000
-    gimbal_max_gap_us: int = 300_000
-    reboot_threshold_us: int = 1 * US_PER_S
-    time_confirm_count: int = 3
-    max_speed_mps: float = 200.0
-    jump_reset_count: int = 5
-    keep_origin_on_reboot: bool = True
-    position_interp: str = "hermite"
-    min_alt_m: float = -1_000.0
-    max_alt_m: float = 50_000.0
-    att_max_extrapolation_us: int = 36_000
-    pos_max_extrapolation_us: int = 50_000
-    gimbal_max_extrapolation_us: int = 25_000
-    gimbal_rate_window_us: int = 100_000
-    body_rate_sigma_rps: float = math.radians(0.1)
-    gimbal_rate_sigma_rps: float = math.radians(0.5)
-    angular_accel_sigma_rps2: float = math.radians(20.0)
-    velocity_sigma_mps: float = 0.1
-    accel_sigma_mps2: float = 2.0
+    window_us: Integer(lo=1) = 5 * US_PER_S
+    max_samples: Integer(lo=1) = 4096
+    att_max_gap_us: Integer(lo=1) = 100_000
+    pos_max_gap_us: Integer(lo=1) = 300_000
+    gimbal_max_gap_us: Integer(lo=1) = 300_000
+    reboot_threshold_us: Integer(lo=1) = 1 * US_PER_S
+    time_confirm_count: Integer(lo=1) = 3
+    max_speed_mps: Number(lo=0.0, lo_open=True) = 200.0
+    jump_reset_count: Integer(lo=1) = 5
+    keep_origin_on_reboot: Flag() = True
+    position_interp: Text(choices=("hermite", "linear")) = "hermite"
+    min_alt_m: Number() = -1_000.0
+    max_alt_m: Number() = 50_000.0
+    att_max_extrapolation_us: Integer(lo=0) = 36_000
+    pos_max_extrapolation_us: Integer(lo=0) = 50_000
+    gimbal_max_extrapolation_us: Integer(lo=0) = 25_000
+    gimbal_rate_window_us: Integer(lo=0) = 100_000
+    body_rate_sigma_rps: Number(lo=0.0) = math.radians(0.1)
+    gimbal_rate_sigma_rps: Number(lo=0.0) = math.radians(0.5)
+    angular_accel_sigma_rps2: Number(lo=0.0) = math.radians(20.0)
+    velocity_sigma_mps: Number(lo=0.0) = 0.1
+    accel_sigma_mps2: Number(lo=0.0) = 2.0
 
     def __post_init__(self) -> None:
-        for name in ("window_us", "max_samples", "att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us",
-                     "reboot_threshold_us", "jump_reset_count", "time_confirm_count"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ConfigError(f"PoseBufferConfig.{name} must be a positive integer, got {v!r}")
-        if not (math.isfinite(self.max_speed_mps) and self.max_speed_mps > 0):
-            raise ConfigError(f"PoseBufferConfig.max_speed_mps must be > 0, got {self.max_speed_mps!r}")
-        if self.position_interp not in ("hermite", "linear"):
-            raise ConfigError(f"PoseBufferConfig.position_interp must be 'hermite' or 'linear', got {self.position_interp!r}")
-        if not (self.min_alt_m < self.max_alt_m):
-            raise ConfigError(f"PoseBufferConfig.min_alt_m must be < max_alt_m, got {self.min_alt_m}, {self.max_alt_m}")
+        if not self.min_alt_m < self.max_alt_m:
+            raise Invalid("max_alt_m", f"a number > min_alt_m ({self.min_alt_m:g})", self.max_alt_m)
         for name in ("att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us"):
             if getattr(self, name) > self.window_us:
-                raise ConfigError(f"PoseBufferConfig.{name} must be <= window_us ({self.window_us}), got {getattr(self, name)}")
+                raise Invalid(name, f"an integer <= window_us ({self.window_us})", getattr(self, name))
         for name, gap in (("att_max_extrapolation_us", "att_max_gap_us"), ("pos_max_extrapolation_us", "pos_max_gap_us"),
                           ("gimbal_max_extrapolation_us", "gimbal_max_gap_us"), ("gimbal_rate_window_us", "window_us")):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
-                raise ConfigError(f"PoseBufferConfig.{name} must be an integer >= 0, got {v!r}")
-            if v > getattr(self, gap):
-                raise ConfigError(f"PoseBufferConfig.{name} must be <= {gap} ({getattr(self, gap)}), got {v}")
-        for name in ("body_rate_sigma_rps", "gimbal_rate_sigma_rps", "angular_accel_sigma_rps2", "velocity_sigma_mps",
-                     "accel_sigma_mps2"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"PoseBufferConfig.{name} must be a number >= 0, got {v!r}")
+            if getattr(self, name) > getattr(self, gap):
+                raise Invalid(name, f"an integer <= {gap} ({getattr(self, gap)})", getattr(self, name))
+
+
+@config_dataclass
+class OriginConfig:
+    """``pose.origin`` of the daemon's configuration: a fixed local NED origin (degrees, metres)."""
+
+    lat_deg: Number(-90.0, 90.0) = 0.0
+    lon_deg: Number(-180.0, 180.0) = 0.0
+    alt_m: Number(-1000.0, 100000.0) = 0.0
+
+    def geodetic(self) -> GeodeticOrigin:
+        return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
+
+
+@config_dataclass
+class PoseConfig:
+    """The ``pose`` section of the daemon's configuration (``config/onboard.yaml``; composed by
+    :class:`onboard.app.config.OnboardConfig`): the pose buffer's tolerances in the file's units
+    (milliseconds, seconds, degrees), declared here, beside the :class:`PoseBufferConfig` they become
+    (:meth:`buffer_config`: ms/s -> us, deg -> rad)."""
+
+    window_s: Number(0.1, 600.0) = 5.0
+    attitude_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 100.0
+    position_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 300.0
+    gimbal_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 300.0
+    reboot_threshold_s: Number(0.0, 3600.0, lo_open=True) = 1.0
+    max_speed_mps: Number(0.0, 10000.0, lo_open=True) = 200.0
+    jump_reset_count: Integer(1, 1000) = 5
+    keep_origin_on_reboot: Flag() = True
+    position_interp: Text(choices=("hermite", "linear")) = "hermite"
+    wait_ms: Number(0.0, 1000.0) = 5.0
+    max_extrapolation_ms: Number(0.0, 10000.0) = 50.0
+    extrapolation_noise_fraction: Number(0.0, 10.0) = 0.25
+    body_rate_sigma_dps: Number(0.0, 1000.0) = 0.1
+    gimbal_rate_sigma_dps: Number(0.0, 1000.0) = 0.5
+    angular_accel_sigma_dps2: Number(0.0, 100000.0) = 20.0
+    velocity_sigma_mps: Number(0.0, 1000.0) = 0.1
+    accel_sigma_mps2: Number(0.0, 1000.0) = 2.0
+    origin: OriginConfig | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("attitude_max_gap_ms", "position_max_gap_ms", "gimbal_max_gap_ms"):
+            if getattr(self, name) > self.window_s * 1000.0:
+                raise Invalid(name, f"a gap <= pose.window_s ({self.window_s:g} s)", getattr(self, name))
+
+    def buffer_config(self, bearing_white_sigma_rad: float | None = None) -> PoseBufferConfig:
+        """The :class:`PoseBufferConfig` (ms/s -> us, deg -> rad).
+
+        Extrapolation horizons (each capped by its stream's max gap): position
+        ``max_extrapolation_ms``; attitude and gimbal the same, shortened so that their added 1-sigma stays <= ``extrapolation_noise_fraction`` x
+        ``bearing_white_sigma_rad`` (:func:`attitude_horizon_us`; the service passes
+        ``OnboardConfig.bearing_white_sigma_rad()``; None: not shortened).
+        """
+        us = lambda ms: max(1, int(round(ms * 1000.0)))  # noqa: E731
+        cap_us = int(round(self.max_extrapolation_ms * 1000.0))
+        body_rps, gim_rps = math.radians(self.body_rate_sigma_dps), math.radians(self.gimbal_rate_sigma_dps)
+        acc_rps2 = math.radians(self.angular_accel_sigma_dps2)
+        if bearing_white_sigma_rad is None:
+            att_us = gim_us = cap_us
+        else:
+            limit = self.extrapolation_noise_fraction * bearing_white_sigma_rad
+            att_us = attitude_horizon_us(limit, body_rps, acc_rps2, cap_us)
+            gim_us = attitude_horizon_us(limit, gim_rps, acc_rps2, cap_us)
+        return PoseBufferConfig(
+            att_max_extrapolation_us=min(att_us, us(self.attitude_max_gap_ms)),
+            pos_max_extrapolation_us=min(cap_us, us(self.position_max_gap_ms)),
+            gimbal_max_extrapolation_us=min(gim_us, us(self.gimbal_max_gap_ms)),
+            body_rate_sigma_rps=body_rps,
+            gimbal_rate_sigma_rps=gim_rps,
+            angular_accel_sigma_rps2=acc_rps2,
+            velocity_sigma_mps=self.velocity_sigma_mps,
+            accel_sigma_mps2=self.accel_sigma_mps2,
+            window_us=us(self.window_s * 1000.0),
+            att_max_gap_us=us(self.attitude_max_gap_ms),
+            pos_max_gap_us=us(self.position_max_gap_ms),
+            gimbal_max_gap_us=us(self.gimbal_max_gap_ms),
+            reboot_threshold_us=us(self.reboot_threshold_s * 1000.0),
+            max_speed_mps=self.max_speed_mps,
+            jump_reset_count=self.jump_reset_count,
+            keep_origin_on_reboot=self.keep_origin_on_reboot,
+            position_interp=self.position_interp,
+        )
+
+    def geodetic_origin(self) -> GeodeticOrigin | None:
+        return None if self.origin is None else self.origin.geodetic()
 
 
 # --------------------------------------------------------------------------- streams

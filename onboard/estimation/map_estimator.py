@@ -68,42 +68,50 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from dataclasses import dataclass
+from typing import Annotated
+from dataclasses import dataclass, field
 
 import numpy as np
+from pydantic import AfterValidator
 import scipy.linalg as sla
 
 from onboard.core.errors import IrtrackError
+from onboard.core.schema import Integer, Invalid, Number, Numbers, Texts, config_dataclass
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
-__all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem",
-           "SolveResult", "Mode"]
+__all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem"]
 
 log = logging.getLogger(__name__)
+
+
+def Families():  # noqa: N802 - a field type, named like one
+    """``MapConfig.families``: a non-empty list of the motion families cv, ca, ct (each once)."""
+    return Annotated[Texts(), AfterValidator(_check_families)]
+
+
+def _check_families(v: tuple[str, ...]) -> tuple[str, ...]:
+    if not v or len(set(v)) != len(v) or not set(v) <= {"cv", "ca", "ct"}:
+        raise Invalid("", "a non-empty list of distinct families of cv, ca, ct", v)
+    return v
 
 
 class EstimationError(IrtrackError):
     """The reconstruction cannot be computed from these observations (too few, degenerate)."""
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class NoiseModel:
-    """Measurement and navigation noise the estimator assumes (1 sigma per axis)."""
+    """Measurement and navigation noise the estimator assumes (1 sigma per axis); a bad value raises
+    :class:`~onboard.core.schema.SchemaError` naming the field (the daemon builds it from its ``estimator``
+    section, the simulator from a noise case)."""
 
-    pixel_sigma_px: float = 0.3
-    attitude_white_sigma_rad: float = 0.0
-    attitude_bias_sigma_rad: float = 0.0
-    camera_position_white_sigma_m: float = 0.0
-    camera_position_offset_sigma_m: float = 0.0
-    camera_position_drift_sigma_mps: float = 0.0
-
-    def __post_init__(self) -> None:
-        for name, value in self.__dict__.items():
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise IrtrackError(f"NoiseModel.{name} must be a finite number >= 0, got {value!r}")
-        if self.pixel_sigma_px <= 0:
-            raise IrtrackError(f"NoiseModel.pixel_sigma_px must be > 0, got {self.pixel_sigma_px}")
+    pixel_sigma_px: Number(lo=0.0, lo_open=True) = 0.3
+    attitude_white_sigma_rad: Number(lo=0.0) = 0.0
+    attitude_bias_sigma_rad: Number(lo=0.0) = 0.0
+    camera_position_white_sigma_m: Number(lo=0.0) = 0.0
+    camera_position_offset_sigma_m: Number(lo=0.0) = 0.0
+    camera_position_drift_sigma_mps: Number(lo=0.0) = 0.0
 
 
 @dataclass(frozen=True)
@@ -125,71 +133,74 @@ class MotionPrior:
         return "ca" if self.jerk else ("ct" if self.turn_rate_sigma_radps > 0 else "cv")
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class MapConfig:
-    knot_spacing_s: float = 0.5
-    q_grid_m2ps3: tuple[float, ...] = (1e-6, 1e-3, 1e-2, 1e-1)
-    model_margin_nats: float = 15.0
-    vertical_ratio: float = 0.25
-    turn_rate_sigma_radps: float = 0.3
-    init_ranges_m: tuple[float, ...] = (40.0, 100.0, 250.0, 600.0, 1500.0)
-    max_iterations: int = 20
-    min_frames: int = 10
+    """The MAP estimator's settings (units in the names); a bad value raises
+    :class:`~onboard.core.schema.SchemaError` naming the field."""
+
+    knot_spacing_s: Number(lo=0.0, lo_open=True) = 0.5
+    q_grid_m2ps3: Numbers(lo=0.0, lo_open=True, min_length=1) = (1e-6, 1e-3, 1e-2, 1e-1)
+    model_margin_nats: Number(lo=0.0) = 15.0
+    vertical_ratio: Number(lo=0.0) = 0.25
+    turn_rate_sigma_radps: Number(lo=0.0) = 0.3
+    init_ranges_m: Numbers(lo=0.0, lo_open=True, min_length=1) = (40.0, 100.0, 250.0, 600.0, 1500.0)
+    max_iterations: Integer(lo=1) = 20
+    min_frames: Integer(lo=1) = 10
     # a solution whose mean range falls below this is the collapsed one of the bearing-only problem (the
     # cost keeps falling as the trajectory shrinks onto the camera track; the reference study's pitfall):
     # the solve stops there and drops it instead of crawling down that valley.  A target this close
     # fills tens of pixels and is a collision, not a tracking problem.
-    min_range_m: float = 10.0
+    min_range_m: Number(lo=0.0) = 10.0
     # camera positions with white noise (NoiseModel.camera_position_white_sigma_m > 0) are smoothed, as
     # an INS would, by a least-squares cubic B-spline with this knot spacing before use; 0 turns it off.
     # Raw jittery positions bias every model towards far targets: the measured bearings do not show the
     # parallax the jitter implies, which a distant target explains best (the reference study's pitfall;
     # measured here: P1 RTK's CA/CT "mirror" solutions at 2-4x the range won by 10-20 nats without it)
-    camera_track_knot_s: float = 0.5
+    camera_track_knot_s: Number(lo=0.0) = 0.5
     # observability verdict (module docstring, "Verdict"): the posterior range sigma over range of the
     # reported solution, median over the window, must be below this.  Chosen from 675 bench runs (9
     # scenarios x px0.3/RTK/GNSS x 25 seeds): the reported sigma of P2 under RTK navigation is 4.2-5.3 %
     # of range (median over the window; its actual error 1.0 %), a gusty P2g target's 5.7-16 % (its
     # error 7 %); 3 % of the window's maximum, the verdict before, called P1/P2 RTK observable in 0/50
-    observability_max_sigma_range_ratio: float = 0.055
+    observability_max_sigma_range_ratio: Number(lo=0.0, lo_open=True) = 0.055
     # solutions whose range differs from the reported one by more than this fraction (median over the
     # window) are a different explanation of the bearings ("far" modes: the accelerating mirror target of
     # a straight accelerating observer, a range-free vague model) -- not part of the reported solution's
     # uncertainty but of its ambiguity; the verdict wants their posterior mass at most max_ambiguity
-    near_solution_ratio: float = 0.3
-    max_ambiguity: float = 0.5
+    near_solution_ratio: Number(lo=0.0, lo_open=True) = 0.3
+    max_ambiguity: Number(0.0, 1.0) = 0.5
     # the reported solution's neighbourhood must hold at least this posterior mass; otherwise the next
     # close model that does is reported (the online window met a stiff CT model with ~0 weight, 37 % off,
     # while the evidence sat on solutions at the true range)
-    min_solution_mass: float = 0.1
+    min_solution_mass: Number(0.0, 1.0) = 0.1
     # a position the verdict calls unobservable is still published, with a covariance that must stay
     # honest: its range sigma is at least this fraction of the range (the Laplace posterior of a model
     # that cannot follow the target -- a gusty target, a figure-eight -- is confidently wrong along range)
-    unobservable_range_sigma_floor: float = 0.5
+    unobservable_range_sigma_floor: Number(lo=0.0) = 0.5
     # ... and at least this many metres: an unobservable solution can also sit collapsed towards the camera
     # (H1's figure-eight: 2-16 % of the true range), where a fraction of its own range says nothing.  The
     # range is then known only to lie between the collapse floor (min_range_m) and the ~500 m at which
     # the Vue Pro 640 still detects a small drone
-    unobservable_range_sigma_min_m: float = 150.0
+    unobservable_range_sigma_min_m: Number(lo=0.0) = 150.0
     # weak priors that make the posterior proper, in physical terms: the target is within ~1 km of
     # the camera (a Vue Pro 640 does not resolve a small drone much farther), flies below ~30 m/s and
     # does not sustain more than ~3 m/s^2 (0.3 g).  They decide nothing where range is observable.
-    position_prior_sigma_m: float = 1000.0
-    velocity_prior_sigma_mps: float = 30.0
-    acceleration_prior_sigma_mps2: float = 3.0
+    position_prior_sigma_m: Number(lo=0.0, lo_open=True) = 1000.0
+    velocity_prior_sigma_mps: Number(lo=0.0, lo_open=True) = 30.0
+    acceleration_prior_sigma_mps2: Number(lo=0.0, lo_open=True) = 3.0
     # the CA family's own acceleration level: a cruising multirotor's sustained acceleration is
     # typically below ~0.5 m/s^2; without it CA explains any range by a target whose acceleration
     # happens to mirror the observer's (the scaled-trajectory ridge of a straight accelerating observer)
-    ca_acceleration_sigma_mps2: float = 0.5
-    families: tuple[str, ...] = ("cv", "ca", "ct")
+    ca_acceleration_sigma_mps2: Number(lo=0.0, lo_open=True) = 0.5
+    families: Families() = ("cv", "ca", "ct")
     # Laplace's Gaussian is light-tailed along range (the bearing-only range posterior is skewed):
     # reported sigmas are this factor times the Laplace ones (measured NEES ~3.1 -> ~2.2 on P1-P3)
-    sigma_inflation: float = 1.2
+    sigma_inflation: Number(lo=0.0, lo_open=True) = 1.2
     # model adequacy: residuals averaged over blocks of this many frames must look like the assumed
     # white noise; a chi-square p-value below adequacy_p_min marks the fit unobservable (a motion model
     # that cannot follow the target -- a gusty target under a stiff prior -- buys its fit with range)
-    adequacy_block_frames: int = 15
-    adequacy_p_min: float = 1e-3
+    adequacy_block_frames: Integer(lo=1) = 15
+    adequacy_p_min: Number(0.0, 1.0) = 1e-3
 
 
     def motion_prior(self, family: str, q_horizontal_m2ps3: float) -> MotionPrior:
@@ -218,22 +229,8 @@ class MapResult:
     log_evidence: float
     iterations: int
     converged: bool
-    #: the solution's parameter vector (layout: :class:`WindowProblem`) and the problem it solves; the
-    #: sliding window re-linearises and warm-starts from them
-    theta: np.ndarray
-    problem: "WindowProblem"
-    #: the model-averaged, inflated point covariance (F, 3, 3) before an unobservable solution's range
-    #: floor (``cov_p_ned_m2`` is after it); equal to ``cov_p_ned_m2`` when observable
-    cov_p_model_ned_m2: np.ndarray
     method: str = "map"
-    #: the motion family the evidence selection chose ("cv", "ca", "ct"); None when :meth:`MapEstimator.solve`
-    #: was given the prior (no selection; the selection fields below are None too)
-    model: str | None = None
-    #: log evidence per family (log-sum-exp over its q grid) and per (q, log evidence) of each solved model
-    family_log_evidence: dict[str, float] | None = None
-    grid_log_evidence: dict[str, list[tuple[float, float]]] | None = None
-    #: the chosen model's evidence weight among every solved model
-    best_model_weight: float | None = None
+    extras: dict = field(default_factory=dict)
     #: posterior mass of solutions far from this one (``MapConfig.near_solution_ratio``); 0 without a selection
     ambiguity: float = 0.0
     #: RMS of the standardised measurement residuals (~1 when the noise model and the camera are right)
@@ -308,24 +305,6 @@ class _SpanPrior:
             self.P_acc[ax::3, ax::3] = sq[:, None] * self.Bq2
         self.P_turn[0::3, 1::3] = self.sq_h[:, None] * self.Bq1
         self.P_turn[1::3, 0::3] = -self.sq_h[:, None] * self.Bq1
-
-
-@dataclass(frozen=True, eq=False)
-class SolveResult:
-    """What :meth:`WindowProblem.solve` returns.
-
-    ``theta`` (n_params,) the parameters at the end; ``cost`` 1/2 chi^2 there (inf: the start was invalid,
-    or the solve collapsed below ``min_range_m``); ``iterations`` taken; ``converged`` when the cost stopped
-    falling (by less than the tolerance, or no damping found a lower cost) before ``max_iterations``;
-    ``factor`` the square-root information ``(R, d)`` at ``theta`` (``H = J^T J = D R^T R D``, see
-    :meth:`WindowProblem.factor`), None when not asked for or when the cost is inf.
-    """
-
-    theta: np.ndarray
-    cost: float
-    iterations: int
-    converged: bool
-    factor: tuple[np.ndarray, np.ndarray] | None
 
 
 class WindowProblem:
@@ -565,16 +544,16 @@ class WindowProblem:
         """Levenberg-Marquardt from theta0 (More's column scaling).
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
-        damping finds a lower cost, or after ``max_iterations``.  Returns a :class:`SolveResult` whose
-        factor is (square-root information R, scales) at theta, or None when ``want_factor`` is False.
-        Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
+        damping finds a lower cost, or after ``max_iterations``.  Returns (theta, cost, iterations,
+        converged, factor) with factor = (square-root information R, scales) at theta, or None when
+        ``want_factor`` is False.  Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
         With ``min_range_m``, a step that takes the mean range below it ends the solve as collapsed:
         cost inf and factor None, like a start that put the target behind the camera.
         """
         theta = theta0.copy()
         r, J, valid = self.evaluate(theta)
         if not valid:
-            return SolveResult(theta, math.inf, 0, False, None)
+            return theta, math.inf, 0, False, None
         cost = 0.5 * float(r @ r)
         lam = lam0
         converged = False
@@ -616,7 +595,7 @@ class WindowProblem:
                     if min_range_m is not None and float(np.mean(np.linalg.norm(
                             self.positions(theta) - self.obs.p_cam_ned_m, axis=1))) < min_range_m:
                         self.last_jacobian = None
-                        return SolveResult(theta, math.inf, it, False, None)
+                        return theta, math.inf, it, False, None
                     lam = lam / 10 if lam > 1e-9 else 0.0
                     if J2 is not None:
                         r, J, J_current = r2, J2, True
@@ -634,7 +613,7 @@ class WindowProblem:
         if not J_current:
             r, J, _ = self.evaluate(theta)
         self.last_jacobian = J
-        return SolveResult(theta, cost, it, converged, self.factor(J) if want_factor else None)
+        return theta, cost, it, converged, (self.factor(J) if want_factor else None)
 
     def factor(self, J: np.ndarray):
         """Square-root information at the solution: upper-triangular R of the column-scaled J (QR),
@@ -684,27 +663,6 @@ class WindowProblem:
         logdet_H = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         meas_norm = -np.sum(np.log(1.0 / self.s))  # -sum log sigma (normalised units)
         return float(-cost + 0.5 * self.prior_logdet(theta) - 0.5 * logdet_H + meas_norm)
-
-
-@dataclass(frozen=True, eq=False)
-class Mode:
-    """One local MAP solution (mode) of a window under one prior, as :meth:`MapEstimator.solve_prior` keeps it.
-
-    ``problem`` the window problem (its prior is the mode's model), ``theta``/``cost``/``iterations``/
-    ``converged``/``factor`` as in :class:`SolveResult` (``factor`` never None here), ``log_evidence``
-    the Laplace log evidence (:meth:`WindowProblem.log_evidence`, at the weights of the solve), and
-    ``mean_range_m`` the mean distance camera -> target over the window (modes closer than 1 % of it
-    are one mode).  Compared by identity (``eq=False``): the selection memoises per mode.
-    """
-
-    problem: WindowProblem
-    theta: np.ndarray
-    cost: float
-    iterations: int
-    converged: bool
-    factor: tuple[np.ndarray, np.ndarray]
-    log_evidence: float
-    mean_range_m: float
 
 
 class MapEstimator:
@@ -761,15 +719,15 @@ class MapEstimator:
 
     def solve_prior(self, obs: Observations, prior: MotionPrior, starts: list[np.ndarray] | None = None,
                     grid: KnotGrid | None = None, max_modes: int = 3):
-        """MAP modes for one prior from several starts; returns (best, modes), :class:`Mode` each, at most
-        ``max_modes`` modes by decreasing log evidence.
+        """MAP modes for one prior from several starts; returns (best, modes).
 
-        The best is the one with the largest Laplace posterior mass (log evidence), not the lowest
+        Each mode is a tuple (problem, theta, cost, iterations, converged, factor, log_evidence);
+        the best is the one with the largest Laplace posterior mass (log evidence), not the lowest
         cost: near-camera (collapsed) modes fit noise cheaply but carry little mass.
         """
         prob = self.problem(obs, prior, grid)
         starts = starts if starts is not None else self.initial_guesses(prob)
-        modes: list[Mode] = []
+        modes: list = []
         fixed = self._weight_range_m
         reweight = self.noise.camera_position_white_sigma_m > 0 and fixed is None
         for th0 in starts:
@@ -778,20 +736,20 @@ class MapEstimator:
             # unless a common weighting range is fixed (model comparison, see solve())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
-                sol = prob.solve(th, max_iterations=self.config.max_iterations, min_range_m=self.config.min_range_m)
-                th, cost, fac = sol.theta, sol.cost, sol.factor
+                th, cost, its, conv, fac = prob.solve(th, max_iterations=self.config.max_iterations,
+                                                      min_range_m=self.config.min_range_m)
                 if fac is None or not math.isfinite(cost):
                     break
             if fac is None or not math.isfinite(cost):
                 continue
             r_mean = float(np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)))
-            if any(abs(r_mean - m.mean_range_m) < 0.01 * r_mean for m in modes):
+            if any(abs(r_mean - m[7]) < 0.01 * r_mean for m in modes):
                 continue
-            modes.append(Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean))
+            modes.append((prob, th, cost, its, conv, fac, prob.log_evidence(th, cost, fac), r_mean))
         if not modes:
             raise EstimationError("no initial guess gave a valid solution (target behind the camera?)")
-        modes.sort(key=lambda m: -m.log_evidence)
-        return modes[0], modes[:max_modes]
+        modes.sort(key=lambda m: -m[6])
+        return modes[0][:7], [m[:7] for m in modes[:max_modes]]
 
     def solve(self, obs: Observations, prior: MotionPrior | None = None, grid: KnotGrid | None = None,
               warm: np.ndarray | None = None, trust_warm: bool = False) -> MapResult:
@@ -809,7 +767,7 @@ class MapEstimator:
         self._weight_range_m = None
         if prior is not None:
             best, _ = self.solve_prior(obs, prior, grid=grid)
-            return self.result(best)
+            return self.result(*best[:6])
         try:
             return self._select(obs, grid, warm, trust_warm)
         finally:
@@ -845,17 +803,17 @@ class MapEstimator:
                     # one weighting geometry for every model compared: the range-dependent pixel
                     # weights would otherwise reward far solutions through the likelihood's
                     # normaliser (a few hundredths of a pixel per row, tens of nats over a window)
-                    self._weight_range_m = self._ranges(top.problem, top.theta)
-                    top, modes = self.solve_prior(obs, pr, starts=[m.theta for m in modes], grid=grid, max_modes=2)
-                seeds = [m.theta for m in modes]
+                    self._weight_range_m = self._ranges(top[0], top[1])
+                    top, modes = self.solve_prior(obs, pr, starts=[m[1] for m in modes], grid=grid, max_modes=2)
+                seeds = [m[1] for m in modes]
                 tops[fam].append(top)
-            carry = [m.theta for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]]
+            carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
         tops = {f: ts for f, ts in tops.items() if ts}
         if not tops:
             raise EstimationError("no motion model found a solution in front of the camera and beyond "
                                   f"{cfg.min_range_m:g} m (degenerate bearings?)")
-        fam_ev = {f: float(np.logaddexp.reduce([t.log_evidence for t in ts])) for f, ts in tops.items()}
-        top_ev = max(m.log_evidence for ts in tops.values() for m in ts)
+        fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
+        top_ev = max(m[6] for ts in tops.values() for m in ts)
         # the point estimate: among the models (family and q) the data cannot tell from the best one
         # (within model_margin_nats of its evidence), the one that pins range best under its own posterior.
         # A family that explains the data only by leaving range free (a target whose acceleration
@@ -867,18 +825,18 @@ class MapEstimator:
                 memo[id(m)] = self._moments(m)
             return memo[id(m)]
 
-        close = [(f, m) for f, ts in tops.items() for m in ts if m.log_evidence >= top_ev - cfg.model_margin_nats]
+        close = [(f, m) for f, ts in tops.items() for m in ts if m[6] >= top_ev - cfg.model_margin_nats]
         ratios = [moments(m)[2] for _, m in close]
         cands = [m for ts in tops.values() for m in ts]
-        logw = np.array([m.log_evidence for m in cands])
+        logw = np.array([m[6] for m in cands])
         w = np.exp(logw - np.logaddexp.reduce(logw))
-        cam = close[0][1].problem.obs.p_cam_ned_m  # the (smoothed) camera track every problem shares
+        cam = close[0][1][0].obs.p_cam_ned_m  # the (smoothed) camera track every problem shares
         # the reported solution: the close model pinning range best, unless its neighbourhood holds less
         # than min_solution_mass of the posterior (a stiff low-weight model far from where the evidence
         # sits would report its own narrow sigma about the wrong range): then the next one that does,
         # failing that the highest-evidence model
         order = [close[i] for i in np.argsort(ratios)]
-        top = max(close, key=lambda fm: fm[1].log_evidence)
+        top = max(close, key=lambda fm: fm[1][6])
         chosen, best = order[0]
         split = self._split(best, cands, w, cam, moments)
         if split[1] < cfg.min_solution_mass:
@@ -893,10 +851,12 @@ class MapEstimator:
             mix = (w_best / w_near, extra_near / w_near)
         else:
             mix = (w_best, extra_near + extra_far)
-        res = self.result(best, mix=mix, ambiguity=ambiguity)
-        grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
-        return dataclasses.replace(res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev,
-                                   best_model_weight=w_best)
+        res = self.result(*best[:6], mix=mix, ambiguity=ambiguity)
+        res.extras["family_log_evidence"] = fam_ev
+        res.extras["best_model_weight"] = w_best
+        res.extras["model"] = chosen
+        res.extras["grid_log_evidence"] = {f: [(t[0].prior.q_horizontal_m2ps3, t[6]) for t in ts] for f, ts in tops.items()}
+        return res
 
     def _split(self, best, cands, w, cam: np.ndarray, moments):
         """(w_best, w_near, extra_near, extra_far) of reporting ``best``: its evidence weight, the mass of the
@@ -929,9 +889,9 @@ class MapEstimator:
                 extra_far += term
         return w_best, w_near + w_best, extra_near, extra_far
 
-    def _moments(self, mode: Mode):
+    def _moments(self, mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
-        prob, theta, fac = mode.problem, mode.theta, mode.factor
+        prob, theta, fac = mode[0], mode[1], mode[5]
         p = prob.positions(theta)
         P = prob.point_covariances(prob.covariance(fac))
         los = p - prob.obs.p_cam_ned_m
@@ -959,11 +919,10 @@ class MapEstimator:
             out[prob.nc :] = theta[prob.nc + 1 :]
         return out
 
-    def result(self, mode: Mode, mix=None, ambiguity: float = 0.0) -> MapResult:
-        """The named result of one solution (``mode``); ``mix = (weight, extra)`` turns its point covariance into
+    def result(self, prob: WindowProblem, theta, cost, its, conv, fac, mix=None, ambiguity: float = 0.0) -> MapResult:
+        """The named result of one solution; ``mix = (weight, extra)`` turns its point covariance into
         ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`); ``ambiguity`` is the
         posterior mass of far solutions (see :meth:`solve`)."""
-        prob, theta, cost, fac = mode.problem, mode.theta, mode.cost, mode.factor
         # the problem object served several starts: its weights must be this solution's
         prob.set_measurement_weights(self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta))
         Sigma = prob.covariance(fac)
@@ -995,8 +954,9 @@ class MapEstimator:
             t_s=prob.obs.t_s.copy(), p_ned_m=p, v_ned_mps=v, cov_p_ned_m2=P, residuals_px=res_px,
             observable=observable, range_sigma_ratio=ratio, prior=prob.prior, turn_rate_radps=om,
             attitude_bias_rad=phi, cost=float(cost), log_evidence=prob.log_evidence(theta, cost, fac),
-            iterations=int(mode.iterations), converged=bool(mode.converged), theta=theta, problem=prob,
-            cov_p_model_ned_m2=P_model, ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
+            iterations=int(its), converged=bool(conv), extras={"theta": theta, "problem": prob, "adequacy_p": adequacy_p,
+                                                               "cov_p_model_ned_m2": P_model},
+            ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
         )
 
     def range_floor(self, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -40,13 +40,14 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, Mapping
 
 import cv2
 import numpy as np
 
-from onboard.core.errors import ConfigError, InputError
+from onboard.core.errors import InputError
+from onboard.core.schema import Integer, Invalid, Number, SchemaError, build, config_dataclass
 
 __all__ = [
     "ImagingParams",
@@ -70,7 +71,7 @@ NOISE_SUBSAMPLE_REGION = 2  # every 2nd row/column of a region of interest (~1k 
 SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
 
 
-@dataclass(frozen=True)
+@config_dataclass
 class ImagingParams:
     """Parameters of the image chain (config section ``imaging``; build it with
     :meth:`from_mapping`); lengths in pixels, grey values in the input's units.
@@ -101,126 +102,61 @@ class ImagingParams:
     prediction keeps its track id; after ``lost_frames`` frames without a blob it is ``lost``.
     """
 
-    mean_kernel_px: int = 3
-    threshold_low_sigma: float = 3.0
-    threshold_high_sigma: float = 7.0
-    min_threshold_low_lsb: float = 1.0
-    min_threshold_high_lsb: float = 2.0
-    background_opening_px: int = 21
-    min_area_px: int = 2
-    max_area_px: int = 1024
-    max_blob_side_px: int = 48
-    max_aspect_ratio: float = 6.0
-    max_candidates: int = 8
-    centroid_margin_px: int = 1
-    centroid_window_sigma_px: float = 1.0
-    background_ring_px: int = 3
-    kcf_box_px: int = 16
-    kcf_box_scale: float = 1.0
-    kcf_max_box_px: int = 32
-    kcf_detect_threshold: float = 0.3
-    roi_margin_px: int = 12
-    max_drift_px: float = 3.0
-    kcf_gate_px: float = 8.0
-    reacquire_gate_px: float = 64.0
-    coast_frames: int = 5
-    lost_frames: int = 15
+    mean_kernel_px: Integer(lo=1) = 3
+    threshold_low_sigma: Number(lo=0.0) = 3.0
+    threshold_high_sigma: Number(lo=0.0) = 7.0
+    min_threshold_low_lsb: Number(lo=0.0) = 1.0
+    min_threshold_high_lsb: Number(lo=0.0) = 2.0
+    background_opening_px: Integer(lo=3) = 21
+    min_area_px: Integer(lo=1) = 2
+    max_area_px: Integer(lo=1) = 1024
+    max_blob_side_px: Integer(lo=3) = 48
+    max_aspect_ratio: Number(lo=1.0) = 6.0
+    max_candidates: Integer(lo=1) = 8
+    centroid_margin_px: Integer(lo=0) = 1
+    centroid_window_sigma_px: Number(lo=0.0) = 1.0
+    background_ring_px: Integer(lo=1) = 3
+    kcf_box_px: Integer(lo=4) = 16
+    kcf_box_scale: Number(lo=0.0) = 1.0
+    kcf_max_box_px: Integer(lo=4) = 32
+    kcf_detect_threshold: Number(0.0, 1.0, what="a number in [0, 1] (KCF peak response)") = 0.3
+    roi_margin_px: Integer(lo=0) = 12
+    max_drift_px: Number(lo=0.0) = 3.0
+    kcf_gate_px: Number(lo=0.0) = 8.0
+    reacquire_gate_px: Number(lo=0.0) = 64.0
+    coast_frames: Integer(lo=0) = 5
+    lost_frames: Integer(lo=1) = 15
 
     def __post_init__(self) -> None:
-        ints = {
-            "mean_kernel_px": 1,
-            "background_opening_px": 3,
-            "min_area_px": 1,
-            "max_area_px": 1,
-            "max_blob_side_px": 3,
-            "max_candidates": 1,
-            "centroid_margin_px": 0,
-            "background_ring_px": 1,
-            "kcf_box_px": 4,
-            "kcf_max_box_px": 4,
-            "roi_margin_px": 0,
-            "coast_frames": 0,
-            "lost_frames": 1,
-        }
-        for name, lo in ints.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise ConfigError(f"imaging.{name} must be an integer, got {v!r}")
-            if v < lo:
-                raise ConfigError(f"imaging.{name} must be >= {lo}, got {v}")
-        floats = {
-            "threshold_low_sigma": 0.0,
-            "threshold_high_sigma": 0.0,
-            "min_threshold_low_lsb": 0.0,
-            "min_threshold_high_lsb": 0.0,
-            "max_aspect_ratio": 1.0,
-            "centroid_window_sigma_px": 0.0,
-            "kcf_box_scale": 0.0,
-            "kcf_detect_threshold": 0.0,
-            "max_drift_px": 0.0,
-            "kcf_gate_px": 0.0,
-            "reacquire_gate_px": 0.0,
-        }
-        for name, lo in floats.items():
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-                raise ConfigError(f"imaging.{name} must be a number, got {v!r}")
-            if not math.isfinite(v) or v < lo:
-                raise ConfigError(f"imaging.{name} must be a finite number >= {lo}, got {v!r}")
         if self.mean_kernel_px % 2 != 1:
-            raise ConfigError(f"imaging.mean_kernel_px must be odd (a centred neighbourhood), got {self.mean_kernel_px}")
+            raise Invalid("mean_kernel_px", "an odd integer (a centred neighbourhood)", self.mean_kernel_px)
         if self.background_opening_px % 2 != 1:
-            raise ConfigError(f"imaging.background_opening_px must be odd (a centred square), got {self.background_opening_px}")
+            raise Invalid("background_opening_px", "an odd integer (a centred square)", self.background_opening_px)
         if self.threshold_high_sigma < self.threshold_low_sigma:
-            raise ConfigError(
-                f"imaging.threshold_high_sigma ({self.threshold_high_sigma}) must be >= threshold_low_sigma ({self.threshold_low_sigma})"
-            )
+            raise Invalid("threshold_high_sigma", f"a number >= threshold_low_sigma ({self.threshold_low_sigma:g})",
+                          self.threshold_high_sigma)
         if self.min_threshold_high_lsb < self.min_threshold_low_lsb:
-            raise ConfigError(
-                f"imaging.min_threshold_high_lsb ({self.min_threshold_high_lsb}) must be >= "
-                f"min_threshold_low_lsb ({self.min_threshold_low_lsb})"
-            )
+            raise Invalid("min_threshold_high_lsb", f"a number >= min_threshold_low_lsb ({self.min_threshold_low_lsb:g})",
+                          self.min_threshold_high_lsb)
         if self.threshold_high_sigma <= 0 and self.min_threshold_high_lsb <= 0:
-            raise ConfigError("imaging.threshold_high_sigma and imaging.min_threshold_high_lsb cannot both be 0 (every pixel would seed a blob)")
+            raise Invalid("threshold_high_sigma", "a number > 0 when min_threshold_high_lsb is 0 (else every pixel "
+                          "would seed a blob)", self.threshold_high_sigma)
         if self.max_area_px < self.min_area_px:
-            raise ConfigError(f"imaging.max_area_px ({self.max_area_px}) must be >= min_area_px ({self.min_area_px})")
+            raise Invalid("max_area_px", f"an integer >= min_area_px ({self.min_area_px})", self.max_area_px)
         if self.kcf_max_box_px < self.kcf_box_px:
-            raise ConfigError(f"imaging.kcf_max_box_px ({self.kcf_max_box_px}) must be >= kcf_box_px ({self.kcf_box_px})")
-        if self.kcf_detect_threshold > 1.0:
-            raise ConfigError(f"imaging.kcf_detect_threshold must be in [0, 1] (KCF peak response), got {self.kcf_detect_threshold}")
+            raise Invalid("kcf_max_box_px", f"an integer >= kcf_box_px ({self.kcf_box_px})", self.kcf_max_box_px)
         if self.lost_frames < self.coast_frames:
-            raise ConfigError(f"imaging.lost_frames ({self.lost_frames}) must be >= coast_frames ({self.coast_frames})")
+            raise Invalid("lost_frames", f"an integer >= coast_frames ({self.coast_frames})", self.lost_frames)
 
     @classmethod
     def from_mapping(cls, mapping: Mapping[str, Any] | None, where: str = "imaging") -> "ImagingParams":
-        """Build from a config mapping (e.g. the ``imaging:`` section of onboard.yaml).
-
-        Unknown keys and wrong types raise :class:`ConfigError` naming ``where`` and the field.
-        Integers given as floats with an integral value (``3.0``) are accepted for int fields.
-        """
-        if mapping is None:
-            return cls()
-        if not isinstance(mapping, Mapping):
-            raise ConfigError(f"{where} must be a mapping of imaging parameters, got {type(mapping).__name__}")
-        known = {f.name: f for f in fields(cls)}
-        unknown = sorted(set(mapping) - set(known))
-        if unknown:
-            raise ConfigError(f"{where}: unknown key(s) {unknown}; expected some of {sorted(known)}")
-        defaults = cls()
-        kwargs: dict[str, Any] = {}
-        for key, value in mapping.items():
-            want_int = isinstance(getattr(defaults, key), int)
-            if want_int and isinstance(value, float) and value.is_integer():
-                value = int(value)
-            if isinstance(value, bool) or not isinstance(value, (int, float)):
-                raise ConfigError(f"{where}.{key} must be a number, got {value!r}")
-            if want_int and not isinstance(value, int):
-                raise ConfigError(f"{where}.{key} must be an integer, got {value!r}")
-            kwargs[key] = value
+        """Build from a config mapping (e.g. the ``imaging:`` section of onboard.yaml; None: the defaults)
+        by the one config system (:func:`onboard.core.schema.build`: strict, unknown keys refused).
+        Raises :class:`~onboard.core.schema.SchemaError` ``<where>: imaging.<field>: expected ..., got ...``."""
         try:
-            return cls(**kwargs)
-        except ConfigError as exc:
-            raise ConfigError(str(exc).replace("imaging.", f"{where}.", 1)) from None
+            return build(cls, mapping, "imaging")
+        except SchemaError as exc:
+            raise exc.as_(SchemaError, source=where) from None
 
 
 @dataclass(frozen=True)

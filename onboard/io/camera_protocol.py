@@ -43,12 +43,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
   a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
   ``camera_device_id`` 0 (we are the camera component).
-* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type by ``video.transport``
-  (:func:`video_stream_type`: ``rtp`` -> RTPUDP 1, ``mpegts`` -> MPEG_TS 3; common.xml, "URI gives
-  the port number" for both), ``uri`` the UDP port the ground station listens on (QGC's VideoManager
-  opens ``udp://0.0.0.0:<uri>`` as RTP H.264 for RTPUDP, ``mpegts://0.0.0.0:<uri>`` for MPEG_TS),
-  flags RUNNING | THERMAL, frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
-  encoding H264.
+* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type (RTPUDP 1 or MPEG_TS 3: ``uri`` is the UDP
+  port the ground station listens on, as QGC reads it), flags RUNNING | THERMAL, frame rate, bitrate,
+  resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``, encoding H264.
 * CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, at the
   intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the
   tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
@@ -72,7 +69,6 @@ from onboard.core.track import Track, geo_status_fields, image_status_fields
 __all__ = [
     "CameraIdentity",
     "VideoStream",
-    "video_stream_type",
     "CameraCommand",
     "Outgoing",
     "TrackRequest",
@@ -123,7 +119,6 @@ CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = 1024
 CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS = 2048
 VIDEO_STREAM_TYPE_RTPUDP = 1
 VIDEO_STREAM_TYPE_MPEG_TS = 3
-_STREAM_TYPE_OF_TRANSPORT = {"rtp": VIDEO_STREAM_TYPE_RTPUDP, "mpegts": VIDEO_STREAM_TYPE_MPEG_TS}
 VIDEO_STREAM_STATUS_FLAGS_RUNNING = 1
 VIDEO_STREAM_STATUS_FLAGS_THERMAL = 2
 VIDEO_STREAM_ENCODING_H264 = 1
@@ -186,15 +181,6 @@ class CameraIdentity:
         pitch_mm = _finite_positive("pixel_pitch_um", pixel_pitch_um) / 1000.0
         return cls(vendor_name, model_name, firmware_version, float(fx_px) * pitch_mm, width_px * pitch_mm,
                    height_px * pitch_mm, int(width_px), int(height_px))
-
-
-def video_stream_type(transport: str) -> int:
-    """VIDEO_STREAM_TYPE of a ``video.transport``: ``rtp`` -> RTPUDP (1), ``mpegts`` -> MPEG_TS (3)."""
-    try:
-        return _STREAM_TYPE_OF_TRANSPORT[transport]
-    except (KeyError, TypeError):
-        raise InputError(f"video.transport: expected one of {', '.join(_STREAM_TYPE_OF_TRANSPORT)}, "
-                         f"got {transport!r}") from None
 
 
 @dataclass(frozen=True)

@@ -63,6 +63,7 @@ from typing import Any, Callable
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, InputError
+from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
 from onboard.core.pose import ClockSync, GimbalReference, PoseBuffer, RejectCounter
 
 __all__ = [
@@ -72,6 +73,7 @@ __all__ = [
     "MavlinkEndpoint",
     "parse_connection",
     "MavlinkLinkConfig",
+    "MavlinkConfig",
     "LinkStatus",
     "MavlinkLink",
     "load_signing_key",
@@ -173,7 +175,21 @@ def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
 # --------------------------------------------------------------------------- config and status
 
 
-@dataclass(frozen=True)
+# the settings the link and its configuration section share, each declared (and validated) once
+ComponentId = Integer(1, 255)
+IntervalS = Number(0.0, 60.0, lo_open=True)
+RateHz = Number(0.0, 1000.0, lo_open=True)
+HeartbeatTimeoutS = Number(0.0, 600.0, lo_open=True)
+LockSettleS = Number(0.0, 60.0)
+_CONNECTION_TEXT = "a connection like udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT or serial:/dev/ttyX[:BAUD]"
+
+
+def _is_destination(dest: Any) -> bool:
+    return (isinstance(dest, tuple) and len(dest) == 2 and isinstance(dest[0], str) and not isinstance(dest[1], bool)
+            and isinstance(dest[1], int) and 1 <= dest[1] <= 65535)
+
+
+@config_dataclass
 class MavlinkLinkConfig:
     """Timing and identity.  Seconds on the injected ``clock``; ids are MAVLink system/component ids.
 
@@ -188,50 +204,94 @@ class MavlinkLinkConfig:
     and stale packets are refused and counted; everything we send is signed with ``signing_link_id``.
     ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
     (UDP links only; e.g. a ground-station endpoint of mavlink-router).
+
+    The daemon builds it from the ``mavlink`` section, :class:`MavlinkConfig` (:meth:`MavlinkConfig.link_config`);
+    the settings they share have one declaration each (``ComponentId``, ``IntervalS`` ... above).
     """
 
-    component_id: int = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
-    autopilot_sysid: int | None = None
-    autopilot_compid: int = mavlink2.MAV_COMP_ID_AUTOPILOT1
-    heartbeat_interval_s: float = 1.0
-    heartbeat_timeout_s: float = 5.0
-    command_retry_s: float = 1.0
-    timesync_interval_s: float = 1.0
-    reopen_interval_s: float = 2.0
-    gimbal_rate_hz: float = 50.0
-    max_outstanding_timesync: int = 16
-    lock_settle_s: float = 1.5
-    signing_key: bytes | None = field(default=None, repr=False)
-    signing_link_id: int = 0
-    extra_destinations: tuple[tuple[str, int], ...] = ()
+    component_id: ComponentId = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
+    autopilot_sysid: Integer(1, 255, nullable=True) = None
+    autopilot_compid: ComponentId = mavlink2.MAV_COMP_ID_AUTOPILOT1
+    heartbeat_interval_s: IntervalS = 1.0
+    heartbeat_timeout_s: HeartbeatTimeoutS = 5.0
+    command_retry_s: IntervalS = 1.0
+    timesync_interval_s: IntervalS = 1.0
+    reopen_interval_s: IntervalS = 2.0
+    gimbal_rate_hz: RateHz = 50.0
+    max_outstanding_timesync: Integer(lo=1) = 16
+    lock_settle_s: LockSettleS = 1.5
+    signing_key: Instance(bytes, what="32 bytes", check=lambda v: isinstance(v, bytes) and len(v) == 32,
+                          nullable=True) = field(default=None, repr=False)
+    signing_link_id: Integer(0, 255) = 0
+    extra_destinations: Instance(tuple, what="a tuple of (host, port 1..65535) pairs",
+                                 check=lambda v: isinstance(v, tuple) and all(map(_is_destination, v))) = ()
+
+
+@config_dataclass
+class MavlinkConfig:
+    """The ``mavlink`` section of the daemon's configuration (``config/onboard.yaml``; composed by
+    :class:`onboard.app.config.OnboardConfig`): the autopilot link's endpoint, stream rates and signing
+    key source, and the :class:`MavlinkLinkConfig` settings in the same types (:meth:`link_config`)."""
+
+    connection: Text() = "udpin:127.0.0.1:14540"
+    attitude_rate_hz: RateHz = 50.0
+    position_rate_hz: RateHz = 25.0
+    gimbal_rate_hz: RateHz = 50.0
+    heartbeat_interval_s: IntervalS = 1.0
+    heartbeat_timeout_s: HeartbeatTimeoutS = 5.0
+    command_retry_s: IntervalS = 1.0
+    timesync_interval_s: IntervalS = 1.0
+    reopen_interval_s: IntervalS = 2.0
+    autopilot_sysid: Integer(1, 255, nullable=True) = 1
+    lock_settle_s: LockSettleS = 1.5
+    signing_key_file: Text(nullable=True) = None
+    signing_key_env: Text(nullable=True) = None
+    autopilot_compid: ComponentId = 1
+    component_id: ComponentId = 191
+    poll_rate_hz: Number(100.0, 10000.0) = 200.0
 
     def __post_init__(self) -> None:
-        for name in ("component_id", "autopilot_compid"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
-                raise ConfigError(f"MavlinkLinkConfig.{name} must be an integer in 1..255, got {v!r}")
-        if self.autopilot_sysid is not None and (
-            isinstance(self.autopilot_sysid, bool) or not isinstance(self.autopilot_sysid, int) or not 1 <= self.autopilot_sysid <= 255
-        ):
-            raise ConfigError(f"MavlinkLinkConfig.autopilot_sysid must be None or 1..255, got {self.autopilot_sysid!r}")
-        for name in ("heartbeat_interval_s", "heartbeat_timeout_s", "command_retry_s", "timesync_interval_s",
-                     "reopen_interval_s", "gimbal_rate_hz"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise ConfigError(f"MavlinkLinkConfig.{name} must be a positive number, got {v!r}")
-        if isinstance(self.lock_settle_s, bool) or not isinstance(self.lock_settle_s, (int, float)) \
-                or not math.isfinite(self.lock_settle_s) or self.lock_settle_s < 0:
-            raise ConfigError(f"MavlinkLinkConfig.lock_settle_s must be a number >= 0, got {self.lock_settle_s!r}")
-        if self.signing_key is not None and (not isinstance(self.signing_key, bytes) or len(self.signing_key) != 32):
-            raise ConfigError("MavlinkLinkConfig.signing_key must be None or 32 bytes")
-        if isinstance(self.signing_link_id, bool) or not isinstance(self.signing_link_id, int) or not 0 <= self.signing_link_id <= 255:
-            raise ConfigError(f"MavlinkLinkConfig.signing_link_id must be an integer in 0..255, got {self.signing_link_id!r}")
-        for i, dest in enumerate(self.extra_destinations):
-            if (not isinstance(dest, tuple) or len(dest) != 2 or not isinstance(dest[0], str)
-                    or isinstance(dest[1], bool) or not isinstance(dest[1], int) or not 1 <= dest[1] <= 65535):
-                raise ConfigError(f"MavlinkLinkConfig.extra_destinations[{i}] must be (host, port 1..65535), got {dest!r}")
-        if not isinstance(self.max_outstanding_timesync, int) or self.max_outstanding_timesync <= 0:
-            raise ConfigError(f"MavlinkLinkConfig.max_outstanding_timesync must be a positive integer, got {self.max_outstanding_timesync!r}")
+        try:
+            parse_connection(self.connection, "mavlink.connection")
+        except ConfigError as exc:
+            msg = str(exc).split(": ", 1)[-1]
+            raise Invalid("connection", _CONNECTION_TEXT, got_text=f"{self.connection!r} ({msg})") from None
+        if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
+            raise Invalid("heartbeat_timeout_s", f"a timeout > mavlink.heartbeat_interval_s ({self.heartbeat_interval_s:g})",
+                          self.heartbeat_timeout_s)
+        self._signing_key()  # an unreadable or empty key fails at --check, naming its field
+
+    def _signing_key(self) -> bytes | None:
+        try:
+            return load_signing_key(self.signing_key_file, self.signing_key_env)
+        except ConfigError as exc:
+            where, _, what = str(exc).partition(": ")
+            raise Invalid(where.removeprefix("mavlink."),
+                          "a readable MAVLink 2 signing key (64 hex digits, 32 raw bytes or a passphrase)",
+                          got_text=what) from None
+
+    def signing_key(self) -> bytes | None:
+        """The MAVLink 2 signing key (reads ``signing_key_file`` or the ``signing_key_env`` variable), None = unsigned."""
+        try:
+            return self._signing_key()
+        except Invalid as exc:
+            raise SchemaError.make("<MavlinkConfig>", f"mavlink.{exc.field}", exc.expected, exc.got_text) from None
+
+    def link_config(self) -> MavlinkLinkConfig:
+        """The :class:`MavlinkLinkConfig` of this section."""
+        return MavlinkLinkConfig(
+            component_id=self.component_id,
+            autopilot_sysid=self.autopilot_sysid,
+            autopilot_compid=self.autopilot_compid,
+            heartbeat_interval_s=self.heartbeat_interval_s,
+            heartbeat_timeout_s=self.heartbeat_timeout_s,
+            command_retry_s=self.command_retry_s,
+            timesync_interval_s=self.timesync_interval_s,
+            reopen_interval_s=self.reopen_interval_s,
+            gimbal_rate_hz=self.gimbal_rate_hz,
+            lock_settle_s=self.lock_settle_s,
+            signing_key=self.signing_key(),
+        )
 
 
 @dataclass(frozen=True)

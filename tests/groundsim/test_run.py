@@ -23,7 +23,6 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.app import cli
 from groundsim.io.mavlink_vehicle import open_mavlink2
 from groundsim.world.nav_errors import offset_geodetic
@@ -68,6 +67,12 @@ LATLON_TOL_DEG = 3e-7  # #33 degE7 quantisation (0.5e-7) + time_boot_ms truncati
 ALT_TOL_M = 0.02  # #33 mm quantisation + 1 ms of climb
 QUAT_F32_TOL = 1e-5  # float32 quaternion fields
 SHORT_TIMEOUT_S = 60.0
+
+
+def _free_port(kind=socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def _env() -> dict:
@@ -117,7 +122,7 @@ def e2e(tmp_path_factory):
     """One 2 s P1 run at --rate max, received over 127.0.0.1: (proc, frames, mavlink msgs, truth)."""
     out = tmp_path_factory.mktemp("run")
     truth_path = out / "truth.csv"
-    zport, mport = free_tcp_port(), free_udp_port()
+    zport, mport = _free_port(), _free_port(socket.SOCK_DGRAM)
     endpoint = f"tcp/127.0.0.1:{zport}"
     session = open_session(ZenohSettings(listen=(endpoint,)))
     payloads: list[bytes] = []
@@ -296,7 +301,7 @@ def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
     truth_path = tmp_path / "truth.csv"
     proc = subprocess.Popen(
         [sys.executable, "-m", "groundsim", "run", "--scenario", str(P1), "--rate", "realtime",
-         "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}", "--truth", str(truth_path),
+         "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", "--truth", str(truth_path),
          "--log-level", "warning"],
         cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -364,15 +369,15 @@ def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
         port = s.getsockname()[1]
         _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
                                        "--zenoh-listen", f"tcp/127.0.0.1:{port}",
-                                       "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
+                                       "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
                               "port already in use")
 
 
 @pytest.mark.integration
 def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
     _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
-                                   "--zenoh-connect", f"tcp/127.0.0.1:{free_tcp_port()}", "--zenoh-connect-timeout", "0.5",
-                                   "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
+                                   "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}", "--zenoh-connect-timeout", "0.5",
+                                   "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
                           "no peer reachable")
 
 
@@ -411,11 +416,11 @@ def test_same_seed_same_truth_and_chunking_does_not_change_it(tmp_path, capsys):
     another seed of a disturbed scenario -> another target path."""
     p1g = scenarios_dir() / "P1g.yaml"
     common = ["--scenario", str(p1g), "--duration", "1", "--rate", "max", "--no-render", "--log-level", "warning",
-              "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"]
+              "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"]
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
     assert cli.main(["run", *common, "--seed", "3", "--truth", str(a)]) == 0
     config = RunConfig(load_scenario(p1g), run_seed=3, duration_s=1.0, rate=RateSpec.parse("max"), render=False,
-                       mavlink=f"udpout:127.0.0.1:{free_udp_port()}", truth_path=b, flight_chunk_s=0.1)
+                       mavlink=f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", truth_path=b, flight_chunk_s=0.1)
     assert run(config).frames == 30
     assert cli.main(["run", *common, "--seed", "4", "--truth", str(c)]) == 0
     assert a.read_bytes() == b.read_bytes()
@@ -663,7 +668,7 @@ def test_cli_defaults_match_the_adapters():
 def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     stop = threading.Event()
     before = signal.getsignal(signal.SIGINT)
-    restore = cli.install_stop_signals(stop)
+    restore = cli._install_stop_signals(stop)
     try:
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(SHORT_TIMEOUT_S)  # the handler sets the event (the timeout is a hang guard)

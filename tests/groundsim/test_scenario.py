@@ -347,8 +347,8 @@ BAD_CASES = [
     ("target.motion.v0_ned_mp", [0, 0, 0], "target.motion.v0_ned_mp", "did you mean 'v0_ned_mps'?"),
     ("camera.intrinsics.fxpx", 700, "camera.intrinsics.fxpx", "did you mean 'fx_px'?"),
     ("observer.disturbance", None, "observer.disturbance", "expected a key of observer (motion)"),
-    ("duration_s", "ten", "duration_s", "expected a finite number in (0, 3600] s, got 'ten'"),
-    ("duration_s", -1.0, "duration_s", "expected a finite number in (0, 3600] s, got -1.0"),
+    ("duration_s", "ten", "duration_s", "expected a number in (0, 3600] s, got 'ten'"),
+    ("duration_s", -1.0, "duration_s", "expected a number in (0, 3600] s, got -1.0"),
     ("duration_s", 0, "duration_s", "in (0, 3600]"),
     ("frame_rate_hz", -30, "frame_rate_hz", "in (0, 1000] Hz, got -30"),
     ("seed", -1, "seed", "an integer in [0, "),
@@ -367,7 +367,7 @@ BAD_CASES = [
     ("target.motion.model", "circle", "target.motion.model", "expected one of uniform_linear, uniform_acceleration"),
     ("target.motion.model", "circle", "target.motion.model", "did you mean 'circular'?"),
     ("target.motion", {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": -5, "rate_degps": 5},
-     "target.motion.radius_m", "a finite number > 0, got -5"),
+     "target.motion.radius_m", "a number > 0, got -5"),
     ("target.motion", {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": 5},
      "target.motion.rate_degps", "required"),
     ("target.motion", {"model": "figure_eight", "center_ned_m": [100, 0, -80], "amp1_ned_m": [0, 1, 0], "period_s": 0},
@@ -387,7 +387,7 @@ BAD_CASES = [
     ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 0.1}, "target.disturbance.sigma_vertical_mps2", "required"),
     ("ir.t_max_k", 200.0, "ir.t_max_k", "a temperature > ir.t_min_k (243.15 K), got 200.0"),
     ("ir", {"t_min_k": 400.0}, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 400.0"),
-    ("ir.t_min_k", 330.0, "ir.t_max_k", "a temperature > ir.t_min_k (330 K), got 323.15"),
+    ("ir.t_min_k", 330.0, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 330.0"),
     ("ir.ground_emissivity", 1.5, "ir.ground_emissivity", "in (0, 1], got 1.5"),
     ("ir.ground_emissivity", 0.0, "ir.ground_emissivity", "in (0, 1], got 0.0"),
     ("ir.target_parts", [{"name": "a", "shape": "box", "center_frd_m": [0, 0, 0], "half_extent_m": [1, 1, 1],
@@ -399,7 +399,7 @@ BAD_CASES = [
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
     ("ir.encoding", "mono12", "ir.encoding", "one of mono8, mono16, got 'mono12'"),
     ("ir.netd_k", -0.1, "ir.netd_k", ">= 0"),
-    ("ir.supersample", 0, "ir.supersample", "an integer in [1, 1e+06], got 0"),
+    ("ir.supersample", 0, "ir.supersample", "an integer in [1, 1000000], got 0"),
     ("ir.noise_bank_frames", 2.5, "ir.noise_bank_frames", "an integer"),
     ("ir.netd_reference_k", -3.0, "ir.netd_reference_k", "> 0"),
     ("origin.lat_deg", 95.0, "origin.lat_deg", "in [-90, 90] deg, got 95.0"),
@@ -408,9 +408,9 @@ BAD_CASES = [
     ("camera.intrinsics.distortion", [0, 0, 0], "camera.intrinsics.distortion", "5 finite numbers (k1, k2, p1, p2, k3)"),
     ("camera.gimbal.pointing_error_period_s", [7, 0, 3], "camera.gimbal.pointing_error_period_s[1]", "> 0 s"),
     ("camera.gimbal.pointing_error_frac_of_range", [0.03, -0.02, 0.015], "camera.gimbal.pointing_error_frac_of_range[1]", ">= 0"),
-    ("camera.mount.roll_deg", "ten", "camera.mount.roll_deg", "a finite number in [-360, 360] deg"),
+    ("camera.mount.roll_deg", "ten", "camera.mount.roll_deg", "a number in [-360, 360] deg"),
     ("wind", {"north_mps": 3}, "wind.north_mps", "did you mean 'n_mps'?"),
-    ("wind.n_mps", None, "wind.n_mps", "a finite number"),
+    ("wind.n_mps", None, "wind.n_mps", "a number in [-100, 100] m/s, got null"),
 ]
 
 
@@ -475,7 +475,7 @@ def test_line_number_is_exposed(tmp_path):
 def test_semantic_error_in_a_file_names_the_file(tmp_path):
     path = tmp_path / "P9.yaml"
     path.write_text((REPO / "config/scenarios/P1.yaml").read_text().replace("duration_s: 10.0", "duration_s: -5"))
-    with pytest.raises(ScenarioError, match=rf"^{path}: duration_s: expected a finite number in \(0, 3600\] s, got -5$"):
+    with pytest.raises(ScenarioError, match=rf"^{path}: duration_s: expected a number in \(0, 3600\] s, got -5$"):
         load_scenario(path)
 
 
@@ -496,7 +496,7 @@ def test_non_utf8_file(tmp_path):
 def test_dataclasses_validate_direct_construction():
     obs = VehicleSpec(Cubic((0, 0, -60)))
     tgt = VehicleSpec(Cubic((100, 0, -60)))
-    with pytest.raises(ScenarioError, match=r"^<Scenario>: duration_s: expected a finite number in \(0, 3600\]"):
+    with pytest.raises(ScenarioError, match=r"^<Scenario>: duration_s: expected a number in \(0, 3600\]"):
         Scenario(name="x", observer=obs, target=tgt, duration_s=-1.0)
     with pytest.raises(ScenarioError, match=r"^<Scenario>: wind_ned_mps: expected a list of 3"):
         Scenario(name="x", observer=obs, target=tgt, wind_ned_mps=(1, 2))
@@ -554,7 +554,7 @@ def test_shipped_noise_cases():
 @pytest.mark.parametrize(
     "doc, match",
     [
-        ({"RTK": {"pixel_sigma_px": -0.3}}, r"^<dict>: RTK.pixel_sigma_px: expected a finite number >= 0, got -0.3$"),
+        ({"RTK": {"pixel_sigma_px": -0.3}}, r"^<dict>: RTK.pixel_sigma_px: expected a number >= 0, got -0.3$"),
         ({"RTK": {"pixel_sigma_px": 0.3, "attitude_bias_deg": 0.1}}, r"RTK.attitude_bias_deg: .*did you mean 'attitude_bias_sigma_deg'\?$"),
         ({"RTK": {"attitude_bias_sigma_deg": 0.1}}, r"^<dict>: RTK.pixel_sigma_px: expected a value \(required\)"),
         ({"bad name": {"pixel_sigma_px": 1}}, r"^<dict>: \(document\): expected case names"),

@@ -104,19 +104,24 @@ def test_params_reject_bad_values_naming_the_field(field, value):
 
 
 def test_params_from_mapping():
-    p = ImagingParams.from_mapping({"mean_kernel_px": 5.0, "threshold_low_sigma": 2, "lost_frames": 30})
+    """The one config system (onboard.core.schema): strict (``5.0`` is not an integer), one-line errors
+    ``<source>: imaging.<field>: expected ..., got ...``."""
+    p = ImagingParams.from_mapping({"mean_kernel_px": 5, "threshold_low_sigma": 2, "lost_frames": 30})
     assert p.mean_kernel_px == 5 and isinstance(p.mean_kernel_px, int)
-    assert p.threshold_low_sigma == 2 and p.lost_frames == 30
+    assert p.threshold_low_sigma == 2.0 and isinstance(p.threshold_low_sigma, float) and p.lost_frames == 30
     assert ImagingParams.from_mapping(None) == ImagingParams()
-    with pytest.raises(ConfigError, match=r"onboard.yaml:imaging: unknown key\(s\) \['mean_kernel'\]"):
-        ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml:imaging")
-    with pytest.raises(ConfigError, match=r"cfg\.coast_frames must be an integer"):
+    with pytest.raises(ConfigError, match=r"^onboard.yaml: imaging.mean_kernel: expected a key of imaging .*"
+                                          r"got unknown key 'mean_kernel'; did you mean 'mean_kernel_px'\?$"):
+        ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml")
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.mean_kernel_px: expected an integer >= 1, got 5.0$"):
+        ImagingParams.from_mapping({"mean_kernel_px": 5.0}, where="cfg")
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.coast_frames: expected an integer >= 0, got 2.5$"):
         ImagingParams.from_mapping({"coast_frames": 2.5}, where="cfg")
-    with pytest.raises(ConfigError, match=r"cfg\.max_drift_px must be a number"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.max_drift_px: expected a number >= 0, got '3'$"):
         ImagingParams.from_mapping({"max_drift_px": "3"}, where="cfg")
-    with pytest.raises(ConfigError, match=r"cfg\.lost_frames"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.lost_frames: expected an integer >= coast_frames \(3\), got 1$"):
         ImagingParams.from_mapping({"lost_frames": 1, "coast_frames": 3}, where="cfg")
-    with pytest.raises(ConfigError, match="mapping"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging: expected a mapping with keys mean_kernel_px, "):
         ImagingParams.from_mapping([1, 2], where="cfg")
 
 

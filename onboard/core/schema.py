@@ -1,0 +1,569 @@
+"""The one configuration system: pydantic v2 models, one YAML loader, one error format.
+
+Every configuration object of irtrack -- the onboard daemon's sections (:mod:`onboard.app.config`
+composes them), the core objects they configure (:class:`~onboard.core.pose.PoseBufferConfig`,
+:class:`~onboard.io.mavlink_link.MavlinkLinkConfig`, :class:`~onboard.estimation.map_estimator.MapConfig`,
+:class:`~onboard.imaging.preprocess.ImagingParams` ...), the simulator's scenarios and noise cases
+(:mod:`groundsim.world.scenario`) -- is a :func:`config_dataclass`: a frozen pydantic dataclass in strict
+mode with ``extra="forbid"`` (a bool is not a number, ``640.0`` is not an integer, an unknown key is an
+error), whose fields are typed with the constrained types below (:func:`Number`, :func:`Integer`,
+:func:`Text`, :func:`Numbers` ...).  Each type carries the one text that says what it accepts, so an
+error reads the same wherever the field is declared.  Cross-field rules live in the class's
+``__post_init__`` and raise :class:`Invalid` naming their field.
+
+One error format, :class:`SchemaError` (a :class:`~onboard.core.errors.ConfigError`), one line::
+
+    <source>: <field.path>: expected <what>, got <value>[; did you mean '<key>'?]
+
+``<source>`` is the file, ``env IRTRACK_...``, ``--option``, ``<dict>``, or ``<ClassName>`` for a
+direct construction; entry points print it and exit with :attr:`SchemaError.exit_code` (2).
+
+One YAML loader, :func:`read_yaml`: safe, duplicate keys refused, and YAML 1.2 floats -- ``3e-1`` and
+``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string).
+
+:func:`build` turns a parsed mapping into a config dataclass, descending into the fields whose type is
+another config dataclass (a section), a tuple of them, or a union of them told apart by their ``model``
+key; errors carry the full dotted path.  Pure: no I/O but :func:`read_yaml`'s, nothing at import time.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import difflib
+import functools
+import re
+import types
+import typing
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Annotated, Any
+
+import pydantic
+import pydantic.dataclasses
+import yaml
+from pydantic import BeforeValidator, ConfigDict, Field, ValidationError, WrapValidator
+
+from onboard.core.errors import ConfigError
+
+__all__ = [
+    "SchemaError",
+    "Invalid",
+    "config_dataclass",
+    "is_config_dataclass",
+    "build",
+    "read_yaml",
+    "show",
+    "did_you_mean",
+    "describe_range",
+    "Number",
+    "Integer",
+    "Flag",
+    "Text",
+    "Texts",
+    "Numbers",
+    "Instance",
+    "to_plain",
+    "check_value",
+    "parse_yaml_text",
+]
+
+MODEL_CONFIG = ConfigDict(strict=True, extra="forbid", arbitrary_types_allowed=True)
+MISSING_TEXT = "nothing (the key is missing)"
+SHOW_LIMIT = 120
+
+
+# --------------------------------------------------------------------------- the error
+
+
+def show(value: Any) -> str:
+    """A value as one short line, YAML-flavoured (``true``, ``null``, strings quoted)."""
+    if value is None:
+        text = "null"
+    elif isinstance(value, bool):
+        text = str(value).lower()
+    elif isinstance(value, (str, bytes, dict, list, tuple)):
+        text = repr(value)
+    else:
+        text = str(value)
+    text = " ".join(text.split())
+    return text if len(text) <= SHOW_LIMIT else text[: SHOW_LIMIT - 3] + "..."
+
+
+def did_you_mean(word: Any, options) -> str | None:
+    """``"did you mean 'x'?"`` for the option closest to ``word`` (same letters first), or None."""
+    options = [str(o) for o in options]
+    same_case = [o for o in options if o.lower() == str(word).lower()]
+    if same_case:
+        return f"did you mean '{same_case[0]}'?"
+    close = difflib.get_close_matches(str(word), options, n=1, cutoff=0.6)
+    return f"did you mean '{close[0]}'?" if close else None
+
+
+def _join(path: str, sub: str) -> str:
+    if not sub:
+        return path
+    if not path:
+        return sub.lstrip(".")
+    return path + sub if sub.startswith("[") else f"{path}.{sub}"
+
+
+class SchemaError(ConfigError):
+    """One bad configuration value: ``<source>: <field>: expected <expected>, got <got>[; <hint>]``.
+
+    Attributes: ``source``, ``field`` (dotted path; ``(document)``, ``(file)`` or ``line L, column C``),
+    ``expected``, ``got`` (the text shown), ``hint``, ``line`` (1-based, YAML syntax errors only),
+    ``exit_code`` 2.  Subclasses (``OnboardConfigError``, ``ScenarioError``) only rename it for their
+    callers; :meth:`as_` re-issues an error as another subclass, source and path prefix changed.
+    """
+
+    exit_code = 2
+
+    def __init__(self, source: Any, field: str, expected: str, got_text: str, hint: str | None = None, *,
+                 line: int | None = None, keys: tuple[str, ...] | None = None, owner: str | None = None):
+        self.source = str(source)
+        self.field = field or "(document)"
+        self.expected = expected
+        self.got = got_text
+        self.hint = hint
+        self.line = line
+        self.keys = keys  # an unknown key: the keys that are allowed (the text names the section)
+        self.owner = owner
+        msg = f"{self.source}: {self.field}: expected {expected}, got {got_text}" + (f"; {hint}" if hint else "")
+        super().__init__(" ".join(msg.split()))
+
+    @classmethod
+    def make(cls, source: Any, field: str, expected: str, got_text: str, hint: str | None = None, **kw) -> SchemaError:
+        """An instance of ``cls`` whatever its own ``__init__`` signature."""
+        err = cls.__new__(cls)
+        SchemaError.__init__(err, source, field, expected, got_text, hint, **kw)
+        return err
+
+    def as_(self, cls: type[SchemaError], source: Any = None, prefix: str = "") -> SchemaError:
+        """This error as ``cls``, from ``source`` (default: the same), its field under ``prefix``."""
+        field = self.field if self.field.startswith(("(", "line ")) else _join(prefix, self.field)
+        if self.field == "(document)" and prefix:
+            field = prefix
+        expected = self.expected
+        if self.keys is not None:
+            parent = field.rsplit(".", 1)[0] if "." in field else ""
+            expected = f"a key of {parent or 'the document'} ({', '.join(self.keys)})"
+        return cls.make(self.source if source is None else source, field, expected, self.got, self.hint,
+                        line=self.line, keys=self.keys, owner=self.owner)
+
+
+class Invalid(ValueError):
+    """Raised by a model's own checks (``__post_init__``, field validators): ``field`` relative to the
+    model (``""``: the field being validated), what was ``expected``, the value ``got``."""
+
+    def __init__(self, field: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None,
+                 got_text: str | None = None):
+        self.field = field
+        self.expected = expected
+        self.got_text = got_text if got_text is not None else (MISSING_TEXT if got is dataclasses.MISSING else show(got))
+        self.hint = hint
+        super().__init__(f"{field}: expected {expected}, got {self.got_text}")
+
+
+def _loc_path(loc: tuple) -> str:
+    path = ""
+    for part in loc:
+        path = _join(path, f"[{part}]" if isinstance(part, int) else str(part))
+    return path
+
+
+_ERROR_PRIORITY = {"unexpected_keyword_argument": 0, "missing_argument": 1, "missing_keyword_only_argument": 1,
+                   "missing": 1}
+
+
+def _from_validation(exc: ValidationError, cls: type, source: str, error: type[SchemaError] = SchemaError) -> SchemaError:
+    """The first problem of a pydantic ValidationError (unknown keys first) as a SchemaError."""
+    errors = exc.errors(include_url=False)
+    err = min(errors, key=lambda e: _ERROR_PRIORITY.get(e["type"], 2))
+    kind, loc, ctx = err["type"], tuple(err["loc"]), err.get("ctx") or {}
+    if loc and isinstance(loc[0], int) and dataclasses.is_dataclass(cls) and loc[0] < len(dataclasses.fields(cls)):
+        loc = (dataclasses.fields(cls)[loc[0]].name,) + loc[1:]  # a positional argument: its field's name
+    path = _loc_path(loc)
+    value = err.get("input")
+    keys = None
+    hint = None
+    if kind == "expected":
+        expected, got, hint = ctx["expected"], show(value), ctx.get("hint") or None
+    elif kind == "value_error" and isinstance(ctx.get("error"), Invalid):
+        inv = ctx["error"]
+        path, expected, got, hint = _join(path, inv.field), inv.expected, inv.got_text, inv.hint
+    elif kind == "value_error":
+        inner = ctx.get("error")
+        expected, got = "a consistent configuration", " ".join(str(inner if inner is not None else err["msg"]).split())
+    elif kind == "unexpected_keyword_argument":
+        keys = tuple(f.name for f in dataclasses.fields(cls))
+        expected = f"a key of {cls.__name__} ({', '.join(keys)})"
+        got, hint = f"unknown key {loc[-1]!r}", did_you_mean(loc[-1], keys)
+    elif kind.startswith("missing"):
+        expected, got = "a value (required)", MISSING_TEXT
+    elif kind == "unexpected_positional_argument":
+        expected, got = f"at most {len(dataclasses.fields(cls))} arguments", show(value)
+    else:  # a field without a constrained type of ours: pydantic's own words
+        expected, got = err["msg"].removeprefix("Input should be ").rstrip("."), show(value)
+    return error.make(source, path, expected, got, hint, keys=keys, owner=getattr(cls, "__name__", None))
+
+
+# --------------------------------------------------------------------------- models
+
+
+def config_dataclass(cls: type | None = None, /, *, error: type[SchemaError] = SchemaError, **kw) -> Any:
+    """A frozen, strict, ``extra="forbid"`` pydantic dataclass whose constructor raises ``error`` (a
+    :class:`SchemaError`, source ``<ClassName>``) instead of pydantic's ValidationError.  ``kw``: more
+    ``dataclass`` options (``kw_only=True``)."""
+
+    def wrap(c: type) -> type:
+        dc = pydantic.dataclasses.dataclass(frozen=True, config=MODEL_CONFIG, **kw)(c)
+        init = dc.__init__
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kwargs):
+            try:
+                init(self, *args, **kwargs)
+            except ValidationError as exc:
+                raise _from_validation(exc, dc, f"<{dc.__name__}>", error) from None
+
+        dc.__init__ = __init__
+        dc.__config_dataclass__ = True
+        return dc
+
+    return wrap if cls is None else wrap(cls)
+
+
+def is_config_dataclass(tp: Any) -> bool:
+    return isinstance(tp, type) and getattr(tp, "__config_dataclass__", False) and "__config_dataclass__" in _mro_dicts(tp)
+
+
+def _mro_dicts(tp: type) -> set[str]:
+    return {k for c in tp.__mro__ for k in vars(c)}
+
+
+def _hints(cls: type) -> dict[str, Any]:
+    return _HINTS.setdefault(cls, typing.get_type_hints(cls, include_extras=True))
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def _strip(tp: Any) -> Any:
+    while typing.get_origin(tp) is Annotated:
+        tp = typing.get_args(tp)[0]
+    return tp
+
+
+def _union_members(tp: Any) -> tuple[Any, ...]:
+    tp = _strip(tp)
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        return tuple(_strip(a) for a in typing.get_args(tp))
+    return (tp,)
+
+
+def _model_choice(members: tuple[type, ...]) -> dict[str, type]:
+    """``{model name: class}`` of a union of sections told apart by their ``model`` field's default."""
+    out = {}
+    for m in members:
+        f = next((f for f in dataclasses.fields(m) if f.name == "model"), None)
+        if f is None or f.default is dataclasses.MISSING:
+            raise TypeError(f"{m.__name__} in a section union needs a 'model' field with a default")
+        out[f.default] = m
+    return out
+
+
+def build(cls: type, raw: Any, path: str = "", *, none_is_default: bool = True) -> Any:
+    """A config dataclass ``cls`` from a parsed mapping (None: the defaults); raises :class:`SchemaError`
+    whose field is the full path under ``path`` (source ``<ClassName>``; callers re-issue it with theirs)."""
+    if raw is None and none_is_default:
+        raw = {}
+    names = [f.name for f in dataclasses.fields(cls)]
+    if not isinstance(raw, Mapping):
+        raise SchemaError.make(f"<{cls.__name__}>", path, f"a mapping with keys {', '.join(names)}", show(raw),
+                               owner=cls.__name__)
+    for k in raw:
+        if not isinstance(k, str):
+            raise SchemaError.make(f"<{cls.__name__}>", path, f"string keys (one of {', '.join(names)})", show(k),
+                                   owner=cls.__name__)
+    hints = _hints(cls)
+    kwargs: dict[str, Any] = {}
+    for key, value in raw.items():
+        sub = _join(path, key)
+        if key in names:
+            value = _build_value(hints[key], value, sub)
+        kwargs[key] = value
+    try:
+        return cls(**kwargs)
+    except SchemaError as exc:
+        if exc.owner != cls.__name__:  # raised by a library object built inside: not ours to re-path
+            raise
+        return _raise(exc.as_(type(exc), prefix=path))
+
+
+def _raise(exc: Exception) -> Any:
+    raise exc
+
+
+def _build_value(tp: Any, value: Any, path: str) -> Any:
+    members = _union_members(tp)
+    sections = tuple(m for m in members if is_config_dataclass(m))
+    if not sections:
+        inner = _strip(tp)
+        if typing.get_origin(inner) is tuple:
+            args = typing.get_args(inner)
+            if len(args) == 2 and args[1] is Ellipsis and is_config_dataclass(_strip(args[0])):
+                return _build_list(_strip(args[0]), value, path)
+        return value
+    if value is None and type(None) in members:
+        return None
+    if len(sections) == 1:
+        return build(sections[0], value, path)
+    choice = _model_choice(sections)
+    what = f"one of {', '.join(choice)}"
+    if not isinstance(value, Mapping):
+        raise SchemaError.make("<build>", path, f"a mapping with 'model' ({what}) and its parameters", show(value))
+    if "model" not in value:
+        raise SchemaError.make("<build>", _join(path, "model"), f"{what} (required)", MISSING_TEXT)
+    model = value["model"]
+    if not isinstance(model, str) or model not in choice:
+        raise SchemaError.make("<build>", _join(path, "model"), what, show(model),
+                               did_you_mean(model, choice) if isinstance(model, str) else None)
+    return build(choice[model], value, path)
+
+
+def _build_list(cls: type, value: Any, path: str) -> Any:
+    if not isinstance(value, (list, tuple)):
+        return value  # the field's own type refuses it, with its own words
+    return tuple(build(cls, v, f"{path}[{i}]", none_is_default=False) for i, v in enumerate(value))
+
+
+@functools.lru_cache(maxsize=256)
+def _adapter(tp: Any) -> pydantic.TypeAdapter:
+    return pydantic.TypeAdapter(tp, config=MODEL_CONFIG)
+
+
+def check_value(tp: Any, value: Any, path: str, source: Any, error: type[SchemaError] = SchemaError) -> Any:
+    """One value against one field type (e.g. ``Integer(lo=0)``) outside a model: the clean value, or
+    ``error`` naming ``source`` and ``path``."""
+    try:
+        return _adapter(tp).validate_python(value)
+    except ValidationError as exc:
+        err = _from_validation(exc, type(None), str(source), error)
+        return _raise(err.as_(error, prefix=path))
+
+
+def to_plain(obj: Any) -> Any:
+    """Plain YAML-able data of a config (dataclasses -> dicts, tuples -> lists); :func:`build` of it gives
+    the same object."""
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {f.name: to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (tuple, list)):
+        return [to_plain(x) for x in obj]
+    if isinstance(obj, Mapping):
+        return {k: to_plain(v) for k, v in obj.items()}
+    return obj
+
+
+# --------------------------------------------------------------------------- field types
+
+
+def _g(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+def describe_range(noun: str, lo=None, hi=None, lo_open=False, hi_open=False) -> str:
+    """``"a number in (0, 1000]"``, ``"an integer >= 1"``, ``"a finite number"`` ..."""
+    if lo is not None and hi is not None:
+        return f"{noun} in {'(' if lo_open else '['}{_g(lo)}, {_g(hi)}{')' if hi_open else ']'}"
+    if lo is not None:
+        return f"{noun} {'>' if lo_open else '>='} {_g(lo)}"
+    if hi is not None:
+        return f"{noun} {'<' if hi_open else '<='} {_g(hi)}"
+    return "a finite number" if noun == "a number" else noun
+
+
+def _expect(text: str, hint: Callable[[Any], str | None] | None = None) -> WrapValidator:
+    """Any failure of the wrapped type becomes one ``expected <text>`` error at the field."""
+
+    def check(value: Any, handler):
+        try:
+            return handler(value)
+        except ValidationError:
+            raise Invalid("", text, value, hint(value) if hint else None) from None
+
+    return WrapValidator(check)
+
+
+def _python_scalar(value: Any) -> Any:
+    """numpy scalars as Python numbers (a numpy bool stays refused: ``.item()`` gives a bool)."""
+    if hasattr(value, "dtype") and hasattr(value, "item") and getattr(value, "shape", None) == ():
+        return value.item()
+    return value
+
+
+@functools.cache
+def Number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
+           unit: str = "", nullable: bool = False, what: str | None = None) -> Any:
+    """A finite float (an int is accepted and becomes a float; a bool is not) within the bounds."""
+    text = what or describe_range("a number", lo, hi, lo_open, hi_open) + (f" {unit}" if unit else "")
+    bounds = {("gt" if lo_open else "ge"): lo, ("lt" if hi_open else "le"): hi}
+    tp: Any = float | None if nullable else float
+    return Annotated[tp, Field(allow_inf_nan=False, **{k: v for k, v in bounds.items() if v is not None}),
+                     BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))]
+
+
+@functools.cache
+def Integer(lo: int | None = None, hi: int | None = None, *, nullable: bool = False, what: str | None = None) -> Any:
+    """An int (``640.0`` and ``true`` are not) within ``[lo, hi]``."""
+    text = what or describe_range("an integer", lo, hi)
+    bounds = {k: v for k, v in (("ge", lo), ("le", hi)) if v is not None}
+    tp: Any = int | None if nullable else int
+    return Annotated[tp, Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))]
+
+
+@functools.cache
+def Flag(*, nullable: bool = False) -> Any:
+    """``true`` or ``false`` (or null when ``nullable``)."""
+    tp: Any = bool | None if nullable else bool
+    return Annotated[tp, _expect("true or false" + (" or null" if nullable else ""))]
+
+
+@functools.cache
+def Text(*, choices: tuple[str, ...] = (), pattern: str | None = None, what: str | None = None,
+         nullable: bool = False, empty: bool = False) -> Any:
+    """A string: one of ``choices`` (with a "did you mean"), matching ``pattern``, non-blank unless ``empty``."""
+    if choices:
+        text = "one of " + ", ".join(choices)
+    else:
+        text = what or ("a string" if empty else "a non-empty string")
+    constraints: dict[str, Any] = {}
+    if pattern is not None:
+        constraints["pattern"] = pattern
+    elif not empty and not choices:
+        constraints["pattern"] = r"\S"
+    tp: Any = str
+    if choices:
+        tp = typing.Literal[choices]  # type: ignore[valid-type]
+    if nullable:
+        tp = tp | None
+    hint = (lambda v: did_you_mean(v, choices) if isinstance(v, str) else None) if choices else None
+    return Annotated[tp, Field(**constraints), _expect(text + (" or null" if nullable else ""), hint)]
+
+
+def _one_or_many(value: Any) -> Any:
+    if isinstance(value, str):
+        return (value,)
+    return tuple(value) if isinstance(value, list) else value
+
+
+@functools.cache
+def Texts() -> Any:
+    """A list of non-blank strings (one string is a list of one); held as a tuple."""
+    return Annotated[tuple[Annotated[str, Field(pattern=r"\S")], ...], BeforeValidator(_one_or_many),
+                     _expect("a list of strings")]
+
+
+@functools.cache
+def Numbers(n: int | None = None, lo: float | None = None, *, lo_open: bool = False, unit: str = "",
+            what: str | None = None, min_length: int = 0) -> Any:
+    """A list of ``n`` numbers (any length >= ``min_length`` when ``n`` is None), held as a tuple of floats.
+
+    The wrong shape is an error of the field (``expected a list of 3 finite numbers``); a bad element
+    one of ``field[i]`` (``expected a finite number``)."""
+    elem_text = describe_range("a number", lo, None, lo_open) + (f" {unit}" if unit else "")
+    count = f"{n}" if n is not None else f"at least {min_length}"
+    text = what or f"a list of {count} finite numbers" + (describe_range("", lo, None, lo_open) if lo is not None else "") \
+        + (f" {unit}" if unit else "")
+    elem = pydantic.TypeAdapter(Number(lo, lo_open=lo_open, unit=unit))
+
+    def check(value: Any) -> tuple[float, ...]:
+        if hasattr(value, "tolist") and hasattr(value, "dtype"):
+            value = value.tolist()
+        if not isinstance(value, (list, tuple)) or (len(value) != n if n is not None else len(value) < min_length):
+            raise Invalid("", text, value)
+        out = []
+        for i, x in enumerate(value):
+            try:
+                out.append(elem.validate_python(x))
+            except ValidationError:
+                raise Invalid(f"[{i}]", elem_text, x) from None
+        return tuple(out)
+
+    return Annotated[tuple[float, ...], pydantic.PlainValidator(check)]
+
+
+def Instance(*classes: type, what: str, check: Callable[[Any], bool] | None = None, nullable: bool = False) -> Any:
+    """A runtime object (an instance of one of ``classes``, or passing ``check``), not built from YAML."""
+
+    def validate(value: Any) -> Any:
+        if value is None and nullable:
+            return None
+        ok = check(value) if check is not None else isinstance(value, classes)
+        if not ok:
+            raise Invalid("", what + (" or None" if nullable else ""), value)
+        return value
+
+    return Annotated[Any, pydantic.PlainValidator(validate)]
+
+
+# --------------------------------------------------------------------------- the YAML loader
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """SafeLoader that refuses duplicate keys and reads ``1e-3`` / ``3e-1`` as floats (YAML 1.2)."""
+
+
+def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False):
+    loader.flatten_mapping(node)
+    seen: set = set()
+    for key_node, _ in node.value:
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            dup = key in seen
+        except TypeError:  # unhashable key: the base constructor reports it
+            break
+        if dup:
+            raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
+                                                    f"found duplicate key {key!r}", key_node.start_mark)
+        seen.add(key)
+    return yaml.SafeLoader.construct_mapping(loader, node, deep)
+
+
+_StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _construct_mapping)
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+    list("-+0123456789"),
+)
+
+
+def parse_yaml_text(text: str) -> Any:
+    """A YAML value (a file's text, an ``IRTRACK_...`` variable, a ``--set`` value) by the one loader's
+    rules; raises ``yaml.YAMLError``."""
+    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+def read_yaml(path: str | Path, error: type[SchemaError] = SchemaError) -> Any:
+    """Read and parse one YAML file (None for an empty one); any problem raises ``error`` naming the file
+    and, for syntax, the line and column."""
+    source = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise error.make(source, "(file)", "an existing file", "no such file") from None
+    except IsADirectoryError:
+        raise error.make(source, "(file)", "a file", "a directory") from None
+    except UnicodeDecodeError as e:
+        raise error.make(source, "(file)", "UTF-8 text", f"undecodable byte at offset {e.start}") from None
+    except OSError as e:
+        raise error.make(source, "(file)", "a readable file", e.strerror or type(e).__name__) from None
+    try:
+        return parse_yaml_text(text)
+    except yaml.MarkedYAMLError as e:
+        mark = e.problem_mark or e.context_mark
+        where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
+        problem = " ".join(f"{e.context or ''} {e.problem or ''}".split())
+        raise error.make(source, where, "valid YAML", problem or "a syntax error",
+                         line=mark.line + 1 if mark else None) from None
+    except yaml.YAMLError as e:
+        raise error.make(source, "(file)", "valid YAML", " ".join(str(e).split())) from None
