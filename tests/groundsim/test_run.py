@@ -23,6 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.app import cli
 from groundsim.io.mavlink_vehicle import open_mavlink2
 from groundsim.world.nav_errors import offset_geodetic
@@ -50,6 +51,7 @@ from onboard.core.frames import (
 )
 from onboard.core.irframe import ENCODING_MONO8, decode_irframe
 from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+from tests.fakes import FakeClock
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -67,12 +69,6 @@ LATLON_TOL_DEG = 3e-7  # #33 degE7 quantisation (0.5e-7) + time_boot_ms truncati
 ALT_TOL_M = 0.02  # #33 mm quantisation + 1 ms of climb
 QUAT_F32_TOL = 1e-5  # float32 quaternion fields
 SHORT_TIMEOUT_S = 60.0
-
-
-def _free_port(kind=socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _env() -> dict:
@@ -122,7 +118,7 @@ def e2e(tmp_path_factory):
     """One 2 s P1 run at --rate max, received over 127.0.0.1: (proc, frames, mavlink msgs, truth)."""
     out = tmp_path_factory.mktemp("run")
     truth_path = out / "truth.csv"
-    zport, mport = _free_port(), _free_port(socket.SOCK_DGRAM)
+    zport, mport = free_tcp_port(), free_udp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
     session = open_session(ZenohSettings(listen=(endpoint,)))
     payloads: list[bytes] = []
@@ -301,7 +297,7 @@ def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
     truth_path = tmp_path / "truth.csv"
     proc = subprocess.Popen(
         [sys.executable, "-m", "groundsim", "run", "--scenario", str(P1), "--rate", "realtime",
-         "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", "--truth", str(truth_path),
+         "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}", "--truth", str(truth_path),
          "--log-level", "warning"],
         cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )
@@ -369,15 +365,15 @@ def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
         port = s.getsockname()[1]
         _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
                                        "--zenoh-listen", f"tcp/127.0.0.1:{port}",
-                                       "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
+                                       "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
                               "port already in use")
 
 
 @pytest.mark.integration
 def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
     _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
-                                   "--zenoh-connect", f"tcp/127.0.0.1:{_free_port()}", "--zenoh-connect-timeout", "0.5",
-                                   "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"],
+                                   "--zenoh-connect", f"tcp/127.0.0.1:{free_tcp_port()}", "--zenoh-connect-timeout", "0.5",
+                                   "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
                           "no peer reachable")
 
 
@@ -416,11 +412,11 @@ def test_same_seed_same_truth_and_chunking_does_not_change_it(tmp_path, capsys):
     another seed of a disturbed scenario -> another target path."""
     p1g = scenarios_dir() / "P1g.yaml"
     common = ["--scenario", str(p1g), "--duration", "1", "--rate", "max", "--no-render", "--log-level", "warning",
-              "--mavlink", f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}"]
+              "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"]
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
     assert cli.main(["run", *common, "--seed", "3", "--truth", str(a)]) == 0
     config = RunConfig(load_scenario(p1g), run_seed=3, duration_s=1.0, rate=RateSpec.parse("max"), render=False,
-                       mavlink=f"udpout:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}", truth_path=b, flight_chunk_s=0.1)
+                       mavlink=f"udpout:127.0.0.1:{free_udp_port()}", truth_path=b, flight_chunk_s=0.1)
     assert run(config).frames == 30
     assert cli.main(["run", *common, "--seed", "4", "--truth", str(c)]) == 0
     assert a.read_bytes() == b.read_bytes()
@@ -438,22 +434,6 @@ def test_same_seed_same_pixels():
 
 
 # --------------------------------------------------------------------------- the loop, in process
-
-
-class FakeClock:
-    """Wall clock that advances only when slept (and by ``work_s`` per reading, if set)."""
-
-    def __init__(self) -> None:
-        self.t = 100.0
-        self.sleeps: list[float] = []
-
-    def now_s(self) -> float:
-        return self.t
-
-    def sleep(self, s: float) -> None:
-        assert s > 0
-        self.sleeps.append(s)
-        self.t += s
 
 
 class FakeVehicle:
@@ -481,7 +461,7 @@ class FakePublisher:
 def test_loop_feeds_ticks_and_frames_in_order_on_the_boot_clock():
     sc = load_scenario(P1)
     core = SimCore(sc, 0, 0.2)
-    clock, vehicle, pub = FakeClock(), FakeVehicle(), FakePublisher()
+    clock, vehicle, pub = FakeClock(100.0), FakeVehicle(), FakePublisher()
     report = run_loop(core, RateSpec.parse("realtime"), mavlink=vehicle, publisher=pub, clock=clock)
     assert (core.ticks_per_frame, core.tick_rate_hz, core.frame_count) == (4, 120.0, 6)
     assert len(vehicle.polls) == 24 and len(pub.frames) == 6 and report.frames == 6 and not report.stopped
@@ -493,7 +473,7 @@ def test_loop_feeds_ticks_and_frames_in_order_on_the_boot_clock():
     assert [f.time_boot_us for f in pub.frames] == expected_us[::4]
     # a fake clock that only moves when slept: the pacer hits every deadline exactly
     assert report.jitter is not None and report.jitter.jitter_max_ms < 1e-6 and report.jitter.late_max_ms < 1e-6
-    assert clock.t - 100.0 == pytest.approx(23 / 120.0)
+    assert clock.t_s - 100.0 == pytest.approx(23 / 120.0)
 
 
 def test_loop_stops_when_asked_and_reports_it():
@@ -523,23 +503,23 @@ def test_rate_parse_rejects(text):
 
 
 def test_pacer_waits_for_deadlines_and_reports_lateness():
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     p = Pacer(2.0, clock)  # twice real time
     p.start(0.0)
-    assert p.wait_until(1.0) == 0.0 and clock.t == pytest.approx(100.5)
-    clock.t += 0.3  # work overran the next deadline (t = 1.5 s -> wall 100.75) by 0.05 s
+    assert p.wait_until(1.0) == 0.0 and clock.t_s == pytest.approx(100.5)
+    clock.t_s += 0.3  # work overran the next deadline (t = 1.5 s -> wall 100.75) by 0.05 s
     assert p.wait_until(1.5) == pytest.approx(0.05)
     stop = threading.Event()
     stop.set()
-    t = clock.t
-    assert p.wait_until(100.0, stop) == 0.0 and clock.t == t  # stop: no sleeping
+    t = clock.t_s
+    assert p.wait_until(100.0, stop) == 0.0 and clock.t_s == t  # stop: no sleeping
     free = Pacer(None, clock)
     free.start()
-    assert free.wait_until(1e6) == 0.0 and clock.t == t
+    assert free.wait_until(1e6) == 0.0 and clock.t_s == t
 
 
 def test_pacer_sleeps_in_slices_so_stop_is_seen():
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     p = Pacer(1.0, clock)
     p.start()
     p.wait_until(1.0)
@@ -668,7 +648,7 @@ def test_cli_defaults_match_the_adapters():
 def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     stop = threading.Event()
     before = signal.getsignal(signal.SIGINT)
-    restore = cli._install_stop_signals(stop)
+    restore = cli.install_stop_signals(stop)
     try:
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(SHORT_TIMEOUT_S)  # the handler sets the event (the timeout is a hang guard)

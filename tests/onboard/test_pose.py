@@ -32,6 +32,7 @@ from onboard.core.pose import (
     PoseSample,
     RejectCounter,
 )
+from tests.fakes import FakeClock
 
 ATOL_M = 1e-6  # 1 um
 ATOL_GEO_M = 1e-4  # 0.1 mm: geodetic -> NED round trip through pymap3d
@@ -47,14 +48,6 @@ def quat_angle(q0, q1) -> float:
     """Angle (rad) of the rotation between two unit quaternions (atan2 form: accurate near 0)."""
     dq = quat_multiply(quat_conjugate(q0), q1)
     return 2.0 * math.atan2(float(np.linalg.norm(dq[1:])), abs(float(dq[0])))
-
-
-class FakeClock:
-    def __init__(self, t: float = 100.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
 
 
 # --------------------------------------------------------------------------- analytic trajectory
@@ -430,13 +423,13 @@ def test_configs_validate():
 
 
 def test_reject_counter_logs_once_per_reason_per_interval(caplog):
-    clock = FakeClock()
+    clock = FakeClock(100.0)
     rc = RejectCounter(log_interval_s=10.0, clock=clock)
     with caplog.at_level(logging.WARNING, logger="onboard.core.pose"):
         for _ in range(5):
             rc.count("attitude_zero", "zero quaternion")
         rc.count("position_zero")
-        clock.t += 10.0
+        clock.t_s += 10.0
         rc.count("attitude_zero")
     assert rc.counts == {"attitude_zero": 6, "position_zero": 1} and rc.total == 7
     msgs = [r.getMessage() for r in caplog.records]
