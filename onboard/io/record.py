@@ -186,10 +186,14 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
 # --------------------------------------------------------------------------- pure encoders
 
 
+_COMPACT_JSON = json.JSONEncoder(separators=(",", ":"))  # json.dumps(obj, separators=(",", ":")), the encoder made once
+_json_str = json.encoder.encode_basestring_ascii  # how json.dumps writes a str (ensure_ascii)
+
+
 def _vec(v) -> list | None:
     if v is None:
         return None
-    return [None if not math.isfinite(float(x)) else float(x) for x in np.asarray(v, dtype=float).ravel()]
+    return [x if math.isfinite(x) else None for x in np.asarray(v, dtype=float).ravel().tolist()]
 
 
 def _arr(v) -> np.ndarray:
@@ -337,14 +341,19 @@ def irframe_from_rawimage(seq: int, img, where: str = "frame"):
     return IrFrame(int(seq), t_us, px)
 
 
+_ENU_FROM_NED = (1, 0, 2)  # ENU axis i is NED axis _ENU_FROM_NED[i] times _ENU_SIGN[i]
+_ENU_SIGN = (1.0, 1.0, -1.0)
+
+
 def _fix_fields(lat_deg, lon_deg, alt_m, t_us: int, frame_id: str, cov_ned_m2=None) -> dict[str, Any]:
     out = {"timestamp": (t_us // 1_000_000, (t_us % 1_000_000) * 1000), "frame_id": frame_id,
            "latitude": float(lat_deg), "longitude": float(lon_deg), "altitude": float(alt_m)}
     if cov_ned_m2 is not None:
-        c = np.asarray(cov_ned_m2, dtype=float)
-        # LocationFix wants ENU, row-major 3x3: swap N/E, flip D -> U
-        P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-        out["position_covariance"] = [float(x) for x in (P @ c @ P.T).ravel()]
+        c = np.asarray(cov_ned_m2, dtype=float).reshape(3, 3).tolist()
+        # LocationFix wants ENU, row-major 3x3: P C P^T with P = [[0,1,0],[1,0,0],[0,0,-1]] (swap N/E, flip D -> U),
+        # written as the permutation and signs it is (+ 0.0: a zero is +0.0, as the matrix product gives it)
+        out["position_covariance"] = [_ENU_SIGN[i] * _ENU_SIGN[j] * c[_ENU_FROM_NED[i]][_ENU_FROM_NED[j]] + 0.0
+                                      for i in range(3) for j in range(3)]
         out["position_covariance_type"] = 3  # KNOWN
     return out
 
@@ -504,6 +513,7 @@ class FlightRecorder:
         self._file_started_s = 0.0
         self._closed_bytes = 0
         self._pb = None
+        self._mav_parts: dict = {}  # (link, direction, source) -> the constant parts of its mavlink_raw JSON
 
     # ------------------------------------------------------------------ producers (any thread)
 
@@ -552,7 +562,7 @@ class FlightRecorder:
 
     def on_json(self, topic: str, schema: str, obj: Mapping[str, Any] | bytes) -> bool:
         """Any JSON message with one of :data:`JSON_SCHEMAS` (the truth channel)."""
-        data = obj if isinstance(obj, (bytes, bytearray)) else json.dumps(obj, separators=(",", ":")).encode()
+        data = obj if isinstance(obj, (bytes, bytearray)) else _COMPACT_JSON.encode(obj).encode()
         return self._put("json", topic, len(data) + 100, (schema, bytes(data), self._clock_ns()))
 
     def stats(self) -> dict[str, Any]:
@@ -739,6 +749,26 @@ class FlightRecorder:
         msg.timestamp.seconds, msg.timestamp.nanos = ts
         return msg.SerializeToString()
 
+    def _mavlink_json(self, data: bytes, link: str, source, direction: str, now: int) -> bytes:
+        """The ``irtrack.mavlink_raw/1`` JSON of one read: the bytes ``json.dumps(obj, separators=(",", ":"))`` gives
+        for ``{"link", "direction", "receive_time_ns", "source", "data"}``, its constant parts made once per
+        (link, direction, source) -- a link reads 100-200 datagrams a second."""
+        try:
+            parts = self._mav_parts.get((link, direction, source))
+        except TypeError:  # an unhashable source
+            parts = None
+        if parts is None:
+            src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) and len(source) >= 2
+                                               else str(source))
+            parts = (f'{{"link":{_json_str(link)},"direction":{_json_str(direction)},"receive_time_ns":'.encode(),
+                     f',"source":{"null" if src is None else _json_str(src)},"data":"'.encode())
+            try:
+                if len(self._mav_parts) < 256:
+                    self._mav_parts[(link, direction, source)] = parts
+            except TypeError:
+                pass
+        return b"".join((parts[0], str(int(now)).encode(), parts[1], base64.b64encode(data), b'"}'))
+
     def _write(self, kind: str, topic: str, item: tuple) -> None:
         if self._writer is None:
             return
@@ -751,7 +781,7 @@ class FlightRecorder:
             obj = {"seq": seq, "time_boot_us": t_us, "received_ns": received_ns, "pose_looked_up": looked_up,
                    "pose": pose_to_json(pose)}
             now = self._clock_ns()
-            self._add(topic, FRAME_INPUT_SCHEMA, json.dumps(obj, separators=(",", ":")).encode(), now, sequence=seq & 0xFFFFFFFF)
+            self._add(topic, FRAME_INPUT_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
             if pose is not None:
                 lat, lon, alt = geodetic_from_ned_scalar(pose.p_cam_ned_m, pose.origin)
                 self._add(CAMERA_FIX_TOPIC, "foxglove.LocationFix",
@@ -769,10 +799,7 @@ class FlightRecorder:
                                                         "target", track.cov_p_ned_m2)), now)
         elif kind == "mavlink":
             data, link, source, direction, now = item
-            src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) and len(source) >= 2 else str(source))
-            obj = {"link": link, "direction": direction, "receive_time_ns": now, "source": src,
-                   "data": base64.b64encode(data).decode()}
-            self._add(topic, MAVLINK_RAW_SCHEMA, json.dumps(obj, separators=(",", ":")).encode(), now)
+            self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now)
         elif kind == "json":
             schema, data, now = item
             self._add(topic, schema, data, now)

@@ -1,15 +1,22 @@
 """The recorder's faster paths (issue 13, recording cost): the hand-appended RawImage data field parses to the same
 message as the protobuf library's encoding, the scalar camera-fix geodesy equals onboard.core.frames', and the periodic
-sync (fdatasync + page-cache drop) leaves a file the mcap reader reads whole."""
+sync (fdatasync + page-cache drop) leaves a file the mcap reader reads whole, the raw MAVLink JSON made from cached parts is
+json.dumps' (hypothesis), the LocationFix covariance's permutation equals the NED -> ENU matrix product."""
 
 from __future__ import annotations
 
+import math
+
+import hypothesis.extra.numpy as hnp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
 from onboard.core.irframe import IrFrame
-from onboard.io.record import FlightRecorder, RecordSettings, geodetic_from_ned_scalar, rawimage_bytes, rawimage_fields
+from onboard.io.record import (FlightRecorder, RecordSettings, _fix_fields, geodetic_from_ned_scalar, rawimage_bytes,
+                               rawimage_fields)
 
 ATOL_DEG = 1e-11  # ~1 um on the ground
 ATOL_M = 1e-6  # 1 um
@@ -54,3 +61,29 @@ def test_periodic_sync_keeps_the_file_whole(tmp_path):
     with open(path, "rb") as f:
         msgs = list(make_reader(f).iter_messages())
     assert [m.sequence for _s, _c, m in msgs] == list(range(40))
+
+
+@settings(max_examples=200, deadline=None)
+@given(data=st.binary(max_size=300), link=st.sampled_from(["autopilot", "gcs", "vehicle", "l\u00e9\"\\"]),
+       source=st.one_of(st.none(), st.tuples(st.sampled_from(["127.0.0.1", "::1"]), st.integers(0, 65535)),
+                        st.text(max_size=12)),
+       direction=st.sampled_from(["rx", "tx"]), now=st.integers(0, 2**63 - 1))
+def test_mavlink_json_is_json_dumps_of_the_documented_object(data, link, source, direction, now):
+    import base64
+    import json
+
+    rec = FlightRecorder(RecordSettings("/nonexistent/never_opened.mcap"), vehicle="uav1")
+    src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) else str(source))
+    ref = json.dumps({"link": link, "direction": direction, "receive_time_ns": now, "source": src,
+                      "data": base64.b64encode(data).decode()}, separators=(",", ":")).encode()
+    assert rec._mavlink_json(data, link, source, direction, now) == ref
+    assert rec._mavlink_json(data, link, source, direction, now) == ref  # from the cached parts
+
+
+@settings(max_examples=200, deadline=None)
+@given(c=hnp.arrays(np.float64, (3, 3), elements=st.floats(-1e6, 1e6, allow_nan=False)))
+def test_location_fix_covariance_is_the_ned_to_enu_similarity(c):
+    P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    got = _fix_fields(1.0, 2.0, 3.0, 4, "target", c)["position_covariance"]
+    assert got == (P @ c @ P.T).ravel().tolist()  # equal values (a zero's sign aside: +0.0 here)
+    assert all(math.copysign(1.0, x) > 0 for x in got if x == 0.0)
