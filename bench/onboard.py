@@ -23,10 +23,12 @@
   the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
   without the estimator as a baseline measured in the same run.
 
+The autopilot of the latency benchmark is the tests' fake (``tests.fakes.FakeAutopilot``, MAVLink
+through :mod:`onboard.io.mavlink_wire`) flying :class:`SyntheticScene`'s observer.
+
 Numbers only; nothing asserts on time.  The machine's load average is printed first: on a shared
-2-core box the tails (p99, max) follow the other load.  :class:`SyntheticScene` and
-:class:`FakeAutopilot` are also the fixtures of ``tests/onboard/test_pipeline.py`` and
-``test_service.py``.
+2-core box the tails (p99, max) follow the other load.  :class:`SyntheticScene` is also a fixture of
+``tests/onboard/test_pipeline.py`` and ``test_service.py``.
 """
 
 from __future__ import annotations
@@ -36,7 +38,6 @@ import json
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -50,6 +51,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
+from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
     GeodeticOrigin,
@@ -64,7 +66,7 @@ from onboard.core.frames import (  # noqa: E402
 )
 from onboard.core.irframe import IrFrame, encode_irframe  # noqa: E402
 
-__all__ = ["SyntheticScene", "FakeAutopilot", "free_udp_port", "free_tcp_port", "bench_processing", "bench_latency", "main"]
+__all__ = ["SyntheticScene", "bench_processing", "bench_latency", "main"]
 
 ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
 BOOT_US0 = 20_000_000  # the scene starts 20 s after the autopilot booted
@@ -200,93 +202,6 @@ class SyntheticScene:
     def geodetic(self, p_ned_m) -> tuple[float, float, float]:
         lat, lon, alt = geodetic_from_ned(p_ned_m, self.origin)
         return float(lat), float(lon), float(alt)
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def free_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-# --------------------------------------------------------------------------- fake autopilot (also used by the tests)
-
-
-class FakeAutopilot:
-    """A PX4-like autopilot over UDP (pymavlink, MAVLink 2) flying :class:`SyntheticScene`'s observer.
-
-    Sends HEARTBEAT, ATTITUDE_QUATERNION (#31) and GLOBAL_POSITION_INT (#33) stamped on its boot
-    clock, which reads ``scene.boot_us0`` when the object is made; ACKs SET_MESSAGE_INTERVAL and
-    answers TIMESYNC.  Keeps what it receives in ``received``.
-    """
-
-    def __init__(self, port: int, scene: SyntheticScene, host: str = "127.0.0.1") -> None:
-        os.environ["MAVLINK20"] = "1"
-        from pymavlink import mavutil
-        from pymavlink.dialects.v20 import common as mav
-
-        self.mav = mav
-        self.conn = mavutil.mavlink_connection(f"udpout:{host}:{port}", source_system=1, source_component=1, dialect="common")
-        self.scene = scene
-        self.boot_mono_ns = time.monotonic_ns() - scene.boot_us0 * 1000
-        self.received: list = []
-
-    def boot_us(self) -> int:
-        return (time.monotonic_ns() - self.boot_mono_ns) // 1000
-
-    def heartbeat(self) -> None:
-        m = self.mav
-        self.conn.mav.heartbeat_send(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
-
-    def attitude(self, t_us: int, q=None) -> None:
-        """#31 at ``t_us`` with the scene's body rates (rollspeed, pitchspeed, yawspeed); zero rates with a given ``q``."""
-        t_s = (t_us - self.scene.boot_us0) / 1e6
-        w = (0.0, 0.0, 0.0) if q is not None else self.scene.body_rates_frd(t_s)
-        if q is None:
-            q = self.scene.body(t_s)[2]
-        self.conn.mav.attitude_quaternion_send(t_us // 1000, *[float(c) for c in q], *[float(c) for c in w])
-
-    def position(self, t_us: int, latlon_raw=None) -> None:
-        p, v, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
-        lat, lon, alt = self.scene.geodetic(p)
-        la, lo = (int(round(lat * 1e7)), int(round(lon * 1e7))) if latlon_raw is None else latlon_raw
-        self.conn.mav.global_position_int_send(t_us // 1000, la, lo, int(round(alt * 1000)), int(round(-p[2] * 1000)),
-                                               *(int(round(c * 100)) for c in v), 0)
-
-    def junk(self) -> None:
-        """300 random bytes, then a HEARTBEAT with a broken CRC."""
-        m = self.mav
-        self.conn.write(np.random.default_rng(3).integers(0, 256, 300, dtype=np.uint8).tobytes())
-        msg = self.conn.mav.heartbeat_encode(m.MAV_TYPE_QUADROTOR, m.MAV_AUTOPILOT_PX4, 0, 0, m.MAV_STATE_ACTIVE)
-        buf = bytearray(msg.pack(self.conn.mav))
-        buf[-1] ^= 0xFF
-        self.conn.write(bytes(buf))
-
-    def pump(self) -> None:
-        m = self.mav
-        while True:
-            msg = self.conn.recv_match(blocking=False)
-            if msg is None:
-                return
-            t = msg.get_type()
-            self.received.append(msg)
-            if len(self.received) > 10_000:
-                del self.received[:5_000]
-            if t == "COMMAND_LONG" and msg.command == m.MAV_CMD_SET_MESSAGE_INTERVAL:
-                self.conn.mav.command_ack_send(msg.command, m.MAV_RESULT_ACCEPTED, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
-            elif t == "TIMESYNC" and msg.tc1 == 0:
-                self.conn.mav.timesync_send(self.boot_us() * 1000, msg.ts1)
-
-    def got(self, mtype: str) -> list:
-        return [msg for msg in self.received if msg.get_type() == mtype]
-
-    def close(self) -> None:
-        self.conn.close()
 
 
 # --------------------------------------------------------------------------- benchmark 1: per-frame processing
@@ -426,6 +341,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
     import zenoh
 
     from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+    from tests.fakes import FakeAutopilot  # the one fake autopilot (run from the repository root)
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()
@@ -449,7 +365,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
         subs = [session.declare_subscriber(track_key(), on_track),
                 session.declare_subscriber(status_key(), lambda s: statuses.append(json.loads(s.payload.to_bytes())))]
         pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
-        ap = FakeAutopilot(mport, scene)
+        ap = FakeAutopilot(mport, scene=scene)
         put_ns: dict[int, int] = {}
         lat_ms: list[float] = []
         first_track = None

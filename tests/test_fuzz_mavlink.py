@@ -25,14 +25,12 @@ Budget: ``tests/fuzz_budget.py`` (``IRTRACK_FUZZ_EXAMPLES`` runs it longer).
 
 from __future__ import annotations
 
-import os
 import time
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-os.environ["MAVLINK20"] = "1"
 
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
@@ -40,7 +38,8 @@ from onboard.core.frames import CameraMount, GeodeticOrigin  # noqa: E402
 from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
 from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
 from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
-from tests.onboard.test_mavlink_link import FakeClock, free_udp_port  # noqa: E402
+from groundsim.io.ports import free_udp_port  # noqa: E402
+from tests.fakes import FakeClock  # noqa: E402
 
 AP_SYSID = 1
 KEY = bytes(range(32))
@@ -205,7 +204,7 @@ def test_any_datagrams_never_raise_and_every_one_is_accounted_for(datagrams, sig
     h = Harness(signed=signed)
     try:
         for i, d in enumerate(datagrams):
-            h.clock.t += 0.01
+            h.clock.t_s += 0.01
             if not d:
                 continue  # an empty datagram carries nothing (the link skips it)
             n, added, calls = h.feed(d, ("127.0.0.1", 40000 + i % 3))
@@ -222,7 +221,7 @@ def test_valid_packets_with_any_field_values_are_used_or_refused_with_a_count(ms
     try:
         p = packer()
         for m in msgs:
-            h.clock.t += 0.02
+            h.clock.t_s += 0.02
             n, added, calls = h.feed(bytes(m.pack(p)))
             assert n == 1 and CATCH_ALL not in added and "mavlink_recv_error" not in added, added
             _accounted(n, added, calls, h)
@@ -269,7 +268,7 @@ def test_a_signed_link_uses_no_unsigned_or_foreign_key_packet(datagrams):
     h = Harness(signed=True)
     try:
         for d in datagrams:
-            h.clock.t += 0.01
+            h.clock.t_s += 0.01
             if not d:
                 continue
             before = len(h.pose.calls)

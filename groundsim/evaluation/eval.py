@@ -87,6 +87,7 @@ from groundsim.evaluation.parallel import mp_context
 from groundsim.evaluation.report import BASELINE_FAIL_PCT
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
+from onboard.estimation.metrics import score_frames
 
 __all__ = [
     "DEFAULT_ONBOARD_CONFIG",
@@ -262,8 +263,17 @@ class TelemetryFeed:
         return self.next_tick >= self.core.tick_count
 
     def feed_next(self) -> None:
-        """Offer the next tick's state (streams due at that tick only)."""
-        from onboard.core.pose import GimbalReference
+        """Offer the next tick's state (streams due at that tick only), encoded and decoded by
+        :mod:`onboard.io.mavlink_wire` as the MAVLink vehicle and the daemon's link do (packed and parsed:
+        the wire's quantisation).  The body and gimbal rates are not fed: the lockstep loop waits for the
+        bracketing sample instead of extrapolating (the benchmark's accuracy tables are defined so)."""
+        from onboard.io.mavlink_wire import (
+            AttitudeQuaternion,
+            GimbalDeviceAttitudeStatus,
+            GlobalPositionInt,
+            mavlink2,
+            wire_roundtrip,
+        )
 
         from groundsim.world.nav_errors import reported_state
 
@@ -272,20 +282,22 @@ class TelemetryFeed:
         nav_error = getattr(self.core, "nav_error", None)
         st = reported_state(self.core.vehicle_state(i), None if nav_error is None else nav_error(i))
         now = int(st["time_boot_us"])
-        t_wire_us = (now // 1000) * 1000  # MAVLink time_boot_ms
         for name, interval in self._interval_us.items():
             if now < self._due_us[name]:
                 continue
             if name == "att":
-                q = np.asarray(st["q_ned_from_body"], dtype=np.float32).astype(float)
-                self.pose.add_attitude(t_wire_us, q)
+                att = AttitudeQuaternion.from_message(wire_roundtrip(AttitudeQuaternion(
+                    now, tuple(st["q_ned_from_body"]), tuple(st["body_rates_radps"])).to_message()))
+                self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body)
             elif name == "pos":
-                v = np.round(np.asarray(st["v_ned_mps"], dtype=float) * 100.0) * 0.01
-                self.pose.add_position(t_wire_us, round(st["lat_deg"] * 1e7) * 1e-7, round(st["lon_deg"] * 1e7) * 1e-7,
-                                       round(st["alt_amsl_m"] * 1000.0) * 1e-3, v)
+                pos = GlobalPositionInt.from_message(wire_roundtrip(GlobalPositionInt(
+                    now, st["lat_deg"], st["lon_deg"], st["alt_amsl_m"], st["alt_rel_m"], tuple(st["v_ned_mps"]),
+                    st["heading_rad"]).to_message()))
+                self.pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
             elif st["q_gimbal"] is not None:
-                q = np.asarray(st["q_gimbal"], dtype=np.float32).astype(float)
-                self.pose.add_gimbal_status(t_wire_us, q, GimbalReference.EARTH)
+                gim = GimbalDeviceAttitudeStatus.from_message(wire_roundtrip(GimbalDeviceAttitudeStatus(
+                    now, tuple(st["q_gimbal"]), mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME).to_message()))
+                self.pose.add_gimbal_status(gim.time_boot_us, gim.q_ref_from_gimbal, gim.reference)
             nxt = self._due_us[name] + interval
             self._due_us[name] = nxt if nxt > now else now + interval
 
@@ -621,7 +633,7 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
             continue
         entry["solve_s"] = time.perf_counter() - t0
         entry.update(p_ned_m=np.asarray(res.p_ned_m), cov_ned_m2=np.asarray(res.cov_p_ned_m2), observable=bool(res.observable),
-                     model=str(res.extras.get("model", res.prior.family)), range_sigma_ratio=float(res.range_sigma_ratio))
+                     model=str(res.model or res.prior.family), range_sigma_ratio=float(res.range_sigma_ratio))
         if name == "perfect":
             # the bound of the flown trajectory for the noise actually simulated (the baseline's pixel
             # noise and the telemetry's navigation errors), and for the noise model the estimator assumes
@@ -639,28 +651,6 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
 
 
 # --------------------------------------------------------------------------- scoring
-
-
-def _metrics(truth_p, est_p, cam_p, cov, sel) -> dict | None:
-    """:func:`onboard.estimation.metrics.evaluate` on the selected frames -> JSON-ready dict (None
-    when no frame is selected).  A covariance the metrics refuse is reported, not hidden."""
-    from onboard.estimation.metrics import evaluate
-
-    idx = np.flatnonzero(sel)
-    if idx.size == 0:
-        return None
-    note = None
-    try:
-        rep = evaluate(truth_p[idx], est_p[idx], cam_p[idx], None if cov is None else cov[idx])
-    except InputError as exc:
-        note = f"covariance not scored: {exc}"
-        rep = evaluate(truth_p[idx], est_p[idx], cam_p[idx], None)
-    d = rep.summary()
-    d["err_range_pct"] = 100.0 * rep.range_normalised_error
-    d["err_paper_pct"] = 100.0 * rep.paper_relative_error
-    if note:
-        d["note"] = note
-    return d
 
 
 #: the closed-loop windows of issue 9 item 5: published positions after the track settles, observability later
@@ -718,11 +708,11 @@ def score_run(r: RunResult) -> dict:
                  "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
                  "chain_centroid_sigma_px": r.chain_centroid_sigma_px}
     out["closed_loop"] = closed_loop_figures(r)
-    out["online_observable"] = _metrics(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
-    out["online_all"] = _metrics(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
-    out["perfect_observable"] = _metrics(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs)
-    on_c = _metrics(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, None, common)
-    pf_c = _metrics(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, None, common)
+    out["online_observable"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
+    out["online_all"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
+    out["perfect_observable"] = score_frames(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs)
+    on_c = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, None, common)
+    pf_c = score_frames(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, None, common)
     out["common_frames"] = int(common.sum())
     out["online_common_err_range_pct"] = None if on_c is None else on_c["err_range_pct"]
     out["perfect_common_err_range_pct"] = None if pf_c is None else pf_c["err_range_pct"]
@@ -761,7 +751,7 @@ def score_run(r: RunResult) -> dict:
             m = None
             if e.get("p_ned_m") is not None:
                 idx = e["frames"]
-                m = _metrics(r.truth_p_ned_m[idx], e["p_ned_m"], r.cam_p_ned_m[idx], e["cov_ned_m2"], np.ones(idx.size, bool))
+                m = score_frames(r.truth_p_ned_m[idx], e["p_ned_m"], r.cam_p_ned_m[idx], e["cov_ned_m2"], np.ones(idx.size, bool))
             b[name] = {"metrics": m, "observable": e["observable"], "model": e["model"], "solve_s": e["solve_s"],
                        "frames": int(len(e["frames"])), "error": e["error"]}
         b["crb_rms_m"] = r.batch["perfect"].get("crb_rms_m")
@@ -918,7 +908,7 @@ def _job(args) -> RunResult:
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
 
-def _bar_pacing() -> dict:
+def bar_pacing() -> dict:
     """tqdm pacing: live on a terminal; one update every 10 s into a log file or pipe (a redrawn bar
     there is thousands of carriage-return segments)."""
     import sys
@@ -959,7 +949,7 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True, **_bar_pacing())
+            bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True, **bar_pacing())
         try:
             for n, j in enumerate(jobs):
                 sc, seed, opts = j[0], j[1], j[2]
@@ -994,7 +984,7 @@ def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
             from tqdm import tqdm
 
             bar = tqdm(total=total, unit="frame", desc=f"eval ({workers} workers)", leave=True, dynamic_ncols=True,
-                       **_bar_pacing())
+                       **bar_pacing())
         pending = [pool.apply_async(_job, (j,)) for j in jobs]
         results: list = [None] * len(jobs)
         left = set(range(len(jobs)))

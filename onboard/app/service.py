@@ -867,7 +867,7 @@ class OnboardService:
 
             v, K = cfg.video, self.pipeline.intrinsics
             self.video = VideoStreamer(v.destination, K.width_px, K.height_px, v.fps, v.bitrate_bps, v.gop_s,
-                                       v.overlay, v.queue_length)
+                                       v.overlay, v.queue_length, v.transport)
         if self.camera is not None:
             from onboard.io.gcs_link import GcsLink
 
@@ -1010,7 +1010,7 @@ class OnboardService:
                     if self.live_view is not None:
                         self.live_view.on_pose(frame, pose)
             if self.video is not None:
-                self.video.submit(frame.pixels, track)  # never blocks: the encoder drops its oldest frame
+                self.video.submit(frame.pixels, track, frame.time_boot_us)  # never blocks: drops its oldest frame
             payload = None
             if publish and self._track_pub is not None:
                 try:
@@ -1111,13 +1111,13 @@ class OnboardService:
         fc = self.config.follow
         if not fc.enabled or self.link is None or now < self._next_follow_s:
             return False
-        from onboard.io.follow import follow_target_fields
+        from onboard.io.follow import follow_target
 
-        fields = follow_target_fields(self._current_track(now))
-        if fields is None:
+        target = follow_target(self._current_track(now))
+        if target is None:
             return False
         self._next_follow_s = now + 1.0 / fc.rate_hz
-        return bool(self.link.send_follow_target(fields))
+        return bool(self.link.send_follow_target(target))
 
     def camera_step(self, now: float) -> int:
         """The camera component's turn in the main loop: commands in (tracking requests queued to the
@@ -1235,7 +1235,7 @@ _ACCEPTED_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame
 
 def make_camera_protocol(config: OnboardConfig, intrinsics):
     """The :class:`~onboard.io.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera)."""
-    from onboard.io.camera_protocol import VIDEO_STREAM_TYPE_MPEG_TS, CameraIdentity, CameraProtocol, VideoStream
+    from onboard.io.camera_protocol import CameraIdentity, CameraProtocol, VideoStream, video_stream_type
 
     g, o, v = config.gcs, config.output, config.video
     identity = CameraIdentity.from_intrinsics(intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px,
@@ -1243,7 +1243,7 @@ def make_camera_protocol(config: OnboardConfig, intrinsics):
     stream = None
     if v.destination:  # the ground station listens on the destination's port (QGC: udp://0.0.0.0:PORT)
         hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width_px / (2.0 * intrinsics.fx_px)))
-        stream = VideoStream(VIDEO_STREAM_TYPE_MPEG_TS, v.destination.rpartition(":")[2], v.fps, v.bitrate_bps,
+        stream = VideoStream(video_stream_type(v.transport), v.destination.rpartition(":")[2], v.fps, v.bitrate_bps,
                              intrinsics.width_px, intrinsics.height_px, hfov_deg)
     return CameraProtocol(identity, intrinsics.width_px, intrinsics.height_px, component_id=g.component_id,
                           stream=stream, image_status_hz=o.tracking_image_status_hz,

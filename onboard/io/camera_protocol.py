@@ -1,9 +1,10 @@
 """The daemon as a MAVLink camera, pure: commands in -> replies, tracking requests and status out.
 
-No sockets, no pymavlink, no clocks: :mod:`onboard.io.gcs_link` translates COMMAND_LONG / COMMAND_INT
-into :class:`CameraCommand` and sends each :class:`Outgoing` with the pymavlink ``<msg>_send`` of the
-same name (``fields`` are that message's field names, in its wire units).  Times (``now_s``,
-``time_boot_ms``) are passed in.
+No sockets, no clocks: :mod:`onboard.io.gcs_link` translates COMMAND_LONG / COMMAND_INT into
+:class:`CameraCommand` and sends each :class:`Outgoing` as the message of the same name (``fields`` are
+that message's field names, in its wire units; :func:`onboard.io.mavlink_wire.message_from_fields`).
+#275 / #276 are encoded by :mod:`onboard.io.mavlink_wire` (the Track mapping and the field checks live
+there).  Times (``now_s``, ``time_boot_ms``) are passed in.
 
 What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera discovery):
 
@@ -43,9 +44,12 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
   a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
   ``camera_device_id`` 0 (we are the camera component).
-* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type (RTPUDP 1 or MPEG_TS 3: ``uri`` is the UDP
-  port the ground station listens on, as QGC reads it), flags RUNNING | THERMAL, frame rate, bitrate,
-  resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``, encoding H264.
+* VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type by ``video.transport``
+  (:func:`video_stream_type`: ``rtp`` -> RTPUDP 1, ``mpegts`` -> MPEG_TS 3; common.xml, "URI gives
+  the port number" for both), ``uri`` the UDP port the ground station listens on (QGC's VideoManager
+  opens ``udp://0.0.0.0:<uri>`` as RTP H.264 for RTPUDP, ``mpegts://0.0.0.0:<uri>`` for MPEG_TS),
+  flags RUNNING | THERMAL, frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
+  encoding H264.
 * CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, at the
   intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the
   tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
@@ -64,11 +68,19 @@ from typing import Any, Mapping
 
 from onboard.core.errors import InputError
 from onboard.core.selection import TrackRequest, TrackResult
-from onboard.core.track import Track, geo_status_fields, image_status_fields
+from onboard.core.track import Track
+from onboard.io.mavlink_wire import (
+    CameraTrackingGeoStatus,
+    CameraTrackingImageStatus,
+    geo_status_fields,
+    image_status_fields,
+    wire_fields,
+)
 
 __all__ = [
     "CameraIdentity",
     "VideoStream",
+    "video_stream_type",
     "CameraCommand",
     "Outgoing",
     "TrackRequest",
@@ -119,6 +131,7 @@ CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE = 1024
 CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS = 2048
 VIDEO_STREAM_TYPE_RTPUDP = 1
 VIDEO_STREAM_TYPE_MPEG_TS = 3
+_STREAM_TYPE_OF_TRANSPORT = {"rtp": VIDEO_STREAM_TYPE_RTPUDP, "mpegts": VIDEO_STREAM_TYPE_MPEG_TS}
 VIDEO_STREAM_STATUS_FLAGS_RUNNING = 1
 VIDEO_STREAM_STATUS_FLAGS_THERMAL = 2
 VIDEO_STREAM_ENCODING_H264 = 1
@@ -181,6 +194,15 @@ class CameraIdentity:
         pitch_mm = _finite_positive("pixel_pitch_um", pixel_pitch_um) / 1000.0
         return cls(vendor_name, model_name, firmware_version, float(fx_px) * pitch_mm, width_px * pitch_mm,
                    height_px * pitch_mm, int(width_px), int(height_px))
+
+
+def video_stream_type(transport: str) -> int:
+    """VIDEO_STREAM_TYPE of a ``video.transport``: ``rtp`` -> RTPUDP (1), ``mpegts`` -> MPEG_TS (3)."""
+    try:
+        return _STREAM_TYPE_OF_TRANSPORT[transport]
+    except (KeyError, TypeError):
+        raise InputError(f"video.transport: expected one of {', '.join(_STREAM_TYPE_OF_TRANSPORT)}, "
+                         f"got {transport!r}") from None
 
 
 @dataclass(frozen=True)
@@ -533,17 +555,15 @@ class CameraProtocol:
     def _image_status(self, track: Track | None) -> Outgoing:
         mode = self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
         f = image_status_fields(track, self.width_px, self.height_px, mode=mode, radius=self._radius_norm)
-        return Outgoing("camera_tracking_image_status", dict(f, camera_device_id=0))
+        return Outgoing("camera_tracking_image_status",
+                        wire_fields(CameraTrackingImageStatus(**f, camera_device_id=0).to_message()))
 
     def _geo_status(self, track: Track | None) -> Outgoing | None:
         f = geo_status_fields(track, observable_only=self.observable_only)
         if f is None:
             return None
-        return Outgoing("camera_tracking_geo_status", dict(
-            tracking_status=f["tracking_status"], lat=int(round(f["lat_deg"] * 1e7)), lon=int(round(f["lon_deg"] * 1e7)),
-            alt=f["alt_m"], h_acc=f["h_acc_m"], v_acc=f["v_acc_m"], vel_n=f["vel_n_mps"], vel_e=f["vel_e_mps"],
-            vel_d=f["vel_d_mps"], vel_acc=f["vel_acc_mps"], dist=f["dist_m"], hdg=f["hdg_rad"], hdg_acc=f["hdg_acc_rad"],
-            camera_device_id=0))
+        return Outgoing("camera_tracking_geo_status",
+                        wire_fields(CameraTrackingGeoStatus(**f, camera_device_id=0).to_message()))
 
     # ------------------------------------------------------------------ helpers
 

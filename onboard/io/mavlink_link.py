@@ -1,6 +1,7 @@
 """Thin pymavlink adapter: autopilot telemetry in, heartbeats / rate requests / tracking status out.
 
-Wire -> core translation happens here and only here (MAVLink common, v2 framing):
+Messages are encoded and decoded by :mod:`onboard.io.mavlink_wire` (units and frames there); this
+module decides what to do with them (MAVLink common, v2 framing):
 
 * ``ATTITUDE_QUATERNION`` (#31): ``time_boot_ms * 1000`` -> ``time_boot_us``; ``(q1, q2, q3, q4)`` is
   already ``q_ned_from_body`` (w, x, y, z; FRD body in NED); ``rollspeed, pitchspeed, yawspeed``
@@ -41,9 +42,8 @@ Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`
 raises on bad input: random bytes and bad CRCs come back from pymavlink as ``BAD_DATA`` and are
 counted as ``mavlink_bad_data``; anything else that throws is counted as ``mavlink_recv_error``.
 
-pymavlink note: MAVLink 2 is selected by ``MAVLINK20=1`` in the environment before the connection
-is made (pymavlink reads it there); this module sets it, which affects other pymavlink users in the
-same process (they get MAVLink 2 as well, which every current autopilot speaks).
+MAVLink 2 without the environment: UDP links parse with our own MAVLink 2 codec; serial/TCP links open
+through :func:`onboard.io.mavlink_wire.connect` (``MAVLINK20`` is neither read nor set).
 """
 
 from __future__ import annotations
@@ -62,15 +62,27 @@ from typing import Any, Callable
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-from onboard.core.errors import ConfigError, InputError
+from onboard.core.errors import ConfigError
 from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
-from onboard.core.pose import ClockSync, GimbalReference, PoseBuffer, RejectCounter
+from onboard.core.pose import ClockSync, PoseBuffer, RejectCounter
+from onboard.io.mavlink_wire import (
+    AttitudeQuaternion,
+    CameraTrackingGeoStatus,
+    CameraTrackingImageStatus,
+    FollowTarget,
+    GimbalDeviceAttitudeStatus,
+    GlobalPositionInt,
+    Heartbeat,
+    Timesync,
+    connect,
+    parse_endpoint,
+    set_message_interval_message,
+)
 
 __all__ = [
     "LINK_WAITING",
     "LINK_CONNECTED",
     "LINK_LOST",
-    "MavlinkEndpoint",
     "parse_connection",
     "MavlinkLinkConfig",
     "MavlinkConfig",
@@ -87,7 +99,6 @@ LINK_CONNECTED = "connected"
 LINK_LOST = "lost"
 
 DEFAULT_CONNECTION = "udpin:127.0.0.1:14540"
-DEFAULT_SERIAL_BAUD = 115200
 
 MSG_ID_ATTITUDE_QUATERNION = mavlink2.MAVLINK_MSG_ID_ATTITUDE_QUATERNION  # 31
 MSG_ID_GLOBAL_POSITION_INT = mavlink2.MAVLINK_MSG_ID_GLOBAL_POSITION_INT  # 33
@@ -102,12 +113,6 @@ _NOT_AUTOPILOT_TYPES = frozenset(
         mavlink2.MAV_TYPE_ADSB,
     }
 )
-#: gimbal failures that make its reported attitude unusable (limits alone do not)
-_GIMBAL_BAD_ATTITUDE = (
-    mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_ENCODER_ERROR
-    | mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_SOFTWARE_ERROR
-    | mavlink2.GIMBAL_DEVICE_ERROR_FLAGS_CALIBRATION_RUNNING
-)
 _RESULT_NAMES = {
     v: k[len("MAV_RESULT_"):] for k, v in vars(mavlink2).items() if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
 }
@@ -115,61 +120,8 @@ _RESULT_NAMES = {
 
 # --------------------------------------------------------------------------- connection strings
 
-
-@dataclass(frozen=True)
-class MavlinkEndpoint:
-    """A parsed ``--mavlink`` value: ``kind`` (udpin, udpout, tcp, tcpin, serial), pymavlink ``device``, ``baud``."""
-
-    kind: str
-    device: str
-    baud: int = DEFAULT_SERIAL_BAUD
-
-
-_HOSTPORT = re.compile(r"^(?P<host>[^:\s]+):(?P<port>\d+)$")
-
-
-def parse_connection(connection: str, field: str = "--mavlink") -> MavlinkEndpoint:
-    """Validate a connection string.
-
-    Accepted: ``udpin:HOST:PORT`` (listen; the default ``udpin:0.0.0.0:14540``), ``udpout:HOST:PORT``,
-    ``udp:HOST:PORT`` (= udpin), ``tcp:HOST:PORT`` (connect), ``tcpin:HOST:PORT`` (listen),
-    ``serial:/dev/ttyX[:BAUD]`` (also ``serial:///dev/ttyX:BAUD``), ``/dev/ttyX[:BAUD]`` and
-    ``/dev/ttyX,BAUD``.  Raises :class:`ConfigError` naming ``field``.
-    """
-    if not isinstance(connection, str) or not connection.strip():
-        raise ConfigError(f"{field}: expected a MAVLink connection like {DEFAULT_CONNECTION!r}, got {connection!r}")
-    text = connection.strip()
-    for prefix in ("udpin", "udpout", "udp", "tcpin", "tcp"):
-        if text.startswith(prefix + ":"):
-            rest = text[len(prefix) + 1:]
-            m = _HOSTPORT.match(rest)
-            if not m or not 1 <= int(m["port"]) <= 65535:
-                raise ConfigError(f"{field}: {prefix} needs HOST:PORT with PORT in 1..65535, got {connection!r}")
-            kind = "udpin" if prefix == "udp" else prefix
-            return MavlinkEndpoint(kind, f"{kind}:{m['host']}:{int(m['port'])}")
-    if text.startswith("serial:"):
-        rest = text[len("serial:"):]
-        if rest.startswith("//"):
-            rest = rest[2:]
-        return _parse_serial(rest, connection, field)
-    if text.startswith("/dev/") or text.upper().startswith("COM"):
-        return _parse_serial(text, connection, field)
-    raise ConfigError(
-        f"{field}: unknown MAVLink connection {connection!r}; expected udpin:HOST:PORT, udpout:HOST:PORT, "
-        "tcp:HOST:PORT, tcpin:HOST:PORT or serial:/dev/ttyX[:BAUD]"
-    )
-
-
-def _parse_serial(rest: str, original: str, field: str) -> MavlinkEndpoint:
-    baud = DEFAULT_SERIAL_BAUD
-    m = re.match(r"^(?P<dev>[^,:]+)(?:[,:](?P<baud>[^,:]*))?$", rest)
-    if not m or not m["dev"]:
-        raise ConfigError(f"{field}: serial needs a device path like /dev/ttyS0[:BAUD], got {original!r}")
-    if m["baud"] is not None:
-        if not m["baud"].isdigit() or int(m["baud"]) <= 0:
-            raise ConfigError(f"{field}: serial baud must be a positive integer, got {m['baud']!r} in {original!r}")
-        baud = int(m["baud"])
-    return MavlinkEndpoint("serial", m["dev"], baud)
+#: one grammar for every MAVLink connection string: :func:`onboard.io.mavlink_wire.parse_endpoint`
+parse_connection = parse_endpoint
 
 
 # --------------------------------------------------------------------------- config and status
@@ -595,16 +547,9 @@ class MavlinkLink:
                 _, host, port = ep.device.split(":")
                 self._transport = _UdpTransport(ep.kind, host, int(port), self.config.extra_destinations)
             else:
-                from pymavlink import mavutil  # imported here: no pymavlink state is touched at import time
-
-                os.environ["MAVLINK20"] = "1"
-                kwargs = dict(source_system=self.autopilot_sysid or 1, source_component=self.config.component_id,
-                              dialect="common")
-                if ep.kind == "tcp":
-                    kwargs.update(autoreconnect=True, retries=0, reconnect_delay=0.1)
-                if ep.kind == "serial":
-                    kwargs.update(baud=ep.baud)
-                self._transport = _StreamTransport(mavutil.mavlink_connection(ep.device, **kwargs))
+                kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
+                self._transport = _StreamTransport(connect(ep, self.autopilot_sysid or 1, self.config.component_id,
+                                                           **kwargs))
                 self._stream_parser = _new_parser(self._signing)
             log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
@@ -636,11 +581,12 @@ class MavlinkLink:
         t = self._transport
         return None if t is None else (t.fixed if getattr(t, "fixed", None) else getattr(t, "peer", None))
 
-    def _send(self, what: str, fn, *args) -> bool:
+    def _send(self, what: str, msg) -> bool:
+        """Write one message (a pymavlink message from :mod:`onboard.io.mavlink_wire`); False when closed or failed."""
         if self._transport is None:
             return False
         try:
-            fn(*args)
+            self._mav.send(msg)
             return True
         except Exception as exc:  # noqa: BLE001 - a send failure is counted, the loop goes on
             self._counters.count("mavlink_send_error", f"{what}: {exc}")
@@ -740,22 +686,17 @@ class MavlinkLink:
             return
         from_autopilot = src_comp == self.config.autopilot_compid
         if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
-            self._pose.add_attitude(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4),
-                                    (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+            att = AttitudeQuaternion.from_message(msg)
+            self._pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
-            self._pose.add_position(
-                int(msg.time_boot_ms) * 1000,
-                msg.lat * 1e-7,
-                msg.lon * 1e-7,
-                msg.alt * 1e-3,
-                (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
-            )
+            pos = GlobalPositionInt.from_message(msg)
+            self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
         elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
             self.gimbal_reports += 1  # the watchdog checks it against the configured mount
             if self.gimballed:
-                self._on_gimbal(msg, from_autopilot)
+                self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), from_autopilot)
         elif mtype == "TIMESYNC":
-            self._on_timesync(msg)
+            self._on_timesync(Timesync.from_message(msg))
         elif mtype == "COMMAND_ACK" and from_autopilot:
             self._on_ack(msg, now)
 
@@ -814,37 +755,27 @@ class MavlinkLink:
             self._request_rates()
             self._last_ts_tx_s = -math.inf
 
-    def _on_gimbal(self, msg, from_autopilot: bool) -> None:
-        if msg.failure_flags & _GIMBAL_BAD_ATTITUDE:
-            self._counters.count("gimbal_failure", f"failure_flags=0x{msg.failure_flags:x}")
+    def _on_gimbal(self, gim: GimbalDeviceAttitudeStatus, from_autopilot: bool) -> None:
+        if not gim.attitude_usable:
+            self._counters.count("gimbal_failure", f"failure_flags=0x{gim.failure_flags:x}")
             return
-        flags = msg.flags
-        if flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME:
-            ref = GimbalReference.EARTH
-        elif flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME:
-            ref = GimbalReference.VEHICLE
-        elif flags & mavlink2.GIMBAL_DEVICE_FLAGS_YAW_LOCK:
-            ref = GimbalReference.EARTH
-        else:
-            ref = GimbalReference.VEHICLE
         if from_autopilot:
-            t_us = int(msg.time_boot_ms) * 1000
+            t_us = gim.time_boot_us
         else:
             t_us = self.clock_sync.to_boot_us(self._clock_ns())
             if t_us is None:
                 self._counters.count("gimbal_clock_unsynced", "gimbal sample from a separate component before TIMESYNC")
                 return
-        self._pose.add_gimbal_status(t_us, tuple(msg.q), ref,
-                                     (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z))
+        self._pose.add_gimbal_status(t_us, gim.q_ref_from_gimbal, gim.reference, gim.omega_ref_rps)
 
-    def _on_timesync(self, msg) -> None:
+    def _on_timesync(self, ts: Timesync) -> None:
         now_ns = int(self._clock_ns())
-        if msg.tc1 == 0:
-            self._send("TIMESYNC reply", self._mav.timesync_send, now_ns, msg.ts1)
+        if ts.is_request:
+            self._send("TIMESYNC reply", Timesync(now_ns, ts.ts1_ns).to_message())
             return
-        if msg.ts1 in self._ts_outstanding:
-            del self._ts_outstanding[msg.ts1]
-            self.clock_sync.add_exchange(int(msg.ts1), int(msg.tc1), now_ns)
+        if ts.ts1_ns in self._ts_outstanding:
+            del self._ts_outstanding[ts.ts1_ns]
+            self.clock_sync.add_exchange(ts.ts1_ns, ts.tc1_ns, now_ns)
 
     def _on_ack(self, msg, now: float) -> None:
         if msg.command != mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL or self._inflight is None:
@@ -898,15 +829,7 @@ class MavlinkLink:
             self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
         if self.autopilot_sysid is not None and now - self._last_hb_tx_s >= self.config.heartbeat_interval_s:
             self._last_hb_tx_s = now
-            self._send(
-                "HEARTBEAT",
-                self._mav.heartbeat_send,
-                mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
-                mavlink2.MAV_AUTOPILOT_INVALID,
-                0,
-                0,
-                mavlink2.MAV_STATE_ACTIVE,
-            )
+            self._send("HEARTBEAT", Heartbeat(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID).to_message())
         if self.state != LINK_CONNECTED:
             return
         self._service_commands(now)
@@ -916,7 +839,7 @@ class MavlinkLink:
             self._ts_outstanding[ts1] = None
             while len(self._ts_outstanding) > self.config.max_outstanding_timesync:
                 self._ts_outstanding.popitem(last=False)
-            self._send("TIMESYNC", self._mav.timesync_send, 0, ts1)
+            self._send("TIMESYNC", Timesync(0, ts1).to_message())
 
     def _request_rates(self) -> None:
         self.rates_confirmed.clear()
@@ -940,18 +863,8 @@ class MavlinkLink:
         self._send_interval(self._inflight)
 
     def _send_interval(self, inf: _Inflight) -> None:
-        self._send(
-            "SET_MESSAGE_INTERVAL",
-            self._mav.command_long_send,
-            self.autopilot_sysid,
-            self.config.autopilot_compid,
-            mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
-            min(inf.attempts, 255),  # confirmation: 0 first, +1 per retransmission
-            float(inf.msg_id),
-            float(inf.interval_us),
-            0.0, 0.0, 0.0, 0.0,
-            0.0,  # param7 response target: flight-stack default
-        )
+        self._send("SET_MESSAGE_INTERVAL", set_message_interval_message(
+            self.autopilot_sysid, self.config.autopilot_compid, inf.msg_id, inf.interval_us, inf.attempts))
 
     # ------------------------------------------------------------------ tracking status out
 
@@ -969,37 +882,15 @@ class MavlinkLink:
         rec_bottom_y: float = math.nan,
         camera_device_id: int = 0,
     ) -> bool:
-        """CAMERA_TRACKING_IMAGE_STATUS (#275).  Coordinates are normalised image units: x 0 = left ..
-        1 = right, y 0 = top .. 1 = bottom (``u_px / width_px``); NaN = unknown.  ``tracking_status``:
-        CAMERA_TRACKING_STATUS_FLAGS bits (IDLE 0, ACTIVE 1, ERROR 2, MTI 4, COASTING 8);
-        ``tracking_mode``: CAMERA_TRACKING_MODE (NONE 0, POINT 1, RECTANGLE 2); ``target_data``:
-        CAMERA_TRACKING_TARGET_DATA bits.  Returns True when written.  Bad values raise InputError.
-        """
-        _check_uint("tracking_status", tracking_status, 255)
-        if tracking_mode not in (0, 1, 2) or isinstance(tracking_mode, bool):
-            raise InputError(f"tracking_mode must be CAMERA_TRACKING_MODE 0, 1 or 2, got {tracking_mode!r}")
-        _check_uint("target_data", target_data, 255)
-        _check_uint("camera_device_id", camera_device_id, 6)
-        values = dict(point_x=point_x, point_y=point_y, radius=radius, rec_top_x=rec_top_x, rec_top_y=rec_top_y,
-                      rec_bottom_x=rec_bottom_x, rec_bottom_y=rec_bottom_y)
-        for name, v in values.items():
-            _check_optional(name, v, 0.0, 1.0)
-        if self._transport is None:
-            return False
-        return self._send(
-            "CAMERA_TRACKING_IMAGE_STATUS",
-            self._mav.camera_tracking_image_status_send,
-            int(tracking_status), int(tracking_mode), int(target_data),
-            *(float(v) for v in values.values()),
-            int(camera_device_id),
-        )
+        """CAMERA_TRACKING_IMAGE_STATUS (#275), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingImageStatus`
+        (normalised image units, NaN = unknown).  Returns True when written.  Bad values raise InputError."""
+        msg = CameraTrackingImageStatus(tracking_status, tracking_mode, target_data, point_x, point_y, radius, rec_top_x,
+                                        rec_top_y, rec_bottom_x, rec_bottom_y, camera_device_id).to_message()
+        return self._send("CAMERA_TRACKING_IMAGE_STATUS", msg)
 
-    def send_follow_target(self, fields: dict) -> bool:
-        """FOLLOW_TARGET (#144) from :func:`onboard.io.follow.follow_target_fields`'s keyword arguments
-        (pymavlink's ``follow_target_send``); True when written."""
-        if self._transport is None:
-            return False
-        return self._send("FOLLOW_TARGET", lambda: self._mav.follow_target_send(**fields))
+    def send_follow_target(self, target: FollowTarget) -> bool:
+        """FOLLOW_TARGET (#144) of :func:`onboard.io.follow.follow_target`; True when written."""
+        return self._send("FOLLOW_TARGET", target.to_message())
 
     def send_tracking_geo_status(
         self,
@@ -1018,35 +909,12 @@ class MavlinkLink:
         tracking_status: int = mavlink2.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
         camera_device_id: int = 0,
     ) -> bool:
-        """CAMERA_TRACKING_GEO_STATUS (#276): target WGS84 lat/lon (deg, sent as degE7), altitude AMSL
-        (m), accuracies (m, m/s, rad; NaN = unknown), NED velocity (m/s; NaN = unknown), camera-target
-        distance (m) and heading (rad, NED).  Returns True when written.  Bad values raise InputError.
-        """
-        for name, v, lo, hi in (("lat_deg", lat_deg, -90.0, 90.0), ("lon_deg", lon_deg, -180.0, 180.0),
-                                ("alt_m", alt_m, -1e6, 1e6)):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
-                raise InputError(f"{name} must be a finite number in [{lo}, {hi}], got {v!r}")
-        for name, v in (("h_acc_m", h_acc_m), ("v_acc_m", v_acc_m), ("vel_acc_mps", vel_acc_mps),
-                        ("dist_m", dist_m), ("hdg_acc_rad", hdg_acc_rad)):
-            _check_optional(name, v, 0.0, math.inf)
-        for name, v in (("vel_n_mps", vel_n_mps), ("vel_e_mps", vel_e_mps), ("vel_d_mps", vel_d_mps),
-                        ("hdg_rad", hdg_rad)):
-            _check_optional(name, v, -math.inf, math.inf)
-        _check_uint("tracking_status", tracking_status, 255)
-        _check_uint("camera_device_id", camera_device_id, 6)
-        if self._transport is None:
-            return False
-        return self._send(
-            "CAMERA_TRACKING_GEO_STATUS",
-            self._mav.camera_tracking_geo_status_send,
-            int(tracking_status),
-            int(round(lat_deg * 1e7)),
-            int(round(lon_deg * 1e7)),
-            float(alt_m), float(h_acc_m), float(v_acc_m),
-            float(vel_n_mps), float(vel_e_mps), float(vel_d_mps), float(vel_acc_mps),
-            float(dist_m), float(hdg_rad), float(hdg_acc_rad),
-            int(camera_device_id),
-        )
+        """CAMERA_TRACKING_GEO_STATUS (#276), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingGeoStatus`
+        (deg, m AMSL, m/s NED, rad; NaN = unknown).  Returns True when written.  Bad values raise InputError."""
+        msg = CameraTrackingGeoStatus(lat_deg, lon_deg, alt_m, h_acc_m, v_acc_m, vel_n_mps, vel_e_mps, vel_d_mps,
+                                      vel_acc_mps, dist_m, hdg_rad, hdg_acc_rad, tracking_status,
+                                      camera_device_id).to_message()
+        return self._send("CAMERA_TRACKING_GEO_STATUS", msg)
 
     # ------------------------------------------------------------------ queries
 
@@ -1068,18 +936,3 @@ class MavlinkLink:
             link_losses=self.link_losses,
             reboots=self._pose.reboots,
         )
-
-
-def _check_uint(name: str, v, hi: int) -> None:
-    if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= hi:
-        raise InputError(f"{name} must be an integer in 0..{hi}, got {v!r}")
-
-
-def _check_optional(name: str, v, lo: float, hi: float) -> None:
-    """NaN (unknown) or a number in [lo, hi]."""
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise InputError(f"{name} must be a number or NaN, got {v!r}")
-    if math.isnan(v):
-        return
-    if not (lo <= v <= hi) or math.isinf(v):
-        raise InputError(f"{name} must be NaN or a finite number in [{lo}, {hi}], got {v!r}")

@@ -16,10 +16,11 @@ from groundsim.io.mavlink_vehicle import (
     MavlinkLinkError,
     MavlinkVehicle,
     open_mavlink2,
-    parse_connection,
 )
+from groundsim.io.ports import free_udp_port
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import euler_from_quat, quat_from_euler, quat_multiply
+from onboard.io.mavlink_wire import parse_endpoint
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -41,12 +42,6 @@ def _timesync(rx, tc1: int, ts1: int) -> None:
         rx.mav.timesync_send(tc1, ts1, 1, 1)
     else:  # pymavlink 2.4.50's common.xml predates TIMESYNC's target extension fields
         rx.mav.timesync_send(tc1, ts1)
-
-
-def _free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _pump_thread(vehicle: MavlinkVehicle, stop: threading.Event, period_s: float) -> threading.Thread:
@@ -82,7 +77,7 @@ def _state(vehicle: MavlinkVehicle, t_us: int, **over):
 @pytest.fixture
 def link():
     """(receiver, vehicle): a pymavlink 'GCS' on a free udpin port and the vehicle sending to it."""
-    port = _free_udp_port()
+    port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", unix_time_at_boot_us=1_700_000_000_000_000)
     try:
@@ -224,7 +219,7 @@ def test_unchanged_state_is_not_resent(link):
 
 @pytest.mark.integration
 def test_custom_rates_from_the_constructor():
-    port = _free_udp_port()
+    port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     with MavlinkVehicle(f"udpout:127.0.0.1:{port}", att_rate_hz=100, pos_rate_hz=10) as vehicle:
         _lockstep(vehicle, 0, 1_000_000)
@@ -379,7 +374,7 @@ def test_request_message_sends_one_now(link):
 def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
     """q_gimbal is q_ned_from_gimbal; on the wire: NED as is (earth frame), or with the vehicle's
     yaw taken out (vehicle frame); delta_yaw = vehicle yaw either way."""
-    port = _free_udp_port()
+    port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
     with MavlinkVehicle(f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10, gimbal_yaw_frame=yaw_frame) as vehicle:
@@ -456,11 +451,15 @@ def test_malformed_connection_strings(connection):
     assert isinstance(e.value, IrtrackError) and "\n" not in str(e.value)
 
 
-def test_parse_connection_forms():
-    assert parse_connection("udpout:127.0.0.1:14540") == ("udpout", "127.0.0.1", 14540)
-    assert parse_connection("udp:0.0.0.0:14540") == ("udpin", "0.0.0.0", 14540)
-    assert parse_connection("tcp:localhost:5760") == ("tcp", "localhost", 5760)
-    assert parse_connection("/dev/ttyUSB0,57600") == ("serial", None, None)
+def test_the_vehicle_takes_the_daemons_connection_grammar():
+    """One parser (onboard.io.mavlink_wire.parse_endpoint) for the simulator and the daemon."""
+    ep = parse_endpoint("udpout:127.0.0.1:14540")
+    assert (ep.kind, ep.host, ep.port) == ("udpout", "127.0.0.1", 14540)
+    ep = parse_endpoint("udp:0.0.0.0:14540")
+    assert (ep.kind, ep.host, ep.port, ep.listens) == ("udpin", "0.0.0.0", 14540, True)
+    assert (parse_endpoint("tcp:localhost:5760").kind, parse_endpoint("tcp:localhost:5760").port) == ("tcp", 5760)
+    ep = parse_endpoint("/dev/ttyUSB0,57600")
+    assert (ep.kind, ep.device, ep.baud, ep.host, ep.port) == ("serial", "/dev/ttyUSB0", 57600, None, None)
 
 
 @pytest.mark.integration
@@ -475,7 +474,7 @@ def test_udpin_port_in_use_is_a_typed_one_line_error():
 
 @pytest.mark.integration
 def test_udpin_port_held_by_another_pymavlink_is_in_use_too():
-    port = _free_udp_port()
+    port = free_udp_port()
     first = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 1)  # SO_REUSEADDR, like any pymavlink udpin
     try:
         with pytest.raises(MavlinkLinkError):
@@ -528,7 +527,7 @@ def test_bad_options(kw):
 @pytest.mark.integration
 def test_no_environment_side_effects():
     before = os.environ.get("MAVLINK20")
-    port = _free_udp_port()
+    port = free_udp_port()
     with MavlinkVehicle(f"udpout:127.0.0.1:{port}") as v:
         v.poll(0)
     assert os.environ.get("MAVLINK20") == before
@@ -542,7 +541,7 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
     mavsdk = pytest.importorskip("mavsdk")
     from mavsdk.plugins.telemetry.telemetry import Telemetry
 
-    port = _free_udp_port()
+    port = free_udp_port()
     sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
     stop = threading.Event()

@@ -1,23 +1,18 @@
-"""MavlinkLink against a pymavlink 'autopilot' on 127.0.0.1 (same process, no threads, fake clock)."""
+"""MavlinkLink against the fake autopilot (tests/fakes.py) on 127.0.0.1 (same process, no threads, fake clock)."""
 
 from __future__ import annotations
 
 import math
-import os
 import select
-import socket
 import time
 
 import numpy as np
 import pytest
+from pymavlink.dialects.v20 import common as mav
 
-os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the link
-
-from pymavlink import mavutil  # noqa: E402
-from pymavlink.dialects.v20 import common as mav  # noqa: E402
-
-from onboard.core.errors import ConfigError, InputError  # noqa: E402
-from onboard.core.frames import (  # noqa: E402
+from groundsim.io.ports import free_udp_port
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.frames import (
     CameraMount,
     GeodeticOrigin,
     euler_from_quat,
@@ -25,16 +20,18 @@ from onboard.core.frames import (  # noqa: E402
     quat_from_euler,
     quat_rotate,
 )
-from onboard.io.mavlink_link import (  # noqa: E402
-    LINK_CONNECTED,
-    LINK_LOST,
-    LINK_WAITING,
+from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkLink, MavlinkLinkConfig
+from onboard.io.mavlink_wire import (
+    GimbalDeviceAttitudeStatus,
+    Heartbeat,
     MavlinkEndpoint,
-    MavlinkLink,
-    MavlinkLinkConfig,
-    parse_connection,
+    Timesync,
+    command_ack_message,
+    pack,
+    parse_endpoint,
 )
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
+from tests.fakes import FakeAutopilot, FakeClock
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 
@@ -44,77 +41,6 @@ ATOL_M = 0.02  # GLOBAL_POSITION_INT quantisation: 1e-7 deg ~ 1.1 cm, alt 1 mm
 ATOL_RAD = 1e-6  # float32 quaternion on the wire
 TIMESYNC_TOL_US = 20_000  # one-way delay asymmetry on a loaded 2-core box, generous
 LAT0, LON0, ALT0 = 47.3977, 8.5456, 488.0
-
-
-class FakeClock:
-    def __init__(self, t: float = 1000.0) -> None:
-        self.t = t
-
-    def __call__(self) -> float:
-        return self.t
-
-
-class FakeAutopilot:
-    """Sends what a PX4/ArduPilot would; answers SET_MESSAGE_INTERVAL and TIMESYNC."""
-
-    def __init__(self, port: int, sysid: int = AP_SYSID) -> None:
-        self.conn = mavutil.mavlink_connection(
-            f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=1, dialect="common"
-        )
-        self.boot_ns = time.monotonic_ns() - 5_000_000_000  # "booted" 5 s ago
-        self.commands: list[tuple[int, int, int]] = []  # (message id, interval us, confirmation)
-        self.results: dict[int, list[int | None]] = {}  # per message id: results to give, None = stay silent
-        self.received: list = []
-
-    def boot_ns_now(self) -> int:
-        return time.monotonic_ns() - self.boot_ns
-
-    def as_component(self, sysid: int, compid: int):
-        self.conn.mav.srcSystem, self.conn.mav.srcComponent = sysid, compid
-
-    def heartbeat(self, mav_type=mav.MAV_TYPE_FIXED_WING, autopilot=mav.MAV_AUTOPILOT_PX4) -> None:
-        self.conn.mav.heartbeat_send(mav_type, autopilot, 0, 0, mav.MAV_STATE_ACTIVE)
-
-    def attitude(self, t_ms: int, q, omega_frd_rps=(0.0, 0.0, 0.0)) -> None:
-        self.conn.mav.attitude_quaternion_send(t_ms, *[float(c) for c in q], *[float(c) for c in omega_frd_rps])
-
-    def position(self, t_ms: int, lat_deg, lon_deg, alt_m, v_ned_mps=(0.0, 0.0, 0.0), lat_raw=None, lon_raw=None) -> None:
-        lat = int(round(lat_deg * 1e7)) if lat_raw is None else lat_raw
-        lon = int(round(lon_deg * 1e7)) if lon_raw is None else lon_raw
-        vx, vy, vz = (int(round(c * 100)) for c in v_ned_mps)
-        self.conn.mav.global_position_int_send(t_ms, lat, lon, int(round(alt_m * 1000)), 0, vx, vy, vz, 0)
-
-    def raw(self, data: bytes) -> None:
-        self.conn.write(data)
-
-    def pump(self) -> None:
-        while True:
-            m = self.conn.recv_match(blocking=False)
-            if m is None:
-                return
-            self.received.append(m)
-            t = m.get_type()
-            if t == "COMMAND_LONG" and m.command == mav.MAV_CMD_SET_MESSAGE_INTERVAL:
-                mid = int(m.param1)
-                self.commands.append((mid, int(m.param2), m.confirmation))
-                queue = self.results.get(mid, [])
-                result = queue.pop(0) if queue else mav.MAV_RESULT_ACCEPTED
-                if result is not None:
-                    self.conn.mav.command_ack_send(m.command, result, 0, 0, m.get_srcSystem(), m.get_srcComponent())
-            elif t == "TIMESYNC" and m.tc1 == 0:
-                self.conn.mav.timesync_send(self.boot_ns_now(), m.ts1)
-
-    def got(self, mtype: str) -> list:
-        return [m for m in self.received if m.get_type() == mtype]
-
-    def close(self) -> None:
-        self.conn.close()
-
-
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class Rig:
@@ -128,7 +54,7 @@ class Rig:
             f"udpin:127.0.0.1:{self.port}", self.pose, self.counters, gimballed=gimballed, clock=self.clock,
             config=config,
         )
-        self.ap = FakeAutopilot(self.port)
+        self.ap = FakeAutopilot(self.port, sysid=AP_SYSID, mav_type=mav.MAV_TYPE_FIXED_WING)
 
     def step(self) -> None:
         self.link.poll()
@@ -150,7 +76,7 @@ class Rig:
         """``n`` autopilot heartbeats 1 s apart on the fake clock, each handled before the next."""
         for k in range(n):
             if k:
-                self.clock.t += 1.0
+                self.clock.t_s += 1.0
             before = self.link.messages_rx
             self.ap.as_component(sysid, 1)
             self.ap.heartbeat()
@@ -198,9 +124,9 @@ def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
     q = quat_from_euler(0.0, 0.0, math.radians(30.0))
     dlat_per_m = 1.0 / 111_180.0
     for k in range(51):
-        ap.attitude(1000 + 20 * k, q)
+        ap.attitude(1000 * (1000 + 20 * k), q)
         if k % 2 == 0:
-            ap.position(1000 + 20 * k, LAT0 + 10.0 * 0.02 * k * dlat_per_m, LON0, ALT0 + 1.0, (10.0, 0.0, 0.0))
+            ap.position(1000 * (1000 + 20 * k), LAT0 + 10.0 * 0.02 * k * dlat_per_m, LON0, ALT0 + 1.0, (10.0, 0.0, 0.0))
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 51 and rig.pose.sizes()["position"] == 26)
     pose = rig.pose.pose_at(1_510_000)
     assert pose is not None
@@ -219,16 +145,17 @@ def test_survives_random_bytes_bad_crc_and_bad_values(rig):
     rng = np.random.default_rng(7)
     for _ in range(5):
         ap.raw(bytes(rng.integers(0, 256, size=120, dtype=np.uint8)))
-    good = ap.conn.mav.heartbeat_encode(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE)
-    bad = bytearray(good.pack(ap.conn.mav))
+    good = Heartbeat(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_PX4).to_message()
+    bad = bytearray(pack(good, codec=ap.conn.mav))
     bad[-3] ^= 0xFF  # a payload byte: the CRC no longer matches
     ap.raw(bytes(bad))
-    ap.attitude(2000, [math.nan, 0, 0, 0])
-    ap.attitude(2020, [0, 0, 0, 0])
-    ap.position(2000, 0.0, 0.0, 0.0)  # GPS dropout
-    ap.position(2040, 0.0, 0.0, 0.0, lat_raw=2**31 - 1, lon_raw=2**31 - 1)  # INT32_MAX sentinels
+    # hostile values the typed encoders refuse go as raw messages
+    ap.send(mav.MAVLink_attitude_quaternion_message(2000, math.nan, 0, 0, 0, 0, 0, 0, [0.0] * 4))
+    ap.attitude(2_020_000, [0, 0, 0, 0])
+    ap.position(2_000_000, 0.0, 0.0, 0.0)  # GPS dropout
+    ap.send(mav.MAVLink_global_position_int_message(2040, 2**31 - 1, 2**31 - 1, 0, 0, 0, 0, 0, 0))  # INT32_MAX sentinels
     for k in range(20):  # then good telemetry again (a junk datagram may swallow one)
-        ap.attitude(3000 + 20 * k, [1, 0, 0, 0])
+        ap.attitude(1000 * (3000 + 20 * k), [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] >= 18 and rig.counters["attitude_zero"] == 1)
     c = rig.counters
     assert c["mavlink_bad_data"] >= 2  # the CRC failure and at least one junk datagram
@@ -240,10 +167,10 @@ def test_survives_random_bytes_bad_crc_and_bad_values(rig):
 
 def test_lost_after_heartbeat_timeout_then_recovers_and_rerequests(rig):
     rig.connect()
-    rig.clock.t += 4.9
+    rig.clock.t_s += 4.9
     rig.link.tick()
     assert rig.link.state == LINK_CONNECTED
-    rig.clock.t += 0.2  # 5.1 s without a heartbeat
+    rig.clock.t_s += 0.2  # 5.1 s without a heartbeat
     rig.link.tick()
     assert rig.link.state == LINK_LOST and rig.counters["autopilot_lost"] == 1
     assert rig.link.status().rates_confirmed == ()
@@ -261,9 +188,9 @@ def test_rate_request_retried_until_accepted_and_refusal_counted(rig):
     ap.results[33] = [mav.MAV_RESULT_DENIED]
     rig.heartbeats(3)
     assert rig.drive(lambda: len(ap.commands) == 1)
-    rig.clock.t += 1.01
+    rig.clock.t_s += 1.01
     assert rig.drive(lambda: len(ap.commands) == 2)
-    rig.clock.t += 1.01
+    rig.clock.t_s += 1.01
     assert rig.drive(lambda: 31 in rig.link.rates_confirmed and 33 in rig.link.rates_refused)
     assert [(mid, conf) for mid, _, conf in ap.commands] == [(31, 0), (31, 1), (31, 2), (33, 0)]
     assert rig.counters["rate_request_refused"] == 1
@@ -275,7 +202,7 @@ def test_ack_for_another_requester_is_ignored(rig):
     ap.results[31] = [None]
     rig.heartbeats(3)
     assert rig.drive(lambda: len(ap.commands) == 1)
-    ap.conn.mav.command_ack_send(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED, 0, 0, 255, 190)  # for a GCS
+    ap.send(command_ack_message(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED, 255, 190))  # for a GCS
     rig.drive(lambda: False, timeout_s=0.2)
     assert rig.link.rates_confirmed == set() and rig.link.status().rates_pending == (31, 33)
 
@@ -283,14 +210,14 @@ def test_ack_for_another_requester_is_ignored(rig):
 def test_timesync_maps_local_clock_to_autopilot_boot_clock(rig):
     rig.connect()
     for k in range(4):
-        rig.clock.t += 1.0
+        rig.clock.t_s += 1.0
         assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
     assert rig.link.status().clock_synced
     now_ns = time.monotonic_ns()
     truth_us = (now_ns - rig.ap.boot_ns) / 1000
     assert abs(rig.link.to_boot_us(now_ns) - truth_us) < TIMESYNC_TOL_US
     # the autopilot's own request is answered with our time and its ts1 mirrored
-    rig.ap.conn.mav.timesync_send(0, 123_456_789)
+    rig.ap.send(Timesync(0, 123_456_789))
     assert rig.drive(lambda: any(m.ts1 == 123_456_789 for m in rig.ap.got("TIMESYNC")))
     reply = [m for m in rig.ap.got("TIMESYNC") if m.ts1 == 123_456_789][0]
     assert abs(reply.tc1 - time.monotonic_ns()) < 1_000_000_000
@@ -299,12 +226,12 @@ def test_timesync_maps_local_clock_to_autopilot_boot_clock(rig):
 def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
     rig.connect()
     for k in range(3):
-        rig.clock.t += 1.0
+        rig.clock.t_s += 1.0
         assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
     n_before = len(rig.ap.commands)
-    rig.ap.attitude(60_000, [1, 0, 0, 0])
+    rig.ap.attitude(60_000_000, [1, 0, 0, 0])
     for t_ms in (800, 820, 840):  # time_boot_ms went back, three samples agree: the autopilot rebooted
-        rig.ap.attitude(t_ms, [1, 0, 0, 0])
+        rig.ap.attitude(1000 * t_ms, [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.reboots == 1 and len(rig.ap.commands) == n_before + 2)
     assert rig.counters["reboot"] == 1
     assert rig.pose.sizes()["attitude"] == 1
@@ -321,9 +248,9 @@ def test_other_systems_and_non_autopilot_heartbeats_are_ignored(rig):
     assert rig.link.state == LINK_WAITING and rig.link.autopilot_sysid is None
     rig.connect()
     ap.as_component(42, 1)  # another vehicle on the same link
-    ap.attitude(5000, [1, 0, 0, 0])
+    ap.attitude(5_000_000, [1, 0, 0, 0])
     ap.as_component(AP_SYSID, 1)
-    ap.attitude(5020, [1, 0, 0, 0])
+    ap.attitude(5_020_000, [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
     rig.drive(lambda: False, timeout_s=0.1)
     assert rig.pose.sizes()["attitude"] == 1 and rig.link.autopilot_sysid == AP_SYSID
@@ -336,16 +263,12 @@ def test_gimbal_status_reaches_the_pose_buffer():
         assert (285, 20_000) in [(mid, us) for mid, us, _ in r.ap.commands]  # 50 Hz: a sample within 20 ms of a frame
         q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
         for k in range(3):
-            r.ap.conn.mav.gimbal_device_attitude_status_send(
-                0, 0, 1000 + 100 * k, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [float(c) for c in q_g],
-                math.nan, math.nan, math.nan, 0, math.nan, math.nan, 0,
-            )
+            r.ap.send(GimbalDeviceAttitudeStatus(1000 * (1000 + 100 * k), tuple(q_g),
+                                                 mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=0))
         # a separate gimbal component: its clock is unknown until TIMESYNC converged
         r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
-        r.ap.conn.mav.gimbal_device_attitude_status_send(
-            0, 0, 77, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [1.0, 0.0, 0.0, 0.0],
-            math.nan, math.nan, math.nan, 0, math.nan, math.nan, 0,
-        )
+        r.ap.send(GimbalDeviceAttitudeStatus(77_000, (1.0, 0.0, 0.0, 0.0), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
+                                             gimbal_device_id=0))
         assert r.drive(lambda: r.pose.sizes()["gimbal"] == 3 and r.counters["gimbal_clock_unsynced"] == 1)
         for t in (1000, 1050, 1100, 1150, 1200):
             r.pose.add_attitude(t * 1000, quat_from_euler(0.0, 0.0, math.radians(90.0)))
@@ -366,11 +289,9 @@ def test_body_rates_and_gimbal_rates_reach_the_pose_buffer_for_extrapolation():
         w_frd = np.array([0.0, 0.0, 0.5])  # yawing right at 0.5 rad/s
         w_earth = np.array([0.0, 0.2, 0.0])  # gimbal pitching up at 0.2 rad/s about east
         q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
-        r.ap.attitude(1000, [1, 0, 0, 0], w_frd)
-        r.ap.conn.mav.gimbal_device_attitude_status_send(
-            0, 0, 1000, mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, [float(c) for c in q_g],
-            *[float(c) for c in w_earth], 0, math.nan, math.nan, 0,
-        )
+        r.ap.attitude(1_000_000, [1, 0, 0, 0], w_frd)
+        r.ap.send(GimbalDeviceAttitudeStatus(1_000_000, tuple(q_g), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+                                             tuple(w_earth), gimbal_device_id=0))
         assert r.drive(lambda: r.pose.sizes()["attitude"] == 1 and r.pose.sizes()["gimbal"] == 1)
         r.pose.add_position_ned(1_000_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
         pose = r.pose.pose_at(1_020_000)  # 20 ms past every sample
@@ -449,15 +370,15 @@ def test_image_status_rejects_bad_fields_by_name(rig):
         ("/dev/ttyTHS1", MavlinkEndpoint("serial", "/dev/ttyTHS1", 115200)),
     ],
 )
-def test_parse_connection_forms(text, expected):
-    assert parse_connection(text) == expected
+def test_parse_endpoint_forms(text, expected):
+    assert parse_endpoint(text) == expected
 
 
 @pytest.mark.parametrize("text", ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1",
                                   "serial:/dev/ttyS1:fast", "serial:"])
-def test_parse_connection_rejects_with_field_name(text):
+def test_parse_endpoint_rejects_with_field_name(text):
     with pytest.raises(ConfigError, match="--mavlink"):
-        parse_connection(text)
+        parse_endpoint(text)
 
 
 def test_bad_rates_and_config_are_config_errors():
@@ -478,7 +399,7 @@ def test_unopenable_connection_is_counted_and_retried():
     assert counters["mavlink_open_failed"] == 1 and link.poll() == 0
     link.tick()  # too early to retry
     assert counters["mavlink_open_failed"] == 1
-    clock.t += 2.5
+    clock.t_s += 2.5
     link.tick()
     assert counters["mavlink_open_failed"] == 2 and link.state == LINK_WAITING
     link.close()

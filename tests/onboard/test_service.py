@@ -24,18 +24,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-os.environ["MAVLINK20"] = "1"  # the fake autopilot speaks MAVLink 2, like the daemon
-
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from bench.onboard import FakeAutopilot, SyntheticScene, free_tcp_port, free_udp_port  # noqa: E402
+from bench.onboard import SyntheticScene  # noqa: E402
+from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
 from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
 from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
 from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
-from tests.fakes import FakeClock  # noqa: E402
+from tests.fakes import FakeAutopilot, FakeClock  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 5.0  # upper bound of one in-process wait
@@ -315,7 +314,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         subs = [session.declare_subscriber(track_key(), lambda s: tracks.put(s.payload.to_bytes())),
                 session.declare_subscriber(status_key(), lambda s: statuses.put(s.payload.to_bytes()))]
         pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
-        ap = FakeAutopilot(mport, scene)
+        ap = FakeAutopilot(mport, scene=scene)
 
         got_tracks: list = []
         got_status: list = []
@@ -373,9 +372,10 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         # 2. bad input of every kind, each survived
         ap.junk()
         t = ap.boot_us()
-        ap.attitude(t + 1, q=(math.nan, 0.0, 0.0, 1.0))
+        ap.send(mav.MAVLink_attitude_quaternion_message((t + 1) // 1000, math.nan, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0,
+                                                        [0.0] * 4))  # refused by the typed encoder: sent raw
         ap.attitude(t + 2, q=(0.0, 0.0, 0.0, 0.0))
-        ap.position(t + 3, latlon_raw=(0, 0))  # GNSS dropout
+        ap.position(t + 3, 0.0, 0.0, 100.0)  # GNSS dropout
         last = state["last_payload"]
         pub.put(last)  # duplicate
         pub.put(scene.payload(0, seq=1, time_boot_us=scene.boot_us0 + 1))  # out of order (long ago, seq back)
