@@ -1,5 +1,9 @@
 """The simulator's observer as a MAVLink 2 autopilot (pymavlink, common dialect; thin adapter).
 
+HEARTBEAT, SYSTEM_TIME, #31, #33, #285, TIMESYNC and COMMAND_ACK are encoded by
+:mod:`onboard.io.mavlink_wire` (the daemon decodes them with the same module); the connection string
+follows its one grammar (:func:`onboard.io.mavlink_wire.parse_endpoint`).
+
 The observer is system 1, component 1 (``MAV_COMP_ID_AUTOPILOT1``) and emits, on the
 simulation's boot clock (the caller passes ``time_boot_us``; nothing here reads a wall clock
 for stamps, so lockstep and faster-than-real-time runs stay consistent):
@@ -97,8 +101,6 @@ from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
-from pymavlink import mavutil
-from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.frames import (
@@ -110,6 +112,19 @@ from onboard.core.frames import (
     quat_multiply,
     quat_normalize,
 )
+from onboard.io.mavlink_wire import (
+    AttitudeQuaternion,
+    GimbalDeviceAttitudeStatus,
+    GlobalPositionInt,
+    Heartbeat,
+    SystemTime,
+    Timesync,
+    command_ack_message,
+    connect,
+    mavlink2,
+    parse_endpoint,
+    time_boot_ms_from_us,
+)
 
 __all__ = [
     "DEFAULT_CONNECTION",
@@ -118,7 +133,6 @@ __all__ = [
     "VehicleState",
     "MavlinkVehicle",
     "open_mavlink2",
-    "parse_connection",
 ]
 
 log = logging.getLogger(__name__)
@@ -163,11 +177,6 @@ BATTERY_CURRENT_A = 12.0
 DEFAULT_PARAMS = (("MAV_SYS_ID", 1.0), ("MAV_COMP_ID", 1.0), ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
                   ("BAT_N_CELLS", float(BATTERY_CELLS)), ("BAT_CAPACITY", 5000.0), ("SIM_FRAME_RATE", 30.0))
 
-#: TIMESYNC's target_system/target_component are extension fields of the current spec; the
-#: common.xml shipped with some pymavlink releases (2.4.50) predates them.  Without them the
-#: response carries only tc1/ts1, which is all the offset estimate needs.
-_TIMESYNC_HAS_TARGET = "target_system" in mavlink2.MAVLink_timesync_message.fieldnames
-
 _ACK_COUNTER = {
     mavlink2.MAV_RESULT_ACCEPTED: "ack_accepted",
     mavlink2.MAV_RESULT_DENIED: "ack_denied",
@@ -197,41 +206,9 @@ class MavlinkLinkError(IrtrackError):
 # --------------------------------------------------------------------------- connection
 
 
-def parse_connection(connection: str) -> tuple[str, str | None, int | None]:
-    """Split a pymavlink connection string into ``(kind, host, port)``; validates it.
-
-    Accepted: ``udpin:HOST:PORT``, ``udpout:HOST:PORT``, ``udp:HOST:PORT`` (= udpin),
-    ``udpbcast:HOST:PORT``, ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``, and serial devices
-    ``/dev/...`` (optionally ``,BAUD``) with host and port None.
-    """
-    if not isinstance(connection, str) or not connection:
-        raise MavlinkConfigError(f"--mavlink: expected a pymavlink connection string, got {connection!r}")
-    if connection.startswith("/dev/") or connection.upper().startswith("COM"):
-        return "serial", None, None
-    kind, sep, rest = connection.partition(":")
-    if not sep or kind not in ("udpin", "udpout", "udp", "udpbcast", "tcp", "tcpin"):
-        raise MavlinkConfigError(
-            f"--mavlink {connection!r}: expected udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT,"
-            " tcpin:HOST:PORT or a /dev/ serial device"
-        )
-    host, sep, port_text = rest.rpartition(":")
-    if not sep or not host:
-        raise MavlinkConfigError(f"--mavlink {connection!r}: expected {kind}:HOST:PORT")
-    try:
-        port = int(port_text)
-    except ValueError:
-        raise MavlinkConfigError(f"--mavlink {connection!r}: port {port_text!r} is not a number") from None
-    in_kind = kind in ("udpin", "udp", "tcpin")
-    if not (0 if in_kind else 1) <= port <= 65535:
-        raise MavlinkConfigError(f"--mavlink {connection!r}: port {port} out of range")
-    return ("udpin" if kind == "udp" else kind), host, port
-
-
 def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
     """pymavlink binds with SO_REUSEADDR, which lets a second UDP socket share a busy port on
     Linux and hides the clash; probe with a plain bind first so "port in use" is an error."""
-    if port == 0:
-        return
     stype = socket.SOCK_DGRAM if kind == "udpin" else socket.SOCK_STREAM
     try:
         infos = socket.getaddrinfo(host, port, 0, stype)
@@ -251,25 +228,22 @@ def open_mavlink2(connection: str, sysid: int, compid: int):
     """Open ``connection`` with pymavlink, speaking MAVLink 2 / common whatever the environment.
 
     pymavlink picks its dialect and wire version from process-wide environment variables
-    (``MAVLINK20``, ``MAVLINK_DIALECT``); instead of setting them for everybody, the
-    connection's codec is replaced by a MAVLink 2 common one and version auto-switching is
-    turned off.  Returns the pymavlink ``mavfile``.
+    (``MAVLINK20``, ``MAVLINK_DIALECT``); instead of setting them for everybody, the connection
+    speaks MAVLink 2 common by :func:`onboard.io.mavlink_wire.connect`.  Returns the pymavlink
+    ``mavfile``.  A malformed string is a :class:`MavlinkConfigError` naming ``--mavlink``.
     """
-    kind, host, port = parse_connection(connection)
-    if kind in ("udpin", "tcpin"):
-        _probe_bind(kind, host, port, connection)
     try:
-        conn = mavutil.mavlink_connection(
-            connection, source_system=sysid, source_component=compid, autoreconnect=False, retries=0
-        )
+        ep = parse_endpoint(connection, "--mavlink")
+    except ConfigError as exc:
+        raise MavlinkConfigError(str(exc)) from None
+    if ep.listens:
+        _probe_bind(ep.kind, ep.host, ep.port, connection)
+    try:
+        conn = connect(ep, sysid, compid, autoreconnect=False, retries=0)
     except (OSError, ValueError) as exc:
         raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {getattr(exc, 'strerror', None) or exc}") from None
     except Exception as exc:  # noqa: BLE001 - pyserial and friends raise their own types
         raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {exc}") from None
-    conn.mav = mavlink2.MAVLink(conn, srcSystem=sysid, srcComponent=compid)
-    conn.mav.robust_parsing = True
-    conn.WIRE_PROTOCOL_VERSION = "2.0"
-    conn.first_byte = False  # no auto-switch (it would rewrite os.environ)
     return conn
 
 
@@ -530,27 +504,15 @@ class MavlinkVehicle:
             return 0
         try:
             if msg_id == MSG_HEARTBEAT:
-                mav.heartbeat_send(
-                    mavlink2.MAV_TYPE_QUADROTOR,
-                    mavlink2.MAV_AUTOPILOT_GENERIC,
-                    _BASE_MODE,
-                    0,
-                    mavlink2.MAV_STATE_ACTIVE,
-                )
+                mav.send(Heartbeat(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, _BASE_MODE).to_message())
             elif msg_id == MSG_SYSTEM_TIME:
-                mav.system_time_send(self._unix_at_boot_us + now, _time_boot_ms(now))
+                mav.send(SystemTime(self._unix_at_boot_us + now, now).to_message())
             elif msg_id == MSG_ATTITUDE_QUATERNION:
-                w, x, y, z = state.q_ned_from_body
-                p, q, r = state.body_rates_radps
-                mav.attitude_quaternion_send(_time_boot_ms(state.time_boot_us), w, x, y, z, p, q, r, (0.0, 0.0, 0.0, 0.0))
+                mav.send(AttitudeQuaternion(state.time_boot_us, state.q_ned_from_body, state.body_rates_radps).to_message())
             elif msg_id == MSG_GLOBAL_POSITION_INT:
-                mav.global_position_int_send(*self._global_position_int_fields(state))
+                mav.send(self._global_position_int(state).to_message())
             elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
-                flags, q, delta_yaw_rad = self._gimbal_fields(state)
-                nan = math.nan
-                mav.gimbal_device_attitude_status_send(
-                    0, 0, _time_boot_ms(state.time_boot_us), flags, q, nan, nan, nan, 0, delta_yaw_rad, nan, 1
-                )
+                mav.send(self._gimbal_status(state).to_message())
             elif not self._send_gcs_stream(msg_id, mav, now, state):  # pragma: no cover - streams fixed at construction
                 return 0
         except OSError as exc:
@@ -581,7 +543,8 @@ class MavlinkVehicle:
                                     round(pct / BATTERY_DRAIN_PCT_PER_S), mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
                                     [0, 0, 0, 0], 0, 0)
         elif msg_id == MSG_GPS_RAW_INT:
-            _, lat, lon, alt_mm, _, vx, vy, _, _ = self._global_position_int_fields(state)
+            gpi = self._global_position_int(state).to_message()  # the #33 position, quantised alike
+            lat, lon, alt_mm, vx, vy = gpi.lat, gpi.lon, gpi.alt, gpi.vx, gpi.vy
             vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
             cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
             mav.gps_raw_int_send(self._unix_at_boot_us + state.time_boot_us, mavlink2.GPS_FIX_TYPE_3D_FIX, lat, lon,
@@ -589,7 +552,7 @@ class MavlinkVehicle:
         elif msg_id == MSG_ATTITUDE:
             roll, pitch, yaw = (float(a) for a in euler_from_quat(np.asarray(state.q_ned_from_body)))
             p, q, r = state.body_rates_radps
-            mav.attitude_send(_time_boot_ms(state.time_boot_us), roll, pitch, yaw, p, q, r)
+            mav.attitude_send(time_boot_ms_from_us(state.time_boot_us), roll, pitch, yaw, p, q, r)
         elif msg_id == MSG_HOME_POSITION:
             h = self._home
             mav.home_position_send(round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0),
@@ -601,37 +564,29 @@ class MavlinkVehicle:
             return False
         return True
 
-    def _gimbal_fields(self, s: VehicleState) -> tuple[int, list[float], float]:
-        """(flags, q, delta_yaw_rad) of GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame."""
+    def _gimbal_status(self, s: VehicleState) -> GimbalDeviceAttitudeStatus:
+        """GIMBAL_DEVICE_ATTITUDE_STATUS for the configured frame (module docstring); rates unknown, device 1."""
         _, _, yaw_rad = euler_from_quat(np.asarray(s.q_ned_from_body))
         yaw_rad = float(yaw_rad)
         if self.gimbal_yaw_frame == "earth":
-            return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, list(s.q_ned_from_gimbal), yaw_rad
-        q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
-        q_vehicle_from_gimbal = quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal)))
-        return mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, [float(c) for c in q_vehicle_from_gimbal], yaw_rad
-
-    def _global_position_int_fields(self, s: VehicleState) -> tuple:
-        v_cmps = []
-        for name, v in zip(("vx", "vy", "vz"), s.v_ned_mps):
-            c = round(v * 100.0)
-            if abs(c) > _INT16_MAX:
-                self._log_limited("velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v)
-                c = _INT16_MAX if c > 0 else -_INT16_MAX
-            v_cmps.append(c)
-        if math.isnan(s.heading_rad):
-            hdg = _UINT16_MAX
+            flags, q = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, s.q_ned_from_gimbal
         else:
-            hdg = round(math.degrees(s.heading_rad) % 360.0 * 100.0) % 36000
-        return (
-            _time_boot_ms(s.time_boot_us),
-            round(s.lat_deg * 1e7),
-            round(s.lon_deg * 1e7),
-            round(s.alt_amsl_m * 1000.0),
-            round(s.alt_rel_m * 1000.0),
-            *v_cmps,
-            hdg,
-        )
+            q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
+            q = tuple(float(c) for c in quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal))))
+            flags = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
+        return GimbalDeviceAttitudeStatus(s.time_boot_us, q, flags, delta_yaw_rad=yaw_rad, gimbal_device_id=1)
+
+    def _global_position_int(self, s: VehicleState) -> GlobalPositionInt:
+        """GLOBAL_POSITION_INT of the state, each velocity component saturated to the wire's int16 cm/s (logged)."""
+        v_lim = _INT16_MAX / 100.0
+        v_sat = []
+        for name, v in zip(("vx", "vy", "vz"), s.v_ned_mps):
+            if abs(round(v * 100.0)) > _INT16_MAX:
+                self._log_limited("velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v)
+                v = v_lim if v > 0 else -v_lim
+            v_sat.append(v)
+        return GlobalPositionInt(s.time_boot_us, s.lat_deg, s.lon_deg, s.alt_amsl_m, s.alt_rel_m, tuple(v_sat),
+                                 s.heading_rad)
 
     # -- receiving ------------------------------------------------------------
 
@@ -672,10 +627,7 @@ class MavlinkVehicle:
             return 0
         if getattr(msg, "target_system", 0) not in (0, self.sysid):
             return 0
-        if _TIMESYNC_HAS_TARGET:
-            self._conn.mav.timesync_send(self._now_us * 1000, msg.ts1, msg.get_srcSystem(), msg.get_srcComponent())
-        else:
-            self._conn.mav.timesync_send(self._now_us * 1000, msg.ts1)
+        self._conn.mav.send(Timesync(self._now_us * 1000, msg.ts1, msg.get_srcSystem(), msg.get_srcComponent()).to_message())
         self.counters["tx_111"] += 1
         return 1
 
@@ -736,7 +688,7 @@ class MavlinkVehicle:
             result = self._request_message(float(MSG_HOME_POSITION))
         else:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
-        self._conn.mav.command_ack_send(cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent())
+        self._conn.mav.send(command_ack_message(cmd, result, msg.get_srcSystem(), msg.get_srcComponent()))
         self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
         return 1
 
@@ -778,8 +730,3 @@ class MavlinkVehicle:
         if t - self._last_log.get(reason, -math.inf) >= _LOG_EVERY_S:
             self._last_log[reason] = t
             log.warning(fmt, *args)
-
-
-def _time_boot_ms(time_boot_us: int) -> int:
-    """MAVLink time_boot_ms: uint32 milliseconds, wrapping after ~49.7 days."""
-    return (time_boot_us // 1000) % 2**32

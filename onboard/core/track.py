@@ -1,9 +1,10 @@
-"""The ``Track`` noun, its wire schema ``irtrack.track/2``, the status JSON and the MAVLink mapping.
+"""The ``Track`` noun, its wire schema ``irtrack.track/2`` and the status JSON.
 
-Pure: no zenoh, no pymavlink, no clocks.  The pipeline builds one :class:`Track` per processed frame;
-the service serialises it with :func:`track_to_json` onto ``irtrack/<vehicle>/track`` and maps it
-onto CAMERA_TRACKING_IMAGE_STATUS (#275) / CAMERA_TRACKING_GEO_STATUS (#276) with
-:func:`image_status_fields` / :func:`geo_status_fields`.
+Pure: no zenoh, no pymavlink, no clocks, no message of any protocol.  The pipeline builds one
+:class:`Track` per processed frame; the service serialises it with :func:`track_to_json` onto
+``irtrack/<vehicle>/track``; :mod:`onboard.io.mavlink_wire` maps it onto CAMERA_TRACKING_IMAGE_STATUS
+(#275) / CAMERA_TRACKING_GEO_STATUS (#276) (``image_status_fields`` / ``geo_status_fields``, with the
+accuracy and heading formulas).
 
 Schema ``irtrack.track/2`` (one UTF-8 JSON object per processed frame)
 ---------------------------------------------------------------------
@@ -74,13 +75,6 @@ Near the optical axis this is ``s_el = sqrt((s_px / f)^2 + s_w^2 + s_b^2)`` and 
 (capped at 180 deg).  Camera position noise does not enter a direction.
 
 Schema ``irtrack.status/1`` is built by :func:`build_status` (see its docstring).
-
-MAVLink accuracies (#276) are 1-sigma, root-sum-square over axes as PX4 reports ``eph``/``evh``:
-``h_acc = sqrt(C_nn + C_ee)``, ``v_acc = sqrt(C_dd)``, ``vel_acc = sqrt(trace C_v)``; the heading
-``hdg = atan2(v_e, v_n)`` with ``hdg_acc = sqrt(J C_v,ne J^T)``, ``J = (-v_e, v_n) / |v_h|^2``
-(first-order propagation), NaN when the horizontal speed is below twice its own sigma.  ``dist`` is
-the estimate's camera-to-target range.  #276 carries only observable positions unless asked
-(:func:`geo_status_fields` ``observable_only``): a ground station cannot read a quality flag.
 """
 
 from __future__ import annotations
@@ -108,8 +102,6 @@ __all__ = [
     "track_to_json",
     "track_to_bytes",
     "track_from_json",
-    "image_status_fields",
-    "geo_status_fields",
     "RollingStats",
     "build_status",
 ]
@@ -118,15 +110,6 @@ TRACK_SCHEMA = "irtrack.track/2"
 READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same keys minus the /2 additions
 STATUS_SCHEMA = "irtrack.status/1"
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
-
-# MAVLink CAMERA_TRACKING_* enums (common.xml); numbers, so this module needs no pymavlink
-CAMERA_TRACKING_STATUS_FLAGS_IDLE = 0
-CAMERA_TRACKING_STATUS_FLAGS_ACTIVE = 1
-CAMERA_TRACKING_STATUS_FLAGS_COASTING = 8
-CAMERA_TRACKING_MODE_NONE = 0
-CAMERA_TRACKING_MODE_POINT = 1
-CAMERA_TRACKING_MODE_RECTANGLE = 2
-CAMERA_TRACKING_TARGET_DATA_IN_STATUS = 4
 
 _POSITION_FIELDS = ("lat_deg", "lon_deg", "alt_m", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
 _U64_MAX = 2**64 - 1
@@ -491,107 +474,6 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         residual_rms_norm=obj.get("residual_rms_norm"),
         window_frames=obj["window_frames"],
         model=obj.get("model"),
-    )
-
-
-# --------------------------------------------------------------------------- MAVLink mapping (pure)
-
-
-def _unit(x: float, size: float) -> float:
-    return min(max(x / size, 0.0), 1.0)
-
-
-def image_status_fields(track: Track | None, width_px: int, height_px: int, mode: int | None = None,
-                        radius: float = math.nan) -> dict[str, Any]:
-    """Keyword arguments of CAMERA_TRACKING_IMAGE_STATUS (#275) for ``track`` (None = idle).
-
-    Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
-    [0, 1].  Status ACTIVE while tracking, ACTIVE | COASTING while coasting, IDLE otherwise.
-    ``mode`` (CAMERA_TRACKING_MODE): POINT fills ``point_x/point_y`` (and ``radius``: normalised to
-    the image width; NaN = half the box's larger side, or unknown), RECTANGLE fills ``rec_*`` from the
-    box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
-    centre.  A mode whose data the track lacks (RECTANGLE without a box) falls back to the other one;
-    NONE without either.
-    """
-    nan = math.nan
-    out = dict(
-        tracking_status=CAMERA_TRACKING_STATUS_FLAGS_IDLE,
-        tracking_mode=CAMERA_TRACKING_MODE_NONE,
-        target_data=CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
-        point_x=nan, point_y=nan, radius=nan,
-        rec_top_x=nan, rec_top_y=nan, rec_bottom_x=nan, rec_bottom_y=nan,
-    )
-    if track is None or track.state in ("searching", "lost"):
-        return out
-    out["tracking_status"] = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
-    if track.state == "coasting":
-        out["tracking_status"] |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
-    if mode is None or mode == CAMERA_TRACKING_MODE_NONE:
-        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_POINT
-    if mode == CAMERA_TRACKING_MODE_RECTANGLE and track.bbox is None:
-        mode = CAMERA_TRACKING_MODE_POINT
-    if mode == CAMERA_TRACKING_MODE_POINT and track.u_px is None:
-        mode = CAMERA_TRACKING_MODE_RECTANGLE if track.bbox is not None else CAMERA_TRACKING_MODE_NONE
-    if mode == CAMERA_TRACKING_MODE_POINT:
-        out["tracking_mode"] = CAMERA_TRACKING_MODE_POINT
-        out["point_x"] = _unit(track.u_px, width_px)
-        out["point_y"] = _unit(track.v_px, height_px)
-        if math.isfinite(radius):
-            out["radius"] = min(max(float(radius), 0.0), 1.0)
-        elif track.bbox is not None:
-            out["radius"] = _unit(max(track.bbox[2], track.bbox[3]) / 2.0, width_px)
-    elif mode == CAMERA_TRACKING_MODE_RECTANGLE:
-        x, y, w, h = track.bbox
-        out["tracking_mode"] = CAMERA_TRACKING_MODE_RECTANGLE
-        out["rec_top_x"], out["rec_top_y"] = _unit(x, width_px), _unit(y, height_px)
-        out["rec_bottom_x"], out["rec_bottom_y"] = _unit(x + w, width_px), _unit(y + h, height_px)
-    return out
-
-
-def geo_status_fields(track: Track | None, observable_only: bool = True) -> dict[str, Any] | None:
-    """Keyword arguments of ``MavlinkLink.send_tracking_geo_status``, or None when nothing is to be sent.
-
-    Nothing without a position, nor (``observable_only``, the default) for a position the estimator
-    does not call observable: a ground station shows #276 as a fix and cannot read a quality flag.
-    Accuracies are 1-sigma root-sum-squares of the estimate's covariance (module docstring);
-    ``dist_m`` its range; unknown values are NaN.
-    """
-    if track is None or not track.has_position or (observable_only and not track.observable):
-        return None
-    C = track.cov_p_ned_m2
-    v = np.asarray(track.v_ned_mps)
-    nan = math.nan
-    vel_acc = hdg = hdg_acc = nan
-    speed_h = float(math.hypot(v[0], v[1]))
-    if speed_h > 0:
-        hdg = math.atan2(v[1], v[0])
-    if track.cov_v_ned_m2ps2 is not None:
-        Cv = track.cov_v_ned_m2ps2
-        vel_acc = math.sqrt(max(float(np.trace(Cv)), 0.0))
-        if speed_h > 0:
-            J = np.array([-v[1], v[0]]) / speed_h**2
-            hdg_acc = math.sqrt(max(float(J @ Cv[:2, :2] @ J), 0.0))
-            u = v[:2] / speed_h
-            sigma_speed = math.sqrt(max(float(u @ Cv[:2, :2] @ u), 0.0))
-            if speed_h < 2.0 * sigma_speed or hdg_acc > math.pi:
-                hdg = hdg_acc = nan
-    tracking_status = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
-    if track.state == "coasting":
-        tracking_status |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
-    return dict(
-        lat_deg=track.lat_deg,
-        lon_deg=track.lon_deg,
-        alt_m=track.alt_m,
-        h_acc_m=math.sqrt(max(float(C[0, 0] + C[1, 1]), 0.0)),
-        v_acc_m=math.sqrt(max(float(C[2, 2]), 0.0)),
-        vel_n_mps=float(v[0]),
-        vel_e_mps=float(v[1]),
-        vel_d_mps=float(v[2]),
-        vel_acc_mps=vel_acc,
-        dist_m=track.range_m,
-        hdg_rad=hdg,
-        hdg_acc_rad=hdg_acc,
-        tracking_status=tracking_status,
     )
 
 

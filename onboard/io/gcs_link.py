@@ -5,15 +5,17 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
 * ``GcsLink(endpoints, component_id)`` opens one pymavlink connection per endpoint
   (``udpout:HOST:PORT`` -- send to a ground station listening there, QGC's default is UDP 14550 --,
   ``udpin:HOST:PORT``, ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``; parsed by
-  :func:`onboard.io.mavlink_link.parse_connection`), MAVLink 2, common dialect, with
+  :func:`onboard.io.mavlink_wire.parse_endpoint`), MAVLink 2, common dialect
+  (:func:`onboard.io.mavlink_wire.connect`), with
   ``srcComponent = component_id`` and ``srcSystem`` the autopilot's system id once known
   (:meth:`GcsLink.set_system_id`; nothing is sent before).
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand`; it remembers on which endpoint each requester
   (system, component) spoke last, so replies go back there.
-* :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` with pymavlink's
-  ``<msg>_send(**fields)``: to the requester's endpoint when ``reply_to`` is set and known, else to
+* :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` as the message of that
+  name (:func:`onboard.io.mavlink_wire.message_from_fields`): to the requester's endpoint when
+  ``reply_to`` is set and known, else to
   every endpoint.  Send errors are counted (``gcs_tx_error``), never raised.
 
 Why a separate component and separate endpoints, not the autopilot link's component 191: QGC handles
@@ -31,7 +33,7 @@ from typing import Sequence
 
 from onboard.io.camera_protocol import CameraCommand, Outgoing
 from onboard.core.errors import ConfigError, IrtrackError
-from onboard.io.mavlink_link import parse_connection
+from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
 __all__ = ["GcsLink", "GcsLinkError"]
 
@@ -49,7 +51,7 @@ class GcsLink:
         if isinstance(component_id, bool) or not isinstance(component_id, int) or not 1 <= component_id <= 255:
             raise ConfigError(f"gcs.component_id: expected an integer in 1..255, got {component_id!r}")
         self.endpoints = tuple(endpoints)
-        parsed = [parse_connection(ep, "gcs.endpoints") for ep in self.endpoints]
+        parsed = [parse_endpoint(ep, "gcs.endpoints") for ep in self.endpoints]
         self.component_id = component_id
         self.system_id: int | None = None
         self._counter = counter
@@ -65,23 +67,10 @@ class GcsLink:
             raise
 
     def _open(self, ep):
-        from pymavlink import mavutil
-        from pymavlink.dialects.v20 import common as mavlink2
-
-        kwargs = {"source_system": 1, "source_component": self.component_id}
-        if ep.kind == "serial":
-            kwargs["baud"] = ep.baud
-        else:
-            kwargs.update(autoreconnect=True)
         try:
-            conn = mavutil.mavlink_connection(ep.device, **kwargs)
+            return connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
         except Exception as exc:  # noqa: BLE001 - socket and serial errors of every kind
             raise GcsLinkError(f"gcs.endpoints: cannot open {ep.device!r}: {getattr(exc, 'strerror', None) or exc}") from None
-        conn.mav = mavlink2.MAVLink(conn, srcSystem=1, srcComponent=self.component_id)
-        conn.mav.robust_parsing = True
-        conn.WIRE_PROTOCOL_VERSION = "2.0"
-        conn.first_byte = False  # no dialect auto-switch (it rewrites os.environ)
-        return conn
 
     def set_system_id(self, sysid: int) -> None:
         """Speak as ``sysid`` (the autopilot's system id) from now on."""
@@ -141,7 +130,7 @@ class GcsLink:
         for idx in targets:
             conn = self._conns[idx]
             try:
-                getattr(conn.mav, f"{out.msg}_send")(**out.fields)
+                conn.mav.send(message_from_fields(out.msg, out.fields))
                 n += 1
             except Exception as exc:  # noqa: BLE001 - a send failure costs this message only
                 self._count("gcs_tx_error", f"{out.msg} on {self.endpoints[idx]}: {type(exc).__name__}: {exc}")

@@ -6,53 +6,49 @@ from __future__ import annotations
 import math
 
 import pytest
-from pymavlink.dialects.v20 import common as mav
 
-from onboard.io.follow import FOLLOW_TARGET_CAP_POS, FOLLOW_TARGET_CAP_VEL, follow_target_fields
+from onboard.io.follow import FOLLOW_TARGET_CAP_POS, FOLLOW_TARGET_CAP_VEL, follow_target
+from onboard.io.mavlink_wire import FollowTarget, wire_roundtrip
 from tests.onboard.test_camera_protocol import _track
 
 ATOL_DEGE7 = 1  # rounding of lat/lon to 1e-7 deg
 ATOL_M = 1e-4  # float32 on the wire
 
 
-def _roundtrip(fields: dict):
-    codec = mav.MAVLink(None, srcSystem=1, srcComponent=191)
-    return mav.MAVLink(None).parse_char(codec.follow_target_encode(**fields).pack(codec))
-
-
 def test_observable_track_encodes_position_velocity_and_accuracies():
     tr = _track(observable=True)  # cov diag(4, 4, 1) m^2, v (1, 0, 0) m/s, time_boot_us 10
-    f = follow_target_fields(tr)
-    assert f["est_capabilities"] == FOLLOW_TARGET_CAP_POS | FOLLOW_TARGET_CAP_VEL == 3
-    assert f["timestamp"] == tr.time_boot_us // 1000
-    back = _roundtrip(f)
-    assert back.get_type() == "FOLLOW_TARGET"
+    target = follow_target(tr)
+    assert target.est_capabilities == FOLLOW_TARGET_CAP_POS | FOLLOW_TARGET_CAP_VEL == 3
+    back = wire_roundtrip(target.to_message())  # packed and parsed by pymavlink
+    assert back.get_type() == "FOLLOW_TARGET" and back.timestamp == tr.time_boot_us // 1000
     assert abs(back.lat - round(tr.lat_deg * 1e7)) <= ATOL_DEGE7 and abs(back.lon - round(tr.lon_deg * 1e7)) <= ATOL_DEGE7
     assert back.alt == pytest.approx(tr.alt_m, abs=ATOL_M)
     assert list(back.vel) == pytest.approx([1.0, 0.0, 0.0], abs=ATOL_M)
     assert list(back.position_cov) == pytest.approx([math.sqrt(8.0), 1.0, 0.0], abs=ATOL_M)  # eph = sqrt(4 + 4), epv
     assert list(back.attitude_q) == [1.0, 0.0, 0.0, 0.0] and list(back.acc) == [0.0, 0.0, 0.0]
+    decoded = FollowTarget.from_message(back)
+    assert decoded.h_acc_m == pytest.approx(math.sqrt(8.0), abs=ATOL_M) and decoded.v_acc_m == pytest.approx(1.0)
 
 
 def test_timestamp_is_the_capture_time_in_ms_on_the_boot_clock():
     tr = _track()
     tr2 = type(tr)(**{**{k: getattr(tr, k) for k in tr.__dataclass_fields__}, "time_boot_us": 123_456_789})
-    assert follow_target_fields(tr2)["timestamp"] == 123_456
+    assert follow_target(tr2).to_message().timestamp == 123_456
 
 
 @pytest.mark.parametrize("kw", [dict(observable=False), dict(position=False), dict(state="lost", position=False)])
 def test_nothing_without_an_observable_position(kw):
-    assert follow_target_fields(_track(**kw)) is None
-    assert follow_target_fields(None) is None
+    assert follow_target(_track(**kw)) is None
+    assert follow_target(None) is None
 
 
 
 class _FollowLink:
     def __init__(self) -> None:
-        self.sent: list[dict] = []
+        self.sent: list[FollowTarget] = []
 
-    def send_follow_target(self, fields: dict) -> bool:
-        self.sent.append(fields)
+    def send_follow_target(self, target: FollowTarget) -> bool:
+        self.sent.append(target)
         return True
 
 
@@ -79,7 +75,7 @@ def test_the_service_sends_follow_target_paced_and_only_for_observable_fresh_tra
     assert not svc.follow_step(t0 + 0.2)  # 2 Hz: not before 0.5 s
     assert svc.follow_step(t0 + 0.5) and len(svc.link.sent) == 2
     assert not svc.follow_step(t0 + 5.0)  # the track is stale (output.track_stale_s, 1 s)
-    assert svc.link.sent[0] == follow_target_fields(_track(observable=True))
+    assert svc.link.sent[0] == follow_target(_track(observable=True))
 
 
 def test_follow_target_is_off_by_default():

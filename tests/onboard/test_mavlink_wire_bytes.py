@@ -110,7 +110,7 @@ def test_vehicle_streams_are_byte_identical(gimbal_yaw_frame):
 def test_autopilot_link_output_is_byte_identical():
     from onboard.core.frames import CameraMount, GeodeticOrigin
     from onboard.core.pose import PoseBuffer, RejectCounter
-    from onboard.io.follow import follow_target_fields
+    from onboard.io.follow import follow_target
     from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig
     from tests.onboard.test_camera_protocol import _track
 
@@ -142,7 +142,7 @@ def test_autopilot_link_output_is_byte_identical():
         assert link.send_tracking_geo_status(47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5,
                                              dist_m=130.0, hdg_rad=0.3, hdg_acc_rad=0.05)
         assert link.send_tracking_geo_status(-33.9, 151.2, -10.0, 1.0, 2.0, math.nan, math.nan, math.nan, math.nan)
-        assert link.send_follow_target(follow_target_fields(_track(observable=True)))
+        assert link.send_follow_target(follow_target(_track(observable=True)))
     finally:
         link.close()
     _check("autopilot_link", writes)

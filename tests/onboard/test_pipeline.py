@@ -28,12 +28,11 @@ from onboard.core.track import (
     RollingStats,
     Track,
     build_status,
-    geo_status_fields,
-    image_status_fields,
     track_from_json,
     track_to_bytes,
     track_to_json,
 )
+from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
 
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
 GEO_TOL_DEG = 1e-9  # ~0.1 mm: the same conversion both ways

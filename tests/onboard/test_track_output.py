@@ -16,12 +16,12 @@ from onboard.core.track import (
     TRACK_SCHEMA,
     LineOfSight,
     Track,
-    geo_status_fields,
     line_of_sight_ned,
     track_from_json,
     track_to_bytes,
     track_to_json,
 )
+from onboard.io.mavlink_wire import geo_status_fields
 from onboard.app.watchdog import Watchdog
 from tests.onboard.test_pipeline import Rig
 
