@@ -30,16 +30,11 @@ import time
 
 import cv2
 
-from groundsim.app.cli import _realtime_priority, resolve_scenario_path
+from groundsim.app.cli import realtime_priority, resolve_scenario_path
 from groundsim.app.run import RateSpec, RunConfig, SimCore, run
+from groundsim.io.ports import free_tcp_port
 from groundsim.world.scenario import load_scenario
 from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
-
-
-def _free_port(kind=socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _load() -> str:
@@ -53,7 +48,7 @@ class _Receivers:
     """A zenoh subscriber (frames) and a UDP drain (MAVLink datagrams) on 127.0.0.1."""
 
     def __init__(self, vehicle: str = "uav1") -> None:
-        self.endpoint = f"tcp/127.0.0.1:{_free_port()}"
+        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
         self.session = open_session(ZenohSettings(listen=(self.endpoint,)))
         self.frames = 0
         self.sub = self.session.declare_subscriber(frame_key(vehicle), self._on_frame)
@@ -156,7 +151,7 @@ def main(argv=None) -> None:
         if "realtime" in modes:
             _realtime(sc, args.duration, rx, "normal priority")
             if args.rt_priority is not None:
-                _realtime_priority(args.rt_priority, True)
+                realtime_priority(args.rt_priority, True)
                 try:
                     _realtime(sc, args.duration, rx, f"SCHED_FIFO {args.rt_priority}")
                 finally:

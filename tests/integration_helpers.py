@@ -34,9 +34,9 @@ from pathlib import Path
 import numpy as np
 
 # the demo's own child environment, stop, log tail, end-of-run drain and zenoh teardown
-from groundsim.evaluation.demo import _child_env, _close_zenoh, _drain, _stop, _tail
+from groundsim.evaluation.demo import child_env, close_zenoh, drain_tracks, log_tail, stop_process
 
-__all__ = ["PairRun", "PairRunError", "run_pair", "stop_process", "sim_command_at_rate", "truth_arrays",
+__all__ = ["PairRun", "PairRunError", "run_pair", "sim_command_at_rate", "truth_arrays",
            "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
 
 REPO = Path(__file__).resolve().parents[1]
@@ -73,11 +73,6 @@ class PairRun:
 def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
     with open(log_path, "wb") as f:  # the child keeps its own descriptor
         return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
-
-
-def stop_process(proc: subprocess.Popen | None, name: str = "child process") -> int | None:
-    """SIGTERM, then SIGKILL after the demo's KILL_AFTER_S; the exit code (None if never started)."""
-    return _stop(proc, name)
 
 
 def sim_command_at_rate(plan, rate: str) -> list[str]:
@@ -128,7 +123,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
     duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
     plan = plan_demo(scenario, duration_s, seed, out, str(ONBOARD_CONFIG), nav_noise=nav_noise)
     factor = 1.0 if rate == "realtime" else float(rate)
-    env = _child_env()
+    env = child_env()
     logs = {"daemon": out / "onboard.log", "sim": out / "sim.log"}
     store = TrackStore()
     daemon = sim = session = None
@@ -144,28 +139,28 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
         while not store.ready.wait(0.1):
             if daemon.poll() is not None:
                 raise _DaemonExitedEarly(f"the onboard daemon exited with code {daemon.returncode} before it was ready:\n"
-                                   f"{_tail(logs['daemon'])}")
+                                   f"{log_tail(logs['daemon'])}")
             if time.monotonic() > t_ready:
                 raise PairRunError(f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
-                                   f"{_tail(logs['daemon'])}")
+                                   f"{log_tail(logs['daemon'])}")
         sim0 = time.monotonic()
         sim = _start(sim_command_at_rate(plan, rate), logs["sim"], env)
         deadline = sim0 + plan.duration_s / factor + SIM_SETUP_ALLOWANCE_S
         while sim.poll() is None:
             if daemon.poll() is not None:
                 raise PairRunError(f"the onboard daemon exited with code {daemon.returncode} during the run:\n"
-                                   f"{_tail(logs['daemon'])}")
+                                   f"{log_tail(logs['daemon'])}")
             if time.monotonic() > deadline:
                 raise PairRunError(f"the simulator still runs {SIM_SETUP_ALLOWANCE_S:g} s past its duration:\n"
-                                   f"{_tail(logs['sim'])}")
+                                   f"{log_tail(logs['sim'])}")
             time.sleep(0.1)
         run.sim_wall_s = time.monotonic() - sim0
         if sim.returncode != 0:
-            raise PairRunError(f"the simulator exited with code {sim.returncode}:\n{_tail(logs['sim'])}")
-        _drain(store)  # let the daemon finish the last frames
+            raise PairRunError(f"the simulator exited with code {sim.returncode}:\n{log_tail(logs['sim'])}")
+        drain_tracks(store)  # let the daemon finish the last frames
         time.sleep(0.1)
     finally:
-        _close_zenoh(subs, session)
+        close_zenoh(subs, session)
         run.exit_codes = {"sim": stop_process(sim, "simulator"), "daemon": stop_process(daemon, "onboard daemon")}
         run.wall_s = time.monotonic() - wall0
     run.tracks, run.status = store.snapshot()

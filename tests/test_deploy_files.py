@@ -20,7 +20,6 @@ import os
 import re
 import shlex
 import shutil
-import socket
 import subprocess
 import sys
 import threading
@@ -30,6 +29,8 @@ from pathlib import Path
 
 import pytest
 import yaml
+
+from groundsim.io.ports import free_tcp_port
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
@@ -553,12 +554,6 @@ def test_router_file_keys():
     assert get("adminspace/enabled") is False
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _await_delivery(pub_session, key: str, sub_session, payload: bytes) -> bool:
     got = threading.Event()
     seen: list[bytes] = []
@@ -583,9 +578,10 @@ def test_router_relays_daemon_simulator_and_ground(compose, container_config):
     """The stack on loopback: router from the shipped file, the daemon's and the simulator's
     sessions built from their shipped settings, a ground client; only ports are changed."""
     import zenoh
+
     from onboard.io.zenoh_session import ZenohSettings, build_config, frame_key, status_key
 
-    port = _free_port()
+    port = free_tcp_port()
     local = f"tcp/127.0.0.1:{port}"
     router_cfg = zenoh.Config.from_file(str(ROUTER_JSON5))
     router_cfg.insert_json5("listen/endpoints", json.dumps([local]))
@@ -677,6 +673,7 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
     only paths and ports replaced; a daemon-like peer publishes status, the ground client gets it
     over mutual TLS; without a client certificate the ground client is refused."""
     import zenoh
+
     from onboard.io.zenoh_session import ZenohSettings, build_config, status_key
 
     (script,) = _fenced_blocks("sh")
@@ -688,7 +685,7 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
     assert {p.name for p in tls_dir.iterdir()} >= {"ca.pem", "router.pem", "router.key", "ground.pem", "ground.key"}
 
     router_block, ground_block = _fenced_blocks("json5")[:2]
-    tls_port, tcp_port = _free_port(), _free_port()
+    tls_port, tcp_port = free_tcp_port(), free_tcp_port()
     router_text = (router_block.replace("/zenoh/tls/", f"{tls_dir}/")
                    .replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{tls_port}")
                    .replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{tcp_port}"))

@@ -49,9 +49,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundsim.evaluation.demo import TruthTail, daemon_command, free_port, plan_demo, sim_command
-from groundsim.evaluation.demo import _child_env, _tail
-from tests.integration_helpers import REPO, stop_process
+from groundsim.evaluation.demo import TruthTail, child_env, daemon_command, log_tail, plan_demo, sim_command, stop_process
+from groundsim.io.ports import free_udp_port
+from tests.integration_helpers import REPO
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(240)]
 
@@ -183,7 +183,7 @@ class QgcCamera:
 def _start(cmd: list[str], log_path: Path) -> subprocess.Popen:
     with open(log_path, "wb") as f:
         return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env=_child_env())
+                                env=child_env())
 
 
 def _get_interval(qgc: QgcCamera, alive) -> int | None:
@@ -209,13 +209,13 @@ def _contrast(luma: np.ndarray, x_norm: float, y_norm: float, r_px: int = VIDEO_
 
 
 def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
-    from groundsim.io.video_rx import UdpTsDecoder
+    from groundsim.io.video_rx import SdpRtpDecoder
 
     plan = plan_demo(SCENARIO, DURATION_S, 0, tmp_path, str(ONBOARD_SIM_CONFIG))
     W, H = plan.scenario.camera.intrinsics.width_px, plan.scenario.camera.intrinsics.height_px
-    gcs_port = free_port("udp")
+    gcs_port = free_udp_port()
     frames_seen: collections.deque = collections.deque(maxlen=120)  # (decoded_s, luma)
-    rx = UdpTsDecoder(lambda f: frames_seen.append((f.decoded_ns / 1e9, f.luma)))
+    rx = SdpRtpDecoder(lambda f: frames_seen.append((f.decoded_ns / 1e9, f.luma)))
     qgc = QgcCamera(gcs_port)
     tail = TruthTail(plan.truth_path)
     logs = {"daemon": tmp_path / "onboard.log", "sim": tmp_path / "sim.log"}
@@ -241,9 +241,9 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
             off_target.append(max((_contrast(luma, x + dx / W, y + dy / H) for luma in near), default=math.nan))
 
     def alive():
-        assert daemon.poll() is None, f"the daemon died (exit {daemon.returncode}):\n{_tail(logs['daemon'])}"
+        assert daemon.poll() is None, f"the daemon died (exit {daemon.returncode}):\n{log_tail(logs['daemon'])}"
         if sim is not None and sim.poll() not in (None, 0):
-            raise AssertionError(f"the simulator died (exit {sim.returncode}):\n{_tail(logs['sim'])}")
+            raise AssertionError(f"the simulator died (exit {sim.returncode}):\n{log_tail(logs['sim'])}")
         now = time.monotonic()
         while video_checks and now - video_checks[0][0] > VIDEO_WINDOW_S[1]:
             t, x, y = video_checks.pop(0)
@@ -252,7 +252,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
     def pump_until(pred, timeout_s, what):
         end = time.monotonic() + timeout_s
         while not pred():
-            assert time.monotonic() < end, f"timed out ({timeout_s:g} s) waiting for {what}:\n{_tail(logs['daemon'])}"
+            assert time.monotonic() < end, f"timed out ({timeout_s:g} s) waiting for {what}:\n{log_tail(logs['daemon'])}"
             alive()
             qgc.pump(0.05)
 
@@ -291,7 +291,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         assert qgc.wait_ack(qgc.send(MAV_CMD_REQUEST_MESSAGE, 269, 0), alive) == MAV_RESULT_ACCEPTED
         pump_until(lambda: qgc.since("VIDEO_STREAM_INFORMATION", t0), 2.0, "VIDEO_STREAM_INFORMATION")
         vsi = qgc.since("VIDEO_STREAM_INFORMATION", t0)[0][1]
-        assert vsi.type == 3 and vsi.uri == str(rx.port)  # MPEG_TS; QGC opens udp://0.0.0.0:<uri>
+        assert vsi.type == 1 and vsi.uri == str(rx.port)  # RTPUDP: QGC opens udp://0.0.0.0:<uri> as RTP H.264
         assert vsi.flags & 2 and vsi.encoding == 1 and (vsi.resolution_h, vsi.resolution_v) == (W, H)
 
         # 3. the simulator flies; frames reach the daemon (decoded video is the proof)
@@ -344,10 +344,10 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         # 7. the simulator flies to the end; the daemon is still up
         end = sim_t0 + plan.duration_s + 30.0
         while sim.poll() is None:
-            assert time.monotonic() < end, f"the simulator overran:\n{_tail(logs['sim'])}"
+            assert time.monotonic() < end, f"the simulator overran:\n{log_tail(logs['sim'])}"
             alive()
             qgc.pump(0.1)
-        assert sim.returncode == 0, f"the simulator failed (exit {sim.returncode}):\n{_tail(logs['sim'])}"
+        assert sim.returncode == 0, f"the simulator failed (exit {sim.returncode}):\n{log_tail(logs['sim'])}"
         qgc.pump(0.5)
         alive()
         video_checks_left = list(video_checks)
@@ -355,7 +355,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         codes = {"sim": stop_process(sim, "simulator"), "daemon": stop_process(daemon, "onboard daemon")}
         rx.stop()
         qgc.close()
-    assert codes["daemon"] == 0, f"the daemon exited {codes['daemon']} on SIGTERM:\n{_tail(logs['daemon'])}"
+    assert codes["daemon"] == 0, f"the daemon exited {codes['daemon']} on SIGTERM:\n{log_tail(logs['daemon'])}"
     for t, x, y in video_checks_left:  # the last ones, after the run
         _video_check(list(frames_seen), t, x, y)
 

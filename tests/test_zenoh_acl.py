@@ -19,13 +19,14 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import socket
 import subprocess
 import threading
 import time
 from pathlib import Path
 
 import pytest
+
+from groundsim.io.ports import free_tcp_port
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
@@ -45,12 +46,6 @@ pytestmark = [
     pytest.mark.timeout(120),
     pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command"),
 ]
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +112,7 @@ class Stack:
     def __init__(self, tls: Path, acl: bool = True) -> None:
         import zenoh
 
-        self.port = _free_port()
+        self.port = free_tcp_port()
         self.sessions = []
         self.sessions.append(zenoh.open(_router_config(tls, self.port, acl)))
         # node -> its certificate; "daemon_rx" is a second session with the daemon's certificate, the
@@ -203,7 +198,7 @@ def test_without_the_acl_the_intruders_frames_arrive(tls_dir):
 def test_a_node_without_a_certificate_cannot_connect(tls_dir):
     import zenoh
 
-    port = _free_port()
+    port = free_tcp_port()
     router = zenoh.open(_router_config(tls_dir, port))
     try:
         with pytest.raises(zenoh.ZError, match="Unable to connect"):
@@ -217,7 +212,7 @@ def test_the_daemon_opens_its_session_from_the_sample_client_file(tls_dir, tmp_p
     builder keeps the file's mode and TLS, adds only its receive limit, and reaches the router."""
     from onboard.io.zenoh_session import ZenohSettings, build_config
 
-    port = _free_port()
+    port = free_tcp_port()
     client_file = tmp_path / "daemon.json5"
     client_file.write_text(CLIENT_FILE.read_text(encoding="utf-8").replace("/config/tls/", f"{tls_dir}/")
                            .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}"), encoding="utf-8")

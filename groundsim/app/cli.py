@@ -120,7 +120,7 @@ def _run_config(args):
     )
 
 
-def _install_stop_signals(stop: threading.Event):
+def install_stop_signals(stop: threading.Event):
     """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly); returns a function restoring the old handlers."""
     old = {}
 
@@ -153,7 +153,7 @@ def _single_threaded_opencv() -> None:
         pass
 
 
-def _realtime_priority(priority: int | None, paced: bool) -> None:
+def realtime_priority(priority: int | None, paced: bool) -> None:
     """``--rt-priority``: SCHED_FIFO for this process (threads started later inherit it).
 
     Opt-in only: a paced loop sleeps most of the time, so it takes little CPU, but a loop that
@@ -178,12 +178,12 @@ def _realtime_priority(priority: int | None, paced: bool) -> None:
 
 def _cmd_run(args) -> int:
     stop = threading.Event()
-    restore = _install_stop_signals(stop)
+    restore = install_stop_signals(stop)
     try:
         config = _run_config(args)
         if stop.is_set():
             return 0
-        _realtime_priority(args.rt_priority, config.rate.paced)
+        realtime_priority(args.rt_priority, config.rate.paced)
         _single_threaded_opencv()
         from groundsim.app.run import run
 

@@ -601,6 +601,7 @@ def _case_bound(cfg, obs, truth) -> dict:
     """Whole-window MAP (model selection) and the Bayesian CRB at the truth with the prior it selected."""
     from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_rms_m
     from onboard.estimation.map_estimator import EstimationError, MapEstimator
+    from onboard.estimation.metrics import evaluate
 
     nan = math.nan
     out = {"crb_rms_m": nan, "crb_range_sigma_pct": nan, "batch_err_range_pct": nan, "batch_observable": None,
@@ -611,8 +612,7 @@ def _case_bound(cfg, obs, truth) -> dict:
     except (EstimationError, ConfigError, ValueError, np.linalg.LinAlgError) as exc:
         out["bound_note"] = f"batch MAP failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
         return out
-    e = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
-    out["batch_err_range_pct"] = float(np.mean(e / truth.range_m) * 100)
+    out["batch_err_range_pct"] = 100.0 * evaluate(truth.p_target_ned_m, res.p_ned_m, truth.p_cam_ned_m).range_normalised_error
     out["batch_observable"] = bool(res.observable)
     try:
         out["crb_rms_m"] = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps)
@@ -930,10 +930,10 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
         if progress and pending:
             from tqdm import tqdm
 
-            from groundsim.evaluation.eval import _bar_pacing
+            from groundsim.evaluation.eval import bar_pacing
 
             bar = tqdm(total=len(pending), unit="run", desc=f"campaign {spec.name} ({workers} worker(s))", leave=True,
-                       dynamic_ncols=True, **_bar_pacing())
+                       dynamic_ncols=True, **bar_pacing())
         if client is not None:  # submit every job, take them as they complete
             import uuid
 
@@ -1159,7 +1159,7 @@ def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
 
 def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict) -> dict:
     """``report.md`` (+ ``manoeuvre.png`` when two or more manoeuvre levels were swept)."""
-    from groundsim.evaluation.estimator_eval import PAPER_TABLE2
+    from groundsim.evaluation.report import PAPER_TABLE2_PCT
 
     files = {}
     ok = [r for r in rows if r.get("status") == "ok"]
@@ -1194,7 +1194,7 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                  "CRB range sigma | batch MAP err/range |")
         L.append("|" + "---|" * 14)
         for r in (x for x in t2 if x["algorithm"] == a):
-            paper = PAPER_TABLE2.get(r["scenario"])
+            paper = PAPER_TABLE2_PCT.get(r["scenario"])
             L.append(f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
                      f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
                      f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "

@@ -438,7 +438,7 @@ def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = N
                    progress: bool = True) -> tuple[list[SequenceSummary], float]:
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
-    from groundsim.evaluation.eval import _bar_pacing
+    from groundsim.evaluation.eval import bar_pacing
     from groundsim.evaluation.parallel import mp_context
     from groundsim.app.run import frame_count
 
@@ -462,7 +462,7 @@ def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = N
         from tqdm import tqdm
 
         bar = tqdm(total=total, unit="frame", desc=f"dataset ({min(workers, len(jobs))} workers)", leave=True,
-                   dynamic_ncols=True, **_bar_pacing())
+                   dynamic_ncols=True, **bar_pacing())
     t0 = time.perf_counter()
     try:
         workers = min(workers, len(jobs))

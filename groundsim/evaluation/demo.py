@@ -35,7 +35,6 @@ import logging
 import math
 import os
 import signal
-import socket
 import subprocess
 import sys
 import threading
@@ -43,12 +42,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from groundsim.io.ports import free_tcp_port, free_udp_port
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
     "KILL_AFTER_S",
     "DemoPlan",
-    "free_port",
     "plan_demo",
     "daemon_command",
     "sim_command",
@@ -58,6 +57,12 @@ __all__ = [
     "status_line",
     "score_demo",
     "format_demo_table",
+    "aligned_arrays",
+    "child_env",
+    "close_zenoh",
+    "drain_tracks",
+    "log_tail",
+    "stop_process",
     "run_demo",
     "cmd_demo",
 ]
@@ -98,15 +103,6 @@ class DemoPlan:
     @property
     def zenoh_endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.zenoh_port}"
-
-
-def free_port(kind: str = "tcp") -> int:
-    """A port that was free on 127.0.0.1 a moment ago (``tcp`` or ``udp``)."""
-    if kind not in ("tcp", "udp"):
-        raise InputError(f"free_port kind must be 'tcp' or 'udp', got {kind!r}")
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM if kind == "tcp" else socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 def _extended_scenario(scenario_path: Path, duration_s: float, out_dir: Path):
@@ -164,7 +160,7 @@ def plan_demo(scenario: str, duration_s: float, seed: int, out_dir, onboard_conf
         base = OnboardConfig()
     nav = resolve_nav_noise(sc.nav_noise if nav_noise is None else nav_noise).name
     cfg = onboard_config_for(sc, base)
-    mav, zport = free_port("udp"), free_port("tcp")
+    mav, zport = free_udp_port(), free_tcp_port()
     raw = config_to_dict(cfg)
     raw["mavlink"]["connection"] = f"udpin:127.0.0.1:{mav}"
     raw["zenoh"].update(connect=[], listen=[f"tcp/127.0.0.1:{zport}"], config_file=None, multicast_scouting=False,
@@ -421,7 +417,7 @@ class DemoOutcome:
     error: str | None = None
 
 
-def _aligned(truth: TruthTail, tracks: list[dict], origin):
+def aligned_arrays(truth: TruthTail, tracks: list[dict], origin):
     """Arrays over the truth frames: truth, camera, observer, range; track position/cov/observable (NaN = none)."""
     import numpy as np
 
@@ -467,10 +463,10 @@ def _aligned(truth: TruthTail, tracks: list[dict], origin):
 
 
 def score_demo(a: dict) -> dict:
-    """The demo's figures from :func:`_aligned` arrays (definitions as ``groundsim.evaluation.eval``)."""
+    """The demo's figures from :func:`aligned_arrays` arrays (definitions as ``groundsim.evaluation.eval``)."""
     import numpy as np
 
-    from groundsim.evaluation.eval import _metrics
+    from onboard.estimation.metrics import score_frames
 
     F = int(a["t_us"].size)
     has = np.all(np.isfinite(a["est_p"]), axis=1)
@@ -484,8 +480,8 @@ def score_demo(a: dict) -> dict:
         "frames_observable": int(obs.sum()),
         "continuity": float(obs.sum() / F) if F else 0.0,
         "continuity_2d": float((a["measurement_valid"] & a["visible"]).sum() / max(int(a["visible"].sum()), 1)),
-        "observable": _metrics(a["truth_p"], a["est_p"], a["cam_p"], cov if cov_ok[obs].all() else None, obs),
-        "all": _metrics(a["truth_p"], a["est_p"], a["cam_p"], cov if cov_ok[has].all() else None, has),
+        "observable": score_frames(a["truth_p"], a["est_p"], a["cam_p"], cov if cov_ok[obs].all() else None, obs),
+        "all": score_frames(a["truth_p"], a["est_p"], a["cam_p"], cov if cov_ok[has].all() else None, has),
     }
     return out
 
@@ -537,7 +533,7 @@ def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
         f.close()  # the child has its own descriptor
 
 
-def _drain(store: "TrackStore", stop: threading.Event | None = None) -> None:
+def drain_tracks(store: "TrackStore", stop: threading.Event | None = None) -> None:
     """After the simulator ends, let the daemon finish the last frames: wait until no track arrived for
     DRAIN_QUIET_S, at most DRAIN_MAX_S (or until ``stop`` is set)."""
     t_end = time.monotonic() + DRAIN_MAX_S
@@ -548,7 +544,7 @@ def _drain(store: "TrackStore", stop: threading.Event | None = None) -> None:
         time.sleep(0.05)
 
 
-def _close_zenoh(subscribers, session) -> None:
+def close_zenoh(subscribers, session) -> None:
     """Undeclare the subscribers and close the session, ignoring errors (shutdown path)."""
     for s in subscribers:
         try:
@@ -562,7 +558,7 @@ def _close_zenoh(subscribers, session) -> None:
             pass
 
 
-def _stop(proc: subprocess.Popen | None, name: str) -> int | None:
+def stop_process(proc: subprocess.Popen | None, name: str = "child process") -> int | None:
     """SIGTERM, then SIGKILL after KILL_AFTER_S; returns the exit code (None if never started)."""
     if proc is None:
         return None
@@ -580,7 +576,8 @@ def _stop(proc: subprocess.Popen | None, name: str) -> int | None:
     return proc.returncode
 
 
-def _tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
+def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
+    """The last ``n`` lines of a child's log, indented, for an error message ("(no log)" if unreadable)."""
     try:
         lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
     except OSError:
@@ -588,7 +585,9 @@ def _tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
     return "\n".join("    " + line for line in lines[-n:])
 
 
-def _child_env() -> dict:
+def child_env() -> dict:
+    """The environment for a child process of the demo or the tests: this one's, one BLAS/OpenMP thread
+    unless set, unbuffered Python output (the logs show what happened up to a crash)."""
     env = dict(os.environ)
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         env.setdefault(var, "1")
@@ -604,7 +603,7 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
     out = out if out is not None else (lambda s: print(s, flush=True))
     store = TrackStore()
     truth = TruthTail(plan.truth_path)
-    env = _child_env()
+    env = child_env()
     daemon = sim = session = None
     subs = []
     cpu_daemon = cpu_sim = None
@@ -630,11 +629,11 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
                 return _finish(plan, outcome, store, truth, daemon, sim, cpu_daemon, cpu_sim, wall0, cpu_demo0, out)
             if daemon.poll() is not None:
                 outcome.error = f"the onboard daemon exited with code {daemon.returncode} before it was ready"
-                out(f"demo: {outcome.error}; last lines of {plan.out_dir / 'onboard.log'}:\n{_tail(plan.out_dir / 'onboard.log')}")
+                out(f"demo: {outcome.error}; last lines of {plan.out_dir / 'onboard.log'}:\n{log_tail(plan.out_dir / 'onboard.log')}")
                 return _finish(plan, outcome, store, truth, daemon, sim, cpu_daemon, cpu_sim, wall0, cpu_demo0, out)
             if time.monotonic() > t_ready:
                 outcome.error = f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s"
-                out(f"demo: {outcome.error}; last lines of its log:\n{_tail(plan.out_dir / 'onboard.log')}")
+                out(f"demo: {outcome.error}; last lines of its log:\n{log_tail(plan.out_dir / 'onboard.log')}")
                 return _finish(plan, outcome, store, truth, daemon, sim, cpu_daemon, cpu_sim, wall0, cpu_demo0, out)
         out(f"demo: daemon ready after {time.monotonic() - wall0:.1f} s; starting the simulator (real time)")
         sim = _start(sim_command(plan), plan.out_dir / "sim.log", env)
@@ -654,22 +653,22 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
             if finished:
                 if sim.returncode != 0:
                     outcome.error = f"the simulator exited with code {sim.returncode}"
-                    out(f"demo: {outcome.error}; last lines of {plan.out_dir / 'sim.log'}:\n{_tail(plan.out_dir / 'sim.log')}")
+                    out(f"demo: {outcome.error}; last lines of {plan.out_dir / 'sim.log'}:\n{log_tail(plan.out_dir / 'sim.log')}")
                 break
             if daemon.poll() is not None:
                 outcome.error = f"the onboard daemon exited with code {daemon.returncode} during the run"
-                out(f"demo: {outcome.error}; last lines of its log:\n{_tail(plan.out_dir / 'onboard.log')}")
+                out(f"demo: {outcome.error}; last lines of its log:\n{log_tail(plan.out_dir / 'onboard.log')}")
                 break
             if time.monotonic() > deadline:
                 out(f"demo: the simulator is still running {SIM_SETUP_ALLOWANCE_S:g} s past its duration: stopping it")
                 break
         if not outcome.stopped_early and outcome.error is None:
-            _drain(store, stop)
+            drain_tracks(store, stop)
         return _finish(plan, outcome, store, truth, daemon, sim, cpu_daemon, cpu_sim, wall0, cpu_demo0, out)
     finally:
-        _close_zenoh(subs, session)
-        _stop(sim, "simulator")
-        _stop(daemon, "onboard daemon")
+        close_zenoh(subs, session)
+        stop_process(sim, "simulator")
+        stop_process(daemon, "onboard daemon")
 
 
 def _live_line(elapsed: float, plan: DemoPlan, store: TrackStore, truth: TruthTail, total: int, cpu_sim, cpu_daemon) -> str:
@@ -701,8 +700,8 @@ def _finish(plan, outcome: DemoOutcome, store, truth, daemon, sim, cpu_daemon, c
     for p in (cpu_sim, cpu_daemon):
         if p is not None:
             p.share_since_last()
-    outcome.sim_exit = _stop(sim, "simulator")
-    outcome.daemon_exit = _stop(daemon, "onboard daemon")
+    outcome.sim_exit = stop_process(sim, "simulator")
+    outcome.daemon_exit = stop_process(daemon, "onboard daemon")
     outcome.wall_s = time.monotonic() - wall0
     outcome.cpu_share = {"sim": None if cpu_sim is None else cpu_sim.share_overall(),
                          "daemon": None if cpu_daemon is None else cpu_daemon.share_overall(),
@@ -740,7 +739,7 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
     files["tracks.jsonl"] = str(d / "tracks.jsonl")
     if not truth.order:
         return files
-    a = _aligned(truth, tracks, plan.scenario.origin)
+    a = aligned_arrays(truth, tracks, plan.scenario.origin)
     outcome.scores = score_demo(a)
     t = a["t_us"] / 1e6
     write_tum(d / "truth.tum", t, a["truth_p"])

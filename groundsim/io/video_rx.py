@@ -1,29 +1,45 @@
-"""A ground station's video receiver: MPEG-TS over UDP -> decoded grey frames, with arrival times.
+"""A ground station's video receivers: H.264 over UDP (RTP or MPEG-TS) -> decoded grey frames, with times.
 
-An independent decoder for the daemon's IR video (:mod:`onboard.io.video` encodes with libx264; this
-decodes with FFmpeg's own H.264 decoder through PyAV, as a ground station would).  PyAV's FFmpeg has
-no ``udp://`` protocol, so :class:`UdpTsDecoder` reads the socket itself and hands the datagrams to
-the MPEG-TS demuxer as a file-like stream; one thread does both, so a slow decode shows as latency,
-never as a blocked sender.
+Decoders for the daemon's IR video (:mod:`onboard.io.video` encodes with libx264; these decode with
+FFmpeg's own H.264 decoder through PyAV, as a ground station would), one thread each, so a slow decode
+shows as latency, never as a blocked sender:
+
+* :class:`SdpRtpDecoder` -- RTP, independent of our code end to end: FFmpeg's own RTP demuxer and
+  H.264 depacketiser, opened through a session description (:func:`onboard.io.rtp_h264.sdp`, written
+  to a temporary ``.sdp`` file) exactly as ``ffplay stream.sdp`` would.  FFmpeg's H.264 parser
+  re-frames the depacketised NAL units and, ignoring the RTP marker bit, knows a picture is complete
+  only when the next one starts: one frame period (33 ms at 30 Hz) of its latency is FFmpeg's.
+* :class:`RtpMarkerDecoder` -- RTP the way QGroundControl receives it (GStreamer ``udpsrc !
+  rtph264depay ! avdec_h264``): the access unit is assembled from the packets and handed to the
+  decoder at its marker bit (our :func:`onboard.io.rtp_h264.depacketize`, then FFmpeg's H.264 decoder
+  without a parser).  A lost packet drops its access unit (counted), as ``rtph264depay`` does.
+* :class:`UdpTsDecoder` -- MPEG-TS: PyAV reads the socket here and hands the datagrams to FFmpeg's
+  MPEG-TS demuxer as a file-like stream.
 
 Each decoded frame is passed to ``on_frame(DecodedFrame)`` on the receiver thread: the luma plane
 (``uint8 (H, W)``), its index, and ``decoded_ns`` (``time.monotonic_ns`` after decoding).  The
-receiver keeps counts (``datagrams``, ``bytes``, ``frames``, ``decode_errors``).  Bounded start
-(the demuxer probes at most :data:`PROBE_BYTES`) and bounded stop (socket timeout :data:`POLL_S`).
+receivers keep counts (``frames``, ``decode_errors``; ``datagrams`` and ``bytes`` where they own the
+socket) and ``error`` (what ended the thread early, or None).  Bounded start (a demuxer probes at most
+:data:`PROBE_BYTES`) and bounded stop (socket or read timeout :data:`POLL_S`).
 """
 
 from __future__ import annotations
 
 import logging
+import os
 import socket
+import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-__all__ = ["DecodedFrame", "UdpTsDecoder", "PROBE_BYTES"]
+from onboard.core.errors import InputError
+from onboard.io.rtp_h264 import DEFAULT_PAYLOAD_TYPE, depacketize, parse_rtp, sdp
+
+__all__ = ["DecodedFrame", "UdpTsDecoder", "SdpRtpDecoder", "RtpMarkerDecoder", "free_rtp_port", "PROBE_BYTES"]
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +60,7 @@ class DecodedFrame:
 class _SocketStream:
     """File-like ``read`` over a UDP socket for the demuxer: blocks until data or stop (then EOF)."""
 
-    def __init__(self, sock: socket.socket, stop: threading.Event, owner: "UdpTsDecoder") -> None:
+    def __init__(self, sock: socket.socket, stop: threading.Event, owner: UdpTsDecoder) -> None:
         self._sock, self._stop, self._owner = sock, stop, owner
         self._buf = bytearray()
 
@@ -54,7 +70,7 @@ class _SocketStream:
                 return b""
             try:
                 data = self._sock.recv(65536)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             except OSError:
                 return b""
@@ -127,6 +143,204 @@ class UdpTsDecoder:
                 container.close()
             except Exception:  # noqa: BLE001
                 pass
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+        self._sock.close()
+
+
+def free_rtp_port(host: str = "127.0.0.1", tries: int = 50) -> int:
+    """An even UDP port on ``host`` with the next one free too (RTP and RTCP, RFC 3550 section 11), as
+    found now: a receiver that opens it later races other programs for it (fine on a test machine)."""
+    for _ in range(tries):
+        a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            a.bind((host, 0))
+            port = a.getsockname()[1]
+            if port % 2 or port >= 65535:
+                continue
+            b.bind((host, port + 1))
+            return port
+        except OSError:
+            continue
+        finally:
+            a.close()
+            b.close()
+    raise OSError(f"no free even UDP port pair on {host} after {tries} tries")
+
+
+class SdpRtpDecoder:
+    """RTP H.264 on ``host:port`` through FFmpeg's RTP demuxer and a session description (module
+    docstring); ``port`` 0 picks a free even port (:attr:`port`).  Decodes until :meth:`stop`.
+
+    FFmpeg owns the socket (RTP on ``port``, RTCP on ``port + 1``): :attr:`datagrams` stays None.
+    The demuxer is opened again every :data:`OPEN_RETRY_S` until it has seen the stream's SPS, and
+    its reads time out after :data:`POLL_S` of silence, so :meth:`stop` returns within about a second.
+    """
+
+    OPEN_RETRY_S = 1.0
+
+    def __init__(self, on_frame: Callable[[DecodedFrame], None], host: str = "127.0.0.1", port: int = 0,
+                 payload_type: int = DEFAULT_PAYLOAD_TYPE) -> None:
+        self._on_frame = on_frame
+        self.port = int(port) or free_rtp_port(host)
+        self._dir = tempfile.mkdtemp(prefix="irtrack-sdp-")
+        self.sdp_path = os.path.join(self._dir, "stream.sdp")
+        with open(self.sdp_path, "w", encoding="ascii") as f:
+            f.write(sdp(host, self.port, payload_type))
+        self._stop = threading.Event()
+        self.datagrams = None
+        self.bytes = None
+        self.frames = 0
+        self.decode_errors = 0
+        self.error: str | None = None
+        self.opened = threading.Event()  # set once the demuxer has the stream's parameters
+        self._thread = threading.Thread(target=self._run, name="video-rx-sdp", daemon=True)
+        self._thread.start()
+
+    def _open(self):
+        import av
+
+        while not self._stop.is_set():
+            try:
+                return av.open(self.sdp_path, mode="r", format="sdp",
+                               options={"protocol_whitelist": "file,udp,rtp", "probesize": str(PROBE_BYTES),
+                                        "analyzeduration": "0"},
+                               timeout=(self.OPEN_RETRY_S, POLL_S))
+            except av.error.ExitError:
+                continue  # no SPS yet (no IDR since we listened): listen again
+        return None
+
+    def _run(self) -> None:
+        import av
+
+        try:
+            container = self._open()
+        except Exception as exc:  # noqa: BLE001 - reported through .error
+            self.error = f"open: {type(exc).__name__}: {exc}"
+            return
+        if container is None:
+            return
+        self.opened.set()
+        try:
+            vstream = container.streams.video[0]
+            vstream.codec_context.thread_count = 1  # frame threads would hold a frame back per thread
+            while not self._stop.is_set():
+                try:
+                    for packet in container.demux(vstream):
+                        try:
+                            frames = packet.decode()
+                        except av.error.InvalidDataError:
+                            self.decode_errors += 1
+                            continue
+                        for frame in frames:
+                            self._emit(frame)
+                        if self._stop.is_set():
+                            break
+                    break  # EOF
+                except av.error.ExitError:
+                    continue  # POLL_S without a packet: look at the stop flag, then wait on
+                except av.error.InvalidDataError:
+                    self.decode_errors += 1
+        except Exception as exc:  # noqa: BLE001
+            if not self._stop.is_set():
+                self.error = f"decode: {type(exc).__name__}: {exc}"
+        finally:
+            try:
+                container.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+    def _emit(self, frame) -> None:
+        luma = frame.to_ndarray(format="gray")
+        self._on_frame(DecodedFrame(self.frames, luma, time.monotonic_ns()))
+        self.frames += 1
+
+    def stop(self, timeout_s: float = 3.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+        try:
+            os.remove(self.sdp_path)
+            os.rmdir(self._dir)
+        except OSError:
+            pass
+
+
+class RtpMarkerDecoder:
+    """RTP H.264 on ``host:port`` (``port`` 0: pick one, see :attr:`port`) assembled into access units
+    at the marker bit and decoded at once (module docstring).  An access unit with a gap in its
+    sequence numbers or a payload :func:`~onboard.io.rtp_h264.depacketize` refuses is dropped
+    (``lost_units``); packets before the first IDR are skipped."""
+
+    def __init__(self, on_frame: Callable[[DecodedFrame], None], host: str = "127.0.0.1", port: int = 0) -> None:
+        self._on_frame = on_frame
+        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
+        self._sock.bind((host, port))
+        self._sock.settimeout(POLL_S)
+        self.port = int(self._sock.getsockname()[1])
+        self._stop = threading.Event()
+        self.datagrams = 0
+        self.bytes = 0
+        self.frames = 0
+        self.decode_errors = 0
+        self.lost_units = 0
+        self.error: str | None = None
+        self._thread = threading.Thread(target=self._run, name="video-rx-rtp", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        import av
+
+        try:
+            codec = av.CodecContext.create("h264", "r")
+            codec.thread_count = 1
+            payloads: list[bytes] = []
+            expected, broken = None, False
+            while not self._stop.is_set():
+                try:
+                    data = self._sock.recv(65536)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                self.datagrams += 1
+                self.bytes += len(data)
+                try:
+                    pkt = parse_rtp(data)
+                except InputError:
+                    self.decode_errors += 1
+                    continue
+                broken |= expected is not None and pkt.sequence != expected
+                expected = (pkt.sequence + 1) % (1 << 16)
+                payloads.append(pkt.payload)
+                if not pkt.marker:
+                    continue
+                unit, payloads = payloads, []
+                if broken:
+                    self.lost_units += 1
+                    broken = False
+                    continue
+                try:
+                    nals = depacketize(unit)
+                except InputError:
+                    self.lost_units += 1
+                    continue
+                annexb = b"".join(b"\x00\x00\x00\x01" + n for n in nals)
+                try:
+                    frames = codec.decode(av.Packet(annexb))
+                except av.error.InvalidDataError:
+                    self.decode_errors += 1  # e.g. P-frames before the first IDR
+                    continue
+                for frame in frames:
+                    luma = frame.to_ndarray(format="gray")
+                    self._on_frame(DecodedFrame(self.frames, luma, time.monotonic_ns()))
+                    self.frames += 1
+        except Exception as exc:  # noqa: BLE001 - reported through .error
+            if not self._stop.is_set():
+                self.error = f"decode: {type(exc).__name__}: {exc}"
 
     def stop(self, timeout_s: float = 2.0) -> None:
         self._stop.set()

@@ -310,6 +310,7 @@ class VideoConfig:
     """``video``: the IR video for ground stations (see :mod:`onboard.io.video`)."""
 
     destination: Text(nullable=True, pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT") = None
+    transport: Text(choices=("rtp", "mpegts")) = "rtp"  # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
     fps: Number(1.0, 120.0) = 30.0
     bitrate_bps: Integer(100_000, 50_000_000) = 2_000_000
     gop_s: Number(0.1, 1.0) = 1.0

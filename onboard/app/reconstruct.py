@@ -261,7 +261,7 @@ def _map_summary(res: MapResult, solve_ms: float) -> dict:
         "observable": bool(res.observable),
         "observability_source": "map",
         "range_sigma_ratio": _finite_or_none(res.range_sigma_ratio),
-        "model": res.extras.get("model"),
+        "model": res.model,
         "q_horizontal_m2ps3": _finite_or_none(res.prior.q_horizontal_m2ps3),
         "q_vertical_m2ps3": _finite_or_none(res.prior.q_vertical_m2ps3),
         "turn_rate_radps": _finite_or_none(res.turn_rate_radps),

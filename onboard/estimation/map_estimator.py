@@ -69,7 +69,7 @@ import dataclasses
 import logging
 import math
 from typing import Annotated
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from pydantic import AfterValidator
@@ -80,7 +80,8 @@ from onboard.core.schema import Integer, Invalid, Number, Numbers, Texts, config
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
-__all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem"]
+__all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem",
+           "SolveResult", "Mode"]
 
 log = logging.getLogger(__name__)
 
@@ -229,8 +230,22 @@ class MapResult:
     log_evidence: float
     iterations: int
     converged: bool
+    #: the solution's parameter vector (layout: :class:`WindowProblem`) and the problem it solves; the
+    #: sliding window re-linearises and warm-starts from them
+    theta: np.ndarray
+    problem: "WindowProblem"
+    #: the model-averaged, inflated point covariance (F, 3, 3) before an unobservable solution's range
+    #: floor (``cov_p_ned_m2`` is after it); equal to ``cov_p_ned_m2`` when observable
+    cov_p_model_ned_m2: np.ndarray
     method: str = "map"
-    extras: dict = field(default_factory=dict)
+    #: the motion family the evidence selection chose ("cv", "ca", "ct"); None when :meth:`MapEstimator.solve`
+    #: was given the prior (no selection; the selection fields below are None too)
+    model: str | None = None
+    #: log evidence per family (log-sum-exp over its q grid) and per (q, log evidence) of each solved model
+    family_log_evidence: dict[str, float] | None = None
+    grid_log_evidence: dict[str, list[tuple[float, float]]] | None = None
+    #: the chosen model's evidence weight among every solved model
+    best_model_weight: float | None = None
     #: posterior mass of solutions far from this one (``MapConfig.near_solution_ratio``); 0 without a selection
     ambiguity: float = 0.0
     #: RMS of the standardised measurement residuals (~1 when the noise model and the camera are right)
@@ -305,6 +320,24 @@ class _SpanPrior:
             self.P_acc[ax::3, ax::3] = sq[:, None] * self.Bq2
         self.P_turn[0::3, 1::3] = self.sq_h[:, None] * self.Bq1
         self.P_turn[1::3, 0::3] = -self.sq_h[:, None] * self.Bq1
+
+
+@dataclass(frozen=True, eq=False)
+class SolveResult:
+    """What :meth:`WindowProblem.solve` returns.
+
+    ``theta`` (n_params,) the parameters at the end; ``cost`` 1/2 chi^2 there (inf: the start was invalid,
+    or the solve collapsed below ``min_range_m``); ``iterations`` taken; ``converged`` when the cost stopped
+    falling (by less than the tolerance, or no damping found a lower cost) before ``max_iterations``;
+    ``factor`` the square-root information ``(R, d)`` at ``theta`` (``H = J^T J = D R^T R D``, see
+    :meth:`WindowProblem.factor`), None when not asked for or when the cost is inf.
+    """
+
+    theta: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    factor: tuple[np.ndarray, np.ndarray] | None
 
 
 class WindowProblem:
@@ -544,16 +577,16 @@ class WindowProblem:
         """Levenberg-Marquardt from theta0 (More's column scaling).
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
-        damping finds a lower cost, or after ``max_iterations``.  Returns (theta, cost, iterations,
-        converged, factor) with factor = (square-root information R, scales) at theta, or None when
-        ``want_factor`` is False.  Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
+        damping finds a lower cost, or after ``max_iterations``.  Returns a :class:`SolveResult` whose
+        factor is (square-root information R, scales) at theta, or None when ``want_factor`` is False.
+        Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
         With ``min_range_m``, a step that takes the mean range below it ends the solve as collapsed:
         cost inf and factor None, like a start that put the target behind the camera.
         """
         theta = theta0.copy()
         r, J, valid = self.evaluate(theta)
         if not valid:
-            return theta, math.inf, 0, False, None
+            return SolveResult(theta, math.inf, 0, False, None)
         cost = 0.5 * float(r @ r)
         lam = lam0
         converged = False
@@ -595,7 +628,7 @@ class WindowProblem:
                     if min_range_m is not None and float(np.mean(np.linalg.norm(
                             self.positions(theta) - self.obs.p_cam_ned_m, axis=1))) < min_range_m:
                         self.last_jacobian = None
-                        return theta, math.inf, it, False, None
+                        return SolveResult(theta, math.inf, it, False, None)
                     lam = lam / 10 if lam > 1e-9 else 0.0
                     if J2 is not None:
                         r, J, J_current = r2, J2, True
@@ -613,7 +646,7 @@ class WindowProblem:
         if not J_current:
             r, J, _ = self.evaluate(theta)
         self.last_jacobian = J
-        return theta, cost, it, converged, (self.factor(J) if want_factor else None)
+        return SolveResult(theta, cost, it, converged, self.factor(J) if want_factor else None)
 
     def factor(self, J: np.ndarray):
         """Square-root information at the solution: upper-triangular R of the column-scaled J (QR),
@@ -663,6 +696,27 @@ class WindowProblem:
         logdet_H = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         meas_norm = -np.sum(np.log(1.0 / self.s))  # -sum log sigma (normalised units)
         return float(-cost + 0.5 * self.prior_logdet(theta) - 0.5 * logdet_H + meas_norm)
+
+
+@dataclass(frozen=True, eq=False)
+class Mode:
+    """One local MAP solution (mode) of a window under one prior, as :meth:`MapEstimator.solve_prior` keeps it.
+
+    ``problem`` the window problem (its prior is the mode's model), ``theta``/``cost``/``iterations``/
+    ``converged``/``factor`` as in :class:`SolveResult` (``factor`` never None here), ``log_evidence``
+    the Laplace log evidence (:meth:`WindowProblem.log_evidence`, at the weights of the solve), and
+    ``mean_range_m`` the mean distance camera -> target over the window (modes closer than 1 % of it
+    are one mode).  Compared by identity (``eq=False``): the selection memoises per mode.
+    """
+
+    problem: WindowProblem
+    theta: np.ndarray
+    cost: float
+    iterations: int
+    converged: bool
+    factor: tuple[np.ndarray, np.ndarray]
+    log_evidence: float
+    mean_range_m: float
 
 
 class MapEstimator:
@@ -719,15 +773,15 @@ class MapEstimator:
 
     def solve_prior(self, obs: Observations, prior: MotionPrior, starts: list[np.ndarray] | None = None,
                     grid: KnotGrid | None = None, max_modes: int = 3):
-        """MAP modes for one prior from several starts; returns (best, modes).
+        """MAP modes for one prior from several starts; returns (best, modes), :class:`Mode` each, at most
+        ``max_modes`` modes by decreasing log evidence.
 
-        Each mode is a tuple (problem, theta, cost, iterations, converged, factor, log_evidence);
-        the best is the one with the largest Laplace posterior mass (log evidence), not the lowest
+        The best is the one with the largest Laplace posterior mass (log evidence), not the lowest
         cost: near-camera (collapsed) modes fit noise cheaply but carry little mass.
         """
         prob = self.problem(obs, prior, grid)
         starts = starts if starts is not None else self.initial_guesses(prob)
-        modes: list = []
+        modes: list[Mode] = []
         fixed = self._weight_range_m
         reweight = self.noise.camera_position_white_sigma_m > 0 and fixed is None
         for th0 in starts:
@@ -736,20 +790,20 @@ class MapEstimator:
             # unless a common weighting range is fixed (model comparison, see solve())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
-                th, cost, its, conv, fac = prob.solve(th, max_iterations=self.config.max_iterations,
-                                                      min_range_m=self.config.min_range_m)
+                sol = prob.solve(th, max_iterations=self.config.max_iterations, min_range_m=self.config.min_range_m)
+                th, cost, fac = sol.theta, sol.cost, sol.factor
                 if fac is None or not math.isfinite(cost):
                     break
             if fac is None or not math.isfinite(cost):
                 continue
             r_mean = float(np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)))
-            if any(abs(r_mean - m[7]) < 0.01 * r_mean for m in modes):
+            if any(abs(r_mean - m.mean_range_m) < 0.01 * r_mean for m in modes):
                 continue
-            modes.append((prob, th, cost, its, conv, fac, prob.log_evidence(th, cost, fac), r_mean))
+            modes.append(Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean))
         if not modes:
             raise EstimationError("no initial guess gave a valid solution (target behind the camera?)")
-        modes.sort(key=lambda m: -m[6])
-        return modes[0][:7], [m[:7] for m in modes[:max_modes]]
+        modes.sort(key=lambda m: -m.log_evidence)
+        return modes[0], modes[:max_modes]
 
     def solve(self, obs: Observations, prior: MotionPrior | None = None, grid: KnotGrid | None = None,
               warm: np.ndarray | None = None, trust_warm: bool = False) -> MapResult:
@@ -767,7 +821,7 @@ class MapEstimator:
         self._weight_range_m = None
         if prior is not None:
             best, _ = self.solve_prior(obs, prior, grid=grid)
-            return self.result(*best[:6])
+            return self.result(best)
         try:
             return self._select(obs, grid, warm, trust_warm)
         finally:
@@ -803,17 +857,17 @@ class MapEstimator:
                     # one weighting geometry for every model compared: the range-dependent pixel
                     # weights would otherwise reward far solutions through the likelihood's
                     # normaliser (a few hundredths of a pixel per row, tens of nats over a window)
-                    self._weight_range_m = self._ranges(top[0], top[1])
-                    top, modes = self.solve_prior(obs, pr, starts=[m[1] for m in modes], grid=grid, max_modes=2)
-                seeds = [m[1] for m in modes]
+                    self._weight_range_m = self._ranges(top.problem, top.theta)
+                    top, modes = self.solve_prior(obs, pr, starts=[m.theta for m in modes], grid=grid, max_modes=2)
+                seeds = [m.theta for m in modes]
                 tops[fam].append(top)
-            carry = [m[1] for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m[6])[:2]]
+            carry = [m.theta for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]]
         tops = {f: ts for f, ts in tops.items() if ts}
         if not tops:
             raise EstimationError("no motion model found a solution in front of the camera and beyond "
                                   f"{cfg.min_range_m:g} m (degenerate bearings?)")
-        fam_ev = {f: float(np.logaddexp.reduce([t[6] for t in ts])) for f, ts in tops.items()}
-        top_ev = max(m[6] for ts in tops.values() for m in ts)
+        fam_ev = {f: float(np.logaddexp.reduce([t.log_evidence for t in ts])) for f, ts in tops.items()}
+        top_ev = max(m.log_evidence for ts in tops.values() for m in ts)
         # the point estimate: among the models (family and q) the data cannot tell from the best one
         # (within model_margin_nats of its evidence), the one that pins range best under its own posterior.
         # A family that explains the data only by leaving range free (a target whose acceleration
@@ -825,18 +879,18 @@ class MapEstimator:
                 memo[id(m)] = self._moments(m)
             return memo[id(m)]
 
-        close = [(f, m) for f, ts in tops.items() for m in ts if m[6] >= top_ev - cfg.model_margin_nats]
+        close = [(f, m) for f, ts in tops.items() for m in ts if m.log_evidence >= top_ev - cfg.model_margin_nats]
         ratios = [moments(m)[2] for _, m in close]
         cands = [m for ts in tops.values() for m in ts]
-        logw = np.array([m[6] for m in cands])
+        logw = np.array([m.log_evidence for m in cands])
         w = np.exp(logw - np.logaddexp.reduce(logw))
-        cam = close[0][1][0].obs.p_cam_ned_m  # the (smoothed) camera track every problem shares
+        cam = close[0][1].problem.obs.p_cam_ned_m  # the (smoothed) camera track every problem shares
         # the reported solution: the close model pinning range best, unless its neighbourhood holds less
         # than min_solution_mass of the posterior (a stiff low-weight model far from where the evidence
         # sits would report its own narrow sigma about the wrong range): then the next one that does,
         # failing that the highest-evidence model
         order = [close[i] for i in np.argsort(ratios)]
-        top = max(close, key=lambda fm: fm[1][6])
+        top = max(close, key=lambda fm: fm[1].log_evidence)
         chosen, best = order[0]
         split = self._split(best, cands, w, cam, moments)
         if split[1] < cfg.min_solution_mass:
@@ -851,12 +905,10 @@ class MapEstimator:
             mix = (w_best / w_near, extra_near / w_near)
         else:
             mix = (w_best, extra_near + extra_far)
-        res = self.result(*best[:6], mix=mix, ambiguity=ambiguity)
-        res.extras["family_log_evidence"] = fam_ev
-        res.extras["best_model_weight"] = w_best
-        res.extras["model"] = chosen
-        res.extras["grid_log_evidence"] = {f: [(t[0].prior.q_horizontal_m2ps3, t[6]) for t in ts] for f, ts in tops.items()}
-        return res
+        res = self.result(best, mix=mix, ambiguity=ambiguity)
+        grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
+        return dataclasses.replace(res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev,
+                                   best_model_weight=w_best)
 
     def _split(self, best, cands, w, cam: np.ndarray, moments):
         """(w_best, w_near, extra_near, extra_far) of reporting ``best``: its evidence weight, the mass of the
@@ -889,9 +941,9 @@ class MapEstimator:
                 extra_far += term
         return w_best, w_near + w_best, extra_near, extra_far
 
-    def _moments(self, mode):
+    def _moments(self, mode: Mode):
         """Positions (F, 3), point covariances (F, 3, 3) and max sigma_range / range of a mode."""
-        prob, theta, fac = mode[0], mode[1], mode[5]
+        prob, theta, fac = mode.problem, mode.theta, mode.factor
         p = prob.positions(theta)
         P = prob.point_covariances(prob.covariance(fac))
         los = p - prob.obs.p_cam_ned_m
@@ -919,10 +971,11 @@ class MapEstimator:
             out[prob.nc :] = theta[prob.nc + 1 :]
         return out
 
-    def result(self, prob: WindowProblem, theta, cost, its, conv, fac, mix=None, ambiguity: float = 0.0) -> MapResult:
-        """The named result of one solution; ``mix = (weight, extra)`` turns its point covariance into
+    def result(self, mode: Mode, mix=None, ambiguity: float = 0.0) -> MapResult:
+        """The named result of one solution (``mode``); ``mix = (weight, extra)`` turns its point covariance into
         ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`); ``ambiguity`` is the
         posterior mass of far solutions (see :meth:`solve`)."""
+        prob, theta, cost, fac = mode.problem, mode.theta, mode.cost, mode.factor
         # the problem object served several starts: its weights must be this solution's
         prob.set_measurement_weights(self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta))
         Sigma = prob.covariance(fac)
@@ -954,9 +1007,8 @@ class MapEstimator:
             t_s=prob.obs.t_s.copy(), p_ned_m=p, v_ned_mps=v, cov_p_ned_m2=P, residuals_px=res_px,
             observable=observable, range_sigma_ratio=ratio, prior=prob.prior, turn_rate_radps=om,
             attitude_bias_rad=phi, cost=float(cost), log_evidence=prob.log_evidence(theta, cost, fac),
-            iterations=int(its), converged=bool(conv), extras={"theta": theta, "problem": prob, "adequacy_p": adequacy_p,
-                                                               "cov_p_model_ned_m2": P_model},
-            ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
+            iterations=int(mode.iterations), converged=bool(mode.converged), theta=theta, problem=prob,
+            cov_p_model_ned_m2=P_model, ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
         )
 
     def range_floor(self, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,11 @@ With a covariance ``P_i`` (N, 3, 3) of each estimated point:
 Covariances must be finite, symmetric and positive definite at every point (a reported zero or
 negative variance is a bug in the estimator, not something to average over): anything else raises
 :class:`onboard.core.errors.InputError` naming the point.  ``bayesian_crb`` is not here (the lead's).
+
+This is the one scoring path: the closed-loop evaluation (``groundsim eval``), the estimator harness
+(``bench.estimator``, ``groundsim.evaluation.estimator_eval``), the campaign's batch figure and the
+demo all score through :func:`evaluate` (per-frame arrays) or :func:`score_frames` (a selection of
+frames -> a JSON-ready dict with the per-cent figures the tables print).
 """
 
 from __future__ import annotations
@@ -39,7 +44,7 @@ from scipy.special import gammaincinv
 
 from onboard.core.errors import InputError
 
-__all__ = ["ErrorReport", "evaluate", "nees_interval_95"]
+__all__ = ["ErrorReport", "evaluate", "nees_interval_95", "score_frames"]
 
 #: relative asymmetry tolerated in a covariance before it is rejected as not symmetric
 COV_SYMMETRY_RTOL = 1e-6
@@ -182,3 +187,29 @@ def evaluate(truth_p_ned_m, est_p_ned_m, cam_p_ned_m, cov=None, origin_ned_m=(0.
         error_norm_m=en,
         **kw,
     )
+
+
+def score_frames(truth_p_ned_m, est_p_ned_m, cam_p_ned_m, cov, selected) -> dict | None:
+    """:func:`evaluate` on the rows where ``selected`` (N,) is true, as a JSON-ready dict: the fields of
+    :meth:`ErrorReport.summary` plus ``err_range_pct`` and ``err_paper_pct`` (per cent).  None when no
+    row is selected.  ``cov`` (N, 3, 3) or None; a covariance :func:`evaluate` refuses (not finite,
+    not symmetric, not positive definite) is reported under ``note`` and the errors are scored without
+    it -- a bad covariance is shown, not hidden, and does not lose the error figures."""
+    idx = np.flatnonzero(np.asarray(selected, dtype=bool))
+    if idx.size == 0:
+        return None
+    truth, est, cam = (np.asarray(a, dtype=float)[idx] for a in (truth_p_ned_m, est_p_ned_m, cam_p_ned_m))
+    note = None
+    try:
+        rep = evaluate(truth, est, cam, None if cov is None else np.asarray(cov, dtype=float)[idx])
+    except InputError as exc:
+        if cov is None:
+            raise
+        note = f"covariance not scored: {exc}"
+        rep = evaluate(truth, est, cam, None)
+    d = rep.summary()
+    d["err_range_pct"] = 100.0 * rep.range_normalised_error
+    d["err_paper_pct"] = 100.0 * rep.paper_relative_error
+    if note:
+        d["note"] = note
+    return d

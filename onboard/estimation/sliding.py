@@ -291,10 +291,9 @@ class SlidingWindowEstimator:
             # a window the last selection called observable is warm-started alone (plus one fresh range
             # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
             res = self.map.solve(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
-            prob: WindowProblem = res.extras["problem"]
-            theta = res.extras["theta"]
+            prob, theta = res.problem, res.theta
             self._prior = res.prior
-            self._model = res.extras.get("model", "map")
+            self._model = res.model or "map"
             # the window's verdict for the online track: the model fits (adequacy) and the chosen model
             # is not a long shot; range itself is judged per frame, at the frame's own time
             cfg = self.map.config
@@ -313,7 +312,7 @@ class SlidingWindowEstimator:
             # frame they equal the batch result's model-averaged, inflated covariance
             own = self._estimate(prob, theta, t, J.T @ J, scale=1.0)
             # the batch covariance before the unobservable range floor (the floor is applied per frame)
-            P_last = res.extras["cov_p_model_ned_m2"][-1]
+            P_last = res.cov_p_model_ned_m2[-1]
             self._cov_scale = max(self.map.config.sigma_inflation ** 2,
                                   float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30)))
 
@@ -324,8 +323,9 @@ class SlidingWindowEstimator:
             prob = self.map.problem(obs, self._prior, self._grid)
             theta = self._shift(prob)
             prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
-            theta, cost, _, _, _ = prob.solve(theta, max_iterations=self.config.iterations_per_frame, want_factor=False)
-            if not math.isfinite(cost) or prob.last_jacobian is None:
+            sol = prob.solve(theta, max_iterations=self.config.iterations_per_frame, want_factor=False)
+            theta = sol.theta
+            if not math.isfinite(sol.cost) or prob.last_jacobian is None:
                 raise EstimationError("warm-started window solution is invalid (target behind the camera)")
             self.stats["updates"] += 1
         J = prob.last_jacobian

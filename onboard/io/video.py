@@ -1,18 +1,35 @@
-"""IR video for ground stations: AGC display mapping, track overlay, H.264 in MPEG-TS over UDP.
+"""IR video for ground stations: AGC display mapping, track overlay, H.264 over UDP as RTP or MPEG-TS.
 
 Pure parts (no sockets, no threads): :func:`agc_limits` / :func:`agc_u8` (the display mapping a
 thermal core applies: the 1st..99th percentile of the frame, smoothed over frames, stretched
 linearly onto 0..255, so mono16 and mono8 frames look alike and the sky does not flicker),
-:func:`draw_overlay` (the track box and its range / 1-sigma), :class:`H264TsEncoder` (PyAV's libx264:
-``preset ultrafast``, ``tune zerolatency``, no B-frames, an IDR every ``gop_frames`` frames with the
-SPS/PPS repeated, so a ground station can join at any second; MPEG-TS muxing into any ``write``-able).
+:func:`draw_overlay` (the track box and its range / 1-sigma), and two encoders over PyAV's libx264
+with the same settings (``preset ultrafast``, ``tune zerolatency``, no B-frames, an IDR every
+``gop_frames`` frames with the SPS/PPS repeated, so a ground station can join at any second):
+:class:`H264RtpEncoder` (access units packetised as RTP, RFC 6184, by
+:class:`onboard.io.rtp_h264.RtpH264Packetizer`: 90 kHz timestamps from each frame's capture time, the
+marker bit on an access unit's last packet) and :class:`H264TsEncoder` (MPEG-TS muxing into any
+``write``-able).
 
 Adapter: :class:`VideoStreamer` owns a thread and a UDP socket: :meth:`VideoStreamer.submit` (called by
 the pipeline thread, never blocks) keeps at most ``queue_length`` frames and drops the oldest when the
-encoder is behind (counted as ``dropped``); the thread maps, overlays, encodes and sends the MPEG-TS in
-datagrams of 7 x 188 bytes (1316, the customary MPEG-TS-over-UDP payload) to ``destination``.
-QGroundControl opens it as an MPEG-TS stream on that UDP port (VIDEO_STREAM_INFORMATION type
-MPEG_TS, uri = the port; :mod:`onboard.io.camera_protocol`).
+encoder is behind (counted as ``dropped``); the thread maps, overlays, encodes and sends to
+``destination``, by ``transport``:
+
+* ``rtp`` (default): one RTP packet per datagram, at most 1400 bytes.  A receiver that assembles the
+  picture at its marker bit (QGroundControl's GStreamer ``rtph264depay``) decodes it at once: capture
+  -> decoded p99 ~25-40 ms on loopback; FFmpeg's RTP demuxer (``ffplay stream.sdp``), whose parser waits
+  for the next picture, p99 ~60-65 ms (``python -m bench.video``, a loaded 2-core machine).
+  QGroundControl opens it as VIDEO_STREAM_INFORMATION type RTPUDP (1) with uri = the port (it listens
+  on ``udp://0.0.0.0:PORT``); FFmpeg / VLC through the session description of
+  :func:`onboard.io.rtp_h264.sdp`.
+* ``mpegts``: MPEG-TS in datagrams of 7 x 188 bytes (1316, the customary MPEG-TS-over-UDP payload);
+  type MPEG_TS (3), QGC opens ``mpegts://0.0.0.0:PORT``.  MPEG-TS carries video without a length, so a
+  demuxer knows a picture is complete only when the next one starts: about two frame periods more
+  latency than RTP (p99 ~90-100 ms).
+
+(:mod:`onboard.io.camera_protocol` advertises the stream; the mapping is
+:func:`onboard.io.camera_protocol.video_stream_type`.)
 """
 
 from __future__ import annotations
@@ -20,16 +37,20 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import random
 import socket
 import threading
 import time
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
 
-__all__ = ["agc_limits", "agc_u8", "AgcState", "draw_overlay", "H264TsEncoder", "VideoStreamer", "TS_DATAGRAM_BYTES"]
+__all__ = ["agc_limits", "agc_u8", "AgcState", "draw_overlay", "H264TsEncoder", "H264RtpEncoder", "VideoStreamer",
+           "TS_DATAGRAM_BYTES", "TRANSPORTS"]
 
 log = logging.getLogger(__name__)
 
@@ -39,6 +60,8 @@ AGC_LOW_PCT, AGC_HIGH_PCT = 1.0, 99.0
 AGC_SMOOTHING = 0.1  # weight of the newest frame's limits (exponential smoothing)
 AGC_MIN_SPAN = 8.0  # grey levels: a flat frame is not stretched into noise
 AGC_SAMPLE_STEP = 4  # percentiles over every 4th pixel in each direction (1/16 of the frame)
+TRANSPORTS = ("rtp", "mpegts")  # config video.transport
+SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
 
 
 def agc_limits(pixels: np.ndarray, low_pct: float = AGC_LOW_PCT, high_pct: float = AGC_HIGH_PCT,
@@ -95,6 +118,20 @@ def draw_overlay(img_u8: np.ndarray, track) -> np.ndarray:
     return out
 
 
+def _x264_options(gop_frames: int, bitrate_bps: int) -> dict[str, str]:
+    """libx264's low-latency settings: ultrafast, zerolatency, no B-frames, an IDR exactly every
+    ``gop_frames`` (no scene-cut IDRs) with SPS/PPS repeated in band, ABR with a VBV of one second."""
+    g, kbps = int(gop_frames), int(bitrate_bps) // 1000
+    return {"preset": "ultrafast", "tune": "zerolatency", "bf": "0", "g": str(g),
+            "x264-params": f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:"
+                           f"vbv-maxrate={kbps}:vbv-bufsize={kbps}"}
+
+
+def _check_size(width_px: int, height_px: int) -> None:
+    if width_px % 2 or height_px % 2:
+        raise InputError(f"H.264 4:2:0 needs even frame sizes, got {width_px} x {height_px}")
+
+
 class H264TsEncoder:
     """Grey frames -> H.264 in MPEG-TS written to ``sink`` (anything with ``write(bytes)``).
 
@@ -106,8 +143,7 @@ class H264TsEncoder:
                  gop_frames: int = 30) -> None:
         import av
 
-        if width_px % 2 or height_px % 2:
-            raise InputError(f"H.264 4:2:0 needs even frame sizes, got {width_px} x {height_px}")
+        _check_size(width_px, height_px)
         self.width_px, self.height_px = int(width_px), int(height_px)
         self.fps = float(fps)
         self._container = av.open(sink, mode="w", format="mpegts",
@@ -115,18 +151,16 @@ class H264TsEncoder:
         s = self._container.add_stream("libx264", rate=int(round(fps)))
         s.width, s.height, s.pix_fmt = self.width_px, self.height_px, "yuv420p"
         s.bit_rate = int(bitrate_bps)
-        g = int(gop_frames)
-        s.options = {"preset": "ultrafast", "tune": "zerolatency", "bf": "0", "g": str(g),
-                     "x264-params": f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:"
-                                    f"vbv-maxrate={int(bitrate_bps) // 1000}:vbv-bufsize={int(bitrate_bps) // 1000}"}
+        s.options = _x264_options(gop_frames, bitrate_bps)
         s.codec_context.thread_count = 1
         self._stream = s
         self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
         self._n = 0
         self.closed = False
 
-    def encode(self, img_u8: np.ndarray) -> int:
-        """Encode and mux one frame; returns the number of packets written."""
+    def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
+        """Encode and mux one frame; returns the number of packets written (``capture_time_us`` unused:
+        the MPEG-TS time stamps count frames)."""
         import av
 
         if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
@@ -146,6 +180,98 @@ class H264TsEncoder:
             self._container.mux(self._stream.encode(None))
         finally:
             self._container.close()
+
+
+class H264RtpEncoder:
+    """Grey frames -> H.264 access units -> RTP packets handed to ``send(datagram: bytes)``.
+
+    The encoder is libx264 with the settings of :class:`H264TsEncoder` (no container: its Annex B
+    output, SPS/PPS in band before every IDR); each access unit goes through an
+    :class:`~onboard.io.rtp_h264.RtpH264Packetizer` (random SSRC and first sequence number) with the
+    RTP timestamp of the frame's capture time (:func:`~onboard.io.rtp_h264.rtp_timestamp`, random
+    offset).  ``ssrc`` / ``rng`` make a stream reproducible in tests.
+    """
+
+    def __init__(self, send, width_px: int, height_px: int, fps: float = 30.0, bitrate_bps: int = 2_000_000,
+                 gop_frames: int = 30, payload_type: int = DEFAULT_PAYLOAD_TYPE,
+                 max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES, rng: random.Random | None = None) -> None:
+        import av
+
+        _check_size(width_px, height_px)
+        self.width_px, self.height_px = int(width_px), int(height_px)
+        self.fps = float(fps)
+        rng = rng or random.SystemRandom()
+        self.packetizer = RtpH264Packetizer(rng.getrandbits(32), payload_type, max_packet_bytes,
+                                            first_sequence=rng.getrandbits(16))
+        self._ts_offset = rng.getrandbits(32)
+        self._send = send
+        ctx = av.CodecContext.create("libx264", "w")
+        ctx.width, ctx.height, ctx.pix_fmt = self.width_px, self.height_px, "yuv420p"
+        rate = Fraction(int(round(fps)), 1)
+        ctx.framerate, ctx.time_base = rate, 1 / rate
+        ctx.bit_rate = int(bitrate_bps)
+        ctx.options = _x264_options(gop_frames, bitrate_bps)
+        ctx.thread_count = 1
+        ctx.open()
+        self._ctx = ctx
+        self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
+        self._n = 0
+        self.packets = 0
+        self.closed = False
+
+    def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
+        """Encode one frame captured at ``capture_time_us`` (any monotonic microsecond clock; None: now)
+        and send its RTP packets; returns their number."""
+        import av
+
+        if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
+            raise InputError(f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}")
+        if capture_time_us is None:
+            capture_time_us = time.monotonic_ns() // 1000
+        frame = av.VideoFrame.from_ndarray(np.vstack([img_u8, self._chroma]), format="yuv420p")
+        frame.pts = self._n
+        self._n += 1
+        return self._send_units(self._ctx.encode(frame), rtp_timestamp(capture_time_us, self._ts_offset))
+
+    def _send_units(self, packets, timestamp: int) -> int:
+        n = 0
+        for packet in packets:  # zerolatency, no B-frames: one access unit out per frame in
+            for datagram in self.packetizer.packetize(bytes(packet), timestamp):
+                self._send(datagram)
+                n += 1
+        self.packets += n
+        return n
+
+    def close(self) -> None:
+        if self.closed:
+            return
+        self.closed = True
+        # nothing is held back (zerolatency: no lookahead), so there is nothing to flush onto the wire
+
+
+class _UdpRtpSink:
+    """RTP packets -> one UDP datagram each."""
+
+    def __init__(self, host: str, port: int) -> None:
+        infos = socket.getaddrinfo(host, port, 0, socket.SOCK_DGRAM)
+        family, _, _, _, self.addr = infos[0]
+        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+        self.datagrams = 0
+        self.errors = 0
+
+    def send(self, datagram: bytes) -> None:
+        try:
+            self.sock.sendto(datagram, self.addr)
+            self.datagrams += 1
+        except OSError:
+            self.errors += 1  # nobody listening (ICMP refused) or a full buffer: the next packet goes on
+
+    def flush(self) -> None:
+        """Nothing buffered: each packet left as it was made."""
+
+    def close(self) -> None:
+        self.sock.close()
 
 
 class _UdpTsSink:
@@ -196,14 +322,22 @@ class VideoStreamer:
     """The encoder thread (module docstring).  ``submit`` from the pipeline thread; ``close`` to stop."""
 
     def __init__(self, destination: str, width_px: int, height_px: int, fps: float = 30.0,
-                 bitrate_bps: int = 2_000_000, gop_s: float = 1.0, overlay: bool = True, queue_length: int = 2) -> None:
+                 bitrate_bps: int = 2_000_000, gop_s: float = 1.0, overlay: bool = True, queue_length: int = 2,
+                 transport: str = "rtp") -> None:
         host, port = parse_destination(destination)
+        if transport not in TRANSPORTS:
+            raise InputError(f"video.transport: expected one of {', '.join(TRANSPORTS)}, got {transport!r}")
         self.destination = destination
         self.port = port
+        self.transport = transport
         self.overlay = bool(overlay)
-        self._sink = _UdpTsSink(host, port)
-        self._encoder = H264TsEncoder(self._sink, width_px, height_px, fps, bitrate_bps,
-                                      max(1, int(round(gop_s * fps))))
+        gop_frames = max(1, int(round(gop_s * fps)))
+        if transport == "rtp":
+            self._sink = _UdpRtpSink(host, port)
+            self._encoder = H264RtpEncoder(self._sink.send, width_px, height_px, fps, bitrate_bps, gop_frames)
+        else:
+            self._sink = _UdpTsSink(host, port)
+            self._encoder = H264TsEncoder(self._sink, width_px, height_px, fps, bitrate_bps, gop_frames)
         self._agc = AgcState()
         self._q: collections.deque = collections.deque()
         self._maxlen = int(queue_length)
@@ -217,14 +351,17 @@ class VideoStreamer:
         self._thread = threading.Thread(target=self._run, name="irtrack-video", daemon=True)
         self._thread.start()
 
-    def submit(self, pixels: np.ndarray, track=None) -> None:
-        """Queue a frame (and its track, for the overlay); never blocks; drops the oldest when full."""
+    def submit(self, pixels: np.ndarray, track=None, capture_time_us: int | None = None) -> None:
+        """Queue a frame (and its track, for the overlay) captured at ``capture_time_us`` (the frame's
+        ``time_boot_us``; None: the time of this call), never blocks; drops the oldest when full."""
+        if capture_time_us is None:
+            capture_time_us = time.monotonic_ns() // 1000
         with self._cond:
             self.frames_in += 1
             while len(self._q) >= self._maxlen:
                 self._q.popleft()
                 self.frames_dropped += 1
-            self._q.append((pixels, track))
+            self._q.append((pixels, track, int(capture_time_us)))
             self._cond.notify()
 
     def _run(self) -> None:
@@ -234,14 +371,14 @@ class VideoStreamer:
                     self._cond.wait(0.5)
                 if self._stop:
                     return
-                pixels, track = self._q.popleft()
+                pixels, track, capture_time_us = self._q.popleft()
             t0 = time.perf_counter()
             try:
                 lo, hi = self._agc.update(pixels)
                 img = agc_u8(pixels, lo, hi)
                 if self.overlay:
                     img = draw_overlay(img, track)
-                self._encoder.encode(img)
+                self._encoder.encode(img, capture_time_us)
                 self._sink.flush()
                 self.frames_encoded += 1
             except Exception as exc:  # noqa: BLE001 - video must never take the daemon down
@@ -254,6 +391,7 @@ class VideoStreamer:
         ms = np.asarray(self.encode_ms, dtype=float)
         return {
             "destination": self.destination,
+            "transport": self.transport,
             "frames_in": self.frames_in,
             "encoded": self.frames_encoded,
             "dropped": self.frames_dropped,

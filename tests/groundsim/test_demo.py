@@ -20,10 +20,9 @@ from groundsim.evaluation.demo import (
     ProcCpu,
     TrackStore,
     TruthTail,
-    _aligned,
+    aligned_arrays,
     daemon_command,
     format_demo_table,
-    free_port,
     plan_demo,
     score_demo,
     sim_command,
@@ -76,16 +75,6 @@ def test_plan_keeps_a_long_enough_scenario_and_rejects_bad_options(tmp_path):
         plan_demo("P1", 4.0, -3, tmp_path, None)
     with pytest.raises(ConfigError, match="--onboard-config nope.yaml: no such file"):
         plan_demo("P1", 4.0, 0, tmp_path, "nope.yaml")
-
-
-@pytest.mark.integration
-def test_free_ports_are_bindable():
-    import socket
-
-    for kind, typ in (("tcp", socket.SOCK_STREAM), ("udp", socket.SOCK_DGRAM)):
-        port = free_port(kind)
-        with socket.socket(socket.AF_INET, typ) as s:
-            s.bind(("127.0.0.1", port))
 
 
 # --------------------------------------------------------------------------- collectors and formatting
@@ -160,7 +149,7 @@ def test_scoring_matches_truth_by_capture_time(tmp_path):
     for r in rows[15:]:  # observable, 0.5 m off
         store.on_track(json.dumps(_track_msg(r, (0.0, 0.3, 0.4), observable=True, origin=sc.origin)).encode())
     assert store.bad == 0
-    a = _aligned(tail, store.tracks, sc.origin)
+    a = aligned_arrays(tail, store.tracks, sc.origin)
     s = score_demo(a)
     assert (s["frames"], s["frames_with_estimate"], s["frames_observable"]) == (30, 25, 15)
     assert s["continuity"] == pytest.approx(0.5)

@@ -14,21 +14,20 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
 from groundsim.io.mavlink_vehicle import BATTERY_CELLS, DEFAULT_PARAMS, MavlinkVehicle
+from groundsim.io.ports import free_udp_port
 from tests.groundsim.test_mavlink_vehicle import (
     ALT_AMSL_M,
     LAT_DEG,
     LON_DEG,
     WAIT_S,
-    _free_udp_port,
     _pump_thread,
-    _state,
 )
 
 
 @pytest.fixture
 def gcs():
     """(rx, vehicle, pump stop event): a pymavlink ground station and a vehicle pumped in real time."""
-    port = _free_udp_port()
+    port = free_udp_port()
     rx = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255, source_component=190)
     rx.mav = mav.MAVLink(rx, srcSystem=255, srcComponent=190)
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
@@ -126,7 +125,7 @@ def test_mavsdk_reads_health_home_gps_and_battery_with_nothing_denied():
     mavsdk = pytest.importorskip("mavsdk")
     from mavsdk.plugins.telemetry.telemetry import Telemetry
 
-    port = _free_udp_port()
+    port = free_udp_port()
     sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
     stop = threading.Event()

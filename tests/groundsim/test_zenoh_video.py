@@ -10,6 +10,7 @@ import time
 import numpy as np
 import pytest
 
+from groundsim.io.ports import free_tcp_port
 from groundsim.io.zenoh_video import FramePublisher
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.irframe import IrFrame, decode_irframe, encode_irframe
@@ -30,12 +31,6 @@ pytestmark = pytest.mark.timeout(30)
 DELIVERY_TIMEOUT_S = 10.0  # a frame must cross the loopback within this
 
 
-def _free_tcp_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _frame(seq: int, h=512, w=640) -> IrFrame:
     rng = np.random.default_rng(seq)
     return IrFrame(seq=seq, time_boot_us=1_000_000 + 40_000 * seq, pixels=rng.integers(0, 2**16, (h, w), dtype=np.uint16))
@@ -44,7 +39,7 @@ def _frame(seq: int, h=512, w=640) -> IrFrame:
 @pytest.fixture
 def peers():
     """A listening peer on a free loopback port and a peer that connects to it."""
-    ep = f"tcp/127.0.0.1:{_free_tcp_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     listener = open_session(ZenohSettings(listen=(ep,)))
     connector = open_session(ZenohSettings(connect=(ep,)))
     try:
@@ -144,7 +139,7 @@ def test_listen_port_in_use_is_a_typed_one_line_error():
 
 @pytest.mark.integration
 def test_unreachable_peer_does_not_fail_open_and_joins_later():
-    ep = f"tcp/127.0.0.1:{_free_tcp_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     late = open_session(ZenohSettings(connect=(ep,)))  # nobody listening yet
     try:
         assert not late.is_closed()
@@ -161,7 +156,7 @@ def test_unreachable_peer_does_not_fail_open_and_joins_later():
 
 @pytest.mark.integration
 def test_connect_timeout_makes_an_unreachable_peer_a_typed_error():
-    ep = f"tcp/127.0.0.1:{_free_tcp_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     t0 = time.monotonic()
     with pytest.raises(ZenohSessionError) as e:
         open_session(ZenohSettings(connect=(ep,), connect_timeout_s=0.5))

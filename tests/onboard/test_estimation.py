@@ -114,11 +114,12 @@ def test_lm_returns_the_jacobian_and_factor_of_the_solution_it_returns(q, start_
     est = MapEstimator(noise=estimator_noise_model(nc))
     prob = est.problem(obs, MotionPrior(q, q / 4, 0.3))
     th0 = prob.theta_from_positions(obs.p_cam_ned_m + start_m * obs.bearings_ned())
-    th, cost, its, conv, fac = prob.solve(th0, 40, cost_tol=cost_tol)
-    assert math.isfinite(cost) and fac is not None
+    sol = prob.solve(th0, 40, cost_tol=cost_tol)
+    fac = sol.factor
+    assert math.isfinite(sol.cost) and fac is not None
     J_returned = prob.last_jacobian.copy()
-    r, J, _ = prob.evaluate(th)
-    assert 0.5 * float(r @ r) == pytest.approx(cost, rel=1e-12)
+    r, J, _ = prob.evaluate(sol.theta)
+    assert 0.5 * float(r @ r) == pytest.approx(sol.cost, rel=1e-12)
     np.testing.assert_allclose(J_returned, J, rtol=1e-12, atol=1e-12 * np.abs(J).max())
     R, d = prob.factor(J)
     np.testing.assert_allclose(np.abs(fac[0]), np.abs(R), rtol=1e-9, atol=1e-9 * np.abs(R).max())
@@ -131,11 +132,11 @@ def test_a_solve_collapsing_onto_the_camera_track_is_stopped_and_dropped():
     est = MapEstimator(noise=estimator_noise_model(nc))
     prob = est.problem(obs, MotionPrior(0.1, 0.025, 0.0))
     th0 = prob.theta_from_positions(obs.p_cam_ned_m + 40.0 * obs.bearings_ned())
-    th, cost, its, conv, fac = prob.solve(th0, 60)
-    assert np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)) < est.config.min_range_m
-    th, cost, its_floor, conv, fac = prob.solve(th0, 60, min_range_m=est.config.min_range_m)
-    assert cost == math.inf and fac is None and prob.last_jacobian is None
-    assert its_floor < its
+    free = prob.solve(th0, 60)
+    assert np.mean(np.linalg.norm(prob.positions(free.theta) - obs.p_cam_ned_m, axis=1)) < est.config.min_range_m
+    floored = prob.solve(th0, 60, min_range_m=est.config.min_range_m)
+    assert floored.cost == math.inf and floored.factor is None and not floored.converged and prob.last_jacobian is None
+    assert floored.iterations < free.iterations
 
 
 def _beyond_3sigma(res, truth):
@@ -150,10 +151,34 @@ def test_map_recovers_the_reference_trajectories_honestly(name, family, seed):
     _, nc, truth, obs = _synth(name, "px0.3", seed)
     res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
     frac, e = _beyond_3sigma(res, truth)
-    assert res.extras["model"] == family
+    assert res.model == family
     assert res.observable
     assert np.mean(e / truth.range_m) < 0.02  # 2 % of range; the medians are far lower (bench)
     assert frac <= 0.01
+
+
+def test_the_result_names_the_selection_and_the_solution_it_came_from():
+    """Typed result fields (issue 10 item 5): the selection's figures agree with each other, the solution's
+    problem and parameters reproduce its positions, and a fixed prior reports no selection."""
+    _, nc, truth, obs = _synth("P3", "RTK", 1)
+    est = MapEstimator(noise=estimator_noise_model(nc))
+    res = est.solve(obs)
+    assert res.model == res.prior.family and res.model in res.family_log_evidence
+    for fam, grid in res.grid_log_evidence.items():  # a family's evidence is the sum over its q grid
+        assert res.family_log_evidence[fam] == pytest.approx(float(np.logaddexp.reduce([ev for _, ev in grid])), abs=1e-9)
+    assert res.prior.q_horizontal_m2ps3 in [q for q, _ in res.grid_log_evidence[res.model]]
+    assert 0.0 < res.best_model_weight <= 1.0
+    np.testing.assert_allclose(res.problem.positions(res.theta), res.p_ned_m, rtol=0, atol=1e-9)
+    if res.observable:  # the range floor only widens an unobservable solution's covariance
+        np.testing.assert_array_equal(res.cov_p_model_ned_m2, res.cov_p_ned_m2)
+    else:
+        assert np.all(np.einsum("fii->f", res.cov_p_ned_m2) >= np.einsum("fii->f", res.cov_p_model_ned_m2))
+    fixed = est.solve(obs, res.prior)
+    assert fixed.model is None and fixed.family_log_evidence is None and fixed.best_model_weight is None
+    assert fixed.prior == res.prior and fixed.theta.shape == (fixed.problem.n_params,)
+    best, modes = est.solve_prior(obs, res.prior, max_modes=3)
+    assert best is modes[0] and [m.log_evidence for m in modes] == sorted((m.log_evidence for m in modes), reverse=True)
+    assert all(m.problem.prior == res.prior and np.isfinite(m.cost) and m.factor is not None for m in modes)
 
 
 def test_camera_track_smoothing_keeps_the_rest_and_cuts_the_jitter():
@@ -183,9 +208,9 @@ def test_raw_jittery_camera_positions_pull_towards_a_far_target_smoothed_ones_do
     raw = MapEstimator(MapConfig(camera_track_knot_s=0.0), noise=estimator_noise_model(nc)).solve(obs)
     res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
     err = lambda r: float(np.mean(np.linalg.norm(r.p_ned_m - truth.p_target_ned_m, axis=1) / truth.range_m))  # noqa: E731
-    fam_raw, fam = raw.extras["family_log_evidence"], res.extras["family_log_evidence"]
+    fam_raw, fam = raw.family_log_evidence, res.family_log_evidence
     assert fam_raw["ca"] - fam_raw["cv"] > 10 and err(raw) > 0.5
-    assert fam["cv"] > fam["ca"] and res.extras["model"] == "cv" and err(res) < 0.05
+    assert fam["cv"] > fam["ca"] and res.model == "cv" and err(res) < 0.05
     frac, _ = _beyond_3sigma(res, truth)
     assert frac <= 0.01
 

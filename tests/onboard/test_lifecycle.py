@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
 import pytest
+
+from groundsim.io.ports import free_tcp_port, free_udp_port
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -19,18 +20,12 @@ START_BUDGET_S = 45.0  # imports + zenoh session on a loaded 2-core box
 STOP_BUDGET_S = 5.0
 
 
-def _free_port(kind) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_sighup_is_a_clean_exit(tmp_path):
     alive = tmp_path / "alive"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{_free_port(socket.SOCK_DGRAM)}",
-         "--zenoh-listen", f"tcp/127.0.0.1:{_free_port(socket.SOCK_STREAM)}", "--set", f"output.health_file={alive}"],
+        [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}",
+         "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--set", f"output.health_file={alive}"],
         cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
     try:

@@ -234,14 +234,15 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
     tracks (irtrack.track/2) and scene updates as they happen; the daemon still exits 0 on SIGTERM."""
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-    from groundsim.evaluation.demo import _child_env, daemon_command, free_port, plan_demo, sim_command
+    from groundsim.evaluation.demo import child_env, daemon_command, plan_demo, sim_command
+    from groundsim.io.ports import free_tcp_port
 
-    port = free_port("tcp")
+    port = free_tcp_port()
     plan = plan_demo("P1", 30.0, 0, tmp_path, str(REPO / "config" / "onboard_sim.yaml"))
     import dataclasses
 
     plan = dataclasses.replace(plan, live_view_port=port)
-    env = _child_env()
+    env = child_env()
     daemon = sim = None
     with open(tmp_path / "onboard.log", "wb") as dlog, open(tmp_path / "sim.log", "wb") as slog:
         try:

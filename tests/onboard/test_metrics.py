@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.stats import chi2
 
 from onboard.core.errors import InputError
-from onboard.estimation.metrics import ErrorReport, evaluate, nees_interval_95
+from onboard.estimation.metrics import ErrorReport, evaluate, nees_interval_95, score_frames
 
 EXACT_TOL = 1e-12
 INTERVAL_TOL = 1e-9  # gammaincinv vs scipy.stats.chi2.ppf
@@ -153,3 +153,30 @@ def test_report_validates_frames_and_interval_args():
                     mean_error_m=0, max_error_m=0, error_norm_m=np.zeros(0))
     with pytest.raises(InputError, match="frames and dof"):
         nees_interval_95(0)
+
+
+# ---------------------------------------------------------------------------------------- score_frames
+
+
+def test_score_frames_scores_the_selected_rows_in_per_cent():
+    """The one scoring path of eval, the demo and the harnesses: the selected rows only, per cent figures."""
+    truth, est, cam = (np.vstack([a, [[1e3, 1e3, 1e3]]]) for a in (TRUTH, EST, CAM))
+    est[2] += 500.0  # a wild third row that the selection leaves out
+    d = score_frames(truth, est, cam, None, [True, True, False])
+    assert d["frames"] == 2
+    assert d["err_range_pct"] == pytest.approx(100 * (1 / 4 + 2 / 5) / 2, abs=EXACT_TOL)
+    assert d["err_paper_pct"] == pytest.approx(100 * (1 / 5 + 2 / 10) / 2, abs=EXACT_TOL)
+    assert d["rmse_m"] == pytest.approx(math.sqrt(2.5), abs=EXACT_TOL) and d["mean_nees"] is None
+    assert "note" not in d and json.loads(json.dumps(d)) == d
+    assert score_frames(truth, est, cam, None, np.zeros(3, bool)) is None
+
+
+def test_score_frames_reports_a_refused_covariance_and_keeps_the_errors():
+    cov = np.stack([np.eye(3), np.diag([1.0, -1.0, 1.0])])  # the second is not positive definite
+    d = score_frames(TRUTH, EST, CAM, cov, [True, True])
+    assert "cov[1] is not positive definite" in d["note"] and d["mean_nees"] is None
+    assert d["err_range_pct"] == pytest.approx(100 * (1 / 4 + 2 / 5) / 2, abs=EXACT_TOL)
+    ok = score_frames(TRUTH, EST, CAM, cov, [True, False])  # the refused row not selected: scored with covariance
+    assert "note" not in ok and ok["mean_nees"] == pytest.approx(1.0, abs=EXACT_TOL)  # e = (0, 0, 1), P = I
+    with pytest.raises(InputError, match="est_p_ned_m row 0 is not finite"):  # bad points are never hidden
+        score_frames(TRUTH, np.full((2, 3), np.nan), CAM, cov, [True, True])

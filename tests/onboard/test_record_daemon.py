@@ -61,12 +61,12 @@ def _kill(proc: subprocess.Popen | None, sig=signal.SIGTERM, wait_s: float = 10.
 def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_s: float | None = None,
                 extra_daemon_args: tuple = ()) -> RecordedRun:
     """Daemon (worker inline, --record) then simulator (--record, real time) on loopback; returns what they wrote."""
-    from groundsim.evaluation.demo import TrackStore, _child_env, _close_zenoh, _tail, daemon_command, plan_demo, sim_command
+    from groundsim.evaluation.demo import TrackStore, child_env, close_zenoh, daemon_command, log_tail, plan_demo, sim_command
     from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
 
     out.mkdir(parents=True, exist_ok=True)
     plan = plan_demo("P1", duration_s, 0, out, str(ONBOARD_CONFIG))
-    env = _child_env()
+    env = child_env()
     d_mcap, s_mcap = out / "daemon.mcap", out / "sim.mcap"
     dcmd = daemon_command(plan) + ["--record", str(d_mcap), "--set", "estimator.worker=inline", *extra_daemon_args]
     scmd = sim_command(plan) + ["--record", str(s_mcap)]
@@ -84,20 +84,20 @@ def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_
             status_key(plan.vehicle), lambda s: (encodings.add(str(s.encoding)), store.on_status(s.payload.to_bytes()))))
         t_ready = time.monotonic() + READY_TIMEOUT_S
         while not store.ready.wait(0.1):
-            assert daemon.poll() is None, f"daemon exited {daemon.returncode}:\n{_tail(out / 'onboard.log')}"
-            assert time.monotonic() < t_ready, f"no daemon status within {READY_TIMEOUT_S} s:\n{_tail(out / 'onboard.log')}"
+            assert daemon.poll() is None, f"daemon exited {daemon.returncode}:\n{log_tail(out / 'onboard.log')}"
+            assert time.monotonic() < t_ready, f"no daemon status within {READY_TIMEOUT_S} s:\n{log_tail(out / 'onboard.log')}"
         sim = _start(scmd, out / "sim.log", env)
         t0 = time.monotonic()
         deadline = t0 + duration_s + SIM_ALLOWANCE_S
         while sim.poll() is None:
-            assert daemon.poll() is None, f"daemon crashed {daemon.returncode}:\n{_tail(out / 'onboard.log')}"
-            assert time.monotonic() < deadline, f"simulator stuck:\n{_tail(out / 'sim.log')}"
+            assert daemon.poll() is None, f"daemon crashed {daemon.returncode}:\n{log_tail(out / 'onboard.log')}"
+            assert time.monotonic() < deadline, f"simulator stuck:\n{log_tail(out / 'sim.log')}"
             if kill_daemon_after_s is not None and time.monotonic() - t0 > kill_daemon_after_s and store.tracks:
                 daemon_rc = _kill(daemon, signal.SIGKILL)
                 break
             time.sleep(0.05)
         if kill_daemon_after_s is None:
-            assert sim.returncode == 0, f"simulator exited {sim.returncode}:\n{_tail(out / 'sim.log')}"
+            assert sim.returncode == 0, f"simulator exited {sim.returncode}:\n{log_tail(out / 'sim.log')}"
             last = len(store.tracks)
             t_end = time.monotonic() + 5.0
             while time.monotonic() < t_end:  # the daemon drains its queue
@@ -106,7 +106,7 @@ def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_
                     break
                 last = len(store.tracks)
     finally:
-        _close_zenoh(subs, session)
+        close_zenoh(subs, session)
         sim_rc = _kill(sim)
         if daemon_rc is None:
             daemon_rc = _kill(daemon)

@@ -4,25 +4,26 @@ another schema."""
 
 from __future__ import annotations
 
-import socket
 import threading
 
 import numpy as np
 import pytest
 
+from groundsim.io.ports import free_tcp_port
 from onboard.app.config import build_config
-from onboard.core.irframe import IrFrame, encode_irframe
 from onboard.app.service import OnboardService
-from onboard.io.zenoh_session import (FRAME_ENCODING, STATUS_ENCODING, TRACK_ENCODING, ZenohSettings, encoding_schema,
-                                   frame_key, open_session)
+from onboard.core.irframe import IrFrame, encode_irframe
+from onboard.io.zenoh_session import (
+    FRAME_ENCODING,
+    STATUS_ENCODING,
+    TRACK_ENCODING,
+    ZenohSettings,
+    encoding_schema,
+    frame_key,
+    open_session,
+)
 
 WAIT_S = 10.0
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def test_encoding_schema_reads_typed_and_untyped():
@@ -38,7 +39,7 @@ def test_frame_publisher_sends_typed_frames_that_a_generic_subscriber_sees():
 
     from groundsim.io.zenoh_video import FramePublisher
 
-    ep = f"tcp/127.0.0.1:{_free_port()}"
+    ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     a = open_session(ZenohSettings(listen=(ep,)))
     b = open_session(ZenohSettings(connect=(ep,)))
     got, ev = [], threading.Event()

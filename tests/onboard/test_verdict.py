@@ -56,7 +56,7 @@ def test_unobservable_results_are_flagged_and_still_honest(name, noise, seeds):
         res, err, beyond = _run(name, noise, s)
         assert not res.observable
         assert beyond <= HONEST_BEYOND_3SIGMA, f"{name} {noise} seed {s}: {beyond:.1%} beyond 3 sigma (err {err:.0%})"
-        los = res.p_ned_m - res.extras["problem"].obs.p_cam_ned_m
+        los = res.p_ned_m - res.problem.obs.p_cam_ned_m
         r = np.linalg.norm(los, axis=1)
         u = los / r[:, None]
         sig_r = np.sqrt(np.einsum("fi,fij,fj->f", u, res.cov_p_ned_m2, u))

@@ -1,6 +1,9 @@
 """IR video: AGC mapping, overlay, H.264/MPEG-TS round trip decoded by an independent decoder (PyAV's
-FFmpeg decoder), the UDP streamer on 127.0.0.1 (>= 95 % of frames, the target visible where it is),
-drop-oldest without blocking, and the stream advertised by the camera component."""
+FFmpeg decoder), the RTP stream's packets (RFC 6184 on the wire), the UDP streamer on 127.0.0.1 for both
+transports (RTP received by FFmpeg's own RTP demuxer through an SDP file written here, MPEG-TS by its
+MPEG-TS demuxer: >= 95 % of frames, of the right size, the target visible where it is), the
+receivers a ground station would use, drop-oldest without blocking, and the stream advertised by the
+camera component with the type of its transport."""
 
 from __future__ import annotations
 
@@ -15,13 +18,25 @@ import pytest
 
 av = pytest.importorskip("av")
 
-from onboard.io.video import AgcState, H264TsEncoder, VideoStreamer, agc_limits, agc_u8, draw_overlay  # noqa: E402
+from onboard.io.rtp_h264 import depacketize, parse_rtp, rtp_timestamp  # noqa: E402
+from onboard.io.video import (  # noqa: E402
+    AgcState,
+    H264RtpEncoder,
+    H264TsEncoder,
+    VideoStreamer,
+    agc_limits,
+    agc_u8,
+    draw_overlay,
+)
 
 W, H = 640, 512
 N_FRAMES = 90  # 3 s at 30 Hz: three IDR periods
 TARGET_MIN_GREY = 200  # the target's centre in the decoded frame (AGC maps it near the top)
 SKY_MAX_GREY = 200
 WAIT_S = 20.0
+FRAME_US = 33_333  # 30 Hz
+RTP_TICKS_PER_FRAME = 3000  # 90 kHz / 30 Hz (33 333 us -> 2999.97, floored per frame: 2999 or 3000)
+MAX_DATAGRAM = 1400
 
 
 def _mono16(k: int) -> tuple[np.ndarray, tuple[int, int]]:
@@ -93,9 +108,125 @@ def test_encoder_round_trip_every_frame_with_an_idr_each_second():
     assert len(frames) == N_FRAMES
 
 
+def test_rtp_packets_are_rfc6184_with_capture_timestamps_markers_and_headers_before_each_idr():
+    import random
+
+    datagrams: list[bytes] = []
+    enc = H264RtpEncoder(datagrams.append, W, H, fps=30.0, gop_frames=30, rng=random.Random(3))
+    agc = AgcState()
+    units: list[list] = []
+    for k in range(N_FRAMES):
+        img, _ = _mono16(k)
+        n0 = len(datagrams)
+        enc.encode(agc_u8(img, *agc.update(img)), capture_time_us=1_000_000 + k * FRAME_US)
+        units.append([parse_rtp(d) for d in datagrams[n0:]])
+    enc.close()
+    assert all(len(d) <= MAX_DATAGRAM for d in datagrams)
+    seqs = [p.sequence for unit in units for p in unit]
+    assert all((b - a) % 65536 == 1 for a, b in zip(seqs, seqs[1:]))  # consecutive across frames
+    ts = [unit[0].timestamp for unit in units]
+    assert all({p.timestamp for p in unit} == {t} for unit, t in zip(units, ts))  # one timestamp per frame
+    assert [(b - a) % 2**32 for a, b in zip(ts, ts[1:])] == [
+        rtp_timestamp(1_000_000 + (k + 1) * FRAME_US) - rtp_timestamp(1_000_000 + k * FRAME_US) for k in range(N_FRAMES - 1)]
+    assert all(abs(d - RTP_TICKS_PER_FRAME) <= 1 for d in (b - a for a, b in zip(ts, ts[1:])))
+    assert all([p.marker for p in unit] == [False] * (len(unit) - 1) + [True] for unit in units)
+    for k, unit in enumerate(units):
+        types = [n[0] & 0x1F for n in depacketize([p.payload for p in unit])]
+        if k % 30 == 0:
+            assert types[:2] == [7, 8] and 5 in types, f"frame {k}: NAL types {types}"  # SPS, PPS, IDR
+        else:
+            assert 5 not in types and 7 not in types, f"frame {k}: NAL types {types}"
+    assert max(len(unit) for unit in units) > 1 and any(p.payload[0] & 0x1F == 28 for u in units for p in u)  # FU-A
+
+
+def _udp_bound(port: int) -> bool:
+    """Someone has bound UDP ``port`` on this machine (Linux: /proc/net/udp); no bind of ours to race it."""
+    for name in ("/proc/net/udp", "/proc/net/udp6"):
+        try:
+            with open(name) as f:
+                rows = f.read().splitlines()[1:]  # "sl local_address rem_address st ...", address = HEXIP:HEXPORT
+        except OSError:
+            continue
+        if any(int(row.split()[1].rpartition(":")[2], 16) == port for row in rows if len(row.split()) > 1):
+            return True
+    return False
+
+
+def _stream(destination: str, transport: str) -> tuple[dict, list]:
+    """N_FRAMES through a VideoStreamer at once (queue long enough for all); (status, truth (u, v) per frame)."""
+    streamer = VideoStreamer(destination, W, H, fps=30.0, overlay=False, queue_length=N_FRAMES, transport=transport)
+    truth = []
+    try:
+        for k in range(N_FRAMES):
+            img, uv = _mono16(k)
+            truth.append(uv)
+            streamer.submit(img, capture_time_us=k * FRAME_US)
+        deadline = time.monotonic() + WAIT_S
+        while streamer.frames_encoded < N_FRAMES and time.monotonic() < deadline:
+            threading.Event().wait(0.05)
+        st = streamer.status()
+    finally:
+        streamer.close()
+    assert st["encoded"] == N_FRAMES and st["dropped"] == 0 and st["errors"] == 0, st
+    assert st["transport"] == transport
+    return st, truth
+
+
+def _assert_target_seen(frames: list[np.ndarray], truth: list) -> None:
+    assert len(frames) >= math.ceil(0.95 * N_FRAMES), f"decoded {len(frames)} of {N_FRAMES}"
+    assert all(img.shape == (H, W) for img in frames)
+    seen = sum(img[v, u] >= TARGET_MIN_GREY and np.percentile(img, 50) < SKY_MAX_GREY
+               for img, (u, v) in zip(frames, truth))
+    assert seen >= math.ceil(0.95 * N_FRAMES)
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(60)
-def test_udp_stream_is_decoded_with_the_target_where_it_is():
+def test_rtp_stream_is_decoded_by_ffmpegs_rtp_demuxer_from_an_sdp_file(tmp_path):
+    from groundsim.io.video_rx import free_rtp_port
+
+    port = free_rtp_port()
+    sdp_path = tmp_path / "stream.sdp"
+    # written here, by hand, not by onboard.io.rtp_h264.sdp: what a user would type for ffplay / VLC
+    sdp_path.write_text("v=0\no=- 0 0 IN IP4 127.0.0.1\ns=test\nc=IN IP4 127.0.0.1\nt=0 0\n"
+                        f"m=video {port} RTP/AVP 96\na=rtpmap:96 H264/90000\na=fmtp:96 packetization-mode=1\n")
+    frames: list[np.ndarray] = []
+    result: dict = {}
+    opened = threading.Event()
+
+    def receive():
+        try:
+            c = av.open(str(sdp_path), format="sdp", options={"protocol_whitelist": "file,udp,rtp"},
+                        timeout=(WAIT_S, 2.0))
+        except Exception as exc:  # noqa: BLE001 - reported below
+            result["error"] = repr(exc)
+            return
+        try:
+            opened.set()
+            result["size"] = (c.streams.video[0].codec_context.width, c.streams.video[0].codec_context.height)
+            for pkt in c.demux(video=0):
+                frames.extend(f.to_ndarray(format="gray") for f in pkt.decode())
+        except av.error.ExitError:
+            pass  # 2 s without a packet: the stream is over
+        finally:
+            c.close()
+
+    th = threading.Thread(target=receive, daemon=True)
+    th.start()
+    deadline = time.monotonic() + WAIT_S
+    while not _udp_bound(port):  # FFmpeg listens before the first IDR leaves
+        assert time.monotonic() < deadline and th.is_alive(), f"FFmpeg never bound port {port}: {result}"
+        threading.Event().wait(0.01)
+    _, truth = _stream(f"127.0.0.1:{port}", "rtp")
+    th.join(WAIT_S)
+    assert not th.is_alive() and "error" not in result, result
+    assert result["size"] == (W, H)
+    _assert_target_seen(frames, truth)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_mpegts_stream_is_decoded_with_the_target_where_it_is():
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     rx.bind(("127.0.0.1", 0))
     rx.settimeout(0.2)
@@ -107,37 +238,52 @@ def test_udp_stream_is_decoded_with_the_target_where_it_is():
         while not done.is_set():
             try:
                 chunks.append(rx.recv(65536))
-            except socket.timeout:
+            except TimeoutError:
                 continue
 
     th = threading.Thread(target=receive, daemon=True)
     th.start()
-    streamer = VideoStreamer(f"127.0.0.1:{port}", W, H, fps=30.0, overlay=False, queue_length=N_FRAMES)
-    truth = []
     try:
-        for k in range(N_FRAMES):
-            img, uv = _mono16(k)
-            truth.append(uv)
-            streamer.submit(img)
-        deadline = time.monotonic() + WAIT_S
-        while streamer.frames_encoded < N_FRAMES and time.monotonic() < deadline:
-            done.wait(0.05)
-        st = streamer.status()
+        _, truth = _stream(f"127.0.0.1:{port}", "mpegts")
     finally:
-        streamer.close()
         done.wait(0.5)  # the last datagrams
         done.set()
         th.join(5)
         rx.close()
-    assert st["encoded"] == N_FRAMES and st["dropped"] == 0 and st["errors"] == 0
     assert all(len(c) % 188 == 0 and c[0] == 0x47 for c in chunks)  # whole TS packets per datagram
-    frames = _decode(b"".join(chunks))
-    assert len(frames) >= math.ceil(0.95 * N_FRAMES)
-    seen = 0
-    for img, (u, v) in zip(frames, truth):
-        if img[v, u] >= TARGET_MIN_GREY and np.percentile(img, 50) < SKY_MAX_GREY:
-            seen += 1
-    assert seen >= math.ceil(0.95 * N_FRAMES)
+    _assert_target_seen(_decode(b"".join(chunks)), truth)
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("receiver", ["SdpRtpDecoder", "RtpMarkerDecoder", "UdpTsDecoder"])
+def test_ground_station_receivers_decode_their_transport(receiver):
+    import groundsim.io.video_rx as video_rx
+
+    transport = "mpegts" if receiver == "UdpTsDecoder" else "rtp"
+    frames: list[np.ndarray] = []
+    got_all = threading.Event()
+
+    def on_frame(f):
+        frames.append(f.luma)
+        if len(frames) >= N_FRAMES:
+            got_all.set()
+
+    rx = getattr(video_rx, receiver)(on_frame)
+    try:
+        if receiver == "SdpRtpDecoder":
+            deadline = time.monotonic() + WAIT_S
+            while not _udp_bound(rx.port):
+                assert time.monotonic() < deadline, f"the receiver never bound port {rx.port}: {rx.error}"
+                threading.Event().wait(0.01)
+        _, truth = _stream(f"127.0.0.1:{rx.port}", transport)
+        got_all.wait(5.0)  # the last frame: complete at once (marker) or when the stream's end is noticed
+    finally:
+        rx.stop()
+    assert rx.error is None, rx.error
+    if receiver == "RtpMarkerDecoder":
+        assert rx.lost_units == 0 and len(frames) == N_FRAMES  # every access unit, at its marker
+    _assert_target_seen(frames, truth)
 
 
 def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
@@ -177,6 +323,22 @@ def test_camera_advertises_the_stream_on_the_destination_port():
     K = cfg.camera.pinhole()
     proto = make_camera_protocol(cfg, K)
     s = proto.stream
-    assert s.uri == "5600" and s.stream_type == 3 and s.thermal and (s.resolution_h_px, s.resolution_v_px) == (W, H)
+    # RTP/UDP by default: VIDEO_STREAM_TYPE_RTPUDP (1), QGC opens udp://0.0.0.0:5600 as RTP H.264
+    assert s.uri == "5600" and s.stream_type == 1 and s.thermal and (s.resolution_h_px, s.resolution_v_px) == (W, H)
+    ts = make_camera_protocol(build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]},
+                                            "video": {"destination": "10.0.0.5:5600", "transport": "mpegts"}}), K)
+    assert ts.stream.stream_type == 3 and ts.stream.uri == "5600"  # MPEG_TS: QGC opens mpegts://0.0.0.0:5600
     assert s.hfov_deg == pytest.approx(math.degrees(2 * math.atan(W / (2 * K.fx_px))))
     assert make_camera_protocol(build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]}}), K).stream is None
+
+
+def test_transport_is_checked_by_name():
+    from onboard.app.config import build_config
+    from onboard.io.camera_protocol import video_stream_type
+
+    with pytest.raises(Exception, match="video.transport"):
+        build_config({"video": {"destination": "10.0.0.5:5600", "transport": "rtsp"}})
+    with pytest.raises(Exception, match="video.transport"):
+        VideoStreamer("127.0.0.1:9", W, H, transport="srt")
+    with pytest.raises(Exception, match="video.transport"):
+        video_stream_type("webrtc")

@@ -8,6 +8,7 @@ import threading
 
 import pytest
 
+from groundsim.io.ports import free_tcp_port
 from onboard.app.config import build_config
 from onboard.core.errors import ConfigError
 from onboard.io.zenoh_session import ZenohSettings, open_session
@@ -18,16 +19,8 @@ LIMIT_BYTES = 1 << 20  # 1 MiB payloads allowed at the receiver
 WAIT_S = 5.0
 
 
-def _free_tcp_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_the_transport_drops_a_message_over_the_receivers_limit():
-    port = _free_tcp_port()
+    port = free_tcp_port()
     rx = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), max_message_bytes=LIMIT_BYTES + 4096))
     tx = open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=WAIT_S))
     got: list[int] = []
