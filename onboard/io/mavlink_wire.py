@@ -151,7 +151,7 @@ def use_mavlink2(conn, src_system: int, src_component: int):
     return conn
 
 
-def connect(endpoint: "MavlinkEndpoint", src_system: int, src_component: int, **mavutil_kwargs):
+def connect(endpoint: MavlinkEndpoint, src_system: int, src_component: int, **mavutil_kwargs):
     """Open ``endpoint`` with pymavlink's ``mavlink_connection``, MAVLink 2 (:func:`use_mavlink2`).
 
     ``mavutil_kwargs`` go to pymavlink (``autoreconnect``, ``retries`` ...); a serial endpoint's baud is
@@ -337,7 +337,7 @@ class Heartbeat:
             _int(m, "system_status", self.system_status, 0, 255), 3)
 
     @classmethod
-    def from_message(cls, msg) -> "Heartbeat":
+    def from_message(cls, msg) -> Heartbeat:
         return cls(msg.type, msg.autopilot, msg.base_mode, msg.custom_mode, msg.system_status)
 
 
@@ -354,7 +354,7 @@ class SystemTime:
                                                     _time_boot_ms(m, self.time_boot_us))
 
     @classmethod
-    def from_message(cls, msg) -> "SystemTime":
+    def from_message(cls, msg) -> SystemTime:
         return cls(int(msg.time_unix_usec), int(msg.time_boot_ms) * 1000)
 
 
@@ -375,7 +375,7 @@ class AttitudeQuaternion:
                                                             (0.0, 0.0, 0.0, 0.0))
 
     @classmethod
-    def from_message(cls, msg) -> "AttitudeQuaternion":
+    def from_message(cls, msg) -> AttitudeQuaternion:
         return cls(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4),
                    (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
 
@@ -410,7 +410,7 @@ class GlobalPositionInt:
             round(_num(m, "alt_rel_m", self.alt_rel_m, -alt_lim_m, alt_lim_m) * 1000.0), *v_cmps, hdg_cdeg)
 
     @classmethod
-    def from_message(cls, msg) -> "GlobalPositionInt":
+    def from_message(cls, msg) -> GlobalPositionInt:
         hdg = math.nan if msg.hdg == UINT16_MAX else math.radians(msg.hdg / 100.0)
         return cls(int(msg.time_boot_ms) * 1000, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, msg.relative_alt * 1e-3,
                    (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01), hdg)
@@ -470,7 +470,7 @@ class GimbalDeviceAttitudeStatus:
             nan, _int(m, "gimbal_device_id", self.gimbal_device_id, 0, 255))
 
     @classmethod
-    def from_message(cls, msg) -> "GimbalDeviceAttitudeStatus":
+    def from_message(cls, msg) -> GimbalDeviceAttitudeStatus:
         return cls(int(msg.time_boot_ms) * 1000, tuple(msg.q), msg.flags,
                    (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z), msg.delta_yaw,
                    msg.failure_flags, msg.gimbal_device_id, msg.target_system, msg.target_component)
@@ -500,7 +500,7 @@ class Timesync:
         return mavlink2.MAVLink_timesync_message(*args)
 
     @classmethod
-    def from_message(cls, msg) -> "Timesync":
+    def from_message(cls, msg) -> Timesync:
         return cls(int(msg.tc1), int(msg.ts1), getattr(msg, "target_system", 0), getattr(msg, "target_component", 0))
 
 
@@ -562,7 +562,7 @@ class CameraTrackingImageStatus:
             *coords, _int(m, "camera_device_id", self.camera_device_id, 0, 6))
 
     @classmethod
-    def from_message(cls, msg) -> "CameraTrackingImageStatus":
+    def from_message(cls, msg) -> CameraTrackingImageStatus:
         return cls(msg.tracking_status, msg.tracking_mode, msg.target_data, msg.point_x, msg.point_y, msg.radius,
                    msg.rec_top_x, msg.rec_top_y, msg.rec_bottom_x, msg.rec_bottom_y, msg.camera_device_id)
 
@@ -602,7 +602,7 @@ class CameraTrackingGeoStatus:
             acc["hdg_acc_rad"], _int(m, "camera_device_id", self.camera_device_id, 0, 6))
 
     @classmethod
-    def from_message(cls, msg) -> "CameraTrackingGeoStatus":
+    def from_message(cls, msg) -> CameraTrackingGeoStatus:
         return cls(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, msg.h_acc, msg.v_acc, msg.vel_n, msg.vel_e, msg.vel_d,
                    msg.vel_acc, msg.dist, msg.hdg, msg.hdg_acc, msg.tracking_status, msg.camera_device_id)
 
@@ -634,7 +634,7 @@ class FollowTarget:
             [_num(m, "h_acc_m", self.h_acc_m, 0.0), _num(m, "v_acc_m", self.v_acc_m, 0.0), 0.0], 0)
 
     @classmethod
-    def from_message(cls, msg) -> "FollowTarget":
+    def from_message(cls, msg) -> FollowTarget:
         return cls(int(msg.timestamp) * 1000, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, tuple(msg.vel),
                    msg.position_cov[0], msg.position_cov[1], msg.est_capabilities)
 
