@@ -84,7 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from groundsim.evaluation.parallel import mp_context
-from groundsim.evaluation.report import BASELINE_FAIL_PCT
+from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.estimation.metrics import score_frames
@@ -818,9 +818,6 @@ SUMMARY_FIELDS = {
     "crb_model_rms_m": ("batch", "crb_model_rms_m"),
     "batch_perfect_rmse_m": ("batch", "perfect", "metrics", "rmse_m"),
 }
-
-#: the acceptance ratio of issue #5: image chain within this factor of perfect centroids
-RATIO_LIMIT = 1.5
 
 
 def _baseline_failed(pct) -> bool:
