@@ -85,6 +85,7 @@ __all__ = [
     "CampaignSpec", "load_spec", "spec_from_dict", "RunParams", "run_id", "plan_runs",
     "score_track", "run_job", "read_log", "append_rows", "run_campaign", "CampaignResult",
     "table_rows", "write_table", "write_report", "cmd_campaign", "RESULT_SCHEMA", "MODES", "code_fingerprint",
+    "check_workers",
 ]
 
 log = logging.getLogger(__name__)
@@ -851,7 +852,7 @@ def _remote_job(job: Job) -> list[dict]:
     return run_job(job)
 
 
-def _check_workers(client, scheduler: str) -> int:
+def check_workers(client, scheduler: str) -> int:
     """Threads the cluster offers; ConfigError when it has none or a worker runs other irtrack code."""
     nthreads = client.nthreads()
     if not nthreads:
@@ -910,7 +911,7 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
     if scheduler is not None:
         client = _cluster_client(scheduler)
         try:
-            workers = _check_workers(client, scheduler)
+            workers = check_workers(client, scheduler)
         except BaseException:
             client.close()
             raise

@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from groundsim.evaluation.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, _check_workers, code_fingerprint,
+from groundsim.evaluation.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, check_workers, code_fingerprint,
                                 load_spec, read_log, run_campaign, run_id, plan_runs, table_rows, write_table)
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.eval import load_base_config
@@ -150,11 +150,11 @@ class _FakeClient:
 def test_workers_running_other_code_or_no_workers_are_refused_naming_them():
     mine = code_fingerprint()
     assert len(mine) == 16 and mine == code_fingerprint()
-    assert _check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": mine}), "tcp://s:1") == 2
+    assert check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": mine}), "tcp://s:1") == 2
     with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: worker\(s\) tcp://10\.0\.0\.3:1 run other irtrack code"):
-        _check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": "0" * 16}), "tcp://s:1")
+        check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": "0" * 16}), "tcp://s:1")
     with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: the scheduler has no workers"):
-        _check_workers(_FakeClient({}), "tcp://s:1")
+        check_workers(_FakeClient({}), "tcp://s:1")
 
 
 def test_the_parquet_table_round_trips_missing_values_bools_and_strings(tmp_path):
