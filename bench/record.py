@@ -15,9 +15,11 @@ Prints:
 * file size per frame and per minute at 30 Hz.
 
 ``--replay FILE.mcap``: instead, replay speed (``onboard.app.replay`` at ``--rate max``) on a recording: load time, then
-two replays in one process (the first pays the lazy imports of the estimator's scipy modules), wall and CPU s,
-x real time, and where the loop's time goes (cProfile cumulative on a third run): the pipeline (its estimator,
-its imaging and tracker) and replay's own decoding, poses and JSON.
+three replays in one process (the first pays the lazy imports of the estimator's scipy modules), wall and CPU s,
+x real time, the estimator's own CPU per second of flight (``time.thread_time`` around its calls) and the speed it
+bounds replay to (lockstep: every frame's estimate before the next frame), a replay without the estimator, and
+where the loop's time goes (cProfile cumulative on a last run): the pipeline (its estimator, its imaging and
+tracker) and replay's own decoding, poses and JSON.
 
 Numbers only: nothing asserts on time.
 """
@@ -119,11 +121,38 @@ def _thread_times(rec) -> tuple[float | None, float | None]:
         return None, None
 
 
+class _TimedEstimator:
+    """The pipeline's estimator with the CPU time of its calls summed (``time.thread_time``)."""
+
+    def __init__(self, inner) -> None:
+        self.inner, self.cpu_s = inner, 0.0
+
+    def _timed(self, name, *args, **kwargs):
+        c0 = time.thread_time()
+        try:
+            return getattr(self.inner, name)(*args, **kwargs)
+        finally:
+            self.cpu_s += time.thread_time() - c0
+
+    def add(self, *args, **kwargs):
+        return self._timed("add", *args, **kwargs)
+
+    def predict(self, *args, **kwargs):
+        return self._timed("predict", *args, **kwargs)
+
+    def reset(self):
+        return self._timed("reset")
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+
 def bench_replay(path: str) -> int:
     import cProfile
     import logging
     import pstats
 
+    import onboard.pipeline.frame_pipeline as fp
     from onboard.app.replay import config_of, load_recording, replay
 
     logging.disable(logging.WARNING)
@@ -131,22 +160,36 @@ def bench_replay(path: str) -> int:
     rec = load_recording(path)
     cfg = config_of(rec)
     print(f"replay of {path}: {len(rec.inputs)} frames; load {time.perf_counter() - t0:.2f} s; load {os.getloadavg()[0]:.1f}")
-    for i in range(2):
-        c0 = time.process_time()
-        r = replay(rec, cfg)
-        print(f"  run {i + 1}{' (cold imports)' if i == 0 else ''}: {r.wall_s:.2f} s wall, {time.process_time() - c0:.2f} CPU s"
-              f" for {r.flight_s:.1f} s of flight: x{r.speed_x:.1f} real time (x{r.flight_s / max(time.process_time() - c0, 1e-9):.1f}"
-              f" per CPU s)")
+    timed: list = []
+    make = fp.make_estimator
+    fp.make_estimator = lambda config: timed.append(_TimedEstimator(make(config))) or timed[-1]
+    try:
+        for i in range(3):
+            c0 = time.process_time()
+            r = replay(rec, cfg)
+            cpu = time.process_time() - c0
+            est = timed[-1].cpu_s
+            print(f"  run {i + 1}{' (cold: lazy imports)' if i == 0 else ''}: {r.wall_s:.2f} s wall, {cpu:.2f} CPU s for "
+                  f"{r.flight_s:.1f} s of flight: x{r.speed_x:.1f} real time (x{r.flight_s / max(cpu, 1e-9):.1f} per CPU s); "
+                  f"estimator {est:.2f} CPU s = {est / r.flight_s:.3f} s per s of flight, {est / max(cpu, 1e-9) * 100:.0f} % "
+                  f"-> bound x{r.flight_s / max(est, 1e-9):.1f} with everything else free; the rest "
+                  f"{(cpu - est) / max(r.frames_fed, 1) * 1e3:.2f} ms per frame")
+    finally:
+        fp.make_estimator = make
+    c0 = time.process_time()
+    r = replay(rec, config_of(rec, overrides={"estimator.enabled": (False, "bench")}))
+    cpu = time.process_time() - c0
+    print(f"  without the estimator (2-D only): {r.wall_s:.2f} s wall, {cpu:.2f} CPU s: x{r.speed_x:.1f} real time")
     pr = cProfile.Profile()
     pr.enable()
     replay(rec, cfg)
     pr.disable()
     st = pstats.Stats(pr).stats
 
-    def cum(name: str, where: str = "onboard") -> float:  # cumulative time of the functions ``name`` in files ``where``
+    def cum(name: str, where: str) -> float:  # cumulative time of the functions ``name`` in files ``where``
         return sum(v[3] for k, v in st.items() if k[2] == name and where in k[0])
 
-    total, process = cum("replay", "onboard/replay"), cum("process", "onboard/pipeline")
+    total, process = cum("replay", "onboard/app/replay"), cum("process", "onboard/pipeline")
     est, trk = cum("_estimate", "onboard/pipeline"), cum("update", "onboard/imaging/tracker")
     print(f"  where the time goes (cProfile cumulative, of the replay loop): pipeline {process / total * 100:.0f} % "
           f"(estimator {est / total * 100:.0f} %, tracker {trk / total * 100:.0f} %, rest of the pipeline "

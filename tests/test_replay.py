@@ -81,3 +81,14 @@ def test_replay_report_plots_a_recorded_flight_against_the_simulators_truth(reco
     assert summary["median_track_to_truth_px"] < 1.0  # truth matched frame by frame
     p2 = _replay(recorded.daemon_mcap, "--report", tmp_path / "no_truth")
     assert not (tmp_path / "no_truth" / "errors.png").exists() and (tmp_path / "no_truth" / "trajectory.png").exists()
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_replay_with_the_tracker_in_a_second_process_gives_the_same_tracks(recorded, tmp_path):
+    out = tmp_path / "tracks2.jsonl"
+    p = _replay(recorded.daemon_mcap, "--jobs", "2", "--compare", "--out", out)
+    replayed = [json.loads(line) for line in out.read_text().splitlines()]
+    assert replayed == recorded.tracks  # the forked imaging process changes where the tracker runs, not what it gives
+    n = len(recorded.tracks)
+    assert f"compare: {n}/{n} frames identical, 0 differ, 0 unmatched" in p.stdout

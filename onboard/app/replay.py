@@ -1,6 +1,6 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.io.record`) fed again through the pipeline.
 
-    python -m onboard.replay FILE.mcap [--rate max|realtime] [--config FILE] [--set FIELD=VALUE]...
+    python -m onboard.replay FILE.mcap [--rate max|realtime] [--jobs 1|2] [--config FILE] [--set FIELD=VALUE]...
                              [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]] [--live-view PORT]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
@@ -33,6 +33,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
+import collections  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
@@ -199,57 +200,167 @@ class ReplayResult:
         return self.flight_s / self.wall_s if self.wall_s > 0 else math.inf
 
 
-def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=None) -> ReplayResult:
-    """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring.
-    ``live``: an :class:`onboard.io.live_view.LiveView` shown each frame, its pose and track (never waited for)."""
-    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
-    from onboard.core.pose import RejectCounter
-    from onboard.core.track import track_to_json
-
-    counter = RejectCounter(log_interval_s=3600.0)
-    poses = _RecordedPose()
-    poses.counter = counter
-    pipe = FramePipeline(config, poses, make_tracker(config), make_estimator(config), config.pose.geodetic_origin(),
-                         counter=counter)
+def _frames_taken(rec: Recording) -> Iterator[tuple[int, dict, Any]]:
+    """``(index, frame_input, IrFrame)`` of every frame the recorded pipeline took that is in the file, in order
+    (a frame_input whose frame the recorder dropped yields ``(index, frame_input, None)``)."""
     used: dict = {}
-    out: list = []
-    missing = refused = fed = 0
-    wall0 = time.perf_counter()
-    rx0 = None
     for i, inp in enumerate(rec.inputs):
         key = (int(inp["seq"]), int(inp["time_boot_us"]))
         cands = rec.frames.get(key, [])
         k = used.get(key, 0)
         if k >= len(cands):
-            missing += 1
+            yield i, inp, None
             continue
         used[key] = k + 1
         img, _rx_ns = cands[k]
-        frame = irframe_from_rawimage(key[0], img, f"{rec.path}: frame seq {key[0]}")
-        poses.pose = pose_from_json(inp.get("pose"), f"{rec.path}: frame_input {i} pose")
-        if rate == "realtime":
-            rx = int(inp["received_ns"])
-            rx0 = rx if rx0 is None else rx0
-            ahead = (rx - rx0) / 1e9 - (time.perf_counter() - wall0)
-            if ahead > 0:
-                time.sleep(ahead)
-        fed += 1
-        if live is not None:
-            live.on_frame(frame)
+        yield i, inp, irframe_from_rawimage(key[0], img, f"{rec.path}: frame seq {key[0]}")
+
+
+class _TappedTracker:
+    """The imaging process's tracker: what each ``update`` returned (or the InputError it raised) goes to the pipe."""
+
+    BATCH = 16
+
+    def __init__(self, tracker, conn) -> None:
+        self._tracker, self._conn, self._batch = tracker, conn, []
+
+    def update(self, pixels):
         try:
-            track = pipe.process(frame, int(inp["received_ns"]))
-        except FrameRejected:
-            refused += 1
-            continue
-        finally:
+            upd = self._tracker.update(pixels)
+        except InputError as exc:
+            self._put(("error", str(exc)))
+            raise
+        self._put(("ok", upd))
+        return upd
+
+    def _put(self, item) -> None:
+        self._batch.append(item)
+        if len(self._batch) >= self.BATCH:
+            self.flush()
+
+    def flush(self) -> None:
+        if self._batch:
+            self._conn.send(self._batch)
+            self._batch = []
+
+
+class _PipedTracker:
+    """The lockstep process's tracker: answers each ``update`` with the imaging process's result for that frame."""
+
+    def __init__(self, conn) -> None:
+        self._conn, self._pending = conn, collections.deque()
+
+    def update(self, pixels):
+        if not self._pending:
+            try:
+                self._pending.extend(self._conn.recv())
+            except EOFError:
+                raise IrtrackError("replay: the imaging process ended early (see its error above)") from None
+        kind, value = self._pending.popleft()
+        if kind == "error":
+            raise InputError(value)
+        return value
+
+
+def _imaging_child(rec: Recording, config, conn) -> None:
+    """Runs in the forked imaging process: the same admission and tracker over the same frames, no pose, no estimator."""
+    from onboard.core.pose import RejectCounter
+    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
+
+    tapped = _TappedTracker(make_tracker(config), conn)
+    pipe = FramePipeline(config, None, tapped, None, config.pose.geodetic_origin(),
+                         counter=RejectCounter(log_interval_s=3600.0))
+    try:
+        for _i, inp, frame in _frames_taken(rec):
+            if frame is None:
+                continue
+            try:
+                pipe.process(frame, int(inp["received_ns"]))
+            except FrameRejected:
+                pass
+        tapped.flush()
+    finally:
+        conn.close()
+
+
+def _start_imaging_process(rec: Recording, config):
+    """Fork the imaging process (the recording is inherited, not copied); None where fork is unsafe or missing:
+    other threads running (a live view), or no fork on this platform."""
+    import multiprocessing
+    import threading
+
+    if threading.active_count() > 1 or "fork" not in multiprocessing.get_all_start_methods():
+        return None, None
+    ctx = multiprocessing.get_context("fork")
+    recv_conn, send_conn = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_imaging_child, args=(rec, config, send_conn), name="irtrack-replay-imaging", daemon=True)
+    proc.start()
+    send_conn.close()
+    return proc, recv_conn
+
+
+def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=None, jobs: int = 1) -> ReplayResult:
+    """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring.
+    ``live``: an :class:`onboard.io.live_view.LiveView` shown each frame, its pose and track (never waited for).
+    ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
+    updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
+    imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
+    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+    from onboard.core.pose import RejectCounter
+    from onboard.core.track import track_to_json
+
+    if jobs not in (1, 2):
+        raise InputError(f"replay jobs: expected 1 or 2, got {jobs!r}")
+    counter = RejectCounter(log_interval_s=3600.0)
+    poses = _RecordedPose()
+    poses.counter = counter
+    wall0 = time.perf_counter()
+    proc = conn = None
+    if jobs == 2 and live is None:
+        proc, conn = _start_imaging_process(rec, config)
+    tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
+    pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(),
+                         counter=counter)
+    out: list = []
+    missing = refused = fed = 0
+    rx0 = None
+    try:
+        for i, inp, frame in _frames_taken(rec):
+            if frame is None:
+                missing += 1
+                continue
+            poses.pose = pose_from_json(inp.get("pose"), f"{rec.path}: frame_input {i} pose")
+            if rate == "realtime":
+                rx = int(inp["received_ns"])
+                rx0 = rx if rx0 is None else rx0
+                ahead = (rx - rx0) / 1e9 - (time.perf_counter() - wall0)
+                if ahead > 0:
+                    time.sleep(ahead)
+            fed += 1
             if live is not None:
-                live.on_pose(frame, poses.pose)
-        if live is not None:
-            live.on_track(track)
-        obj = json.loads(json.dumps(track_to_json(track), allow_nan=False))
-        out.append(obj)
-        if on_track is not None:
-            on_track(obj)
+                live.on_frame(frame)
+            try:
+                track = pipe.process(frame, int(inp["received_ns"]))
+            except FrameRejected:
+                refused += 1
+                continue
+            finally:
+                if live is not None:
+                    live.on_pose(frame, poses.pose)
+            if live is not None:
+                live.on_track(track)
+            obj = json.loads(json.dumps(track_to_json(track), allow_nan=False))
+            out.append(obj)
+            if on_track is not None:
+                on_track(obj)
+    finally:
+        if conn is not None:
+            conn.close()
+        if proc is not None:
+            proc.join(5.0)
+            if proc.is_alive():
+                proc.kill()
+                proc.join(5.0)
     wall = time.perf_counter() - wall0
     flight_s = 0.0
     if rec.inputs:
@@ -341,6 +452,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m onboard.replay", description=__doc__.split("\n\n")[0])
     p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
     p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
+    p.add_argument("--jobs", type=int, choices=(1, 2), default=1,
+                   help="2: the tracker runs ahead in a second process, overlapping the estimator (same tracks; "
+                        "needs fork and no --live-view; default: %(default)s)")
     p.add_argument("--config", metavar="FILE", help="configuration to replay with (default: the recording's)")
     p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable")
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
@@ -380,7 +494,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                             intrinsics=config.camera.pinhole())
             live.start()
             print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
-        res = replay(rec, config, rate=args.rate, live=live)
+        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs)
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

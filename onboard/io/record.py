@@ -197,7 +197,7 @@ def _vec(v) -> list | None:
 
 
 def _arr(v) -> np.ndarray:
-    return np.array([math.nan if x is None else float(x) for x in v], dtype=float)
+    return np.array(v, dtype=float)  # a JSON null (None) becomes NaN
 
 
 def pose_to_json(pose) -> dict[str, Any] | None:
