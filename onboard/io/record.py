@@ -48,10 +48,15 @@ default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim
 ``record.max_files`` > 0 the oldest files beyond that many are deleted.  Every ``record.sync_mb`` written the
 file is synced to disk and its pages dropped from the page cache (:meth:`FlightRecorder._maybe_sync`).
 
-**Cost** (``python -m bench.record``): chunks are uncompressed by default (``record.compression: none``; lz4
-costs ~0.6 ms CPU per 640 x 512 noisy frame for -40 % size, zstd ~1.4 ms for -60 %) and carry no CRCs (a CRC of
-0 means "not computed" in MCAP); a frame's RawImage is encoded with its pixels copied once
-(:func:`rawimage_bytes`), the camera fix's geodesy is scalar (:func:`geodetic_from_ned_scalar`).
+**Cost** (``python -m bench.record``: callers' and writer's CPU per frame, ``time.thread_time``): 0.44-0.48 ms per
+640 x 512 frame at load 1-5 on the 2-core VM (budget 0.5 ms; 0.69-0.79 ms before the changes below, same bench, same
+load).  Chunks are written by :class:`onboard.io.mcap_chunks.ChunkWriter` (the mcap package's layout byte for byte,
+one ``writev`` per chunk from where the data lies: a frame's pixels are not copied in user space; the kernel's copy into
+the page cache and the writeback are about half of what is left); the writer thread is woken per chunk's worth of
+messages or at its flush deadline, not per message (a wake-up per message cost both threads GIL hand-offs and gave
+the callers a 4-5 ms p99); chunks are uncompressed by default (``record.compression: none``; lz4 costs ~1.1 ms CPU per
+noisy frame for -37 % size, zstd ~4 ms for -63 %) and carry no CRCs (a CRC of 0 means "not computed" in MCAP); the raw
+MAVLink JSON is assembled from cached constant parts, the camera fix's geodesy is scalar (:func:`geodetic_from_ned_scalar`).
 """
 
 from __future__ import annotations
