@@ -155,25 +155,40 @@ class ChunkWriter:
     def add_message(self, channel_id: int, log_time: int, data: Any, publish_time: int, sequence: int = 0) -> None:
         """``data``: bytes, or a list/tuple of buffers that make the message's data when concatenated
         (each kept by reference until its chunk is written: it must not change before)."""
-        parts = (data,) if isinstance(data, (bytes, bytearray, memoryview)) else tuple(data)
-        size = sum(len(p) if isinstance(p, (bytes, bytearray)) else memoryview(p).nbytes for p in parts)
+        if isinstance(data, (bytes, bytearray)):
+            parts, size = None, len(data)
+        else:
+            parts = (data,) if isinstance(data, memoryview) else tuple(data)
+            size = sum(len(p) if isinstance(p, (bytes, bytearray)) else memoryview(p).nbytes for p in parts)
         st = self._stats
-        st.message_start_time = log_time if st.message_count == 0 else min(log_time, st.message_start_time)
-        st.message_end_time = max(log_time, st.message_end_time)
+        if st.message_count == 0:
+            st.message_start_time = log_time
+        elif log_time < st.message_start_time:
+            st.message_start_time = log_time
+        if log_time > st.message_end_time:
+            st.message_end_time = log_time
         st.channel_message_counts[channel_id] += 1
         st.message_count += 1
-        if self._n_messages == 0:
+        if self._n_messages == 0 or log_time < self._start_t:
             self._start_t = log_time
-        else:
-            self._start_t = min(self._start_t, log_time)
-        self._end_t = max(self._end_t, log_time)
-        self._indices.setdefault(channel_id, []).append((log_time, self._count))
+        if log_time > self._end_t:
+            self._end_t = log_time
+        index = self._indices.get(channel_id)
+        if index is None:
+            index = self._indices[channel_id] = []
+        index.append((log_time, self._count))
         self._n_messages += 1
-        self._append(_MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_FIXED + size, channel_id, sequence, log_time,
-                                          publish_time))
-        for p in parts:
-            self._append(p)
-        self._maybe_finalize_chunk()
+        head = _MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_FIXED + size, channel_id, sequence, log_time, publish_time)
+        if parts is None and size < 4096:  # the common small message: into the coalescing buffer
+            self._tail += head
+            self._tail += data
+            self._count += len(head) + size
+        else:
+            self._append(head)
+            for p in (data,) if parts is None else parts:
+                self._append(p)
+        if self._count > self._chunk_size:
+            self._finalize_chunk()
 
     def flush(self) -> None:
         """Finish the chunk in progress (if it has a message) and write everything."""
