@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bench.video import H, W, read_index, stamp_index
-from groundsim.io.video_rx import UdpTsDecoder
+from groundsim.io.video_rx import RtpMarkerDecoder, SdpRtpDecoder, UdpTsDecoder
 from onboard.io.video import VideoStreamer
 
 FRAMES = 45  # one and a half GOPs at 30 Hz
@@ -27,18 +27,30 @@ def test_index_stamp_round_trips_in_both_depths():
             assert read_index(luma) == k
 
 
+# transport -> the receiver that decodes it, and how many of the last frames it may still hold at the end
+RECEIVERS = {
+    "mpegts": (UdpTsDecoder, 2),  # the demuxer and the H.264 parser each hold one frame until the next starts
+    "rtp-sdp": (SdpRtpDecoder, 2),  # FFmpeg's own RTP demuxer through an SDP file; its parser waits one frame
+    "rtp-marker": (RtpMarkerDecoder, 0),  # decodes a picture at its last packet's marker bit
+}
+
+
 @pytest.mark.integration
-def test_every_frame_is_decoded_in_order_from_the_first_idr():
+@pytest.mark.parametrize("receiver", sorted(RECEIVERS))
+def test_every_frame_is_decoded_in_order_from_the_first_idr(receiver):
+    cls, held = RECEIVERS[receiver]
+    transport = "mpegts" if receiver == "mpegts" else "rtp"
     got: list[int] = []
     done = threading.Event()
 
     def on_frame(f):
         got.append(read_index(f.luma))
-        if len(got) >= FRAMES - 2:  # the demuxer and the H.264 parser each hold one frame until the next starts
+        if len(got) >= FRAMES - held:
             done.set()
 
-    rx = UdpTsDecoder(on_frame)
-    streamer = VideoStreamer(f"127.0.0.1:{rx.port}", W, H, 30.0, 2_000_000, 1.0, overlay=False, queue_length=FRAMES)
+    rx = cls(on_frame)
+    streamer = VideoStreamer(f"127.0.0.1:{rx.port}", W, H, 30.0, 2_000_000, 1.0, overlay=False, queue_length=FRAMES,
+                             transport=transport)
     rng = np.random.default_rng(3)
     try:
         for k in range(FRAMES):
@@ -52,5 +64,5 @@ def test_every_frame_is_decoded_in_order_from_the_first_idr():
         streamer.close()
         rx.stop()
     assert streamer.frames_dropped == 0
-    assert got[:FRAMES - 2] == list(range(FRAMES - 2))
+    assert got[:FRAMES - held] == list(range(FRAMES - held))
     assert rx.error is None and rx.decode_errors == 0
