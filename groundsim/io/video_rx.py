@@ -36,10 +36,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundsim.io.ports import free_rtp_port
 from onboard.core.errors import InputError
 from onboard.io.rtp_h264 import DEFAULT_PAYLOAD_TYPE, depacketize, parse_rtp, sdp
 
-__all__ = ["DecodedFrame", "UdpTsDecoder", "SdpRtpDecoder", "RtpMarkerDecoder", "free_rtp_port", "PROBE_BYTES"]
+__all__ = ["DecodedFrame", "UdpTsDecoder", "SdpRtpDecoder", "RtpMarkerDecoder", "PROBE_BYTES"]
 
 log = logging.getLogger(__name__)
 
@@ -148,27 +149,6 @@ class UdpTsDecoder:
         self._stop.set()
         self._thread.join(timeout_s)
         self._sock.close()
-
-
-def free_rtp_port(host: str = "127.0.0.1", tries: int = 50) -> int:
-    """An even UDP port on ``host`` with the next one free too (RTP and RTCP, RFC 3550 section 11), as
-    found now: a receiver that opens it later races other programs for it (fine on a test machine)."""
-    for _ in range(tries):
-        a = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        b = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        try:
-            a.bind((host, 0))
-            port = a.getsockname()[1]
-            if port % 2 or port >= 65535:
-                continue
-            b.bind((host, port + 1))
-            return port
-        except OSError:
-            continue
-        finally:
-            a.close()
-            b.close()
-    raise OSError(f"no free even UDP port pair on {host} after {tries} tries")
 
 
 class SdpRtpDecoder:

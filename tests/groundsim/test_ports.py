@@ -6,7 +6,7 @@ import socket
 
 import pytest
 
-from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.ports import free_rtp_port, free_tcp_port, free_udp_port
 
 pytestmark = pytest.mark.integration  # opens sockets on 127.0.0.1
 
@@ -26,3 +26,11 @@ def test_a_tcp_port_in_use_is_not_handed_out():
         held.listen()
         taken = held.getsockname()[1]
         assert all(free_tcp_port() != taken for _ in range(20))
+
+
+def test_an_rtp_port_is_even_and_its_rtcp_neighbour_is_free_too():
+    port = free_rtp_port()
+    assert port % 2 == 0 and 1024 <= port < 65535  # RFC 3550 section 11: RTP even, RTCP the next odd
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtp, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtcp:
+        rtp.bind(("127.0.0.1", port))
+        rtcp.bind(("127.0.0.1", port + 1))

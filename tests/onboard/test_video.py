@@ -183,7 +183,7 @@ def _assert_target_seen(frames: list[np.ndarray], truth: list) -> None:
 @pytest.mark.integration
 @pytest.mark.timeout(60)
 def test_rtp_stream_is_decoded_by_ffmpegs_rtp_demuxer_from_an_sdp_file(tmp_path):
-    from groundsim.io.video_rx import free_rtp_port
+    from groundsim.io.ports import free_rtp_port
 
     port = free_rtp_port()
     sdp_path = tmp_path / "stream.sdp"
