@@ -23,7 +23,7 @@
   the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
   without the estimator as a baseline measured in the same run.
 
-The autopilot of the latency benchmark is the tests' fake (``tests.fakes.FakeAutopilot``, MAVLink
+The autopilot of the latency benchmark is the tests' fake (``groundsim.io.scripted_autopilot.ScriptedAutopilot``, MAVLink
 through :mod:`onboard.io.mavlink_wire`) flying :class:`SyntheticScene`'s observer.
 
 Numbers only; nothing asserts on time.  The machine's load average is printed first: on a shared
@@ -341,7 +341,7 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
     import zenoh
 
     from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
-    from tests.fakes import FakeAutopilot  # the one fake autopilot (run from the repository root)
+    from groundsim.io.scripted_autopilot import ScriptedAutopilot as FakeAutopilot  # the tests' fake autopilot too
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()
