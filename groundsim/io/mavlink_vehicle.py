@@ -164,18 +164,34 @@ _GCS_STREAM_INTERVAL_US = {
     MSG_HOME_POSITION: 5_000_000,
     MSG_AUTOPILOT_VERSION: None,
 }
-_SENSORS = (mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
-            | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
-            | mavlink2.MAV_SYS_STATUS_SENSOR_GPS | mavlink2.MAV_SYS_STATUS_AHRS | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY)
-_CAPABILITIES = (mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
-                 | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
+_SENSORS = (
+    mavlink2.MAV_SYS_STATUS_SENSOR_3D_GYRO
+    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_ACCEL
+    | mavlink2.MAV_SYS_STATUS_SENSOR_3D_MAG
+    | mavlink2.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
+    | mavlink2.MAV_SYS_STATUS_SENSOR_GPS
+    | mavlink2.MAV_SYS_STATUS_AHRS
+    | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY
+)
+_CAPABILITIES = (
+    mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+)
 BATTERY_CELLS = 4
 BATTERY_FULL_V, BATTERY_EMPTY_V = 4.2, 3.5  # per cell
 BATTERY_DRAIN_PCT_PER_S = 0.05  # 100 % -> 0 % in 2000 s: a long simulated flight never runs flat
 BATTERY_CURRENT_A = 12.0
 #: the small parameter set PARAM_REQUEST_LIST returns (name -> value; all MAV_PARAM_TYPE_REAL32)
-DEFAULT_PARAMS = (("MAV_SYS_ID", 1.0), ("MAV_COMP_ID", 1.0), ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
-                  ("BAT_N_CELLS", float(BATTERY_CELLS)), ("BAT_CAPACITY", 5000.0), ("SIM_FRAME_RATE", 30.0))
+DEFAULT_PARAMS = (
+    ("MAV_SYS_ID", 1.0),
+    ("MAV_COMP_ID", 1.0),
+    ("MAV_TYPE", float(mavlink2.MAV_TYPE_QUADROTOR)),
+    ("BAT_N_CELLS", float(BATTERY_CELLS)),
+    ("BAT_CAPACITY", 5000.0),
+    ("SIM_FRAME_RATE", 30.0),
+)
 
 _ACK_COUNTER = {
     mavlink2.MAV_RESULT_ACCEPTED: "ack_accepted",
@@ -213,7 +229,9 @@ def _probe_bind(kind: str, host: str, port: int, connection: str) -> None:
     try:
         infos = socket.getaddrinfo(host, port, 0, stype)
     except socket.gaierror as exc:
-        raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: cannot resolve {host!r} ({exc.strerror})") from None
+        raise MavlinkLinkError(
+            f"mavlink: cannot open {connection!r}: cannot resolve {host!r} ({exc.strerror})"
+        ) from None
     family, _, _, _, addr = infos[0]
     with socket.socket(family, stype) as s:
         try:
@@ -241,7 +259,9 @@ def open_mavlink2(connection: str, sysid: int, compid: int):
     try:
         conn = connect(ep, sysid, compid, autoreconnect=False, retries=0)
     except (OSError, ValueError) as exc:
-        raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {getattr(exc, 'strerror', None) or exc}") from None
+        raise MavlinkLinkError(
+            f"mavlink: cannot open {connection!r}: {getattr(exc, 'strerror', None) or exc}"
+        ) from None
     except Exception as exc:  # noqa: BLE001 - pyserial and friends raise their own types
         raise MavlinkLinkError(f"mavlink: cannot open {connection!r}: {exc}") from None
     return conn
@@ -356,7 +376,9 @@ class MavlinkVehicle:
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not 0 < v <= 1000:
                 raise MavlinkConfigError(f"MavlinkVehicle.{name} must be in (0, 1000] Hz, got {v!r}")
         if gimbal_yaw_frame not in ("earth", "vehicle"):
-            raise MavlinkConfigError(f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}")
+            raise MavlinkConfigError(
+                f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}"
+            )
         self.gimbal_yaw_frame = gimbal_yaw_frame
         self.connection = connection
         self.sysid = sysid
@@ -414,12 +436,26 @@ class MavlinkVehicle:
         if nav_error is not None:
             from groundsim.world.nav_errors import reported_state
 
-            kw = reported_state(dict(lat_deg=lat_deg, lon_deg=lon_deg, alt_amsl_m=alt_amsl_m, alt_rel_m=alt_rel_m,
-                                     v_ned_mps=v_ned_mps, q_ned_from_body=q_ned_from_body, heading_rad=heading_rad,
-                                     q_gimbal=q_gimbal), nav_error)
+            kw = reported_state(
+                dict(
+                    lat_deg=lat_deg,
+                    lon_deg=lon_deg,
+                    alt_amsl_m=alt_amsl_m,
+                    alt_rel_m=alt_rel_m,
+                    v_ned_mps=v_ned_mps,
+                    q_ned_from_body=q_ned_from_body,
+                    heading_rad=heading_rad,
+                    q_gimbal=q_gimbal,
+                ),
+                nav_error,
+            )
             lat_deg, lon_deg, alt_amsl_m, alt_rel_m = kw["lat_deg"], kw["lon_deg"], kw["alt_amsl_m"], kw["alt_rel_m"]
-            v_ned_mps, q_ned_from_body, heading_rad, q_gimbal = (kw["v_ned_mps"], kw["q_ned_from_body"], kw["heading_rad"],
-                                                                 kw["q_gimbal"])
+            v_ned_mps, q_ned_from_body, heading_rad, q_gimbal = (
+                kw["v_ned_mps"],
+                kw["q_ned_from_body"],
+                kw["heading_rad"],
+                kw["q_gimbal"],
+            )
         state = VehicleState(
             time_boot_us=time_boot_us,
             lat_deg=lat_deg,
@@ -479,7 +515,7 @@ class MavlinkVehicle:
             except OSError:
                 pass
 
-    def __enter__(self) -> "MavlinkVehicle":
+    def __enter__(self) -> MavlinkVehicle:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -504,11 +540,15 @@ class MavlinkVehicle:
             return 0
         try:
             if msg_id == MSG_HEARTBEAT:
-                mav.send(Heartbeat(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, _BASE_MODE).to_message())
+                mav.send(
+                    Heartbeat(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, _BASE_MODE).to_message()
+                )
             elif msg_id == MSG_SYSTEM_TIME:
                 mav.send(SystemTime(self._unix_at_boot_us + now, now).to_message())
             elif msg_id == MSG_ATTITUDE_QUATERNION:
-                mav.send(AttitudeQuaternion(state.time_boot_us, state.q_ned_from_body, state.body_rates_radps).to_message())
+                mav.send(
+                    AttitudeQuaternion(state.time_boot_us, state.q_ned_from_body, state.body_rates_radps).to_message()
+                )
             elif msg_id == MSG_GLOBAL_POSITION_INT:
                 mav.send(self._global_position_int(state).to_message())
             elif msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS:
@@ -531,35 +571,88 @@ class MavlinkVehicle:
         pct = self.battery_remaining_pct(now)
         cell_v = BATTERY_EMPTY_V + (BATTERY_FULL_V - BATTERY_EMPTY_V) * pct / 100.0
         if msg_id == MSG_SYS_STATUS:
-            mav.sys_status_send(_SENSORS, _SENSORS, _SENSORS, 250, round(cell_v * BATTERY_CELLS * 1000),
-                                round(BATTERY_CURRENT_A * 100), round(pct), 0, 0, 0, 0, 0, 0)
+            mav.sys_status_send(
+                _SENSORS,
+                _SENSORS,
+                _SENSORS,
+                250,
+                round(cell_v * BATTERY_CELLS * 1000),
+                round(BATTERY_CURRENT_A * 100),
+                round(pct),
+                0,
+                0,
+                0,
+                0,
+                0,
+                0,
+            )
         elif msg_id == MSG_EXTENDED_SYS_STATE:
             mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, mavlink2.MAV_LANDED_STATE_IN_AIR)
         elif msg_id == MSG_BATTERY_STATUS:
             cells = [round(cell_v * 1000)] * BATTERY_CELLS + [_UINT16_MAX] * (10 - BATTERY_CELLS)
             used_mah = round(BATTERY_CURRENT_A * 1000 * now / 1e6 / 3600)
-            mav.battery_status_send(0, mavlink2.MAV_BATTERY_FUNCTION_ALL, mavlink2.MAV_BATTERY_TYPE_LIPO, _INT16_MAX,
-                                    cells, round(BATTERY_CURRENT_A * 100), used_mah, -1, round(pct),
-                                    round(pct / BATTERY_DRAIN_PCT_PER_S), mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
-                                    [0, 0, 0, 0], 0, 0)
+            mav.battery_status_send(
+                0,
+                mavlink2.MAV_BATTERY_FUNCTION_ALL,
+                mavlink2.MAV_BATTERY_TYPE_LIPO,
+                _INT16_MAX,
+                cells,
+                round(BATTERY_CURRENT_A * 100),
+                used_mah,
+                -1,
+                round(pct),
+                round(pct / BATTERY_DRAIN_PCT_PER_S),
+                mavlink2.MAV_BATTERY_CHARGE_STATE_OK,
+                [0, 0, 0, 0],
+                0,
+                0,
+            )
         elif msg_id == MSG_GPS_RAW_INT:
             gpi = self._global_position_int(state).to_message()  # the #33 position, quantised alike
             lat, lon, alt_mm, vx, vy = gpi.lat, gpi.lon, gpi.alt, gpi.vx, gpi.vy
             vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
             cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
-            mav.gps_raw_int_send(self._unix_at_boot_us + state.time_boot_us, mavlink2.GPS_FIX_TYPE_3D_FIX, lat, lon,
-                                 alt_mm, 80, 120, vel, cog, 14, alt_mm, 500, 800, 200, 0, 0)
+            mav.gps_raw_int_send(
+                self._unix_at_boot_us + state.time_boot_us,
+                mavlink2.GPS_FIX_TYPE_3D_FIX,
+                lat,
+                lon,
+                alt_mm,
+                80,
+                120,
+                vel,
+                cog,
+                14,
+                alt_mm,
+                500,
+                800,
+                200,
+                0,
+                0,
+            )
         elif msg_id == MSG_ATTITUDE:
             roll, pitch, yaw = (float(a) for a in euler_from_quat(np.asarray(state.q_ned_from_body)))
             p, q, r = state.body_rates_radps
             mav.attitude_send(time_boot_ms_from_us(state.time_boot_us), roll, pitch, yaw, p, q, r)
         elif msg_id == MSG_HOME_POSITION:
             h = self._home
-            mav.home_position_send(round(h.lat_deg * 1e7), round(h.lon_deg * 1e7), round(h.alt_amsl_m * 1000.0),
-                                   0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, self._unix_at_boot_us + now)
+            mav.home_position_send(
+                round(h.lat_deg * 1e7),
+                round(h.lon_deg * 1e7),
+                round(h.alt_amsl_m * 1000.0),
+                0.0,
+                0.0,
+                0.0,
+                [1.0, 0.0, 0.0, 0.0],
+                0.0,
+                0.0,
+                0.0,
+                self._unix_at_boot_us + now,
+            )
         elif msg_id == MSG_AUTOPILOT_VERSION:
-            mav.autopilot_version_send(_CAPABILITIES, 0x01000000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0,
-                                       0x1A2B3C4D, [0] * 18)
+            mav.autopilot_version_send(
+                _CAPABILITIES, 0x01000000, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x1A2B3C4D, [0] * 18
+            )
         else:
             return False
         return True
@@ -572,7 +665,9 @@ class MavlinkVehicle:
             flags, q = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, s.q_ned_from_gimbal
         else:
             q_yaw = quat_from_euler(0.0, 0.0, yaw_rad)
-            q = tuple(float(c) for c in quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal))))
+            q = tuple(
+                float(c) for c in quat_normalize(quat_multiply(quat_conjugate(q_yaw), np.asarray(s.q_ned_from_gimbal)))
+            )
             flags = mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME
         return GimbalDeviceAttitudeStatus(s.time_boot_us, q, flags, delta_yaw_rad=yaw_rad, gimbal_device_id=1)
 
@@ -582,11 +677,14 @@ class MavlinkVehicle:
         v_sat = []
         for name, v in zip(("vx", "vy", "vz"), s.v_ned_mps):
             if abs(round(v * 100.0)) > _INT16_MAX:
-                self._log_limited("velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v)
+                self._log_limited(
+                    "velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v
+                )
                 v = v_lim if v > 0 else -v_lim
             v_sat.append(v)
-        return GlobalPositionInt(s.time_boot_us, s.lat_deg, s.lon_deg, s.alt_amsl_m, s.alt_rel_m, tuple(v_sat),
-                                 s.heading_rad)
+        return GlobalPositionInt(
+            s.time_boot_us, s.lat_deg, s.lon_deg, s.alt_amsl_m, s.alt_rel_m, tuple(v_sat), s.heading_rad
+        )
 
     # -- receiving ------------------------------------------------------------
 
@@ -627,7 +725,9 @@ class MavlinkVehicle:
             return 0
         if getattr(msg, "target_system", 0) not in (0, self.sysid):
             return 0
-        self._conn.mav.send(Timesync(self._now_us * 1000, msg.ts1, msg.get_srcSystem(), msg.get_srcComponent()).to_message())
+        self._conn.mav.send(
+            Timesync(self._now_us * 1000, msg.ts1, msg.get_srcSystem(), msg.get_srcComponent()).to_message()
+        )
         self.counters["tx_111"] += 1
         return 1
 
@@ -649,7 +749,9 @@ class MavlinkVehicle:
             for i in range(len(names)):
                 self._param_value(i)
             return len(names)
-        name = msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else bytes(msg.param_id).rstrip(b"\0").decode()
+        name = (
+            msg.param_id.rstrip("\0") if isinstance(msg.param_id, str) else bytes(msg.param_id).rstrip(b"\0").decode()
+        )
         if mtype == "PARAM_REQUEST_READ":
             index = msg.param_index if msg.param_index >= 0 else (names.index(name) if name in names else -1)
             if not 0 <= index < len(names):
@@ -670,8 +772,9 @@ class MavlinkVehicle:
         if mtype == "MISSION_REQUEST_LIST":
             self._conn.mav.mission_count_send(msg.get_srcSystem(), msg.get_srcComponent(), 0, mission_type)
         else:
-            self._conn.mav.mission_ack_send(msg.get_srcSystem(), msg.get_srcComponent(),
-                                            mavlink2.MAV_MISSION_ACCEPTED, mission_type)
+            self._conn.mav.mission_ack_send(
+                msg.get_srcSystem(), msg.get_srcComponent(), mavlink2.MAV_MISSION_ACCEPTED, mission_type
+            )
         return 1
 
     def _on_command(self, msg) -> int:

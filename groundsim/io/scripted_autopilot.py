@@ -28,8 +28,16 @@ class ScriptedAutopilot:
     answered with the boot clock in ns.
     """
 
-    def __init__(self, port: int, sysid: int = 1, compid: int = 1, host: str = "127.0.0.1", scene=None,
-                 boot_us: int | None = None, mav_type: int | None = None) -> None:
+    def __init__(
+        self,
+        port: int,
+        sysid: int = 1,
+        compid: int = 1,
+        host: str = "127.0.0.1",
+        scene=None,
+        boot_us: int | None = None,
+        mav_type: int | None = None,
+    ) -> None:
         import time
 
         from onboard.io.mavlink_wire import connect, mavlink2, parse_endpoint
@@ -67,8 +75,12 @@ class ScriptedAutopilot:
     def heartbeat(self, mav_type: int | None = None, autopilot: int | None = None) -> None:
         from onboard.io.mavlink_wire import Heartbeat
 
-        self.send(Heartbeat(self.mav_type if mav_type is None else mav_type,
-                            self.mav.MAV_AUTOPILOT_PX4 if autopilot is None else autopilot))
+        self.send(
+            Heartbeat(
+                self.mav_type if mav_type is None else mav_type,
+                self.mav.MAV_AUTOPILOT_PX4 if autopilot is None else autopilot,
+            )
+        )
 
     def attitude(self, t_us: int, q=None, omega_frd_rps=None) -> None:
         """#31 at ``t_us``: ``q`` (w, x, y, z) with ``omega_frd_rps`` (default zeros), or the scene's."""
@@ -80,8 +92,9 @@ class ScriptedAutopilot:
         w = (0.0, 0.0, 0.0) if omega_frd_rps is None else omega_frd_rps
         self.send(AttitudeQuaternion(int(t_us), tuple(float(c) for c in q), tuple(float(c) for c in w)))
 
-    def position(self, t_us: int, lat_deg=None, lon_deg=None, alt_m=None, v_ned_mps=(0.0, 0.0, 0.0),
-                 alt_rel_m: float = 0.0) -> None:
+    def position(
+        self, t_us: int, lat_deg=None, lon_deg=None, alt_m=None, v_ned_mps=(0.0, 0.0, 0.0), alt_rel_m: float = 0.0
+    ) -> None:
         """#33 at ``t_us``: the given WGS84 position, or the scene's (its altitude above the origin as ``alt_rel_m``)."""
         from onboard.io.mavlink_wire import GlobalPositionInt
 
@@ -89,8 +102,9 @@ class ScriptedAutopilot:
             p, v_ned_mps, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
             lat_deg, lon_deg, alt_m = self.scene.geodetic(p)
             alt_rel_m = -float(p[2])
-        self.send(GlobalPositionInt(int(t_us), lat_deg, lon_deg, alt_m, alt_rel_m,
-                                    tuple(float(c) for c in v_ned_mps), 0.0))
+        self.send(
+            GlobalPositionInt(int(t_us), lat_deg, lon_deg, alt_m, alt_rel_m, tuple(float(c) for c in v_ned_mps), 0.0)
+        )
 
     def raw(self, data: bytes) -> None:
         self.conn.write(data)

@@ -108,8 +108,9 @@ class UdpTsDecoder:
 
         stream = _SocketStream(self._sock, self._stop, self)
         try:
-            container = av.open(stream, mode="r", format="mpegts",
-                                options={"probesize": str(PROBE_BYTES), "analyzeduration": "0"})
+            container = av.open(
+                stream, mode="r", format="mpegts", options={"probesize": str(PROBE_BYTES), "analyzeduration": "0"}
+            )
         except Exception as exc:  # noqa: BLE001 - stopped before any data, or garbage
             if not self._stop.is_set():
                 self.error = f"open: {type(exc).__name__}: {exc}"
@@ -162,8 +163,13 @@ class SdpRtpDecoder:
 
     OPEN_RETRY_S = 1.0
 
-    def __init__(self, on_frame: Callable[[DecodedFrame], None], host: str = "127.0.0.1", port: int = 0,
-                 payload_type: int = DEFAULT_PAYLOAD_TYPE) -> None:
+    def __init__(
+        self,
+        on_frame: Callable[[DecodedFrame], None],
+        host: str = "127.0.0.1",
+        port: int = 0,
+        payload_type: int = DEFAULT_PAYLOAD_TYPE,
+    ) -> None:
         self._on_frame = on_frame
         self.port = int(port) or free_rtp_port(host)
         self._dir = tempfile.mkdtemp(prefix="irtrack-sdp-")
@@ -185,10 +191,17 @@ class SdpRtpDecoder:
 
         while not self._stop.is_set():
             try:
-                return av.open(self.sdp_path, mode="r", format="sdp",
-                               options={"protocol_whitelist": "file,udp,rtp", "probesize": str(PROBE_BYTES),
-                                        "analyzeduration": "0"},
-                               timeout=(self.OPEN_RETRY_S, POLL_S))
+                return av.open(
+                    self.sdp_path,
+                    mode="r",
+                    format="sdp",
+                    options={
+                        "protocol_whitelist": "file,udp,rtp",
+                        "probesize": str(PROBE_BYTES),
+                        "analyzeduration": "0",
+                    },
+                    timeout=(self.OPEN_RETRY_S, POLL_S),
+                )
             except av.error.ExitError:
                 continue  # no SPS yet (no IDR since we listened): listen again
         return None

@@ -53,7 +53,7 @@ class FramePublisher:
                 log.debug("undeclare of %s publisher failed: %s", self.key, exc)
             self._publisher = None
 
-    def __enter__(self) -> "FramePublisher":
+    def __enter__(self) -> FramePublisher:
         return self
 
     def __exit__(self, *exc) -> None:

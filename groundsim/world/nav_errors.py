@@ -124,8 +124,14 @@ class NavErrorModel:
         self.drift_ned_mps = case.camera_position_drift_mps * _unit(rng)
         self.att_white_ned_rad = case.attitude_white_sigma_rad * rng.standard_normal((n, 3))
         self.p_white_ned_m = case.camera_position_white_sigma_m * rng.standard_normal((n, 3))
-        for a in (self.t_s, self.bias_ned_rad, self.offset_ned_m, self.drift_ned_mps, self.att_white_ned_rad,
-                  self.p_white_ned_m):
+        for a in (
+            self.t_s,
+            self.bias_ned_rad,
+            self.offset_ned_m,
+            self.drift_ned_mps,
+            self.att_white_ned_rad,
+            self.p_white_ned_m,
+        ):
             a.setflags(write=False)
 
     def __len__(self) -> int:
@@ -160,7 +166,11 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
     if name in cases:
         return cases[name]
     lower = {k.lower(): k for k in cases}
-    hint = [lower[str(name).lower()]] if str(name).lower() in lower else difflib.get_close_matches(str(name), list(cases), n=1)
+    hint = (
+        [lower[str(name).lower()]]
+        if str(name).lower() in lower
+        else difflib.get_close_matches(str(name), list(cases), n=1)
+    )
     hint_text = f"; did you mean '{hint[0]}'?" if hint else ""
     raise ConfigError(f"{p}: {option}: expected one of {', '.join(cases)}, got {name!r}{hint_text}")
 
@@ -200,8 +210,9 @@ def reported_state(state: dict, err: NavErrorSample | None) -> dict:
     if err is None or err.is_zero:
         return out
     if err.has_position_error:
-        lat, lon, alt = offset_geodetic(float(state["lat_deg"]), float(state["lon_deg"]), float(state["alt_amsl_m"]),
-                                        err.p_err_ned_m)
+        lat, lon, alt = offset_geodetic(
+            float(state["lat_deg"]), float(state["lon_deg"]), float(state["alt_amsl_m"]), err.p_err_ned_m
+        )
         out["lat_deg"], out["lon_deg"], out["alt_amsl_m"] = lat, lon, alt
         out["alt_rel_m"] = float(state["alt_rel_m"]) + (alt - float(state["alt_amsl_m"]))
     out["v_ned_mps"] = np.asarray(state["v_ned_mps"], dtype=float) + err.v_err_ned_mps

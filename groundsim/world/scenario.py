@@ -112,8 +112,17 @@ class ScenarioError(SchemaError):
     ``hint`` (e.g. a "did you mean"), ``line`` (1-based, YAML errors only).
     """
 
-    def __init__(self, source, field_path: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None,
-                 *, got_text: str | None = None, line: int | None = None):
+    def __init__(
+        self,
+        source,
+        field_path: str,
+        expected: str,
+        got: Any = dataclasses.MISSING,
+        hint: str | None = None,
+        *,
+        got_text: str | None = None,
+        line: int | None = None,
+    ):
         if got_text is None:
             got_text = MISSING_TEXT if got is dataclasses.MISSING else show(got)
         super().__init__(source, field_path, expected, got_text, hint, line=line)
@@ -169,8 +178,9 @@ class VehicleSpec:
     """
 
     motion: _MOTION
-    base_motion: Instance(object, what="a motion model with a state(t_s) method", check=_is_motion,
-                          nullable=True) = None
+    base_motion: Instance(object, what="a motion model with a state(t_s) method", check=_is_motion, nullable=True) = (
+        None
+    )
     disturbance: Instance(SingerDisturbance, what="a SingerDisturbance", nullable=True) = None
 
     def __post_init__(self) -> None:
@@ -207,7 +217,8 @@ class CameraSpec:
     fixed pod; the observer then yaws toward the target)."""
 
     intrinsics: Instance(PinholeIntrinsics, what="a PinholeIntrinsics") = dataclasses.field(
-        default_factory=PinholeIntrinsics.vue_pro_640)
+        default_factory=PinholeIntrinsics.vue_pro_640
+    )
     mount: Instance(CameraMount, what="a CameraMount") = dataclasses.field(default_factory=CameraMount)
     gimbal: Instance(GimbalSpec, what="a GimbalSpec", nullable=True) = REFERENCE_GIMBAL
 
@@ -242,7 +253,9 @@ class Scenario:
     camera: Instance(CameraSpec, what="a CameraSpec") = dataclasses.field(default_factory=CameraSpec)
     ir: Instance(IrSettings, what="an IrSettings") = dataclasses.field(default_factory=IrSettings)
     wind_ned_mps: Numbers(3, unit="m/s") = _ZERO3
-    nav_noise: Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml") = DEFAULT_NAV_NOISE
+    nav_noise: Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml") = (
+        DEFAULT_NAV_NOISE
+    )
     source_path: Instance(Path, what="a path", nullable=True) = None
 
     @property
@@ -348,7 +361,9 @@ class CircularFile:
     rate_degps: Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")
 
     def motion(self) -> Motion:
-        return Circular(self.center_ned_m, self.radius_m, math.radians(self.azimuth0_deg), math.radians(self.rate_degps))
+        return Circular(
+            self.center_ned_m, self.radius_m, math.radians(self.azimuth0_deg), math.radians(self.rate_degps)
+        )
 
 
 @_scenario_model(kw_only=True)
@@ -451,8 +466,9 @@ class CameraFile:
 
     def spec(self) -> CameraSpec:
         m = self.mount
-        mount = CameraMount.from_euler_deg(m.lever_arm_frd_m, m.roll_deg, m.pitch_deg, m.yaw_deg,
-                                           gimballed=self.gimbal is not None)
+        mount = CameraMount.from_euler_deg(
+            m.lever_arm_frd_m, m.roll_deg, m.pitch_deg, m.yaw_deg, gimballed=self.gimbal is not None
+        )
         return CameraSpec(self.intrinsics.pinhole(), mount, self.gimbal)
 
 
@@ -466,13 +482,19 @@ class TargetPartFile:
     emissivity: Number(0.0, 1.0, lo_open=True)
 
     def part(self) -> TargetPart:
-        return TargetPart(self.name, self.shape, self.center_frd_m, self.half_extent_m, self.temperature_k, self.emissivity)
+        return TargetPart(
+            self.name, self.shape, self.center_frd_m, self.half_extent_m, self.temperature_k, self.emissivity
+        )
 
 
 def _nonempty(value: Any) -> Any:
     if isinstance(value, (list, tuple)) and not value:
-        raise Invalid("", "a non-empty list of parts (mappings with name, shape, center_frd_m, half_extent_m, "
-                      "temperature_k, emissivity)", value)
+        raise Invalid(
+            "",
+            "a non-empty list of parts (mappings with name, shape, center_frd_m, half_extent_m, "
+            "temperature_k, emissivity)",
+            value,
+        )
     return tuple(value) if isinstance(value, list) else value
 
 
@@ -555,7 +577,9 @@ class ScenarioFile:
         if self.nav_noise != DEFAULT_NAV_NOISE:
             cases = tuple(load_noise_cases())
             if self.nav_noise not in cases:
-                raise Invalid("nav_noise", "one of " + ", ".join(cases), self.nav_noise, did_you_mean(self.nav_noise, cases))
+                raise Invalid(
+                    "nav_noise", "one of " + ", ".join(cases), self.nav_noise, did_you_mean(self.nav_noise, cases)
+                )
 
 
 def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail) -> None:
@@ -570,8 +594,11 @@ def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail)
         r = np.linalg.norm(p_tgt - p_obs, axis=-1)
     k = int(np.argmin(r))
     if not r[k] >= MIN_SEPARATION_M:
-        fail.text("target.motion", f"a path at least {MIN_SEPARATION_M:g} m from the observer at every frame",
-                  f"{r[k]:.3g} m at t = {t_s[k]:.3f} s")
+        fail.text(
+            "target.motion",
+            f"a path at least {MIN_SEPARATION_M:g} m from the observer at every frame",
+            f"{r[k]:.3g} m at t = {t_s[k]:.3f} s",
+        )
 
 
 # --------------------------------------------------------------------------- scenario
@@ -597,19 +624,31 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
         target = VehicleSpec(tgt_base)
     else:
         rng = _stream_rng(f.seed, "target.disturbance", 0)
-        target = VehicleSpec(Perturbed(tgt_base, disturbance.realise(f.duration_s + SINGER_MARGIN_S, rng)),
-                             tgt_base, disturbance)
+        target = VehicleSpec(
+            Perturbed(tgt_base, disturbance.realise(f.duration_s + SINGER_MARGIN_S, rng)), tgt_base, disturbance
+        )
     try:
-        sc = Scenario(name=f.name, description=f.description,
-                      origin=GeodeticOrigin(f.origin.lat_deg, f.origin.lon_deg, f.origin.alt_m),
-                      duration_s=f.duration_s, frame_rate_hz=f.frame_rate_hz, seed=f.seed,
-                      observer=VehicleSpec(obs_motion), target=target, camera=f.camera.spec(), ir=f.ir.settings(),
-                      wind_ned_mps=(f.wind.n_mps, f.wind.e_mps, f.wind.d_mps), nav_noise=f.nav_noise,
-                      source_path=Path(source) if isinstance(source, Path) else None)
+        sc = Scenario(
+            name=f.name,
+            description=f.description,
+            origin=GeodeticOrigin(f.origin.lat_deg, f.origin.lon_deg, f.origin.alt_m),
+            duration_s=f.duration_s,
+            frame_rate_hz=f.frame_rate_hz,
+            seed=f.seed,
+            observer=VehicleSpec(obs_motion),
+            target=target,
+            camera=f.camera.spec(),
+            ir=f.ir.settings(),
+            wind_ned_mps=(f.wind.n_mps, f.wind.e_mps, f.wind.d_mps),
+            nav_noise=f.nav_noise,
+            source_path=Path(source) if isinstance(source, Path) else None,
+        )
     except ConfigError as exc:  # a library object's own consistency check (IrSettings, CameraMount ...)
         if isinstance(exc, SchemaError):
             raise exc.as_(ScenarioError, source) from None
-        raise ScenarioError(source, "(document)", "a consistent scenario", got_text=" ".join(str(exc).split())) from None
+        raise ScenarioError(
+            source, "(document)", "a consistent scenario", got_text=" ".join(str(exc).split())
+        ) from None
     log.debug("scenario %s from %s: %d frames", f.name, source, sc.frame_count)
     return sc
 
@@ -734,8 +773,12 @@ def _mapping(v, path, fail: _Fail, allowed, required=()) -> dict:
             fail(path, f"string keys (one of {', '.join(allowed)})", k)
     for k in v:
         if k not in allowed:
-            fail.text(f"{path}.{k}" if path else k, f"a key of {path or 'the document'} ({', '.join(allowed)})",
-                      f"unknown key {k!r}", did_you_mean(k, allowed))
+            fail.text(
+                f"{path}.{k}" if path else k,
+                f"a key of {path or 'the document'} ({', '.join(allowed)})",
+                f"unknown key {k!r}",
+                did_you_mean(k, allowed),
+            )
     for k in required:
         if k not in v:
             fail(f"{path}.{k}" if path else k, "a value (required)")

@@ -190,25 +190,50 @@ def truth_row(
         target_lla, observer_lla = (lat[0], lon[0], alt[0]), (lat[1], lon[1], alt[1])
     u, v = truth_pixel(intrinsics, p_c, rotmat_from_quat(q_c), p_t)
     visible = (
-        math.isfinite(u) and math.isfinite(v)
-        and 0.0 <= u < intrinsics.width_px and 0.0 <= v < intrinsics.height_px
+        math.isfinite(u) and math.isfinite(v) and 0.0 <= u < intrinsics.width_px and 0.0 <= v < intrinsics.height_px
     )
     return TruthRow(
         time_boot_us=time_boot_us,
-        target_lat_deg=target_lla[0], target_lon_deg=target_lla[1], target_alt_m=target_lla[2],
-        observer_lat_deg=observer_lla[0], observer_lon_deg=observer_lla[1], observer_alt_m=observer_lla[2],
-        target_u_px=u, target_v_px=v, target_visible=int(visible),
-        seq=seq, t_s=t_s,
-        target_n_m=p_t[0], target_e_m=p_t[1], target_d_m=p_t[2],
-        target_vn_mps=v_t[0], target_ve_mps=v_t[1], target_vd_mps=v_t[2],
-        observer_n_m=p_o[0], observer_e_m=p_o[1], observer_d_m=p_o[2],
-        cam_n_m=p_c[0], cam_e_m=p_c[1], cam_d_m=p_c[2],
-        q_ned_from_cam_w=q_c[0], q_ned_from_cam_x=q_c[1], q_ned_from_cam_y=q_c[2], q_ned_from_cam_z=q_c[3],
+        target_lat_deg=target_lla[0],
+        target_lon_deg=target_lla[1],
+        target_alt_m=target_lla[2],
+        observer_lat_deg=observer_lla[0],
+        observer_lon_deg=observer_lla[1],
+        observer_alt_m=observer_lla[2],
+        target_u_px=u,
+        target_v_px=v,
+        target_visible=int(visible),
+        seq=seq,
+        t_s=t_s,
+        target_n_m=p_t[0],
+        target_e_m=p_t[1],
+        target_d_m=p_t[2],
+        target_vn_mps=v_t[0],
+        target_ve_mps=v_t[1],
+        target_vd_mps=v_t[2],
+        observer_n_m=p_o[0],
+        observer_e_m=p_o[1],
+        observer_d_m=p_o[2],
+        cam_n_m=p_c[0],
+        cam_e_m=p_c[1],
+        cam_d_m=p_c[2],
+        q_ned_from_cam_w=q_c[0],
+        q_ned_from_cam_x=q_c[1],
+        q_ned_from_cam_y=q_c[2],
+        q_ned_from_cam_z=q_c[3],
         range_m=float(np.linalg.norm(p_t - p_c)),
-        **({} if nav_error is None else dict(
-            nav_att_err_n_rad=nav_error.att_err_ned_rad[0], nav_att_err_e_rad=nav_error.att_err_ned_rad[1],
-            nav_att_err_d_rad=nav_error.att_err_ned_rad[2], nav_p_err_n_m=nav_error.p_err_ned_m[0],
-            nav_p_err_e_m=nav_error.p_err_ned_m[1], nav_p_err_d_m=nav_error.p_err_ned_m[2])),
+        **(
+            {}
+            if nav_error is None
+            else dict(
+                nav_att_err_n_rad=nav_error.att_err_ned_rad[0],
+                nav_att_err_e_rad=nav_error.att_err_ned_rad[1],
+                nav_att_err_d_rad=nav_error.att_err_ned_rad[2],
+                nav_p_err_n_m=nav_error.p_err_ned_m[0],
+                nav_p_err_e_m=nav_error.p_err_ned_m[1],
+                nav_p_err_d_m=nav_error.p_err_ned_m[2],
+            )
+        ),
     )
 
 
@@ -264,7 +289,7 @@ class TruthWriter:
             finally:
                 f.close()
 
-    def __enter__(self) -> "TruthWriter":
+    def __enter__(self) -> TruthWriter:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -298,6 +323,4 @@ def read_truth_csv(path) -> dict[str, np.ndarray]:
                 cols[name].append(int(text) if name in _INT_FIELDS else float(text))
             except ValueError:
                 raise InputError(f"{p}: line {n}: {name}: expected a number, got {text!r}") from None
-    return {
-        name: np.asarray(vals, dtype=np.int64 if name in _INT_FIELDS else float) for name, vals in cols.items()
-    }
+    return {name: np.asarray(vals, dtype=np.int64 if name in _INT_FIELDS else float) for name, vals in cols.items()}

@@ -188,7 +188,9 @@ class MountConfig:
     gimballed: Flag() = False
 
     def camera_mount(self) -> CameraMount:
-        return CameraMount.from_euler_deg(self.lever_arm_frd_m, self.roll_deg, self.pitch_deg, self.yaw_deg, self.gimballed)
+        return CameraMount.from_euler_deg(
+            self.lever_arm_frd_m, self.roll_deg, self.pitch_deg, self.yaw_deg, self.gimballed
+        )
 
 
 @config_dataclass
@@ -226,8 +228,9 @@ class EstimatorConfig:
     result_wait_ms: Number(0.0, 1000.0) = 2.0
     max_extrapolation_s: Number(0.0, 60.0) = 1.0
     # SlidingConfig fields, checked against onboard.estimation.sliding.SlidingConfig when the config is built
-    sliding: Instance(dict, what="a mapping of SlidingConfig fields", check=_sliding_mapping) = \
-        dataclasses.field(default_factory=dict)
+    sliding: Instance(dict, what="a mapping of SlidingConfig fields", check=_sliding_mapping) = dataclasses.field(
+        default_factory=dict
+    )
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sliding", dict(self.sliding))
@@ -238,8 +241,12 @@ class EstimatorConfig:
         known = [f.name for f in dataclasses.fields(SlidingConfig)]
         for key in self.sliding:
             if key not in known:
-                raise Invalid(f"sliding.{key}", f"a SlidingConfig field ({', '.join(known)})",
-                              got_text=f"unknown key {key!r}", hint=did_you_mean(key, known))
+                raise Invalid(
+                    f"sliding.{key}",
+                    f"a SlidingConfig field ({', '.join(known)})",
+                    got_text=f"unknown key {key!r}",
+                    hint=did_you_mean(key, known),
+                )
         try:
             SlidingConfig(**{"window_s": self.window_s, **self.sliding})
         except Exception as exc:  # noqa: BLE001 - any refusal of the estimator's own validation
@@ -298,8 +305,11 @@ class GcsConfig:
                 parse_connection(ep, f"gcs.endpoints[{i}]")
             except ConfigError as exc:
                 msg = str(exc).split(": ", 1)[-1]
-                raise Invalid(f"endpoints[{i}]", "an endpoint like udpout:127.0.0.1:14550, udpin:0.0.0.0:14551 "
-                              "or tcp:HOST:PORT", got_text=f"{ep!r} ({msg})") from None
+                raise Invalid(
+                    f"endpoints[{i}]",
+                    "an endpoint like udpout:127.0.0.1:14550, udpin:0.0.0.0:14551 or tcp:HOST:PORT",
+                    got_text=f"{ep!r} ({msg})",
+                ) from None
         for name in ("vendor_name", "model_name"):
             if len(getattr(self, name).encode()) > 32:
                 raise Invalid(name, "at most 32 bytes (CAMERA_INFORMATION)", getattr(self, name))
@@ -370,7 +380,9 @@ def _section(cls) -> Any:
 class OnboardConfig:
     """The whole configuration.  ``OnboardConfig()`` is the built-in default, valid as is."""
 
-    vehicle: Text(pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)") = "uav1"
+    vehicle: Text(
+        pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)"
+    ) = "uav1"
     mavlink: MavlinkConfig = _section(MavlinkConfig)
     zenoh: ZenohConfig = _section(ZenohConfig)
     input: InputConfig = _section(InputConfig)
@@ -417,7 +429,9 @@ def _source_of(path: str, sources: _Sources, default: str) -> str:
     return default
 
 
-def build_config(raw: Mapping[str, Any] | None, source: str = DEFAULT_SOURCE, sources: _Sources | None = None) -> OnboardConfig:
+def build_config(
+    raw: Mapping[str, Any] | None, source: str = DEFAULT_SOURCE, sources: _Sources | None = None
+) -> OnboardConfig:
     """Validate a raw mapping (as read from YAML, with overrides merged) into :class:`OnboardConfig`.
 
     ``sources`` maps overridden field paths to where they came from (``env IRTRACK_X``,
@@ -425,7 +439,9 @@ def build_config(raw: Mapping[str, Any] | None, source: str = DEFAULT_SOURCE, so
     """
     sources = sources or {}
     if raw is not None and not isinstance(raw, Mapping):
-        raise OnboardConfigError(source, "(document)", "a mapping of sections (vehicle, mavlink, zenoh, ...)", show(raw))
+        raise OnboardConfigError(
+            source, "(document)", "a mapping of sections (vehicle, mavlink, zenoh, ...)", show(raw)
+        )
     try:
         return build(OnboardConfig, raw, "")
     except SchemaError as exc:
@@ -484,8 +500,9 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, tuple[A
         path = by_name.get(name)
         if path is None:
             if any(name.startswith(s) for s in sections):
-                raise OnboardConfigError(src, "(name)", "a known IRTRACK_<SECTION>_<FIELD> variable", repr(name),
-                                         did_you_mean(name, by_name))
+                raise OnboardConfigError(
+                    src, "(name)", "a known IRTRACK_<SECTION>_<FIELD> variable", repr(name), did_you_mean(name, by_name)
+                )
             continue
         out[path] = (_parse_value(environ[name]), src)
     return out
@@ -514,9 +531,14 @@ def parse_set_option(text: str) -> tuple[str, Any]:
     path, _, value_text = text.partition("=")
     path = path.strip()
     leaves = _leaf_paths()
-    if path not in leaves and not any(p.startswith(path + ".") for p in leaves) and not path.startswith("estimator.sliding."):
-        raise OnboardConfigError("--set", path or "(option)", "a configuration field path", repr(text),
-                                 did_you_mean(path, leaves))
+    if (
+        path not in leaves
+        and not any(p.startswith(path + ".") for p in leaves)
+        and not path.startswith("estimator.sliding.")
+    ):
+        raise OnboardConfigError(
+            "--set", path or "(option)", "a configuration field path", repr(text), did_you_mean(path, leaves)
+        )
     return path, _parse_value(value_text)
 
 
@@ -534,8 +556,9 @@ def load_config(
     if path is not None:
         data = read_yaml(source, OnboardConfigError)
         if data is not None and not isinstance(data, Mapping):
-            raise OnboardConfigError(source, "(document)", "a mapping of sections (vehicle, mavlink, zenoh, ...)",
-                                     show(data))
+            raise OnboardConfigError(
+                source, "(document)", "a mapping of sections (vehicle, mavlink, zenoh, ...)", show(data)
+            )
         raw = dict(data or {})
     sources: dict[str, str] = {}
     merged = dict(env_overrides(environ))

@@ -29,8 +29,8 @@ import math
 import os
 import sys
 import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Mapping, Sequence
 
 from onboard.core.errors import ConfigError
 
@@ -106,7 +106,12 @@ class Liveness:
 
 
 def _check_max_age(max_age_s: float) -> float:
-    if isinstance(max_age_s, bool) or not isinstance(max_age_s, (int, float)) or not math.isfinite(max_age_s) or max_age_s <= 0:
+    if (
+        isinstance(max_age_s, bool)
+        or not isinstance(max_age_s, (int, float))
+        or not math.isfinite(max_age_s)
+        or max_age_s <= 0
+    ):
         raise ConfigError(f"max_age_s: expected a positive finite number of seconds, got {max_age_s!r}")
     return float(max_age_s)
 

@@ -20,7 +20,7 @@ class _TextFormatter(logging.Formatter):
         if record.exc_info:
             msg += " | " + self.formatException(record.exc_info)
         msg = " ".join(msg.split())
-        return f'{ts} level={record.levelname} logger={record.name} msg={json.dumps(msg)}'
+        return f"{ts} level={record.levelname} logger={record.name} msg={json.dumps(msg)}"
 
 
 class _JsonFormatter(logging.Formatter):

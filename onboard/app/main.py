@@ -27,13 +27,11 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import faulthandler  # noqa: E402
-import json  # noqa: E402
 import logging  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
-import time  # noqa: E402
-from typing import Sequence  # noqa: E402
+from collections.abc import Sequence  # noqa: E402
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -52,37 +50,88 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(prog="python -m onboard", description="irtrack onboard daemon: IR target tracking and 3-D reconstruction.")
-    p.add_argument("--config", metavar="FILE", help="YAML configuration (default: built-in defaults; see config/onboard.yaml)")
-    p.add_argument("--vehicle", help="vehicle name in the zenoh keys irtrack/<vehicle>/... (config: vehicle; default uav1)")
-    p.add_argument("--mavlink", metavar="CONNECTION",
-                   help="autopilot link, e.g. udpin:127.0.0.1:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
-                        "serial:/dev/ttyS0:921600 (config: mavlink.connection)")
-    p.add_argument("--zenoh-connect", metavar="ENDPOINT", action="append",
-                   help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)")
-    p.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append",
-                   help="zenoh endpoint to listen on; repeatable (config: zenoh.listen)")
-    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file (config: zenoh.config_file)")
-    p.add_argument("--zenoh-multicast-scouting", dest="zenoh_scouting", action="store_true", default=None,
-                   help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)")
-    p.add_argument("--no-zenoh-multicast-scouting", dest="zenoh_scouting", action="store_false",
-                   help="disable zenoh multicast scouting")
-    p.add_argument("--gcs", metavar="ENDPOINT", action="append",
-                   help="ground-station endpoint of the MAVLink camera component, e.g. udpout:127.0.0.1:14550; "
-                        "repeatable (config: gcs.endpoints)")
-    p.add_argument("--video-udp", metavar="HOST:PORT",
-                   help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
-                        "(config: video.destination)")
-    p.add_argument("--record", metavar="FILE.mcap",
-                   help="record inputs and outputs to this MCAP file (config: record.path; see onboard/io/record.py)")
-    p.add_argument("--live-view", metavar="PORT", type=int,
-                   help="serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
-                        "(bound to live_view.host, 127.0.0.1 by default; config: live_view.port; see onboard/io/live_view.py)")
-    p.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"), type=str.upper,
-                   help="log level (config: logging.level)")
+    p = _Parser(
+        prog="python -m onboard", description="irtrack onboard daemon: IR target tracking and 3-D reconstruction."
+    )
+    p.add_argument(
+        "--config", metavar="FILE", help="YAML configuration (default: built-in defaults; see config/onboard.yaml)"
+    )
+    p.add_argument(
+        "--vehicle", help="vehicle name in the zenoh keys irtrack/<vehicle>/... (config: vehicle; default uav1)"
+    )
+    p.add_argument(
+        "--mavlink",
+        metavar="CONNECTION",
+        help="autopilot link, e.g. udpin:127.0.0.1:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
+        "serial:/dev/ttyS0:921600 (config: mavlink.connection)",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        metavar="ENDPOINT",
+        action="append",
+        help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)",
+    )
+    p.add_argument(
+        "--zenoh-listen",
+        metavar="ENDPOINT",
+        action="append",
+        help="zenoh endpoint to listen on; repeatable (config: zenoh.listen)",
+    )
+    p.add_argument(
+        "--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file (config: zenoh.config_file)"
+    )
+    p.add_argument(
+        "--zenoh-multicast-scouting",
+        dest="zenoh_scouting",
+        action="store_true",
+        default=None,
+        help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)",
+    )
+    p.add_argument(
+        "--no-zenoh-multicast-scouting",
+        dest="zenoh_scouting",
+        action="store_false",
+        help="disable zenoh multicast scouting",
+    )
+    p.add_argument(
+        "--gcs",
+        metavar="ENDPOINT",
+        action="append",
+        help="ground-station endpoint of the MAVLink camera component, e.g. udpout:127.0.0.1:14550; "
+        "repeatable (config: gcs.endpoints)",
+    )
+    p.add_argument(
+        "--video-udp",
+        metavar="HOST:PORT",
+        help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
+        "(config: video.destination)",
+    )
+    p.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record inputs and outputs to this MCAP file (config: record.path; see onboard/io/record.py)",
+    )
+    p.add_argument(
+        "--live-view",
+        metavar="PORT",
+        type=int,
+        help="serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
+        "(bound to live_view.host, 127.0.0.1 by default; config: live_view.port; see onboard/io/live_view.py)",
+    )
+    p.add_argument(
+        "--log-level",
+        choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"),
+        type=str.upper,
+        help="log level (config: logging.level)",
+    )
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
-    p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[],
-                   help="override any config field, e.g. --set estimator.window_s=8; repeatable")
+    p.add_argument(
+        "--set",
+        metavar="FIELD.PATH=VALUE",
+        action="append",
+        default=[],
+        help="override any config field, e.g. --set estimator.window_s=8; repeatable",
+    )
     p.add_argument("--check", action="store_true", help="validate the configuration and exit 0")
     p.add_argument("--print-config", action="store_true", help="print the effective configuration as YAML and exit")
     return p

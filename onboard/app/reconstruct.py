@@ -74,10 +74,10 @@ from pathlib import Path
 import numpy as np
 
 from onboard.core.errors import InputError, IrtrackError
+from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
-from onboard.core.frames import QUAT_NORM_TOL
 
 __all__ = [
     "OBS_COLUMNS",
@@ -93,14 +93,42 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-OBS_COLUMNS = ("t_s", "u_px", "v_px", "fx_px", "fy_px", "cx_px", "cy_px",
-               "cam_n_m", "cam_e_m", "cam_d_m", "q_w", "q_x", "q_y", "q_z")
+OBS_COLUMNS = (
+    "t_s",
+    "u_px",
+    "v_px",
+    "fx_px",
+    "fy_px",
+    "cx_px",
+    "cy_px",
+    "cam_n_m",
+    "cam_e_m",
+    "cam_d_m",
+    "q_w",
+    "q_x",
+    "q_y",
+    "q_z",
+)
 OUT_COLUMNS = ("t_s", "n_m", "e_m", "d_m", "sigma_n_m", "sigma_e_m", "sigma_d_m")
 QUAT_COLUMNS = ("q_w", "q_x", "q_y", "q_z")
 
 #: |value| bounds per column: beyond them a value is an input error (no overflow downstream)
-ABS_LIMITS = {"t_s": 1e9, "u_px": 1e6, "v_px": 1e6, "fx_px": 1e6, "fy_px": 1e6, "cx_px": 1e6, "cy_px": 1e6,
-              "cam_n_m": 1e7, "cam_e_m": 1e7, "cam_d_m": 1e7, "q_w": 2.0, "q_x": 2.0, "q_y": 2.0, "q_z": 2.0}
+ABS_LIMITS = {
+    "t_s": 1e9,
+    "u_px": 1e6,
+    "v_px": 1e6,
+    "fx_px": 1e6,
+    "fy_px": 1e6,
+    "cx_px": 1e6,
+    "cy_px": 1e6,
+    "cam_n_m": 1e7,
+    "cam_e_m": 1e7,
+    "cam_d_m": 1e7,
+    "q_w": 2.0,
+    "q_x": 2.0,
+    "q_y": 2.0,
+    "q_z": 2.0,
+}
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
 
@@ -124,8 +152,10 @@ def _number(cell: str, source: str, line: int, column: str) -> float:
     if not math.isfinite(value):
         raise CsvInputError(f"{source} line {line}, column {column}: {text!r} is not finite")
     if abs(value) > ABS_LIMITS[column]:
-        raise CsvInputError(f"{source} line {line}, column {column}: {value:g} is beyond the sanity bound "
-                            f"|{column}| <= {ABS_LIMITS[column]:g}")
+        raise CsvInputError(
+            f"{source} line {line}, column {column}: {value:g} is beyond the sanity bound "
+            f"|{column}| <= {ABS_LIMITS[column]:g}"
+        )
     return value
 
 
@@ -155,8 +185,10 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 seen: dict[str, int] = {}
                 for i, name in enumerate(header):
                     if name in seen and name:
-                        raise CsvInputError(f"{source} line {line} (header): column {name!r} appears twice "
-                                            f"(columns {seen[name] + 1} and {i + 1})")
+                        raise CsvInputError(
+                            f"{source} line {line} (header): column {name!r} appears twice "
+                            f"(columns {seen[name] + 1} and {i + 1})"
+                        )
                     seen[name] = i
                 missing = [c for c in OBS_COLUMNS if c not in seen]
                 if missing:
@@ -168,8 +200,9 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 index = {c: seen[c] for c in OBS_COLUMNS}
                 continue
             if len(record) != len(header):
-                raise CsvInputError(f"{source} line {line}: {len(record)} cells, the header (line {header_line}) "
-                                    f"has {len(header)}")
+                raise CsvInputError(
+                    f"{source} line {line}: {len(record)} cells, the header (line {header_line}) has {len(header)}"
+                )
             vals = [_number(record[index[c]], source, line, c) for c in OBS_COLUMNS]
             t, fx, fy = vals[0], vals[3], vals[4]
             if fx <= 0:
@@ -178,11 +211,14 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 raise CsvInputError(f"{source} line {line}, column fy_px: focal length must be > 0, got {fy:g}")
             qn = math.sqrt(sum(v * v for v in vals[10:14]))
             if abs(qn - 1.0) > QUAT_NORM_TOL:
-                raise CsvInputError(f"{source} line {line}, column q_w..q_z: quaternion norm {qn:.6g} is not 1 "
-                                    f"within {QUAT_NORM_TOL:g}")
+                raise CsvInputError(
+                    f"{source} line {line}, column q_w..q_z: quaternion norm {qn:.6g} is not 1 within {QUAT_NORM_TOL:g}"
+                )
             if rows and not t > rows[-1][0]:
-                raise CsvInputError(f"{source} line {line}, column t_s: {t!r} is not after {rows[-1][0]!r} "
-                                    f"(line {lines[-1]}); times must strictly increase")
+                raise CsvInputError(
+                    f"{source} line {line}, column t_s: {t!r} is not after {rows[-1][0]!r} "
+                    f"(line {lines[-1]}); times must strictly increase"
+                )
             rows.append(vals)
             lines.append(line)
     except csv.Error as e:
@@ -194,8 +230,14 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
     a = np.asarray(rows, dtype=float)
     try:
         return Observations(
-            t_s=a[:, 0], uv_px=a[:, 1:3], fx_px=a[:, 3], fy_px=a[:, 4], cx_px=a[:, 5], cy_px=a[:, 6],
-            p_cam_ned_m=a[:, 7:10], q_ned_from_cam=a[:, 10:14],
+            t_s=a[:, 0],
+            uv_px=a[:, 1:3],
+            fx_px=a[:, 3],
+            fy_px=a[:, 4],
+            cx_px=a[:, 5],
+            cy_px=a[:, 6],
+            p_cam_ned_m=a[:, 7:10],
+            q_ned_from_cam=a[:, 10:14],
         )
     except IrtrackError as e:  # every check above should have caught it first
         raise CsvInputError(f"{source}: {e}") from None
@@ -281,8 +323,10 @@ def reconstruct(obs: Observations, options: ReconstructOptions | None = None) ->
     options = options or ReconstructOptions()
     F = len(obs)
     if F < options.min_frames:
-        raise EstimationError(f"{F} data rows; --method {options.method} needs at least {options.min_frames}"
-                              + (" (the MAP observability analysis runs on the same rows)" if options.method == "paper" else ""))
+        raise EstimationError(
+            f"{F} data rows; --method {options.method} needs at least {options.min_frames}"
+            + (" (the MAP observability analysis runs on the same rows)" if options.method == "paper" else "")
+        )
     t0 = time.perf_counter()
     res = _guarded(lambda: MapEstimator(options.map_config, options.noise).solve(obs), "map")
     map_ms = (time.perf_counter() - t0) * 1e3
@@ -297,17 +341,23 @@ def reconstruct(obs: Observations, options: ReconstructOptions | None = None) ->
     else:
         pr: PaperResult = _guarded(lambda: PaperEstimator(options.paper).solve(obs), "paper")
         p, sigma = pr.p_ned_m, pr.sigma_ned_m
-        summary.update({
-            "delta": pr.delta, "order": pr.order, "paper_cost": _finite_or_none(pr.cost),
-            "paper_solver": pr.solver, "paper_refinement_rel": _finite_or_none(pr.refinement_rel),
-            "solve_ms": round(pr.solve_ms, 3),
-        })
+        summary.update(
+            {
+                "delta": pr.delta,
+                "order": pr.order,
+                "paper_cost": _finite_or_none(pr.cost),
+                "paper_solver": pr.solver,
+                "paper_refinement_rel": _finite_or_none(pr.refinement_rel),
+                "solve_ms": round(pr.solve_ms, 3),
+            }
+        )
     if not np.all(np.isfinite(p)):
         raise EstimationError(f"the {options.method} reconstruction is not finite (degenerate geometry)")
     if options.method == "map" and not np.all(np.isfinite(sigma)):
         raise EstimationError("the MAP covariance is not finite (degenerate geometry)")
-    return Reconstruction(t_s=obs.t_s.copy(), p_ned_m=np.array(p, dtype=float), sigma_ned_m=np.array(sigma, dtype=float),
-                          summary=summary)
+    return Reconstruction(
+        t_s=obs.t_s.copy(), p_ned_m=np.array(p, dtype=float), sigma_ned_m=np.array(sigma, dtype=float), summary=summary
+    )
 
 
 def _guarded(fn, what: str):
@@ -354,6 +404,7 @@ def _nonneg(name):
         if not math.isfinite(v) or v < 0:
             raise argparse.ArgumentTypeError(f"{name} must be a finite number >= 0, got {text!r}")
         return v
+
     return conv
 
 
@@ -365,6 +416,7 @@ def _positive(name):
         if v <= 0:
             raise argparse.ArgumentTypeError(f"{name} must be > 0, got {text!r}")
         return v
+
     return conv
 
 
@@ -373,28 +425,64 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m onboard.reconstruct",
         description="Reconstruct a target's 3-D path (local NED) from one moving camera's observations.",
         epilog="Errors name 'line N' = physical line in OBS.csv (header = line 1). Exit 0 ok, 2 bad input/"
-               "arguments or not reconstructable, 1 cannot write outputs / internal error. "
-               "Unobservable geometry exits 0 with observable false in the summary.",
+        "arguments or not reconstructable, 1 cannot write outputs / internal error. "
+        "Unobservable geometry exits 0 with observable false in the summary.",
     )
-    p.add_argument("obs_csv", metavar="OBS.csv",
-                   help=f"observations: a header line with (any order) {','.join(OBS_COLUMNS)}; cam_* the camera centre "
-                        "in local NED (m), q_* q_ned_from_cam (w first, camera x right/y down/z forward); times strictly "
-                        "increasing")
+    p.add_argument(
+        "obs_csv",
+        metavar="OBS.csv",
+        help=f"observations: a header line with (any order) {','.join(OBS_COLUMNS)}; cam_* the camera centre "
+        "in local NED (m), q_* q_ned_from_cam (w first, camera x right/y down/z forward); times strictly "
+        "increasing",
+    )
     p.add_argument("-o", "--output", metavar="OUT.csv", required=True, help="reconstructed positions and sigmas")
-    p.add_argument("--summary-json", metavar="S.json", help="write a JSON summary (observable, method, frames, diagnostics)")
-    p.add_argument("--method", choices=("map", "paper"), default="map", help="MAP estimator (default) or the paper's closed form")
-    p.add_argument("--pixel-sigma", type=_positive("--pixel-sigma"), default=NoiseModel().pixel_sigma_px, metavar="PX",
-                   help="pixel noise, 1 sigma per axis (default %(default)s)")
-    p.add_argument("--attitude-sigma-deg", type=_nonneg("--attitude-sigma-deg"), default=0.0, metavar="DEG",
-                   help="white attitude noise per axis, 1 sigma (default 0)")
-    p.add_argument("--attitude-bias-deg", type=_nonneg("--attitude-bias-deg"), default=0.0, metavar="DEG",
-                   help="prior sigma of a constant attitude bias per axis, estimated (default 0: none)")
-    p.add_argument("--position-sigma-m", type=_nonneg("--position-sigma-m"), default=0.0, metavar="M",
-                   help="white camera-position noise per axis, 1 sigma (default 0)")
-    p.add_argument("--delta", type=_positive("--delta"), default=PaperConfig().delta,
-                   help="paper: smoothness weight (default %(default)s)")
-    p.add_argument("--order", type=int, choices=(1, 2), default=PaperConfig().order,
-                   help="paper: finite-difference order of D (default %(default)s)")
+    p.add_argument(
+        "--summary-json", metavar="S.json", help="write a JSON summary (observable, method, frames, diagnostics)"
+    )
+    p.add_argument(
+        "--method", choices=("map", "paper"), default="map", help="MAP estimator (default) or the paper's closed form"
+    )
+    p.add_argument(
+        "--pixel-sigma",
+        type=_positive("--pixel-sigma"),
+        default=NoiseModel().pixel_sigma_px,
+        metavar="PX",
+        help="pixel noise, 1 sigma per axis (default %(default)s)",
+    )
+    p.add_argument(
+        "--attitude-sigma-deg",
+        type=_nonneg("--attitude-sigma-deg"),
+        default=0.0,
+        metavar="DEG",
+        help="white attitude noise per axis, 1 sigma (default 0)",
+    )
+    p.add_argument(
+        "--attitude-bias-deg",
+        type=_nonneg("--attitude-bias-deg"),
+        default=0.0,
+        metavar="DEG",
+        help="prior sigma of a constant attitude bias per axis, estimated (default 0: none)",
+    )
+    p.add_argument(
+        "--position-sigma-m",
+        type=_nonneg("--position-sigma-m"),
+        default=0.0,
+        metavar="M",
+        help="white camera-position noise per axis, 1 sigma (default 0)",
+    )
+    p.add_argument(
+        "--delta",
+        type=_positive("--delta"),
+        default=PaperConfig().delta,
+        help="paper: smoothness weight (default %(default)s)",
+    )
+    p.add_argument(
+        "--order",
+        type=int,
+        choices=(1, 2),
+        default=PaperConfig().order,
+        help="paper: finite-difference order of D (default %(default)s)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="log progress (and tracebacks of internal errors)")
     return p
 

@@ -39,14 +39,23 @@ import logging  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+from collections.abc import Iterator, Sequence  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
-from typing import Any, Iterator, Sequence  # noqa: E402
+from typing import Any  # noqa: E402
 
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, irframe_from_rawimage, pose_from_json  # noqa: E402
 
-__all__ = ["RecordedMessage", "read_recording", "Recording", "load_recording", "ReplayResult", "replay",
-           "compare_tracks", "main"]
+__all__ = [
+    "RecordedMessage",
+    "read_recording",
+    "Recording",
+    "load_recording",
+    "ReplayResult",
+    "replay",
+    "compare_tracks",
+    "main",
+]
 
 log = logging.getLogger(__name__)
 
@@ -268,8 +277,9 @@ def _imaging_child(rec: Recording, config, conn) -> None:
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
     tapped = _TappedTracker(make_tracker(config), conn)
-    pipe = FramePipeline(config, None, tapped, None, config.pose.geodetic_origin(),
-                         counter=RejectCounter(log_interval_s=3600.0))
+    pipe = FramePipeline(
+        config, None, tapped, None, config.pose.geodetic_origin(), counter=RejectCounter(log_interval_s=3600.0)
+    )
     try:
         for _i, inp, frame in _frames_taken(rec):
             if frame is None:
@@ -305,9 +315,9 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
     imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
-    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
     from onboard.core.pose import RejectCounter
     from onboard.core.track import track_to_json
+    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     if jobs not in (1, 2):
         raise InputError(f"replay jobs: expected 1 or 2, got {jobs!r}")
@@ -319,8 +329,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     if jobs == 2 and live is None:
         proc, conn = _start_imaging_process(rec, config)
     tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
-    pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(),
-                         counter=counter)
+    pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
     out: list = []
     missing = refused = fed = 0
     rx0 = None
@@ -365,7 +374,9 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     flight_s = 0.0
     if rec.inputs:
         flight_s = (int(rec.inputs[-1]["received_ns"]) - int(rec.inputs[0]["received_ns"])) / 1e9
-    return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts if hasattr(counter, "counts") else {})
+    return ReplayResult(
+        out, fed, missing, refused, wall, flight_s, counter.counts if hasattr(counter, "counts") else {}
+    )
 
 
 # --------------------------------------------------------------------------- comparison (pure)
@@ -383,6 +394,7 @@ class FrameDiff:
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
     """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
     unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
+
     def key(t):
         return (t.get("seq"), t.get("time_boot_us"))
 
@@ -417,11 +429,17 @@ def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None
             extra.append(f"|d ned| {d.d_pos_m:.6g} m")
         if d.d_uv_px is not None:
             extra.append(f"|d uv| {d.d_uv_px:.6g} px")
-        print(f"seq {d.seq} t {d.time_boot_us} us: {', '.join(d.fields)}" + (f" ({'; '.join(extra)})" if extra else ""),
-              file=file)
+        print(
+            f"seq {d.seq} t {d.time_boot_us} us: {', '.join(d.fields)}" + (f" ({'; '.join(extra)})" if extra else ""),
+            file=file,
+        )
     dp = [d.d_pos_m for d in diffs if d.d_pos_m is not None]
-    print(f"compare: {matched - len(diffs)}/{matched} frames identical, {len(diffs)} differ"
-          + (f" (max |d ned| {max(dp):.6g} m)" if dp else "") + f", {unmatched} unmatched", file=file)
+    print(
+        f"compare: {matched - len(diffs)}/{matched} frames identical, {len(diffs)} differ"
+        + (f" (max |d ned| {max(dp):.6g} m)" if dp else "")
+        + f", {unmatched} unmatched",
+        file=file,
+    )
 
 
 def write_report(out_dir, rec: Recording, tracks: list, truth: list | None) -> list:
@@ -430,8 +448,10 @@ def write_report(out_dir, rec: Recording, tracks: list, truth: list | None) -> l
     try:
         from groundsim.evaluation.flight_report import write_flight_report
     except ImportError as exc:  # the onboard-only install (pip install .): no simulator, no matplotlib
-        raise ReportUnavailable(f"--report draws with the simulator's plotting, which is not installed here ({exc}); "
-                                "install it with: pip install 'irtrack[sim]'") from None
+        raise ReportUnavailable(
+            f"--report draws with the simulator's plotting, which is not installed here ({exc}); "
+            "install it with: pip install 'irtrack[sim]'"
+        ) from None
 
     poses = {}
     for inp in rec.inputs:
@@ -452,19 +472,34 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m onboard.replay", description=__doc__.split("\n\n")[0])
     p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
     p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
-    p.add_argument("--jobs", type=int, choices=(1, 2), default=1,
-                   help="2: the tracker runs ahead in a second process, overlapping the estimator (same tracks; "
-                        "needs fork and no --live-view; default: %(default)s)")
+    p.add_argument(
+        "--jobs",
+        type=int,
+        choices=(1, 2),
+        default=1,
+        help="2: the tracker runs ahead in a second process, overlapping the estimator (same tracks; "
+        "needs fork and no --live-view; default: %(default)s)",
+    )
     p.add_argument("--config", metavar="FILE", help="configuration to replay with (default: the recording's)")
-    p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable")
+    p.add_argument(
+        "--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable"
+    )
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
     p.add_argument("--report", metavar="DIR", help="write plots of the flight (trajectory, error vs truth, a frame)")
-    p.add_argument("--live-view", metavar="PORT", type=int,
-                   help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
-                        "with --rate realtime to watch it as flown)")
-    p.add_argument("--truth", metavar="SIM.mcap", help="the simulator's recording of the same run (groundsim run --record): "
-                                                       "its /groundsim/truth channel gives the error plot")
+    p.add_argument(
+        "--live-view",
+        metavar="PORT",
+        type=int,
+        help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
+        "with --rate realtime to watch it as flown)",
+    )
+    p.add_argument(
+        "--truth",
+        metavar="SIM.mcap",
+        help="the simulator's recording of the same run (groundsim run --record): "
+        "its /groundsim/truth channel gives the error plot",
+    )
     return p
 
 
@@ -483,15 +518,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (OnboardConfigError, IrtrackError) as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
-    print(f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
-          f"{len(rec.tracks)} recorded tracks" + (f"; file cut short ({rec.truncated}): read to its last chunk"
-                                                   if rec.truncated else ""))
+    print(
+        f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
+        f"{len(rec.tracks)} recorded tracks"
+        + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
+    )
     live = None
     try:
         if args.live_view is not None:
             from onboard.io.live_view import LiveView, LiveViewSettings
-            live = LiveView(LiveViewSettings.from_config(config.live_view, port=args.live_view), vehicle=config.vehicle,
-                            intrinsics=config.camera.pinhole())
+
+            live = LiveView(
+                LiveViewSettings.from_config(config.live_view, port=args.live_view),
+                vehicle=config.vehicle,
+                intrinsics=config.camera.pinhole(),
+            )
             live.start()
             print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
         res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs)
@@ -501,9 +542,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if live is not None:
             live.close()
-    print(f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
-          f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
-          f"x{res.speed_x:.1f} real time")
+    print(
+        f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
+        f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
+        f"x{res.speed_x:.1f} real time"
+    )
     if args.out:
         with open(args.out, "w", encoding="utf-8") as f:
             for t in res.tracks:

@@ -56,17 +56,18 @@ import math
 import os
 import threading
 import time
-from typing import Any, Callable
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
 from onboard.app.config import OnboardConfig
+from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrameError, check_payload_size, decode_irframe
-from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from onboard.core.pose import PoseBuffer, RejectCounter
 from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
-from onboard.app.watchdog import Watchdog
+from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
 __all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "ProcessEstimator", "OnboardService"]
 
@@ -235,8 +236,14 @@ class ThreadedEstimator:
     Estimator exceptions are counted (``estimator_input`` / ``estimator_error``), never raised.
     """
 
-    def __init__(self, estimator, counter: RejectCounter, result_wait_s: float = 0.005,
-                 max_extrapolation_s: float = 1.0, max_pending: int = ESTIMATE_QUEUE_MAX) -> None:
+    def __init__(
+        self,
+        estimator,
+        counter: RejectCounter,
+        result_wait_s: float = 0.005,
+        max_extrapolation_s: float = 1.0,
+        max_pending: int = ESTIMATE_QUEUE_MAX,
+    ) -> None:
         self._est = estimator
         self._noise = getattr(getattr(estimator, "map", None), "noise", None)  # for the bearing update (_propagate)
         self._counter = counter
@@ -258,13 +265,20 @@ class ThreadedEstimator:
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         t = float(t_s)
-        args = (t, tuple(float(x) for x in uv_px), intrinsics, np.array(p_cam_ned_m, dtype=float),
-                np.array(q_ned_from_cam, dtype=float))
+        args = (
+            t,
+            tuple(float(x) for x in uv_px),
+            intrinsics,
+            np.array(p_cam_ned_m, dtype=float),
+            np.array(q_ned_from_cam, dtype=float),
+        )
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
             if len(self._q) >= self._max_pending:
                 self._q.popleft()
-                self._counter.count("estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped")
+                self._counter.count(
+                    "estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped"
+                )
             epoch = self._epoch
             self._q.append(("add", epoch, t, args))
             self._cond.notify_all()
@@ -366,8 +380,10 @@ def _rebuild_window(est, rows) -> Any:
 
 def _unpack_rows(packed) -> list:
     t, uv, p, q, k_index, intrinsics = packed
-    return [(float(t[i]), (float(uv[i, 0]), float(uv[i, 1])), intrinsics[int(k_index[i])], p[i], q[i])
-            for i in range(len(t))]
+    return [
+        (float(t[i]), (float(uv[i, 0]), float(uv[i, 1])), intrinsics[int(k_index[i])], p[i], q[i])
+        for i in range(len(t))
+    ]
 
 
 WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
@@ -380,7 +396,9 @@ def _snapshot(est) -> bytes:
     full window: the rows, the spline solution, the model, the last linearisation)."""
     import pickle
 
-    return pickle.dumps({k: v for k, v in vars(est).items() if k not in _NOT_SNAPSHOTTED}, protocol=pickle.HIGHEST_PROTOCOL)
+    return pickle.dumps(
+        {k: v for k, v in vars(est).items() if k not in _NOT_SNAPSHOTTED}, protocol=pickle.HIGHEST_PROTOCOL
+    )
 
 
 def _restore(est, snapshot: bytes, rows) -> Any:
@@ -442,15 +460,25 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
                         out = _restore(est, snap_bytes, later)
                         how, n_rows = f"restored from its state at {snap_t:.3f} s +", len(later)
                     except Exception as exc:  # noqa: BLE001 - an unusable snapshot: rebuild instead
-                        log.warning("estimator worker %d: snapshot unusable (%s: %s); rebuilding the window",
-                                    os.getpid(), type(exc).__name__, exc)
+                        log.warning(
+                            "estimator worker %d: snapshot unusable (%s: %s); rebuilding the window",
+                            os.getpid(),
+                            type(exc).__name__,
+                            exc,
+                        )
                         snapshot = None
                 if snapshot is None:
                     est.reset()
                     out = _rebuild_window(est, rows)
-                log.info("estimator worker %d: window %s %d observations in %.3f s (%.3f CPU s); %s",
-                         os.getpid(), how, n_rows, time.monotonic() - w0, time.process_time() - c0,
-                         "estimate ready" if out is not None else "no estimate yet" if n_rows else "nothing to add")
+                log.info(
+                    "estimator worker %d: window %s %d observations in %.3f s (%.3f CPU s); %s",
+                    os.getpid(),
+                    how,
+                    n_rows,
+                    time.monotonic() - w0,
+                    time.process_time() - c0,
+                    "estimate ready" if out is not None else "no estimate yet" if n_rows else "nothing to add",
+                )
             except InputError:
                 pass  # the newest row was refused when it first arrived (and counted then)
             except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
@@ -501,8 +529,14 @@ class ProcessEstimator:
     RESTART_BACKOFF_MIN_S = 1.0
     RESTART_BACKOFF_MAX_S = 30.0
 
-    def __init__(self, config: OnboardConfig, counter: RejectCounter, result_wait_s: float = 0.002,
-                 max_extrapolation_s: float = 1.0, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        config: OnboardConfig,
+        counter: RejectCounter,
+        result_wait_s: float = 0.002,
+        max_extrapolation_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         import multiprocessing as mp
 
         # results are unpickled here: import their module now, not on the first result (~0.4 s stall)
@@ -545,8 +579,9 @@ class ProcessEstimator:
 
     def _start(self) -> None:
         parent, child = self._ctx.Pipe()
-        self._proc = self._ctx.Process(target=_estimator_process_main, args=(child, self._config),
-                                       name="irtrack-estimator", daemon=True)
+        self._proc = self._ctx.Process(
+            target=_estimator_process_main, args=(child, self._config), name="irtrack-estimator", daemon=True
+        )
         self._proc.start()
         child.close()
         self._conn = parent
@@ -563,15 +598,19 @@ class ProcessEstimator:
         if self._proc is not None:  # just found dead: count it once, choose the back-off
             code = self._proc.exitcode
             lived_s = now - self._started_s
-            self._backoff_s = (0.0 if self._answered else
-                               min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S))
+            self._backoff_s = (
+                0.0
+                if self._answered
+                else min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S)
+            )
             self._next_start_s = now + self._backoff_s
             self.restarts += 1
             self._counter.count(
                 "estimator_restart",
                 f"estimator process died (exit code {code}, after {lived_s:.1f} s); replaced"
                 + (f" in {self._backoff_s:.0f} s" if self._backoff_s else "")
-                + f", window rebuilt from the last {len(self._window)} observations")
+                + f", window rebuilt from the last {len(self._window)} observations",
+            )
             try:
                 self._conn.close()
             except OSError:
@@ -605,9 +644,14 @@ class ProcessEstimator:
             else:
                 intrinsics.append(k)
                 index[i] = len(intrinsics) - 1
-        return (np.array([r[0] for r in rows]), np.array([r[1] for r in rows]).reshape(-1, 2),
-                np.array([r[3] for r in rows]).reshape(-1, 3), np.array([r[4] for r in rows]).reshape(-1, 4),
-                index, intrinsics)
+        return (
+            np.array([r[0] for r in rows]),
+            np.array([r[1] for r in rows]).reshape(-1, 2),
+            np.array([r[3] for r in rows]).reshape(-1, 3),
+            np.array([r[4] for r in rows]).reshape(-1, 4),
+            index,
+            intrinsics,
+        )
 
     def _remember(self, args) -> None:
         w = self._window
@@ -651,8 +695,13 @@ class ProcessEstimator:
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         t = float(t_s)
-        args = (t, tuple(float(x) for x in uv_px), intrinsics, np.array(p_cam_ned_m, dtype=float),
-                np.array(q_ned_from_cam, dtype=float))
+        args = (
+            t,
+            tuple(float(x) for x in uv_px),
+            intrinsics,
+            np.array(p_cam_ned_m, dtype=float),
+            np.array(q_ned_from_cam, dtype=float),
+        )
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
             self.late_results += 1
@@ -725,10 +774,17 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
             from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
 
             uv, intrinsics, p_cam, q = obs
-            fused = out.with_bearing(p_cam, line_of_sight_unit_ned(uv, intrinsics, q), bearing_sigma_rad(noise, intrinsics),
-                                     noise.camera_position_white_sigma_m)
+            fused = out.with_bearing(
+                p_cam,
+                line_of_sight_unit_ned(uv, intrinsics, q),
+                bearing_sigma_rad(noise, intrinsics),
+                noise.camera_position_white_sigma_m,
+            )
             if fused is None:
-                counter.count("bearing_gate", f"the frame's line of sight is outside the propagated estimate's gate at t={t:.3f} s")
+                counter.count(
+                    "bearing_gate",
+                    f"the frame's line of sight is outside the propagated estimate's gate at t={t:.3f} s",
+                )
             else:
                 out = fused
         return out
@@ -747,20 +803,32 @@ class OnboardService:
     receipt and TIMESYNC, so the two are on one clock.
     """
 
-    def __init__(self, config: OnboardConfig, *, clock: Callable[[], float] = time.monotonic,
-                 clock_ns: Callable[[], int] = time.monotonic_ns) -> None:
+    def __init__(
+        self,
+        config: OnboardConfig,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+    ) -> None:
         if not isinstance(config, OnboardConfig):
             raise InputError(f"OnboardService needs an OnboardConfig, got {type(config).__name__}")
         self.config = config
         self._clock = clock
         self._clock_ns = clock_ns
-        self.counter = LockedCounter(log_interval_s=config.logging.reject_log_interval_s, clock=clock,
-                                     logger=logging.getLogger("onboard.rejects"))
+        self.counter = LockedCounter(
+            log_interval_s=config.logging.reject_log_interval_s,
+            clock=clock,
+            logger=logging.getLogger("onboard.rejects"),
+        )
         self.mount = config.camera.camera_mount()
         self._first_telemetry_s: float | None = None  # when the first attitude/position arrived (watchdog)
         self._next_follow_s = -math.inf  # FOLLOW_TARGET pacing (follow_step)
-        buffer = PoseBuffer(mount=self.mount, config=config.pose_buffer_config(),
-                            origin=config.pose.geodetic_origin(), counter=self.counter)
+        buffer = PoseBuffer(
+            mount=self.mount,
+            config=config.pose_buffer_config(),
+            origin=config.pose.geodetic_origin(),
+            counter=self.counter,
+        )
         self.pose = SharedPoseBuffer(buffer)
         self.queue = FrameQueue(config.input.queue_length)
         ec = config.estimator
@@ -782,8 +850,12 @@ class OnboardService:
         if config.record.path:
             from onboard.io.record import FlightRecorder, RecordingPoseSource, RecordSettings
 
-            self.recorder = FlightRecorder(RecordSettings.from_config(config.record), vehicle=config.vehicle,
-                                           metadata=_record_metadata(config), clock_ns=clock_ns)
+            self.recorder = FlightRecorder(
+                RecordSettings.from_config(config.record),
+                vehicle=config.vehicle,
+                metadata=_record_metadata(config),
+                clock_ns=clock_ns,
+            )
             pose_source = RecordingPoseSource(self.pose)  # remembers each frame's pose for the recording
         self.live_view = None  # onboard.io.live_view.LiveView (live_view.port / --live-view)
         if config.live_view.port is not None:
@@ -793,14 +865,21 @@ class OnboardService:
             if not isinstance(pose_source, RecordingPoseSource):
                 pose_source = RecordingPoseSource(self.pose)  # the frame's pose for the 3-D scene
         self.pipeline = FramePipeline(
-            config, pose_source, make_tracker(config), est, config.pose.geodetic_origin(),
+            config,
+            pose_source,
+            make_tracker(config),
+            est,
+            config.pose.geodetic_origin(),
             counter=self.counter,
             pose_wait=(lambda t_us: self.pose.wait_for(t_us, wait_s, self._clock)) if wait_s > 0 else None,
             clock_ns=clock_ns,
         )
         if config.live_view.port is not None:
-            self.live_view = LiveView(LiveViewSettings.from_config(config.live_view), vehicle=config.vehicle,
-                                      intrinsics=self.pipeline.intrinsics)
+            self.live_view = LiveView(
+                LiveViewSettings.from_config(config.live_view),
+                vehicle=config.vehicle,
+                intrinsics=self.pipeline.intrinsics,
+            )
         self.link = None
         self.gcs = None  # onboard.io.gcs_link.GcsLink: the camera component's sockets (gcs.endpoints)
         self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
@@ -829,7 +908,9 @@ class OnboardService:
         self._started_s = clock()
         self.status_count = 0
         self.watchdog = Watchdog(
-            started_s=self._started_s, frame_key=frame_key_of(config.vehicle), zenoh_where=_zenoh_where(config),
+            started_s=self._started_s,
+            frame_key=frame_key_of(config.vehicle),
+            zenoh_where=_zenoh_where(config),
             mavlink_connection=config.mavlink.connection,
             camera_size_px=(self.pipeline.intrinsics.width_px, self.pipeline.intrinsics.height_px),
         )
@@ -844,21 +925,35 @@ class OnboardService:
         import zenoh
 
         from onboard.io.mavlink_link import MavlinkLink
-        from onboard.io.zenoh_session import STATUS_ENCODING, TRACK_ENCODING, frame_key, open_session, status_key, track_key
+        from onboard.io.zenoh_session import (
+            STATUS_ENCODING,
+            TRACK_ENCODING,
+            frame_key,
+            open_session,
+            status_key,
+            track_key,
+        )
 
         cfg = self.config
         if self.recorder is not None:
             try:
                 self.recorder.start()  # a file that cannot be opened fails the start, in one line
             except OSError as exc:
-                raise InputError(f"record.path: cannot write {exc.filename or cfg.record.path}: "
-                                 f"{exc.strerror or exc}") from None
+                raise InputError(
+                    f"record.path: cannot write {exc.filename or cfg.record.path}: {exc.strerror or exc}"
+                ) from None
         if self.live_view is not None:
             self.live_view.start()  # a port in use fails the start, in one line (InputError)
         self.link = MavlinkLink(
-            cfg.mavlink.connection, self.pose, self.counter, gimballed=self.mount.gimballed,
-            att_rate_hz=cfg.mavlink.attitude_rate_hz, pos_rate_hz=cfg.mavlink.position_rate_hz,
-            clock=self._clock, clock_ns=self._clock_ns, config=cfg.mavlink.link_config(),
+            cfg.mavlink.connection,
+            self.pose,
+            self.counter,
+            gimballed=self.mount.gimballed,
+            att_rate_hz=cfg.mavlink.attitude_rate_hz,
+            pos_rate_hz=cfg.mavlink.position_rate_hz,
+            clock=self._clock,
+            clock_ns=self._clock_ns,
+            config=cfg.mavlink.link_config(),
         )
         if self.recorder is not None:
             self.link.raw_tap = self.recorder.on_mavlink
@@ -866,25 +961,42 @@ class OnboardService:
             from onboard.io.video import VideoStreamer
 
             v, K = cfg.video, self.pipeline.intrinsics
-            self.video = VideoStreamer(v.destination, K.width_px, K.height_px, v.fps, v.bitrate_bps, v.gop_s,
-                                       v.overlay, v.queue_length, v.transport)
+            self.video = VideoStreamer(
+                v.destination,
+                K.width_px,
+                K.height_px,
+                v.fps,
+                v.bitrate_bps,
+                v.gop_s,
+                v.overlay,
+                v.queue_length,
+                v.transport,
+            )
         if self.camera is not None:
             from onboard.io.gcs_link import GcsLink
 
             self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
         self.session = open_session(cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes))
         self._track_pub = self.session.declare_publisher(
-            track_key(cfg.vehicle), encoding=zenoh.Encoding(TRACK_ENCODING),
+            track_key(cfg.vehicle),
+            encoding=zenoh.Encoding(TRACK_ENCODING),
             congestion_control=zenoh.CongestionControl.DROP,
         )
-        self._status_pub = self.session.declare_publisher(status_key(cfg.vehicle), encoding=zenoh.Encoding(STATUS_ENCODING))
+        self._status_pub = self.session.declare_publisher(
+            status_key(cfg.vehicle), encoding=zenoh.Encoding(STATUS_ENCODING)
+        )
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
         self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
         self._pipe_thread.start()
         self._started_s = self._clock()
         self.watchdog.restart(self._started_s)  # the 5 s of the input checks run from here
-        log.info("onboard service started: vehicle=%s mavlink=%s frames=%s estimator=%s",
-                 cfg.vehicle, cfg.mavlink.connection, frame_key(cfg.vehicle), self.estimator_kind)
+        log.info(
+            "onboard service started: vehicle=%s mavlink=%s frames=%s estimator=%s",
+            cfg.vehicle,
+            cfg.mavlink.connection,
+            frame_key(cfg.vehicle),
+            self.estimator_kind,
+        )
 
     def request_stop(self) -> None:
         """Ask :meth:`run` to return (signal-handler safe)."""
@@ -935,7 +1047,9 @@ class OnboardService:
             except OSError:
                 pass
         if self._pipe_thread is not None:
-            log.info("onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published)
+            log.info(
+                "onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published
+            )
 
     # ------------------------------------------------------------------ frames in (zenoh thread)
 
@@ -948,7 +1062,9 @@ class OnboardService:
             if enc is not None:  # typed: it must name the IRF1 schema; untyped (octet-stream) is accepted too
                 schema = str(enc).partition(";")[2]
                 if schema and schema != self._frame_schema:
-                    self.counter.count("frame_schema", f"frame encoding {enc} names another schema than {self._frame_schema}")
+                    self.counter.count(
+                        "frame_schema", f"frame encoding {enc} names another schema than {self._frame_schema}"
+                    )
                     return
             payload = sample.payload
             max_bytes = self.config.input.max_frame_bytes
@@ -968,7 +1084,11 @@ class OnboardService:
         if dropped:
             with self._stats_lock:
                 self.frames_dropped += dropped
-            self.counter.count("dropped_queue", f"pipeline behind: oldest frame dropped (queue of {self.config.input.queue_length})", dropped)
+            self.counter.count(
+                "dropped_queue",
+                f"pipeline behind: oldest frame dropped (queue of {self.config.input.queue_length})",
+                dropped,
+            )
 
     # ------------------------------------------------------------------ pipeline thread
 
@@ -1092,8 +1212,12 @@ class OnboardService:
         if self.link is not None:
             if self._first_telemetry_s is None and self.pose.newest_time_boot_us() is not None:
                 self._first_telemetry_s = now
-            self.watchdog.gimbal(now, gimballed=self.mount.gimballed, gimbal_reports=int(getattr(self.link, "gimbal_reports", 0)),
-                                 telemetry_since_s=self._first_telemetry_s)
+            self.watchdog.gimbal(
+                now,
+                gimballed=self.mount.gimballed,
+                gimbal_reports=int(getattr(self.link, "gimbal_reports", 0)),
+                telemetry_since_s=self._first_telemetry_s,
+            )
 
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)
@@ -1148,7 +1272,9 @@ class OnboardService:
             sent += gcs.send(msg) > 0
         return sent
 
-    def status(self, now: float | None = None, cpu_share: float | None = None, pipeline_share: float | None = None) -> dict[str, Any]:
+    def status(
+        self, now: float | None = None, cpu_share: float | None = None, pipeline_share: float | None = None
+    ) -> dict[str, Any]:
         """The ``irtrack.status/1`` dict now (see :func:`onboard.core.track.build_status`)."""
         now = self._clock() if now is None else now
         self._drain_capture_latency()
@@ -1160,33 +1286,41 @@ class OnboardService:
         latest = self._latest
         with self._stats_lock:
             frames_in, dropped, published = self.frames_in, self.frames_dropped, self.tracks_published
-        return build_status(
-            vehicle=self.config.vehicle,
-            uptime_s=now - self._started_s,
-            frames_in=frames_in,
-            frames_processed=self.pipeline.frames_processed,
-            frames_dropped=dropped,
-            frames_rejected=sum(v for k, v in counts.items() if k.startswith("frame_") and k not in _ACCEPTED_EVENTS),
-            tracks_published=published,
-            processing_ms=self.pipeline.processing_ms.summary(),
-            latency_ms=self.latency_ms.summary(),
-            pose_wait_ms=self.pipeline.pose_wait_ms.summary(),
-            capture_to_track_ms=self.capture_to_track_ms.summary() if len(self.capture_to_track_ms) else None,
-            rejected=counts,
-            link=link,
-            cpu_share=cpu_share,
-            pipeline_cpu_share=pipeline_share,
-            last_track=None if latest is None else latest[0],
-            estimator=self.estimator_kind,
-            queue_length=len(self.queue),
-            queue_wait_ms=self.queue_wait_ms.summary(),
-            publish_ms=self.publish_ms.summary(),
-            stages_ms={"imaging": self.pipeline.imaging_ms.summary(), "estimator": self.pipeline.estimator_ms.summary()},
-            warnings=self.watchdog.active_dicts(),
-        ) | ({"camera": self._camera_status()} if self.camera is not None else {}) | (
-            {"video": self.video.status()} if self.video is not None else {}) | (
-            {"record": self.recorder.stats()} if self.recorder is not None else {}) | (
-            {"live_view": self.live_view.stats()} if self.live_view is not None else {})
+        return (
+            build_status(
+                vehicle=self.config.vehicle,
+                uptime_s=now - self._started_s,
+                frames_in=frames_in,
+                frames_processed=self.pipeline.frames_processed,
+                frames_dropped=dropped,
+                frames_rejected=sum(
+                    v for k, v in counts.items() if k.startswith("frame_") and k not in _ACCEPTED_EVENTS
+                ),
+                tracks_published=published,
+                processing_ms=self.pipeline.processing_ms.summary(),
+                latency_ms=self.latency_ms.summary(),
+                pose_wait_ms=self.pipeline.pose_wait_ms.summary(),
+                capture_to_track_ms=self.capture_to_track_ms.summary() if len(self.capture_to_track_ms) else None,
+                rejected=counts,
+                link=link,
+                cpu_share=cpu_share,
+                pipeline_cpu_share=pipeline_share,
+                last_track=None if latest is None else latest[0],
+                estimator=self.estimator_kind,
+                queue_length=len(self.queue),
+                queue_wait_ms=self.queue_wait_ms.summary(),
+                publish_ms=self.publish_ms.summary(),
+                stages_ms={
+                    "imaging": self.pipeline.imaging_ms.summary(),
+                    "estimator": self.pipeline.estimator_ms.summary(),
+                },
+                warnings=self.watchdog.active_dicts(),
+            )
+            | ({"camera": self._camera_status()} if self.camera is not None else {})
+            | ({"video": self.video.status()} if self.video is not None else {})
+            | ({"record": self.recorder.stats()} if self.recorder is not None else {})
+            | ({"live_view": self.live_view.stats()} if self.live_view is not None else {})
+        )
 
     def _camera_status(self) -> dict[str, Any]:
         st = self.camera.status()
@@ -1238,18 +1372,33 @@ def make_camera_protocol(config: OnboardConfig, intrinsics):
     from onboard.io.camera_protocol import CameraIdentity, CameraProtocol, VideoStream, video_stream_type
 
     g, o, v = config.gcs, config.output, config.video
-    identity = CameraIdentity.from_intrinsics(intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px,
-                                              g.pixel_pitch_um, g.vendor_name, g.model_name)
+    identity = CameraIdentity.from_intrinsics(
+        intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px, g.pixel_pitch_um, g.vendor_name, g.model_name
+    )
     stream = None
     if v.destination:  # the ground station listens on the destination's port (QGC: udp://0.0.0.0:PORT)
         hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width_px / (2.0 * intrinsics.fx_px)))
-        stream = VideoStream(video_stream_type(v.transport), v.destination.rpartition(":")[2], v.fps, v.bitrate_bps,
-                             intrinsics.width_px, intrinsics.height_px, hfov_deg)
-    return CameraProtocol(identity, intrinsics.width_px, intrinsics.height_px, component_id=g.component_id,
-                          stream=stream, image_status_hz=o.tracking_image_status_hz,
-                          geo_status_hz=o.tracking_geo_status_hz, observable_only=not o.geo_status_unobservable,
-                          heartbeat_interval_s=g.heartbeat_interval_s,
-                          track_request_timeout_s=g.track_request_timeout_s)
+        stream = VideoStream(
+            video_stream_type(v.transport),
+            v.destination.rpartition(":")[2],
+            v.fps,
+            v.bitrate_bps,
+            intrinsics.width_px,
+            intrinsics.height_px,
+            hfov_deg,
+        )
+    return CameraProtocol(
+        identity,
+        intrinsics.width_px,
+        intrinsics.height_px,
+        component_id=g.component_id,
+        stream=stream,
+        image_status_hz=o.tracking_image_status_hz,
+        geo_status_hz=o.tracking_geo_status_hz,
+        observable_only=not o.geo_status_unobservable,
+        heartbeat_interval_s=g.heartbeat_interval_s,
+        track_request_timeout_s=g.track_request_timeout_s,
+    )
 
 
 def _record_metadata(config: OnboardConfig) -> dict[str, str]:

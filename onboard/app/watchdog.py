@@ -75,12 +75,25 @@ class Watchdog:
     configured.  ``logger``: where the warnings go.
     """
 
-    def __init__(self, *, started_s: float, frame_key: str, zenoh_where: str, mavlink_connection: str,
-                 camera_size_px: tuple[int, int], input_timeout_s: float = INPUT_TIMEOUT_S,
-                 residual_threshold: float = RESIDUAL_THRESHOLD, residual_persist_s: float = RESIDUAL_PERSIST_S,
-                 residual_min_samples: int = RESIDUAL_MIN_SAMPLES, logger: logging.Logger | None = None) -> None:
-        for name, v in (("input_timeout_s", input_timeout_s), ("residual_threshold", residual_threshold),
-                        ("residual_persist_s", residual_persist_s)):
+    def __init__(
+        self,
+        *,
+        started_s: float,
+        frame_key: str,
+        zenoh_where: str,
+        mavlink_connection: str,
+        camera_size_px: tuple[int, int],
+        input_timeout_s: float = INPUT_TIMEOUT_S,
+        residual_threshold: float = RESIDUAL_THRESHOLD,
+        residual_persist_s: float = RESIDUAL_PERSIST_S,
+        residual_min_samples: int = RESIDUAL_MIN_SAMPLES,
+        logger: logging.Logger | None = None,
+    ) -> None:
+        for name, v in (
+            ("input_timeout_s", input_timeout_s),
+            ("residual_threshold", residual_threshold),
+            ("residual_persist_s", residual_persist_s),
+        ):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
                 raise InputError(f"Watchdog.{name} must be a positive number, got {v!r}")
         self.frame_key = frame_key
@@ -121,27 +134,43 @@ class Watchdog:
         t = self.input_timeout_s
         if now_s - self._last_frame_s >= t:
             ever = "since the last one" if self._frames_seen else "since start"
-            self._raise("no_frames", f"no IR frame for {now_s - self._last_frame_s:.0f} s ({ever}) on zenoh key "
-                        f"'{self.frame_key}' ({self.zenoh_where}): check that the camera or simulator publishes "
-                        f"there and that a zenoh endpoint connects the two")
+            self._raise(
+                "no_frames",
+                f"no IR frame for {now_s - self._last_frame_s:.0f} s ({ever}) on zenoh key "
+                f"'{self.frame_key}' ({self.zenoh_where}): check that the camera or simulator publishes "
+                f"there and that a zenoh endpoint connects the two",
+            )
         if now_s - self._last_mavlink_s >= t:
             ever = "since the last one" if self._mavlink_seen else "since start"
-            self._raise("no_mavlink", f"no MAVLink message for {now_s - self._last_mavlink_s:.0f} s ({ever}) on "
-                        f"'{self.mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or "
-                        f"mavlink-router sends there; without telemetry no frame gets a pose or a 3-D position")
+            self._raise(
+                "no_mavlink",
+                f"no MAVLink message for {now_s - self._last_mavlink_s:.0f} s ({ever}) on "
+                f"'{self.mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or "
+                f"mavlink-router sends there; without telemetry no frame gets a pose or a 3-D position",
+            )
 
     def gimbal(self, now_s: float, *, gimballed: bool, gimbal_reports: int, telemetry_since_s: float | None) -> None:
         """Check the mount against the vehicle: ``gimbal_reports`` #285 messages received so far,
         ``telemetry_since_s`` when the first attitude/position arrived (None: none yet)."""
         if not gimballed and gimbal_reports > 0:
-            self._raise("gimbal_mismatch", f"the vehicle reports a gimbal ({gimbal_reports} GIMBAL_DEVICE_ATTITUDE_STATUS "
-                        f"messages) but camera.mount.gimballed is false: the camera attitude ignores the gimbal and "
-                        f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod")
-        elif gimballed and gimbal_reports == 0 and telemetry_since_s is not None \
-                and now_s - telemetry_since_s >= self.input_timeout_s:
-            self._raise("gimbal_mismatch", f"camera.mount.gimballed is true but no GIMBAL_DEVICE_ATTITUDE_STATUS (#285) "
-                        f"arrived in {now_s - telemetry_since_s:.0f} s of telemetry: no frame gets a pose; check the "
-                        f"gimbal's MAVLink output or set camera.mount.gimballed false for a fixed pod")
+            self._raise(
+                "gimbal_mismatch",
+                f"the vehicle reports a gimbal ({gimbal_reports} GIMBAL_DEVICE_ATTITUDE_STATUS "
+                f"messages) but camera.mount.gimballed is false: the camera attitude ignores the gimbal and "
+                f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod",
+            )
+        elif (
+            gimballed
+            and gimbal_reports == 0
+            and telemetry_since_s is not None
+            and now_s - telemetry_since_s >= self.input_timeout_s
+        ):
+            self._raise(
+                "gimbal_mismatch",
+                f"camera.mount.gimballed is true but no GIMBAL_DEVICE_ATTITUDE_STATUS (#285) "
+                f"arrived in {now_s - telemetry_since_s:.0f} s of telemetry: no frame gets a pose; check the "
+                f"gimbal's MAVLink output or set camera.mount.gimballed false for a fixed pod",
+            )
         elif gimballed and gimbal_reports > 0:
             self._clear("gimbal_mismatch")
 
@@ -155,9 +184,12 @@ class Watchdog:
         if (int(width_px), int(height_px)) == (cw, ch):
             self._clear("frame_size")
             return
-        self._raise("frame_size", f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "
-                    f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
-                    f"camera that sends them")
+        self._raise(
+            "frame_size",
+            f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "
+            f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
+            f"camera that sends them",
+        )
 
     def residual(self, now_s: float, residual_rms_norm: float | None) -> None:
         """One estimate's residual statistic (None or NaN: unknown, ignored)."""
@@ -175,11 +207,14 @@ class Watchdog:
         self._high_max = max(self._high_max, r)
         lasted = now_s - self._high_since_s
         if lasted >= self.residual_persist_s and self._high_n >= self.residual_min_samples:
-            self._raise("camera_mismatch", f"image residuals inconsistent with the configured camera for {lasted:.0f} s "
-                        f"(residual_rms_norm up to {self._high_max:.1f}, > {self.residual_threshold:g} on all "
-                        f"{self._high_n} estimates; ~1 expected): a camera mount (camera.mount roll/pitch/yaw, "
-                        f"gimballed) or intrinsics (camera.intrinsics) mismatch is suspected, or the noise model "
-                        f"(estimator.*_sigma_*) is too optimistic; 3-D positions are not to be trusted")
+            self._raise(
+                "camera_mismatch",
+                f"image residuals inconsistent with the configured camera for {lasted:.0f} s "
+                f"(residual_rms_norm up to {self._high_max:.1f}, > {self.residual_threshold:g} on all "
+                f"{self._high_n} estimates; ~1 expected): a camera mount (camera.mount roll/pitch/yaw, "
+                f"gimballed) or intrinsics (camera.intrinsics) mismatch is suspected, or the noise model "
+                f"(estimator.*_sigma_*) is too optimistic; 3-D positions are not to be trusted",
+            )
 
     # ------------------------------------------------------------------ state
 

@@ -218,9 +218,15 @@ def rotmat_from_quat(q) -> np.ndarray:
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
     R = np.stack(
         [
-            1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy),
-            2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx),
-            2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy),
+            1 - 2 * (yy + zz),
+            2 * (xy - wz),
+            2 * (xz + wy),
+            2 * (xy + wz),
+            1 - 2 * (xx + zz),
+            2 * (yz - wx),
+            2 * (xz - wy),
+            2 * (yz + wx),
+            1 - 2 * (xx + yy),
         ],
         axis=-1,
     )
@@ -363,7 +369,7 @@ class CameraMount:
         check_unit_quat(self.q_body_from_mount, "CameraMount.q_body_from_mount")
 
     @classmethod
-    def from_euler_deg(cls, lever_arm_frd_m, roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0, gimballed=False) -> "CameraMount":
+    def from_euler_deg(cls, lever_arm_frd_m, roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0, gimballed=False) -> CameraMount:
         q = quat_from_euler(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
         return cls(tuple(float(a) for a in lever_arm_frd_m), tuple(float(c) for c in q), gimballed)
 
@@ -410,10 +416,12 @@ class PinholeIntrinsics:
         if int(self.width_px) <= 0 or int(self.height_px) <= 0:
             raise FrameError(f"PinholeIntrinsics size must be positive, got {self.width_px} x {self.height_px}")
         if len(self.distortion) != 5 or not all(math.isfinite(float(k)) for k in self.distortion):
-            raise FrameError(f"PinholeIntrinsics.distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {self.distortion!r}")
+            raise FrameError(
+                f"PinholeIntrinsics.distortion must be 5 finite numbers (k1 k2 p1 p2 k3), got {self.distortion!r}"
+            )
 
     @classmethod
-    def vue_pro_640(cls) -> "PinholeIntrinsics":
+    def vue_pro_640(cls) -> PinholeIntrinsics:
         """FLIR Vue Pro 640: 13 mm, 17 um pitch, 640 x 512, principal point at the centre."""
         f = VUE_PRO_640_FOCAL_M / VUE_PRO_640_PITCH_M
         return cls(f, f, 320.0, 256.0, 640, 512)

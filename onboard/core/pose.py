@@ -107,8 +107,8 @@ import enum
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -414,8 +414,12 @@ class PoseBufferConfig:
         for name in ("att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us"):
             if getattr(self, name) > self.window_us:
                 raise Invalid(name, f"an integer <= window_us ({self.window_us})", getattr(self, name))
-        for name, gap in (("att_max_extrapolation_us", "att_max_gap_us"), ("pos_max_extrapolation_us", "pos_max_gap_us"),
-                          ("gimbal_max_extrapolation_us", "gimbal_max_gap_us"), ("gimbal_rate_window_us", "window_us")):
+        for name, gap in (
+            ("att_max_extrapolation_us", "att_max_gap_us"),
+            ("pos_max_extrapolation_us", "pos_max_gap_us"),
+            ("gimbal_max_extrapolation_us", "gimbal_max_gap_us"),
+            ("gimbal_rate_window_us", "window_us"),
+        ):
             if getattr(self, name) > getattr(self, gap):
                 raise Invalid(name, f"an integer <= {gap} ({getattr(self, gap)})", getattr(self, name))
 
@@ -644,20 +648,27 @@ class PoseBuffer:
         else:
             run[:] = [t]
         if len(run) < self.config.time_confirm_count:
-            self.counter.count(f"{s.name}_time_outlier",
-                               f"time_boot_us={t} is {(t - last) / US_PER_S:+.3f} s from the stream's newest {last}")
+            self.counter.count(
+                f"{s.name}_time_outlier",
+                f"time_boot_us={t} is {(t - last) / US_PER_S:+.3f} s from the stream's newest {last}",
+            )
             return False
         run.clear()
         if t > last:
-            self.counter.count(f"{s.name}_time_step", f"time_boot_us stepped {(t - last) / US_PER_S:+.3f} s ({last} -> {t})",
-                               level=logging.INFO)
+            self.counter.count(
+                f"{s.name}_time_step",
+                f"time_boot_us stepped {(t - last) / US_PER_S:+.3f} s ({last} -> {t})",
+                level=logging.INFO,
+            )
             return True
         if s is self._gim:
             s.clear()
             self.counter.count("gimbal_time_reset", f"gimbal time went back {last - t} us; gimbal stream restarted")
             return True
-        self._reboot(f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), "
-                     f"confirmed by {self.config.time_confirm_count} samples")
+        self._reboot(
+            f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), "
+            f"confirmed by {self.config.time_confirm_count} samples"
+        )
         return True
 
     def _reboot(self, detail: str) -> None:
@@ -804,8 +815,9 @@ class PoseBuffer:
         """Store the gimbal attitude relative to the pod mount."""
         return self.add_gimbal_status(time_boot_us, q_mount_from_gimbal, GimbalReference.MOUNT)
 
-    def add_gimbal_status(self, time_boot_us: int, q_ref_from_gimbal, reference: GimbalReference,
-                          omega_ref_rps=None) -> bool:
+    def add_gimbal_status(
+        self, time_boot_us: int, q_ref_from_gimbal, reference: GimbalReference, omega_ref_rps=None
+    ) -> bool:
         """Store a gimbal attitude relative to ``reference`` (see :class:`GimbalReference`) and its
         angular velocity ``omega_ref_rps`` (3,; rad/s, a vector in the reference frame as #285
         defines it; None or NaN = unknown: extrapolation fits a rate to recent samples).
@@ -850,18 +862,29 @@ class PoseBuffer:
         if self._origin is None:
             return PoseLookup(None, "no_origin")
         c = self.config
-        ba = self._bracket_or_extrapolate(self._att, t, extrapolate, c.att_max_extrapolation_us,
-                                          lambda: bool(np.all(np.isfinite(self._att.values[-1][4:]))))
+        ba = self._bracket_or_extrapolate(
+            self._att,
+            t,
+            extrapolate,
+            c.att_max_extrapolation_us,
+            lambda: bool(np.all(np.isfinite(self._att.values[-1][4:]))),
+        )
         if ba[0] is None:
             return PoseLookup(None, ba[1], ba[2])
-        bp = self._bracket_or_extrapolate(self._pos, t, extrapolate, c.pos_max_extrapolation_us,
-                                          lambda: bool(np.all(np.isfinite(self._pos.values[-1][3:]))))
+        bp = self._bracket_or_extrapolate(
+            self._pos,
+            t,
+            extrapolate,
+            c.pos_max_extrapolation_us,
+            lambda: bool(np.all(np.isfinite(self._pos.values[-1][3:]))),
+        )
         if bp[0] is None:
             return PoseLookup(None, bp[1], bp[2])
         bg = None
         if self.mount.gimballed:
-            bg = self._bracket_or_extrapolate(self._gim, t, extrapolate, c.gimbal_max_extrapolation_us,
-                                              lambda: self._gimbal_rate() is not None)
+            bg = self._bracket_or_extrapolate(
+                self._gim, t, extrapolate, c.gimbal_max_extrapolation_us, lambda: self._gimbal_rate() is not None
+            )
             if bg[0] is None:
                 return PoseLookup(None, bg[1], bg[2])
 
@@ -873,7 +896,11 @@ class PoseBuffer:
             q_nb = quat_normalize(quat_multiply(row[:4], quat_from_rotvec(row[4:] * (att_x_us / US_PER_S))))
             att_span = 0
         else:
-            q_nb = self._att.values[i0][:4] if i0 == i1 else quat_slerp(self._att.values[i0][:4], self._att.values[i1][:4], a)
+            q_nb = (
+                self._att.values[i0][:4]
+                if i0 == i1
+                else quat_slerp(self._att.values[i0][:4], self._att.values[i1][:4], a)
+            )
             att_span = self._att.t_us[i1] - self._att.t_us[i0]
 
         j0, j1, s = bp
@@ -895,24 +922,48 @@ class PoseBuffer:
             if k1 is _AFTER:
                 gim_x_us = t - self._gim.t_us[k0]
                 w_ref = self._gimbal_rate()
-                q_ref = quat_normalize(quat_multiply(quat_from_rotvec(w_ref * (gim_x_us / US_PER_S)), self._gim.values[k0][:4]))
+                q_ref = quat_normalize(
+                    quat_multiply(quat_from_rotvec(w_ref * (gim_x_us / US_PER_S)), self._gim.values[k0][:4])
+                )
                 gim_span = 0
-                sigma_rad = math.hypot(sigma_rad, extrapolation_sigma(gim_x_us / US_PER_S, c.gimbal_rate_sigma_rps,
-                                                                      c.angular_accel_sigma_rps2))
+                sigma_rad = math.hypot(
+                    sigma_rad,
+                    extrapolation_sigma(gim_x_us / US_PER_S, c.gimbal_rate_sigma_rps, c.angular_accel_sigma_rps2),
+                )
             else:
                 gim_x_us = 0
                 gim_span = self._gim.t_us[k1] - self._gim.t_us[k0]
-                q_ref = self._gim.values[k0][:4] if k0 == k1 else quat_slerp(self._gim.values[k0][:4], self._gim.values[k1][:4], g)
+                q_ref = (
+                    self._gim.values[k0][:4]
+                    if k0 == k1
+                    else quat_slerp(self._gim.values[k0][:4], self._gim.values[k1][:4], g)
+                )
             q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
 
         p_cam, q_nc = camera_pose_ned(p_ned, q_nb, self.mount, q_mg)
         body = PoseSample(t, p_ned, v_ned, q_nb)
         sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
-        pose = PoseAt(body, p_cam, q_nc, q_mg, self._origin, att_span, pos_span, gim_span, self.reboots,
-                      att_x_us, pos_x_us, gim_x_us, sigma_rad, sigma_m)
+        pose = PoseAt(
+            body,
+            p_cam,
+            q_nc,
+            q_mg,
+            self._origin,
+            att_span,
+            pos_span,
+            gim_span,
+            self.reboots,
+            att_x_us,
+            pos_x_us,
+            gim_x_us,
+            sigma_rad,
+            sigma_m,
+        )
         return PoseLookup(pose)
 
-    def _bracket_or_extrapolate(self, stream: _Stream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]):
+    def _bracket_or_extrapolate(
+        self, stream: _Stream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]
+    ):
         """``stream.bracket(t)``; past the newest sample with ``extrapolate``: ``(i_last, _AFTER, 0.0)``
         within ``horizon_us`` when ``can()``, else the miss (``<name>_extrapolation_limit`` beyond it)."""
         b = stream.bracket(t)
@@ -963,8 +1014,12 @@ class PoseBuffer:
             self.counter.count(f"pose_{res.reason}", f"no pose at time_boot_us={time_boot_us!r}")
         elif res.pose.extrapolated:
             p = res.pose
-            self.counter.count("pose_extrapolated", f"attitude {p.att_extrapolated_us} us, position {p.pos_extrapolated_us} us, "
-                               f"gimbal {p.gimbal_extrapolated_us} us past the newest sample", level=logging.DEBUG)
+            self.counter.count(
+                "pose_extrapolated",
+                f"attitude {p.att_extrapolated_us} us, position {p.pos_extrapolated_us} us, "
+                f"gimbal {p.gimbal_extrapolated_us} us past the newest sample",
+                level=logging.DEBUG,
+            )
         return res.pose
 
     def _interp_position(self, j0: int, j1: int, s: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -1019,7 +1074,15 @@ class ClockSyncConfig:
     jump_count: int = 3
 
     def __post_init__(self) -> None:
-        for name in ("max_rtt_ns", "window", "min_samples", "rtt_floor_ns", "min_skew_span_ns", "jump_ns", "jump_count"):
+        for name in (
+            "max_rtt_ns",
+            "window",
+            "min_samples",
+            "rtt_floor_ns",
+            "min_skew_span_ns",
+            "jump_ns",
+            "jump_count",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ConfigError(f"ClockSyncConfig.{name} must be a positive integer, got {v!r}")
@@ -1095,7 +1158,9 @@ class ClockSync:
         ts1, tc1, t3 = (int(v) for v in vals)
         rtt = t3 - ts1
         if rtt < 0 or rtt > self.config.max_rtt_ns:
-            self.counter.count("timesync_rtt", f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms")
+            self.counter.count(
+                "timesync_rtt", f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms"
+            )
             return False
         mid = ts1 + rtt // 2
         ex = _Exchange(mid, tc1 - mid, rtt)
@@ -1106,8 +1171,11 @@ class ClockSync:
                 if len(self._outliers) < self.config.jump_count:
                     self.counter.count("timesync_outlier", f"offset off the estimate by {err / 1e6:.1f} ms")
                     return False
-                self.counter.count("timesync_reset", f"{len(self._outliers)} consecutive exchanges off by > "
-                                   f"{self.config.jump_ns / 1e6:g} ms: remote clock restarted")
+                self.counter.count(
+                    "timesync_reset",
+                    f"{len(self._outliers)} consecutive exchanges off by > "
+                    f"{self.config.jump_ns / 1e6:g} ms: remote clock restarted",
+                )
                 self._ex = list(self._outliers)
                 self._outliers.clear()
                 self.resets += 1

@@ -118,8 +118,18 @@ class SchemaError(ConfigError):
 
     exit_code = 2
 
-    def __init__(self, source: Any, field: str, expected: str, got_text: str, hint: str | None = None, *,
-                 line: int | None = None, keys: tuple[str, ...] | None = None, owner: str | None = None):
+    def __init__(
+        self,
+        source: Any,
+        field: str,
+        expected: str,
+        got_text: str,
+        hint: str | None = None,
+        *,
+        line: int | None = None,
+        keys: tuple[str, ...] | None = None,
+        owner: str | None = None,
+    ):
         self.source = str(source)
         self.field = field or "(document)"
         self.expected = expected
@@ -147,19 +157,35 @@ class SchemaError(ConfigError):
         if self.keys is not None:
             parent = field.rsplit(".", 1)[0] if "." in field else ""
             expected = f"a key of {parent or 'the document'} ({', '.join(self.keys)})"
-        return cls.make(self.source if source is None else source, field, expected, self.got, self.hint,
-                        line=self.line, keys=self.keys, owner=self.owner)
+        return cls.make(
+            self.source if source is None else source,
+            field,
+            expected,
+            self.got,
+            self.hint,
+            line=self.line,
+            keys=self.keys,
+            owner=self.owner,
+        )
 
 
 class Invalid(ValueError):
     """Raised by a model's own checks (``__post_init__``, field validators): ``field`` relative to the
     model (``""``: the field being validated), what was ``expected``, the value ``got``."""
 
-    def __init__(self, field: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None,
-                 got_text: str | None = None):
+    def __init__(
+        self,
+        field: str,
+        expected: str,
+        got: Any = dataclasses.MISSING,
+        hint: str | None = None,
+        got_text: str | None = None,
+    ):
         self.field = field
         self.expected = expected
-        self.got_text = got_text if got_text is not None else (MISSING_TEXT if got is dataclasses.MISSING else show(got))
+        self.got_text = (
+            got_text if got_text is not None else (MISSING_TEXT if got is dataclasses.MISSING else show(got))
+        )
         self.hint = hint
         super().__init__(f"{field}: expected {expected}, got {self.got_text}")
 
@@ -171,11 +197,17 @@ def _loc_path(loc: tuple) -> str:
     return path
 
 
-_ERROR_PRIORITY = {"unexpected_keyword_argument": 0, "missing_argument": 1, "missing_keyword_only_argument": 1,
-                   "missing": 1}
+_ERROR_PRIORITY = {
+    "unexpected_keyword_argument": 0,
+    "missing_argument": 1,
+    "missing_keyword_only_argument": 1,
+    "missing": 1,
+}
 
 
-def _from_validation(exc: ValidationError, cls: type, source: str, error: type[SchemaError] = SchemaError) -> SchemaError:
+def _from_validation(
+    exc: ValidationError, cls: type, source: str, error: type[SchemaError] = SchemaError
+) -> SchemaError:
     """The first problem of a pydantic ValidationError (unknown keys first) as a SchemaError."""
     errors = exc.errors(include_url=False)
     err = min(errors, key=lambda e: _ERROR_PRIORITY.get(e["type"], 2))
@@ -234,7 +266,9 @@ def config_dataclass(cls: type | None = None, /, *, error: type[SchemaError] = S
 
 
 def is_config_dataclass(tp: Any) -> bool:
-    return isinstance(tp, type) and getattr(tp, "__config_dataclass__", False) and "__config_dataclass__" in _mro_dicts(tp)
+    return (
+        isinstance(tp, type) and getattr(tp, "__config_dataclass__", False) and "__config_dataclass__" in _mro_dicts(tp)
+    )
 
 
 def _mro_dicts(tp: type) -> set[str]:
@@ -279,12 +313,14 @@ def build(cls: type, raw: Any, path: str = "", *, none_is_default: bool = True) 
         raw = {}
     names = [f.name for f in dataclasses.fields(cls)]
     if not isinstance(raw, Mapping):
-        raise SchemaError.make(f"<{cls.__name__}>", path, f"a mapping with keys {', '.join(names)}", show(raw),
-                               owner=cls.__name__)
+        raise SchemaError.make(
+            f"<{cls.__name__}>", path, f"a mapping with keys {', '.join(names)}", show(raw), owner=cls.__name__
+        )
     for k in raw:
         if not isinstance(k, str):
-            raise SchemaError.make(f"<{cls.__name__}>", path, f"string keys (one of {', '.join(names)})", show(k),
-                                   owner=cls.__name__)
+            raise SchemaError.make(
+                f"<{cls.__name__}>", path, f"string keys (one of {', '.join(names)})", show(k), owner=cls.__name__
+            )
     hints = _hints(cls)
     kwargs: dict[str, Any] = {}
     for key, value in raw.items():
@@ -326,8 +362,13 @@ def _build_value(tp: Any, value: Any, path: str) -> Any:
         raise SchemaError.make("<build>", _join(path, "model"), f"{what} (required)", MISSING_TEXT)
     model = value["model"]
     if not isinstance(model, str) or model not in choice:
-        raise SchemaError.make("<build>", _join(path, "model"), what, show(model),
-                               did_you_mean(model, choice) if isinstance(model, str) else None)
+        raise SchemaError.make(
+            "<build>",
+            _join(path, "model"),
+            what,
+            show(model),
+            did_you_mean(model, choice) if isinstance(model, str) else None,
+        )
     return build(choice[model], value, path)
 
 
@@ -402,14 +443,26 @@ def _python_scalar(value: Any) -> Any:
 
 
 @functools.cache
-def Number(lo: float | None = None, hi: float | None = None, *, lo_open: bool = False, hi_open: bool = False,
-           unit: str = "", nullable: bool = False, what: str | None = None) -> Any:
+def Number(
+    lo: float | None = None,
+    hi: float | None = None,
+    *,
+    lo_open: bool = False,
+    hi_open: bool = False,
+    unit: str = "",
+    nullable: bool = False,
+    what: str | None = None,
+) -> Any:
     """A finite float (an int is accepted and becomes a float; a bool is not) within the bounds."""
     text = what or describe_range("a number", lo, hi, lo_open, hi_open) + (f" {unit}" if unit else "")
     bounds = {("gt" if lo_open else "ge"): lo, ("lt" if hi_open else "le"): hi}
     tp: Any = float | None if nullable else float
-    return Annotated[tp, Field(allow_inf_nan=False, **{k: v for k, v in bounds.items() if v is not None}),
-                     BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))]
+    return Annotated[
+        tp,
+        Field(allow_inf_nan=False, **{k: v for k, v in bounds.items() if v is not None}),
+        BeforeValidator(_python_scalar),
+        _expect(text + (" or null" if nullable else "")),
+    ]
 
 
 @functools.cache
@@ -418,7 +471,9 @@ def Integer(lo: int | None = None, hi: int | None = None, *, nullable: bool = Fa
     text = what or describe_range("an integer", lo, hi)
     bounds = {k: v for k, v in (("ge", lo), ("le", hi)) if v is not None}
     tp: Any = int | None if nullable else int
-    return Annotated[tp, Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))]
+    return Annotated[
+        tp, Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))
+    ]
 
 
 @functools.cache
@@ -429,8 +484,14 @@ def Flag(*, nullable: bool = False) -> Any:
 
 
 @functools.cache
-def Text(*, choices: tuple[str, ...] = (), pattern: str | None = None, what: str | None = None,
-         nullable: bool = False, empty: bool = False) -> Any:
+def Text(
+    *,
+    choices: tuple[str, ...] = (),
+    pattern: str | None = None,
+    what: str | None = None,
+    nullable: bool = False,
+    empty: bool = False,
+) -> Any:
     """A string: one of ``choices`` (with a "did you mean"), matching ``pattern``, non-blank unless ``empty``."""
     if choices:
         text = "one of " + ", ".join(choices)
@@ -459,21 +520,30 @@ def _one_or_many(value: Any) -> Any:
 @functools.cache
 def Texts() -> Any:
     """A list of non-blank strings (one string is a list of one); held as a tuple."""
-    return Annotated[tuple[Annotated[str, Field(pattern=r"\S")], ...], BeforeValidator(_one_or_many),
-                     _expect("a list of strings")]
+    return Annotated[
+        tuple[Annotated[str, Field(pattern=r"\S")], ...], BeforeValidator(_one_or_many), _expect("a list of strings")
+    ]
 
 
 @functools.cache
-def Numbers(n: int | None = None, lo: float | None = None, *, lo_open: bool = False, unit: str = "",
-            what: str | None = None, min_length: int = 0) -> Any:
+def Numbers(
+    n: int | None = None,
+    lo: float | None = None,
+    *,
+    lo_open: bool = False,
+    unit: str = "",
+    what: str | None = None,
+    min_length: int = 0,
+) -> Any:
     """A list of ``n`` numbers (any length >= ``min_length`` when ``n`` is None), held as a tuple of floats.
 
     The wrong shape is an error of the field (``expected a list of 3 finite numbers``); a bad element
     one of ``field[i]`` (``expected a finite number``)."""
     elem_text = describe_range("a number", lo, None, lo_open) + (f" {unit}" if unit else "")
     count = f"{n}" if n is not None else f"at least {min_length}"
-    text = what or f"a list of {count} finite numbers" + (describe_range("", lo, None, lo_open) if lo is not None else "") \
-        + (f" {unit}" if unit else "")
+    text = what or f"a list of {count} finite numbers" + (
+        describe_range("", lo, None, lo_open) if lo is not None else ""
+    ) + (f" {unit}" if unit else "")
     elem = pydantic.TypeAdapter(Number(lo, lo_open=lo_open, unit=unit))
 
     def check(value: Any) -> tuple[float, ...]:
@@ -523,8 +593,9 @@ def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool
         except TypeError:  # unhashable key: the base constructor reports it
             break
         if dup:
-            raise yaml.constructor.ConstructorError("while constructing a mapping", node.start_mark,
-                                                    f"found duplicate key {key!r}", key_node.start_mark)
+            raise yaml.constructor.ConstructorError(
+                "while constructing a mapping", node.start_mark, f"found duplicate key {key!r}", key_node.start_mark
+            )
         seen.add(key)
     return yaml.SafeLoader.construct_mapping(loader, node, deep)
 
@@ -563,7 +634,8 @@ def read_yaml(path: str | Path, error: type[SchemaError] = SchemaError) -> Any:
         mark = e.problem_mark or e.context_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
         problem = " ".join(f"{e.context or ''} {e.problem or ''}".split())
-        raise error.make(source, where, "valid YAML", problem or "a syntax error",
-                         line=mark.line + 1 if mark else None) from None
+        raise error.make(
+            source, where, "valid YAML", problem or "a syntax error", line=mark.line + 1 if mark else None
+        ) from None
     except yaml.YAMLError as e:
         raise error.make(source, "(file)", "valid YAML", " ".join(str(e).split())) from None

@@ -83,8 +83,9 @@ import json
 import math
 import os
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -184,8 +185,9 @@ class LineOfSight:
             object.__setattr__(self, name, v)
 
 
-def line_of_sight_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_cam_ned_m,
-                      pixel_sigma_px: float, attitude_sigma_rad: float) -> LineOfSight:
+def line_of_sight_ned(
+    uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_cam_ned_m, pixel_sigma_px: float, attitude_sigma_rad: float
+) -> LineOfSight:
     """The line of sight of pixel ``uv_px`` seen by a camera at ``(p_cam_ned_m, q_ned_from_cam)``.
 
     ``attitude_sigma_rad``: the total 1-sigma attitude error per axis, ``sqrt(s_w^2 + s_b^2)``.
@@ -199,17 +201,26 @@ def line_of_sight_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_ca
     xy = np.asarray(intrinsics.normalized_from_pixel(uv), dtype=float)
     if intrinsics.has_distortion:
         step = 0.5  # px, central differences of the undistortion
-        dxy = np.stack([(np.asarray(intrinsics.normalized_from_pixel(uv + d)) - np.asarray(intrinsics.normalized_from_pixel(uv - d)))
-                        / (2 * step) for d in (np.array([step, 0.0]), np.array([0.0, step]))], axis=1)
+        dxy = np.stack(
+            [
+                (
+                    np.asarray(intrinsics.normalized_from_pixel(uv + d))
+                    - np.asarray(intrinsics.normalized_from_pixel(uv - d))
+                )
+                / (2 * step)
+                for d in (np.array([step, 0.0]), np.array([0.0, step]))
+            ],
+            axis=1,
+        )
     else:
         dxy = np.diag([1.0 / intrinsics.fx_px, 1.0 / intrinsics.fy_px])
     b = np.array([xy[0], xy[1], 1.0])
     nb = float(np.linalg.norm(b))
     b_unit = b / nb
-    l = R @ b_unit
+    los = R @ b_unit
     J = R @ ((np.eye(3) - np.outer(b_unit, b_unit)) / nb)[:, :2] @ dxy  # dl/d(u, v), 3 x 2
-    C = pixel_sigma_px**2 * (J @ J.T) + attitude_sigma_rad**2 * (np.eye(3) - np.outer(l, l))
-    n, e, d = (float(c) for c in l)
+    C = pixel_sigma_px**2 * (J @ J.T) + attitude_sigma_rad**2 * (np.eye(3) - np.outer(los, los))
+    n, e, d = (float(c) for c in los)
     h = math.hypot(n, e)
     az = math.degrees(math.atan2(e, n)) if h > 0 else 0.0
     el = math.degrees(math.atan2(-d, h))
@@ -220,8 +231,14 @@ def line_of_sight_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam, p_ca
         s_az = min(math.degrees(math.sqrt(max(float(g_az @ C @ g_az), 0.0))), SIGMA_AZ_CAP_DEG)
     else:
         s_az = SIGMA_AZ_CAP_DEG
-    return LineOfSight(u_ned=l, azimuth_deg=az, elevation_deg=el, sigma_azimuth_deg=s_az,
-                       sigma_elevation_deg=s_el, p_cam_ned_m=np.asarray(p_cam_ned_m, dtype=float))
+    return LineOfSight(
+        u_ned=los,
+        azimuth_deg=az,
+        elevation_deg=el,
+        sigma_azimuth_deg=s_az,
+        sigma_elevation_deg=s_el,
+        p_cam_ned_m=np.asarray(p_cam_ned_m, dtype=float),
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -298,7 +315,12 @@ class Track:
                 raise InputError("Track.los needs a pose (pose_valid) and a target centre (u_px, v_px)")
         rr = self.residual_rms_norm
         if rr is not None:
-            if isinstance(rr, bool) or not isinstance(rr, (int, float, np.integer, np.floating)) or math.isnan(rr) or rr < 0:
+            if (
+                isinstance(rr, bool)
+                or not isinstance(rr, (int, float, np.integer, np.floating))
+                or math.isnan(rr)
+                or rr < 0
+            ):
                 raise InputError(f"Track.residual_rms_norm must be None or >= 0, got {rr!r}")
             object.__setattr__(self, "residual_rms_norm", float(rr))
         if self.origin is not None and not isinstance(self.origin, GeodeticOrigin):
@@ -423,8 +445,9 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
     if not isinstance(obj, Mapping):
         raise InputError(f"track message must be a JSON object, got {type(obj).__name__}")
     if obj.get("schema") not in READABLE_TRACK_SCHEMAS:
-        raise InputError(f"track message schema: expected one of {', '.join(READABLE_TRACK_SCHEMAS)}, "
-                         f"got {obj.get('schema')!r}")
+        raise InputError(
+            f"track message schema: expected one of {', '.join(READABLE_TRACK_SCHEMAS)}, got {obj.get('schema')!r}"
+        )
     required = ("vehicle", "seq", "time_boot_us", "state", "observable", "window_frames")
     for key in required:
         if key not in obj:
@@ -442,8 +465,11 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
     if obj.get("los_ned") is not None:
         try:
             los = LineOfSight(
-                u_ned=obj["los_ned"], azimuth_deg=obj["los_az_deg"], elevation_deg=obj["los_el_deg"],
-                sigma_azimuth_deg=obj["los_sigma_az_deg"], sigma_elevation_deg=obj["los_sigma_el_deg"],
+                u_ned=obj["los_ned"],
+                azimuth_deg=obj["los_az_deg"],
+                elevation_deg=obj["los_el_deg"],
+                sigma_azimuth_deg=obj["los_sigma_az_deg"],
+                sigma_elevation_deg=obj["los_sigma_el_deg"],
                 p_cam_ned_m=obj["camera_ned_m"],
             )
         except KeyError as exc:
@@ -574,7 +600,9 @@ def build_status(
         "cpu": {"share": _num(cpu_share), "pipeline_share": _num(pipeline_cpu_share), "cores": _cores()},
         "estimator": estimator,
         "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
-        "track": None if t is None else {
+        "track": None
+        if t is None
+        else {
             "time_boot_us": t.time_boot_us,
             "state": t.state,
             "track_id": t.track_id,
@@ -604,4 +632,3 @@ def _jsonable(v):
     if v is None or isinstance(v, str):
         return v
     return str(v)
-

@@ -243,7 +243,9 @@ def _windowed_centroid(image, u0, v0, sigma_obj, plane, params):
     return u, v, touched
 
 
-def detect_targets(image: np.ndarray, params: ImagingParams, region: Region | None = None) -> tuple[list[Detection], Preprocessed]:
+def detect_targets(
+    image: np.ndarray, params: ImagingParams, region: Region | None = None
+) -> tuple[list[Detection], Preprocessed]:
     """All accepted detections in ``region`` (None: full frame), largest flux first, and the
     pre-processing they came from.  Raises :class:`InputError` for a frame that is not 2-D
     uint8/uint16 (see :func:`check_frame`)."""

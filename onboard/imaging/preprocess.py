@@ -40,8 +40,9 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import cv2
 import numpy as np
@@ -133,14 +134,23 @@ class ImagingParams:
         if self.background_opening_px % 2 != 1:
             raise Invalid("background_opening_px", "an odd integer (a centred square)", self.background_opening_px)
         if self.threshold_high_sigma < self.threshold_low_sigma:
-            raise Invalid("threshold_high_sigma", f"a number >= threshold_low_sigma ({self.threshold_low_sigma:g})",
-                          self.threshold_high_sigma)
+            raise Invalid(
+                "threshold_high_sigma",
+                f"a number >= threshold_low_sigma ({self.threshold_low_sigma:g})",
+                self.threshold_high_sigma,
+            )
         if self.min_threshold_high_lsb < self.min_threshold_low_lsb:
-            raise Invalid("min_threshold_high_lsb", f"a number >= min_threshold_low_lsb ({self.min_threshold_low_lsb:g})",
-                          self.min_threshold_high_lsb)
+            raise Invalid(
+                "min_threshold_high_lsb",
+                f"a number >= min_threshold_low_lsb ({self.min_threshold_low_lsb:g})",
+                self.min_threshold_high_lsb,
+            )
         if self.threshold_high_sigma <= 0 and self.min_threshold_high_lsb <= 0:
-            raise Invalid("threshold_high_sigma", "a number > 0 when min_threshold_high_lsb is 0 (else every pixel "
-                          "would seed a blob)", self.threshold_high_sigma)
+            raise Invalid(
+                "threshold_high_sigma",
+                "a number > 0 when min_threshold_high_lsb is 0 (else every pixel would seed a blob)",
+                self.threshold_high_sigma,
+            )
         if self.max_area_px < self.min_area_px:
             raise Invalid("max_area_px", f"an integer >= min_area_px ({self.min_area_px})", self.max_area_px)
         if self.kcf_max_box_px < self.kcf_box_px:
@@ -149,7 +159,7 @@ class ImagingParams:
             raise Invalid("lost_frames", f"an integer >= coast_frames ({self.coast_frames})", self.lost_frames)
 
     @classmethod
-    def from_mapping(cls, mapping: Mapping[str, Any] | None, where: str = "imaging") -> "ImagingParams":
+    def from_mapping(cls, mapping: Mapping[str, Any] | None, where: str = "imaging") -> ImagingParams:
         """Build from a config mapping (e.g. the ``imaging:`` section of onboard.yaml; None: the defaults)
         by the one config system (:func:`onboard.core.schema.build`: strict, unknown keys refused).
         Raises :class:`~onboard.core.schema.SchemaError` ``<where>: imaging.<field>: expected ..., got ...``."""
@@ -170,7 +180,9 @@ class Region:
 
     def __post_init__(self) -> None:
         if not (self.x1_px > self.x0_px and self.y1_px > self.y0_px):
-            raise InputError(f"Region must be non-empty, got x [{self.x0_px}, {self.x1_px}) y [{self.y0_px}, {self.y1_px})")
+            raise InputError(
+                f"Region must be non-empty, got x [{self.x0_px}, {self.x1_px}) y [{self.y0_px}, {self.y1_px})"
+            )
 
     @property
     def width_px(self) -> int:
@@ -181,7 +193,7 @@ class Region:
         return self.y1_px - self.y0_px
 
     @classmethod
-    def around(cls, u_px: float, v_px: float, half_px: int, width_px: int, height_px: int) -> "Region":
+    def around(cls, u_px: float, v_px: float, half_px: int, width_px: int, height_px: int) -> Region:
         """Square of side ``2 * half_px`` centred on (u, v), clipped to a width x height image."""
         cx, cy = int(math.floor(u_px)), int(math.floor(v_px))
         x0 = min(max(cx - half_px, 0), width_px - 1)
@@ -190,8 +202,13 @@ class Region:
         y1 = max(min(cy + half_px, height_px), y0 + 1)
         return cls(x0, y0, x1, y1)
 
-    def union(self, other: "Region") -> "Region":
-        return Region(min(self.x0_px, other.x0_px), min(self.y0_px, other.y0_px), max(self.x1_px, other.x1_px), max(self.y1_px, other.y1_px))
+    def union(self, other: Region) -> Region:
+        return Region(
+            min(self.x0_px, other.x0_px),
+            min(self.y0_px, other.y0_px),
+            max(self.x1_px, other.x1_px),
+            max(self.y1_px, other.y1_px),
+        )
 
     def slices(self) -> tuple[slice, slice]:
         return slice(self.y0_px, self.y1_px), slice(self.x0_px, self.x1_px)

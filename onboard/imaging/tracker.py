@@ -113,7 +113,7 @@ def create_kcf(params: ImagingParams):
     p.desc_npca = p.desc_pca
     p.compressed_size = 1
     p.detect_thresh = float(params.kcf_detect_threshold)
-    factory = getattr(cv2.TrackerKCF, "create", None) or getattr(cv2, "TrackerKCF_create")
+    factory = getattr(cv2.TrackerKCF, "create", None) or cv2.TrackerKCF_create
     return factory(p)
 
 
@@ -415,7 +415,10 @@ class TargetTracker:
         self._box_px = side
         region = Region.around(det.u_px, det.v_px, side + p.roi_margin_px, w, h)
         if pre is None or not (
-            pre.region.x0_px <= region.x0_px and pre.region.y0_px <= region.y0_px and pre.region.x1_px >= region.x1_px and pre.region.y1_px >= region.y1_px
+            pre.region.x0_px <= region.x0_px
+            and pre.region.y0_px <= region.y0_px
+            and pre.region.x1_px >= region.x1_px
+            and pre.region.y1_px >= region.y1_px
         ):
             pre = preprocess_frame(image, p, region)
         self._kcf_scale = max(KCF_FULL_SCALE_HIGHS * pre.threshold_high, 1e-6)

@@ -63,8 +63,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
 
 from onboard.core.errors import InputError
 from onboard.core.selection import TrackRequest, TrackResult
@@ -141,8 +142,11 @@ CAMERA_TRACKING_MODE_POINT = 1
 CAMERA_TRACKING_MODE_RECTANGLE = 2
 CAMERA_TRACKING_STATUS_FLAGS_IDLE = 0
 
-TRACKING_FLAGS = (CAMERA_CAP_FLAGS_HAS_TRACKING_POINT | CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
-                  | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS)
+TRACKING_FLAGS = (
+    CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
+    | CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE
+    | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS
+)
 STATUSTEXT_MAX_CHARS = 50
 _TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, MAV_CMD_CAMERA_STOP_TRACKING)
 
@@ -187,13 +191,28 @@ class CameraIdentity:
         _int_in("CameraIdentity.resolution_v_px", self.resolution_v_px, 1, 65535)
 
     @classmethod
-    def from_intrinsics(cls, fx_px: float, width_px: int, height_px: int, pixel_pitch_um: float,
-                        vendor_name: str = "irtrack", model_name: str = "IR tracker",
-                        firmware_version: int = 0) -> "CameraIdentity":
+    def from_intrinsics(
+        cls,
+        fx_px: float,
+        width_px: int,
+        height_px: int,
+        pixel_pitch_um: float,
+        vendor_name: str = "irtrack",
+        model_name: str = "IR tracker",
+        firmware_version: int = 0,
+    ) -> CameraIdentity:
         """Focal length and sensor size from the pinhole model and the detector's pixel pitch."""
         pitch_mm = _finite_positive("pixel_pitch_um", pixel_pitch_um) / 1000.0
-        return cls(vendor_name, model_name, firmware_version, float(fx_px) * pitch_mm, width_px * pitch_mm,
-                   height_px * pitch_mm, int(width_px), int(height_px))
+        return cls(
+            vendor_name,
+            model_name,
+            firmware_version,
+            float(fx_px) * pitch_mm,
+            width_px * pitch_mm,
+            height_px * pitch_mm,
+            int(width_px),
+            int(height_px),
+        )
 
 
 def video_stream_type(transport: str) -> int:
@@ -201,8 +220,9 @@ def video_stream_type(transport: str) -> int:
     try:
         return _STREAM_TYPE_OF_TRANSPORT[transport]
     except (KeyError, TypeError):
-        raise InputError(f"video.transport: expected one of {', '.join(_STREAM_TYPE_OF_TRANSPORT)}, "
-                         f"got {transport!r}") from None
+        raise InputError(
+            f"video.transport: expected one of {', '.join(_STREAM_TYPE_OF_TRANSPORT)}, got {transport!r}"
+        ) from None
 
 
 @dataclass(frozen=True)
@@ -346,8 +366,10 @@ class CameraProtocol:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise InputError(f"CameraProtocol.{name} must be a rate >= 0 Hz, got {v!r}")
-        self._default_interval_s = {MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
-                                    MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz)}
+        self._default_interval_s = {
+            MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
+            MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz),
+        }
         self.interval_s = dict(self._default_interval_s)
         self._next_due_s = {m: -math.inf for m in self.interval_s}
         self._next_hb_s = -math.inf
@@ -358,8 +380,9 @@ class CameraProtocol:
 
     # ------------------------------------------------------------------ commands
 
-    def handle(self, cmd: CameraCommand, now_s: float, time_boot_ms: int,
-               track: Track | None = None) -> tuple[list[Outgoing], TrackRequest | None]:
+    def handle(
+        self, cmd: CameraCommand, now_s: float, time_boot_ms: int, track: Track | None = None
+    ) -> tuple[list[Outgoing], TrackRequest | None]:
         """Answer one command (``track``: the newest track, for a one-shot #275/#276 request)."""
         self._count(f"cmd_{cmd.command}")
         to = (cmd.src_system, cmd.src_component)
@@ -397,8 +420,9 @@ class CameraProtocol:
             return self._request(c, msg_id, 0.0, to, time_boot_ms, track), None
         return [self._ack(c, MAV_RESULT_UNSUPPORTED, to)], None
 
-    def _request(self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int,
-                 track: Track | None) -> list[Outgoing]:
+    def _request(
+        self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int, track: Track | None
+    ) -> list[Outgoing]:
         msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
         if msgs is None:
             return [self._ack(command, MAV_RESULT_DENIED, to)]
@@ -410,16 +434,54 @@ class CameraProtocol:
         if msg_id == MSG_CAMERA_INFORMATION:
             return [Outgoing("camera_information", camera_information(self.identity, ms, self.stream is not None))]
         if msg_id == MSG_CAMERA_SETTINGS:
-            return [Outgoing("camera_settings", dict(time_boot_ms=ms, mode_id=CAMERA_MODE_VIDEO, zoomLevel=math.nan,
-                                                     focusLevel=math.nan, camera_device_id=0))]
+            return [
+                Outgoing(
+                    "camera_settings",
+                    dict(
+                        time_boot_ms=ms,
+                        mode_id=CAMERA_MODE_VIDEO,
+                        zoomLevel=math.nan,
+                        focusLevel=math.nan,
+                        camera_device_id=0,
+                    ),
+                )
+            ]
         if msg_id == MSG_STORAGE_INFORMATION:
-            return [Outgoing("storage_information", dict(
-                time_boot_ms=ms, storage_id=1, storage_count=0, status=0, total_capacity=0.0, used_capacity=0.0,
-                available_capacity=0.0, read_speed=0.0, write_speed=0.0, type=0, name=b"", storage_usage=0))]
+            return [
+                Outgoing(
+                    "storage_information",
+                    dict(
+                        time_boot_ms=ms,
+                        storage_id=1,
+                        storage_count=0,
+                        status=0,
+                        total_capacity=0.0,
+                        used_capacity=0.0,
+                        available_capacity=0.0,
+                        read_speed=0.0,
+                        write_speed=0.0,
+                        type=0,
+                        name=b"",
+                        storage_usage=0,
+                    ),
+                )
+            ]
         if msg_id == MSG_CAMERA_CAPTURE_STATUS:
-            return [Outgoing("camera_capture_status", dict(
-                time_boot_ms=ms, image_status=0, video_status=0, image_interval=0.0, recording_time_ms=0,
-                available_capacity=0.0, image_count=0, camera_device_id=0))]
+            return [
+                Outgoing(
+                    "camera_capture_status",
+                    dict(
+                        time_boot_ms=ms,
+                        image_status=0,
+                        video_status=0,
+                        image_interval=0.0,
+                        recording_time_ms=0,
+                        available_capacity=0.0,
+                        image_count=0,
+                        camera_device_id=0,
+                    ),
+                )
+            ]
         if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
             if self.stream is None or not math.isfinite(index) or index not in (0.0, 1.0):
                 return None
@@ -433,14 +495,30 @@ class CameraProtocol:
 
     def _stream_message(self, msg_id: int) -> Outgoing:
         s = self.stream
-        common = dict(stream_id=1, flags=s.flags, framerate=s.framerate_hz, resolution_h=s.resolution_h_px,
-                      resolution_v=s.resolution_v_px, bitrate=s.bitrate_bps, rotation=0, hfov=int(round(s.hfov_deg)),
-                      camera_device_id=0)
+        common = dict(
+            stream_id=1,
+            flags=s.flags,
+            framerate=s.framerate_hz,
+            resolution_h=s.resolution_h_px,
+            resolution_v=s.resolution_v_px,
+            bitrate=s.bitrate_bps,
+            rotation=0,
+            hfov=int(round(s.hfov_deg)),
+            camera_device_id=0,
+        )
         if msg_id == MSG_VIDEO_STREAM_STATUS:
             return Outgoing("video_stream_status", common)
-        return Outgoing("video_stream_information", dict(common, count=1, type=s.stream_type,
-                                                         name=s.name.encode()[:32], uri=s.uri.encode()[:160],
-                                                         encoding=s.encoding))
+        return Outgoing(
+            "video_stream_information",
+            dict(
+                common,
+                count=1,
+                type=s.stream_type,
+                name=s.name.encode()[:32],
+                uri=s.uri.encode()[:160],
+                encoding=s.encoding,
+            ),
+        )
 
     def message_interval_us(self, msg_id: int) -> int:
         """MESSAGE_INTERVAL.interval_us for ``msg_id``: #275 / #276 as set (-1 = off), the heartbeat's,
@@ -456,9 +534,12 @@ class CameraProtocol:
         msg_id = _msg_id(p_msg_id)
         if msg_id is None or msg_id > 0xFFFF:  # MESSAGE_INTERVAL.message_id is a uint16
             return [self._ack(command, MAV_RESULT_DENIED, to)]
-        return [self._ack(command, MAV_RESULT_ACCEPTED, to),
-                Outgoing("message_interval", dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)),
-                         reply_to=to)]
+        return [
+            self._ack(command, MAV_RESULT_ACCEPTED, to),
+            Outgoing(
+                "message_interval", dict(message_id=msg_id, interval_us=self.message_interval_us(msg_id)), reply_to=to
+            ),
+        ]
 
     def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
         msg_id = _msg_id(p1)
@@ -476,8 +557,11 @@ class CameraProtocol:
 
     def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
         c, p, to = cmd.command, cmd.params, (cmd.src_system, cmd.src_component)
-        cam_param = {MAV_CMD_CAMERA_TRACK_POINT: p[3], MAV_CMD_CAMERA_TRACK_RECTANGLE: p[4],
-                     MAV_CMD_CAMERA_STOP_TRACKING: p[0]}[c]
+        cam_param = {
+            MAV_CMD_CAMERA_TRACK_POINT: p[3],
+            MAV_CMD_CAMERA_TRACK_RECTANGLE: p[4],
+            MAV_CMD_CAMERA_STOP_TRACKING: p[0],
+        }[c]
         if cam_param not in (0.0, float(self.component_id)):
             return self._refuse(c, MAV_RESULT_DENIED, f"camera id {cam_param:g} is not this camera", to), None
         for pend in self._pending.values():
@@ -494,7 +578,9 @@ class CameraProtocol:
         elif c == MAV_CMD_CAMERA_TRACK_RECTANGLE:
             x0, y0, x1, y1 = p[0], p[1], p[2], p[3]
             if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
-                return self._refuse(c, MAV_RESULT_DENIED, f"rectangle ({x0:g},{y0:g})-({x1:g},{y1:g}) invalid", to), None
+                return self._refuse(
+                    c, MAV_RESULT_DENIED, f"rectangle ({x0:g},{y0:g})-({x1:g},{y1:g}) invalid", to
+                ), None
             req = TrackRequest(rid, "rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H))
         else:
             req = TrackRequest(rid, "stop")
@@ -511,8 +597,11 @@ class CameraProtocol:
         if not result.accepted:
             return self._refuse(pend.command, MAV_RESULT_FAILED, result.reason or "refused", pend.requester)
         kind = pend.request.kind
-        self.selection_mode = {"point": CAMERA_TRACKING_MODE_POINT, "rectangle": CAMERA_TRACKING_MODE_RECTANGLE,
-                               "stop": CAMERA_TRACKING_MODE_NONE}[kind]
+        self.selection_mode = {
+            "point": CAMERA_TRACKING_MODE_POINT,
+            "rectangle": CAMERA_TRACKING_MODE_RECTANGLE,
+            "stop": CAMERA_TRACKING_MODE_NONE,
+        }[kind]
         self._count(f"track_{kind}_accepted")
         return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
 
@@ -526,13 +615,27 @@ class CameraProtocol:
         newest one, None when there is none or it is stale)."""
         out: list[Outgoing] = []
         if now_s >= self._next_hb_s:
-            out.append(Outgoing("heartbeat", dict(type=MAV_TYPE_CAMERA, autopilot=MAV_AUTOPILOT_INVALID, base_mode=0,
-                                                  custom_mode=0, system_status=MAV_STATE_ACTIVE)))
+            out.append(
+                Outgoing(
+                    "heartbeat",
+                    dict(
+                        type=MAV_TYPE_CAMERA,
+                        autopilot=MAV_AUTOPILOT_INVALID,
+                        base_mode=0,
+                        custom_mode=0,
+                        system_status=MAV_STATE_ACTIVE,
+                    ),
+                )
+            )
             self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
         for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
             pend = self._pending.pop(rid)
-            out += self._refuse(pend.command, MAV_RESULT_TEMPORARILY_REJECTED,
-                                "no frame to select on (no IR frames arriving)", pend.requester)
+            out += self._refuse(
+                pend.command,
+                MAV_RESULT_TEMPORARILY_REJECTED,
+                "no frame to select on (no IR frames arriving)",
+                pend.requester,
+            )
         tracking = track is not None and track.state in ("tracking", "coasting")
         if not tracking:
             if self._was_tracking:  # one IDLE status: a ground station clears its box on it
@@ -542,7 +645,10 @@ class CameraProtocol:
                 self.selection_mode = CAMERA_TRACKING_MODE_NONE
             return out
         self._was_tracking = True
-        for msg_id, build in ((MSG_TRACKING_IMAGE_STATUS, self._image_status), (MSG_TRACKING_GEO_STATUS, self._geo_status)):
+        for msg_id, build in (
+            (MSG_TRACKING_IMAGE_STATUS, self._image_status),
+            (MSG_TRACKING_GEO_STATUS, self._geo_status),
+        ):
             every = self.interval_s[msg_id]
             if every is None or now_s < self._next_due_s[msg_id]:
                 continue
@@ -553,30 +659,41 @@ class CameraProtocol:
         return out
 
     def _image_status(self, track: Track | None) -> Outgoing:
-        mode = self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
+        mode = (
+            self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
+        )
         f = image_status_fields(track, self.width_px, self.height_px, mode=mode, radius=self._radius_norm)
-        return Outgoing("camera_tracking_image_status",
-                        wire_fields(CameraTrackingImageStatus(**f, camera_device_id=0).to_message()))
+        return Outgoing(
+            "camera_tracking_image_status", wire_fields(CameraTrackingImageStatus(**f, camera_device_id=0).to_message())
+        )
 
     def _geo_status(self, track: Track | None) -> Outgoing | None:
         f = geo_status_fields(track, observable_only=self.observable_only)
         if f is None:
             return None
-        return Outgoing("camera_tracking_geo_status",
-                        wire_fields(CameraTrackingGeoStatus(**f, camera_device_id=0).to_message()))
+        return Outgoing(
+            "camera_tracking_geo_status", wire_fields(CameraTrackingGeoStatus(**f, camera_device_id=0).to_message())
+        )
 
     # ------------------------------------------------------------------ helpers
 
     def _ack(self, command: int, result: int, to: tuple[int, int]) -> Outgoing:
         self._count(f"ack_{result}")
-        return Outgoing("command_ack", dict(command=command, result=result, progress=0, result_param2=0,
-                                            target_system=to[0], target_component=to[1]), reply_to=to)
+        return Outgoing(
+            "command_ack",
+            dict(
+                command=command, result=result, progress=0, result_param2=0, target_system=to[0], target_component=to[1]
+            ),
+            reply_to=to,
+        )
 
     def _refuse(self, command: int, result: int, reason: str, to: tuple[int, int]) -> list[Outgoing]:
         self.last_refusal = f"command {command}: {reason}"
         text = f"irtrack: {reason}"[:STATUSTEXT_MAX_CHARS]
-        return [self._ack(command, result, to),
-                Outgoing("statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to)]
+        return [
+            self._ack(command, result, to),
+            Outgoing("statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to),
+        ]
 
     def _count(self, key: str) -> None:
         self.counters[key] = self.counters.get(key, 0) + 1

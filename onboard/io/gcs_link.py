@@ -29,10 +29,10 @@ from __future__ import annotations
 
 import logging
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
-from onboard.io.camera_protocol import CameraCommand, Outgoing
 from onboard.core.errors import ConfigError, IrtrackError
+from onboard.io.camera_protocol import CameraCommand, Outgoing
 from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
 __all__ = ["GcsLink", "GcsLinkError"]
@@ -70,7 +70,9 @@ class GcsLink:
         try:
             return connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
         except Exception as exc:  # noqa: BLE001 - socket and serial errors of every kind
-            raise GcsLinkError(f"gcs.endpoints: cannot open {ep.device!r}: {getattr(exc, 'strerror', None) or exc}") from None
+            raise GcsLinkError(
+                f"gcs.endpoints: cannot open {ep.device!r}: {getattr(exc, 'strerror', None) or exc}"
+            ) from None
 
     def set_system_id(self, sysid: int) -> None:
         """Speak as ``sysid`` (the autopilot's system id) from now on."""

@@ -38,7 +38,6 @@ import dataclasses
 import logging
 import math
 import threading
-import time
 from typing import Any
 
 import numpy as np
@@ -46,8 +45,17 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_rotmat, rotmat_from_quat
 
-__all__ = ["LiveViewSettings", "LiveView", "ellipsoid_of_cov", "frustum_lines_ned", "los_segment_ned",
-           "SCENE_TOPIC", "ANNOTATIONS_TOPIC", "TF_TOPIC", "Q_ENU_FROM_NED"]
+__all__ = [
+    "LiveViewSettings",
+    "LiveView",
+    "ellipsoid_of_cov",
+    "frustum_lines_ned",
+    "los_segment_ned",
+    "SCENE_TOPIC",
+    "ANNOTATIONS_TOPIC",
+    "TF_TOPIC",
+    "Q_ENU_FROM_NED",
+]
 
 log = logging.getLogger(__name__)
 
@@ -83,10 +91,15 @@ class LiveViewSettings:
             raise InputError("live_view: los_length_m and frustum_depth_m must be > 0")
 
     @classmethod
-    def from_config(cls, lc, port: int | None = None) -> "LiveViewSettings":
+    def from_config(cls, lc, port: int | None = None) -> LiveViewSettings:
         """From an :class:`onboard.app.config.LiveViewConfig` (``port`` overrides ``lc.port``)."""
-        return cls(port=int(lc.port if port is None else port), host=lc.host, queue_length=lc.queue_length,
-                   los_length_m=lc.los_length_m, trail_points=lc.trail_points)
+        return cls(
+            port=int(lc.port if port is None else port),
+            host=lc.host,
+            queue_length=lc.queue_length,
+            los_length_m=lc.los_length_m,
+            trail_points=lc.trail_points,
+        )
 
 
 # --------------------------------------------------------------------------- geometry (pure)
@@ -111,8 +124,17 @@ def los_segment_ned(p_cam_ned_m, u_ned, length_m: float) -> np.ndarray:
     return np.stack([p, p + float(length_m) * np.asarray(u_ned, dtype=float)])
 
 
-def frustum_lines_ned(p_cam_ned_m, q_ned_from_cam, width_px: int, height_px: int, fx_px: float, fy_px: float,
-                      cx_px: float, cy_px: float, depth_m: float) -> np.ndarray:
+def frustum_lines_ned(
+    p_cam_ned_m,
+    q_ned_from_cam,
+    width_px: int,
+    height_px: int,
+    fx_px: float,
+    fy_px: float,
+    cx_px: float,
+    cy_px: float,
+    depth_m: float,
+) -> np.ndarray:
     """Line-list points (16, 3) of the camera's field of view as a pyramid ``depth_m`` deep (OpenCV
     camera frame: x right, y down, z forward): apex to each image corner, then the corners' rectangle."""
     corners_px = np.array([[0.0, 0.0], [width_px, 0.0], [width_px, height_px], [0.0, height_px]])
@@ -165,8 +187,13 @@ class LiveView:
     def start(self) -> None:
         """Bind the server (an address in use raises :class:`InputError` naming it) and start the thread."""
         import foxglove
-        from foxglove.channels import (FrameTransformChannel, ImageAnnotationsChannel, LocationFixChannel,
-                                       RawImageChannel, SceneUpdateChannel)
+        from foxglove.channels import (
+            FrameTransformChannel,
+            ImageAnnotationsChannel,
+            LocationFixChannel,
+            RawImageChannel,
+            SceneUpdateChannel,
+        )
 
         from onboard.io.record import CAMERA_FIX_TOPIC, JSON_SCHEMAS, TARGET_FIX_TOPIC
 
@@ -178,9 +205,12 @@ class LiveView:
             raise InputError(f"live_view: cannot serve on {s.host}:{s.port}: {exc}") from None
 
         def json_channel(topic: str, schema: str):
-            return foxglove.Channel(topic, schema=foxglove.Schema(name=schema, encoding="jsonschema",
-                                                                  data=_json_bytes(JSON_SCHEMAS[schema])),
-                                    message_encoding="json", context=ctx)
+            return foxglove.Channel(
+                topic,
+                schema=foxglove.Schema(name=schema, encoding="jsonschema", data=_json_bytes(JSON_SCHEMAS[schema])),
+                message_encoding="json",
+                context=ctx,
+            )
 
         self._ch = {
             "frame": RawImageChannel(self.frame_topic, context=ctx),
@@ -212,8 +242,13 @@ class LiveView:
 
     def stats(self) -> dict[str, Any]:
         with self._cond:
-            return {"port": self.port, "published": self.published, "dropped": self.dropped,
-                    "dropped_by_kind": dict(self.dropped_by_kind), "errors": self.errors}
+            return {
+                "port": self.port,
+                "published": self.published,
+                "dropped": self.dropped,
+                "dropped_by_kind": dict(self.dropped_by_kind),
+                "errors": self.errors,
+            }
 
     # ------------------------------------------------------------------ producers (any thread)
 
@@ -295,14 +330,21 @@ class LiveView:
         if np.all(np.isfinite(p)):
             self._camera_trail.append(p)
             lat, lon, alt = geodetic_from_ned(p, pose.origin)
-            self._ch["camera_fix"].log(LocationFix(timestamp=_ts_us(t_us), frame_id="camera", latitude=float(lat),
-                                                   longitude=float(lon), altitude=float(alt)))
+            self._ch["camera_fix"].log(
+                LocationFix(
+                    timestamp=_ts_us(t_us),
+                    frame_id="camera",
+                    latitude=float(lat),
+                    longitude=float(lon),
+                    altitude=float(alt),
+                )
+            )
 
     def _pub_track(self, track, payload: bytes | None) -> None:
         from foxglove.messages import LocationFix
 
-        from onboard.io.record import _fix_fields
         from onboard.core.track import track_to_bytes
+        from onboard.io.record import _fix_fields
 
         self._ch["track"].log(payload if payload is not None else track_to_bytes(track))
         if track.lat_deg is not None:
@@ -317,25 +359,54 @@ class LiveView:
         self._pub_scene(track)
 
     def _pub_annotations(self, track) -> None:
-        from foxglove.messages import (CircleAnnotation, Color, ImageAnnotations, Point2, PointsAnnotation,
-                                       PointsAnnotationType)
+        from foxglove.messages import (
+            CircleAnnotation,
+            Color,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+            PointsAnnotationType,
+        )
 
         ts = _ts_us(track.time_boot_us)
         points, circles = [], []
         if track.bbox is not None:
             x, y, w, h = track.bbox
-            points.append(PointsAnnotation(timestamp=ts, type=PointsAnnotationType.LineLoop, thickness=2.0,
-                                           outline_color=Color(**dict(zip("rgba", _STATE_RGBA.get(track.state, _GREY_RGBA)))),
-                                           points=[Point2(x=x, y=y), Point2(x=x + w, y=y), Point2(x=x + w, y=y + h),
-                                                   Point2(x=x, y=y + h)]))
+            points.append(
+                PointsAnnotation(
+                    timestamp=ts,
+                    type=PointsAnnotationType.LineLoop,
+                    thickness=2.0,
+                    outline_color=Color(**dict(zip("rgba", _STATE_RGBA.get(track.state, _GREY_RGBA)))),
+                    points=[Point2(x=x, y=y), Point2(x=x + w, y=y), Point2(x=x + w, y=y + h), Point2(x=x, y=y + h)],
+                )
+            )
         if track.u_px is not None and track.v_px is not None:
-            circles.append(CircleAnnotation(timestamp=ts, position=Point2(x=track.u_px, y=track.v_px), diameter=4.0,
-                                            thickness=1.0, outline_color=Color(r=1.0, g=0.2, b=0.2, a=1.0)))
+            circles.append(
+                CircleAnnotation(
+                    timestamp=ts,
+                    position=Point2(x=track.u_px, y=track.v_px),
+                    diameter=4.0,
+                    thickness=1.0,
+                    outline_color=Color(r=1.0, g=0.2, b=0.2, a=1.0),
+                )
+            )
         self._ch["annotations"].log(ImageAnnotations(circles=circles, points=points))
 
     def _pub_scene(self, track) -> None:
-        from foxglove.messages import (Color, FrameTransform, LinePrimitive, LinePrimitiveLineType, Point3, Pose,
-                                       Quaternion, SceneEntity, SceneUpdate, SpherePrimitive, Vector3)
+        from foxglove.messages import (
+            Color,
+            FrameTransform,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            Pose,
+            Quaternion,
+            SceneEntity,
+            SceneUpdate,
+            SpherePrimitive,
+            Vector3,
+        )
 
         ts = _ts_us(track.time_boot_us)
         s = self.settings
@@ -353,17 +424,39 @@ class LiveView:
         pose, K = self._pose, self.intrinsics
         cam_lines = []
         if pose is not None and K is not None and np.all(np.isfinite(pose.p_cam_ned_m)):
-            fr = frustum_lines_ned(pose.p_cam_ned_m, pose.q_ned_from_cam, K.width_px, K.height_px, K.fx_px, K.fy_px,
-                                   K.cx_px, K.cy_px, s.frustum_depth_m)
-            cam_lines.append(LinePrimitive(type=LinePrimitiveLineType.LineList, thickness=2.0, scale_invariant=True,
-                                           points=pts(fr), color=Color(r=0.3, g=0.6, b=1.0, a=1.0)))
+            fr = frustum_lines_ned(
+                pose.p_cam_ned_m,
+                pose.q_ned_from_cam,
+                K.width_px,
+                K.height_px,
+                K.fx_px,
+                K.fy_px,
+                K.cx_px,
+                K.cy_px,
+                s.frustum_depth_m,
+            )
+            cam_lines.append(
+                LinePrimitive(
+                    type=LinePrimitiveLineType.LineList,
+                    thickness=2.0,
+                    scale_invariant=True,
+                    points=pts(fr),
+                    color=Color(r=0.3, g=0.6, b=1.0, a=1.0),
+                )
+            )
         ents.append(entity("camera", lines=cam_lines))
         los_lines = []
         if track.los is not None:
             length = track.range_m if track.range_m is not None and math.isfinite(track.range_m) else s.los_length_m
-            los_lines.append(LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=1.5, scale_invariant=True,
-                                           points=pts(los_segment_ned(track.los.p_cam_ned_m, track.los.u_ned, length)),
-                                           color=Color(r=1.0, g=0.9, b=0.2, a=0.9)))
+            los_lines.append(
+                LinePrimitive(
+                    type=LinePrimitiveLineType.LineStrip,
+                    thickness=1.5,
+                    scale_invariant=True,
+                    points=pts(los_segment_ned(track.los.p_cam_ned_m, track.los.u_ned, length)),
+                    color=Color(r=1.0, g=0.9, b=0.2, a=0.9),
+                )
+            )
         ents.append(entity("line_of_sight", lines=los_lines))
         spheres = []
         if track.p_ned_m is not None:
@@ -374,17 +467,42 @@ class LiveView:
                 size, q = ellipsoid_of_cov(track.cov_p_ned_m2)
                 size = np.maximum(size, 0.5)  # visible when tiny
             color = Color(r=0.2, g=0.9, b=0.3, a=0.5) if track.observable else Color(r=1.0, g=0.5, b=0.1, a=0.35)
-            spheres.append(SpherePrimitive(pose=Pose(position=Vector3(x=p[0], y=p[1], z=p[2]), orientation=quat(q)),
-                                           size=Vector3(x=size[0], y=size[1], z=size[2]), color=color))
+            spheres.append(
+                SpherePrimitive(
+                    pose=Pose(position=Vector3(x=p[0], y=p[1], z=p[2]), orientation=quat(q)),
+                    size=Vector3(x=size[0], y=size[1], z=size[2]),
+                    color=color,
+                )
+            )
         ents.append(entity("target", spheres=spheres))
-        for eid, trail, color in (("target_trail", self._target_trail, Color(r=0.2, g=0.9, b=0.3, a=0.8)),
-                                  ("camera_trail", self._camera_trail, Color(r=0.3, g=0.6, b=1.0, a=0.8))):
-            lines = [LinePrimitive(type=LinePrimitiveLineType.LineStrip, thickness=1.0, scale_invariant=True,
-                                   points=pts(trail), color=color)] if len(trail) >= 2 else []
+        for eid, trail, color in (
+            ("target_trail", self._target_trail, Color(r=0.2, g=0.9, b=0.3, a=0.8)),
+            ("camera_trail", self._camera_trail, Color(r=0.3, g=0.6, b=1.0, a=0.8)),
+        ):
+            lines = (
+                [
+                    LinePrimitive(
+                        type=LinePrimitiveLineType.LineStrip,
+                        thickness=1.0,
+                        scale_invariant=True,
+                        points=pts(trail),
+                        color=color,
+                    )
+                ]
+                if len(trail) >= 2
+                else []
+            )
             ents.append(entity(eid, lines=lines))
         self._ch["scene"].log(SceneUpdate(entities=ents))
-        self._ch["tf"].log(FrameTransform(timestamp=ts, parent_frame_id="enu", child_frame_id=NED_FRAME_ID,
-                                          translation=Vector3(), rotation=quat(Q_ENU_FROM_NED)))
+        self._ch["tf"].log(
+            FrameTransform(
+                timestamp=ts,
+                parent_frame_id="enu",
+                child_frame_id=NED_FRAME_ID,
+                translation=Vector3(),
+                rotation=quat(Q_ENU_FROM_NED),
+            )
+        )
 
 
 def _ts(sec: int, nsec: int):

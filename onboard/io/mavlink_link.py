@@ -57,14 +57,15 @@ import select
 import socket
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError
-from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
 from onboard.core.pose import ClockSync, PoseBuffer, RejectCounter
+from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
     CameraTrackingGeoStatus,
@@ -114,7 +115,9 @@ _NOT_AUTOPILOT_TYPES = frozenset(
     }
 )
 _RESULT_NAMES = {
-    v: k[len("MAV_RESULT_"):] for k, v in vars(mavlink2).items() if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
+    v: k[len("MAV_RESULT_") :]
+    for k, v in vars(mavlink2).items()
+    if k.startswith("MAV_RESULT_") and k != "MAV_RESULT_ENUM_END"
 }
 
 
@@ -137,8 +140,14 @@ _CONNECTION_TEXT = "a connection like udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp
 
 
 def _is_destination(dest: Any) -> bool:
-    return (isinstance(dest, tuple) and len(dest) == 2 and isinstance(dest[0], str) and not isinstance(dest[1], bool)
-            and isinstance(dest[1], int) and 1 <= dest[1] <= 65535)
+    return (
+        isinstance(dest, tuple)
+        and len(dest) == 2
+        and isinstance(dest[0], str)
+        and not isinstance(dest[1], bool)
+        and isinstance(dest[1], int)
+        and 1 <= dest[1] <= 65535
+    )
 
 
 @config_dataclass
@@ -172,11 +181,15 @@ class MavlinkLinkConfig:
     gimbal_rate_hz: RateHz = 50.0
     max_outstanding_timesync: Integer(lo=1) = 16
     lock_settle_s: LockSettleS = 1.5
-    signing_key: Instance(bytes, what="32 bytes", check=lambda v: isinstance(v, bytes) and len(v) == 32,
-                          nullable=True) = field(default=None, repr=False)
+    signing_key: Instance(
+        bytes, what="32 bytes", check=lambda v: isinstance(v, bytes) and len(v) == 32, nullable=True
+    ) = field(default=None, repr=False)
     signing_link_id: Integer(0, 255) = 0
-    extra_destinations: Instance(tuple, what="a tuple of (host, port 1..65535) pairs",
-                                 check=lambda v: isinstance(v, tuple) and all(map(_is_destination, v))) = ()
+    extra_destinations: Instance(
+        tuple,
+        what="a tuple of (host, port 1..65535) pairs",
+        check=lambda v: isinstance(v, tuple) and all(map(_is_destination, v)),
+    ) = ()
 
 
 @config_dataclass
@@ -209,8 +222,11 @@ class MavlinkConfig:
             msg = str(exc).split(": ", 1)[-1]
             raise Invalid("connection", _CONNECTION_TEXT, got_text=f"{self.connection!r} ({msg})") from None
         if self.heartbeat_timeout_s <= self.heartbeat_interval_s:
-            raise Invalid("heartbeat_timeout_s", f"a timeout > mavlink.heartbeat_interval_s ({self.heartbeat_interval_s:g})",
-                          self.heartbeat_timeout_s)
+            raise Invalid(
+                "heartbeat_timeout_s",
+                f"a timeout > mavlink.heartbeat_interval_s ({self.heartbeat_interval_s:g})",
+                self.heartbeat_timeout_s,
+            )
         self._signing_key()  # an unreadable or empty key fails at --check, naming its field
 
     def _signing_key(self) -> bytes | None:
@@ -218,9 +234,11 @@ class MavlinkConfig:
             return load_signing_key(self.signing_key_file, self.signing_key_env)
         except ConfigError as exc:
             where, _, what = str(exc).partition(": ")
-            raise Invalid(where.removeprefix("mavlink."),
-                          "a readable MAVLink 2 signing key (64 hex digits, 32 raw bytes or a passphrase)",
-                          got_text=what) from None
+            raise Invalid(
+                where.removeprefix("mavlink."),
+                "a readable MAVLink 2 signing key (64 hex digits, 32 raw bytes or a passphrase)",
+                got_text=what,
+            ) from None
 
     def signing_key(self) -> bytes | None:
         """The MAVLink 2 signing key (reads ``signing_key_file`` or the ``signing_key_env`` variable), None = unsigned."""
@@ -338,7 +356,9 @@ def signing_key_from_text(text: str | bytes, field: str) -> bytes:
         try:
             text = text.decode("utf-8")
         except UnicodeDecodeError:
-            raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got {len(text)} undecodable bytes") from None
+            raise ConfigError(
+                f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got {len(text)} undecodable bytes"
+            ) from None
     text = text.strip()
     if not text:
         raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got an empty key")
@@ -359,7 +379,9 @@ def load_signing_key(key_file: str | None, key_env: str | None, environ=None) ->
                 data = fh.read(4096)
         except OSError as exc:
             raise ConfigError(f"mavlink.signing_key_file: cannot read {key_file!r}: {exc.strerror or exc}") from None
-        return signing_key_from_text(data if len(data) == 32 else data.strip(), f"mavlink.signing_key_file ({key_file})")
+        return signing_key_from_text(
+            data if len(data) == 32 else data.strip(), f"mavlink.signing_key_file ({key_file})"
+        )
     if key_env:
         if key_env not in environ:
             raise ConfigError(f"mavlink.signing_key_env: environment variable {key_env!r} is not set")
@@ -447,7 +469,7 @@ class _StreamTransport:
 class _Writer:
     """The ``file`` of the sending parser: whatever it packs goes to the transport (if open)."""
 
-    def __init__(self, link: "MavlinkLink") -> None:
+    def __init__(self, link: MavlinkLink) -> None:
         self._link = link
 
     def write(self, buf) -> None:
@@ -517,7 +539,9 @@ class MavlinkLink:
             self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
         self._transport: _UdpTransport | _StreamTransport | None = None
         self._stream_parser: _Parser | None = None
-        self._mav = _new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
+        self._mav = _new_parser(
+            self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id
+        )
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
         self._next_open_s = -math.inf
         self.state = LINK_WAITING
@@ -548,8 +572,9 @@ class MavlinkLink:
                 self._transport = _UdpTransport(ep.kind, host, int(port), self.config.extra_destinations)
             else:
                 kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
-                self._transport = _StreamTransport(connect(ep, self.autopilot_sysid or 1, self.config.component_id,
-                                                           **kwargs))
+                self._transport = _StreamTransport(
+                    connect(ep, self.autopilot_sysid or 1, self.config.component_id, **kwargs)
+                )
                 self._stream_parser = _new_parser(self._signing)
             log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
@@ -565,7 +590,7 @@ class MavlinkLink:
                 pass
             self._transport = None
 
-    def __enter__(self) -> "MavlinkLink":
+    def __enter__(self) -> MavlinkLink:
         return self
 
     def __exit__(self, *exc) -> None:
@@ -676,7 +701,9 @@ class MavlinkLink:
                 self._counters.count("mavlink_bad_data", reason)
             return
         if mtype.startswith("UNKNOWN_"):
-            self._counters.count("mavlink_unknown_id", f"message id {mtype[len('UNKNOWN_'):]} not in the common dialect")
+            self._counters.count(
+                "mavlink_unknown_id", f"message id {mtype[len('UNKNOWN_') :]} not in the common dialect"
+            )
             return
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if mtype == "HEARTBEAT":
@@ -797,9 +824,7 @@ class MavlinkLink:
         else:
             self.rates_refused[inf.msg_id] = result
             self._inflight = None
-            self._counters.count(
-                "rate_request_refused", f"message {inf.msg_id}: {_RESULT_NAMES.get(result, result)}"
-            )
+            self._counters.count("rate_request_refused", f"message {inf.msg_id}: {_RESULT_NAMES.get(result, result)}")
 
     def _check_reboot(self, now: float) -> None:
         if self._pose.reboots != self._seen_reboots:
@@ -829,7 +854,10 @@ class MavlinkLink:
             self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
         if self.autopilot_sysid is not None and now - self._last_hb_tx_s >= self.config.heartbeat_interval_s:
             self._last_hb_tx_s = now
-            self._send("HEARTBEAT", Heartbeat(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID).to_message())
+            self._send(
+                "HEARTBEAT",
+                Heartbeat(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID).to_message(),
+            )
         if self.state != LINK_CONNECTED:
             return
         self._service_commands(now)
@@ -863,8 +891,12 @@ class MavlinkLink:
         self._send_interval(self._inflight)
 
     def _send_interval(self, inf: _Inflight) -> None:
-        self._send("SET_MESSAGE_INTERVAL", set_message_interval_message(
-            self.autopilot_sysid, self.config.autopilot_compid, inf.msg_id, inf.interval_us, inf.attempts))
+        self._send(
+            "SET_MESSAGE_INTERVAL",
+            set_message_interval_message(
+                self.autopilot_sysid, self.config.autopilot_compid, inf.msg_id, inf.interval_us, inf.attempts
+            ),
+        )
 
     # ------------------------------------------------------------------ tracking status out
 
@@ -884,8 +916,19 @@ class MavlinkLink:
     ) -> bool:
         """CAMERA_TRACKING_IMAGE_STATUS (#275), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingImageStatus`
         (normalised image units, NaN = unknown).  Returns True when written.  Bad values raise InputError."""
-        msg = CameraTrackingImageStatus(tracking_status, tracking_mode, target_data, point_x, point_y, radius, rec_top_x,
-                                        rec_top_y, rec_bottom_x, rec_bottom_y, camera_device_id).to_message()
+        msg = CameraTrackingImageStatus(
+            tracking_status,
+            tracking_mode,
+            target_data,
+            point_x,
+            point_y,
+            radius,
+            rec_top_x,
+            rec_top_y,
+            rec_bottom_x,
+            rec_bottom_y,
+            camera_device_id,
+        ).to_message()
         return self._send("CAMERA_TRACKING_IMAGE_STATUS", msg)
 
     def send_follow_target(self, target: FollowTarget) -> bool:
@@ -911,9 +954,22 @@ class MavlinkLink:
     ) -> bool:
         """CAMERA_TRACKING_GEO_STATUS (#276), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingGeoStatus`
         (deg, m AMSL, m/s NED, rad; NaN = unknown).  Returns True when written.  Bad values raise InputError."""
-        msg = CameraTrackingGeoStatus(lat_deg, lon_deg, alt_m, h_acc_m, v_acc_m, vel_n_mps, vel_e_mps, vel_d_mps,
-                                      vel_acc_mps, dist_m, hdg_rad, hdg_acc_rad, tracking_status,
-                                      camera_device_id).to_message()
+        msg = CameraTrackingGeoStatus(
+            lat_deg,
+            lon_deg,
+            alt_m,
+            h_acc_m,
+            v_acc_m,
+            vel_n_mps,
+            vel_e_mps,
+            vel_d_mps,
+            vel_acc_mps,
+            dist_m,
+            hdg_rad,
+            hdg_acc_rad,
+            tracking_status,
+            camera_device_id,
+        ).to_message()
         return self._send("CAMERA_TRACKING_GEO_STATUS", msg)
 
     # ------------------------------------------------------------------ queries

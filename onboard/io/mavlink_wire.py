@@ -238,17 +238,19 @@ _HOSTPORT = re.compile(r"^(?P<host>[^:\s]+):(?P<port>\d+)$")
 def parse_endpoint(connection: str, field: str = "--mavlink") -> MavlinkEndpoint:
     """Validate a connection string (grammar in the module docstring).  Raises :class:`ConfigError` naming ``field``."""
     if not isinstance(connection, str) or not connection.strip():
-        raise ConfigError(f"{field}: expected a MAVLink connection like {DEFAULT_CONNECTION_EXAMPLE!r}, got {connection!r}")
+        raise ConfigError(
+            f"{field}: expected a MAVLink connection like {DEFAULT_CONNECTION_EXAMPLE!r}, got {connection!r}"
+        )
     text = connection.strip()
     for prefix in ("udpin", "udpout", "udp", "tcpin", "tcp"):
         if text.startswith(prefix + ":"):
-            m = _HOSTPORT.match(text[len(prefix) + 1:])
+            m = _HOSTPORT.match(text[len(prefix) + 1 :])
             if not m or not 1 <= int(m["port"]) <= 65535:
                 raise ConfigError(f"{field}: {prefix} needs HOST:PORT with PORT in 1..65535, got {connection!r}")
             kind = "udpin" if prefix == "udp" else prefix
             return MavlinkEndpoint(kind, f"{kind}:{m['host']}:{int(m['port'])}")
     if text.startswith("serial:"):
-        rest = text[len("serial:"):]
+        rest = text[len("serial:") :]
         return _parse_serial(rest[2:] if rest.startswith("//") else rest, connection, field)
     if text.startswith("/dev/") or text.upper().startswith("COM"):
         return _parse_serial(text, connection, field)
@@ -292,7 +294,9 @@ def _num(msg: str, name: str, v, lo: float = -math.inf, hi: float = math.inf, na
     return v
 
 
-def _vec(msg: str, name: str, v, n: int, nan_ok: bool = False, lo: float = -math.inf, hi: float = math.inf) -> list[float]:
+def _vec(
+    msg: str, name: str, v, n: int, nan_ok: bool = False, lo: float = -math.inf, hi: float = math.inf
+) -> list[float]:
     try:
         items = list(v)
     except TypeError:
@@ -332,9 +336,13 @@ class Heartbeat:
     def to_message(self):
         m = "HEARTBEAT"
         return mavlink2.MAVLink_heartbeat_message(
-            _int(m, "mav_type", self.mav_type, 0, 255), _int(m, "autopilot", self.autopilot, 0, 255),
-            _int(m, "base_mode", self.base_mode, 0, 255), _int(m, "custom_mode", self.custom_mode, 0, UINT32_MAX),
-            _int(m, "system_status", self.system_status, 0, 255), 3)
+            _int(m, "mav_type", self.mav_type, 0, 255),
+            _int(m, "autopilot", self.autopilot, 0, 255),
+            _int(m, "base_mode", self.base_mode, 0, 255),
+            _int(m, "custom_mode", self.custom_mode, 0, UINT32_MAX),
+            _int(m, "system_status", self.system_status, 0, 255),
+            3,
+        )
 
     @classmethod
     def from_message(cls, msg) -> Heartbeat:
@@ -350,8 +358,9 @@ class SystemTime:
 
     def to_message(self):
         m = "SYSTEM_TIME"
-        return mavlink2.MAVLink_system_time_message(_int(m, "time_unix_us", self.time_unix_us, 0, 2**64 - 1),
-                                                    _time_boot_ms(m, self.time_boot_us))
+        return mavlink2.MAVLink_system_time_message(
+            _int(m, "time_unix_us", self.time_unix_us, 0, 2**64 - 1), _time_boot_ms(m, self.time_boot_us)
+        )
 
     @classmethod
     def from_message(cls, msg) -> SystemTime:
@@ -371,13 +380,17 @@ class AttitudeQuaternion:
         m = "ATTITUDE_QUATERNION"
         q = _vec(m, "q_ned_from_body", self.q_ned_from_body, 4)
         w = _vec(m, "omega_frd_rps", self.omega_frd_rps, 3, nan_ok=True)
-        return mavlink2.MAVLink_attitude_quaternion_message(_time_boot_ms(m, self.time_boot_us), *q, *w,
-                                                            (0.0, 0.0, 0.0, 0.0))
+        return mavlink2.MAVLink_attitude_quaternion_message(
+            _time_boot_ms(m, self.time_boot_us), *q, *w, (0.0, 0.0, 0.0, 0.0)
+        )
 
     @classmethod
     def from_message(cls, msg) -> AttitudeQuaternion:
-        return cls(int(msg.time_boot_ms) * 1000, (msg.q1, msg.q2, msg.q3, msg.q4),
-                   (msg.rollspeed, msg.pitchspeed, msg.yawspeed))
+        return cls(
+            int(msg.time_boot_ms) * 1000,
+            (msg.q1, msg.q2, msg.q3, msg.q4),
+            (msg.rollspeed, msg.pitchspeed, msg.yawspeed),
+        )
 
 
 @dataclass(frozen=True)
@@ -400,20 +413,33 @@ class GlobalPositionInt:
         m = "GLOBAL_POSITION_INT"
         alt_lim_m = INT32_MAX / 1000.0
         v_lim = INT16_MAX / 100.0
-        v_cmps = [round(x * 100.0) for x in _vec(m, "v_ned_mps", self.v_ned_mps, 3, lo=-v_lim - 0.005, hi=v_lim + 0.005)]
+        v_cmps = [
+            round(x * 100.0) for x in _vec(m, "v_ned_mps", self.v_ned_mps, 3, lo=-v_lim - 0.005, hi=v_lim + 0.005)
+        ]
         hdg = _num(m, "heading_rad", self.heading_rad, nan_ok=True)
         hdg_cdeg = UINT16_MAX if math.isnan(hdg) else round(math.degrees(hdg) % 360.0 * 100.0) % 36000
         return mavlink2.MAVLink_global_position_int_message(
-            _time_boot_ms(m, self.time_boot_us), _degE7(m, "lat_deg", self.lat_deg, 90.0),
+            _time_boot_ms(m, self.time_boot_us),
+            _degE7(m, "lat_deg", self.lat_deg, 90.0),
             _degE7(m, "lon_deg", self.lon_deg, 180.0),
             round(_num(m, "alt_amsl_m", self.alt_amsl_m, -alt_lim_m, alt_lim_m) * 1000.0),
-            round(_num(m, "alt_rel_m", self.alt_rel_m, -alt_lim_m, alt_lim_m) * 1000.0), *v_cmps, hdg_cdeg)
+            round(_num(m, "alt_rel_m", self.alt_rel_m, -alt_lim_m, alt_lim_m) * 1000.0),
+            *v_cmps,
+            hdg_cdeg,
+        )
 
     @classmethod
     def from_message(cls, msg) -> GlobalPositionInt:
         hdg = math.nan if msg.hdg == UINT16_MAX else math.radians(msg.hdg / 100.0)
-        return cls(int(msg.time_boot_ms) * 1000, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt * 1e-3, msg.relative_alt * 1e-3,
-                   (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01), hdg)
+        return cls(
+            int(msg.time_boot_ms) * 1000,
+            msg.lat * 1e-7,
+            msg.lon * 1e-7,
+            msg.alt * 1e-3,
+            msg.relative_alt * 1e-3,
+            (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
+            hdg,
+        )
 
 
 #: gimbal failures that make its reported attitude unusable (limits alone do not)
@@ -462,18 +488,31 @@ class GimbalDeviceAttitudeStatus:
         m = "GIMBAL_DEVICE_ATTITUDE_STATUS"
         nan = math.nan
         return mavlink2.MAVLink_gimbal_device_attitude_status_message(
-            _int(m, "target_system", self.target_system, 0, 255), _int(m, "target_component", self.target_component, 0, 255),
-            _time_boot_ms(m, self.time_boot_us), _int(m, "flags", self.flags, 0, UINT16_MAX),
+            _int(m, "target_system", self.target_system, 0, 255),
+            _int(m, "target_component", self.target_component, 0, 255),
+            _time_boot_ms(m, self.time_boot_us),
+            _int(m, "flags", self.flags, 0, UINT16_MAX),
             _vec(m, "q_ref_from_gimbal", self.q_ref_from_gimbal, 4),
             *_vec(m, "omega_ref_rps", self.omega_ref_rps, 3, nan_ok=True),
-            _int(m, "failure_flags", self.failure_flags, 0, UINT32_MAX), _num(m, "delta_yaw_rad", self.delta_yaw_rad, nan_ok=True),
-            nan, _int(m, "gimbal_device_id", self.gimbal_device_id, 0, 255))
+            _int(m, "failure_flags", self.failure_flags, 0, UINT32_MAX),
+            _num(m, "delta_yaw_rad", self.delta_yaw_rad, nan_ok=True),
+            nan,
+            _int(m, "gimbal_device_id", self.gimbal_device_id, 0, 255),
+        )
 
     @classmethod
     def from_message(cls, msg) -> GimbalDeviceAttitudeStatus:
-        return cls(int(msg.time_boot_ms) * 1000, tuple(msg.q), msg.flags,
-                   (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z), msg.delta_yaw,
-                   msg.failure_flags, msg.gimbal_device_id, msg.target_system, msg.target_component)
+        return cls(
+            int(msg.time_boot_ms) * 1000,
+            tuple(msg.q),
+            msg.flags,
+            (msg.angular_velocity_x, msg.angular_velocity_y, msg.angular_velocity_z),
+            msg.delta_yaw,
+            msg.failure_flags,
+            msg.gimbal_device_id,
+            msg.target_system,
+            msg.target_component,
+        )
 
 
 @dataclass(frozen=True)
@@ -493,10 +532,15 @@ class Timesync:
 
     def to_message(self):
         m = "TIMESYNC"
-        args = [_int(m, "tc1_ns", self.tc1_ns, -(2**63), 2**63 - 1), _int(m, "ts1_ns", self.ts1_ns, -(2**63), 2**63 - 1)]
+        args = [
+            _int(m, "tc1_ns", self.tc1_ns, -(2**63), 2**63 - 1),
+            _int(m, "ts1_ns", self.ts1_ns, -(2**63), 2**63 - 1),
+        ]
         if TIMESYNC_HAS_TARGET:
-            args += [_int(m, "target_system", self.target_system, 0, 255),
-                     _int(m, "target_component", self.target_component, 0, 255)]
+            args += [
+                _int(m, "target_system", self.target_system, 0, 255),
+                _int(m, "target_component", self.target_component, 0, 255),
+            ]
         return mavlink2.MAVLink_timesync_message(*args)
 
     @classmethod
@@ -504,26 +548,40 @@ class Timesync:
         return cls(int(msg.tc1), int(msg.ts1), getattr(msg, "target_system", 0), getattr(msg, "target_component", 0))
 
 
-def set_message_interval_message(target_system: int, target_component: int, msg_id: int, interval_us: int,
-                                 confirmation: int = 0):
+def set_message_interval_message(
+    target_system: int, target_component: int, msg_id: int, interval_us: int, confirmation: int = 0
+):
     """COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL, param1 = message id, param2 = interval us (-1 off, 0 default);
     ``confirmation`` 0 first, +1 per retransmission (capped at 255); param7 0 = the flight stack's target."""
     m = "SET_MESSAGE_INTERVAL"
     return mavlink2.MAVLink_command_long_message(
-        _int(m, "target_system", target_system, 0, 255), _int(m, "target_component", target_component, 0, 255),
-        mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL, min(_int(m, "confirmation", confirmation, 0, 2**31), 255),
-        float(_int(m, "msg_id", msg_id, 0, 2**24 - 1)), float(_int(m, "interval_us", interval_us, -1, 2**31 - 1)),
-        0.0, 0.0, 0.0, 0.0, 0.0)
+        _int(m, "target_system", target_system, 0, 255),
+        _int(m, "target_component", target_component, 0, 255),
+        mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL,
+        min(_int(m, "confirmation", confirmation, 0, 2**31), 255),
+        float(_int(m, "msg_id", msg_id, 0, 2**24 - 1)),
+        float(_int(m, "interval_us", interval_us, -1, 2**31 - 1)),
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )
 
 
-def command_ack_message(command: int, result: int, target_system: int, target_component: int, progress: int = 0,
-                        result_param2: int = 0):
+def command_ack_message(
+    command: int, result: int, target_system: int, target_component: int, progress: int = 0, result_param2: int = 0
+):
     """COMMAND_ACK (#77) of ``command`` with MAV_RESULT ``result`` to the requester."""
     m = "COMMAND_ACK"
     return mavlink2.MAVLink_command_ack_message(
-        _int(m, "command", command, 0, UINT16_MAX), _int(m, "result", result, 0, 255), _int(m, "progress", progress, 0, 255),
-        _int(m, "result_param2", result_param2, -(2**31), 2**31 - 1), _int(m, "target_system", target_system, 0, 255),
-        _int(m, "target_component", target_component, 0, 255))
+        _int(m, "command", command, 0, UINT16_MAX),
+        _int(m, "result", result, 0, 255),
+        _int(m, "progress", progress, 0, 255),
+        _int(m, "result_param2", result_param2, -(2**31), 2**31 - 1),
+        _int(m, "target_system", target_system, 0, 255),
+        _int(m, "target_component", target_component, 0, 255),
+    )
 
 
 # --------------------------------------------------------------------------- tracking out
@@ -558,13 +616,28 @@ class CameraTrackingImageStatus:
             raise InputError(f"{m}.tracking_mode must be CAMERA_TRACKING_MODE 0, 1 or 2, got {self.tracking_mode!r}")
         coords = [_num(m, n, getattr(self, n), 0.0, 1.0, nan_ok=True) for n in self._COORDS]
         return mavlink2.MAVLink_camera_tracking_image_status_message(
-            int(self.tracking_status), int(self.tracking_mode), _int(m, "target_data", self.target_data, 0, 255),
-            *coords, _int(m, "camera_device_id", self.camera_device_id, 0, 6))
+            int(self.tracking_status),
+            int(self.tracking_mode),
+            _int(m, "target_data", self.target_data, 0, 255),
+            *coords,
+            _int(m, "camera_device_id", self.camera_device_id, 0, 6),
+        )
 
     @classmethod
     def from_message(cls, msg) -> CameraTrackingImageStatus:
-        return cls(msg.tracking_status, msg.tracking_mode, msg.target_data, msg.point_x, msg.point_y, msg.radius,
-                   msg.rec_top_x, msg.rec_top_y, msg.rec_bottom_x, msg.rec_bottom_y, msg.camera_device_id)
+        return cls(
+            msg.tracking_status,
+            msg.tracking_mode,
+            msg.target_data,
+            msg.point_x,
+            msg.point_y,
+            msg.radius,
+            msg.rec_top_x,
+            msg.rec_top_y,
+            msg.rec_bottom_x,
+            msg.rec_bottom_y,
+            msg.camera_device_id,
+        )
 
 
 @dataclass(frozen=True)
@@ -593,18 +666,46 @@ class CameraTrackingGeoStatus:
         lat = _degE7(m, "lat_deg", self.lat_deg, 90.0)
         lon = _degE7(m, "lon_deg", self.lon_deg, 180.0)
         alt = _num(m, "alt_m", self.alt_m, -1e6, 1e6)
-        acc = {n: _num(m, n, getattr(self, n), 0.0, math.inf, nan_ok=True)
-               for n in ("h_acc_m", "v_acc_m", "vel_acc_mps", "dist_m", "hdg_acc_rad")}
+        acc = {
+            n: _num(m, n, getattr(self, n), 0.0, math.inf, nan_ok=True)
+            for n in ("h_acc_m", "v_acc_m", "vel_acc_mps", "dist_m", "hdg_acc_rad")
+        }
         vel = {n: _num(m, n, getattr(self, n), nan_ok=True) for n in ("vel_n_mps", "vel_e_mps", "vel_d_mps", "hdg_rad")}
         return mavlink2.MAVLink_camera_tracking_geo_status_message(
-            _int(m, "tracking_status", self.tracking_status, 0, 255), lat, lon, alt, acc["h_acc_m"], acc["v_acc_m"],
-            vel["vel_n_mps"], vel["vel_e_mps"], vel["vel_d_mps"], acc["vel_acc_mps"], acc["dist_m"], vel["hdg_rad"],
-            acc["hdg_acc_rad"], _int(m, "camera_device_id", self.camera_device_id, 0, 6))
+            _int(m, "tracking_status", self.tracking_status, 0, 255),
+            lat,
+            lon,
+            alt,
+            acc["h_acc_m"],
+            acc["v_acc_m"],
+            vel["vel_n_mps"],
+            vel["vel_e_mps"],
+            vel["vel_d_mps"],
+            acc["vel_acc_mps"],
+            acc["dist_m"],
+            vel["hdg_rad"],
+            acc["hdg_acc_rad"],
+            _int(m, "camera_device_id", self.camera_device_id, 0, 6),
+        )
 
     @classmethod
     def from_message(cls, msg) -> CameraTrackingGeoStatus:
-        return cls(msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, msg.h_acc, msg.v_acc, msg.vel_n, msg.vel_e, msg.vel_d,
-                   msg.vel_acc, msg.dist, msg.hdg, msg.hdg_acc, msg.tracking_status, msg.camera_device_id)
+        return cls(
+            msg.lat * 1e-7,
+            msg.lon * 1e-7,
+            msg.alt,
+            msg.h_acc,
+            msg.v_acc,
+            msg.vel_n,
+            msg.vel_e,
+            msg.vel_d,
+            msg.vel_acc,
+            msg.dist,
+            msg.hdg,
+            msg.hdg_acc,
+            msg.tracking_status,
+            msg.camera_device_id,
+        )
 
 
 @dataclass(frozen=True)
@@ -627,16 +728,31 @@ class FollowTarget:
         m = "FOLLOW_TARGET"
         _int(m, "time_boot_us", self.time_boot_us, 0, 2**63 - 1)
         return mavlink2.MAVLink_follow_target_message(
-            int(self.time_boot_us // 1000), _int(m, "est_capabilities", self.est_capabilities, 0, 255),
-            _degE7(m, "lat_deg", self.lat_deg, 90.0), _degE7(m, "lon_deg", self.lon_deg, 180.0),
-            _num(m, "alt_m", self.alt_m, -1e6, 1e6), _vec(m, "v_ned_mps", self.v_ned_mps, 3), [0.0, 0.0, 0.0],
-            [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0],
-            [_num(m, "h_acc_m", self.h_acc_m, 0.0), _num(m, "v_acc_m", self.v_acc_m, 0.0), 0.0], 0)
+            int(self.time_boot_us // 1000),
+            _int(m, "est_capabilities", self.est_capabilities, 0, 255),
+            _degE7(m, "lat_deg", self.lat_deg, 90.0),
+            _degE7(m, "lon_deg", self.lon_deg, 180.0),
+            _num(m, "alt_m", self.alt_m, -1e6, 1e6),
+            _vec(m, "v_ned_mps", self.v_ned_mps, 3),
+            [0.0, 0.0, 0.0],
+            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0],
+            [_num(m, "h_acc_m", self.h_acc_m, 0.0), _num(m, "v_acc_m", self.v_acc_m, 0.0), 0.0],
+            0,
+        )
 
     @classmethod
     def from_message(cls, msg) -> FollowTarget:
-        return cls(int(msg.timestamp) * 1000, msg.lat * 1e-7, msg.lon * 1e-7, msg.alt, tuple(msg.vel),
-                   msg.position_cov[0], msg.position_cov[1], msg.est_capabilities)
+        return cls(
+            int(msg.timestamp) * 1000,
+            msg.lat * 1e-7,
+            msg.lon * 1e-7,
+            msg.alt,
+            tuple(msg.vel),
+            msg.position_cov[0],
+            msg.position_cov[1],
+            msg.est_capabilities,
+        )
 
 
 # --------------------------------------------------------------------------- Track -> #275 / #276
@@ -646,8 +762,9 @@ def _unit(x: float, size: float) -> float:
     return min(max(x / size, 0.0), 1.0)
 
 
-def image_status_fields(track, width_px: int, height_px: int, mode: int | None = None,
-                        radius: float = math.nan) -> dict[str, Any]:
+def image_status_fields(
+    track, width_px: int, height_px: int, mode: int | None = None, radius: float = math.nan
+) -> dict[str, Any]:
     """Fields of :class:`CameraTrackingImageStatus` (#275) for a :class:`~onboard.core.track.Track` (None = idle).
 
     Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
@@ -663,8 +780,13 @@ def image_status_fields(track, width_px: int, height_px: int, mode: int | None =
         tracking_status=CAMERA_TRACKING_STATUS_FLAGS_IDLE,
         tracking_mode=CAMERA_TRACKING_MODE_NONE,
         target_data=CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
-        point_x=nan, point_y=nan, radius=nan,
-        rec_top_x=nan, rec_top_y=nan, rec_bottom_x=nan, rec_bottom_y=nan,
+        point_x=nan,
+        point_y=nan,
+        radius=nan,
+        rec_top_x=nan,
+        rec_top_y=nan,
+        rec_bottom_x=nan,
+        rec_bottom_y=nan,
     )
     if track is None or track.state in ("searching", "lost"):
         return out

@@ -24,12 +24,24 @@ import os
 import struct
 import zlib
 from collections import OrderedDict, defaultdict
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.records import (Channel, ChunkIndex, DataEnd, Footer, Header, MessageIndex, Metadata,
-                          MetadataIndex, Schema, Statistics, SummaryOffset)
+from mcap.records import (
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    MessageIndex,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 
 __all__ = ["ChunkWriter", "MCAP_MAGIC"]
 
@@ -65,9 +77,17 @@ class ChunkWriter:
         self._channels: OrderedDict[int, Channel] = OrderedDict()
         self._metadata_indexes: list[MetadataIndex] = []
         self._chunk_indexes: list[ChunkIndex] = []
-        self._stats = Statistics(attachment_count=0, channel_count=0, channel_message_counts=defaultdict(int),
-                                 chunk_count=0, message_count=0, metadata_count=0, message_start_time=0,
-                                 message_end_time=0, schema_count=0)
+        self._stats = Statistics(
+            attachment_count=0,
+            channel_count=0,
+            channel_message_counts=defaultdict(int),
+            chunk_count=0,
+            message_count=0,
+            metadata_count=0,
+            message_start_time=0,
+            message_end_time=0,
+            schema_count=0,
+        )
         self._reset_chunk()
 
     # ------------------------------------------------------------------ chunk in progress
@@ -105,7 +125,7 @@ class ChunkWriter:
         bufs = [memoryview(b).cast("B") for b in buffers if len(memoryview(b).cast("B"))]
         i = 0
         while i < len(bufs):
-            n = os.writev(self._fd, bufs[i:i + _IOV_MAX])
+            n = os.writev(self._fd, bufs[i : i + _IOV_MAX])
             self.position += n
             while i < len(bufs) and n >= bufs[i].nbytes:
                 n -= bufs[i].nbytes
@@ -144,8 +164,9 @@ class ChunkWriter:
 
     def register_channel(self, topic: str, message_encoding: str, schema_id: int, metadata: dict | None = None) -> int:
         cid = len(self._channels) + 1
-        channel = Channel(id=cid, topic=topic, message_encoding=message_encoding, schema_id=schema_id,
-                          metadata=dict(metadata or {}))
+        channel = Channel(
+            id=cid, topic=topic, message_encoding=message_encoding, schema_id=schema_id, metadata=dict(metadata or {})
+        )
         self._channels[cid] = channel
         self._stats.channel_count += 1
         self._append(_record_bytes(channel))
@@ -208,8 +229,9 @@ class ChunkWriter:
             start = b.count
             for r in records:
                 r.write(b)
-            offsets.append(SummaryOffset(group_opcode=opcode, group_start=summary_start + start,
-                                         group_length=b.count - start))
+            offsets.append(
+                SummaryOffset(group_opcode=opcode, group_start=summary_start + start, group_length=b.count - start)
+            )
 
         group(Opcode.SCHEMA, self._schemas.values())
         group(Opcode.CHANNEL, self._channels.values())
@@ -224,10 +246,19 @@ class ChunkWriter:
         crc = 0
         if self._crcs:
             crc = zlib.crc32(summary)
-            crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 8 + 8 + 4, 0 if not summary else summary_start,
-                                         summary_offset_start), crc)
-        footer = _record_bytes(Footer(summary_start=0 if not summary else summary_start,
-                                      summary_offset_start=summary_offset_start, summary_crc=crc))
+            crc = zlib.crc32(
+                struct.pack(
+                    "<BQQQ", Opcode.FOOTER, 8 + 8 + 4, 0 if not summary else summary_start, summary_offset_start
+                ),
+                crc,
+            )
+        footer = _record_bytes(
+            Footer(
+                summary_start=0 if not summary else summary_start,
+                summary_offset_start=summary_offset_start,
+                summary_crc=crc,
+            )
+        )
         self._write([summary, footer, MCAP_MAGIC])
 
     # ------------------------------------------------------------------ chunks
@@ -260,8 +291,12 @@ class ChunkWriter:
                 compression, body = "zstd", [zstandard.compress(joined)]
         body_len = sum(memoryview(p).nbytes for p in body)
         comp = compression.encode()
-        head_fields = struct.pack("<QQQI", self._start_t, self._end_t, uncompressed, crc) + \
-            struct.pack("<I", len(comp)) + comp + struct.pack("<Q", body_len)
+        head_fields = (
+            struct.pack("<QQQI", self._start_t, self._end_t, uncompressed, crc)
+            + struct.pack("<I", len(comp))
+            + comp
+            + struct.pack("<Q", body_len)
+        )
         head = struct.pack("<BQ", Opcode.CHUNK, len(head_fields) + body_len) + head_fields
         self._flush_small()
         chunk_start = self.position
@@ -274,8 +309,17 @@ class ChunkWriter:
             MessageIndex(channel_id=cid, records=records).write(b)
         index_bytes = b.end()
         self._write([head, *body, index_bytes])
-        self._chunk_indexes.append(ChunkIndex(
-            message_start_time=self._start_t, message_end_time=self._end_t, chunk_start_offset=chunk_start,
-            chunk_length=chunk_length, message_index_offsets=offsets, message_index_length=len(index_bytes),
-            compression=compression, compressed_size=body_len, uncompressed_size=uncompressed))
+        self._chunk_indexes.append(
+            ChunkIndex(
+                message_start_time=self._start_t,
+                message_end_time=self._end_t,
+                chunk_start_offset=chunk_start,
+                chunk_length=chunk_length,
+                message_index_offsets=offsets,
+                message_index_length=len(index_bytes),
+                compression=compression,
+                compressed_size=body_len,
+                uncompressed_size=uncompressed,
+            )
+        )
         self._reset_chunk()

@@ -71,7 +71,8 @@ import math
 import os
 import threading
 import time
-from typing import Any, Callable, Mapping
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -139,13 +140,20 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "time_boot_us": {"type": "integer"},
             "received_ns": {"type": "integer"},
             "pose_looked_up": {"type": "boolean"},
-            "pose": {"type": ["object", "null"], "properties": {
-                "time_boot_us": {"type": "integer"}, "p_ned_m": _VEC3, "v_ned_mps": _VEC3,
-                "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
-                "p_cam_ned_m": _VEC3, "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
-                "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
-                "origin": {"type": "object"}, "epoch": {"type": "integer"},
-            }},
+            "pose": {
+                "type": ["object", "null"],
+                "properties": {
+                    "time_boot_us": {"type": "integer"},
+                    "p_ned_m": _VEC3,
+                    "v_ned_mps": _VEC3,
+                    "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
+                    "p_cam_ned_m": _VEC3,
+                    "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
+                    "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
+                    "origin": {"type": "object"},
+                    "epoch": {"type": "integer"},
+                },
+            },
         },
         "required": ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
     },
@@ -154,15 +162,28 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "description": "One processed frame's track and 3-D estimate (full table in onboard/core/track.py).",
         "type": "object",
         "properties": {
-            "schema": {"type": "string"}, "vehicle": {"type": "string"}, "seq": {"type": "integer"},
-            "time_boot_us": {"type": "integer"}, "track_id": {"type": ["integer", "null"]},
+            "schema": {"type": "string"},
+            "vehicle": {"type": "string"},
+            "seq": {"type": "integer"},
+            "time_boot_us": {"type": "integer"},
+            "track_id": {"type": ["integer", "null"]},
             "state": {"type": "string", "enum": ["searching", "tracking", "coasting", "lost"]},
-            "measurement_valid": {"type": "boolean"}, "u_px": _NUM_OR_NULL, "v_px": _NUM_OR_NULL,
+            "measurement_valid": {"type": "boolean"},
+            "u_px": _NUM_OR_NULL,
+            "v_px": _NUM_OR_NULL,
             "bbox": {"type": ["array", "null"], "items": {"type": "number"}},
-            "pose_valid": {"type": "boolean"}, "lat_deg": _NUM_OR_NULL, "lon_deg": _NUM_OR_NULL,
-            "alt_m": _NUM_OR_NULL, "ned_m": _VEC3, "vel_ned_mps": _VEC3, "sigma_ned_m": _VEC3,
-            "range_m": _NUM_OR_NULL, "range_sigma_ratio": _NUM_OR_NULL, "observable": {"type": "boolean"},
-            "window_frames": {"type": "integer"}, "model": {"type": ["string", "null"]},
+            "pose_valid": {"type": "boolean"},
+            "lat_deg": _NUM_OR_NULL,
+            "lon_deg": _NUM_OR_NULL,
+            "alt_m": _NUM_OR_NULL,
+            "ned_m": _VEC3,
+            "vel_ned_mps": _VEC3,
+            "sigma_ned_m": _VEC3,
+            "range_m": _NUM_OR_NULL,
+            "range_sigma_ratio": _NUM_OR_NULL,
+            "observable": {"type": "boolean"},
+            "window_frames": {"type": "integer"},
+            "model": {"type": ["string", "null"]},
         },
         "required": ["schema", "vehicle", "seq", "time_boot_us", "state"],
     },
@@ -178,9 +199,15 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
         "description": "The simulator's exact state at one rendered frame (groundsim run --record).",
         "type": "object",
         "properties": {
-            "seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}, "t_s": {"type": "number"},
-            "target_ned_m": _VEC3, "target_vel_ned_mps": _VEC3, "camera_ned_m": _VEC3,
-            "target_lat_deg": {"type": "number"}, "target_lon_deg": {"type": "number"}, "target_alt_m": {"type": "number"},
+            "seq": {"type": "integer"},
+            "time_boot_us": {"type": "integer"},
+            "t_s": {"type": "number"},
+            "target_ned_m": _VEC3,
+            "target_vel_ned_mps": _VEC3,
+            "camera_ned_m": _VEC3,
+            "target_lat_deg": {"type": "number"},
+            "target_lon_deg": {"type": "number"},
+            "target_alt_m": {"type": "number"},
             "origin": {"type": "object"},
         },
         "required": ["seq", "time_boot_us"],
@@ -241,7 +268,9 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose"):
 
     try:
         o = obj["origin"]
-        body = PoseSample(int(obj["time_boot_us"]), _arr(obj["p_ned_m"]), _arr(obj["v_ned_mps"]), _arr(obj["q_ned_from_body"]))
+        body = PoseSample(
+            int(obj["time_boot_us"]), _arr(obj["p_ned_m"]), _arr(obj["v_ned_mps"]), _arr(obj["q_ned_from_body"])
+        )
         # the stored body quaternion was already a checked unit quaternion: keep its exact bits
         object.__setattr__(body, "q_ned_from_body", _frozen(_arr(obj["q_ned_from_body"])))
         g = obj.get("q_mount_from_gimbal")
@@ -317,8 +346,13 @@ def rawimage_pieces(frame, header_cls=None) -> tuple[bytes, memoryview]:
     h, w = px.shape
     mono16 = px.dtype == np.uint16
     t_us = int(frame.time_boot_us)
-    msg = header_cls(frame_id=CAMERA_FRAME_ID, width=int(w), height=int(h), encoding="mono16" if mono16 else "mono8",
-                     step=int(w * (2 if mono16 else 1)))
+    msg = header_cls(
+        frame_id=CAMERA_FRAME_ID,
+        width=int(w),
+        height=int(h),
+        encoding="mono16" if mono16 else "mono8",
+        step=int(w * (2 if mono16 else 1)),
+    )
     msg.timestamp.seconds, msg.timestamp.nanos = t_us // 1_000_000, (t_us % 1_000_000) * 1000
     buf = memoryview(np.ascontiguousarray(px, dtype="<u2" if mono16 else np.uint8)).cast("B")
     return msg.SerializeToString() + _RAWIMAGE_DATA_TAG + _varint(buf.nbytes), buf
@@ -338,7 +372,9 @@ def irframe_from_rawimage(seq: int, img, where: str = "frame"):
         raise InputError(f"{where}: encoding: expected mono8 or mono16, got {enc!r}")
     dtype = np.dtype("<u2") if enc == "mono16" else np.dtype(np.uint8)
     if img.step != img.width * dtype.itemsize or len(img.data) != img.step * img.height:
-        raise InputError(f"{where}: {len(img.data)} bytes do not make {img.width} x {img.height} {enc} (step {img.step})")
+        raise InputError(
+            f"{where}: {len(img.data)} bytes do not make {img.width} x {img.height} {enc} (step {img.step})"
+        )
     px = np.frombuffer(img.data, dtype=dtype).reshape(img.height, img.width)
     if enc == "mono16":
         px = px.astype(np.uint16)  # native order
@@ -351,14 +387,22 @@ _ENU_SIGN = (1.0, 1.0, -1.0)
 
 
 def _fix_fields(lat_deg, lon_deg, alt_m, t_us: int, frame_id: str, cov_ned_m2=None) -> dict[str, Any]:
-    out = {"timestamp": (t_us // 1_000_000, (t_us % 1_000_000) * 1000), "frame_id": frame_id,
-           "latitude": float(lat_deg), "longitude": float(lon_deg), "altitude": float(alt_m)}
+    out = {
+        "timestamp": (t_us // 1_000_000, (t_us % 1_000_000) * 1000),
+        "frame_id": frame_id,
+        "latitude": float(lat_deg),
+        "longitude": float(lon_deg),
+        "altitude": float(alt_m),
+    }
     if cov_ned_m2 is not None:
         c = np.asarray(cov_ned_m2, dtype=float).reshape(3, 3).tolist()
         # LocationFix wants ENU, row-major 3x3: P C P^T with P = [[0,1,0],[1,0,0],[0,0,-1]] (swap N/E, flip D -> U),
         # written as the permutation and signs it is (+ 0.0: a zero is +0.0, as the matrix product gives it)
-        out["position_covariance"] = [_ENU_SIGN[i] * _ENU_SIGN[j] * c[_ENU_FROM_NED[i]][_ENU_FROM_NED[j]] + 0.0
-                                      for i in range(3) for j in range(3)]
+        out["position_covariance"] = [
+            _ENU_SIGN[i] * _ENU_SIGN[j] * c[_ENU_FROM_NED[i]][_ENU_FROM_NED[j]] + 0.0
+            for i in range(3)
+            for j in range(3)
+        ]
         out["position_covariance_type"] = 3  # KNOWN
     return out
 
@@ -434,12 +478,20 @@ class RecordSettings:
                 raise InputError(f"record.{name}: expected > 0, got {getattr(self, name)!r}")
 
     @classmethod
-    def from_config(cls, rc, path: str | None = None) -> "RecordSettings":
+    def from_config(cls, rc, path: str | None = None) -> RecordSettings:
         """From an :class:`onboard.app.config.RecordConfig` (``path`` overrides ``rc.path``)."""
-        return cls(path=path or rc.path, frames=rc.frames, max_file_bytes=int(rc.max_file_mb * MB),
-                   max_file_s=rc.max_file_s, max_files=rc.max_files, chunk_bytes=rc.chunk_kb * 1024,
-                   flush_interval_s=rc.flush_interval_s, compression=rc.compression, queue_bytes=int(rc.queue_mb * MB),
-                   sync_bytes=int(rc.sync_mb * MB))
+        return cls(
+            path=path or rc.path,
+            frames=rc.frames,
+            max_file_bytes=int(rc.max_file_mb * MB),
+            max_file_s=rc.max_file_s,
+            max_files=rc.max_files,
+            chunk_bytes=rc.chunk_kb * 1024,
+            flush_interval_s=rc.flush_interval_s,
+            compression=rc.compression,
+            queue_bytes=int(rc.queue_mb * MB),
+            sync_bytes=int(rc.sync_mb * MB),
+        )
 
 
 class RecordingPoseSource:
@@ -476,9 +528,16 @@ class FlightRecorder:
     receive times with; ``wall_ns``: the wall clock for log times (read once).
     """
 
-    def __init__(self, settings: RecordSettings, *, vehicle: str = "uav1", metadata: Mapping[str, str] | None = None,
-                 recorder: str = "onboard", clock_ns: Callable[[], int] = time.monotonic_ns,
-                 wall_ns: Callable[[], int] = time.time_ns) -> None:
+    def __init__(
+        self,
+        settings: RecordSettings,
+        *,
+        vehicle: str = "uav1",
+        metadata: Mapping[str, str] | None = None,
+        recorder: str = "onboard",
+        clock_ns: Callable[[], int] = time.monotonic_ns,
+        wall_ns: Callable[[], int] = time.time_ns,
+    ) -> None:
         if not isinstance(settings, RecordSettings):
             raise InputError(f"FlightRecorder needs RecordSettings, got {type(settings).__name__}")
         self.settings = settings
@@ -541,8 +600,9 @@ class FlightRecorder:
                 self._cond.notify()  # a chunk's worth: the writer turns (else at its flush deadline)
             return True
 
-    def on_mavlink(self, data: bytes, link: str = "autopilot", source=None, direction: str = "rx",
-                   receive_ns: int | None = None) -> bool:
+    def on_mavlink(
+        self, data: bytes, link: str = "autopilot", source=None, direction: str = "rx", receive_ns: int | None = None
+    ) -> bool:
         """Raw MAVLink bytes read from (or written to) ``link``; ``source`` the peer (host, port) if known."""
         now = self._clock_ns() if receive_ns is None else receive_ns
         return self._put("mavlink", mavlink_topic(link), len(data) + 100, (bytes(data), link, source, direction, now))
@@ -555,15 +615,21 @@ class FlightRecorder:
 
     def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose) -> bool:
         """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup)."""
-        return self._put("frame_input", FRAME_INPUT_TOPIC, 700,
-                         (int(frame.seq), int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose))
+        return self._put(
+            "frame_input",
+            FRAME_INPUT_TOPIC,
+            700,
+            (int(frame.seq), int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
+        )
 
     def on_track(self, track, payload: bytes | None = None) -> bool:
         """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
         return self._put("track", self.track_topic, 1500, (track, payload, self._clock_ns()))
 
     def on_status(self, payload: bytes) -> bool:
-        return self._put("json", self.status_topic, len(payload) + 100, ("irtrack.status/1", bytes(payload), self._clock_ns()))
+        return self._put(
+            "json", self.status_topic, len(payload) + 100, ("irtrack.status/1", bytes(payload), self._clock_ns())
+        )
 
     def on_json(self, topic: str, schema: str, obj: Mapping[str, Any] | bytes) -> bool:
         """Any JSON message with one of :data:`JSON_SCHEMAS` (the truth channel)."""
@@ -574,11 +640,20 @@ class FlightRecorder:
         """For the status JSON: written/dropped messages, bytes, files, queue."""
         with self._cond:
             queued, dropped, by_topic = self._queued_bytes, self.dropped, dict(self.dropped_by_topic)
-        return {"path": self.settings.path, "files": len(self.files), "current_file": self.files[-1] if self.files else None,
-                "messages_written": self.messages_written, "bytes_written": self.bytes_written,
-                "dropped": dropped, "dropped_by_topic": by_topic, "queue_bytes": queued,
-                "max_queue_bytes": self.max_queue_bytes, "write_errors": self.write_errors,
-                "writer_cpu_s": round(self.writer_cpu_s, 3), "syncs": self.syncs}
+        return {
+            "path": self.settings.path,
+            "files": len(self.files),
+            "current_file": self.files[-1] if self.files else None,
+            "messages_written": self.messages_written,
+            "bytes_written": self.bytes_written,
+            "dropped": dropped,
+            "dropped_by_topic": by_topic,
+            "queue_bytes": queued,
+            "max_queue_bytes": self.max_queue_bytes,
+            "write_errors": self.write_errors,
+            "writer_cpu_s": round(self.writer_cpu_s, 3),
+            "syncs": self.syncs,
+        }
 
     # ------------------------------------------------------------------ life cycle
 
@@ -623,7 +698,9 @@ class FlightRecorder:
                 except Exception as exc:  # noqa: BLE001 - the recorder must not die on one message
                     self.write_errors += 1
                     if self.write_errors == 1:
-                        log.exception("recorder: cannot write a %s message (%s: %s); counted", kind, type(exc).__name__, exc)
+                        log.exception(
+                            "recorder: cannot write a %s message (%s: %s); counted", kind, type(exc).__name__, exc
+                        )
             now = time.monotonic()
             try:
                 if now >= next_flush:
@@ -649,12 +726,13 @@ class FlightRecorder:
         self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)
         # the mcap package's layout, the frames' pixels written from where they lie (onboard.io.mcap_chunks); no CRCs:
         # the chunk CRC alone is ~0.1 ms per 330 kB frame (MCAP: a CRC of 0 means "not computed")
-        self._writer = ChunkWriter(self._file.fileno(), chunk_size=s.chunk_bytes, compression=s.compression,
-                                   enable_crcs=False)
+        self._writer = ChunkWriter(
+            self._file.fileno(), chunk_size=s.chunk_bytes, compression=s.compression, enable_crcs=False
+        )
         self._writer.start(profile="", library="irtrack onboard.io.record")
         meta = dict(self._meta)
         meta["file_index"] = str(index)
-        meta["started_utc"] = datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="milliseconds")
+        meta["started_utc"] = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
         self._writer.add_metadata("irtrack", meta)
         self._writer.flush()  # the header and metadata are on disk before the first message
         self._channels, self._schemas = {}, {}
@@ -742,9 +820,13 @@ class FlightRecorder:
         self._channels[topic] = cid
         return cid
 
-    def _add(self, topic: str, schema: str, data, mono_ns: int, sequence: int = 0, publish_ns: int | None = None) -> None:
+    def _add(
+        self, topic: str, schema: str, data, mono_ns: int, sequence: int = 0, publish_ns: int | None = None
+    ) -> None:
         t = self.log_time_ns(mono_ns)
-        self._writer.add_message(self._channel(topic, schema), t, data, t if publish_ns is None else publish_ns, sequence)
+        self._writer.add_message(
+            self._channel(topic, schema), t, data, t if publish_ns is None else publish_ns, sequence
+        )
         self.messages_written += 1
 
     def _pb_bytes(self, schema: str, fields: dict[str, Any]) -> bytes:
@@ -763,10 +845,15 @@ class FlightRecorder:
         except TypeError:  # an unhashable source
             parts = None
         if parts is None:
-            src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) and len(source) >= 2
-                                               else str(source))
-            parts = (f'{{"link":{_json_str(link)},"direction":{_json_str(direction)},"receive_time_ns":'.encode(),
-                     f',"source":{"null" if src is None else _json_str(src)},"data":"'.encode())
+            src = (
+                None
+                if source is None
+                else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) and len(source) >= 2 else str(source))
+            )
+            parts = (
+                f'{{"link":{_json_str(link)},"direction":{_json_str(direction)},"receive_time_ns":'.encode(),
+                f',"source":{"null" if src is None else _json_str(src)},"data":"'.encode(),
+            )
             try:
                 if len(self._mav_parts) < 256:
                     self._mav_parts[(link, direction, source)] = parts
@@ -779,18 +866,33 @@ class FlightRecorder:
             return
         if kind == "frame":
             frame, received_ns = item
-            self._add(topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]),
-                      received_ns, sequence=int(frame.seq), publish_ns=received_ns)
+            self._add(
+                topic,
+                "foxglove.RawImage",
+                rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]),
+                received_ns,
+                sequence=int(frame.seq),
+                publish_ns=received_ns,
+            )
         elif kind == "frame_input":
             seq, t_us, received_ns, looked_up, pose = item
-            obj = {"seq": seq, "time_boot_us": t_us, "received_ns": received_ns, "pose_looked_up": looked_up,
-                   "pose": pose_to_json(pose)}
+            obj = {
+                "seq": seq,
+                "time_boot_us": t_us,
+                "received_ns": received_ns,
+                "pose_looked_up": looked_up,
+                "pose": pose_to_json(pose),
+            }
             now = self._clock_ns()
             self._add(topic, FRAME_INPUT_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
             if pose is not None:
                 lat, lon, alt = geodetic_from_ned_scalar(pose.p_cam_ned_m, pose.origin)
-                self._add(CAMERA_FIX_TOPIC, "foxglove.LocationFix",
-                          self._pb_bytes("foxglove.LocationFix", _fix_fields(lat, lon, alt, t_us, "camera")), now)
+                self._add(
+                    CAMERA_FIX_TOPIC,
+                    "foxglove.LocationFix",
+                    self._pb_bytes("foxglove.LocationFix", _fix_fields(lat, lon, alt, t_us, "camera")),
+                    now,
+                )
         elif kind == "track":
             track, payload, now = item
             if payload is None:
@@ -799,9 +901,17 @@ class FlightRecorder:
                 payload = track_to_bytes(track)
             self._add(topic, "irtrack.track/2", payload, now, sequence=int(track.seq))
             if track.lat_deg is not None:
-                self._add(TARGET_FIX_TOPIC, "foxglove.LocationFix", self._pb_bytes(
-                    "foxglove.LocationFix", _fix_fields(track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us,
-                                                        "target", track.cov_p_ned_m2)), now)
+                self._add(
+                    TARGET_FIX_TOPIC,
+                    "foxglove.LocationFix",
+                    self._pb_bytes(
+                        "foxglove.LocationFix",
+                        _fix_fields(
+                            track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2
+                        ),
+                    ),
+                    now,
+                )
         elif kind == "mavlink":
             data, link, source, direction, now = item
             self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now)

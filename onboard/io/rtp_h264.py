@@ -39,8 +39,19 @@ from dataclasses import dataclass
 
 from onboard.core.errors import InputError
 
-__all__ = ["RTP_HEADER_BYTES", "RTP_CLOCK_HZ", "DEFAULT_PAYLOAD_TYPE", "DEFAULT_MAX_PACKET_BYTES", "RtpPacket",
-           "RtpH264Packetizer", "split_annexb", "parse_rtp", "depacketize", "rtp_timestamp", "sdp"]
+__all__ = [
+    "RTP_HEADER_BYTES",
+    "RTP_CLOCK_HZ",
+    "DEFAULT_PAYLOAD_TYPE",
+    "DEFAULT_MAX_PACKET_BYTES",
+    "RtpPacket",
+    "RtpH264Packetizer",
+    "split_annexb",
+    "parse_rtp",
+    "depacketize",
+    "rtp_timestamp",
+    "sdp",
+]
 
 RTP_HEADER_BYTES = 12
 RTP_VERSION = 2
@@ -115,8 +126,13 @@ class RtpH264Packetizer:
     """Access units -> RTP packets of one stream (module docstring).  Keeps the sequence number and the
     last SPS / PPS; ``ssrc`` and ``first_sequence`` should be random (RFC 3550 section 5.1)."""
 
-    def __init__(self, ssrc: int, payload_type: int = DEFAULT_PAYLOAD_TYPE,
-                 max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES, first_sequence: int = 0) -> None:
+    def __init__(
+        self,
+        ssrc: int,
+        payload_type: int = DEFAULT_PAYLOAD_TYPE,
+        max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES,
+        first_sequence: int = 0,
+    ) -> None:
         if not 0 <= int(ssrc) < 1 << 32:
             raise InputError(f"RTP ssrc must be a 32-bit unsigned integer, got {ssrc!r}")
         if not 96 <= int(payload_type) <= 127:
@@ -165,7 +181,7 @@ class RtpH264Packetizer:
         nal_type = nal[0] & 0x1F
         body = nal[1:]
         step = self.max_payload_bytes - 2
-        chunks = [body[i:i + step] for i in range(0, len(body), step)]
+        chunks = [body[i : i + step] for i in range(0, len(body), step)]
         out = []
         for i, chunk in enumerate(chunks):
             fu_header = nal_type | (FU_START if i == 0 else 0) | (FU_END if i == len(chunks) - 1 else 0)
@@ -173,8 +189,9 @@ class RtpH264Packetizer:
         return out
 
     def _packet(self, payload: bytes, marker: bool, timestamp: int) -> bytes:
-        header = _HEADER.pack(RTP_VERSION << 6, (0x80 if marker else 0) | self.payload_type, self.sequence,
-                              timestamp, self.ssrc)
+        header = _HEADER.pack(
+            RTP_VERSION << 6, (0x80 if marker else 0) | self.payload_type, self.sequence, timestamp, self.ssrc
+        )
         self.sequence = (self.sequence + 1) % (1 << 16)
         return header + payload
 
@@ -216,7 +233,7 @@ def depacketize(payloads: list[bytes]) -> list[bytes]:
                 (size,) = struct.unpack_from("!H", p, i)
                 if size == 0 or i + 2 + size > len(p):
                     raise InputError(f"RTP H.264 STAP-A: unit of {size} bytes past the payload's end")
-                nals.append(bytes(p[i + 2:i + 2 + size]))
+                nals.append(bytes(p[i + 2 : i + 2 + size]))
                 i += 2 + size
         else:
             raise InputError(f"RTP H.264 payload type {t} not supported (single NAL, STAP-A, FU-A only)")
@@ -230,7 +247,9 @@ def sdp(host: str, port: int, payload_type: int = DEFAULT_PAYLOAD_TYPE, name: st
     gets: what FFmpeg (``ffplay stream.sdp``), VLC or GStreamer's ``sdpdemux`` open.  No
     ``sprop-parameter-sets``: SPS / PPS come in band before every IDR."""
     family = "IP6" if ":" in host else "IP4"
-    return (f"v=0\r\no=- 0 0 IN {family} {host}\r\ns={name}\r\nc=IN {family} {host}\r\nt=0 0\r\n"
-            f"m=video {int(port)} RTP/AVP {int(payload_type)}\r\n"
-            f"a=rtpmap:{int(payload_type)} H264/{RTP_CLOCK_HZ}\r\n"
-            f"a=fmtp:{int(payload_type)} packetization-mode=1\r\n")
+    return (
+        f"v=0\r\no=- 0 0 IN {family} {host}\r\ns={name}\r\nc=IN {family} {host}\r\nt=0 0\r\n"
+        f"m=video {int(port)} RTP/AVP {int(payload_type)}\r\n"
+        f"a=rtpmap:{int(payload_type)} H264/{RTP_CLOCK_HZ}\r\n"
+        f"a=fmtp:{int(payload_type)} packetization-mode=1\r\n"
+    )

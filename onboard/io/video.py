@@ -49,8 +49,17 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
 
-__all__ = ["agc_limits", "agc_u8", "AgcState", "draw_overlay", "H264TsEncoder", "H264RtpEncoder", "VideoStreamer",
-           "TS_DATAGRAM_BYTES", "TRANSPORTS"]
+__all__ = [
+    "agc_limits",
+    "agc_u8",
+    "AgcState",
+    "draw_overlay",
+    "H264TsEncoder",
+    "H264RtpEncoder",
+    "VideoStreamer",
+    "TS_DATAGRAM_BYTES",
+    "TRANSPORTS",
+]
 
 log = logging.getLogger(__name__)
 
@@ -64,8 +73,9 @@ TRANSPORTS = ("rtp", "mpegts")  # config video.transport
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
 
 
-def agc_limits(pixels: np.ndarray, low_pct: float = AGC_LOW_PCT, high_pct: float = AGC_HIGH_PCT,
-               step: int = AGC_SAMPLE_STEP) -> tuple[float, float]:
+def agc_limits(
+    pixels: np.ndarray, low_pct: float = AGC_LOW_PCT, high_pct: float = AGC_HIGH_PCT, step: int = AGC_SAMPLE_STEP
+) -> tuple[float, float]:
     """(low, high) input levels of one frame: its ``low_pct`` / ``high_pct`` percentiles (sub-sampled)."""
     if pixels.ndim != 2 or pixels.dtype not in (np.uint8, np.uint16):
         raise InputError(f"video frame must be a 2-D uint8/uint16 array, got {pixels.dtype} {pixels.shape}")
@@ -122,9 +132,13 @@ def _x264_options(gop_frames: int, bitrate_bps: int) -> dict[str, str]:
     """libx264's low-latency settings: ultrafast, zerolatency, no B-frames, an IDR exactly every
     ``gop_frames`` (no scene-cut IDRs) with SPS/PPS repeated in band, ABR with a VBV of one second."""
     g, kbps = int(gop_frames), int(bitrate_bps) // 1000
-    return {"preset": "ultrafast", "tune": "zerolatency", "bf": "0", "g": str(g),
-            "x264-params": f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:"
-                           f"vbv-maxrate={kbps}:vbv-bufsize={kbps}"}
+    return {
+        "preset": "ultrafast",
+        "tune": "zerolatency",
+        "bf": "0",
+        "g": str(g),
+        "x264-params": f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:vbv-maxrate={kbps}:vbv-bufsize={kbps}",
+    }
 
 
 def _check_size(width_px: int, height_px: int) -> None:
@@ -139,15 +153,15 @@ class H264TsEncoder:
     ``bitrate_bps``: target (ABR with a VBV of one second).  The chroma planes are flat (grey video).
     """
 
-    def __init__(self, sink, width_px: int, height_px: int, fps: float = 30.0, bitrate_bps: int = 2_000_000,
-                 gop_frames: int = 30) -> None:
+    def __init__(
+        self, sink, width_px: int, height_px: int, fps: float = 30.0, bitrate_bps: int = 2_000_000, gop_frames: int = 30
+    ) -> None:
         import av
 
         _check_size(width_px, height_px)
         self.width_px, self.height_px = int(width_px), int(height_px)
         self.fps = float(fps)
-        self._container = av.open(sink, mode="w", format="mpegts",
-                                  options={"flush_packets": "1"})
+        self._container = av.open(sink, mode="w", format="mpegts", options={"flush_packets": "1"})
         s = self._container.add_stream("libx264", rate=int(round(fps)))
         s.width, s.height, s.pix_fmt = self.width_px, self.height_px, "yuv420p"
         s.bit_rate = int(bitrate_bps)
@@ -164,7 +178,9 @@ class H264TsEncoder:
         import av
 
         if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
-            raise InputError(f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}")
+            raise InputError(
+                f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
+            )
         frame = av.VideoFrame.from_ndarray(np.vstack([img_u8, self._chroma]), format="yuv420p")
         frame.pts = self._n
         self._n += 1
@@ -192,17 +208,27 @@ class H264RtpEncoder:
     offset).  ``ssrc`` / ``rng`` make a stream reproducible in tests.
     """
 
-    def __init__(self, send, width_px: int, height_px: int, fps: float = 30.0, bitrate_bps: int = 2_000_000,
-                 gop_frames: int = 30, payload_type: int = DEFAULT_PAYLOAD_TYPE,
-                 max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES, rng: random.Random | None = None) -> None:
+    def __init__(
+        self,
+        send,
+        width_px: int,
+        height_px: int,
+        fps: float = 30.0,
+        bitrate_bps: int = 2_000_000,
+        gop_frames: int = 30,
+        payload_type: int = DEFAULT_PAYLOAD_TYPE,
+        max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES,
+        rng: random.Random | None = None,
+    ) -> None:
         import av
 
         _check_size(width_px, height_px)
         self.width_px, self.height_px = int(width_px), int(height_px)
         self.fps = float(fps)
         rng = rng or random.SystemRandom()
-        self.packetizer = RtpH264Packetizer(rng.getrandbits(32), payload_type, max_packet_bytes,
-                                            first_sequence=rng.getrandbits(16))
+        self.packetizer = RtpH264Packetizer(
+            rng.getrandbits(32), payload_type, max_packet_bytes, first_sequence=rng.getrandbits(16)
+        )
         self._ts_offset = rng.getrandbits(32)
         self._send = send
         ctx = av.CodecContext.create("libx264", "w")
@@ -225,7 +251,9 @@ class H264RtpEncoder:
         import av
 
         if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
-            raise InputError(f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}")
+            raise InputError(
+                f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
+            )
         if capture_time_us is None:
             capture_time_us = time.monotonic_ns() // 1000
         frame = av.VideoFrame.from_ndarray(np.vstack([img_u8, self._chroma]), format="yuv420p")
@@ -321,9 +349,18 @@ def parse_destination(text: str, field: str = "video.destination") -> tuple[str,
 class VideoStreamer:
     """The encoder thread (module docstring).  ``submit`` from the pipeline thread; ``close`` to stop."""
 
-    def __init__(self, destination: str, width_px: int, height_px: int, fps: float = 30.0,
-                 bitrate_bps: int = 2_000_000, gop_s: float = 1.0, overlay: bool = True, queue_length: int = 2,
-                 transport: str = "rtp") -> None:
+    def __init__(
+        self,
+        destination: str,
+        width_px: int,
+        height_px: int,
+        fps: float = 30.0,
+        bitrate_bps: int = 2_000_000,
+        gop_s: float = 1.0,
+        overlay: bool = True,
+        queue_length: int = 2,
+        transport: str = "rtp",
+    ) -> None:
         host, port = parse_destination(destination)
         if transport not in TRANSPORTS:
             raise InputError(f"video.transport: expected one of {', '.join(TRANSPORTS)}, got {transport!r}")

@@ -87,6 +87,7 @@ def encoding_schema(encoding) -> str | None:
         return None
     return str(encoding).partition(";")[2] or None
 
+
 _VEHICLE_RE = re.compile(r"^[A-Za-z0-9_.-]+$")
 _RUST_LOCATION_RE = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
 
@@ -172,10 +173,14 @@ class ZenohSettings:
         if self.config_file is not None and not isinstance(self.config_file, (str, os.PathLike)):
             raise ZenohConfigError(f"--zenoh-config must be a path, got {type(self.config_file).__name__}")
         if self.multicast_scouting not in (None, True, False):
-            raise ZenohConfigError(f"ZenohSettings.multicast_scouting must be a bool or None, got {self.multicast_scouting!r}")
+            raise ZenohConfigError(
+                f"ZenohSettings.multicast_scouting must be a bool or None, got {self.multicast_scouting!r}"
+            )
         t = self.connect_timeout_s
         if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
-            raise ZenohConfigError(f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}")
+            raise ZenohConfigError(
+                f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}"
+            )
         m = self.max_message_bytes
         if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 1024):
             raise ZenohConfigError(f"ZenohSettings.max_message_bytes must be None or an integer >= 1024, got {m!r}")
@@ -237,8 +242,12 @@ def build_config(settings: ZenohSettings):
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")
         _insert(config, "connect/timeout_ms", int(round(settings.connect_timeout_s * 1000)), "connect/timeout_ms")
     if settings.max_message_bytes is not None:
-        _insert(config, "transport/link/rx/max_message_size", int(settings.max_message_bytes),
-                "transport/link/rx/max_message_size")
+        _insert(
+            config,
+            "transport/link/rx/max_message_size",
+            int(settings.max_message_bytes),
+            "transport/link/rx/max_message_size",
+        )
     return config
 
 

@@ -54,8 +54,9 @@ import collections
 import logging
 import math
 import time
+from collections.abc import Callable
 from dataclasses import fields
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -163,8 +164,10 @@ class FramePipeline:
     ) -> None:
         missing = [name for name in CONFIG_SECTIONS if not hasattr(config, name)]
         if missing:
-            raise InputError(f"FramePipeline config lacks the section(s) {missing} "
-                             f"(an onboard.app.config.OnboardConfig has them), got {type(config).__name__}")
+            raise InputError(
+                f"FramePipeline config lacks the section(s) {missing} "
+                f"(an onboard.app.config.OnboardConfig has them), got {type(config).__name__}"
+            )
         if origin is not None and not isinstance(origin, GeodeticOrigin):
             raise InputError(f"FramePipeline origin must be a GeodeticOrigin or None, got {type(origin).__name__}")
         self.config = config
@@ -278,8 +281,11 @@ class FramePipeline:
             self._refuse("field", f"expected an IrFrame, got {type(frame).__name__}")
         K = self.intrinsics
         if frame.width_px != K.width_px or frame.height_px != K.height_px:
-            self._refuse("dims_mismatch", f"frame is {frame.width_px} x {frame.height_px}, the camera is "
-                         f"{K.width_px} x {K.height_px} (camera.intrinsics)")
+            self._refuse(
+                "dims_mismatch",
+                f"frame is {frame.width_px} x {frame.height_px}, the camera is "
+                f"{K.width_px} x {K.height_px} (camera.intrinsics)",
+            )
         self._admit(frame)
 
         i0 = self._clock_ns()
@@ -343,23 +349,34 @@ class FramePipeline:
             else:
                 run[:] = [t]
             if len(run) < TIME_CONFIRM_FRAMES:
-                self._refuse("time_outlier", f"frame seq {seq} at time_boot_us {t} is {(t - last_t) / 1e6:+.3f} s "
-                                             f"from the last accepted one ({last_t})")
+                self._refuse(
+                    "time_outlier",
+                    f"frame seq {seq} at time_boot_us {t} is {(t - last_t) / 1e6:+.3f} s "
+                    f"from the last accepted one ({last_t})",
+                )
             run.clear()
-            self.counter.count("frame_time_reset", f"capture time stepped {(t - last_t) / 1e6:+.3f} s with seq "
-                               f"{last_seq} -> {seq}, confirmed by {TIME_CONFIRM_FRAMES} frames; estimator restarted")
+            self.counter.count(
+                "frame_time_reset",
+                f"capture time stepped {(t - last_t) / 1e6:+.3f} s with seq "
+                f"{last_seq} -> {seq}, confirmed by {TIME_CONFIRM_FRAMES} frames; estimator restarted",
+            )
             self._reset_estimator("time reset")
             self._accept(seq, t)
             return
         if t > last_t:
             if not seq_forward:
-                self.counter.count("frame_sequence_reset", f"seq {last_seq} -> {seq} while time moved forward; sender restarted")
+                self.counter.count(
+                    "frame_sequence_reset", f"seq {last_seq} -> {seq} while time moved forward; sender restarted"
+                )
             self._accept(seq, t)
             return
         self._refused_in_row += 1
         if self._refused_in_row >= self.config.input.sequence_restart_count:
-            self.counter.count("frame_stream_restart", f"{self._refused_in_row} frames in a row before the last "
-                               f"accepted one (seq {last_seq}, t {last_t} us): stream restarted")
+            self.counter.count(
+                "frame_stream_restart",
+                f"{self._refused_in_row} frames in a row before the last "
+                f"accepted one (seq {last_seq}, t {last_t} us): stream restarted",
+            )
             self._reset_estimator("stream restart")
             self._accept(seq, t)
             return
@@ -406,7 +423,9 @@ class FramePipeline:
         try:
             if upd.measurement_valid and pose is not None:
                 self._est_has_data = True
-                return self.estimator.add(t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam)
+                return self.estimator.add(
+                    t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam
+                )
             if not self._est_has_data:
                 return None
             return self.estimator.predict(t_s, None if pose is None else pose.p_cam_ned_m)
@@ -429,8 +448,14 @@ class FramePipeline:
         if pose is None or upd.u_px is None:
             return None
         try:
-            return line_of_sight_ned((upd.u_px, upd.v_px), self.intrinsics, pose.q_ned_from_cam, pose.p_cam_ned_m,
-                                     self._pixel_sigma_px, self._attitude_sigma_rad)
+            return line_of_sight_ned(
+                (upd.u_px, upd.v_px),
+                self.intrinsics,
+                pose.q_ned_from_cam,
+                pose.p_cam_ned_m,
+                self._pixel_sigma_px,
+                self._attitude_sigma_rad,
+            )
         except (InputError, ValueError, FloatingPointError) as exc:
             self.counter.count("los_invalid", str(exc))
             return None
@@ -486,8 +511,11 @@ class FramePipeline:
         )
         if est is None:
             return Track(**base)
-        base.update(observable=bool(est.observable), window_frames=int(est.window_frames),
-                    residual_rms_norm=self._residual_rms_norm(upd, pose, est, frame.time_boot_us))
+        base.update(
+            observable=bool(est.observable),
+            window_frames=int(est.window_frames),
+            residual_rms_norm=self._residual_rms_norm(upd, pose, est, frame.time_boot_us),
+        )
         show = est.observable or self.config.output.unobservable_positions
         if not (show and origin is not None and _finite_estimate(est)):
             return Track(**base)

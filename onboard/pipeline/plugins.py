@@ -54,7 +54,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import logging
-from typing import Any, Callable, Protocol, Sequence, runtime_checkable
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -145,8 +146,11 @@ def _as_factory(obj: Any, name: str) -> Callable[[Any], Any]:
     if not callable(obj):
         raise ConfigError(f"plug-in {name!r}: expected a class or a function, got {type(obj).__name__}")
     try:
-        params = [p for p in inspect.signature(obj).parameters.values()
-                  if p.default is inspect.Parameter.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+        params = [
+            p
+            for p in inspect.signature(obj).parameters.values()
+            if p.default is inspect.Parameter.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
+        ]
     except (TypeError, ValueError):  # builtins without a signature: called with the config
         params = [None]
     if len(params) == 0:
@@ -166,17 +170,22 @@ def load_factory(name: str, group: str = ESTIMATORS, option: str = "--estimator"
         try:
             obj = eps[name].load()
         except Exception as exc:  # noqa: BLE001 - a broken plug-in is a configuration error, one line
-            raise ConfigError(f"{option} {name}: entry point {eps[name].value} of {group} does not load: "
-                              f"{type(exc).__name__}: {exc}") from None
+            raise ConfigError(
+                f"{option} {name}: entry point {eps[name].value} of {group} does not load: {type(exc).__name__}: {exc}"
+            ) from None
         return _as_factory(obj, name)
     if ":" not in name:
         known = ", ".join(sorted(eps)) or "none installed"
-        raise ConfigError(f"{option}: expected a name registered under {group} ({known}) or module:Attribute, got {name!r}")
+        raise ConfigError(
+            f"{option}: expected a name registered under {group} ({known}) or module:Attribute, got {name!r}"
+        )
     module_name, _, attr = name.partition(":")
     try:
         module = importlib.import_module(module_name)
     except Exception as exc:  # noqa: BLE001
-        raise ConfigError(f"{option} {name}: module {module_name!r} does not import: {type(exc).__name__}: {exc}") from None
+        raise ConfigError(
+            f"{option} {name}: module {module_name!r} does not import: {type(exc).__name__}: {exc}"
+        ) from None
     obj: Any = module
     for part in attr.split("."):
         if not hasattr(obj, part):
@@ -190,10 +199,14 @@ def build(name: str, config, group: str = ESTIMATORS, option: str = "--estimator
     inst = load_factory(name, group, option)(config)
     proto = _PROTOCOL[group]
     if not isinstance(inst, proto):
-        missing = [m for m in ("add", "predict", "reset", "update", "detect")
-                   if hasattr(proto, m) and not callable(getattr(inst, m, None))]
-        raise ConfigError(f"{option} {name}: {type(inst).__name__} does not implement {proto.__name__} "
-                          f"(missing {', '.join(missing)})")
+        missing = [
+            m
+            for m in ("add", "predict", "reset", "update", "detect")
+            if hasattr(proto, m) and not callable(getattr(inst, m, None))
+        ]
+        raise ConfigError(
+            f"{option} {name}: {type(inst).__name__} does not implement {proto.__name__} (missing {', '.join(missing)})"
+        )
     return inst
 
 

@@ -7,4 +7,13 @@ control law it runs.  Importing this package does not import or start JSBSim.
 from groundsim.world.flight.guidance import GuidanceGains, TrackingStats
 from groundsim.world.flight.vehicle import FlightError, FlownState, FlownTrajectory, FlownVehicle, fly, fly_pair
 
-__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "GuidanceGains", "TrackingStats", "fly", "fly_pair"]
+__all__ = [
+    "FlightError",
+    "FlownState",
+    "FlownTrajectory",
+    "FlownVehicle",
+    "GuidanceGains",
+    "TrackingStats",
+    "fly",
+    "fly_pair",
+]

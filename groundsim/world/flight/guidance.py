@@ -48,7 +48,14 @@ from typing import NamedTuple
 import numpy as np
 
 from onboard.core.errors import IrtrackError
-from onboard.core.frames import CameraMount, camera_pose_ned, quat_conjugate, quat_from_euler, quat_multiply, quat_rotate
+from onboard.core.frames import (
+    CameraMount,
+    camera_pose_ned,
+    quat_conjugate,
+    quat_from_euler,
+    quat_multiply,
+    quat_rotate,
+)
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -128,7 +135,9 @@ class GuidanceGains:
         if not (math.isfinite(self.pos_integral_radps) and self.pos_integral_radps >= 0):
             raise GuidanceError(f"GuidanceGains.pos_integral_radps must be >= 0, got {self.pos_integral_radps!r}")
         if self.max_tilt_rad >= math.radians(80.0):
-            raise GuidanceError(f"GuidanceGains.max_tilt_rad must be < 80 deg, got {math.degrees(self.max_tilt_rad):.1f} deg")
+            raise GuidanceError(
+                f"GuidanceGains.max_tilt_rad must be < 80 deg, got {math.degrees(self.max_tilt_rad):.1f} deg"
+            )
 
     @property
     def kp(self) -> float:

@@ -38,9 +38,9 @@ from __future__ import annotations
 import logging
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -61,7 +61,16 @@ from groundsim.world.flight.guidance import (
 from onboard.core.errors import IrtrackError
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic, quat_from_euler
 
-__all__ = ["FlightError", "FlownState", "FlownTrajectory", "FlownVehicle", "fly", "fly_pair", "YAW_MODES", "DEFAULT_MODEL"]
+__all__ = [
+    "FlightError",
+    "FlownState",
+    "FlownTrajectory",
+    "FlownVehicle",
+    "fly",
+    "fly_pair",
+    "YAW_MODES",
+    "DEFAULT_MODEL",
+]
 
 log = logging.getLogger(__name__)
 
@@ -148,11 +157,16 @@ class FlownTrajectory:
 
     def state(self, i: int) -> FlownState:
         return FlownState(
-            float(self.t_s[i]), self.p_ned_m[i], self.v_ned_mps[i], self.a_ned_mps2[i], self.q_ned_from_body[i], self.omega_frd_radps[i]
+            float(self.t_s[i]),
+            self.p_ned_m[i],
+            self.v_ned_mps[i],
+            self.a_ned_mps2[i],
+            self.q_ned_from_body[i],
+            self.omega_frd_radps[i],
         )
 
     @classmethod
-    def from_states(cls, states: Sequence[FlownState], tracking: TrackingStats) -> "FlownTrajectory":
+    def from_states(cls, states: Sequence[FlownState], tracking: TrackingStats) -> FlownTrajectory:
         if not states:
             raise FlightError("FlownTrajectory.from_states: no states")
         return cls(
@@ -429,7 +443,13 @@ class FlownVehicle:
         self._err_sq_sum, self._err_max, self._err_n = 0.0, 0.0, 0
         log.debug(
             "%s: trimmed at roll %.2f deg pitch %.2f deg yaw %.1f deg, collective %.4f for %.2f m/s^2, drag k %.4f 1/m",
-            self.name, math.degrees(roll0), math.degrees(pitch0), math.degrees(self._yaw_hold), thr, c0, k_drag,
+            self.name,
+            math.degrees(roll0),
+            math.degrees(pitch0),
+            math.degrees(self._yaw_hold),
+            thr,
+            c0,
+            k_drag,
         )
 
     def _read_raw(self) -> tuple:
@@ -550,7 +570,9 @@ class FlownVehicle:
             raise FlightError(f"{self.name}: step_to t_s must be a finite number, got {t_s!r}")
         if t_s < -_T_EPS_S:
             raise FlightError(f"{self.name}: step_to t_s must be >= 0, got {t_s}")
-        if t_s < self.t_s - self.dt_s - _T_EPS_S or (self._last_state is not None and t_s < self._last_state.t_s - _T_EPS_S):
+        if t_s < self.t_s - self.dt_s - _T_EPS_S or (
+            self._last_state is not None and t_s < self._last_state.t_s - _T_EPS_S
+        ):
             raise FlightError(f"{self.name}: step_to t_s = {t_s} goes back in time (now {self.t_s} s)")
         if look_at_ned_m is not None:
             self._update_look_at(t_s, look_at_ned_m, look_at_v_ned_mps)
@@ -655,7 +677,13 @@ def fly_pair(
     if observer_yaw_mode == "target":
         vehicle_kwargs.setdefault("look_at_ned_m", target.p_ned_m[0])
     observer_vehicle = FlownVehicle(
-        observer_reference, origin, wind_ned_mps, yaw_mode=observer_yaw_mode, name="observer", seed=seed, **vehicle_kwargs
+        observer_reference,
+        origin,
+        wind_ned_mps,
+        yaw_mode=observer_yaw_mode,
+        name="observer",
+        seed=seed,
+        **vehicle_kwargs,
     )
     if observer_yaw_mode == "target":
         observer = observer_vehicle.step_through(t, target.p_ned_m, target.v_ned_mps)

@@ -71,10 +71,10 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from onboard.core.errors import InputError
-from onboard.core.frames import PinholeIntrinsics
 from groundsim.world.render.planck import band_radiance, grey_full_scale, noise_sigma_grey
 from groundsim.world.render.settings import IrSettings
+from onboard.core.errors import InputError
+from onboard.core.frames import PinholeIntrinsics
 
 __all__ = ["IrRenderer", "RenderTiming", "truth_pixel", "LUT_SIZE"]
 
@@ -241,8 +241,10 @@ class IrRenderer:
         T_grid = np.linspace(T_lo, max(s.sky_horizon_k, s.sky_zenith_k, T_lo + 1.0), 257)
         self._L_sky_abs = np.interp(T_sky, T_grid, band_radiance(T_grid, s.band_um))
         self._L_sky_horizon = float(band_radiance(s.sky_horizon_k, s.band_um))
-        self._ground = (s.ground_emissivity * float(band_radiance(s.ground_temperature_k, s.band_um)),
-                        1.0 - s.ground_emissivity)
+        self._ground = (
+            s.ground_emissivity * float(band_radiance(s.ground_temperature_k, s.band_um)),
+            1.0 - s.ground_emissivity,
+        )
         # the horizon seen through the pixel aperture and the PSF: a Gaussian of sigma_eff px in
         # elevation applied to the sky/ground step -> weight Phi(el / sigma_el) of the sky side
         sigma_px = math.sqrt(s.blur_sigma_px**2 + 1.0 / 12.0)
@@ -267,7 +269,9 @@ class IrRenderer:
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
         hi = (centre + half).max(axis=0)
-        self._bbox_corners_b = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        self._bbox_corners_b = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
 
     def _init_noise(self) -> None:
         s = self.settings
@@ -299,7 +303,11 @@ class IrRenderer:
         tau = np.exp(-s.extinction_per_km * range_km)
         L_ground = tau * (self._ground[0] + self._ground[1] * self._L_sky_abs) + (1.0 - tau) * self._L_air
         # ground just below the horizon: all air unless the camera is on the ground (h = 0: no air)
-        edge = self._L_air if (h > 0.0 and s.extinction_per_km > 0.0) else self._ground[0] + self._ground[1] * self._L_sky_horizon
+        edge = (
+            self._L_air
+            if (h > 0.0 and s.extinction_per_km > 0.0)
+            else self._ground[0] + self._ground[1] * self._L_sky_horizon
+        )
         L_ground = np.where(s_k < 0.0, L_ground, edge)
         L_sky = np.where(s_k >= 0.0, self._L_sky_abs, self._L_sky_horizon)
         w = self._sky_weight
@@ -335,7 +343,7 @@ class IrRenderer:
         t = lut.astype(float)
         s_t = (np.arange(t.size) - _LUT_PAD) * h_s - 1.0
         f2 = np.zeros_like(t)
-        f2[d:-d] = np.abs(t[2 * d:] - 2.0 * t[d:-d] + t[:-2 * d]) / (d * h_s) ** 2
+        f2[d:-d] = np.abs(t[2 * d :] - 2.0 * t[d:-d] + t[: -2 * d]) / (d * h_s) ** 2
         step = self._coarse_ds
         ds = step * np.sqrt(np.clip(1.0 - s_t**2, 0.0, 1.0)) + 0.5 * step**2
         bad = (f2 * ds**2 / 8.0 > COARSE_TOL_FS * self._fs).astype(np.uint8)
@@ -369,7 +377,7 @@ class IrRenderer:
         grey_c = self._lut.take(idx_c)
         st = COARSE_STEP
         big = cv2.resize(grey_c, (self._Wc * st, self._Hc * st), interpolation=cv2.INTER_LINEAR)
-        bg = big[st:st + self._H, st:st + self._W]
+        bg = big[st : st + self._H, st : st + self._W]
         near = self._exact_flags.take(idx_c)
         if not near.any():
             return bg
@@ -424,7 +432,10 @@ class IrRenderer:
         else:
             x = (u - intr.cx_px) / intr.fx_px
             y = (v - intr.cy_px) / intr.fy_px
-            d_b = (R_bc[:, 0, None, None] * x[None, None, :] + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None])
+            d_b = (
+                R_bc[:, 0, None, None] * x[None, None, :]
+                + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
+            )
             d_b = d_b.reshape(3, -1)  # (3, n), row-major over (sub-row, sub-column)
         # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
         d_b = d_b.astype(np.float32)
@@ -438,8 +449,7 @@ class IrRenderer:
             return None
         # difference to the background per sub-sample (the background of the sub-sample's pixel)
         bg_sub = np.repeat(np.repeat(bg[i0:i1, j0:j1], ss, axis=0), ss, axis=1)
-        delta = np.where(covered.reshape(ny * ss, nx * ss),
-                         part_grey[nearest].reshape(ny * ss, nx * ss) - bg_sub, 0.0)
+        delta = np.where(covered.reshape(ny * ss, nx * ss), part_grey[nearest].reshape(ny * ss, nx * ss) - bg_sub, 0.0)
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
@@ -501,8 +511,9 @@ class IrRenderer:
 
     # ------------------------------------------------------------------ frame
 
-    def render(self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body,
-               altitude_ground_d_m: float = 0.0) -> np.ndarray:
+    def render(
+        self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, altitude_ground_d_m: float = 0.0
+    ) -> np.ndarray:
         """One frame, (H, W) uint8 (mono8) or uint16 (mono16).
 
         ``p_cam_ned_m`` camera optical centre and ``R_ned_from_cam`` its attitude (use
@@ -536,7 +547,7 @@ class IrRenderer:
 
         n = self._H * self._W
         off = int(self._rng.integers(self._noise_offsets))
-        noise = self._noise_bank[off:off + n].reshape(self._H, self._W)
+        noise = self._noise_bank[off : off + n].reshape(self._H, self._W)
         out = cv2.add(bg, noise, dtype=self._dtype)
         if roi is not None:
             rows, cols, delta, ss = roi

@@ -65,7 +65,9 @@ class TargetPart:
             raise ConfigError(f"TargetPart({self.name!r}).shape: expected one of {TARGET_SHAPES}, got {self.shape!r}")
         _finite_tuple(self, "center_frd_m", 3)
         if min(_finite_tuple(self, "half_extent_m", 3)) <= 0.0:
-            raise ConfigError(f"TargetPart({self.name!r}).half_extent_m: every semi-axis must be > 0 m, got {self.half_extent_m!r}")
+            raise ConfigError(
+                f"TargetPart({self.name!r}).half_extent_m: every semi-axis must be > 0 m, got {self.half_extent_m!r}"
+            )
         _finite(self, "temperature_k", 0.0, lo_open=True)
         _finite(self, "emissivity", 0.0, hi=1.0)
 
@@ -76,7 +78,7 @@ def default_target_parts() -> tuple[TargetPart, ...]:
     Body plate and arms at 305 K, four motors at the arm tips at 330 K, a battery on the centre
     at 312 K (all painted/plastic, emissivity 0.9; motors anodised metal, 0.8).
     """
-    arm = 0.225 / 2 ** 0.5  # 450 mm motor-to-motor diagonal
+    arm = 0.225 / 2**0.5  # 450 mm motor-to-motor diagonal
     parts = [
         TargetPart("body", "box", (0.0, 0.0, 0.0), (0.075, 0.075, 0.02), 305.0, 0.9),
         TargetPart("arm_fr_bl", "box", (0.0, 0.0, 0.0), (0.16, 0.012, 0.008), 303.0, 0.9),
@@ -84,7 +86,9 @@ def default_target_parts() -> tuple[TargetPart, ...]:
         TargetPart("battery", "box", (0.0, 0.0, -0.035), (0.05, 0.02, 0.015), 312.0, 0.9),
     ]
     for i, (sf, sr) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
-        parts.append(TargetPart(f"motor{i}", "ellipsoid", (sf * arm, sr * arm, -0.01), (0.014, 0.014, 0.016), 330.0, 0.8))
+        parts.append(
+            TargetPart(f"motor{i}", "ellipsoid", (sf * arm, sr * arm, -0.01), (0.014, 0.014, 0.016), 330.0, 0.8)
+        )
     return tuple(parts)
 
 
@@ -128,8 +132,15 @@ class IrSettings:
         band = _finite_tuple(self, "band_um", 2)
         if not 0.0 < band[0] < band[1]:
             raise ConfigError(f"IrSettings.band_um: expected 0 < lambda1 < lambda2 micrometres, got {self.band_um!r}")
-        for name in ("t_min_k", "t_max_k", "air_temperature_k", "sky_zenith_k", "sky_horizon_k",
-                     "ground_temperature_k", "netd_reference_k"):
+        for name in (
+            "t_min_k",
+            "t_max_k",
+            "air_temperature_k",
+            "sky_zenith_k",
+            "sky_horizon_k",
+            "ground_temperature_k",
+            "netd_reference_k",
+        ):
             _finite(self, name, 0.0, lo_open=True)
         if not self.t_min_k < self.t_max_k:
             raise ConfigError(f"IrSettings.t_max_k: expected > t_min_k = {self.t_min_k}, got {self.t_max_k}")
