@@ -3,7 +3,7 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.irtrack-installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test lint bench venv clean
 
 # The pipeline is single-threaded by design; multi-threaded BLAS on small matrices only fights the
 # other processes for the two cores (a MAP solve went from 0.9 s to 8.5 s under load with threads).
@@ -22,8 +22,14 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m groundsim demo $(if $(LIVE_VIEW),--live-view $(LIVE_VIEW))
 
+# Lint and types first (seconds): ruff over the tree (lint + format check), mypy over onboard/core.
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+	$(PY) -m mypy
+
 # pytest exit 5 means "no tests were collected": say so plainly, neither a failure nor a pass.
-test: $(STAMP)
+test: lint
 	@$(PY) -m pytest; rc=$$?; \
 	if [ $$rc -eq 5 ]; then echo "make test: NO TESTS RAN (pytest exit 5)"; exit 0; fi; \
 	exit $$rc

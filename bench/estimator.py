@@ -31,16 +31,21 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
 from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
 from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402
 
-
 #: the accuracy goals of issue 2 (median err/range over >= 10 seeds, percent)
-ACCURACY_GOALS_PCT = {("P1", "px0.3"): 0.45, ("P1", "RTK"): 2.0, ("P2", "px0.3"): 0.55, ("P2", "RTK"): 1.5,
-                      ("P3", "px0.3"): 3.0, ("P3", "RTK"): 5.0}
+ACCURACY_GOALS_PCT = {
+    ("P1", "px0.3"): 0.45,
+    ("P1", "RTK"): 2.0,
+    ("P2", "px0.3"): 0.55,
+    ("P2", "RTK"): 1.5,
+    ("P3", "px0.3"): 3.0,
+    ("P3", "RTK"): 5.0,
+}
 
 
 def statistical_floor(results, seeds: int) -> list[str]:
@@ -62,8 +67,15 @@ def statistical_floor(results, seeds: int) -> list[str]:
         sc, nc = load_scenario(paths[r.scenario]), ncs[r.noise]
         truth, obs = synthesize_scenario(sc, nc, r.seed)
         prior = cfg.motion_prior(r.model, r.q_m2ps3)
-        pct = efficient_error_range_pct(MapEstimator(cfg, estimator_noise_model(nc)), obs, truth.p_target_ned_m, prior,
-                                        r.turn_rate_radps, draws=8000, rng=np.random.default_rng(1))
+        pct = efficient_error_range_pct(
+            MapEstimator(cfg, estimator_noise_model(nc)),
+            obs,
+            truth.p_target_ned_m,
+            prior,
+            r.turn_rate_radps,
+            draws=8000,
+            rng=np.random.default_rng(1),
+        )
         rng = np.random.default_rng(2)
         meds = np.median(pct[rng.integers(0, pct.size, (4000, seeds))], axis=1)
         ours = [x.err_range_pct for x in results if (x.scenario, x.noise) == key]
@@ -71,7 +83,8 @@ def statistical_floor(results, seeds: int) -> list[str]:
         lines.append(
             f"{key[0]} {key[1]:6s} goal <= {goal:.2f} %: ours {np.median(ours):.2f} %; an efficient estimator ({r.model}): "
             f"median {np.median(pct):.2f} %, its {seeds}-seed median 5-95 % {np.percentile(meds, 5):.2f}-"
-            f"{np.percentile(meds, 95):.2f} %, <= goal with probability {np.mean(meds <= goal):.2f}")
+            f"{np.percentile(meds, 95):.2f} %, <= goal with probability {np.mean(meds <= goal):.2f}"
+        )
     return lines
 
 
@@ -119,7 +132,9 @@ def speed(noise_name: str = "RTK") -> dict:
     out["sliding_per_frame_median_ms"] = float(np.median(steady))
     out["sliding_per_frame_mean_ms"] = float(np.mean(steady))
     out["sliding_per_frame_p90_ms"] = float(np.percentile(steady, 90))
-    out["sliding_selection_median_ms"] = float(np.median(steady[kinds == "selections"])) if np.any(kinds == "selections") else None
+    out["sliding_selection_median_ms"] = (
+        float(np.median(steady[kinds == "selections"])) if np.any(kinds == "selections") else None
+    )
     out["sliding_non_selection_mean_ms"] = float(np.mean(steady[kinds != "selections"]))
     out["sliding_stats"] = dict(sw.stats)
     return out
@@ -137,22 +152,36 @@ def verdict(args) -> int:
             print(f"\r  verdict runs {done}/{tot}", end="", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
-    results = run_cases(scen, [ncs[n] for n in noises], range(args.seeds), workers=args.workers, with_paper=False,
-                        progress=progress, with_efficient=False)
+    results = run_cases(
+        scen,
+        [ncs[n] for n in noises],
+        range(args.seeds),
+        workers=args.workers,
+        with_paper=False,
+        progress=progress,
+        with_efficient=False,
+    )
     print(file=sys.stderr)
     rows = verdict_rows(results)
     thr = 100 * MapConfig().observability_max_sigma_range_ratio
     print(f"== observability verdict over {args.seeds} seeds ({total} runs, {time.perf_counter() - t0:.0f} s) ==")
     print(format_verdict_table(rows, thr))
     main_cells = [r for r in rows if r["scenario"] in ("P1", "P2", "P3") and r["noise"] in ("px0.3", "RTK")]
-    print("\nrecall >= 80 % in P1-P3 x px0.3/RTK: " + ", ".join(
-        f"{r['scenario']} {r['noise']} {100 * r['recall']:.0f} %" + ("" if r["recall"] >= 0.8 else " (NOT MET)") for r in main_cells))
+    print(
+        "\nrecall >= 80 % in P1-P3 x px0.3/RTK: "
+        + ", ".join(
+            f"{r['scenario']} {r['noise']} {100 * r['recall']:.0f} %" + ("" if r["recall"] >= 0.8 else " (NOT MET)")
+            for r in main_cells
+        )
+    )
     h3 = [r for r in rows if r["scenario"] == "H3"]
     if h3:
         print(f"H3 called observable: {sum(r['observable'] for r in h3)}/{sum(r['runs'] for r in h3)}")
     obs_total = sum(r["observable"] for r in rows)
-    print(f"observable runs honest: {sum(r['honest_observable'] for r in rows)}/{obs_total}; "
-          f"all published runs honest: {sum(r['honest_all'] for r in rows)}/{sum(r['runs'] - r['failed'] for r in rows)}")
+    print(
+        f"observable runs honest: {sum(r['honest_observable'] for r in rows)}/{obs_total}; "
+        f"all published runs honest: {sum(r['honest_all'] for r in rows)}/{sum(r['runs'] - r['failed'] for r in rows)}"
+    )
     if args.json:
         os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
         with open(args.json, "w") as fh:
@@ -162,7 +191,9 @@ def verdict(args) -> int:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.estimator", description=__doc__.splitlines()[0])
-    ap.add_argument("--seeds", type=int, default=50, help="seeds per cell (default 50: the README table; the issue asks >= 10)")
+    ap.add_argument(
+        "--seeds", type=int, default=50, help="seeds per cell (default 50: the README table; the issue asks >= 10)"
+    )
     ap.add_argument("--scenarios", default=None, help="default P1,P2,P3 (with --verdict: every reference scenario)")
     ap.add_argument("--noises", default=None, help="default px0.3,RTK (with --verdict: px0.3,RTK,GNSS)")
     ap.add_argument("--verdict", action="store_true", help="the verdict's precision/recall table only")
@@ -182,16 +213,22 @@ def main(argv=None) -> int:
     args.noises = args.noises or "px0.3,RTK"
     report = {"speed": speed()}
     s = report["speed"]
-    print("== reconstruction speed, P1 window F = %d, RTK noise model, one core, CPU time ==" % s["frames"])
+    print(f"== reconstruction speed, P1 window F = {s['frames']}, RTK noise model, one core, CPU time ==")
     print(f"paper closed form:                      {s['paper_ms']:8.2f} ms")
     print(f"MAP, one prior, cold multi-start:       {s['map_cold_single_prior_ms']:8.1f} ms")
     print(f"MAP, full model selection (batch, 0.5 s knots): {s['map_model_selection_ms']:8.1f} ms")
     print(f"sliding window per frame, median:       {s['sliding_per_frame_median_ms']:8.2f} ms")
-    print(f"sliding window per frame, mean (amortised incl. the model re-selections): {s['sliding_per_frame_mean_ms']:.2f} ms")
-    print(f"sliding window CPU per second of 30 Hz flight: {s['sliding_cpu_s_per_s_filling']:.3f} s/s while the window "
-          f"fills, {s['sliding_cpu_s_per_s_full']:.3f} s/s once it is full (re-selection included)")
-    print(f"sliding window, frames without selection, mean: {s['sliding_non_selection_mean_ms']:.2f} ms;"
-          f" selection frames median: {s['sliding_selection_median_ms']:.0f} ms")
+    print(
+        f"sliding window per frame, mean (amortised incl. the model re-selections): {s['sliding_per_frame_mean_ms']:.2f} ms"
+    )
+    print(
+        f"sliding window CPU per second of 30 Hz flight: {s['sliding_cpu_s_per_s_filling']:.3f} s/s while the window "
+        f"fills, {s['sliding_cpu_s_per_s_full']:.3f} s/s once it is full (re-selection included)"
+    )
+    print(
+        f"sliding window, frames without selection, mean: {s['sliding_non_selection_mean_ms']:.2f} ms;"
+        f" selection frames median: {s['sliding_selection_median_ms']:.0f} ms"
+    )
     if not args.speed_only:
         paths = reference_scenario_paths()
         ncs = load_noise_cases()

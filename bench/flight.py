@@ -78,7 +78,9 @@ def _smoothness(tr) -> tuple[float, float]:
 
 
 def main() -> None:
-    print(f"groundsim.world.flight benchmark: {DURATION_S:.0f} s per path, truth at {FRAME_RATE_HZ:.0f} Hz, origin {ORIGIN}")
+    print(
+        f"groundsim.world.flight benchmark: {DURATION_S:.0f} s per path, truth at {FRAME_RATE_HZ:.0f} Hz, origin {ORIGIN}"
+    )
     for cname, kw in CONFIGS.items():
         dt = kw.get("dt_s", 1.0 / 240.0)
         bare = _bare_jsbsim_s(dt)
@@ -88,8 +90,8 @@ def main() -> None:
             f" | ms/sim-s: {'frame cpu':>9s} {'wall':>6s} {'batch cpu':>9s} {'wall':>6s} {'x bare':>6s}"
         )
         for name, ref in CASES.items():
-            tr, c_b, w_b = _timed(lambda: fly(ref, DURATION_S, FRAME_RATE_HZ, origin=ORIGIN, **kw))
-            _, c_f, w_f = _timed(lambda: _per_frame(ref, **kw))
+            tr, c_b, w_b = _timed(lambda ref=ref, kw=kw: fly(ref, DURATION_S, FRAME_RATE_HZ, origin=ORIGIN, **kw))
+            _, c_f, w_f = _timed(lambda ref=ref, kw=kw: _per_frame(ref, **kw))
             err = np.linalg.norm(tr.p_ned_m - ref.state(tr.t_s).p_ned_m, axis=1)
             roll, pitch, _ = euler_from_quat(tr.q_ned_from_body)
             tilt = math.degrees(float(np.max(np.arccos(np.cos(roll) * np.cos(pitch)))))
@@ -102,7 +104,7 @@ def main() -> None:
             )
 
         # the P3 pair: two vehicles, the observer yawing toward the target every frame
-        def pair():
+        def pair(kw=kw):
             obs = FlownVehicle(CASES["(d) P3 observer cubic"], ORIGIN, yaw_mode="target", name="observer", **kw)
             tgt = FlownVehicle(P3_TARGET, ORIGIN, name="target", **kw)
             yaw_err = []
@@ -121,14 +123,16 @@ def main() -> None:
             f"both vehicles, {DURATION_S:.0f} s incl. set-up: {c_p:.3f} s CPU, {w_p:.3f} s wall"
         )
         (o_tr, t_tr), c_p, w_p = _timed(
-            lambda: fly_pair(CASES["(d) P3 observer cubic"], P3_TARGET, DURATION_S, FRAME_RATE_HZ, ORIGIN, **kw)
+            lambda kw=kw: fly_pair(CASES["(d) P3 observer cubic"], P3_TARGET, DURATION_S, FRAME_RATE_HZ, ORIGIN, **kw)
         )
         print(
             f"  P3 pair, fly_pair (batch): observer rms {o_tr.tracking.rms_m:.3f} m, target rms {t_tr.tracking.rms_m:.3f} m; "
             f"both vehicles, {DURATION_S:.0f} s incl. set-up: {c_p:.3f} s CPU, {w_p:.3f} s wall"
         )
-        _, c_i, w_i = _timed(lambda: FlownVehicle(P3_TARGET, ORIGIN, **kw))
-        print(f"  set-up of one vehicle (load model, trim, spin-up, calibrate): {1e3 * c_i:.1f} ms CPU, {1e3 * w_i:.1f} ms wall")
+        _, c_i, w_i = _timed(lambda kw=kw: FlownVehicle(P3_TARGET, ORIGIN, **kw))
+        print(
+            f"  set-up of one vehicle (load model, trim, spin-up, calibrate): {1e3 * c_i:.1f} ms CPU, {1e3 * w_i:.1f} ms wall"
+        )
 
 
 if __name__ == "__main__":

@@ -55,7 +55,9 @@ def _frames(truth: np.ndarray, amp: float, sigma_px: float, dtype, seed: int = 0
         img = sky + rng.normal(0.0, 1.0, sky.shape)
         i0, j0 = int(v) - r, int(u) - r
         yy, xx = np.mgrid[i0 : i0 + 2 * r + 1, j0 : j0 + 2 * r + 1].astype(np.float64)
-        img[i0 : i0 + 2 * r + 1, j0 : j0 + 2 * r + 1] += amp * np.exp(-((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2) / (2 * sigma_px**2))
+        img[i0 : i0 + 2 * r + 1, j0 : j0 + 2 * r + 1] += amp * np.exp(
+            -((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2) / (2 * sigma_px**2)
+        )
         if dtype == np.uint16:
             img *= 257.0
         out.append(np.clip(np.round(img), 0, np.iinfo(dtype).max).astype(dtype))
@@ -137,7 +139,9 @@ def main() -> None:
         ("mono8, large target (sigma 4 px, 120 grey)", 120.0, 4.0, np.uint8),
         ("mono16, medium target (sigma 1.5 px, 80 grey8)", 80.0, 1.5, np.uint16),
     ]
-    print(f"onboard.imaging benchmark: {N_FRAMES} frames {W_PX}x{H_PX}, OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}")
+    print(
+        f"onboard.imaging benchmark: {N_FRAMES} frames {W_PX}x{H_PX}, OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}"
+    )
     print(f"budget: {BUDGET_MS:.2f} ms/frame for the whole onboard chain (>= 300 frames/s)\n")
     for name, amp, sigma, dtype in cases:
         frames = _frames(truth, amp, sigma, dtype)
@@ -148,19 +152,27 @@ def main() -> None:
         print(f"  update cpu  : {_stats(steady)}  -> {1000.0 / steady.mean():7.0f} frames/s")
         print(f"  first frame (searching, full frame): {cpu[0]:.3f} ms cpu")
         e = err if err.size else np.array([np.nan])
-        print(f"  centre error: rms {math.sqrt(float(np.mean(e**2))):.4f} px, max {np.max(e):.4f} px over {err.size} valid frames; states {states}")
+        print(
+            f"  centre error: rms {math.sqrt(float(np.mean(e**2))):.4f} px, max {np.max(e):.4f} px over {err.size} valid frames; states {states}"
+        )
         print(f"  KCF re-seeds {tr.kcf_reseeds}, re-acquisitions {tr.reacquisitions}")
         if dtype == np.uint8:
             kcf_ms = _bare_kcf_ms(frames, truth, params)
             full_ms = _full_frame_ms(frames, params)
-            print(f"  baseline bare KCF update on the raw frame: {kcf_ms:.3f} ms (update / bare KCF = {wall[1:].mean() / kcf_ms:.2f})")
+            print(
+                f"  baseline bare KCF update on the raw frame: {kcf_ms:.3f} ms (update / bare KCF = {wall[1:].mean() / kcf_ms:.2f})"
+            )
             print(f"  full-frame detect (searching / re-acquisition path): {full_ms:.3f} ms wall")
         print()
     print("frames from groundsim.world.render (F450 quad, default IrSettings, horizon in view), 40 frames each:")
     for encoding in ("mono8", "mono16"):
         for range_m in (100.0, 160.0, 300.0, 500.0):
             states, e, det = _rendered(encoding, range_m)
-            err = f"mean ({e[:, 0].mean():+.3f}, {e[:, 1].mean():+.3f}) std ({e[:, 0].std():.3f}, {e[:, 1].std():.3f}) px" if len(e) else "no valid centre"
+            err = (
+                f"mean ({e[:, 0].mean():+.3f}, {e[:, 1].mean():+.3f}) std ({e[:, 0].std():.3f}, {e[:, 1].std():.3f}) px"
+                if len(e)
+                else "no valid centre"
+            )
             extra = f", contrast {det.contrast:.1f}, snr {det.snr:.0f}" if det is not None else ""
             print(f"  {encoding:6s} {range_m:5.0f} m: {states}; centre - body centre {err}{extra}")
 

@@ -176,9 +176,14 @@ class SyntheticScene:
                 )
         return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
-    def frame(self, k: int, with_target: bool = True, seq: int | None = None, time_boot_us: int | None = None) -> IrFrame:
-        return IrFrame(seq=k if seq is None else seq, time_boot_us=self.t_us(k) if time_boot_us is None else time_boot_us,
-                       pixels=self.image(k, with_target))
+    def frame(
+        self, k: int, with_target: bool = True, seq: int | None = None, time_boot_us: int | None = None
+    ) -> IrFrame:
+        return IrFrame(
+            seq=k if seq is None else seq,
+            time_boot_us=self.t_us(k) if time_boot_us is None else time_boot_us,
+            pixels=self.image(k, with_target),
+        )
 
     def payload(self, k: int, **kw) -> bytes:
         return encode_irframe(self.frame(k, **kw))
@@ -235,8 +240,8 @@ def bench_processing(n_frames: int) -> None:
 
     from onboard.app.config import OnboardConfig, build_config
     from onboard.core.irframe import decode_irframe
-    from onboard.pipeline.frame_pipeline import FramePipeline, make_estimator, make_tracker
     from onboard.core.pose import PoseBuffer, RejectCounter
+    from onboard.pipeline.frame_pipeline import FramePipeline, make_estimator, make_tracker
 
     cv2.setNumThreads(1)
     try:
@@ -286,23 +291,35 @@ def bench_processing(n_frames: int) -> None:
     base, base_img, _, _, _, _ = run(build_config({"estimator": {"enabled": False}}), False)
     total, img, est, n_pos, rejects, last = run(cfg, True)
     fps = 1000.0 / _pct(total, 50)
-    print(f"   full chain (decode + filter + detect + track + pose + estimator):")
-    print(f"     per frame ms  p10 {_pct(total, 10):6.2f}  p50 {_pct(total, 50):6.2f}  p90 {_pct(total, 90):6.2f}"
-          f"  p99 {_pct(total, 99):7.1f}  max {max(total):7.1f}   mean {np.mean(total):6.2f}")
-    print(f"     frames/s from the median: {fps:6.0f}   from the mean: {1000.0 / np.mean(total):6.0f}   (target >= 300 median)")
-    print(f"     stages, median ms: decode {_pct(decode_ms, 50):.3f}  imaging {_pct(img, 50):.2f}"
-          f"  estimator add {_pct(est, 50):.2f} (p90 {_pct(est, 90):.1f}, max {max(est) if est else math.nan:.0f})")
+    print("   full chain (decode + filter + detect + track + pose + estimator):")
+    print(
+        f"     per frame ms  p10 {_pct(total, 10):6.2f}  p50 {_pct(total, 50):6.2f}  p90 {_pct(total, 90):6.2f}"
+        f"  p99 {_pct(total, 99):7.1f}  max {max(total):7.1f}   mean {np.mean(total):6.2f}"
+    )
+    print(
+        f"     frames/s from the median: {fps:6.0f}   from the mean: {1000.0 / np.mean(total):6.0f}   (target >= 300 median)"
+    )
+    print(
+        f"     stages, median ms: decode {_pct(decode_ms, 50):.3f}  imaging {_pct(img, 50):.2f}"
+        f"  estimator add {_pct(est, 50):.2f} (p90 {_pct(est, 90):.1f}, max {max(est) if est else math.nan:.0f})"
+    )
     slow = sum(1 for x in est if x > 50.0)
-    print(f"     estimator adds > 50 ms (model re-selection): {slow} of {len(est)} "
-          f"({100.0 * slow / max(len(est), 1):.1f} %), {sum(x for x in est if x > 50.0) / max(sum(est), 1e-9) * 100:.0f} % of estimator time")
+    print(
+        f"     estimator adds > 50 ms (model re-selection): {slow} of {len(est)} "
+        f"({100.0 * slow / max(len(est), 1):.1f} %), {sum(x for x in est if x > 50.0) / max(sum(est), 1e-9) * 100:.0f} % of estimator time"
+    )
     print(f"     frames with a 3-D position: {n_pos} of {n_frames}; refusals counted: {rejects}")
     if last is not None:
         ts = (last.time_boot_us - scene.boot_us0) / 1e6
         err = float(np.linalg.norm(np.asarray(last.p_ned_m) - scene.target(ts)[0]))
-        print(f"     last frame with a position (seq {last.seq}): 3-D error {err:.2f} m,"
-              f" 1-sigma (rss) {math.sqrt(np.trace(last.cov_p_ned_m2)):.2f} m, range {last.range_m:.0f} m")
-    print(f"   baseline without estimator: p50 {_pct(base, 50):.2f} ms -> {1000.0 / _pct(base, 50):.0f} frames/s;"
-          f" ratio full / baseline (median) {_pct(total, 50) / _pct(base, 50):.2f}")
+        print(
+            f"     last frame with a position (seq {last.seq}): 3-D error {err:.2f} m,"
+            f" 1-sigma (rss) {math.sqrt(np.trace(last.cov_p_ned_m2)):.2f} m, range {last.range_m:.0f} m"
+        )
+    print(
+        f"   baseline without estimator: p50 {_pct(base, 50):.2f} ms -> {1000.0 / _pct(base, 50):.0f} frames/s;"
+        f" ratio full / baseline (median) {_pct(total, 50) / _pct(base, 50):.2f}"
+    )
 
 
 # --------------------------------------------------------------------------- benchmark 2: loopback latency
@@ -335,21 +352,35 @@ def _proc_cpu_s(pid: int) -> float:
     return total
 
 
-def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0, extra_args: tuple[str, ...] = ()) -> dict:
+def bench_latency(
+    duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0, extra_args: tuple[str, ...] = ()
+) -> dict:
     import queue
 
     import zenoh
 
-    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
     from groundsim.io.scripted_autopilot import ScriptedAutopilot as FakeAutopilot  # the tests' fake autopilot too
+    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
     env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
     health = os.path.join(tempfile.gettempdir(), f"irtrack-bench-alive-{os.getpid()}")
-    cmd = [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen",
-           f"tcp/127.0.0.1:{zport}", "--set", f"output.health_file={health}", "--log-level", "WARNING", *extra_args]
+    cmd = [
+        sys.executable,
+        "-m",
+        "onboard",
+        "--mavlink",
+        f"udpin:127.0.0.1:{mport}",
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{zport}",
+        "--set",
+        f"output.health_file={health}",
+        "--log-level",
+        "WARNING",
+        *extra_args,
+    ]
     proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     err_lines: list[str] = []
     threading.Thread(target=lambda: [err_lines.append(ln) for ln in proc.stderr], daemon=True).start()
@@ -362,8 +393,10 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
         def on_track(sample):
             arrivals.put((time.monotonic_ns(), sample.payload.to_bytes()))
 
-        subs = [session.declare_subscriber(track_key(), on_track),
-                session.declare_subscriber(status_key(), lambda s: statuses.append(json.loads(s.payload.to_bytes())))]
+        subs = [
+            session.declare_subscriber(track_key(), on_track),
+            session.declare_subscriber(status_key(), lambda s: statuses.append(json.loads(s.payload.to_bytes()))),
+        ]
         pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
         ap = FakeAutopilot(mport, scene=scene)
         put_ns: dict[int, int] = {}
@@ -419,46 +452,69 @@ def bench_latency(duration_s: float, capture_lag_ms: float, rate_hz: float = 30.
             cpu_s_per_s = (_proc_cpu_s(proc.pid) - cpu_at_start[1]) / max(time.monotonic() - cpu_at_start[0], 1e-9)
         sent = k
         st = statuses[-1] if statuses else {}
-        print(f"   capture lag {capture_lag_ms:.0f} ms (frame stamped that long before it is sent): "
-              f"{len(lat_ms)} tracks timed over {duration_s:.0f} s of {sent} frames sent")
-        print(f"     put -> track received, ms: p50 {_pct(lat_ms, 50):.2f}  p90 {_pct(lat_ms, 90):.2f}"
-              f"  p99 {_pct(lat_ms, 99):.2f}  max {max(lat_ms) if lat_ms else math.nan:.1f}   (target p99 <= 15)")
+        print(
+            f"   capture lag {capture_lag_ms:.0f} ms (frame stamped that long before it is sent): "
+            f"{len(lat_ms)} tracks timed over {duration_s:.0f} s of {sent} frames sent"
+        )
+        print(
+            f"     put -> track received, ms: p50 {_pct(lat_ms, 50):.2f}  p90 {_pct(lat_ms, 90):.2f}"
+            f"  p99 {_pct(lat_ms, 99):.2f}  max {max(lat_ms) if lat_ms else math.nan:.1f}   (target p99 <= 15)"
+        )
         if st:
             f = st["frames"]
             f0 = (status_at_start or {}).get("frames", {"in": 0, "processed": 0, "dropped": 0})
-            print(f"     daemon during the timed window: in {f['in'] - f0['in']} processed {f['processed'] - f0['processed']}"
-                  f" dropped {f['dropped'] - f0['dropped']} (since start: dropped {f['dropped']}, rejected {f['rejected']})")
+            print(
+                f"     daemon during the timed window: in {f['in'] - f0['in']} processed {f['processed'] - f0['processed']}"
+                f" dropped {f['dropped'] - f0['dropped']} (since start: dropped {f['dropped']}, rejected {f['rejected']})"
+            )
             qw, pb = st.get("queue_wait_ms") or {}, st.get("publish_ms") or {}
-            print(f"     daemon: queue wait p50 {qw.get('p50') or math.nan:.2f} p99 {qw.get('p99') or math.nan:.2f} max "
-                  f"{qw.get('max') or math.nan:.1f} ms; track put p99 {pb.get('p99') or math.nan:.2f} max {pb.get('max') or math.nan:.1f} ms")
+            print(
+                f"     daemon: queue wait p50 {qw.get('p50') or math.nan:.2f} p99 {qw.get('p99') or math.nan:.2f} max "
+                f"{qw.get('max') or math.nan:.1f} ms; track put p99 {pb.get('p99') or math.nan:.2f} max {pb.get('max') or math.nan:.1f} ms"
+            )
             sg = st.get("stages_ms") or {}
             for name, v in sg.items():
-                print(f"     daemon stage {name}: p50 {v['p50'] or math.nan:.2f} p99 {v['p99'] or math.nan:.2f} max {v['max'] or math.nan:.1f} ms")
-            print(f"     daemon status (last 1000 frames):"
-                  f" processing p50 {st['processing_ms']['p50']:.2f} p99 {st['processing_ms']['p99']:.2f}"
-                  f" max {st['processing_ms']['max']:.1f} ms;"
-                  f" pose wait p50 {st['pose_wait_ms']['p50']:.2f} p99 {st['pose_wait_ms']['p99']:.2f} ms;"
-                  f" receipt->published p99 {st['latency_ms']['p99']:.2f} ms")
+                print(
+                    f"     daemon stage {name}: p50 {v['p50'] or math.nan:.2f} p99 {v['p99'] or math.nan:.2f} max {v['max'] or math.nan:.1f} ms"
+                )
+            print(
+                f"     daemon status (last 1000 frames):"
+                f" processing p50 {st['processing_ms']['p50']:.2f} p99 {st['processing_ms']['p99']:.2f}"
+                f" max {st['processing_ms']['max']:.1f} ms;"
+                f" pose wait p50 {st['pose_wait_ms']['p50']:.2f} p99 {st['pose_wait_ms']['p99']:.2f} ms;"
+                f" receipt->published p99 {st['latency_ms']['p99']:.2f} ms"
+            )
             rj = st.get("rejected") or {}
-            n_proc = max(f['processed'] - f0['processed'], 1)
-            print(f"     pose: extrapolated on {rj.get('pose_extrapolated', 0)} frames since start;"
-                  f" no pose on {sum(v for k2, v in rj.items() if k2.startswith('pose_') and k2 != 'pose_extrapolated')}"
-                  f" ({', '.join(f'{k2} {v}' for k2, v in rj.items() if k2.startswith('pose_') and k2 != 'pose_extrapolated') or 'none'})")
-            print(f"     daemon CPU (all its processes: daemon + estimator worker, /proc): {cpu_s_per_s:.3f} CPU s per"
-                  f" simulated s = {100 * cpu_s_per_s:.1f} % of one core (target <= 15 %),"
-                  f" {1000 * cpu_s_per_s / rate_hz:.2f} ms per frame at {rate_hz:.0f} Hz; median per-frame processing"
-                  f" {st['processing_ms']['p50']:.2f} ms ({n_proc} frames in the window)")
+            n_proc = max(f["processed"] - f0["processed"], 1)
+            print(
+                f"     pose: extrapolated on {rj.get('pose_extrapolated', 0)} frames since start;"
+                f" no pose on {sum(v for k2, v in rj.items() if k2.startswith('pose_') and k2 != 'pose_extrapolated')}"
+                f" ({', '.join(f'{k2} {v}' for k2, v in rj.items() if k2.startswith('pose_') and k2 != 'pose_extrapolated') or 'none'})"
+            )
+            print(
+                f"     daemon CPU (all its processes: daemon + estimator worker, /proc): {cpu_s_per_s:.3f} CPU s per"
+                f" simulated s = {100 * cpu_s_per_s:.1f} % of one core (target <= 15 %),"
+                f" {1000 * cpu_s_per_s / rate_hz:.2f} ms per frame at {rate_hz:.0f} Hz; median per-frame processing"
+                f" {st['processing_ms']['p50']:.2f} ms ({n_proc} frames in the window)"
+            )
             c2t = st.get("capture_to_track_ms") or {}
-            print(f"     capture->track (TIMESYNC) p50 {c2t.get('p50') or math.nan:.1f} ms; cpu share {st['cpu']['share']:.2f}"
-                  f" (pipeline + estimator threads {st['cpu']['pipeline_share']:.2f}); link {st['link']['state']};"
-                  f" rejected {st['rejected']}")
+            print(
+                f"     capture->track (TIMESYNC) p50 {c2t.get('p50') or math.nan:.1f} ms; cpu share {st['cpu']['share']:.2f}"
+                f" (pipeline + estimator threads {st['cpu']['pipeline_share']:.2f}); link {st['link']['state']};"
+                f" rejected {st['rejected']}"
+            )
         for s in subs:
             s.undeclare()
         pub.undeclare()
         ap.close()
-        return {"lag_ms": capture_lag_ms, "p50_ms": _pct(lat_ms, 50), "p99_ms": _pct(lat_ms, 99), "n": len(lat_ms),
-                "cpu_s_per_s": cpu_s_per_s,
-                "processing_p50_ms": (st.get("processing_ms") or {}).get("p50", math.nan) if st else math.nan}
+        return {
+            "lag_ms": capture_lag_ms,
+            "p50_ms": _pct(lat_ms, 50),
+            "p99_ms": _pct(lat_ms, 99),
+            "n": len(lat_ms),
+            "cpu_s_per_s": cpu_s_per_s,
+            "processing_p50_ms": (st.get("processing_ms") or {}).get("p50", math.nan) if st else math.nan,
+        }
     finally:
         t0 = time.monotonic()
         proc.send_signal(signal.SIGTERM)
@@ -477,8 +533,13 @@ def main(argv=None) -> int:
     ap.add_argument("--frames", type=int, default=600, help="frames for the processing benchmark (default 600 = 20 s)")
     ap.add_argument("--latency-s", type=float, default=20.0, help="seconds of 30 Hz frames timed through the daemon")
     ap.add_argument("--no-latency", action="store_true", help="skip the daemon loopback benchmark")
-    ap.add_argument("--capture-lags-ms", type=float, nargs="+", default=[0.0, 10.0, 25.0, 50.0],
-                    help="capture lags to time (frame stamped that long before it is sent), ms")
+    ap.add_argument(
+        "--capture-lags-ms",
+        type=float,
+        nargs="+",
+        default=[0.0, 10.0, 25.0, 50.0],
+        help="capture lags to time (frame stamped that long before it is sent), ms",
+    )
     args = ap.parse_args(argv)
     print(f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load)")
     if not args.no_latency:
@@ -488,9 +549,11 @@ def main(argv=None) -> int:
         print("   summary, put -> track received (target p99 <= 15 ms at any capture lag; daemon CPU <= 0.15 s/s):")
         for r in rows:
             if r:
-                print(f"     capture lag {r['lag_ms']:5.0f} ms: p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms"
-                      f"  ({r['n']} tracks)   daemon CPU {r['cpu_s_per_s']:.3f} s per simulated s,"
-                      f" median per-frame processing {r['processing_p50_ms']:.2f} ms")
+                print(
+                    f"     capture lag {r['lag_ms']:5.0f} ms: p50 {r['p50_ms']:6.2f} ms  p99 {r['p99_ms']:6.2f} ms"
+                    f"  ({r['n']} tracks)   daemon CPU {r['cpu_s_per_s']:.3f} s per simulated s,"
+                    f" median per-frame processing {r['processing_p50_ms']:.2f} ms"
+                )
     bench_processing(args.frames)
     return 0
 

@@ -38,10 +38,10 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
-from onboard.core.irframe import IrFrame
-from onboard.core.pose import PoseAt, PoseSample
-from onboard.io.record import FlightRecorder, RecordSettings
-from onboard.core.track import Track, track_to_bytes
+from onboard.core.irframe import IrFrame  # noqa: E402
+from onboard.core.pose import PoseAt, PoseSample  # noqa: E402
+from onboard.core.track import Track, track_to_bytes  # noqa: E402
+from onboard.io.record import FlightRecorder, RecordSettings  # noqa: E402
 
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
@@ -58,13 +58,16 @@ def main(argv=None) -> int:
         return bench_replay(args.replay)
     rng = np.random.default_rng(0)
     base = np.clip(np.linspace(60, 140, 512)[:, None] + np.zeros((1, 640)), 0, 255)
-    frames = [IrFrame(i, 1_000_000 + i * 33_333, np.clip(base + rng.normal(0, 1.0, base.shape), 0, 255).astype(np.uint8))
-              for i in range(min(args.frames, 60))]
+    frames = [
+        IrFrame(i, 1_000_000 + i * 33_333, np.clip(base + rng.normal(0, 1.0, base.shape), 0, 255).astype(np.uint8))
+        for i in range(min(args.frames, 60))
+    ]
     q = np.array([1.0, 0.0, 0.0, 0.0])
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         path = os.path.join(d, "bench.mcap")
-        rec = FlightRecorder(RecordSettings(path, compression=args.compression, sync_bytes=int(args.sync_mb * 1e6)),
-                             vehicle="uav1")
+        rec = FlightRecorder(
+            RecordSettings(path, compression=args.compression, sync_bytes=int(args.sync_mb * 1e6)), vehicle="uav1"
+        )
         rec.start()
         dg = bytes(range(60))
         caller_us, caller_cpu_us = [], []
@@ -72,12 +75,35 @@ def main(argv=None) -> int:
         for i in range(args.frames):
             fr = frames[i % len(frames)]
             fr = IrFrame(i, 1_000_000 + i * 33_333, fr.pixels)
-            pose = PoseAt(PoseSample(fr.time_boot_us, [1.0, 2.0, -50.0], [5.0, 0.0, 0.0], q), [1.0, 2.0, -50.0], q, None,
-                          ORIGIN, 20_000, 40_000, None, 0)
-            track = Track("uav1", fr.seq, fr.time_boot_us, "tracking", track_id=1, u_px=320.5, v_px=256.5,
-                          bbox=(310.0, 246.0, 20.0, 20.0), lat_deg=47.4, lon_deg=8.55, alt_m=600.0,
-                          p_ned_m=(100.0, 50.0, -100.0), v_ned_mps=(5.0, 0.0, 0.0), cov_p_ned_m2=np.eye(3), range_m=150.0,
-                          origin=ORIGIN)
+            pose = PoseAt(
+                PoseSample(fr.time_boot_us, [1.0, 2.0, -50.0], [5.0, 0.0, 0.0], q),
+                [1.0, 2.0, -50.0],
+                q,
+                None,
+                ORIGIN,
+                20_000,
+                40_000,
+                None,
+                0,
+            )
+            track = Track(
+                "uav1",
+                fr.seq,
+                fr.time_boot_us,
+                "tracking",
+                track_id=1,
+                u_px=320.5,
+                v_px=256.5,
+                bbox=(310.0, 246.0, 20.0, 20.0),
+                lat_deg=47.4,
+                lon_deg=8.55,
+                alt_m=600.0,
+                p_ned_m=(100.0, 50.0, -100.0),
+                v_ned_mps=(5.0, 0.0, 0.0),
+                cov_p_ned_m2=np.eye(3),
+                range_m=150.0,
+                origin=ORIGIN,
+            )
             payload = track_to_bytes(track)  # the daemon hands the recorder the bytes it published
             t0, c0_ns = time.perf_counter_ns(), time.thread_time_ns()
             for _ in range(3):
@@ -97,16 +123,27 @@ def main(argv=None) -> int:
     caller, caller_cpu = np.array(caller_us), np.array(caller_cpu_us)
     writer_ms = rec.writer_cpu_s / args.frames * 1e3
     total_ms = writer_ms + caller_cpu.mean() / 1e3
-    print(f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, compression {args.compression}, sync every "
-          f"{args.sync_mb:g} MB ({rec.syncs} syncs), load {os.getloadavg()[0]:.1f}")
-    print(f"  callers (on_* of one frame): CPU mean {caller_cpu.mean():.1f} us (thread_time), wall median "
-          f"{np.median(caller):.1f} us, p99 {np.percentile(caller, 99):.1f} us")
-    split = (f"; user {user_s / args.frames * 1e3:.2f} + kernel {sys_s / args.frames * 1e3:.2f} ms by /proc ticks"
-             if user_s is not None else "")
-    print(f"  writer thread CPU per frame: {writer_ms:.2f} ms (thread_time{split}; whole process {cpu_s:.2f} CPU s over "
-          f"{wall_s:.1f} s wall, making the test messages included); dropped {rec.dropped}, write errors {rec.write_errors}")
+    print(
+        f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, compression {args.compression}, sync every "
+        f"{args.sync_mb:g} MB ({rec.syncs} syncs), load {os.getloadavg()[0]:.1f}"
+    )
+    print(
+        f"  callers (on_* of one frame): CPU mean {caller_cpu.mean():.1f} us (thread_time), wall median "
+        f"{np.median(caller):.1f} us, p99 {np.percentile(caller, 99):.1f} us"
+    )
+    split = (
+        f"; user {user_s / args.frames * 1e3:.2f} + kernel {sys_s / args.frames * 1e3:.2f} ms by /proc ticks"
+        if user_s is not None
+        else ""
+    )
+    print(
+        f"  writer thread CPU per frame: {writer_ms:.2f} ms (thread_time{split}; whole process {cpu_s:.2f} CPU s over "
+        f"{wall_s:.1f} s wall, making the test messages included); dropped {rec.dropped}, write errors {rec.write_errors}"
+    )
     print(f"  recording per frame, callers + writer: {total_ms:.2f} ms of one core (budget 0.5 ms)")
-    print(f"  file: {size / args.frames / 1e3:.0f} kB per frame, {size / args.frames * 30 * 60 / 1e6:.0f} MB per minute at 30 Hz")
+    print(
+        f"  file: {size / args.frames / 1e3:.0f} kB per frame, {size / args.frames * 30 * 60 / 1e6:.0f} MB per minute at 30 Hz"
+    )
     return 0
 
 
@@ -159,7 +196,9 @@ def bench_replay(path: str) -> int:
     t0 = time.perf_counter()
     rec = load_recording(path)
     cfg = config_of(rec)
-    print(f"replay of {path}: {len(rec.inputs)} frames; load {time.perf_counter() - t0:.2f} s; load {os.getloadavg()[0]:.1f}")
+    print(
+        f"replay of {path}: {len(rec.inputs)} frames; load {time.perf_counter() - t0:.2f} s; load {os.getloadavg()[0]:.1f}"
+    )
     timed: list = []
     make = fp.make_estimator
     fp.make_estimator = lambda config: timed.append(_TimedEstimator(make(config))) or timed[-1]
@@ -169,11 +208,13 @@ def bench_replay(path: str) -> int:
             r = replay(rec, cfg)
             cpu = time.process_time() - c0
             est = timed[-1].cpu_s
-            print(f"  run {i + 1}{' (cold: lazy imports)' if i == 0 else ''}: {r.wall_s:.2f} s wall, {cpu:.2f} CPU s for "
-                  f"{r.flight_s:.1f} s of flight: x{r.speed_x:.1f} real time (x{r.flight_s / max(cpu, 1e-9):.1f} per CPU s); "
-                  f"estimator {est:.2f} CPU s = {est / r.flight_s:.3f} s per s of flight, {est / max(cpu, 1e-9) * 100:.0f} % "
-                  f"-> bound x{r.flight_s / max(est, 1e-9):.1f} with everything else free; the rest "
-                  f"{(cpu - est) / max(r.frames_fed, 1) * 1e3:.2f} ms per frame")
+            print(
+                f"  run {i + 1}{' (cold: lazy imports)' if i == 0 else ''}: {r.wall_s:.2f} s wall, {cpu:.2f} CPU s for "
+                f"{r.flight_s:.1f} s of flight: x{r.speed_x:.1f} real time (x{r.flight_s / max(cpu, 1e-9):.1f} per CPU s); "
+                f"estimator {est:.2f} CPU s = {est / r.flight_s:.3f} s per s of flight, {est / max(cpu, 1e-9) * 100:.0f} % "
+                f"-> bound x{r.flight_s / max(est, 1e-9):.1f} with everything else free; the rest "
+                f"{(cpu - est) / max(r.frames_fed, 1) * 1e3:.2f} ms per frame"
+            )
     finally:
         fp.make_estimator = make
     c0 = time.process_time()
@@ -191,9 +232,11 @@ def bench_replay(path: str) -> int:
 
     total, process = cum("replay", "onboard/app/replay"), cum("process", "onboard/pipeline")
     est, trk = cum("_estimate", "onboard/pipeline"), cum("update", "onboard/imaging/tracker")
-    print(f"  where the time goes (cProfile cumulative, of the replay loop): pipeline {process / total * 100:.0f} % "
-          f"(estimator {est / total * 100:.0f} %, tracker {trk / total * 100:.0f} %, rest of the pipeline "
-          f"{(process - est - trk) / total * 100:.0f} %), replay's own decoding/poses/JSON {(total - process) / total * 100:.0f} %")
+    print(
+        f"  where the time goes (cProfile cumulative, of the replay loop): pipeline {process / total * 100:.0f} % "
+        f"(estimator {est / total * 100:.0f} %, tracker {trk / total * 100:.0f} %, rest of the pipeline "
+        f"{(process - est - trk) / total * 100:.0f} %), replay's own decoding/poses/JSON {(total - process) / total * 100:.0f} %"
+    )
     return 0
 
 

@@ -72,16 +72,20 @@ def _run(renderer, frames) -> dict[str, np.ndarray]:
         roi.append(tm.target_roi_px)
         ss.append(tm.supersample)
         reused.append(tm.background_reused)
-    return {k: np.asarray(v, dtype=float) for k, v in
-            dict(total=total, cpu=cpu, bg=bg, tgt=tgt, nq=nq, roi=roi, ss=ss, reused=reused).items()}
+    return {
+        k: np.asarray(v, dtype=float)
+        for k, v in dict(total=total, cpu=cpu, bg=bg, tgt=tgt, nq=nq, roi=roi, ss=ss, reused=reused).items()
+    }
 
 
 def _report(name: str, r: dict[str, np.ndarray]) -> None:
     t = r["total"]
-    print(f"{name:<44s} {t.mean():6.2f} {np.median(t):6.2f} {np.percentile(t, 95):6.2f} {t.max():6.2f}"
-          f" {r['cpu'].mean():6.2f} {1e3 / t.mean():6.0f} fps | bg {r['bg'].mean():5.2f} target {r['tgt'].mean():5.2f}"
-          f" noise+q {r['nq'].mean():5.2f} | ROI {r['roi'].mean():5.0f} px, ss {r['ss'].mean():4.1f},"
-          f" bg reused {100 * r['reused'].mean():3.0f} %")
+    print(
+        f"{name:<44s} {t.mean():6.2f} {np.median(t):6.2f} {np.percentile(t, 95):6.2f} {t.max():6.2f}"
+        f" {r['cpu'].mean():6.2f} {1e3 / t.mean():6.0f} fps | bg {r['bg'].mean():5.2f} target {r['tgt'].mean():5.2f}"
+        f" noise+q {r['nq'].mean():5.2f} | ROI {r['roi'].mean():5.0f} px, ss {r['ss'].mean():4.1f},"
+        f" bg reused {100 * r['reused'].mean():3.0f} %"
+    )
 
 
 def main() -> None:
@@ -101,18 +105,26 @@ def main() -> None:
 
     intr = PinholeIntrinsics.vue_pro_640()
     base = IrSettings()
-    print(f"groundsim.world.render benchmark: {intr.width_px} x {intr.height_px}, {N_FRAMES} frames per case, "
-          f"{pinned}, cv2 threads {cv2.getNumThreads()}")
-    print(f"NETD {base.netd_k * 1e3:.0f} mK, blur sigma {base.blur_sigma_px} px, supersample <= {base.supersample},"
-          f" target rays <= {base.max_target_rays}")
+    print(
+        f"groundsim.world.render benchmark: {intr.width_px} x {intr.height_px}, {N_FRAMES} frames per case, "
+        f"{pinned}, cv2 threads {cv2.getNumThreads()}"
+    )
+    print(
+        f"NETD {base.netd_k * 1e3:.0f} mK, blur sigma {base.blur_sigma_px} px, supersample <= {base.supersample},"
+        f" target rays <= {base.max_target_rays}"
+    )
 
     t0 = time.perf_counter()
     renderer = IrRenderer(intr, base, seed=1)
     setup_ms = (time.perf_counter() - t0) * 1e3
-    print(f"renderer setup (rays, sky table, noise bank): {setup_ms:.1f} ms; noise sigma "
-          f"{renderer.noise_sigma_grey:.3f} grey")
-    print(f"{'case':<44s} {'mean':>6s} {'median':>6s} {'p95':>6s} {'max':>6s} {'cpu':>6s}  (ms/frame: wall, and"
-          " CPU time of this process; breakdown = wall means)")
+    print(
+        f"renderer setup (rays, sky table, noise bank): {setup_ms:.1f} ms; noise sigma "
+        f"{renderer.noise_sigma_grey:.3f} grey"
+    )
+    print(
+        f"{'case':<44s} {'mean':>6s} {'median':>6s} {'p95':>6s} {'max':>6s} {'cpu':>6s}  (ms/frame: wall, and"
+        " CPU time of this process; breakdown = wall means)"
+    )
 
     moving = _scenario(N_FRAMES, (60.0, 250.0), wobble_rad=0.02)
     r_moving = _run(renderer, moving)
@@ -120,9 +132,18 @@ def main() -> None:
 
     static = _scenario(N_FRAMES, (60.0, 250.0), wobble_rad=0.02, static_camera=True)
     _report("mono8, static camera (bg reused)", _run(IrRenderer(intr, base, seed=1), static))
-    _report("mono16, moving camera + target 60-250 m", _run(IrRenderer(intr, replace(base, encoding="mono16"), seed=1), moving))
-    _report("mono8, moving, close target 10-14 m", _run(IrRenderer(intr, base, seed=1), _scenario(N_FRAMES, (10.0, 14.0), 0.02)))
-    _report("mono8, moving, no noise no blur", _run(IrRenderer(intr, replace(base, netd_k=0.0, blur_sigma_px=0.0), seed=1), moving))
+    _report(
+        "mono16, moving camera + target 60-250 m",
+        _run(IrRenderer(intr, replace(base, encoding="mono16"), seed=1), moving),
+    )
+    _report(
+        "mono8, moving, close target 10-14 m",
+        _run(IrRenderer(intr, base, seed=1), _scenario(N_FRAMES, (10.0, 14.0), 0.02)),
+    )
+    _report(
+        "mono8, moving, no noise no blur",
+        _run(IrRenderer(intr, replace(base, netd_k=0.0, blur_sigma_px=0.0), seed=1), moving),
+    )
 
     # baseline: what a straightforward full-frame pipeline spends per frame on the steps avoided here
     rng = np.random.default_rng(0)
@@ -136,13 +157,19 @@ def main() -> None:
         times.append((time.perf_counter() - t0) * 1e3)
     naive = float(np.mean(times))
     ours = float(r_moving["nq"].mean())
-    print(f"baseline full-frame normal draw + blur + round/clip: {naive:.2f} ms/frame vs noise bank + fused "
-          f"add/quantise {ours:.2f} ms/frame (x{naive / max(ours, 1e-9):.1f})")
-    print(f"budget check: 125 fps = 8.00 ms/frame; moving case mean {r_moving['total'].mean():.2f} ms wall "
-          f"({1e3 / r_moving['total'].mean():.0f} fps), {r_moving['cpu'].mean():.2f} ms CPU "
-          f"({1e3 / r_moving['cpu'].mean():.0f} fps)")
-    print(f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs "
-          "(wall times grow with other load; CPU time less so)")
+    print(
+        f"baseline full-frame normal draw + blur + round/clip: {naive:.2f} ms/frame vs noise bank + fused "
+        f"add/quantise {ours:.2f} ms/frame (x{naive / max(ours, 1e-9):.1f})"
+    )
+    print(
+        f"budget check: 125 fps = 8.00 ms/frame; moving case mean {r_moving['total'].mean():.2f} ms wall "
+        f"({1e3 / r_moving['total'].mean():.0f} fps), {r_moving['cpu'].mean():.2f} ms CPU "
+        f"({1e3 / r_moving['cpu'].mean():.0f} fps)"
+    )
+    print(
+        f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs "
+        "(wall times grow with other load; CPU time less so)"
+    )
 
 
 if __name__ == "__main__":

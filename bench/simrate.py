@@ -39,7 +39,7 @@ from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 
 def _load() -> str:
     try:
-        return "load average %.2f %.2f %.2f on %d CPUs" % (*os.getloadavg(), os.cpu_count() or 0)
+        return "load average {:.2f} {:.2f} {:.2f} on {} CPUs".format(*os.getloadavg(), os.cpu_count() or 0)
     except OSError:  # pragma: no cover - not on Linux
         return "load average unknown"
 
@@ -85,8 +85,13 @@ class _Receivers:
 
 
 def _run(scenario, duration_s: float, rate: str, rx: _Receivers):
-    config = RunConfig(scenario, duration_s=duration_s, rate=RateSpec.parse(rate), mavlink=rx.mavlink,
-                       zenoh=ZenohSettings(connect=(rx.endpoint,), connect_timeout_s=5.0))
+    config = RunConfig(
+        scenario,
+        duration_s=duration_s,
+        rate=RateSpec.parse(rate),
+        mavlink=rx.mavlink,
+        zenoh=ZenohSettings(connect=(rx.endpoint,), connect_timeout_s=5.0),
+    )
     rx.reset()
     c0, w0 = time.process_time(), time.perf_counter()
     report = run(config)
@@ -109,13 +114,18 @@ def _baseline(scenario, duration_s: float) -> tuple[float, float, int]:
 def _realtime(sc, duration_s: float, rx: _Receivers, label: str) -> None:
     rep, cpu_s, _ = _run(sc, duration_s, "realtime", rx)
     j = rep.jitter
-    print(f"--rate realtime ({label}): {rep.frames} frames in {rep.wall_s:.2f} s (rt x{rep.rt_factor:.3f}),"
-          f" CPU {cpu_s:.2f} s; frames received {rx.frames}; per frame ms: "
-          + ", ".join(f"{k} {v:.2f}" for k, v in rep.per_frame_ms.items()) + f"; {_load()}")
+    print(
+        f"--rate realtime ({label}): {rep.frames} frames in {rep.wall_s:.2f} s (rt x{rep.rt_factor:.3f}),"
+        f" CPU {cpu_s:.2f} s; frames received {rx.frames}; per frame ms: "
+        + ", ".join(f"{k} {v:.2f}" for k, v in rep.per_frame_ms.items())
+        + f"; {_load()}"
+    )
     if j is not None:
-        print(f"             frame-period jitter p50 {j.jitter_p50_ms:.3f} ms, p99 {j.jitter_p99_ms:.3f} ms,"
-              f" max {j.jitter_max_ms:.3f} ms; lateness p50 {j.late_p50_ms:.3f} ms, p99 {j.late_p99_ms:.3f} ms,"
-              f" max {j.late_max_ms:.3f} ms")
+        print(
+            f"             frame-period jitter p50 {j.jitter_p50_ms:.3f} ms, p99 {j.jitter_p99_ms:.3f} ms,"
+            f" max {j.jitter_max_ms:.3f} ms; lateness p50 {j.late_p50_ms:.3f} ms, p99 {j.late_p99_ms:.3f} ms,"
+            f" max {j.late_max_ms:.3f} ms"
+        )
 
 
 def main(argv=None) -> None:
@@ -123,31 +133,44 @@ def main(argv=None) -> None:
     ap.add_argument("--scenario", default="P1")
     ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--modes", default="max,realtime", help="comma-separated: max, realtime (default: both)")
-    ap.add_argument("--rt-priority", type=int, default=None, metavar="N",
-                    help="also run realtime at SCHED_FIFO priority N (as groundsim run --rt-priority)")
+    ap.add_argument(
+        "--rt-priority",
+        type=int,
+        default=None,
+        metavar="N",
+        help="also run realtime at SCHED_FIFO priority N (as groundsim run --rt-priority)",
+    )
     args = ap.parse_args(argv)
     modes = {m.strip() for m in args.modes.split(",") if m.strip()}
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cv2.setNumThreads(1)  # as the CLI does (groundsim.app.cli)
     sc = load_scenario(resolve_scenario_path(args.scenario))
-    print(f"bench.simrate: scenario {sc.name}, {args.duration:g} s, {sc.frame_rate_hz:g} Hz, "
-          f"{sc.camera.intrinsics.width_px} x {sc.camera.intrinsics.height_px} {sc.ir.encoding}; {_load()}")
+    print(
+        f"bench.simrate: scenario {sc.name}, {args.duration:g} s, {sc.frame_rate_hz:g} Hz, "
+        f"{sc.camera.intrinsics.width_px} x {sc.camera.intrinsics.height_px} {sc.ir.encoding}; {_load()}"
+    )
 
     rx = _Receivers()
     try:
         if "max" in modes:
             rep, cpu_s, wall_s = _run(sc, args.duration, "max", rx)
             pf = rep.per_frame_ms
-            print(f"--rate max:  set-up {rep.setup_s:.2f} s, loop {rep.wall_s:.2f} s for {rep.sim_s:.2f} s simulated:"
-                  f" real-time factor x{rep.rt_factor:.2f} (loop), x{rep.sim_s / (rep.setup_s + rep.wall_s):.2f} with set-up,"
-                  f" x{rep.sim_s / wall_s:.2f} with socket opening too")
-            print(f"             process CPU {cpu_s:.2f} s (all threads); per frame ms: "
-                  + ", ".join(f"{k} {v:.2f}" for k, v in pf.items())
-                  + f"; frames received {rx.frames}/{rep.frames}, MAVLink datagrams {rx.datagrams}; {_load()}")
+            print(
+                f"--rate max:  set-up {rep.setup_s:.2f} s, loop {rep.wall_s:.2f} s for {rep.sim_s:.2f} s simulated:"
+                f" real-time factor x{rep.rt_factor:.2f} (loop), x{rep.sim_s / (rep.setup_s + rep.wall_s):.2f} with set-up,"
+                f" x{rep.sim_s / wall_s:.2f} with socket opening too"
+            )
+            print(
+                f"             process CPU {cpu_s:.2f} s (all threads); per frame ms: "
+                + ", ".join(f"{k} {v:.2f}" for k, v in pf.items())
+                + f"; frames received {rx.frames}/{rep.frames}, MAVLink datagrams {rx.datagrams}; {_load()}"
+            )
             b_setup, b_loop, n = _baseline(sc, args.duration)
-            print(f"baseline (fly + render + truth rows, no sockets): set-up {b_setup:.2f} s, loop {b_loop:.2f} s"
-                  f" ({1e3 * b_loop / max(n - 1, 1):.2f} ms/frame, x{args.duration / b_loop:.2f} real time);"
-                  f" --rate max loop / baseline loop = {rep.wall_s / b_loop:.2f}")
+            print(
+                f"baseline (fly + render + truth rows, no sockets): set-up {b_setup:.2f} s, loop {b_loop:.2f} s"
+                f" ({1e3 * b_loop / max(n - 1, 1):.2f} ms/frame, x{args.duration / b_loop:.2f} real time);"
+                f" --rate max loop / baseline loop = {rep.wall_s / b_loop:.2f}"
+            )
         if "realtime" in modes:
             _realtime(sc, args.duration, rx, "normal priority")
             if args.rt_priority is not None:

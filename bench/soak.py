@@ -194,7 +194,9 @@ def _connect(plan, daemon: subprocess.Popen, timeout_s: float = 60.0) -> StatusR
             return StatusReader(plan.zenoh_endpoint, plan.vehicle)
         except zenoh.ZError:
             if daemon.poll() is not None or time.monotonic() > deadline:
-                raise RuntimeError(f"the daemon (exit {daemon.poll()}) never listened on {plan.zenoh_endpoint}") from None
+                raise RuntimeError(
+                    f"the daemon (exit {daemon.poll()}) never listened on {plan.zenoh_endpoint}"
+                ) from None
             time.sleep(0.5)
 
 
@@ -213,13 +215,21 @@ def _stop(proc: subprocess.Popen, name: str) -> int | None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.split("\n\n")[0])
     ap.add_argument("--minutes", type=float, default=30.0, help="soak length (default 30)")
-    ap.add_argument("--scenario", default="H1", help="scenario name or file, extended to the soak's length (default H1)")
+    ap.add_argument(
+        "--scenario", default="H1", help="scenario name or file, extended to the soak's length (default H1)"
+    )
     ap.add_argument("--interval", type=float, default=10.0, help="seconds between memory samples (default 10)")
     ap.add_argument("--warmup", type=float, default=60.0, help="seconds left out of the slope (default 60)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="out/soak", help="directory for the children's logs and configs")
-    ap.add_argument("--kill-worker-at", type=float, action="append", default=[], metavar="S",
-                    help="SIGKILL the estimator worker S seconds in and print the 3-D output gap (repeatable)")
+    ap.add_argument(
+        "--kill-worker-at",
+        type=float,
+        action="append",
+        default=[],
+        metavar="S",
+        help="SIGKILL the estimator worker S seconds in and print the 3-D output gap (repeatable)",
+    )
     args = ap.parse_args(argv)
     if not args.minutes > 0 or not args.interval > 0:
         ap.error("--minutes and --interval must be positive")
@@ -229,12 +239,18 @@ def main(argv=None) -> int:
     duration_s = args.minutes * 60.0
     plan = plan_demo(args.scenario, duration_s + 15.0, args.seed, args.out, None)
     if plan.duration_s < duration_s:
-        print(f"scenario {args.scenario} cannot fly {duration_s:g} s (only {plan.duration_s:g} s): choose another", flush=True)
+        print(
+            f"scenario {args.scenario} cannot fly {duration_s:g} s (only {plan.duration_s:g} s): choose another",
+            flush=True,
+        )
         return 1
     out = Path(args.out)
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    print(f"soak: {args.minutes:g} min, scenario {plan.scenario.name} (extended), seed {args.seed}, sampling every "
-          f"{args.interval:g} s; load average at start {os.getloadavg()[0]:.2f}; logs in {out}/", flush=True)
+    print(
+        f"soak: {args.minutes:g} min, scenario {plan.scenario.name} (extended), seed {args.seed}, sampling every "
+        f"{args.interval:g} s; load average at start {os.getloadavg()[0]:.2f}; logs in {out}/",
+        flush=True,
+    )
     with open(out / "daemon.log", "w") as dlog, open(out / "sim.log", "w") as slog:
         daemon = subprocess.Popen(daemon_command(plan), stdout=dlog, stderr=subprocess.STDOUT, env=env)
         sim = None
@@ -248,8 +264,11 @@ def main(argv=None) -> int:
             next_t = t0
             kills = sorted(args.kill_worker_at)
             killed: list[tuple[float, int]] = []
-            print(f"{'t_s':>7} {'daemon RSS':>10} {'workers RSS':>11} {'total RSS':>9} {'total PSS':>9} "
-                  f"{'frames in':>9} {'dropped':>7} {'rejected':>8}  (MB)", flush=True)
+            print(
+                f"{'t_s':>7} {'daemon RSS':>10} {'workers RSS':>11} {'total RSS':>9} {'total PSS':>9} "
+                f"{'frames in':>9} {'dropped':>7} {'rejected':>8}  (MB)",
+                flush=True,
+            )
             while True:
                 now = time.monotonic()
                 if now >= next_t:
@@ -263,9 +282,12 @@ def main(argv=None) -> int:
                     d_rss = sum(v[0] for k, v in mem.items() if k.startswith("daemon")) / KB_PER_MB
                     w_rss = sum(v[0] for k, v in mem.items() if not k.startswith("daemon")) / KB_PER_MB
                     fr = (st or {}).get("frames", {})
-                    print(f"{now - t0:7.0f} {d_rss:10.1f} {w_rss:11.1f} {sum(v[0] for v in mem.values()) / KB_PER_MB:9.1f} "
-                          f"{sum(v[1] for v in mem.values()) / KB_PER_MB:9.1f} {fr.get('in', '-'):>9} "
-                          f"{fr.get('dropped', '-'):>7} {fr.get('rejected', '-'):>8}", flush=True)
+                    print(
+                        f"{now - t0:7.0f} {d_rss:10.1f} {w_rss:11.1f} {sum(v[0] for v in mem.values()) / KB_PER_MB:9.1f} "
+                        f"{sum(v[1] for v in mem.values()) / KB_PER_MB:9.1f} {fr.get('in', '-'):>9} "
+                        f"{fr.get('dropped', '-'):>7} {fr.get('rejected', '-'):>8}",
+                        flush=True,
+                    )
                     next_t += args.interval
                 if kills and now - t0 >= kills[0]:
                     kills.pop(0)
@@ -295,33 +317,46 @@ def main(argv=None) -> int:
             daemon_alive = daemon.poll() is None
             daemon_rc = _stop(daemon, "daemon")
 
-    print(f"\nran {elapsed:.0f} s; daemon {'stopped by us, exit ' if daemon_alive else 'DIED before the end, exit '}"
-          f"{daemon_rc}; simulator exit {sim_rc}; load average at end {os.getloadavg()[0]:.2f}")
+    print(
+        f"\nran {elapsed:.0f} s; daemon {'stopped by us, exit ' if daemon_alive else 'DIED before the end, exit '}"
+        f"{daemon_rc}; simulator exit {sim_rc}; load average at end {os.getloadavg()[0]:.2f}"
+    )
     kept = [s for s in samples if s[0] >= args.warmup] or samples
     t = [s[0] for s in kept]
-    for label, pick, idx in (("total RSS (daemon + descendants)", lambda k: True, 0),
-                             ("total PSS (daemon + descendants)", lambda k: True, 1),
-                             ("daemon RSS", lambda k: k.startswith("daemon"), 0),
-                             ("estimator worker(s) + fork server RSS", lambda k: not k.startswith("daemon"), 0)):
+    for label, pick, idx in (
+        ("total RSS (daemon + descendants)", lambda k: True, 0),
+        ("total PSS (daemon + descendants)", lambda k: True, 1),
+        ("daemon RSS", lambda k: k.startswith("daemon"), 0),
+        ("estimator worker(s) + fork server RSS", lambda k: not k.startswith("daemon"), 0),
+    ):
         y = [sum(v[idx] for k, v in s[1].items() if pick(k)) / KB_PER_MB for s in kept]
         peak = max(sum(v[idx] for k, v in s[1].items() if pick(k)) / KB_PER_MB for s in samples)
-        print(f"{label:40s}: slope {slope_per_min(t, y):+.3f} MB/min after {args.warmup:g} s "
-              f"({y[0]:.1f} -> {y[-1]:.1f} MB), peak {peak:.1f} MB = {100 * peak / CONTAINER_LIMIT_MB:.0f} % "
-              f"of the {CONTAINER_LIMIT_MB:g} MB container limit")
+        print(
+            f"{label:40s}: slope {slope_per_min(t, y):+.3f} MB/min after {args.warmup:g} s "
+            f"({y[0]:.1f} -> {y[-1]:.1f} MB), peak {peak:.1f} MB = {100 * peak / CONTAINER_LIMIT_MB:.0f} % "
+            f"of the {CONTAINER_LIMIT_MB:g} MB container limit"
+        )
     last_mem = samples[-1][1] if samples else {}
     for k, (rss, pss) in sorted(last_mem.items()):
         print(f"  last sample {k:28s} RSS {rss / KB_PER_MB:7.1f} MB  PSS {pss / KB_PER_MB:7.1f} MB")
     for pid, gap, missing, n, gap0, missing0, n0 in gaps:
-        print(f"killed worker {pid}: longest time without a 3-D position in the track stream {gap:.2f} s "
-              f"(30 Hz: {1 / FRAME_RATE_HZ:.3f} s between frames); {missing} of the next {n} tracks without one; "
-              f"the 10 s before the kill: {gap0:.2f} s, {missing0} of {n0}")
+        print(
+            f"killed worker {pid}: longest time without a 3-D position in the track stream {gap:.2f} s "
+            f"(30 Hz: {1 / FRAME_RATE_HZ:.3f} s between frames); {missing} of the next {n} tracks without one; "
+            f"the 10 s before the kill: {gap0:.2f} s, {missing0} of {n0}"
+        )
     if episodes:
-        print(f"stretches of tracks without a 3-D position (start s, length s): {len(episodes)}; "
-              + ", ".join(f"{a:.1f}+{d:.2f}" for a, d in episodes[:40]) + (" ..." if len(episodes) > 40 else ""))
+        print(
+            f"stretches of tracks without a 3-D position (start s, length s): {len(episodes)}; "
+            + ", ".join(f"{a:.1f}+{d:.2f}" for a, d in episodes[:40])
+            + (" ..." if len(episodes) > 40 else "")
+        )
     fr = (final or {}).get("frames", {})
     expected = int(elapsed * FRAME_RATE_HZ)
-    print(f"frames: ~{expected} sent at {FRAME_RATE_HZ:g} Hz; daemon in {fr.get('in')}, processed {fr.get('processed')}, "
-          f"dropped (queue) {fr.get('dropped')}, rejected {fr.get('rejected')}, tracks published {fr.get('published')}")
+    print(
+        f"frames: ~{expected} sent at {FRAME_RATE_HZ:g} Hz; daemon in {fr.get('in')}, processed {fr.get('processed')}, "
+        f"dropped (queue) {fr.get('dropped')}, rejected {fr.get('rejected')}, tracks published {fr.get('published')}"
+    )
     rej = (final or {}).get("rejected") or {}
     if rej:
         print("rejected/counted by reason: " + ", ".join(f"{k} {v}" for k, v in sorted(rej.items())))

@@ -55,15 +55,23 @@ def _scene(rng):
 def _frame(base, noise, k: int) -> tuple[np.ndarray, tuple[int, int]]:
     img = (base + noise[k % 8]).astype(np.uint16)
     u, v = 100 + k % 400, 250
-    img[v - 2:v + 3, u - 2:u + 3] = 4500
+    img[v - 2 : v + 3, u - 2 : u + 3] = 4500
     return img, (u, v)
 
 
 def _track(k: int, u: int, v: int):
     from onboard.core.track import Track
 
-    return Track(vehicle="uav1", seq=k, time_boot_us=k, state="tracking", track_id=1, u_px=float(u), v_px=float(v),
-                 bbox=(u - 8.0, v - 8.0, 16.0, 16.0))
+    return Track(
+        vehicle="uav1",
+        seq=k,
+        time_boot_us=k,
+        state="tracking",
+        track_id=1,
+        u_px=float(u),
+        v_px=float(v),
+        bbox=(u - 8.0, v - 8.0, 16.0, 16.0),
+    )
 
 
 def stamp_index(img: np.ndarray, k: int) -> None:
@@ -71,7 +79,7 @@ def stamp_index(img: np.ndarray, k: int) -> None:
     full = np.iinfo(img.dtype).max
     for b in range(CODE_BITS):
         x0 = 8 + b * CODE_BLOCK_PX
-        img[CODE_Y0:CODE_Y0 + CODE_BLOCK_PX, x0:x0 + CODE_BLOCK_PX] = full if (k >> b) & 1 else 0
+        img[CODE_Y0 : CODE_Y0 + CODE_BLOCK_PX, x0 : x0 + CODE_BLOCK_PX] = full if (k >> b) & 1 else 0
 
 
 def read_index(luma: np.ndarray) -> int:
@@ -80,7 +88,7 @@ def read_index(luma: np.ndarray) -> int:
     q = CODE_BLOCK_PX // 4
     for b in range(CODE_BITS):
         x0 = 8 + b * CODE_BLOCK_PX
-        centre = luma[CODE_Y0 + q:CODE_Y0 + CODE_BLOCK_PX - q, x0 + q:x0 + CODE_BLOCK_PX - q]
+        centre = luma[CODE_Y0 + q : CODE_Y0 + CODE_BLOCK_PX - q, x0 + q : x0 + CODE_BLOCK_PX - q]
         if float(centre.mean()) > 128.0:
             k |= 1 << b
     return k
@@ -113,9 +121,11 @@ def encode_cost(frames: int) -> None:
         a, e = np.asarray(ms_all), np.asarray(ms_enc)
         mbps = sink.tell() * 8 / (frames / 30.0) / 1e6
         name = {"mpegts": "TS", "rtp": "RTP"}[transport]
-        print(f"  AGC + overlay + H.264 + {name}: p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
-              f"per frame; H.264 + {name} alone: p50 {np.percentile(e, 50):.2f} ms, p99 {np.percentile(e, 99):.2f} ms; "
-              f"{mbps:.2f} Mbit/s on the wire (target 2.0)")
+        print(
+            f"  AGC + overlay + H.264 + {name}: p50 {np.percentile(a, 50):.2f} ms, p99 {np.percentile(a, 99):.2f} ms "
+            f"per frame; H.264 + {name} alone: p50 {np.percentile(e, 50):.2f} ms, p99 {np.percentile(e, 99):.2f} ms; "
+            f"{mbps:.2f} Mbit/s on the wire (target 2.0)"
+        )
 
 
 RECEIVERS = {"rtp": ("ffmpeg-sdp", "marker"), "mpegts": ("ffmpeg-ts",)}
@@ -148,8 +158,9 @@ def loopback_latency(frames: int, fps: float = 30.0, transport: str = "rtp", kin
                 lat_ms[k] = (f.decoded_ns - t) / 1e6
 
     rx = _receiver(transport, kind, on_frame)
-    streamer = VideoStreamer(f"127.0.0.1:{rx.port}", W, H, fps, 2_000_000, 1.0, overlay=True, queue_length=2,
-                             transport=transport)
+    streamer = VideoStreamer(
+        f"127.0.0.1:{rx.port}", W, H, fps, 2_000_000, 1.0, overlay=True, queue_length=2, transport=transport
+    )
     period_ns = int(1e9 / fps)
     t_next = time.monotonic_ns()
     try:
@@ -171,27 +182,41 @@ def loopback_latency(frames: int, fps: float = 30.0, transport: str = "rtp", kin
     join = int(round(fps))  # the first second: a receiver joins at an IDR (and a demuxer probes the stream)
     # the last two frames wait for the end of the stream (a frame is complete when the next one starts)
     a = np.asarray([ms for k, ms in lat_ms.items() if join <= k < frames - 2])
-    print(f"video loopback latency, {transport} / {kind} (VideoStreamer -> UDP 127.0.0.1 -> PyAV/FFmpeg decode), "
-          f"{frames} frames at {fps:g} Hz, load {os.getloadavg()[0]:.2f}")
+    print(
+        f"video loopback latency, {transport} / {kind} (VideoStreamer -> UDP 127.0.0.1 -> PyAV/FFmpeg decode), "
+        f"{frames} frames at {fps:g} Hz, load {os.getloadavg()[0]:.2f}"
+    )
     if a.size == 0:
         print(f"  no frame decoded (receiver: {rx.error or 'no data'})")
         return
     first = [lat_ms[k] for k in sorted(lat_ms) if k < join]
     if first:
         print(f"  joining: first frame decoded after {first[0]:.0f} ms; steady state from frame {join}:")
-    print(f"  capture -> decoded: p50 {np.percentile(a, 50):.1f} ms, p99 {np.percentile(a, 99):.1f} ms, "
-          f"max {a.max():.1f} ms (budget: p99 <= 100 ms)")
-    print(f"  frames decoded {len(lat_ms)}/{frames} ({100.0 * len(lat_ms) / frames:.1f} %), unreadable index {unknown[0]}, "
-          f"encoder dropped {st['dropped']}, datagrams sent {st['datagrams']}")
+    print(
+        f"  capture -> decoded: p50 {np.percentile(a, 50):.1f} ms, p99 {np.percentile(a, 99):.1f} ms, "
+        f"max {a.max():.1f} ms (budget: p99 <= 100 ms)"
+    )
+    print(
+        f"  frames decoded {len(lat_ms)}/{frames} ({100.0 * len(lat_ms) / frames:.1f} %), unreadable index {unknown[0]}, "
+        f"encoder dropped {st['dropped']}, datagrams sent {st['datagrams']}"
+    )
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.video")
     ap.add_argument("--frames", type=int, default=300, help="frames for the encoding cost (default: %(default)s)")
-    ap.add_argument("--latency-frames", type=int, default=300,
-                    help="frames for the loopback latency, sent in real time at 30 Hz (default: %(default)s; 0 = skip)")
-    ap.add_argument("--transport", choices=("rtp", "mpegts", "both"), default="both",
-                    help="the latency's transport(s) (default: %(default)s)")
+    ap.add_argument(
+        "--latency-frames",
+        type=int,
+        default=300,
+        help="frames for the loopback latency, sent in real time at 30 Hz (default: %(default)s; 0 = skip)",
+    )
+    ap.add_argument(
+        "--transport",
+        choices=("rtp", "mpegts", "both"),
+        default="both",
+        help="the latency's transport(s) (default: %(default)s)",
+    )
     args = ap.parse_args(argv)
     if args.frames > 0:
         encode_cost(args.frames)

@@ -36,8 +36,18 @@ import numpy as np
 # the demo's own child environment, stop, log tail, end-of-run drain and zenoh teardown
 from groundsim.evaluation.demo import child_env, close_zenoh, drain_tracks, log_tail, stop_process
 
-__all__ = ["PairRun", "PairRunError", "run_pair", "sim_command_at_rate", "truth_arrays",
-           "track_arrays", "perfect_centroid_baseline", "range_normalised_error", "Comparison", "compare"]
+__all__ = [
+    "PairRun",
+    "PairRunError",
+    "run_pair",
+    "sim_command_at_rate",
+    "truth_arrays",
+    "track_arrays",
+    "perfect_centroid_baseline",
+    "range_normalised_error",
+    "Comparison",
+    "compare",
+]
 
 REPO = Path(__file__).resolve().parents[1]
 ONBOARD_CONFIG = REPO / "config" / "onboard.yaml"
@@ -113,9 +123,9 @@ def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0, nav_no
 
 
 def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str | None = None) -> PairRun:
+    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
     from groundsim.world.scenario import load_scenario
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.world.truth import read_truth_csv
     from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
 
@@ -134,25 +144,34 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
         daemon = _start(daemon_command(plan), logs["daemon"], env)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
         subs.append(session.declare_subscriber(track_key(plan.vehicle), lambda s: store.on_track(s.payload.to_bytes())))
-        subs.append(session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes())))
+        subs.append(
+            session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes()))
+        )
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):
             if daemon.poll() is not None:
-                raise _DaemonExitedEarly(f"the onboard daemon exited with code {daemon.returncode} before it was ready:\n"
-                                   f"{log_tail(logs['daemon'])}")
+                raise _DaemonExitedEarly(
+                    f"the onboard daemon exited with code {daemon.returncode} before it was ready:\n"
+                    f"{log_tail(logs['daemon'])}"
+                )
             if time.monotonic() > t_ready:
-                raise PairRunError(f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
-                                   f"{log_tail(logs['daemon'])}")
+                raise PairRunError(
+                    f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
+                    f"{log_tail(logs['daemon'])}"
+                )
         sim0 = time.monotonic()
         sim = _start(sim_command_at_rate(plan, rate), logs["sim"], env)
         deadline = sim0 + plan.duration_s / factor + SIM_SETUP_ALLOWANCE_S
         while sim.poll() is None:
             if daemon.poll() is not None:
-                raise PairRunError(f"the onboard daemon exited with code {daemon.returncode} during the run:\n"
-                                   f"{log_tail(logs['daemon'])}")
+                raise PairRunError(
+                    f"the onboard daemon exited with code {daemon.returncode} during the run:\n"
+                    f"{log_tail(logs['daemon'])}"
+                )
             if time.monotonic() > deadline:
-                raise PairRunError(f"the simulator still runs {SIM_SETUP_ALLOWANCE_S:g} s past its duration:\n"
-                                   f"{log_tail(logs['sim'])}")
+                raise PairRunError(
+                    f"the simulator still runs {SIM_SETUP_ALLOWANCE_S:g} s past its duration:\n{log_tail(logs['sim'])}"
+                )
             time.sleep(0.1)
         run.sim_wall_s = time.monotonic() - sim0
         if sim.returncode != 0:
@@ -175,6 +194,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
 def truth_arrays(truth: dict) -> dict:
     """Per-frame arrays of a truth CSV: time_boot_us (F,), target / camera NED (F, 3), q_ned_from_cam (F, 4),
     truth pixel (F, 2), visible (F,)."""
+
     def stack(*names):
         return np.column_stack([np.asarray(truth[n], dtype=float) for n in names])
 
@@ -185,7 +205,8 @@ def truth_arrays(truth: dict) -> dict:
     out = dict(
         time_boot_us=np.asarray(truth["time_boot_us"], dtype=np.int64),
         target_p_ned_m=stack("target_n_m", "target_e_m", "target_d_m"),
-        cam_p_ned_m=cam, q_ned_from_cam=q,
+        cam_p_ned_m=cam,
+        q_ned_from_cam=q,
         uv_px=stack("target_u_px", "target_v_px"),
         visible=np.asarray(truth["target_visible"]) > 0,
     )
@@ -195,8 +216,9 @@ def truth_arrays(truth: dict) -> dict:
     if "nav_p_err_n_m" in truth:
         phi = stack("nav_att_err_n_rad", "nav_att_err_e_rad", "nav_att_err_d_rad")
         out["reported_cam_p_ned_m"] = cam + stack("nav_p_err_n_m", "nav_p_err_e_m", "nav_p_err_d_m")
-        out["reported_q_ned_from_cam"] = np.array([quat_from_rotmat(rotmat_from_rotvec(f) @ rotmat_from_quat(qq))
-                                                   for f, qq in zip(phi, q)])
+        out["reported_q_ned_from_cam"] = np.array(
+            [quat_from_rotmat(rotmat_from_rotvec(f) @ rotmat_from_quat(qq)) for f, qq in zip(phi, q)]
+        )
     else:
         out["reported_cam_p_ned_m"], out["reported_q_ned_from_cam"] = cam, q
     return out
@@ -253,7 +275,9 @@ def perfect_centroid_baseline(config_path, truth: dict, pixel_sigma_px: float, r
         r = None
         try:
             if a["visible"][k]:
-                r = est.add(t_s, a["uv_px"][k] + noise[k], K, a["reported_cam_p_ned_m"][k], a["reported_q_ned_from_cam"][k])
+                r = est.add(
+                    t_s, a["uv_px"][k] + noise[k], K, a["reported_cam_p_ned_m"][k], a["reported_q_ned_from_cam"][k]
+                )
                 has_data = True
             elif has_data:
                 r = est.predict(t_s, a["reported_cam_p_ned_m"][k])
@@ -298,8 +322,10 @@ class Comparison:
 
     def line(self) -> str:
         draws = " ".join(f"{100 * e:.3f}" for e in self.baseline_errs)
-        return (f"{self.selection:>10s}: {self.frames:3d} frames, daemon {100 * self.daemon_err:7.3f} %, baseline "
-                f"{100 * self.baseline_err:7.3f} % (draws {draws}), ratio {self.ratio:.2f}")
+        return (
+            f"{self.selection:>10s}: {self.frames:3d} frames, daemon {100 * self.daemon_err:7.3f} %, baseline "
+            f"{100 * self.baseline_err:7.3f} % (draws {draws}), ratio {self.ratio:.2f}"
+        )
 
 
 def compare(selection: str, truth: dict, daemon: dict, baselines: list, sel) -> Comparison:
@@ -309,5 +335,9 @@ def compare(selection: str, truth: dict, daemon: dict, baselines: list, sel) -> 
     for b in baselines:
         sel = sel & np.all(np.isfinite(b["p_ned_m"]), axis=1)
     tp, cp = a["target_p_ned_m"], a["cam_p_ned_m"]
-    return Comparison(selection, int(sel.sum()), range_normalised_error(tp, daemon["p_ned_m"], cp, sel),
-                      tuple(range_normalised_error(tp, b["p_ned_m"], cp, sel) for b in baselines))
+    return Comparison(
+        selection,
+        int(sel.sum()),
+        range_normalised_error(tp, daemon["p_ned_m"], cp, sel),
+        tuple(range_normalised_error(tp, b["p_ned_m"], cp, sel) for b in baselines),
+    )

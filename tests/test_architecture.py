@@ -34,8 +34,19 @@ ALLOWED = {
 }
 # third-party or standard modules a room must not import
 FORBIDDEN = {
-    "onboard.core": {"zenoh", "pymavlink", "cv2", "av", "mcap", "foxglove", "socket", "threading", "multiprocessing",
-                     "subprocess", "asyncio"},
+    "onboard.core": {
+        "zenoh",
+        "pymavlink",
+        "cv2",
+        "av",
+        "mcap",
+        "foxglove",
+        "socket",
+        "threading",
+        "multiprocessing",
+        "subprocess",
+        "asyncio",
+    },
     "onboard.imaging": {"zenoh", "pymavlink", "socket", "threading", "multiprocessing", "subprocess"},
     "onboard.estimation": {"zenoh", "pymavlink", "cv2", "socket", "threading", "multiprocessing", "subprocess"},
     "onboard.pipeline": {"zenoh", "pymavlink", "socket", "threading", "multiprocessing", "subprocess"},
@@ -137,7 +148,7 @@ def test_there_are_no_import_cycles():
         stack.append(m)
         for t in graph.get(m, ()):
             if state.get(t) == 1:
-                cycles.append(" -> ".join(stack[stack.index(t):] + [t]))
+                cycles.append(" -> ".join(stack[stack.index(t) :] + [t]))
             elif t not in state:
                 visit(t)
         stack.pop()

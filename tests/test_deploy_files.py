@@ -259,7 +259,9 @@ def test_run_installs_the_onboard_runtime_only(instructions):
     script = (REPO / "scripts" / "install.sh").read_text(encoding="utf-8")
     assert 'venv="${1:-.venv}"' in script and 'extras="${2:-}"' in script  # the interface relied on
     makefile = (REPO / "Makefile").read_text(encoding="utf-8")
-    assert "bash scripts/install.sh $(VENV) sim,dev" in makefile, "CI (make test) runs the same script, with sim and dev"
+    assert "bash scripts/install.sh $(VENV) sim,dev" in makefile, (
+        "CI (make test) runs the same script, with sim and dev"
+    )
 
 
 def test_copy_sources_exist_and_are_only_what_install_needs(instructions):
@@ -364,8 +366,16 @@ def test_dockerignore_lets_every_copied_file_in(instructions):
 
 @pytest.mark.parametrize(
     "rel",
-    [".venv/bin/python", ".git/HEAD", "tests/onboard/test_health.py", "deploy/tls/router.key",
-     "out/truth.csv", "Makefile", "docs/scenarios.md", "onboard/__pycache__/health.cpython-311.pyc"],
+    [
+        ".venv/bin/python",
+        ".git/HEAD",
+        "tests/onboard/test_health.py",
+        "deploy/tls/router.key",
+        "out/truth.csv",
+        "Makefile",
+        "docs/scenarios.md",
+        "onboard/__pycache__/health.cpython-311.pyc",
+    ],
 )
 def test_dockerignore_keeps_the_rest_out(rel):
     assert is_excluded(rel, load_dockerignore())
@@ -492,8 +502,14 @@ def test_daemon_accepts_the_container_config_as_the_image_runs_it(compose_env, i
     env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
     env.update({k: v for k, v in env_of(instructions).items() if k.startswith("IRTRACK_")})
     env.update(compose_env)
-    done = subprocess.run([sys.executable, *entry[1:], *args, "--check"], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S)
+    done = subprocess.run(
+        [sys.executable, *entry[1:], *args, "--check"],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=SUBPROCESS_TIMEOUT_S,
+    )
     assert done.returncode == 0, done.stdout + done.stderr
 
 
@@ -678,19 +694,23 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
 
     (script,) = _fenced_blocks("sh")
     env = {**os.environ, "VEHICLE_DNS": "localhost", "VEHICLE_IP": "127.0.0.1"}
-    done = subprocess.run(["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=SUBPROCESS_TIMEOUT_S)
+    done = subprocess.run(
+        ["bash", "-c", script], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S
+    )
     assert done.returncode == 0, done.stderr
     tls_dir = tmp_path / "tls"
     assert {p.name for p in tls_dir.iterdir()} >= {"ca.pem", "router.pem", "router.key", "ground.pem", "ground.key"}
 
     router_block, ground_block = _fenced_blocks("json5")[:2]
     tls_port, tcp_port = free_tcp_port(), free_tcp_port()
-    router_text = (router_block.replace("/zenoh/tls/", f"{tls_dir}/")
-                   .replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{tls_port}")
-                   .replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{tcp_port}"))
-    ground_text = (ground_block.replace("/etc/irtrack/tls/", f"{tls_dir}/")
-                   .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{tls_port}"))
+    router_text = (
+        router_block.replace("/zenoh/tls/", f"{tls_dir}/")
+        .replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{tls_port}")
+        .replace("tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{tcp_port}")
+    )
+    ground_text = ground_block.replace("/etc/irtrack/tls/", f"{tls_dir}/").replace(
+        "tls/uav1.irtrack.lan:7448", f"tls/localhost:{tls_port}"
+    )
     assert router_text != router_block and ground_text != ground_block
     ground_no_cert = zenoh.Config.from_json5(ground_text)
     ground_no_cert.insert_json5("transport/link/tls/connect_certificate", "null")

@@ -26,8 +26,8 @@ from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
 from onboard.app.config import build_config
-from onboard.core.irframe import HEADER, REJECT_REASONS, IrFrame, IrFrameError, decode_irframe, encode_irframe
 from onboard.app.service import OnboardService
+from onboard.core.irframe import REJECT_REASONS, IrFrame, IrFrameError, decode_irframe, encode_irframe
 from tests.fuzz_budget import fuzz_settings, timeout_s
 
 pytestmark = pytest.mark.timeout(timeout_s(120))
@@ -40,7 +40,8 @@ frames = st.builds(
     seq=st.integers(0, 2**32 - 1),
     time_boot_us=st.integers(0, 2**64 - 1),
     pixels=st.sampled_from([np.uint8, np.uint16]).flatmap(
-        lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=MAX_SIDE_PX))),
+        lambda dt: hnp.arrays(dt, hnp.array_shapes(min_dims=2, max_dims=2, min_side=1, max_side=MAX_SIDE_PX))
+    ),
 )
 
 
@@ -52,22 +53,25 @@ def mutated_payload(draw):
     for _ in range(draw(st.integers(1, 3))):
         op = draw(st.sampled_from(["field", "flip", "truncate", "extend", "splice"]))
         if op == "field":
-            offset, fmt = draw(st.sampled_from([(0, "4s"), (4, "<H"), (6, "<H"), (8, "<I"), (12, "<I"), (16, "<I"),
-                                                (20, "<Q"), (28, "4s")]))
+            offset, fmt = draw(
+                st.sampled_from(
+                    [(0, "4s"), (4, "<H"), (6, "<H"), (8, "<I"), (12, "<I"), (16, "<I"), (20, "<Q"), (28, "4s")]
+                )
+            )
             size = {"4s": 4, "<H": 2, "<I": 4, "<Q": 8}[fmt]
             if len(data) >= offset + size:
-                data[offset:offset + size] = draw(st.binary(min_size=size, max_size=size))
+                data[offset : offset + size] = draw(st.binary(min_size=size, max_size=size))
         elif op == "flip" and data:
             i = draw(st.integers(0, len(data) - 1))
             data[i] ^= draw(st.integers(1, 255))
         elif op == "truncate" and data:
-            del data[draw(st.integers(0, len(data) - 1)):]
+            del data[draw(st.integers(0, len(data) - 1)) :]
         elif op == "extend":
             data += draw(st.binary(min_size=1, max_size=64))
         elif op == "splice":
             other = encode_irframe(draw(frames))
             i = draw(st.integers(0, len(data)))
-            data[i:] = other[draw(st.integers(0, len(other) - 1)):]
+            data[i:] = other[draw(st.integers(0, len(other) - 1)) :]
     return bytes(data)
 
 
@@ -76,7 +80,9 @@ as_buffer = st.sampled_from([bytes, bytearray, lambda b: memoryview(b), lambda b
 
 
 def _same_frame(a: IrFrame, b: IrFrame) -> bool:
-    return (a.seq, a.time_boot_us, a.pixels.dtype) == (b.seq, b.time_boot_us, b.pixels.dtype) and np.array_equal(a.pixels, b.pixels)
+    return (a.seq, a.time_boot_us, a.pixels.dtype) == (b.seq, b.time_boot_us, b.pixels.dtype) and np.array_equal(
+        a.pixels, b.pixels
+    )
 
 
 # --------------------------------------------------------------------------- the decoder
@@ -114,8 +120,13 @@ class FakeSample:
 @pytest.fixture(scope="module")
 def service():
     """The daemon's object, never started (no zenoh, no MAVLink, no estimator worker): only its callback runs."""
-    cfg = build_config({"estimator": {"enabled": False}, "input": {"max_frame_bytes": 4096, "queue_length": 1000},
-                        "output": {"health_file": None}})
+    cfg = build_config(
+        {
+            "estimator": {"enabled": False},
+            "input": {"max_frame_bytes": 4096, "queue_length": 1000},
+            "output": {"health_file": None},
+        }
+    )
     svc = OnboardService(cfg)
     yield svc
     svc.close()
@@ -142,14 +153,17 @@ def test_the_receive_callback_queues_or_counts_each_payload_once(service, batch)
         if queued is None:
             assert sum(added.values()) == 1, added
             (reason,) = added
-            assert reason.startswith("frame_") and reason[len("frame_"):] in REJECT_REASONS, reason
+            assert reason.startswith("frame_") and reason[len("frame_") :] in REJECT_REASONS, reason
         else:
             assert added == {}, added
             assert len(payload) <= service.config.input.max_frame_bytes
 
 
 @fuzz_settings(ci_default=150)
-@given(genuine=st.lists(frames, min_size=1, max_size=4), garbage=st.lists(st.lists(payloads, max_size=4), min_size=5, max_size=5))
+@given(
+    genuine=st.lists(frames, min_size=1, max_size=4),
+    garbage=st.lists(st.lists(payloads, max_size=4), min_size=5, max_size=5),
+)
 def test_valid_frames_between_garbage_all_reach_the_queue_in_order(service, genuine, garbage):
     got = []
     for i, frame in enumerate(genuine):

@@ -30,16 +30,14 @@ import time
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
-
-
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
-from onboard.core.frames import CameraMount, GeodeticOrigin  # noqa: E402
-from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
-from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
 from groundsim.io.ports import free_udp_port  # noqa: E402
+from onboard.core.frames import CameraMount, GeodeticOrigin  # noqa: E402
+from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
 from tests.fakes import FakeClock  # noqa: E402
+from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
 
 AP_SYSID = 1
 KEY = bytes(range(32))
@@ -83,11 +81,18 @@ class Harness:
     def __init__(self, signed: bool = False, gimballed: bool = True) -> None:
         self.clock = FakeClock()
         self.counter = RejectCounter(clock=self.clock, log_interval_s=1e9)  # counted, logged once
-        self.pose = RecordingPose(mount=CameraMount(gimballed=gimballed), origin=GeodeticOrigin(47.0, 8.0, 400.0),
-                                  counter=self.counter)
+        self.pose = RecordingPose(
+            mount=CameraMount(gimballed=gimballed), origin=GeodeticOrigin(47.0, 8.0, 400.0), counter=self.counter
+        )
         cfg = MavlinkLinkConfig(autopilot_sysid=AP_SYSID, signing_key=KEY if signed else None)
-        self.link = MavlinkLink(f"udpin:127.0.0.1:{free_udp_port()}", self.pose, self.counter, gimballed=gimballed,
-                                clock=self.clock, config=cfg)
+        self.link = MavlinkLink(
+            f"udpin:127.0.0.1:{free_udp_port()}",
+            self.pose,
+            self.counter,
+            gimballed=gimballed,
+            clock=self.clock,
+            config=cfg,
+        )
         self._inbox: list[tuple[bytes, tuple[str, int]]] = []
         self.sent: list[bytes] = []
         t = self.link._transport  # the test seam: reads from memory, writes recorded
@@ -127,27 +132,59 @@ def telemetry(draw):
     """A message the link reads, with any field values its wire types allow."""
     kind = draw(st.sampled_from(["att", "pos", "gimbal", "timesync", "ack", "heartbeat"]))
     if kind == "att":
-        return mav.MAVLink_attitude_quaternion_message(draw(U32), *[draw(F32) for _ in range(7)], [draw(F32) for _ in range(4)])
+        return mav.MAVLink_attitude_quaternion_message(
+            draw(U32), *[draw(F32) for _ in range(7)], [draw(F32) for _ in range(4)]
+        )
     if kind == "pos":
-        return mav.MAVLink_global_position_int_message(draw(U32), draw(I32), draw(I32), draw(I32), draw(I32),
-                                                      *[draw(st.integers(-(2**15), 2**15 - 1)) for _ in range(3)],
-                                                      draw(st.integers(0, 2**16 - 1)))
+        return mav.MAVLink_global_position_int_message(
+            draw(U32),
+            draw(I32),
+            draw(I32),
+            draw(I32),
+            draw(I32),
+            *[draw(st.integers(-(2**15), 2**15 - 1)) for _ in range(3)],
+            draw(st.integers(0, 2**16 - 1)),
+        )
     if kind == "gimbal":
         return mav.MAVLink_gimbal_device_attitude_status_message(
-            0, 0, draw(U32), draw(st.integers(0, 2**16 - 1)), [draw(F32) for _ in range(4)], draw(F32), draw(F32), draw(F32),
-            draw(U32), draw(F32), draw(F32), draw(st.integers(0, 255)))
+            0,
+            0,
+            draw(U32),
+            draw(st.integers(0, 2**16 - 1)),
+            [draw(F32) for _ in range(4)],
+            draw(F32),
+            draw(F32),
+            draw(F32),
+            draw(U32),
+            draw(F32),
+            draw(F32),
+            draw(st.integers(0, 255)),
+        )
     if kind == "timesync":
-        return mav.MAVLink_timesync_message(draw(st.integers(-(2**63), 2**63 - 1)), draw(st.integers(-(2**63), 2**63 - 1)))
+        return mav.MAVLink_timesync_message(
+            draw(st.integers(-(2**63), 2**63 - 1)), draw(st.integers(-(2**63), 2**63 - 1))
+        )
     if kind == "ack":
-        return mav.MAVLink_command_ack_message(draw(st.integers(0, 2**16 - 1)), draw(st.integers(0, 255)),
-                                               draw(st.integers(0, 255)), draw(I32), draw(st.integers(0, 255)),
-                                               draw(st.integers(0, 255)))
-    return mav.MAVLink_heartbeat_message(draw(st.integers(0, 255)), draw(st.integers(0, 255)), draw(st.integers(0, 255)),
-                                         draw(U32), draw(st.integers(0, 255)), 3)
+        return mav.MAVLink_command_ack_message(
+            draw(st.integers(0, 2**16 - 1)),
+            draw(st.integers(0, 255)),
+            draw(st.integers(0, 255)),
+            draw(I32),
+            draw(st.integers(0, 255)),
+            draw(st.integers(0, 255)),
+        )
+    return mav.MAVLink_heartbeat_message(
+        draw(st.integers(0, 255)),
+        draw(st.integers(0, 255)),
+        draw(st.integers(0, 255)),
+        draw(U32),
+        draw(st.integers(0, 255)),
+        3,
+    )
 
 
 @st.composite
-def packet(draw, signed: st.SearchStrategy[bool] = st.just(False), key: bytes = KEY):
+def packet(draw, signed: st.SearchStrategy[bool] = st.just(False), key: bytes = KEY):  # noqa: B008 (a strategy default, built once)
     """A valid MAVLink 2 packet, unsigned or signed with ``key``, from the autopilot's or another id."""
     msg = draw(telemetry())
     sysid = draw(st.sampled_from([AP_SYSID, AP_SYSID, 42, 255]))
@@ -163,7 +200,7 @@ def mutated(draw, key: bytes = KEY):
     for _ in range(draw(st.integers(1, 3))):
         op = draw(st.sampled_from(["truncate", "flip", "insert", "append", "splice", "v1"]))
         if op == "truncate" and data:
-            del data[draw(st.integers(0, len(data) - 1)):]
+            del data[draw(st.integers(0, len(data) - 1)) :]
         elif op == "flip" and data:
             i = draw(st.integers(0, len(data) - 1))
             data[i] ^= draw(st.integers(1, 255))
@@ -175,7 +212,7 @@ def mutated(draw, key: bytes = KEY):
         elif op == "splice":
             other = draw(packet(key=key))
             i = draw(st.integers(0, len(data)))
-            data[i:] = other[draw(st.integers(0, len(other) - 1)):]
+            data[i:] = other[draw(st.integers(0, len(other) - 1)) :]
         elif op == "v1" and data:
             data[0] = 0xFE  # a v2 packet claiming to be v1
     return bytes(data)
@@ -190,7 +227,7 @@ def _accounted(n_msgs: int, added: dict[str, int], pose_calls: int, h: Harness) 
     assert CATCH_ALL not in added, added
     if n_msgs == 0:
         assert sum(added.values()) >= 1, "a datagram yielded nothing and nothing was counted"
-    for kind, _t, ok in h.pose.calls[len(h.pose.calls) - pose_calls:]:
+    for kind, _t, ok in h.pose.calls[len(h.pose.calls) - pose_calls :]:
         if not ok:
             assert added, f"the pose buffer refused a {kind} sample without counting it"
 
@@ -230,9 +267,14 @@ def test_valid_packets_with_any_field_values_are_used_or_refused_with_a_count(ms
 
 
 @fuzz_settings(ci_default=300)
-@given(before=st.lists(garbage, max_size=6), after=st.lists(garbage, max_size=6),
-       prefix=garbage_without_start_byte, suffix=st.binary(max_size=200), signed=st.booleans(),
-       same_sender=st.booleans())
+@given(
+    before=st.lists(garbage, max_size=6),
+    after=st.lists(garbage, max_size=6),
+    prefix=garbage_without_start_byte,
+    suffix=st.binary(max_size=200),
+    signed=st.booleans(),
+    same_sender=st.booleans(),
+)
 def test_a_valid_packet_is_decoded_whatever_garbage_surrounds_it(before, after, prefix, suffix, signed, same_sender):
     h = Harness(signed=signed)
     try:
@@ -244,7 +286,9 @@ def test_a_valid_packet_is_decoded_whatever_garbage_surrounds_it(before, after, 
         def genuine(framing=lambda b: b) -> None:
             nonlocal t_ms
             t_ms += 20
-            pkt = bytes(mav.MAVLink_attitude_quaternion_message(t_ms, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [0.0] * 4).pack(p))
+            pkt = bytes(
+                mav.MAVLink_attitude_quaternion_message(t_ms, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [0.0] * 4).pack(p)
+            )
             n, added, _ = h.feed(framing(pkt), sender)
             assert ("attitude", t_ms * 1000, True) in h.pose.calls, (added, h.pose.calls[-3:])
 

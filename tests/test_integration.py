@@ -92,8 +92,12 @@ def test_daemon_track_matches_truth_within_1p5x_of_perfect_centroids(name, tmp_p
     truth = truth_arrays(run.truth)
     F = truth["time_boot_us"].size
     daemon = track_arrays(run.tracks, truth["time_boot_us"], run.scenario.origin)
-    bases = [perfect_centroid_baseline(run.config_path, run.truth, PIXEL_SIGMA_PX,
-                                       run.scenario.rng("eval.centroid_noise", draw)) for draw in range(BASELINE_DRAWS)]
+    bases = [
+        perfect_centroid_baseline(
+            run.config_path, run.truth, PIXEL_SIGMA_PX, run.scenario.rng("eval.centroid_noise", draw)
+        )
+        for draw in range(BASELINE_DRAWS)
+    ]
     obs_cmp = compare("observable", run.truth, daemon, bases, daemon["observable"])
     all_cmp = compare("all", run.truth, daemon, bases, np.ones(F, dtype=bool))
     # for the record, not asserted: the same estimator on noiseless truth pixels (the image chain's own
@@ -103,14 +107,17 @@ def test_daemon_track_matches_truth_within_1p5x_of_perfect_centroids(name, tmp_p
     chosen = _choose(obs_cmp, all_cmp)
     frames = (run.status or {}).get("frames") or {}
     base_obs = [int(b["observable"].sum()) for b in bases]
-    report = "\n".join([
-        f"{name}: {F} frames simulated, {int(daemon['tracked'].sum())} with a track message, "
-        f"{int(np.isfinite(daemon['p_ned_m'][:, 0]).sum())} with a position, {int(daemon['observable'].sum())} "
-        f"observable (perfect-centroid estimator: {base_obs} observable); daemon status frames {frames}; "
-        f"wall {run.wall_s:.1f} s (simulator {run.sim_wall_s:.1f} s)",
-        "  " + obs_cmp.line(), "  " + all_cmp.line(),
-        f"  scored on: {chosen.selection} frames (not asserted: {exact_cmp.line().strip()})",
-    ])
+    report = "\n".join(
+        [
+            f"{name}: {F} frames simulated, {int(daemon['tracked'].sum())} with a track message, "
+            f"{int(np.isfinite(daemon['p_ned_m'][:, 0]).sum())} with a position, {int(daemon['observable'].sum())} "
+            f"observable (perfect-centroid estimator: {base_obs} observable); daemon status frames {frames}; "
+            f"wall {run.wall_s:.1f} s (simulator {run.sim_wall_s:.1f} s)",
+            "  " + obs_cmp.line(),
+            "  " + all_cmp.line(),
+            f"  scored on: {chosen.selection} frames (not asserted: {exact_cmp.line().strip()})",
+        ]
+    )
     print("\n" + report)
 
     assert run.exit_codes["sim"] == 0 and run.exit_codes["daemon"] in EXIT_OK, f"{run.exit_codes}\n{report}"
@@ -138,9 +145,11 @@ def test_daemon_under_rtk_navigation_publishes_precise_honest_observable_positio
     beyond = err_m > 3.0 * daemon["sqrt_trace_cov_m"]
     obs = daemon["observable"] & has_p
     n_obs = int(obs.sum())
-    report = (f"{RTK_SCENARIO} RTK: {truth['time_boot_us'].size} frames, {int(has_p.sum())} with a position, {n_obs} observable; "
-              f"observable median error {100 * np.median(err_m[obs] / rng_m[obs]) if n_obs else math.nan:.3f} % of range, "
-              f"beyond 3 sigma: observable {int((beyond & obs).sum())}, all {int((beyond & has_p).sum())}")
+    report = (
+        f"{RTK_SCENARIO} RTK: {truth['time_boot_us'].size} frames, {int(has_p.sum())} with a position, {n_obs} observable; "
+        f"observable median error {100 * np.median(err_m[obs] / rng_m[obs]) if n_obs else math.nan:.3f} % of range, "
+        f"beyond 3 sigma: observable {int((beyond & obs).sum())}, all {int((beyond & has_p).sum())}"
+    )
     print("\n" + report)
     assert run.exit_codes["sim"] == 0 and run.exit_codes["daemon"] in EXIT_OK, f"{run.exit_codes}\n{report}"
     assert run.bad_messages == 0, report
@@ -161,8 +170,12 @@ def test_scoring_matches_tracks_to_truth_frames_and_uses_the_median_draw():
     t_us = 1_000_000 + np.arange(F, dtype=np.int64) * 33_333
     target = np.array([[100.0, 0.0, -50.0]] * F)
     cam = np.array([[0.0, 0.0, -50.0]] * F)  # range 100 m
-    truth = {"time_boot_us": t_us, "target_u_px": np.full(F, 320.0), "target_v_px": np.full(F, 256.0),
-             "target_visible": np.ones(F, dtype=np.int64)}
+    truth = {
+        "time_boot_us": t_us,
+        "target_u_px": np.full(F, 320.0),
+        "target_v_px": np.full(F, 256.0),
+        "target_visible": np.ones(F, dtype=np.int64),
+    }
     for i, axis in enumerate("ned"):
         truth[f"target_{axis}_m"], truth[f"cam_{axis}_m"] = target[:, i], cam[:, i]
     for c in "wxyz":

@@ -78,8 +78,17 @@ def runtime_requirements(project: dict) -> list[str]:
 def test_runtime_list_is_the_onboard_service_alone(project):
     runtime = {_req_name(r) for r in runtime_requirements(project)}
     assert runtime.isdisjoint(SIM_DISTS | DEV_DISTS), runtime & (SIM_DISTS | DEV_DISTS)
-    assert {"numpy", "scipy", "opencv-contrib-python-headless", "pymavlink", "eclipse-zenoh", "pyyaml",
-            "pymap3d", "pyserial", "av"} <= runtime
+    assert {
+        "numpy",
+        "scipy",
+        "opencv-contrib-python-headless",
+        "pymavlink",
+        "eclipse-zenoh",
+        "pyyaml",
+        "pymap3d",
+        "pyserial",
+        "av",
+    } <= runtime
     extras = {name: {_req_name(r) for r in reqs} for name, reqs in project["optional-dependencies"].items()}
     assert SIM_DISTS <= extras["sim"]
     assert DEV_DISTS <= extras["dev"]
@@ -179,8 +188,9 @@ def refusing_env(tmp_path) -> tuple[dict[str, str], Path]:
 
 
 def _run(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, *args], cwd=REPO, env=env, capture_output=True, text=True,
-                          timeout=SUBPROCESS_TIMEOUT_S)
+    return subprocess.run(
+        [sys.executable, *args], cwd=REPO, env=env, capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S
+    )
 
 
 @pytest.mark.integration
@@ -195,12 +205,16 @@ def test_control_the_refusal_is_active(refusing_env, refused):
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("args", [
-    ["--help"],
-    ["--check", "--config", "config/onboard.yaml"],
-    ["--check", "--config", "config/onboard_sim.yaml"],
-    ["--print-config", "--config", "config/onboard.yaml"],
-], ids=["help", "check", "check-sim-config", "print-config"])
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["--help"],
+        ["--check", "--config", "config/onboard.yaml"],
+        ["--check", "--config", "config/onboard_sim.yaml"],
+        ["--print-config", "--config", "config/onboard.yaml"],
+    ],
+    ids=["help", "check", "check-sim-config", "print-config"],
+)
 def test_python_m_onboard_without_the_simulator(refusing_env, args):
     env, log = refusing_env
     done = _run(["-m", "onboard", *args], env)
@@ -214,8 +228,9 @@ def test_python_m_onboard_without_the_simulator(refusing_env, args):
 def test_every_onboard_module_imports_without_the_simulator(refusing_env):
     """Import time of every module under onboard/ (desk tools included): nothing refused is touched."""
     env, log = refusing_env
-    modules = sorted(".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__")
-                     for p in ONBOARD.rglob("*.py"))
+    modules = sorted(
+        ".".join(p.relative_to(REPO).with_suffix("").parts).removesuffix(".__init__") for p in ONBOARD.rglob("*.py")
+    )
     assert "onboard.app.service" in modules and "onboard.app.replay" in modules
     code = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\nprint(len(sys.argv) - 1)"
     done = _run(["-c", code, *modules], env)
@@ -230,7 +245,9 @@ def test_every_onboard_module_imports_without_the_simulator(refusing_env):
 _CONNECTION_ERROR = re.compile(
     r"NewConnectionError|Failed to establish a new connection|Temporary failure in name resolution"
     r"|Name or service not known|Network is unreachable|No route to host|Connection refused"
-    r"|ConnectTimeoutError|ProxyError|Could not fetch URL|connection broken by", re.I)
+    r"|ConnectTimeoutError|ProxyError|Could not fetch URL|connection broken by",
+    re.I,
+)
 
 
 def index_unreachable(pip_output: str, probe_error: BaseException | None) -> bool:
@@ -240,11 +257,15 @@ def index_unreachable(pip_output: str, probe_error: BaseException | None) -> boo
 
 
 def test_unreachable_index_is_told_from_a_resolution_failure():
-    no_wheel = ("ERROR: Could not find a version that satisfies the requirement jsbsim<2,>=1.2 (from versions: none)\n"
-                "ERROR: No matching distribution found for jsbsim<2,>=1.2\n")
-    offline = ("WARNING: Retrying (Retry(total=4, ...)) after connection broken by 'NewConnectionError(...: "
-               "Failed to establish a new connection: [Errno -3] Temporary failure in name resolution')': /simple/numpy/\n"
-               + no_wheel)
+    no_wheel = (
+        "ERROR: Could not find a version that satisfies the requirement jsbsim<2,>=1.2 (from versions: none)\n"
+        "ERROR: No matching distribution found for jsbsim<2,>=1.2\n"
+    )
+    offline = (
+        "WARNING: Retrying (Retry(total=4, ...)) after connection broken by 'NewConnectionError(...: "
+        "Failed to establish a new connection: [Errno -3] Temporary failure in name resolution')': /simple/numpy/\n"
+        + no_wheel
+    )
     down = urllib.error.URLError(OSError("Temporary failure in name resolution"))
     assert not index_unreachable(no_wheel, None)
     assert not index_unreachable(no_wheel, down), "no connection error in pip's output: a real failure"
@@ -253,8 +274,9 @@ def test_unreachable_index_is_told_from_a_resolution_failure():
 
 
 def _pip_config() -> dict[str, str]:
-    done = subprocess.run([sys.executable, "-m", "pip", "config", "list"], capture_output=True, text=True,
-                          timeout=SUBPROCESS_TIMEOUT_S)
+    done = subprocess.run(
+        [sys.executable, "-m", "pip", "config", "list"], capture_output=True, text=True, timeout=SUBPROCESS_TIMEOUT_S
+    )
     out = {}
     for line in done.stdout.splitlines():
         key, sep, value = line.partition("=")
@@ -290,9 +312,25 @@ def test_runtime_requirements_resolve_for_linux_aarch64(project, tmp_path):
     linux/aarch64 (glibc 2.36): every requirement, and every dependency of theirs, has a wheel."""
     reqs = runtime_requirements(project)
     report = tmp_path / "report.json"
-    cmd = [sys.executable, "-m", "pip", "install", "--dry-run", "--ignore-installed", "--only-binary=:all:",
-           "--python-version", TARGET_PYTHON, "--implementation", "cp", "--target", str(tmp_path / "target"),
-           "--report", str(report), "--disable-pip-version-check", "--no-input"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "pip",
+        "install",
+        "--dry-run",
+        "--ignore-installed",
+        "--only-binary=:all:",
+        "--python-version",
+        TARGET_PYTHON,
+        "--implementation",
+        "cp",
+        "--target",
+        str(tmp_path / "target"),
+        "--report",
+        str(report),
+        "--disable-pip-version-check",
+        "--no-input",
+    ]
     for platform in AARCH64_PLATFORMS:
         cmd += ["--platform", platform]
     done = subprocess.run([*cmd, *reqs], capture_output=True, text=True, timeout=RESOLVE_TIMEOUT_S)

@@ -49,7 +49,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from groundsim.evaluation.demo import TruthTail, child_env, daemon_command, log_tail, plan_demo, sim_command, stop_process
+from groundsim.evaluation.demo import (
+    TruthTail,
+    child_env,
+    daemon_command,
+    log_tail,
+    plan_demo,
+    sim_command,
+    stop_process,
+)
 from groundsim.io.ports import free_udp_port
 from tests.integration_helpers import REPO
 
@@ -106,8 +114,9 @@ class QgcCamera:
         from pymavlink import mavutil
         from pymavlink.dialects.v20 import common as mavlink2
 
-        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=QGC_SYSID,
-                                               source_component=QGC_COMPID)
+        self.conn = mavutil.mavlink_connection(
+            f"udpin:127.0.0.1:{port}", source_system=QGC_SYSID, source_component=QGC_COMPID
+        )
         self.conn.mav = mavlink2.MAVLink(self.conn, srcSystem=QGC_SYSID, srcComponent=QGC_COMPID)
         self.got: dict[str, list] = collections.defaultdict(list)  # type -> [(t_s, msg)]
         self.sysid: int | None = None
@@ -135,8 +144,7 @@ class QgcCamera:
         if mtype == "BAD_DATA":
             return
         self.got[mtype].append((t, m))
-        if (mtype == "HEARTBEAT" and self.compid is None and m.type == 30
-                and 100 <= m.get_srcComponent() <= 105):
+        if mtype == "HEARTBEAT" and self.compid is None and m.type == 30 and 100 <= m.get_srcComponent() <= 105:
             self.sysid, self.compid = m.get_srcSystem(), m.get_srcComponent()
         if mtype == "COMMAND_ACK" and m.target_system in (0, QGC_SYSID):
             cmd = self.pending.get(m.command)
@@ -182,8 +190,9 @@ class QgcCamera:
 
 def _start(cmd: list[str], log_path: Path) -> subprocess.Popen:
     with open(log_path, "wb") as f:
-        return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                env=child_env())
+        return subprocess.Popen(
+            cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=child_env()
+        )
 
 
 def _get_interval(qgc: QgcCamera, alive) -> int | None:
@@ -204,7 +213,7 @@ def _contrast(luma: np.ndarray, x_norm: float, y_norm: float, r_px: int = VIDEO_
     """Peak grey level within ``r_px`` of the normalised point, minus the frame's median."""
     h, w = luma.shape
     u, v = int(round(x_norm * w)), int(round(y_norm * h))
-    patch = luma[max(v - r_px, 0):v + r_px + 1, max(u - r_px, 0):u + r_px + 1]
+    patch = luma[max(v - r_px, 0) : v + r_px + 1, max(u - r_px, 0) : u + r_px + 1]
     return float(patch.max()) - float(np.median(luma[::4, ::4])) if patch.size else -math.inf
 
 
@@ -252,14 +261,27 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
     def pump_until(pred, timeout_s, what):
         end = time.monotonic() + timeout_s
         while not pred():
-            assert time.monotonic() < end, f"timed out ({timeout_s:g} s) waiting for {what}:\n{log_tail(logs['daemon'])}"
+            assert time.monotonic() < end, (
+                f"timed out ({timeout_s:g} s) waiting for {what}:\n{log_tail(logs['daemon'])}"
+            )
             alive()
             qgc.pump(0.05)
 
     try:
-        daemon = _start(daemon_command(plan) + [
-            "--gcs", f"udpout:127.0.0.1:{gcs_port}", "--video-udp", f"127.0.0.1:{rx.port}",
-            "--set", "gcs.tracker_mode=operator", "--set", "video.overlay=false"], logs["daemon"])
+        daemon = _start(
+            daemon_command(plan)
+            + [
+                "--gcs",
+                f"udpout:127.0.0.1:{gcs_port}",
+                "--video-udp",
+                f"127.0.0.1:{rx.port}",
+                "--set",
+                "gcs.tracker_mode=operator",
+                "--set",
+                "video.overlay=false",
+            ],
+            logs["daemon"],
+        )
 
         # 1. a camera component heartbeats: QGC's discovery state machine
         pump_until(lambda: qgc.compid is not None, DAEMON_READY_TIMEOUT_S, "a camera HEARTBEAT (components 100..105)")
@@ -297,10 +319,14 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         # 3. the simulator flies; frames reach the daemon (decoded video is the proof)
         sim = _start(sim_command(plan), logs["sim"])
         sim_t0 = time.monotonic()
-        pump_until(lambda: tail.poll() >= 0 and len(tail.order) >= 45 and len(frames_seen) >= 15,
-                   FRAMES_FLOWING_TIMEOUT_S, "frames flowing (truth rows and decoded video)")
-        assert not [m for _, m in qgc.got["CAMERA_TRACKING_IMAGE_STATUS"] if m.tracking_status & STATUS_ACTIVE], \
+        pump_until(
+            lambda: tail.poll() >= 0 and len(tail.order) >= 45 and len(frames_seen) >= 15,
+            FRAMES_FLOWING_TIMEOUT_S,
+            "frames flowing (truth rows and decoded video)",
+        )
+        assert not [m for _, m in qgc.got["CAMERA_TRACKING_IMAGE_STATUS"] if m.tracking_status & STATUS_ACTIVE], (
             "tracking before any click (operator mode)"
+        )
 
         # 4. the click on the target, then SET_MESSAGE_INTERVAL(275, 2 Hz) right after it, as QGC does
         row = tail.rows[tail.order[-1]]
@@ -337,8 +363,10 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         sky_cmd = qgc.send(MAV_CMD_CAMERA_TRACK_POINT, sky[0], sky[1], CLICK_RADIUS_PX / W)
         sky_result = qgc.wait_ack(sky_cmd, alive)
         qgc.pump(0.3)
-        sky_text = [bytes(m.text, "ascii", "replace") if isinstance(m.text, str) else bytes(m.text)
-                    for _, m in qgc.since("STATUSTEXT", t_sky)]
+        sky_text = [
+            bytes(m.text, "ascii", "replace") if isinstance(m.text, str) else bytes(m.text)
+            for _, m in qgc.since("STATUSTEXT", t_sky)
+        ]
         sky_contrast = max((_contrast(luma, *sky) for ts, luma in list(frames_seen)[-10:]), default=math.nan)
 
         # 7. the simulator flies to the end; the daemon is still up
@@ -362,22 +390,25 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
     # the click and the #275 stream
     truth = plan.truth_path
     tail.poll()
-    uv = np.array([[float(tail.rows[k]["target_u_px"]) / W, float(tail.rows[k]["target_v_px"]) / H]
-                   for k in tail.order])
+    uv = np.array(
+        [[float(tail.rows[k]["target_u_px"]) / W, float(tail.rows[k]["target_v_px"]) / H] for k in tail.order]
+    )
     errors = []
-    for t, m, n_rows in window:
+    for _t, m, n_rows in window:
         assert m.tracking_status & STATUS_ACTIVE and m.tracking_mode == 1, f"#275 not tracking a point: {m}"
         assert math.isnan(m.rec_top_x) and m.camera_device_id == 0
-        cand = uv[max(n_rows - TRUTH_LAG_FRAMES, 0):n_rows]
+        cand = uv[max(n_rows - TRUTH_LAG_FRAMES, 0) : n_rows]
         errors.append(float(np.min(np.hypot(cand[:, 0] - m.point_x, cand[:, 1] - m.point_y))))
     times = np.array([t for t, _, _ in window])
     gaps = np.diff(times)
-    print(f"\nQGC sequence: discovery in {attempts} attempt(s); click at ({click[0]:.4f}, {click[1]:.4f}) ACKed in "
-          f"{t_acked - t_click:.2f} s; {len(window)} #275 in {STATUS_COLLECT_S - 0.6:.1f} s, gaps "
-          f"{np.round(gaps, 3).tolist()}; point error to truth max {max(errors, default=math.nan):.4f} "
-          f"(normalised); sky click result {sky_result} {sky_text}; decoded {rx.frames} frames of "
-          f"{len(tail.order)} rendered; target contrast at #275 points min {min(contrasts, default=math.nan):.0f} (all {np.round(contrasts).tolist()}), "
-          f"at the sky point {sky_contrast:.0f}, beside the target max {max(off_target, default=math.nan):.0f}; truth {truth}")
+    print(
+        f"\nQGC sequence: discovery in {attempts} attempt(s); click at ({click[0]:.4f}, {click[1]:.4f}) ACKed in "
+        f"{t_acked - t_click:.2f} s; {len(window)} #275 in {STATUS_COLLECT_S - 0.6:.1f} s, gaps "
+        f"{np.round(gaps, 3).tolist()}; point error to truth max {max(errors, default=math.nan):.4f} "
+        f"(normalised); sky click result {sky_result} {sky_text}; decoded {rx.frames} frames of "
+        f"{len(tail.order)} rendered; target contrast at #275 points min {min(contrasts, default=math.nan):.0f} (all {np.round(contrasts).tolist()}), "
+        f"at the sky point {sky_contrast:.0f}, beside the target max {max(off_target, default=math.nan):.0f}; truth {truth}"
+    )
     assert (got_interval, stopped_interval) == (TRACKING_STATUS_INTERVAL_US, -1)  # GET_MESSAGE_INTERVAL
     assert 8 <= len(window) <= 10, f"#275 at 2 Hz over {STATUS_COLLECT_S - 0.6:.1f} s: got {len(window)}"
     assert np.all(np.abs(gaps - 0.5) < 0.1), f"#275 intervals {gaps}"
@@ -388,9 +419,10 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
 
     # the video: an independent decoder, >= 95 % of the frames, the target where #275 says it is
     assert rx.error is None, rx.error
-    assert rx.frames >= DECODED_FRACTION_MIN * len(tail.order), \
-        f"decoded {rx.frames} of {len(tail.order)} frames"
-    assert len(contrasts) >= len(window) and min(contrasts) >= TARGET_CONTRAST_MIN, \
+    assert rx.frames >= DECODED_FRACTION_MIN * len(tail.order), f"decoded {rx.frames} of {len(tail.order)} frames"
+    assert len(contrasts) >= len(window) and min(contrasts) >= TARGET_CONTRAST_MIN, (
         f"target contrast at the #275 points {contrasts}"
-    assert sky_contrast < TARGET_CONTRAST_MIN and max(off_target) < TARGET_CONTRAST_MIN, \
+    )
+    assert sky_contrast < TARGET_CONTRAST_MIN and max(off_target) < TARGET_CONTRAST_MIN, (
         f"the measure does not single out the target: sky {sky_contrast}, beside it {off_target}"
+    )

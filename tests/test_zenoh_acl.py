@@ -52,18 +52,28 @@ pytestmark = [
 def tls_dir(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("acl") / "tls"
     env = {**os.environ, "VEHICLE_DNS": "localhost", "VEHICLE_IP": "127.0.0.1"}
-    done = subprocess.run(["bash", str(CERT_SCRIPT), str(out), "irtrack-intruder"], env=env, capture_output=True,
-                          text=True, timeout=CERT_TIMEOUT_S)
+    done = subprocess.run(
+        ["bash", str(CERT_SCRIPT), str(out), "irtrack-intruder"],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=CERT_TIMEOUT_S,
+    )
     assert done.returncode == 0, done.stderr
-    assert {p.name for p in out.iterdir()} >= {f"{n}.{e}" for n in ("ca", "router", "camera", "daemon", "ground", "intruder")
-                                               for e in ("pem", "key")}
+    assert {p.name for p in out.iterdir()} >= {
+        f"{n}.{e}" for n in ("ca", "router", "camera", "daemon", "ground", "intruder") for e in ("pem", "key")
+    }
     return out
 
 
 def _router_config(tls: Path, port: int, acl: bool = True):
     import zenoh
 
-    text = ROUTER_FILE.read_text(encoding="utf-8").replace("/zenoh/tls/", f"{tls}/").replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{port}")
+    text = (
+        ROUTER_FILE.read_text(encoding="utf-8")
+        .replace("/zenoh/tls/", f"{tls}/")
+        .replace("tls/0.0.0.0:7448", f"tls/127.0.0.1:{port}")
+    )
     cfg = zenoh.Config.from_json5(text)
     if not acl:
         cfg.insert_json5("access_control/enabled", "false")
@@ -74,8 +84,12 @@ def _client_config(tls: Path, port: int, node: str | None):
     """The sample client file as ``node``; ``node=None``: no client certificate at all."""
     import zenoh
 
-    text = (CLIENT_FILE.read_text(encoding="utf-8").replace("/config/tls/daemon.", f"/config/tls/{node or 'daemon'}.")
-            .replace("/config/tls/", f"{tls}/").replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}"))
+    text = (
+        CLIENT_FILE.read_text(encoding="utf-8")
+        .replace("/config/tls/daemon.", f"/config/tls/{node or 'daemon'}.")
+        .replace("/config/tls/", f"{tls}/")
+        .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}")
+    )
     cfg = zenoh.Config.from_json5(text)
     if node is None:
         cfg.insert_json5("transport/link/tls/connect_certificate", "null")
@@ -118,7 +132,13 @@ class Stack:
         # node -> its certificate; "daemon_rx" is a second session with the daemon's certificate, the
         # receiver when the daemon itself publishes (a session's own put reaches its own subscriber
         # locally, never through the router)
-        certs = {"camera": "camera", "daemon": "daemon", "daemon_rx": "daemon", "ground": "ground", "intruder": "intruder"}
+        certs = {
+            "camera": "camera",
+            "daemon": "daemon",
+            "daemon_rx": "daemon",
+            "ground": "ground",
+            "intruder": "intruder",
+        }
         self.nodes = {n: self._open(_client_config(tls, self.port, c)) for n, c in certs.items()}
 
     def _open(self, cfg):
@@ -140,7 +160,9 @@ def _refused(inbox: Inbox, allowed_pub, key: str, forbidden: dict[str, object]) 
         for name, session in forbidden.items():
             session.put(key, f"forbidden {name} {round_}".encode())
         marker = f"allowed {round_}".encode()
-        assert inbox.wait_for(marker, lambda m=marker: allowed_pub.put(key, m)), f"the allowed publisher's {marker!r} never arrived"
+        assert inbox.wait_for(marker, lambda m=marker: allowed_pub.put(key, m)), (
+            f"the allowed publisher's {marker!r} never arrived"
+        )
     time.sleep(SETTLE_S)  # bounded: anything in flight from the forbidden ones has had its chance
     return [p for p in inbox.got if p.startswith(b"forbidden")]
 
@@ -158,11 +180,16 @@ def test_the_acl_sample_loads_and_is_what_the_readme_says():
     subjects = {s["id"]: s["cert_common_names"] for s in acl["subjects"]}
     assert subjects == {"camera": ["irtrack-camera"], "daemon": ["irtrack-daemon"], "ground": ["irtrack-ground"]}
     rules = {r["id"]: r for r in acl["rules"]}
-    puts = {p["id"]: [rules[r] for r in p["rules"] if "put" in rules[r]["messages"] and rules[r]["flows"] == ["ingress"]]
-            for p in acl["policies"]}
+    puts = {
+        p["id"]: [rules[r] for r in p["rules"] if "put" in rules[r]["messages"] and rules[r]["flows"] == ["ingress"]]
+        for p in acl["policies"]
+    }
     who_puts = {tuple(p["subjects"]): sorted(k for r in puts[p["id"]] for k in r["key_exprs"]) for p in acl["policies"]}
-    assert who_puts == {("camera",): ["irtrack/*/ir/frame"], ("daemon",): ["irtrack/*/status", "irtrack/*/track"],
-                        ("ground",): []}
+    assert who_puts == {
+        ("camera",): ["irtrack/*/ir/frame"],
+        ("daemon",): ["irtrack/*/status", "irtrack/*/track"],
+        ("ground",): [],
+    }
 
 
 def test_only_the_camera_publishes_frames_and_only_the_daemon_tracks(tls_dir):
@@ -214,8 +241,12 @@ def test_the_daemon_opens_its_session_from_the_sample_client_file(tls_dir, tmp_p
 
     port = free_tcp_port()
     client_file = tmp_path / "daemon.json5"
-    client_file.write_text(CLIENT_FILE.read_text(encoding="utf-8").replace("/config/tls/", f"{tls_dir}/")
-                           .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}"), encoding="utf-8")
+    client_file.write_text(
+        CLIENT_FILE.read_text(encoding="utf-8")
+        .replace("/config/tls/", f"{tls_dir}/")
+        .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}"),
+        encoding="utf-8",
+    )
     cfg = build_config(ZenohSettings(connect=(), listen=(), config_file=str(client_file), max_message_bytes=1 << 20))
     assert json.loads(cfg.get_json("mode")) == "client"
     assert json.loads(cfg.get_json("connect/endpoints")) == [f"tls/localhost:{port}"]

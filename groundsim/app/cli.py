@@ -61,37 +61,91 @@ def resolve_scenario_path(text: str) -> Path:
 
 
 def _add_run(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
-                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
-    p.add_argument("--seed", type=int, default=0, metavar="N",
-                   help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="simulated seconds (default and maximum: the scenario's duration_s)")
-    p.add_argument("--rate", default="realtime", metavar="realtime|max|FACTOR",
-                   help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)")
-    p.add_argument("--mavlink", default=DEFAULT_MAVLINK, metavar="CONN",
-                   help="pymavlink connection string (default: %(default)s)")
-    p.add_argument("--vehicle", default=DEFAULT_VEHICLE, help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)")
-    p.add_argument("--zenoh-listen", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)")
-    p.add_argument("--zenoh-connect", action="append", default=[], metavar="ENDPOINT",
-                   help="zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--zenoh-connect-timeout", type=float, default=DEFAULT_ZENOH_CONNECT_TIMEOUT_S, metavar="S",
-                   help="with --zenoh-connect: fail (exit 2) unless a peer answers within S seconds;"
-                        " 0 = do not wait, zenoh retries in the background (default: %(default)s)")
-    p.add_argument("--zenoh-multicast-scouting", action="store_true",
-                   help="enable zenoh multicast scouting (off by default)")
+    p.add_argument(
+        "--scenario",
+        default=DEFAULT_SCENARIO,
+        metavar="FILE|NAME",
+        help="scenario YAML file, or a shipped scenario's name (default: %(default)s)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        metavar="N",
+        help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulated seconds (default and maximum: the scenario's duration_s)",
+    )
+    p.add_argument(
+        "--rate",
+        default="realtime",
+        metavar="realtime|max|FACTOR",
+        help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)",
+    )
+    p.add_argument(
+        "--mavlink", default=DEFAULT_MAVLINK, metavar="CONN", help="pymavlink connection string (default: %(default)s)"
+    )
+    p.add_argument(
+        "--vehicle",
+        default=DEFAULT_VEHICLE,
+        help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)",
+    )
+    p.add_argument(
+        "--zenoh-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="zenoh endpoint to connect to (repeatable)",
+    )
+    p.add_argument(
+        "--zenoh-connect-timeout",
+        type=float,
+        default=DEFAULT_ZENOH_CONNECT_TIMEOUT_S,
+        metavar="S",
+        help="with --zenoh-connect: fail (exit 2) unless a peer answers within S seconds;"
+        " 0 = do not wait, zenoh retries in the background (default: %(default)s)",
+    )
+    p.add_argument(
+        "--zenoh-multicast-scouting", action="store_true", help="enable zenoh multicast scouting (off by default)"
+    )
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
-    p.add_argument("--nav-noise", default=None, metavar="NAME",
-                   help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
-                        " default: the scenario's nav_noise, RTK unless it says otherwise)")
+    p.add_argument(
+        "--nav-noise",
+        default=None,
+        metavar="NAME",
+        help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
+        " default: the scenario's nav_noise, RTK unless it says otherwise)",
+    )
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
-    p.add_argument("--record", default=None, metavar="FILE.mcap",
-                   help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py)")
-    p.add_argument("--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)")
-    p.add_argument("--rt-priority", type=int, default=None, metavar="N",
-                   help="paced runs: ask Linux for SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE, otherwise a"
-                        " warning and normal priority) so a busy machine does not delay the frames")
+    p.add_argument(
+        "--record",
+        default=None,
+        metavar="FILE.mcap",
+        help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py)",
+    )
+    p.add_argument(
+        "--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)"
+    )
+    p.add_argument(
+        "--rt-priority",
+        type=int,
+        default=None,
+        metavar="N",
+        help="paced runs: ask Linux for SCHED_FIFO priority N (1-99; needs CAP_SYS_NICE, otherwise a"
+        " warning and normal priority) so a busy machine does not delay the frames",
+    )
     p.set_defaults(handler=_cmd_run)
 
 
@@ -109,13 +163,23 @@ def _run_config(args):
         raise ConfigError(f"--zenoh-connect-timeout: expected >= 0 seconds, got {args.zenoh_connect_timeout}")
     timeout = args.zenoh_connect_timeout if (args.zenoh_connect and args.zenoh_connect_timeout > 0) else None
     zenoh = ZenohSettings(
-        connect=tuple(args.zenoh_connect), listen=tuple(args.zenoh_listen), config_file=args.zenoh_config,
-        multicast_scouting=True if args.zenoh_multicast_scouting else None, connect_timeout_s=timeout,
+        connect=tuple(args.zenoh_connect),
+        listen=tuple(args.zenoh_listen),
+        config_file=args.zenoh_config,
+        multicast_scouting=True if args.zenoh_multicast_scouting else None,
+        connect_timeout_s=timeout,
     )
     return RunConfig(
-        scenario=scenario, run_seed=args.seed, duration_s=args.duration, rate=rate, mavlink=args.mavlink,
-        vehicle=args.vehicle, zenoh=zenoh, truth_path=Path(args.truth) if args.truth else None,
-        render=not args.no_render, nav_noise=args.nav_noise,
+        scenario=scenario,
+        run_seed=args.seed,
+        duration_s=args.duration,
+        rate=rate,
+        mavlink=args.mavlink,
+        vehicle=args.vehicle,
+        zenoh=zenoh,
+        truth_path=Path(args.truth) if args.truth else None,
+        render=not args.no_render,
+        nav_noise=args.nav_noise,
         record_path=Path(args.record) if args.record else None,
     )
 
@@ -170,8 +234,11 @@ def realtime_priority(priority: int | None, paced: bool) -> None:
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
     except (AttributeError, OSError) as exc:
-        log.warning("--rt-priority %d not applied (%s): running at normal priority", priority,
-                    getattr(exc, "strerror", None) or exc)
+        log.warning(
+            "--rt-priority %d not applied (%s): running at normal priority",
+            priority,
+            getattr(exc, "strerror", None) or exc,
+        )
     else:
         log.info("SCHED_FIFO priority %d", priority)
 
@@ -197,80 +264,191 @@ def _cmd_run(args) -> int:
 
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
-                   help="scenario YAML file(s) or shipped names, repeatable (default: P1 P2 P3)")
-    p.add_argument("--seeds", type=int, default=5, metavar="N", help="run seeds 0..N-1 per scenario (default: %(default)s)")
+    p.add_argument(
+        "--scenario",
+        action="append",
+        nargs="+",
+        default=None,
+        metavar="FILE|NAME",
+        help="scenario YAML file(s) or shipped names, repeatable (default: P1 P2 P3)",
+    )
+    p.add_argument(
+        "--seeds", type=int, default=5, metavar="N", help="run seeds 0..N-1 per scenario (default: %(default)s)"
+    )
     p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
     p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes (default: min(2, CPUs))")
-    p.add_argument("--duration", type=float, default=None, metavar="S",
-                   help="simulated seconds per run (default: the scenario's duration_s)")
-    p.add_argument("--pixel-sigma", type=float, default=None, metavar="PX",
-                   help="perfect-centroid baseline noise, px per axis (default: the image chain's own centroid error,"
-                        " measured per run)")
-    p.add_argument("--nav-noise", nargs="+", default=None, metavar="NAME",
-                   help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
-                        " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)")
-    p.add_argument("--estimator", default=None, metavar="NAME",
-                   help="trajectory estimator plug-in: a name registered under the irtrack.estimators entry point"
-                        " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)")
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulated seconds per run (default: the scenario's duration_s)",
+    )
+    p.add_argument(
+        "--pixel-sigma",
+        type=float,
+        default=None,
+        metavar="PX",
+        help="perfect-centroid baseline noise, px per axis (default: the image chain's own centroid error,"
+        " measured per run)",
+    )
+    p.add_argument(
+        "--nav-noise",
+        nargs="+",
+        default=None,
+        metavar="NAME",
+        help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
+        " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)",
+    )
+    p.add_argument(
+        "--estimator",
+        default=None,
+        metavar="NAME",
+        help="trajectory estimator plug-in: a name registered under the irtrack.estimators entry point"
+        " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)",
+    )
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
-    p.add_argument("--onboard-config", default=None, metavar="FILE",
-                   help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
-                        " scenario's camera, mount and origin)")
+    p.add_argument(
+        "--onboard-config",
+        default=None,
+        metavar="FILE",
+        help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
+        " scenario's camera, mount and origin)",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.eval", fromlist=["cmd_eval"]).cmd_eval(args))
 
 
 def _add_demo(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", default=DEFAULT_SCENARIO, metavar="FILE|NAME",
-                   help="scenario YAML file, or a shipped scenario's name (default: %(default)s)")
-    p.add_argument("--duration", type=float, default=20.0, metavar="S",
-                   help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)")
+    p.add_argument(
+        "--scenario",
+        default=DEFAULT_SCENARIO,
+        metavar="FILE|NAME",
+        help="scenario YAML file, or a shipped scenario's name (default: %(default)s)",
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=20.0,
+        metavar="S",
+        help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)",
+    )
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
-    p.add_argument("--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)")
-    p.add_argument("--onboard-config", default="config/onboard.yaml", metavar="FILE",
-                   help="the daemon's configuration, with the scenario's camera, mount and origin (default:"
-                        " %(default)s, the shipped one; built-in defaults when absent)")
-    p.add_argument("--nav-noise", default=None, metavar="NAME",
-                   help="the simulator's navigation errors, a case of config/noise_cases.yaml (default: the"
-                        " scenario's nav_noise, RTK)")
-    p.add_argument("--no-eval", dest="with_eval", action="store_false",
-                   help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run")
-    p.add_argument("--live-view", type=int, default=None, metavar="PORT",
-                   help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT")
+    p.add_argument(
+        "--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)"
+    )
+    p.add_argument(
+        "--onboard-config",
+        default="config/onboard.yaml",
+        metavar="FILE",
+        help="the daemon's configuration, with the scenario's camera, mount and origin (default:"
+        " %(default)s, the shipped one; built-in defaults when absent)",
+    )
+    p.add_argument(
+        "--nav-noise",
+        default=None,
+        metavar="NAME",
+        help="the simulator's navigation errors, a case of config/noise_cases.yaml (default: the"
+        " scenario's nav_noise, RTK)",
+    )
+    p.add_argument(
+        "--no-eval",
+        dest="with_eval",
+        action="store_false",
+        help="skip the lockstep evaluation (P1-P3, one seed, ~20-40 s) that follows the live run",
+    )
+    p.add_argument(
+        "--live-view",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT",
+    )
     p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.demo", fromlist=["cmd_demo"]).cmd_demo(args))
 
 
 def _add_dataset(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scenario", action="append", nargs="+", default=None, metavar="FILE|NAME",
-                   help="scenario YAML file(s) or shipped names, repeatable (default: P1)")
-    p.add_argument("--seeds", type=int, default=1, metavar="N", help="run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)")
+    p.add_argument(
+        "--scenario",
+        action="append",
+        nargs="+",
+        default=None,
+        metavar="FILE|NAME",
+        help="scenario YAML file(s) or shipped names, repeatable (default: P1)",
+    )
+    p.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        metavar="N",
+        help="run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)",
+    )
     p.add_argument("--seed0", type=int, default=0, metavar="N", help="first run seed (default: %(default)s)")
-    p.add_argument("--nav-noise", default=None, metavar="NAME",
-                   help="navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
-                        " (default: the scenario's nav_noise, RTK)")
-    p.add_argument("--format", nargs="+", default=["mot"], choices=("mot", "coco"),
-                   help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, or both (default: mot)")
-    p.add_argument("--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)")
-    p.add_argument("--duration", type=float, default=None, metavar="S", help="simulated seconds per sequence (default: the scenario's)")
+    p.add_argument(
+        "--nav-noise",
+        default=None,
+        metavar="NAME",
+        help="navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
+        " (default: the scenario's nav_noise, RTK)",
+    )
+    p.add_argument(
+        "--format",
+        nargs="+",
+        default=["mot"],
+        choices=("mot", "coco"),
+        help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, or both (default: mot)",
+    )
+    p.add_argument(
+        "--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)"
+    )
+    p.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        metavar="S",
+        help="simulated seconds per sequence (default: the scenario's)",
+    )
     p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
-    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes, one sequence each (default: min(2, CPUs))")
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="worker processes, one sequence each (default: min(2, CPUs))",
+    )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args))
+    p.set_defaults(
+        handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args)
+    )
 
 
 def _add_campaign(p: argparse.ArgumentParser) -> None:
     p.add_argument("spec", metavar="SPEC.yaml", help="campaign spec (schema: docs/campaigns.md)")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)")
-    p.add_argument("--workers", type=int, default=None, metavar="N",
-                   help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
-    p.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
-                   help="run the jobs on this Dask distributed scheduler's workers instead of a local pool (docs/campaigns.md)")
+    p.add_argument(
+        "--out",
+        default=None,
+        metavar="DIR",
+        help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))",
+    )
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="tcp://HOST:PORT",
+        help="run the jobs on this Dask distributed scheduler's workers instead of a local pool (docs/campaigns.md)",
+    )
     p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
     p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args))
+    p.set_defaults(
+        handler=lambda args: __import__("groundsim.evaluation.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args)
+    )
 
 
 # --------------------------------------------------------------------------- registry and entry point
@@ -298,8 +476,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _configure_logging(level: str) -> None:
-    logging.basicConfig(level=getattr(logging, level.upper()), stream=sys.stderr,
-                        format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=getattr(logging, level.upper()),
+        stream=sys.stderr,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
 
 
 def main(argv=None) -> int:

@@ -122,9 +122,15 @@ class RateSpec:
 
     def __post_init__(self) -> None:
         f = self.factor
-        if f is not None and (isinstance(f, bool) or not isinstance(f, (int, float)) or not math.isfinite(f)
-                              or not MIN_FACTOR <= f <= MAX_FACTOR):
-            raise ConfigError(f"--rate: expected realtime, max or a factor in [{MIN_FACTOR:g}, {MAX_FACTOR:g}], got {f!r}")
+        if f is not None and (
+            isinstance(f, bool)
+            or not isinstance(f, (int, float))
+            or not math.isfinite(f)
+            or not MIN_FACTOR <= f <= MAX_FACTOR
+        ):
+            raise ConfigError(
+                f"--rate: expected realtime, max or a factor in [{MIN_FACTOR:g}, {MAX_FACTOR:g}], got {f!r}"
+            )
         if not self.text:
             object.__setattr__(self, "text", "max" if f is None else ("realtime" if f == 1.0 else f"{f:g}"))
 
@@ -133,7 +139,7 @@ class RateSpec:
         return self.factor is not None
 
     @classmethod
-    def parse(cls, text: str) -> "RateSpec":
+    def parse(cls, text: str) -> RateSpec:
         """``realtime`` | ``max`` | a factor such as ``2`` or ``0.5``; ConfigError naming ``--rate``."""
         t = str(text).strip().lower()
         if t in ("realtime", "real-time", "rt"):
@@ -288,9 +294,11 @@ class JitterSummary:
     late_max_ms: float
 
     def line(self) -> str:
-        return (f"frame period {self.period_ms:.2f} ms: jitter p50 {self.jitter_p50_ms:.3f} ms, p99 {self.jitter_p99_ms:.3f} ms,"
-                f" max {self.jitter_max_ms:.3f} ms; lateness p50 {self.late_p50_ms:.3f} ms, p99 {self.late_p99_ms:.3f} ms,"
-                f" max {self.late_max_ms:.3f} ms ({self.frames} frames)")
+        return (
+            f"frame period {self.period_ms:.2f} ms: jitter p50 {self.jitter_p50_ms:.3f} ms, p99 {self.jitter_p99_ms:.3f} ms,"
+            f" max {self.jitter_max_ms:.3f} ms; lateness p50 {self.late_p50_ms:.3f} ms, p99 {self.late_p99_ms:.3f} ms,"
+            f" max {self.late_max_ms:.3f} ms ({self.frames} frames)"
+        )
 
 
 class JitterStats:
@@ -315,10 +323,13 @@ class JitterStats:
         jit = np.abs(np.diff(np.asarray(self._wall)) - self.period_s) * 1e3
         late = np.asarray(self._late) * 1e3
         return JitterSummary(
-            frames=len(self._wall), period_ms=self.period_s * 1e3,
-            jitter_p50_ms=float(np.percentile(jit, 50)), jitter_p99_ms=float(np.percentile(jit, 99)),
+            frames=len(self._wall),
+            period_ms=self.period_s * 1e3,
+            jitter_p50_ms=float(np.percentile(jit, 50)),
+            jitter_p99_ms=float(np.percentile(jit, 99)),
             jitter_max_ms=float(jit.max()),
-            late_p50_ms=float(np.percentile(late, 50)), late_p99_ms=float(np.percentile(late, 99)),
+            late_p50_ms=float(np.percentile(late, 50)),
+            late_p99_ms=float(np.percentile(late, 99)),
             late_max_ms=float(late.max()),
         )
 
@@ -408,13 +419,21 @@ class PairFlight:
         b = min(a + self.chunk_ticks, len(self.times_s))
         t = self.times_s[a:b]
         if self._target is None:
-            self._target = FlownVehicle(self._tgt_ref, sc.origin, sc.wind_ned_mps, yaw_mode="velocity",
-                                        name="target", seed=sc.seed)
+            self._target = FlownVehicle(
+                self._tgt_ref, sc.origin, sc.wind_ned_mps, yaw_mode="velocity", name="target", seed=sc.seed
+            )
         tgt = self._target.step_through(t)
         if self._observer is None:
             kw = {"look_at_ned_m": tgt.p_ned_m[0]} if self.observer_yaw_mode == "target" else {}
-            self._observer = FlownVehicle(self._obs_ref, sc.origin, sc.wind_ned_mps, yaw_mode=self.observer_yaw_mode,
-                                          name="observer", seed=sc.seed, **kw)
+            self._observer = FlownVehicle(
+                self._obs_ref,
+                sc.origin,
+                sc.wind_ned_mps,
+                yaw_mode=self.observer_yaw_mode,
+                name="observer",
+                seed=sc.seed,
+                **kw,
+            )
         if self.observer_yaw_mode == "target":
             obs = self._observer.step_through(t, tgt.p_ned_m, tgt.v_ned_mps)
         else:
@@ -429,7 +448,9 @@ class PairFlight:
         sc = self.scenario
         mount = sc.camera.mount
         n = len(t)
-        lat, lon, alt = geodetic_from_ned(np.concatenate([obs.p_ned_m, tgt.p_ned_m]), sc.origin)  # one call: ~0.5 ms each
+        lat, lon, alt = geodetic_from_ned(
+            np.concatenate([obs.p_ned_m, tgt.p_ned_m]), sc.origin
+        )  # one call: ~0.5 ms each
         _, _, yaw = euler_from_quat(obs.q_ned_from_body)
         q_mg = q_ng = None
         if self.gimballed:
@@ -437,20 +458,34 @@ class PairFlight:
             p_cam0, _ = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount)
             range_m = np.linalg.norm(tgt.p_ned_m - p_cam0, axis=-1)
             aim = tgt.p_ned_m + sinusoidal_pointing_error_ned_m(
-                t, range_m, g.pointing_error_frac_of_range, g.pointing_error_period_s, self.gimbal_phase_rad)
+                t, range_m, g.pointing_error_frac_of_range, g.pointing_error_period_s, self.gimbal_phase_rad
+            )
             q_mg = gimbal_pointing(obs.p_ned_m, obs.q_ned_from_body, mount, aim)
-            q_ng = quat_normalize(quat_multiply(quat_multiply(obs.q_ned_from_body, np.asarray(mount.q_body_from_mount)), q_mg))
+            q_ng = quat_normalize(
+                quat_multiply(quat_multiply(obs.q_ned_from_body, np.asarray(mount.q_body_from_mount)), q_mg)
+            )
         p_cam, q_cam = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount, q_mg)
         return _Chunk(
-            i0=i0, t_s=t,
-            obs_p_ned_m=obs.p_ned_m, obs_v_ned_mps=obs.v_ned_mps, obs_q_ned_from_body=obs.q_ned_from_body,
+            i0=i0,
+            t_s=t,
+            obs_p_ned_m=obs.p_ned_m,
+            obs_v_ned_mps=obs.v_ned_mps,
+            obs_q_ned_from_body=obs.q_ned_from_body,
             obs_omega_frd_radps=obs.omega_frd_radps,
-            obs_lat_deg=lat[:n], obs_lon_deg=lon[:n], obs_alt_m=alt[:n],
-            tgt_lat_deg=lat[n:], tgt_lon_deg=lon[n:], tgt_alt_m=alt[n:],
+            obs_lat_deg=lat[:n],
+            obs_lon_deg=lon[:n],
+            obs_alt_m=alt[:n],
+            tgt_lat_deg=lat[n:],
+            tgt_lon_deg=lon[n:],
+            tgt_alt_m=alt[n:],
             obs_yaw_rad=np.asarray(yaw),
-            tgt_p_ned_m=tgt.p_ned_m, tgt_v_ned_mps=tgt.v_ned_mps, tgt_q_ned_from_body=tgt.q_ned_from_body,
-            q_mount_from_gimbal=q_mg, q_ned_from_gimbal=q_ng,
-            cam_p_ned_m=np.asarray(p_cam), cam_q_ned_from_cam=np.asarray(q_cam),
+            tgt_p_ned_m=tgt.p_ned_m,
+            tgt_v_ned_mps=tgt.v_ned_mps,
+            tgt_q_ned_from_body=tgt.q_ned_from_body,
+            q_mount_from_gimbal=q_mg,
+            q_ned_from_gimbal=q_ng,
+            cam_p_ned_m=np.asarray(p_cam),
+            cam_q_ned_from_cam=np.asarray(q_cam),
         )
 
 
@@ -500,8 +535,16 @@ class SimCore:
     or None (the scenario's ``nav_noise``).
     """
 
-    def __init__(self, scenario: Scenario, run_seed: int = 0, duration_s: float | None = None, render: bool = True,
-                 boot_start_us: int = BOOT_START_US, flight_chunk_s: float | None = None, nav_noise=None) -> None:
+    def __init__(
+        self,
+        scenario: Scenario,
+        run_seed: int = 0,
+        duration_s: float | None = None,
+        render: bool = True,
+        boot_start_us: int = BOOT_START_US,
+        flight_chunk_s: float | None = None,
+        nav_noise=None,
+    ) -> None:
         from groundsim.world.nav_errors import NAV_ERROR_STREAM, NavErrorModel, resolve_nav_noise
 
         cfg = RunConfig(scenario, run_seed=run_seed, duration_s=duration_s, render=render, boot_start_us=boot_start_us)
@@ -540,10 +583,14 @@ class SimCore:
         j = i - c.i0
         return dict(
             time_boot_us=self.time_boot_us(i),
-            lat_deg=float(c.obs_lat_deg[j]), lon_deg=float(c.obs_lon_deg[j]),
-            alt_amsl_m=float(c.obs_alt_m[j]), alt_rel_m=float(c.obs_alt_m[j]) - self.scenario.origin.alt_m,
-            v_ned_mps=c.obs_v_ned_mps[j], q_ned_from_body=c.obs_q_ned_from_body[j],
-            body_rates_radps=c.obs_omega_frd_radps[j], heading_rad=float(c.obs_yaw_rad[j]),
+            lat_deg=float(c.obs_lat_deg[j]),
+            lon_deg=float(c.obs_lon_deg[j]),
+            alt_amsl_m=float(c.obs_alt_m[j]),
+            alt_rel_m=float(c.obs_alt_m[j]) - self.scenario.origin.alt_m,
+            v_ned_mps=c.obs_v_ned_mps[j],
+            q_ned_from_body=c.obs_q_ned_from_body[j],
+            body_rates_radps=c.obs_omega_frd_radps[j],
+            heading_rad=float(c.obs_yaw_rad[j]),
             q_gimbal=None if c.q_ned_from_gimbal is None else c.q_ned_from_gimbal[j],
         )
 
@@ -572,17 +619,31 @@ class SimCore:
             renderer = self.renderer()
             t0 = time.perf_counter()
             try:
-                pixels = renderer.render(c.cam_p_ned_m[j], rotmat_from_quat(c.cam_q_ned_from_cam[j]), c.tgt_p_ned_m[j],
-                                         rotmat_from_quat(c.tgt_q_ned_from_body[j]), GROUND_D_M)
+                pixels = renderer.render(
+                    c.cam_p_ned_m[j],
+                    rotmat_from_quat(c.cam_q_ned_from_cam[j]),
+                    c.tgt_p_ned_m[j],
+                    rotmat_from_quat(c.tgt_q_ned_from_body[j]),
+                    GROUND_D_M,
+                )
             except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept
                 self.render_errors(f"frame {k}: render failed", exc)
             self.render_s += time.perf_counter() - t0
-        row = truth_row(k, t_us, float(c.t_s[j]), self.scenario.origin, self.scenario.camera.intrinsics,
-                        c.tgt_p_ned_m[j], c.tgt_v_ned_mps[j], c.obs_p_ned_m[j], c.cam_p_ned_m[j],
-                        c.cam_q_ned_from_cam[j],
-                        target_lla=(c.tgt_lat_deg[j], c.tgt_lon_deg[j], c.tgt_alt_m[j]),
-                        observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
-                        nav_error=self.nav_error(i))
+        row = truth_row(
+            k,
+            t_us,
+            float(c.t_s[j]),
+            self.scenario.origin,
+            self.scenario.camera.intrinsics,
+            c.tgt_p_ned_m[j],
+            c.tgt_v_ned_mps[j],
+            c.obs_p_ned_m[j],
+            c.cam_p_ned_m[j],
+            c.cam_q_ned_from_cam[j],
+            target_lla=(c.tgt_lat_deg[j], c.tgt_lon_deg[j], c.tgt_alt_m[j]),
+            observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
+            nav_error=self.nav_error(i),
+        )
         return SimFrame(k, t_us, pixels, row)
 
 
@@ -611,15 +672,25 @@ class RunReport:
     frames_published: int = 0
 
     def line(self) -> str:
-        s = (f"{'stopped' if self.stopped else 'done'}: {self.frames}/{self.frames_total} frames, {self.sim_s:.2f} s simulated"
-             f" in {self.wall_s:.2f} s (rt x{self.rt_factor:.2f}, rate {self.rate}; set-up {self.setup_s:.2f} s)")
+        s = (
+            f"{'stopped' if self.stopped else 'done'}: {self.frames}/{self.frames_total} frames, {self.sim_s:.2f} s simulated"
+            f" in {self.wall_s:.2f} s (rt x{self.rt_factor:.2f}, rate {self.rate}; set-up {self.setup_s:.2f} s)"
+        )
         if self.errors:
             s += "; errors " + ", ".join(f"{k} {v}" for k, v in sorted(self.errors.items()))
         return s
 
 
-def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, truth: TruthWriter | None = None,
-             stop: threading.Event | None = None, clock=None) -> RunReport:
+def run_loop(
+    core: SimCore,
+    rate: RateSpec,
+    *,
+    mavlink=None,
+    publisher=None,
+    truth: TruthWriter | None = None,
+    stop: threading.Event | None = None,
+    clock=None,
+) -> RunReport:
     """Drive ``core`` tick by tick into the sinks (any may be None); see the module docstring.
 
     ``mavlink``: has ``update_state(**state, nav_error=sample)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
@@ -645,8 +716,16 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
     pending = core.frame(0) if not stop.is_set() else None
     setup_s = clock.now_s() - t_setup
     flight_setup_s, render_setup_s = core.flight.flight_s, core.render_s
-    log.info("set-up %.2f s (flight %.2f s); %d frames at %g Hz, %d ticks at %g Hz, rate %s",
-             setup_s, flight_setup_s, core.frame_count, core.frame_rate_hz, core.tick_count, core.tick_rate_hz, rate.text)
+    log.info(
+        "set-up %.2f s (flight %.2f s); %d frames at %g Hz, %d ticks at %g Hz, rate %s",
+        setup_s,
+        flight_setup_s,
+        core.frame_count,
+        core.frame_rate_hz,
+        core.tick_count,
+        core.tick_rate_hz,
+        rate.text,
+    )
 
     if rate.paced:
         # the set-up left a large heap (SciPy, OpenCV, zenoh, JSBSim); a full collection of it stalls
@@ -701,8 +780,14 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
             if now >= next_status:
                 next_status = now + STATUS_EVERY_S
                 sim_s = frames / core.frame_rate_hz
-                log.info("frames %d/%d, sim %.2f/%.2f s, rt x%.2f", frames, n_frames, sim_s, core.duration_s,
-                         sim_s / max(now - wall0, 1e-9))
+                log.info(
+                    "frames %d/%d, sim %.2f/%.2f s, rt x%.2f",
+                    frames,
+                    n_frames,
+                    sim_s,
+                    core.duration_s,
+                    sim_s / max(now - wall0, 1e-9),
+                )
             if jitter is not None and now >= next_jitter_log:
                 next_jitter_log = now + JITTER_LOG_EVERY_S
                 summary = jitter.summary()
@@ -722,11 +807,19 @@ def run_loop(core: SimCore, rate: RateSpec, *, mavlink=None, publisher=None, tru
         "truth": 1e3 * acc["truth"] / nf,
     }
     report = RunReport(
-        frames=frames, frames_total=n_frames, sim_s=sim_s, wall_s=wall_s, setup_s=setup_s,
-        rt_factor=sim_s / wall_s, stopped=frames < n_frames, rate=rate.text,
-        jitter=jitter.summary() if jitter is not None else None, per_frame_ms=per_frame,
+        frames=frames,
+        frames_total=n_frames,
+        sim_s=sim_s,
+        wall_s=wall_s,
+        setup_s=setup_s,
+        rt_factor=sim_s / wall_s,
+        stopped=frames < n_frames,
+        rate=rate.text,
+        jitter=jitter.summary() if jitter is not None else None,
+        per_frame_ms=per_frame,
         errors={e.kind: e.count for e in (mavlink_errors, publish_errors, core.render_errors) if e.count},
-        mavlink_counters=dict(getattr(mavlink, "counters", {}) or {}), frames_published=published,
+        mavlink_counters=dict(getattr(mavlink, "counters", {}) or {}),
+        frames_published=published,
     )
     log.info("%s", report.line())
     if report.jitter is not None:
@@ -750,8 +843,9 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
     if chunk_s is None:
         chunk_s = PACED_CHUNK_S if config.rate.paced else MAX_MODE_CHUNK_S
     sc = config.scenario
-    core = SimCore(sc, config.run_seed, config.duration_s, config.render, config.boot_start_us, chunk_s,
-                   nav_noise=config.nav_noise)
+    core = SimCore(
+        sc, config.run_seed, config.duration_s, config.render, config.boot_start_us, chunk_s, nav_noise=config.nav_noise
+    )
 
     zs = config.zenoh if config.zenoh is not None else ZenohSettings()
     session = publisher = vehicle = writer = recorder = None
@@ -766,9 +860,17 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             recorder = _start_recorder(config, core)
             publisher, writer = _RecordingPublisher(publisher, recorder), _RecordingTruth(writer, recorder)
             _tap_mavlink(vehicle, recorder)
-        log.info("scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s", sc.name,
-                 config.run_seed, core.duration_s, "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
-                 core.nav_noise.name, config.mavlink, frame_key(config.vehicle), "" if config.render else " (rendering off: no frames)")
+        log.info(
+            "scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s",
+            sc.name,
+            config.run_seed,
+            core.duration_s,
+            "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
+            core.nav_noise.name,
+            config.mavlink,
+            frame_key(config.vehicle),
+            "" if config.render else " (rendering off: no frames)",
+        )
         return run_loop(core, config.rate, mavlink=vehicle, publisher=publisher, truth=writer, stop=stop, clock=clock)
     finally:
         for closer in (writer, publisher, vehicle, session, recorder):
@@ -787,10 +889,20 @@ def _start_recorder(config: RunConfig, core: SimCore):
 
     from onboard.io.record import FlightRecorder, RecordSettings
 
-    meta = {"scenario": config.scenario.name, "run_seed": str(config.run_seed), "duration_s": f"{core.duration_s:g}",
-            "nav_noise": core.nav_noise.name, "rate": config.rate.text}
-    rec = FlightRecorder(RecordSettings(str(config.record_path)), vehicle=config.vehicle, metadata=meta,
-                         recorder="groundsim", clock_ns=_time.monotonic_ns)
+    meta = {
+        "scenario": config.scenario.name,
+        "run_seed": str(config.run_seed),
+        "duration_s": f"{core.duration_s:g}",
+        "nav_noise": core.nav_noise.name,
+        "rate": config.rate.text,
+    }
+    rec = FlightRecorder(
+        RecordSettings(str(config.record_path)),
+        vehicle=config.vehicle,
+        metadata=meta,
+        recorder="groundsim",
+        clock_ns=_time.monotonic_ns,
+    )
     rec.start()
     return rec
 

@@ -68,23 +68,57 @@ import logging
 import math
 import os
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 
 from groundsim.world.motion import KinematicState, Motion, Perturbed
-from groundsim.world.scenario import (MIN_SEPARATION_M, SINGER_MARGIN_S, NoiseCase, Scenario, VehicleSpec, _Fail,
-                                _integer, _mapping, _number, _read_yaml, _string, load_noise_cases, load_scenario,
-                                reference_scenario_paths)
+from groundsim.world.scenario import (
+    MIN_SEPARATION_M,
+    SINGER_MARGIN_S,
+    NoiseCase,
+    Scenario,
+    VehicleSpec,
+    _Fail,
+    _integer,
+    _mapping,
+    _number,
+    _read_yaml,
+    _string,
+    load_noise_cases,
+    load_scenario,
+    reference_scenario_paths,
+)
 from onboard.core.errors import ConfigError
 
 __all__ = [
-    "Geometry", "REFERENCE_GEOMETRY", "ManoeuvreScaled", "MovedTarget", "derive_scenario",
-    "CampaignSpec", "load_spec", "spec_from_dict", "RunParams", "run_id", "plan_runs",
-    "score_track", "run_job", "read_log", "append_rows", "run_campaign", "CampaignResult",
-    "table_rows", "write_table", "write_report", "cmd_campaign", "RESULT_SCHEMA", "MODES", "code_fingerprint",
+    "Geometry",
+    "REFERENCE_GEOMETRY",
+    "ManoeuvreScaled",
+    "MovedTarget",
+    "derive_scenario",
+    "CampaignSpec",
+    "load_spec",
+    "spec_from_dict",
+    "RunParams",
+    "run_id",
+    "plan_runs",
+    "score_track",
+    "run_job",
+    "read_log",
+    "append_rows",
+    "run_campaign",
+    "CampaignResult",
+    "table_rows",
+    "write_table",
+    "write_report",
+    "cmd_campaign",
+    "RESULT_SCHEMA",
+    "MODES",
+    "code_fingerprint",
     "check_workers",
 ]
 
@@ -99,7 +133,12 @@ HONEST_BEYOND_3SIGMA = 0.01  # a run is honest when at most this fraction of pub
 MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
 GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
 LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = (
-    "runs.jsonl", "runs.csv", "runs.parquet", "report.md", "manoeuvre.png")
+    "runs.jsonl",
+    "runs.csv",
+    "runs.parquet",
+    "report.md",
+    "manoeuvre.png",
+)
 SCHEDULER_CONNECT_TIMEOUT_S = 10.0  # --scheduler: how long to wait for the Dask scheduler to answer
 #: columns that are measurements of the machine, not results: left out when tables are compared
 TIMING_COLUMNS = ("wall_s", "case_wall_s")
@@ -190,8 +229,9 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
     p_t0 = np.asarray(base.state(np.zeros(1)).p_ned_m[0], dtype=float)
     p_o0 = np.asarray(obs_ref.state(np.zeros(1)).p_ned_m[0], dtype=float)
     offset = (geometry.range_scale - 1.0) * (p_t0 - p_o0)
-    tgt_base = MovedTarget(base, tuple(float(x) for x in p_t0), math.radians(geometry.aspect_deg),
-                           tuple(float(x) for x in offset))
+    tgt_base = MovedTarget(
+        base, tuple(float(x) for x in p_t0), math.radians(geometry.aspect_deg), tuple(float(x) for x in offset)
+    )
     dist = scenario.target.disturbance
     if dist is None:
         target = VehicleSpec(tgt_base)
@@ -203,20 +243,33 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
     t = scenario.frame_times_s()
     with np.errstate(all="ignore"):
         po, pt = observer.state(t).p_ned_m, tgt_base.state(t).p_ned_m
-    what = f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, " \
-           f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
+    what = (
+        f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, "
+        f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
+    )
     r = np.linalg.norm(pt - po, axis=1)
     k = int(np.argmin(r))
     if not r[k] >= MIN_SEPARATION_M:
-        fail.text(source, f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
-                  f"{what}: {r[k]:.3g} m at t = {t[k]:.2f} s")
+        fail.text(
+            source,
+            f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
+            f"{what}: {r[k]:.3g} m at t = {t[k]:.2f} s",
+        )
     for who, p in (("observer", po), ("target", pt)):
         k = int(np.argmax(p[:, 2]))
         if not p[k, 2] < -GROUND_CLEARANCE_M:
-            fail.text(source, f"a geometry whose paths stay {GROUND_CLEARANCE_M:g} m above the ground",
-                      f"{what}: the {who} at {-p[k, 2]:.3g} m up at t = {t[k]:.2f} s")
-    return dataclasses.replace(scenario, name=name, description=f"{scenario.description} [{geometry.label}]",
-                               observer=VehicleSpec(observer), target=target)
+            fail.text(
+                source,
+                f"a geometry whose paths stay {GROUND_CLEARANCE_M:g} m above the ground",
+                f"{what}: the {who} at {-p[k, 2]:.3g} m up at t = {t[k]:.2f} s",
+            )
+    return dataclasses.replace(
+        scenario,
+        name=name,
+        description=f"{scenario.description} [{geometry.label}]",
+        observer=VehicleSpec(observer),
+        target=target,
+    )
 
 
 # --------------------------------------------------------------------------- the spec
@@ -247,11 +300,27 @@ class CampaignSpec:
         return len(self.scenarios) * len(self.geometries) * len(self.noise) * len(self.algorithms) * len(self.seeds)
 
 
-_SPEC_KEYS = ("name", "description", "mode", "scenarios", "noise", "algorithms", "seeds", "geometry", "duration_s",
-              "noise_model", "crb", "workers", "onboard_config")
+_SPEC_KEYS = (
+    "name",
+    "description",
+    "mode",
+    "scenarios",
+    "noise",
+    "algorithms",
+    "seeds",
+    "geometry",
+    "duration_s",
+    "noise_model",
+    "crb",
+    "workers",
+    "onboard_config",
+)
 _GEOMETRY_AXES = ("range_scale", "aspect_deg", "manoeuvre_scale")
-_AXIS_BOUNDS = {"range_scale": dict(lo=0.0, lo_open=True, hi=100.0), "aspect_deg": dict(lo=-360.0, hi=360.0),
-                "manoeuvre_scale": dict(lo=0.0, hi=100.0)}
+_AXIS_BOUNDS = {
+    "range_scale": dict(lo=0.0, lo_open=True, hi=100.0),
+    "aspect_deg": dict(lo=-360.0, hi=360.0),
+    "manoeuvre_scale": dict(lo=0.0, hi=100.0),
+}
 
 
 def _name_list(v, path, fail, what) -> tuple[str, ...]:
@@ -328,8 +397,12 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     fail = _Fail(source)
     spec_dir = spec_dir or Path(".")
     _mapping(d, "", fail, _SPEC_KEYS, ("scenarios", "noise", "algorithms"))
-    name = _string(d.get("name", Path(str(source)).stem or "campaign"), "name", fail,
-                   what="a name of letters, digits, '_', '.', '-'")
+    name = _string(
+        d.get("name", Path(str(source)).stem or "campaign"),
+        "name",
+        fail,
+        what="a name of letters, digits, '_', '.', '-'",
+    )
     from groundsim.world.scenario import NAME_PATTERN
 
     if not NAME_PATTERN.match(name):
@@ -366,8 +439,9 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     duration = d.get("duration_s")
     if duration is not None:
         duration = _number(duration, "duration_s", fail, lo=0.0, lo_open=True, unit="s")
-    noise_model = _string(d.get("noise_model", "case" if mode == "synthetic" else "config"), "noise_model", fail,
-                          choices=NOISE_MODELS)
+    noise_model = _string(
+        d.get("noise_model", "case" if mode == "synthetic" else "config"), "noise_model", fail, choices=NOISE_MODELS
+    )
     if mode == "closed_loop" and noise_model != "config":
         fail("noise_model", "config in closed_loop mode (the daemon's configuration is what runs)", noise_model)
     crb = d.get("crb", True)
@@ -382,12 +456,25 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         onboard = onboard if onboard.is_absolute() or onboard.exists() else spec_dir / onboard
         if not onboard.is_file():
             fail("onboard_config", "an existing onboard configuration file", str(onboard))
-    spec = CampaignSpec(name=name, mode=mode, scenarios=scenarios, scenario_paths=tuple(paths), noise=noise,
-                        algorithms=algorithms, seeds=seeds, geometries=geometries, duration_s=duration,
-                        noise_model=noise_model, crb=crb, workers=workers, onboard_config=onboard, source=str(source))
+    spec = CampaignSpec(
+        name=name,
+        mode=mode,
+        scenarios=scenarios,
+        scenario_paths=tuple(paths),
+        noise=noise,
+        algorithms=algorithms,
+        seeds=seeds,
+        geometries=geometries,
+        duration_s=duration,
+        noise_model=noise_model,
+        crb=crb,
+        workers=workers,
+        onboard_config=onboard,
+        source=str(source),
+    )
     if spec.run_count > MAX_RUNS:
         fail("(document)", f"at most {MAX_RUNS} runs", f"{spec.run_count} runs")
-    for i, p in enumerate(paths):  # every scenario loads, every variant is a valid geometry, the duration fits
+    for p in paths:  # every scenario loads, every variant is a valid geometry, the duration fits
         sc = load_scenario(p)
         if duration is not None and duration > sc.duration_s + 1e-9:
             fail("duration_s", f"at most {sc.name}'s duration_s ({sc.duration_s:g} s)", duration)
@@ -450,7 +537,7 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
     """Every run of the spec, in the table's order: scenario, geometry, noise, algorithm, seed."""
     cases = load_noise_cases()
     out = []
-    for sname, path in zip(spec.scenarios, spec.scenario_paths):
+    for path in spec.scenario_paths:
         sdig = _digest(Path(path).read_bytes())
         sc_name = load_scenario(path).name
         for g in spec.geometries:
@@ -458,9 +545,24 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
                 ndig = _digest(repr(cases[n]).encode("utf-8"))
                 for a in spec.algorithms:
                     for s in spec.seeds:
-                        out.append(RunParams(spec.mode, sc_name, sdig, g.range_scale, g.aspect_deg, g.manoeuvre_scale,
-                                             n, ndig, a, int(s), spec.duration_s, spec.noise_model, spec.crb,
-                                             onboard_digest))
+                        out.append(
+                            RunParams(
+                                spec.mode,
+                                sc_name,
+                                sdig,
+                                g.range_scale,
+                                g.aspect_deg,
+                                g.manoeuvre_scale,
+                                n,
+                                ndig,
+                                a,
+                                int(s),
+                                spec.duration_s,
+                                spec.noise_model,
+                                spec.crb,
+                                onboard_digest,
+                            )
+                        )
     return out
 
 
@@ -562,7 +664,8 @@ def geometry_figures(scenario: Scenario, seed: int, t_s) -> dict:
     sp = float(np.linalg.norm(v0))
     aspect = math.degrees(math.acos(float(np.clip(np.dot(v0, -u[0]) / sp, -1, 1)))) if sp > 1e-9 else math.nan
     return {
-        "range_start_m": float(r[0]), "range_median_m": float(np.median(r)),
+        "range_start_m": float(r[0]),
+        "range_median_m": float(np.median(r)),
         "observer_accel_rms_mps2": float(np.sqrt(np.mean(np.sum(a**2, axis=1)))),
         "observer_accel_perp_los_rms_mps2": float(np.sqrt(np.mean(np.sum(a_perp**2, axis=1)))),
         "aspect_start_deg": aspect,
@@ -605,20 +708,28 @@ def _case_bound(cfg, obs, truth) -> dict:
     from onboard.estimation.metrics import evaluate
 
     nan = math.nan
-    out = {"crb_rms_m": nan, "crb_range_sigma_pct": nan, "batch_err_range_pct": nan, "batch_observable": None,
-           "bound_note": ""}
+    out = {
+        "crb_rms_m": nan,
+        "crb_range_sigma_pct": nan,
+        "batch_err_range_pct": nan,
+        "batch_observable": None,
+        "bound_note": "",
+    }
     est = MapEstimator(noise=cfg.estimator.noise_model())
     try:
         res = est.solve(obs)
     except (EstimationError, ConfigError, ValueError, np.linalg.LinAlgError) as exc:
         out["bound_note"] = f"batch MAP failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
         return out
-    out["batch_err_range_pct"] = 100.0 * evaluate(truth.p_target_ned_m, res.p_ned_m, truth.p_cam_ned_m).range_normalised_error
+    out["batch_err_range_pct"] = (
+        100.0 * evaluate(truth.p_target_ned_m, res.p_ned_m, truth.p_cam_ned_m).range_normalised_error
+    )
     out["batch_observable"] = bool(res.observable)
     try:
         out["crb_rms_m"] = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps)
-        out["crb_range_sigma_pct"] = 100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior,
-                                                                          res.turn_rate_radps)
+        out["crb_range_sigma_pct"] = 100 * bayesian_crb_range_sigma_ratio(
+            est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps
+        )
     except (EstimationError, ValueError, np.linalg.LinAlgError) as exc:
         out["bound_note"] = f"CRB failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
     return out
@@ -667,9 +778,17 @@ def _run_synthetic(job: Job) -> list[dict]:
                 if p.shape == (3,) and P.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(P)):
                     est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
         except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built fails its runs alone
-            rows.append(_row(params, {**case, "status": "failed",
-                                      "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                                      "wall_s": time.perf_counter() - w0}))
+            rows.append(
+                _row(
+                    params,
+                    {
+                        **case,
+                        "status": "failed",
+                        "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                        "wall_s": time.perf_counter() - w0,
+                    },
+                )
+            )
             continue
         m = score_track(truth.t_s, truth.p_target_ned_m, truth.p_cam_ned_m, est_p, est_P, observable)
         m.update(case)
@@ -687,24 +806,44 @@ def _run_closed_loop(job: Job) -> list[dict]:
     rows = []
     for params in job.runs:
         w0 = time.perf_counter()
-        opts = EvalOptions(duration_s=params.duration_s, batch=params.crb, keep_frame=False, nav_noise=job.noise.name,
-                           estimator=params.algorithm)
+        opts = EvalOptions(
+            duration_s=params.duration_s,
+            batch=params.crb,
+            keep_frame=False,
+            nav_noise=job.noise.name,
+            estimator=params.algorithm,
+        )
         try:
             r = run_lockstep(job.scenario, params.seed, opts, job.base_config)
         except Exception as exc:  # noqa: BLE001 - a run that cannot be made (flight envelope, plug-in) fails alone
-            rows.append(_row(params, {"status": "failed", "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                                      "wall_s": time.perf_counter() - w0}))
+            rows.append(
+                _row(
+                    params,
+                    {
+                        "status": "failed",
+                        "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
+                        "wall_s": time.perf_counter() - w0,
+                    },
+                )
+            )
             continue
         s = score_run(r)
         m = score_track(r.t_s, r.truth_p_ned_m, r.cam_p_ned_m, r.est_p_ned_m, r.est_cov_ned_m2, r.observable)
         m.update(geometry_figures(job.scenario, params.seed, r.t_s - r.t_s[0]))
         b = s.get("batch") or {}
         bm = (b.get("pipeline") or {}).get("metrics") or {}
-        m.update(crb_rms_m=b.get("crb_rms_m"), crb_range_sigma_pct=math.nan,
-                 batch_err_range_pct=bm.get("err_range_pct"), batch_observable=(b.get("pipeline") or {}).get("observable"),
-                 published_share_after_3s=s["closed_loop"]["published_share_after_3s"],
-                 chain_centroid_sigma_px=s.get("chain_centroid_sigma_px"),
-                 status="ok", error="", estimator_errors=0, wall_s=time.perf_counter() - w0)
+        m.update(
+            crb_rms_m=b.get("crb_rms_m"),
+            crb_range_sigma_pct=math.nan,
+            batch_err_range_pct=bm.get("err_range_pct"),
+            batch_observable=(b.get("pipeline") or {}).get("observable"),
+            published_share_after_3s=s["closed_loop"]["published_share_after_3s"],
+            chain_centroid_sigma_px=s.get("chain_centroid_sigma_px"),
+            status="ok",
+            error="",
+            estimator_errors=0,
+            wall_s=time.perf_counter() - w0,
+        )
         rows.append(_row(params, m))
     for row in rows:
         row["case_wall_s"] = sum(x["wall_s"] for x in rows)
@@ -716,8 +855,10 @@ def _row(params: RunParams, metrics: dict) -> dict:
     row.update(dataclasses.asdict(params))
     row["geometry"] = params.geometry.label
     row.update(metrics)
-    return {k: _nan_to_none(float(v) if isinstance(v, (np.floating, np.integer)) and not isinstance(v, np.bool_) else v)
-            for k, v in row.items()}
+    return {
+        k: _nan_to_none(float(v) if isinstance(v, (np.floating, np.integer)) and not isinstance(v, np.bool_) else v)
+        for k, v in row.items()
+    }
 
 
 def run_job(job: Job) -> list[dict]:
@@ -777,7 +918,9 @@ def _pool_context():
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding"])
+    ctx.set_forkserver_preload(
+        ["groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding"]
+    )
     return ctx
 
 
@@ -825,8 +968,10 @@ def _cluster_client(scheduler: str):
     try:
         client = Client(scheduler, timeout=SCHEDULER_CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:
-        raise ConfigError(f"--scheduler {scheduler}: no scheduler answered within {SCHEDULER_CONNECT_TIMEOUT_S:g} s "
-                          f"({type(exc).__name__}: {' '.join(str(exc).split())})") from None
+        raise ConfigError(
+            f"--scheduler {scheduler}: no scheduler answered within {SCHEDULER_CONNECT_TIMEOUT_S:g} s "
+            f"({type(exc).__name__}: {' '.join(str(exc).split())})"
+        ) from None
     return client
 
 
@@ -856,13 +1001,17 @@ def check_workers(client, scheduler: str) -> int:
     """Threads the cluster offers; ConfigError when it has none or a worker runs other irtrack code."""
     nthreads = client.nthreads()
     if not nthreads:
-        raise ConfigError(f"--scheduler {scheduler}: the scheduler has no workers (start some: dask worker {scheduler})")
+        raise ConfigError(
+            f"--scheduler {scheduler}: the scheduler has no workers (start some: dask worker {scheduler})"
+        )
     mine = code_fingerprint()
     theirs = client.run(code_fingerprint)
     other = sorted(w for w, fp in theirs.items() if fp != mine)
     if other:
-        raise ConfigError(f"--scheduler {scheduler}: worker(s) {', '.join(other)} run other irtrack code than this "
-                          f"coordinator (fingerprint {mine}); install the same checkout there")
+        raise ConfigError(
+            f"--scheduler {scheduler}: worker(s) {', '.join(other)} run other irtrack code than this "
+            f"coordinator (fingerprint {mine}); install the same checkout there"
+        )
     return sum(nthreads.values())
 
 
@@ -879,9 +1028,17 @@ def _pool_futures(pool, jobs: list[Job]):
     return futs
 
 
-def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool = True, fresh: bool = False,
-                 retry_failed: bool = False, base_config=None, onboard_digest: str = "defaults",
-                 scheduler: str | None = None) -> CampaignResult:
+def run_campaign(
+    spec: CampaignSpec,
+    out: Path,
+    workers: int = 2,
+    progress: bool = True,
+    fresh: bool = False,
+    retry_failed: bool = False,
+    base_config=None,
+    onboard_digest: str = "defaults",
+    scheduler: str | None = None,
+) -> CampaignResult:
     """Plan, skip what the log has, run the rest, append each case's rows as they come, then rebuild the
     table and the report.  Ctrl-C stops cleanly: the runs finished so far are kept, the table and report
     show them, and the same command resumes.
@@ -919,8 +1076,16 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
     else:
         workers = max(1, min(workers, len(jobs))) if jobs else 1
         where = "this process" if workers == 1 else "a local process pool"
-    log.info("campaign %s: %d runs planned, %d already done, %d to run in %d jobs on %d worker(s) (%s)",
-             spec.name, len(planned), reused, len(pending), len(jobs), workers, where)
+    log.info(
+        "campaign %s: %d runs planned, %d already done, %d to run in %d jobs on %d worker(s) (%s)",
+        spec.name,
+        len(planned),
+        reused,
+        len(pending),
+        len(jobs),
+        workers,
+        where,
+    )
     bar = None
     ran = failed = 0
     interrupted = False
@@ -933,16 +1098,24 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
 
             from groundsim.evaluation.eval import bar_pacing
 
-            bar = tqdm(total=len(pending), unit="run", desc=f"campaign {spec.name} ({workers} worker(s))", leave=True,
-                       dynamic_ncols=True, **bar_pacing())
+            bar = tqdm(
+                total=len(pending),
+                unit="run",
+                desc=f"campaign {spec.name} ({workers} worker(s))",
+                leave=True,
+                dynamic_ncols=True,
+                **bar_pacing(),
+            )
         if client is not None:  # submit every job, take them as they complete
             import uuid
 
             from distributed import as_completed
 
             batch = uuid.uuid4().hex[:8]
-            futures = [client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
-                       for k, j in enumerate(jobs)]
+            futures = [
+                client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
+                for k, j in enumerate(jobs)
+            ]
             results = (f.result() for f in as_completed(futures, loop=client.loop))
         elif workers > 1:  # the same, on a local pool
             import concurrent.futures as cf
@@ -958,7 +1131,9 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
             failed += sum(1 for r in rows if r.get("status") != "ok")
             if bar is not None:
                 bar.update(len(rows))
-                bar.set_postfix_str(f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}")
+                bar.set_postfix_str(
+                    f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}"
+                )
         if pool is not None:
             pool.close()
             pool.join()
@@ -981,8 +1156,22 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
     done, _ = read_log(log_path)
     rows = [done[i] for i in ids if i in done]
     files = write_table(out, rows)
-    files.update(write_report(out, spec, rows, dict(planned=len(planned), reused=reused, ran=ran, failed=failed,
-                                                    wall_s=wall, workers=workers, interrupted=interrupted)))
+    files.update(
+        write_report(
+            out,
+            spec,
+            rows,
+            dict(
+                planned=len(planned),
+                reused=reused,
+                ran=ran,
+                failed=failed,
+                wall_s=wall,
+                workers=workers,
+                interrupted=interrupted,
+            ),
+        )
+    )
     return CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted, files)
 
 
@@ -992,15 +1181,52 @@ def run_campaign(spec: CampaignSpec, out: Path, workers: int = 2, progress: bool
 #: the table's columns, in order: identity and parameters, geometry measured, the run's figures, the case's
 #: bound, status, provenance, timings (columns a newer version adds come after, alphabetically)
 COLUMN_ORDER = (
-    "run_id", "mode", "scenario", "geometry", "range_scale", "aspect_deg", "manoeuvre_scale", "noise", "algorithm",
-    "seed", "duration_s", "noise_model", "status",
-    "range_start_m", "range_median_m", "aspect_start_deg", "observer_accel_rms_mps2", "observer_accel_perp_los_rms_mps2",
-    "frames", "published_frames", "observable_frames", "settle_s", "err_range_observable_pct",
-    "err_range_published_settled_pct", "err_range_final_pct", "rmse_observable_m", "rmse_published_settled_m",
-    "observable_share_settled", "beyond_3sigma_published", "nees_observable", "nees_published_settled",
-    "first_observable_s", "published_share_after_3s", "chain_centroid_sigma_px",
-    "crb", "crb_rms_m", "crb_range_sigma_pct", "batch_err_range_pct", "batch_observable", "bound_note",
-    "error", "estimator_errors", "scenario_digest", "noise_digest", "onboard_digest", "schema",
+    "run_id",
+    "mode",
+    "scenario",
+    "geometry",
+    "range_scale",
+    "aspect_deg",
+    "manoeuvre_scale",
+    "noise",
+    "algorithm",
+    "seed",
+    "duration_s",
+    "noise_model",
+    "status",
+    "range_start_m",
+    "range_median_m",
+    "aspect_start_deg",
+    "observer_accel_rms_mps2",
+    "observer_accel_perp_los_rms_mps2",
+    "frames",
+    "published_frames",
+    "observable_frames",
+    "settle_s",
+    "err_range_observable_pct",
+    "err_range_published_settled_pct",
+    "err_range_final_pct",
+    "rmse_observable_m",
+    "rmse_published_settled_m",
+    "observable_share_settled",
+    "beyond_3sigma_published",
+    "nees_observable",
+    "nees_published_settled",
+    "first_observable_s",
+    "published_share_after_3s",
+    "chain_centroid_sigma_px",
+    "crb",
+    "crb_rms_m",
+    "crb_range_sigma_pct",
+    "batch_err_range_pct",
+    "batch_observable",
+    "bound_note",
+    "error",
+    "estimator_errors",
+    "scenario_digest",
+    "noise_digest",
+    "onboard_digest",
+    "schema",
 ) + TIMING_COLUMNS
 
 
@@ -1056,23 +1282,31 @@ def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
     out = []
     for a, s, n in keys:
         rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"]) == (a, s, n)]
-        honest = [r for r in rs if r.get("beyond_3sigma_published") is not None
-                  and r["beyond_3sigma_published"] <= HONEST_BEYOND_3SIGMA]
-        out.append({
-            "algorithm": a, "scenario": s, "noise": n, "runs": len(rs),
-            "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
-            "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
-            "err_final": _med(r.get("err_range_final_pct") for r in rs),
-            "rmse_obs": _med(r.get("rmse_observable_m") for r in rs),
-            "rmse_pub": _med(r.get("rmse_published_settled_m") for r in rs),
-            "obs_share": _med(r.get("observable_share_settled") for r in rs),
-            "honest": len(honest),
-            "nees": _med(r.get("nees_observable") for r in rs),
-            "nees_pub": _med(r.get("nees_published_settled") for r in rs),
-            "crb": _med(r.get("crb_rms_m") for r in rs),
-            "crb_sig": _med(r.get("crb_range_sigma_pct") for r in rs),
-            "batch": _med(r.get("batch_err_range_pct") for r in rs),
-        })
+        honest = [
+            r
+            for r in rs
+            if r.get("beyond_3sigma_published") is not None and r["beyond_3sigma_published"] <= HONEST_BEYOND_3SIGMA
+        ]
+        out.append(
+            {
+                "algorithm": a,
+                "scenario": s,
+                "noise": n,
+                "runs": len(rs),
+                "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
+                "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
+                "err_final": _med(r.get("err_range_final_pct") for r in rs),
+                "rmse_obs": _med(r.get("rmse_observable_m") for r in rs),
+                "rmse_pub": _med(r.get("rmse_published_settled_m") for r in rs),
+                "obs_share": _med(r.get("observable_share_settled") for r in rs),
+                "honest": len(honest),
+                "nees": _med(r.get("nees_observable") for r in rs),
+                "nees_pub": _med(r.get("nees_published_settled") for r in rs),
+                "crb": _med(r.get("crb_rms_m") for r in rs),
+                "crb_sig": _med(r.get("crb_range_sigma_pct") for r in rs),
+                "batch": _med(r.get("batch_err_range_pct") for r in rs),
+            }
+        )
     return out, at_ref
 
 
@@ -1087,16 +1321,27 @@ def manoeuvre_rows(rows: list[dict]) -> list[dict]:
     out = []
     for a, s, n, m in keys:
         rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) == (a, s, n, m)]
-        crb_pct = [100 * r["crb_rms_m"] / r["range_median_m"] for r in rs
-                   if r.get("crb_rms_m") is not None and r.get("range_median_m")]
-        out.append({"algorithm": a, "scenario": s, "noise": n, "manoeuvre_scale": m, "runs": len(rs),
-                    "accel_perp_mps2": _med(r.get("observer_accel_perp_los_rms_mps2") for r in rs),
-                    "accel_mps2": _med(r.get("observer_accel_rms_mps2") for r in rs),
-                    "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
-                    "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
-                    "err_final": _med(r.get("err_range_final_pct") for r in rs),
-                    "obs_share": _med(r.get("observable_share_settled") for r in rs),
-                    "crb_pct": _med(crb_pct)})
+        crb_pct = [
+            100 * r["crb_rms_m"] / r["range_median_m"]
+            for r in rs
+            if r.get("crb_rms_m") is not None and r.get("range_median_m")
+        ]
+        out.append(
+            {
+                "algorithm": a,
+                "scenario": s,
+                "noise": n,
+                "manoeuvre_scale": m,
+                "runs": len(rs),
+                "accel_perp_mps2": _med(r.get("observer_accel_perp_los_rms_mps2") for r in rs),
+                "accel_mps2": _med(r.get("observer_accel_rms_mps2") for r in rs),
+                "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
+                "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
+                "err_final": _med(r.get("err_range_final_pct") for r in rs),
+                "obs_share": _med(r.get("observable_share_settled") for r in rs),
+                "crb_pct": _med(crb_pct),
+            }
+        )
     return out
 
 
@@ -1105,17 +1350,25 @@ def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
     line of sight) from which every larger swept level has a median err/range <= ``good_pct``."""
     out = []
     for key in dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in mrows):
-        rs = sorted((r for r in mrows if (r["algorithm"], r["scenario"], r["noise"]) == key),
-                    key=lambda r: r["accel_perp_mps2"])
+        rs = sorted(
+            (r for r in mrows if (r["algorithm"], r["scenario"], r["noise"]) == key), key=lambda r: r["accel_perp_mps2"]
+        )
         good = [math.isfinite(r["err_pub"]) and r["err_pub"] <= good_pct for r in rs]
         start = None
         for i in range(len(rs) - 1, -1, -1):
             if not good[i]:
                 break
             start = rs[i]
-        out.append({"algorithm": key[0], "scenario": key[1], "noise": key[2], "levels": len(rs),
-                    "works_from_mps2": start["accel_perp_mps2"] if start else math.nan,
-                    "works_from_scale": start["manoeuvre_scale"] if start else math.nan})
+        out.append(
+            {
+                "algorithm": key[0],
+                "scenario": key[1],
+                "noise": key[2],
+                "levels": len(rs),
+                "works_from_mps2": start["accel_perp_mps2"] if start else math.nan,
+                "works_from_scale": start["manoeuvre_scale"] if start else math.nan,
+            }
+        )
     return out
 
 
@@ -1132,19 +1385,30 @@ def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
     nrow = math.ceil(len(panels) / ncol)
     fig = Figure(figsize=(4.2 * ncol, 3.4 * nrow), layout="constrained")
     axes = fig.subplots(nrow, ncol, squeeze=False)
-    for ax in axes.flat[len(panels):]:
+    for ax in axes.flat[len(panels) :]:
         ax.set_visible(False)
     for ax, (s, n) in zip(axes.flat, panels):
         for a in algos:
-            rs = sorted((r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, a)),
-                        key=lambda r: r["accel_perp_mps2"])
+            rs = sorted(
+                (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, a)),
+                key=lambda r: r["accel_perp_mps2"],
+            )
             x = [r["accel_perp_mps2"] for r in rs]
             y = [r["err_pub"] for r in rs]
-            line, = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
-            ax.plot(x, [r["err_final"] for r in rs], marker="o", mfc="none", ls=":", color=line.get_color(),
-                    label=f"{a} (last frame)")
-        rs = sorted((r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
-                    key=lambda r: r["accel_perp_mps2"])
+            (line,) = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
+            ax.plot(
+                x,
+                [r["err_final"] for r in rs],
+                marker="o",
+                mfc="none",
+                ls=":",
+                color=line.get_color(),
+                label=f"{a} (last frame)",
+            )
+        rs = sorted(
+            (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
+            key=lambda r: r["accel_perp_mps2"],
+        )
         ax.plot([r["accel_perp_mps2"] for r in rs], [r["crb_pct"] for r in rs], "k--", lw=1, label="CRB (RMS / range)")
         ax.axhline(GOOD_ERR_PCT, color="tab:green", lw=0.8, ls=":", label=f"{GOOD_ERR_PCT:g} % (works)")
         ax.set_yscale("log")
@@ -1171,61 +1435,84 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     if has_fig:
         files[FIGURE_NAME] = out / FIGURE_NAME
     L = [f"# Campaign {spec.name}\n"]
-    L.append(f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "
-             f"{', '.join(spec.noise)}, algorithms {', '.join(spec.algorithms)}, seeds {len(spec.seeds)}, "
-             f"{len(spec.geometries)} geometr{'y' if len(spec.geometries) == 1 else 'ies'}, estimator noise model: "
-             f"{spec.noise_model}.\n")
+    L.append(
+        f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "
+        f"{', '.join(spec.noise)}, algorithms {', '.join(spec.algorithms)}, seeds {len(spec.seeds)}, "
+        f"{len(spec.geometries)} geometr{'y' if len(spec.geometries) == 1 else 'ies'}, estimator noise model: "
+        f"{spec.noise_model}.\n"
+    )
     ri = run_info
     rate = 60.0 * ri["ran"] / ri["wall_s"] if ri["wall_s"] > 0 and ri["ran"] else math.nan
-    L.append(f"{len(rows)} of {ri['planned']} runs in the table ({len(failed)} failed); this invocation reused "
-             f"{ri['reused']}, ran {ri['ran']} in {ri['wall_s']:.1f} s on {ri['workers']} worker(s)"
-             f"{f' ({rate:.1f} runs/min)' if math.isfinite(rate) else ''}"
-             f"{'; INTERRUPTED: run the same command to resume' if ri['interrupted'] else ''}. "
-             f"Table: `{TABLE_NAME}` (one row per run).\n")
+    L.append(
+        f"{len(rows)} of {ri['planned']} runs in the table ({len(failed)} failed); this invocation reused "
+        f"{ri['reused']}, ran {ri['ran']} in {ri['wall_s']:.1f} s on {ri['workers']} worker(s)"
+        f"{f' ({rate:.1f} runs/min)' if math.isfinite(rate) else ''}"
+        f"{'; INTERRUPTED: run the same command to resume' if ri['interrupted'] else ''}. "
+        f"Table: `{TABLE_NAME}` (one row per run).\n"
+    )
     L.append("## Table 2 analogue, per algorithm\n")
-    L.append(("Runs at the reference geometry (range, aspect and manoeuvre of the shipped scenario)." if at_ref else
-              "No run at the reference geometry: medians over every geometry of the campaign.") +
-             " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
-             "every finite estimate after 5 s (half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
-             "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n")
+    L.append(
+        (
+            "Runs at the reference geometry (range, aspect and manoeuvre of the shipped scenario)."
+            if at_ref
+            else "No run at the reference geometry: medians over every geometry of the campaign."
+        )
+        + " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
+        "every finite estimate after 5 s (half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
+        "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n"
+    )
     for a in dict.fromkeys(r["algorithm"] for r in t2):
         L.append(f"### {a}\n")
-        L.append("| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
-                 "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
-                 "CRB range sigma | batch MAP err/range |")
+        L.append(
+            "| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
+            "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
+            "CRB range sigma | batch MAP err/range |"
+        )
         L.append("|" + "---|" * 14)
         for r in (x for x in t2 if x["algorithm"] == a):
             paper = PAPER_TABLE2_PCT.get(r["scenario"])
-            L.append(f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
-                     f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
-                     f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
-                     f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |")
+            L.append(
+                f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
+                f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
+                f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
+                f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |"
+            )
         L.append("")
     if mrows and len({r["manoeuvre_scale"] for r in mrows}) > 1:
         L.append("## Error vs observer manoeuvre\n")
         L.append(f"![error vs manoeuvre]({FIGURE_NAME})\n")
-        L.append("The observer's acceleration is scaled (manoeuvre_scale), measured as its RMS normal to the line "
-                 f"of sight over the window. *Works from*: the smallest measured level from which every larger "
-                 f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n")
+        L.append(
+            "The observer's acceleration is scaled (manoeuvre_scale), measured as its RMS normal to the line "
+            f"of sight over the window. *Works from*: the smallest measured level from which every larger "
+            f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n"
+        )
         L.append("| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |")
         L.append("|---|---|---|---|---|---|")
         for w in works_from(mrows):
-            L.append(f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
-                     f"{_num(w['works_from_mps2'], 3) if math.isfinite(w['works_from_mps2']) else 'not in the range swept'} | "
-                     f"{_num(w['works_from_scale'], 3)} |")
+            L.append(
+                f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
+                f"{_num(w['works_from_mps2'], 3) if math.isfinite(w['works_from_mps2']) else 'not in the range swept'} | "
+                f"{_num(w['works_from_scale'], 3)} |"
+            )
         L.append("")
-        L.append("| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
-                 "err/range last frame | err/range observable | observable share | CRB / range |")
+        L.append(
+            "| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
+            "err/range last frame | err/range observable | observable share | CRB / range |"
+        )
         L.append("|" + "---|" * 11)
         for r in mrows:
-            L.append(f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
-                     f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
-                     f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |")
+            L.append(
+                f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
+                f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
+                f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |"
+            )
         L.append("")
     if failed:
         L.append("## Failed runs\n")
         for r in failed[:50]:
-            L.append(f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}")
+            L.append(
+                f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}"
+            )
         L.append("")
     (out / REPORT_NAME).write_text("\n".join(L), encoding="utf-8")
     files[REPORT_NAME] = out / REPORT_NAME
@@ -1243,12 +1530,20 @@ def cmd_campaign(args) -> int:
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
 
     if logging.getLogger().getEffectiveLevel() >= logging.INFO:
-        for name in ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render", "groundsim.evaluation.eval"):
+        for name in (
+            "onboard",
+            "groundsim.app.run",
+            "groundsim.world.flight",
+            "groundsim.world.render",
+            "groundsim.evaluation.eval",
+        ):
             logging.getLogger(name).setLevel(logging.WARNING)
     spec = load_spec(args.spec)
     scheduler = getattr(args, "scheduler", None)
     if scheduler is not None and args.workers is not None:
-        raise ConfigError(f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}")
+        raise ConfigError(
+            f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
+        )
     workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
     if workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
@@ -1262,18 +1557,33 @@ def cmd_campaign(args) -> int:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
-    res = run_campaign(spec, out, workers=workers, progress=not args.no_progress, fresh=args.fresh,
-                       retry_failed=args.retry_failed, base_config=base, onboard_digest=digest, scheduler=scheduler)
+    res = run_campaign(
+        spec,
+        out,
+        workers=workers,
+        progress=not args.no_progress,
+        fresh=args.fresh,
+        retry_failed=args.retry_failed,
+        base_config=base,
+        onboard_digest=digest,
+        scheduler=scheduler,
+    )
     load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
     rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan
-    print(f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
-          f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
-          f"{f' of {scheduler}' if scheduler else ''}"
-          f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})")
-    print(f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
-          f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}")
+    print(
+        f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
+        f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
+        f"{f' of {scheduler}' if scheduler else ''}"
+        f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})"
+    )
+    print(
+        f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
+        f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}"
+    )
     sys.stdout.flush()
     if res.interrupted:
-        print(f"interrupted: {res.reused + res.ran} of {res.planned} runs done; the same command resumes", file=sys.stderr)
+        print(
+            f"interrupted: {res.reused + res.ran} of {res.planned} runs done; the same command resumes", file=sys.stderr
+        )
         return 130
     return 0

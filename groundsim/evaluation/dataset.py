@@ -47,7 +47,6 @@ OpenCV's encoder at a fixed compression level; sequences are written in parallel
 
 from __future__ import annotations
 
-import configparser
 import csv
 import dataclasses
 import hashlib
@@ -62,7 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.core.errors import ConfigError, InputError, IrtrackError
+from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
     "DATASET_SCHEMA",
@@ -88,12 +87,30 @@ MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestri
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
 PROGRESS_EVERY_FRAMES = 10
 
-LABEL_COLUMNS = ("frame", "seq", "time_boot_us", "t_s", "target_id", "u_px", "v_px", "x_px", "y_px", "w_px", "h_px",
-                 "visibility", "in_image", "range_m")
+LABEL_COLUMNS = (
+    "frame",
+    "seq",
+    "time_boot_us",
+    "t_s",
+    "target_id",
+    "u_px",
+    "v_px",
+    "x_px",
+    "y_px",
+    "w_px",
+    "h_px",
+    "visibility",
+    "in_image",
+    "range_m",
+)
 _INTRINSIC_COLUMNS = ("fx_px", "fy_px", "cx_px", "cy_px", "width_px", "height_px", "k1", "k2", "p1", "p2", "k3")
 _POSE_COLUMNS = ("n_m", "e_m", "d_m", "qw", "qx", "qy", "qz", "lat_deg", "lon_deg", "alt_m")
-CAMERA_COLUMNS = (("frame", "seq", "time_boot_us", "t_s") + _INTRINSIC_COLUMNS
-                  + tuple(f"true_{c}" for c in _POSE_COLUMNS) + tuple(f"meas_{c}" for c in _POSE_COLUMNS))
+CAMERA_COLUMNS = (
+    ("frame", "seq", "time_boot_us", "t_s")
+    + _INTRINSIC_COLUMNS
+    + tuple(f"true_{c}" for c in _POSE_COLUMNS)
+    + tuple(f"meas_{c}" for c in _POSE_COLUMNS)
+)
 
 
 # --------------------------------------------------------------------------- pure core
@@ -135,8 +152,9 @@ def body_box_corners_frd_m(target_parts) -> np.ndarray:
     return np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
 
 
-def target_label(intrinsics, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body,
-                 corners_frd_m) -> TargetLabel:
+def target_label(
+    intrinsics, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, corners_frd_m
+) -> TargetLabel:
     """The label of one frame at the true poses (pure; see the module docstring).
 
     ``p_*`` (3,) NED metres; ``R_*`` (3, 3); ``corners_frd_m`` (8, 3) from :func:`body_box_corners_frd_m`.
@@ -187,8 +205,10 @@ def sequence_name(scenario_name: str, nav_case: str, seed: int) -> str:
 def seqinfo_ini(name: str, frame_rate_hz: float, frames: int, width_px: int, height_px: int) -> str:
     """MOT Challenge ``seqinfo.ini`` text (``[Sequence]``: name, imDir, frameRate, seqLength, imWidth,
     imHeight, imExt).  frameRate is an integer there; a non-integer rate is rounded (labels carry t_s)."""
-    return (f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(round(frame_rate_hz))}\nseqLength={frames}\n"
-            f"imWidth={width_px}\nimHeight={height_px}\nimExt=.png\n")
+    return (
+        f"[Sequence]\nname={name}\nimDir=img1\nframeRate={int(round(frame_rate_hz))}\nseqLength={frames}\n"
+        f"imWidth={width_px}\nimHeight={height_px}\nimExt=.png\n"
+    )
 
 
 def mot_gt_lines(labels: list[tuple[int, TargetLabel]]) -> str:
@@ -196,8 +216,10 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]]) -> str:
     out = io.StringIO()
     for frame, lab in labels:
         if lab.has_box:
-            out.write(f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
-                      f"1,{MOT_CLASS},{lab.visibility:.4f}\n")
+            out.write(
+                f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
+                f"1,{MOT_CLASS},{lab.visibility:.4f}\n"
+            )
     return out.getvalue()
 
 
@@ -284,8 +306,10 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     t0 = time.perf_counter()
     scenario = _with_bit_depth(scenario, options.bit_depth)
     if options.duration_s is not None and options.duration_s > scenario.duration_s + 1e-9:
-        raise ConfigError(f"--duration: expected at most {scenario.name}'s duration_s ({scenario.duration_s:g} s), "
-                          f"got {options.duration_s:g}")
+        raise ConfigError(
+            f"--duration: expected at most {scenario.name}'s duration_s ({scenario.duration_s:g} s), "
+            f"got {options.duration_s:g}"
+        )
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     name = sequence_name(scenario.name, core.nav_noise.name, seed)
     seq_dir = Path(out_dir) / name
@@ -298,9 +322,11 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     labels: list[tuple[int, TargetLabel, int]] = []
     intr = [K.fx_px, K.fy_px, K.cx_px, K.cy_px, int(K.width_px), int(K.height_px), *map(float, K.distortion)]
     done = 0
-    with open(seq_dir / "labels.csv", "w", encoding="ascii", newline="") as f_lab, \
-            open(seq_dir / "cameras.csv", "w", encoding="ascii", newline="") as f_cam, \
-            TruthWriter(seq_dir / "truth.csv") as truth:
+    with (
+        open(seq_dir / "labels.csv", "w", encoding="ascii", newline="") as f_lab,
+        open(seq_dir / "cameras.csv", "w", encoding="ascii", newline="") as f_cam,
+        TruthWriter(seq_dir / "truth.csv") as truth,
+    ):
         w_lab, w_cam = csv.writer(f_lab, lineterminator="\n"), csv.writer(f_cam, lineterminator="\n")
         w_lab.writerow(LABEL_COLUMNS)
         w_cam.writerow(CAMERA_COLUMNS)
@@ -313,22 +339,55 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             frame = k + 1
             if fr.pixels is None:
                 raise InputError(f"{name}: frame {k} could not be rendered")
-            if not cv2.imwrite(str(img_dir / f"{frame:06d}.png"), fr.pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]):
+            if not cv2.imwrite(
+                str(img_dir / f"{frame:06d}.png"), fr.pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]
+            ):
                 raise ConfigError(f"--out {out_dir}: cannot write {img_dir / f'{frame:06d}.png'}")
             truth.write(tr)
             p_cam = np.array([tr.cam_n_m, tr.cam_e_m, tr.cam_d_m])
             q_cam = np.array([tr.q_ned_from_cam_w, tr.q_ned_from_cam_x, tr.q_ned_from_cam_y, tr.q_ned_from_cam_z])
-            lab = target_label(K, p_cam, rotmat_from_quat(q_cam), [tr.target_n_m, tr.target_e_m, tr.target_d_m],
-                               rotmat_from_quat(c.tgt_q_ned_from_body[j]), corners)
+            lab = target_label(
+                K,
+                p_cam,
+                rotmat_from_quat(q_cam),
+                [tr.target_n_m, tr.target_e_m, tr.target_d_m],
+                rotmat_from_quat(c.tgt_q_ned_from_body[j]),
+                corners,
+            )
             labels.append((frame, lab, fr.time_boot_us))
-            w_lab.writerow([frame, fr.seq, fr.time_boot_us, _fmt(tr.t_s), TARGET_ID, _fmt(lab.u_px), _fmt(lab.v_px),
-                            _fmt(lab.x_px), _fmt(lab.y_px), _fmt(lab.w_px), _fmt(lab.h_px), _fmt(lab.visibility),
-                            int(lab.in_image), _fmt(tr.range_m)])
+            w_lab.writerow(
+                [
+                    frame,
+                    fr.seq,
+                    fr.time_boot_us,
+                    _fmt(tr.t_s),
+                    TARGET_ID,
+                    _fmt(lab.u_px),
+                    _fmt(lab.v_px),
+                    _fmt(lab.x_px),
+                    _fmt(lab.y_px),
+                    _fmt(lab.w_px),
+                    _fmt(lab.h_px),
+                    _fmt(lab.visibility),
+                    int(lab.in_image),
+                    _fmt(tr.range_m),
+                ]
+            )
             q_mg = None if c.q_mount_from_gimbal is None else c.q_mount_from_gimbal[j]
-            p_meas, q_meas = measured_camera_pose(core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, q_mg)
-            w_cam.writerow([frame, fr.seq, fr.time_boot_us, _fmt(tr.t_s), *map(_fmt, intr),
-                            *map(_fmt, _pose_values(p_cam, q_cam, origin)),
-                            *map(_fmt, _pose_values(p_meas, q_meas, origin))])
+            p_meas, q_meas = measured_camera_pose(
+                core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, q_mg
+            )
+            w_cam.writerow(
+                [
+                    frame,
+                    fr.seq,
+                    fr.time_boot_us,
+                    _fmt(tr.t_s),
+                    *map(_fmt, intr),
+                    *map(_fmt, _pose_values(p_cam, q_cam, origin)),
+                    *map(_fmt, _pose_values(p_meas, q_meas, origin)),
+                ]
+            )
             done += 1
             if progress is not None and done >= PROGRESS_EVERY_FRAMES:
                 progress(done)
@@ -337,14 +396,24 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
         progress(done)
     if "mot" in options.formats:
         (seq_dir / "seqinfo.ini").write_text(
-            seqinfo_ini(name, scenario.frame_rate_hz, core.frame_count, int(K.width_px), int(K.height_px)), encoding="ascii")
+            seqinfo_ini(name, scenario.frame_rate_hz, core.frame_count, int(K.width_px), int(K.height_px)),
+            encoding="ascii",
+        )
         (seq_dir / "gt").mkdir(exist_ok=True)
         (seq_dir / "gt" / "gt.txt").write_text(mot_gt_lines([(f, lab) for f, lab, _ in labels]), encoding="ascii")
-    return SequenceSummary(name=name, scenario=scenario.name, seed=int(seed), nav_noise=core.nav_noise.name,
-                           frames=core.frame_count, labelled=sum(1 for _, lab, _ in labels if lab.has_box),
-                           width_px=int(K.width_px), height_px=int(K.height_px),
-                           frame_rate_hz=float(scenario.frame_rate_hz), wall_s=time.perf_counter() - t0,
-                           labels=tuple(labels))
+    return SequenceSummary(
+        name=name,
+        scenario=scenario.name,
+        seed=int(seed),
+        nav_noise=core.nav_noise.name,
+        frames=core.frame_count,
+        labelled=sum(1 for _, lab, _ in labels if lab.has_box),
+        width_px=int(K.width_px),
+        height_px=int(K.height_px),
+        frame_rate_hz=float(scenario.frame_rate_hz),
+        wall_s=time.perf_counter() - t0,
+        labels=tuple(labels),
+    )
 
 
 # --------------------------------------------------------------------------- whole dataset
@@ -361,24 +430,42 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
     for s in summaries:
         for frame, lab, t_us in s.labels:
             image_id = len(images) + 1
-            images.append({"id": image_id, "file_name": f"{s.name}/img1/{frame:06d}.png", "width": s.width_px,
-                           "height": s.height_px, "sequence": s.name, "frame_index": frame, "time_boot_us": int(t_us)})
+            images.append(
+                {
+                    "id": image_id,
+                    "file_name": f"{s.name}/img1/{frame:06d}.png",
+                    "width": s.width_px,
+                    "height": s.height_px,
+                    "sequence": s.name,
+                    "frame_index": frame,
+                    "time_boot_us": int(t_us),
+                }
+            )
             if lab.has_box:
-                annotations.append({
-                    "id": len(annotations) + 1, "image_id": image_id, "category_id": TARGET_ID,
-                    "bbox": [round(lab.x_px, 4), round(lab.y_px, 4), round(lab.w_px, 4), round(lab.h_px, 4)],
-                    "area": round(lab.w_px * lab.h_px, 4), "iscrowd": 0, "segmentation": [_box_polygon(lab)],
-                    "keypoints": [float(lab.u_px), float(lab.v_px), 2], "num_keypoints": 1,
-                    "centroid_px": [float(lab.u_px), float(lab.v_px)], "visibility": round(lab.visibility, 4),
-                    "track_id": TARGET_ID,
-                })
+                annotations.append(
+                    {
+                        "id": len(annotations) + 1,
+                        "image_id": image_id,
+                        "category_id": TARGET_ID,
+                        "bbox": [round(lab.x_px, 4), round(lab.y_px, 4), round(lab.w_px, 4), round(lab.h_px, 4)],
+                        "area": round(lab.w_px * lab.h_px, 4),
+                        "iscrowd": 0,
+                        "segmentation": [_box_polygon(lab)],
+                        "keypoints": [float(lab.u_px), float(lab.v_px), 2],
+                        "num_keypoints": 1,
+                        "centroid_px": [float(lab.u_px), float(lab.v_px)],
+                        "visibility": round(lab.visibility, 4),
+                        "track_id": TARGET_ID,
+                    }
+                )
     return {
         "info": {"description": description, "version": DATASET_SCHEMA},
         "licenses": [],
         "images": images,
         "annotations": annotations,
-        "categories": [{"id": TARGET_ID, "name": "target", "supercategory": "aircraft", "keypoints": ["centroid"],
-                        "skeleton": []}],
+        "categories": [
+            {"id": TARGET_ID, "name": "target", "supercategory": "aircraft", "keypoints": ["centroid"], "skeleton": []}
+        ],
     }
 
 
@@ -398,19 +485,43 @@ def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[Sequenc
     return {
         "schema": DATASET_SCHEMA,
         "irtrack_version": ver,
-        "scenarios": [{"name": sc.name, "file": None if sc.source_path is None else str(sc.source_path),
-                       "sha256": _sha256(sc.source_path), "scenario_seed": int(sc.seed)} for sc in scenarios],
+        "scenarios": [
+            {
+                "name": sc.name,
+                "file": None if sc.source_path is None else str(sc.source_path),
+                "sha256": _sha256(sc.source_path),
+                "scenario_seed": int(sc.seed),
+            }
+            for sc in scenarios
+        ],
         "seeds": [int(s) for s in seeds],
         "nav_noise": options.nav_noise,
         "duration_s": options.duration_s,
         "bit_depth": options.bit_depth,
         "formats": list(options.formats),
         "target_id": TARGET_ID,
-        "sequences": [{"name": s.name, "scenario": s.scenario, "seed": s.seed, "nav_noise": s.nav_noise,
-                       "frames": s.frames, "labelled_frames": s.labelled, "width_px": s.width_px,
-                       "height_px": s.height_px, "frame_rate_hz": s.frame_rate_hz} for s in summaries],
-        "files": {"labels": "<seq>/labels.csv", "cameras": "<seq>/cameras.csv", "truth": "<seq>/truth.csv",
-                  "images": "<seq>/img1/%06d.png", "mot": "<seq>/gt/gt.txt, <seq>/seqinfo.ini", "coco": "coco.json"},
+        "sequences": [
+            {
+                "name": s.name,
+                "scenario": s.scenario,
+                "seed": s.seed,
+                "nav_noise": s.nav_noise,
+                "frames": s.frames,
+                "labelled_frames": s.labelled,
+                "width_px": s.width_px,
+                "height_px": s.height_px,
+                "frame_rate_hz": s.frame_rate_hz,
+            }
+            for s in summaries
+        ],
+        "files": {
+            "labels": "<seq>/labels.csv",
+            "cameras": "<seq>/cameras.csv",
+            "truth": "<seq>/truth.csv",
+            "images": "<seq>/img1/%06d.png",
+            "mot": "<seq>/gt/gt.txt, <seq>/seqinfo.ini",
+            "coco": "coco.json",
+        },
     }
 
 
@@ -434,13 +545,14 @@ def _job(args) -> SequenceSummary:
     return export_sequence(scenario, seed, out_dir, options, (lambda n: q.put(n)) if q is not None else None)
 
 
-def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = None, workers: int = 1,
-                   progress: bool = True) -> tuple[list[SequenceSummary], float]:
+def export_dataset(
+    scenarios, seeds, out_dir, options: DatasetOptions | None = None, workers: int = 1, progress: bool = True
+) -> tuple[list[SequenceSummary], float]:
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
+    from groundsim.app.run import frame_count
     from groundsim.evaluation.eval import bar_pacing
     from groundsim.evaluation.parallel import mp_context
-    from groundsim.app.run import frame_count
 
     options = options if options is not None else DatasetOptions()
     seeds = [int(s) for s in seeds]
@@ -461,14 +573,22 @@ def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = N
     if progress:
         from tqdm import tqdm
 
-        bar = tqdm(total=total, unit="frame", desc=f"dataset ({min(workers, len(jobs))} workers)", leave=True,
-                   dynamic_ncols=True, **bar_pacing())
+        bar = tqdm(
+            total=total,
+            unit="frame",
+            desc=f"dataset ({min(workers, len(jobs))} workers)",
+            leave=True,
+            dynamic_ncols=True,
+            **bar_pacing(),
+        )
     t0 = time.perf_counter()
     try:
         workers = min(workers, len(jobs))
         if workers == 1:
-            summaries = [export_sequence(sc, seed, o_dir, opts, bar.update if bar is not None else None)
-                         for sc, seed, o_dir, opts in jobs]
+            summaries = [
+                export_sequence(sc, seed, o_dir, opts, bar.update if bar is not None else None)
+                for sc, seed, o_dir, opts in jobs
+            ]
         else:
             summaries = _run_pool(jobs, workers, bar, mp_context())
     finally:
@@ -477,8 +597,9 @@ def export_dataset(scenarios, seeds, out_dir, options: DatasetOptions | None = N
     if "coco" in options.formats:
         desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
         (out / "coco.json").write_text(json.dumps(coco_document(summaries, desc), indent=1) + "\n", encoding="ascii")
-    (out / "manifest.json").write_text(json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n",
-                                       encoding="ascii")
+    (out / "manifest.json").write_text(
+        json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n", encoding="ascii"
+    )
     return summaries, time.perf_counter() - t0
 
 
@@ -525,23 +646,43 @@ def cmd_dataset(args) -> int:
     from groundsim.world.scenario import load_scenario
 
     if logging.getLogger().getEffectiveLevel() >= logging.INFO:
-        for name in ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render", "groundsim.world.truth"):
+        for name in (
+            "onboard",
+            "groundsim.app.run",
+            "groundsim.world.flight",
+            "groundsim.world.render",
+            "groundsim.world.truth",
+        ):
             logging.getLogger(name).setLevel(logging.WARNING)
     names = [n for group in (args.scenario or [["P1"]]) for n in group]
     scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
     if isinstance(args.seeds, bool) or args.seeds < 1:
         raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
     workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
-    options = DatasetOptions(nav_noise=args.nav_noise, duration_s=args.duration, bit_depth=args.bit_depth,
-                             formats=tuple(dict.fromkeys(args.format)))
-    summaries, wall_s = export_dataset(scenarios, range(args.seed0, args.seed0 + args.seeds), args.out, options,
-                                       workers=workers, progress=not args.no_progress)
+    options = DatasetOptions(
+        nav_noise=args.nav_noise,
+        duration_s=args.duration,
+        bit_depth=args.bit_depth,
+        formats=tuple(dict.fromkeys(args.format)),
+    )
+    summaries, wall_s = export_dataset(
+        scenarios,
+        range(args.seed0, args.seed0 + args.seeds),
+        args.out,
+        options,
+        workers=workers,
+        progress=not args.no_progress,
+    )
     frames = sum(s.frames for s in summaries)
     for s in summaries:
-        print(f"{s.name}: {s.frames} frames ({s.labelled} with the target in the image), {s.wall_s:.1f} s, "
-              f"{s.frames / s.wall_s:.1f} frames/s in its worker")
+        print(
+            f"{s.name}: {s.frames} frames ({s.labelled} with the target in the image), {s.wall_s:.1f} s, "
+            f"{s.frames / s.wall_s:.1f} frames/s in its worker"
+        )
     w = min(workers, len(summaries))
-    print(f"{frames} frames in {wall_s:.1f} s with {w} worker(s): {frames / wall_s:.1f} frames/s, "
-          f"{frames / wall_s / w:.1f} frames/s per worker; dataset: {Path(args.out) / 'manifest.json'}")
+    print(
+        f"{frames} frames in {wall_s:.1f} s with {w} worker(s): {frames / wall_s:.1f} frames/s, "
+        f"{frames / wall_s / w:.1f} frames/s per worker; dataset: {Path(args.out) / 'manifest.json'}"
+    )
     sys.stdout.flush()
     return 0

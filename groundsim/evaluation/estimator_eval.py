@@ -35,8 +35,16 @@ from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 from onboard.estimation.metrics import evaluate
 
-__all__ = ["CaseResult", "run_case", "run_cases", "summarise", "format_table", "verdict_rows", "format_verdict_table",
-           "VERDICT_GOOD_PCT"]
+__all__ = [
+    "CaseResult",
+    "run_case",
+    "run_cases",
+    "summarise",
+    "format_table",
+    "verdict_rows",
+    "format_verdict_table",
+    "VERDICT_GOOD_PCT",
+]
 
 
 @dataclass(frozen=True)
@@ -70,8 +78,14 @@ def _paper_solve(obs):
     return PaperEstimator().solve(obs)
 
 
-def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool = True, with_crb: bool = True,
-             with_efficient: bool = True) -> CaseResult:
+def run_case(
+    scenario: Scenario,
+    noise: NoiseCase,
+    seed: int,
+    with_paper: bool = True,
+    with_crb: bool = True,
+    with_efficient: bool = True,
+) -> CaseResult:
     truth, obs = synthesize_scenario(scenario, noise, seed)
     est = MapEstimator(noise=estimator_noise_model(noise))
     t0 = time.perf_counter()
@@ -98,11 +112,22 @@ def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool =
         observable, ratio = res.observable, res.range_sigma_ratio
         model, q, om = res.model or "map", res.prior.q_horizontal_m2ps3, res.turn_rate_radps
         crb = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, om) if with_crb else math.nan
-        crb_pct = (float(np.median(efficient_error_range_pct(est, obs, truth.p_target_ned_m, res.prior, om,
-                                                             rng=np.random.default_rng(seed))))
-                   if with_crb and with_efficient else math.nan)
-        crb_sig = (100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior, om)
-                   if with_crb else math.nan)
+        crb_pct = (
+            float(
+                np.median(
+                    efficient_error_range_pct(
+                        est, obs, truth.p_target_ned_m, res.prior, om, rng=np.random.default_rng(seed)
+                    )
+                )
+            )
+            if with_crb and with_efficient
+            else math.nan
+        )
+        crb_sig = (
+            100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior, om)
+            if with_crb
+            else math.nan
+        )
         amb = res.ambiguity
     p_err, p_ms = math.nan, math.nan
     if with_paper:
@@ -110,8 +135,28 @@ def run_case(scenario: Scenario, noise: NoiseCase, seed: int, with_paper: bool =
         pres = _paper_solve(obs)
         p_ms = (time.perf_counter() - t1) * 1e3
         p_err = 100.0 * evaluate(truth.p_target_ned_m, pres.p_ned_m, truth.p_cam_ned_m).range_normalised_error
-    return CaseResult(scenario.name, noise.name, seed, e_rng, e_pap, rmse, crb, bool(observable), ratio, b3, nees,
-                      model, q, om, solve_ms, p_err, p_ms, crb_pct, amb, crb_sig)
+    return CaseResult(
+        scenario.name,
+        noise.name,
+        seed,
+        e_rng,
+        e_pap,
+        rmse,
+        crb,
+        bool(observable),
+        ratio,
+        b3,
+        nees,
+        model,
+        q,
+        om,
+        solve_ms,
+        p_err,
+        p_ms,
+        crb_pct,
+        amb,
+        crb_sig,
+    )
 
 
 def _run_one(args):
@@ -119,8 +164,9 @@ def _run_one(args):
     return run_case(scenario, noise, seed, with_paper, with_efficient=with_efficient)
 
 
-def run_cases(scenarios, noises, seeds, workers: int = 1, with_paper: bool = True, progress=None,
-              with_efficient: bool = True) -> list[CaseResult]:
+def run_cases(
+    scenarios, noises, seeds, workers: int = 1, with_paper: bool = True, progress=None, with_efficient: bool = True
+) -> list[CaseResult]:
     """All combinations; ``workers`` > 1 uses a process pool; ``progress(done, total)`` if given."""
     jobs = [(s, n, k, with_paper, with_efficient) for s in scenarios for n in noises for k in seeds]
     out: list[CaseResult] = []
@@ -163,33 +209,47 @@ def summarise(results: list[CaseResult]) -> list[dict]:
     for sc, nz in keys:
         rs = [r for r in results if r.scenario == sc and r.noise == nz]
 
-        def med(f):
+        def med(f, rs=rs):
             v = [getattr(r, f) for r in rs if math.isfinite(getattr(r, f))]
             return float(np.median(v)) if v else math.nan
 
         obs_runs = [r for r in rs if r.observable]
-        rows.append({
-            "scenario": sc, "noise": nz, "runs": len(rs),
-            "err_range_pct": med("err_range_pct"), "err_paper_pct": med("err_paper_pct"),
-            "err_range_pct_interval": median_interval([r.err_range_pct for r in rs]),
-            "rmse_m": med("rmse_m"), "crb_rms_m": med("crb_rms_m"),
-            "rmse_pooled_m": float(np.sqrt(np.nanmean([r.rmse_m**2 for r in rs]))) if any(math.isfinite(r.rmse_m) for r in rs) else math.nan,
-            "crb_err_range_pct": med("crb_err_range_pct"),
-            "observable_runs": len(obs_runs),
-            "dishonest_runs": sum(1 for r in obs_runs if not (r.beyond_3sigma <= 0.01)),
-            "nees": med("nees"), "paper_err_range_pct": med("paper_err_range_pct"),
-            "solve_ms": med("solve_ms"), "models": ",".join(sorted({r.model for r in rs})),
-            "err_range_pct_observable": float(np.median([r.err_range_pct for r in obs_runs])) if obs_runs else math.nan,
-        })
+        rows.append(
+            {
+                "scenario": sc,
+                "noise": nz,
+                "runs": len(rs),
+                "err_range_pct": med("err_range_pct"),
+                "err_paper_pct": med("err_paper_pct"),
+                "err_range_pct_interval": median_interval([r.err_range_pct for r in rs]),
+                "rmse_m": med("rmse_m"),
+                "crb_rms_m": med("crb_rms_m"),
+                "rmse_pooled_m": float(np.sqrt(np.nanmean([r.rmse_m**2 for r in rs])))
+                if any(math.isfinite(r.rmse_m) for r in rs)
+                else math.nan,
+                "crb_err_range_pct": med("crb_err_range_pct"),
+                "observable_runs": len(obs_runs),
+                "dishonest_runs": sum(1 for r in obs_runs if not (r.beyond_3sigma <= 0.01)),
+                "nees": med("nees"),
+                "paper_err_range_pct": med("paper_err_range_pct"),
+                "solve_ms": med("solve_ms"),
+                "models": ",".join(sorted({r.model for r in rs})),
+                "err_range_pct_observable": float(np.median([r.err_range_pct for r in obs_runs]))
+                if obs_runs
+                else math.nan,
+            }
+        )
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
     """Markdown table of :func:`summarise` rows.  "efficient median" is what an estimator at the Bayesian
     CRB would reach on the same windows (the floor of the median column); RMSE is pooled over seeds."""
-    head = ("| scenario | noise | runs | MAP err/range (median, 90 % interval) | efficient median | paper metric | "
-            "RMSE m (pooled) | Bayesian CRB m | observable | "
-            "honest (<=1% beyond 3 sigma) | NEES | paper closed form err/range | paper Table 2 |")
+    head = (
+        "| scenario | noise | runs | MAP err/range (median, 90 % interval) | efficient median | paper metric | "
+        "RMSE m (pooled) | Bayesian CRB m | observable | "
+        "honest (<=1% beyond 3 sigma) | NEES | paper closed form err/range | paper Table 2 |"
+    )
     lines = [head, "|" + "---|" * 13]
     for r in rows:
         paper = PAPER_TABLE2_PCT.get(r["scenario"])
@@ -229,27 +289,35 @@ def verdict_rows(results: list[CaseResult], good_pct: float = VERDICT_GOOD_PCT) 
             v = [x for x in vals if math.isfinite(x)]
             return float(np.median(v)) if v else math.nan
 
-        rows.append({
-            "scenario": sc, "noise": nz, "runs": len(rs), "failed": len(rs) - len(ok),
-            "observable": len(obs_runs),
-            "err_observable_pct": med([r.err_range_pct for r in obs_runs]),
-            "honest_observable": sum(1 for r in obs_runs if r.beyond_3sigma <= 0.01),
-            "good": len(good), "good_observable": sum(1 for r in good if r.observable),
-            "recall": (sum(1 for r in good if r.observable) / len(good)) if good else math.nan,
-            "honest_all": sum(1 for r in ok if r.beyond_3sigma <= 0.01),
-            "range_sigma_pct": med([100 * r.range_sigma_ratio for r in ok]),
-            "crb_range_sigma_pct": med([r.crb_range_sigma_pct for r in ok]),
-            "ambiguity": med([r.ambiguity for r in ok]),
-            "err_pct": med([r.err_range_pct for r in ok]),
-        })
+        rows.append(
+            {
+                "scenario": sc,
+                "noise": nz,
+                "runs": len(rs),
+                "failed": len(rs) - len(ok),
+                "observable": len(obs_runs),
+                "err_observable_pct": med([r.err_range_pct for r in obs_runs]),
+                "honest_observable": sum(1 for r in obs_runs if r.beyond_3sigma <= 0.01),
+                "good": len(good),
+                "good_observable": sum(1 for r in good if r.observable),
+                "recall": (sum(1 for r in good if r.observable) / len(good)) if good else math.nan,
+                "honest_all": sum(1 for r in ok if r.beyond_3sigma <= 0.01),
+                "range_sigma_pct": med([100 * r.range_sigma_ratio for r in ok]),
+                "crb_range_sigma_pct": med([r.crb_range_sigma_pct for r in ok]),
+                "ambiguity": med([r.ambiguity for r in ok]),
+                "err_pct": med([r.err_range_pct for r in ok]),
+            }
+        )
     return rows
 
 
 def format_verdict_table(rows: list[dict], threshold_pct: float) -> str:
     """Markdown table of :func:`verdict_rows`; ``threshold_pct`` is the verdict's range-sigma threshold."""
-    head = ("| scenario | noise | runs | called observable | their median err/range | honest (observable) | "
-            f"runs with err <= {VERDICT_GOOD_PCT:g} % | recall | honest (all published) | median err/range | "
-            f"reported range sigma (median; verdict < {threshold_pct:g} %) | CRB range sigma | ambiguity |")
+    head = (
+        "| scenario | noise | runs | called observable | their median err/range | honest (observable) | "
+        f"runs with err <= {VERDICT_GOOD_PCT:g} % | recall | honest (all published) | median err/range | "
+        f"reported range sigma (median; verdict < {threshold_pct:g} %) | CRB range sigma | ambiguity |"
+    )
     lines = [head, "|" + "---|" * 13]
     for r in rows:
         rec = "-" if not r["good"] else f"{100 * r['recall']:.0f} %"
@@ -257,5 +325,6 @@ def format_verdict_table(rows: list[dict], threshold_pct: float) -> str:
         lines.append(
             f"| {r['scenario']} | {r['noise']} | {r['runs']} | {r['observable']} | {eo} | "
             f"{r['honest_observable']}/{r['observable']} | {r['good']} | {rec} | {r['honest_all']}/{r['runs'] - r['failed']} | "
-            f"{r['err_pct']:.2f} % | {r['range_sigma_pct']:.1f} % | {r['crb_range_sigma_pct']:.1f} % | {r['ambiguity']:.2f} |")
+            f"{r['err_pct']:.2f} % | {r['range_sigma_pct']:.1f} % | {r['crb_range_sigma_pct']:.1f} % | {r['ambiguity']:.2f} |"
+        )
     return "\n".join(lines)

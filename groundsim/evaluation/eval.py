@@ -119,8 +119,12 @@ US_PER_S = 1_000_000
 
 
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-_OPENBLAS_SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
-                     "openblas_set_num_threads64_", "openblas_set_num_threads")
+_OPENBLAS_SETTERS = (
+    "scipy_openblas_set_num_threads64_",
+    "scipy_openblas_set_num_threads",
+    "openblas_set_num_threads64_",
+    "openblas_set_num_threads",
+)
 
 
 def limit_blas_threads(n: int = 1) -> int:
@@ -217,11 +221,22 @@ def onboard_config_for(scenario: Scenario, base=None):
     m = scenario.camera.mount
     roll, pitch, yaw = (math.degrees(float(a)) for a in euler_from_quat(np.asarray(m.q_body_from_mount, dtype=float)))
     camera = CameraConfig(
-        intrinsics=IntrinsicsConfig(fx_px=float(K.fx_px), fy_px=float(K.fy_px), cx_px=float(K.cx_px), cy_px=float(K.cy_px),
-                                    width_px=int(K.width_px), height_px=int(K.height_px),
-                                    distortion=tuple(float(k) for k in K.distortion)),
-        mount=MountConfig(lever_arm_frd_m=tuple(float(a) for a in m.lever_arm_frd_m), roll_deg=roll, pitch_deg=pitch,
-                          yaw_deg=yaw, gimballed=bool(scenario.camera.gimbal is not None)),
+        intrinsics=IntrinsicsConfig(
+            fx_px=float(K.fx_px),
+            fy_px=float(K.fy_px),
+            cx_px=float(K.cx_px),
+            cy_px=float(K.cy_px),
+            width_px=int(K.width_px),
+            height_px=int(K.height_px),
+            distortion=tuple(float(k) for k in K.distortion),
+        ),
+        mount=MountConfig(
+            lever_arm_frd_m=tuple(float(a) for a in m.lever_arm_frd_m),
+            roll_deg=roll,
+            pitch_deg=pitch,
+            yaw_deg=yaw,
+            gimballed=bool(scenario.camera.gimbal is not None),
+        ),
     )
     o = scenario.origin
     pose = dataclasses.replace(base.pose, origin=OriginConfig(lat_deg=o.lat_deg, lon_deg=o.lon_deg, alt_m=o.alt_m))
@@ -246,8 +261,13 @@ class TelemetryFeed:
     simulated vehicle honours; default MavlinkVehicle's own defaults.
     """
 
-    def __init__(self, core, pose_buffer, gimballed: bool,
-                 rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ)) -> None:
+    def __init__(
+        self,
+        core,
+        pose_buffer,
+        gimballed: bool,
+        rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ),
+    ) -> None:
         self.core = core
         self.pose = pose_buffer
         self.gimballed = gimballed
@@ -267,6 +287,7 @@ class TelemetryFeed:
         :mod:`onboard.io.mavlink_wire` as the MAVLink vehicle and the daemon's link do (packed and parsed:
         the wire's quantisation).  The body and gimbal rates are not fed: the lockstep loop waits for the
         bracketing sample instead of extrapolating (the benchmark's accuracy tables are defined so)."""
+        from groundsim.world.nav_errors import reported_state
         from onboard.io.mavlink_wire import (
             AttitudeQuaternion,
             GimbalDeviceAttitudeStatus,
@@ -274,8 +295,6 @@ class TelemetryFeed:
             mavlink2,
             wire_roundtrip,
         )
-
-        from groundsim.world.nav_errors import reported_state
 
         i = self.next_tick
         self.next_tick += 1
@@ -286,17 +305,37 @@ class TelemetryFeed:
             if now < self._due_us[name]:
                 continue
             if name == "att":
-                att = AttitudeQuaternion.from_message(wire_roundtrip(AttitudeQuaternion(
-                    now, tuple(st["q_ned_from_body"]), tuple(st["body_rates_radps"])).to_message()))
+                att = AttitudeQuaternion.from_message(
+                    wire_roundtrip(
+                        AttitudeQuaternion(
+                            now, tuple(st["q_ned_from_body"]), tuple(st["body_rates_radps"])
+                        ).to_message()
+                    )
+                )
                 self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body)
             elif name == "pos":
-                pos = GlobalPositionInt.from_message(wire_roundtrip(GlobalPositionInt(
-                    now, st["lat_deg"], st["lon_deg"], st["alt_amsl_m"], st["alt_rel_m"], tuple(st["v_ned_mps"]),
-                    st["heading_rad"]).to_message()))
+                pos = GlobalPositionInt.from_message(
+                    wire_roundtrip(
+                        GlobalPositionInt(
+                            now,
+                            st["lat_deg"],
+                            st["lon_deg"],
+                            st["alt_amsl_m"],
+                            st["alt_rel_m"],
+                            tuple(st["v_ned_mps"]),
+                            st["heading_rad"],
+                        ).to_message()
+                    )
+                )
                 self.pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
             elif st["q_gimbal"] is not None:
-                gim = GimbalDeviceAttitudeStatus.from_message(wire_roundtrip(GimbalDeviceAttitudeStatus(
-                    now, tuple(st["q_gimbal"]), mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME).to_message()))
+                gim = GimbalDeviceAttitudeStatus.from_message(
+                    wire_roundtrip(
+                        GimbalDeviceAttitudeStatus(
+                            now, tuple(st["q_gimbal"]), mavlink2.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME
+                        ).to_message()
+                    )
+                )
                 self.pose.add_gimbal_status(gim.time_boot_us, gim.q_ref_from_gimbal, gim.reference)
             nxt = self._due_us[name] + interval
             self._due_us[name] = nxt if nxt > now else now + interval
@@ -394,9 +433,33 @@ class RunResult:
 def _empty_result(scenario: Scenario, seed: int, error: str) -> RunResult:
     z2, z3 = np.zeros((0, 2)), np.zeros((0, 3))
     zb = np.zeros(0, dtype=bool)
-    return RunResult(scenario.name, scenario.description, seed, 0, np.zeros(0), np.zeros(0, dtype=np.int64), z3, z3, z3,
-                     np.zeros(0), z2, zb, np.zeros(0, dtype="<U9"), zb, z2, np.zeros((0, 4)), zb, z3,
-                     np.zeros((0, 3, 3)), zb, np.zeros(0), z3, np.zeros((0, 3, 3)), zb, error=error)
+    return RunResult(
+        scenario.name,
+        scenario.description,
+        seed,
+        0,
+        np.zeros(0),
+        np.zeros(0, dtype=np.int64),
+        z3,
+        z3,
+        z3,
+        np.zeros(0),
+        z2,
+        zb,
+        np.zeros(0, dtype="<U9"),
+        zb,
+        z2,
+        np.zeros((0, 4)),
+        zb,
+        z3,
+        np.zeros((0, 3, 3)),
+        zb,
+        np.zeros(0),
+        z3,
+        np.zeros((0, 3, 3)),
+        zb,
+        error=error,
+    )
 
 
 def centroid_sigma_px(uv_px, truth_uv_px, sel) -> float | None:
@@ -430,8 +493,9 @@ def _better_frame(kept: dict | None, k: int, F: int, track) -> bool:
     return kept["bbox"] is None or abs(k - F // 2) < abs(kept["k"] - F // 2)
 
 
-def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = None, base_config=None,
-                 progress=None) -> RunResult:
+def run_lockstep(
+    scenario: Scenario, seed: int, options: EvalOptions | None = None, base_config=None, progress=None
+) -> RunResult:
     """One closed-loop run (see the module docstring).  ``base_config``: the daemon's OnboardConfig
     (default: built-in); ``progress(n_frames)`` is called every few frames with the frames just done.
 
@@ -439,8 +503,8 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     """
     from groundsim.app.run import SimCore
     from onboard.core.irframe import IrFrame
-    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
     from onboard.core.pose import PoseBuffer
+    from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     options = options if options is not None else EvalOptions()
     wall0, cpu0 = time.perf_counter(), time.process_time()
@@ -449,11 +513,15 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose.buffer_config(), cfg.pose.geodetic_origin())
     source = _RecordingPoseSource(buffer)
-    if options.estimator is not None:  # a plug-in (onboard.pipeline.plugins), for the pipeline and its perfect-centroid baseline
+    if (
+        options.estimator is not None
+    ):  # a plug-in (onboard.pipeline.plugins), for the pipeline and its perfect-centroid baseline
         from onboard.pipeline.plugins import build
 
         make_estimator = lambda c: build(options.estimator, c)  # noqa: E731
-    pipeline = FramePipeline(cfg, source, make_tracker(cfg), make_estimator(cfg), scenario.origin, counter=buffer.counter)
+    pipeline = FramePipeline(
+        cfg, source, make_tracker(cfg), make_estimator(cfg), scenario.origin, counter=buffer.counter
+    )
     baseline = make_estimator(cfg)
     m = cfg.mavlink
     feed = TelemetryFeed(core, buffer, core.gimballed, (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz))
@@ -468,7 +536,12 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     state = np.empty(F, dtype="<U9")
     meas, pose_ok = np.zeros(F, dtype=bool), np.zeros(F, dtype=bool)
     uv, bbox = np.full((F, 2), nan), np.full((F, 4), nan)
-    est_p, est_P, observable, ratio = np.full((F, 3), nan), np.full((F, 3, 3), nan), np.zeros(F, dtype=bool), np.full(F, nan)
+    est_p, est_P, observable, ratio = (
+        np.full((F, 3), nan),
+        np.full((F, 3, 3), nan),
+        np.zeros(F, dtype=bool),
+        np.full(F, nan),
+    )
     base_p, base_P, base_obs = np.full((F, 3), nan), np.full((F, 3, 3), nan), np.zeros(F, dtype=bool)
     cam_pose_p, cam_pose_q = np.full((F, 3), nan), np.full((F, 4), nan)
     unit_noise = rng.standard_normal((F, 2))  # the baseline's centroid noise, scaled once the chain's error is known
@@ -486,7 +559,9 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
             # the simulation ends before a telemetry sample after this frame: the run's last frame or two
             # can have no pose in lockstep (nor in a real run that stops there); they are not processed
             n_done = k
-            log.debug("%s seed %d: frames %d.. after the last telemetry sample are not processed", scenario.name, seed, k)
+            log.debug(
+                "%s seed %d: frames %d.. after the last telemetry sample are not processed", scenario.name, seed, k
+            )
             break
         r0 = core.render_s
         fr = core.frame(k)
@@ -527,11 +602,16 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
             cam_pose_p[k], cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
 
         if options.keep_frame and _better_frame(kept, k, F, track):
-            kept = dict(k=k, t_s=float(tr.t_s), pixels=fr.pixels.copy(),
-                        bbox=None if track is None or track.bbox is None else tuple(track.bbox),
-                        uv_px=None if track is None or track.u_px is None else (track.u_px, track.v_px),
-                        truth_uv_px=(tr.target_u_px, tr.target_v_px), state=None if track is None else track.state,
-                        range_m=tr.range_m)
+            kept = dict(
+                k=k,
+                t_s=float(tr.t_s),
+                pixels=fr.pixels.copy(),
+                bbox=None if track is None or track.bbox is None else tuple(track.bbox),
+                uv_px=None if track is None or track.u_px is None else (track.u_px, track.v_px),
+                truth_uv_px=(tr.target_u_px, tr.target_v_px),
+                state=None if track is None else track.state,
+                range_m=tr.range_m,
+            )
         done_since += 1
         if progress is not None and done_since >= PROGRESS_EVERY_FRAMES:
             progress(done_since)
@@ -539,14 +619,65 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     if progress is not None and done_since + (F - n_done) > 0:
         progress(done_since + (F - n_done))  # the bar counts the frames planned
 
-
     if n_done < F:
-        (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv, bbox, est_p, est_P,
-         observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q, render_ms, process_ms, baseline_ms,
-         unit_noise) = (
-            a[:n_done] for a in (t_s, t_us, truth_p, cam_p, obs_p, range_m, truth_uv, visible, state, meas, pose_ok, uv,
-                                 bbox, est_p, est_P, observable, ratio, base_p, base_P, base_obs, cam_pose_p, cam_pose_q,
-                                 render_ms, process_ms, baseline_ms, unit_noise))
+        (
+            t_s,
+            t_us,
+            truth_p,
+            cam_p,
+            obs_p,
+            range_m,
+            truth_uv,
+            visible,
+            state,
+            meas,
+            pose_ok,
+            uv,
+            bbox,
+            est_p,
+            est_P,
+            observable,
+            ratio,
+            base_p,
+            base_P,
+            base_obs,
+            cam_pose_p,
+            cam_pose_q,
+            render_ms,
+            process_ms,
+            baseline_ms,
+            unit_noise,
+        ) = (
+            a[:n_done]
+            for a in (
+                t_s,
+                t_us,
+                truth_p,
+                cam_p,
+                obs_p,
+                range_m,
+                truth_uv,
+                visible,
+                state,
+                meas,
+                pose_ok,
+                uv,
+                bbox,
+                est_p,
+                est_P,
+                observable,
+                ratio,
+                base_p,
+                base_P,
+                base_obs,
+                cam_pose_p,
+                cam_pose_q,
+                render_ms,
+                process_ms,
+                baseline_ms,
+                unit_noise,
+            )
+        )
         F = n_done
 
     # perfect-centroid baseline: truth pixel + white noise of the chain's own centroid error (or the
@@ -563,7 +694,9 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
         est = None
         try:
             if has_pose and visible[k]:
-                est = baseline.add(float(t_s[k]), truth_uv[k] + base_sigma_px * unit_noise[k], K, cam_pose_p[k], cam_pose_q[k])
+                est = baseline.add(
+                    float(t_s[k]), truth_uv[k] + base_sigma_px * unit_noise[k], K, cam_pose_p[k], cam_pose_q[k]
+                )
                 base_has_data = True
             elif base_has_data:
                 est = baseline.predict(float(t_s[k]), cam_pose_p[k] if has_pose else None)
@@ -576,35 +709,84 @@ def run_lockstep(scenario: Scenario, seed: int, options: EvalOptions | None = No
     batch_s = 0.0
     if options.batch:
         b0 = time.perf_counter()
-        batch = _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_pose_p, cam_pose_q, truth_p, scenario, seed,
-                       base_sigma_px, core.nav_noise)
+        batch = _batch(
+            cfg,
+            K,
+            t_s,
+            uv,
+            meas,
+            truth_uv,
+            visible,
+            cam_pose_p,
+            cam_pose_q,
+            truth_p,
+            scenario,
+            seed,
+            base_sigma_px,
+            core.nav_noise,
+        )
         batch_s = time.perf_counter() - b0
 
     wall = time.perf_counter() - wall0
     timing = dict(
-        wall_s=wall, cpu_s=time.process_time() - cpu0, flight_s=core.flight.flight_s, render_s=float(render_ms.sum() / 1e3),
-        pipeline_s=float(process_ms.sum() / 1e3), baseline_s=float(baseline_ms.sum() / 1e3), batch_s=batch_s,
-        render_ms=render_ms, process_ms=process_ms, baseline_ms=baseline_ms,
+        wall_s=wall,
+        cpu_s=time.process_time() - cpu0,
+        flight_s=core.flight.flight_s,
+        render_s=float(render_ms.sum() / 1e3),
+        pipeline_s=float(process_ms.sum() / 1e3),
+        baseline_s=float(baseline_ms.sum() / 1e3),
+        batch_s=batch_s,
+        render_ms=render_ms,
+        process_ms=process_ms,
+        baseline_ms=baseline_ms,
     )
     tracker = pipeline.tracker
     counters = dict(buffer.counter.counts)
-    counters.update(frames_rejected=rejected, estimator_resets=pipeline.estimator_resets,
-                    kcf_reseeds=getattr(tracker, "kcf_reseeds", 0), reacquisitions=getattr(tracker, "reacquisitions", 0))
+    counters.update(
+        frames_rejected=rejected,
+        estimator_resets=pipeline.estimator_resets,
+        kcf_reseeds=getattr(tracker, "kcf_reseeds", 0),
+        reacquisitions=getattr(tracker, "reacquisitions", 0),
+    )
     return RunResult(
-        scenario=scenario.name, description=scenario.description, seed=int(seed), frames=F, t_s=t_s, time_boot_us=t_us,
-        truth_p_ned_m=truth_p, cam_p_ned_m=cam_p, observer_p_ned_m=obs_p, range_m=range_m, truth_uv_px=truth_uv,
-        visible=visible, state=state, measurement_valid=meas, uv_px=uv, bbox=bbox, pose_valid=pose_ok,
-        est_p_ned_m=est_p, est_cov_ned_m2=est_P, observable=observable, range_sigma_ratio=ratio,
-        base_p_ned_m=base_p, base_cov_ned_m2=base_P, base_observable=base_obs,
-        batch=batch, timing=timing, counters=counters, frame=kept,
-        nav_noise=core.nav_noise.name, baseline_pixel_sigma_px=base_sigma_px,
+        scenario=scenario.name,
+        description=scenario.description,
+        seed=int(seed),
+        frames=F,
+        t_s=t_s,
+        time_boot_us=t_us,
+        truth_p_ned_m=truth_p,
+        cam_p_ned_m=cam_p,
+        observer_p_ned_m=obs_p,
+        range_m=range_m,
+        truth_uv_px=truth_uv,
+        visible=visible,
+        state=state,
+        measurement_valid=meas,
+        uv_px=uv,
+        bbox=bbox,
+        pose_valid=pose_ok,
+        est_p_ned_m=est_p,
+        est_cov_ned_m2=est_P,
+        observable=observable,
+        range_sigma_ratio=ratio,
+        base_p_ned_m=base_p,
+        base_cov_ned_m2=base_P,
+        base_observable=base_obs,
+        batch=batch,
+        timing=timing,
+        counters=counters,
+        frame=kept,
+        nav_noise=core.nav_noise.name,
+        baseline_pixel_sigma_px=base_sigma_px,
         chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
         estimator=options.estimator or "map",
     )
 
 
-def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px,
-           nav_case=None) -> dict:
+def _batch(
+    cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px, nav_case=None
+) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
     from groundsim.evaluation.synth import estimator_noise_model
     from onboard.estimation.crb import bayesian_crb_rms_m
@@ -617,8 +799,15 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
     noisy_truth_uv = truth_uv + rng.standard_normal(truth_uv.shape) * pixel_sigma_px
     for name, sel, pix in (("pipeline", meas & has_pose, uv), ("perfect", visible & has_pose, noisy_truth_uv)):
         idx = np.flatnonzero(sel & np.all(np.isfinite(pix), axis=1))
-        entry: dict = {"frames": idx, "p_ned_m": None, "cov_ned_m2": None, "observable": False, "model": None,
-                       "solve_s": 0.0, "error": None}
+        entry: dict = {
+            "frames": idx,
+            "p_ned_m": None,
+            "cov_ned_m2": None,
+            "observable": False,
+            "model": None,
+            "solve_s": 0.0,
+            "error": None,
+        }
         out[name] = entry
         est = MapEstimator(noise=cfg.estimator.noise_model())
         if idx.size < est.config.min_frames:
@@ -632,16 +821,24 @@ def _batch(cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scen
             entry["error"] = f"{type(exc).__name__}: {exc}"
             continue
         entry["solve_s"] = time.perf_counter() - t0
-        entry.update(p_ned_m=np.asarray(res.p_ned_m), cov_ned_m2=np.asarray(res.cov_p_ned_m2), observable=bool(res.observable),
-                     model=str(res.model or res.prior.family), range_sigma_ratio=float(res.range_sigma_ratio))
+        entry.update(
+            p_ned_m=np.asarray(res.p_ned_m),
+            cov_ned_m2=np.asarray(res.cov_p_ned_m2),
+            observable=bool(res.observable),
+            model=str(res.model or res.prior.family),
+            range_sigma_ratio=float(res.range_sigma_ratio),
+        )
         if name == "perfect":
             # the bound of the flown trajectory for the noise actually simulated (the baseline's pixel
             # noise and the telemetry's navigation errors), and for the noise model the estimator assumes
             entry["crb_rms_m"] = entry["crb_model_rms_m"] = math.nan
             try:
                 if pixel_sigma_px > 0:
-                    simulated = NoiseModel(pixel_sigma_px=pixel_sigma_px) if nav_case is None else \
-                        estimator_noise_model(nav_case, pixel_sigma_px=pixel_sigma_px)
+                    simulated = (
+                        NoiseModel(pixel_sigma_px=pixel_sigma_px)
+                        if nav_case is None
+                        else estimator_noise_model(nav_case, pixel_sigma_px=pixel_sigma_px)
+                    )
                     sim = MapEstimator(est.config, simulated)
                     entry["crb_rms_m"] = bayesian_crb_rms_m(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps)
                 entry["crb_model_rms_m"] = bayesian_crb_rms_m(est, obs, truth_p[idx], res.prior, res.turn_rate_radps)
@@ -688,8 +885,9 @@ def closed_loop_figures(r: RunResult) -> dict:
         "median_err_range_observable_pct": float(np.median(100.0 * e[obs] / r.range_m[obs])) if obs.any() else None,
         # what the verdict withheld: the error of every published position after 5 s, and when the first
         # observable frame came (the window's span, not the estimate, is what P1's weak manoeuvre needs)
-        "median_err_range_published_after_5s_pct": (float(np.median(100.0 * e[pub & late] / r.range_m[pub & late]))
-                                                     if (pub & late).any() else None),
+        "median_err_range_published_after_5s_pct": (
+            float(np.median(100.0 * e[pub & late] / r.range_m[pub & late])) if (pub & late).any() else None
+        ),
         "first_observable_s": float(t[obs][0]) if obs.any() else None,
     }
 
@@ -703,14 +901,21 @@ def score_run(r: RunResult) -> dict:
     obs = has & r.observable
     base_obs = r.base_has_estimate & r.base_observable
     common = obs & base_obs
-    out: dict = {"scenario": r.scenario, "seed": r.seed, "frames": F, "nav_noise": r.nav_noise,
-                 "estimator": getattr(r, "estimator", "map"),
-                 "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
-                 "chain_centroid_sigma_px": r.chain_centroid_sigma_px}
+    out: dict = {
+        "scenario": r.scenario,
+        "seed": r.seed,
+        "frames": F,
+        "nav_noise": r.nav_noise,
+        "estimator": getattr(r, "estimator", "map"),
+        "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
+        "chain_centroid_sigma_px": r.chain_centroid_sigma_px,
+    }
     out["closed_loop"] = closed_loop_figures(r)
     out["online_observable"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
     out["online_all"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
-    out["perfect_observable"] = score_frames(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs)
+    out["perfect_observable"] = score_frames(
+        r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs
+    )
     on_c = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, None, common)
     pf_c = score_frames(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, None, common)
     out["common_frames"] = int(common.sum())
@@ -736,9 +941,14 @@ def score_run(r: RunResult) -> dict:
     tm = r.timing
     pm = np.asarray(tm["process_ms"])
     out["timing"] = {
-        "wall_s": tm["wall_s"], "cpu_s": tm["cpu_s"], "cpu_share": tm["cpu_s"] / max(tm["wall_s"], 1e-9),
-        "flight_s": tm["flight_s"], "render_s": tm["render_s"], "pipeline_s": tm["pipeline_s"],
-        "baseline_s": tm["baseline_s"], "batch_s": tm["batch_s"],
+        "wall_s": tm["wall_s"],
+        "cpu_s": tm["cpu_s"],
+        "cpu_share": tm["cpu_s"] / max(tm["wall_s"], 1e-9),
+        "flight_s": tm["flight_s"],
+        "render_s": tm["render_s"],
+        "pipeline_s": tm["pipeline_s"],
+        "baseline_s": tm["baseline_s"],
+        "batch_s": tm["batch_s"],
         "pipeline_fps": float(F / max(pm.sum() / 1e3, 1e-9)),
         "loop_fps": float(F / max(tm["wall_s"], 1e-9)),
         "latency_ms": _percentiles(pm),
@@ -751,9 +961,17 @@ def score_run(r: RunResult) -> dict:
             m = None
             if e.get("p_ned_m") is not None:
                 idx = e["frames"]
-                m = score_frames(r.truth_p_ned_m[idx], e["p_ned_m"], r.cam_p_ned_m[idx], e["cov_ned_m2"], np.ones(idx.size, bool))
-            b[name] = {"metrics": m, "observable": e["observable"], "model": e["model"], "solve_s": e["solve_s"],
-                       "frames": int(len(e["frames"])), "error": e["error"]}
+                m = score_frames(
+                    r.truth_p_ned_m[idx], e["p_ned_m"], r.cam_p_ned_m[idx], e["cov_ned_m2"], np.ones(idx.size, bool)
+                )
+            b[name] = {
+                "metrics": m,
+                "observable": e["observable"],
+                "model": e["model"],
+                "solve_s": e["solve_s"],
+                "frames": int(len(e["frames"])),
+                "error": e["error"],
+            }
         b["crb_rms_m"] = r.batch["perfect"].get("crb_rms_m")
         b["crb_model_rms_m"] = r.batch["perfect"].get("crb_model_rms_m")
         out["batch"] = b
@@ -812,7 +1030,7 @@ SUMMARY_FIELDS = {
     "observable_share_after_5s": ("closed_loop", "observable_share_after_5s"),
     "median_err_range_observable_pct": ("closed_loop", "median_err_range_observable_pct"),
     "median_err_range_published_after_5s_pct": ("closed_loop", "median_err_range_published_after_5s_pct"),
-    "first_observable_s": ("closed_loop", "first_observable_s"),
+    "closed_loop_first_observable_s": ("closed_loop", "first_observable_s"),
     "baseline_pixel_sigma_px": ("baseline_pixel_sigma_px",),
     "chain_centroid_sigma_px": ("chain_centroid_sigma_px",),
     "crb_model_rms_m": ("batch", "crb_model_rms_m"),
@@ -841,8 +1059,13 @@ def summarise(scores: list[dict]) -> list[dict]:
     for name, nav in keys:
         runs = [s for s in scores if s["scenario"] == name and s.get("nav_noise", "") == nav]
         ok = [s for s in runs if "error" not in s]
-        row: dict = {"scenario": name, "nav_noise": nav, "label": f"{name}_{nav}" if multi else name,
-                     "runs": len(runs), "failed_runs": len(runs) - len(ok)}
+        row: dict = {
+            "scenario": name,
+            "nav_noise": nav,
+            "label": f"{name}_{nav}" if multi else name,
+            "runs": len(runs),
+            "failed_runs": len(runs) - len(ok),
+        }
         for key, path in SUMMARY_FIELDS.items():
             row[key] = _med(_get(s, *path) for s in ok)
         on, pf = row["online_common_err_range_pct"], row["perfect_common_err_range_pct"]
@@ -851,9 +1074,14 @@ def summarise(scores: list[dict]) -> list[dict]:
         row["batch_ratio_to_perfect"] = (bo / bp) if (bo is not None and bp not in (None, 0.0)) else None
         row["baseline_failed"] = _baseline_failed(row["perfect_err_range_pct"])
         row["batch_baseline_failed"] = _baseline_failed(bp)
-        ratios = [x for x, failed in ((row["ratio_to_perfect"], row["baseline_failed"]),
-                                      (row["batch_ratio_to_perfect"], row["batch_baseline_failed"]))
-                  if x is not None and not failed]
+        ratios = [
+            x
+            for x, failed in (
+                (row["ratio_to_perfect"], row["baseline_failed"]),
+                (row["batch_ratio_to_perfect"], row["batch_baseline_failed"]),
+            )
+            if x is not None and not failed
+        ]
         row["within_ratio"] = bool(all(x <= RATIO_LIMIT for x in ratios)) if ratios else None
         rows.append(row)
     return rows
@@ -913,9 +1141,16 @@ def bar_pacing() -> dict:
     return {} if sys.stderr.isatty() else {"mininterval": 10.0, "maxinterval": 30.0}
 
 
-def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = None, base_config=None,
-             workers: int = 2, progress: bool = True, config_source: str = "(defaults)",
-             nav_noises=None) -> EvalResult:
+def run_eval(
+    scenarios: list[Scenario],
+    seeds,
+    options: EvalOptions | None = None,
+    base_config=None,
+    workers: int = 2,
+    progress: bool = True,
+    config_source: str = "(defaults)",
+    nav_noises=None,
+) -> EvalResult:
     """All (navigation case, scenario, seed) runs, over ``workers`` processes (1 = in this process), then
     scored.  ``nav_noises``: case names to run each scenario with (default: ``options.nav_noise`` only)."""
     options = options if options is not None else EvalOptions()
@@ -934,7 +1169,9 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
     total = 0
     for sc in scenarios:
         if options.duration_s is not None and options.duration_s > sc.duration_s + 1e-9:
-            raise ConfigError(f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}")
+            raise ConfigError(
+                f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}"
+            )
         d = sc.duration_s if options.duration_s is None else options.duration_s
         total += frame_count(d, sc.frame_rate_hz) * len(seeds) * len(variants)
     t0 = time.perf_counter()
@@ -967,8 +1204,6 @@ def run_eval(scenarios: list[Scenario], seeds, options: EvalOptions | None = Non
     return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
 
 
-
-
 def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
     import queue as queue_mod
 
@@ -980,8 +1215,14 @@ def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=total, unit="frame", desc=f"eval ({workers} workers)", leave=True, dynamic_ncols=True,
-                       **bar_pacing())
+            bar = tqdm(
+                total=total,
+                unit="frame",
+                desc=f"eval ({workers} workers)",
+                leave=True,
+                dynamic_ncols=True,
+                **bar_pacing(),
+            )
         pending = [pool.apply_async(_job, (j,)) for j in jobs]
         results: list = [None] * len(jobs)
         left = set(range(len(jobs)))
@@ -1040,27 +1281,50 @@ def cmd_eval(args) -> int:
     if workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
     nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
-    options = EvalOptions(duration_s=args.duration, pixel_sigma_px=args.pixel_sigma, batch=not args.no_batch,
-                          nav_noise=nav_noises[0], estimator=getattr(args, "estimator", None))
+    options = EvalOptions(
+        duration_s=args.duration,
+        pixel_sigma_px=args.pixel_sigma,
+        batch=not args.no_batch,
+        nav_noise=nav_noises[0],
+        estimator=getattr(args, "estimator", None),
+    )
     for n in nav_noises[1:]:
         dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
     base = load_base_config(args.onboard_config)
-    source = args.onboard_config or (str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults")
+    source = args.onboard_config or (
+        str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
+    )
     out = Path(args.out)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
-    log.info("eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s", len(scenarios), args.seeds, workers, source)
-    result = run_eval(scenarios, range(args.seeds), options, base, workers=workers, progress=not args.no_progress,
-                      config_source=source, nav_noises=nav_noises)
+    log.info(
+        "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
+        len(scenarios),
+        args.seeds,
+        workers,
+        source,
+    )
+    result = run_eval(
+        scenarios,
+        range(args.seeds),
+        options,
+        base,
+        workers=workers,
+        progress=not args.no_progress,
+        config_source=source,
+        nav_noises=nav_noises,
+    )
     files = write_eval_report(out, result)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))
     print()
     print(format_closed_loop(result.summary))
     failed = sum(1 for s in result.scores if "error" in s)
-    print(f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
-          f"report: {files['report.md']}")
+    print(
+        f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
+        f"report: {files['report.md']}"
+    )
     sys.stdout.flush()
     return 0

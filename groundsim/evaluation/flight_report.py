@@ -92,10 +92,19 @@ def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     run = flight_run(tracks, poses, truth, name)
-    written = [plot_trajectory(out / "trajectory.png", run, f"{name}: reconstruction"
-                               + (" vs truth" if run.has_truth else " (no truth in the recording)"))]
-    summary: dict = {"frames": len(tracks), "with_3d": int(np.isfinite(run.est_p_ned_m).all(axis=1).sum()),
-                     "observable": int(run.observable.sum()), "truth": run.has_truth}
+    written = [
+        plot_trajectory(
+            out / "trajectory.png",
+            run,
+            f"{name}: reconstruction" + (" vs truth" if run.has_truth else " (no truth in the recording)"),
+        )
+    ]
+    summary: dict = {
+        "frames": len(tracks),
+        "with_3d": int(np.isfinite(run.est_p_ned_m).all(axis=1).sum()),
+        "observable": int(run.observable.sum()),
+        "truth": run.has_truth,
+    }
     if run.has_truth:
         written.append(plot_errors(out / "errors.png", run, f"{name}: reconstruction error"))
         has = np.isfinite(run.est_p_ned_m).all(axis=1) & np.isfinite(run.truth_p_ned_m).all(axis=1)
@@ -105,9 +114,13 @@ def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth:
             summary["median_error_over_range_observable"] = float(np.median(e))
     if truth:
         truth_by = {(int(r["seq"]), int(r["time_boot_us"])): r for r in truth}
-        d_px = [math.hypot(tr["u_px"] - r["target_u_px"], tr["v_px"] - r["target_v_px"]) for tr in tracks
-                if tr.get("u_px") is not None and (r := truth_by.get((int(tr["seq"]), int(tr["time_boot_us"]))))
-                and r.get("target_u_px") is not None]
+        d_px = [
+            math.hypot(tr["u_px"] - r["target_u_px"], tr["v_px"] - r["target_v_px"])
+            for tr in tracks
+            if tr.get("u_px") is not None
+            and (r := truth_by.get((int(tr["seq"]), int(tr["time_boot_us"]))))
+            and r.get("target_u_px") is not None
+        ]
         if d_px:  # the truth matched to the right frames: the track centre sits on the true pixel
             summary["median_track_to_truth_px"] = float(np.median(d_px))
     # the frame: the middle one of those with a box (tracking), else the middle frame
@@ -122,10 +135,22 @@ def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth:
         if truth_row is not None and truth_row.get("target_u_px") is not None:
             tuv = (truth_row["target_u_px"], truth_row["target_v_px"])
         rng = run.range_m[i]
-        written.append(plot_frame(out / "frame.png", {
-            "pixels": frames[k], "k": tr["seq"], "t_s": tr["time_boot_us"] / 1e6, "state": tr.get("state"),
-            "bbox": tr.get("bbox"), "uv_px": None if tr.get("u_px") is None else (tr["u_px"], tr["v_px"]),
-            "truth_uv_px": tuv, "range_m": float(rng) if math.isfinite(rng) else math.nan}, f"{name}: frame {tr['seq']}"))
+        written.append(
+            plot_frame(
+                out / "frame.png",
+                {
+                    "pixels": frames[k],
+                    "k": tr["seq"],
+                    "t_s": tr["time_boot_us"] / 1e6,
+                    "state": tr.get("state"),
+                    "bbox": tr.get("bbox"),
+                    "uv_px": None if tr.get("u_px") is None else (tr["u_px"], tr["v_px"]),
+                    "truth_uv_px": tuv,
+                    "range_m": float(rng) if math.isfinite(rng) else math.nan,
+                },
+                f"{name}: frame {tr['seq']}",
+            )
+        )
         summary["frame_seq"] = tr["seq"]
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     written.append(out / "summary.json")

@@ -169,9 +169,11 @@ def _ratio_text(x, baseline_failed: bool) -> str:
 def format_table2(summary: list[dict], descriptions: dict[str, str] | None = None) -> str:
     """The Table-2 style markdown table of :func:`groundsim.evaluation.eval.summarise` rows, the paper's figure beside ours."""
     descriptions = descriptions or {}
-    head = ("| scenario | geometry | paper Table 2 | ours: paper metric | ours: err / range | RMSE m | NEES | "
-            "continuity | perfect centroids: err / range | ratio (<= 1.5) | CRB RMS m | batch err / range | "
-            "batch perfect err / range | batch ratio (<= 1.5) |")
+    head = (
+        "| scenario | geometry | paper Table 2 | ours: paper metric | ours: err / range | RMSE m | NEES | "
+        "continuity | perfect centroids: err / range | ratio (<= 1.5) | CRB RMS m | batch err / range | "
+        "batch perfect err / range | batch ratio (<= 1.5) |"
+    )
     lines = [head, "|" + "---|" * 14]
     for r in summary:
         paper = PAPER_TABLE2_PCT.get(r["scenario"])
@@ -188,19 +190,26 @@ def format_table2(summary: list[dict], descriptions: dict[str, str] | None = Non
 
 
 #: issue 9 item 5's goals: published after 3 s, beyond 3 sigma, observable after 5 s (P2: 40 %), median err / range
-CLOSED_LOOP_GOALS = {"published": 0.95, "beyond": 0.01, "observable": {"P2": 0.40}, "observable_default": 0.60,
-                     "err_pct": 2.0}
+CLOSED_LOOP_GOALS = {
+    "published": 0.95,
+    "beyond": 0.01,
+    "observable": {"P2": 0.40},
+    "observable_default": 0.60,
+    "err_pct": 2.0,
+}
 
 
 def format_closed_loop(summary: list[dict]) -> str:
     """Issue 9 item 5's closed-loop figures per (scenario, navigation case), medians over seeds, with
     the goal beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them)."""
     g = CLOSED_LOOP_GOALS
-    lines = ["| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
-             "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
-             "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
-             "first observable s | centroid sigma px (chain; baseline) |",
-             "|" + "---|" * 9]
+    lines = [
+        "| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
+        "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
+        "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
+        "first observable s | centroid sigma px (chain; baseline) |",
+        "|" + "---|" * 9,
+    ]
     for r in summary:
         obs_goal = g["observable"].get(r["scenario"], g["observable_default"])
 
@@ -213,10 +222,11 @@ def format_closed_loop(summary: list[dict]) -> str:
             f"| {r.get('label', r['scenario'])} | {r.get('nav_noise') or '-'} | "
             f"{_f(_pct(pub), '.0f', ' %')}{mark(pub, lambda x: x >= g['published'])} | "
             f"{_f(_pct(bey), '.1f', ' %')}{mark(bey, lambda x: x <= g['beyond'])} | "
-            f"{_f(_pct(obs), '.0f', ' %')}{mark(obs, lambda x: x >= obs_goal)} | "
+            f"{_f(_pct(obs), '.0f', ' %')}{mark(obs, lambda x, goal=obs_goal: x >= goal)} | "
             f"{_f(err, '.2f', ' %')}{mark(err, lambda x: x <= g['err_pct'])} | "
-            f"{_f(r.get('median_err_range_published_after_5s_pct'), '.2f', ' %')} | {_f(r.get('first_observable_s'), '.1f')} | "
-            f"{_f(r.get('chain_centroid_sigma_px'), '.3f')}; {_f(r.get('baseline_pixel_sigma_px'), '.3f')} |")
+            f"{_f(r.get('median_err_range_published_after_5s_pct'), '.2f', ' %')} | {_f(r.get('closed_loop_first_observable_s'), '.1f')} | "
+            f"{_f(r.get('chain_centroid_sigma_px'), '.3f')}; {_f(r.get('baseline_pixel_sigma_px'), '.3f')} |"
+        )
     return "\n".join(lines)
 
 
@@ -377,16 +387,28 @@ def plot_frame(path, frame: dict, title: str = "") -> Path:
     half = 24
     # display stretch only (the grey values are not changed): whole frame 0.5-99.95 %, zoom min-max
     lo, hi = np.percentile(img, [0.5, 99.95])
-    ax.imshow(img, cmap="gray", vmin=lo, vmax=max(hi, lo + 1), interpolation="nearest",
-              extent=(0, img.shape[1], img.shape[0], 0))
+    ax.imshow(
+        img,
+        cmap="gray",
+        vmin=lo,
+        vmax=max(hi, lo + 1),
+        interpolation="nearest",
+        extent=(0, img.shape[1], img.shape[0], 0),
+    )
     zlo, zhi = lo, hi
     if math.isfinite(tu):
         u0, v0 = int(max(tu - half, 0)), int(max(tv - half, 0))
-        patch = img[v0:int(tv + half) + 1, u0:int(tu + half) + 1]
+        patch = img[v0 : int(tv + half) + 1, u0 : int(tu + half) + 1]
         if patch.size:
             zlo, zhi = float(patch.min()), float(patch.max())
-    az.imshow(img, cmap="gray", vmin=zlo, vmax=max(zhi, zlo + 1), interpolation="nearest",
-              extent=(0, img.shape[1], img.shape[0], 0))
+    az.imshow(
+        img,
+        cmap="gray",
+        vmin=zlo,
+        vmax=max(zhi, zlo + 1),
+        interpolation="nearest",
+        extent=(0, img.shape[1], img.shape[0], 0),
+    )
     box = frame.get("bbox")
     if box is not None:
         for a in (ax, az):
@@ -403,8 +425,11 @@ def plot_frame(path, frame: dict, title: str = "") -> Path:
     ax.set_xlabel("u px")
     ax.set_ylabel("v px")
     az.set_title("zoom on the target")
-    ax.set_title(f"frame {frame['k']} at t = {frame['t_s']:.2f} s, state {frame.get('state')}, range {frame['range_m']:.0f} m"
-                 " (contrast stretched for display)", fontsize=10)
+    ax.set_title(
+        f"frame {frame['k']} at t = {frame['t_s']:.2f} s, state {frame.get('state')}, range {frame['range_m']:.0f} m"
+        " (contrast stretched for display)",
+        fontsize=10,
+    )
     fig.suptitle(title)
     return _save(fig, path)
 
@@ -416,8 +441,13 @@ def plot_performance(path, summary_perf: list[dict], latencies: dict[str, np.nda
     for name, lat in latencies.items():
         lat = np.asarray(lat, dtype=float)
         if lat.size:
-            a1.hist(lat, bins=np.logspace(np.log10(max(lat.min(), 0.05)), np.log10(max(lat.max(), 1.0)), 40),
-                    histtype="step", lw=1.5, label=f"{name} (p50 {np.percentile(lat, 50):.1f} ms)")
+            a1.hist(
+                lat,
+                bins=np.logspace(np.log10(max(lat.min(), 0.05)), np.log10(max(lat.max(), 1.0)), 40),
+                histtype="step",
+                lw=1.5,
+                label=f"{name} (p50 {np.percentile(lat, 50):.1f} ms)",
+            )
     a1.set_xscale("log")
     a1.set_xlabel("pipeline processing per frame, ms (imaging + pose + estimator)")
     a1.set_ylabel("frames")
@@ -451,33 +481,33 @@ def _save(fig, path) -> Path:
 
 DEFINITIONS = {
     "observable frames": "frames whose online Track has a 3-D position flagged observable (what the daemon "
-                         "publishes with the default output.unobservable_positions: false); the headline",
+    "publishes with the default output.unobservable_positions: false); the headline",
     "all frames with an estimate": "frames with any finite 3-D estimate, observable or not",
     "paper metric": "mean ||X_hat - X|| / ||X|| x 100 %, X relative to the scenario's local origin (on the ground "
-                    "under the observer's start), as the paper's relative error",
+    "under the observer's start), as the paper's relative error",
     "err / range": "mean ||X_hat - X|| / range x 100 % (range = camera to target)",
     "RMSE": "sqrt(mean ||X_hat - X||^2), metres; equals evo_ape's RMSE on the TUM files",
     "NEES": "mean e^T P^-1 e with the reported covariance P (3 when consistent; < 3 conservative)",
     "continuity": "observable frames / all frames of the run",
     "continuity 2-D": "frames with a valid centroid / frames with the target inside the image",
     "perfect centroids": "the same sliding-window estimator fed with the true pixel + white noise of the image "
-                         "chain's own centroid error (measured per run: RMS per axis of centroid - truth pixel; "
-                         "--pixel-sigma overrides it), through the same camera poses as the pipeline (navigation "
-                         "errors included); scored on its observable frames",
+    "chain's own centroid error (measured per run: RMS per axis of centroid - truth pixel; "
+    "--pixel-sigma overrides it), through the same camera poses as the pipeline (navigation "
+    "errors included); scored on its observable frames",
     "baseline failed": f"the perfect-centroid baseline had no observable frame or an error over {BASELINE_FAIL_PCT:g} % of range: "
-                       "a ratio to it says nothing, so it gets no verdict",
+    "a ratio to it says nothing, so it gets no verdict",
     "navigation errors": "the simulated telemetry's errors (config/noise_cases.yaml case, groundsim/world/nav_errors.py): "
-                         "attitude bias + white noise on #31/#285, position offset + drift + white noise on #33",
+    "attitude bias + white noise on #31/#285, position offset + drift + white noise on #33",
     "published (closed loop)": "frames whose Track carries a finite 3-D position (lockstep publishes unobservable "
-                               "positions too); share over frames in state tracking after the first 3 s",
+    "positions too); share over frames in state tracking after the first 3 s",
     "beyond 3 sigma (published)": "fraction of published positions with ||e|| > 3 sqrt(trace cov): honesty",
     "observable after 5 s": "observable frames / all frames after the first 5 s",
     "ratio": "online track: image chain err/range / perfect-centroid err/range, both on the frames where both are "
-             "observable (median over seeds of each, then the ratio); batch ratio: the same for the whole-flight "
-             "smoother on all frames with a centroid; issue #5 asks for <= 1.5 (the verdict needs every ratio available)",
+    "observable (median over seeds of each, then the ratio); batch ratio: the same for the whole-flight "
+    "smoother on all frames with a centroid; issue #5 asks for <= 1.5 (the verdict needs every ratio available)",
     "CRB": "Bayesian Cramer-Rao bound of the flown trajectory (RMS over the flight of sqrt(trace)), with the "
-           "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
-           "on perfect centroids",
+    "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
+    "on perfect centroids",
     "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids)",
     "medians": "every table figure is the median over seeds",
 }
@@ -524,16 +554,37 @@ def write_eval_report(out_dir, result) -> dict:
         if not ok:
             continue
         r0 = ok[0]
-        tasks.append((f"{name}_trajectory", "plot_trajectory", out / f"{name}_trajectory.png", r0,
-                      f"{name} seed {r0.seed}: {descriptions[name]}"))
-        tasks.append((f"{name}_error", "plot_errors", out / f"{name}_error.png", r0, f"{name} seed {r0.seed}: error over time"))
+        tasks.append(
+            (
+                f"{name}_trajectory",
+                "plot_trajectory",
+                out / f"{name}_trajectory.png",
+                r0,
+                f"{name} seed {r0.seed}: {descriptions[name]}",
+            )
+        )
+        tasks.append(
+            (f"{name}_error", "plot_errors", out / f"{name}_error.png", r0, f"{name} seed {r0.seed}: error over time")
+        )
         if r0.frame is not None:
-            tasks.append((f"{name}_frame", "plot_frame", out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame"))
+            tasks.append(
+                (f"{name}_frame", "plot_frame", out / f"{name}_frame.png", r0.frame, f"{name} seed {r0.seed}: IR frame")
+            )
     perf = _performance(result)
-    lat = {name: np.concatenate([np.asarray(r.timing["process_ms"]) for r in runs if r.error is None] or [np.zeros(0)])
-           for name, runs in by_scenario.items()}
-    tasks.append(("performance", "plot_performance", out / "performance.png", perf["per_scenario"], lat,
-                  "processing performance (analogue of the paper's Fig. 9)"))
+    lat = {
+        name: np.concatenate([np.asarray(r.timing["process_ms"]) for r in runs if r.error is None] or [np.zeros(0)])
+        for name, runs in by_scenario.items()
+    }
+    tasks.append(
+        (
+            "performance",
+            "plot_performance",
+            out / "performance.png",
+            perf["per_scenario"],
+            lat,
+            "processing performance (analogue of the paper's Fig. 9)",
+        )
+    )
     for key, path in _run_plots(tasks, getattr(result, "workers", 1)):
         files[key] = path
 
@@ -545,10 +596,15 @@ def write_eval_report(out_dir, result) -> dict:
     report = {
         "schema": SCHEMA,
         "generated_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
-        "options": {"seeds": sorted({r.seed for r in result.runs}), "workers": result.workers,
-                    "duration_s": result.options.duration_s, "pixel_sigma_px": result.options.pixel_sigma_px,
-                    "nav_noise": sorted({getattr(r, "nav_noise", "") for r in result.runs}),
-                    "batch": result.options.batch, "onboard_config": result.config_source},
+        "options": {
+            "seeds": sorted({r.seed for r in result.runs}),
+            "workers": result.workers,
+            "duration_s": result.options.duration_s,
+            "pixel_sigma_px": result.options.pixel_sigma_px,
+            "nav_noise": sorted({getattr(r, "nav_noise", "") for r in result.runs}),
+            "batch": result.options.batch,
+            "onboard_config": result.config_source,
+        },
         "wall_s": result.wall_s,
         "paper_table2_pct": PAPER_TABLE2_PCT,
         "summary": summary,
@@ -596,19 +652,23 @@ def _performance(result) -> dict:
         p50, p90, p99 = np.percentile(pm, [50, 90, 99])
         wall = sum(r.timing["wall_s"] for r in runs)
         cpu = sum(r.timing["cpu_s"] for r in runs)
-        per.append({
-            "scenario": name, "runs": len(runs), "frames": frames,
-            "pipeline_fps": frames / max(pm.sum() / 1e3, 1e-9),
-            "latency_ms": {"p50": p50, "p90": p90, "p99": p99, "max": float(pm.max()), "mean": float(pm.mean())},
-            "flight_ms_per_frame": 1e3 * sum(r.timing["flight_s"] for r in runs) / frames,
-            "render_ms_per_frame": 1e3 * sum(r.timing["render_s"] for r in runs) / frames,
-            "pipeline_ms_per_frame": 1e3 * sum(r.timing["pipeline_s"] for r in runs) / frames,
-            "baseline_ms_per_frame": 1e3 * sum(r.timing["baseline_s"] for r in runs) / frames,
-            "batch_s_per_run": sum(r.timing["batch_s"] for r in runs) / len(runs),
-            "run_wall_s": wall / len(runs),
-            "run_cpu_share": cpu / max(wall, 1e-9),
-            "loop_fps": frames / max(wall, 1e-9),
-        })
+        per.append(
+            {
+                "scenario": name,
+                "runs": len(runs),
+                "frames": frames,
+                "pipeline_fps": frames / max(pm.sum() / 1e3, 1e-9),
+                "latency_ms": {"p50": p50, "p90": p90, "p99": p99, "max": float(pm.max()), "mean": float(pm.mean())},
+                "flight_ms_per_frame": 1e3 * sum(r.timing["flight_s"] for r in runs) / frames,
+                "render_ms_per_frame": 1e3 * sum(r.timing["render_s"] for r in runs) / frames,
+                "pipeline_ms_per_frame": 1e3 * sum(r.timing["pipeline_s"] for r in runs) / frames,
+                "baseline_ms_per_frame": 1e3 * sum(r.timing["baseline_s"] for r in runs) / frames,
+                "batch_s_per_run": sum(r.timing["batch_s"] for r in runs) / len(runs),
+                "run_wall_s": wall / len(runs),
+                "run_cpu_share": cpu / max(wall, 1e-9),
+                "loop_fps": frames / max(wall, 1e-9),
+            }
+        )
     total_cpu = sum(r.timing.get("cpu_s", 0.0) for r in result.runs if r.error is None)
     return {
         "per_scenario": per,
@@ -625,69 +685,102 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     perf = report["performance"]
     L = []
     L.append("# irtrack evaluation: lockstep closed loop against the truth\n")
-    L.append(f"Generated {report['generated_utc']} by `python -m groundsim eval`; scenarios "
-             f"{', '.join(r['scenario'] for r in report['summary'])}; seeds {o['seeds']}; {o['workers']} worker process(es); "
-             f"wall {report['wall_s']:.1f} s for {perf['eval_frames']} frames ({perf['eval_fps']:.1f} frames/s overall). "
-             f"Onboard configuration: {o['onboard_config']} (with the scenario's camera, mount and origin). "
-             f"Navigation errors of the telemetry: {', '.join(o['nav_noise'])} (config/noise_cases.yaml). Perfect-centroid "
-             f"noise: " + ("the image chain's measured centroid error per run (table below)"
-                           if o['pixel_sigma_px'] is None else f"{o['pixel_sigma_px']:g} px per axis") + ".\n")
+    L.append(
+        f"Generated {report['generated_utc']} by `python -m groundsim eval`; scenarios "
+        f"{', '.join(r['scenario'] for r in report['summary'])}; seeds {o['seeds']}; {o['workers']} worker process(es); "
+        f"wall {report['wall_s']:.1f} s for {perf['eval_frames']} frames ({perf['eval_fps']:.1f} frames/s overall). "
+        f"Onboard configuration: {o['onboard_config']} (with the scenario's camera, mount and origin). "
+        f"Navigation errors of the telemetry: {', '.join(o['nav_noise'])} (config/noise_cases.yaml). Perfect-centroid "
+        f"noise: "
+        + (
+            "the image chain's measured centroid error per run (table below)"
+            if o["pixel_sigma_px"] is None
+            else f"{o['pixel_sigma_px']:g} px per axis"
+        )
+        + ".\n"
+    )
     L.append("## Closed loop: what a user gets\n")
-    L.append("Medians over seeds, from the pipeline's per-frame Tracks (definitions below), with issue 9's goals. "
-             "Run `groundsim eval --nav-noise RTK exact` to see realistic and exact navigation side by side.\n")
+    L.append(
+        "Medians over seeds, from the pipeline's per-frame Tracks (definitions below), with issue 9's goals. "
+        "Run `groundsim eval --nav-noise RTK exact` to see realistic and exact navigation side by side.\n"
+    )
     L.append(format_closed_loop(report["summary"]))
     L.append("")
     L.append("## Reconstruction error beside the paper's Table 2\n")
-    L.append("Medians over seeds. Headline: the online track on its observable frames (what the daemon publishes). "
-             "The paper's figure is its relative error with its own world origin; ours in the same metric is the "
-             "\"paper metric\" column (definitions below).\n")
+    L.append(
+        "Medians over seeds. Headline: the online track on its observable frames (what the daemon publishes). "
+        "The paper's figure is its relative error with its own world origin; ours in the same metric is the "
+        '"paper metric" column (definitions below).\n'
+    )
     L.append(format_table2(report["summary"], descriptions))
     L.append("")
-    L.append("| scenario | all frames with an estimate: err / range | RMSE m | 2-D continuity | first observable s | "
-             "centroid error RMS px | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |")
+    L.append(
+        "| scenario | all frames with an estimate: err / range | RMSE m | 2-D continuity | first observable s | "
+        "centroid error RMS px | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |"
+    )
     L.append("|" + "---|" * 10)
     for r in report["summary"]:
         ref = REFERENCE_PX03.get(r["scenario"])
-        L.append(f"| {r.get('label', r['scenario'])} | {_f(r.get('all_err_range_pct'), '.2f', ' %')} | {_f(r.get('all_rmse_m'))} | "
-                 f"{_f(_pct(r.get('continuity_2d')), '.0f', ' %')} | {_f(r.get('first_observable_s'), '.2f')} | "
-                 f"{_f(r.get('centroid_rms_px'), '.3f')} | {_f(_pct(r.get('perfect_continuity')), '.0f', ' %')} | "
-                 f"{_f(r.get('ape_rmse_m'), '.3f')} | {r['failed_runs']}/{r['runs']} | "
-                 f"{'-' if ref is None else f'{ref[0]:.2f} % / {ref[1]:.2f}'} |")
+        L.append(
+            f"| {r.get('label', r['scenario'])} | {_f(r.get('all_err_range_pct'), '.2f', ' %')} | {_f(r.get('all_rmse_m'))} | "
+            f"{_f(_pct(r.get('continuity_2d')), '.0f', ' %')} | {_f(r.get('first_observable_s'), '.2f')} | "
+            f"{_f(r.get('centroid_rms_px'), '.3f')} | {_f(_pct(r.get('perfect_continuity')), '.0f', ' %')} | "
+            f"{_f(r.get('ape_rmse_m'), '.3f')} | {r['failed_runs']}/{r['runs']} | "
+            f"{'-' if ref is None else f'{ref[0]:.2f} % / {ref[1]:.2f}'} |"
+        )
     L.append("")
     verdicts = []
     for r in report["summary"]:
         lab = r.get("label", r["scenario"])
-        used = [name for name, key, failed in (("online", "ratio_to_perfect", "baseline_failed"),
-                                               ("batch", "batch_ratio_to_perfect", "batch_baseline_failed"))
-                if r.get(key) is not None and not r.get(failed)]
-        failed = [name for name, failed in (("online", "baseline_failed"), ("batch", "batch_baseline_failed"))
-                  if r.get(failed)]
+        used = [
+            name
+            for name, key, failed in (
+                ("online", "ratio_to_perfect", "baseline_failed"),
+                ("batch", "batch_ratio_to_perfect", "batch_baseline_failed"),
+            )
+            if r.get(key) is not None and not r.get(failed)
+        ]
+        failed = [
+            name
+            for name, failed in (("online", "baseline_failed"), ("batch", "batch_baseline_failed"))
+            if r.get(failed)
+        ]
         note = f"; {' and '.join(failed)} baseline failed" if failed else ""
         if r.get("within_ratio") is None:
             verdicts.append(f"{lab}: no verdict (no ratio with a sound baseline{note})")
         else:
-            verdicts.append(f"{lab}: {'within' if r['within_ratio'] else '**NOT within**'} "
-                            f"{RATIO_LIMIT:g}x ({' and '.join(used)} ratio{note})")
+            verdicts.append(
+                f"{lab}: {'within' if r['within_ratio'] else '**NOT within**'} "
+                f"{RATIO_LIMIT:g}x ({' and '.join(used)} ratio{note})"
+            )
     L.append("Image chain vs perfect centroids: " + "; ".join(verdicts) + ".\n")
     L.append("## Performance (the analogue of the paper's Fig. 9)\n")
-    L.append("Lockstep: one process per run does everything in turn, so these are single-core figures. "
-             "\"pipeline\" = `FramePipeline.process` (imaging + pose lookup + estimator), the daemon's per-frame work. "
-             "Lockstep runs the estimator synchronously, so its model re-selection (about once a second, tenths of a "
-             "second) lands on single frames: that is the p99 / max; the daemon runs it in a worker thread (see "
-             "`python -m groundsim demo` for its real-time latency).\n")
-    L.append("| scenario | pipeline fps | latency p50 / p90 / p99 / max ms | flight ms/frame | render ms/frame | "
-             "pipeline ms/frame | baseline ms/frame | batch s/run | run wall s | CPU share of the run's process |")
+    L.append(
+        "Lockstep: one process per run does everything in turn, so these are single-core figures. "
+        '"pipeline" = `FramePipeline.process` (imaging + pose lookup + estimator), the daemon\'s per-frame work. '
+        "Lockstep runs the estimator synchronously, so its model re-selection (about once a second, tenths of a "
+        "second) lands on single frames: that is the p99 / max; the daemon runs it in a worker thread (see "
+        "`python -m groundsim demo` for its real-time latency).\n"
+    )
+    L.append(
+        "| scenario | pipeline fps | latency p50 / p90 / p99 / max ms | flight ms/frame | render ms/frame | "
+        "pipeline ms/frame | baseline ms/frame | batch s/run | run wall s | CPU share of the run's process |"
+    )
     L.append("|" + "---|" * 10)
     for p in perf["per_scenario"]:
         lm = p["latency_ms"]
-        L.append(f"| {p['scenario']} | {p['pipeline_fps']:.0f} | {lm['p50']:.1f} / {lm['p90']:.1f} / {lm['p99']:.1f} / "
-                 f"{lm['max']:.0f} | {p['flight_ms_per_frame']:.1f} | {p['render_ms_per_frame']:.1f} | "
-                 f"{p['pipeline_ms_per_frame']:.1f} | {p['baseline_ms_per_frame']:.1f} | {p['batch_s_per_run']:.2f} | "
-                 f"{p['run_wall_s']:.1f} | {100 * p['run_cpu_share']:.0f} % |")
+        L.append(
+            f"| {p['scenario']} | {p['pipeline_fps']:.0f} | {lm['p50']:.1f} / {lm['p90']:.1f} / {lm['p99']:.1f} / "
+            f"{lm['max']:.0f} | {p['flight_ms_per_frame']:.1f} | {p['render_ms_per_frame']:.1f} | "
+            f"{p['pipeline_ms_per_frame']:.1f} | {p['baseline_ms_per_frame']:.1f} | {p['batch_s_per_run']:.2f} | "
+            f"{p['run_wall_s']:.1f} | {100 * p['run_cpu_share']:.0f} % |"
+        )
     L.append("")
-    L.append(f"Whole evaluation: {perf['eval_frames']} frames in {perf['eval_wall_s']:.1f} s with {perf['workers']} worker "
-             f"process(es); worker CPU share {100 * perf['worker_cpu_share']:.0f} % of {perf['workers']} core(s) "
-             "(below 100 % = the machine was shared or workers idled at the end).\n")
+    L.append(
+        f"Whole evaluation: {perf['eval_frames']} frames in {perf['eval_wall_s']:.1f} s with {perf['workers']} worker "
+        f"process(es); worker CPU share {100 * perf['worker_cpu_share']:.0f} % of {perf['workers']} core(s) "
+        "(below 100 % = the machine was shared or workers idled at the end).\n"
+    )
     L.append("![performance](performance.png)\n")
     L.append("## Figures (the analogue of the paper's Fig. 8)\n")
     for name in descriptions:
@@ -697,33 +790,43 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
                 L.append(f"![{name} {kind}]({f})")
         L.append("")
     L.append("## Runs\n")
-    L.append("| scenario | seed | err / range | RMSE m | NEES | continuity | perfect err / range | batch err / range | CRB m | "
-             "centroid RMS px | pipeline fps | wall s | note |")
+    L.append(
+        "| scenario | seed | err / range | RMSE m | NEES | continuity | perfect err / range | batch err / range | CRB m | "
+        "centroid RMS px | pipeline fps | wall s | note |"
+    )
     L.append("|" + "---|" * 13)
     for s in report["runs"]:
         if "error" in s:
-            L.append(f"| {s['scenario']} | {s['seed']} | - | - | - | - | - | - | - | - | - | - | failed: {s['error']} |")
+            L.append(
+                f"| {s['scenario']} | {s['seed']} | - | - | - | - | - | - | - | - | - | - | failed: {s['error']} |"
+            )
             continue
         on = s.get("online_observable") or {}
         pf = s.get("perfect_observable") or {}
         b = s.get("batch") or {}
-        L.append(f"| {s['scenario']} | {s['seed']} | {_f(on.get('err_range_pct'), '.2f', ' %')} | {_f(on.get('rmse_m'))} | "
-                 f"{_f(on.get('mean_nees'))} | {_f(_pct(s.get('continuity')), '.0f', ' %')} | "
-                 f"{_f(pf.get('err_range_pct'), '.2f', ' %')} | "
-                 f"{_f(_get(b, 'pipeline', 'metrics', 'err_range_pct'), '.2f', ' %')} | {_f(b.get('crb_rms_m'))} | "
-                 f"{_f(s.get('centroid_rms_px'), '.3f')} | {s['timing']['pipeline_fps']:.0f} | {s['timing']['wall_s']:.1f} | "
-                 f"{on.get('note', '')} |")
+        L.append(
+            f"| {s['scenario']} | {s['seed']} | {_f(on.get('err_range_pct'), '.2f', ' %')} | {_f(on.get('rmse_m'))} | "
+            f"{_f(on.get('mean_nees'))} | {_f(_pct(s.get('continuity')), '.0f', ' %')} | "
+            f"{_f(pf.get('err_range_pct'), '.2f', ' %')} | "
+            f"{_f(_get(b, 'pipeline', 'metrics', 'err_range_pct'), '.2f', ' %')} | {_f(b.get('crb_rms_m'))} | "
+            f"{_f(s.get('centroid_rms_px'), '.3f')} | {s['timing']['pipeline_fps']:.0f} | {s['timing']['wall_s']:.1f} | "
+            f"{on.get('note', '')} |"
+        )
     L.append("")
     L.append("## TUM trajectories\n")
-    L.append("Per run: `<scenario>/seed<N>/truth.tum` (every frame), `estimate.tum` (online track, observable frames), "
-             "`estimate_perfect.tum` (perfect-centroid baseline). Columns `timestamp tx ty tz qx qy qz qw`: boot-clock "
-             "seconds, local NED metres about the scenario origin, identity attitude. Score one with evo:\n")
+    L.append(
+        "Per run: `<scenario>/seed<N>/truth.tum` (every frame), `estimate.tum` (online track, observable frames), "
+        "`estimate_perfect.tum` (perfect-centroid baseline). Columns `timestamp tx ty tz qx qy qz qw`: boot-clock "
+        "seconds, local NED metres about the scenario origin, identity attitude. Score one with evo:\n"
+    )
     first = next(iter(report["tum_ape"].items()), None)
     if first is not None:
         key, v = first
         L.append(f"    evo_ape tum {v['dir']}/truth.tum {v['dir']}/estimate.tum\n")
-        L.append(f"Our APE RMSE for {key} the same way (nearest stamp within {EVO_MAX_DIFF_S} s, no alignment, "
-                 f"translation): {_f(v['rmse_m'], '.4f')} m over {v['matched']} poses.\n")
+        L.append(
+            f"Our APE RMSE for {key} the same way (nearest stamp within {EVO_MAX_DIFF_S} s, no alignment, "
+            f"translation): {_f(v['rmse_m'], '.4f')} m over {v['matched']} poses.\n"
+        )
     L.append("## Definitions\n")
     for k, v in DEFINITIONS.items():
         L.append(f"- **{k}**: {v}")

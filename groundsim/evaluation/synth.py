@@ -21,12 +21,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat, rotmat_from_rotvec
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.estimation.observations import Observations
-from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat, rotmat_from_rotvec
 
-__all__ = ["Truth", "look_at_R_ned_from_cam", "pointing_offsets_ned_m", "synthesize", "synthesize_scenario",
-           "estimator_noise_model"]
+__all__ = [
+    "Truth",
+    "look_at_R_ned_from_cam",
+    "pointing_offsets_ned_m",
+    "synthesize",
+    "synthesize_scenario",
+    "estimator_noise_model",
+]
 
 
 @dataclass(frozen=True)
@@ -81,8 +87,16 @@ def _random_unit(rng: np.random.Generator) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-def synthesize(observer_motion, target_motion, t_s, intrinsics: PinholeIntrinsics, noise_case, rng: np.random.Generator,
-               pointing_frac=(0.03, 0.02, 0.015), pointing_period_s=(7.0, 5.0, 3.0)) -> tuple[Truth, Observations]:
+def synthesize(
+    observer_motion,
+    target_motion,
+    t_s,
+    intrinsics: PinholeIntrinsics,
+    noise_case,
+    rng: np.random.Generator,
+    pointing_frac=(0.03, 0.02, 0.015),
+    pointing_period_s=(7.0, 5.0, 3.0),
+) -> tuple[Truth, Observations]:
     """Truth and noisy observations at times ``t_s`` (the camera centre is the observer's position)."""
     t = np.asarray(t_s, dtype=float)
     cam = observer_motion.state(t).p_ned_m
@@ -96,17 +110,25 @@ def synthesize(observer_motion, target_motion, t_s, intrinsics: PinholeIntrinsic
 
     F = t.size
     uv = uv_true + noise_case.pixel_sigma_px * rng.standard_normal((F, 2))
-    phi = noise_case.attitude_bias_sigma_rad * rng.standard_normal(3) + noise_case.attitude_white_sigma_rad * rng.standard_normal((F, 3))
+    phi = noise_case.attitude_bias_sigma_rad * rng.standard_normal(
+        3
+    ) + noise_case.attitude_white_sigma_rad * rng.standard_normal((F, 3))
     R_meas = np.einsum("fij,fjk->fik", rotmat_from_rotvec(phi), R_true)
     offset = noise_case.camera_position_offset_m * _random_unit(rng)
     drift = noise_case.camera_position_drift_mps * _random_unit(rng)
-    cam_meas = cam + offset + (t - t[0])[:, None] * drift + noise_case.camera_position_white_sigma_m * rng.standard_normal((F, 3))
+    cam_meas = (
+        cam
+        + offset
+        + (t - t[0])[:, None] * drift
+        + noise_case.camera_position_white_sigma_m * rng.standard_normal((F, 3))
+    )
     obs = Observations.from_intrinsics(t, uv, intrinsics, cam_meas, quat_from_rotmat(R_meas))
     return truth, obs
 
 
-def synthesize_scenario(scenario, noise_case, seed: int, t_s=None, rng: np.random.Generator | None = None
-                        ) -> tuple[Truth, Observations]:
+def synthesize_scenario(
+    scenario, noise_case, seed: int, t_s=None, rng: np.random.Generator | None = None
+) -> tuple[Truth, Observations]:
     """:func:`synthesize` for a :class:`groundsim.world.scenario.Scenario`: its motions for ``seed``, its camera and
     gimbal pointing error (none without a gimbal), at its frame times unless ``t_s`` is given; the noise
     stream is the scenario's ``synth.noise`` stream for ``seed`` unless ``rng`` is given."""
@@ -115,5 +137,13 @@ def synthesize_scenario(scenario, noise_case, seed: int, t_s=None, rng: np.rando
     frac = gimbal.pointing_error_frac_of_range if gimbal else (0.0, 0.0, 0.0)
     period = gimbal.pointing_error_period_s if gimbal else (1.0, 1.0, 1.0)
     rng = scenario.rng("synth.noise", seed) if rng is None else rng
-    return synthesize(scenario.observer_motion(seed), scenario.target_motion(seed), t, scenario.camera.intrinsics,
-                      noise_case, rng, frac, period)
+    return synthesize(
+        scenario.observer_motion(seed),
+        scenario.target_motion(seed),
+        t,
+        scenario.camera.intrinsics,
+        noise_case,
+        rng,
+        frac,
+        period,
+    )

@@ -371,7 +371,9 @@ class CameraMount:
     @classmethod
     def from_euler_deg(cls, lever_arm_frd_m, roll_deg=0.0, pitch_deg=0.0, yaw_deg=0.0, gimballed=False) -> CameraMount:
         q = quat_from_euler(math.radians(roll_deg), math.radians(pitch_deg), math.radians(yaw_deg))
-        return cls(tuple(float(a) for a in lever_arm_frd_m), tuple(float(c) for c in q), gimballed)
+        lx, ly, lz = (float(a) for a in lever_arm_frd_m)
+        qw, qx, qy, qz = (float(c) for c in q)
+        return cls((lx, ly, lz), (qw, qx, qy, qz), gimballed)
 
     def q_body_from_cam(self, q_mount_from_gimbal=None) -> np.ndarray:
         """Camera attitude on the airframe, optionally through a gimbal (..., 4)."""

@@ -60,7 +60,7 @@ VERSION = 1
 ENCODING_MONO8 = 1
 ENCODING_MONO16 = 2
 #: encoding code -> little-endian numpy dtype of one pixel
-_DTYPE_OF_ENCODING = {ENCODING_MONO8: np.dtype("<u1"), ENCODING_MONO16: np.dtype("<u2")}
+_DTYPE_OF_ENCODING: dict[int, np.dtype] = {ENCODING_MONO8: np.dtype("<u1"), ENCODING_MONO16: np.dtype("<u2")}
 
 #: Largest payload (header + pixels) accepted by default: 16 MiB, i.e. a 4096 x 2048 mono16
 #: frame; a 640 x 512 mono16 frame is 655 392 bytes.
@@ -156,7 +156,7 @@ def encode_irframe(frame: IrFrame) -> bytes:
     dtype = _DTYPE_OF_ENCODING[frame.encoding]
     px = np.ascontiguousarray(px, dtype=dtype)
     header = HEADER.pack(MAGIC, VERSION, frame.encoding, px.shape[1], px.shape[0], frame.seq, frame.time_boot_us)
-    return b"".join((header, memoryview(px).cast("B")))
+    return b"".join((header, px.data.cast("B")))
 
 
 def check_payload_size(nbytes: int, max_bytes: int = DEFAULT_MAX_BYTES) -> None:

@@ -456,10 +456,11 @@ def Number(
     """A finite float (an int is accepted and becomes a float; a bool is not) within the bounds."""
     text = what or describe_range("a number", lo, hi, lo_open, hi_open) + (f" {unit}" if unit else "")
     bounds = {("gt" if lo_open else "ge"): lo, ("lt" if hi_open else "le"): hi}
+    given: dict[str, Any] = {k: v for k, v in bounds.items() if v is not None}
     tp: Any = float | None if nullable else float
     return Annotated[
         tp,
-        Field(allow_inf_nan=False, **{k: v for k, v in bounds.items() if v is not None}),
+        Field(allow_inf_nan=False, **given),
         BeforeValidator(_python_scalar),
         _expect(text + (" or null" if nullable else "")),
     ]
@@ -469,7 +470,7 @@ def Number(
 def Integer(lo: int | None = None, hi: int | None = None, *, nullable: bool = False, what: str | None = None) -> Any:
     """An int (``640.0`` and ``true`` are not) within ``[lo, hi]``."""
     text = what or describe_range("an integer", lo, hi)
-    bounds = {k: v for k, v in (("ge", lo), ("le", hi)) if v is not None}
+    bounds: dict[str, Any] = {k: v for k, v in (("ge", lo), ("le", hi)) if v is not None}
     tp: Any = int | None if nullable else int
     return Annotated[
         tp, Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))
@@ -504,7 +505,7 @@ def Text(
         constraints["pattern"] = r"\S"
     tp: Any = str
     if choices:
-        tp = typing.Literal[choices]  # type: ignore[valid-type]
+        tp = typing.Literal[choices]
     if nullable:
         tp = tp | None
     hint = (lambda v: did_you_mean(v, choices) if isinstance(v, str) else None) if choices else None

@@ -132,6 +132,11 @@ def _vec(v, n: int, what: str) -> tuple[float, ...]:
     return tuple(float(x) for x in a)
 
 
+def _vec3(v, what: str) -> tuple[float, float, float]:
+    x, y, z = _vec(v, 3, what)
+    return x, y, z
+
+
 def _cov(c, what: str) -> np.ndarray:
     try:
         a = np.array(c, dtype=float)
@@ -143,6 +148,12 @@ def _cov(c, what: str) -> np.ndarray:
         raise InputError(f"Track.{what} has a negative variance on its diagonal: {np.diag(a).tolist()}")
     a.setflags(write=False)
     return a
+
+
+def _sigmas3(cov) -> tuple[float, float, float]:
+    """The 1-sigma per axis of a (3, 3) covariance (negative round-off on the diagonal read as 0)."""
+    sx, sy, sz = (float(math.sqrt(max(d, 0.0))) for d in np.diag(cov))
+    return sx, sy, sz
 
 
 SIGMA_AZ_CAP_DEG = 180.0  # an azimuth near the zenith/nadir is unknown, not infinitely uncertain
@@ -232,12 +243,12 @@ def line_of_sight_ned(
     else:
         s_az = SIGMA_AZ_CAP_DEG
     return LineOfSight(
-        u_ned=los,
+        u_ned=_vec3(los, "los.u_ned"),
         azimuth_deg=az,
         elevation_deg=el,
         sigma_azimuth_deg=s_az,
         sigma_elevation_deg=s_el,
-        p_cam_ned_m=np.asarray(p_cam_ned_m, dtype=float),
+        p_cam_ned_m=_vec3(p_cam_ned_m, "los.p_cam_ned_m"),
     )
 
 
@@ -298,7 +309,7 @@ class Track:
             object.__setattr__(self, name, bool(getattr(self, name)))
         if (self.u_px is None) != (self.v_px is None):
             raise InputError("Track.u_px and Track.v_px must both be set or both be None")
-        if self.u_px is not None:
+        if self.u_px is not None and self.v_px is not None:
             object.__setattr__(self, "u_px", _finite(self.u_px, "u_px"))
             object.__setattr__(self, "v_px", _finite(self.v_px, "v_px"))
         if self.measurement_valid and self.u_px is None:
@@ -330,12 +341,13 @@ class Track:
             missing = [n for n, h in zip(_POSITION_FIELDS, have) if not h]
             raise InputError(f"Track position fields must be all set or all None; missing {missing}")
         if all(have):
-            for name in ("lat_deg", "lon_deg", "alt_m", "range_m"):
-                object.__setattr__(self, name, _finite(getattr(self, name), name))
-            if not -90.0 <= self.lat_deg <= 90.0 or not -180.0 <= self.lon_deg <= 180.0:
-                raise InputError(f"Track lat/lon out of range: {self.lat_deg}, {self.lon_deg}")
-            if self.range_m < 0:
-                raise InputError(f"Track.range_m must be >= 0, got {self.range_m}")
+            lat, lon, alt, rng = (_finite(getattr(self, n), n) for n in ("lat_deg", "lon_deg", "alt_m", "range_m"))
+            for name, value in (("lat_deg", lat), ("lon_deg", lon), ("alt_m", alt), ("range_m", rng)):
+                object.__setattr__(self, name, value)
+            if not -90.0 <= lat <= 90.0 or not -180.0 <= lon <= 180.0:
+                raise InputError(f"Track lat/lon out of range: {lat}, {lon}")
+            if rng < 0:
+                raise InputError(f"Track.range_m must be >= 0, got {rng}")
             object.__setattr__(self, "p_ned_m", _vec(self.p_ned_m, 3, "p_ned_m"))
             object.__setattr__(self, "v_ned_mps", _vec(self.v_ned_mps, 3, "v_ned_mps"))
             object.__setattr__(self, "cov_p_ned_m2", _cov(self.cov_p_ned_m2, "cov_p_ned_m2"))
@@ -359,15 +371,11 @@ class Track:
 
     @property
     def sigma_ned_m(self) -> tuple[float, float, float] | None:
-        if self.cov_p_ned_m2 is None:
-            return None
-        return tuple(float(math.sqrt(max(d, 0.0))) for d in np.diag(self.cov_p_ned_m2))
+        return None if self.cov_p_ned_m2 is None else _sigmas3(self.cov_p_ned_m2)
 
     @property
     def sigma_vel_ned_mps(self) -> tuple[float, float, float] | None:
-        if self.cov_v_ned_m2ps2 is None:
-            return None
-        return tuple(float(math.sqrt(max(d, 0.0))) for d in np.diag(self.cov_v_ned_m2ps2))
+        return None if self.cov_v_ned_m2ps2 is None else _sigmas3(self.cov_v_ned_m2ps2)
 
 
 # --------------------------------------------------------------------------- JSON

@@ -22,11 +22,22 @@ import numpy as np
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior
 from onboard.estimation.observations import Observations
 
-__all__ = ["bayesian_crb_rms_m", "bayesian_crb_covariance", "bayesian_crb_range_sigma_ratio", "efficient_error_range_pct"]
+__all__ = [
+    "bayesian_crb_rms_m",
+    "bayesian_crb_covariance",
+    "bayesian_crb_range_sigma_ratio",
+    "efficient_error_range_pct",
+]
 
 
-def bayesian_crb_covariance(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray, prior: MotionPrior,
-                            turn_rate_radps: float = 0.0, grid=None):
+def bayesian_crb_covariance(
+    estimator: MapEstimator,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    prior: MotionPrior,
+    turn_rate_radps: float = 0.0,
+    grid=None,
+):
     """(problem, Sigma): the window problem at the truth and the bound on its full parameter covariance."""
     prob = estimator.problem(obs, prior, grid)
     theta = prob.theta_from_positions(np.asarray(p_true_ned_m, dtype=float), omega=turn_rate_radps)
@@ -35,16 +46,28 @@ def bayesian_crb_covariance(estimator: MapEstimator, obs: Observations, p_true_n
     return prob, prob.covariance(prob.factor(J))
 
 
-def bayesian_crb_rms_m(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray, prior: MotionPrior,
-                       turn_rate_radps: float = 0.0, grid=None) -> float:
+def bayesian_crb_rms_m(
+    estimator: MapEstimator,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    prior: MotionPrior,
+    turn_rate_radps: float = 0.0,
+    grid=None,
+) -> float:
     """RMS over the window of sqrt(trace) of the per-point Bayesian CRB, metres."""
     prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true_ned_m, prior, turn_rate_radps, grid)
     P = prob.point_covariances(Sigma)
     return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
 
 
-def bayesian_crb_range_sigma_ratio(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray,
-                                   prior: MotionPrior, turn_rate_radps: float = 0.0, grid=None) -> float:
+def bayesian_crb_range_sigma_ratio(
+    estimator: MapEstimator,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    prior: MotionPrior,
+    turn_rate_radps: float = 0.0,
+    grid=None,
+) -> float:
     """Median over the window of the bound's range sigma over the true range: the smallest
     ``range_sigma_ratio`` an estimator that knows the motion model could honestly report."""
     p_true = np.asarray(p_true_ned_m, dtype=float)
@@ -56,9 +79,16 @@ def bayesian_crb_range_sigma_ratio(estimator: MapEstimator, obs: Observations, p
     return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
 
 
-def efficient_error_range_pct(estimator: MapEstimator, obs: Observations, p_true_ned_m: np.ndarray, prior: MotionPrior,
-                              turn_rate_radps: float = 0.0, draws: int = 4000, rng: np.random.Generator | None = None,
-                              grid=None) -> np.ndarray:
+def efficient_error_range_pct(
+    estimator: MapEstimator,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    prior: MotionPrior,
+    turn_rate_radps: float = 0.0,
+    draws: int = 4000,
+    rng: np.random.Generator | None = None,
+    grid=None,
+) -> np.ndarray:
     """Per-run "mean over the window of ||e|| / range" (percent) of ``draws`` runs of an efficient estimator.
 
     Each draw is one window's error, Gaussian with the Bayesian CRB's joint covariance (the errors of

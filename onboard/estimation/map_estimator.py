@@ -68,20 +68,29 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from typing import Annotated
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
-from pydantic import AfterValidator
 import scipy.linalg as sla
+from pydantic import AfterValidator
 
 from onboard.core.errors import IrtrackError
 from onboard.core.schema import Integer, Invalid, Number, Numbers, Texts, config_dataclass
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
-__all__ = ["NoiseModel", "MotionPrior", "MapConfig", "MapResult", "MapEstimator", "EstimationError", "WindowProblem",
-           "SolveResult", "Mode"]
+__all__ = [
+    "NoiseModel",
+    "MotionPrior",
+    "MapConfig",
+    "MapResult",
+    "MapEstimator",
+    "EstimationError",
+    "WindowProblem",
+    "SolveResult",
+    "Mode",
+]
 
 log = logging.getLogger(__name__)
 
@@ -203,13 +212,16 @@ class MapConfig:
     adequacy_block_frames: Integer(lo=1) = 15
     adequacy_p_min: Number(0.0, 1.0) = 1e-3
 
-
     def motion_prior(self, family: str, q_horizontal_m2ps3: float) -> MotionPrior:
         """The prior of ``family`` ("cv", "ca" or "ct") at horizontal intensity q (vertical: q x vertical_ratio)."""
         if family not in ("cv", "ca", "ct"):
             raise ValueError(f"MapConfig.motion_prior: family must be cv, ca or ct, got {family!r}")
-        return MotionPrior(q_horizontal_m2ps3, q_horizontal_m2ps3 * self.vertical_ratio,
-                           self.turn_rate_sigma_radps if family == "ct" else 0.0, family == "ca")
+        return MotionPrior(
+            q_horizontal_m2ps3,
+            q_horizontal_m2ps3 * self.vertical_ratio,
+            self.turn_rate_sigma_radps if family == "ct" else 0.0,
+            family == "ca",
+        )
 
 
 @dataclass(frozen=True)
@@ -233,7 +245,7 @@ class MapResult:
     #: the solution's parameter vector (layout: :class:`WindowProblem`) and the problem it solves; the
     #: sliding window re-linearises and warm-starts from them
     theta: np.ndarray
-    problem: "WindowProblem"
+    problem: WindowProblem
     #: the model-averaged, inflated point covariance (F, 3, 3) before an unobservable solution's range
     #: floor (``cov_p_ned_m2`` is after it); equal to ``cov_p_ned_m2`` when observable
     cov_p_model_ned_m2: np.ndarray
@@ -347,8 +359,17 @@ class WindowProblem:
     each nuisance block only when enabled.
     """
 
-    def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int, prior: MotionPrior,
-                 noise: NoiseModel, config: MapConfig, span_cache: dict | None = None):
+    def __init__(
+        self,
+        obs: Observations,
+        grid: KnotGrid,
+        first: int,
+        count: int,
+        prior: MotionPrior,
+        noise: NoiseModel,
+        config: MapConfig,
+        span_cache: dict | None = None,
+    ):
         self.obs, self.grid, self.first, self.count = obs, grid, first, count
         self.prior, self.noise, self.config = prior, noise, config
         F = len(obs)
@@ -390,9 +411,12 @@ class WindowProblem:
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
         rows_fi = np.arange(2 * F).reshape(F, 2)
-        self._meas_flat = (rows_fi[:, :, None, None] * self.n_params
-                           + 3 * self.rows.index[:, None, :, None] + np.arange(3)[None, None, None, :])
-        
+        self._meas_flat = (
+            rows_fi[:, :, None, None] * self.n_params
+            + 3 * self.rows.index[:, None, :, None]
+            + np.arange(3)[None, None, None, :]
+        )
+
     # ------------------------------------------------------------------ helpers
     def set_measurement_weights(self, range_m) -> None:
         n = self.noise
@@ -572,8 +596,15 @@ class WindowProblem:
         return out
 
     # ------------------------------------------------------------------ Levenberg-Marquardt
-    def solve(self, theta0: np.ndarray, max_iterations: int, lam0: float = 0.0, cost_tol: float = 1e-4,
-              want_factor: bool = True, min_range_m: float | None = None):
+    def solve(
+        self,
+        theta0: np.ndarray,
+        max_iterations: int,
+        lam0: float = 0.0,
+        cost_tol: float = 1e-4,
+        want_factor: bool = True,
+        min_range_m: float | None = None,
+    ):
         """Levenberg-Marquardt from theta0 (More's column scaling).
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
@@ -625,8 +656,11 @@ class WindowProblem:
                 if c2 < cost:
                     decrease = cost - c2
                     theta, cost = cand, c2
-                    if min_range_m is not None and float(np.mean(np.linalg.norm(
-                            self.positions(theta) - self.obs.p_cam_ned_m, axis=1))) < min_range_m:
+                    if (
+                        min_range_m is not None
+                        and float(np.mean(np.linalg.norm(self.positions(theta) - self.obs.p_cam_ned_m, axis=1)))
+                        < min_range_m
+                    ):
                         self.last_jacobian = None
                         return SolveResult(theta, math.inf, it, False, None)
                     lam = lam / 10 if lam > 1e-9 else 0.0
@@ -730,7 +764,7 @@ class MapEstimator:
         self._camera_cache: tuple | None = None
 
     @staticmethod
-    def _ranges(prob: "WindowProblem", theta: np.ndarray) -> np.ndarray:
+    def _ranges(prob: WindowProblem, theta: np.ndarray) -> np.ndarray:
         return np.linalg.norm(prob.positions(theta) - prob.obs.p_cam_ned_m, axis=1)
 
     def problem(self, obs: Observations, prior: MotionPrior, grid: KnotGrid | None = None) -> WindowProblem:
@@ -760,8 +794,11 @@ class MapEstimator:
         first, count = grid.control_span(float(t[0]), float(t[-1]))
         B = grid.dense_basis(t, first, count)
         smoothed = obs.with_camera_positions(B @ fit_controls(B, obs.p_cam_ned_m))
-        noise = dataclasses.replace(self.noise, camera_position_white_sigma_m=self.noise.camera_position_white_sigma_m
-                                    * math.sqrt(min(1.0, count / len(obs))))
+        noise = dataclasses.replace(
+            self.noise,
+            camera_position_white_sigma_m=self.noise.camera_position_white_sigma_m
+            * math.sqrt(min(1.0, count / len(obs))),
+        )
         self._camera_cache = (obs, smoothed, noise)
         return smoothed, noise
 
@@ -771,8 +808,14 @@ class MapEstimator:
         ranges = self.config.init_ranges_m if ranges_m is None else ranges_m
         return [prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * b) for r0 in ranges]
 
-    def solve_prior(self, obs: Observations, prior: MotionPrior, starts: list[np.ndarray] | None = None,
-                    grid: KnotGrid | None = None, max_modes: int = 3):
+    def solve_prior(
+        self,
+        obs: Observations,
+        prior: MotionPrior,
+        starts: list[np.ndarray] | None = None,
+        grid: KnotGrid | None = None,
+        max_modes: int = 3,
+    ):
         """MAP modes for one prior from several starts; returns (best, modes), :class:`Mode` each, at most
         ``max_modes`` modes by decreasing log evidence.
 
@@ -799,14 +842,22 @@ class MapEstimator:
             r_mean = float(np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)))
             if any(abs(r_mean - m.mean_range_m) < 0.01 * r_mean for m in modes):
                 continue
-            modes.append(Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean))
+            modes.append(
+                Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean)
+            )
         if not modes:
             raise EstimationError("no initial guess gave a valid solution (target behind the camera?)")
         modes.sort(key=lambda m: -m.log_evidence)
         return modes[0], modes[:max_modes]
 
-    def solve(self, obs: Observations, prior: MotionPrior | None = None, grid: KnotGrid | None = None,
-              warm: np.ndarray | None = None, trust_warm: bool = False) -> MapResult:
+    def solve(
+        self,
+        obs: Observations,
+        prior: MotionPrior | None = None,
+        grid: KnotGrid | None = None,
+        warm: np.ndarray | None = None,
+        trust_warm: bool = False,
+    ) -> MapResult:
         """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
@@ -827,8 +878,9 @@ class MapEstimator:
         finally:
             self._weight_range_m = None
 
-    def _select(self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None,
-                trust_warm: bool = False) -> MapResult:
+    def _select(
+        self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None, trust_warm: bool = False
+    ) -> MapResult:
         cfg = self.config
         families = [f for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0]
         tops: dict[str, list] = {}
@@ -861,11 +913,15 @@ class MapEstimator:
                     top, modes = self.solve_prior(obs, pr, starts=[m.theta for m in modes], grid=grid, max_modes=2)
                 seeds = [m.theta for m in modes]
                 tops[fam].append(top)
-            carry = [m.theta for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]]
+            carry = [
+                m.theta for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]
+            ]
         tops = {f: ts for f, ts in tops.items() if ts}
         if not tops:
-            raise EstimationError("no motion model found a solution in front of the camera and beyond "
-                                  f"{cfg.min_range_m:g} m (degenerate bearings?)")
+            raise EstimationError(
+                "no motion model found a solution in front of the camera and beyond "
+                f"{cfg.min_range_m:g} m (degenerate bearings?)"
+            )
         fam_ev = {f: float(np.logaddexp.reduce([t.log_evidence for t in ts])) for f, ts in tops.items()}
         top_ev = max(m.log_evidence for ts in tops.values() for m in ts)
         # the point estimate: among the models (family and q) the data cannot tell from the best one
@@ -907,8 +963,9 @@ class MapEstimator:
             mix = (w_best, extra_near + extra_far)
         res = self.result(best, mix=mix, ambiguity=ambiguity)
         grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
-        return dataclasses.replace(res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev,
-                                   best_model_weight=w_best)
+        return dataclasses.replace(
+            res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev, best_model_weight=w_best
+        )
 
     def _split(self, best, cands, w, cam: np.ndarray, moments):
         """(w_best, w_near, extra_near, extra_far) of reporting ``best``: its evidence weight, the mass of the
@@ -977,7 +1034,9 @@ class MapEstimator:
         posterior mass of far solutions (see :meth:`solve`)."""
         prob, theta, cost, fac = mode.problem, mode.theta, mode.cost, mode.factor
         # the problem object served several starts: its weights must be this solution's
-        prob.set_measurement_weights(self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta))
+        prob.set_measurement_weights(
+            self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta)
+        )
         Sigma = prob.covariance(fac)
         P = prob.point_covariances(Sigma)
         if mix is not None:
@@ -996,19 +1055,39 @@ class MapEstimator:
         r_std = r[: 2 * prob.F].reshape(prob.F, 2)
         adequacy_p = self._adequacy_p(r_std)
         cfg = self.config
-        observable = bool(ratio < cfg.observability_max_sigma_range_ratio and not neg and math.isfinite(cost)
-                          and adequacy_p >= cfg.adequacy_p_min and ambiguity <= cfg.max_ambiguity)
+        observable = bool(
+            ratio < cfg.observability_max_sigma_range_ratio
+            and not neg
+            and math.isfinite(cost)
+            and adequacy_p >= cfg.adequacy_p_min
+            and ambiguity <= cfg.max_ambiguity
+        )
         P_model = P
         if not observable and cfg.unobservable_range_sigma_floor > 0:
             P = P + self.range_floor(u, sig_r, rng)[0]
         om = float(theta[prob.i_omega]) if prob.i_omega is not None else 0.0
         phi = theta[prob.i_phi : prob.i_phi + 3].copy() if prob.i_phi is not None else np.zeros(3)
         return MapResult(
-            t_s=prob.obs.t_s.copy(), p_ned_m=p, v_ned_mps=v, cov_p_ned_m2=P, residuals_px=res_px,
-            observable=observable, range_sigma_ratio=ratio, prior=prob.prior, turn_rate_radps=om,
-            attitude_bias_rad=phi, cost=float(cost), log_evidence=prob.log_evidence(theta, cost, fac),
-            iterations=int(mode.iterations), converged=bool(mode.converged), theta=theta, problem=prob,
-            cov_p_model_ned_m2=P_model, ambiguity=float(ambiguity), residual_rms_norm=float(np.sqrt(np.mean(r_std**2))), adequacy_p=float(adequacy_p),
+            t_s=prob.obs.t_s.copy(),
+            p_ned_m=p,
+            v_ned_mps=v,
+            cov_p_ned_m2=P,
+            residuals_px=res_px,
+            observable=observable,
+            range_sigma_ratio=ratio,
+            prior=prob.prior,
+            turn_rate_radps=om,
+            attitude_bias_rad=phi,
+            cost=float(cost),
+            log_evidence=prob.log_evidence(theta, cost, fac),
+            iterations=int(mode.iterations),
+            converged=bool(mode.converged),
+            theta=theta,
+            problem=prob,
+            cov_p_model_ned_m2=P_model,
+            ambiguity=float(ambiguity),
+            residual_rms_norm=float(np.sqrt(np.mean(r_std**2))),
+            adequacy_p=float(adequacy_p),
         )
 
     def range_floor(self, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1016,7 +1095,9 @@ class MapEstimator:
         unobservable solution's range sigma (``sig_r_m`` along the unit lines of sight ``u``) is at least
         ``unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``; the
         bearing part is left as it is.  The batch result and the sliding window's frames both use it."""
-        floor = np.maximum(self.config.unobservable_range_sigma_floor * range_m, self.config.unobservable_range_sigma_min_m)
+        floor = np.maximum(
+            self.config.unobservable_range_sigma_floor * range_m, self.config.unobservable_range_sigma_min_m
+        )
         add = np.maximum(floor**2 - sig_r_m**2, 0.0)
         return add[:, None, None] * np.einsum("fi,fj->fij", u, u), np.maximum(sig_r_m, floor)
 

@@ -151,13 +151,15 @@ def evaluate(truth_p_ned_m, est_p_ned_m, cam_p_ned_m, cov=None, origin_ned_m=(0.
     n = X.shape[0]
     Xh = _points("est_p_ned_m", est_p_ned_m, n)
     C = _points("cam_p_ned_m", cam_p_ned_m, n)
-    O = _points("origin_ned_m", np.atleast_2d(np.asarray(origin_ned_m, dtype=object)), 1)[0]
+    origin = _points("origin_ned_m", np.atleast_2d(np.asarray(origin_ned_m, dtype=object)), 1)[0]
     e = Xh - X
     en = np.linalg.norm(e, axis=1)
-    d_origin = np.linalg.norm(X - O, axis=1)
+    d_origin = np.linalg.norm(X - origin, axis=1)
     rng = np.linalg.norm(X - C, axis=1)
     if np.any(d_origin == 0.0):
-        raise InputError(f"evaluate: truth row {int(np.argmax(d_origin == 0.0))} is at the origin; the paper's relative error is undefined")
+        raise InputError(
+            f"evaluate: truth row {int(np.argmax(d_origin == 0.0))} is at the origin; the paper's relative error is undefined"
+        )
     if np.any(rng == 0.0):
         raise InputError(f"evaluate: truth row {int(np.argmax(rng == 0.0))} coincides with the camera; range is zero")
     kw = {}

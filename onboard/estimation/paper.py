@@ -92,8 +92,12 @@ class PaperConfig:
     order: int = 1
 
     def __post_init__(self) -> None:
-        if isinstance(self.delta, bool) or not isinstance(self.delta, (int, float)) or not math.isfinite(self.delta) \
-                or self.delta <= 0:
+        if (
+            isinstance(self.delta, bool)
+            or not isinstance(self.delta, (int, float))
+            or not math.isfinite(self.delta)
+            or self.delta <= 0
+        ):
             raise ConfigError(f"PaperConfig.delta must be a finite number > 0, got {self.delta!r}")
         if isinstance(self.order, bool) or self.order not in _STENCILS:
             raise ConfigError(f"PaperConfig.order must be 1 or 2, got {self.order!r}")
@@ -266,8 +270,9 @@ def _solve(Q, q, delta, order, refinement_tol, max_dense_frames) -> tuple[np.nda
     try:
         cf = sla.cholesky_banded(ab, lower=True, check_finite=False)
         x = sla.cho_solve_banded((cf, True), b, check_finite=False).reshape(F, 3)
-        dx = sla.cho_solve_banded((cf, True), -_residual_gradient(Q, q, delta, order, x).reshape(-1),
-                                  check_finite=False).reshape(F, 3)
+        dx = sla.cho_solve_banded(
+            (cf, True), -_residual_gradient(Q, q, delta, order, x).reshape(-1), check_finite=False
+        ).reshape(F, 3)
         rel = float(np.linalg.norm(dx) / max(np.linalg.norm(x), 1e-300))
         if not math.isfinite(rel):
             raise np.linalg.LinAlgError("non-finite refinement")
@@ -276,13 +281,21 @@ def _solve(Q, q, delta, order, refinement_tol, max_dense_frames) -> tuple[np.nda
     except (np.linalg.LinAlgError, ValueError):
         x, rel = None, math.inf
     if F <= max_dense_frames:
-        log.debug("paper closed form: normal equations inaccurate (refinement %.3g); solving the stacked system by QR", rel)
+        log.debug(
+            "paper closed form: normal equations inaccurate (refinement %.3g); solving the stacked system by QR", rel
+        )
         return _stacked_lstsq(Q, q, delta, order).reshape(F, 3), "dense_qr", rel
     if x is None:
-        raise EstimationError(f"the paper's normal matrix is singular and {F} frames exceed the dense fallback "
-                              f"limit of {max_dense_frames}")
-    log.warning("paper closed form: normal equations inaccurate (refinement %.3g relative) and %d frames exceed the "
-                "dense fallback limit; keeping the refined Cholesky solution", rel, F)
+        raise EstimationError(
+            f"the paper's normal matrix is singular and {F} frames exceed the dense fallback "
+            f"limit of {max_dense_frames}"
+        )
+    log.warning(
+        "paper closed form: normal equations inaccurate (refinement %.3g relative) and %d frames exceed the "
+        "dense fallback limit; keeping the refined Cholesky solution",
+        rel,
+        F,
+    )
     return x + dx, "banded_cholesky_inaccurate", rel
 
 
@@ -302,8 +315,10 @@ class PaperEstimator:
         cfg = self.config
         F = len(obs)
         if F < cfg.min_frames:
-            raise EstimationError(f"the paper's closed form with order-{cfg.order} D needs at least "
-                                  f"{cfg.min_frames} observations, got {F}")
+            raise EstimationError(
+                f"the paper's closed form with order-{cfg.order} D needs at least "
+                f"{cfg.min_frames} observations, got {F}"
+            )
         t0 = time.perf_counter()
         Q, q = projection_rows(obs)
         x, solver, refinement = _solve(Q, q, cfg.delta, cfg.order, self.refinement_tol, self.max_dense_frames)
@@ -316,6 +331,14 @@ class PaperEstimator:
         DX = sum(ck * X[k : F - cfg.order + k] for k, ck in enumerate(c))
         smooth = float(np.sum(DX**2))
         return PaperResult(
-            t_s=obs.t_s.copy(), p_ned_m=X, cost=data + cfg.delta * smooth, data_cost=data, smooth_cost=smooth,
-            delta=float(cfg.delta), order=int(cfg.order), solver=solver, refinement_rel=refinement, solve_ms=solve_ms,
+            t_s=obs.t_s.copy(),
+            p_ned_m=X,
+            cost=data + cfg.delta * smooth,
+            data_cost=data,
+            smooth_cost=smooth,
+            delta=float(cfg.delta),
+            order=int(cfg.order),
+            solver=solver,
+            refinement_rel=refinement,
+            solve_ms=solve_ms,
         )

@@ -49,7 +49,7 @@ class PaperWindowEstimator:
         self.reset()
 
     @classmethod
-    def from_config(cls, config) -> "PaperWindowEstimator":
+    def from_config(cls, config) -> PaperWindowEstimator:
         est = getattr(config, "estimator", None)
         window_s = float(getattr(est, "window_s", PaperWindowConfig.window_s))
         return cls(PaperWindowConfig(window_s=window_s))
@@ -65,16 +65,28 @@ class PaperWindowEstimator:
         t = float(t_s)
         if self._rows and t - self._rows[-1][0] < self.config.min_spacing_s:
             return self.predict(t, p_cam_ned_m)
-        self._rows.append((t, np.asarray(uv_px, dtype=float), intrinsics, np.asarray(p_cam_ned_m, dtype=float),
-                           np.asarray(q_ned_from_cam, dtype=float)))
+        self._rows.append(
+            (
+                t,
+                np.asarray(uv_px, dtype=float),
+                intrinsics,
+                np.asarray(p_cam_ned_m, dtype=float),
+                np.asarray(q_ned_from_cam, dtype=float),
+            )
+        )
         while self._rows and t - self._rows[0][0] > self.config.window_s:
             self._rows.popleft()
         if len(self._rows) < self.solver.config.min_frames:
             return None
         rows = list(self._rows)
         K = rows[-1][2]
-        obs = Observations.from_intrinsics(np.array([r[0] for r in rows]), np.stack([r[1] for r in rows]), K,
-                                           np.stack([r[3] for r in rows]), np.stack([r[4] for r in rows]))
+        obs = Observations.from_intrinsics(
+            np.array([r[0] for r in rows]),
+            np.stack([r[1] for r in rows]),
+            K,
+            np.stack([r[3] for r in rows]),
+            np.stack([r[4] for r in rows]),
+        )
         try:
             res = self.solver.solve(obs)
         except EstimationError:
@@ -94,8 +106,13 @@ class PaperWindowEstimator:
             return None
         dt = float(t_s) - self._last.t_s
         cam = self._rows[-1][3] if p_cam_ned_m is None else np.asarray(p_cam_ned_m, dtype=float)
-        return self._estimate(float(t_s), self._last.p_ned_m + dt * self._last.v_ned_mps, self._last.v_ned_mps, cam,
-                              self._last.window_frames)
+        return self._estimate(
+            float(t_s),
+            self._last.p_ned_m + dt * self._last.v_ned_mps,
+            self._last.v_ned_mps,
+            cam,
+            self._last.window_frames,
+        )
 
     @staticmethod
     def _estimate(t_s, p, v, p_cam, frames):
@@ -103,7 +120,16 @@ class PaperWindowEstimator:
 
         rng = float(np.linalg.norm(np.asarray(p) - p_cam))
         s2 = (max(rng, 1e-3) * NO_COVARIANCE_SIGMA_RATIO) ** 2
-        return TrackEstimate(t_s=t_s, p_ned_m=np.asarray(p, dtype=float), v_ned_mps=np.asarray(v, dtype=float),
-                             cov_p_ned_m2=s2 * np.eye(3), cov_v_ned_m2ps2=s2 * np.eye(3), observable=False,
-                             range_m=rng, range_sigma_ratio=NO_COVARIANCE_SIGMA_RATIO, window_frames=int(frames),
-                             model="paper", residual_rms_norm=math.nan)
+        return TrackEstimate(
+            t_s=t_s,
+            p_ned_m=np.asarray(p, dtype=float),
+            v_ned_mps=np.asarray(v, dtype=float),
+            cov_p_ned_m2=s2 * np.eye(3),
+            cov_v_ned_m2ps2=s2 * np.eye(3),
+            observable=False,
+            range_m=rng,
+            range_sigma_ratio=NO_COVARIANCE_SIGMA_RATIO,
+            window_frames=int(frames),
+            model="paper",
+            residual_rms_norm=math.nan,
+        )

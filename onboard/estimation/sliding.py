@@ -42,10 +42,17 @@ import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.errors import InputError
-from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel, WindowProblem
+from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.estimation.map_estimator import (
+    EstimationError,
+    MapConfig,
+    MapEstimator,
+    MotionPrior,
+    NoiseModel,
+    WindowProblem,
+)
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
-from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
 
 __all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad"]
 
@@ -77,9 +84,18 @@ class SlidingConfig:
     edge_sigma_factor: float = 2.0
 
     def __post_init__(self) -> None:
-        if not (self.window_s > 0 and self.max_frames >= 10 and self.min_frames >= 10 and self.reselect_period_s > 0 and self.warmup_reselect_period_s > 0
-                and self.min_spacing_s >= 0 and self.knot_spacing_s > 0
-                and self.iterations_per_frame >= 1 and self.min_span_s >= 0 and self.resolve_every_frames >= 1):
+        if not (
+            self.window_s > 0
+            and self.max_frames >= 10
+            and self.min_frames >= 10
+            and self.reselect_period_s > 0
+            and self.warmup_reselect_period_s > 0
+            and self.min_spacing_s >= 0
+            and self.knot_spacing_s > 0
+            and self.iterations_per_frame >= 1
+            and self.min_span_s >= 0
+            and self.resolve_every_frames >= 1
+        ):
             raise InputError(f"SlidingConfig: invalid values {self}")
 
 
@@ -109,7 +125,7 @@ class TrackEstimate:
     def sigma_ned_m(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
 
-    def propagated(self, t_s: float, p_cam_ned_m=None) -> "TrackEstimate":
+    def propagated(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate:
         """This estimate carried to ``t_s`` at constant velocity: ``p + v dt``, ``P + dt^2 V`` (the
         velocity's uncertainty only; the estimator's own prediction is :meth:`SlidingWindowEstimator.predict`).
 
@@ -125,10 +141,13 @@ class TrackEstimate:
             if rng > 0:
                 u = los / rng
                 ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / rng)
-        return dataclasses.replace(self, t_s=float(t_s), p_ned_m=p, cov_p_ned_m2=P, range_m=rng, range_sigma_ratio=ratio)
+        return dataclasses.replace(
+            self, t_s=float(t_s), p_ned_m=p, cov_p_ned_m2=P, range_m=rng, range_sigma_ratio=ratio
+        )
 
-    def with_bearing(self, p_cam_ned_m, u_ned, sigma_rad: float, cam_sigma_m: float = 0.0,
-                     gate_chi2: float = BEARING_GATE_CHI2) -> "TrackEstimate | None":
+    def with_bearing(
+        self, p_cam_ned_m, u_ned, sigma_rad: float, cam_sigma_m: float = 0.0, gate_chi2: float = BEARING_GATE_CHI2
+    ) -> TrackEstimate | None:
         """This estimate corrected by one line of sight it does not contain (a frame newer than the window
         it was solved from, e.g. an estimate propagated while the worker was busy): the Kalman update of
         the position with the measurement "the target is on the ray ``c + r u``", written linearly as the
@@ -154,7 +173,7 @@ class TrackEstimate:
         B = np.vstack([b1, np.cross(u, b1)])
         z = B @ d
         P = self.cov_p_ned_m2
-        R = np.eye(2) * ((r * sigma_rad) ** 2 + cam_sigma_m ** 2)
+        R = np.eye(2) * ((r * sigma_rad) ** 2 + cam_sigma_m**2)
         S = B @ P @ B.T + R
         try:
             cS = sla.cho_factor(S)
@@ -176,7 +195,9 @@ def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float
     """One frame's line-of-sight 1-sigma per axis under ``noise``: the pixel noise over the focal length with
     the attitude's white noise and bias (the bias is kept: conservative)."""
     f = math.sqrt(intrinsics.fx_px * intrinsics.fy_px)
-    return math.sqrt((noise.pixel_sigma_px / f) ** 2 + noise.attitude_white_sigma_rad ** 2 + noise.attitude_bias_sigma_rad ** 2)
+    return math.sqrt(
+        (noise.pixel_sigma_px / f) ** 2 + noise.attitude_white_sigma_rad**2 + noise.attitude_bias_sigma_rad**2
+    )
 
 
 def line_of_sight_unit_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam) -> np.ndarray:
@@ -187,9 +208,13 @@ def line_of_sight_unit_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam)
 class SlidingWindowEstimator:
     """Feed observations with :meth:`add`; read the latest :class:`TrackEstimate`."""
 
-    def __init__(self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None):
+    def __init__(
+        self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None
+    ):
         self.config = config or SlidingConfig()
-        self.map = MapEstimator(map_config or MapConfig(knot_spacing_s=self.config.knot_spacing_s), noise or NoiseModel())
+        self.map = MapEstimator(
+            map_config or MapConfig(knot_spacing_s=self.config.knot_spacing_s), noise or NoiseModel()
+        )
         self.reset()
 
     def reset(self) -> None:
@@ -214,11 +239,13 @@ class SlidingWindowEstimator:
         self._since_full = 0
         # per-frame covariances come from the chosen model's information, inflated like the batch
         # result's; model doubt is the 1 Hz selection's job (its observability verdict gates ours)
-        self._cov_scale = self.map.config.sigma_inflation ** 2
+        self._cov_scale = self.map.config.sigma_inflation**2
         self.stats = {"selections": 0, "updates": 0, "incremental": 0, "failures": 0, "skipped": 0}
 
     # ------------------------------------------------------------------ input
-    def add(self, t_s: float, uv_px, intrinsics: PinholeIntrinsics, p_cam_ned_m, q_ned_from_cam) -> TrackEstimate | None:
+    def add(
+        self, t_s: float, uv_px, intrinsics: PinholeIntrinsics, p_cam_ned_m, q_ned_from_cam
+    ) -> TrackEstimate | None:
         """Add one observation; returns the estimate at ``t_s`` (None until the window can be solved).
 
         Raises InputError for a non-increasing time or non-finite values (the row is not added).
@@ -243,8 +270,10 @@ class SlidingWindowEstimator:
                 est = self._last_est.propagated(t, p)
             return est
         if intrinsics.has_distortion:
-            uv = intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0], \
-                intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1]
+            uv = (
+                intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0],
+                intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1],
+            )
             uv = np.asarray(uv, dtype=float)
         self._t.append(t)
         self._uv.append(uv)
@@ -274,8 +303,15 @@ class SlidingWindowEstimator:
     def _observations(self) -> Observations:
         k = np.asarray(self._k)
         return Observations.from_checked_rows(
-            np.fromiter(self._t, float, len(self._t)), np.asarray(self._uv), k[:, 0], k[:, 1], k[:, 2], k[:, 3],
-            np.asarray(self._p), np.asarray(self._q), np.asarray(self._R),
+            np.fromiter(self._t, float, len(self._t)),
+            np.asarray(self._uv),
+            k[:, 0],
+            k[:, 1],
+            k[:, 2],
+            k[:, 3],
+            np.asarray(self._p),
+            np.asarray(self._q),
+            np.asarray(self._R),
         )
 
     # ------------------------------------------------------------------ solve
@@ -294,9 +330,6 @@ class SlidingWindowEstimator:
             prob, theta = res.problem, res.theta
             self._prior = res.prior
             self._model = res.model or "map"
-            # the window's verdict for the online track: the model fits (adequacy) and the chosen model
-            # is not a long shot; range itself is judged per frame, at the frame's own time
-            cfg = self.map.config
             # the window's verdict (batch: median range sigma over the window, ambiguity, adequacy) gates the
             # frames until the next selection; each frame's own range sigma, at the window's newest edge
             # where it is largest, must also stay below edge_sigma_factor x the threshold
@@ -313,8 +346,9 @@ class SlidingWindowEstimator:
             own = self._estimate(prob, theta, t, J.T @ J, scale=1.0)
             # the batch covariance before the unobservable range floor (the floor is applied per frame)
             P_last = res.cov_p_model_ned_m2[-1]
-            self._cov_scale = max(self.map.config.sigma_inflation ** 2,
-                                  float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30)))
+            self._cov_scale = max(
+                self.map.config.sigma_inflation**2, float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30))
+            )
 
         elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
             return self._incremental(t)
@@ -375,8 +409,16 @@ class SlidingWindowEstimator:
         theta[prob.nc :] = old[old_nc:]
         return theta
 
-    def _estimate(self, prob: WindowProblem, theta: np.ndarray, t: float, H: np.ndarray, p_cam_ned_m=None,
-                  chol=None, scale: float | None = None) -> TrackEstimate:
+    def _estimate(
+        self,
+        prob: WindowProblem,
+        theta: np.ndarray,
+        t: float,
+        H: np.ndarray,
+        p_cam_ned_m=None,
+        chol=None,
+        scale: float | None = None,
+    ) -> TrackEstimate:
         """State and covariance at ``t`` from the information matrix H of the window's parameters."""
         rows = self._grid.basis(np.array([t]), prob.first, prob.count)
         idx = rows.index[0]
@@ -409,8 +451,11 @@ class SlidingWindowEstimator:
         ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / max(rng, 1e-9))
         neg = bool(np.any(np.diag(P) <= 0))
         cfg = self.map.config
-        observable = bool(self._window_observable and not neg
-                          and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio)
+        observable = bool(
+            self._window_observable
+            and not neg
+            and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio
+        )
         if not observable:  # honest, not confident (module docstring)
             add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
             P = P + add[0]

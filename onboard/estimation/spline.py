@@ -85,8 +85,9 @@ def fit_controls(B: np.ndarray, values: np.ndarray, smoothing: float = 1e-3) -> 
     of knot intervals without samples defined."""
     values = np.asarray(values, dtype=float)
     D = np.diff(np.eye(B.shape[1]), n=2, axis=0) * smoothing
-    c, *_ = np.linalg.lstsq(np.vstack([B, D]), np.vstack([values, np.zeros((D.shape[0],) + values.shape[1:])]),
-                            rcond=None)
+    c, *_ = np.linalg.lstsq(
+        np.vstack([B, D]), np.vstack([values, np.zeros((D.shape[0],) + values.shape[1:])]), rcond=None
+    )
     return c
 
 

@@ -13,10 +13,25 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from groundsim.evaluation.campaign import (LOG_NAME, REPORT_NAME, TABLE_NAME, TIMING_COLUMNS, Geometry, ManoeuvreScaled,
-                                MovedTarget, append_rows, derive_scenario, load_spec, plan_runs, read_log, run_campaign,
-                                run_id, score_track, spec_from_dict)
 from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.campaign import (
+    LOG_NAME,
+    REPORT_NAME,
+    TABLE_NAME,
+    TIMING_COLUMNS,
+    Geometry,
+    ManoeuvreScaled,
+    MovedTarget,
+    append_rows,
+    derive_scenario,
+    load_spec,
+    plan_runs,
+    read_log,
+    run_campaign,
+    run_id,
+    score_track,
+    spec_from_dict,
+)
 from groundsim.evaluation.eval import load_base_config
 from groundsim.world.motion import Circular, Cubic
 from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
@@ -32,8 +47,15 @@ def _sc(name="P1"):
 
 
 def _spec(tmp_path, **over):
-    d = {"name": "t", "scenarios": ["P1", "P2"], "noise": ["RTK", "px0.3"], "algorithms": ["paper", "rpekf"],
-         "seeds": 2, "duration_s": 3.0, "geometry": {"manoeuvre_scale": [0.5, 1.0]}}
+    d = {
+        "name": "t",
+        "scenarios": ["P1", "P2"],
+        "noise": ["RTK", "px0.3"],
+        "algorithms": ["paper", "rpekf"],
+        "seeds": 2,
+        "duration_s": 3.0,
+        "geometry": {"manoeuvre_scale": [0.5, 1.0]},
+    }
     d.update(over)
     return spec_from_dict(d, source=tmp_path / "spec.yaml", spec_dir=tmp_path)
 
@@ -56,7 +78,9 @@ def test_manoeuvre_scale_scales_the_acceleration_from_the_same_start():
         # the path integrates its own velocity (a consistent kinematic state)
         np.testing.assert_allclose(np.gradient(s.p_ned_m, t, axis=0)[1:-1], s.v_ned_mps[1:-1], atol=0.05)
     straight = ManoeuvreScaled(base, 0.0).state(t)
-    np.testing.assert_allclose(straight.v_ned_mps, np.broadcast_to(base.state(t).v_ned_mps[0], (t.size, 3)), atol=ATOL_M)
+    np.testing.assert_allclose(
+        straight.v_ned_mps, np.broadcast_to(base.state(t).v_ned_mps[0], (t.size, 3)), atol=ATOL_M
+    )
 
 
 def test_moved_target_rotates_north_towards_east_about_its_start():
@@ -75,7 +99,9 @@ def test_range_scale_multiplies_the_initial_range_and_keeps_the_target_motion():
     r0 = np.linalg.norm(sc.target_motion(0).state(t).p_ned_m[0] - sc.observer_motion(0).state(t).p_ned_m[0])
     r1 = np.linalg.norm(v.target_motion(0).state(t).p_ned_m[0] - v.observer_motion(0).state(t).p_ned_m[0])
     assert r1 == pytest.approx(2.0 * r0, rel=1e-12)
-    np.testing.assert_allclose(v.target_motion(0).state(t).v_ned_mps, sc.target_motion(0).state(t).v_ned_mps, atol=ATOL_M)
+    np.testing.assert_allclose(
+        v.target_motion(0).state(t).v_ned_mps, sc.target_motion(0).state(t).v_ned_mps, atol=ATOL_M
+    )
     assert v.name == "P1_r2_a0_m1"
 
 
@@ -95,8 +121,13 @@ def test_reference_geometry_is_the_scenario_itself_and_gusty_targets_keep_their_
 def test_a_geometry_that_collides_or_goes_underground_is_refused_naming_it():
     with pytest.raises(ConfigError, match=r"geometry: .*P1 with range_scale 0\.01.*m at t ="):
         derive_scenario(_sc("P1"), Geometry(range_scale=0.01))
-    low = scenario_from_dict({"name": "low", "observer": {"motion": {"model": "uniform_linear", "p0_ned_m": [0, 0, -60]}},
-                              "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [100, 0, -5]}}})
+    low = scenario_from_dict(
+        {
+            "name": "low",
+            "observer": {"motion": {"model": "uniform_linear", "p0_ned_m": [0, 0, -60]}},
+            "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [100, 0, -5]}},
+        }
+    )
     with pytest.raises(ConfigError, match=r"above the ground.*the target at -50 m up"):
         derive_scenario(low, Geometry(range_scale=2.0))  # the line of sight goes down: twice the range is underground
 
@@ -104,22 +135,25 @@ def test_a_geometry_that_collides_or_goes_underground_is_refused_naming_it():
 # --------------------------------------------------------------------------- spec
 
 
-@pytest.mark.parametrize("change, field", [
-    ({"mode": "batch"}, "mode"),
-    ({"noise": ["RTK", "RTKK"]}, r"noise\[1\]"),
-    ({"scenarios": ["P9"]}, r"scenarios\[0\]"),
-    ({"algorithms": ["nope"]}, r"algorithms\[0\]"),
-    ({"seeds": 0}, "seeds"),
-    ({"seeds": [1, 1]}, "seeds"),
-    ({"geometry": {"range_scale": {"min": 2.0, "max": 1.0}, "draws": 2}}, r"geometry\.range_scale\.max"),
-    ({"geometry": {"aspect_deg": {"min": 0.0, "max": 90.0}}}, r"geometry\.draws"),
-    ({"geometry": {"manoeuvre_scale": [-1.0]}}, r"geometry\.manoeuvre_scale\[0\]"),
-    ({"geometry": {"manouvre_scale": [1.0]}}, r"geometry\.manouvre_scale.*did you mean 'manoeuvre_scale'"),
-    ({"duration_s": 60.0}, "duration_s"),
-    ({"mode": "closed_loop", "noise_model": "case"}, "noise_model"),
-    ({"crb": "yes"}, "crb"),
-    ({"seed": 3}, "seed.*did you mean 'seeds'"),
-])
+@pytest.mark.parametrize(
+    "change, field",
+    [
+        ({"mode": "batch"}, "mode"),
+        ({"noise": ["RTK", "RTKK"]}, r"noise\[1\]"),
+        ({"scenarios": ["P9"]}, r"scenarios\[0\]"),
+        ({"algorithms": ["nope"]}, r"algorithms\[0\]"),
+        ({"seeds": 0}, "seeds"),
+        ({"seeds": [1, 1]}, "seeds"),
+        ({"geometry": {"range_scale": {"min": 2.0, "max": 1.0}, "draws": 2}}, r"geometry\.range_scale\.max"),
+        ({"geometry": {"aspect_deg": {"min": 0.0, "max": 90.0}}}, r"geometry\.draws"),
+        ({"geometry": {"manoeuvre_scale": [-1.0]}}, r"geometry\.manoeuvre_scale\[0\]"),
+        ({"geometry": {"manouvre_scale": [1.0]}}, r"geometry\.manouvre_scale.*did you mean 'manoeuvre_scale'"),
+        ({"duration_s": 60.0}, "duration_s"),
+        ({"mode": "closed_loop", "noise_model": "case"}, "noise_model"),
+        ({"crb": "yes"}, "crb"),
+        ({"seed": 3}, "seed.*did you mean 'seeds'"),
+    ],
+)
 def test_bad_specs_name_the_file_and_the_field(tmp_path, change, field):
     with pytest.raises(ConfigError, match=rf"spec\.yaml: .*{field}"):
         _spec(tmp_path, **change)
@@ -134,8 +168,13 @@ def test_cli_bad_spec_is_one_line_and_exit_2(tmp_path, capsys):
 
 
 def test_random_geometry_draws_are_deterministic_and_in_range(tmp_path):
-    geo = {"range_scale": {"min": 0.8, "max": 1.5}, "aspect_deg": {"min": -45.0, "max": 45.0},
-           "manoeuvre_scale": [1.0, 2.0], "draws": 3, "seed": 11}
+    geo = {
+        "range_scale": {"min": 0.8, "max": 1.5},
+        "aspect_deg": {"min": -45.0, "max": 45.0},
+        "manoeuvre_scale": [1.0, 2.0],
+        "draws": 3,
+        "seed": 11,
+    }
     a, b = _spec(tmp_path, geometry=geo), _spec(tmp_path, geometry=geo)
     assert a.geometries == b.geometries and len(a.geometries) == 6
     assert all(0.8 <= g.range_scale <= 1.5 and -45 <= g.aspect_deg <= 45 for g in a.geometries)
@@ -208,7 +247,9 @@ def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp
     c = pd.read_csv(tmp_path / "serial" / TABLE_NAME)
     pd.testing.assert_frame_equal(_comparable(a), _comparable(c))
     report = (tmp_path / "serial" / REPORT_NAME).read_text()
-    assert "### paper" in report and "### rpekf" in report and (tmp_path / "serial" / "manoeuvre.png").stat().st_size > 0
+    assert (
+        "### paper" in report and "### rpekf" in report and (tmp_path / "serial" / "manoeuvre.png").stat().st_size > 0
+    )
 
 
 @pytest.mark.slow
@@ -216,11 +257,25 @@ def test_an_interrupted_campaign_resumes_where_it_stopped(tmp_path):
     """SIGINT (Ctrl-C) in the middle: exit 130, the finished runs kept; the same command runs only the
     rest, and the table equals an uninterrupted campaign's."""
     spec_path = tmp_path / "spec.yaml"
-    spec_path.write_text("name: t\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [map, paper]\nseeds: 3\n"
-                         "duration_s: 4.0\ngeometry: {manoeuvre_scale: [0.5, 1.0, 2.0]}\n")
+    spec_path.write_text(
+        "name: t\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [map, paper]\nseeds: 3\n"
+        "duration_s: 4.0\ngeometry: {manoeuvre_scale: [0.5, 1.0, 2.0]}\n"
+    )
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "groundsim", "campaign", str(spec_path), "--out", str(out), "--workers", "1",
-           "--no-progress", "--log-level", "warning"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "groundsim",
+        "campaign",
+        str(spec_path),
+        "--out",
+        str(out),
+        "--workers",
+        "1",
+        "--no-progress",
+        "--log-level",
+        "warning",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log_path = out / LOG_NAME
     deadline = time.monotonic() + 120
@@ -240,8 +295,14 @@ def test_an_interrupted_campaign_resumes_where_it_stopped(tmp_path):
     assert res.returncode == 0, res.stderr
     assert f"{done_before} reused" in res.stdout and f"{18 - done_before} run now" in res.stdout
     resumed = pd.read_csv(out / TABLE_NAME)
-    ref = run_campaign(load_spec(spec_path), tmp_path / "ref", workers=1, progress=False,
-                       base_config=load_base_config(REPO / "config/onboard.yaml"), onboard_digest=_digest_of_config())
+    ref = run_campaign(
+        load_spec(spec_path),
+        tmp_path / "ref",
+        workers=1,
+        progress=False,
+        base_config=load_base_config(REPO / "config/onboard.yaml"),
+        onboard_digest=_digest_of_config(),
+    )
     assert ref.ran == 18
     pd.testing.assert_frame_equal(_comparable(resumed), _comparable(pd.read_csv(tmp_path / "ref" / TABLE_NAME)))
 
@@ -254,8 +315,17 @@ def _digest_of_config() -> str:
 
 @pytest.mark.slow
 def test_closed_loop_mode_flies_the_variant_through_the_lockstep_pipeline(tmp_path):
-    spec = _spec(tmp_path, mode="closed_loop", scenarios=["P1"], noise=["RTK"], algorithms=["paper"], seeds=1,
-                 duration_s=2.0, crb=False, geometry={"manoeuvre_scale": [1.0, 1.5]})
+    spec = _spec(
+        tmp_path,
+        mode="closed_loop",
+        scenarios=["P1"],
+        noise=["RTK"],
+        algorithms=["paper"],
+        seeds=1,
+        duration_s=2.0,
+        crb=False,
+        geometry={"manoeuvre_scale": [1.0, 1.5]},
+    )
     res = run_campaign(spec, tmp_path / "cl", workers=1, progress=False)
     df = pd.read_csv(tmp_path / "cl" / TABLE_NAME)
     assert res.ran == 2 and (df["status"] == "ok").all() and (df["mode"] == "closed_loop").all()

@@ -15,9 +15,22 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from groundsim.evaluation.campaign import (LOG_NAME, PARQUET_NAME, TABLE_NAME, TIMING_COLUMNS, check_workers, code_fingerprint,
-                                load_spec, read_log, run_campaign, run_id, plan_runs, table_rows, write_table)
 from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.campaign import (
+    LOG_NAME,
+    PARQUET_NAME,
+    TABLE_NAME,
+    TIMING_COLUMNS,
+    check_workers,
+    code_fingerprint,
+    load_spec,
+    plan_runs,
+    read_log,
+    run_campaign,
+    run_id,
+    table_rows,
+    write_table,
+)
 from groundsim.evaluation.eval import load_base_config
 from onboard.core.errors import ConfigError
 
@@ -26,8 +39,10 @@ distributed = pytest.importorskip("distributed")
 REPO = Path(__file__).resolve().parents[2]
 ONBOARD = REPO / "config/onboard.yaml"
 # the issue's campaign: 2 scenarios x 2 noise cases x 3 algorithms x 3 seeds = 36 runs (12 jobs) of 3 s flights
-SPEC_TEXT = ("name: scaleout\nscenarios: [P1, P2]\nnoise: [RTK, px0.3]\nalgorithms: [map, paper, rpekf]\nseeds: 3\n"
-             "duration_s: 3.0\n")
+SPEC_TEXT = (
+    "name: scaleout\nscenarios: [P1, P2]\nnoise: [RTK, px0.3]\nalgorithms: [map, paper, rpekf]\nseeds: 3\n"
+    "duration_s: 3.0\n"
+)
 RUNS = 2 * 2 * 3 * 3
 
 
@@ -50,8 +65,14 @@ def spec_path(tmp_path_factory):
 def pool_table(spec_path, tmp_path_factory):
     """The reference: the campaign on the local process pool (2 workers), as the CLI would run it."""
     out = tmp_path_factory.mktemp("pool")
-    res = run_campaign(load_spec(spec_path), out, workers=2, progress=False, base_config=load_base_config(ONBOARD),
-                       onboard_digest=_digest())
+    res = run_campaign(
+        load_spec(spec_path),
+        out,
+        workers=2,
+        progress=False,
+        base_config=load_base_config(ONBOARD),
+        onboard_digest=_digest(),
+    )
     assert res.ran == RUNS and res.failed == 0
     return pd.read_csv(out / TABLE_NAME)
 
@@ -59,8 +80,9 @@ def pool_table(spec_path, tmp_path_factory):
 @pytest.fixture(scope="module")
 def cluster():
     """Two single-threaded worker processes and a scheduler, on 127.0.0.1 only (no dashboard)."""
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                                  dashboard_address=None) as c:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None
+    ) as c:
         yield c
 
 
@@ -68,8 +90,14 @@ def cluster():
 @pytest.mark.integration
 def test_a_dask_cluster_gives_the_pool_s_table_and_parquet_round_trips(spec_path, pool_table, cluster, tmp_path):
     out = tmp_path / "dask"
-    res = run_campaign(load_spec(spec_path), out, progress=False, base_config=load_base_config(ONBOARD),
-                       onboard_digest=_digest(), scheduler=cluster.scheduler_address)
+    res = run_campaign(
+        load_spec(spec_path),
+        out,
+        progress=False,
+        base_config=load_base_config(ONBOARD),
+        onboard_digest=_digest(),
+        scheduler=cluster.scheduler_address,
+    )
     assert res.ran == RUNS and res.failed == 0 and res.workers == 2 and not res.interrupted
     dask_table = pd.read_csv(out / TABLE_NAME)
     pd.testing.assert_frame_equal(_comparable(pool_table), _comparable(dask_table))
@@ -85,8 +113,14 @@ def test_a_dask_cluster_gives_the_pool_s_table_and_parquet_round_trips(spec_path
     ids = [run_id(p) for p in plan_runs(load_spec(spec_path), _digest())]
     pd.testing.assert_frame_equal(pq, table_rows([done[i] for i in ids]))
     # a rerun on the cluster reuses everything
-    again = run_campaign(load_spec(spec_path), out, progress=False, base_config=load_base_config(ONBOARD),
-                         onboard_digest=_digest(), scheduler=cluster.scheduler_address)
+    again = run_campaign(
+        load_spec(spec_path),
+        out,
+        progress=False,
+        base_config=load_base_config(ONBOARD),
+        onboard_digest=_digest(),
+        scheduler=cluster.scheduler_address,
+    )
     assert again.ran == 0 and again.reused == RUNS
 
 
@@ -96,8 +130,20 @@ def test_a_campaign_on_the_cluster_interrupted_resumes_to_the_pool_s_table(spec_
     """``groundsim campaign SPEC --scheduler ADDR``, SIGINT once the first case is logged: exit 130, the finished
     runs kept; the same command runs only the rest, and the table equals the pool's."""
     out = tmp_path / "out"
-    cmd = [sys.executable, "-m", "groundsim", "campaign", str(spec_path), "--out", str(out), "--scheduler",
-           cluster.scheduler_address, "--no-progress", "--log-level", "warning"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "groundsim",
+        "campaign",
+        str(spec_path),
+        "--out",
+        str(out),
+        "--scheduler",
+        cluster.scheduler_address,
+        "--no-progress",
+        "--log-level",
+        "warning",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     log_path = out / LOG_NAME
     deadline = time.monotonic() + 240  # hang guard only
@@ -123,10 +169,16 @@ def test_a_campaign_on_the_cluster_interrupted_resumes_to_the_pool_s_table(spec_
 # --------------------------------------------------------------------------- refusals and the table (fast)
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--scheduler", "127.0.0.1:8786"], r"--scheduler: expected an address tcp://HOST:PORT, got '127\.0\.0\.1:8786'"),
-    (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], r"--workers: not with --scheduler"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (
+            ["--scheduler", "127.0.0.1:8786"],
+            r"--scheduler: expected an address tcp://HOST:PORT, got '127\.0\.0\.1:8786'",
+        ),
+        (["--scheduler", "tcp://127.0.0.1:8786", "--workers", "2"], r"--workers: not with --scheduler"),
+    ],
+)
 def test_bad_scheduler_options_are_one_line_and_exit_2(spec_path, tmp_path, capsys, extra, message):
     import re
 
@@ -151,7 +203,9 @@ def test_workers_running_other_code_or_no_workers_are_refused_naming_them():
     mine = code_fingerprint()
     assert len(mine) == 16 and mine == code_fingerprint()
     assert check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": mine}), "tcp://s:1") == 2
-    with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: worker\(s\) tcp://10\.0\.0\.3:1 run other irtrack code"):
+    with pytest.raises(
+        ConfigError, match=r"--scheduler tcp://s:1: worker\(s\) tcp://10\.0\.0\.3:1 run other irtrack code"
+    ):
         check_workers(_FakeClient({"tcp://10.0.0.2:1": mine, "tcp://10.0.0.3:1": "0" * 16}), "tcp://s:1")
     with pytest.raises(ConfigError, match=r"--scheduler tcp://s:1: the scheduler has no workers"):
         check_workers(_FakeClient({}), "tcp://s:1")
@@ -159,10 +213,30 @@ def test_workers_running_other_code_or_no_workers_are_refused_naming_them():
 
 def test_the_parquet_table_round_trips_missing_values_bools_and_strings(tmp_path):
     pytest.importorskip("pyarrow")
-    rows = [{"run_id": "a", "scenario": "P1", "seed": 0, "status": "ok", "err_range_final_pct": 1.25,
-             "batch_observable": True, "error": "", "bound_note": "", "wall_s": 0.5},
-            {"run_id": "b", "scenario": "P2", "seed": 1, "status": "failed", "err_range_final_pct": None,
-             "batch_observable": None, "error": "ValueError: x", "bound_note": "CRB failed", "wall_s": 0.25}]
+    rows = [
+        {
+            "run_id": "a",
+            "scenario": "P1",
+            "seed": 0,
+            "status": "ok",
+            "err_range_final_pct": 1.25,
+            "batch_observable": True,
+            "error": "",
+            "bound_note": "",
+            "wall_s": 0.5,
+        },
+        {
+            "run_id": "b",
+            "scenario": "P2",
+            "seed": 1,
+            "status": "failed",
+            "err_range_final_pct": None,
+            "batch_observable": None,
+            "error": "ValueError: x",
+            "bound_note": "CRB failed",
+            "wall_s": 0.25,
+        },
+    ]
     files = write_table(tmp_path, rows)
     back = pd.read_parquet(files[PARQUET_NAME])
     pd.testing.assert_frame_equal(back, table_rows(rows))

@@ -13,7 +13,13 @@ import numpy as np
 import pytest
 
 from groundsim.app.cli import main as cli_main
-from groundsim.evaluation.dataset import DatasetOptions, TargetLabel, body_box_corners_frd_m, export_dataset, target_label
+from groundsim.evaluation.dataset import (
+    DatasetOptions,
+    TargetLabel,
+    body_box_corners_frd_m,
+    export_dataset,
+    target_label,
+)
 from groundsim.world.scenario import load_scenario, reference_scenario_paths
 from onboard.core.errors import ConfigError
 from onboard.core.frames import PinholeIntrinsics, rotmat_from_quat
@@ -31,8 +37,14 @@ def _scenario(name="P1"):
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
     out = tmp_path_factory.mktemp("ds")
-    summaries, _ = export_dataset([_scenario()], SEEDS, out, DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
-                                  workers=2, progress=False)
+    summaries, _ = export_dataset(
+        [_scenario()],
+        SEEDS,
+        out,
+        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+        workers=2,
+        progress=False,
+    )
     return out, summaries
 
 
@@ -43,7 +55,11 @@ def _read_csv(path: Path) -> dict[str, np.ndarray]:
 
 
 def _tree_digest(root: Path) -> dict[str, str]:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(root.rglob("*")) if p.is_file()}
+    return {
+        str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(root.rglob("*"))
+        if p.is_file()
+    }
 
 
 def _independent_pixel(cams: dict, truth: dict, i: int) -> tuple[float, float]:
@@ -51,9 +67,13 @@ def _independent_pixel(cams: dict, truth: dict, i: int) -> tuple[float, float]:
     p_t = np.array([truth["target_n_m"][i], truth["target_e_m"][i], truth["target_d_m"][i]])
     p_c = np.array([cams["true_n_m"][i], cams["true_e_m"][i], cams["true_d_m"][i]])
     w, x, y, z = (cams[f"true_q{c}"][i] for c in "wxyz")
-    R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                  [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                  [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])  # R_ned_from_cam
+    R = np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )  # R_ned_from_cam
     pc = R.T @ (p_t - p_c)
     return cams["fx_px"][i] * pc[0] / pc[2] + cams["cx_px"][i], cams["fy_px"][i] * pc[1] / pc[2] + cams["cy_px"][i]
 
@@ -96,8 +116,12 @@ def test_coco_loads_in_pycocotools_and_centroids_match_truth(dataset):
     # COCO's own evaluator: the ground truth submitted as detections is a perfect score
     from pycocotools.cocoeval import COCOeval
 
-    dets = coco.loadRes([dict(image_id=a["image_id"], category_id=a["category_id"], bbox=a["bbox"], score=1.0)
-                         for a in coco.loadAnns(ann_ids)])
+    dets = coco.loadRes(
+        [
+            dict(image_id=a["image_id"], category_id=a["category_id"], bbox=a["bbox"], score=1.0)
+            for a in coco.loadAnns(ann_ids)
+        ]
+    )
     ev = COCOeval(coco, dets, "bbox")
     ev.evaluate()
     ev.accumulate()
@@ -106,7 +130,9 @@ def test_coco_loads_in_pycocotools_and_centroids_match_truth(dataset):
 
 
 def test_mot_layout_read_by_trackeval(dataset, tmp_path):
-    trackeval = pytest.importorskip("trackeval")  # installed with --no-deps (it pins opencv-python, which shadows contrib)
+    trackeval = pytest.importorskip(
+        "trackeval"
+    )  # installed with --no-deps (it pins opencv-python, which shadows contrib)
     out, summaries = dataset
     seqmap = tmp_path / "seqmap.txt"
     seqmap.write_text("name\n" + "".join(f"{s.name}\n" for s in summaries))
@@ -115,8 +141,15 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
     for s in summaries:  # a "tracker" that outputs the ground truth: TrackEval must score it perfect
         rows = [line.split(",") for line in (out / s.name / "gt" / "gt.txt").read_text().splitlines()]
         (trk / f"{s.name}.txt").write_text("".join(",".join(r[:6] + ["1", "-1", "-1", "-1"]) + "\n" for r in rows))
-    cfg = dict(GT_FOLDER=str(out), TRACKERS_FOLDER=str(tmp_path / "trackers"), SKIP_SPLIT_FOL=True, SEQMAP_FILE=str(seqmap),
-               TRACKERS_TO_EVAL=["gt_copy"], PRINT_CONFIG=False, OUTPUT_FOLDER=str(tmp_path / "te_out"))
+    cfg = dict(
+        GT_FOLDER=str(out),
+        TRACKERS_FOLDER=str(tmp_path / "trackers"),
+        SKIP_SPLIT_FOL=True,
+        SEQMAP_FILE=str(seqmap),
+        TRACKERS_TO_EVAL=["gt_copy"],
+        PRINT_CONFIG=False,
+        OUTPUT_FOLDER=str(tmp_path / "te_out"),
+    )
     ds = trackeval.datasets.MotChallenge2DBox(cfg)
     for s in summaries:
         raw = ds.get_raw_seq_data("gt_copy", s.name)
@@ -127,10 +160,23 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
             if labels["in_image"][t]:
                 assert boxes.shape == (1, 4) and raw["gt_ids"][t].tolist() == [1]
                 # MOT's 1-based pixel coordinates: bb_left = x_px + 1
-                np.testing.assert_allclose(boxes[0], [labels["x_px"][t] + 1, labels["y_px"][t] + 1, labels["w_px"][t],
-                                                      labels["h_px"][t]], atol=1e-3)
-    ev = trackeval.Evaluator(dict(USE_PARALLEL=False, PRINT_RESULTS=False, PRINT_CONFIG=False, OUTPUT_SUMMARY=False,
-                                  OUTPUT_DETAILED=False, PLOT_CURVES=False, TIME_PROGRESS=False, DISPLAY_LESS_PROGRESS=True))
+                np.testing.assert_allclose(
+                    boxes[0],
+                    [labels["x_px"][t] + 1, labels["y_px"][t] + 1, labels["w_px"][t], labels["h_px"][t]],
+                    atol=1e-3,
+                )
+    ev = trackeval.Evaluator(
+        dict(
+            USE_PARALLEL=False,
+            PRINT_RESULTS=False,
+            PRINT_CONFIG=False,
+            OUTPUT_SUMMARY=False,
+            OUTPUT_DETAILED=False,
+            PLOT_CURVES=False,
+            TIME_PROGRESS=False,
+            DISPLAY_LESS_PROGRESS=True,
+        )
+    )
     res, msg = ev.evaluate([ds], [trackeval.metrics.CLEAR(dict(PRINT_CONFIG=False))])
     assert msg["MotChallenge2DBox"]["gt_copy"] == "Success"
     clear = res["MotChallenge2DBox"]["gt_copy"]["COMBINED_SEQ"]["pedestrian"]["CLEAR"]
@@ -142,7 +188,12 @@ def test_seqinfo_ini_is_what_mot_readers_parse(dataset):
     ini = configparser.ConfigParser()
     ini.read(out / summaries[0].name / "seqinfo.ini")
     seq = ini["Sequence"]
-    assert (seq["name"], seq["imDir"], int(seq["seqLength"]), int(seq["frameRate"])) == (summaries[0].name, "img1", 30, 30)
+    assert (seq["name"], seq["imDir"], int(seq["seqLength"]), int(seq["frameRate"])) == (
+        summaries[0].name,
+        "img1",
+        30,
+        30,
+    )
     assert (int(seq["imWidth"]), int(seq["imHeight"]), seq["imExt"]) == (640, 512, ".png")
 
 
@@ -156,7 +207,9 @@ def test_measured_pose_carries_the_injected_navigation_error(dataset):
     np.testing.assert_allclose(d, err, atol=LEVER_ATOL_M)
     q_t = np.stack([cams[f"true_q{c}"] for c in "wxyz"], axis=1)
     q_m = np.stack([cams[f"meas_q{c}"] for c in "wxyz"], axis=1)
-    ang = [math.acos(min(1.0, (np.trace(rotmat_from_quat(a) @ rotmat_from_quat(b).T) - 1) / 2)) for a, b in zip(q_m, q_t)]
+    ang = [
+        math.acos(min(1.0, (np.trace(rotmat_from_quat(a) @ rotmat_from_quat(b).T) - 1) / 2)) for a, b in zip(q_m, q_t)
+    ]
     want = np.linalg.norm(np.stack([truth[f"nav_att_err_{c}_rad"] for c in "ned"], axis=1), axis=1)
     np.testing.assert_allclose(ang, want, atol=1e-6)
 
@@ -164,8 +217,14 @@ def test_measured_pose_carries_the_injected_navigation_error(dataset):
 def test_same_seed_identical_files_other_seed_differs(dataset, tmp_path):
     out, _ = dataset
     again = tmp_path / "again"
-    export_dataset([_scenario()], [0], again, DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
-                   workers=1, progress=False)
+    export_dataset(
+        [_scenario()],
+        [0],
+        again,
+        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+        workers=1,
+        progress=False,
+    )
     a = {k: v for k, v in _tree_digest(out).items() if k.startswith("P1-RTK-s0/")}
     b = {k: v for k, v in _tree_digest(again).items() if k.startswith("P1-RTK-s0/")}
     assert len(a) == 30 + 5 and a == b
@@ -176,7 +235,9 @@ def test_same_seed_identical_files_other_seed_differs(dataset, tmp_path):
 def test_sixteen_bit_pngs(tmp_path):
     import cv2
 
-    summaries, _ = export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.2, bit_depth=16), progress=False)
+    summaries, _ = export_dataset(
+        [_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.2, bit_depth=16), progress=False
+    )
     img = cv2.imread(str(tmp_path / summaries[0].name / "img1" / "000001.png"), cv2.IMREAD_UNCHANGED)
     assert img.dtype == np.uint16 and img.shape == (512, 640) and img.max() > 255
 

@@ -62,7 +62,7 @@ def test_plan_writes_a_valid_daemon_config_and_extends_the_scenario(tmp_path):
     assert cfg.output.health_file == str((tmp_path / "onboard.alive").resolve())
     d, s = daemon_command(plan), sim_command(plan)
     assert d[1:] == ["-m", "onboard", "--config", str(plan.onboard_config_path)]
-    assert ["--rate", "realtime"] == s[s.index("--rate"):s.index("--rate") + 2]
+    assert ["--rate", "realtime"] == s[s.index("--rate") : s.index("--rate") + 2]
     assert f"udpout:127.0.0.1:{plan.mavlink_port}" in s and plan.zenoh_endpoint in s and "--truth" in s
 
 
@@ -88,8 +88,18 @@ def _truth_file(path: Path, n: int):
             t = k / 30.0
             p_t = np.array([120.0 - 4 * t, 30.0 - 3 * t, -85.0])
             p_c = np.array([0.0, 4 * t, -60.0])
-            r = truth_row(k, 1_000_000 + round(t * 1e6), t, sc.origin, sc.camera.intrinsics, p_t, [-4, -3, 0], p_c, p_c,
-                          quat_from_euler(0.0, 0.3, 0.2))
+            r = truth_row(
+                k,
+                1_000_000 + round(t * 1e6),
+                t,
+                sc.origin,
+                sc.camera.intrinsics,
+                p_t,
+                [-4, -3, 0],
+                p_c,
+                p_c,
+                quat_from_euler(0.0, 0.3, 0.2),
+            )
             w.write(r)
             rows.append(r)
     return sc, rows
@@ -113,16 +123,36 @@ def test_truth_tail_reads_whole_lines_only(tmp_path):
 
 
 def _track_msg(row, err_ned=(0.0, 0.0, 0.0), observable=True, origin=None, with_position=True) -> dict:
-    msg = {"schema": "irtrack.track/1", "vehicle": "uav1", "seq": row.seq, "time_boot_us": row.time_boot_us,
-           "track_id": 1, "state": "tracking", "measurement_valid": True, "u_px": 320.0, "v_px": 256.0,
-           "bbox": [312, 248, 16, 16], "pose_valid": True, "observable": observable, "window_frames": 40}
+    msg = {
+        "schema": "irtrack.track/1",
+        "vehicle": "uav1",
+        "seq": row.seq,
+        "time_boot_us": row.time_boot_us,
+        "track_id": 1,
+        "state": "tracking",
+        "measurement_valid": True,
+        "u_px": 320.0,
+        "v_px": 256.0,
+        "bbox": [312, 248, 16, 16],
+        "pose_valid": True,
+        "observable": observable,
+        "window_frames": 40,
+    }
     if with_position:
         p = np.array([row.target_n_m, row.target_e_m, row.target_d_m]) + np.asarray(err_ned)
         lat, lon, alt = geodetic_from_ned(p, origin)
-        msg.update(lat_deg=float(lat), lon_deg=float(lon), alt_m=float(alt), ned_m=p.tolist(),
-                   origin={"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "alt_m": origin.alt_m},
-                   vel_ned_mps=[0.0, 0.0, 0.0], cov_ned_m2=np.eye(3).tolist(), range_m=float(row.range_m),
-                   range_sigma_ratio=0.01, model="cv")
+        msg.update(
+            lat_deg=float(lat),
+            lon_deg=float(lon),
+            alt_m=float(alt),
+            ned_m=p.tolist(),
+            origin={"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "alt_m": origin.alt_m},
+            vel_ned_mps=[0.0, 0.0, 0.0],
+            cov_ned_m2=np.eye(3).tolist(),
+            range_m=float(row.range_m),
+            range_sigma_ratio=0.01,
+            model="cv",
+        )
     return msg
 
 
@@ -157,23 +187,44 @@ def test_scoring_matches_truth_by_capture_time(tmp_path):
     assert s["observable"]["mean_nees"] == pytest.approx(0.25, abs=1e-5)
     expect_all = np.sqrt((10 * 4.0 + 15 * 0.25) / 25)
     assert s["all"]["rmse_m"] == pytest.approx(expect_all, abs=1e-6)
-    out = DemoOutcome("P1", 0, 1.0, 1.0, 30, 30, False, 0, 0, cpu_share={"sim": 0.3, "daemon": 0.25, "demo": 0.02},
-                      last_status={"processing_ms": {"p50": 4.2, "p99": 30.0}})
+    out = DemoOutcome(
+        "P1",
+        0,
+        1.0,
+        1.0,
+        30,
+        30,
+        False,
+        0,
+        0,
+        cpu_share={"sim": 0.3, "daemon": 0.25, "demo": 0.02},
+        last_status={"processing_ms": {"p50": 4.2, "p99": 30.0}},
+    )
     table = format_demo_table(s, out)
     assert "| observable frames (published by default) | 15 |" in table
     assert "continuity 50 %" in table and "daemon 25 %" in table and "p50 4.2 ms" in table
 
 
 def test_status_line_shows_error_and_observability():
-    line = status_line(3.0, 90, 600, {"frames": {"processed": 88, "dropped": 1}, "processing_ms": {"p50": 5.25}},
-                       {"state": "tracking", "track_id": 2, "lat_deg": 32.0, "observable": False}, 101.5, 100.0, 2.0,
-                       0.31, None)
+    line = status_line(
+        3.0,
+        90,
+        600,
+        {"frames": {"processed": 88, "dropped": 1}, "processing_ms": {"p50": 5.25}},
+        {"state": "tracking", "track_id": 2, "lat_deg": 32.0, "observable": False},
+        101.5,
+        100.0,
+        2.0,
+        0.31,
+        None,
+    )
     assert line.startswith("[  3.0 s] | sim 90/600 fr | daemon 88 proc 1 drop 5.2 ms | tracking #2")
     assert "range 101.5 m (truth 100.0)" in line and "err 2.00 m 2.00 % unobservable" in line
     assert line.endswith("cpu sim 31 % daemon - %")
     assert "track -" in status_line(0.5, 0, 600, None, None, None, None, None, None, None)
-    assert "no 3-D yet (7 obs)" in status_line(1, 1, 2, None, {"state": "coasting", "window_frames": 7}, None, None,
-                                                  None, None, None)
+    assert "no 3-D yet (7 obs)" in status_line(
+        1, 1, 2, None, {"state": "coasting", "window_frames": 7}, None, None, None, None, None
+    )
 
 
 def test_proc_cpu_reads_this_process():
@@ -194,8 +245,13 @@ def test_proc_cpu_counts_child_processes():
     if meter.cpu_s() is None:
         pytest.skip("no /proc on this system")
     own0 = time.process_time()
-    child = subprocess.Popen([sys.executable, "-c", "import time\nt=time.process_time()\nwhile time.process_time()-t<0.6: pass\n"
-                              "time.sleep(30)"])
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import time\nt=time.process_time()\nwhile time.process_time()-t<0.6: pass\ntime.sleep(30)",
+        ]
+    )
     try:
         t_end = time.monotonic() + 30
         while time.monotonic() < t_end:  # until the child's busy loop shows (bounded)
@@ -218,8 +274,19 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
     """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 0."""
     out = tmp_path / "demo"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    cmd = [sys.executable, "-m", "groundsim", "demo", "--duration", "30", "--out", str(out), "--no-eval",
-           "--log-level", "warning"]
+    cmd = [
+        sys.executable,
+        "-m",
+        "groundsim",
+        "demo",
+        "--duration",
+        "30",
+        "--out",
+        str(out),
+        "--no-eval",
+        "--log-level",
+        "warning",
+    ]
     proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env)
     lines: list[str] = []
     try:

@@ -13,8 +13,9 @@ from groundsim.world.scenario import load_noise_cases, load_scenario, reference_
 
 
 def _result(seed: int, err: float, rmse: float, observable=True, beyond=0.0) -> CaseResult:
-    return CaseResult("P1", "px0.3", seed, err, err, rmse, 1.0, observable, 0.01, beyond, 3.0, "cv", 1e-6, 0.0, 10.0,
-                      40.0, 0.4, 0.5)
+    return CaseResult(
+        "P1", "px0.3", seed, err, err, rmse, 1.0, observable, 0.01, beyond, 3.0, "cv", 1e-6, 0.0, 10.0, 40.0, 0.4, 0.5
+    )
 
 
 def test_median_interval_brackets_the_median_and_drops_nans():
@@ -28,8 +29,12 @@ def test_median_interval_brackets_the_median_and_drops_nans():
 
 
 def test_summarise_pools_rmse_and_counts_dishonest_observable_runs():
-    rs = [_result(0, 0.2, 1.0), _result(1, 0.4, 1.0), _result(2, 3.0, 7.0, beyond=0.05),
-          _result(3, 9.0, 20.0, observable=False, beyond=0.5)]
+    rs = [
+        _result(0, 0.2, 1.0),
+        _result(1, 0.4, 1.0),
+        _result(2, 3.0, 7.0, beyond=0.05),
+        _result(3, 9.0, 20.0, observable=False, beyond=0.5),
+    ]
     (row,) = summarise(rs)
     assert row["err_range_pct"] == pytest.approx(np.median([0.2, 0.4, 3.0, 9.0]))
     # pooled: sqrt(mean(rmse^2)), not the median of the per-run figures (1.0 and 7.0 would hide seed 3)

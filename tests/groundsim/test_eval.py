@@ -7,11 +7,11 @@ lockstep is deterministic.  evo (if installed) must read our TUM files and agree
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import io
 import json
 import math
-import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -53,8 +53,17 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # --------------------------------------------------------------------------- helpers
 
 
-def _synthetic_run(name="S1", seed=0, F=40, err_m=(1.0, 0.0, 0.0), obs_from=10, base_err_m=(0.0, 2.0, 0.0),
-                   base_from=5, cov_diag_m2=1.0, batch=None) -> RunResult:
+def _synthetic_run(
+    name="S1",
+    seed=0,
+    F=40,
+    err_m=(1.0, 0.0, 0.0),
+    obs_from=10,
+    base_err_m=(0.0, 2.0, 0.0),
+    base_from=5,
+    cov_diag_m2=1.0,
+    batch=None,
+) -> RunResult:
     """A run with exactly known errors: the estimate is truth + err_m from frame obs_from on
     (observable), the baseline truth + base_err_m from base_from on; isotropic covariance."""
     t = np.arange(F) / 30.0
@@ -80,30 +89,80 @@ def _synthetic_run(name="S1", seed=0, F=40, err_m=(1.0, 0.0, 0.0), obs_from=10, 
     pixels = np.full((64, 80), 40, np.uint8)
     pixels[30:33, 40:43] = 120
     return RunResult(
-        scenario=name, description=f"{name}: synthetic", seed=seed, frames=F, t_s=t,
-        time_boot_us=(1_000_000 + np.round(t * 1e6)).astype(np.int64), truth_p_ned_m=truth, cam_p_ned_m=cam,
-        observer_p_ned_m=cam.copy(), range_m=rng, truth_uv_px=uv + 0.1, visible=np.ones(F, bool),
-        state=np.full(F, "tracking"), measurement_valid=meas, uv_px=uv, bbox=np.tile([312.0, 248.0, 16.0, 16.0], (F, 1)),
-        pose_valid=np.ones(F, bool), est_p_ned_m=est, est_cov_ned_m2=cov, observable=observable,
-        range_sigma_ratio=np.full(F, 0.01), base_p_ned_m=base, base_cov_ned_m2=base_cov, base_observable=base_obs,
+        scenario=name,
+        description=f"{name}: synthetic",
+        seed=seed,
+        frames=F,
+        t_s=t,
+        time_boot_us=(1_000_000 + np.round(t * 1e6)).astype(np.int64),
+        truth_p_ned_m=truth,
+        cam_p_ned_m=cam,
+        observer_p_ned_m=cam.copy(),
+        range_m=rng,
+        truth_uv_px=uv + 0.1,
+        visible=np.ones(F, bool),
+        state=np.full(F, "tracking"),
+        measurement_valid=meas,
+        uv_px=uv,
+        bbox=np.tile([312.0, 248.0, 16.0, 16.0], (F, 1)),
+        pose_valid=np.ones(F, bool),
+        est_p_ned_m=est,
+        est_cov_ned_m2=cov,
+        observable=observable,
+        range_sigma_ratio=np.full(F, 0.01),
+        base_p_ned_m=base,
+        base_cov_ned_m2=base_cov,
+        base_observable=base_obs,
         batch=batch,
-        timing=dict(wall_s=2.0, cpu_s=1.5, flight_s=0.1, render_s=0.2, pipeline_s=float(pm.sum() / 1e3), baseline_s=0.1,
-                    batch_s=0.0, render_ms=np.full(F, 5.0), process_ms=pm, baseline_ms=np.full(F, 2.0)),
+        timing=dict(
+            wall_s=2.0,
+            cpu_s=1.5,
+            flight_s=0.1,
+            render_s=0.2,
+            pipeline_s=float(pm.sum() / 1e3),
+            baseline_s=0.1,
+            batch_s=0.0,
+            render_ms=np.full(F, 5.0),
+            process_ms=pm,
+            baseline_ms=np.full(F, 2.0),
+        ),
         counters={"pose_position_not_yet": 1},
-        frame=dict(k=F // 2, t_s=float(t[F // 2]), pixels=pixels, bbox=(33.0, 23.0, 16.0, 16.0), uv_px=(41.5, 31.5),
-                   truth_uv_px=(41.4, 31.6), state="tracking", range_m=float(rng[F // 2])),
+        frame=dict(
+            k=F // 2,
+            t_s=float(t[F // 2]),
+            pixels=pixels,
+            bbox=(33.0, 23.0, 16.0, 16.0),
+            uv_px=(41.5, 31.5),
+            truth_uv_px=(41.4, 31.6),
+            state="tracking",
+            range_m=float(rng[F // 2]),
+        ),
     )
 
 
 def _batch_for(run: RunResult, err_pipeline=0.5, err_perfect=0.4) -> dict:
     idx = np.arange(run.frames)
     return {
-        "pipeline": {"frames": idx, "p_ned_m": run.truth_p_ned_m + [err_pipeline, 0, 0],
-                     "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)), "observable": True, "model": "cv",
-                     "solve_s": 0.1, "error": None},
-        "perfect": {"frames": idx, "p_ned_m": run.truth_p_ned_m + [0, err_perfect, 0],
-                    "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)), "observable": True, "model": "cv",
-                    "solve_s": 0.1, "error": None, "crb_rms_m": 0.3, "crb_model_rms_m": 0.9},
+        "pipeline": {
+            "frames": idx,
+            "p_ned_m": run.truth_p_ned_m + [err_pipeline, 0, 0],
+            "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)),
+            "observable": True,
+            "model": "cv",
+            "solve_s": 0.1,
+            "error": None,
+        },
+        "perfect": {
+            "frames": idx,
+            "p_ned_m": run.truth_p_ned_m + [0, err_perfect, 0],
+            "cov_ned_m2": np.tile(np.eye(3), (run.frames, 1, 1)),
+            "observable": True,
+            "model": "cv",
+            "solve_s": 0.1,
+            "error": None,
+            "crb_rms_m": 0.3,
+            "crb_model_rms_m": 0.9,
+        },
     }
 
 
@@ -157,8 +216,9 @@ def test_ape_rmse_is_evo_default_association_without_alignment():
 
 
 def test_evo_reads_our_tum_files_and_agrees(tmp_path):
-    evo_file_interface = pytest.importorskip("evo.tools.file_interface",
-                                             reason="evo not installed (pip install evo to run this cross-check)")
+    evo_file_interface = pytest.importorskip(
+        "evo.tools.file_interface", reason="evo not installed (pip install evo to run this cross-check)"
+    )
     from evo.core import metrics, sync
 
     run = _synthetic_run()
@@ -193,10 +253,18 @@ class _FakeCore:
 
         t = i / self.tick_rate_hz
         lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
-        return dict(time_boot_us=1_000_000 + round(t * 1e6), lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt),
-                    alt_rel_m=float(alt), v_ned_mps=np.array([10.0, 0.0, 0.0]), q_ned_from_body=np.array([1.0, 0, 0, 0]),
-                    body_rates_radps=np.zeros(3), heading_rad=0.0,
-                    q_gimbal=quat_from_euler(0.0, -0.2, 0.3) if self.gimbal else None)
+        return dict(
+            time_boot_us=1_000_000 + round(t * 1e6),
+            lat_deg=float(lat),
+            lon_deg=float(lon),
+            alt_amsl_m=float(alt),
+            alt_rel_m=float(alt),
+            v_ned_mps=np.array([10.0, 0.0, 0.0]),
+            q_ned_from_body=np.array([1.0, 0, 0, 0]),
+            body_rates_radps=np.zeros(3),
+            heading_rad=0.0,
+            q_gimbal=quat_from_euler(0.0, -0.2, 0.3) if self.gimbal else None,
+        )
 
 
 def test_telemetry_feed_rates_stamps_and_quantisation():
@@ -237,7 +305,12 @@ def test_onboard_config_takes_the_scenarios_camera_and_origin():
     sc = load_scenario(P1)
     cfg = onboard_config_for(sc, OnboardConfig())
     K = cfg.camera.pinhole()
-    assert (K.fx_px, K.cx_px, K.width_px, K.height_px) == (sc.camera.intrinsics.fx_px, sc.camera.intrinsics.cx_px, 640, 512)
+    assert (K.fx_px, K.cx_px, K.width_px, K.height_px) == (
+        sc.camera.intrinsics.fx_px,
+        sc.camera.intrinsics.cx_px,
+        640,
+        512,
+    )
     m = cfg.camera.camera_mount()
     q, q_sc = np.asarray(m.q_body_from_mount), np.asarray(sc.camera.mount.q_body_from_mount)
     assert min(np.abs(q - q_sc).max(), np.abs(q + q_sc).max()) < 1e-12
@@ -376,10 +449,19 @@ def test_lockstep_run_goes_through_the_image_chain(lockstep_pair):
 
 def test_lockstep_is_deterministic(lockstep_pair):
     _, a, b = lockstep_pair
-    for name in ("truth_p_ned_m", "uv_px", "est_p_ned_m", "est_cov_ned_m2", "base_p_ned_m", "observable",
-                 "measurement_valid", "state"):
-        assert np.array_equal(getattr(a, name), getattr(b, name), equal_nan=name not in ("observable",
-                              "measurement_valid", "state")), name
+    for name in (
+        "truth_p_ned_m",
+        "uv_px",
+        "est_p_ned_m",
+        "est_cov_ned_m2",
+        "base_p_ned_m",
+        "observable",
+        "measurement_valid",
+        "state",
+    ):
+        assert np.array_equal(
+            getattr(a, name), getattr(b, name), equal_nan=name not in ("observable", "measurement_valid", "state")
+        ), name
 
 
 def test_run_eval_in_a_pool_matches_in_process(lockstep_pair):
@@ -404,13 +486,16 @@ def _cli(argv):
     return code, err.getvalue()
 
 
-@pytest.mark.parametrize("argv, needle", [
-    (["eval", "--seeds", "0"], "--seeds: expected an integer >= 1"),
-    (["eval", "--scenario", "no_such_scenario.yaml"], "no_such_scenario.yaml"),
-    (["eval", "--scenario", "P1", "--duration", "99"], "--duration: expected at most P1's duration_s"),
-    (["eval", "--workers", "0"], "--workers: expected an integer >= 1"),
-    (["eval", "--pixel-sigma", "-1"], "--pixel-sigma"),
-])
+@pytest.mark.parametrize(
+    "argv, needle",
+    [
+        (["eval", "--seeds", "0"], "--seeds: expected an integer >= 1"),
+        (["eval", "--scenario", "no_such_scenario.yaml"], "no_such_scenario.yaml"),
+        (["eval", "--scenario", "P1", "--duration", "99"], "--duration: expected at most P1's duration_s"),
+        (["eval", "--workers", "0"], "--workers: expected an integer >= 1"),
+        (["eval", "--pixel-sigma", "-1"], "--pixel-sigma"),
+    ],
+)
 def test_eval_cli_rejects_bad_options_in_one_line(tmp_path, argv, needle):
     code, err = _cli(argv + ["--out", str(tmp_path / "o"), "--no-progress"])
     assert code == cli.EXIT_ERROR

@@ -170,7 +170,13 @@ def test_attitude_and_position_fields_in_spec_units(link):
 @pytest.mark.integration
 @pytest.mark.parametrize(
     "heading_rad, hdg_cdeg",
-    [(0.0, 0), (math.pi / 2, 9000), (-0.1, round((360 - math.degrees(0.1)) * 100)), (2 * math.pi - 1e-9, 0), (float("nan"), 65535)],
+    [
+        (0.0, 0),
+        (math.pi / 2, 9000),
+        (-0.1, round((360 - math.degrees(0.1)) * 100)),
+        (2 * math.pi - 1e-9, 0),
+        (float("nan"), 65535),
+    ],
 )
 def test_heading_wraps_to_0_35999_and_unknown_is_uint16_max(link, heading_rad, hdg_cdeg):
     rx, vehicle = link
@@ -242,7 +248,7 @@ def test_real_time_threaded_rates(link):
     msgs = []
     try:
         t_guard = time.monotonic() + 10 * WAIT_S  # a hang guard, not a measured property
-        while (len(_of(msgs, "ATTITUDE_QUATERNION")) < want_att or len(_of(msgs, "GLOBAL_POSITION_INT")) < want_pos):
+        while len(_of(msgs, "ATTITUDE_QUATERNION")) < want_att or len(_of(msgs, "GLOBAL_POSITION_INT")) < want_pos:
             assert time.monotonic() < t_guard, f"the threaded vehicle stopped sending ({len(msgs)} messages)"
             m = rx.recv_match(blocking=True, timeout=0.1)
             if m is not None:
@@ -377,7 +383,9 @@ def test_gimballed_vehicle_sends_gimbal_device_attitude_status(yaw_frame, flag):
     port = free_udp_port()
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
     q_ned_from_gimbal = tuple(float(x) for x in quat_from_euler(0.05, -0.5, 2.2))
-    with MavlinkVehicle(f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10, gimbal_yaw_frame=yaw_frame) as vehicle:
+    with MavlinkVehicle(
+        f"udpout:127.0.0.1:{port}", gimballed=True, gimbal_rate_hz=10, gimbal_yaw_frame=yaw_frame
+    ) as vehicle:
         _lockstep(vehicle, 0, 1_000_000, gimbal=q_ned_from_gimbal)
         msgs = _drain(rx)
     rx.close()
@@ -443,7 +451,16 @@ def test_garbage_on_the_wire_is_counted_and_survived(link):
 
 @pytest.mark.parametrize(
     "connection",
-    ["", "udpout:127.0.0.1", "udpout:127.0.0.1:notaport", "udpout:127.0.0.1:0", "udpout:127.0.0.1:70000", "bogus:1:2", "14540", "udpout::14540"],
+    [
+        "",
+        "udpout:127.0.0.1",
+        "udpout:127.0.0.1:notaport",
+        "udpout:127.0.0.1:0",
+        "udpout:127.0.0.1:70000",
+        "bogus:1:2",
+        "14540",
+        "udpout::14540",
+    ],
 )
 def test_malformed_connection_strings(connection):
     with pytest.raises(MavlinkConfigError) as e:
@@ -517,7 +534,14 @@ def test_bad_state_is_an_input_error_naming_the_field(link, field, value):
 
 @pytest.mark.parametrize(
     "kw",
-    [dict(att_rate_hz=0), dict(pos_rate_hz=-1), dict(sysid=0), dict(compid=256), dict(att_rate_hz=float("nan")), dict(gimbal_yaw_frame="body")],
+    [
+        dict(att_rate_hz=0),
+        dict(pos_rate_hz=-1),
+        dict(sysid=0),
+        dict(compid=256),
+        dict(att_rate_hz=float("nan")),
+        dict(gimbal_yaw_frame="body"),
+    ],
 )
 def test_bad_options(kw):
     with pytest.raises(MavlinkConfigError):

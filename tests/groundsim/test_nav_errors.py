@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.app import cli
+from groundsim.app.run import SimCore
 from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
 from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
 from groundsim.world.nav_errors import (
@@ -21,7 +22,6 @@ from groundsim.world.nav_errors import (
     reported_state,
     resolve_nav_noise,
 )
-from groundsim.app.run import SimCore
 from groundsim.world.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError
@@ -81,7 +81,9 @@ def test_statistics_match_the_noise_case(cases, name):
     att = m.att_err_ned_rad()
     white = att - m.bias_ned_rad
     np.testing.assert_allclose(white.std(axis=0), case.attitude_white_sigma_rad, rtol=STD_RTOL)
-    np.testing.assert_allclose(att.mean(axis=0), m.bias_ned_rad, atol=4 * case.attitude_white_sigma_rad / math.sqrt(N_TICKS))
+    np.testing.assert_allclose(
+        att.mean(axis=0), m.bias_ned_rad, atol=4 * case.attitude_white_sigma_rad / math.sqrt(N_TICKS)
+    )
     # the bias over many runs has the case's sigma
     biases = np.array([_model(case, s).bias_ned_rad for s in range(300)])
     np.testing.assert_allclose(biases.std(), case.attitude_bias_sigma_rad, rtol=0.1)
@@ -106,7 +108,9 @@ def test_reported_velocity_is_the_derivative_of_the_reported_position_without_it
     m = _model(cases["GNSS"], 1)
     i, j = 100, 1300
     si, sj = m.sample(i), m.sample(j)
-    slope = ((sj.p_err_ned_m - m.p_white_ned_m[j]) - (si.p_err_ned_m - m.p_white_ned_m[i])) / (T_GRID_S[j] - T_GRID_S[i])
+    slope = ((sj.p_err_ned_m - m.p_white_ned_m[j]) - (si.p_err_ned_m - m.p_white_ned_m[i])) / (
+        T_GRID_S[j] - T_GRID_S[i]
+    )
     np.testing.assert_allclose(slope, si.v_err_ned_mps, atol=1e-12)
     np.testing.assert_array_equal(si.v_err_ned_mps, sj.v_err_ned_mps)
 
@@ -115,9 +119,18 @@ def test_reported_velocity_is_the_derivative_of_the_reported_position_without_it
 
 
 def _truth_state():
-    return dict(time_boot_us=2_000_000, lat_deg=32.001, lon_deg=118.802, alt_amsl_m=60.0, alt_rel_m=60.0,
-                v_ned_mps=np.array([0.0, 4.0, 0.0]), q_ned_from_body=quat_from_euler(0.02, -0.05, 1.0),
-                body_rates_radps=np.zeros(3), heading_rad=1.0, q_gimbal=quat_from_euler(0.0, -0.3, 0.7))
+    return dict(
+        time_boot_us=2_000_000,
+        lat_deg=32.001,
+        lon_deg=118.802,
+        alt_amsl_m=60.0,
+        alt_rel_m=60.0,
+        v_ned_mps=np.array([0.0, 4.0, 0.0]),
+        q_ned_from_body=quat_from_euler(0.02, -0.05, 1.0),
+        body_rates_radps=np.zeros(3),
+        heading_rad=1.0,
+        q_gimbal=quat_from_euler(0.0, -0.3, 0.7),
+    )
 
 
 def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitudes():
@@ -125,8 +138,9 @@ def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitud
     st = _truth_state()
     rep = reported_state(st, err)
     origin = GeodeticOrigin(st["lat_deg"], st["lon_deg"], st["alt_amsl_m"])
-    np.testing.assert_allclose(ned_from_geodetic(rep["lat_deg"], rep["lon_deg"], rep["alt_amsl_m"], origin),
-                               err.p_err_ned_m, atol=ATOL_M)
+    np.testing.assert_allclose(
+        ned_from_geodetic(rep["lat_deg"], rep["lon_deg"], rep["alt_amsl_m"], origin), err.p_err_ned_m, atol=ATOL_M
+    )
     assert rep["alt_rel_m"] - st["alt_rel_m"] == pytest.approx(-0.4, abs=1e-12)
     np.testing.assert_allclose(rep["v_ned_mps"], st["v_ned_mps"] + err.v_err_ned_mps, atol=1e-15)
     for key in ("q_ned_from_body", "q_gimbal"):  # R_rep R_true^T = Exp(phi), in NED
@@ -138,8 +152,12 @@ def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitud
 
 
 @settings(max_examples=60, deadline=None)
-@given(lat=st.floats(-80, 80), lon=st.floats(-180, 179.999), alt=st.floats(-100, 5000),
-       d=st.lists(st.floats(-5, 5), min_size=3, max_size=3))
+@given(
+    lat=st.floats(-80, 80),
+    lon=st.floats(-180, 179.999),
+    alt=st.floats(-100, 5000),
+    d=st.lists(st.floats(-5, 5), min_size=3, max_size=3),
+)
 def test_offset_geodetic_is_the_ned_offset_at_the_point(lat, lon, alt, d):
     lat2, lon2, alt2 = offset_geodetic(lat, lon, alt, d)
     assert -180.0 <= lon2 < 180.0
@@ -160,12 +178,18 @@ def test_simcore_truth_rows_record_the_injected_errors_and_stay_exact():
         i = k * rtk.ticks_per_frame
         row, row0 = rtk.frame(k).truth, exact.frame(k).truth
         err = rtk.nav_error(i)
-        np.testing.assert_array_equal([row.nav_att_err_n_rad, row.nav_att_err_e_rad, row.nav_att_err_d_rad], err.att_err_ned_rad)
+        np.testing.assert_array_equal(
+            [row.nav_att_err_n_rad, row.nav_att_err_e_rad, row.nav_att_err_d_rad], err.att_err_ned_rad
+        )
         np.testing.assert_array_equal([row.nav_p_err_n_m, row.nav_p_err_e_m, row.nav_p_err_d_m], err.p_err_ned_m)
         assert np.linalg.norm(err.att_err_ned_rad) > 0
         # the truth itself does not depend on the navigation errors
-        assert (row.observer_lat_deg, row.cam_n_m, row.q_ned_from_cam_w, row.target_u_px) == \
-            (row0.observer_lat_deg, row0.cam_n_m, row0.q_ned_from_cam_w, row0.target_u_px)
+        assert (row.observer_lat_deg, row.cam_n_m, row.q_ned_from_cam_w, row.target_u_px) == (
+            row0.observer_lat_deg,
+            row0.cam_n_m,
+            row0.q_ned_from_cam_w,
+            row0.target_u_px,
+        )
         assert row0.nav_att_err_n_rad == row0.nav_p_err_d_m == 0.0
 
 
@@ -217,9 +241,18 @@ class _Core:
 
         t = i / self.tick_rate_hz
         lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
-        return dict(time_boot_us=1_000_000 + round(t * 1e6), lat_deg=float(lat), lon_deg=float(lon), alt_amsl_m=float(alt),
-                    alt_rel_m=float(alt), v_ned_mps=np.array([10.0, 0.0, 0.0]), q_ned_from_body=np.array([1.0, 0, 0, 0]),
-                    body_rates_radps=np.zeros(3), heading_rad=0.0, q_gimbal=None)
+        return dict(
+            time_boot_us=1_000_000 + round(t * 1e6),
+            lat_deg=float(lat),
+            lon_deg=float(lon),
+            alt_amsl_m=float(alt),
+            alt_rel_m=float(alt),
+            v_ned_mps=np.array([10.0, 0.0, 0.0]),
+            q_ned_from_body=np.array([1.0, 0, 0, 0]),
+            body_rates_radps=np.zeros(3),
+            heading_rad=0.0,
+            q_gimbal=None,
+        )
 
     def nav_error(self, i: int):
         return self.model.sample(i)
@@ -247,14 +280,20 @@ def test_bad_nav_noise_name_is_one_line_exit_2(capsys):
     assert cli.main(["run", "--nav-noise", "rtk", "--no-render"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1
-    assert "noise_cases.yaml: --nav-noise: expected one of px0.3, RTK, GNSS, exact, got 'rtk'; did you mean 'RTK'?" in err[0]
+    assert (
+        "noise_cases.yaml: --nav-noise: expected one of px0.3, RTK, GNSS, exact, got 'rtk'; did you mean 'RTK'?"
+        in err[0]
+    )
     with pytest.raises(ConfigError, match=r"noise_cases.yaml: --nav-noise: expected one of .*got 'nope'"):
         EvalOptions(nav_noise="nope")
 
 
 def test_scenario_nav_noise_key_is_validated():
-    doc = {"name": "x", "observer": {"motion": {"model": "cubic", "p0_ned_m": [0, 0, -60]}},
-           "target": {"motion": {"model": "cubic", "p0_ned_m": [100, 0, -60]}}}
+    doc = {
+        "name": "x",
+        "observer": {"motion": {"model": "cubic", "p0_ned_m": [0, 0, -60]}},
+        "target": {"motion": {"model": "cubic", "p0_ned_m": [100, 0, -60]}},
+    }
     assert scenario_from_dict(doc).nav_noise == "RTK"
     assert scenario_from_dict({**doc, "nav_noise": "GNSS"}).nav_noise == "GNSS"
     with pytest.raises(ScenarioError, match=r"^<dict>: nav_noise: expected one of px0.3, RTK, GNSS, exact, got 'gps'"):

@@ -30,9 +30,12 @@ def test_onboard_sim_camera_is_the_reference_scenarios_camera():
     for name in ("P1", "P2", "P3"):
         want = onboard_config_for(load_scenario(scenarios_dir() / f"{name}.yaml"), shipped).camera
         K, K0 = sim.pinhole(), want.pinhole()
-        assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px, K.height_px) == \
-            pytest.approx((K0.fx_px, K0.fy_px, K0.cx_px, K0.cy_px, K0.width_px, K0.height_px), abs=1e-9), name
+        assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px, K.height_px) == pytest.approx(
+            (K0.fx_px, K0.fy_px, K0.cx_px, K0.cy_px, K0.width_px, K0.height_px), abs=1e-9
+        ), name
         m, m0 = sim.camera_mount(), want.camera_mount()
         np.testing.assert_allclose(m.lever_arm_frd_m, m0.lever_arm_frd_m, atol=1e-12, err_msg=name)
-        np.testing.assert_allclose(np.abs(np.dot(m.q_body_from_mount, m0.q_body_from_mount)), 1.0, atol=1e-12, err_msg=name)
+        np.testing.assert_allclose(
+            np.abs(np.dot(m.q_body_from_mount, m0.q_body_from_mount)), 1.0, atol=1e-12, err_msg=name
+        )
         assert m.gimballed == m0.gimballed is True, name

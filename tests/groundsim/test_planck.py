@@ -39,6 +39,7 @@ DERIV_RTOL = 1e-6  # analytic dL/dT vs a central difference of step 1e-4 T
 
 def planck_quad(T_k: float, lo_um: float, hi_um: float) -> float:
     """Band exitance by scipy.integrate.quad of Planck's spectral exitance in wavelength (W m^-2)."""
+
     def spectral(lam_m: float) -> float:
         x = C2_M_K / (lam_m * T_k)
         return 0.0 if x > 700.0 else C1_W_M2 / (lam_m**5 * math.expm1(x))
@@ -79,9 +80,7 @@ def test_band_exitance_matches_scipy_quad(T_k, lo_um, width_um):
 @pytest.mark.parametrize("T_k", [243.15, 300.0, 323.15, 1000.0])
 @pytest.mark.parametrize("band_um", [(7.5, 13.5), (8.0, 14.0), (3.0, 5.0)])
 def test_band_exitance_matches_fractional_function_series(T_k, band_um):
-    expected = sigma_from_constants() * T_k**4 * (
-        fraction_below(band_um[1] * T_k) - fraction_below(band_um[0] * T_k)
-    )
+    expected = sigma_from_constants() * T_k**4 * (fraction_below(band_um[1] * T_k) - fraction_below(band_um[0] * T_k))
     assert float(band_exitance(T_k, band_um)) == pytest.approx(expected, rel=SERIES_RTOL)
 
 

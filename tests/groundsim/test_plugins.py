@@ -9,8 +9,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from groundsim.evaluation.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
 from groundsim.app.cli import main as cli_main
+from groundsim.evaluation.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
 from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
 from groundsim.world.scenario import load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
@@ -43,7 +43,8 @@ def test_each_registered_estimator_runs_a_short_eval(name):
 
 def _write_outside_package(root, dist="outside_est-0.1"):
     """A tiny out-of-tree distribution: a module and a dist-info with an irtrack.estimators entry point."""
-    (root / "outside_est.py").write_text(textwrap.dedent('''
+    (root / "outside_est.py").write_text(
+        textwrap.dedent('''
         import numpy as np
 
         class Est:
@@ -69,7 +70,8 @@ def _write_outside_package(root, dist="outside_est-0.1"):
                 self.cov_p_ned_m2 = self.cov_v_ned_m2ps2 = 150.0**2 * np.eye(3)
                 self.observable, self.range_m, self.range_sigma_ratio = False, 150.0, 1.0
                 self.window_frames, self.model = n, "fixed150"
-    '''))
+    ''')
+    )
     info = root / f"{dist}.dist-info"
     info.mkdir()
     info.joinpath("METADATA").write_text("Metadata-Version: 2.1\nName: outside-est\nVersion: 0.1\n")

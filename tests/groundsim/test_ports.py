@@ -31,6 +31,9 @@ def test_a_tcp_port_in_use_is_not_handed_out():
 def test_an_rtp_port_is_even_and_its_rtcp_neighbour_is_free_too():
     port = free_rtp_port()
     assert port % 2 == 0 and 1024 <= port < 65535  # RFC 3550 section 11: RTP even, RTCP the next odd
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtp, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtcp:
+    with (
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtp,
+        socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rtcp,
+    ):
         rtp.bind(("127.0.0.1", port))
         rtcp.bind(("127.0.0.1", port + 1))

@@ -60,10 +60,11 @@ def blob_centroid(img, bg, uv, threshold=None) -> tuple[float, float, float]:
     """Intensity-weighted centroid of (img - bg) in a window around uv; returns (u, v, peak)."""
     u, v = uv
     i0, j0 = int(v) - WINDOW_PX, int(u) - WINDOW_PX
-    d = img[i0:i0 + 2 * WINDOW_PX + 1, j0:j0 + 2 * WINDOW_PX + 1].astype(float) - \
-        bg[i0:i0 + 2 * WINDOW_PX + 1, j0:j0 + 2 * WINDOW_PX + 1].astype(float)
+    d = img[i0 : i0 + 2 * WINDOW_PX + 1, j0 : j0 + 2 * WINDOW_PX + 1].astype(float) - bg[
+        i0 : i0 + 2 * WINDOW_PX + 1, j0 : j0 + 2 * WINDOW_PX + 1
+    ].astype(float)
     w = d if threshold is None else np.where(d >= threshold, d, 0.0)
-    ii, jj = np.mgrid[i0:i0 + d.shape[0], j0:j0 + d.shape[1]]
+    ii, jj = np.mgrid[i0 : i0 + d.shape[0], j0 : j0 + d.shape[1]]
     s = w.sum()
     assert s > 0, "target not rendered"
     return float((w * (jj + 0.5)).sum() / s), float((w * (ii + 0.5)).sum() / s), float(d.max())
@@ -172,7 +173,9 @@ def test_centroid_with_lens_distortion():
         p_t = target_at(intr, CAMERA_P_NED_M, R, u, v, 120.0)
         uv = truth_pixel(intr, CAMERA_P_NED_M, R, p_t)
         assert uv == pytest.approx((u, v), abs=1e-6)  # bearing_cam_from_pixel and project agree
-        cu, cv, _ = blob_centroid(r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)), r.render(CAMERA_P_NED_M, R, None, None), uv)
+        cu, cv, _ = blob_centroid(
+            r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)), r.render(CAMERA_P_NED_M, R, None, None), uv
+        )
         assert math.hypot(cu - u, cv - v) < SYMMETRIC_CENTROID_TOL_PX
 
 
@@ -200,8 +203,10 @@ def test_ground_grey_value_through_the_atmosphere():
     range_km = height_m / math.sin(math.radians(30.0)) / 1000.0
     tau = math.exp(-s.extinction_per_km * range_km)
     L_sky_mirror = band_radiance(s.sky_horizon_k + (s.sky_zenith_k - s.sky_horizon_k) * 0.5, s.band_um)
-    L = tau * (s.ground_emissivity * band_radiance(s.ground_temperature_k, s.band_um)
-               + (1 - s.ground_emissivity) * L_sky_mirror) + (1 - tau) * band_radiance(s.air_temperature_k, s.band_um)
+    L = tau * (
+        s.ground_emissivity * band_radiance(s.ground_temperature_k, s.band_um)
+        + (1 - s.ground_emissivity) * L_sky_mirror
+    ) + (1 - tau) * band_radiance(s.air_temperature_k, s.band_um)
     # the 2 x 2 centre pixels straddle 30 deg by +-0.04 deg: the ground changes by < 1 level there
     assert float(img[255:257, 319:321].mean()) == pytest.approx(_grey16(s, L), abs=SKY_GROUND_ATOL_GREY16 + 1.0)
     # and the ground level shifts the scene: a camera 10x higher sees more air, nearer L(T_air)
@@ -213,8 +218,14 @@ def test_ground_grey_value_through_the_atmosphere():
 @pytest.fixture(scope="module")
 def r16_flat():
     """Uniform 260 K sky over 300 K ground in vacuum: a pure (smoothed) step at the horizon."""
-    s = IrSettings(netd_k=0.0, encoding="mono16", sky_zenith_k=260.0, sky_horizon_k=260.0,
-                   ground_temperature_k=300.0, extinction_per_km=0.0)
+    s = IrSettings(
+        netd_k=0.0,
+        encoding="mono16",
+        sky_zenith_k=260.0,
+        sky_horizon_k=260.0,
+        ground_temperature_k=300.0,
+        extinction_per_km=0.0,
+    )
     return IrRenderer(INTR, s)
 
 
@@ -226,7 +237,7 @@ def test_horizon_row_follows_camera_pitch(r16_flat, pitch_deg):
     k = int(v_expected)
     mid = 0.5 * (col[k - 6] + col[k + 6])
     rows = np.arange(k - 5, k + 6)
-    vals = col[k - 5:k + 6]
+    vals = col[k - 5 : k + 6]
     # the step's crossing of the mid level, linearly interpolated between pixel centres
     n = int(np.flatnonzero(np.diff(np.sign(vals - mid)))[0])
     v_cross = rows[n] + 0.5 + (mid - vals[n]) / (vals[n + 1] - vals[n])
@@ -244,7 +255,7 @@ def test_horizon_tilts_with_roll(r16_flat):
         k = int(ve)
         mid = 0.5 * (col[k - 8] + col[k + 8])
         rows = np.arange(k - 7, k + 8)
-        vals = col[k - 7:k + 8]
+        vals = col[k - 7 : k + 8]
         n = int(np.flatnonzero(np.diff(np.sign(vals - mid)))[0])
         v_cross = rows[n] + 0.5 + (mid - vals[n]) / (vals[n + 1] - vals[n])
         assert v_cross == pytest.approx(ve, abs=2 * HORIZON_ATOL_PX)  # the pixel box of a slanted edge
@@ -276,8 +287,12 @@ def test_target_flux_and_atmospheric_transmission(range_m):
     """Sum of (target - background) over the image = silhouette area (px^2) x (target - sky) grey.
     A black sphere in front of the sky, seen through the atmosphere (tau = exp(-k r))."""
     rho_m = 0.3
-    s = IrSettings(netd_k=0.0, encoding="mono16", extinction_per_km=1.0,
-                   target_parts=(TargetPart("ball", "ellipsoid", (0.0, 0.0, 0.0), (rho_m,) * 3, 318.0, 1.0),))
+    s = IrSettings(
+        netd_k=0.0,
+        encoding="mono16",
+        extinction_per_km=1.0,
+        target_parts=(TargetPart("ball", "ellipsoid", (0.0, 0.0, 0.0), (rho_m,) * 3, 318.0, 1.0),),
+    )
     r = IrRenderer(INTR, s)
     R = R_cam(pitch_deg=30.0)
     p_t = CAMERA_P_NED_M + R[:, 2] * range_m  # on the optical axis: sin(elevation) = 0.5
@@ -306,7 +321,9 @@ def test_noise_level_and_independence_between_frames():
     assert 30.0 < sigma < 50.0
     assert float(np.std(f1 - f2)) / math.sqrt(2) == pytest.approx(sigma, rel=NOISE_RTOL)
     assert abs(float(np.corrcoef((f1 - f1.mean()).ravel(), (f2 - f2.mean()).ravel())[0, 1])) < 0.03
-    clean = IrRenderer(INTR, replace(s, netd_k=0.0)).render(CAMERA_P_NED_M, R, None, None).astype(float)[200:312, 200:440]
+    clean = (
+        IrRenderer(INTR, replace(s, netd_k=0.0)).render(CAMERA_P_NED_M, R, None, None).astype(float)[200:312, 200:440]
+    )
     assert abs(float((f1 - clean).mean())) < 1.0  # zero-mean
 
 
@@ -331,7 +348,9 @@ def test_no_noise_frames_repeat_exactly():
     r = IrRenderer(INTR, IrSettings(netd_k=0.0), seed=0)
     R = R_cam(pitch_deg=2.0)
     p_t = target_at(INTR, CAMERA_P_NED_M, R, 200.0, 200.0, 80.0)
-    np.testing.assert_array_equal(r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)), r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)))
+    np.testing.assert_array_equal(
+        r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)), r.render(CAMERA_P_NED_M, R, p_t, np.eye(3))
+    )
 
 
 @pytest.mark.parametrize("encoding, dtype", [("mono8", np.uint8), ("mono16", np.uint16)])
@@ -420,8 +439,13 @@ def test_camera_below_ground_is_rendered_at_ground_level():
     ],
 )
 def test_bad_inputs_name_the_field(r16_default, kwargs, field):
-    args = dict(p_cam_ned_m=CAMERA_P_NED_M, R_ned_from_cam=R_cam(), p_target_ned_m=CAMERA_P_NED_M + [50.0, 0.0, 0.0],
-                R_ned_from_target_body=np.eye(3), altitude_ground_d_m=0.0)
+    args = dict(
+        p_cam_ned_m=CAMERA_P_NED_M,
+        R_ned_from_cam=R_cam(),
+        p_target_ned_m=CAMERA_P_NED_M + [50.0, 0.0, 0.0],
+        R_ned_from_target_body=np.eye(3),
+        altitude_ground_d_m=0.0,
+    )
     args.update(kwargs)
     with pytest.raises(InputError, match=field):
         r16_default.render(**args)

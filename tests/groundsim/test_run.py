@@ -23,10 +23,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.app import cli
-from groundsim.io.mavlink_vehicle import open_mavlink2
-from groundsim.world.nav_errors import offset_geodetic
 from groundsim.app.run import (
     BOOT_START_US,
     JitterStats,
@@ -38,13 +35,16 @@ from groundsim.app.run import (
     run,
     run_loop,
 )
+from groundsim.io.mavlink_vehicle import open_mavlink2
+from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.world.nav_errors import offset_geodetic
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.truth import REQUIRED_COLUMNS, TRUTH_COLUMNS, TruthRow, TruthWriter, read_truth_csv, truth_row
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
+    Q_MOUNT_FROM_CAM,
     GeodeticOrigin,
     PinholeIntrinsics,
-    Q_MOUNT_FROM_CAM,
     quat_multiply,
     rotmat_from_quat,
     rotmat_from_rotvec,
@@ -80,8 +80,14 @@ def _env() -> dict:
 
 
 def _groundsim(*args: str, timeout: float = SHORT_TIMEOUT_S) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "groundsim", *args], cwd=REPO, env=_env(), capture_output=True,
-                          text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "groundsim", *args],
+        cwd=REPO,
+        env=_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
@@ -104,9 +110,9 @@ def _blob_centroid_px(img: np.ndarray, near_uv=None, window: int = 7) -> tuple[f
     i, j = np.unravel_index(int(np.argmax(hp)), hp.shape)
     h = window // 2
     i0, j0 = max(0, i - h), max(0, j - h)
-    w = hp[i0:i + h + 1, j0:j + h + 1]
+    w = hp[i0 : i + h + 1, j0 : j + h + 1]
     w = np.where(w > 0.3 * w.max(), w, 0.0)
-    ii, jj = np.mgrid[i0:i0 + w.shape[0], j0:j0 + w.shape[1]]
+    ii, jj = np.mgrid[i0 : i0 + w.shape[0], j0 : j0 + w.shape[1]]
     return float((w * (jj + 0.5)).sum() / w.sum()), float((w * (ii + 0.5)).sum() / w.sum())
 
 
@@ -142,9 +148,22 @@ def e2e(tmp_path_factory):
     reader = threading.Thread(target=drain, daemon=True)
     reader.start()
     try:
-        proc = _groundsim("run", "--scenario", str(P1), "--duration", str(E2E_DURATION_S), "--rate", "max",
-                          "--mavlink", f"udpout:127.0.0.1:{mport}", "--zenoh-connect", endpoint,
-                          "--truth", str(truth_path), timeout=PROCESS_TIMEOUT_S)
+        proc = _groundsim(
+            "run",
+            "--scenario",
+            str(P1),
+            "--duration",
+            str(E2E_DURATION_S),
+            "--rate",
+            "max",
+            "--mavlink",
+            f"udpout:127.0.0.1:{mport}",
+            "--zenoh-connect",
+            endpoint,
+            "--truth",
+            str(truth_path),
+            timeout=PROCESS_TIMEOUT_S,
+        )
         deadline = time.monotonic() + DELIVERY_WAIT_S
         while time.monotonic() < deadline:
             with lock:
@@ -208,7 +227,9 @@ def test_truth_csv_has_header_and_one_row_per_frame(e2e):
     assert np.all(truth["target_visible"] == 1)  # P1's gimbal keeps the target near the centre
     # the target, 5 m/s, over 2 s: geodetic and NED columns agree on its displacement
     d_n_m = truth["target_n_m"][-1] - truth["target_n_m"][0]
-    d_lat_m = (truth["target_lat_deg"][-1] - truth["target_lat_deg"][0]) * math.pi / 180 * 6.3555e6  # N radius at 32 deg
+    d_lat_m = (
+        (truth["target_lat_deg"][-1] - truth["target_lat_deg"][0]) * math.pi / 180 * 6.3555e6
+    )  # N radius at 32 deg
     assert abs(d_n_m - d_lat_m) < 0.05
     assert 7.0 < abs(d_n_m) < 9.0  # -4 m/s north for 59/30 s
 
@@ -238,7 +259,6 @@ def test_mavlink_position_and_attitude_streams(e2e):
         by_type.setdefault(m.get_type(), []).append(m)
     assert {"HEARTBEAT", "ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "GIMBAL_DEVICE_ATTITUDE_STATUS"} <= set(by_type)
     assert all(m.get_srcSystem() == 1 for m in msgs)
-    t_first, t_last = int(truth["time_boot_us"][0]), int(truth["time_boot_us"][-1])
     # #31 at 50 Hz of sim time: ~100 samples in 2 s, unit quaternions, increasing stamps
     att = by_type["ATTITUDE_QUATERNION"]
     assert 90 <= len(att) <= 101
@@ -257,8 +277,9 @@ def test_mavlink_position_and_attitude_streams(e2e):
         if i is None:
             continue
         err = [truth[f"nav_p_err_{c}_m"][i] for c in "ned"]
-        lat, lon, alt = offset_geodetic(truth["observer_lat_deg"][i], truth["observer_lon_deg"][i],
-                                        truth["observer_alt_m"][i], err)
+        lat, lon, alt = offset_geodetic(
+            truth["observer_lat_deg"][i], truth["observer_lon_deg"][i], truth["observer_alt_m"][i], err
+        )
         assert abs(m.lat * 1e-7 - lat) < LATLON_TOL_DEG and abs(m.lon * 1e-7 - lon) < LATLON_TOL_DEG
         assert abs(m.alt * 1e-3 - alt) < ALT_TOL_M and abs(m.relative_alt * 1e-3 - alt) < ALT_TOL_M  # origin alt 0
         moved += 0.0 < np.linalg.norm(err) < 0.2  # RTK: 2 cm white per axis
@@ -283,7 +304,9 @@ def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
         q_true = np.array([truth[f"q_ned_from_cam_{c}"][i] for c in "wxyz"])
         phi = np.array([truth[f"nav_att_err_{c}_rad"][i] for c in "ned"])
         assert 0 < np.linalg.norm(phi) < 0.02  # RTK: 0.1 deg bias + 0.05 deg white per axis
-        np.testing.assert_allclose(rotmat_from_quat(q_nc), rotmat_from_rotvec(phi) @ rotmat_from_quat(q_true), atol=1e-5)
+        np.testing.assert_allclose(
+            rotmat_from_quat(q_nc), rotmat_from_rotvec(phi) @ rotmat_from_quat(q_true), atol=1e-5
+        )
         matched += 1
     assert matched >= 6  # every 100 ms falls on a frame: 0, 100, ..., 1900 ms
 
@@ -296,10 +319,27 @@ def test_gimbal_status_is_the_camera_attitude_in_ned(e2e):
 def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
     truth_path = tmp_path / "truth.csv"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "groundsim", "run", "--scenario", str(P1), "--rate", "realtime",
-         "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}", "--truth", str(truth_path),
-         "--log-level", "warning"],
-        cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        [
+            sys.executable,
+            "-m",
+            "groundsim",
+            "run",
+            "--scenario",
+            str(P1),
+            "--rate",
+            "realtime",
+            "--mavlink",
+            f"udpout:127.0.0.1:{free_udp_port()}",
+            "--truth",
+            str(truth_path),
+            "--log-level",
+            "warning",
+        ],
+        cwd=REPO,
+        env=_env(),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline = time.monotonic() + SHORT_TIMEOUT_S
@@ -363,26 +403,64 @@ def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
         s.bind(("127.0.0.1", 0))
         s.listen()
         port = s.getsockname()[1]
-        _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
-                                       "--zenoh-listen", f"tcp/127.0.0.1:{port}",
-                                       "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
-                              "port already in use")
+        _assert_main_one_line(
+            capsys,
+            [
+                "run",
+                "--rate",
+                "max",
+                "--duration",
+                "0.1",
+                "--log-level",
+                "error",
+                "--zenoh-listen",
+                f"tcp/127.0.0.1:{port}",
+                "--mavlink",
+                f"udpout:127.0.0.1:{free_udp_port()}",
+            ],
+            "port already in use",
+        )
 
 
 @pytest.mark.integration
 def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
-    _assert_main_one_line(capsys, ["run", "--rate", "max", "--duration", "0.1", "--log-level", "error",
-                                   "--zenoh-connect", f"tcp/127.0.0.1:{free_tcp_port()}", "--zenoh-connect-timeout", "0.5",
-                                   "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"],
-                          "no peer reachable")
+    _assert_main_one_line(
+        capsys,
+        [
+            "run",
+            "--rate",
+            "max",
+            "--duration",
+            "0.1",
+            "--log-level",
+            "error",
+            "--zenoh-connect",
+            f"tcp/127.0.0.1:{free_tcp_port()}",
+            "--zenoh-connect-timeout",
+            "0.5",
+            "--mavlink",
+            f"udpout:127.0.0.1:{free_udp_port()}",
+        ],
+        "no peer reachable",
+    )
 
 
 @pytest.mark.integration
 def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         s.bind(("127.0.0.1", 0))
-        rc, err = _main_err(capsys, "run", "--scenario", str(P1), "--rate", "max",
-                            "--mavlink", f"udpin:127.0.0.1:{s.getsockname()[1]}", "--log-level", "error")
+        rc, err = _main_err(
+            capsys,
+            "run",
+            "--scenario",
+            str(P1),
+            "--rate",
+            "max",
+            "--mavlink",
+            f"udpin:127.0.0.1:{s.getsockname()[1]}",
+            "--log-level",
+            "error",
+        )
     assert rc == 2 and err.count("\n") == 1 and "already in use" in err
     for argv, needle in (
         (["run", "--rate", "fast"], "--rate"),
@@ -411,12 +489,31 @@ def test_same_seed_same_truth_and_chunking_does_not_change_it(tmp_path, capsys):
     """Same seed -> byte-identical truth, whether flown in 1 s chunks (--rate max) or 0.1 s chunks;
     another seed of a disturbed scenario -> another target path."""
     p1g = scenarios_dir() / "P1g.yaml"
-    common = ["--scenario", str(p1g), "--duration", "1", "--rate", "max", "--no-render", "--log-level", "warning",
-              "--mavlink", f"udpout:127.0.0.1:{free_udp_port()}"]
+    common = [
+        "--scenario",
+        str(p1g),
+        "--duration",
+        "1",
+        "--rate",
+        "max",
+        "--no-render",
+        "--log-level",
+        "warning",
+        "--mavlink",
+        f"udpout:127.0.0.1:{free_udp_port()}",
+    ]
     a, b, c = tmp_path / "a.csv", tmp_path / "b.csv", tmp_path / "c.csv"
     assert cli.main(["run", *common, "--seed", "3", "--truth", str(a)]) == 0
-    config = RunConfig(load_scenario(p1g), run_seed=3, duration_s=1.0, rate=RateSpec.parse("max"), render=False,
-                       mavlink=f"udpout:127.0.0.1:{free_udp_port()}", truth_path=b, flight_chunk_s=0.1)
+    config = RunConfig(
+        load_scenario(p1g),
+        run_seed=3,
+        duration_s=1.0,
+        rate=RateSpec.parse("max"),
+        render=False,
+        mavlink=f"udpout:127.0.0.1:{free_udp_port()}",
+        truth_path=b,
+        flight_chunk_s=0.1,
+    )
     assert run(config).frames == 30
     assert cli.main(["run", *common, "--seed", "4", "--truth", str(c)]) == 0
     assert a.read_bytes() == b.read_bytes()
@@ -489,8 +586,10 @@ def test_loop_stops_when_asked_and_reports_it():
 # --------------------------------------------------------------------------- pure pieces
 
 
-@pytest.mark.parametrize("text, factor, paced", [("realtime", 1.0, True), ("max", None, False), ("2", 2.0, True),
-                                                 ("0.5x", 0.5, True), ("MAX", None, False)])
+@pytest.mark.parametrize(
+    "text, factor, paced",
+    [("realtime", 1.0, True), ("max", None, False), ("2", 2.0, True), ("0.5x", 0.5, True), ("MAX", None, False)],
+)
 def test_rate_parse(text, factor, paced):
     r = RateSpec.parse(text)
     assert r.factor == factor and r.paced is paced
@@ -546,8 +645,12 @@ def test_frame_count_matches_scenario():
 def test_run_config_validates():
     sc = load_scenario(P1)
     assert RunConfig(sc).duration_s == 10.0
-    for kw, needle in (({"duration_s": 10.5}, "--duration"), ({"duration_s": 0.0}, "--duration"),
-                       ({"run_seed": -1}, "--seed"), ({"run_seed": True}, "--seed")):
+    for kw, needle in (
+        ({"duration_s": 10.5}, "--duration"),
+        ({"duration_s": 0.0}, "--duration"),
+        ({"run_seed": -1}, "--seed"),
+        ({"run_seed": True}, "--seed"),
+    ):
         with pytest.raises(ConfigError, match=needle):
             RunConfig(sc, **kw)
 
@@ -588,8 +691,21 @@ def test_truth_row_rejects_bad_fields():
 def test_truth_writer_round_trip_and_flush(tmp_path):
     path = tmp_path / "sub" / "t.csv"
     p_cam = np.array([0.0, 0.0, -50.0])
-    rows = [truth_row(k, 1_000_000 + 33_333 * k, k / 30, ORIGIN, K, p_cam + [100.0, 0.1 * k, 0.0], [0, 3.0, 0],
-                      p_cam, p_cam, Q_NORTH) for k in range(3)]
+    rows = [
+        truth_row(
+            k,
+            1_000_000 + 33_333 * k,
+            k / 30,
+            ORIGIN,
+            K,
+            p_cam + [100.0, 0.1 * k, 0.0],
+            [0, 3.0, 0],
+            p_cam,
+            p_cam,
+            Q_NORTH,
+        )
+        for k in range(3)
+    ]
     w = TruthWriter(path)
     assert path.read_text() == ",".join(TRUTH_COLUMNS) + "\n"  # header flushed at open
     w.write(rows[0])
@@ -707,7 +823,11 @@ _finite = st.floats(allow_nan=False, allow_infinity=False, width=64)
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.lists(st.tuples(st.integers(0, 2**63 - 1), _finite, st.one_of(_finite, st.just(math.nan))), min_size=1, max_size=5))
+@given(
+    st.lists(
+        st.tuples(st.integers(0, 2**63 - 1), _finite, st.one_of(_finite, st.just(math.nan))), min_size=1, max_size=5
+    )
+)
 def test_truth_csv_round_trips_any_values_exactly(tmp_path_factory, rows):
     path = tmp_path_factory.mktemp("rt") / "t.csv"
     written = []

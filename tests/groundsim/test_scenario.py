@@ -43,8 +43,12 @@ ATOL_MPS = 1e-9
 RANGE_TOL_M = 1.0  # REFERENCE_SCENARIOS.md quotes ranges to the metre
 REFERENCE = ("P1", "P2", "P3", "P1g", "P2g", "P3g", "H1", "H2", "H3")
 DOC_RANGES_M = {
-    "P1": (100, 126), "P2": (160, 180), "P3": (117, 154),
-    "H1": (161, 194), "H2": (493, 512), "H3": (128, 163),
+    "P1": (100, 126),
+    "P2": (160, 180),
+    "P3": (117, 154),
+    "H1": (161, 194),
+    "H2": (493, 512),
+    "H3": (128, 163),
 }
 
 
@@ -125,6 +129,7 @@ def _cubic_enu(p0, v0=(0, 0, 0), a0=(0, 0, 0), j=(0, 0, 0)):
     def f(t):
         t = t[:, None]
         return np.add(p0, np.multiply(v0, t) + np.multiply(a0, t**2 / 2) + np.multiply(j, t**3 / 6))
+
     return f
 
 
@@ -176,8 +181,12 @@ def test_g_variants_share_geometry_and_add_the_reference_singer(shipped):
         g = shipped[base + "g"]
         assert g.target.disturbance == SingerDisturbance(0.10, 0.05, 2.0)
         assert g.target.disturbance.sigma_ned_mps2 == (0.10, 0.10, 0.05)
-        np.testing.assert_array_equal(g.target.base_motion.state(t).p_ned_m, shipped[base].target.motion.state(t).p_ned_m)
-        np.testing.assert_array_equal(g.observer.motion.state(t).p_ned_m, shipped[base].observer.motion.state(t).p_ned_m)
+        np.testing.assert_array_equal(
+            g.target.base_motion.state(t).p_ned_m, shipped[base].target.motion.state(t).p_ned_m
+        )
+        np.testing.assert_array_equal(
+            g.observer.motion.state(t).p_ned_m, shipped[base].observer.motion.state(t).p_ned_m
+        )
         assert isinstance(g.target.motion, Perturbed)
 
 
@@ -202,7 +211,12 @@ def test_disturbance_realisation_is_deterministic_per_run_seed(shipped):
 
 def test_scenario_seed_changes_the_realisation():
     d = p1_dict()
-    d["target"]["disturbance"] = {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.05, "tau_s": 2.0}
+    d["target"]["disturbance"] = {
+        "model": "singer",
+        "sigma_horizontal_mps2": 0.1,
+        "sigma_vertical_mps2": 0.05,
+        "tau_s": 2.0,
+    }
     a = scenario_from_dict(d)
     d["seed"] = 99
     b = scenario_from_dict(d)
@@ -268,8 +282,14 @@ def test_partial_intrinsics_default_the_principal_point_to_the_centre():
     d = minimal()
     d["camera"] = {"intrinsics": {"width_px": 320, "height_px": 256, "fx_px": 400}}
     k = scenario_from_dict(d).camera.intrinsics
-    assert (k.width_px, k.height_px, k.cx_px, k.cy_px, k.fx_px, k.fy_px) == (320, 256, 160.0, 128.0, 400.0,
-                                                                             PinholeIntrinsics.vue_pro_640().fy_px)
+    assert (k.width_px, k.height_px, k.cx_px, k.cy_px, k.fx_px, k.fy_px) == (
+        320,
+        256,
+        160.0,
+        128.0,
+        400.0,
+        PinholeIntrinsics.vue_pro_640().fy_px,
+    )
 
 
 @pytest.mark.parametrize(
@@ -277,12 +297,24 @@ def test_partial_intrinsics_default_the_principal_point_to_the_centre():
     [
         ({"model": "uniform_acceleration", "p0_ned_m": [1, 2, -3], "a0_ned_mps2": [2, 0, 0]}, Cubic, 2.0, (5, 2, -3)),
         ({"model": "cubic", "p0_ned_m": [0, 0, -50], "j_ned_mps3": [6, 0, 0]}, Cubic, 1.0, (1, 0, -50)),
-        ({"model": "circular", "center_ned_m": [100, 0, -50], "radius_m": 10, "azimuth0_deg": 90, "rate_degps": 9},
-         Circular, 10.0, (90, 0, -50)),  # az 90 -> 180 deg: east of centre, then south of it
-        ({"model": "figure_eight", "center_ned_m": [100, 0, -50], "amp1_ned_m": [0, 10, 0], "period_s": 8},
-         FigureEight, 2.0, (100, 10, -50)),
-        ({"model": "waypoints", "points_ned_m": [[100, 0, -50], [100, 30, -50], [130, 30, -50]], "speed_mps": 10},
-         Waypoints, 4.0, (110, 30, -50)),
+        (
+            {"model": "circular", "center_ned_m": [100, 0, -50], "radius_m": 10, "azimuth0_deg": 90, "rate_degps": 9},
+            Circular,
+            10.0,
+            (90, 0, -50),
+        ),  # az 90 -> 180 deg: east of centre, then south of it
+        (
+            {"model": "figure_eight", "center_ned_m": [100, 0, -50], "amp1_ned_m": [0, 10, 0], "period_s": 8},
+            FigureEight,
+            2.0,
+            (100, 10, -50),
+        ),
+        (
+            {"model": "waypoints", "points_ned_m": [[100, 0, -50], [100, 30, -50], [130, 30, -50]], "speed_mps": 10},
+            Waypoints,
+            4.0,
+            (110, 30, -50),
+        ),
     ],
 )
 def test_each_motion_model_is_built_from_yaml(motion, cls, t_s, p_expected):
@@ -295,9 +327,22 @@ def test_each_motion_model_is_built_from_yaml(motion, cls, t_s, p_expected):
 
 def test_ir_section_and_target_parts_are_built():
     d = minimal()
-    d["ir"] = {"t_min_k": 250.0, "t_max_k": 330.0, "encoding": "mono16", "band_um": [8, 14],
-               "target_parts": [{"name": "hot", "shape": "ellipsoid", "center_frd_m": [0, 0, 0],
-                                 "half_extent_m": [0.1, 0.1, 0.05], "temperature_k": 340, "emissivity": 0.9}]}
+    d["ir"] = {
+        "t_min_k": 250.0,
+        "t_max_k": 330.0,
+        "encoding": "mono16",
+        "band_um": [8, 14],
+        "target_parts": [
+            {
+                "name": "hot",
+                "shape": "ellipsoid",
+                "center_frd_m": [0, 0, 0],
+                "half_extent_m": [0.1, 0.1, 0.05],
+                "temperature_k": 340,
+                "emissivity": 0.9,
+            }
+        ],
+    }
     ir = scenario_from_dict(d).ir
     assert (ir.t_min_k, ir.t_max_k, ir.encoding, ir.band_um) == (250.0, 330.0, "mono16", (8.0, 14.0))
     assert len(ir.target_parts) == 1 and ir.target_parts[0].temperature_k == 340.0
@@ -306,8 +351,13 @@ def test_ir_section_and_target_parts_are_built():
 
 def test_ir_renderer_knobs_are_read_not_ignored():
     d = minimal()
-    knobs = {"netd_reference_k": 300.0, "supersample": 4, "max_target_rays": 1000, "background_reuse_tol_rad": 2e-5,
-             "noise_bank_frames": 3}
+    knobs = {
+        "netd_reference_k": 300.0,
+        "supersample": 4,
+        "max_target_rays": 1000,
+        "background_reuse_tol_rad": 2e-5,
+        "noise_bank_frames": 3,
+    }
     d["ir"] = dict(knobs)
     ir = scenario_from_dict(d).ir
     assert {k: getattr(ir, k) for k in knobs} == knobs
@@ -316,7 +366,12 @@ def test_ir_renderer_knobs_are_read_not_ignored():
 
 def test_input_dict_is_not_modified():
     d = p1_dict()
-    d["target"]["disturbance"] = {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.05, "tau_s": 2.0}
+    d["target"]["disturbance"] = {
+        "model": "singer",
+        "sigma_horizontal_mps2": 0.1,
+        "sigma_vertical_mps2": 0.05,
+        "tau_s": 2.0,
+    }
     before = copy.deepcopy(d)
     scenario_from_dict(d)
     assert d == before
@@ -366,34 +421,102 @@ BAD_CASES = [
     ("observer.motion.v0_ned_mps", [0, 10**400, 0], "observer.motion.v0_ned_mps[1]", "finite number"),
     ("target.motion.model", "circle", "target.motion.model", "expected one of uniform_linear, uniform_acceleration"),
     ("target.motion.model", "circle", "target.motion.model", "did you mean 'circular'?"),
-    ("target.motion", {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": -5, "rate_degps": 5},
-     "target.motion.radius_m", "a number > 0, got -5"),
-    ("target.motion", {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": 5},
-     "target.motion.rate_degps", "required"),
-    ("target.motion", {"model": "figure_eight", "center_ned_m": [100, 0, -80], "amp1_ned_m": [0, 1, 0], "period_s": 0},
-     "target.motion.period_s", "> 0"),
-    ("target.motion", {"model": "waypoints", "points_ned_m": [[100, 0, -80]], "speed_mps": 5},
-     "target.motion.points_ned_m", "at least 2 points"),
-    ("target.motion", {"model": "waypoints", "points_ned_m": [[100, 0, -80], [1, 2]], "speed_mps": 5},
-     "target.motion.points_ned_m[1]", "a list of 3 finite numbers"),
+    (
+        "target.motion",
+        {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": -5, "rate_degps": 5},
+        "target.motion.radius_m",
+        "a number > 0, got -5",
+    ),
+    (
+        "target.motion",
+        {"model": "circular", "center_ned_m": [100, 0, -80], "radius_m": 5},
+        "target.motion.rate_degps",
+        "required",
+    ),
+    (
+        "target.motion",
+        {"model": "figure_eight", "center_ned_m": [100, 0, -80], "amp1_ned_m": [0, 1, 0], "period_s": 0},
+        "target.motion.period_s",
+        "> 0",
+    ),
+    (
+        "target.motion",
+        {"model": "waypoints", "points_ned_m": [[100, 0, -80]], "speed_mps": 5},
+        "target.motion.points_ned_m",
+        "at least 2 points",
+    ),
+    (
+        "target.motion",
+        {"model": "waypoints", "points_ned_m": [[100, 0, -80], [1, 2]], "speed_mps": 5},
+        "target.motion.points_ned_m[1]",
+        "a list of 3 finite numbers",
+    ),
     ("target.motion", {"p0_ned_m": [1, 2, 3]}, "target.motion.model", "required"),
-    ("target.motion.p0_ned_m", [0, 0, -60], "target.motion", "at least 1 m from the observer at every frame, got 0 m at t = 0.000 s"),
-    ("target.disturbance", {"model": "gauss", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": 2},
-     "target.disturbance.model", "expected one of singer, got 'gauss'"),
-    ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": -2},
-     "target.disturbance.tau_s", "> 0 s"),
-    ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 1e300, "sigma_vertical_mps2": 0.1, "tau_s": 2},
-     "target.disturbance.sigma_horizontal_mps2", "in [0, 100] m/s^2"),
-    ("target.disturbance", {"model": "singer", "sigma_horizontal_mps2": 0.1}, "target.disturbance.sigma_vertical_mps2", "required"),
+    (
+        "target.motion.p0_ned_m",
+        [0, 0, -60],
+        "target.motion",
+        "at least 1 m from the observer at every frame, got 0 m at t = 0.000 s",
+    ),
+    (
+        "target.disturbance",
+        {"model": "gauss", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": 2},
+        "target.disturbance.model",
+        "expected one of singer, got 'gauss'",
+    ),
+    (
+        "target.disturbance",
+        {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": -2},
+        "target.disturbance.tau_s",
+        "> 0 s",
+    ),
+    (
+        "target.disturbance",
+        {"model": "singer", "sigma_horizontal_mps2": 1e300, "sigma_vertical_mps2": 0.1, "tau_s": 2},
+        "target.disturbance.sigma_horizontal_mps2",
+        "in [0, 100] m/s^2",
+    ),
+    (
+        "target.disturbance",
+        {"model": "singer", "sigma_horizontal_mps2": 0.1},
+        "target.disturbance.sigma_vertical_mps2",
+        "required",
+    ),
     ("ir.t_max_k", 200.0, "ir.t_max_k", "a temperature > ir.t_min_k (243.15 K), got 200.0"),
     ("ir", {"t_min_k": 400.0}, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 400.0"),
     ("ir.t_min_k", 330.0, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 330.0"),
     ("ir.ground_emissivity", 1.5, "ir.ground_emissivity", "in (0, 1], got 1.5"),
     ("ir.ground_emissivity", 0.0, "ir.ground_emissivity", "in (0, 1], got 0.0"),
-    ("ir.target_parts", [{"name": "a", "shape": "box", "center_frd_m": [0, 0, 0], "half_extent_m": [1, 1, 1],
-                          "temperature_k": 300, "emissivity": 0}], "ir.target_parts[0].emissivity", "in (0, 1]"),
-    ("ir.target_parts", [{"name": "a", "shape": "cone", "center_frd_m": [0, 0, 0], "half_extent_m": [1, 1, 1],
-                          "temperature_k": 300, "emissivity": 1}], "ir.target_parts[0].shape", "one of ellipsoid, box"),
+    (
+        "ir.target_parts",
+        [
+            {
+                "name": "a",
+                "shape": "box",
+                "center_frd_m": [0, 0, 0],
+                "half_extent_m": [1, 1, 1],
+                "temperature_k": 300,
+                "emissivity": 0,
+            }
+        ],
+        "ir.target_parts[0].emissivity",
+        "in (0, 1]",
+    ),
+    (
+        "ir.target_parts",
+        [
+            {
+                "name": "a",
+                "shape": "cone",
+                "center_frd_m": [0, 0, 0],
+                "half_extent_m": [1, 1, 1],
+                "temperature_k": 300,
+                "emissivity": 1,
+            }
+        ],
+        "ir.target_parts[0].shape",
+        "one of ellipsoid, box",
+    ),
     ("ir.target_parts", [], "ir.target_parts", "a non-empty list of parts"),
     ("ir.band_um", [13.5, 7.5], "ir.band_um", "lower < upper"),
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
@@ -405,9 +528,19 @@ BAD_CASES = [
     ("origin.lat_deg", 95.0, "origin.lat_deg", "in [-90, 90] deg, got 95.0"),
     ("camera.intrinsics.width_px", 640.5, "camera.intrinsics.width_px", "an integer"),
     ("camera.intrinsics.cx_px", 700, "camera.intrinsics.cx_px", "in [0, 640]"),
-    ("camera.intrinsics.distortion", [0, 0, 0], "camera.intrinsics.distortion", "5 finite numbers (k1, k2, p1, p2, k3)"),
+    (
+        "camera.intrinsics.distortion",
+        [0, 0, 0],
+        "camera.intrinsics.distortion",
+        "5 finite numbers (k1, k2, p1, p2, k3)",
+    ),
     ("camera.gimbal.pointing_error_period_s", [7, 0, 3], "camera.gimbal.pointing_error_period_s[1]", "> 0 s"),
-    ("camera.gimbal.pointing_error_frac_of_range", [0.03, -0.02, 0.015], "camera.gimbal.pointing_error_frac_of_range[1]", ">= 0"),
+    (
+        "camera.gimbal.pointing_error_frac_of_range",
+        [0.03, -0.02, 0.015],
+        "camera.gimbal.pointing_error_frac_of_range[1]",
+        ">= 0",
+    ),
     ("camera.mount.roll_deg", "ten", "camera.mount.roll_deg", "a number in [-360, 360] deg"),
     ("wind", {"north_mps": 3}, "wind.north_mps", "did you mean 'n_mps'?"),
     ("wind.n_mps", None, "wind.n_mps", "a number in [-100, 100] m/s, got null"),
@@ -515,13 +648,17 @@ def test_dataclasses_validate_direct_construction():
 
 def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("name: x\nobserver: {motion: {model: cubic, p0_ned_m: [0, 0, -60]}}\n"
-                   "target: {motion: {model: cubic, p0_ned_m: [100, 0, -60]}}\nwnid: {}\n")
+    bad.write_text(
+        "name: x\nobserver: {motion: {model: cubic, p0_ned_m: [0, 0, -60]}}\n"
+        "target: {motion: {model: cubic, p0_ned_m: [100, 0, -60]}}\nwnid: {}\n"
+    )
     assert main([str(bad)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"error: {bad}: wnid: expected a key of the document (name, description, origin, duration_s, "
-                   "frame_rate_hz, seed, observer, target, camera, ir, wind, nav_noise), got unknown key 'wnid'; "
-                   "did you mean 'wind'?"]
+    assert err == [
+        f"error: {bad}: wnid: expected a key of the document (name, description, origin, duration_s, "
+        "frame_rate_hz, seed, observer, target, camera, ir, wind, nav_noise), got unknown key 'wnid'; "
+        "did you mean 'wind'?"
+    ]
     assert main([str(REPO / "config/scenarios/P1.yaml")]) == 0
 
 
@@ -529,8 +666,13 @@ def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
 def test_module_entry_point_exit_code(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [\n")
-    r = subprocess.run([sys.executable, "-m", "groundsim.world.scenario", str(bad)], cwd=REPO,
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "groundsim.world.scenario", str(bad)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert r.returncode == 2
     assert len(r.stderr.strip().splitlines()) == 1 and str(bad) in r.stderr and "line 2" in r.stderr
 
@@ -547,15 +689,26 @@ def test_shipped_noise_cases():
     assert rtk.pixel_sigma_px == 0.3 and gnss.pixel_sigma_px == 1.0
     assert rtk.attitude_white_sigma_rad == pytest.approx(math.radians(0.05), rel=1e-12)
     assert gnss.attitude_bias_sigma_rad == pytest.approx(math.radians(0.1), rel=1e-12)
-    assert (rtk.camera_position_white_sigma_m, rtk.camera_position_offset_m, rtk.camera_position_drift_mps) == (0.02, 0, 0)
-    assert (gnss.camera_position_white_sigma_m, gnss.camera_position_offset_m, gnss.camera_position_drift_mps) == (0, 1.5, 0.05)
+    assert (rtk.camera_position_white_sigma_m, rtk.camera_position_offset_m, rtk.camera_position_drift_mps) == (
+        0.02,
+        0,
+        0,
+    )
+    assert (gnss.camera_position_white_sigma_m, gnss.camera_position_offset_m, gnss.camera_position_drift_mps) == (
+        0,
+        1.5,
+        0.05,
+    )
 
 
 @pytest.mark.parametrize(
     "doc, match",
     [
         ({"RTK": {"pixel_sigma_px": -0.3}}, r"^<dict>: RTK.pixel_sigma_px: expected a number >= 0, got -0.3$"),
-        ({"RTK": {"pixel_sigma_px": 0.3, "attitude_bias_deg": 0.1}}, r"RTK.attitude_bias_deg: .*did you mean 'attitude_bias_sigma_deg'\?$"),
+        (
+            {"RTK": {"pixel_sigma_px": 0.3, "attitude_bias_deg": 0.1}},
+            r"RTK.attitude_bias_deg: .*did you mean 'attitude_bias_sigma_deg'\?$",
+        ),
         ({"RTK": {"attitude_bias_sigma_deg": 0.1}}, r"^<dict>: RTK.pixel_sigma_px: expected a value \(required\)"),
         ({"bad name": {"pixel_sigma_px": 1}}, r"^<dict>: \(document\): expected case names"),
         ({}, r"^<dict>: \(document\): expected a non-empty mapping"),
@@ -569,8 +722,12 @@ def test_bad_noise_cases(doc, match):
 # --------------------------------------------------------------------------- fuzzing
 
 _JUNK = st.one_of(
-    st.none(), st.booleans(), st.integers(-(10**30), 10**30), st.floats(allow_nan=True, allow_infinity=True),
-    st.text(max_size=8), st.lists(st.floats(-1e3, 1e3), max_size=4),
+    st.none(),
+    st.booleans(),
+    st.integers(-(10**30), 10**30),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=8),
+    st.lists(st.floats(-1e3, 1e3), max_size=4),
     st.lists(st.lists(st.integers(-200, 200), max_size=4), max_size=3),
     st.dictionaries(st.text(max_size=6), st.integers(-5, 5), max_size=2),
     st.sampled_from(["circular", "cubic", "waypoints", "figure_eight", "singer", "mono16", 0.0, -1.0, 1e300]),
@@ -587,7 +744,12 @@ def _paths(d, prefix=()):
 
 def _base_docs():
     p1g = p1_dict()
-    p1g["target"]["disturbance"] = {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.05, "tau_s": 2.0}
+    p1g["target"]["disturbance"] = {
+        "model": "singer",
+        "sigma_horizontal_mps2": 0.1,
+        "sigma_vertical_mps2": 0.05,
+        "tau_s": 2.0,
+    }
     p3 = yaml.safe_load((REPO / "config/scenarios/P3.yaml").read_text())
     p2 = yaml.safe_load((REPO / "config/scenarios/P2.yaml").read_text())
     p2["target"]["motion"] = {"model": "waypoints", "points_ned_m": [[150, 0, -90], [150, 50, -90]], "speed_mps": 5}
@@ -598,7 +760,10 @@ _BASES = _base_docs()
 
 
 @settings(max_examples=120, deadline=None)
-@given(base=st.sampled_from(range(len(_BASES))), picks=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 2), _JUNK), min_size=1, max_size=3))
+@given(
+    base=st.sampled_from(range(len(_BASES))),
+    picks=st.lists(st.tuples(st.integers(0, 10**6), st.integers(0, 2), _JUNK), min_size=1, max_size=3),
+)
 def test_random_mutations_raise_only_scenario_error(base, picks):
     d = copy.deepcopy(_BASES[base])
     for pick, op, junk in picks:
@@ -629,12 +794,16 @@ _P1_TEXT = (REPO / "config/scenarios/P1.yaml").read_text()
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(edits=st.lists(st.tuples(st.integers(0, len(_P1_TEXT)), st.integers(0, 4), st.text(max_size=3)), min_size=1, max_size=3))
+@given(
+    edits=st.lists(
+        st.tuples(st.integers(0, len(_P1_TEXT)), st.integers(0, 4), st.text(max_size=3)), min_size=1, max_size=3
+    )
+)
 def test_random_text_edits_raise_only_scenario_error(edits):
     text = _P1_TEXT
     for pos, cut, insert in edits:
         pos = min(pos, len(text))
-        text = text[:pos] + insert + text[pos + cut:]
+        text = text[:pos] + insert + text[pos + cut :]
     path = Path(_TMP.name) / "fuzz.yaml"
     path.write_text(text, encoding="utf-8", errors="surrogatepass")
     try:

@@ -69,18 +69,23 @@ def test_streams_at_the_usual_rates_with_sane_fields(gcs):
     assert gps.lat == round(LAT_DEG * 1e7) and gps.lon == round(LON_DEG * 1e7)
     assert got["EXTENDED_SYS_STATE"][-1].landed_state == mav.MAV_LANDED_STATE_IN_AIR
     bat = got["BATTERY_STATUS"][-1]
-    assert list(bat.voltages[:BATTERY_CELLS]) == [bat.voltages[0]] * BATTERY_CELLS and bat.voltages[BATTERY_CELLS] == 65535
+    assert (
+        list(bat.voltages[:BATTERY_CELLS]) == [bat.voltages[0]] * BATTERY_CELLS and bat.voltages[BATTERY_CELLS] == 65535
+    )
     att = got["ATTITUDE"][-1]
     assert all(math.isfinite(x) for x in (att.roll, att.pitch, att.yaw))
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("command, p1, reply", [
-    (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION, "AUTOPILOT_VERSION"),
-    (mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1, "AUTOPILOT_VERSION"),
-    (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION, "HOME_POSITION"),
-    (mav.MAV_CMD_GET_HOME_POSITION, 0, "HOME_POSITION"),
-])
+@pytest.mark.parametrize(
+    "command, p1, reply",
+    [
+        (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION, "AUTOPILOT_VERSION"),
+        (mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1, "AUTOPILOT_VERSION"),
+        (mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION, "HOME_POSITION"),
+        (mav.MAV_CMD_GET_HOME_POSITION, 0, "HOME_POSITION"),
+    ],
+)
 def test_requests_are_accepted_and_answered(gcs, command, p1, reply):
     rx, _ = gcs
     rx.mav.command_long_send(1, 1, command, 0, p1, 0, 0, 0, 0, 0, 0)
@@ -108,7 +113,9 @@ def test_parameters_list_read_set_and_an_empty_mission(gcs):
     assert sorted(i for _, i, _ in got.values()) == list(range(len(DEFAULT_PARAMS)))
     assert all(c == len(DEFAULT_PARAMS) for _, _, c in got.values())
     rx.mav.param_set_send(1, 1, b"BAT_CAPACITY", 4200.0, mav.MAV_PARAM_TYPE_REAL32)
-    m = rx.recv_match(type="PARAM_VALUE", blocking=True, timeout=WAIT_S, condition="PARAM_VALUE.param_id=='BAT_CAPACITY'")
+    m = rx.recv_match(
+        type="PARAM_VALUE", blocking=True, timeout=WAIT_S, condition="PARAM_VALUE.param_id=='BAT_CAPACITY'"
+    )
     assert m is not None and m.param_value == 4200.0
     rx.mav.param_request_read_send(1, 1, b"MAV_SYS_ID", -1)
     m = rx.recv_match(type="PARAM_VALUE", blocking=True, timeout=WAIT_S, condition="PARAM_VALUE.param_id=='MAV_SYS_ID'")
@@ -140,9 +147,14 @@ def test_mavsdk_reads_health_home_gps_and_battery_with_nothing_denied():
         health = home = gps = battery = None
         while time.monotonic() < deadline:
             health, home, gps, battery = tel.health(), tel.home(), tel.gps_info(), tel.battery()
-            if (health.is_global_position_ok and health.is_home_position_ok and not math.isnan(home.latitude_deg)
-                    and gps.num_satellites > 0 and not math.isnan(battery.remaining_percent)
-                    and battery.remaining_percent > 0):
+            if (
+                health.is_global_position_ok
+                and health.is_home_position_ok
+                and not math.isnan(home.latitude_deg)
+                and gps.num_satellites > 0
+                and not math.isnan(battery.remaining_percent)
+                and battery.remaining_percent > 0
+            ):
                 break
             time.sleep(0.1)
         assert health.is_gyrometer_calibration_ok and health.is_accelerometer_calibration_ok

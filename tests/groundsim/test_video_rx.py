@@ -49,8 +49,9 @@ def test_every_frame_is_decoded_in_order_from_the_first_idr(receiver):
             done.set()
 
     rx = cls(on_frame)
-    streamer = VideoStreamer(f"127.0.0.1:{rx.port}", W, H, 30.0, 2_000_000, 1.0, overlay=False, queue_length=FRAMES,
-                             transport=transport)
+    streamer = VideoStreamer(
+        f"127.0.0.1:{rx.port}", W, H, 30.0, 2_000_000, 1.0, overlay=False, queue_length=FRAMES, transport=transport
+    )
     rng = np.random.default_rng(3)
     try:
         for k in range(FRAMES):
@@ -64,5 +65,5 @@ def test_every_frame_is_decoded_in_order_from_the_first_idr(receiver):
         streamer.close()
         rx.stop()
     assert streamer.frames_dropped == 0
-    assert got[:FRAMES - held] == list(range(FRAMES - held))
+    assert got[: FRAMES - held] == list(range(FRAMES - held))
     assert rx.error is None and rx.decode_errors == 0

@@ -33,7 +33,9 @@ DELIVERY_TIMEOUT_S = 10.0  # a frame must cross the loopback within this
 
 def _frame(seq: int, h=512, w=640) -> IrFrame:
     rng = np.random.default_rng(seq)
-    return IrFrame(seq=seq, time_boot_us=1_000_000 + 40_000 * seq, pixels=rng.integers(0, 2**16, (h, w), dtype=np.uint16))
+    return IrFrame(
+        seq=seq, time_boot_us=1_000_000 + 40_000 * seq, pixels=rng.integers(0, 2**16, (h, w), dtype=np.uint16)
+    )
 
 
 @pytest.fixture
@@ -231,7 +233,12 @@ def test_missing_config_file(tmp_path):
 
 @pytest.mark.parametrize(
     "kwargs",
-    [dict(connect="tcp/127.0.0.1:1"), dict(connect_timeout_s=0), dict(connect_timeout_s=float("nan")), dict(multicast_scouting="yes")],
+    [
+        dict(connect="tcp/127.0.0.1:1"),
+        dict(connect_timeout_s=0),
+        dict(connect_timeout_s=float("nan")),
+        dict(multicast_scouting="yes"),
+    ],
 )
 def test_settings_validation(kwargs):
     with pytest.raises(ZenohConfigError):

@@ -8,15 +8,24 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
-from onboard.estimation.map_estimator import NoiseModel
 from onboard.core.frames import PinholeIntrinsics
+from onboard.estimation.map_estimator import NoiseModel
+from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
 
 
 def _estimate(p, cov) -> TrackEstimate:
-    return TrackEstimate(t_s=1.0, p_ned_m=np.asarray(p, float), v_ned_mps=np.zeros(3), cov_p_ned_m2=np.asarray(cov, float),
-                         cov_v_ned_m2ps2=np.eye(3), observable=True, range_m=float(np.linalg.norm(p)),
-                         range_sigma_ratio=0.01, window_frames=100, model="cv")
+    return TrackEstimate(
+        t_s=1.0,
+        p_ned_m=np.asarray(p, float),
+        v_ned_mps=np.zeros(3),
+        cov_p_ned_m2=np.asarray(cov, float),
+        cov_v_ned_m2ps2=np.eye(3),
+        observable=True,
+        range_m=float(np.linalg.norm(p)),
+        range_sigma_ratio=0.01,
+        window_frames=100,
+        model="cv",
+    )
 
 
 def _unit(v):
@@ -28,13 +37,18 @@ vec = st.tuples(*[st.floats(-1.0, 1.0)] * 3).filter(lambda v: np.linalg.norm(v) 
 
 
 @settings(max_examples=200, deadline=None)
-@given(u=vec, rng=st.floats(50.0, 2000.0), off=st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3)),
-       sig=st.floats(0.2, 5.0), sigma_mrad=st.floats(0.05, 2.0))
+@given(
+    u=vec,
+    rng=st.floats(50.0, 2000.0),
+    off=st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(-3, 3)),
+    sig=st.floats(0.2, 5.0),
+    sigma_mrad=st.floats(0.05, 2.0),
+)
 def test_the_update_moves_the_position_towards_the_ray_and_never_grows_the_covariance(u, rng, off, sig, sigma_mrad):
     u = _unit(u)
     c = np.array([10.0, -5.0, -80.0])
     p0 = c + rng * u + np.asarray(off)
-    P0 = np.eye(3) * sig ** 2
+    P0 = np.eye(3) * sig**2
     est = _estimate(p0, P0)
     out = est.with_bearing(c, u, sigma_mrad * 1e-3, gate_chi2=math.inf)
     assert out is not None
@@ -47,8 +61,8 @@ def test_the_update_moves_the_position_towards_the_ray_and_never_grows_the_covar
     # the correction is across the ray only: the along-ray coordinate is kept (isotropic prior)
     assert abs((out.p_ned_m - c) @ u - (p0 - c) @ u) < 1e-6 * rng
     # P0 - P+ is positive semi-definite, and P+ is symmetric
-    assert np.linalg.eigvalsh(P0 - out.cov_p_ned_m2).min() > -1e-9 * sig ** 2
-    np.testing.assert_allclose(out.cov_p_ned_m2, out.cov_p_ned_m2.T, atol=1e-12 * sig ** 2)
+    assert np.linalg.eigvalsh(P0 - out.cov_p_ned_m2).min() > -1e-9 * sig**2
+    np.testing.assert_allclose(out.cov_p_ned_m2, out.cov_p_ned_m2.T, atol=1e-12 * sig**2)
     assert math.isclose(out.range_m, float(np.linalg.norm(out.p_ned_m - c)), rel_tol=1e-12)
 
 

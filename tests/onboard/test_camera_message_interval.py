@@ -13,8 +13,11 @@ from tests.onboard.test_camera_protocol import _ack, _cmd, _proto
 
 
 def _interval(proto, msg_id: int, via: str = "get") -> tuple[int, dict | None]:
-    cmd = (_cmd(cp.MAV_CMD_GET_MESSAGE_INTERVAL, msg_id) if via == "get"
-           else _cmd(cp.MAV_CMD_REQUEST_MESSAGE, cp.MSG_MESSAGE_INTERVAL, msg_id))
+    cmd = (
+        _cmd(cp.MAV_CMD_GET_MESSAGE_INTERVAL, msg_id)
+        if via == "get"
+        else _cmd(cp.MAV_CMD_REQUEST_MESSAGE, cp.MSG_MESSAGE_INTERVAL, msg_id)
+    )
     out, req = proto.handle(cmd, 1.0, 1000)
     assert req is None
     ack = _ack(out)

@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
 import onboard.io.camera_protocol as cp
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.track import Track
 from onboard.io.camera_protocol import (
     CameraCommand,
     CameraIdentity,
@@ -19,8 +21,6 @@ from onboard.io.camera_protocol import (
     TrackResult,
     VideoStream,
 )
-from onboard.core.frames import GeodeticOrigin
-from onboard.core.track import Track
 
 W, H = 640, 512
 GCS = (255, 190)  # QGC's system / component
@@ -34,8 +34,9 @@ def _identity() -> CameraIdentity:
 
 
 def _stream() -> VideoStream:
-    return VideoStream(cp.VIDEO_STREAM_TYPE_MPEG_TS, "5600", 30.0, 2_000_000, W, H,
-                       math.degrees(2 * math.atan(W / (2 * FX_PX))))
+    return VideoStream(
+        cp.VIDEO_STREAM_TYPE_MPEG_TS, "5600", 30.0, 2_000_000, W, H, math.degrees(2 * math.atan(W / (2 * FX_PX)))
+    )
 
 
 def _proto(**kw) -> CameraProtocol:
@@ -49,12 +50,34 @@ def _cmd(command: int, *params: float) -> CameraCommand:
     return CameraCommand(command, tuple(p), *GCS)
 
 
-def _track(state="tracking", u=320.0, v=256.0, bbox=(310.0, 246.0, 20.0, 20.0), observable=True, position=True) -> Track:
-    kw = dict(vehicle="uav1", seq=1, time_boot_us=10, state=state, track_id=1, measurement_valid=state == "tracking",
-              u_px=u, v_px=v, bbox=bbox, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0))
+def _track(
+    state="tracking", u=320.0, v=256.0, bbox=(310.0, 246.0, 20.0, 20.0), observable=True, position=True
+) -> Track:
+    kw = dict(
+        vehicle="uav1",
+        seq=1,
+        time_boot_us=10,
+        state=state,
+        track_id=1,
+        measurement_valid=state == "tracking",
+        u_px=u,
+        v_px=v,
+        bbox=bbox,
+        pose_valid=True,
+        origin=GeodeticOrigin(32.0, 118.8, 0.0),
+    )
     if position:
-        kw.update(lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
-                  cov_p_ned_m2=np.diag([4.0, 4.0, 1.0]), range_m=130.0, observable=observable, window_frames=60)
+        kw.update(
+            lat_deg=32.001,
+            lon_deg=118.8,
+            alt_m=80.0,
+            p_ned_m=(100.0, 0.0, -80.0),
+            v_ned_mps=(1.0, 0.0, 0.0),
+            cov_p_ned_m2=np.diag([4.0, 4.0, 1.0]),
+            range_m=130.0,
+            observable=observable,
+            window_frames=60,
+        )
     if state in ("searching", "lost"):
         kw.update(track_id=None, u_px=None, v_px=None, bbox=None, measurement_valid=False)
     return Track(**kw)
@@ -92,9 +115,19 @@ def test_every_outgoing_message_packs_with_pymavlink():
         out += proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, msg_id), 0.0, 1234, _track())[0]
     out += proto.tick(0.0, _track())
     out += proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 2.0), 0.0, 0)[0]  # refused: STATUSTEXT
-    assert {"camera_information", "camera_settings", "storage_information", "camera_capture_status",
-            "video_stream_information", "video_stream_status", "camera_tracking_image_status",
-            "camera_tracking_geo_status", "heartbeat", "command_ack", "statustext"} <= set(_names(out))
+    assert {
+        "camera_information",
+        "camera_settings",
+        "storage_information",
+        "camera_capture_status",
+        "video_stream_information",
+        "video_stream_status",
+        "camera_tracking_image_status",
+        "camera_tracking_geo_status",
+        "heartbeat",
+        "command_ack",
+        "statustext",
+    } <= set(_names(out))
     for o in out:
         msg = getattr(codec, f"{o.msg}_encode")(**o.fields)
         raw = msg.pack(codec)
@@ -113,12 +146,18 @@ def test_camera_information_on_request_message_and_the_legacy_command(command):
     assert out[0].reply_to == GCS and _ack(out)["target_system"] == GCS[0]
     f = out[1].fields
     flags = f["flags"]
-    for bit in (mav.CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
-                mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE, mav.CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS):
+    for bit in (
+        mav.CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM,
+        mav.CAMERA_CAP_FLAGS_HAS_TRACKING_POINT,
+        mav.CAMERA_CAP_FLAGS_HAS_TRACKING_RECTANGLE,
+        mav.CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS,
+    ):
         assert flags & bit
     assert (f["resolution_h"], f["resolution_v"]) == (W, H)
     assert f["focal_length"] == pytest.approx(13.0, abs=ATOL_MM)  # 764.7 px x 17 um
-    assert f["sensor_size_h"] == pytest.approx(W * PITCH_UM / 1000) and f["sensor_size_v"] == pytest.approx(H * PITCH_UM / 1000)
+    assert f["sensor_size_h"] == pytest.approx(W * PITCH_UM / 1000) and f["sensor_size_v"] == pytest.approx(
+        H * PITCH_UM / 1000
+    )
     assert bytes(f["vendor_name"]).rstrip(b"\0") == b"irtrack" and f["camera_device_id"] == 0
     assert f["time_boot_ms"] == 4321
 
@@ -131,8 +170,14 @@ def test_no_video_stream_no_video_flag_and_stream_requests_denied():
     assert _names(out) == ["command_ack"] and _ack(out)["result"] == mav.MAV_RESULT_DENIED
 
 
-@pytest.mark.parametrize("command", [(cp.MAV_CMD_REQUEST_MESSAGE, 269, 0), (cp.MAV_CMD_REQUEST_MESSAGE, 269, 1),
-                                     (cp.MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION, 0)])
+@pytest.mark.parametrize(
+    "command",
+    [
+        (cp.MAV_CMD_REQUEST_MESSAGE, 269, 0),
+        (cp.MAV_CMD_REQUEST_MESSAGE, 269, 1),
+        (cp.MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION, 0),
+    ],
+)
 def test_video_stream_information_is_thermal_h264_with_the_port_as_uri(command):
     out, _ = _proto().handle(_cmd(*command), 0.0, 0)
     assert _names(out) == ["command_ack", "video_stream_information"]
@@ -148,15 +193,18 @@ def test_stream_two_does_not_exist():
     assert _ack(out)["result"] == mav.MAV_RESULT_DENIED
 
 
-@pytest.mark.parametrize("command, reply", [
-    ((cp.MAV_CMD_REQUEST_CAMERA_SETTINGS, 1), "camera_settings"),
-    ((cp.MAV_CMD_REQUEST_STORAGE_INFORMATION, 0, 1), "storage_information"),
-    ((cp.MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS, 1), "camera_capture_status"),
-    ((cp.MAV_CMD_REQUEST_VIDEO_STREAM_STATUS, 1), "video_stream_status"),
-    ((cp.MAV_CMD_REQUEST_MESSAGE, 260), "camera_settings"),
-    ((cp.MAV_CMD_REQUEST_MESSAGE, 261), "storage_information"),
-    ((cp.MAV_CMD_REQUEST_MESSAGE, 262), "camera_capture_status"),
-])
+@pytest.mark.parametrize(
+    "command, reply",
+    [
+        ((cp.MAV_CMD_REQUEST_CAMERA_SETTINGS, 1), "camera_settings"),
+        ((cp.MAV_CMD_REQUEST_STORAGE_INFORMATION, 0, 1), "storage_information"),
+        ((cp.MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS, 1), "camera_capture_status"),
+        ((cp.MAV_CMD_REQUEST_VIDEO_STREAM_STATUS, 1), "video_stream_status"),
+        ((cp.MAV_CMD_REQUEST_MESSAGE, 260), "camera_settings"),
+        ((cp.MAV_CMD_REQUEST_MESSAGE, 261), "storage_information"),
+        ((cp.MAV_CMD_REQUEST_MESSAGE, 262), "camera_capture_status"),
+    ],
+)
 def test_what_qgc_discovery_asks_after_camera_information_is_answered(command, reply):
     out, _ = _proto().handle(_cmd(*command), 0.0, 0)
     assert _names(out) == ["command_ack", reply] and _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
@@ -174,9 +222,14 @@ def test_unknown_commands_are_unsupported_and_unknown_messages_denied():
 
 
 @settings(max_examples=300, deadline=None)
-@given(command=st.sampled_from([0, 16, 400, 511, 512, 521, 522, 525, 527, 2004, 2005, 2010, 2504, 2505, 65535]),
-       params=st.lists(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10, 300).map(float)),
-                       min_size=7, max_size=7))
+@given(
+    command=st.sampled_from([0, 16, 400, 511, 512, 521, 522, 525, 527, 2004, 2005, 2010, 2504, 2505, 65535]),
+    params=st.lists(
+        st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(-10, 300).map(float)),
+        min_size=7,
+        max_size=7,
+    ),
+)
 def test_every_command_gets_exactly_one_ack_or_a_deferred_request(command, params):
     proto = _proto()
     out, req = proto.handle(CameraCommand(command, tuple(params), *GCS), 0.0, 0)
@@ -296,7 +349,9 @@ def test_status_streams_only_while_tracking_at_the_asked_rate_and_minus_one_stop
 def test_idle_is_sent_once_when_tracking_ends_and_coasting_is_flagged():
     proto = _proto()
     img = [o.fields for o in proto.tick(0.0, _track(state="coasting")) if o.msg == "camera_tracking_image_status"]
-    assert img[0]["tracking_status"] == mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE | mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
+    assert (
+        img[0]["tracking_status"] == mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE | mav.CAMERA_TRACKING_STATUS_FLAGS_COASTING
+    )
     out = proto.tick(0.5, _track(state="lost")) + proto.tick(1.0, None) + proto.tick(2.0, None)
     idle = [o.fields for o in out if o.msg == "camera_tracking_image_status"]
     assert len(idle) == 1 and idle[0]["tracking_status"] == 0 and idle[0]["tracking_mode"] == 0

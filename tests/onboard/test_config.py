@@ -52,7 +52,12 @@ def test_defaults_are_valid_and_convert_to_core_objects():
     assert (K.width_px, K.height_px, K.cx_px, K.cy_px) == (640, 512, 320.0, 256.0)
     assert K.fx_px == pytest.approx(13e-3 / 17e-6, rel=1e-12)
     b = c.pose.buffer_config()
-    assert (b.att_max_gap_us, b.pos_max_gap_us, b.window_us, b.reboot_threshold_us) == (100_000, 300_000, 5_000_000, 1_000_000)
+    assert (b.att_max_gap_us, b.pos_max_gap_us, b.window_us, b.reboot_threshold_us) == (
+        100_000,
+        300_000,
+        5_000_000,
+        1_000_000,
+    )
     n = c.estimator.noise_model()
     assert n.attitude_bias_sigma_rad == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
     assert n.pixel_sigma_px == 0.3
@@ -66,13 +71,20 @@ def test_pose_wait_and_extrapolation_defaults():
     assert c.pose.wait_ms == 5.0 and c.mavlink.gimbal_rate_hz == 50.0
     assert c.mavlink.link_config().gimbal_rate_hz == 50.0
     b = c.pose_buffer_config()
-    assert (b.att_max_extrapolation_us, b.gimbal_max_extrapolation_us, b.pos_max_extrapolation_us) == (36_351, 24_595, 50_000)
+    assert (b.att_max_extrapolation_us, b.gimbal_max_extrapolation_us, b.pos_max_extrapolation_us) == (
+        36_351,
+        24_595,
+        50_000,
+    )
     assert b.body_rate_sigma_rps == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
     # without a bearing noise to bound them, the horizons are the configured cap
     assert c.pose.buffer_config().att_max_extrapolation_us == 50_000
     # a tighter noise fraction shortens attitude and gimbal, never position
     t = build_config({"pose": {"extrapolation_noise_fraction": 0.1}}).pose_buffer_config()
-    assert t.att_max_extrapolation_us < b.att_max_extrapolation_us and t.gimbal_max_extrapolation_us < b.gimbal_max_extrapolation_us
+    assert (
+        t.att_max_extrapolation_us < b.att_max_extrapolation_us
+        and t.gimbal_max_extrapolation_us < b.gimbal_max_extrapolation_us
+    )
     assert t.pos_max_extrapolation_us == 50_000
     off = build_config({"pose": {"max_extrapolation_ms": 0}}).pose_buffer_config()
     assert (off.att_max_extrapolation_us, off.pos_max_extrapolation_us, off.gimbal_max_extrapolation_us) == (0, 0, 0)
@@ -106,13 +118,16 @@ def test_print_config_round_trips(tmp_path):
 
 
 def test_conversions_of_non_default_values(tmp_path):
-    p = write(tmp_path, """
+    p = write(
+        tmp_path,
+        """
 camera:
   intrinsics: {fx_px: 800, fy_px: 790, width_px: 320, height_px: 256, cx_px: 161.5}
   mount: {lever_arm_frd_m: [0.1, 0, 0.05], pitch_deg: -10, gimballed: true}
 pose: {attitude_max_gap_ms: 40.5, origin: {lat_deg: 32, lon_deg: 118.8, alt_m: 12}}
 estimator: {attitude_white_sigma_deg: 0.5}
-""")
+""",
+    )
     c = load_config(p, environ={})
     K = c.camera.pinhole()
     assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px) == (800.0, 790.0, 161.5, 128.0, 320)
@@ -132,7 +147,9 @@ estimator: {attitude_white_sigma_deg: 0.5}
 
 def test_empty_file_and_empty_sections_mean_defaults(tmp_path):
     assert config_to_dict(load_config(write(tmp_path, ""), environ={})) == config_to_dict(OnboardConfig())
-    assert config_to_dict(load_config(write(tmp_path, "mavlink:\nimaging:\n"), environ={})) == config_to_dict(OnboardConfig())
+    assert config_to_dict(load_config(write(tmp_path, "mavlink:\nimaging:\n"), environ={})) == config_to_dict(
+        OnboardConfig()
+    )
 
 
 # --------------------------------------------------------------------------- errors
@@ -141,29 +158,71 @@ def test_empty_file_and_empty_sections_mean_defaults(tmp_path):
 BAD = [
     # (yaml text, field path, fragment of "expected ...", fragment of "got ...", hint or None)
     ("mavlnk: {}", "mavlnk", "a key of the document", "unknown key 'mavlnk'", "did you mean 'mavlink'?"),
-    ("mavlink: {conection: udpin:1.2.3.4:5}", "mavlink.conection", "a key of mavlink", "unknown key", "did you mean 'connection'?"),
+    (
+        "mavlink: {conection: udpin:1.2.3.4:5}",
+        "mavlink.conection",
+        "a key of mavlink",
+        "unknown key",
+        "did you mean 'connection'?",
+    ),
     ("mavlink: {attitude_rate_hz: -1}", "mavlink.attitude_rate_hz", "a number in (0, 1000]", "-1", None),
     ("mavlink: {attitude_rate_hz: true}", "mavlink.attitude_rate_hz", "a number", "true", None),
     ("mavlink: {connection: 'udpin:nohost'}", "mavlink.connection", "a connection like", "'udpin:nohost'", None),
-    ("mavlink: {heartbeat_interval_s: 5, heartbeat_timeout_s: 2}", "mavlink.heartbeat_timeout_s", "> mavlink.heartbeat_interval_s", "2", None),
+    (
+        "mavlink: {heartbeat_interval_s: 5, heartbeat_timeout_s: 2}",
+        "mavlink.heartbeat_timeout_s",
+        "> mavlink.heartbeat_interval_s",
+        "2",
+        None,
+    ),
     ("mavlink: {poll_rate_hz: 50}", "mavlink.poll_rate_hz", "[100, 10000]", "50", None),
     ("mavlink: {autopilot_sysid: 256}", "mavlink.autopilot_sysid", "an integer in [1, 255] or null", "256", None),
     ("zenoh: {connect: [bogus]}", "zenoh.connect[0]", "<protocol>/<address>", "'bogus'", None),
     ("zenoh: {listen: 7}", "zenoh.listen", "a list of strings", "7", None),
     ("camera: {intrinsics: {width_px: 640.0}}", "camera.intrinsics.width_px", "an integer", "640.0", None),
     ("camera: {intrinsics: {cx_px: 900}}", "camera.intrinsics.cx_px", "inside the image", "900", None),
-    ("camera: {intrinsics: {distortion: [0, 0, 0]}}", "camera.intrinsics.distortion", "a list of 5 finite numbers", "[0, 0, 0]", None),
-    ("camera: {intrinsics: {distortion: [0, 0, .nan, 0, 0]}}", "camera.intrinsics.distortion[2]", "a finite number", "nan", None),
-    ("camera: {mount: {lever_arm_frd_m: [1, 2]}}", "camera.mount.lever_arm_frd_m", "a list of 3 finite numbers", "[1, 2]", None),
+    (
+        "camera: {intrinsics: {distortion: [0, 0, 0]}}",
+        "camera.intrinsics.distortion",
+        "a list of 5 finite numbers",
+        "[0, 0, 0]",
+        None,
+    ),
+    (
+        "camera: {intrinsics: {distortion: [0, 0, .nan, 0, 0]}}",
+        "camera.intrinsics.distortion[2]",
+        "a finite number",
+        "nan",
+        None,
+    ),
+    (
+        "camera: {mount: {lever_arm_frd_m: [1, 2]}}",
+        "camera.mount.lever_arm_frd_m",
+        "a list of 3 finite numbers",
+        "[1, 2]",
+        None,
+    ),
     ("camera: {mount: {gimballed: 'yes'}}", "camera.mount.gimballed", "true or false", "'yes'", None),
     ("camera: {lens: {}}", "camera.lens", "a key of camera", "unknown key 'lens'", None),
     ("imaging: {min_area_px: 0}", "imaging.min_area_px", ">= 1", "0", None),
-    ("imaging: {min_areapx: 3}", "imaging.min_areapx", "a key of imaging", "unknown key", "did you mean 'min_area_px'?"),
+    (
+        "imaging: {min_areapx: 3}",
+        "imaging.min_areapx",
+        "a key of imaging",
+        "unknown key",
+        "did you mean 'min_area_px'?",
+    ),
     ("imaging: {mean_kernel_px: 4}", "imaging.mean_kernel_px", "odd", "4", None),
     ("imaging: {threshold_high_sigma: 1.0}", "imaging.threshold_high_sigma", ">= threshold_low_sigma", "1.0", None),
     ("estimator: {window_s: 0}", "estimator.window_s", "a number in (0, 600]", "0", None),
     ("estimator: {sliding: {windw: 3}}", "estimator.sliding.windw", "a SlidingConfig field", "unknown key", None),
-    ("pose: {position_interp: hermit}", "pose.position_interp", "one of hermite, linear", "'hermit'", "did you mean 'hermite'?"),
+    (
+        "pose: {position_interp: hermit}",
+        "pose.position_interp",
+        "one of hermite, linear",
+        "'hermit'",
+        "did you mean 'hermite'?",
+    ),
     ("pose: {attitude_max_gap_ms: 9000}", "pose.attitude_max_gap_ms", "<= pose.window_s", "9000", None),
     ("pose: {origin: {lat_deg: 91, lon_deg: 0}}", "pose.origin.lat_deg", "[-90, 90]", "91", None),
     ("pose: {max_extrapolation_ms: -1}", "pose.max_extrapolation_ms", "[0, 10000]", "-1", None),
@@ -201,13 +260,39 @@ def test_missing_file(tmp_path):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.recursive(
-    st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=True) | st.text(max_size=8),
-    lambda kids: st.lists(kids, max_size=3) | st.dictionaries(
-        st.sampled_from(["vehicle", "mavlink", "zenoh", "camera", "intrinsics", "mount", "imaging", "pose", "origin",
-                         "connection", "fx_px", "width_px", "min_area_px", "window_s", "level", "x"]), kids, max_size=4),
-    max_leaves=12,
-))
+@given(
+    st.recursive(
+        st.none() | st.booleans() | st.integers(-(10**6), 10**6) | st.floats(allow_nan=True) | st.text(max_size=8),
+        lambda kids: (
+            st.lists(kids, max_size=3)
+            | st.dictionaries(
+                st.sampled_from(
+                    [
+                        "vehicle",
+                        "mavlink",
+                        "zenoh",
+                        "camera",
+                        "intrinsics",
+                        "mount",
+                        "imaging",
+                        "pose",
+                        "origin",
+                        "connection",
+                        "fx_px",
+                        "width_px",
+                        "min_area_px",
+                        "window_s",
+                        "level",
+                        "x",
+                    ]
+                ),
+                kids,
+                max_size=4,
+            )
+        ),
+        max_leaves=12,
+    )
+)
 def test_any_document_either_builds_or_fails_with_one_config_line(doc):
     try:
         cfg = build_config(doc, "fuzz.yaml")
@@ -222,9 +307,15 @@ def test_any_document_either_builds_or_fails_with_one_config_line(doc):
 
 def test_environment_overrides_file_and_cli_overrides_environment(tmp_path):
     p = write(tmp_path, "vehicle: fromfile\nmavlink: {connection: 'udpin:0.0.0.0:1000', attitude_rate_hz: 20}\n")
-    env = {"IRTRACK_MAVLINK_CONNECTION": "udpin:127.0.0.1:2000", "IRTRACK_VEHICLE": "fromenv",
-           "IRTRACK_CAMERA_INTRINSICS_FX_PX": "500", "IRTRACK_ZENOH_CONNECT": "[tcp/10.0.0.2:7447]",
-           "IRTRACK_HEALTH_FILE": "/run/alive", "IRTRACK_SOMETHING_ELSE": "ignored", "PATH": os.environ.get("PATH", "")}
+    env = {
+        "IRTRACK_MAVLINK_CONNECTION": "udpin:127.0.0.1:2000",
+        "IRTRACK_VEHICLE": "fromenv",
+        "IRTRACK_CAMERA_INTRINSICS_FX_PX": "500",
+        "IRTRACK_ZENOH_CONNECT": "[tcp/10.0.0.2:7447]",
+        "IRTRACK_HEALTH_FILE": "/run/alive",
+        "IRTRACK_SOMETHING_ELSE": "ignored",
+        "PATH": os.environ.get("PATH", ""),
+    }
     c = load_config(p, {"vehicle": ("fromcli", "--vehicle")}, environ=env)
     assert c.vehicle == "fromcli"
     assert c.mavlink.connection == "udpin:127.0.0.1:2000"
@@ -237,7 +328,10 @@ def test_environment_overrides_file_and_cli_overrides_environment(tmp_path):
 def test_bad_environment_value_names_the_variable():
     with pytest.raises(OnboardConfigError) as ei:
         load_config(None, environ={"IRTRACK_MAVLINK_ATTITUDE_RATE_HZ": "-3"})
-    assert str(ei.value) == "env IRTRACK_MAVLINK_ATTITUDE_RATE_HZ: mavlink.attitude_rate_hz: expected a number in (0, 1000], got -3"
+    assert (
+        str(ei.value)
+        == "env IRTRACK_MAVLINK_ATTITUDE_RATE_HZ: mavlink.attitude_rate_hz: expected a number in (0, 1000], got -3"
+    )
 
 
 def test_unknown_variable_of_a_known_section_is_an_error_with_a_hint():
@@ -266,8 +360,9 @@ def test_set_option_parses_yaml_values_and_refuses_unknown_paths():
 def test_daemon_exits_2_with_one_line_on_a_bad_config(tmp_path):
     p = write(tmp_path, "mavlink:\n  attitude_rate_hz: fast\n")
     env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
-    proc = subprocess.run([sys.executable, "-m", "onboard", "--config", p], capture_output=True, text=True,
-                          timeout=60, env=env, cwd=REPO)
+    proc = subprocess.run(
+        [sys.executable, "-m", "onboard", "--config", p], capture_output=True, text=True, timeout=60, env=env, cwd=REPO
+    )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert lines == [f"{p}: mavlink.attitude_rate_hz: expected a number in (0, 1000], got 'fast'"]

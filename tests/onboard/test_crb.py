@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.estimation.crb import bayesian_crb_covariance, bayesian_crb_rms_m, efficient_error_range_pct
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior
 

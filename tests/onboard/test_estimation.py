@@ -10,8 +10,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import estimator_noise_model, synthesize, synthesize_scenario
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.core.errors import InputError
 from onboard.estimation.map_estimator import MapConfig, MapEstimator, MotionPrior, NoiseModel
 from onboard.estimation.observations import Observations
@@ -62,8 +62,16 @@ def test_spline_reproduces_quadratics_and_their_derivatives():
 
 def _obs_rows(n=20):
     t = np.arange(n) / 30.0
-    return dict(t_s=t, uv_px=np.full((n, 2), 320.0), fx_px=764.7, fy_px=764.7, cx_px=320.0, cy_px=256.0,
-                p_cam_ned_m=np.zeros((n, 3)), q_ned_from_cam=np.tile([0.5, 0.5, 0.5, 0.5], (n, 1)))
+    return dict(
+        t_s=t,
+        uv_px=np.full((n, 2), 320.0),
+        fx_px=764.7,
+        fy_px=764.7,
+        cx_px=320.0,
+        cy_px=256.0,
+        p_cam_ned_m=np.zeros((n, 3)),
+        q_ned_from_cam=np.tile([0.5, 0.5, 0.5, 0.5], (n, 1)),
+    )
 
 
 @pytest.mark.parametrize(
@@ -92,7 +100,7 @@ def test_jacobian_matches_finite_differences_with_every_nuisance():
     for prior in (MotionPrior(1e-3, 2.5e-4, 0.3), MotionPrior(1e-3, 2.5e-4, 0.0, jerk=True)):
         prob = est.problem(obs, prior)
         theta = prob.theta_from_positions(truth.p_target_ned_m, omega=-0.1)
-        theta[prob.nc:] += 1e-5
+        theta[prob.nc :] += 1e-5
         r0, J, _ = prob.evaluate(theta)
         J = J.copy()
         Jn = np.empty_like(J)
@@ -104,8 +112,10 @@ def test_jacobian_matches_finite_differences_with_every_nuisance():
         assert np.max(np.abs(Jn - J)) < JAC_RTOL * np.max(np.abs(J))
 
 
-@pytest.mark.parametrize("q, start_m, cost_tol", [(1e-6, 250.0, 1e-4), (1e-1, 40.0, 1e-4), (1e-1, 1500.0, 1e-4),
-                                                   (1e-2, 600.0, 1e-4), (1e-6, 250.0, 0.0)])
+@pytest.mark.parametrize(
+    "q, start_m, cost_tol",
+    [(1e-6, 250.0, 1e-4), (1e-1, 40.0, 1e-4), (1e-1, 1500.0, 1e-4), (1e-2, 600.0, 1e-4), (1e-6, 250.0, 0.0)],
+)
 def test_lm_returns_the_jacobian_and_factor_of_the_solution_it_returns(q, start_m, cost_tol):
     """The Jacobian buffer is refilled in place by every evaluation, accepted or not: what solve() hands
     back (last_jacobian, the QR factor) must belong to the returned theta, also after rejected steps
@@ -165,7 +175,9 @@ def test_the_result_names_the_selection_and_the_solution_it_came_from():
     res = est.solve(obs)
     assert res.model == res.prior.family and res.model in res.family_log_evidence
     for fam, grid in res.grid_log_evidence.items():  # a family's evidence is the sum over its q grid
-        assert res.family_log_evidence[fam] == pytest.approx(float(np.logaddexp.reduce([ev for _, ev in grid])), abs=1e-9)
+        assert res.family_log_evidence[fam] == pytest.approx(
+            float(np.logaddexp.reduce([ev for _, ev in grid])), abs=1e-9
+        )
     assert res.prior.q_horizontal_m2ps3 in [q for q, _ in res.grid_log_evidence[res.model]]
     assert 0.0 < res.best_model_weight <= 1.0
     np.testing.assert_allclose(res.problem.positions(res.theta), res.p_ned_m, rtol=0, atol=1e-9)
@@ -191,7 +203,9 @@ def test_camera_track_smoothing_keeps_the_rest_and_cuts_the_jitter():
     smooth_rms = np.sqrt(np.mean((smoothed.p_cam_ned_m - truth.p_cam_ned_m) ** 2))
     assert raw_rms == pytest.approx(nc.camera_position_white_sigma_m, rel=0.15)
     assert smooth_rms < 0.4 * raw_rms  # ~sqrt(23 controls / 300 frames) = 0.28 of the white sigma
-    assert noise.camera_position_white_sigma_m == pytest.approx(nc.camera_position_white_sigma_m * np.sqrt(23 / 300), rel=0.1)
+    assert noise.camera_position_white_sigma_m == pytest.approx(
+        nc.camera_position_white_sigma_m * np.sqrt(23 / 300), rel=0.1
+    )
     assert est._smoothed_camera(obs)[0] is smoothed  # cached for the window
     off = MapEstimator(MapConfig(camera_track_knot_s=0.0), noise=estimator_noise_model(nc))
     assert off._smoothed_camera(obs)[0] is obs
@@ -242,7 +256,9 @@ def test_hovering_observer_is_flagged_unobservable():
     sc = load_scenario(reference_scenario_paths()["P1"])
     nc = load_noise_cases()["px0.3"]
     t = sc.frame_times_s()
-    truth, obs = synthesize(Cubic((0, 0, -60)), sc.target_motion(0), t, sc.camera.intrinsics, nc, np.random.default_rng(0))
+    truth, obs = synthesize(
+        Cubic((0, 0, -60)), sc.target_motion(0), t, sc.camera.intrinsics, nc, np.random.default_rng(0)
+    )
     res = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
     assert not res.observable
 

@@ -21,7 +21,9 @@ def test_observable_track_encodes_position_velocity_and_accuracies():
     assert target.est_capabilities == FOLLOW_TARGET_CAP_POS | FOLLOW_TARGET_CAP_VEL == 3
     back = wire_roundtrip(target.to_message())  # packed and parsed by pymavlink
     assert back.get_type() == "FOLLOW_TARGET" and back.timestamp == tr.time_boot_us // 1000
-    assert abs(back.lat - round(tr.lat_deg * 1e7)) <= ATOL_DEGE7 and abs(back.lon - round(tr.lon_deg * 1e7)) <= ATOL_DEGE7
+    assert (
+        abs(back.lat - round(tr.lat_deg * 1e7)) <= ATOL_DEGE7 and abs(back.lon - round(tr.lon_deg * 1e7)) <= ATOL_DEGE7
+    )
     assert back.alt == pytest.approx(tr.alt_m, abs=ATOL_M)
     assert list(back.vel) == pytest.approx([1.0, 0.0, 0.0], abs=ATOL_M)
     assert list(back.position_cov) == pytest.approx([math.sqrt(8.0), 1.0, 0.0], abs=ATOL_M)  # eph = sqrt(4 + 4), epv
@@ -42,7 +44,6 @@ def test_nothing_without_an_observable_position(kw):
     assert follow_target(None) is None
 
 
-
 class _FollowLink:
     def __init__(self) -> None:
         self.sent: list[FollowTarget] = []
@@ -57,8 +58,13 @@ def _follow_service(enabled: bool):
     from onboard.app.service import OnboardService
     from tests.fakes import FakeClock
 
-    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
-                        "follow": {"enabled": enabled, "rate_hz": 2.0}})
+    cfg = build_config(
+        {
+            "estimator": {"enabled": False},
+            "output": {"health_file": None},
+            "follow": {"enabled": enabled, "rate_hz": 2.0},
+        }
+    )
     clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.link = _FollowLink()

@@ -82,7 +82,9 @@ def test_rotmat_matches_scipy_with_w_first(q):
 @settings(max_examples=200, deadline=None)
 def test_hamilton_product_composes_like_matrices(a, b):
     a, b = unit(a), unit(b)
-    assert np.allclose(fr.rotmat_from_quat(fr.quat_multiply(a, b)), fr.rotmat_from_quat(a) @ fr.rotmat_from_quat(b), atol=1e-12)
+    assert np.allclose(
+        fr.rotmat_from_quat(fr.quat_multiply(a, b)), fr.rotmat_from_quat(a) @ fr.rotmat_from_quat(b), atol=1e-12
+    )
     assert np.allclose(fr.rotmat_from_quat(fr.quat_conjugate(a)), fr.rotmat_from_quat(a).T, atol=1e-12)
 
 

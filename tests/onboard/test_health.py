@@ -9,7 +9,8 @@ import time
 from pathlib import Path
 
 import pytest
-from hypothesis import given, strategies as st
+from hypothesis import given
+from hypothesis import strategies as st
 
 from onboard.app import health
 from onboard.core.errors import ConfigError
@@ -188,5 +189,7 @@ def test_probe_imports_only_the_standard_library():
         "heavy = {'numpy', 'zenoh', 'cv2', 'scipy', 'pymavlink', 'yaml'} & set(sys.modules); "
         "print(sorted(heavy))"
     )
-    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S)
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S
+    )
     assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -59,7 +59,9 @@ def add_blob(img, u, v, amp, sigma_u, sigma_v=None, angle_rad=0.0):
     return img
 
 
-def make_frame(u=None, v=None, amp=80.0, sigma=1.2, noise=1.0, rng=None, dtype=np.uint8, sigma_v=None, angle_rad=0.0, gradient=40.0):
+def make_frame(
+    u=None, v=None, amp=80.0, sigma=1.2, noise=1.0, rng=None, dtype=np.uint8, sigma_v=None, angle_rad=0.0, gradient=40.0
+):
     img = sky(gradient).copy()
     if u is not None:
         add_blob(img, u, v, amp, sigma, sigma_v, angle_rad)
@@ -110,8 +112,11 @@ def test_params_from_mapping():
     assert p.mean_kernel_px == 5 and isinstance(p.mean_kernel_px, int)
     assert p.threshold_low_sigma == 2.0 and isinstance(p.threshold_low_sigma, float) and p.lost_frames == 30
     assert ImagingParams.from_mapping(None) == ImagingParams()
-    with pytest.raises(ConfigError, match=r"^onboard.yaml: imaging.mean_kernel: expected a key of imaging .*"
-                                          r"got unknown key 'mean_kernel'; did you mean 'mean_kernel_px'\?$"):
+    with pytest.raises(
+        ConfigError,
+        match=r"^onboard.yaml: imaging.mean_kernel: expected a key of imaging .*"
+        r"got unknown key 'mean_kernel'; did you mean 'mean_kernel_px'\?$",
+    ):
         ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml")
     with pytest.raises(ConfigError, match=r"^cfg: imaging.mean_kernel_px: expected an integer >= 1, got 5.0$"):
         ImagingParams.from_mapping({"mean_kernel_px": 5.0}, where="cfg")
@@ -119,7 +124,9 @@ def test_params_from_mapping():
         ImagingParams.from_mapping({"coast_frames": 2.5}, where="cfg")
     with pytest.raises(ConfigError, match=r"^cfg: imaging.max_drift_px: expected a number >= 0, got '3'$"):
         ImagingParams.from_mapping({"max_drift_px": "3"}, where="cfg")
-    with pytest.raises(ConfigError, match=r"^cfg: imaging.lost_frames: expected an integer >= coast_frames \(3\), got 1$"):
+    with pytest.raises(
+        ConfigError, match=r"^cfg: imaging.lost_frames: expected an integer >= coast_frames \(3\), got 1$"
+    ):
         ImagingParams.from_mapping({"lost_frames": 1, "coast_frames": 3}, where="cfg")
     with pytest.raises(ConfigError, match=r"^cfg: imaging: expected a mapping with keys mean_kernel_px, "):
         ImagingParams.from_mapping([1, 2], where="cfg")
@@ -218,7 +225,10 @@ def test_tophat_keeps_a_small_target_and_regions_agree_with_the_full_frame():
     roi = tophat_residual(img, Region(270, 170, 334, 234), ImagingParams(mean_kernel_px=1))
     assert np.array_equal(roi, full[170:234, 270:334])  # a region does not depend on where it was cut
     p3 = ImagingParams()
-    assert np.allclose(tophat_residual(img, Region(270, 170, 334, 234), p3), tophat_residual(img, Region(0, 0, W_PX, H_PX), p3)[170:234, 270:334])
+    assert np.allclose(
+        tophat_residual(img, Region(270, 170, 334, 234), p3),
+        tophat_residual(img, Region(0, 0, W_PX, H_PX), p3)[170:234, 270:334],
+    )
 
 
 def test_robust_sigma_of_gaussian_noise():
@@ -271,7 +281,9 @@ def test_centroid_noise_free_mono8(u, v, amp, sigma):
     assert abs(dets[0].u_px - u) < CENTROID_NOISE_FREE_TOL_PX and abs(dets[0].v_px - v) < CENTROID_NOISE_FREE_TOL_PX
 
 
-@pytest.mark.parametrize("sigma, sigma_v, angle", [(1.2, None, 0.0), (0.7, None, 0.0), (3.0, 1.0, 0.4), (5.0, 1.5, 0.0)])
+@pytest.mark.parametrize(
+    "sigma, sigma_v, angle", [(1.2, None, 0.0), (0.7, None, 0.0), (3.0, 1.0, 0.4), (5.0, 1.5, 0.0)]
+)
 def test_centroid_with_netd_noise(sigma, sigma_v, angle):
     """Round and elongated (side-on quad-rotor) blobs, amplitude 50 grey over 1 grey noise."""
     rng = np.random.default_rng(11)
@@ -410,7 +422,9 @@ def test_kcf_carries_a_dim_target_while_coasting():
         rng = np.random.default_rng(seed)
         tr = TargetTracker(ImagingParams())
         for k, amp in enumerate([40.0] * 6 + [20.0, 10.0, 6.0]):
-            assert tr.update(make_frame(*path_uv(k), amp=amp, sigma=1.5, noise=1.0, rng=rng)).state == TrackState.TRACKING
+            assert (
+                tr.update(make_frame(*path_uv(k), amp=amp, sigma=1.5, noise=1.0, rng=rng)).state == TrackState.TRACKING
+            )
         for k in range(9, 12):
             o = tr.update(make_frame(*path_uv(k), amp=2.5, sigma=1.5, noise=1.0, rng=rng))
             assert o.state in (TrackState.COASTING, TrackState.TRACKING) and o.track_id == 1

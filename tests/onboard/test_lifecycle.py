@@ -24,9 +24,22 @@ def test_sighup_is_a_clean_exit(tmp_path):
     alive = tmp_path / "alive"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}",
-         "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--set", f"output.health_file={alive}"],
-        cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        [
+            sys.executable,
+            "-m",
+            "onboard",
+            "--mavlink",
+            f"udpin:127.0.0.1:{free_udp_port()}",
+            "--zenoh-listen",
+            f"tcp/127.0.0.1:{free_tcp_port()}",
+            "--set",
+            f"output.health_file={alive}",
+        ],
+        cwd=REPO,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     try:
         deadline = time.monotonic() + START_BUDGET_S

@@ -20,8 +20,15 @@ import pytest
 
 from onboard.core.errors import InputError
 from onboard.core.frames import rotmat_from_quat
-from onboard.io.live_view import (Q_ENU_FROM_NED, SCENE_TOPIC, LiveView, LiveViewSettings, ellipsoid_of_cov,
-                               frustum_lines_ned, los_segment_ned)
+from onboard.io.live_view import (
+    Q_ENU_FROM_NED,
+    SCENE_TOPIC,
+    LiveView,
+    LiveViewSettings,
+    ellipsoid_of_cov,
+    frustum_lines_ned,
+    los_segment_ned,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 ATOL = 1e-9  # dimensionless / metres, round-off
@@ -117,7 +124,7 @@ async def _watch(url: str, topics: set[str], want: dict[str, int], feed=None, ti
         try:
             ws = await websockets.connect(url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=5)
             break
-        except (OSError, asyncio.TimeoutError, websockets.exceptions.InvalidHandshake):
+        except (TimeoutError, OSError, websockets.exceptions.InvalidHandshake):
             if time.monotonic() > deadline:
                 raise
             await asyncio.sleep(0.2)
@@ -128,14 +135,16 @@ async def _watch(url: str, topics: set[str], want: dict[str, int], feed=None, ti
         assert ws.subprotocol in SUBPROTOCOLS
         subscribed = False
         while not all(len(messages[t]) >= n for t, n in want.items()):
-            assert time.monotonic() < deadline, f"within {timeout_s} s: advertised {sorted(advertised)}, " \
-                                                f"received {{t: len(v) for t, v in messages.items()}} = " \
-                                                f"{ {t: len(v) for t, v in messages.items()} }"
+            assert time.monotonic() < deadline, (
+                f"within {timeout_s} s: advertised {sorted(advertised)}, "
+                f"received {{t: len(v) for t, v in messages.items()}} = "
+                f"{ {t: len(v) for t, v in messages.items()} }"
+            )
             if feed is not None:
                 feed()
             try:
                 msg = await asyncio.wait_for(ws.recv(), 0.05 if feed is not None else 1.0)
-            except asyncio.TimeoutError:
+            except TimeoutError:
                 continue
             if isinstance(msg, str):
                 obj = json.loads(msg)
@@ -159,10 +168,28 @@ def _track(seq: int):
 
     o = GeodeticOrigin(47.4, 8.5, 500.0)
     los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0))
-    return Track("uav1", seq, 1_000_000 + seq * 33_333, "tracking", track_id=1, measurement_valid=True, u_px=320.0,
-                 v_px=256.0, bbox=(310.0, 246.0, 20.0, 20.0), pose_valid=True, los=los, origin=o, lat_deg=47.401,
-                 lon_deg=8.5, alt_m=600.0, p_ned_m=(150.0, 0.0, -100.0), v_ned_mps=(5.0, 0.0, 0.0),
-                 cov_p_ned_m2=np.diag([4.0, 1.0, 1.0]), range_m=150.0, observable=True)
+    return Track(
+        "uav1",
+        seq,
+        1_000_000 + seq * 33_333,
+        "tracking",
+        track_id=1,
+        measurement_valid=True,
+        u_px=320.0,
+        v_px=256.0,
+        bbox=(310.0, 246.0, 20.0, 20.0),
+        pose_valid=True,
+        los=los,
+        origin=o,
+        lat_deg=47.401,
+        lon_deg=8.5,
+        alt_m=600.0,
+        p_ned_m=(150.0, 0.0, -100.0),
+        v_ned_mps=(5.0, 0.0, 0.0),
+        cov_p_ned_m2=np.diag([4.0, 1.0, 1.0]),
+        range_m=150.0,
+        observable=True,
+    )
 
 
 @pytest.mark.integration
@@ -246,8 +273,9 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
     daemon = sim = None
     with open(tmp_path / "onboard.log", "wb") as dlog, open(tmp_path / "sim.log", "wb") as slog:
         try:
-            daemon = subprocess.Popen(daemon_command(plan), cwd=REPO, stdout=dlog, stderr=subprocess.STDOUT,
-                                      stdin=subprocess.DEVNULL, env=env)
+            daemon = subprocess.Popen(
+                daemon_command(plan), cwd=REPO, stdout=dlog, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env
+            )
             started = [False]
 
             def feed():  # start the simulator once the client is connected; fail fast on a dead daemon
@@ -255,13 +283,22 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
                 assert daemon.poll() is None, (tmp_path / "onboard.log").read_text()[-3000:]
                 if not started[0]:
                     started[0] = True
-                    sim = subprocess.Popen(sim_command(plan), cwd=REPO, stdout=slog, stderr=subprocess.STDOUT,
-                                           stdin=subprocess.DEVNULL, env=env)
+                    sim = subprocess.Popen(
+                        sim_command(plan),
+                        cwd=REPO,
+                        stdout=slog,
+                        stderr=subprocess.STDOUT,
+                        stdin=subprocess.DEVNULL,
+                        env=env,
+                    )
 
             frame_t, track_t = f"irtrack/{plan.vehicle}/ir/frame", f"irtrack/{plan.vehicle}/track"
             topics = {frame_t, track_t, SCENE_TOPIC}
-            got = asyncio.run(_watch(f"ws://127.0.0.1:{port}", topics, {frame_t: 3, track_t: 30, SCENE_TOPIC: 30}, feed,
-                                     timeout_s=120.0))
+            got = asyncio.run(
+                _watch(
+                    f"ws://127.0.0.1:{port}", topics, {frame_t: 3, track_t: 30, SCENE_TOPIC: 30}, feed, timeout_s=120.0
+                )
+            )
         finally:
             _kill(sim)
             rc = _kill(daemon)

@@ -86,7 +86,7 @@ def test_a_truncated_datagram_costs_only_itself(rig, stranger, from_stranger):
         (stranger.send if from_stranger else rig.ap.raw)(cut)
         rig.ap.attitude(1000 * (10_000 + 20 * k + 10), [1, 0, 0, 0])
         if k % 20 == 19:  # keep the socket buffer from overflowing on a loaded box
-            assert rig.drive(lambda: rig.counters["mavlink_truncated"] == k + 1)
+            assert rig.drive(lambda k=k: rig.counters["mavlink_truncated"] == k + 1)
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] - before == N_TRUNCATED)
     assert rig.counters["mavlink_truncated"] == N_TRUNCATED
     assert rig.pose.sizes()["attitude"] - before == N_TRUNCATED  # 200/200 valid datagrams decoded
@@ -96,8 +96,13 @@ def test_garbage_and_other_systems_never_receive_anything(rig, stranger):
     stranger.send(b"\xfd\x09\x00\x00")  # 4 bytes of a header
     stranger.send(os.urandom(120))
     stranger.send(stranger.pack(heartbeat_msg(), sysid=42))  # another "autopilot", one heartbeat
-    stranger.send(stranger.pack(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3),
-                                sysid=255, compid=190))
+    stranger.send(
+        stranger.pack(
+            mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 0, 3),
+            sysid=255,
+            compid=190,
+        )
+    )
     rig.connect()
     # the link sends heartbeats, TIMESYNC, rate requests and tracking status: all to the autopilot only
     for _ in range(3):
@@ -155,7 +160,7 @@ def test_two_autopilots_heartbeating_before_the_lock_are_ambiguous(rig, stranger
         stranger.send(stranger.pack(heartbeat_msg(), sysid=42))
         rig.ap.heartbeat()
         n = 2 * (k + 1)
-        assert rig.drive(lambda: rig.link.messages_rx == n)
+        assert rig.drive(lambda n=n: rig.link.messages_rx == n)
     assert rig.link.state == LINK_WAITING and rig.link.autopilot_sysid is None
     assert rig.counters["autopilot_ambiguous"] >= 1
     assert stranger.received() == []
@@ -185,8 +190,7 @@ def _rss_bytes() -> int:
 def _unknown_packet(msg_id: int, seq: int) -> bytes:
     """A well-formed MAVLink 2 frame (header, 8-byte payload, any CRC) with a message id the dialect lacks."""
     payload = struct.pack("<Q", msg_id)
-    header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, seq & 0xFF, AP_SYSID, 1,
-                         msg_id & 0xFFFF, msg_id >> 16)
+    header = struct.pack("<BBBBBBBHB", 0xFD, len(payload), 0, 0, seq & 0xFF, AP_SYSID, 1, msg_id & 0xFFFF, msg_id >> 16)
     return header + payload + b"\x00\x00"
 
 
@@ -246,7 +250,12 @@ def signed_rig():
 
 def _signed(msg, key: bytes, timestamp: int, sysid: int = AP_SYSID, link_id: int = 2) -> bytes:
     m = mav.MAVLink(None, srcSystem=sysid, srcComponent=1)
-    m.signing.secret_key, m.signing.sign_outgoing, m.signing.link_id, m.signing.timestamp = key, True, link_id, timestamp
+    m.signing.secret_key, m.signing.sign_outgoing, m.signing.link_id, m.signing.timestamp = (
+        key,
+        True,
+        link_id,
+        timestamp,
+    )
     return bytes(msg.pack(m))
 
 
@@ -274,7 +283,9 @@ def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_r
     stranger.send(good)
     assert r.drive(lambda: r.pose.sizes()["attitude"] == 1)  # only the genuine one, despite the future-stamped forgery
     stranger.send(good)  # replayed verbatim
-    stranger.send(_signed(attitude_msg(9_040), KEY, now_ts - 10**8, link_id=9))  # a new stream stamped 1000 s in the past
+    stranger.send(
+        _signed(attitude_msg(9_040), KEY, now_ts - 10**8, link_id=9)
+    )  # a new stream stamped 1000 s in the past
     assert r.drive(lambda: r.counters["mavlink_signature_replay"] == 1 and r.counters["mavlink_signature_stale"] == 1)
     c = r.counters
     assert (c["mavlink_unsigned"], c["mavlink_v1_refused"], c["mavlink_signature_bad"]) == (1, 1, 1)

@@ -51,7 +51,11 @@ class Rig:
         mount = CameraMount(gimballed=gimballed)
         self.pose = PoseBuffer(mount=mount, origin=GeodeticOrigin(LAT0, LON0, ALT0), counter=self.counters)
         self.link = MavlinkLink(
-            f"udpin:127.0.0.1:{self.port}", self.pose, self.counters, gimballed=gimballed, clock=self.clock,
+            f"udpin:127.0.0.1:{self.port}",
+            self.pose,
+            self.counters,
+            gimballed=gimballed,
+            clock=self.clock,
             config=config,
         )
         self.ap = FakeAutopilot(self.port, sysid=AP_SYSID, mav_type=mav.MAV_TYPE_FIXED_WING)
@@ -81,7 +85,7 @@ class Rig:
             self.ap.as_component(sysid, 1)
             self.ap.heartbeat()
             self.ap.as_component(AP_SYSID, 1)
-            assert self.drive(lambda: self.link.messages_rx > before)
+            assert self.drive(lambda before=before: self.link.messages_rx > before)
 
     def connect(self) -> None:
         """Heartbeats until the unpinned lock settles (1.5 s: the third one), then the rate requests."""
@@ -89,7 +93,9 @@ class Rig:
             self.heartbeats(3)
         else:
             self.ap.heartbeat()
-        assert self.drive(lambda: self.link.state == LINK_CONNECTED and self.link.rates_confirmed == set(self.link.rate_plan))
+        assert self.drive(
+            lambda: self.link.state == LINK_CONNECTED and self.link.rates_confirmed == set(self.link.rate_plan)
+        )
 
     def close(self) -> None:
         self.link.close()
@@ -153,7 +159,9 @@ def test_survives_random_bytes_bad_crc_and_bad_values(rig):
     ap.send(mav.MAVLink_attitude_quaternion_message(2000, math.nan, 0, 0, 0, 0, 0, 0, [0.0] * 4))
     ap.attitude(2_020_000, [0, 0, 0, 0])
     ap.position(2_000_000, 0.0, 0.0, 0.0)  # GPS dropout
-    ap.send(mav.MAVLink_global_position_int_message(2040, 2**31 - 1, 2**31 - 1, 0, 0, 0, 0, 0, 0))  # INT32_MAX sentinels
+    ap.send(
+        mav.MAVLink_global_position_int_message(2040, 2**31 - 1, 2**31 - 1, 0, 0, 0, 0, 0, 0)
+    )  # INT32_MAX sentinels
     for k in range(20):  # then good telemetry again (a junk datagram may swallow one)
         ap.attitude(1000 * (3000 + 20 * k), [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] >= 18 and rig.counters["attitude_zero"] == 1)
@@ -211,7 +219,7 @@ def test_timesync_maps_local_clock_to_autopilot_boot_clock(rig):
     rig.connect()
     for k in range(4):
         rig.clock.t_s += 1.0
-        assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
+        assert rig.drive(lambda k=k: rig.link.clock_sync.n_samples == k + 1)
     assert rig.link.status().clock_synced
     now_ns = time.monotonic_ns()
     truth_us = (now_ns - rig.ap.boot_ns) / 1000
@@ -227,7 +235,7 @@ def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
     rig.connect()
     for k in range(3):
         rig.clock.t_s += 1.0
-        assert rig.drive(lambda: rig.link.clock_sync.n_samples == k + 1)
+        assert rig.drive(lambda k=k: rig.link.clock_sync.n_samples == k + 1)
     n_before = len(rig.ap.commands)
     rig.ap.attitude(60_000_000, [1, 0, 0, 0])
     for t_ms in (800, 820, 840):  # time_boot_ms went back, three samples agree: the autopilot rebooted
@@ -263,12 +271,21 @@ def test_gimbal_status_reaches_the_pose_buffer():
         assert (285, 20_000) in [(mid, us) for mid, us, _ in r.ap.commands]  # 50 Hz: a sample within 20 ms of a frame
         q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
         for k in range(3):
-            r.ap.send(GimbalDeviceAttitudeStatus(1000 * (1000 + 100 * k), tuple(q_g),
-                                                 mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=0))
+            r.ap.send(
+                GimbalDeviceAttitudeStatus(
+                    1000 * (1000 + 100 * k),
+                    tuple(q_g),
+                    mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
+                    gimbal_device_id=0,
+                )
+            )
         # a separate gimbal component: its clock is unknown until TIMESYNC converged
         r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
-        r.ap.send(GimbalDeviceAttitudeStatus(77_000, (1.0, 0.0, 0.0, 0.0), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
-                                             gimbal_device_id=0))
+        r.ap.send(
+            GimbalDeviceAttitudeStatus(
+                77_000, (1.0, 0.0, 0.0, 0.0), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=0
+            )
+        )
         assert r.drive(lambda: r.pose.sizes()["gimbal"] == 3 and r.counters["gimbal_clock_unsynced"] == 1)
         for t in (1000, 1050, 1100, 1150, 1200):
             r.pose.add_attitude(t * 1000, quat_from_euler(0.0, 0.0, math.radians(90.0)))
@@ -290,8 +307,11 @@ def test_body_rates_and_gimbal_rates_reach_the_pose_buffer_for_extrapolation():
         w_earth = np.array([0.0, 0.2, 0.0])  # gimbal pitching up at 0.2 rad/s about east
         q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
         r.ap.attitude(1_000_000, [1, 0, 0, 0], w_frd)
-        r.ap.send(GimbalDeviceAttitudeStatus(1_000_000, tuple(q_g), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
-                                             tuple(w_earth), gimbal_device_id=0))
+        r.ap.send(
+            GimbalDeviceAttitudeStatus(
+                1_000_000, tuple(q_g), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME, tuple(w_earth), gimbal_device_id=0
+            )
+        )
         assert r.drive(lambda: r.pose.sizes()["attitude"] == 1 and r.pose.sizes()["gimbal"] == 1)
         r.pose.add_position_ned(1_000_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
         pose = r.pose.pose_at(1_020_000)  # 20 ms past every sample
@@ -312,10 +332,12 @@ def test_body_rates_and_gimbal_rates_reach_the_pose_buffer_for_extrapolation():
 
 def test_tracking_status_messages_on_the_wire(rig):
     rig.connect()
-    assert rig.link.send_tracking_geo_status(47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5,
-                                             dist_m=800.0, hdg_rad=0.3)
-    assert rig.link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_POINT,
-                                               point_x=0.25, point_y=0.75, radius=0.01)
+    assert rig.link.send_tracking_geo_status(
+        47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=800.0, hdg_rad=0.3
+    )
+    assert rig.link.send_tracking_image_status(
+        mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_POINT, point_x=0.25, point_y=0.75, radius=0.01
+    )
     assert rig.drive(lambda: rig.ap.got("CAMERA_TRACKING_GEO_STATUS") and rig.ap.got("CAMERA_TRACKING_IMAGE_STATUS"))
     geo = rig.ap.got("CAMERA_TRACKING_GEO_STATUS")[0]
     assert (geo.lat, geo.lon) == (471234568, -1225000000)
@@ -324,7 +346,10 @@ def test_tracking_status_messages_on_the_wire(rig):
     assert geo.dist == pytest.approx(800.0) and math.isnan(geo.hdg_acc)
     assert (geo.get_srcSystem(), geo.get_srcComponent()) == (AP_SYSID, 191)
     img = rig.ap.got("CAMERA_TRACKING_IMAGE_STATUS")[0]
-    assert (img.tracking_mode, img.target_data) == (mav.CAMERA_TRACKING_MODE_POINT, mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS)
+    assert (img.tracking_mode, img.target_data) == (
+        mav.CAMERA_TRACKING_MODE_POINT,
+        mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
+    )
     assert (img.point_x, img.point_y) == pytest.approx((0.25, 0.75)) and math.isnan(img.rec_top_x)
 
 
@@ -339,8 +364,17 @@ def test_tracking_status_messages_on_the_wire(rig):
     ],
 )
 def test_geo_status_rejects_bad_fields_by_name(rig, kwargs, field):
-    args = dict(lat_deg=47.0, lon_deg=8.0, alt_m=500.0, h_acc_m=1.0, v_acc_m=1.0, vel_n_mps=0.0, vel_e_mps=0.0,
-                vel_d_mps=0.0, vel_acc_mps=0.1)
+    args = dict(
+        lat_deg=47.0,
+        lon_deg=8.0,
+        alt_m=500.0,
+        h_acc_m=1.0,
+        v_acc_m=1.0,
+        vel_n_mps=0.0,
+        vel_e_mps=0.0,
+        vel_d_mps=0.0,
+        vel_acc_mps=0.1,
+    )
     args.update(kwargs)
     with pytest.raises(InputError, match=field):
         rig.link.send_tracking_geo_status(**args)
@@ -374,8 +408,10 @@ def test_parse_endpoint_forms(text, expected):
     assert parse_endpoint(text) == expected
 
 
-@pytest.mark.parametrize("text", ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1",
-                                  "serial:/dev/ttyS1:fast", "serial:"])
+@pytest.mark.parametrize(
+    "text",
+    ["", "udpin:14540", "udpin:host:0", "udpin:host:70000", "tcp:host", "ftp:x:1", "serial:/dev/ttyS1:fast", "serial:"],
+)
 def test_parse_endpoint_rejects_with_field_name(text):
     with pytest.raises(ConfigError, match="--mavlink"):
         parse_endpoint(text)

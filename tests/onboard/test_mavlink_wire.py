@@ -63,10 +63,19 @@ def test_attitude_quaternion_round_trip(t_us, q, w):
 
 
 @ROUND_TRIP
-@given(TIME_US, st.floats(-90, 90), st.floats(-180, 180), st.floats(-1e5, 1e5), st.floats(-1e5, 1e5),
-       st.tuples(*[st.floats(-327.67, 327.67)] * 3), st.one_of(st.just(math.nan), st.floats(-10.0, 10.0)))
+@given(
+    TIME_US,
+    st.floats(-90, 90),
+    st.floats(-180, 180),
+    st.floats(-1e5, 1e5),
+    st.floats(-1e5, 1e5),
+    st.tuples(*[st.floats(-327.67, 327.67)] * 3),
+    st.one_of(st.just(math.nan), st.floats(-10.0, 10.0)),
+)
 def test_global_position_int_round_trip(t_us, lat, lon, alt, alt_rel, v, hdg):
-    back = GlobalPositionInt.from_message(wire_roundtrip(GlobalPositionInt(t_us, lat, lon, alt, alt_rel, v, hdg).to_message()))
+    back = GlobalPositionInt.from_message(
+        wire_roundtrip(GlobalPositionInt(t_us, lat, lon, alt, alt_rel, v, hdg).to_message())
+    )
     assert back.time_boot_us == t_us // 1000 * 1000
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
     assert abs(back.alt_amsl_m - alt) <= MM_TOL_M + 1e-9 and abs(back.alt_rel_m - alt_rel) <= MM_TOL_M + 1e-9
@@ -79,17 +88,29 @@ def test_global_position_int_round_trip(t_us, lat, lon, alt, alt_rel, v, hdg):
 
 
 @ROUND_TRIP
-@given(TIME_US, st.tuples(UNIT, UNIT, UNIT, UNIT), st.sampled_from([mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
-       mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, mav.GIMBAL_DEVICE_FLAGS_YAW_LOCK, 0]),
-       st.tuples(*[st.one_of(st.just(math.nan), RATE)] * 3), st.integers(0, 2**32 - 1))
+@given(
+    TIME_US,
+    st.tuples(UNIT, UNIT, UNIT, UNIT),
+    st.sampled_from(
+        [
+            mav.GIMBAL_DEVICE_FLAGS_YAW_IN_EARTH_FRAME,
+            mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
+            mav.GIMBAL_DEVICE_FLAGS_YAW_LOCK,
+            0,
+        ]
+    ),
+    st.tuples(*[st.one_of(st.just(math.nan), RATE)] * 3),
+    st.integers(0, 2**32 - 1),
+)
 def test_gimbal_device_attitude_status_round_trip(t_us, q, flags, w, failure):
     sent = GimbalDeviceAttitudeStatus(t_us, q, flags, w, 0.5, failure)
     back = GimbalDeviceAttitudeStatus.from_message(wire_roundtrip(sent.to_message()))
     assert back.time_boot_us == t_us // 1000 * 1000 and (back.flags, back.failure_flags) == (flags, failure)
     assert all(_close(a, b, _f32(b)) for a, b in zip(back.q_ref_from_gimbal + back.omega_ref_rps, q + w))
     assert back.reference == sent.reference
-    assert back.reference == (GimbalReference.VEHICLE if flags in (mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, 0)
-                              else GimbalReference.EARTH)
+    assert back.reference == (
+        GimbalReference.VEHICLE if flags in (mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, 0) else GimbalReference.EARTH
+    )
 
 
 @ROUND_TRIP
@@ -106,8 +127,15 @@ def test_timesync_and_system_time_round_trip(tc1, ts1, unix_us, t_us):
 def test_camera_tracking_image_status_round_trip(status, mode, data, coords, dev):
     sent = CameraTrackingImageStatus(status, mode, data, *coords, dev)
     back = CameraTrackingImageStatus.from_message(wire_roundtrip(sent.to_message()))
-    assert (back.tracking_status, back.tracking_mode, back.target_data, back.camera_device_id) == (status, mode, data, dev)
-    assert all(_close(getattr(back, n), getattr(sent, n), _f32(getattr(sent, n))) for n in CameraTrackingImageStatus._COORDS)
+    assert (back.tracking_status, back.tracking_mode, back.target_data, back.camera_device_id) == (
+        status,
+        mode,
+        data,
+        dev,
+    )
+    assert all(
+        _close(getattr(back, n), getattr(sent, n), _f32(getattr(sent, n))) for n in CameraTrackingImageStatus._COORDS
+    )
 
 
 ACC = st.one_of(st.just(math.nan), st.floats(0.0, 1e4))
@@ -115,32 +143,61 @@ VEL = st.one_of(st.just(math.nan), st.floats(-1e3, 1e3))
 
 
 @ROUND_TRIP
-@given(st.floats(-90, 90), st.floats(-180, 180), st.floats(-1e4, 1e4), st.tuples(ACC, ACC, VEL, VEL, VEL, ACC, ACC, VEL, ACC))
+@given(
+    st.floats(-90, 90),
+    st.floats(-180, 180),
+    st.floats(-1e4, 1e4),
+    st.tuples(ACC, ACC, VEL, VEL, VEL, ACC, ACC, VEL, ACC),
+)
 def test_camera_tracking_geo_status_round_trip(lat, lon, alt, rest):
     sent = CameraTrackingGeoStatus(lat, lon, alt, *rest)
     back = CameraTrackingGeoStatus.from_message(wire_roundtrip(sent.to_message()))
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
-    for name in ("alt_m", "h_acc_m", "v_acc_m", "vel_n_mps", "vel_e_mps", "vel_d_mps", "vel_acc_mps", "dist_m", "hdg_rad",
-                 "hdg_acc_rad"):
+    for name in (
+        "alt_m",
+        "h_acc_m",
+        "v_acc_m",
+        "vel_n_mps",
+        "vel_e_mps",
+        "vel_d_mps",
+        "vel_acc_mps",
+        "dist_m",
+        "hdg_rad",
+        "hdg_acc_rad",
+    ):
         assert _close(getattr(back, name), getattr(sent, name), _f32(getattr(sent, name))), name
 
 
 @ROUND_TRIP
-@given(st.integers(0, 2**50), st.floats(-90, 90), st.floats(-180, 180), st.floats(-1e4, 1e4),
-       st.tuples(*[st.floats(-1e3, 1e3)] * 3), st.floats(0, 1e4), st.floats(0, 1e4))
+@given(
+    st.integers(0, 2**50),
+    st.floats(-90, 90),
+    st.floats(-180, 180),
+    st.floats(-1e4, 1e4),
+    st.tuples(*[st.floats(-1e3, 1e3)] * 3),
+    st.floats(0, 1e4),
+    st.floats(0, 1e4),
+)
 def test_follow_target_round_trip(t_us, lat, lon, alt, v, h_acc, v_acc):
     back = FollowTarget.from_message(wire_roundtrip(FollowTarget(t_us, lat, lon, alt, v, h_acc, v_acc).to_message()))
     assert back.time_boot_us == t_us // 1000 * 1000
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
-    assert all(_close(a, b, _f32(b)) for a, b in zip((back.alt_m, back.h_acc_m, back.v_acc_m, *back.v_ned_mps),
-                                                   (alt, h_acc, v_acc, *v)))
+    assert all(
+        _close(a, b, _f32(b))
+        for a, b in zip((back.alt_m, back.h_acc_m, back.v_acc_m, *back.v_ned_mps), (alt, h_acc, v_acc, *v))
+    )
 
 
 def test_heartbeat_commands_and_generic_messages_round_trip():
     hb = Heartbeat(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 7, mav.MAV_STATE_ACTIVE)
     assert Heartbeat.from_message(wire_roundtrip(hb.to_message())) == hb
     cmd = wire_roundtrip(set_message_interval_message(7, 1, 285, 20_000, 300))
-    assert (cmd.command, cmd.param1, cmd.param2, cmd.confirmation) == (mav.MAV_CMD_SET_MESSAGE_INTERVAL, 285.0, 20000.0, 255)
+    assert (cmd.command, cmd.param1, cmd.param2, cmd.confirmation) == (
+        mav.MAV_CMD_SET_MESSAGE_INTERVAL,
+        285.0,
+        20000.0,
+        255,
+    )
     ack = wire_roundtrip(command_ack_message(511, mav.MAV_RESULT_DENIED, 255, 190))
     assert (ack.command, ack.result, ack.target_system, ack.target_component) == (511, 2, 255, 190)
     m = message_from_fields("message_interval", dict(message_id=275, interval_us=100_000))

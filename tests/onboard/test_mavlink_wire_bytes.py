@@ -54,7 +54,9 @@ def _check(case: str, writes: list[bytes]) -> None:
         return
     golden = json.loads(GOLDEN.read_text())
     assert case in golden, f"{case}: no golden bytes"
-    assert len(hexes) == len(golden[case]), f"{case}: {len(hexes)} messages written, {len(golden[case])} in the golden file"
+    assert len(hexes) == len(golden[case]), (
+        f"{case}: {len(hexes)} messages written, {len(golden[case])} in the golden file"
+    )
     for k, (got, want) in enumerate(zip(hexes, golden[case])):
         assert got == want, f"{case}: message {k} differs:\n got  {got}\n want {want}"
 
@@ -65,8 +67,9 @@ def _check(case: str, writes: list[bytes]) -> None:
 def _vehicle(gimbal_yaw_frame: str):
     from groundsim.io.mavlink_vehicle import MavlinkVehicle
 
-    v = MavlinkVehicle("udpout:127.0.0.1:9", gimballed=True, gimbal_yaw_frame=gimbal_yaw_frame,
-                       unix_time_at_boot_us=UNIX_AT_BOOT_US)
+    v = MavlinkVehicle(
+        "udpout:127.0.0.1:9", gimballed=True, gimbal_yaw_frame=gimbal_yaw_frame, unix_time_at_boot_us=UNIX_AT_BOOT_US
+    )
     writes: list[bytes] = []
     v._conn.write = lambda buf: writes.append(bytes(buf))
     return v, writes
@@ -76,10 +79,18 @@ def _state(v, t_us: int, **over) -> None:
     from onboard.core.frames import quat_from_euler, quat_multiply
 
     q_body = quat_from_euler(0.05, -0.1, 2.0)
-    kw = dict(time_boot_us=t_us, lat_deg=32.0123456789, lon_deg=118.7654321987, alt_amsl_m=123.4567,
-              alt_rel_m=80.1234, v_ned_mps=(12.345, -6.789, 0.456), q_ned_from_body=tuple(q_body),
-              body_rates_radps=(0.01, -0.02, 0.03), heading_rad=2.0,
-              q_gimbal=tuple(quat_multiply(q_body, quat_from_euler(0.0, -0.5, 0.1))))
+    kw = dict(
+        time_boot_us=t_us,
+        lat_deg=32.0123456789,
+        lon_deg=118.7654321987,
+        alt_amsl_m=123.4567,
+        alt_rel_m=80.1234,
+        v_ned_mps=(12.345, -6.789, 0.456),
+        q_ned_from_body=tuple(q_body),
+        body_rates_radps=(0.01, -0.02, 0.03),
+        heading_rad=2.0,
+        q_gimbal=tuple(quat_multiply(q_body, quat_from_euler(0.0, -0.5, 0.1))),
+    )
     kw.update(over)
     v.update_state(**kw)
 
@@ -95,8 +106,12 @@ def test_vehicle_streams_are_byte_identical(gimbal_yaw_frame):
         _state(v, 2_000_000, v_ned_mps=(400.0, -400.0, 1.0), heading_rad=math.nan)  # saturated, unknown heading
         v.poll(2_100_000)
         v._on_timesync(_parsed(mav.MAVLink_timesync_message(0, 123_456_789), 255, 190))
-        for cmd, p1, p2 in ((mav.MAV_CMD_SET_MESSAGE_INTERVAL, 31, 10_000), (mav.MAV_CMD_REQUEST_MESSAGE, 242, 0),
-                            (mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1, 0), (mav.MAV_CMD_DO_SET_MODE, 0, 0)):
+        for cmd, p1, p2 in (
+            (mav.MAV_CMD_SET_MESSAGE_INTERVAL, 31, 10_000),
+            (mav.MAV_CMD_REQUEST_MESSAGE, 242, 0),
+            (mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, 1, 0),
+            (mav.MAV_CMD_DO_SET_MODE, 0, 0),
+        ):
             v._on_command(_parsed(mav.MAVLink_command_long_message(1, 1, cmd, 0, p1, p2, 0, 0, 0, 0, 0), 255, 190))
         v.poll(2_200_000)
     finally:
@@ -117,30 +132,61 @@ def test_autopilot_link_output_is_byte_identical():
     clock = FakeClock(1000.0)
     counters = RejectCounter(clock=clock)
     pose = PoseBuffer(mount=CameraMount(gimballed=True), origin=GeodeticOrigin(32.0, 118.8, 0.0), counter=counters)
-    link = MavlinkLink("udpout:127.0.0.1:9", pose, counters, gimballed=True, clock=clock, clock_ns=clock.ns,
-                       config=MavlinkLinkConfig(autopilot_sysid=7, lock_settle_s=0.0))
+    link = MavlinkLink(
+        "udpout:127.0.0.1:9",
+        pose,
+        counters,
+        gimballed=True,
+        clock=clock,
+        clock_ns=clock.ns,
+        config=MavlinkLinkConfig(autopilot_sysid=7, lock_settle_s=0.0),
+    )
     writes: list[bytes] = []
     inbox: list[bytes] = []
     link._transport.write = lambda buf: writes.append(bytes(buf))
     link._transport.read = lambda: (inbox.pop(0), ("127.0.0.1", 14555)) if inbox else None
     try:
         link.tick()  # HEARTBEAT (pinned system id)
-        inbox.append(_packed(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0,
-                                                           mav.MAV_STATE_ACTIVE, 3), 7))
+        inbox.append(
+            _packed(
+                mav.MAVLink_heartbeat_message(
+                    mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, mav.MAV_STATE_ACTIVE, 3
+                ),
+                7,
+            )
+        )
         link.poll()
         link.tick()  # SET_MESSAGE_INTERVAL #31, TIMESYNC request
-        inbox.append(_packed(mav.MAVLink_command_ack_message(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED,
-                                                             0, 0, 7, 191), 7))
+        inbox.append(
+            _packed(
+                mav.MAVLink_command_ack_message(
+                    mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAV_RESULT_ACCEPTED, 0, 0, 7, 191
+                ),
+                7,
+            )
+        )
         inbox.append(_packed(mav.MAVLink_timesync_message(0, 987_654_321), 7))
         link.poll()  # TIMESYNC reply, next SET_MESSAGE_INTERVAL
         clock.t_s += 1.5
         link.tick()  # retry, heartbeat, TIMESYNC
-        assert link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_POINT,
-                                               point_x=0.25, point_y=0.75, radius=0.01)
-        assert link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_RECTANGLE,
-                                               rec_top_x=0.1, rec_top_y=0.2, rec_bottom_x=0.3, rec_bottom_y=0.4)
-        assert link.send_tracking_geo_status(47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5,
-                                             dist_m=130.0, hdg_rad=0.3, hdg_acc_rad=0.05)
+        assert link.send_tracking_image_status(
+            mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
+            mav.CAMERA_TRACKING_MODE_POINT,
+            point_x=0.25,
+            point_y=0.75,
+            radius=0.01,
+        )
+        assert link.send_tracking_image_status(
+            mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
+            mav.CAMERA_TRACKING_MODE_RECTANGLE,
+            rec_top_x=0.1,
+            rec_top_y=0.2,
+            rec_bottom_x=0.3,
+            rec_bottom_y=0.4,
+        )
+        assert link.send_tracking_geo_status(
+            47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=130.0, hdg_rad=0.3, hdg_acc_rad=0.05
+        )
         assert link.send_tracking_geo_status(-33.9, 151.2, -10.0, 1.0, 2.0, math.nan, math.nan, math.nan, math.nan)
         assert link.send_follow_target(follow_target(_track(observable=True)))
     finally:
@@ -232,10 +278,18 @@ class _TurningCore:
 
         t = i / self.tick_rate_hz
         q_body = quat_from_euler(0.2 * math.sin(t), 0.05 * t, 1.0 + 0.3 * t)
-        return dict(time_boot_us=1_000_123 + round(t * 1e6), lat_deg=32.0 + 1.234567e-5 * t, lon_deg=118.8 - 3.3e-6 * t,
-                    alt_amsl_m=100.0 + 1.23456 * t, alt_rel_m=60.0 + t, v_ned_mps=np.array([10.0 + t, -3.456, -1.23456]),
-                    q_ned_from_body=q_body, body_rates_radps=np.array([0.2 * math.cos(t), 0.05, 0.3]), heading_rad=1.0,
-                    q_gimbal=quat_multiply(q_body, quat_from_euler(0.0, -0.3 - 0.1 * t, 0.2)))
+        return dict(
+            time_boot_us=1_000_123 + round(t * 1e6),
+            lat_deg=32.0 + 1.234567e-5 * t,
+            lon_deg=118.8 - 3.3e-6 * t,
+            alt_amsl_m=100.0 + 1.23456 * t,
+            alt_rel_m=60.0 + t,
+            v_ned_mps=np.array([10.0 + t, -3.456, -1.23456]),
+            q_ned_from_body=q_body,
+            body_rates_radps=np.array([0.2 * math.cos(t), 0.05, 0.3]),
+            heading_rad=1.0,
+            q_gimbal=quat_multiply(q_body, quat_from_euler(0.0, -0.3 - 0.1 * t, 0.2)),
+        )
 
 
 def test_lockstep_telemetry_feed_hands_the_pose_buffer_the_same_values():

@@ -15,9 +15,10 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from groundsim.world.scenario import NoiseCase, load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import estimator_noise_model, synthesize
+from groundsim.world.scenario import NoiseCase, load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.core.errors import ConfigError
+from onboard.core.frames import quat_from_rotvec, rotmat_from_quat
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 from onboard.estimation.metrics import evaluate
 from onboard.estimation.observations import Observations
@@ -31,7 +32,6 @@ from onboard.estimation.paper import (
     projection_matrices,
     projection_rows,
 )
-from onboard.core.frames import quat_from_rotvec, rotmat_from_quat
 
 ROW_REL_TOL = 1e-9  # residual of Q_i X - q_i relative to |Q_i| |X - C_i|: float64 rounding
 BAND_REL_TOL = 1e-12  # banded vs dense normal matrix
@@ -54,7 +54,9 @@ def p1():
 
 def _synth(sc, case, seed=1, t=None):
     t = sc.frame_times_s() if t is None else t
-    return synthesize(sc.observer_motion(), sc.target_motion(), t, sc.camera.intrinsics, case, np.random.default_rng(seed))
+    return synthesize(
+        sc.observer_motion(), sc.target_motion(), t, sc.camera.intrinsics, case, np.random.default_rng(seed)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -92,8 +94,16 @@ def test_rows_vanish_on_the_whole_ray_and_at_the_camera(rotvec, cam, xy, depth, 
     p_cam_frame = depth * np.array([xy[0], xy[1], 1.0])
     X = C + R_nc @ p_cam_frame
     uv = np.array([f * xy[0] + c[0], 1.1 * f * xy[1] + c[1]])
-    obs = Observations(t_s=[0.0], uv_px=[uv], fx_px=[f], fy_px=[1.1 * f], cx_px=[c[0]], cy_px=[c[1]],
-                       p_cam_ned_m=[C], q_ned_from_cam=[q_nc])
+    obs = Observations(
+        t_s=[0.0],
+        uv_px=[uv],
+        fx_px=[f],
+        fy_px=[1.1 * f],
+        cx_px=[c[0]],
+        cy_px=[c[1]],
+        p_cam_ned_m=[C],
+        q_ned_from_cam=[q_nc],
+    )
     P = projection_matrices(obs)[0]
     h = P @ np.append(X, 1.0)
     np.testing.assert_allclose(h[:2] / h[2], uv, atol=1e-6 * max(1.0, np.abs(uv).max()))
@@ -104,7 +114,9 @@ def test_rows_vanish_on_the_whole_ray_and_at_the_camera(rotvec, cam, xy, depth, 
     assert np.max(np.abs(Q[0] @ C - q[0])) <= ROW_REL_TOL * np.linalg.norm(Q[0]) * (np.linalg.norm(C) + 1.0)
     # the bearing is Q's null direction: every point of the ray satisfies the equations
     X2 = C + 3.7 * (X - C)
-    assert np.max(np.abs(Q[0] @ X2 - q[0])) <= ROW_REL_TOL * np.linalg.norm(Q[0]) * (np.linalg.norm(X2 - C) + np.linalg.norm(C) + 1.0)
+    assert np.max(np.abs(Q[0] @ X2 - q[0])) <= ROW_REL_TOL * np.linalg.norm(Q[0]) * (
+        np.linalg.norm(X2 - C) + np.linalg.norm(C) + 1.0
+    )
 
 
 def test_difference_operator_rows_and_null_spaces():
@@ -219,8 +231,16 @@ def test_no_covariance_and_timestamps_ignored(p1_noisy):
     np.testing.assert_array_equal(res.t_s, obs.t_s)
     # same rows, uneven timestamps: the frame-counting D gives the identical answer
     t_uneven = np.cumsum(np.random.default_rng(3).uniform(0.01, 0.2, len(obs)))
-    obs2 = Observations(t_s=t_uneven, uv_px=obs.uv_px, fx_px=obs.fx_px, fy_px=obs.fy_px, cx_px=obs.cx_px,
-                        cy_px=obs.cy_px, p_cam_ned_m=obs.p_cam_ned_m, q_ned_from_cam=obs.q_ned_from_cam)
+    obs2 = Observations(
+        t_s=t_uneven,
+        uv_px=obs.uv_px,
+        fx_px=obs.fx_px,
+        fy_px=obs.fy_px,
+        cx_px=obs.cx_px,
+        cy_px=obs.cy_px,
+        p_cam_ned_m=obs.p_cam_ned_m,
+        q_ned_from_cam=obs.q_ned_from_cam,
+    )
     # (re-validating renormalises the quaternions: last-bit differences only)
     np.testing.assert_allclose(PaperEstimator().solve(obs2).p_ned_m, res.p_ned_m, rtol=0, atol=1e-9)
 
@@ -262,11 +282,21 @@ def test_large_windows_refuse_when_the_cholesky_itself_fails(p1_clean, monkeypat
 # --------------------------------------------------------------------------- rejected inputs
 
 
-@pytest.mark.parametrize("kw, field", [
-    (dict(delta=0.0), "delta"), (dict(delta=-1.0), "delta"), (dict(delta=math.nan), "delta"),
-    (dict(delta=math.inf), "delta"), (dict(delta=True), "delta"), (dict(delta="1"), "delta"),
-    (dict(order=0), "order"), (dict(order=3), "order"), (dict(order=1.5), "order"), (dict(order=True), "order"),
-])
+@pytest.mark.parametrize(
+    "kw, field",
+    [
+        (dict(delta=0.0), "delta"),
+        (dict(delta=-1.0), "delta"),
+        (dict(delta=math.nan), "delta"),
+        (dict(delta=math.inf), "delta"),
+        (dict(delta=True), "delta"),
+        (dict(delta="1"), "delta"),
+        (dict(order=0), "order"),
+        (dict(order=3), "order"),
+        (dict(order=1.5), "order"),
+        (dict(order=True), "order"),
+    ],
+)
 def test_bad_config_is_rejected_naming_the_field(kw, field):
     with pytest.raises(ConfigError, match=f"PaperConfig.{field}"):
         PaperConfig(**kw)
@@ -302,5 +332,7 @@ def test_benchmark_f300_prints_ms(p1_noisy, capsys):
         times.append((time.perf_counter() - t0) * 1e3)
     assert res.solver == "banded_cholesky"
     with capsys.disabled():
-        print(f"\n[bench] paper closed form, F={len(obs)}, order 1: min {min(times):.3f} ms, "
-              f"median {float(np.median(times)):.3f} ms per solve (internal solve_ms {res.solve_ms:.3f})")
+        print(
+            f"\n[bench] paper closed form, F={len(obs)}, order 1: min {min(times):.3f} ms, "
+            f"median {float(np.median(times)):.3f} ms per solve (internal solve_ms {res.solve_ms:.3f})"
+        )

@@ -17,10 +17,8 @@ from hypothesis import strategies as st
 from bench.onboard import SyntheticScene
 from onboard.app.config import OnboardConfig, build_config
 from onboard.core.errors import InputError
-from onboard.estimation.sliding import TrackEstimate
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
 from onboard.core.irframe import HEADER, MAGIC, IrFrame, encode_irframe
-from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from onboard.core.pose import PoseBuffer, RejectCounter
 from onboard.core.track import (
     STATUS_SCHEMA,
@@ -32,15 +30,34 @@ from onboard.core.track import (
     track_to_bytes,
     track_to_json,
 )
+from onboard.estimation.sliding import TrackEstimate
 from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
+from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
 GEO_TOL_DEG = 1e-9  # ~0.1 mm: the same conversion both ways
 NED_TOL_M = 1e-6
 RECON_TOL_M = 3.0  # real estimator, 0.3 px pixel noise assumed, ~160 m range, a few seconds of orbit
-REQUIRED_KEYS = {"schema", "vehicle", "track_id", "time_boot_us", "state", "u_px", "v_px", "bbox", "lat_deg",
-                 "lon_deg", "alt_m", "ned_m", "origin", "vel_ned_mps", "sigma_ned_m", "range_m", "observable",
-                 "window_frames"}
+REQUIRED_KEYS = {
+    "schema",
+    "vehicle",
+    "track_id",
+    "time_boot_us",
+    "state",
+    "u_px",
+    "v_px",
+    "bbox",
+    "lat_deg",
+    "lon_deg",
+    "alt_m",
+    "ned_m",
+    "origin",
+    "vel_ned_mps",
+    "sigma_ned_m",
+    "range_m",
+    "observable",
+    "window_frames",
+}
 POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m", "ned_m", "vel_ned_mps", "sigma_ned_m", "range_m")
 
 
@@ -53,7 +70,6 @@ def _one_blas_thread():
     from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)
-
 
 
 class FakeEstimator:
@@ -74,8 +90,18 @@ class FakeEstimator:
         p, v = self.scene.target(ts)
         cam = self.scene.observer(ts)[0] if p_cam is None else np.asarray(p_cam)
         P = np.diag([4.0, 9.0, 1.0])
-        return TrackEstimate(t_s, p, v, P, np.diag([0.25, 0.25, 0.04]), self.observable,
-                             float(np.linalg.norm(p - cam)), 0.01, self.n, "cv")
+        return TrackEstimate(
+            t_s,
+            p,
+            v,
+            P,
+            np.diag([0.25, 0.25, 0.04]),
+            self.observable,
+            float(np.linalg.norm(p - cam)),
+            0.01,
+            self.n,
+            "cv",
+        )
 
     def add(self, t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         self.calls.append(("add", t_s))
@@ -100,8 +126,12 @@ class Rig:
         self.scene = SyntheticScene()
         self.config = config or OnboardConfig()
         self.counter = RejectCounter(log_interval_s=60.0)
-        self.pose = PoseBuffer(mount=self.scene.mount, config=self.config.pose.buffer_config(),
-                               origin=self.scene.origin, counter=self.counter)
+        self.pose = PoseBuffer(
+            mount=self.scene.mount,
+            config=self.config.pose.buffer_config(),
+            origin=self.scene.origin,
+            counter=self.counter,
+        )
         if estimator == "fake":
             self.est = FakeEstimator(self.scene, **fake_kw)
         elif estimator == "real":
@@ -212,8 +242,9 @@ def test_real_estimator_reconstructs_the_target_in_lockstep():
     err = np.linalg.norm(np.asarray(last.p_ned_m) - rig.scene.target(ts)[0])
     assert err < RECON_TOL_M, f"3-D error {err:.2f} m"
     assert err < 5 * math.sqrt(np.trace(last.cov_p_ned_m2)) + 0.5  # the sigma is not absurdly optimistic
-    assert last.window_frames > 100 and last.range_m == pytest.approx(np.linalg.norm(
-        rig.scene.target(ts)[0] - rig.scene.camera(ts)[0]), rel=0.03)
+    assert last.window_frames > 100 and last.range_m == pytest.approx(
+        np.linalg.norm(rig.scene.target(ts)[0] - rig.scene.camera(ts)[0]), rel=0.03
+    )
     assert rig.counter.total == 0
 
 
@@ -229,7 +260,10 @@ def _with_header(payload: bytes, **changes) -> bytes:
     magic, version, enc, w, h, seq, t = HEADER.unpack_from(payload, 0)
     vals = dict(magic=magic, version=version, enc=enc, w=w, h=h, seq=seq, t=t)
     vals.update(changes)
-    return HEADER.pack(vals["magic"], vals["version"], vals["enc"], vals["w"], vals["h"], vals["seq"], vals["t"]) + payload[HEADER.size:]
+    return (
+        HEADER.pack(vals["magic"], vals["version"], vals["enc"], vals["w"], vals["h"], vals["seq"], vals["t"])
+        + payload[HEADER.size :]
+    )
 
 
 BAD_PAYLOADS = {
@@ -326,7 +360,11 @@ def test_nan_and_zero_quaternions_and_gps_dropout_are_counted_and_frames_keep_th
     assert not rig.pose.add_position(t + 3000, 0.0, 0.0, 50.0)  # GNSS dropout sentinel
     tracks = rig.run(5, start=3)
     assert all(tr.pose_valid for tr in tracks)
-    assert {k: v for k, v in rig.counter.counts.items()} == {"attitude_not_finite": 1, "attitude_zero": 1, "position_zero": 1}
+    assert {k: v for k, v in rig.counter.counts.items()} == {
+        "attitude_not_finite": 1,
+        "attitude_zero": 1,
+        "position_zero": 1,
+    }
 
 
 def test_telemetry_gap_gives_2d_tracks_and_predictions_then_recovers():
@@ -384,30 +422,52 @@ def test_without_estimator_or_pose_source_the_pipeline_gives_2d_tracks():
 
 
 def _track(**kw) -> Track:
-    base = dict(vehicle="uav1", seq=7, time_boot_us=123, state="tracking", track_id=1, measurement_valid=True,
-                u_px=10.5, v_px=20.25, bbox=(5.0, 15.0, 16.0, 16.0), pose_valid=True,
-                origin=GeodeticOrigin(32.0, 118.8, 0.0), lat_deg=32.001, lon_deg=118.801, alt_m=80.0,
-                p_ned_m=(110.0, 95.0, -80.0), v_ned_mps=(3.0, 4.0, 0.0),
-                cov_p_ned_m2=np.diag([4.0, 9.0, 16.0]), cov_v_ned_m2ps2=np.diag([0.01, 0.04, 0.09]),
-                range_m=150.0, range_sigma_ratio=0.02, observable=True, window_frames=90, model="cv")
+    base = dict(
+        vehicle="uav1",
+        seq=7,
+        time_boot_us=123,
+        state="tracking",
+        track_id=1,
+        measurement_valid=True,
+        u_px=10.5,
+        v_px=20.25,
+        bbox=(5.0, 15.0, 16.0, 16.0),
+        pose_valid=True,
+        origin=GeodeticOrigin(32.0, 118.8, 0.0),
+        lat_deg=32.001,
+        lon_deg=118.801,
+        alt_m=80.0,
+        p_ned_m=(110.0, 95.0, -80.0),
+        v_ned_mps=(3.0, 4.0, 0.0),
+        cov_p_ned_m2=np.diag([4.0, 9.0, 16.0]),
+        cov_v_ned_m2ps2=np.diag([0.01, 0.04, 0.09]),
+        range_m=150.0,
+        range_sigma_ratio=0.02,
+        observable=True,
+        window_frames=90,
+        model="cv",
+    )
     base.update(kw)
     return Track(**base)
 
 
-@pytest.mark.parametrize("kw, match", [
-    ({"state": "flying"}, "Track.state"),
-    ({"u_px": None}, "both be set"),
-    ({"u_px": math.nan}, "u_px must be a finite"),
-    ({"track_id": 0}, "track_id"),
-    ({"seq": -1}, "seq"),
-    ({"time_boot_us": 1.5}, "time_boot_us"),
-    ({"lat_deg": None}, "all set or all None"),
-    ({"cov_p_ned_m2": np.eye(2)}, "3 x 3"),
-    ({"cov_p_ned_m2": -np.eye(3)}, "negative variance"),
-    ({"origin": None}, "needs its origin"),
-    ({"bbox": (0, 0, -1, 3)}, "bbox width"),
-    ({"lat_deg": 95.0}, "lat/lon out of range"),
-])
+@pytest.mark.parametrize(
+    "kw, match",
+    [
+        ({"state": "flying"}, "Track.state"),
+        ({"u_px": None}, "both be set"),
+        ({"u_px": math.nan}, "u_px must be a finite"),
+        ({"track_id": 0}, "track_id"),
+        ({"seq": -1}, "seq"),
+        ({"time_boot_us": 1.5}, "time_boot_us"),
+        ({"lat_deg": None}, "all set or all None"),
+        ({"cov_p_ned_m2": np.eye(2)}, "3 x 3"),
+        ({"cov_p_ned_m2": -np.eye(3)}, "negative variance"),
+        ({"origin": None}, "needs its origin"),
+        ({"bbox": (0, 0, -1, 3)}, "bbox width"),
+        ({"lat_deg": 95.0}, "lat/lon out of range"),
+    ],
+)
 def test_track_validation_names_the_field(kw, match):
     with pytest.raises(InputError, match=match):
         _track(**kw)
@@ -435,8 +495,17 @@ finite = st.floats(-1e6, 1e6, allow_nan=False)
 
 
 @settings(max_examples=80, deadline=None)
-@given(u=finite, v=finite, n=finite, e=finite, d=finite, s=st.floats(0, 1e3), state=st.sampled_from(["tracking", "coasting"]),
-       seq=st.integers(0, 2**32 - 1), t=st.integers(0, 2**63))
+@given(
+    u=finite,
+    v=finite,
+    n=finite,
+    e=finite,
+    d=finite,
+    s=st.floats(0, 1e3),
+    state=st.sampled_from(["tracking", "coasting"]),
+    seq=st.integers(0, 2**32 - 1),
+    t=st.integers(0, 2**63),
+)
 def test_json_round_trip_any_valid_track(u, v, n, e, d, s, state, seq, t):
     tr = _track(u_px=u, v_px=v, p_ned_m=(n, e, d), cov_p_ned_m2=np.eye(3) * s, state=state, seq=seq, time_boot_us=t)
     back = track_from_json(track_to_bytes(tr))
@@ -452,7 +521,12 @@ def test_image_status_is_normalised_and_flags_follow_the_state():
     f = image_status_fields(tr, 640, 512)
     assert (f["tracking_status"], f["tracking_mode"]) == (1, 2)  # ACTIVE, RECTANGLE
     assert math.isnan(f["point_x"]) and math.isnan(f["point_y"]) and math.isnan(f["radius"])  # not this mode's fields
-    assert (f["rec_top_x"], f["rec_top_y"], f["rec_bottom_x"], f["rec_bottom_y"]) == (312 / 640, 120 / 512, 328 / 640, 136 / 512)
+    assert (f["rec_top_x"], f["rec_top_y"], f["rec_bottom_x"], f["rec_bottom_y"]) == (
+        312 / 640,
+        120 / 512,
+        328 / 640,
+        136 / 512,
+    )
     pt = image_status_fields(tr, 640, 512, mode=1, radius=20 / 640)  # POINT: point fields only
     assert (pt["tracking_mode"], pt["point_x"], pt["point_y"], pt["radius"]) == (1, 0.5, 0.25, 20 / 640)
     assert math.isnan(pt["rec_top_x"]) and math.isnan(pt["rec_bottom_y"])
@@ -478,8 +552,21 @@ def test_geo_status_accuracies_are_one_sigma_root_sum_squares():
     assert f["dist_m"] == 150.0 and (f["lat_deg"], f["lon_deg"], f["alt_m"]) == (32.001, 118.801, 80.0)
     slow = geo_status_fields(_track(v_ned_mps=(0.05, 0.0, 0.0)))
     assert math.isnan(slow["hdg_rad"]) and math.isnan(slow["hdg_acc_rad"])  # speed below 2 sigma: no heading
-    assert geo_status_fields(_track(lat_deg=None, lon_deg=None, alt_m=None, p_ned_m=None, v_ned_mps=None,
-                                    cov_p_ned_m2=None, cov_v_ned_m2ps2=None, range_m=None)) is None
+    assert (
+        geo_status_fields(
+            _track(
+                lat_deg=None,
+                lon_deg=None,
+                alt_m=None,
+                p_ned_m=None,
+                v_ned_mps=None,
+                cov_p_ned_m2=None,
+                cov_v_ned_m2ps2=None,
+                range_m=None,
+            )
+        )
+        is None
+    )
     unobs = _track(observable=False)
     assert geo_status_fields(unobs) is None  # #276 only for observable positions by default
     assert geo_status_fields(unobs, observable_only=False)["h_acc_m"] == pytest.approx(math.sqrt(4 + 9))
@@ -493,13 +580,30 @@ def test_rolling_stats_and_status_document():
     for x in range(1, 201):
         r.add(x)
     s = r.summary()
-    assert s["n"] == 100 and s["max"] == 200.0 and s["p50"] == pytest.approx(150.5) and s["p99"] == pytest.approx(199.01)
+    assert (
+        s["n"] == 100 and s["max"] == 200.0 and s["p50"] == pytest.approx(150.5) and s["p99"] == pytest.approx(199.01)
+    )
     assert RollingStats().summary() == {"n": 0, "p50": None, "p99": None, "max": None}
-    st_ = build_status(vehicle="uav1", uptime_s=3.0, frames_in=10, frames_processed=7, frames_dropped=1,
-                       frames_rejected=2, tracks_published=7, processing_ms=s, latency_ms=s, pose_wait_ms=s,
-                       capture_to_track_ms=None, rejected={"frame_magic": 2, "dropped_queue": 1},
-                       link={"state": "connected", "rates_confirmed": (31, 33), "heartbeat_age_s": math.nan},
-                       cpu_share=0.5, pipeline_cpu_share=0.25, last_track=_track(), estimator="x", queue_length=0)
+    st_ = build_status(
+        vehicle="uav1",
+        uptime_s=3.0,
+        frames_in=10,
+        frames_processed=7,
+        frames_dropped=1,
+        frames_rejected=2,
+        tracks_published=7,
+        processing_ms=s,
+        latency_ms=s,
+        pose_wait_ms=s,
+        capture_to_track_ms=None,
+        rejected={"frame_magic": 2, "dropped_queue": 1},
+        link={"state": "connected", "rates_confirmed": (31, 33), "heartbeat_age_s": math.nan},
+        cpu_share=0.5,
+        pipeline_cpu_share=0.25,
+        last_track=_track(),
+        estimator="x",
+        queue_length=0,
+    )
     text = json.dumps(st_, allow_nan=False)
     back = json.loads(text)
     assert back["schema"] == STATUS_SCHEMA
@@ -516,8 +620,9 @@ def test_encode_of_scene_frames_is_irf1():
     assert encode_irframe(scene.frame(3)) == p
 
 
-
-@pytest.mark.parametrize("offset_us", [3600 * 1_000_000, -3600 * 1_000_000 // 1000, 5_000_000], ids=["+1h", "-3.6s", "+5s"])
+@pytest.mark.parametrize(
+    "offset_us", [3600 * 1_000_000, -3600 * 1_000_000 // 1000, 5_000_000], ids=["+1h", "-3.6s", "+5s"]
+)
 def test_a_single_far_frame_stamp_costs_one_frame(offset_us):
     rig = Rig(ready_after=100)
     rig.run(5)

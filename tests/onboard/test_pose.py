@@ -440,7 +440,9 @@ def test_reject_counter_logs_once_per_reason_per_interval(caplog):
 # --------------------------------------------------------------------------- clock sync
 
 
-def simulate_timesync(cs: ClockSync, rng, n, t0_local_ns, offset_ns, skew_ppm, period_ns=1_000_000_000, max_delay_ns=4_000_000):
+def simulate_timesync(
+    cs: ClockSync, rng, n, t0_local_ns, offset_ns, skew_ppm, period_ns=1_000_000_000, max_delay_ns=4_000_000
+):
     """Autopilot clock = local + offset + skew * (local - t0); random one-way delays."""
     t = t0_local_ns
     for _ in range(n):
@@ -481,10 +483,10 @@ def test_clock_sync_reseeds_after_remote_clock_restart():
     cs = ClockSync()
     t = simulate_timesync(cs, rng, 10, 10**12, offset_ns=7 * 10**9, skew_ppm=0.0)
     # autopilot reboots: its clock now reads ~0 -> offset jumps by -7 s
-    t = simulate_timesync(cs, rng, 2, t, offset_ns=-10**12 + 3 * 10**9, skew_ppm=0.0)
+    t = simulate_timesync(cs, rng, 2, t, offset_ns=-(10**12) + 3 * 10**9, skew_ppm=0.0)
     assert cs.counter["timesync_outlier"] == 2 and cs.resets == 0
     assert abs(cs.to_boot_us(t) - (t + 7 * 10**9) / 1e3) < 5_000  # old estimate still in force
-    t = simulate_timesync(cs, rng, 1, t, offset_ns=-10**12 + 3 * 10**9, skew_ppm=0.0)
+    t = simulate_timesync(cs, rng, 1, t, offset_ns=-(10**12) + 3 * 10**9, skew_ppm=0.0)
     assert cs.resets == 1 and cs.counter["timesync_reset"] == 1
     assert abs(cs.to_boot_us(t) - (t - 10**12 + 3 * 10**9) / 1e3) < 5_000
     cs.reset()
@@ -567,9 +569,9 @@ ATOL_EXTRAP_M = 1e-9  # constant velocity: p0 + v h is exact
 US = 1_000_000
 
 
-def q_body_rate_true(t_s, q0=Q0, w_frd=np.array([0.3, -0.2, 0.6])):
+def q_body_rate_true(t_s, q0=Q0, w_frd=(0.3, -0.2, 0.6)):
     """A constant body-rate rotation: q(t) = q0 (x) Exp(w_frd t)."""
-    return quat_multiply(q0, quat_from_rotvec(w_frd * t_s))
+    return quat_multiply(q0, quat_from_rotvec(np.asarray(w_frd, dtype=float) * t_s))
 
 
 def test_attitude_extrapolation_with_body_rates_matches_a_constant_rate_rotation():
@@ -629,9 +631,14 @@ def test_no_rates_no_extrapolation_and_the_miss_stays_not_yet():
     assert buf2.pose_at(30_000) is None and buf2.last_miss_reason == "position_not_yet"
 
 
-@pytest.mark.parametrize("stream, horizon_field", [("attitude", "att_max_extrapolation_us"),
-                                                    ("position", "pos_max_extrapolation_us"),
-                                                    ("gimbal", "gimbal_max_extrapolation_us")])
+@pytest.mark.parametrize(
+    "stream, horizon_field",
+    [
+        ("attitude", "att_max_extrapolation_us"),
+        ("position", "pos_max_extrapolation_us"),
+        ("gimbal", "gimbal_max_extrapolation_us"),
+    ],
+)
 def test_the_horizon_is_enforced_and_beyond_it_the_miss_is_counted_by_name(stream, horizon_field):
     horizon_us = 15_000
     cfg = PoseBufferConfig(**{horizon_field: horizon_us})
@@ -676,8 +683,9 @@ def test_gimbal_without_reported_rates_is_extrapolated_with_a_fitted_rate():
     assert math.acos(min(1.0, float(axis_hold @ axis_true))) > 1e-3
 
 
-def _gimballed_schedule(seed: int, att_hz=50.0, pos_hz=25.0, gim_hz=50.0, frame_hz=30.0, duration_s=20.0,
-                        wait_ms=5.0, gimbal_rates=False):
+def _gimballed_schedule(
+    seed: int, att_hz=50.0, pos_hz=25.0, gim_hz=50.0, frame_hz=30.0, duration_s=20.0, wait_ms=5.0, gimbal_rates=False
+):
     """Arrival-time simulation of a gimballed vehicle: telemetry stamped on its own grid (+0-1 ms
     jitter) arrives 1-8 ms after its time (a #285 takes 0.65 ms on a 921600 baud serial link; the
     autopilot's send loop and a router add a few ms); frames are captured at 30 Hz (+-2 ms jitter)
@@ -700,8 +708,7 @@ def _gimballed_schedule(seed: int, att_hz=50.0, pos_hz=25.0, gim_hz=50.0, frame_
             t = int(round(k * period + rng.uniform(0, 1000)))
             events.append((t + int(rng.uniform(1_000, 8_000)), kind, t))
     events.sort()
-    buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN,
-                     counter=RejectCounter(log_interval_s=3600.0))
+    buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN, counter=RejectCounter(log_interval_s=3600.0))
     frames = []
     for k in range(3, int(duration_s * frame_hz) - 3):
         t_cap = int(round(k * 1e6 / frame_hz + rng.uniform(-2_000, 2_000)))
@@ -749,8 +756,11 @@ def test_at_the_old_10_hz_gimbal_rate_frames_miss_with_a_named_reason():
 
 
 @settings(max_examples=150, deadline=None)
-@given(r0=unit_rotvec, w=st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0), st.floats(-5.0, 5.0)),
-       h_us=st.integers(0, 36_000))
+@given(
+    r0=unit_rotvec,
+    w=st.tuples(st.floats(-5.0, 5.0), st.floats(-5.0, 5.0), st.floats(-5.0, 5.0)),
+    h_us=st.integers(0, 36_000),
+)
 def test_attitude_extrapolation_turns_by_rate_times_horizon_about_the_body_axis(r0, w, h_us):
     q0 = quat_from_rotvec(np.array(r0))
     w = np.array(w)
@@ -782,7 +792,9 @@ def test_position_extrapolation_is_the_velocity_line(p0, v, h_us):
     buf.add_position_ned(0, p0, v)
     pose = buf.pose_at(h_us)
     assert pose is not None
-    np.testing.assert_allclose(pose.body.p_ned_m, np.array(p0) + np.array(v) * h_us / US, atol=1e-9 * (1 + np.abs(p0).max()))
+    np.testing.assert_allclose(
+        pose.body.p_ned_m, np.array(p0) + np.array(v) * h_us / US, atol=1e-9 * (1 + np.abs(p0).max())
+    )
     np.testing.assert_allclose(pose.body.v_ned_mps, v, atol=0)
 
 

@@ -22,12 +22,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import synthesize
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from onboard.app.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
 from onboard.estimation.map_estimator import MapConfig
 from onboard.estimation.metrics import evaluate
 from onboard.estimation.paper import PaperEstimator
-from onboard.app.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
 
 REPO = Path(__file__).resolve().parents[2]
 SUBPROCESS_TIMEOUT_S = 120
@@ -40,8 +40,17 @@ MIN_ROWS = MapConfig().min_frames
 
 
 def _row_values(obs, i):
-    return [obs.t_s[i], obs.uv_px[i, 0], obs.uv_px[i, 1], obs.fx_px[i], obs.fy_px[i], obs.cx_px[i], obs.cy_px[i],
-            *obs.p_cam_ned_m[i], *obs.q_ned_from_cam[i]]
+    return [
+        obs.t_s[i],
+        obs.uv_px[i, 0],
+        obs.uv_px[i, 1],
+        obs.fx_px[i],
+        obs.fy_px[i],
+        obs.cx_px[i],
+        obs.cy_px[i],
+        *obs.p_cam_ned_m[i],
+        *obs.q_ned_from_cam[i],
+    ]
 
 
 def obs_csv_text(obs, columns=OBS_COLUMNS, extra: dict | None = None) -> str:
@@ -58,8 +67,14 @@ def obs_csv_text(obs, columns=OBS_COLUMNS, extra: dict | None = None) -> str:
 
 def run_cli(*args, timeout=SUBPROCESS_TIMEOUT_S):
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONPATH=str(REPO))
-    return subprocess.run([sys.executable, "-m", "onboard.reconstruct", *map(str, args)], cwd=REPO, env=env,
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "onboard.reconstruct", *map(str, args)],
+        cwd=REPO,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def run_main(*args):
@@ -90,8 +105,14 @@ def p3_uneven():
     t[0] = 0.0
     keep = rng.uniform(size=t.size) > 0.15
     keep[(t > 4.0) & (t < 5.0)] = False
-    truth, obs = synthesize(sc.observer_motion(), sc.target_motion(), t[keep], sc.camera.intrinsics,
-                            load_noise_cases()["px0.3"], np.random.default_rng(5))
+    truth, obs = synthesize(
+        sc.observer_motion(),
+        sc.target_motion(),
+        t[keep],
+        sc.camera.intrinsics,
+        load_noise_cases()["px0.3"],
+        np.random.default_rng(5),
+    )
     assert np.ptp(np.diff(obs.t_s)) > 0.9  # uneven, with the gap
     return truth, obs
 
@@ -169,8 +190,14 @@ def test_bad_input_in_a_real_process_is_one_line_exit_2(small_obs, tmp_path):
 def test_unobservable_geometry_exits_0_with_observable_false(tmp_path):
     sc = load_scenario(reference_scenario_paths()["H3"])  # straight, constant-velocity observer
     t = sc.frame_times_s()[::3]
-    _, obs = synthesize(sc.observer_motion(), sc.target_motion(), t, sc.camera.intrinsics,
-                        load_noise_cases()["px0.3"], np.random.default_rng(2))
+    _, obs = synthesize(
+        sc.observer_motion(),
+        sc.target_motion(),
+        t,
+        sc.camera.intrinsics,
+        load_noise_cases()["px0.3"],
+        np.random.default_rng(2),
+    )
     src = tmp_path / "h3.csv"
     src.write_text(obs_csv_text(obs))
     rc, err = run_main(src, "-o", tmp_path / "out.csv", "--summary-json", tmp_path / "s.json")
@@ -221,7 +248,10 @@ def _drop_column(lines, column):
 BAD_TEXT_CASES = {
     "missing column": (lambda L: _drop_column(L, "cam_d_m"), ["line 1 (header)", "cam_d_m"]),
     "semicolons": (lambda L: [x.replace(",", ";") for x in L], ["line 1 (header)", "comma-separated"]),
-    "duplicate column": (lambda L: [L[0] + ",u_px"] + [x + ",1" for x in L[1:]], ["line 1 (header)", "'u_px' appears twice"]),
+    "duplicate column": (
+        lambda L: [L[0] + ",u_px"] + [x + ",1" for x in L[1:]],
+        ["line 1 (header)", "'u_px' appears twice"],
+    ),
     "nan cell": (lambda L: _set_cell(L, 6, "v_px", "nan"), ["line 6, column v_px", "not finite"]),
     "inf cell": (lambda L: _set_cell(L, 3, "cam_e_m", "-inf"), ["line 3, column cam_e_m", "not finite"]),
     "non-numeric": (lambda L: _set_cell(L, 8, "cx_px", "320px"), ["line 8, column cx_px", "not a number"]),
@@ -232,12 +262,17 @@ BAD_TEXT_CASES = {
     "non-unit quaternion": (lambda L: _scale_quat(L, 7, 1.01), ["line 7, column q_w..q_z", "quaternion norm 1.01"]),
     "zero quaternion": (lambda L: _scale_quat(L, 9, 0.0), ["line 9, column q_w..q_z", "quaternion norm 0"]),
     "decreasing time": (lambda L: _swap_t(L, 5, 6), ["line 6, column t_s", "strictly increase"]),
-    "repeated time": (lambda L: _set_cell(L, 4, "t_s", L[2].split(",")[0]), ["line 4, column t_s", "strictly increase"]),
+    "repeated time": (
+        lambda L: _set_cell(L, 4, "t_s", L[2].split(",")[0]),
+        ["line 4, column t_s", "strictly increase"],
+    ),
     "short row": (lambda L: L[:3] + [L[3].rsplit(",", 1)[0]] + L[4:], ["line 4:", "13 cells", "has 14"]),
     "long row": (lambda L: L[:9] + [L[9] + ",1"] + L[10:], ["line 10:", "15 cells"]),
     "blank lines keep physical numbering": (
-        lambda L: L[:3] + ["", "  "] + _set_cell(L, 4, "u_px", "x")[3:], ["line 6, column u_px"]),
-    "too few rows": (lambda L: L[: MIN_ROWS], [f"{MIN_ROWS - 1} data rows", f"at least {MIN_ROWS}"]),
+        lambda L: L[:3] + ["", "  "] + _set_cell(L, 4, "u_px", "x")[3:],
+        ["line 6, column u_px"],
+    ),
+    "too few rows": (lambda L: L[:MIN_ROWS], [f"{MIN_ROWS - 1} data rows", f"at least {MIN_ROWS}"]),
     "header only": (lambda L: L[:1], ["no data rows"]),
     "empty file": (lambda L: [], ["empty file"]),
     "whitespace only": (lambda L: ["   ", ""], ["empty file"]),
@@ -260,10 +295,13 @@ def test_bad_input_exit_2_one_line_naming_row_and_column(small_obs, tmp_path, ca
     assert not out.exists()
 
 
-@pytest.mark.parametrize("case, payload, expected", [
-    ("not utf-8", b"t_s,u_px\n\xff\xfe\x00garbage\n", "not UTF-8"),
-    ("nul byte", b"t_s,u_px,v_px\n1,2\x003\n", "line 2: contains a NUL byte"),
-])
+@pytest.mark.parametrize(
+    "case, payload, expected",
+    [
+        ("not utf-8", b"t_s,u_px\n\xff\xfe\x00garbage\n", "not UTF-8"),
+        ("nul byte", b"t_s,u_px,v_px\n1,2\x003\n", "line 2: contains a NUL byte"),
+    ],
+)
 def test_binary_files_are_rejected(tmp_path, case, payload, expected):
     src = tmp_path / "obs.csv"
     src.write_bytes(payload)
@@ -286,15 +324,18 @@ def test_unreadable_file(tmp_path, where):
     assert rc == 2 and err.count("\n") == 1 and err.startswith(f"error: cannot read {src}"), err
 
 
-@pytest.mark.parametrize("args, expected", [
-    (["--pixel-sigma", "0"], "--pixel-sigma must be > 0"),
-    (["--pixel-sigma", "abc"], "--pixel-sigma must be a number"),
-    (["--attitude-bias-deg", "-1"], "--attitude-bias-deg must be a finite number >= 0"),
-    (["--delta", "nan"], "--delta must be a finite number >= 0"),
-    (["--order", "3"], "--order"),
-    (["--method", "ekf"], "--method"),
-    ([], "-o/--output"),
-])
+@pytest.mark.parametrize(
+    "args, expected",
+    [
+        (["--pixel-sigma", "0"], "--pixel-sigma must be > 0"),
+        (["--pixel-sigma", "abc"], "--pixel-sigma must be a number"),
+        (["--attitude-bias-deg", "-1"], "--attitude-bias-deg must be a finite number >= 0"),
+        (["--delta", "nan"], "--delta must be a finite number >= 0"),
+        (["--order", "3"], "--order"),
+        (["--method", "ekf"], "--method"),
+        ([], "-o/--output"),
+    ],
+)
 def test_bad_arguments_exit_2_one_line(small_obs, tmp_path, args, expected):
     src = tmp_path / "obs.csv"
     src.write_text(obs_csv_text(small_obs))
@@ -331,12 +372,15 @@ def _check(rc, err):
 
 
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(st.one_of(
-    st.binary(max_size=300),
-    st.text(max_size=300),
-    st.lists(st.lists(st.text(st.characters(blacklist_categories=("Cs",)), max_size=8), max_size=16), max_size=14).map(
-        lambda rows: ",".join(OBS_COLUMNS) + "\n" + "\n".join(",".join(r) for r in rows)),
-))
+@given(
+    st.one_of(
+        st.binary(max_size=300),
+        st.text(max_size=300),
+        st.lists(
+            st.lists(st.text(st.characters(blacklist_categories=("Cs",)), max_size=8), max_size=16), max_size=14
+        ).map(lambda rows: ",".join(OBS_COLUMNS) + "\n" + "\n".join(",".join(r) for r in rows)),
+    )
+)
 def test_random_garbage_never_crashes(payload):
     text = payload if isinstance(payload, bytes) else payload.encode("utf-8", errors="surrogatepass")
     _check(*_fuzz_run(text))
@@ -348,13 +392,16 @@ def valid_lines(p3_uneven):
 
 
 CELL_VALUES = st.one_of(
-    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**6, 10**6).map(str),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**6), 10**6).map(str),
     st.sampled_from(["", " ", "-", "1e999", "0x10", "1_0", "nan", "None", '"1"', "1,2", "\t3"]),
     st.text(max_size=6),
 )
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.function_scoped_fixture]
+)
 @given(data=st.data())
 def test_mutated_valid_file_never_crashes(valid_lines, data):
     """Mutations of a valid 12-row file: some stay valid and reach the solvers (exit 0)."""

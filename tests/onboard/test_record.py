@@ -18,9 +18,16 @@ import pytest
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.irframe import IrFrame
 from onboard.core.pose import PoseAt, PoseSample
-from onboard.io.record import (FRAME_INPUT_TOPIC, FlightRecorder, RecordSettings, irframe_from_rawimage,
-                            pose_from_json, pose_to_json, rotated_path)
 from onboard.core.track import Track
+from onboard.io.record import (
+    FRAME_INPUT_TOPIC,
+    FlightRecorder,
+    RecordSettings,
+    irframe_from_rawimage,
+    pose_from_json,
+    pose_to_json,
+    rotated_path,
+)
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix  # noqa: E402
@@ -36,8 +43,7 @@ def _pose(t_us: int, k: int = 0) -> PoseAt:
     q = rng.normal(size=4)
     q /= np.linalg.norm(q)
     body = PoseSample(t_us, rng.normal(size=3) * 100, np.array([1.0, np.nan, 0.5]), q)
-    return PoseAt(body, rng.normal(size=3) * 100, q, None, ORIGIN, 20000, 40000, None, 0,
-                  sigma_extrapolation_rad=1e-5)
+    return PoseAt(body, rng.normal(size=3) * 100, q, None, ORIGIN, 20000, 40000, None, 0, sigma_extrapolation_rad=1e-5)
 
 
 def _frame(seq: int, dtype=np.uint8) -> IrFrame:
@@ -72,7 +78,9 @@ def test_pose_from_json_names_the_missing_field():
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path, dtype):
     path = tmp_path / "f.mcap"
-    rec = FlightRecorder(RecordSettings(str(path), chunk_bytes=64 * 1024), vehicle="uav7", metadata={"config_yaml": "a: 1\n"})
+    rec = FlightRecorder(
+        RecordSettings(str(path), chunk_bytes=64 * 1024), vehicle="uav7", metadata={"config_yaml": "a: 1\n"}
+    )
     rec.start()
     frames = [_frame(i, dtype) for i in range(20)]
     for i, fr in enumerate(frames):
@@ -80,9 +88,23 @@ def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path
         rec.on_frame(fr, 10_000 + i)
         rec.on_frame_input(fr, 10_000 + i, True, _pose(fr.time_boot_us, i))
         cov = np.diag([4.0, 9.0, 16.0])
-        rec.on_track(Track("uav7", fr.seq, fr.time_boot_us, "tracking", track_id=1, lat_deg=47.4, lon_deg=8.5, alt_m=500.0,
-                           p_ned_m=(1.0, 2.0, 3.0), v_ned_mps=(0.0, 0.0, 0.0), cov_p_ned_m2=cov, range_m=300.0,
-                           origin=ORIGIN))
+        rec.on_track(
+            Track(
+                "uav7",
+                fr.seq,
+                fr.time_boot_us,
+                "tracking",
+                track_id=1,
+                lat_deg=47.4,
+                lon_deg=8.5,
+                alt_m=500.0,
+                p_ned_m=(1.0, 2.0, 3.0),
+                v_ned_mps=(0.0, 0.0, 0.0),
+                cov_p_ned_m2=cov,
+                range_m=300.0,
+                origin=ORIGIN,
+            )
+        )
     rec.on_status(b'{"schema":"irtrack.status/1"}')
     rec.close()
     assert rec.dropped == 0 and rec.write_errors == 0
@@ -91,8 +113,14 @@ def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path
     for s, c, m in msgs:
         by_topic.setdefault(c.topic, []).append((s, c, m))
     assert {t: len(v) for t, v in by_topic.items()} == {
-        "/mavlink/autopilot": 20, "irtrack/uav7/ir/frame": 20, FRAME_INPUT_TOPIC: 20, "/onboard/camera_fix": 20,
-        "irtrack/uav7/track": 20, "/onboard/target_fix": 20, "irtrack/uav7/status": 1}
+        "/mavlink/autopilot": 20,
+        "irtrack/uav7/ir/frame": 20,
+        FRAME_INPUT_TOPIC: 20,
+        "/onboard/camera_fix": 20,
+        "irtrack/uav7/track": 20,
+        "/onboard/target_fix": 20,
+        "irtrack/uav7/status": 1,
+    }
     s, c, m = by_topic["irtrack/uav7/ir/frame"][5]
     assert (s.name, s.encoding, c.message_encoding) == ("foxglove.RawImage", "protobuf", "protobuf")
     img = RawImage()
@@ -137,8 +165,12 @@ def test_backlog_beyond_queue_is_dropped_and_counted_without_blocking(tmp_path):
 
 def test_rotation_by_size_keeps_max_files(tmp_path):
     path = str(tmp_path / "r.mcap")
-    rec = FlightRecorder(RecordSettings(path, max_file_bytes=20_000, max_files=2, compression="none",
-                                        chunk_bytes=4096, flush_interval_s=0.05), vehicle="uav1")
+    rec = FlightRecorder(
+        RecordSettings(
+            path, max_file_bytes=20_000, max_files=2, compression="none", chunk_bytes=4096, flush_interval_s=0.05
+        ),
+        vehicle="uav1",
+    )
     rec.start()
     for i in range(30):
         rec.on_frame(_frame(i), i)
@@ -150,7 +182,7 @@ def test_rotation_by_size_keeps_max_files(tmp_path):
     assert rec.files[-1] != path and rec.files[0] != path  # rotated past the first file, which was deleted
     seqs = []
     for name in left:
-        for _, c, m in _read_all(tmp_path / name):
+        for _, _c, m in _read_all(tmp_path / name):
             seqs.append(m.sequence)
     assert seqs == sorted(seqs) and seqs[-1] == 29  # the newest files, whole and readable
 
@@ -175,8 +207,12 @@ _CHILD = textwrap.dedent("""
 @pytest.mark.integration
 def test_sigkill_leaves_a_file_that_reads_up_to_its_last_chunk(tmp_path):
     path = tmp_path / "k.mcap"
-    child = subprocess.Popen([sys.executable, "-c", _CHILD.format(repo=str(REPO), path=str(path))],
-                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=REPO)
+    child = subprocess.Popen(
+        [sys.executable, "-c", _CHILD.format(repo=str(REPO), path=str(path))],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        cwd=REPO,
+    )
     try:
         t_end = time.monotonic() + CHILD_TIMEOUT_S
         line = b""
@@ -207,4 +243,6 @@ def test_sigkill_leaves_a_file_that_reads_up_to_its_last_chunk(tmp_path):
             ended = exc
     assert ended is not None  # no footer: it was killed, not closed
     assert len(seqs) >= 50 and seqs == list(range(len(seqs)))
-    print(f"killed writer: {len(seqs)} frames readable, file {path.stat().st_size} bytes, ended by {type(ended).__name__}")
+    print(
+        f"killed writer: {len(seqs)} frames readable, file {path.stat().st_size} bytes, ended by {type(ended).__name__}"
+    )

@@ -58,10 +58,23 @@ def _kill(proc: subprocess.Popen | None, sig=signal.SIGTERM, wait_s: float = 10.
     return proc.returncode
 
 
-def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_s: float | None = None,
-                extra_daemon_args: tuple = ()) -> RecordedRun:
+def record_pair(
+    out: Path,
+    *,
+    duration_s: float = DURATION_S,
+    kill_daemon_after_s: float | None = None,
+    extra_daemon_args: tuple = (),
+) -> RecordedRun:
     """Daemon (worker inline, --record) then simulator (--record, real time) on loopback; returns what they wrote."""
-    from groundsim.evaluation.demo import TrackStore, child_env, close_zenoh, daemon_command, log_tail, plan_demo, sim_command
+    from groundsim.evaluation.demo import (
+        TrackStore,
+        child_env,
+        close_zenoh,
+        daemon_command,
+        log_tail,
+        plan_demo,
+        sim_command,
+    )
     from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
 
     out.mkdir(parents=True, exist_ok=True)
@@ -78,14 +91,24 @@ def record_pair(out: Path, *, duration_s: float = DURATION_S, kill_daemon_after_
         daemon = _start(dcmd, out / "onboard.log", env)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
         encodings: set = set()
-        subs.append(session.declare_subscriber(
-            track_key(plan.vehicle), lambda s: (encodings.add(str(s.encoding)), store.on_track(s.payload.to_bytes()))))
-        subs.append(session.declare_subscriber(
-            status_key(plan.vehicle), lambda s: (encodings.add(str(s.encoding)), store.on_status(s.payload.to_bytes()))))
+        subs.append(
+            session.declare_subscriber(
+                track_key(plan.vehicle),
+                lambda s: (encodings.add(str(s.encoding)), store.on_track(s.payload.to_bytes())),
+            )
+        )
+        subs.append(
+            session.declare_subscriber(
+                status_key(plan.vehicle),
+                lambda s: (encodings.add(str(s.encoding)), store.on_status(s.payload.to_bytes())),
+            )
+        )
         t_ready = time.monotonic() + READY_TIMEOUT_S
         while not store.ready.wait(0.1):
             assert daemon.poll() is None, f"daemon exited {daemon.returncode}:\n{log_tail(out / 'onboard.log')}"
-            assert time.monotonic() < t_ready, f"no daemon status within {READY_TIMEOUT_S} s:\n{log_tail(out / 'onboard.log')}"
+            assert time.monotonic() < t_ready, (
+                f"no daemon status within {READY_TIMEOUT_S} s:\n{log_tail(out / 'onboard.log')}"
+            )
         sim = _start(scmd, out / "sim.log", env)
         t0 = time.monotonic()
         deadline = t0 + duration_s + SIM_ALLOWANCE_S
@@ -147,7 +170,7 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
     }
     sim = _messages(r.sim_mcap)
     sim_by: dict = {}
-    for s, c, m in sim:
+    for _s, c, m in sim:
         sim_by.setdefault(c.topic, []).append(m)
     n_sent = len(sim_by["irtrack/uav1/ir/frame"])
     assert n_sent == int(DURATION_S * 30) and len(sim_by["/groundsim/truth"]) == n_sent
@@ -172,8 +195,10 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
     rec = json.loads(by["irtrack/uav1/status"][-1][2].data)["record"]
     assert rec["dropped"] == 0 and rec["write_errors"] == 0
     size_mb = r.daemon_mcap.stat().st_size / 1e6
-    print(f"daemon recording: {len(msgs)} messages, {size_mb:.1f} MB for {DURATION_S:g} s "
-          f"({size_mb * 60 / DURATION_S:.0f} MB/min); simulator recording {r.sim_mcap.stat().st_size / 1e6:.1f} MB")
+    print(
+        f"daemon recording: {len(msgs)} messages, {size_mb:.1f} MB for {DURATION_S:g} s "
+        f"({size_mb * 60 / DURATION_S:.0f} MB/min); simulator recording {r.sim_mcap.stat().st_size / 1e6:.1f} MB"
+    )
 
 
 def test_sigkilled_recording_daemon_leaves_a_file_readable_up_to_its_last_chunk(tmp_path):

@@ -15,8 +15,14 @@ from hypothesis import strategies as st
 
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
 from onboard.core.irframe import IrFrame
-from onboard.io.record import (FlightRecorder, RecordSettings, _fix_fields, geodetic_from_ned_scalar, rawimage_bytes,
-                               rawimage_fields)
+from onboard.io.record import (
+    FlightRecorder,
+    RecordSettings,
+    _fix_fields,
+    geodetic_from_ned_scalar,
+    rawimage_bytes,
+    rawimage_fields,
+)
 
 ATOL_DEG = 1e-11  # ~1 um on the ground
 ATOL_M = 1e-6  # 1 um
@@ -57,25 +63,40 @@ def test_periodic_sync_keeps_the_file_whole(tmp_path):
     for i in range(40):
         rec.on_frame(IrFrame(i, 1_000_000 + i * 33_333, px), 1000 + i)
     rec.close(30.0)
-    assert rec.syncs >= 1 and rec.write_errors == 0  # after a batch past sync_bytes and rec.stats()["syncs"] == rec.syncs
+    assert (
+        rec.syncs >= 1 and rec.write_errors == 0
+    )  # after a batch past sync_bytes and rec.stats()["syncs"] == rec.syncs
     with open(path, "rb") as f:
         msgs = list(make_reader(f).iter_messages())
     assert [m.sequence for _s, _c, m in msgs] == list(range(40))
 
 
 @settings(max_examples=200, deadline=None)
-@given(data=st.binary(max_size=300), link=st.sampled_from(["autopilot", "gcs", "vehicle", "l\u00e9\"\\"]),
-       source=st.one_of(st.none(), st.tuples(st.sampled_from(["127.0.0.1", "::1"]), st.integers(0, 65535)),
-                        st.text(max_size=12)),
-       direction=st.sampled_from(["rx", "tx"]), now=st.integers(0, 2**63 - 1))
+@given(
+    data=st.binary(max_size=300),
+    link=st.sampled_from(["autopilot", "gcs", "vehicle", 'l\u00e9"\\']),
+    source=st.one_of(
+        st.none(), st.tuples(st.sampled_from(["127.0.0.1", "::1"]), st.integers(0, 65535)), st.text(max_size=12)
+    ),
+    direction=st.sampled_from(["rx", "tx"]),
+    now=st.integers(0, 2**63 - 1),
+)
 def test_mavlink_json_is_json_dumps_of_the_documented_object(data, link, source, direction, now):
     import base64
     import json
 
     rec = FlightRecorder(RecordSettings("/nonexistent/never_opened.mcap"), vehicle="uav1")
     src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) else str(source))
-    ref = json.dumps({"link": link, "direction": direction, "receive_time_ns": now, "source": src,
-                      "data": base64.b64encode(data).decode()}, separators=(",", ":")).encode()
+    ref = json.dumps(
+        {
+            "link": link,
+            "direction": direction,
+            "receive_time_ns": now,
+            "source": src,
+            "data": base64.b64encode(data).decode(),
+        },
+        separators=(",", ":"),
+    ).encode()
     assert rec._mavlink_json(data, link, source, direction, now) == ref
     assert rec._mavlink_json(data, link, source, direction, now) == ref  # from the cached parts
 

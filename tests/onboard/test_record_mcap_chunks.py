@@ -18,8 +18,11 @@ from onboard.io.mcap_chunks import ChunkWriter
 mcap_writer = pytest.importorskip("mcap.writer")
 from mcap.reader import make_reader  # noqa: E402
 
-COMPRESSION = {"none": mcap_writer.CompressionType.NONE, "lz4": mcap_writer.CompressionType.LZ4,
-               "zstd": mcap_writer.CompressionType.ZSTD}
+COMPRESSION = {
+    "none": mcap_writer.CompressionType.NONE,
+    "lz4": mcap_writer.CompressionType.LZ4,
+    "zstd": mcap_writer.CompressionType.ZSTD,
+}
 
 # one call of the writer's interface: ("schema", name) | ("channel", schema index) | ("message", channel index,
 # log time, size, pieces) | ("flush",)
@@ -75,8 +78,12 @@ def _ours(path, calls, chunk_size: int, compression: str, crcs: bool) -> bytes:
 
 
 @settings(max_examples=60, deadline=None)
-@given(calls=st.lists(_call, max_size=40), chunk_size=st.sampled_from([1, 1000, 64 * 1024, 1024 * 1024]),
-       compression=st.sampled_from(["none", "lz4", "zstd"]), crcs=st.booleans())
+@given(
+    calls=st.lists(_call, max_size=40),
+    chunk_size=st.sampled_from([1, 1000, 64 * 1024, 1024 * 1024]),
+    compression=st.sampled_from(["none", "lz4", "zstd"]),
+    crcs=st.booleans(),
+)
 def test_the_same_bytes_as_the_mcap_packages_writer(tmp_path_factory, calls, chunk_size, compression, crcs):
     path = tmp_path_factory.mktemp("chunks") / "ours.mcap"
     assert _ours(path, calls, chunk_size, compression, crcs) == _theirs(calls, chunk_size, compression, crcs)

@@ -50,17 +50,22 @@ nal_units = st.builds(_nal, st.sampled_from([1, 5, 6, 7, 8]), _body, st.integers
 non_idr_units = st.builds(_nal, st.sampled_from([1, 6, 7, 8]), _body, st.integers(0, 3))  # IDR insertion: below
 
 
-@given(st.lists(nal_units, min_size=1, max_size=8), st.lists(st.booleans(), min_size=8, max_size=8),
-       st.integers(0, 3))
+@given(st.lists(nal_units, min_size=1, max_size=8), st.lists(st.booleans(), min_size=8, max_size=8), st.integers(0, 3))
 def test_split_annexb_recovers_the_nal_units_whatever_the_start_codes(nals, long_codes, trailing_zeros):
-    stream = b"".join((b"\x00\x00\x00\x01" if long_codes[i] else b"\x00\x00\x01") + n + b"\x00" * trailing_zeros
-                      for i, n in enumerate(nals))
+    stream = b"".join(
+        (b"\x00\x00\x00\x01" if long_codes[i] else b"\x00\x00\x01") + n + b"\x00" * trailing_zeros
+        for i, n in enumerate(nals)
+    )
     assert split_annexb(stream) == nals
 
 
 @settings(max_examples=200)
-@given(st.lists(non_idr_units, min_size=1, max_size=8), st.integers(0, 2**32 - 1), st.integers(0, 2**16 - 1),
-       st.integers(RTP_HEADER_BYTES + 3, 200))
+@given(
+    st.lists(non_idr_units, min_size=1, max_size=8),
+    st.integers(0, 2**32 - 1),
+    st.integers(0, 2**16 - 1),
+    st.integers(RTP_HEADER_BYTES + 3, 200),
+)
 def test_packets_fit_carry_one_timestamp_mark_the_last_and_round_trip(nals, ts, seq0, max_packet):
     p = RtpH264Packetizer(ssrc=0xDEADBEEF, max_packet_bytes=max_packet, first_sequence=seq0)
     packets = p.packetize(b"".join(b"\x00\x00\x00\x01" + n for n in nals), ts)
@@ -144,8 +149,14 @@ def test_depacketize_reads_stap_a_and_refuses_broken_fragments():
         depacketize([bytes([0x7C, 0x85, 1, 2])])
 
 
-@pytest.mark.parametrize("kwargs, field", [({"ssrc": -1}, "ssrc"), ({"ssrc": 1, "payload_type": 33}, "payload_type"),
-                                           ({"ssrc": 1, "max_packet_bytes": 14}, "max_packet_bytes")])
+@pytest.mark.parametrize(
+    "kwargs, field",
+    [
+        ({"ssrc": -1}, "ssrc"),
+        ({"ssrc": 1, "payload_type": 33}, "payload_type"),
+        ({"ssrc": 1, "max_packet_bytes": 14}, "max_packet_bytes"),
+    ],
+)
 def test_packetizer_refuses_bad_settings_by_name(kwargs, field):
     with pytest.raises(InputError, match=field):
         RtpH264Packetizer(**kwargs)
@@ -155,4 +166,3 @@ def test_sdp_names_the_port_payload_type_and_clock():
     text = sdp("127.0.0.1", 5600)
     assert "m=video 5600 RTP/AVP 96\r\n" in text and "a=rtpmap:96 H264/90000\r\n" in text
     assert "c=IN IP4 127.0.0.1\r\n" in text and "packetization-mode=1" in text
-

@@ -66,8 +66,11 @@ _SECTION_VALUES = {
 
 
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(st.dictionaries(st.sampled_from(sorted(_SECTION_VALUES)), st.just(None), max_size=4).flatmap(
-    lambda keys: st.fixed_dictionaries({k: _SECTION_VALUES[k] for k in keys})))
+@given(
+    st.dictionaries(st.sampled_from(sorted(_SECTION_VALUES)), st.just(None), max_size=4).flatmap(
+        lambda keys: st.fixed_dictionaries({k: _SECTION_VALUES[k] for k in keys})
+    )
+)
 def test_valid_values_round_trip_through_yaml(tmp_path, values):
     raw: dict = {}
     for path, v in values.items():
@@ -85,13 +88,20 @@ def test_valid_values_round_trip_through_yaml(tmp_path, values):
 
 def test_noise_cases_round_trip():
     cases = load_noise_cases()
-    back = noise_cases_from_dict({
-        n: {"description": c.description, "pixel_sigma_px": c.pixel_sigma_px,
-            "attitude_white_sigma_deg": c.attitude_white_sigma_rad * 180 / 3.141592653589793,
-            "attitude_bias_sigma_deg": c.attitude_bias_sigma_rad * 180 / 3.141592653589793,
-            "camera_position_white_sigma_m": c.camera_position_white_sigma_m,
-            "camera_position_offset_m": c.camera_position_offset_m,
-            "camera_position_drift_mps": c.camera_position_drift_mps} for n, c in cases.items()})
+    back = noise_cases_from_dict(
+        {
+            n: {
+                "description": c.description,
+                "pixel_sigma_px": c.pixel_sigma_px,
+                "attitude_white_sigma_deg": c.attitude_white_sigma_rad * 180 / 3.141592653589793,
+                "attitude_bias_sigma_deg": c.attitude_bias_sigma_rad * 180 / 3.141592653589793,
+                "camera_position_white_sigma_m": c.camera_position_white_sigma_m,
+                "camera_position_offset_m": c.camera_position_offset_m,
+                "camera_position_drift_mps": c.camera_position_drift_mps,
+            }
+            for n, c in cases.items()
+        }
+    )
     for n, c in cases.items():
         assert back[n].pixel_sigma_px == c.pixel_sigma_px
         assert back[n].attitude_bias_sigma_rad == pytest.approx(c.attitude_bias_sigma_rad, rel=1e-12)

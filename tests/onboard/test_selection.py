@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from onboard.io.camera_protocol import CameraCommand, TrackRequest
 from onboard.app.config import build_config
+from onboard.core.irframe import IrFrame
+from onboard.core.track import Track
 from onboard.imaging import TargetTracker
 from onboard.imaging.preprocess import ImagingParams
-from onboard.core.irframe import IrFrame
+from onboard.io.camera_protocol import CameraCommand, TrackRequest
 from onboard.pipeline.frame_pipeline import FramePipeline
-from onboard.core.track import Track
 from tests.fakes import FakeClock  # noqa: E402
 
 W, H = 640, 512
@@ -121,8 +121,12 @@ class _Pose:
 
         from onboard.core.frames import GeodeticOrigin
 
-        return SimpleNamespace(p_cam_ned_m=np.zeros(3), q_ned_from_cam=np.array([1.0, 0.0, 0.0, 0.0]),
-                               origin=GeodeticOrigin(32.0, 118.8, 0.0), epoch=0)
+        return SimpleNamespace(
+            p_cam_ned_m=np.zeros(3),
+            q_ned_from_cam=np.array([1.0, 0.0, 0.0, 0.0]),
+            origin=GeodeticOrigin(32.0, 118.8, 0.0),
+            epoch=0,
+        )
 
 
 def _pipeline(mode="auto"):
@@ -194,16 +198,31 @@ class _FakeLink:
     def status(self):
         from onboard.io.mavlink_link import LinkStatus
 
-        return LinkStatus(state="connected", autopilot_sysid=7, heartbeat_age_s=None, rates_confirmed=(),
-                          rates_pending=(), rates_refused=(), clock_synced=False, messages_rx=1, link_losses=0, reboots=0)
+        return LinkStatus(
+            state="connected",
+            autopilot_sysid=7,
+            heartbeat_age_s=None,
+            rates_confirmed=(),
+            rates_pending=(),
+            rates_refused=(),
+            clock_synced=False,
+            messages_rx=1,
+            link_losses=0,
+            reboots=0,
+        )
 
 
 def _service(mode="auto"):
     from onboard.app.service import OnboardService
 
-    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
-                        "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
-                        "mavlink": {"connection": "udpin:0.0.0.0:14999", "autopilot_sysid": None}})
+    cfg = build_config(
+        {
+            "estimator": {"enabled": False},
+            "output": {"health_file": None},
+            "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
+            "mavlink": {"connection": "udpin:0.0.0.0:14999", "autopilot_sysid": None},
+        }
+    )
     clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.gcs = _FakeGcs()
@@ -226,7 +245,9 @@ def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
     svc, clock = _service("operator")
     svc.link = _FakeLink()
     svc.pipeline.process(_ir(0))
-    svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (HOT[0] / W, HOT[1] / H, 20 / W, 0, 0, 0, 0), 255, 190))
+    svc.gcs.inbox.append(
+        CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (HOT[0] / W, HOT[1] / H, 20 / W, 0, 0, 0, 0), 255, 190)
+    )
     svc.camera_step(clock())
     assert _acks(svc.gcs.sent) == []  # decided by the pipeline thread on its next frame
     tr = svc.pipeline.process(_ir(1))
@@ -253,10 +274,27 @@ def test_276_only_for_observable_positions_through_the_camera():
     from onboard.core.frames import GeodeticOrigin
 
     def track(observable: bool) -> Track:
-        return Track(vehicle="uav1", seq=1, time_boot_us=10, state="tracking", track_id=1, measurement_valid=True,
-                     u_px=300.0, v_px=200.0, pose_valid=True, origin=GeodeticOrigin(32.0, 118.8, 0.0),
-                     lat_deg=32.001, lon_deg=118.8, alt_m=80.0, p_ned_m=(100.0, 0.0, -80.0), v_ned_mps=(1.0, 0.0, 0.0),
-                     cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]), range_m=130.0, observable=observable, window_frames=60)
+        return Track(
+            vehicle="uav1",
+            seq=1,
+            time_boot_us=10,
+            state="tracking",
+            track_id=1,
+            measurement_valid=True,
+            u_px=300.0,
+            v_px=200.0,
+            pose_valid=True,
+            origin=GeodeticOrigin(32.0, 118.8, 0.0),
+            lat_deg=32.001,
+            lon_deg=118.8,
+            alt_m=80.0,
+            p_ned_m=(100.0, 0.0, -80.0),
+            v_ned_mps=(1.0, 0.0, 0.0),
+            cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]),
+            range_m=130.0,
+            observable=observable,
+            window_frames=60,
+        )
 
     svc, clock = _service()
     svc.link = _FakeLink()

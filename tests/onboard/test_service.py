@@ -23,17 +23,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from bench.onboard import SyntheticScene  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
+from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
-from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
 from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
-from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
 from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from tests.fakes import FakeAutopilot, FakeClock  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
@@ -53,7 +52,6 @@ def _one_blas_thread():
     from groundsim.evaluation.eval import limit_blas_threads
 
     limit_blas_threads(1)
-
 
 
 def test_frame_queue_drops_the_oldest_and_says_so():
@@ -168,8 +166,9 @@ def test_shared_pose_buffer_wait_gives_up_after_its_timeout_and_at_once_on_a_gap
     # beyond the max gap no data can bracket the time: it gives up at once -- with a frozen clock and
     # an hour's timeout, a wait could only end by the hang guard below
     got: list = []
-    th = threading.Thread(target=lambda: got.append(shared.wait_for(t0_us + 2_000_000, NEVER_S, clock=lambda: 0.0)),
-                          daemon=True)
+    th = threading.Thread(
+        target=lambda: got.append(shared.wait_for(t0_us + 2_000_000, NEVER_S, clock=lambda: 0.0)), daemon=True
+    )
     th.start()
     th.join(WAIT_S)
     assert not th.is_alive(), "wait_for waited for telemetry that cannot bracket the time"
@@ -215,8 +214,18 @@ class _SlowEstimator:
         self.adds.append(t_s)
         if t_s < 0:
             raise InputError("negative time")
-        return TrackEstimate(t_s, np.array([t_s, 0.0, 0.0]), np.array([1.0, 0.0, 0.0]), np.eye(3),
-                             0.01 * np.eye(3), True, 100.0, 0.01, len(self.adds), "cv")
+        return TrackEstimate(
+            t_s,
+            np.array([t_s, 0.0, 0.0]),
+            np.array([1.0, 0.0, 0.0]),
+            np.eye(3),
+            0.01 * np.eye(3),
+            True,
+            100.0,
+            0.01,
+            len(self.adds),
+            "cv",
+        )
 
     def reset(self):
         self.resets += 1
@@ -260,8 +269,14 @@ def test_threaded_estimator_returns_its_own_result_when_fast_and_propagates_when
 
 class Daemon:
     def __init__(self, args: list[str], env: dict) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "onboard", *args], cwd=REPO, env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "onboard", *args],
+            cwd=REPO,
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
         self.lines: list[str] = []
         self.started = threading.Event()
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -300,10 +315,25 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
 
     gcs = mavutil.mavlink_connection(f"udpin:127.0.0.1:{gport}")  # a ground station listening, as QGC on 14550
     gcs_got: list = []
-    d = Daemon(["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-connect", f"tcp/127.0.0.1:{zport}",
-                "--gcs", f"udpout:127.0.0.1:{gport}",
-                "--set", f"output.health_file={alive}", "--set", "output.status_interval_s=0.5",
-                "--set", "logging.reject_log_interval_s=60", "--set", "output.unobservable_positions=true"], daemon_env)
+    d = Daemon(
+        [
+            "--mavlink",
+            f"udpin:127.0.0.1:{mport}",
+            "--zenoh-connect",
+            f"tcp/127.0.0.1:{zport}",
+            "--gcs",
+            f"udpout:127.0.0.1:{gport}",
+            "--set",
+            f"output.health_file={alive}",
+            "--set",
+            "output.status_interval_s=0.5",
+            "--set",
+            "logging.reject_log_interval_s=60",
+            "--set",
+            "output.unobservable_positions=true",
+        ],
+        daemon_env,
+    )
     session = None
     try:
         assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
@@ -311,15 +341,23 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         session = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{zport}",)))
         tracks: queue.Queue = queue.Queue()
         statuses: queue.Queue = queue.Queue()
-        subs = [session.declare_subscriber(track_key(), lambda s: tracks.put(s.payload.to_bytes())),
-                session.declare_subscriber(status_key(), lambda s: statuses.put(s.payload.to_bytes()))]
+        subs = [
+            session.declare_subscriber(track_key(), lambda s: tracks.put(s.payload.to_bytes())),
+            session.declare_subscriber(status_key(), lambda s: statuses.put(s.payload.to_bytes())),
+        ]
         pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
         ap = FakeAutopilot(mport, scene=scene)
 
         got_tracks: list = []
         got_status: list = []
-        state = {"k": 0, "next_frame": time.monotonic(), "next_tel": time.monotonic(), "next_hb": 0.0, "tel_n": 0,
-                 "last_payload": None}
+        state = {
+            "k": 0,
+            "next_frame": time.monotonic(),
+            "next_tel": time.monotonic(),
+            "next_hb": 0.0,
+            "tel_n": 0,
+            "last_payload": None,
+        }
 
         def drain():
             while not tracks.empty():
@@ -356,7 +394,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         def run_until(pred, timeout_s: float, what: str):
             deadline = time.monotonic() + timeout_s
             while not pred():
-                assert time.monotonic() < deadline, f"timed out waiting for {what}; daemon log:\n" + "\n".join(d.lines[-30:])
+                assert time.monotonic() < deadline, f"timed out waiting for {what}; daemon log:\n" + "\n".join(
+                    d.lines[-30:]
+                )
                 assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
                 tick()
 
@@ -372,8 +412,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         # 2. bad input of every kind, each survived
         ap.junk()
         t = ap.boot_us()
-        ap.send(mav.MAVLink_attitude_quaternion_message((t + 1) // 1000, math.nan, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0,
-                                                        [0.0] * 4))  # refused by the typed encoder: sent raw
+        ap.send(
+            mav.MAVLink_attitude_quaternion_message((t + 1) // 1000, math.nan, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, [0.0] * 4)
+        )  # refused by the typed encoder: sent raw
         ap.attitude(t + 2, q=(0.0, 0.0, 0.0, 0.0))
         ap.position(t + 3, 0.0, 0.0, 100.0)  # GNSS dropout
         last = state["last_payload"]
@@ -386,8 +427,17 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         # counted by the daemon; far larger payloads never reach it (zenoh drops them, test_zenoh_limits)
         pub.put(last + bytes(16 * 1024 * 1024 + 1 - len(last)))
 
-        want = {"mavlink_bad_data": 1, "attitude_not_finite": 1, "attitude_zero": 1, "position_zero": 1,
-                "frame_duplicate": 1, "frame_out_of_order": 1, "frame_magic": 20, "frame_size": 1, "frame_too_large": 1}
+        want = {
+            "mavlink_bad_data": 1,
+            "attitude_not_finite": 1,
+            "attitude_zero": 1,
+            "position_zero": 1,
+            "frame_duplicate": 1,
+            "frame_out_of_order": 1,
+            "frame_magic": 20,
+            "frame_size": 1,
+            "frame_too_large": 1,
+        }
 
         def counted():
             return got_status and all(got_status[-1]["rejected"].get(k, 0) >= n for k, n in want.items())
@@ -408,6 +458,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None
         run_until(lambda: got_status[-1]["capture_to_track_ms"] is not None, 10, "TIMESYNC-based capture latency")
         assert 0 < got_status[-1]["capture_to_track_ms"]["p50"] < 1000
+
         def on_gcs(mtype):
             return [m for m in gcs_got if m.get_type() == mtype]
 
@@ -470,9 +521,24 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
         s.bind(("127.0.0.1", 0))
         s.listen(1)
         port = s.getsockname()[1]
-        proc = subprocess.run([sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}",
-                               "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--set", "output.health_file=null"],
-                              cwd=REPO, env=daemon_env, capture_output=True, text=True, timeout=60)
+        proc = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "onboard",
+                "--mavlink",
+                f"udpin:127.0.0.1:{free_udp_port()}",
+                "--zenoh-listen",
+                f"tcp/127.0.0.1:{port}",
+                "--set",
+                "output.health_file=null",
+            ],
+            cwd=REPO,
+            env=daemon_env,
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
     assert proc.returncode == 2
     last = proc.stderr.strip().splitlines()[-1]
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
@@ -483,8 +549,8 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     """Same observations, same answers: the child process runs the same deterministic estimator."""
     from onboard.app.config import OnboardConfig
-    from onboard.pipeline.frame_pipeline import make_estimator
     from onboard.app.service import ProcessEstimator
+    from onboard.pipeline.frame_pipeline import make_estimator
 
     scene = SyntheticScene()
     N_FRAMES = 120  # 4 s: the window keeps a row per 0.06 s, min_frames 30 of them before the first estimate
@@ -534,9 +600,18 @@ class _FakeLink:
     def status(self):
         from onboard.io.mavlink_link import LinkStatus
 
-        return LinkStatus(state="connected" if self.rx else "waiting", autopilot_sysid=1, heartbeat_age_s=None,
-                          rates_confirmed=(), rates_pending=(), rates_refused=(), clock_synced=False,
-                          messages_rx=self.rx, link_losses=0, reboots=0)
+        return LinkStatus(
+            state="connected" if self.rx else "waiting",
+            autopilot_sysid=1,
+            heartbeat_age_s=None,
+            rates_confirmed=(),
+            rates_pending=(),
+            rates_refused=(),
+            clock_synced=False,
+            messages_rx=self.rx,
+            link_losses=0,
+            reboots=0,
+        )
 
     def send_tracking_image_status(self, **kw) -> None:
         pass
@@ -549,9 +624,15 @@ def _quiet_service(overrides=None):
     from onboard.app.config import build_config
     from onboard.app.service import OnboardService
 
-    cfg = build_config({"estimator": {"enabled": False}, "output": {"health_file": None},
-                        "zenoh": {"connect": ["tcp/10.1.2.3:7447"]}, "mavlink": {"connection": "udpin:0.0.0.0:14999"},
-                        **(overrides or {})})
+    cfg = build_config(
+        {
+            "estimator": {"enabled": False},
+            "output": {"health_file": None},
+            "zenoh": {"connect": ["tcp/10.1.2.3:7447"]},
+            "mavlink": {"connection": "udpin:0.0.0.0:14999"},
+            **(overrides or {}),
+        }
+    )
     clock = FakeClock()
     svc = OnboardService(cfg, clock=clock, clock_ns=clock.ns)
     svc.link = _FakeLink()
@@ -565,7 +646,9 @@ def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(
         for _ in range(200):  # 20 s of the main loop's checks
             clock.t_s += 0.1
             svc._watch(clock())
-    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"]
+    warned = [
+        r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"
+    ]
     assert len(warned) == 2
     assert any("irtrack/uav1/ir/frame" in m and "tcp/10.1.2.3:7447" in m for m in warned)
     assert any("udpin:0.0.0.0:14999" in m for m in warned)
@@ -593,7 +676,9 @@ def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
         svc._pipe_stop.set()
         svc.queue.close()
         t.join(10)
-    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"]
+    warned = [
+        r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and r.name == "onboard.app.watchdog"
+    ]
     assert len(warned) == 1 and "320 x 256" in warned[0] and "640 x 512" in warned[0]
     assert svc.counter["frame_dims_mismatch"] == 4
     assert [w["code"] for w in svc.status(clock())["warnings"]] == ["frame_size"]

@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
+from onboard.app.watchdog import Watchdog
 from onboard.core.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
-from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
 from onboard.core.pose import PoseBuffer
 from onboard.core.track import (
     TRACK_SCHEMA,
@@ -22,7 +22,7 @@ from onboard.core.track import (
     track_to_json,
 )
 from onboard.io.mavlink_wire import geo_status_fields
-from onboard.app.watchdog import Watchdog
+from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
 from tests.onboard.test_pipeline import Rig
 
 LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
@@ -41,7 +41,7 @@ def test_schema_is_version_2():
 
 def test_line_of_sight_is_published_with_every_pose_even_without_an_estimate():
     rig = Rig(estimator=None)  # no 3-D at all
-    for k, tr in enumerate(rig.run(12)):
+    for tr in rig.run(12):
         j = track_to_json(tr)
         assert j["ned_m"] is None and all(j[key] is not None for key in LOS_KEYS)
         ts = (tr.time_boot_us - rig.scene.boot_us0) / 1e6
@@ -76,7 +76,10 @@ def test_line_of_sight_sigma_follows_the_documented_formula():
     assert los.sigma_elevation_deg == pytest.approx(math.degrees(s), rel=SIGMA_REL_TOL)
     assert los.sigma_azimuth_deg == pytest.approx(math.degrees(s) / math.cos(math.radians(30.0)), rel=SIGMA_REL_TOL)
     # more pixel noise, more sigma; no noise, no sigma
-    assert line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (0, 0, 0), 3.0, s_att).sigma_elevation_deg > los.sigma_elevation_deg
+    assert (
+        line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (0, 0, 0), 3.0, s_att).sigma_elevation_deg
+        > los.sigma_elevation_deg
+    )
     zero = line_of_sight_ned((K.cx_px, K.cy_px), K, q_ned_from_cam, (0, 0, 0), 0.0, 0.0)
     assert zero.sigma_azimuth_deg == 0.0 and zero.sigma_elevation_deg == 0.0
 
@@ -106,15 +109,21 @@ def _mismatched_rig(pitch_deg: float) -> Rig:
     """Frames and telemetry of the scene's (identity) mount, a pipeline configured with another."""
     rig = Rig(ready_after=5)  # the fake estimator returns the true target: an estimate the frames agree with
     mount = CameraMount.from_euler_deg((0.0, 0.0, 0.0), 0.0, pitch_deg, 0.0)
-    rig.pose = PoseBuffer(mount=mount, config=rig.config.pose.buffer_config(), origin=rig.scene.origin,
-                          counter=rig.counter)
+    rig.pose = PoseBuffer(
+        mount=mount, config=rig.config.pose.buffer_config(), origin=rig.scene.origin, counter=rig.counter
+    )
     rig.pipe = FramePipeline(rig.config, rig.pose, make_tracker(rig.config), rig.est, counter=rig.counter)
     return rig
 
 
 def _watch(rig: Rig, n: int, caplog) -> tuple[Watchdog, list]:
-    wd = Watchdog(started_s=0.0, frame_key="irtrack/uav1/ir/frame", zenoh_where="peer", mavlink_connection="udpin:x",
-                  camera_size_px=(640, 512))
+    wd = Watchdog(
+        started_s=0.0,
+        frame_key="irtrack/uav1/ir/frame",
+        zenoh_where="peer",
+        mavlink_connection="udpin:x",
+        camera_size_px=(640, 512),
+    )
     rr = []
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         for k in range(n):

@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.estimation.map_estimator import MapConfig, MapEstimator
 from onboard.estimation.sliding import SlidingWindowEstimator
 
@@ -31,11 +31,14 @@ def _run(name: str, noise: str, seed: int):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, noise, seeds, min_observable", [
-    ("P3", "RTK", range(6), 5),  # bench: 50/50
-    ("P2", "px0.3", range(4), 4),  # bench: 50/50
-    ("P2", "RTK", range(6), 3),  # bench: 38/50 (82 % of its good runs)
-])
+@pytest.mark.parametrize(
+    "name, noise, seeds, min_observable",
+    [
+        ("P3", "RTK", range(6), 5),  # bench: 50/50
+        ("P2", "px0.3", range(4), 4),  # bench: 50/50
+        ("P2", "RTK", range(6), 3),  # bench: 38/50 (82 % of its good runs)
+    ],
+)
 def test_observable_runs_are_accurate_and_honest_at_a_rate(name, noise, seeds, min_observable):
     got = [_run(name, noise, s) for s in seeds]
     observable = [(err, beyond) for res, err, beyond in got if res.observable]
@@ -47,7 +50,9 @@ def test_observable_runs_are_accurate_and_honest_at_a_rate(name, noise, seeds, m
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("name, noise, seeds", [("H3", "RTK", range(4)), ("H3", "px0.3", range(2)), ("H1", "px0.3", range(2))])
+@pytest.mark.parametrize(
+    "name, noise, seeds", [("H3", "RTK", range(4)), ("H3", "px0.3", range(2)), ("H1", "px0.3", range(2))]
+)
 def test_unobservable_results_are_flagged_and_still_honest(name, noise, seeds):
     """A straight observer (H3) and a figure-eight target (H1, whose solutions collapse towards the camera)
     are never called observable, and the published covariance still covers the error (range floor)."""

@@ -44,7 +44,7 @@ def _mono16(k: int) -> tuple[np.ndarray, tuple[int, int]]:
     rng = np.random.default_rng(k)
     img = (3000 + 200 * np.linspace(0, 1, H)[:, None] + rng.normal(0, 10, (H, W))).astype(np.uint16)
     u, v = 100 + 2 * k, 250
-    img[v - 2:v + 3, u - 2:u + 3] = 4500
+    img[v - 2 : v + 3, u - 2 : u + 3] = 4500
     return img, (u, v)
 
 
@@ -69,8 +69,16 @@ def test_overlay_draws_the_box_only_while_tracking():
     from onboard.core.track import Track
 
     img = np.zeros((H, W), np.uint8)
-    tr = Track(vehicle="uav1", seq=1, time_boot_us=1, state="tracking", track_id=1, u_px=110.0, v_px=110.0,
-               bbox=(100.0, 100.0, 20.0, 20.0))
+    tr = Track(
+        vehicle="uav1",
+        seq=1,
+        time_boot_us=1,
+        state="tracking",
+        track_id=1,
+        u_px=110.0,
+        v_px=110.0,
+        bbox=(100.0, 100.0, 20.0, 20.0),
+    )
     out = draw_overlay(img, tr)
     assert out[100, 100:121].min() == 255 and out[110, 110] == 0 and img.max() == 0  # input untouched
     lost = Track(vehicle="uav1", seq=1, time_boot_us=1, state="lost")
@@ -127,7 +135,9 @@ def test_rtp_packets_are_rfc6184_with_capture_timestamps_markers_and_headers_bef
     ts = [unit[0].timestamp for unit in units]
     assert all({p.timestamp for p in unit} == {t} for unit, t in zip(units, ts))  # one timestamp per frame
     assert [(b - a) % 2**32 for a, b in zip(ts, ts[1:])] == [
-        rtp_timestamp(1_000_000 + (k + 1) * FRAME_US) - rtp_timestamp(1_000_000 + k * FRAME_US) for k in range(N_FRAMES - 1)]
+        rtp_timestamp(1_000_000 + (k + 1) * FRAME_US) - rtp_timestamp(1_000_000 + k * FRAME_US)
+        for k in range(N_FRAMES - 1)
+    ]
     assert all(abs(d - RTP_TICKS_PER_FRAME) <= 1 for d in (b - a for a, b in zip(ts, ts[1:])))
     assert all([p.marker for p in unit] == [False] * (len(unit) - 1) + [True] for unit in units)
     for k, unit in enumerate(units):
@@ -175,8 +185,9 @@ def _stream(destination: str, transport: str) -> tuple[dict, list]:
 def _assert_target_seen(frames: list[np.ndarray], truth: list) -> None:
     assert len(frames) >= math.ceil(0.95 * N_FRAMES), f"decoded {len(frames)} of {N_FRAMES}"
     assert all(img.shape == (H, W) for img in frames)
-    seen = sum(img[v, u] >= TARGET_MIN_GREY and np.percentile(img, 50) < SKY_MAX_GREY
-               for img, (u, v) in zip(frames, truth))
+    seen = sum(
+        img[v, u] >= TARGET_MIN_GREY and np.percentile(img, 50) < SKY_MAX_GREY for img, (u, v) in zip(frames, truth)
+    )
     assert seen >= math.ceil(0.95 * N_FRAMES)
 
 
@@ -188,16 +199,19 @@ def test_rtp_stream_is_decoded_by_ffmpegs_rtp_demuxer_from_an_sdp_file(tmp_path)
     port = free_rtp_port()
     sdp_path = tmp_path / "stream.sdp"
     # written here, by hand, not by onboard.io.rtp_h264.sdp: what a user would type for ffplay / VLC
-    sdp_path.write_text("v=0\no=- 0 0 IN IP4 127.0.0.1\ns=test\nc=IN IP4 127.0.0.1\nt=0 0\n"
-                        f"m=video {port} RTP/AVP 96\na=rtpmap:96 H264/90000\na=fmtp:96 packetization-mode=1\n")
+    sdp_path.write_text(
+        "v=0\no=- 0 0 IN IP4 127.0.0.1\ns=test\nc=IN IP4 127.0.0.1\nt=0 0\n"
+        f"m=video {port} RTP/AVP 96\na=rtpmap:96 H264/90000\na=fmtp:96 packetization-mode=1\n"
+    )
     frames: list[np.ndarray] = []
     result: dict = {}
     opened = threading.Event()
 
     def receive():
         try:
-            c = av.open(str(sdp_path), format="sdp", options={"protocol_whitelist": "file,udp,rtp"},
-                        timeout=(WAIT_S, 2.0))
+            c = av.open(
+                str(sdp_path), format="sdp", options={"protocol_whitelist": "file,udp,rtp"}, timeout=(WAIT_S, 2.0)
+            )
         except Exception as exc:  # noqa: BLE001 - reported below
             result["error"] = repr(exc)
             return
@@ -325,8 +339,15 @@ def test_camera_advertises_the_stream_on_the_destination_port():
     s = proto.stream
     # RTP/UDP by default: VIDEO_STREAM_TYPE_RTPUDP (1), QGC opens udp://0.0.0.0:5600 as RTP H.264
     assert s.uri == "5600" and s.stream_type == 1 and s.thermal and (s.resolution_h_px, s.resolution_v_px) == (W, H)
-    ts = make_camera_protocol(build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]},
-                                            "video": {"destination": "10.0.0.5:5600", "transport": "mpegts"}}), K)
+    ts = make_camera_protocol(
+        build_config(
+            {
+                "gcs": {"endpoints": ["udpout:127.0.0.1:14550"]},
+                "video": {"destination": "10.0.0.5:5600", "transport": "mpegts"},
+            }
+        ),
+        K,
+    )
     assert ts.stream.stream_type == 3 and ts.stream.uri == "5600"  # MPEG_TS: QGC opens mpegts://0.0.0.0:5600
     assert s.hfov_deg == pytest.approx(math.degrees(2 * math.atan(W / (2 * K.fx_px))))
     assert make_camera_protocol(build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]}}), K).stream is None

@@ -6,8 +6,8 @@ import logging
 
 import pytest
 
-from onboard.core.errors import InputError
 from onboard.app.watchdog import Watchdog
+from onboard.core.errors import InputError
 
 KEY = "irtrack/uav1/ir/frame"
 WHERE = "zenoh mode peer, connect tcp/10.0.0.2:7447, listen none, multicast scouting off"
@@ -15,8 +15,9 @@ CONN = "udpin:0.0.0.0:14540"
 
 
 def _wd(**kw) -> Watchdog:
-    return Watchdog(started_s=100.0, frame_key=KEY, zenoh_where=WHERE, mavlink_connection=CONN,
-                    camera_size_px=(640, 512), **kw)
+    return Watchdog(
+        started_s=100.0, frame_key=KEY, zenoh_where=WHERE, mavlink_connection=CONN, camera_size_px=(640, 512), **kw
+    )
 
 
 def _warnings(caplog) -> list[str]:
@@ -74,13 +75,16 @@ def test_frame_size_mismatch_names_both_sizes_once(caplog):
     assert wd.active == ()
 
 
-@pytest.mark.parametrize("values, warned", [
-    ([5.0] * 60, True),  # 6 s above 3
-    ([5.0] * 40, False),  # 4 s: not yet persistent
-    ([5.0] * 30 + [1.0] + [5.0] * 30, False),  # broken run: counts again from the dip
-    ([5.0] * 30 + [float("nan"), None] * 5 + [5.0] * 30, True),  # unknowns neither count nor reset
-    ([1.0] * 100, False),
-])
+@pytest.mark.parametrize(
+    "values, warned",
+    [
+        ([5.0] * 60, True),  # 6 s above 3
+        ([5.0] * 40, False),  # 4 s: not yet persistent
+        ([5.0] * 30 + [1.0] + [5.0] * 30, False),  # broken run: counts again from the dip
+        ([5.0] * 30 + [float("nan"), None] * 5 + [5.0] * 30, True),  # unknowns neither count nor reset
+        ([1.0] * 100, False),
+    ],
+)
 def test_camera_mismatch_needs_a_persistent_run(caplog, values, warned):
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
@@ -103,8 +107,14 @@ def test_gimbal_reports_with_a_fixed_mount_warn_once_naming_the_mount(caplog):
         wd.gimbal(2.0, gimballed=False, gimbal_reports=n, telemetry_since_s=0.5)
     (w,) = [w for w in wd.active if w.code == "gimbal_mismatch"]
     assert "camera.mount.gimballed is false" in w.message
-    assert sum("gimbal_mismatch" in r.getMessage() or "GIMBAL_DEVICE" in r.getMessage() for r in caplog.records
-               if r.levelname == "WARNING") == 1
+    assert (
+        sum(
+            "gimbal_mismatch" in r.getMessage() or "GIMBAL_DEVICE" in r.getMessage()
+            for r in caplog.records
+            if r.levelname == "WARNING"
+        )
+        == 1
+    )
 
 
 def test_a_gimballed_mount_without_gimbal_messages_warns_after_the_timeout():

@@ -16,11 +16,11 @@ import time
 import numpy as np
 import pytest
 
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from groundsim.evaluation.synth import synthesize_scenario
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
-from onboard.pipeline.frame_pipeline import make_estimator
 from onboard.app.service import SNAPSHOT_PERIOD_S, LockedCounter, ProcessEstimator
+from onboard.pipeline.frame_pipeline import make_estimator
 
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
 JOIN_S = 10.0  # upper bound for a SIGKILLed child to be reaped
@@ -87,8 +87,10 @@ def test_killed_worker_is_replaced_and_the_next_observation_gets_a_3d_estimate(s
         with caplog.at_level(logging.WARNING, logger="onboard.rejects"):
             est, own = _own_estimate(pe, obs, K, FRAMES_BEFORE_KILL)
         restart_s = time.monotonic() - t0
-        print(f"\nworker replaced ({'restored state' if with_snapshot else 'cold rebuild'}): first own estimate "
-              f"{restart_s:.3f} s after the kill was noticed")
+        print(
+            f"\nworker replaced ({'restored state' if with_snapshot else 'cold rebuild'}): first own estimate "
+            f"{restart_s:.3f} s after the kill was noticed"
+        )
         ref = _add(reference, obs, K, FRAMES_BEFORE_KILL)
         assert own and est is not None
         assert est.t_s == obs.t_s[FRAMES_BEFORE_KILL]
@@ -144,8 +146,10 @@ def test_while_the_worker_restarts_the_newest_estimate_is_propagated(scene):
             i += 1
         assert first_own is not None, f"no own estimate within {RESULT_WAIT_S} s after the kill"
         frames = first_own - FRAMES_BEFORE_KILL
-        print(f"\nafter the kill: {frames} frames ({frames / 30.0:.2f} s at 30 Hz, {time.monotonic() - t0:.2f} s wall) "
-              f"until the new worker's own estimate; {propagated} propagated, {none} without 3-D")
+        print(
+            f"\nafter the kill: {frames} frames ({frames / 30.0:.2f} s at 30 Hz, {time.monotonic() - t0:.2f} s wall) "
+            f"until the new worker's own estimate; {propagated} propagated, {none} without 3-D"
+        )
         assert counter["estimator_restart"] == 1
     finally:
         pe.close()

@@ -62,11 +62,14 @@ def test_config_passes_max_frame_bytes_to_zenoh():
     assert zenoh_config(st).get_json("transport/link/rx/max_message_size") == str(2_000_000 + 4096)
 
 
-@pytest.mark.parametrize("section, value, field", [
-    ("zenoh", {"listen": ["tcp/127.0.0.1:99999"]}, "zenoh.listen[0]"),
-    ("zenoh", {"connect": ["tcp/127.0.0.1:7447", "tls/host"]}, "zenoh.connect[1]"),
-    ("mavlink", {"connection": "udpin:127.0.0.1:99999"}, "mavlink.connection"),
-])
+@pytest.mark.parametrize(
+    "section, value, field",
+    [
+        ("zenoh", {"listen": ["tcp/127.0.0.1:99999"]}, "zenoh.listen[0]"),
+        ("zenoh", {"connect": ["tcp/127.0.0.1:7447", "tls/host"]}, "zenoh.connect[1]"),
+        ("mavlink", {"connection": "udpin:127.0.0.1:99999"}, "mavlink.connection"),
+    ],
+)
 def test_bad_ports_fail_naming_the_field(section, value, field):
     with pytest.raises(ConfigError, match=field.replace("[", r"\[").replace("]", r"\]")):
         build_config({section: value})
@@ -75,7 +78,8 @@ def test_bad_ports_fail_naming_the_field(section, value, field):
 def test_check_exits_2_naming_the_port_field(tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("zenoh:\n  listen: [tcp/127.0.0.1:99999]\n")
-    r = subprocess.run([sys.executable, "-m", "onboard", "--config", str(cfg), "--check"],
-                       capture_output=True, text=True, timeout=60)
+    r = subprocess.run(
+        [sys.executable, "-m", "onboard", "--config", str(cfg), "--check"], capture_output=True, text=True, timeout=60
+    )
     assert r.returncode == 2
     assert "zenoh.listen[0]" in r.stderr and "99999" in r.stderr

@@ -29,7 +29,7 @@ the final weights: the whole-flight trajectory after the fact (not used by the o
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -49,9 +49,16 @@ class RpEkfConfig:
     max_history: int = 2000
 
     def __post_init__(self) -> None:
-        if not (self.n_filters >= 2 and 0 < self.r_min_m < self.r_max_m and self.speed_sigma_mps > 0
-                and self.accel_psd_m2ps3 > 0 and self.pixel_sigma_px > 0 and self.attitude_sigma_rad >= 0
-                and self.observable_sigma_ratio > 0 and self.max_history >= 2):
+        if not (
+            self.n_filters >= 2
+            and 0 < self.r_min_m < self.r_max_m
+            and self.speed_sigma_mps > 0
+            and self.accel_psd_m2ps3 > 0
+            and self.pixel_sigma_px > 0
+            and self.attitude_sigma_rad >= 0
+            and self.observable_sigma_ratio > 0
+            and self.max_history >= 2
+        ):
             raise ValueError(f"RpEkfConfig: invalid values {self}")
 
 
@@ -76,9 +83,13 @@ def _R_ned_from_cam(q) -> np.ndarray:
     w, x, y, z = (float(a) for a in q)
     n = math.sqrt(w * w + x * x + y * y + z * z)
     w, x, y, z = w / n, x / n, y / n, z / n
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _transition(dt: float, q: float) -> tuple[np.ndarray, np.ndarray]:
@@ -96,11 +107,14 @@ class RangeParameterisedEkf:
         self.reset()
 
     @classmethod
-    def from_config(cls, config) -> "RangeParameterisedEkf":
+    def from_config(cls, config) -> RangeParameterisedEkf:
         """From irtrack's OnboardConfig: the pixel and white attitude noise its estimator assumes."""
         noise = config.estimator.noise_model()
         # the filter has no bias state: the attitude bias the estimator models is folded into white noise
-        att = math.hypot(float(getattr(noise, "attitude_white_sigma_rad", 0.0)), float(getattr(noise, "attitude_bias_sigma_rad", 0.0)))
+        att = math.hypot(
+            float(getattr(noise, "attitude_white_sigma_rad", 0.0)),
+            float(getattr(noise, "attitude_bias_sigma_rad", 0.0)),
+        )
         return cls(RpEkfConfig(pixel_sigma_px=float(getattr(noise, "pixel_sigma_px", 0.3)), attitude_sigma_rad=att))
 
     def reset(self) -> None:
@@ -152,7 +166,7 @@ class RangeParameterisedEkf:
         self._x, self._P, self._logw, self._t = x_new, P_new, logw, t
         self._frames += 1
         self._history.append((t, F, x_pred, P_pred, x_new.copy(), P_new.copy()))
-        del self._history[:-c.max_history]
+        del self._history[: -c.max_history]
         return self._mixture(t, p_cam)
 
     def predict(self, t_s, p_cam_ned_m=None):
@@ -196,10 +210,18 @@ class RangeParameterisedEkf:
         los = mean[:3] - cam
         rng = float(np.linalg.norm(los))
         ratio = float(math.sqrt(max((los / rng) @ cov[:3, :3] @ (los / rng), 0.0)) / rng) if rng > 0 else math.inf
-        return RpEkfEstimate(t_s=t, p_ned_m=mean[:3], v_ned_mps=mean[3:], cov_p_ned_m2=cov[:3, :3],
-                             cov_v_ned_m2ps2=cov[3:, 3:], observable=bool(ratio < self.config.observable_sigma_ratio),
-                             range_m=rng, range_sigma_ratio=ratio, window_frames=self._frames,
-                             weights=tuple(float(a) for a in w))
+        return RpEkfEstimate(
+            t_s=t,
+            p_ned_m=mean[:3],
+            v_ned_mps=mean[3:],
+            cov_p_ned_m2=cov[:3, :3],
+            cov_v_ned_m2ps2=cov[3:, 3:],
+            observable=bool(ratio < self.config.observable_sigma_ratio),
+            range_m=rng,
+            range_sigma_ratio=ratio,
+            window_frames=self._frames,
+            weights=tuple(float(a) for a in w),
+        )
 
     def smoothed(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """RTS-smoothed trajectory over the stored history: ``(t_s (N,), p_ned_m (N, 3), cov_p_ned_m2 (N, 3, 3))``,
@@ -225,6 +247,10 @@ class RangeParameterisedEkf:
         w /= w.sum()
         t = np.array([s[0] for s in h])
         p = np.stack([w @ x[:, :3] for x in xs])
-        cov = np.stack([np.einsum("i,ijk->jk", w, P[:, :3, :3]) + np.einsum("i,ij,ik->jk", w, x[:, :3] - pm, x[:, :3] - pm)
-                        for x, P, pm in zip(xs, Ps, p)])
+        cov = np.stack(
+            [
+                np.einsum("i,ijk->jk", w, P[:, :3, :3]) + np.einsum("i,ij,ik->jk", w, x[:, :3] - pm, x[:, :3] - pm)
+                for x, P, pm in zip(xs, Ps, p)
+            ]
+        )
         return t, p, cov
