@@ -552,7 +552,6 @@ def export_dataset(
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
     from groundsim.app.run import frame_count
     from groundsim.evaluation.eval import bar_pacing
-    from groundsim.evaluation.parallel import mp_context
 
     options = options if options is not None else DatasetOptions()
     seeds = [int(s) for s in seeds]
@@ -590,7 +589,7 @@ def export_dataset(
                 for sc, seed, o_dir, opts in jobs
             ]
         else:
-            summaries = _run_pool(jobs, workers, bar, mp_context())
+            summaries = _run_pool(jobs, workers, bar)
     finally:
         if bar is not None:
             bar.close()
@@ -603,39 +602,10 @@ def export_dataset(
     return summaries, time.perf_counter() - t0
 
 
-def _run_pool(jobs, workers: int, bar, ctx) -> list:
-    import queue as queue_mod
+def _run_pool(jobs, workers: int, bar) -> list:
+    from groundsim.evaluation.parallel import run_pool
 
-    q = ctx.Queue()
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(q,))
-    try:
-        pending = [pool.apply_async(_job, (j,)) for j in jobs]
-        left = set(range(len(jobs)))
-        results: list = [None] * len(jobs)
-        while left:
-            try:
-                n = q.get(timeout=0.2)
-                if bar is not None:
-                    bar.update(n)
-            except queue_mod.Empty:
-                pass
-            for i in [i for i in left if pending[i].ready()]:
-                results[i] = pending[i].get()  # re-raises a worker's IrtrackError here
-                left.discard(i)
-        while True:
-            try:
-                n = q.get_nowait()
-            except queue_mod.Empty:
-                break
-            if bar is not None:
-                bar.update(n)
-        pool.close()
-        pool.join()
-        return results
-    except BaseException:
-        pool.terminate()
-        pool.join()
-        raise
+    return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
 
 
 def cmd_dataset(args) -> int:

@@ -83,7 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.parallel import mp_context
+from groundsim.evaluation.parallel import run_pool
 from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
@@ -1205,11 +1205,6 @@ def run_eval(
 
 
 def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
-    import queue as queue_mod
-
-    ctx = mp_context()
-    q = ctx.Queue()
-    pool = ctx.Pool(workers, initializer=_init_worker, initargs=(q,))
     bar = None
     try:
         if progress:
@@ -1223,33 +1218,7 @@ def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
                 dynamic_ncols=True,
                 **bar_pacing(),
             )
-        pending = [pool.apply_async(_job, (j,)) for j in jobs]
-        results: list = [None] * len(jobs)
-        left = set(range(len(jobs)))
-        while left:
-            try:
-                n = q.get(timeout=0.2)
-                if bar is not None:
-                    bar.update(n)
-            except queue_mod.Empty:
-                pass
-            for i in [i for i in left if pending[i].ready()]:
-                results[i] = pending[i].get()
-                left.discard(i)
-        while True:  # the last progress messages
-            try:
-                n = q.get_nowait()
-            except queue_mod.Empty:
-                break
-            if bar is not None:
-                bar.update(n)
-        pool.close()
-        pool.join()
-        return results
-    except BaseException:
-        pool.terminate()
-        pool.join()
-        raise
+        return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
     finally:
         if bar is not None:
             bar.close()

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["mp_context"]
+__all__ = ["mp_context", "run_pool"]
 
 
 def mp_context():
@@ -15,3 +15,43 @@ def mp_context():
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["groundsim.evaluation.eval", "groundsim.evaluation.report"])
     return ctx
+
+
+def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> list:
+    """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes; their results in the order
+    of ``jobs``.  Each worker runs ``init_worker(queue)`` first; what the jobs put on that queue (frame counts)
+    is handed to ``on_progress`` as it arrives.  A worker's exception is re-raised here, after the pool is
+    terminated (so is a KeyboardInterrupt)."""
+    import queue as queue_mod
+
+    ctx = mp_context()
+    q = ctx.Queue()
+    pool = ctx.Pool(workers, initializer=init_worker, initargs=(q,))
+
+    def drain(timeout_s: float | None) -> bool:
+        try:
+            n = q.get(timeout=timeout_s) if timeout_s else q.get_nowait()
+        except queue_mod.Empty:
+            return False
+        if on_progress is not None:
+            on_progress(n)
+        return True
+
+    try:
+        pending = [pool.apply_async(job, (j,)) for j in jobs]
+        results: list = [None] * len(jobs)
+        left = set(range(len(jobs)))
+        while left:
+            drain(0.2)
+            for i in [i for i in left if pending[i].ready()]:
+                results[i] = pending[i].get()  # re-raises a worker's exception here
+                left.discard(i)
+        while drain(None):  # the last progress messages
+            pass
+        pool.close()
+        pool.join()
+        return results
+    except BaseException:
+        pool.terminate()
+        pool.join()
+        raise
