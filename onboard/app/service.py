@@ -264,14 +264,8 @@ class ThreadedEstimator:
     # ------------------------------------------------------------------ caller side
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
-        t = float(t_s)
-        args = (
-            t,
-            tuple(float(x) for x in uv_px),
-            intrinsics,
-            np.array(p_cam_ned_m, dtype=float),
-            np.array(q_ned_from_cam, dtype=float),
-        )
+        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        t = args[0]
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
             if len(self._q) >= self._max_pending:
@@ -694,14 +688,8 @@ class ProcessEstimator:
                 found, value = True, est
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
-        t = float(t_s)
-        args = (
-            t,
-            tuple(float(x) for x in uv_px),
-            intrinsics,
-            np.array(p_cam_ned_m, dtype=float),
-            np.array(q_ned_from_cam, dtype=float),
-        )
+        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        t = args[0]
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
             self.late_results += 1
@@ -753,6 +741,17 @@ class ProcessEstimator:
             self._proc.join(timeout_s / 2)
         self._conn.close()
         self._proc = None
+
+
+def _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
+    """One estimator observation as the workers take it (and as the process worker pickles it)."""
+    return (
+        float(t_s),
+        tuple(float(x) for x in uv_px),
+        intrinsics,
+        np.array(p_cam_ned_m, dtype=float),
+        np.array(q_ned_from_cam, dtype=float),
+    )
 
 
 def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: RejectCounter, obs=None, noise=None):
