@@ -1272,6 +1272,35 @@ def _num(x, nd=2) -> str:
     return "-" if not math.isfinite(x) else f"{x:.{nd}f}"
 
 
+# the per-run figures summarised by their median over a group's runs: table key -> runs.csv column
+_ACCURACY_MEDIANS = {
+    "err_obs": "err_range_observable_pct",
+    "err_pub": "err_range_published_settled_pct",
+    "err_final": "err_range_final_pct",
+    "rmse_obs": "rmse_observable_m",
+    "rmse_pub": "rmse_published_settled_m",
+    "obs_share": "observable_share_settled",
+    "nees": "nees_observable",
+    "nees_pub": "nees_published_settled",
+    "crb": "crb_rms_m",
+    "crb_sig": "crb_range_sigma_pct",
+    "batch": "batch_err_range_pct",
+}
+_MANOEUVRE_MEDIANS = {
+    "accel_perp_mps2": "observer_accel_perp_los_rms_mps2",
+    "accel_mps2": "observer_accel_rms_mps2",
+    "err_pub": "err_range_published_settled_pct",
+    "err_obs": "err_range_observable_pct",
+    "err_final": "err_range_final_pct",
+    "obs_share": "observable_share_settled",
+}
+
+
+def _medians(rs: list[dict], columns: dict[str, str]) -> dict:
+    """``{key: median of column over rs}`` (None values skipped, as :func:`_med`)."""
+    return {key: _med(r.get(col) for r in rs) for key, col in columns.items()}
+
+
 def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
     """Per (algorithm, scenario, noise): medians over the runs at the reference geometry (or over every
     geometry when the campaign has no reference-geometry runs: the flag says which)."""
@@ -1293,18 +1322,8 @@ def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
                 "scenario": s,
                 "noise": n,
                 "runs": len(rs),
-                "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
-                "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
-                "err_final": _med(r.get("err_range_final_pct") for r in rs),
-                "rmse_obs": _med(r.get("rmse_observable_m") for r in rs),
-                "rmse_pub": _med(r.get("rmse_published_settled_m") for r in rs),
-                "obs_share": _med(r.get("observable_share_settled") for r in rs),
+                **_medians(rs, _ACCURACY_MEDIANS),
                 "honest": len(honest),
-                "nees": _med(r.get("nees_observable") for r in rs),
-                "nees_pub": _med(r.get("nees_published_settled") for r in rs),
-                "crb": _med(r.get("crb_rms_m") for r in rs),
-                "crb_sig": _med(r.get("crb_range_sigma_pct") for r in rs),
-                "batch": _med(r.get("batch_err_range_pct") for r in rs),
             }
         )
     return out, at_ref
@@ -1333,12 +1352,7 @@ def manoeuvre_rows(rows: list[dict]) -> list[dict]:
                 "noise": n,
                 "manoeuvre_scale": m,
                 "runs": len(rs),
-                "accel_perp_mps2": _med(r.get("observer_accel_perp_los_rms_mps2") for r in rs),
-                "accel_mps2": _med(r.get("observer_accel_rms_mps2") for r in rs),
-                "err_pub": _med(r.get("err_range_published_settled_pct") for r in rs),
-                "err_obs": _med(r.get("err_range_observable_pct") for r in rs),
-                "err_final": _med(r.get("err_range_final_pct") for r in rs),
-                "obs_share": _med(r.get("observable_share_settled") for r in rs),
+                **_medians(rs, _MANOEUVRE_MEDIANS),
                 "crb_pct": _med(crb_pct),
             }
         )
