@@ -33,6 +33,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from onboard.estimation.sliding import TrackEstimate
+
 __all__ = ["RpEkfConfig", "RpEkfEstimate", "RangeParameterisedEkf"]
 
 
@@ -63,18 +65,10 @@ class RpEkfConfig:
 
 
 @dataclass(frozen=True)
-class RpEkfEstimate:
-    """The protocol's estimate fields (see :mod:`onboard.pipeline.plugins`), plus the filters' weights."""
+class RpEkfEstimate(TrackEstimate):
+    """The estimate of the plug-in protocol (:class:`onboard.estimation.sliding.TrackEstimate`, see
+    :mod:`onboard.pipeline.plugins`), plus the filters' weights."""
 
-    t_s: float
-    p_ned_m: np.ndarray
-    v_ned_mps: np.ndarray
-    cov_p_ned_m2: np.ndarray
-    cov_v_ned_m2ps2: np.ndarray
-    observable: bool
-    range_m: float
-    range_sigma_ratio: float
-    window_frames: int
     model: str = "rpekf"
     weights: tuple = field(default=())
 
