@@ -84,8 +84,11 @@ class _SocketStream:
         return out
 
 
-class UdpTsDecoder:
-    """Listen on ``host:port`` (``port`` 0 = pick one, see :attr:`port`) and decode until :meth:`stop`."""
+class _UdpReceiver:
+    """A UDP socket on ``host:port`` (``port`` 0: pick one, see :attr:`port`) read by a daemon thread
+    (``_run``) until :meth:`stop`; the counts every receiver keeps."""
+
+    THREAD_NAME = "video-rx"
 
     def __init__(self, on_frame: Callable[[DecodedFrame], None], host: str = "127.0.0.1", port: int = 0) -> None:
         self._on_frame = on_frame
@@ -100,8 +103,20 @@ class UdpTsDecoder:
         self.frames = 0
         self.decode_errors = 0
         self.error: str | None = None  # the exception that ended the thread early, if any
-        self._thread = threading.Thread(target=self._run, name="video-rx", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=self.THREAD_NAME, daemon=True)
         self._thread.start()
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+    def stop(self, timeout_s: float = 2.0) -> None:
+        self._stop.set()
+        self._thread.join(timeout_s)
+        self._sock.close()
+
+
+class UdpTsDecoder(_UdpReceiver):
+    """Listen on ``host:port`` (``port`` 0 = pick one, see :attr:`port`) and decode until :meth:`stop`."""
 
     def _run(self) -> None:
         import av
@@ -145,11 +160,6 @@ class UdpTsDecoder:
                 container.close()
             except Exception:  # noqa: BLE001
                 pass
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        self._stop.set()
-        self._thread.join(timeout_s)
-        self._sock.close()
 
 
 class SdpRtpDecoder:
@@ -261,28 +271,17 @@ class SdpRtpDecoder:
             pass
 
 
-class RtpMarkerDecoder:
+class RtpMarkerDecoder(_UdpReceiver):
     """RTP H.264 on ``host:port`` (``port`` 0: pick one, see :attr:`port`) assembled into access units
     at the marker bit and decoded at once (module docstring).  An access unit with a gap in its
     sequence numbers or a payload :func:`~onboard.io.rtp_h264.depacketize` refuses is dropped
     (``lost_units``); packets before the first IDR are skipped."""
 
+    THREAD_NAME = "video-rx-rtp"
+
     def __init__(self, on_frame: Callable[[DecodedFrame], None], host: str = "127.0.0.1", port: int = 0) -> None:
-        self._on_frame = on_frame
-        self._sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self._sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, RECV_BUFFER_BYTES)
-        self._sock.bind((host, port))
-        self._sock.settimeout(POLL_S)
-        self.port = int(self._sock.getsockname()[1])
-        self._stop = threading.Event()
-        self.datagrams = 0
-        self.bytes = 0
-        self.frames = 0
-        self.decode_errors = 0
-        self.lost_units = 0
-        self.error: str | None = None
-        self._thread = threading.Thread(target=self._run, name="video-rx-rtp", daemon=True)
-        self._thread.start()
+        self.lost_units = 0  # before the thread starts
+        super().__init__(on_frame, host, port)
 
     def _run(self) -> None:
         import av
@@ -334,8 +333,3 @@ class RtpMarkerDecoder:
         except Exception as exc:  # noqa: BLE001 - reported through .error
             if not self._stop.is_set():
                 self.error = f"decode: {type(exc).__name__}: {exc}"
-
-    def stop(self, timeout_s: float = 2.0) -> None:
-        self._stop.set()
-        self._thread.join(timeout_s)
-        self._sock.close()
