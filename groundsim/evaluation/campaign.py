@@ -778,17 +778,7 @@ def _run_synthetic(job: Job) -> list[dict]:
                 if p.shape == (3,) and P.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(P)):
                     est_p[k], est_P[k], observable[k] = p, P, bool(e.observable)
         except Exception as exc:  # noqa: BLE001 - a plug-in that cannot be built fails its runs alone
-            rows.append(
-                _row(
-                    params,
-                    {
-                        **case,
-                        "status": "failed",
-                        "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                        "wall_s": time.perf_counter() - w0,
-                    },
-                )
-            )
+            rows.append(_failed_row(params, exc, w0, case))
             continue
         m = score_track(truth.t_s, truth.p_target_ned_m, truth.p_cam_ned_m, est_p, est_P, observable)
         m.update(case)
@@ -798,6 +788,12 @@ def _run_synthetic(job: Job) -> list[dict]:
     for r in rows:
         r["case_wall_s"] = wall
     return rows
+
+
+def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None) -> dict:
+    """The row of a run that could not be made: status failed, the exception on one line, its wall time."""
+    error = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+    return _row(params, {**(case or {}), "status": "failed", "error": error, "wall_s": time.perf_counter() - w0})
 
 
 def _run_closed_loop(job: Job) -> list[dict]:
@@ -816,16 +812,7 @@ def _run_closed_loop(job: Job) -> list[dict]:
         try:
             r = run_lockstep(job.scenario, params.seed, opts, job.base_config)
         except Exception as exc:  # noqa: BLE001 - a run that cannot be made (flight envelope, plug-in) fails alone
-            rows.append(
-                _row(
-                    params,
-                    {
-                        "status": "failed",
-                        "error": f"{type(exc).__name__}: {' '.join(str(exc).split())}",
-                        "wall_s": time.perf_counter() - w0,
-                    },
-                )
-            )
+            rows.append(_failed_row(params, exc, w0))
             continue
         s = score_run(r)
         m = score_track(r.t_s, r.truth_p_ned_m, r.cam_p_ned_m, r.est_p_ned_m, r.est_cov_ned_m2, r.observable)
@@ -1542,16 +1529,9 @@ def cmd_campaign(args) -> int:
     import sys
 
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
+    from groundsim.evaluation.parallel import quiet_run_logs
 
-    if logging.getLogger().getEffectiveLevel() >= logging.INFO:
-        for name in (
-            "onboard",
-            "groundsim.app.run",
-            "groundsim.world.flight",
-            "groundsim.world.render",
-            "groundsim.evaluation.eval",
-        ):
-            logging.getLogger(name).setLevel(logging.WARNING)
+    quiet_run_logs("groundsim.evaluation.eval")
     spec = load_spec(args.spec)
     scheduler = getattr(args, "scheduler", None)
     if scheduler is not None and args.workers is not None:

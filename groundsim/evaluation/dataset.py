@@ -613,17 +613,10 @@ def cmd_dataset(args) -> int:
     import sys
 
     from groundsim.app.cli import resolve_scenario_path
+    from groundsim.evaluation.parallel import quiet_run_logs
     from groundsim.world.scenario import load_scenario
 
-    if logging.getLogger().getEffectiveLevel() >= logging.INFO:
-        for name in (
-            "onboard",
-            "groundsim.app.run",
-            "groundsim.world.flight",
-            "groundsim.world.render",
-            "groundsim.world.truth",
-        ):
-            logging.getLogger(name).setLevel(logging.WARNING)
+    quiet_run_logs("groundsim.world.truth")
     names = [n for group in (args.scenario or [["P1"]]) for n in group]
     scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
     if isinstance(args.seeds, bool) or args.seeds < 1:

@@ -83,7 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.parallel import run_pool
+from groundsim.evaluation.parallel import quiet_run_logs, run_pool
 from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
@@ -1239,9 +1239,7 @@ def cmd_eval(args) -> int:
     from groundsim.world.scenario import load_scenario
 
     limit_blas_threads(1)
-    if logging.getLogger().getEffectiveLevel() >= logging.INFO:  # per-track chatter would drown the progress bar
-        for name in ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render"):
-            logging.getLogger(name).setLevel(logging.WARNING)
+    quiet_run_logs()  # per-track chatter would drown the progress bar
     names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
     scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
     if isinstance(args.seeds, bool) or args.seeds < 1:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["mp_context", "run_pool"]
+__all__ = ["mp_context", "run_pool", "quiet_run_logs"]
 
 
 def mp_context():
@@ -55,3 +55,17 @@ def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> li
         pool.terminate()
         pool.join()
         raise
+
+
+#: the loggers whose per-run chatter (tracks started, flights trimmed, frames rendered) would drown a progress bar
+RUN_LOGGERS = ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render")
+
+
+def quiet_run_logs(*extra: str) -> None:
+    """At the default log level (INFO or quieter) keep only warnings from :data:`RUN_LOGGERS` and ``extra``;
+    at ``--log-level DEBUG`` leave everything on."""
+    import logging
+
+    if logging.getLogger().getEffectiveLevel() >= logging.INFO:
+        for name in RUN_LOGGERS + extra:
+            logging.getLogger(name).setLevel(logging.WARNING)
