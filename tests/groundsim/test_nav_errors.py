@@ -35,6 +35,7 @@ from onboard.core.frames import (
     rotvec_from_quat,
 )
 from onboard.core.pose import PoseBuffer, PoseBufferConfig
+from tests.groundsim.test_eval import _FakeCore
 
 P1 = scenarios_dir() / "P1.yaml"
 N_TICKS = 20_000  # statistics over this many samples: sample std within ~1 % (3 sigma ~ 1.5 %)
@@ -226,33 +227,12 @@ def test_vehicle_honours_gimbal_status_at_100_hz():
     assert 180 <= sent <= 201  # ~100 Hz over 2 s (a 10 ms schedule sampled on 8.3 ms ticks)
 
 
-class _Core:
-    """A level observer flying north at 10 m/s, with navigation errors (SimCore's telemetry interface)."""
-
-    tick_rate_hz = 120.0
+class _Core(_FakeCore):
+    """test_eval's level observer flying north at 10 m/s (no gimbal), with navigation errors."""
 
     def __init__(self, seconds: float, case) -> None:
-        self.tick_count = int(seconds * self.tick_rate_hz)
-        self.origin = GeodeticOrigin(32.0, 118.8, 0.0)
+        super().__init__(seconds, gimbal=False)
         self.model = NavErrorModel(case, np.random.default_rng(9), np.arange(self.tick_count) / self.tick_rate_hz)
-
-    def vehicle_state(self, i: int) -> dict:
-        from onboard.core.frames import geodetic_from_ned
-
-        t = i / self.tick_rate_hz
-        lat, lon, alt = geodetic_from_ned(np.array([10.0 * t, 0.0, -60.0]), self.origin)
-        return dict(
-            time_boot_us=1_000_000 + round(t * 1e6),
-            lat_deg=float(lat),
-            lon_deg=float(lon),
-            alt_amsl_m=float(alt),
-            alt_rel_m=float(alt),
-            v_ned_mps=np.array([10.0, 0.0, 0.0]),
-            q_ned_from_body=np.array([1.0, 0, 0, 0]),
-            body_rates_radps=np.zeros(3),
-            heading_rad=0.0,
-            q_gimbal=None,
-        )
 
     def nav_error(self, i: int):
         return self.model.sample(i)
