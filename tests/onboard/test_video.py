@@ -15,6 +15,8 @@ import time
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 av = pytest.importorskip("av")
 
@@ -368,3 +370,20 @@ def test_transport_is_checked_by_name():
         VideoStreamer("127.0.0.1:9", W, H, transport="srt")
     with pytest.raises(Exception, match="video.transport"):
         video_stream_type("webrtc")
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    h=st.integers(1, 70),
+    w=st.integers(1, 70),
+    wide=st.booleans(),
+    pcts=st.tuples(st.floats(0.0, 100.0), st.floats(0.0, 100.0)).map(sorted),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_agc_limits_are_numpys_linear_percentiles_of_the_subsample(h, w, wide, pcts, seed):
+    """agc_limits computes its two percentiles from one partition; they are np.percentile's (linear) values."""
+    dtype = np.uint16 if wide else np.uint8
+    px = np.random.default_rng(seed).integers(0, np.iinfo(dtype).max + 1, (h, w)).astype(dtype)
+    got = agc_limits(px, pcts[0], pcts[1], 4)
+    want = np.percentile(px[::4, ::4], pcts)
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
