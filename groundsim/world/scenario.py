@@ -41,6 +41,7 @@ from pydantic import BeforeValidator, PlainValidator
 
 from groundsim.world.motion import Circular, Cubic, FigureEight, Motion, Perturbed, SingerPerturbation, Waypoints
 from groundsim.world.render.settings import IrSettings, TargetPart
+from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.frames import CameraMount, GeodeticOrigin, PinholeIntrinsics
 from onboard.core.schema import (
@@ -428,7 +429,7 @@ class TargetFile:
 
 
 @_scenario_model(kw_only=True)
-class IntrinsicsFile:
+class IntrinsicsFile(PinholeSection):
     fx_px: Number(0.0, lo_open=True) = _VUE.fx_px
     fy_px: Number(0.0, lo_open=True) = _VUE.fy_px
     cx_px: Number(nullable=True) = None
@@ -436,17 +437,6 @@ class IntrinsicsFile:
     width_px: Integer(1, 100_000) = _VUE.width_px
     height_px: Integer(1, 100_000) = _VUE.height_px
     distortion: Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)") = tuple(_VUE.distortion)
-
-    def __post_init__(self) -> None:
-        for name, size in (("cx_px", self.width_px), ("cy_px", self.height_px)):
-            v = getattr(self, name)
-            if v is not None and not 0.0 <= v <= size:
-                raise Invalid(name, f"a number in [0, {size}] (inside the image)", v)
-
-    def pinhole(self) -> PinholeIntrinsics:
-        cx = self.width_px / 2 if self.cx_px is None else self.cx_px
-        cy = self.height_px / 2 if self.cy_px is None else self.cy_px
-        return PinholeIntrinsics(self.fx_px, self.fy_px, cx, cy, self.width_px, self.height_px, self.distortion)
 
 
 @_scenario_model(kw_only=True)

@@ -39,6 +39,7 @@ from typing import Any
 
 import yaml
 
+from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError
 from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
 from onboard.core.pose import OriginConfig, PoseConfig
@@ -154,7 +155,7 @@ class InputConfig:
 
 
 @config_dataclass
-class IntrinsicsConfig:
+class IntrinsicsConfig(PinholeSection):
     """``camera.intrinsics``: pinhole + Brown-Conrady, as the scenario schema (cx/cy null = centre)."""
 
     fx_px: Number(lo=0.0, lo_open=True) = 13e-3 / 17e-6
@@ -165,16 +166,7 @@ class IntrinsicsConfig:
     height_px: Integer(16, 100000) = 512
     distortion: Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)") = (0.0, 0.0, 0.0, 0.0, 0.0)
 
-    def __post_init__(self) -> None:
-        for name, size in (("cx_px", self.width_px), ("cy_px", self.height_px)):
-            v = getattr(self, name)
-            if v is not None and not 0.0 <= v <= size:
-                raise Invalid(name, f"a number in [0, {size}] (inside the image) or null", v)
-
-    def pinhole(self) -> PinholeIntrinsics:
-        cx = self.width_px / 2.0 if self.cx_px is None else self.cx_px
-        cy = self.height_px / 2.0 if self.cy_px is None else self.cy_px
-        return PinholeIntrinsics(self.fx_px, self.fy_px, cx, cy, self.width_px, self.height_px, tuple(self.distortion))
+    CENTRE_EXPECT_SUFFIX = " or null"
 
 
 @config_dataclass

@@ -1,0 +1,41 @@
+"""The camera intrinsics section that the daemon's config (``camera.intrinsics``) and the scenario files
+(``camera.intrinsics``) share: its check that a given principal point lies inside the image, and its
+:class:`~onboard.core.frames.PinholeIntrinsics` (a null ``cx_px`` / ``cy_px`` is the image centre).
+
+A mixin of the two pydantic section classes, which declare the fields (their bounds and defaults differ)."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from onboard.core.frames import PinholeIntrinsics
+from onboard.core.schema import Invalid
+
+__all__ = ["PinholeSection"]
+
+
+class PinholeSection:
+    """Needs the fields ``fx_px, fy_px, cx_px, cy_px, width_px, height_px, distortion``."""
+
+    if TYPE_CHECKING:  # declared by each section class (for the type checker only: not dataclass fields here)
+        fx_px: float
+        fy_px: float
+        cx_px: float | None
+        cy_px: float | None
+        width_px: int
+        height_px: int
+        distortion: tuple[float, float, float, float, float]
+
+    #: appended to the "expected" text of a principal point outside the image
+    CENTRE_EXPECT_SUFFIX = ""
+
+    def __post_init__(self) -> None:
+        for name, size in (("cx_px", self.width_px), ("cy_px", self.height_px)):
+            v = getattr(self, name)
+            if v is not None and not 0.0 <= v <= size:
+                raise Invalid(name, f"a number in [0, {size}] (inside the image){self.CENTRE_EXPECT_SUFFIX}", v)
+
+    def pinhole(self) -> PinholeIntrinsics:
+        cx = self.width_px / 2.0 if self.cx_px is None else self.cx_px
+        cy = self.height_px / 2.0 if self.cy_px is None else self.cy_px
+        return PinholeIntrinsics(self.fx_px, self.fy_px, cx, cy, self.width_px, self.height_px, self.distortion)
