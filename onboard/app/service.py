@@ -67,6 +67,7 @@ from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrameError, check_payload_size, decode_irframe
 from onboard.core.pose import PoseBuffer, RejectCounter
 from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
+from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
 __all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "ProcessEstimator", "OnboardService"]
@@ -770,8 +771,6 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
     try:
         out = est.propagated(t, p_cam_ned_m)
         if obs is not None and noise is not None and dt > 0:
-            from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
-
             uv, intrinsics, p_cam, q = obs
             fused = out.with_bearing(
                 p_cam,
