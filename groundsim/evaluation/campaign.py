@@ -1081,18 +1081,9 @@ def run_campaign(
     futures: list = []
     try:
         if progress and pending:
-            from tqdm import tqdm
+            from groundsim.evaluation.parallel import progress_bar
 
-            from groundsim.evaluation.eval import bar_pacing
-
-            bar = tqdm(
-                total=len(pending),
-                unit="run",
-                desc=f"campaign {spec.name} ({workers} worker(s))",
-                leave=True,
-                dynamic_ncols=True,
-                **bar_pacing(),
-            )
+            bar = progress_bar(len(pending), "run", f"campaign {spec.name} ({workers} worker(s))")
         if client is not None:  # submit every job, take them as they complete
             import uuid
 

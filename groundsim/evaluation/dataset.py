@@ -551,7 +551,7 @@ def export_dataset(
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
     from groundsim.app.run import frame_count
-    from groundsim.evaluation.eval import bar_pacing
+    from groundsim.evaluation.parallel import progress_bar
 
     options = options if options is not None else DatasetOptions()
     seeds = [int(s) for s in seeds]
@@ -570,16 +570,7 @@ def export_dataset(
     total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
     bar = None
     if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(
-            total=total,
-            unit="frame",
-            desc=f"dataset ({min(workers, len(jobs))} workers)",
-            leave=True,
-            dynamic_ncols=True,
-            **bar_pacing(),
-        )
+        bar = progress_bar(total, "frame", f"dataset ({min(workers, len(jobs))} workers)")
     t0 = time.perf_counter()
     try:
         workers = min(workers, len(jobs))

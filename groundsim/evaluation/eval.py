@@ -83,7 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.parallel import quiet_run_logs, run_pool
+from groundsim.evaluation.parallel import progress_bar, quiet_run_logs, run_pool
 from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
@@ -1133,14 +1133,6 @@ def _job(args) -> RunResult:
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
 
-def bar_pacing() -> dict:
-    """tqdm pacing: live on a terminal; one update every 10 s into a log file or pipe (a redrawn bar
-    there is thousands of carriage-return segments)."""
-    import sys
-
-    return {} if sys.stderr.isatty() else {"mininterval": 10.0, "maxinterval": 30.0}
-
-
 def run_eval(
     scenarios: list[Scenario],
     seeds,
@@ -1181,9 +1173,7 @@ def run_eval(
     if workers == 1:
         global _WORKER_QUEUE
         if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=total, unit="frame", desc="eval", leave=True, dynamic_ncols=True, **bar_pacing())
+            bar = progress_bar(total, "frame", "eval")
         try:
             for n, j in enumerate(jobs):
                 sc, seed, opts = j[0], j[1], j[2]
@@ -1208,16 +1198,7 @@ def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
     bar = None
     try:
         if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(
-                total=total,
-                unit="frame",
-                desc=f"eval ({workers} workers)",
-                leave=True,
-                dynamic_ncols=True,
-                **bar_pacing(),
-            )
+            bar = progress_bar(total, "frame", f"eval ({workers} workers)")
         return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
     finally:
         if bar is not None:

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["mp_context", "run_pool", "quiet_run_logs"]
+__all__ = ["mp_context", "run_pool", "quiet_run_logs", "progress_bar", "bar_pacing"]
 
 
 def mp_context():
@@ -69,3 +69,18 @@ def quiet_run_logs(*extra: str) -> None:
     if logging.getLogger().getEffectiveLevel() >= logging.INFO:
         for name in RUN_LOGGERS + extra:
             logging.getLogger(name).setLevel(logging.WARNING)
+
+
+def bar_pacing() -> dict:
+    """tqdm pacing: live on a terminal; one update every 10 s into a log file or pipe (a redrawn bar
+    there is thousands of carriage-return segments)."""
+    import sys
+
+    return {} if sys.stderr.isatty() else {"mininterval": 10.0, "maxinterval": 30.0}
+
+
+def progress_bar(total: int, unit: str, desc: str):
+    """The evaluation's progress bar on stderr (tqdm, paced by :func:`bar_pacing`); close it when done."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, desc=desc, leave=True, dynamic_ncols=True, **bar_pacing())
