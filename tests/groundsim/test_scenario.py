@@ -68,6 +68,11 @@ def p1_dict() -> dict:
     return yaml.safe_load((REPO / "config/scenarios/P1.yaml").read_text())
 
 
+def p1g_singer() -> dict:
+    """The reference Singer disturbance of the shipped g variants, as a scenario section."""
+    return {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.05, "tau_s": 2.0}
+
+
 @pytest.fixture(scope="module")
 def shipped() -> dict[str, Scenario]:
     return {k: load_scenario(p) for k, p in reference_scenario_paths().items()}
@@ -211,12 +216,7 @@ def test_disturbance_realisation_is_deterministic_per_run_seed(shipped):
 
 def test_scenario_seed_changes_the_realisation():
     d = p1_dict()
-    d["target"]["disturbance"] = {
-        "model": "singer",
-        "sigma_horizontal_mps2": 0.1,
-        "sigma_vertical_mps2": 0.05,
-        "tau_s": 2.0,
-    }
+    d["target"]["disturbance"] = p1g_singer()
     a = scenario_from_dict(d)
     d["seed"] = 99
     b = scenario_from_dict(d)
@@ -366,12 +366,7 @@ def test_ir_renderer_knobs_are_read_not_ignored():
 
 def test_input_dict_is_not_modified():
     d = p1_dict()
-    d["target"]["disturbance"] = {
-        "model": "singer",
-        "sigma_horizontal_mps2": 0.1,
-        "sigma_vertical_mps2": 0.05,
-        "tau_s": 2.0,
-    }
+    d["target"]["disturbance"] = p1g_singer()
     before = copy.deepcopy(d)
     scenario_from_dict(d)
     assert d == before
@@ -394,6 +389,28 @@ def _set(d, path, value):
         del d[keys[-1]]
     else:
         d[keys[-1]] = value
+
+
+def _one_line_error(load, source, prefix: str, text: str) -> ScenarioError:
+    """load(source) raises a ScenarioError of one line that starts with prefix and contains text."""
+    with pytest.raises(ScenarioError) as ei:
+        load(source)
+    msg = str(ei.value)
+    assert "\n" not in msg
+    assert msg.startswith(prefix), msg
+    assert text in msg, msg
+    return ei.value
+
+
+def _singer(**changes) -> dict:
+    """A valid Singer disturbance section with some fields changed."""
+    return {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": 2, **changes}
+
+
+def _part(**changes) -> dict:
+    """A valid ir.target_parts entry (a 2 m box at 300 K) with some fields changed."""
+    part = {"name": "a", "shape": "box", "center_frd_m": [0, 0, 0], "half_extent_m": [1, 1, 1], "temperature_k": 300}
+    return {**part, "emissivity": 1, **changes}
 
 
 BAD_CASES = [
@@ -458,21 +475,11 @@ BAD_CASES = [
         "target.motion",
         "at least 1 m from the observer at every frame, got 0 m at t = 0.000 s",
     ),
+    ("target.disturbance", _singer(model="gauss"), "target.disturbance.model", "expected one of singer, got 'gauss'"),
+    ("target.disturbance", _singer(tau_s=-2), "target.disturbance.tau_s", "> 0 s"),
     (
         "target.disturbance",
-        {"model": "gauss", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": 2},
-        "target.disturbance.model",
-        "expected one of singer, got 'gauss'",
-    ),
-    (
-        "target.disturbance",
-        {"model": "singer", "sigma_horizontal_mps2": 0.1, "sigma_vertical_mps2": 0.1, "tau_s": -2},
-        "target.disturbance.tau_s",
-        "> 0 s",
-    ),
-    (
-        "target.disturbance",
-        {"model": "singer", "sigma_horizontal_mps2": 1e300, "sigma_vertical_mps2": 0.1, "tau_s": 2},
+        _singer(sigma_horizontal_mps2=1e300),
         "target.disturbance.sigma_horizontal_mps2",
         "in [0, 100] m/s^2",
     ),
@@ -487,36 +494,8 @@ BAD_CASES = [
     ("ir.t_min_k", 330.0, "ir.t_min_k", "a temperature < ir.t_max_k (323.15 K), got 330.0"),
     ("ir.ground_emissivity", 1.5, "ir.ground_emissivity", "in (0, 1], got 1.5"),
     ("ir.ground_emissivity", 0.0, "ir.ground_emissivity", "in (0, 1], got 0.0"),
-    (
-        "ir.target_parts",
-        [
-            {
-                "name": "a",
-                "shape": "box",
-                "center_frd_m": [0, 0, 0],
-                "half_extent_m": [1, 1, 1],
-                "temperature_k": 300,
-                "emissivity": 0,
-            }
-        ],
-        "ir.target_parts[0].emissivity",
-        "in (0, 1]",
-    ),
-    (
-        "ir.target_parts",
-        [
-            {
-                "name": "a",
-                "shape": "cone",
-                "center_frd_m": [0, 0, 0],
-                "half_extent_m": [1, 1, 1],
-                "temperature_k": 300,
-                "emissivity": 1,
-            }
-        ],
-        "ir.target_parts[0].shape",
-        "one of ellipsoid, box",
-    ),
+    ("ir.target_parts", [_part(emissivity=0)], "ir.target_parts[0].emissivity", "in (0, 1]"),
+    ("ir.target_parts", [_part(shape="cone")], "ir.target_parts[0].shape", "one of ellipsoid, box"),
     ("ir.target_parts", [], "ir.target_parts", "a non-empty list of parts"),
     ("ir.band_um", [13.5, 7.5], "ir.band_um", "lower < upper"),
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
@@ -551,14 +530,9 @@ BAD_CASES = [
 def test_each_bad_field_gives_one_line_naming_it(key, value, field, text):
     d = p1_dict()
     _set(d, key, value)
-    with pytest.raises(ScenarioError) as ei:
-        scenario_from_dict(d)
-    msg = str(ei.value)
-    assert "\n" not in msg
-    assert msg.startswith(f"<dict>: {field}: expected "), msg
-    assert text in msg, msg
-    assert ei.value.field == field
-    assert isinstance(ei.value, ConfigError) and ei.value.exit_code == 2
+    err = _one_line_error(scenario_from_dict, d, f"<dict>: {field}: expected ", text)
+    assert err.field == field
+    assert isinstance(err, ConfigError) and err.exit_code == 2
 
 
 @pytest.mark.parametrize("doc", [None, [], "P1", 3])
@@ -589,12 +563,7 @@ FILE_CASES = [
 def test_bad_yaml_names_file_and_line(tmp_path, text, field, expected):
     path = tmp_path / "bad.yaml"
     path.write_text(text)
-    with pytest.raises(ScenarioError) as ei:
-        load_scenario(path)
-    msg = str(ei.value)
-    assert "\n" not in msg
-    assert msg.startswith(f"{path}: {field}"), msg
-    assert expected in msg, msg
+    _one_line_error(load_scenario, path, f"{path}: {field}", expected)
 
 
 def test_line_number_is_exposed(tmp_path):
@@ -744,12 +713,7 @@ def _paths(d, prefix=()):
 
 def _base_docs():
     p1g = p1_dict()
-    p1g["target"]["disturbance"] = {
-        "model": "singer",
-        "sigma_horizontal_mps2": 0.1,
-        "sigma_vertical_mps2": 0.05,
-        "tau_s": 2.0,
-    }
+    p1g["target"]["disturbance"] = p1g_singer()
     p3 = yaml.safe_load((REPO / "config/scenarios/P3.yaml").read_text())
     p2 = yaml.safe_load((REPO / "config/scenarios/P2.yaml").read_text())
     p2["target"]["motion"] = {"model": "waypoints", "points_ned_m": [[150, 0, -90], [150, 50, -90]], "speed_mps": 5}
