@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import socket
@@ -56,6 +57,27 @@ def _pump_thread(vehicle: MavlinkVehicle, stop: threading.Event, period_s: float
             time.sleep(period_s)
 
     return threading.Thread(target=pump, daemon=True)
+
+
+@contextlib.contextmanager
+def mavsdk_autopilot(mavsdk):
+    """(system, vehicle): a MAVSDK ground station that has discovered a vehicle pumped in real time."""
+    port = free_udp_port()
+    sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
+    stop = threading.Event()
+    th = _pump_thread(vehicle, stop, 0.002)
+    try:
+        sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
+        th.start()
+        system = sdk.first_autopilot(WAIT_S)
+        assert system is not None, "MAVSDK did not discover the vehicle"
+        yield system, vehicle
+    finally:
+        stop.set()
+        th.join(timeout=WAIT_S)
+        sdk.destroy()
+        vehicle.close()
 
 
 def _state(vehicle: MavlinkVehicle, t_us: int, **over):
@@ -565,17 +587,7 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
     mavsdk = pytest.importorskip("mavsdk")
     from mavsdk.plugins.telemetry.telemetry import Telemetry
 
-    port = free_udp_port()
-    sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
-    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
-    stop = threading.Event()
-
-    th = _pump_thread(vehicle, stop, 0.002)
-    try:
-        sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
-        th.start()
-        system = sdk.first_autopilot(WAIT_S)
-        assert system is not None, "MAVSDK did not discover the vehicle"
+    with mavsdk_autopilot(mavsdk) as (system, _):
         assert system.has_autopilot() and system.get_system_id() == 1
         assert int(system.vehicle_type()) == int(mavsdk.Vehicle.MULTICOPTER)
         tel = Telemetry(system)
@@ -591,8 +603,3 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
         assert pos.absolute_altitude_m == pytest.approx(ALT_AMSL_M, abs=1e-3)
         assert pos.relative_altitude_m == pytest.approx(ALT_REL_M, abs=1e-3)
         assert (att.w, att.x, att.y, att.z) == pytest.approx(Q_NED_FROM_BODY, abs=1e-6)
-    finally:
-        stop.set()
-        th.join(timeout=WAIT_S)
-        sdk.destroy()
-        vehicle.close()

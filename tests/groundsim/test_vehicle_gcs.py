@@ -21,6 +21,7 @@ from tests.groundsim.test_mavlink_vehicle import (
     LON_DEG,
     WAIT_S,
     _pump_thread,
+    mavsdk_autopilot,
 )
 
 
@@ -132,16 +133,7 @@ def test_mavsdk_reads_health_home_gps_and_battery_with_nothing_denied():
     mavsdk = pytest.importorskip("mavsdk")
     from mavsdk.plugins.telemetry.telemetry import Telemetry
 
-    port = free_udp_port()
-    sdk = mavsdk.Mavsdk(mavsdk.Configuration.create_with_component_type(mavsdk.ComponentType.GROUND_STATION))
-    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}")
-    stop = threading.Event()
-    th = _pump_thread(vehicle, stop, 0.002)
-    try:
-        sdk.add_any_connection(f"udpin://127.0.0.1:{port}")
-        th.start()
-        system = sdk.first_autopilot(WAIT_S)
-        assert system is not None, "MAVSDK did not discover the vehicle"
+    with mavsdk_autopilot(mavsdk) as (system, vehicle):
         tel = Telemetry(system)
         deadline = time.monotonic() + 15.0
         health = home = gps = battery = None
@@ -165,8 +157,3 @@ def test_mavsdk_reads_health_home_gps_and_battery_with_nothing_denied():
         assert 0 < battery.remaining_percent <= 100 and battery.voltage_v > 3.5 * BATTERY_CELLS
         time.sleep(1.0)  # let any late request arrive and be answered
         assert vehicle.counters["ack_denied"] == 0, dict(vehicle.counters)
-    finally:
-        stop.set()
-        th.join(timeout=WAIT_S)
-        sdk.destroy()
-        vehicle.close()
