@@ -80,6 +80,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
@@ -430,36 +431,35 @@ class RunResult:
         return np.all(np.isfinite(self.base_p_ned_m), axis=1)
 
 
-def _empty_result(scenario: Scenario, seed: int, error: str) -> RunResult:
-    z2, z3 = np.zeros((0, 2)), np.zeros((0, 3))
-    zb = np.zeros(0, dtype=bool)
-    return RunResult(
-        scenario.name,
-        scenario.description,
-        seed,
-        0,
-        np.zeros(0),
-        np.zeros(0, dtype=np.int64),
-        z3,
-        z3,
-        z3,
-        np.zeros(0),
-        z2,
-        zb,
-        np.zeros(0, dtype="<U9"),
-        zb,
-        z2,
-        np.zeros((0, 4)),
-        zb,
-        z3,
-        np.zeros((0, 3, 3)),
-        zb,
-        np.zeros(0),
-        z3,
-        np.zeros((0, 3, 3)),
-        zb,
-        error=error,
+def _result_columns(F: int) -> dict[str, np.ndarray]:
+    """RunResult's per-frame arrays for F frames by field name, holding nothing yet (NaN, False, '')."""
+    nan = math.nan
+    return dict(
+        t_s=np.full(F, nan),
+        time_boot_us=np.zeros(F, dtype=np.int64),
+        truth_p_ned_m=np.full((F, 3), nan),
+        cam_p_ned_m=np.full((F, 3), nan),
+        observer_p_ned_m=np.full((F, 3), nan),
+        range_m=np.full(F, nan),
+        truth_uv_px=np.full((F, 2), nan),
+        visible=np.zeros(F, dtype=bool),
+        state=np.empty(F, dtype="<U9"),
+        measurement_valid=np.zeros(F, dtype=bool),
+        pose_valid=np.zeros(F, dtype=bool),
+        uv_px=np.full((F, 2), nan),
+        bbox=np.full((F, 4), nan),
+        est_p_ned_m=np.full((F, 3), nan),
+        est_cov_ned_m2=np.full((F, 3, 3), nan),
+        observable=np.zeros(F, dtype=bool),
+        range_sigma_ratio=np.full(F, nan),
+        base_p_ned_m=np.full((F, 3), nan),
+        base_cov_ned_m2=np.full((F, 3, 3), nan),
+        base_observable=np.zeros(F, dtype=bool),
     )
+
+
+def _empty_result(scenario: Scenario, seed: int, error: str) -> RunResult:
+    return RunResult(scenario.name, scenario.description, seed, 0, **_result_columns(0), error=error)
 
 
 def centroid_sigma_px(uv_px, truth_uv_px, sel) -> float | None:
@@ -529,23 +529,17 @@ def run_lockstep(
 
     F = core.frame_count
     nan = math.nan
-    t_s = np.full(F, nan)
-    t_us = np.zeros(F, dtype=np.int64)
-    truth_p, cam_p, obs_p = np.full((F, 3), nan), np.full((F, 3), nan), np.full((F, 3), nan)
-    range_m, truth_uv, visible = np.full(F, nan), np.full((F, 2), nan), np.zeros(F, dtype=bool)
-    state = np.empty(F, dtype="<U9")
-    meas, pose_ok = np.zeros(F, dtype=bool), np.zeros(F, dtype=bool)
-    uv, bbox = np.full((F, 2), nan), np.full((F, 4), nan)
-    est_p, est_P, observable, ratio = (
-        np.full((F, 3), nan),
-        np.full((F, 3, 3), nan),
-        np.zeros(F, dtype=bool),
-        np.full(F, nan),
+    # the run's per-frame columns (RunResult's arrays, then the ones it does not keep), cut together to
+    # the frames processed if the run stops early
+    c = SimpleNamespace(
+        **_result_columns(F),
+        cam_pose_p=np.full((F, 3), nan),
+        cam_pose_q=np.full((F, 4), nan),
+        render_ms=np.zeros(F),
+        process_ms=np.zeros(F),
+        baseline_ms=np.zeros(F),
+        unit_noise=rng.standard_normal((F, 2)),  # the baseline's centroid noise, scaled once the chain's error is known
     )
-    base_p, base_P, base_obs = np.full((F, 3), nan), np.full((F, 3, 3), nan), np.zeros(F, dtype=bool)
-    cam_pose_p, cam_pose_q = np.full((F, 3), nan), np.full((F, 4), nan)
-    unit_noise = rng.standard_normal((F, 2))  # the baseline's centroid noise, scaled once the chain's error is known
-    render_ms, process_ms, baseline_ms = np.zeros(F), np.zeros(F), np.zeros(F)
     rejected = 0
     kept = None
     done_since = 0
@@ -565,15 +559,15 @@ def run_lockstep(
             break
         r0 = core.render_s
         fr = core.frame(k)
-        render_ms[k] = (core.render_s - r0) * 1e3
+        c.render_ms[k] = (core.render_s - r0) * 1e3
         tr = fr.truth
-        t_s[k], t_us[k] = tr.t_s, fr.time_boot_us
-        truth_p[k] = (tr.target_n_m, tr.target_e_m, tr.target_d_m)
-        cam_p[k] = (tr.cam_n_m, tr.cam_e_m, tr.cam_d_m)
-        obs_p[k] = (tr.observer_n_m, tr.observer_e_m, tr.observer_d_m)
-        range_m[k] = tr.range_m
-        truth_uv[k] = (tr.target_u_px, tr.target_v_px)
-        visible[k] = bool(tr.target_visible)
+        c.t_s[k], c.time_boot_us[k] = tr.t_s, fr.time_boot_us
+        c.truth_p_ned_m[k] = (tr.target_n_m, tr.target_e_m, tr.target_d_m)
+        c.cam_p_ned_m[k] = (tr.cam_n_m, tr.cam_e_m, tr.cam_d_m)
+        c.observer_p_ned_m[k] = (tr.observer_n_m, tr.observer_e_m, tr.observer_d_m)
+        c.range_m[k] = tr.range_m
+        c.truth_uv_px[k] = (tr.target_u_px, tr.target_v_px)
+        c.visible[k] = bool(tr.target_visible)
 
         source.last = None
         p0 = time.perf_counter()
@@ -583,23 +577,23 @@ def run_lockstep(
             rejected += 1
             log.debug("frame %d rejected: %s", k, exc)
             track = None
-        process_ms[k] = (time.perf_counter() - p0) * 1e3
+        c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         pose = source.last
         if track is not None:
-            state[k] = track.state
-            meas[k] = track.measurement_valid
+            c.state[k] = track.state
+            c.measurement_valid[k] = track.measurement_valid
             if track.u_px is not None:
-                uv[k] = (track.u_px, track.v_px)
+                c.uv_px[k] = (track.u_px, track.v_px)
             if track.bbox is not None:
-                bbox[k] = track.bbox
-            pose_ok[k] = track.pose_valid
+                c.bbox[k] = track.bbox
+            c.pose_valid[k] = track.pose_valid
             if track.has_position:
-                est_p[k] = track.p_ned_m
-                est_P[k] = track.cov_p_ned_m2
-                observable[k] = track.observable
-                ratio[k] = nan if track.range_sigma_ratio is None else track.range_sigma_ratio
+                c.est_p_ned_m[k] = track.p_ned_m
+                c.est_cov_ned_m2[k] = track.cov_p_ned_m2
+                c.observable[k] = track.observable
+                c.range_sigma_ratio[k] = nan if track.range_sigma_ratio is None else track.range_sigma_ratio
         if pose is not None:
-            cam_pose_p[k], cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
+            c.cam_pose_p[k], c.cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
 
         if options.keep_frame and _better_frame(kept, k, F, track):
             kept = dict(
@@ -620,69 +614,12 @@ def run_lockstep(
         progress(done_since + (F - n_done))  # the bar counts the frames planned
 
     if n_done < F:
-        (
-            t_s,
-            t_us,
-            truth_p,
-            cam_p,
-            obs_p,
-            range_m,
-            truth_uv,
-            visible,
-            state,
-            meas,
-            pose_ok,
-            uv,
-            bbox,
-            est_p,
-            est_P,
-            observable,
-            ratio,
-            base_p,
-            base_P,
-            base_obs,
-            cam_pose_p,
-            cam_pose_q,
-            render_ms,
-            process_ms,
-            baseline_ms,
-            unit_noise,
-        ) = (
-            a[:n_done]
-            for a in (
-                t_s,
-                t_us,
-                truth_p,
-                cam_p,
-                obs_p,
-                range_m,
-                truth_uv,
-                visible,
-                state,
-                meas,
-                pose_ok,
-                uv,
-                bbox,
-                est_p,
-                est_P,
-                observable,
-                ratio,
-                base_p,
-                base_P,
-                base_obs,
-                cam_pose_p,
-                cam_pose_q,
-                render_ms,
-                process_ms,
-                baseline_ms,
-                unit_noise,
-            )
-        )
+        c = SimpleNamespace(**{name: a[:n_done] for name, a in vars(c).items()})
         F = n_done
 
     # perfect-centroid baseline: truth pixel + white noise of the chain's own centroid error (or the
     # --pixel-sigma override), through the SAME camera poses the pipeline got for each frame
-    chain_sigma_px = centroid_sigma_px(uv, truth_uv, meas & visible)
+    chain_sigma_px = centroid_sigma_px(c.uv_px, c.truth_uv_px, c.measurement_valid & c.visible)
     if options.pixel_sigma_px is not None:
         base_sigma_px = float(options.pixel_sigma_px)
     else:
@@ -690,20 +627,24 @@ def run_lockstep(
     base_has_data = False
     for k in range(F):
         b0 = time.perf_counter()
-        has_pose = bool(np.all(np.isfinite(cam_pose_p[k])))
+        has_pose = bool(np.all(np.isfinite(c.cam_pose_p[k])))
         est = None
         try:
-            if has_pose and visible[k]:
+            if has_pose and c.visible[k]:
                 est = baseline.add(
-                    float(t_s[k]), truth_uv[k] + base_sigma_px * unit_noise[k], K, cam_pose_p[k], cam_pose_q[k]
+                    float(c.t_s[k]),
+                    c.truth_uv_px[k] + base_sigma_px * c.unit_noise[k],
+                    K,
+                    c.cam_pose_p[k],
+                    c.cam_pose_q[k],
                 )
                 base_has_data = True
             elif base_has_data:
-                est = baseline.predict(float(t_s[k]), cam_pose_p[k] if has_pose else None)
+                est = baseline.predict(float(c.t_s[k]), c.cam_pose_p[k] if has_pose else None)
         except IrtrackError as exc:
             log.debug("baseline frame %d: %s", k, exc)
-        base_p[k], base_P[k], base_obs[k] = _estimate_row(est)
-        baseline_ms[k] = (time.perf_counter() - b0) * 1e3
+        c.base_p_ned_m[k], c.base_cov_ned_m2[k], c.base_observable[k] = _estimate_row(est)
+        c.baseline_ms[k] = (time.perf_counter() - b0) * 1e3
 
     batch = None
     batch_s = 0.0
@@ -712,14 +653,14 @@ def run_lockstep(
         batch = _batch(
             cfg,
             K,
-            t_s,
-            uv,
-            meas,
-            truth_uv,
-            visible,
-            cam_pose_p,
-            cam_pose_q,
-            truth_p,
+            c.t_s,
+            c.uv_px,
+            c.measurement_valid,
+            c.truth_uv_px,
+            c.visible,
+            c.cam_pose_p,
+            c.cam_pose_q,
+            c.truth_p_ned_m,
             scenario,
             seed,
             base_sigma_px,
@@ -732,13 +673,13 @@ def run_lockstep(
         wall_s=wall,
         cpu_s=time.process_time() - cpu0,
         flight_s=core.flight.flight_s,
-        render_s=float(render_ms.sum() / 1e3),
-        pipeline_s=float(process_ms.sum() / 1e3),
-        baseline_s=float(baseline_ms.sum() / 1e3),
+        render_s=float(c.render_ms.sum() / 1e3),
+        pipeline_s=float(c.process_ms.sum() / 1e3),
+        baseline_s=float(c.baseline_ms.sum() / 1e3),
         batch_s=batch_s,
-        render_ms=render_ms,
-        process_ms=process_ms,
-        baseline_ms=baseline_ms,
+        render_ms=c.render_ms,
+        process_ms=c.process_ms,
+        baseline_ms=c.baseline_ms,
     )
     tracker = pipeline.tracker
     counters = dict(buffer.counter.counts)
@@ -753,26 +694,7 @@ def run_lockstep(
         description=scenario.description,
         seed=int(seed),
         frames=F,
-        t_s=t_s,
-        time_boot_us=t_us,
-        truth_p_ned_m=truth_p,
-        cam_p_ned_m=cam_p,
-        observer_p_ned_m=obs_p,
-        range_m=range_m,
-        truth_uv_px=truth_uv,
-        visible=visible,
-        state=state,
-        measurement_valid=meas,
-        uv_px=uv,
-        bbox=bbox,
-        pose_valid=pose_ok,
-        est_p_ned_m=est_p,
-        est_cov_ned_m2=est_P,
-        observable=observable,
-        range_sigma_ratio=ratio,
-        base_p_ned_m=base_p,
-        base_cov_ned_m2=base_P,
-        base_observable=base_obs,
+        **{name: getattr(c, name) for name in _result_columns(0)},
         batch=batch,
         timing=timing,
         counters=counters,
