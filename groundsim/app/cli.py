@@ -60,13 +60,49 @@ def resolve_scenario_path(text: str) -> Path:
     return shipped.get(text, p)
 
 
-def _add_run(p: argparse.ArgumentParser) -> None:
+# the options several commands declare, each with its own default or help text
+
+
+def _scenario_option(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--scenario",
         default=DEFAULT_SCENARIO,
         metavar="FILE|NAME",
         help="scenario YAML file, or a shipped scenario's name (default: %(default)s)",
     )
+
+
+def _scenarios_and_seeds_options(p: argparse.ArgumentParser, scenarios: str, seeds: int, seeds_help: str) -> None:
+    """``--scenario`` (repeatable lists, default: ``scenarios``) and ``--seeds N``."""
+    p.add_argument(
+        "--scenario",
+        action="append",
+        nargs="+",
+        default=None,
+        metavar="FILE|NAME",
+        help=f"scenario YAML file(s) or shipped names, repeatable (default: {scenarios})",
+    )
+    p.add_argument("--seeds", type=int, default=seeds, metavar="N", help=seeds_help)
+
+
+def _duration_option(p: argparse.ArgumentParser, help_text: str, default: float | None = None) -> None:
+    p.add_argument("--duration", type=float, default=default, metavar="S", help=help_text)
+
+
+def _workers_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    p.add_argument("--workers", type=int, default=None, metavar="N", help=help_text)
+
+
+def _onboard_config_option(p: argparse.ArgumentParser, default: str | None, help_text: str) -> None:
+    p.add_argument("--onboard-config", default=default, metavar="FILE", help=help_text)
+
+
+def _nav_noise_option(p: argparse.ArgumentParser, help_text: str, nargs: str | None = None) -> None:
+    p.add_argument("--nav-noise", nargs=nargs, default=None, metavar="NAME", help=help_text)
+
+
+def _add_run(p: argparse.ArgumentParser) -> None:
+    _scenario_option(p)
     p.add_argument(
         "--seed",
         type=int,
@@ -74,13 +110,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)",
     )
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        metavar="S",
-        help="simulated seconds (default and maximum: the scenario's duration_s)",
-    )
+    _duration_option(p, "simulated seconds (default and maximum: the scenario's duration_s)")
     p.add_argument(
         "--rate",
         default="realtime",
@@ -121,11 +151,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         "--zenoh-multicast-scouting", action="store_true", help="enable zenoh multicast scouting (off by default)"
     )
     p.add_argument("--zenoh-config", default=None, metavar="FILE", help="zenoh configuration file (JSON5)")
-    p.add_argument(
-        "--nav-noise",
-        default=None,
-        metavar="NAME",
-        help="navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
+    _nav_noise_option(
+        p,
+        "navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
         " default: the scenario's nav_noise, RTK unless it says otherwise)",
     )
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
@@ -264,26 +292,10 @@ def _cmd_run(args) -> int:
 
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--scenario",
-        action="append",
-        nargs="+",
-        default=None,
-        metavar="FILE|NAME",
-        help="scenario YAML file(s) or shipped names, repeatable (default: P1 P2 P3)",
-    )
-    p.add_argument(
-        "--seeds", type=int, default=5, metavar="N", help="run seeds 0..N-1 per scenario (default: %(default)s)"
-    )
+    _scenarios_and_seeds_options(p, "P1 P2 P3", 5, "run seeds 0..N-1 per scenario (default: %(default)s)")
     p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
-    p.add_argument("--workers", type=int, default=None, metavar="N", help="worker processes (default: min(2, CPUs))")
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        metavar="S",
-        help="simulated seconds per run (default: the scenario's duration_s)",
-    )
+    _workers_option(p, "worker processes (default: min(2, CPUs))")
+    _duration_option(p, "simulated seconds per run (default: the scenario's duration_s)")
     p.add_argument(
         "--pixel-sigma",
         type=float,
@@ -292,13 +304,11 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         help="perfect-centroid baseline noise, px per axis (default: the image chain's own centroid error,"
         " measured per run)",
     )
-    p.add_argument(
-        "--nav-noise",
-        nargs="+",
-        default=None,
-        metavar="NAME",
-        help="navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
+    _nav_noise_option(
+        p,
+        "navigation errors of the telemetry, cases of config/noise_cases.yaml; several = every scenario"
         " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)",
+        nargs="+",
     )
     p.add_argument(
         "--estimator",
@@ -308,11 +318,10 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)",
     )
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
-    p.add_argument(
-        "--onboard-config",
-        default=None,
-        metavar="FILE",
-        help="the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
+    _onboard_config_option(
+        p,
+        None,
+        "the daemon's configuration (default: config/onboard.yaml, the shipped one, with the"
         " scenario's camera, mount and origin)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -320,36 +329,21 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
 
 
 def _add_demo(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--scenario",
-        default=DEFAULT_SCENARIO,
-        metavar="FILE|NAME",
-        help="scenario YAML file, or a shipped scenario's name (default: %(default)s)",
-    )
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=20.0,
-        metavar="S",
-        help="seconds to fly in real time; a shorter scenario is extended (default: %(default)s)",
-    )
+    _scenario_option(p)
+    _duration_option(p, "seconds to fly in real time; a shorter scenario is extended (default: %(default)s)", 20.0)
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
     p.add_argument(
         "--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)"
     )
-    p.add_argument(
-        "--onboard-config",
-        default="config/onboard.yaml",
-        metavar="FILE",
-        help="the daemon's configuration, with the scenario's camera, mount and origin (default:"
+    _onboard_config_option(
+        p,
+        "config/onboard.yaml",
+        "the daemon's configuration, with the scenario's camera, mount and origin (default:"
         " %(default)s, the shipped one; built-in defaults when absent)",
     )
-    p.add_argument(
-        "--nav-noise",
-        default=None,
-        metavar="NAME",
-        help="the simulator's navigation errors, a case of config/noise_cases.yaml (default: the"
-        " scenario's nav_noise, RTK)",
+    _nav_noise_option(
+        p,
+        "the simulator's navigation errors, a case of config/noise_cases.yaml (default: the scenario's nav_noise, RTK)",
     )
     p.add_argument(
         "--no-eval",
@@ -368,27 +362,11 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
 
 
 def _add_dataset(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--scenario",
-        action="append",
-        nargs="+",
-        default=None,
-        metavar="FILE|NAME",
-        help="scenario YAML file(s) or shipped names, repeatable (default: P1)",
-    )
-    p.add_argument(
-        "--seeds",
-        type=int,
-        default=1,
-        metavar="N",
-        help="run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)",
-    )
+    _scenarios_and_seeds_options(p, "P1", 1, "run seeds SEED0..SEED0+N-1 per scenario (default: %(default)s)")
     p.add_argument("--seed0", type=int, default=0, metavar="N", help="first run seed (default: %(default)s)")
-    p.add_argument(
-        "--nav-noise",
-        default=None,
-        metavar="NAME",
-        help="navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
+    _nav_noise_option(
+        p,
+        "navigation errors of the measured camera pose, a case of config/noise_cases.yaml"
         " (default: the scenario's nav_noise, RTK)",
     )
     p.add_argument(
@@ -401,21 +379,9 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)"
     )
-    p.add_argument(
-        "--duration",
-        type=float,
-        default=None,
-        metavar="S",
-        help="simulated seconds per sequence (default: the scenario's)",
-    )
+    _duration_option(p, "simulated seconds per sequence (default: the scenario's)")
     p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=None,
-        metavar="N",
-        help="worker processes, one sequence each (default: min(2, CPUs))",
-    )
+    _workers_option(p, "worker processes, one sequence each (default: min(2, CPUs))")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(
         handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args)
@@ -430,13 +396,7 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
         metavar="DIR",
         help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)",
     )
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=None,
-        metavar="N",
-        help="worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))",
-    )
+    _workers_option(p, "worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
     p.add_argument(
         "--scheduler",
         default=None,
