@@ -75,6 +75,7 @@ from typing import Any
 
 import numpy as np
 
+from groundsim.evaluation.report import make_out_dir
 from groundsim.world.motion import KinematicState, Motion, Perturbed
 from groundsim.world.scenario import (
     MIN_SEPARATION_M,
@@ -1537,11 +1538,7 @@ def cmd_campaign(args) -> int:
         cfg_path = DEFAULT_ONBOARD_CONFIG
     base = load_base_config(cfg_path)
     digest = _digest(Path(cfg_path).read_bytes()) if cfg_path is not None else "defaults"
-    out = Path(args.out) if args.out else Path("out/campaigns") / spec.name
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(Path(args.out) if args.out else Path("out/campaigns") / spec.name)
     res = run_campaign(
         spec,
         out,

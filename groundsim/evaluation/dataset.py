@@ -61,6 +61,7 @@ from pathlib import Path
 
 import numpy as np
 
+from groundsim.evaluation.report import make_out_dir
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -561,11 +562,7 @@ def export_dataset(
         raise ConfigError(f"--seeds: expected at least one seed >= 0, got {seeds}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(out_dir)
     jobs = [(sc, seed, out, options) for sc in scenarios for seed in seeds]
     total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
     bar = None

@@ -41,6 +41,7 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
@@ -149,11 +150,7 @@ def plan_demo(
         raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"--seed: expected an integer >= 0, got {seed!r}")
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(out_dir)
     sc, sc_path = _extended_scenario(resolve_scenario_path(scenario), float(duration_s), out)
     duration = min(float(duration_s), sc.duration_s)
     if onboard_config is not None and Path(onboard_config).is_file():

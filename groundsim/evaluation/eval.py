@@ -85,7 +85,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from groundsim.evaluation.parallel import progress_bar, quiet_run_logs, run_pool
-from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
+from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT, make_out_dir
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.estimation.metrics import score_frames
@@ -1164,11 +1164,7 @@ def cmd_eval(args) -> int:
     source = args.onboard_config or (
         str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
     )
-    out = Path(args.out)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(args.out)
     log.info(
         "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
         len(scenarios),

@@ -46,6 +46,7 @@ __all__ = [
     "plot_frame",
     "plot_performance",
     "json_ready",
+    "make_out_dir",
 ]
 
 log = logging.getLogger(__name__)
@@ -59,6 +60,16 @@ SCHEMA = "irtrack.eval/1"
 RATIO_LIMIT = 1.5  # issue #5: the image chain within this factor of perfect centroids
 BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
 PNG_DPI = 110
+
+
+def make_out_dir(path) -> Path:
+    """``--out``: the directory, created (with its parents) if missing; a ConfigError when it cannot be."""
+    out = Path(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    return out
 
 
 # --------------------------------------------------------------------------- TUM
@@ -387,28 +398,21 @@ def plot_frame(path, frame: dict, title: str = "") -> Path:
     half = 24
     # display stretch only (the grey values are not changed): whole frame 0.5-99.95 %, zoom min-max
     lo, hi = np.percentile(img, [0.5, 99.95])
-    ax.imshow(
-        img,
-        cmap="gray",
-        vmin=lo,
-        vmax=max(hi, lo + 1),
-        interpolation="nearest",
-        extent=(0, img.shape[1], img.shape[0], 0),
-    )
     zlo, zhi = lo, hi
     if math.isfinite(tu):
         u0, v0 = int(max(tu - half, 0)), int(max(tv - half, 0))
         patch = img[v0 : int(tv + half) + 1, u0 : int(tu + half) + 1]
         if patch.size:
             zlo, zhi = float(patch.min()), float(patch.max())
-    az.imshow(
-        img,
-        cmap="gray",
-        vmin=zlo,
-        vmax=max(zhi, zlo + 1),
-        interpolation="nearest",
-        extent=(0, img.shape[1], img.shape[0], 0),
-    )
+    for a, (vlo, vhi) in ((ax, (lo, hi)), (az, (zlo, zhi))):
+        a.imshow(
+            img,
+            cmap="gray",
+            vmin=vlo,
+            vmax=max(vhi, vlo + 1),
+            interpolation="nearest",
+            extent=(0, img.shape[1], img.shape[0], 0),
+        )
     box = frame.get("bbox")
     if box is not None:
         for a in (ax, az):
@@ -520,11 +524,7 @@ def write_eval_report(out_dir, result) -> dict:
     ``<scenario>_frame.png`` (first seed of each scenario), ``performance.png``, and
     ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run.
     """
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(out_dir)
     files: dict[str, str] = {}
     ape: dict[str, dict] = {}
     by_scenario: dict[str, list] = {}  # by label: the scenario, or <scenario>_<nav case> when cases are mixed
