@@ -3,10 +3,6 @@
 from __future__ import annotations
 
 import math
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +14,6 @@ from groundsim.evaluation.campaign import (
     LOG_NAME,
     REPORT_NAME,
     TABLE_NAME,
-    TIMING_COLUMNS,
     Geometry,
     ManoeuvreScaled,
     MovedTarget,
@@ -32,10 +27,16 @@ from groundsim.evaluation.campaign import (
     score_track,
     spec_from_dict,
 )
-from groundsim.evaluation.eval import load_base_config
 from groundsim.world.motion import Circular, Cubic
 from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenario_from_dict
 from onboard.core.errors import ConfigError
+from tests.groundsim.campaign_helpers import (
+    campaign_cmd,
+    comparable,
+    interrupt_campaign,
+    resume_campaign,
+    run_as_cli,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 ATOL_M = 1e-9  # 1 nm: the variants are exact transformations of the reference paths
@@ -58,10 +59,6 @@ def _spec(tmp_path, **over):
     }
     d.update(over)
     return spec_from_dict(d, source=tmp_path / "spec.yaml", spec_dir=tmp_path)
-
-
-def _comparable(df: pd.DataFrame) -> pd.DataFrame:
-    return df.drop(columns=[c for c in TIMING_COLUMNS if c in df.columns]).reset_index(drop=True)
 
 
 # --------------------------------------------------------------------------- geometry
@@ -239,13 +236,13 @@ def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp
     assert r1.ran == r2.ran == spec.run_count and r1.failed == 0
     a = pd.read_csv(tmp_path / "serial" / TABLE_NAME)
     b = pd.read_csv(tmp_path / "pool" / TABLE_NAME)
-    pd.testing.assert_frame_equal(_comparable(a), _comparable(b))
+    pd.testing.assert_frame_equal(comparable(a), comparable(b))
     # the numbers are real: every run published estimates, the bound is finite
     assert (a["published_frames"] > 0).all() and np.isfinite(a["crb_rms_m"]).all()
     r3 = run_campaign(spec, tmp_path / "serial", workers=2, progress=False)
     assert r3.ran == 0 and r3.reused == spec.run_count
     c = pd.read_csv(tmp_path / "serial" / TABLE_NAME)
-    pd.testing.assert_frame_equal(_comparable(a), _comparable(c))
+    pd.testing.assert_frame_equal(comparable(a), comparable(c))
     report = (tmp_path / "serial" / REPORT_NAME).read_text()
     assert (
         "### paper" in report and "### rpekf" in report and (tmp_path / "serial" / "manoeuvre.png").stat().st_size > 0
@@ -262,55 +259,15 @@ def test_an_interrupted_campaign_resumes_where_it_stopped(tmp_path):
         "duration_s: 4.0\ngeometry: {manoeuvre_scale: [0.5, 1.0, 2.0]}\n"
     )
     out = tmp_path / "out"
-    cmd = [
-        sys.executable,
-        "-m",
-        "groundsim",
-        "campaign",
-        str(spec_path),
-        "--out",
-        str(out),
-        "--workers",
-        "1",
-        "--no-progress",
-        "--log-level",
-        "warning",
-    ]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    log_path = out / LOG_NAME
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline and proc.poll() is None:
-        if log_path.is_file() and len(read_log(log_path)[0]) >= 4:  # two cases of 9 done
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the campaign finished before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
-    assert proc.returncode == 130, err
-    done_before = len(read_log(log_path)[0])
-    assert 4 <= done_before < 18 and "the same command resumes" in err
-    assert len(pd.read_csv(out / TABLE_NAME)) == done_before  # the partial table is there too
+    cmd = campaign_cmd(spec_path, out, "--workers", "1")
+    done_before = interrupt_campaign(cmd, out, runs_logged=4, hang_s=120, stop_s=60)  # two cases of 9 done
+    assert 4 <= done_before < 18
 
-    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=300)
-    assert res.returncode == 0, res.stderr
-    assert f"{done_before} reused" in res.stdout and f"{18 - done_before} run now" in res.stdout
+    resume_campaign(cmd, done_before, runs=18, timeout_s=300)
     resumed = pd.read_csv(out / TABLE_NAME)
-    ref = run_campaign(
-        load_spec(spec_path),
-        tmp_path / "ref",
-        workers=1,
-        progress=False,
-        base_config=load_base_config(REPO / "config/onboard.yaml"),
-        onboard_digest=_digest_of_config(),
-    )
+    ref = run_as_cli(spec_path, tmp_path / "ref", workers=1)
     assert ref.ran == 18
-    pd.testing.assert_frame_equal(_comparable(resumed), _comparable(pd.read_csv(tmp_path / "ref" / TABLE_NAME)))
-
-
-def _digest_of_config() -> str:
-    import hashlib
-
-    return hashlib.sha256((REPO / "config/onboard.yaml").read_bytes()).hexdigest()[:12]
+    pd.testing.assert_frame_equal(comparable(resumed), comparable(pd.read_csv(tmp_path / "ref" / TABLE_NAME)))
 
 
 @pytest.mark.slow

@@ -3,13 +3,7 @@ pool, resumption after an interruption, the Parquet table, and the refusals (one
 
 from __future__ import annotations
 
-import hashlib
 import math
-import signal
-import subprocess
-import sys
-import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -20,38 +14,33 @@ from groundsim.evaluation.campaign import (
     LOG_NAME,
     PARQUET_NAME,
     TABLE_NAME,
-    TIMING_COLUMNS,
     check_workers,
     code_fingerprint,
     load_spec,
     plan_runs,
     read_log,
-    run_campaign,
     run_id,
     table_rows,
     write_table,
 )
-from groundsim.evaluation.eval import load_base_config
 from onboard.core.errors import ConfigError
+from tests.groundsim.campaign_helpers import (
+    campaign_cmd,
+    comparable,
+    interrupt_campaign,
+    onboard_digest,
+    resume_campaign,
+    run_as_cli,
+)
 
 distributed = pytest.importorskip("distributed")
 
-REPO = Path(__file__).resolve().parents[2]
-ONBOARD = REPO / "config/onboard.yaml"
 # the issue's campaign: 2 scenarios x 2 noise cases x 3 algorithms x 3 seeds = 36 runs (12 jobs) of 3 s flights
 SPEC_TEXT = (
     "name: scaleout\nscenarios: [P1, P2]\nnoise: [RTK, px0.3]\nalgorithms: [map, paper, rpekf]\nseeds: 3\n"
     "duration_s: 3.0\n"
 )
 RUNS = 2 * 2 * 3 * 3
-
-
-def _comparable(df: pd.DataFrame) -> pd.DataFrame:
-    return df.drop(columns=[c for c in TIMING_COLUMNS if c in df.columns]).reset_index(drop=True)
-
-
-def _digest() -> str:  # what cmd_campaign records for config/onboard.yaml
-    return hashlib.sha256(ONBOARD.read_bytes()).hexdigest()[:12]
 
 
 @pytest.fixture(scope="module")
@@ -65,14 +54,7 @@ def spec_path(tmp_path_factory):
 def pool_table(spec_path, tmp_path_factory):
     """The reference: the campaign on the local process pool (2 workers), as the CLI would run it."""
     out = tmp_path_factory.mktemp("pool")
-    res = run_campaign(
-        load_spec(spec_path),
-        out,
-        workers=2,
-        progress=False,
-        base_config=load_base_config(ONBOARD),
-        onboard_digest=_digest(),
-    )
+    res = run_as_cli(spec_path, out, workers=2)
     assert res.ran == RUNS and res.failed == 0
     return pd.read_csv(out / TABLE_NAME)
 
@@ -90,17 +72,10 @@ def cluster():
 @pytest.mark.integration
 def test_a_dask_cluster_gives_the_pool_s_table_and_parquet_round_trips(spec_path, pool_table, cluster, tmp_path):
     out = tmp_path / "dask"
-    res = run_campaign(
-        load_spec(spec_path),
-        out,
-        progress=False,
-        base_config=load_base_config(ONBOARD),
-        onboard_digest=_digest(),
-        scheduler=cluster.scheduler_address,
-    )
+    res = run_as_cli(spec_path, out, scheduler=cluster.scheduler_address)
     assert res.ran == RUNS and res.failed == 0 and res.workers == 2 and not res.interrupted
     dask_table = pd.read_csv(out / TABLE_NAME)
-    pd.testing.assert_frame_equal(_comparable(pool_table), _comparable(dask_table))
+    pd.testing.assert_frame_equal(comparable(pool_table), comparable(dask_table))
     # the numbers are real: every run published estimates, the bound is finite, all three algorithms ran
     assert (dask_table["published_frames"] > 0).all() and np.isfinite(dask_table["crb_rms_m"]).all()
     assert sorted(dask_table["algorithm"].unique()) == ["map", "paper", "rpekf"]
@@ -110,17 +85,10 @@ def test_a_dask_cluster_gives_the_pool_s_table_and_parquet_round_trips(spec_path
     # runs.parquet beside runs.csv holds the same table, with its types (CSV loses None vs "" and bools)
     assert PARQUET_NAME in res.files
     pq = pd.read_parquet(out / PARQUET_NAME)
-    ids = [run_id(p) for p in plan_runs(load_spec(spec_path), _digest())]
+    ids = [run_id(p) for p in plan_runs(load_spec(spec_path), onboard_digest())]
     pd.testing.assert_frame_equal(pq, table_rows([done[i] for i in ids]))
     # a rerun on the cluster reuses everything
-    again = run_campaign(
-        load_spec(spec_path),
-        out,
-        progress=False,
-        base_config=load_base_config(ONBOARD),
-        onboard_digest=_digest(),
-        scheduler=cluster.scheduler_address,
-    )
+    again = run_as_cli(spec_path, out, scheduler=cluster.scheduler_address)
     assert again.ran == 0 and again.reused == RUNS
 
 
@@ -130,40 +98,14 @@ def test_a_campaign_on_the_cluster_interrupted_resumes_to_the_pool_s_table(spec_
     """``groundsim campaign SPEC --scheduler ADDR``, SIGINT once the first case is logged: exit 130, the finished
     runs kept; the same command runs only the rest, and the table equals the pool's."""
     out = tmp_path / "out"
-    cmd = [
-        sys.executable,
-        "-m",
-        "groundsim",
-        "campaign",
-        str(spec_path),
-        "--out",
-        str(out),
-        "--scheduler",
-        cluster.scheduler_address,
-        "--no-progress",
-        "--log-level",
-        "warning",
-    ]
-    proc = subprocess.Popen(cmd, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    log_path = out / LOG_NAME
-    deadline = time.monotonic() + 240  # hang guard only
-    while time.monotonic() < deadline and proc.poll() is None:
-        if log_path.is_file() and len(read_log(log_path)[0]) >= 3:  # one case (3 algorithms) of 12 done
-            break
-        time.sleep(0.05)
-    assert proc.poll() is None, "the campaign finished before it could be interrupted"
-    proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=120)
-    assert proc.returncode == 130, err
-    done_before = len(read_log(log_path)[0])
-    assert 3 <= done_before < RUNS and "the same command resumes" in err
-    assert len(pd.read_csv(out / TABLE_NAME)) == done_before
+    cmd = campaign_cmd(spec_path, out, "--scheduler", cluster.scheduler_address)
+    # hang guard 240 s; SIGINT once one case (3 algorithms) of 12 is done
+    done_before = interrupt_campaign(cmd, out, runs_logged=3, hang_s=240, stop_s=120)
+    assert 3 <= done_before < RUNS
 
-    res = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stderr
-    assert f"{done_before} reused" in res.stdout and f"{RUNS - done_before} run now" in res.stdout
-    assert f"of {cluster.scheduler_address}" in res.stdout
-    pd.testing.assert_frame_equal(_comparable(pool_table), _comparable(pd.read_csv(out / TABLE_NAME)))
+    stdout = resume_campaign(cmd, done_before, runs=RUNS, timeout_s=600)
+    assert f"of {cluster.scheduler_address}" in stdout
+    pd.testing.assert_frame_equal(comparable(pool_table), comparable(pd.read_csv(out / TABLE_NAME)))
 
 
 # --------------------------------------------------------------------------- refusals and the table (fast)
