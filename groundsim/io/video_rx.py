@@ -84,7 +84,58 @@ class _SocketStream:
         return out
 
 
-class _UdpReceiver:
+class _Decoding:
+    """What every receiver does with decoded pictures and with failures (a mixin: the receiver has
+    ``_on_frame``, ``_stop``, ``frames``, ``decode_errors`` and ``error``)."""
+
+    def _emit(self, frame) -> None:
+        luma = frame.to_ndarray(format="gray")
+        self._on_frame(DecodedFrame(self.frames, luma, time.monotonic_ns()))
+        self.frames += 1
+
+    def _failed(self, exc: Exception) -> None:
+        """The thread ends on ``exc``: reported through :attr:`error` unless it was stopping anyway."""
+        if not self._stop.is_set():
+            self.error = f"decode: {type(exc).__name__}: {exc}"
+
+    def _decode_demuxed(self, container, read_timeouts: bool) -> None:
+        """Demux ``container``'s video and decode it until EOF or stop, then close it.  An undecodable
+        packet counts in ``decode_errors``; ``read_timeouts``: the demuxer's reads time out
+        (``av.error.ExitError``), which only means looking at the stop flag again."""
+        import av
+
+        try:
+            vstream = container.streams.video[0]
+            vstream.codec_context.thread_count = 1  # frame threads would hold a frame back per thread
+            while not self._stop.is_set():
+                try:
+                    for packet in container.demux(vstream):
+                        try:
+                            frames = packet.decode()
+                        except av.error.InvalidDataError:
+                            self.decode_errors += 1
+                            continue
+                        for frame in frames:
+                            self._emit(frame)
+                        if self._stop.is_set():
+                            break
+                    break  # EOF (or stopped)
+                except av.error.ExitError:
+                    if not read_timeouts:
+                        raise
+                    # POLL_S without a packet: look at the stop flag, then wait on
+                except av.error.InvalidDataError:
+                    self.decode_errors += 1
+        except Exception as exc:  # noqa: BLE001 - reported through .error, the owner decides
+            self._failed(exc)
+        finally:
+            try:
+                container.close()
+            except Exception:  # noqa: BLE001
+                pass
+
+
+class _UdpReceiver(_Decoding):
     """A UDP socket on ``host:port`` (``port`` 0: pick one, see :attr:`port`) read by a daemon thread
     (``_run``) until :meth:`stop`; the counts every receiver keeps."""
 
@@ -130,39 +181,10 @@ class UdpTsDecoder(_UdpReceiver):
             if not self._stop.is_set():
                 self.error = f"open: {type(exc).__name__}: {exc}"
             return
-        try:
-            vstream = container.streams.video[0]
-            vstream.codec_context.thread_count = 1
-            while not self._stop.is_set():
-                try:
-                    packets = container.demux(vstream)
-                    for packet in packets:
-                        try:
-                            frames = packet.decode()
-                        except av.error.InvalidDataError:
-                            self.decode_errors += 1
-                            continue
-                        for frame in frames:
-                            luma = frame.to_ndarray(format="gray")
-                            done = time.monotonic_ns()
-                            self._on_frame(DecodedFrame(self.frames, luma, done))
-                            self.frames += 1
-                        if self._stop.is_set():
-                            break
-                    break  # EOF (stopped)
-                except av.error.InvalidDataError:
-                    self.decode_errors += 1
-        except Exception as exc:  # noqa: BLE001 - reported through .error, the owner decides
-            if not self._stop.is_set():
-                self.error = f"decode: {type(exc).__name__}: {exc}"
-        finally:
-            try:
-                container.close()
-            except Exception:  # noqa: BLE001
-                pass
+        self._decode_demuxed(container, read_timeouts=False)
 
 
-class SdpRtpDecoder:
+class SdpRtpDecoder(_Decoding):
     """RTP H.264 on ``host:port`` through FFmpeg's RTP demuxer and a session description (module
     docstring); ``port`` 0 picks a free even port (:attr:`port`).  Decodes until :meth:`stop`.
 
@@ -217,8 +239,6 @@ class SdpRtpDecoder:
         return None
 
     def _run(self) -> None:
-        import av
-
         try:
             container = self._open()
         except Exception as exc:  # noqa: BLE001 - reported through .error
@@ -227,39 +247,7 @@ class SdpRtpDecoder:
         if container is None:
             return
         self.opened.set()
-        try:
-            vstream = container.streams.video[0]
-            vstream.codec_context.thread_count = 1  # frame threads would hold a frame back per thread
-            while not self._stop.is_set():
-                try:
-                    for packet in container.demux(vstream):
-                        try:
-                            frames = packet.decode()
-                        except av.error.InvalidDataError:
-                            self.decode_errors += 1
-                            continue
-                        for frame in frames:
-                            self._emit(frame)
-                        if self._stop.is_set():
-                            break
-                    break  # EOF
-                except av.error.ExitError:
-                    continue  # POLL_S without a packet: look at the stop flag, then wait on
-                except av.error.InvalidDataError:
-                    self.decode_errors += 1
-        except Exception as exc:  # noqa: BLE001
-            if not self._stop.is_set():
-                self.error = f"decode: {type(exc).__name__}: {exc}"
-        finally:
-            try:
-                container.close()
-            except Exception:  # noqa: BLE001
-                pass
-
-    def _emit(self, frame) -> None:
-        luma = frame.to_ndarray(format="gray")
-        self._on_frame(DecodedFrame(self.frames, luma, time.monotonic_ns()))
-        self.frames += 1
+        self._decode_demuxed(container, read_timeouts=True)
 
     def stop(self, timeout_s: float = 3.0) -> None:
         self._stop.set()
@@ -327,9 +315,6 @@ class RtpMarkerDecoder(_UdpReceiver):
                     self.decode_errors += 1  # e.g. P-frames before the first IDR
                     continue
                 for frame in frames:
-                    luma = frame.to_ndarray(format="gray")
-                    self._on_frame(DecodedFrame(self.frames, luma, time.monotonic_ns()))
-                    self.frames += 1
+                    self._emit(frame)
         except Exception as exc:  # noqa: BLE001 - reported through .error
-            if not self._stop.is_set():
-                self.error = f"decode: {type(exc).__name__}: {exc}"
+            self._failed(exc)
