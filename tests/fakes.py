@@ -1,8 +1,13 @@
-"""Test doubles shared by several test files: the fake clock, and the fake autopilot (groundsim's scripted one)."""
+"""Test doubles shared by several test files: the fake clock, the fake autopilot (groundsim's scripted one), and
+valid tracks to hand to the code that consumes them."""
 
 from __future__ import annotations
 
+import numpy as np
+
 from groundsim.io.scripted_autopilot import ScriptedAutopilot
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.track import Track
 
 
 class FakeClock:
@@ -36,3 +41,41 @@ class FakeClock:
 
 # the one fake autopilot of the tests (and of bench.onboard, which cannot import tests/): scripted, call by call
 FakeAutopilot = ScriptedAutopilot
+
+
+def tracking_track(**fields) -> Track:
+    """A valid ``tracking`` Track of uav1 (seq 1 at 10 us): a measurement at the centre of a 640 x 512 image in a
+    20 px box, a pose, the origin (32, 118.8, 0), no position.  ``fields`` replace any of them."""
+    kw = dict(
+        vehicle="uav1",
+        seq=1,
+        time_boot_us=10,
+        state="tracking",
+        track_id=1,
+        measurement_valid=True,
+        u_px=320.0,
+        v_px=256.0,
+        bbox=(310.0, 246.0, 20.0, 20.0),
+        pose_valid=True,
+        origin=GeodeticOrigin(32.0, 118.8, 0.0),
+    )
+    kw.update(fields)
+    return Track(**kw)
+
+
+def positioned_track(**fields) -> Track:
+    """:func:`tracking_track` with an observable position: 100 m north, 80 m up, 130 m away, moving 1 m/s north,
+    sigma 2 m horizontal and 1 m vertical, from a 60-frame window.  ``fields`` replace any field."""
+    kw = dict(
+        lat_deg=32.001,
+        lon_deg=118.8,
+        alt_m=80.0,
+        p_ned_m=(100.0, 0.0, -80.0),
+        v_ned_mps=(1.0, 0.0, 0.0),
+        cov_p_ned_m2=np.diag([4.0, 4.0, 1.0]),
+        range_m=130.0,
+        observable=True,
+        window_frames=60,
+    )
+    kw.update(fields)
+    return tracking_track(**kw)

@@ -5,14 +5,12 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
 import onboard.io.camera_protocol as cp
-from onboard.core.frames import GeodeticOrigin
 from onboard.core.track import Track
 from onboard.io.camera_protocol import (
     CameraCommand,
@@ -21,6 +19,7 @@ from onboard.io.camera_protocol import (
     TrackResult,
     VideoStream,
 )
+from tests.fakes import positioned_track, tracking_track
 
 W, H = 640, 512
 GCS = (255, 190)  # QGC's system / component
@@ -53,34 +52,10 @@ def _cmd(command: int, *params: float) -> CameraCommand:
 def _track(
     state="tracking", u=320.0, v=256.0, bbox=(310.0, 246.0, 20.0, 20.0), observable=True, position=True
 ) -> Track:
-    kw = dict(
-        vehicle="uav1",
-        seq=1,
-        time_boot_us=10,
-        state=state,
-        track_id=1,
-        measurement_valid=state == "tracking",
-        u_px=u,
-        v_px=v,
-        bbox=bbox,
-        pose_valid=True,
-        origin=GeodeticOrigin(32.0, 118.8, 0.0),
-    )
-    if position:
-        kw.update(
-            lat_deg=32.001,
-            lon_deg=118.8,
-            alt_m=80.0,
-            p_ned_m=(100.0, 0.0, -80.0),
-            v_ned_mps=(1.0, 0.0, 0.0),
-            cov_p_ned_m2=np.diag([4.0, 4.0, 1.0]),
-            range_m=130.0,
-            observable=observable,
-            window_frames=60,
-        )
+    kw = dict(state=state, measurement_valid=state == "tracking", u_px=u, v_px=v, bbox=bbox)
     if state in ("searching", "lost"):
         kw.update(track_id=None, u_px=None, v_px=None, bbox=None, measurement_valid=False)
-    return Track(**kw)
+    return positioned_track(observable=observable, **kw) if position else tracking_track(**kw)
 
 
 def _names(out) -> list[str]:

@@ -164,32 +164,14 @@ async def _watch(url: str, topics: set[str], want: dict[str, int], feed=None, ti
 
 def _track(seq: int):
     from onboard.core.frames import GeodeticOrigin
-    from onboard.core.track import LineOfSight, Track
+    from onboard.core.track import LineOfSight
+    from tests.fakes import positioned_track
 
     o = GeodeticOrigin(47.4, 8.5, 500.0)
     los = LineOfSight((1.0, 0.0, 0.0), 0.0, 0.0, 0.1, 0.1, (0.0, 0.0, -100.0))
-    return Track(
-        "uav1",
-        seq,
-        1_000_000 + seq * 33_333,
-        "tracking",
-        track_id=1,
-        measurement_valid=True,
-        u_px=320.0,
-        v_px=256.0,
-        bbox=(310.0, 246.0, 20.0, 20.0),
-        pose_valid=True,
-        los=los,
-        origin=o,
-        lat_deg=47.401,
-        lon_deg=8.5,
-        alt_m=600.0,
-        p_ned_m=(150.0, 0.0, -100.0),
-        v_ned_mps=(5.0, 0.0, 0.0),
-        cov_p_ned_m2=np.diag([4.0, 1.0, 1.0]),
-        range_m=150.0,
-        observable=True,
-    )
+    where = dict(origin=o, lat_deg=47.401, lon_deg=8.5, alt_m=600.0, p_ned_m=(150.0, 0.0, -100.0), range_m=150.0)
+    motion = dict(v_ned_mps=(5.0, 0.0, 0.0), cov_p_ned_m2=np.diag([4.0, 1.0, 1.0]), window_frames=0)
+    return positioned_track(seq=seq, time_boot_us=1_000_000 + seq * 33_333, los=los, **where, **motion)
 
 
 @pytest.mark.integration

@@ -33,6 +33,7 @@ from onboard.core.track import (
 from onboard.estimation.sliding import TrackEstimate
 from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
+from tests.fakes import positioned_track
 
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
 GEO_TOL_DEG = 1e-9  # ~0.1 mm: the same conversion both ways
@@ -422,33 +423,12 @@ def test_without_estimator_or_pose_source_the_pipeline_gives_2d_tracks():
 
 
 def _track(**kw) -> Track:
-    base = dict(
-        vehicle="uav1",
-        seq=7,
-        time_boot_us=123,
-        state="tracking",
-        track_id=1,
-        measurement_valid=True,
-        u_px=10.5,
-        v_px=20.25,
-        bbox=(5.0, 15.0, 16.0, 16.0),
-        pose_valid=True,
-        origin=GeodeticOrigin(32.0, 118.8, 0.0),
-        lat_deg=32.001,
-        lon_deg=118.801,
-        alt_m=80.0,
-        p_ned_m=(110.0, 95.0, -80.0),
-        v_ned_mps=(3.0, 4.0, 0.0),
-        cov_p_ned_m2=np.diag([4.0, 9.0, 16.0]),
-        cov_v_ned_m2ps2=np.diag([0.01, 0.04, 0.09]),
-        range_m=150.0,
-        range_sigma_ratio=0.02,
-        observable=True,
-        window_frames=90,
-        model="cv",
-    )
-    base.update(kw)
-    return Track(**base)
+    """positioned_track (uav1, tracking, observable, origin (32, 118.8, 0), 80 m up) with this file's numbers."""
+    image = dict(seq=7, time_boot_us=123, u_px=10.5, v_px=20.25, bbox=(5.0, 15.0, 16.0, 16.0))
+    where = dict(lon_deg=118.801, p_ned_m=(110.0, 95.0, -80.0), v_ned_mps=(3.0, 4.0, 0.0), range_m=150.0)
+    sigmas = dict(cov_p_ned_m2=np.diag([4.0, 9.0, 16.0]), cov_v_ned_m2ps2=np.diag([0.01, 0.04, 0.09]))
+    estimator = dict(range_sigma_ratio=0.02, window_frames=90, model="cv")
+    return positioned_track(**{**image, **where, **sigmas, **estimator, **kw})
 
 
 @pytest.mark.parametrize(

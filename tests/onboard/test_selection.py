@@ -16,7 +16,7 @@ from onboard.imaging import TargetTracker
 from onboard.imaging.preprocess import ImagingParams
 from onboard.io.camera_protocol import CameraCommand, TrackRequest
 from onboard.pipeline.frame_pipeline import FramePipeline
-from tests.fakes import FakeClock  # noqa: E402
+from tests.fakes import FakeClock, positioned_track  # noqa: E402
 
 W, H = 640, 512
 HOT = (200.0, 150.0)  # the two warm objects' true centres, px
@@ -271,29 +271,10 @@ def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
 
 
 def test_276_only_for_observable_positions_through_the_camera():
-    from onboard.core.frames import GeodeticOrigin
 
     def track(observable: bool) -> Track:
-        return Track(
-            vehicle="uav1",
-            seq=1,
-            time_boot_us=10,
-            state="tracking",
-            track_id=1,
-            measurement_valid=True,
-            u_px=300.0,
-            v_px=200.0,
-            pose_valid=True,
-            origin=GeodeticOrigin(32.0, 118.8, 0.0),
-            lat_deg=32.001,
-            lon_deg=118.8,
-            alt_m=80.0,
-            p_ned_m=(100.0, 0.0, -80.0),
-            v_ned_mps=(1.0, 0.0, 0.0),
-            cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]),
-            range_m=130.0,
-            observable=observable,
-            window_frames=60,
+        return positioned_track(
+            u_px=300.0, v_px=200.0, bbox=None, cov_p_ned_m2=np.diag([400.0, 400.0, 100.0]), observable=observable
         )
 
     svc, clock = _service()

@@ -30,6 +30,7 @@ from onboard.io.video import (  # noqa: E402
     agc_u8,
     draw_overlay,
 )
+from tests.fakes import tracking_track  # noqa: E402
 
 W, H = 640, 512
 N_FRAMES = 90  # 3 s at 30 Hz: three IDR periods
@@ -71,16 +72,7 @@ def test_overlay_draws_the_box_only_while_tracking():
     from onboard.core.track import Track
 
     img = np.zeros((H, W), np.uint8)
-    tr = Track(
-        vehicle="uav1",
-        seq=1,
-        time_boot_us=1,
-        state="tracking",
-        track_id=1,
-        u_px=110.0,
-        v_px=110.0,
-        bbox=(100.0, 100.0, 20.0, 20.0),
-    )
+    tr = tracking_track(u_px=110.0, v_px=110.0, bbox=(100.0, 100.0, 20.0, 20.0))  # the overlay reads the box
     out = draw_overlay(img, tr)
     assert out[100, 100:121].min() == 255 and out[110, 110] == 0 and img.max() == 0  # input untouched
     lost = Track(vehicle="uav1", seq=1, time_boot_us=1, state="lost")
