@@ -82,15 +82,15 @@ from groundsim.world.scenario import (
     SINGER_MARGIN_S,
     NoiseCase,
     Scenario,
+    SpecFail,
     VehicleSpec,
-    _Fail,
-    _integer,
-    _mapping,
-    _number,
-    _read_yaml,
-    _string,
+    check_integer,
+    check_mapping,
+    check_number,
+    check_string,
     load_noise_cases,
     load_scenario,
+    read_spec_yaml,
     reference_scenario_paths,
 )
 from onboard.core.errors import ConfigError
@@ -158,10 +158,10 @@ class Geometry:
     manoeuvre_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        fail = _Fail("<Geometry>")
-        _number(self.range_scale, "range_scale", fail, lo=0.0, lo_open=True)
-        _number(self.aspect_deg, "aspect_deg", fail, lo=-360.0, hi=360.0, unit="deg")
-        _number(self.manoeuvre_scale, "manoeuvre_scale", fail, lo=0.0)
+        fail = SpecFail("<Geometry>")
+        check_number(self.range_scale, "range_scale", fail, lo=0.0, lo_open=True)
+        check_number(self.aspect_deg, "aspect_deg", fail, lo=-360.0, hi=360.0, unit="deg")
+        check_number(self.manoeuvre_scale, "manoeuvre_scale", fail, lo=0.0)
 
     @property
     def is_reference(self) -> bool:
@@ -240,7 +240,7 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
         run0 = dist.realise(scenario.duration_s + SINGER_MARGIN_S, scenario.rng("target.disturbance", 0))
         target = VehicleSpec(Perturbed(tgt_base, run0), tgt_base, dist)
     name = f"{scenario.name}_{geometry.label}"
-    fail = _Fail(source)
+    fail = SpecFail(source)
     t = scenario.frame_times_s()
     with np.errstate(all="ignore"):
         po, pt = observer.state(t).p_ned_m, tgt_base.state(t).p_ned_m
@@ -329,7 +329,7 @@ def _name_list(v, path, fail, what) -> tuple[str, ...]:
         v = [v]
     if not isinstance(v, list) or not v:
         fail(path, f"a non-empty list of {what}", v)
-    out = tuple(_string(x, f"{path}[{i}]", fail, what=what) for i, x in enumerate(v))
+    out = tuple(check_string(x, f"{path}[{i}]", fail, what=what) for i, x in enumerate(v))
     dup = [x for x in out if out.count(x) > 1]
     if dup:
         fail(path, f"a list of distinct {what}", dup[0])
@@ -340,7 +340,7 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
     """``geometry:`` -> the expanded list: the grid of list axes x ``draws`` random draws of the {min, max} axes."""
     if d is None:
         return (REFERENCE_GEOMETRY,)
-    _mapping(d, path, fail, _GEOMETRY_AXES + ("draws", "seed"))
+    check_mapping(d, path, fail, _GEOMETRY_AXES + ("draws", "seed"))
     grid: dict[str, list[float]] = {}
     ranges: dict[str, tuple[float, float]] = {}
     for axis in _GEOMETRY_AXES:
@@ -348,16 +348,16 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
         v = d.get(axis, [REFERENCE_GEOMETRY.__dict__[axis]])
         b = _AXIS_BOUNDS[axis]
         if isinstance(v, dict):
-            _mapping(v, p, fail, ("min", "max"), ("min", "max"))
-            lo = _number(v["min"], f"{p}.min", fail, **b)
-            hi = _number(v["max"], f"{p}.max", fail, **b)
+            check_mapping(v, p, fail, ("min", "max"), ("min", "max"))
+            lo = check_number(v["min"], f"{p}.min", fail, **b)
+            hi = check_number(v["max"], f"{p}.max", fail, **b)
             if not hi > lo:
                 fail(f"{p}.max", f"a number > min ({lo:g})", v["max"])
             ranges[axis] = (lo, hi)
         else:
             if not isinstance(v, list) or not v:
                 fail(p, "a non-empty list of numbers (grid) or {min: .., max: ..} (random draws)", v)
-            vals = [_number(x, f"{p}[{i}]", fail, **b) for i, x in enumerate(v)]
+            vals = [check_number(x, f"{p}[{i}]", fail, **b) for i, x in enumerate(v)]
             if len(set(vals)) != len(vals):
                 fail(p, "distinct values", v)
             grid[axis] = vals
@@ -365,10 +365,10 @@ def _geometries(d, path, fail) -> tuple[Geometry, ...]:
     if "draws" in d:
         if not ranges:
             fail(f"{path}.draws", "no draws unless an axis is random ({min: .., max: ..})", d["draws"])
-        draws = _integer(d["draws"], f"{path}.draws", fail, lo=1, hi=MAX_RUNS)
+        draws = check_integer(d["draws"], f"{path}.draws", fail, lo=1, hi=MAX_RUNS)
     elif ranges:
         fail(f"{path}.draws", "a number of random draws (required when an axis is {min: .., max: ..})")
-    seed = _integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=2**63 - 1)
+    seed = check_integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=2**63 - 1)
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6E0]))
     out: list[Geometry] = []
     import itertools
@@ -395,10 +395,10 @@ def _resolve_scenario(text: str, spec_dir: Path) -> Path:
 def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> CampaignSpec:
     """Validate a parsed spec mapping (``docs/campaigns.md``); raises ScenarioError (a ConfigError) naming
     ``source`` and the field.  Scenario files, noise cases and plug-in names are checked too."""
-    fail = _Fail(source)
+    fail = SpecFail(source)
     spec_dir = spec_dir or Path(".")
-    _mapping(d, "", fail, _SPEC_KEYS, ("scenarios", "noise", "algorithms"))
-    name = _string(
+    check_mapping(d, "", fail, _SPEC_KEYS, ("scenarios", "noise", "algorithms"))
+    name = check_string(
         d.get("name", Path(str(source)).stem or "campaign"),
         "name",
         fail,
@@ -408,8 +408,8 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
 
     if not NAME_PATTERN.match(name):
         fail("name", "a name of letters, digits, '_', '.', '-'", name)
-    _string(d.get("description", ""), "description", fail)
-    mode = _string(d.get("mode", "synthetic"), "mode", fail, choices=MODES)
+    check_string(d.get("description", ""), "description", fail)
+    mode = check_string(d.get("mode", "synthetic"), "mode", fail, choices=MODES)
     scenarios = _name_list(d["scenarios"], "scenarios", fail, "scenario names or files")
     paths = []
     for i, s in enumerate(scenarios):
@@ -421,7 +421,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     noise = _name_list(d["noise"], "noise", fail, "noise-case names")
     cases = load_noise_cases()
     for i, n in enumerate(noise):
-        _string(n, f"noise[{i}]", fail, choices=tuple(cases))
+        check_string(n, f"noise[{i}]", fail, choices=tuple(cases))
     algorithms = _name_list(d["algorithms"], "algorithms", fail, "estimator plug-in names")
     from onboard.pipeline.plugins import load_factory
 
@@ -431,16 +431,16 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     if isinstance(seeds_v, list):
         if not seeds_v:
             fail("seeds", "a count >= 1 or a non-empty list of run seeds >= 0", seeds_v)
-        seeds = tuple(_integer(s, f"seeds[{i}]", fail, lo=0) for i, s in enumerate(seeds_v))
+        seeds = tuple(check_integer(s, f"seeds[{i}]", fail, lo=0) for i, s in enumerate(seeds_v))
         if len(set(seeds)) != len(seeds):
             fail("seeds", "distinct run seeds", seeds_v)
     else:
-        seeds = tuple(range(_integer(seeds_v, "seeds", fail, lo=1, hi=MAX_RUNS)))
+        seeds = tuple(range(check_integer(seeds_v, "seeds", fail, lo=1, hi=MAX_RUNS)))
     geometries = _geometries(d.get("geometry"), "geometry", fail)
     duration = d.get("duration_s")
     if duration is not None:
-        duration = _number(duration, "duration_s", fail, lo=0.0, lo_open=True, unit="s")
-    noise_model = _string(
+        duration = check_number(duration, "duration_s", fail, lo=0.0, lo_open=True, unit="s")
+    noise_model = check_string(
         d.get("noise_model", "case" if mode == "synthetic" else "config"), "noise_model", fail, choices=NOISE_MODELS
     )
     if mode == "closed_loop" and noise_model != "config":
@@ -450,10 +450,10 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         fail("crb", "true or false", crb)
     workers = d.get("workers")
     if workers is not None:
-        workers = _integer(workers, "workers", fail, lo=1, hi=1024)
+        workers = check_integer(workers, "workers", fail, lo=1, hi=1024)
     onboard = d.get("onboard_config")
     if onboard is not None:
-        onboard = Path(_string(onboard, "onboard_config", fail, what="a path to an onboard configuration file"))
+        onboard = Path(check_string(onboard, "onboard_config", fail, what="a path to an onboard configuration file"))
         onboard = onboard if onboard.is_absolute() or onboard.exists() else spec_dir / onboard
         if not onboard.is_file():
             fail("onboard_config", "an existing onboard configuration file", str(onboard))
@@ -487,7 +487,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
 def load_spec(path) -> CampaignSpec:
     """Read and validate a campaign spec file; one-line ConfigError (exit 2) on any problem."""
     p = Path(path)
-    return spec_from_dict(_read_yaml(p), source=p, spec_dir=p.parent)
+    return spec_from_dict(read_spec_yaml(p), source=p, spec_dir=p.parent)
 
 
 # --------------------------------------------------------------------------- runs and their identity

@@ -78,6 +78,12 @@ __all__ = [
     "scenarios_dir",
     "load_noise_cases",
     "noise_cases_from_dict",
+    "read_spec_yaml",
+    "SpecFail",
+    "check_number",
+    "check_integer",
+    "check_string",
+    "check_mapping",
     "main",
 ]
 
@@ -572,7 +578,7 @@ class ScenarioFile:
                 )
 
 
-def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: _Fail) -> None:
+def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: SpecFail) -> None:
     """The commanded paths stay finite and apart at every frame."""
     with np.errstate(all="ignore"):
         p_obs = observer.state(t_s).p_ned_m
@@ -600,7 +606,7 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     ``source`` names the origin in error messages (a file path, or ``"<dict>"``); a ``Path``
     becomes ``Scenario.source_path``.  ``d`` is not modified.
     """
-    fail = _Fail(source)
+    fail = SpecFail(source)
     try:
         f = build(ScenarioFile, d, none_is_default=False)
     except SchemaError as exc:
@@ -646,14 +652,14 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
 # --------------------------------------------------------------------------- YAML files
 
 
-def _read_yaml(path) -> Any:
+def read_spec_yaml(path) -> Any:
     """The one YAML loader (:func:`onboard.core.schema.read_yaml`), errors as :class:`ScenarioError`."""
     return read_yaml(path, ScenarioError)
 
 
 def load_scenario(path) -> Scenario:
     """Read and validate one scenario file; raises :class:`ScenarioError` (one line) on any problem."""
-    return scenario_from_dict(_read_yaml(path), source=Path(path))
+    return scenario_from_dict(read_spec_yaml(path), source=Path(path))
 
 
 def scenarios_dir() -> Path:
@@ -718,15 +724,16 @@ def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
 def load_noise_cases(path=None) -> dict[str, NoiseCase]:
     """Read ``config/noise_cases.yaml`` (or ``path``): case name -> :class:`NoiseCase`."""
     p = Path(path) if path is not None else _CONFIG_DIR / "noise_cases.yaml"
-    return noise_cases_from_dict(_read_yaml(p), source=p)
+    return noise_cases_from_dict(read_spec_yaml(p), source=p)
 
 
 # --------------------------------------------------------------------------- value checks for other spec files
-# The campaign spec (groundsim.evaluation.campaign) still validates its mapping field by field with these;
-# they check through the one system's field types, so the texts are the same as the models'.
+# Public for the spec files that validate their mapping field by field (the campaign spec,
+# groundsim.evaluation.campaign): they check through the one system's field types, so the texts are the
+# same as the models', and they raise ScenarioError like the scenario files.
 
 
-class _Fail:
+class SpecFail:
     """Raises ScenarioError for one source: ``fail(path, expected, got, hint)``; ``fail.text(...)``
     when the 'got' part is a description rather than a value."""
 
@@ -740,20 +747,20 @@ class _Fail:
         raise ScenarioError(self.source, path, expected, got_text=got_text, hint=hint)
 
 
-def _number(v, path, fail: _Fail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
+def check_number(v, path, fail: SpecFail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
     return check_value(Number(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit), v, path, fail.source, ScenarioError)
 
 
-def _integer(v, path, fail: _Fail, *, lo=None, hi=None) -> int:
+def check_integer(v, path, fail: SpecFail, *, lo=None, hi=None) -> int:
     return check_value(Integer(lo, hi), v, path, fail.source, ScenarioError)
 
 
-def _string(v, path, fail: _Fail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
+def check_string(v, path, fail: SpecFail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
     tp = Text(choices=tuple(choices or ()), pattern=None if pattern is None else pattern.pattern, what=what, empty=True)
     return check_value(tp, v, path, fail.source, ScenarioError)
 
 
-def _mapping(v, path, fail: _Fail, allowed, required=()) -> dict:
+def check_mapping(v, path, fail: SpecFail, allowed, required=()) -> dict:
     """A dict with string keys, all in ``allowed``, all of ``required`` present."""
     allowed = tuple(allowed)
     if not isinstance(v, dict):
