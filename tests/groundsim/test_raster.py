@@ -117,6 +117,20 @@ def test_target_is_drawn_where_truth_pixel_says(r16_default):
 # ---------------------------------------------------------------------------- centroid accuracy
 
 offsets = st.floats(-0.5, 0.5)
+
+
+def _centroid_error(renderer, cam_pitch_deg, du, dv, range_m, rpy, threshold=None) -> tuple[float, float]:
+    """(px, peak): how far the rendered target's centroid is from its truth pixel, the target ``range_m`` away at
+    (320 + du, 256 + dv) in a camera pitched ``cam_pitch_deg`` (yaw 17 deg), its body at roll, pitch, yaw ``rpy``."""
+    R = R_cam(pitch_deg=cam_pitch_deg, yaw_deg=17.0)
+    p_t = target_at(INTR, CAMERA_P_NED_M, R, 320.0 + du, 256.0 + dv, range_m)
+    img = renderer.render(CAMERA_P_NED_M, R, p_t, rotmat_from_quat(quat_from_euler(*rpy)))
+    bg = renderer.render(CAMERA_P_NED_M, R, None, None)
+    uv = truth_pixel(INTR, CAMERA_P_NED_M, R, p_t)
+    cu, cv, peak = blob_centroid(img, bg, uv, threshold=threshold)
+    return math.hypot(cu - uv[0], cv - uv[1]), peak
+
+
 angles = st.floats(-0.4, 0.4)
 
 
@@ -124,13 +138,8 @@ angles = st.floats(-0.4, 0.4)
 @given(du=offsets, dv=offsets, range_m=st.floats(50.0, 300.0), roll=angles, pitch=angles, yaw=st.floats(-3.1, 3.1))
 @pytest.mark.parametrize("cam_pitch_deg", [10.0, -20.0])  # target on sky, target on ground
 def test_centroid_symmetric_target(r16_symmetric, cam_pitch_deg, du, dv, range_m, roll, pitch, yaw):
-    R = R_cam(pitch_deg=cam_pitch_deg, yaw_deg=17.0)
-    p_t = target_at(INTR, CAMERA_P_NED_M, R, 320.0 + du, 256.0 + dv, range_m)
-    img = r16_symmetric.render(CAMERA_P_NED_M, R, p_t, rotmat_from_quat(quat_from_euler(roll, pitch, yaw)))
-    bg = r16_symmetric.render(CAMERA_P_NED_M, R, None, None)
-    uv = truth_pixel(INTR, CAMERA_P_NED_M, R, p_t)
-    cu, cv, _ = blob_centroid(img, bg, uv)
-    assert math.hypot(cu - uv[0], cv - uv[1]) < SYMMETRIC_CENTROID_TOL_PX
+    err_px, _ = _centroid_error(r16_symmetric, cam_pitch_deg, du, dv, range_m, (roll, pitch, yaw))
+    assert err_px < SYMMETRIC_CENTROID_TOL_PX
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -140,13 +149,8 @@ def test_centroid_symmetric_target(r16_symmetric, cam_pitch_deg, du, dv, range_m
 def test_centroid_default_target(r16_default, cam_pitch_deg, range_m, du, dv, roll, pitch, yaw):
     """The default quad-rotor (battery and motors above the centre, hotter motors): its radiance
     centroid is within 0.2 px of the body centre at 50 m, closer beyond."""
-    R = R_cam(pitch_deg=cam_pitch_deg, yaw_deg=17.0)
-    p_t = target_at(INTR, CAMERA_P_NED_M, R, 320.0 + du, 256.0 + dv, range_m)
-    img = r16_default.render(CAMERA_P_NED_M, R, p_t, rotmat_from_quat(quat_from_euler(roll, pitch, yaw)))
-    bg = r16_default.render(CAMERA_P_NED_M, R, None, None)
-    uv = truth_pixel(INTR, CAMERA_P_NED_M, R, p_t)
-    cu, cv, _ = blob_centroid(img, bg, uv)
-    assert math.hypot(cu - uv[0], cv - uv[1]) < CENTROID_TOL_PX
+    err_px, _ = _centroid_error(r16_default, cam_pitch_deg, du, dv, range_m, (roll, pitch, yaw))
+    assert err_px < CENTROID_TOL_PX
 
 
 @settings(max_examples=20, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -155,14 +159,9 @@ def test_centroid_default_target(r16_default, cam_pitch_deg, range_m, du, dv, ro
 def test_centroid_mono8_with_noise(r8_noisy, range_m, du, dv, roll, pitch, yaw):
     """mono8, NETD on.  Beyond ~150 m the default target peaks at < 10 grey levels over the sky and
     8-bit quantisation, not the rasteriser, limits the centroid (the mono16 test covers 300 m)."""
-    R = R_cam(pitch_deg=10.0, yaw_deg=17.0)
-    p_t = target_at(INTR, CAMERA_P_NED_M, R, 320.0 + du, 256.0 + dv, range_m)
-    img = r8_noisy.render(CAMERA_P_NED_M, R, p_t, rotmat_from_quat(quat_from_euler(roll, pitch, yaw)))
-    bg = r8_noisy.render(CAMERA_P_NED_M, R, None, None)
-    uv = truth_pixel(INTR, CAMERA_P_NED_M, R, p_t)
-    cu, cv, peak = blob_centroid(img, bg, uv, threshold=2.0)
+    err_px, peak = _centroid_error(r8_noisy, 10.0, du, dv, range_m, (roll, pitch, yaw), threshold=2.0)
     assert peak >= 4  # visible: measured >= 7 grey levels out to 150 m
-    assert math.hypot(cu - uv[0], cv - uv[1]) < CENTROID_TOL_PX
+    assert err_px < CENTROID_TOL_PX
 
 
 def test_centroid_with_lens_distortion():
@@ -229,19 +228,23 @@ def r16_flat():
     return IrRenderer(INTR, s)
 
 
+def _horizon_crossing(col: np.ndarray, k: int, half: int) -> float:
+    """Where the column's sky-to-ground step crosses the mid level of rows k - half and k + half: linearly
+    interpolated between the pixel centres of rows k - half + 1 .. k + half - 1."""
+    mid = 0.5 * (col[k - half] + col[k + half])
+    rows = np.arange(k - half + 1, k + half)
+    vals = col[k - half + 1 : k + half]
+    n = int(np.flatnonzero(np.diff(np.sign(vals - mid)))[0])
+    return rows[n] + 0.5 + (mid - vals[n]) / (vals[n + 1] - vals[n])
+
+
 @pytest.mark.parametrize("pitch_deg", [-10.0, 0.0, 3.3, 12.0])
 def test_horizon_row_follows_camera_pitch(r16_flat, pitch_deg):
     img = r16_flat.render(CAMERA_P_NED_M, R_cam(pitch_deg=pitch_deg), None, None).astype(float)
     v_expected = INTR.cy_px + INTR.fy_px * math.tan(math.radians(pitch_deg))  # pitch up: horizon lower
     col = img[:, 100]
     k = int(v_expected)
-    mid = 0.5 * (col[k - 6] + col[k + 6])
-    rows = np.arange(k - 5, k + 6)
-    vals = col[k - 5 : k + 6]
-    # the step's crossing of the mid level, linearly interpolated between pixel centres
-    n = int(np.flatnonzero(np.diff(np.sign(vals - mid)))[0])
-    v_cross = rows[n] + 0.5 + (mid - vals[n]) / (vals[n + 1] - vals[n])
-    assert v_cross == pytest.approx(v_expected, abs=HORIZON_ATOL_PX)
+    assert _horizon_crossing(col, k, 6) == pytest.approx(v_expected, abs=HORIZON_ATOL_PX)
     assert col[k + 6] > col[k - 6] + 10000  # warm ground below the cold sky
 
 
@@ -251,13 +254,7 @@ def test_horizon_tilts_with_roll(r16_flat):
     u = np.array([120.5, 520.5])
     v_expected = INTR.cy_px - (u - INTR.cx_px) * math.tan(math.radians(10.0))
     for j, ve in zip(u.astype(int), v_expected):
-        col = img[:, j]
-        k = int(ve)
-        mid = 0.5 * (col[k - 8] + col[k + 8])
-        rows = np.arange(k - 7, k + 8)
-        vals = col[k - 7 : k + 8]
-        n = int(np.flatnonzero(np.diff(np.sign(vals - mid)))[0])
-        v_cross = rows[n] + 0.5 + (mid - vals[n]) / (vals[n + 1] - vals[n])
+        v_cross = _horizon_crossing(img[:, j], int(ve), 8)
         assert v_cross == pytest.approx(ve, abs=2 * HORIZON_ATOL_PX)  # the pixel box of a slanted edge
     assert v_expected[1] < v_expected[0]
 

@@ -397,6 +397,10 @@ def test_missing_scenario_file_is_one_line_exit_2(tmp_path, capsys):
     _assert_main_one_line(capsys, ["run", "--scenario", str(tmp_path / "nope.yaml")], "nope.yaml", "no such file")
 
 
+# a 0.1 s run as fast as it goes, quiet but for errors: what the zenoh refusals below start
+_SHORT_RUN = ("run", "--rate", "max", "--duration", "0.1", "--log-level", "error")
+
+
 @pytest.mark.integration
 def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
     with socket.socket() as s:
@@ -406,13 +410,7 @@ def test_zenoh_listen_port_in_use_is_one_line_exit_2(capsys):
         _assert_main_one_line(
             capsys,
             [
-                "run",
-                "--rate",
-                "max",
-                "--duration",
-                "0.1",
-                "--log-level",
-                "error",
+                *_SHORT_RUN,
                 "--zenoh-listen",
                 f"tcp/127.0.0.1:{port}",
                 "--mavlink",
@@ -427,13 +425,7 @@ def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
     _assert_main_one_line(
         capsys,
         [
-            "run",
-            "--rate",
-            "max",
-            "--duration",
-            "0.1",
-            "--log-level",
-            "error",
+            *_SHORT_RUN,
             "--zenoh-connect",
             f"tcp/127.0.0.1:{free_tcp_port()}",
             "--zenoh-connect-timeout",
