@@ -33,11 +33,11 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from groundsim.io.ports import free_udp_port  # noqa: E402
-from onboard.core.frames import CameraMount, GeodeticOrigin  # noqa: E402
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
-from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig  # noqa: E402
-from tests.fakes import FakeClock  # noqa: E402
+from onboard.core.frames import GeodeticOrigin  # noqa: E402
+from onboard.core.pose import PoseBuffer  # noqa: E402
+from onboard.io.mavlink_link import MavlinkLinkConfig  # noqa: E402
 from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
+from tests.onboard.test_mavlink_link import loopback_link  # noqa: E402
 
 AP_SYSID = 1
 KEY = bytes(range(32))
@@ -79,19 +79,14 @@ class Harness:
     """A MavlinkLink on a real 127.0.0.1 socket whose reads come from ``feed``."""
 
     def __init__(self, signed: bool = False, gimballed: bool = True) -> None:
-        self.clock = FakeClock()
-        self.counter = RejectCounter(clock=self.clock, log_interval_s=1e9)  # counted, logged once
-        self.pose = RecordingPose(
-            mount=CameraMount(gimballed=gimballed), origin=GeodeticOrigin(47.0, 8.0, 400.0), counter=self.counter
-        )
         cfg = MavlinkLinkConfig(autopilot_sysid=AP_SYSID, signing_key=KEY if signed else None)
-        self.link = MavlinkLink(
-            f"udpin:127.0.0.1:{free_udp_port()}",
-            self.pose,
-            self.counter,
+        self.clock, self.counter, self.pose, self.link = loopback_link(
+            free_udp_port(),
+            GeodeticOrigin(47.0, 8.0, 400.0),
             gimballed=gimballed,
-            clock=self.clock,
             config=cfg,
+            pose_cls=RecordingPose,
+            log_interval_s=1e9,  # counted, logged once
         )
         self._inbox: list[tuple[bytes, tuple[str, int]]] = []
         self.sent: list[bytes] = []

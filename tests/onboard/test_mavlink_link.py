@@ -43,20 +43,30 @@ TIMESYNC_TOL_US = 20_000  # one-way delay asymmetry on a loaded 2-core box, gene
 LAT0, LON0, ALT0 = 47.3977, 8.5456, 488.0
 
 
+def loopback_link(
+    port: int,
+    origin: GeodeticOrigin,
+    *,
+    gimballed: bool,
+    config: MavlinkLinkConfig | None = None,
+    pose_cls: type[PoseBuffer] = PoseBuffer,
+    **counter_kw,
+) -> tuple[FakeClock, RejectCounter, PoseBuffer, MavlinkLink]:
+    """(clock, counter, pose, link): a MavlinkLink on udpin 127.0.0.1:``port`` on a fake clock, feeding a fresh
+    ``pose_cls`` buffer at ``origin`` and counting into a fresh RejectCounter (``counter_kw``)."""
+    clock = FakeClock()
+    counter = RejectCounter(clock=clock, **counter_kw)
+    pose = pose_cls(mount=CameraMount(gimballed=gimballed), origin=origin, counter=counter)
+    link = MavlinkLink(f"udpin:127.0.0.1:{port}", pose, counter, gimballed=gimballed, clock=clock, config=config)
+    return clock, counter, pose, link
+
+
 class Rig:
     def __init__(self, gimballed: bool = False, config: MavlinkLinkConfig | None = None) -> None:
         self.port = free_udp_port()
-        self.clock = FakeClock()
-        self.counters = RejectCounter(clock=self.clock)
-        mount = CameraMount(gimballed=gimballed)
-        self.pose = PoseBuffer(mount=mount, origin=GeodeticOrigin(LAT0, LON0, ALT0), counter=self.counters)
-        self.link = MavlinkLink(
-            f"udpin:127.0.0.1:{self.port}",
-            self.pose,
-            self.counters,
-            gimballed=gimballed,
-            clock=self.clock,
-            config=config,
+        origin = GeodeticOrigin(LAT0, LON0, ALT0)
+        self.clock, self.counters, self.pose, self.link = loopback_link(
+            self.port, origin, gimballed=gimballed, config=config
         )
         self.ap = FakeAutopilot(self.port, sysid=AP_SYSID, mav_type=mav.MAV_TYPE_FIXED_WING)
 
