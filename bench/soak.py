@@ -126,21 +126,20 @@ class StatusReader:
         self.tracks: list[tuple[float, bool]] = []  # (arrival, monotonic s; has a 3-D position)
         self.track_sub = self.session.declare_subscriber(f"irtrack/{vehicle}/track", self._on_track)
 
-    def _on_track(self, sample) -> None:
+    def _on_json(self, sample, keep) -> None:
+        """``keep(message)`` under the lock, for a sample that is JSON (others are ignored)."""
         try:
-            track = json.loads(sample.payload.to_bytes())
+            message = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
         with self._lock:
-            self.tracks.append((time.monotonic(), track.get("ned_m") is not None))
+            keep(message)
+
+    def _on_track(self, sample) -> None:
+        self._on_json(sample, lambda track: self.tracks.append((time.monotonic(), track.get("ned_m") is not None)))
 
     def _on(self, sample) -> None:
-        try:
-            status = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        with self._lock:
-            self.latest = status
+        self._on_json(sample, lambda status: setattr(self, "latest", status))
 
     def get(self) -> dict | None:
         with self._lock:
