@@ -77,12 +77,16 @@ def circle_flight():
 # --------------------------------------------------------------------------- flying
 
 
+def _assert_followed(tr, reference, rms_m: float, max_m: float) -> None:
+    """The flown positions are within ``rms_m`` RMS and ``max_m`` at worst of the reference path's."""
+    err = np.linalg.norm(tr.p_ned_m - reference.state(tr.t_s).p_ned_m, axis=1)
+    assert np.sqrt(np.mean(err**2)) < rms_m
+    assert err.max() < max_m
+
+
 def test_straight_5mps_followed_within_bound(straight_flight):
     tr = straight_flight
-    ref = _straight().state(tr.t_s)
-    err = np.linalg.norm(tr.p_ned_m - ref.p_ned_m, axis=1)
-    assert np.sqrt(np.mean(err**2)) < STRAIGHT_RMS_M
-    assert err.max() < STRAIGHT_MAX_M
+    _assert_followed(tr, _straight(), STRAIGHT_RMS_M, STRAIGHT_MAX_M)
     assert tr.tracking.rms_m < STRAIGHT_RMS_M and tr.tracking.max_m < STRAIGHT_MAX_M
     # it really flew: 8 s at 5 m/s north is 40 m, at constant height
     assert tr.p_ned_m[-1, 0] == pytest.approx(40.0, abs=STRAIGHT_MAX_M)
@@ -94,10 +98,7 @@ def test_straight_5mps_followed_within_bound(straight_flight):
 
 def test_circle_followed_within_bound(circle_flight):
     tr = circle_flight
-    ref = _circle().state(tr.t_s)
-    err = np.linalg.norm(tr.p_ned_m - ref.p_ned_m, axis=1)
-    assert np.sqrt(np.mean(err**2)) < CIRCLE_RMS_M
-    assert err.max() < CIRCLE_MAX_M
+    _assert_followed(tr, _circle(), CIRCLE_RMS_M, CIRCLE_MAX_M)
     # centripetal acceleration 8^2/40 = 1.6 m/s^2 is flown, by banking into the clockwise turn
     a_h = np.linalg.norm(tr.a_ned_mps2[30:, :2], axis=1)
     assert np.allclose(a_h, 1.6, atol=0.1)
