@@ -433,40 +433,26 @@ class MavlinkVehicle:
         :func:`groundsim.world.nav_errors.reported_state` before anything is stored: #31, #33 and #285 carry
         the reported attitude, position, velocity and gimbal attitude; the returned state is the reported one.
         """
-        if nav_error is not None:
-            from groundsim.world.nav_errors import reported_state
-
-            kw = reported_state(
-                dict(
-                    lat_deg=lat_deg,
-                    lon_deg=lon_deg,
-                    alt_amsl_m=alt_amsl_m,
-                    alt_rel_m=alt_rel_m,
-                    v_ned_mps=v_ned_mps,
-                    q_ned_from_body=q_ned_from_body,
-                    heading_rad=heading_rad,
-                    q_gimbal=q_gimbal,
-                ),
-                nav_error,
-            )
-            lat_deg, lon_deg, alt_amsl_m, alt_rel_m = kw["lat_deg"], kw["lon_deg"], kw["alt_amsl_m"], kw["alt_rel_m"]
-            v_ned_mps, q_ned_from_body, heading_rad, q_gimbal = (
-                kw["v_ned_mps"],
-                kw["q_ned_from_body"],
-                kw["heading_rad"],
-                kw["q_gimbal"],
-            )
-        state = VehicleState(
-            time_boot_us=time_boot_us,
+        reported = dict(
             lat_deg=lat_deg,
             lon_deg=lon_deg,
             alt_amsl_m=alt_amsl_m,
             alt_rel_m=alt_rel_m,
             v_ned_mps=v_ned_mps,
             q_ned_from_body=q_ned_from_body,
-            body_rates_radps=body_rates_radps,
             heading_rad=heading_rad,
-            q_ned_from_gimbal=q_gimbal,
+            q_gimbal=q_gimbal,
+        )
+        if nav_error is not None:
+            from groundsim.world.nav_errors import reported_state
+
+            reported = reported_state(reported, nav_error)
+        q_ned_from_gimbal = reported.pop("q_gimbal")
+        state = VehicleState(
+            time_boot_us=time_boot_us,
+            body_rates_radps=body_rates_radps,
+            q_ned_from_gimbal=q_ned_from_gimbal,
+            **reported,
         )
         self._state = state
         if self._home is None:
