@@ -1134,24 +1134,10 @@ def run_campaign(
     wall = time.perf_counter() - t0
     done, _ = read_log(log_path)
     rows = [done[i] for i in ids if i in done]
+    result = CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted)
     files = write_table(out, rows)
-    files.update(
-        write_report(
-            out,
-            spec,
-            rows,
-            dict(
-                planned=len(planned),
-                reused=reused,
-                ran=ran,
-                failed=failed,
-                wall_s=wall,
-                workers=workers,
-                interrupted=interrupted,
-            ),
-        )
-    )
-    return CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted, files)
+    files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
+    return dataclasses.replace(result, files=files)
 
 
 # --------------------------------------------------------------------------- the table
