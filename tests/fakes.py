@@ -8,6 +8,7 @@ import numpy as np
 from groundsim.io.scripted_autopilot import ScriptedAutopilot
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.track import Track
+from onboard.io.mavlink_link import LinkStatus
 
 
 class FakeClock:
@@ -41,6 +42,23 @@ class FakeClock:
 
 # the one fake autopilot of the tests (and of bench.onboard, which cannot import tests/): scripted, call by call
 FakeAutopilot = ScriptedAutopilot
+
+
+def quiet_link_status(state: str, autopilot_sysid: int | None, messages_rx: int) -> LinkStatus:
+    """The LinkStatus of a MAVLink link with no heartbeat age, no message-rate requests, no clock sync, no losses
+    and no reboots (what a fake link's ``status()`` returns)."""
+    return LinkStatus(
+        state=state,
+        autopilot_sysid=autopilot_sysid,
+        heartbeat_age_s=None,
+        rates_confirmed=(),
+        rates_pending=(),
+        rates_refused=(),
+        clock_synced=False,
+        messages_rx=messages_rx,
+        link_losses=0,
+        reboots=0,
+    )
 
 
 def tracking_track(**fields) -> Track:

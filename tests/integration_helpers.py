@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import subprocess
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +40,7 @@ from groundsim.evaluation.demo import child_env, close_zenoh, drain_tracks, log_
 __all__ = [
     "PairRun",
     "PairRunError",
+    "loopback_daemon_command",
     "run_pair",
     "sim_command_at_rate",
     "truth_arrays",
@@ -83,6 +85,30 @@ class PairRun:
 def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
     with open(log_path, "wb") as f:  # the child keeps its own descriptor
         return subprocess.Popen(cmd, cwd=REPO, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+
+
+def _raise_if_exited(daemon: subprocess.Popen, log_path: Path, when: str, error: type[PairRunError]) -> None:
+    """Raise ``error`` with the tail of the daemon's log if it has exited (``when``: before what or during what)."""
+    if daemon.poll() is not None:
+        raise error(f"the onboard daemon exited with code {daemon.returncode} {when}:\n{log_tail(log_path)}")
+
+
+def loopback_daemon_command(zenoh_listen_port: int, health_file) -> list[str]:
+    """``python -m onboard`` on 127.0.0.1 from the command line alone: MAVLink udpin on a free port, zenoh listening
+    on ``zenoh_listen_port``, ``output.health_file`` set (``"null"``: none)."""
+    from groundsim.io.ports import free_udp_port
+
+    return [
+        sys.executable,
+        "-m",
+        "onboard",
+        "--mavlink",
+        f"udpin:127.0.0.1:{free_udp_port()}",
+        "--zenoh-listen",
+        f"tcp/127.0.0.1:{zenoh_listen_port}",
+        "--set",
+        f"output.health_file={health_file}",
+    ]
 
 
 def sim_command_at_rate(plan, rate: str) -> list[str]:
@@ -149,11 +175,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
         )
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):
-            if daemon.poll() is not None:
-                raise _DaemonExitedEarly(
-                    f"the onboard daemon exited with code {daemon.returncode} before it was ready:\n"
-                    f"{log_tail(logs['daemon'])}"
-                )
+            _raise_if_exited(daemon, logs["daemon"], "before it was ready", _DaemonExitedEarly)
             if time.monotonic() > t_ready:
                 raise PairRunError(
                     f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
@@ -163,11 +185,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
         sim = _start(sim_command_at_rate(plan, rate), logs["sim"], env)
         deadline = sim0 + plan.duration_s / factor + SIM_SETUP_ALLOWANCE_S
         while sim.poll() is None:
-            if daemon.poll() is not None:
-                raise PairRunError(
-                    f"the onboard daemon exited with code {daemon.returncode} during the run:\n"
-                    f"{log_tail(logs['daemon'])}"
-                )
+            _raise_if_exited(daemon, logs["daemon"], "during the run", PairRunError)
             if time.monotonic() > deadline:
                 raise PairRunError(
                     f"the simulator still runs {SIM_SETUP_ALLOWANCE_S:g} s past its duration:\n{log_tail(logs['sim'])}"

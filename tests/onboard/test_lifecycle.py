@@ -5,13 +5,13 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
 
-from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.ports import free_tcp_port
+from tests.integration_helpers import loopback_daemon_command
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(90)]
 
@@ -24,17 +24,7 @@ def test_sighup_is_a_clean_exit(tmp_path):
     alive = tmp_path / "alive"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "onboard",
-            "--mavlink",
-            f"udpin:127.0.0.1:{free_udp_port()}",
-            "--zenoh-listen",
-            f"tcp/127.0.0.1:{free_tcp_port()}",
-            "--set",
-            f"output.health_file={alive}",
-        ],
+        loopback_daemon_command(free_tcp_port(), alive),
         cwd=REPO,
         env=env,
         stdout=subprocess.PIPE,

@@ -16,7 +16,7 @@ from onboard.imaging import TargetTracker
 from onboard.imaging.preprocess import ImagingParams
 from onboard.io.camera_protocol import CameraCommand, TrackRequest
 from onboard.pipeline.frame_pipeline import FramePipeline
-from tests.fakes import FakeClock, positioned_track  # noqa: E402
+from tests.fakes import FakeClock, positioned_track, quiet_link_status  # noqa: E402
 
 W, H = 640, 512
 HOT = (200.0, 150.0)  # the two warm objects' true centres, px
@@ -196,20 +196,7 @@ class _FakeLink:
     autopilot_sysid = 7
 
     def status(self):
-        from onboard.io.mavlink_link import LinkStatus
-
-        return LinkStatus(
-            state="connected",
-            autopilot_sysid=7,
-            heartbeat_age_s=None,
-            rates_confirmed=(),
-            rates_pending=(),
-            rates_refused=(),
-            clock_synced=False,
-            messages_rx=1,
-            link_losses=0,
-            reboots=0,
-        )
+        return quiet_link_status("connected", autopilot_sysid=7, messages_rx=1)
 
 
 def _service(mode="auto"):

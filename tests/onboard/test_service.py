@@ -33,7 +33,8 @@ from onboard.core.frames import geodetic_from_ned  # noqa: E402
 from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
 from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
-from tests.fakes import FakeAutopilot, FakeClock  # noqa: E402
+from tests.fakes import FakeAutopilot, FakeClock, quiet_link_status  # noqa: E402
+from tests.integration_helpers import loopback_daemon_command  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 5.0  # upper bound of one in-process wait
@@ -522,17 +523,7 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
         s.listen(1)
         port = s.getsockname()[1]
         proc = subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "onboard",
-                "--mavlink",
-                f"udpin:127.0.0.1:{free_udp_port()}",
-                "--zenoh-listen",
-                f"tcp/127.0.0.1:{port}",
-                "--set",
-                "output.health_file=null",
-            ],
+            loopback_daemon_command(port, "null"),
             cwd=REPO,
             env=daemon_env,
             capture_output=True,
@@ -598,20 +589,7 @@ class _FakeLink:
         self.geo: list[dict] = []
 
     def status(self):
-        from onboard.io.mavlink_link import LinkStatus
-
-        return LinkStatus(
-            state="connected" if self.rx else "waiting",
-            autopilot_sysid=1,
-            heartbeat_age_s=None,
-            rates_confirmed=(),
-            rates_pending=(),
-            rates_refused=(),
-            clock_synced=False,
-            messages_rx=self.rx,
-            link_losses=0,
-            reboots=0,
-        )
+        return quiet_link_status("connected" if self.rx else "waiting", autopilot_sysid=1, messages_rx=self.rx)
 
     def send_tracking_image_status(self, **kw) -> None:
         pass
