@@ -352,6 +352,37 @@ def _proc_cpu_s(pid: int) -> float:
     return total
 
 
+def _thread_cpu_s(pid: int) -> dict[str, float]:
+    """CPU seconds of every thread of ``pid`` and its live descendants, by thread name (``comm``: the
+    daemon names its pipeline and estimator, zenoh names its own; threads of one name are summed), with
+    the process's main thread as ``main`` (the estimator process's is named by the daemon).  Linux."""
+    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+    out: dict[str, float] = {}
+    todo, seen = [pid], set()
+    while todo:
+        p = todo.pop()
+        if p in seen:
+            continue
+        seen.add(p)
+        try:
+            tids = os.listdir(f"/proc/{p}/task")
+        except OSError:
+            continue
+        for tid in tids:
+            try:
+                with open(f"/proc/{p}/task/{tid}/stat") as f:
+                    text = f.read()
+                with open(f"/proc/{p}/task/{tid}/children") as f:
+                    todo.extend(int(c) for c in f.read().split())
+            except OSError:
+                continue
+            comm = text[text.index("(") + 1 : text.rindex(")")]
+            rest = text.rsplit(")", 1)[1].split()
+            name = "main" if int(tid) == p and comm.startswith("python") else comm
+            out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / tick
+    return out
+
+
 def bench_latency(
     duration_s: float, capture_lag_ms: float, rate_hz: float = 30.0, extra_args: tuple[str, ...] = ()
 ) -> dict:
@@ -438,7 +469,7 @@ def bench_latency(
                 if measuring_from is not None and now >= measuring_from and status_at_start is None and statuses:
                     status_at_start = statuses[-1]
                 if measuring_from is not None and now >= measuring_from and cpu_at_start is None:
-                    cpu_at_start = (time.monotonic(), _proc_cpu_s(proc.pid))
+                    cpu_at_start = (time.monotonic(), _proc_cpu_s(proc.pid), _thread_cpu_s(proc.pid))
                 if measuring_from is not None and now >= measuring_from and j["seq"] in put_ns:
                     lat_ms.append((t_ns - put_ns.pop(j["seq"])) / 1e6)
             if measuring_from is not None and now >= measuring_from + duration_s:
@@ -448,8 +479,12 @@ def bench_latency(
                 return {}
             time.sleep(0.001)
         cpu_s_per_s = math.nan
+        by_thread: dict[str, float] = {}
         if cpu_at_start is not None:
-            cpu_s_per_s = (_proc_cpu_s(proc.pid) - cpu_at_start[1]) / max(time.monotonic() - cpu_at_start[0], 1e-9)
+            span_s = max(time.monotonic() - cpu_at_start[0], 1e-9)
+            cpu_s_per_s = (_proc_cpu_s(proc.pid) - cpu_at_start[1]) / span_s
+            end = _thread_cpu_s(proc.pid)
+            by_thread = {k: (v - cpu_at_start[2].get(k, 0.0)) / span_s for k, v in end.items()}
         sent = k
         st = statuses[-1] if statuses else {}
         print(
@@ -496,6 +531,11 @@ def bench_latency(
                 f" simulated s = {100 * cpu_s_per_s:.1f} % of one core (target <= 15 %),"
                 f" {1000 * cpu_s_per_s / rate_hz:.2f} ms per frame at {rate_hz:.0f} Hz; median per-frame processing"
                 f" {st['processing_ms']['p50']:.2f} ms ({n_proc} frames in the window)"
+            )
+            shown = sorted(((v, k) for k, v in by_thread.items() if v >= 0.002), reverse=True)
+            print(
+                "     daemon CPU by thread, CPU s per s (/proc; 'main': the MAVLink and status loop): "
+                + ", ".join(f"{k} {v:.3f}" for v, k in shown)
             )
             c2t = st.get("capture_to_track_ms") or {}
             print(

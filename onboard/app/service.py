@@ -62,6 +62,7 @@ from typing import Any
 import numpy as np
 
 from onboard.app.config import OnboardConfig
+from onboard.app.os_thread import name_os_thread
 from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrameError, check_payload_size, decode_irframe
@@ -316,6 +317,7 @@ class ThreadedEstimator:
     # ------------------------------------------------------------------ worker
 
     def _run(self) -> None:
+        name_os_thread("irtrack-estim")
         while True:
             with self._cond:
                 while not self._q and not self._stop:
@@ -422,6 +424,7 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
     import signal as _signal
 
     _signal.signal(_signal.SIGINT, _signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    name_os_thread("irtrack-estim")
     from onboard.app.logs import setup_logging  # this process is an entry point of its own: same log lines
 
     setup_logging(config.logging.level, config.logging.format)
@@ -1091,6 +1094,7 @@ class OnboardService:
     # ------------------------------------------------------------------ pipeline thread
 
     def _pipeline_loop(self) -> None:
+        name_os_thread("irtrack-pipe")
         health_every_s = self.config.output.health_interval_s
         next_health = -math.inf
         publish = self.config.output.publish_track

@@ -125,8 +125,48 @@ class GeodeticOrigin:
 _ELL = pymap3d.Ellipsoid.from_name("wgs84")
 
 
+_A_M, _B_M = float(_ELL.semimajor_axis), float(_ELL.semiminor_axis)
+_E_M = math.sqrt(_A_M**2 - _B_M**2)
+
+
+def _ecef_from_geodetic1(lat_deg: float, lon_deg: float, alt_m: float) -> np.ndarray:
+    """One point: pymap3d.geodetic2ecef's formulas in floats (numpy's call overhead on one point cost
+    more than the arithmetic; the daemon converts every position sample and every published point)."""
+    lat, lon = math.radians(lat_deg), math.radians(lon_deg)
+    n_m = _A_M**2 / math.hypot(_A_M * math.cos(lat), _B_M * math.sin(lat))
+    return np.array(
+        [
+            (n_m + alt_m) * math.cos(lat) * math.cos(lon),
+            (n_m + alt_m) * math.cos(lat) * math.sin(lon),
+            (n_m * (_B_M / _A_M) ** 2 + alt_m) * math.sin(lat),
+        ]
+    )
+
+
+def _geodetic_from_ecef1(x: float, y: float, z: float) -> tuple[float, float, float] | None:
+    """One point: pymap3d.ecef2geodetic's closed form (You 2000, eqns 4, 7, 13) in floats; None near the
+    polar axis or the centre (pymap3d's special cases), which the caller hands to pymap3d."""
+    r = math.sqrt(x**2 + y**2 + z**2)
+    u = math.sqrt(0.5 * (r**2 - _E_M**2) + 0.5 * math.hypot(r**2 - _E_M**2, 2 * _E_M * z))
+    hxy = math.hypot(x, y)
+    if u < 1.0 or hxy < 1.0:
+        return None
+    hue = math.hypot(u, _E_M)
+    beta = math.atan(hue / u * z / hxy)
+    beta += ((_B_M * u - _A_M * hue + _E_M**2) * math.sin(beta)) / (
+        _A_M * hue * 1 / math.cos(beta) - _E_M**2 * math.cos(beta)
+    )
+    lat = math.atan(_A_M / _B_M * math.tan(beta))
+    alt = math.hypot(z - _B_M * math.sin(beta), hxy - _A_M * math.cos(beta))
+    if x**2 / _A_M**2 + y**2 / _A_M**2 + z**2 / _B_M**2 < 1:
+        alt = -alt
+    return math.degrees(lat), math.degrees(math.atan2(y, x)), alt
+
+
 def ecef_from_geodetic(lat_deg, lon_deg, alt_m) -> np.ndarray:
     """WGS84 geodetic -> ECEF metres, shape (..., 3)."""
+    if all(isinstance(v, (float, int)) for v in (lat_deg, lon_deg, alt_m)):
+        return _ecef_from_geodetic1(float(lat_deg), float(lon_deg), float(alt_m))
     x, y, z = pymap3d.geodetic2ecef(lat_deg, lon_deg, alt_m, ell=_ELL, deg=True)
     return np.stack(np.broadcast_arrays(x, y, z), axis=-1).astype(float)
 
@@ -134,6 +174,10 @@ def ecef_from_geodetic(lat_deg, lon_deg, alt_m) -> np.ndarray:
 def geodetic_from_ecef(p_ecef_m) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """ECEF metres (..., 3) -> (lat_deg, lon_deg, alt_m)."""
     p = np.asarray(p_ecef_m, dtype=float)
+    if p.shape == (3,):
+        one = _geodetic_from_ecef1(*p.tolist())
+        if one is not None:
+            return np.asarray(one[0]), np.asarray(one[1]), np.asarray(one[2])
     lat, lon, alt = pymap3d.ecef2geodetic(p[..., 0], p[..., 1], p[..., 2], ell=_ELL, deg=True)
     return np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)
 
@@ -177,9 +221,22 @@ def geodetic_from_ned(p_ned_m, origin: GeodeticOrigin) -> tuple[np.ndarray, np.n
 # --------------------------------------------------------------------------- quaternions
 
 
+# Single quaternions (shape (4,)) take scalar paths below: the daemon converts one pose per telemetry
+# sample and per frame, where numpy's per-call overhead on 4 numbers cost more than the arithmetic
+# (moveaxis, stack and reductions were ~30 % of the pipeline thread).  Same formulas, same order of
+# operations as the vectorised paths (tests/onboard/test_frames.py compares them).
+
+
 def quat_normalize(q) -> np.ndarray:
     """Unit quaternion(s) (..., 4), sign fixed so that w >= 0.  Zero or non-finite -> FrameError."""
     q = np.asarray(q, dtype=float)
+    if q.shape == (4,):
+        w, x, y, z = q.tolist()
+        n1 = math.sqrt(w * w + x * x + y * y + z * z)
+        if not math.isfinite(n1) or n1 < 1e-12:
+            raise FrameError("quaternion is zero or not finite")
+        sgn = -1.0 if w / n1 < 0.0 else 1.0
+        return np.array([sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1)])
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if not np.all(np.isfinite(q)) or np.any(n < 1e-12):
         raise FrameError("quaternion is zero or not finite")
@@ -191,6 +248,17 @@ def quat_multiply(q1, q2) -> np.ndarray:
     """Hamilton product q1 (x) q2, (w, x, y, z), broadcast over leading axes."""
     q1 = np.asarray(q1, dtype=float)
     q2 = np.asarray(q2, dtype=float)
+    if q1.shape == (4,) and q2.shape == (4,):
+        w1, x1, y1, z1 = q1.tolist()
+        w2, x2, y2, z2 = q2.tolist()
+        return np.array(
+            [
+                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+            ]
+        )
     w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
     return np.stack(
@@ -213,6 +281,17 @@ def quat_conjugate(q) -> np.ndarray:
 def rotmat_from_quat(q) -> np.ndarray:
     """Rotation matrix (..., 3, 3) of unit quaternion(s) (..., 4): ``R(q_a_from_b) = R_a_from_b``."""
     q = np.asarray(q, dtype=float)
+    if q.shape == (4,):
+        w, x, y, z = q.tolist()
+        xx, yy, zz = x * x, y * y, z * z
+        xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
+        return np.array(
+            [
+                [1 - 2 * (yy + zz), 2 * (xy - wz), 2 * (xz + wy)],
+                [2 * (xy + wz), 1 - 2 * (xx + zz), 2 * (yz - wx)],
+                [2 * (xz - wy), 2 * (yz + wx), 1 - 2 * (xx + yy)],
+            ]
+        )
     w, x, y, z = np.moveaxis(q, -1, 0)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz, wx, wy, wz = x * y, x * z, y * z, w * x, w * y, w * z
@@ -292,6 +371,11 @@ def euler_from_quat(q) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def quat_from_rotvec(phi_rad) -> np.ndarray:
     """Exp map: rotation vector (..., 3) in radians -> unit quaternion (..., 4)."""
     phi = np.asarray(phi_rad, dtype=float)
+    if phi.shape == (3,):
+        a, b, c = phi.tolist()
+        angle1 = math.sqrt(a * a + b * b + c * c)
+        k1 = math.sin(0.5 * angle1) / angle1 if angle1 > 1e-8 else 0.5 - angle1**2 / 48.0
+        return np.array([math.cos(0.5 * angle1), k1 * a, k1 * b, k1 * c])
     angle = np.linalg.norm(phi, axis=-1, keepdims=True)
     half = 0.5 * angle
     # sin(half)/angle with its series near zero
@@ -318,6 +402,16 @@ def quat_slerp(q0, q1, alpha) -> np.ndarray:
     """Spherical linear interpolation from q0 (alpha = 0) to q1 (alpha = 1), shortest arc."""
     q0 = quat_normalize(q0)
     q1 = quat_normalize(q1)
+    if q0.shape == (4,) and q1.shape == (4,) and np.ndim(alpha) == 0:
+        a = float(alpha)
+        l0, l1 = q0.tolist(), q1.tolist()
+        d1 = l0[0] * l1[0] + l0[1] * l1[1] + l0[2] * l1[2] + l0[3] * l1[3]
+        if d1 < 0.0:
+            l1, d1 = [-c for c in l1], -d1
+        th = math.acos(min(max(d1, -1.0), 1.0))
+        st = math.sin(th)
+        w0s, w1s = (1.0 - a, a) if st < 1e-9 else (math.sin((1.0 - a) * th) / st, math.sin(a * th) / st)
+        return quat_normalize(np.array([w0s * c0 + w1s * c1 for c0, c1 in zip(l0, l1)]))
     alpha = np.asarray(alpha, dtype=float)[..., None]
     dot = np.sum(q0 * q1, axis=-1, keepdims=True)
     q1 = np.where(dot < 0.0, -q1, q1)
@@ -334,6 +428,13 @@ def quat_slerp(q0, q1, alpha) -> np.ndarray:
 def check_unit_quat(q, what: str, tol: float = QUAT_NORM_TOL) -> np.ndarray:
     """Validate a quaternion from outside (wire, file): finite and |norm - 1| <= tol; returns it normalised."""
     q = np.asarray(q, dtype=float)
+    if q.shape == (4,):
+        n1 = math.sqrt(sum(c * c for c in q.tolist()))
+        if not math.isfinite(n1):
+            raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
+        if abs(n1 - 1.0) > tol:
+            raise FrameError(f"{what}: quaternion norm {abs(n1 - 1.0) + 1:.6g} is not 1 within {tol}")
+        return quat_normalize(q)
     if q.shape[-1] != 4 or not np.all(np.isfinite(q)):
         raise FrameError(f"{what}: quaternion must be 4 finite numbers (w, x, y, z)")
     n = np.linalg.norm(q, axis=-1)

@@ -222,7 +222,7 @@ def _frozen_vec(value, shape: tuple[int, ...], what: str, allow_nan: bool = Fals
     bad = ~np.isfinite(a)
     if allow_nan:
         bad &= ~np.isnan(a)
-    if np.any(bad):
+    if bad.any():
         raise InputError(f"{what} must be finite{' (NaN = unknown allowed)' if allow_nan else ''}, got {a.tolist()}")
     a.setflags(write=False)
     return a

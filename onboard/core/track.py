@@ -127,9 +127,10 @@ def _vec(v, n: int, what: str) -> tuple[float, ...]:
         a = np.asarray(v, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"Track.{what} must be {n} finite numbers, got {v!r}") from None
-    if a.shape != (n,) or not np.all(np.isfinite(a)):
+    values = a.tolist()  # floats: math on them beats numpy's reductions on a few numbers, per frame
+    if a.shape != (n,) or not all(map(math.isfinite, values)):
         raise InputError(f"Track.{what} must be {n} finite numbers, got {v!r}")
-    return tuple(float(x) for x in a)
+    return tuple(values)
 
 
 def _vec3(v, what: str) -> tuple[float, float, float]:
@@ -142,9 +143,9 @@ def _cov(c, what: str) -> np.ndarray:
         a = np.array(c, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"Track.{what} must be a 3 x 3 matrix, got {c!r}") from None
-    if a.shape != (3, 3) or not np.all(np.isfinite(a)):
+    if a.shape != (3, 3) or not np.isfinite(a).all():
         raise InputError(f"Track.{what} must be a finite 3 x 3 matrix, got shape {a.shape}")
-    if np.any(np.diag(a) < 0):
+    if min(a[0, 0], a[1, 1], a[2, 2]) < 0:
         raise InputError(f"Track.{what} has a negative variance on its diagonal: {np.diag(a).tolist()}")
     a.setflags(write=False)
     return a
