@@ -51,6 +51,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
+from bench import pin_to_one_cpu  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -250,12 +251,7 @@ def bench_processing(n_frames: int) -> None:
         limit_blas_threads(1)
     except ImportError:  # the environment variables set at start are then all there is
         pass
-    try:
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        pinned = f"pinned to CPU {cpu}"
-    except (AttributeError, OSError):
-        pinned = "not pinned"
+    pinned = pin_to_one_cpu()
     scene = SyntheticScene()
     print(f"per-frame processing, 640 x 512 mono8, {n_frames} frames at 30 Hz scene time, one thread, {pinned}")
     payloads = [scene.payload(k) for k in range(n_frames)]

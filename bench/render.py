@@ -24,6 +24,8 @@ import time
 
 import numpy as np
 
+from bench import pin_to_one_cpu
+
 N_FRAMES = 300
 WARMUP_FRAMES = 10
 
@@ -89,12 +91,7 @@ def _report(name: str, r: dict[str, np.ndarray]) -> None:
 
 
 def main() -> None:
-    try:
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        pinned = f"pinned to CPU {cpu}"
-    except (AttributeError, OSError):
-        pinned = "not pinned (no sched_setaffinity)"
+    pinned = pin_to_one_cpu("not pinned (no sched_setaffinity)")
     import cv2
 
     cv2.setNumThreads(1)
