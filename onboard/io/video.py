@@ -297,14 +297,15 @@ class H264RtpEncoder:
         # nothing is held back (zerolatency: no lookahead), so there is nothing to flush onto the wire
 
 
-class _UdpRtpSink:
-    """RTP packets -> one UDP datagram each."""
+class _UdpSink:
+    """One UDP socket to ``host:port``: each datagram sent on its own, counted (``datagrams``) or, when
+    it does not leave, counted as an error and dropped (nobody listening -- ICMP refused -- or a full
+    buffer: the next one goes on)."""
 
     def __init__(self, host: str, port: int) -> None:
         infos = socket.getaddrinfo(host, port, 0, socket.SOCK_DGRAM)
         family, _, _, _, self.addr = infos[0]
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
         self.datagrams = 0
         self.errors = 0
 
@@ -313,30 +314,34 @@ class _UdpRtpSink:
             self.sock.sendto(datagram, self.addr)
             self.datagrams += 1
         except OSError:
-            self.errors += 1  # nobody listening (ICMP refused) or a full buffer: the next packet goes on
-
-    def flush(self) -> None:
-        """Nothing buffered: each packet left as it was made."""
+            self.errors += 1
 
     def close(self) -> None:
         self.sock.close()
 
 
-class _UdpTsSink:
+class _UdpRtpSink(_UdpSink):
+    """RTP packets -> one UDP datagram each."""
+
+    def __init__(self, host: str, port: int) -> None:
+        super().__init__(host, port)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+
+    def flush(self) -> None:
+        """Nothing buffered: each packet left as it was made."""
+
+
+class _UdpTsSink(_UdpSink):
     """MPEG-TS bytes -> UDP datagrams of 1316 bytes (whole TS packets)."""
 
     def __init__(self, host: str, port: int) -> None:
-        infos = socket.getaddrinfo(host, port, 0, socket.SOCK_DGRAM)
-        family, _, _, _, self.addr = infos[0]
-        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        super().__init__(host, port)
         self._buf = bytearray()
-        self.datagrams = 0
-        self.errors = 0
 
     def write(self, data) -> int:
         self._buf += data
         while len(self._buf) >= TS_DATAGRAM_BYTES:
-            self._send(bytes(self._buf[:TS_DATAGRAM_BYTES]))
+            self.send(bytes(self._buf[:TS_DATAGRAM_BYTES]))
             del self._buf[:TS_DATAGRAM_BYTES]
         return len(data)
 
@@ -344,18 +349,8 @@ class _UdpTsSink:
         """Send what is left of whole TS packets (end of a frame: do not hold it for the next)."""
         n = len(self._buf) - len(self._buf) % TS_PACKET_BYTES
         if n:
-            self._send(bytes(self._buf[:n]))
+            self.send(bytes(self._buf[:n]))
             del self._buf[:n]
-
-    def _send(self, datagram: bytes) -> None:
-        try:
-            self.sock.sendto(datagram, self.addr)
-            self.datagrams += 1
-        except OSError:
-            self.errors += 1  # nobody listening (ICMP refused) or a full buffer: the next frame goes on
-
-    def close(self) -> None:
-        self.sock.close()
 
 
 def parse_destination(text: str, field: str = "video.destination") -> tuple[str, int]:
