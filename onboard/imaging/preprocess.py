@@ -302,25 +302,25 @@ def ring_plane(values: np.ndarray, x0: int, y0: int, x1: int, y1: int, ring_px: 
     right = values[y0:y1, x1:ry1] if ry1 > x1 else None
     top = values[ty0:y0, x0:x1] if y0 > ty0 else None
     bottom = values[y1:by1, x0:x1] if by1 > y1 else None
-    levels: list[float] = []
-    gx = gy = 0.0
-    if left is not None and right is not None:
-        L, R = float(stat(left)), float(stat(right))
-        xl, xr = 0.5 * (lx0 + x0 - 1), 0.5 * (x1 + ry1 - 1)
-        gx = (R - L) / (xr - xl)
-        levels.append(L + gx * (xc - xl))
-    elif left is not None or right is not None:
-        levels.append(float(stat(left if left is not None else right)))
-    if top is not None and bottom is not None:
-        T, B = float(stat(top)), float(stat(bottom))
-        yt, yb = 0.5 * (ty0 + y0 - 1), 0.5 * (y1 + by1 - 1)
-        gy = (B - T) / (yb - yt)
-        levels.append(T + gy * (yc - yt))
-    elif top is not None or bottom is not None:
-        levels.append(float(stat(top if top is not None else bottom)))
+    level_x, gx = _ring_axis(left, right, 0.5 * (lx0 + x0 - 1), 0.5 * (x1 + ry1 - 1), xc, stat)
+    level_y, gy = _ring_axis(top, bottom, 0.5 * (ty0 + y0 - 1), 0.5 * (y1 + by1 - 1), yc, stat)
+    levels = [v for v in (level_x, level_y) if v is not None]
     if not levels:
         return fast_median(values), 0.0, 0.0
     return float(sum(levels) / len(levels)), gx, gy
+
+
+def _ring_axis(near, far, c_near: float, c_far: float, c: float, stat) -> tuple[float | None, float]:
+    """One axis of :func:`ring_plane`: the strips before (``near``, centred at ``c_near``) and after
+    (``far``, at ``c_far``) the rectangle, None where clipped away.  Both: the line through their
+    levels, at ``c``, and its gradient; one: its level and gradient 0; none: (None, 0)."""
+    if near is not None and far is not None:
+        a, b = float(stat(near)), float(stat(far))
+        g = (b - a) / (c_far - c_near)
+        return a + g * (c - c_near), g
+    if near is not None or far is not None:
+        return float(stat(near if near is not None else far)), 0.0
+    return None, 0.0
 
 
 def fast_median(values: np.ndarray) -> float:
