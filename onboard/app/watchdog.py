@@ -51,6 +51,20 @@ RESIDUAL_MIN_SAMPLES = 10
 
 _log = logging.getLogger(__name__)
 
+#: the inputs the timeouts watch: code -> (what did not come, where it was awaited and what to check)
+_SILENT_INPUT = {
+    "no_frames": (
+        "IR frame",
+        "zenoh key '{frame_key}' ({zenoh_where}): check that the camera or simulator publishes there and "
+        "that a zenoh endpoint connects the two",
+    ),
+    "no_mavlink": (
+        "MAVLink message",
+        "'{mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or mavlink-router sends "
+        "there; without telemetry no frame gets a pose or a 3-D position",
+    ),
+}
+
 
 @dataclass(frozen=True)
 class WatchdogWarning:
@@ -132,22 +146,22 @@ class Watchdog:
             self._last_mavlink_s = float(now_s)
             self._clear("no_mavlink")
         t = self.input_timeout_s
-        if now_s - self._last_frame_s >= t:
-            ever = "since the last one" if self._frames_seen else "since start"
-            self._raise(
-                "no_frames",
-                f"no IR frame for {now_s - self._last_frame_s:.0f} s ({ever}) on zenoh key "
-                f"'{self.frame_key}' ({self.zenoh_where}): check that the camera or simulator publishes "
-                f"there and that a zenoh endpoint connects the two",
-            )
-        if now_s - self._last_mavlink_s >= t:
-            ever = "since the last one" if self._mavlink_seen else "since start"
-            self._raise(
-                "no_mavlink",
-                f"no MAVLink message for {now_s - self._last_mavlink_s:.0f} s ({ever}) on "
-                f"'{self.mavlink_connection}' (mavlink.connection / --mavlink): check the autopilot or "
-                f"mavlink-router sends there; without telemetry no frame gets a pose or a 3-D position",
-            )
+        for code, last_s, seen in (
+            ("no_frames", self._last_frame_s, self._frames_seen),
+            ("no_mavlink", self._last_mavlink_s, self._mavlink_seen),
+        ):
+            if now_s - last_s >= t:
+                what, where = _SILENT_INPUT[code]
+                ever = "since the last one" if seen else "since start"
+                self._raise(
+                    code,
+                    f"no {what} for {now_s - last_s:.0f} s ({ever}) on "
+                    + where.format(
+                        frame_key=self.frame_key,
+                        zenoh_where=self.zenoh_where,
+                        mavlink_connection=self.mavlink_connection,
+                    ),
+                )
 
     def gimbal(self, now_s: float, *, gimballed: bool, gimbal_reports: int, telemetry_since_s: float | None) -> None:
         """Check the mount against the vehicle: ``gimbal_reports`` #285 messages received so far,
