@@ -449,27 +449,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PX",
         help="pixel noise, 1 sigma per axis (default %(default)s)",
     )
-    p.add_argument(
-        "--attitude-sigma-deg",
-        type=_nonneg("--attitude-sigma-deg"),
-        default=0.0,
-        metavar="DEG",
-        help="white attitude noise per axis, 1 sigma (default 0)",
-    )
-    p.add_argument(
-        "--attitude-bias-deg",
-        type=_nonneg("--attitude-bias-deg"),
-        default=0.0,
-        metavar="DEG",
-        help="prior sigma of a constant attitude bias per axis, estimated (default 0: none)",
-    )
-    p.add_argument(
-        "--position-sigma-m",
-        type=_nonneg("--position-sigma-m"),
-        default=0.0,
-        metavar="M",
-        help="white camera-position noise per axis, 1 sigma (default 0)",
-    )
+    for option, metavar, help_text in (
+        ("--attitude-sigma-deg", "DEG", "white attitude noise per axis, 1 sigma (default 0)"),
+        ("--attitude-bias-deg", "DEG", "prior sigma of a constant attitude bias per axis, estimated (default 0: none)"),
+        ("--position-sigma-m", "M", "white camera-position noise per axis, 1 sigma (default 0)"),
+    ):
+        p.add_argument(option, type=_nonneg(option), default=0.0, metavar=metavar, help=help_text)
     p.add_argument(
         "--delta",
         type=_positive("--delta"),
