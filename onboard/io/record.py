@@ -116,102 +116,110 @@ def mavlink_topic(link: str) -> str:
 
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _VEC3 = {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+_FRAME_STAMP = {"seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}}  # which frame, when (boot clock)
+
+
+def _object_schema(title: str, description: str, properties: dict, required: list[str]) -> dict[str, Any]:
+    """The JSON Schema of an object (its keys in the order the recordings have always stored them)."""
+    return {
+        "title": title,
+        "description": description,
+        "type": "object",
+        "properties": properties,
+        "required": required,
+    }
+
 
 JSON_SCHEMAS: dict[str, dict[str, Any]] = {
-    MAVLINK_RAW_SCHEMA: {
-        "title": MAVLINK_RAW_SCHEMA,
-        "description": "Raw MAVLink bytes as read from one link: a UDP datagram or a serial/TCP read, unparsed.",
-        "type": "object",
-        "properties": {
-            "link": {"type": "string", "description": "which link: autopilot | gcs | vehicle (simulator)"},
-            "direction": {"type": "string", "enum": ["rx", "tx"]},
-            "receive_time_ns": {"type": "integer", "description": "monotonic clock of the recording process, ns"},
-            "source": {"type": ["string", "null"], "description": "peer address host:port, when known"},
-            "data": {"type": "string", "contentEncoding": "base64", "description": "the bytes"},
-        },
-        "required": ["link", "direction", "receive_time_ns", "data"],
-    },
-    FRAME_INPUT_SCHEMA: {
-        "title": FRAME_INPUT_SCHEMA,
-        "description": "A frame the pipeline took from its queue, with the pose interpolated at its capture time.",
-        "type": "object",
-        "properties": {
-            "seq": {"type": "integer"},
-            "time_boot_us": {"type": "integer"},
-            "received_ns": {"type": "integer"},
-            "pose_looked_up": {"type": "boolean"},
-            "pose": {
-                "type": ["object", "null"],
-                "properties": {
-                    "time_boot_us": {"type": "integer"},
-                    "p_ned_m": _VEC3,
-                    "v_ned_mps": _VEC3,
-                    "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
-                    "p_cam_ned_m": _VEC3,
-                    "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
-                    "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
-                    "origin": {"type": "object"},
-                    "epoch": {"type": "integer"},
+    schema["title"]: schema
+    for schema in (
+        _object_schema(
+            MAVLINK_RAW_SCHEMA,
+            "Raw MAVLink bytes as read from one link: a UDP datagram or a serial/TCP read, unparsed.",
+            {
+                "link": {"type": "string", "description": "which link: autopilot | gcs | vehicle (simulator)"},
+                "direction": {"type": "string", "enum": ["rx", "tx"]},
+                "receive_time_ns": {"type": "integer", "description": "monotonic clock of the recording process, ns"},
+                "source": {"type": ["string", "null"], "description": "peer address host:port, when known"},
+                "data": {"type": "string", "contentEncoding": "base64", "description": "the bytes"},
+            },
+            ["link", "direction", "receive_time_ns", "data"],
+        ),
+        _object_schema(
+            FRAME_INPUT_SCHEMA,
+            "A frame the pipeline took from its queue, with the pose interpolated at its capture time.",
+            {
+                **_FRAME_STAMP,
+                "received_ns": {"type": "integer"},
+                "pose_looked_up": {"type": "boolean"},
+                "pose": {
+                    "type": ["object", "null"],
+                    "properties": {
+                        "time_boot_us": {"type": "integer"},
+                        "p_ned_m": _VEC3,
+                        "v_ned_mps": _VEC3,
+                        "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
+                        "p_cam_ned_m": _VEC3,
+                        "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
+                        "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
+                        "origin": {"type": "object"},
+                        "epoch": {"type": "integer"},
+                    },
                 },
             },
-        },
-        "required": ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
-    },
-    "irtrack.track/2": {
-        "title": "irtrack.track/2",
-        "description": "One processed frame's track and 3-D estimate (full table in onboard/core/track.py).",
-        "type": "object",
-        "properties": {
-            "schema": {"type": "string"},
-            "vehicle": {"type": "string"},
-            "seq": {"type": "integer"},
-            "time_boot_us": {"type": "integer"},
-            "track_id": {"type": ["integer", "null"]},
-            "state": {"type": "string", "enum": ["searching", "tracking", "coasting", "lost"]},
-            "measurement_valid": {"type": "boolean"},
-            "u_px": _NUM_OR_NULL,
-            "v_px": _NUM_OR_NULL,
-            "bbox": {"type": ["array", "null"], "items": {"type": "number"}},
-            "pose_valid": {"type": "boolean"},
-            "lat_deg": _NUM_OR_NULL,
-            "lon_deg": _NUM_OR_NULL,
-            "alt_m": _NUM_OR_NULL,
-            "ned_m": _VEC3,
-            "vel_ned_mps": _VEC3,
-            "sigma_ned_m": _VEC3,
-            "range_m": _NUM_OR_NULL,
-            "range_sigma_ratio": _NUM_OR_NULL,
-            "observable": {"type": "boolean"},
-            "window_frames": {"type": "integer"},
-            "model": {"type": ["string", "null"]},
-        },
-        "required": ["schema", "vehicle", "seq", "time_boot_us", "state"],
-    },
-    "irtrack.status/1": {
-        "title": "irtrack.status/1",
-        "description": "The daemon's status (frames in/processed/dropped/rejected, latencies, link, warnings, record).",
-        "type": "object",
-        "properties": {"schema": {"type": "string"}, "vehicle": {"type": "string"}, "uptime_s": {"type": "number"}},
-        "required": ["schema"],
-    },
-    TRUTH_SCHEMA: {
-        "title": TRUTH_SCHEMA,
-        "description": "The simulator's exact state at one rendered frame (groundsim run --record).",
-        "type": "object",
-        "properties": {
-            "seq": {"type": "integer"},
-            "time_boot_us": {"type": "integer"},
-            "t_s": {"type": "number"},
-            "target_ned_m": _VEC3,
-            "target_vel_ned_mps": _VEC3,
-            "camera_ned_m": _VEC3,
-            "target_lat_deg": {"type": "number"},
-            "target_lon_deg": {"type": "number"},
-            "target_alt_m": {"type": "number"},
-            "origin": {"type": "object"},
-        },
-        "required": ["seq", "time_boot_us"],
-    },
+            ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
+        ),
+        _object_schema(
+            "irtrack.track/2",
+            "One processed frame's track and 3-D estimate (full table in onboard/core/track.py).",
+            {
+                "schema": {"type": "string"},
+                "vehicle": {"type": "string"},
+                **_FRAME_STAMP,
+                "track_id": {"type": ["integer", "null"]},
+                "state": {"type": "string", "enum": ["searching", "tracking", "coasting", "lost"]},
+                "measurement_valid": {"type": "boolean"},
+                "u_px": _NUM_OR_NULL,
+                "v_px": _NUM_OR_NULL,
+                "bbox": {"type": ["array", "null"], "items": {"type": "number"}},
+                "pose_valid": {"type": "boolean"},
+                "lat_deg": _NUM_OR_NULL,
+                "lon_deg": _NUM_OR_NULL,
+                "alt_m": _NUM_OR_NULL,
+                "ned_m": _VEC3,
+                "vel_ned_mps": _VEC3,
+                "sigma_ned_m": _VEC3,
+                "range_m": _NUM_OR_NULL,
+                "range_sigma_ratio": _NUM_OR_NULL,
+                "observable": {"type": "boolean"},
+                "window_frames": {"type": "integer"},
+                "model": {"type": ["string", "null"]},
+            },
+            ["schema", "vehicle", "seq", "time_boot_us", "state"],
+        ),
+        _object_schema(
+            "irtrack.status/1",
+            "The daemon's status (frames in/processed/dropped/rejected, latencies, link, warnings, record).",
+            {"schema": {"type": "string"}, "vehicle": {"type": "string"}, "uptime_s": {"type": "number"}},
+            ["schema"],
+        ),
+        _object_schema(
+            TRUTH_SCHEMA,
+            "The simulator's exact state at one rendered frame (groundsim run --record).",
+            {
+                **_FRAME_STAMP,
+                "t_s": {"type": "number"},
+                "target_ned_m": _VEC3,
+                "target_vel_ned_mps": _VEC3,
+                "camera_ned_m": _VEC3,
+                "target_lat_deg": {"type": "number"},
+                "target_lon_deg": {"type": "number"},
+                "target_alt_m": {"type": "number"},
+                "origin": {"type": "object"},
+            },
+            ["seq", "time_boot_us"],
+        ),
+    )
 }
 
 
