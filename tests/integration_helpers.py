@@ -153,7 +153,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
     from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
     from groundsim.world.scenario import load_scenario
     from groundsim.world.truth import read_truth_csv
-    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohSettings, open_session
 
     out = Path(out_dir)
     duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
@@ -169,10 +169,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
     try:
         daemon = _start(daemon_command(plan), logs["daemon"], env)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
-        subs.append(session.declare_subscriber(track_key(plan.vehicle), lambda s: store.on_track(s.payload.to_bytes())))
-        subs.append(
-            session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes()))
-        )
+        subs += store.subscribe(session, plan.vehicle)
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):
             _raise_if_exited(daemon, logs["daemon"], "before it was ready", _DaemonExitedEarly)

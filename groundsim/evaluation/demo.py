@@ -259,6 +259,16 @@ class TrackStore:
             self.statuses += 1
         self.ready.set()
 
+    def subscribe(self, session, vehicle: str) -> list:
+        """Declare on the zenoh ``session`` the subscribers of ``vehicle``'s track and status keys that
+        feed this store; returns them (for :func:`close_zenoh`)."""
+        from onboard.io.zenoh_session import status_key, track_key
+
+        return [
+            session.declare_subscriber(track_key(vehicle), lambda s: self.on_track(s.payload.to_bytes())),
+            session.declare_subscriber(status_key(vehicle), lambda s: self.on_status(s.payload.to_bytes())),
+        ]
+
     def snapshot(self) -> tuple[list[dict], dict | None]:
         with self._lock:
             return list(self.tracks), self.status
@@ -666,7 +676,7 @@ def child_env() -> dict:
 
 def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> DemoOutcome:
     """Start both children, print a line per second, stop, score, write the files (module docstring)."""
-    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohSettings, open_session
 
     stop = stop if stop is not None else threading.Event()
     out = out if out is not None else (lambda s: print(s, flush=True))
@@ -694,10 +704,7 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
         daemon = _start(daemon_command(plan), plan.out_dir / "onboard.log", env)
         cpu_daemon = ProcCpu(daemon.pid)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
-        subs.append(session.declare_subscriber(track_key(plan.vehicle), lambda s: store.on_track(s.payload.to_bytes())))
-        subs.append(
-            session.declare_subscriber(status_key(plan.vehicle), lambda s: store.on_status(s.payload.to_bytes()))
-        )
+        subs += store.subscribe(session, plan.vehicle)
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):
             if stop.is_set():
