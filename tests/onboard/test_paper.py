@@ -6,6 +6,7 @@ Scenario P1 (REFERENCE_SCENARIOS.md): camera accelerating at 0.05 g, target unif
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -231,16 +232,7 @@ def test_no_covariance_and_timestamps_ignored(p1_noisy):
     np.testing.assert_array_equal(res.t_s, obs.t_s)
     # same rows, uneven timestamps: the frame-counting D gives the identical answer
     t_uneven = np.cumsum(np.random.default_rng(3).uniform(0.01, 0.2, len(obs)))
-    obs2 = Observations(
-        t_s=t_uneven,
-        uv_px=obs.uv_px,
-        fx_px=obs.fx_px,
-        fy_px=obs.fy_px,
-        cx_px=obs.cx_px,
-        cy_px=obs.cy_px,
-        p_cam_ned_m=obs.p_cam_ned_m,
-        q_ned_from_cam=obs.q_ned_from_cam,
-    )
+    obs2 = dataclasses.replace(obs, t_s=t_uneven)
     # (re-validating renormalises the quaternions: last-bit differences only)
     np.testing.assert_allclose(PaperEstimator().solve(obs2).p_ned_m, res.p_ned_m, rtol=0, atol=1e-9)
 
