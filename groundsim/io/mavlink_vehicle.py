@@ -123,6 +123,7 @@ from onboard.io.mavlink_wire import (
     connect,
     mavlink2,
     parse_endpoint,
+    requested_interval,
     time_boot_ms_from_us,
 )
 
@@ -789,15 +790,10 @@ class MavlinkVehicle:
 
     def _set_message_interval(self, param1: float, param2: float) -> int:
         msg_id = self._message_id(param1)
-        if msg_id is None or not math.isfinite(param2) or param2 < -1:
+        accepted, interval_us = requested_interval(param2, self._default_interval_us.get(msg_id))
+        if msg_id is None or not accepted:
             return mavlink2.MAV_RESULT_DENIED
-        interval = round(param2)
-        if interval == -1:
-            self._interval_us[msg_id] = None
-        elif interval == 0:
-            self._interval_us[msg_id] = self._default_interval_us[msg_id]
-        else:
-            self._interval_us[msg_id] = interval
+        self._interval_us[msg_id] = interval_us
         self._next_due_us[msg_id] = self._now_us
         log.info("message %d interval set to %s us", msg_id, self._interval_us[msg_id])
         return mavlink2.MAV_RESULT_ACCEPTED

@@ -75,6 +75,7 @@ from onboard.io.mavlink_wire import (
     CameraTrackingImageStatus,
     geo_status_fields,
     image_status_fields,
+    requested_interval,
     wire_fields,
 )
 
@@ -543,15 +544,10 @@ class CameraProtocol:
 
     def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
         msg_id = _msg_id(p1)
-        if msg_id not in self.interval_s or not math.isfinite(p2) or p2 < -1:
+        accepted, interval_s = requested_interval(p2, self._default_interval_s.get(msg_id), lambda us: us / 1e6)
+        if msg_id not in self.interval_s or not accepted:
             return MAV_RESULT_DENIED
-        us = round(p2)
-        if us == -1:
-            self.interval_s[msg_id] = None
-        elif us == 0:
-            self.interval_s[msg_id] = self._default_interval_s[msg_id]
-        else:
-            self.interval_s[msg_id] = us / 1e6
+        self.interval_s[msg_id] = interval_s
         self._next_due_s[msg_id] = now_s
         return MAV_RESULT_ACCEPTED
 

@@ -92,6 +92,7 @@ __all__ = [
     "Timesync",
     "TIMESYNC_HAS_TARGET",
     "set_message_interval_message",
+    "requested_interval",
     "command_ack_message",
     "CameraTrackingImageStatus",
     "CameraTrackingGeoStatus",
@@ -567,6 +568,20 @@ def set_message_interval_message(
         0.0,
         0.0,
     )
+
+
+def requested_interval(param2: float, default, from_us=lambda us: us) -> tuple[bool, Any]:
+    """What a received MAV_CMD_SET_MESSAGE_INTERVAL asks with its ``param2`` (microseconds), as
+    ``(accepted, interval)``: -1 stops the message (None), 0 restores ``default``, N > 0 is N us
+    (``from_us(N)``, in the caller's unit); NaN or below -1 is refused (False, None)."""
+    if not math.isfinite(param2) or param2 < -1:
+        return False, None
+    us = round(param2)
+    if us == -1:
+        return True, None
+    if us == 0:
+        return True, default
+    return True, from_us(us)
 
 
 def command_ack_message(
