@@ -18,7 +18,15 @@ Every observation gets a fresh estimate of the target's state at its own time:
   window's span, between ``warmup_reselect_period_s`` (1 s, while the window is young and the estimate
   changes fastest) and ``reselect_period_s`` (5 s, once the window is full): it is the expensive part
   (~0.2-0.4 s of one core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget
-  (issue 9 item 7).
+  (issue 9 item 7).  Once the window is full, a selection that confirms the previous one (same motion
+  model and intensity, same verdict) doubles the period, up to ``reselect_max_period_s`` (20 s); any
+  other outcome sets it back.  The data calls a selection early, after at least ``reselect_period_s``:
+  when the newest frames' standardised innovations (the incremental update's residual before its
+  step, ~1 per axis while the model follows the target) average more than
+  ``reselect_innovation_trigger`` over ``reselect_innovation_frames`` frames (the model no longer
+  explains the bearings: the target turned, or accelerated), or when a window last called
+  unobservable now pins range at its newest frame as an observable one must (the observer's
+  manoeuvre began).
 
 The reported covariance is the chosen model's Laplace posterior at this time, scaled at each model
 selection to the batch result's model-averaged, inflated covariance (over the solutions near the
@@ -76,6 +84,11 @@ class SlidingConfig:
     min_span_s: float = 1.5
     reselect_period_s: float = 5.0
     warmup_reselect_period_s: float = 1.0
+    # full window, confirmed selections: the period doubles up to this (module docstring)
+    reselect_max_period_s: float = 20.0
+    # mean squared standardised innovation per axis over the newest frames that calls a selection early
+    reselect_innovation_trigger: float = 4.0
+    reselect_innovation_frames: int = 15
     iterations_per_frame: int = 1
     resolve_every_frames: int = 5
     # a frame is observable when the last selection's window was and its own range sigma (at the window's
@@ -90,6 +103,9 @@ class SlidingConfig:
             and self.min_frames >= 10
             and self.reselect_period_s > 0
             and self.warmup_reselect_period_s > 0
+            and self.reselect_max_period_s >= self.reselect_period_s
+            and self.reselect_innovation_trigger > 0
+            and self.reselect_innovation_frames >= 1
             and self.min_spacing_s >= 0
             and self.knot_spacing_s > 0
             and self.iterations_per_frame >= 1
@@ -231,7 +247,12 @@ class SlidingWindowEstimator:
         self._prior: MotionPrior | None = None
         self._model = "none"
         self._last_select_t = -math.inf
+        self._period_scale = 1.0  # doubles while full-window selections confirm each other (module docstring)
+        self._last_choice: tuple | None = None  # (motion prior, observable) of the last selection
+        self._innovations: deque = deque(maxlen=c.reselect_innovation_frames)  # mean r^2 per axis
         self._window_observable = False
+        self._edge_pinned = False  # the last estimate's own range sigma passed the per-frame test
+        self._edge_pinned_at_selection = False  # ... and at the last selection
         self._diag = (math.nan, math.nan, math.nan)  # residual_rms_norm, adequacy_p, ambiguity of the last selection
         self._last_est: TrackEstimate | None = None
         self._prob: WindowProblem | None = None
@@ -318,7 +339,18 @@ class SlidingWindowEstimator:
     def _update(self, t: float) -> TrackEstimate:
         c = self.config
         period = min(c.reselect_period_s, max(c.warmup_reselect_period_s, (t - self._t[0]) / 4.0))
-        due = t - self._last_select_t >= period
+        full = t - self._t[0] >= 0.95 * c.window_s
+        if full:
+            period = min(period * self._period_scale, c.reselect_max_period_s)
+        inn = self._innovations
+        since = t - self._last_select_t
+        due = since >= period or (
+            since >= c.reselect_period_s
+            and (
+                (len(inn) == inn.maxlen and sum(inn) / len(inn) > c.reselect_innovation_trigger)
+                or (not self._window_observable and self._edge_pinned and not self._edge_pinned_at_selection)
+            )
+        )
         if self._theta is None or self._prior is None or due:
             obs = self._observations()
             warm = None
@@ -337,6 +369,12 @@ class SlidingWindowEstimator:
             self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
             self._last_select_t = t
             self.stats["selections"] += 1
+            self._edge_pinned_at_selection = self._edge_pinned
+            choice = (self._prior, self._window_observable)
+            confirmed = full and choice == self._last_choice
+            self._period_scale = 2.0 * self._period_scale if confirmed else 1.0
+            self._last_choice = choice
+            inn.clear()
             # the problem object served several starts: re-linearise at the chosen solution
             prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
             _, J, _ = prob.evaluate(theta)
@@ -379,6 +417,7 @@ class SlidingWindowEstimator:
         r, Jr, ok = prob.measurement_rows(theta, t, xy, (k[0], k[1]), self._p[-1], self._R[-1])
         if not ok:
             raise EstimationError("new observation is behind the camera for the current solution")
+        self._innovations.append(0.5 * float(r @ r))
         H = self._H + Jr.T @ Jr
         d = np.sqrt(np.diag(H))
         d[d == 0] = 1.0
@@ -451,11 +490,10 @@ class SlidingWindowEstimator:
         ratio = float(math.sqrt(max(u @ P @ u, 0.0)) / max(rng, 1e-9))
         neg = bool(np.any(np.diag(P) <= 0))
         cfg = self.map.config
-        observable = bool(
-            self._window_observable
-            and not neg
-            and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio
+        self._edge_pinned = bool(
+            not neg and ratio < self.config.edge_sigma_factor * cfg.observability_max_sigma_range_ratio
         )
+        observable = bool(self._window_observable and self._edge_pinned)
         if not observable:  # honest, not confident (module docstring)
             add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
             P = P + add[0]
