@@ -25,9 +25,10 @@ Threads (nothing else runs concurrently):
   worker either way, no measurement is lost.  A process also keeps the estimator's Python work off
   the pipeline's GIL (measured: loopback p99 latency several times lower than with a thread).  A
   worker process that dies is replaced on the next frame from a fork server, restored from its last
-  state (a snapshot every second) and the parent's copy of the observations (``estimator_restart``;
+  state (a snapshot every 5 s) and the parent's copy of the observations (``estimator_restart``;
   bridged by the propagated last estimate meanwhile).
-* **main thread**: MAVLink at ``mavlink.poll_rate_hz`` (>= 100 Hz): :meth:`MavlinkLink.poll` /
+* **main thread**: woken by MAVLink input and by its own timers (at most ``mavlink.poll_rate_hz`` turns a
+  second, :meth:`OnboardService._idle`): :meth:`MavlinkLink.poll` /
   :meth:`MavlinkLink.tick` (the autopilot link, component 191: heartbeat, rate requests, TIMESYNC);
   the camera component (:meth:`OnboardService.camera_step`, with ``gcs.endpoints``): commands from
   ground stations through :class:`~onboard.io.gcs_link.GcsLink` into
@@ -54,6 +55,7 @@ import json
 import logging
 import math
 import os
+import select
 import threading
 import time
 from collections.abc import Callable
@@ -384,6 +386,7 @@ def _unpack_rows(packed) -> list:
 
 
 WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
+MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 SNAPSHOT_PERIOD_S = 5.0  # observation time between two snapshots of the worker's state sent to the parent (4-5 ms of the worker each: 1 s cost 3 % of the CPU budget)
 _NOT_SNAPSHOTTED = ("map",)  # the MAP solver (config + caches, ~11 MB pickled): the new worker builds its own
 
@@ -1177,6 +1180,7 @@ class OnboardService:
         next_status = now + cfg.output.status_interval_s
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
+        turn_s = now
         while not self._stop.is_set() and now < end:
             try:
                 self.link.poll()
@@ -1198,8 +1202,41 @@ class OnboardService:
             if now >= next_status:
                 last_cpu = self._publish_status(now, last_cpu)
                 next_status = max(next_status + cfg.output.status_interval_s, now)
-            self._stop.wait(period)
+            self._idle(turn_s, period, min(next_watch, next_status))
+            turn_s = now = self._clock()
+
+    def _idle(self, turn_s: float, period_s: float, next_own_s: float) -> None:
+        """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or
+        the next timer is due (the link's heartbeats and TIMESYNC, the camera's messages, FOLLOW_TARGET,
+        the watchdog, the status), at most ``MAIN_LOOP_MAX_IDLE_S``; and never turn more often than
+        ``mavlink.poll_rate_hz`` (a flood of datagrams costs at most that many turns).  A fixed-rate
+        loop woke 200 times a second whether or not anything had come: ~0.02 CPU s per s on a
+        companion-class core for nothing (issue 9 item 7).  Without a file descriptor to wait on (a
+        link being reopened, a test double), the loop turns at ``poll_rate_hz`` as it used to."""
+        fds: list[int] = []
+        link_fd = getattr(self.link, "fileno", lambda: None)()
+        if link_fd is not None:
+            fds.append(link_fd)
+        if self.gcs is not None:
+            fds += self.gcs.filenos()
+        now = self._clock()
+        rest = turn_s + period_s - now  # the rate cap
+        if rest > 0:
+            self._stop.wait(rest)
             now = self._clock()
+        if not fds:
+            return
+        due = [next_own_s, now + getattr(self.link, "seconds_to_next_due", lambda: 0.0)()]
+        if self.camera is not None:
+            due.append(self.camera.next_due_s())
+        if self.config.follow.enabled:
+            due.append(self._next_follow_s)
+        timeout = min(max(min(due) - now, 0.0), MAIN_LOOP_MAX_IDLE_S)
+        if timeout > 0:
+            try:
+                select.select(fds, [], [], timeout)
+            except (OSError, ValueError):  # a descriptor closed under us: the next turn reopens or counts it
+                self._stop.wait(period_s)
 
     def _watch(self, now: float) -> None:
         with self._stats_lock:

@@ -88,6 +88,10 @@ class GcsLink:
         if self._counter is not None:
             self._counter.count(key, detail)
 
+    def filenos(self) -> list[int]:
+        """The endpoints' input file descriptors (for select; a serial port without one is left out)."""
+        return [fd for fd in (getattr(c, "fd", None) for c in self._conns) if isinstance(fd, int) and fd >= 0]
+
     def poll(self, max_messages: int = 100) -> list[CameraCommand]:
         """Commands addressed to us, from every endpoint (never blocks, never raises)."""
         out: list[CameraCommand] = []

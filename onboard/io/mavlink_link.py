@@ -600,6 +600,23 @@ class MavlinkLink:
         """The input file descriptor (for select), None while closed."""
         return None if self._transport is None else self._transport.fileno()
 
+    def seconds_to_next_due(self) -> float:
+        """How long until :meth:`tick` has something to do (0 when overdue, inf when nothing is
+        scheduled): the next heartbeat out, heartbeat-timeout check, TIMESYNC request, rate-request
+        retry or reopen.  For a caller that sleeps until input arrives (:meth:`fileno`) or this."""
+        now = self._now()
+        if self._transport is None:
+            return max(self._next_open_s - now, 0.0)
+        cfg = self.config
+        due = [self._last_hb_tx_s + cfg.heartbeat_interval_s] if self.autopilot_sysid is not None else []
+        if self.state == LINK_CONNECTED:
+            due += [self._last_hb_rx_s + cfg.heartbeat_timeout_s, self._last_ts_tx_s + cfg.timesync_interval_s]
+            if self._inflight is not None:
+                due.append(self._inflight.sent_s + cfg.command_retry_s)
+            elif self._rate_queue:
+                due.append(now)
+        return max(min(due, default=math.inf) - now, 0.0)
+
     @property
     def peer_address(self):
         """Where UDP output goes besides ``extra_destinations``: the locked autopilot's address (udpin)."""
