@@ -290,7 +290,7 @@ class SlidingWindowEstimator:
             # information matrix solved again)
             self.stats["skipped"] += 1
             if self._last_est is not None:
-                return self._carried(self._last_est, t, p)
+                return self.carry(self._last_est, t, p)
             return self.predict(t, p)
         if intrinsics.has_distortion:
             uv = (
@@ -502,10 +502,12 @@ class SlidingWindowEstimator:
             ratio = float(sig_r[0]) / max(rng, 1e-9)
         return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
 
-    def _carried(self, est: TrackEstimate, t: float, p_cam_ned_m) -> TrackEstimate:
-        """``est`` propagated to ``t`` and seen from ``p_cam_ned_m``; an unobservable one keeps its range
-        floor along the new line of sight (honest, not confident: module docstring)."""
-        out = est.propagated(t, p_cam_ned_m)
+    def carry(self, est: TrackEstimate, t_s: float, p_cam_ned_m) -> TrackEstimate:
+        """``est`` propagated to ``t_s`` and seen from ``p_cam_ned_m``; an unobservable one keeps its range
+        floor along the new line of sight (honest, not confident: module docstring).  What a frame the
+        window does not keep gets (:meth:`add`); the daemon's process worker computes it in the parent
+        for such frames, from the worker's answer to the newest kept one (the same numbers, no round trip)."""
+        out = est.propagated(t_s, p_cam_ned_m)
         if out.observable:
             return out
         los = out.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)

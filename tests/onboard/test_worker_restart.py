@@ -187,3 +187,35 @@ def test_a_crash_loop_backs_off_instead_of_spawning_a_process_per_frame(scene):
         assert counter["estimator_restart"] == 3 and counter["estimator_error"] == 0
     finally:
         pe.close()
+
+
+@pytest.mark.integration
+def test_frames_the_worker_would_not_keep_are_answered_here_with_its_numbers(scene):
+    """Half the frames of a 30 Hz camera are not kept by the window (min_spacing_s): the worker would only
+    carry its newest estimate to them.  The parent does that itself once the worker's answer to the newest
+    kept frame is in: every answer equals the in-process estimator's, bit for bit, without the round trip."""
+    K, truth, obs = scene
+    cfg = OnboardConfig()
+    inline = make_estimator(cfg)
+    pe = ProcessEstimator(cfg, LockedCounter(), result_wait_s=RESULT_WAIT_S)
+    try:
+        n, skipped_before_first = 150, None
+        for i in range(n):
+            want = _add(inline, obs, K, i)
+            got = _add(pe, obs, K, i)
+            assert (got is None) == (want is None), i
+            if want is not None:
+                if skipped_before_first is None:
+                    skipped_before_first = inline.stats["skipped"]
+                np.testing.assert_array_equal(got.p_ned_m, want.p_ned_m)
+                np.testing.assert_array_equal(got.cov_p_ned_m2, want.cov_p_ned_m2)
+                assert (got.t_s, got.observable, got.range_sigma_ratio) == (
+                    want.t_s,
+                    want.observable,
+                    want.range_sigma_ratio,
+                )
+        assert pe.late_results == 0 and skipped_before_first is not None
+        # every frame the window skipped once estimates flowed was answered here (the rest by the worker)
+        assert pe.carried == inline.stats["skipped"] - skipped_before_first > n // 4
+    finally:
+        pe.close()
