@@ -1232,11 +1232,8 @@ class OnboardService:
         if self.gcs is not None:
             fds += self.gcs.filenos()
         now = self._clock()
-        rest = turn_s + period_s - now  # the rate cap
-        if rest > 0:
-            self._stop.wait(rest)
-            now = self._clock()
         if not fds:
+            self._stop.wait(max(turn_s + period_s - now, 0.0))
             return
         due = [next_own_s, now + getattr(self.link, "seconds_to_next_due", lambda: 0.0)()]
         if self.camera is not None:
@@ -1244,11 +1241,15 @@ class OnboardService:
         if self.config.follow.enabled:
             due.append(self._next_follow_s)
         timeout = min(max(min(due) - now, 0.0), MAIN_LOOP_MAX_IDLE_S)
-        if timeout > 0:
-            try:
-                select.select(fds, [], [], timeout)
-            except (OSError, ValueError):  # a descriptor closed under us: the next turn reopens or counts it
-                self._stop.wait(period_s)
+        try:
+            ready, _, _ = select.select(fds, [], [], timeout)
+        except (OSError, ValueError):  # a descriptor closed under us: the next turn reopens or counts it
+            ready = []
+            timeout = 0.0
+        if ready or timeout == 0.0:  # the rate cap, for input that was waiting (a flood) or a busy timer
+            rest = turn_s + period_s - self._clock()
+            if rest > 0:
+                time.sleep(rest)
 
     def _watch(self, now: float) -> None:
         with self._stats_lock:

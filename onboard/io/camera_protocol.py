@@ -607,10 +607,12 @@ class CameraProtocol:
     # ------------------------------------------------------------------ periodic
 
     def next_due_s(self) -> float:
-        """When :meth:`tick` next has something to send: heartbeat, a tracking request's timeout, or a
-        #275/#276 at its interval (whether or not a track will be there to send)."""
+        """When :meth:`tick` next has something to send: heartbeat, a tracking request's timeout, or, while
+        a target is tracked, a #275/#276 at its interval (a track that begins is seen at the caller's
+        next turn)."""
         due = [self._next_hb_s, *(p.deadline_s for p in self._pending.values())]
-        due += [self._next_due_s[m] for m, every in self.interval_s.items() if every is not None]
+        if self._was_tracking:
+            due += [self._next_due_s[m] for m, every in self.interval_s.items() if every is not None]
         return min(due)
 
     def tick(self, now_s: float, track: Track | None) -> list[Outgoing]:
