@@ -207,40 +207,46 @@ def line_of_sight_ned(
     non-finite input.
     """
     uv = np.asarray(uv_px, dtype=float).reshape(2)
-    if not np.all(np.isfinite(uv)):
+    if not np.isfinite(uv).all():
         raise InputError(f"line_of_sight_ned: pixel must be finite, got {uv.tolist()}")
-    R = rotmat_from_quat(np.asarray(q_ned_from_cam, dtype=float))
-    xy = np.asarray(intrinsics.normalized_from_pixel(uv), dtype=float)
+    # in floats (one pixel: numpy's per-call overhead was most of the cost), with the covariance's
+    # quadratic forms expanded: g^T C g = s_px^2 |J^T g|^2 + s_att^2 (|g|^2 - (l.g)^2), J^T g =
+    # dxy^T M^T R^T g, M = ((I - b b^T) / |b|)[:, :2]
+    R = rotmat_from_quat(np.asarray(q_ned_from_cam, dtype=float)).tolist()
+    x, y = np.asarray(intrinsics.normalized_from_pixel(uv), dtype=float).tolist()
     if intrinsics.has_distortion:
         step = 0.5  # px, central differences of the undistortion
-        dxy = np.stack(
-            [
-                (
-                    np.asarray(intrinsics.normalized_from_pixel(uv + d))
-                    - np.asarray(intrinsics.normalized_from_pixel(uv - d))
-                )
-                / (2 * step)
-                for d in (np.array([step, 0.0]), np.array([0.0, step]))
-            ],
-            axis=1,
-        )
+        cols = [
+            (
+                np.asarray(intrinsics.normalized_from_pixel(uv + d))
+                - np.asarray(intrinsics.normalized_from_pixel(uv - d))
+            )
+            / (2 * step)
+            for d in (np.array([step, 0.0]), np.array([0.0, step]))
+        ]
+        dxy = [[float(cols[0][0]), float(cols[1][0])], [float(cols[0][1]), float(cols[1][1])]]
     else:
-        dxy = np.diag([1.0 / intrinsics.fx_px, 1.0 / intrinsics.fy_px])
-    b = np.array([xy[0], xy[1], 1.0])
-    nb = float(np.linalg.norm(b))
-    b_unit = b / nb
-    los = R @ b_unit
-    J = R @ ((np.eye(3) - np.outer(b_unit, b_unit)) / nb)[:, :2] @ dxy  # dl/d(u, v), 3 x 2
-    C = pixel_sigma_px**2 * (J @ J.T) + attitude_sigma_rad**2 * (np.eye(3) - np.outer(los, los))
-    n, e, d = (float(c) for c in los)
+        dxy = [[1.0 / intrinsics.fx_px, 0.0], [0.0, 1.0 / intrinsics.fy_px]]
+    nb = math.sqrt(x * x + y * y + 1.0)
+    b = (x / nb, y / nb, 1.0 / nb)
+    los = tuple(r[0] * b[0] + r[1] * b[1] + r[2] * b[2] for r in R)
+    n, e, d = los
+    var_px, var_att = pixel_sigma_px**2, attitude_sigma_rad**2
+
+    def quad(g: tuple[float, float, float]) -> float:  # g^T C g
+        w = [R[0][i] * g[0] + R[1][i] * g[1] + R[2][i] * g[2] for i in range(3)]
+        bw = b[0] * w[0] + b[1] * w[1] + b[2] * w[2]
+        m0, m1 = (w[0] - b[0] * bw) / nb, (w[1] - b[1] * bw) / nb
+        j0, j1 = dxy[0][0] * m0 + dxy[1][0] * m1, dxy[0][1] * m0 + dxy[1][1] * m1
+        lg = n * g[0] + e * g[1] + d * g[2]
+        return var_px * (j0 * j0 + j1 * j1) + var_att * (g[0] * g[0] + g[1] * g[1] + g[2] * g[2] - lg * lg)
+
     h = math.hypot(n, e)
     az = math.degrees(math.atan2(e, n)) if h > 0 else 0.0
     el = math.degrees(math.atan2(-d, h))
-    g_el = np.array([d * n / h, d * e / h, -h]) if h > 0 else np.array([0.0, 0.0, -1.0])
-    s_el = math.degrees(math.sqrt(max(float(g_el @ C @ g_el), 0.0)))
+    s_el = math.degrees(math.sqrt(max(quad((d * n / h, d * e / h, -h) if h > 0 else (0.0, 0.0, -1.0)), 0.0)))
     if h > 1e-9:
-        g_az = np.array([-e, n, 0.0]) / h**2
-        s_az = min(math.degrees(math.sqrt(max(float(g_az @ C @ g_az), 0.0))), SIGMA_AZ_CAP_DEG)
+        s_az = min(math.degrees(math.sqrt(max(quad((-e / h**2, n / h**2, 0.0)), 0.0))), SIGMA_AZ_CAP_DEG)
     else:
         s_az = SIGMA_AZ_CAP_DEG
     return LineOfSight(
