@@ -71,6 +71,7 @@ from onboard.core.irframe import IrFrameError, check_payload_size, decode_irfram
 from onboard.core.pose import PoseBuffer, RejectCounter
 from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
 from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
+from onboard.io.worker_queue import next_or_stop
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
 __all__ = ["LockedCounter", "SharedPoseBuffer", "FrameQueue", "ThreadedEstimator", "ProcessEstimator", "OnboardService"]
@@ -321,12 +322,10 @@ class ThreadedEstimator:
     def _run(self) -> None:
         name_os_thread("irtrack-estim")
         while True:
-            with self._cond:
-                while not self._q and not self._stop:
-                    self._cond.wait(0.5)
-                if self._stop:
-                    return
-                kind, epoch, t, args = self._q.popleft()
+            item = next_or_stop(self._cond, self._q, lambda: self._stop)
+            if item is None:
+                return
+            kind, epoch, t, args = item
             c0 = time.thread_time()
             est = None
             try:

@@ -48,6 +48,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
+from onboard.io.worker_queue import next_or_stop
 
 __all__ = [
     "agc_limits",
@@ -418,12 +419,10 @@ class VideoStreamer:
 
     def _run(self) -> None:
         while True:
-            with self._cond:
-                while not self._q and not self._stop:
-                    self._cond.wait(0.5)
-                if self._stop:
-                    return
-                pixels, track, capture_time_us = self._q.popleft()
+            item = next_or_stop(self._cond, self._q, lambda: self._stop)
+            if item is None:
+                return
+            pixels, track, capture_time_us = item
             t0 = time.perf_counter()
             try:
                 lo, hi = self._agc.update(pixels)
