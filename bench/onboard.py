@@ -321,44 +321,27 @@ def bench_processing(n_frames: int) -> None:
 # --------------------------------------------------------------------------- benchmark 2: loopback latency
 
 
-def _proc_cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of process ``pid`` and all its live descendants, from /proc
-    (Linux; NaN elsewhere).  The daemon's estimator runs in a child process: counted here."""
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    try:
-        stats = {}
-        for d in os.listdir("/proc"):
-            if not d.isdigit():
-                continue
-            try:
-                with open(f"/proc/{d}/stat") as f:
-                    text = f.read()
-            except OSError:
-                continue
-            rest = text.rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
-            stats[int(d)] = (int(rest[1]), (int(rest[11]) + int(rest[12])) / tick)  # ppid, utime + stime
-    except OSError:
-        return math.nan
-    total, todo = 0.0, [pid]
-    while todo:
-        p = todo.pop()
-        if p in stats:
-            total += stats[p][1]
-        todo.extend(c for c, (pp, _) in stats.items() if pp == p)
-    return total
-
-
 #: the daemon's estimator window (config/onboard.yaml estimator.window_s): its CPU grows while the window
 #: fills, then holds; the steady figure is timed from this long after the first track on
 WINDOW_FILL_S = 20.0
 
 
-def _thread_cpu_s(pid: int) -> dict[str, float]:
-    """CPU seconds of every thread of ``pid`` and its live descendants, by thread name (``comm``: the
-    daemon names its pipeline and estimator, zenoh names its own; threads of one name are summed), with
-    the process's main thread as ``main`` (the estimator process's is named by the daemon).  Linux."""
-    tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-    out: dict[str, float] = {}
+def _stat_cpu_s(path: str) -> tuple[str, float]:
+    """(comm, utime + stime in seconds) of a /proc ``stat`` file (the name may hold spaces and parentheses)."""
+    with open(path) as f:
+        text = f.read()
+    rest = text.rsplit(")", 1)[1].split()
+    return text[text.index("(") + 1 : text.rindex(")")], (int(rest[11]) + int(rest[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _cpu_snapshot(pid: int) -> tuple[float, float, dict[str, float]]:
+    """(monotonic time, CPU seconds of process ``pid`` and its live descendants, the same by thread name)
+    from /proc (Linux; NaN total elsewhere).  The daemon's estimator runs in a child of its fork server:
+    counted.  Threads of one name are summed (``comm``: the daemon names its pipeline and estimator threads,
+    zenoh its own); a process's main thread is ``main`` unless named.  A process's total also holds its
+    exited threads, so it can exceed the sum of the live ones."""
+    now = time.monotonic()
+    total, by_thread = 0.0, {}
     todo, seen = [pid], set()
     while todo:
         p = todo.pop()
@@ -366,22 +349,22 @@ def _thread_cpu_s(pid: int) -> dict[str, float]:
             continue
         seen.add(p)
         try:
+            total += _stat_cpu_s(f"/proc/{p}/stat")[1]
             tids = os.listdir(f"/proc/{p}/task")
         except OSError:
+            if p == pid:
+                return now, math.nan, {}
             continue
         for tid in tids:
             try:
-                with open(f"/proc/{p}/task/{tid}/stat") as f:
-                    text = f.read()
+                comm, cpu_s = _stat_cpu_s(f"/proc/{p}/task/{tid}/stat")
                 with open(f"/proc/{p}/task/{tid}/children") as f:
                     todo.extend(int(c) for c in f.read().split())
             except OSError:
                 continue
-            comm = text[text.index("(") + 1 : text.rindex(")")]
-            rest = text.rsplit(")", 1)[1].split()
             name = "main" if int(tid) == p and comm.startswith("python") else comm
-            out[name] = out.get(name, 0.0) + (int(rest[11]) + int(rest[12])) / tick
-    return out
+            by_thread[name] = by_thread.get(name, 0.0) + cpu_s
+    return now, total, by_thread
 
 
 def bench_latency(
@@ -470,9 +453,9 @@ def bench_latency(
                 if measuring_from is not None and now >= measuring_from and status_at_start is None and statuses:
                     status_at_start = statuses[-1]
                 if measuring_from is not None and now >= measuring_from and cpu_at_start is None:
-                    cpu_at_start = (time.monotonic(), _proc_cpu_s(proc.pid), _thread_cpu_s(proc.pid))
+                    cpu_at_start = _cpu_snapshot(proc.pid)
                 if cpu_at_full is None and first_track is not None and now >= first_track + WINDOW_FILL_S:
-                    cpu_at_full = (time.monotonic(), _proc_cpu_s(proc.pid), _thread_cpu_s(proc.pid))
+                    cpu_at_full = _cpu_snapshot(proc.pid)
                 if measuring_from is not None and now >= measuring_from and j["seq"] in put_ns:
                     lat_ms.append((t_ns - put_ns.pop(j["seq"])) / 1e6)
             if measuring_from is not None and now >= measuring_from + duration_s:
@@ -484,7 +467,7 @@ def bench_latency(
         cpu_s_per_s = steady_cpu_s_per_s = math.nan
         by_thread: dict[str, float] = {}
         steady_by_thread: dict[str, float] = {}
-        end = (time.monotonic(), _proc_cpu_s(proc.pid), _thread_cpu_s(proc.pid))
+        end = _cpu_snapshot(proc.pid)
 
         def rates(a, b):
             span_s = max(b[0] - a[0], 1e-9)
