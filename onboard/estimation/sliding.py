@@ -497,9 +497,7 @@ class SlidingWindowEstimator:
         )
         observable = bool(self._window_observable and self._edge_pinned)
         if not observable:  # honest, not confident (module docstring)
-            add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
-            P = P + add[0]
-            ratio = float(sig_r[0]) / max(rng, 1e-9)
+            P, ratio = self._range_floored(P, u, ratio, rng)
         return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
 
     def carry(self, est: TrackEstimate, t_s: float, p_cam_ned_m) -> TrackEstimate:
@@ -512,9 +510,14 @@ class SlidingWindowEstimator:
             return out
         los = out.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)
         rng = max(float(np.linalg.norm(los)), 1e-9)
-        u = los / rng
-        add, sig_r = self.map.range_floor(u[None], np.array([out.range_sigma_ratio * rng]), np.array([rng]))
-        return dataclasses.replace(out, cov_p_ned_m2=out.cov_p_ned_m2 + add[0], range_sigma_ratio=float(sig_r[0]) / rng)
+        P, ratio = self._range_floored(out.cov_p_ned_m2, los / rng, out.range_sigma_ratio, rng)
+        return dataclasses.replace(out, cov_p_ned_m2=P, range_sigma_ratio=ratio)
+
+    def _range_floored(self, P: np.ndarray, u: np.ndarray, ratio: float, rng: float) -> tuple[np.ndarray, float]:
+        """An unobservable estimate's covariance and range sigma ratio with the range floor applied along
+        the line of sight ``u`` (:meth:`MapEstimator.range_floor`)."""
+        add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
+        return P + add[0], float(sig_r[0]) / max(rng, 1e-9)
 
     def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
         """The current solution evaluated at ``t_s`` (no new measurement), for coasting frames.
