@@ -703,7 +703,7 @@ class ProcessEstimator:
             self.late_results += 1
             return self._extrapolate(t, p_cam_ned_m, args[1:])
         w = self._window
-        if w and 0.0 < t - w[-1][0] < self._min_spacing_s and hasattr(self._local, "carry"):
+        if w and 0.0 < t - w[-1][0] < self._min_spacing_s:
             # the worker would not keep this row and would answer with its estimate at the newest kept row
             # carried to t: when that answer is here, carry it here (same numbers, no round trip: half the
             # frames at 30 Hz; issue 9 item 7)
