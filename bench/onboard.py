@@ -27,7 +27,9 @@ The autopilot of the latency benchmark is the tests' fake (``groundsim.io.script
 through :mod:`onboard.io.mavlink_wire`) flying :class:`SyntheticScene`'s observer.
 
 Numbers only; nothing asserts on time.  The machine's load average is printed first: on a shared
-2-core box the tails (p99, max) follow the other load.  :class:`SyntheticScene` is also a fixture of
+2-core box the tails (p99, max) follow the other load.  So is its speed, before and after the latency runs
+(:func:`bench.machine_speed_ms`: a fixed Python loop's CPU time; this VM's drifts by +-25 % between minutes,
+and every CPU figure with it).  :class:`SyntheticScene` is also a fixture of
 ``tests/onboard/test_pipeline.py`` and ``test_service.py``.
 """
 
@@ -51,7 +53,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
-from bench import pin_to_one_cpu  # noqa: E402
+from bench import machine_speed_ms, pin_to_one_cpu  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -586,7 +588,10 @@ def main(argv=None) -> int:
         help="capture lags to time (frame stamped that long before it is sent), ms",
     )
     args = ap.parse_args(argv)
-    print(f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load)")
+    print(
+        f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
+        f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms (lower is faster)"
+    )
     if not args.no_latency:
         # first, before this process pins itself to one core
         print("loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")
@@ -605,6 +610,7 @@ def main(argv=None) -> int:
                     + ","
                     f" median per-frame processing {r['processing_p50_ms']:.2f} ms"
                 )
+        print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
     bench_processing(args.frames)
     return 0
 
