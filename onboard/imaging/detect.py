@@ -36,6 +36,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.imaging.preprocess import (
+    SUPPORTED_DTYPES,
     ImagingParams,
     Preprocessed,
     Region,
@@ -49,6 +50,8 @@ __all__ = ["Detection", "Blob", "find_blobs", "measure_blob", "detect_targets"]
 log = logging.getLogger(__name__)
 
 MAX_SEEDS_VISITED = 64  # seeds examined per region at most (bounds the cost on a cluttered frame)
+_sum, _max = np.add.reduce, np.maximum.reduce  # ndarray.sum / .max without the Python-level wrapper
+_DTYPE_MAX = {t: float(np.iinfo(t).max) for t in SUPPORTED_DTYPES}  # np.iinfo is slow to build per call
 
 
 @dataclass(frozen=True)
@@ -104,32 +107,44 @@ def find_blobs(pre: Preprocessed, params: ImagingParams) -> list[Blob]:
     rh, rw = r.shape
     fh, fw = pre.frame_shape
     high = np.float32(pre.threshold_high)
+    flat = r.ravel()  # a view when r is C-contiguous (preprocess_frame's residual is)
     seeds = np.flatnonzero(r >= high)
     if seeds.size == 0:
         return []
     if seeds.size > MAX_SEEDS_VISITED * 16:
-        vals = r.ravel()[seeds]
+        vals = flat[seeds]
         keep = np.argpartition(-vals, MAX_SEEDS_VISITED * 16 - 1)[: MAX_SEEDS_VISITED * 16]
         seeds = seeds[keep]
-    seeds = seeds[np.argsort(-r.ravel()[seeds], kind="stable")]
-    covered = np.zeros(r.shape, dtype=bool)
+    seeds = seeds[np.argsort(-flat[seeds], kind="stable")]
     low = np.float32(pre.threshold_low)
     half = params.max_blob_side_px
     blobs: list[Blob] = []
     visited = 0
+    window, labels, covered = None, None, None
     while seeds.size and visited < MAX_SEEDS_VISITED and len(blobs) < params.max_candidates:
         si, sj = divmod(int(seeds[0]), rw)
         visited += 1
         wy0, wy1 = max(si - half, 0), min(si + half + 1, rh)
         wx0, wx1 = max(sj - half, 0), min(sj + half + 1, rw)
-        mask = (r[wy0:wy1, wx0:wx1] >= low).view(np.uint8)
-        _, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
-        comp = labels == labels[si - wy0, sj - wx0]
-        covered[wy0:wy1, wx0:wx1] |= comp
-        seeds = seeds[~covered.ravel()[seeds]]  # drop every seed this component holds
-        rows = np.flatnonzero(comp.any(axis=1))
-        cols = np.flatnonzero(comp.any(axis=0))
-        ci0, ci1, cj0, cj1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+        if window != (wy0, wy1, wx0, wx1):  # a region smaller than the window gives every seed the same one
+            window = (wy0, wy1, wx0, wx1)
+            mask = (r[wy0:wy1, wx0:wx1] >= low).view(np.uint8)
+            _, labels = cv2.connectedComponents(mask, connectivity=8, ltype=cv2.CV_32S)
+        lab = labels[si - wy0, sj - wx0]
+        comp = labels == lab
+        # drop every seed this component holds (the seeds of earlier components are gone already)
+        if wy1 - wy0 == rh and wx1 - wx0 == rw:  # the window is the whole region: seeds index comp
+            held = comp.ravel()[seeds]
+        else:
+            if covered is None:
+                covered = np.zeros(r.shape, dtype=bool)
+            covered[wy0:wy1, wx0:wx1] |= comp
+            held = covered.ravel()[seeds]
+        seeds = seeds[~held]
+        comp_u8 = comp.view(np.uint8)
+        cj0, ci0, bw, bh = cv2.boundingRect(comp_u8)  # of the component's pixels: exact whole pixels
+        area = cv2.countNonZero(comp_u8)
+        ci1, cj1 = ci0 + bh, cj0 + bw
         # a component reaching its window's edge is too large, or is cut by the region of
         # interest (then the full-frame search will see it whole); the frame's own edge is fine
         ay0, ax0 = pre.region.y0_px + wy0, pre.region.x0_px + wx0
@@ -140,8 +155,6 @@ def find_blobs(pre: Preprocessed, params: ImagingParams) -> list[Blob]:
             or (cj0 == 0 and ax0 > 0)
             or (cj1 == wx1 - wx0 and ax1 < fw)
         )
-        bw, bh = cj1 - cj0, ci1 - ci0
-        area = int(np.count_nonzero(comp))
         if cut or max(bw, bh) > params.max_blob_side_px:
             continue
         if not params.min_area_px <= area <= params.max_area_px:
@@ -174,23 +187,23 @@ def measure_blob(image: np.ndarray, blob: Blob, params: ImagingParams, noise_sig
     ys = np.arange(wy0, wy1, dtype=np.float64) + 0.5  # v of the window's rows
     xc, yc = 0.5 * (wx0 + wx1), 0.5 * (wy0 + wy1)  # (u, v) of the plane's reference point
     weights = win - (level + gx * (xs[None, :] - xc) + gy * (ys[:, None] - yc))
-    flux = float(weights.sum())
+    flux = float(_sum(weights, axis=None))
     if not flux > 0.0:
         return None
-    col, row = weights.sum(axis=0), weights.sum(axis=1)
-    u = float((col * xs).sum() / flux)
-    v = float((row * ys).sum() / flux)
+    col, row = _sum(weights, axis=0), _sum(weights, axis=1)
+    u = float(_sum(col * xs) / flux)
+    v = float(_sum(row * ys) / flux)
     if not (wx0 <= u <= wx1 and wy0 <= v <= wy1):
         return None
-    var = 0.5 * float((col * (xs - u) ** 2).sum() + (row * (ys - v) ** 2).sum()) / flux
+    var = 0.5 * float(_sum(col * (xs - u) ** 2) + _sum(row * (ys - v) ** 2)) / flux
     sigma_obj = math.sqrt(var) if var > 0 else 0.0
     if params.centroid_window_sigma_px > 0:
         wu, wv, wtouch = _windowed_centroid(image, u, v, sigma_obj, (level, gx, gy, xc, yc), params)
         if wu is not None and abs(wu - u) <= 0.5 * bw + m and abs(wv - v) <= 0.5 * bh + m:
             u, v, touches = wu, wv, touches or wtouch
-    contrast = float(weights.max())
-    peak = float(win.max())
-    saturated = peak >= float(np.iinfo(image.dtype).max)
+    contrast = float(_max(weights, axis=None))
+    peak = float(_max(win, axis=None))
+    saturated = peak >= (_DTYPE_MAX.get(image.dtype) or float(np.iinfo(image.dtype).max))
     snr = contrast / noise_sigma if noise_sigma > 0 else math.inf
     return Detection(u, v, blob.area_px, contrast, flux, blob.bbox, peak, snr, touches, saturated)
 

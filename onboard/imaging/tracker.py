@@ -389,7 +389,7 @@ class TargetTracker:
 
     def _fill_buffer(self, pre: Preprocessed) -> None:
         self._clear_buffer()
-        self._buf[pre.region.slices()] = kcf_image_u8(pre, self._kcf_scale)
+        kcf_image_u8(pre, self._kcf_scale, out=self._buf[pre.region.slices()])
         self._buf_region = pre.region
 
     def _kcf_step(self, pre: Preprocessed) -> tuple[bool, tuple[float, float, float, float] | None]:

@@ -26,7 +26,16 @@ from onboard.imaging import (
     detect_targets,
     preprocess_frame,
 )
-from onboard.imaging.preprocess import fast_median, ring_plane, robust_sigma, tophat_residual
+from onboard.imaging.detect import find_blobs
+from onboard.imaging.preprocess import (
+    MEDIAN_SORT_MAX_ELEMENTS,
+    Preprocessed,
+    fast_median,
+    kcf_image_u8,
+    ring_plane,
+    robust_sigma,
+    tophat_residual,
+)
 
 H_PX, W_PX = 512, 640
 CENTROID_NOISE_FREE_TOL_PX = 0.1  # brief: < 0.1 px without noise
@@ -198,6 +207,62 @@ def test_fast_median_matches_numpy():
     for n in (1, 2, 7, 100, 101):
         a = rng.normal(size=n).astype(np.float32)
         assert fast_median(a) == pytest.approx(float(np.median(a)), abs=1e-6)
+
+
+def _sorted_median(a) -> float:
+    """Reference median: the middle order statistics of a full sort, averaged in float64."""
+    s = np.sort(np.asarray(a).ravel())
+    k = s.size // 2
+    return float(s[k]) if s.size % 2 else 0.5 * (float(s[k - 1]) + float(s[k]))
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 784, MEDIAN_SORT_MAX_ELEMENTS, MEDIAN_SORT_MAX_ELEMENTS + 1, 5121, 5120])
+def test_median_and_robust_sigma_are_exact_whether_sorted_or_partitioned(n):
+    """Small arrays are sorted, large ones partitioned: both give exactly the sort's order
+    statistics, on quantised data full of ties (a mean-filtered residual) and on continuous data."""
+    rng = np.random.default_rng(n)
+    for a in (
+        np.round(rng.normal(0.0, 1.0, n) * 9.0).astype(np.float32) / np.float32(9.0),
+        rng.normal(0.0, 1.0, n).astype(np.float32),
+    ):
+        before = a.copy()
+        assert fast_median(a) == _sorted_median(a)
+        med, sigma = robust_sigma(a.reshape(1, n))
+        assert med == _sorted_median(a)
+        assert sigma == float(1.4826 * _sorted_median(np.abs(a - np.float32(med))))
+        assert np.array_equal(a, before)  # inputs are not modified
+
+
+def test_kcf_image_u8_matches_its_formula_and_writes_into_a_buffer_view():
+    rng = np.random.default_rng(6)
+    r = rng.normal(0.0, 40.0, (40, 56)).astype(np.float32)
+    r[0, :4] = [3.0, np.nextafter(np.float32(3.0), np.float32(0.0)), 1e9, -1e9]  # at and just below Th_low
+    pre = Preprocessed(r, Region(10, 20, 66, 60), 1.0, 3.0, 7.0, (100, 80))
+    for full_scale in (14.0, 1e-9, 1e6):
+        gain = np.float32(255.0 / max(full_scale, 1e-6))
+        want = np.clip(np.where(r >= np.float32(3.0), r * gain, np.float32(0.0)), 0.0, 255.0).astype(np.uint8)
+        assert np.array_equal(kcf_image_u8(pre, full_scale), want)
+        buf = np.full((100, 80), 7, dtype=np.uint8)
+        out = kcf_image_u8(pre, full_scale, out=buf[pre.region.slices()])
+        assert np.array_equal(out, want) and np.array_equal(buf[pre.region.slices()], want)
+        buf[pre.region.slices()] = 7
+        assert np.all(buf == 7)  # nothing written outside the region
+
+
+def test_find_blobs_same_in_a_small_region_as_in_the_full_frame():
+    """A region narrower than the blob window labels it once for every seed; the full frame labels
+    a window per seed and drops the seeds it covered: both must give the same blobs."""
+    img = sky().copy()
+    add_blob(img, 300.3, 200.7, 100.0, 1.2)
+    add_blob(img, 318.6, 214.2, 60.0, 0.9)
+    add_blob(img, 296.0, 225.5, 40.0, 1.6, 0.8, 0.5)
+    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    p = ImagingParams(mean_kernel_px=1)  # residuals of a region and of the full frame are then identical
+    region = Region(270, 170, 340, 250)
+    pre_roi, pre_full = preprocess_frame(img, p, region), preprocess_frame(img, p)
+    assert (pre_roi.threshold_low, pre_roi.threshold_high) == (pre_full.threshold_low, pre_full.threshold_high)
+    blobs_roi, blobs_full = find_blobs(pre_roi, p), find_blobs(pre_full, p)
+    assert len(blobs_roi) == 3 and blobs_roi == blobs_full
 
 
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
