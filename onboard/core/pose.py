@@ -108,26 +108,22 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
+    Q_MOUNT_FROM_CAM,
+    QUAT_NORM_TOL,
     CameraMount,
     FrameError,
     GeodeticOrigin,
-    camera_pose_ned,
     check_unit_quat,
     euler_from_quat,
     ned_from_geodetic,
-    quat_conjugate,
     quat_from_euler,
-    quat_from_rotvec,
-    quat_multiply,
-    quat_normalize,
-    quat_slerp,
-    rotvec_from_quat,
+    quat_rotate,
 )
 from onboard.core.schema import Flag, Integer, Invalid, Number, Text, config_dataclass
 
@@ -236,6 +232,109 @@ def _check_time_us(value, what: str) -> int:
     return int(value)
 
 
+# --------------------------------------------------------------------------- float paths
+# The buffer handles one message (4 or 3 numbers) or one frame at a time, where numpy's per-call
+# overhead cost more than the arithmetic (an ATTITUDE_QUATERNION took longer to validate than pymavlink
+# took to parse it).  The common case runs on Python floats; anything unusual goes to the numpy code,
+# which alone decides rejections (same counters, same messages).  The quaternion helpers are the
+# single-quaternion paths of onboard.core.frames written on floats: same formulas, same order of
+# operations, so the same bits (tests/onboard/test_pose_fast_paths.py checks both).
+
+_F64 = np.dtype(float)
+_NAN3 = (math.nan, math.nan, math.nan)
+
+Quat = tuple[float, float, float, float]
+Vec3 = tuple[float, float, float]
+_Q_MOUNT_FROM_CAM = tuple(Q_MOUNT_FROM_CAM.tolist())
+
+
+def _plain_floats(v, n: int):
+    """``v`` when it is a tuple or list of ``n`` Python floats, its items when it is a float64 array of
+    shape (n,); else None (the numpy path then judges it)."""
+    tv = type(v)
+    if tv is tuple or tv is list:
+        if len(v) != n:
+            return None
+        for c in v:
+            if type(c) is not float:
+                return None
+        return v
+    if tv is np.ndarray and v.shape == (n,) and v.dtype == _F64:
+        return v.tolist()
+    return None
+
+
+def _finite_from(row: np.ndarray, k: int) -> bool:
+    """All of ``row[k:]`` finite."""
+    for c in row[k:].tolist():
+        if not math.isfinite(c):
+            return False
+    return True
+
+
+def _qmul(a, b) -> Quat:
+    """:func:`~onboard.core.frames.quat_multiply` of two quaternions, on floats."""
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
+
+
+def _qnormalize(q) -> Quat:
+    """:func:`~onboard.core.frames.quat_normalize` of one quaternion, on floats (same FrameError)."""
+    w, x, y, z = q
+    n1 = math.sqrt(w * w + x * x + y * y + z * z)
+    if not math.isfinite(n1) or n1 < 1e-12:
+        raise FrameError("quaternion is zero or not finite")
+    sgn = -1.0 if w / n1 < 0.0 else 1.0
+    return (sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1))
+
+
+def _qexp(a: float, b: float, c: float) -> Quat:
+    """:func:`~onboard.core.frames.quat_from_rotvec` of one rotation vector, on floats."""
+    angle1 = math.sqrt(a * a + b * b + c * c)
+    k1 = math.sin(0.5 * angle1) / angle1 if angle1 > 1e-8 else 0.5 - angle1**2 / 48.0
+    return (math.cos(0.5 * angle1), k1 * a, k1 * b, k1 * c)
+
+
+def _qslerp(q0, q1, a: float) -> Quat:
+    """:func:`~onboard.core.frames.quat_slerp` of two quaternions and a scalar, on floats."""
+    l0, l1 = _qnormalize(q0), _qnormalize(q1)
+    d1 = l0[0] * l1[0] + l0[1] * l1[1] + l0[2] * l1[2] + l0[3] * l1[3]
+    if d1 < 0.0:
+        l1, d1 = (-l1[0], -l1[1], -l1[2], -l1[3]), -d1
+    th = math.acos(min(max(d1, -1.0), 1.0))
+    st = math.sin(th)
+    w0s, w1s = (1.0 - a, a) if st < 1e-9 else (math.sin((1.0 - a) * th) / st, math.sin(a * th) / st)
+    return _qnormalize([w0s * c0 + w1s * c1 for c0, c1 in zip(l0, l1)])
+
+
+def _qconj(q) -> Quat:
+    """:func:`~onboard.core.frames.quat_conjugate` (a product with (1, -1, -1, -1): exact negations)."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def _rotvec(q) -> Vec3:
+    """:func:`~onboard.core.frames.rotvec_from_quat` of one quaternion, on floats: numpy's norm sums the
+    squares in order; the angle is numpy's ``arctan2`` (its own kernel, not libm's ``atan2``)."""
+    w, x, y, z = _qnormalize(q)
+    s = math.sqrt(x * x + y * y + z * z)
+    angle = 2.0 * float(np.arctan2(s, min(max(w, -1.0), 1.0)))
+    k = angle / s if s > 1e-12 else 2.0
+    return k * x, k * y, k * z
+
+
+def _frozen_floats(values) -> np.ndarray:
+    """A read-only float64 array of computed, already checked values (what :func:`_frozen_vec` makes)."""
+    a = np.array(values, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
 @dataclass(frozen=True, eq=False)
 class PoseSample:
     """Vehicle pose at ``time_boot_us``: ``p_ned_m`` (3,), ``v_ned_mps`` (3,; NaN = unknown), ``q_ned_from_body`` (4,)."""
@@ -306,6 +405,45 @@ class PoseAt:
     def mode(self) -> str:
         """``"interpolated"`` (every stream bracketed the time) or ``"extrapolated"``."""
         return "extrapolated" if self.extrapolated else "interpolated"
+
+
+_POSE_AT_FIELDS = tuple(f.name for f in fields(PoseAt))
+
+
+def _pose_sample_computed(t: int, p, v, q) -> PoseSample:
+    """``PoseSample(t, p, v, q)`` for floats the buffer computed (``t`` an int >= 0): the same sample,
+    without repeating :meth:`PoseSample.__post_init__`'s array checks when they pass; when they would not,
+    the constructor itself (which raises as it always did)."""
+    w, x, y, z = q
+    n1 = math.sqrt(w * w + x * x + y * y + z * z)  # check_unit_quat's norm
+    if not (
+        math.isfinite(p[0] + p[1] + p[2])
+        and not (math.isinf(v[0]) or math.isinf(v[1]) or math.isinf(v[2]))
+        and abs(n1 - 1.0) <= QUAT_NORM_TOL
+    ):
+        return PoseSample(t, p, v, q)
+    sample = object.__new__(PoseSample)
+    object.__setattr__(sample, "time_boot_us", t)
+    object.__setattr__(sample, "p_ned_m", _frozen_floats(p))
+    object.__setattr__(sample, "v_ned_mps", _frozen_floats(v))
+    object.__setattr__(sample, "q_ned_from_body", _frozen_floats(_qnormalize(q)))  # as check_unit_quat
+    return sample
+
+
+def _pose_at_computed(body: PoseSample, p_cam, q_nc, q_mg, *rest) -> PoseAt:
+    """``PoseAt(body, p_cam, q_nc, q_mg, *rest)`` for floats the buffer computed, as
+    :func:`_pose_sample_computed`."""
+    if not (
+        math.isfinite(p_cam[0] + p_cam[1] + p_cam[2])
+        and math.isfinite(q_nc[0] + q_nc[1] + q_nc[2] + q_nc[3])
+        and (q_mg is None or math.isfinite(q_mg[0] + q_mg[1] + q_mg[2] + q_mg[3]))
+    ):
+        return PoseAt(body, p_cam, q_nc, q_mg, *rest)
+    pose = object.__new__(PoseAt)
+    values = (body, _frozen_floats(p_cam), _frozen_floats(q_nc), None if q_mg is None else _frozen_floats(q_mg))
+    for name, value in zip(_POSE_AT_FIELDS, values + rest, strict=True):
+        object.__setattr__(pose, name, value)
+    return pose
 
 
 def extrapolation_sigma(horizon_s: float, rate_sigma: float, accel_sigma: float) -> float:
@@ -590,6 +728,7 @@ class PoseBuffer:
         self._pos = _Stream("position", c.pos_max_gap_us)
         self._gim = _Stream("gimbal", c.gimbal_max_gap_us)
         self._gim_ref: GimbalReference | None = None
+        self._mount_cache: tuple[CameraMount, Vec3, Quat, Quat] | None = None
         self._jumps = 0
         self.reboots = 0
         self.last_miss_reason: str | None = None
@@ -680,7 +819,16 @@ class PoseBuffer:
 
     # ------------------------------------------------------------------ inputs
 
-    def _quat(self, stream: str, q) -> np.ndarray | None:
+    def _quat(self, stream: str, q) -> Quat | None:
+        """The unit quaternion (normalised, w >= 0) or None (counted).  Fast path: 4 floats whose norm is
+        within ``QUAT_NORM_TOL`` of 1 (so finite and not zero), normalised as :func:`check_unit_quat` does."""
+        f = _plain_floats(q, 4)
+        if f is not None:
+            w, x, y, z = f
+            n1 = math.sqrt(w * w + x * x + y * y + z * z)
+            if abs(n1 - 1.0) <= QUAT_NORM_TOL:  # False for NaN
+                sgn = -1.0 if w / n1 < 0.0 else 1.0
+                return (sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1))
         try:
             a = np.asarray(q, dtype=float)
         except (TypeError, ValueError):
@@ -696,29 +844,36 @@ class PoseBuffer:
             self.counter.count(f"{stream}_zero", "zero quaternion")
             return None
         try:
-            return check_unit_quat(a, f"{stream} quaternion")
+            qw, qx, qy, qz = check_unit_quat(a, f"{stream} quaternion").tolist()
+            return (qw, qx, qy, qz)
         except FrameError as exc:
             self.counter.count(f"{stream}_not_unit", str(exc))
             return None
 
-    def _rates(self, stream: str, omega_rps) -> np.ndarray:
-        """(3,) angular velocity, NaN when unknown or invalid (counted as ``<stream>_rate_invalid``)."""
+    def _rates(self, stream: str, omega_rps) -> list[float]:
+        """3 angular velocity components, NaN when unknown or invalid (counted as ``<stream>_rate_invalid``)."""
         if omega_rps is None:
-            return np.full(3, np.nan)
+            return list(_NAN3)
+        f = _plain_floats(omega_rps, 3)
+        if f is not None and (
+            (math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2]))
+            or (math.isnan(f[0]) and math.isnan(f[1]) and math.isnan(f[2]))  # unknown (the gimbal's NaN)
+        ):
+            return list(f)
         try:
             w = np.array(omega_rps, dtype=float).reshape(3)
         except (TypeError, ValueError):
             self.counter.count(f"{stream}_rate_invalid", f"angular velocity {omega_rps!r} is not 3 numbers; dropped")
-            return np.full(3, np.nan)
+            return list(_NAN3)
         if np.any(np.isinf(w)) or (np.any(np.isnan(w)) and not np.all(np.isnan(w))):
             self.counter.count(f"{stream}_rate_invalid", f"angular velocity {w.tolist()}; dropped")
-            return np.full(3, np.nan)
-        return w
+            return list(_NAN3)
+        return w.tolist()
 
     def add_attitude(self, time_boot_us: int, q_ned_from_body, omega_frd_rps=None) -> bool:
         """Store ``q_ned_from_body`` (w, x, y, z) at ``time_boot_us`` and the body rates
         ``omega_frd_rps`` (3,; body FRD, rad/s; None or NaN = unknown: no extrapolation)."""
-        t = self._time("attitude", time_boot_us)
+        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("attitude", time_boot_us)
         if t is None:
             return False
         q = self._quat("attitude", q_ned_from_body)
@@ -727,12 +882,12 @@ class PoseBuffer:
         w = self._rates("attitude", omega_frd_rps)
         if not self._admit(self._att, t):
             return False
-        self._att.append(t, np.concatenate([q, w]), self.config.window_us, self.config.max_samples)
+        self._att.append(t, np.array((*q, *w)), self.config.window_us, self.config.max_samples)
         return True
 
     def add_position(self, time_boot_us: int, lat_deg: float, lon_deg: float, alt_m: float, v_ned_mps=None) -> bool:
         """Store a WGS84 position (alt treated as ellipsoidal, see frames) and NED velocity (None = unknown)."""
-        t = self._time("position", time_boot_us)
+        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("position", time_boot_us)
         if t is None:
             return False
         try:
@@ -758,8 +913,9 @@ class PoseBuffer:
         if self._origin is None:  # the position stream is empty whenever the origin is unset
             self._origin = GeodeticOrigin(lat, lon, alt)
             log.info("local NED origin fixed at the first valid position: %s", self._origin)
-        p = np.asarray(ned_from_geodetic(lat, lon, alt, self._origin), dtype=float).reshape(3)
-        return self._store_position(t, p, v)
+        # numpy's one-point conversion, kept: its 3 x 3 product may fuse multiply-adds, which floats
+        # cannot repeat bit for bit, and at 25 Hz it costs ~2 us more than floats would
+        return self._store_position(t, ned_from_geodetic(lat, lon, alt, self._origin).tolist(), v)
 
     def add_position_ned(self, time_boot_us: int, p_ned_m, v_ned_mps=None) -> bool:
         """Store a local NED position (needs an origin: configured or fixed by an earlier geodetic sample)."""
@@ -769,38 +925,51 @@ class PoseBuffer:
         if self._origin is None:
             self.counter.count("position_no_origin", "add_position_ned needs a configured origin")
             return False
-        try:
-            p = np.asarray(p_ned_m, dtype=float).reshape(3)
-        except (TypeError, ValueError):
-            self.counter.count("position_shape", f"p_ned_m {p_ned_m!r} is not 3 numbers")
-            return False
-        if not np.all(np.isfinite(p)):
-            self.counter.count("position_not_finite", f"p_ned_m={p.tolist()}")
-            return False
+        p = _plain_floats(p_ned_m, 3)
+        if p is None or not (math.isfinite(p[0]) and math.isfinite(p[1]) and math.isfinite(p[2])):
+            try:
+                a = np.asarray(p_ned_m, dtype=float).reshape(3)
+            except (TypeError, ValueError):
+                self.counter.count("position_shape", f"p_ned_m {p_ned_m!r} is not 3 numbers")
+                return False
+            if not np.all(np.isfinite(a)):
+                self.counter.count("position_not_finite", f"p_ned_m={a.tolist()}")
+                return False
+            p = a.tolist()
         v = self._velocity(v_ned_mps)
         if not self._admit(self._pos, t):
             return False
-        return self._store_position(t, p.copy(), v)
+        return self._store_position(t, p, v)
 
-    def _velocity(self, v_ned_mps) -> np.ndarray:
-        """(3,) velocity, NaN when unknown or invalid (counted; the position is still used)."""
+    def _velocity(self, v_ned_mps) -> list[float]:
+        """3 velocity components, NaN when unknown or invalid (counted; the position is still used)."""
         if v_ned_mps is None:
-            return np.full(3, np.nan)
+            return list(_NAN3)
+        f = _plain_floats(v_ned_mps, 3)
+        if f is not None and math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2]):
+            return list(f)
         try:
             v = np.array(v_ned_mps, dtype=float).reshape(3)
         except (TypeError, ValueError):
             self.counter.count("position_velocity_invalid", f"v_ned_mps={v_ned_mps!r}; velocity dropped")
-            return np.full(3, np.nan)
+            return list(_NAN3)
         if not np.all(np.isfinite(v)):
             self.counter.count("position_velocity_invalid", f"v_ned_mps={v.tolist()}; velocity dropped")
-            return np.full(3, np.nan)
-        return v
+            return list(_NAN3)
+        return v.tolist()
 
-    def _store_position(self, t: int, p: np.ndarray, v: np.ndarray) -> bool:
+    def _store_position(self, t: int, p, v) -> bool:
+        """Store ``p`` (3 floats, NED m) and ``v`` (3 floats) unless ``p`` is a jump from the newest position."""
         if self._pos.t_us:
             dt_s = (t - self._pos.t_us[-1]) / US_PER_S
-            step_m = float(np.linalg.norm(p - self._pos.values[-1][:3]))
-            if step_m > self.config.max_speed_mps * dt_s:
+            last = self._pos.values[-1]
+            n0, e0, d0 = last[:3].tolist()
+            dn, de, dd = p[0] - n0, p[1] - e0, p[2] - d0
+            step_m = math.sqrt(dn * dn + de * de + dd * dd)
+            limit_m = self.config.max_speed_mps * dt_s
+            if step_m > limit_m * (1.0 - 1e-9):  # a jump, or near enough that numpy's norm must decide
+                step_m = float(np.linalg.norm(np.array(p) - last[:3]))
+            if step_m > limit_m:
                 self._jumps += 1
                 if self._jumps < self.config.jump_reset_count:
                     self.counter.count("position_jump", f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms")
@@ -808,7 +977,7 @@ class PoseBuffer:
                 self.counter.count("position_reset", f"{self._jumps} consecutive jumps; position stream restarted")
                 self._pos.clear()
         self._jumps = 0
-        self._pos.append(t, np.concatenate([p, v]), self.config.window_us, self.config.max_samples)
+        self._pos.append(t, np.array((*p, *v)), self.config.window_us, self.config.max_samples)
         return True
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
@@ -824,11 +993,11 @@ class PoseBuffer:
 
         The stream holds one reference at a time; a change of reference restarts it.
         """
-        t = self._time("gimbal", time_boot_us)
+        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("gimbal", time_boot_us)
         if t is None:
             return False
         try:
-            ref = GimbalReference(reference)
+            ref = reference if type(reference) is GimbalReference else GimbalReference(reference)
         except ValueError:
             self.counter.count("gimbal_reference_invalid", f"reference {reference!r}")
             return False
@@ -843,7 +1012,7 @@ class PoseBuffer:
             self._gim_ref = ref
         if not self._admit(self._gim, t):
             return False
-        self._gim.append(t, np.concatenate([q, w]), self.config.window_us, self.config.max_samples)
+        self._gim.append(t, np.array((*q, *w)), self.config.window_us, self.config.max_samples)
         return True
 
     # ------------------------------------------------------------------ queries
@@ -855,6 +1024,9 @@ class PoseBuffer:
         wait for the bracket); ``extrapolate=True`` extrapolates a stream whose newest sample is
         older than the time by at most its horizon (module docstring), else names the miss
         ``<stream>_extrapolation_limit``.
+
+        Computed on floats (the stored rows' ``tolist()``) with the operations, in the order, of the
+        numpy formulation (frames' single-quaternion paths): the same bits.
         """
         if isinstance(time_boot_us, bool) or not isinstance(time_boot_us, (int, np.integer)) or time_boot_us < 0:
             return PoseLookup(None, "time_invalid")
@@ -862,55 +1034,51 @@ class PoseBuffer:
         if self._origin is None:
             return PoseLookup(None, "no_origin")
         c = self.config
+        att, pos, gim = self._att, self._pos, self._gim
         ba = self._bracket_or_extrapolate(
-            self._att,
-            t,
-            extrapolate,
-            c.att_max_extrapolation_us,
-            lambda: bool(np.all(np.isfinite(self._att.values[-1][4:]))),
+            att, t, extrapolate, c.att_max_extrapolation_us, lambda: _finite_from(att.values[-1], 4)
         )
         if ba[0] is None:
             return PoseLookup(None, ba[1], ba[2])
         bp = self._bracket_or_extrapolate(
-            self._pos,
-            t,
-            extrapolate,
-            c.pos_max_extrapolation_us,
-            lambda: bool(np.all(np.isfinite(self._pos.values[-1][3:]))),
+            pos, t, extrapolate, c.pos_max_extrapolation_us, lambda: _finite_from(pos.values[-1], 3)
         )
         if bp[0] is None:
             return PoseLookup(None, bp[1], bp[2])
         bg = None
+        gim_rate: list[Vec3 | None] = []  # _gimbal_rate(), once per look-up
+
+        def can_gimbal() -> bool:
+            gim_rate.append(self._gimbal_rate())
+            return gim_rate[-1] is not None
+
         if self.mount.gimballed:
-            bg = self._bracket_or_extrapolate(
-                self._gim, t, extrapolate, c.gimbal_max_extrapolation_us, lambda: self._gimbal_rate() is not None
-            )
+            bg = self._bracket_or_extrapolate(gim, t, extrapolate, c.gimbal_max_extrapolation_us, can_gimbal)
             if bg[0] is None:
                 return PoseLookup(None, bg[1], bg[2])
 
         att_x_us = pos_x_us = 0
         i0, i1, a = ba
         if i1 is _AFTER:
-            att_x_us = t - self._att.t_us[i0]
-            row = self._att.values[i0]
-            q_nb = quat_normalize(quat_multiply(row[:4], quat_from_rotvec(row[4:] * (att_x_us / US_PER_S))))
+            att_x_us = t - att.t_us[i0]
+            r = att.values[i0].tolist()
+            h_s = att_x_us / US_PER_S
+            q_nb = _qnormalize(_qmul(r[:4], _qexp(r[4] * h_s, r[5] * h_s, r[6] * h_s)))
             att_span = 0
         else:
-            q_nb = (
-                self._att.values[i0][:4]
-                if i0 == i1
-                else quat_slerp(self._att.values[i0][:4], self._att.values[i1][:4], a)
-            )
-            att_span = self._att.t_us[i1] - self._att.t_us[i0]
+            q0 = att.values[i0].tolist()[:4]
+            q_nb = q0 if i0 == i1 else _qslerp(q0, att.values[i1].tolist()[:4], a)
+            att_span = att.t_us[i1] - att.t_us[i0]
 
         j0, j1, s = bp
         if j1 is _AFTER:
-            pos_x_us = t - self._pos.t_us[j0]
-            row = self._pos.values[j0]
-            p_ned, v_ned = row[:3] + row[3:] * (pos_x_us / US_PER_S), row[3:].copy()
+            pos_x_us = t - pos.t_us[j0]
+            n, e, d, vn, ve, vd = pos.values[j0].tolist()
+            h_s = pos_x_us / US_PER_S
+            p_ned, v_ned = (n + vn * h_s, e + ve * h_s, d + vd * h_s), (vn, ve, vd)
             pos_span = 0
         else:
-            pos_span = self._pos.t_us[j1] - self._pos.t_us[j0]
+            pos_span = pos.t_us[j1] - pos.t_us[j0]
             p_ned, v_ned = self._interp_position(j0, j1, s, pos_span / US_PER_S)
 
         q_mg = None
@@ -920,11 +1088,12 @@ class PoseBuffer:
         if bg is not None:
             k0, k1, g = bg
             if k1 is _AFTER:
-                gim_x_us = t - self._gim.t_us[k0]
-                w_ref = self._gimbal_rate()
-                q_ref = quat_normalize(
-                    quat_multiply(quat_from_rotvec(w_ref * (gim_x_us / US_PER_S)), self._gim.values[k0][:4])
-                )
+                gim_x_us = t - gim.t_us[k0]
+                w_ref = gim_rate[-1]  # not None: can_gimbal() said so
+                assert w_ref is not None
+                h_s = gim_x_us / US_PER_S
+                dq = _qexp(w_ref[0] * h_s, w_ref[1] * h_s, w_ref[2] * h_s)
+                q_ref = _qnormalize(_qmul(dq, gim.values[k0].tolist()[:4]))
                 gim_span = 0
                 sigma_rad = math.hypot(
                     sigma_rad,
@@ -932,18 +1101,15 @@ class PoseBuffer:
                 )
             else:
                 gim_x_us = 0
-                gim_span = self._gim.t_us[k1] - self._gim.t_us[k0]
-                q_ref = (
-                    self._gim.values[k0][:4]
-                    if k0 == k1
-                    else quat_slerp(self._gim.values[k0][:4], self._gim.values[k1][:4], g)
-                )
+                gim_span = gim.t_us[k1] - gim.t_us[k0]
+                g0 = gim.values[k0].tolist()[:4]
+                q_ref = g0 if k0 == k1 else _qslerp(g0, gim.values[k1].tolist()[:4], g)
             q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
 
-        p_cam, q_nc = camera_pose_ned(p_ned, q_nb, self.mount, q_mg)
-        body = PoseSample(t, p_ned, v_ned, q_nb)
+        p_cam, q_nc = self._camera_pose(p_ned, q_nb, q_mg)
+        body = _pose_sample_computed(t, p_ned, v_ned, q_nb)
         sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
-        pose = PoseAt(
+        pose = _pose_at_computed(
             body,
             p_cam,
             q_nc,
@@ -961,6 +1127,31 @@ class PoseBuffer:
         )
         return PoseLookup(pose)
 
+    def _camera_pose(self, p_ned, q_nb: Quat, q_mg: Quat | None) -> tuple[Vec3, Quat]:
+        """:func:`~onboard.core.frames.camera_pose_ned` on floats: ``p_ned + R(q_nb) lever_arm`` and
+        ``q_nb (x) q_body_from_mount [(x) q_mg] (x) q_mount_from_cam``.  The lever-arm rotation stays
+        numpy's (its sum order is the SIMD kernel's); a zero arm adds a signed zero, which changes
+        no coordinate that is not itself zero."""
+        arm, q_bm, q_bc = self._mount_floats()
+        if q_mg is not None:
+            q_bc = _qmul(_qmul(q_bm, q_mg), _Q_MOUNT_FROM_CAM)
+        q_nc = _qnormalize(_qmul(q_nb, q_bc))
+        if arm == (0.0, 0.0, 0.0) and p_ned[0] != 0.0 and p_ned[1] != 0.0 and p_ned[2] != 0.0:
+            return (p_ned[0], p_ned[1], p_ned[2]), q_nc
+        rn, re, rd = quat_rotate(q_nb, arm).tolist()
+        return (p_ned[0] + rn, p_ned[1] + re, p_ned[2] + rd), q_nc
+
+    def _mount_floats(self) -> tuple[Vec3, Quat, Quat]:
+        """The mount's lever arm, ``q_body_from_mount`` and ``q_body_from_cam()`` (no gimbal) as floats,
+        computed once per mount object."""
+        m = self.mount
+        if self._mount_cache is None or self._mount_cache[0] is not m:
+            ax, ay, az = np.asarray(m.lever_arm_frd_m, dtype=float).tolist()
+            bw, bx, by, bz = np.asarray(m.q_body_from_mount, dtype=float).tolist()
+            cw, cx, cy, cz = m.q_body_from_cam().tolist()
+            self._mount_cache = (m, (ax, ay, az), (bw, bx, by, bz), (cw, cx, cy, cz))
+        return self._mount_cache[1:]
+
     def _bracket_or_extrapolate(
         self, stream: _Stream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]
     ):
@@ -975,7 +1166,7 @@ class PoseBuffer:
             return None, f"{stream.name}_extrapolation_limit", True
         return len(stream.t_us) - 1, _AFTER, 0.0
 
-    def _gimbal_rate(self) -> np.ndarray | None:
+    def _gimbal_rate(self) -> Vec3 | None:
         """The gimbal's angular velocity (rad/s, reference frame) for extrapolation: the newest
         sample's reported one, else the least-squares rate through the samples of the last
         ``gimbal_rate_window_us`` anchored at the newest (``phi_i = Log(q_i (x) q_last^-1) = w tau_i``,
@@ -984,21 +1175,24 @@ class PoseBuffer:
         if not g.t_us:
             return None
         last = g.values[-1]
-        if np.all(np.isfinite(last[4:])):
-            return last[4:]
+        wx, wy, wz = last[4:].tolist()
+        if math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz):
+            return wx, wy, wz
         t_last = g.t_us[-1]
         k = bisect.bisect_left(g.t_us, t_last - self.config.gimbal_rate_window_us)
         if len(g.t_us) - k < 2:
             return None
-        q_inv = quat_conjugate(last[:4])
-        num = np.zeros(3)
-        den = 0.0
+        q_inv = _qconj(last[:4].tolist())
+        nx = ny = nz = den = 0.0
         for i in range(k, len(g.t_us) - 1):
             tau = (g.t_us[i] - t_last) / US_PER_S
-            dq = quat_multiply(g.values[i][:4], q_inv)
-            num += tau * rotvec_from_quat(dq if dq[0] >= 0 else -dq)
+            dq = _qmul(g.values[i][:4].tolist(), q_inv)
+            rx, ry, rz = _rotvec(dq if dq[0] >= 0 else (-dq[0], -dq[1], -dq[2], -dq[3]))
+            nx, ny, nz = nx + tau * rx, ny + tau * ry, nz + tau * rz
             den += tau * tau
-        return num / den if den > 0 else None
+        if not den > 0:
+            return None
+        return nx / den, ny / den, nz / den
 
     def pose_at(self, time_boot_us: int, extrapolate: bool = True, result: PoseLookup | None = None) -> PoseAt | None:
         """:meth:`lookup` (extrapolating by default), counting a miss as ``pose_<reason>`` (kept in
@@ -1022,32 +1216,50 @@ class PoseBuffer:
             )
         return res.pose
 
-    def _interp_position(self, j0: int, j1: int, s: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-        r0 = self._pos.values[j0]
+    def _interp_position(self, j0: int, j1: int, s: float, dt_s: float) -> tuple[Vec3, Vec3]:
+        """(p, v) between position rows ``j0`` and ``j1``, on floats: numpy's element-wise operations, in
+        its order (the same bits)."""
+        n0, e0, d0, vn0, ve0, vd0 = self._pos.values[j0].tolist()
         if j0 == j1:
-            return r0[:3].copy(), r0[3:].copy()
-        r1 = self._pos.values[j1]
-        p0, v0, p1, v1 = r0[:3], r0[3:], r1[:3], r1[3:]
-        have_v = bool(np.all(np.isfinite(v0)) and np.all(np.isfinite(v1)))
+            return (n0, e0, d0), (vn0, ve0, vd0)
+        n1, e1, d1, vn1, ve1, vd1 = self._pos.values[j1].tolist()
+        have_v = (
+            math.isfinite(vn0)
+            and math.isfinite(ve0)
+            and math.isfinite(vd0)
+            and math.isfinite(vn1)
+            and math.isfinite(ve1)
+            and math.isfinite(vd1)
+        )
         # velocity: the autopilot's own estimate, interpolated linearly, when both ends have it
         # (differentiating the Hermite would amplify the 1e-7 deg quantisation of #33 over a short dt)
-        v = (1.0 - s) * v0 + s * v1 if have_v else (p1 - p0) / dt_s
+        if have_v:
+            r = 1.0 - s
+            v = (r * vn0 + s * vn1, r * ve0 + s * ve1, r * vd0 + s * vd1)
+        else:
+            v = ((n1 - n0) / dt_s, (e1 - e0) / dt_s, (d1 - d0) / dt_s)
         if have_v and self.config.position_interp == "hermite":
             s2, s3 = s * s, s * s * s
             h00, h10, h01, h11 = 2 * s3 - 3 * s2 + 1, s3 - 2 * s2 + s, -2 * s3 + 3 * s2, s3 - s2
-            return h00 * p0 + h10 * dt_s * v0 + h01 * p1 + h11 * dt_s * v1, v
-        return (1.0 - s) * p0 + s * p1, v
+            a, b = h10 * dt_s, h11 * dt_s
+            return (
+                h00 * n0 + a * vn0 + h01 * n1 + b * vn1,
+                h00 * e0 + a * ve0 + h01 * e1 + b * ve1,
+                h00 * d0 + a * vd0 + h01 * d1 + b * vd1,
+            ), v
+        r = 1.0 - s
+        return (r * n0 + s * n1, r * e0 + s * e1, r * d0 + s * d1), v
 
-    def _q_mount_from_gimbal(self, q_ref_from_gimbal: np.ndarray, q_ned_from_body: np.ndarray) -> np.ndarray:
+    def _q_mount_from_gimbal(self, q_ref_from_gimbal: Quat, q_ned_from_body: Quat) -> Quat:
         if self._gim_ref == GimbalReference.MOUNT:
             return q_ref_from_gimbal
         if self._gim_ref == GimbalReference.VEHICLE:
             yaw_rad = float(euler_from_quat(q_ned_from_body)[2])
-            q_ned_from_gimbal = quat_multiply(quat_from_euler(0.0, 0.0, yaw_rad), q_ref_from_gimbal)
+            q_ned_from_gimbal = _qmul(quat_from_euler(0.0, 0.0, yaw_rad).tolist(), q_ref_from_gimbal)
         else:
             q_ned_from_gimbal = q_ref_from_gimbal
-        q_mount_from_ned = quat_conjugate(quat_multiply(q_ned_from_body, self.mount.q_body_from_mount))
-        return quat_normalize(quat_multiply(q_mount_from_ned, q_ned_from_gimbal))
+        q_mount_from_ned = _qconj(_qmul(q_ned_from_body, self._mount_floats()[1]))
+        return _qnormalize(_qmul(q_mount_from_ned, q_ned_from_gimbal))
 
 
 # --------------------------------------------------------------------------- clock sync
