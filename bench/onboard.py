@@ -164,8 +164,9 @@ class SyntheticScene:
 
     # ------------------------------------------------------------------ sensors
 
-    def image(self, k: int, with_target: bool = True) -> np.ndarray:
-        t_s = (self.t_us(k) - self.boot_us0) / 1e6
+    def image(self, k: int, with_target: bool = True, content_us: int | None = None) -> np.ndarray:
+        """Frame ``k``'s pixels: the scene at its capture time, or at ``content_us`` (boot clock) if given."""
+        t_s = ((self.t_us(k) if content_us is None else content_us) - self.boot_us0) / 1e6
         img = self._bg + self._noise[k % len(self._noise)]
         if with_target:
             u, v = self.uv(t_s)
@@ -180,12 +181,19 @@ class SyntheticScene:
         return np.clip(img + 0.5, 0, 255).astype(np.uint8)
 
     def frame(
-        self, k: int, with_target: bool = True, seq: int | None = None, time_boot_us: int | None = None
+        self,
+        k: int,
+        with_target: bool = True,
+        seq: int | None = None,
+        time_boot_us: int | None = None,
+        content_us: int | None = None,
     ) -> IrFrame:
+        """Frame ``k`` stamped ``time_boot_us`` (default: its capture time); the pixels show the scene at
+        ``content_us`` (default: frame ``k``'s capture time, whatever the stamp says)."""
         return IrFrame(
             seq=k if seq is None else seq,
             time_boot_us=self.t_us(k) if time_boot_us is None else time_boot_us,
-            pixels=self.image(k, with_target),
+            pixels=self.image(k, with_target, content_us),
         )
 
     def payload(self, k: int, **kw) -> bytes:
@@ -441,7 +449,10 @@ def bench_latency(
                 tel_n += 1
                 next_tel += 0.02
             if now >= next_frame:
-                payload = scene.payload(k, time_boot_us=ap.boot_us() - lag_us)
+                # captured capture_lag_ms ago: stamped then, and showing the scene as it was then (the
+                # telemetry the daemon pairs it with is the vehicle's at that stamp)
+                t_capture_us = ap.boot_us() - lag_us
+                payload = scene.payload(k, time_boot_us=t_capture_us, content_us=t_capture_us)
                 put_ns[k] = time.monotonic_ns()
                 pub.put(payload)
                 k += 1
