@@ -77,6 +77,7 @@ from pydantic import AfterValidator
 
 from onboard.core.errors import IrtrackError
 from onboard.core.schema import Integer, Invalid, Number, Numbers, Texts, config_dataclass
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cross3, qr_r
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
@@ -270,13 +271,18 @@ class MapResult:
         return np.sqrt(np.maximum(np.einsum("fii->fi", self.cov_p_ned_m2), 0.0))
 
 
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+
+
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
     """Rotation matrix Exp(phi) of one rotation vector (Rodrigues' formula; frames.rotmat_from_rotvec, unbatched)."""
     a = math.sqrt(float(phi @ phi))
-    K = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    x, y, z = phi.tolist()
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
     if a < 1e-9:
-        return np.eye(3) + K
-    return np.eye(3) + (math.sin(a) / a) * K + ((1 - math.cos(a)) / (a * a)) * (K @ K)
+        return _EYE3 + K
+    return _EYE3 + (math.sin(a) / a) * K + ((1 - math.cos(a)) / (a * a)) * (K @ K)
 
 
 def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray, jacobian: bool):
@@ -293,10 +299,8 @@ def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray,
     if not jacobian:
         return res, None, valid
     k = 1.0 / zs
-    M = np.empty((z.shape[0], 2, 3))
-    # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y
-    M[:, 0, :] = (R_cn[:, 0, :] - pred[:, 0, None] * R_cn[:, 2, :]) * (k * s[:, 0])[:, None]
-    M[:, 1, :] = (R_cn[:, 1, :] - pred[:, 1, None] * R_cn[:, 2, :]) * (k * s[:, 1])[:, None]
+    # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y (both rows at once)
+    M = (R_cn[:, :2, :] - pred[:, :, None] * R_cn[:, 2:3, :]) * (k[:, None] * s)[:, :, None]
     return res, M, valid
 
 
@@ -410,12 +414,14 @@ class WindowProblem:
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
+        # flat positions in J of the control-point block, as (F, 4 controls, 2 rows x 3 axes): the
+        # layout of w0[f, m] * Mw[f, a, k] with the shortest broadcast (see evaluate)
         rows_fi = np.arange(2 * F).reshape(F, 2)
         self._meas_flat = (
-            rows_fi[:, :, None, None] * self.n_params
-            + 3 * self.rows.index[:, None, :, None]
+            rows_fi[:, None, :, None] * self.n_params
+            + 3 * self.rows.index[:, :, None, None]
             + np.arange(3)[None, None, None, :]
-        )
+        ).reshape(F, 4, 6)
 
     # ------------------------------------------------------------------ helpers
     def set_measurement_weights(self, range_m) -> None:
@@ -495,18 +501,18 @@ class WindowProblem:
         if self.i_phi is not None:
             Mw = M @ Rphi  # d r / d w
             # d r / d phi = -M [w_rot]x, whose rows are w_rot x m
-            J[: 2 * F, self.i_phi : self.i_phi + 3] = np.cross(w_rot[:, None, :], M).reshape(2 * F, 3)
+            J[: 2 * F, self.i_phi : self.i_phi + 3] = cross3(w_rot[:, None, :], M).reshape(2 * F, 3)
         else:
             Mw = M
         # the control-point block: 12 non-zeros per row at fixed places (the basis pattern)
-        J.reshape(-1)[self._meas_flat] = Mw[:, :, None, :] * self.rows.w0[:, None, :, None]
+        J.reshape(-1)[self._meas_flat] = self.rows.w0[:, :, None] * Mw.reshape(F, 1, 6)
         if self.i_beta is not None:
             J[: 2 * F, self.i_beta : self.i_beta + 3] = Mw.reshape(2 * F, 3)
         if self.i_gamma is not None:
             J[: 2 * F, self.i_gamma : self.i_gamma + 3] = (Mw * self.dt[:, None, None]).reshape(2 * F, 3)
         o = 2 * F
-        J[o : o + 3 * G, : self.nc] = self._prior_c_jacobian(om)
-        if self.i_omega is not None:
+        if self.i_omega is not None:  # the prior rows depend on the turn rate (else: constant rows)
+            self._fill_prior_c_jacobian(J[o : o + 3 * G, : self.nc], om)
             J[o : o + 3 * G : 3, self.i_omega] = self.sq_h * v[:, 1]
             J[o + 1 : o + 3 * G : 3, self.i_omega] = -self.sq_h * v[:, 0]
         return r, J, valid
@@ -538,7 +544,7 @@ class WindowProblem:
             k = rows.index[0, m]
             Jr[:, 3 * k : 3 * k + 3] = Mw * rows.w0[0, m]
         if self.i_phi is not None:
-            Jr[:, self.i_phi : self.i_phi + 3] = np.cross(w_rot[None, :], M[0])
+            Jr[:, self.i_phi : self.i_phi + 3] = cross3(w_rot[None, :], M[0])
         if self.i_beta is not None:
             Jr[:, self.i_beta : self.i_beta + 3] = Mw
         if self.i_gamma is not None:
@@ -548,7 +554,10 @@ class WindowProblem:
     def _constant_jacobian_rows(self) -> np.ndarray:
         """The Jacobian buffer with the rows that never change (weak and nuisance priors) filled in."""
         J = np.zeros((self.n_rows, self.n_params))
-        o = 2 * self.F + 3 * self.G
+        o = 2 * self.F
+        if self.i_omega is None:  # no turn rate: the motion prior's rows are constant too
+            J[o : o + 3 * self.G, : self.nc] = self._prior_c_jacobian(0.0)
+        o += 3 * self.G
         for k in range(3):
             J[o + k, 3 * self.ref_idx + k] = self.ref_w0 / self.config.position_prior_sigma_m
             J[o + 3 + k, 3 * self.ref_idx + k] = self.ref_w1 / self.config.velocity_prior_sigma_mps
@@ -563,6 +572,12 @@ class WindowProblem:
         """Jacobian of the (3G) prior rows w.r.t. the control points, for a given turn rate."""
         return self.P_acc + omega * self.P_turn
 
+    def _fill_prior_c_jacobian(self, out: np.ndarray, omega: float) -> None:
+        """:meth:`_prior_c_jacobian` written into ``out`` (a view of the Jacobian buffer), without temporaries;
+        the same two roundings per entry (``omega * P_turn``, then the sum)."""
+        np.multiply(self.P_turn, omega, out=out)
+        out += self.P_acc
+
     def prior_logdet(self, theta: np.ndarray) -> float:
         """log det of the prior precision of the model's own parameters (controls, turn rate) at this turn rate."""
         om = theta[self.i_omega] if self.i_omega is not None else 0.0
@@ -574,7 +589,7 @@ class WindowProblem:
             Jw[6 + k, 3 * self.ref_idx + k] = self.ref_w2 / self.sigma_a
         A = np.vstack([Jp, Jw])
         d = np.sqrt(np.einsum("ij,ij->j", A, A))
-        R = sla.qr(A / d, mode="r", check_finite=False)[0][: A.shape[1]]
+        R = qr_r(A / d)
         logdet = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         if self.i_omega is not None:
             logdet += -2 * math.log(self.prior.turn_rate_sigma_radps)
@@ -637,11 +652,11 @@ class WindowProblem:
             # eigenvalue, and any fixed damping makes LM crawl along it
             for _ in range(12):
                 try:
-                    ch = sla.cho_factor(Hs + lam * eye, lower=True, check_finite=False)
+                    ch, _ = cho_factor_lower(Hs + lam * eye)
                 except np.linalg.LinAlgError:
                     lam = max(lam * 10, 1e-9)
                     continue
-                step = sla.cho_solve(ch, g, check_finite=False)
+                step = cho_solve_lower(ch, g)
                 if lam == 0.0 and 0.5 * float(g @ step) < 0.1 * cost_tol:
                     # the Gauss-Newton model predicts less than the tolerance: at the minimum already
                     # (saves the damping ladder that would otherwise have to prove it)
@@ -688,7 +703,7 @@ class WindowProblem:
         measurement scales span ~14 decades here and the normal equations lose definiteness."""
         d = np.sqrt(np.einsum("ij,ij->j", J, J))
         d[d == 0] = 1.0
-        R = sla.qr(J / d, mode="r", check_finite=False)[0][: J.shape[1]]
+        R = qr_r(J / d)
         return R, d
 
     def covariance(self, fac) -> np.ndarray:
@@ -726,7 +741,7 @@ class WindowProblem:
             Jk = J[:, :k]
             d = np.sqrt(np.einsum("ij,ij->j", Jk, Jk))
             d[d == 0] = 1.0
-            R = sla.qr(Jk / d, mode="r", check_finite=False)[0][:k]
+            R = qr_r(Jk / d)
         logdet_H = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         meas_norm = -np.sum(np.log(1.0 / self.s))  # -sum log sigma (normalised units)
         return float(-cost + 0.5 * self.prior_logdet(theta) - 0.5 * logdet_H + meas_norm)

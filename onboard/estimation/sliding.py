@@ -51,6 +51,7 @@ import scipy.linalg as sla
 
 from onboard.core.errors import InputError
 from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, qr_r
 from onboard.estimation.map_estimator import (
     EstimationError,
     MapConfig,
@@ -423,8 +424,8 @@ class SlidingWindowEstimator:
         H = self._H + Jr.T @ Jr
         d = np.sqrt(np.diag(H))
         d[d == 0] = 1.0
-        ch = sla.cho_factor(H / np.outer(d, d), lower=True, check_finite=False)
-        theta = theta - sla.cho_solve(ch, (Jr.T @ r) / d, check_finite=False) / d
+        ch, _ = cho_factor_lower(H / np.outer(d, d))
+        theta = theta - cho_solve_lower(ch, (Jr.T @ r) / d) / d
         self._theta, self._H = theta, H
         self._since_full += 1
         self.stats["incremental"] += 1
@@ -472,12 +473,11 @@ class SlidingWindowEstimator:
         E = np.zeros((prob.n_params, cols.size))
         E[cols, np.arange(cols.size)] = 1.0 / d[cols]
         try:
-            ch = chol[0] if chol is not None else sla.cho_factor(H / np.outer(d, d), lower=True, check_finite=False)
-            X = sla.cho_solve(ch, E, check_finite=False)
+            ch = chol[0] if chol is not None else cho_factor_lower(H / np.outer(d, d))[0]
+            X = cho_solve_lower(ch, E)
         except np.linalg.LinAlgError:
             J = prob.last_jacobian
-            R = sla.qr(J / d, mode="r", check_finite=False)[0][: prob.n_params]
-            X = sla.cho_solve((R.T, True), E, check_finite=False)
+            X = cho_solve_lower(qr_r(J / d).T, E)
         S = (X[cols] / d[cols][:, None]).reshape(4, 3, 4, 3)  # covariance of the 4 controls
         w0, w1 = rows.w0[0], rows.w1[0]
         k = self._cov_scale if scale is None else scale
