@@ -88,6 +88,13 @@ __all__ = [
     "rotvec_from_quat",
     "rotmat_from_rotvec",
     "quat_slerp",
+    "Quat",
+    "quat_normalize1",
+    "quat_multiply1",
+    "quat_conjugate1",
+    "quat_from_rotvec1",
+    "rotvec_from_quat1",
+    "quat_slerp1",
     "R_MOUNT_FROM_CAM",
     "camera_pose_ned",
 ]
@@ -224,19 +231,74 @@ def geodetic_from_ned(p_ned_m, origin: GeodeticOrigin) -> tuple[np.ndarray, np.n
 # Single quaternions (shape (4,)) take scalar paths below: the daemon converts one pose per telemetry
 # sample and per frame, where numpy's per-call overhead on 4 numbers cost more than the arithmetic
 # (moveaxis, stack and reductions were ~30 % of the pipeline thread).  Same formulas, same order of
-# operations as the vectorised paths (tests/onboard/test_frames.py compares them).
+# operations as the vectorised paths (tests/onboard/test_frames_scalar.py compares them).  The kernels
+# of those paths work on Python floats (the ``*1`` functions: one quaternion in, a tuple out); the pose
+# buffer calls them directly, without the array round trip.
+
+Quat = tuple[float, float, float, float]
+
+
+def quat_normalize1(q) -> Quat:
+    """:func:`quat_normalize` of one quaternion given as 4 floats (the same FrameError)."""
+    w, x, y, z = q
+    n1 = math.sqrt(w * w + x * x + y * y + z * z)
+    if not math.isfinite(n1) or n1 < 1e-12:
+        raise FrameError("quaternion is zero or not finite")
+    sgn = -1.0 if w / n1 < 0.0 else 1.0
+    return (sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1))
+
+
+def quat_multiply1(a, b) -> Quat:
+    """:func:`quat_multiply` of two quaternions given as 4 floats each."""
+    w1, x1, y1, z1 = a
+    w2, x2, y2, z2 = b
+    return (
+        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
+        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
+        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
+    )
+
+
+def quat_conjugate1(q) -> Quat:
+    """:func:`quat_conjugate` of one quaternion (its product with (1, -1, -1, -1) is exact negation)."""
+    return (q[0], -q[1], -q[2], -q[3])
+
+
+def quat_from_rotvec1(a: float, b: float, c: float) -> Quat:
+    """:func:`quat_from_rotvec` of one rotation vector given as 3 floats."""
+    angle1 = math.sqrt(a * a + b * b + c * c)
+    k1 = math.sin(0.5 * angle1) / angle1 if angle1 > 1e-8 else 0.5 - angle1**2 / 48.0
+    return (math.cos(0.5 * angle1), k1 * a, k1 * b, k1 * c)
+
+
+def rotvec_from_quat1(q) -> tuple[float, float, float]:
+    """:func:`rotvec_from_quat` of one quaternion given as 4 floats: the norm sums the squares in order, as
+    numpy's does; the angle is numpy's ``arctan2`` (its own kernel, not libm's ``atan2``)."""
+    w, x, y, z = quat_normalize1(q)
+    s = math.sqrt(x * x + y * y + z * z)
+    angle = 2.0 * float(np.arctan2(s, min(max(w, -1.0), 1.0)))
+    k = angle / s if s > 1e-12 else 2.0
+    return k * x, k * y, k * z
+
+
+def quat_slerp1(q0, q1, alpha: float) -> Quat:
+    """:func:`quat_slerp` of two quaternions given as 4 floats each and a scalar ``alpha``."""
+    l0, l1 = quat_normalize1(q0), quat_normalize1(q1)
+    d1 = l0[0] * l1[0] + l0[1] * l1[1] + l0[2] * l1[2] + l0[3] * l1[3]
+    if d1 < 0.0:
+        l1, d1 = (-l1[0], -l1[1], -l1[2], -l1[3]), -d1
+    th = math.acos(min(max(d1, -1.0), 1.0))
+    st = math.sin(th)
+    w0s, w1s = (1.0 - alpha, alpha) if st < 1e-9 else (math.sin((1.0 - alpha) * th) / st, math.sin(alpha * th) / st)
+    return quat_normalize1([w0s * c0 + w1s * c1 for c0, c1 in zip(l0, l1)])
 
 
 def quat_normalize(q) -> np.ndarray:
     """Unit quaternion(s) (..., 4), sign fixed so that w >= 0.  Zero or non-finite -> FrameError."""
     q = np.asarray(q, dtype=float)
     if q.shape == (4,):
-        w, x, y, z = q.tolist()
-        n1 = math.sqrt(w * w + x * x + y * y + z * z)
-        if not math.isfinite(n1) or n1 < 1e-12:
-            raise FrameError("quaternion is zero or not finite")
-        sgn = -1.0 if w / n1 < 0.0 else 1.0
-        return np.array([sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1)])
+        return np.array(quat_normalize1(q.tolist()))
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if not np.all(np.isfinite(q)) or np.any(n < 1e-12):
         raise FrameError("quaternion is zero or not finite")
@@ -249,16 +311,7 @@ def quat_multiply(q1, q2) -> np.ndarray:
     q1 = np.asarray(q1, dtype=float)
     q2 = np.asarray(q2, dtype=float)
     if q1.shape == (4,) and q2.shape == (4,):
-        w1, x1, y1, z1 = q1.tolist()
-        w2, x2, y2, z2 = q2.tolist()
-        return np.array(
-            [
-                w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-            ]
-        )
+        return np.array(quat_multiply1(q1.tolist(), q2.tolist()))
     w1, x1, y1, z1 = np.moveaxis(q1, -1, 0)
     w2, x2, y2, z2 = np.moveaxis(q2, -1, 0)
     return np.stack(
@@ -372,10 +425,7 @@ def quat_from_rotvec(phi_rad) -> np.ndarray:
     """Exp map: rotation vector (..., 3) in radians -> unit quaternion (..., 4)."""
     phi = np.asarray(phi_rad, dtype=float)
     if phi.shape == (3,):
-        a, b, c = phi.tolist()
-        angle1 = math.sqrt(a * a + b * b + c * c)
-        k1 = math.sin(0.5 * angle1) / angle1 if angle1 > 1e-8 else 0.5 - angle1**2 / 48.0
-        return np.array([math.cos(0.5 * angle1), k1 * a, k1 * b, k1 * c])
+        return np.array(quat_from_rotvec1(*phi.tolist()))
     angle = np.linalg.norm(phi, axis=-1, keepdims=True)
     half = 0.5 * angle
     # sin(half)/angle with its series near zero
@@ -400,18 +450,12 @@ def rotmat_from_rotvec(phi_rad) -> np.ndarray:
 
 def quat_slerp(q0, q1, alpha) -> np.ndarray:
     """Spherical linear interpolation from q0 (alpha = 0) to q1 (alpha = 1), shortest arc."""
+    q0 = np.asarray(q0, dtype=float)
+    q1 = np.asarray(q1, dtype=float)
+    if q0.shape == (4,) and q1.shape == (4,) and np.ndim(alpha) == 0:
+        return np.array(quat_slerp1(q0.tolist(), q1.tolist(), float(alpha)))
     q0 = quat_normalize(q0)
     q1 = quat_normalize(q1)
-    if q0.shape == (4,) and q1.shape == (4,) and np.ndim(alpha) == 0:
-        a = float(alpha)
-        l0, l1 = q0.tolist(), q1.tolist()
-        d1 = l0[0] * l1[0] + l0[1] * l1[1] + l0[2] * l1[2] + l0[3] * l1[3]
-        if d1 < 0.0:
-            l1, d1 = [-c for c in l1], -d1
-        th = math.acos(min(max(d1, -1.0), 1.0))
-        st = math.sin(th)
-        w0s, w1s = (1.0 - a, a) if st < 1e-9 else (math.sin((1.0 - a) * th) / st, math.sin(a * th) / st)
-        return quat_normalize(np.array([w0s * c0 + w1s * c1 for c0, c1 in zip(l0, l1)]))
     alpha = np.asarray(alpha, dtype=float)[..., None]
     dot = np.sum(q0 * q1, axis=-1, keepdims=True)
     q1 = np.where(dot < 0.0, -q1, q1)

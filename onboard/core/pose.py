@@ -119,11 +119,18 @@ from onboard.core.frames import (
     CameraMount,
     FrameError,
     GeodeticOrigin,
+    Quat,
     check_unit_quat,
     euler_from_quat,
     ned_from_geodetic,
+    quat_conjugate1,
     quat_from_euler,
+    quat_from_rotvec1,
+    quat_multiply1,
+    quat_normalize1,
     quat_rotate,
+    quat_slerp1,
+    rotvec_from_quat1,
 )
 from onboard.core.schema import Flag, Integer, Invalid, Number, Text, config_dataclass
 
@@ -236,14 +243,13 @@ def _check_time_us(value, what: str) -> int:
 # The buffer handles one message (4 or 3 numbers) or one frame at a time, where numpy's per-call
 # overhead cost more than the arithmetic (an ATTITUDE_QUATERNION took longer to validate than pymavlink
 # took to parse it).  The common case runs on Python floats; anything unusual goes to the numpy code,
-# which alone decides rejections (same counters, same messages).  The quaternion helpers are the
-# single-quaternion paths of onboard.core.frames written on floats: same formulas, same order of
-# operations, so the same bits (tests/onboard/test_pose_fast_paths.py checks both).
+# which alone decides rejections (same counters, same messages).  The quaternions go through the float
+# kernels of onboard.core.frames' single-quaternion paths (``quat_*1``): the same bits
+# (tests/onboard/test_pose_fast_paths.py checks the look-up against the numpy formulation).
 
 _F64 = np.dtype(float)
 _NAN3 = (math.nan, math.nan, math.nan)
 
-Quat = tuple[float, float, float, float]
 Vec3 = tuple[float, float, float]
 _Q_MOUNT_FROM_CAM = tuple(Q_MOUNT_FROM_CAM.tolist())
 
@@ -270,62 +276,6 @@ def _finite_from(row: np.ndarray, k: int) -> bool:
         if not math.isfinite(c):
             return False
     return True
-
-
-def _qmul(a, b) -> Quat:
-    """:func:`~onboard.core.frames.quat_multiply` of two quaternions, on floats."""
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return (
-        w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-    )
-
-
-def _qnormalize(q) -> Quat:
-    """:func:`~onboard.core.frames.quat_normalize` of one quaternion, on floats (same FrameError)."""
-    w, x, y, z = q
-    n1 = math.sqrt(w * w + x * x + y * y + z * z)
-    if not math.isfinite(n1) or n1 < 1e-12:
-        raise FrameError("quaternion is zero or not finite")
-    sgn = -1.0 if w / n1 < 0.0 else 1.0
-    return (sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1))
-
-
-def _qexp(a: float, b: float, c: float) -> Quat:
-    """:func:`~onboard.core.frames.quat_from_rotvec` of one rotation vector, on floats."""
-    angle1 = math.sqrt(a * a + b * b + c * c)
-    k1 = math.sin(0.5 * angle1) / angle1 if angle1 > 1e-8 else 0.5 - angle1**2 / 48.0
-    return (math.cos(0.5 * angle1), k1 * a, k1 * b, k1 * c)
-
-
-def _qslerp(q0, q1, a: float) -> Quat:
-    """:func:`~onboard.core.frames.quat_slerp` of two quaternions and a scalar, on floats."""
-    l0, l1 = _qnormalize(q0), _qnormalize(q1)
-    d1 = l0[0] * l1[0] + l0[1] * l1[1] + l0[2] * l1[2] + l0[3] * l1[3]
-    if d1 < 0.0:
-        l1, d1 = (-l1[0], -l1[1], -l1[2], -l1[3]), -d1
-    th = math.acos(min(max(d1, -1.0), 1.0))
-    st = math.sin(th)
-    w0s, w1s = (1.0 - a, a) if st < 1e-9 else (math.sin((1.0 - a) * th) / st, math.sin(a * th) / st)
-    return _qnormalize([w0s * c0 + w1s * c1 for c0, c1 in zip(l0, l1)])
-
-
-def _qconj(q) -> Quat:
-    """:func:`~onboard.core.frames.quat_conjugate` (a product with (1, -1, -1, -1): exact negations)."""
-    return (q[0], -q[1], -q[2], -q[3])
-
-
-def _rotvec(q) -> Vec3:
-    """:func:`~onboard.core.frames.rotvec_from_quat` of one quaternion, on floats: numpy's norm sums the
-    squares in order; the angle is numpy's ``arctan2`` (its own kernel, not libm's ``atan2``)."""
-    w, x, y, z = _qnormalize(q)
-    s = math.sqrt(x * x + y * y + z * z)
-    angle = 2.0 * float(np.arctan2(s, min(max(w, -1.0), 1.0)))
-    k = angle / s if s > 1e-12 else 2.0
-    return k * x, k * y, k * z
 
 
 def _frozen_floats(values) -> np.ndarray:
@@ -426,7 +376,7 @@ def _pose_sample_computed(t: int, p, v, q) -> PoseSample:
     object.__setattr__(sample, "time_boot_us", t)
     object.__setattr__(sample, "p_ned_m", _frozen_floats(p))
     object.__setattr__(sample, "v_ned_mps", _frozen_floats(v))
-    object.__setattr__(sample, "q_ned_from_body", _frozen_floats(_qnormalize(q)))  # as check_unit_quat
+    object.__setattr__(sample, "q_ned_from_body", _frozen_floats(quat_normalize1(q)))  # as check_unit_quat
     return sample
 
 
@@ -761,6 +711,8 @@ class PoseBuffer:
     # ------------------------------------------------------------------ time checks
 
     def _time(self, stream: str, t) -> int | None:
+        if type(t) is int and t >= 0:  # the common case, without the checker's isinstance tests
+            return t
         try:
             return _check_time_us(t, f"{stream}.time_boot_us")
         except InputError as exc:
@@ -827,8 +779,7 @@ class PoseBuffer:
             w, x, y, z = f
             n1 = math.sqrt(w * w + x * x + y * y + z * z)
             if abs(n1 - 1.0) <= QUAT_NORM_TOL:  # False for NaN
-                sgn = -1.0 if w / n1 < 0.0 else 1.0
-                return (sgn * (w / n1), sgn * (x / n1), sgn * (y / n1), sgn * (z / n1))
+                return quat_normalize1(f)
         try:
             a = np.asarray(q, dtype=float)
         except (TypeError, ValueError):
@@ -873,7 +824,7 @@ class PoseBuffer:
     def add_attitude(self, time_boot_us: int, q_ned_from_body, omega_frd_rps=None) -> bool:
         """Store ``q_ned_from_body`` (w, x, y, z) at ``time_boot_us`` and the body rates
         ``omega_frd_rps`` (3,; body FRD, rad/s; None or NaN = unknown: no extrapolation)."""
-        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("attitude", time_boot_us)
+        t = self._time("attitude", time_boot_us)
         if t is None:
             return False
         q = self._quat("attitude", q_ned_from_body)
@@ -887,7 +838,7 @@ class PoseBuffer:
 
     def add_position(self, time_boot_us: int, lat_deg: float, lon_deg: float, alt_m: float, v_ned_mps=None) -> bool:
         """Store a WGS84 position (alt treated as ellipsoidal, see frames) and NED velocity (None = unknown)."""
-        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("position", time_boot_us)
+        t = self._time("position", time_boot_us)
         if t is None:
             return False
         try:
@@ -993,7 +944,7 @@ class PoseBuffer:
 
         The stream holds one reference at a time; a change of reference restarts it.
         """
-        t = time_boot_us if type(time_boot_us) is int and time_boot_us >= 0 else self._time("gimbal", time_boot_us)
+        t = self._time("gimbal", time_boot_us)
         if t is None:
             return False
         try:
@@ -1063,11 +1014,11 @@ class PoseBuffer:
             att_x_us = t - att.t_us[i0]
             r = att.values[i0].tolist()
             h_s = att_x_us / US_PER_S
-            q_nb = _qnormalize(_qmul(r[:4], _qexp(r[4] * h_s, r[5] * h_s, r[6] * h_s)))
+            q_nb = quat_normalize1(quat_multiply1(r[:4], quat_from_rotvec1(r[4] * h_s, r[5] * h_s, r[6] * h_s)))
             att_span = 0
         else:
             q0 = att.values[i0].tolist()[:4]
-            q_nb = q0 if i0 == i1 else _qslerp(q0, att.values[i1].tolist()[:4], a)
+            q_nb = q0 if i0 == i1 else quat_slerp1(q0, att.values[i1].tolist()[:4], a)
             att_span = att.t_us[i1] - att.t_us[i0]
 
         j0, j1, s = bp
@@ -1092,8 +1043,8 @@ class PoseBuffer:
                 w_ref = gim_rate[-1]  # not None: can_gimbal() said so
                 assert w_ref is not None
                 h_s = gim_x_us / US_PER_S
-                dq = _qexp(w_ref[0] * h_s, w_ref[1] * h_s, w_ref[2] * h_s)
-                q_ref = _qnormalize(_qmul(dq, gim.values[k0].tolist()[:4]))
+                dq = quat_from_rotvec1(w_ref[0] * h_s, w_ref[1] * h_s, w_ref[2] * h_s)
+                q_ref = quat_normalize1(quat_multiply1(dq, gim.values[k0].tolist()[:4]))
                 gim_span = 0
                 sigma_rad = math.hypot(
                     sigma_rad,
@@ -1103,7 +1054,7 @@ class PoseBuffer:
                 gim_x_us = 0
                 gim_span = gim.t_us[k1] - gim.t_us[k0]
                 g0 = gim.values[k0].tolist()[:4]
-                q_ref = g0 if k0 == k1 else _qslerp(g0, gim.values[k1].tolist()[:4], g)
+                q_ref = g0 if k0 == k1 else quat_slerp1(g0, gim.values[k1].tolist()[:4], g)
             q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
 
         p_cam, q_nc = self._camera_pose(p_ned, q_nb, q_mg)
@@ -1134,8 +1085,8 @@ class PoseBuffer:
         no coordinate that is not itself zero."""
         arm, q_bm, q_bc = self._mount_floats()
         if q_mg is not None:
-            q_bc = _qmul(_qmul(q_bm, q_mg), _Q_MOUNT_FROM_CAM)
-        q_nc = _qnormalize(_qmul(q_nb, q_bc))
+            q_bc = quat_multiply1(quat_multiply1(q_bm, q_mg), _Q_MOUNT_FROM_CAM)
+        q_nc = quat_normalize1(quat_multiply1(q_nb, q_bc))
         if arm == (0.0, 0.0, 0.0) and p_ned[0] != 0.0 and p_ned[1] != 0.0 and p_ned[2] != 0.0:
             return (p_ned[0], p_ned[1], p_ned[2]), q_nc
         rn, re, rd = quat_rotate(q_nb, arm).tolist()
@@ -1182,12 +1133,12 @@ class PoseBuffer:
         k = bisect.bisect_left(g.t_us, t_last - self.config.gimbal_rate_window_us)
         if len(g.t_us) - k < 2:
             return None
-        q_inv = _qconj(last[:4].tolist())
+        q_inv = quat_conjugate1(last[:4].tolist())
         nx = ny = nz = den = 0.0
         for i in range(k, len(g.t_us) - 1):
             tau = (g.t_us[i] - t_last) / US_PER_S
-            dq = _qmul(g.values[i][:4].tolist(), q_inv)
-            rx, ry, rz = _rotvec(dq if dq[0] >= 0 else (-dq[0], -dq[1], -dq[2], -dq[3]))
+            dq = quat_multiply1(g.values[i][:4].tolist(), q_inv)
+            rx, ry, rz = rotvec_from_quat1(dq if dq[0] >= 0 else (-dq[0], -dq[1], -dq[2], -dq[3]))
             nx, ny, nz = nx + tau * rx, ny + tau * ry, nz + tau * rz
             den += tau * tau
         if not den > 0:
@@ -1255,11 +1206,11 @@ class PoseBuffer:
             return q_ref_from_gimbal
         if self._gim_ref == GimbalReference.VEHICLE:
             yaw_rad = float(euler_from_quat(q_ned_from_body)[2])
-            q_ned_from_gimbal = _qmul(quat_from_euler(0.0, 0.0, yaw_rad).tolist(), q_ref_from_gimbal)
+            q_ned_from_gimbal = quat_multiply1(quat_from_euler(0.0, 0.0, yaw_rad).tolist(), q_ref_from_gimbal)
         else:
             q_ned_from_gimbal = q_ref_from_gimbal
-        q_mount_from_ned = _qconj(_qmul(q_ned_from_body, self._mount_floats()[1]))
-        return _qnormalize(_qmul(q_mount_from_ned, q_ned_from_gimbal))
+        q_mount_from_ned = quat_conjugate1(quat_multiply1(q_ned_from_body, self._mount_floats()[1]))
+        return quat_normalize1(quat_multiply1(q_mount_from_ned, q_ned_from_gimbal))
 
 
 # --------------------------------------------------------------------------- clock sync
