@@ -333,14 +333,11 @@ def _mean(values: np.ndarray) -> float:
 def fast_median(values: np.ndarray) -> float:
     """Median of all elements (np.median's result) via one sort or partition of a copy
     (:func:`_median_in_place`); far less overhead on the small arrays of a region of interest."""
-    a = np.asarray(values).ravel()
-    if a.size == 0:
-        raise InputError("median of an empty array")
-    return _median_in_place(a.copy())
+    return _median_in_place(np.asarray(values).ravel().copy())
 
 
 def _median_in_place(a: np.ndarray) -> float:
-    """Median of a 1-D, non-empty array the caller owns (it is sorted or partitioned in place).
+    """Median of a 1-D array the caller owns (it is sorted or partitioned in place); InputError when empty.
 
     Up to ``MEDIAN_SORT_MAX_ELEMENTS`` a full sort (numpy's vectorised, branch-free sort) puts
     the same order statistics at the middle as a partition and is faster: measured on x86-64
@@ -349,6 +346,8 @@ def _median_in_place(a: np.ndarray) -> float:
     tracker, where the selection's branches mispredict; above it a partition wins.
     """
     n = a.size
+    if n == 0:
+        raise InputError("median of an empty array")
     k = n // 2
     if n <= MEDIAN_SORT_MAX_ELEMENTS:
         a.sort()
@@ -365,8 +364,6 @@ def robust_sigma(residual: np.ndarray, step: int = 1) -> tuple[float, float]:
     """(median, 1.4826 * median absolute deviation) of ``residual[::step, ::step]`` (Hampel 1974)."""
     r = residual[::step, ::step] if step > 1 else residual
     a = np.array(r, dtype=np.float32).ravel()  # a private copy: reordered and overwritten below
-    if a.size == 0:
-        raise InputError("median of an empty array")
     med = _median_in_place(a)
     np.subtract(a, np.float32(med), out=a)  # the same values as before the reordering, so the same MAD
     np.abs(a, out=a)
