@@ -35,7 +35,7 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 from groundsim.io.ports import free_udp_port  # noqa: E402
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.pose import PoseBuffer  # noqa: E402
-from onboard.io.mavlink_link import MavlinkLinkConfig  # noqa: E402
+from onboard.io.mavlink_link import MavlinkConfig  # noqa: E402
 from tests.fuzz_budget import fuzz_settings, timeout_s  # noqa: E402
 from tests.onboard.test_mavlink_link import loopback_link  # noqa: E402
 
@@ -79,12 +79,13 @@ class Harness:
     """A MavlinkLink on a real 127.0.0.1 socket whose reads come from ``feed``."""
 
     def __init__(self, signed: bool = False, gimballed: bool = True) -> None:
-        cfg = MavlinkLinkConfig(autopilot_sysid=AP_SYSID, signing_key=KEY if signed else None)
+        cfg = MavlinkConfig(autopilot_sysid=AP_SYSID)
         self.clock, self.counter, self.pose, self.link = loopback_link(
             free_udp_port(),
             GeodeticOrigin(47.0, 8.0, 400.0),
             gimballed=gimballed,
             config=cfg,
+            link_kw={"signing_key": KEY if signed else None},
             pose_cls=RecordingPose,
             log_interval_s=1e9,  # counted, logged once
         )

@@ -34,7 +34,7 @@ import re
 import sys
 import zlib
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BeforeValidator, PlainValidator
@@ -135,9 +135,9 @@ class ScenarioError(SchemaError):
         super().__init__(source, field_path, expected, got_text, hint, line=line)
 
 
-_NAME = Text(pattern=NAME_PATTERN.pattern, what="a name of letters, digits, '_', '.', '-'")
-_VEC3 = Numbers(3)
-_VEC3_M = Numbers(3, unit="m")
+_NAME = Annotated[str, Text(pattern=NAME_PATTERN.pattern, what="a name of letters, digits, '_', '.', '-'")]
+_VEC3 = Annotated[tuple[float, ...], Numbers(3)]
+_VEC3_M = Annotated[tuple[float, ...], Numbers(3, unit="m")]
 _ZERO3 = (0.0, 0.0, 0.0)
 
 
@@ -153,9 +153,9 @@ class SingerDisturbance:
     """Random (Singer) target acceleration, as data: 1-sigma per horizontal axis (N, E) and for D,
     correlation time ``tau_s``.  :meth:`realise` turns it into a ``SingerPerturbation`` path."""
 
-    sigma_horizontal_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
-    sigma_vertical_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
-    tau_s: Number(0.0, lo_open=True, unit="s")
+    sigma_horizontal_mps2: Annotated[float, Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")]
+    sigma_vertical_mps2: Annotated[float, Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")]
+    tau_s: Annotated[float, Number(0.0, lo_open=True, unit="s")]
 
     @property
     def sigma_ned_mps2(self) -> tuple[float, float, float]:
@@ -171,7 +171,8 @@ def _is_motion(m: Any) -> bool:
     return callable(getattr(m, "state", None))
 
 
-_MOTION = Instance(object, what="a motion model with a state(t_s) method", check=_is_motion)
+_MOTION_CHECK = Instance(object, what="a motion model with a state(t_s) method", check=_is_motion)
+_MOTION = Annotated[Any, _MOTION_CHECK]
 
 
 @_scenario_model
@@ -185,10 +186,8 @@ class VehicleSpec:
     """
 
     motion: _MOTION
-    base_motion: Instance(object, what="a motion model with a state(t_s) method", check=_is_motion, nullable=True) = (
-        None
-    )
-    disturbance: Instance(SingerDisturbance, what="a SingerDisturbance", nullable=True) = None
+    base_motion: Annotated[Any | None, _MOTION_CHECK] = None
+    disturbance: Annotated[SingerDisturbance | None, Instance(SingerDisturbance, what="a SingerDisturbance")] = None
 
     def __post_init__(self) -> None:
         if self.base_motion is None:
@@ -210,8 +209,8 @@ class GimbalSpec:
     ``pointing_error_period_s[i]`` (phase: the pointing model's choice).  Defaults: the reference
     study's pointing, 3 %, 2 %, 1.5 % of the range, periods 7 s, 5 s, 3 s."""
 
-    pointing_error_frac_of_range: Numbers(3, lo=0.0) = (0.03, 0.02, 0.015)
-    pointing_error_period_s: Numbers(3, lo=0.0, lo_open=True, unit="s") = (7.0, 5.0, 3.0)
+    pointing_error_frac_of_range: Annotated[tuple[float, ...], Numbers(3, lo=0.0)] = (0.03, 0.02, 0.015)
+    pointing_error_period_s: Annotated[tuple[float, ...], Numbers(3, lo=0.0, lo_open=True, unit="s")] = (7.0, 5.0, 3.0)
 
 
 #: The reference study's pointing: 3 %, 2 %, 1.5 % of the range, periods 7 s, 5 s, 3 s.
@@ -223,11 +222,13 @@ class CameraSpec:
     """The camera: intrinsics, its pod mount on the observer, and an optional gimbal (``None`` = a
     fixed pod; the observer then yaws toward the target)."""
 
-    intrinsics: Instance(PinholeIntrinsics, what="a PinholeIntrinsics") = dataclasses.field(
-        default_factory=PinholeIntrinsics.vue_pro_640
+    intrinsics: Annotated[PinholeIntrinsics, Instance(PinholeIntrinsics, what="a PinholeIntrinsics")] = (
+        dataclasses.field(default_factory=PinholeIntrinsics.vue_pro_640)
     )
-    mount: Instance(CameraMount, what="a CameraMount") = dataclasses.field(default_factory=CameraMount)
-    gimbal: Instance(GimbalSpec, what="a GimbalSpec", nullable=True) = REFERENCE_GIMBAL
+    mount: Annotated[CameraMount, Instance(CameraMount, what="a CameraMount")] = dataclasses.field(
+        default_factory=CameraMount
+    )
+    gimbal: Annotated[GimbalSpec | None, Instance(GimbalSpec, what="a GimbalSpec")] = REFERENCE_GIMBAL
 
 
 def _frame_count(duration_s: float, frame_rate_hz: float) -> int:
@@ -250,20 +251,24 @@ class Scenario:
     """
 
     name: _NAME
-    description: Text(empty=True) = ""
-    origin: Instance(GeodeticOrigin, what="a GeodeticOrigin") = DEFAULT_ORIGIN
-    duration_s: Number(0.0, MAX_DURATION_S, lo_open=True, unit="s") = DEFAULT_DURATION_S
-    frame_rate_hz: Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz") = DEFAULT_FRAME_RATE_HZ
-    seed: Integer(0, 2**63 - 1) = DEFAULT_SEED
-    observer: Instance(VehicleSpec, what="a VehicleSpec")
-    target: Instance(VehicleSpec, what="a VehicleSpec")
-    camera: Instance(CameraSpec, what="a CameraSpec") = dataclasses.field(default_factory=CameraSpec)
-    ir: Instance(IrSettings, what="an IrSettings") = dataclasses.field(default_factory=IrSettings)
-    wind_ned_mps: Numbers(3, unit="m/s") = _ZERO3
-    nav_noise: Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml") = (
-        DEFAULT_NAV_NOISE
+    description: Annotated[str, Text(empty=True)] = ""
+    origin: Annotated[GeodeticOrigin, Instance(GeodeticOrigin, what="a GeodeticOrigin")] = DEFAULT_ORIGIN
+    duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
+    frame_rate_hz: Annotated[float, Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
+    seed: Annotated[int, Integer(0, 2**63 - 1)] = DEFAULT_SEED
+    observer: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
+    target: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
+    camera: Annotated[CameraSpec, Instance(CameraSpec, what="a CameraSpec")] = dataclasses.field(
+        default_factory=CameraSpec
     )
-    source_path: Instance(Path, what="a path", nullable=True) = None
+    ir: Annotated[IrSettings, Instance(IrSettings, what="an IrSettings")] = dataclasses.field(
+        default_factory=IrSettings
+    )
+    wind_ned_mps: Annotated[tuple[float, ...], Numbers(3, unit="m/s")] = _ZERO3
+    nav_noise: Annotated[
+        str, Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml")
+    ] = DEFAULT_NAV_NOISE
+    source_path: Annotated[Path | None, Instance(Path, what="a path")] = None
 
     @property
     def frame_count(self) -> int:
@@ -280,13 +285,17 @@ class Scenario:
         Streams used here: ``"target.disturbance"``.  Other components pick their own names
         (e.g. ``"noise.pixel"``) so adding a stream never shifts another.
         """
-        run_seed = check_value(Integer(lo=0), run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError)
+        run_seed = check_value(
+            Annotated[int, Integer(lo=0)], run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError
+        )
         return _stream_rng(self.seed, stream, run_seed)
 
     def target_motion(self, run_seed: int = 0) -> Motion:
         """The target's path for run ``run_seed``: its base model plus that run's disturbance
         realisation (the base model alone when it has none).  ``target_motion(0) is target.motion``."""
-        run_seed = check_value(Integer(lo=0), run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError)
+        run_seed = check_value(
+            Annotated[int, Integer(lo=0)], run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError
+        )
         if run_seed == 0 or self.target.disturbance is None:
             return self.target.motion
         return self.target.realise(self.duration_s + SINGER_MARGIN_S, self.rng("target.disturbance", run_seed))
@@ -308,13 +317,13 @@ class NoiseCase:
     """
 
     name: _NAME
-    pixel_sigma_px: Number(lo=0.0)
-    attitude_white_sigma_rad: Number(lo=0.0) = 0.0
-    attitude_bias_sigma_rad: Number(lo=0.0) = 0.0
-    camera_position_white_sigma_m: Number(lo=0.0) = 0.0
-    camera_position_offset_m: Number(lo=0.0) = 0.0
-    camera_position_drift_mps: Number(lo=0.0) = 0.0
-    description: Text(empty=True) = ""
+    pixel_sigma_px: Annotated[float, Number(lo=0.0)]
+    attitude_white_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
+    attitude_bias_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_offset_m: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_drift_mps: Annotated[float, Number(lo=0.0)] = 0.0
+    description: Annotated[str, Text(empty=True)] = ""
 
 
 # --------------------------------------------------------------------------- the file schema
@@ -323,12 +332,12 @@ class NoiseCase:
 
 _VUE = PinholeIntrinsics.vue_pro_640()
 _IR = IrSettings()
-_SCALE_K = Number(0.0, lo_open=True, unit="K")
+_SCALE_K = Annotated[float, Number(0.0, lo_open=True, unit="K")]
 
 
 @_scenario_model(kw_only=True)
 class UniformLinearFile:
-    model: Text(choices=("uniform_linear",)) = "uniform_linear"
+    model: Annotated[Literal["uniform_linear"], Text()] = "uniform_linear"
     p0_ned_m: _VEC3
     v0_ned_mps: _VEC3 = _ZERO3
 
@@ -338,7 +347,7 @@ class UniformLinearFile:
 
 @_scenario_model(kw_only=True)
 class UniformAccelerationFile:
-    model: Text(choices=("uniform_acceleration",)) = "uniform_acceleration"
+    model: Annotated[Literal["uniform_acceleration"], Text()] = "uniform_acceleration"
     p0_ned_m: _VEC3
     v0_ned_mps: _VEC3 = _ZERO3
     a0_ned_mps2: _VEC3 = _ZERO3
@@ -349,7 +358,7 @@ class UniformAccelerationFile:
 
 @_scenario_model(kw_only=True)
 class CubicFile:
-    model: Text(choices=("cubic",)) = "cubic"
+    model: Annotated[Literal["cubic"], Text()] = "cubic"
     p0_ned_m: _VEC3
     v0_ned_mps: _VEC3 = _ZERO3
     a0_ned_mps2: _VEC3 = _ZERO3
@@ -361,11 +370,11 @@ class CubicFile:
 
 @_scenario_model(kw_only=True)
 class CircularFile:
-    model: Text(choices=("circular",)) = "circular"
+    model: Annotated[Literal["circular"], Text()] = "circular"
     center_ned_m: _VEC3
-    radius_m: Number(0.0, lo_open=True)
-    azimuth0_deg: Number(-360.0, 360.0, unit="deg") = 0.0
-    rate_degps: Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")
+    radius_m: Annotated[float, Number(0.0, lo_open=True)]
+    azimuth0_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
+    rate_degps: Annotated[float, Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")]
 
     def motion(self) -> Motion:
         return Circular(
@@ -375,11 +384,11 @@ class CircularFile:
 
 @_scenario_model(kw_only=True)
 class FigureEightFile:
-    model: Text(choices=("figure_eight",)) = "figure_eight"
+    model: Annotated[Literal["figure_eight"], Text()] = "figure_eight"
     center_ned_m: _VEC3
     amp1_ned_m: _VEC3
     amp2_ned_m: _VEC3 = _ZERO3
-    period_s: Number(0.0, lo_open=True)
+    period_s: Annotated[float, Number(0.0, lo_open=True)]
 
     def motion(self) -> Motion:
         return FigureEight(self.center_ned_m, self.amp1_ned_m, self.amp2_ned_m, self.period_s)
@@ -399,9 +408,9 @@ def _points(value: Any) -> tuple[tuple[float, ...], ...]:
 
 @_scenario_model(kw_only=True)
 class WaypointsFile:
-    model: Text(choices=("waypoints",)) = "waypoints"
+    model: Annotated[Literal["waypoints"], Text()] = "waypoints"
     points_ned_m: Annotated[tuple, PlainValidator(_points)]
-    speed_mps: Number(0.0, lo_open=True)
+    speed_mps: Annotated[float, Number(0.0, lo_open=True)]
 
     def motion(self) -> Motion:
         return Waypoints(self.points_ned_m, self.speed_mps)
@@ -414,10 +423,10 @@ MotionFile = UniformLinearFile | UniformAccelerationFile | CubicFile | CircularF
 
 @_scenario_model(kw_only=True)
 class DisturbanceFile:
-    model: Text(choices=("singer",))
-    sigma_horizontal_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
-    sigma_vertical_mps2: Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")
-    tau_s: Number(0.0, lo_open=True, unit="s")
+    model: Annotated[Literal["singer"], Text()]
+    sigma_horizontal_mps2: Annotated[float, Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")]
+    sigma_vertical_mps2: Annotated[float, Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")]
+    tau_s: Annotated[float, Number(0.0, lo_open=True, unit="s")]
 
     def spec(self) -> SingerDisturbance:
         return SingerDisturbance(self.sigma_horizontal_mps2, self.sigma_vertical_mps2, self.tau_s)
@@ -436,21 +445,23 @@ class TargetFile:
 
 @_scenario_model(kw_only=True)
 class IntrinsicsFile(PinholeSection):
-    fx_px: Number(0.0, lo_open=True) = _VUE.fx_px
-    fy_px: Number(0.0, lo_open=True) = _VUE.fy_px
-    cx_px: Number(nullable=True) = None
-    cy_px: Number(nullable=True) = None
-    width_px: Integer(1, 100_000) = _VUE.width_px
-    height_px: Integer(1, 100_000) = _VUE.height_px
-    distortion: Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)") = tuple(_VUE.distortion)
+    fx_px: Annotated[float, Number(0.0, lo_open=True)] = _VUE.fx_px
+    fy_px: Annotated[float, Number(0.0, lo_open=True)] = _VUE.fy_px
+    cx_px: Annotated[float | None, Number()] = None
+    cy_px: Annotated[float | None, Number()] = None
+    width_px: Annotated[int, Integer(1, 100_000)] = _VUE.width_px
+    height_px: Annotated[int, Integer(1, 100_000)] = _VUE.height_px
+    distortion: Annotated[tuple[float, ...], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")] = (
+        tuple(_VUE.distortion)
+    )
 
 
 @_scenario_model(kw_only=True)
 class MountFile:
     lever_arm_frd_m: _VEC3_M = _ZERO3
-    roll_deg: Number(-360.0, 360.0, unit="deg") = 0.0
-    pitch_deg: Number(-360.0, 360.0, unit="deg") = 0.0
-    yaw_deg: Number(-360.0, 360.0, unit="deg") = 0.0
+    roll_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
+    pitch_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
+    yaw_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
 
 
 @_scenario_model(kw_only=True)
@@ -470,12 +481,12 @@ class CameraFile:
 
 @_scenario_model(kw_only=True)
 class TargetPartFile:
-    name: Text(empty=True, what="a string")
-    shape: Text(choices=("ellipsoid", "box"))
+    name: Annotated[str, Text(empty=True, what="a string")]
+    shape: Annotated[Literal["ellipsoid", "box"], Text()]
     center_frd_m: _VEC3_M
-    half_extent_m: Numbers(3, lo=0.0, lo_open=True, unit="m")
+    half_extent_m: Annotated[tuple[float, ...], Numbers(3, lo=0.0, lo_open=True, unit="m")]
     temperature_k: _SCALE_K
-    emissivity: Number(0.0, 1.0, lo_open=True)
+    emissivity: Annotated[float, Number(0.0, 1.0, lo_open=True)]
 
     def part(self) -> TargetPart:
         return TargetPart(
@@ -499,24 +510,24 @@ class IrFile:
     """``ir``: the renderer's settings (:class:`~groundsim.world.render.settings.IrSettings`, which keeps its own
     consistency checks); target parts replace the default quadcopter."""
 
-    band_um: Numbers(2, lo=0.0, lo_open=True, unit="um") = _IR.band_um
+    band_um: Annotated[tuple[float, ...], Numbers(2, lo=0.0, lo_open=True, unit="um")] = _IR.band_um
     t_min_k: _SCALE_K = _IR.t_min_k
     t_max_k: _SCALE_K = _IR.t_max_k
-    encoding: Text(choices=("mono8", "mono16")) = _IR.encoding
-    netd_k: Number(lo=0.0) = _IR.netd_k
-    blur_sigma_px: Number(lo=0.0) = _IR.blur_sigma_px
-    extinction_per_km: Number(lo=0.0) = _IR.extinction_per_km
+    encoding: Annotated[Literal["mono8", "mono16"], Text()] = _IR.encoding
+    netd_k: Annotated[float, Number(lo=0.0)] = _IR.netd_k
+    blur_sigma_px: Annotated[float, Number(lo=0.0)] = _IR.blur_sigma_px
+    extinction_per_km: Annotated[float, Number(lo=0.0)] = _IR.extinction_per_km
     air_temperature_k: _SCALE_K = _IR.air_temperature_k
     sky_zenith_k: _SCALE_K = _IR.sky_zenith_k
     sky_horizon_k: _SCALE_K = _IR.sky_horizon_k
     ground_temperature_k: _SCALE_K = _IR.ground_temperature_k
-    ground_emissivity: Number(0.0, 1.0, lo_open=True) = _IR.ground_emissivity
+    ground_emissivity: Annotated[float, Number(0.0, 1.0, lo_open=True)] = _IR.ground_emissivity
     target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
     netd_reference_k: _SCALE_K = _IR.netd_reference_k
-    supersample: Integer(1, 1_000_000) = _IR.supersample
-    max_target_rays: Integer(1, 1_000_000) = _IR.max_target_rays
-    background_reuse_tol_rad: Number(lo=0.0) = _IR.background_reuse_tol_rad
-    noise_bank_frames: Integer(1, 1_000_000) = _IR.noise_bank_frames
+    supersample: Annotated[int, Integer(1, 1_000_000)] = _IR.supersample
+    max_target_rays: Annotated[int, Integer(1, 1_000_000)] = _IR.max_target_rays
+    background_reuse_tol_rad: Annotated[float, Number(lo=0.0)] = _IR.background_reuse_tol_rad
+    noise_bank_frames: Annotated[int, Integer(1, 1_000_000)] = _IR.noise_bank_frames
 
     def __post_init__(self) -> None:
         if self.band_um[1] <= self.band_um[0]:
@@ -539,16 +550,16 @@ class IrFile:
 
 @_scenario_model(kw_only=True)
 class OriginFile:
-    lat_deg: Number(-90.0, 90.0, unit="deg") = DEFAULT_ORIGIN.lat_deg
-    lon_deg: Number(-180.0, 180.0, unit="deg") = DEFAULT_ORIGIN.lon_deg
-    alt_m: Number(-1000.0, 100_000.0, unit="m") = DEFAULT_ORIGIN.alt_m
+    lat_deg: Annotated[float, Number(-90.0, 90.0, unit="deg")] = DEFAULT_ORIGIN.lat_deg
+    lon_deg: Annotated[float, Number(-180.0, 180.0, unit="deg")] = DEFAULT_ORIGIN.lon_deg
+    alt_m: Annotated[float, Number(-1000.0, 100_000.0, unit="m")] = DEFAULT_ORIGIN.alt_m
 
 
 @_scenario_model(kw_only=True)
 class WindFile:
-    n_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
-    e_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
-    d_mps: Number(-100.0, 100.0, unit="m/s") = 0.0
+    n_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
+    e_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
+    d_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
 
 
 @_scenario_model(kw_only=True)
@@ -556,18 +567,18 @@ class ScenarioFile:
     """A scenario file's top level (``docs/scenarios.md``)."""
 
     name: _NAME
-    description: Text(empty=True) = ""
+    description: Annotated[str, Text(empty=True)] = ""
     origin: OriginFile = dataclasses.field(default_factory=OriginFile)
-    duration_s: Number(0.0, MAX_DURATION_S, lo_open=True, unit="s") = DEFAULT_DURATION_S
-    frame_rate_hz: Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz") = DEFAULT_FRAME_RATE_HZ
-    seed: Integer(0, 2**63 - 1) = DEFAULT_SEED
+    duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
+    frame_rate_hz: Annotated[float, Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
+    seed: Annotated[int, Integer(0, 2**63 - 1)] = DEFAULT_SEED
     observer: ObserverFile
     target: TargetFile
     camera: CameraFile = dataclasses.field(default_factory=CameraFile)
     ir: IrFile = dataclasses.field(default_factory=IrFile)
     wind: WindFile = dataclasses.field(default_factory=WindFile)
     # a case of config/noise_cases.yaml: the telemetry's navigation errors (groundsim.world.nav_errors)
-    nav_noise: Text() = DEFAULT_NAV_NOISE
+    nav_noise: Annotated[str, Text()] = DEFAULT_NAV_NOISE
 
     def __post_init__(self) -> None:
         if self.nav_noise != DEFAULT_NAV_NOISE:
@@ -685,13 +696,13 @@ def reference_scenario_paths() -> dict[str, Path]:
 class NoiseCaseFile:
     """One case of ``config/noise_cases.yaml`` (angles in degrees; :meth:`case` holds radians)."""
 
-    description: Text(empty=True) = ""
-    pixel_sigma_px: Number(lo=0.0)
-    attitude_white_sigma_deg: Number(lo=0.0) = 0.0
-    attitude_bias_sigma_deg: Number(lo=0.0) = 0.0
-    camera_position_white_sigma_m: Number(lo=0.0) = 0.0
-    camera_position_offset_m: Number(lo=0.0) = 0.0
-    camera_position_drift_mps: Number(lo=0.0) = 0.0
+    description: Annotated[str, Text(empty=True)] = ""
+    pixel_sigma_px: Annotated[float, Number(lo=0.0)]
+    attitude_white_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
+    attitude_bias_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_offset_m: Annotated[float, Number(lo=0.0)] = 0.0
+    camera_position_drift_mps: Annotated[float, Number(lo=0.0)] = 0.0
 
     def case(self, name: str) -> NoiseCase:
         return NoiseCase(
@@ -748,15 +759,22 @@ class SpecFail:
 
 
 def check_number(v, path, fail: SpecFail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
-    return check_value(Number(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit), v, path, fail.source, ScenarioError)
+    return check_value(
+        Annotated[float, Number(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit)],
+        v,
+        path,
+        fail.source,
+        ScenarioError,
+    )
 
 
 def check_integer(v, path, fail: SpecFail, *, lo=None, hi=None) -> int:
-    return check_value(Integer(lo, hi), v, path, fail.source, ScenarioError)
+    return check_value(Annotated[int, Integer(lo, hi)], v, path, fail.source, ScenarioError)
 
 
 def check_string(v, path, fail: SpecFail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
-    tp = Text(choices=tuple(choices or ()), pattern=None if pattern is None else pattern.pattern, what=what, empty=True)
+    text = Text(pattern=None if pattern is None else pattern.pattern, what=what, empty=True)
+    tp = Annotated[Literal[tuple(choices)], text] if choices else Annotated[str, text]
     return check_value(tp, v, path, fail.source, ScenarioError)
 
 

@@ -35,7 +35,7 @@ import math
 import os
 import re
 from collections.abc import Mapping
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import yaml
 
@@ -111,11 +111,11 @@ class OnboardConfigError(SchemaError):
 class ZenohConfig:
     """``zenoh``: the session (see :mod:`onboard.io.zenoh_session`)."""
 
-    connect: Texts() = ()
-    listen: Texts() = ()
-    config_file: Text(nullable=True) = None
-    multicast_scouting: Flag(nullable=True) = False
-    connect_timeout_s: Number(0.0, 3600.0, lo_open=True, nullable=True) = None
+    connect: Annotated[tuple[str, ...], Texts()] = ()
+    listen: Annotated[tuple[str, ...], Texts()] = ()
+    config_file: Annotated[str | None, Text()] = None
+    multicast_scouting: Annotated[bool | None, Flag()] = False
+    connect_timeout_s: Annotated[float | None, Number(0.0, 3600.0, lo_open=True)] = None
 
     def __post_init__(self) -> None:
         for name in ("connect", "listen"):
@@ -148,23 +148,29 @@ class ZenohConfig:
 class InputConfig:
     """``input``: IR frames in (key ``irtrack/<vehicle>/ir/frame``)."""
 
-    max_frame_bytes: Integer(64, 1 << 31) = 16 * 1024 * 1024
-    queue_length: Integer(1, 1000) = 4
-    sequence_restart_count: Integer(1, 1000) = 5
-    time_reset_threshold_s: Number(0.0, 3600.0, lo_open=True) = 1.0
+    max_frame_bytes: Annotated[int, Integer(64, 1 << 31)] = 16 * 1024 * 1024
+    queue_length: Annotated[int, Integer(1, 1000)] = 4
+    sequence_restart_count: Annotated[int, Integer(1, 1000)] = 5
+    time_reset_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
 
 
 @config_dataclass
 class IntrinsicsConfig(PinholeSection):
     """``camera.intrinsics``: pinhole + Brown-Conrady, as the scenario schema (cx/cy null = centre)."""
 
-    fx_px: Number(lo=0.0, lo_open=True) = 13e-3 / 17e-6
-    fy_px: Number(lo=0.0, lo_open=True) = 13e-3 / 17e-6
-    cx_px: Number(nullable=True) = None
-    cy_px: Number(nullable=True) = None
-    width_px: Integer(16, 100000) = 640
-    height_px: Integer(16, 100000) = 512
-    distortion: Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)") = (0.0, 0.0, 0.0, 0.0, 0.0)
+    fx_px: Annotated[float, Number(lo=0.0, lo_open=True)] = 13e-3 / 17e-6
+    fy_px: Annotated[float, Number(lo=0.0, lo_open=True)] = 13e-3 / 17e-6
+    cx_px: Annotated[float | None, Number()] = None
+    cy_px: Annotated[float | None, Number()] = None
+    width_px: Annotated[int, Integer(16, 100000)] = 640
+    height_px: Annotated[int, Integer(16, 100000)] = 512
+    distortion: Annotated[tuple[float, ...], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")] = (
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+        0.0,
+    )
 
     CENTRE_EXPECT_SUFFIX = " or null"
 
@@ -173,11 +179,11 @@ class IntrinsicsConfig(PinholeSection):
 class MountConfig:
     """``camera.mount``: the pod on the airframe (``CameraMount.from_euler_deg``)."""
 
-    lever_arm_frd_m: Numbers(3) = (0.0, 0.0, 0.0)
-    roll_deg: Number(-360.0, 360.0) = 0.0
-    pitch_deg: Number(-360.0, 360.0) = 0.0
-    yaw_deg: Number(-360.0, 360.0) = 0.0
-    gimballed: Flag() = False
+    lever_arm_frd_m: Annotated[tuple[float, ...], Numbers(3)] = (0.0, 0.0, 0.0)
+    roll_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
+    pitch_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
+    yaw_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
+    gimballed: Annotated[bool, Flag()] = False
 
     def camera_mount(self) -> CameraMount:
         return CameraMount.from_euler_deg(
@@ -207,22 +213,22 @@ def _sliding_mapping(value: Any) -> bool:
 class EstimatorConfig:
     """``estimator``: the sliding-window reconstruction and the noise it assumes."""
 
-    enabled: Flag() = True
-    window_s: Number(0.0, 600.0, lo_open=True) = 20.0
-    pixel_sigma_px: Number(0.0, 100.0, lo_open=True) = 0.3
-    attitude_white_sigma_deg: Number(0.0, 30.0) = 0.05
-    attitude_bias_sigma_deg: Number(0.0, 30.0) = 0.1
-    camera_position_white_sigma_m: Number(0.0, 1000.0) = 0.02
-    camera_position_offset_sigma_m: Number(0.0, 1000.0) = 0.0
-    camera_position_drift_sigma_mps: Number(0.0, 100.0) = 0.0
-    reset_on_new_track: Flag() = True
-    worker: Text(choices=("process", "thread", "inline")) = "process"
-    result_wait_ms: Number(0.0, 1000.0) = 2.0
-    max_extrapolation_s: Number(0.0, 60.0) = 1.0
+    enabled: Annotated[bool, Flag()] = True
+    window_s: Annotated[float, Number(0.0, 600.0, lo_open=True)] = 20.0
+    pixel_sigma_px: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 0.3
+    attitude_white_sigma_deg: Annotated[float, Number(0.0, 30.0)] = 0.05
+    attitude_bias_sigma_deg: Annotated[float, Number(0.0, 30.0)] = 0.1
+    camera_position_white_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.02
+    camera_position_offset_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.0
+    camera_position_drift_sigma_mps: Annotated[float, Number(0.0, 100.0)] = 0.0
+    reset_on_new_track: Annotated[bool, Flag()] = True
+    worker: Annotated[Literal["process", "thread", "inline"], Text()] = "process"
+    result_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 2.0
+    max_extrapolation_s: Annotated[float, Number(0.0, 60.0)] = 1.0
     # SlidingConfig fields, checked against onboard.estimation.sliding.SlidingConfig when the config is built
-    sliding: Instance(dict, what="a mapping of SlidingConfig fields", check=_sliding_mapping) = dataclasses.field(
-        default_factory=dict
-    )
+    sliding: Annotated[
+        dict[str, Any], Instance(dict, what="a mapping of SlidingConfig fields", check=_sliding_mapping)
+    ] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sliding", dict(self.sliding))
@@ -262,34 +268,34 @@ class EstimatorConfig:
 class OutputConfig:
     """``output``: what goes out and how often."""
 
-    publish_track: Flag() = True
+    publish_track: Annotated[bool, Flag()] = True
     # a finite 3-D estimate is published with observable=false as its quality verdict (irtrack.track/2);
     # false: positions only when observable, as irtrack.track/1 did
-    unobservable_positions: Flag() = True
+    unobservable_positions: Annotated[bool, Flag()] = True
     # CAMERA_TRACKING_GEO_STATUS (#276) for unobservable positions too (a ground station shows #276 as
     # a fix and cannot read the verdict: off by default)
-    geo_status_unobservable: Flag() = False
-    status_interval_s: Number(0.05, 3600.0) = 1.0
-    tracking_image_status_hz: Number(0.0, 100.0) = 10.0
-    tracking_geo_status_hz: Number(0.0, 100.0) = 5.0
-    camera_device_id: Integer(0, 6) = 0
-    track_stale_s: Number(0.0, 60.0, lo_open=True) = 1.0
-    health_file: Text(nullable=True) = "/tmp/irtrack-alive"
-    health_interval_s: Number(0.05, 60.0) = 1.0
+    geo_status_unobservable: Annotated[bool, Flag()] = False
+    status_interval_s: Annotated[float, Number(0.05, 3600.0)] = 1.0
+    tracking_image_status_hz: Annotated[float, Number(0.0, 100.0)] = 10.0
+    tracking_geo_status_hz: Annotated[float, Number(0.0, 100.0)] = 5.0
+    camera_device_id: Annotated[int, Integer(0, 6)] = 0
+    track_stale_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
+    health_file: Annotated[str | None, Text()] = "/tmp/irtrack-alive"
+    health_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
 
 
 @config_dataclass
 class GcsConfig:
     """``gcs``: the MAVLink camera component for ground stations (see :mod:`onboard.io.camera_protocol`)."""
 
-    endpoints: Texts() = ()
-    component_id: Integer(100, 105) = 100
-    vendor_name: Text() = "irtrack"
-    model_name: Text() = "IR tracker"
-    pixel_pitch_um: Number(0.0, 1000.0, lo_open=True) = 17.0
-    heartbeat_interval_s: Number(0.0, 60.0, lo_open=True) = 1.0
-    tracker_mode: Text(choices=("auto", "operator")) = "auto"
-    track_request_timeout_s: Number(0.0, 60.0, lo_open=True) = 1.0
+    endpoints: Annotated[tuple[str, ...], Texts()] = ()
+    component_id: Annotated[int, Integer(100, 105)] = 100
+    vendor_name: Annotated[str, Text()] = "irtrack"
+    model_name: Annotated[str, Text()] = "IR tracker"
+    pixel_pitch_um: Annotated[float, Number(0.0, 1000.0, lo_open=True)] = 17.0
+    heartbeat_interval_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
+    tracker_mode: Annotated[Literal["auto", "operator"], Text()] = "auto"
+    track_request_timeout_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
 
     def __post_init__(self) -> None:
         for i, ep in enumerate(self.endpoints):
@@ -311,57 +317,59 @@ class GcsConfig:
 class VideoConfig:
     """``video``: the IR video for ground stations (see :mod:`onboard.io.video`)."""
 
-    destination: Text(nullable=True, pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT") = None
-    transport: Text(choices=("rtp", "mpegts")) = "rtp"  # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
-    fps: Number(1.0, 120.0) = 30.0
-    bitrate_bps: Integer(100_000, 50_000_000) = 2_000_000
-    gop_s: Number(0.1, 1.0) = 1.0
-    overlay: Flag() = True
-    queue_length: Integer(1, 30) = 2
+    destination: Annotated[str | None, Text(pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT")] = None
+    transport: Annotated[Literal["rtp", "mpegts"], Text()] = (
+        "rtp"  # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
+    )
+    fps: Annotated[float, Number(1.0, 120.0)] = 30.0
+    bitrate_bps: Annotated[int, Integer(100_000, 50_000_000)] = 2_000_000
+    gop_s: Annotated[float, Number(0.1, 1.0)] = 1.0
+    overlay: Annotated[bool, Flag()] = True
+    queue_length: Annotated[int, Integer(1, 30)] = 2
 
 
 @config_dataclass
 class FollowConfig:
     """``follow``: FOLLOW_TARGET (#144) to the autopilot from observable 3-D positions (see :mod:`onboard.io.follow`)."""
 
-    enabled: Flag() = False
-    rate_hz: Number(0.0, 50.0, lo_open=True) = 5.0
+    enabled: Annotated[bool, Flag()] = False
+    rate_hz: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 5.0
 
 
 @config_dataclass
 class RecordConfig:
     """``record``: the flight recording, an MCAP file of the daemon's inputs and outputs (see :mod:`onboard.io.record`)."""
 
-    path: Text(nullable=True, pattern=r"^.*\.mcap$", what="a file name ending in .mcap") = None
-    frames: Flag() = True
-    max_file_mb: Number(1.0, 1_000_000.0) = 2000.0
-    max_file_s: Number(1.0, 86_400.0) = 600.0
-    max_files: Integer(0, 100_000) = 0
-    chunk_kb: Integer(16, 65_536) = 1024
-    flush_interval_s: Number(0.05, 60.0) = 1.0
-    compression: Text(choices=("none", "lz4", "zstd")) = "none"
-    queue_mb: Number(1.0, 4096.0) = 64.0
-    sync_mb: Number(0.0, 4096.0) = 8.0
+    path: Annotated[str | None, Text(pattern=r"^.*\.mcap$", what="a file name ending in .mcap")] = None
+    frames: Annotated[bool, Flag()] = True
+    max_file_mb: Annotated[float, Number(1.0, 1_000_000.0)] = 2000.0
+    max_file_s: Annotated[float, Number(1.0, 86_400.0)] = 600.0
+    max_files: Annotated[int, Integer(0, 100_000)] = 0
+    chunk_kb: Annotated[int, Integer(16, 65_536)] = 1024
+    flush_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
+    compression: Annotated[Literal["none", "lz4", "zstd"], Text()] = "none"
+    queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
+    sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
 
 
 @config_dataclass
 class LiveViewConfig:
     """``live_view``: the Foxglove WebSocket server for watching live (see :mod:`onboard.io.live_view`)."""
 
-    port: Integer(1, 65535, nullable=True) = None
-    host: Text() = "127.0.0.1"
-    queue_length: Integer(1, 10_000) = 32
-    los_length_m: Number(0.0, 1_000_000.0, lo_open=True) = 500.0
-    trail_points: Integer(2, 100_000) = 600
+    port: Annotated[int | None, Integer(1, 65535)] = None
+    host: Annotated[str, Text()] = "127.0.0.1"
+    queue_length: Annotated[int, Integer(1, 10_000)] = 32
+    los_length_m: Annotated[float, Number(0.0, 1_000_000.0, lo_open=True)] = 500.0
+    trail_points: Annotated[int, Integer(2, 100_000)] = 600
 
 
 @config_dataclass
 class LoggingConfig:
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
-    level: Text(choices=("DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL")) = "INFO"
-    format: Text(choices=("text", "json")) = "text"
-    reject_log_interval_s: Number(0.0, 3600.0) = 10.0
+    level: Annotated[Literal["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"], Text()] = "INFO"
+    format: Annotated[Literal["text", "json"], Text()] = "text"
+    reject_log_interval_s: Annotated[float, Number(0.0, 3600.0)] = 10.0
 
 
 def _section(cls) -> Any:
@@ -372,9 +380,9 @@ def _section(cls) -> Any:
 class OnboardConfig:
     """The whole configuration.  ``OnboardConfig()`` is the built-in default, valid as is."""
 
-    vehicle: Text(
-        pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)"
-    ) = "uav1"
+    vehicle: Annotated[
+        str, Text(pattern=r"^[A-Za-z0-9_.-]+$", what="a name of letters, digits, '_', '.', '-' (one zenoh key chunk)")
+    ] = "uav1"
     mavlink: MavlinkConfig = _section(MavlinkConfig)
     zenoh: ZenohConfig = _section(ZenohConfig)
     input: InputConfig = _section(InputConfig)

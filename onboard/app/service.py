@@ -960,15 +960,12 @@ class OnboardService:
         if self.live_view is not None:
             self.live_view.start()  # a port in use fails the start, in one line (InputError)
         self.link = MavlinkLink(
-            cfg.mavlink.connection,
+            cfg.mavlink,
             self.pose,
             self.counter,
             gimballed=self.mount.gimballed,
-            att_rate_hz=cfg.mavlink.attitude_rate_hz,
-            pos_rate_hz=cfg.mavlink.position_rate_hz,
             clock=self._clock,
             clock_ns=self._clock_ns,
-            config=cfg.mavlink.link_config(),
         )
         if self.recorder is not None:
             self.link.raw_tap = self.recorder.on_mavlink

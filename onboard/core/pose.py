@@ -109,6 +109,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
+from typing import Annotated, Literal
 
 import numpy as np
 
@@ -473,28 +474,28 @@ class PoseBufferConfig:
     :class:`~onboard.core.schema.SchemaError` naming the field.
     """
 
-    window_us: Integer(lo=1) = 5 * US_PER_S
-    max_samples: Integer(lo=1) = 4096
-    att_max_gap_us: Integer(lo=1) = 100_000
-    pos_max_gap_us: Integer(lo=1) = 300_000
-    gimbal_max_gap_us: Integer(lo=1) = 300_000
-    reboot_threshold_us: Integer(lo=1) = 1 * US_PER_S
-    time_confirm_count: Integer(lo=1) = 3
-    max_speed_mps: Number(lo=0.0, lo_open=True) = 200.0
-    jump_reset_count: Integer(lo=1) = 5
-    keep_origin_on_reboot: Flag() = True
-    position_interp: Text(choices=("hermite", "linear")) = "hermite"
-    min_alt_m: Number() = -1_000.0
-    max_alt_m: Number() = 50_000.0
-    att_max_extrapolation_us: Integer(lo=0) = 36_000
-    pos_max_extrapolation_us: Integer(lo=0) = 50_000
-    gimbal_max_extrapolation_us: Integer(lo=0) = 25_000
-    gimbal_rate_window_us: Integer(lo=0) = 100_000
-    body_rate_sigma_rps: Number(lo=0.0) = math.radians(0.1)
-    gimbal_rate_sigma_rps: Number(lo=0.0) = math.radians(0.5)
-    angular_accel_sigma_rps2: Number(lo=0.0) = math.radians(20.0)
-    velocity_sigma_mps: Number(lo=0.0) = 0.1
-    accel_sigma_mps2: Number(lo=0.0) = 2.0
+    window_us: Annotated[int, Integer(lo=1)] = 5 * US_PER_S
+    max_samples: Annotated[int, Integer(lo=1)] = 4096
+    att_max_gap_us: Annotated[int, Integer(lo=1)] = 100_000
+    pos_max_gap_us: Annotated[int, Integer(lo=1)] = 300_000
+    gimbal_max_gap_us: Annotated[int, Integer(lo=1)] = 300_000
+    reboot_threshold_us: Annotated[int, Integer(lo=1)] = 1 * US_PER_S
+    time_confirm_count: Annotated[int, Integer(lo=1)] = 3
+    max_speed_mps: Annotated[float, Number(lo=0.0, lo_open=True)] = 200.0
+    jump_reset_count: Annotated[int, Integer(lo=1)] = 5
+    keep_origin_on_reboot: Annotated[bool, Flag()] = True
+    position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"
+    min_alt_m: Annotated[float, Number()] = -1_000.0
+    max_alt_m: Annotated[float, Number()] = 50_000.0
+    att_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 36_000
+    pos_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 50_000
+    gimbal_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 25_000
+    gimbal_rate_window_us: Annotated[int, Integer(lo=0)] = 100_000
+    body_rate_sigma_rps: Annotated[float, Number(lo=0.0)] = math.radians(0.1)
+    gimbal_rate_sigma_rps: Annotated[float, Number(lo=0.0)] = math.radians(0.5)
+    angular_accel_sigma_rps2: Annotated[float, Number(lo=0.0)] = math.radians(20.0)
+    velocity_sigma_mps: Annotated[float, Number(lo=0.0)] = 0.1
+    accel_sigma_mps2: Annotated[float, Number(lo=0.0)] = 2.0
 
     def __post_init__(self) -> None:
         if not self.min_alt_m < self.max_alt_m:
@@ -516,9 +517,9 @@ class PoseBufferConfig:
 class OriginConfig:
     """``pose.origin`` of the daemon's configuration: a fixed local NED origin (degrees, metres)."""
 
-    lat_deg: Number(-90.0, 90.0) = 0.0
-    lon_deg: Number(-180.0, 180.0) = 0.0
-    alt_m: Number(-1000.0, 100000.0) = 0.0
+    lat_deg: Annotated[float, Number(-90.0, 90.0)] = 0.0
+    lon_deg: Annotated[float, Number(-180.0, 180.0)] = 0.0
+    alt_m: Annotated[float, Number(-1000.0, 100000.0)] = 0.0
 
     def geodetic(self) -> GeodeticOrigin:
         return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
@@ -531,23 +532,23 @@ class PoseConfig:
     (milliseconds, seconds, degrees), declared here, beside the :class:`PoseBufferConfig` they become
     (:meth:`buffer_config`: ms/s -> us, deg -> rad)."""
 
-    window_s: Number(0.1, 600.0) = 5.0
-    attitude_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 100.0
-    position_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 300.0
-    gimbal_max_gap_ms: Number(0.0, 10000.0, lo_open=True) = 300.0
-    reboot_threshold_s: Number(0.0, 3600.0, lo_open=True) = 1.0
-    max_speed_mps: Number(0.0, 10000.0, lo_open=True) = 200.0
-    jump_reset_count: Integer(1, 1000) = 5
-    keep_origin_on_reboot: Flag() = True
-    position_interp: Text(choices=("hermite", "linear")) = "hermite"
-    wait_ms: Number(0.0, 1000.0) = 5.0
-    max_extrapolation_ms: Number(0.0, 10000.0) = 50.0
-    extrapolation_noise_fraction: Number(0.0, 10.0) = 0.25
-    body_rate_sigma_dps: Number(0.0, 1000.0) = 0.1
-    gimbal_rate_sigma_dps: Number(0.0, 1000.0) = 0.5
-    angular_accel_sigma_dps2: Number(0.0, 100000.0) = 20.0
-    velocity_sigma_mps: Number(0.0, 1000.0) = 0.1
-    accel_sigma_mps2: Number(0.0, 1000.0) = 2.0
+    window_s: Annotated[float, Number(0.1, 600.0)] = 5.0
+    attitude_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 100.0
+    position_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 300.0
+    gimbal_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 300.0
+    reboot_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
+    max_speed_mps: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 200.0
+    jump_reset_count: Annotated[int, Integer(1, 1000)] = 5
+    keep_origin_on_reboot: Annotated[bool, Flag()] = True
+    position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"
+    wait_ms: Annotated[float, Number(0.0, 1000.0)] = 5.0
+    max_extrapolation_ms: Annotated[float, Number(0.0, 10000.0)] = 50.0
+    extrapolation_noise_fraction: Annotated[float, Number(0.0, 10.0)] = 0.25
+    body_rate_sigma_dps: Annotated[float, Number(0.0, 1000.0)] = 0.1
+    gimbal_rate_sigma_dps: Annotated[float, Number(0.0, 1000.0)] = 0.5
+    angular_accel_sigma_dps2: Annotated[float, Number(0.0, 100000.0)] = 20.0
+    velocity_sigma_mps: Annotated[float, Number(0.0, 1000.0)] = 0.1
+    accel_sigma_mps2: Annotated[float, Number(0.0, 1000.0)] = 2.0
     origin: OriginConfig | None = None
 
     def __post_init__(self) -> None:

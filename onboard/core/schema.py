@@ -36,12 +36,13 @@ import types
 import typing
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar, dataclass_transform, overload
 
 import pydantic
 import pydantic.dataclasses
 import yaml
-from pydantic import BeforeValidator, ConfigDict, Field, ValidationError, WrapValidator
+from pydantic import BeforeValidator, ConfigDict, Field, GetCoreSchemaHandler, ValidationError, WrapValidator
+from pydantic_core import core_schema
 
 from onboard.core.errors import ConfigError
 
@@ -62,6 +63,7 @@ __all__ = [
     "Texts",
     "Numbers",
     "Instance",
+    "FieldType",
     "to_plain",
     "check_value",
     "parse_yaml_text",
@@ -242,24 +244,38 @@ def _from_validation(
 # --------------------------------------------------------------------------- models
 
 
-def config_dataclass(cls: type | None = None, /, *, error: type[SchemaError] = SchemaError, **kw) -> Any:
-    """A frozen, strict, ``extra="forbid"`` pydantic dataclass whose constructor raises ``error`` (a
-    :class:`SchemaError`, source ``<ClassName>``) instead of pydantic's ValidationError.  ``kw``: more
-    ``dataclass`` options (``kw_only=True``)."""
+_T = TypeVar("_T")
 
-    def wrap(c: type) -> type:
-        dc = pydantic.dataclasses.dataclass(frozen=True, config=MODEL_CONFIG, **kw)(c)
+
+@overload
+def config_dataclass(cls: type[_T], /) -> type[_T]: ...
+
+
+@overload
+def config_dataclass(*, error: type[SchemaError] = ..., kw_only: bool = ...) -> Callable[[type[_T]], type[_T]]: ...
+
+
+@dataclass_transform(frozen_default=True, field_specifiers=(dataclasses.field, Field))
+def config_dataclass(
+    cls: type[_T] | None = None, /, *, error: type[SchemaError] = SchemaError, kw_only: bool = False
+) -> type[_T] | Callable[[type[_T]], type[_T]]:
+    """A frozen, strict, ``extra="forbid"`` pydantic dataclass whose constructor raises ``error`` (a
+    :class:`SchemaError`, source ``<ClassName>``) instead of pydantic's ValidationError; ``kw_only``: the
+    fields are keyword-only."""
+
+    def wrap(c: type[_T]) -> type[_T]:
+        dc = pydantic.dataclasses.dataclass(frozen=True, config=MODEL_CONFIG, kw_only=kw_only)(c)
         init = dc.__init__
 
         @functools.wraps(init)
-        def __init__(self, *args, **kwargs):
+        def __init__(self: Any, *args: Any, **kwargs: Any) -> None:
             try:
                 init(self, *args, **kwargs)
             except ValidationError as exc:
                 raise _from_validation(exc, dc, f"<{dc.__name__}>", error) from None
 
-        dc.__init__ = __init__
-        dc.__config_dataclass__ = True
+        setattr(dc, "__init__", __init__)  # noqa: B010 - mypy refuses assigning a method
+        setattr(dc, "__config_dataclass__", True)  # noqa: B010
         return dc
 
     return wrap if cls is None else wrap(cls)
@@ -406,13 +422,19 @@ def to_plain(obj: Any) -> Any:
 
 
 # --------------------------------------------------------------------------- field types
+#
+# A field is declared ``name: Annotated[<Python type>, <FieldType>(...)] = default``: the Python type is
+# what mypy sees (``X | None``: null is accepted; a ``Literal`` of strings: the choices of a :class:`Text`),
+# the field type how pydantic checks it and the one "expected ..." text its errors show.
 
 
 def _g(x: float) -> str:
     return f"{x:g}" if isinstance(x, float) else str(x)
 
 
-def describe_range(noun: str, lo=None, hi=None, lo_open=False, hi_open=False) -> str:
+def describe_range(
+    noun: str, lo: float | None = None, hi: float | None = None, lo_open: bool = False, hi_open: bool = False
+) -> str:
     """``"a number in (0, 1000]"``, ``"an integer >= 1"``, ``"a finite number"`` ..."""
     if lo is not None and hi is not None:
         return f"{noun} in {'(' if lo_open else '['}{_g(lo)}, {_g(hi)}{')' if hi_open else ']'}"
@@ -426,7 +448,7 @@ def describe_range(noun: str, lo=None, hi=None, lo_open=False, hi_open=False) ->
 def _expect(text: str, hint: Callable[[Any], str | None] | None = None) -> WrapValidator:
     """Any failure of the wrapped type becomes one ``expected <text>`` error at the field."""
 
-    def check(value: Any, handler):
+    def check(value: Any, handler: pydantic.ValidatorFunctionWrapHandler) -> Any:
         try:
             return handler(value)
         except ValidationError:
@@ -442,74 +464,114 @@ def _python_scalar(value: Any) -> Any:
     return value
 
 
-@functools.cache
-def Number(
-    lo: float | None = None,
-    hi: float | None = None,
-    *,
-    lo_open: bool = False,
-    hi_open: bool = False,
-    unit: str = "",
-    nullable: bool = False,
-    what: str | None = None,
-) -> Any:
-    """A finite float (an int is accepted and becomes a float; a bool is not) within the bounds."""
-    text = what or describe_range("a number", lo, hi, lo_open, hi_open) + (f" {unit}" if unit else "")
-    bounds = {("gt" if lo_open else "ge"): lo, ("lt" if hi_open else "le"): hi}
-    given: dict[str, Any] = {k: v for k, v in bounds.items() if v is not None}
-    tp: Any = float | None if nullable else float
-    return Annotated[
-        tp,
-        Field(allow_inf_nan=False, **given),
-        BeforeValidator(_python_scalar),
-        _expect(text + (" or null" if nullable else "")),
-    ]
+def _split_none(tp: Any) -> tuple[Any, bool]:
+    """``(X, True)`` for ``X | None``, ``(tp, False)`` otherwise."""
+    if typing.get_origin(tp) in (typing.Union, types.UnionType):
+        args = typing.get_args(tp)
+        if type(None) in args:
+            rest = tuple(a for a in args if a is not type(None))
+            return (rest[0] if len(rest) == 1 else typing.Union[rest]), True  # noqa: UP007 - a runtime union
+    return tp, False
 
 
-@functools.cache
-def Integer(lo: int | None = None, hi: int | None = None, *, nullable: bool = False, what: str | None = None) -> Any:
-    """An int (``640.0`` and ``true`` are not) within ``[lo, hi]``."""
-    text = what or describe_range("an integer", lo, hi)
-    bounds: dict[str, Any] = {k: v for k, v in (("ge", lo), ("le", hi)) if v is not None}
-    tp: Any = int | None if nullable else int
-    return Annotated[
-        tp, Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))
-    ]
+class FieldType:
+    """The base of the field types: pydantic asks it for the schema of its ``Annotated`` type."""
+
+    def _metadata(self, tp: Any, nullable: bool) -> tuple[Any, ...]:
+        raise NotImplementedError
+
+    def _require(self, tp: Any, *allowed: Any) -> None:
+        if tp not in allowed:
+            raise TypeError(f"{self!r} annotates {tp!r}; it checks {' or '.join(map(repr, allowed))}")
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        tp, nullable = _split_none(source)
+        return handler.generate_schema(Annotated[(source, *self._metadata(tp, nullable))])
 
 
-@functools.cache
-def Flag(*, nullable: bool = False) -> Any:
-    """``true`` or ``false`` (or null when ``nullable``)."""
-    tp: Any = bool | None if nullable else bool
-    return Annotated[tp, _expect("true or false" + (" or null" if nullable else ""))]
+@dataclasses.dataclass(frozen=True)
+class Number(FieldType):
+    """``Annotated[float, Number(lo, hi)]``: a finite float (an int is accepted and becomes a float; a bool
+    is not) within the bounds; ``what`` replaces the text built from them."""
+
+    lo: float | None = None
+    hi: float | None = None
+    _: dataclasses.KW_ONLY
+    lo_open: bool = False
+    hi_open: bool = False
+    unit: str = ""
+    what: str | None = None
+
+    def text(self) -> str:
+        return self.what or describe_range("a number", self.lo, self.hi, self.lo_open, self.hi_open) + (
+            f" {self.unit}" if self.unit else ""
+        )
+
+    def _metadata(self, tp: Any, nullable: bool) -> tuple[Any, ...]:
+        self._require(tp, float)
+        bounds = {("gt" if self.lo_open else "ge"): self.lo, ("lt" if self.hi_open else "le"): self.hi}
+        given: dict[str, Any] = {k: v for k, v in bounds.items() if v is not None}
+        return (
+            Field(allow_inf_nan=False, **given),
+            BeforeValidator(_python_scalar),
+            _expect(self.text() + (" or null" if nullable else "")),
+        )
 
 
-@functools.cache
-def Text(
-    *,
-    choices: tuple[str, ...] = (),
-    pattern: str | None = None,
-    what: str | None = None,
-    nullable: bool = False,
-    empty: bool = False,
-) -> Any:
-    """A string: one of ``choices`` (with a "did you mean"), matching ``pattern``, non-blank unless ``empty``."""
-    if choices:
-        text = "one of " + ", ".join(choices)
-    else:
-        text = what or ("a string" if empty else "a non-empty string")
-    constraints: dict[str, Any] = {}
-    if pattern is not None:
-        constraints["pattern"] = pattern
-    elif not empty and not choices:
-        constraints["pattern"] = r"\S"
-    tp: Any = str
-    if choices:
-        tp = typing.Literal[choices]
-    if nullable:
-        tp = tp | None
-    hint = (lambda v: did_you_mean(v, choices) if isinstance(v, str) else None) if choices else None
-    return Annotated[tp, Field(**constraints), _expect(text + (" or null" if nullable else ""), hint)]
+@dataclasses.dataclass(frozen=True)
+class Integer(FieldType):
+    """``Annotated[int, Integer(lo, hi)]``: an int (``640.0`` and ``true`` are not) within ``[lo, hi]``."""
+
+    lo: int | None = None
+    hi: int | None = None
+    _: dataclasses.KW_ONLY
+    what: str | None = None
+
+    def _metadata(self, tp: Any, nullable: bool) -> tuple[Any, ...]:
+        self._require(tp, int)
+        text = self.what or describe_range("an integer", self.lo, self.hi)
+        bounds: dict[str, Any] = {k: v for k, v in (("ge", self.lo), ("le", self.hi)) if v is not None}
+        return Field(**bounds), BeforeValidator(_python_scalar), _expect(text + (" or null" if nullable else ""))
+
+
+@dataclasses.dataclass(frozen=True)
+class Flag(FieldType):
+    """``Annotated[bool, Flag()]``: ``true`` or ``false``."""
+
+    def _metadata(self, tp: Any, nullable: bool) -> tuple[Any, ...]:
+        self._require(tp, bool)
+        return (_expect("true or false" + (" or null" if nullable else "")),)
+
+
+@dataclasses.dataclass(frozen=True)
+class Text(FieldType):
+    """``Annotated[str, Text()]``: a non-blank string (any string when ``empty``) matching ``pattern``;
+    ``Annotated[Literal["a", "b"], Text()]``: one of the literal's strings, with a "did you mean"."""
+
+    _: dataclasses.KW_ONLY
+    pattern: str | None = None
+    what: str | None = None
+    empty: bool = False
+
+    def _metadata(self, tp: Any, nullable: bool) -> tuple[Any, ...]:
+        choices: tuple[str, ...] = ()
+        if typing.get_origin(tp) is typing.Literal:
+            choices = typing.get_args(tp)
+            self._require(tuple(type(c) for c in choices), (str,) * len(choices))
+        else:
+            self._require(tp, str)
+        text = (
+            "one of " + ", ".join(choices)
+            if choices
+            else self.what or ("a string" if self.empty else "a non-empty string")
+        )
+        constraints: dict[str, Any] = {}
+        if self.pattern is not None:
+            constraints["pattern"] = self.pattern
+        elif not self.empty and not choices:
+            constraints["pattern"] = r"\S"
+        hint = (lambda v: did_you_mean(v, choices) if isinstance(v, str) else None) if choices else None
+        return Field(**constraints), _expect(text + (" or null" if nullable else ""), hint)
 
 
 def _one_or_many(value: Any) -> Any:
@@ -518,63 +580,91 @@ def _one_or_many(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value
 
 
-@functools.cache
-def Texts() -> Any:
-    """A list of non-blank strings (one string is a list of one); held as a tuple."""
-    return Annotated[
-        tuple[Annotated[str, Field(pattern=r"\S")], ...], BeforeValidator(_one_or_many), _expect("a list of strings")
-    ]
+@dataclasses.dataclass(frozen=True)
+class Texts(FieldType):
+    """``Annotated[tuple[str, ...], Texts()]``: a list of non-blank strings (one string is a list of one),
+    held as a tuple."""
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        self._require(source, tuple[str, ...])
+        return handler.generate_schema(
+            Annotated[
+                tuple[Annotated[str, Field(pattern=r"\S")], ...],
+                BeforeValidator(_one_or_many),
+                _expect("a list of strings"),
+            ]
+        )
 
 
-@functools.cache
-def Numbers(
-    n: int | None = None,
-    lo: float | None = None,
-    *,
-    lo_open: bool = False,
-    unit: str = "",
-    what: str | None = None,
-    min_length: int = 0,
-) -> Any:
-    """A list of ``n`` numbers (any length >= ``min_length`` when ``n`` is None), held as a tuple of floats.
+@dataclasses.dataclass(frozen=True)
+class Numbers(FieldType):
+    """``Annotated[tuple[float, ...], Numbers(n, lo)]``: a list of ``n`` numbers (any length >= ``min_length``
+    when ``n`` is None), held as a tuple of floats.
 
     The wrong shape is an error of the field (``expected a list of 3 finite numbers``); a bad element
     one of ``field[i]`` (``expected a finite number``)."""
-    elem_text = describe_range("a number", lo, None, lo_open) + (f" {unit}" if unit else "")
-    count = f"{n}" if n is not None else f"at least {min_length}"
-    text = what or f"a list of {count} finite numbers" + (
-        describe_range("", lo, None, lo_open) if lo is not None else ""
-    ) + (f" {unit}" if unit else "")
-    elem = pydantic.TypeAdapter(Number(lo, lo_open=lo_open, unit=unit))
 
-    def check(value: Any) -> tuple[float, ...]:
-        if hasattr(value, "tolist") and hasattr(value, "dtype"):
-            value = value.tolist()
-        if not isinstance(value, (list, tuple)) or (len(value) != n if n is not None else len(value) < min_length):
-            raise Invalid("", text, value)
-        out = []
-        for i, x in enumerate(value):
-            try:
-                out.append(elem.validate_python(x))
-            except ValidationError:
-                raise Invalid(f"[{i}]", elem_text, x) from None
-        return tuple(out)
+    n: int | None = None
+    lo: float | None = None
+    _: dataclasses.KW_ONLY
+    lo_open: bool = False
+    unit: str = ""
+    what: str | None = None
+    min_length: int = 0
 
-    return Annotated[tuple[float, ...], pydantic.PlainValidator(check)]
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        self._require(source, tuple[float, ...])
+        n, unit = self.n, self.unit
+        element = Number(self.lo, lo_open=self.lo_open, unit=unit)
+        elem_text = element.text()
+        count = f"{n}" if n is not None else f"at least {self.min_length}"
+        text = self.what or f"a list of {count} finite numbers" + (
+            describe_range("", self.lo, None, self.lo_open) if self.lo is not None else ""
+        ) + (f" {unit}" if unit else "")
+        elem = _adapter(Annotated[float, element])
+        min_length = self.min_length
+
+        def check(value: Any) -> tuple[float, ...]:
+            if hasattr(value, "tolist") and hasattr(value, "dtype"):
+                value = value.tolist()
+            if not isinstance(value, (list, tuple)) or (len(value) != n if n is not None else len(value) < min_length):
+                raise Invalid("", text, value)
+            out = []
+            for i, x in enumerate(value):
+                try:
+                    out.append(elem.validate_python(x))
+                except ValidationError:
+                    raise Invalid(f"[{i}]", elem_text, x) from None
+            return tuple(out)
+
+        return handler.generate_schema(Annotated[tuple[float, ...], pydantic.PlainValidator(check)])
 
 
-def Instance(*classes: type, what: str, check: Callable[[Any], bool] | None = None, nullable: bool = False) -> Any:
-    """A runtime object (an instance of one of ``classes``, or passing ``check``), not built from YAML."""
+class Instance(FieldType):
+    """``Annotated[C, Instance(C, what="a C")]``: a runtime object (an instance of one of ``classes``, or
+    passing ``check``), not built from YAML; ``C | None``: None too."""
 
-    def validate(value: Any) -> Any:
-        if value is None and nullable:
-            return None
-        ok = check(value) if check is not None else isinstance(value, classes)
-        if not ok:
-            raise Invalid("", what + (" or None" if nullable else ""), value)
-        return value
+    def __init__(self, *classes: type, what: str, check: Callable[[Any], bool] | None = None) -> None:
+        self.classes = classes
+        self.what = what
+        self.check = check
 
-    return Annotated[Any, pydantic.PlainValidator(validate)]
+    def __repr__(self) -> str:
+        return f"Instance({', '.join(c.__name__ for c in self.classes)}, what={self.what!r})"
+
+    def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
+        nullable = _split_none(source)[1]
+        what = self.what + (" or None" if nullable else "")
+
+        def validate(value: Any) -> Any:
+            if value is None and nullable:
+                return None
+            ok = self.check(value) if self.check is not None else isinstance(value, self.classes)
+            if not ok:
+                raise Invalid("", what, value)
+            return value
+
+        return handler.generate_schema(Annotated[Any, pydantic.PlainValidator(validate)])
 
 
 # --------------------------------------------------------------------------- the YAML loader

@@ -28,14 +28,14 @@ time (an ACK does not say which message it is for), retried every ``command_retr
 ``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot;
 ``CAMERA_TRACKING_IMAGE_STATUS`` (#275) and ``CAMERA_TRACKING_GEO_STATUS`` (#276).
 
-Input (issue 12, hostile links): UDP links use a socket of our own and parse **each datagram
+Input (hostile links): UDP links use a socket of our own and parse **each datagram
 alone** with a fresh parser, so a truncated or garbage datagram costs only itself
 (``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
 parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
 not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
 Output goes only to the locked autopilot's address (the source of its latest heartbeat, ``udpin``)
 or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
-system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkLinkConfig`.
+system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkConfig`.
 
 Link state: ``waiting`` (no autopilot heartbeat yet) -> ``connected`` -> ``lost`` (no heartbeat for
 ``heartbeat_timeout_s``) -> ``connected`` ...  :meth:`MavlinkLink.poll` never blocks and never
@@ -58,14 +58,14 @@ import socket
 import time
 from collections import OrderedDict
 from collections.abc import Callable
-from dataclasses import dataclass, field
-from typing import Any
+from dataclasses import dataclass
+from typing import Annotated, Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError
 from onboard.core.pose import ClockSync, PoseBuffer, RejectCounter
-from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
+from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
     CameraTrackingGeoStatus,
@@ -85,8 +85,8 @@ __all__ = [
     "LINK_CONNECTED",
     "LINK_LOST",
     "parse_connection",
-    "MavlinkLinkConfig",
     "MavlinkConfig",
+    "MAX_OUTSTANDING_TIMESYNC",
     "LinkStatus",
     "MavlinkLink",
     "load_signing_key",
@@ -130,12 +130,12 @@ parse_connection = parse_endpoint
 # --------------------------------------------------------------------------- config and status
 
 
-# the settings the link and its configuration section share, each declared (and validated) once
-ComponentId = Integer(1, 255)
-IntervalS = Number(0.0, 60.0, lo_open=True)
-RateHz = Number(0.0, 1000.0, lo_open=True)
-HeartbeatTimeoutS = Number(0.0, 600.0, lo_open=True)
-LockSettleS = Number(0.0, 60.0)
+#: TIMESYNC requests remembered for matching their answers (older ones are forgotten)
+MAX_OUTSTANDING_TIMESYNC = 16
+#: MAVLink system and component ids
+ComponentId = Annotated[int, Integer(1, 255)]
+IntervalS = Annotated[float, Number(0.0, 60.0, lo_open=True)]
+RateHz = Annotated[float, Number(0.0, 1000.0, lo_open=True)]
 _CONNECTION_TEXT = "a connection like udpin:0.0.0.0:14540, udpout:HOST:PORT, tcp:HOST:PORT or serial:/dev/ttyX[:BAUD]"
 
 
@@ -151,8 +151,13 @@ def _is_destination(dest: Any) -> bool:
 
 
 @config_dataclass
-class MavlinkLinkConfig:
-    """Timing and identity.  Seconds on the injected ``clock``; ids are MAVLink system/component ids.
+class MavlinkConfig:
+    """The ``mavlink`` section of the daemon's configuration (``config/onboard.yaml``; composed by
+    :class:`onboard.app.config.OnboardConfig`), which :class:`MavlinkLink` takes as is.  Seconds on the
+    link's ``clock``; ids are MAVLink system/component ids.
+
+    ``connection``: the autopilot endpoint; ``attitude_rate_hz`` / ``position_rate_hz`` /
+    ``gimbal_rate_hz``: the stream rates requested (#31, #33, #285 when the pod is gimballed).
 
     ``autopilot_sysid``: the system to follow.  None: lock onto a system whose ``autopilot_compid``
     heartbeats as an autopilot (MAV_TYPE not GCS/onboard/gimbal/camera/ADS-B, MAV_AUTOPILOT not INVALID)
@@ -161,59 +166,27 @@ class MavlinkLinkConfig:
     ``autopilot_ambiguous`` is counted: pin the id).  A stray heartbeat cannot win.  After the lock,
     another system heartbeating as an autopilot is counted (``second_autopilot``), never followed.
 
-    ``signing_key`` (32 bytes): MAVLink 2 signing on: unsigned, MAVLink 1, wrongly signed, replayed
-    and stale packets are refused and counted; everything we send is signed with ``signing_link_id``.
-    ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
-    (UDP links only; e.g. a ground-station endpoint of mavlink-router).
-
-    The daemon builds it from the ``mavlink`` section, :class:`MavlinkConfig` (:meth:`MavlinkConfig.link_config`);
-    the settings they share have one declaration each (``ComponentId``, ``IntervalS`` ... above).
+    ``signing_key_file`` / ``signing_key_env``: where the MAVLink 2 signing key is read from
+    (:meth:`signing_key`); with a key, unsigned, MAVLink 1, wrongly signed, replayed and stale packets
+    are refused and counted, and everything we send is signed.
     """
 
-    component_id: ComponentId = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
-    autopilot_sysid: Integer(1, 255, nullable=True) = None
-    autopilot_compid: ComponentId = mavlink2.MAV_COMP_ID_AUTOPILOT1
-    heartbeat_interval_s: IntervalS = 1.0
-    heartbeat_timeout_s: HeartbeatTimeoutS = 5.0
-    command_retry_s: IntervalS = 1.0
-    timesync_interval_s: IntervalS = 1.0
-    reopen_interval_s: IntervalS = 2.0
-    gimbal_rate_hz: RateHz = 50.0
-    max_outstanding_timesync: Integer(lo=1) = 16
-    lock_settle_s: LockSettleS = 1.5
-    signing_key: Instance(
-        bytes, what="32 bytes", check=lambda v: isinstance(v, bytes) and len(v) == 32, nullable=True
-    ) = field(default=None, repr=False)
-    signing_link_id: Integer(0, 255) = 0
-    extra_destinations: Instance(
-        tuple,
-        what="a tuple of (host, port 1..65535) pairs",
-        check=lambda v: isinstance(v, tuple) and all(map(_is_destination, v)),
-    ) = ()
-
-
-@config_dataclass
-class MavlinkConfig:
-    """The ``mavlink`` section of the daemon's configuration (``config/onboard.yaml``; composed by
-    :class:`onboard.app.config.OnboardConfig`): the autopilot link's endpoint, stream rates and signing
-    key source, and the :class:`MavlinkLinkConfig` settings in the same types (:meth:`link_config`)."""
-
-    connection: Text() = "udpin:127.0.0.1:14540"
+    connection: Annotated[str, Text()] = DEFAULT_CONNECTION
     attitude_rate_hz: RateHz = 50.0
     position_rate_hz: RateHz = 25.0
     gimbal_rate_hz: RateHz = 50.0
     heartbeat_interval_s: IntervalS = 1.0
-    heartbeat_timeout_s: HeartbeatTimeoutS = 5.0
+    heartbeat_timeout_s: Annotated[float, Number(0.0, 600.0, lo_open=True)] = 5.0
     command_retry_s: IntervalS = 1.0
     timesync_interval_s: IntervalS = 1.0
     reopen_interval_s: IntervalS = 2.0
-    autopilot_sysid: Integer(1, 255, nullable=True) = 1
-    lock_settle_s: LockSettleS = 1.5
-    signing_key_file: Text(nullable=True) = None
-    signing_key_env: Text(nullable=True) = None
-    autopilot_compid: ComponentId = 1
-    component_id: ComponentId = 191
-    poll_rate_hz: Number(100.0, 10000.0) = 200.0
+    autopilot_sysid: Annotated[int | None, Integer(1, 255)] = 1
+    lock_settle_s: Annotated[float, Number(0.0, 60.0)] = 1.5
+    signing_key_file: Annotated[str | None, Text()] = None
+    signing_key_env: Annotated[str | None, Text()] = None
+    autopilot_compid: ComponentId = mavlink2.MAV_COMP_ID_AUTOPILOT1
+    component_id: ComponentId = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
+    poll_rate_hz: Annotated[float, Number(100.0, 10000.0)] = 200.0
 
     def __post_init__(self) -> None:
         try:
@@ -227,9 +200,9 @@ class MavlinkConfig:
                 f"a timeout > mavlink.heartbeat_interval_s ({self.heartbeat_interval_s:g})",
                 self.heartbeat_timeout_s,
             )
-        self._signing_key()  # an unreadable or empty key fails at --check, naming its field
+        self._read_signing_key()  # an unreadable or empty key fails at --check, naming its field
 
-    def _signing_key(self) -> bytes | None:
+    def _read_signing_key(self) -> bytes | None:
         try:
             return load_signing_key(self.signing_key_file, self.signing_key_env)
         except ConfigError as exc:
@@ -243,25 +216,9 @@ class MavlinkConfig:
     def signing_key(self) -> bytes | None:
         """The MAVLink 2 signing key (reads ``signing_key_file`` or the ``signing_key_env`` variable), None = unsigned."""
         try:
-            return self._signing_key()
+            return self._read_signing_key()
         except Invalid as exc:
             raise SchemaError.make("<MavlinkConfig>", f"mavlink.{exc.field}", exc.expected, exc.got_text) from None
-
-    def link_config(self) -> MavlinkLinkConfig:
-        """The :class:`MavlinkLinkConfig` of this section."""
-        return MavlinkLinkConfig(
-            component_id=self.component_id,
-            autopilot_sysid=self.autopilot_sysid,
-            autopilot_compid=self.autopilot_compid,
-            heartbeat_interval_s=self.heartbeat_interval_s,
-            heartbeat_timeout_s=self.heartbeat_timeout_s,
-            command_retry_s=self.command_retry_s,
-            timesync_interval_s=self.timesync_interval_s,
-            reopen_interval_s=self.reopen_interval_s,
-            gimbal_rate_hz=self.gimbal_rate_hz,
-            lock_settle_s=self.lock_settle_s,
-            signing_key=self.signing_key(),
-        )
 
 
 @dataclass(frozen=True)
@@ -286,12 +243,6 @@ class _Inflight:
     interval_us: int
     sent_s: float
     attempts: int
-
-
-def _check_rate(name: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise ConfigError(f"MavlinkLink.{name} must be a positive rate in Hz, got {v!r}")
-    return float(v)
 
 
 # --------------------------------------------------------------------------- wire: parser and transports
@@ -485,6 +436,10 @@ class _Writer:
 class MavlinkLink:
     """The autopilot link.  Drive it with :meth:`poll` (drain input) and :meth:`tick` (timers).
 
+    ``config``: the ``mavlink`` section (:class:`MavlinkConfig`).  ``signing_key`` (32 bytes; default: the
+    section's :meth:`MavlinkConfig.signing_key`) signs everything we send with ``signing_link_id``.
+    ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
+    (UDP links only; e.g. a ground-station endpoint of mavlink-router).
     ``pose_buffer`` receives the telemetry; ``counters`` counts rejected input (share it with the
     buffer).  ``clock`` (s, monotonic) drives heartbeats, timeouts and retries and can be faked in
     tests; ``clock_ns`` stamps TIMESYNC and must be the clock that stamps camera frames, so that
@@ -493,48 +448,62 @@ class MavlinkLink:
 
     def __init__(
         self,
-        connection: str,
+        config: MavlinkConfig,
         pose_buffer: PoseBuffer,
         counters: RejectCounter,
-        gimballed: bool = False,
-        att_rate_hz: float = 50.0,
-        pos_rate_hz: float = 25.0,
-        clock: Callable[[], float] = time.monotonic,
         *,
+        gimballed: bool = False,
+        clock: Callable[[], float] = time.monotonic,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         clock_sync: ClockSync | None = None,
-        config: MavlinkLinkConfig | None = None,
+        signing_key: bytes | None = None,
+        signing_link_id: int = 0,
+        extra_destinations: tuple[tuple[str, int], ...] = (),
     ) -> None:
+        if not isinstance(config, MavlinkConfig):
+            raise ConfigError(f"MavlinkLink needs a MavlinkConfig, got {type(config).__name__}")
+        if signing_key is None:
+            signing_key = config.signing_key()
+        elif not isinstance(signing_key, bytes) or len(signing_key) != 32:
+            raise ConfigError(f"MavlinkLink.signing_key: expected 32 bytes, got {show(signing_key)}")
+        if isinstance(signing_link_id, bool) or not isinstance(signing_link_id, int) or not 0 <= signing_link_id <= 255:
+            raise ConfigError(f"MavlinkLink.signing_link_id: expected an integer in [0, 255], got {signing_link_id!r}")
+        if not isinstance(extra_destinations, tuple) or not all(map(_is_destination, extra_destinations)):
+            raise ConfigError(
+                "MavlinkLink.extra_destinations: expected a tuple of (host, port 1..65535) pairs, "
+                f"got {show(extra_destinations)}"
+            )
         #: called with (bytes, link name, peer address) for every read, before parsing (the flight recorder)
         self.raw_tap: Callable[[bytes, str, Any], Any] | None = None
-        self.endpoint = parse_connection(connection)
+        self.config = config
+        self.endpoint = parse_connection(config.connection)
         if bool(gimballed) != pose_buffer.mount.gimballed:
             raise ConfigError(
                 f"MavlinkLink.gimballed={bool(gimballed)} disagrees with the pose buffer's mount "
                 f"(CameraMount.gimballed={pose_buffer.mount.gimballed}); take both from the same config"
             )
-        self.config = config if config is not None else MavlinkLinkConfig()
         self._pose = pose_buffer
         self._counters = counters
         self.gimballed = bool(gimballed)
+        self._extra_destinations = extra_destinations
         #: GIMBAL_DEVICE_ATTITUDE_STATUS messages received, used or not (the watchdog's gimbal check)
         self.gimbal_reports = 0
         self._clock = clock
         self._clock_ns = clock_ns
         self.clock_sync = clock_sync if clock_sync is not None else ClockSync(counter=counters)
         rates = [
-            (MSG_ID_ATTITUDE_QUATERNION, _check_rate("att_rate_hz", att_rate_hz)),
-            (MSG_ID_GLOBAL_POSITION_INT, _check_rate("pos_rate_hz", pos_rate_hz)),
+            (MSG_ID_ATTITUDE_QUATERNION, config.attitude_rate_hz),
+            (MSG_ID_GLOBAL_POSITION_INT, config.position_rate_hz),
         ]
         if self.gimballed:
-            rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, float(self.config.gimbal_rate_hz)))
+            rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, config.gimbal_rate_hz))
         self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
 
         self._signing = mavlink2.MAVLinkSigning()
-        if self.config.signing_key is not None:
-            self._signing.secret_key = self.config.signing_key
+        if signing_key is not None:
+            self._signing.secret_key = signing_key
             self._signing.sign_outgoing = True
-            self._signing.link_id = self.config.signing_link_id
+            self._signing.link_id = signing_link_id
             # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
             self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
         self._transport: _UdpTransport | _StreamTransport | None = None
@@ -569,7 +538,7 @@ class MavlinkLink:
         try:
             if ep.kind in ("udpin", "udpout"):
                 _, host, port = ep.device.split(":")
-                self._transport = _UdpTransport(ep.kind, host, int(port), self.config.extra_destinations)
+                self._transport = _UdpTransport(ep.kind, host, int(port), self._extra_destinations)
             else:
                 kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
                 self._transport = _StreamTransport(
@@ -745,7 +714,7 @@ class MavlinkLink:
             self._on_ack(msg, now)
 
     def _settled(self, sysid: int, now: float) -> bool:
-        """Unpinned identity rule (see :class:`MavlinkLinkConfig`): True when ``sysid`` may be locked."""
+        """Unpinned identity rule (see :class:`MavlinkConfig`): True when ``sysid`` may be locked."""
         timeout = self.config.heartbeat_timeout_s
         c = self._candidates.get(sysid)
         if c is None or now - c[1] > timeout:
@@ -882,7 +851,7 @@ class MavlinkLink:
             self._last_ts_tx_s = now
             ts1 = int(self._clock_ns())
             self._ts_outstanding[ts1] = None
-            while len(self._ts_outstanding) > self.config.max_outstanding_timesync:
+            while len(self._ts_outstanding) > MAX_OUTSTANDING_TIMESYNC:
                 self._ts_outstanding.popitem(last=False)
             self._send("TIMESYNC", Timesync(0, ts1).to_message())
 

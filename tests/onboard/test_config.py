@@ -61,7 +61,7 @@ def test_defaults_are_valid_and_convert_to_core_objects():
     n = c.estimator.noise_model()
     assert n.attitude_bias_sigma_rad == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
     assert n.pixel_sigma_px == 0.3
-    lc = c.mavlink.link_config()
+    lc = c.mavlink
     assert (lc.component_id, lc.autopilot_compid, lc.heartbeat_timeout_s) == (191, 1, 5.0)
 
 
@@ -69,7 +69,7 @@ def test_pose_wait_and_extrapolation_defaults():
     """Issue 9 item 4: a frame is held a few ms at most, then extrapolated; #285 at 50 Hz."""
     c = OnboardConfig()
     assert c.pose.wait_ms == 5.0 and c.mavlink.gimbal_rate_hz == 50.0
-    assert c.mavlink.link_config().gimbal_rate_hz == 50.0
+    assert c.mavlink.gimbal_rate_hz == 50.0
     b = c.pose_buffer_config()
     assert (b.att_max_extrapolation_us, b.gimbal_max_extrapolation_us, b.pos_max_extrapolation_us) == (
         36_351,

@@ -12,7 +12,7 @@ import time
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
-from onboard.io.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkLinkConfig
+from onboard.io.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkConfig
 from tests.onboard.test_mavlink_link import AP_SYSID, WAIT_S, Rig
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -167,7 +167,7 @@ def test_two_autopilots_heartbeating_before_the_lock_are_ambiguous(rig, stranger
 
 
 def test_pinned_sysid_locks_at_once_and_ignores_others():
-    r = Rig(config=MavlinkLinkConfig(autopilot_sysid=AP_SYSID))
+    r = Rig(config=MavlinkConfig(autopilot_sysid=AP_SYSID))
     s = Stranger(r.port)
     try:
         s.send(s.pack(heartbeat_msg(), sysid=42))
@@ -239,7 +239,7 @@ OTHER_KEY = bytes(range(1, 33))
 
 @pytest.fixture
 def signed_rig():
-    r = Rig(config=MavlinkLinkConfig(autopilot_sysid=AP_SYSID, signing_key=KEY, signing_link_id=3))
+    r = Rig(config=MavlinkConfig(autopilot_sysid=AP_SYSID), signing_key=KEY, signing_link_id=3)
     r.ap.conn.setup_signing(KEY, sign_outgoing=True, link_id=1)
     r.close_also = None
     yield r
@@ -315,4 +315,4 @@ def test_signing_key_sources_and_errors(tmp_path):
     with pytest.raises(ConfigError, match="mavlink.signing_key_file"):
         build_config({"mavlink": {"signing_key_file": str(f)}})
     f.write_text(hexkey)
-    assert build_config({"mavlink": {"signing_key_file": str(f)}}).mavlink.link_config().signing_key == KEY
+    assert build_config({"mavlink": {"signing_key_file": str(f)}}).mavlink.signing_key() == KEY

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import select
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -21,7 +23,7 @@ from onboard.core.frames import (
     quat_rotate,
 )
 from onboard.core.pose import PoseBuffer, RejectCounter
-from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkLink, MavlinkLinkConfig
+from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkConfig, MavlinkLink
 from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
     Heartbeat,
@@ -41,6 +43,7 @@ ATOL_M = 0.02  # GLOBAL_POSITION_INT quantisation: 1e-7 deg ~ 1.1 cm, alt 1 mm
 ATOL_RAD = 1e-6  # float32 quaternion on the wire
 TIMESYNC_TOL_US = 20_000  # one-way delay asymmetry on a loaded 2-core box, generous
 LAT0, LON0, ALT0 = 47.3977, 8.5456, 488.0
+UNPINNED = MavlinkConfig(autopilot_sysid=None)  # lock onto whichever autopilot heartbeats
 
 
 def loopback_link(
@@ -48,7 +51,8 @@ def loopback_link(
     origin: GeodeticOrigin,
     *,
     gimballed: bool,
-    config: MavlinkLinkConfig | None = None,
+    config: MavlinkConfig | None = None,
+    link_kw: dict[str, Any] | None = None,
     pose_cls: type[PoseBuffer] = PoseBuffer,
     **counter_kw,
 ) -> tuple[FakeClock, RejectCounter, PoseBuffer, MavlinkLink]:
@@ -57,16 +61,17 @@ def loopback_link(
     clock = FakeClock()
     counter = RejectCounter(clock=clock, **counter_kw)
     pose = pose_cls(mount=CameraMount(gimballed=gimballed), origin=origin, counter=counter)
-    link = MavlinkLink(f"udpin:127.0.0.1:{port}", pose, counter, gimballed=gimballed, clock=clock, config=config)
+    config = dataclasses.replace(UNPINNED if config is None else config, connection=f"udpin:127.0.0.1:{port}")
+    link = MavlinkLink(config, pose, counter, gimballed=gimballed, clock=clock, **(link_kw or {}))
     return clock, counter, pose, link
 
 
 class Rig:
-    def __init__(self, gimballed: bool = False, config: MavlinkLinkConfig | None = None) -> None:
+    def __init__(self, gimballed: bool = False, config: MavlinkConfig | None = None, **link_kw: Any) -> None:
         self.port = free_udp_port()
         origin = GeodeticOrigin(LAT0, LON0, ALT0)
         self.clock, self.counters, self.pose, self.link = loopback_link(
-            self.port, origin, gimballed=gimballed, config=config
+            self.port, origin, gimballed=gimballed, config=config, link_kw=link_kw
         )
         self.ap = FakeAutopilot(self.port, sysid=AP_SYSID, mav_type=mav.MAV_TYPE_FIXED_WING)
 
@@ -429,19 +434,21 @@ def test_parse_endpoint_rejects_with_field_name(text):
 
 def test_bad_rates_and_config_are_config_errors():
     pose = PoseBuffer()
-    with pytest.raises(ConfigError, match="att_rate_hz"):
-        MavlinkLink("udpin:127.0.0.1:1", pose, RejectCounter(), att_rate_hz=0)
+    with pytest.raises(ConfigError, match="attitude_rate_hz"):
+        MavlinkLink(MavlinkConfig(connection="udpin:127.0.0.1:1", attitude_rate_hz=0), pose, RejectCounter())
     with pytest.raises(ConfigError, match="heartbeat_timeout_s"):
-        MavlinkLinkConfig(heartbeat_timeout_s=-1)
+        MavlinkConfig(heartbeat_timeout_s=-1)
     with pytest.raises(ConfigError, match="gimballed"):
-        MavlinkLink("udpin:127.0.0.1:1", pose, RejectCounter(), gimballed=True)
+        MavlinkLink(MavlinkConfig(connection="udpin:127.0.0.1:1"), pose, RejectCounter(), gimballed=True)
 
 
 def test_unopenable_connection_is_counted_and_retried():
     clock = FakeClock()
     counters = RejectCounter(clock=clock)
     port = free_udp_port()  # nothing listens on this TCP port: connect is refused
-    link = MavlinkLink(f"tcp:127.0.0.1:{port}", PoseBuffer(), counters, clock=clock)
+    link = MavlinkLink(
+        dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{port}"), PoseBuffer(), counters, clock=clock
+    )
     assert counters["mavlink_open_failed"] == 1 and link.poll() == 0
     link.tick()  # too early to retry
     assert counters["mavlink_open_failed"] == 1

@@ -126,20 +126,19 @@ def test_autopilot_link_output_is_byte_identical():
     from onboard.core.frames import CameraMount, GeodeticOrigin
     from onboard.core.pose import PoseBuffer, RejectCounter
     from onboard.io.follow import follow_target
-    from onboard.io.mavlink_link import MavlinkLink, MavlinkLinkConfig
+    from onboard.io.mavlink_link import MavlinkConfig, MavlinkLink
     from tests.onboard.test_camera_protocol import _track
 
     clock = FakeClock(1000.0)
     counters = RejectCounter(clock=clock)
     pose = PoseBuffer(mount=CameraMount(gimballed=True), origin=GeodeticOrigin(32.0, 118.8, 0.0), counter=counters)
     link = MavlinkLink(
-        "udpout:127.0.0.1:9",
+        MavlinkConfig(connection="udpout:127.0.0.1:9", autopilot_sysid=7, lock_settle_s=0.0),
         pose,
         counters,
         gimballed=True,
         clock=clock,
         clock_ns=clock.ns,
-        config=MavlinkLinkConfig(autopilot_sysid=7, lock_settle_s=0.0),
     )
     writes: list[bytes] = []
     inbox: list[bytes] = []
