@@ -41,7 +41,7 @@ from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
 from onboard.core.pose import PoseAt, PoseSample  # noqa: E402
 from onboard.core.track import Track, track_to_bytes  # noqa: E402
-from onboard.io.record import FlightRecorder, RecordSettings  # noqa: E402
+from onboard.io.record import FlightRecorder, RecordConfig  # noqa: E402
 
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(dir=args.dir) as d:
         path = os.path.join(d, "bench.mcap")
         rec = FlightRecorder(
-            RecordSettings(path, compression=args.compression, sync_bytes=int(args.sync_mb * 1e6)), vehicle="uav1"
+            RecordConfig(path=path, compression=args.compression, sync_mb=args.sync_mb), vehicle="uav1"
         )
         rec.start()
         dg = bytes(range(60))

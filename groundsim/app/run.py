@@ -887,7 +887,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
 def _start_recorder(config: RunConfig, core: SimCore):
     import time as _time
 
-    from onboard.io.record import FlightRecorder, RecordSettings
+    from onboard.io.record import FlightRecorder, RecordConfig
 
     meta = {
         "scenario": config.scenario.name,
@@ -897,7 +897,7 @@ def _start_recorder(config: RunConfig, core: SimCore):
         "rate": config.rate.text,
     }
     rec = FlightRecorder(
-        RecordSettings(str(config.record_path)),
+        RecordConfig(path=str(config.record_path)),
         vehicle=config.vehicle,
         metadata=meta,
         recorder="groundsim",

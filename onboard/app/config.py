@@ -63,7 +63,9 @@ from onboard.core.schema import (
     to_plain,
 )
 from onboard.imaging.preprocess import ImagingParams
+from onboard.io.live_view import LiveViewConfig
 from onboard.io.mavlink_link import MavlinkConfig, parse_connection
+from onboard.io.record import RecordConfig
 
 __all__ = [
     "OnboardConfigError",
@@ -334,33 +336,6 @@ class FollowConfig:
 
     enabled: Annotated[bool, Flag()] = False
     rate_hz: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 5.0
-
-
-@config_dataclass
-class RecordConfig:
-    """``record``: the flight recording, an MCAP file of the daemon's inputs and outputs (see :mod:`onboard.io.record`)."""
-
-    path: Annotated[str | None, Text(pattern=r"^.*\.mcap$", what="a file name ending in .mcap")] = None
-    frames: Annotated[bool, Flag()] = True
-    max_file_mb: Annotated[float, Number(1.0, 1_000_000.0)] = 2000.0
-    max_file_s: Annotated[float, Number(1.0, 86_400.0)] = 600.0
-    max_files: Annotated[int, Integer(0, 100_000)] = 0
-    chunk_kb: Annotated[int, Integer(16, 65_536)] = 1024
-    flush_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
-    compression: Annotated[Literal["none", "lz4", "zstd"], Text()] = "none"
-    queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
-    sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
-
-
-@config_dataclass
-class LiveViewConfig:
-    """``live_view``: the Foxglove WebSocket server for watching live (see :mod:`onboard.io.live_view`)."""
-
-    port: Annotated[int | None, Integer(1, 65535)] = None
-    host: Annotated[str, Text()] = "127.0.0.1"
-    queue_length: Annotated[int, Integer(1, 10_000)] = 32
-    los_length_m: Annotated[float, Number(0.0, 1_000_000.0, lo_open=True)] = 500.0
-    trail_points: Annotated[int, Integer(2, 100_000)] = 600
 
 
 @config_dataclass

@@ -526,10 +526,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     live = None
     try:
         if args.live_view is not None:
-            from onboard.io.live_view import LiveView, LiveViewSettings
+            from onboard.io.live_view import LiveView
 
             live = LiveView(
-                LiveViewSettings.from_config(config.live_view, port=args.live_view),
+                config.live_view,
+                port=args.live_view,
                 vehicle=config.vehicle,
                 intrinsics=config.camera.pinhole(),
             )

@@ -863,10 +863,10 @@ class OnboardService:
         self.recorder = None  # onboard.io.record.FlightRecorder (record.path / --record)
         pose_source = self.pose
         if config.record.path:
-            from onboard.io.record import FlightRecorder, RecordingPoseSource, RecordSettings
+            from onboard.io.record import FlightRecorder, RecordingPoseSource
 
             self.recorder = FlightRecorder(
-                RecordSettings.from_config(config.record),
+                config.record,
                 vehicle=config.vehicle,
                 metadata=_record_metadata(config),
                 clock_ns=clock_ns,
@@ -874,7 +874,7 @@ class OnboardService:
             pose_source = RecordingPoseSource(self.pose)  # remembers each frame's pose for the recording
         self.live_view = None  # onboard.io.live_view.LiveView (live_view.port / --live-view)
         if config.live_view.port is not None:
-            from onboard.io.live_view import LiveView, LiveViewSettings
+            from onboard.io.live_view import LiveView
             from onboard.io.record import RecordingPoseSource
 
             if not isinstance(pose_source, RecordingPoseSource):
@@ -891,7 +891,7 @@ class OnboardService:
         )
         if config.live_view.port is not None:
             self.live_view = LiveView(
-                LiveViewSettings.from_config(config.live_view),
+                config.live_view,
                 vehicle=config.vehicle,
                 intrinsics=self.pipeline.intrinsics,
             )

@@ -42,7 +42,7 @@ import pydantic
 import pydantic.dataclasses
 import yaml
 from pydantic import BeforeValidator, ConfigDict, Field, GetCoreSchemaHandler, ValidationError, WrapValidator
-from pydantic_core import core_schema
+from pydantic.annotated_handlers import core_schema  # pydantic's pydantic-core: the runtime list names pydantic
 
 from onboard.core.errors import ConfigError
 
@@ -264,7 +264,8 @@ def config_dataclass(
     fields are keyword-only."""
 
     def wrap(c: type[_T]) -> type[_T]:
-        dc = pydantic.dataclasses.dataclass(frozen=True, config=MODEL_CONFIG, kw_only=kw_only)(c)
+        # the class itself, turned into a pydantic dataclass (typed by pydantic as its PydanticDataclass protocol)
+        dc = typing.cast(type[_T], pydantic.dataclasses.dataclass(frozen=True, config=MODEL_CONFIG, kw_only=kw_only)(c))
         init = dc.__init__
 
         @functools.wraps(init)

@@ -34,19 +34,20 @@ The geometry (frustum, line of sight, ellipsoid) is pure numpy, in the functions
 from __future__ import annotations
 
 import collections
-import dataclasses
 import logging
 import math
 import threading
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_rotmat, rotmat_from_quat
+from onboard.core.schema import Integer, Number, Text, config_dataclass
 
 __all__ = [
-    "LiveViewSettings",
+    "LiveViewConfig",
+    "FRUSTUM_DEPTH_M",
     "LiveView",
     "ellipsoid_of_cov",
     "frustum_lines_ned",
@@ -67,39 +68,22 @@ NED_FRAME_ID = "ned"
 Q_ENU_FROM_NED = quat_from_rotmat(np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
 
 
-@dataclasses.dataclass(frozen=True)
-class LiveViewSettings:
-    """``port``: TCP port (0: any free one, see :attr:`LiveView.port`); ``host``: the address to bind.
-    ``queue_length``: items the publisher may lag behind; ``los_length_m``: the line of sight drawn
-    without a range; ``trail_points``: positions kept per trail; ``frustum_depth_m``: drawn camera size."""
+#: the camera's drawn size: the depth of its field-of-view pyramid, m
+FRUSTUM_DEPTH_M = 10.0
 
-    port: int
-    host: str = "127.0.0.1"
-    queue_length: int = 32
-    los_length_m: float = 500.0
-    trail_points: int = 600
-    frustum_depth_m: float = 10.0
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.port, int) or not 0 <= self.port <= 65535:
-            raise InputError(f"live_view.port: expected 0..65535, got {self.port!r}")
-        if not isinstance(self.host, str) or not self.host:
-            raise InputError(f"live_view.host: expected an address, got {self.host!r}")
-        if self.queue_length < 1 or self.trail_points < 2:
-            raise InputError("live_view: queue_length must be >= 1 and trail_points >= 2")
-        if not (self.los_length_m > 0 and self.frustum_depth_m > 0):
-            raise InputError("live_view: los_length_m and frustum_depth_m must be > 0")
+@config_dataclass
+class LiveViewConfig:
+    """``live_view``: the Foxglove WebSocket server for watching live (the daemon's section, composed by
+    :class:`onboard.app.config.OnboardConfig`).  ``port``: TCP port (null: off); ``host``: the address to
+    bind; ``queue_length``: items the publisher may lag behind; ``los_length_m``: the line of sight drawn
+    without a range; ``trail_points``: positions kept per trail."""
 
-    @classmethod
-    def from_config(cls, lc, port: int | None = None) -> LiveViewSettings:
-        """From an :class:`onboard.app.config.LiveViewConfig` (``port`` overrides ``lc.port``)."""
-        return cls(
-            port=int(lc.port if port is None else port),
-            host=lc.host,
-            queue_length=lc.queue_length,
-            los_length_m=lc.los_length_m,
-            trail_points=lc.trail_points,
-        )
+    port: Annotated[int | None, Integer(1, 65535)] = None
+    host: Annotated[str, Text()] = "127.0.0.1"
+    queue_length: Annotated[int, Integer(1, 10_000)] = 32
+    los_length_m: Annotated[float, Number(0.0, 1_000_000.0, lo_open=True)] = 500.0
+    trail_points: Annotated[int, Integer(2, 100_000)] = 600
 
 
 # --------------------------------------------------------------------------- geometry (pure)
@@ -155,12 +139,20 @@ def frustum_lines_ned(
 class LiveView:
     """A foxglove-sdk WebSocket server fed by non-blocking ``on_*`` calls (module docstring).
 
-    ``intrinsics``: a :class:`~onboard.core.frames.PinholeIntrinsics` for the frustum (None: no frustum)."""
+    ``settings``: the ``live_view`` section; ``port`` overrides its port (``--live-view PORT``; 0: any free
+    one, see :attr:`port`).  ``intrinsics``: a :class:`~onboard.core.frames.PinholeIntrinsics` for the
+    frustum (None: no frustum)."""
 
-    def __init__(self, settings: LiveViewSettings, *, vehicle: str = "uav1", intrinsics=None) -> None:
-        if not isinstance(settings, LiveViewSettings):
-            raise InputError(f"LiveView needs LiveViewSettings, got {type(settings).__name__}")
+    def __init__(
+        self, settings: LiveViewConfig, *, port: int | None = None, vehicle: str = "uav1", intrinsics=None
+    ) -> None:
+        if not isinstance(settings, LiveViewConfig):
+            raise InputError(f"LiveView needs a LiveViewConfig, got {type(settings).__name__}")
+        bind_port = settings.port if port is None else port
+        if isinstance(bind_port, bool) or not isinstance(bind_port, int) or not 0 <= bind_port <= 65535:
+            raise InputError(f"live_view.port: expected 0..65535, got {bind_port!r}")
         self.settings = settings
+        self._bind_port = bind_port
         self.vehicle = vehicle
         self.intrinsics = intrinsics
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
@@ -200,9 +192,11 @@ class LiveView:
         ctx = self._ctx = foxglove.Context()  # held: a collected context closes its channels
         s = self.settings
         try:
-            self._server = foxglove.start_server(name=f"irtrack {self.vehicle}", host=s.host, port=s.port, context=ctx)
+            self._server = foxglove.start_server(
+                name=f"irtrack {self.vehicle}", host=s.host, port=self._bind_port, context=ctx
+            )
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a bind failure
-            raise InputError(f"live_view: cannot serve on {s.host}:{s.port}: {exc}") from None
+            raise InputError(f"live_view: cannot serve on {s.host}:{self._bind_port}: {exc}") from None
 
         def json_channel(topic: str, schema: str):
             return foxglove.Channel(
@@ -228,7 +222,7 @@ class LiveView:
 
     @property
     def port(self) -> int:
-        return int(self._server.port) if self._server is not None else self.settings.port
+        return int(self._server.port) if self._server is not None else self._bind_port
 
     def close(self, timeout_s: float = 2.0) -> None:
         with self._cond:
@@ -433,7 +427,7 @@ class LiveView:
                 K.fy_px,
                 K.cx_px,
                 K.cy_px,
-                s.frustum_depth_m,
+                FRUSTUM_DEPTH_M,
             )
             cam_lines.append(
                 LinePrimitive(

@@ -63,7 +63,6 @@ from __future__ import annotations
 
 import base64
 import collections
-import dataclasses
 import datetime
 import json
 import logging
@@ -72,11 +71,12 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.core.schema import Flag, Integer, Number, Text, config_dataclass
 
 __all__ = [
     "FRAME_INPUT_SCHEMA",
@@ -86,7 +86,7 @@ __all__ = [
     "TARGET_FIX_TOPIC",
     "CAMERA_FIX_TOPIC",
     "TRUTH_TOPIC",
-    "RecordSettings",
+    "RecordConfig",
     "FlightRecorder",
     "RecordingPoseSource",
     "pose_to_json",
@@ -459,47 +459,38 @@ def rotated_path(path: str, index: int) -> str:
 # --------------------------------------------------------------------------- settings
 
 
-@dataclasses.dataclass(frozen=True)
-class RecordSettings:
-    """What the recorder needs (the daemon builds it from ``record:``; groundsim from its options)."""
+@config_dataclass
+class RecordConfig:
+    """``record``: the flight recording, an MCAP file of the daemon's inputs and outputs (the daemon's
+    section, composed by :class:`onboard.app.config.OnboardConfig`; groundsim builds one from its options).
+    Sizes in the file's units (MB, KB); :class:`FlightRecorder` reads them in bytes (``*_bytes``)."""
 
-    path: str
-    frames: bool = True
-    max_file_bytes: int = 2000 * MB
-    max_file_s: float = 600.0
-    max_files: int = 0
-    chunk_bytes: int = 1024 * 1024
-    flush_interval_s: float = 1.0
-    compression: str = "none"
-    queue_bytes: int = 64 * MB
-    sync_bytes: int = 8 * MB
+    path: Annotated[str | None, Text(pattern=r"^.*\.mcap$", what="a file name ending in .mcap")] = None
+    frames: Annotated[bool, Flag()] = True
+    max_file_mb: Annotated[float, Number(1.0, 1_000_000.0)] = 2000.0
+    max_file_s: Annotated[float, Number(1.0, 86_400.0)] = 600.0
+    max_files: Annotated[int, Integer(0, 100_000)] = 0
+    chunk_kb: Annotated[int, Integer(16, 65_536)] = 1024
+    flush_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
+    compression: Annotated[Literal["none", "lz4", "zstd"], Text()] = "none"
+    queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
+    sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
 
-    def __post_init__(self) -> None:
-        if not isinstance(self.path, str) or not self.path.endswith(".mcap"):
-            raise InputError(f"record.path: expected a file name ending in .mcap, got {self.path!r}")
-        if self.compression not in ("none", "lz4", "zstd"):
-            raise InputError(f"record.compression: expected none, lz4 or zstd, got {self.compression!r}")
-        if self.sync_bytes < 0:
-            raise InputError(f"record.sync_mb: expected >= 0, got {self.sync_bytes / MB!r}")
-        for name in ("max_file_bytes", "chunk_bytes", "queue_bytes"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"record.{name}: expected > 0, got {getattr(self, name)!r}")
+    @property
+    def max_file_bytes(self) -> int:
+        return int(self.max_file_mb * MB)
 
-    @classmethod
-    def from_config(cls, rc, path: str | None = None) -> RecordSettings:
-        """From an :class:`onboard.app.config.RecordConfig` (``path`` overrides ``rc.path``)."""
-        return cls(
-            path=path or rc.path,
-            frames=rc.frames,
-            max_file_bytes=int(rc.max_file_mb * MB),
-            max_file_s=rc.max_file_s,
-            max_files=rc.max_files,
-            chunk_bytes=rc.chunk_kb * 1024,
-            flush_interval_s=rc.flush_interval_s,
-            compression=rc.compression,
-            queue_bytes=int(rc.queue_mb * MB),
-            sync_bytes=int(rc.sync_mb * MB),
-        )
+    @property
+    def chunk_bytes(self) -> int:
+        return self.chunk_kb * 1024
+
+    @property
+    def queue_bytes(self) -> int:
+        return int(self.queue_mb * MB)
+
+    @property
+    def sync_bytes(self) -> int:
+        return int(self.sync_mb * MB)
 
 
 class RecordingPoseSource:
@@ -538,7 +529,7 @@ class FlightRecorder:
 
     def __init__(
         self,
-        settings: RecordSettings,
+        settings: RecordConfig,
         *,
         vehicle: str = "uav1",
         metadata: Mapping[str, str] | None = None,
@@ -546,9 +537,12 @@ class FlightRecorder:
         clock_ns: Callable[[], int] = time.monotonic_ns,
         wall_ns: Callable[[], int] = time.time_ns,
     ) -> None:
-        if not isinstance(settings, RecordSettings):
-            raise InputError(f"FlightRecorder needs RecordSettings, got {type(settings).__name__}")
+        if not isinstance(settings, RecordConfig):
+            raise InputError(f"FlightRecorder needs a RecordConfig, got {type(settings).__name__}")
+        if settings.path is None:
+            raise InputError("record.path: expected a file name ending in .mcap, got null")
         self.settings = settings
+        self.path: str = settings.path
         self.vehicle = vehicle
         self._meta = {str(k): str(v) for k, v in (metadata or {}).items()}
         self._meta.setdefault("vehicle", vehicle)
@@ -728,7 +722,7 @@ class FlightRecorder:
         from onboard.io.mcap_chunks import ChunkWriter
 
         s = self.settings
-        path = rotated_path(s.path, index)
+        path = rotated_path(self.path, index)
         d = os.path.dirname(os.path.abspath(path))
         os.makedirs(d, exist_ok=True)
         self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)

@@ -24,7 +24,7 @@ from onboard.io.live_view import (
     Q_ENU_FROM_NED,
     SCENE_TOPIC,
     LiveView,
-    LiveViewSettings,
+    LiveViewConfig,
     ellipsoid_of_cov,
     frustum_lines_ned,
     los_segment_ned,
@@ -83,7 +83,7 @@ def test_enu_from_ned_maps_north_to_y_and_down_to_minus_z():
 
 def test_settings_refuse_a_bad_port():
     with pytest.raises(InputError, match="live_view.port"):
-        LiveViewSettings(port=70000)
+        LiveView(LiveViewConfig(), port=70000)
 
 
 # --------------------------------------------------------------------------- never stalls: drop and count
@@ -100,7 +100,7 @@ class _Sinks:
 
 
 def test_a_full_queue_drops_and_counts_instead_of_waiting():
-    lv = LiveView(LiveViewSettings(port=0, queue_length=3))  # not started: nothing drains the queue
+    lv = LiveView(LiveViewConfig(queue_length=3), port=0)  # not started: nothing drains the queue
     lv._ch["frame"] = _Sinks()
     assert lv.on_frame(_Frame())
     assert not lv.on_frame(_Frame())  # one frame queued at most
@@ -181,7 +181,7 @@ def test_a_plain_websocket_client_subscribes_and_receives_frames_tracks_and_the_
 
     from onboard.core.irframe import IrFrame
 
-    lv = LiveView(LiveViewSettings(port=0), vehicle="uav1")
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")
     lv.start()
     try:
         assert lv.port > 0

@@ -22,7 +22,7 @@ from onboard.core.track import Track
 from onboard.io.record import (
     FRAME_INPUT_TOPIC,
     FlightRecorder,
-    RecordSettings,
+    RecordConfig,
     irframe_from_rawimage,
     pose_from_json,
     pose_to_json,
@@ -78,9 +78,7 @@ def test_pose_from_json_names_the_missing_field():
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
 def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path, dtype):
     path = tmp_path / "f.mcap"
-    rec = FlightRecorder(
-        RecordSettings(str(path), chunk_bytes=64 * 1024), vehicle="uav7", metadata={"config_yaml": "a: 1\n"}
-    )
+    rec = FlightRecorder(RecordConfig(path=str(path), chunk_kb=64), vehicle="uav7", metadata={"config_yaml": "a: 1\n"})
     rec.start()
     frames = [_frame(i, dtype) for i in range(20)]
     for i, fr in enumerate(frames):
@@ -150,8 +148,16 @@ def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path
     assert meta[0].metadata["vehicle"] == "uav7"
 
 
+def below_floors(config: RecordConfig, **sizes: float) -> RecordConfig:
+    """``config`` with sizes under the section's floors (1 MB files and queue, 16 KB chunks), set past its
+    validation, so that a few small frames reach the bounds the recorder enforces."""
+    for name, value in sizes.items():
+        object.__setattr__(config, name, value)
+    return config
+
+
 def test_backlog_beyond_queue_is_dropped_and_counted_without_blocking(tmp_path):
-    rec = FlightRecorder(RecordSettings(str(tmp_path / "d.mcap"), queue_bytes=10_000), vehicle="uav1")
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(tmp_path / "d.mcap")), queue_mb=0.01), vehicle="uav1")
     # not started: nothing drains the queue, so the bound is what stops it
     fr = _frame(1)  # 3072 pixel bytes + 100
     t0 = time.perf_counter()
@@ -166,8 +172,10 @@ def test_backlog_beyond_queue_is_dropped_and_counted_without_blocking(tmp_path):
 def test_rotation_by_size_keeps_max_files(tmp_path):
     path = str(tmp_path / "r.mcap")
     rec = FlightRecorder(
-        RecordSettings(
-            path, max_file_bytes=20_000, max_files=2, compression="none", chunk_bytes=4096, flush_interval_s=0.05
+        below_floors(
+            RecordConfig(path=path, max_files=2, compression="none", flush_interval_s=0.05),
+            max_file_mb=0.02,
+            chunk_kb=4,
         ),
         vehicle="uav1",
     )
@@ -191,8 +199,8 @@ _CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {repo!r})
     from tests.onboard.test_record import _frame
-    from onboard.io.record import FlightRecorder, RecordSettings
-    rec = FlightRecorder(RecordSettings({path!r}, chunk_bytes=16 * 1024, flush_interval_s=0.1), vehicle="uav1")
+    from onboard.io.record import FlightRecorder, RecordConfig
+    rec = FlightRecorder(RecordConfig(path={path!r}, chunk_kb=16, flush_interval_s=0.1), vehicle="uav1")
     rec.start()
     i = 0
     while True:

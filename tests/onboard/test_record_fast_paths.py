@@ -17,7 +17,7 @@ from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
 from onboard.core.irframe import IrFrame
 from onboard.io.record import (
     FlightRecorder,
-    RecordSettings,
+    RecordConfig,
     _fix_fields,
     geodetic_from_ned_scalar,
     rawimage_bytes,
@@ -57,7 +57,7 @@ def test_periodic_sync_keeps_the_file_whole(tmp_path):
     from mcap.reader import make_reader
 
     path = str(tmp_path / "s.mcap")
-    rec = FlightRecorder(RecordSettings(path, sync_bytes=200_000, chunk_bytes=64 * 1024), vehicle="uav1")
+    rec = FlightRecorder(RecordConfig(path=path, sync_mb=0.2, chunk_kb=64), vehicle="uav1")
     rec.start()
     px = np.full((120, 160), 9, np.uint8)
     for i in range(40):
@@ -85,7 +85,7 @@ def test_mavlink_json_is_json_dumps_of_the_documented_object(data, link, source,
     import base64
     import json
 
-    rec = FlightRecorder(RecordSettings("/nonexistent/never_opened.mcap"), vehicle="uav1")
+    rec = FlightRecorder(RecordConfig(path="/nonexistent/never_opened.mcap"), vehicle="uav1")
     src = None if source is None else (f"{source[0]}:{source[1]}" if isinstance(source, tuple) else str(source))
     ref = json.dumps(
         {
