@@ -166,7 +166,9 @@ class IntrinsicsConfig(PinholeSection):
     cy_px: Annotated[float | None, Number()] = None
     width_px: Annotated[int, Integer(16, 100000)] = 640
     height_px: Annotated[int, Integer(16, 100000)] = 512
-    distortion: Annotated[tuple[float, ...], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")] = (
+    distortion: Annotated[
+        tuple[float, float, float, float, float], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")
+    ] = (
         0.0,
         0.0,
         0.0,
@@ -181,7 +183,7 @@ class IntrinsicsConfig(PinholeSection):
 class MountConfig:
     """``camera.mount``: the pod on the airframe (``CameraMount.from_euler_deg``)."""
 
-    lever_arm_frd_m: Annotated[tuple[float, ...], Numbers(3)] = (0.0, 0.0, 0.0)
+    lever_arm_frd_m: Annotated[tuple[float, float, float], Numbers(3)] = (0.0, 0.0, 0.0)
     roll_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     pitch_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     yaw_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0

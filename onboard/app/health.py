@@ -31,6 +31,7 @@ import sys
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import NoReturn
 
 from onboard.core.errors import ConfigError
 
@@ -93,10 +94,10 @@ class Liveness:
 
     def describe(self, path: str) -> str:
         """One line for the health log."""
+        if self.age_s is None:  # exactly when the file is missing (__post_init__)
+            return f"NOT alive: {path} does not exist (the pipeline has not started or cannot write it)"
         if self.reason == REASON_OK:
             return f"alive: {path} touched {self.age_s:.1f} s ago (limit {self.max_age_s:g} s)"
-        if self.reason == REASON_MISSING:
-            return f"NOT alive: {path} does not exist (the pipeline has not started or cannot write it)"
         if self.reason == REASON_STALE:
             return f"NOT alive: {path} last touched {self.age_s:.1f} s ago (limit {self.max_age_s:g} s)"
         return (
@@ -174,7 +175,7 @@ class _ProbeArgumentError(Exception):
 class _ProbeParser(argparse.ArgumentParser):
     """argparse exits with 2 on bad options; a HEALTHCHECK must not (Docker reserves 2)."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         raise _ProbeArgumentError(message)
 
 

@@ -599,7 +599,7 @@ class Texts(FieldType):
 
 @dataclasses.dataclass(frozen=True)
 class Numbers(FieldType):
-    """``Annotated[tuple[float, ...], Numbers(n, lo)]``: a list of ``n`` numbers (any length >= ``min_length``
+    """``Annotated[tuple[float, ...], Numbers(n, lo)]`` (or ``tuple[float, float, float]`` for ``n`` = 3 ...): a list of ``n`` numbers (any length >= ``min_length``
     when ``n`` is None), held as a tuple of floats.
 
     The wrong shape is an error of the field (``expected a list of 3 finite numbers``); a bad element
@@ -614,7 +614,9 @@ class Numbers(FieldType):
     min_length: int = 0
 
     def __get_pydantic_core_schema__(self, source: Any, handler: GetCoreSchemaHandler) -> core_schema.CoreSchema:
-        self._require(source, tuple[float, ...])
+        shapes = [(float, ...)] + ([] if self.n is None else [(float,) * self.n])  # e.g. tuple[float, float, float]
+        if typing.get_origin(source) is not tuple or typing.get_args(source) not in shapes:
+            raise TypeError(f"{self!r} annotates {source!r}; it checks tuple[float, ...] or a tuple of {self.n} floats")
         n, unit = self.n, self.unit
         element = Number(self.lo, lo_open=self.lo_open, unit=unit)
         elem_text = element.text()

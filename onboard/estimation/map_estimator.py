@@ -381,6 +381,7 @@ class WindowProblem:
     ):
         self.obs, self.grid, self.first, self.count = obs, grid, first, count
         self.prior, self.noise, self.config = prior, noise, config
+        self._nuis: list[tuple[int, int, float]] | None = None  # _nuisances(), computed once
         F = len(obs)
         self.F = F
         self.rows = grid.basis(obs.t_s, first, count)
@@ -600,8 +601,10 @@ class WindowProblem:
             logdet += -2 * math.log(self.prior.turn_rate_sigma_radps)
         return float(logdet)
 
-    def _nuisances(self):
-        if getattr(self, "_nuis", None) is not None:
+    def _nuisances(self) -> list[tuple[int, int, float]]:
+        """(first column, size, prior sigma) of each nuisance block: turn rate, attitude bias, position
+        offset, position drift (those the noise model has)."""
+        if self._nuis is not None:
             return self._nuis
         out = []
         if self.i_omega is not None:

@@ -178,12 +178,13 @@ def evaluate(truth_p_ned_m, est_p_ned_m, cam_p_ned_m, cov=None, origin_ned_m=(0.
             outside_3sigma_axis_fraction=tuple(float(f) for f in np.mean(np.abs(e) > 3.0 * sig, axis=0)),
             nees=nees,
         )
+    rmse_n, rmse_e, rmse_d = (float(v) for v in np.sqrt(np.mean(e**2, axis=0)))
     return ErrorReport(
         frames=n,
         paper_relative_error=float(np.mean(en / d_origin)),
         range_normalised_error=float(np.mean(en / rng)),
         rmse_m=float(np.sqrt(np.mean(en**2))),
-        rmse_ned_m=tuple(float(v) for v in np.sqrt(np.mean(e**2, axis=0))),
+        rmse_ned_m=(rmse_n, rmse_e, rmse_d),
         mean_error_m=float(np.mean(en)),
         max_error_m=float(np.max(en)),
         error_norm_m=en,

@@ -34,7 +34,7 @@ class Observations:
     cy_px: np.ndarray
     p_cam_ned_m: np.ndarray
     q_ned_from_cam: np.ndarray
-    xy_norm: np.ndarray = field(default=None)  # type: ignore[assignment]
+    xy_norm: np.ndarray = field(default=None)  # type: ignore[arg-type]  # None: derived from the pixels here
     R_ned_from_cam: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -69,10 +69,10 @@ class Observations:
         if np.any(self.fx_px <= 0) or np.any(self.fy_px <= 0):
             raise InputError("Observations.fx_px/fy_px: focal lengths must be > 0")
         norms = np.linalg.norm(self.q_ned_from_cam, axis=1)
-        bad = np.flatnonzero(np.abs(norms - 1.0) > QUAT_NORM_TOL)
-        if bad.size:
+        off_unit = np.flatnonzero(np.abs(norms - 1.0) > QUAT_NORM_TOL)
+        if off_unit.size:
             raise InputError(
-                f"Observations.q_ned_from_cam: row {int(bad[0])} quaternion norm {norms[bad[0]]:.6g} "
+                f"Observations.q_ned_from_cam: row {int(off_unit[0])} quaternion norm {norms[off_unit[0]]:.6g} "
                 f"is not 1 within {QUAT_NORM_TOL}"
             )
         object.__setattr__(self, "q_ned_from_cam", check_unit_quat(self.q_ned_from_cam, "Observations.q_ned_from_cam"))
@@ -121,6 +121,8 @@ class Observations:
         """Observations sharing one camera model; distortion is removed from the pixels here."""
         uv = np.asarray(uv_px, dtype=float)
         n = uv.shape[0]
+        # with distortion, the ideal coordinates are computed here; without, __post_init__ derives them
+        given = {"xy_norm": intrinsics.normalized_from_pixel(uv)} if intrinsics.has_distortion else {}
         return cls(
             t_s=t_s,
             uv_px=uv,
@@ -130,7 +132,7 @@ class Observations:
             cy_px=np.full(n, intrinsics.cy_px),
             p_cam_ned_m=p_cam_ned_m,
             q_ned_from_cam=q_ned_from_cam,
-            xy_norm=intrinsics.normalized_from_pixel(uv) if intrinsics.has_distortion else None,
+            **given,
         )
 
     def bearings_ned(self) -> np.ndarray:

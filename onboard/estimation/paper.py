@@ -273,7 +273,7 @@ def _solve(Q, q, delta, order, refinement_tol, max_dense_frames) -> tuple[np.nda
         dx = sla.cho_solve_banded(
             (cf, True), -_residual_gradient(Q, q, delta, order, x).reshape(-1), check_finite=False
         ).reshape(F, 3)
-        rel = float(np.linalg.norm(dx) / max(np.linalg.norm(x), 1e-300))
+        rel = float(np.linalg.norm(dx) / max(float(np.linalg.norm(x)), 1e-300))
         if not math.isfinite(rel):
             raise np.linalg.LinAlgError("non-finite refinement")
         if rel <= refinement_tol:

@@ -14,7 +14,6 @@ estimation using temporal basis functions", ICRA 2012).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 
@@ -26,7 +25,8 @@ _M1 = np.array([[-3.0, 0.0, 3.0, 0.0], [6.0, -12.0, 6.0, 0.0], [-3.0, 9.0, -9.0,
 _M2 = np.array([[6.0, -12.0, 6.0, 0.0], [-6.0, 18.0, -18.0, 6.0]]) / 6.0
 
 
-class BasisRows(NamedTuple):
+@dataclass(frozen=True)
+class BasisRows:
     """Per-time rows of the basis: local control indices (N, 4) and weights for p, p', p''."""
 
     index: np.ndarray

@@ -120,7 +120,9 @@ def find_blobs(pre: Preprocessed, params: ImagingParams) -> list[Blob]:
     half = params.max_blob_side_px
     blobs: list[Blob] = []
     visited = 0
-    window, labels, covered = None, None, None
+    window: tuple[int, int, int, int] | None = None  # the first seed sets it, and labels with it
+    labels: np.ndarray = np.empty((0, 0), dtype=np.int32)
+    covered: np.ndarray | None = None
     while seeds.size and visited < MAX_SEEDS_VISITED and len(blobs) < params.max_candidates:
         si, sj = divmod(int(seeds[0]), rw)
         visited += 1

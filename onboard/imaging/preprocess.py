@@ -376,7 +376,7 @@ def preprocess_frame(image: np.ndarray, params: ImagingParams, region: Region | 
     ``NOISE_SUBSAMPLE_FULL_FRAME``-th row and column)."""
     h, w = image.shape
     full = region is None
-    if full:
+    if region is None:
         region = Region(0, 0, w, h)
     tophat = tophat_residual(image, region, params)
     med, sigma = robust_sigma(tophat, NOISE_SUBSAMPLE_FULL_FRAME if full else NOISE_SUBSAMPLE_REGION)

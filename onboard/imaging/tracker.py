@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import Enum
 
@@ -108,13 +109,19 @@ def create_kcf(params: ImagingParams):
     both feature sets non-empty, and the default (CN) needs 3 channels.  Works across
     opencv-contrib 4.x (``TrackerKCF_create``) and 5.x (``TrackerKCF.create``).
     """
-    p = cv2.TrackerKCF_Params()
+    p = cv2.TrackerKCF_Params()  # type: ignore[attr-defined]  # opencv-contrib: cv2's stubs list the main modules
     p.desc_pca = cv2.TrackerKCF_GRAY if hasattr(cv2, "TrackerKCF_GRAY") else cv2.TRACKER_KCF_GRAY
     p.desc_npca = p.desc_pca
     p.compressed_size = 1
     p.detect_thresh = float(params.kcf_detect_threshold)
-    factory = getattr(cv2.TrackerKCF, "create", None) or cv2.TrackerKCF_create
+    factory = getattr(cv2.TrackerKCF, "create", None) or cv2.TrackerKCF_create  # type: ignore[attr-defined]  # as above
     return factory(p)
+
+
+def _box4(box: Sequence[float]) -> tuple[float, float, float, float]:
+    """An (x, y, w, h) box (OpenCV's, a detection's) as four floats."""
+    x, y, w, h = box
+    return float(x), float(y), float(w), float(h)
 
 
 class TargetTracker:
@@ -135,7 +142,7 @@ class TargetTracker:
         self._next_track_id = 1
         self._frame_index = 0
         self._shape: tuple[int, int] | None = None
-        self._buf: np.ndarray | None = None
+        self._buf = np.zeros((0, 0), dtype=np.uint8)  # KCF's input image, allocated at the frame size
         self._buf_region: Region | None = None
         self._drop_track(TrackState.SEARCHING)
 
@@ -253,7 +260,7 @@ class TargetTracker:
         self._kcf_box: tuple[float, float, float, float] | None = None
         self._kcf_scale = 1.0
         self._box_px = self.params.kcf_box_px
-        self._uv: tuple[float, float] | None = None
+        self._uv = (0.0, 0.0)  # the track's position, set when a track starts (read only while there is one)
         self._vel = (0.0, 0.0)
         self._misses = 0
 
@@ -276,13 +283,17 @@ class TargetTracker:
             bx, by, bw, bh = self._kcf_box
             roi = roi.union(Region.around(bx + bw / 2, by + bh / 2, int(math.ceil(max(bw, bh))), w, h))
         pre = preprocess_frame(image, p, roi)
-        kcf_ok, kcf_box = self._kcf_step(pre)
-        if kcf_ok and math.hypot(kcf_box[0] + kcf_box[2] / 2 - pu, kcf_box[1] + kcf_box[3] / 2 - pv) > p.kcf_gate_px:
-            kcf_ok = False  # KCF jumped (onto noise or clutter): not a plausible motion
-        ref = (kcf_box[0] + kcf_box[2] / 2, kcf_box[1] + kcf_box[3] / 2) if kcf_ok else (pu, pv)
+        kcf_box = self._kcf_step(pre)  # None: KCF lost it (or has no track)
+        if (
+            kcf_box is not None
+            and math.hypot(kcf_box[0] + kcf_box[2] / 2 - pu, kcf_box[1] + kcf_box[3] / 2 - pv) > p.kcf_gate_px
+        ):
+            kcf_box = None  # KCF jumped (onto noise or clutter): not a plausible motion
+        kcf_ok = kcf_box is not None
+        ref = (kcf_box[0] + kcf_box[2] / 2, kcf_box[1] + kcf_box[3] / 2) if kcf_box is not None else (pu, pv)
         det = self._nearest(image, pre, ref)
         if det is not None:
-            if not kcf_ok or math.hypot(ref[0] - det.u_px, ref[1] - det.v_px) > p.max_drift_px:
+            if kcf_box is None or math.hypot(ref[0] - det.u_px, ref[1] - det.v_px) > p.max_drift_px:
                 self.kcf_reseeds += 1
                 self._seed_kcf(image, det, pre)
                 kcf_ok = False  # KCF missed or drifted off the blob on this frame
@@ -313,10 +324,12 @@ class TargetTracker:
             return TrackUpdate(TrackState.LOST, None, None, None, None, False, None, None, self._frame_index)
         self._state = TrackState.COASTING
         kcf_ok = kcf_ok and self._misses <= p.coast_frames
-        if kcf_ok:
+        u: float | None
+        v: float | None
+        if kcf_box is not None and kcf_ok:
             self._kcf_box = kcf_box
             u, v = kcf_box[0] + kcf_box[2] / 2, kcf_box[1] + kcf_box[3] / 2
-            box = tuple(float(x) for x in kcf_box)
+            box = _box4(kcf_box)
         else:
             if self._misses > p.coast_frames:
                 self._kcf, self._kcf_box = None, None
@@ -368,7 +381,7 @@ class TargetTracker:
     def _measured(self, det: Detection, kcf_ok: bool) -> TrackUpdate:
         self._state = TrackState.TRACKING
         self._misses = 0
-        box = tuple(float(x) for x in self._kcf_box) if self._kcf_box is not None else tuple(float(x) for x in det.bbox)
+        box = _box4(self._kcf_box if self._kcf_box is not None else det.bbox)
         return TrackUpdate(
             TrackState.TRACKING,
             det.u_px,
@@ -383,7 +396,7 @@ class TargetTracker:
         )
 
     def _clear_buffer(self) -> None:
-        if self._buf is not None and self._buf_region is not None:
+        if self._buf_region is not None:
             self._buf[self._buf_region.slices()] = 0
         self._buf_region = None
 
@@ -392,20 +405,21 @@ class TargetTracker:
         kcf_image_u8(pre, self._kcf_scale, out=self._buf[pre.region.slices()])
         self._buf_region = pre.region
 
-    def _kcf_step(self, pre: Preprocessed) -> tuple[bool, tuple[float, float, float, float] | None]:
+    def _kcf_step(self, pre: Preprocessed) -> tuple[float, float, float, float] | None:
+        """KCF's box on this frame, or None (no KCF, or it lost the target)."""
         if self._kcf is None:
             self._clear_buffer()
-            return False, None
+            return None
         self._fill_buffer(pre)
         try:
             ok, box = self._kcf.update(self._buf)
         except cv2.error as exc:  # a KCF failure must never stop the chain
             log.warning("KCF update failed (%s); re-seeding from detection", exc.err if hasattr(exc, "err") else exc)
             self._kcf, self._kcf_box = None, None
-            return False, None
+            return None
         if not ok:
-            return False, None
-        return True, tuple(float(x) for x in box)
+            return None
+        return _box4(box)
 
     def _seed_kcf(self, image: np.ndarray, det: Detection, pre: Preprocessed | None) -> None:
         """(Re)initialise KCF on a box centred on ``det`` over the thresholded residual."""
@@ -432,4 +446,4 @@ class TargetTracker:
             self._kcf, self._kcf_box = None, None
             return
         self._kcf = kcf
-        self._kcf_box = tuple(float(x) for x in box)
+        self._kcf_box = _box4(box)

@@ -486,7 +486,7 @@ class CameraProtocol:
         if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
             if self.stream is None or not math.isfinite(index) or index not in (0.0, 1.0):
                 return None
-            return [self._stream_message(msg_id)]
+            return [self._stream_message(self.stream, msg_id)]
         if msg_id == MSG_TRACKING_IMAGE_STATUS:
             return [self._image_status(track)]
         if msg_id == MSG_TRACKING_GEO_STATUS:
@@ -494,8 +494,8 @@ class CameraProtocol:
             return None if out is None else [out]
         return None
 
-    def _stream_message(self, msg_id: int) -> Outgoing:
-        s = self.stream
+    @staticmethod
+    def _stream_message(s: VideoStream, msg_id: int) -> Outgoing:
         common = dict(
             stream_id=1,
             flags=s.flags,
@@ -544,7 +544,9 @@ class CameraProtocol:
 
     def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
         msg_id = _msg_id(p1)
-        accepted, interval_s = requested_interval(p2, self._default_interval_s.get(msg_id), lambda us: us / 1e6)
+        accepted, interval_s = requested_interval(
+            p2, None if msg_id is None else self._default_interval_s.get(msg_id), lambda us: us / 1e6
+        )
         if msg_id not in self.interval_s or not accepted:
             return MAV_RESULT_DENIED
         self.interval_s[msg_id] = interval_s

@@ -30,7 +30,7 @@ def follow_target(track: Track | None) -> FollowTarget | None:
     """The FOLLOW_TARGET of ``track``, or None (no observable position, or a non-finite accuracy: an
     unknown accuracy must not go out looking like "exact")."""
     f = geo_status_fields(track, observable_only=True)
-    if f is None:
+    if f is None or track is None:  # no fields without a track
         return None
     pos = (f["lat_deg"], f["lon_deg"], f["alt_m"], f["h_acc_m"], f["v_acc_m"])
     if not all(v is not None and math.isfinite(v) for v in pos):

@@ -118,10 +118,11 @@ class GcsLink:
                     continue
                 self._route[src] = idx
                 if mtype == "COMMAND_LONG":
-                    params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+                    raw = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
                 else:
-                    params = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
-                params = tuple(float(p) if p is not None else math.nan for p in params)
+                    raw = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
+                p1, p2, p3, p4, p5, p6, p7 = (float(p) if p is not None else math.nan for p in raw)
+                params = (p1, p2, p3, p4, p5, p6, p7)
                 out.append(CameraCommand(int(msg.command), params, src[0], src[1]))
         return out
 
@@ -129,7 +130,7 @@ class GcsLink:
         """Send one message; returns on how many endpoints it was written."""
         if self.system_id is None:
             return 0
-        targets = range(len(self._conns))
+        targets: Sequence[int] = range(len(self._conns))
         if out.reply_to is not None and out.reply_to in self._route:
             targets = [self._route[out.reply_to]]
         n = 0

@@ -507,7 +507,7 @@ class MavlinkLink:
             # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
             self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
         self._transport: _UdpTransport | _StreamTransport | None = None
-        self._stream_parser: _Parser | None = None
+        self._stream_parser = _new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = _new_parser(
             self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id
         )
@@ -578,7 +578,7 @@ class MavlinkLink:
             return max(self._next_open_s - now, 0.0)
         cfg = self.config
         due = [self._last_hb_tx_s + cfg.heartbeat_interval_s] if self.autopilot_sysid is not None else []
-        if self.state == LINK_CONNECTED:
+        if self.state == LINK_CONNECTED and self._last_hb_rx_s is not None:  # connected: a heartbeat came
             due += [self._last_hb_rx_s + cfg.heartbeat_timeout_s, self._last_ts_tx_s + cfg.timesync_interval_s]
             if self._inflight is not None:
                 due.append(self._inflight.sent_s + cfg.command_retry_s)
@@ -590,7 +590,9 @@ class MavlinkLink:
     def peer_address(self):
         """Where UDP output goes besides ``extra_destinations``: the locked autopilot's address (udpin)."""
         t = self._transport
-        return None if t is None else (t.fixed if getattr(t, "fixed", None) else getattr(t, "peer", None))
+        if isinstance(t, _UdpTransport) and t.fixed:
+            return t.fixed
+        return None if t is None else getattr(t, "peer", None)
 
     def _send(self, what: str, msg) -> bool:
         """Write one message (a pymavlink message from :mod:`onboard.io.mavlink_wire`); False when closed or failed."""
@@ -642,7 +644,7 @@ class MavlinkLink:
         return handled
 
     def _feed(self, data: bytes, addr, now: float) -> int:
-        datagram = self._transport.datagrams
+        datagram = self._transport is not None and self._transport.datagrams
         if datagram:
             if len(data) > _MAX_DATAGRAM_PARSE_BYTES:
                 self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
@@ -772,6 +774,7 @@ class MavlinkLink:
         if not gim.attitude_usable:
             self._counters.count("gimbal_failure", f"failure_flags=0x{gim.failure_flags:x}")
             return
+        t_us: int | None
         if from_autopilot:
             t_us = gim.time_boot_us
         else:
@@ -830,7 +833,11 @@ class MavlinkLink:
             if now >= self._next_open_s:
                 self._open(now)
             return
-        if self.state == LINK_CONNECTED and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s:
+        if (
+            self.state == LINK_CONNECTED
+            and self._last_hb_rx_s is not None  # connected: a heartbeat came
+            and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s
+        ):
             self.state = LINK_LOST
             self.link_losses += 1
             self._inflight = None
@@ -877,6 +884,8 @@ class MavlinkLink:
         self._send_interval(self._inflight)
 
     def _send_interval(self, inf: _Inflight) -> None:
+        if self.autopilot_sysid is None:  # commands are serviced only while connected, i.e. to a locked system
+            return
         self._send(
             "SET_MESSAGE_INTERVAL",
             set_message_interval_message(

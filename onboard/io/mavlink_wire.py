@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -188,7 +189,7 @@ def wire_roundtrip(msg):
     return back
 
 
-def message_from_fields(name: str, fields: dict[str, Any]):
+def message_from_fields(name: str, fields: Mapping[str, Any]):
     """The message pymavlink names ``name`` (``"command_ack"``), from its fields in wire units (keyword
     arguments of pymavlink's ``<name>_encode``); for messages whose fields a protocol module builds."""
     encode = getattr(_ENCODER, f"{name}_encode", None)

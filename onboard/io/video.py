@@ -104,7 +104,7 @@ class AgcState:
 
     def update(self, pixels: np.ndarray, smoothing: float = AGC_SMOOTHING) -> tuple[float, float]:
         lo, hi = agc_limits(pixels)
-        if self.low is None:
+        if self.low is None or self.high is None:
             self.low, self.high = lo, hi
         else:
             self.low += smoothing * (lo - self.low)
@@ -188,7 +188,7 @@ class H264TsEncoder:
         s = self._container.add_stream("libx264", rate=int(round(fps)))
         s.width, s.height, s.pix_fmt = self.width_px, self.height_px, "yuv420p"
         s.bit_rate = int(bitrate_bps)
-        s.options = _x264_options(gop_frames, bitrate_bps)
+        s.options = dict(_x264_options(gop_frames, bitrate_bps))  # av types it dict[str, object]
         s.codec_context.thread_count = 1
         self._stream = s
         self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
@@ -385,6 +385,8 @@ class VideoStreamer:
         self.transport = transport
         self.overlay = bool(overlay)
         gop_frames = max(1, int(round(gop_s * fps)))
+        self._sink: _UdpRtpSink | _UdpTsSink
+        self._encoder: H264RtpEncoder | H264TsEncoder
         if transport == "rtp":
             self._sink = _UdpRtpSink(host, port)
             self._encoder = H264RtpEncoder(self._sink.send, width_px, height_px, fps, bitrate_bps, gop_frames)

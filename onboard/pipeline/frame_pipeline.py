@@ -56,7 +56,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import fields
-from typing import Any, Protocol
+from typing import Any, NoReturn, Protocol
 
 import numpy as np
 
@@ -327,7 +327,7 @@ class FramePipeline:
 
     # ------------------------------------------------------------------ admission
 
-    def _refuse(self, reason: str, message: str):
+    def _refuse(self, reason: str, message: str) -> NoReturn:
         self.frames_rejected += 1
         self.counter.count(f"frame_{reason}", message)
         raise FrameRejected(reason, message)
@@ -335,7 +335,7 @@ class FramePipeline:
     def _admit(self, frame: IrFrame) -> None:
         seq, t = frame.seq, frame.time_boot_us
         last_seq, last_t = self._last_seq, self._last_t_us
-        if last_t is None:
+        if last_t is None or last_seq is None:  # the first frame (both are set together)
             self._accept(seq, t)
             return
         seq_forward = 0 < (seq - last_seq) % SEQ_MOD < SEQ_MOD // 2
@@ -522,15 +522,16 @@ class FramePipeline:
         try:
             p = np.asarray(est.p_ned_m, dtype=float)
             lat, lon, alt = geodetic_from_ned(p, origin)
-            lon = (float(lon) + 180.0) % 360.0 - 180.0
+            lon_deg = (float(lon) + 180.0) % 360.0 - 180.0
+            p_n, p_e, p_d = (float(x) for x in p)
             cov_v = getattr(est, "cov_v_ned_m2ps2", None)
             ratio = getattr(est, "range_sigma_ratio", None)
             return Track(
                 **base,
                 lat_deg=float(lat),
-                lon_deg=lon,
+                lon_deg=lon_deg,
                 alt_m=float(alt),
-                p_ned_m=p,
+                p_ned_m=(p_n, p_e, p_d),
                 v_ned_mps=est.v_ned_mps,
                 cov_p_ned_m2=est.cov_p_ned_m2,
                 cov_v_ned_m2ps2=cov_v if cov_v is not None and np.all(np.isfinite(cov_v)) else None,

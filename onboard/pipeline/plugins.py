@@ -146,14 +146,14 @@ def _as_factory(obj: Any, name: str) -> Callable[[Any], Any]:
     if not callable(obj):
         raise ConfigError(f"plug-in {name!r}: expected a class or a function, got {type(obj).__name__}")
     try:
-        params = [
-            p
+        required = sum(
+            1
             for p in inspect.signature(obj).parameters.values()
             if p.default is inspect.Parameter.empty and p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)
-        ]
+        )
     except (TypeError, ValueError):  # builtins without a signature: called with the config
-        params = [None]
-    if len(params) == 0:
+        required = 1
+    if required == 0:
         return lambda _config: obj()
     return obj
 
@@ -186,12 +186,12 @@ def load_factory(name: str, group: str = ESTIMATORS, option: str = "--estimator"
         raise ConfigError(
             f"{option} {name}: module {module_name!r} does not import: {type(exc).__name__}: {exc}"
         ) from None
-    obj: Any = module
+    target: Any = module
     for part in attr.split("."):
-        if not hasattr(obj, part):
+        if not hasattr(target, part):
             raise ConfigError(f"{option} {name}: {module_name} has no attribute {attr!r}")
-        obj = getattr(obj, part)
-    return _as_factory(obj, name)
+        target = getattr(target, part)
+    return _as_factory(target, name)
 
 
 def build(name: str, config, group: str = ESTIMATORS, option: str = "--estimator"):
