@@ -7,9 +7,9 @@ the same for an already-parsed mapping.  Geometry is in local NED about ``origin
 
 The file schema is a set of models of the one config system (:mod:`onboard.core.schema`: strict
 pydantic v2 dataclasses, ``extra="forbid"``, one YAML loader): :class:`ScenarioFile` and the models
-it nests (one per YAML mapping, the motion models told apart by ``model``), and :class:`NoiseCaseFile`
-for ``config/noise_cases.yaml``; they build the runtime objects (:class:`Scenario`, :class:`NoiseCase`
-...), which are models of the same system too.  Validation is complete at load: unknown keys (with a
+it nests (one per YAML mapping, the motion models told apart by ``model``); they build the runtime
+objects (:class:`Scenario` ...), which are models of the same system too.  A case of
+``config/noise_cases.yaml`` is read straight into a :class:`NoiseCase`.  Validation is complete at load: unknown keys (with a
 "did you mean"), wrong types, wrong vector lengths, non-finite numbers, out-of-range values, unknown
 model names, inconsistent pairs (``t_min_k >= t_max_k``), bad YAML syntax and unreadable files all
 raise :class:`ScenarioError` (a :class:`~onboard.core.schema.SchemaError`), whose message is one line::
@@ -46,6 +46,7 @@ from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.frames import CameraMount, GeodeticOrigin, PinholeIntrinsics
 from onboard.core.schema import (
     MISSING_TEXT,
+    NOT_A_KEY,
     Instance,
     Integer,
     Invalid,
@@ -307,23 +308,32 @@ class Scenario:
 
 @_scenario_model
 class NoiseCase:
-    """Measurement noise of one evaluation case (``config/noise_cases.yaml``).
+    """Measurement noise of one evaluation case: one case of ``config/noise_cases.yaml`` (angles in degrees
+    there and here; ``*_rad`` in radians), ``name`` its key in the file.
 
-    ``pixel_sigma_px``: 1-sigma per image axis; ``attitude_white_sigma_rad`` / ``attitude_bias_sigma_rad``:
+    ``pixel_sigma_px``: 1-sigma per image axis; ``attitude_white_sigma_deg`` / ``attitude_bias_sigma_deg``:
     per-axis 1-sigma of white attitude noise and of a constant bias drawn once per run;
     ``camera_position_white_sigma_m``: per-axis white noise on the camera position;
     ``camera_position_offset_m``: size of a constant position offset; ``camera_position_drift_mps``:
     size of a constant position drift rate (the noise model draws their directions per run).
     """
 
-    name: _NAME
+    name: _NAME = dataclasses.field(metadata=NOT_A_KEY)
+    description: Annotated[str, Text(empty=True)] = dataclasses.field(default="", kw_only=True)
     pixel_sigma_px: Annotated[float, Number(lo=0.0)]
-    attitude_white_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
-    attitude_bias_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
+    attitude_white_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
+    attitude_bias_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
     camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
     camera_position_offset_m: Annotated[float, Number(lo=0.0)] = 0.0
     camera_position_drift_mps: Annotated[float, Number(lo=0.0)] = 0.0
-    description: Annotated[str, Text(empty=True)] = ""
+
+    @property
+    def attitude_white_sigma_rad(self) -> float:
+        return math.radians(self.attitude_white_sigma_deg)
+
+    @property
+    def attitude_bias_sigma_rad(self) -> float:
+        return math.radians(self.attitude_bias_sigma_deg)
 
 
 # --------------------------------------------------------------------------- the file schema
@@ -692,31 +702,6 @@ def reference_scenario_paths() -> dict[str, Path]:
 # --------------------------------------------------------------------------- noise cases
 
 
-@_scenario_model(kw_only=True)
-class NoiseCaseFile:
-    """One case of ``config/noise_cases.yaml`` (angles in degrees; :meth:`case` holds radians)."""
-
-    description: Annotated[str, Text(empty=True)] = ""
-    pixel_sigma_px: Annotated[float, Number(lo=0.0)]
-    attitude_white_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
-    attitude_bias_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_offset_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_drift_mps: Annotated[float, Number(lo=0.0)] = 0.0
-
-    def case(self, name: str) -> NoiseCase:
-        return NoiseCase(
-            name=name,
-            pixel_sigma_px=self.pixel_sigma_px,
-            attitude_white_sigma_rad=math.radians(self.attitude_white_sigma_deg),
-            attitude_bias_sigma_rad=math.radians(self.attitude_bias_sigma_deg),
-            camera_position_white_sigma_m=self.camera_position_white_sigma_m,
-            camera_position_offset_m=self.camera_position_offset_m,
-            camera_position_drift_mps=self.camera_position_drift_mps,
-            description=self.description,
-        )
-
-
 def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
     """Validate a parsed noise-case mapping ``{name: {fields}}`` (angles in degrees) into NoiseCases."""
     if not isinstance(d, dict) or not d:
@@ -726,7 +711,7 @@ def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
         if not isinstance(name, str) or not NAME_PATTERN.match(name):
             raise ScenarioError(source, "", "case names of letters, digits, '_', '.', '-'", name)
         try:
-            out[name] = build(NoiseCaseFile, c, name, none_is_default=False).case(name)
+            out[name] = build(NoiseCase, c, name, none_is_default=False, given={"name": name})
         except SchemaError as exc:
             raise exc.as_(ScenarioError, source) from None
     return out

@@ -52,6 +52,8 @@ __all__ = [
     "config_dataclass",
     "is_config_dataclass",
     "build",
+    "NOT_A_KEY",
+    "file_keys",
     "read_yaml",
     "show",
     "did_you_mean",
@@ -229,7 +231,7 @@ def _from_validation(
         inner = ctx.get("error")
         expected, got = "a consistent configuration", " ".join(str(inner if inner is not None else err["msg"]).split())
     elif kind == "unexpected_keyword_argument":
-        keys = tuple(f.name for f in dataclasses.fields(cls))
+        keys = file_keys(cls)
         expected = f"a key of {cls.__name__} ({', '.join(keys)})"
         got, hint = f"unknown key {loc[-1]!r}", did_you_mean(loc[-1], keys)
     elif kind.startswith("missing"):
@@ -323,12 +325,25 @@ def _model_choice(members: tuple[type, ...]) -> dict[str, type]:
     return out
 
 
-def build(cls: type, raw: Any, path: str = "", *, none_is_default: bool = True) -> Any:
-    """A config dataclass ``cls`` from a parsed mapping (None: the defaults); raises :class:`SchemaError`
-    whose field is the full path under ``path`` (source ``<ClassName>``; callers re-issue it with theirs)."""
+#: ``dataclasses.field(metadata=NOT_A_KEY)``: a field the program sets (e.g. a noise case's name, its key in
+#: the file), not a key of the mapping :func:`build` reads
+NOT_A_KEY = types.MappingProxyType({"file_key": False})
+
+
+def file_keys(cls: type) -> tuple[str, ...]:
+    """The keys of ``cls`` in a file: its fields but those marked :data:`NOT_A_KEY`."""
+    return tuple(f.name for f in dataclasses.fields(cls) if f.metadata.get("file_key", True))
+
+
+def build(
+    cls: type, raw: Any, path: str = "", *, none_is_default: bool = True, given: Mapping[str, Any] | None = None
+) -> Any:
+    """A config dataclass ``cls`` from a parsed mapping (None: the defaults) and the ``given`` values of its
+    :data:`NOT_A_KEY` fields; raises :class:`SchemaError` whose field is the full path under ``path``
+    (source ``<ClassName>``; callers re-issue it with theirs)."""
     if raw is None and none_is_default:
         raw = {}
-    names = [f.name for f in dataclasses.fields(cls)]
+    names = list(file_keys(cls))
     if not isinstance(raw, Mapping):
         raise SchemaError.make(
             f"<{cls.__name__}>", path, f"a mapping with keys {', '.join(names)}", show(raw), owner=cls.__name__
@@ -346,7 +361,18 @@ def build(cls: type, raw: Any, path: str = "", *, none_is_default: bool = True) 
             value = _build_value(hints[key], value, sub)
         kwargs[key] = value
     try:
-        return cls(**kwargs)
+        for key in kwargs:
+            if key not in names and key in {f.name for f in dataclasses.fields(cls)}:  # not one the file sets
+                raise SchemaError.make(
+                    f"<{cls.__name__}>",
+                    key,
+                    f"a key of {cls.__name__} ({', '.join(names)})",
+                    f"unknown key {key!r}",
+                    did_you_mean(key, names),
+                    keys=tuple(names),
+                    owner=cls.__name__,
+                )
+        return cls(**kwargs, **(given or {}))
     except SchemaError as exc:
         if exc.owner != cls.__name__:  # raised by a library object built inside: not ours to re-path
             raise
