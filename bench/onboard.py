@@ -268,7 +268,7 @@ def bench_processing(n_frames: int) -> None:
 
     def run(cfg: OnboardConfig, with_estimator: bool):
         counter = RejectCounter(log_interval_s=3600.0)
-        pose = PoseBuffer(mount=scene.mount, config=cfg.pose.buffer_config(), origin=scene.origin, counter=counter)
+        pose = PoseBuffer(mount=scene.mount, config=cfg.pose, origin=scene.origin, counter=counter)
         tracker = _Timed(make_tracker(cfg), "update")
         est = _Timed(make_estimator(cfg), "add") if with_estimator else None
         pipe = FramePipeline(cfg, pose, tracker, est, counter=counter)

@@ -511,7 +511,7 @@ def run_lockstep(
     cfg = onboard_config_for(scenario, base_config)
     K = cfg.camera.pinhole()
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
-    buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose.buffer_config(), cfg.pose.geodetic_origin())
+    buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose, cfg.pose.geodetic_origin())
     source = _RecordingPoseSource(buffer)
     if (
         options.estimator is not None

@@ -9,9 +9,11 @@ reads it too).  An unknown ``IRTRACK_<SECTION>_...`` variable of a known section
 
 The models are those of the one config system, :mod:`onboard.core.schema` (strict pydantic v2,
 ``extra="forbid"``, one YAML loader, one error format).  Sections are declared where they are consumed
-and composed here: ``pose`` is :class:`onboard.core.pose.PoseConfig` (beside the ``PoseBufferConfig`` it
-becomes), ``mavlink`` :class:`onboard.io.mavlink_link.MavlinkConfig` (beside ``MavlinkLinkConfig``, sharing
-its field types), ``imaging`` :class:`onboard.imaging.preprocess.ImagingParams` itself; the others are below.
+and composed here, each the one declaration of its settings, which its component takes as is: ``pose``
+:class:`onboard.core.pose.PoseConfig` (the pose buffer's), ``mavlink``
+:class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``imaging``
+:class:`onboard.imaging.preprocess.ImagingParams`, ``record`` :class:`onboard.io.record.RecordConfig`,
+``live_view`` :class:`onboard.io.live_view.LiveViewConfig`; the others are below.
 
 Every problem raises :class:`OnboardConfigError` (a :class:`~onboard.core.schema.SchemaError`), one line::
 
@@ -24,8 +26,8 @@ is a number (YAML 1.2), as in the scenario files.
 
 The schema, with defaults and meaning, is ``config/onboard.yaml`` (every field commented) and the
 dataclasses; angles are degrees and durations milliseconds/seconds as the names say, converted
-once into the radians/microseconds of the core objects (:meth:`CameraConfig.camera_mount`,
-:meth:`PoseConfig.buffer_config`, :meth:`EstimatorConfig.noise_model` ...).
+into the radians/microseconds of the core objects where they are read (:meth:`CameraConfig.camera_mount`,
+``PoseConfig.window_us``, :meth:`EstimatorConfig.noise_model` ...).
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ import yaml
 from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError
 from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
-from onboard.core.pose import OriginConfig, PoseConfig
+from onboard.core.pose import ExtrapolationHorizons, OriginConfig, PoseConfig
 from onboard.core.schema import (
     Flag,
     Instance,
@@ -382,9 +384,10 @@ class OnboardConfig:
         f_px = 0.5 * (k.fx_px + k.fy_px)
         return math.hypot(math.radians(e.attitude_white_sigma_deg), e.pixel_sigma_px / f_px)
 
-    def pose_buffer_config(self):
-        """:meth:`PoseConfig.buffer_config` with the horizons bounded by this configuration's bearing noise."""
-        return self.pose.buffer_config(self.bearing_white_sigma_rad())
+    def extrapolation_horizons(self) -> ExtrapolationHorizons:
+        """:meth:`PoseConfig.extrapolation_horizons` bounded by this configuration's bearing noise (those
+        of the daemon's pose buffer)."""
+        return self.pose.extrapolation_horizons(self.bearing_white_sigma_rad())
 
 
 # --------------------------------------------------------------------------- building from mappings

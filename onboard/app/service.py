@@ -840,9 +840,10 @@ class OnboardService:
         self._next_follow_s = -math.inf  # FOLLOW_TARGET pacing (follow_step)
         buffer = PoseBuffer(
             mount=self.mount,
-            config=config.pose_buffer_config(),
+            config=config.pose,
             origin=config.pose.geodetic_origin(),
             counter=self.counter,
+            bearing_white_sigma_rad=config.bearing_white_sigma_rad(),
         )
         self.pose = SharedPoseBuffer(buffer)
         self.queue = FrameQueue(config.input.queue_length)

@@ -104,12 +104,13 @@ from __future__ import annotations
 
 import bisect
 import enum
+import functools
 import logging
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal
+from typing import Annotated, Literal, NamedTuple
 
 import numpy as np
 
@@ -141,7 +142,7 @@ __all__ = [
     "PoseAt",
     "PoseLookup",
     "GimbalReference",
-    "PoseBufferConfig",
+    "ExtrapolationHorizons",
     "PoseConfig",
     "OriginConfig",
     "PoseBuffer",
@@ -446,71 +447,27 @@ class GimbalReference(str, enum.Enum):
     EARTH = "earth"
 
 
-@config_dataclass
-class PoseBufferConfig:
-    """Bounds and tolerances.  All times in microseconds on the boot clock.
+#: samples kept per stream at most (besides the window)
+MAX_SAMPLES = 4096
+#: consecutive far-off stamps that agree with each other: a clock step, not an outlier
+TIME_CONFIRM_COUNT = 3
+#: a position outside these altitudes (AMSL, m) is refused (``position_alt_out_of_range``)
+MIN_ALT_M, MAX_ALT_M = -1_000.0, 50_000.0
+#: gimbal samples that feed the rate fit when the gimbal reports no rate (us)
+GIMBAL_RATE_WINDOW_US = 100_000
 
-    ``window_us``: history kept per stream.  ``*_max_gap_us``: the widest bracket a lookup accepts
-    (the "pose tolerance": a frame whose bracket is wider has no pose and is not used for 3-D).
-    ``reboot_threshold_us``: a sample more than this before or after its stream's newest one is far
-    from the running clock: an outlier, refused (``<stream>_time_outlier``), unless
-    ``time_confirm_count`` consecutive such samples agree with each other (each after the previous,
-    by at most the threshold): then it is a clock step, backwards an autopilot reboot (buffers
-    cleared, ``reboot``), forwards a gap (``<stream>_time_step``).  One bad stamp costs one sample.
-    ``max_speed_mps``: a position implying a faster move from the previous one is a jump;
-    ``jump_reset_count`` consecutive jumps restart the position stream.
-    ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.
 
-    Extrapolation past the newest sample (module docstring; 0 disables it for that stream):
-    ``att_max_extrapolation_us`` (with the reported body rates), ``pos_max_extrapolation_us`` (with
-    the reported velocity), ``gimbal_max_extrapolation_us`` (with the reported or fitted gimbal
-    rate; ``gimbal_rate_window_us`` of samples feed the fit).  The error model of
-    :attr:`PoseAt.sigma_extrapolation_rad` / ``_m``: ``body_rate_sigma_rps``,
-    ``gimbal_rate_sigma_rps``, ``angular_accel_sigma_rps2``, ``velocity_sigma_mps``,
-    ``accel_sigma_mps2``.
+def _us(ms: float) -> int:
+    """Milliseconds as whole microseconds, at least 1."""
+    return max(1, int(round(ms * 1000.0)))
 
-    The daemon builds it from the ``pose`` section (:class:`PoseConfig`, milliseconds and degrees) with
-    :meth:`PoseConfig.buffer_config`; a :func:`~onboard.core.schema.config_dataclass`: a bad value raises
-    :class:`~onboard.core.schema.SchemaError` naming the field.
-    """
 
-    window_us: Annotated[int, Integer(lo=1)] = 5 * US_PER_S
-    max_samples: Annotated[int, Integer(lo=1)] = 4096
-    att_max_gap_us: Annotated[int, Integer(lo=1)] = 100_000
-    pos_max_gap_us: Annotated[int, Integer(lo=1)] = 300_000
-    gimbal_max_gap_us: Annotated[int, Integer(lo=1)] = 300_000
-    reboot_threshold_us: Annotated[int, Integer(lo=1)] = 1 * US_PER_S
-    time_confirm_count: Annotated[int, Integer(lo=1)] = 3
-    max_speed_mps: Annotated[float, Number(lo=0.0, lo_open=True)] = 200.0
-    jump_reset_count: Annotated[int, Integer(lo=1)] = 5
-    keep_origin_on_reboot: Annotated[bool, Flag()] = True
-    position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"
-    min_alt_m: Annotated[float, Number()] = -1_000.0
-    max_alt_m: Annotated[float, Number()] = 50_000.0
-    att_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 36_000
-    pos_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 50_000
-    gimbal_max_extrapolation_us: Annotated[int, Integer(lo=0)] = 25_000
-    gimbal_rate_window_us: Annotated[int, Integer(lo=0)] = 100_000
-    body_rate_sigma_rps: Annotated[float, Number(lo=0.0)] = math.radians(0.1)
-    gimbal_rate_sigma_rps: Annotated[float, Number(lo=0.0)] = math.radians(0.5)
-    angular_accel_sigma_rps2: Annotated[float, Number(lo=0.0)] = math.radians(20.0)
-    velocity_sigma_mps: Annotated[float, Number(lo=0.0)] = 0.1
-    accel_sigma_mps2: Annotated[float, Number(lo=0.0)] = 2.0
+class ExtrapolationHorizons(NamedTuple):
+    """How far past its newest sample each stream is extrapolated (us; 0: not at all)."""
 
-    def __post_init__(self) -> None:
-        if not self.min_alt_m < self.max_alt_m:
-            raise Invalid("max_alt_m", f"a number > min_alt_m ({self.min_alt_m:g})", self.max_alt_m)
-        for name in ("att_max_gap_us", "pos_max_gap_us", "gimbal_max_gap_us"):
-            if getattr(self, name) > self.window_us:
-                raise Invalid(name, f"an integer <= window_us ({self.window_us})", getattr(self, name))
-        for name, gap in (
-            ("att_max_extrapolation_us", "att_max_gap_us"),
-            ("pos_max_extrapolation_us", "pos_max_gap_us"),
-            ("gimbal_max_extrapolation_us", "gimbal_max_gap_us"),
-            ("gimbal_rate_window_us", "window_us"),
-        ):
-            if getattr(self, name) > getattr(self, gap):
-                raise Invalid(name, f"an integer <= {gap} ({getattr(self, gap)})", getattr(self, name))
+    attitude_us: int
+    position_us: int
+    gimbal_us: int
 
 
 @config_dataclass
@@ -528,9 +485,22 @@ class OriginConfig:
 @config_dataclass
 class PoseConfig:
     """The ``pose`` section of the daemon's configuration (``config/onboard.yaml``; composed by
-    :class:`onboard.app.config.OnboardConfig`): the pose buffer's tolerances in the file's units
-    (milliseconds, seconds, degrees), declared here, beside the :class:`PoseBufferConfig` they become
-    (:meth:`buffer_config`: ms/s -> us, deg -> rad)."""
+    :class:`onboard.app.config.OnboardConfig`), which :class:`PoseBuffer` takes as is: its tolerances in
+    the file's units (milliseconds, seconds, degrees), read by the buffer in microseconds and radians
+    through the properties below (``window_us``, ``att_max_gap_us`` ..., ``body_rate_sigma_rps`` ...).
+
+    ``*_max_gap_ms``: the widest bracket a lookup accepts (the "pose tolerance": a frame whose bracket
+    is wider has no pose and is not used for 3-D).  ``reboot_threshold_s``: a sample more than this
+    before or after its stream's newest one is far from the running clock: an outlier, refused
+    (``<stream>_time_outlier``), unless :data:`TIME_CONFIRM_COUNT` consecutive such samples agree with
+    each other (each after the previous, by at most the threshold): then it is a clock step, backwards
+    an autopilot reboot (buffers cleared, ``reboot``), forwards a gap (``<stream>_time_step``).  One bad
+    stamp costs one sample.  ``max_speed_mps``: a position implying a faster move from the previous one
+    is a jump; ``jump_reset_count`` consecutive jumps restart the position stream.
+    ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.  Extrapolation past the newest
+    sample (module docstring): :meth:`extrapolation_horizons`; the error model of
+    :attr:`PoseAt.sigma_extrapolation_rad` / ``_m``: the ``*_sigma_*`` fields.
+    """
 
     window_s: Annotated[float, Number(0.1, 600.0)] = 5.0
     attitude_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 100.0
@@ -556,42 +526,55 @@ class PoseConfig:
             if getattr(self, name) > self.window_s * 1000.0:
                 raise Invalid(name, f"a gap <= pose.window_s ({self.window_s:g} s)", getattr(self, name))
 
-    def buffer_config(self, bearing_white_sigma_rad: float | None = None) -> PoseBufferConfig:
-        """The :class:`PoseBufferConfig` (ms/s -> us, deg -> rad).
+    # the buffer's units, computed once per section
+    @functools.cached_property
+    def window_us(self) -> int:
+        return _us(self.window_s * 1000.0)
 
-        Extrapolation horizons (each capped by its stream's max gap): position
-        ``max_extrapolation_ms``; attitude and gimbal the same, shortened so that their added 1-sigma stays <= ``extrapolation_noise_fraction`` x
-        ``bearing_white_sigma_rad`` (:func:`attitude_horizon_us`; the service passes
-        ``OnboardConfig.bearing_white_sigma_rad()``; None: not shortened).
-        """
-        us = lambda ms: max(1, int(round(ms * 1000.0)))  # noqa: E731
+    @functools.cached_property
+    def att_max_gap_us(self) -> int:
+        return _us(self.attitude_max_gap_ms)
+
+    @functools.cached_property
+    def pos_max_gap_us(self) -> int:
+        return _us(self.position_max_gap_ms)
+
+    @functools.cached_property
+    def gimbal_max_gap_us(self) -> int:
+        return _us(self.gimbal_max_gap_ms)
+
+    @functools.cached_property
+    def reboot_threshold_us(self) -> int:
+        return _us(self.reboot_threshold_s * 1000.0)
+
+    @functools.cached_property
+    def body_rate_sigma_rps(self) -> float:
+        return math.radians(self.body_rate_sigma_dps)
+
+    @functools.cached_property
+    def gimbal_rate_sigma_rps(self) -> float:
+        return math.radians(self.gimbal_rate_sigma_dps)
+
+    @functools.cached_property
+    def angular_accel_sigma_rps2(self) -> float:
+        return math.radians(self.angular_accel_sigma_dps2)
+
+    def extrapolation_horizons(self, bearing_white_sigma_rad: float | None = None) -> ExtrapolationHorizons:
+        """How far each stream is extrapolated, each capped by its stream's max gap: position
+        ``max_extrapolation_ms``; attitude and gimbal the same, shortened so that their added 1-sigma stays
+        <= ``extrapolation_noise_fraction`` x ``bearing_white_sigma_rad`` (:func:`attitude_horizon_us`; the
+        service passes ``OnboardConfig.bearing_white_sigma_rad()``; None: not shortened)."""
         cap_us = int(round(self.max_extrapolation_ms * 1000.0))
-        body_rps, gim_rps = math.radians(self.body_rate_sigma_dps), math.radians(self.gimbal_rate_sigma_dps)
-        acc_rps2 = math.radians(self.angular_accel_sigma_dps2)
         if bearing_white_sigma_rad is None:
             att_us = gim_us = cap_us
         else:
             limit = self.extrapolation_noise_fraction * bearing_white_sigma_rad
-            att_us = attitude_horizon_us(limit, body_rps, acc_rps2, cap_us)
-            gim_us = attitude_horizon_us(limit, gim_rps, acc_rps2, cap_us)
-        return PoseBufferConfig(
-            att_max_extrapolation_us=min(att_us, us(self.attitude_max_gap_ms)),
-            pos_max_extrapolation_us=min(cap_us, us(self.position_max_gap_ms)),
-            gimbal_max_extrapolation_us=min(gim_us, us(self.gimbal_max_gap_ms)),
-            body_rate_sigma_rps=body_rps,
-            gimbal_rate_sigma_rps=gim_rps,
-            angular_accel_sigma_rps2=acc_rps2,
-            velocity_sigma_mps=self.velocity_sigma_mps,
-            accel_sigma_mps2=self.accel_sigma_mps2,
-            window_us=us(self.window_s * 1000.0),
-            att_max_gap_us=us(self.attitude_max_gap_ms),
-            pos_max_gap_us=us(self.position_max_gap_ms),
-            gimbal_max_gap_us=us(self.gimbal_max_gap_ms),
-            reboot_threshold_us=us(self.reboot_threshold_s * 1000.0),
-            max_speed_mps=self.max_speed_mps,
-            jump_reset_count=self.jump_reset_count,
-            keep_origin_on_reboot=self.keep_origin_on_reboot,
-            position_interp=self.position_interp,
+            att_us = attitude_horizon_us(limit, self.body_rate_sigma_rps, self.angular_accel_sigma_rps2, cap_us)
+            gim_us = attitude_horizon_us(limit, self.gimbal_rate_sigma_rps, self.angular_accel_sigma_rps2, cap_us)
+        return ExtrapolationHorizons(
+            attitude_us=min(att_us, self.att_max_gap_us),
+            position_us=min(cap_us, self.pos_max_gap_us),
+            gimbal_us=min(gim_us, self.gimbal_max_gap_us),
         )
 
     def geodetic_origin(self) -> GeodeticOrigin | None:
@@ -665,12 +648,17 @@ class PoseBuffer:
     def __init__(
         self,
         mount: CameraMount | None = None,
-        config: PoseBufferConfig | None = None,
+        config: PoseConfig | None = None,
         origin: GeodeticOrigin | None = None,
         counter: RejectCounter | None = None,
+        *,
+        bearing_white_sigma_rad: float | None = None,
     ) -> None:
         self.mount = mount if mount is not None else CameraMount()
-        self.config = config if config is not None else PoseBufferConfig()
+        self.config = config if config is not None else PoseConfig()
+        #: how far past its newest sample each stream is extrapolated (``bearing_white_sigma_rad``: see
+        #: :meth:`PoseConfig.extrapolation_horizons`)
+        self.horizons = self.config.extrapolation_horizons(bearing_white_sigma_rad)
         self.counter = counter if counter is not None else RejectCounter()
         self._configured_origin = origin
         self._origin = origin
@@ -721,7 +709,7 @@ class PoseBuffer:
             return None
 
     def _admit(self, s: _Stream, t: int) -> bool:
-        """Ordering and outlier check (see :class:`PoseBufferConfig` ``reboot_threshold_us``); detects
+        """Ordering and outlier check (see :class:`PoseConfig` ``reboot_threshold_s``); detects
         reboots and clock steps.  Mutates only the pending run, and on a confirmed reboot / step."""
         last = s.last_t
         thr = self.config.reboot_threshold_us
@@ -739,7 +727,7 @@ class PoseBuffer:
             run.append(t)
         else:
             run[:] = [t]
-        if len(run) < self.config.time_confirm_count:
+        if len(run) < TIME_CONFIRM_COUNT:
             self.counter.count(
                 f"{s.name}_time_outlier",
                 f"time_boot_us={t} is {(t - last) / US_PER_S:+.3f} s from the stream's newest {last}",
@@ -758,8 +746,7 @@ class PoseBuffer:
             self.counter.count("gimbal_time_reset", f"gimbal time went back {last - t} us; gimbal stream restarted")
             return True
         self._reboot(
-            f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), "
-            f"confirmed by {self.config.time_confirm_count} samples"
+            f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), confirmed by {TIME_CONFIRM_COUNT} samples"
         )
         return True
 
@@ -834,7 +821,7 @@ class PoseBuffer:
         w = self._rates("attitude", omega_frd_rps)
         if not self._admit(self._att, t):
             return False
-        self._att.append(t, np.array((*q, *w)), self.config.window_us, self.config.max_samples)
+        self._att.append(t, np.array((*q, *w)), self.config.window_us, MAX_SAMPLES)
         return True
 
     def add_position(self, time_boot_us: int, lat_deg: float, lon_deg: float, alt_m: float, v_ned_mps=None) -> bool:
@@ -856,7 +843,7 @@ class PoseBuffer:
         if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0):
             self.counter.count("position_out_of_range", f"lat={lat} lon={lon} deg")
             return False
-        if not (self.config.min_alt_m <= alt <= self.config.max_alt_m):
+        if not (MIN_ALT_M <= alt <= MAX_ALT_M):
             self.counter.count("position_alt_out_of_range", f"alt={alt} m")
             return False
         v = self._velocity(v_ned_mps)
@@ -929,7 +916,7 @@ class PoseBuffer:
                 self.counter.count("position_reset", f"{self._jumps} consecutive jumps; position stream restarted")
                 self._pos.clear()
         self._jumps = 0
-        self._pos.append(t, np.array((*p, *v)), self.config.window_us, self.config.max_samples)
+        self._pos.append(t, np.array((*p, *v)), self.config.window_us, MAX_SAMPLES)
         return True
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
@@ -964,7 +951,7 @@ class PoseBuffer:
             self._gim_ref = ref
         if not self._admit(self._gim, t):
             return False
-        self._gim.append(t, np.array((*q, *w)), self.config.window_us, self.config.max_samples)
+        self._gim.append(t, np.array((*q, *w)), self.config.window_us, MAX_SAMPLES)
         return True
 
     # ------------------------------------------------------------------ queries
@@ -988,12 +975,12 @@ class PoseBuffer:
         c = self.config
         att, pos, gim = self._att, self._pos, self._gim
         ba = self._bracket_or_extrapolate(
-            att, t, extrapolate, c.att_max_extrapolation_us, lambda: _finite_from(att.values[-1], 4)
+            att, t, extrapolate, self.horizons.attitude_us, lambda: _finite_from(att.values[-1], 4)
         )
         if ba[0] is None:
             return PoseLookup(None, ba[1], ba[2])
         bp = self._bracket_or_extrapolate(
-            pos, t, extrapolate, c.pos_max_extrapolation_us, lambda: _finite_from(pos.values[-1], 3)
+            pos, t, extrapolate, self.horizons.position_us, lambda: _finite_from(pos.values[-1], 3)
         )
         if bp[0] is None:
             return PoseLookup(None, bp[1], bp[2])
@@ -1005,7 +992,7 @@ class PoseBuffer:
             return gim_rate[-1] is not None
 
         if self.mount.gimballed:
-            bg = self._bracket_or_extrapolate(gim, t, extrapolate, c.gimbal_max_extrapolation_us, can_gimbal)
+            bg = self._bracket_or_extrapolate(gim, t, extrapolate, self.horizons.gimbal_us, can_gimbal)
             if bg[0] is None:
                 return PoseLookup(None, bg[1], bg[2])
 
@@ -1131,7 +1118,7 @@ class PoseBuffer:
         if math.isfinite(wx) and math.isfinite(wy) and math.isfinite(wz):
             return wx, wy, wz
         t_last = g.t_us[-1]
-        k = bisect.bisect_left(g.t_us, t_last - self.config.gimbal_rate_window_us)
+        k = bisect.bisect_left(g.t_us, t_last - GIMBAL_RATE_WINDOW_US)
         if len(g.t_us) - k < 2:
             return None
         q_inv = quat_conjugate1(last[:4].tolist())

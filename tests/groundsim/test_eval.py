@@ -36,7 +36,7 @@ from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import GeodeticOrigin, quat_from_euler
-from onboard.core.pose import PoseBuffer, PoseBufferConfig
+from onboard.core.pose import PoseBuffer, PoseConfig
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -271,7 +271,7 @@ def test_telemetry_feed_rates_stamps_and_quantisation():
     core = _FakeCore(2.0)
     from onboard.core.frames import CameraMount
 
-    buf = PoseBuffer(CameraMount(gimballed=True), PoseBufferConfig(), core.origin)
+    buf = PoseBuffer(CameraMount(gimballed=True), PoseConfig(), core.origin)
     feed = TelemetryFeed(core, buf, gimballed=True)
     while not feed.exhausted:
         feed.feed_next()
@@ -290,7 +290,7 @@ def test_telemetry_feed_for_waits_for_the_bracketing_sample():
     core = _FakeCore(1.0, gimbal=False)
     from onboard.core.frames import CameraMount
 
-    buf = PoseBuffer(CameraMount(), PoseBufferConfig(), core.origin)
+    buf = PoseBuffer(CameraMount(), PoseConfig(), core.origin)
     feed = TelemetryFeed(core, buf, gimballed=False)
     t_frame_us = 1_000_000 + round(10 / 30 * 1e6)  # frame 10, tick 40
     feed.feed_for(40, t_frame_us)

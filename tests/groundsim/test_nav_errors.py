@@ -34,7 +34,7 @@ from onboard.core.frames import (
     quat_multiply,
     rotvec_from_quat,
 )
-from onboard.core.pose import PoseBuffer, PoseBufferConfig
+from onboard.core.pose import PoseBuffer, PoseConfig
 from tests.groundsim.test_eval import _FakeCore
 
 P1 = scenarios_dir() / "P1.yaml"
@@ -241,7 +241,7 @@ class _Core(_FakeCore):
 def test_telemetry_feed_injects_the_same_errors_as_the_vehicle():
     case = resolve_nav_noise("GNSS")
     core = _Core(1.0, case)
-    buf = PoseBuffer(CameraMount(), PoseBufferConfig(), core.origin)
+    buf = PoseBuffer(CameraMount(), PoseConfig(), core.origin)
     feed = TelemetryFeed(core, buf, gimballed=False)
     while not feed.exhausted:
         feed.feed_next()

@@ -51,7 +51,7 @@ def test_defaults_are_valid_and_convert_to_core_objects():
     K = c.camera.pinhole()
     assert (K.width_px, K.height_px, K.cx_px, K.cy_px) == (640, 512, 320.0, 256.0)
     assert K.fx_px == pytest.approx(13e-3 / 17e-6, rel=1e-12)
-    b = c.pose.buffer_config()
+    b = c.pose
     assert (b.att_max_gap_us, b.pos_max_gap_us, b.window_us, b.reboot_threshold_us) == (
         100_000,
         300_000,
@@ -70,24 +70,21 @@ def test_pose_wait_and_extrapolation_defaults():
     c = OnboardConfig()
     assert c.pose.wait_ms == 5.0 and c.mavlink.gimbal_rate_hz == 50.0
     assert c.mavlink.gimbal_rate_hz == 50.0
-    b = c.pose_buffer_config()
-    assert (b.att_max_extrapolation_us, b.gimbal_max_extrapolation_us, b.pos_max_extrapolation_us) == (
+    b = c.extrapolation_horizons()
+    assert (b.attitude_us, b.gimbal_us, b.position_us) == (
         36_351,
         24_595,
         50_000,
     )
-    assert b.body_rate_sigma_rps == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
+    assert c.pose.body_rate_sigma_rps == pytest.approx(math.radians(0.1), abs=ATOL_DEG_AS_RAD)
     # without a bearing noise to bound them, the horizons are the configured cap
-    assert c.pose.buffer_config().att_max_extrapolation_us == 50_000
+    assert c.pose.extrapolation_horizons().attitude_us == 50_000
     # a tighter noise fraction shortens attitude and gimbal, never position
-    t = build_config({"pose": {"extrapolation_noise_fraction": 0.1}}).pose_buffer_config()
-    assert (
-        t.att_max_extrapolation_us < b.att_max_extrapolation_us
-        and t.gimbal_max_extrapolation_us < b.gimbal_max_extrapolation_us
-    )
-    assert t.pos_max_extrapolation_us == 50_000
-    off = build_config({"pose": {"max_extrapolation_ms": 0}}).pose_buffer_config()
-    assert (off.att_max_extrapolation_us, off.pos_max_extrapolation_us, off.gimbal_max_extrapolation_us) == (0, 0, 0)
+    t = build_config({"pose": {"extrapolation_noise_fraction": 0.1}}).extrapolation_horizons()
+    assert t.attitude_us < b.attitude_us and t.gimbal_us < b.gimbal_us
+    assert t.position_us == 50_000
+    off = build_config({"pose": {"max_extrapolation_ms": 0}}).extrapolation_horizons()
+    assert (off.attitude_us, off.position_us, off.gimbal_us) == (0, 0, 0)
 
 
 def test_shipped_file_equals_defaults():
@@ -135,11 +132,11 @@ estimator: {attitude_white_sigma_deg: 0.5}
     assert m.gimballed and m.lever_arm_frd_m == (0.1, 0.0, 0.05)
     q = quat_from_euler(0.0, math.radians(-10.0), 0.0)
     assert max(abs(a - b) for a, b in zip(m.q_body_from_mount, q)) < ATOL_Q
-    assert c.pose.buffer_config().att_max_gap_us == 40_500
+    assert c.pose.att_max_gap_us == 40_500
     # the 50 ms extrapolation horizon is capped by the attitude gap; 0.5 deg white attitude noise
     # widens the bearing noise, so the noise bound does not shorten it further
-    b = c.pose_buffer_config()
-    assert b.att_max_extrapolation_us == 40_500 and b.pos_max_extrapolation_us == 50_000
+    b = c.extrapolation_horizons()
+    assert b.attitude_us == 40_500 and b.position_us == 50_000
     o = c.pose.geodetic_origin()
     assert (o.lat_deg, o.lon_deg, o.alt_m) == (32.0, 118.8, 12.0)
     assert c.estimator.noise_model().attitude_white_sigma_rad == pytest.approx(math.radians(0.5), abs=ATOL_DEG_AS_RAD)

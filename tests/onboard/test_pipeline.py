@@ -129,7 +129,7 @@ class Rig:
         self.counter = RejectCounter(log_interval_s=60.0)
         self.pose = PoseBuffer(
             mount=self.scene.mount,
-            config=self.config.pose.buffer_config(),
+            config=self.config.pose,
             origin=self.scene.origin,
             counter=self.counter,
         )

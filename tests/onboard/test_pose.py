@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
+from typing import Any
 
 import numpy as np
 import pytest
@@ -28,7 +29,7 @@ from onboard.core.pose import (
     ClockSyncConfig,
     GimbalReference,
     PoseBuffer,
-    PoseBufferConfig,
+    PoseConfig,
     PoseSample,
     RejectCounter,
 )
@@ -100,7 +101,7 @@ def test_interpolation_matches_analytic_trajectory():
 
 def test_linear_mode_is_not_exact_on_a_curved_path_but_hermite_is():
     t_us = 1_027_000
-    lin = filled_buffer(config=PoseBufferConfig(position_interp="linear")).pose_at(t_us)
+    lin = filled_buffer(config=PoseConfig(position_interp="linear")).pose_at(t_us)
     her = filled_buffer().pose_at(t_us)
     err_lin = np.linalg.norm(lin.body.p_ned_m - p_true(t_us / 1e6))
     err_her = np.linalg.norm(her.body.p_ned_m - p_true(t_us / 1e6))
@@ -235,7 +236,7 @@ def test_gimbal_reference_change_restarts_stream():
 
 
 def sparse_buffer() -> PoseBuffer:
-    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(att_max_gap_us=100_000, pos_max_gap_us=300_000))
+    buf = PoseBuffer(origin=ORIGIN, config=PoseConfig(attitude_max_gap_ms=100.0, position_max_gap_ms=300.0))
     for t in (1_000_000, 1_050_000, 1_550_000, 1_600_000):  # a 500 ms attitude hole
         buf.add_attitude(t, [1, 0, 0, 0])
     for t in range(1_000_000, 1_700_001, 100_000):
@@ -358,7 +359,7 @@ def test_reboot_clears_buffers_keeps_origin_and_counts():
 
 
 def test_reboot_without_keep_origin_refixes_at_next_position():
-    buf = PoseBuffer(config=PoseBufferConfig(keep_origin_on_reboot=False))
+    buf = PoseBuffer(config=PoseConfig(keep_origin_on_reboot=False))
     buf.add_position(5_000_000, 47.0, 8.0, 400.0)
     for k in range(3):  # back ~2 s, three consistent samples in a row: reboot
         buf.add_position(3_000_000 + 100_000 * k, 46.0, 7.0, 300.0)
@@ -366,7 +367,7 @@ def test_reboot_without_keep_origin_refixes_at_next_position():
 
 
 def test_position_jump_rejected_then_stream_restarts_after_persisting():
-    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=100.0, jump_reset_count=3))
+    buf = PoseBuffer(origin=ORIGIN, config=PoseConfig(max_speed_mps=100.0, jump_reset_count=3))
     assert buf.add_position_ned(0, [0, 0, 0])
     assert buf.add_position_ned(100_000, [5, 0, 0])  # 50 m/s: fine
     assert not buf.add_position_ned(200_000, [5_000, 0, 0])  # 50 km/s: glitch
@@ -409,12 +410,12 @@ def test_pose_sample_validation_names_the_field():
 
 
 def test_configs_validate():
-    with pytest.raises(ConfigError, match="att_max_gap_us"):
-        PoseBufferConfig(att_max_gap_us=0)
+    with pytest.raises(ConfigError, match="attitude_max_gap_ms"):
+        PoseConfig(attitude_max_gap_ms=0)
     with pytest.raises(ConfigError, match="position_interp"):
-        PoseBufferConfig(position_interp="cubic")
-    with pytest.raises(ConfigError, match="pos_max_gap_us"):
-        PoseBufferConfig(window_us=100_000, pos_max_gap_us=300_000)
+        PoseConfig(position_interp="cubic")
+    with pytest.raises(ConfigError, match="position_max_gap_ms"):
+        PoseConfig(window_s=0.1, position_max_gap_ms=300.0)
     with pytest.raises(ConfigError, match="min_samples"):
         ClockSyncConfig(window=2, min_samples=3)
 
@@ -496,13 +497,23 @@ def test_clock_sync_reseeds_after_remote_clock_restart():
 # --------------------------------------------------------------------------- properties
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
+
+
+def no_jump_limit(**fields: Any) -> PoseConfig:
+    """A pose section whose speed limit (1e9 m/s) is past the section's ceiling (10 km/s), set past its
+    validation: these tests draw positions kilometres apart within milliseconds, and no move may be a jump."""
+    cfg = PoseConfig(**fields)
+    object.__setattr__(cfg, "max_speed_mps", 1e9)
+    return cfg
+
+
 vec3 = st.tuples(finite, finite, finite)
 
 
 @settings(max_examples=150, deadline=None)
 @given(p0=vec3, p1=vec3, v0=vec3, v1=vec3, dt_ms=st.integers(1, 300), s=st.floats(0.0, 1.0))
 def test_hermite_stays_within_its_bound_of_the_chord(p0, p1, v0, v1, dt_ms, s):
-    cfg = PoseBufferConfig(max_speed_mps=1e9, att_max_gap_us=300_000)
+    cfg = no_jump_limit(attitude_max_gap_ms=300.0)
     buf = PoseBuffer(origin=ORIGIN, config=cfg)
     dt_us = dt_ms * 1000
     buf.add_attitude(0, [1, 0, 0, 0])
@@ -527,7 +538,7 @@ def test_hermite_stays_within_its_bound_of_the_chord(p0, p1, v0, v1, dt_ms, s):
 @settings(max_examples=150, deadline=None)
 @given(p0=vec3, p1=vec3, s=st.floats(0.0, 1.0))
 def test_linear_interpolation_stays_in_the_box_of_its_ends(p0, p1, s):
-    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=1e9, position_interp="linear"))
+    buf = PoseBuffer(origin=ORIGIN, config=no_jump_limit(position_interp="linear"))
     buf.add_attitude(0, [1, 0, 0, 0])
     buf.add_attitude(100_000, [1, 0, 0, 0])
     buf.add_position_ned(0, p0, (1.0, 2.0, 3.0))
@@ -640,8 +651,8 @@ def test_no_rates_no_extrapolation_and_the_miss_stays_not_yet():
     ],
 )
 def test_the_horizon_is_enforced_and_beyond_it_the_miss_is_counted_by_name(stream, horizon_field):
-    horizon_us = 15_000
-    cfg = PoseBufferConfig(**{horizon_field: horizon_us})
+    horizon_us = 15_000  # every stream's (the others run on: only this stream's matters)
+    cfg = PoseConfig(max_extrapolation_ms=horizon_us / 1000)
     buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN, config=cfg)
     last = {"attitude": 0, "position": 0, "gimbal": 0}
     last[stream] = 100_000  # this stream ends 100 ms in; the others run on
@@ -786,7 +797,7 @@ def test_attitude_extrapolation_turns_by_rate_times_horizon_about_the_body_axis(
 @settings(max_examples=150, deadline=None)
 @given(p0=vec3, v=vec3, h_us=st.integers(0, 50_000))
 def test_position_extrapolation_is_the_velocity_line(p0, v, h_us):
-    buf = PoseBuffer(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=1e9))
+    buf = PoseBuffer(origin=ORIGIN, config=no_jump_limit())
     buf.add_attitude(0, [1, 0, 0, 0], [0, 0, 0])
     buf.add_attitude(100_000, [1, 0, 0, 0], [0, 0, 0])
     buf.add_position_ned(0, p0, v)
@@ -820,9 +831,9 @@ def test_shipped_noise_numbers_of_the_docstring():
     cfg = OnboardConfig()
     white_deg = math.degrees(cfg.bearing_white_sigma_rad())
     assert white_deg == pytest.approx(0.0548, abs=1e-4)
-    b = cfg.pose_buffer_config()
-    assert b.att_max_extrapolation_us // 1000 == 36 and round(b.gimbal_max_extrapolation_us / 1000) == 25
-    assert b.pos_max_extrapolation_us == 50_000
+    h, b = cfg.extrapolation_horizons(), cfg.pose
+    assert h.attitude_us // 1000 == 36 and round(h.gimbal_us / 1000) == 25
+    assert h.position_us == 50_000
     att_15ms_deg = math.degrees(extrapolation_sigma(0.015, b.body_rate_sigma_rps, b.angular_accel_sigma_rps2))
     assert att_15ms_deg == pytest.approx(0.0027, abs=1e-4) and att_15ms_deg / white_deg < 0.05
     pos_50ms_m = extrapolation_sigma(0.05, b.velocity_sigma_mps, b.accel_sigma_mps2)

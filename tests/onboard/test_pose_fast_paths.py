@@ -45,7 +45,7 @@ from onboard.core.pose import (
     GimbalReference,
     PoseAt,
     PoseBuffer,
-    PoseBufferConfig,
+    PoseConfig,
     PoseLookup,
     PoseSample,
     RejectCounter,
@@ -121,7 +121,7 @@ def _ref_gimbal_rate(buf: PoseBuffer):
     if np.all(np.isfinite(last[4:])):
         return last[4:]
     t_last = g.t_us[-1]
-    k = bisect.bisect_left(g.t_us, t_last - buf.config.gimbal_rate_window_us)
+    k = bisect.bisect_left(g.t_us, t_last - P.GIMBAL_RATE_WINDOW_US)
     if len(g.t_us) - k < 2:
         return None
     q_inv = quat_conjugate(last[:4])
@@ -169,7 +169,7 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
     t = int(time_boot_us)
     if buf._origin is None:
         return PoseLookup(None, "no_origin")
-    c = buf.config
+    c, h = buf.config, buf.horizons
 
     def b_or_x(stream, horizon_us, can):
         b = stream.bracket(t)
@@ -179,15 +179,15 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
             return None, f"{stream.name}_extrapolation_limit", True
         return len(stream.t_us) - 1, P._AFTER, 0.0
 
-    ba = b_or_x(buf._att, c.att_max_extrapolation_us, lambda: bool(np.all(np.isfinite(buf._att.values[-1][4:]))))
+    ba = b_or_x(buf._att, h.attitude_us, lambda: bool(np.all(np.isfinite(buf._att.values[-1][4:]))))
     if ba[0] is None:
         return PoseLookup(None, ba[1], ba[2])
-    bp = b_or_x(buf._pos, c.pos_max_extrapolation_us, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:]))))
+    bp = b_or_x(buf._pos, h.position_us, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:]))))
     if bp[0] is None:
         return PoseLookup(None, bp[1], bp[2])
     bg = None
     if buf.mount.gimballed:
-        bg = b_or_x(buf._gim, c.gimbal_max_extrapolation_us, lambda: _ref_gimbal_rate(buf) is not None)
+        bg = b_or_x(buf._gim, h.gimbal_us, lambda: _ref_gimbal_rate(buf) is not None)
         if bg[0] is None:
             return PoseLookup(None, bg[1], bg[2])
     att_x_us = pos_x_us = 0
@@ -420,7 +420,7 @@ ned_points = st.tuples(*(st.floats(-3000.0, 3000.0),) * 3)
     )
 )
 def test_ned_position_streams_of_floats_equal_those_of_numpy_scalars(samples):
-    bufs, logs = twin_buffers(origin=ORIGIN, config=PoseBufferConfig(max_speed_mps=3000.0, jump_reset_count=2))
+    bufs, logs = twin_buffers(origin=ORIGIN, config=PoseConfig(max_speed_mps=3000.0, jump_reset_count=2))
     for k, (p, v) in enumerate(samples):
         t = 1_000_000 + 40_000 * k
         results = feed(bufs, "add_position_ned", t, p, v)
@@ -431,7 +431,7 @@ def test_ned_position_streams_of_floats_equal_those_of_numpy_scalars(samples):
 @pytest.mark.parametrize("factor", [1.0 - 1e-15, 1.0 - 1e-16, 1.0, 1.0 + 1e-16, 1.0 + 1e-15, 1.0 - 2e-9, 1.0 + 2e-9])
 def test_a_step_at_the_speed_limit_is_judged_by_numpys_norm(factor):
     """The jump test compares a float norm only far from the limit; near it numpy's norm decides, as before."""
-    config = PoseBufferConfig(max_speed_mps=200.0)
+    config = PoseConfig(max_speed_mps=200.0)
     buf = PoseBuffer(origin=ORIGIN, config=config, counter=RejectCounter(log_interval_s=3600.0))
     p0 = np.array([123.456, -78.9, -50.25])
     step = np.array([3.0, 4.0, 12.0]) / 13.0 * 8.0 * factor  # 200 m/s over 40 ms: 8 m
@@ -510,7 +510,7 @@ def test_lookup_gives_the_bits_of_the_numpy_formulation(case):
     buf = PoseBuffer(
         mount=MOUNTS[mount],
         origin=ORIGIN,
-        config=PoseBufferConfig(position_interp=interp),
+        config=PoseConfig(position_interp=interp),
         counter=RejectCounter(log_interval_s=3600.0),
     )
     _fill(buf, rng, "reported", "reported", rates, reference)

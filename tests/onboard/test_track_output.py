@@ -109,9 +109,7 @@ def _mismatched_rig(pitch_deg: float) -> Rig:
     """Frames and telemetry of the scene's (identity) mount, a pipeline configured with another."""
     rig = Rig(ready_after=5)  # the fake estimator returns the true target: an estimate the frames agree with
     mount = CameraMount.from_euler_deg((0.0, 0.0, 0.0), 0.0, pitch_deg, 0.0)
-    rig.pose = PoseBuffer(
-        mount=mount, config=rig.config.pose.buffer_config(), origin=rig.scene.origin, counter=rig.counter
-    )
+    rig.pose = PoseBuffer(mount=mount, config=rig.config.pose, origin=rig.scene.origin, counter=rig.counter)
     rig.pipe = FramePipeline(rig.config, rig.pose, make_tracker(rig.config), rig.est, counter=rig.counter)
     return rig
 
