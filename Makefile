@@ -22,7 +22,7 @@ venv: $(STAMP)
 demo: $(STAMP)
 	$(PY) -m groundsim demo $(if $(LIVE_VIEW),--live-view $(LIVE_VIEW))
 
-# Lint and types first (seconds): ruff over the tree (lint + format check), mypy over onboard/core.
+# Lint and types first (seconds): ruff over the tree (lint + format check), mypy over onboard.
 lint: $(STAMP)
 	$(PY) -m ruff check .
 	$(PY) -m ruff format --check .

@@ -1,4 +1,4 @@
-"""Fuzz target: the MAVLink input, datagram by datagram (issue 12), with hypothesis.
+"""Fuzz target: the MAVLink input, datagram by datagram, with hypothesis.
 
 The subject is :meth:`onboard.io.mavlink_link.MavlinkLink.poll` on a UDP link: each datagram goes
 through the per-datagram parser, the signing check, the identity rules and the handlers into a

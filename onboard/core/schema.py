@@ -1,15 +1,24 @@
 """The one configuration system: pydantic v2 models, one YAML loader, one error format.
 
 Every configuration object of irtrack -- the onboard daemon's sections (:mod:`onboard.app.config`
-composes them), the core objects they configure (:class:`~onboard.core.pose.PoseBufferConfig`,
-:class:`~onboard.io.mavlink_link.MavlinkLinkConfig`, :class:`~onboard.estimation.map_estimator.MapConfig`,
+composes them; each is the config its component takes: :class:`~onboard.core.pose.PoseConfig`,
+:class:`~onboard.io.mavlink_link.MavlinkConfig`, :class:`~onboard.io.record.RecordConfig` ...), the
+estimator's and the image chain's (:class:`~onboard.estimation.map_estimator.MapConfig`,
 :class:`~onboard.imaging.preprocess.ImagingParams` ...), the simulator's scenarios and noise cases
 (:mod:`groundsim.world.scenario`) -- is a :func:`config_dataclass`: a frozen pydantic dataclass in strict
 mode with ``extra="forbid"`` (a bool is not a number, ``640.0`` is not an integer, an unknown key is an
-error), whose fields are typed with the constrained types below (:func:`Number`, :func:`Integer`,
-:func:`Text`, :func:`Numbers` ...).  Each type carries the one text that says what it accepts, so an
-error reads the same wherever the field is declared.  Cross-field rules live in the class's
-``__post_init__`` and raise :class:`Invalid` naming their field.
+error).  A field is declared once, in a form the type checker reads::
+
+    window_s: Annotated[float, Number(0.0, 600.0, lo_open=True)] = 20.0
+    port: Annotated[int | None, Integer(1, 65535)] = None          # null allowed
+    worker: Annotated[Literal["process", "thread"], Text()] = "process"  # the choices
+
+The Python type is what mypy checks; the field type (:class:`Number`, :class:`Integer`, :class:`Flag`,
+:class:`Text`, :class:`Texts`, :class:`Numbers`, :class:`Instance`) is pydantic metadata that builds
+the validators and carries the one text that says what the field accepts, so an error reads the same
+wherever the field is declared.  :func:`config_dataclass` is a ``dataclass_transform``: mypy sees the
+fields and checks the constructor.  Cross-field rules live in the class's ``__post_init__`` and raise
+:class:`Invalid` naming their field.
 
 One error format, :class:`SchemaError` (a :class:`~onboard.core.errors.ConfigError`), one line::
 

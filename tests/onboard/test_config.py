@@ -66,7 +66,7 @@ def test_defaults_are_valid_and_convert_to_core_objects():
 
 
 def test_pose_wait_and_extrapolation_defaults():
-    """Issue 9 item 4: a frame is held a few ms at most, then extrapolated; #285 at 50 Hz."""
+    """A frame is held a few ms at most, then extrapolated; #285 at 50 Hz."""
     c = OnboardConfig()
     assert c.pose.wait_ms == 5.0 and c.mavlink.gimbal_rate_hz == 50.0
     assert c.mavlink.gimbal_rate_hz == 50.0

@@ -1,4 +1,4 @@
-"""Hostile MAVLink input (issue 12): per-datagram parsing, replies only to the autopilot, identity lock,
+"""Hostile MAVLink input: per-datagram parsing, replies only to the autopilot, identity lock,
 unknown ids, signing.  Loopback on 127.0.0.1 only, fake clock, bounded waits."""
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ from tests.onboard.test_mavlink_link import AP_SYSID, WAIT_S, Rig
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
 N_TRUNCATED = 200
-RSS_BUDGET_BYTES = 5 * 1024 * 1024  # issue 12: 50 000 unknown ids leave RSS within 5 MB
+RSS_BUDGET_BYTES = 5 * 1024 * 1024  # 50 000 unknown ids leave RSS within 5 MB
 N_UNKNOWN = 50_000
 
 

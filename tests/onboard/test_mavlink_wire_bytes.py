@@ -1,5 +1,5 @@
 """No change on the wire: the bytes our senders write, compared with bytes captured before the MAVLink
-wire module (issue 10 item 3) replaced their hand-written encoders.
+wire module replaced their hand-written encoders.
 
 Every sender is driven through its usual path with fixed inputs and fixed clocks, and its writes are
 captured (no datagram leaves the process):

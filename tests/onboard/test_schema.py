@@ -3,8 +3,11 @@ the one-line error naming file and field path; YAML 1.2 floats; round trips of o
 
 from __future__ import annotations
 
+import dataclasses
 import re
+from typing import Annotated, Literal
 
+import pydantic
 import pytest
 import yaml
 from hypothesis import HealthCheck, given, settings
@@ -12,6 +15,17 @@ from hypothesis import strategies as st
 
 from groundsim.world.scenario import ScenarioError, load_noise_cases, noise_cases_from_dict
 from onboard.app.config import OnboardConfig, OnboardConfigError, _leaf_paths, config_to_dict, load_config
+from onboard.core.schema import (
+    NOT_A_KEY,
+    Integer,
+    Number,
+    Numbers,
+    SchemaError,
+    Text,
+    build,
+    config_dataclass,
+    file_keys,
+)
 
 ONE_LINE = re.compile(r"^[^\n]+$")
 NOT_ANY_FIELD = {"x": 1}  # a mapping: no leaf of the onboard config takes one (estimator.sliding aside)
@@ -118,3 +132,50 @@ def test_every_noise_case_field_refuses_a_bad_value(field, bad):
 
 def test_default_config_is_the_model_default():
     assert OnboardConfig() == load_config(None, environ={})
+
+
+# --------------------------------------------------------------------------- the field types
+
+
+@config_dataclass
+class _Fields:
+    rate_hz: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 1.0
+    port: Annotated[int | None, Integer(1, 65535)] = None
+    mode: Annotated[Literal["auto", "operator"], Text()] = "auto"
+    xyz: Annotated[tuple[float, float, float], Numbers(3)] = (0.0, 0.0, 0.0)
+    label: str = dataclasses.field(default="", metadata=NOT_A_KEY)
+
+
+@pytest.mark.parametrize(
+    "raw, text",
+    [
+        ({"rate_hz": 0}, "rate_hz: expected a number in (0, 100], got 0"),
+        ({"port": 0}, "port: expected an integer in [1, 65535] or null, got 0"),  # `| None`: "or null"
+        ({"mode": "Auto"}, "mode: expected one of auto, operator, got 'Auto'; did you mean 'auto'?"),  # the Literal
+        ({"xyz": [1, 2]}, "xyz: expected a list of 3 finite numbers, got [1, 2]"),
+        ({"label": "x"}, "label: expected a key of the document (rate_hz, port, mode, xyz), got unknown key 'label'"),
+    ],
+)
+def test_the_annotated_form_keeps_one_text_per_field(raw, text):
+    with pytest.raises(SchemaError) as ei:
+        build(_Fields, raw)
+    assert str(ei.value) == f"<_Fields>: {text}"
+
+
+def test_a_field_the_program_sets_is_given_not_read():
+    f = build(_Fields, {"port": 8080, "xyz": [1, 2, 3]}, given={"label": "case"})
+    assert (f.port, f.xyz, f.label) == (8080, (1.0, 2.0, 3.0), "case")
+    assert file_keys(_Fields) == ("rate_hz", "port", "mode", "xyz")
+
+
+@pytest.mark.parametrize(
+    "annotation",
+    [
+        Annotated[int, Number(0.0, 1.0)],  # a number field typed int
+        Annotated[float, Integer(0, 1)],
+        Annotated[tuple[float, float], Numbers(3)],  # the wrong length
+    ],
+)
+def test_a_field_type_on_the_wrong_python_type_is_refused(annotation):
+    with pytest.raises(TypeError, match="annotates"):
+        pydantic.TypeAdapter(annotation)
