@@ -44,7 +44,7 @@ import yaml
 from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError
 from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
-from onboard.core.pose import ExtrapolationHorizons, OriginConfig, PoseConfig
+from onboard.core.pose_config import ExtrapolationHorizons, OriginConfig, PoseConfig
 from onboard.core.schema import (
     Flag,
     Instance,

@@ -67,7 +67,7 @@ acceleration; position: ``sigma_m(h) = sqrt((sigma_v h)^2 + (sigma_a h^2 / 2)^2)
 estimator's noise model is not widened per observation (the estimator is not this module's);
 instead the horizon is *bounded* so that the added attitude sigma stays below a stated fraction of
 the bearing white noise the estimator is configured with, ``sqrt(attitude_white^2 +
-(pixel_sigma / f)^2)`` (:func:`attitude_horizon_us`; ``pose.extrapolation_noise_fraction``, 0.25:
+(pixel_sigma / f)^2)`` (:func:`~onboard.core.pose_config.attitude_horizon_us`; ``pose.extrapolation_noise_fraction``, 0.25:
 the total sigma grows by at most ``sqrt(1 + 0.25^2) - 1 = 3 %``).  With the shipped
 ``config/onboard.yaml`` (0.05 deg white attitude, 0.3 px at f = 764.7 px: bearing white noise
 0.0548 deg; limit 0.0137 deg) and the assumed rate errors -- body rates 0.1 deg/s (a MEMS gyro after
@@ -104,13 +104,11 @@ from __future__ import annotations
 
 import bisect
 import enum
-import functools
 import logging
 import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Annotated, Literal, NamedTuple
 
 import numpy as np
 
@@ -134,7 +132,7 @@ from onboard.core.frames import (
     quat_slerp1,
     rotvec_from_quat1,
 )
-from onboard.core.schema import Flag, Integer, Invalid, Number, Text, config_dataclass
+from onboard.core.pose_config import PoseConfig, extrapolation_sigma
 
 __all__ = [
     "RejectCounter",
@@ -142,14 +140,9 @@ __all__ = [
     "PoseAt",
     "PoseLookup",
     "GimbalReference",
-    "ExtrapolationHorizons",
-    "PoseConfig",
-    "OriginConfig",
     "PoseBuffer",
     "ClockSyncConfig",
     "ClockSync",
-    "extrapolation_sigma",
-    "attitude_horizon_us",
 ]
 
 log = logging.getLogger(__name__)
@@ -398,29 +391,6 @@ def _pose_at_computed(body: PoseSample, p_cam, q_nc, q_mg, *rest) -> PoseAt:
     return pose
 
 
-def extrapolation_sigma(horizon_s: float, rate_sigma: float, accel_sigma: float) -> float:
-    """1-sigma error of a constant-rate extrapolation over ``horizon_s``:
-    ``sqrt((rate_sigma h)^2 + (accel_sigma h^2 / 2)^2)`` (rate error over the horizon plus an
-    unmodelled second derivative; units of the rate times s: rad from rad/s and rad/s^2, m from
-    m/s and m/s^2)."""
-    h = max(float(horizon_s), 0.0)
-    return math.hypot(rate_sigma * h, 0.5 * accel_sigma * h * h)
-
-
-def attitude_horizon_us(limit: float, rate_sigma: float, accel_sigma: float, cap_us: int) -> int:
-    """The longest horizon (us, at most ``cap_us``) whose :func:`extrapolation_sigma` stays <= ``limit``.
-
-    Solves ``rate^2 h^2 + accel^2 h^4 / 4 = limit^2`` for ``h^2`` (a quadratic; monotone in h), in
-    the cancellation-free form ``h^2 = 2 limit^2 / (rate^2 + sqrt(rate^4 + accel^2 limit^2))``.
-    """
-    if limit <= 0.0:
-        return 0
-    a, b = 0.25 * accel_sigma**2, rate_sigma**2
-    den = b + math.sqrt(b * b + 4.0 * a * limit**2)
-    h2 = math.inf if den == 0.0 else 2.0 * limit**2 / den
-    return int(min(cap_us, math.floor(math.sqrt(h2) * US_PER_S))) if math.isfinite(h2) else int(cap_us)
-
-
 @dataclass(frozen=True)
 class PoseLookup:
     """Side-effect-free answer of :meth:`PoseBuffer.lookup`.
@@ -455,130 +425,6 @@ TIME_CONFIRM_COUNT = 3
 MIN_ALT_M, MAX_ALT_M = -1_000.0, 50_000.0
 #: gimbal samples that feed the rate fit when the gimbal reports no rate (us)
 GIMBAL_RATE_WINDOW_US = 100_000
-
-
-def _us(ms: float) -> int:
-    """Milliseconds as whole microseconds, at least 1."""
-    return max(1, int(round(ms * 1000.0)))
-
-
-class ExtrapolationHorizons(NamedTuple):
-    """How far past its newest sample each stream is extrapolated (us; 0: not at all)."""
-
-    attitude_us: int
-    position_us: int
-    gimbal_us: int
-
-
-@config_dataclass
-class OriginConfig:
-    """``pose.origin`` of the daemon's configuration: a fixed local NED origin (degrees, metres)."""
-
-    lat_deg: Annotated[float, Number(-90.0, 90.0)] = 0.0
-    lon_deg: Annotated[float, Number(-180.0, 180.0)] = 0.0
-    alt_m: Annotated[float, Number(-1000.0, 100000.0)] = 0.0
-
-    def geodetic(self) -> GeodeticOrigin:
-        return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
-
-
-@config_dataclass
-class PoseConfig:
-    """The ``pose`` section of the daemon's configuration (``config/onboard.yaml``; composed by
-    :class:`onboard.app.config.OnboardConfig`), which :class:`PoseBuffer` takes as is: its tolerances in
-    the file's units (milliseconds, seconds, degrees), read by the buffer in microseconds and radians
-    through the properties below (``window_us``, ``att_max_gap_us`` ..., ``body_rate_sigma_rps`` ...).
-
-    ``*_max_gap_ms``: the widest bracket a lookup accepts (the "pose tolerance": a frame whose bracket
-    is wider has no pose and is not used for 3-D).  ``reboot_threshold_s``: a sample more than this
-    before or after its stream's newest one is far from the running clock: an outlier, refused
-    (``<stream>_time_outlier``), unless :data:`TIME_CONFIRM_COUNT` consecutive such samples agree with
-    each other (each after the previous, by at most the threshold): then it is a clock step, backwards
-    an autopilot reboot (buffers cleared, ``reboot``), forwards a gap (``<stream>_time_step``).  One bad
-    stamp costs one sample.  ``max_speed_mps``: a position implying a faster move from the previous one
-    is a jump; ``jump_reset_count`` consecutive jumps restart the position stream.
-    ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.  Extrapolation past the newest
-    sample (module docstring): :meth:`extrapolation_horizons`; the error model of
-    :attr:`PoseAt.sigma_extrapolation_rad` / ``_m``: the ``*_sigma_*`` fields.
-    """
-
-    window_s: Annotated[float, Number(0.1, 600.0)] = 5.0
-    attitude_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 100.0
-    position_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 300.0
-    gimbal_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 300.0
-    reboot_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
-    max_speed_mps: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 200.0
-    jump_reset_count: Annotated[int, Integer(1, 1000)] = 5
-    keep_origin_on_reboot: Annotated[bool, Flag()] = True
-    position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"
-    wait_ms: Annotated[float, Number(0.0, 1000.0)] = 5.0
-    max_extrapolation_ms: Annotated[float, Number(0.0, 10000.0)] = 50.0
-    extrapolation_noise_fraction: Annotated[float, Number(0.0, 10.0)] = 0.25
-    body_rate_sigma_dps: Annotated[float, Number(0.0, 1000.0)] = 0.1
-    gimbal_rate_sigma_dps: Annotated[float, Number(0.0, 1000.0)] = 0.5
-    angular_accel_sigma_dps2: Annotated[float, Number(0.0, 100000.0)] = 20.0
-    velocity_sigma_mps: Annotated[float, Number(0.0, 1000.0)] = 0.1
-    accel_sigma_mps2: Annotated[float, Number(0.0, 1000.0)] = 2.0
-    origin: OriginConfig | None = None
-
-    def __post_init__(self) -> None:
-        for name in ("attitude_max_gap_ms", "position_max_gap_ms", "gimbal_max_gap_ms"):
-            if getattr(self, name) > self.window_s * 1000.0:
-                raise Invalid(name, f"a gap <= pose.window_s ({self.window_s:g} s)", getattr(self, name))
-
-    # the buffer's units, computed once per section
-    @functools.cached_property
-    def window_us(self) -> int:
-        return _us(self.window_s * 1000.0)
-
-    @functools.cached_property
-    def att_max_gap_us(self) -> int:
-        return _us(self.attitude_max_gap_ms)
-
-    @functools.cached_property
-    def pos_max_gap_us(self) -> int:
-        return _us(self.position_max_gap_ms)
-
-    @functools.cached_property
-    def gimbal_max_gap_us(self) -> int:
-        return _us(self.gimbal_max_gap_ms)
-
-    @functools.cached_property
-    def reboot_threshold_us(self) -> int:
-        return _us(self.reboot_threshold_s * 1000.0)
-
-    @functools.cached_property
-    def body_rate_sigma_rps(self) -> float:
-        return math.radians(self.body_rate_sigma_dps)
-
-    @functools.cached_property
-    def gimbal_rate_sigma_rps(self) -> float:
-        return math.radians(self.gimbal_rate_sigma_dps)
-
-    @functools.cached_property
-    def angular_accel_sigma_rps2(self) -> float:
-        return math.radians(self.angular_accel_sigma_dps2)
-
-    def extrapolation_horizons(self, bearing_white_sigma_rad: float | None = None) -> ExtrapolationHorizons:
-        """How far each stream is extrapolated, each capped by its stream's max gap: position
-        ``max_extrapolation_ms``; attitude and gimbal the same, shortened so that their added 1-sigma stays
-        <= ``extrapolation_noise_fraction`` x ``bearing_white_sigma_rad`` (:func:`attitude_horizon_us`; the
-        service passes ``OnboardConfig.bearing_white_sigma_rad()``; None: not shortened)."""
-        cap_us = int(round(self.max_extrapolation_ms * 1000.0))
-        if bearing_white_sigma_rad is None:
-            att_us = gim_us = cap_us
-        else:
-            limit = self.extrapolation_noise_fraction * bearing_white_sigma_rad
-            att_us = attitude_horizon_us(limit, self.body_rate_sigma_rps, self.angular_accel_sigma_rps2, cap_us)
-            gim_us = attitude_horizon_us(limit, self.gimbal_rate_sigma_rps, self.angular_accel_sigma_rps2, cap_us)
-        return ExtrapolationHorizons(
-            attitude_us=min(att_us, self.att_max_gap_us),
-            position_us=min(cap_us, self.pos_max_gap_us),
-            gimbal_us=min(gim_us, self.gimbal_max_gap_us),
-        )
-
-    def geodetic_origin(self) -> GeodeticOrigin | None:
-        return None if self.origin is None else self.origin.geodetic()
 
 
 # --------------------------------------------------------------------------- streams

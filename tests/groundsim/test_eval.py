@@ -36,7 +36,8 @@ from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import GeodeticOrigin, quat_from_euler
-from onboard.core.pose import PoseBuffer, PoseConfig
+from onboard.core.pose import PoseBuffer
+from onboard.core.pose_config import PoseConfig
 
 pytestmark = pytest.mark.timeout(120)
 

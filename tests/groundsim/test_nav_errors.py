@@ -34,7 +34,8 @@ from onboard.core.frames import (
     quat_multiply,
     rotvec_from_quat,
 )
-from onboard.core.pose import PoseBuffer, PoseConfig
+from onboard.core.pose import PoseBuffer
+from onboard.core.pose_config import PoseConfig
 from tests.groundsim.test_eval import _FakeCore
 
 P1 = scenarios_dir() / "P1.yaml"

@@ -29,10 +29,10 @@ from onboard.core.pose import (
     ClockSyncConfig,
     GimbalReference,
     PoseBuffer,
-    PoseConfig,
     PoseSample,
     RejectCounter,
 )
+from onboard.core.pose_config import PoseConfig
 from tests.fakes import FakeClock
 
 ATOL_M = 1e-6  # 1 um
@@ -812,7 +812,7 @@ def test_position_extrapolation_is_the_velocity_line(p0, v, h_us):
 @settings(max_examples=200, deadline=None)
 @given(limit_deg=st.floats(1e-4, 1.0), rate_dps=st.floats(0.0, 10.0), accel_dps2=st.floats(0.0, 500.0))
 def test_the_horizon_is_the_longest_whose_added_sigma_stays_within_the_limit(limit_deg, rate_dps, accel_dps2):
-    from onboard.core.pose import attitude_horizon_us, extrapolation_sigma
+    from onboard.core.pose_config import attitude_horizon_us, extrapolation_sigma
 
     limit, rate, acc = limit_deg * DEG, rate_dps * DEG, accel_dps2 * DEG
     cap = 1_000_000
@@ -826,7 +826,7 @@ def test_the_horizon_is_the_longest_whose_added_sigma_stays_within_the_limit(lim
 def test_shipped_noise_numbers_of_the_docstring():
     """The figures the pose module docstring states for config/onboard.yaml."""
     from onboard.app.config import OnboardConfig
-    from onboard.core.pose import extrapolation_sigma
+    from onboard.core.pose_config import extrapolation_sigma
 
     cfg = OnboardConfig()
     white_deg = math.degrees(cfg.bearing_white_sigma_rad())

@@ -45,12 +45,11 @@ from onboard.core.pose import (
     GimbalReference,
     PoseAt,
     PoseBuffer,
-    PoseConfig,
     PoseLookup,
     PoseSample,
     RejectCounter,
-    extrapolation_sigma,
 )
+from onboard.core.pose_config import PoseConfig, extrapolation_sigma
 
 # inputs of 1e200 and the like: the numpy paths overflow on them (and warn) before they reject them
 pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
