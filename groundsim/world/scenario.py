@@ -50,6 +50,7 @@ from onboard.core.schema import (
     Instance,
     Integer,
     Invalid,
+    NonNegativeFloat,
     Number,
     Numbers,
     SchemaError,
@@ -320,12 +321,12 @@ class NoiseCase:
 
     name: _NAME = dataclasses.field(metadata=NOT_A_KEY)
     description: Annotated[str, Text(empty=True)] = dataclasses.field(default="", kw_only=True)
-    pixel_sigma_px: Annotated[float, Number(lo=0.0)]
-    attitude_white_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
-    attitude_bias_sigma_deg: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_offset_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_drift_mps: Annotated[float, Number(lo=0.0)] = 0.0
+    pixel_sigma_px: NonNegativeFloat
+    attitude_white_sigma_deg: NonNegativeFloat = 0.0
+    attitude_bias_sigma_deg: NonNegativeFloat = 0.0
+    camera_position_white_sigma_m: NonNegativeFloat = 0.0
+    camera_position_offset_m: NonNegativeFloat = 0.0
+    camera_position_drift_mps: NonNegativeFloat = 0.0
 
     @property
     def attitude_white_sigma_rad(self) -> float:
@@ -524,9 +525,9 @@ class IrFile:
     t_min_k: _SCALE_K = _IR.t_min_k
     t_max_k: _SCALE_K = _IR.t_max_k
     encoding: Annotated[Literal["mono8", "mono16"], Text()] = _IR.encoding
-    netd_k: Annotated[float, Number(lo=0.0)] = _IR.netd_k
-    blur_sigma_px: Annotated[float, Number(lo=0.0)] = _IR.blur_sigma_px
-    extinction_per_km: Annotated[float, Number(lo=0.0)] = _IR.extinction_per_km
+    netd_k: NonNegativeFloat = _IR.netd_k
+    blur_sigma_px: NonNegativeFloat = _IR.blur_sigma_px
+    extinction_per_km: NonNegativeFloat = _IR.extinction_per_km
     air_temperature_k: _SCALE_K = _IR.air_temperature_k
     sky_zenith_k: _SCALE_K = _IR.sky_zenith_k
     sky_horizon_k: _SCALE_K = _IR.sky_horizon_k
@@ -536,7 +537,7 @@ class IrFile:
     netd_reference_k: _SCALE_K = _IR.netd_reference_k
     supersample: Annotated[int, Integer(1, 1_000_000)] = _IR.supersample
     max_target_rays: Annotated[int, Integer(1, 1_000_000)] = _IR.max_target_rays
-    background_reuse_tol_rad: Annotated[float, Number(lo=0.0)] = _IR.background_reuse_tol_rad
+    background_reuse_tol_rad: NonNegativeFloat = _IR.background_reuse_tol_rad
     noise_bank_frames: Annotated[int, Integer(1, 1_000_000)] = _IR.noise_bank_frames
 
     def __post_init__(self) -> None:

@@ -10,7 +10,7 @@ reads it too).  An unknown ``IRTRACK_<SECTION>_...`` variable of a known section
 The models are those of the one config system, :mod:`onboard.core.schema` (strict pydantic v2,
 ``extra="forbid"``, one YAML loader, one error format).  Sections are declared where they are consumed
 and composed here, each the one declaration of its settings, which its component takes as is: ``pose``
-:class:`onboard.core.pose.PoseConfig` (the pose buffer's), ``mavlink``
+:class:`onboard.core.pose_config.PoseConfig` (the pose buffer's), ``mavlink``
 :class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``imaging``
 :class:`onboard.imaging.preprocess.ImagingParams`, ``record`` :class:`onboard.io.record.RecordConfig`,
 ``live_view`` :class:`onboard.io.live_view.LiveViewConfig`; the others are below.
@@ -46,12 +46,14 @@ from onboard.core.errors import ConfigError
 from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
 from onboard.core.pose_config import ExtrapolationHorizons, OriginConfig, PoseConfig
 from onboard.core.schema import (
+    Bool,
     Flag,
     Instance,
     Integer,
     Invalid,
     Number,
     Numbers,
+    PositiveFloat,
     SchemaError,
     Text,
     Texts,
@@ -158,25 +160,23 @@ class InputConfig:
     time_reset_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
 
 
+#: Brown-Conrady coefficients k1, k2, p1, p2, k3 (OpenCV's order)
+Distortion = Annotated[
+    tuple[float, float, float, float, float], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")
+]
+
+
 @config_dataclass
 class IntrinsicsConfig(PinholeSection):
     """``camera.intrinsics``: pinhole + Brown-Conrady, as the scenario schema (cx/cy null = centre)."""
 
-    fx_px: Annotated[float, Number(lo=0.0, lo_open=True)] = 13e-3 / 17e-6
-    fy_px: Annotated[float, Number(lo=0.0, lo_open=True)] = 13e-3 / 17e-6
+    fx_px: PositiveFloat = 13e-3 / 17e-6
+    fy_px: PositiveFloat = 13e-3 / 17e-6
     cx_px: Annotated[float | None, Number()] = None
     cy_px: Annotated[float | None, Number()] = None
     width_px: Annotated[int, Integer(16, 100000)] = 640
     height_px: Annotated[int, Integer(16, 100000)] = 512
-    distortion: Annotated[
-        tuple[float, float, float, float, float], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")
-    ] = (
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-        0.0,
-    )
+    distortion: Distortion = (0.0, 0.0, 0.0, 0.0, 0.0)
 
     CENTRE_EXPECT_SUFFIX = " or null"
 
@@ -189,7 +189,7 @@ class MountConfig:
     roll_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     pitch_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     yaw_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
-    gimballed: Annotated[bool, Flag()] = False
+    gimballed: Bool = False
 
     def camera_mount(self) -> CameraMount:
         return CameraMount.from_euler_deg(
@@ -219,7 +219,7 @@ def _sliding_mapping(value: Any) -> bool:
 class EstimatorConfig:
     """``estimator``: the sliding-window reconstruction and the noise it assumes."""
 
-    enabled: Annotated[bool, Flag()] = True
+    enabled: Bool = True
     window_s: Annotated[float, Number(0.0, 600.0, lo_open=True)] = 20.0
     pixel_sigma_px: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 0.3
     attitude_white_sigma_deg: Annotated[float, Number(0.0, 30.0)] = 0.05
@@ -227,7 +227,7 @@ class EstimatorConfig:
     camera_position_white_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.02
     camera_position_offset_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.0
     camera_position_drift_sigma_mps: Annotated[float, Number(0.0, 100.0)] = 0.0
-    reset_on_new_track: Annotated[bool, Flag()] = True
+    reset_on_new_track: Bool = True
     worker: Annotated[Literal["process", "thread", "inline"], Text()] = "process"
     result_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 2.0
     max_extrapolation_s: Annotated[float, Number(0.0, 60.0)] = 1.0
@@ -274,13 +274,13 @@ class EstimatorConfig:
 class OutputConfig:
     """``output``: what goes out and how often."""
 
-    publish_track: Annotated[bool, Flag()] = True
+    publish_track: Bool = True
     # a finite 3-D estimate is published with observable=false as its quality verdict (irtrack.track/2);
     # false: positions only when observable, as irtrack.track/1 did
-    unobservable_positions: Annotated[bool, Flag()] = True
+    unobservable_positions: Bool = True
     # CAMERA_TRACKING_GEO_STATUS (#276) for unobservable positions too (a ground station shows #276 as
     # a fix and cannot read the verdict: off by default)
-    geo_status_unobservable: Annotated[bool, Flag()] = False
+    geo_status_unobservable: Bool = False
     status_interval_s: Annotated[float, Number(0.05, 3600.0)] = 1.0
     tracking_image_status_hz: Annotated[float, Number(0.0, 100.0)] = 10.0
     tracking_geo_status_hz: Annotated[float, Number(0.0, 100.0)] = 5.0
@@ -324,13 +324,12 @@ class VideoConfig:
     """``video``: the IR video for ground stations (see :mod:`onboard.io.video`)."""
 
     destination: Annotated[str | None, Text(pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT")] = None
-    transport: Annotated[Literal["rtp", "mpegts"], Text()] = (
-        "rtp"  # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
-    )
+    # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
+    transport: Annotated[Literal["rtp", "mpegts"], Text()] = "rtp"
     fps: Annotated[float, Number(1.0, 120.0)] = 30.0
     bitrate_bps: Annotated[int, Integer(100_000, 50_000_000)] = 2_000_000
     gop_s: Annotated[float, Number(0.1, 1.0)] = 1.0
-    overlay: Annotated[bool, Flag()] = True
+    overlay: Bool = True
     queue_length: Annotated[int, Integer(1, 30)] = 2
 
 
@@ -338,7 +337,7 @@ class VideoConfig:
 class FollowConfig:
     """``follow``: FOLLOW_TARGET (#144) to the autopilot from observable 3-D positions (see :mod:`onboard.io.follow`)."""
 
-    enabled: Annotated[bool, Flag()] = False
+    enabled: Bool = False
     rate_hz: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 5.0
 
 

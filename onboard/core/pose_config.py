@@ -14,7 +14,7 @@ import math
 from typing import Annotated, Literal, NamedTuple
 
 from onboard.core.frames import GeodeticOrigin
-from onboard.core.schema import Flag, Integer, Invalid, Number, Text, config_dataclass
+from onboard.core.schema import Bool, Integer, Invalid, Number, Text, config_dataclass
 
 __all__ = [
     "PoseConfig",
@@ -102,7 +102,7 @@ class PoseConfig:
     reboot_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
     max_speed_mps: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 200.0
     jump_reset_count: Annotated[int, Integer(1, 1000)] = 5
-    keep_origin_on_reboot: Annotated[bool, Flag()] = True
+    keep_origin_on_reboot: Bool = True
     position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"
     wait_ms: Annotated[float, Number(0.0, 1000.0)] = 5.0
     max_extrapolation_ms: Annotated[float, Number(0.0, 10000.0)] = 50.0

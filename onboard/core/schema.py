@@ -75,6 +75,11 @@ __all__ = [
     "Numbers",
     "Instance",
     "FieldType",
+    "Bool",
+    "NonNegativeFloat",
+    "PositiveFloat",
+    "NonNegativeInt",
+    "PositiveInt",
     "to_plain",
     "check_value",
     "parse_yaml_text",
@@ -703,6 +708,14 @@ class Instance(FieldType):
             return value
 
         return handler.generate_schema(Annotated[Any, pydantic.PlainValidator(validate)])
+
+
+#: the common field types, named once
+Bool = Annotated[bool, Flag()]
+NonNegativeFloat = Annotated[float, Number(lo=0.0)]
+PositiveFloat = Annotated[float, Number(lo=0.0, lo_open=True)]
+NonNegativeInt = Annotated[int, Integer(lo=0)]
+PositiveInt = Annotated[int, Integer(lo=1)]
 
 
 # --------------------------------------------------------------------------- the YAML loader

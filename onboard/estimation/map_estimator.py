@@ -76,7 +76,16 @@ import scipy.linalg as sla
 from pydantic import AfterValidator
 
 from onboard.core.errors import IrtrackError
-from onboard.core.schema import Integer, Invalid, Number, Numbers, Texts, config_dataclass
+from onboard.core.schema import (
+    Invalid,
+    NonNegativeFloat,
+    Number,
+    Numbers,
+    PositiveFloat,
+    PositiveInt,
+    Texts,
+    config_dataclass,
+)
 from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cross3, qr_r
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
@@ -116,12 +125,12 @@ class NoiseModel:
     :class:`~onboard.core.schema.SchemaError` naming the field (the daemon builds it from its ``estimator``
     section, the simulator from a noise case)."""
 
-    pixel_sigma_px: Annotated[float, Number(lo=0.0, lo_open=True)] = 0.3
-    attitude_white_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
-    attitude_bias_sigma_rad: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_white_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_offset_sigma_m: Annotated[float, Number(lo=0.0)] = 0.0
-    camera_position_drift_sigma_mps: Annotated[float, Number(lo=0.0)] = 0.0
+    pixel_sigma_px: PositiveFloat = 0.3
+    attitude_white_sigma_rad: NonNegativeFloat = 0.0
+    attitude_bias_sigma_rad: NonNegativeFloat = 0.0
+    camera_position_white_sigma_m: NonNegativeFloat = 0.0
+    camera_position_offset_sigma_m: NonNegativeFloat = 0.0
+    camera_position_drift_sigma_mps: NonNegativeFloat = 0.0
 
 
 @dataclass(frozen=True)
@@ -148,11 +157,11 @@ class MapConfig:
     """The MAP estimator's settings (units in the names); a bad value raises
     :class:`~onboard.core.schema.SchemaError` naming the field."""
 
-    knot_spacing_s: Annotated[float, Number(lo=0.0, lo_open=True)] = 0.5
+    knot_spacing_s: PositiveFloat = 0.5
     q_grid_m2ps3: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (1e-6, 1e-3, 1e-2, 1e-1)
-    model_margin_nats: Annotated[float, Number(lo=0.0)] = 15.0
-    vertical_ratio: Annotated[float, Number(lo=0.0)] = 0.25
-    turn_rate_sigma_radps: Annotated[float, Number(lo=0.0)] = 0.3
+    model_margin_nats: NonNegativeFloat = 15.0
+    vertical_ratio: NonNegativeFloat = 0.25
+    turn_rate_sigma_radps: NonNegativeFloat = 0.3
     init_ranges_m: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (
         40.0,
         100.0,
@@ -160,30 +169,30 @@ class MapConfig:
         600.0,
         1500.0,
     )
-    max_iterations: Annotated[int, Integer(lo=1)] = 20
-    min_frames: Annotated[int, Integer(lo=1)] = 10
+    max_iterations: PositiveInt = 20
+    min_frames: PositiveInt = 10
     # a solution whose mean range falls below this is the collapsed one of the bearing-only problem (the
     # cost keeps falling as the trajectory shrinks onto the camera track; the reference study's pitfall):
     # the solve stops there and drops it instead of crawling down that valley.  A target this close
     # fills tens of pixels and is a collision, not a tracking problem.
-    min_range_m: Annotated[float, Number(lo=0.0)] = 10.0
+    min_range_m: NonNegativeFloat = 10.0
     # camera positions with white noise (NoiseModel.camera_position_white_sigma_m > 0) are smoothed, as
     # an INS would, by a least-squares cubic B-spline with this knot spacing before use; 0 turns it off.
     # Raw jittery positions bias every model towards far targets: the measured bearings do not show the
     # parallax the jitter implies, which a distant target explains best (the reference study's pitfall;
     # measured here: P1 RTK's CA/CT "mirror" solutions at 2-4x the range won by 10-20 nats without it)
-    camera_track_knot_s: Annotated[float, Number(lo=0.0)] = 0.5
+    camera_track_knot_s: NonNegativeFloat = 0.5
     # observability verdict (module docstring, "Verdict"): the posterior range sigma over range of the
     # reported solution, median over the window, must be below this.  Chosen from 675 bench runs (9
     # scenarios x px0.3/RTK/GNSS x 25 seeds): the reported sigma of P2 under RTK navigation is 4.2-5.3 %
     # of range (median over the window; its actual error 1.0 %), a gusty P2g target's 5.7-16 % (its
     # error 7 %); 3 % of the window's maximum, the verdict before, called P1/P2 RTK observable in 0/50
-    observability_max_sigma_range_ratio: Annotated[float, Number(lo=0.0, lo_open=True)] = 0.055
+    observability_max_sigma_range_ratio: PositiveFloat = 0.055
     # solutions whose range differs from the reported one by more than this fraction (median over the
     # window) are a different explanation of the bearings ("far" modes: the accelerating mirror target of
     # a straight accelerating observer, a range-free vague model) -- not part of the reported solution's
     # uncertainty but of its ambiguity; the verdict wants their posterior mass at most max_ambiguity
-    near_solution_ratio: Annotated[float, Number(lo=0.0, lo_open=True)] = 0.3
+    near_solution_ratio: PositiveFloat = 0.3
     max_ambiguity: Annotated[float, Number(0.0, 1.0)] = 0.5
     # the reported solution's neighbourhood must hold at least this posterior mass; otherwise the next
     # close model that does is reported (the online window met a stiff CT model with ~0 weight, 37 % off,
@@ -192,30 +201,30 @@ class MapConfig:
     # a position the verdict calls unobservable is still published, with a covariance that must stay
     # honest: its range sigma is at least this fraction of the range (the Laplace posterior of a model
     # that cannot follow the target -- a gusty target, a figure-eight -- is confidently wrong along range)
-    unobservable_range_sigma_floor: Annotated[float, Number(lo=0.0)] = 0.5
+    unobservable_range_sigma_floor: NonNegativeFloat = 0.5
     # ... and at least this many metres: an unobservable solution can also sit collapsed towards the camera
     # (H1's figure-eight: 2-16 % of the true range), where a fraction of its own range says nothing.  The
     # range is then known only to lie between the collapse floor (min_range_m) and the ~500 m at which
     # the Vue Pro 640 still detects a small drone
-    unobservable_range_sigma_min_m: Annotated[float, Number(lo=0.0)] = 150.0
+    unobservable_range_sigma_min_m: NonNegativeFloat = 150.0
     # weak priors that make the posterior proper, in physical terms: the target is within ~1 km of
     # the camera (a Vue Pro 640 does not resolve a small drone much farther), flies below ~30 m/s and
     # does not sustain more than ~3 m/s^2 (0.3 g).  They decide nothing where range is observable.
-    position_prior_sigma_m: Annotated[float, Number(lo=0.0, lo_open=True)] = 1000.0
-    velocity_prior_sigma_mps: Annotated[float, Number(lo=0.0, lo_open=True)] = 30.0
-    acceleration_prior_sigma_mps2: Annotated[float, Number(lo=0.0, lo_open=True)] = 3.0
+    position_prior_sigma_m: PositiveFloat = 1000.0
+    velocity_prior_sigma_mps: PositiveFloat = 30.0
+    acceleration_prior_sigma_mps2: PositiveFloat = 3.0
     # the CA family's own acceleration level: a cruising multirotor's sustained acceleration is
     # typically below ~0.5 m/s^2; without it CA explains any range by a target whose acceleration
     # happens to mirror the observer's (the scaled-trajectory ridge of a straight accelerating observer)
-    ca_acceleration_sigma_mps2: Annotated[float, Number(lo=0.0, lo_open=True)] = 0.5
+    ca_acceleration_sigma_mps2: PositiveFloat = 0.5
     families: Families = ("cv", "ca", "ct")
     # Laplace's Gaussian is light-tailed along range (the bearing-only range posterior is skewed):
     # reported sigmas are this factor times the Laplace ones (measured NEES ~3.1 -> ~2.2 on P1-P3)
-    sigma_inflation: Annotated[float, Number(lo=0.0, lo_open=True)] = 1.2
+    sigma_inflation: PositiveFloat = 1.2
     # model adequacy: residuals averaged over blocks of this many frames must look like the assumed
     # white noise; a chi-square p-value below adequacy_p_min marks the fit unobservable (a motion model
     # that cannot follow the target -- a gusty target under a stiff prior -- buys its fit with range)
-    adequacy_block_frames: Annotated[int, Integer(lo=1)] = 15
+    adequacy_block_frames: PositiveInt = 15
     adequacy_p_min: Annotated[float, Number(0.0, 1.0)] = 1e-3
 
     def motion_prior(self, family: str, q_horizontal_m2ps3: float) -> MotionPrior:

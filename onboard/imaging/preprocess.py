@@ -48,7 +48,17 @@ import cv2
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.core.schema import Integer, Invalid, Number, SchemaError, build, config_dataclass
+from onboard.core.schema import (
+    Integer,
+    Invalid,
+    NonNegativeFloat,
+    NonNegativeInt,
+    Number,
+    PositiveInt,
+    SchemaError,
+    build,
+    config_dataclass,
+)
 
 __all__ = [
     "ImagingParams",
@@ -104,30 +114,30 @@ class ImagingParams:
     prediction keeps its track id; after ``lost_frames`` frames without a blob it is ``lost``.
     """
 
-    mean_kernel_px: Annotated[int, Integer(lo=1)] = 3
-    threshold_low_sigma: Annotated[float, Number(lo=0.0)] = 3.0
-    threshold_high_sigma: Annotated[float, Number(lo=0.0)] = 7.0
-    min_threshold_low_lsb: Annotated[float, Number(lo=0.0)] = 1.0
-    min_threshold_high_lsb: Annotated[float, Number(lo=0.0)] = 2.0
+    mean_kernel_px: PositiveInt = 3
+    threshold_low_sigma: NonNegativeFloat = 3.0
+    threshold_high_sigma: NonNegativeFloat = 7.0
+    min_threshold_low_lsb: NonNegativeFloat = 1.0
+    min_threshold_high_lsb: NonNegativeFloat = 2.0
     background_opening_px: Annotated[int, Integer(lo=3)] = 21
-    min_area_px: Annotated[int, Integer(lo=1)] = 2
-    max_area_px: Annotated[int, Integer(lo=1)] = 1024
+    min_area_px: PositiveInt = 2
+    max_area_px: PositiveInt = 1024
     max_blob_side_px: Annotated[int, Integer(lo=3)] = 48
     max_aspect_ratio: Annotated[float, Number(lo=1.0)] = 6.0
-    max_candidates: Annotated[int, Integer(lo=1)] = 8
-    centroid_margin_px: Annotated[int, Integer(lo=0)] = 1
-    centroid_window_sigma_px: Annotated[float, Number(lo=0.0)] = 1.0
-    background_ring_px: Annotated[int, Integer(lo=1)] = 3
+    max_candidates: PositiveInt = 8
+    centroid_margin_px: NonNegativeInt = 1
+    centroid_window_sigma_px: NonNegativeFloat = 1.0
+    background_ring_px: PositiveInt = 3
     kcf_box_px: Annotated[int, Integer(lo=4)] = 16
-    kcf_box_scale: Annotated[float, Number(lo=0.0)] = 1.0
+    kcf_box_scale: NonNegativeFloat = 1.0
     kcf_max_box_px: Annotated[int, Integer(lo=4)] = 32
     kcf_detect_threshold: Annotated[float, Number(0.0, 1.0, what="a number in [0, 1] (KCF peak response)")] = 0.3
-    roi_margin_px: Annotated[int, Integer(lo=0)] = 12
-    max_drift_px: Annotated[float, Number(lo=0.0)] = 3.0
-    kcf_gate_px: Annotated[float, Number(lo=0.0)] = 8.0
-    reacquire_gate_px: Annotated[float, Number(lo=0.0)] = 64.0
-    coast_frames: Annotated[int, Integer(lo=0)] = 5
-    lost_frames: Annotated[int, Integer(lo=1)] = 15
+    roi_margin_px: NonNegativeInt = 12
+    max_drift_px: NonNegativeFloat = 3.0
+    kcf_gate_px: NonNegativeFloat = 8.0
+    reacquire_gate_px: NonNegativeFloat = 64.0
+    coast_frames: NonNegativeInt = 5
+    lost_frames: PositiveInt = 15
 
     def __post_init__(self) -> None:
         if self.mean_kernel_px % 2 != 1:

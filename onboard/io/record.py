@@ -76,7 +76,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.core.schema import Flag, Integer, Number, Text, config_dataclass
+from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
 
 __all__ = [
     "FRAME_INPUT_SCHEMA",
@@ -466,7 +466,7 @@ class RecordConfig:
     Sizes in the file's units (MB, KB); :class:`FlightRecorder` reads them in bytes (``*_bytes``)."""
 
     path: Annotated[str | None, Text(pattern=r"^.*\.mcap$", what="a file name ending in .mcap")] = None
-    frames: Annotated[bool, Flag()] = True
+    frames: Bool = True
     max_file_mb: Annotated[float, Number(1.0, 1_000_000.0)] = 2000.0
     max_file_s: Annotated[float, Number(1.0, 86_400.0)] = 600.0
     max_files: Annotated[int, Integer(0, 100_000)] = 0
