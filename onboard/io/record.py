@@ -64,6 +64,7 @@ from __future__ import annotations
 import base64
 import collections
 import datetime
+import functools
 import json
 import logging
 import math
@@ -476,19 +477,19 @@ class RecordConfig:
     queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
     sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
 
-    @property
+    @functools.cached_property
     def max_file_bytes(self) -> int:
         return int(self.max_file_mb * MB)
 
-    @property
+    @functools.cached_property
     def chunk_bytes(self) -> int:
         return self.chunk_kb * 1024
 
-    @property
+    @functools.cached_property
     def queue_bytes(self) -> int:
         return int(self.queue_mb * MB)
 
-    @property
+    @functools.cached_property
     def sync_bytes(self) -> int:
         return int(self.sync_mb * MB)
 
