@@ -64,7 +64,8 @@ from typing import Any
 from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError
-from onboard.core.pose import ClockSync, PoseBuffer, RejectCounter
+from onboard.core.pose import ClockSync, RejectCounter
+from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
@@ -485,7 +486,8 @@ class _Writer:
 class MavlinkLink:
     """The autopilot link.  Drive it with :meth:`poll` (drain input) and :meth:`tick` (timers).
 
-    ``pose_buffer`` receives the telemetry; ``counters`` counts rejected input (share it with the
+    ``pose_buffer`` receives the telemetry (a :class:`~onboard.core.pose.PoseBuffer`, or the daemon's
+    locked :class:`~onboard.app.shared_pose.SharedPoseBuffer`); ``counters`` counts rejected input (share it with the
     buffer).  ``clock`` (s, monotonic) drives heartbeats, timeouts and retries and can be faked in
     tests; ``clock_ns`` stamps TIMESYNC and must be the clock that stamps camera frames, so that
     :meth:`to_boot_us` maps them onto the boot clock.
@@ -494,7 +496,7 @@ class MavlinkLink:
     def __init__(
         self,
         connection: str,
-        pose_buffer: PoseBuffer,
+        pose_buffer: PoseSink,
         counters: RejectCounter,
         gimballed: bool = False,
         att_rate_hz: float = 50.0,

@@ -27,7 +27,10 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from bench.onboard import SyntheticScene  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
-from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
+from onboard.app.estimator_worker import ThreadedEstimator  # noqa: E402
+from onboard.app.frame_queue import FrameQueue  # noqa: E402
+from onboard.app.locked_counter import LockedCounter  # noqa: E402
+from onboard.app.shared_pose import SharedPoseBuffer  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
 from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
@@ -540,7 +543,7 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     """Same observations, same answers: the child process runs the same deterministic estimator."""
     from onboard.app.config import OnboardConfig
-    from onboard.app.service import ProcessEstimator
+    from onboard.app.estimator_worker import ProcessEstimator
     from onboard.pipeline.frame_pipeline import make_estimator
 
     scene = SyntheticScene()
