@@ -25,6 +25,7 @@ import collections
 import logging
 import math
 import os
+import signal
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -184,6 +185,25 @@ class ThreadedEstimator:
         return len(self._q)
 
 
+def _start_fork_server() -> None:
+    """Start the fork server (if not running) with SIGINT blocked: it inherits the mask, so a Ctrl-C in the
+    terminal, which reaches the whole process group, never prints a traceback from a fork server still
+    importing its preload (it ignores SIGINT once it serves); the parent stops it.  A Ctrl-C that comes
+    meanwhile reaches this process when the mask is restored.  The resource tracker first: its own start
+    unblocks SIGINT (it protects itself the same way)."""
+    from multiprocessing import forkserver, resource_tracker
+
+    resource_tracker.ensure_running()
+    if not hasattr(signal, "pthread_sigmask"):
+        forkserver.ensure_running()
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 def _add_rows(est, rows: Iterable[tuple]) -> Any:
     """``rows`` added to ``est`` in order, those it refuses skipped (they were counted when they first
     arrived); the estimate at the last one added (or None)."""
@@ -210,9 +230,7 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
     Every ``SNAPSHOT_PERIOD_S`` of observation time, an answer with an estimate also carries a
     snapshot of the estimator's state (:meth:`SlidingWindowEstimator.snapshot`), which the parent keeps for a
     replacement."""
-    import signal as _signal
-
-    _signal.signal(_signal.SIGINT, _signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
     name_os_thread("irtrack-estim")
     from onboard.app.logs import setup_logging  # this process is an entry point of its own: same log lines
 
@@ -371,6 +389,7 @@ class ProcessEstimator:
         self._proc = self._ctx.Process(
             target=_estimator_process_main, args=(child, self._config), name="irtrack-estimator", daemon=True
         )
+        _start_fork_server()
         self._proc.start()
         child.close()
         self._conn = parent

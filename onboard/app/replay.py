@@ -27,16 +27,16 @@ A file cut short (a killed daemon) is read up to its last complete chunk (the su
 
 from __future__ import annotations
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+single_thread_blas_env()  # the replayed pipeline is single-threaded like the daemon's: before numpy is imported
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
+import os  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402

@@ -538,6 +538,43 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
 
 
+CTRL_C_WHILE_STARTING_S = 0.8  # after the launch: importing, or starting the estimator process and its fork server
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("when", ["starting", "serving"])
+def test_ctrl_c_stops_the_daemon_cleanly_whenever_it_comes(daemon_env, when):
+    """A terminal's Ctrl-C is SIGINT to the whole process group (the daemon, its fork server, its estimator
+    process): exit 0, one line saying what happened, no traceback from any of them."""
+    proc = subprocess.Popen(
+        loopback_daemon_command(free_tcp_port(), "null"),
+        cwd=REPO,
+        env=daemon_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as in a terminal
+    )
+    try:
+        if when == "starting":
+            time.sleep(CTRL_C_WHILE_STARTING_S)
+        else:
+            assert proc.stderr is not None
+            for line in proc.stderr:
+                if "onboard service started" in line:
+                    break
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=STOP_BUDGET_S + 10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "signal SIGINT while starting: stopped before serving" in err or "signal SIGINT: shutting down" in err, err
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(120)
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
