@@ -454,7 +454,7 @@ class OnboardService:
         the watchdog, the status), at most ``MAIN_LOOP_MAX_IDLE_S``; and never turn more often than
         ``mavlink.poll_rate_hz`` (a flood of datagrams costs at most that many turns).  A fixed-rate
         loop woke 200 times a second whether or not anything had come: ~0.02 CPU s per s on a
-        companion-class core for nothing (issue 9 item 7).  Without a file descriptor to wait on (a
+        companion-class core for nothing.  Without a file descriptor to wait on (a
         link being reopened, a test double), the loop turns at ``poll_rate_hz`` as it used to."""
         fds: list[int] = []
         link_fd = getattr(self.link, "fileno", lambda: None)()
