@@ -15,9 +15,8 @@ Threads (nothing else runs concurrently):
   samples over a bounded horizon (:mod:`onboard.core.pose`) -- and the estimator), publishes the track JSON on
   ``irtrack/<vehicle>/track`` and hands each frame's outcome to the output taps, one call each
   (:class:`~onboard.app.observers.FrameObserver`: recorder, live view, video, and the newest track
-  for the main thread).  It touches
-  the liveness file (:func:`onboard.app.health.mark_alive`) at least every ``output.health_interval_s``,
-  busy or idle.
+  for the main thread).  It touches the liveness file (:func:`onboard.app.health.mark_alive`) at least
+  every ``output.health_interval_s``, busy or idle.
 * **estimator worker** (``estimator.worker``, :mod:`onboard.app.estimator_worker`): ``process``
   (default) runs the sliding-window estimator in a child process, ``thread`` in a thread, ``inline``
   in the pipeline thread.  A frame waits up to ``estimator.result_wait_ms`` for its own estimate, past
@@ -75,6 +74,7 @@ from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_t
 if TYPE_CHECKING:
     from onboard.io.camera_protocol import CameraProtocol
     from onboard.io.gcs_link import GcsLink
+    from onboard.io.mavlink_link import MavlinkLink
 
 __all__ = ["OnboardService"]
 
@@ -149,7 +149,7 @@ class OnboardService:
         self.taps: list[FrameObserver] = make_observers(config, self.pipeline.intrinsics, clock_ns)
         self.observers: list[FrameObserver] = [*self.taps, self.newest]
         self.recorder = next((t.recorder for t in self.taps if isinstance(t, RecorderTap)), None)
-        self.link: Any = None  # onboard.io.mavlink_link.MavlinkLink, opened by start()
+        self.link: MavlinkLink | None = None  # the autopilot link, opened by start()
         self.gcs: GcsLink | None = None  # the camera component's sockets (gcs.endpoints), opened by start()
         self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
         self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
@@ -426,8 +426,9 @@ class OnboardService:
         turn_s = now
         while not self._stop.is_set() and now < end:
             try:
-                self.link.poll()
-                self.link.tick()
+                if self.link is not None:  # None until start()
+                    self.link.poll()
+                    self.link.tick()
             except Exception as exc:  # noqa: BLE001 - the link adapter should not raise; be sure
                 self.counter.count("mavlink_loop_error", f"{type(exc).__name__}: {exc}")
             now = self._clock()
