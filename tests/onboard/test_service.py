@@ -703,3 +703,58 @@ def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
 
 
 # #276 only for observable positions: tests/onboard/test_selection.py (through the camera component)
+
+
+class _TapRecorder:
+    """A FrameObserver that remembers what the service handed it."""
+
+    name = "test_tap"
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self.frames: list[tuple[int, bool]] = []  # (seq, with a track)
+        self.status_payloads: list[bytes] = []
+
+    def start(self) -> None:
+        pass
+
+    def on_received(self, frame, received_ns: int) -> None:
+        self.received.append(frame.seq)
+
+    def on_frame(self, frame, result) -> None:
+        self.frames.append((frame.seq, result.track is not None))
+
+    def on_status(self, data: bytes) -> None:
+        self.status_payloads.append(data)
+
+    def status(self):
+        return {"frames": len(self.frames)}
+
+    def close(self, timeout_s: float) -> None:
+        pass
+
+
+def test_every_output_tap_sees_each_frame_once_taken_or_refused():
+    """One observer interface for the recorder, the live view and the video: each frame the pipeline takes is
+    handed to every tap once, with what became of it (a refused frame too, without a track), and the tap's
+    section is in the status JSON."""
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    tap = _TapRecorder()
+    svc.taps.append(tap)
+    svc.observers.append(tap)
+    right, wrong = np.zeros((512, 640), np.uint8), np.zeros((256, 320), np.uint8)
+    for k, pixels in enumerate([right, wrong, right]):
+        svc.queue.push((IrFrame(seq=k, time_boot_us=1000 + 40_000 * k, pixels=pixels), clock.ns()))
+    t = threading.Thread(target=svc._pipeline_loop)
+    t.start()
+    deadline = time.monotonic() + 10.0
+    while len(tap.frames) < 3 and time.monotonic() < deadline:
+        svc._pipe_stop.wait(0.01)
+    svc._pipe_stop.set()
+    svc.queue.close()
+    t.join(10)
+    assert tap.frames == [(0, True), (1, False), (2, True)]
+    assert svc.newest.value is not None and svc.newest.value[0].seq == 2
+    assert svc.status(clock())["test_tap"] == {"frames": 3}
