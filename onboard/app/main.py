@@ -179,13 +179,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OK
 
 
-def _run(args: argparse.Namespace) -> int:
-    service: Any = None  # the OnboardService, once built
-    early: list[int] = []  # stop signals that came while it was being built
+class _StopSignals:
+    """The handler of SIGTERM, SIGINT and SIGHUP: before the service is built a signal is remembered (the
+    service is stopped once built, before it serves); after, it asks the service to stop, with a budget."""
 
-    def on_signal(signum, _frame) -> None:
+    SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)  # SIGHUP: a closed terminal, the same clean exit
+
+    def __init__(self) -> None:
+        self.service: Any = None  # the OnboardService, once built
+        self.early: list[int] = []  # signals that came while it was being built
+
+    def __call__(self, signum: int, _frame: Any) -> None:
+        service = self.service
         if service is None:
-            early.append(signum)  # stopped once built, before it serves
+            self.early.append(signum)
             return
         if service.stopping:
             return
@@ -200,12 +207,20 @@ def _run(args: argparse.Namespace) -> int:
         # without the GIL: the hang is then diagnosable instead of a process that never ends
         faulthandler.dump_traceback_later(SHUTDOWN_BUDGET_S + HARD_EXIT_MARGIN_S, exit=True)
 
+
+def _run(args: argparse.Namespace) -> int:
     # from the start (importing numpy, scipy, OpenCV and starting the estimator process take a second or
     # more): a Ctrl-C or SIGTERM then is a clean stop too, not a traceback from the middle of an import
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGHUP, on_signal)  # a closed terminal / session: the same clean exit, no reload
+    stop = _StopSignals()
+    previous = {sig: signal.signal(sig, stop) for sig in stop.SIGNALS}
+    try:
+        return _serve(args, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
+
+def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     from onboard.app.config import OnboardConfigError, config_to_dict, load_config
     from onboard.core.errors import IrtrackError
 
@@ -214,8 +229,8 @@ def _run(args: argparse.Namespace) -> int:
     except OnboardConfigError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
-    if early:
-        return _stopped_while_starting(early)
+    if stop.early:
+        return _stopped_while_starting(stop.early)
     if args.print_config:
         import yaml
 
@@ -238,11 +253,11 @@ def _run(args: argparse.Namespace) -> int:
     except IrtrackError as exc:
         print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
         return EXIT_CONFIG
-    if early:
+    if stop.early:
         built.close(0.5)
-        return _stopped_while_starting(early)
-    service = built
-    if early:  # came between the check and the assignment
+        return _stopped_while_starting(stop.early)
+    service = stop.service = built
+    if stop.early:  # came between the check and the assignment
         service.request_stop()
 
     try:
