@@ -273,7 +273,7 @@ class _PipedTracker:
 
 def _imaging_child(rec: Recording, config, conn) -> None:
     """Runs in the forked imaging process: the same admission and tracker over the same frames, no pose, no estimator."""
-    from onboard.core.pose import RejectCounter
+    from onboard.core.counters import RejectCounter
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
     tapped = _TappedTracker(make_tracker(config), conn)
@@ -315,7 +315,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
     imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
-    from onboard.core.pose import RejectCounter
+    from onboard.core.counters import RejectCounter
     from onboard.core.track import track_to_json
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 

@@ -66,9 +66,10 @@ import numpy as np
 from onboard.app.config import OnboardConfig
 from onboard.app.os_thread import name_os_thread
 from onboard.app.watchdog import Watchdog
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrameError, check_payload_size, decode_irframe
-from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.core.pose import PoseBuffer
 from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
 from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
 from onboard.io.worker_queue import next_or_stop

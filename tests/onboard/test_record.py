@@ -17,7 +17,7 @@ import pytest
 
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.irframe import IrFrame
-from onboard.core.pose import PoseAt, PoseSample
+from onboard.core.pose_types import PoseAt, PoseSample
 from onboard.core.track import Track
 from onboard.io.record import (
     FRAME_INPUT_TOPIC,

@@ -28,9 +28,10 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 from bench.onboard import SyntheticScene  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
+from onboard.core.counters import RejectCounter  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
+from onboard.core.pose import PoseBuffer  # noqa: E402
 from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from tests.fakes import FakeAutopilot, FakeClock, quiet_link_status  # noqa: E402
