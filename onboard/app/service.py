@@ -70,7 +70,8 @@ from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrameError, check_payload_size, decode_irframe
 from onboard.core.pose import PoseBuffer
-from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
+from onboard.core.status import RollingStats, build_status
+from onboard.core.track import Track, track_to_bytes
 from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
 from onboard.io.worker_queue import next_or_stop
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker

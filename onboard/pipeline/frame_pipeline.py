@@ -65,7 +65,8 @@ from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
 from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
 from onboard.core.pose_types import PoseAt
-from onboard.core.track import LineOfSight, RollingStats, Track, line_of_sight_ned
+from onboard.core.status import RollingStats
+from onboard.core.track import LineOfSight, Track, line_of_sight_ned
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 
