@@ -44,7 +44,8 @@ from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, irframe_from_rawimage, pose_from_json  # noqa: E402
+from onboard.io.foxglove_messages import irframe_from_rawimage  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
 __all__ = [
     "RecordedMessage",
