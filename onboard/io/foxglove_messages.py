@@ -29,6 +29,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.core.frames import geodetic_from_ned1
 from onboard.core.irframe import IrFrame
+from onboard.core.pose_types import PoseAt
 from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, TRACK_STATES
 
@@ -283,7 +284,7 @@ def location_fix_fields(
     return out
 
 
-def camera_fix_fields(pose: Any, t_us: int) -> dict[str, Any]:
+def camera_fix_fields(pose: PoseAt, t_us: int) -> dict[str, Any]:
     """foxglove.LocationFix fields (frame ``camera``) of the camera centre of a
     :class:`~onboard.core.pose_types.PoseAt` (``p_cam_ned_m`` about ``origin``) at ``t_us``."""
     n, e, d = (float(v) for v in pose.p_cam_ned_m)

@@ -140,8 +140,8 @@ def _arr(v) -> np.ndarray:
     return np.array(v, dtype=float)  # a JSON null (None) becomes NaN
 
 
-def pose_to_json(pose) -> dict[str, Any] | None:
-    """A :class:`~onboard.core.pose.PoseAt` as a JSON-able dict (NaN as null); :func:`pose_from_json` inverts it."""
+def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
+    """A :class:`~onboard.core.pose_types.PoseAt` as a JSON-able dict (NaN as null); :func:`pose_from_json` inverts it."""
     if pose is None:
         return None
     b, o = pose.body, pose.origin
@@ -166,8 +166,8 @@ def pose_to_json(pose) -> dict[str, Any] | None:
     }
 
 
-def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose"):
-    """The :class:`~onboard.core.pose.PoseAt` of :func:`pose_to_json`'s dict (None for None); raises
+def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt | None:
+    """The :class:`~onboard.core.pose_types.PoseAt` of :func:`pose_to_json`'s dict (None for None); raises
     :class:`InputError` naming ``where`` and the field on a malformed one."""
     if obj is None:
         return None

@@ -485,7 +485,7 @@ def test_slerp_splits_the_angle_in_proportion(r0, r1, s):
         np.testing.assert_allclose(axis0q, sa * axis01, atol=1e-6)
 
 
-# --------------------------------------------------------------------------- extrapolation (issue 9 item 4)
+# --------------------------------------------------------------------------- extrapolation
 
 ATOL_EXTRAP_RAD = 1e-9  # constant body rate: Exp is exact, only rounding remains
 ATOL_EXTRAP_M = 1e-9  # constant velocity: p0 + v h is exact
@@ -753,7 +753,7 @@ def test_shipped_noise_numbers_of_the_docstring():
     assert math.degrees(pos_50ms_m / 100.0) / white_deg == pytest.approx(0.06, abs=0.005)
 
 
-# --------------------------------------------------------------------------- timestamp outliers (issue 12)
+# --------------------------------------------------------------------------- timestamp outliers
 
 ONE_HOUR_US = 3600 * 1_000_000
 
