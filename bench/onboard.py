@@ -250,8 +250,9 @@ def bench_processing(n_frames: int) -> None:
     import cv2
 
     from onboard.app.config import OnboardConfig, build_config
+    from onboard.core.counters import RejectCounter
     from onboard.core.irframe import decode_irframe
-    from onboard.core.pose import PoseBuffer, RejectCounter
+    from onboard.core.pose import PoseBuffer
     from onboard.pipeline.frame_pipeline import FramePipeline, make_estimator, make_tracker
 
     cv2.setNumThreads(1)

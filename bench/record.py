@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
-from onboard.core.pose import PoseAt, PoseSample  # noqa: E402
+from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402
 from onboard.core.track import Track, track_to_bytes  # noqa: E402
 from onboard.io.record import FlightRecorder, RecordSettings  # noqa: E402
 

@@ -932,7 +932,8 @@ class _RecordingTruth:
         self._writer, self._rec = writer, recorder
 
     def write(self, row: TruthRow) -> None:
-        from onboard.io.record import TRUTH_SCHEMA, TRUTH_TOPIC
+        from onboard.io.foxglove_messages import TRUTH_SCHEMA
+        from onboard.io.record import TRUTH_TOPIC
 
         if self._writer is not None:
             self._writer.write(row)

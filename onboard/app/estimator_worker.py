@@ -37,8 +37,8 @@ import numpy as np
 
 from onboard.app.config import OnboardConfig
 from onboard.app.os_thread import name_os_thread
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
-from onboard.core.pose import RejectCounter
 from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
 from onboard.io.worker_queue import next_or_stop
 from onboard.pipeline.frame_pipeline import make_estimator

@@ -7,7 +7,7 @@ import logging
 import threading
 from typing import Any
 
-from onboard.core.pose import RejectCounter
+from onboard.core.counters import RejectCounter
 
 __all__ = ["LockedCounter"]
 

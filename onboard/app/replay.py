@@ -48,8 +48,9 @@ from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
+from onboard.io.foxglove_messages import irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, irframe_from_rawimage, pose_from_json  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
 __all__ = [
     "RecordedMessage",
@@ -308,7 +309,7 @@ def _imaging_child(rec: Recording, config, conn) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    from onboard.core.pose import RejectCounter
+    from onboard.core.counters import RejectCounter
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
     tapped = _TappedTracker(make_tracker(config), conn)
@@ -352,7 +353,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
     imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
-    from onboard.core.pose import RejectCounter
+    from onboard.core.counters import RejectCounter
     from onboard.core.track import track_to_json
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 

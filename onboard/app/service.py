@@ -68,7 +68,8 @@ from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
 from onboard.core.pose import PoseBuffer
-from onboard.core.track import RollingStats, Track, build_status, track_to_bytes
+from onboard.core.status import RollingStats, build_status
+from onboard.core.track import Track, track_to_bytes
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:

@@ -7,8 +7,10 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+from onboard.core.counters import RejectCounter
 from onboard.core.frames import CameraMount, GeodeticOrigin
-from onboard.core.pose import GimbalReference, PoseAt, PoseBuffer, PoseLookup, RejectCounter
+from onboard.core.pose import GimbalReference, PoseBuffer
+from onboard.core.pose_types import PoseAt, PoseLookup
 
 __all__ = ["SharedPoseBuffer"]
 

@@ -63,8 +63,9 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from onboard.core.clock_sync import ClockSync
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
-from onboard.core.pose import ClockSync, RejectCounter
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Instance, Integer, Invalid, Number, SchemaError, Text, config_dataclass
 from onboard.io.mavlink_wire import (

@@ -16,16 +16,15 @@ from hypothesis import strategies as st
 
 from bench.onboard import SyntheticScene
 from onboard.app.config import OnboardConfig, build_config
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
 from onboard.core.irframe import HEADER, MAGIC, IrFrame, encode_irframe
-from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.core.pose import PoseBuffer
+from onboard.core.status import STATUS_SCHEMA, RollingStats, build_status
 from onboard.core.track import (
-    STATUS_SCHEMA,
     TRACK_SCHEMA,
-    RollingStats,
     Track,
-    build_status,
     track_from_json,
     track_to_bytes,
     track_to_json,

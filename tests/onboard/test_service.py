@@ -31,10 +31,12 @@ from onboard.app.estimator_worker import ThreadedEstimator  # noqa: E402
 from onboard.app.frame_queue import FrameQueue  # noqa: E402
 from onboard.app.locked_counter import LockedCounter  # noqa: E402
 from onboard.app.shared_pose import SharedPoseBuffer  # noqa: E402
+from onboard.core.counters import RejectCounter  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
-from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+from onboard.core.pose import PoseBuffer  # noqa: E402
+from onboard.core.status import STATUS_SCHEMA  # noqa: E402
+from onboard.core.track import track_from_json  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from tests.fakes import FakeAutopilot, FakeClock, quiet_link_status  # noqa: E402
 from tests.integration_helpers import loopback_daemon_command  # noqa: E402
