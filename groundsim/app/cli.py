@@ -23,11 +23,12 @@ from pathlib import Path
 
 from onboard.core.errors import ConfigError, IrtrackError
 
-__all__ = ["COMMANDS", "EXIT_ERROR", "build_parser", "main", "resolve_scenario_path"]
+__all__ = ["COMMANDS", "EXIT_ERROR", "EXIT_INTERRUPTED", "build_parser", "main"]
 
 log = logging.getLogger(__name__)
 
 EXIT_ERROR = 2  # bad input of any kind: one line on stderr
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT): one line "interrupted: <what was kept>" on stderr
 DEFAULT_SCENARIO = "P1"
 DEFAULT_MAVLINK = "udpout:127.0.0.1:14540"  # = groundsim.io.mavlink_vehicle.DEFAULT_CONNECTION (not imported: pymavlink is slow to load)
 DEFAULT_VEHICLE = "uav1"  # = onboard.io.zenoh_session.DEFAULT_VEHICLE
@@ -47,17 +48,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 # --------------------------------------------------------------------------- run
-
-
-def resolve_scenario_path(text: str) -> Path:
-    """``--scenario``: a file path, or the name of a shipped scenario (``P1``, ``H2``, ...)."""
-    p = Path(text)
-    if p.exists() or p.suffix:
-        return p
-    from groundsim.world.scenario import reference_scenario_paths
-
-    shipped = reference_scenario_paths()
-    return shipped.get(text, p)
 
 
 # the options several commands declare, each with its own default or help text
@@ -110,7 +100,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)",
     )
-    _duration_option(p, "simulated seconds (default and maximum: the scenario's duration_s)")
+    _duration_option(
+        p, "simulated seconds (default: the scenario's duration_s; a longer run continues its scripted motions)"
+    )
     p.add_argument(
         "--rate",
         default="realtime",
@@ -179,7 +171,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
 
 def _run_config(args):
     """argparse namespace -> RunConfig (scenario loaded, every option validated)."""
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
@@ -212,13 +204,16 @@ def _run_config(args):
     )
 
 
-def install_stop_signals(stop: threading.Event):
-    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly); returns a function restoring the old handlers."""
+def install_stop_signals(stop: threading.Event, received: list[int] | None = None):
+    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly) and append their number to ``received``;
+    returns a function restoring the old handlers."""
     old = {}
 
     def on_signal(signum, _frame):
         if not stop.is_set():
             log.info("%s: stopping", signal.Signals(signum).name)
+        if received is not None:
+            received.append(signum)
         stop.set()
 
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -272,30 +267,82 @@ def realtime_priority(priority: int | None, paced: bool) -> None:
 
 
 def _cmd_run(args) -> int:
+    """Run; Ctrl-C ends the loop cleanly and exits 130 with one line saying what was written (SIGTERM,
+    how the demo stops its simulator, exits 0 as before)."""
     stop = threading.Event()
-    restore = install_stop_signals(stop)
+    received: list[int] = []
+    restore = install_stop_signals(stop, received)
     try:
         config = _run_config(args)
         if stop.is_set():
-            return 0
+            return _run_interrupted(received, None, None)
         realtime_priority(args.rt_priority, config.rate.paced)
         _single_threaded_opencv()
         from groundsim.app.run import run
 
-        run(config, stop=stop)
+        report = run(config, stop=stop)
     finally:
         restore()
-    return 0
+    return _run_interrupted(received, config, report)
 
 
-# --------------------------------------------------------------------------- eval and demo (groundsim.evaluation.eval, groundsim.evaluation.demo)
+def _run_interrupted(received: list[int], config, report) -> int:
+    """0, or (after a SIGINT) the interrupted line and EXIT_INTERRUPTED."""
+    if signal.SIGINT not in received:
+        return 0
+    if report is None or report.frames == 0:
+        kept = "nothing written"
+    else:
+        kept = f"{report.frames} of {report.frames_total} frames sent"
+        if config.truth_path is not None:
+            kept += f"; truth of those frames in {config.truth_path}"
+        if config.record_path is not None:
+            kept += f"; recording in {config.record_path}"
+    print(f"interrupted: {kept}", file=sys.stderr, flush=True)
+    return EXIT_INTERRUPTED
+
+
+# --------------------------------------------------------------------------- eval, demo, dataset, campaign, report
+# (groundsim.evaluation; imported when the command runs, so that `run` starts without them)
+
+
+def _cmd_eval(args) -> int:
+    from groundsim.evaluation.eval import cmd_eval
+
+    return cmd_eval(args)
+
+
+def _cmd_demo(args) -> int:
+    from groundsim.evaluation.demo import cmd_demo
+
+    return cmd_demo(args)
+
+
+def _cmd_dataset(args) -> int:
+    from groundsim.evaluation.dataset import cmd_dataset
+
+    return cmd_dataset(args)
+
+
+def _cmd_campaign(args) -> int:
+    from groundsim.evaluation.campaign import cmd_campaign
+
+    return cmd_campaign(args)
+
+
+def _cmd_report(args) -> int:
+    from groundsim.evaluation.flight_report import cmd_report
+
+    return cmd_report(args)
 
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
     _scenarios_and_seeds_options(p, "P1 P2 P3", 5, "run seeds 0..N-1 per scenario (default: %(default)s)")
     p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
     _workers_option(p, "worker processes (default: min(2, CPUs))")
-    _duration_option(p, "simulated seconds per run (default: the scenario's duration_s)")
+    _duration_option(
+        p, "simulated seconds per run (default: the scenario's duration_s; longer continues its scripted motions)"
+    )
     p.add_argument(
         "--pixel-sigma",
         type=float,
@@ -325,7 +372,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " scenario's camera, mount and origin)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.eval", fromlist=["cmd_eval"]).cmd_eval(args))
+    p.set_defaults(handler=_cmd_eval)
 
 
 def _add_demo(p: argparse.ArgumentParser) -> None:
@@ -358,7 +405,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         metavar="PORT",
         help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT",
     )
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.demo", fromlist=["cmd_demo"]).cmd_demo(args))
+    p.set_defaults(handler=_cmd_demo)
 
 
 def _add_dataset(p: argparse.ArgumentParser) -> None:
@@ -383,9 +430,7 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
     _workers_option(p, "worker processes, one sequence each (default: min(2, CPUs))")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(
-        handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args)
-    )
+    p.set_defaults(handler=_cmd_dataset)
 
 
 def _add_campaign(p: argparse.ArgumentParser) -> None:
@@ -406,9 +451,7 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
     p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(
-        handler=lambda args: __import__("groundsim.evaluation.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args)
-    )
+    p.set_defaults(handler=_cmd_campaign)
 
 
 # --------------------------------------------------------------------------- registry and entry point
@@ -459,5 +502,6 @@ def main(argv=None) -> int:
     except IrtrackError as exc:
         print(f"{prefix}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:  # a second Ctrl-C during set-up, before the handlers were installed
-        return 0
+    except KeyboardInterrupt:  # Ctrl-C before a command's own handling took over (imports, set-up)
+        print("interrupted: nothing written", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED

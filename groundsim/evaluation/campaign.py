@@ -966,12 +966,11 @@ def _cluster_client(scheduler: str):
 def code_fingerprint() -> str:
     """Digest of the irtrack code a process runs (every ``.py`` under ``onboard/`` and ``groundsim/`` as
     imported, path and bytes), so a coordinator can refuse cluster workers running other code."""
-    import groundsim
     import onboard
 
     h = hashlib.sha256()
-    for pkg in (onboard, groundsim):
-        root = Path(pkg.__file__).resolve().parent
+    groundsim_root = Path(__file__).resolve().parents[1]  # this module is groundsim/evaluation/campaign.py
+    for root in (Path(onboard.__file__).resolve().parent, groundsim_root):
         for f in sorted(root.rglob("*.py")):
             h.update(str(f.relative_to(root.parent)).encode("utf-8") + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]

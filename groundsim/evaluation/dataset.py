@@ -1,6 +1,6 @@
 """``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains (issue 14 item 1).
 
-One *sequence* per (scenario, run seed): :class:`groundsim.app.run.SimCore` flies, renders and gives the
+One *sequence* per (scenario, run seed): :class:`groundsim.world.sim.SimCore` flies, renders and gives the
 truth of every frame (the same flight, frames and navigation errors as ``groundsim run`` and
 ``groundsim eval`` for that seed and ``--nav-noise``), and this module writes it out.  Layout of ``--out DIR``::
 
@@ -300,17 +300,12 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     ``progress(n)`` is called with frames done.  Raises IrtrackError for a run that cannot be made."""
     import cv2
 
-    from groundsim.app.run import SimCore
+    from groundsim.world.sim import SimCore
     from groundsim.world.truth import TruthWriter
     from onboard.core.frames import rotmat_from_quat
 
     t0 = time.perf_counter()
     scenario = _with_bit_depth(scenario, options.bit_depth)
-    if options.duration_s is not None and options.duration_s > scenario.duration_s + 1e-9:
-        raise ConfigError(
-            f"--duration: expected at most {scenario.name}'s duration_s ({scenario.duration_s:g} s), "
-            f"got {options.duration_s:g}"
-        )
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     name = sequence_name(scenario.name, core.nav_noise.name, seed)
     seq_dir = Path(out_dir) / name
@@ -551,8 +546,8 @@ def export_dataset(
 ) -> tuple[list[SequenceSummary], float]:
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
-    from groundsim.app.run import frame_count
     from groundsim.evaluation.parallel import progress_bar
+    from groundsim.world.sim import frame_count
 
     options = options if options is not None else DatasetOptions()
     seeds = [int(s) for s in seeds]
@@ -600,9 +595,8 @@ def cmd_dataset(args) -> int:
     """The ``dataset`` command: export, print one line per sequence and the frames/s."""
     import sys
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.parallel import quiet_run_logs
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     quiet_run_logs("groundsim.world.truth")
     names = [n for group in (args.scenario or [["P1"]]) for n in group]

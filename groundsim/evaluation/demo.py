@@ -136,9 +136,9 @@ def plan_demo(
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default)."""
     import yaml
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.eval import onboard_config_for
     from groundsim.world.nav_errors import resolve_nav_noise
+    from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
 
     if (

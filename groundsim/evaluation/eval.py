@@ -3,7 +3,7 @@
 One *run* is one (scenario, run seed).  It drives the very objects the onboard daemon drives, through
 their step methods, without sockets or threads, as fast as the CPU allows and deterministically::
 
-    SimCore (groundsim.app.run)          fly both vehicles with JSBSim, render the IR frame, truth row
+    SimCore (groundsim.world.sim)        fly both vehicles with JSBSim, render the IR frame, truth row
       -> telemetry, as MAVLink would carry it      PoseBuffer.add_attitude / add_position / add_gimbal_status
       -> IrFrame(seq, time_boot_us, pixels)        FramePipeline.process -> Track     (onboard.pipeline.frame_pipeline)
 
@@ -252,7 +252,7 @@ def onboard_config_for(scenario: Scenario, base=None):
 
 
 class TelemetryFeed:
-    """Offers a :class:`~groundsim.app.run.SimCore`'s observer state to a pose buffer, tick by tick, on
+    """Offers a :class:`~groundsim.world.sim.SimCore`'s observer state to a pose buffer, tick by tick, on
     MavlinkVehicle's stream schedule and with the wire's quantisation (module docstring).
 
     The state is what the simulated vehicle reports: the truth with the core's navigation error of
@@ -501,7 +501,7 @@ def run_lockstep(
 
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
-    from groundsim.app.run import SimCore
+    from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
@@ -1077,15 +1077,13 @@ def run_eval(
         raise ConfigError("--seeds: expected at least one seed")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
-    from groundsim.app.run import frame_count
+    from groundsim.world.sim import extend_scenario, frame_count
 
     jobs = [(sc, seed, o, base_config) for o in variants for sc in scenarios for seed in seeds]
     total = 0
     for sc in scenarios:
-        if options.duration_s is not None and options.duration_s > sc.duration_s + 1e-9:
-            raise ConfigError(
-                f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}"
-            )
+        if options.duration_s is not None:
+            extend_scenario(sc, options.duration_s)  # a model that cannot run longer fails here, before any run
         d = sc.duration_s if options.duration_s is None else options.duration_s
         total += frame_count(d, sc.frame_rate_hz) * len(seeds) * len(variants)
     t0 = time.perf_counter()
@@ -1137,9 +1135,8 @@ def cmd_eval(args) -> int:
     """The ``eval`` command: run, write the report, print the table and the report's path."""
     import sys
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     limit_blas_threads(1)
     quiet_run_logs()  # per-track chatter would drown the progress bar

@@ -58,7 +58,13 @@ def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> li
 
 
 #: the loggers whose per-run chatter (tracks started, flights trimmed, frames rendered) would drown a progress bar
-RUN_LOGGERS = ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render")
+RUN_LOGGERS = (
+    "onboard",
+    "groundsim.app.run",
+    "groundsim.world.sim",
+    "groundsim.world.flight",
+    "groundsim.world.render",
+)
 
 
 def quiet_run_logs(*extra: str) -> None:

@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.world.scenario import _CONFIG_DIR, DEFAULT_NAV_NOISE, load_noise_cases  # DEFAULT_NAV_NOISE: "RTK"
+from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_noise_cases, noise_cases_path  # DEFAULT_NAV_NOISE: "RTK"
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
     euler_from_quat,
@@ -161,7 +161,7 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
 
     An unknown name is a :class:`ConfigError` (one line, exit code 2) naming the file and the allowed names.
     """
-    p = Path(path) if path is not None else _CONFIG_DIR / "noise_cases.yaml"
+    p = Path(path) if path is not None else noise_cases_path()
     cases = load_noise_cases(p)
     if name in cases:
         return cases[name]

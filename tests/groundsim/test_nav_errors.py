@@ -11,7 +11,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.app import cli
-from groundsim.app.run import SimCore
 from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
 from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
 from groundsim.world.nav_errors import (
@@ -23,6 +22,7 @@ from groundsim.world.nav_errors import (
     resolve_nav_noise,
 )
 from groundsim.world.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
+from groundsim.world.sim import SimCore
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError
 from onboard.core.frames import (
