@@ -21,6 +21,7 @@ import sys
 import threading
 from pathlib import Path
 
+from groundsim.app.report import add_report
 from onboard.core.errors import ConfigError, IrtrackError
 
 __all__ = ["COMMANDS", "EXIT_ERROR", "EXIT_INTERRUPTED", "build_parser", "main"]
@@ -302,7 +303,7 @@ def _run_interrupted(received: list[int], config, report) -> int:
     return EXIT_INTERRUPTED
 
 
-# --------------------------------------------------------------------------- eval, demo, dataset, campaign, report
+# --------------------------------------------------------------------------- eval, demo, dataset, campaign
 # (groundsim.evaluation; imported when the command runs, so that `run` starts without them)
 
 
@@ -328,12 +329,6 @@ def _cmd_campaign(args) -> int:
     from groundsim.evaluation.campaign import cmd_campaign
 
     return cmd_campaign(args)
-
-
-def _cmd_report(args) -> int:
-    from groundsim.evaluation.flight_report import cmd_report
-
-    return cmd_report(args)
 
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
@@ -456,13 +451,14 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
 
 # --------------------------------------------------------------------------- registry and entry point
 
-#: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
+#: (name, one-line help, add(parser)); every command registers here.
 COMMANDS = (
     ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
     ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
     ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
     ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
     ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
+    ("report", "plots of a recorded flight (replayed), against the simulator's truth when given", add_report),
 )
 
 
