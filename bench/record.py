@@ -26,12 +26,12 @@ Numbers only: nothing asserts on time.
 
 from __future__ import annotations
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # before numpy: one BLAS thread, as
-    os.environ.setdefault(_var, "1")  # python -m onboard.replay (two spinning BLAS threads on a loaded VM cost x30)
+single_thread_blas_env()  # before numpy: one BLAS thread, as python -m onboard.replay
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 

@@ -31,7 +31,7 @@ ALLOWED = {
     "groundsim.io": {"onboard.core", "onboard.io", "groundsim.world", "groundsim.io"},
     "groundsim.evaluation": {"onboard", "groundsim.world", "groundsim.io", "groundsim.evaluation"},
     "groundsim.app": {"onboard", "groundsim"},
-    "groundsim": {"groundsim"},
+    "groundsim": {"groundsim", "onboard.core"},  # the entry-point shim (and its BLAS environment)
     "bench": {"onboard", "groundsim", "bench"},
 }
 # third-party or standard modules a room must not import

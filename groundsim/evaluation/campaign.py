@@ -75,6 +75,7 @@ from typing import Any
 
 import numpy as np
 
+from groundsim.evaluation.parallel import init_worker, limit_blas_threads, mp_context, progress_bar, quiet_run_logs
 from groundsim.evaluation.report import make_out_dir
 from groundsim.world.motion import KinematicState, Motion, Perturbed
 from groundsim.world.scenario import (
@@ -893,23 +894,8 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
 # --------------------------------------------------------------------------- execution
 
 
-def _init_worker() -> None:
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the coordinator's: it terminates the pool
-    from groundsim.evaluation.eval import limit_blas_threads
-
-    limit_blas_threads(1)
-
-
-def _pool_context():
-    import multiprocessing as mp
-
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(
-        ["groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding"]
-    )
-    return ctx
+#: what the campaign's fork server imports once for its workers
+CAMPAIGN_PRELOAD = ("groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding")
 
 
 @dataclass(frozen=True)
@@ -978,8 +964,6 @@ def code_fingerprint() -> str:
 
 def _remote_job(job: Job) -> list[dict]:
     """:func:`run_job` on a cluster worker, with one BLAS thread (as the local pool's initializer sets)."""
-    from groundsim.evaluation.eval import limit_blas_threads
-
     limit_blas_threads(1)
     return run_job(job)
 
@@ -1034,8 +1018,6 @@ def run_campaign(
     (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
     cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
     taken as they complete and appended here; workers never touch ``out``."""
-    from groundsim.evaluation.eval import limit_blas_threads
-
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
     if fresh and log_path.exists():
@@ -1081,8 +1063,6 @@ def run_campaign(
     futures: list = []
     try:
         if progress and pending:
-            from groundsim.evaluation.parallel import progress_bar
-
             bar = progress_bar(len(pending), "run", f"campaign {spec.name} ({workers} worker(s))")
         if client is not None:  # submit every job, take them as they complete
             import uuid
@@ -1098,7 +1078,7 @@ def run_campaign(
         elif workers > 1:  # the same, on a local pool
             import concurrent.futures as cf
 
-            pool = _pool_context().Pool(workers, initializer=_init_worker)
+            pool = mp_context(CAMPAIGN_PRELOAD).Pool(workers, initializer=init_worker)
             futures = _pool_futures(pool, jobs)
             results = (f.result() for f in cf.as_completed(futures))
         else:
@@ -1506,7 +1486,6 @@ def cmd_campaign(args) -> int:
     import sys
 
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
-    from groundsim.evaluation.parallel import quiet_run_logs
 
     quiet_run_logs("groundsim.evaluation.eval")
     spec = load_spec(args.spec)

@@ -55,12 +55,14 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from groundsim.evaluation.parallel import JobsInterrupted, progress_bar, quiet_run_logs, report_progress, run_jobs
 from groundsim.evaluation.report import make_out_dir
 from onboard.core.errors import ConfigError, InputError
 
@@ -76,6 +78,7 @@ __all__ = [
     "sequence_name",
     "export_sequence",
     "export_dataset",
+    "DatasetInterrupted",
     "cmd_dataset",
 ]
 
@@ -87,6 +90,7 @@ TARGET_ID = 1  # the one target of a scenario: its MOT id / COCO track_id
 MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestrian" there; "the target" here)
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
 PROGRESS_EVERY_FRAMES = 10
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 
 LABEL_COLUMNS = (
     "frame",
@@ -521,24 +525,19 @@ def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[Sequenc
     }
 
 
-_WORKER_QUEUE = None
+class DatasetInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`export_dataset`: ``summaries`` of the sequences written whole (job order),
+    ``planned`` the number asked for."""
 
-
-def _init_worker(queue) -> None:
-    global _WORKER_QUEUE
-    _WORKER_QUEUE = queue
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # noqa: BLE001 - an optimisation only
-        pass
+    def __init__(self, summaries: list, planned: int) -> None:
+        super().__init__(f"{len(summaries)} of {planned} sequences written")
+        self.summaries = summaries
+        self.planned = planned
 
 
 def _job(args) -> SequenceSummary:
     scenario, seed, out_dir, options = args
-    q = _WORKER_QUEUE
-    return export_sequence(scenario, seed, out_dir, options, (lambda n: q.put(n)) if q is not None else None)
+    return export_sequence(scenario, seed, out_dir, options, report_progress)
 
 
 def export_dataset(
@@ -546,7 +545,6 @@ def export_dataset(
 ) -> tuple[list[SequenceSummary], float]:
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
-    from groundsim.evaluation.parallel import progress_bar
     from groundsim.world.sim import frame_count
 
     options = options if options is not None else DatasetOptions()
@@ -565,14 +563,9 @@ def export_dataset(
         bar = progress_bar(total, "frame", f"dataset ({min(workers, len(jobs))} workers)")
     t0 = time.perf_counter()
     try:
-        workers = min(workers, len(jobs))
-        if workers == 1:
-            summaries = [
-                export_sequence(sc, seed, o_dir, opts, bar.update if bar is not None else None)
-                for sc, seed, o_dir, opts in jobs
-            ]
-        else:
-            summaries = _run_pool(jobs, workers, bar)
+        summaries = run_jobs(_job, jobs, min(workers, len(jobs)), None if bar is None else bar.update)
+    except JobsInterrupted as exc:
+        raise DatasetInterrupted([r for r in exc.results if r is not None], len(jobs)) from None
     finally:
         if bar is not None:
             bar.close()
@@ -585,17 +578,8 @@ def export_dataset(
     return summaries, time.perf_counter() - t0
 
 
-def _run_pool(jobs, workers: int, bar) -> list:
-    from groundsim.evaluation.parallel import run_pool
-
-    return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
-
-
 def cmd_dataset(args) -> int:
     """The ``dataset`` command: export, print one line per sequence and the frames/s."""
-    import sys
-
-    from groundsim.evaluation.parallel import quiet_run_logs
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     quiet_run_logs("groundsim.world.truth")
@@ -610,14 +594,24 @@ def cmd_dataset(args) -> int:
         bit_depth=args.bit_depth,
         formats=tuple(dict.fromkeys(args.format)),
     )
-    summaries, wall_s = export_dataset(
-        scenarios,
-        range(args.seed0, args.seed0 + args.seeds),
-        args.out,
-        options,
-        workers=workers,
-        progress=not args.no_progress,
-    )
+    try:
+        summaries, wall_s = export_dataset(
+            scenarios,
+            range(args.seed0, args.seed0 + args.seeds),
+            args.out,
+            options,
+            workers=workers,
+            progress=not args.no_progress,
+        )
+    except DatasetInterrupted as exc:
+        done = ", ".join(s.name for s in exc.summaries)
+        kept = f"in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
+        print(
+            f"interrupted: {len(exc.summaries)} of {exc.planned} sequences written{' ' + kept if kept else ''}",
+            file=sys.stderr,
+            flush=True,
+        )
+        return EXIT_INTERRUPTED
     frames = sum(s.frames for s in summaries)
     for s in summaries:
         print(

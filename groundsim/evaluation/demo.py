@@ -43,6 +43,7 @@ from pathlib import Path
 
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from onboard.core.blas import single_thread_blas_env
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
@@ -667,9 +668,7 @@ def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
 def child_env() -> dict:
     """The environment for a child process of the demo or the tests: this one's, one BLAS/OpenMP thread
     unless set, unbuffered Python output (the logs show what happened up to a crash)."""
-    env = dict(os.environ)
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(var, "1")
+    env = single_thread_blas_env(dict(os.environ))
     env["PYTHONUNBUFFERED"] = "1"
     return env
 

@@ -84,7 +84,14 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from groundsim.evaluation.parallel import progress_bar, quiet_run_logs, run_pool
+from groundsim.evaluation.parallel import (
+    JobsInterrupted,
+    limit_blas_threads,
+    progress_bar,
+    quiet_run_logs,
+    report_progress,
+    run_jobs,
+)
 from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT, make_out_dir
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
@@ -96,8 +103,8 @@ __all__ = [
     "EvalOptions",
     "RunResult",
     "EvalResult",
+    "EvalInterrupted",
     "TelemetryFeed",
-    "limit_blas_threads",
     "onboard_config_for",
     "load_base_config",
     "run_lockstep",
@@ -113,53 +120,8 @@ DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")  # the daemon's shipped con
 DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain measured no centroid (reference px0.3)
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
+EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 US_PER_S = 1_000_000
-
-
-# --------------------------------------------------------------------------- BLAS threads
-
-
-BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-_OPENBLAS_SETTERS = (
-    "scipy_openblas_set_num_threads64_",
-    "scipy_openblas_set_num_threads",
-    "openblas_set_num_threads64_",
-    "openblas_set_num_threads",
-)
-
-
-def limit_blas_threads(n: int = 1) -> int:
-    """One BLAS thread per process, now and in child processes; returns the libraries adjusted.
-
-    The estimator's matrices are small: OpenBLAS's worker threads buy nothing there, and on a loaded
-    2-core machine their spinning made a whole-flight solve 20x slower (24 s instead of 1.1 s wall,
-    measured).  Sets the usual environment variables (for children started later) and calls
-    ``*_set_num_threads`` on every OpenBLAS already loaded here (numpy and scipy each bundle one).
-    """
-    import ctypes
-
-    for var in BLAS_THREAD_VARS:
-        os.environ.setdefault(var, str(n))
-    import scipy.linalg  # noqa: F401 - loads scipy's own OpenBLAS so that it is adjusted too
-
-    done = 0
-    try:
-        with open("/proc/self/maps", encoding="ascii", errors="replace") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and ".so" in line.split()[-1]}
-    except OSError:  # not Linux: the environment variables are all we can do
-        return 0
-    for path in sorted(paths):
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for sym in _OPENBLAS_SETTERS:
-            fn = getattr(lib, sym, None)
-            if fn is not None:
-                fn(ctypes.c_int(int(n)))
-                done += 1
-                break
-    return done
 
 
 # --------------------------------------------------------------------------- options and configuration
@@ -352,23 +314,6 @@ class TelemetryFeed:
             self.feed_next()
 
 
-class _RecordingPoseSource:
-    """The pose buffer as the pipeline sees it, remembering the last answer (for the baseline)."""
-
-    def __init__(self, buffer) -> None:
-        self.buffer = buffer
-        self.counter = buffer.counter
-        self.last = None
-
-    @property
-    def origin(self):
-        return self.buffer.origin
-
-    def pose_at(self, time_boot_us: int):
-        self.last = self.buffer.pose_at(time_boot_us)
-        return self.last
-
-
 # --------------------------------------------------------------------------- one run
 
 
@@ -504,6 +449,7 @@ def run_lockstep(
     from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
+    from onboard.io.record import RecordingPoseSource
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     options = options if options is not None else EvalOptions()
@@ -512,7 +458,7 @@ def run_lockstep(
     K = cfg.camera.pinhole()
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose.buffer_config(), cfg.pose.geodetic_origin())
-    source = _RecordingPoseSource(buffer)
+    source = RecordingPoseSource(buffer)  # remembers the pose the pipeline got, for the baseline
     if (
         options.estimator is not None
     ):  # a plug-in (onboard.pipeline.plugins), for the pipeline and its perfect-centroid baseline
@@ -569,7 +515,6 @@ def run_lockstep(
         c.truth_uv_px[k] = (tr.target_u_px, tr.target_v_px)
         c.visible[k] = bool(tr.target_visible)
 
-        source.last = None
         p0 = time.perf_counter()
         try:
             track = pipeline.process(IrFrame(fr.seq, fr.time_boot_us, fr.pixels))
@@ -578,7 +523,7 @@ def run_lockstep(
             log.debug("frame %d rejected: %s", k, exc)
             track = None
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
-        pose = source.last
+        _, pose = source.take()
         if track is not None:
             c.state[k] = track.state
             c.measurement_valid[k] = track.measurement_valid
@@ -1025,32 +970,22 @@ class EvalResult:
     config_source: str
 
 
-_WORKER_QUEUE = None
+class EvalInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_eval`: ``result`` holds the runs that finished (scored and summarised, in job
+    order), ``planned`` the number of runs asked for."""
 
-
-def _init_worker(queue) -> None:
-    global _WORKER_QUEUE
-    _WORKER_QUEUE = queue
-    limit_blas_threads(1)
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # noqa: BLE001 - OpenCV threading is an optimisation only
-        pass
+    def __init__(self, result: EvalResult, planned: int) -> None:
+        super().__init__(f"{len(result.runs)} of {planned} runs done")
+        self.result = result
+        self.planned = planned
 
 
 def _job(args) -> RunResult:
+    """One run, in a pool worker or here; a run that cannot be made (e.g. a flight failure) fails alone."""
     scenario, seed, options, base_config = args
-    q = _WORKER_QUEUE
-
-    def progress(n: int) -> None:
-        if q is not None:
-            q.put(n)
-
     try:
-        return run_lockstep(scenario, seed, options, base_config, progress)
-    except IrtrackError as exc:  # a run that cannot be made (e.g. a flight failure) fails alone
+        return run_lockstep(scenario, seed, options, base_config, report_progress)
+    except IrtrackError as exc:
         log.error("%s seed %d: %s", scenario.name, seed, exc)
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
@@ -1087,42 +1022,24 @@ def run_eval(
         d = sc.duration_s if options.duration_s is None else options.duration_s
         total += frame_count(d, sc.frame_rate_hz) * len(seeds) * len(variants)
     t0 = time.perf_counter()
-    bar = None
-    results: list = [None] * len(jobs)
     workers = min(workers, len(jobs))
-    if workers == 1:
-        global _WORKER_QUEUE
-        if progress:
-            bar = progress_bar(total, "frame", "eval")
-        try:
-            for n, j in enumerate(jobs):
-                sc, seed, opts = j[0], j[1], j[2]
-                if bar is not None:
-                    bar.set_postfix_str(f"{sc.name} seed {seed}")
-                try:
-                    results[n] = run_lockstep(sc, seed, opts, base_config, bar.update if bar is not None else None)
-                except IrtrackError as exc:
-                    log.error("%s seed %d: %s", sc.name, seed, exc)
-                    results[n] = _empty_result(sc, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
-        finally:
-            if bar is not None:
-                bar.close()
-    else:
-        results = _run_pool(jobs, workers, total, progress)
-    wall = time.perf_counter() - t0
-    scores = [score_run(r) for r in results]
-    return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
-
-
-def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
     bar = None
+    if progress:
+        bar = progress_bar(total, "frame", "eval" if workers == 1 else f"eval ({workers} workers)")
     try:
-        if progress:
-            bar = progress_bar(total, "frame", f"eval ({workers} workers)")
-        return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
+        results = run_jobs(_job, jobs, workers, None if bar is None else bar.update)
+    except JobsInterrupted as exc:
+        done = [r for r in exc.results if r is not None]
+        scores = [score_run(r) for r in done]
+        wall = time.perf_counter() - t0
+        partial = EvalResult(done, scores, summarise(scores), wall, workers, options, config_source)
+        raise EvalInterrupted(partial, len(jobs)) from None
     finally:
         if bar is not None:
             bar.close()
+    wall = time.perf_counter() - t0
+    scores = [score_run(r) for r in results]
+    return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
 
 
 # --------------------------------------------------------------------------- command line
@@ -1169,16 +1086,23 @@ def cmd_eval(args) -> int:
         workers,
         source,
     )
-    result = run_eval(
-        scenarios,
-        range(args.seeds),
-        options,
-        base,
-        workers=workers,
-        progress=not args.no_progress,
-        config_source=source,
-        nav_noises=nav_noises,
-    )
+    try:
+        result = run_eval(
+            scenarios,
+            range(args.seeds),
+            options,
+            base,
+            workers=workers,
+            progress=not args.no_progress,
+            config_source=source,
+            nav_noises=nav_noises,
+        )
+    except EvalInterrupted as exc:
+        kept = "nothing written"
+        if exc.result.runs:
+            kept = f"partial report in {write_eval_report(out, exc.result)['report.md']}"
+        print(f"interrupted: {len(exc.result.runs)} of {exc.planned} runs done; {kept}", file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
     files = write_eval_report(out, result)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))

@@ -143,7 +143,7 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     scenario's own).  Raises ConfigError naming a model that cannot be extended, or paths that stop being
     finite or come within ``MIN_SEPARATION_M`` of each other in the added time.
     """
-    d = float(duration_s)
+    d = check_duration_s(duration_s, scenario)
     if d <= scenario.duration_s + DURATION_EPS_S:
         return scenario
     _check_extensible("observer", scenario.observer, scenario, d)
