@@ -22,6 +22,8 @@ import threading
 from pathlib import Path
 
 from groundsim.app.report import add_report
+from groundsim.io.stop_signals import EXIT_INTERRUPTED, install_stop_signals, print_interrupted
+from onboard.app.logs import setup_logging
 from onboard.core.errors import ConfigError, IrtrackError
 
 __all__ = ["COMMANDS", "EXIT_ERROR", "EXIT_INTERRUPTED", "build_parser", "main"]
@@ -29,7 +31,6 @@ __all__ = ["COMMANDS", "EXIT_ERROR", "EXIT_INTERRUPTED", "build_parser", "main"]
 log = logging.getLogger(__name__)
 
 EXIT_ERROR = 2  # bad input of any kind: one line on stderr
-EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT): one line "interrupted: <what was kept>" on stderr
 DEFAULT_SCENARIO = "P1"
 DEFAULT_MAVLINK = "udpout:127.0.0.1:14540"  # = groundsim.io.mavlink_vehicle.DEFAULT_CONNECTION (not imported: pymavlink is slow to load)
 DEFAULT_VEHICLE = "uav1"  # = onboard.io.zenoh_session.DEFAULT_VEHICLE
@@ -205,31 +206,6 @@ def _run_config(args):
     )
 
 
-def install_stop_signals(stop: threading.Event, received: list[int] | None = None):
-    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly) and append their number to ``received``;
-    returns a function restoring the old handlers."""
-    old = {}
-
-    def on_signal(signum, _frame):
-        if not stop.is_set():
-            log.info("%s: stopping", signal.Signals(signum).name)
-        if received is not None:
-            received.append(signum)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread (embedded use): the caller owns stopping
-            pass
-
-    def restore() -> None:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-
-    return restore
-
-
 def _single_threaded_opencv() -> None:
     """One OpenCV thread: the loop is single-threaded by design and its images are small; worker
     threads only add wake-up latency to a paced run on a busy machine."""
@@ -299,8 +275,7 @@ def _run_interrupted(received: list[int], config, report) -> int:
             kept += f"; truth of those frames in {config.truth_path}"
         if config.record_path is not None:
             kept += f"; recording in {config.record_path}"
-    print(f"interrupted: {kept}", file=sys.stderr, flush=True)
-    return EXIT_INTERRUPTED
+    return print_interrupted(kept)
 
 
 # --------------------------------------------------------------------------- eval, demo, dataset, campaign
@@ -475,11 +450,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _configure_logging(level: str) -> None:
-    logging.basicConfig(
-        level=getattr(logging, level.upper()),
-        stream=sys.stderr,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    """The daemon's log format (:func:`onboard.app.logs.setup_logging`, logfmt text on stderr): one format
+    for both programs, so their logs read and grep alike."""
+    setup_logging(level.upper(), "text")
 
 
 def main(argv=None) -> int:
@@ -499,5 +472,4 @@ def main(argv=None) -> int:
         print(f"{prefix}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_ERROR
     except KeyboardInterrupt:  # Ctrl-C before a command's own handling took over (imports, set-up)
-        print("interrupted: nothing written", file=sys.stderr, flush=True)
-        return EXIT_INTERRUPTED
+        return print_interrupted("nothing written")

@@ -14,15 +14,15 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-import sys
 from pathlib import Path
+
+from groundsim.io.stop_signals import print_interrupted
 
 __all__ = ["add_report", "cmd_report", "flight_inputs"]
 
 log = logging.getLogger(__name__)
 
 DEFAULT_OUT = "out/report"
-EXIT_INTERRUPTED = 130
 
 
 def add_report(p: argparse.ArgumentParser) -> None:
@@ -85,8 +85,6 @@ def cmd_report(args) -> int:
         paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path))
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
-        kept = f"partial report in {out} ({len(written)} files)" if written else "nothing written"
-        print(f"interrupted: {kept}", file=sys.stderr, flush=True)
-        return EXIT_INTERRUPTED
+        return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")
     print(f"report: {', '.join(str(p) for p in paths)}")
     return 0

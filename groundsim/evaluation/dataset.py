@@ -64,6 +64,7 @@ import numpy as np
 
 from groundsim.evaluation.parallel import JobsInterrupted, progress_bar, quiet_run_logs, report_progress, run_jobs
 from groundsim.evaluation.report import make_out_dir
+from groundsim.io.stop_signals import print_interrupted
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -90,7 +91,6 @@ TARGET_ID = 1  # the one target of a scenario: its MOT id / COCO track_id
 MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestrian" there; "the target" here)
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
 PROGRESS_EVERY_FRAMES = 10
-EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 
 LABEL_COLUMNS = (
     "frame",
@@ -605,13 +605,8 @@ def cmd_dataset(args) -> int:
         )
     except DatasetInterrupted as exc:
         done = ", ".join(s.name for s in exc.summaries)
-        kept = f"in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
-        print(
-            f"interrupted: {len(exc.summaries)} of {exc.planned} sequences written{' ' + kept if kept else ''}",
-            file=sys.stderr,
-            flush=True,
-        )
-        return EXIT_INTERRUPTED
+        kept = f" in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
+        return print_interrupted(f"{len(exc.summaries)} of {exc.planned} sequences written{kept}")
     frames = sum(s.frames for s in summaries)
     for s in summaries:
         print(

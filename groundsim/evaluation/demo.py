@@ -41,8 +41,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from groundsim.evaluation.eval import EvalInterrupted, keep_interrupted
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from onboard.core.blas import single_thread_blas_env
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
@@ -918,18 +920,8 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
 def cmd_demo(args) -> int:
     """The ``demo`` command (see the module docstring)."""
     stop = threading.Event()
-    old = {}
-
-    def on_signal(signum, _frame):
-        if not stop.is_set():
-            print(f"\ndemo: {signal.Signals(signum).name}: stopping", file=sys.stderr, flush=True)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread
-            pass
+    received: list[int] = []
+    restore = install_stop_signals(stop, received, lambda n: print(f"\ndemo: {n}: stopping", file=sys.stderr))
     try:
         for name in ("onboard", "groundsim.app.run", "groundsim.world.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
@@ -944,14 +936,23 @@ def cmd_demo(args) -> int:
                 flush=True,
             )
         outcome = run_demo(plan, stop)
+        report = outcome.files.get("report.md")
+        kept = f"the live run's report in {report}" if report else "nothing written"
+        if signal.SIGINT in received:
+            return print_interrupted(kept)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
-            _quick_eval(plan.out_dir / "eval", stop, plan.nav_noise)
+            eval_dir = plan.out_dir / "eval"
+            restore()  # Ctrl-C during the evaluation interrupts it: its pool is terminated, its finished runs kept
+            try:
+                _quick_eval(eval_dir, stop, plan.nav_noise)
+            except KeyboardInterrupt as exc:  # EvalInterrupted in its runs, else in the paper table after its report
+                ev = keep_interrupted(exc, eval_dir) if isinstance(exc, EvalInterrupted) else "report written"
+                return print_interrupted(f"{kept}; the evaluation: {ev}")
         if outcome.error is not None:
             return EXIT_FAILED
         return EXIT_OK
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        restore()
 
 
 def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") -> None:

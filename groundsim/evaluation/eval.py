@@ -93,6 +93,7 @@ from groundsim.evaluation.parallel import (
     run_jobs,
 )
 from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT, make_out_dir
+from groundsim.io.stop_signals import print_interrupted
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.estimation.metrics import score_frames
@@ -104,6 +105,7 @@ __all__ = [
     "RunResult",
     "EvalResult",
     "EvalInterrupted",
+    "keep_interrupted",
     "TelemetryFeed",
     "onboard_config_for",
     "load_base_config",
@@ -120,7 +122,6 @@ DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")  # the daemon's shipped con
 DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain measured no centroid (reference px0.3)
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
-EXIT_INTERRUPTED = 130  # Ctrl-C (128 + SIGINT)
 US_PER_S = 1_000_000
 
 
@@ -1042,6 +1043,17 @@ def run_eval(
     return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
 
 
+def keep_interrupted(exc: EvalInterrupted, out_dir) -> str:
+    """What an interrupted eval keeps: the report of its finished runs, written into ``out_dir`` (nothing
+    when none finished); returns the words saying so, e.g. ``"2 of 6 runs done; partial report in ..."``."""
+    from groundsim.evaluation.report import write_eval_report
+
+    kept = "nothing written"
+    if exc.result.runs:
+        kept = f"partial report in {write_eval_report(out_dir, exc.result)['report.md']}"
+    return f"{len(exc.result.runs)} of {exc.planned} runs done; {kept}"
+
+
 # --------------------------------------------------------------------------- command line
 
 
@@ -1098,11 +1110,7 @@ def cmd_eval(args) -> int:
             nav_noises=nav_noises,
         )
     except EvalInterrupted as exc:
-        kept = "nothing written"
-        if exc.result.runs:
-            kept = f"partial report in {write_eval_report(out, exc.result)['report.md']}"
-        print(f"interrupted: {len(exc.result.runs)} of {exc.planned} runs done; {kept}", file=sys.stderr, flush=True)
-        return EXIT_INTERRUPTED
+        return print_interrupted(keep_interrupted(exc, out))
     files = write_eval_report(out, result)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))

@@ -28,6 +28,7 @@ from groundsim.app import cli
 from groundsim.app.run import JitterStats, Pacer, RateSpec, RunConfig, run, run_loop
 from groundsim.io.mavlink_vehicle import open_mavlink2
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.stop_signals import install_stop_signals
 from groundsim.world.nav_errors import offset_geodetic
 from groundsim.world.scenario import load_scenario, resolve_scenario_path, scenarios_dir
 from groundsim.world.sim import BOOT_START_US, SimCore, frame_count
@@ -789,7 +790,7 @@ def test_cli_defaults_match_the_adapters():
 def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     stop = threading.Event()
     before = signal.getsignal(signal.SIGINT)
-    restore = cli.install_stop_signals(stop)
+    restore = install_stop_signals(stop)
     try:
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(SHORT_TIMEOUT_S)  # the handler sets the event (the timeout is a hang guard)
