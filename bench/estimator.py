@@ -4,7 +4,7 @@
                               [--speed-only] [--verdict] [--json out/bench_estimator.json]
 
 ``--verdict``: the observability verdict's precision and recall over every reference scenario x
-px0.3/RTK/GNSS (issue 9; scenarios and noises default to all of them then, seeds to 50; no speed
+px0.3/RTK/GNSS (scenarios and noises default to all of them then, seeds to 50; no speed
 figures, no paper closed form).
 
 Prints numbers; asserts nothing.  Speed is CPU time of the measuring thread (``time.thread_time``: what
@@ -39,7 +39,7 @@ from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
 from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402
 
-#: the accuracy goals of issue 2 (median err/range over >= 10 seeds, percent)
+#: the accuracy goals (median err/range over >= 10 seeds, percent)
 ACCURACY_GOALS_PCT = {
     ("P1", "px0.3"): 0.45,
     ("P1", "RTK"): 2.0,

@@ -11,7 +11,7 @@ Prints:
 * the writer thread's CPU per frame (protobuf/JSON encoding, chunk compression, write: its own
   ``time.thread_time``; user and kernel from ``/proc/self/task/<tid>/stat``, 10 ms ticks), and whether it
   kept up (drops);
-* the recording's cost per frame: callers' CPU + writer CPU (issue 13's budget: 0.5 ms);
+* the recording's cost per frame: callers' CPU + writer CPU (the budget: 0.5 ms);
 * file size per frame and per minute at 30 Hz.
 
 ``--replay FILE.mcap``: instead, replay speed (``onboard.app.replay`` at ``--rate max``) on a recording: load time, then

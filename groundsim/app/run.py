@@ -371,7 +371,7 @@ def run_loop(
 
     if rate.paced:
         # the set-up left a large heap (SciPy, OpenCV, zenoh, JSBSim); a full collection of it stalls
-        # the loop for tens of ms (measured: 37 ms).  Freeze it so collections only scan new objects.
+        # the loop for tens of ms.  Freeze it so collections only scan new objects.
         gc.collect()
         gc.freeze()
     m = core.ticks_per_frame

@@ -28,7 +28,7 @@ it; the estimator assumes the noise case (``noise_model: case``, the pixel sigma
 ``closed_loop``: :func:`groundsim.evaluation.eval.run_lockstep` (JSBSim, rendered frames, the image chain, the
 noise case as the telemetry's navigation errors, the shipped daemon configuration).
 
-Metrics of a run (:func:`score_track`, the same for both modes; the closed-loop windows of issue 9):
+Metrics of a run (:func:`score_track`, the same for both modes; the closed-loop windows of the eval):
 median err/range on observable frames, median err/range of every published (finite) estimate after
 5 s (half the run when it is shorter than 10 s: :func:`settle_s`), err/range at the last frame, RMSE,
 observable share after that, honesty (fraction of published
@@ -571,11 +571,11 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
 # --------------------------------------------------------------------------- scoring (pure)
 
 
-OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.eval.OBSERVABLE_AFTER_S (issue 9's windows)
+OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.eval.OBSERVABLE_AFTER_S (the closed-loop windows)
 
 
 def settle_s(duration_s: float) -> float:
-    """Where the "settled" figures start: 5 s (issue 9's window), or half the run when it is shorter than 10 s."""
+    """Where the "settled" figures start: 5 s (the eval's window), or half the run when it is shorter than 10 s."""
     return min(OBSERVABLE_AFTER_S, 0.5 * float(duration_s))
 
 

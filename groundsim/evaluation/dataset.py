@@ -1,4 +1,4 @@
-"""``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains (issue 14 item 1).
+"""``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains.
 
 One *sequence* per (scenario, run seed): :class:`groundsim.world.sim.SimCore` flies, renders and gives the
 truth of every frame (the same flight, frames and navigation errors as ``groundsim run`` and

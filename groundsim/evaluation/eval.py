@@ -1,4 +1,4 @@
-"""``python -m groundsim eval``: the closed loop in lockstep, scored against the truth (issue #5).
+"""``python -m groundsim eval``: the closed loop in lockstep, scored against the truth.
 
 One *run* is one (scenario, run seed).  It drives the very objects the onboard daemon drives, through
 their step methods, without sockets or threads, as fast as the CPU allows and deterministically::
@@ -63,7 +63,7 @@ Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.m
   the observer's start), range-normalised error ``mean ||e|| / range``, RMSE, mean NEES (3 for a
   consistent covariance), fraction beyond 3 sigma;
 - centroid error: image-chain centre minus truth pixel on frames with a valid centroid;
-- closed-loop figures of issue 9 (:func:`closed_loop_figures`): published 3-D positions on tracking
+- closed-loop figures (:func:`closed_loop_figures`): published 3-D positions on tracking
   frames after 3 s, their honesty (beyond 3 sqrt(trace cov)), observable share after 5 s, median
   error / range on observable frames.
 
@@ -205,7 +205,7 @@ def onboard_config_for(scenario: Scenario, base=None):
     o = scenario.origin
     pose = dataclasses.replace(base.pose, origin=OriginConfig(lat_deg=o.lat_deg, lon_deg=o.lon_deg, alt_m=o.alt_m))
     out_kw = {"health_file": None}
-    if hasattr(base.output, "unobservable_positions"):  # the field may go with the output policy of issue 9
+    if hasattr(base.output, "unobservable_positions"):  # a configuration without the output policy field
         out_kw["unobservable_positions"] = True
     output = dataclasses.replace(base.output, **out_kw)
     return dataclasses.replace(base, camera=camera, pose=pose, output=output)
@@ -718,12 +718,12 @@ def _batch(
 # --------------------------------------------------------------------------- scoring
 
 
-#: the closed-loop windows of issue 9 item 5: published positions after the track settles, observability later
+#: the closed-loop windows: published positions after the track settles, observability later
 PUBLISHED_AFTER_S, OBSERVABLE_AFTER_S = 3.0, 5.0
 
 
 def closed_loop_figures(r: RunResult) -> dict:
-    """Issue 9 item 5's figures of one run, from the pipeline's per-frame outputs (JSON-ready; None = no frame).
+    """The closed-loop figures of one run, from the pipeline's per-frame outputs (JSON-ready; None = no frame).
 
     *published*: a finite 3-D position in the frame's Track (lockstep publishes unobservable positions
     too, so this is what the daemon publishes once positions go out whenever the estimate is finite;
