@@ -571,7 +571,7 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
 # --------------------------------------------------------------------------- scoring (pure)
 
 
-OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.eval.OBSERVABLE_AFTER_S (the closed-loop windows)
+OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.scoring.OBSERVABLE_AFTER_S (the closed-loop windows)
 
 
 def settle_s(duration_s: float) -> float:
@@ -799,7 +799,8 @@ def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None)
 
 
 def _run_closed_loop(job: Job) -> list[dict]:
-    from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
+    from groundsim.evaluation.eval import EvalOptions, run_lockstep
+    from groundsim.evaluation.scoring import score_run
 
     rows = []
     for params in job.runs:

@@ -28,10 +28,9 @@ from groundsim.evaluation.eval import (
     onboard_config_for,
     run_eval,
     run_lockstep,
-    score_run,
-    summarise,
 )
 from groundsim.evaluation.report import ape_rmse_m, read_tum, write_eval_report, write_tum
+from groundsim.evaluation.scoring import score_run, summarise
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError
