@@ -298,8 +298,8 @@ def _resolve_scenario(text: str, spec_dir: Path) -> Path:
     p = Path(text)
     if p.suffix or "/" in text:
         return p if p.is_absolute() or p.exists() else spec_dir / p
-    shipped = reference_scenario_paths()
-    return shipped.get(text, spec_dir / p)
+    shipped = {name.lower(): path for name, path in reference_scenario_paths().items()}  # P1 or p1
+    return shipped.get(text.lower(), spec_dir / p)
 
 
 def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> CampaignSpec:
