@@ -3,13 +3,16 @@
 Commands are argparse subparsers registered in :data:`COMMANDS`: one ``(name, help, add)`` entry
 per command, where ``add(parser)`` declares the command's options and sets
 ``parser.set_defaults(handler=fn)``; ``fn(args) -> int`` is the command's exit code.  ``run`` is
-here; ``demo`` and ``eval`` are added the same way (a function ``_add_demo`` / ``_add_eval`` and
-one line in :data:`COMMANDS`), without touching ``run``'s code.  Every command gets ``--log-level``.
+here; ``eval``, ``demo``, ``dataset`` and ``campaign`` (:mod:`groundsim.evaluation`) and ``report``
+(:mod:`groundsim.app.report`) are added the same way, without touching ``run``'s code.  Every command
+gets ``--log-level``; the log lines are the daemon's logfmt (:mod:`onboard.app.logs`).
 
 Errors: any :class:`~onboard.core.errors.IrtrackError` escaping a handler (bad scenario, unknown key,
 port in use, unreachable zenoh peer, ...) and any command-line mistake are printed as ONE line
-``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Heavy
-modules (JSBSim, zenoh, OpenCV) are imported by the handlers, not here.
+``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Ctrl-C ends a
+command with one line ``interrupted: <what was kept>`` and exit code 130
+(:mod:`groundsim.io.stop_signals`).  Heavy modules (JSBSim, zenoh, OpenCV) are imported by the
+handlers, not here.
 """
 
 from __future__ import annotations

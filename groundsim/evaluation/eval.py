@@ -55,7 +55,7 @@ for the noise model the estimator assumes (``crb_model_rms_m``).
 Scoring: :mod:`groundsim.evaluation.scoring` (its docstring defines every figure).
 
 Runs are independent jobs over a process pool (``workers`` processes from a fork server, see
-:func:`mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
+:func:`groundsim.evaluation.parallel.mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
 """
 
 from __future__ import annotations
