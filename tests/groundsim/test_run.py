@@ -756,6 +756,26 @@ def test_a_longer_duration_continues_the_scripted_motion():
     assert np.linalg.norm(flown - planned) < 5.0  # JSBSim still follows the continued path at 30 s
 
 
+def test_extended_paths_that_would_collide_are_refused():
+    """Two straight paths 10 m apart at the scenario's end and closing at 1 m/s meet at t = 20 s: 15 s is
+    fine, 25 s is refused with the time they meet."""
+    from groundsim.world.scenario import scenario_from_dict
+
+    d = {
+        "name": "closing",
+        "duration_s": 10.0,
+        "observer": {"motion": {"model": "uniform_linear", "p0_ned_m": [0.0, 0.0, -50.0], "v0_ned_mps": [1.0, 0, 0]}},
+        "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [20.0, 0.0, -50.0], "v0_ned_mps": [0.0, 0, 0]}},
+    }
+    sc = scenario_from_dict(d)
+    assert SimCore(sc, 0, 15.0, render=False).scenario.duration_s == 15.0
+    with pytest.raises(
+        ConfigError,
+        match=r"closing's scripted paths, continued to 25 s, come within 0 m of each other at t = 20\.000 s",
+    ):
+        SimCore(sc, 0, 25.0, render=False)
+
+
 def test_a_motion_model_that_cannot_be_extended_is_refused_by_name():
     from groundsim.world.motion import SingerPerturbation
     from groundsim.world.scenario import VehicleSpec
