@@ -49,7 +49,7 @@ from groundsim.world.sim import (
     check_run_seed,
     extend_scenario,
 )
-from groundsim.world.truth import TruthRow, TruthWriter
+from groundsim.world.truth import TruthRow, TruthWriter, truth_json
 from onboard.core.errors import ConfigError, IrtrackError
 
 __all__ = [
@@ -583,17 +583,6 @@ class _RecordingTruth:
     def close(self) -> None:
         if self._writer is not None:
             self._writer.close()
-
-
-def truth_json(row: TruthRow) -> dict:
-    """A truth row as ``irtrack.truth/1``: every CSV column (NaN as null) plus vectors for viewers."""
-    import dataclasses as _dc
-
-    out = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in _dc.asdict(row).items()}
-    out["target_ned_m"] = [row.target_n_m, row.target_e_m, row.target_d_m]
-    out["target_vel_ned_mps"] = [row.target_vn_mps, row.target_ve_mps, row.target_vd_mps]
-    out["camera_ned_m"] = [row.cam_n_m, row.cam_e_m, row.cam_d_m]
-    return out
 
 
 def _tap_mavlink(vehicle, recorder) -> None:
