@@ -46,6 +46,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -67,6 +68,10 @@ from onboard.core.frames import (
     quat_normalize,
     rotmat_from_quat,
 )
+
+if TYPE_CHECKING:  # imported where first used: JSBSim and the renderer load only when a run flies and renders
+    from groundsim.world.flight import FlownVehicle
+    from groundsim.world.render import IrRenderer
 
 __all__ = [
     "BOOT_START_US",
@@ -228,13 +233,12 @@ class PairFlight:
         self._obs_ref = scenario.observer_motion(run_seed)
         self._tgt_ref = scenario.target_motion(run_seed)
         g = scenario.camera.gimbal
+        self.gimbal_phase_rad: tuple[float, ...] | None = None
         if g is not None:
             rng = scenario.rng("gimbal.pointing_phase", run_seed)
             self.gimbal_phase_rad = tuple(float(x) for x in rng.uniform(0.0, 2.0 * math.pi, 3))
-        else:
-            self.gimbal_phase_rad = None
-        self._target = None
-        self._observer = None
+        self._target: FlownVehicle | None = None
+        self._observer: FlownVehicle | None = None
         self._chunks: list[_Chunk] = []
         self.flown_ticks = 0
         self.flight_s = 0.0  # wall seconds spent flying and deriving
@@ -416,7 +420,7 @@ class SimCore:
         case = resolve_nav_noise(nav_noise) if isinstance(nav_noise, str) else nav_noise
         self.nav_noise = case
         self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
-        self._renderer = None
+        self._renderer: IrRenderer | None = None
         self.render_s = 0.0  # wall seconds spent rendering
         self.render_errors = ThrottledErrorLog("render_error")
 
