@@ -41,8 +41,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from groundsim.evaluation.eval import EvalInterrupted, keep_interrupted
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.stop_signals import install_stop_signals, print_interrupted
+from onboard.core.blas import single_thread_blas_env
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
@@ -136,9 +139,9 @@ def plan_demo(
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default)."""
     import yaml
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.eval import onboard_config_for
     from groundsim.world.nav_errors import resolve_nav_noise
+    from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
 
     if (
@@ -667,9 +670,7 @@ def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
 def child_env() -> dict:
     """The environment for a child process of the demo or the tests: this one's, one BLAS/OpenMP thread
     unless set, unbuffered Python output (the logs show what happened up to a crash)."""
-    env = dict(os.environ)
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(var, "1")
+    env = single_thread_blas_env(dict(os.environ))
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
@@ -919,18 +920,8 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
 def cmd_demo(args) -> int:
     """The ``demo`` command (see the module docstring)."""
     stop = threading.Event()
-    old = {}
-
-    def on_signal(signum, _frame):
-        if not stop.is_set():
-            print(f"\ndemo: {signal.Signals(signum).name}: stopping", file=sys.stderr, flush=True)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread
-            pass
+    received: list[int] = []
+    restore = install_stop_signals(stop, received, lambda n: print(f"\ndemo: {n}: stopping", file=sys.stderr))
     try:
         for name in ("onboard", "groundsim.app.run", "groundsim.world.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
@@ -945,14 +936,23 @@ def cmd_demo(args) -> int:
                 flush=True,
             )
         outcome = run_demo(plan, stop)
+        report = outcome.files.get("report.md")
+        kept = f"the live run's report in {report}" if report else "nothing written"
+        if signal.SIGINT in received:
+            return print_interrupted(kept)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
-            _quick_eval(plan.out_dir / "eval", stop, plan.nav_noise)
+            eval_dir = plan.out_dir / "eval"
+            restore()  # Ctrl-C during the evaluation interrupts it: its pool is terminated, its finished runs kept
+            try:
+                _quick_eval(eval_dir, stop, plan.nav_noise)
+            except KeyboardInterrupt as exc:  # EvalInterrupted in its runs, else in the paper table after its report
+                ev = keep_interrupted(exc, eval_dir) if isinstance(exc, EvalInterrupted) else "report written"
+                return print_interrupted(f"{kept}; the evaluation: {ev}")
         if outcome.error is not None:
             return EXIT_FAILED
         return EXIT_OK
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        restore()
 
 
 def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") -> None:

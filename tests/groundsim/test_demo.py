@@ -271,7 +271,7 @@ def test_proc_cpu_counts_child_processes():
 @pytest.mark.integration
 @pytest.mark.timeout(DEMO_WALL_LIMIT_S + 30)
 def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
-    """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 0."""
+    """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 130."""
     out = tmp_path / "demo"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [
@@ -310,7 +310,8 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
             proc.kill()
             proc.wait()
     text = "\n".join(lines) + "\n" + rest
-    assert proc.returncode == 0, text
+    assert proc.returncode == 130, text  # Ctrl-C: the interrupted line and 130, after the table and the files
+    assert f"interrupted: the live run's report in {out / 'report.md'}" in text, text
     assert "daemon ready" in text and "| online track vs truth |" in text and "report: " in text, text
     rep = json.loads((out / "report.json").read_text())
     assert rep["stopped_early"] is True

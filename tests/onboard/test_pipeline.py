@@ -67,7 +67,7 @@ POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m", "ned_m", "vel_ned_mps", "sigma_n
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 

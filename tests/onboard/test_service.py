@@ -55,7 +55,7 @@ LOG_LINE = re.compile(r'^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z level=[A-Z]+ log
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 

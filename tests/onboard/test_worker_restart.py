@@ -31,7 +31,7 @@ HONEST_SIGMAS = 4.0  # the rebuilt estimate is within this many reported sigma (
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 
