@@ -54,8 +54,8 @@ for the noise model the estimator assumes (``crb_model_rms_m``).
 
 Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.metrics.evaluate`):
 
-- *observable frames*: frames whose Track has a 3-D estimate flagged observable (what the daemon
-  publishes with the default ``output.unobservable_positions: false``) -- the headline;
+- *observable frames*: frames whose Track has a 3-D estimate flagged observable (the daemon publishes
+  the unobservable ones too, flagged so, unless ``output.unobservable_positions`` is false) -- the headline;
 - *all frames with an estimate*: any finite 3-D estimate, observable or not;
 - *continuity*: observable frames / all frames; *2-D continuity*: frames with a valid centroid /
   frames where the target is in the image;
