@@ -834,8 +834,8 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
         format_demo_table(outcome.scores, outcome),
         "",
         "Definitions as in `python -m groundsim eval`'s report: observable frames = the positions the daemon "
-        "publishes with `observable: true`; it publishes the unobservable ones too (`output.unobservable_positions: "
-        "true`, the default), flagged false and scored in the second row.\n",
+        "publishes with `observable: true`; it publishes the unobservable ones too "
+        "(`output.unobservable_positions: true`, the default), flagged false and scored in the second row.\n",
         "![trajectory](trajectory.png)\n",
         "![error](error.png)\n",
         "TUM files: `evo_ape tum truth.tum estimate.tum`.\n",
