@@ -36,6 +36,7 @@ from onboard.core.errors import ConfigError, InputError
 __all__ = [
     "EVO_MAX_DIFF_S",
     "PAPER_TABLE2_PCT",
+    "PERFORMANCE_STAGES",
     "write_tum",
     "read_tum",
     "ape_rmse_m",
@@ -471,7 +472,11 @@ PERFORMANCE_STAGES = (
     ("flight", "0.6", "flight (JSBSim, both vehicles)"),
     ("render", "tab:purple", "render (the IR frame)"),
     ("pipeline", "tab:red", "pipeline (FramePipeline.process: the daemon's work)"),
-    ("baseline", "tab:green", "perfect-centroid baseline (evaluation only:\nthe same estimator fed true pixels)"),
+    (
+        "baseline",
+        "tab:green",
+        "perfect-centroid baseline (evaluation only:\nthe same estimator on true pixels + noise)",
+    ),
 )
 
 
@@ -800,7 +805,7 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     L.append(
         "Lockstep: one process per run does everything in turn, so these are single-core figures. "
         '"pipeline" = `FramePipeline.process` (imaging + pose lookup + estimator), the daemon\'s per-frame work; '
-        '"baseline" = the perfect-centroid baseline (the same estimator fed true pixels), evaluation only. '
+        '"baseline" = the perfect-centroid baseline (the same estimator on true pixels + noise), evaluation only. '
         "Lockstep runs the estimator synchronously, so its model re-selection (about once a second, tenths of a "
         "second) lands on single frames: that is the p99 / max; the daemon runs it in a worker thread (see "
         "`python -m groundsim demo` for its real-time latency).\n"
