@@ -14,6 +14,7 @@ re-seeds from them).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,8 @@ from onboard.core.counters import RejectCounter
 from onboard.core.pose import NS_PER_US, ClockSyncConfig
 
 __all__ = ["ClockSync"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -54,6 +57,7 @@ class ClockSync:
         self._a_ns = 0.0
         self._b = 0.0  # ns of offset per ns of local time
         self.resets = 0
+        self._long_rtt_run = 0  # consecutive exchanges discarded for their round trip
 
     # ------------------------------------------------------------------ state
 
@@ -78,6 +82,7 @@ class ClockSync:
         self._ex.clear()
         self._outliers.clear()
         self._a_ns, self._b = 0.0, 0.0
+        self._long_rtt_run = 0
 
     # ------------------------------------------------------------------ input
 
@@ -90,10 +95,20 @@ class ClockSync:
         ts1, tc1, t3 = (int(v) for v in vals)
         rtt = t3 - ts1
         if rtt < 0 or rtt > self.config.max_rtt_ns:
-            self.counter.count(
-                "timesync_rtt", f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms"
-            )
+            # discarded either way; one alone is a moment when either end was busy (typically the first
+            # exchange, sent while the autopilot side is still starting): INFO.  Two in a row mean the
+            # link itself is slow and the clock may not sync: one WARNING per run of them.
+            self._long_rtt_run += 1
+            detail = f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms"
+            self.counter.count("timesync_rtt", detail, level=logging.INFO)
+            if self._long_rtt_run == 2:
+                log.warning(
+                    "timesync_rtt: TIMESYNC round trips too long twice in a row (the last: %s): a slow link or a "
+                    "busy CPU; exchanges are discarded while it lasts",
+                    detail,
+                )
             return False
+        self._long_rtt_run = 0
         mid = ts1 + rtt // 2
         ex = _Exchange(mid, tc1 - mid, rtt)
         if self.synced:
