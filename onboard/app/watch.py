@@ -56,7 +56,7 @@ __all__ = [
 
 DEFAULT_CONNECT = "tcp/127.0.0.1:7447"  # the zenoh listener of config/onboard_sim.yaml
 DEFAULT_SECONDS = 30.0
-NO_TRACK_HINT_S = 5.0  # the daemon publishes a track per frame: this long without one means a wiring problem
+NO_TRACK_HINT_S = 10.0  # one track per frame once the simulator runs; its start-up takes seconds
 EXIT_OK = 0
 EXIT_CONFIG = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
@@ -291,8 +291,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         until = "until Ctrl-C" if args.seconds == 0 else f"for {args.seconds:g} s (Ctrl-C stops sooner)"
         print(f"watching {key} on {_where(settings)} {until}", file=info, flush=True)
         hint = (
-            f"no track on {key} after {NO_TRACK_HINT_S:g} s: is the daemon running, with --vehicle "
-            f"{args.vehicle}, and reachable at {_where(settings)}?"
+            f"no track on {key} after {NO_TRACK_HINT_S:g} s (still watching): the daemon publishes one per IR "
+            f"frame it receives; check that the simulator or camera is running, and the daemon too, with vehicle "
+            f"{args.vehicle} and zenoh reachable at {_where(settings)}"
         )
         _receive(inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint)
         session.close()
