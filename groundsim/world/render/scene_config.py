@@ -76,7 +76,7 @@ class CloudsConfig:
     sun_edge_warming_k: NonNegative = 6.0
     sun_azimuth_deg: Annotated[float, Field(ge=-360.0, le=360.0, allow_inf_nan=False)] = 135.0
     optical_depth_per_km: NonNegative = 30.0
-    edge_softness: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.25
+    edge_softness: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.6
     feature_size_m: Positive = 1500.0
     texel_m: Positive = 15.0
     texture_px: TexturePx = 1024
