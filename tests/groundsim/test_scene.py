@@ -12,6 +12,7 @@ import pytest
 from scipy.ndimage import minimum_filter
 
 from groundsim.world.render import IrRenderer, IrSettings
+from groundsim.world.render.clutter import point_detections
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.scene import FAR_M, SceneContent, section_rng
 from groundsim.world.render.scene_config import CloudsConfig, SceneConfig, scene_config_from_dict
@@ -168,7 +169,7 @@ def test_cloud_cover_fraction_and_sunlit_edges():
     L0 = float(band_radiance(cfg.brightness_temperature_k, band))
     L3 = float(band_radiance(cfg.brightness_temperature_k + 3.0, band))
     cold = cloud_texture(replace(cfg, sun_edge_warming_k=0.0), band, np.random.default_rng(0))
-    assert np.percentile(cold.radiance, 99.5) < L3  # no warming: only the 0.5 K fine variation
+    assert np.percentile(cold.radiance, 99.5) < L3  # no warming: only the 0.1 K fine variation
     assert np.percentile(tex.radiance, 99.5) > L3  # edges lit by the sun: up to 6 K warmer
     # the warm edges face the sun (azimuth 135 deg: south-east): texels just sun-ward of cloud are clear
     warm = tex.radiance > L3
@@ -347,3 +348,26 @@ def test_out_of_frame_and_behind_camera_labels():
     behind, aside = f.labels
     assert behind.visibility == "out_of_frame" and math.isnan(behind.u_px) and behind.box_px is None
     assert aside.visibility == "out_of_frame" and aside.u_px > 640
+
+
+# ---------------------------------------------------------------------------- clutter
+
+
+def test_point_detector_finds_clutter_in_clouds_and_terrain_none_on_the_clean_sky():
+    """15 x 15 local mean, 5 sigma of the temporal noise, blobs <= 50 px (groundsim.world.render.clutter)."""
+    per_frame = {}
+    for name, raw, h, pitch in [
+        ("clean", {}, 100.0, 8.0),
+        ("clouds", {"clouds": {"enabled": True}}, 100.0, 8.0),
+        ("terrain", {"terrain": {"enabled": True}}, 200.0, -30.0),
+    ]:
+        sc, r = scene(raw, seed=2)
+        counts = []
+        for k in range(4):
+            p = np.array([6.0 * k, 2.0 * k, -h])
+            img = r.quantise(sc.render(k / 30.0, p, looking(pitch, 20.0 + k), None, None, 0.0).radiance)
+            counts.append(len(point_detections(img, r.noise_sigma_grey)))
+        per_frame[name] = np.mean(counts)
+    print("false point-like objects per frame:", per_frame)
+    assert per_frame["clean"] <= 0.25
+    assert per_frame["clouds"] >= 5.0 and per_frame["terrain"] >= 5.0

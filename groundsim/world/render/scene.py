@@ -162,6 +162,14 @@ def _half_rows(mask: np.ndarray, limit: int) -> slice:
     return slice(max(2 * int(rows[0]) - 2, 0), min(2 * int(rows[-1]) + 3, limit))
 
 
+def _quantile(x: np.ndarray, q: float) -> float:
+    """The ``q`` quantile (nearest rank) of a 1-D array, 0 when empty (np.partition: no sort)."""
+    if x.size == 0:
+        return 0.0
+    k = min(int(q * x.size), x.size - 1)
+    return float(np.partition(x, k)[k])
+
+
 def _rot_z(yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
@@ -407,11 +415,16 @@ class SceneContent:
         if clouds is None:
             radiance = base + up(b_t)[: self._H, : self._W]
             return SceneBackground(radiance, radiance, depth, np.zeros_like(base))
-        cx, cy, optical, seen = (up(c) for c in clouds[0])
-        lv = clouds[3]
+        cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
+        lv, lv_far = clouds[3], clouds[4]
         rows = _half_rows(clouds[1], cx.shape[0])
         rho = _lookup(self.clouds.density_levels[lv], cx, cy, rows)
         L_c = _lookup(self.clouds.radiance_levels[lv], cx, cy, rows)
+        far_rows = _half_rows(clouds[5], cx.shape[0])
+        if lv_far != lv and far_rows.stop > far_rows.start:
+            sc = f32(2.0 ** (lv - lv_far))
+            rho += w_far * (_lookup(self.clouds.density_levels[lv_far], cx * sc, cy * sc, far_rows) - rho)
+            L_c += w_far * (_lookup(self.clouds.radiance_levels[lv_far], cx * sc, cy * sc, far_rows) - L_c)
         alpha = f32(1.0) - np.exp(-(optical * rho))
         a_seen = alpha * seen
         b = a_seen * L_c if b_t is None else b_t + a_seen * (L_c - b_t)
@@ -432,11 +445,7 @@ class SceneContent:
         foot_m = r_g * r_g / f32(self._f_px * max(h_g, 1e-3))
         lv = 0
         if np.any(on_ground):
-            q = (
-                float(np.percentile(foot_m[::3, ::3][on_ground[::3, ::3]], 10.0))
-                if np.any(on_ground[::3, ::3])
-                else 0.0
-            )
+            q = _quantile(foot_m[::3, ::3][on_ground[::3, ::3]], 0.1)
             lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.levels) - 1))
         lv_far = min(lv + FAR_LEVELS, len(tex.levels) - 1)
         texel = tex.texel_m * 2**lv
@@ -450,8 +459,9 @@ class SceneContent:
         return [gx, gy, tau, w_far], lv, lv_far, on_ground, w_far > 0.0
 
     def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m):
-        """Coarse-grid channels ``[x, y (texels), optical depth per unit density, how much is seen]``, the
-        hit mask, the range to the layer and the mip level.
+        """Coarse-grid channels ``[x, y (texels of the near level), optical depth per unit density, how much
+        is seen, far weight]``, the hit mask, the range to the layer, the near and far mip levels (chosen as
+        for the terrain) and where the far level is used.
 
         ``seen = tau(r_c) * fade``: the cloud's radiance replaces the background by ``alpha seen``, the
         atmosphere in front of it radiating like the clear sky along that ray (far clouds fade into the
@@ -467,18 +477,21 @@ class SceneContent:
         foot_m = r_c * r_c / f32(self._f_px * max(abs(h_c), 1e-3))
         lv = 0
         if np.any(hit):
-            q = float(np.percentile(foot_m[::3, ::3][hit[::3, ::3]], 25.0)) if np.any(hit[::3, ::3]) else 0.0
+            q = _quantile(foot_m[::3, ::3][hit[::3, ::3]], 0.1)
             lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.density_levels) - 1))
+        lv_far = min(lv + FAR_LEVELS, len(tex.density_levels) - 1)
         texel = tex.texel_m * 2**lv
         period = texel * tex.density_levels[lv].shape[0]
         off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))
         cx = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
         cy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+        w_far = np.where(hit, w_far, f32(0.0))
         tau_v = f32(cfg.optical_depth_per_km * cfg.thickness_m * 1e-3)
         optical = np.where(hit, tau_v * np.minimum(self._rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
         fade = np.clip((f32(cfg.max_range_m) - r_c) / f32(0.2 * cfg.max_range_m), 0.0, 1.0)
         seen = np.where(hit, np.exp(f32(-ext_per_m) * r_c) * fade, f32(0.0))
-        return [cx, cy, optical, seen], hit, np.where(hit, r_c, f32(FAR_M)), lv
+        return [cx, cy, optical, seen, w_far], hit, np.where(hit, r_c, f32(FAR_M)), lv, lv_far, w_far > 0.0
 
     # ------------------------------------------------------------------ objects on the image
 

@@ -64,7 +64,8 @@ class CloudsConfig:
     optical depth is ``optical_depth_per_km * thickness_km`` times the density (0 at the edge, 1 deep
     inside, reached over ``edge_softness`` of the noise's spread), and a slant ray goes through
     ``1 / |sin el|`` times as much.  The cloud radiates at ``brightness_temperature_k``; edges facing the
-    sun (``sun_azimuth_deg``, from north through east) are up to ``sun_edge_warming_k`` warmer.
+    sun (``sun_azimuth_deg``, from north through east) are up to ``sun_edge_warming_k`` warmer, and the
+    cloud's temperature varies on small scales by ``texture_k`` (1 sigma).
     ``feature_size_m`` is the largest cloud scale, ``texel_m`` the texture's resolution on the plane and
     ``texture_px`` its side (the pattern repeats every ``texel_m * texture_px`` metres)."""
 
@@ -74,6 +75,7 @@ class CloudsConfig:
     cover_fraction: Fraction = 0.5
     brightness_temperature_k: Kelvin = 268.0
     sun_edge_warming_k: NonNegative = 6.0
+    texture_k: NonNegative = 0.03
     sun_azimuth_deg: Annotated[float, Field(ge=-360.0, le=360.0, allow_inf_nan=False)] = 135.0
     optical_depth_per_km: NonNegative = 30.0
     edge_softness: Annotated[float, Field(gt=0.0, le=1.0, allow_inf_nan=False)] = 0.6
@@ -94,7 +96,8 @@ class CloudsConfig:
 @_model
 class TerrainConfig:
     """A textured ground plane replacing the flat uniform ground: fields (patches of
-    ``field_size_m`` around ``field_temperature_k`` +- ``field_temperature_spread_k``), a road grid
+    ``field_size_m`` around ``field_temperature_k`` +- ``field_temperature_spread_k``, varying inside by
+    ``field_texture_k``), a road grid
     (``road_spacing_m`` apart, ``road_width_m`` wide), ``building_count`` roofs of about
     ``building_size_m`` per tile, a lake of ``lake_radius_m`` (0: none).  Each material has its
     temperature and emissivity; roofs and roads are hot by day, water is cool.  The texture has
@@ -106,6 +109,7 @@ class TerrainConfig:
     field_temperature_k: Kelvin = 296.0
     field_temperature_spread_k: NonNegative = 3.0
     field_size_m: Positive = 80.0
+    field_texture_k: NonNegative = 0.05
     field_emissivity: Emissivity = 0.95
     road_temperature_k: Kelvin = 312.0
     road_width_m: Positive = 7.0

@@ -74,7 +74,7 @@ def cloud_texture(cfg: CloudsConfig, band_um, rng: np.random.Generator) -> Cloud
     """Density: fBm thresholded at its ``1 - cover_fraction`` quantile, ramped to 1 over ``edge_softness``
     standard deviations (smoothstep).  Temperature: ``brightness_temperature_k`` plus, on edges whose
     density falls towards the sun, up to ``sun_edge_warming_k`` (scaled by the edge's steepness and its
-    thinness), plus 0.5 K of fine-scale variation."""
+    thinness), plus fine-scale variation of ``texture_k`` (1 sigma)."""
     n = cfg.texture_px
     noise = fbm(n, cfg.feature_size_m / cfg.texel_m, rng)
     if cfg.cover_fraction <= 0.0:
@@ -91,7 +91,7 @@ def cloud_texture(cfg: CloudsConfig, band_um, rng: np.random.Generator) -> Cloud
     scale = float(np.quantile(toward_sun[toward_sun > 0.0], 0.95)) if np.any(toward_sun > 0.0) else 1.0
     lit = np.clip(toward_sun / max(scale, 1e-12), 0.0, 1.0) * (1.0 - 0.5 * density)
     fine = fbm(n, 8.0, rng, beta=2.0)
-    T = cfg.brightness_temperature_k + cfg.sun_edge_warming_k * lit + 0.5 * fine
+    T = cfg.brightness_temperature_k + cfg.sun_edge_warming_k * lit + cfg.texture_k * fine
     T_tab, L_tab = radiance_table(band_um)
     radiance = np.interp(np.clip(T, *T_TABLE_K), T_tab, L_tab).astype(np.float32)
     return CloudTexture(density, radiance, cfg.texel_m)
@@ -145,7 +145,7 @@ def terrain_texture(
     row_len = tile / n_rows
     row = np.floor(((north + shift[col]) % tile) / row_len[col]).astype(int)
     field_T = rng.normal(0.0, cfg.field_temperature_spread_k, (n_cols, int(n_rows.max()) + 1))
-    T = cfg.field_temperature_k + field_T[col, row] + 0.3 * cfg.field_temperature_spread_k * fbm(n, 32.0, rng, 2.5)
+    T = cfg.field_temperature_k + field_T[col, row] + cfg.field_texture_k * fbm(n, 32.0, rng, 3.5)
     material = np.zeros((n, n), np.uint8)
     # roads: a grid, spacing adjusted to divide the tile, each line offset at random
     n_roads = max(1, round(tile / cfg.road_spacing_m))
