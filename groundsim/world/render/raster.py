@@ -58,6 +58,16 @@ How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``pytho
   rounding and saturation in one pass.
 
 Results depend only on the call sequence and ``seed`` (the reuse tolerances are far below a pixel).
+
+Hook for scene content (``groundsim.world.render.scene``, ``docs/scenes.md``)
+----------------------------------------------------------------------------
+:meth:`IrRenderer.base_radiance` gives the background above as radiance (no noise);
+:class:`SceneBackground` is a background with clouds and terrain composited over it, per pixel with the
+range to the nearest surface and the opacity of a cloud there; :meth:`IrRenderer.render_radiance`
+draws the target over one (behind a nearer cloud it is seen through ``1 - alpha``), and
+:meth:`IrRenderer.quantise` turns radiance into :meth:`render`'s output (grey map, NETD noise,
+rounding).  :class:`PartRaster` is the target's ray caster as a class of its own, so that other
+objects (distractors) are drawn the same way.  :meth:`render` itself is unchanged.
 """
 
 from __future__ import annotations
