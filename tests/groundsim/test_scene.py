@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from scipy.ndimage import minimum_filter
 
-from groundsim.world.render import IrRenderer, IrSettings
+from groundsim.world.render import IrRenderer, IrSettings, SceneBackground
 from groundsim.world.render.clutter import point_detections
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.scene import FAR_M, SceneContent, section_rng
@@ -371,3 +371,32 @@ def test_point_detector_finds_clutter_in_clouds_and_terrain_none_on_the_clean_sk
     print("false point-like objects per frame:", per_frame)
     assert per_frame["clean"] <= 0.25
     assert per_frame["clouds"] >= 5.0 and per_frame["terrain"] >= 5.0
+
+
+# ---------------------------------------------------------------------------- the renderer's hook
+
+
+def test_render_radiance_on_todays_background_is_render_and_a_cloud_in_front_dims_the_target():
+    """The hook draws the target as render() does; a nearer cloud of opacity alpha leaves 1 - alpha of it."""
+    p = np.array([0.0, 0.0, -80.0])
+    R = looking(5.0)
+    p_t = p + R @ np.array([0.02, -0.01, 1.0]) * 120.0
+    R_t = rotmat_from_quat(quat_from_euler(0.1, 0.2, 0.3))
+    r1 = IrRenderer(INTR, IrSettings(encoding="mono16"), seed=4)
+    r2 = IrRenderer(INTR, IrSettings(encoding="mono16"), seed=4)
+    today = r1.render(p, R, p_t, R_t, 0.0).astype(int)
+    base = r2.base_radiance(p, R, 0.0)
+    bg = SceneBackground(base, base, np.full(base.shape, FAR_M, np.float32), np.zeros_like(base))
+    L, roi = r2.render_radiance(p, R, p_t, R_t, bg)
+    hooked = r2.quantise(L).astype(int)
+    assert roi is not None and np.max(np.abs(today - hooked)) <= 1
+    assert np.array_equal(bg.radiance, base)  # the background is not modified
+    alpha = 0.75
+    cloud = SceneBackground(base, base, np.full(base.shape, 60.0, np.float32), np.full(base.shape, alpha, np.float32))
+    L_behind, roi_behind = r2.render_radiance(p, R, p_t, R_t, cloud)
+    np.testing.assert_allclose(roi_behind[2], (1.0 - alpha) * roi[2], rtol=1e-5, atol=1e-6)
+    far_cloud = SceneBackground(base, base, np.full(base.shape, 500.0, np.float32), cloud.cloud_alpha)
+    _, roi_front = r2.render_radiance(p, R, p_t, R_t, far_cloud)
+    np.testing.assert_array_equal(roi_front[2], roi[2])
+    with pytest.raises(InputError, match="background"):
+        r2.render_radiance(p, R, p_t, R_t, base)
