@@ -404,7 +404,7 @@ class SceneContent:
             gx, gy, tau_g, w_far = (up(c) for c in terrain[0])
             lv, lv_far = terrain[1], terrain[2]
             levels = self.terrain.levels
-            rows = _half_rows(terrain[3], gx.shape[0])
+            rows = _half_rows(terrain[3], gx.shape[0])  # rows wholly at the far level skip the near one
             dL = _lookup(levels[lv], gx, gy, rows)
             far_rows = _half_rows(terrain[4], gx.shape[0])
             if lv_far != lv and far_rows.stop > far_rows.start:
@@ -417,7 +417,7 @@ class SceneContent:
             return SceneBackground(radiance, radiance, depth, np.zeros_like(base))
         cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
         lv, lv_far = clouds[3], clouds[4]
-        rows = _half_rows(clouds[1], cx.shape[0])
+        rows = _half_rows(clouds[6], cx.shape[0])  # rows wholly at the far level skip the near one
         rho = _lookup(self.clouds.density_levels[lv], cx, cy, rows)
         L_c = _lookup(self.clouds.radiance_levels[lv], cx, cy, rows)
         far_rows = _half_rows(clouds[5], cx.shape[0])
@@ -456,7 +456,7 @@ class SceneContent:
         gy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
         tau = np.where(on_ground, np.exp(f32(-ext_per_m) * r_g), f32(0.0))
         w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
-        return [gx, gy, tau, w_far], lv, lv_far, on_ground, w_far > 0.0
+        return [gx, gy, tau, w_far], lv, lv_far, on_ground & (w_far < 1.0), w_far > 0.0
 
     def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), optical depth per unit density, how much
@@ -491,7 +491,8 @@ class SceneContent:
         optical = np.where(hit, tau_v * np.minimum(self._rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
         fade = np.clip((f32(cfg.max_range_m) - r_c) / f32(0.2 * cfg.max_range_m), 0.0, 1.0)
         seen = np.where(hit, np.exp(f32(-ext_per_m) * r_c) * fade, f32(0.0))
-        return [cx, cy, optical, seen, w_far], hit, np.where(hit, r_c, f32(FAR_M)), lv, lv_far, w_far > 0.0
+        near = hit & (w_far < 1.0)
+        return [cx, cy, optical, seen, w_far], hit, np.where(hit, r_c, f32(FAR_M)), lv, lv_far, w_far > 0.0, near
 
     # ------------------------------------------------------------------ objects on the image
 
