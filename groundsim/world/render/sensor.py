@@ -120,7 +120,7 @@ class Sensor:
             n_bad = min(f.dead_pixels + f.hot_pixels, H * W)
             bad = rng.choice(H * W, size=n_bad, replace=False)
             self._dead, self._hot = bad[: f.dead_pixels], bad[f.dead_pixels :]
-        self._offset = offset.astype(np.float32)
+        self._offset_at_zero = (offset - L_min * gain).astype(np.float32)  # counts = gain L + this
         self._drift = drift.astype(np.float32) if f.enabled and f.drift_counts_per_s > 0.0 else None
         n = H * W
         self._noise = (rng.standard_normal(n * NOISE_BANK_FRAMES, dtype=np.float32)) * np.float32(
@@ -165,10 +165,11 @@ class Sensor:
         if L.shape != (self._H, self._W):
             raise InputError(f"radiance: expected shape {(self._H, self._W)}, got {L.shape}")
         _, since_s, _ = self.ffc_state(t_s)
-        x = (L - np.float32(self._L_min)) * self._gain
-        x += self._offset
-        if self._drift is not None:
-            x += np.float32(since_s) * self._drift
+        offset = (
+            self._offset_at_zero if self._drift is None else cv2.scaleAdd(self._drift, since_s, self._offset_at_zero)
+        )
+        x = cv2.multiply(L, self._gain)
+        x += offset
         n = self._H * self._W
         off = int(np.random.default_rng([self._seed, int(frame_index)]).integers(self._noise_offsets))
         noise = self._noise[off : off + n].reshape(self._H, self._W)
