@@ -169,8 +169,8 @@ class SceneBackground:
 
     ``radiance``: W m^-2 sr^-1 at the aperture (sky or terrain, clouds composited over it);
     ``base_radiance``: the same without clouds (what a cloud hides); ``depth_m``: range along the
-    ray to the nearest surface (cloud layer where ``cloud_alpha > 0``, else the ground, else inf);
-    ``cloud_alpha``: opacity of that cloud (0 where none).  An object at range ``R`` behind
+    ray to the nearest surface (the cloud layer where the ray meets it, else the ground, else a far
+    value); ``cloud_alpha``: opacity of the cloud there (0 where the layer is clear or absent).  An object at range ``R`` behind
     ``depth_m`` is seen through ``1 - cloud_alpha`` of the cloud.
     """
 

@@ -19,25 +19,30 @@ Background model (per pixel, ray ``d`` from the camera at ``p``)
 ``L_base``: the renderer's sky gradient and flat ground (:meth:`IrRenderer.base_radiance`, exact
 horizon through the PSF).  Terrain: the ray meets the ground plane ``d = altitude_ground_d_m`` at
 range ``r_g``; the texture there (:func:`textures.terrain_texture`, radiance relative to the flat
-ground) is seen through the atmosphere, ``L = L_base + tau(r_g) dL_terrain``,
+ground) is seen through the atmosphere: ``L_below = L_base + tau(r_g) dL_terrain``,
 ``tau(r) = exp(-extinction_per_km r_km)``.  Clouds: the ray meets the cloud plane
 ``base_altitude_m`` above the ground at range ``r_c`` (only if nearer than the ground and within
 ``max_range_m``); the cloud's opacity there is ``alpha = 1 - exp(-k h rho / |sin el|)`` (``k``
-``optical_depth_per_km``, ``h`` thickness in km, ``rho`` the density texture) and it radiates
-``L_c`` (its brightness temperature, sun-lit edges warmer) through the atmosphere::
+``optical_depth_per_km``, ``h`` thickness in km, ``rho`` the density texture) and it radiates ``L_c``
+(its brightness temperature, sun-lit edges warmer).  The air in front of the cloud radiates like the
+clear sky along the same ray (the sky model's effective temperature already holds the path), so::
 
-    L = (1 - alpha) (L_base + tau(r_g) dL_terrain) + alpha (tau(r_c) L_c + (1 - tau(r_c)) L(T_air))
+    L = L_below + alpha s (L_c - L_below),     s = tau(r_c) fade(r_c)
 
-``depth_m`` is ``r_c`` where ``alpha > ALPHA_MIN``, else ``r_g``, else ``FAR_M``; an object at range
-``R > depth_m`` is seen through ``1 - alpha`` (``PartRaster.delta(..., occluder=background)``).
+(``fade`` from 1 to 0 over the last fifth of ``max_range_m``): distant clouds sink into the horizon
+haze.  ``depth_m`` is ``r_c`` where the ray meets the layer, else ``r_g``, else ``FAR_M``; an object at
+range ``R > depth_m`` is seen through ``1 - alpha`` of the cloud, against ``L_below``
+(``PartRaster.delta(..., occluder=background)``; ``cloud_alpha`` is 0 where the layer is clear).
 
-How it is fast: the plane intersections, texture look-ups (cv2.remap, bilinear, periodic) and the
-compositing weights are computed at half resolution (a 2 x 2 block per sample), then upsampled
-bilinearly (cv2.resize, pixel-centre aligned) and applied to the full-resolution ``L_base``: the
-cloud and terrain textures are smooth over two pixels at the ranges where they are seen (their
-finest features are several pixels wide; the optics PSF is 0.6 px), while the horizon, the sharpest
-edge, keeps the renderer's exact treatment.  The terrain's mip level is chosen per frame from the
-median ground footprint of a pixel.
+How it is fast: the plane intersections (ranges, texture coordinates, atmosphere, mip weights) are
+computed on a grid of one ray per 4 x 4 pixels and taken to half resolution by ``cv2.pyrUp``; the
+texture look-ups (``cv2.remap``, bilinear, periodic, only in the rows that see the surface) and the
+compositing weights at half resolution; one more ``pyrUp`` applies them to the full-resolution
+``L_base``.  The textures are smooth over two pixels at the ranges where they are seen (their finest
+features are several pixels wide; the optics PSF is 0.6 px), while the horizon, the sharpest edge,
+keeps the renderer's exact treatment.  Mip-mapping: a near level from the 10th percentile of the
+pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended into a level ``FAR_LEVELS``
+coarser where the footprint reaches 2 to 8 texels, so that far ground and far clouds do not alias.
 
 Objects: the target (id 0, class ``target``) and the distractors (ids from 1: birds, aircraft,
 glints), each a set of box and ellipsoid parts drawn by the renderer's
@@ -69,11 +74,9 @@ __all__ = [
     "ObjectLabel",
     "VISIBILITY",
     "section_rng",
-    "ALPHA_MIN",
     "FAR_M",
 ]
 
-ALPHA_MIN = 0.01  # a cloud thinner than this is no cloud for depth and occlusion
 FAR_M = 1.0e7  # depth of a ray that meets nothing (finite, so that upsampling stays finite)
 OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque is "occluded"
 BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
