@@ -81,10 +81,10 @@ FAR_M = 1.0e7  # depth of a ray that meets nothing (finite, so that upsampling s
 OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque is "occluded"
 BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
-DISTRACTOR_SUPERSAMPLE = 8
-COARSE_STEP = 4  # plane geometry on a 4 x 4 px grid, textures at 2 x 2 px (see the module docstring); fixed by the two pyrUp steps
+DISTRACTOR_SUPERSAMPLE = 8  # sub-samples per pixel side for distractors (the target keeps the renderer's)
+COARSE_STEP = 4  # plane geometry on a 4 x 4 px grid, textures at 2 x 2 px: fixed by the pyrUp steps
 MAP_LIMIT = 30000.0  # texture coordinates are clamped to +-this many texels (remap holds them in 16 bits)
-FAR_LEVELS = 3  # the terrain far from the camera is read this many mip levels coarser  # sub-samples per pixel side for distractors (the target keeps the renderer's)
+FAR_LEVELS = 3  # far ground and far clouds are read this many mip levels coarser
 VISIBILITY = ("visible", "occluded", "out_of_frame")
 
 
