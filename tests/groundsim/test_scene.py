@@ -400,3 +400,15 @@ def test_render_radiance_on_todays_background_is_render_and_a_cloud_in_front_dim
     np.testing.assert_array_equal(roi_front[2], roi[2])
     with pytest.raises(InputError, match="background"):
         r2.render_radiance(p, R, p_t, R_t, base)
+
+
+def test_lens_distortion_depth_follows_each_pixels_ray():
+    """With a distorted lens the cloud layer is intersected along each pixel's own (undistorted) ray."""
+    distorted = replace(INTR, distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    r = IrRenderer(distorted, IrSettings(encoding="mono16"), seed=1)
+    sc = SceneContent.from_config(scene_config_from_dict(CLOUDS), r, 3)
+    p = np.array([0.0, 0.0, -100.0])
+    bg = sc.render_background(p, looking(90.0), 0.0)
+    for i, j in ((256, 320), (60, 60), (450, 580)):
+        ray = distorted.bearing_cam_from_pixel(np.array([j + 0.5, i + 0.5]))
+        assert bg.depth_m[i, j] == pytest.approx(1100.0 / ray[2], rel=DEPTH_RTOL)
