@@ -49,7 +49,7 @@ def flight_inputs(rec) -> tuple[dict, dict]:
     """``(poses, frames)`` of a :class:`onboard.app.replay.Recording`: the camera position the pipeline used
     for each frame, ``{(seq, time_boot_us): p_cam_ned_m}``, and the pixels of each recorded frame,
     ``{(seq, time_boot_us): (H, W) array}`` (the first copy of a duplicated frame)."""
-    from onboard.io.record import irframe_from_rawimage
+    from onboard.io.foxglove_messages import irframe_from_rawimage
 
     poses = {}
     for inp in rec.inputs:
