@@ -25,7 +25,6 @@ __all__ = [
     "table2_rows",
     "manoeuvre_rows",
     "works_from",
-    "plot_manoeuvre",
     "write_report",
 ]
 
@@ -249,56 +248,6 @@ def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
     return out
 
 
-def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
-    """Error vs observer manoeuvre: one panel per (scenario, noise), one line per algorithm, the CRB and the
-    2 % line.  False (no file) when fewer than two manoeuvre levels were swept."""
-    if len({r["manoeuvre_scale"] for r in mrows}) < 2:
-        return False
-    from matplotlib.figure import Figure
-
-    panels = list(dict.fromkeys((r["scenario"], r["noise"]) for r in mrows))
-    algos = list(dict.fromkeys(r["algorithm"] for r in mrows))
-    ncol = min(3, len(panels))
-    nrow = math.ceil(len(panels) / ncol)
-    fig = Figure(figsize=(4.2 * ncol, 3.4 * nrow), layout="constrained")
-    axes = fig.subplots(nrow, ncol, squeeze=False)
-    for ax in axes.flat[len(panels) :]:
-        ax.set_visible(False)
-    for ax, (s, n) in zip(axes.flat, panels):
-        for a in algos:
-            rs = sorted(
-                (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, a)),
-                key=lambda r: r["accel_perp_mps2"],
-            )
-            x = [r["accel_perp_mps2"] for r in rs]
-            y = [r["err_pub"] for r in rs]
-            (line,) = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
-            ax.plot(
-                x,
-                [r["err_final"] for r in rs],
-                marker="o",
-                mfc="none",
-                ls=":",
-                color=line.get_color(),
-                label=f"{a} (last frame)",
-            )
-        rs = sorted(
-            (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
-            key=lambda r: r["accel_perp_mps2"],
-        )
-        ax.plot([r["accel_perp_mps2"] for r in rs], [r["crb_pct"] for r in rs], "k--", lw=1, label="CRB (RMS / range)")
-        ax.axhline(GOOD_ERR_PCT, color="tab:green", lw=0.8, ls=":", label=f"{GOOD_ERR_PCT:g} % (works)")
-        ax.set_yscale("log")
-        ax.set_title(f"{s}, {n}", fontsize=10)
-        ax.set_xlabel("observer acceleration normal to LOS, RMS (m/s$^2$)")
-        ax.set_ylabel("median err / range, settled (%)")
-        ax.grid(True, which="both", alpha=0.3)
-    axes.flat[0].legend(fontsize=7)
-    fig.suptitle("Reconstruction error vs observer manoeuvre (measured; median over seeds)", fontsize=11)
-    fig.savefig(path, dpi=110)
-    return True
-
-
 def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict) -> dict:
     """``report.md`` (+ ``manoeuvre.png`` when two or more manoeuvre levels were swept)."""
     from groundsim.evaluation.report import PAPER_TABLE2_PCT
@@ -308,7 +257,10 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     failed = [r for r in rows if r.get("status") != "ok"]
     t2, at_ref = table2_rows(rows)
     mrows = manoeuvre_rows(rows)
-    has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows)
+    from groundsim.evaluation.campaign_plots import plot_manoeuvre
+    from groundsim.evaluation.scoring import OBSERVABLE_AFTER_S
+
+    has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows, GOOD_ERR_PCT, OBSERVABLE_AFTER_S)
     if has_fig:
         files[FIGURE_NAME] = out / FIGURE_NAME
     L = [f"# Campaign {spec.name}\n"]
@@ -335,7 +287,7 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
             else "No run at the reference geometry: medians over every geometry of the campaign."
         )
         + " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
-        "every finite estimate after 5 s (half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
+        "every finite estimate once *settled* (from 5 s on; half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
         "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n"
     )
     for a in dict.fromkeys(r["algorithm"] for r in t2):
