@@ -31,6 +31,17 @@ class Exchanges:
         return self.cs.add_exchange(self.t_ns, self.t_ns + rtt_ns // 2 + OFFSET_NS, self.t_ns + rtt_ns)
 
 
+@pytest.fixture(autouse=True)
+def _loggers_reach_caplog(monkeypatch):
+    """An earlier test in the same process may have configured logging for a program (a logging config
+    disables the loggers that existed then, and a program's logger may stop propagating): these tests read
+    the records through caplog, so the loggers they exercise must be enabled and propagate."""
+    for name in ("onboard", "onboard.core", "onboard.core.counters", "onboard.core.clock_sync"):
+        lg = logging.getLogger(name)
+        monkeypatch.setattr(lg, "disabled", False)
+        monkeypatch.setattr(lg, "propagate", True)
+
+
 @pytest.fixture
 def exchanges():
     counter = RejectCounter(log_interval_s=0.0)  # every count logged: the levels are what is tested
