@@ -244,7 +244,11 @@ def test_ctrl_c_stops_a_replay_in_one_line_with_what_was_written(recorded, tmp_p
             proc.wait(5)
     assert proc.returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    # the replay's own log records may come first (a recording made on a loaded machine can hold a gap in its
+    # frames, which the replay reports as the daemon did); the interruption itself is one line, the last
     lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("interrupted: "), err
+    interrupted = [ln for ln in lines if ln.startswith("interrupted: ")]
+    assert len(interrupted) == 1 and lines[-1] == interrupted[0], err
+    assert all(ln.startswith(("WARNING ", "INFO ")) for ln in lines[:-1]), err
     n_written = len(out.read_text().splitlines())
-    assert lines[0].endswith(f"frames replayed; {out}: the {n_written} tracks of those frames"), lines[0]
+    assert lines[-1].endswith(f"frames replayed; {out}: the {n_written} tracks of those frames"), lines[0]

@@ -32,7 +32,7 @@ class Exchanges:
 
 
 @pytest.fixture(autouse=True)
-def _loggers_reach_caplog(monkeypatch):
+def _loggers_reach_caplog(monkeypatch, caplog):
     """An earlier test in the same process may have configured logging for a program (a logging config
     disables the loggers that existed then, and a program's logger may stop propagating): these tests read
     the records through caplog, so the loggers they exercise must be enabled and propagate."""
@@ -40,6 +40,7 @@ def _loggers_reach_caplog(monkeypatch):
         lg = logging.getLogger(name)
         monkeypatch.setattr(lg, "disabled", False)
         monkeypatch.setattr(lg, "propagate", True)
+        caplog.set_level(logging.DEBUG, logger=name)
 
 
 @pytest.fixture
