@@ -12,6 +12,8 @@ import subprocess
 import sys
 import time
 
+from onboard.core.blas import single_thread_blas_env
+
 BENCHES = ("estimator", "render", "imaging", "flight", "simrate", "onboard", "video")
 
 
@@ -21,7 +23,7 @@ def main(argv=None) -> int:
     if unknown:
         print(f"bench: unknown benchmark(s) {', '.join(unknown)}; choose from {', '.join(BENCHES)}", file=sys.stderr)
         return 2
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    env = single_thread_blas_env(dict(os.environ))
     failed = []
     for name in names:
         print(f"\n===== bench.{name} =====", flush=True)

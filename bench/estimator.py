@@ -4,12 +4,12 @@
                               [--speed-only] [--verdict] [--json out/bench_estimator.json]
 
 ``--verdict``: the observability verdict's precision and recall over every reference scenario x
-px0.3/RTK/GNSS (issue 9; scenarios and noises default to all of them then, seeds to 50; no speed
+px0.3/RTK/GNSS (scenarios and noises default to all of them then, seeds to 50; no speed
 figures, no paper closed form).
 
 Prints numbers; asserts nothing.  Speed is CPU time of the measuring thread (``time.thread_time``: what
-the work costs, not how long the loaded machine took to schedule it), on one core (BLAS threads pinned to 1
-via threadpoolctl when available, OPENBLAS_NUM_THREADS otherwise) on the P1 window (F = 300):
+the work costs, not how long the loaded machine took to schedule it), on one core (BLAS threads limited to 1
+with threadpoolctl, :func:`groundsim.evaluation.parallel.limit_blas_threads`) on the P1 window (F = 300):
 - the paper's closed form, one solve;
 - one MAP solve with a fixed prior (cold start: multi-start from range hypotheses);
 - the full model selection (three families x the q grid, evidence) on a batch window (online: every 1-5 s, 1 s knots);
@@ -25,19 +25,21 @@ import os
 import sys
 import time
 
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_NUM_THREADS", "1")
+from onboard.core.blas import single_thread_blas_env  # noqa: E402 - imports nothing but os
+
+single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
+from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
 from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
 from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402
 
-#: the accuracy goals of issue 2 (median err/range over >= 10 seeds, percent)
+#: the accuracy goals (median err/range over >= 10 seeds, percent)
 ACCURACY_GOALS_PCT = {
     ("P1", "px0.3"): 0.45,
     ("P1", "RTK"): 2.0,
@@ -201,12 +203,7 @@ def main(argv=None) -> int:
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
-    try:
-        from threadpoolctl import threadpool_limits
-
-        threadpool_limits(1)
-    except ImportError:
-        pass
+    limit_blas_threads(1)
     if args.verdict:
         return verdict(args)
     args.scenarios = args.scenarios or "P1,P2,P3"

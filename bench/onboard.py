@@ -47,9 +47,10 @@ import threading
 import time
 from dataclasses import dataclass, field
 
+from onboard.core.blas import single_thread_blas_env  # noqa: E402 - imports nothing but os
+
 if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the numpy import
-    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
-        os.environ.setdefault(_var, "1")
+    single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
@@ -250,13 +251,14 @@ def bench_processing(n_frames: int) -> None:
     import cv2
 
     from onboard.app.config import OnboardConfig, build_config
+    from onboard.core.counters import RejectCounter
     from onboard.core.irframe import decode_irframe
-    from onboard.core.pose import PoseBuffer, RejectCounter
+    from onboard.core.pose import PoseBuffer
     from onboard.pipeline.frame_pipeline import FramePipeline, make_estimator, make_tracker
 
     cv2.setNumThreads(1)
     try:
-        from groundsim.evaluation.eval import limit_blas_threads
+        from groundsim.evaluation.parallel import limit_blas_threads
 
         limit_blas_threads(1)
     except ImportError:  # the environment variables set at start are then all there is
@@ -389,8 +391,7 @@ def bench_latency(
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()
-    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
-    env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1")
+    env = single_thread_blas_env({k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")})
     health = os.path.join(tempfile.gettempdir(), f"irtrack-bench-alive-{os.getpid()}")
     cmd = [
         sys.executable,

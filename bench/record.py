@@ -11,7 +11,7 @@ Prints:
 * the writer thread's CPU per frame (protobuf/JSON encoding, chunk compression, write: its own
   ``time.thread_time``; user and kernel from ``/proc/self/task/<tid>/stat``, 10 ms ticks), and whether it
   kept up (drops);
-* the recording's cost per frame: callers' CPU + writer CPU (budget: 0.5 ms);
+* the recording's cost per frame: callers' CPU + writer CPU (the budget: 0.5 ms);
 * file size per frame and per minute at 30 Hz.
 
 ``--replay FILE.mcap``: instead, replay speed (``onboard.app.replay`` at ``--rate max``) on a recording: load time, then
@@ -26,12 +26,12 @@ Numbers only: nothing asserts on time.
 
 from __future__ import annotations
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):  # before numpy: one BLAS thread, as
-    os.environ.setdefault(_var, "1")  # python -m onboard.replay (two spinning BLAS threads on a loaded VM cost x30)
+single_thread_blas_env()  # before numpy: one BLAS thread, as python -m onboard.replay
 
 import argparse  # noqa: E402
+import os  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
@@ -39,7 +39,7 @@ import numpy as np  # noqa: E402
 
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
-from onboard.core.pose import PoseAt, PoseSample  # noqa: E402
+from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402
 from onboard.core.track import Track, track_to_bytes  # noqa: E402
 from onboard.io.record import FlightRecorder, RecordConfig  # noqa: E402
 

@@ -8,7 +8,14 @@ F450-class target in view, with NETD noise (40 mK) and optics blur (0.6 px) on, 
   60-250 m moving across the image: the realistic case;
 * static camera (background reused, target moving), mono16, and close range (target ~35 px wide);
 * baselines measured in the same run: a fresh per-frame normal draw + full-frame Gaussian blur +
-  numpy round/clip (what the noise bank and the LUT-side blur avoid), and the renderer's setup.
+  numpy round/clip (what the noise bank and the LUT-side blur avoid), and the renderer's setup;
+* scene content (``groundsim.world.render.scene``) and the camera model (``sensor``), moving camera:
+  clouds, terrain, clouds + terrain + sensor (AGC, FPN, FFC, vignetting), the same with distractors
+  (5 birds, an aircraft, a glint), each through ``SceneContent.render`` and ``Sensor.apply`` (or
+  ``IrRenderer.quantise`` without the sensor);
+* clutter: a plain point detector (``groundsim.world.render.clutter``: 15 x 15 local mean, 5 sigma of the
+  temporal noise, blobs <= 50 px) on mono16 frames without a target: false point-like objects per
+  frame on the clean sky, under clouds and over terrain.
 
 The process is pinned to one CPU and OpenCV to one thread, so the numbers are single-core; both
 wall time and this process's CPU time are printed (on a shared machine the wall time includes
@@ -164,9 +171,131 @@ def main() -> None:
         f"({1e3 / r_moving['cpu'].mean():.0f} fps)"
     )
     print(
+        f"{'scene case':<47s} {'mean':>6s} {'median':>6s} {'p95':>6s} {'max':>6s} {'cpu':>6s}  (ms/frame; scene.render +"
+        " sensor.apply or quantise; budget 250 fps = 4.00 ms)"
+    )
+    scene_cases(intr, base)
+    clutter_counts(intr, base)
+    print(
         f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs "
         "(wall times grow with other load; CPU time less so)"
     )
+
+
+SCENE_FRAMES = 150
+SCENE_CONFIGS = {
+    "clouds": {"clouds": {"enabled": True}},
+    "terrain": {"terrain": {"enabled": True}},
+    "clouds + terrain + sensor": {
+        "clouds": {"enabled": True},
+        "terrain": {"enabled": True},
+        "sensor": {
+            "enabled": True,
+            "agc": {"enabled": True},
+            "fpn": {"enabled": True},
+            "ffc": {"enabled": True, "period_s": 20.0, "first_s": 2.0},
+            "vignetting": {"enabled": True},
+        },
+    },
+}
+DISTRACTORS = {
+    "birds": {"count": 5, "center_ned_m": [150.0, 30.0, -100.0], "spread_m": 60.0},
+    "aircraft": [{"p0_ned_m": [3000.0, -400.0, -600.0]}],
+    "glints": [{"p_ned_m": [400.0, 120.0, 0.0]}],
+}
+
+
+def _scene_poses(n: int, height_m: float, pitch_deg: float, target_range_m: float = 150.0):
+    """Per-frame (t_s, p_cam, R_ned_from_cam, p_target, R_ned_from_target) of a camera moving and turning."""
+    from onboard.core.frames import CameraMount, camera_pose_ned, quat_from_euler, rotmat_from_quat
+
+    mount = CameraMount.from_euler_deg((0.1, 0.0, 0.05), pitch_deg=pitch_deg)
+    out = []
+    for k in range(n):
+        t = k / 30.0
+        p_body = np.array([6.0 * t, 2.0 * t, -height_m])
+        q_body = quat_from_euler(0.02 * math.sin(2.1 * t), 0.02 * math.sin(1.3 * t + 0.4), 0.2 * t)
+        p_cam, q_cam = camera_pose_ned(p_body, q_body, mount)
+        R_nc = rotmat_from_quat(q_cam)
+        b = np.array([0.2 * math.sin(0.9 * t), 0.15 * math.sin(0.5 * t + 1.0), 1.0])
+        p_t = p_cam + R_nc @ (b / np.linalg.norm(b)) * target_range_m
+        out.append((t, p_cam, R_nc, p_t, rotmat_from_quat(quat_from_euler(0.1, -0.05, 0.5 * t))))
+    return out
+
+
+def _run_scene(scene, renderer, sensor, poses) -> tuple[np.ndarray, np.ndarray]:
+    """(wall ms, CPU ms) per frame of scene.render + sensor.apply (or renderer.quantise)."""
+    wall, cpu = [], []
+    for k, (t, p_cam, R_nc, p_t, R_nt) in enumerate(poses):
+        c0, t0 = time.process_time(), time.perf_counter()
+        frame = scene.render(t, p_cam, R_nc, p_t, R_nt, 0.0)
+        if sensor is not None:
+            sensor.apply(frame.radiance, t, k)
+        else:
+            renderer.quantise(frame.radiance)
+        if k >= WARMUP_FRAMES:
+            wall.append((time.perf_counter() - t0) * 1e3)
+            cpu.append((time.process_time() - c0) * 1e3)
+    return np.asarray(wall), np.asarray(cpu)
+
+
+def scene_cases(intr, base) -> None:
+    """Frames/s of the scene content and the camera model, moving camera, target in view."""
+    from groundsim.world.render import IrRenderer
+    from groundsim.world.render.scene import SceneContent
+    from groundsim.world.render.scene_config import scene_config_from_dict
+    from groundsim.world.render.sensor import Sensor
+
+    geometry = {"clouds": (100.0, 8.0), "terrain": (200.0, -30.0), "clouds + terrain + sensor": (120.0, -4.0)}
+    for name, raw in [*SCENE_CONFIGS.items(), ("clouds + terrain + sensor + distractors", None)]:
+        if raw is None:
+            raw = {**SCENE_CONFIGS["clouds + terrain + sensor"], "distractors": DISTRACTORS}
+            height, pitch = geometry["clouds + terrain + sensor"]
+        else:
+            height, pitch = geometry[name]
+        cfg = scene_config_from_dict(raw)
+        renderer = IrRenderer(intr, base, seed=1)
+        t0 = time.perf_counter()
+        scene = SceneContent.from_config(cfg, renderer, seed=1)
+        sensor = Sensor.from_config(cfg.sensor, intr, base, seed=1) if cfg.sensor.enabled else None
+        setup_s = time.perf_counter() - t0
+        wall, cpu = _run_scene(scene, renderer, sensor, _scene_poses(SCENE_FRAMES + WARMUP_FRAMES, height, pitch))
+        print(
+            f"scene: {name:<40s} {wall.mean():6.2f} {np.median(wall):6.2f} {np.percentile(wall, 95):6.2f}"
+            f" {wall.max():6.2f} {cpu.mean():6.2f} {1e3 / wall.mean():6.0f} fps wall, {1e3 / cpu.mean():4.0f} fps CPU"
+            f" | h {height:.0f} m, pitch {pitch:+.0f} deg, setup {setup_s:.1f} s"
+        )
+
+
+def clutter_counts(intr, base, n_frames: int = 20) -> dict[str, float]:
+    """Mean false point-like detections per frame (no target) on the clean sky, under clouds, over terrain."""
+    from dataclasses import replace
+
+    from groundsim.world.render import IrRenderer
+    from groundsim.world.render.clutter import point_detections
+    from groundsim.world.render.scene import SceneContent
+    from groundsim.world.render.scene_config import scene_config_from_dict
+
+    ir16 = replace(base, encoding="mono16")
+    cases = {
+        "clean sky": ({}, 100.0, 8.0),
+        "clouds": (SCENE_CONFIGS["clouds"], 100.0, 8.0),
+        "terrain": (SCENE_CONFIGS["terrain"], 200.0, -30.0),
+    }
+    out = {}
+    for name, (raw, height, pitch) in cases.items():
+        renderer = IrRenderer(intr, ir16, seed=2)
+        scene = SceneContent.from_config(scene_config_from_dict(raw), renderer, seed=2)
+        counts = []
+        for t, p_cam, R_nc, _, _ in _scene_poses(n_frames, height, pitch):
+            img = renderer.quantise(scene.render(t, p_cam, R_nc, None, None, 0.0).radiance)
+            counts.append(len(point_detections(img, renderer.noise_sigma_grey)))
+        out[name] = float(np.mean(counts))
+        print(
+            f"clutter: {name:<10s} {out[name]:6.1f} false point-like objects per frame"
+            f" (min {min(counts)}, max {max(counts)}, {n_frames} frames; h {height:.0f} m, pitch {pitch:+.0f} deg)"
+        )
+    return out
 
 
 if __name__ == "__main__":

@@ -30,10 +30,11 @@ import time
 
 import cv2
 
-from groundsim.app.cli import realtime_priority, resolve_scenario_path
-from groundsim.app.run import RateSpec, RunConfig, SimCore, run
+from groundsim.app.cli import realtime_priority
+from groundsim.app.run import RateSpec, RunConfig, run
 from groundsim.io.ports import free_tcp_port
-from groundsim.world.scenario import load_scenario
+from groundsim.world.scenario import load_scenario, resolve_scenario_path
+from groundsim.world.sim import SimCore
 from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 
 

@@ -2,7 +2,7 @@
 
     python -m bench.soak --minutes 30 [--scenario H1] [--interval 10] [--out out/soak] [--kill-worker-at S]
 
-Not part of CI (issue 12: "a 30-minute soak shows RSS slope <= 0.1 MB/min and 0 frames dropped at
+Not part of CI (the goal: "a 30-minute soak shows RSS slope <= 0.1 MB/min and 0 frames dropped at
 30 Hz").  The pair is planned as ``python -m groundsim demo`` plans it (:func:`groundsim.evaluation.demo.plan_demo`:
 the scenario's camera, loopback MAVLink and zenoh ports, the shipped onboard config otherwise), with
 the scenario extended to the soak's length: H1 by default, a circling observer and a figure-eight

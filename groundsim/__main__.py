@@ -1,11 +1,10 @@
 """``python -m groundsim <command>``: the ground simulator's entry point (commands in groundsim.app.cli)."""
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
 # the simulator is single-threaded by design (it shares a small machine with the onboard daemon):
 # one BLAS thread, set before numpy is imported
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+single_thread_blas_env()
 
 import sys  # noqa: E402
 

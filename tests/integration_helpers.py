@@ -149,9 +149,8 @@ def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0, nav_no
 
 
 def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str | None = None) -> PairRun:
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
     from groundsim.world.truth import read_truth_csv
     from onboard.io.zenoh_session import ZenohSettings, open_session
 

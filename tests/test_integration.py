@@ -85,7 +85,7 @@ def _choose(observable: Comparison, every: Comparison) -> Comparison:
 @pytest.mark.timeout(SCENARIO_TIMEOUT_S)
 @pytest.mark.parametrize("name", SCENARIOS)
 def test_daemon_track_matches_truth_within_1p5x_of_perfect_centroids(name, tmp_path):
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)  # the baselines run here; the children get OPENBLAS_NUM_THREADS=1 too
     run = run_pair(str(lengthened_scenario(name, FLIGHT_S[name], tmp_path)), tmp_path, rate=RATE, nav_noise=NAV_NOISE)

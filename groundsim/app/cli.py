@@ -3,13 +3,16 @@
 Commands are argparse subparsers registered in :data:`COMMANDS`: one ``(name, help, add)`` entry
 per command, where ``add(parser)`` declares the command's options and sets
 ``parser.set_defaults(handler=fn)``; ``fn(args) -> int`` is the command's exit code.  ``run`` is
-here; ``demo`` and ``eval`` are added the same way (a function ``_add_demo`` / ``_add_eval`` and
-one line in :data:`COMMANDS`), without touching ``run``'s code.  Every command gets ``--log-level``.
+here; ``eval``, ``demo``, ``dataset`` and ``campaign`` (:mod:`groundsim.evaluation`) and ``report``
+(:mod:`groundsim.app.report`) are added the same way, without touching ``run``'s code.  Every command
+gets ``--log-level``; the log lines are the daemon's logfmt (:mod:`onboard.app.logs`).
 
 Errors: any :class:`~onboard.core.errors.IrtrackError` escaping a handler (bad scenario, unknown key,
 port in use, unreachable zenoh peer, ...) and any command-line mistake are printed as ONE line
-``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Heavy
-modules (JSBSim, zenoh, OpenCV) are imported by the handlers, not here.
+``groundsim <command>: error: <message>`` on stderr with exit code 2 (no traceback).  Ctrl-C ends a
+command with one line ``interrupted: <what was kept>`` and exit code 130
+(:mod:`groundsim.io.stop_signals`).  Heavy modules (JSBSim, zenoh, OpenCV) are imported by the
+handlers, not here.
 """
 
 from __future__ import annotations
@@ -21,9 +24,12 @@ import sys
 import threading
 from pathlib import Path
 
+from groundsim.app.report import add_report
+from groundsim.io.stop_signals import EXIT_INTERRUPTED, install_stop_signals, print_interrupted
+from onboard.app.logs import setup_logging
 from onboard.core.errors import ConfigError, IrtrackError
 
-__all__ = ["COMMANDS", "EXIT_ERROR", "build_parser", "main", "resolve_scenario_path"]
+__all__ = ["COMMANDS", "EXIT_ERROR", "EXIT_INTERRUPTED", "build_parser", "main"]
 
 log = logging.getLogger(__name__)
 
@@ -47,17 +53,6 @@ class _Parser(argparse.ArgumentParser):
 
 
 # --------------------------------------------------------------------------- run
-
-
-def resolve_scenario_path(text: str) -> Path:
-    """``--scenario``: a file path, or the name of a shipped scenario (``P1``, ``H2``, ...)."""
-    p = Path(text)
-    if p.exists() or p.suffix:
-        return p
-    from groundsim.world.scenario import reference_scenario_paths
-
-    shipped = reference_scenario_paths()
-    return shipped.get(text, p)
 
 
 # the options several commands declare, each with its own default or help text
@@ -110,7 +105,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         metavar="N",
         help="run seed: disturbance realisation, render noise, gimbal phases (default: 0)",
     )
-    _duration_option(p, "simulated seconds (default and maximum: the scenario's duration_s)")
+    _duration_option(
+        p, "simulated seconds (default: the scenario's duration_s; a longer run continues its scripted motions)"
+    )
     p.add_argument(
         "--rate",
         default="realtime",
@@ -179,7 +176,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
 
 def _run_config(args):
     """argparse namespace -> RunConfig (scenario loaded, every option validated)."""
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
@@ -210,28 +207,6 @@ def _run_config(args):
         nav_noise=args.nav_noise,
         record_path=Path(args.record) if args.record else None,
     )
-
-
-def install_stop_signals(stop: threading.Event):
-    """SIGINT/SIGTERM set ``stop`` (the loop ends cleanly); returns a function restoring the old handlers."""
-    old = {}
-
-    def on_signal(signum, _frame):
-        if not stop.is_set():
-            log.info("%s: stopping", signal.Signals(signum).name)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread (embedded use): the caller owns stopping
-            pass
-
-    def restore() -> None:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-
-    return restore
 
 
 def _single_threaded_opencv() -> None:
@@ -272,30 +247,75 @@ def realtime_priority(priority: int | None, paced: bool) -> None:
 
 
 def _cmd_run(args) -> int:
+    """Run; Ctrl-C ends the loop cleanly and exits 130 with one line saying what was written (SIGTERM,
+    how the demo stops its simulator, exits 0 as before)."""
     stop = threading.Event()
-    restore = install_stop_signals(stop)
+    received: list[int] = []
+    restore = install_stop_signals(stop, received)
     try:
         config = _run_config(args)
         if stop.is_set():
-            return 0
+            return _run_interrupted(received, None, None)
         realtime_priority(args.rt_priority, config.rate.paced)
         _single_threaded_opencv()
         from groundsim.app.run import run
 
-        run(config, stop=stop)
+        report = run(config, stop=stop)
     finally:
         restore()
-    return 0
+    return _run_interrupted(received, config, report)
 
 
-# --------------------------------------------------------------------------- eval and demo (groundsim.evaluation.eval, groundsim.evaluation.demo)
+def _run_interrupted(received: list[int], config, report) -> int:
+    """0, or (after a SIGINT) the interrupted line and EXIT_INTERRUPTED."""
+    if signal.SIGINT not in received:
+        return 0
+    if report is None or report.frames == 0:
+        kept = "nothing written"
+    else:
+        kept = f"{report.frames} of {report.frames_total} frames sent"
+        if config.truth_path is not None:
+            kept += f"; truth of those frames in {config.truth_path}"
+        if config.record_path is not None:
+            kept += f"; recording in {config.record_path}"
+    return print_interrupted(kept)
+
+
+# --------------------------------------------------------------------------- eval, demo, dataset, campaign
+# (groundsim.evaluation; imported when the command runs, so that `run` starts without them)
+
+
+def _cmd_eval(args) -> int:
+    from groundsim.evaluation.eval import cmd_eval
+
+    return cmd_eval(args)
+
+
+def _cmd_demo(args) -> int:
+    from groundsim.evaluation.demo import cmd_demo
+
+    return cmd_demo(args)
+
+
+def _cmd_dataset(args) -> int:
+    from groundsim.evaluation.dataset import cmd_dataset
+
+    return cmd_dataset(args)
+
+
+def _cmd_campaign(args) -> int:
+    from groundsim.evaluation.campaign import cmd_campaign
+
+    return cmd_campaign(args)
 
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
     _scenarios_and_seeds_options(p, "P1 P2 P3", 5, "run seeds 0..N-1 per scenario (default: %(default)s)")
     p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
     _workers_option(p, "worker processes (default: min(2, CPUs))")
-    _duration_option(p, "simulated seconds per run (default: the scenario's duration_s)")
+    _duration_option(
+        p, "simulated seconds per run (default: the scenario's duration_s; longer continues its scripted motions)"
+    )
     p.add_argument(
         "--pixel-sigma",
         type=float,
@@ -325,7 +345,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " scenario's camera, mount and origin)",
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.eval", fromlist=["cmd_eval"]).cmd_eval(args))
+    p.set_defaults(handler=_cmd_eval)
 
 
 def _add_demo(p: argparse.ArgumentParser) -> None:
@@ -358,7 +378,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         metavar="PORT",
         help="serve the daemon's live view (Foxglove WebSocket) on 127.0.0.1:PORT",
     )
-    p.set_defaults(handler=lambda args: __import__("groundsim.evaluation.demo", fromlist=["cmd_demo"]).cmd_demo(args))
+    p.set_defaults(handler=_cmd_demo)
 
 
 def _add_dataset(p: argparse.ArgumentParser) -> None:
@@ -383,9 +403,7 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
     _workers_option(p, "worker processes, one sequence each (default: min(2, CPUs))")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(
-        handler=lambda args: __import__("groundsim.evaluation.dataset", fromlist=["cmd_dataset"]).cmd_dataset(args)
-    )
+    p.set_defaults(handler=_cmd_dataset)
 
 
 def _add_campaign(p: argparse.ArgumentParser) -> None:
@@ -406,20 +424,19 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fresh", action="store_true", help="forget the runs already in DIR/runs.jsonl and redo them all")
     p.add_argument("--retry-failed", action="store_true", help="redo the runs recorded as failed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    p.set_defaults(
-        handler=lambda args: __import__("groundsim.evaluation.campaign", fromlist=["cmd_campaign"]).cmd_campaign(args)
-    )
+    p.set_defaults(handler=_cmd_campaign)
 
 
 # --------------------------------------------------------------------------- registry and entry point
 
-#: (name, one-line help, add(parser)); ``demo`` and ``eval`` register here.
+#: (name, one-line help, add(parser)); every command registers here.
 COMMANDS = (
     ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
     ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
     ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
     ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
     ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
+    ("report", "plots of a recorded flight (replayed), against the simulator's truth when given", add_report),
 )
 
 
@@ -436,11 +453,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _configure_logging(level: str) -> None:
-    logging.basicConfig(
-        level=getattr(logging, level.upper()),
-        stream=sys.stderr,
-        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
-    )
+    """The daemon's log format (:func:`onboard.app.logs.setup_logging`, logfmt text on stderr): one format
+    for both programs, so their logs read and grep alike."""
+    setup_logging(level.upper(), "text")
 
 
 def main(argv=None) -> int:
@@ -459,5 +474,5 @@ def main(argv=None) -> int:
     except IrtrackError as exc:
         print(f"{prefix}: error: {' '.join(str(exc).split())}", file=sys.stderr)
         return EXIT_ERROR
-    except KeyboardInterrupt:  # a second Ctrl-C during set-up, before the handlers were installed
-        return 0
+    except KeyboardInterrupt:  # Ctrl-C before a command's own handling took over (imports, set-up)
+        return print_interrupted("nothing written")

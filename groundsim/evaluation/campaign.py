@@ -28,7 +28,7 @@ it; the estimator assumes the noise case (``noise_model: case``, the pixel sigma
 ``closed_loop``: :func:`groundsim.evaluation.eval.run_lockstep` (JSBSim, rendered frames, the image chain, the
 noise case as the telemetry's navigation errors, the shipped daemon configuration).
 
-Metrics of a run (:func:`score_track`, the same for both modes; the closed-loop windows of issue 9):
+Metrics of a run (:func:`score_track`, the same for both modes; the closed-loop windows of the eval):
 median err/range on observable frames, median err/range of every published (finite) estimate after
 5 s (half the run when it is shorter than 10 s: :func:`settle_s`), err/range at the last frame, RMSE,
 observable share after that, honesty (fraction of published
@@ -75,35 +75,32 @@ from typing import Any
 
 import numpy as np
 
+from groundsim.evaluation.campaign_report import (
+    FIGURE_NAME,
+    REPORT_NAME,
+    TABLE_NAME,
+    write_report,
+    write_table,
+)
+from groundsim.evaluation.campaign_spec import (
+    CampaignSpec,
+    Geometry,
+    derive_scenario,
+    load_spec,
+)
+from groundsim.evaluation.parallel import init_worker, limit_blas_threads, mp_context, progress_bar, quiet_run_logs
 from groundsim.evaluation.report import make_out_dir
-from groundsim.world.motion import KinematicState, Motion, Perturbed
 from groundsim.world.scenario import (
-    MIN_SEPARATION_M,
-    SINGER_MARGIN_S,
     NoiseCase,
     Scenario,
-    SpecFail,
-    VehicleSpec,
-    check_integer,
-    check_mapping,
-    check_number,
-    check_string,
     load_noise_cases,
     load_scenario,
-    read_spec_yaml,
-    reference_scenario_paths,
 )
 from onboard.core.errors import ConfigError
 
 __all__ = [
-    "Geometry",
-    "REFERENCE_GEOMETRY",
-    "ManoeuvreScaled",
-    "MovedTarget",
-    "derive_scenario",
-    "CampaignSpec",
-    "load_spec",
-    "spec_from_dict",
+    "LOG_NAME",
+    "RESULT_SCHEMA",
     "RunParams",
     "run_id",
     "plan_runs",
@@ -113,12 +110,7 @@ __all__ = [
     "append_rows",
     "run_campaign",
     "CampaignResult",
-    "table_rows",
-    "write_table",
-    "write_report",
     "cmd_campaign",
-    "RESULT_SCHEMA",
-    "MODES",
     "code_fingerprint",
     "check_workers",
 ]
@@ -126,368 +118,9 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 RESULT_SCHEMA = 1  # bump when a metric's definition changes: every run's id changes, nothing is reused
-MODES = ("synthetic", "closed_loop")
-NOISE_MODELS = ("case", "config")
 MIN_ASSUMED_PIXEL_SIGMA_PX = 0.05  # the estimator is never told "no pixel noise" (a zero weight is singular)
-GOOD_ERR_PCT = 2.0  # "reconstruction works": median err/range at most this (the verdict table's good run)
-HONEST_BEYOND_3SIGMA = 0.01  # a run is honest when at most this fraction of published estimates is beyond 3 sigma
-MAX_RUNS = 100_000  # a spec expanding past this is a mistake, not a campaign
-GROUND_CLEARANCE_M = 1.0  # a derived path must stay this far above the origin's ground plane (NED d < -1 m)
-LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = (
-    "runs.jsonl",
-    "runs.csv",
-    "runs.parquet",
-    "report.md",
-    "manoeuvre.png",
-)
+LOG_NAME = "runs.jsonl"
 SCHEDULER_CONNECT_TIMEOUT_S = 10.0  # --scheduler: how long to wait for the Dask scheduler to answer
-#: columns that are measurements of the machine, not results: left out when tables are compared
-TIMING_COLUMNS = ("wall_s", "case_wall_s")
-
-
-# --------------------------------------------------------------------------- geometry variants (pure)
-
-
-@dataclass(frozen=True)
-class Geometry:
-    """A variant of a scenario's geometry (module docstring): ``range_scale`` (> 0), ``aspect_deg``,
-    ``manoeuvre_scale`` (>= 0)."""
-
-    range_scale: float = 1.0
-    aspect_deg: float = 0.0
-    manoeuvre_scale: float = 1.0
-
-    def __post_init__(self) -> None:
-        fail = SpecFail("<Geometry>")
-        check_number(self.range_scale, "range_scale", fail, lo=0.0, lo_open=True)
-        check_number(self.aspect_deg, "aspect_deg", fail, lo=-360.0, hi=360.0, unit="deg")
-        check_number(self.manoeuvre_scale, "manoeuvre_scale", fail, lo=0.0)
-
-    @property
-    def is_reference(self) -> bool:
-        return self.range_scale == 1.0 and self.aspect_deg == 0.0 and self.manoeuvre_scale == 1.0
-
-    @property
-    def label(self) -> str:
-        return f"r{self.range_scale:g}_a{self.aspect_deg:g}_m{self.manoeuvre_scale:g}"
-
-
-REFERENCE_GEOMETRY = Geometry()
-
-
-def _rot_z(yaw_rad: float) -> np.ndarray:
-    """R rotating NED vectors about +d by ``yaw_rad`` (north towards east)."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-@dataclass(frozen=True)
-class ManoeuvreScaled:
-    """``base`` with its acceleration history times ``scale``, from the same start position and velocity:
-    ``p(t) = p0 + v0 t + scale (p_base(t) - p0 - v0 t)`` (so ``a(t) = scale a_base(t)``)."""
-
-    base: Motion
-    scale: float
-
-    def state(self, t_s) -> KinematicState:
-        t = np.asarray(t_s, dtype=float)
-        s0 = self.base.state(np.zeros(1))
-        p0, v0 = s0.p_ned_m[0], s0.v_ned_mps[0]
-        b = self.base.state(t)
-        tt = t[..., None]
-        line = p0 + v0 * tt
-        k = float(self.scale)
-        return KinematicState(line + k * (b.p_ned_m - line), v0 + k * (b.v_ned_mps - v0) + 0.0 * tt, k * b.a_ned_mps2)
-
-
-@dataclass(frozen=True)
-class MovedTarget:
-    """``base`` rotated about the vertical through ``pivot_ned_m`` by ``yaw_rad`` (north towards east),
-    then translated by ``offset_ned_m``."""
-
-    base: Motion
-    pivot_ned_m: tuple
-    yaw_rad: float
-    offset_ned_m: tuple
-
-    def state(self, t_s) -> KinematicState:
-        b = self.base.state(t_s)
-        R = _rot_z(self.yaw_rad)
-        pivot = np.asarray(self.pivot_ned_m, dtype=float)
-        p = pivot + np.asarray(self.offset_ned_m, dtype=float) + (b.p_ned_m - pivot) @ R.T
-        return KinematicState(p, b.v_ned_mps @ R.T, b.a_ned_mps2 @ R.T)
-
-
-def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geometry") -> Scenario:
-    """The variant of ``scenario`` with ``geometry`` (module docstring); the reference geometry returns
-    ``scenario`` itself.  Raises :class:`~groundsim.world.scenario.ScenarioError` naming ``source`` when the
-    variant's commanded paths come closer than ``MIN_SEPARATION_M`` or go below the ground."""
-    if geometry.is_reference:
-        return scenario
-    obs_ref = scenario.observer.motion
-    observer = obs_ref if geometry.manoeuvre_scale == 1.0 else ManoeuvreScaled(obs_ref, float(geometry.manoeuvre_scale))
-    base = scenario.target.base_motion
-    p_t0 = np.asarray(base.state(np.zeros(1)).p_ned_m[0], dtype=float)
-    p_o0 = np.asarray(obs_ref.state(np.zeros(1)).p_ned_m[0], dtype=float)
-    offset = (geometry.range_scale - 1.0) * (p_t0 - p_o0)
-    tgt_base = MovedTarget(
-        base, tuple(float(x) for x in p_t0), math.radians(geometry.aspect_deg), tuple(float(x) for x in offset)
-    )
-    dist = scenario.target.disturbance
-    if dist is None:
-        target = VehicleSpec(tgt_base)
-    else:  # the disturbance spec is kept: run r's realisation is drawn as for the reference scenario
-        run0 = dist.realise(scenario.duration_s + SINGER_MARGIN_S, scenario.rng("target.disturbance", 0))
-        target = VehicleSpec(Perturbed(tgt_base, run0), tgt_base, dist)
-    name = f"{scenario.name}_{geometry.label}"
-    fail = SpecFail(source)
-    t = scenario.frame_times_s()
-    with np.errstate(all="ignore"):
-        po, pt = observer.state(t).p_ned_m, tgt_base.state(t).p_ned_m
-    what = (
-        f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, "
-        f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
-    )
-    r = np.linalg.norm(pt - po, axis=1)
-    k = int(np.argmin(r))
-    if not r[k] >= MIN_SEPARATION_M:
-        fail.text(
-            source,
-            f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
-            f"{what}: {r[k]:.3g} m at t = {t[k]:.2f} s",
-        )
-    for who, p in (("observer", po), ("target", pt)):
-        k = int(np.argmax(p[:, 2]))
-        if not p[k, 2] < -GROUND_CLEARANCE_M:
-            fail.text(
-                source,
-                f"a geometry whose paths stay {GROUND_CLEARANCE_M:g} m above the ground",
-                f"{what}: the {who} at {-p[k, 2]:.3g} m up at t = {t[k]:.2f} s",
-            )
-    return dataclasses.replace(
-        scenario,
-        name=name,
-        description=f"{scenario.description} [{geometry.label}]",
-        observer=VehicleSpec(observer),
-        target=target,
-    )
-
-
-# --------------------------------------------------------------------------- the spec
-
-
-@dataclass(frozen=True)
-class CampaignSpec:
-    """A validated campaign spec (``docs/campaigns.md``).  ``scenario_paths`` resolve ``scenarios``;
-    ``geometries`` is the expanded list (grid x draws); ``seeds`` the run seeds."""
-
-    name: str
-    mode: str
-    scenarios: tuple[str, ...]
-    scenario_paths: tuple[Path, ...]
-    noise: tuple[str, ...]
-    algorithms: tuple[str, ...]
-    seeds: tuple[int, ...]
-    geometries: tuple[Geometry, ...]
-    duration_s: float | None = None
-    noise_model: str = "case"
-    crb: bool = True
-    workers: int | None = None
-    onboard_config: Path | None = None
-    source: str = "<dict>"
-
-    @property
-    def run_count(self) -> int:
-        return len(self.scenarios) * len(self.geometries) * len(self.noise) * len(self.algorithms) * len(self.seeds)
-
-
-_SPEC_KEYS = (
-    "name",
-    "description",
-    "mode",
-    "scenarios",
-    "noise",
-    "algorithms",
-    "seeds",
-    "geometry",
-    "duration_s",
-    "noise_model",
-    "crb",
-    "workers",
-    "onboard_config",
-)
-_GEOMETRY_AXES = ("range_scale", "aspect_deg", "manoeuvre_scale")
-_AXIS_BOUNDS = {
-    "range_scale": dict(lo=0.0, lo_open=True, hi=100.0),
-    "aspect_deg": dict(lo=-360.0, hi=360.0),
-    "manoeuvre_scale": dict(lo=0.0, hi=100.0),
-}
-
-
-def _name_list(v, path, fail, what) -> tuple[str, ...]:
-    if isinstance(v, str):
-        v = [v]
-    if not isinstance(v, list) or not v:
-        fail(path, f"a non-empty list of {what}", v)
-    out = tuple(check_string(x, f"{path}[{i}]", fail, what=what) for i, x in enumerate(v))
-    dup = [x for x in out if out.count(x) > 1]
-    if dup:
-        fail(path, f"a list of distinct {what}", dup[0])
-    return out
-
-
-def _geometries(d, path, fail) -> tuple[Geometry, ...]:
-    """``geometry:`` -> the expanded list: the grid of list axes x ``draws`` random draws of the {min, max} axes."""
-    if d is None:
-        return (REFERENCE_GEOMETRY,)
-    check_mapping(d, path, fail, _GEOMETRY_AXES + ("draws", "seed"))
-    grid: dict[str, list[float]] = {}
-    ranges: dict[str, tuple[float, float]] = {}
-    for axis in _GEOMETRY_AXES:
-        p = f"{path}.{axis}"
-        v = d.get(axis, [REFERENCE_GEOMETRY.__dict__[axis]])
-        b = _AXIS_BOUNDS[axis]
-        if isinstance(v, dict):
-            check_mapping(v, p, fail, ("min", "max"), ("min", "max"))
-            lo = check_number(v["min"], f"{p}.min", fail, **b)
-            hi = check_number(v["max"], f"{p}.max", fail, **b)
-            if not hi > lo:
-                fail(f"{p}.max", f"a number > min ({lo:g})", v["max"])
-            ranges[axis] = (lo, hi)
-        else:
-            if not isinstance(v, list) or not v:
-                fail(p, "a non-empty list of numbers (grid) or {min: .., max: ..} (random draws)", v)
-            vals = [check_number(x, f"{p}[{i}]", fail, **b) for i, x in enumerate(v)]
-            if len(set(vals)) != len(vals):
-                fail(p, "distinct values", v)
-            grid[axis] = vals
-    draws = 1
-    if "draws" in d:
-        if not ranges:
-            fail(f"{path}.draws", "no draws unless an axis is random ({min: .., max: ..})", d["draws"])
-        draws = check_integer(d["draws"], f"{path}.draws", fail, lo=1, hi=MAX_RUNS)
-    elif ranges:
-        fail(f"{path}.draws", "a number of random draws (required when an axis is {min: .., max: ..})")
-    seed = check_integer(d.get("seed", 0), f"{path}.seed", fail, lo=0, hi=2**63 - 1)
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 0x6E0]))
-    out: list[Geometry] = []
-    import itertools
-
-    axes = list(grid)
-    for combo in itertools.product(*(grid[a] for a in axes)):
-        base = dict(zip(axes, combo))
-        for _ in range(draws):
-            g = dict(base)
-            for axis, (lo, hi) in ranges.items():  # 4 significant digits: readable labels, stable hashes
-                g[axis] = float(f"{rng.uniform(lo, hi):.4g}")
-            out.append(Geometry(**g))
-    return tuple(dict.fromkeys(out))
-
-
-def _resolve_scenario(text: str, spec_dir: Path) -> Path:
-    p = Path(text)
-    if p.suffix or "/" in text:
-        return p if p.is_absolute() or p.exists() else spec_dir / p
-    shipped = reference_scenario_paths()
-    return shipped.get(text, spec_dir / p)
-
-
-def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> CampaignSpec:
-    """Validate a parsed spec mapping (``docs/campaigns.md``); raises ScenarioError (a ConfigError) naming
-    ``source`` and the field.  Scenario files, noise cases and plug-in names are checked too."""
-    fail = SpecFail(source)
-    spec_dir = spec_dir or Path(".")
-    check_mapping(d, "", fail, _SPEC_KEYS, ("scenarios", "noise", "algorithms"))
-    name = check_string(
-        d.get("name", Path(str(source)).stem or "campaign"),
-        "name",
-        fail,
-        what="a name of letters, digits, '_', '.', '-'",
-    )
-    from groundsim.world.scenario import NAME_PATTERN
-
-    if not NAME_PATTERN.match(name):
-        fail("name", "a name of letters, digits, '_', '.', '-'", name)
-    check_string(d.get("description", ""), "description", fail)
-    mode = check_string(d.get("mode", "synthetic"), "mode", fail, choices=MODES)
-    scenarios = _name_list(d["scenarios"], "scenarios", fail, "scenario names or files")
-    paths = []
-    for i, s in enumerate(scenarios):
-        p = _resolve_scenario(s, spec_dir)
-        if not p.is_file():
-            known = ", ".join(reference_scenario_paths())
-            fail(f"scenarios[{i}]", f"a shipped scenario ({known}) or a scenario file", s)
-        paths.append(p)
-    noise = _name_list(d["noise"], "noise", fail, "noise-case names")
-    cases = load_noise_cases()
-    for i, n in enumerate(noise):
-        check_string(n, f"noise[{i}]", fail, choices=tuple(cases))
-    algorithms = _name_list(d["algorithms"], "algorithms", fail, "estimator plug-in names")
-    from onboard.pipeline.plugins import load_factory
-
-    for i, a in enumerate(algorithms):
-        load_factory(a, option=f"{source}: algorithms[{i}]")  # an unknown plug-in fails here, before any run
-    seeds_v = d.get("seeds", 1)
-    if isinstance(seeds_v, list):
-        if not seeds_v:
-            fail("seeds", "a count >= 1 or a non-empty list of run seeds >= 0", seeds_v)
-        seeds = tuple(check_integer(s, f"seeds[{i}]", fail, lo=0) for i, s in enumerate(seeds_v))
-        if len(set(seeds)) != len(seeds):
-            fail("seeds", "distinct run seeds", seeds_v)
-    else:
-        seeds = tuple(range(check_integer(seeds_v, "seeds", fail, lo=1, hi=MAX_RUNS)))
-    geometries = _geometries(d.get("geometry"), "geometry", fail)
-    duration = d.get("duration_s")
-    if duration is not None:
-        duration = check_number(duration, "duration_s", fail, lo=0.0, lo_open=True, unit="s")
-    noise_model = check_string(
-        d.get("noise_model", "case" if mode == "synthetic" else "config"), "noise_model", fail, choices=NOISE_MODELS
-    )
-    if mode == "closed_loop" and noise_model != "config":
-        fail("noise_model", "config in closed_loop mode (the daemon's configuration is what runs)", noise_model)
-    crb = d.get("crb", True)
-    if not isinstance(crb, bool):
-        fail("crb", "true or false", crb)
-    workers = d.get("workers")
-    if workers is not None:
-        workers = check_integer(workers, "workers", fail, lo=1, hi=1024)
-    onboard = d.get("onboard_config")
-    if onboard is not None:
-        onboard = Path(check_string(onboard, "onboard_config", fail, what="a path to an onboard configuration file"))
-        onboard = onboard if onboard.is_absolute() or onboard.exists() else spec_dir / onboard
-        if not onboard.is_file():
-            fail("onboard_config", "an existing onboard configuration file", str(onboard))
-    spec = CampaignSpec(
-        name=name,
-        mode=mode,
-        scenarios=scenarios,
-        scenario_paths=tuple(paths),
-        noise=noise,
-        algorithms=algorithms,
-        seeds=seeds,
-        geometries=geometries,
-        duration_s=duration,
-        noise_model=noise_model,
-        crb=crb,
-        workers=workers,
-        onboard_config=onboard,
-        source=str(source),
-    )
-    if spec.run_count > MAX_RUNS:
-        fail("(document)", f"at most {MAX_RUNS} runs", f"{spec.run_count} runs")
-    for p in paths:  # every scenario loads, every variant is a valid geometry, the duration fits
-        sc = load_scenario(p)
-        if duration is not None and duration > sc.duration_s + 1e-9:
-            fail("duration_s", f"at most {sc.name}'s duration_s ({sc.duration_s:g} s)", duration)
-        for g in geometries:
-            derive_scenario(sc, g, source=f"{source}: geometry")
-    return spec
-
-
-def load_spec(path) -> CampaignSpec:
-    """Read and validate a campaign spec file; one-line ConfigError (exit 2) on any problem."""
-    p = Path(path)
-    return spec_from_dict(read_spec_yaml(p), source=p, spec_dir=p.parent)
 
 
 # --------------------------------------------------------------------------- runs and their identity
@@ -570,11 +203,11 @@ def plan_runs(spec: CampaignSpec, onboard_digest: str) -> list[RunParams]:
 # --------------------------------------------------------------------------- scoring (pure)
 
 
-OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.eval.OBSERVABLE_AFTER_S (issue 9's windows)
+OBSERVABLE_AFTER_S = 5.0  # = groundsim.evaluation.scoring.OBSERVABLE_AFTER_S (the closed-loop windows)
 
 
 def settle_s(duration_s: float) -> float:
-    """Where the "settled" figures start: 5 s (issue 9's window), or half the run when it is shorter than 10 s."""
+    """Where the "settled" figures start: 5 s (the eval's window), or half the run when it is shorter than 10 s."""
     return min(OBSERVABLE_AFTER_S, 0.5 * float(duration_s))
 
 
@@ -798,7 +431,8 @@ def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None)
 
 
 def _run_closed_loop(job: Job) -> list[dict]:
-    from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
+    from groundsim.evaluation.eval import EvalOptions, run_lockstep
+    from groundsim.evaluation.scoring import score_run
 
     rows = []
     for params in job.runs:
@@ -893,23 +527,8 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
 # --------------------------------------------------------------------------- execution
 
 
-def _init_worker() -> None:
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the coordinator's: it terminates the pool
-    from groundsim.evaluation.eval import limit_blas_threads
-
-    limit_blas_threads(1)
-
-
-def _pool_context():
-    import multiprocessing as mp
-
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(
-        ["groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding"]
-    )
-    return ctx
+#: what the campaign's fork server imports once for its workers
+CAMPAIGN_PRELOAD = ("groundsim.evaluation.campaign", "groundsim.evaluation.eval", "onboard.estimation.sliding")
 
 
 @dataclass(frozen=True)
@@ -966,12 +585,11 @@ def _cluster_client(scheduler: str):
 def code_fingerprint() -> str:
     """Digest of the irtrack code a process runs (every ``.py`` under ``onboard/`` and ``groundsim/`` as
     imported, path and bytes), so a coordinator can refuse cluster workers running other code."""
-    import groundsim
     import onboard
 
     h = hashlib.sha256()
-    for pkg in (onboard, groundsim):
-        root = Path(pkg.__file__).resolve().parent
+    groundsim_root = Path(__file__).resolve().parents[1]  # this module is groundsim/evaluation/campaign.py
+    for root in (Path(onboard.__file__).resolve().parent, groundsim_root):
         for f in sorted(root.rglob("*.py")):
             h.update(str(f.relative_to(root.parent)).encode("utf-8") + b"\0" + f.read_bytes())
     return h.hexdigest()[:16]
@@ -979,8 +597,6 @@ def code_fingerprint() -> str:
 
 def _remote_job(job: Job) -> list[dict]:
     """:func:`run_job` on a cluster worker, with one BLAS thread (as the local pool's initializer sets)."""
-    from groundsim.evaluation.eval import limit_blas_threads
-
     limit_blas_threads(1)
     return run_job(job)
 
@@ -1035,8 +651,6 @@ def run_campaign(
     (``tcp://HOST:PORT``), the workers of a Dask distributed cluster (``workers`` is then the threads the
     cluster offers).  Pool and cluster share one path: every job is submitted as a future, results are
     taken as they complete and appended here; workers never touch ``out``."""
-    from groundsim.evaluation.eval import limit_blas_threads
-
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
     if fresh and log_path.exists():
@@ -1082,8 +696,6 @@ def run_campaign(
     futures: list = []
     try:
         if progress and pending:
-            from groundsim.evaluation.parallel import progress_bar
-
             bar = progress_bar(len(pending), "run", f"campaign {spec.name} ({workers} worker(s))")
         if client is not None:  # submit every job, take them as they complete
             import uuid
@@ -1099,7 +711,7 @@ def run_campaign(
         elif workers > 1:  # the same, on a local pool
             import concurrent.futures as cf
 
-            pool = _pool_context().Pool(workers, initializer=_init_worker)
+            pool = mp_context(CAMPAIGN_PRELOAD).Pool(workers, initializer=init_worker)
             futures = _pool_futures(pool, jobs)
             results = (f.result() for f in cf.as_completed(futures))
         else:
@@ -1140,365 +752,6 @@ def run_campaign(
     return dataclasses.replace(result, files=files)
 
 
-# --------------------------------------------------------------------------- the table
-
-
-#: the table's columns, in order: identity and parameters, geometry measured, the run's figures, the case's
-#: bound, status, provenance, timings (columns a newer version adds come after, alphabetically)
-COLUMN_ORDER = (
-    "run_id",
-    "mode",
-    "scenario",
-    "geometry",
-    "range_scale",
-    "aspect_deg",
-    "manoeuvre_scale",
-    "noise",
-    "algorithm",
-    "seed",
-    "duration_s",
-    "noise_model",
-    "status",
-    "range_start_m",
-    "range_median_m",
-    "aspect_start_deg",
-    "observer_accel_rms_mps2",
-    "observer_accel_perp_los_rms_mps2",
-    "frames",
-    "published_frames",
-    "observable_frames",
-    "settle_s",
-    "err_range_observable_pct",
-    "err_range_published_settled_pct",
-    "err_range_final_pct",
-    "rmse_observable_m",
-    "rmse_published_settled_m",
-    "observable_share_settled",
-    "beyond_3sigma_published",
-    "nees_observable",
-    "nees_published_settled",
-    "first_observable_s",
-    "published_share_after_3s",
-    "chain_centroid_sigma_px",
-    "crb",
-    "crb_rms_m",
-    "crb_range_sigma_pct",
-    "batch_err_range_pct",
-    "batch_observable",
-    "bound_note",
-    "error",
-    "estimator_errors",
-    "scenario_digest",
-    "noise_digest",
-    "onboard_digest",
-    "schema",
-) + TIMING_COLUMNS
-
-
-def table_rows(rows: list[dict]):
-    """Rows -> a pandas DataFrame with a fixed column order (parameters, then figures, then timings)."""
-    import pandas as pd
-
-    df = pd.DataFrame(rows)
-    if df.empty:
-        return pd.DataFrame(columns=list(COLUMN_ORDER))
-    known = [c for c in COLUMN_ORDER if c in df.columns]
-    return df[known + sorted(c for c in df.columns if c not in COLUMN_ORDER)]
-
-
-def write_table(out: Path, rows: list[dict]) -> dict:
-    """``runs.csv`` (always) and ``runs.parquet`` (when pyarrow is installed)."""
-    df = table_rows(rows)
-    files = {TABLE_NAME: out / TABLE_NAME}
-    df.to_csv(out / TABLE_NAME, index=False)
-    try:
-        import pyarrow  # noqa: F401
-    except ImportError:
-        pass
-    else:
-        df.to_parquet(out / PARQUET_NAME, index=False)
-        files[PARQUET_NAME] = out / PARQUET_NAME
-    return files
-
-
-# --------------------------------------------------------------------------- the report
-
-
-def _med(values) -> float:
-    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
-    return float(np.median(v)) if v else math.nan
-
-
-def _pct(x, nd=2) -> str:
-    return "-" if not math.isfinite(x) else f"{x:.{nd}f} %"
-
-
-def _num(x, nd=2) -> str:
-    return "-" if not math.isfinite(x) else f"{x:.{nd}f}"
-
-
-# the per-run figures summarised by their median over a group's runs: table key -> runs.csv column
-_ACCURACY_MEDIANS = {
-    "err_obs": "err_range_observable_pct",
-    "err_pub": "err_range_published_settled_pct",
-    "err_final": "err_range_final_pct",
-    "rmse_obs": "rmse_observable_m",
-    "rmse_pub": "rmse_published_settled_m",
-    "obs_share": "observable_share_settled",
-    "nees": "nees_observable",
-    "nees_pub": "nees_published_settled",
-    "crb": "crb_rms_m",
-    "crb_sig": "crb_range_sigma_pct",
-    "batch": "batch_err_range_pct",
-}
-_MANOEUVRE_MEDIANS = {
-    "accel_perp_mps2": "observer_accel_perp_los_rms_mps2",
-    "accel_mps2": "observer_accel_rms_mps2",
-    "err_pub": "err_range_published_settled_pct",
-    "err_obs": "err_range_observable_pct",
-    "err_final": "err_range_final_pct",
-    "obs_share": "observable_share_settled",
-}
-
-
-def _medians(rs: list[dict], columns: dict[str, str]) -> dict:
-    """``{key: median of column over rs}`` (None values skipped, as :func:`_med`)."""
-    return {key: _med(r.get(col) for r in rs) for key, col in columns.items()}
-
-
-def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
-    """Per (algorithm, scenario, noise): medians over the runs at the reference geometry (or over every
-    geometry when the campaign has no reference-geometry runs: the flag says which)."""
-    ok = [r for r in rows if r.get("status") == "ok"]
-    ref = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0 and r["manoeuvre_scale"] == 1.0]
-    use, at_ref = (ref, True) if ref else (ok, False)
-    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in use))
-    out = []
-    for a, s, n in keys:
-        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"]) == (a, s, n)]
-        honest = [
-            r
-            for r in rs
-            if r.get("beyond_3sigma_published") is not None and r["beyond_3sigma_published"] <= HONEST_BEYOND_3SIGMA
-        ]
-        out.append(
-            {
-                "algorithm": a,
-                "scenario": s,
-                "noise": n,
-                "runs": len(rs),
-                **_medians(rs, _ACCURACY_MEDIANS),
-                "honest": len(honest),
-            }
-        )
-    return out, at_ref
-
-
-def manoeuvre_rows(rows: list[dict]) -> list[dict]:
-    """Per (algorithm, scenario, noise, manoeuvre_scale) over reference range and aspect if swept at
-    those (else all): the measured observer acceleration (RMS normal to the line of sight, median) and
-    the median err/range of the published estimates once settled; the CRB as RMS / median range."""
-    ok = [r for r in rows if r.get("status") == "ok"]
-    base = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0]
-    use = base if len({r["manoeuvre_scale"] for r in base}) > 1 else ok
-    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) for r in use))
-    out = []
-    for a, s, n, m in keys:
-        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) == (a, s, n, m)]
-        crb_pct = [
-            100 * r["crb_rms_m"] / r["range_median_m"]
-            for r in rs
-            if r.get("crb_rms_m") is not None and r.get("range_median_m")
-        ]
-        out.append(
-            {
-                "algorithm": a,
-                "scenario": s,
-                "noise": n,
-                "manoeuvre_scale": m,
-                "runs": len(rs),
-                **_medians(rs, _MANOEUVRE_MEDIANS),
-                "crb_pct": _med(crb_pct),
-            }
-        )
-    return out
-
-
-def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
-    """Per (algorithm, scenario, noise): the smallest measured manoeuvre (RMS acceleration normal to the
-    line of sight) from which every larger swept level has a median err/range <= ``good_pct``."""
-    out = []
-    for key in dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in mrows):
-        rs = sorted(
-            (r for r in mrows if (r["algorithm"], r["scenario"], r["noise"]) == key), key=lambda r: r["accel_perp_mps2"]
-        )
-        good = [math.isfinite(r["err_pub"]) and r["err_pub"] <= good_pct for r in rs]
-        start = None
-        for i in range(len(rs) - 1, -1, -1):
-            if not good[i]:
-                break
-            start = rs[i]
-        out.append(
-            {
-                "algorithm": key[0],
-                "scenario": key[1],
-                "noise": key[2],
-                "levels": len(rs),
-                "works_from_mps2": start["accel_perp_mps2"] if start else math.nan,
-                "works_from_scale": start["manoeuvre_scale"] if start else math.nan,
-            }
-        )
-    return out
-
-
-def plot_manoeuvre(path: Path, mrows: list[dict]) -> bool:
-    """Error vs observer manoeuvre: one panel per (scenario, noise), one line per algorithm, the CRB and the
-    2 % line.  False (no file) when fewer than two manoeuvre levels were swept."""
-    if len({r["manoeuvre_scale"] for r in mrows}) < 2:
-        return False
-    from matplotlib.figure import Figure
-
-    panels = list(dict.fromkeys((r["scenario"], r["noise"]) for r in mrows))
-    algos = list(dict.fromkeys(r["algorithm"] for r in mrows))
-    ncol = min(3, len(panels))
-    nrow = math.ceil(len(panels) / ncol)
-    fig = Figure(figsize=(4.2 * ncol, 3.4 * nrow), layout="constrained")
-    axes = fig.subplots(nrow, ncol, squeeze=False)
-    for ax in axes.flat[len(panels) :]:
-        ax.set_visible(False)
-    for ax, (s, n) in zip(axes.flat, panels):
-        for a in algos:
-            rs = sorted(
-                (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, a)),
-                key=lambda r: r["accel_perp_mps2"],
-            )
-            x = [r["accel_perp_mps2"] for r in rs]
-            y = [r["err_pub"] for r in rs]
-            (line,) = ax.plot(x, y, marker="o", label=f"{a} (settled, median)")
-            ax.plot(
-                x,
-                [r["err_final"] for r in rs],
-                marker="o",
-                mfc="none",
-                ls=":",
-                color=line.get_color(),
-                label=f"{a} (last frame)",
-            )
-        rs = sorted(
-            (r for r in mrows if (r["scenario"], r["noise"], r["algorithm"]) == (s, n, algos[0])),
-            key=lambda r: r["accel_perp_mps2"],
-        )
-        ax.plot([r["accel_perp_mps2"] for r in rs], [r["crb_pct"] for r in rs], "k--", lw=1, label="CRB (RMS / range)")
-        ax.axhline(GOOD_ERR_PCT, color="tab:green", lw=0.8, ls=":", label=f"{GOOD_ERR_PCT:g} % (works)")
-        ax.set_yscale("log")
-        ax.set_title(f"{s}, {n}", fontsize=10)
-        ax.set_xlabel("observer acceleration normal to LOS, RMS (m/s$^2$)")
-        ax.set_ylabel("median err / range, settled (%)")
-        ax.grid(True, which="both", alpha=0.3)
-    axes.flat[0].legend(fontsize=7)
-    fig.suptitle("Reconstruction error vs observer manoeuvre (measured; median over seeds)", fontsize=11)
-    fig.savefig(path, dpi=110)
-    return True
-
-
-def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict) -> dict:
-    """``report.md`` (+ ``manoeuvre.png`` when two or more manoeuvre levels were swept)."""
-    from groundsim.evaluation.report import PAPER_TABLE2_PCT
-
-    files = {}
-    ok = [r for r in rows if r.get("status") == "ok"]
-    failed = [r for r in rows if r.get("status") != "ok"]
-    t2, at_ref = table2_rows(rows)
-    mrows = manoeuvre_rows(rows)
-    has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows)
-    if has_fig:
-        files[FIGURE_NAME] = out / FIGURE_NAME
-    L = [f"# Campaign {spec.name}\n"]
-    L.append(
-        f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "
-        f"{', '.join(spec.noise)}, algorithms {', '.join(spec.algorithms)}, seeds {len(spec.seeds)}, "
-        f"{len(spec.geometries)} geometr{'y' if len(spec.geometries) == 1 else 'ies'}, estimator noise model: "
-        f"{spec.noise_model}.\n"
-    )
-    ri = run_info
-    rate = 60.0 * ri["ran"] / ri["wall_s"] if ri["wall_s"] > 0 and ri["ran"] else math.nan
-    L.append(
-        f"{len(rows)} of {ri['planned']} runs in the table ({len(failed)} failed); this invocation reused "
-        f"{ri['reused']}, ran {ri['ran']} in {ri['wall_s']:.1f} s on {ri['workers']} worker(s)"
-        f"{f' ({rate:.1f} runs/min)' if math.isfinite(rate) else ''}"
-        f"{'; INTERRUPTED: run the same command to resume' if ri['interrupted'] else ''}. "
-        f"Table: `{TABLE_NAME}` (one row per run).\n"
-    )
-    L.append("## Table 2 analogue, per algorithm\n")
-    L.append(
-        (
-            "Runs at the reference geometry (range, aspect and manoeuvre of the shipped scenario)."
-            if at_ref
-            else "No run at the reference geometry: medians over every geometry of the campaign."
-        )
-        + " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
-        "every finite estimate after 5 s (half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
-        "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n"
-    )
-    for a in dict.fromkeys(r["algorithm"] for r in t2):
-        L.append(f"### {a}\n")
-        L.append(
-            "| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
-            "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
-            "CRB range sigma | batch MAP err/range |"
-        )
-        L.append("|" + "---|" * 14)
-        for r in (x for x in t2 if x["algorithm"] == a):
-            paper = PAPER_TABLE2_PCT.get(r["scenario"])
-            L.append(
-                f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
-                f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
-                f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
-                f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |"
-            )
-        L.append("")
-    if mrows and len({r["manoeuvre_scale"] for r in mrows}) > 1:
-        L.append("## Error vs observer manoeuvre\n")
-        L.append(f"![error vs manoeuvre]({FIGURE_NAME})\n")
-        L.append(
-            "The observer's acceleration is scaled (manoeuvre_scale), measured as its RMS normal to the line "
-            f"of sight over the window. *Works from*: the smallest measured level from which every larger "
-            f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n"
-        )
-        L.append("| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |")
-        L.append("|---|---|---|---|---|---|")
-        for w in works_from(mrows):
-            L.append(
-                f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
-                f"{_num(w['works_from_mps2'], 3) if math.isfinite(w['works_from_mps2']) else 'not in the range swept'} | "
-                f"{_num(w['works_from_scale'], 3)} |"
-            )
-        L.append("")
-        L.append(
-            "| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
-            "err/range last frame | err/range observable | observable share | CRB / range |"
-        )
-        L.append("|" + "---|" * 11)
-        for r in mrows:
-            L.append(
-                f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
-                f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
-                f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |"
-            )
-        L.append("")
-    if failed:
-        L.append("## Failed runs\n")
-        for r in failed[:50]:
-            L.append(
-                f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}"
-            )
-        L.append("")
-    (out / REPORT_NAME).write_text("\n".join(L), encoding="utf-8")
-    files[REPORT_NAME] = out / REPORT_NAME
-    log.debug("report: %d ok rows", len(ok))
-    return files
-
-
 # --------------------------------------------------------------------------- command line
 
 
@@ -1507,7 +760,6 @@ def cmd_campaign(args) -> int:
     import sys
 
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
-    from groundsim.evaluation.parallel import quiet_run_logs
 
     quiet_run_logs("groundsim.evaluation.eval")
     spec = load_spec(args.spec)

@@ -1,6 +1,6 @@
-"""``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains (issue 14 item 1).
+"""``python -m groundsim dataset``: labelled IR datasets for training and for other toolchains.
 
-One *sequence* per (scenario, run seed): :class:`groundsim.app.run.SimCore` flies, renders and gives the
+One *sequence* per (scenario, run seed): :class:`groundsim.world.sim.SimCore` flies, renders and gives the
 truth of every frame (the same flight, frames and navigation errors as ``groundsim run`` and
 ``groundsim eval`` for that seed and ``--nav-noise``), and this module writes it out.  Layout of ``--out DIR``::
 
@@ -55,13 +55,16 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from groundsim.evaluation.parallel import JobsInterrupted, progress_bar, quiet_run_logs, report_progress, run_jobs
 from groundsim.evaluation.report import make_out_dir
+from groundsim.io.stop_signals import print_interrupted
 from onboard.core.errors import ConfigError, InputError
 
 __all__ = [
@@ -76,6 +79,7 @@ __all__ = [
     "sequence_name",
     "export_sequence",
     "export_dataset",
+    "DatasetInterrupted",
     "cmd_dataset",
 ]
 
@@ -300,17 +304,12 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     ``progress(n)`` is called with frames done.  Raises IrtrackError for a run that cannot be made."""
     import cv2
 
-    from groundsim.app.run import SimCore
+    from groundsim.world.sim import SimCore
     from groundsim.world.truth import TruthWriter
     from onboard.core.frames import rotmat_from_quat
 
     t0 = time.perf_counter()
     scenario = _with_bit_depth(scenario, options.bit_depth)
-    if options.duration_s is not None and options.duration_s > scenario.duration_s + 1e-9:
-        raise ConfigError(
-            f"--duration: expected at most {scenario.name}'s duration_s ({scenario.duration_s:g} s), "
-            f"got {options.duration_s:g}"
-        )
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     name = sequence_name(scenario.name, core.nav_noise.name, seed)
     seq_dir = Path(out_dir) / name
@@ -526,24 +525,19 @@ def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[Sequenc
     }
 
 
-_WORKER_QUEUE = None
+class DatasetInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`export_dataset`: ``summaries`` of the sequences written whole (job order),
+    ``planned`` the number asked for."""
 
-
-def _init_worker(queue) -> None:
-    global _WORKER_QUEUE
-    _WORKER_QUEUE = queue
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # noqa: BLE001 - an optimisation only
-        pass
+    def __init__(self, summaries: list, planned: int) -> None:
+        super().__init__(f"{len(summaries)} of {planned} sequences written")
+        self.summaries = summaries
+        self.planned = planned
 
 
 def _job(args) -> SequenceSummary:
     scenario, seed, out_dir, options = args
-    q = _WORKER_QUEUE
-    return export_sequence(scenario, seed, out_dir, options, (lambda n: q.put(n)) if q is not None else None)
+    return export_sequence(scenario, seed, out_dir, options, report_progress)
 
 
 def export_dataset(
@@ -551,8 +545,7 @@ def export_dataset(
 ) -> tuple[list[SequenceSummary], float]:
     """Every (scenario, seed) sequence into ``out_dir`` (``workers`` processes; 1 = here), then the
     format files and the manifest.  Returns the summaries (job order) and the wall seconds."""
-    from groundsim.app.run import frame_count
-    from groundsim.evaluation.parallel import progress_bar
+    from groundsim.world.sim import frame_count
 
     options = options if options is not None else DatasetOptions()
     seeds = [int(s) for s in seeds]
@@ -570,14 +563,9 @@ def export_dataset(
         bar = progress_bar(total, "frame", f"dataset ({min(workers, len(jobs))} workers)")
     t0 = time.perf_counter()
     try:
-        workers = min(workers, len(jobs))
-        if workers == 1:
-            summaries = [
-                export_sequence(sc, seed, o_dir, opts, bar.update if bar is not None else None)
-                for sc, seed, o_dir, opts in jobs
-            ]
-        else:
-            summaries = _run_pool(jobs, workers, bar)
+        summaries = run_jobs(_job, jobs, min(workers, len(jobs)), None if bar is None else bar.update)
+    except JobsInterrupted as exc:
+        raise DatasetInterrupted([r for r in exc.results if r is not None], len(jobs)) from None
     finally:
         if bar is not None:
             bar.close()
@@ -590,19 +578,9 @@ def export_dataset(
     return summaries, time.perf_counter() - t0
 
 
-def _run_pool(jobs, workers: int, bar) -> list:
-    from groundsim.evaluation.parallel import run_pool
-
-    return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
-
-
 def cmd_dataset(args) -> int:
     """The ``dataset`` command: export, print one line per sequence and the frames/s."""
-    import sys
-
-    from groundsim.app.cli import resolve_scenario_path
-    from groundsim.evaluation.parallel import quiet_run_logs
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     quiet_run_logs("groundsim.world.truth")
     names = [n for group in (args.scenario or [["P1"]]) for n in group]
@@ -616,14 +594,19 @@ def cmd_dataset(args) -> int:
         bit_depth=args.bit_depth,
         formats=tuple(dict.fromkeys(args.format)),
     )
-    summaries, wall_s = export_dataset(
-        scenarios,
-        range(args.seed0, args.seed0 + args.seeds),
-        args.out,
-        options,
-        workers=workers,
-        progress=not args.no_progress,
-    )
+    try:
+        summaries, wall_s = export_dataset(
+            scenarios,
+            range(args.seed0, args.seed0 + args.seeds),
+            args.out,
+            options,
+            workers=workers,
+            progress=not args.no_progress,
+        )
+    except DatasetInterrupted as exc:
+        done = ", ".join(s.name for s in exc.summaries)
+        kept = f" in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
+        return print_interrupted(f"{len(exc.summaries)} of {exc.planned} sequences written{kept}")
     frames = sum(s.frames for s in summaries)
     for s in summaries:
         print(

@@ -11,14 +11,16 @@ Wiring (free ports on 127.0.0.1, picked at start)::
 The daemon starts first; the simulator is started once the daemon's first status message arrives
 (so no frame is sent before anyone listens).  ``OUT/onboard.yaml`` is the daemon's configuration
 (``--onboard-config``, default the shipped ``config/onboard.yaml``, noise model included) with the
-scenario's camera, pod mount and origin, the loopback endpoints, a liveness file inside OUT and ``output.unobservable_positions``
-on (so the live line can show the range before it is observable; the table scores both).  A scenario
-shorter than ``--duration`` is extended (its motion models simply continue) into ``OUT/scenario.yaml``.
+scenario's camera, pod mount and origin, the loopback endpoints, a liveness file inside OUT and
+``output.unobservable_positions`` on, as by default (so the live line can show the range before it is
+observable; the table scores both).  A scenario shorter than ``--duration`` is extended (its motion
+models simply continue) into ``OUT/scenario.yaml``.
 
-Each second one line: simulated frames, frames the daemon processed/dropped and its processing
-latency, the track state, the estimated and true range, the live error of the newest 3-D estimate
-against the truth row of the same frame (matched on ``time_boot_us``), and the CPU share of the two
-children, each with its own child processes (``/proc``: CPU seconds / wall seconds, 1.0 = one core).
+Each second one line: simulated frames; frames the daemon processed and dropped and its median
+processing time per frame (its status message's ``frames`` and ``processing_ms``); the track state;
+the estimated and true range; the live error of the newest 3-D estimate against the truth row of
+the same frame (matched on ``time_boot_us``); the CPU share of the two children, each with its own
+child processes (``/proc``: CPU seconds / wall seconds, 100 % = one core).
 
 At the end (the simulator finished, or Ctrl-C / SIGTERM): the daemon gets SIGTERM (SIGKILL after
 ``KILL_AFTER_S``), the table is printed and OUT gets ``report.json``, ``report.md``, ``tracks.jsonl``,
@@ -41,8 +43,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from groundsim.evaluation.eval import EvalInterrupted, keep_interrupted
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.stop_signals import install_stop_signals, print_interrupted
+from onboard.core.blas import single_thread_blas_env
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
@@ -53,7 +58,6 @@ __all__ = [
     "sim_command",
     "TrackStore",
     "TruthTail",
-    "ProcCpu",
     "status_line",
     "score_demo",
     "format_demo_table",
@@ -136,9 +140,9 @@ def plan_demo(
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default)."""
     import yaml
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.eval import onboard_config_for
     from groundsim.world.nav_errors import resolve_nav_noise
+    from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
 
     if (
@@ -319,78 +323,6 @@ class TruthTail:
         return n
 
 
-def _proc_stat(pid: int) -> list[str] | None:
-    """Fields of ``/proc/<pid>/stat`` after the command name (field 3 onwards), or None."""
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
-            return f.read().rsplit(")", 1)[1].split()
-    except (OSError, IndexError):
-        return None
-
-
-class ProcCpu:
-    """CPU seconds of a process and all its descendants (the daemon runs its estimator in a child
-    process): utime + stime of every living process of the tree (``/proc/<pid>/stat``, parents found
-    by scanning ``/proc``) plus the root's cutime + cstime (children already reaped).  None off Linux
-    or once the root is gone."""
-
-    def __init__(self, pid: int) -> None:
-        self.pid = pid
-        self._tick = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
-        self.t0 = time.monotonic()
-        self.cpu0 = self.cpu_s() or 0.0
-        self.last = (self.t0, self.cpu0)
-        self.final: float | None = None
-
-    def _descendants(self) -> list[int]:
-        parent: dict[int, int] = {}
-        try:
-            names = os.listdir("/proc")
-        except OSError:
-            return []
-        for name in names:
-            if name.isdigit():
-                st = _proc_stat(int(name))
-                if st is not None and len(st) > 1 and st[1].isdigit():
-                    parent[int(name)] = int(st[1])
-        out, frontier = [], [self.pid]
-        while frontier:
-            p = frontier.pop()
-            kids = [c for c, pp in parent.items() if pp == p]
-            out += kids
-            frontier += kids
-        return out
-
-    def cpu_s(self) -> float | None:
-        root = _proc_stat(self.pid)
-        try:
-            if root is None:
-                return None
-            total = sum(int(x) for x in root[11:15])  # utime, stime, cutime, cstime
-            for pid in self._descendants():
-                st = _proc_stat(pid)
-                if st is not None:
-                    total += int(st[11]) + int(st[12])
-        except (IndexError, ValueError):
-            return None
-        return total / self._tick
-
-    def share_since_last(self) -> float | None:
-        now, c = time.monotonic(), self.cpu_s()
-        if c is None:
-            return None
-        t_last, c_last = self.last
-        self.last = (now, c)
-        self.final = c
-        return (c - c_last) / max(now - t_last, 1e-9)
-
-    def share_overall(self) -> float | None:
-        c = self.final if self.final is not None else self.cpu_s()
-        if c is None:
-            return None
-        return (c - self.cpu0) / max(self.last[0] - self.t0, 1e-9)
-
-
 # --------------------------------------------------------------------------- pure formatting and scoring
 
 
@@ -433,8 +365,9 @@ def status_line(
     lat = (status or {}).get("processing_ms") or {}
     parts = [
         f"[{elapsed_s:5.1f} s]",
-        f"sim {sim_frames}/{total_frames} fr",
-        f"daemon {fr.get('processed', 0)} proc {fr.get('dropped', 0)} drop {f(lat.get('p50'), '.1f')} ms",
+        f"sim {sim_frames}/{total_frames} frames",
+        f"daemon {fr.get('processed', 0)} processed, {fr.get('dropped', 0)} dropped, "
+        f"p50 {f(lat.get('p50'), '.1f')} ms/frame",
     ]
     if track is None:
         parts.append("track -")
@@ -443,13 +376,13 @@ def status_line(
         parts.append(f"{track.get('state', '?')}{'' if tid is None else f' #{tid}'}")
         if track.get("lat_deg") is not None:
             obs = "observable" if track.get("observable") else "unobservable"
-            parts.append(f"range {f(est_range_m, '.1f')} m (truth {f(truth_range_m, '.1f')})")
+            parts.append(f"range {f(est_range_m, '.1f')} m (truth {f(truth_range_m, '.1f')} m)")
             rel = None if err_m is None or not truth_range_m else 100.0 * err_m / truth_range_m
-            parts.append(f"err {f(err_m, '.2f')} m {f(rel, '.2f')} % {obs}")
+            parts.append(f"err {f(err_m, '.2f')} m ({f(rel, '.2f')} % of range) {obs}")
         else:
-            parts.append(f"no 3-D yet ({track.get('window_frames', 0)} obs)")
+            parts.append(f"no 3-D yet ({track.get('window_frames', 0)} frames in the window)")
     parts.append(
-        f"cpu sim {f(None if cpu_sim is None else 100 * cpu_sim, '.0f')} % daemon "
+        f"CPU sim {f(None if cpu_sim is None else 100 * cpu_sim, '.0f')} %, daemon "
         f"{f(None if cpu_daemon is None else 100 * cpu_daemon, '.0f')} %"
     )
     return " | ".join(parts)
@@ -575,7 +508,7 @@ def format_demo_table(scores: dict, outcome: DemoOutcome) -> str:
         "|---|---|---|---|---|---|---|---|",
     ]
     for label, key in (
-        ("observable frames (published by default)", "observable"),
+        ("observable frames (published with observable: true)", "observable"),
         ("all frames with an estimate", "all"),
     ):
         m = scores.get(key)
@@ -667,15 +600,14 @@ def log_tail(path: Path, n: int = LOG_TAIL_LINES) -> str:
 def child_env() -> dict:
     """The environment for a child process of the demo or the tests: this one's, one BLAS/OpenMP thread
     unless set, unbuffered Python output (the logs show what happened up to a crash)."""
-    env = dict(os.environ)
-    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-        env.setdefault(var, "1")
+    env = single_thread_blas_env(dict(os.environ))
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
 
 def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> DemoOutcome:
     """Start both children, print a line per second, stop, score, write the files (module docstring)."""
+    from groundsim.evaluation.proc_cpu import ProcCpu
     from onboard.io.zenoh_session import ZenohSettings, open_session
 
     stop = stop if stop is not None else threading.Event()
@@ -902,8 +834,9 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
         f"Simulator: `{' '.join(report['commands']['sim'])}`.\n",
         format_demo_table(outcome.scores, outcome),
         "",
-        "Definitions as in `python -m groundsim eval`'s report (observable frames = what the daemon publishes by "
-        "default; the demo's daemon also publishes unobservable positions, scored in the second row).\n",
+        "Definitions as in `python -m groundsim eval`'s report: observable frames = the positions the daemon "
+        "publishes with `observable: true`; it publishes the unobservable ones too "
+        "(`output.unobservable_positions: true`, the default), flagged false and scored in the second row.\n",
         "![trajectory](trajectory.png)\n",
         "![error](error.png)\n",
         "TUM files: `evo_ape tum truth.tum estimate.tum`.\n",
@@ -919,18 +852,8 @@ def _write_files(plan: DemoPlan, outcome: DemoOutcome, tracks: list[dict], truth
 def cmd_demo(args) -> int:
     """The ``demo`` command (see the module docstring)."""
     stop = threading.Event()
-    old = {}
-
-    def on_signal(signum, _frame):
-        if not stop.is_set():
-            print(f"\ndemo: {signal.Signals(signum).name}: stopping", file=sys.stderr, flush=True)
-        stop.set()
-
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        try:
-            old[sig] = signal.signal(sig, on_signal)
-        except ValueError:  # not the main thread
-            pass
+    received: list[int] = []
+    restore = install_stop_signals(stop, received, lambda n: print(f"\ndemo: {n}: stopping", file=sys.stderr))
     try:
         for name in ("onboard", "groundsim.app.run", "groundsim.world.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
@@ -945,14 +868,23 @@ def cmd_demo(args) -> int:
                 flush=True,
             )
         outcome = run_demo(plan, stop)
+        report = outcome.files.get("report.md")
+        kept = f"the live run's report in {report}" if report else "nothing written"
+        if signal.SIGINT in received:
+            return print_interrupted(kept)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
-            _quick_eval(plan.out_dir / "eval", stop, plan.nav_noise)
+            eval_dir = plan.out_dir / "eval"
+            restore()  # Ctrl-C during the evaluation interrupts it: its pool is terminated, its finished runs kept
+            try:
+                _quick_eval(eval_dir, stop, plan.nav_noise)
+            except KeyboardInterrupt as exc:  # EvalInterrupted in its runs, else in the paper table after its report
+                ev = keep_interrupted(exc, eval_dir) if isinstance(exc, EvalInterrupted) else "report written"
+                return print_interrupted(f"{kept}; the evaluation: {ev}")
         if outcome.error is not None:
             return EXIT_FAILED
         return EXIT_OK
     finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
+        restore()
 
 
 def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") -> None:

@@ -264,7 +264,7 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
-#: the verdict table's "good run": mean error / range at most this (issue 9), percent
+#: the verdict table's "good run": mean error / range at most this, percent
 VERDICT_GOOD_PCT = 2.0
 
 

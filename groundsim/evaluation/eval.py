@@ -1,9 +1,9 @@
-"""``python -m groundsim eval``: the closed loop in lockstep, scored against the truth (issue #5).
+"""``python -m groundsim eval``: the closed loop in lockstep, scored against the truth.
 
 One *run* is one (scenario, run seed).  It drives the very objects the onboard daemon drives, through
 their step methods, without sockets or threads, as fast as the CPU allows and deterministically::
 
-    SimCore (groundsim.app.run)          fly both vehicles with JSBSim, render the IR frame, truth row
+    SimCore (groundsim.world.sim)        fly both vehicles with JSBSim, render the IR frame, truth row
       -> telemetry, as MAVLink would carry it      PoseBuffer.add_attitude / add_position / add_gimbal_status
       -> IrFrame(seq, time_boot_us, pixels)        FramePipeline.process -> Track     (onboard.pipeline.frame_pipeline)
 
@@ -52,23 +52,10 @@ the flown trajectory is taken with the perfect-centroid solution's motion prior,
 actually simulated (the baseline's pixel noise and the run's navigation-error case: ``crb_rms_m``) and
 for the noise model the estimator assumes (``crb_model_rms_m``).
 
-Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.metrics.evaluate`):
-
-- *observable frames*: frames whose Track has a 3-D estimate flagged observable (what the daemon
-  publishes with the default ``output.unobservable_positions: false``) -- the headline;
-- *all frames with an estimate*: any finite 3-D estimate, observable or not;
-- *continuity*: observable frames / all frames; *2-D continuity*: frames with a valid centroid /
-  frames where the target is in the image;
-- paper metric ``mean ||e|| / ||X||`` (world origin = the scenario's NED origin, on the ground under
-  the observer's start), range-normalised error ``mean ||e|| / range``, RMSE, mean NEES (3 for a
-  consistent covariance), fraction beyond 3 sigma;
-- centroid error: image-chain centre minus truth pixel on frames with a valid centroid;
-- closed-loop figures of issue 9 (:func:`closed_loop_figures`): published 3-D positions on tracking
-  frames after 3 s, their honesty (beyond 3 sqrt(trace cov)), observable share after 5 s, median
-  error / range on observable frames.
+Scoring: :mod:`groundsim.evaluation.scoring` (its docstring defines every figure).
 
 Runs are independent jobs over a process pool (``workers`` processes from a fork server, see
-:func:`mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
+:func:`groundsim.evaluation.parallel.mp_context`); a tqdm bar on stderr counts frames.  Everything but the timing figures is a function of (scenario, seed, options).
 """
 
 from __future__ import annotations
@@ -84,11 +71,19 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from groundsim.evaluation.parallel import progress_bar, quiet_run_logs, run_pool
-from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT, make_out_dir
+from groundsim.evaluation.parallel import (
+    JobsInterrupted,
+    limit_blas_threads,
+    progress_bar,
+    quiet_run_logs,
+    report_progress,
+    run_jobs,
+)
+from groundsim.evaluation.report import make_out_dir
+from groundsim.evaluation.scoring import score_run, summarise
+from groundsim.io.stop_signals import print_interrupted
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
-from onboard.estimation.metrics import score_frames
 
 __all__ = [
     "DEFAULT_ONBOARD_CONFIG",
@@ -96,13 +91,12 @@ __all__ = [
     "EvalOptions",
     "RunResult",
     "EvalResult",
+    "EvalInterrupted",
+    "keep_interrupted",
     "TelemetryFeed",
-    "limit_blas_threads",
     "onboard_config_for",
     "load_base_config",
     "run_lockstep",
-    "score_run",
-    "summarise",
     "run_eval",
     "cmd_eval",
 ]
@@ -114,52 +108,6 @@ DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain m
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
 US_PER_S = 1_000_000
-
-
-# --------------------------------------------------------------------------- BLAS threads
-
-
-BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
-_OPENBLAS_SETTERS = (
-    "scipy_openblas_set_num_threads64_",
-    "scipy_openblas_set_num_threads",
-    "openblas_set_num_threads64_",
-    "openblas_set_num_threads",
-)
-
-
-def limit_blas_threads(n: int = 1) -> int:
-    """One BLAS thread per process, now and in child processes; returns the libraries adjusted.
-
-    The estimator's matrices are small: OpenBLAS's worker threads buy nothing there, and on a loaded
-    2-core machine their spinning made a whole-flight solve 20x slower (24 s instead of 1.1 s wall,
-    measured).  Sets the usual environment variables (for children started later) and calls
-    ``*_set_num_threads`` on every OpenBLAS already loaded here (numpy and scipy each bundle one).
-    """
-    import ctypes
-
-    for var in BLAS_THREAD_VARS:
-        os.environ.setdefault(var, str(n))
-    import scipy.linalg  # noqa: F401 - loads scipy's own OpenBLAS so that it is adjusted too
-
-    done = 0
-    try:
-        with open("/proc/self/maps", encoding="ascii", errors="replace") as f:
-            paths = {line.split()[-1] for line in f if "openblas" in line.lower() and ".so" in line.split()[-1]}
-    except OSError:  # not Linux: the environment variables are all we can do
-        return 0
-    for path in sorted(paths):
-        try:
-            lib = ctypes.CDLL(path)
-        except OSError:
-            continue
-        for sym in _OPENBLAS_SETTERS:
-            fn = getattr(lib, sym, None)
-            if fn is not None:
-                fn(ctypes.c_int(int(n)))
-                done += 1
-                break
-    return done
 
 
 # --------------------------------------------------------------------------- options and configuration
@@ -242,7 +190,7 @@ def onboard_config_for(scenario: Scenario, base=None):
     o = scenario.origin
     pose = dataclasses.replace(base.pose, origin=OriginConfig(lat_deg=o.lat_deg, lon_deg=o.lon_deg, alt_m=o.alt_m))
     out_kw = {"health_file": None}
-    if hasattr(base.output, "unobservable_positions"):  # the field may go with the output policy of issue 9
+    if hasattr(base.output, "unobservable_positions"):  # a configuration without the output policy field
         out_kw["unobservable_positions"] = True
     output = dataclasses.replace(base.output, **out_kw)
     return dataclasses.replace(base, camera=camera, pose=pose, output=output)
@@ -252,7 +200,7 @@ def onboard_config_for(scenario: Scenario, base=None):
 
 
 class TelemetryFeed:
-    """Offers a :class:`~groundsim.app.run.SimCore`'s observer state to a pose buffer, tick by tick, on
+    """Offers a :class:`~groundsim.world.sim.SimCore`'s observer state to a pose buffer, tick by tick, on
     MavlinkVehicle's stream schedule and with the wire's quantisation (module docstring).
 
     The state is what the simulated vehicle reports: the truth with the core's navigation error of
@@ -350,23 +298,6 @@ class TelemetryFeed:
             if res.pose is not None or not res.retry:
                 return
             self.feed_next()
-
-
-class _RecordingPoseSource:
-    """The pose buffer as the pipeline sees it, remembering the last answer (for the baseline)."""
-
-    def __init__(self, buffer) -> None:
-        self.buffer = buffer
-        self.counter = buffer.counter
-        self.last = None
-
-    @property
-    def origin(self):
-        return self.buffer.origin
-
-    def pose_at(self, time_boot_us: int):
-        self.last = self.buffer.pose_at(time_boot_us)
-        return self.last
 
 
 # --------------------------------------------------------------------------- one run
@@ -501,9 +432,10 @@ def run_lockstep(
 
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
-    from groundsim.app.run import SimCore
+    from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
+    from onboard.io.record import RecordingPoseSource
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     options = options if options is not None else EvalOptions()
@@ -512,7 +444,7 @@ def run_lockstep(
     K = cfg.camera.pinhole()
     core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose, cfg.pose.geodetic_origin())
-    source = _RecordingPoseSource(buffer)
+    source = RecordingPoseSource(buffer)  # remembers the pose the pipeline got, for the baseline
     if (
         options.estimator is not None
     ):  # a plug-in (onboard.pipeline.plugins), for the pipeline and its perfect-centroid baseline
@@ -569,7 +501,6 @@ def run_lockstep(
         c.truth_uv_px[k] = (tr.target_u_px, tr.target_v_px)
         c.visible[k] = bool(tr.target_visible)
 
-        source.last = None
         p0 = time.perf_counter()
         try:
             track = pipeline.process(IrFrame(fr.seq, fr.time_boot_us, fr.pixels))
@@ -578,7 +509,7 @@ def run_lockstep(
             log.debug("frame %d rejected: %s", k, exc)
             track = None
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
-        pose = source.last
+        _, pose = source.take()
         if track is not None:
             c.state[k] = track.state
             c.measurement_valid[k] = track.measurement_valid
@@ -769,246 +700,6 @@ def _batch(
     return out
 
 
-# --------------------------------------------------------------------------- scoring
-
-
-#: the closed-loop windows of issue 9 item 5: published positions after the track settles, observability later
-PUBLISHED_AFTER_S, OBSERVABLE_AFTER_S = 3.0, 5.0
-
-
-def closed_loop_figures(r: RunResult) -> dict:
-    """Issue 9 item 5's figures of one run, from the pipeline's per-frame outputs (JSON-ready; None = no frame).
-
-    *published*: a finite 3-D position in the frame's Track (lockstep publishes unobservable positions
-    too, so this is what the daemon publishes once positions go out whenever the estimate is finite;
-    with a daemon that publishes only observable positions it is an upper bound of that);
-    ``published_share_after_3s``: published / tracking frames (state ``tracking``) at t >= 3 s;
-    ``beyond_3sigma_published``: fraction of published positions with ``||e|| > 3 sqrt(trace cov)``
-    (honesty; <= 0.01 asked); ``observable_share_after_5s``: observable / all frames at t >= 5 s;
-    ``median_err_range_observable_pct``: median over observable frames of ``||e|| / range``, per cent;
-    ``median_err_range_published_after_5s_pct``: the same over every published position at t >= 5 s;
-    ``first_observable_s``: time of the first observable frame.
-    """
-    t = r.t_s - r.t_s[0] if r.t_s.size else r.t_s
-    has = r.has_estimate
-    obs = has & r.observable
-    tracked = (r.state == "tracking") & (t >= PUBLISHED_AFTER_S)
-    late = t >= OBSERVABLE_AFTER_S
-    e = np.linalg.norm(r.est_p_ned_m - r.truth_p_ned_m, axis=1)
-    with np.errstate(invalid="ignore"):
-        sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", r.est_cov_ned_m2), 0.0))
-    pub = has & np.isfinite(sig3)
-    return {
-        "tracking_frames_after_3s": int(tracked.sum()),
-        "published_share_after_3s": float((tracked & has).sum() / tracked.sum()) if tracked.any() else None,
-        "published_frames": int(has.sum()),
-        "beyond_3sigma_published": float((e[pub] > sig3[pub]).mean()) if pub.any() else None,
-        "observable_share_after_5s": float((late & obs).sum() / late.sum()) if late.any() else None,
-        "median_err_range_observable_pct": float(np.median(100.0 * e[obs] / r.range_m[obs])) if obs.any() else None,
-        # what the verdict withheld: the error of every published position after 5 s, and when the first
-        # observable frame came (the window's span, not the estimate, is what P1's weak manoeuvre needs)
-        "median_err_range_published_after_5s_pct": (
-            float(np.median(100.0 * e[pub & late] / r.range_m[pub & late])) if (pub & late).any() else None
-        ),
-        "first_observable_s": float(t[obs][0]) if obs.any() else None,
-    }
-
-
-def score_run(r: RunResult) -> dict:
-    """The figures of one run (definitions in the module docstring); JSON-ready."""
-    if r.error is not None:
-        return {"scenario": r.scenario, "seed": r.seed, "error": r.error}
-    F = r.frames
-    has = r.has_estimate
-    obs = has & r.observable
-    base_obs = r.base_has_estimate & r.base_observable
-    common = obs & base_obs
-    out: dict = {
-        "scenario": r.scenario,
-        "seed": r.seed,
-        "frames": F,
-        "nav_noise": r.nav_noise,
-        "estimator": getattr(r, "estimator", "map"),
-        "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
-        "chain_centroid_sigma_px": r.chain_centroid_sigma_px,
-    }
-    out["closed_loop"] = closed_loop_figures(r)
-    out["online_observable"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
-    out["online_all"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
-    out["perfect_observable"] = score_frames(
-        r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, r.base_cov_ned_m2, base_obs
-    )
-    on_c = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, None, common)
-    pf_c = score_frames(r.truth_p_ned_m, r.base_p_ned_m, r.cam_p_ned_m, None, common)
-    out["common_frames"] = int(common.sum())
-    out["online_common_err_range_pct"] = None if on_c is None else on_c["err_range_pct"]
-    out["perfect_common_err_range_pct"] = None if pf_c is None else pf_c["err_range_pct"]
-    out["continuity"] = float(obs.sum() / F) if F else 0.0
-    out["estimate_fraction"] = float(has.sum() / F) if F else 0.0
-    out["perfect_continuity"] = float(base_obs.sum() / F) if F else 0.0
-    vis = int(r.visible.sum())
-    out["continuity_2d"] = float((r.measurement_valid & r.visible).sum() / vis) if vis else 0.0
-    first = np.flatnonzero(obs)
-    out["first_observable_s"] = float(r.t_s[first[0]] - r.t_s[0]) if first.size else None
-    first_m = np.flatnonzero(r.measurement_valid)
-    out["first_centroid_s"] = float(r.t_s[first_m[0]] - r.t_s[0]) if first_m.size else None
-    cm = r.measurement_valid & np.all(np.isfinite(r.truth_uv_px), axis=1)
-    if cm.any():
-        d = r.uv_px[cm] - r.truth_uv_px[cm]
-        out["centroid_rms_px"] = float(np.sqrt(np.mean(np.sum(d**2, axis=1))))
-        out["centroid_bias_px"] = [float(x) for x in d.mean(axis=0)]
-    else:
-        out["centroid_rms_px"], out["centroid_bias_px"] = None, None
-    out["range_m"] = [float(np.nanmin(r.range_m)), float(np.nanmax(r.range_m))] if F else None
-    tm = r.timing
-    pm = np.asarray(tm["process_ms"])
-    out["timing"] = {
-        "wall_s": tm["wall_s"],
-        "cpu_s": tm["cpu_s"],
-        "cpu_share": tm["cpu_s"] / max(tm["wall_s"], 1e-9),
-        "flight_s": tm["flight_s"],
-        "render_s": tm["render_s"],
-        "pipeline_s": tm["pipeline_s"],
-        "baseline_s": tm["baseline_s"],
-        "batch_s": tm["batch_s"],
-        "pipeline_fps": float(F / max(pm.sum() / 1e3, 1e-9)),
-        "loop_fps": float(F / max(tm["wall_s"], 1e-9)),
-        "latency_ms": _percentiles(pm),
-        "render_ms": _percentiles(np.asarray(tm["render_ms"])),
-    }
-    if r.batch is not None:
-        b = {}
-        for name in ("pipeline", "perfect"):
-            e = r.batch[name]
-            m = None
-            if e.get("p_ned_m") is not None:
-                idx = e["frames"]
-                m = score_frames(
-                    r.truth_p_ned_m[idx], e["p_ned_m"], r.cam_p_ned_m[idx], e["cov_ned_m2"], np.ones(idx.size, bool)
-                )
-            b[name] = {
-                "metrics": m,
-                "observable": e["observable"],
-                "model": e["model"],
-                "solve_s": e["solve_s"],
-                "frames": int(len(e["frames"])),
-                "error": e["error"],
-            }
-        b["crb_rms_m"] = r.batch["perfect"].get("crb_rms_m")
-        b["crb_model_rms_m"] = r.batch["perfect"].get("crb_model_rms_m")
-        out["batch"] = b
-    out["counters"] = {str(k): int(v) for k, v in sorted(r.counters.items())}
-    return out
-
-
-def _percentiles(a: np.ndarray) -> dict:
-    if a.size == 0:
-        return {"p50": None, "p90": None, "p99": None, "max": None, "mean": None}
-    p50, p90, p99 = np.percentile(a, [50, 90, 99])
-    return {"p50": float(p50), "p90": float(p90), "p99": float(p99), "max": float(a.max()), "mean": float(a.mean())}
-
-
-def _med(values) -> float | None:
-    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
-    return float(np.median(v)) if v else None
-
-
-def _get(d: dict | None, *keys):
-    for k in keys:
-        if d is None:
-            return None
-        d = d.get(k)
-    return d
-
-
-#: per-run figure -> path in score_run's dict, summarised as the median over seeds
-SUMMARY_FIELDS = {
-    "err_paper_pct": ("online_observable", "err_paper_pct"),
-    "err_range_pct": ("online_observable", "err_range_pct"),
-    "rmse_m": ("online_observable", "rmse_m"),
-    "nees": ("online_observable", "mean_nees"),
-    "beyond_3sigma": ("online_observable", "outside_3sigma_trace_fraction"),
-    "all_err_range_pct": ("online_all", "err_range_pct"),
-    "all_rmse_m": ("online_all", "rmse_m"),
-    "perfect_err_range_pct": ("perfect_observable", "err_range_pct"),
-    "perfect_rmse_m": ("perfect_observable", "rmse_m"),
-    "online_common_err_range_pct": ("online_common_err_range_pct",),
-    "perfect_common_err_range_pct": ("perfect_common_err_range_pct",),
-    "continuity": ("continuity",),
-    "estimate_fraction": ("estimate_fraction",),
-    "perfect_continuity": ("perfect_continuity",),
-    "continuity_2d": ("continuity_2d",),
-    "first_observable_s": ("first_observable_s",),
-    "centroid_rms_px": ("centroid_rms_px",),
-    "pipeline_fps": ("timing", "pipeline_fps"),
-    "loop_fps": ("timing", "loop_fps"),
-    "latency_p50_ms": ("timing", "latency_ms", "p50"),
-    "latency_p99_ms": ("timing", "latency_ms", "p99"),
-    "batch_err_range_pct": ("batch", "pipeline", "metrics", "err_range_pct"),
-    "batch_perfect_err_range_pct": ("batch", "perfect", "metrics", "err_range_pct"),
-    "crb_rms_m": ("batch", "crb_rms_m"),
-    "published_share_after_3s": ("closed_loop", "published_share_after_3s"),
-    "beyond_3sigma_published": ("closed_loop", "beyond_3sigma_published"),
-    "observable_share_after_5s": ("closed_loop", "observable_share_after_5s"),
-    "median_err_range_observable_pct": ("closed_loop", "median_err_range_observable_pct"),
-    "median_err_range_published_after_5s_pct": ("closed_loop", "median_err_range_published_after_5s_pct"),
-    "closed_loop_first_observable_s": ("closed_loop", "first_observable_s"),
-    "baseline_pixel_sigma_px": ("baseline_pixel_sigma_px",),
-    "chain_centroid_sigma_px": ("chain_centroid_sigma_px",),
-    "crb_model_rms_m": ("batch", "crb_model_rms_m"),
-    "batch_perfect_rmse_m": ("batch", "perfect", "metrics", "rmse_m"),
-}
-
-
-def _baseline_failed(pct) -> bool:
-    return pct is None or pct > BASELINE_FAIL_PCT
-
-
-def summarise(scores: list[dict]) -> list[dict]:
-    """One row per (scenario, navigation-error case) (first-seen order): medians over seeds, ratios
-    and their verdict.  ``label`` is the scenario's name, or ``<scenario>_<nav case>`` when the runs
-    mix navigation cases.  A ratio gets no verdict when its baseline failed (perfect centroids
-    unobservable or worse than ``BASELINE_FAIL_PCT`` err / range): ``baseline_failed`` /
-    ``batch_baseline_failed`` say so, and ``within_ratio`` is None when no ratio has a sound baseline.
-    """
-    keys: list[tuple[str, str]] = []
-    for s in scores:
-        k = (s["scenario"], s.get("nav_noise", ""))
-        if k not in keys:
-            keys.append(k)
-    multi = len({k[1] for k in keys}) > 1
-    rows = []
-    for name, nav in keys:
-        runs = [s for s in scores if s["scenario"] == name and s.get("nav_noise", "") == nav]
-        ok = [s for s in runs if "error" not in s]
-        row: dict = {
-            "scenario": name,
-            "nav_noise": nav,
-            "label": f"{name}_{nav}" if multi else name,
-            "runs": len(runs),
-            "failed_runs": len(runs) - len(ok),
-        }
-        for key, path in SUMMARY_FIELDS.items():
-            row[key] = _med(_get(s, *path) for s in ok)
-        on, pf = row["online_common_err_range_pct"], row["perfect_common_err_range_pct"]
-        row["ratio_to_perfect"] = (on / pf) if (on is not None and pf not in (None, 0.0)) else None
-        bo, bp = row["batch_err_range_pct"], row["batch_perfect_err_range_pct"]
-        row["batch_ratio_to_perfect"] = (bo / bp) if (bo is not None and bp not in (None, 0.0)) else None
-        row["baseline_failed"] = _baseline_failed(row["perfect_err_range_pct"])
-        row["batch_baseline_failed"] = _baseline_failed(bp)
-        ratios = [
-            x
-            for x, failed in (
-                (row["ratio_to_perfect"], row["baseline_failed"]),
-                (row["batch_ratio_to_perfect"], row["batch_baseline_failed"]),
-            )
-            if x is not None and not failed
-        ]
-        row["within_ratio"] = bool(all(x <= RATIO_LIMIT for x in ratios)) if ratios else None
-        rows.append(row)
-    return rows
-
-
 # --------------------------------------------------------------------------- many runs
 
 
@@ -1025,32 +716,22 @@ class EvalResult:
     config_source: str
 
 
-_WORKER_QUEUE = None
+class EvalInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_eval`: ``result`` holds the runs that finished (scored and summarised, in job
+    order), ``planned`` the number of runs asked for."""
 
-
-def _init_worker(queue) -> None:
-    global _WORKER_QUEUE
-    _WORKER_QUEUE = queue
-    limit_blas_threads(1)
-    try:
-        import cv2
-
-        cv2.setNumThreads(1)
-    except Exception:  # noqa: BLE001 - OpenCV threading is an optimisation only
-        pass
+    def __init__(self, result: EvalResult, planned: int) -> None:
+        super().__init__(f"{len(result.runs)} of {planned} runs done")
+        self.result = result
+        self.planned = planned
 
 
 def _job(args) -> RunResult:
+    """One run, in a pool worker or here; a run that cannot be made (e.g. a flight failure) fails alone."""
     scenario, seed, options, base_config = args
-    q = _WORKER_QUEUE
-
-    def progress(n: int) -> None:
-        if q is not None:
-            q.put(n)
-
     try:
-        return run_lockstep(scenario, seed, options, base_config, progress)
-    except IrtrackError as exc:  # a run that cannot be made (e.g. a flight failure) fails alone
+        return run_lockstep(scenario, seed, options, base_config, report_progress)
+    except IrtrackError as exc:
         log.error("%s seed %d: %s", scenario.name, seed, exc)
         return _empty_result(scenario, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
 
@@ -1077,54 +758,45 @@ def run_eval(
         raise ConfigError("--seeds: expected at least one seed")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
-    from groundsim.app.run import frame_count
+    from groundsim.world.sim import extend_scenario, frame_count
 
     jobs = [(sc, seed, o, base_config) for o in variants for sc in scenarios for seed in seeds]
     total = 0
     for sc in scenarios:
-        if options.duration_s is not None and options.duration_s > sc.duration_s + 1e-9:
-            raise ConfigError(
-                f"--duration: expected at most {sc.name}'s duration_s ({sc.duration_s:g} s), got {options.duration_s:g}"
-            )
+        if options.duration_s is not None:
+            extend_scenario(sc, options.duration_s)  # a model that cannot run longer fails here, before any run
         d = sc.duration_s if options.duration_s is None else options.duration_s
         total += frame_count(d, sc.frame_rate_hz) * len(seeds) * len(variants)
     t0 = time.perf_counter()
-    bar = None
-    results: list = [None] * len(jobs)
     workers = min(workers, len(jobs))
-    if workers == 1:
-        global _WORKER_QUEUE
-        if progress:
-            bar = progress_bar(total, "frame", "eval")
-        try:
-            for n, j in enumerate(jobs):
-                sc, seed, opts = j[0], j[1], j[2]
-                if bar is not None:
-                    bar.set_postfix_str(f"{sc.name} seed {seed}")
-                try:
-                    results[n] = run_lockstep(sc, seed, opts, base_config, bar.update if bar is not None else None)
-                except IrtrackError as exc:
-                    log.error("%s seed %d: %s", sc.name, seed, exc)
-                    results[n] = _empty_result(sc, seed, f"{type(exc).__name__}: {' '.join(str(exc).split())}")
-        finally:
-            if bar is not None:
-                bar.close()
-    else:
-        results = _run_pool(jobs, workers, total, progress)
+    bar = None
+    if progress:
+        bar = progress_bar(total, "frame", "eval" if workers == 1 else f"eval ({workers} workers)")
+    try:
+        results = run_jobs(_job, jobs, workers, None if bar is None else bar.update)
+    except JobsInterrupted as exc:
+        done = [r for r in exc.results if r is not None]
+        scores = [score_run(r) for r in done]
+        wall = time.perf_counter() - t0
+        partial = EvalResult(done, scores, summarise(scores), wall, workers, options, config_source)
+        raise EvalInterrupted(partial, len(jobs)) from None
+    finally:
+        if bar is not None:
+            bar.close()
     wall = time.perf_counter() - t0
     scores = [score_run(r) for r in results]
     return EvalResult(results, scores, summarise(scores), wall, workers, options, config_source)
 
 
-def _run_pool(jobs, workers: int, total: int, progress: bool) -> list:
-    bar = None
-    try:
-        if progress:
-            bar = progress_bar(total, "frame", f"eval ({workers} workers)")
-        return run_pool(_job, jobs, workers, _init_worker, None if bar is None else bar.update)
-    finally:
-        if bar is not None:
-            bar.close()
+def keep_interrupted(exc: EvalInterrupted, out_dir) -> str:
+    """What an interrupted eval keeps: the report of its finished runs, written into ``out_dir`` (nothing
+    when none finished); returns the words saying so, e.g. ``"2 of 6 runs done; partial report in ..."``."""
+    from groundsim.evaluation.report import write_eval_report
+
+    kept = "nothing written"
+    if exc.result.runs:
+        kept = f"partial report in {write_eval_report(out_dir, exc.result)['report.md']}"
+    return f"{len(exc.result.runs)} of {exc.planned} runs done; {kept}"
 
 
 # --------------------------------------------------------------------------- command line
@@ -1137,9 +809,8 @@ def cmd_eval(args) -> int:
     """The ``eval`` command: run, write the report, print the table and the report's path."""
     import sys
 
-    from groundsim.app.cli import resolve_scenario_path
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
-    from groundsim.world.scenario import load_scenario
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     limit_blas_threads(1)
     quiet_run_logs()  # per-track chatter would drown the progress bar
@@ -1172,16 +843,19 @@ def cmd_eval(args) -> int:
         workers,
         source,
     )
-    result = run_eval(
-        scenarios,
-        range(args.seeds),
-        options,
-        base,
-        workers=workers,
-        progress=not args.no_progress,
-        config_source=source,
-        nav_noises=nav_noises,
-    )
+    try:
+        result = run_eval(
+            scenarios,
+            range(args.seeds),
+            options,
+            base,
+            workers=workers,
+            progress=not args.no_progress,
+            config_source=source,
+            nav_noises=nav_noises,
+        )
+    except EvalInterrupted as exc:
+        return print_interrupted(keep_interrupted(exc, out))
     files = write_eval_report(out, result)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))

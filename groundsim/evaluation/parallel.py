@@ -1,32 +1,135 @@
-"""Worker processes for the evaluation's pools (eval, report, dataset)."""
+"""Worker processes for the evaluation's pools (eval, report, dataset, campaign): one set-up for all of them.
+
+A pool's workers come from a fork server (:func:`mp_context`) and run :func:`init_worker` first: one BLAS
+thread (:func:`limit_blas_threads`), one OpenCV thread, SIGINT ignored (Ctrl-C is the parent's: it
+terminates the pool, so no worker prints a KeyboardInterrupt traceback), and the progress queue.  A job
+reports the frames it has done with :func:`report_progress`, in a worker or in the parent alike.
+:func:`run_jobs` runs jobs in this process (one worker) or on a pool; interrupted, it raises
+:class:`JobsInterrupted` carrying the results of the jobs that finished.
+"""
 
 from __future__ import annotations
 
-__all__ = ["mp_context", "run_pool", "quiet_run_logs", "progress_bar", "bar_pacing"]
+from collections.abc import Callable
+
+__all__ = [
+    "DEFAULT_PRELOAD",
+    "JobsInterrupted",
+    "mp_context",
+    "init_worker",
+    "limit_blas_threads",
+    "report_progress",
+    "run_jobs",
+    "run_pool",
+    "quiet_run_logs",
+    "progress_bar",
+    "bar_pacing",
+]
+
+#: the modules the fork server imports once, so that each worker starts with them loaded
+DEFAULT_PRELOAD = ("groundsim.evaluation.eval", "groundsim.evaluation.report")
+
+_progress: Callable[[int], object] | None = None  # where report_progress goes in this process
 
 
-def mp_context():
-    """Worker processes come from a fork server (a fresh process that imported our modules once),
+class JobsInterrupted(KeyboardInterrupt):
+    """Ctrl-C during :func:`run_jobs`: ``results`` in job order, None for the jobs that did not finish."""
+
+    def __init__(self, results: list) -> None:
+        super().__init__(f"{sum(r is not None for r in results)} of {len(results)} jobs done")
+        self.results = results
+
+    @property
+    def done(self) -> int:
+        return sum(r is not None for r in self.results)
+
+
+def limit_blas_threads(n: int = 1) -> int:
+    """One BLAS thread per process, now and in child processes; returns the number of BLAS libraries limited.
+
+    The estimator's matrices are small: BLAS worker threads buy nothing there, and on a loaded 2-core
+    machine their spinning made a whole-flight solve 20x slower.  Sets the environment variables
+    (:func:`onboard.core.blas.single_thread_blas_env`, for children started later) and limits every BLAS
+    already loaded here with threadpoolctl (numpy and scipy each bundle an OpenBLAS; scipy.linalg is
+    imported first so that its copy is loaded and limited too).
+    """
+    from threadpoolctl import ThreadpoolController
+
+    from onboard.core.blas import single_thread_blas_env
+
+    single_thread_blas_env(n=n)
+    import scipy.linalg  # noqa: F401 - loads scipy's own OpenBLAS so that it is limited too
+
+    blas = ThreadpoolController().select(user_api="blas")
+    blas.limit(limits=int(n))
+    return len(blas.lib_controllers)
+
+
+def mp_context(preload: tuple[str, ...] = DEFAULT_PRELOAD):
+    """Worker processes come from a fork server (a fresh process that imported ``preload`` once),
     never from a plain fork of this one: a process that already ran OpenCV, JSBSim or OpenBLAS has
     threads and locks a forked child would inherit half-held (a pool forked after a lockstep run in
     the same process hung)."""
     import multiprocessing as mp
 
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["groundsim.evaluation.eval", "groundsim.evaluation.report"])
+    ctx.set_forkserver_preload(list(preload))
     return ctx
 
 
-def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> list:
-    """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes; their results in the order
-    of ``jobs``.  Each worker runs ``init_worker(queue)`` first; what the jobs put on that queue (frame counts)
-    is handed to ``on_progress`` as it arrives.  A worker's exception is re-raised here, after the pool is
-    terminated (so is a KeyboardInterrupt)."""
+def init_worker(queue=None) -> None:
+    """A pool worker's set-up: SIGINT ignored, one BLAS and one OpenCV thread, progress to ``queue``."""
+    import signal
+
+    global _progress
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the parent's: it terminates the pool
+    limit_blas_threads(1)
+    try:
+        import cv2
+
+        cv2.setNumThreads(1)
+    except Exception:  # noqa: BLE001 - OpenCV threading is an optimisation only
+        pass
+    _progress = None if queue is None else queue.put
+
+
+def report_progress(n: int) -> None:
+    """A job's ``n`` frames just done: to the parent's progress bar (through the pool's queue in a worker,
+    directly in the parent); nothing when no one listens."""
+    if _progress is not None:
+        _progress(n)
+
+
+def run_jobs(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
+    """``job(j)`` for every ``j`` of ``jobs``, in this process (``workers`` 1) or on a fork-server pool; their
+    results in the order of ``jobs``.  ``on_progress(n)`` gets what the jobs pass to :func:`report_progress`.
+    Ctrl-C raises :class:`JobsInterrupted` with the results so far (the pool terminated first)."""
+    global _progress
+    if workers <= 1:
+        results: list = [None] * len(jobs)
+        saved, _progress = _progress, on_progress
+        try:
+            for n, j in enumerate(jobs):
+                results[n] = job(j)
+        except KeyboardInterrupt:
+            raise JobsInterrupted(results) from None
+        finally:
+            _progress = saved
+        return results
+    return run_pool(job, jobs, workers, on_progress, preload)
+
+
+def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
+    """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (set up by
+    :func:`init_worker`); their results in the order of ``jobs``.  What the jobs report with
+    :func:`report_progress` is handed to ``on_progress`` as it arrives.  A worker's exception is re-raised
+    here after the pool is terminated; Ctrl-C terminates the pool and raises :class:`JobsInterrupted`."""
     import queue as queue_mod
 
-    ctx = mp_context()
+    ctx = mp_context(preload)
     q = ctx.Queue()
     pool = ctx.Pool(workers, initializer=init_worker, initargs=(q,))
+    results: list = [None] * len(jobs)
 
     def drain(timeout_s: float | None) -> bool:
         try:
@@ -39,7 +142,6 @@ def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> li
 
     try:
         pending = [pool.apply_async(job, (j,)) for j in jobs]
-        results: list = [None] * len(jobs)
         left = set(range(len(jobs)))
         while left:
             drain(0.2)
@@ -51,6 +153,10 @@ def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> li
         pool.close()
         pool.join()
         return results
+    except KeyboardInterrupt:
+        pool.terminate()
+        pool.join()
+        raise JobsInterrupted(results) from None
     except BaseException:
         pool.terminate()
         pool.join()
@@ -58,7 +164,13 @@ def run_pool(job, jobs: list, workers: int, init_worker, on_progress=None) -> li
 
 
 #: the loggers whose per-run chatter (tracks started, flights trimmed, frames rendered) would drown a progress bar
-RUN_LOGGERS = ("onboard", "groundsim.app.run", "groundsim.world.flight", "groundsim.world.render")
+RUN_LOGGERS = (
+    "onboard",
+    "groundsim.app.run",
+    "groundsim.world.sim",
+    "groundsim.world.flight",
+    "groundsim.world.render",
+)
 
 
 def quiet_run_logs(*extra: str) -> None:

@@ -41,10 +41,12 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.world.scenario import _CONFIG_DIR, DEFAULT_NAV_NOISE, load_noise_cases  # DEFAULT_NAV_NOISE: "RTK"
+from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_noise_cases, noise_cases_path  # DEFAULT_NAV_NOISE: "RTK"
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
+    GeodeticOrigin,
     euler_from_quat,
+    geodetic_from_ned,
     quat_from_rotvec,
     quat_multiply,
     quat_normalize,
@@ -161,7 +163,7 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
 
     An unknown name is a :class:`ConfigError` (one line, exit code 2) naming the file and the allowed names.
     """
-    p = Path(path) if path is not None else _CONFIG_DIR / "noise_cases.yaml"
+    p = Path(path) if path is not None else noise_cases_path()
     cases = load_noise_cases(p)
     if name in cases:
         return cases[name]
@@ -175,25 +177,12 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
     raise ConfigError(f"{p}: {option}: expected one of {', '.join(cases)}, got {name!r}{hint_text}")
 
 
-_WGS84_A_M = 6378137.0
-_WGS84_E2 = 6.69437999014e-3
-
-
 def offset_geodetic(lat_deg: float, lon_deg: float, alt_m: float, d_ned_m) -> tuple[float, float, float]:
-    """WGS84 point moved by a small NED offset ``d_ned_m`` (3,) expressed at that point (first order in
-    ``|d| / R``: the meridian and prime-vertical radii of curvature; the neglected terms are about
-    ``|d|^2 (1 + |tan lat|) / R``: 1 um for 3 m at the equator, 11 um for 8.7 m at 60 deg -- far
-    below any navigation error it carries).  Longitude wraps into [-180, 180)."""
-    dn, de, dd = (float(x) for x in d_ned_m)
-    lat = math.radians(lat_deg)
-    s2 = math.sin(lat) ** 2
-    w = math.sqrt(1.0 - _WGS84_E2 * s2)
-    r_prime_vertical_m = _WGS84_A_M / w
-    r_meridian_m = _WGS84_A_M * (1.0 - _WGS84_E2) / w**3
-    lat2 = lat_deg + math.degrees(dn / (r_meridian_m + alt_m))
-    lon2 = lon_deg + math.degrees(de / ((r_prime_vertical_m + alt_m) * max(math.cos(lat), 1e-9)))
-    lon2 = (lon2 + 180.0) % 360.0 - 180.0
-    return lat2, lon2, alt_m - dd
+    """WGS84 point moved by a NED offset ``d_ned_m`` (3,) expressed at that point: the geodesy of
+    :func:`onboard.core.frames.geodetic_from_ned` about the point itself.  Longitude wraps into [-180, 180)."""
+    lat2, lon2, alt2 = geodetic_from_ned(np.asarray(d_ned_m, dtype=float), GeodeticOrigin(lat_deg, lon_deg, alt_m))
+    lon2 = (float(lon2) + 180.0) % 360.0 - 180.0
+    return float(lat2), lon2, float(alt2)
 
 
 def reported_state(state: dict, err: NavErrorSample | None) -> dict:

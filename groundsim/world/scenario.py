@@ -77,7 +77,9 @@ __all__ = [
     "load_scenario",
     "scenario_from_dict",
     "reference_scenario_paths",
+    "resolve_scenario_path",
     "scenarios_dir",
+    "noise_cases_path",
     "load_noise_cases",
     "noise_cases_from_dict",
     "read_spec_yaml",
@@ -698,6 +700,31 @@ def reference_scenario_paths() -> dict[str, Path]:
     found = {p.stem: p for p in d.glob("*.yaml")}
     order = [k for k in _REFERENCE_ORDER if k in found] + sorted(k for k in found if k not in _REFERENCE_ORDER)
     return {k: found[k] for k in order}
+
+
+def resolve_scenario_path(text: str | Path) -> Path:
+    """``--scenario``: an existing file, or a shipped scenario's name (``P1``, ``h2``: case-insensitive).
+
+    Neither is a :class:`ScenarioError` naming the shipped scenarios."""
+    p = Path(text)
+    if p.exists():
+        return p
+    shipped = reference_scenario_paths()
+    by_lower = {name.lower(): path for name, path in shipped.items()}
+    found = by_lower.get(str(text).lower())
+    if found is not None:
+        return found
+    raise ScenarioError(
+        str(text),
+        "(file)",
+        "an existing file or one of the shipped scenarios " + ", ".join(shipped),
+        got_text="no such file",
+    )
+
+
+def noise_cases_path() -> Path:
+    """The repository's shipped ``config/noise_cases.yaml`` (found relative to this file)."""
+    return _CONFIG_DIR / "noise_cases.yaml"
 
 
 # --------------------------------------------------------------------------- noise cases

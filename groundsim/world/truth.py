@@ -39,6 +39,7 @@ stopped by SIGINT/SIGTERM (or read while it runs) leaves a file of whole lines w
 from __future__ import annotations
 
 import csv
+import dataclasses
 import logging
 import math
 import os
@@ -57,6 +58,7 @@ __all__ = [
     "TruthWriter",
     "TruthWriteError",
     "truth_row",
+    "truth_json",
     "read_truth_csv",
 ]
 
@@ -324,3 +326,14 @@ def read_truth_csv(path) -> dict[str, np.ndarray]:
             except ValueError:
                 raise InputError(f"{p}: line {n}: {name}: expected a number, got {text!r}") from None
     return {name: np.asarray(vals, dtype=np.int64 if name in _INT_FIELDS else float) for name, vals in cols.items()}
+
+
+def truth_json(row: TruthRow) -> dict:
+    """A truth row as ``irtrack.truth/1``: every CSV column (NaN as null) plus vectors for viewers."""
+    out = {
+        k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in dataclasses.asdict(row).items()
+    }
+    out["target_ned_m"] = [row.target_n_m, row.target_e_m, row.target_d_m]
+    out["target_vel_ned_mps"] = [row.target_vn_mps, row.target_ve_mps, row.target_vd_mps]
+    out["camera_ned_m"] = [row.cam_n_m, row.cam_e_m, row.cam_d_m]
+    return out

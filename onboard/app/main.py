@@ -12,31 +12,31 @@ variables < command-line options (each option overrides its config field; ``--ze
 ``--zenoh-listen`` given once or more replace the file's list).  ``--check`` validates and exits
 0; ``--print-config`` prints the effective configuration as YAML and exits.
 
-Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP) or successful ``--check``; 2 invalid configuration
-or options, or a zenoh session that cannot open (port in use ...), printed as one line on stderr;
-1 an unexpected error.
+Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP; Ctrl-C too, even while starting, without a
+traceback) or successful ``--check``; 2 invalid configuration or options, or a zenoh session that cannot
+open (port in use ...), printed as one line on stderr; 1 an unexpected error.
 """
 
 from __future__ import annotations
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
-# the pipeline is single-threaded by design: one BLAS thread, set before numpy is imported
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+single_thread_blas_env()  # the pipeline is single-threaded by design: before numpy is imported
 
 import argparse  # noqa: E402
 import faulthandler  # noqa: E402
 import logging  # noqa: E402
+import os  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
+from typing import Any, NoReturn  # noqa: E402
 
 EXIT_OK = 0
 EXIT_ERROR = 1
 EXIT_CONFIG = 2
-SHUTDOWN_BUDGET_S = 1.8  # SIGTERM -> exit; the issue allows 2 s
+SHUTDOWN_BUDGET_S = 1.8  # SIGTERM -> exit: the daemon promises to be gone within 2 s
 HARD_EXIT_MARGIN_S = 0.7  # past the budget: faulthandler dumps the stacks and exits (the timer could not)
 
 log = logging.getLogger("onboard")
@@ -45,7 +45,7 @@ log = logging.getLogger("onboard")
 class _Parser(argparse.ArgumentParser):
     """argparse, but errors are one line with our exit code (2, as argparse's own)."""
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str) -> NoReturn:
         self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
 
 
@@ -103,8 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--video-udp",
         metavar="HOST:PORT",
-        help="send the IR video (H.264 in MPEG-TS) to this UDP destination, e.g. 127.0.0.1:5600 "
-        "(config: video.destination)",
+        help="send the IR video (H.264 over RTP; MPEG-TS with --set video.transport=mpegts) to this UDP "
+        "destination, e.g. 127.0.0.1:5600 (config: video.destination)",
     )
     p.add_argument(
         "--record",
@@ -172,6 +172,55 @@ from onboard.app.logs import setup_logging  # noqa: E402  (the daemon and its es
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    try:
+        return _run(args)
+    except KeyboardInterrupt:  # a Ctrl-C before the signal handlers are installed: still a clean stop
+        print("interrupted while starting: nothing was running yet", file=sys.stderr)
+        return EXIT_OK
+
+
+class _StopSignals:
+    """The handler of SIGTERM, SIGINT and SIGHUP: before the service is built a signal is remembered (the
+    service is stopped once built, before it serves); after, it asks the service to stop, with a budget."""
+
+    SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)  # SIGHUP: a closed terminal, the same clean exit
+
+    def __init__(self) -> None:
+        self.service: Any = None  # the OnboardService, once built
+        self.early: list[int] = []  # signals that came while it was being built
+
+    def __call__(self, signum: int, _frame: Any) -> None:
+        service = self.service
+        if service is None:
+            self.early.append(signum)
+            return
+        if service.stopping:
+            return
+        log.info("signal %s: shutting down", signal.Signals(signum).name)
+        service.request_stop()
+        # a last resort: whatever hangs, the process is gone within the budget
+        timer = threading.Timer(SHUTDOWN_BUDGET_S, _force_exit)
+        timer.daemon = True
+        timer.start()
+        # and if the timer cannot run (a thread stuck in native code holding the GIL, a log write blocked on a
+        # full pipe), faulthandler's own C thread dumps every thread's stack to stderr and exits with status 1,
+        # without the GIL: the hang is then diagnosable instead of a process that never ends
+        faulthandler.dump_traceback_later(SHUTDOWN_BUDGET_S + HARD_EXIT_MARGIN_S, exit=True)
+
+
+def _run(args: argparse.Namespace) -> int:
+    # from the start (importing numpy, scipy, OpenCV and starting the estimator process take a second or
+    # more): a Ctrl-C or SIGTERM then is a clean stop too, not a traceback from the middle of an import
+    stop = _StopSignals()
+    previous = {sig: signal.signal(sig, stop) for sig in stop.SIGNALS}
+    try:
+        return _serve(args, stop)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     from onboard.app.config import OnboardConfigError, config_to_dict, load_config
     from onboard.core.errors import IrtrackError
 
@@ -180,6 +229,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except OnboardConfigError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
+    if stop.early:
+        return _stopped_while_starting(stop.early)
     if args.print_config:
         import yaml
 
@@ -198,28 +249,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     from onboard.app.service import OnboardService
 
     try:
-        service = OnboardService(config)
+        built = OnboardService(config)
     except IrtrackError as exc:
         print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
         return EXIT_CONFIG
-
-    def on_signal(signum, _frame) -> None:
-        if service.stopping:
-            return
-        log.info("signal %s: shutting down", signal.Signals(signum).name)
+    if stop.early:
+        built.close(0.5)
+        return _stopped_while_starting(stop.early)
+    service = stop.service = built
+    if stop.early:  # came between the check and the assignment
         service.request_stop()
-        # a last resort: whatever hangs, the process is gone within the budget
-        timer = threading.Timer(SHUTDOWN_BUDGET_S, _force_exit)
-        timer.daemon = True
-        timer.start()
-        # and if the timer cannot run (a thread stuck in native code holding the GIL, a log write blocked on a
-        # full pipe), faulthandler's own C thread dumps every thread's stack to stderr and exits with status 1,
-        # without the GIL: the hang is then diagnosable instead of a process that never ends
-        faulthandler.dump_traceback_later(SHUTDOWN_BUDGET_S + HARD_EXIT_MARGIN_S, exit=True)
-
-    signal.signal(signal.SIGTERM, on_signal)
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGHUP, on_signal)  # a closed terminal / session: the same clean exit, no reload
 
     try:
         service.start()
@@ -235,6 +274,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_ERROR
     service.close(0.5)
     logging.shutdown()
+    return EXIT_OK
+
+
+def _stopped_while_starting(signals: list[int]) -> int:
+    print(f"signal {signal.Signals(signals[0]).name} while starting: stopped before serving", file=sys.stderr)
     return EXIT_OK
 
 

@@ -1,7 +1,7 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.io.record`) fed again through the pipeline.
 
     python -m onboard.replay FILE.mcap [--rate max|realtime] [--jobs 1|2] [--config FILE] [--set FIELD=VALUE]...
-                             [--out tracks.jsonl] [--compare] [--report DIR [--truth SIM.mcap]] [--live-view PORT]
+                             [--out tracks.jsonl] [--compare] [--live-view PORT]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
 which order, and the pose it interpolated for each; the frames themselves are the
@@ -10,27 +10,31 @@ recording's configuration (its ``irtrack`` metadata; ``--config`` replaces it, `
 fields), the estimator **inline** (lockstep: no worker, no waiting), and feeds it exactly those frames
 with exactly those poses.  With the recording's configuration and a daemon that ran the inline
 estimator (``estimator.worker: inline``), the tracks come out equal, field for field, to the recorded
-ones; with a worker (``process``/``thread``) the live tracks used propagated estimates whenever the
-worker was late, so they differ where it was.  A changed estimator or tracker shows as differences:
-``--compare`` prints them per frame (a regression check on yesterday's flights).
+ones.  A daemon with a worker (``process``, the default, or ``thread``) used the newest estimate
+propagated to a frame's time whenever the worker was late, so its tracks depend on timing and no replay
+gives them again: ``--compare`` then says so and also counts the 3-D positions that differ by more than
+``SIGMA_GATE`` times the recorded covariance (:func:`compare_within_sigma`).  A changed estimator or
+tracker shows as differences: ``--compare`` prints them per frame (a regression check on yesterday's
+flights).
 
 Not replayed: operator selections (MAVLink camera TRACK_POINT/RECTANGLE/STOP are not recorded as
 such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).
 
 ``--rate realtime`` paces frames at their recorded receive times; ``max`` (default) runs as fast as
-the pipeline goes and prints the speed against real time.  ``--report DIR``: plots of the flight
-(:mod:`groundsim.evaluation.flight_report`: the eval report's plots; ``--truth SIM.mcap``, the simulator's
-recording of the same run, adds the error plot).  Exit codes: 0 done; 2 an unreadable file or a bad option (one line).
+the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
+the ground side's: ``python -m groundsim report FILE.mcap``.
+
+Exit codes: 0 done; 2 a file that is not a readable MCAP recording or a bad option (one line); 130
+interrupted (Ctrl-C: one line saying how many frames were replayed and what was written).
 
 A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so).
 """
 
 from __future__ import annotations
 
-import os
+from onboard.core.blas import single_thread_blas_env
 
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+single_thread_blas_env()  # the replayed pipeline is single-threaded like the daemon's: before numpy is imported
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
@@ -44,7 +48,9 @@ from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, irframe_from_rawimage, pose_from_json  # noqa: E402
+from onboard.io.foxglove_messages import irframe_from_rawimage  # noqa: E402
+from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
 __all__ = [
     "RecordedMessage",
@@ -54,16 +60,17 @@ __all__ = [
     "ReplayResult",
     "replay",
     "compare_tracks",
+    "compare_within_sigma",
+    "recorded_worker",
     "main",
 ]
 
 log = logging.getLogger(__name__)
 
-EXIT_OK, EXIT_ERROR, EXIT_CONFIG = 0, 1, 2
-
-
-class ReportUnavailable(IrtrackError):
-    """``--report`` on an install without the simulator's plotting (``pip install .`` alone)."""
+EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: a replayed 3-D position is "within" the recorded one when their difference is at most this many sigmas of
+#: the recorded covariance (the Mahalanobis distance)
+SIGMA_GATE = 3.0
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,7 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
     """Every message of an MCAP file in file order (metadata records as ``{"metadata": name, ...}``),
     with the `mcap` package's stream reader; a file cut short ends at its last complete record and
     yields ``{"truncated": "<reason>"}`` last."""
+    from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
     schemas: dict[int, str] = {}
@@ -89,17 +97,21 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
     except OSError as exc:
         raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
     with f:
+        head = f.read(len(MCAP_MAGIC))
+        if head != MCAP_MAGIC:  # not even the start of a recording: refused, not read as one cut short
+            what = "the file is empty" if not head else f"it starts with {head!r}, not the MCAP magic"
+            raise InputError(f"{path}: not an MCAP recording ({what}); give a file of python -m onboard --record")
+        f.seek(0)
         try:
             for rec in StreamReader(f, validate_crcs=False).records:
-                kind = type(rec).__name__
-                if kind == "Schema":
+                if isinstance(rec, Schema):
                     schemas[rec.id] = rec.name
-                elif kind == "Channel":
+                elif isinstance(rec, Channel):
                     channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
-                elif kind == "Message":
+                elif isinstance(rec, Message):
                     topic, schema = channels.get(rec.channel_id, ("?", ""))
                     yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data)
-                elif kind == "Metadata":
+                elif isinstance(rec, Metadata):
                     yield {"metadata": rec.name, **rec.metadata}
         except Exception as exc:  # noqa: BLE001 - the end of a file cut short: whatever the reader raised
             if type(exc).__name__ in ("EndOfFile", "InvalidMagic") or isinstance(exc, (EOFError, ValueError)):
@@ -182,12 +194,29 @@ def config_of(rec: Recording, config_path: str | None = None, overrides: dict | 
     return build_config(raw, f"{rec.path} (metadata config_yaml)")
 
 
+def recorded_worker(rec: Recording) -> str | None:
+    """Where the recording daemon ran its estimator (``estimator.worker`` of its metadata: ``inline``,
+    ``thread`` or ``process``); None when the recording does not say."""
+    import yaml
+
+    text = rec.metadata.get("config_yaml")
+    if text is None:
+        return None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    estimator = raw.get("estimator") if isinstance(raw, dict) else None
+    worker = estimator.get("worker") if isinstance(estimator, dict) else None
+    return str(worker) if worker is not None else None
+
+
 class _RecordedPose:
     """A pose source answering with the pose recorded for the frame being replayed."""
 
-    def __init__(self) -> None:
-        self.pose = None
-        self.counter = None
+    def __init__(self, counter: Any) -> None:
+        self.pose: Any = None  # the PoseAt recorded for the frame being replayed
+        self.counter = counter
         self.origin = None
 
     def pose_at(self, time_boot_us: int, *args, **kwargs):
@@ -203,6 +232,7 @@ class ReplayResult:
     wall_s: float
     flight_s: float
     counts: dict = field(default_factory=dict)
+    interrupted: bool = False  # Ctrl-C: the tracks of the frames fed so far
 
     @property
     def speed_x(self) -> float:
@@ -231,7 +261,8 @@ class _TappedTracker:
     BATCH = 16
 
     def __init__(self, tracker, conn) -> None:
-        self._tracker, self._conn, self._batch = tracker, conn, []
+        self._tracker, self._conn = tracker, conn
+        self._batch: list[tuple[str, Any]] = []
 
     def update(self, pixels):
         try:
@@ -257,7 +288,8 @@ class _PipedTracker:
     """The lockstep process's tracker: answers each ``update`` with the imaging process's result for that frame."""
 
     def __init__(self, conn) -> None:
-        self._conn, self._pending = conn, collections.deque()
+        self._conn = conn
+        self._pending: collections.deque = collections.deque()
 
     def update(self, pixels):
         if not self._pending:
@@ -272,8 +304,12 @@ class _PipedTracker:
 
 
 def _imaging_child(rec: Recording, config, conn) -> None:
-    """Runs in the forked imaging process: the same admission and tracker over the same frames, no pose, no estimator."""
-    from onboard.core.pose import RejectCounter
+    """Runs in the forked imaging process: the same admission and tracker over the same frames, no pose, no estimator.
+    A Ctrl-C reaches it with the parent (one process group): the parent stops it by closing the pipe."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    from onboard.core.counters import RejectCounter
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
     tapped = _TappedTracker(make_tracker(config), conn)
@@ -289,6 +325,8 @@ def _imaging_child(rec: Recording, config, conn) -> None:
             except FrameRejected:
                 pass
         tapped.flush()
+    except (BrokenPipeError, EOFError, OSError):
+        pass  # the parent stopped reading (interrupted, or an error it reports itself)
     finally:
         conn.close()
 
@@ -315,15 +353,14 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
     imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
-    from onboard.core.pose import RejectCounter
+    from onboard.core.counters import RejectCounter
     from onboard.core.track import track_to_json
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 
     if jobs not in (1, 2):
         raise InputError(f"replay jobs: expected 1 or 2, got {jobs!r}")
     counter = RejectCounter(log_interval_s=3600.0)
-    poses = _RecordedPose()
-    poses.counter = counter
+    poses = _RecordedPose(counter)
     wall0 = time.perf_counter()
     proc = conn = None
     if jobs == 2 and live is None:
@@ -333,6 +370,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     out: list = []
     missing = refused = fed = 0
     rx0 = None
+    interrupted = False
     try:
         for i, inp, frame in _frames_taken(rec):
             if frame is None:
@@ -362,6 +400,8 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
             out.append(obj)
             if on_track is not None:
                 on_track(obj)
+    except KeyboardInterrupt:  # Ctrl-C: what was replayed so far is the result
+        interrupted = True
     finally:
         if conn is not None:
             conn.close()
@@ -374,9 +414,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     flight_s = 0.0
     if rec.inputs:
         flight_s = (int(rec.inputs[-1]["received_ns"]) - int(rec.inputs[0]["received_ns"])) / 1e9
-    return ReplayResult(
-        out, fed, missing, refused, wall, flight_s, counter.counts if hasattr(counter, "counts") else {}
-    )
+    return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts, interrupted)
 
 
 # --------------------------------------------------------------------------- comparison (pure)
@@ -391,9 +429,9 @@ class FrameDiff:
     d_uv_px: float | None
 
 
-def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
-    """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
-    unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
+def _matched(recorded: list, replayed: list) -> tuple[list[tuple[dict, dict]], int]:
+    """The two track lists' pairs matched on (seq, time_boot_us), in recorded order (duplicates in turn), and
+    the number of tracks of either list left unmatched."""
 
     def key(t):
         return (t.get("seq"), t.get("time_boot_us"))
@@ -401,14 +439,23 @@ def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int
     theirs: dict = {}
     for t in replayed:
         theirs.setdefault(key(t), []).append(t)
-    diffs, matched, unmatched = [], 0, 0
+    pairs, unmatched = [], 0
     for a in recorded:
         lst = theirs.get(key(a))
         if not lst:
             unmatched += 1
             continue
-        b = lst.pop(0)
-        matched += 1
+        pairs.append((a, lst.pop(0)))
+    unmatched += sum(len(v) for v in theirs.values())
+    return pairs, unmatched
+
+
+def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
+    """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
+    unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
+    pairs, unmatched = _matched(recorded, replayed)
+    diffs = []
+    for a, b in pairs:
         names = tuple(sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k)))
         if not names:
             continue
@@ -418,11 +465,53 @@ def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int
         if a.get("u_px") is not None and b.get("u_px") is not None:
             duv = math.hypot(a["u_px"] - b["u_px"], a["v_px"] - b["v_px"])
         diffs.append(FrameDiff(int(a["seq"]), int(a["time_boot_us"]), names, dp, duv))
-    unmatched += sum(len(v) for v in theirs.values())
-    return diffs, matched, unmatched
+    return diffs, len(pairs), unmatched
 
 
-def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None:
+@dataclass(frozen=True)
+class SigmaComparison:
+    """Replayed 3-D positions against the recorded ones, in the recorded estimates' own uncertainty."""
+
+    compared: int  # matched frames with a position in both and a recorded covariance
+    beyond: int  # of those, farther apart than the gate (Mahalanobis distance under the recorded covariance)
+    max_sigma: float  # the largest such distance (0 when none compared)
+    position_only_one: int  # matched frames where one of the two has a position and the other not
+    gate_sigma: float
+
+
+def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIGMA_GATE) -> SigmaComparison:
+    """How many replayed positions lie farther from the recorded ones than ``gate_sigma`` recorded sigmas:
+    the Mahalanobis distance ``sqrt(d^T P^-1 d)`` of the difference ``d`` under the recorded position
+    covariance ``P`` (``cov_ned_m2``).  The test for recordings whose estimates depend on timing (a worker
+    estimator): a replay cannot give them bit for bit, but the same estimator must land within their sigma."""
+    import numpy as np
+
+    compared = beyond = one_only = 0
+    worst = 0.0
+    for a, b in _matched(recorded, replayed)[0]:
+        pa, pb = a.get("ned_m"), b.get("ned_m")
+        if (pa is None) != (pb is None):
+            one_only += 1
+            continue
+        cov = a.get("cov_ned_m2")
+        if pa is None or cov is None:
+            continue
+        d = np.asarray(pb, dtype=float) - np.asarray(pa, dtype=float)
+        P = np.asarray(cov, dtype=float)
+        try:
+            m2 = float(d @ np.linalg.solve(P, d))
+        except np.linalg.LinAlgError:
+            m2 = float(d @ np.linalg.pinv(P) @ d)
+        m = math.sqrt(max(m2, 0.0)) if math.isfinite(m2) else math.inf
+        compared += 1
+        beyond += m > gate_sigma
+        worst = max(worst, m)
+    return SigmaComparison(compared, beyond, worst, one_only, gate_sigma)
+
+
+def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=sys.stdout) -> None:
+    """The per-frame differences, then (``within``, a :class:`SigmaComparison`) the positions against the
+    recorded sigma, with why a worker's recording cannot replay bit for bit, then the summary line."""
     for d in diffs:
         extra = []
         if d.d_pos_m is not None:
@@ -433,6 +522,21 @@ def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None
             f"seq {d.seq} t {d.time_boot_us} us: {', '.join(d.fields)}" + (f" ({'; '.join(extra)})" if extra else ""),
             file=file,
         )
+    if worker is not None and worker != "inline":
+        print(
+            f"compare: recorded with estimator.worker: {worker}, whose estimates depend on its timing (a late answer "
+            "is the newest estimate propagated to the frame), so no replay gives them bit for bit: only "
+            "estimator.worker: inline recordings do; this replay ran the estimator inline",
+            file=file,
+        )
+    if within is not None:
+        print(
+            f"compare: 3-D positions within {within.gate_sigma:g} sigma of the recorded covariance: "
+            f"{within.compared - within.beyond}/{within.compared}, {within.beyond} beyond"
+            + (f" (max {within.max_sigma:.3g} sigma)" if within.compared else "")
+            + f"; {within.position_only_one} with a position in one only",
+            file=file,
+        )
     dp = [d.d_pos_m for d in diffs if d.d_pos_m is not None]
     print(
         f"compare: {matched - len(diffs)}/{matched} frames identical, {len(diffs)} differ"
@@ -440,29 +544,6 @@ def _print_compare(diffs, matched: int, unmatched: int, file=sys.stdout) -> None
         + f", {unmatched} unmatched",
         file=file,
     )
-
-
-def write_report(out_dir, rec: Recording, tracks: list, truth: list | None) -> list:
-    """:func:`groundsim.evaluation.flight_report.write_flight_report` on a recording (the eval report's plots; a desk
-    tool's only use of the simulator package, imported here and nowhere in the daemon)."""
-    try:
-        from groundsim.evaluation.flight_report import write_flight_report
-    except ImportError as exc:  # the onboard-only install (pip install .): no simulator, no matplotlib
-        raise ReportUnavailable(
-            f"--report draws with the simulator's plotting, which is not installed here ({exc}); "
-            "install it with: pip install 'irtrack[sim]'"
-        ) from None
-
-    poses = {}
-    for inp in rec.inputs:
-        if inp.get("pose") is not None:
-            poses[(int(inp["seq"]), int(inp["time_boot_us"]))] = inp["pose"]["p_cam_ned_m"]
-    frames = {}
-    for key, lst in rec.frames.items():
-        img, _ = lst[0]
-        frames[key] = irframe_from_rawimage(key[0], img, rec.path).pixels
-    name = os.path.basename(rec.path)
-    return write_flight_report(out_dir, tracks, poses, frames, truth or None, name)
 
 
 # --------------------------------------------------------------------------- entry point
@@ -486,7 +567,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
-    p.add_argument("--report", metavar="DIR", help="write plots of the flight (trajectory, error vs truth, a frame)")
     p.add_argument(
         "--live-view",
         metavar="PORT",
@@ -494,18 +574,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
         "with --rate realtime to watch it as flown)",
     )
-    p.add_argument(
-        "--truth",
-        metavar="SIM.mcap",
-        help="the simulator's recording of the same run (groundsim run --record): "
-        "its /groundsim/truth channel gives the error plot",
-    )
+    # the flight report moved to the ground side (python -m groundsim report): the old options say where
+    p.add_argument("--report", metavar="DIR", help=argparse.SUPPRESS)
+    p.add_argument("--truth", metavar="SIM.mcap", help=argparse.SUPPRESS)
     return p
+
+
+@dataclass
+class _Progress:
+    """How far a run got, for the line a Ctrl-C prints."""
+
+    frames: int = 0
+    written: str = "nothing written"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.report is not None or args.truth is not None:
+        print(
+            f"python -m onboard.replay: the flight report moved: python -m groundsim report {args.mcap}",
+            file=sys.stderr,
+        )
+        return EXIT_CONFIG
+    progress = _Progress()
+    try:
+        return _run(args, progress)
+    except KeyboardInterrupt:  # outside the replay loop (which stops by itself): reading the file, writing, comparing
+        print(f"interrupted: {progress.frames} frames replayed; {progress.written}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _run(args: argparse.Namespace, progress: _Progress) -> int:
     from onboard.app.config import OnboardConfigError, parse_set_option
 
     try:
@@ -543,27 +643,37 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if live is not None:
             live.close()
+    progress.frames = res.frames_fed
+    if res.interrupted:
+        if args.out:
+            _write_tracks(args.out, res.tracks, progress)
+            progress.written = f"{args.out}: the {len(res.tracks)} tracks of those frames"
+        print(f"interrupted: {progress.frames} frames replayed; {progress.written}", file=sys.stderr)
+        return EXIT_INTERRUPTED
     print(
         f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
         f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
         f"x{res.speed_x:.1f} real time"
     )
     if args.out:
-        with open(args.out, "w", encoding="utf-8") as f:
-            for t in res.tracks:
-                f.write(json.dumps(t, separators=(",", ":")) + "\n")
+        _write_tracks(args.out, res.tracks, progress)
         print(f"tracks: {args.out}")
     if args.compare:
-        _print_compare(*compare_tracks(rec.tracks, res.tracks))
-    if args.report:
-        try:
-            truth = load_recording(args.truth).truth if args.truth else rec.truth
-            paths = write_report(args.report, rec, res.tracks, truth)
-        except IrtrackError as exc:
-            print(str(exc), file=sys.stderr)
-            return EXIT_CONFIG
-        print(f"report: {', '.join(str(p) for p in paths)}")
+        diffs, matched, unmatched = compare_tracks(rec.tracks, res.tracks)
+        worker = recorded_worker(rec)
+        timed = worker is not None and worker != "inline"
+        within = compare_within_sigma(rec.tracks, res.tracks) if timed or any(d.d_pos_m for d in diffs) else None
+        _print_compare(diffs, matched, unmatched, within, worker)
     return EXIT_OK
+
+
+def _write_tracks(path: str, tracks: list, progress: _Progress) -> None:
+    """The tracks as JSON lines (``--out``)."""
+    progress.written = f"{path}: written in part"
+    with open(path, "w", encoding="utf-8") as f:
+        for t in tracks:
+            f.write(json.dumps(t, separators=(",", ":")) + "\n")
+    progress.written = f"{path}: all {len(tracks)} tracks"
 
 
 if __name__ == "__main__":

@@ -76,6 +76,7 @@ __all__ = [
     "geodetic_from_ecef",
     "ned_from_geodetic",
     "geodetic_from_ned",
+    "geodetic_from_ned1",
     "quat_normalize",
     "quat_multiply",
     "quat_conjugate",
@@ -223,6 +224,28 @@ def geodetic_from_ned(p_ned_m, origin: GeodeticOrigin) -> tuple[np.ndarray, np.n
     p = np.asarray(p_ned_m, dtype=float)
     p_ecef = _origin_ecef_m(origin) + p @ _R_ned_from_ecef(origin)
     return geodetic_from_ecef(p_ecef)
+
+
+@functools.lru_cache(maxsize=64)
+def _ned_frame_floats(origin: GeodeticOrigin) -> tuple[float, ...]:
+    """The origin's ECEF position and ``R_ned_from_ecef`` (row-major) as 12 floats."""
+    return (*_origin_ecef_m(origin).tolist(), *_R_ned_from_ecef(origin).ravel().tolist())
+
+
+def geodetic_from_ned1(n_m: float, e_m: float, d_m: float, origin: GeodeticOrigin) -> tuple[float, float, float]:
+    """:func:`geodetic_from_ned` of one point, in plain floats: ``p_ecef = p0_ecef + R_ned_from_ecef^T p_ned``,
+    then :func:`geodetic_from_ecef`'s closed form (pymap3d itself near the polar axis).  The recorder and
+    the live view convert one camera position per frame, where numpy's per-call overhead on three numbers
+    cost more than the arithmetic."""
+    x0, y0, z0, r00, r01, r02, r10, r11, r12, r20, r21, r22 = _ned_frame_floats(origin)
+    x = x0 + (r00 * n_m + r10 * e_m + r20 * d_m)
+    y = y0 + (r01 * n_m + r11 * e_m + r21 * d_m)
+    z = z0 + (r02 * n_m + r12 * e_m + r22 * d_m)
+    one = _geodetic_from_ecef1(x, y, z)
+    if one is not None:
+        return one
+    lat, lon, alt = geodetic_from_ecef(np.array([x, y, z]))
+    return float(lat), float(lon), float(alt)
 
 
 # --------------------------------------------------------------------------- quaternions

@@ -1,34 +1,20 @@
-"""Vehicle and camera pose on the autopilot's boot clock, and the clock mapping that feeds it.
+"""Vehicle and camera pose on the autopilot's boot clock: the pose buffer and its settings.
 
 Pure core: no pymavlink, no sockets, no threads.  The MAVLink adapter (:mod:`onboard.io.mavlink_link`)
 translates wire messages once and calls the ``add_*`` methods; the lockstep evaluation calls them
 directly from truth.  Frame conventions are those of :mod:`onboard.core.frames` (local NED, body FRD,
 ``q_a_from_b`` Hamilton, w first); every time here is ``time_boot_us``, integer microseconds on the
-autopilot's boot clock (MAVLink ``time_boot_ms * 1000``).
+autopilot's boot clock (MAVLink ``time_boot_ms * 1000``).  The nouns it makes and answers with
+(:class:`~onboard.core.pose_types.PoseSample`, :class:`~onboard.core.pose_types.PoseAt`,
+:class:`~onboard.core.pose_types.PoseLookup`) are in :mod:`onboard.core.pose_types`; the clock mapping
+that puts camera frames on the boot clock is :mod:`onboard.core.clock_sync`.
 
-Nouns
------
-:class:`PoseSample`
-    One vehicle pose: ``time_boot_us`` (int), ``p_ned_m`` (3,), ``v_ned_mps`` (3,; NaN = unknown),
-    ``q_ned_from_body`` (4,).
-:class:`PoseAt`
-    The answer of :meth:`PoseBuffer.pose_at`: the interpolated body pose, the camera centre
-    ``p_cam_ned_m`` (3,) and attitude ``q_ned_from_cam`` (4,) through the pod mount (and gimbal),
-    and how far apart the bracketing samples were.
-
-Verbs
------
 :class:`PoseBuffer`
     Two (three with a gimbal) bounded streams, because attitude (MAVLink #31) and position (#33)
     arrive at different rates and times.  A query at a frame's capture time interpolates between
     the two samples that bracket it -- position by cubic Hermite on (p, v) (linear when a velocity
     is unknown), attitude by SLERP -- and never falls back to "latest sample".  A query outside a
     stream, or whose bracket is wider than the stream's ``max_gap``, gets ``None`` and a reason.
-:class:`ClockSync`
-    Offset (and skew) between a local clock (ns; e.g. the clock that stamps camera frames) and the
-    autopilot's boot clock, from TIMESYNC (#111) exchanges.
-:class:`RejectCounter`
-    Counts rejected inputs and notable events by reason; logs each reason at most once per interval.
 
 Interpolation
 -------------
@@ -42,8 +28,8 @@ move the answer by at most that much.  Velocity: the reported velocities interpo
 
 Extrapolation (a frame newer than the telemetry)
 ------------------------------------------------
-A frame must not wait for the sample after it (issue 9: a 60 ms wait cost 19-33 % of gimballed
-frames their pose and ~50 ms of latency).  :meth:`PoseBuffer.pose_at` (not :meth:`~PoseBuffer.lookup`,
+A frame must not wait for the sample after it: the wait adds latency, and a wait short enough to
+keep the latency low still leaves many gimballed frames without a bracket.  :meth:`PoseBuffer.pose_at` (not :meth:`~PoseBuffer.lookup`,
 which stays interpolation-only so that a caller can wait for a bracket) extrapolates from the
 newest sample ``h = t - t_last`` ahead, within a bounded horizon per stream:
 
@@ -81,8 +67,8 @@ Position: ``pose.max_extrapolation_ms`` (50 ms) bounds it; with 0.1 m/s velocity
 :attr:`PoseAt.sigma_extrapolation_m` carry the figures of each pose, should the estimator want
 to weight by them.
 
-Rejection reasons (keys of :attr:`RejectCounter.counts`)
--------------------------------------------------------
+Rejection reasons (keys of :attr:`~onboard.core.counters.RejectCounter.counts`)
+------------------------------------------------------------------------------
 Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid``, ``duplicate``
 (same time again), ``out_of_order`` (earlier by less than the reboot threshold), ``not_finite``,
 ``shape``; quaternions also ``zero``, ``not_unit``.  Position also ``zero`` (lat = lon = 0: GPS
@@ -94,8 +80,6 @@ position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss
 with reason ``time_invalid``, ``no_origin`` or
 ``<stream>_empty|before_buffer|not_yet|gap|extrapolation_limit``; an extrapolated pose is counted as
 ``pose_extrapolated``.
-:class:`ClockSync` counts ``timesync_invalid``, ``timesync_rtt``, ``timesync_outlier``,
-``timesync_reset``.
 
 Limits: ``time_boot_ms`` is uint32 and wraps after 49.7 days; a wrap looks like a reboot.
 """
@@ -106,12 +90,12 @@ import bisect
 import enum
 import logging
 import math
-import time
 from collections.abc import Callable
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
     Q_MOUNT_FROM_CAM,
@@ -133,16 +117,13 @@ from onboard.core.frames import (
     rotvec_from_quat1,
 )
 from onboard.core.pose_config import PoseConfig, extrapolation_sigma
+from onboard.core.pose_types import PoseAt, PoseLookup, PoseSample, check_time_us
+from onboard.core.sample_stream import SampleStream
 
 __all__ = [
-    "RejectCounter",
-    "PoseSample",
-    "PoseAt",
-    "PoseLookup",
     "GimbalReference",
     "PoseBuffer",
     "ClockSyncConfig",
-    "ClockSync",
 ]
 
 log = logging.getLogger(__name__)
@@ -151,87 +132,6 @@ US_PER_S = 1_000_000
 NS_PER_US = 1_000
 NS_PER_S = 1_000_000_000
 ZERO_QUAT_NORM = 1e-6  # a quaternion shorter than this is "zero", not merely "not unit"
-
-
-# --------------------------------------------------------------------------- reject counter
-
-
-class RejectCounter:
-    """Counts by reason; logs each reason at most once per ``log_interval_s`` (with the count since).
-
-    ``count(reason, detail)`` never raises.  ``counts`` is a copy of the reason -> count dict.
-    """
-
-    def __init__(
-        self,
-        log_interval_s: float = 10.0,
-        clock: Callable[[], float] = time.monotonic,
-        logger: logging.Logger | None = None,
-    ) -> None:
-        if not (math.isfinite(log_interval_s) and log_interval_s >= 0):
-            raise ConfigError(f"RejectCounter.log_interval_s must be >= 0 seconds, got {log_interval_s!r}")
-        self.log_interval_s = float(log_interval_s)
-        self._clock = clock
-        self._log = logger or log
-        self._counts: dict[str, int] = {}
-        self._last_log_s: dict[str, float] = {}
-        self._unlogged: dict[str, int] = {}
-
-    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
-        """Count ``n`` of ``reason``; log it at ``level`` (WARNING: a rejection; DEBUG: a normal event)."""
-        self._counts[reason] = self._counts.get(reason, 0) + n
-        try:
-            now = float(self._clock())
-        except Exception:  # a broken clock must not break the caller
-            now = math.nan
-        last = self._last_log_s.get(reason)
-        if last is None or not now - last < self.log_interval_s:
-            since = self._unlogged.get(reason, 0) + n
-            self._log.log(
-                level, "%s: %s (total %d, %d since last report)", reason, detail or "-", self._counts[reason], since
-            )
-            self._last_log_s[reason] = now
-            self._unlogged[reason] = 0
-        else:
-            self._unlogged[reason] = self._unlogged.get(reason, 0) + n
-
-    def __getitem__(self, reason: str) -> int:
-        return self._counts.get(reason, 0)
-
-    @property
-    def counts(self) -> dict[str, int]:
-        return dict(self._counts)
-
-    @property
-    def total(self) -> int:
-        return sum(self._counts.values())
-
-
-# --------------------------------------------------------------------------- nouns
-
-
-def _frozen_vec(value, shape: tuple[int, ...], what: str, allow_nan: bool = False) -> np.ndarray:
-    try:
-        a = np.array(value, dtype=float)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{what} must be numbers of shape {shape}, got {value!r}") from exc
-    if a.shape != shape:
-        raise InputError(f"{what} must have shape {shape}, got {a.shape}")
-    bad = ~np.isfinite(a)
-    if allow_nan:
-        bad &= ~np.isnan(a)
-    if bad.any():
-        raise InputError(f"{what} must be finite{' (NaN = unknown allowed)' if allow_nan else ''}, got {a.tolist()}")
-    a.setflags(write=False)
-    return a
-
-
-def _check_time_us(value, what: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise InputError(f"{what} must be an integer number of microseconds, got {value!r}")
-    if value < 0:
-        raise InputError(f"{what} must be >= 0, got {value}")
-    return int(value)
 
 
 # --------------------------------------------------------------------------- float paths
@@ -273,137 +173,6 @@ def _finite_from(row: np.ndarray, k: int) -> bool:
     return True
 
 
-def _frozen_floats(values) -> np.ndarray:
-    """A read-only float64 array of computed, already checked values (what :func:`_frozen_vec` makes)."""
-    a = np.array(values, dtype=float)
-    a.setflags(write=False)
-    return a
-
-
-@dataclass(frozen=True, eq=False)
-class PoseSample:
-    """Vehicle pose at ``time_boot_us``: ``p_ned_m`` (3,), ``v_ned_mps`` (3,; NaN = unknown), ``q_ned_from_body`` (4,)."""
-
-    time_boot_us: int
-    p_ned_m: np.ndarray
-    v_ned_mps: np.ndarray
-    q_ned_from_body: np.ndarray
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "time_boot_us", _check_time_us(self.time_boot_us, "PoseSample.time_boot_us"))
-        object.__setattr__(self, "p_ned_m", _frozen_vec(self.p_ned_m, (3,), "PoseSample.p_ned_m"))
-        object.__setattr__(self, "v_ned_mps", _frozen_vec(self.v_ned_mps, (3,), "PoseSample.v_ned_mps", allow_nan=True))
-        try:
-            q = check_unit_quat(self.q_ned_from_body, "PoseSample.q_ned_from_body")
-        except FrameError as exc:
-            raise InputError(str(exc)) from exc
-        object.__setattr__(self, "q_ned_from_body", _frozen_vec(q, (4,), "PoseSample.q_ned_from_body"))
-
-
-@dataclass(frozen=True, eq=False)
-class PoseAt:
-    """Pose interpolated at ``body.time_boot_us``.
-
-    ``p_cam_ned_m`` (3,) and ``q_ned_from_cam`` (4,) from :func:`onboard.core.frames.camera_pose_ned`;
-    ``q_mount_from_gimbal`` (4,) or None without a gimbal; ``att_span_us`` / ``pos_span_us`` /
-    ``gimbal_span_us``: spacing of the bracketing samples (0 when the query hit a sample);
-    ``epoch``: number of autopilot reboots seen so far (poses of different epochs share the origin
-    only when ``keep_origin_on_reboot``).  ``att_extrapolated_us`` / ``pos_extrapolated_us`` /
-    ``gimbal_extrapolated_us``: how far past its newest sample each stream was extrapolated (0 =
-    interpolated; the span is then 0 too); ``sigma_extrapolation_rad`` / ``sigma_extrapolation_m``:
-    the 1-sigma attitude / position error that extrapolation adds (module docstring; 0 when
-    interpolated).
-    """
-
-    body: PoseSample
-    p_cam_ned_m: np.ndarray
-    q_ned_from_cam: np.ndarray
-    q_mount_from_gimbal: np.ndarray | None
-    origin: GeodeticOrigin
-    att_span_us: int
-    pos_span_us: int
-    gimbal_span_us: int | None
-    epoch: int
-    att_extrapolated_us: int = 0
-    pos_extrapolated_us: int = 0
-    gimbal_extrapolated_us: int | None = None
-    sigma_extrapolation_rad: float = 0.0
-    sigma_extrapolation_m: float = 0.0
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "p_cam_ned_m", _frozen_vec(self.p_cam_ned_m, (3,), "PoseAt.p_cam_ned_m"))
-        object.__setattr__(self, "q_ned_from_cam", _frozen_vec(self.q_ned_from_cam, (4,), "PoseAt.q_ned_from_cam"))
-        if self.q_mount_from_gimbal is not None:
-            object.__setattr__(
-                self, "q_mount_from_gimbal", _frozen_vec(self.q_mount_from_gimbal, (4,), "PoseAt.q_mount_from_gimbal")
-            )
-
-    @property
-    def time_boot_us(self) -> int:
-        return self.body.time_boot_us
-
-    @property
-    def extrapolated(self) -> bool:
-        return bool(self.att_extrapolated_us or self.pos_extrapolated_us or self.gimbal_extrapolated_us)
-
-    @property
-    def mode(self) -> str:
-        """``"interpolated"`` (every stream bracketed the time) or ``"extrapolated"``."""
-        return "extrapolated" if self.extrapolated else "interpolated"
-
-
-_POSE_AT_FIELDS = tuple(f.name for f in fields(PoseAt))
-
-
-def _pose_sample_computed(t: int, p, v, q) -> PoseSample:
-    """``PoseSample(t, p, v, q)`` for floats the buffer computed (``t`` an int >= 0): the same sample,
-    without repeating :meth:`PoseSample.__post_init__`'s array checks when they pass; when they would not,
-    the constructor itself (which raises as it always did)."""
-    w, x, y, z = q
-    n1 = math.sqrt(w * w + x * x + y * y + z * z)  # check_unit_quat's norm
-    if not (
-        math.isfinite(p[0] + p[1] + p[2])
-        and not (math.isinf(v[0]) or math.isinf(v[1]) or math.isinf(v[2]))
-        and abs(n1 - 1.0) <= QUAT_NORM_TOL
-    ):
-        return PoseSample(t, p, v, q)
-    sample = object.__new__(PoseSample)
-    object.__setattr__(sample, "time_boot_us", t)
-    object.__setattr__(sample, "p_ned_m", _frozen_floats(p))
-    object.__setattr__(sample, "v_ned_mps", _frozen_floats(v))
-    object.__setattr__(sample, "q_ned_from_body", _frozen_floats(quat_normalize1(q)))  # as check_unit_quat
-    return sample
-
-
-def _pose_at_computed(body: PoseSample, p_cam, q_nc, q_mg, *rest) -> PoseAt:
-    """``PoseAt(body, p_cam, q_nc, q_mg, *rest)`` for floats the buffer computed, as
-    :func:`_pose_sample_computed`."""
-    if not (
-        math.isfinite(p_cam[0] + p_cam[1] + p_cam[2])
-        and math.isfinite(q_nc[0] + q_nc[1] + q_nc[2] + q_nc[3])
-        and (q_mg is None or math.isfinite(q_mg[0] + q_mg[1] + q_mg[2] + q_mg[3]))
-    ):
-        return PoseAt(body, p_cam, q_nc, q_mg, *rest)
-    pose = object.__new__(PoseAt)
-    values = (body, _frozen_floats(p_cam), _frozen_floats(q_nc), None if q_mg is None else _frozen_floats(q_mg))
-    for name, value in zip(_POSE_AT_FIELDS, values + rest, strict=True):
-        object.__setattr__(pose, name, value)
-    return pose
-
-
-@dataclass(frozen=True)
-class PoseLookup:
-    """Side-effect-free answer of :meth:`PoseBuffer.lookup`.
-
-    ``pose`` or ``reason``; ``retry`` is True when the query is newer than a stream's last sample
-    by less than its ``max_gap`` (the next sample may still bracket it: ask again later).
-    """
-
-    pose: PoseAt | None
-    reason: str | None = None
-    retry: bool = False
-
-
 class GimbalReference(str, enum.Enum):
     """What a gimbal quaternion is relative to.
 
@@ -425,56 +194,6 @@ TIME_CONFIRM_COUNT = 3
 MIN_ALT_M, MAX_ALT_M = -1_000.0, 50_000.0
 #: gimbal samples that feed the rate fit when the gimbal reports no rate (us)
 GIMBAL_RATE_WINDOW_US = 100_000
-
-
-# --------------------------------------------------------------------------- streams
-
-
-class _Stream:
-    """Time-ordered samples of one source; values are rows of equal length."""
-
-    def __init__(self, name: str, max_gap_us: int) -> None:
-        self.name = name
-        self.max_gap_us = max_gap_us
-        self.t_us: list[int] = []
-        self.values: list[np.ndarray] = []
-        self.pending_t_us: list[int] = []  # a run of far-off stamps that may confirm a clock step
-
-    @property
-    def last_t(self) -> int | None:
-        return self.t_us[-1] if self.t_us else None
-
-    def clear(self) -> None:
-        self.t_us.clear()
-        self.values.clear()
-        self.pending_t_us.clear()
-
-    def append(self, t_us: int, value: np.ndarray, window_us: int, max_samples: int) -> None:
-        self.t_us.append(t_us)
-        self.values.append(value)
-        cut = bisect.bisect_left(self.t_us, t_us - window_us)
-        cut = max(cut, len(self.t_us) - max_samples)
-        if cut > 0:
-            del self.t_us[:cut]
-            del self.values[:cut]
-
-    def bracket(self, t_us: int) -> tuple[int, int, float] | tuple[None, str, bool]:
-        """(i0, i1, alpha) with t0 <= t <= t1, or (None, reason, retry)."""
-        if not self.t_us:
-            return None, f"{self.name}_empty", False
-        if t_us < self.t_us[0]:
-            return None, f"{self.name}_before_buffer", False
-        if t_us > self.t_us[-1]:
-            if t_us - self.t_us[-1] > self.max_gap_us:
-                return None, f"{self.name}_gap", False
-            return None, f"{self.name}_not_yet", True
-        i = bisect.bisect_left(self.t_us, t_us)
-        if self.t_us[i] == t_us:
-            return i, i, 0.0
-        t0, t1 = self.t_us[i - 1], self.t_us[i]
-        if t1 - t0 > self.max_gap_us:
-            return None, f"{self.name}_gap", False
-        return i - 1, i, (t_us - t0) / (t1 - t0)
 
 
 # --------------------------------------------------------------------------- pose buffer
@@ -509,14 +228,18 @@ class PoseBuffer:
         self._configured_origin = origin
         self._origin = origin
         c = self.config
-        self._att = _Stream("attitude", c.att_max_gap_us)
-        self._pos = _Stream("position", c.pos_max_gap_us)
-        self._gim = _Stream("gimbal", c.gimbal_max_gap_us)
+        self._att = SampleStream("attitude", c.att_max_gap_us)
+        self._pos = SampleStream("position", c.pos_max_gap_us)
+        self._gim = SampleStream("gimbal", c.gimbal_max_gap_us)
         self._gim_ref: GimbalReference | None = None
         self._mount_cache: tuple[CameraMount, Vec3, Quat, Quat] | None = None
         self._jumps = 0
         self.reboots = 0
         self.last_miss_reason: str | None = None
+        # The streams arrive one after the other when the link comes up (the gimbal's first report, with
+        # no rate to extrapolate by, can trail the first frames): a miss before the first pose served is the
+        # start-up's, not a fault, and is logged at INFO; the status counts it all the same.
+        self.served_pose = False
 
     # ------------------------------------------------------------------ state
 
@@ -549,12 +272,12 @@ class PoseBuffer:
         if type(t) is int and t >= 0:  # the common case, without the checker's isinstance tests
             return t
         try:
-            return _check_time_us(t, f"{stream}.time_boot_us")
+            return check_time_us(t, f"{stream}.time_boot_us")
         except InputError as exc:
             self.counter.count(f"{stream}_time_invalid", str(exc))
             return None
 
-    def _admit(self, s: _Stream, t: int) -> bool:
+    def _admit(self, s: SampleStream, t: int) -> bool:
         """Ordering and outlier check (see :class:`PoseConfig` ``reboot_threshold_s``); detects
         reboots and clock steps.  Mutates only the pending run, and on a confirmed reboot / step."""
         last = s.last_t
@@ -892,9 +615,9 @@ class PoseBuffer:
             q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
 
         p_cam, q_nc = self._camera_pose(p_ned, q_nb, q_mg)
-        body = _pose_sample_computed(t, p_ned, v_ned, q_nb)
+        body = PoseSample.from_floats(t, p_ned, v_ned, q_nb)
         sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
-        pose = _pose_at_computed(
+        pose = PoseAt.from_floats(
             body,
             p_cam,
             q_nc,
@@ -938,7 +661,7 @@ class PoseBuffer:
         return self._mount_cache[1:]
 
     def _bracket_or_extrapolate(
-        self, stream: _Stream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]
+        self, stream: SampleStream, t: int, extrapolate: bool, horizon_us: int, can: Callable[[], bool]
     ):
         """``stream.bracket(t)``; past the newest sample with ``extrapolate``: ``(i_last, _AFTER, 0.0)``
         within ``horizon_us`` when ``can()``, else the miss (``<name>_extrapolation_limit`` beyond it)."""
@@ -990,8 +713,14 @@ class PoseBuffer:
         res = self.lookup(time_boot_us, extrapolate=extrapolate) if result is None else result
         self.last_miss_reason = res.reason
         if res.pose is None:
-            self.counter.count(f"pose_{res.reason}", f"no pose at time_boot_us={time_boot_us!r}")
-        elif res.pose.extrapolated:
+            self.counter.count(
+                f"pose_{res.reason}",
+                f"no pose at time_boot_us={time_boot_us!r}" + ("" if self.served_pose else " (start-up)"),
+                level=logging.WARNING if self.served_pose else logging.INFO,
+            )
+            return None
+        self.served_pose = True
+        if res.pose.extrapolated:
             p = res.pose
             self.counter.count(
                 "pose_extrapolated",
@@ -1087,144 +816,3 @@ class ClockSyncConfig:
             raise ConfigError(f"ClockSyncConfig.min_samples ({self.min_samples}) must be <= window ({self.window})")
         if not (math.isfinite(self.max_skew_ppm) and self.max_skew_ppm >= 0):
             raise ConfigError(f"ClockSyncConfig.max_skew_ppm must be >= 0, got {self.max_skew_ppm!r}")
-
-
-@dataclass
-class _Exchange:
-    mid_local_ns: int
-    offset_ns: int
-    rtt_ns: int
-
-
-class ClockSync:
-    """Maps a local clock (ns) to the autopilot boot clock from TIMESYNC exchanges.
-
-    One exchange: we send ``ts1 = local send time`` (tc1 = 0); the autopilot answers with its boot
-    time ``tc1`` and our ``ts1`` mirrored; we note the local receive time ``t3``.  Assuming a
-    symmetric path, ``offset = tc1 - (ts1 + t3) / 2`` (autopilot minus local, at the midpoint), with
-    an error of at most ``rtt / 2`` where ``rtt = t3 - ts1`` (Cristian 1989; MAVLink timesync
-    service).  The estimate is a weighted least-squares line ``offset(t) = a + b (t - t_ref)`` over the
-    last ``window`` exchanges, weights ``1 / (rtt + floor)^2`` so short round trips dominate; the
-    slope ``b`` (clock skew) is fitted only once the history spans ``min_skew_span_ns``.
-    PX4 and ArduPilot answer with their boot time in ns, the same clock as ``time_boot_ms``.
-    """
-
-    def __init__(self, config: ClockSyncConfig | None = None, counter: RejectCounter | None = None) -> None:
-        self.config = config if config is not None else ClockSyncConfig()
-        self.counter = counter if counter is not None else RejectCounter()
-        self._ex: list[_Exchange] = []
-        self._outliers: list[_Exchange] = []
-        self._ref_local_ns = 0
-        self._ref_offset_ns = 0
-        self._a_ns = 0.0
-        self._b = 0.0  # ns of offset per ns of local time
-        self.resets = 0
-
-    # ------------------------------------------------------------------ state
-
-    @property
-    def synced(self) -> bool:
-        return len(self._ex) >= self.config.min_samples
-
-    @property
-    def n_samples(self) -> int:
-        return len(self._ex)
-
-    @property
-    def skew_ppm(self) -> float:
-        return self._b * 1e6
-
-    @property
-    def min_rtt_ns(self) -> int | None:
-        return min(e.rtt_ns for e in self._ex) if self._ex else None
-
-    def reset(self) -> None:
-        """Forget every exchange (call on an autopilot reboot)."""
-        self._ex.clear()
-        self._outliers.clear()
-        self._a_ns, self._b = 0.0, 0.0
-
-    # ------------------------------------------------------------------ input
-
-    def add_exchange(self, ts1_local_ns: int, tc1_remote_ns: int, recv_local_ns: int) -> bool:
-        """Feed one TIMESYNC round trip; True when it was used."""
-        vals = (ts1_local_ns, tc1_remote_ns, recv_local_ns)
-        if any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in vals) or tc1_remote_ns <= 0:
-            self.counter.count("timesync_invalid", f"ts1={ts1_local_ns!r} tc1={tc1_remote_ns!r} t3={recv_local_ns!r}")
-            return False
-        ts1, tc1, t3 = (int(v) for v in vals)
-        rtt = t3 - ts1
-        if rtt < 0 or rtt > self.config.max_rtt_ns:
-            self.counter.count(
-                "timesync_rtt", f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms"
-            )
-            return False
-        mid = ts1 + rtt // 2
-        ex = _Exchange(mid, tc1 - mid, rtt)
-        if self.synced:
-            err = abs(ex.offset_ns - self.offset_ns_at(mid))
-            if err > self.config.jump_ns + rtt / 2:
-                self._outliers.append(ex)
-                if len(self._outliers) < self.config.jump_count:
-                    self.counter.count("timesync_outlier", f"offset off the estimate by {err / 1e6:.1f} ms")
-                    return False
-                self.counter.count(
-                    "timesync_reset",
-                    f"{len(self._outliers)} consecutive exchanges off by > "
-                    f"{self.config.jump_ns / 1e6:g} ms: remote clock restarted",
-                )
-                self._ex = list(self._outliers)
-                self._outliers.clear()
-                self.resets += 1
-                self._fit()
-                return True
-        self._outliers.clear()
-        self._ex.append(ex)
-        if len(self._ex) > self.config.window:
-            del self._ex[: len(self._ex) - self.config.window]
-        self._fit()
-        return True
-
-    def _fit(self) -> None:
-        if not self._ex:
-            return
-        self._ref_local_ns = self._ex[0].mid_local_ns
-        self._ref_offset_ns = self._ex[0].offset_ns
-        x = np.array([e.mid_local_ns - self._ref_local_ns for e in self._ex], dtype=float)
-        y = np.array([e.offset_ns - self._ref_offset_ns for e in self._ex], dtype=float)
-        w = 1.0 / (np.array([e.rtt_ns for e in self._ex], dtype=float) + self.config.rtt_floor_ns) ** 2
-        w /= w.sum()
-        xm, ym = float(w @ x), float(w @ y)
-        b = 0.0
-        if x.max() - x.min() >= self.config.min_skew_span_ns:
-            sxx = float(w @ (x - xm) ** 2)
-            if sxx > 0:
-                b = float(w @ ((x - xm) * (y - ym))) / sxx
-                lim = self.config.max_skew_ppm * 1e-6
-                b = min(max(b, -lim), lim)
-        self._b = b
-        self._a_ns = ym - b * xm
-
-    # ------------------------------------------------------------------ output
-
-    def offset_ns_at(self, local_ns: int) -> int:
-        """Estimated ``boot_ns - local_ns`` at local time ``local_ns`` (0 before any exchange)."""
-        dx = int(local_ns) - self._ref_local_ns
-        return self._ref_offset_ns + int(round(self._a_ns + self._b * dx))
-
-    def to_boot_us(self, local_ns: int) -> int | None:
-        """Local clock (ns) -> autopilot ``time_boot_us``; None until synced or when before boot."""
-        if not self.synced:
-            return None
-        boot_ns = int(local_ns) + self.offset_ns_at(local_ns)
-        if boot_ns < 0:
-            return None
-        return (boot_ns + NS_PER_US // 2) // NS_PER_US
-
-    def to_local_ns(self, time_boot_us: int) -> int | None:
-        """Inverse of :meth:`to_boot_us` (one fixed-point step; skew is tiny); None until synced."""
-        if not self.synced:
-            return None
-        boot_ns = int(time_boot_us) * NS_PER_US
-        guess = boot_ns - self.offset_ns_at(boot_ns - self._ref_offset_ns)
-        return boot_ns - self.offset_ns_at(guess)

@@ -1,4 +1,4 @@
-"""The ``Track`` noun, its wire schema ``irtrack.track/2`` and the status JSON.
+"""The ``Track`` noun and its wire schema ``irtrack.track/2``.
 
 Pure: no zenoh, no pymavlink, no clocks, no message of any protocol.  The pipeline builds one
 :class:`Track` per processed frame; the service serialises it with :func:`track_to_json` onto
@@ -74,15 +74,13 @@ sigmas (rad) of the estimator's noise model (an attitude error ``phi`` in NED mo
 Near the optical axis this is ``s_el = sqrt((s_px / f)^2 + s_w^2 + s_b^2)`` and ``s_az = s_el / cos(el)``
 (capped at 180 deg).  Camera position noise does not enter a direction.
 
-Schema ``irtrack.status/1`` is built by :func:`build_status` (see its docstring).
+The status JSON ``irtrack.status/1`` is :mod:`onboard.core.status`'s.
 """
 
 from __future__ import annotations
 
 import json
 import math
-import os
-from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -95,7 +93,6 @@ from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, rotmat_from_q
 __all__ = [
     "TRACK_SCHEMA",
     "READABLE_TRACK_SCHEMAS",
-    "STATUS_SCHEMA",
     "TRACK_STATES",
     "LineOfSight",
     "line_of_sight_ned",
@@ -103,13 +100,11 @@ __all__ = [
     "track_to_json",
     "track_to_bytes",
     "track_from_json",
-    "RollingStats",
-    "build_status",
+    "json_number",
 ]
 
 TRACK_SCHEMA = "irtrack.track/2"
 READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same keys minus the /2 additions
-STATUS_SCHEMA = "irtrack.status/1"
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
 
 _POSITION_FIELDS = ("lat_deg", "lon_deg", "alt_m", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
@@ -388,8 +383,8 @@ class Track:
 # --------------------------------------------------------------------------- JSON
 
 
-def _num(x) -> float | None:
-    """A JSON-safe number: non-finite -> None."""
+def json_number(x) -> float | None:
+    """A JSON-safe number: a float, or None for None and for a non-finite value (JSON has no NaN)."""
     if x is None:
         return None
     x = float(x)
@@ -397,7 +392,7 @@ def _num(x) -> float | None:
 
 
 def _list(v) -> list | None:
-    return None if v is None else [_num(x) for x in v]
+    return None if v is None else [json_number(x) for x in v]
 
 
 def track_to_json(track: Track) -> dict[str, Any]:
@@ -412,29 +407,29 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "track_id": track.track_id,
         "state": track.state,
         "measurement_valid": track.measurement_valid,
-        "u_px": _num(track.u_px),
-        "v_px": _num(track.v_px),
+        "u_px": json_number(track.u_px),
+        "v_px": json_number(track.v_px),
         "bbox": _list(track.bbox),
         "pose_valid": track.pose_valid,
         "los_ned": None if los is None else _list(los.u_ned),
-        "los_az_deg": None if los is None else _num(los.azimuth_deg),
-        "los_el_deg": None if los is None else _num(los.elevation_deg),
-        "los_sigma_az_deg": None if los is None else _num(los.sigma_azimuth_deg),
-        "los_sigma_el_deg": None if los is None else _num(los.sigma_elevation_deg),
+        "los_az_deg": None if los is None else json_number(los.azimuth_deg),
+        "los_el_deg": None if los is None else json_number(los.elevation_deg),
+        "los_sigma_az_deg": None if los is None else json_number(los.sigma_azimuth_deg),
+        "los_sigma_el_deg": None if los is None else json_number(los.sigma_elevation_deg),
         "camera_ned_m": None if los is None else _list(los.p_cam_ned_m),
-        "lat_deg": _num(track.lat_deg),
-        "lon_deg": _num(track.lon_deg),
-        "alt_m": _num(track.alt_m),
+        "lat_deg": json_number(track.lat_deg),
+        "lon_deg": json_number(track.lon_deg),
+        "alt_m": json_number(track.alt_m),
         "ned_m": _list(track.p_ned_m),
         "origin": None if o is None else {"lat_deg": o.lat_deg, "lon_deg": o.lon_deg, "alt_m": o.alt_m},
         "vel_ned_mps": _list(track.v_ned_mps),
         "sigma_ned_m": _list(track.sigma_ned_m),
         "sigma_vel_ned_mps": _list(track.sigma_vel_ned_mps),
         "cov_ned_m2": None if track.cov_p_ned_m2 is None else [_list(r) for r in track.cov_p_ned_m2],
-        "range_m": _num(track.range_m),
-        "range_sigma_ratio": _num(track.range_sigma_ratio),
+        "range_m": json_number(track.range_m),
+        "range_sigma_ratio": json_number(track.range_sigma_ratio),
         "observable": track.observable,
-        "residual_rms_norm": _num(track.residual_rms_norm),
+        "residual_rms_norm": json_number(track.residual_rms_norm),
         "window_frames": track.window_frames,
         "model": track.model,
     }
@@ -516,134 +511,3 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         window_frames=obj["window_frames"],
         model=obj.get("model"),
     )
-
-
-# --------------------------------------------------------------------------- status
-
-
-class RollingStats:
-    """The last ``maxlen`` samples of a quantity; percentiles on demand (thread-safe appends)."""
-
-    def __init__(self, maxlen: int = 1000) -> None:
-        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
-            raise InputError(f"RollingStats.maxlen must be a positive integer, got {maxlen!r}")
-        self._d: deque[float] = deque(maxlen=maxlen)
-
-    def add(self, x: float) -> None:
-        self._d.append(float(x))
-
-    def __len__(self) -> int:
-        return len(self._d)
-
-    def values(self) -> np.ndarray:
-        return np.array(list(self._d), dtype=float)
-
-    def summary(self) -> dict[str, float | int | None]:
-        """``{n, p50, p99, max}`` over the window; None values when empty."""
-        a = self.values()
-        if a.size == 0:
-            return {"n": 0, "p50": None, "p99": None, "max": None}
-        p50, p99 = np.percentile(a, [50, 99])
-        return {"n": int(a.size), "p50": _num(p50), "p99": _num(p99), "max": _num(a.max())}
-
-
-def build_status(
-    *,
-    vehicle: str,
-    uptime_s: float,
-    frames_in: int,
-    frames_processed: int,
-    frames_dropped: int,
-    frames_rejected: int,
-    tracks_published: int,
-    processing_ms: Mapping[str, Any],
-    latency_ms: Mapping[str, Any],
-    pose_wait_ms: Mapping[str, Any],
-    capture_to_track_ms: Mapping[str, Any] | None,
-    rejected: Mapping[str, int],
-    link: Mapping[str, Any] | None,
-    cpu_share: float | None,
-    pipeline_cpu_share: float | None,
-    last_track: Track | None,
-    estimator: str,
-    queue_length: int,
-    queue_wait_ms: Mapping[str, Any] | None = None,
-    publish_ms: Mapping[str, Any] | None = None,
-    stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
-    warnings: list[Mapping[str, str]] | tuple = (),
-) -> dict[str, Any]:
-    """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
-
-    ``frames``: ``in`` (payloads received), ``processed`` (a Track was produced), ``dropped``
-    (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames: sum of the
-    ``frame_*`` reasons), ``published`` (track messages put on zenoh).  ``processing_ms``: decode +
-    imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
-    monotonic clock); ``queue_wait_ms``: receipt to the start of processing; ``publish_ms``: the
-    zenoh ``put`` of the track; ``stages_ms``: parts of the processing (``imaging``, ``estimator``);
-    ``pose_wait_ms``: time a frame waited for lagging telemetry;
-    ``capture_to_track_ms``: capture (boot clock) to track published, via TIMESYNC (null until
-    synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
-    rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
-    ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
-    ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
-    latest track's state in short.  ``warnings``: the conditions active now that an operator must
-    fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
-    empty when all is well.
-    """
-    t = last_track
-    return {
-        "schema": STATUS_SCHEMA,
-        "vehicle": vehicle,
-        "uptime_s": _num(uptime_s),
-        "frames": {
-            "in": int(frames_in),
-            "processed": int(frames_processed),
-            "dropped": int(frames_dropped),
-            "rejected": int(frames_rejected),
-            "published": int(tracks_published),
-            "queue_length": int(queue_length),
-        },
-        "processing_ms": dict(processing_ms),
-        "latency_ms": dict(latency_ms),
-        "pose_wait_ms": dict(pose_wait_ms),
-        "queue_wait_ms": None if queue_wait_ms is None else dict(queue_wait_ms),
-        "publish_ms": None if publish_ms is None else dict(publish_ms),
-        "stages_ms": None if stages_ms is None else {k: dict(v) for k, v in stages_ms.items()},
-        "capture_to_track_ms": None if capture_to_track_ms is None else dict(capture_to_track_ms),
-        "rejected": {str(k): int(v) for k, v in sorted(rejected.items())},
-        "link": None if link is None else _jsonable(link),
-        "cpu": {"share": _num(cpu_share), "pipeline_share": _num(pipeline_cpu_share), "cores": _cores()},
-        "estimator": estimator,
-        "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
-        "track": None
-        if t is None
-        else {
-            "time_boot_us": t.time_boot_us,
-            "state": t.state,
-            "track_id": t.track_id,
-            "has_los": t.los is not None,
-            "has_position": t.has_position,
-            "observable": t.observable,
-            "window_frames": t.window_frames,
-        },
-    }
-
-
-def _cores() -> int | None:
-    return os.cpu_count()
-
-
-def _jsonable(v):
-    if isinstance(v, Mapping):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple, set, frozenset)):
-        return [_jsonable(x) for x in (sorted(v) if isinstance(v, (set, frozenset)) else v)]
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return _num(v)
-    if v is None or isinstance(v, str):
-        return v
-    return str(v)

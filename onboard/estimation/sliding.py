@@ -17,8 +17,8 @@ Every observation gets a fresh estimate of the target's state at its own time:
   :class:`~onboard.estimation.map_estimator.MapEstimator` re-solves the window every quarter of the
   window's span, between ``warmup_reselect_period_s`` (1 s, while the window is young and the estimate
   changes fastest) and ``reselect_period_s`` (5 s, once the window is full): it is the expensive part
-  (~0.2-0.4 s of one core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget
-  (issue 9 item 7).  Once the window is full, a selection that confirms the previous one (same motion
+  (~0.2-0.4 s of one core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget.
+  Once the window is full, a selection that confirms the previous one (same motion
   model and intensity, same verdict) doubles the period, up to ``reselect_max_period_s`` (20 s); any
   other outcome sets it back.  The data calls a selection early, after at least ``reselect_period_s``:
   when the newest frames' standardised innovations (the incremental update's residual before its
@@ -43,7 +43,9 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import pickle
 from collections import deque
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -223,7 +225,15 @@ def line_of_sight_unit_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam)
 
 
 class SlidingWindowEstimator:
-    """Feed observations with :meth:`add`; read the latest :class:`TrackEstimate`."""
+    """Feed observations with :meth:`add`; read the latest :class:`TrackEstimate`.
+
+    A worker that runs the estimator elsewhere (a child process) keeps it through :meth:`snapshot`,
+    :meth:`restore` and :meth:`rebuild`, and reads the noise model it was built with (:attr:`noise`).
+    """
+
+    #: left out of a snapshot: the MAP solver (its config and caches, ~11 MB pickled), which the estimator
+    #: being restored has built for itself
+    NOT_SNAPSHOTTED = ("map",)
 
     def __init__(
         self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None
@@ -264,6 +274,52 @@ class SlidingWindowEstimator:
         self._cov_scale = self.map.config.sigma_inflation**2
         self.stats = {"selections": 0, "updates": 0, "incremental": 0, "failures": 0, "skipped": 0}
 
+    @property
+    def noise(self) -> NoiseModel:
+        """The noise model the window is solved with."""
+        return self.map.noise
+
+    # ------------------------------------------------------------------ state
+    def snapshot(self) -> bytes:
+        """This estimator's state, all but the solver, as bytes (~0.9 MB for a full window: the rows, the
+        spline solution, the model, the last linearisation); :meth:`restore` puts it back."""
+        state = {k: v for k, v in vars(self).items() if k not in self.NOT_SNAPSHOTTED}
+        return pickle.dumps(state, protocol=pickle.HIGHEST_PROTOCOL)
+
+    def restore(self, snapshot: bytes) -> None:
+        """Put back the state of :meth:`snapshot` (of an estimator built with the same configuration).
+        Raises ValueError for bytes that are not such a snapshot.  Only for snapshots this program made:
+        they are unpickled."""
+        state = pickle.loads(snapshot)
+        if not isinstance(state, dict) or set(state) & set(self.NOT_SNAPSHOTTED):
+            raise ValueError("not an estimator snapshot")
+        vars(self).update(state)
+
+    def rebuild(self, rows: Iterable[tuple]) -> TrackEstimate | None:
+        """Replay ``rows`` (:meth:`add`'s arguments, oldest first) into this estimator, reset first, with one
+        model selection, on the newest row, instead of one per second of replayed data.
+
+        The earlier rows are only stored (the window trims itself as in normal running): ``min_frames`` is
+        out of reach while they go in; rows :meth:`add` refuses are skipped.  The newest row, under the
+        real configuration, solves the whole window cold.  Returns the estimate at the newest row (None
+        without rows or before the window can be solved); raises InputError when the newest row is refused.
+        """
+        rows = list(rows)
+        self.reset()
+        if not rows:
+            return None
+        config = self.config
+        self.config = dataclasses.replace(config, min_frames=1 << 30)
+        try:
+            for args in rows[:-1]:
+                try:
+                    self.add(*args)
+                except InputError:
+                    pass
+        finally:
+            self.config = config
+        return self.add(*rows[-1])
+
     # ------------------------------------------------------------------ input
     def add(
         self, t_s: float, uv_px, intrinsics: PinholeIntrinsics, p_cam_ned_m, q_ned_from_cam
@@ -294,11 +350,13 @@ class SlidingWindowEstimator:
                 return self.carry(self._last_est, t, p)
             return self.predict(t, p)
         if intrinsics.has_distortion:
-            uv = (
-                intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0],
-                intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1],
+            uv = np.asarray(
+                (
+                    intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0],
+                    intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1],
+                ),
+                dtype=float,
             )
-            uv = np.asarray(uv, dtype=float)
         self._t.append(t)
         self._uv.append(uv)
         self._k.append((intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px))
@@ -357,7 +415,7 @@ class SlidingWindowEstimator:
         if self._theta is None or self._prior is None or due:
             obs = self._observations()
             warm = None
-            if self._theta is not None and self._prob is not None:
+            if self._theta is not None and self._prob is not None and self._prior is not None:
                 warm = self._shift(self.map.problem(obs, self._prior, self._grid))
             # a window the last selection called observable is warm-started alone (plus one fresh range
             # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
@@ -391,7 +449,11 @@ class SlidingWindowEstimator:
                 self.map.config.sigma_inflation**2, float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30))
             )
 
-        elif self._since_full + 1 < self.config.resolve_every_frames and t < self._span_end(self._prob):
+        elif (
+            self._since_full + 1 < self.config.resolve_every_frames
+            and self._prob is not None
+            and t < self._span_end(self._prob)
+        ):
             return self._incremental(t)
         else:
             obs = self._observations()
@@ -408,20 +470,29 @@ class SlidingWindowEstimator:
         self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
         return self._estimate(prob, theta, t, self._H)
 
+    def _knots(self) -> KnotGrid:
+        """The knot grid, anchored by the first observation (EstimationError before it)."""
+        if self._grid is None:
+            raise EstimationError("no observation yet: no knot grid")
+        return self._grid
+
     def _span_end(self, prob: WindowProblem) -> float:
-        return self._grid.t_origin_s + (prob.first + prob.count - 3) * self._grid.spacing_s
+        grid = self._knots()
+        return grid.t_origin_s + (prob.first + prob.count - 3) * grid.spacing_s
 
     def _incremental(self, t: float) -> TrackEstimate:
         """One Gauss-Newton step adding only the newest observation to the last full solve's
         information (a rank-2 update); the next full iteration rebuilds the window exactly."""
-        prob, theta = self._prob, self._theta
+        prob, theta, H_window = self._prob, self._theta, self._H
+        if prob is None or theta is None or H_window is None:
+            raise EstimationError("no window solution to update")
         k = self._k[-1]
         xy = ((self._uv[-1][0] - k[2]) / k[0], (self._uv[-1][1] - k[3]) / k[1])
         r, Jr, ok = prob.measurement_rows(theta, t, xy, (k[0], k[1]), self._p[-1], self._R[-1])
         if not ok:
             raise EstimationError("new observation is behind the camera for the current solution")
         self._innovations.append(0.5 * float(r @ r))
-        H = self._H + Jr.T @ Jr
+        H = H_window + Jr.T @ Jr
         d = np.sqrt(np.diag(H))
         d[d == 0] = 1.0
         ch, _ = cho_factor_lower(H / np.outer(d, d))
@@ -434,6 +505,8 @@ class SlidingWindowEstimator:
     def _shift(self, prob: WindowProblem) -> np.ndarray:
         """Carry the previous solution to this window's control span; extrapolate new controls."""
         old = self._theta
+        if old is None:
+            raise EstimationError("no previous solution to carry over")
         old_nc = old.size - (prob.n_params - prob.nc)
         c_old = old[:old_nc].reshape(-1, 3)
         c = np.empty((prob.count, 3))
@@ -462,7 +535,7 @@ class SlidingWindowEstimator:
         scale: float | None = None,
     ) -> TrackEstimate:
         """State and covariance at ``t`` from the information matrix H of the window's parameters."""
-        rows = self._grid.basis(np.array([t]), prob.first, prob.count)
+        rows = self._knots().basis(np.array([t]), prob.first, prob.count)
         idx = rows.index[0]
         cols = (3 * idx[:, None] + np.arange(3)).reshape(-1)  # the 12 control coordinates that matter
         if chol is None:
@@ -524,7 +597,7 @@ class SlidingWindowEstimator:
 
         ``p_cam_ned_m`` (the camera at ``t_s``) sets the range; default: the last observation's camera.
         None outside the spline's span (no extrapolation beyond the last knot interval)."""
-        if self._theta is None or self._prior is None or not self._t:
+        if self._theta is None or self._prior is None or self._H is None or not self._t:
             return None
         t = float(t_s)
         if self._prob is None or t < self._t[0] or t >= self._span_end(self._prob):

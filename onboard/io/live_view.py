@@ -6,7 +6,8 @@ https://docs.foxglove.dev/docs/sdk/python; subprotocol ``foxglove.websocket.v1``
 ``live_view.host`` (127.0.0.1 unless configured otherwise).  Foxglove: *Open connection* ->
 *Foxglove WebSocket* -> ``ws://127.0.0.1:PORT``.
 
-Channels: the recording's (:mod:`onboard.io.record`, same topics and schemas) plus three for display:
+Channels: the recording's (:mod:`onboard.io.record`, same topics, schemas and encodings:
+:mod:`onboard.io.foxglove_messages`) plus three for display:
 
 =============================  ==========================  ==============================================
 topic                          schema                      what
@@ -37,13 +38,27 @@ import collections
 import logging
 import math
 import threading
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_rotmat, rotmat_from_quat
 from onboard.core.schema import Integer, Number, Text, config_dataclass
+from onboard.core.status import STATUS_SCHEMA
+from onboard.core.track import TRACK_SCHEMA, track_to_bytes
+from onboard.io.foxglove_messages import (
+    JSON_SCHEMAS,
+    camera_fix_fields,
+    location_fix_fields,
+    rawimage_fields,
+    stamp_from_us,
+)
+from onboard.io.record import CAMERA_FIX_TOPIC, TARGET_FIX_TOPIC
+
+if TYPE_CHECKING:
+    from foxglove import Context
+    from foxglove.websocket import WebSocketServer
 
 __all__ = [
     "LiveViewConfig",
@@ -163,8 +178,8 @@ class LiveView:
         self._frames_queued = 0
         self._stop = False
         self._thread: threading.Thread | None = None
-        self._server = None
-        self._ctx = None
+        self._server: WebSocketServer | None = None
+        self._ctx: Context | None = None
         self._ch: dict[str, Any] = {}
         self.published = 0
         self.dropped = 0
@@ -187,8 +202,6 @@ class LiveView:
             SceneUpdateChannel,
         )
 
-        from onboard.io.record import CAMERA_FIX_TOPIC, JSON_SCHEMAS, TARGET_FIX_TOPIC
-
         ctx = self._ctx = foxglove.Context()  # held: a collected context closes its channels
         s = self.settings
         try:
@@ -208,8 +221,8 @@ class LiveView:
 
         self._ch = {
             "frame": RawImageChannel(self.frame_topic, context=ctx),
-            "track": json_channel(self.track_topic, "irtrack.track/2"),
-            "status": json_channel(self.status_topic, "irtrack.status/1"),
+            "track": json_channel(self.track_topic, TRACK_SCHEMA),
+            "status": json_channel(self.status_topic, STATUS_SCHEMA),
             "target_fix": LocationFixChannel(TARGET_FIX_TOPIC, context=ctx),
             "camera_fix": LocationFixChannel(CAMERA_FIX_TOPIC, context=ctx),
             "annotations": ImageAnnotationsChannel(ANNOTATIONS_TOPIC, context=ctx),
@@ -303,8 +316,6 @@ class LiveView:
     def _pub_frame(self, frame) -> None:
         from foxglove.messages import RawImage
 
-        from onboard.io.record import rawimage_fields
-
         f = rawimage_fields(frame)
         sec, nsec = f.pop("timestamp")
         self._ch["frame"].log(RawImage(timestamp=_ts(sec, nsec), **f))
@@ -313,42 +324,21 @@ class LiveView:
         self._ch["status"].log(payload)
 
     def _pub_pose(self, t_us: int, pose) -> None:
-        from foxglove.messages import LocationFix
-
-        from onboard.core.frames import geodetic_from_ned
-
         self._pose = pose
         if pose is None:
             return
         p = np.asarray(pose.p_cam_ned_m, dtype=float)
         if np.all(np.isfinite(p)):
             self._camera_trail.append(p)
-            lat, lon, alt = geodetic_from_ned(p, pose.origin)
-            self._ch["camera_fix"].log(
-                LocationFix(
-                    timestamp=_ts_us(t_us),
-                    frame_id="camera",
-                    latitude=float(lat),
-                    longitude=float(lon),
-                    altitude=float(alt),
-                )
-            )
+            self._ch["camera_fix"].log(_location_fix(camera_fix_fields(pose, t_us)))
 
     def _pub_track(self, track, payload: bytes | None) -> None:
-        from foxglove.messages import LocationFix
-
-        from onboard.core.track import track_to_bytes
-        from onboard.io.record import _fix_fields
-
         self._ch["track"].log(payload if payload is not None else track_to_bytes(track))
         if track.lat_deg is not None:
-            f = _fix_fields(track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2)
-            sec, nsec = f.pop("timestamp")
-            if "position_covariance_type" in f:
-                from foxglove.messages import LocationFixPositionCovarianceType
-
-                f["position_covariance_type"] = LocationFixPositionCovarianceType.Known
-            self._ch["target_fix"].log(LocationFix(timestamp=_ts(sec, nsec), **f))
+            f = location_fix_fields(
+                track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2
+            )
+            self._ch["target_fix"].log(_location_fix(f))
         self._pub_annotations(track)
         self._pub_scene(track)
 
@@ -416,7 +406,7 @@ class LiveView:
 
         ents = []
         pose, K = self._pose, self.intrinsics
-        cam_lines = []
+        cam_lines: list[Any] = []
         if pose is not None and K is not None and np.all(np.isfinite(pose.p_cam_ned_m)):
             fr = frustum_lines_ned(
                 pose.p_cam_ned_m,
@@ -506,7 +496,18 @@ def _ts(sec: int, nsec: int):
 
 
 def _ts_us(t_us: int):
-    return _ts(int(t_us) // 1_000_000, (int(t_us) % 1_000_000) * 1000)
+    return _ts(*stamp_from_us(int(t_us)))
+
+
+def _location_fix(fields: dict[str, Any]):
+    """The SDK's LocationFix of :func:`~onboard.io.foxglove_messages.location_fix_fields`' dict."""
+    from foxglove.messages import LocationFix, LocationFixPositionCovarianceType
+
+    f = dict(fields)
+    sec, nsec = f.pop("timestamp")
+    if "position_covariance_type" in f:
+        f["position_covariance_type"] = LocationFixPositionCovarianceType.Known
+    return LocationFix(timestamp=_ts(sec, nsec), **f)
 
 
 def _json_bytes(obj) -> bytes:

@@ -63,8 +63,10 @@ from typing import Annotated, Any
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from onboard.core.clock_sync import ClockSync
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
-from onboard.core.pose import ClockSync, PoseBuffer, RejectCounter
+from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
@@ -440,7 +442,8 @@ class MavlinkLink:
     section's :meth:`MavlinkConfig.signing_key`) signs everything we send with ``signing_link_id``.
     ``extra_destinations``: (host, port) pairs that receive everything we send besides the autopilot
     (UDP links only; e.g. a ground-station endpoint of mavlink-router).
-    ``pose_buffer`` receives the telemetry; ``counters`` counts rejected input (share it with the
+    ``pose_buffer`` receives the telemetry (a :class:`~onboard.core.pose.PoseBuffer`, or the daemon's
+    locked :class:`~onboard.app.shared_pose.SharedPoseBuffer`); ``counters`` counts rejected input (share it with the
     buffer).  ``clock`` (s, monotonic) drives heartbeats, timeouts and retries and can be faked in
     tests; ``clock_ns`` stamps TIMESYNC and must be the clock that stamps camera frames, so that
     :meth:`to_boot_us` maps them onto the boot clock.
@@ -449,7 +452,7 @@ class MavlinkLink:
     def __init__(
         self,
         config: MavlinkConfig,
-        pose_buffer: PoseBuffer,
+        pose_buffer: PoseSink,
         counters: RejectCounter,
         *,
         gimballed: bool = False,

@@ -48,15 +48,15 @@ default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim
 ``record.max_files`` > 0 the oldest files beyond that many are deleted.  Every ``record.sync_mb`` written the
 file is synced to disk and its pages dropped from the page cache (:meth:`FlightRecorder._maybe_sync`).
 
-**Cost** (``python -m bench.record``: callers' and writer's CPU per frame, ``time.thread_time``): 0.44-0.48 ms per
-640 x 512 frame at load 1-5 on the 2-core VM (budget 0.5 ms; 0.69-0.79 ms before the changes below, same bench, same
-load).  Chunks are written by :class:`onboard.io.mcap_chunks.ChunkWriter` (the mcap package's layout byte for byte,
-one ``writev`` per chunk from where the data lies: a frame's pixels are not copied in user space; the kernel's copy into
-the page cache and the writeback are about half of what is left); the writer thread is woken per chunk's worth of
-messages or at its flush deadline, not per message (a wake-up per message cost both threads GIL hand-offs and gave
-the callers a 4-5 ms p99); chunks are uncompressed by default (``record.compression: none``; lz4 costs ~1.1 ms CPU per
-noisy frame for -37 % size, zstd ~4 ms for -63 %) and carry no CRCs (a CRC of 0 means "not computed" in MCAP); the raw
-MAVLink JSON is assembled from cached constant parts, the camera fix's geodesy is scalar (:func:`geodetic_from_ned_scalar`).
+**Cheap per frame** (``python -m bench.record`` prints the callers' and the writer's CPU per frame): chunks are
+written by :class:`onboard.io.mcap_chunks.ChunkWriter` (the mcap package's layout byte for byte, one ``writev`` per
+chunk from where the data lies: a frame's pixels are not copied in user space); the writer thread is woken per
+chunk's worth of messages or at its flush deadline, not per message (a wake-up per message costs both threads GIL
+hand-offs and the callers latency); chunks are uncompressed by default (``record.compression: none``: lz4 and zstd
+cost milliseconds of CPU per noisy frame) and carry no CRCs (a CRC of 0 means "not computed" in MCAP); the raw
+MAVLink JSON is assembled from cached constant parts; the camera fix's geodesy runs on floats
+(:func:`onboard.core.frames.geodetic_from_ned1`).  The message encodings are :mod:`onboard.io.foxglove_messages`'s,
+shared with the live view.
 """
 
 from __future__ import annotations
@@ -72,17 +72,32 @@ import os
 import threading
 import time
 from collections.abc import Callable, Mapping
-from typing import Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.core.frames import GeodeticOrigin
+from onboard.core.pose_types import PoseAt, PoseSample
 from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
+from onboard.core.status import STATUS_SCHEMA
+from onboard.core.track import TRACK_SCHEMA, track_to_bytes
+from onboard.io.foxglove_messages import (
+    FRAME_INPUT_SCHEMA,
+    JSON_SCHEMAS,
+    MAVLINK_RAW_SCHEMA,
+    camera_fix_fields,
+    file_descriptor_set,
+    location_fix_fields,
+    rawimage_pieces,
+)
+
+if TYPE_CHECKING:
+    from io import FileIO
+
+    from onboard.io.mcap_chunks import ChunkWriter
 
 __all__ = [
-    "FRAME_INPUT_SCHEMA",
-    "MAVLINK_RAW_SCHEMA",
-    "TRUTH_SCHEMA",
     "FRAME_INPUT_TOPIC",
     "TARGET_FIX_TOPIC",
     "CAMERA_FIX_TOPIC",
@@ -98,130 +113,15 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-MAVLINK_RAW_SCHEMA = "irtrack.mavlink_raw/1"
-FRAME_INPUT_SCHEMA = "irtrack.frame_input/1"
-TRUTH_SCHEMA = "irtrack.truth/1"
 FRAME_INPUT_TOPIC = "/onboard/frame_input"
 TARGET_FIX_TOPIC = "/onboard/target_fix"
 CAMERA_FIX_TOPIC = "/onboard/camera_fix"
 TRUTH_TOPIC = "/groundsim/truth"
-CAMERA_FRAME_ID = "ir_camera"
 MB = 1_000_000
 
 
 def mavlink_topic(link: str) -> str:
     return f"/mavlink/{link}"
-
-
-# --------------------------------------------------------------------------- JSON schemas
-
-_NUM_OR_NULL = {"type": ["number", "null"]}
-_VEC3 = {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
-_FRAME_STAMP = {"seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}}  # which frame, when (boot clock)
-
-
-def _object_schema(title: str, description: str, properties: dict, required: list[str]) -> dict[str, Any]:
-    """The JSON Schema of an object (its keys in the order the recordings have always stored them)."""
-    return {
-        "title": title,
-        "description": description,
-        "type": "object",
-        "properties": properties,
-        "required": required,
-    }
-
-
-JSON_SCHEMAS: dict[str, dict[str, Any]] = {
-    schema["title"]: schema
-    for schema in (
-        _object_schema(
-            MAVLINK_RAW_SCHEMA,
-            "Raw MAVLink bytes as read from one link: a UDP datagram or a serial/TCP read, unparsed.",
-            {
-                "link": {"type": "string", "description": "which link: autopilot | gcs | vehicle (simulator)"},
-                "direction": {"type": "string", "enum": ["rx", "tx"]},
-                "receive_time_ns": {"type": "integer", "description": "monotonic clock of the recording process, ns"},
-                "source": {"type": ["string", "null"], "description": "peer address host:port, when known"},
-                "data": {"type": "string", "contentEncoding": "base64", "description": "the bytes"},
-            },
-            ["link", "direction", "receive_time_ns", "data"],
-        ),
-        _object_schema(
-            FRAME_INPUT_SCHEMA,
-            "A frame the pipeline took from its queue, with the pose interpolated at its capture time.",
-            {
-                **_FRAME_STAMP,
-                "received_ns": {"type": "integer"},
-                "pose_looked_up": {"type": "boolean"},
-                "pose": {
-                    "type": ["object", "null"],
-                    "properties": {
-                        "time_boot_us": {"type": "integer"},
-                        "p_ned_m": _VEC3,
-                        "v_ned_mps": _VEC3,
-                        "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
-                        "p_cam_ned_m": _VEC3,
-                        "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
-                        "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
-                        "origin": {"type": "object"},
-                        "epoch": {"type": "integer"},
-                    },
-                },
-            },
-            ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
-        ),
-        _object_schema(
-            "irtrack.track/2",
-            "One processed frame's track and 3-D estimate (full table in onboard/core/track.py).",
-            {
-                "schema": {"type": "string"},
-                "vehicle": {"type": "string"},
-                **_FRAME_STAMP,
-                "track_id": {"type": ["integer", "null"]},
-                "state": {"type": "string", "enum": ["searching", "tracking", "coasting", "lost"]},
-                "measurement_valid": {"type": "boolean"},
-                "u_px": _NUM_OR_NULL,
-                "v_px": _NUM_OR_NULL,
-                "bbox": {"type": ["array", "null"], "items": {"type": "number"}},
-                "pose_valid": {"type": "boolean"},
-                "lat_deg": _NUM_OR_NULL,
-                "lon_deg": _NUM_OR_NULL,
-                "alt_m": _NUM_OR_NULL,
-                "ned_m": _VEC3,
-                "vel_ned_mps": _VEC3,
-                "sigma_ned_m": _VEC3,
-                "range_m": _NUM_OR_NULL,
-                "range_sigma_ratio": _NUM_OR_NULL,
-                "observable": {"type": "boolean"},
-                "window_frames": {"type": "integer"},
-                "model": {"type": ["string", "null"]},
-            },
-            ["schema", "vehicle", "seq", "time_boot_us", "state"],
-        ),
-        _object_schema(
-            "irtrack.status/1",
-            "The daemon's status (frames in/processed/dropped/rejected, latencies, link, warnings, record).",
-            {"schema": {"type": "string"}, "vehicle": {"type": "string"}, "uptime_s": {"type": "number"}},
-            ["schema"],
-        ),
-        _object_schema(
-            TRUTH_SCHEMA,
-            "The simulator's exact state at one rendered frame (groundsim run --record).",
-            {
-                **_FRAME_STAMP,
-                "t_s": {"type": "number"},
-                "target_ned_m": _VEC3,
-                "target_vel_ned_mps": _VEC3,
-                "camera_ned_m": _VEC3,
-                "target_lat_deg": {"type": "number"},
-                "target_lon_deg": {"type": "number"},
-                "target_alt_m": {"type": "number"},
-                "origin": {"type": "object"},
-            },
-            ["seq", "time_boot_us"],
-        ),
-    )
-}
 
 
 # --------------------------------------------------------------------------- pure encoders
@@ -241,8 +141,8 @@ def _arr(v) -> np.ndarray:
     return np.array(v, dtype=float)  # a JSON null (None) becomes NaN
 
 
-def pose_to_json(pose) -> dict[str, Any] | None:
-    """A :class:`~onboard.core.pose.PoseAt` as a JSON-able dict (NaN as null); :func:`pose_from_json` inverts it."""
+def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
+    """A :class:`~onboard.core.pose_types.PoseAt` as a JSON-able dict (NaN as null); :func:`pose_from_json` inverts it."""
     if pose is None:
         return None
     b, o = pose.body, pose.origin
@@ -267,14 +167,11 @@ def pose_to_json(pose) -> dict[str, Any] | None:
     }
 
 
-def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose"):
-    """The :class:`~onboard.core.pose.PoseAt` of :func:`pose_to_json`'s dict (None for None); raises
+def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt | None:
+    """The :class:`~onboard.core.pose_types.PoseAt` of :func:`pose_to_json`'s dict (None for None); raises
     :class:`InputError` naming ``where`` and the field on a malformed one."""
     if obj is None:
         return None
-    from onboard.core.frames import GeodeticOrigin
-    from onboard.core.pose import PoseAt, PoseSample
-
     try:
         o = obj["origin"]
         body = PoseSample(
@@ -309,144 +206,6 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
     return a
-
-
-def rawimage_fields(frame) -> dict[str, Any]:
-    """foxglove.RawImage fields of an :class:`~onboard.core.irframe.IrFrame` (timestamp = capture time, boot clock)."""
-    px = frame.pixels
-    h, w = px.shape
-    mono16 = px.dtype == np.uint16
-    t_us = int(frame.time_boot_us)
-    return {
-        "timestamp": (t_us // 1_000_000, (t_us % 1_000_000) * 1000),
-        "frame_id": CAMERA_FRAME_ID,
-        "width": int(w),
-        "height": int(h),
-        "encoding": "mono16" if mono16 else "mono8",
-        "step": int(w * (2 if mono16 else 1)),
-        "data": np.ascontiguousarray(px, dtype="<u2" if mono16 else np.uint8).tobytes(),
-    }
-
-
-_RAWIMAGE_DATA_TAG = bytes([(6 << 3) | 2])  # foxglove.RawImage field 6 (data), wire type 2 (length-delimited)
-
-
-def _varint(n: int) -> bytes:
-    out = bytearray()
-    while True:
-        b = n & 0x7F
-        n >>= 7
-        if n:
-            out.append(b | 0x80)
-        else:
-            out.append(b)
-            return bytes(out)
-
-
-def rawimage_pieces(frame, header_cls=None) -> tuple[bytes, memoryview]:
-    """The serialized foxglove.RawImage of an :class:`~onboard.core.irframe.IrFrame` (:func:`rawimage_fields`) as two
-    buffers whose concatenation is the message, the pixels not copied: the protobuf library serializes the small
-    fields, the ``data`` field's tag and length are appended by hand (first buffer), the pixel buffer itself is the
-    second (a memoryview of the frame's array) -- a protobuf parser merges the concatenation into the same
-    message (field order is free on the wire).  ``header_cls``: the RawImage class."""
-    if header_cls is None:
-        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as header_cls
-    px = frame.pixels
-    h, w = px.shape
-    mono16 = px.dtype == np.uint16
-    t_us = int(frame.time_boot_us)
-    msg = header_cls(
-        frame_id=CAMERA_FRAME_ID,
-        width=int(w),
-        height=int(h),
-        encoding="mono16" if mono16 else "mono8",
-        step=int(w * (2 if mono16 else 1)),
-    )
-    msg.timestamp.seconds, msg.timestamp.nanos = t_us // 1_000_000, (t_us % 1_000_000) * 1000
-    buf = memoryview(np.ascontiguousarray(px, dtype="<u2" if mono16 else np.uint8)).cast("B")
-    return msg.SerializeToString() + _RAWIMAGE_DATA_TAG + _varint(buf.nbytes), buf
-
-
-def rawimage_bytes(frame, header_cls=None) -> bytes:
-    """:func:`rawimage_pieces` joined: the serialized foxglove.RawImage of a frame, the pixels copied once."""
-    return b"".join(rawimage_pieces(frame, header_cls))
-
-
-def irframe_from_rawimage(seq: int, img, where: str = "frame"):
-    """The :class:`~onboard.core.irframe.IrFrame` of a decoded foxglove.RawImage protobuf (``seq`` from the MCAP message)."""
-    from onboard.core.irframe import IrFrame
-
-    enc = img.encoding
-    if enc not in ("mono8", "mono16"):
-        raise InputError(f"{where}: encoding: expected mono8 or mono16, got {enc!r}")
-    dtype = np.dtype("<u2") if enc == "mono16" else np.dtype(np.uint8)
-    if img.step != img.width * dtype.itemsize or len(img.data) != img.step * img.height:
-        raise InputError(
-            f"{where}: {len(img.data)} bytes do not make {img.width} x {img.height} {enc} (step {img.step})"
-        )
-    px = np.frombuffer(img.data, dtype=dtype).reshape(img.height, img.width)
-    if enc == "mono16":
-        px = px.astype(np.uint16)  # native order
-    t_us = int(img.timestamp.seconds) * 1_000_000 + int(img.timestamp.nanos) // 1000
-    return IrFrame(int(seq), t_us, px)
-
-
-_ENU_FROM_NED = (1, 0, 2)  # ENU axis i is NED axis _ENU_FROM_NED[i] times _ENU_SIGN[i]
-_ENU_SIGN = (1.0, 1.0, -1.0)
-
-
-def _fix_fields(lat_deg, lon_deg, alt_m, t_us: int, frame_id: str, cov_ned_m2=None) -> dict[str, Any]:
-    out = {
-        "timestamp": (t_us // 1_000_000, (t_us % 1_000_000) * 1000),
-        "frame_id": frame_id,
-        "latitude": float(lat_deg),
-        "longitude": float(lon_deg),
-        "altitude": float(alt_m),
-    }
-    if cov_ned_m2 is not None:
-        c = np.asarray(cov_ned_m2, dtype=float).reshape(3, 3).tolist()
-        # LocationFix wants ENU, row-major 3x3: P C P^T with P = [[0,1,0],[1,0,0],[0,0,-1]] (swap N/E, flip D -> U),
-        # written as the permutation and signs it is (+ 0.0: a zero is +0.0, as the matrix product gives it)
-        out["position_covariance"] = [
-            _ENU_SIGN[i] * _ENU_SIGN[j] * c[_ENU_FROM_NED[i]][_ENU_FROM_NED[j]] + 0.0
-            for i in range(3)
-            for j in range(3)
-        ]
-        out["position_covariance_type"] = 3  # KNOWN
-    return out
-
-
-_WGS84_A_M = 6378137.0
-_WGS84_E2 = 6.69437999014e-3  # first eccentricity squared
-
-
-def geodetic_from_ned_scalar(p_ned_m, origin) -> tuple[float, float, float]:
-    """:func:`onboard.core.frames.geodetic_from_ned` for one point in plain floats (WGS84; the same rotation about
-    the origin, then ECEF -> geodetic by fixed-point iteration on the latitude, Bowring's form,
-    converged to < 1e-12 rad within 5 steps below 100 km altitude; the height from the normal's
-    projection, valid at every latitude).  ~50x faster than the numpy/pymap3d path on a scalar: the
-    recorder converts one camera position per frame."""
-    a, e2 = _WGS84_A_M, _WGS84_E2
-    lat0, lon0 = math.radians(origin.lat_deg), math.radians(origin.lon_deg)
-    sl, cl, so, co = math.sin(lat0), math.cos(lat0), math.sin(lon0), math.cos(lon0)
-    n0 = a / math.sqrt(1.0 - e2 * sl * sl)
-    x0 = (n0 + origin.alt_m) * cl * co
-    y0 = (n0 + origin.alt_m) * cl * so
-    z0 = (n0 * (1.0 - e2) + origin.alt_m) * sl
-    n, e, d = (float(v) for v in p_ned_m)
-    x = x0 - sl * co * n - so * e - cl * co * d
-    y = y0 - sl * so * n + co * e - cl * so * d
-    z = z0 + cl * n - sl * d
-    lon = math.atan2(y, x)
-    p = math.hypot(x, y)
-    lat = math.atan2(z, p * (1.0 - e2))
-    for _ in range(5):
-        s = math.sin(lat)
-        nn = a / math.sqrt(1.0 - e2 * s * s)
-        lat = math.atan2(z + e2 * nn * s, p)
-    s, c = math.sin(lat), math.cos(lat)
-    alt = p * c + z * s - a * math.sqrt(1.0 - e2 * s * s)
-    return math.degrees(lat), math.degrees(lon), alt
 
 
 def rotated_path(path: str, index: int) -> str:
@@ -555,7 +314,7 @@ class FlightRecorder:
         self._cond = threading.Condition(threading.Lock())
         self._queued_bytes = 0
         # the writer is woken when a chunk's worth is queued or at its flush deadline, not per message: a wake-up
-        # per message (6 a frame) cost the writer and the callers GIL hand-offs (python -m bench.record)
+        # per message (6 a frame) costs the writer and the callers GIL hand-offs
         self._wake_bytes = min(settings.chunk_bytes, settings.queue_bytes // 4)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -573,13 +332,14 @@ class FlightRecorder:
         self._synced = 0
         self.files: list[str] = []
         self.max_queue_bytes = 0
-        self._writer = None
-        self._file = None
+        self._writer: ChunkWriter | None = None
+        self._file: FileIO | None = None
+        self._index = 0
         self._channels: dict[str, int] = {}
         self._schemas: dict[str, int] = {}
         self._file_started_s = 0.0
         self._closed_bytes = 0
-        self._pb = None
+        self._pb: dict[str, Any] | None = None
         self._mav_parts: dict = {}  # (link, direction, source) -> the constant parts of its mavlink_raw JSON
 
     # ------------------------------------------------------------------ producers (any thread)
@@ -631,7 +391,7 @@ class FlightRecorder:
 
     def on_status(self, payload: bytes) -> bool:
         return self._put(
-            "json", self.status_topic, len(payload) + 100, ("irtrack.status/1", bytes(payload), self._clock_ns())
+            "json", self.status_topic, len(payload) + 100, (STATUS_SCHEMA, bytes(payload), self._clock_ns())
         )
 
     def on_json(self, topic: str, schema: str, obj: Mapping[str, Any] | bytes) -> bool:
@@ -726,18 +486,18 @@ class FlightRecorder:
         path = rotated_path(self.path, index)
         d = os.path.dirname(os.path.abspath(path))
         os.makedirs(d, exist_ok=True)
-        self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)
+        f = self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)
         # the mcap package's layout, the frames' pixels written from where they lie (onboard.io.mcap_chunks); no CRCs:
-        # the chunk CRC alone is ~0.1 ms per 330 kB frame (MCAP: a CRC of 0 means "not computed")
-        self._writer = ChunkWriter(
-            self._file.fileno(), chunk_size=s.chunk_bytes, compression=s.compression, enable_crcs=False
+        # a CRC reads every frame's pixels once more (MCAP: a CRC of 0 means "not computed")
+        w = self._writer = ChunkWriter(
+            f.fileno(), chunk_size=s.chunk_bytes, compression=s.compression, enable_crcs=False
         )
-        self._writer.start(profile="", library="irtrack onboard.io.record")
+        w.start(profile="", library="irtrack onboard.io.record")
         meta = dict(self._meta)
         meta["file_index"] = str(index)
         meta["started_utc"] = datetime.datetime.now(datetime.UTC).isoformat(timespec="milliseconds")
-        self._writer.add_metadata("irtrack", meta)
-        self._writer.flush()  # the header and metadata are on disk before the first message
+        w.add_metadata("irtrack", meta)
+        w.flush()  # the header and metadata are on disk before the first message
         self._channels, self._schemas = {}, {}
         self._synced = 0
         self._file_started_s = time.monotonic()
@@ -753,12 +513,13 @@ class FlightRecorder:
         log.info("recording to %s", path)
 
     def _finish(self) -> None:
-        if self._writer is None:
+        w, f = self._writer, self._file
+        if w is None or f is None:
             return
         try:
-            self._writer.finish()
-            self._closed_bytes += self._writer.position
-            self._file.close()
+            w.finish()
+            self._closed_bytes += w.position
+            f.close()
         except Exception as exc:  # noqa: BLE001
             self.write_errors += 1
             log.warning("recorder: cannot finish %s: %s", self.files[-1] if self.files else "?", exc)
@@ -769,15 +530,15 @@ class FlightRecorder:
         """Past ``sync_bytes`` written since the last sync: the file's data to disk (``fdatasync``, the GIL
         released) and its pages out of the page cache (``POSIX_FADV_DONTNEED``).  The flight computer's page
         cache does not fill with the flight, a power cut loses at most that much, and the writer's next
-        pages are recycled ones: on the 2-core test VM, writing into fresh page-cache pages costs
-        ~2 ms CPU per MB in the kernel, recycled ones ~0.35 ms (bench.record prints it)."""
-        s = self.settings
-        if self._file is None or s.sync_bytes <= 0:
+        pages are recycled ones, which the kernel fills at a fraction of the CPU that fresh page-cache pages cost
+        (``python -m bench.record`` prints both)."""
+        s, w, f = self.settings, self._writer, self._file
+        if w is None or f is None or s.sync_bytes <= 0:
             return
-        pos = self._writer.position
+        pos = w.position
         if pos - self._synced < s.sync_bytes:
             return
-        fd = self._file.fileno()
+        fd = f.fileno()
         os.fdatasync(fd)
         if hasattr(os, "posix_fadvise"):
             os.posix_fadvise(fd, 0, pos, os.POSIX_FADV_DONTNEED)
@@ -797,7 +558,7 @@ class FlightRecorder:
 
     # encoding ---------------------------------------------------------
 
-    def _protobuf(self):
+    def _protobuf(self) -> dict[str, Any]:
         if self._pb is None:
             from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
             from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
@@ -805,7 +566,7 @@ class FlightRecorder:
             self._pb = {"foxglove.RawImage": RawImage, "foxglove.LocationFix": LocationFix}
         return self._pb
 
-    def _channel(self, topic: str, schema: str) -> int:
+    def _channel(self, w: ChunkWriter, topic: str, schema: str) -> int:
         cid = self._channels.get(topic)
         if cid is not None:
             return cid
@@ -813,23 +574,24 @@ class FlightRecorder:
         if schema.startswith("foxglove."):
             msg_enc = "protobuf"
             if sid is None:
-                sid = self._writer.register_schema(schema, "protobuf", _file_descriptor_set(self._protobuf()[schema]))
+                sid = w.register_schema(schema, "protobuf", file_descriptor_set(self._protobuf()[schema]))
         else:
             msg_enc = "json"
             if sid is None:
-                sid = self._writer.register_schema(schema, "jsonschema", json.dumps(JSON_SCHEMAS[schema]).encode())
+                sid = w.register_schema(schema, "jsonschema", json.dumps(JSON_SCHEMAS[schema]).encode())
         self._schemas[schema] = sid
-        cid = self._writer.register_channel(topic, msg_enc, sid, {})
+        cid = w.register_channel(topic, msg_enc, sid, {})
         self._channels[topic] = cid
         return cid
 
     def _add(
         self, topic: str, schema: str, data, mono_ns: int, sequence: int = 0, publish_ns: int | None = None
     ) -> None:
+        w = self._writer
+        if w is None:
+            return
         t = self.log_time_ns(mono_ns)
-        self._writer.add_message(
-            self._channel(topic, schema), t, data, t if publish_ns is None else publish_ns, sequence
-        )
+        w.add_message(self._channel(w, topic, schema), t, data, t if publish_ns is None else publish_ns, sequence)
         self.messages_written += 1
 
     def _pb_bytes(self, schema: str, fields: dict[str, Any]) -> bytes:
@@ -889,27 +651,24 @@ class FlightRecorder:
             now = self._clock_ns()
             self._add(topic, FRAME_INPUT_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
             if pose is not None:
-                lat, lon, alt = geodetic_from_ned_scalar(pose.p_cam_ned_m, pose.origin)
                 self._add(
                     CAMERA_FIX_TOPIC,
                     "foxglove.LocationFix",
-                    self._pb_bytes("foxglove.LocationFix", _fix_fields(lat, lon, alt, t_us, "camera")),
+                    self._pb_bytes("foxglove.LocationFix", camera_fix_fields(pose, t_us)),
                     now,
                 )
         elif kind == "track":
             track, payload, now = item
             if payload is None:
-                from onboard.core.track import track_to_bytes
-
                 payload = track_to_bytes(track)
-            self._add(topic, "irtrack.track/2", payload, now, sequence=int(track.seq))
+            self._add(topic, TRACK_SCHEMA, payload, now, sequence=int(track.seq))
             if track.lat_deg is not None:
                 self._add(
                     TARGET_FIX_TOPIC,
                     "foxglove.LocationFix",
                     self._pb_bytes(
                         "foxglove.LocationFix",
-                        _fix_fields(
+                        location_fix_fields(
                             track.lat_deg, track.lon_deg, track.alt_m, track.time_boot_us, "target", track.cov_p_ned_m2
                         ),
                     ),
@@ -923,24 +682,3 @@ class FlightRecorder:
             self._add(topic, schema, data, now)
         else:  # pragma: no cover - programming error
             raise InputError(f"unknown record kind {kind!r}")
-
-
-def _file_descriptor_set(msg_cls) -> bytes:
-    """The FileDescriptorSet of a protobuf message class (its file and every dependency), as MCAP wants."""
-    from google.protobuf import descriptor_pb2
-
-    fds = descriptor_pb2.FileDescriptorSet()
-    seen: set[str] = set()
-
-    def add(fd) -> None:
-        if fd.name in seen:
-            return
-        seen.add(fd.name)
-        for dep in fd.dependencies:
-            add(dep)
-        proto = descriptor_pb2.FileDescriptorProto()
-        fd.CopyToProto(proto)
-        fds.file.append(proto)
-
-    add(msg_cls.DESCRIPTOR.file)
-    return fds.SerializeToString()

@@ -52,7 +52,8 @@ from dataclasses import dataclass
 import zenoh
 
 from onboard.core.errors import ConfigError, IrtrackError
-from onboard.core.track import STATUS_SCHEMA, TRACK_SCHEMA
+from onboard.core.status import STATUS_SCHEMA
+from onboard.core.track import TRACK_SCHEMA
 
 __all__ = [
     "DEFAULT_VEHICLE",

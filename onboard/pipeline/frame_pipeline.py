@@ -40,7 +40,7 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    mismatch drives it far above (:mod:`onboard.app.watchdog` warns).
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
-in the shared :class:`~onboard.core.pose.RejectCounter`: ``frame_short``, ``frame_magic``,
+in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
 ``frame_out_of_order``, ``frame_image``.  Notable accepted events: ``frame_time_reset``,
@@ -60,11 +60,13 @@ from typing import Any, NoReturn, Protocol
 
 import numpy as np
 
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
 from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
-from onboard.core.pose import PoseAt, RejectCounter
-from onboard.core.track import LineOfSight, RollingStats, Track, line_of_sight_ned
+from onboard.core.pose_types import PoseAt
+from onboard.core.status import RollingStats
+from onboard.core.track import LineOfSight, Track, line_of_sight_ned
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 

@@ -12,7 +12,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from groundsim.evaluation.campaign import LOG_NAME, TABLE_NAME, TIMING_COLUMNS, load_spec, read_log, run_campaign
+from groundsim.evaluation.campaign import LOG_NAME, read_log, run_campaign
+from groundsim.evaluation.campaign_report import TABLE_NAME, TIMING_COLUMNS
+from groundsim.evaluation.campaign_spec import load_spec
 from groundsim.evaluation.eval import load_base_config
 
 REPO = Path(__file__).resolve().parents[2]

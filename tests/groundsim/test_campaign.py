@@ -12,19 +12,23 @@ import pytest
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.campaign import (
     LOG_NAME,
-    REPORT_NAME,
-    TABLE_NAME,
-    Geometry,
-    ManoeuvreScaled,
-    MovedTarget,
     append_rows,
-    derive_scenario,
-    load_spec,
     plan_runs,
     read_log,
     run_campaign,
     run_id,
     score_track,
+)
+from groundsim.evaluation.campaign_report import (
+    REPORT_NAME,
+    TABLE_NAME,
+)
+from groundsim.evaluation.campaign_spec import (
+    Geometry,
+    ManoeuvreScaled,
+    MovedTarget,
+    derive_scenario,
+    load_spec,
     spec_from_dict,
 )
 from groundsim.world.motion import Circular, Cubic

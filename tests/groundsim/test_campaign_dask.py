@@ -12,16 +12,20 @@ import pytest
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.campaign import (
     LOG_NAME,
-    PARQUET_NAME,
-    TABLE_NAME,
     check_workers,
     code_fingerprint,
-    load_spec,
     plan_runs,
     read_log,
     run_id,
+)
+from groundsim.evaluation.campaign_report import (
+    PARQUET_NAME,
+    TABLE_NAME,
     table_rows,
     write_table,
+)
+from groundsim.evaluation.campaign_spec import (
+    load_spec,
 )
 from onboard.core.errors import ConfigError
 from tests.groundsim.campaign_helpers import (

@@ -17,7 +17,6 @@ import yaml
 
 from groundsim.evaluation.demo import (
     DemoOutcome,
-    ProcCpu,
     TrackStore,
     TruthTail,
     aligned_arrays,
@@ -28,6 +27,7 @@ from groundsim.evaluation.demo import (
     sim_command,
     status_line,
 )
+from groundsim.evaluation.proc_cpu import ProcCpu
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.truth import TruthWriter, truth_row
 from onboard.app.config import load_config
@@ -201,7 +201,7 @@ def test_scoring_matches_truth_by_capture_time(tmp_path):
         last_status={"processing_ms": {"p50": 4.2, "p99": 30.0}},
     )
     table = format_demo_table(s, out)
-    assert "| observable frames (published by default) | 15 |" in table
+    assert "| observable frames (published with observable: true) | 15 |" in table
     assert "continuity 50 %" in table and "daemon 25 %" in table and "p50 4.2 ms" in table
 
 
@@ -218,11 +218,13 @@ def test_status_line_shows_error_and_observability():
         0.31,
         None,
     )
-    assert line.startswith("[  3.0 s] | sim 90/600 fr | daemon 88 proc 1 drop 5.2 ms | tracking #2")
-    assert "range 101.5 m (truth 100.0)" in line and "err 2.00 m 2.00 % unobservable" in line
-    assert line.endswith("cpu sim 31 % daemon - %")
+    assert line.startswith(
+        "[  3.0 s] | sim 90/600 frames | daemon 88 processed, 1 dropped, p50 5.2 ms/frame | tracking #2"
+    )
+    assert "range 101.5 m (truth 100.0 m)" in line and "err 2.00 m (2.00 % of range) unobservable" in line
+    assert line.endswith("CPU sim 31 %, daemon - %")
     assert "track -" in status_line(0.5, 0, 600, None, None, None, None, None, None, None)
-    assert "no 3-D yet (7 obs)" in status_line(
+    assert "no 3-D yet (7 frames in the window)" in status_line(
         1, 1, 2, None, {"state": "coasting", "window_frames": 7}, None, None, None, None, None
     )
 
@@ -271,7 +273,7 @@ def test_proc_cpu_counts_child_processes():
 @pytest.mark.integration
 @pytest.mark.timeout(DEMO_WALL_LIMIT_S + 30)
 def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
-    """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 0."""
+    """A real demo (daemon + realtime simulator on loopback): live lines, then Ctrl-C -> table, exit 130."""
     out = tmp_path / "demo"
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     cmd = [
@@ -310,7 +312,8 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
             proc.kill()
             proc.wait()
     text = "\n".join(lines) + "\n" + rest
-    assert proc.returncode == 0, text
+    assert proc.returncode == 130, text  # Ctrl-C: the interrupted line and 130, after the table and the files
+    assert f"interrupted: the live run's report in {out / 'report.md'}" in text, text
     assert "daemon ready" in text and "| online track vs truth |" in text and "report: " in text, text
     rep = json.loads((out / "report.json").read_text())
     assert rep["stopped_early"] is True

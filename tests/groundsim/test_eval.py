@@ -28,10 +28,9 @@ from groundsim.evaluation.eval import (
     onboard_config_for,
     run_eval,
     run_lockstep,
-    score_run,
-    summarise,
 )
 from groundsim.evaluation.report import ape_rmse_m, read_tum, write_eval_report, write_tum
+from groundsim.evaluation.scoring import score_run, summarise
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError
@@ -477,6 +476,19 @@ def test_run_eval_in_a_pool_matches_in_process(lockstep_pair):
     np.testing.assert_array_equal(two.runs[0].uv_px, a.uv_px[:n])  # the same frames as the longer run's first ones
 
 
+def test_eval_duration_beyond_the_scenarios_continues_its_motion(lockstep_pair):
+    """--duration longer than the scenario's duration_s: the scripted motion continues (no refusal), the
+    first frames are the scenario's own."""
+    sc, a, _ = lockstep_pair
+    short = dataclasses.replace(sc, duration_s=0.5)
+    opts = EvalOptions(duration_s=1.0, batch=False, keep_frame=False)
+    res = run_eval([short], [3], opts, workers=1, progress=False)
+    r = res.runs[0]
+    assert r.error is None and 28 <= r.frames <= 30 and r.t_s[-1] > 0.9
+    n = min(r.frames, a.frames)
+    np.testing.assert_array_equal(r.uv_px[:n], a.uv_px[:n])
+
+
 # --------------------------------------------------------------------------- command line
 
 
@@ -492,7 +504,7 @@ def _cli(argv):
     [
         (["eval", "--seeds", "0"], "--seeds: expected an integer >= 1"),
         (["eval", "--scenario", "no_such_scenario.yaml"], "no_such_scenario.yaml"),
-        (["eval", "--scenario", "P1", "--duration", "99"], "--duration: expected at most P1's duration_s"),
+        (["eval", "--scenario", "P1", "--duration", "3601"], "--duration: expected at most 3600 s"),
         (["eval", "--workers", "0"], "--workers: expected an integer >= 1"),
         (["eval", "--pixel-sigma", "-1"], "--pixel-sigma"),
     ],

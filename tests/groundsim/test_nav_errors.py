@@ -11,7 +11,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.app import cli
-from groundsim.app.run import SimCore
 from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
 from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
 from groundsim.world.nav_errors import (
@@ -23,6 +22,7 @@ from groundsim.world.nav_errors import (
     resolve_nav_noise,
 )
 from groundsim.world.scenario import ScenarioError, load_noise_cases, load_scenario, scenario_from_dict, scenarios_dir
+from groundsim.world.sim import SimCore
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError
 from onboard.core.frames import (
@@ -42,7 +42,7 @@ P1 = scenarios_dir() / "P1.yaml"
 N_TICKS = 20_000  # statistics over this many samples: sample std within ~1 % (3 sigma ~ 1.5 %)
 STD_RTOL = 0.03
 ATOL_RAD = 1e-12
-ATOL_M = 1e-5  # 10 um: offset_geodetic drops the curvature term |d|^2 / 2R (6 um at 8.7 m)
+ATOL_M = 1e-5  # 10 um: a NED offset at a point against its flat-Earth reading (curvature |d|^2 / 2R: 6 um at 8.7 m)
 T_GRID_S = np.arange(N_TICKS) / 120.0
 
 
@@ -143,7 +143,9 @@ def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitud
     np.testing.assert_allclose(
         ned_from_geodetic(rep["lat_deg"], rep["lon_deg"], rep["alt_amsl_m"], origin), err.p_err_ned_m, atol=ATOL_M
     )
-    assert rep["alt_rel_m"] - st["alt_rel_m"] == pytest.approx(-0.4, abs=1e-12)
+    d_alt_m = rep["alt_amsl_m"] - st["alt_amsl_m"]
+    assert rep["alt_rel_m"] - st["alt_rel_m"] == pytest.approx(d_alt_m, abs=1e-12)  # moves with the AMSL altitude
+    assert d_alt_m == pytest.approx(-0.4, abs=ATOL_M)  # 0.4 m down; the Earth's curvature over 1.7 m is 0.2 um
     np.testing.assert_allclose(rep["v_ned_mps"], st["v_ned_mps"] + err.v_err_ned_mps, atol=1e-15)
     for key in ("q_ned_from_body", "q_gimbal"):  # R_rep R_true^T = Exp(phi), in NED
         dq = quat_multiply(rep[key], quat_conjugate(st[key]))
@@ -163,7 +165,7 @@ def test_reported_state_applies_the_sample_to_position_velocity_and_both_attitud
 def test_offset_geodetic_is_the_ned_offset_at_the_point(lat, lon, alt, d):
     lat2, lon2, alt2 = offset_geodetic(lat, lon, alt, d)
     assert -180.0 <= lon2 < 180.0
-    # first order in |d| / R (offset_geodetic's docstring): the neglected terms are ~|d|^2 (1 + |tan lat|) / R
+    # exact geodesy (onboard.core.frames) about the point; the bound is the first-order formula's it replaced
     bound_m = float(np.dot(d, d)) * (1.0 + abs(math.tan(math.radians(lat)))) / 6.3e6 + 1e-7  # + the ECEF round trip
     np.testing.assert_allclose(ned_from_geodetic(lat2, lon2, alt2, GeodeticOrigin(lat, lon, alt)), d, atol=bound_m)
 

@@ -11,7 +11,8 @@ import pytest
 
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.baselines.rpekf import RangeParameterisedEkf, RpEkfConfig
-from groundsim.evaluation.eval import EvalOptions, run_lockstep, score_run
+from groundsim.evaluation.eval import EvalOptions, run_lockstep
+from groundsim.evaluation.scoring import score_run
 from groundsim.world.scenario import load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError

@@ -7,6 +7,7 @@ is checked against both.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import signal
@@ -24,21 +25,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.app import cli
-from groundsim.app.run import (
-    BOOT_START_US,
-    JitterStats,
-    Pacer,
-    RateSpec,
-    RunConfig,
-    SimCore,
-    frame_count,
-    run,
-    run_loop,
-)
+from groundsim.app.run import JitterStats, Pacer, RateSpec, RunConfig, run, run_loop
 from groundsim.io.mavlink_vehicle import open_mavlink2
 from groundsim.io.ports import free_tcp_port, free_udp_port
+from groundsim.io.stop_signals import install_stop_signals
 from groundsim.world.nav_errors import offset_geodetic
-from groundsim.world.scenario import load_scenario, scenarios_dir
+from groundsim.world.scenario import load_scenario, resolve_scenario_path, scenarios_dir
+from groundsim.world.sim import BOOT_START_US, SimCore, frame_count
 from groundsim.world.truth import REQUIRED_COLUMNS, TRUTH_COLUMNS, TruthRow, TruthWriter, read_truth_csv, truth_row
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
@@ -457,7 +450,7 @@ def test_mavlink_port_in_use_and_bad_options_are_one_line_exit_2(capsys):
     for argv, needle in (
         (["run", "--rate", "fast"], "--rate"),
         (["run", "--rate", "0"], "--rate"),
-        (["run", "--duration", "11"], "--duration"),
+        (["run", "--duration", "3601"], "--duration"),
         (["run", "--duration", "-1"], "--duration"),
         (["run", "--seed", "-3"], "--seed"),
         (["run", "--vehicle", "a/b"], "vehicle name"),
@@ -638,7 +631,7 @@ def test_run_config_validates():
     sc = load_scenario(P1)
     assert RunConfig(sc).duration_s == 10.0
     for kw, needle in (
-        ({"duration_s": 10.5}, "--duration"),
+        ({"duration_s": 3601.0}, "--duration"),
         ({"duration_s": 0.0}, "--duration"),
         ({"run_seed": -1}, "--seed"),
         ({"run_seed": True}, "--seed"),
@@ -730,8 +723,69 @@ def test_read_truth_csv_names_bad_lines(tmp_path):
 
 
 def test_scenario_name_resolves_to_shipped_file():
-    assert cli.resolve_scenario_path("P2g") == scenarios_dir() / "P2g.yaml"
-    assert cli.resolve_scenario_path("x/y.yaml") == Path("x/y.yaml")
+    assert resolve_scenario_path("P2g") == scenarios_dir() / "P2g.yaml"
+    assert resolve_scenario_path("p2G") == scenarios_dir() / "P2g.yaml"  # shipped names are case-insensitive
+    assert resolve_scenario_path(str(P1)) == P1
+
+
+@pytest.mark.parametrize("name", ["P9", "x/y.yaml"])
+def test_unknown_scenario_names_the_shipped_ones(name, capsys):
+    with pytest.raises(ConfigError, match="expected an existing file or one of the shipped scenarios P1, P2, P3"):
+        resolve_scenario_path(name)
+    rc, err = _main_err(capsys, "run", "--scenario", name, "--log-level", "error")
+    assert rc == 2 and err.count("\n") == 1 and "shipped scenarios P1, P2, P3" in err
+
+
+def test_a_longer_duration_continues_the_scripted_motion():
+    """--duration beyond duration_s extends the scenario: the first duration_s is the scenario's own
+    flight, frame for frame; the rest continues the same models (a disturbed target included).  The
+    navigation errors' white noise is drawn for the whole tick grid at once, so it is another draw."""
+    sc = load_scenario(scenarios_dir() / "P1g.yaml")
+    assert RunConfig(sc, duration_s=30.0).scenario.duration_s == 30.0
+    short = SimCore(sc, 3, None, render=False, flight_chunk_s=1.0)
+    long = SimCore(sc, 3, 30.0, render=False, flight_chunk_s=1.0)
+    assert long.frame_count == 900 and long.scenario.duration_s == 30.0 and sc.duration_s == 10.0
+    for k in (0, 150, short.frame_count - 1):
+        a, b = dataclasses.asdict(long.frame(k).truth), dataclasses.asdict(short.frame(k).truth)
+        assert {n: v for n, v in a.items() if not n.startswith("nav_")} == {
+            n: v for n, v in b.items() if not n.startswith("nav_")
+        }
+    last = long.frame(long.frame_count - 1).truth
+    planned = long.scenario.target_motion(3).state(last.t_s).p_ned_m
+    flown = np.array([last.target_n_m, last.target_e_m, last.target_d_m])
+    assert np.linalg.norm(flown - planned) < 5.0  # JSBSim still follows the continued path at 30 s
+
+
+def test_extended_paths_that_would_collide_are_refused():
+    """Two straight paths 10 m apart at the scenario's end and closing at 1 m/s meet at t = 20 s: 15 s is
+    fine, 25 s is refused with the time they meet."""
+    from groundsim.world.scenario import scenario_from_dict
+
+    d = {
+        "name": "closing",
+        "duration_s": 10.0,
+        "observer": {"motion": {"model": "uniform_linear", "p0_ned_m": [0.0, 0.0, -50.0], "v0_ned_mps": [1.0, 0, 0]}},
+        "target": {"motion": {"model": "uniform_linear", "p0_ned_m": [20.0, 0.0, -50.0], "v0_ned_mps": [0.0, 0, 0]}},
+    }
+    sc = scenario_from_dict(d)
+    assert SimCore(sc, 0, 15.0, render=False).scenario.duration_s == 15.0
+    with pytest.raises(
+        ConfigError,
+        match=r"closing's scripted paths, continued to 25 s, come within 0 m of each other at t = 20\.000 s",
+    ):
+        SimCore(sc, 0, 25.0, render=False)
+
+
+def test_a_motion_model_that_cannot_be_extended_is_refused_by_name():
+    from groundsim.world.motion import SingerPerturbation
+    from groundsim.world.scenario import VehicleSpec
+
+    sc = load_scenario(P1)
+    recorded = SingerPerturbation(sc.duration_s, (0.0, 0.0, 0.0), 1.0, np.random.default_rng(0))
+    odd = dataclasses.replace(sc, observer=VehicleSpec(recorded))
+    with pytest.raises(ConfigError, match="observer motion model SingerPerturbation is defined only over"):
+        SimCore(odd, 0, 20.0, render=False)
+    assert SimCore(odd, 0, 5.0, render=False).frame_count == 150  # within duration_s it flies as before
 
 
 def test_heading_in_vehicle_state_is_body_yaw():
@@ -756,7 +810,7 @@ def test_cli_defaults_match_the_adapters():
 def test_sigint_and_sigterm_set_the_stop_flag_and_handlers_are_restored():
     stop = threading.Event()
     before = signal.getsignal(signal.SIGINT)
-    restore = cli.install_stop_signals(stop)
+    restore = install_stop_signals(stop)
     try:
         os.kill(os.getpid(), signal.SIGINT)
         assert stop.wait(SHORT_TIMEOUT_S)  # the handler sets the event (the timeout is a hang guard)

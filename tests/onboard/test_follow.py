@@ -74,9 +74,9 @@ def _follow_service(enabled: bool):
 def test_the_service_sends_follow_target_paced_and_only_for_observable_fresh_tracks():
     svc, clock = _follow_service(True)
     t0 = clock()
-    svc._latest = (_track(observable=False), t0)
+    svc.newest.value = (_track(observable=False), t0)
     assert not svc.follow_step(t0)  # unobservable: nothing
-    svc._latest = (_track(observable=True), t0)
+    svc.newest.value = (_track(observable=True), t0)
     assert svc.follow_step(t0) and len(svc.link.sent) == 1
     assert not svc.follow_step(t0 + 0.2)  # 2 Hz: not before 0.5 s
     assert svc.follow_step(t0 + 0.5) and len(svc.link.sent) == 2
@@ -86,5 +86,5 @@ def test_the_service_sends_follow_target_paced_and_only_for_observable_fresh_tra
 
 def test_follow_target_is_off_by_default():
     svc, clock = _follow_service(False)
-    svc._latest = (_track(observable=True), clock())
+    svc.newest.value = (_track(observable=True), clock())
     assert not svc.follow_step(clock()) and svc.link.sent == []

@@ -71,3 +71,30 @@ def test_one_point_geodetic_near_the_polar_axis_falls_back_to_pymap3d():
     got = [float(g) for g in F.geodetic_from_ecef(p)]
     want = pymap3d.ecef2geodetic(*p, ell=pymap3d.Ellipsoid.from_name("wgs84"), deg=True)
     assert got == pytest.approx(list(want), abs=1e-9) and got[0] == pytest.approx(90.0)
+
+
+ATOL_DEG = 1e-11  # ~1 um on the ground
+ATOL_M = 1e-6  # 1 um
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.floats(-89.9, 89.9),
+    st.floats(-180.0, 180.0),
+    st.floats(-500.0, 5_000.0),
+    st.tuples(*[st.floats(-3e5, 3e5)] * 2, st.floats(-5e4, 1e4)),
+)
+def test_one_point_ned_to_geodetic_equals_the_vectorised_conversion(lat0, lon0, alt0, p_ned_m):
+    origin = F.GeodeticOrigin(lat0, lon0, alt0)
+    want = [float(v) for v in F.geodetic_from_ned(np.array(p_ned_m), origin)]
+    got = F.geodetic_from_ned1(*p_ned_m, origin)
+    assert all(type(v) is float for v in got)
+    assert got[0] == pytest.approx(want[0], abs=ATOL_DEG) and got[1] == pytest.approx(want[1], abs=ATOL_DEG)
+    assert got[2] == pytest.approx(want[2], abs=ATOL_M)
+
+
+def test_one_point_ned_to_geodetic_over_the_pole_falls_back_to_pymap3d():
+    origin = F.GeodeticOrigin(90.0, 0.0, 100.0)
+    got = F.geodetic_from_ned1(0.0, 0.0, -50.0, origin)
+    want = [float(v) for v in F.geodetic_from_ned(np.zeros(3) + [0.0, 0.0, -50.0], origin)]
+    assert got == pytest.approx(want, abs=1e-9) and got[0] == pytest.approx(90.0) and got[2] == pytest.approx(150.0)

@@ -1,4 +1,4 @@
-"""Issue 13 item 5, live view (onboard/io/live_view.py): the scene geometry (pure), the publisher's drop-and-count, and
+"""Live view (onboard/io/live_view.py): the scene geometry (pure), the publisher's drop-and-count, and
 a plain WebSocket client (the `websockets` package, no Foxglove code) speaking the Foxglove WebSocket protocol
 (foxglove.websocket.v1's messages, under the subprotocol name foxglove.sdk.v1 the SDK
 speaks: serverInfo/advertise -> subscribe -> binary message data, opcode 1) to the

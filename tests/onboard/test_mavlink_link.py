@@ -13,6 +13,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mav
 
 from groundsim.io.ports import free_udp_port
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
     CameraMount,
@@ -22,7 +23,7 @@ from onboard.core.frames import (
     quat_from_euler,
     quat_rotate,
 )
-from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.core.pose import PoseBuffer
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkConfig, MavlinkLink
 from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,

@@ -123,8 +123,9 @@ def test_vehicle_streams_are_byte_identical(gimbal_yaw_frame):
 
 
 def test_autopilot_link_output_is_byte_identical():
+    from onboard.core.counters import RejectCounter
     from onboard.core.frames import CameraMount, GeodeticOrigin
-    from onboard.core.pose import PoseBuffer, RejectCounter
+    from onboard.core.pose import PoseBuffer
     from onboard.io.follow import follow_target
     from onboard.io.mavlink_link import MavlinkConfig, MavlinkLink
     from tests.onboard.test_camera_protocol import _track

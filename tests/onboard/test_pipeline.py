@@ -16,16 +16,15 @@ from hypothesis import strategies as st
 
 from bench.onboard import SyntheticScene
 from onboard.app.config import OnboardConfig, build_config
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
 from onboard.core.irframe import HEADER, MAGIC, IrFrame, encode_irframe
-from onboard.core.pose import PoseBuffer, RejectCounter
+from onboard.core.pose import PoseBuffer
+from onboard.core.status import STATUS_SCHEMA, RollingStats, build_status
 from onboard.core.track import (
-    STATUS_SCHEMA,
     TRACK_SCHEMA,
-    RollingStats,
     Track,
-    build_status,
     track_from_json,
     track_to_bytes,
     track_to_json,
@@ -68,7 +67,7 @@ POSITION_KEYS = ("lat_deg", "lon_deg", "alt_m", "ned_m", "vel_ned_mps", "sigma_n
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 

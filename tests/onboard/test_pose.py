@@ -1,4 +1,4 @@
-"""PoseBuffer, RejectCounter and ClockSync: pure, no sockets."""
+"""PoseBuffer: pure, no sockets."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
     CameraMount,
@@ -25,15 +26,12 @@ from onboard.core.frames import (
     rotvec_from_quat,
 )
 from onboard.core.pose import (
-    ClockSync,
     ClockSyncConfig,
     GimbalReference,
     PoseBuffer,
-    PoseSample,
-    RejectCounter,
 )
 from onboard.core.pose_config import PoseConfig
-from tests.fakes import FakeClock
+from onboard.core.pose_types import PoseSample
 
 ATOL_M = 1e-6  # 1 um
 ATOL_GEO_M = 1e-4  # 0.1 mm: geodetic -> NED round trip through pymap3d
@@ -420,80 +418,6 @@ def test_configs_validate():
         ClockSyncConfig(window=2, min_samples=3)
 
 
-# --------------------------------------------------------------------------- reject counter
-
-
-def test_reject_counter_logs_once_per_reason_per_interval(caplog):
-    clock = FakeClock(100.0)
-    rc = RejectCounter(log_interval_s=10.0, clock=clock)
-    with caplog.at_level(logging.WARNING, logger="onboard.core.pose"):
-        for _ in range(5):
-            rc.count("attitude_zero", "zero quaternion")
-        rc.count("position_zero")
-        clock.t_s += 10.0
-        rc.count("attitude_zero")
-    assert rc.counts == {"attitude_zero": 6, "position_zero": 1} and rc.total == 7
-    msgs = [r.getMessage() for r in caplog.records]
-    assert len(msgs) == 3
-    assert msgs[2].startswith("attitude_zero") and "total 6, 5 since last report" in msgs[2]
-
-
-# --------------------------------------------------------------------------- clock sync
-
-
-def simulate_timesync(
-    cs: ClockSync, rng, n, t0_local_ns, offset_ns, skew_ppm, period_ns=1_000_000_000, max_delay_ns=4_000_000
-):
-    """Autopilot clock = local + offset + skew * (local - t0); random one-way delays."""
-    t = t0_local_ns
-    for _ in range(n):
-        d_up, d_down = rng.integers(100_000, max_delay_ns, size=2)
-        t_remote_local = t + int(d_up)
-        tc1 = t_remote_local + offset_ns + int(skew_ppm * 1e-6 * (t_remote_local - t0_local_ns))
-        cs.add_exchange(int(t), int(tc1), int(t_remote_local + d_down))
-        t += period_ns
-    return t
-
-
-def test_clock_sync_offset_and_skew():
-    rng = np.random.default_rng(3)
-    cs = ClockSync()
-    t0 = 5_000_000_000_000
-    offset = -4_321_987_654_321  # autopilot booted long after the local clock's epoch
-    assert cs.to_boot_us(t0) is None  # not synced yet
-    t_end = simulate_timesync(cs, rng, 60, t0, offset, skew_ppm=40.0)
-    assert cs.synced
-    assert cs.skew_ppm == pytest.approx(40.0, abs=15.0)
-    for t_local in (t_end, t_end + 2_000_000_000):
-        truth_us = (t_local + offset + 40e-6 * (t_local - t0)) / 1e3
-        assert abs(cs.to_boot_us(t_local) - truth_us) < 2_000  # 2 ms; one-way delays are up to 4 ms
-    assert abs(cs.to_local_ns(cs.to_boot_us(t_end)) - t_end) < 2_000
-
-
-def test_clock_sync_rejects_long_and_negative_round_trips():
-    cs = ClockSync(ClockSyncConfig(max_rtt_ns=10_000_000))
-    assert not cs.add_exchange(1_000, 5_000_000, 1_000 + 20_000_000)
-    assert not cs.add_exchange(1_000, 5_000_000, 500)
-    assert not cs.add_exchange(1_000, 0, 2_000)  # tc1 = 0 is a request, not an answer
-    assert cs.counter.counts == {"timesync_rtt": 2, "timesync_invalid": 1}
-    assert cs.n_samples == 0
-
-
-def test_clock_sync_reseeds_after_remote_clock_restart():
-    rng = np.random.default_rng(4)
-    cs = ClockSync()
-    t = simulate_timesync(cs, rng, 10, 10**12, offset_ns=7 * 10**9, skew_ppm=0.0)
-    # autopilot reboots: its clock now reads ~0 -> offset jumps by -7 s
-    t = simulate_timesync(cs, rng, 2, t, offset_ns=-(10**12) + 3 * 10**9, skew_ppm=0.0)
-    assert cs.counter["timesync_outlier"] == 2 and cs.resets == 0
-    assert abs(cs.to_boot_us(t) - (t + 7 * 10**9) / 1e3) < 5_000  # old estimate still in force
-    t = simulate_timesync(cs, rng, 1, t, offset_ns=-(10**12) + 3 * 10**9, skew_ppm=0.0)
-    assert cs.resets == 1 and cs.counter["timesync_reset"] == 1
-    assert abs(cs.to_boot_us(t) - (t - 10**12 + 3 * 10**9) / 1e3) < 5_000
-    cs.reset()
-    assert not cs.synced and cs.to_boot_us(t) is None
-
-
 # --------------------------------------------------------------------------- properties
 
 finite = st.floats(-1e3, 1e3, allow_nan=False)
@@ -573,7 +497,7 @@ def test_slerp_splits_the_angle_in_proportion(r0, r1, s):
         np.testing.assert_allclose(axis0q, sa * axis01, atol=1e-6)
 
 
-# --------------------------------------------------------------------------- extrapolation (issue 9 item 4)
+# --------------------------------------------------------------------------- extrapolation
 
 ATOL_EXTRAP_RAD = 1e-9  # constant body rate: Exp is exact, only rounding remains
 ATOL_EXTRAP_M = 1e-9  # constant velocity: p0 + v h is exact
@@ -841,7 +765,7 @@ def test_shipped_noise_numbers_of_the_docstring():
     assert math.degrees(pos_50ms_m / 100.0) / white_deg == pytest.approx(0.06, abs=0.005)
 
 
-# --------------------------------------------------------------------------- timestamp outliers (issue 12)
+# --------------------------------------------------------------------------- timestamp outliers
 
 ONE_HOUR_US = 3600 * 1_000_000
 
@@ -885,3 +809,20 @@ def test_isolated_outliers_never_reboot_or_block_the_stream(outliers):
                     buf.add_attitude(t + o, [1, 0, 0, 0])
         t += 20_000
     assert buf.reboots == 0 and kept == 10
+
+
+def test_a_miss_before_the_first_pose_is_start_up_info_and_after_it_a_warning(caplog):
+    """The streams come up one after the other: a frame before the first pose the buffer could serve is the
+    start-up's (INFO, so a clean start logs no WARNING); once a pose was served, a miss is a fault (WARNING).
+    Both are counted."""
+    buf = filled_buffer(counter=RejectCounter(log_interval_s=0.0))
+    logger = logging.getLogger("onboard.core.counters")
+    with caplog.at_level(logging.INFO, logger="onboard.core.counters"):
+        logger.disabled = False
+        assert buf.pose_at(9_000_000, extrapolate=False) is None  # past every sample: no pose yet
+        assert buf.pose_at(2_000_000) is not None
+        assert buf.pose_at(9_000_000, extrapolate=False) is None
+    misses = [r for r in caplog.records if r.getMessage().startswith("pose_")]
+    assert [r.levelno for r in misses] == [logging.INFO, logging.WARNING]
+    assert "(start-up)" in misses[0].getMessage() and "(start-up)" not in misses[1].getMessage()
+    assert buf.counter.total == 2

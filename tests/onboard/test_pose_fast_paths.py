@@ -24,6 +24,7 @@ from hypothesis import strategies as st
 
 from onboard.core import frames as F
 from onboard.core import pose as P
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import (
     CameraMount,
@@ -43,13 +44,10 @@ from onboard.core.frames import (
 from onboard.core.pose import (
     US_PER_S,
     GimbalReference,
-    PoseAt,
     PoseBuffer,
-    PoseLookup,
-    PoseSample,
-    RejectCounter,
 )
 from onboard.core.pose_config import PoseConfig, extrapolation_sigma
+from onboard.core.pose_types import PoseAt, PoseLookup, PoseSample
 
 # inputs of 1e200 and the like: the numpy paths overflow on them (and warn) before they reject them
 pytestmark = pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")

@@ -17,13 +17,13 @@ import pytest
 
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.irframe import IrFrame
-from onboard.core.pose import PoseAt, PoseSample
+from onboard.core.pose_types import PoseAt, PoseSample
 from onboard.core.track import Track
+from onboard.io.foxglove_messages import irframe_from_rawimage
 from onboard.io.record import (
     FRAME_INPUT_TOPIC,
     FlightRecorder,
     RecordConfig,
-    irframe_from_rawimage,
     pose_from_json,
     pose_to_json,
     rotated_path,

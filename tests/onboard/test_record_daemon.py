@@ -1,4 +1,4 @@
-"""Issue 13's Done-when, recording part: a closed-loop run (daemon + simulator on 127.0.0.1, 10 s) recorded by both
+"""Recording, end to end: a closed-loop run (daemon + simulator on 127.0.0.1, 10 s) recorded by both
 (``python -m onboard --record``, ``groundsim run --record``), read with the `mcap` package's reader: channels,
 schemas, and message counts match what was sent and received; a SIGKILLed recording daemon leaves a readable file.
 
@@ -152,7 +152,7 @@ def _messages(path: Path) -> list:
 def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(recorded_run):
     r = recorded_run
     assert r.daemon_rc == 0 and r.sim_rc == 0
-    # issue 13 item 3: typed payloads, as a generic zenoh recorder sees them
+    # typed payloads, as a generic zenoh recorder sees them
     assert r.encodings == {"application/json;irtrack.track/2", "application/json;irtrack.status/1"}
     msgs = _messages(r.daemon_mcap)
     by: dict = {}

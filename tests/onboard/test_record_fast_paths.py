@@ -1,5 +1,5 @@
-"""The recorder's faster paths (issue 13, recording cost): the hand-appended RawImage data field parses to the same
-message as the protobuf library's encoding, the scalar camera-fix geodesy equals onboard.core.frames', and the periodic
+"""The recorder's faster paths: the hand-appended RawImage data field parses to the same message as the protobuf
+library's encoding, the camera fix is the camera centre in WGS84 (onboard.core.frames' conversion), and the periodic
 sync (fdatasync + page-cache drop) leaves a file the mcap reader reads whole, the raw MAVLink JSON made from cached parts is
 json.dumps' (hypothesis), the LocationFix covariance's permutation equals the NED -> ENU matrix product."""
 
@@ -15,14 +15,8 @@ from hypothesis import strategies as st
 
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned
 from onboard.core.irframe import IrFrame
-from onboard.io.record import (
-    FlightRecorder,
-    RecordConfig,
-    _fix_fields,
-    geodetic_from_ned_scalar,
-    rawimage_bytes,
-    rawimage_fields,
-)
+from onboard.io.foxglove_messages import camera_fix_fields, location_fix_fields, rawimage_bytes, rawimage_fields
+from onboard.io.record import FlightRecorder, RecordConfig
 
 ATOL_DEG = 1e-11  # ~1 um on the ground
 ATOL_M = 1e-6  # 1 um
@@ -46,11 +40,14 @@ def test_rawimage_bytes_parse_to_the_protobuf_librarys_message(dtype):
 
 
 @pytest.mark.parametrize("p_ned_m", [(0.0, 0.0, 0.0), (1000.0, -2000.0, -500.0), (5e4, 3e4, -9e3), (-3e5, 2e5, 1e4)])
-def test_scalar_geodesy_equals_the_frames_module(p_ned_m):
+def test_camera_fix_is_the_camera_centre_in_wgs84(p_ned_m):
+    from types import SimpleNamespace
+
     lat, lon, alt = (float(v) for v in geodetic_from_ned(np.array(p_ned_m), ORIGIN))
-    lat2, lon2, alt2 = geodetic_from_ned_scalar(p_ned_m, ORIGIN)
-    assert lat2 == pytest.approx(lat, abs=ATOL_DEG) and lon2 == pytest.approx(lon, abs=ATOL_DEG)
-    assert alt2 == pytest.approx(alt, abs=ATOL_M)
+    f = camera_fix_fields(SimpleNamespace(p_cam_ned_m=np.array(p_ned_m), origin=ORIGIN), 12_345_678)
+    assert f["latitude"] == pytest.approx(lat, abs=ATOL_DEG) and f["longitude"] == pytest.approx(lon, abs=ATOL_DEG)
+    assert f["altitude"] == pytest.approx(alt, abs=ATOL_M)
+    assert f["timestamp"] == (12, 345_678_000) and f["frame_id"] == "camera" and "position_covariance" not in f
 
 
 def test_periodic_sync_keeps_the_file_whole(tmp_path):
@@ -105,6 +102,6 @@ def test_mavlink_json_is_json_dumps_of_the_documented_object(data, link, source,
 @given(c=hnp.arrays(np.float64, (3, 3), elements=st.floats(-1e6, 1e6, allow_nan=False)))
 def test_location_fix_covariance_is_the_ned_to_enu_similarity(c):
     P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-    got = _fix_fields(1.0, 2.0, 3.0, 4, "target", c)["position_covariance"]
+    got = location_fix_fields(1.0, 2.0, 3.0, 4, "target", c)["position_covariance"]
     assert got == (P @ c @ P.T).ravel().tolist()  # equal values (a zero's sign aside: +0.0 here)
     assert all(math.copysign(1.0, x) > 0 for x in got if x == 0.0)

@@ -1,4 +1,4 @@
-"""Issue 13 item 3: frames, tracks and status go out with zenoh encodings that name their schema (seen by a plain
+"""Frames, tracks and status go out with zenoh encodings that name their schema (seen by a plain
 subscriber on 127.0.0.1), and the daemon's frame callback accepts untyped frames too but refuses one typed with
 another schema."""
 

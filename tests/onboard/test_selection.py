@@ -238,7 +238,7 @@ def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
     svc.camera_step(clock())
     assert _acks(svc.gcs.sent) == []  # decided by the pipeline thread on its next frame
     tr = svc.pipeline.process(_ir(1))
-    svc._latest = (tr, clock())
+    svc.newest.value = (tr, clock())
     clock.t_s += 0.01
     svc.camera_step(clock())
     acks = _acks(svc.gcs.sent)
@@ -266,15 +266,15 @@ def test_276_only_for_observable_positions_through_the_camera():
 
     svc, clock = _service()
     svc.link = _FakeLink()
-    svc._latest = (track(False), clock())
+    svc.newest.value = (track(False), clock())
     for _ in range(20):
         clock.t_s += 0.05
-        svc._latest = (svc._latest[0], clock())
+        svc.newest.value = (svc.newest.value[0], clock())
         svc.camera_step(clock())
     assert not any(o.msg == "camera_tracking_geo_status" for o in svc.gcs.sent)
-    svc._latest = (track(True), clock())
+    svc.newest.value = (track(True), clock())
     clock.t_s += 0.5
-    svc._latest = (svc._latest[0], clock())
+    svc.newest.value = (svc.newest.value[0], clock())
     svc.camera_step(clock())
     geo = [o.fields for o in svc.gcs.sent if o.msg == "camera_tracking_geo_status"]
     assert geo and geo[-1]["h_acc"] == pytest.approx(math.sqrt(800.0)) and geo[-1]["dist"] == 130.0

@@ -27,11 +27,16 @@ from pymavlink.dialects.v20 import common as mav  # noqa: E402
 
 from bench.onboard import SyntheticScene  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
-from onboard.app.service import FrameQueue, LockedCounter, SharedPoseBuffer, ThreadedEstimator  # noqa: E402
+from onboard.app.estimator_worker import ThreadedEstimator  # noqa: E402
+from onboard.app.frame_queue import FrameQueue  # noqa: E402
+from onboard.app.locked_counter import LockedCounter  # noqa: E402
+from onboard.app.shared_pose import SharedPoseBuffer  # noqa: E402
+from onboard.core.counters import RejectCounter  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
-from onboard.core.pose import PoseBuffer, RejectCounter  # noqa: E402
-from onboard.core.track import STATUS_SCHEMA, track_from_json  # noqa: E402
+from onboard.core.pose import PoseBuffer  # noqa: E402
+from onboard.core.status import STATUS_SCHEMA  # noqa: E402
+from onboard.core.track import track_from_json  # noqa: E402
 from onboard.estimation.sliding import TrackEstimate  # noqa: E402
 from tests.fakes import FakeAutopilot, FakeClock, quiet_link_status  # noqa: E402
 from tests.integration_helpers import loopback_daemon_command  # noqa: E402
@@ -50,7 +55,7 @@ LOG_LINE = re.compile(r'^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z level=[A-Z]+ log
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
     """The estimator's matrices are small: OpenBLAS threads only spin (20x slower on a loaded 2-core box)."""
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 
@@ -535,12 +540,49 @@ def test_daemon_exits_2_when_its_zenoh_port_is_taken(daemon_env):
     assert last == f"zenoh: cannot listen on tcp/127.0.0.1:{port}: port already in use"
 
 
+CTRL_C_WHILE_STARTING_S = 0.8  # after the launch: importing, or starting the estimator process and its fork server
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+@pytest.mark.parametrize("when", ["starting", "serving"])
+def test_ctrl_c_stops_the_daemon_cleanly_whenever_it_comes(daemon_env, when):
+    """A terminal's Ctrl-C is SIGINT to the whole process group (the daemon, its fork server, its estimator
+    process): exit 0, one line saying what happened, no traceback from any of them."""
+    proc = subprocess.Popen(
+        loopback_daemon_command(free_tcp_port(), "null"),
+        cwd=REPO,
+        env=daemon_env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,  # its own process group, as in a terminal
+    )
+    try:
+        if when == "starting":
+            time.sleep(CTRL_C_WHILE_STARTING_S)
+        else:
+            assert proc.stderr is not None
+            for line in proc.stderr:
+                if "onboard service started" in line:
+                    break
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=STOP_BUDGET_S + 10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "signal SIGINT while starting: stopped before serving" in err or "signal SIGINT: shutting down" in err, err
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(120)
 def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
     """Same observations, same answers: the child process runs the same deterministic estimator."""
     from onboard.app.config import OnboardConfig
-    from onboard.app.service import ProcessEstimator
+    from onboard.app.estimator_worker import ProcessEstimator
     from onboard.pipeline.frame_pipeline import make_estimator
 
     scene = SyntheticScene()
@@ -663,3 +705,58 @@ def test_service_frame_of_another_size_is_warned_with_both_sizes(caplog):
 
 
 # #276 only for observable positions: tests/onboard/test_selection.py (through the camera component)
+
+
+class _TapRecorder:
+    """A FrameObserver that remembers what the service handed it."""
+
+    name = "test_tap"
+
+    def __init__(self) -> None:
+        self.received: list[int] = []
+        self.frames: list[tuple[int, bool]] = []  # (seq, with a track)
+        self.status_payloads: list[bytes] = []
+
+    def start(self) -> None:
+        pass
+
+    def on_received(self, frame, received_ns: int) -> None:
+        self.received.append(frame.seq)
+
+    def on_frame(self, frame, result) -> None:
+        self.frames.append((frame.seq, result.track is not None))
+
+    def on_status(self, data: bytes) -> None:
+        self.status_payloads.append(data)
+
+    def status(self):
+        return {"frames": len(self.frames)}
+
+    def close(self, timeout_s: float) -> None:
+        pass
+
+
+def test_every_output_tap_sees_each_frame_once_taken_or_refused():
+    """One observer interface for the recorder, the live view and the video: each frame the pipeline takes is
+    handed to every tap once, with what became of it (a refused frame too, without a track), and the tap's
+    section is in the status JSON."""
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    tap = _TapRecorder()
+    svc.taps.append(tap)
+    svc.observers.append(tap)
+    right, wrong = np.zeros((512, 640), np.uint8), np.zeros((256, 320), np.uint8)
+    for k, pixels in enumerate([right, wrong, right]):
+        svc.queue.push((IrFrame(seq=k, time_boot_us=1000 + 40_000 * k, pixels=pixels), clock.ns()))
+    t = threading.Thread(target=svc._pipeline_loop)
+    t.start()
+    deadline = time.monotonic() + 10.0
+    while len(tap.frames) < 3 and time.monotonic() < deadline:
+        svc._pipe_stop.wait(0.01)
+    svc._pipe_stop.set()
+    svc.queue.close()
+    t.join(10)
+    assert tap.frames == [(0, True), (1, False), (2, True)]
+    assert svc.newest.value is not None and svc.newest.value[0].seq == 2
+    assert svc.status(clock())["test_tap"] == {"frames": 3}

@@ -1,4 +1,4 @@
-"""Output policy of irtrack.track/2 (issue 9 item 2): the line of sight with every pose, positions graded not
+"""Output policy of irtrack.track/2: the line of sight with every pose, positions graded not
 gated, #276 only for observable positions; and the camera-mismatch warning fed by the pipeline's residuals."""
 
 from __future__ import annotations

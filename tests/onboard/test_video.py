@@ -329,8 +329,8 @@ def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
 
 
 def test_camera_advertises_the_stream_on_the_destination_port():
+    from onboard.app.components import make_camera_protocol
     from onboard.app.config import build_config
-    from onboard.app.service import make_camera_protocol
 
     cfg = build_config({"gcs": {"endpoints": ["udpout:127.0.0.1:14550"]}, "video": {"destination": "10.0.0.5:5600"}})
     K = cfg.camera.pinhole()

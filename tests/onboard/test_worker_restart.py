@@ -1,6 +1,6 @@
 """A dead estimator worker is replaced with its window rebuilt (issue 12 item 6).
 
-The estimator interface (:class:`onboard.app.service.ProcessEstimator`) is driven directly with
+The estimator interface (:class:`onboard.app.estimator_worker.ProcessEstimator`) is driven directly with
 synthetic observations of a reference scenario (:func:`groundsim.evaluation.synth.synthesize_scenario`); the
 worker is killed with SIGKILL.  Waits are bounded (``RESULT_WAIT_S``); how long the replacement
 takes in wall time is printed (``pytest -s``), not asserted.
@@ -19,7 +19,8 @@ import pytest
 from groundsim.evaluation.synth import synthesize_scenario
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
-from onboard.app.service import SNAPSHOT_PERIOD_S, LockedCounter, ProcessEstimator
+from onboard.app.estimator_worker import SNAPSHOT_PERIOD_S, ProcessEstimator
+from onboard.app.locked_counter import LockedCounter
 from onboard.pipeline.frame_pipeline import make_estimator
 
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
@@ -30,7 +31,7 @@ HONEST_SIGMAS = 4.0  # the rebuilt estimate is within this many reported sigma (
 
 @pytest.fixture(autouse=True, scope="module")
 def _one_blas_thread():
-    from groundsim.evaluation.eval import limit_blas_threads
+    from groundsim.evaluation.parallel import limit_blas_threads
 
     limit_blas_threads(1)
 

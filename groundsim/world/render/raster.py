@@ -58,6 +58,16 @@ How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``pytho
   rounding and saturation in one pass.
 
 Results depend only on the call sequence and ``seed`` (the reuse tolerances are far below a pixel).
+
+Hook for scene content (``groundsim.world.render.scene``, ``docs/scenes.md``)
+----------------------------------------------------------------------------
+:meth:`IrRenderer.base_radiance` gives the background above as radiance (no noise);
+:class:`SceneBackground` is a background with clouds and terrain composited over it, per pixel with the
+range to the nearest surface and the opacity of a cloud there; :meth:`IrRenderer.render_radiance`
+draws the target over one (behind a nearer cloud it is seen through ``1 - alpha``), and
+:meth:`IrRenderer.quantise` turns radiance into :meth:`render`'s output (grey map, NETD noise,
+rounding).  :class:`PartRaster` is the target's ray caster as a class of its own, so that other
+objects (distractors) are drawn the same way.  :meth:`render` itself is unchanged.
 """
 
 from __future__ import annotations
@@ -76,7 +86,7 @@ from groundsim.world.render.settings import IrSettings
 from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics
 
-__all__ = ["IrRenderer", "RenderTiming", "truth_pixel", "LUT_SIZE"]
+__all__ = ["IrRenderer", "RenderTiming", "PartRaster", "SceneBackground", "truth_pixel", "LUT_SIZE"]
 
 log = logging.getLogger(__name__)
 
@@ -151,6 +161,189 @@ def _rotation(R, name: str) -> np.ndarray:
     if np.max(np.abs(a.T @ a - np.eye(3))) > ROT_TOL or np.linalg.det(a) < 0.0:
         raise InputError(f"{name}: not a proper rotation (R^T R != I within {ROT_TOL} or det < 0)")
     return a
+
+
+@dataclass(frozen=True)
+class SceneBackground:
+    """A background with scene content, per pixel, (H, W) float32 each, as the renderer's hook takes it.
+
+    ``radiance``: W m^-2 sr^-1 at the aperture (sky or terrain, clouds composited over it);
+    ``base_radiance``: the same without clouds (what a cloud hides); ``depth_m``: range along the
+    ray to the nearest surface (the cloud layer where the ray meets it, else the ground, else a far
+    value); ``cloud_alpha``: opacity of the cloud there (0 where the layer is clear or absent).  An object at range ``R`` behind
+    ``depth_m`` is seen through ``1 - cloud_alpha`` of the cloud.
+    """
+
+    radiance: np.ndarray
+    base_radiance: np.ndarray
+    depth_m: np.ndarray
+    cloud_alpha: np.ndarray
+
+    def __post_init__(self) -> None:
+        shape = np.shape(self.radiance)
+        for name in ("base_radiance", "depth_m", "cloud_alpha"):
+            if np.shape(getattr(self, name)) != shape or len(shape) != 2:
+                raise InputError(f"SceneBackground.{name}: expected shape {shape} like radiance")
+
+
+class PartRaster:
+    """Ray-cast rasteriser of one rigid object made of box and ellipsoid parts (``TargetPart``).
+
+    ``delta(bg, p_cam, R_ned_from_cam, p_obj, R_ned_from_body)`` returns the object's image minus the
+    background ``bg`` over its region of interest, through the pixel aperture and the optics PSF, in the
+    units of ``bg``: grey when built with the renderer's ``(L_min, grey_per_L)``, radiance with
+    ``(0, 1)``.  Each part radiates ``eps L(T) + (1 - eps) L_env`` (``L_env`` the surround it
+    reflects), seen through the atmosphere over the camera-object range.  The renderer's target and
+    the scene's distractors are drawn by this one class.
+    """
+
+    def __init__(
+        self, intrinsics: PinholeIntrinsics, settings: IrSettings, parts, L_env: float, L_min: float, grey_per_L: float
+    ):
+        s = settings
+        self.intrinsics = intrinsics
+        self.settings = settings
+        self._H, self._W = int(intrinsics.height_px), int(intrinsics.width_px)
+        self._L_min = L_min
+        self._grey_per_L = grey_per_L
+        self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
+        T = np.array([p.temperature_k for p in parts])
+        eps = np.array([p.emissivity for p in parts])
+        self._part_L_emit = eps * band_radiance(T, s.band_um) + (1.0 - eps) * L_env  # at the target
+        centre = np.array([p.center_frd_m for p in parts], dtype=float)
+        half = np.array([p.half_extent_m for p in parts], dtype=float)
+        is_box = np.array([p.shape == "box" for p in parts])
+        self._box_idx = np.flatnonzero(is_box)
+        self._ell_idx = np.flatnonzero(~is_box)
+        self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
+        self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
+        lo = (centre - half).min(axis=0)
+        hi = (centre + half).max(axis=0)
+        self.bbox_corners_b = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
+
+    def delta(self, bg, p_cam, R_nc, p_t, R_nt, occluder: SceneBackground | None = None):
+        """Object minus background (through PSF and pixel aperture) over the object's ROI, or None.
+
+        Returns ``(rows slice, cols slice, delta float32, supersample)``.  With ``occluder`` (a
+        :class:`SceneBackground` in the units of ``bg``), pixels whose ``depth_m`` is nearer than the
+        object show it through ``1 - cloud_alpha`` of the cloud, against the cloud-free background.
+        """
+        intr = self.intrinsics
+        s = self.settings
+        H, W = self._H, self._W
+        corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
+        z = corners_cam[:, 2]
+        if np.all(z <= NEAR_M):
+            return None
+        if np.any(z <= NEAR_M):
+            i0, i1, j0, j1 = 0, H, 0, W
+        else:
+            uv = intr.project(corners_cam)
+            pad = 1 if intr.has_distortion else 0
+            j0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
+            j1 = min(int(math.ceil(uv[:, 0].max())) + pad, W)
+            i0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
+            i1 = min(int(math.ceil(uv[:, 1].max())) + pad, H)
+            if j1 <= j0 or i1 <= i0:
+                return None
+        ny, nx = i1 - i0, j1 - j0
+        ss = max(1, min(s.supersample, int(math.sqrt(s.max_target_rays / (ny * nx)))))
+        u = j0 + (np.arange(nx * ss) + 0.5) / ss
+        v = i0 + (np.arange(ny * ss) + 0.5) / ss
+        R_bc = R_nt.T @ R_nc
+        o_b = R_nt.T @ (p_cam - p_t)
+        if intr.has_distortion:
+            uu, vv = np.meshgrid(u, v)
+            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
+            d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
+        else:
+            x = (u - intr.cx_px) / intr.fx_px
+            y = (v - intr.cy_px) / intr.fy_px
+            d_b = (
+                R_bc[:, 0, None, None] * x[None, None, :]
+                + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
+            )
+            d_b = d_b.reshape(3, -1)  # (3, n), row-major over (sub-row, sub-column)
+        # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
+        d_b = d_b.astype(np.float32)
+        o_b = o_b.astype(np.float32)
+        t_near, nearest = self.intersect(o_b, d_b)
+        covered = np.isfinite(t_near)
+        range_km = float(np.linalg.norm(p_t - p_cam)) * 1e-3
+        tau = math.exp(-s.extinction_per_km * range_km)
+        part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
+        if not np.any(covered):
+            return None
+        # difference to the background per sub-sample (the background of the sub-sample's pixel)
+        ref = bg[i0:i1, j0:j1]
+        if occluder is not None:
+            range_m = range_km * 1e3
+            ref = np.where(occluder.depth_m[i0:i1, j0:j1] < range_m, occluder.base_radiance[i0:i1, j0:j1], ref)
+        bg_sub = np.repeat(np.repeat(ref, ss, axis=0), ss, axis=1)
+        delta = np.where(covered.reshape(ny * ss, nx * ss), part_grey[nearest].reshape(ny * ss, nx * ss) - bg_sub, 0.0)
+        # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
+        # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
+        # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
+        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
+        pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
+        pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
+        A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
+        A_cols = _aperture_weights(np.arange(pj0, pj1) + 0.5, u, s.blur_sigma_px, ss)
+        delta = (A_rows @ delta) @ A_cols.T
+        i0, i1, j0, j1 = pi0, pi1, pj0, pj1
+        if occluder is not None:
+            behind = occluder.depth_m[i0:i1, j0:j1] < range_m
+            delta = delta * np.where(behind, 1.0 - occluder.cloud_alpha[i0:i1, j0:j1], 1.0)
+        return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
+
+    def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest hit of rays ``o_b + t d_b`` (body FRD; ``d_b`` shape (3, n)) with the parts.
+
+        Boxes: slab test (Kay & Kajiya 1986): ``t_near = max_k min(t1_k, t2_k)``,
+        ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
+        Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
+        and the far root is > 0.  A camera inside a part sees it at t = 0.
+        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index.
+        """
+        n = d_b.shape[1]
+        t_best = np.full(n, np.inf, dtype=np.float32)
+        part = np.zeros(n, dtype=np.intp)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            if self._box_idx.size:
+                inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
+                oc = o_b - self._box_c  # (Pb, 3)
+                lo = (-self._box_h - oc)[:, :, None] * inv[None]  # (Pb, 3, n)
+                hi = (self._box_h - oc)[:, :, None] * inv[None]
+                t1 = np.minimum(lo, hi)
+                t2 = np.maximum(lo, hi)
+                t_in = np.maximum(np.maximum(t1[:, 0], t1[:, 1]), t1[:, 2])  # (Pb, n)
+                t_out = np.minimum(np.minimum(t2[:, 0], t2[:, 1]), t2[:, 2])
+                t = np.where((t_in <= t_out) & (t_out > 0.0), np.maximum(t_in, 0.0), np.inf)
+                for k, p in enumerate(self._box_idx):
+                    closer = t[k] < t_best
+                    t_best = np.where(closer, t[k], t_best)
+                    part = np.where(closer, p, part)
+            if self._ell_idx.size:
+                oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
+                de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
+                a = de[:, 0] ** 2 + de[:, 1] ** 2 + de[:, 2] ** 2
+                b = de[:, 0] * oe[:, 0, None] + de[:, 1] * oe[:, 1, None] + de[:, 2] * oe[:, 2, None]
+                # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
+                # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
+                cx = oe[:, 1, None] * de[:, 2] - oe[:, 2, None] * de[:, 1]
+                cy = oe[:, 2, None] * de[:, 0] - oe[:, 0, None] * de[:, 2]
+                cz = oe[:, 0, None] * de[:, 1] - oe[:, 1, None] * de[:, 0]
+                disc = a - (cx * cx + cy * cy + cz * cz)
+                sq = np.sqrt(np.maximum(disc, 0.0))
+                t_out = (sq - b) / a
+                t = np.where((disc >= 0.0) & (t_out > 0.0), np.maximum(-(b + sq) / a, 0.0), np.inf)
+                for k, p in enumerate(self._ell_idx):
+                    closer = t[k] < t_best
+                    t_best = np.where(closer, t[k], t_best)
+                    part = np.where(closer, p, part)
+        return t_best, part
 
 
 class IrRenderer:
@@ -253,25 +446,12 @@ class IrRenderer:
 
     def _init_target(self) -> None:
         s = self.settings
-        parts = s.target_parts
         L_env = 0.5 * float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um)) + 0.5 * (
             self._ground[0] + self._ground[1] * float(band_radiance(s.sky_horizon_k, s.band_um))
         )
-        T = np.array([p.temperature_k for p in parts])
-        eps = np.array([p.emissivity for p in parts])
-        self._part_L_emit = eps * band_radiance(T, s.band_um) + (1.0 - eps) * L_env  # at the target
-        centre = np.array([p.center_frd_m for p in parts], dtype=float)
-        half = np.array([p.half_extent_m for p in parts], dtype=float)
-        is_box = np.array([p.shape == "box" for p in parts])
-        self._box_idx = np.flatnonzero(is_box)
-        self._ell_idx = np.flatnonzero(~is_box)
-        self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
-        self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
-        lo = (centre - half).min(axis=0)
-        hi = (centre + half).max(axis=0)
-        self._bbox_corners_b = np.array(
-            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
-        )
+        self.environment_radiance = L_env
+        self._target = PartRaster(self.intrinsics, s, s.target_parts, L_env, self._L_min, self._grey_per_L)
+        self._target_radiance = PartRaster(self.intrinsics, s, s.target_parts, L_env, 0.0, 1.0)
 
     def _init_noise(self) -> None:
         s = self.settings
@@ -394,121 +574,6 @@ class IrRenderer:
         big.ravel()[(ii + st) * (self._Wc * st) + (jj + st)] = self._lut.take(m.astype(np.int32))
         return bg
 
-    # ------------------------------------------------------------------ target
-
-    def _target_delta(self, bg, p_cam, R_nc, p_t, R_nt):
-        """Grey difference (target minus background, through PSF and pixel aperture) over the target ROI, or None.
-
-        Returns ``(rows slice, cols slice, delta float32, supersample)``.
-        """
-        intr = self.intrinsics
-        s = self.settings
-        H, W = self._H, self._W
-        corners_cam = (p_t + self._bbox_corners_b @ R_nt.T - p_cam) @ R_nc
-        z = corners_cam[:, 2]
-        if np.all(z <= NEAR_M):
-            return None
-        if np.any(z <= NEAR_M):
-            i0, i1, j0, j1 = 0, H, 0, W
-        else:
-            uv = intr.project(corners_cam)
-            pad = 1 if intr.has_distortion else 0
-            j0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
-            j1 = min(int(math.ceil(uv[:, 0].max())) + pad, W)
-            i0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
-            i1 = min(int(math.ceil(uv[:, 1].max())) + pad, H)
-            if j1 <= j0 or i1 <= i0:
-                return None
-        ny, nx = i1 - i0, j1 - j0
-        ss = max(1, min(s.supersample, int(math.sqrt(s.max_target_rays / (ny * nx)))))
-        u = j0 + (np.arange(nx * ss) + 0.5) / ss
-        v = i0 + (np.arange(ny * ss) + 0.5) / ss
-        R_bc = R_nt.T @ R_nc
-        o_b = R_nt.T @ (p_cam - p_t)
-        if intr.has_distortion:
-            uu, vv = np.meshgrid(u, v)
-            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
-            d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
-        else:
-            x = (u - intr.cx_px) / intr.fx_px
-            y = (v - intr.cy_px) / intr.fy_px
-            d_b = (
-                R_bc[:, 0, None, None] * x[None, None, :]
-                + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
-            )
-            d_b = d_b.reshape(3, -1)  # (3, n), row-major over (sub-row, sub-column)
-        # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
-        d_b = d_b.astype(np.float32)
-        o_b = o_b.astype(np.float32)
-        t_near, nearest = self._intersect(o_b, d_b)
-        covered = np.isfinite(t_near)
-        range_km = float(np.linalg.norm(p_t - p_cam)) * 1e-3
-        tau = math.exp(-s.extinction_per_km * range_km)
-        part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
-        if not np.any(covered):
-            return None
-        # difference to the background per sub-sample (the background of the sub-sample's pixel)
-        bg_sub = np.repeat(np.repeat(bg[i0:i1, j0:j1], ss, axis=0), ss, axis=1)
-        delta = np.where(covered.reshape(ny * ss, nx * ss), part_grey[nearest].reshape(ny * ss, nx * ss) - bg_sub, 0.0)
-        # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
-        # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
-        # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
-        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
-        pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
-        pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
-        A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
-        A_cols = _aperture_weights(np.arange(pj0, pj1) + 0.5, u, s.blur_sigma_px, ss)
-        delta = (A_rows @ delta) @ A_cols.T
-        i0, i1, j0, j1 = pi0, pi1, pj0, pj1
-        return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
-
-    def _intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit of rays ``o_b + t d_b`` (body FRD; ``d_b`` shape (3, n)) with the parts.
-
-        Boxes: slab test (Kay & Kajiya 1986): ``t_near = max_k min(t1_k, t2_k)``,
-        ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
-        Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
-        and the far root is > 0.  A camera inside a part sees it at t = 0.
-        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index.
-        """
-        n = d_b.shape[1]
-        t_best = np.full(n, np.inf, dtype=np.float32)
-        part = np.zeros(n, dtype=np.intp)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            if self._box_idx.size:
-                inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
-                oc = o_b - self._box_c  # (Pb, 3)
-                lo = (-self._box_h - oc)[:, :, None] * inv[None]  # (Pb, 3, n)
-                hi = (self._box_h - oc)[:, :, None] * inv[None]
-                t1 = np.minimum(lo, hi)
-                t2 = np.maximum(lo, hi)
-                t_in = np.maximum(np.maximum(t1[:, 0], t1[:, 1]), t1[:, 2])  # (Pb, n)
-                t_out = np.minimum(np.minimum(t2[:, 0], t2[:, 1]), t2[:, 2])
-                t = np.where((t_in <= t_out) & (t_out > 0.0), np.maximum(t_in, 0.0), np.inf)
-                for k, p in enumerate(self._box_idx):
-                    closer = t[k] < t_best
-                    t_best = np.where(closer, t[k], t_best)
-                    part = np.where(closer, p, part)
-            if self._ell_idx.size:
-                oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
-                de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
-                a = de[:, 0] ** 2 + de[:, 1] ** 2 + de[:, 2] ** 2
-                b = de[:, 0] * oe[:, 0, None] + de[:, 1] * oe[:, 1, None] + de[:, 2] * oe[:, 2, None]
-                # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
-                # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
-                cx = oe[:, 1, None] * de[:, 2] - oe[:, 2, None] * de[:, 1]
-                cy = oe[:, 2, None] * de[:, 0] - oe[:, 0, None] * de[:, 2]
-                cz = oe[:, 0, None] * de[:, 1] - oe[:, 1, None] * de[:, 0]
-                disc = a - (cx * cx + cy * cy + cz * cz)
-                sq = np.sqrt(np.maximum(disc, 0.0))
-                t_out = (sq - b) / a
-                t = np.where((disc >= 0.0) & (t_out > 0.0), np.maximum(-(b + sq) / a, 0.0), np.inf)
-                for k, p in enumerate(self._ell_idx):
-                    closer = t[k] < t_best
-                    t_best = np.where(closer, t[k], t_best)
-                    part = np.where(closer, p, part)
-        return t_best, part
-
     # ------------------------------------------------------------------ frame
 
     def render(
@@ -542,7 +607,7 @@ class IrRenderer:
         t1 = time.perf_counter()
         roi = None
         if p_target_ned_m is not None:
-            roi = self._target_delta(bg, p_cam, R_nc, p_t, R_nt)
+            roi = self._target.delta(bg, p_cam, R_nc, p_t, R_nt)
         t2 = time.perf_counter()
 
         n = self._H * self._W
@@ -564,3 +629,55 @@ class IrRenderer:
             supersample=0 if roi is None else int(roi[3]),
         )
         return out
+
+    # ------------------------------------------------------------------ scene hook
+
+    def base_radiance(self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m: float = 0.0) -> np.ndarray:
+        """Today's background (sky gradient, flat ground, horizon through the PSF) as radiance, (H, W) float32.
+
+        The scene content (``groundsim.world.render.scene``) composites clouds and terrain over it.
+        Shares the background cache of :meth:`render`.
+        """
+        p_cam = _vec3(p_cam_ned_m, "p_cam_ned_m")
+        R_nc = _rotation(R_ned_from_cam, "R_ned_from_cam")
+        bg, _, _ = self._background(R_nc, float(altitude_ground_d_m) - float(p_cam[2]))
+        L = bg * np.float32(1.0 / self._grey_per_L)
+        L += np.float32(self._L_min)
+        return L
+
+    def render_radiance(
+        self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, background: SceneBackground
+    ) -> tuple[np.ndarray, tuple | None]:
+        """The target drawn over ``background`` (a :class:`SceneBackground`), in radiance, no noise.
+
+        Returns ``(radiance (H, W) float32, roi)``; ``roi`` is ``(rows, cols, delta, supersample)`` of the
+        target (``delta`` in W m^-2 sr^-1 after PSF and cloud occlusion) or None when it is not in view.
+        ``background`` is not modified.
+        """
+        if not isinstance(background, SceneBackground):
+            raise InputError(f"background: expected a SceneBackground, got {type(background).__name__}")
+        p_cam = _vec3(p_cam_ned_m, "p_cam_ned_m")
+        R_nc = _rotation(R_ned_from_cam, "R_ned_from_cam")
+        out = background.radiance.copy()
+        roi = None
+        if p_target_ned_m is not None:
+            p_t = _vec3(p_target_ned_m, "p_target_ned_m")
+            R_nt = _rotation(R_ned_from_target_body, "R_ned_from_target_body")
+            roi = self._target_radiance.delta(background.radiance, p_cam, R_nc, p_t, R_nt, occluder=background)
+            if roi is not None:
+                out[roi[0], roi[1]] += roi[2]
+        return out, roi
+
+    def quantise(self, radiance) -> np.ndarray:
+        """A radiance image through the grey map, NETD noise and rounding: what :meth:`render` outputs.
+
+        Draws the noise window from the same generator as :meth:`render` (one draw per call).
+        """
+        L = np.asarray(radiance, dtype=np.float32)
+        if L.shape != (self._H, self._W):
+            raise InputError(f"radiance: expected shape {(self._H, self._W)}, got {L.shape}")
+        grey = (L - np.float32(self._L_min)) * np.float32(self._grey_per_L)
+        n = self._H * self._W
+        off = int(self._rng.integers(self._noise_offsets))
+        noise = self._noise_bank[off : off + n].reshape(self._H, self._W)
+        return cv2.add(grey, noise, dtype=self._dtype)

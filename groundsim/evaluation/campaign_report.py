@@ -1,0 +1,349 @@
+"""A campaign's table (``runs.csv``, ``runs.parquet``) and report (``report.md``, ``manoeuvre.png``), rebuilt from
+its run log every time (:mod:`groundsim.evaluation.campaign` describes the campaign and its figures).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+
+from groundsim.evaluation.campaign_spec import CampaignSpec
+
+__all__ = [
+    "TABLE_NAME",
+    "PARQUET_NAME",
+    "REPORT_NAME",
+    "FIGURE_NAME",
+    "TIMING_COLUMNS",
+    "GOOD_ERR_PCT",
+    "COLUMN_ORDER",
+    "table_rows",
+    "write_table",
+    "table2_rows",
+    "manoeuvre_rows",
+    "works_from",
+    "write_report",
+]
+
+log = logging.getLogger(__name__)
+
+GOOD_ERR_PCT = 2.0  # "reconstruction works": median err/range at most this (the verdict table's good run)
+HONEST_BEYOND_3SIGMA = 0.01  # a run is honest when at most this fraction of published estimates is beyond 3 sigma
+TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME = "runs.csv", "runs.parquet", "report.md", "manoeuvre.png"
+#: columns that are measurements of the machine, not results: left out when tables are compared
+TIMING_COLUMNS = ("wall_s", "case_wall_s")
+
+
+# --------------------------------------------------------------------------- the table
+
+
+#: the table's columns, in order: identity and parameters, geometry measured, the run's figures, the case's
+#: bound, status, provenance, timings (columns a newer version adds come after, alphabetically)
+COLUMN_ORDER = (
+    "run_id",
+    "mode",
+    "scenario",
+    "geometry",
+    "range_scale",
+    "aspect_deg",
+    "manoeuvre_scale",
+    "noise",
+    "algorithm",
+    "seed",
+    "duration_s",
+    "noise_model",
+    "status",
+    "range_start_m",
+    "range_median_m",
+    "aspect_start_deg",
+    "observer_accel_rms_mps2",
+    "observer_accel_perp_los_rms_mps2",
+    "frames",
+    "published_frames",
+    "observable_frames",
+    "settle_s",
+    "err_range_observable_pct",
+    "err_range_published_settled_pct",
+    "err_range_final_pct",
+    "rmse_observable_m",
+    "rmse_published_settled_m",
+    "observable_share_settled",
+    "beyond_3sigma_published",
+    "nees_observable",
+    "nees_published_settled",
+    "first_observable_s",
+    "published_share_after_3s",
+    "chain_centroid_sigma_px",
+    "crb",
+    "crb_rms_m",
+    "crb_range_sigma_pct",
+    "batch_err_range_pct",
+    "batch_observable",
+    "bound_note",
+    "error",
+    "estimator_errors",
+    "scenario_digest",
+    "noise_digest",
+    "onboard_digest",
+    "schema",
+) + TIMING_COLUMNS
+
+
+def table_rows(rows: list[dict]):
+    """Rows -> a pandas DataFrame with a fixed column order (parameters, then figures, then timings)."""
+    import pandas as pd
+
+    df = pd.DataFrame(rows)
+    if df.empty:
+        return pd.DataFrame(columns=list(COLUMN_ORDER))
+    known = [c for c in COLUMN_ORDER if c in df.columns]
+    return df[known + sorted(c for c in df.columns if c not in COLUMN_ORDER)]
+
+
+def write_table(out: Path, rows: list[dict]) -> dict:
+    """``runs.csv`` (always) and ``runs.parquet`` (when pyarrow is installed)."""
+    df = table_rows(rows)
+    files = {TABLE_NAME: out / TABLE_NAME}
+    df.to_csv(out / TABLE_NAME, index=False)
+    try:
+        import pyarrow  # noqa: F401
+    except ImportError:
+        pass
+    else:
+        df.to_parquet(out / PARQUET_NAME, index=False)
+        files[PARQUET_NAME] = out / PARQUET_NAME
+    return files
+
+
+# --------------------------------------------------------------------------- the report
+
+
+def _med(values) -> float:
+    v = [float(x) for x in values if x is not None and math.isfinite(float(x))]
+    return float(np.median(v)) if v else math.nan
+
+
+def _pct(x, nd=2) -> str:
+    return "-" if not math.isfinite(x) else f"{x:.{nd}f} %"
+
+
+def _num(x, nd=2) -> str:
+    return "-" if not math.isfinite(x) else f"{x:.{nd}f}"
+
+
+# the per-run figures summarised by their median over a group's runs: table key -> runs.csv column
+_ACCURACY_MEDIANS = {
+    "err_obs": "err_range_observable_pct",
+    "err_pub": "err_range_published_settled_pct",
+    "err_final": "err_range_final_pct",
+    "rmse_obs": "rmse_observable_m",
+    "rmse_pub": "rmse_published_settled_m",
+    "obs_share": "observable_share_settled",
+    "nees": "nees_observable",
+    "nees_pub": "nees_published_settled",
+    "crb": "crb_rms_m",
+    "crb_sig": "crb_range_sigma_pct",
+    "batch": "batch_err_range_pct",
+}
+_MANOEUVRE_MEDIANS = {
+    "accel_perp_mps2": "observer_accel_perp_los_rms_mps2",
+    "accel_mps2": "observer_accel_rms_mps2",
+    "err_pub": "err_range_published_settled_pct",
+    "err_obs": "err_range_observable_pct",
+    "err_final": "err_range_final_pct",
+    "obs_share": "observable_share_settled",
+}
+
+
+def _medians(rs: list[dict], columns: dict[str, str]) -> dict:
+    """``{key: median of column over rs}`` (None values skipped, as :func:`_med`)."""
+    return {key: _med(r.get(col) for r in rs) for key, col in columns.items()}
+
+
+def table2_rows(rows: list[dict]) -> tuple[list[dict], bool]:
+    """Per (algorithm, scenario, noise): medians over the runs at the reference geometry (or over every
+    geometry when the campaign has no reference-geometry runs: the flag says which)."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    ref = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0 and r["manoeuvre_scale"] == 1.0]
+    use, at_ref = (ref, True) if ref else (ok, False)
+    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in use))
+    out = []
+    for a, s, n in keys:
+        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"]) == (a, s, n)]
+        honest = [
+            r
+            for r in rs
+            if r.get("beyond_3sigma_published") is not None and r["beyond_3sigma_published"] <= HONEST_BEYOND_3SIGMA
+        ]
+        out.append(
+            {
+                "algorithm": a,
+                "scenario": s,
+                "noise": n,
+                "runs": len(rs),
+                **_medians(rs, _ACCURACY_MEDIANS),
+                "honest": len(honest),
+            }
+        )
+    return out, at_ref
+
+
+def manoeuvre_rows(rows: list[dict]) -> list[dict]:
+    """Per (algorithm, scenario, noise, manoeuvre_scale) over reference range and aspect if swept at
+    those (else all): the measured observer acceleration (RMS normal to the line of sight, median) and
+    the median err/range of the published estimates once settled; the CRB as RMS / median range."""
+    ok = [r for r in rows if r.get("status") == "ok"]
+    base = [r for r in ok if r["range_scale"] == 1.0 and r["aspect_deg"] == 0.0]
+    use = base if len({r["manoeuvre_scale"] for r in base}) > 1 else ok
+    keys = list(dict.fromkeys((r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) for r in use))
+    out = []
+    for a, s, n, m in keys:
+        rs = [r for r in use if (r["algorithm"], r["scenario"], r["noise"], r["manoeuvre_scale"]) == (a, s, n, m)]
+        crb_pct = [
+            100 * r["crb_rms_m"] / r["range_median_m"]
+            for r in rs
+            if r.get("crb_rms_m") is not None and r.get("range_median_m")
+        ]
+        out.append(
+            {
+                "algorithm": a,
+                "scenario": s,
+                "noise": n,
+                "manoeuvre_scale": m,
+                "runs": len(rs),
+                **_medians(rs, _MANOEUVRE_MEDIANS),
+                "crb_pct": _med(crb_pct),
+            }
+        )
+    return out
+
+
+def works_from(mrows: list[dict], good_pct: float = GOOD_ERR_PCT) -> list[dict]:
+    """Per (algorithm, scenario, noise): the smallest measured manoeuvre (RMS acceleration normal to the
+    line of sight) from which every larger swept level has a median err/range <= ``good_pct``."""
+    out = []
+    for key in dict.fromkeys((r["algorithm"], r["scenario"], r["noise"]) for r in mrows):
+        rs = sorted(
+            (r for r in mrows if (r["algorithm"], r["scenario"], r["noise"]) == key), key=lambda r: r["accel_perp_mps2"]
+        )
+        good = [math.isfinite(r["err_pub"]) and r["err_pub"] <= good_pct for r in rs]
+        start = None
+        for i in range(len(rs) - 1, -1, -1):
+            if not good[i]:
+                break
+            start = rs[i]
+        out.append(
+            {
+                "algorithm": key[0],
+                "scenario": key[1],
+                "noise": key[2],
+                "levels": len(rs),
+                "works_from_mps2": start["accel_perp_mps2"] if start else math.nan,
+                "works_from_scale": start["manoeuvre_scale"] if start else math.nan,
+            }
+        )
+    return out
+
+
+def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict) -> dict:
+    """``report.md`` (+ ``manoeuvre.png`` when two or more manoeuvre levels were swept)."""
+    from groundsim.evaluation.report import PAPER_TABLE2_PCT
+
+    files = {}
+    ok = [r for r in rows if r.get("status") == "ok"]
+    failed = [r for r in rows if r.get("status") != "ok"]
+    t2, at_ref = table2_rows(rows)
+    mrows = manoeuvre_rows(rows)
+    from groundsim.evaluation.campaign_plots import plot_manoeuvre
+    from groundsim.evaluation.scoring import OBSERVABLE_AFTER_S
+
+    has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows, GOOD_ERR_PCT, OBSERVABLE_AFTER_S)
+    if has_fig:
+        files[FIGURE_NAME] = out / FIGURE_NAME
+    L = [f"# Campaign {spec.name}\n"]
+    L.append(
+        f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "
+        f"{', '.join(spec.noise)}, algorithms {', '.join(spec.algorithms)}, seeds {len(spec.seeds)}, "
+        f"{len(spec.geometries)} geometr{'y' if len(spec.geometries) == 1 else 'ies'}, estimator noise model: "
+        f"{spec.noise_model}.\n"
+    )
+    ri = run_info
+    rate = 60.0 * ri["ran"] / ri["wall_s"] if ri["wall_s"] > 0 and ri["ran"] else math.nan
+    L.append(
+        f"{len(rows)} of {ri['planned']} runs in the table ({len(failed)} failed); this invocation reused "
+        f"{ri['reused']}, ran {ri['ran']} in {ri['wall_s']:.1f} s on {ri['workers']} worker(s)"
+        f"{f' ({rate:.1f} runs/min)' if math.isfinite(rate) else ''}"
+        f"{'; INTERRUPTED: run the same command to resume' if ri['interrupted'] else ''}. "
+        f"Table: `{TABLE_NAME}` (one row per run).\n"
+    )
+    L.append("## Table 2 analogue, per algorithm\n")
+    L.append(
+        (
+            "Runs at the reference geometry (range, aspect and manoeuvre of the shipped scenario)."
+            if at_ref
+            else "No run at the reference geometry: medians over every geometry of the campaign."
+        )
+        + " Medians over runs. *observable*: err/range on the frames the algorithm called observable; *published*: "
+        "every finite estimate once *settled* (from 5 s on; half the run if shorter than 10 s); *final*: last frame. Honest: runs with at most 1 % of published "
+        "estimates beyond 3 sqrt(trace cov). CRB: Bayesian bound at the truth (RMS over the window).\n"
+    )
+    for a in dict.fromkeys(r["algorithm"] for r in t2):
+        L.append(f"### {a}\n")
+        L.append(
+            "| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
+            "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
+            "CRB range sigma | batch MAP err/range |"
+        )
+        L.append("|" + "---|" * 14)
+        for r in (x for x in t2 if x["algorithm"] == a):
+            paper = PAPER_TABLE2_PCT.get(r["scenario"])
+            L.append(
+                f"| {r['scenario']} | {r['noise']} | {r['runs']} | {f'{paper:.2f} %' if paper else '-'} | "
+                f"{_pct(r['err_obs'])} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_num(r['rmse_pub'])} | "
+                f"{_pct(100 * r['obs_share'], 0)} | {r['honest']}/{r['runs']} | {_num(r['nees_pub'], 1)} | "
+                f"{_num(r['crb'])} | {_pct(r['crb_sig'], 1)} | {_pct(r['batch'])} |"
+            )
+        L.append("")
+    if mrows and len({r["manoeuvre_scale"] for r in mrows}) > 1:
+        L.append("## Error vs observer manoeuvre\n")
+        L.append(f"![error vs manoeuvre]({FIGURE_NAME})\n")
+        L.append(
+            "The observer's acceleration is scaled (manoeuvre_scale), measured as its RMS normal to the line "
+            f"of sight over the window. *Works from*: the smallest measured level from which every larger "
+            f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n"
+        )
+        L.append("| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |")
+        L.append("|---|---|---|---|---|---|")
+        for w in works_from(mrows):
+            L.append(
+                f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
+                f"{_num(w['works_from_mps2'], 3) if math.isfinite(w['works_from_mps2']) else 'not in the range swept'} | "
+                f"{_num(w['works_from_scale'], 3)} |"
+            )
+        L.append("")
+        L.append(
+            "| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
+            "err/range last frame | err/range observable | observable share | CRB / range |"
+        )
+        L.append("|" + "---|" * 11)
+        for r in mrows:
+            L.append(
+                f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "
+                f"{_num(r['accel_perp_mps2'], 3)} | {_pct(r['err_pub'])} | {_pct(r['err_final'])} | {_pct(r['err_obs'])} | "
+                f"{_pct(100 * r['obs_share'], 0)} | {_pct(r['crb_pct'])} |"
+            )
+        L.append("")
+    if failed:
+        L.append("## Failed runs\n")
+        for r in failed[:50]:
+            L.append(
+                f"- {r['scenario']} {r['geometry']} {r['noise']} {r['algorithm']} seed {r['seed']}: {r.get('error')}"
+            )
+        L.append("")
+    (out / REPORT_NAME).write_text("\n".join(L), encoding="utf-8")
+    files[REPORT_NAME] = out / REPORT_NAME
+    log.debug("report: %d ok rows", len(ok))
+    return files

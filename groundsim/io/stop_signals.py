@@ -1,0 +1,57 @@
+"""SIGINT/SIGTERM as a clean stop, and the one line a command prints when Ctrl-C ended it.
+
+A long command installs :func:`install_stop_signals` so that Ctrl-C (or SIGTERM) sets a stop event its loop
+checks, instead of raising wherever the loop happens to be; when SIGINT ended it, the command prints
+:func:`print_interrupted`'s line, ``interrupted: <what was kept>``, and exits :data:`EXIT_INTERRUPTED`.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+from collections.abc import Callable
+
+__all__ = ["EXIT_INTERRUPTED", "install_stop_signals", "print_interrupted"]
+
+log = logging.getLogger(__name__)
+
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, what a shell reports for a command Ctrl-C ended
+
+
+def install_stop_signals(
+    stop: threading.Event, received: list[int] | None = None, on_first: Callable[[str], object] | None = None
+):
+    """SIGINT/SIGTERM set ``stop`` and append their number to ``received``; the first one is announced by
+    ``on_first(signal name)`` (default: an INFO log line).  Returns a function restoring the old handlers."""
+    old = {}
+
+    def on_signal(signum, _frame):
+        if not stop.is_set():
+            name = signal.Signals(signum).name
+            if on_first is not None:
+                on_first(name)
+            else:
+                log.info("%s: stopping", name)
+        if received is not None:
+            received.append(signum)
+        stop.set()
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        try:
+            old[sig] = signal.signal(sig, on_signal)
+        except ValueError:  # not the main thread (embedded use): the caller owns stopping
+            pass
+
+    def restore() -> None:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+    return restore
+
+
+def print_interrupted(kept: str) -> int:
+    """Print ``interrupted: <kept>`` on stderr; returns :data:`EXIT_INTERRUPTED`."""
+    print(f"interrupted: {kept}", file=sys.stderr, flush=True)
+    return EXIT_INTERRUPTED

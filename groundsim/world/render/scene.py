@@ -1,0 +1,559 @@
+"""Scene content over the renderer's sky: a cloud layer, textured terrain, distractor objects, their labels.
+
+Public API (the renderer is :class:`~groundsim.world.render.raster.IrRenderer`; the camera model that
+turns the radiance into counts is :class:`~groundsim.world.render.sensor.Sensor`)::
+
+    scene = SceneContent.from_config(scene_config, renderer, seed)
+    frame = scene.render(t_s, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body,
+                         altitude_ground_d_m)           # SceneFrame(radiance, background, labels)
+    image = renderer.quantise(frame.radiance)           # today's grey output (noise, mono8/16) ...
+    out = sensor.apply(frame.radiance, t_s, k)          # ... or the camera's counts / AGC mono8
+
+    scene.render_background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)  # SceneBackground
+    scene.objects(t_s)                                  # the distractors' poses at t_s (SceneObject)
+
+Frames and units as in ``raster``: local NED, OpenCV camera, radiance in W m^-2 sr^-1.
+
+Background model (per pixel, ray ``d`` from the camera at ``p``)
+-----------------------------------------------------------------
+``L_base``: the renderer's sky gradient and flat ground (:meth:`IrRenderer.base_radiance`, exact
+horizon through the PSF).  Terrain: the ray meets the ground plane ``d = altitude_ground_d_m`` at
+range ``r_g``; the texture there (:func:`textures.terrain_texture`, radiance relative to the flat
+ground) is seen through the atmosphere: ``L_below = L_base + tau(r_g) dL_terrain``,
+``tau(r) = exp(-extinction_per_km r_km)``.  Clouds: the ray meets the cloud plane
+``base_altitude_m`` above the ground at range ``r_c`` (only if nearer than the ground and within
+``max_range_m``); the cloud's opacity there is ``alpha = 1 - exp(-k h rho / |sin el|)`` (``k``
+``optical_depth_per_km``, ``h`` thickness in km, ``rho`` the density texture) and it radiates ``L_c``
+(its brightness temperature, sun-lit edges warmer).  The air in front of the cloud radiates like the
+clear sky along the same ray (the sky model's effective temperature already holds the path), so::
+
+    L = L_below + alpha s (L_c - L_below),     s = tau(r_c) fade(r_c)
+
+(``fade`` from 1 to 0 over the last fifth of ``max_range_m``): distant clouds sink into the horizon
+haze.  ``depth_m`` is ``r_c`` where the ray meets the layer, else ``r_g``, else ``FAR_M``; an object at
+range ``R > depth_m`` is seen through ``1 - alpha`` of the cloud, against ``L_below``
+(``PartRaster.delta(..., occluder=background)``; ``cloud_alpha`` is 0 where the layer is clear).
+
+How it is fast: the plane intersections (ranges, texture coordinates, atmosphere, mip weights) are
+computed on a grid of one ray per 4 x 4 pixels and taken to half resolution by ``cv2.pyrUp``; the
+texture look-ups (``cv2.remap``, bilinear, periodic, only in the rows that see the surface) and the
+compositing weights at half resolution; one more ``pyrUp`` applies them to the full-resolution
+``L_base``.  The textures are smooth over two pixels at the ranges where they are seen (their finest
+features are several pixels wide; the optics PSF is 0.6 px), while the horizon, the sharpest edge,
+keeps the renderer's exact treatment.  Mip-mapping: a near level from the 10th percentile of the
+pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended into a level ``FAR_LEVELS``
+coarser where the footprint reaches 2 to 8 texels, so that far ground and far clouds do not alias.
+
+Objects: the target (id 0, class ``target``) and the distractors (ids from 1: birds, aircraft,
+glints), each a set of box and ellipsoid parts drawn by the renderer's
+:class:`~groundsim.world.render.raster.PartRaster` far to near, each over what is already drawn.
+Labels per object and frame: :class:`ObjectLabel`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import zlib
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from groundsim.world.render.planck import band_radiance, band_radiance_derivative
+from groundsim.world.render.raster import IrRenderer, PartRaster, SceneBackground
+from groundsim.world.render.scene_config import SceneConfig
+from groundsim.world.render.settings import TargetPart
+from groundsim.world.render.textures import cloud_texture, terrain_texture
+from onboard.core.errors import InputError
+
+__all__ = [
+    "SceneContent",
+    "SceneFrame",
+    "SceneObject",
+    "ObjectLabel",
+    "VISIBILITY",
+    "section_rng",
+    "FAR_M",
+]
+
+FAR_M = 1.0e7  # depth of a ray that meets nothing (finite, so that upsampling stays finite)
+OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque is "occluded"
+BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
+FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
+DISTRACTOR_SUPERSAMPLE = 8  # sub-samples per pixel side for distractors (the target keeps the renderer's)
+COARSE_STEP = 4  # plane geometry on a 4 x 4 px grid, textures at 2 x 2 px: fixed by the pyrUp steps
+MAP_LIMIT = 30000.0  # texture coordinates are clamped to +-this many texels (remap holds them in 16 bits)
+FAR_LEVELS = 3  # far ground and far clouds are read this many mip levels coarser
+VISIBILITY = ("visible", "occluded", "out_of_frame")
+
+
+def section_rng(seed: int, section: str, section_seed: int) -> np.random.Generator:
+    """The generator of one scene section: depends on the run's ``seed``, the section's name and its own
+    ``seed`` only (adding a section never changes another)."""
+    return np.random.default_rng([int(seed), zlib.crc32(section.encode()), int(section_seed)])
+
+
+@dataclass(frozen=True)
+class SceneObject:
+    """One object at one instant: ``object_id`` (0: the target), ``cls`` (``target``, ``bird``, ``aircraft``,
+    ``glint``), its pose (``p_ned_m`` centre, ``R_ned_from_body`` FRD), the raster of its parts, and
+    ``gain`` on its signal (a glint's flicker)."""
+
+    object_id: int
+    cls: str
+    p_ned_m: np.ndarray
+    R_ned_from_body: np.ndarray
+    raster: PartRaster
+    gain: float = 1.0
+
+
+@dataclass(frozen=True)
+class ObjectLabel:
+    """Truth of one object in one frame.
+
+    ``u_px, v_px``: sub-pixel projection of its centre (NaN behind the camera); ``box_px``: ``(x0, y0,
+    x1, y1)`` of the pixels whose signal reaches ``BOX_FRACTION`` of its peak (None when not drawn);
+    ``visibility``: ``visible``, ``occluded`` (its centre behind a cloud of opacity >= 0.5) or
+    ``out_of_frame``; ``contrast_netd``: peak |signal - local background| over the NETD in radiance
+    (``netd_k * dL/dT(netd_reference_k)``), 0 when not drawn; ``range_m``: camera to centre.
+    """
+
+    object_id: int
+    cls: str
+    u_px: float
+    v_px: float
+    box_px: tuple[int, int, int, int] | None
+    visibility: str
+    contrast_netd: float
+    range_m: float
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """One rendered frame before the sensor: ``radiance`` (H, W) float32 W m^-2 sr^-1 (no noise), the
+    ``background`` it was drawn on, and the ``labels`` of every object (target first)."""
+
+    radiance: np.ndarray
+    background: SceneBackground
+    labels: tuple[ObjectLabel, ...]
+
+
+def _fold(m: np.ndarray, n: int) -> np.ndarray:
+    """Texture coordinates folded into one period ``[0, n)``: cv2.remap reads texels outside the image
+    through a per-pixel border path several times slower than the inside."""
+    return m - np.float32(n) * np.floor(m * np.float32(1.0 / n))
+
+
+def _lookup(texture: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, rows: slice) -> np.ndarray:
+    """Bilinear, periodic texture look-up at (map_x, map_y) texels (texel centres at integers) in ``rows``
+    only (0 elsewhere: the rows that see the surface)."""
+    n = texture.shape[0]
+    out = np.zeros(map_x.shape, np.float32)
+    if rows.stop > rows.start:
+        mx, my = _fold(map_x[rows], n), _fold(map_y[rows], n)
+        out[rows] = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return out
+
+
+def _half_rows(mask: np.ndarray, limit: int) -> slice:
+    """Rows of the half-resolution image that a coarse-grid mask's true rows reach (one coarse row
+    spreads over the half-resolution rows 2 k - 1 .. 2 k + 1 through pyrUp)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return slice(0, 0)
+    return slice(max(2 * int(rows[0]) - 2, 0), min(2 * int(rows[-1]) + 3, limit))
+
+
+def _quantile(x: np.ndarray, q: float) -> float:
+    """The ``q`` quantile (nearest rank) of a 1-D array, 0 when empty (np.partition: no sort)."""
+    if x.size == 0:
+        return 0.0
+    k = min(int(q * x.size), x.size - 1)
+    return float(np.partition(x, k)[k])
+
+
+def _rot_z(yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
+    return Rz @ Ry
+
+
+class SceneContent:
+    """Clouds, terrain and distractors of one scenario run, deterministic given ``config`` and ``seed``.
+
+    Built once per run (textures take ~1 s); not thread-safe (scratch buffers are reused).
+    """
+
+    def __init__(self, config: SceneConfig, renderer: IrRenderer, seed: int = 0):
+        if not isinstance(config, SceneConfig):
+            raise InputError(f"config: expected a SceneConfig, got {type(config).__name__}")
+        if not isinstance(renderer, IrRenderer):
+            raise InputError(f"renderer: expected an IrRenderer, got {type(renderer).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise InputError(f"seed: expected an integer >= 0, got {seed!r}")
+        self.config = config
+        self.renderer = renderer
+        self.seed = int(seed)
+        s = renderer.settings
+        self.settings = s
+        intr = renderer.intrinsics
+        self._H, self._W = int(intr.height_px), int(intr.width_px)
+        self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
+        self.netd_radiance = float(s.netd_k) * float(band_radiance_derivative(s.netd_reference_k, s.band_um))
+        L_sky_mean = float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um))
+        self._init_rays()
+        c = config
+        self.clouds = (
+            cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
+        )
+        self.terrain = (
+            terrain_texture(
+                c.terrain,
+                s.band_um,
+                s.ground_temperature_k,
+                s.ground_emissivity,
+                L_sky_mean,
+                section_rng(seed, "terrain", c.terrain.seed),
+            )
+            if c.terrain.enabled
+            else None
+        )
+        env = renderer.environment_radiance
+        self._target_raster = PartRaster(intr, s, s.target_parts, env, 0.0, 1.0)
+        self._distractor_settings = dataclasses.replace(s, supersample=min(s.supersample, DISTRACTOR_SUPERSAMPLE))
+        self._init_distractors(env)
+
+    @classmethod
+    def from_config(cls, config: SceneConfig, renderer: IrRenderer, seed: int = 0) -> SceneContent:
+        return cls(config, renderer, seed)
+
+    # ------------------------------------------------------------------ setup
+
+    def _init_rays(self) -> None:
+        """Camera rays (x, y, 1) through the centres of every fourth pixel (pixel ``(4 i, 4 j)``), (Hc, Wc)
+        float32, and their norms: two ``cv2.pyrUp`` steps take this grid to the half and the full
+        resolution (each puts source sample ``k`` on output sample ``2 k``)."""
+        intr = self.renderer.intrinsics
+        st = COARSE_STEP
+        self._hc, self._wc = -(-self._H // st), -(-self._W // st)
+        u = st * np.arange(self._wc) + 0.5
+        v = st * np.arange(self._hc) + 0.5
+        uu, vv = np.meshgrid(u, v)
+        if intr.has_distortion:
+            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1))
+            x, y = xy[..., 0], xy[..., 1]
+        else:
+            x = (uu - intr.cx_px) / intr.fx_px
+            y = (vv - intr.cy_px) / intr.fy_px
+        self._rx = x.astype(np.float32)
+        self._ry = y.astype(np.float32)
+        self._rnorm = np.sqrt(x * x + y * y + 1.0).astype(np.float32)
+        self._f_px = math.sqrt(intr.fx_px * intr.fy_px)
+
+    def _init_distractors(self, env: float) -> None:
+        cfg = self.config.distractors
+        intr, s = self.renderer.intrinsics, self._distractor_settings
+        self._birds: list[tuple] = []
+        b = cfg.birds
+        if b.count:
+            rng = section_rng(self.seed, "birds", b.seed)
+            k = b.wingspan_m / 0.6
+            self._bird_rasters = []
+            for i in range(FLAP_PHASES):
+                span = 1.0 - b.flap_depth * i / max(FLAP_PHASES - 1, 1)
+                parts = (
+                    TargetPart(
+                        "body",
+                        "ellipsoid",
+                        (0.0, 0.0, 0.0),
+                        (0.12 * k, 0.035 * k, 0.035 * k),
+                        b.body_temperature_k,
+                        b.emissivity,
+                    ),
+                    TargetPart(
+                        "wings",
+                        "box",
+                        (0.01 * k, 0.0, -0.01 * k),
+                        (0.05 * k, 0.5 * b.wingspan_m * span, 0.006 * k),
+                        b.body_temperature_k - 4.0,
+                        b.emissivity,
+                    ),
+                )
+                self._bird_rasters.append(PartRaster(intr, s, parts, env, 0.0, 1.0))
+            c0 = np.asarray(b.center_ned_m, dtype=float)
+            for _ in range(b.count):
+                centre = c0 + rng.uniform(-1.0, 1.0, 3) * np.array([b.spread_m, b.spread_m, 0.25 * b.spread_m])
+                radius = rng.uniform(10.0, 60.0)
+                self._birds.append(
+                    (centre, radius, rng.uniform(0, 2 * math.pi), rng.choice((-1.0, 1.0)), rng.uniform(0, 2 * math.pi))
+                )
+        self._aircraft = []
+        for a in cfg.aircraft:
+            L = a.length_m
+            parts = (
+                TargetPart(
+                    "fuselage", "ellipsoid", (0.0, 0.0, 0.0), (L / 2, L / 22, L / 22), a.skin_temperature_k, 0.85
+                ),
+                TargetPart(
+                    "wings", "box", (0.0, 0.0, 0.0), (L / 10, a.span_m / 2, L / 120), a.skin_temperature_k, 0.85
+                ),
+                TargetPart(
+                    "engine_l",
+                    "ellipsoid",
+                    (0.0, -a.span_m / 4, L / 30),
+                    (L / 12, L / 40, L / 40),
+                    a.engine_temperature_k,
+                    0.9,
+                ),
+                TargetPart(
+                    "engine_r",
+                    "ellipsoid",
+                    (0.0, a.span_m / 4, L / 30),
+                    (L / 12, L / 40, L / 40),
+                    a.engine_temperature_k,
+                    0.9,
+                ),
+            )
+            v = np.asarray(a.v_ned_mps, dtype=float)
+            R = _rot_z(math.atan2(v[1], v[0]), math.atan2(-v[2], max(math.hypot(v[0], v[1]), 1e-9)))
+            self._aircraft.append(
+                (np.asarray(a.p0_ned_m, dtype=float), v, R, PartRaster(intr, s, parts, env, 0.0, 1.0))
+            )
+        self._glints = []
+        for i, g in enumerate(cfg.glints):
+            part = TargetPart(
+                "glint",
+                "ellipsoid",
+                (0.0, 0.0, 0.0),
+                (g.size_m / 2, g.size_m / 2, g.size_m / 20),
+                g.brightness_temperature_k,
+                1.0,
+            )
+            phase = section_rng(self.seed, "glints", i).uniform(0, 2 * math.pi)
+            self._glints.append((g, phase, PartRaster(intr, s, (part,), env, 0.0, 1.0)))
+
+    # ------------------------------------------------------------------ objects
+
+    def objects(self, t_s: float) -> tuple[SceneObject, ...]:
+        """The distractors at ``t_s`` (ids 1.. in the order birds, aircraft, glints)."""
+        t = float(t_s)
+        out = []
+        oid = 1
+        b = self.config.distractors.birds
+        for centre, radius, phase, direction, flap_phase in self._birds:
+            theta = phase + direction * b.speed_mps / radius * t
+            p = centre + np.array([radius * math.cos(theta), radius * math.sin(theta), 2.0 * math.sin(0.3 * t + phase)])
+            R = _rot_z(theta + direction * math.pi / 2)
+            flap = 0.5 * (1.0 - math.cos(2 * math.pi * b.flap_hz * t + flap_phase))  # 0 spread .. 1 folded
+            raster = self._bird_rasters[min(int(round(flap * (FLAP_PHASES - 1))), FLAP_PHASES - 1)]
+            out.append(SceneObject(oid, "bird", p, R, raster))
+            oid += 1
+        for p0, v, R, raster in self._aircraft:
+            out.append(SceneObject(oid, "aircraft", p0 + v * t, R, raster))
+            oid += 1
+        for g, phase, raster in self._glints:
+            gain = 1.0 - g.flicker_depth * 0.5 * (1.0 - math.cos(2 * math.pi * g.flicker_hz * t + phase))
+            out.append(SceneObject(oid, "glint", np.asarray(g.p_ned_m, dtype=float), np.eye(3), raster, gain))
+            oid += 1
+        return tuple(out)
+
+    def target_object(self, p_target_ned_m, R_ned_from_target_body) -> SceneObject:
+        """The renderer's target as scene object 0."""
+        return SceneObject(
+            0,
+            "target",
+            np.asarray(p_target_ned_m, float),
+            np.asarray(R_ned_from_target_body, float),
+            self._target_raster,
+        )
+
+    # ------------------------------------------------------------------ background
+
+    def render_background(self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m: float = 0.0) -> SceneBackground:
+        """The background with clouds and terrain (see the module docstring); today's when both are off."""
+        base = self.renderer.base_radiance(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+        if self.clouds is None and self.terrain is None:
+            depth = np.full(base.shape, FAR_M, np.float32)
+            return SceneBackground(base, base, depth, np.zeros(base.shape, np.float32))
+        p = np.asarray(p_cam_ned_m, dtype=float)
+        R = np.asarray(R_ned_from_cam, dtype=float)
+        f32 = np.float32
+        # ---- plane geometry on the coarse grid
+        x, y = self._rx, self._ry
+        dn = f32(R[0, 0]) * x + f32(R[0, 1]) * y + f32(R[0, 2])
+        de = f32(R[1, 0]) * x + f32(R[1, 1]) * y + f32(R[1, 2])
+        dd = f32(R[2, 0]) * x + f32(R[2, 1]) * y + f32(R[2, 2])
+        ext_per_m = self.settings.extinction_per_km * 1e-3
+        ground_d = float(altitude_ground_d_m)
+        h_g = ground_d - float(p[2])  # camera height above the ground
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            inv_dd = f32(1.0) / dd
+            t_g = f32(h_g) * inv_dd if h_g > 0.0 else np.full_like(dd, -1.0)
+            on_ground = t_g > 0.0
+            r_g = np.where(on_ground, t_g * self._rnorm, f32(FAR_M))
+            chans = [r_g]
+            terrain = self._terrain_geometry(p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m) if self.terrain else None
+            clouds = self._cloud_geometry(p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m) if self.clouds else None
+        if clouds is not None:
+            chans[0] = np.where(clouds[1], clouds[2], r_g)  # depth: the cloud layer where the ray meets it
+        up = cv2.pyrUp
+        depth = up(up(chans[0]))[: self._H, : self._W]
+        # ---- textures and compositing weights at half resolution
+        b_t = None
+        if terrain is not None:
+            gx, gy, tau_g, w_far = (up(c) for c in terrain[0])
+            lv, lv_far = terrain[1], terrain[2]
+            levels = self.terrain.levels
+            rows = _half_rows(terrain[3], gx.shape[0])  # rows wholly at the far level skip the near one
+            dL = _lookup(levels[lv], gx, gy, rows)
+            far_rows = _half_rows(terrain[4], gx.shape[0])
+            if lv_far != lv and far_rows.stop > far_rows.start:
+                sc = f32(2.0 ** (lv - lv_far))
+                far = _lookup(levels[lv_far], gx * sc, gy * sc, far_rows)
+                dL += w_far * (far - dL)
+            b_t = tau_g * dL
+        if clouds is None:
+            radiance = base + up(b_t)[: self._H, : self._W]
+            return SceneBackground(radiance, radiance, depth, np.zeros_like(base))
+        cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
+        lv, lv_far = clouds[3], clouds[4]
+        rows = _half_rows(clouds[6], cx.shape[0])  # rows wholly at the far level skip the near one
+        rho = _lookup(self.clouds.density_levels[lv], cx, cy, rows)
+        L_c = _lookup(self.clouds.radiance_levels[lv], cx, cy, rows)
+        far_rows = _half_rows(clouds[5], cx.shape[0])
+        if lv_far != lv and far_rows.stop > far_rows.start:
+            sc = f32(2.0 ** (lv - lv_far))
+            rho += w_far * (_lookup(self.clouds.density_levels[lv_far], cx * sc, cy * sc, far_rows) - rho)
+            L_c += w_far * (_lookup(self.clouds.radiance_levels[lv_far], cx * sc, cy * sc, far_rows) - L_c)
+        alpha = f32(1.0) - np.exp(-(optical * rho))
+        a_seen = alpha * seen
+        b = a_seen * L_c if b_t is None else b_t + a_seen * (L_c - b_t)
+        H, W = self._H, self._W
+        radiance = base - up(a_seen)[:H, :W] * base
+        radiance += up(b)[:H, :W]
+        base_t = base if b_t is None else base + up(b_t)[:H, :W]
+        return SceneBackground(radiance, base_t, depth, np.ascontiguousarray(up(alpha)[:H, :W]))
+
+    def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
+        """Coarse-grid channels ``[x, y (texels of the near level), tau(r_g), far weight]`` and the two mip levels.
+
+        Near level from the 10th percentile of a ground pixel's footprint along the ray's azimuth,
+        ``r / f / sin(grazing) = r^2 / (f h)``; the far level ``FAR_LEVELS`` coarser, blended in where the
+        footprint is 2 to 8 texels of the near level."""
+        f32 = np.float32
+        tex = self.terrain
+        foot_m = r_g * r_g / f32(self._f_px * max(h_g, 1e-3))
+        lv = 0
+        if np.any(on_ground):
+            q = _quantile(foot_m[::3, ::3][on_ground[::3, ::3]], 0.1)
+            lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.levels) - 1))
+        lv_far = min(lv + FAR_LEVELS, len(tex.levels) - 1)
+        texel = tex.texel_m * 2**lv
+        t = np.where(on_ground, t_g, f32(0.0))
+        period = texel * tex.levels[lv].shape[0]
+        off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))  # camera in the tile
+        gx = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        gy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        tau = np.where(on_ground, np.exp(f32(-ext_per_m) * r_g), f32(0.0))
+        w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+        return [gx, gy, tau, w_far], lv, lv_far, on_ground & (w_far < 1.0), w_far > 0.0
+
+    def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m):
+        """Coarse-grid channels ``[x, y (texels of the near level), optical depth per unit density, how much
+        is seen, far weight]``, the hit mask, the range to the layer, the near and far mip levels (chosen as
+        for the terrain) and where the far level is used.
+
+        ``seen = tau(r_c) * fade``: the cloud's radiance replaces the background by ``alpha seen``, the
+        atmosphere in front of it radiating like the clear sky along that ray (far clouds fade into the
+        horizon haze); ``fade`` goes from 1 to 0 over the last fifth of ``max_range_m``."""
+        f32 = np.float32
+        cfg = self.config.clouds
+        tex = self.clouds
+        h_c = ground_d - cfg.base_altitude_m - float(p[2])  # layer below the camera: > 0
+        t_c = f32(h_c) * inv_dd
+        r_c = t_c * self._rnorm
+        hit = (t_c > 0.0) & (r_c < f32(cfg.max_range_m)) & (r_c < r_g)
+        t = np.where(hit, t_c, f32(0.0))
+        foot_m = r_c * r_c / f32(self._f_px * max(abs(h_c), 1e-3))
+        lv = 0
+        if np.any(hit):
+            q = _quantile(foot_m[::3, ::3][hit[::3, ::3]], 0.1)
+            lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.density_levels) - 1))
+        lv_far = min(lv + FAR_LEVELS, len(tex.density_levels) - 1)
+        texel = tex.texel_m * 2**lv
+        period = texel * tex.density_levels[lv].shape[0]
+        off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))
+        cx = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        cy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+        w_far = np.where(hit, w_far, f32(0.0))
+        tau_v = f32(cfg.optical_depth_per_km * cfg.thickness_m * 1e-3)
+        optical = np.where(hit, tau_v * np.minimum(self._rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
+        fade = np.clip((f32(cfg.max_range_m) - r_c) / f32(0.2 * cfg.max_range_m), 0.0, 1.0)
+        seen = np.where(hit, np.exp(f32(-ext_per_m) * r_c) * fade, f32(0.0))
+        near = hit & (w_far < 1.0)
+        return [cx, cy, optical, seen, w_far], hit, np.where(hit, r_c, f32(FAR_M)), lv, lv_far, w_far > 0.0, near
+
+    # ------------------------------------------------------------------ objects on the image
+
+    def draw_objects(
+        self, radiance: np.ndarray, background: SceneBackground, objects, p_cam_ned_m, R_ned_from_cam
+    ) -> tuple[np.ndarray, tuple[ObjectLabel, ...]]:
+        """``objects`` (SceneObject) drawn far to near on a copy of ``radiance``; labels in the given order."""
+        p_cam = np.asarray(p_cam_ned_m, dtype=float)
+        R_nc = np.asarray(R_ned_from_cam, dtype=float)
+        out = np.array(radiance, dtype=np.float32, copy=True)
+        ranges = [float(np.linalg.norm(o.p_ned_m - p_cam)) for o in objects]
+        labels: dict[int, ObjectLabel] = {}
+        for k in sorted(range(len(objects)), key=lambda i: -ranges[i]):
+            o = objects[k]
+            roi = o.raster.delta(out, p_cam, R_nc, o.p_ned_m, o.R_ned_from_body, occluder=background)
+            if roi is not None:
+                rows, cols, delta, _ = roi
+                if o.gain != 1.0:
+                    delta = delta * np.float32(o.gain)
+                out[rows, cols] += delta
+            labels[k] = self._label(o, roi, ranges[k], background, p_cam, R_nc)
+        return out, tuple(labels[k] for k in range(len(objects)))
+
+    def _label(self, o: SceneObject, roi, range_m: float, background, p_cam, R_nc) -> ObjectLabel:
+        intr = self.renderer.intrinsics
+        p_c = R_nc.T @ (o.p_ned_m - p_cam)
+        if p_c[2] <= 0.0:
+            return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m)
+        u, v = (float(c) for c in intr.project(p_c))
+        box, contrast = None, 0.0
+        if roi is not None:
+            rows, cols, delta, _ = roi
+            mag = np.abs(delta) * abs(o.gain)
+            peak = float(mag.max())
+            if peak > 0.0:
+                ii, jj = np.nonzero(mag >= BOX_FRACTION * peak)
+                box = (
+                    int(cols.start + jj.min()),
+                    int(rows.start + ii.min()),
+                    int(cols.start + jj.max() + 1),
+                    int(rows.start + ii.max() + 1),
+                )
+                contrast = peak / self.netd_radiance if self.netd_radiance > 0.0 else math.inf
+        if not (0.0 <= u < self._W and 0.0 <= v < self._H):
+            return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m)
+        i, j = int(v), int(u)
+        behind = background.depth_m[i, j] < range_m and background.cloud_alpha[i, j] >= OCCLUDED_ALPHA
+        return ObjectLabel(o.object_id, o.cls, u, v, box, "occluded" if behind else "visible", contrast, range_m)
+
+    # ------------------------------------------------------------------ a frame
+
+    def render(
+        self, t_s, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, altitude_ground_d_m=0.0
+    ) -> SceneFrame:
+        """Background, target (``p_target_ned_m=None``: none) and distractors at ``t_s``: a :class:`SceneFrame`."""
+        bg = self.render_background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+        objs = self.objects(t_s)
+        if p_target_ned_m is not None:
+            objs = (self.target_object(p_target_ned_m, R_ned_from_target_body), *objs)
+        radiance, labels = self.draw_objects(bg.radiance, bg, objs, p_cam_ned_m, R_ned_from_cam)
+        return SceneFrame(radiance, bg, labels)

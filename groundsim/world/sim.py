@@ -1,0 +1,499 @@
+"""The simulated world on the simulator's tick grid: the pair flight, the frames, their truth (no sockets or files).
+
+:class:`SimCore` is what ``python -m groundsim run`` (:mod:`groundsim.app.run`, which adds the sockets,
+the files and the wall clock), the lockstep evaluation and the dataset export all step through.
+
+Clock and events
+----------------
+The simulation clock *is* the vehicle's boot clock: ``time_boot_us = boot_start_us + round(t_s *
+1e6)`` with ``t_s`` the scenario time (``boot_start_us`` = 1 s, so a receiver never sees boot time
+0).  Time advances in *ticks* of ``1 / (frame_rate_hz * ticks_per_frame)`` seconds, with
+``ticks_per_frame = ceil(MIN_POLL_RATE_HZ / frame_rate_hz)`` (4 at 30 Hz: a 120 Hz tick).  At
+every tick the observer's true state is available as :meth:`SimCore.vehicle_state` (what the
+MAVLink vehicle is handed) with its navigation error :meth:`SimCore.nav_error`; every
+``ticks_per_frame``-th tick is a camera frame ``k`` (:meth:`SimCore.frame`): the pose at exactly that
+capture time -> render -> pixels, and its truth row.  Frames cover ``k < duration_s * frame_rate_hz``.
+
+Flight.  Both vehicles are flown by JSBSim on the tick grid, a chunk of whole frames at a time,
+exactly as :func:`groundsim.world.flight.fly_pair` flies them (target first, heading along its
+velocity; then the observer) -- chunking does not change the flight.  Without a gimbal the observer
+yaws toward the target's flown position (the pod is fixed); with one it heads along its path and the
+gimbal (:func:`groundsim.world.flight.guidance.gimbal_pointing`) aims at the target plus the scenario's
+sinusoidal pointing error (phases drawn from ``scenario.rng("gimbal.pointing_phase", seed)``); its
+attitude ``q_ned_from_gimbal`` is part of the vehicle state (earth frame).
+
+Duration.  ``duration_s`` None is the scenario's; a longer one extends the scenario
+(:func:`extend_scenario`): the scripted motions continue as their models define them, the target's
+disturbance is realised over the longer span (its first ``duration_s`` unchanged), and a model that is
+defined only over the scenario's span is refused by name.  The flight of the first ``duration_s`` is the
+scenario's own; the navigation errors' white noise is drawn for the whole tick grid at once
+(:mod:`groundsim.world.nav_errors`), so a run of another duration has other draws.
+
+Navigation errors.  The vehicle reports the truth with the run's navigation errors
+(:mod:`groundsim.world.nav_errors`), case ``nav_noise`` (default: the scenario's ``nav_noise``, itself
+RTK by default) drawn from ``scenario.rng("nav.errors", seed)``.  The truth rows keep the exact values
+and record the injected errors of each frame's tick (``nav_*`` columns, :mod:`groundsim.world.truth`).
+
+Determinism.  Truth rows and frames depend only on the scenario, the run seed (the target's
+disturbance realisation, the render noise ``scenario.rng("render.noise", seed)``, the gimbal phases,
+the navigation errors), ``nav_noise`` and the duration; never on the wall clock or chunking.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from groundsim.world.motion import Circular, Cubic, FigureEight, Perturbed, Waypoints
+from groundsim.world.scenario import (
+    MAX_DURATION_S,
+    MIN_SEPARATION_M,
+    SINGER_MARGIN_S,
+    Scenario,
+    VehicleSpec,
+)
+from groundsim.world.truth import TruthRow, truth_row
+from onboard.core.errors import ConfigError, InputError
+from onboard.core.frames import (
+    camera_pose_ned,
+    euler_from_quat,
+    geodetic_from_ned,
+    quat_multiply,
+    quat_normalize,
+    rotmat_from_quat,
+)
+
+if TYPE_CHECKING:  # imported where first used: JSBSim and the renderer load only when a run flies and renders
+    from groundsim.world.flight import FlownVehicle
+    from groundsim.world.render import IrRenderer
+
+__all__ = [
+    "BOOT_START_US",
+    "MIN_POLL_RATE_HZ",
+    "GROUND_D_M",
+    "EXTENSIBLE_MOTIONS",
+    "ThrottledErrorLog",
+    "PairFlight",
+    "SimFrame",
+    "SimCore",
+    "check_run_seed",
+    "check_duration_s",
+    "extend_scenario",
+    "frame_count",
+]
+
+log = logging.getLogger(__name__)
+
+BOOT_START_US = 1_000_000  # the boot clock reads 1 s at t_s = 0
+MIN_POLL_RATE_HZ = 100.0  # MAVLink is polled at least this often in simulated time
+GROUND_D_M = 0.0  # flat ground at the scenario origin's height (the scenarios' origin is on the ground)
+DURATION_EPS_S = 1e-9  # a duration this close to the scenario's is the scenario's
+_FRAME_COUNT_EPS = 1e-9  # k < duration * rate, robust to float products (as groundsim.world.scenario)
+_ERROR_LOG_EVERY_S = 10.0
+
+#: motion models defined in closed form for every t >= 0, so a run may outlast the scenario's duration_s
+#: (Waypoints holds its last point once its legs are flown, as it does within the scenario)
+EXTENSIBLE_MOTIONS = (Cubic, Circular, FigureEight, Waypoints)
+
+
+# --------------------------------------------------------------------------- options
+
+
+def check_run_seed(seed) -> int:
+    """A run seed: an integer in [0, 2^63); ConfigError naming ``--seed`` otherwise."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= int(seed) < 2**63:
+        raise ConfigError(f"--seed: expected an integer in [0, 2^63), got {seed!r}")
+    return int(seed)
+
+
+def check_duration_s(duration_s, scenario: Scenario) -> float:
+    """``--duration``: None = the scenario's ``duration_s``; otherwise a positive number of seconds up to
+    the longest scenario (``MAX_DURATION_S``).  A duration beyond the scenario's is allowed: the run extends
+    it (:func:`extend_scenario`)."""
+    d = scenario.duration_s if duration_s is None else duration_s
+    if isinstance(d, bool) or not isinstance(d, (int, float)) or not math.isfinite(d) or d <= 0:
+        raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s!r}")
+    if d > MAX_DURATION_S:
+        raise ConfigError(f"--duration: expected at most {MAX_DURATION_S:g} s, got {d:g}")
+    return float(d)
+
+
+def _motion_name(motion) -> str:
+    return type(motion).__name__
+
+
+def _check_extensible(role: str, spec: VehicleSpec, scenario: Scenario, duration_s: float) -> None:
+    base = spec.base_motion
+    if not isinstance(base, EXTENSIBLE_MOTIONS):
+        raise ConfigError(
+            f"--duration: {scenario.name}'s {role} motion model {_motion_name(base)} is defined only over the"
+            f" scenario's duration_s ({scenario.duration_s:g} s), so it cannot fly {duration_s:g} s; expected"
+            f" at most {scenario.duration_s:g} s or a scenario whose {role} flies one of "
+            + ", ".join(m.__name__ for m in EXTENSIBLE_MOTIONS)
+        )
+
+
+def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
+    """``scenario`` lasting ``duration_s`` (itself when not longer than its ``duration_s``).
+
+    The observer's and the target's scripted motions continue as their models define them (models of
+    :data:`EXTENSIBLE_MOTIONS`); the target's disturbance, if any, is realised again from the same stream
+    over the longer span (the Singer process is drawn sequentially, so its first ``duration_s`` is the
+    scenario's own).  Raises ConfigError naming a model that cannot be extended, or paths that stop being
+    finite or come within ``MIN_SEPARATION_M`` of each other in the added time.
+    """
+    d = check_duration_s(duration_s, scenario)
+    if d <= scenario.duration_s + DURATION_EPS_S:
+        return scenario
+    _check_extensible("observer", scenario.observer, scenario, d)
+    _check_extensible("target", scenario.target, scenario, d)
+    target = scenario.target
+    if target.disturbance is not None:
+        realisation = target.disturbance.realise(d + SINGER_MARGIN_S, scenario.rng("target.disturbance", 0))
+        target = VehicleSpec(Perturbed(target.base_motion, realisation), target.base_motion, target.disturbance)
+    t_s = np.arange(frame_count(d, scenario.frame_rate_hz)) / scenario.frame_rate_hz
+    t_s = t_s[t_s >= scenario.duration_s - DURATION_EPS_S]
+    with np.errstate(all="ignore"):
+        p_obs = scenario.observer.base_motion.state(t_s).p_ned_m
+        p_tgt = target.base_motion.state(t_s).p_ned_m
+        r_m = np.linalg.norm(p_tgt - p_obs, axis=-1)
+    if not (np.all(np.isfinite(p_obs)) and np.all(np.isfinite(p_tgt))):
+        raise ConfigError(f"--duration: {scenario.name}'s scripted paths overflow before {d:g} s")
+    k = int(np.argmin(r_m)) if r_m.size else 0
+    if r_m.size and not r_m[k] >= MIN_SEPARATION_M:
+        raise ConfigError(
+            f"--duration: {scenario.name}'s scripted paths, continued to {d:g} s, come within {r_m[k]:.3g} m"
+            f" of each other at t = {t_s[k]:.3f} s (at least {MIN_SEPARATION_M:g} m expected)"
+        )
+    log.info(
+        "%s extended from %g s to %g s: the observer (%s) and the target (%s) continue their scripted motions",
+        scenario.name,
+        scenario.duration_s,
+        d,
+        _motion_name(scenario.observer.base_motion),
+        _motion_name(target.base_motion),
+    )
+    return dataclasses.replace(scenario, duration_s=d, target=target)
+
+
+# --------------------------------------------------------------------------- flight
+
+
+@dataclass(frozen=True)
+class _Chunk:
+    """Truth of ticks ``[i0, i0 + n)``: flown states and everything derived from them (arrays)."""
+
+    i0: int
+    t_s: np.ndarray
+    obs_p_ned_m: np.ndarray
+    obs_v_ned_mps: np.ndarray
+    obs_q_ned_from_body: np.ndarray
+    obs_omega_frd_radps: np.ndarray
+    obs_lat_deg: np.ndarray
+    obs_lon_deg: np.ndarray
+    obs_alt_m: np.ndarray
+    obs_yaw_rad: np.ndarray
+    tgt_p_ned_m: np.ndarray
+    tgt_v_ned_mps: np.ndarray
+    tgt_q_ned_from_body: np.ndarray
+    tgt_lat_deg: np.ndarray
+    tgt_lon_deg: np.ndarray
+    tgt_alt_m: np.ndarray
+    q_mount_from_gimbal: np.ndarray | None
+    q_ned_from_gimbal: np.ndarray | None
+    cam_p_ned_m: np.ndarray
+    cam_q_ned_from_cam: np.ndarray
+
+    @property
+    def i1(self) -> int:
+        return self.i0 + len(self.t_s)
+
+
+class PairFlight:
+    """Flies a scenario's observer and target with JSBSim on a time grid, ``chunk_ticks`` at a time.
+
+    The same flight as :func:`groundsim.world.flight.fly_pair` on that grid (same vehicles, same order,
+    same look-at rows; ``FlownVehicle.step_through`` does not depend on how calls are split).
+    :meth:`ensure` flies up to a tick; :meth:`chunk_of` returns the arrays holding a tick (the
+    two most recent chunks are kept, so memory does not grow with the duration).
+    """
+
+    def __init__(self, scenario: Scenario, run_seed: int, times_s: np.ndarray, chunk_ticks: int) -> None:
+        self.scenario = scenario
+        self.times_s = np.asarray(times_s, dtype=float)
+        self.chunk_ticks = max(1, int(chunk_ticks))
+        self.gimballed = scenario.camera.gimbal is not None
+        self.observer_yaw_mode = "velocity" if self.gimballed else "target"
+        self._obs_ref = scenario.observer_motion(run_seed)
+        self._tgt_ref = scenario.target_motion(run_seed)
+        g = scenario.camera.gimbal
+        self.gimbal_phase_rad: tuple[float, ...] | None = None
+        if g is not None:
+            rng = scenario.rng("gimbal.pointing_phase", run_seed)
+            self.gimbal_phase_rad = tuple(float(x) for x in rng.uniform(0.0, 2.0 * math.pi, 3))
+        self._target: FlownVehicle | None = None
+        self._observer: FlownVehicle | None = None
+        self._chunks: list[_Chunk] = []
+        self.flown_ticks = 0
+        self.flight_s = 0.0  # wall seconds spent flying and deriving
+
+    def ensure(self, i: int) -> None:
+        """Fly until tick ``i`` is available (ticks past the grid are an error)."""
+        if not 0 <= i < len(self.times_s):
+            raise IndexError(f"tick {i} outside the grid of {len(self.times_s)}")
+        while self.flown_ticks <= i:
+            self._fly_chunk()
+
+    def chunk_of(self, i: int) -> _Chunk:
+        self.ensure(i)
+        for c in reversed(self._chunks):
+            if c.i0 <= i < c.i1:
+                return c
+        raise IndexError(f"tick {i} was flown and dropped (only the two latest chunks are kept)")
+
+    def _fly_chunk(self) -> None:
+        from groundsim.world.flight import FlownVehicle  # JSBSim is imported on first flight only
+
+        t0 = time.perf_counter()
+        sc = self.scenario
+        a = self.flown_ticks
+        b = min(a + self.chunk_ticks, len(self.times_s))
+        t = self.times_s[a:b]
+        if self._target is None:
+            self._target = FlownVehicle(
+                self._tgt_ref, sc.origin, sc.wind_ned_mps, yaw_mode="velocity", name="target", seed=sc.seed
+            )
+        tgt = self._target.step_through(t)
+        if self._observer is None:
+            kw = {"look_at_ned_m": tgt.p_ned_m[0]} if self.observer_yaw_mode == "target" else {}
+            self._observer = FlownVehicle(
+                self._obs_ref,
+                sc.origin,
+                sc.wind_ned_mps,
+                yaw_mode=self.observer_yaw_mode,
+                name="observer",
+                seed=sc.seed,
+                **kw,
+            )
+        if self.observer_yaw_mode == "target":
+            obs = self._observer.step_through(t, tgt.p_ned_m, tgt.v_ned_mps)
+        else:
+            obs = self._observer.step_through(t)
+        self._chunks = self._chunks[-1:] + [self._derive(a, t, obs, tgt)]
+        self.flown_ticks = b
+        self.flight_s += time.perf_counter() - t0
+
+    def _derive(self, i0: int, t: np.ndarray, obs, tgt) -> _Chunk:
+        from groundsim.world.flight.guidance import gimbal_pointing, sinusoidal_pointing_error_ned_m
+
+        sc = self.scenario
+        mount = sc.camera.mount
+        n = len(t)
+        lat, lon, alt = geodetic_from_ned(
+            np.concatenate([obs.p_ned_m, tgt.p_ned_m]), sc.origin
+        )  # one call: ~0.5 ms each
+        _, _, yaw = euler_from_quat(obs.q_ned_from_body)
+        q_mg = q_ng = None
+        if self.gimballed:
+            g = sc.camera.gimbal
+            p_cam0, _ = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount)
+            range_m = np.linalg.norm(tgt.p_ned_m - p_cam0, axis=-1)
+            aim = tgt.p_ned_m + sinusoidal_pointing_error_ned_m(
+                t, range_m, g.pointing_error_frac_of_range, g.pointing_error_period_s, self.gimbal_phase_rad
+            )
+            q_mg = gimbal_pointing(obs.p_ned_m, obs.q_ned_from_body, mount, aim)
+            q_ng = quat_normalize(
+                quat_multiply(quat_multiply(obs.q_ned_from_body, np.asarray(mount.q_body_from_mount)), q_mg)
+            )
+        p_cam, q_cam = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount, q_mg)
+        return _Chunk(
+            i0=i0,
+            t_s=t,
+            obs_p_ned_m=obs.p_ned_m,
+            obs_v_ned_mps=obs.v_ned_mps,
+            obs_q_ned_from_body=obs.q_ned_from_body,
+            obs_omega_frd_radps=obs.omega_frd_radps,
+            obs_lat_deg=lat[:n],
+            obs_lon_deg=lon[:n],
+            obs_alt_m=alt[:n],
+            tgt_lat_deg=lat[n:],
+            tgt_lon_deg=lon[n:],
+            tgt_alt_m=alt[n:],
+            obs_yaw_rad=np.asarray(yaw),
+            tgt_p_ned_m=tgt.p_ned_m,
+            tgt_v_ned_mps=tgt.v_ned_mps,
+            tgt_q_ned_from_body=tgt.q_ned_from_body,
+            q_mount_from_gimbal=q_mg,
+            q_ned_from_gimbal=q_ng,
+            cam_p_ned_m=np.asarray(p_cam),
+            cam_q_ned_from_cam=np.asarray(q_cam),
+        )
+
+
+class ThrottledErrorLog:
+    """Counts one kind of error and logs it at most every ``_ERROR_LOG_EVERY_S`` (never raises)."""
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+        self.count = 0
+        self._last = -math.inf
+
+    def __call__(self, what: str, exc: BaseException) -> None:
+        self.count += 1
+        now = time.monotonic()
+        if now - self._last >= _ERROR_LOG_EVERY_S:
+            self._last = now
+            log.warning("%s: %s (%d %s so far)", what, exc, self.count, self.kind)
+
+
+# --------------------------------------------------------------------------- the simulation core
+
+
+@dataclass(frozen=True)
+class SimFrame:
+    """One camera frame: ``seq``, capture ``time_boot_us``, ``pixels`` ((H, W) uint8/uint16, or
+    None when rendering is off) and its :class:`~groundsim.world.truth.TruthRow`."""
+
+    seq: int
+    time_boot_us: int
+    pixels: np.ndarray | None
+    truth: TruthRow
+
+
+def frame_count(duration_s: float, frame_rate_hz: float) -> int:
+    """Frames ``k`` with ``k < duration_s * frame_rate_hz`` (at least one), as the scenario counts."""
+    return max(1, math.ceil(duration_s * frame_rate_hz - _FRAME_COUNT_EPS))
+
+
+class SimCore:
+    """The simulated world on the tick grid, with step methods and no sockets or files.
+
+    ``vehicle_state(i)``: keyword arguments of ``MavlinkVehicle.update_state`` at tick ``i`` (the
+    truth); ``nav_error(i)``: the navigation error the vehicle reports it with
+    (:class:`groundsim.world.nav_errors.NavErrorSample`); ``frame(k)``: fly (if needed), render and compute
+    the truth of frame ``k``.  Ticks and frames must be asked for in non-decreasing order (older
+    flight chunks are dropped).  ``duration_s``: None = the scenario's; a longer one extends the scenario
+    (:func:`extend_scenario`; ``self.scenario`` is then the extended one).  ``nav_noise``: a
+    :class:`~groundsim.world.scenario.NoiseCase`, a case name, or None (the scenario's ``nav_noise``).
+    """
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        run_seed: int = 0,
+        duration_s: float | None = None,
+        render: bool = True,
+        boot_start_us: int = BOOT_START_US,
+        flight_chunk_s: float | None = None,
+        nav_noise=None,
+    ) -> None:
+        from groundsim.world.nav_errors import NAV_ERROR_STREAM, NavErrorModel, resolve_nav_noise
+
+        if not isinstance(scenario, Scenario):
+            raise ConfigError(f"SimCore: expected a Scenario, got {type(scenario).__name__}")
+        if isinstance(boot_start_us, bool) or not isinstance(boot_start_us, int) or not 0 <= boot_start_us < 2**40:
+            raise ConfigError(f"SimCore: boot_start_us must be a non-negative integer, got {boot_start_us!r}")
+        self.run_seed = check_run_seed(run_seed)
+        self.duration_s = check_duration_s(duration_s, scenario)
+        scenario = extend_scenario(scenario, self.duration_s)
+        self.scenario = scenario
+        self.render_enabled = bool(render)
+        self.boot_start_us = boot_start_us
+        self.frame_rate_hz = float(scenario.frame_rate_hz)
+        self.ticks_per_frame = max(1, math.ceil(MIN_POLL_RATE_HZ / self.frame_rate_hz - 1e-9))
+        self.tick_rate_hz = self.frame_rate_hz * self.ticks_per_frame
+        self.frame_count = frame_count(self.duration_s, self.frame_rate_hz)
+        self.tick_count = self.frame_count * self.ticks_per_frame
+        self.times_s = np.arange(self.tick_count) / self.tick_rate_hz
+        # JSBSim flies a whole number of frames' ticks per call: flight_chunk_s of them, at least one frame
+        chunk_frames = 1 if flight_chunk_s is None else max(1, round(flight_chunk_s * self.frame_rate_hz))
+        chunk_ticks = chunk_frames * self.ticks_per_frame
+        self.flight = PairFlight(scenario, self.run_seed, self.times_s, chunk_ticks)
+        self.gimballed = self.flight.gimballed
+        nav_noise = scenario.nav_noise if nav_noise is None else nav_noise
+        case = resolve_nav_noise(nav_noise) if isinstance(nav_noise, str) else nav_noise
+        self.nav_noise = case
+        self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
+        self._renderer: IrRenderer | None = None
+        self.render_s = 0.0  # wall seconds spent rendering
+        self.render_errors = ThrottledErrorLog("render_error")
+
+    def time_boot_us(self, i: int) -> int:
+        return self.boot_start_us + round(float(self.times_s[i]) * 1e6)
+
+    def tick_time_s(self, i: int) -> float:
+        return float(self.times_s[i])
+
+    def vehicle_state(self, i: int) -> dict:
+        c = self.flight.chunk_of(i)
+        j = i - c.i0
+        return dict(
+            time_boot_us=self.time_boot_us(i),
+            lat_deg=float(c.obs_lat_deg[j]),
+            lon_deg=float(c.obs_lon_deg[j]),
+            alt_amsl_m=float(c.obs_alt_m[j]),
+            alt_rel_m=float(c.obs_alt_m[j]) - self.scenario.origin.alt_m,
+            v_ned_mps=c.obs_v_ned_mps[j],
+            q_ned_from_body=c.obs_q_ned_from_body[j],
+            body_rates_radps=c.obs_omega_frd_radps[j],
+            heading_rad=float(c.obs_yaw_rad[j]),
+            q_gimbal=None if c.q_ned_from_gimbal is None else c.q_ned_from_gimbal[j],
+        )
+
+    def nav_error(self, i: int):
+        """The navigation error the vehicle reports tick ``i``'s state with (a NavErrorSample)."""
+        return self.nav_errors.sample(i)
+
+    def renderer(self):
+        """The IR renderer (built on first use; seeded by ``scenario.rng("render.noise", seed)``)."""
+        if self._renderer is None:
+            from groundsim.world.render import IrRenderer
+
+            seed = int(self.scenario.rng("render.noise", self.run_seed).integers(0, 2**63 - 1))
+            self._renderer = IrRenderer(self.scenario.camera.intrinsics, self.scenario.ir, seed)
+        return self._renderer
+
+    def frame(self, k: int) -> SimFrame:
+        if not 0 <= k < self.frame_count:
+            raise IndexError(f"frame {k} outside [0, {self.frame_count})")
+        i = k * self.ticks_per_frame
+        c = self.flight.chunk_of(i)
+        j = i - c.i0
+        t_us = self.time_boot_us(i)
+        pixels = None
+        if self.render_enabled:
+            renderer = self.renderer()
+            t0 = time.perf_counter()
+            try:
+                pixels = renderer.render(
+                    c.cam_p_ned_m[j],
+                    rotmat_from_quat(c.cam_q_ned_from_cam[j]),
+                    c.tgt_p_ned_m[j],
+                    rotmat_from_quat(c.tgt_q_ned_from_body[j]),
+                    GROUND_D_M,
+                )
+            except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept
+                self.render_errors(f"frame {k}: render failed", exc)
+            self.render_s += time.perf_counter() - t0
+        row = truth_row(
+            k,
+            t_us,
+            float(c.t_s[j]),
+            self.scenario.origin,
+            self.scenario.camera.intrinsics,
+            c.tgt_p_ned_m[j],
+            c.tgt_v_ned_mps[j],
+            c.obs_p_ned_m[j],
+            c.cam_p_ned_m[j],
+            c.cam_q_ned_from_cam[j],
+            target_lla=(c.tgt_lat_deg[j], c.tgt_lon_deg[j], c.tgt_alt_m[j]),
+            observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
+            nav_error=self.nav_error(i),
+        )
+        return SimFrame(k, t_us, pixels, row)

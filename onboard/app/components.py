@@ -1,0 +1,60 @@
+"""The daemon's parts that are built from its configuration alone: the MAVLink camera component
+(:func:`make_camera_protocol`) and the words that say where zenoh looks for frames (:func:`zenoh_where`)."""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+from onboard.app.config import OnboardConfig
+from onboard.core.frames import PinholeIntrinsics
+
+if TYPE_CHECKING:
+    from onboard.io.camera_protocol import CameraProtocol
+
+__all__ = ["make_camera_protocol", "zenoh_where"]
+
+
+def make_camera_protocol(config: OnboardConfig, intrinsics: PinholeIntrinsics) -> CameraProtocol:
+    """The :class:`~onboard.io.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera)."""
+    from onboard.io.camera_protocol import CameraIdentity, CameraProtocol, VideoStream, video_stream_type
+
+    g, o, v = config.gcs, config.output, config.video
+    identity = CameraIdentity.from_intrinsics(
+        intrinsics.fx_px, intrinsics.width_px, intrinsics.height_px, g.pixel_pitch_um, g.vendor_name, g.model_name
+    )
+    stream = None
+    if v.destination:  # the ground station listens on the destination's port (QGC: udp://0.0.0.0:PORT)
+        hfov_deg = math.degrees(2.0 * math.atan(intrinsics.width_px / (2.0 * intrinsics.fx_px)))
+        stream = VideoStream(
+            video_stream_type(v.transport),
+            v.destination.rpartition(":")[2],
+            v.fps,
+            v.bitrate_bps,
+            intrinsics.width_px,
+            intrinsics.height_px,
+            hfov_deg,
+        )
+    return CameraProtocol(
+        identity,
+        intrinsics.width_px,
+        intrinsics.height_px,
+        component_id=g.component_id,
+        stream=stream,
+        image_status_hz=o.tracking_image_status_hz,
+        geo_status_hz=o.tracking_geo_status_hz,
+        observable_only=not o.geo_status_unobservable,
+        heartbeat_interval_s=g.heartbeat_interval_s,
+        track_request_timeout_s=g.track_request_timeout_s,
+    )
+
+
+def zenoh_where(config: OnboardConfig) -> str:
+    """The zenoh session's endpoints and mode in words, for the no-frames warning."""
+    z = config.zenoh
+    parts = [f"zenoh mode as {z.config_file} sets it (peer by default)" if z.config_file else "zenoh mode peer"]
+    parts.append("connect " + (", ".join(z.connect) if z.connect else "none (--zenoh-connect)"))
+    parts.append("listen " + (", ".join(z.listen) if z.listen else "none (--zenoh-listen)"))
+    scout = {True: "on", False: "off", None: "as the config file says"}[z.multicast_scouting]
+    parts.append(f"multicast scouting {scout}")
+    return "; ".join(parts)

@@ -1,0 +1,636 @@
+"""The estimator off the frame loop: :class:`ThreadedEstimator` (a thread) and :class:`ProcessEstimator`
+(a child process, the daemon's default), both with the estimator's interface (``add`` / ``predict`` /
+``reset``) plus ``close``.
+
+With a worker, the estimator's periodic model re-selection (tenths of a second) never stalls the frame
+loop: a frame waits up to ``estimator.result_wait_ms`` for its own estimate, past that it gets the newest
+estimate propagated to its time at constant velocity (``P + dt^2 V``) and corrected by the frame's own
+line of sight; the observation is used by the worker either way, no measurement is lost.  A process also
+keeps the estimator's Python work off the pipeline's GIL (the frames' latency tail is several times
+shorter than with a thread).  A worker process that dies is replaced on the next frame from a fork
+server, restored from its last state (:meth:`SlidingWindowEstimator.snapshot`, every
+``SNAPSHOT_PERIOD_S``) and the parent's copy of the observations (``estimator_restart``; bridged by the
+propagated last estimate meanwhile).
+
+Because a late answer is replaced by a propagated one, the estimates a worker gives depend on timing:
+only the inline estimator (``estimator.worker: inline``) gives the same tracks on every run.
+
+The worker talks to the estimator through its public interface only: ``add``, ``reset``, ``carry``,
+``snapshot``, ``restore``, ``rebuild``, ``noise`` and ``config`` (read).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable, Iterable
+from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
+from typing import Any
+
+import numpy as np
+
+from onboard.app.config import OnboardConfig
+from onboard.app.os_thread import name_os_thread
+from onboard.core.counters import RejectCounter
+from onboard.core.errors import InputError
+from onboard.estimation.sliding import bearing_sigma_rad, line_of_sight_unit_ned
+from onboard.io.worker_queue import next_or_stop
+from onboard.pipeline.frame_pipeline import make_estimator
+
+__all__ = [
+    "ESTIMATE_QUEUE_MAX",
+    "SNAPSHOT_PERIOD_S",
+    "FORKSERVER_PRELOAD",
+    "ThreadedEstimator",
+    "ProcessEstimator",
+    "make_estimator_worker",
+]
+
+log = logging.getLogger(__name__)
+
+ESTIMATE_QUEUE_MAX = 1000  # observations waiting for the estimator worker (about 30 s at 30 Hz)
+# imported once by the estimator workers' fork server, so that a replacement worker neither imports them
+# nor pays their first use inside its first model selection (a cold scipy.stats makes the first window
+# rebuild several times slower); onboard.app.main first: it sets one BLAS thread
+FORKSERVER_PRELOAD = ["onboard.app.main", "onboard.app.estimator_worker", "onboard.estimation.sliding", "scipy.stats"]
+# observation time between two snapshots of the worker's state sent to the parent: a snapshot costs the
+# worker a few milliseconds, so one a second would take a noticeable share of the daemon's CPU budget
+SNAPSHOT_PERIOD_S = 5.0
+
+
+class ThreadedEstimator:
+    """The estimator interface (``add`` / ``predict`` / ``reset``) with the work in a worker thread.
+
+    ``add`` queues the observation and waits up to ``result_wait_s`` for its estimate; if the
+    worker is busy (model re-selection) it returns the newest estimate propagated to ``t_s``
+    instead (None when that is older than ``max_extrapolation_s``).  ``predict`` never waits.
+    Estimator exceptions are counted (``estimator_input`` / ``estimator_error``), never raised.
+    """
+
+    def __init__(
+        self,
+        estimator,
+        counter: RejectCounter,
+        result_wait_s: float = 0.005,
+        max_extrapolation_s: float = 1.0,
+        max_pending: int = ESTIMATE_QUEUE_MAX,
+    ) -> None:
+        self._est = estimator
+        self._noise = getattr(estimator, "noise", None)  # for the bearing update (_propagate)
+        self._counter = counter
+        self.result_wait_s = float(result_wait_s)
+        self.max_extrapolation_s = float(max_extrapolation_s)
+        self._max_pending = max_pending
+        self._q: collections.deque = collections.deque()
+        self._cond = threading.Condition(threading.Lock())
+        self._epoch = 0
+        self._latest: tuple[int, Any] | None = None  # (epoch, estimate): the newest non-None estimate
+        self._result: tuple[int, float, Any] | None = None  # (epoch, t_s, estimate or None): the last processed
+        self._stop = False
+        self.worker_cpu_s = 0.0
+        self.late_results = 0
+        self._thread = threading.Thread(target=self._run, name="irtrack-estimator", daemon=True)
+        self._thread.start()
+
+    # ------------------------------------------------------------------ caller side
+
+    def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        t = args[0]
+        deadline = time.monotonic() + self.result_wait_s
+        with self._cond:
+            if len(self._q) >= self._max_pending:
+                self._q.popleft()
+                self._counter.count(
+                    "estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped"
+                )
+            epoch = self._epoch
+            self._q.append(("add", epoch, t, args))
+            self._cond.notify_all()
+            while True:
+                r = self._result
+                if r is not None and r[0] == epoch and r[1] == t:
+                    return r[2]
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)
+            self.late_results += 1
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
+
+    def predict(self, t_s: float, p_cam_ned_m=None):
+        with self._cond:
+            return self._extrapolate(float(t_s), p_cam_ned_m)
+
+    def reset(self) -> None:
+        with self._cond:
+            self._epoch += 1
+            self._q.clear()
+            self._q.append(("reset", self._epoch, None, None))
+            self._latest = None
+            self._result = None
+            self._cond.notify_all()
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        self._thread.join(timeout_s)
+
+    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
+        latest = self._latest
+        if latest is None or latest[0] != self._epoch:
+            return None
+        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
+
+    # ------------------------------------------------------------------ worker
+
+    def _run(self) -> None:
+        name_os_thread("irtrack-estim")
+        while True:
+            item = next_or_stop(self._cond, self._q, lambda: self._stop)
+            if item is None:
+                return
+            kind, epoch, t, args = item
+            c0 = time.thread_time()
+            est = None
+            try:
+                if kind == "reset":
+                    self._est.reset()
+                    continue
+                est = self._est.add(*args)
+            except InputError as exc:
+                self._counter.count("estimator_input", str(exc))
+            except Exception as exc:  # noqa: BLE001 - the worker must never die
+                self._counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
+            finally:
+                self.worker_cpu_s += time.thread_time() - c0
+            if kind != "add":
+                continue
+            with self._cond:
+                if epoch == self._epoch:
+                    self._result = (epoch, t, est)
+                    if est is not None:
+                        self._latest = (epoch, est)
+                    self._cond.notify_all()
+
+    @property
+    def pending(self) -> int:
+        return len(self._q)
+
+
+def _start_fork_server() -> None:
+    """Start the fork server (if not running) with SIGINT blocked: it inherits the mask, so a Ctrl-C in the
+    terminal, which reaches the whole process group, never prints a traceback from a fork server still
+    importing its preload (it ignores SIGINT once it serves); the parent stops it.  A Ctrl-C that comes
+    meanwhile reaches this process when the mask is restored.  The resource tracker first: its own start
+    unblocks SIGINT (it protects itself the same way)."""
+    from multiprocessing import forkserver, resource_tracker
+
+    resource_tracker.ensure_running()
+    if not hasattr(signal, "pthread_sigmask"):
+        forkserver.ensure_running()
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _add_rows(est, rows: Iterable[tuple]) -> Any:
+    """``rows`` added to ``est`` in order, those it refuses skipped (they were counted when they first
+    arrived); the estimate at the last one added (or None)."""
+    out = None
+    for args in rows:
+        try:
+            out = est.add(*args)
+        except InputError:
+            pass
+    return out
+
+
+def _unpack_rows(packed) -> list:
+    t, uv, p, q, k_index, intrinsics = packed
+    return [
+        (float(t[i]), (float(uv[i, 0]), float(uv[i, 1])), intrinsics[int(k_index[i])], p[i], q[i])
+        for i in range(len(t))
+    ]
+
+
+def _estimator_process_main(conn, config: OnboardConfig) -> None:
+    """Child process of :class:`ProcessEstimator`: builds the estimator, serves add/reset/rebuild until "stop".
+
+    Every ``SNAPSHOT_PERIOD_S`` of observation time, an answer with an estimate also carries a
+    snapshot of the estimator's state (:meth:`SlidingWindowEstimator.snapshot`), which the parent keeps for a
+    replacement."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent handles Ctrl-C and stops us
+    name_os_thread("irtrack-estim")
+    from onboard.app.logs import setup_logging  # this process is an entry point of its own: same log lines
+
+    setup_logging(config.logging.level, config.logging.format)
+    est = make_estimator(config)
+    last_snapshot_t = -math.inf
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        kind = msg[0]
+        if kind == "stop":
+            return
+        if kind == "reset":
+            est.reset()
+            last_snapshot_t = -math.inf
+            continue
+        out, err = None, None
+        if kind == "rebuild":  # a replacement worker: the dead one's state, or its window from the parent's copy
+            _, epoch, packed, snapshot = msg
+            rows = _unpack_rows(packed)
+            t = rows[-1][0] if rows else math.nan
+            c0, w0 = time.process_time(), time.monotonic()
+            how, n_rows = "rebuilt from", len(rows)
+            try:
+                if snapshot is not None:
+                    snap_t, snap_bytes = snapshot
+                    later = [r for r in rows if r[0] > snap_t]
+                    try:
+                        est.reset()
+                        est.restore(snap_bytes)
+                        out = _add_rows(est, later)
+                        how, n_rows = f"restored from its state at {snap_t:.3f} s +", len(later)
+                    except Exception as exc:  # noqa: BLE001 - an unusable snapshot: rebuild instead
+                        log.warning(
+                            "estimator worker %d: snapshot unusable (%s: %s); rebuilding the window",
+                            os.getpid(),
+                            type(exc).__name__,
+                            exc,
+                        )
+                        snapshot = None
+                if snapshot is None:
+                    out = est.rebuild(rows)
+                log.info(
+                    "estimator worker %d: window %s %d observations in %.3f s (%.3f CPU s); %s",
+                    os.getpid(),
+                    how,
+                    n_rows,
+                    time.monotonic() - w0,
+                    time.process_time() - c0,
+                    "estimate ready" if out is not None else "no estimate yet" if n_rows else "nothing to add",
+                )
+            except InputError:
+                pass  # the newest row was refused when it first arrived (and counted then)
+            except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+                err = ("estimator_error", f"rebuild: {type(exc).__name__}: {exc}")
+        else:
+            _, epoch, t, args = msg
+            try:
+                out = est.add(*args)
+            except InputError as exc:
+                err = ("estimator_input", str(exc))
+            except Exception as exc:  # noqa: BLE001 - reported to the parent, never fatal here
+                err = ("estimator_error", f"{type(exc).__name__}: {exc}")
+        snap = None
+        if out is not None and t - last_snapshot_t >= SNAPSHOT_PERIOD_S:
+            try:
+                snap = (t, est.snapshot())
+                last_snapshot_t = t
+            except Exception as exc:  # noqa: BLE001 - no snapshot: a replacement rebuilds the window instead
+                err = err or ("estimator_error", f"snapshot: {type(exc).__name__}: {exc}")
+        try:
+            conn.send((epoch, t, out, err, time.process_time(), snap))
+        except (OSError, ValueError):
+            return
+
+
+class ProcessEstimator:
+    """The estimator interface with the estimator in a child process (no GIL shared with the frames).
+
+    Same contract as :class:`ThreadedEstimator`: ``add`` sends the observation and waits up to
+    ``result_wait_s`` for its estimate, else returns the newest estimate propagated to ``t_s``;
+    ``predict`` never waits.  Results are read by the caller's thread (no extra thread here).
+
+    **A worker that dies** (killed, OOM, crashed) is noticed on the next ``add``, counted
+    (``estimator_restart``, logged with its exit code) and replaced at once.  The parent keeps its
+    own copy of the window (the rows the estimator keeps: the last ``window_s``, one per
+    ``min_spacing_s``, at most ``max_frames``; about 25 kB) and the worker's newest state (a snapshot
+    the worker sends every ``SNAPSHOT_PERIOD_S`` of observation time, ~0.9 MB, a few ms to make; :meth:`SlidingWindowEstimator.snapshot`).  The
+    new worker is handed both: it restores the state and adds the rows that came after it
+    (milliseconds; :meth:`SlidingWindowEstimator.restore`), or, without a usable snapshot, rebuilds the window with a single
+    cold model selection (:meth:`SlidingWindowEstimator.rebuild`: tenths of a CPU second for a full window).  Either way 3-D
+    output resumes without waiting for a new window to fill.  In between, the newest estimate keeps being propagated (up to
+    ``max_extrapolation_s``), as when the worker is busy.  A worker that dies before it answered
+    anything (a crash at start, or on an observation the rebuild replays) is replaced after a delay
+    that starts at ``RESTART_BACKOFF_MIN_S`` and doubles each time (up to ``RESTART_BACKOFF_MAX_S``),
+    so a crash loop cannot spawn a process per frame.
+    """
+
+    RESTART_BACKOFF_MIN_S = 1.0
+    RESTART_BACKOFF_MAX_S = 30.0
+
+    def __init__(
+        self,
+        config: OnboardConfig,
+        counter: RejectCounter,
+        result_wait_s: float = 0.002,
+        max_extrapolation_s: float = 1.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        import multiprocessing as mp
+
+        # results are unpickled here: import their module now, not on the first result (~0.4 s stall)
+        import onboard.estimation.sliding  # noqa: F401
+
+        self._config = config
+        self._noise = config.estimator.noise_model()  # the worker's noise model, for the bearing update (_propagate)
+        self._counter = counter
+        self._clock = clock
+        self.result_wait_s = float(result_wait_s)
+        self.max_extrapolation_s = float(max_extrapolation_s)
+        # never fork this process (it runs zenoh's threads): the workers fork from a fork server, a
+        # fresh single-threaded interpreter that has imported the estimator once, so a replacement
+        # starts in milliseconds instead of re-importing numpy/scipy (~0.5-1 s on a loaded core)
+        self._ctx = mp.get_context("forkserver")
+        self._ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
+        self._epoch = 0
+        self._latest: tuple[int, Any] | None = None  # (epoch, estimate)
+        self.worker_cpu_s = 0.0
+        self.late_results = 0
+        self.carried = 0  # frames answered here, not by the worker (add)
+        self.restarts = 0
+        # the child's own window rules, mirrored so that the copy holds the rows its window holds: the
+        # last window_s, at most max_frames, a row kept only min_spacing_s after the previous kept one
+        self._local = make_estimator(config)  # for carry(): frames the worker would not keep (add)
+        limits = self._local.config
+        self._window_s = float(limits.window_s)
+        self._min_spacing_s = float(getattr(limits, "min_spacing_s", 0.0))
+        self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
+        self._snapshot = None  # (t_s, bytes): the worker's state, every SNAPSHOT_PERIOD_S
+        self._backoff_s = 0.0
+        self._next_start_s = -math.inf
+        self._started_s = -math.inf
+        self._proc: BaseProcess | None = None
+        self._conn: Connection | None = None
+        self._start()
+
+    @property
+    def pid(self) -> int | None:
+        """The worker's process id (None while there is none)."""
+        return None if self._proc is None else self._proc.pid
+
+    def _start(self) -> None:
+        parent, child = self._ctx.Pipe()
+        self._proc = self._ctx.Process(
+            target=_estimator_process_main, args=(child, self._config), name="irtrack-estimator", daemon=True
+        )
+        _start_fork_server()
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        self._cpu_base = self.worker_cpu_s
+        self._started_s = self._clock()
+        self._answered = False  # no result from this worker yet
+
+    def _alive(self) -> bool:
+        return self._proc is not None and self._proc.is_alive()
+
+    def _replace_dead_worker(self) -> bool:
+        """Start a new worker with the window rebuilt; False while a crash loop's back-off lasts."""
+        now = self._clock()
+        if self._proc is not None:  # just found dead: count it once, choose the back-off
+            code = self._proc.exitcode
+            lived_s = now - self._started_s
+            self._backoff_s = (
+                0.0
+                if self._answered
+                else min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S)
+            )
+            self._next_start_s = now + self._backoff_s
+            self.restarts += 1
+            self._counter.count(
+                "estimator_restart",
+                f"estimator process died (exit code {code}, after {lived_s:.1f} s); replaced"
+                + (f" in {self._backoff_s:.0f} s" if self._backoff_s else "")
+                + f", window rebuilt from the last {len(self._window)} observations",
+            )
+            try:
+                if self._conn is not None:
+                    self._conn.close()
+            except OSError:
+                pass
+            self._proc.join(0)
+            self._proc, self._conn = None, None
+        if now < self._next_start_s:
+            return False
+        self._start()
+        if self._window:
+            snap = self._snapshot
+            if snap is not None and snap[0] < self._window[0][0]:
+                snap = None  # older than the window: rebuild instead (a reset clears both)
+            self._send(("rebuild", self._epoch, self._packed_window(), snap))
+        return True
+
+    def _send(self, msg: tuple) -> bool:
+        """``msg`` to the worker; False (counted) when the pipe is gone."""
+        try:
+            if self._conn is None:
+                raise OSError("no estimator process")
+            self._conn.send(msg)
+        except (OSError, ValueError) as exc:
+            self._counter.count("estimator_error", f"send to the estimator process: {exc}")
+            return False
+        return True
+
+    def _packed_window(self):
+        """The window as arrays (about 80 B per row; the intrinsics, nearly always one object, once)."""
+        rows = list(self._window)
+        intrinsics: list = []
+        index = np.empty(len(rows), dtype=np.int32)
+        for i, r in enumerate(rows):
+            k = r[2]
+            for j, known in enumerate(intrinsics):
+                if known is k or known == k:
+                    index[i] = j
+                    break
+            else:
+                intrinsics.append(k)
+                index[i] = len(intrinsics) - 1
+        return (
+            np.array([r[0] for r in rows]),
+            np.array([r[1] for r in rows]).reshape(-1, 2),
+            np.array([r[3] for r in rows]).reshape(-1, 3),
+            np.array([r[4] for r in rows]).reshape(-1, 4),
+            index,
+            intrinsics,
+        )
+
+    def _remember(self, args) -> None:
+        w = self._window
+        if w and not args[0] - w[-1][0] >= max(self._min_spacing_s, 1e-12):
+            return  # the estimator does not keep it either (too soon after its previous row, or not after it)
+        w.append(args)
+        while w and w[0][0] < args[0] - self._window_s:
+            w.popleft()
+
+    def _drain(self, until_t: float | None = None, wait_s: float = 0.0):
+        """Read every available result; with ``until_t`` wait up to ``wait_s`` for that one.
+        Returns (found, estimate) for ``until_t``."""
+        if self._conn is None:
+            return False, None
+        deadline = time.monotonic() + wait_s
+        found, value = False, None
+        while True:
+            left = deadline - time.monotonic() if until_t is not None and not found else 0.0
+            try:
+                ready = self._conn.poll(max(left, 0.0))
+            except (OSError, EOFError):
+                return found, value
+            if not ready:
+                return found, value
+            try:
+                epoch, t, est, err, cpu_s, snapshot = self._conn.recv()
+            except (OSError, EOFError):
+                return found, value
+            self.worker_cpu_s = self._cpu_base + cpu_s
+            self._answered = True
+            if err is not None:
+                self._counter.count(*err)
+            if epoch != self._epoch:
+                continue
+            if snapshot is not None:
+                self._snapshot = snapshot  # (t_s of its newest row, bytes)
+            if est is not None:
+                self._latest = (epoch, est)
+            if until_t is not None and t == until_t:
+                found, value = True, est
+
+    def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
+        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        t = args[0]
+        if not self._alive() and not self._replace_dead_worker():
+            self._remember(args)  # kept for the replacement
+            self.late_results += 1
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
+        w = self._window
+        if w and 0.0 < t - w[-1][0] < self._min_spacing_s:
+            # the worker would not keep this row and would answer with its estimate at the newest kept row
+            # carried to t: when that answer is here, carry it here (same numbers, no round trip: half the
+            # frames at 30 Hz)
+            self._drain()
+            latest = self._latest
+            if latest is not None and latest[0] == self._epoch and latest[1].t_s == w[-1][0]:
+                self.carried += 1
+                return self._local.carry(latest[1], t, p_cam_ned_m)
+        self._remember(args)
+        if not self._send(("add", self._epoch, t, args)):
+            return self._extrapolate(t, p_cam_ned_m, args[1:])
+        found, est = self._drain(t, self.result_wait_s)
+        if found:
+            return est
+        self.late_results += 1
+        return self._extrapolate(t, p_cam_ned_m, args[1:])
+
+    def predict(self, t_s: float, p_cam_ned_m=None):
+        self._drain()
+        return self._extrapolate(float(t_s), p_cam_ned_m)
+
+    def reset(self) -> None:
+        self._epoch += 1
+        self._latest = None
+        self._window.clear()
+        self._snapshot = None
+        if self._conn is None:
+            return
+        try:
+            self._conn.send(("reset",))
+        except (OSError, ValueError):
+            pass
+
+    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
+        latest = self._latest
+        if latest is None or latest[0] != self._epoch:
+            return None
+        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        proc, conn = self._proc, self._conn
+        if proc is None or conn is None:
+            return
+        try:
+            conn.send(("stop",))
+        except (OSError, ValueError):
+            pass
+        proc.join(timeout_s / 2)
+        if proc.is_alive():
+            proc.terminate()
+            proc.join(timeout_s / 2)
+        conn.close()
+        self._proc = None
+
+
+def _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
+    """One estimator observation as the workers take it (and as the process worker pickles it)."""
+    return (
+        float(t_s),
+        tuple(float(x) for x in uv_px),
+        intrinsics,
+        np.array(p_cam_ned_m, dtype=float),
+        np.array(q_ned_from_cam, dtype=float),
+    )
+
+
+def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: RejectCounter, obs=None, noise=None):
+    """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s``.
+
+    ``obs`` (the frame's ``(uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)``, which ``est`` was solved
+    without) with the estimator's ``noise`` model: the propagated position is corrected by the frame's own
+    line of sight (:meth:`~onboard.estimation.sliding.TrackEstimate.with_bearing`), so an estimate carried
+    over a busy worker's re-selection keeps the target on its current bearing; a bearing outside the
+    estimate's gate is counted (``bearing_gate``) and not fused."""
+    dt = t - float(est.t_s)
+    if abs(dt) > max_extrapolation_s:
+        return None
+    if dt == 0.0 and p_cam_ned_m is None:
+        return est
+    try:
+        out = est.propagated(t, p_cam_ned_m)
+        if obs is not None and noise is not None and dt > 0:
+            uv, intrinsics, p_cam, q = obs
+            fused = out.with_bearing(
+                p_cam,
+                line_of_sight_unit_ned(uv, intrinsics, q),
+                bearing_sigma_rad(noise, intrinsics),
+                noise.camera_position_white_sigma_m,
+            )
+            if fused is None:
+                counter.count(
+                    "bearing_gate",
+                    f"the frame's line of sight is outside the propagated estimate's gate at t={t:.3f} s",
+                )
+            else:
+                out = fused
+        return out
+    except (TypeError, ValueError, AttributeError, np.linalg.LinAlgError) as exc:
+        counter.count("estimator_error", f"extrapolation: {exc}")
+        return None
+
+
+def make_estimator_worker(config: OnboardConfig, counter: RejectCounter) -> Any:
+    """The estimator the frame pipeline calls, where ``estimator.worker`` puts it: a
+    :class:`ProcessEstimator` (``process``), a :class:`ThreadedEstimator` (``thread``), the estimator
+    itself (``inline``); None when ``estimator.enabled`` is false."""
+    ec = config.estimator
+    if not ec.enabled:
+        return None
+    if ec.worker == "process":
+        return ProcessEstimator(config, counter, ec.result_wait_ms / 1000.0, ec.max_extrapolation_s)
+    est = make_estimator(config)
+    if ec.worker == "thread":
+        return ThreadedEstimator(est, counter, ec.result_wait_ms / 1000.0, ec.max_extrapolation_s)
+    return est

@@ -1,0 +1,51 @@
+"""The bounded frame queue between the zenoh callback (which must never block) and the pipeline thread."""
+
+from __future__ import annotations
+
+import collections
+import threading
+from typing import Any
+
+from onboard.core.errors import InputError
+
+__all__ = ["FrameQueue"]
+
+
+class FrameQueue:
+    """Bounded FIFO (of ``(IrFrame, received_mono_ns)`` in the service); pushing onto a full queue drops the oldest."""
+
+    def __init__(self, maxlen: int) -> None:
+        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+            raise InputError(f"FrameQueue maxlen must be a positive integer, got {maxlen!r}")
+        self._d: collections.deque = collections.deque()
+        self._maxlen = maxlen
+        self._cond = threading.Condition(threading.Lock())
+        self._closed = False
+
+    def push(self, item: Any) -> int:
+        """Append; returns how many old items were dropped to make room (0 or 1)."""
+        with self._cond:
+            dropped = 0
+            while len(self._d) >= self._maxlen:
+                self._d.popleft()
+                dropped += 1
+            self._d.append(item)
+            self._cond.notify()
+            return dropped
+
+    def pop(self, timeout_s: float) -> Any:
+        """The oldest item, or None after ``timeout_s`` or once closed."""
+        with self._cond:
+            if not self._d and not self._closed:
+                self._cond.wait(timeout_s)
+            if self._d:
+                return self._d.popleft()
+            return None
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def __len__(self) -> int:
+        return len(self._d)

@@ -1,0 +1,314 @@
+"""``python -m onboard.watch``: print the daemon's tracks as they arrive, then a one-line summary.
+
+    python -m onboard.watch [--vehicle uav1] [--seconds 30] [--json]
+                            [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
+                            [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
+
+It subscribes ``irtrack/<vehicle>/track`` (schema ``irtrack.track/2``, :mod:`onboard.core.track`) and
+prints one line per track (:func:`format_track`): the frame's capture time on the autopilot's boot clock,
+the tracker's state, then the 3-D position (WGS84 and local NED) with its 1-sigma per NED axis, the range
+and its relative sigma when the estimator has one, else the line of sight (azimuth / elevation), else the
+pixel; last the quality verdict ``observable yes|no``.  ``--json`` prints the payloads as received, one
+per line, for ``jq`` and friends (the start and summary lines then go to stderr).
+
+The zenoh options are the daemon's (:mod:`onboard.io.zenoh_session`); with no endpoint and no file the
+session connects to ``tcp/127.0.0.1:7447``, where the daemon of ``config/onboard_sim.yaml`` listens, with
+multicast scouting off.  The watcher may start before the daemon: zenoh keeps retrying the connection.
+
+It stops after ``--seconds`` (0: until Ctrl-C), closes its session (an open zenoh session keeps a Python
+process alive) and prints what it received.  Exit codes: 0 after ``--seconds``; 130 on Ctrl-C, with the
+one line ``interrupted: N tracks received, ...``; 2 for invalid options or a session that cannot open (one
+line on stderr).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import os
+import queue
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import NoReturn, TextIO
+
+from onboard.core.errors import InputError, IrtrackError
+from onboard.core.track import Track, track_from_json
+from onboard.io.zenoh_session import ZenohSettings, open_session, track_key
+
+__all__ = [
+    "DEFAULT_CONNECT",
+    "DEFAULT_SECONDS",
+    "NO_TRACK_HINT_S",
+    "EXIT_OK",
+    "EXIT_CONFIG",
+    "EXIT_INTERRUPTED",
+    "WatchCounts",
+    "format_track",
+    "summary_line",
+    "interrupted_line",
+    "build_parser",
+    "zenoh_settings",
+    "main",
+]
+
+DEFAULT_CONNECT = "tcp/127.0.0.1:7447"  # the zenoh listener of config/onboard_sim.yaml
+DEFAULT_SECONDS = 30.0
+NO_TRACK_HINT_S = 10.0  # one track per frame once the simulator runs; its start-up takes seconds
+EXIT_OK = 0
+EXIT_CONFIG = 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
+POLL_S = 0.5  # longest wait on the queue: the deadline and the no-track hint are checked this often
+
+
+@dataclass
+class WatchCounts:
+    """What was received so far: tracks, those with a line of sight, a 3-D position, an observable one,
+    the boot times (s) of the first position and first observable track, and payloads that were not
+    tracks (``bad``)."""
+
+    tracks: int = 0
+    with_los: int = 0
+    with_position: int = 0
+    observable: int = 0
+    first_position_s: float | None = None
+    first_observable_s: float | None = None
+    bad: int = 0
+
+    def add(self, track: Track) -> None:
+        t_s = track.time_boot_us / 1e6
+        self.tracks += 1
+        if track.los is not None:
+            self.with_los += 1
+        if track.lat_deg is not None:
+            self.with_position += 1
+            if self.first_position_s is None:
+                self.first_position_s = t_s
+        if track.observable:
+            self.observable += 1
+            if self.first_observable_s is None:
+                self.first_observable_s = t_s
+
+
+def _f(x: float | None, fmt: str) -> str:
+    return "-" if x is None or not math.isfinite(x) else format(x, fmt)
+
+
+def format_track(track: Track) -> str:
+    """One readable line for ``track``: time, state, what it has (position, line of sight or pixel), verdict.
+
+    ``t`` is the frame's capture time on the autopilot's boot clock, seconds (the simulator's clock reads
+    1 s at the start of its flight).  The position's ``sigma`` is the 1-sigma per NED axis, metres;
+    ``range R m +-P %`` the camera-to-target range and its posterior sigma relative to it."""
+    parts = [f"t {track.time_boot_us / 1e6:8.3f} s", f"{track.state:<9}"]
+    if track.lat_deg is not None and track.lon_deg is not None and track.alt_m is not None:
+        parts.append(f"lat {track.lat_deg:.6f} lon {track.lon_deg:.6f} alt {track.alt_m:.1f} m")
+        if track.p_ned_m is not None:
+            n, e, d = track.p_ned_m
+            parts.append(f"ned {n:.1f} {e:.1f} {d:.1f} m")
+        sigma = track.sigma_ned_m
+        if sigma is not None:
+            parts.append("sigma " + " ".join(_f(s, ".1f") for s in sigma) + " m")
+        if track.range_m is not None:
+            rel = track.range_sigma_ratio
+            parts.append(f"range {track.range_m:.0f} m" + ("" if rel is None else f" +-{100.0 * rel:.1f} %"))
+    elif track.los is not None:
+        los = track.los
+        parts.append(
+            f"los az {los.azimuth_deg:.2f} el {los.elevation_deg:.2f} deg"
+            f" (sigma {_f(los.sigma_azimuth_deg, '.2f')} {_f(los.sigma_elevation_deg, '.2f')}), no position yet"
+        )
+    elif track.u_px is not None and track.v_px is not None:
+        parts.append(f"pixel {track.u_px:.1f} {track.v_px:.1f} (no pose)")
+    else:
+        parts.append("no target")
+    parts.append("observable " + ("yes" if track.observable else "no"))
+    return "  ".join(parts)
+
+
+def _counts_text(counts: WatchCounts) -> str:
+    return f"{counts.with_position} with position, {counts.observable} observable"
+
+
+def summary_line(counts: WatchCounts, seconds: float) -> str:
+    """The closing line: how many tracks, with a line of sight, a position, observable, and when first."""
+    text = (
+        f"summary: {counts.tracks} tracks in {seconds:.1f} s, {counts.with_los} with line of sight, "
+        f"{counts.with_position} with position"
+    )
+    if counts.first_position_s is not None:
+        text += f" (first at t {counts.first_position_s:.1f} s)"
+    text += f", {counts.observable} observable"
+    if counts.first_observable_s is not None:
+        text += f" (first at t {counts.first_observable_s:.1f} s)"
+    if counts.bad:
+        text += f"; {counts.bad} payloads were not tracks"
+    return text
+
+
+def interrupted_line(counts: WatchCounts) -> str:
+    """The one line printed on Ctrl-C."""
+    return f"interrupted: {counts.tracks} tracks received, {_counts_text(counts)}"
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its errors on one line and exit code 2 (argparse's own)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
+
+
+def _seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected seconds >= 0 (0: until Ctrl-C), got {text!r}")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = _Parser(
+        prog="python -m onboard.watch",
+        description="Print the onboard daemon's tracks (zenoh irtrack/<vehicle>/track) as they arrive, "
+        "one line each, then a summary.",
+    )
+    p.add_argument(
+        "--vehicle", default="uav1", help="vehicle name in the zenoh key irtrack/<vehicle>/track (default uav1)"
+    )
+    p.add_argument(
+        "--seconds",
+        metavar="S",
+        type=_seconds,
+        default=DEFAULT_SECONDS,
+        help=f"stop after S seconds (default {DEFAULT_SECONDS:g}; 0 = until Ctrl-C)",
+    )
+    p.add_argument(
+        "--json", action="store_true", help="print the JSON payloads as received, one per line (other lines on stderr)"
+    )
+    p.add_argument(
+        "--zenoh-connect",
+        metavar="ENDPOINT",
+        action="append",
+        help=f"zenoh endpoint to connect to; repeatable (default {DEFAULT_CONNECT} when no --zenoh-connect, "
+        "--zenoh-listen or --zenoh-config is given)",
+    )
+    p.add_argument(
+        "--zenoh-listen", metavar="ENDPOINT", action="append", help="zenoh endpoint to listen on; repeatable"
+    )
+    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file")
+    p.add_argument(
+        "--zenoh-multicast-scouting",
+        dest="zenoh_scouting",
+        action="store_true",
+        default=None,
+        help="enable zenoh multicast scouting (off by default)",
+    )
+    p.add_argument(
+        "--no-zenoh-multicast-scouting",
+        dest="zenoh_scouting",
+        action="store_false",
+        help="disable zenoh multicast scouting",
+    )
+    return p
+
+
+def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
+    """The session's :class:`~onboard.io.zenoh_session.ZenohSettings` from the parsed options."""
+    connect = tuple(args.zenoh_connect or ())
+    listen = tuple(args.zenoh_listen or ())
+    if not connect and not listen and args.zenoh_config is None:
+        connect = (DEFAULT_CONNECT,)
+    return ZenohSettings(
+        connect=connect, listen=listen, config_file=args.zenoh_config, multicast_scouting=args.zenoh_scouting
+    )
+
+
+def _where(settings: ZenohSettings) -> str:
+    parts = [*settings.connect, *(f"listening {ep}" for ep in settings.listen)]
+    if settings.config_file is not None:
+        parts.append(f"config {settings.config_file}")
+    return ", ".join(parts)
+
+
+def _receive(
+    inbox: queue.Queue[bytes],
+    counts: WatchCounts,
+    *,
+    seconds: float,
+    as_json: bool,
+    out: TextIO,
+    err: TextIO,
+    hint: str,
+) -> None:
+    """Print what arrives in ``inbox`` until ``seconds`` have passed (forever for 0); updates ``counts``."""
+    start = time.monotonic()
+    deadline = None if seconds == 0 else start + seconds
+    hinted = False
+    while True:
+        now = time.monotonic()
+        if deadline is not None and now >= deadline:
+            return
+        if not hinted and counts.tracks + counts.bad == 0 and now - start >= NO_TRACK_HINT_S:
+            print(hint, file=err, flush=True)
+            hinted = True
+        wait = POLL_S if deadline is None else min(POLL_S, deadline - now)
+        try:
+            payload = inbox.get(timeout=max(wait, 0.0))
+        except queue.Empty:
+            continue
+        try:
+            track = track_from_json(payload)
+        except InputError as exc:
+            counts.bad += 1
+            if as_json:
+                print(payload.decode("utf-8", "replace"), file=out, flush=True)
+            else:
+                print(f"not a track ({len(payload)} bytes): {exc}", file=err, flush=True)
+            continue
+        counts.add(track)
+        print(payload.decode("utf-8", "replace") if as_json else format_track(track), file=out, flush=True)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+
+    out = sys.stdout
+    info = sys.stderr if args.json else sys.stdout
+    counts = WatchCounts()
+    session = None
+    try:
+        settings = zenoh_settings(args)
+        key = track_key(args.vehicle)
+        session = open_session(settings)
+        inbox: queue.Queue[bytes] = queue.Queue()
+        start = time.monotonic()
+        session.declare_subscriber(key, lambda sample: inbox.put(sample.payload.to_bytes()))
+        until = "until Ctrl-C" if args.seconds == 0 else f"for {args.seconds:g} s (Ctrl-C stops sooner)"
+        print(f"watching {key} on {_where(settings)} {until}", file=info, flush=True)
+        hint = (
+            f"no track on {key} after {NO_TRACK_HINT_S:g} s (still watching): the daemon publishes one per IR "
+            f"frame it receives; check that the simulator or camera is running, and the daemon too, with vehicle "
+            f"{args.vehicle} and zenoh reachable at {_where(settings)}"
+        )
+        _receive(inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint)
+        session.close()
+        session = None
+        print(summary_line(counts, time.monotonic() - start), file=info, flush=True)
+        return EXIT_OK
+    except IrtrackError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
+    except KeyboardInterrupt:
+        print(interrupted_line(counts), file=info, flush=True)
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # `... | head`: the reader left; later writes (and the exit's flush) go nowhere
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_OK
+    finally:
+        if session is not None:
+            session.close()

@@ -1,0 +1,180 @@
+"""Offset and skew between a local clock and the autopilot's boot clock, from TIMESYNC exchanges.
+
+Pure core: no pymavlink, no sockets.  The MAVLink adapter (:mod:`onboard.io.mavlink_link`) sends the
+requests and feeds each answer to :meth:`ClockSync.add_exchange`; the daemon then puts camera frames,
+stamped on the local clock (ns), on the autopilot's ``time_boot_us`` with :meth:`ClockSync.to_boot_us`.
+The filter's settings are :class:`~onboard.core.pose.ClockSyncConfig`.
+
+Rejection reasons (counted in the shared :class:`~onboard.core.counters.RejectCounter`):
+``timesync_invalid`` (not integers, or ``tc1`` <= 0), ``timesync_rtt`` (round trip negative or longer
+than ``max_rtt_ns``), ``timesync_outlier`` (offset off the estimate by more than ``jump_ns``),
+``timesync_reset`` (``jump_count`` such exchanges in a row: the remote clock restarted, the filter
+re-seeds from them).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.counters import RejectCounter
+from onboard.core.pose import NS_PER_US, ClockSyncConfig
+
+__all__ = ["ClockSync"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class _Exchange:
+    mid_local_ns: int
+    offset_ns: int
+    rtt_ns: int
+
+
+class ClockSync:
+    """Maps a local clock (ns) to the autopilot boot clock from TIMESYNC exchanges.
+
+    One exchange: we send ``ts1 = local send time`` (tc1 = 0); the autopilot answers with its boot
+    time ``tc1`` and our ``ts1`` mirrored; we note the local receive time ``t3``.  Assuming a
+    symmetric path, ``offset = tc1 - (ts1 + t3) / 2`` (autopilot minus local, at the midpoint), with
+    an error of at most ``rtt / 2`` where ``rtt = t3 - ts1`` (Cristian 1989; MAVLink timesync
+    service).  The estimate is a weighted least-squares line ``offset(t) = a + b (t - t_ref)`` over the
+    last ``window`` exchanges, weights ``1 / (rtt + floor)^2`` so short round trips dominate; the
+    slope ``b`` (clock skew) is fitted only once the history spans ``min_skew_span_ns``.
+    PX4 and ArduPilot answer with their boot time in ns, the same clock as ``time_boot_ms``.
+    """
+
+    def __init__(self, config: ClockSyncConfig | None = None, counter: RejectCounter | None = None) -> None:
+        self.config = config if config is not None else ClockSyncConfig()
+        self.counter = counter if counter is not None else RejectCounter()
+        self._ex: list[_Exchange] = []
+        self._outliers: list[_Exchange] = []
+        self._ref_local_ns = 0
+        self._ref_offset_ns = 0
+        self._a_ns = 0.0
+        self._b = 0.0  # ns of offset per ns of local time
+        self.resets = 0
+        self._long_rtt_run = 0  # consecutive exchanges discarded for their round trip
+
+    # ------------------------------------------------------------------ state
+
+    @property
+    def synced(self) -> bool:
+        return len(self._ex) >= self.config.min_samples
+
+    @property
+    def n_samples(self) -> int:
+        return len(self._ex)
+
+    @property
+    def skew_ppm(self) -> float:
+        return self._b * 1e6
+
+    @property
+    def min_rtt_ns(self) -> int | None:
+        return min(e.rtt_ns for e in self._ex) if self._ex else None
+
+    def reset(self) -> None:
+        """Forget every exchange (call on an autopilot reboot)."""
+        self._ex.clear()
+        self._outliers.clear()
+        self._a_ns, self._b = 0.0, 0.0
+        self._long_rtt_run = 0
+
+    # ------------------------------------------------------------------ input
+
+    def add_exchange(self, ts1_local_ns: int, tc1_remote_ns: int, recv_local_ns: int) -> bool:
+        """Feed one TIMESYNC round trip; True when it was used."""
+        vals = (ts1_local_ns, tc1_remote_ns, recv_local_ns)
+        if any(isinstance(v, bool) or not isinstance(v, (int, np.integer)) for v in vals) or tc1_remote_ns <= 0:
+            self.counter.count("timesync_invalid", f"ts1={ts1_local_ns!r} tc1={tc1_remote_ns!r} t3={recv_local_ns!r}")
+            return False
+        ts1, tc1, t3 = (int(v) for v in vals)
+        rtt = t3 - ts1
+        if rtt < 0 or rtt > self.config.max_rtt_ns:
+            # discarded either way; one alone is a moment when either end was busy (typically the first
+            # exchange, sent while the autopilot side is still starting): INFO.  Two in a row mean the
+            # link itself is slow and the clock may not sync: one WARNING per run of them.
+            self._long_rtt_run += 1
+            detail = f"round trip {rtt / 1e6:.3f} ms outside [0, {self.config.max_rtt_ns / 1e6:g}] ms"
+            self.counter.count("timesync_rtt", detail, level=logging.INFO)
+            if self._long_rtt_run == 2:
+                log.warning(
+                    "timesync_rtt: TIMESYNC round trips too long twice in a row (the last: %s): a slow link or a "
+                    "busy CPU; exchanges are discarded while it lasts",
+                    detail,
+                )
+            return False
+        self._long_rtt_run = 0
+        mid = ts1 + rtt // 2
+        ex = _Exchange(mid, tc1 - mid, rtt)
+        if self.synced:
+            err = abs(ex.offset_ns - self.offset_ns_at(mid))
+            if err > self.config.jump_ns + rtt / 2:
+                self._outliers.append(ex)
+                if len(self._outliers) < self.config.jump_count:
+                    self.counter.count("timesync_outlier", f"offset off the estimate by {err / 1e6:.1f} ms")
+                    return False
+                self.counter.count(
+                    "timesync_reset",
+                    f"{len(self._outliers)} consecutive exchanges off by > "
+                    f"{self.config.jump_ns / 1e6:g} ms: remote clock restarted",
+                )
+                self._ex = list(self._outliers)
+                self._outliers.clear()
+                self.resets += 1
+                self._fit()
+                return True
+        self._outliers.clear()
+        self._ex.append(ex)
+        if len(self._ex) > self.config.window:
+            del self._ex[: len(self._ex) - self.config.window]
+        self._fit()
+        return True
+
+    def _fit(self) -> None:
+        if not self._ex:
+            return
+        self._ref_local_ns = self._ex[0].mid_local_ns
+        self._ref_offset_ns = self._ex[0].offset_ns
+        x = np.array([e.mid_local_ns - self._ref_local_ns for e in self._ex], dtype=float)
+        y = np.array([e.offset_ns - self._ref_offset_ns for e in self._ex], dtype=float)
+        w = 1.0 / (np.array([e.rtt_ns for e in self._ex], dtype=float) + self.config.rtt_floor_ns) ** 2
+        w /= w.sum()
+        xm, ym = float(w @ x), float(w @ y)
+        b = 0.0
+        if x.max() - x.min() >= self.config.min_skew_span_ns:
+            sxx = float(w @ (x - xm) ** 2)
+            if sxx > 0:
+                b = float(w @ ((x - xm) * (y - ym))) / sxx
+                lim = self.config.max_skew_ppm * 1e-6
+                b = min(max(b, -lim), lim)
+        self._b = b
+        self._a_ns = ym - b * xm
+
+    # ------------------------------------------------------------------ output
+
+    def offset_ns_at(self, local_ns: int) -> int:
+        """Estimated ``boot_ns - local_ns`` at local time ``local_ns`` (0 before any exchange)."""
+        dx = int(local_ns) - self._ref_local_ns
+        return self._ref_offset_ns + int(round(self._a_ns + self._b * dx))
+
+    def to_boot_us(self, local_ns: int) -> int | None:
+        """Local clock (ns) -> autopilot ``time_boot_us``; None until synced or when before boot."""
+        if not self.synced:
+            return None
+        boot_ns = int(local_ns) + self.offset_ns_at(local_ns)
+        if boot_ns < 0:
+            return None
+        return (boot_ns + NS_PER_US // 2) // NS_PER_US
+
+    def to_local_ns(self, time_boot_us: int) -> int | None:
+        """Inverse of :meth:`to_boot_us` (one fixed-point step; skew is tiny); None until synced."""
+        if not self.synced:
+            return None
+        boot_ns = int(time_boot_us) * NS_PER_US
+        guess = boot_ns - self.offset_ns_at(boot_ns - self._ref_offset_ns)
+        return boot_ns - self.offset_ns_at(guess)

@@ -1,0 +1,72 @@
+"""The project-wide count of rejected inputs and notable events, by reason.
+
+Pure core: no threads (a thread-safe variant wraps it where threads share one), no I/O besides logging.
+Every component that refuses an input (the pose buffer, the clock sync, the MAVLink adapter, the frame
+pipeline, the estimator) counts it here under a reason of its own (e.g. ``attitude_zero``,
+``timesync_rtt``, ``frame_short``) instead of raising; the daemon's status JSON shows the counts
+(``rejected``).  Each module documents the reasons it counts.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable
+
+from onboard.core.errors import ConfigError
+
+__all__ = ["RejectCounter"]
+
+log = logging.getLogger(__name__)
+
+
+class RejectCounter:
+    """Counts by reason; logs each reason at most once per ``log_interval_s`` (with the count since).
+
+    ``count(reason, detail)`` never raises.  ``counts`` is a copy of the reason -> count dict.
+    """
+
+    def __init__(
+        self,
+        log_interval_s: float = 10.0,
+        clock: Callable[[], float] = time.monotonic,
+        logger: logging.Logger | None = None,
+    ) -> None:
+        if not (math.isfinite(log_interval_s) and log_interval_s >= 0):
+            raise ConfigError(f"RejectCounter.log_interval_s must be >= 0 seconds, got {log_interval_s!r}")
+        self.log_interval_s = float(log_interval_s)
+        self._clock = clock
+        self._log = logger or log
+        self._counts: dict[str, int] = {}
+        self._last_log_s: dict[str, float] = {}
+        self._unlogged: dict[str, int] = {}
+
+    def count(self, reason: str, detail: str = "", n: int = 1, level: int = logging.WARNING) -> None:
+        """Count ``n`` of ``reason``; log it at ``level`` (WARNING: a rejection; DEBUG: a normal event)."""
+        self._counts[reason] = self._counts.get(reason, 0) + n
+        try:
+            now = float(self._clock())
+        except Exception:  # a broken clock must not break the caller
+            now = math.nan
+        last = self._last_log_s.get(reason)
+        if last is None or not now - last < self.log_interval_s:
+            since = self._unlogged.get(reason, 0) + n
+            self._log.log(
+                level, "%s: %s (total %d, %d since last report)", reason, detail or "-", self._counts[reason], since
+            )
+            self._last_log_s[reason] = now
+            self._unlogged[reason] = 0
+        else:
+            self._unlogged[reason] = self._unlogged.get(reason, 0) + n
+
+    def __getitem__(self, reason: str) -> int:
+        return self._counts.get(reason, 0)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return dict(self._counts)
+
+    @property
+    def total(self) -> int:
+        return sum(self._counts.values())

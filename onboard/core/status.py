@@ -1,0 +1,150 @@
+"""The daemon's status JSON ``irtrack.status/1`` and the rolling statistics it reports.
+
+Pure: no zenoh, no clocks.  The service keeps a :class:`RollingStats` per measured quantity (latency,
+processing, waits) and publishes :func:`build_status` once a second on ``irtrack/<vehicle>/status``;
+the keys are :func:`build_status`'s docstring.  Non-finite numbers are written as null (JSON has no NaN).
+"""
+
+from __future__ import annotations
+
+import os
+from collections import deque
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.track import Track, json_number
+
+__all__ = ["STATUS_SCHEMA", "RollingStats", "build_status"]
+
+STATUS_SCHEMA = "irtrack.status/1"
+
+
+class RollingStats:
+    """The last ``maxlen`` samples of a quantity; percentiles on demand (thread-safe appends)."""
+
+    def __init__(self, maxlen: int = 1000) -> None:
+        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+            raise InputError(f"RollingStats.maxlen must be a positive integer, got {maxlen!r}")
+        self._d: deque[float] = deque(maxlen=maxlen)
+
+    def add(self, x: float) -> None:
+        self._d.append(float(x))
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+    def values(self) -> np.ndarray:
+        return np.array(list(self._d), dtype=float)
+
+    def summary(self) -> dict[str, float | int | None]:
+        """``{n, p50, p99, max}`` over the window; None values when empty."""
+        a = self.values()
+        if a.size == 0:
+            return {"n": 0, "p50": None, "p99": None, "max": None}
+        p50, p99 = np.percentile(a, [50, 99])
+        return {"n": int(a.size), "p50": json_number(p50), "p99": json_number(p99), "max": json_number(a.max())}
+
+
+def build_status(
+    *,
+    vehicle: str,
+    uptime_s: float,
+    frames_in: int,
+    frames_processed: int,
+    frames_dropped: int,
+    frames_rejected: int,
+    tracks_published: int,
+    processing_ms: Mapping[str, Any],
+    latency_ms: Mapping[str, Any],
+    pose_wait_ms: Mapping[str, Any],
+    capture_to_track_ms: Mapping[str, Any] | None,
+    rejected: Mapping[str, int],
+    link: Mapping[str, Any] | None,
+    cpu_share: float | None,
+    pipeline_cpu_share: float | None,
+    last_track: Track | None,
+    estimator: str,
+    queue_length: int,
+    queue_wait_ms: Mapping[str, Any] | None = None,
+    publish_ms: Mapping[str, Any] | None = None,
+    stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
+    warnings: list[Mapping[str, str]] | tuple = (),
+) -> dict[str, Any]:
+    """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
+
+    ``frames``: ``in`` (payloads received), ``processed`` (a Track was produced), ``dropped``
+    (oldest frames dropped because the pipeline was behind), ``rejected`` (invalid frames: sum of the
+    ``frame_*`` reasons), ``published`` (track messages put on zenoh).  ``processing_ms``: decode +
+    imaging + pose + estimator per frame; ``latency_ms``: frame receipt to track published (local
+    monotonic clock); ``queue_wait_ms``: receipt to the start of processing; ``publish_ms``: the
+    zenoh ``put`` of the track; ``stages_ms``: parts of the processing (``imaging``, ``estimator``);
+    ``pose_wait_ms``: time a frame waited for lagging telemetry;
+    ``capture_to_track_ms``: capture (boot clock) to track published, via TIMESYNC (null until
+    synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
+    rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
+    ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
+    ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
+    latest track's state in short.  ``warnings``: the conditions active now that an operator must
+    fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
+    empty when all is well.
+    """
+    t = last_track
+    return {
+        "schema": STATUS_SCHEMA,
+        "vehicle": vehicle,
+        "uptime_s": json_number(uptime_s),
+        "frames": {
+            "in": int(frames_in),
+            "processed": int(frames_processed),
+            "dropped": int(frames_dropped),
+            "rejected": int(frames_rejected),
+            "published": int(tracks_published),
+            "queue_length": int(queue_length),
+        },
+        "processing_ms": dict(processing_ms),
+        "latency_ms": dict(latency_ms),
+        "pose_wait_ms": dict(pose_wait_ms),
+        "queue_wait_ms": None if queue_wait_ms is None else dict(queue_wait_ms),
+        "publish_ms": None if publish_ms is None else dict(publish_ms),
+        "stages_ms": None if stages_ms is None else {k: dict(v) for k, v in stages_ms.items()},
+        "capture_to_track_ms": None if capture_to_track_ms is None else dict(capture_to_track_ms),
+        "rejected": {str(k): int(v) for k, v in sorted(rejected.items())},
+        "link": None if link is None else _jsonable(link),
+        "cpu": {"share": json_number(cpu_share), "pipeline_share": json_number(pipeline_cpu_share), "cores": _cores()},
+        "estimator": estimator,
+        "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
+        "track": None
+        if t is None
+        else {
+            "time_boot_us": t.time_boot_us,
+            "state": t.state,
+            "track_id": t.track_id,
+            "has_los": t.los is not None,
+            "has_position": t.has_position,
+            "observable": t.observable,
+            "window_frames": t.window_frames,
+        },
+    }
+
+
+def _cores() -> int | None:
+    return os.cpu_count()
+
+
+def _jsonable(v):
+    if isinstance(v, Mapping):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple, set, frozenset)):
+        return [_jsonable(x) for x in (sorted(v) if isinstance(v, (set, frozenset)) else v)]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return json_number(v)
+    if v is None or isinstance(v, str):
+        return v
+    return str(v)

@@ -1,0 +1,57 @@
+"""``python -m groundsim report``: the flight report of a daemon recording, drawn on the ground side (a real
+process), against the simulator's recording of the same run."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.onboard.test_record_daemon import record_pair
+
+REPO = Path(__file__).resolve().parents[2]
+REPORT_TIMEOUT_S = 240.0
+RECORD_S = 4.0  # long enough for a track with 3-D estimates on P1, short to keep the suite quick
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    return record_pair(tmp_path_factory.mktemp("report"), duration_s=RECORD_S)
+
+
+def _report(*args) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "groundsim", "report", *map(str, args)],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=REPORT_TIMEOUT_S,
+    )
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_report_plots_a_recorded_flight_against_the_simulators_truth(recorded, tmp_path):
+    out = tmp_path / "report"
+    p = _report(recorded.daemon_mcap, "--truth", recorded.sim_mcap, "--out", out)
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert "report:" in p.stdout
+    for name in ("trajectory.png", "errors.png", "frame.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["truth"] is True and summary["frames"] == len(recorded.tracks)
+    assert summary["median_track_to_truth_px"] < 1.0  # truth matched frame by frame
+    p = _report(recorded.daemon_mcap, "--out", tmp_path / "no_truth")
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert not (tmp_path / "no_truth" / "errors.png").exists() and (tmp_path / "no_truth" / "trajectory.png").exists()
+
+
+@pytest.mark.integration
+def test_report_of_a_file_that_is_not_a_daemon_recording_is_one_line_exit_2(tmp_path):
+    bogus = tmp_path / "x.mcap"
+    bogus.write_bytes(b"not an mcap file at all")
+    p = _report(bogus, "--out", tmp_path / "r")
+    assert p.returncode == 2 and p.stderr.count("\n") == 1 and "groundsim report: error:" in p.stderr, p.stderr

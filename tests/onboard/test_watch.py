@@ -1,0 +1,284 @@
+"""``python -m onboard.watch``: its lines (unit) and the real command against a zenoh publisher on loopback."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from onboard.app.watch import (
+    DEFAULT_CONNECT,
+    EXIT_CONFIG,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    WatchCounts,
+    build_parser,
+    format_track,
+    interrupted_line,
+    main,
+    summary_line,
+    zenoh_settings,
+)
+from onboard.core.track import LineOfSight, Track, track_from_json, track_to_bytes
+from tests.fakes import positioned_track, tracking_track
+
+REPO = Path(__file__).resolve().parents[2]
+START_TIMEOUT_S = 30.0  # the watcher's imports and zenoh session on a busy 2-core machine
+WATCH_SECONDS = 6.0  # the watcher's --seconds: long enough to receive what is published once it matches
+EXIT_TIMEOUT_S = 30.0
+
+LOS = LineOfSight((1.0, 0.0, 0.0), 0.0, -2.5, 0.08, 0.06, (0.0, 0.0, -50.0))
+
+
+def los_track(**fields) -> Track:
+    """A tracking Track with a line of sight and no position."""
+    return tracking_track(los=LOS, **fields)
+
+
+def sample_tracks() -> list[Track]:
+    """What a flight shows, in order: searching, a line of sight only, a position not yet observable, an
+    observable one."""
+    return [
+        Track(vehicle="uav1", seq=1, time_boot_us=1_033_333, state="searching", pose_valid=True),
+        los_track(seq=2, time_boot_us=1_066_667),
+        positioned_track(seq=3, time_boot_us=4_000_000, los=LOS, observable=False, range_sigma_ratio=0.5),
+        positioned_track(seq=4, time_boot_us=16_000_000, los=LOS, range_sigma_ratio=0.021),
+    ]
+
+
+# ------------------------------------------------------------------------------------------ the lines
+
+
+def test_a_searching_track_says_no_target():
+    line = format_track(Track(vehicle="uav1", seq=1, time_boot_us=1_033_333, state="searching"))
+    assert line.split() == ["t", "1.033", "s", "searching", "no", "target", "observable", "no"]
+
+
+def test_a_track_without_position_shows_its_line_of_sight():
+    line = format_track(los_track(time_boot_us=2_500_000))
+    assert line.startswith("t    2.500 s  tracking ")
+    assert "los az 0.00 el -2.50 deg (sigma 0.08 0.06), no position yet" in line
+    assert line.endswith("observable no")
+
+
+def test_a_track_without_pose_shows_its_pixel():
+    line = format_track(tracking_track(pose_valid=False, u_px=321.34, v_px=200.46))
+    assert "pixel 321.3 200.5 (no pose)" in line
+
+
+def test_a_positioned_track_shows_position_sigma_range_and_verdict():
+    track = positioned_track(time_boot_us=16_000_000, range_sigma_ratio=0.021, cov_p_ned_m2=np.diag([4.0, 9.0, 1.0]))
+    line = format_track(track)
+    assert line.startswith("t   16.000 s  tracking ")
+    assert "lat 32.001000 lon 118.800000 alt 80.0 m" in line
+    assert "ned 100.0 0.0 -80.0 m" in line
+    assert "sigma 2.0 3.0 1.0 m" in line
+    assert "range 130 m +-2.1 %" in line
+    assert line.endswith("observable yes")
+
+
+def test_a_position_read_back_from_the_wire_reads_the_same():
+    track = positioned_track(time_boot_us=16_000_000, range_sigma_ratio=0.021)
+    assert format_track(track_from_json(track_to_bytes(track))) == format_track(track)
+
+
+def test_counts_summary_and_interrupted_lines():
+    counts = WatchCounts()
+    for t in sample_tracks():
+        counts.add(t)
+    assert (counts.tracks, counts.with_los, counts.with_position, counts.observable) == (4, 3, 2, 1)
+    assert (counts.first_position_s, counts.first_observable_s) == (4.0, 16.0)
+    assert summary_line(counts, 40.0) == (
+        "summary: 4 tracks in 40.0 s, 3 with line of sight, 2 with position (first at t 4.0 s), "
+        "1 observable (first at t 16.0 s)"
+    )
+    assert interrupted_line(counts) == "interrupted: 4 tracks received, 2 with position, 1 observable"
+    counts.bad = 2
+    assert summary_line(counts, 1.0).endswith("; 2 payloads were not tracks")
+    assert summary_line(WatchCounts(), 0.5) == (
+        "summary: 0 tracks in 0.5 s, 0 with line of sight, 0 with position, 0 observable"
+    )
+
+
+# ------------------------------------------------------------------------------------------ the options
+
+
+@pytest.mark.parametrize(
+    ("argv", "connect", "listen"),
+    [
+        ([], (DEFAULT_CONNECT,), ()),
+        (["--zenoh-connect", "tcp/10.0.0.2:7447"], ("tcp/10.0.0.2:7447",), ()),
+        (["--zenoh-listen", "tcp/127.0.0.1:7448"], (), ("tcp/127.0.0.1:7448",)),
+    ],
+)
+def test_zenoh_defaults_to_the_sim_daemons_listener(argv, connect, listen):
+    settings = zenoh_settings(build_parser().parse_args(argv))
+    assert (settings.connect, settings.listen, settings.multicast_scouting) == (connect, listen, None)
+
+
+def test_options_and_defaults():
+    args = build_parser().parse_args([])
+    assert (args.vehicle, args.seconds, args.json) == ("uav1", 30.0, False)
+    args = build_parser().parse_args(["--vehicle", "uav2", "--seconds", "0", "--json", "--no-zenoh-multicast-scouting"])
+    assert (args.vehicle, args.seconds, args.json, args.zenoh_scouting) == ("uav2", 0.0, True, False)
+
+
+@pytest.mark.parametrize("seconds", ["-1", "nan", "soon"])
+def test_bad_seconds_exit_2_on_one_line(seconds, capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(["--seconds", seconds])
+    assert exc.value.code == EXIT_CONFIG
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [(["--vehicle", "uav 1"], "vehicle name"), (["--zenoh-connect", "bogus"], "--zenoh-connect")],
+)
+def test_bad_zenoh_options_exit_2_on_one_line(argv, words, capsys):
+    assert main([*argv, "--seconds", "1"]) == EXIT_CONFIG
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and words in err[0]
+
+
+# ------------------------------------------------------------------------------------------ the command
+
+
+class Publisher:
+    """A zenoh session listening on a free loopback port with a publisher on irtrack/uav1/track; ``wait_matched``
+    returns once a subscriber (the watcher) is reachable."""
+
+    def __init__(self) -> None:
+        from groundsim.io.ports import free_tcp_port
+        from onboard.io.zenoh_session import TRACK_ENCODING, ZenohSettings, open_session, track_key
+
+        self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+        self.session = open_session(ZenohSettings(listen=(self.endpoint,)))
+        self.publisher = self.session.declare_publisher(track_key("uav1"), encoding=TRACK_ENCODING)
+        self._matched = threading.Event()
+        self._listener = self.publisher.declare_matching_listener(
+            lambda status: self._matched.set() if status.matching else None
+        )
+
+    def wait_matched(self, timeout_s: float) -> bool:
+        return self._matched.wait(timeout_s)
+
+    def put(self, payload: bytes) -> None:
+        self.publisher.put(payload)
+
+    def close(self) -> None:
+        self.session.close()
+
+
+class Lines:
+    """The lines a child process writes to one pipe, read by a thread; ``wait_for`` blocks on a condition."""
+
+    def __init__(self, pipe) -> None:
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(pipe,), daemon=True)
+        self._thread.start()
+
+    def _read(self, pipe) -> None:
+        for line in pipe:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+
+    def wait_for(self, predicate, timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: predicate(self.lines), timeout_s)
+
+    def join(self) -> list[str]:
+        self._thread.join(EXIT_TIMEOUT_S)
+        return self.lines
+
+
+@pytest.fixture
+def publisher():
+    pub = Publisher()
+    yield pub
+    pub.close()
+
+
+def start_watcher(endpoint: str, *extra: str) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-m", "onboard.watch", "--zenoh-connect", endpoint, *extra],
+        cwd=REPO,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def publish_samples(publisher: Publisher) -> list[bytes]:
+    payloads = [track_to_bytes(t) for t in sample_tracks()]
+    for p in payloads:
+        publisher.put(p)
+    return payloads
+
+
+@pytest.mark.integration
+def test_the_watcher_prints_each_track_and_a_summary_then_exits_by_itself(publisher):
+    proc = start_watcher(publisher.endpoint, "--seconds", f"{WATCH_SECONDS:g}")
+    try:
+        assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
+        publish_samples(publisher)
+        out, err = proc.communicate(timeout=WATCH_SECONDS + EXIT_TIMEOUT_S)
+    finally:
+        proc.kill()
+    assert proc.returncode == EXIT_OK, err
+    lines = out.splitlines()
+    assert (
+        lines[0] == f"watching irtrack/uav1/track on {publisher.endpoint} for {WATCH_SECONDS:g} s (Ctrl-C stops sooner)"
+    )
+    assert lines[1:-1] == [format_track(t) for t in sample_tracks()]
+    assert lines[-1].startswith("summary: 4 tracks in ")
+    assert lines[-1].endswith(
+        " s, 3 with line of sight, 2 with position (first at t 4.0 s), 1 observable (first at t 16.0 s)"
+    )
+    assert err == ""
+
+
+@pytest.mark.integration
+def test_json_prints_the_payloads_as_received(publisher):
+    proc = start_watcher(publisher.endpoint, "--seconds", f"{WATCH_SECONDS:g}", "--json")
+    try:
+        assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
+        payloads = publish_samples(publisher)
+        publisher.put(b'{"schema": "something/else"}')
+        out, err = proc.communicate(timeout=WATCH_SECONDS + EXIT_TIMEOUT_S)
+    finally:
+        proc.kill()
+    assert proc.returncode == EXIT_OK, err
+    assert out.splitlines() == [p.decode() for p in payloads] + ['{"schema": "something/else"}']
+    assert [json.loads(line)["seq"] for line in out.splitlines()[:4]] == [1, 2, 3, 4]
+    info = err.splitlines()
+    assert info[0].startswith("watching irtrack/uav1/track on ")
+    assert info[-1].startswith("summary: 4 tracks in ") and info[-1].endswith("; 1 payloads were not tracks")
+
+
+@pytest.mark.integration
+def test_ctrl_c_exits_130_with_one_interrupted_line(publisher):
+    proc = start_watcher(publisher.endpoint, "--seconds", "0")
+    try:
+        out = Lines(proc.stdout)
+        assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
+        publish_samples(publisher)
+        assert out.wait_for(lambda lines: sum(line.startswith("t ") for line in lines) == 4, EXIT_TIMEOUT_S)
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(EXIT_TIMEOUT_S)
+        err = proc.stderr.read()
+    finally:
+        proc.kill()
+    assert code == EXIT_INTERRUPTED, err
+    lines = out.join()
+    assert lines[-1] == "interrupted: 4 tracks received, 2 with position, 1 observable"
+    assert not any(line.startswith("summary") for line in lines)
+    assert err == ""
