@@ -31,6 +31,7 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
+from bench import run_benchmark  # noqa: E402
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
@@ -154,16 +155,18 @@ def verdict(args) -> int:
             print(f"\r  verdict runs {done}/{tot}", end="", file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
-    results = run_cases(
-        scen,
-        [ncs[n] for n in noises],
-        range(args.seeds),
-        workers=args.workers,
-        with_paper=False,
-        progress=progress,
-        with_efficient=False,
-    )
-    print(file=sys.stderr)
+    try:
+        results = run_cases(
+            scen,
+            [ncs[n] for n in noises],
+            range(args.seeds),
+            workers=args.workers,
+            with_paper=False,
+            progress=progress,
+            with_efficient=False,
+        )
+    finally:
+        print(file=sys.stderr)  # ends the progress line, also before an "interrupted" one
     rows = verdict_rows(results)
     thr = 100 * MapConfig().observability_max_sigma_range_ratio
     print(f"== observability verdict over {args.seeds} seeds ({total} runs, {time.perf_counter() - t0:.0f} s) ==")
@@ -237,8 +240,10 @@ def main(argv=None) -> int:
             print(f"\r  accuracy runs {done}/{tot}", end="", file=sys.stderr, flush=True)
 
         t0 = time.perf_counter()
-        results = run_cases(scen, noises, range(args.seeds), workers=args.workers, progress=progress)
-        print(file=sys.stderr)
+        try:
+            results = run_cases(scen, noises, range(args.seeds), workers=args.workers, progress=progress)
+        finally:
+            print(file=sys.stderr)  # ends the progress line, also before an "interrupted" one
         rows = summarise(results)
         report["accuracy"] = rows
         print(f"\n== accuracy, median over {args.seeds} seeds ({total} runs, {time.perf_counter() - t0:.0f} s) ==")
@@ -254,4 +259,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_benchmark("estimator", main, kept="the figures printed above are kept; no --json file written"))

@@ -18,10 +18,12 @@ Numbers only: nothing here asserts on time.
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 import numpy as np
 
+from bench import run_benchmark
 from groundsim.world.flight import FlownVehicle, fly, fly_pair
 from groundsim.world.motion import Circular, Cubic
 from onboard.core.frames import GeodeticOrigin, euler_from_quat
@@ -136,4 +138,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_benchmark("flight", main))

@@ -21,11 +21,13 @@ nothing asserts on time.
 from __future__ import annotations
 
 import math
+import sys
 import time
 
 import cv2
 import numpy as np
 
+from bench import run_benchmark
 from onboard.imaging import ImagingParams, TargetTracker, detect_targets
 from onboard.imaging.tracker import create_kcf
 
@@ -178,4 +180,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_benchmark("imaging", main))

@@ -54,7 +54,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
-from bench import machine_speed_ms, pin_to_one_cpu  # noqa: E402
+from bench import machine_speed_ms, pin_to_one_cpu, run_benchmark  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -628,4 +628,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_benchmark("onboard", main))

@@ -32,11 +32,13 @@ single_thread_blas_env()  # before numpy: one BLAS thread, as python -m onboard.
 
 import argparse  # noqa: E402
 import os  # noqa: E402
+import sys  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from bench import run_benchmark  # noqa: E402
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
 from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402
@@ -241,4 +243,4 @@ def bench_replay(path: str) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_benchmark("record", main, kept="the figures printed above are kept; the recording was temporary"))

@@ -27,11 +27,12 @@ from __future__ import annotations
 
 import math
 import os
+import sys
 import time
 
 import numpy as np
 
-from bench import pin_to_one_cpu
+from bench import pin_to_one_cpu, run_benchmark
 
 N_FRAMES = 300
 WARMUP_FRAMES = 10
@@ -299,4 +300,4 @@ def clutter_counts(intr, base, n_frames: int = 20) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_benchmark("render", main))

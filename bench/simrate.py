@@ -25,11 +25,13 @@ import argparse
 import logging
 import os
 import socket
+import sys
 import threading
 import time
 
 import cv2
 
+from bench import run_benchmark
 from groundsim.app.cli import realtime_priority
 from groundsim.app.run import RateSpec, RunConfig, run
 from groundsim.io.ports import free_tcp_port
@@ -186,4 +188,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_benchmark("simrate", main))

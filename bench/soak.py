@@ -32,6 +32,8 @@ import threading
 import time
 from pathlib import Path
 
+from bench import run_benchmark
+
 CONTAINER_LIMIT_MB = 512.0  # deploy/compose.yaml, service onboard
 FRAME_RATE_HZ = 30.0
 STOP_GRACE_S = 5.0
@@ -363,4 +365,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_benchmark("soak", main, kept="the samples printed above and the children's logs in --out are kept"))

@@ -35,10 +35,13 @@ from __future__ import annotations
 import argparse
 import io
 import os
+import sys
 import threading
 import time
 
 import numpy as np
+
+from bench import run_benchmark
 
 W, H = 640, 512
 CODE_BITS = 16
@@ -228,4 +231,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    sys.exit(run_benchmark("video", main))

@@ -167,13 +167,17 @@ def _run_one(args):
 def run_cases(
     scenarios, noises, seeds, workers: int = 1, with_paper: bool = True, progress=None, with_efficient: bool = True
 ) -> list[CaseResult]:
-    """All combinations; ``workers`` > 1 uses a process pool; ``progress(done, total)`` if given."""
+    """All combinations; ``workers`` > 1 uses a process pool; ``progress(done, total)`` if given.  Ctrl-C
+    raises KeyboardInterrupt here once the pool is terminated; its workers ignore SIGINT
+    (:func:`~groundsim.evaluation.parallel.init_worker`), so none prints a traceback."""
     jobs = [(s, n, k, with_paper, with_efficient) for s in scenarios for n in noises for k in seeds]
     out: list[CaseResult] = []
     if workers > 1:
         import multiprocessing as mp
 
-        with mp.get_context("fork").Pool(workers) as pool:
+        from groundsim.evaluation.parallel import init_worker
+
+        with mp.get_context("fork").Pool(workers, initializer=init_worker) as pool:
             for r in pool.imap(_run_one, jobs):
                 out.append(r)
                 if progress:

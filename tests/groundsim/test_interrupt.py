@@ -3,7 +3,6 @@ was kept>", exit code 130, no traceback from the pool's workers, no worker left 
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -13,35 +12,13 @@ from pathlib import Path
 
 import pytest
 
+from tests.process_helpers import alive, descendants, kill_all
+
 REPO = Path(__file__).resolve().parents[2]
 EXIT_INTERRUPTED = 130
 READY_TIMEOUT_S = 60.0  # the command's first log line (imports on a busy machine)
 EXIT_TIMEOUT_S = 60.0  # from SIGINT to exit
 GONE_TIMEOUT_S = 10.0  # the workers' exit after the parent's
-
-
-def _children(pid: int) -> set[int]:
-    """Every descendant of ``pid`` (Linux /proc)."""
-    out: set[int] = set()
-    todo = [pid]
-    while todo:
-        p = todo.pop()
-        for task in Path(f"/proc/{p}/task").glob("*"):
-            try:
-                kids = {int(x) for x in (task / "children").read_text().split()}
-            except OSError:
-                continue
-            todo += list(kids - out)
-            out |= kids
-    return out
-
-
-def _alive(pid: int) -> bool:
-    try:
-        stat = Path(f"/proc/{pid}/stat").read_text()
-    except OSError:
-        return False
-    return stat.rpartition(")")[2].split()[0] != "Z"
 
 
 class _Command:
@@ -82,12 +59,7 @@ class _Command:
         return self.proc.returncode, out, "".join(self.err)
 
     def kill(self, pids: set[int]) -> None:
-        for pid in [self.proc.pid, *pids]:
-            if _alive(pid):
-                try:
-                    os.kill(pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+        kill_all([self.proc.pid, *pids])
 
 
 @pytest.mark.integration
@@ -102,10 +74,10 @@ def test_ctrl_c_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path):
         cmd.wait_for("eval: 2 scenario(s) x 3 seed(s)", READY_TIMEOUT_S)
         t_end = time.monotonic() + READY_TIMEOUT_S
         while len(workers) < 2 and time.monotonic() < t_end:  # the fork server and its two workers
-            workers |= _children(cmd.proc.pid)
+            workers |= descendants(cmd.proc.pid)
             time.sleep(0.1)
         time.sleep(2.0)  # the workers are flying and rendering
-        workers |= _children(cmd.proc.pid)
+        workers |= descendants(cmd.proc.pid)
         rc, stdout, stderr = cmd.interrupt(workers)
         assert rc == EXIT_INTERRUPTED, stderr[-3000:]
         lines = [line for line in stderr.splitlines() if line.startswith("interrupted:")]
@@ -116,9 +88,9 @@ def test_ctrl_c_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path):
         else:
             assert (out / "report.md").is_file() and str(out / "report.md") in lines[0]
         t_end = time.monotonic() + GONE_TIMEOUT_S
-        while any(_alive(p) for p in workers) and time.monotonic() < t_end:
+        while any(alive(p) for p in workers) and time.monotonic() < t_end:
             time.sleep(0.1)
-        assert not [p for p in workers if _alive(p)], "pool workers outlived the interrupted eval"
+        assert not [p for p in workers if alive(p)], "pool workers outlived the interrupted eval"
     finally:
         cmd.kill(workers)
 
