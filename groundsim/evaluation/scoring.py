@@ -2,8 +2,9 @@
 
 Scoring definitions (:func:`score_run`; metrics from :func:`onboard.estimation.metrics.evaluate`):
 
-- *observable frames*: frames whose Track has a 3-D estimate flagged observable (what the daemon
-  publishes with the default ``output.unobservable_positions: false``) -- the headline;
+- *observable frames*: frames whose Track has a 3-D estimate flagged observable (all the daemon
+  publishes with ``output.unobservable_positions: false``; the default, true, adds the others flagged so)
+  -- the headline;
 - *all frames with an estimate*: any finite 3-D estimate, observable or not;
 - *continuity*: observable frames / all frames; *2-D continuity*: frames with a valid centroid /
   frames where the target is in the image;
