@@ -319,7 +319,7 @@ def flicker_bounded(raw_tophat: np.ndarray, step: int = 1) -> bool:
     ``FLICKER_MAX_FRACTION`` of its pixels: the background is quantisation flicker, whose mean filter
     cannot exceed 1 step (module docstring)."""
     r = raw_tophat[::step, ::step] if step > 1 else raw_tophat
-    return np.count_nonzero(r >= 2) <= FLICKER_MAX_FRACTION * r.size
+    return int(np.count_nonzero(r >= 2)) <= FLICKER_MAX_FRACTION * r.size
 
 
 def ring_plane(values: np.ndarray, x0: int, y0: int, x1: int, y1: int, ring_px: int, use_median: bool = True):
