@@ -30,6 +30,7 @@ __all__ = [
 DEFAULT_PRELOAD = ("groundsim.evaluation.eval", "groundsim.evaluation.report")
 
 _progress: Callable[[int], object] | None = None  # where report_progress goes in this process
+POOL_START_TIMEOUT_S = 120.0  # the longest a pool's start holds Ctrl-C (the fork server imports on a busy machine)
 
 
 class JobsInterrupted(KeyboardInterrupt):
@@ -91,6 +92,8 @@ def init_worker(queue=None) -> None:
     except Exception:  # noqa: BLE001 - OpenCV threading is an optimisation only
         pass
     _progress = None if queue is None else queue.put
+    if queue is not None:
+        queue.put(0)  # started: no frames done yet (run_pool waits for this from every worker)
 
 
 def report_progress(n: int) -> None:
@@ -123,13 +126,15 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
     """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (set up by
     :func:`init_worker`); their results in the order of ``jobs``.  What the jobs report with
     :func:`report_progress` is handed to ``on_progress`` as it arrives.  A worker's exception is re-raised
-    here after the pool is terminated; Ctrl-C terminates the pool and raises :class:`JobsInterrupted`."""
+    here after the pool is terminated; Ctrl-C terminates the pool and raises :class:`JobsInterrupted` (one
+    during the pool's start waits until its workers have started)."""
     import queue as queue_mod
+    import signal
+    import time
 
     ctx = mp_context(preload)
-    q = ctx.Queue()
-    pool = ctx.Pool(workers, initializer=init_worker, initargs=(q,))
     results: list = [None] * len(jobs)
+    pool = None
 
     def drain(timeout_s: float | None) -> bool:
         try:
@@ -140,7 +145,24 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
             on_progress(n)
         return True
 
+    # Ctrl-C while the pool starts is held until every worker has started (init_worker's 0 on the queue), then
+    # handled below: raised inside ctx.Pool it left workers half started, and a worker still unpickling its
+    # queue when this process had exited printed a traceback (the queue's semaphore was gone).  Threads
+    # started meanwhile keep SIGINT blocked, so it reaches this thread.
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
+        try:
+            q = ctx.Queue()
+            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q,))
+            t_end = time.monotonic() + POOL_START_TIMEOUT_S
+            started = 0
+            while started < workers and time.monotonic() < t_end:
+                try:
+                    started += q.get(timeout=0.2) == 0
+                except queue_mod.Empty:
+                    pass
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, held)
         pending = [pool.apply_async(job, (j,)) for j in jobs]
         left = set(range(len(jobs)))
         while left:
@@ -154,12 +176,14 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
         pool.join()
         return results
     except KeyboardInterrupt:
-        pool.terminate()
-        pool.join()
+        if pool is not None:
+            pool.terminate()
+            pool.join()
         raise JobsInterrupted(results) from None
     except BaseException:
-        pool.terminate()
-        pool.join()
+        if pool is not None:
+            pool.terminate()
+            pool.join()
         raise
 
 

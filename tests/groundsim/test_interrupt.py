@@ -96,6 +96,33 @@ def test_ctrl_c_in_eval_keeps_the_finished_runs_and_exits_130(tmp_path):
 
 
 @pytest.mark.integration
+def test_ctrl_c_while_the_eval_pool_starts_is_one_line_without_a_traceback(tmp_path):
+    """SIGINT once eval's fork server exists, while it starts the workers: one line, 130, no traceback from a
+    worker the fork server was starting."""
+    out = tmp_path / "eval"
+    cmd = _Command(
+        "eval", "--scenario", "P1", "P2", "--seeds", "3", "--workers", "2", "--no-batch", "--no-progress",
+        "--out", str(out),
+    )  # fmt: skip
+    workers: set[int] = set()
+    try:
+        cmd.wait_for("eval: 2 scenario(s) x 3 seed(s)", READY_TIMEOUT_S)
+        t_end = time.monotonic() + READY_TIMEOUT_S
+        while not workers and time.monotonic() < t_end:  # the fork server: it is starting the workers
+            workers |= descendants(cmd.proc.pid)
+            time.sleep(0.01)
+        rc, _, stderr = cmd.interrupt(workers)
+        assert rc == EXIT_INTERRUPTED, stderr[-3000:]
+        lines = [line for line in stderr.splitlines() if line.startswith("interrupted:")]
+        # "0 of 6 runs done; nothing written" (or "nothing written" had it come before the pool)
+        assert len(lines) == 1 and lines[0].endswith("nothing written"), stderr[-3000:]
+        assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr, stderr[-3000:]
+        assert not out.exists() or not (out / "report.md").exists()
+    finally:
+        cmd.kill(workers)
+
+
+@pytest.mark.integration
 def test_ctrl_c_in_run_says_how_many_frames_were_sent_and_exits_130(tmp_path):
     truth = tmp_path / "truth.csv"
     cmd = _Command(
