@@ -18,11 +18,14 @@ dominated figure scatters by a factor of ~3 between its 5th and 95th percentiles
 from __future__ import annotations
 
 import numpy as np
+import scipy.linalg as sla
 
-from onboard.estimation.map_estimator import MapEstimator, MotionPrior
+from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowProblem
 from onboard.estimation.observations import Observations
+from onboard.estimation.spline import KnotGrid
 
 __all__ = [
+    "predicted_point_covariance",
     "bayesian_crb_rms_m",
     "bayesian_crb_covariance",
     "bayesian_crb_range_sigma_ratio",
@@ -44,6 +47,62 @@ def bayesian_crb_covariance(
     prob.set_measurement_weights(np.linalg.norm(p_true_ned_m - obs.p_cam_ned_m, axis=1))
     _, J, _ = prob.evaluate(theta)
     return prob, prob.covariance(prob.factor(J))
+
+
+def predicted_point_covariance(
+    estimator: MapEstimator,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    prior: MotionPrior,
+    t_eval_s: float,
+    *,
+    state_prior: tuple[float, np.ndarray] | None = None,
+    information_scale: float = 1.0,
+    grid=None,
+) -> np.ndarray:
+    """The bound's (3, 3) covariance of the target position at ``t_eval_s`` from bearings not yet taken.
+
+    ``obs`` are predicted observations (a planned camera path looking at the predicted target
+    ``p_true_ned_m``); the information matrix is the same Gauss-Newton Hessian as
+    :func:`bayesian_crb_covariance` (same motion prior, noise model and nuisances), each measurement row
+    weighted by ``sqrt(information_scale)`` (``information_scale`` bearings per predicted one: the
+    estimator keeps more frames than the prediction needs to sample), plus, when ``state_prior =
+    (t_s, I)`` is given, what is already known: a Gaussian prior on ``x = (p(t_s), v(t_s))`` with
+    information ``I`` (6, 6), i.e. the rows ``S A`` with ``S^T S = I`` and ``A`` the spline's
+    position and velocity basis at ``t_s`` (the information form of a Kalman prediction-update;
+    Van Trees 1968, Tichavsky et al. 1998).  ``t_s`` and ``t_eval_s`` lie within ``obs``' span.
+    """
+    p_true = np.asarray(p_true_ned_m, dtype=float)
+    # the window problem as the estimator builds it, minus the camera-track smoothing: a planned path has no
+    # white noise to smooth
+    grid = grid or KnotGrid(float(obs.t_s[0]), estimator.config.knot_spacing_s)
+    first, count = grid.control_span(float(obs.t_s[0]), float(obs.t_s[-1]))
+    prob = WindowProblem(obs, grid, first, count, prior, estimator.noise, estimator.config, estimator._span_cache)
+    theta = prob.theta_from_positions(p_true)
+    prob.set_measurement_weights(np.linalg.norm(p_true - obs.p_cam_ned_m, axis=1))
+    prob.s = prob.s * np.sqrt(float(information_scale))
+    _, J, _ = prob.evaluate(theta)
+    if state_prior is not None:
+        t_s, info = state_prior
+        rows = grid.basis(np.array([float(t_s)]), first, count)
+        A = np.zeros((6, prob.n_params))
+        for m in range(4):
+            k = int(rows.index[0, m])
+            A[0:3, 3 * k : 3 * k + 3] = rows.w0[0, m] * np.eye(3)
+            A[3:6, 3 * k : 3 * k + 3] = rows.w1[0, m] * np.eye(3)
+        lam, V = np.linalg.eigh(0.5 * (info + info.T))  # S = sqrt(Lambda) V^T: no Cholesky of a near-singular I
+        S = np.sqrt(np.maximum(lam, 0.0))[:, None] * V.T
+        J = np.vstack([J, S @ A])
+    # only p(t_eval) = B theta is wanted: B Sigma B^T = X^T X with R^T X = (B / d)^T, three right-hand sides
+    # instead of the whole inverse
+    R, d = prob.factor(J)
+    rows = grid.basis(np.array([float(t_eval_s)]), first, count)
+    B = np.zeros((3, prob.n_params))
+    for m in range(4):
+        k = int(rows.index[0, m])
+        B[:, 3 * k : 3 * k + 3] = rows.w0[0, m] * np.eye(3)
+    X = sla.solve_triangular(R, (B / d).T, trans="T", check_finite=False)
+    return X.T @ X
 
 
 def bayesian_crb_rms_m(

@@ -1,0 +1,469 @@
+r"""Observer guidance: the manoeuvre over the next seconds that makes the target's range observable.
+
+One camera measures bearings; range comes only from the observer's own motion across the line of sight
+(a straight, constant-velocity observer never ranges a constant-velocity target).  Bearing-only
+observer trajectory optimisation (Le Cadre & Jauffret, IEEE TAES 33(4), 1997; Passerieux & Van Cappel,
+IEEE TAES 34(1), 1998) chooses the observer's path that minimises a scalar of the predicted posterior
+covariance.  Here that scalar is the predicted range variance at the end of the horizon:
+
+    sigma_r^2(c) = u^T P_c(t_0 + T) u,     P_c = (I_0 + sum_k H_k(c)^T W H_k(c))^{-1}  (position block)
+
+where ``I_0`` is the information already held (the posterior of ``(p, v)`` at ``t_0``, inverted), ``H_k(c)``
+the Jacobian of the bearing taken at ``t_k`` from candidate path ``c`` towards the predicted target
+(constant velocity from the posterior mean), ``W`` the estimator's own bearing weights and ``u`` the
+predicted line of sight.  The sum is the Bayesian Cramer-Rao machinery of the reconstruction
+(:func:`onboard.estimation.crb.predicted_point_covariance`: the same spline, motion prior, noise model
+and navigation nuisances as the estimator), so the prediction charges a manoeuvre for the attitude bias
+it cannot separate from range.
+
+Candidates (a small set, evaluated exhaustively): hold the current velocity (the reference, "without"),
+turn the horizontal velocity by each of ``heading_changes_deg`` left and right, fly across the line of
+sight left and right, and climb or descend at the current heading.  Each candidate is a velocity
+setpoint ``v_sp`` reached at the configured acceleration: ``v(t) = v_0 + a (v_sp - v_0)/|v_sp - v_0| t``
+until ``v_sp``, then constant (the path a velocity-controlled multirotor flies).  A candidate is
+feasible when ``v_sp`` is within the speed and climb-rate limits and its predicted path keeps the
+altitude band and the target inside the camera's view (line-of-sight elevation band, angle off the
+heading).  Nothing is recommended while the posterior range sigma is already below
+``quiet_below_sigma_range_ratio`` of the range (observable with margin), when the observer is outside
+its own limits, or when the best candidate does not beat holding by ``min_gain_ratio``.
+
+Frames and units follow :mod:`onboard.core.frames`: local NED metres, velocities m/s, altitude = -down
+(metres above the NED origin).  Pure: no I/O, no clock; the caller passes the times.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Annotated
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import quat_from_euler, quat_from_rotmat, quat_multiply, rotmat_from_quat
+from onboard.core.schema import Bool, Invalid, Number, Numbers, config_dataclass
+from onboard.estimation.crb import predicted_point_covariance
+from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel
+from onboard.estimation.observations import Observations
+
+__all__ = [
+    "GuidanceConfig",
+    "ObserverState",
+    "TargetPosterior",
+    "Candidate",
+    "Advice",
+    "GuidancePlanner",
+    "candidate_path",
+]
+
+#: 1 mm/s: a velocity below this has no heading
+_V_EPS_MPS = 1e-3
+
+
+@config_dataclass
+class GuidanceConfig:
+    """The ``guidance`` section of the daemon's configuration (``config/onboard.yaml`` documents each field):
+    whether the advice is published and sent, how it is planned, and the limits it must keep.
+
+    Units are in the names; altitudes are metres above the local NED origin (``-d``).
+    """
+
+    advise: Bool = True
+    enabled: Bool = False
+    update_interval_s: Annotated[float, Number(0.1, 60.0)] = 1.0
+    horizon_s: Annotated[float, Number(2.0, 60.0)] = 6.0
+    sample_interval_s: Annotated[float, Number(0.05, 2.0)] = 0.25
+    bearing_rate_hz: Annotated[float, Number(0.1, 1000.0)] = 15.0
+    valid_for_s: Annotated[float, Number(0.1, 60.0)] = 3.0
+    quiet_below_sigma_range_ratio: Annotated[float, Number(0.0, 1.0)] = 0.03
+    min_gain_ratio: Annotated[float, Number(0.0, 1.0, lo_open=True)] = 0.8
+    target_accel_psd_m2ps3: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 0.05
+    heading_changes_deg: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (
+        45.0,
+        90.0,
+    )
+    cruise_speed_mps: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 6.0
+    min_speed_mps: Annotated[float, Number(0.0, 100.0)] = 0.0
+    max_speed_mps: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 12.0
+    max_accel_mps2: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 2.0
+    max_climb_rate_mps: Annotated[float, Number(0.0, 50.0)] = 2.0
+    min_altitude_m: Annotated[float, Number(-1000.0, 100000.0)] = 20.0
+    max_altitude_m: Annotated[float, Number(-1000.0, 100000.0)] = 150.0
+    los_elevation_min_deg: Annotated[float, Number(-90.0, 90.0)] = -80.0
+    los_elevation_max_deg: Annotated[float, Number(-90.0, 90.0)] = 45.0
+    max_los_off_heading_deg: Annotated[float, Number(0.0, 180.0)] = 180.0
+
+    def __post_init__(self) -> None:
+        if self.min_speed_mps > self.max_speed_mps:
+            raise Invalid("min_speed_mps", f"<= max_speed_mps ({self.max_speed_mps:g})", self.min_speed_mps)
+        if not self.min_speed_mps <= self.cruise_speed_mps <= self.max_speed_mps:
+            raise Invalid(
+                "cruise_speed_mps",
+                f"within [min_speed_mps, max_speed_mps] = [{self.min_speed_mps:g}, {self.max_speed_mps:g}]",
+                self.cruise_speed_mps,
+            )
+        if self.min_altitude_m >= self.max_altitude_m:
+            raise Invalid("min_altitude_m", f"< max_altitude_m ({self.max_altitude_m:g})", self.min_altitude_m)
+        if self.los_elevation_min_deg >= self.los_elevation_max_deg:
+            raise Invalid(
+                "los_elevation_min_deg",
+                f"< los_elevation_max_deg ({self.los_elevation_max_deg:g})",
+                self.los_elevation_min_deg,
+            )
+        for i, d in enumerate(self.heading_changes_deg):
+            if d > 180.0:
+                raise Invalid(f"heading_changes_deg[{i}]", "a number of degrees in (0, 180]", d)
+        if self.sample_interval_s * 10 > self.horizon_s:
+            raise Invalid("sample_interval_s", f"<= horizon_s / 10 ({self.horizon_s / 10:g})", self.sample_interval_s)
+
+    def speed_ok(self, v_ned_mps: np.ndarray, slack_mps: float = 1e-9) -> bool:
+        """Whether a velocity keeps the speed (horizontal) and climb-rate limits."""
+        s = math.hypot(float(v_ned_mps[0]), float(v_ned_mps[1]))
+        return (
+            self.min_speed_mps - slack_mps <= s <= self.max_speed_mps + slack_mps
+            and abs(float(v_ned_mps[2])) <= self.max_climb_rate_mps + slack_mps
+        )
+
+    def altitude_ok(self, p_ned_m: np.ndarray, slack_m: float = 1e-9) -> bool:
+        """Whether every position (..., 3) is within the altitude band."""
+        alt = -np.asarray(p_ned_m, dtype=float)[..., 2]
+        return bool(np.all(alt >= self.min_altitude_m - slack_m) and np.all(alt <= self.max_altitude_m + slack_m))
+
+
+def _vec3(x, what: str) -> np.ndarray:
+    a = np.asarray(x, dtype=float).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise InputError(f"{what}: expected 3 finite numbers, got {x!r}")
+    return a
+
+
+@dataclass(frozen=True)
+class ObserverState:
+    """The observer (camera) at ``t_s``: position ``p_ned_m`` (3,) and velocity ``v_ned_mps`` (3,)."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    v_ned_mps: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.t_s):
+            raise InputError(f"ObserverState.t_s: expected a finite time, got {self.t_s!r}")
+        object.__setattr__(self, "p_ned_m", _vec3(self.p_ned_m, "ObserverState.p_ned_m"))
+        object.__setattr__(self, "v_ned_mps", _vec3(self.v_ned_mps, "ObserverState.v_ned_mps"))
+
+
+@dataclass(frozen=True)
+class TargetPosterior:
+    """The target's posterior at ``t_s``: mean position ``p_ned_m`` (3,), velocity ``v_ned_mps`` (3,) and the
+    joint covariance ``cov_pv`` (6, 6) of ``(p, v)`` (m^2, m^2/s, m^2/s^2 blocks), symmetric positive definite."""
+
+    t_s: float
+    p_ned_m: np.ndarray
+    v_ned_mps: np.ndarray
+    cov_pv: np.ndarray
+
+    def __post_init__(self) -> None:
+        if not math.isfinite(self.t_s):
+            raise InputError(f"TargetPosterior.t_s: expected a finite time, got {self.t_s!r}")
+        object.__setattr__(self, "p_ned_m", _vec3(self.p_ned_m, "TargetPosterior.p_ned_m"))
+        object.__setattr__(self, "v_ned_mps", _vec3(self.v_ned_mps, "TargetPosterior.v_ned_mps"))
+        c = np.asarray(self.cov_pv, dtype=float)
+        if c.shape != (6, 6) or not np.all(np.isfinite(c)):
+            raise InputError(f"TargetPosterior.cov_pv: expected a finite (6, 6) matrix, got shape {c.shape}")
+        c = 0.5 * (c + c.T)
+        if np.linalg.eigvalsh(c)[0] <= 0.0:
+            raise InputError("TargetPosterior.cov_pv: not positive definite")
+        object.__setattr__(self, "cov_pv", c)
+
+    @classmethod
+    def from_track(
+        cls, t_s: float, p_ned_m, v_ned_mps, cov_p_ned_m2, sigma_v_ned_mps, p_cam_ned_m, v_cam_ned_mps
+    ) -> TargetPosterior:
+        """From what a track carries (position covariance (3, 3), per-axis velocity sigmas) and the camera's
+        position and velocity then.
+
+        The track has no position-velocity cross term, and the part it misses is the one guidance is about:
+        along the unobservable direction of bearing-only tracking the relative trajectory scales freely
+        (``p = C + s (p_hat - C)``, ``v = v_C + s (v_hat - v_C)``; Nardone & Aidala, IEEE TAES 17(2), 1981),
+        so position and velocity errors along range are one mode.  The covariance is built as that mode with
+        the track's range sigma, ``sigma_s^2 d d^T`` with ``d = (p_hat - C, v_hat - v_C)`` and ``sigma_s =
+        sigma_r / r``, plus the track's position covariance off the line of sight and its velocity variances.
+        """
+        p = _vec3(p_ned_m, "TargetPosterior.p_ned_m")
+        v = _vec3(v_ned_mps, "TargetPosterior.v_ned_mps")
+        C = _vec3(p_cam_ned_m, "TargetPosterior.p_cam_ned_m")
+        vC = _vec3(v_cam_ned_mps, "TargetPosterior.v_cam_ned_mps")
+        cov_p = np.asarray(cov_p_ned_m2, dtype=float).reshape(3, 3)
+        d_p, d_v = p - C, v - vC
+        r = float(np.linalg.norm(d_p))
+        if not r > 0.0:
+            raise InputError("TargetPosterior.from_track: the target is at the camera")
+        u = d_p / r
+        sigma_s = math.sqrt(max(float(u @ cov_p @ u), 0.0)) / r
+        Pu = np.eye(3) - np.outer(u, u)
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = Pu @ cov_p @ Pu + 1e-4 * np.eye(3)
+        sv = np.maximum(np.asarray(sigma_v_ned_mps, dtype=float).reshape(3), 1e-2)
+        cov[3:, 3:] = np.diag(sv**2)
+        d = np.concatenate([d_p, d_v])
+        cov += sigma_s**2 * np.outer(d, d)
+        return cls(float(t_s), p, v, cov)
+
+    def sigma_along(self, u: np.ndarray) -> float:
+        """1-sigma of the position along the unit vector ``u`` (m)."""
+        return float(math.sqrt(max(float(u @ self.cov_pv[:3, :3] @ u), 0.0)))
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One manoeuvre evaluated: its ``name``, velocity setpoint ``v_ned_mps`` (3,), whether it keeps the limits
+    (``feasible``, ``why`` not) and its predicted range sigma at the horizon's end (m; inf: not evaluated)."""
+
+    name: str
+    v_ned_mps: np.ndarray
+    feasible: bool
+    why: str
+    sigma_range_m: float
+
+
+@dataclass(frozen=True)
+class Advice:
+    """What :meth:`GuidancePlanner.advise` decided at ``t_s`` (the observer's time).
+
+    ``status``: ``advise`` (``v_ned_mps`` recommended until ``valid_until_s``), ``observable`` (the range
+    sigma is already below the quiet threshold), ``no_gain`` (no candidate beats holding by
+    ``min_gain_ratio``), ``outside_limits`` (the observer itself is outside its limits: nothing is advised
+    that would have to leave them), ``no_feasible`` (every candidate breaks a limit), ``unavailable``
+    (the prediction failed: see ``why``).  ``sigma_range_now_m`` is the posterior's range sigma now;
+    ``sigma_range_without_m`` / ``sigma_range_with_m`` the predicted ones at ``t_s + horizon_s`` holding
+    the current velocity / flying the advice (equal when nothing is advised); ``range_m`` the predicted
+    range at ``t_s``; ``candidates`` every manoeuvre considered.
+    """
+
+    t_s: float
+    status: str
+    manoeuvre: str | None
+    v_ned_mps: np.ndarray | None
+    valid_until_s: float
+    range_m: float
+    sigma_range_now_m: float
+    sigma_range_without_m: float
+    sigma_range_with_m: float
+    why: str = ""
+    candidates: tuple[Candidate, ...] = field(default=(), repr=False)
+
+    @property
+    def recommended(self) -> bool:
+        return self.status == "advise" and self.v_ned_mps is not None
+
+
+def candidate_path(
+    p0_ned_m: np.ndarray, v0_ned_mps: np.ndarray, v_sp_ned_mps: np.ndarray, accel_mps2: float, dt_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Positions and velocities (N, 3) at ``dt_s`` (N,) after now of an observer that slews its velocity from
+    ``v0`` to ``v_sp`` at constant acceleration ``accel_mps2`` along ``v_sp - v0``, then holds it.
+
+    ``v(t) = v0 + a e t`` for ``t < T = |v_sp - v0| / a`` (``e`` the unit direction), ``v_sp`` after;
+    ``p`` its exact integral.  The speed along the slew never exceeds ``max(|v0|, |v_sp|)`` (convexity).
+    """
+    p0, v0, vs = (np.asarray(x, dtype=float) for x in (p0_ned_m, v0_ned_mps, v_sp_ned_mps))
+    t = np.asarray(dt_s, dtype=float)[:, None]
+    dv = vs - v0
+    n = float(np.linalg.norm(dv))
+    if n < _V_EPS_MPS:
+        return p0 + v0 * t, np.broadcast_to(v0, (t.shape[0], 3)).copy()
+    T = n / accel_mps2
+    a = dv / T
+    ts = np.minimum(t, T)
+    p = p0 + v0 * ts + 0.5 * a * ts * ts + vs * (t - ts)
+    v = v0 + a * ts
+    return p, v
+
+
+#: camera axes (x right, y down, z forward) in body FRD axes: forward = z, right = x, down = y
+_Q_BODY_FROM_CAM = quat_from_rotmat(np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]))
+
+
+def _camera_looking(u_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(q_ned_from_cam, R_ned_from_cam)`` (N, 4), (N, 3, 3) of cameras whose optical axis is ``u_ned`` (N, 3,
+    unit) with no roll: a body yawed to the azimuth and pitched to the elevation, the camera looking along its x."""
+    yaw = np.arctan2(u_ned[:, 1], u_ned[:, 0])
+    pitch = np.arctan2(-u_ned[:, 2], np.hypot(u_ned[:, 0], u_ned[:, 1]))
+    q = quat_multiply(quat_from_euler(np.zeros_like(yaw), pitch, yaw), _Q_BODY_FROM_CAM)
+    return q, rotmat_from_quat(q)
+
+
+class GuidancePlanner:
+    """Chooses the manoeuvre (module docstring).  ``estimator``: the reconstruction whose prior, noise model and
+    nuisances the prediction uses (its ``knot_spacing_s`` is the prediction's); ``f_px``: the camera's focal
+    lengths (fx, fy) in pixels, which turn the pixel noise into bearing noise.
+
+    Step method: :meth:`advise` (pure; one call costs a few candidate predictions, each a small QR).
+    """
+
+    def __init__(self, config: GuidanceConfig, estimator: MapEstimator, f_px: tuple[float, float]):
+        self.config = config
+        self.estimator = estimator
+        self.f_px = (float(f_px[0]), float(f_px[1]))
+        c = config
+        self.prior = MotionPrior(c.target_accel_psd_m2ps3, c.target_accel_psd_m2ps3 * 0.25, turn_rate_sigma_radps=0.0)
+        n = int(round(c.horizon_s / c.sample_interval_s))
+        self.dt_s = np.linspace(0.0, c.horizon_s, n + 1)
+        # predicted bearings are sampled sparsely; each stands for this many of the estimator's
+        self.information_scale = max(1.0, c.sample_interval_s * c.bearing_rate_hz)
+
+    @classmethod
+    def for_noise(
+        cls, config: GuidanceConfig, noise: NoiseModel, f_px: tuple[float, float], knot_spacing_s: float = 1.0
+    ) -> GuidancePlanner:
+        """A planner over the online estimator's spline (``knot_spacing_s``) and ``noise`` model."""
+        return cls(config, MapEstimator(MapConfig(knot_spacing_s=knot_spacing_s, min_frames=10), noise), f_px)
+
+    # ------------------------------------------------------------------ candidates
+    def candidates(self, observer: ObserverState, target: TargetPosterior) -> list[tuple[str, np.ndarray]]:
+        """(name, velocity setpoint) of every manoeuvre considered; the first is ``hold``."""
+        c = self.config
+        v0 = observer.v_ned_mps
+        out: list[tuple[str, np.ndarray]] = [("hold", v0.copy())]
+        vh = v0[:2]
+        speed = float(np.hypot(*vh))
+        s = min(max(speed, c.cruise_speed_mps), c.max_speed_mps)
+        s = max(s, c.min_speed_mps)
+        if speed > _V_EPS_MPS:
+            psi = math.atan2(vh[1], vh[0])
+            for d in c.heading_changes_deg:
+                for sign, side in ((1.0, "right"), (-1.0, "left")):
+                    a = psi + sign * math.radians(d)
+                    out.append((f"turn_{side}_{d:g}deg", np.array([s * math.cos(a), s * math.sin(a), 0.0])))
+        los = target.p_ned_m - observer.p_ned_m
+        az = math.atan2(los[1], los[0])
+        for sign, side in ((1.0, "right"), (-1.0, "left")):
+            a = az + sign * 0.5 * math.pi
+            out.append((f"cross_{side}", np.array([s * math.cos(a), s * math.sin(a), 0.0])))
+        if c.max_climb_rate_mps > 0:
+            base = np.array([vh[0], vh[1], 0.0]) if speed >= c.min_speed_mps else np.array([s, 0.0, 0.0])
+            out.append(("climb", base + np.array([0.0, 0.0, -c.max_climb_rate_mps])))
+            out.append(("descend", base + np.array([0.0, 0.0, c.max_climb_rate_mps])))
+        return out
+
+    def feasibility(
+        self, name: str, v_sp: np.ndarray, p_obs: np.ndarray, p_tgt: np.ndarray, v_path: np.ndarray
+    ) -> tuple[bool, str]:
+        """Whether a candidate keeps the limits: its setpoint, and along its predicted path (N, 3) the altitude band
+        and the target in view; ``why`` names the first limit broken."""
+        c = self.config
+        if name != "hold" and not c.speed_ok(v_sp):
+            return False, "speed"
+        if not c.altitude_ok(p_obs):
+            return False, "altitude"
+        los = p_tgt - p_obs
+        el = np.degrees(np.arctan2(-los[:, 2], np.hypot(los[:, 0], los[:, 1])))
+        if np.any(el < c.los_elevation_min_deg) or np.any(el > c.los_elevation_max_deg):
+            return False, "field_of_view"
+        if c.max_los_off_heading_deg < 180.0:
+            vh = v_path[:, :2]
+            moving = np.hypot(vh[:, 0], vh[:, 1]) > 0.5
+            off = np.degrees(
+                np.abs(np.angle(np.exp(1j * (np.arctan2(los[:, 1], los[:, 0]) - np.arctan2(vh[:, 1], vh[:, 0])))))
+            )
+            if np.any(off[moving] > c.max_los_off_heading_deg):
+                return False, "field_of_view"
+        return True, ""
+
+    # ------------------------------------------------------------------ prediction
+    def predicted_sigma_range_m(
+        self, observer: ObserverState, info_pv: np.ndarray, p_obs: np.ndarray, p_tgt: np.ndarray
+    ) -> float:
+        """Predicted 1-sigma range at the horizon's end after flying ``p_obs`` (N, 3) while the target flies
+        ``p_tgt`` (N, 3), both at ``observer.t_s + dt_s``, knowing ``info_pv`` (6, 6) about the target's ``(p, v)`` at
+        ``observer.t_s`` (:func:`~onboard.estimation.crb.predicted_point_covariance`)."""
+        t = observer.t_s + self.dt_s
+        u = p_tgt - p_obs
+        r = np.linalg.norm(u, axis=1, keepdims=True)
+        u = u / np.maximum(r, 1e-9)
+        q, R = _camera_looking(u)
+        fx, fy = self.f_px
+        n = t.shape[0]
+        obs = Observations.from_checked_rows(
+            t, np.zeros((n, 2)), np.full(n, fx), np.full(n, fy), np.zeros(n), np.zeros(n), p_obs, q, R
+        )
+        P = predicted_point_covariance(
+            self.estimator,
+            obs,
+            p_tgt,
+            self.prior,
+            float(t[-1]),
+            state_prior=(float(t[0]), info_pv),
+            information_scale=self.information_scale,
+        )
+        ue = u[-1]
+        return float(math.sqrt(max(float(ue @ P @ ue), 0.0)))
+
+    # ------------------------------------------------------------------ the step
+    def advise(self, observer: ObserverState, target: TargetPosterior) -> Advice:
+        """The advice at ``observer.t_s`` for the target posterior ``target`` (propagated to that time at constant
+        velocity when older; its covariance is not inflated for the gap, which is a fraction of the horizon)."""
+        c = self.config
+        t0 = observer.t_s
+        p_t0 = target.p_ned_m + target.v_ned_mps * (t0 - target.t_s)
+        los0 = p_t0 - observer.p_ned_m
+        range_m = float(np.linalg.norm(los0))
+        u0 = los0 / max(range_m, 1e-9)
+        sigma_now = target.sigma_along(u0)
+
+        def nothing(status: str, without_m: float, with_m: float, why: str = "", evaluated=()) -> Advice:
+            return Advice(
+                t_s=t0,
+                status=status,
+                manoeuvre=None,
+                v_ned_mps=None,
+                valid_until_s=t0,
+                range_m=range_m,
+                sigma_range_now_m=sigma_now,
+                sigma_range_without_m=without_m,
+                sigma_range_with_m=with_m,
+                why=why,
+                candidates=tuple(evaluated),
+            )
+
+        if range_m <= 1.0:
+            return nothing("unavailable", math.nan, math.nan, "target at the camera")
+        if sigma_now < c.quiet_below_sigma_range_ratio * range_m:
+            return nothing("observable", sigma_now, sigma_now)
+        if not (c.speed_ok(observer.v_ned_mps, slack_mps=0.5) and c.altitude_ok(observer.p_ned_m)):
+            return nothing("outside_limits", math.nan, math.nan, "the observer is outside its speed or altitude limits")
+        target_at_t0 = TargetPosterior(t0, p_t0, target.v_ned_mps, target.cov_pv)
+        info_pv = np.linalg.inv(target.cov_pv)
+        p_tgt = p_t0 + target.v_ned_mps * self.dt_s[:, None]
+        evaluated: list[Candidate] = []
+        try:
+            for name, v_sp in self.candidates(observer, target_at_t0):
+                p_obs, v_path = candidate_path(observer.p_ned_m, observer.v_ned_mps, v_sp, c.max_accel_mps2, self.dt_s)
+                ok, why = self.feasibility(name, v_sp, p_obs, p_tgt, v_path)
+                sig = math.inf
+                if ok or name == "hold":
+                    sig = self.predicted_sigma_range_m(observer, info_pv, p_obs, p_tgt)
+                evaluated.append(Candidate(name, v_sp, ok, why, sig))
+        except (EstimationError, InputError, np.linalg.LinAlgError, ValueError) as exc:
+            return nothing("unavailable", math.nan, math.nan, str(exc))
+        hold = evaluated[0]
+        options = [k for k in evaluated[1:] if k.feasible and math.isfinite(k.sigma_range_m)]
+        if not options:
+            return nothing(
+                "no_feasible", hold.sigma_range_m, hold.sigma_range_m, "every manoeuvre breaks a limit", evaluated
+            )
+        best = min(options, key=lambda k: k.sigma_range_m)
+        if not best.sigma_range_m < c.min_gain_ratio * hold.sigma_range_m:
+            return nothing("no_gain", hold.sigma_range_m, hold.sigma_range_m, "", evaluated)
+        return Advice(
+            t_s=t0,
+            status="advise",
+            manoeuvre=best.name,
+            v_ned_mps=best.v_ned_mps.copy(),
+            valid_until_s=t0 + c.valid_for_s,
+            range_m=range_m,
+            sigma_range_now_m=sigma_now,
+            sigma_range_without_m=hold.sigma_range_m,
+            sigma_range_with_m=best.sigma_range_m,
+            candidates=tuple(evaluated),
+        )

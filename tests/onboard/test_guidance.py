@@ -1,0 +1,165 @@
+"""Observer guidance (onboard.estimation.guidance): the advice keeps its limits, asks for a manoeuvre only when it
+helps, and the prediction agrees with the geometry (a straight observer gains nothing, a manoeuvre does)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from onboard.core.errors import InputError
+from onboard.core.schema import SchemaError, build
+from onboard.estimation.guidance import (
+    GuidanceConfig,
+    GuidancePlanner,
+    ObserverState,
+    TargetPosterior,
+    candidate_path,
+)
+from onboard.estimation.map_estimator import NoiseModel
+
+ATOL_M = 1e-9  # 1 nm: closed-form integration
+SLACK_MPS = 1e-9  # the limits are kept exactly, not within a tolerance
+F_PX = (764.7, 764.7)
+RTK = NoiseModel(
+    pixel_sigma_px=0.3,
+    attitude_white_sigma_rad=math.radians(0.05),
+    attitude_bias_sigma_rad=math.radians(0.1),
+    camera_position_white_sigma_m=0.02,
+)
+
+
+@pytest.fixture(scope="module")
+def planner() -> GuidancePlanner:
+    return GuidancePlanner.for_noise(GuidanceConfig(), RTK, F_PX)
+
+
+def unobservable(observer: ObserverState, p_ned_m, v_ned_mps, ratio: float = 0.5) -> TargetPosterior:
+    """A track whose range sigma is ``ratio`` of the range (what an unobservable window reports)."""
+    p = np.asarray(p_ned_m, float)
+    u = (p - observer.p_ned_m) / np.linalg.norm(p - observer.p_ned_m)
+    r = float(np.linalg.norm(p - observer.p_ned_m))
+    cov = 4.0 * np.eye(3) + (ratio * r) ** 2 * np.outer(u, u)
+    return TargetPosterior.from_track(
+        observer.t_s, p, v_ned_mps, cov, (1.0, 1.0, 0.5), observer.p_ned_m, observer.v_ned_mps
+    )
+
+
+def test_candidate_path_slews_at_the_acceleration_then_holds():
+    dt = np.linspace(0.0, 6.0, 61)
+    p, v = candidate_path(np.zeros(3), np.array([8.0, 0, 0]), np.array([0.0, 8.0, 0]), 2.0, dt)
+    T = math.hypot(8.0, 8.0) / 2.0
+    acc = np.linalg.norm(np.diff(v, axis=0), axis=1) / np.diff(dt)
+    assert np.all(acc <= 2.0 + 1e-9)
+    np.testing.assert_allclose(v[dt >= T], [[0.0, 8.0, 0.0]] * int(np.sum(dt >= T)), atol=ATOL_M)
+    # the position is the velocity's integral (trapezoid exact for a piecewise-linear velocity on the knots)
+    integral = np.concatenate([[0.0], np.cumsum(0.5 * (v[1:, 0] + v[:-1, 0]) * np.diff(dt))])
+    assert np.max(np.abs(p[:, 0] - integral)) < 0.05  # the kink at T falls between samples
+    assert np.all(np.linalg.norm(v, axis=1) <= 8.0 + 1e-9)  # convexity: never faster than the ends
+
+
+def test_straight_observer_is_advised_to_manoeuvre_and_it_pays(planner):
+    obs = ObserverState(5.0, [0.0, 40.0, -60.0], [0.0, 8.0, 0.0])
+    tgt = unobservable(obs, [135.0, 50.0, -80.0], [-3.0, -2.0, 0.0])
+    advice = planner.advise(obs, tgt)
+    assert advice.status == "advise" and advice.recommended
+    assert advice.manoeuvre != "hold"
+    # holding a straight line against a constant-velocity target leaves range where it was (unobservable) ...
+    assert advice.sigma_range_without_m > 0.8 * advice.sigma_range_now_m
+    # ... the manoeuvre ranges it (a few percent of the range within the horizon)
+    assert advice.sigma_range_with_m < 0.2 * advice.sigma_range_without_m
+    assert advice.valid_until_s == pytest.approx(obs.t_s + planner.config.valid_for_s)
+
+
+def test_nothing_advised_while_observable_with_margin(planner):
+    obs = ObserverState(5.0, [0.0, 40.0, -60.0], [0.0, 8.0, 0.0])
+    tgt = unobservable(obs, [135.0, 50.0, -80.0], [-3.0, -2.0, 0.0], ratio=0.01)
+    advice = planner.advise(obs, tgt)
+    assert advice.status == "observable" and not advice.recommended and advice.v_ned_mps is None
+
+
+def test_observer_outside_its_limits_gets_no_advice(planner):
+    low = ObserverState(5.0, [0.0, 0.0, -5.0], [0.0, 8.0, 0.0])  # 5 m up, the band starts at 20 m
+    advice = planner.advise(low, unobservable(low, [135.0, 50.0, -80.0], [-3.0, -2.0, 0.0]))
+    assert advice.status == "outside_limits" and advice.v_ned_mps is None
+
+
+def test_field_of_view_limit_discards_candidates():
+    cfg = build(GuidanceConfig, {"max_los_off_heading_deg": 30.0})
+    pl = GuidancePlanner.for_noise(cfg, RTK, F_PX)
+    obs = ObserverState(5.0, [0.0, 0.0, -60.0], [8.0, 0.0, 0.0])
+    advice = pl.advise(obs, unobservable(obs, [150.0, 0.0, -80.0], [0.0, 0.0, 0.0]))
+    crossing = [c for c in advice.candidates if c.name.startswith("cross_")]
+    assert crossing and all(not c.feasible and c.why == "field_of_view" for c in crossing)
+
+
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("min_altitude_m", 200.0),
+        ("cruise_speed_mps", 50.0),
+        ("los_elevation_min_deg", 60.0),
+        ("heading_changes_deg", [200.0]),
+    ],
+)
+def test_config_refuses_inconsistent_limits(field, value):
+    with pytest.raises(SchemaError, match=field):
+        build(GuidanceConfig, {field: value})
+
+
+def test_bad_posterior_is_refused():
+    with pytest.raises(InputError, match="cov_pv"):
+        TargetPosterior(0.0, [1.0, 0, 0], [0.0, 0, 0], np.zeros((6, 6)))
+
+
+_finite = dict(allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    alt_m=st.floats(0.0, 200.0, **_finite),
+    v_obs=st.tuples(*[st.floats(-14.0, 14.0, **_finite)] * 2, st.floats(-3.0, 3.0, **_finite)),
+    rel=st.tuples(
+        st.floats(-400.0, 400.0, **_finite), st.floats(-400.0, 400.0, **_finite), st.floats(-150.0, 60.0, **_finite)
+    ),
+    v_tgt=st.tuples(*[st.floats(-10.0, 10.0, **_finite)] * 3),
+    ratio=st.floats(0.0, 2.0, **_finite),
+    max_speed=st.floats(3.0, 15.0, **_finite),
+    climb=st.floats(0.0, 3.0, **_finite),
+    off_heading=st.sampled_from([60.0, 120.0, 180.0]),
+)
+def test_advice_never_leaves_the_limits(planner, alt_m, v_obs, rel, v_tgt, ratio, max_speed, climb, off_heading):
+    cfg = build(
+        GuidanceConfig,
+        {
+            "max_speed_mps": max_speed,
+            "cruise_speed_mps": min(6.0, max_speed),
+            "max_climb_rate_mps": climb,
+            "max_los_off_heading_deg": off_heading,
+            "horizon_s": 4.0,
+        },
+    )
+    pl = GuidancePlanner(cfg, planner.estimator, F_PX)
+    obs = ObserverState(3.0, [0.0, 0.0, -alt_m], v_obs)
+    p_tgt = obs.p_ned_m + np.asarray(rel)
+    if np.linalg.norm(rel) < 20.0:
+        return
+    advice = pl.advise(obs, unobservable(obs, p_tgt, v_tgt, ratio))
+    if not advice.recommended:
+        assert advice.v_ned_mps is None
+        return
+    v = advice.v_ned_mps
+    assert v is not None
+    assert cfg.min_speed_mps - SLACK_MPS <= math.hypot(v[0], v[1]) <= cfg.max_speed_mps + SLACK_MPS
+    assert abs(v[2]) <= cfg.max_climb_rate_mps + SLACK_MPS
+    # the path it predicts keeps the altitude band and the target in view, at the configured acceleration
+    p, vp = candidate_path(obs.p_ned_m, obs.v_ned_mps, v, cfg.max_accel_mps2, pl.dt_s)
+    assert cfg.altitude_ok(p)
+    los = p_tgt + np.asarray(v_tgt) * pl.dt_s[:, None] - p
+    el = np.degrees(np.arctan2(-los[:, 2], np.hypot(los[:, 0], los[:, 1])))
+    assert np.all((el >= cfg.los_elevation_min_deg) & (el <= cfg.los_elevation_max_deg))
+    assert advice.sigma_range_with_m < cfg.min_gain_ratio * advice.sigma_range_without_m
+    assert advice.valid_until_s > advice.t_s
