@@ -66,6 +66,7 @@ from onboard.core.schema import (
     show,
     to_plain,
 )
+from onboard.estimation.guidance import GuidanceConfig
 from onboard.imaging.preprocess import ImagingParams
 from onboard.io.live_view import LiveViewConfig
 from onboard.io.mavlink_link import MavlinkConfig, parse_connection
@@ -372,6 +373,7 @@ class OnboardConfig:
     gcs: GcsConfig = _section(GcsConfig)
     video: VideoConfig = _section(VideoConfig)
     follow: FollowConfig = _section(FollowConfig)
+    guidance: GuidanceConfig = _section(GuidanceConfig)
     record: RecordConfig = _section(RecordConfig)
     live_view: LiveViewConfig = _section(LiveViewConfig)
     logging: LoggingConfig = _section(LoggingConfig)

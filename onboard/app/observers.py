@@ -1,5 +1,6 @@
 """The daemon's output taps behind one interface, :class:`FrameObserver`: the flight recorder
-(``record.path``), the Foxglove live view (``live_view.port``) and the H.264 video (``video.destination``).
+(``record.path``), the Foxglove live view (``live_view.port``), the H.264 video (``video.destination``) and the
+observer guidance (``guidance.advise``; :mod:`onboard.app.guidance_tap`).
 
 :class:`NewestTrack` is one more: it hands the newest track to the main thread (the GCS camera component,
 FOLLOW_TARGET).
@@ -232,7 +233,7 @@ def recording_metadata(config: OnboardConfig) -> dict[str, str]:
 
 def make_observers(config: OnboardConfig, intrinsics: PinholeIntrinsics, clock_ns: Any) -> list[FrameObserver]:
     """The taps ``config`` asks for, in the order their sections appear in the status JSON (video, record,
-    live view) and in which they are started and closed."""
+    live view, guidance) and in which they are started and closed."""
     taps: list[FrameObserver] = []
     if config.video.destination:
         taps.append(VideoTap(config, intrinsics))
@@ -251,4 +252,10 @@ def make_observers(config: OnboardConfig, intrinsics: PinholeIntrinsics, clock_n
 
         live = LiveView(config.live_view, vehicle=config.vehicle, intrinsics=intrinsics)
         taps.append(LiveViewTap(live))
+    if config.guidance.advise:
+        from onboard.app.guidance_tap import make_guidance_tap
+
+        guidance = make_guidance_tap(config)
+        if guidance is not None:
+            taps.append(guidance)
     return taps

@@ -199,9 +199,11 @@ class OnboardService:
 
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
+            GUIDANCE_ENCODING,
             STATUS_ENCODING,
             TRACK_ENCODING,
             frame_key,
+            guidance_key,
             open_session,
             status_key,
             track_key,
@@ -234,6 +236,10 @@ class OnboardService:
             status_key(cfg.vehicle), encoding=zenoh.Encoding(STATUS_ENCODING)
         )
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
+        guidance = next((t for t in self.taps if t.name == "guidance"), None)
+        if guidance is not None:  # advised manoeuvres on irtrack/<vehicle>/guidance (onboard.app.guidance_tap)
+            pub = self.session.declare_publisher(guidance_key(cfg.vehicle), encoding=zenoh.Encoding(GUIDANCE_ENCODING))
+            guidance.attach(pub.put)  # type: ignore[attr-defined]
         self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
         self._pipe_thread.start()
         self._started_s = self._clock()

@@ -35,7 +35,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 
@@ -54,6 +54,9 @@ __all__ = [
     "Advice",
     "GuidancePlanner",
     "candidate_path",
+    "GuidanceAdvisor",
+    "advice_to_json",
+    "GUIDANCE_SCHEMA",
 ]
 
 #: 1 mm/s: a velocity below this has no heading
@@ -467,3 +470,89 @@ class GuidancePlanner:
             sigma_range_with_m=best.sigma_range_m,
             candidates=tuple(evaluated),
         )
+
+
+#: the guidance payload's schema name (``irtrack/<vehicle>/guidance``; README "On the wire")
+GUIDANCE_SCHEMA = "irtrack.guidance/1"
+_US_PER_S = 1_000_000
+
+
+def _num(x: float) -> float | None:
+    return float(x) if math.isfinite(x) else None
+
+
+def advice_to_json(advice: Advice, vehicle: str, time_boot_us: int, in_loop: bool = False) -> dict:
+    """The ``irtrack.guidance/1`` payload of one advice (README, "On the wire"): times on the autopilot's boot
+    clock in microseconds, velocities in NED m/s, sigmas in metres (null when not finite)."""
+    valid_us = time_boot_us + int(round((advice.valid_until_s - advice.t_s) * _US_PER_S))
+    return {
+        "schema": GUIDANCE_SCHEMA,
+        "vehicle": vehicle,
+        "time_boot_us": int(time_boot_us),
+        "valid_until_boot_us": int(valid_us),
+        "status": advice.status,
+        "manoeuvre": advice.manoeuvre,
+        "v_ned_mps": None if advice.v_ned_mps is None else [float(x) for x in advice.v_ned_mps],
+        "range_m": _num(advice.range_m),
+        "sigma_range_now_m": _num(advice.sigma_range_now_m),
+        "sigma_range_without_m": _num(advice.sigma_range_without_m),
+        "sigma_range_with_m": _num(advice.sigma_range_with_m),
+        "in_loop": bool(in_loop),
+    }
+
+
+class GuidanceAdvisor:
+    """Runs the planner on the tracks' own clock (every ``config.update_interval_s`` of capture time), from what a
+    track and the frame's pose carry.  Step method :meth:`update`; no threads, no clock of its own (a replay or the
+    lockstep evaluation gets the same advice as the daemon).
+
+    ``skipped``: updates due but not planned, by reason (``no_position``: the track has no 3-D position yet;
+    ``no_velocity``: the autopilot sent no velocity with the pose; ``bad_input``: a track or pose the posterior
+    cannot be built from, ``last_error`` says why).
+    """
+
+    def __init__(self, planner: GuidancePlanner) -> None:
+        self.planner = planner
+        self.interval_us = int(round(planner.config.update_interval_s * _US_PER_S))
+        self._next_us: int | None = None
+        self.last: Advice | None = None
+        self.updates = 0
+        self.advised = 0
+        self.skipped: dict[str, int] = {}
+        self.last_error = ""
+
+    def due(self, time_boot_us: int) -> bool:
+        """Whether a track captured at ``time_boot_us`` is due an update (a clock that steps back restarts the pacing)."""
+        nxt = self._next_us
+        return nxt is None or time_boot_us >= nxt or time_boot_us < nxt - 2 * self.interval_us
+
+    def update(self, track: Any, p_cam_ned_m, v_cam_ned_mps) -> Advice | None:
+        """The advice for ``track`` (an :class:`onboard.core.track.Track`) seen from the camera at ``p_cam_ned_m``
+        moving at ``v_cam_ned_mps`` (the vehicle's velocity; NaN = unknown), or None when not due or not possible."""
+        t_us = int(track.time_boot_us)
+        if not self.due(t_us):
+            return None
+        self._next_us = t_us + self.interval_us
+        if not track.has_position or track.v_ned_mps is None or track.cov_p_ned_m2 is None:
+            self.skipped["no_position"] = self.skipped.get("no_position", 0) + 1
+            return None
+        v_cam = np.asarray(v_cam_ned_mps, dtype=float)
+        if v_cam.shape != (3,) or not np.all(np.isfinite(v_cam)):
+            self.skipped["no_velocity"] = self.skipped.get("no_velocity", 0) + 1
+            return None
+        t_s = t_us / _US_PER_S
+        sig_v = track.sigma_vel_ned_mps or (2.0, 2.0, 1.0)
+        try:
+            target = TargetPosterior.from_track(
+                t_s, track.p_ned_m, track.v_ned_mps, track.cov_p_ned_m2, sig_v, p_cam_ned_m, v_cam
+            )
+            observer = ObserverState(t_s, p_cam_ned_m, v_cam)
+        except InputError as exc:  # a track or pose the posterior cannot be built from: counted, the caller logs it
+            self.skipped["bad_input"] = self.skipped.get("bad_input", 0) + 1
+            self.last_error = str(exc)
+            return None
+        advice = self.planner.advise(observer, target)
+        self.updates += 1
+        self.advised += advice.recommended
+        self.last = advice
+        return advice

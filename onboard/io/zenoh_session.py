@@ -65,11 +65,13 @@ __all__ = [
     "frame_key",
     "track_key",
     "status_key",
+    "guidance_key",
     "check_vehicle_name",
     "FRAME_SCHEMA",
     "FRAME_ENCODING",
     "TRACK_ENCODING",
     "STATUS_ENCODING",
+    "GUIDANCE_ENCODING",
     "encoding_schema",
 ]
 
@@ -80,6 +82,7 @@ FRAME_SCHEMA = "irtrack.irf1/1"  # the IRF1 frame, version 1 (onboard.core.irfra
 FRAME_ENCODING = f"application/octet-stream;{FRAME_SCHEMA}"
 TRACK_ENCODING = f"application/json;{TRACK_SCHEMA}"
 STATUS_ENCODING = f"application/json;{STATUS_SCHEMA}"
+GUIDANCE_ENCODING = "application/json;irtrack.guidance/1"  # onboard.estimation.guidance.GUIDANCE_SCHEMA
 
 
 def encoding_schema(encoding) -> str | None:
@@ -125,6 +128,11 @@ def frame_key(vehicle: str = DEFAULT_VEHICLE) -> str:
 def track_key(vehicle: str = DEFAULT_VEHICLE) -> str:
     """``irtrack/<vehicle>/track``: tracks and 3-D estimates, JSON."""
     return f"irtrack/{check_vehicle_name(vehicle)}/track"
+
+
+def guidance_key(vehicle: str = DEFAULT_VEHICLE) -> str:
+    """``irtrack/<vehicle>/guidance``: observer guidance advice, JSON (only while a manoeuvre is advised)."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/guidance"
 
 
 def status_key(vehicle: str = DEFAULT_VEHICLE) -> str:

@@ -163,3 +163,62 @@ def test_advice_never_leaves_the_limits(planner, alt_m, v_obs, rel, v_tgt, ratio
     assert np.all((el >= cfg.los_elevation_min_deg) & (el <= cfg.los_elevation_max_deg))
     assert advice.sigma_range_with_m < cfg.min_gain_ratio * advice.sigma_range_without_m
     assert advice.valid_until_s > advice.t_s
+
+
+def _track(t_us: int, p_ned_m, v_ned_mps, cov, **kw):
+    from onboard.core.frames import GeodeticOrigin
+    from onboard.core.track import Track
+
+    return Track(
+        vehicle="uav1",
+        seq=1,
+        time_boot_us=t_us,
+        state="tracking",
+        origin=GeodeticOrigin(32.0, 118.8, 0.0),
+        lat_deg=32.0,
+        lon_deg=118.8,
+        alt_m=80.0,
+        p_ned_m=tuple(p_ned_m),
+        v_ned_mps=tuple(v_ned_mps),
+        cov_p_ned_m2=cov,
+        range_m=float(np.linalg.norm(p_ned_m)),
+        **kw,
+    )
+
+
+def test_tap_publishes_advice_json_once_per_interval_and_counts_what_it_skips():
+    from types import SimpleNamespace
+
+    from onboard.app.config import OnboardConfig
+    from onboard.app.guidance_tap import make_guidance_tap
+    from onboard.estimation.guidance import GUIDANCE_SCHEMA
+    from onboard.io.zenoh_session import GUIDANCE_ENCODING, guidance_key
+
+    tap = make_guidance_tap(OnboardConfig())
+    assert tap is not None and guidance_key("uav1") == "irtrack/uav1/guidance"
+    assert GUIDANCE_ENCODING.endswith(GUIDANCE_SCHEMA)
+    sent: list[bytes] = []
+    tap.attach(sent.append)
+    cam = np.array([0.0, 40.0, -60.0])
+    p = np.array([135.0, 50.0, -80.0])
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    pose = SimpleNamespace(p_cam_ned_m=cam, body=SimpleNamespace(v_ned_mps=np.array([0.0, 8.0, 0.0])))
+    payload = tap.step(_track(5_000_000, p, (-3.0, -2.0, 0.0), cov), pose)
+    assert payload is not None and sent == [payload]
+    import json
+
+    msg = json.loads(payload)
+    assert msg["schema"] == GUIDANCE_SCHEMA and msg["status"] == "advise" and msg["in_loop"] is False
+    assert msg["valid_until_boot_us"] == 5_000_000 + 3_000_000
+    assert msg["sigma_range_with_m"] < msg["sigma_range_without_m"]
+    # not due again until update_interval_s of capture time has passed
+    assert tap.step(_track(5_500_000, p, (-3.0, -2.0, 0.0), cov), pose) is None and len(sent) == 1
+    # an autopilot that sends no velocity: skipped and counted
+    blind = SimpleNamespace(p_cam_ned_m=cam, body=SimpleNamespace(v_ned_mps=np.full(3, np.nan)))
+    assert tap.step(_track(6_100_000, p, (-3.0, -2.0, 0.0), cov), blind) is None
+    assert tap.status()["skipped"] == {"no_velocity": 1} and tap.status()["published"] == 1
+    # observable with margin: nothing published
+    small = 4.0 * np.eye(3)
+    assert tap.step(_track(7_200_000, p, (-3.0, -2.0, 0.0), small), pose) is None
+    assert tap.status()["last_status"] == "observable" and len(sent) == 1
