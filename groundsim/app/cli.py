@@ -338,6 +338,12 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)",
     )
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
+    p.add_argument(
+        "--guidance",
+        action="store_true",
+        help="observer guidance in the loop: the observer flies its scripted motion until the first advice of the"
+        " configuration's guidance section, then follows the advice; prints the guidance summary",
+    )
     _onboard_config_option(
         p,
         None,

@@ -129,6 +129,9 @@ class EvalOptions:
     #: the trajectory estimator, a plug-in name (``onboard.pipeline.plugins``: an ``irtrack.estimators`` entry point or
     #: ``module:Attribute``); None = the daemon's own (the configuration's sliding-window MAP estimator)
     estimator: str | None = None
+    #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
+    #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
+    guidance: bool = False
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -352,6 +355,8 @@ class RunResult:
     baseline_pixel_sigma_px: float = math.nan
     chain_centroid_sigma_px: float = math.nan
     estimator: str = "map"  # EvalOptions.estimator: the plug-in that made est_* and base_* (batch columns stay MAP)
+    #: with EvalOptions.guidance: advices followed, the first one's time from the first frame (s), manoeuvres, updates
+    guidance: dict | None = None
 
     @property
     def has_estimate(self) -> np.ndarray:
@@ -424,6 +429,23 @@ def _better_frame(kept: dict | None, k: int, F: int, track) -> bool:
     return kept["bbox"] is None or abs(k - F // 2) < abs(kept["k"] - F // 2)
 
 
+#: flight chunk with guidance in the loop, s: an advice takes effect at most this late
+GUIDED_FLIGHT_CHUNK_S = 0.1
+
+
+def _guidance_advisor(cfg):
+    """The daemon's :class:`~onboard.estimation.guidance.GuidanceAdvisor` for configuration ``cfg`` (its
+    ``guidance`` section, estimator noise model and camera), as :func:`onboard.app.guidance_tap.make_guidance_tap`
+    builds it."""
+    from onboard.estimation.guidance import GuidanceAdvisor, GuidancePlanner
+
+    k = cfg.camera.intrinsics
+    knot_s = float(cfg.estimator.sliding.get("knot_spacing_s", 1.0))
+    return GuidanceAdvisor(
+        GuidancePlanner.for_noise(cfg.guidance, cfg.estimator.noise_model(), (k.fx_px, k.fy_px), knot_s)
+    )
+
+
 def run_lockstep(
     scenario: Scenario, seed: int, options: EvalOptions | None = None, base_config=None, progress=None
 ) -> RunResult:
@@ -442,7 +464,11 @@ def run_lockstep(
     wall0, cpu0 = time.perf_counter(), time.process_time()
     cfg = onboard_config_for(scenario, base_config)
     K = cfg.camera.pinhole()
-    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=1.0, nav_noise=options.nav_noise)
+    # guided: fly short chunks, so that an advice takes effect within a few frames (the ticks flown ahead keep their path)
+    chunk_s = GUIDED_FLIGHT_CHUNK_S if options.guidance else 1.0
+    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=chunk_s, nav_noise=options.nav_noise)
+    advisor = _guidance_advisor(cfg) if options.guidance else None
+    advices: list[tuple[float, str]] = []  # (scenario t_s, manoeuvre) of each advice followed
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose, cfg.pose.geodetic_origin())
     source = RecordingPoseSource(buffer)  # remembers the pose the pipeline got, for the baseline
     if (
@@ -525,6 +551,14 @@ def run_lockstep(
                 c.range_sigma_ratio[k] = nan if track.range_sigma_ratio is None else track.range_sigma_ratio
         if pose is not None:
             c.cam_pose_p[k], c.cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
+            if advisor is not None and track is not None:
+                advice = advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps)
+                if advice is not None and advice.recommended:
+                    assert advice.v_ned_mps is not None
+                    core.flight.command_observer(
+                        float(tr.t_s), advice.v_ned_mps, float(tr.t_s) + advice.valid_until_s - advice.t_s
+                    )
+                    advices.append((float(tr.t_s), str(advice.manoeuvre)))
 
         if options.keep_frame and _better_frame(kept, k, F, track):
             kept = dict(
@@ -634,6 +668,15 @@ def run_lockstep(
         baseline_pixel_sigma_px=base_sigma_px,
         chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
         estimator=options.estimator or "map",
+        guidance=None
+        if advisor is None
+        else {
+            "advices": len(advices),
+            "first_advice_s": advices[0][0] - float(c.t_s[0]) if advices and F else None,
+            "manoeuvres": [m for _, m in advices],
+            "updates": advisor.updates,
+            "skipped": dict(advisor.skipped),
+        },
     )
 
 
@@ -828,6 +871,7 @@ def cmd_eval(args) -> int:
         batch=not args.no_batch,
         nav_noise=nav_noises[0],
         estimator=getattr(args, "estimator", None),
+        guidance=bool(getattr(args, "guidance", False)),
     )
     for n in nav_noises[1:]:
         dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
@@ -861,6 +905,11 @@ def cmd_eval(args) -> int:
     print(format_table2(result.summary, descriptions))
     print()
     print(format_closed_loop(result.summary))
+    if options.guidance:
+        from groundsim.evaluation.scoring import format_guidance_summary
+
+        print()
+        print(format_guidance_summary(result.runs))
     failed = sum(1 for s in result.scores if "error" in s)
     print(
         f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "

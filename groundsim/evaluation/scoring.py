@@ -31,6 +31,8 @@ __all__ = [
     "OBSERVABLE_AFTER_S",
     "SUMMARY_FIELDS",
     "closed_loop_figures",
+    "guidance_figures",
+    "format_guidance_summary",
     "score_run",
     "summarise",
 ]
@@ -271,3 +273,78 @@ def summarise(scores: list[dict]) -> list[dict]:
         row["within_ratio"] = bool(all(x <= RATIO_LIMIT for x in ratios)) if ratios else None
         rows.append(row)
     return rows
+
+
+#: observable within this long of the first tracking frame: the guidance goal
+GUIDANCE_OBSERVABLE_WITHIN_S = 10.0
+
+
+def guidance_figures(r) -> dict:
+    """One run's observer-guidance figures (JSON-ready; None = no such frame): ``first_track_s`` (the first frame
+    with state ``tracking``, from the run's start), ``first_observable_after_track_s``, whether that is within
+    :data:`GUIDANCE_OBSERVABLE_WITHIN_S`, and the advice the run followed (``RunResult.guidance``)."""
+    t = r.t_s - r.t_s[0] if r.t_s.size else r.t_s
+    obs = r.has_estimate & r.observable
+    tracking = np.flatnonzero(r.state == "tracking")
+    t_track = float(t[tracking[0]]) if tracking.size else None
+    after = None
+    if t_track is not None and obs.any():
+        late = obs & (t >= t_track)
+        after = float(t[late][0] - t_track) if late.any() else None
+    g = r.guidance or {}
+    return {
+        "first_track_s": t_track,
+        "first_observable_after_track_s": after,
+        "observable_within_goal": after is not None and after <= GUIDANCE_OBSERVABLE_WITHIN_S,
+        "advices": g.get("advices"),
+        "first_advice_s": g.get("first_advice_s"),
+    }
+
+
+def format_guidance_summary(runs) -> str:
+    """Lines per (scenario, navigation case) over seeds: observable within 10 s of the first track (share of seeds),
+    median error / range pooled over every observable frame, share of published positions beyond 3 sigma (pooled:
+    ``||e|| > 3 sqrt(trace cov)``), mean observable share of the frames after 5 s, and the advice followed."""
+    groups: dict[tuple[str, str], list] = {}
+    for r in runs:
+        if r.error is None:
+            groups.setdefault((r.scenario, r.nav_noise), []).append(r)
+    lines = [
+        "| scenario | navigation errors | seeds | observable within 10 s of first track (>= 90 %) | median err / range,"
+        " observable frames (<= 1 %) | beyond 3 sigma, published (<= 1 %) | observable, frames after 5 s |"
+        " first observable after track s (median) | advices per run (median); first at s |",
+        "|" + "---|" * 9,
+    ]
+    for (name, nav), rs in groups.items():
+        figs = [guidance_figures(r) for r in rs]
+        within = sum(f["observable_within_goal"] for f in figs)
+        err, beyond, pub = [], 0, 0
+        shares = []
+        for r in rs:
+            e = np.linalg.norm(r.est_p_ned_m - r.truth_p_ned_m, axis=1)
+            obs = r.has_estimate & r.observable
+            err.extend((100.0 * e[obs] / r.range_m[obs]).tolist())
+            with np.errstate(invalid="ignore"):
+                sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", r.est_cov_ned_m2), 0.0))
+            m = r.has_estimate & np.isfinite(sig3)
+            beyond += int((e[m] > sig3[m]).sum())
+            pub += int(m.sum())
+            share = closed_loop_figures(r)["observable_share_after_5s"]
+            if share is not None:
+                shares.append(share)
+        after = [f["first_observable_after_track_s"] for f in figs if f["first_observable_after_track_s"] is not None]
+        adv = [f["advices"] for f in figs if f["advices"] is not None]
+        first = [f["first_advice_s"] for f in figs if f["first_advice_s"] is not None]
+
+        def f(x, fmt):
+            return "-" if x is None else format(x, fmt)
+
+        lines.append(
+            f"| {name} | {nav or '-'} | {len(rs)} | {within}/{len(rs)} ({100.0 * within / len(rs):.0f} %) | "
+            f"{f(float(np.median(err)) if err else None, '.2f')} % ({len(err)} frames) | "
+            f"{f(100.0 * beyond / pub if pub else None, '.2f')} % ({pub} positions) | "
+            f"{f(100.0 * float(np.mean(shares)) if shares else None, '.0f')} % | "
+            f"{f(float(np.median(after)) if after else None, '.1f')} | "
+            f"{f(float(np.median(adv)) if adv else None, '.0f')}; {f(float(np.median(first)) if first else None, '.1f')} |"
+        )
+    return "\n".join(lines)

@@ -50,6 +50,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from groundsim.world.guided import GuidedReference
 from groundsim.world.motion import Circular, Cubic, FigureEight, Perturbed, Waypoints
 from groundsim.world.scenario import (
     MAX_DURATION_S,
@@ -230,7 +231,8 @@ class PairFlight:
         self.chunk_ticks = max(1, int(chunk_ticks))
         self.gimballed = scenario.camera.gimbal is not None
         self.observer_yaw_mode = "velocity" if self.gimballed else "target"
-        self._obs_ref = scenario.observer_motion(run_seed)
+        # the scripted motion until a guided setpoint arrives (command_observer), then the setpoints
+        self._obs_ref = GuidedReference(scenario.observer_motion(run_seed))
         self._tgt_ref = scenario.target_motion(run_seed)
         g = scenario.camera.gimbal
         self.gimbal_phase_rad: tuple[float, ...] | None = None
@@ -256,6 +258,25 @@ class PairFlight:
             if c.i0 <= i < c.i1:
                 return c
         raise IndexError(f"tick {i} was flown and dropped (only the two latest chunks are kept)")
+
+    def command_observer(self, t_s: float, v_ned_mps, valid_until_s: float | None = None) -> float:
+        """A velocity setpoint for the observer (the GUIDED-like mode of :mod:`groundsim.world.guided`), in effect
+        from ``t_s`` or from where the flight has got to, whichever is later (the ticks already flown keep their
+        path: up to one flight chunk of latency); returns the time it took effect."""
+        t_from = float(t_s)
+        if self.flown_ticks > 0:
+            t_from = max(t_from, float(self.times_s[min(self.flown_ticks, len(self.times_s) - 1)]))
+        if self._observer is not None:
+            t_from = max(t_from, self._observer.t_s)
+        self._obs_ref.command(t_from, v_ned_mps, valid_until_s)
+        if self._observer is not None:
+            self._observer.reference_changed()
+        return t_from
+
+    @property
+    def observer_guided_since_s(self) -> float | None:
+        """When the observer left its scripted motion for setpoints (None: it has not)."""
+        return self._obs_ref.guided_since_s
 
     def _fly_chunk(self) -> None:
         from groundsim.world.flight import FlownVehicle  # JSBSim is imported on first flight only

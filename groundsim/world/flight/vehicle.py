@@ -332,6 +332,11 @@ class FlownVehicle:
             idx = 0
         return self._ref_cache[idx]
 
+    def reference_changed(self) -> None:
+        """The reference's future changed (a guided setpoint, :mod:`groundsim.world.guided`): forget the
+        reference ticks evaluated ahead, so the next control tick reads the new path."""
+        self._ref_cache = []
+
     def _set_ic(self, p_ned, v_ned, roll, pitch, yaw, rates_frd_radps=(0.0, 0.0, 0.0)) -> None:
         fdm = self._fdm
         lat, lon, alt = (float(x) for x in geodetic_from_ned(np.asarray(p_ned, dtype=float), self.origin))

@@ -1,0 +1,47 @@
+"""The simulated vehicle's guided mode (groundsim.world.guided): scripted motion until the first setpoint, then a
+continuous slew to each setpoint within the vehicle's limits; and the lockstep eval closing the loop with it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from groundsim.world.guided import GuidedLimits, GuidedReference
+from groundsim.world.motion import Cubic
+
+ATOL_M = 1e-9  # closed-form integration
+
+
+def test_scripted_until_the_first_setpoint_then_continuous_slew_within_limits():
+    base = Cubic((0.0, 0.0, -60.0), (0.0, 8.0, 0.0))
+    ref = GuidedReference(base, GuidedLimits(max_speed_mps=10.0, max_climb_rate_mps=1.0, max_accel_mps2=2.0))
+    t = np.linspace(0.0, 16.0, 1601)  # the slew of 18 m/s at 2 m/s^2 ends at 13 s
+    before = ref.state(t)
+    np.testing.assert_allclose(before.p_ned_m, base.state(t).p_ned_m, atol=ATOL_M)
+    ref.command(4.0, (0.0, -30.0, -5.0), valid_until_s=7.0)  # too fast, too steep: clamped
+    st = ref.state(t)
+    early = t < 4.0
+    np.testing.assert_allclose(st.p_ned_m[early], before.p_ned_m[early], atol=ATOL_M)
+    # continuous at the switch, then within the limits, ending on the clamped setpoint
+    assert np.max(np.linalg.norm(np.diff(st.p_ned_m, axis=0), axis=1)) < 0.2
+    assert np.max(np.linalg.norm(np.diff(st.v_ned_mps, axis=0), axis=1) / np.diff(t)[0]) <= 2.0 + 1e-6
+    np.testing.assert_allclose(st.v_ned_mps[-1], [0.0, -10.0, -1.0], atol=ATOL_M)
+    assert np.all(np.hypot(st.v_ned_mps[:, 0], st.v_ned_mps[:, 1]) <= 10.0 + 1e-9)
+    assert ref.guided_since_s == 4.0
+    with pytest.raises(ValueError, match="back"):
+        ref.command(3.0, (0.0, 0.0, 0.0))
+
+
+@pytest.mark.slow
+def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
+    from groundsim.evaluation.eval import EvalOptions, run_lockstep
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+
+    sc = load_scenario(resolve_scenario_path("H3"))
+    r = run_lockstep(sc, 0, EvalOptions(duration_s=5.0, batch=False, keep_frame=False, guidance=True))
+    assert r.error is None and r.guidance is not None
+    assert r.guidance["advices"] >= 1
+    t0 = r.guidance["first_advice_s"]
+    # H3's observer flies straight east at 8 m/s: after the advice it leaves that line
+    late = r.t_s - r.t_s[0] > t0 + 1.5
+    assert np.max(np.abs(r.observer_p_ned_m[late, 0])) > 1.0
