@@ -161,6 +161,12 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         help="record the frames, MAVLink (both ways) and the truth to this MCAP file (onboard/io/record.py)",
     )
     p.add_argument(
+        "--guided",
+        action="store_true",
+        help="the vehicle heartbeats as ArduPilot in GUIDED and its observer follows the velocity setpoints"
+        " (SET_POSITION_TARGET_LOCAL_NED) it receives, after flying its scripted motion until the first",
+    )
+    p.add_argument(
         "--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)"
     )
     p.add_argument(
@@ -206,6 +212,7 @@ def _run_config(args):
         render=not args.no_render,
         nav_noise=args.nav_noise,
         record_path=Path(args.record) if args.record else None,
+        guided=bool(getattr(args, "guided", False)),
     )
 
 

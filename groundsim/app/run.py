@@ -147,6 +147,7 @@ class RunConfig:
     flight_chunk_s: float | None = None
     nav_noise: str | None = None
     record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.io.record)
+    guided: bool = False  # --guided: the vehicle reports GUIDED and its observer follows velocity setpoints
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -397,6 +398,8 @@ def run_loop(
                 try:
                     mavlink.update_state(**core.vehicle_state(i), nav_error=core.nav_error(i))
                     mavlink.poll(core.time_boot_us(i))
+                    for v_ned_mps in getattr(mavlink, "take_setpoints", list)():  # guided: the observer follows them
+                        core.flight.command_observer(core.tick_time_s(i), v_ned_mps)
                 except sink_errors as exc:
                     mavlink_errors(f"tick {i}: mavlink", exc)
                 acc["mavlink"] += clock.now_s() - t0
@@ -495,7 +498,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         session = open_session(zs)
         if config.render:
             publisher = FramePublisher(session, config.vehicle)
-        vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed)
+        vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed, guided=config.guided)
         if config.truth_path is not None:
             writer = TruthWriter(config.truth_path)
         if config.record_path is not None:

@@ -117,6 +117,7 @@ from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
     GlobalPositionInt,
     Heartbeat,
+    SetPositionTargetLocalNed,
     SystemTime,
     Timesync,
     command_ack_message,
@@ -210,6 +211,11 @@ _BASE_MODE = (
     | mavlink2.MAV_MODE_FLAG_STABILIZE_ENABLED
     | mavlink2.MAV_MODE_FLAG_GUIDED_ENABLED
 )
+
+
+#: ArduCopter's GUIDED custom_mode: the mode the simulated vehicle reports with ``guided`` (what the daemon's
+#: ``guidance.accept_custom_mode`` expects by default)
+ARDUCOPTER_GUIDED_MODE = 4
 
 
 class MavlinkConfigError(ConfigError):
@@ -368,7 +374,12 @@ class MavlinkVehicle:
         gimbal_rate_hz: float = 10.0,
         gimbal_yaw_frame: str = "earth",
         unix_time_at_boot_us: int | None = None,
+        guided: bool = False,
     ) -> None:
+        # guided: heartbeat as ArduPilot in GUIDED and take velocity setpoints (SET_POSITION_TARGET_LOCAL_NED) for
+        # the flight (take_setpoints); otherwise they are counted and ignored
+        self.guided = bool(guided)
+        self._setpoints: list[tuple[float, float, float]] = []
         for name, v in (("sysid", sysid), ("compid", compid)):
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
                 raise MavlinkConfigError(f"MavlinkVehicle.{name} must be an integer in [1, 255], got {v!r}")
@@ -526,7 +537,16 @@ class MavlinkVehicle:
         if msg_id in _NEEDS_STATE and state is None:
             return 0
         try:
-            if msg_id == MSG_HEARTBEAT:
+            if msg_id == MSG_HEARTBEAT and self.guided:
+                mav.send(
+                    Heartbeat(
+                        mavlink2.MAV_TYPE_QUADROTOR,
+                        mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                        _BASE_MODE | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+                        ARDUCOPTER_GUIDED_MODE,
+                    ).to_message()
+                )
+            elif msg_id == MSG_HEARTBEAT:
                 mav.send(
                     Heartbeat(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_GENERIC, _BASE_MODE).to_message()
                 )
@@ -702,10 +722,17 @@ class MavlinkVehicle:
                     sent += self._on_param(msg, mtype)
                 elif mtype in ("MISSION_REQUEST_LIST", "MISSION_CLEAR_ALL"):
                     sent += self._on_mission(msg, mtype)
+                elif mtype == "SET_POSITION_TARGET_LOCAL_NED" and self.guided and self._for_us(msg):
+                    self._setpoints.append(SetPositionTargetLocalNed.from_message(msg).v_ned_mps)
             except Exception as exc:  # noqa: BLE001 - a malformed request must not stop the pump
                 self.counters["rx_handler_error"] += 1
                 self._log_limited("rx_handler_error", "mavlink: cannot handle %s: %s", mtype, exc)
         return sent
+
+    def take_setpoints(self) -> list[tuple[float, float, float]]:
+        """The velocity setpoints (NED m/s) received since the last call, oldest first (``guided`` only)."""
+        out, self._setpoints = self._setpoints, []
+        return out
 
     def _on_timesync(self, msg) -> int:
         if msg.tc1 != 0:  # a response to somebody's request, not a request

@@ -6,18 +6,25 @@ The pipeline thread only replaces a one-slot mailbox (``on_frame``); planning (a
 most once per ``guidance.update_interval_s`` of capture time) happens in the tap's thread, so the frames never
 wait for it.  Nothing is published while the target is observable with margin, nor when no manoeuvre helps: a
 consumer stops following an advice at its ``valid_until_boot_us``.
+
+In the loop (``guidance.enabled``): the service's main thread calls :meth:`GuidanceTap.setpoint_step` with the
+autopilot link; :class:`~onboard.estimation.guidance.SetpointGate` decides, and the advice in force goes to the
+autopilot as SET_POSITION_TARGET_LOCAL_NED at ``guidance.setpoint_rate_hz`` while the gate allows; the status
+JSON's ``guidance.setpoints`` says what it does and why not.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import threading
+import time
 from typing import Any
 
 from onboard.app.config import OnboardConfig
 from onboard.core.irframe import IrFrame
-from onboard.estimation.guidance import Advice, GuidanceAdvisor, GuidancePlanner, advice_to_json
+from onboard.estimation.guidance import Advice, GuidanceAdvisor, GuidancePlanner, SetpointGate, advice_to_json
 
 __all__ = ["GuidanceTap", "make_guidance_tap"]
 
@@ -29,10 +36,17 @@ class GuidanceTap:
 
     name = "guidance"
 
-    def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor) -> None:
+    def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor, clock: Any = time.monotonic) -> None:
         self.vehicle = config.vehicle
         self.in_loop = config.guidance.enabled
         self.advisor = advisor
+        self._clock = clock
+        self.gate = SetpointGate(config.guidance)
+        self._pose: tuple[float, Any, Any] | None = None  # (clock when it came, vehicle p NED, v NED)
+        self._advice: tuple[float, Any] | None = None  # (clock until which it holds, v NED) of the newest advice
+        self._next_setpoint_s = -math.inf
+        self.setpoints_sent = 0
+        self._last_state = self.gate.state
         self._publish: Any = None
         self._slot: tuple[Any, Any] | None = None  # (track, pose), replaced whole by the pipeline thread
         self._wake = threading.Event()
@@ -57,6 +71,8 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
+        if pose is not None and self.in_loop:
+            self._pose = (self._clock(), pose.body.p_ned_m, pose.body.v_ned_mps)
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
@@ -84,6 +100,7 @@ class GuidanceTap:
             self.last_advice = advice
         if not advice.recommended:
             return None
+        self._advice = (self._clock() + advice.valid_until_s - advice.t_s, advice.v_ned_mps)
         payload = json.dumps(advice_to_json(advice, self.vehicle, track.time_boot_us, self.in_loop)).encode()
         if self._publish is not None:
             try:
@@ -95,6 +112,30 @@ class GuidanceTap:
                     self._logged.add("publish")
                     log.warning("guidance: publish failed: %s: %s", type(exc).__name__, exc)
         return payload
+
+    def setpoint_step(self, now: float, link: Any) -> bool:
+        """In the loop (``guidance.enabled``), on the main thread with the autopilot link: at most
+        ``setpoint_rate_hz``, ask the gate and send the advice in force as SET_POSITION_TARGET_LOCAL_NED when it
+        allows; a change of the gate's state is logged once.  True when a setpoint was written."""
+        if not self.in_loop or now < self._next_setpoint_s:
+            return False
+        self._next_setpoint_s = now + 1.0 / self.gate.config.setpoint_rate_hz
+        connected = link is not None and getattr(link, "state", None) == "connected"
+        decision = self.gate.step(
+            now,
+            link_connected=connected,
+            mode=None if link is None else link.autopilot_mode,
+            pose=self._pose,
+            advice=self._advice,
+        )
+        if decision.state != self._last_state:
+            level = logging.WARNING if decision.state == "stopped" else logging.INFO
+            log.log(level, "guidance in the loop: %s%s", decision.state, f" ({decision.why})" if decision.why else "")
+            self._last_state = decision.state
+        if decision.send and decision.v_ned_mps is not None and link.send_setpoint(decision.v_ned_mps):
+            self.setpoints_sent += 1
+            return True
+        return False
 
     def _loop(self) -> None:
         while not self._stop.is_set():
@@ -124,6 +165,12 @@ class GuidanceTap:
             "skipped": dict(a.skipped),
             "last_status": None if last is None else last.status,
             "last_manoeuvre": None if last is None else last.manoeuvre,
+            "setpoints": {
+                "state": self.gate.state,
+                "why": self.gate.why,
+                "sent": self.setpoints_sent,
+                "stops": dict(self.gate.stops),
+            },
         }
 
     def close(self, timeout_s: float) -> None:
@@ -133,7 +180,7 @@ class GuidanceTap:
             self._thread.join(timeout_s)
 
 
-def make_guidance_tap(config: OnboardConfig) -> GuidanceTap | None:
+def make_guidance_tap(config: OnboardConfig, clock: Any = time.monotonic) -> GuidanceTap | None:
     """The tap ``config.guidance`` asks for (None when ``advise`` is off), planning with the estimator's noise
     model and spline and the camera's focal lengths."""
     g = config.guidance
@@ -142,4 +189,4 @@ def make_guidance_tap(config: OnboardConfig) -> GuidanceTap | None:
     k = config.camera.intrinsics
     knot_s = float(config.estimator.sliding.get("knot_spacing_s", 1.0))  # the online spline's (SlidingConfig)
     planner = GuidancePlanner.for_noise(g, config.estimator.noise_model(), (k.fx_px, k.fy_px), knot_s)
-    return GuidanceTap(config, GuidanceAdvisor(planner))
+    return GuidanceTap(config, GuidanceAdvisor(planner), clock)

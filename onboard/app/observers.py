@@ -231,7 +231,9 @@ def recording_metadata(config: OnboardConfig) -> dict[str, str]:
     return {"config_yaml": yaml.safe_dump(config_to_dict(config), sort_keys=False), "vehicle": config.vehicle}
 
 
-def make_observers(config: OnboardConfig, intrinsics: PinholeIntrinsics, clock_ns: Any) -> list[FrameObserver]:
+def make_observers(
+    config: OnboardConfig, intrinsics: PinholeIntrinsics, clock_ns: Any, clock: Any = None
+) -> list[FrameObserver]:
     """The taps ``config`` asks for, in the order their sections appear in the status JSON (video, record,
     live view, guidance) and in which they are started and closed."""
     taps: list[FrameObserver] = []
@@ -255,7 +257,7 @@ def make_observers(config: OnboardConfig, intrinsics: PinholeIntrinsics, clock_n
     if config.guidance.advise:
         from onboard.app.guidance_tap import make_guidance_tap
 
-        guidance = make_guidance_tap(config)
+        guidance = make_guidance_tap(config) if clock is None else make_guidance_tap(config, clock)
         if guidance is not None:
             taps.append(guidance)
     return taps

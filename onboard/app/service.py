@@ -148,7 +148,7 @@ class OnboardService:
         )
         # the output taps, and the newest track for the main thread (the GCS camera, FOLLOW_TARGET, status)
         self.newest = NewestTrack(clock)
-        self.taps: list[FrameObserver] = make_observers(config, self.pipeline.intrinsics, clock_ns)
+        self.taps: list[FrameObserver] = make_observers(config, self.pipeline.intrinsics, clock_ns, clock)
         self.observers: list[FrameObserver] = [*self.taps, self.newest]
         self.recorder = next((t.recorder for t in self.taps if isinstance(t, RecorderTap)), None)
         self.link: MavlinkLink | None = None  # the autopilot link, opened by start()
@@ -446,6 +446,8 @@ class OnboardService:
                 next_watch = now + WATCH_PERIOD_S
             try:
                 self.follow_step(now)
+                for tap in self.taps:  # guidance in the loop: setpoints to the autopilot (onboard.app.guidance_tap)
+                    getattr(tap, "setpoint_step", lambda now, link: None)(now, self.link)
             except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
             if now >= next_status:

@@ -41,7 +41,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_euler, quat_from_rotmat, quat_multiply, rotmat_from_quat
-from onboard.core.schema import Bool, Invalid, Number, Numbers, config_dataclass
+from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, config_dataclass
 from onboard.estimation.crb import predicted_point_covariance
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel
 from onboard.estimation.observations import Observations
@@ -55,6 +55,8 @@ __all__ = [
     "GuidancePlanner",
     "candidate_path",
     "GuidanceAdvisor",
+    "SetpointGate",
+    "SetpointDecision",
     "advice_to_json",
     "GUIDANCE_SCHEMA",
 ]
@@ -95,6 +97,15 @@ class GuidanceConfig:
     los_elevation_min_deg: Annotated[float, Number(-90.0, 90.0)] = -80.0
     los_elevation_max_deg: Annotated[float, Number(-90.0, 90.0)] = 45.0
     max_los_off_heading_deg: Annotated[float, Number(0.0, 180.0)] = 180.0
+    # in the loop (enabled): what the autopilot must report, the box it must stay in, how often setpoints go out
+    setpoint_rate_hz: Annotated[float, Number(0.5, 50.0)] = 4.0
+    accept_autopilot: Annotated[int, Integer(0, 255)] = 3
+    accept_custom_mode: Annotated[int, Integer(0, 2**32 - 1)] = 4
+    require_armed: Bool = True
+    geofence_north_m: Annotated[tuple[float, float], Numbers(2)] = (-300.0, 300.0)
+    geofence_east_m: Annotated[tuple[float, float], Numbers(2)] = (-300.0, 300.0)
+    speed_margin_mps: Annotated[float, Number(0.0, 50.0)] = 2.0
+    pose_timeout_s: Annotated[float, Number(0.1, 60.0)] = 1.0
 
     def __post_init__(self) -> None:
         if self.min_speed_mps > self.max_speed_mps:
@@ -116,6 +127,10 @@ class GuidanceConfig:
         for i, d in enumerate(self.heading_changes_deg):
             if d > 180.0:
                 raise Invalid(f"heading_changes_deg[{i}]", "a number of degrees in (0, 180]", d)
+        for name in ("geofence_north_m", "geofence_east_m"):
+            lo, hi = getattr(self, name)
+            if not lo < hi:
+                raise Invalid(name, "[min, max] with min < max, metres from the NED origin", [lo, hi])
         if self.sample_interval_s * 10 > self.horizon_s:
             raise Invalid("sample_interval_s", f"<= horizon_s / 10 ({self.horizon_s / 10:g})", self.sample_interval_s)
 
@@ -556,3 +571,122 @@ class GuidanceAdvisor:
         self.advised += advice.recommended
         self.last = advice
         return advice
+
+
+#: MAV_MODE_FLAG_SAFETY_ARMED (common.xml): the autopilot's motors are armed
+_MODE_FLAG_ARMED = 128
+
+
+@dataclass(frozen=True)
+class SetpointDecision:
+    """What :meth:`SetpointGate.step` decided: ``send`` ``v_ned_mps`` (3,) now, or not; ``state`` (``off``,
+    ``waiting``: no valid advice, ``not_accepting``: the autopilot is not in the accepting mode, ``sending``,
+    ``stopped``: a limit was reached or the link lost while sending, latched) and ``why`` in words."""
+
+    send: bool
+    v_ned_mps: np.ndarray | None
+    state: str
+    why: str
+
+
+class SetpointGate:
+    """The safety gate between the advice and the autopilot (``guidance.enabled``).  Pure: the caller passes the
+    time, the link state, the autopilot's heartbeat mode, the vehicle's newest position and velocity and the
+    advice in force; :meth:`step` says whether to send it.
+
+    Sends only while the link is connected, the heartbeat reports ``accept_autopilot`` / ``accept_custom_mode``
+    (armed when ``require_armed``), the vehicle is inside the geofence box and the altitude band, not faster than
+    ``max_speed_mps + speed_margin_mps``, its pose newer than ``pose_timeout_s`` and the advice still valid.  A limit
+    reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): setpoints resume
+    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The autopilot's
+    own failsafe handles a setpoint stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves
+    OFFBOARD): deploy/README.md.
+    """
+
+    def __init__(self, config: GuidanceConfig) -> None:
+        self.config = config
+        self.state = "off" if not config.enabled else "waiting"
+        self.why = "" if config.enabled else "guidance.enabled is false"
+        self.stops: dict[str, int] = {}
+
+    def _accepting(self, mode: tuple[int, int, int] | None) -> bool:
+        c = self.config
+        if mode is None:
+            return False
+        autopilot, base_mode, custom_mode = mode
+        return (
+            autopilot == c.accept_autopilot
+            and custom_mode == c.accept_custom_mode
+            and (not c.require_armed or bool(base_mode & _MODE_FLAG_ARMED))
+        )
+
+    def _limit(self, p_ned_m: np.ndarray, v_ned_mps: np.ndarray) -> str:
+        c = self.config
+        n0, n1 = c.geofence_north_m
+        e0, e1 = c.geofence_east_m
+        if not (n0 <= p_ned_m[0] <= n1 and e0 <= p_ned_m[1] <= e1):
+            return f"geofence: vehicle at north {p_ned_m[0]:.1f} east {p_ned_m[1]:.1f} m, box north {n0:g}..{n1:g} east {e0:g}..{e1:g} m"
+        alt = -float(p_ned_m[2])
+        if not c.min_altitude_m <= alt <= c.max_altitude_m:
+            return f"altitude: vehicle at {alt:.1f} m, band {c.min_altitude_m:g}..{c.max_altitude_m:g} m"
+        speed = float(np.linalg.norm(v_ned_mps[:2]))
+        if (
+            speed > c.max_speed_mps + c.speed_margin_mps
+            or abs(float(v_ned_mps[2])) > c.max_climb_rate_mps + c.speed_margin_mps
+        ):
+            return f"speed: vehicle at {speed:.1f} m/s horizontal, {float(v_ned_mps[2]):.1f} m/s down"
+        return ""
+
+    def _stop(self, why: str) -> SetpointDecision:
+        self.state, self.why = "stopped", why
+        kind = why.split(":", 1)[0]
+        self.stops[kind] = self.stops.get(kind, 0) + 1
+        return SetpointDecision(False, None, self.state, why)
+
+    def step(
+        self,
+        now_s: float,
+        *,
+        link_connected: bool,
+        mode: tuple[int, int, int] | None,
+        pose: tuple[float, np.ndarray, np.ndarray] | None,
+        advice: tuple[float, np.ndarray] | None,
+    ) -> SetpointDecision:
+        """``pose``: (when it came, s on ``now_s``'s clock; position (3,) NED m; velocity (3,) NED m/s) or None;
+        ``advice``: (valid until, s on the same clock; velocity (3,) NED m/s) or None."""
+        if not self.config.enabled:
+            return SetpointDecision(False, None, "off", self.why)
+        accepting = link_connected and self._accepting(mode)
+        if self.state == "stopped":
+            if link_connected and not self._accepting(mode):  # the pilot took the vehicle back: re-arm the gate
+                self.state, self.why = "not_accepting", "the autopilot left the accepting mode after a stop"
+            return SetpointDecision(False, None, self.state, self.why)
+        was_sending = self.state == "sending"
+        if not link_connected:
+            if was_sending:
+                return self._stop("link_lost: no autopilot heartbeat")
+            self.state, self.why = "waiting", "no autopilot link"
+            return SetpointDecision(False, None, self.state, self.why)
+        if not accepting:
+            if was_sending:
+                self.why = "the autopilot left the accepting mode"
+            else:
+                self.why = "the autopilot is not in the accepting mode"
+            self.state = "not_accepting"
+            return SetpointDecision(False, None, self.state, self.why)
+        if pose is None or now_s - pose[0] > self.config.pose_timeout_s:
+            if was_sending:
+                return self._stop("pose_lost: no vehicle pose for guidance.pose_timeout_s")
+            self.state, self.why = "waiting", "no recent vehicle pose"
+            return SetpointDecision(False, None, self.state, self.why)
+        limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
+        if limit:
+            return self._stop(limit)
+        if advice is None or now_s > advice[0]:
+            self.state, self.why = "waiting", "no advice in force"
+            return SetpointDecision(False, None, self.state, self.why)
+        v = np.asarray(advice[1], dtype=float)
+        if not self.config.speed_ok(v):  # the planner keeps the limits; the gate checks again, never trusts
+            return self._stop("speed: the advice is outside the speed limits")
+        self.state, self.why = "sending", ""
+        return SetpointDecision(True, v.copy(), self.state, "")

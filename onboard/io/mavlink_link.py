@@ -76,6 +76,7 @@ from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
     GlobalPositionInt,
     Heartbeat,
+    SetPositionTargetLocalNed,
     Timesync,
     connect,
     parse_endpoint,
@@ -518,6 +519,9 @@ class MavlinkLink:
         self._next_open_s = -math.inf
         self.state = LINK_WAITING
         self.autopilot_sysid: int | None = self.config.autopilot_sysid
+        self.autopilot_mode: tuple[int, int, int] | None = (
+            None  # (MAV_AUTOPILOT, base_mode, custom_mode) of its heartbeat
+        )
         self._last_hb_rx_s: float | None = None
         self._last_hb_tx_s = -math.inf
         self._last_ts_tx_s = -math.inf
@@ -763,6 +767,8 @@ class MavlinkLink:
                 log.info("autopilot %d at %s:%d: our output goes there only", src_sys, *addr)
             t.peer = addr
         self._last_hb_rx_s = now
+        # the autopilot's mode as its heartbeat says (guidance in the loop sends setpoints only in the accepting mode)
+        self.autopilot_mode = (int(msg.autopilot), int(msg.base_mode), int(msg.custom_mode))
         if self.state != LINK_CONNECTED:
             previous = self.state
             self.state = LINK_CONNECTED
@@ -928,6 +934,16 @@ class MavlinkLink:
             camera_device_id,
         ).to_message()
         return self._send("CAMERA_TRACKING_IMAGE_STATUS", msg)
+
+    def send_setpoint(self, v_ned_mps) -> bool:
+        """SET_POSITION_TARGET_LOCAL_NED (#84), velocity only, to the locked autopilot (its system, component
+        ``autopilot_compid``), stamped with the autopilot's boot clock when TIMESYNC converged (else 0, as
+        common.xml allows); True when written, False without a locked autopilot."""
+        if self.autopilot_sysid is None:
+            return False
+        t_us = self.to_boot_us(self._clock_ns()) or 0
+        sp = SetPositionTargetLocalNed(int(t_us), self.autopilot_sysid, self.config.autopilot_compid, tuple(v_ned_mps))
+        return self._send("SET_POSITION_TARGET_LOCAL_NED", sp.to_message())
 
     def send_follow_target(self, target: FollowTarget) -> bool:
         """FOLLOW_TARGET (#144) of :func:`onboard.io.follow.follow_target`; True when written."""

@@ -26,6 +26,8 @@ COMMAND_LONG (#76)                     :func:`set_message_interval_message` (MAV
 COMMAND_ACK (#77)                      :func:`command_ack_message`
 FOLLOW_TARGET (#144)                   timestamp (ms) <- ``time_boot_us``; lat, lon (degE7); alt (m AMSL);
 :class:`FollowTarget`                  vel (m/s NED) <- ``v_ned_mps``; position_cov[0:2] <- ``h_acc_m``, ``v_acc_m``
+SET_POSITION_TARGET_LOCAL_NED (#84)    time_boot_ms <- ``time_boot_us``; MAV_FRAME_LOCAL_NED; type_mask: velocity only
+:class:`SetPositionTargetLocalNed`     (position, acceleration, yaw, yaw rate ignored); vx, vy, vz (m/s) <- ``v_ned_mps``
 CAMERA_TRACKING_IMAGE_STATUS (#275)    normalised image coordinates (x 0 = left .. 1 = right, y 0 = top ..
 :class:`CameraTrackingImageStatus`     1 = bottom; NaN = unknown) as they are
 CAMERA_TRACKING_GEO_STATUS (#276)      lat, lon (degE7) <- ``lat_deg``, ``lon_deg``; alt (m AMSL) <- ``alt_m``;
@@ -98,6 +100,8 @@ __all__ = [
     "CameraTrackingImageStatus",
     "CameraTrackingGeoStatus",
     "FollowTarget",
+    "SetPositionTargetLocalNed",
+    "SETPOINT_VELOCITY_ONLY_MASK",
     "FOLLOW_TARGET_CAP_POS",
     "FOLLOW_TARGET_CAP_VEL",
     "CAMERA_TRACKING_STATUS_FLAGS_IDLE",
@@ -722,6 +726,54 @@ class CameraTrackingGeoStatus:
             msg.tracking_status,
             msg.camera_device_id,
         )
+
+
+#: SET_POSITION_TARGET type_mask of a velocity-only setpoint: position (bits 0-2), acceleration (6-8), yaw (10) and
+#: yaw rate (11) ignored (common.xml POSITION_TARGET_TYPEMASK)
+SETPOINT_VELOCITY_ONLY_MASK = 0b1101_1100_0111
+
+
+@dataclass(frozen=True)
+class SetPositionTargetLocalNed:
+    """SET_POSITION_TARGET_LOCAL_NED (#84), velocity only: fly ``v_ned_mps`` (NED m/s) from ``time_boot_us`` on,
+    to system ``target_system`` / component ``target_component`` (ArduPilot GUIDED, PX4 OFFBOARD)."""
+
+    time_boot_us: int
+    target_system: int
+    target_component: int
+    v_ned_mps: tuple[float, float, float]
+
+    def to_message(self):
+        m = "SET_POSITION_TARGET_LOCAL_NED"
+        vx, vy, vz = _vec(m, "v_ned_mps", self.v_ned_mps, 3)
+        return mavlink2.MAVLink_set_position_target_local_ned_message(
+            _time_boot_ms(m, self.time_boot_us),
+            _int(m, "target_system", self.target_system, 0, 255),
+            _int(m, "target_component", self.target_component, 0, 255),
+            mavlink2.MAV_FRAME_LOCAL_NED,
+            SETPOINT_VELOCITY_ONLY_MASK,
+            0.0,
+            0.0,
+            0.0,
+            vx,
+            vy,
+            vz,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+            0.0,
+        )
+
+    @classmethod
+    def from_message(cls, msg) -> SetPositionTargetLocalNed:
+        """The setpoint of a message (raises InputError for a frame or mask this type does not carry)."""
+        if msg.coordinate_frame != mavlink2.MAV_FRAME_LOCAL_NED or msg.type_mask != SETPOINT_VELOCITY_ONLY_MASK:
+            raise InputError(
+                f"SET_POSITION_TARGET_LOCAL_NED: only velocity in MAV_FRAME_LOCAL_NED is handled, got frame "
+                f"{msg.coordinate_frame} type_mask 0x{msg.type_mask:x}"
+            )
+        return cls(int(msg.time_boot_ms) * 1000, msg.target_system, msg.target_component, (msg.vx, msg.vy, msg.vz))
 
 
 @dataclass(frozen=True)

@@ -38,10 +38,48 @@ def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     sc = load_scenario(resolve_scenario_path("H3"))
-    r = run_lockstep(sc, 0, EvalOptions(duration_s=5.0, batch=False, keep_frame=False, guidance=True))
+    r = run_lockstep(sc, 0, EvalOptions(duration_s=4.0, batch=False, keep_frame=False, guidance=True))
     assert r.error is None and r.guidance is not None
     assert r.guidance["advices"] >= 1
     t0 = r.guidance["first_advice_s"]
     # H3's observer flies straight east at 8 m/s: after the advice it leaves that line
     late = r.t_s - r.t_s[0] > t0 + 1.5
     assert np.max(np.abs(r.observer_p_ned_m[late, 0])) > 1.0
+
+
+@pytest.mark.integration
+def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoints():
+    import time
+
+    from groundsim.io.mavlink_vehicle import ARDUCOPTER_GUIDED_MODE, MavlinkVehicle, open_mavlink2
+    from groundsim.io.ports import free_udp_port
+    from onboard.io.mavlink_wire import SetPositionTargetLocalNed, mavlink2
+
+    port = free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 191)  # the companion's side
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", guided=True)
+    try:
+        deadline = time.monotonic() + 5.0
+        hb = None
+        while hb is None and time.monotonic() < deadline:
+            vehicle.poll(0)
+            hb = rx.recv_match(type="HEARTBEAT", blocking=False)
+            time.sleep(0.002)
+        assert hb is not None
+        assert (hb.autopilot, hb.custom_mode) == (mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, ARDUCOPTER_GUIDED_MODE)
+        assert hb.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (2.0, -3.0, 0.5)).to_message())
+        rx.mav.send(SetPositionTargetLocalNed(1_000_000, 9, 1, (9.0, 9.0, 9.0)).to_message())  # another system's
+        got: list = []
+        while len(got) < 1 and time.monotonic() < deadline:
+            vehicle.poll(0)
+            got += vehicle.take_setpoints()
+            time.sleep(0.002)
+        for _ in range(20):  # the other system's setpoint, if it were taken, would come now
+            vehicle.poll(0)
+            got += vehicle.take_setpoints()
+            time.sleep(0.002)
+        assert got == [(2.0, -3.0, 0.5)]
+    finally:
+        vehicle.close()
+        rx.close()

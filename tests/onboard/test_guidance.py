@@ -222,3 +222,58 @@ def test_tap_publishes_advice_json_once_per_interval_and_counts_what_it_skips():
     small = 4.0 * np.eye(3)
     assert tap.step(_track(7_200_000, p, (-3.0, -2.0, 0.0), small), pose) is None
     assert tap.status()["last_status"] == "observable" and len(sent) == 1
+
+
+def test_setpoint_message_round_trips_velocity_only():
+    from onboard.io.mavlink_wire import SETPOINT_VELOCITY_ONLY_MASK, SetPositionTargetLocalNed, wire_roundtrip
+
+    sp = SetPositionTargetLocalNed(12_345_000, 1, 1, (1.5, -2.25, 0.5))
+    msg = wire_roundtrip(sp.to_message())
+    assert msg.type_mask == SETPOINT_VELOCITY_ONLY_MASK and msg.coordinate_frame == 1
+    assert SetPositionTargetLocalNed.from_message(msg) == sp
+    msg.type_mask = 0  # a position setpoint: not what this type carries
+    with pytest.raises(InputError, match="only velocity"):
+        SetPositionTargetLocalNed.from_message(msg)
+
+
+GUIDED = (3, 128 | 1, 4)  # ArduPilot, armed + custom mode, GUIDED
+LOITER = (3, 128 | 1, 5)
+
+
+def test_setpoint_gate_sends_only_in_the_accepting_mode_and_latches_a_stop_until_the_pilot_takes_over():
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True, "geofence_north_m": [-100.0, 100.0]}))
+    inside = (0.0, np.array([0.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
+    advice = (10.0, np.array([3.0, 4.0, 0.0]))
+
+    def step(now, mode=GUIDED, pose=inside, adv=advice, link=True):
+        return gate.step(now, link_connected=link, mode=mode, pose=(now, *pose[1:]) if pose else None, advice=adv)
+
+    assert step(0.0, mode=LOITER).state == "not_accepting"
+    d = step(0.1)
+    assert d.send and d.state == "sending" and np.allclose(d.v_ned_mps, [3.0, 4.0, 0.0])
+    assert step(10.5).state == "waiting"  # the advice lapsed: nothing sent
+    assert step(1.0).send
+    out = (0.0, np.array([150.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
+    d = step(1.2, pose=out)
+    assert not d.send and d.state == "stopped" and d.why.startswith("geofence")
+    assert not step(1.4).send and gate.state == "stopped"  # latched, back inside or not
+    assert step(1.6, mode=LOITER).state == "not_accepting"  # the pilot took over: re-armed
+    assert step(1.8).send
+    d = step(2.0, link=False)
+    assert d.state == "stopped" and d.why.startswith("link_lost")
+    assert gate.stops == {"geofence": 1, "link_lost": 1}
+    off = SetpointGate(GuidanceConfig())
+    assert off.step(0.0, link_connected=True, mode=GUIDED, pose=inside, advice=advice).state == "off"
+
+
+def test_setpoint_gate_refuses_a_disarmed_or_foreign_autopilot_and_an_old_pose():
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+    assert gate.step(0.0, link_connected=True, mode=(3, 1, 4), pose=pose, advice=advice).state == "not_accepting"
+    assert gate.step(0.0, link_connected=True, mode=(12, 129, 4), pose=pose, advice=advice).state == "not_accepting"
+    assert gate.step(5.0, link_connected=True, mode=GUIDED, pose=pose, advice=advice).state == "waiting"
