@@ -31,6 +31,12 @@ __all__ = ["GuidanceTap", "make_guidance_tap"]
 log = logging.getLogger(__name__)
 
 
+def _origin_alt_m(pose: Any) -> float:
+    """The altitude (m AMSL) of the local NED origin a pose is in (0 when it carries none)."""
+    origin = getattr(pose, "origin", None)
+    return float(origin.alt_m) if origin is not None else 0.0
+
+
 class GuidanceTap:
     """Advice from the newest (track, pose), published through ``publish(bytes)`` once :meth:`attach` gave it."""
 
@@ -71,8 +77,9 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
-        if pose is not None and self.in_loop:
-            self._pose = (self._clock(), pose.body.p_ned_m, pose.body.v_ned_mps)
+        if pose is not None and self.in_loop:  # the gate's altitude band is AMSL, as the planner's
+            p_amsl = pose.body.p_ned_m - [0.0, 0.0, _origin_alt_m(pose)]
+            self._pose = (self._clock(), p_amsl, pose.body.v_ned_mps)
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
@@ -85,7 +92,7 @@ class GuidanceTap:
 
     def step(self, track: Any, pose: Any) -> bytes | None:
         """One update from a track and its frame's pose; the payload published (None: nothing advised)."""
-        advice = self.advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps)
+        advice = self.advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, _origin_alt_m(pose))
         for reason, n in self.advisor.skipped.items():
             if n and reason not in self._logged:  # each reason logged once; the status counts them all
                 self._logged.add(reason)

@@ -131,8 +131,8 @@ class OnboardService:
 
         self._frame_schema = FRAME_SCHEMA  # frames typed with another schema are refused (frame_schema)
         pose_source: Any = self.pose
-        self._pose_memo = None  # remembers each frame's pose for the recorder and the live view's 3-D scene
-        if config.record.path or config.live_view.port is not None:
+        self._pose_memo = None  # remembers each frame's pose for the recorder, the live view's 3-D scene and guidance
+        if config.record.path or config.live_view.port is not None or config.guidance.advise:  # guidance: the pose
             from onboard.io.record import RecordingPoseSource
 
             pose_source = self._pose_memo = RecordingPoseSource(self.pose)

@@ -27,8 +27,8 @@ heading).  Nothing is recommended while the posterior range sigma is already bel
 ``quiet_below_sigma_range_ratio`` of the range (observable with margin), when the observer is outside
 its own limits, or when the best candidate does not beat holding by ``min_gain_ratio``.
 
-Frames and units follow :mod:`onboard.core.frames`: local NED metres, velocities m/s, altitude = -down
-(metres above the NED origin).  Pure: no I/O, no clock; the caller passes the times.
+Frames and units follow :mod:`onboard.core.frames`: local NED metres, velocities m/s; the planner's positions
+have their origin at sea level below the local NED origin, so altitude = -down is metres AMSL.  Pure: no I/O, no clock; the caller passes the times.
 """
 
 from __future__ import annotations
@@ -70,7 +70,8 @@ class GuidanceConfig:
     """The ``guidance`` section of the daemon's configuration (``config/onboard.yaml`` documents each field):
     whether the advice is published and sent, how it is planned, and the limits it must keep.
 
-    Units are in the names; altitudes are metres above the local NED origin (``-d``).
+    Units are in the names; altitudes are metres AMSL (the local NED origin's altitude minus ``d``: the callers
+    shift positions by the origin's altitude, :meth:`GuidanceAdvisor.update`).
     """
 
     advise: Bool = True
@@ -541,9 +542,12 @@ class GuidanceAdvisor:
         nxt = self._next_us
         return nxt is None or time_boot_us >= nxt or time_boot_us < nxt - 2 * self.interval_us
 
-    def update(self, track: Any, p_cam_ned_m, v_cam_ned_mps) -> Advice | None:
+    def update(self, track: Any, p_cam_ned_m, v_cam_ned_mps, origin_alt_m: float = 0.0) -> Advice | None:
         """The advice for ``track`` (an :class:`onboard.core.track.Track`) seen from the camera at ``p_cam_ned_m``
-        moving at ``v_cam_ned_mps`` (the vehicle's velocity; NaN = unknown), or None when not due or not possible."""
+        moving at ``v_cam_ned_mps`` (the vehicle's velocity; NaN = unknown), or None when not due or not possible.
+
+        ``origin_alt_m``: the local NED origin's altitude (m AMSL); the planner's altitude band is AMSL, so both
+        positions are moved down by it (``d - origin_alt_m``), which changes no relative geometry."""
         t_us = int(track.time_boot_us)
         if not self.due(t_us):
             return None
@@ -557,11 +561,12 @@ class GuidanceAdvisor:
             return None
         t_s = t_us / _US_PER_S
         sig_v = track.sigma_vel_ned_mps or (2.0, 2.0, 1.0)
+        down = np.array([0.0, 0.0, -float(origin_alt_m)])
         try:
-            target = TargetPosterior.from_track(
-                t_s, track.p_ned_m, track.v_ned_mps, track.cov_p_ned_m2, sig_v, p_cam_ned_m, v_cam
-            )
-            observer = ObserverState(t_s, p_cam_ned_m, v_cam)
+            p_cam = np.asarray(p_cam_ned_m, dtype=float) + down
+            p_tgt = np.asarray(track.p_ned_m, dtype=float) + down
+            target = TargetPosterior.from_track(t_s, p_tgt, track.v_ned_mps, track.cov_p_ned_m2, sig_v, p_cam, v_cam)
+            observer = ObserverState(t_s, p_cam, v_cam)
         except InputError as exc:  # a track or pose the posterior cannot be built from: counted, the caller logs it
             self.skipped["bad_input"] = self.skipped.get("bad_input", 0) + 1
             self.last_error = str(exc)
