@@ -52,6 +52,7 @@ class GuidanceTap:
         self._advice: tuple[float, Any] | None = None  # (clock until which it holds, v NED) of the newest advice
         self._next_setpoint_s = -math.inf
         self.setpoints_sent = 0
+        self.setpoint_errors = 0
         self._last_state = self.gate.state
         self._publish: Any = None
         self._slot: tuple[Any, Any] | None = None  # (track, pose), replaced whole by the pipeline thread
@@ -127,6 +128,16 @@ class GuidanceTap:
         if not self.in_loop or now < self._next_setpoint_s:
             return False
         self._next_setpoint_s = now + 1.0 / self.gate.config.setpoint_rate_hz
+        try:
+            return self._setpoint_step(now, link)
+        except Exception as exc:  # noqa: BLE001 - the main loop must go on; counted in the status, logged once
+            self.setpoint_errors += 1
+            if "setpoint" not in self._logged:
+                self._logged.add("setpoint")
+                log.warning("guidance: setpoint step failed: %s: %s", type(exc).__name__, exc)
+            return False
+
+    def _setpoint_step(self, now: float, link: Any) -> bool:
         connected = link is not None and getattr(link, "state", None) == "connected"
         decision = self.gate.step(
             now,
@@ -176,6 +187,7 @@ class GuidanceTap:
                 "state": self.gate.state,
                 "why": self.gate.why,
                 "sent": self.setpoints_sent,
+                "errors": self.setpoint_errors,
                 "stops": dict(self.gate.stops),
             },
         }

@@ -446,10 +446,10 @@ class OnboardService:
                 next_watch = now + WATCH_PERIOD_S
             try:
                 self.follow_step(now)
-                for tap in self.taps:  # guidance in the loop: setpoints to the autopilot (onboard.app.guidance_tap)
-                    getattr(tap, "setpoint_step", lambda now, link: None)(now, self.link)
             except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
+            for tap in self.taps:  # guidance in the loop: setpoints to the autopilot (never raises; guidance_tap)
+                getattr(tap, "setpoint_step", lambda now, link: None)(now, self.link)
             if now >= next_status:
                 last_cpu = self._publish_status(now, last_cpu)
                 next_status = max(next_status + cfg.output.status_interval_s, now)

@@ -277,3 +277,39 @@ def test_setpoint_gate_refuses_a_disarmed_or_foreign_autopilot_and_an_old_pose()
     assert gate.step(0.0, link_connected=True, mode=(3, 1, 4), pose=pose, advice=advice).state == "not_accepting"
     assert gate.step(0.0, link_connected=True, mode=(12, 129, 4), pose=pose, advice=advice).state == "not_accepting"
     assert gate.step(5.0, link_connected=True, mode=GUIDED, pose=pose, advice=advice).state == "waiting"
+
+
+def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
+    from types import SimpleNamespace
+
+    from onboard.app.config import OnboardConfig
+    from onboard.app.guidance_tap import make_guidance_tap
+    from onboard.app.observers import FrameResult
+    from onboard.core.schema import build as build_cfg
+
+    now = [100.0]
+    cfg = build_cfg(OnboardConfig, {"guidance": {"enabled": True}})
+    tap = make_guidance_tap(cfg, clock=lambda: now[0])
+    assert tap is not None and tap.in_loop
+    sent: list = []
+    link = SimpleNamespace(state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True)
+    cam = np.array([0.0, 40.0, -60.0])
+    body = SimpleNamespace(p_ned_m=cam, v_ned_mps=np.array([0.0, 8.0, 0.0]))
+    pose = SimpleNamespace(p_cam_ned_m=cam, body=body, origin=None)
+    p = np.array([135.0, 50.0, -80.0])
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov)
+    tap.on_frame(None, FrameResult(0, True, pose, track, None))  # the pose the gate checks
+    assert tap.step(track, pose) is not None  # an advice in force for valid_for_s
+    assert not tap.setpoint_step(now[0], link) and tap.status()["setpoints"]["state"] == "not_accepting"
+    link.autopilot_mode = GUIDED
+    now[0] += 1.0
+    assert tap.setpoint_step(now[0], link) and len(sent) == 1
+    assert not tap.setpoint_step(now[0] + 0.01, link)  # paced at setpoint_rate_hz
+    now[0] += 5.0  # the advice (3 s) and the pose (1 s) are old now
+    tap.on_frame(None, FrameResult(0, True, pose, None, None))
+    assert not tap.setpoint_step(now[0], link) and tap.status()["setpoints"]["why"] == "no advice in force"
+    link.send_setpoint = None  # a broken link object: counted, never raised into the main loop
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]))
+    assert not tap.setpoint_step(now[0] + 1.0, link) and tap.status()["setpoints"]["errors"] == 1
