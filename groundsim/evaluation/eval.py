@@ -908,8 +908,11 @@ def cmd_eval(args) -> int:
     if options.guidance:
         from groundsim.evaluation.scoring import format_guidance_summary
 
+        table = format_guidance_summary(result.runs)
+        with open(files["report.md"], "a", encoding="utf-8") as f:
+            f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
         print()
-        print(format_guidance_summary(result.runs))
+        print(table)
     failed = sum(1 for s in result.scores if "error" in s)
     print(
         f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "

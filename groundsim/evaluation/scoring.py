@@ -336,14 +336,14 @@ def format_guidance_summary(runs) -> str:
         adv = [f["advices"] for f in figs if f["advices"] is not None]
         first = [f["first_advice_s"] for f in figs if f["first_advice_s"] is not None]
 
-        def f(x, fmt):
-            return "-" if x is None else format(x, fmt)
+        def f(x, fmt, unit=""):
+            return "-" if x is None else format(x, fmt) + unit
 
         lines.append(
             f"| {name} | {nav or '-'} | {len(rs)} | {within}/{len(rs)} ({100.0 * within / len(rs):.0f} %) | "
-            f"{f(float(np.median(err)) if err else None, '.2f')} % ({len(err)} frames) | "
-            f"{f(100.0 * beyond / pub if pub else None, '.2f')} % ({pub} positions) | "
-            f"{f(100.0 * float(np.mean(shares)) if shares else None, '.0f')} % | "
+            f"{f(float(np.median(err)) if err else None, '.2f', ' %')} ({len(err)} frames) | "
+            f"{f(100.0 * beyond / pub if pub else None, '.2f', ' %')} ({pub} positions) | "
+            f"{f(100.0 * float(np.mean(shares)) if shares else None, '.0f', ' %')} | "
             f"{f(float(np.median(after)) if after else None, '.1f')} | "
             f"{f(float(np.median(adv)) if adv else None, '.0f')}; {f(float(np.median(first)) if first else None, '.1f')} |"
         )

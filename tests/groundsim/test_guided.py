@@ -45,6 +45,11 @@ def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
     # H3's observer flies straight east at 8 m/s: after the advice it leaves that line
     late = r.t_s - r.t_s[0] > t0 + 1.5
     assert np.max(np.abs(r.observer_p_ned_m[late, 0])) > 1.0
+    from groundsim.evaluation.scoring import format_guidance_summary, guidance_figures
+
+    assert guidance_figures(r)["first_track_s"] is not None
+    row = format_guidance_summary([r]).splitlines()[-1]
+    assert row.startswith("| H3 | ") and " | 1 | " in row
 
 
 @pytest.mark.integration
