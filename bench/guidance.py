@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import collections
 import math
+import sys
 import time
 
 from onboard.core.blas import single_thread_blas_env  # noqa: E402 - imports nothing but os
@@ -21,6 +22,7 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
+from bench import run_benchmark  # noqa: E402
 from onboard.app.config import OnboardConfig  # noqa: E402
 from onboard.estimation.guidance import GuidanceConfig, GuidancePlanner, ObserverState, TargetPosterior  # noqa: E402
 
@@ -67,4 +69,4 @@ def main(argv: list[str] | None = None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run_benchmark("guidance", main))
