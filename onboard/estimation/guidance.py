@@ -35,16 +35,16 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 
-from onboard.core.errors import InputError
+from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import quat_from_euler, quat_from_rotmat, quat_multiply, rotmat_from_quat
 from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, config_dataclass
-from onboard.estimation.crb import predicted_point_covariance
-from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MotionPrior, NoiseModel
-from onboard.estimation.observations import Observations
+
+if TYPE_CHECKING:  # the planner imports the estimator when built: the config section stays light to import
+    from onboard.estimation.map_estimator import MapEstimator, NoiseModel
 
 __all__ = [
     "GuidanceConfig",
@@ -325,6 +325,8 @@ class GuidancePlanner:
         self.estimator = estimator
         self.f_px = (float(f_px[0]), float(f_px[1]))
         c = config
+        from onboard.estimation.map_estimator import MotionPrior
+
         self.prior = MotionPrior(c.target_accel_psd_m2ps3, c.target_accel_psd_m2ps3 * 0.25, turn_rate_sigma_radps=0.0)
         n = int(round(c.horizon_s / c.sample_interval_s))
         self.dt_s = np.linspace(0.0, c.horizon_s, n + 1)
@@ -336,6 +338,8 @@ class GuidancePlanner:
         cls, config: GuidanceConfig, noise: NoiseModel, f_px: tuple[float, float], knot_spacing_s: float = 1.0
     ) -> GuidancePlanner:
         """A planner over the online estimator's spline (``knot_spacing_s``) and ``noise`` model."""
+        from onboard.estimation.map_estimator import MapConfig, MapEstimator
+
         return cls(config, MapEstimator(MapConfig(knot_spacing_s=knot_spacing_s, min_frames=10), noise), f_px)
 
     # ------------------------------------------------------------------ candidates
@@ -396,6 +400,9 @@ class GuidancePlanner:
         """Predicted 1-sigma range at the horizon's end after flying ``p_obs`` (N, 3) while the target flies
         ``p_tgt`` (N, 3), both at ``observer.t_s + dt_s``, knowing ``info_pv`` (6, 6) about the target's ``(p, v)`` at
         ``observer.t_s`` (:func:`~onboard.estimation.crb.predicted_point_covariance`)."""
+        from onboard.estimation.crb import predicted_point_covariance
+        from onboard.estimation.observations import Observations
+
         t = observer.t_s + self.dt_s
         u = p_tgt - p_obs
         r = np.linalg.norm(u, axis=1, keepdims=True)
@@ -463,7 +470,7 @@ class GuidancePlanner:
                 if ok or name == "hold":
                     sig = self.predicted_sigma_range_m(observer, info_pv, p_obs, p_tgt)
                 evaluated.append(Candidate(name, v_sp, ok, why, sig))
-        except (EstimationError, InputError, np.linalg.LinAlgError, ValueError) as exc:
+        except (IrtrackError, np.linalg.LinAlgError, ValueError) as exc:  # EstimationError, InputError included
             return nothing("unavailable", math.nan, math.nan, str(exc))
         hold = evaluated[0]
         options = [k for k in evaluated[1:] if k.feasible and math.isfinite(k.sigma_range_m)]
