@@ -1,0 +1,274 @@
+"""Fleet triangulation (:mod:`onboard.estimation.fleet`): exactness on noiseless rays, covariance
+consistency under the noise model, honesty without geometry, the issue's two-drone example, association."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from scipy.stats import chi2
+
+from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure
+from onboard.core.counters import RejectCounter
+from onboard.core.errors import InputError
+from onboard.estimation.fleet import (
+    FleetConfig,
+    FleetTracker,
+    Ray,
+    closest_approach,
+    fleet_verdict,
+    triangulate,
+)
+from onboard.estimation.map_estimator import NoiseModel
+
+ATOL_M = 1e-3  # 1 mm on noiseless rays (the MAP's weak priors pull it by (sigma_post / sigma_prior)^2 of their offset)
+ATOL_MPS = 1e-3
+NOISELESS_SIGMA_RAD = 1e-6  # the weight of a noiseless ray: small, so that the weak priors pull by nothing
+FAST = settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+
+EXACT = NoiseModel()
+RTK = NoiseModel(
+    attitude_bias_sigma_rad=math.radians(0.1),
+    camera_position_white_sigma_m=0.02,
+    camera_position_offset_sigma_m=0.5,
+)
+TINY_NUISANCES = NoiseModel(  # the nuisance columns present, their priors small beside the noiseless rays' weight
+    attitude_bias_sigma_rad=1e-7, camera_position_white_sigma_m=1e-5, camera_position_offset_sigma_m=1e-4
+)
+
+
+def ray_of(los, vehicle: str, t_s: float, object_id: int = 1) -> Ray:
+    return Ray(vehicle, object_id, t_s, los.p_cam_ned_m, los.los_ned, los.sigma_az_rad, los.sigma_el_rad)
+
+
+coord = st.floats(-1500.0, 1500.0)
+point = st.tuples(coord, coord, st.floats(-400.0, -20.0))
+speed = st.tuples(st.floats(-20.0, 20.0), st.floats(-20.0, 20.0), st.floats(-3.0, 3.0))
+
+
+def _min_pair_angle_rad(cams: list[np.ndarray], p: np.ndarray) -> float:
+    u = [(p - c) / np.linalg.norm(p - c) for c in cams]
+    return max(math.acos(min(1.0, abs(float(u[i] @ u[j])))) for i in range(len(u)) for j in range(i + 1, len(u)))
+
+
+@FAST
+@given(
+    target=point,
+    v_target=speed,
+    cams=st.lists(point, min_size=2, max_size=5),
+    offset=st.tuples(st.floats(-200, 200), st.floats(-200, 200), st.floats(-50, 50)),
+    noise=st.sampled_from([EXACT, TINY_NUISANCES]),
+)
+def test_noiseless_rays_from_random_geometries_recover_the_point_and_velocity(target, v_target, cams, offset, noise):
+    tgt = SynthTarget(target, v_target)
+    vehicles = [SynthVehicle(f"uav{i}", c, (5.0, -3.0, 0.0)) for i, c in enumerate(cams)]
+    p_end = tgt.p_ned_m(0.3)
+    assume(all(np.linalg.norm((p_end - v.camera_ned_m(0.3))[:2]) > 50.0 for v in vehicles))
+    assume(_min_pair_angle_rad([v.camera_ned_m(0.3) for v in vehicles], p_end) > math.radians(5.0))
+    rng = np.random.default_rng(0)
+    s = NOISELESS_SIGMA_RAD
+    rays = []
+    for t in (0.0, 0.1, 0.2, 0.3):
+        for v in vehicles:
+            m = measure(v, tgt, t, rng, 0.0)
+            rays.append(Ray(v.name, 1, t, m.p_cam_ned_m, m.los_ned, s / math.hypot(*m.los_ned[:2]), s))
+    sol = triangulate(rays, noise, p_end + np.asarray(offset), FleetConfig(q_m2ps3=0.0))
+    assert sol.t_s == pytest.approx(0.3)
+    np.testing.assert_allclose(sol.p_ned_m, p_end, atol=ATOL_M)
+    np.testing.assert_allclose(sol.v_ned_mps, v_target, atol=ATOL_MPS)
+
+
+def _nees_trial(rng: np.random.Generator, noise: NoiseModel, white_sigma_rad: float) -> tuple[float, bool]:
+    """One random two-to-four-vehicle geometry around a moving target at ~1 km: the NEES of the position with
+    the verdict's covariance, and the verdict."""
+    tgt = SynthTarget(tuple(rng.uniform([800, -300, -200], [1200, 300, -50])), tuple(rng.uniform(-15, 15, 3)))
+    vehicles = []
+    for i in range(int(rng.integers(2, 5))):
+        vehicles.append(
+            SynthVehicle(
+                f"uav{i}",
+                tuple(rng.uniform([-100, -400, -120], [100, 400, -80])),
+                tuple(rng.uniform(-10, 10, 3)),
+                offset_ned_m=tuple(rng.normal(0, noise.camera_position_offset_sigma_m or 0.0, 3)),
+                attitude_error_rad=tuple(rng.normal(0, noise.attitude_bias_sigma_rad or 0.0, 3)),
+            )
+        )
+    rays = [
+        ray_of(
+            measure(
+                v, tgt, t, rng, white_sigma_rad, noise.attitude_bias_sigma_rad, noise.camera_position_white_sigma_m
+            ),
+            v.name,
+            t,
+        )
+        for t in np.arange(0.0, 0.5, 1 / 30)
+        for v in vehicles
+    ]
+    config = FleetConfig(q_m2ps3=0.0)
+    sol = triangulate(rays, noise, tgt.p_ned_m(rays[-1].t_s) + rng.normal(0, 100, 3), config)
+    est = fleet_verdict(sol, rays, config)
+    e = est.p_ned_m - tgt.p_ned_m(est.t_s)
+    return float(e @ np.linalg.solve(est.cov_p_ned_m2, e)), est.observable
+
+
+@pytest.mark.parametrize("noise", [EXACT, RTK], ids=["white-only", "rtk-biases"])
+def test_the_covariance_is_consistent_nees_within_the_chi_square_bounds(noise):
+    rng = np.random.default_rng(26)
+    trials = 200
+    nees, observable = np.array([_nees_trial(rng, noise, 0.5e-3) for _ in range(trials)]).T
+    observable = observable.astype(bool)
+    n = int(observable.sum())
+    assert n > 0.8 * trials  # random 200-800 m baselines at ~1 km: most cross well
+    lo, hi = chi2.ppf([0.0005, 0.9995], 3 * n) / n  # the mean of n chi2(3) draws, 99.9 % interval
+    mean = nees[observable].mean()
+    assert lo <= mean <= hi, f"mean NEES of the observable estimates {mean:.2f} outside [{lo:.2f}, {hi:.2f}]"
+    # every estimate, the unobservable ones with their range floor: no more chi2(3) 1 % exceedances than
+    # a binomial 99.9 % bound on 200 trials allows (7)
+    assert np.sum(nees > chi2.ppf(0.99, 3)) <= 7
+
+
+def _verdict_of(rays, seed, noise=EXACT, config=None):
+    config = config or FleetConfig()
+    return fleet_verdict(triangulate(rays, noise, seed, config), rays, config)
+
+
+@FAST
+@given(target=point, cam=point, along=st.floats(-0.5, 0.5), frames=st.integers(1, 30))
+def test_a_single_vehicle_is_unobservable_and_its_covariance_holds_the_truth(target, cam, along, frames):
+    tgt, veh = SynthTarget(target), SynthVehicle("uav1", cam, (8.0, 2.0, 0.0))
+    t_end = (frames - 1) / 30
+    d = tgt.p_ned_m(t_end) - veh.camera_ned_m(t_end)
+    assume(np.linalg.norm(d[:2]) > 50.0)
+    rng = np.random.default_rng(1)
+    rays = [ray_of(measure(veh, tgt, t, rng, 0.5e-3), "uav1", t) for t in np.arange(frames) / 30]
+    r0 = rays[-1]
+    # the weak prior's centre anywhere along the ray within half the true range (what the range floor claims)
+    seed = tgt.p_ned_m(t_end) + along * float(np.linalg.norm(d)) * r0.los_ned
+    est = _verdict_of(rays, seed)
+    assert not est.observable
+    e = est.p_ned_m - tgt.p_ned_m(est.t_s)
+    assert float(e @ np.linalg.solve(est.cov_p_ned_m2, e)) < chi2.ppf(0.999, 3)
+    u = (est.p_ned_m - r0.p_cam_ned_m) / np.linalg.norm(est.p_ned_m - r0.p_cam_ned_m)
+    r_est = float(np.linalg.norm(est.p_ned_m - r0.p_cam_ned_m))
+    assert math.sqrt(u @ est.cov_p_ned_m2 @ u) >= max(0.5 * r_est, 150.0) * 0.999
+
+
+def test_parallel_rays_are_unobservable_and_do_not_pair():
+    # two cameras 200 m apart looking the same way: the rays never cross
+    u = np.array([1.0, 0.0, 0.0])
+    a = Ray("uav1", 1, 0.0, (0, -100, -50), u, 0.5e-3, 0.5e-3)
+    b = Ray("uav2", 1, 0.0, (0, 100, -50), u, 0.5e-3, 0.5e-3)
+    assert closest_approach(a, b, EXACT, EXACT) is None
+    est = _verdict_of([a, b], (1000.0, 0.0, -50.0))
+    assert not est.observable
+    assert est.sigma_ned_m[0] >= 150.0
+
+
+def test_the_issue_example_200m_baseline_1km_half_mrad_ranges_to_a_few_metres():
+    s, r, baseline = 0.5e-3, 1000.0, 200.0
+    p = np.array([r, 0.0, -100.0])
+    cams = {"uav1": np.array([0.0, -baseline / 2, -100.0]), "uav2": np.array([0.0, baseline / 2, -100.0])}
+    rays = [Ray(v, 1, 0.0, c, (p - c) / np.linalg.norm(p - c), s, s) for v, c in cams.items()]
+    est = _verdict_of(rays, p + (30.0, 0.0, 0.0))
+    np.testing.assert_allclose(est.p_ned_m, p, atol=ATOL_M)
+    # one frame each, both bearings noisy: sqrt(2) s r^2 / B (each ray fixes the point across itself;
+    # the s r^2 / B = 2.5 m rule of thumb is one noisy bearing against a perfect one)
+    half = math.atan2(baseline / 2, r)
+    expected = s * math.hypot(r, baseline / 2) / (math.sqrt(2) * math.sin(half))
+    assert expected == pytest.approx(math.sqrt(2) * s * r * r / baseline, rel=0.02)
+    sigma_range = est.contributions[0].range_sigma_ratio * est.contributions[0].range_m
+    assert sigma_range == pytest.approx(expected, rel=0.02)
+    assert 2.5 <= sigma_range <= 3.6
+    assert est.observable and est.range_sigma_ratio < 0.005
+
+
+@pytest.mark.parametrize(
+    "field, value, words",
+    [
+        ("vehicle", "", "Ray.vehicle"),
+        ("object_id", 1.5, "Ray.object_id"),
+        ("t_s", math.nan, "Ray.t_s"),
+        ("p_cam_ned_m", (0, 0), "Ray.p_cam_ned_m"),
+        ("los_ned", (1, 1, 0), "Ray.los_ned"),
+        ("sigma_az_rad", 0.0, "Ray.sigma_az_rad"),
+        ("sigma_el_rad", "x", "Ray.sigma_el_rad"),
+    ],
+)
+def test_a_bad_ray_names_its_field(field, value, words):
+    kw = dict(vehicle="uav1", object_id=1, t_s=0.0, p_cam_ned_m=(0, 0, 0), los_ned=(1, 0, 0))
+    kw.update(sigma_az_rad=1e-3, sigma_el_rad=1e-3)
+    kw[field] = value
+    with pytest.raises(InputError, match=words):
+        Ray(**kw)
+
+
+# --------------------------------------------------------------------------- the tracker
+
+
+def _feed(tracker, vehicles, targets, times, rng, ids, white=0.5e-3, skip=()):
+    """Feed every vehicle's rays on every target it sees (``ids[(vehicle, target index)]`` = its object id)."""
+    for t in times:
+        for v in vehicles:
+            for k, tgt in enumerate(targets):
+                if (v.name, k) in ids and (v.name, t) not in skip and v.name not in skip:
+                    tracker.add(ray_of(measure(v, tgt, t, rng, white), v.name, t, ids[(v.name, k)]))
+
+
+def test_two_targets_two_vehicles_and_clutter_associate_right():
+    rng = np.random.default_rng(3)
+    uav1 = SynthVehicle("uav1", (0.0, -120.0, -100.0), (10.0, 0.0, 0.0))
+    uav2 = SynthVehicle("uav2", (0.0, 120.0, -100.0), (10.0, 0.0, 0.0))
+    targets = [SynthTarget((900.0, -150.0, -120.0), (-5.0, 3.0, 0.0)), SynthTarget((700.0, 200.0, -60.0), (2.0, -4, 0))]
+    clutter = SynthTarget((400.0, -500.0, -20.0))
+    ids = {("uav1", 0): 11, ("uav1", 1): 12, ("uav2", 0): 22, ("uav2", 1): 21, ("uav1", 2): 13}
+    tracker = FleetTracker(FleetConfig(), EXACT)
+    _feed(tracker, [uav1, uav2], [*targets, clutter], np.arange(0, 1.5, 1 / 30), rng, ids)
+    groups = sorted(sorted(tracker.members(t)) for t in tracker.targets)
+    assert groups == [[("uav1", 11), ("uav2", 22)], [("uav1", 12), ("uav2", 21)]]
+    for tid in tracker.targets:
+        est = tracker.solve(tid)
+        k = 0 if ("uav1", 11) in tracker.members(tid) else 1
+        truth = targets[k].p_ned_m(est.t_s)
+        assert est.observable
+        e = est.p_ned_m - truth
+        assert float(e @ np.linalg.solve(est.cov_p_ned_m2, e)) < chi2.ppf(0.999, 3)
+
+
+def test_a_vehicle_that_stops_leaves_the_target_unobservable_and_rejoins_when_back():
+    rng = np.random.default_rng(4)
+    uav1 = SynthVehicle("uav1", (0.0, -100.0, -100.0))
+    uav2 = SynthVehicle("uav2", (0.0, 100.0, -100.0))
+    tgt = SynthTarget((800.0, 0.0, -80.0), (0.0, 5.0, 0.0))
+    tracker = FleetTracker(FleetConfig(), EXACT)
+    dt = 1 / 30
+    _feed(tracker, [uav1, uav2], [tgt], np.arange(0, 1.0, dt), rng, {("uav1", 0): 1, ("uav2", 0): 1})
+    (tid,) = tracker.targets
+    assert tracker.solve(tid).observable
+    # uav2 stops at 1.0 s; uav1 goes on
+    verdicts = []
+    for t in np.arange(1.0, 2.0, dt):
+        tracker.add(ray_of(measure(uav1, tgt, t, rng, 0.5e-3), "uav1", t, 1))
+        est = tracker.solve(tid)
+        verdicts.append((t, est.observable, est.vehicles))
+    late = [(obs, veh) for t, obs, veh in verdicts if t >= 1.0 + tracker.config.vehicle_timeout_s]
+    assert late and all(not obs and veh == ("uav1",) for obs, veh in late)
+    # uav2 comes back with a new object id (its daemon restarted): it rejoins the same target
+    _feed(tracker, [uav1, uav2], [tgt], np.arange(2.0, 2.5, dt), rng, {("uav1", 0): 1, ("uav2", 0): 5})
+    assert tracker.targets == (tid,)
+    assert ("uav2", 5) in tracker.members(tid)
+    est = tracker.solve(tid)
+    assert est.observable and est.vehicles == ("uav1", "uav2") or est.vehicles == ("uav2", "uav1")
+
+
+def test_stale_and_out_of_order_rays_are_counted_not_used():
+    counter = RejectCounter()
+    tracker = FleetTracker(FleetConfig(), EXACT, counter)
+    u = np.array([1.0, 0.0, 0.0])
+    assert tracker.add(Ray("uav1", 1, 10.0, (0, 0, 0), u, 1e-3, 1e-3)) is None
+    tracker.add(Ray("uav1", 1, 10.0, (0, 0, 0), u, 1e-3, 1e-3))
+    tracker.add(Ray("uav1", 1, 5.0, (0, 0, 0), u, 1e-3, 1e-3))
+    assert counter.counts == {"ray_out_of_order": 1, "ray_stale": 1}
+    assert tracker.targets == ()
