@@ -1,0 +1,239 @@
+"""The fleet fusion's wire: vehicles' ``irtrack.track/2`` in, ``irtrack.fleet_track/1`` out (thin adapter).
+
+Keys::
+
+    irtrack/<vehicle>/track        in: each vehicle's track (schema irtrack.track/2, onboard.core.track)
+    irtrack/fleet/track            out: one message per fused target and update (schema below)
+    irtrack/<vehicle>/fleet/track  out: the same, with ned_m / origin / cov_ned_m2 in that vehicle's own frame
+
+``fleet`` is therefore not a vehicle name.  Schema ``irtrack.fleet_track/1`` (UTF-8 JSON, encoding
+``application/json;irtrack.fleet_track/1``): ``schema``, ``seq`` (the fusion's message counter),
+``target_id``, ``time_unix_us`` (the estimate's time, UTC microseconds: the newest line of sight in it),
+``lat_deg``, ``lon_deg``, ``alt_m`` (WGS84, as ``irtrack.track/2``), ``ned_m`` with its ``origin``
+``{lat_deg, lon_deg, alt_m}``, ``vel_ned_mps``, ``sigma_ned_m``, ``sigma_vel_ned_mps`` (1 sigma),
+``cov_ned_m2`` (3 x 3), ``range_sigma_ratio`` (the worst contributing vehicle's range sigma over range),
+``observable`` (the verdict of :mod:`onboard.estimation.fleet`), ``vehicles``: one object per contributing
+vehicle ``{vehicle, time_unix_us (its newest line of sight), rays, range_m, range_sigma_ratio,
+time_source}``; the per-vehicle key adds ``vehicle`` (the addressee) and ``range_m`` (from its newest
+camera position, null if it did not contribute).
+
+Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's
+``time_unix_us`` when it carries one (``time_source: vehicle``), else its ``time_boot_us`` plus a
+configured per-vehicle offset (``configured``), else plus an offset estimated from arrival times, the
+minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the fusion's clock, biased by the
+vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
+vehicle's clock and resets when the boot clock goes backwards).
+
+Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
+``origin``); both are mapped into the fleet's frame (the first origin seen, or a configured one) by the exact
+affine map between the two tangent frames (:func:`ned_transform`, through ECEF).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
+from onboard.core.track import Track, json_number, track_from_json
+from onboard.estimation.fleet import FleetEstimate, Ray
+from onboard.io.zenoh_session import check_vehicle_name
+
+__all__ = [
+    "FLEET_TRACK_SCHEMA",
+    "FLEET_TRACK_ENCODING",
+    "FLEET_NAME",
+    "TRACKS_KEY_EXPR",
+    "fleet_track_key",
+    "vehicle_fleet_track_key",
+    "vehicle_from_track_key",
+    "ned_transform",
+    "CommonClock",
+    "TimedTrack",
+    "parse_track",
+    "ray_from_track",
+    "fleet_track_json",
+]
+
+FLEET_TRACK_SCHEMA = "irtrack.fleet_track/1"
+FLEET_TRACK_ENCODING = f"application/json;{FLEET_TRACK_SCHEMA}"
+FLEET_NAME = "fleet"  # irtrack/fleet/... is the fusion's, not a vehicle's
+TRACKS_KEY_EXPR = "irtrack/*/track"
+
+
+def fleet_track_key() -> str:
+    """``irtrack/fleet/track``: the fused targets."""
+    return f"irtrack/{FLEET_NAME}/track"
+
+
+def vehicle_fleet_track_key(vehicle: str) -> str:
+    """``irtrack/<vehicle>/fleet/track``: the fused targets in ``vehicle``'s own frame."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/fleet/track"
+
+
+def vehicle_from_track_key(key: str) -> str | None:
+    """The ``<vehicle>`` of ``irtrack/<vehicle>/track``; None for any other key and for the fleet's own."""
+    parts = str(key).split("/")
+    if len(parts) != 3 or parts[0] != "irtrack" or parts[2] != "track" or parts[1] == FLEET_NAME or not parts[1]:
+        return None
+    return parts[1]
+
+
+@functools.lru_cache(maxsize=256)
+def ned_transform(origin_from: GeodeticOrigin, origin_to: GeodeticOrigin) -> tuple[np.ndarray, np.ndarray]:
+    """``(R, t)`` with ``p_to = R p_from + t`` between two local NED frames: both are rigid maps of ECEF, so
+    the map is affine and exact (computed from the images of the origin and of three 1 km axis points)."""
+    pts = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0], [0.0, 0.0, 1000.0]])
+    lat, lon, alt = geodetic_from_ned(pts, origin_from)
+    img = ned_from_geodetic(lat, lon, alt, origin_to)
+    t = img[0]
+    R = (img[1:] - t).T / 1000.0
+    u, _, vt = np.linalg.svd(R)  # remove the round-off: the nearest rotation
+    R = u @ vt
+    R.setflags(write=False)
+    t.setflags(write=False)
+    return R, t
+
+
+@dataclass(frozen=True)
+class TimedTrack:
+    """A vehicle's track with its time on the common clock: ``t_s`` (UTC seconds) and where it came from
+    (``vehicle`` | ``configured`` | ``arrival``)."""
+
+    track: Track
+    t_s: float
+    time_source: str
+
+
+class CommonClock:
+    """Puts each vehicle's frames on one clock, UTC seconds (module docstring, "Time").
+
+    ``offsets_s``: configured ``UTC - boot`` offsets per vehicle, seconds.  ``window_s``: the arrival-time
+    estimate's memory."""
+
+    def __init__(self, offsets_s: Mapping[str, float] | None = None, window_s: float = 10.0) -> None:
+        self.offsets_s = dict(offsets_s or {})
+        self.window_s = float(window_s)
+        self._arrivals: dict[str, deque[tuple[float, float]]] = {}
+        self._last_boot_s: dict[str, float] = {}
+
+    def time_s(
+        self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float
+    ) -> tuple[float, str]:
+        """(common time s, its source) of a frame of ``vehicle``."""
+        if time_unix_us is not None:
+            return time_unix_us / 1e6, "vehicle"
+        boot_s = time_boot_us / 1e6
+        if vehicle in self.offsets_s:
+            return boot_s + self.offsets_s[vehicle], "configured"
+        hist = self._arrivals.setdefault(vehicle, deque())
+        if boot_s < self._last_boot_s.get(vehicle, -math.inf) - 1.0:  # the boot clock went back: a reboot
+            hist.clear()
+        self._last_boot_s[vehicle] = boot_s
+        hist.append((arrival_unix_s, arrival_unix_s - boot_s))
+        while hist and hist[0][0] < arrival_unix_s - self.window_s:
+            hist.popleft()
+        return boot_s + min(o for _, o in hist), "arrival"
+
+
+def parse_track(obj: Mapping) -> tuple[Track, int | None]:
+    """(the track, its ``time_unix_us`` or None) of an ``irtrack.track/2`` dict; :class:`InputError` naming
+    the key otherwise."""
+    track = track_from_json(obj)
+    t = obj.get("time_unix_us")
+    if t is not None and (isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < 2**63):
+        raise InputError(f"track message time_unix_us: expected an integer >= 0 (UTC microseconds), got {t!r}")
+    return track, t
+
+
+def ray_from_track(timed: TimedTrack, fleet_origin: GeodeticOrigin) -> Ray:
+    """The :class:`Ray` of a track with a line of sight and an origin, in the fleet's frame; raises
+    :class:`InputError` (naming what is missing) otherwise."""
+    track = timed.track
+    los = track.los
+    if los is None:
+        raise InputError("track has no line of sight (los_ned)")
+    if track.origin is None:
+        raise InputError("track has no origin: its camera_ned_m cannot be placed")
+    R, t = ned_transform(track.origin, fleet_origin)
+    u = R @ np.asarray(los.u_ned)
+    return Ray(
+        vehicle=track.vehicle,
+        object_id=track.track_id or 0,
+        t_s=timed.t_s,
+        p_cam_ned_m=R @ np.asarray(los.p_cam_ned_m) + t,
+        los_ned=u / np.linalg.norm(u),
+        sigma_az_rad=math.radians(los.sigma_azimuth_deg),
+        sigma_el_rad=math.radians(los.sigma_elevation_deg),
+    )
+
+
+def _vec(v) -> list:
+    return [json_number(x) for x in np.asarray(v, dtype=float).ravel()]
+
+
+def _sigmas(cov: np.ndarray) -> list:
+    return _vec(np.sqrt(np.maximum(np.diag(cov), 0.0)))
+
+
+def fleet_track_json(
+    est: FleetEstimate,
+    fleet_origin: GeodeticOrigin,
+    seq: int,
+    time_sources: Mapping[str, str],
+    vehicle: str | None = None,
+    vehicle_origin: GeodeticOrigin | None = None,
+    vehicle_camera_ned_m=None,
+) -> dict:
+    """The ``irtrack.fleet_track/1`` dict of ``est`` (module docstring); with ``vehicle`` and its origin,
+    the per-vehicle variant in that vehicle's frame (``vehicle_camera_ned_m``: its newest camera position,
+    in its own frame, for ``range_m``)."""
+    p, P, V = est.p_ned_m, est.cov_p_ned_m2, est.cov_v_ned_m2ps2
+    v = est.v_ned_mps
+    origin = fleet_origin
+    if vehicle is not None and vehicle_origin is not None:
+        R, t = ned_transform(fleet_origin, vehicle_origin)
+        p, P, V, v = R @ p + t, R @ P @ R.T, R @ V @ R.T, R @ v
+        origin = vehicle_origin
+    lat, lon, alt = (float(x) for x in geodetic_from_ned(est.p_ned_m, fleet_origin))
+    out = {
+        "schema": FLEET_TRACK_SCHEMA,
+        "seq": int(seq),
+        "target_id": int(est.target_id),
+        "time_unix_us": int(round(est.t_s * 1e6)),
+        "lat_deg": json_number(lat),
+        "lon_deg": json_number((lon + 180.0) % 360.0 - 180.0),
+        "alt_m": json_number(alt),
+        "ned_m": _vec(p),
+        "origin": {"lat_deg": origin.lat_deg, "lon_deg": origin.lon_deg, "alt_m": origin.alt_m},
+        "vel_ned_mps": _vec(v),
+        "sigma_ned_m": _sigmas(P),
+        "sigma_vel_ned_mps": _sigmas(V),
+        "cov_ned_m2": [_vec(row) for row in P],
+        "range_sigma_ratio": json_number(est.range_sigma_ratio),
+        "observable": bool(est.observable),
+        "vehicles": [
+            {
+                "vehicle": c.vehicle,
+                "time_unix_us": int(round(c.t_s * 1e6)),
+                "rays": c.rays,
+                "range_m": json_number(c.range_m),
+                "range_sigma_ratio": json_number(c.range_sigma_ratio),
+                "time_source": time_sources.get(c.vehicle),
+            }
+            for c in est.contributions
+        ],
+    }
+    if vehicle is not None:
+        out["vehicle"] = vehicle
+        rng = None
+        if vehicle_camera_ned_m is not None:
+            rng = json_number(float(np.linalg.norm(p - np.asarray(vehicle_camera_ned_m, dtype=float))))
+        out["range_m"] = rng
+    return out

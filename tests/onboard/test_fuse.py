@@ -1,0 +1,283 @@
+"""``python -m onboard.fuse``: the fusion's step logic on payloads (no sockets), its wire, and the real
+process between two synthetic vehicles and a subscriber on loopback zenoh."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
+from onboard.app.fuse import Fusion, build_parser
+from onboard.core.counters import RejectCounter
+from onboard.core.frames import GeodeticOrigin, ned_from_geodetic
+from onboard.estimation.fleet import FleetConfig, FleetTracker
+from onboard.estimation.map_estimator import NoiseModel
+from onboard.io.fleet_wire import (
+    FLEET_TRACK_SCHEMA,
+    CommonClock,
+    fleet_track_key,
+    ned_transform,
+    vehicle_fleet_track_key,
+    vehicle_from_track_key,
+)
+
+REPO = Path(__file__).resolve().parents[2]
+ATOL_M = 1e-6  # 1 um: frame maps
+ORIGIN_1 = GeodeticOrigin(32.0, 118.8, 20.0)
+ORIGIN_2 = GeodeticOrigin(32.003, 118.803, 35.0)  # ~430 m away: its tangent plane differs by ~70 urad
+T0_UNIX_S = 1_800_000_000.0
+UAV1 = SynthVehicle("uav1", (0.0, -120.0, -100.0), (8.0, 0.0, 0.0))
+UAV2 = SynthVehicle("uav2", (0.0, 120.0, -100.0), (8.0, 0.0, 0.0))
+TARGET = SynthTarget((900.0, 40.0, -150.0), (-6.0, 4.0, 0.0))
+
+
+def payload_of(
+    vehicle: SynthVehicle, t_s: float, rng, seq: int, time_unix: bool = True, t0_unix_s: float = T0_UNIX_S
+) -> bytes:
+    """``vehicle``'s track at ``t_s`` after ``t0_unix_s`` (truth in ORIGIN_1's frame), in its own frame (uav2:
+    ORIGIN_2's), 0.3 mrad white bearing noise."""
+    los = measure(vehicle, TARGET, t_s, rng, 0.3e-3)
+    origin = ORIGIN_1 if vehicle.name == "uav1" else ORIGIN_2
+    R, t = ned_transform(ORIGIN_1, origin)
+    los = type(los)(R @ los.p_cam_ned_m + t, R @ los.los_ned, los.sigma_az_rad, los.sigma_el_rad, los.truth_p_ned_m)
+    obj = track_payload(
+        vehicle.name,
+        seq,
+        int(1e6 + t_s * 1e6),
+        los,
+        origin,
+        time_unix_us=int(round((t0_unix_s + t_s) * 1e6)) if time_unix else None,
+    )
+    return json.dumps(obj).encode()
+
+
+def truth_in(msg: dict, t0_unix_s: float = T0_UNIX_S) -> np.ndarray:
+    """The target's true position at ``msg``'s time in ``msg``'s own frame (the fleet's origin is the first
+    vehicle's heard, whichever that was)."""
+    o = msg["origin"]
+    R, t = ned_transform(ORIGIN_1, GeodeticOrigin(o["lat_deg"], o["lon_deg"], o["alt_m"]))
+    return R @ TARGET.p_ned_m(msg["time_unix_us"] / 1e6 - t0_unix_s) + t
+
+
+def new_fusion(**kw) -> Fusion:
+    counter = RejectCounter()
+    return Fusion(FleetTracker(FleetConfig(), NoiseModel(), counter), CommonClock(kw.pop("offsets", None)), **kw)
+
+
+def run_pair(fusion: Fusion, seconds: float, rng, skip=()) -> list[tuple[str, dict]]:
+    out = []
+    for k, t in enumerate(np.arange(0.0, seconds, 1 / 30)):
+        for v in (UAV1, UAV2):
+            if v.name not in skip:
+                fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005)
+        out += fusion.flush()
+    return out
+
+
+def test_the_frame_map_between_two_origins_is_a_rigid_round_trip():
+    R, t = ned_transform(ORIGIN_1, ORIGIN_2)
+    Rb, tb = ned_transform(ORIGIN_2, ORIGIN_1)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    p = np.array([900.0, 40.0, -150.0])
+    np.testing.assert_allclose(Rb @ (R @ p + t) + tb, p, atol=ATOL_M)
+    np.testing.assert_allclose(
+        t, ned_from_geodetic(ORIGIN_1.lat_deg, ORIGIN_1.lon_deg, ORIGIN_1.alt_m, ORIGIN_2), atol=ATOL_M
+    )
+
+
+def test_two_vehicles_in_their_own_frames_fuse_near_the_truth_and_each_gets_it_in_its_frame():
+    fusion = new_fusion()
+    out = run_pair(fusion, 1.0, np.random.default_rng(1))
+    fleet = [p for k, p in out if k == fleet_track_key()]
+    last = fleet[-1]
+    assert last["schema"] == FLEET_TRACK_SCHEMA and last["observable"]
+    assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"]
+    assert {c["time_source"] for c in last["vehicles"]} == {"vehicle"}
+    truth = truth_in(last)
+    e = np.asarray(last["ned_m"]) - truth
+    assert float(e @ np.linalg.solve(np.asarray(last["cov_ned_m2"]), e)) < 16.3  # chi2(3) at 0.999
+    assert np.linalg.norm(e) < 0.01 * np.linalg.norm(truth)
+    mine = [p for k, p in out if k == vehicle_fleet_track_key("uav2")][-1]
+    R, t = ned_transform(ORIGIN_1, ORIGIN_2)
+    np.testing.assert_allclose(mine["ned_m"], R @ np.asarray(last["ned_m"]) + t, atol=1e-3)
+    assert mine["origin"]["lat_deg"] == ORIGIN_2.lat_deg and mine["vehicle"] == "uav2"
+    assert (mine["lat_deg"], mine["lon_deg"], mine["alt_m"]) == (last["lat_deg"], last["lon_deg"], last["alt_m"])
+    assert fusion.counter.total == fusion.counter["target_created"] == 1
+
+
+def test_without_time_unix_us_the_offset_is_configured_or_estimated_from_arrivals():
+    offsets = {"uav1": T0_UNIX_S - 1.0, "uav2": T0_UNIX_S - 1.0}  # the payloads' boot clock reads 1 s at T0
+    for fusion, source in ((new_fusion(offsets=offsets), "configured"), (new_fusion(), "arrival")):
+        rng = np.random.default_rng(2)
+        for k, t in enumerate(np.arange(0.0, 1.0, 1 / 30)):
+            for v in (UAV1, UAV2):
+                fusion.receive(
+                    f"irtrack/{v.name}/track", payload_of(v, t, rng, k, time_unix=False), T0_UNIX_S + t + 0.004
+                )
+            out = fusion.flush()
+        last = [p for k, p in out if k == fleet_track_key()][-1]
+        assert last["observable"] and {c["time_source"] for c in last["vehicles"]} == {source}
+        # the arrival estimate is the boot time plus the shortest latency (4 ms here)
+        assert last["time_unix_us"] / 1e6 - T0_UNIX_S == pytest.approx(
+            29 / 30 + (0.004 if source == "arrival" else 0), abs=1e-5
+        )
+
+
+def _good() -> dict:
+    return json.loads(payload_of(UAV1, 0.0, np.random.default_rng(0), 1))
+
+
+@pytest.mark.parametrize(
+    "payload, reason",
+    [
+        (b"\xff not json", "not_json"),
+        (b"[1, 2]", "bad_track"),
+        (json.dumps({**_good(), "seq": "one"}).encode(), "bad_track"),
+        (json.dumps({**_good(), "los_ned": [1, 0]}).encode(), "bad_track"),
+        (json.dumps({**_good(), "camera_ned_m": None}).encode(), "bad_track"),
+        (json.dumps({**_good(), "time_unix_us": 1.5}).encode(), "bad_time_unix_us"),
+        (json.dumps({**_good(), "time_unix_us": -4}).encode(), "bad_time_unix_us"),
+        (json.dumps({**_good(), "origin": None}).encode(), "no_origin"),
+        (json.dumps({**_good(), "vehicle": "uav2"}).encode(), "bad_track"),
+        (json.dumps({**_good(), "time_unix_us": int((T0_UNIX_S - 10) * 1e6)}).encode(), "stale"),
+        (json.dumps({**_good(), "time_unix_us": int((T0_UNIX_S + 10) * 1e6)}).encode(), "future"),
+    ],
+)
+def test_bad_input_is_counted_by_reason_and_never_becomes_a_fused_point(payload, reason):
+    fusion = new_fusion()
+    rng = np.random.default_rng(5)
+    for k, t in enumerate(np.arange(0.0, 0.5, 1 / 30)):
+        fusion.receive("irtrack/uav2/track", payload_of(UAV2, t, rng, k), T0_UNIX_S + t)
+        fusion.receive("irtrack/uav1/track", payload, T0_UNIX_S + t)  # uav1 only ever sends the bad one
+    assert fusion.flush() == []
+    assert fusion.counter[reason] == 15
+    assert fusion.tracker.targets == ()
+
+
+def test_its_own_output_and_other_vehicles_are_not_input():
+    fusion = new_fusion(vehicles=["uav1", "uav2"])
+    fusion.receive(fleet_track_key(), b"{}", T0_UNIX_S)
+    fusion.receive("irtrack/uav9/track", b"{}", T0_UNIX_S)
+    assert fusion.received == 0 and fusion.counter.total == 0
+    assert vehicle_from_track_key("irtrack/fleet/track") is None
+    assert vehicle_from_track_key("irtrack/uav1/fleet/track") is None
+    assert vehicle_from_track_key("irtrack/uav1/track") == "uav1"
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        (["--vehicles", "fleet"], "fusion's own key"),
+        (["--vehicles", "uav 1"], "vehicle name"),
+        (["--origin", "32,118"], "LAT,LON,ALT"),
+        (["--clock-offset", "uav1"], "NAME=SECONDS"),
+        (["--max-age-s", "-1"], ">= 0"),
+    ],
+)
+def test_bad_options_exit_2_on_one_line(argv, words, capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args(argv)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert words in err and err.count("\n") == 1
+
+
+# --------------------------------------------------------------------------- the real process
+
+START_TIMEOUT_S = 30.0  # imports and the zenoh session on a busy 2-core machine
+DATA_TIMEOUT_S = 15.0
+
+
+class _Collector:
+    """Fleet tracks and status messages as they arrive; ``wait_for`` waits on an event, not a sleep."""
+
+    def __init__(self) -> None:
+        self.fleet: list[dict] = []
+        self.status: list[dict] = []
+        self._cv = threading.Condition()
+
+    def on_fleet(self, sample) -> None:
+        with self._cv:
+            self.fleet.append(json.loads(sample.payload.to_bytes()))
+            self._cv.notify_all()
+
+    def on_status(self, sample) -> None:
+        with self._cv:
+            self.status.append(json.loads(sample.payload.to_bytes()))
+            self._cv.notify_all()
+
+    def wait_for(self, predicate, timeout_s: float) -> bool:
+        with self._cv:
+            return self._cv.wait_for(lambda: predicate(self), timeout=timeout_s)
+
+
+@pytest.mark.integration
+def test_the_fuse_process_fuses_two_vehicles_and_degrades_to_one_honestly():
+    import time
+
+    from groundsim.io.ports import free_tcp_port
+    from onboard.io.zenoh_session import TRACK_ENCODING, ZenohSettings, open_session, track_key
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "onboard.fuse", "--zenoh-listen", endpoint, "--seconds", "120"]
+        + ["--status-interval-s", "0.2", "--log-level", "WARNING"],
+        cwd=REPO,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    sessions = []
+    got = _Collector()
+    try:
+        listen = ZenohSettings(connect=(endpoint,))
+        watcher = open_session(listen)
+        sessions.append(watcher)
+        watcher.declare_subscriber(fleet_track_key(), got.on_fleet)
+        watcher.declare_subscriber("irtrack/fleet/status", got.on_status)
+        assert got.wait_for(lambda g: g.status, START_TIMEOUT_S), "no status from the fuse process"
+        pubs = {}
+        for v in (UAV1, UAV2):
+            s = open_session(listen)
+            sessions.append(s)
+            pubs[v.name] = (s, s.declare_publisher(track_key(v.name), encoding=TRACK_ENCODING))
+        rng = np.random.default_rng(7)
+        t0 = time.time()  # the payloads' UTC is this machine's: nothing is stale
+        t_stop = 1.5  # uav2's daemon "dies" here
+        for k, t in enumerate(np.arange(0.0, 3.0, 1 / 30)):
+            for v in (UAV1, UAV2):
+                if v.name == "uav2" and t >= t_stop:
+                    if pubs["uav2"][0] in sessions:
+                        sessions.remove(pubs["uav2"][0])
+                        pubs["uav2"][0].close()
+                    continue
+                pubs[v.name][1].put(payload_of(v, t, rng, k, t0_unix_s=t0))
+            time.sleep(max(0.0, t0 + t + 1 / 30 - time.time()))  # a 30 Hz camera's pace, not a wait for a result
+        end_us = int((t0 + 2.9) * 1e6)
+        assert got.wait_for(lambda g: any(m["time_unix_us"] >= end_us for m in g.fleet), DATA_TIMEOUT_S)
+    finally:
+        for s in sessions:
+            s.close()
+        proc.terminate()
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, proc.stderr.read().decode() if proc.stderr else ""
+    both = [m for m in got.fleet if len(m["vehicles"]) == 2 and m["observable"]]
+    assert both, "no observable two-vehicle fleet track"
+    m = both[-1]
+    truth = truth_in(m, t0)
+    e = np.asarray(m["ned_m"]) - truth
+    assert np.linalg.norm(e) < 0.01 * np.linalg.norm(truth)
+    assert float(e @ np.linalg.solve(np.asarray(m["cov_ned_m2"]), e)) < 16.3
+    # within 1 s of data time after uav2 stopped, the fleet track is uav1's alone and says it is unobservable
+    late = [m for m in got.fleet if m["time_unix_us"] >= (t0 + t_stop + 1.0) * 1e6]
+    assert late and all(not m["observable"] and [c["vehicle"] for c in m["vehicles"]] == ["uav1"] for m in late)
+    assert got.status[-1]["rejected"].get("stale", 0) == 0
