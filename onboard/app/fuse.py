@@ -14,7 +14,10 @@ and, in each vehicle's own frame, on ``irtrack/<vehicle>/fleet/track``; ``irtrac
 ``tcp/127.0.0.1:7447``) are :mod:`onboard.app.watch`'s, i.e. the daemon's.
 
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
-every ray, then solves each touched target once (under load, several frames share one solve) and publishes.
+every ray, then solves each touched target that is due once and publishes: due when every live vehicle's
+frame of the newest camera period is in, or a vehicle is ``max_defer_s`` (50 ms) late on the fleet clock
+(:meth:`~onboard.estimation.fleet.FleetTracker.due`), or the queue has been idle for 0.1 s.  Eight vehicles
+at 30 Hz then cost one solve per period instead of about two, at no latency from the later frame.
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once
 per ``--reject-log-interval-s`` per reason: ``not_json``, ``bad_track`` (the schema's reader names the key),
 ``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
@@ -152,12 +155,14 @@ class Fusion:
         if tid is not None:
             self._touched.add(tid)
 
-    def flush(self) -> list[tuple[str, dict]]:
+    def flush(self, force: bool = False) -> list[tuple[str, dict]]:
+        """Solve the touched targets that are due (:meth:`FleetTracker.due`; all of them with ``force``)."""
         out: list[tuple[str, dict]] = []
-        touched, self._touched = self._touched, set()
         if self.origin is None:
             return out
-        for tid in sorted(touched):
+        due = {t for t in self._touched if force or self.tracker.due(t)}
+        self._touched -= due
+        for tid in sorted(due):
             est = self.tracker.solve(tid)
             if est is None:
                 continue
@@ -315,13 +320,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 item = inbox.get(timeout=POLL_S)
             except queue.Empty:
                 item = None
+            idle = item is None
             while item is not None:
                 fusion.receive(*item)
                 try:
                     item = inbox.get_nowait()
                 except queue.Empty:
                     item = None
-            for key, payload in fusion.flush():
+            for key, payload in fusion.flush(force=idle):  # idle: whatever is pending, due or not
                 pub = publishers.get(key)
                 if pub is None:
                     pub = publishers[key] = session.declare_publisher(key, encoding=FLEET_TRACK_ENCODING)

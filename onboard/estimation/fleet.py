@@ -92,7 +92,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
-from scipy.stats import chi2 as _chi2
+from scipy.special import gammaincc
 
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
@@ -200,7 +200,9 @@ class FleetConfig:
     ``member_timeout_s``: an object silent this long (fleet clock) leaves its target.  ``pair_max_dt_s``: two
     rays farther apart in time do not pair.  ``max_speed_mps``: target speed allowed for in the pairing gate
     over their time difference.  ``q_m2ps3``: the constant-velocity model's white-acceleration PSD.
-    ``min_range_m``: ranges are clamped to at least this in the noise model."""
+    ``min_range_m``: ranges are clamped to at least this in the noise model.  ``max_defer_s``: a target is
+    due (:meth:`FleetTracker.due`) once every live vehicle sent a ray newer than its last solve, or its newest
+    ray is this much newer than that (fleet clock)."""
 
     window_s: float = 1.0
     vehicle_timeout_s: float = 0.3
@@ -210,6 +212,7 @@ class FleetConfig:
     q_m2ps3: float = 1.0
     min_range_m: float = 10.0
     iterations: int = 8
+    max_defer_s: float = 0.05
     # the single-vehicle verdict's thresholds, priors and range floor, with a tighter range-sigma threshold:
     # triangulation's linearised covariance is consistent where rays cross well (mean NEES 3.03 over random
     # 2-4 vehicle geometries with RTK-class errors where the range sigma is below 2 % of range, 3.36 up to 5 %:
@@ -217,7 +220,14 @@ class FleetConfig:
     verdict: MapConfig = field(default_factory=lambda: MapConfig(**{"observability_max_sigma_range_ratio": 0.02}))
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "vehicle_timeout_s", "member_timeout_s", "pair_max_dt_s", "min_range_m"):
+        for name in (
+            "window_s",
+            "vehicle_timeout_s",
+            "member_timeout_s",
+            "pair_max_dt_s",
+            "min_range_m",
+            "max_defer_s",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
                 raise ConfigError(f"FleetConfig.{name}: expected a positive number of its unit, got {v!r}")
@@ -300,8 +310,9 @@ def closest_approach(
 class Triangulation:
     """The MAP estimate of :func:`triangulate` at ``t_s`` (module docstring).  ``p_ned_m``, ``v_ned_mps``
     (3,); ``cov_pv`` (6, 6): the joint covariance of ``(p, v)`` (nuisances marginalised);
-    ``cost``: ``J`` at the solution; ``dof``: ``2N - 6``; ``iterations``; ``condition``: the normal matrix's
-    2-norm condition number (after column scaling); ``vehicles``: those with rays in the solve."""
+    ``cost``: ``J`` at the solution; ``dof``: ``2N - 6``; ``iterations``; ``condition``: a lower bound of the
+    column-scaled normal matrix's 2-norm condition number (the squared ratio of its Cholesky factor's extreme
+    diagonal entries); ``vehicles``: those with rays in the solve."""
 
     t_s: float
     p_ned_m: np.ndarray
@@ -429,7 +440,7 @@ def triangulate(
         A2 = A.reshape(2 * N, n)
         H = A2.T @ A2 + np.diag(P_prior)
         g = A2.T @ res.reshape(2 * N) + P_prior * (x - x_prior)
-        step = sla.solve(H, -g, assume_a="pos")
+        step = sla.cho_solve(sla.cho_factor(H, lower=True, check_finite=False), -g, check_finite=False)
         x = x + step
         if float(np.max(np.abs(step[:6]))) < 1e-7 * float(np.max(rho)):  # 0.1 mm, 0.1 mm/s at 1 km
             break
@@ -438,9 +449,13 @@ def triangulate(
     H = A2.T @ A2 + np.diag(P_prior)
     cost = float(np.sum(res * res) + ((x - x_prior) ** 2 * P_prior)[6:].sum())  # the nuisances' prior rows
     scale = 1.0 / np.sqrt(np.diag(H))
-    Hs = H * scale[:, None] * scale[None, :]
-    cond = float(np.linalg.cond(Hs))
-    cov = sla.inv(H)[:6, :6]
+    L = np.linalg.cholesky(H * scale[:, None] * scale[None, :])  # column-scaled: the condition is the geometry's
+    cond = float((np.max(np.diag(L)) / np.min(np.diag(L))) ** 2)  # a cheap lower bound of cond(H_scaled)
+    # the (p, v) block of H^-1: six columns of the inverse, from the factor
+    E = np.zeros((n, 6))
+    E[:6, :6] = np.eye(6)
+    Z = sla.solve_triangular(L, E, lower=True, check_finite=False)
+    cov = (Z.T @ Z) * scale[:6, None] * scale[None, :6]
     cov = 0.5 * (cov + cov.T)
     return Triangulation(
         t_s=t0,
@@ -536,7 +551,9 @@ def fleet_verdict(
         los_sig.append(sig_r)
     worst_ratio = max(c.range_sigma_ratio for c in contributions)
     dof = sol.dof
-    adequacy_p = float(_chi2.sf(sol.cost, dof)) if dof > 0 else 1.0
+    # chi2.sf(cost, dof) = Q(dof / 2, cost / 2), the regularised upper incomplete gamma function (scipy.stats'
+    # frozen-distribution machinery cost a millisecond per call)
+    adequacy_p = float(gammaincc(dof / 2.0, sol.cost / 2.0)) if dof > 0 else 1.0
     try:
         np.linalg.cholesky(P)
         pd = bool(np.isfinite(P).all())
@@ -740,8 +757,12 @@ class FleetTracker:
         cfg = self.config
         noise = self._noise(ray.vehicle)
         best, best_chi2 = None, BEARING_GATE_CHI2
-        for target in self._targets.values():
-            if target.last is None or ray.vehicle in self._live_vehicles(target, ray.t_s):
+        for target in list(self._targets.values()):
+            if ray.vehicle in self._live_vehicles(target, ray.t_s):
+                continue
+            if target.last is None:  # created since the last solve (several rays arrived at once): solve it now
+                self.solve(target.target_id)
+            if target.last is None:
                 continue
             p, P = target.last.propagated(ray.t_s)
             c2 = ray_gate_chi2(ray, p, P, noise)
@@ -779,6 +800,35 @@ class FleetTracker:
         newest = max(b[-1].t_s for b in bufs)
         live = self._live_vehicles(target, newest)
         return [r for b in bufs if b[-1].vehicle in live for r in b if r.t_s >= newest - self.config.window_s]
+
+    def due(self, target_id: int) -> bool:
+        """Whether ``target_id`` has news worth a solve: no estimate yet; every live vehicle has a ray newer than
+        the last estimate (the frames of one camera period are in); every live vehicle caught up with the newest
+        ray and one of them was not in the last estimate (a late frame after a deferred solve); or its newest ray
+        is ``max_defer_s`` past the last estimate (a vehicle is late).  On the fleet clock: no timer involved."""
+        target = self._targets.get(target_id)
+        if target is None:
+            return False
+        if target.last is None:
+            return True
+        newest: dict[str, float] = {}
+        for v, k in target.members:
+            buf = self._rays.get((v, k))
+            if buf:
+                newest[v] = max(newest.get(v, -math.inf), buf[-1].t_s)
+        if not newest:
+            return False
+        t_new = max(newest.values())
+        t_last = target.last.t_s
+        if t_new - t_last >= self.config.max_defer_s:
+            return True
+        live = {v: t for v, t in newest.items() if t >= t_new - self.config.vehicle_timeout_s}
+        used = {c.vehicle: c.t_s for c in target.last.contributions}
+        oldest = min(live.values())
+        if oldest > t_last:  # every live vehicle has a frame past the last estimate: a new camera period is in
+            return True
+        # a late vehicle's frame of the period the last (deferred) estimate already reached
+        return oldest >= t_new and any(t > used.get(v, -math.inf) for v, t in live.items())
 
     def solve(self, target_id: int) -> FleetEstimate | None:
         """Estimate ``target_id`` from its rays now (None: no rays in the window)."""
