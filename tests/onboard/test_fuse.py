@@ -281,3 +281,16 @@ def test_the_fuse_process_fuses_two_vehicles_and_degrades_to_one_honestly():
     late = [m for m in got.fleet if m["time_unix_us"] >= (t0 + t_stop + 1.0) * 1e6]
     assert late and all(not m["observable"] and [c["vehicle"] for c in m["vehicles"]] == ["uav1"] for m in late)
     assert got.status[-1]["rejected"].get("stale", 0) == 0
+
+
+def test_the_arrival_clock_takes_the_shortest_latency_and_forgets_it_on_a_reboot():
+    clock = CommonClock(window_s=10.0)
+    t, src = clock.time_s("uav1", 5_000_000, None, 100.030)
+    assert (t, src) == (pytest.approx(100.030), "arrival")
+    t, _ = clock.time_s("uav1", 5_100_000, None, 100.110)  # 10 ms faster: the offset is 95.010 s now
+    assert t == pytest.approx(100.110)
+    t, _ = clock.time_s("uav1", 5_200_000, None, 100.250)  # slower: the best offset stands
+    assert t == pytest.approx(100.210)
+    t, _ = clock.time_s("uav1", 1_000_000, None, 101.000)  # the boot clock went back: a reboot, start over
+    assert t == pytest.approx(101.000)
+    assert clock.time_s("uav1", 1, 1_234_000_000, 0.0) == (pytest.approx(1234.0), "vehicle")
