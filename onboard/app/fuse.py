@@ -125,7 +125,8 @@ class Fusion:
         if track.vehicle != vehicle:
             self.counter.count("bad_track", f"{key}: vehicle {track.vehicle!r} on another vehicle's key")
             return
-        if track.los is None:
+        los = track.los
+        if los is None:
             self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
             return
         if track.origin is None:
@@ -148,8 +149,7 @@ class Fusion:
             return
         self._time_sources[vehicle] = source
         self._origins[vehicle] = track.origin
-        assert track.los is not None
-        self._cameras[vehicle] = np.asarray(track.los.p_cam_ned_m)
+        self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
         self.rays += 1
         tid = self.tracker.add(ray)
         if tid is not None:
