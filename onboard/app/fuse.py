@@ -283,11 +283,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     noise = NoiseModel(
-        **{
-            "attitude_bias_sigma_rad": math.radians(args.attitude_bias_deg),
-            "camera_position_white_sigma_m": args.camera_white_m,
-            "camera_position_offset_sigma_m": args.camera_offset_m,
-        }
+        attitude_bias_sigma_rad=math.radians(args.attitude_bias_deg),
+        camera_position_white_sigma_m=args.camera_white_m,
+        camera_position_offset_sigma_m=args.camera_offset_m,
     )
     counter = RejectCounter(log_interval_s=args.reject_log_interval_s, logger=log)
     fusion = Fusion(

@@ -217,7 +217,7 @@ class FleetConfig:
     # triangulation's linearised covariance is consistent where rays cross well (mean NEES 3.03 over random
     # 2-4 vehicle geometries with RTK-class errors where the range sigma is below 2 % of range, 3.36 up to 5 %:
     # the range posterior grows skewed as the crossing angle closes, as a single camera's does)
-    verdict: MapConfig = field(default_factory=lambda: MapConfig(**{"observability_max_sigma_range_ratio": 0.02}))
+    verdict: MapConfig = field(default_factory=lambda: MapConfig(observability_max_sigma_range_ratio=0.02))
 
     def __post_init__(self) -> None:
         for name in (
