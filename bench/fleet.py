@@ -236,7 +236,7 @@ def main(argv=None) -> int:
         if len(contrib) < n:
             continue
         newest = min(c["time_unix_us"] for c in contrib) / 1e6
-        k_max = int(math.floor((newest - t0) * rate + 1e-6))
+        k_max = int(math.floor((newest - t0) * rate + 1e-3))  # times are whole microseconds: round-off, not a period
         for k in range(max(0, k_max - 60), min(k_max, periods - 1) + 1):
             if math.isnan(first_s[k]) or t_rx < first_s[k]:
                 first_s[k] = t_rx
