@@ -45,8 +45,9 @@ with ``S_i = diag(s_az^2 cos^2 el, s_el^2) + (s_cw^2 + q |dt_i|^3 / 3) / rho_i^2
 ``s_v`` (``MapConfig.velocity_prior_sigma_mps``).  Angular rather than metric residuals: a metric cost
 weighted by the last iterate's range slides towards the camera, where every ray's metric miss is small
 (the collapse of bearing-only estimation); the angular one is flat along a single camera's scaled
-trajectories and the prior holds it there.  Gauss-Newton from the prior's centre (Bjorck, Numerical
-Methods for Least Squares Problems, 1996, ch. 9), ``rho`` clamped at ``min_range_m``.  The covariance is
+trajectories and the prior holds it there.  Gauss-Newton from the prior's centre with step halving while
+the cost grows (Bjorck, Numerical Methods for Least Squares Problems, 1996, ch. 9), ``rho`` clamped at
+``min_range_m``.  The covariance is
 the inverse Gauss-Newton normal matrix ``H^-1`` at the solution (Laplace); ``J(x_hat) ~ chi2(2N - 6)`` when
 the model holds (the nuisances' prior rows count as observations), which the verdict tests.
 
@@ -58,9 +59,9 @@ the residuals pass ``chi2.sf(J, 2N - 6) >= adequacy_p_min`` and the covariance i
 and range sigmas along each vehicle's newest measured line of sight).  An
 unobservable estimate (one vehicle, parallel rays, rays that disagree) keeps its position with its range
 sigma raised, along every contributing vehicle's line of sight, to ``MapEstimator.range_floor`` (at least
-50 % and 150 m; the position prior's 1 km for an estimate collapsed within twice ``min_range_m`` of a
-camera), and across it by the bearing's sigma times the far end of that range interval: never a confident
-wrong point.  Alone, a vehicle's bearings would let the estimate collapse onto its own camera
+50 % and 150 m; the position prior's 1 km for one vehicle's own rays and for an estimate collapsed within
+twice ``min_range_m`` of a camera), and across it by the bearing's sigma times the far end of that range
+interval: never a confident wrong point.  Alone, a vehicle's bearings would let the estimate collapse onto its own camera
 track (a target flying with the camera explains every bearing); the tracker therefore carries the last
 estimate several vehicles made at constant velocity and corrects it across the lone vehicle's newest ray
 (:func:`carried_with_bearing`): the bearing holds the cross-range, the range uncertainty grows.
@@ -211,7 +212,7 @@ class FleetConfig:
     max_speed_mps: float = 30.0
     q_m2ps3: float = 1.0
     min_range_m: float = 10.0
-    iterations: int = 8
+    iterations: int = 20  # Gauss-Newton cap: warm-started solves take 2-3; a poorly crossing pair from a far seed ~12
     max_defer_s: float = 0.05
     # the single-vehicle verdict's thresholds, priors and range floor, with a tighter range-sigma threshold:
     # triangulation's linearised covariance is consistent where rays cross well (mean NEES 3.03 over random
@@ -323,6 +324,8 @@ class Triangulation:
     iterations: int
     condition: float
     vehicles: tuple[str, ...]
+    #: True for :func:`carried_with_bearing`'s estimate (its range carried from several vehicles' estimate)
+    carried: bool = False
 
     @property
     def cov_p_ned_m2(self) -> np.ndarray:
@@ -434,17 +437,28 @@ def triangulate(
                 A[sel, :, cp : cp + 3] = -BU[sel]
         return res * W, A * W[:, :, None], rho
 
+    def total(res: np.ndarray, x: np.ndarray) -> float:
+        return float(np.sum(res * res) + ((x - x_prior) ** 2 * P_prior).sum())
+
+    res, A, rho = residuals(x)
     while iterations < cfg.iterations:
         iterations += 1
-        res, A, rho = residuals(x)
         A2 = A.reshape(2 * N, n)
         H = A2.T @ A2 + np.diag(P_prior)
         g = A2.T @ res.reshape(2 * N) + P_prior * (x - x_prior)
         step = sla.cho_solve(sla.cho_factor(H, lower=True, check_finite=False), -g, check_finite=False)
+        # backtracking: a full Gauss-Newton step overshoots where the rays cross poorly (Nocedal & Wright,
+        # Numerical Optimization, 2nd ed., alg. 3.1, sufficient decrease dropped: halve while the cost grows)
+        before = total(res, x)
+        for _ in range(8):
+            res_new, A_new, rho_new = residuals(x + step)
+            if total(res_new, x + step) <= before:
+                break
+            step = 0.5 * step
         x = x + step
+        res, A, rho = res_new, A_new, rho_new
         if float(np.max(np.abs(step[:6]))) < 1e-7 * float(np.max(rho)):  # 0.1 mm, 0.1 mm/s at 1 km
             break
-    res, A, rho = residuals(x)
     A2 = A.reshape(2 * N, n)
     H = A2.T @ A2 + np.diag(P_prior)
     cost = float(np.sum(res * res) + ((x - x_prior) ** 2 * P_prior)[6:].sum())  # the nuisances' prior rows
@@ -571,8 +585,11 @@ def fleet_verdict(
         # the floor along every contributing line of sight: a poorly crossing pair's posterior is a banana in
         # the plane of its rays, which one line of sight's floor would not cover
         add, floor_m = floor.range_floor(np.array(los_u), np.array(los_sig), np.array(los_r))
+        lone = len(sol.vehicles) < 2 and not sol.carried
         for i, rng in enumerate(los_r):
-            if rng < 2.0 * vc.min_range_m:  # collapsed onto the camera: the range is the weak prior's to say
+            # one vehicle's own rays over a short window, or an estimate collapsed onto a camera: the range is
+            # the weak position prior's to say
+            if lone or rng < 2.0 * vc.min_range_m:
                 u = los_u[i]
                 floor_m[i] = max(floor_m[i], vc.position_prior_sigma_m)
                 add[i] = np.outer(u, u) * max(floor_m[i] ** 2 - los_sig[i] ** 2, 0.0)
@@ -640,7 +657,7 @@ def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, confi
     cov = np.zeros((6, 6))
     cov[:3, :3] = 0.5 * (P + P.T)
     cov[3:, 3:] = V
-    return Triangulation(ray.t_s, p, last.v_ned_mps.copy(), cov, 0.0, 0, 0, math.nan, (ray.vehicle,))
+    return Triangulation(ray.t_s, p, last.v_ned_mps.copy(), cov, 0.0, 0, 0, math.nan, (ray.vehicle,), carried=True)
 
 
 # --------------------------------------------------------------------------- the tracker
