@@ -528,12 +528,13 @@ def run_lockstep(
         c.visible[k] = bool(tr.target_visible)
 
         p0 = time.perf_counter()
-        try:
-            track = pipeline.process(IrFrame(fr.seq, fr.time_boot_us, fr.pixels))
-        except FrameRejected as exc:  # counted by the pipeline; the frame has no track
-            rejected += 1
-            log.debug("frame %d rejected: %s", k, exc)
-            track = None
+        track = None
+        if fr.pixels is not None:  # None: the camera model dropped the frame (its shutter was closed)
+            try:
+                track = pipeline.process(IrFrame(fr.seq, fr.time_boot_us, fr.pixels))
+            except FrameRejected as exc:  # counted by the pipeline; the frame has no track
+                rejected += 1
+                log.debug("frame %d rejected: %s", k, exc)
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         _, pose = source.take()
         if track is not None:
@@ -560,7 +561,7 @@ def run_lockstep(
                     )
                     advices.append((float(tr.t_s), str(advice.manoeuvre)))
 
-        if options.keep_frame and _better_frame(kept, k, F, track):
+        if options.keep_frame and fr.pixels is not None and _better_frame(kept, k, F, track):
             kept = dict(
                 k=k,
                 t_s=float(tr.t_s),

@@ -40,6 +40,7 @@ import numpy as np
 from pydantic import BeforeValidator, PlainValidator
 
 from groundsim.world.motion import Circular, Cubic, FigureEight, Motion, Perturbed, SingerPerturbation, Waypoints
+from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import IrSettings, TargetPart
 from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError, IrtrackError
@@ -273,6 +274,10 @@ class Scenario:
         str, Text(pattern=NAME_PATTERN.pattern, what="a noise-case name of config/noise_cases.yaml")
     ] = DEFAULT_NAV_NOISE
     source_path: Annotated[Path | None, Instance(Path, what="a path")] = None
+    # clouds, terrain, distractors, the camera model (docs/scenes.md); all off: today's clean sky
+    scene: Annotated[SceneConfig, Instance(SceneConfig, what="a SceneConfig")] = dataclasses.field(
+        default_factory=SceneConfig
+    )
 
     @property
     def frame_count(self) -> int:
@@ -592,6 +597,8 @@ class ScenarioFile:
     wind: WindFile = dataclasses.field(default_factory=WindFile)
     # a case of config/noise_cases.yaml: the telemetry's navigation errors (groundsim.world.nav_errors)
     nav_noise: Annotated[str, Text()] = DEFAULT_NAV_NOISE
+    # clouds, terrain, distractors, the camera model (groundsim.world.render.scene_config, docs/scenes.md)
+    scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
 
     def __post_init__(self) -> None:
         if self.nav_noise != DEFAULT_NAV_NOISE:
@@ -662,6 +669,7 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
             wind_ned_mps=(f.wind.n_mps, f.wind.e_mps, f.wind.d_mps),
             nav_noise=f.nav_noise,
             source_path=Path(source) if isinstance(source, Path) else None,
+            scene=f.scene,
         )
     except ConfigError as exc:  # a library object's own consistency check (IrSettings, CameraMount ...)
         if isinstance(exc, SchemaError):

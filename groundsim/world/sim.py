@@ -379,12 +379,18 @@ class ThrottledErrorLog:
 @dataclass(frozen=True)
 class SimFrame:
     """One camera frame: ``seq``, capture ``time_boot_us``, ``pixels`` ((H, W) uint8/uint16, or
-    None when rendering is off) and its :class:`~groundsim.world.truth.TruthRow`."""
+    None when rendering is off or the camera dropped the frame) and its
+    :class:`~groundsim.world.truth.TruthRow`.  With a scene (``scenario.scene``): ``labels``, one
+    :class:`~groundsim.world.render.scene.ObjectLabel` per object (the target, id 0, first), and
+    ``sensor_status`` (``ok`` / ``frozen`` / ``dropped``: the camera model's flat-field events; ``ok``
+    without one).  Without a scene ``labels`` is empty: the truth row holds the one target."""
 
     seq: int
     time_boot_us: int
     pixels: np.ndarray | None
     truth: TruthRow
+    labels: tuple = ()
+    sensor_status: str = "ok"
 
 
 def frame_count(duration_s: float, frame_rate_hz: float) -> int:
@@ -442,6 +448,9 @@ class SimCore:
         self.nav_noise = case
         self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
         self._renderer: IrRenderer | None = None
+        self._scene = None  # SceneContent and Sensor, built on first use when the scenario has a scene
+        self._sensor = None
+        self.scene_enabled = scenario.scene.has_content or scenario.scene.sensor.enabled
         self.render_s = 0.0  # wall seconds spent rendering
         self.render_errors = ThrottledErrorLog("render_error")
 
@@ -480,6 +489,42 @@ class SimCore:
             self._renderer = IrRenderer(self.scenario.camera.intrinsics, self.scenario.ir, seed)
         return self._renderer
 
+    def scene(self):
+        """``(SceneContent, Sensor or None)`` of a scenario with a scene (built on first use: textures take
+        a second or two), seeded by ``scenario.rng("render.scene", seed)`` and ``("render.sensor", seed)``."""
+        if self._scene is None:
+            from groundsim.world.render.scene import SceneContent
+            from groundsim.world.render.sensor import Sensor
+
+            sc = self.scenario
+            renderer = self.renderer()
+            scene_seed = int(sc.rng("render.scene", self.run_seed).integers(0, 2**63 - 1))
+            self._scene = SceneContent.from_config(sc.scene, renderer, scene_seed)
+            if sc.scene.sensor.enabled:
+                sensor_seed = int(sc.rng("render.sensor", self.run_seed).integers(0, 2**63 - 1))
+                self._sensor = Sensor.from_config(
+                    sc.scene.sensor, sc.camera.intrinsics, sc.ir, sensor_seed, self.frame_rate_hz
+                )
+        return self._scene, self._sensor
+
+    def _render_scene(self, k: int, t_s: float, p_cam, R_nc, p_t, R_nt):
+        """Pixels, labels and the camera's status of frame ``k`` through the scene and the camera model.
+
+        Without the camera model: the renderer's grey map and NETD noise (``ir.encoding``).  With it:
+        mono16 is the raw counts; mono8 the AGC output, or the counts' top 8 bits when the AGC is off."""
+        scene, sensor = self.scene()
+        fr = scene.render(t_s, p_cam, R_nc, p_t, R_nt, GROUND_D_M)
+        if sensor is None:
+            return self.renderer().quantise(fr.radiance), fr.labels, "ok"
+        out = sensor.apply(fr.radiance, t_s, k)
+        if out.counts is None:
+            return None, fr.labels, out.status
+        if self.scenario.ir.encoding == "mono16":
+            return out.counts, fr.labels, out.status
+        if out.mono8 is not None:
+            return out.mono8, fr.labels, out.status
+        return (out.counts >> (sensor.config.raw_bits - 8)).astype(np.uint8), fr.labels, out.status
+
     def frame(self, k: int) -> SimFrame:
         if not 0 <= k < self.frame_count:
             raise IndexError(f"frame {k} outside [0, {self.frame_count})")
@@ -488,17 +533,18 @@ class SimCore:
         j = i - c.i0
         t_us = self.time_boot_us(i)
         pixels = None
+        labels: tuple = ()
+        status = "ok"
         if self.render_enabled:
             renderer = self.renderer()
             t0 = time.perf_counter()
+            p_cam, R_nc = c.cam_p_ned_m[j], rotmat_from_quat(c.cam_q_ned_from_cam[j])
+            p_t, R_nt = c.tgt_p_ned_m[j], rotmat_from_quat(c.tgt_q_ned_from_body[j])
             try:
-                pixels = renderer.render(
-                    c.cam_p_ned_m[j],
-                    rotmat_from_quat(c.cam_q_ned_from_cam[j]),
-                    c.tgt_p_ned_m[j],
-                    rotmat_from_quat(c.tgt_q_ned_from_body[j]),
-                    GROUND_D_M,
-                )
+                if self.scene_enabled:
+                    pixels, labels, status = self._render_scene(k, float(c.t_s[j]), p_cam, R_nc, p_t, R_nt)
+                else:
+                    pixels = renderer.render(p_cam, R_nc, p_t, R_nt, GROUND_D_M)
             except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept
                 self.render_errors(f"frame {k}: render failed", exc)
             self.render_s += time.perf_counter() - t0
@@ -517,4 +563,4 @@ class SimCore:
             observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
             nav_error=self.nav_error(i),
         )
-        return SimFrame(k, t_us, pixels, row)
+        return SimFrame(k, t_us, pixels, row, labels, status)
