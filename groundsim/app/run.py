@@ -417,7 +417,7 @@ def run_loop(
                 t1 = clock.now_s()
                 acc["publish"] += t1 - wall
                 if truth is not None:
-                    truth.write(frame.truth)
+                    truth.write(frame.truth, frame.labels)
                 acc["truth"] += clock.now_s() - t1
                 frames += 1
                 pending = core.frame(k + 1) if k + 1 < n_frames else None
@@ -576,12 +576,12 @@ class _RecordingTruth:
     def __init__(self, writer, recorder) -> None:
         self._writer, self._rec = writer, recorder
 
-    def write(self, row: TruthRow) -> None:
+    def write(self, row: TruthRow, labels=()) -> None:
         from onboard.io.foxglove_messages import TRUTH_SCHEMA
         from onboard.io.record import TRUTH_TOPIC
 
         if self._writer is not None:
-            self._writer.write(row)
+            self._writer.write(row, labels)
         self._rec.on_json(TRUTH_TOPIC, TRUTH_SCHEMA, truth_json(row))
 
     def close(self) -> None:

@@ -10,6 +10,9 @@ truth of every frame (the same flight, frames and navigation errors as ``grounds
     DIR/<seq>/labels.csv              per frame: target id, sub-pixel centroid, box, visibility
     DIR/<seq>/cameras.csv             per frame: intrinsics, camera pose true and measured (NED + WGS84)
     DIR/<seq>/truth.csv               the 3-D truth (groundsim.world.truth columns, as ``groundsim run --truth``)
+    DIR/<seq>/truth.objects.csv       with a scene: every object per frame (groundsim.world.truth.OBJECT_COLUMNS:
+                                      id, class, sub-pixel centroid, box, visible / occluded / out_of_frame,
+                                      contrast to the local background in NETD units)
     DIR/<seq>/seqinfo.ini, gt/gt.txt  --format mot: MOT Challenge layout (TrackEval's MotChallenge2DBox reads it)
     DIR/coco.json                     --format coco: COCO detection + 1-keypoint ("centroid") JSON, every sequence
 
@@ -29,7 +32,16 @@ Labels (:func:`target_label`, pure):
 A frame whose target is not in the image has no gt.txt line and no COCO annotation; labels.csv keeps it.
 gt.txt (MOT 1.1 ground truth): ``frame, id, bb_left, bb_top, bb_width, bb_height, consider, class,
 visibility`` with MOT's 1-based pixel coordinates (``bb_left = x_px + 1``), class 1 (the one class
-TrackEval's MOT reader evaluates; here: "the target"), consider 1.  COCO: boxes ``[x, y, w, h]`` in
+TrackEval's MOT reader evaluates; here: "the target"), consider 1.
+
+The scene's other objects (a scenario with a ``scene``: ``groundsim.world.render.scene.ObjectLabel``), when
+their box is in the image (visible or behind a cloud): MOT id and COCO ``track_id`` = object id + 1 (the
+target, object 0, keeps id 1 and its label above); box = the pixels holding >= 10 % of the object's peak
+signal; MOT class :data:`MOT_CLASSES` (other targets 1; birds, aircraft, glints classes of MOT17 that
+TrackEval neither evaluates nor treats as distractors, so a tracker's box on a bird is a false positive),
+visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
+``visibility_state`` and ``contrast_netd``.  A frame the camera model dropped (its shutter closed, ``ffc.mode:
+dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
 continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
 ``visibility``, ``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
 each image.
@@ -50,7 +62,6 @@ from __future__ import annotations
 import csv
 import dataclasses
 import hashlib
-import io
 import json
 import logging
 import math
@@ -89,6 +100,10 @@ DATASET_SCHEMA = "irtrack.dataset/1"
 FORMATS = ("mot", "coco")
 TARGET_ID = 1  # the one target of a scenario: its MOT id / COCO track_id
 MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestrian" there; "the target" here)
+# scene objects: MOT17 classes TrackEval reads but neither evaluates nor counts as distractors (car, bicycle,
+# motorbike), so a tracker's box on a bird or an aircraft stays a false positive
+MOT_CLASSES = {"target": MOT_CLASS, "aircraft": 3, "bird": 4, "glint": 5}
+COCO_CATEGORIES = {"target": TARGET_ID, "bird": 2, "aircraft": 3, "glint": 4}
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
 PROGRESS_EVERY_FRAMES = 10
 
@@ -216,16 +231,49 @@ def seqinfo_ini(name: str, frame_rate_hz: float, frames: int, width_px: int, hei
     )
 
 
-def mot_gt_lines(labels: list[tuple[int, TargetLabel]]) -> str:
-    """gt.txt text from ``(frame 1-based, label)`` pairs; frames without a box are left out."""
-    out = io.StringIO()
+def _object_box(lab, intrinsics) -> tuple[float, float, float, float] | None:
+    """A scene object's box ``(x, y, w, h)`` clipped to the image, None when it has none there (pure)."""
+    if lab.box_px is None or lab.visibility == "out_of_frame":
+        return None
+    x0, y0, x1, y1 = (float(b) for b in lab.box_px)
+    x0, y0 = max(x0, 0.0), max(y0, 0.0)
+    x1, y1 = min(x1, float(intrinsics.width_px)), min(y1, float(intrinsics.height_px))
+    if x1 <= x0 or y1 <= y0:
+        return None
+    return x0, y0, x1 - x0, y1 - y0
+
+
+def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=None) -> str:
+    """gt.txt text from ``(frame 1-based, label)`` pairs of the target (frames without a box are left out)
+    and ``(frame, (ObjectLabel, ...))`` of the scene's other objects (see the module docstring)."""
+    rows = []
     for frame, lab in labels:
         if lab.has_box:
-            out.write(
-                f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
-                f"1,{MOT_CLASS},{lab.visibility:.4f}\n"
+            rows.append(
+                (
+                    frame,
+                    TARGET_ID,
+                    f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
+                    f"1,{MOT_CLASS},{lab.visibility:.4f}\n",
+                )
             )
-    return out.getvalue()
+    for frame, labs in objects:
+        for o in labs:
+            box = _object_box(o, intrinsics)
+            if box is None:
+                continue
+            oid = int(o.object_id) + 1
+            vis = 1.0 if o.visibility == "visible" else 0.0
+            rows.append(
+                (
+                    frame,
+                    oid,
+                    f"{frame},{oid},{box[0] + 1.0:.4f},{box[1] + 1.0:.4f},{box[2]:.4f},{box[3]:.4f},"
+                    f"1,{MOT_CLASSES[o.cls]},{vis:.4f}\n",
+                )
+            )
+    rows.sort(key=lambda r: (r[0], r[1]))
+    return "".join(r[2] for r in rows)
 
 
 # --------------------------------------------------------------------------- options
@@ -282,6 +330,7 @@ class SequenceSummary:
     frame_rate_hz: float
     wall_s: float
     labels: tuple = ()  # ((frame 1-based, TargetLabel, time_boot_us), ...) for the COCO writer
+    objects: tuple = ()  # ((frame 1-based, (ObjectLabel, ...)), ...): the scene's other objects
 
 
 def _fmt(x) -> str:
@@ -320,6 +369,7 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     corners = body_box_corners_frd_m(scenario.ir.target_parts)
     origin = scenario.origin
     labels: list[tuple[int, TargetLabel, int]] = []
+    objects: list[tuple[int, tuple]] = []
     intr = [K.fx_px, K.fy_px, K.cx_px, K.cy_px, int(K.width_px), int(K.height_px), *map(float, K.distortion)]
     done = 0
     with (
@@ -337,13 +387,20 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             j = i - c.i0
             tr = fr.truth
             frame = k + 1
-            if fr.pixels is None:
+            pixels = fr.pixels
+            if pixels is None and fr.sensor_status == "dropped":  # the camera delivered nothing: a black frame
+                dtype = np.uint8 if scenario.ir.encoding == "mono8" else np.uint16
+                pixels = np.zeros((int(K.height_px), int(K.width_px)), dtype)
+            if pixels is None:
                 raise InputError(f"{name}: frame {k} could not be rendered")
             if not cv2.imwrite(
-                str(img_dir / f"{frame:06d}.png"), fr.pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]
+                str(img_dir / f"{frame:06d}.png"), pixels, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION]
             ):
                 raise ConfigError(f"--out {out_dir}: cannot write {img_dir / f'{frame:06d}.png'}")
-            truth.write(tr)
+            truth.write(tr, fr.labels)
+            others = tuple(o for o in fr.labels if o.object_id != 0 and _object_box(o, K) is not None)
+            if others:
+                objects.append((frame, others))
             p_cam = np.array([tr.cam_n_m, tr.cam_e_m, tr.cam_d_m])
             q_cam = np.array([tr.q_ned_from_cam_w, tr.q_ned_from_cam_x, tr.q_ned_from_cam_y, tr.q_ned_from_cam_z])
             lab = target_label(
@@ -400,7 +457,8 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             encoding="ascii",
         )
         (seq_dir / "gt").mkdir(exist_ok=True)
-        (seq_dir / "gt" / "gt.txt").write_text(mot_gt_lines([(f, lab) for f, lab, _ in labels]), encoding="ascii")
+        gt = mot_gt_lines([(f, lab) for f, lab, _ in labels], objects, K)
+        (seq_dir / "gt" / "gt.txt").write_text(gt, encoding="ascii")
     return SequenceSummary(
         name=name,
         scenario=scenario.name,
@@ -413,6 +471,7 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
         frame_rate_hz=float(scenario.frame_rate_hz),
         wall_s=time.perf_counter() - t0,
         labels=tuple(labels),
+        objects=tuple(objects),
     )
 
 
@@ -428,6 +487,7 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
     """The COCO JSON of the sequences (pure): images in sequence then frame order, ids from 1."""
     images, annotations = [], []
     for s in summaries:
+        others = dict(s.objects)
         for frame, lab, t_us in s.labels:
             image_id = len(images) + 1
             images.append(
@@ -458,6 +518,28 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                         "track_id": TARGET_ID,
                     }
                 )
+            for o in others.get(frame, ()):
+                box = _object_box(o, _Size(s.width_px, s.height_px))
+                if box is None:
+                    continue
+                x, y, w, h = box
+                annotations.append(
+                    {
+                        "id": len(annotations) + 1,
+                        "image_id": image_id,
+                        "category_id": COCO_CATEGORIES[o.cls],
+                        "bbox": [x, y, w, h],
+                        "area": w * h,
+                        "iscrowd": 0,
+                        "segmentation": [[x, y, x + w, y, x + w, y + h, x, y + h]],
+                        "keypoints": [float(o.u_px), float(o.v_px), 2 if o.visibility == "visible" else 1],
+                        "num_keypoints": 1,
+                        "centroid_px": [float(o.u_px), float(o.v_px)],
+                        "visibility_state": o.visibility,
+                        "contrast_netd": round(float(o.contrast_netd), 4),
+                        "track_id": int(o.object_id) + 1,
+                    }
+                )
     return {
         "info": {"description": description, "version": DATASET_SCHEMA},
         "licenses": [],
@@ -465,8 +547,19 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
         "annotations": annotations,
         "categories": [
             {"id": TARGET_ID, "name": "target", "supercategory": "aircraft", "keypoints": ["centroid"], "skeleton": []}
+        ]
+        + [
+            {"id": cid, "name": name, "supercategory": "object", "keypoints": ["centroid"], "skeleton": []}
+            for name, cid in COCO_CATEGORIES.items()
+            if cid != TARGET_ID and any(s.objects for s in summaries)
         ],
     }
+
+
+@dataclass(frozen=True)
+class _Size:
+    width_px: int
+    height_px: int
 
 
 def _sha256(path) -> str | None:

@@ -34,6 +34,23 @@ are written with Python's shortest round-trip ``repr`` (deterministic, lossless)
 :class:`TruthWriter` writes the header at open and flushes every row as one whole line, so a run
 stopped by SIGINT/SIGTERM (or read while it runs) leaves a file of whole lines with its header.
 :func:`read_truth_csv` reads it back into arrays.
+
+Every object of a scene (a scenario with a ``scene`` section: the target, other targets, birds, aircraft,
+glints; ``groundsim.world.render.scene.ObjectLabel``) goes to a second file beside it,
+``<truth stem>.objects.csv``, one line per object and frame (:data:`OBJECT_COLUMNS`)::
+
+    seq, time_boot_us, t_s         the frame (as in the truth file)
+    object_id, cls                 0 is the target of the truth file's target_* columns; cls target, bird,
+                                   aircraft, glint
+    u_px, v_px                     sub-pixel projection of the object's centre (NaN behind the camera)
+    x0_px, y0_px, x1_px, y1_px     box of the pixels holding >= 10 % of its peak signal (end exclusive;
+                                   NaN when not drawn)
+    visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5), out_of_frame
+    contrast_netd                  peak |signal - local background| in NETD units (0 when not drawn)
+    range_m                        camera to the object's centre
+
+The file is opened with the first frame that has object labels (none without a scene), so a scenario
+without a scene writes exactly the one truth file as before.
 """
 
 from __future__ import annotations
@@ -52,6 +69,8 @@ from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
 
 __all__ = [
+    "OBJECT_COLUMNS",
+    "objects_path",
     "TRUTH_COLUMNS",
     "REQUIRED_COLUMNS",
     "TruthRow",
@@ -245,6 +264,54 @@ def _fmt(value) -> str:
     return repr(float(value))  # shortest round-trip; 'nan' for NaN
 
 
+#: Columns of the per-object truth file (see the module docstring).
+OBJECT_COLUMNS = (
+    "seq",
+    "time_boot_us",
+    "t_s",
+    "object_id",
+    "cls",
+    "u_px",
+    "v_px",
+    "x0_px",
+    "y0_px",
+    "x1_px",
+    "y1_px",
+    "visibility",
+    "contrast_netd",
+    "range_m",
+)
+
+
+def objects_path(truth_path) -> Path:
+    """The per-object truth file beside ``truth_path``: ``out/truth.csv`` -> ``out/truth.objects.csv``."""
+    p = Path(truth_path)
+    return p.with_name(f"{p.stem}.objects.csv")
+
+
+def object_rows(row: TruthRow, labels) -> list[list[str]]:
+    """The per-object lines of one frame (strings, :data:`OBJECT_COLUMNS` order) from its ``ObjectLabel``s."""
+    out = []
+    for lab in labels:
+        box = (math.nan,) * 4 if lab.box_px is None else tuple(int(b) for b in lab.box_px)
+        out.append(
+            [
+                str(row.seq),
+                str(row.time_boot_us),
+                _fmt(row.t_s),
+                str(int(lab.object_id)),
+                lab.cls,
+                _fmt(lab.u_px),
+                _fmt(lab.v_px),
+                *map(_fmt, box),
+                lab.visibility,
+                _fmt(lab.contrast_netd),
+                _fmt(lab.range_m),
+            ]
+        )
+    return out
+
+
 class TruthWriteError(IrtrackError):
     """The truth file could not be written (disk full, file system gone); one line."""
 
@@ -258,6 +325,7 @@ class TruthWriter:
     def __init__(self, path) -> None:
         self.path = Path(path)
         self.rows_written = 0
+        self._objects = None  # the per-object file, opened with the first labelled frame
         try:
             if self.path.parent and not self.path.parent.exists():
                 self.path.parent.mkdir(parents=True, exist_ok=True)
@@ -268,7 +336,8 @@ class TruthWriter:
             raise ConfigError(f"--truth {self.path}: cannot write: {exc.strerror or exc}") from None
         log.info("truth: writing %s", self.path)
 
-    def write(self, row: TruthRow) -> None:
+    def write(self, row: TruthRow, labels=()) -> None:
+        """One frame: its truth row, and its objects' lines (``labels``: ObjectLabel, see the module docstring)."""
         if self._f is None:
             raise InputError(f"truth writer for {self.path} is closed")
         if not isinstance(row, TruthRow):
@@ -276,11 +345,20 @@ class TruthWriter:
         try:
             self._f.write(",".join(_fmt(v) for v in row.values()) + "\n")  # one write: one whole line
             self._f.flush()
+            if labels:
+                if self._objects is None:
+                    self._objects = open(objects_path(self.path), "w", encoding="ascii", newline="")
+                    self._objects.write(",".join(OBJECT_COLUMNS) + "\n")
+                self._objects.write("".join(",".join(r) + "\n" for r in object_rows(row, labels)))
+                self._objects.flush()
         except OSError as exc:
             raise TruthWriteError(f"--truth {self.path}: write failed: {exc.strerror or exc}") from None
         self.rows_written += 1
 
     def close(self) -> None:
+        objects, self._objects = self._objects, None
+        if objects is not None:
+            objects.close()
         f, self._f = self._f, None
         if f is not None:
             try:
