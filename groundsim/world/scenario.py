@@ -68,6 +68,7 @@ __all__ = [
     "ScenarioError",
     "SingerDisturbance",
     "VehicleSpec",
+    "OtherTarget",
     "GimbalSpec",
     "CameraSpec",
     "Scenario",
@@ -278,6 +279,8 @@ class Scenario:
     scene: Annotated[SceneConfig, Instance(SceneConfig, what="a SceneConfig")] = dataclasses.field(
         default_factory=SceneConfig
     )
+    # more targets, flown like ``target`` and drawn as scene objects 1..n (OtherTarget)
+    other_targets: Annotated[tuple, Instance(tuple, what="a tuple of OtherTarget")] = ()
 
     @property
     def frame_count(self) -> int:
@@ -308,6 +311,17 @@ class Scenario:
         if run_seed == 0 or self.target.disturbance is None:
             return self.target.motion
         return self.target.realise(self.duration_s + SINGER_MARGIN_S, self.rng("target.disturbance", run_seed))
+
+    def other_target_motion(self, index: int, run_seed: int = 0) -> Motion:
+        """Path of ``other_targets[index]`` for run ``run_seed`` (its disturbance from the stream
+        ``"other_targets[<index>].disturbance"``; run 0's is ``other_targets[index].vehicle.motion``)."""
+        run_seed = check_value(
+            Annotated[int, Integer(lo=0)], run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError
+        )
+        v = self.other_targets[index].vehicle
+        if run_seed == 0 or v.disturbance is None:
+            return v.motion
+        return v.realise(self.duration_s + SINGER_MARGIN_S, self.rng(f"other_targets[{index}].disturbance", run_seed))
 
     def observer_motion(self, run_seed: int = 0) -> Motion:
         """The observer's path (deterministic: observers carry no disturbance)."""
@@ -524,6 +538,24 @@ def _nonempty(value: Any) -> Any:
 
 
 @_scenario_model(kw_only=True)
+class OtherTarget:
+    """One more target: its path (``vehicle``, flown by JSBSim like the scenario's target) and the parts it
+    is drawn with (``parts``: ``TargetPart``s; the scenario's ``ir.target_parts`` when not given)."""
+
+    vehicle: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
+    parts: Annotated[tuple, Instance(tuple, what="a tuple of TargetPart")]
+
+
+@_scenario_model(kw_only=True)
+class OtherTargetFile:
+    """An entry of ``other_targets``: as ``target``, plus its own ``target_parts`` (default: ``ir``'s)."""
+
+    motion: MotionFile
+    disturbance: DisturbanceFile | None = None
+    target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
+
+
+@_scenario_model(kw_only=True)
 class IrFile:
     """``ir``: the renderer's settings (:class:`~groundsim.world.render.settings.IrSettings`, which keeps its own
     consistency checks); target parts replace the default quadcopter."""
@@ -599,6 +631,8 @@ class ScenarioFile:
     nav_noise: Annotated[str, Text()] = DEFAULT_NAV_NOISE
     # clouds, terrain, distractors, the camera model (groundsim.world.render.scene_config, docs/scenes.md)
     scene: SceneConfig = dataclasses.field(default_factory=SceneConfig)
+    # more targets, each with its own motion and thermal parts (drawn as scene objects 1..n)
+    other_targets: tuple[OtherTargetFile, ...] = ()
 
     def __post_init__(self) -> None:
         if self.nav_noise != DEFAULT_NAV_NOISE:
@@ -609,7 +643,9 @@ class ScenarioFile:
                 )
 
 
-def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: SpecFail) -> None:
+def _check_paths(
+    observer: Motion, target: Motion, t_s: np.ndarray, fail: SpecFail, field: str = "target.motion"
+) -> None:
     """The commanded paths stay finite and apart at every frame."""
     with np.errstate(all="ignore"):
         p_obs = observer.state(t_s).p_ned_m
@@ -617,12 +653,12 @@ def _check_paths(observer: Motion, target: Motion, t_s: np.ndarray, fail: SpecFa
         if not np.all(np.isfinite(p_obs)):
             fail("observer.motion", "a path that stays finite over duration_s", "overflow")
         if not np.all(np.isfinite(p_tgt)):
-            fail("target.motion", "a path that stays finite over duration_s", "overflow")
+            fail(field, "a path that stays finite over duration_s", "overflow")
         r = np.linalg.norm(p_tgt - p_obs, axis=-1)
     k = int(np.argmin(r))
     if not r[k] >= MIN_SEPARATION_M:
         fail.text(
-            "target.motion",
+            field,
             f"a path at least {MIN_SEPARATION_M:g} m from the observer at every frame",
             f"{r[k]:.3g} m at t = {t_s[k]:.3f} s",
         )
@@ -647,6 +683,18 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
     disturbance = None if f.target.disturbance is None else f.target.disturbance.spec()
     t_s = np.arange(_frame_count(f.duration_s, f.frame_rate_hz)) / f.frame_rate_hz
     _check_paths(obs_motion, tgt_base, t_s, fail)
+    others = []
+    for i, o in enumerate(f.other_targets):
+        base = o.motion.motion()
+        _check_paths(obs_motion, base, t_s, fail, f"other_targets[{i}].motion")
+        parts = tuple(p.part() for p in (o.target_parts or f.ir.target_parts)) or _IR.target_parts
+        if o.disturbance is None:
+            vehicle = VehicleSpec(base)
+        else:
+            spec = o.disturbance.spec()
+            rng = _stream_rng(f.seed, f"other_targets[{i}].disturbance", 0)
+            vehicle = VehicleSpec(Perturbed(base, spec.realise(f.duration_s + SINGER_MARGIN_S, rng)), base, spec)
+        others.append(OtherTarget(vehicle=vehicle, parts=parts))
     if disturbance is None:
         target = VehicleSpec(tgt_base)
     else:
@@ -670,6 +718,7 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
             nav_noise=f.nav_noise,
             source_path=Path(source) if isinstance(source, Path) else None,
             scene=f.scene,
+            other_targets=tuple(others),
         )
     except ConfigError as exc:  # a library object's own consistency check (IrSettings, CameraMount ...)
         if isinstance(exc, SchemaError):

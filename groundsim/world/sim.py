@@ -158,6 +158,14 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     if target.disturbance is not None:
         realisation = target.disturbance.realise(d + SINGER_MARGIN_S, scenario.rng("target.disturbance", 0))
         target = VehicleSpec(Perturbed(target.base_motion, realisation), target.base_motion, target.disturbance)
+    others = []
+    for i, o in enumerate(scenario.other_targets):
+        _check_extensible(f"other_targets[{i}]", o.vehicle, scenario, d)
+        v = o.vehicle
+        if v.disturbance is not None:
+            realisation = v.disturbance.realise(d + SINGER_MARGIN_S, scenario.rng(f"other_targets[{i}].disturbance", 0))
+            v = VehicleSpec(Perturbed(v.base_motion, realisation), v.base_motion, v.disturbance)
+        others.append(dataclasses.replace(o, vehicle=v))
     t_s = np.arange(frame_count(d, scenario.frame_rate_hz)) / scenario.frame_rate_hz
     t_s = t_s[t_s >= scenario.duration_s - DURATION_EPS_S]
     with np.errstate(all="ignore"):
@@ -180,7 +188,7 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
         _motion_name(scenario.observer.base_motion),
         _motion_name(target.base_motion),
     )
-    return dataclasses.replace(scenario, duration_s=d, target=target)
+    return dataclasses.replace(scenario, duration_s=d, target=target, other_targets=tuple(others))
 
 
 # --------------------------------------------------------------------------- flight
@@ -210,6 +218,7 @@ class _Chunk:
     q_ned_from_gimbal: np.ndarray | None
     cam_p_ned_m: np.ndarray
     cam_q_ned_from_cam: np.ndarray
+    others: tuple = ()  # per other target: (p_ned_m, v_ned_mps, q_ned_from_body) arrays of the ticks
 
     @property
     def i1(self) -> int:
@@ -234,6 +243,8 @@ class PairFlight:
         # the scripted motion until a guided setpoint arrives (command_observer), then the setpoints
         self._obs_ref = GuidedReference(scenario.observer_motion(run_seed))
         self._tgt_ref = scenario.target_motion(run_seed)
+        self._other_refs = [scenario.other_target_motion(i, run_seed) for i in range(len(scenario.other_targets))]
+        self._others: list[FlownVehicle] = []
         g = scenario.camera.gimbal
         self.gimbal_phase_rad: tuple[float, ...] | None = None
         if g is not None:
@@ -291,6 +302,12 @@ class PairFlight:
                 self._tgt_ref, sc.origin, sc.wind_ned_mps, yaw_mode="velocity", name="target", seed=sc.seed
             )
         tgt = self._target.step_through(t)
+        if not self._others:
+            self._others = [
+                FlownVehicle(ref, sc.origin, sc.wind_ned_mps, yaw_mode="velocity", name=f"target{i + 1}", seed=sc.seed)
+                for i, ref in enumerate(self._other_refs)
+            ]
+        others = tuple((o.p_ned_m, o.v_ned_mps, o.q_ned_from_body) for o in (v.step_through(t) for v in self._others))
         if self._observer is None:
             kw = {"look_at_ned_m": tgt.p_ned_m[0]} if self.observer_yaw_mode == "target" else {}
             self._observer = FlownVehicle(
@@ -306,7 +323,7 @@ class PairFlight:
             obs = self._observer.step_through(t, tgt.p_ned_m, tgt.v_ned_mps)
         else:
             obs = self._observer.step_through(t)
-        self._chunks = self._chunks[-1:] + [self._derive(a, t, obs, tgt)]
+        self._chunks = self._chunks[-1:] + [dataclasses.replace(self._derive(a, t, obs, tgt), others=others)]
         self.flown_ticks = b
         self.flight_s += time.perf_counter() - t0
 
@@ -450,7 +467,8 @@ class SimCore:
         self._renderer: IrRenderer | None = None
         self._scene = None  # SceneContent and Sensor, built on first use when the scenario has a scene
         self._sensor = None
-        self.scene_enabled = scenario.scene.has_content or scenario.scene.sensor.enabled
+        self.scene_enabled = scenario.scene.has_content or scenario.scene.sensor.enabled or bool(scenario.other_targets)
+        self._other_rasters: tuple = ()
         self.render_s = 0.0  # wall seconds spent rendering
         self.render_errors = ThrottledErrorLog("render_error")
 
@@ -500,6 +518,7 @@ class SimCore:
             renderer = self.renderer()
             scene_seed = int(sc.rng("render.scene", self.run_seed).integers(0, 2**63 - 1))
             self._scene = SceneContent.from_config(sc.scene, renderer, scene_seed)
+            self._other_rasters = tuple(self._scene.target_raster(o.parts) for o in sc.other_targets)
             if sc.scene.sensor.enabled:
                 sensor_seed = int(sc.rng("render.sensor", self.run_seed).integers(0, 2**63 - 1))
                 self._sensor = Sensor.from_config(
@@ -507,13 +526,20 @@ class SimCore:
                 )
         return self._scene, self._sensor
 
-    def _render_scene(self, k: int, t_s: float, p_cam, R_nc, p_t, R_nt):
+    def _render_scene(self, k: int, t_s: float, p_cam, R_nc, p_t, R_nt, others=()):
         """Pixels, labels and the camera's status of frame ``k`` through the scene and the camera model.
 
-        Without the camera model: the renderer's grey map and NETD noise (``ir.encoding``).  With it:
-        mono16 is the raw counts; mono8 the AGC output, or the counts' top 8 bits when the AGC is off."""
+        ``others``: the other targets' ``(p_ned_m, R_ned_from_body)`` (scene objects 1..n).  Without the
+        camera model: the renderer's grey map and NETD noise (``ir.encoding``).  With it: mono16 is the raw
+        counts; mono8 the AGC output, or the counts' top 8 bits when the AGC is off."""
+        from groundsim.world.render.scene import SceneObject
+
         scene, sensor = self.scene()
-        fr = scene.render(t_s, p_cam, R_nc, p_t, R_nt, GROUND_D_M)
+        objs = [
+            SceneObject(i + 1, "target", np.asarray(p, float), R, raster)
+            for i, ((p, R), raster) in enumerate(zip(others, self._other_rasters))
+        ]
+        fr = scene.render(t_s, p_cam, R_nc, p_t, R_nt, GROUND_D_M, objs)
         if sensor is None:
             return self.renderer().quantise(fr.radiance), fr.labels, "ok"
         out = sensor.apply(fr.radiance, t_s, k)
@@ -542,7 +568,8 @@ class SimCore:
             p_t, R_nt = c.tgt_p_ned_m[j], rotmat_from_quat(c.tgt_q_ned_from_body[j])
             try:
                 if self.scene_enabled:
-                    pixels, labels, status = self._render_scene(k, float(c.t_s[j]), p_cam, R_nc, p_t, R_nt)
+                    others = [(p[j], rotmat_from_quat(q[j])) for p, _, q in c.others]
+                    pixels, labels, status = self._render_scene(k, float(c.t_s[j]), p_cam, R_nc, p_t, R_nt, others)
                 else:
                     pixels = renderer.render(p_cam, R_nc, p_t, R_nt, GROUND_D_M)
             except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept

@@ -114,8 +114,8 @@ class ObjectLabel:
 
     ``u_px, v_px``: sub-pixel projection of its centre (NaN behind the camera); ``box_px``: ``(x0, y0,
     x1, y1)`` of the pixels whose signal reaches ``BOX_FRACTION`` of its peak (None when not drawn);
-    ``visibility``: ``visible``, ``occluded`` (its centre behind a cloud of opacity >= 0.5) or
-    ``out_of_frame``; ``contrast_netd``: peak |signal - local background| over the NETD in radiance
+    ``visibility``: ``visible``, ``occluded`` (its centre behind a cloud of opacity >= 0.5, or inside
+    the box of a nearer object drawn over it) or ``out_of_frame``; ``contrast_netd``: peak |signal - local background| over the NETD in radiance
     (``netd_k * dL/dT(netd_reference_k)``), 0 when not drawn; ``range_m``: camera to centre.
     """
 
@@ -337,11 +337,11 @@ class SceneContent:
 
     # ------------------------------------------------------------------ objects
 
-    def objects(self, t_s: float) -> tuple[SceneObject, ...]:
-        """The distractors at ``t_s`` (ids 1.. in the order birds, aircraft, glints)."""
+    def objects(self, t_s: float, first_id: int = 1) -> tuple[SceneObject, ...]:
+        """The distractors at ``t_s`` (ids ``first_id``.. in the order birds, aircraft, glints)."""
         t = float(t_s)
         out = []
-        oid = 1
+        oid = int(first_id)
         b = self.config.distractors.birds
         for centre, radius, phase, direction, flap_phase in self._birds:
             theta = phase + direction * b.speed_mps / radius * t
@@ -360,14 +360,22 @@ class SceneContent:
             oid += 1
         return tuple(out)
 
-    def target_object(self, p_target_ned_m, R_ned_from_target_body) -> SceneObject:
-        """The renderer's target as scene object 0."""
+    def target_object(self, p_target_ned_m, R_ned_from_target_body, t_s: float = 0.0) -> SceneObject:
+        """The renderer's target as scene object 0 (its signal scaled by the ``crossover`` gain at ``t_s``)."""
         return SceneObject(
             0,
             "target",
             np.asarray(p_target_ned_m, float),
             np.asarray(R_ned_from_target_body, float),
             self._target_raster,
+            self.config.crossover.gain(t_s),
+        )
+
+    def target_raster(self, parts) -> PartRaster:
+        """A ray caster of another target made of ``parts`` (``TargetPart``), drawn like the renderer's target
+        (same supersampling), for :meth:`render`'s ``others``."""
+        return PartRaster(
+            self.renderer.intrinsics, self.settings, tuple(parts), self.renderer.environment_radiance, 0.0, 1.0
         )
 
     # ------------------------------------------------------------------ background
@@ -517,7 +525,7 @@ class SceneContent:
                     delta = delta * np.float32(o.gain)
                 out[rows, cols] += delta
             labels[k] = self._label(o, roi, ranges[k], background, p_cam, R_nc)
-        return out, tuple(labels[k] for k in range(len(objects)))
+        return out, _occluded_by_nearer(tuple(labels[k] for k in range(len(objects))))
 
     def _label(self, o: SceneObject, roi, range_m: float, background, p_cam, R_nc) -> ObjectLabel:
         intr = self.renderer.intrinsics
@@ -548,12 +556,39 @@ class SceneContent:
     # ------------------------------------------------------------------ a frame
 
     def render(
-        self, t_s, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, altitude_ground_d_m=0.0
+        self,
+        t_s,
+        p_cam_ned_m,
+        R_ned_from_cam,
+        p_target_ned_m,
+        R_ned_from_target_body,
+        altitude_ground_d_m=0.0,
+        others=(),
     ) -> SceneFrame:
-        """Background, target (``p_target_ned_m=None``: none) and distractors at ``t_s``: a :class:`SceneFrame`."""
+        """Background, target (``p_target_ned_m=None``: none), ``others`` (more targets: SceneObjects with
+        ids 1..n, rasters from :meth:`target_raster`) and the distractors (ids after them) at ``t_s``."""
         bg = self.render_background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
-        objs = self.objects(t_s)
+        others = tuple(others)
+        objs = self.objects(t_s, 1 + max((o.object_id for o in others), default=0))
+        objs = (*others, *objs)
         if p_target_ned_m is not None:
-            objs = (self.target_object(p_target_ned_m, R_ned_from_target_body), *objs)
+            objs = (self.target_object(p_target_ned_m, R_ned_from_target_body, t_s), *objs)
         radiance, labels = self.draw_objects(bg.radiance, bg, objs, p_cam_ned_m, R_ned_from_cam)
         return SceneFrame(radiance, bg, labels)
+
+
+def _occluded_by_nearer(labels: tuple[ObjectLabel, ...]) -> tuple[ObjectLabel, ...]:
+    """Labels with ``visible`` turned ``occluded`` where the object's centre pixel lies in the box of a
+    nearer object (drawn over it: the image shows the nearer one there)."""
+    out = []
+    for lab in labels:
+        if lab.visibility == "visible":
+            i, j = math.floor(lab.v_px), math.floor(lab.u_px)
+            for o in labels:
+                if o.box_px is not None and o.range_m < lab.range_m and o.contrast_netd > 0.0:
+                    x0, y0, x1, y1 = o.box_px
+                    if x0 <= j < x1 and y0 <= i < y1:
+                        lab = dataclasses.replace(lab, visibility="occluded")
+                        break
+        out.append(lab)
+    return tuple(out)

@@ -29,6 +29,7 @@ __all__ = [
     "AircraftConfig",
     "GlintConfig",
     "DistractorsConfig",
+    "CrossoverConfig",
     "AgcConfig",
     "FpnConfig",
     "FfcConfig",
@@ -194,6 +195,39 @@ class DistractorsConfig:
         return self.birds.count + len(self.aircraft) + len(self.glints)
 
 
+# --------------------------------------------------------------------------- thermal crossover
+
+
+@_model
+class CrossoverConfig:
+    """Thermal crossover of the target (object 0): its signal over the background it hides (object minus
+    background, per pixel) is scaled by a gain that holds 1 until ``start_s``, goes linearly to 0 at
+    ``start_s + ramp_s``, holds 0 for ``hold_s`` and goes on to ``end_gain`` (negative: colder than its
+    background) over another ``ramp_s``: the target and its background have the same radiance for a
+    while, as around dawn and dusk.  Scaling the difference is the same as moving every part's radiance
+    towards the background's along the straight line between them."""
+
+    enabled: bool = False
+    start_s: NonNegative = 2.0
+    ramp_s: Positive = 2.0
+    hold_s: NonNegative = 1.0
+    end_gain: Annotated[float, Field(ge=-1.0, le=1.0, allow_inf_nan=False)] = -0.5
+
+    def gain(self, t_s: float) -> float:
+        """The gain on the target's signal at ``t_s`` (1 when disabled)."""
+        if not self.enabled:
+            return 1.0
+        t = float(t_s) - self.start_s
+        if t <= 0.0:
+            return 1.0
+        if t < self.ramp_s:
+            return 1.0 - t / self.ramp_s
+        t -= self.ramp_s + self.hold_s
+        if t <= 0.0:
+            return 0.0
+        return self.end_gain * min(t / self.ramp_s, 1.0)
+
+
 # --------------------------------------------------------------------------- sensor
 
 
@@ -281,17 +315,19 @@ class SensorConfig:
 
 @_model
 class SceneConfig:
-    """Everything the renderer adds to today's clean sky: ``clouds``, ``terrain``, ``distractors``, ``sensor``."""
+    """Everything the renderer adds to today's clean sky: ``clouds``, ``terrain``, ``distractors``,
+    ``crossover`` (the target's), ``sensor``."""
 
     clouds: CloudsConfig = dataclasses.field(default_factory=CloudsConfig)
     terrain: TerrainConfig = dataclasses.field(default_factory=TerrainConfig)
     distractors: DistractorsConfig = dataclasses.field(default_factory=DistractorsConfig)
+    crossover: CrossoverConfig = dataclasses.field(default_factory=CrossoverConfig)
     sensor: SensorConfig = dataclasses.field(default_factory=SensorConfig)
 
     @property
     def has_content(self) -> bool:
-        """True when anything is drawn beyond today's sky, ground and target."""
-        return self.clouds.enabled or self.terrain.enabled or self.distractors.count > 0
+        """True when anything is drawn beyond today's sky, ground and target, or the target differently."""
+        return self.clouds.enabled or self.terrain.enabled or self.distractors.count > 0 or self.crossover.enabled
 
 
 def scene_config_from_dict(raw: Any, source: Any = "<dict>", error: type[SchemaError] = SchemaError) -> SceneConfig:
