@@ -316,6 +316,12 @@ def _cmd_campaign(args) -> int:
     return cmd_campaign(args)
 
 
+def _cmd_scenes(args) -> int:
+    from groundsim.evaluation.scenes import cmd_scenes
+
+    return cmd_scenes(args)
+
+
 def _add_eval(p: argparse.ArgumentParser) -> None:
     _scenarios_and_seeds_options(p, "P1 P2 P3", 5, "run seeds 0..N-1 per scenario (default: %(default)s)")
     p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
@@ -440,6 +446,27 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
     p.set_defaults(handler=_cmd_campaign)
 
 
+def _add_scenes(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--scenario",
+        action="append",
+        nargs="+",
+        default=None,
+        metavar="FILE|NAME",
+        help="scenario YAML file(s) or shipped names, repeatable (default: C1 C2 C3 C4 C5 P2)",
+    )
+    p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: %(default)s)")
+    p.add_argument("--every", type=int, default=10, metavar="K", help="measure every K-th frame (default: %(default)s)")
+    p.add_argument(
+        "--clutter",
+        action="store_true",
+        help="also count the plain point detector's false point-like objects per frame (docs/scenes.md)",
+    )
+    p.add_argument("--gallery", default=None, metavar="DIR", help="write one labelled picture per scenario to DIR")
+    p.add_argument("--no-stats", action="store_true", help="pictures only (with --gallery)")
+    p.set_defaults(handler=_cmd_scenes)
+
+
 # --------------------------------------------------------------------------- registry and entry point
 
 #: (name, one-line help, add(parser)); every command registers here.
@@ -450,6 +477,7 @@ COMMANDS = (
     ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
     ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
     ("report", "plots of a recorded flight (replayed), against the simulator's truth when given", add_report),
+    ("scenes", "measure scenes (cloud cover, target contrast, clutter); labelled pictures", _add_scenes),
 )
 
 
