@@ -15,7 +15,12 @@ F450-class target in view, with NETD noise (40 mK) and optics blur (0.6 px) on, 
   ``IrRenderer.quantise`` without the sensor);
 * clutter: a plain point detector (``groundsim.world.render.clutter``: 15 x 15 local mean, 5 sigma of the
   temporal noise, blobs <= 50 px) on mono16 frames without a target: false point-like objects per
-  frame on the clean sky, under clouds and over terrain.
+  frame on the clean sky, under clouds and over terrain;
+* the reference scenes C1-C5 (``config/scenarios/C*.yaml``): their own scene and camera model, along
+  their own flown camera, target(s) and distractors, through ``SceneContent.render`` and
+  ``Sensor.apply`` (or ``IrRenderer.quantise``) -- the renderer's share of ``groundsim run`` on them
+  (the flight is flown beforehand, outside the timing).  ``python -m bench.render --reference-scenes``
+  runs only these.
 
 The process is pinned to one CPU and OpenCV to one thread, so the numbers are single-core; both
 wall time and this process's CPU time are printed (on a shared machine the wall time includes
@@ -177,6 +182,7 @@ def main() -> None:
     )
     scene_cases(intr, base)
     clutter_counts(intr, base)
+    reference_scene_cases()
     print(
         f"load average {' '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs "
         "(wall times grow with other load; CPU time less so)"
@@ -299,5 +305,75 @@ def clutter_counts(intr, base, n_frames: int = 20) -> dict[str, float]:
     return out
 
 
+REFERENCE_SCENES = ("C1", "C2", "C3", "C4", "C5")
+REFERENCE_FRAMES = 150
+
+
+def reference_scenes_main() -> None:
+    """``python -m bench.render --reference-scenes``: only the reference scenes, one core."""
+    pin_to_one_cpu("not pinned (no sched_setaffinity)")
+    import cv2
+
+    cv2.setNumThreads(1)
+    reference_scene_cases()
+
+
+def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
+    """Frames/s of the renderer on the reference scenes C1-C5, along each scenario's flown poses."""
+    from groundsim.world.render.scene import SceneObject
+    from groundsim.world.scenario import load_scenario, scenarios_dir
+    from groundsim.world.sim import GROUND_D_M, SimCore
+    from onboard.core.frames import rotmat_from_quat
+
+    print(
+        f"{'reference scene':<47s} {'mean':>6s} {'median':>6s} {'p95':>6s} {'max':>6s} {'cpu':>6s}  (ms/frame; scene.render +"
+        " sensor.apply or quantise, the scenario's own poses; budget 250 fps = 4.00 ms)"
+    )
+    for name in REFERENCE_SCENES:
+        sc = load_scenario(scenarios_dir() / f"{name}.yaml")
+        core = SimCore(sc, 0, duration_s=min(sc.duration_s, (n_frames + WARMUP_FRAMES) / sc.frame_rate_hz))
+        t0 = time.perf_counter()
+        scene, sensor = core.scene()
+        setup_s = time.perf_counter() - t0
+        rasters = core._other_rasters
+        poses = []
+        for k in range(core.frame_count):
+            i = k * core.ticks_per_frame
+            c = core.flight.chunk_of(i)
+            j = i - c.i0
+            others = [
+                SceneObject(n + 1, "target", p[j], rotmat_from_quat(q[j]), raster)
+                for n, ((p, _, q), raster) in enumerate(zip(c.others, rasters))
+            ]
+            poses.append(
+                (
+                    float(c.t_s[j]),
+                    c.cam_p_ned_m[j].copy(),
+                    rotmat_from_quat(c.cam_q_ned_from_cam[j]),
+                    c.tgt_p_ned_m[j].copy(),
+                    rotmat_from_quat(c.tgt_q_ned_from_body[j]),
+                    others,
+                )
+            )
+        wall, cpu = [], []
+        renderer = core.renderer()
+        for k, (t, p_cam, R_nc, p_t, R_nt, others) in enumerate(poses):
+            c0, w0 = time.process_time(), time.perf_counter()
+            frame = scene.render(t, p_cam, R_nc, p_t, R_nt, GROUND_D_M, others)
+            if sensor is not None:
+                sensor.apply(frame.radiance, t, k)
+            else:
+                renderer.quantise(frame.radiance)
+            if k >= WARMUP_FRAMES:
+                wall.append((time.perf_counter() - w0) * 1e3)
+                cpu.append((time.process_time() - c0) * 1e3)
+        wall, cpu = np.asarray(wall), np.asarray(cpu)
+        print(
+            f"{name}: {sc.description[:42]:<42s} {wall.mean():6.2f} {np.median(wall):6.2f} {np.percentile(wall, 95):6.2f}"
+            f" {wall.max():6.2f} {cpu.mean():6.2f} {1e3 / wall.mean():6.0f} fps wall, {1e3 / cpu.mean():4.0f} fps CPU"
+            f" | setup {setup_s:.1f} s"
+        )
+
+
 if __name__ == "__main__":
-    sys.exit(run_benchmark("render", main))
+    sys.exit(run_benchmark("render", reference_scenes_main if "--reference-scenes" in sys.argv[1:] else main))
