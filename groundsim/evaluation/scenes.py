@@ -73,12 +73,17 @@ class SceneStats:
 
     def line(self) -> str:
         fp = "" if self.false_points_per_frame is None else f", false points/frame {self.false_points_per_frame:.1f}"
+        if math.isnan(self.contrast_netd_median):
+            contrast = "contrast n/a (no scene: no object labels)"
+        else:
+            contrast = (
+                f"contrast NETD median {self.contrast_netd_median:.1f} (p10 {self.contrast_netd_p10:.1f}, p90"
+                f" {self.contrast_netd_p90:.1f}), >= 3 NETD on {100 * self.contrast_ge_3_netd:.0f} % of frames"
+            )
         return (
             f"{self.scenario}: {self.frames} frames; cloud cover seen {100 * self.cloud_cover:.0f} %; target in image"
             f" {100 * self.target_in_image:.0f} %, in front of cloud {100 * self.in_front_of_cloud:.0f} %, behind"
-            f" cloud {100 * self.behind_cloud:.0f} %; contrast NETD median {self.contrast_netd_median:.1f}"
-            f" (p10 {self.contrast_netd_p10:.1f}, p90 {self.contrast_netd_p90:.1f}), >= 3 NETD on"
-            f" {100 * self.contrast_ge_3_netd:.0f} % of frames; {self.objects_per_frame:.1f} objects/frame{fp}"
+            f" cloud {100 * self.behind_cloud:.0f} %; {contrast}; {self.objects_per_frame:.1f} objects/frame{fp}"
         )
 
 
@@ -233,10 +238,15 @@ def gallery_image(pixels: np.ndarray, labels, truth=None) -> np.ndarray:
     if not labels and truth is not None and truth.target_visible:
         u, v = int(truth.target_u_px), int(truth.target_v_px)
         marks.append((0, "target", "visible", (u - 6, v - 6, u + 6, v + 6)))
+    marks.sort(key=lambda m: m[2] == "visible")  # visible objects drawn last, over occluded ones
     for oid, cls, vis, (x0, y0, x1, y1) in marks:
-        colour = _CLASS_COLOURS_BGR.get(cls, (0, 255, 0)) if vis == "visible" else (160, 160, 160)
+        if vis == "visible":
+            colour, text_y = _CLASS_COLOURS_BGR.get(cls, (0, 255, 0)), max(int(y0) - 3, 9)
+        else:  # grey, its name under the box (an occluding object's name is above)
+            colour, text_y = (160, 160, 160), int(y1) + 11
         cv2.rectangle(right, (int(x0), int(y0)), (int(x1), int(y1)), colour, 1)
-        cv2.putText(right, f"{oid} {cls}", (int(x0), max(int(y0) - 3, 9)), cv2.FONT_HERSHEY_PLAIN, 0.8, colour, 1)
+        name = f"{oid} {cls}" + ("" if vis == "visible" else f" ({vis})")
+        cv2.putText(right, name, (int(x0), text_y), cv2.FONT_HERSHEY_PLAIN, 0.8, colour, 1)
     return np.concatenate([left, right], axis=1)
 
 
