@@ -265,12 +265,18 @@ def test_truth_without_a_scene_writes_no_objects_file(tmp_path):
     assert not objects_path(tmp_path / "truth.csv").exists()
 
 
-def test_dataset_carries_every_object_in_mot_and_coco(tmp_path):
+@pytest.fixture(scope="module")
+def c3_dataset(tmp_path_factory):
     sc = load_scenario(scenarios_dir() / "C3.yaml")
-    out = tmp_path / "ds"
+    out = tmp_path_factory.mktemp("c3") / "ds"
     summaries, _ = export_dataset(
         [sc], [0], out, DatasetOptions(duration_s=0.2, formats=("mot", "coco")), progress=False
     )
+    return out, summaries
+
+
+def test_dataset_carries_every_object_in_mot_and_coco(c3_dataset):
+    out, summaries = c3_dataset
     seq = out / summaries[0].name
     labels = list(csv.reader(open(seq / "labels.csv", encoding="ascii")))
     assert tuple(labels[0]) == LABEL_COLUMNS  # the target keeps today's columns
@@ -296,6 +302,43 @@ def test_dataset_carries_every_object_in_mot_and_coco(tmp_path):
         x, y, w, h = ann["bbox"]
         u, v = ann["centroid_px"]
         assert x - 1.0 <= u <= x + w + 1.0 and y - 1.0 <= v <= y + h + 1.0
+
+
+def test_trackeval_scores_the_targets_and_counts_a_box_on_a_bird_as_a_false_positive(c3_dataset, tmp_path):
+    trackeval = pytest.importorskip("trackeval")
+    out, summaries = c3_dataset
+    name = summaries[0].name
+    seqmap = tmp_path / "seqmap.txt"
+    seqmap.write_text(f"name\n{name}\n")
+    rows = [line.split(",") for line in (out / name / "gt" / "gt.txt").read_text().splitlines()]
+    n_other = sum(1 for r in rows if int(r[7]) != 1)
+    assert n_other > 0
+    for tracker, keep in (("targets", lambda r: int(r[7]) == 1), ("everything", lambda r: True)):
+        trk = tmp_path / "trackers" / tracker / "data"
+        trk.mkdir(parents=True)
+        (trk / f"{name}.txt").write_text(
+            "".join(",".join(r[:6] + ["1", "-1", "-1", "-1"]) + "\n" for r in rows if keep(r))
+        )
+    ds = trackeval.datasets.MotChallenge2DBox(
+        dict(
+            GT_FOLDER=str(out),
+            TRACKERS_FOLDER=str(tmp_path / "trackers"),
+            SKIP_SPLIT_FOL=True,
+            SEQMAP_FILE=str(seqmap),
+            TRACKERS_TO_EVAL=["targets", "everything"],
+            PRINT_CONFIG=False,
+            OUTPUT_FOLDER=str(tmp_path / "te_out"),
+        )
+    )
+    ev = trackeval.Evaluator(
+        dict(USE_PARALLEL=False, PRINT_RESULTS=False, PRINT_CONFIG=False, OUTPUT_SUMMARY=False,
+             OUTPUT_DETAILED=False, PLOT_CURVES=False, TIME_PROGRESS=False, DISPLAY_LESS_PROGRESS=True)
+    )  # fmt: skip
+    res, msg = ev.evaluate([ds], [trackeval.metrics.CLEAR(dict(PRINT_CONFIG=False))])
+    assert msg["MotChallenge2DBox"]["targets"] == "Success"
+    clear = {t: res["MotChallenge2DBox"][t]["COMBINED_SEQ"]["pedestrian"]["CLEAR"] for t in ("targets", "everything")}
+    assert clear["targets"]["MOTA"] == pytest.approx(1.0) and clear["targets"]["CLR_TP"] == len(rows) - n_other
+    assert clear["everything"]["CLR_FP"] == n_other  # birds and the aircraft are not targets
 
 
 # ---------------------------------------------------------------------------- scenario keys
