@@ -419,3 +419,46 @@ def test_gallery_image_shows_the_frame_beside_its_labels(rendered):
     assert np.array_equal(img[:, :640, 0], fr.pixels)  # left: the frame as output
     x0, y0, x1, y1 = fr.labels[0].box_px
     assert tuple(img[y0 - 3, 640 + x0 - 3]) == (0, 0, 255)  # right: the target's box, red
+
+
+# ---------------------------------------------------------------------------- the camera model's outputs through SimCore
+
+
+def _c5_with(**sensor) -> dict:
+    d = copy.deepcopy(read_spec_yaml(scenarios_dir() / "C5.yaml"))
+    for key, value in sensor.items():
+        d["scene"]["sensor"][key] = {**d["scene"]["sensor"].get(key, {}), **value}
+    return d
+
+
+def test_sensor_without_agc_gives_mono8_as_the_counts_top_bits_and_mono16_as_the_counts():
+    d = _c5_with(agc={"enabled": False})
+    fr8 = SimCore(scenario_from_dict(d), 0, duration_s=0.1).frame(1)
+    d["ir"]["encoding"] = "mono16"
+    fr16 = SimCore(scenario_from_dict(d), 0, duration_s=0.1).frame(1)
+    assert fr16.pixels.dtype == np.uint16 and int(fr16.pixels.max()) < 2**14
+    assert np.array_equal(fr8.pixels, (fr16.pixels >> 6).astype(np.uint8))
+
+
+def test_dropped_flat_field_frames_have_no_pixels_and_the_dataset_writes_them_black(tmp_path):
+    import cv2
+
+    d = _c5_with(ffc={"first_s": 0.05, "frames": 2, "mode": "dropped"})
+    sc = scenario_from_dict(d, scenarios_dir() / "C5.yaml")
+    core = SimCore(sc, 0, duration_s=0.2)
+    status = [core.frame(k).sensor_status for k in range(6)]
+    assert status == ["ok", "ok", "dropped", "dropped", "ok", "ok"]
+    summaries, _ = export_dataset([sc], [0], tmp_path, DatasetOptions(duration_s=0.2), progress=False)
+    img = tmp_path / summaries[0].name / "img1"
+    assert not cv2.imread(str(img / "000003.png"), cv2.IMREAD_UNCHANGED).any()
+    assert cv2.imread(str(img / "000005.png"), cv2.IMREAD_UNCHANGED).any()
+
+
+def test_scenes_command_prints_a_line_per_scene_and_writes_small_pictures(tmp_path, capsys):
+    from groundsim.app.cli import main
+
+    assert main(["scenes", "--scenario", "C4", "--every", "100", "--clutter", "--gallery", str(tmp_path)]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[0].startswith(f"C4: {tmp_path / 'C4.png'}")
+    assert out[1].startswith("C4: 3 frames; cloud cover seen ") and "false points/frame" in out[1]
+    assert 10_000 < (tmp_path / "C4.png").stat().st_size < 300_000
