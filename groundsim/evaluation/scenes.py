@@ -8,6 +8,8 @@ every ``every``-th frame:
   (the cover the camera *sees*, not the layer's ``cover_fraction``);
 * ``in_front_of_cloud``: the fraction of frames whose target centre is in the image, in front of a cloud
   of opacity >= 0.5 (the layer farther than the target on that pixel); ``behind_cloud``: occluded by one;
+  ``cloud_edge_crossings``: how often the target went from in front of a cloud to clear sky or back
+  (between consecutive measured frames);
 * ``contrast_netd``: the target's peak |signal - local background| in NETD units (its label's
   ``contrast_netd``), median, 10th and 90th percentile, and the fraction of frames with >= 3 NETD;
 * ``false_points_per_frame`` (``--clutter``): detections of the plain point detector
@@ -62,6 +64,7 @@ class SceneStats:
     frames: int
     cloud_cover: float
     in_front_of_cloud: float
+    cloud_edge_crossings: int
     behind_cloud: float
     target_in_image: float
     contrast_netd_p10: float
@@ -82,8 +85,9 @@ class SceneStats:
             )
         return (
             f"{self.scenario}: {self.frames} frames; cloud cover seen {100 * self.cloud_cover:.0f} %; target in image"
-            f" {100 * self.target_in_image:.0f} %, in front of cloud {100 * self.in_front_of_cloud:.0f} %, behind"
-            f" cloud {100 * self.behind_cloud:.0f} %; {contrast}; {self.objects_per_frame:.1f} objects/frame{fp}"
+            f" {100 * self.target_in_image:.0f} %, in front of cloud {100 * self.in_front_of_cloud:.0f} %"
+            f" ({self.cloud_edge_crossings} cloud edges crossed), behind cloud {100 * self.behind_cloud:.0f} %;"
+            f" {contrast}; {self.objects_per_frame:.1f} objects/frame{fp}"
         )
 
 
@@ -183,6 +187,7 @@ def measure_scene(scenario, run_seed: int = 0, every: int = 10, clutter: bool = 
         frames=len(in_image),
         cloud_cover=float(np.mean(cover)) if cover else 0.0,
         in_front_of_cloud=float(np.mean(in_front)),
+        cloud_edge_crossings=int(np.count_nonzero(np.diff(np.asarray(in_front, dtype=np.int8)))),
         behind_cloud=float(np.mean(behind)),
         target_in_image=float(np.mean(in_image)),
         contrast_netd_p10=float(np.percentile(con, 10)),
