@@ -320,7 +320,6 @@ def reference_scenes_main() -> None:
 
 def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
     """Frames/s of the renderer on the reference scenes C1-C5, along each scenario's flown poses."""
-    from groundsim.world.render.scene import SceneObject
     from groundsim.world.scenario import load_scenario, scenarios_dir
     from groundsim.world.sim import GROUND_D_M, SimCore
     from onboard.core.frames import rotmat_from_quat
@@ -335,16 +334,12 @@ def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
         t0 = time.perf_counter()
         scene, sensor = core.scene()
         setup_s = time.perf_counter() - t0
-        rasters = core._other_rasters
         poses = []
         for k in range(core.frame_count):
             i = k * core.ticks_per_frame
             c = core.flight.chunk_of(i)
             j = i - c.i0
-            others = [
-                SceneObject(n + 1, "target", p[j], rotmat_from_quat(q[j]), raster)
-                for n, ((p, _, q), raster) in enumerate(zip(c.others, rasters))
-            ]
+            others = core.other_targets_at(i)
             poses.append(
                 (
                     float(c.t_s[j]),

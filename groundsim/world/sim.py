@@ -526,20 +526,27 @@ class SimCore:
                 )
         return self._scene, self._sensor
 
+    def other_targets_at(self, i: int) -> list:
+        """The scenario's other targets at tick ``i`` as scene objects 1..n (SceneObject, class ``target``,
+        their flown poses and their own parts) for ``SceneContent.render``."""
+        from groundsim.world.render.scene import SceneObject
+
+        self.scene()
+        c = self.flight.chunk_of(i)
+        j = i - c.i0
+        return [
+            SceneObject(n + 1, "target", np.asarray(p[j], float), rotmat_from_quat(q[j]), raster)
+            for n, ((p, _, q), raster) in enumerate(zip(c.others, self._other_rasters))
+        ]
+
     def _render_scene(self, k: int, t_s: float, p_cam, R_nc, p_t, R_nt, others=()):
         """Pixels, labels and the camera's status of frame ``k`` through the scene and the camera model.
 
-        ``others``: the other targets' ``(p_ned_m, R_ned_from_body)`` (scene objects 1..n).  Without the
-        camera model: the renderer's grey map and NETD noise (``ir.encoding``).  With it: mono16 is the raw
-        counts; mono8 the AGC output, or the counts' top 8 bits when the AGC is off."""
-        from groundsim.world.render.scene import SceneObject
-
+        ``others``: :meth:`other_targets_at` the frame's tick.  Without the camera model: the renderer's
+        grey map and NETD noise (``ir.encoding``).  With it: mono16 is the raw counts; mono8 the AGC output,
+        or the counts' top 8 bits when the AGC is off."""
         scene, sensor = self.scene()
-        objs = [
-            SceneObject(i + 1, "target", np.asarray(p, float), R, raster)
-            for i, ((p, R), raster) in enumerate(zip(others, self._other_rasters))
-        ]
-        fr = scene.render(t_s, p_cam, R_nc, p_t, R_nt, GROUND_D_M, objs)
+        fr = scene.render(t_s, p_cam, R_nc, p_t, R_nt, GROUND_D_M, others)
         if sensor is None:
             return self.renderer().quantise(fr.radiance), fr.labels, "ok"
         out = sensor.apply(fr.radiance, t_s, k)
@@ -568,7 +575,7 @@ class SimCore:
             p_t, R_nt = c.tgt_p_ned_m[j], rotmat_from_quat(c.tgt_q_ned_from_body[j])
             try:
                 if self.scene_enabled:
-                    others = [(p[j], rotmat_from_quat(q[j])) for p, _, q in c.others]
+                    others = self.other_targets_at(i)
                     pixels, labels, status = self._render_scene(k, float(c.t_s[j]), p_cam, R_nc, p_t, R_nt, others)
                 else:
                     pixels = renderer.render(p_cam, R_nc, p_t, R_nt, GROUND_D_M)
