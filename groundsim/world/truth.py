@@ -48,6 +48,7 @@ glints; ``groundsim.world.render.scene.ObjectLabel``) goes to a second file besi
     visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5), out_of_frame
     contrast_netd                  peak |signal - local background| in NETD units (0 when not drawn)
     range_m                        camera to the object's centre
+    n_m, e_m, d_m                  the object's centre, local NED about the scenario origin (3-D truth)
 
 The file is opened with the first frame that has object labels (none without a scene), so a scenario
 without a scene writes exactly the one truth file as before.
@@ -280,6 +281,9 @@ OBJECT_COLUMNS = (
     "visibility",
     "contrast_netd",
     "range_m",
+    "n_m",
+    "e_m",
+    "d_m",
 )
 
 
@@ -307,6 +311,7 @@ def object_rows(row: TruthRow, labels) -> list[list[str]]:
                 lab.visibility,
                 _fmt(lab.contrast_netd),
                 _fmt(lab.range_m),
+                *map(_fmt, lab.p_ned_m),
             ]
         )
     return out

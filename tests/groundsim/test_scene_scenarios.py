@@ -253,6 +253,10 @@ def test_truth_writer_writes_every_object_beside_the_truth_file(rendered, tmp_pa
     assert {r["cls"] for r in rows} == {"target", "bird", "aircraft"}
     t0 = next(r for r in crossing if r["object_id"] == "0")
     assert float(t0["u_px"]) == pytest.approx(frames[150].truth.target_u_px)
+    tr = frames[150].truth
+    assert [float(t0[c]) for c in ("n_m", "e_m", "d_m")] == pytest.approx([tr.target_n_m, tr.target_e_m, tr.target_d_m])
+    t1 = next(r for r in crossing if r["object_id"] == "1")
+    assert float(t1["e_m"]) == pytest.approx(-41.3 + 6.8 * 5.0, abs=1.0)  # the other target, flown east at 6.8 m/s
     assert float(t0["contrast_netd"]) > 10.0
 
 

@@ -115,8 +115,9 @@ class ObjectLabel:
     ``u_px, v_px``: sub-pixel projection of its centre (NaN behind the camera); ``box_px``: ``(x0, y0,
     x1, y1)`` of the pixels whose signal reaches ``BOX_FRACTION`` of its peak (None when not drawn);
     ``visibility``: ``visible``, ``occluded`` (its centre behind a cloud of opacity >= 0.5, or inside
-    the box of a nearer object drawn over it) or ``out_of_frame``; ``contrast_netd``: peak |signal - local background| over the NETD in radiance
-    (``netd_k * dL/dT(netd_reference_k)``), 0 when not drawn; ``range_m``: camera to centre.
+    the box of a nearer object drawn over it) or ``out_of_frame``; ``contrast_netd``: peak |signal -
+    local background| over the NETD in radiance (``netd_k * dL/dT(netd_reference_k)``), 0 when not
+    drawn; ``range_m``: camera to centre; ``p_ned_m``: the centre in local NED (its 3-D truth).
     """
 
     object_id: int
@@ -127,6 +128,7 @@ class ObjectLabel:
     visibility: str
     contrast_netd: float
     range_m: float
+    p_ned_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
 
 @dataclass(frozen=True)
@@ -529,9 +531,10 @@ class SceneContent:
 
     def _label(self, o: SceneObject, roi, range_m: float, background, p_cam, R_nc) -> ObjectLabel:
         intr = self.renderer.intrinsics
+        p_ned = tuple(float(x) for x in o.p_ned_m)
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
-            return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m)
+            return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
         u, v = (float(c) for c in intr.project(p_c))
         box, contrast = None, 0.0
         if roi is not None:
@@ -548,10 +551,11 @@ class SceneContent:
                 )
                 contrast = peak / self.netd_radiance if self.netd_radiance > 0.0 else math.inf
         if not (0.0 <= u < self._W and 0.0 <= v < self._H):
-            return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m)
+            return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
         i, j = int(v), int(u)
         behind = background.depth_m[i, j] < range_m and background.cloud_alpha[i, j] >= OCCLUDED_ALPHA
-        return ObjectLabel(o.object_id, o.cls, u, v, box, "occluded" if behind else "visible", contrast, range_m)
+        vis = "occluded" if behind else "visible"
+        return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned)
 
     # ------------------------------------------------------------------ a frame
 
