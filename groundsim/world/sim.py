@@ -20,7 +20,13 @@ velocity; then the observer) -- chunking does not change the flight.  Without a 
 yaws toward the target's flown position (the pod is fixed); with one it heads along its path and the
 gimbal (:func:`groundsim.world.flight.guidance.gimbal_pointing`) aims at the target plus the scenario's
 sinusoidal pointing error (phases drawn from ``scenario.rng("gimbal.pointing_phase", seed)``); its
-attitude ``q_ned_from_gimbal`` is part of the vehicle state (earth frame).
+attitude ``q_ned_from_gimbal`` is part of the vehicle state (earth frame).  A scenario's
+``other_targets`` are flown the same way as the target, each after it, and drawn as scene objects 1..n.
+
+Scene.  A scenario with a ``scene`` (clouds, terrain, distractors, crossover, the camera model) or other
+targets renders through :class:`~groundsim.world.render.scene.SceneContent` (and
+:class:`~groundsim.world.render.sensor.Sensor`): :meth:`SimCore.frame` then carries every object's label
+and the camera's status; otherwise the renderer's own ``render`` makes the frame, byte for byte as before.
 
 Duration.  ``duration_s`` None is the scenario's; a longer one extends the scenario
 (:func:`extend_scenario`): the scripted motions continue as their models define them, the target's
@@ -35,8 +41,9 @@ RTK by default) drawn from ``scenario.rng("nav.errors", seed)``.  The truth rows
 and record the injected errors of each frame's tick (``nav_*`` columns, :mod:`groundsim.world.truth`).
 
 Determinism.  Truth rows and frames depend only on the scenario, the run seed (the target's
-disturbance realisation, the render noise ``scenario.rng("render.noise", seed)``, the gimbal phases,
-the navigation errors), ``nav_noise`` and the duration; never on the wall clock or chunking.
+disturbance realisation, the render noise ``scenario.rng("render.noise", seed)``, the scene's and the
+camera model's patterns ``"render.scene"`` and ``"render.sensor"``, the gimbal phases, the navigation
+errors), ``nav_noise`` and the duration; never on the wall clock or chunking.
 """
 
 from __future__ import annotations
