@@ -180,4 +180,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    if "--scene" in sys.argv[1:]:
+        from bench.imaging_scenes import main as scenes_main
+
+        sys.exit(run_benchmark("imaging", lambda: scenes_main(sys.argv[1:])))
     sys.exit(run_benchmark("imaging", main))

@@ -1,0 +1,239 @@
+"""The image chain over rendered scene frames, scored against every object's truth.
+
+``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|both] [--seed 0]
+[--frames N] [--cache DIR]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+(its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
+never receives them) and the frames are fed in lockstep to
+
+* ``tracker``: :class:`onboard.imaging.TargetTracker` as the daemon configures it (``ImagingParams()``,
+  ``tracker_mode`` auto): one track, reported while its state is ``tracking``;
+* ``objects``: :class:`onboard.imaging.objects.ObjectTracker` (clutter-suppressed detection, every
+  object a track; the camera's rotation from the truth attitude of each frame); its confirmed tracks
+  and its primary target.
+
+Rendered frames are cached (``--cache``, default ``/tmp/irtrack-scene-frames``) so that a second run
+times only the chain.  Per scene it prints (frames: those the camera delivered):
+
+* ``on target``: frames where the chain's primary output is within 3 px of the target (object 0), over
+  the frames where the target is visible;
+* ``Pd``: visible objects with contrast >= 3 NETD, on frames at least 1 s after the object first became
+  visible, that have a confirmed track within 3 px (all classes; ``Pd tgt``: objects of class target);
+* ``false/min``: confirmed track ids farther than 3 px from every labelled object on more than half of
+  their confirmed frames, per minute of scene;
+* ``id sw``: per object, changes of the track id matched to it (nearest confirmed track within 3 px)
+  between its matched frames, summed over objects (``tgt``: over objects of class target);
+* ``ms p50``: median wall ms of the chain's update per frame (OpenCV on one thread; the machine is
+  shared, so the figures are noisy).
+
+Numbers only: nothing asserts.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+MATCH_PX = 3.0
+MIN_CONTRAST_NETD = 3.0
+SETTLE_S = 1.0
+DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
+
+
+@dataclass
+class SceneRun:
+    """Rendered frames of one scenario: ``frames`` list of (H, W) arrays (None: dropped), ``labels``
+    per frame a list of (object_id, cls, u_px, v_px, visibility, contrast_netd), ``R_ned_from_cam``
+    (N, 3, 3) truth attitude, ``intrinsics`` the camera's PinholeIntrinsics, ``frame_rate_hz``."""
+
+    name: str
+    frames: list
+    labels: list
+    R_ned_from_cam: np.ndarray
+    intrinsics: object  # onboard.core.frames.PinholeIntrinsics
+    frame_rate_hz: float
+
+
+def render_scene(name: str, seed: int, n_frames: int | None, cache: Path | None) -> SceneRun:
+    from groundsim.world.scenario import load_scenario, scenarios_dir
+    from groundsim.world.sim import SimCore
+    from onboard.core.frames import rotmat_from_quat
+
+    sc = load_scenario(scenarios_dir() / f"{name}.yaml")
+    duration = sc.duration_s if n_frames is None else min(sc.duration_s, n_frames / sc.frame_rate_hz)
+    K = sc.camera.intrinsics
+    path = None if cache is None else cache / f"{name}-s{seed}-{duration:.3f}.npz"
+    if path is not None and path.exists():
+        z = np.load(path, allow_pickle=True)
+        frames = [None if f.size == 0 else f for f in z["frames"]]
+        return SceneRun(name, frames, list(z["labels"]), z["R"], K, float(sc.frame_rate_hz))
+    core = SimCore(sc, seed, duration_s=duration)
+    frames, labels, Rs = [], [], []
+    truth_only = not core.scene_enabled
+    for k in range(core.frame_count):
+        f = core.frame(k)
+        frames.append(f.pixels)
+        if truth_only:  # a clean scenario has the target only, in its truth row
+            r = f.truth
+            vis = "visible" if r.target_visible else "out_of_frame"
+            labels.append([(0, "target", r.target_u_px, r.target_v_px, vis, math.inf)])
+        else:
+            labels.append(
+                [(lb.object_id, lb.cls, lb.u_px, lb.v_px, lb.visibility, lb.contrast_netd) for lb in f.labels]
+            )
+        q = np.array(
+            [f.truth.q_ned_from_cam_w, f.truth.q_ned_from_cam_x, f.truth.q_ned_from_cam_y, f.truth.q_ned_from_cam_z]
+        )
+        Rs.append(rotmat_from_quat(q))
+    R = np.asarray(Rs)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        farr = np.empty(len(frames), dtype=object)
+        for i, fr in enumerate(frames):
+            farr[i] = np.zeros(0, np.uint8) if fr is None else fr
+        larr = np.empty(len(labels), dtype=object)
+        for i, lb in enumerate(labels):
+            larr[i] = lb
+        np.savez(path, frames=farr, labels=larr, R=R)
+    return SceneRun(name, frames, labels, R, K, float(sc.frame_rate_hz))
+
+
+class _TrackerChain:
+    """TargetTracker as the daemon builds it: one output, confirmed while ``tracking``."""
+
+    name = "tracker"
+
+    def __init__(self, run: SceneRun) -> None:
+        from onboard.imaging import ImagingParams, TargetTracker, TrackState
+
+        self._tr = TargetTracker(ImagingParams(), mode="auto")
+        self._tracking = TrackState.TRACKING
+
+    def update(self, image, R_ned_from_cam):
+        out = self._tr.update(image)
+        if out.state is self._tracking and out.u_px is not None:
+            return [(out.track_id, out.u_px, out.v_px)], out.track_id
+        return [], None
+
+
+class _ObjectsChain:
+    name = "objects"
+
+    def __init__(self, run: SceneRun) -> None:
+        from onboard.imaging.objects import ObjectTracker
+
+        self._tr = ObjectTracker(run.intrinsics, frame_rate_hz=run.frame_rate_hz)
+
+    def update(self, image, R_ned_from_cam):
+        out = self._tr.update(image, R_ned_from_cam)
+        tracks = [(t.object_id, t.u_px, t.v_px) for t in out.confirmed]
+        return tracks, out.primary_id
+
+
+CHAINS = {"tracker": _TrackerChain, "objects": _ObjectsChain}
+
+
+def score(run: SceneRun, chain) -> dict[str, float]:
+    """Run ``chain`` over ``run``'s frames and score it (see the module docstring)."""
+    fr = run.frame_rate_hz
+    first_visible: dict[int, int] = {}
+    on_target = target_frames = 0
+    det = det_all = det_t = det_t_all = 0
+    last_id: dict[int, int] = {}
+    switches: dict[int, int] = {}
+    cls_of: dict[int, str] = {}
+    track_frames: dict[int, list[int]] = {}  # track id -> [confirmed frames, frames off every object]
+    ms = []
+    n_frames = 0
+    for k, (img, labels) in enumerate(zip(run.frames, run.labels)):
+        vis = []
+        for oid, cls, u, v, visibility, contrast in labels:
+            cls_of[oid] = cls
+            if visibility == "visible":
+                first_visible.setdefault(oid, k)
+                vis.append((oid, cls, u, v, contrast))
+        if img is None:
+            continue
+        n_frames += 1
+        t0 = time.perf_counter()
+        tracks, primary = chain.update(img, run.R_ned_from_cam[k])
+        ms.append((time.perf_counter() - t0) * 1e3)
+        tpos = {tid: (u, v) for tid, u, v in tracks}
+        all_pos = [(u, v) for _, _, u, v, vv, _ in labels if math.isfinite(u) and math.isfinite(v)]
+        for tid, u, v in tracks:
+            rec = track_frames.setdefault(tid, [0, 0])
+            rec[0] += 1
+            if all(math.hypot(u - a, v - b) > MATCH_PX for a, b in all_pos):
+                rec[1] += 1
+        for oid, cls, u, v, contrast in vis:
+            if oid == 0:
+                target_frames += 1
+                if primary is not None and primary in tpos:
+                    pu, pv = tpos[primary]
+                    on_target += math.hypot(pu - u, pv - v) <= MATCH_PX
+            best, best_d = None, MATCH_PX
+            for tid, (tu, tv) in tpos.items():
+                d = math.hypot(tu - u, tv - v)
+                if d <= best_d:
+                    best, best_d = tid, d
+            if best is not None:
+                if oid in last_id and last_id[oid] != best:
+                    switches[oid] = switches.get(oid, 0) + 1
+                last_id[oid] = best
+            if contrast >= MIN_CONTRAST_NETD and k >= first_visible[oid] + SETTLE_S * fr:
+                det_all += 1
+                det += best is not None
+                if cls == "target":
+                    det_t_all += 1
+                    det_t += best is not None
+    minutes = n_frames / fr / 60.0
+    false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
+    pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
+    return dict(
+        frames=n_frames,
+        on_target=pct(on_target, target_frames),
+        pd=pct(det, det_all),
+        pd_target=pct(det_t, det_t_all),
+        false_per_min=false_tracks / minutes if minutes else math.nan,
+        id_switches=sum(switches.values()),
+        id_switches_target=sum(n for o, n in switches.items() if cls_of.get(o) == "target"),
+        ms_p50=float(np.median(ms)) if ms else math.nan,
+        ms_p95=float(np.percentile(ms, 95)) if ms else math.nan,
+    )
+
+
+def main(argv: list[str]) -> None:
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m bench.imaging --scene", description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", nargs="+", required=True, help="scenario names (config/scenarios), e.g. C1 P2")
+    ap.add_argument("--chain", choices=("tracker", "objects", "both"), default="both")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frames", type=int, default=None, help="first N frames only (default: the whole scenario)")
+    ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)")
+    a = ap.parse_args(argv)
+    cv2.setNumThreads(1)
+    cache = a.cache if str(a.cache) else None
+    chains = ("tracker", "objects") if a.chain == "both" else (a.chain,)
+    print(
+        f"image chain over rendered scenes (seed {a.seed}); match {MATCH_PX:.0f} px, Pd over contrast >= "
+        f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; wall ms on a shared machine (noisy)"
+    )
+    print(
+        f"{'scene':<6s} {'chain':<8s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
+        f" {'id sw':>5s} {'tgt':>3s} {'ms p50':>6s} {'ms p95':>6s}"
+    )
+    for name in a.scene:
+        run = render_scene(name, a.seed, a.frames, cache)
+        for c in chains:
+            s = score(run, CHAINS[c](run))
+            print(
+                f"{name:<6s} {c:<8s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
+                f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d}"
+                f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f}",
+                flush=True,
+            )
