@@ -1,0 +1,375 @@
+"""Every warm point-like object a track with a stable id, associated in bearing space.
+
+``ObjectTracker(intrinsics).update(image, R_ned_from_cam) -> ObjectsUpdate`` once per frame.
+
+Detection (:mod:`onboard.imaging.clutter`): column offsets removed, dead/hot pixels repaired, the
+two-scale point contrast thresholded at ``threshold_sigma`` local (CFAR) noise sigmas.
+
+Tracks live in bearing space: each holds the unit line of sight ``los_ned`` (local NED) and its rate
+per frame.  A frame's pose ``R_ned_from_cam`` (OpenCV camera axes) projects the prediction into the
+image, so the camera's own rotation (a gimbal slewing, the airframe rolling) moves every prediction
+with it and only the objects' own motion is left to the filter; without a pose (None) the camera is
+taken as still.  Association is greedy nearest-first on the image distance between prediction and
+candidate inside a gate that widens while a track coasts (points of a few pixels: overlap of boxes
+means nothing after a one-pixel shift).  The filter is an alpha-beta filter on the line of sight
+(Kalata 1984, "The tracking index", IEEE TAES 20, 174) re-normalised to a unit vector.
+
+States: ``tentative`` until ``confirm_hits`` detections (dropped after ``tentative_misses`` misses),
+then ``confirmed``; ``coasting`` while it misses (predicted, not measured), for at most
+``coast_frames`` frames, then ``lost`` (reported once, then gone).  Ids are never reused.
+
+Primary target (``mode`` auto): the current primary is kept while its track lives (confirmed or
+coasting); otherwise the confirmed track nearest the principal point becomes it (the observer's
+gimbal points the camera at its target, so of the confirmed objects the target is the one the camera
+centres).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
+change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
+continued on another object.  The primary's centre is refined by
+:func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
+
+Flat-field events: a frozen frame (identical to the previous one) measures nothing (tracks predicted,
+no miss counted); an offset step restarts the defect map.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.imaging.clutter import (
+    ClutterParams,
+    DefectMap,
+    PointCandidate,
+    cfar_threshold,
+    column_offsets,
+    frame_event,
+    local_noise,
+    point_candidates,
+    point_contrast,
+    remove_column_offsets,
+)
+from onboard.imaging.detect import Blob, Detection, measure_blob
+from onboard.imaging.preprocess import ImagingParams, check_frame
+
+__all__ = ["ObjectParams", "ObjectTrack", "ObjectsUpdate", "ObjectTracker", "OBJECT_STATES"]
+
+log = logging.getLogger(__name__)
+
+OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
+
+
+@dataclass(frozen=True)
+class ObjectParams:
+    """Track management (frames at the camera's rate, pixels).  ``gate_px`` association gate of a
+    measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``;
+    ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
+    ``defect_every``: frames between defect-map updates."""
+
+    gate_px: float = 4.0
+    gate_growth_px: float = 0.5
+    max_gate_px: float = 12.0
+    alpha: float = 0.6
+    beta: float = 0.15
+    confirm_hits: int = 5
+    tentative_misses: int = 2
+    coast_frames: int = 45
+    defect_every: int = 4
+
+    def __post_init__(self) -> None:
+        if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
+            raise InputError(f"ObjectParams alpha in (0, 1] and beta in [0, 1], got {self.alpha}, {self.beta}")
+        if self.confirm_hits < 1 or self.coast_frames < 0 or self.tentative_misses < 0:
+            raise InputError("ObjectParams confirm_hits >= 1, coast_frames and tentative_misses >= 0")
+
+
+@dataclass(frozen=True)
+class ObjectTrack:
+    """One object on one frame.  ``object_id`` stable; ``state`` one of :data:`OBJECT_STATES`;
+    ``u_px, v_px`` the measured centre (the prediction while coasting); ``bbox`` (x, y, w, h) pixels;
+    ``los_ned`` unit line of sight in local NED (None without a pose); ``sigma_rad`` its 1-sigma
+    angular uncertainty; ``score`` the detection's contrast over its local threshold (0 while
+    coasting); ``hits`` frames measured; ``age_frames`` frames since it started."""
+
+    object_id: int
+    state: str
+    u_px: float
+    v_px: float
+    bbox: tuple[float, float, float, float]
+    los_ned: tuple[float, float, float] | None
+    sigma_rad: float
+    score: float
+    hits: int
+    age_frames: int
+
+
+@dataclass(frozen=True)
+class ObjectsUpdate:
+    """Output of one frame: ``objects`` every live track (tentative ones included); ``primary_id`` the
+    selected target's id (None: none); ``primary`` its refined detection on this frame (None when not
+    measured); ``primary_changed`` the selection changed on this frame; ``event`` ``ok`` / ``frozen``
+    / ``step``; ``frame_index``."""
+
+    objects: tuple[ObjectTrack, ...]
+    primary_id: int | None
+    primary: Detection | None
+    primary_changed: bool
+    event: str
+    frame_index: int
+
+    @property
+    def confirmed(self) -> tuple[ObjectTrack, ...]:
+        """The objects measured on this frame whose track is confirmed."""
+        return tuple(o for o in self.objects if o.state == "confirmed")
+
+
+@dataclass
+class _Track:
+    object_id: int
+    los: np.ndarray  # unit line of sight, NED
+    rate: np.ndarray  # its change per frame
+    uv: tuple[float, float]
+    bbox: tuple[int, int, int, int]
+    hits: int = 1
+    misses: int = 0
+    age: int = 1
+    confirmed: bool = False
+    score: float = 0.0
+    history: list = field(default_factory=list)
+
+
+class ObjectTracker:
+    """See the module docstring.  ``intrinsics``: :class:`onboard.core.frames.PinholeIntrinsics`
+    (distortion ignored: the bearing is the pinhole's); ``mode`` ``auto`` or ``operator``."""
+
+    def __init__(
+        self,
+        intrinsics,
+        frame_rate_hz: float = 30.0,
+        params: ObjectParams | None = None,
+        clutter: ClutterParams | None = None,
+        imaging: ImagingParams | None = None,
+        mode: str = "auto",
+    ) -> None:
+        if mode not in ("auto", "operator"):
+            raise InputError(f"ObjectTracker mode must be auto or operator, got {mode!r}")
+        self.K = intrinsics
+        self.frame_rate_hz = float(frame_rate_hz)
+        self.params = params or ObjectParams()
+        self.clutter = clutter or ClutterParams()
+        self.imaging = imaging or ImagingParams()
+        self.mode = mode
+        self._tracks: list[_Track] = []
+        self._next_id = 0
+        self._primary: int | None = None
+        self._frame_index = -1
+        self._defects: DefectMap | None = None
+        self._prev: np.ndarray | None = None
+        self._prev_median: float | None = None
+        self.primary_changes = 0
+        self.frozen_frames = 0
+        self.offset_steps = 0
+
+    # ------------------------------------------------------------------ geometry
+
+    def _los(self, u: float, v: float, R: np.ndarray) -> np.ndarray:
+        K = self.K
+        ray = np.array([(u - K.cx_px) / K.fx_px, (v - K.cy_px) / K.fy_px, 1.0])
+        b = R @ ray
+        return b / np.linalg.norm(b)
+
+    def _project(self, los_ned: np.ndarray, R: np.ndarray) -> tuple[float, float] | None:
+        c = R.T @ los_ned
+        if c[2] <= 1e-6:
+            return None
+        K = self.K
+        return K.fx_px * c[0] / c[2] + K.cx_px, K.fy_px * c[1] / c[2] + K.cy_px
+
+    # ------------------------------------------------------------------ detection
+
+    def detect(self, image: np.ndarray) -> list[PointCandidate]:
+        """The frame's point candidates (fixed pattern handled first; updates the defect map)."""
+        p = self.clutter
+        img = image.astype(np.float32)
+        if p.destripe:
+            img = remove_column_offsets(img, column_offsets(img, p.stripe_window_px))
+        noise = local_noise(img, p.noise_window_px)
+        if self._defects is None or self._defects.mask.shape != img.shape:
+            self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
+        if self._frame_index % self.params.defect_every == 0:
+            sigma = max(p.defect_outlier_sigma * float(np.median(noise[::16, ::16])), 2.0 * p.min_threshold_lsb)
+            self._defects.update(img, sigma)
+        img = self._defects.repair(img)
+        contrast = point_contrast(img, p)
+        return point_candidates(contrast, cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), p)
+
+    # ------------------------------------------------------------------ step
+
+    def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None) -> ObjectsUpdate:
+        image = check_frame(image)
+        self._frame_index += 1
+        R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            raise InputError(f"R_ned_from_cam must be a finite 3 x 3 rotation, got shape {R.shape}")
+        event, med = frame_event(image, self._prev, self._prev_median, self.clutter.step_lsb)
+        self._prev, self._prev_median = image, med
+        if event == "frozen":
+            self.frozen_frames += 1
+            for t in self._tracks:  # time passes, nothing is measured: predict without counting a miss
+                t.los = _unit(t.los + t.rate)
+                t.age += 1
+            return self._output(image, R, event, measured=set(), changed=False)
+        if event == "step":
+            self.offset_steps += 1
+            log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
+            if self._defects is not None:
+                self._defects.reset()
+        cands = self.detect(image)
+        measured = self._associate(cands, R)
+        changed = self._select(R)
+        return self._output(image, R, event, measured, changed)
+
+    def _associate(self, cands: list[PointCandidate], R: np.ndarray) -> set[int]:
+        p = self.params
+        preds = []
+        for t in self._tracks:
+            pl = _unit(t.los + t.rate)
+            preds.append((pl, self._project(pl, R)))
+        pairs = []
+        for ti, (t, (_, puv)) in enumerate(zip(self._tracks, preds)):
+            if puv is None:
+                continue
+            gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
+            for ci, c in enumerate(cands):
+                d = math.hypot(c.u_px - puv[0], c.v_px - puv[1])
+                if d <= gate:
+                    pairs.append((d, ti, ci))
+        pairs.sort()
+        used_t: set[int] = set()
+        used_c: set[int] = set()
+        measured: set[int] = set()
+        for _, ti, ci in pairs:
+            if ti in used_t or ci in used_c:
+                continue
+            used_t.add(ti)
+            used_c.add(ci)
+            t, c = self._tracks[ti], cands[ci]
+            z = self._los(c.u_px, c.v_px, R)
+            pl = preds[ti][0]
+            r = z - pl
+            n = t.misses + 1
+            t.los = _unit(pl + p.alpha * r)
+            t.rate = t.rate + (p.beta / n) * r
+            t.uv, t.bbox, t.score = (c.u_px, c.v_px), c.bbox, c.score
+            t.hits += 1
+            t.misses = 0
+            t.age += 1
+            if not t.confirmed and t.hits >= p.confirm_hits:
+                t.confirmed = True
+                log.debug("object %d confirmed at (%.1f, %.1f)", t.object_id, c.u_px, c.v_px)
+            measured.add(t.object_id)
+        keep: list[_Track] = []
+        for ti, t in enumerate(self._tracks):
+            if ti in used_t:
+                keep.append(t)
+                continue
+            t.los = preds[ti][0]
+            t.misses += 1
+            t.age += 1
+            t.score = 0.0
+            limit = p.coast_frames if t.confirmed else p.tentative_misses
+            if t.misses > limit or preds[ti][1] is None:
+                if t.confirmed:
+                    log.debug("object %d lost after %d frames without a detection", t.object_id, t.misses)
+                continue
+            keep.append(t)
+        for ci, c in enumerate(cands):
+            if ci in used_c:
+                continue
+            los = self._los(c.u_px, c.v_px, R)
+            keep.append(_Track(self._next_id, los, np.zeros(3), (c.u_px, c.v_px), c.bbox, score=c.score))
+            measured.add(self._next_id)
+            self._next_id += 1
+        self._tracks = keep
+        return measured
+
+    def _select(self, R: np.ndarray) -> bool:
+        alive = {t.object_id: t for t in self._tracks if t.confirmed}
+        if self._primary is not None and self._primary in alive:
+            return False
+        old = self._primary
+        self._primary = None
+        if self.mode == "auto" and alive:
+            K = self.K
+            best = min(alive.values(), key=lambda t: (math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px), t.object_id))
+            self._primary = best.object_id
+        if self._primary != old:
+            self.primary_changes += 1
+            log.info("primary target: object %s (was %s)", self._primary, old)
+            return True
+        return False
+
+    def select_point(self, u_px: float, v_px: float, radius_px: float) -> int | None:
+        """Make the confirmed or coasting track nearest (u, v) within ``radius_px`` the primary; its id,
+        or None (the primary is then unchanged)."""
+        best, best_d = None, radius_px
+        for t in self._tracks:
+            d = math.hypot(t.uv[0] - u_px, t.uv[1] - v_px)
+            if t.confirmed and d <= best_d:
+                best, best_d = t, d
+        if best is None:
+            return None
+        if best.object_id != self._primary:
+            self.primary_changes += 1
+            log.info("primary target: object %d selected by the operator (was %s)", best.object_id, self._primary)
+        self._primary = best.object_id
+        return best.object_id
+
+    def _output(self, image: np.ndarray, R: np.ndarray, event: str, measured: set[int], changed: bool) -> ObjectsUpdate:
+        objs = []
+        primary_det = None
+        sigma_rad = 1.0 / self.K.fx_px
+        for t in self._tracks:
+            if not t.confirmed:
+                state = "tentative"
+            elif t.object_id in measured:
+                state = "confirmed"
+            else:
+                state = "coasting"
+            if state == "coasting":
+                puv = self._project(t.los, R)
+                if puv is None:
+                    continue
+                u, v = puv
+            else:
+                u, v = t.uv
+            x, y, w, h = t.bbox
+            box = (u - w / 2, v - h / 2, float(w), float(h))
+            if t.object_id == self._primary and state == "confirmed":
+                det = measure_blob(image, Blob(t.bbox, max(w * h, 1), t.score), self.imaging, 0.0)
+                if det is not None and math.hypot(det.u_px - u, det.v_px - v) <= self.params.gate_px:
+                    primary_det = det
+                    u, v = det.u_px, det.v_px
+            los = tuple(float(a) for a in self._los(u, v, R))
+            objs.append(
+                ObjectTrack(
+                    t.object_id,
+                    state,
+                    float(u),
+                    float(v),
+                    box,
+                    los,  # type: ignore[arg-type]
+                    sigma_rad * (1 + t.misses),
+                    float(t.score),
+                    t.hits,
+                    t.age,
+                )
+            )
+        return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    n = float(np.linalg.norm(v))
+    return v / n if n > 0 else v
