@@ -153,7 +153,6 @@ class DefectMap:
         self._rate = np.zeros(shape, np.float32)  # decayed fraction of frames as an outlier
         self._fraction = np.float32(fraction)
         self._seen = 0
-        self._frames = frames
         self.mask = np.zeros(shape, bool)
 
     def reset(self) -> None:
@@ -166,8 +165,9 @@ class DefectMap:
         self._rate *= self._decay
         self._rate[out] += np.float32(1.0) - self._decay
         self._seen += 1
-        if self._seen >= self._frames // 2:  # half the window seen: a persistent outlier stands out already
-            self.mask = self._rate >= self._fraction * np.float32(1.0 - self._decay**self._seen)
+        # from the first frame on: repairing a pixel that was an outlier once costs nothing (a target
+        # covers several pixels, never an isolated one), and a hot pixel is repaired before it is tracked
+        self.mask = self._rate >= self._fraction * np.float32(1.0 - self._decay**self._seen)
 
     def repair(self, image: np.ndarray) -> np.ndarray:
         img = np.asarray(image, dtype=np.float32)

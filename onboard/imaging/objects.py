@@ -19,9 +19,10 @@ then ``confirmed``; ``coasting`` while it misses (predicted, not measured), for 
 ``coast_frames`` frames, then ``lost`` (reported once, then gone).  Ids are never reused.
 
 Primary target (``mode`` auto): the current primary is kept while its track lives (confirmed or
-coasting); otherwise the confirmed track nearest the principal point becomes it (the observer's
-gimbal points the camera at its target, so of the confirmed objects the target is the one the camera
-centres).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
+coasting); otherwise, of the tracks measured on this frame with at least ``confirm_hits`` hits on at
+least ``primary_hit_ratio`` of their frames, the one nearest the principal point becomes it (the
+observer's gimbal points the camera at its target, so of the steady objects the target is the one
+the camera centres); being chosen confirms it even where the clutter map would still hold it back.  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
 change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
 continued on another object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
@@ -66,7 +67,11 @@ class ObjectParams:
     """Track management (frames at the camera's rate, pixels).  ``gate_px`` association gate of a
     measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``;
     ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
-    ``defect_every``: frames between defect-map updates."""
+    ``defect_every``: frames between defect-map updates; clutter map: candidates per frame not held by a
+    confirmed track, averaged over ``clutter_frames`` in ``clutter_cell_px`` cells; a track whose 3 x 3
+    cells hold more than ``max_clutter_density`` others' candidates per frame needs
+    ``cluttered_confirm_hits`` hits to be confirmed; ``primary_hit_ratio``: the least fraction of its
+    frames a track must have been measured on to be chosen as the primary."""
 
     gate_px: float = 4.0
     gate_growth_px: float = 0.5
@@ -77,6 +82,11 @@ class ObjectParams:
     tentative_misses: int = 2
     coast_frames: int = 45
     defect_every: int = 4
+    clutter_cell_px: int = 16
+    clutter_frames: int = 30
+    max_clutter_density: float = 0.3
+    cluttered_confirm_hits: int = 60
+    primary_hit_ratio: float = 0.8
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -137,6 +147,7 @@ class _Track:
     age: int = 1
     confirmed: bool = False
     score: float = 0.0
+    own: float = 0.0  # its own detections' share of the clutter map, candidates per frame
     history: list = field(default_factory=list)
 
 
@@ -168,6 +179,8 @@ class ObjectTracker:
         self._defects: DefectMap | None = None
         self._prev: np.ndarray | None = None
         self._prev_median: float | None = None
+        self._clutter_map: np.ndarray | None = None
+        self._clutter_frames = 0  # frames the clutter map has seen (it is normalised by their weight)
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
@@ -247,6 +260,15 @@ class ObjectTracker:
                 if d <= gate:
                     pairs.append((d, ti, ci))
         pairs.sort()
+        decay = 1.0 - 1.0 / max(p.clutter_frames, 1)
+        cm = self._clutter_map
+        if cm is None:
+            h, w = self.K.height_px, self.K.width_px
+            cm = self._clutter_map = np.zeros((-(-h // p.clutter_cell_px), -(-w // p.clutter_cell_px)), np.float32)
+        cm *= np.float32(decay)
+        self._clutter_frames += 1
+        for t in self._tracks:
+            t.own *= decay
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -266,9 +288,14 @@ class ObjectTracker:
             t.hits += 1
             t.misses = 0
             t.age += 1
+            if not t.confirmed:
+                self._add_clutter(c, 1.0 - decay)
+                t.own += 1.0 - decay
             if not t.confirmed and t.hits >= p.confirm_hits:
-                t.confirmed = True
-                log.debug("object %d confirmed at (%.1f, %.1f)", t.object_id, c.u_px, c.v_px)
+                need = p.cluttered_confirm_hits if self._density(t) > p.max_clutter_density else p.confirm_hits
+                t.confirmed = t.hits >= need
+                if t.confirmed:
+                    log.debug("object %d confirmed at (%.1f, %.1f)", t.object_id, c.u_px, c.v_px)
             measured.add(t.object_id)
         keep: list[_Track] = []
         for ti, t in enumerate(self._tracks):
@@ -288,12 +315,31 @@ class ObjectTracker:
         for ci, c in enumerate(cands):
             if ci in used_c:
                 continue
+            self._add_clutter(c, 1.0 - decay)
             los = self._los(c.u_px, c.v_px, R)
-            keep.append(_Track(self._next_id, los, np.zeros(3), (c.u_px, c.v_px), c.bbox, score=c.score))
+            keep.append(
+                _Track(self._next_id, los, np.zeros(3), (c.u_px, c.v_px), c.bbox, score=c.score, own=1.0 - decay)
+            )
             measured.add(self._next_id)
             self._next_id += 1
         self._tracks = keep
         return measured
+
+    def _add_clutter(self, c: PointCandidate, amount: float) -> None:
+        cm = self._clutter_map
+        assert cm is not None
+        i = min(max(int(c.v_px) // self.params.clutter_cell_px, 0), cm.shape[0] - 1)
+        j = min(max(int(c.u_px) // self.params.clutter_cell_px, 0), cm.shape[1] - 1)
+        cm[i, j] += np.float32(amount)
+
+    def _density(self, t: _Track) -> float:
+        """Other candidates per frame in the 3 x 3 clutter cells about the track."""
+        cm = self._clutter_map
+        assert cm is not None
+        i = min(max(int(t.uv[1]) // self.params.clutter_cell_px, 0), cm.shape[0] - 1)
+        j = min(max(int(t.uv[0]) // self.params.clutter_cell_px, 0), cm.shape[1] - 1)
+        weight = 1.0 - (1.0 - 1.0 / max(self.params.clutter_frames, 1)) ** self._clutter_frames
+        return (float(cm[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2].sum()) - t.own) / max(weight, 1e-6)
 
     def _select(self, R: np.ndarray) -> bool:
         alive = {t.object_id: t for t in self._tracks if t.confirmed}
@@ -301,10 +347,17 @@ class ObjectTracker:
             return False
         old = self._primary
         self._primary = None
-        if self.mode == "auto" and alive:
-            K = self.K
-            best = min(alive.values(), key=lambda t: (math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px), t.object_id))
-            self._primary = best.object_id
+        if self.mode == "auto":
+            p, K = self.params, self.K
+            steady = [
+                t
+                for t in self._tracks
+                if t.misses == 0 and t.hits >= p.confirm_hits and t.hits >= p.primary_hit_ratio * t.age
+            ]
+            if steady:
+                best = min(steady, key=lambda t: (math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px), t.object_id))
+                best.confirmed = True  # chosen as the target: confirmed whatever the clutter around it
+                self._primary = best.object_id
         if self._primary != old:
             self.primary_changes += 1
             log.info("primary target: object %s (was %s)", self._primary, old)
