@@ -76,7 +76,7 @@ class ClutterParams:
     guard_px: int = 4
     noise_window_px: int = 31
     sharp_guard_px: int = 2
-    threshold_sigma: float = 5.0
+    threshold_sigma: float = 5.5
     min_threshold_lsb: float = 0.8
     max_area_px: int = 64
     max_candidates: int = 32
@@ -188,8 +188,13 @@ def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centr
     if centre_px == cell_px:
         centre = m
     else:
-        mc = cv2.blur(img, (centre_px, centre_px), borderType=cv2.BORDER_REPLICATE)
-        centre = cv2.dilate(mc, np.ones((centre_px, centre_px), np.uint8), borderType=cv2.BORDER_REPLICATE)
+        # mc(i, j): the mean of the square starting at (i, j); centre(i, j): the largest mean of the
+        # squares holding pixel (i, j) (anchors chosen so that no half-pixel shift creeps in)
+        mc = cv2.blur(img, (centre_px, centre_px), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+        a = centre_px - 1
+        centre = cv2.dilate(
+            mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE
+        )
     g = guard_px
     p = cv2.copyMakeBorder(m, g, g, g, g, cv2.BORDER_REPLICATE)
     h, w = m.shape

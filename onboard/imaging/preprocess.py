@@ -55,7 +55,7 @@ import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
@@ -69,6 +69,7 @@ from onboard.core.schema import (
     Number,
     PositiveInt,
     SchemaError,
+    Text,
     build,
     config_dataclass,
 )
@@ -127,6 +128,10 @@ class ImagingParams:
     ``max_drift_px`` from the centroid.  After a frame without a blob the track is ``coasting``;
     a target re-acquired within ``coast_frames`` frames and ``reacquire_gate_px`` of the
     prediction keeps its track id; after ``lost_frames`` frames without a blob it is ``lost``.
+
+    ``chain``: ``single`` is the one-target chain above (:class:`onboard.imaging.TargetTracker`);
+    ``objects`` detects against clutter and tracks every object, the primary one reported as the
+    track (:class:`onboard.imaging.objects.ObjectChain`; measured with ``python -m bench.imaging --scene``).
     """
 
     mean_kernel_px: PositiveInt = 3
@@ -153,6 +158,7 @@ class ImagingParams:
     reacquire_gate_px: NonNegativeFloat = 64.0
     coast_frames: NonNegativeInt = 5
     lost_frames: PositiveInt = 15
+    chain: Annotated[Literal["single", "objects"], Text()] = "single"
 
     def __post_init__(self) -> None:
         if self.mean_kernel_px % 2 != 1:

@@ -107,6 +107,10 @@ def make_tracker(config: Any):
     """The image chain of ``config`` (a fresh :class:`~onboard.imaging.TargetTracker`, ``gcs.tracker_mode``)."""
     from onboard.imaging import TargetTracker
 
+    if config.imaging.chain == "objects":
+        from onboard.imaging.objects import ObjectChain
+
+        return ObjectChain(config.camera.pinhole(), config.imaging, mode=config.gcs.tracker_mode)
     return TargetTracker(config.imaging, mode=config.gcs.tracker_mode)
 
 
@@ -293,7 +297,9 @@ class FramePipeline:
         i0 = self._clock_ns()
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
-            if upd is None:
+            if upd is None and getattr(self.tracker, "uses_pose", False):
+                upd = self.tracker.update(frame.pixels, self._camera_rotation(frame.time_boot_us))
+            elif upd is None:
                 upd = self.tracker.update(frame.pixels)
         except InputError as exc:
             self._refuse("image", f"tracker refused the frame: {exc}")
@@ -326,6 +332,17 @@ class FramePipeline:
         self.pose_wait_ms.add(waited_ns / 1e6)
         self.processing_ms.add((self._clock_ns() - t0 - waited_ns) / 1e6)
         return track
+
+    def _camera_rotation(self, t_us: int):
+        """R_ned_from_cam at ``t_us`` for an image chain that associates in bearing space (None without
+        a pose yet: the chain keeps its last one); never waits for telemetry."""
+        if self.pose_source is None:
+            return None
+        try:
+            pose = self.pose_source.pose_at(t_us)
+        except Exception:  # noqa: BLE001 - counted where the frame's own pose is looked up below
+            return None
+        return None if pose is None else rotmat_from_quat(pose.q_ned_from_cam)
 
     # ------------------------------------------------------------------ admission
 

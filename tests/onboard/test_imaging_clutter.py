@@ -1,0 +1,271 @@
+"""The clutter-robust detector (onboard.imaging.clutter) and the object tracker (onboard.imaging.objects)
+on small synthetic frames with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from onboard.core.frames import PinholeIntrinsics, quat_from_euler, rotmat_from_quat
+from onboard.imaging.clutter import (
+    ClutterParams,
+    DefectMap,
+    cfar_threshold,
+    column_offsets,
+    frame_event,
+    isolated_outliers,
+    local_contrast,
+    local_noise,
+    point_candidates,
+    point_contrast,
+    remove_column_offsets,
+)
+from onboard.imaging.objects import ObjectTracker
+
+H_PX, W_PX = 96, 128
+NOISE_GREY = 0.5
+CENTRE_TOL_PX = 0.3  # contrast-weighted centre of a symmetric blob on noise
+OFFSET_TOL_GREY = 0.15  # column offsets recovered from 24 sampled rows of 0.5 grey noise
+FLAT_TOL_GREY = 1e-3  # float32 rounding of box means on a plane
+STAIR_FRACTION = 0.1  # of an oblique edge's step left at its rasterised stair corners
+
+
+def _blob(img: np.ndarray, u: float, v: float, amp: float, sigma_px: float = 0.7) -> None:
+    yy, xx = np.mgrid[0 : img.shape[0], 0 : img.shape[1]].astype(np.float64)
+    img += amp * np.exp(-((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2) / (2 * sigma_px**2))
+
+
+def _sky(rng: np.random.Generator) -> np.ndarray:
+    yy, xx = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+    return 60.0 + 20.0 * yy / H_PX + 3.0 * xx / W_PX + rng.normal(0.0, NOISE_GREY, (H_PX, W_PX))
+
+
+def test_column_offsets_recovers_known_stripes():
+    rng = np.random.default_rng(1)
+    stripes = rng.normal(0.0, 2.0, W_PX)
+    stripes -= np.median(stripes)
+    img = _sky(rng) + stripes[None, :]
+    off = column_offsets(img.astype(np.float32), 15)
+    # measured against a 15-column running mean: the stripes' column-to-column part is what is found
+    # (what a point detector sees); their slow part stays, like any smooth background
+    padded = np.pad(stripes, 7, mode="reflect")
+    high_pass = stripes - np.convolve(padded, np.ones(15) / 15, mode="valid")
+    high_pass -= np.median(high_pass)
+    assert np.max(np.abs(off - high_pass)) < OFFSET_TOL_GREY * 4  # the largest of 128 medians of 24 noisy rows
+    assert np.median(np.abs(off - high_pass)) < OFFSET_TOL_GREY
+    cleaned = remove_column_offsets(img.astype(np.float32), off)
+    assert np.std(np.diff(np.median(cleaned, axis=0))) < 0.25 * np.std(np.diff(stripes))
+
+
+def test_defect_map_finds_hot_and_dead_pixels_not_a_moving_target():
+    rng = np.random.default_rng(2)
+    hot = [(10, 20), (50, 90), (80, 5)]
+    dead = [(30, 60), (70, 110)]
+    dm = DefectMap((H_PX, W_PX), frames=10, fraction=0.6)
+    for k in range(12):
+        img = _sky(rng)
+        _blob(img, 40.0 + 2.0 * k, 48.0, 30.0)
+        for i, j in hot:
+            img[i, j] += 40.0
+        for i, j in dead:
+            img[i, j] = 0.0
+        dm.update(img.astype(np.float32), 4 * NOISE_GREY)
+    assert set(zip(*np.nonzero(dm.mask))) == set(hot) | set(dead)
+    repaired = dm.repair(img.astype(np.float32))
+    for i, j in hot + dead:
+        assert abs(repaired[i, j] - np.median(img[i - 1 : i + 2, j - 1 : j + 2])) < 1e-3
+    dm.reset()
+    assert not dm.mask.any()
+
+
+def test_isolated_outliers_spares_a_two_pixel_target():
+    img = np.full((H_PX, W_PX), 50.0, np.float32)
+    img[40:42, 60:62] = 80.0  # a 2 x 2 target: each pixel has a bright neighbour
+    img[20, 20] = 80.0
+    mask = isolated_outliers(img, 5.0)
+    assert list(zip(*np.nonzero(mask))) == [(20, 20)]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    gx=st.floats(-5.0, 5.0),
+    gy=st.floats(-5.0, 5.0),
+    step=st.floats(0.0, 50.0),
+    angle=st.floats(0.0, math.pi),
+)
+def test_point_contrast_at_most_a_tenth_of_a_straight_edge_on_a_plane(gx, gy, step, angle):
+    """A plane gives <= 0; a rasterised oblique edge leaves one-pixel stair corners, bounded.  (The
+    4 px stage alone lets a third of the step through along an edge whose bright side slopes away.)"""
+    yy, xx = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+    img = 100.0 + gx * xx / 10 + gy * yy / 10
+    img += step * ((xx - W_PX / 2) * math.cos(angle) + (yy - H_PX / 2) * math.sin(angle) > 0)
+    c = point_contrast(img.astype(np.float32), ClutterParams())[
+        6:-6, 6:-6
+    ]  # the border replicates: a plane stops there
+    assert float(c.max()) <= STAIR_FRACTION * step + FLAT_TOL_GREY * (1 + abs(gx) + abs(gy) + step)
+
+
+def test_point_contrast_keeps_a_point_and_drops_a_small_cloud_puff():
+    img = np.full((H_PX, W_PX), 50.0)
+    img[:, :20] = 70.0  # a warm cloud on the left
+    img[40:46, 40:46] = 70.0  # a 6 px puff: narrower than the 4 px surround's reach
+    _blob(img, 90.0, 50.0, 8.0)
+    c = point_contrast(img.astype(np.float32), ClutterParams())
+    assert c[47:52, 87:92].max() > 2.0  # the point beats both surrounds
+    assert c[:, :60].max() <= FLAT_TOL_GREY  # the puff beats the 4 px surround, not the 2 px one
+    assert local_contrast(img.astype(np.float32), 3, 4)[38:48, 38:48].max() > 2.0
+
+
+def test_cfar_threshold_follows_the_local_noise_with_a_floor():
+    rng = np.random.default_rng(3)
+    img = np.full((H_PX, W_PX), 50.0)
+    img[:, W_PX // 2 :] += rng.normal(0.0, 4.0, (H_PX, W_PX // 2))  # textured half
+    noise = local_noise(img.astype(np.float32), 15)
+    thr = cfar_threshold(noise, 5.0, 0.8)
+    assert np.all(thr[:, :40] == np.float32(0.8))  # noiseless: the floor
+    textured = float(np.median(noise[:, W_PX // 2 + 10 :]))
+    assert 0.6 * 4.0 < textured < 1.2 * 4.0  # ~ the texture's sigma (the 3 x 3 mean takes a share)
+
+
+def test_point_candidates_centres_and_limits():
+    rng = np.random.default_rng(4)
+    img = _sky(rng)
+    truth = [(30.3, 40.6), (100.7, 20.2)]
+    for u, v in truth:
+        _blob(img, u, v, 25.0)
+    img[70:90, 60:80] += 30.0  # too large to be a point
+    p = ClutterParams()
+    f = img.astype(np.float32)
+    cands = point_candidates(point_contrast(f, p), cfar_threshold(local_noise(f), p.threshold_sigma, 0.8), p)
+    found = sorted((c.u_px, c.v_px) for c in cands)
+    assert len(found) == 2
+    for (u, v), (tu, tv) in zip(found, sorted(truth)):
+        assert math.hypot(u - tu, v - tv) < CENTRE_TOL_PX
+    assert all(c.score >= 1.0 for c in cands)
+
+
+def test_frame_event_frozen_step_ok():
+    a = np.full((H_PX, W_PX), 100, np.uint8)
+    assert frame_event(a, None, None, 3.0)[0] == "ok"
+    assert frame_event(a, a.copy(), 100.0, 3.0)[0] == "frozen"
+    b = a + 5
+    assert frame_event(b, a, 100.0, 3.0) == ("step", 105.0)
+    c = a.copy()
+    c[0, 0] = 101
+    assert frame_event(c, a, 100.0, 3.0)[0] == "ok"
+
+
+# ---------------------------------------------------------------- object tracker
+
+K = PinholeIntrinsics(200.0, 200.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
+
+
+def _frame(rng, points, amp=30.0) -> np.ndarray:
+    img = _sky(rng)
+    for u, v in points:
+        _blob(img, u, v, amp)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def test_two_crossing_objects_keep_their_ids():
+    rng = np.random.default_rng(5)
+    tr = ObjectTracker(K)
+    ids_a, ids_b = set(), set()
+    for k in range(60):
+        a = (20.0 + 1.5 * k, 40.0 + 0.2 * k)  # they cross near frame 30
+        b = (110.0 - 1.5 * k, 52.0 - 0.2 * k)
+        out = tr.update(_frame(rng, [a, b]), None)
+        for o in out.confirmed:
+            if math.hypot(o.u_px - a[0], o.v_px - a[1]) < 2.0 and math.hypot(a[0] - b[0], a[1] - b[1]) > 6.0:
+                ids_a.add(o.object_id)
+            if math.hypot(o.u_px - b[0], o.v_px - b[1]) < 2.0 and math.hypot(a[0] - b[0], a[1] - b[1]) > 6.0:
+                ids_b.add(o.object_id)
+    assert len(ids_a) == 1 and len(ids_b) == 1 and ids_a != ids_b
+
+
+def test_camera_rotation_is_compensated_from_the_pose():
+    """A world-fixed point while the camera pans 6 px per frame (beyond the 4 px gate): one id."""
+    rng = np.random.default_rng(6)
+    los_ned = np.array([1.0, 0.0, 0.0])
+    R_mount = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # cam z = north, x = east, y = down
+    for pose in (True, False):
+        tr = ObjectTracker(K)
+        ids = set()
+        for k in range(30):
+            yaw = -0.03 * k  # rad: the camera turns left, the point moves right in the image
+            R = rotmat_from_quat(quat_from_euler(0.0, 0.0, yaw)) @ R_mount
+            c = R.T @ los_ned
+            u, v = K.fx_px * c[0] / c[2] + K.cx_px, K.fy_px * c[1] / c[2] + K.cy_px
+            out = tr.update(_frame(rng, [(u - 30.0, v)]), R if pose else None)
+            ids |= {o.object_id for o in out.confirmed}
+        if pose:
+            assert len(ids) == 1
+        else:
+            assert len(ids) != 1  # without the pose the gate cannot follow the pan
+
+
+def test_primary_is_the_steady_object_nearest_the_centre_and_a_change_is_reported():
+    rng = np.random.default_rng(7)
+    tr = ObjectTracker(K)
+    near, far = (W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)
+    changes = []
+    primary_uv = None
+    for _ in range(20):
+        out = tr.update(_frame(rng, [near, far]), None)
+        changes.append(out.primary_changed)
+        if out.primary is not None:
+            primary_uv = (out.primary.u_px, out.primary.v_px)
+    assert primary_uv is not None and math.hypot(primary_uv[0] - near[0], primary_uv[1] - near[1]) < CENTRE_TOL_PX
+    assert sum(changes) == 1
+    first = tr.update(_frame(rng, [near, far]), None).primary_id
+    for _ in range(tr.params.coast_frames + 2):  # the primary disappears for good
+        out = tr.update(_frame(rng, [far]), None)
+    assert out.primary_id is not None and out.primary_id != first
+    assert tr.primary_changes == 2
+
+
+def test_frozen_frames_measure_nothing_and_lose_nothing():
+    rng = np.random.default_rng(8)
+    tr = ObjectTracker(K)
+    for _ in range(8):
+        img = _frame(rng, [(60.0, 50.0)])
+        out = tr.update(img, None)
+    ids = {o.object_id for o in out.confirmed}
+    for _ in range(tr.params.coast_frames + 5):
+        out = tr.update(img, None)  # the shutter is closed: the same frame again
+        assert out.event == "frozen" and not out.confirmed
+    out = tr.update(_frame(rng, [(60.0, 50.0)]), None)
+    assert {o.object_id for o in out.confirmed} == ids
+    assert tr.frozen_frames == tr.params.coast_frames + 5
+
+
+def test_bad_pose_is_refused():
+    tr = ObjectTracker(K)
+    with pytest.raises(Exception, match="R_ned_from_cam"):
+        tr.update(np.zeros((H_PX, W_PX), np.uint8), np.full((3, 3), np.nan))
+
+
+def test_object_chain_reports_the_primary_as_the_track_and_a_new_id_on_a_change():
+    from onboard.imaging import TrackState
+    from onboard.imaging.objects import ObjectChain
+
+    rng = np.random.default_rng(9)
+    chain = ObjectChain(K)
+    near, far = (W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)
+    for _ in range(10):
+        upd = chain.update(_frame(rng, [near, far]), np.eye(3))
+    assert upd.state is TrackState.TRACKING and upd.measurement_valid
+    assert math.hypot(upd.u_px - near[0], upd.v_px - near[1]) < CENTRE_TOL_PX
+    first = upd.track_id
+    sel = chain.select_point(_frame(rng, [near, far]), far[0], far[1], 5.0)
+    assert sel is not None and sel.track_id != first and not sel.measurement_valid
+    upd = chain.update(_frame(rng, [near, far]))  # no pose this frame: the last one is kept
+    assert upd.track_id == sel.track_id and math.hypot(upd.u_px - far[0], upd.v_px - far[1]) < CENTRE_TOL_PX
+    assert chain.select_point(_frame(rng, [near, far]), 100.0, 80.0, 5.0) is None  # nothing there
+    chain.stop()
+    upd = chain.update(_frame(rng, [near, far]))
+    assert upd.state in (TrackState.LOST, TrackState.SEARCHING) and upd.track_id is None
