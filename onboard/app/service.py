@@ -158,6 +158,7 @@ class OnboardService:
         self.session: Any = None
         self._sub = None
         self._track_pub = None
+        self._objects_pub = None
         self._status_pub = None
         self._stop = threading.Event()
         self._pipe_thread: threading.Thread | None = None
@@ -200,10 +201,12 @@ class OnboardService:
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
             GUIDANCE_ENCODING,
+            OBJECTS_ENCODING,
             STATUS_ENCODING,
             TRACK_ENCODING,
             frame_key,
             guidance_key,
+            objects_key,
             open_session,
             status_key,
             track_key,
@@ -235,6 +238,12 @@ class OnboardService:
         self._status_pub = self.session.declare_publisher(
             status_key(cfg.vehicle), encoding=zenoh.Encoding(STATUS_ENCODING)
         )
+        if hasattr(self.pipeline.tracker, "last_objects"):  # the objects image chain
+            self._objects_pub = self.session.declare_publisher(
+                objects_key(cfg.vehicle),
+                encoding=zenoh.Encoding(OBJECTS_ENCODING),
+                congestion_control=zenoh.CongestionControl.DROP,
+            )
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
         guidance = next((t for t in self.taps if t.name == "guidance"), None)
         if guidance is not None:  # advised manoeuvres on irtrack/<vehicle>/guidance (onboard.app.guidance_tap)
@@ -271,13 +280,13 @@ class OnboardService:
                 log.warning("pipeline thread did not stop within %.1f s", timeout_s)
         if isinstance(self.estimator, (ThreadedEstimator, ProcessEstimator)):
             self.estimator.close(timeout_s / 2)
-        for ent in (self._sub, self._track_pub, self._status_pub):
+        for ent in (self._sub, self._track_pub, self._status_pub, self._objects_pub):
             if ent is not None:
                 try:
                     ent.undeclare()
                 except Exception as exc:  # noqa: BLE001 - already gone with the session
                     log.debug("zenoh undeclare failed: %s", exc)
-        self._sub = self._track_pub = self._status_pub = None
+        self._sub = self._track_pub = self._status_pub = self._objects_pub = None
         if self.session is not None:
             try:
                 self.session.close()
@@ -357,6 +366,8 @@ class OnboardService:
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
             track = self._process(frame, received_ns)
             payload = self._publish_track(track) if track is not None and publish else None
+            if track is not None and publish and self._objects_pub is not None:
+                self._publish_objects(track.time_boot_us)
             looked_up, pose = self._pose_memo.take() if self._pose_memo is not None else (False, None)
             result = FrameResult(received_ns, looked_up, pose, track, payload)
             for tap in self.observers:
@@ -387,6 +398,18 @@ class OnboardService:
             return None
         finally:
             self._pipeline_cpu_s += time.thread_time() - c0
+
+    def _publish_objects(self, time_boot_us: int) -> None:
+        """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects``."""
+        upd = getattr(self.pipeline.tracker, "last_objects", None)
+        if upd is None or self._objects_pub is None:
+            return
+        try:
+            from onboard.imaging.objects import objects_message
+
+            self._objects_pub.put(json.dumps(objects_message(upd, time_boot_us), separators=(",", ":")).encode())
+        except Exception as exc:  # noqa: BLE001 - a failed publication must not stop the frame loop
+            self.counter.count("objects_publish_error", f"{type(exc).__name__}: {exc}")
 
     def _publish_track(self, track: Track) -> bytes | None:
         """The track JSON on ``irtrack/<vehicle>/track``; the payload, None when not published."""

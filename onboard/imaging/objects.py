@@ -56,7 +56,15 @@ from onboard.imaging.clutter import (
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.preprocess import ImagingParams, check_frame
 
-__all__ = ["ObjectParams", "ObjectTrack", "ObjectsUpdate", "ObjectTracker", "ObjectChain", "OBJECT_STATES"]
+__all__ = [
+    "ObjectParams",
+    "ObjectTrack",
+    "ObjectsUpdate",
+    "ObjectTracker",
+    "ObjectChain",
+    "OBJECT_STATES",
+    "objects_message",
+]
 
 log = logging.getLogger(__name__)
 
@@ -174,7 +182,7 @@ class ObjectTracker:
         self.imaging = imaging or ImagingParams()
         self.mode = mode
         self._tracks: list[_Track] = []
-        self._next_id = 0
+        self._next_id = 1  # ids from 1, as the track output counts them
         self._primary: int | None = None
         self._frame_index = -1
         self._defects: DefectMap | None = None
@@ -525,3 +533,32 @@ class ObjectChain:
     def reset(self) -> None:
         """Forget every track (ids continue)."""
         self.objects.clear_tracks()
+
+
+def objects_message(update: ObjectsUpdate, time_boot_us: int) -> dict:
+    """The ``irtrack/<vehicle>/objects`` message of one frame (JSON-ready, schema ``irtrack.objects/1``):
+    ``time_boot_us``, ``frame_index``, ``primary_id`` and ``objects``, one per confirmed or coasting
+    object: ``id``, ``state``, ``u_px``, ``v_px``, ``box_px`` [x, y, w, h], ``los_ned`` (unit line of
+    sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma), ``score`` (detection contrast over
+    the local threshold, 0 while coasting) and ``primary``."""
+    return {
+        "schema": "irtrack.objects/1",
+        "time_boot_us": int(time_boot_us),
+        "frame_index": update.frame_index,
+        "primary_id": update.primary_id,
+        "objects": [
+            {
+                "id": o.object_id,
+                "state": o.state,
+                "u_px": round(o.u_px, 3),
+                "v_px": round(o.v_px, 3),
+                "box_px": [round(b, 2) for b in o.bbox],
+                "los_ned": None if o.los_ned is None else [round(c, 7) for c in o.los_ned],
+                "los_sigma_rad": o.sigma_rad,
+                "score": round(o.score, 3),
+                "primary": o.object_id == update.primary_id,
+            }
+            for o in update.objects
+            if o.state in ("confirmed", "coasting")
+        ],
+    }

@@ -72,6 +72,8 @@ __all__ = [
     "TRACK_ENCODING",
     "STATUS_ENCODING",
     "GUIDANCE_ENCODING",
+    "OBJECTS_ENCODING",
+    "objects_key",
     "encoding_schema",
 ]
 
@@ -83,6 +85,8 @@ FRAME_ENCODING = f"application/octet-stream;{FRAME_SCHEMA}"
 TRACK_ENCODING = f"application/json;{TRACK_SCHEMA}"
 STATUS_ENCODING = f"application/json;{STATUS_SCHEMA}"
 GUIDANCE_ENCODING = "application/json;irtrack.guidance/1"  # onboard.estimation.guidance.GUIDANCE_SCHEMA
+OBJECTS_SCHEMA = "irtrack.objects/1"
+OBJECTS_ENCODING = f"application/json;{OBJECTS_SCHEMA}"
 
 
 def encoding_schema(encoding) -> str | None:
@@ -133,6 +137,11 @@ def track_key(vehicle: str = DEFAULT_VEHICLE) -> str:
 def guidance_key(vehicle: str = DEFAULT_VEHICLE) -> str:
     """``irtrack/<vehicle>/guidance``: observer guidance advice, JSON (only while a manoeuvre is advised)."""
     return f"irtrack/{check_vehicle_name(vehicle)}/guidance"
+
+
+def objects_key(vehicle: str = DEFAULT_VEHICLE) -> str:
+    """``irtrack/<vehicle>/objects``: every confirmed object of a frame (image chain ``objects``), JSON."""
+    return f"irtrack/{check_vehicle_name(vehicle)}/objects"
 
 
 def status_key(vehicle: str = DEFAULT_VEHICLE) -> str:

@@ -269,3 +269,24 @@ def test_object_chain_reports_the_primary_as_the_track_and_a_new_id_on_a_change(
     chain.stop()
     upd = chain.update(_frame(rng, [near, far]))
     assert upd.state in (TrackState.LOST, TrackState.SEARCHING) and upd.track_id is None
+
+
+def test_objects_message_carries_every_confirmed_object_as_json():
+    import json
+
+    from onboard.imaging.objects import objects_message
+
+    rng = np.random.default_rng(10)
+    tr = ObjectTracker(K)
+    pts = [(W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)]
+    for _ in range(8):
+        out = tr.update(_frame(rng, pts), np.eye(3))
+    msg = json.loads(json.dumps(objects_message(out, 123456)))
+    assert msg["schema"] == "irtrack.objects/1" and msg["time_boot_us"] == 123456
+    assert len(msg["objects"]) == 2 and sum(o["primary"] for o in msg["objects"]) == 1
+    for o in msg["objects"]:
+        los = np.array(o["los_ned"])
+        assert abs(np.linalg.norm(los) - 1.0) < 1e-6
+        # with R = I the line of sight is the camera ray through the centre
+        assert abs(los[0] / los[2] * K.fx_px + K.cx_px - o["u_px"]) < 1e-3
+        assert o["state"] == "confirmed" and o["score"] >= 1.0
