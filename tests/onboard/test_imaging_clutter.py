@@ -290,3 +290,17 @@ def test_objects_message_carries_every_confirmed_object_as_json():
         # with R = I the line of sight is the camera ray through the centre
         assert abs(los[0] / los[2] * K.fx_px + K.cx_px - o["u_px"]) < 1e-3
         assert o["state"] == "confirmed" and o["score"] >= 1.0
+
+
+def test_pipeline_runs_the_objects_chain_with_the_pose():
+    from onboard.app.config import build_config
+    from onboard.imaging.objects import ObjectChain
+    from tests.onboard.test_pipeline import Rig
+
+    rig = Rig(config=build_config({"imaging": {"chain": "objects"}}))
+    assert isinstance(rig.pipe.tracker, ObjectChain)
+    tracks = rig.run(20)
+    tracking = [t for t in tracks if t.state == "tracking"]
+    assert len(tracking) >= 12 and len({t.track_id for t in tracking}) == 1
+    assert rig.pipe.tracker._R is not None  # the pose's rotation reached the chain
+    assert rig.pipe.tracker.last_objects is not None and rig.pipe.tracker.last_objects.primary_id == tracking[0].track_id
