@@ -303,4 +303,6 @@ def test_pipeline_runs_the_objects_chain_with_the_pose():
     tracking = [t for t in tracks if t.state == "tracking"]
     assert len(tracking) >= 12 and len({t.track_id for t in tracking}) == 1
     assert rig.pipe.tracker._R is not None  # the pose's rotation reached the chain
-    assert rig.pipe.tracker.last_objects is not None and rig.pipe.tracker.last_objects.primary_id == tracking[0].track_id
+    assert (
+        rig.pipe.tracker.last_objects is not None and rig.pipe.tracker.last_objects.primary_id == tracking[0].track_id
+    )
