@@ -357,6 +357,8 @@ class RunResult:
     estimator: str = "map"  # EvalOptions.estimator: the plug-in that made est_* and base_* (batch columns stay MAP)
     #: with EvalOptions.guidance: advices followed, the first one's time from the first frame (s), manoeuvres, updates
     guidance: dict | None = None
+    mot_gt: str = ""  # gt.txt of every object (groundsim.evaluation.mot)
+    mot_tracker: str = ""  # the pipeline's objects, MOT tracker lines
 
     @property
     def has_estimate(self) -> np.ndarray:
@@ -454,6 +456,7 @@ def run_lockstep(
 
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
+    from groundsim.evaluation.mot import gt_rows, tracker_rows
     from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
@@ -501,6 +504,8 @@ def run_lockstep(
     rejected = 0
     kept = None
     done_since = 0
+    mot_gt: list[str] = []
+    mot_tracker: list[str] = []
 
     n_done = F
     for k in range(F):
@@ -560,6 +565,9 @@ def run_lockstep(
                         float(tr.t_s), advice.v_ned_mps, float(tr.t_s) + advice.valid_until_s - advice.t_s
                     )
                     advices.append((float(tr.t_s), str(advice.manoeuvre)))
+        mot_gt += gt_rows(k + 1, fr.labels, (tr.target_u_px, tr.target_v_px), bool(tr.target_visible))
+        if track is not None:
+            mot_tracker += tracker_rows(k + 1, getattr(pipeline.tracker, "last_objects", None), track)
 
         if options.keep_frame and fr.pixels is not None and _better_frame(kept, k, F, track):
             kept = dict(
@@ -678,6 +686,8 @@ def run_lockstep(
             "updates": advisor.updates,
             "skipped": dict(advisor.skipped),
         },
+        mot_gt="".join(mot_gt),
+        mot_tracker="".join(mot_tracker),
     )
 
 
@@ -849,6 +859,36 @@ def keep_interrupted(exc: EvalInterrupted, out_dir) -> str:
 DEFAULT_EVAL_SCENARIOS = ("P1", "P2", "P3")
 
 
+def add_mot_scores(out: Path, seqs: list[str]) -> None:
+    """TrackEval's scores of the MOT files (groundsim.evaluation.mot.score_mot) into report.json: a top-level
+    ``mot`` {SEQ: metrics} and each run row's ``mot``; printed one line a SEQ.  A scoring failure is logged
+    and leaves report.json as it was (the 3-D report does not depend on it)."""
+    import json
+
+    from groundsim.evaluation.mot import score_mot, seq_name
+
+    try:
+        scores = score_mot(out, seqs)
+    except Exception as exc:  # noqa: BLE001 - TrackEval's own errors are many; the report stands without them
+        log.warning("MOT scoring failed: %s: %s", type(exc).__name__, exc)
+        return
+    if not scores:
+        return
+    path = Path(out) / "report.json"
+    report = json.loads(path.read_text(encoding="utf-8"))
+    report["mot"] = scores
+    for row in report.get("runs", []):
+        seq = seq_name(row.get("scenario", ""), row.get("nav_noise", ""), row.get("seed", 0))
+        if seq in scores:
+            row["mot"] = scores[seq]
+    path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    for seq, m in scores.items():
+        print(
+            f"MOT {seq}: HOTA {m['HOTA']:.3f} DetA {m['DetA']:.3f} AssA {m['AssA']:.3f} MOTA {m['MOTA']:.3f}"
+            f" IDF1 {m['IDF1']:.3f} IDSW {m['IDSW']}"
+        )
+
+
 def cmd_eval(args) -> int:
     """The ``eval`` command: run, write the report, print the table and the report's path."""
     import sys
@@ -902,6 +942,14 @@ def cmd_eval(args) -> int:
     except EvalInterrupted as exc:
         return print_interrupted(keep_interrupted(exc, out))
     files = write_eval_report(out, result)
+    from groundsim.evaluation.mot import write_mot
+
+    cameras = {
+        sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz) for sc in scenarios
+    }
+    seqs = write_mot(out, result.runs, cameras)
+    log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
+    add_mot_scores(out, seqs)
     descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
     print(format_table2(result.summary, descriptions))
     print()

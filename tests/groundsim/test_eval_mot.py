@@ -1,0 +1,65 @@
+"""groundsim eval's MOT files (groundsim.evaluation.mot): lines, layout, and TrackEval reading them."""
+
+from __future__ import annotations
+
+import configparser
+import math
+from types import SimpleNamespace
+
+import pytest
+
+from groundsim.evaluation.mot import BOX_SIDE_PX, gt_rows, seq_name, tracker_rows, write_mot
+
+
+def _label(oid, u, v, visibility="visible"):
+    return SimpleNamespace(object_id=oid, u_px=u, v_px=v, visibility=visibility)
+
+
+def test_gt_rows_every_object_one_based_with_visibility_flag():
+    rows = gt_rows(
+        3,
+        [
+            _label(0, 10.0, 20.0),
+            _label(2, 50.5, 60.5, "occluded"),
+            _label(4, math.nan, 1.0),
+            _label(5, 1, 1, "out_of_frame"),
+        ],
+    )
+    assert [r.split(",")[:2] for r in rows] == [["3", "1"], ["3", "3"]]
+    f = rows[0].split(",")
+    # MOT's 1-based left/top of a BOX_SIDE_PX square about the centre
+    assert float(f[2]) == pytest.approx(10.0 - BOX_SIDE_PX / 2 + 1) and float(f[5]) == BOX_SIDE_PX
+    assert f[6] == "1" and rows[1].split(",")[6] == "0"
+    assert gt_rows(1, (), (5.0, 6.0), True)[0].startswith("1,1,") and gt_rows(1, (), (5.0, 6.0), False) == []
+
+
+def test_tracker_rows_from_objects_or_the_single_track():
+    objs = SimpleNamespace(confirmed=(SimpleNamespace(object_id=7, u_px=100.0, v_px=50.0, score=2.5),))
+    assert tracker_rows(4, objs) == [f"4,7,{100 - 2:.3f},{50 - 2:.3f},6.000,6.000,2.500,-1,-1,-1\n"]
+    track = SimpleNamespace(state="tracking", u_px=10.0, v_px=10.0, track_id=2)
+    assert tracker_rows(4, None, track)[0].startswith("4,2,")
+    assert tracker_rows(4, None, SimpleNamespace(state="coasting", u_px=1.0, v_px=1.0, track_id=2)) == []
+
+
+def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path):
+    gt = "".join("".join(gt_rows(k, [_label(0, 100.0 + k, 50.0), _label(1, 200.0, 80.0 - k)])) for k in range(1, 31))
+    objects = [
+        SimpleNamespace(confirmed=(SimpleNamespace(object_id=5, u_px=100.0 + k, v_px=50.0, score=3.0),))
+        for k in range(31)
+    ]
+    trk = "".join("".join(tracker_rows(k, objects[k])) for k in range(1, 31))
+    run = SimpleNamespace(scenario="C3", nav_noise="RTK", seed=2, frames=30, error=None, mot_gt=gt, mot_tracker=trk)
+    failed = SimpleNamespace(scenario="C3", nav_noise="RTK", seed=3, frames=0, error="boom", mot_gt="", mot_tracker="")
+    seqs = write_mot(tmp_path, [run, failed], {"C3": (640, 512, 30.0)})
+    assert seqs == [seq_name("C3", "RTK", 2)] == ["C3-RTK-s2"]
+    ini = configparser.ConfigParser()
+    ini.read(tmp_path / "mot" / "gt" / "C3-RTK-s2" / "seqinfo.ini")
+    assert ini["Sequence"]["seqLength"] == "30" and ini["Sequence"]["imWidth"] == "640"
+    assert (tmp_path / "mot" / "trackers" / "irtrack" / "data" / "C3-RTK-s2.txt").read_text() == trk
+    pytest.importorskip("trackeval")  # installed with --no-deps (it pins opencv-python)
+    from groundsim.evaluation.mot import score_mot
+
+    m = score_mot(tmp_path, seqs)["C3-RTK-s2"]
+    # one of two objects tracked perfectly, the other missed: DetA 0.5, AssA 1, HOTA sqrt(0.5)
+    assert m["DetA"] == pytest.approx(0.5) and m["AssA"] == pytest.approx(1.0)
+    assert m["HOTA"] == pytest.approx(math.sqrt(0.5)) and m["IDSW"] == 0
