@@ -52,6 +52,7 @@ __all__ = [
 ]
 
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
+_RINGS: dict[int, np.ndarray] = {}  # guard_px -> the dilation kernel of the eight surround cells
 _DIRECTIONS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
 
@@ -195,14 +196,14 @@ def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centr
         centre = cv2.dilate(
             mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE
         )
-    g = guard_px
-    p = cv2.copyMakeBorder(m, g, g, g, g, cv2.BORDER_REPLICATE)
-    h, w = m.shape
-    surround = None
-    for di, dj in _DIRECTIONS:
-        s = p[g + di * g : g + di * g + h, g + dj * g : g + dj * g + w]
-        surround = s.copy() if surround is None else cv2.max(surround, s)
-    assert surround is not None
+    # the eight surround cells' largest mean in one dilation by a kernel holding the eight offsets
+    kernel = _RINGS.get(guard_px)
+    if kernel is None:
+        kernel = np.zeros((2 * guard_px + 1, 2 * guard_px + 1), np.uint8)
+        for di, dj in _DIRECTIONS:
+            kernel[guard_px + di * guard_px, guard_px + dj * guard_px] = 1
+        kernel = _RINGS.setdefault(guard_px, kernel)
+    surround = cv2.dilate(m, kernel, borderType=cv2.BORDER_REPLICATE)
     return cv2.subtract(centre, surround)
 
 
@@ -238,17 +239,16 @@ def point_candidates(contrast: np.ndarray, threshold: np.ndarray, params: Clutte
     n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
     if n <= 1:
         return []
-    ratio = contrast / threshold
     out: list[PointCandidate] = []
     areas = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero(areas <= params.max_area_px) + 1
     if keep.size == 0:
         return []
-    # the strongest pixel of each component: ratio's maximum per label
-    flat_lab = labels.ravel()
-    sel = mask.ravel().view(bool)
-    lab_px = flat_lab[sel]
-    r_px = ratio.ravel()[sel]
+    # the strongest pixel of each component: contrast over threshold, largest per label (on the
+    # thresholded pixels only: a few hundred, not the frame)
+    sel = np.flatnonzero(mask.ravel())
+    lab_px = labels.ravel()[sel]
+    r_px = contrast.ravel()[sel] / threshold.ravel()[sel]
     best = np.zeros(n, np.float32)
     np.maximum.at(best, lab_px, r_px)
     keep = keep[np.argsort(-best[keep], kind="stable")][: params.max_candidates]
