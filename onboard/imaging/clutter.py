@@ -180,31 +180,36 @@ class DefectMap:
         return out
 
 
-def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centre_px: int = 2) -> np.ndarray:
-    """Multi-directional local contrast (float32, image shape): ``min_d (c(x) - m(x + guard_px * d))``
-    over the eight directions ``d``, ``m`` the ``cell_px`` box mean, ``c`` the largest ``centre_px``
-    box mean covering x (a 2 x 2 target is not diluted by a 3 x 3 mean); frame edges replicated."""
-    img = np.asarray(image, dtype=np.float32)
-    m = cv2.blur(img, (cell_px, cell_px), borderType=cv2.BORDER_REPLICATE)
-    if centre_px == cell_px:
-        centre = m
-    else:
-        # mc(i, j): the mean of the square starting at (i, j); centre(i, j): the largest mean of the
-        # squares holding pixel (i, j) (anchors chosen so that no half-pixel shift creeps in)
-        mc = cv2.blur(img, (centre_px, centre_px), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
-        a = centre_px - 1
-        centre = cv2.dilate(
-            mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE
-        )
-    # the eight surround cells' largest mean in one dilation by a kernel holding the eight offsets
+def _centre(img: np.ndarray, centre_px: int) -> np.ndarray:
+    """The largest ``centre_px`` box mean covering each pixel: ``mc(i, j)`` is the mean of the square
+    starting at (i, j), dilated over the squares holding (i, j) (anchors chosen so that no half-pixel
+    shift creeps in)."""
+    if centre_px == 1:
+        return img
+    mc = cv2.blur(img, (centre_px, centre_px), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    a = centre_px - 1
+    return cv2.dilate(mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE)
+
+
+def _surround_max(img: np.ndarray, cell_px: int, guard_px: int) -> np.ndarray:
+    """The largest of the eight ``cell_px`` box means ``guard_px`` away, in one dilation by a kernel
+    holding the eight offsets."""
+    m = img if cell_px == 1 else cv2.blur(img, (cell_px, cell_px), borderType=cv2.BORDER_REPLICATE)
     kernel = _RINGS.get(guard_px)
     if kernel is None:
         kernel = np.zeros((2 * guard_px + 1, 2 * guard_px + 1), np.uint8)
         for di, dj in _DIRECTIONS:
             kernel[guard_px + di * guard_px, guard_px + dj * guard_px] = 1
         kernel = _RINGS.setdefault(guard_px, kernel)
-    surround = cv2.dilate(m, kernel, borderType=cv2.BORDER_REPLICATE)
-    return cv2.subtract(centre, surround)
+    return cv2.dilate(m, kernel, borderType=cv2.BORDER_REPLICATE)
+
+
+def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centre_px: int = 2) -> np.ndarray:
+    """Multi-directional local contrast (float32, image shape): ``min_d (c(x) - m(x + guard_px * d))``
+    over the eight directions ``d``, ``m`` the ``cell_px`` box mean, ``c`` the largest ``centre_px``
+    box mean covering x (a 2 x 2 target is not diluted by a 3 x 3 mean); frame edges replicated."""
+    img = np.asarray(image, dtype=np.float32)
+    return cv2.subtract(_centre(img, centre_px), _surround_max(img, cell_px, guard_px))
 
 
 def point_contrast(image: np.ndarray, params: ClutterParams) -> np.ndarray:
@@ -213,9 +218,11 @@ def point_contrast(image: np.ndarray, params: ClutterParams) -> np.ndarray:
     but not one 2 px away, which lies inside it; a blurred 2 x 2 target beats both.  Measured on the
     reference scenes' frames (threshold 5 sigma): C1's candidates per frame fall from ~100 (guard 4
     alone) to ~7, the target still detected on every frame."""
-    c = local_contrast(image, params.cell_px, params.guard_px)
+    img = np.asarray(image, dtype=np.float32)
+    centre = _centre(img, 2)
+    c = cv2.subtract(centre, _surround_max(img, params.cell_px, params.guard_px))
     if params.sharp_guard_px > 0:
-        c = cv2.min(c, local_contrast(image, 1, params.sharp_guard_px))
+        c = cv2.min(c, cv2.subtract(centre, _surround_max(img, 1, params.sharp_guard_px)))
     return c
 
 
