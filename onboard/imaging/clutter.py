@@ -254,7 +254,7 @@ def point_candidates(contrast: np.ndarray, threshold: np.ndarray, params: Clutte
     # the strongest pixel of each component: contrast over threshold, largest per label (on the
     # thresholded pixels only: a few hundred, not the frame)
     sel = np.flatnonzero(mask.ravel())
-    lab_px = labels.ravel()[sel]
+    lab_px: np.ndarray = np.asarray(labels.ravel()[sel], dtype=np.intp)
     r_px = contrast.ravel()[sel] / threshold.ravel()[sel]
     best = np.zeros(n, np.float32)
     np.maximum.at(best, lab_px, r_px)
