@@ -22,6 +22,8 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   their confirmed frames, per minute of scene;
 * ``id sw``: per object, changes of the track id matched to it (nearest confirmed track within 3 px)
   between its matched frames, summed over objects (``tgt``: over objects of class target);
+* ``prim``: primary targets the chain chose over the run (1: chosen once and kept; the single chain's
+  primary is its one track, so this counts its track ids);
 * ``ms p50``, ``ms p95``, ``cpu p50``: wall ms (median, 95th percentile) and median CPU ms of the
   chain's update per frame (OpenCV on one thread; the machine is shared, so the figures are noisy;
   CPU ms is the steadier of the two, at the clock's granularity).
@@ -151,6 +153,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     ms: list[float] = []
     cpu_ms: list[float] = []
     n_frames = 0
+    selections = 0  # primary targets chosen (the first one included)
+    last_primary = None
     for k, (img, labels) in enumerate(zip(run.frames, run.labels)):
         vis = []
         for oid, cls, u, v, visibility, contrast in labels:
@@ -165,6 +169,9 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         tracks, primary = chain.update(img, run.R_ned_from_cam[k])
         ms.append((time.perf_counter() - t0) * 1e3)
         cpu_ms.append((time.process_time() - c0) * 1e3)
+        if primary is not None and primary != last_primary:
+            selections += 1
+            last_primary = primary
         tpos = {tid: (u, v) for tid, u, v in tracks}
         all_pos = [(u, v) for _, _, u, v, vv, _ in labels if math.isfinite(u) and math.isfinite(v)]
         for tid, u, v in tracks:
@@ -207,6 +214,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         ms_p50=float(np.median(ms)) if ms else math.nan,
         ms_p95=float(np.percentile(ms, 95)) if ms else math.nan,
         cpu_ms_p50=float(np.median(cpu_ms)) if cpu_ms else math.nan,
+        primary_selections=selections,
     )
 
 
@@ -229,7 +237,7 @@ def main(argv: list[str]) -> None:
     )
     print(
         f"{'scene':<6s} {'chain':<8s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
-        f" {'id sw':>5s} {'tgt':>3s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s}"
+        f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s}"
     )
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache)
@@ -237,7 +245,7 @@ def main(argv: list[str]) -> None:
             s = score(run, CHAINS[c](run))
             print(
                 f"{name:<6s} {c:<8s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
-                f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d}"
+                f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
                 f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f}",
                 flush=True,
             )
