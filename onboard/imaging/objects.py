@@ -69,6 +69,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
+STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 
 
 @dataclass(frozen=True)
@@ -189,6 +190,7 @@ class ObjectTracker:
         self._prev: np.ndarray | None = None
         self._prev_median: float | None = None
         self._clutter_map: np.ndarray | None = None
+        self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
         self._clutter_frames = 0  # frames the clutter map has seen (it is normalised by their weight)
         self.primary_changes = 0
         self.frozen_frames = 0
@@ -216,7 +218,9 @@ class ObjectTracker:
         p = self.clutter
         img = image.astype(np.float32)
         if p.destripe:
-            img = remove_column_offsets(img, column_offsets(img, p.stripe_window_px))
+            if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self._frame_index % STRIPE_EVERY == 0:
+                self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
+            img = remove_column_offsets(img, self._stripes)
         noise = local_noise(img, p.noise_window_px)
         if self._defects is None or self._defects.mask.shape != img.shape:
             self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
@@ -248,6 +252,7 @@ class ObjectTracker:
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
             if self._defects is not None:
                 self._defects.reset()
+            self._stripes = None
         cands = self.detect(image)
         measured = self._associate(cands, R)
         changed = self._select(R)
