@@ -130,6 +130,7 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
     during the pool's start waits until its workers have started)."""
     import queue as queue_mod
     import signal
+    import threading
     import time
 
     ctx = mp_context(preload)
@@ -147,9 +148,14 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
 
     # Ctrl-C while the pool starts is held until every worker has started (init_worker's 0 on the queue), then
     # handled below: raised inside ctx.Pool it left workers half started, and a worker still unpickling its
-    # queue when this process had exited printed a traceback (the queue's semaphore was gone).  Threads
-    # started meanwhile keep SIGINT blocked, so it reaches this thread.
-    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    # queue when this process had exited printed a traceback (the queue's semaphore was gone).  It is held by
+    # a Python handler that only notes it, not by blocking the signal in this thread: a signal blocked here is
+    # still taken by any other thread that had it unblocked (BLAS, OpenCV, a progress bar's), and Python then
+    # raises it in the main thread all the same.  signal.signal works in the main thread only; elsewhere the
+    # caller owns Ctrl-C.
+    held: list[int] = []
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
     try:
         try:
             q = ctx.Queue()
@@ -162,7 +168,10 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
                 except queue_mod.Empty:
                     pass
         finally:
-            signal.pthread_sigmask(signal.SIG_SETMASK, held)
+            if main:  # None: a handler installed outside Python; Python's own is the nearest honest one
+                signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        if held:
+            raise KeyboardInterrupt
         pending = [pool.apply_async(job, (j,)) for j in jobs]
         left = set(range(len(jobs)))
         while left:
