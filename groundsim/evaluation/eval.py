@@ -558,7 +558,9 @@ def run_lockstep(
         if pose is not None:
             c.cam_pose_p[k], c.cam_pose_q[k] = pose.p_cam_ned_m, pose.q_ned_from_cam
             if advisor is not None and track is not None:
-                advice = advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, pose.origin.alt_m)
+                # home is the scenario's origin on the ground (the simulated vehicle's relative_alt counts from it)
+                home_alt_m = scenario.origin.alt_m if cfg.guidance.altitude_reference == "home" else 0.0
+                advice = advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, pose.origin.alt_m - home_alt_m)
                 if advice is not None and advice.recommended:
                     assert advice.v_ned_mps is not None
                     core.flight.command_observer(

@@ -37,6 +37,17 @@ def _origin_alt_m(pose: Any) -> float:
     return float(origin.alt_m) if origin is not None else 0.0
 
 
+def reference_alt_m(pose: Any, altitude_reference: str, home_alt_amsl_m: float | None) -> float | None:
+    """The height of a pose's NED origin above the guidance band's reference (``guidance.altitude_reference``):
+    above home (the origin's AMSL altitude minus home's; None while the autopilot has not said where home is),
+    or AMSL."""
+    if altitude_reference == "amsl":
+        return _origin_alt_m(pose)
+    if home_alt_amsl_m is None or not math.isfinite(home_alt_amsl_m):
+        return None
+    return _origin_alt_m(pose) - float(home_alt_amsl_m)
+
+
 class GuidanceTap:
     """Advice from the newest (track, pose), published through ``publish(bytes)`` once :meth:`attach` gave it."""
 
@@ -45,6 +56,8 @@ class GuidanceTap:
     def __init__(self, config: OnboardConfig, advisor: GuidanceAdvisor, clock: Any = time.monotonic) -> None:
         self.vehicle = config.vehicle
         self.in_loop = config.guidance.enabled
+        self.altitude_reference = config.guidance.altitude_reference
+        self.home_alt_amsl_m: float | None = None  # from the autopilot link (setpoint_step), for a band above home
         self.advisor = advisor
         self._clock = clock
         self.gate = SetpointGate(config.guidance)
@@ -78,9 +91,10 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
-        if pose is not None and self.in_loop:  # the gate's altitude band is AMSL, as the planner's
-            p_amsl = pose.body.p_ned_m - [0.0, 0.0, _origin_alt_m(pose)]
-            self._pose = (self._clock(), p_amsl, pose.body.v_ned_mps)
+        ref_m = None if pose is None else reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
+        if ref_m is not None and self.in_loop:  # the gate's altitude band has the planner's reference
+            p_ref = pose.body.p_ned_m - [0.0, 0.0, ref_m]
+            self._pose = (self._clock(), p_ref, pose.body.v_ned_mps)
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
@@ -93,7 +107,14 @@ class GuidanceTap:
 
     def step(self, track: Any, pose: Any) -> bytes | None:
         """One update from a track and its frame's pose; the payload published (None: nothing advised)."""
-        advice = self.advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, _origin_alt_m(pose))
+        ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
+        if ref_m is None:  # a band above home, and the autopilot has not said where home is yet
+            self.advisor.skipped["no_home"] = self.advisor.skipped.get("no_home", 0) + 1
+            if "no_home" not in self._logged:
+                self._logged.add("no_home")
+                log.info("guidance: waiting for the autopilot's home altitude (the band is above home)")
+            return None
+        advice = self.advisor.update(track, pose.p_cam_ned_m, pose.body.v_ned_mps, ref_m)
         for reason, n in self.advisor.skipped.items():
             if n and reason not in self._logged:  # each reason logged once; the status counts them all
                 self._logged.add(reason)
@@ -124,7 +145,11 @@ class GuidanceTap:
     def setpoint_step(self, now: float, link: Any) -> bool:
         """In the loop (``guidance.enabled``), on the main thread with the autopilot link: at most
         ``setpoint_rate_hz``, ask the gate and send the advice in force as SET_POSITION_TARGET_LOCAL_NED when it
-        allows; a change of the gate's state is logged once.  True when a setpoint was written."""
+        allows; a change of the gate's state is logged once.  True when a setpoint was written.  It also takes
+        the autopilot's home altitude from the link, for a band above home (advisory too)."""
+        home = None if link is None else getattr(link, "home_alt_amsl_m", None)
+        if home is not None:
+            self.home_alt_amsl_m = home
         if not self.in_loop or now < self._next_setpoint_s:
             return False
         self._next_setpoint_s = now + 1.0 / self.gate.config.setpoint_rate_hz

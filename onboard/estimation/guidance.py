@@ -28,20 +28,22 @@ heading).  Nothing is recommended while the posterior range sigma is already bel
 its own limits, or when the best candidate does not beat holding by ``min_gain_ratio``.
 
 Frames and units follow :mod:`onboard.core.frames`: local NED metres, velocities m/s; the planner's positions
-have their origin at sea level below the local NED origin, so altitude = -down is metres AMSL.  Pure: no I/O, no clock; the caller passes the times.
+have their origin at the altitude band's reference (home or sea level, ``altitude_reference``) below the local
+NED origin, so altitude = -down is metres above that reference.  Pure: no I/O, no clock; the caller passes the
+times.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import numpy as np
 
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import quat_from_euler, quat_from_rotmat, quat_multiply, rotmat_from_quat
-from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, config_dataclass
+from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, Text, config_dataclass
 
 if TYPE_CHECKING:  # the planner imports the estimator when built: the config section stays light to import
     from onboard.estimation.map_estimator import MapEstimator, NoiseModel
@@ -70,8 +72,10 @@ class GuidanceConfig:
     """The ``guidance`` section of the daemon's configuration (``config/onboard.yaml`` documents each field):
     whether the advice is published and sent, how it is planned, and the limits it must keep.
 
-    Units are in the names; altitudes are metres AMSL (the local NED origin's altitude minus ``d``: the callers
-    shift positions by the origin's altitude, :meth:`GuidanceAdvisor.update`).
+    Units are in the names.  Altitudes (the band) are metres above ``altitude_reference``: ``home`` (default:
+    the autopilot's home, as GLOBAL_POSITION_INT's ``relative_alt`` counts it, so a band holds at any site
+    elevation) or ``amsl``; the callers shift positions by the reference's height over the local NED origin
+    (:meth:`GuidanceAdvisor.update`).
     """
 
     advise: Bool = True
@@ -93,6 +97,7 @@ class GuidanceConfig:
     max_speed_mps: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 12.0
     max_accel_mps2: Annotated[float, Number(0.0, 50.0, lo_open=True)] = 2.0
     max_climb_rate_mps: Annotated[float, Number(0.0, 50.0)] = 2.0
+    altitude_reference: Annotated[Literal["home", "amsl"], Text()] = "home"
     min_altitude_m: Annotated[float, Number(-1000.0, 100000.0)] = 20.0
     max_altitude_m: Annotated[float, Number(-1000.0, 100000.0)] = 150.0
     los_elevation_min_deg: Annotated[float, Number(-90.0, 90.0)] = -80.0
@@ -553,8 +558,9 @@ class GuidanceAdvisor:
         """The advice for ``track`` (an :class:`onboard.core.track.Track`) seen from the camera at ``p_cam_ned_m``
         moving at ``v_cam_ned_mps`` (the vehicle's velocity; NaN = unknown), or None when not due or not possible.
 
-        ``origin_alt_m``: the local NED origin's altitude (m AMSL); the planner's altitude band is AMSL, so both
-        positions are moved down by it (``d - origin_alt_m``), which changes no relative geometry."""
+        ``origin_alt_m``: the local NED origin's altitude above the band's reference (``altitude_reference``: m
+        above home, or AMSL); both positions are moved down by it (``d - origin_alt_m``), which changes no
+        relative geometry."""
         t_us = int(track.time_boot_us)
         if not self.due(t_us):
             return None

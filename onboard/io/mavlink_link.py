@@ -522,6 +522,8 @@ class MavlinkLink:
         self.autopilot_mode: tuple[int, int, int] | None = (
             None  # (MAV_AUTOPILOT, base_mode, custom_mode) of its heartbeat
         )
+        #: the autopilot's home altitude (m AMSL): GLOBAL_POSITION_INT's alt minus its relative_alt (None until one)
+        self.home_alt_amsl_m: float | None = None
         self._last_hb_rx_s: float | None = None
         self._last_hb_tx_s = -math.inf
         self._last_ts_tx_s = -math.inf
@@ -713,6 +715,9 @@ class MavlinkLink:
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
             pos = GlobalPositionInt.from_message(msg)
             self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
+            home = pos.alt_amsl_m - pos.alt_rel_m
+            if math.isfinite(home):
+                self.home_alt_amsl_m = home
         elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
             self.gimbal_reports += 1  # the watchdog checks it against the configured mount
             if self.gimballed:

@@ -204,6 +204,9 @@ def test_tap_publishes_advice_json_once_per_interval_and_counts_what_it_skips():
     u = (p - cam) / np.linalg.norm(p - cam)
     cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
     pose = SimpleNamespace(p_cam_ned_m=cam, body=SimpleNamespace(v_ned_mps=np.array([0.0, 8.0, 0.0])))
+    # the band is above home: nothing planned until the autopilot has said where home is
+    assert tap.step(_track(4_000_000, p, (-3.0, -2.0, 0.0), cov), pose) is None and not sent
+    tap.home_alt_amsl_m = 0.0  # home at the (origin-less) pose's origin, as the link sets it from #33
     payload = tap.step(_track(5_000_000, p, (-3.0, -2.0, 0.0), cov), pose)
     assert payload is not None and sent == [payload]
     import json
@@ -217,7 +220,7 @@ def test_tap_publishes_advice_json_once_per_interval_and_counts_what_it_skips():
     # an autopilot that sends no velocity: skipped and counted
     blind = SimpleNamespace(p_cam_ned_m=cam, body=SimpleNamespace(v_ned_mps=np.full(3, np.nan)))
     assert tap.step(_track(6_100_000, p, (-3.0, -2.0, 0.0), cov), blind) is None
-    assert tap.status()["skipped"] == {"no_velocity": 1} and tap.status()["published"] == 1
+    assert tap.status()["skipped"] == {"no_home": 1, "no_velocity": 1} and tap.status()["published"] == 1
     # observable with margin: nothing published
     small = 4.0 * np.eye(3)
     assert tap.step(_track(7_200_000, p, (-3.0, -2.0, 0.0), small), pose) is None
@@ -292,7 +295,10 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     tap = make_guidance_tap(cfg, clock=lambda: now[0])
     assert tap is not None and tap.in_loop
     sent: list = []
-    link = SimpleNamespace(state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True)
+    link = SimpleNamespace(
+        state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True, home_alt_amsl_m=0.0
+    )
+    tap.setpoint_step(now[0] - 10.0, link)  # the link has told where home is (#33), before the first frame
     cam = np.array([0.0, 40.0, -60.0])
     body = SimpleNamespace(p_ned_m=cam, v_ned_mps=np.array([0.0, 8.0, 0.0]))
     pose = SimpleNamespace(p_cam_ned_m=cam, body=body, origin=None)
@@ -313,3 +319,21 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     link.send_setpoint = None  # a broken link object: counted, never raised into the main loop
     tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]))
     assert not tap.setpoint_step(now[0] + 1.0, link) and tap.status()["setpoints"]["errors"] == 1
+
+
+def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elevation():
+    """A site 488 m above sea level: a vehicle 60 m above home is inside the default 20-150 m band (it would be
+    far above it AMSL); until the autopilot has said where home is, there is no reference and no advice."""
+    from types import SimpleNamespace
+
+    from onboard.app.guidance_tap import reference_alt_m
+    from onboard.core.frames import GeodeticOrigin
+
+    assert GuidanceConfig().altitude_reference == "home"
+    pose = SimpleNamespace(origin=GeodeticOrigin(47.4, 8.5, 548.0))  # the first fix, 60 m above home
+    assert reference_alt_m(pose, "home", 488.0) == pytest.approx(60.0)
+    assert reference_alt_m(pose, "amsl", 488.0) == pytest.approx(548.0)
+    assert reference_alt_m(pose, "home", None) is None
+    c = GuidanceConfig()
+    assert c.altitude_ok(np.array([0.0, 0.0, -reference_alt_m(pose, "home", 488.0)]))
+    assert not c.altitude_ok(np.array([0.0, 0.0, -reference_alt_m(pose, "amsl", 488.0)]))

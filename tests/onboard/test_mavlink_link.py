@@ -159,6 +159,10 @@ def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
     np.testing.assert_allclose(pose.body.v_ned_mps, [10.0, 0.0, 0.0], atol=1e-6)  # cm/s on the wire
     np.testing.assert_allclose(pose.body.q_ned_from_body, q, atol=ATOL_RAD)
     assert rig.counters.total == 0
+    assert rig.link.home_alt_amsl_m == pytest.approx(ALT0 + 1.0, abs=ATOL_M)  # relative_alt 0: home is right here
+    ap.position(1_600_000, LAT0, LON0, ALT0 + 60.0, alt_rel_m=55.0)
+    assert rig.drive(lambda: abs(rig.link.home_alt_amsl_m - (ALT0 + 5.0)) < 1.0)
+    assert rig.link.home_alt_amsl_m == pytest.approx(ALT0 + 5.0, abs=ATOL_M)  # alt - relative_alt
 
 
 def test_survives_random_bytes_bad_crc_and_bad_values(rig):
