@@ -1,4 +1,4 @@
-"""Helpers of ``tests/test_integration.py`` (issue #4's acceptance test).
+"""Helpers of ``tests/test_integration.py`` (the simulator and the daemon as two processes, end to end).
 
 Two real processes on 127.0.0.1, wired as ``python -m groundsim demo`` wires them
 (:mod:`groundsim.evaluation.demo`: :func:`~groundsim.evaluation.demo.plan_demo` writes the daemon's configuration with the

@@ -1,4 +1,4 @@
-"""Fuzz target: the IRF1 decoder and the daemon's frame receive path (issue 12), with hypothesis.
+"""Fuzz target: the IRF1 decoder and the daemon's frame receive path (untrusted input), with hypothesis.
 
 Subjects: :func:`onboard.core.irframe.decode_irframe` on any bytes-like payload (random bytes and valid
 frames mutated: header fields flipped, truncated, extended, spliced; as ``bytes``, ``bytearray`` or

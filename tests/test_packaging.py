@@ -1,4 +1,4 @@
-"""Packaging: ``pip install .`` is the onboard service alone (issue 10 item 6).
+"""Packaging: ``pip install .`` is the onboard service alone (the flight computer carries no simulator).
 
 * pyproject: the runtime list carries none of the simulator's or the test tools' packages; the ``sim``
   and ``dev`` extras carry them; every third-party module imported anywhere under ``onboard/``

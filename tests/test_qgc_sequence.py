@@ -1,4 +1,4 @@
-"""Issue 11's "Done when": QGroundControl's camera sequence, played as QGC's source plays it, against
+"""QGroundControl's camera sequence, played as QGC's source plays it (what an operator's click does), against
 the real daemon and the real simulator on 127.0.0.1, with an independent decoder on the video.
 
 Wiring (ports picked by the test; ``groundsim.evaluation.demo.plan_demo`` writes the daemon's configuration from
@@ -80,7 +80,7 @@ TRACKING_STATUS_INTERVAL_US = 500_000
 DAEMON_READY_TIMEOUT_S = 45.0  # imports on a busy 2-core machine
 FRAMES_FLOWING_TIMEOUT_S = 30.0
 STATUS_COLLECT_S = 5.0
-POINT_TOL = 0.01  # normalised image units (issue 11)
+POINT_TOL = 0.01  # normalised image units: 6.4 px of P1's 640 px width, inside QGC's 20 px click radius
 TRUTH_LAG_FRAMES = 6  # a #275 describes a frame at most this many frames older than the newest truth row
 VIDEO_WINDOW_S = (-0.25, 0.35)  # decoded frames this close to a #275's arrival are compared with it
 VIDEO_DISC_PX = 3  # the target's peak is looked for within this radius of the #275 point

@@ -1,4 +1,4 @@
-"""The zenoh access-control sample (issue 12 item 7) on loopback, with generated certificates.
+"""The zenoh access-control sample we ship in deploy/ works as written: on loopback, with generated certificates.
 
 ``deploy/zenoh-acl-certs.sh`` makes a CA and certificates for camera, daemon, ground and an
 "intruder" (same CA, a name no ACL subject lists); the router runs ``deploy/zenoh-acl-router.json5``

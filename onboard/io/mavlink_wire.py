@@ -1,6 +1,6 @@
 """MAVLink on the wire, once: typed values <-> MAVLink 2 messages, the connection-string grammar, MAVLink 2.
 
-Every sender and reader of the project goes through this module: the daemon's
+Every sender and reader of the project goes through this module (one encoder, so they cannot disagree): the daemon's
 autopilot link (:mod:`onboard.io.mavlink_link`, decode side and its output), the camera component
 (:mod:`onboard.io.gcs_link`, :mod:`onboard.io.camera_protocol`), FOLLOW_TARGET (:mod:`onboard.io.follow`),
 the simulated vehicle (:mod:`groundsim.io.mavlink_vehicle`), the lockstep eval's telemetry feed, the

@@ -24,7 +24,7 @@ from groundsim.world.scenario import load_scenario, reference_scenario_paths
 from onboard.core.errors import ConfigError
 from onboard.core.frames import PinholeIntrinsics, rotmat_from_quat
 
-LABEL_ATOL_PX = 0.05  # issue 14: labels match the truth pixel within 0.05 px
+LABEL_ATOL_PX = 0.05  # a label is only useful for training if it sits on the truth pixel (within 0.05 px)
 LEVER_ATOL_M = 1e-3  # measured - true camera position = injected error, up to the lever arm's rotation (~um)
 DURATION_S = 1.0
 SEEDS = (0, 1)

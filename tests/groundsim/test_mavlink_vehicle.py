@@ -358,7 +358,7 @@ def test_set_message_interval_changes_the_rate_and_is_acked(link, use_int):
         (511, 31, -2, 2),  # bad interval
         (511, float("nan"), 1, 2),
         (176, 1, 0, 3),  # MAV_CMD_DO_SET_MODE: UNSUPPORTED
-        (400, 1, 0, 3),  # MAV_CMD_COMPONENT_ARM_DISARM: UNSUPPORTED (520 is answered since issue 11)
+        (400, 1, 0, 3),  # MAV_CMD_COMPONENT_ARM_DISARM: UNSUPPORTED (520, AUTOPILOT_VERSION, is answered)
     ],
 )
 def test_unsupported_requests_are_refused_with_an_ack(link, cmd, p1, p2, result):

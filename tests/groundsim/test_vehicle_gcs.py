@@ -1,4 +1,4 @@
-"""The simulated vehicle as a ground station sees it (issue 11): SYS_STATUS, EXTENDED_SYS_STATE,
+"""The simulated vehicle as a ground station sees it: SYS_STATUS, EXTENDED_SYS_STATE,
 HOME_POSITION, AUTOPILOT_VERSION, GPS_RAW_INT, ATTITUDE, BATTERY_STATUS, parameters, an empty
 mission; and MAVSDK (an independent client) reading health, home, GPS and battery with no request
 DENIED.  Everything on 127.0.0.1, bounded waits."""

@@ -168,7 +168,7 @@ def test_map_recovers_the_reference_trajectories_honestly(name, family, seed):
 
 
 def test_the_result_names_the_selection_and_the_solution_it_came_from():
-    """Typed result fields (issue 10 item 5): the selection's figures agree with each other, the solution's
+    """Typed result fields a consumer can rely on: the selection's figures agree with each other, the solution's
     problem and parameters reproduce its positions, and a fixed prior reports no selection."""
     _, nc, truth, obs = _synth("P3", "RTK", 1)
     est = MapEstimator(noise=estimator_noise_model(nc))

@@ -1,4 +1,4 @@
-"""Daemon life cycle (issue 12 item 8): SIGHUP is a clean exit.  Loopback only, bounded, cleanup by PID."""
+"""Daemon life cycle: SIGHUP (a closed terminal) is a clean exit.  Loopback only, bounded, cleanup by PID."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The observability verdict and the honesty of every published result (issue 9 item 3).
+"""The observability verdict and the honesty of every published result (a consumer trusts both).
 
 Rates over seeds, not chosen seeds: the bench (``python -m bench.estimator --verdict``, 50 seeds per
 cell) prints the full table; these run a few seeds per cell so that a regression shows in CI.

@@ -1,4 +1,4 @@
-"""A dead estimator worker is replaced with its window rebuilt (issue 12 item 6).
+"""A dead estimator worker is replaced with its window rebuilt (a crash costs a gap, not the track).
 
 The estimator interface (:class:`onboard.app.estimator_worker.ProcessEstimator`) is driven directly with
 synthetic observations of a reference scenario (:func:`groundsim.evaluation.synth.synthesize_scenario`); the

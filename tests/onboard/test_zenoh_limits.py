@@ -1,4 +1,4 @@
-"""zenoh's own message-size limit and endpoint checks (issue 12).  Loopback sessions only."""
+"""zenoh's own message-size limit and endpoint checks (a peer may send anything).  Loopback sessions only."""
 
 from __future__ import annotations
 
