@@ -761,49 +761,50 @@ def cmd_campaign(args) -> int:
 
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
 
-    quiet_run_logs("groundsim.evaluation.eval")
-    spec = load_spec(args.spec)
-    scheduler = getattr(args, "scheduler", None)
-    if scheduler is not None and args.workers is not None:
-        raise ConfigError(
-            f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
+    with quiet_run_logs("groundsim.evaluation.eval"):
+        spec = load_spec(args.spec)
+        scheduler = getattr(args, "scheduler", None)
+        if scheduler is not None and args.workers is not None:
+            raise ConfigError(
+                f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
+            )
+        workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
+        if workers < 1:
+            raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
+        cfg_path = spec.onboard_config
+        if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
+            cfg_path = DEFAULT_ONBOARD_CONFIG
+        base = load_base_config(cfg_path)
+        digest = _digest(Path(cfg_path).read_bytes()) if cfg_path is not None else "defaults"
+        out = make_out_dir(Path(args.out) if args.out else Path("out/campaigns") / spec.name)
+        res = run_campaign(
+            spec,
+            out,
+            workers=workers,
+            progress=not args.no_progress,
+            fresh=args.fresh,
+            retry_failed=args.retry_failed,
+            base_config=base,
+            onboard_digest=digest,
+            scheduler=scheduler,
         )
-    workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
-    if workers < 1:
-        raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
-    cfg_path = spec.onboard_config
-    if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
-        cfg_path = DEFAULT_ONBOARD_CONFIG
-    base = load_base_config(cfg_path)
-    digest = _digest(Path(cfg_path).read_bytes()) if cfg_path is not None else "defaults"
-    out = make_out_dir(Path(args.out) if args.out else Path("out/campaigns") / spec.name)
-    res = run_campaign(
-        spec,
-        out,
-        workers=workers,
-        progress=not args.no_progress,
-        fresh=args.fresh,
-        retry_failed=args.retry_failed,
-        base_config=base,
-        onboard_digest=digest,
-        scheduler=scheduler,
-    )
-    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
-    rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan
-    print(
-        f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
-        f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
-        f"{f' of {scheduler}' if scheduler else ''}"
-        f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})"
-    )
-    print(
-        f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
-        f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}"
-    )
-    sys.stdout.flush()
-    if res.interrupted:
+        load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else math.nan
+        rate = 60.0 * res.ran / res.wall_s if res.ran and res.wall_s > 0 else math.nan
         print(
-            f"interrupted: {res.reused + res.ran} of {res.planned} runs done; the same command resumes", file=sys.stderr
+            f"campaign {spec.name}: {res.planned} runs planned, {res.reused} reused from {out / LOG_NAME}, "
+            f"{res.ran} run now ({res.failed} failed) in {res.wall_s:.1f} s on {res.workers} worker(s)"
+            f"{f' of {scheduler}' if scheduler else ''}"
+            f"{f' = {rate:.1f} runs/min' if math.isfinite(rate) else ''} (load {load1:.1f})"
         )
-        return 130
-    return 0
+        print(
+            f"table: {res.files.get(TABLE_NAME)}; report: {res.files.get(REPORT_NAME)}"
+            f"{'; figure: ' + str(res.files[FIGURE_NAME]) if FIGURE_NAME in res.files else ''}"
+        )
+        sys.stdout.flush()
+        if res.interrupted:
+            print(
+                f"interrupted: {res.reused + res.ran} of {res.planned} runs done; the same command resumes",
+                file=sys.stderr,
+            )
+            return 130
+        return 0

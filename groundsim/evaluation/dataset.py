@@ -675,41 +675,41 @@ def cmd_dataset(args) -> int:
     """The ``dataset`` command: export, print one line per sequence and the frames/s."""
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
-    quiet_run_logs("groundsim.world.truth")
-    names = [n for group in (args.scenario or [["P1"]]) for n in group]
-    scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
-    if isinstance(args.seeds, bool) or args.seeds < 1:
-        raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
-    workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
-    options = DatasetOptions(
-        nav_noise=args.nav_noise,
-        duration_s=args.duration,
-        bit_depth=args.bit_depth,
-        formats=tuple(dict.fromkeys(args.format)),
-    )
-    try:
-        summaries, wall_s = export_dataset(
-            scenarios,
-            range(args.seed0, args.seed0 + args.seeds),
-            args.out,
-            options,
-            workers=workers,
-            progress=not args.no_progress,
+    with quiet_run_logs("groundsim.world.truth"):
+        names = [n for group in (args.scenario or [["P1"]]) for n in group]
+        scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
+        if isinstance(args.seeds, bool) or args.seeds < 1:
+            raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
+        workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
+        options = DatasetOptions(
+            nav_noise=args.nav_noise,
+            duration_s=args.duration,
+            bit_depth=args.bit_depth,
+            formats=tuple(dict.fromkeys(args.format)),
         )
-    except DatasetInterrupted as exc:
-        done = ", ".join(s.name for s in exc.summaries)
-        kept = f" in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
-        return print_interrupted(f"{len(exc.summaries)} of {exc.planned} sequences written{kept}")
-    frames = sum(s.frames for s in summaries)
-    for s in summaries:
+        try:
+            summaries, wall_s = export_dataset(
+                scenarios,
+                range(args.seed0, args.seed0 + args.seeds),
+                args.out,
+                options,
+                workers=workers,
+                progress=not args.no_progress,
+            )
+        except DatasetInterrupted as exc:
+            done = ", ".join(s.name for s in exc.summaries)
+            kept = f" in {args.out}: {done} (no manifest; the unfinished sequences are incomplete)" if done else ""
+            return print_interrupted(f"{len(exc.summaries)} of {exc.planned} sequences written{kept}")
+        frames = sum(s.frames for s in summaries)
+        for s in summaries:
+            print(
+                f"{s.name}: {s.frames} frames ({s.labelled} with the target in the image), {s.wall_s:.1f} s, "
+                f"{s.frames / s.wall_s:.1f} frames/s in its worker"
+            )
+        w = min(workers, len(summaries))
         print(
-            f"{s.name}: {s.frames} frames ({s.labelled} with the target in the image), {s.wall_s:.1f} s, "
-            f"{s.frames / s.wall_s:.1f} frames/s in its worker"
+            f"{frames} frames in {wall_s:.1f} s with {w} worker(s): {frames / wall_s:.1f} frames/s, "
+            f"{frames / wall_s / w:.1f} frames/s per worker; dataset: {Path(args.out) / 'manifest.json'}"
         )
-    w = min(workers, len(summaries))
-    print(
-        f"{frames} frames in {wall_s:.1f} s with {w} worker(s): {frames / wall_s:.1f} frames/s, "
-        f"{frames / wall_s / w:.1f} frames/s per worker; dataset: {Path(args.out) / 'manifest.json'}"
-    )
-    sys.stdout.flush()
-    return 0
+        sys.stdout.flush()
+        return 0

@@ -899,75 +899,76 @@ def cmd_eval(args) -> int:
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     limit_blas_threads(1)
-    quiet_run_logs()  # per-track chatter would drown the progress bar
-    names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
-    scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
-    if isinstance(args.seeds, bool) or args.seeds < 1:
-        raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
-    workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
-    if workers < 1:
-        raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
-    nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
-    options = EvalOptions(
-        duration_s=args.duration,
-        pixel_sigma_px=args.pixel_sigma,
-        batch=not args.no_batch,
-        nav_noise=nav_noises[0],
-        estimator=getattr(args, "estimator", None),
-        guidance=bool(getattr(args, "guidance", False)),
-    )
-    for n in nav_noises[1:]:
-        dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
-    base = load_base_config(args.onboard_config)
-    source = args.onboard_config or (
-        str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
-    )
-    out = make_out_dir(args.out)
-    log.info(
-        "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
-        len(scenarios),
-        args.seeds,
-        workers,
-        source,
-    )
-    try:
-        result = run_eval(
-            scenarios,
-            range(args.seeds),
-            options,
-            base,
-            workers=workers,
-            progress=not args.no_progress,
-            config_source=source,
-            nav_noises=nav_noises,
+    with quiet_run_logs():  # per-track chatter would drown the progress bar
+        names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
+        scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
+        if isinstance(args.seeds, bool) or args.seeds < 1:
+            raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
+        workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
+        if workers < 1:
+            raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
+        nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
+        options = EvalOptions(
+            duration_s=args.duration,
+            pixel_sigma_px=args.pixel_sigma,
+            batch=not args.no_batch,
+            nav_noise=nav_noises[0],
+            estimator=getattr(args, "estimator", None),
+            guidance=bool(getattr(args, "guidance", False)),
         )
-    except EvalInterrupted as exc:
-        return print_interrupted(keep_interrupted(exc, out))
-    files = write_eval_report(out, result)
-    from groundsim.evaluation.mot import write_mot
+        for n in nav_noises[1:]:
+            dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
+        base = load_base_config(args.onboard_config)
+        source = args.onboard_config or (
+            str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
+        )
+        out = make_out_dir(args.out)
+        log.info(
+            "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
+            len(scenarios),
+            args.seeds,
+            workers,
+            source,
+        )
+        try:
+            result = run_eval(
+                scenarios,
+                range(args.seeds),
+                options,
+                base,
+                workers=workers,
+                progress=not args.no_progress,
+                config_source=source,
+                nav_noises=nav_noises,
+            )
+        except EvalInterrupted as exc:
+            return print_interrupted(keep_interrupted(exc, out))
+        files = write_eval_report(out, result)
+        from groundsim.evaluation.mot import write_mot
 
-    cameras = {
-        sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz) for sc in scenarios
-    }
-    seqs = write_mot(out, result.runs, cameras)
-    log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
-    add_mot_scores(out, seqs)
-    descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
-    print(format_table2(result.summary, descriptions))
-    print()
-    print(format_closed_loop(result.summary))
-    if options.guidance:
-        from groundsim.evaluation.scoring import format_guidance_summary
-
-        table = format_guidance_summary(result.runs)
-        with open(files["report.md"], "a", encoding="utf-8") as f:
-            f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
+        cameras = {
+            sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz)
+            for sc in scenarios
+        }
+        seqs = write_mot(out, result.runs, cameras)
+        log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
+        add_mot_scores(out, seqs)
+        descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
+        print(format_table2(result.summary, descriptions))
         print()
-        print(table)
-    failed = sum(1 for s in result.scores if "error" in s)
-    print(
-        f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
-        f"report: {files['report.md']}"
-    )
-    sys.stdout.flush()
-    return 0
+        print(format_closed_loop(result.summary))
+        if options.guidance:
+            from groundsim.evaluation.scoring import format_guidance_summary
+
+            table = format_guidance_summary(result.runs)
+            with open(files["report.md"], "a", encoding="utf-8") as f:
+                f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
+            print()
+            print(table)
+        failed = sum(1 for s in result.scores if "error" in s)
+        print(
+            f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
+            f"report: {files['report.md']}"
+        )
+        sys.stdout.flush()
+        return 0

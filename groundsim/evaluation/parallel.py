@@ -10,7 +10,8 @@ reports the frames it has done with :func:`report_progress`, in a worker or in t
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 
 __all__ = [
     "DEFAULT_PRELOAD",
@@ -206,14 +207,27 @@ RUN_LOGGERS = (
 )
 
 
-def quiet_run_logs(*extra: str) -> None:
-    """At the default log level (INFO or quieter) keep only warnings from :data:`RUN_LOGGERS` and ``extra``;
-    at ``--log-level DEBUG`` leave everything on."""
+@contextmanager
+def quiet_run_logs(*extra: str) -> Iterator[None]:
+    """While the block runs, at the default log level (INFO or quieter), keep only warnings from
+    :data:`RUN_LOGGERS` and ``extra``; at ``--log-level DEBUG`` leave everything on.
+
+    On the way out (an exception or Ctrl-C included) each logger gets back the level it had: the evaluation
+    can run inside a longer-lived process (a test session, a notebook, the demo), whose later ``onboard``
+    INFO records must not vanish because an eval once ran there."""
     import logging
 
+    saved: dict[str, int] = {}
     if logging.getLogger().getEffectiveLevel() >= logging.INFO:
         for name in RUN_LOGGERS + extra:
-            logging.getLogger(name).setLevel(logging.WARNING)
+            logger = logging.getLogger(name)
+            saved.setdefault(name, logger.level)
+            logger.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        for name, level in saved.items():
+            logging.getLogger(name).setLevel(level)
 
 
 def bar_pacing() -> dict:

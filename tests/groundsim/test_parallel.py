@@ -1,0 +1,80 @@
+"""The evaluation's worker set-up (:mod:`groundsim.evaluation.parallel`): quieting the run loggers is
+undone afterwards, so an evaluation run inside a longer-lived process (a test session, a notebook, the
+demo) does not silence that process's ``onboard`` INFO records for good."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from groundsim.app.cli import build_parser
+from groundsim.evaluation.campaign import cmd_campaign
+from groundsim.evaluation.dataset import cmd_dataset
+from groundsim.evaluation.eval import cmd_eval
+from groundsim.evaluation.parallel import RUN_LOGGERS, quiet_run_logs
+from onboard.core.errors import IrtrackError
+
+EXTRA = "groundsim.world.truth"
+NAMES = ("", *RUN_LOGGERS, EXTRA, "groundsim.evaluation.eval")  # "" is the root logger
+
+
+@pytest.fixture
+def levels():
+    """Every logger these tests touch at the level it had before them, afterwards; the root at INFO (the
+    programs' default) and ``onboard`` at DEBUG meanwhile, so that a level left at WARNING shows."""
+    saved = {n: logging.getLogger(n).level for n in NAMES}
+    logging.getLogger().setLevel(logging.INFO)
+    logging.getLogger("onboard").setLevel(logging.DEBUG)
+    yield
+    for n, level in saved.items():
+        logging.getLogger(n).setLevel(level)
+
+
+def _snapshot() -> dict[str, int]:
+    return {n: logging.getLogger(n).level for n in NAMES}
+
+
+def test_run_loggers_keep_warnings_only_inside_the_block_and_get_their_levels_back(levels):
+    before = _snapshot()
+    with quiet_run_logs(EXTRA, EXTRA):  # a name given twice still gets its own level back
+        for n in (*RUN_LOGGERS, EXTRA):
+            assert logging.getLogger(n).level == logging.WARNING, n
+        assert not logging.getLogger("onboard.pipeline").isEnabledFor(logging.INFO)
+    assert _snapshot() == before
+    assert logging.getLogger("onboard").level == logging.DEBUG
+
+
+def test_levels_come_back_when_the_block_raises(levels):
+    before = _snapshot()
+    with pytest.raises(KeyboardInterrupt), quiet_run_logs(EXTRA):
+        raise KeyboardInterrupt
+    assert _snapshot() == before
+
+
+def test_at_debug_nothing_is_quieted(levels):
+    logging.getLogger().setLevel(logging.DEBUG)
+    before = _snapshot()
+    with quiet_run_logs(EXTRA):
+        assert _snapshot() == before
+    assert _snapshot() == before
+
+
+@pytest.mark.parametrize(
+    "command, argv",
+    [
+        (cmd_eval, ["eval", "--seeds", "0"]),
+        (cmd_dataset, ["dataset", "--seeds", "0"]),
+        (cmd_campaign, ["campaign", "no-such-campaign.yaml"]),
+    ],
+    ids=["eval", "dataset", "campaign"],
+)
+def test_a_command_run_in_process_leaves_the_logger_levels_as_it_found_them(levels, tmp_path, command, argv):
+    """The command handlers quiet the run loggers for their whole run; one that stops on a bad argument
+    (after the loggers were quieted, before anything ran) shows that they are restored on every way out."""
+    args = build_parser().parse_args([*argv, "--out", str(tmp_path / "out")])
+    before = _snapshot()
+    with pytest.raises(IrtrackError):
+        command(args)
+    assert _snapshot() == before
+    assert logging.getLogger("onboard").isEnabledFor(logging.INFO)
