@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 
 from onboard.app.replay import EXIT_CONFIG, compare_tracks, compare_within_sigma, main
-from tests.onboard.test_record_daemon import record_pair
 
 REPO = Path(__file__).resolve().parents[1]
 REPLAY_TIMEOUT_S = 240.0
@@ -87,9 +86,10 @@ def test_the_flight_report_option_says_where_the_report_went(tmp_path, capsys):
     ]
 
 
-@pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    return record_pair(tmp_path_factory.mktemp("replay"))
+@pytest.fixture
+def recorded(recorded_p1_flight):
+    """The suite's one recorded P1 flight (tests/conftest.py), read only."""
+    return recorded_p1_flight
 
 
 def _rewritten(src: Path, dst: Path, worker: str, shift) -> Path:

@@ -2,7 +2,8 @@
 (``python -m onboard --record``, ``groundsim run --record``), read with the `mcap` package's reader: channels,
 schemas, and message counts match what was sent and received; a SIGKILLed recording daemon leaves a readable file.
 
-The recorded run is shared with tests/test_replay.py (module-scoped fixture ``recorded_run``)."""
+The recorded run is the suite's one recorded P1 flight (session fixture ``recorded_p1_flight``, tests/conftest.py),
+which the replay tests read too."""
 
 from __future__ import annotations
 
@@ -137,11 +138,6 @@ def record_pair(
     return RecordedRun(out, d_mcap, s_mcap, tracks, status, daemon_rc, sim_rc, plan.onboard_config_path, encodings)
 
 
-@pytest.fixture(scope="module")
-def recorded_run(tmp_path_factory) -> RecordedRun:
-    return record_pair(tmp_path_factory.mktemp("rec"))
-
-
 def _messages(path: Path) -> list:
     from mcap.reader import make_reader
 
@@ -149,8 +145,8 @@ def _messages(path: Path) -> list:
         return list(make_reader(f).iter_messages())
 
 
-def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(recorded_run):
-    r = recorded_run
+def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(recorded_p1_flight):
+    r = recorded_p1_flight
     assert r.daemon_rc == 0 and r.sim_rc == 0
     # typed payloads, as a generic zenoh recorder sees them
     assert r.encodings == {"application/json;irtrack.track/2", "application/json;irtrack.status/1"}
