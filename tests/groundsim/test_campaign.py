@@ -234,7 +234,9 @@ def test_a_torn_last_line_is_skipped_and_rows_round_trip(tmp_path):
 
 @pytest.mark.slow
 def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp_path):
-    spec = _spec(tmp_path)
+    # every dimension varied (scenario, noise, algorithm, geometry: 16 runs); one seed, as a second seed varies
+    # nothing the pool could order or merge differently
+    spec = _spec(tmp_path, seeds=1)
     r1 = run_campaign(spec, tmp_path / "serial", workers=1, progress=False)
     r2 = run_campaign(spec, tmp_path / "pool", workers=2, progress=False)
     assert r1.ran == r2.ran == spec.run_count and r1.failed == 0
@@ -259,18 +261,18 @@ def test_an_interrupted_campaign_resumes_where_it_stopped(tmp_path):
     rest, and the table equals an uninterrupted campaign's."""
     spec_path = tmp_path / "spec.yaml"
     spec_path.write_text(
-        "name: t\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [map, paper]\nseeds: 3\n"
+        "name: t\nscenarios: [P1]\nnoise: [RTK]\nalgorithms: [map, paper]\nseeds: 2\n"
         "duration_s: 4.0\ngeometry: {manoeuvre_scale: [0.5, 1.0, 2.0]}\n"
     )
     out = tmp_path / "out"
     cmd = campaign_cmd(spec_path, out, "--workers", "1")
-    done_before = interrupt_campaign(cmd, out, runs_logged=4, hang_s=120, stop_s=60)  # two cases of 9 done
-    assert 4 <= done_before < 18
+    done_before = interrupt_campaign(cmd, out, runs_logged=4, hang_s=120, stop_s=60)  # two cases of 6 done
+    assert 4 <= done_before < 12
 
-    resume_campaign(cmd, done_before, runs=18, timeout_s=300)
+    resume_campaign(cmd, done_before, runs=12, timeout_s=300)
     resumed = pd.read_csv(out / TABLE_NAME)
     ref = run_as_cli(spec_path, tmp_path / "ref", workers=1)
-    assert ref.ran == 18
+    assert ref.ran == 12
     pd.testing.assert_frame_equal(comparable(resumed), comparable(pd.read_csv(tmp_path / "ref" / TABLE_NAME)))
 
 
