@@ -296,7 +296,7 @@ def test_signed_link_refuses_unsigned_v1_wrong_key_and_replayed_packets(signed_r
 def test_signing_key_sources_and_errors(tmp_path):
     from onboard.app.config import build_config
     from onboard.core.errors import ConfigError
-    from onboard.io.mavlink_link import load_signing_key
+    from onboard.io.mavlink_signing import load_signing_key
 
     hexkey = KEY.hex()
     f = tmp_path / "key"
