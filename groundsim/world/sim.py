@@ -102,6 +102,10 @@ BOOT_START_US = 1_000_000  # the boot clock reads 1 s at t_s = 0
 MIN_POLL_RATE_HZ = 100.0  # MAVLink is polled at least this often in simulated time
 GROUND_D_M = 0.0  # flat ground at the scenario origin's height (the scenarios' origin is on the ground)
 DURATION_EPS_S = 1e-9  # a duration this close to the scenario's is the scenario's
+#: a scripted path continued past duration_s must stay below this speed: an F450-class quadrotor's top speed
+#: is about 20-25 m/s, and a cubic path's speed grows without bound (P3's observer, continued to 30 s, passes
+#: 46 m/s at 19.7 s, where the JSBSim flight diverged after minutes of work instead of a clear refusal)
+MAX_EXTENDED_SPEED_MPS = 25.0
 _FRAME_COUNT_EPS = 1e-9  # k < duration * rate, robust to float products (as groundsim.world.scenario)
 _ERROR_LOG_EVERY_S = 10.0
 
@@ -147,6 +151,23 @@ def _check_extensible(role: str, spec: VehicleSpec, scenario: Scenario, duration
         )
 
 
+def _check_speed(role: str, motion, scenario: Scenario, t_s: np.ndarray, duration_s: float) -> None:
+    """Refuses a continued path faster than :data:`MAX_EXTENDED_SPEED_MPS`, naming when it gets there and the
+    longest ``--duration`` that stays below it."""
+    if not t_s.size:
+        return
+    with np.errstate(all="ignore"):
+        speed_mps = np.linalg.norm(motion.state(t_s).v_ned_mps, axis=-1)
+    fast = np.flatnonzero(~(speed_mps <= MAX_EXTENDED_SPEED_MPS))
+    if fast.size:
+        k = int(fast[0])
+        raise ConfigError(
+            f"--duration: {scenario.name}'s {role} path ({_motion_name(motion)}), continued to {duration_s:g} s,"
+            f" reaches {speed_mps[k]:.3g} m/s at t = {t_s[k]:.3f} s (a multirotor flies at most"
+            f" {MAX_EXTENDED_SPEED_MPS:g} m/s); expected --duration at most {max(t_s[k], scenario.duration_s):.3g} s"
+        )
+
+
 def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     """``scenario`` lasting ``duration_s`` (itself when not longer than its ``duration_s``).
 
@@ -154,7 +175,8 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     :data:`EXTENSIBLE_MOTIONS`); the target's disturbance, if any, is realised again from the same stream
     over the longer span (the Singer process is drawn sequentially, so its first ``duration_s`` is the
     scenario's own).  Raises ConfigError naming a model that cannot be extended, or paths that stop being
-    finite or come within ``MIN_SEPARATION_M`` of each other in the added time.
+    finite, fly faster than ``MAX_EXTENDED_SPEED_MPS`` or come within ``MIN_SEPARATION_M`` of each other in the
+    added time.
     """
     d = check_duration_s(duration_s, scenario)
     if d <= scenario.duration_s + DURATION_EPS_S:
@@ -181,6 +203,10 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
         r_m = np.linalg.norm(p_tgt - p_obs, axis=-1)
     if not (np.all(np.isfinite(p_obs)) and np.all(np.isfinite(p_tgt))):
         raise ConfigError(f"--duration: {scenario.name}'s scripted paths overflow before {d:g} s")
+    for role, motion in (("observer", scenario.observer.base_motion), ("target", target.base_motion)):
+        _check_speed(role, motion, scenario, t_s, d)
+    for i, o in enumerate(others):
+        _check_speed(f"other_targets[{i}]", o.vehicle.base_motion, scenario, t_s, d)
     k = int(np.argmin(r_m)) if r_m.size else 0
     if r_m.size and not r_m[k] >= MIN_SEPARATION_M:
         raise ConfigError(

@@ -887,3 +887,19 @@ def test_truth_csv_round_trips_any_values_exactly(tmp_path_factory, rows):
     back = read_truth_csv(path)
     for name in TRUTH_COLUMNS:
         np.testing.assert_array_equal(back[name], [getattr(r, name) for r in written])
+
+
+def test_an_extended_path_faster_than_a_multirotor_is_refused_with_the_longest_duration_that_flies():
+    """P3's observer flies a cubic: its speed grows as t^2, 46 m/s by 19.7 s where JSBSim's flight used to
+    diverge mid-run.  Continued to 30 s it is refused up front, naming when it passes the limit."""
+    from groundsim.world.sim import MAX_EXTENDED_SPEED_MPS
+
+    sc = load_scenario(scenarios_dir() / "P3.yaml")
+    with pytest.raises(
+        ConfigError, match=r"P3's observer path \(Cubic\), continued to 30 s, reaches 25\.\d m/s at t = 1[45]\.\d+ s"
+    ) as e:
+        SimCore(sc, 0, 30.0, render=False)
+    longest_s = float(str(e.value).rsplit("at most ", 1)[1].split(" s")[0])
+    v_mps = np.linalg.norm(sc.observer.base_motion.state(np.array([longest_s - 0.1])).v_ned_mps)
+    assert v_mps <= MAX_EXTENDED_SPEED_MPS  # the duration it names does fly
+    assert SimCore(sc, 0, 12.0, render=False).scenario.duration_s == 12.0
