@@ -9,15 +9,12 @@ object frame by frame.  One call::
 
 Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot clock):
 
-1. Admission (stateful, needs no pixels): frame size equals the configured camera; capture time
-   strictly increasing -- a frame at or before the last accepted time is a duplicate (same
-   ``seq``) or out of order and is refused; a capture time more than
-   ``input.time_reset_threshold_s`` after the last accepted one, or before it with the sequence still
-   moving forward, is an outlier (refused, ``frame_time_outlier``: one bad stamp costs one frame)
-   until ``TIME_CONFIRM_FRAMES`` such frames in a row agree with each other: then it is a clock step
-   or an autopilot reboot (accepted, ``frame_time_reset``; the estimator restarts); time moving forward with the sequence going back is a sender
-   restart (accepted).  ``input.sequence_restart_count`` refusals in a row are taken as a restart
-   too, so a stream never locks out for good.
+1. Admission (stateful, needs no pixels): frame size equals the configured camera; then
+   :class:`~onboard.pipeline.admission.FrameAdmission` on (seq, capture time): each refused frame is
+   counted under what is wrong with it (``frame_duplicate``, ``frame_out_of_order``,
+   ``frame_time_ahead``, ``frame_time_behind``) and costs only itself; a clock step, an autopilot
+   reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
+   (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
 2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`).
 3. Pose at ``t`` (after imaging, so that late telemetry has more time to arrive): the optional
    ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
@@ -43,8 +40,8 @@ Refused frames raise :class:`FrameRejected` (``reason``) after being counted as 
 in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
-``frame_out_of_order``, ``frame_image``.  Notable accepted events: ``frame_time_reset``,
-``frame_sequence_reset``, ``frame_stream_restart``.  Estimator problems never refuse a frame: they
+``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
+events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``.  Estimator problems never refuse a frame: they
 are counted as ``estimator_input`` / ``estimator_error`` and the frame gets no 3-D.
 """
 
@@ -67,15 +64,13 @@ from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
+from onboard.pipeline.admission import FrameAdmission
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 
 log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
-SEQ_MOD = 2**32
-#: consecutive, mutually consistent frames far from the running clock that confirm a clock step
-TIME_CONFIRM_FRAMES = 3
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
 
 
@@ -194,14 +189,14 @@ class FramePipeline:
         self.frames_rejected = 0
         self.estimator_resets = 0
         self.last_track: Track | None = None
-        self._last_seq: int | None = None
-        self._last_t_us: int | None = None
-        self._refused_in_row = 0
-        self._far_run: list[int] = []  # capture times of a run of far-off frames that may confirm a clock step
+        self._admission = FrameAdmission(
+            int(config.input.time_reset_threshold_s * US_PER_S), config.input.sequence_restart_count
+        )
         self._est_track_id: int | None = None
         self._est_epoch: int | None = None
         self._est_has_data = False
         ec = config.estimator
+
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
         self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
@@ -212,9 +207,7 @@ class FramePipeline:
 
     def reset(self) -> None:
         """Forget the stream (sequence/time), the track and the estimate; counters continue."""
-        self._last_seq = None
-        self._last_t_us = None
-        self._refused_in_row = 0
+        self._admission.reset()
         if hasattr(self.tracker, "reset"):
             self.tracker.reset()
         self._reset_estimator("pipeline reset")
@@ -328,7 +321,6 @@ class FramePipeline:
         track = self._track(frame, upd, state, pose, est)
         self.last_track = track
         self.frames_processed += 1
-        self._refused_in_row = 0
         self.pose_wait_ms.add(waited_ns / 1e6)
         self.processing_ms.add((self._clock_ns() - t0 - waited_ns) / 1e6)
         return track
@@ -352,61 +344,22 @@ class FramePipeline:
         raise FrameRejected(reason, message)
 
     def _admit(self, frame: IrFrame) -> None:
-        seq, t = frame.seq, frame.time_boot_us
-        last_seq, last_t = self._last_seq, self._last_t_us
-        if last_t is None or last_seq is None:  # the first frame (both are set together)
-            self._accept(seq, t)
-            return
-        seq_forward = 0 < (seq - last_seq) % SEQ_MOD < SEQ_MOD // 2
-        threshold_us = int(self.config.input.time_reset_threshold_s * US_PER_S)
-        if t > last_t + threshold_us or (t < last_t - threshold_us and seq_forward):
-            # far from the running clock: one such frame is an outlier; a run of TIME_CONFIRM_FRAMES
-            # frames agreeing with each other is a clock step (back: an autopilot reboot)
-            run = self._far_run
-            if run and run[-1] < t <= run[-1] + threshold_us:
-                run.append(t)
-            else:
-                run[:] = [t]
-            if len(run) < TIME_CONFIRM_FRAMES:
-                self._refuse(
-                    "time_outlier",
-                    f"frame seq {seq} at time_boot_us {t} is {(t - last_t) / 1e6:+.3f} s "
-                    f"from the last accepted one ({last_t})",
-                )
-            run.clear()
-            self.counter.count(
-                "frame_time_reset",
-                f"capture time stepped {(t - last_t) / 1e6:+.3f} s with seq "
-                f"{last_seq} -> {seq}, confirmed by {TIME_CONFIRM_FRAMES} frames; estimator restarted",
-            )
-            self._reset_estimator("time reset")
-            self._accept(seq, t)
-            return
-        if t > last_t:
-            if not seq_forward:
-                self.counter.count(
-                    "frame_sequence_reset", f"seq {last_seq} -> {seq} while time moved forward; sender restarted"
-                )
-            self._accept(seq, t)
-            return
-        self._refused_in_row += 1
-        if self._refused_in_row >= self.config.input.sequence_restart_count:
-            self.counter.count(
-                "frame_stream_restart",
-                f"{self._refused_in_row} frames in a row before the last "
-                f"accepted one (seq {last_seq}, t {last_t} us): stream restarted",
-            )
-            self._reset_estimator("stream restart")
-            self._accept(seq, t)
-            return
-        if seq == last_seq:
-            self._refuse("duplicate", f"frame seq {seq} (time_boot_us {t}) again")
-        self._refuse("out_of_order", f"frame seq {seq} at time_boot_us {t} is not after seq {last_seq} at {last_t}")
-
-    def _accept(self, seq: int, t: int) -> None:
-        self._last_seq, self._last_t_us = seq, t
-        self._refused_in_row = 0
-        self._far_run.clear()
+        """Admit the frame or refuse it, counted under its reason (:mod:`onboard.pipeline.admission`)."""
+        reference_us = None
+        if self._admission.last_t_us is None:
+            newest = getattr(self.pose_source, "newest_time_boot_us", None)
+            try:
+                reference_us = newest() if callable(newest) else None
+            except Exception:  # noqa: BLE001 - without a telemetry reference the first frame is taken as it is
+                reference_us = None
+        verdict = self._admission.admit(frame.seq, frame.time_boot_us, reference_us)
+        if not verdict.accepted:
+            self._refuse(verdict.reason, verdict.message)
+        if verdict.reason:
+            detail = verdict.message + ("; estimator restarted" if verdict.restart else "")
+            self.counter.count(f"frame_{verdict.reason}", detail)
+        if verdict.restart:
+            self._reset_estimator(verdict.reason.replace("_", " "))
 
     # ------------------------------------------------------------------ estimation
 

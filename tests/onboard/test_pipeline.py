@@ -34,6 +34,7 @@ from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from tests.fakes import positioned_track
 
+US = 1_000_000  # microseconds per second
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
 GEO_TOL_DEG = 1e-9  # ~0.1 mm: the same conversion both ways
 NED_TOL_M = 1e-6
@@ -302,17 +303,17 @@ def test_frame_of_another_size_than_the_camera_is_refused():
 
 def test_duplicate_and_out_of_order_frames_are_refused():
     rig = Rig(ready_after=100)
-    for k in range(4):
+    for k in (0, 1, 3):
         rig.step(k)
     with pytest.raises(FrameRejected) as ei:
         rig.step(3)
     assert ei.value.reason == "duplicate"
     with pytest.raises(FrameRejected) as ei:
-        rig.step(1)
+        rig.step(2)  # never seen, but after frame 3: out of order
     assert ei.value.reason == "out_of_order"
     assert rig.step(4).seq == 4
     assert rig.counter.counts == {"frame_duplicate": 1, "frame_out_of_order": 1}
-    assert [c[0] for c in rig.est.calls] == ["add"] * 5  # refused frames never reach the estimator
+    assert [c[0] for c in rig.est.calls] == ["add"] * 4  # refused frames never reach the estimator
 
 
 def test_reboot_time_going_back_is_accepted_and_restarts_the_estimator():
@@ -322,7 +323,7 @@ def test_reboot_time_going_back_is_accepted_and_restarts_the_estimator():
     for k in range(2):  # the first frames of the new boot are outliers until three agree
         with pytest.raises(FrameRejected):
             rig.pipe.process(IrFrame(seq=3 + k, time_boot_us=rebooted + 33_333 * k, pixels=rig.scene.image(3)))
-    assert rig.counter["frame_time_outlier"] == 2
+    assert rig.counter["frame_time_behind"] == 2
     tr = rig.pipe.process(IrFrame(seq=5, time_boot_us=rebooted + 66_666, pixels=rig.scene.image(3)))
     assert tr.time_boot_us == rebooted + 66_666 and tr.pose_valid is False  # no telemetry of the new boot yet
     assert rig.counter["frame_time_reset"] == 1
@@ -337,15 +338,31 @@ def test_sender_restart_with_sequence_going_back_is_accepted():
 
 
 def test_a_stream_of_old_frames_is_taken_as_a_restart_after_n_in_a_row():
+    """A sender restarted: its numbering from 0 again, its clock mapping 0.2 s behind (within the threshold)."""
     rig = Rig(ready_after=100)
     rig.run(10)
     n = rig.config.input.sequence_restart_count
+    behind_us = 200_000
     for i in range(n - 1):
-        with pytest.raises(FrameRejected):
-            rig.pipe.process(rig.scene.frame(i))
-    tr = rig.pipe.process(rig.scene.frame(n - 1))
+        with pytest.raises(FrameRejected) as ei:
+            rig.pipe.process(rig.scene.frame(10 + i, seq=i, time_boot_us=rig.scene.t_us(10 + i) - behind_us))
+        assert ei.value.reason == "out_of_order"
+    tr = rig.pipe.process(rig.scene.frame(10 + n - 1, seq=n - 1, time_boot_us=rig.scene.t_us(10 + n - 1) - behind_us))
     assert tr.seq == n - 1
     assert rig.counter["frame_out_of_order"] == n - 1 and rig.counter["frame_stream_restart"] == 1
+    with pytest.raises(FrameRejected) as ei:  # the original frames again: exact duplicates
+        rig.pipe.process(rig.scene.frame(3))
+    assert ei.value.reason in ("duplicate", "out_of_order")
+
+
+def test_resent_old_frames_are_duplicates_and_never_restart_the_stream():
+    rig = Rig(ready_after=100)
+    rig.run(10)
+    for i in range(10):
+        with pytest.raises(FrameRejected) as ei:
+            rig.pipe.process(rig.scene.frame(i))
+        assert ei.value.reason == "duplicate"
+    assert rig.step(10).seq == 10 and rig.counter["frame_stream_restart"] == 0
 
 
 # --------------------------------------------------------------------------- bad telemetry: counted, frames survive
@@ -600,15 +617,71 @@ def test_encode_of_scene_frames_is_irf1():
 
 
 @pytest.mark.parametrize(
-    "offset_us", [3600 * 1_000_000, -3600 * 1_000_000 // 1000, 5_000_000], ids=["+1h", "-3.6s", "+5s"]
+    ("offset_us", "reason"),
+    [(3600 * 1_000_000, "time_ahead"), (-3600 * 1_000_000 // 1000, "time_behind"), (5_000_000, "time_ahead")],
+    ids=["+1h", "-3.6s", "+5s"],
 )
-def test_a_single_far_frame_stamp_costs_one_frame(offset_us):
+def test_a_single_far_frame_stamp_costs_one_frame(offset_us, reason):
     rig = Rig(ready_after=100)
     rig.run(5)
     n_resets = rig.pipe.estimator_resets
-    t_last = rig.pipe._last_t_us
+    t_last = rig.pipe._admission.last_t_us
     with pytest.raises(FrameRejected):
         rig.pipe.process(IrFrame(seq=5, time_boot_us=t_last + offset_us, pixels=rig.scene.image(5)))
     tr = rig.step(6)  # the next normal frame goes through, nothing restarted
     assert tr.seq == 6 and rig.pipe.estimator_resets == n_resets
-    assert rig.counter["frame_time_outlier"] == 1 and rig.counter["frame_time_reset"] == 0
+    assert rig.counter[f"frame_{reason}"] == 1 and rig.counter["frame_time_reset"] == 0
+
+
+def test_odd_frames_among_a_30hz_stream_are_each_counted_under_their_reason_and_restart_nothing():
+    """Two duplicates (one sent late), two out of order, one stamped an hour ahead, one 1 ms after boot."""
+    rig = Rig(ready_after=3)
+    scene = rig.scene
+    held = {14: scene.frame(14), 21: scene.frame(21)}  # delivered after their successors: out of order
+    sent: list[tuple[str, IrFrame]] = []
+    for k in range(40):
+        if k in held:
+            continue
+        sent.append(("ok", scene.frame(k)))
+        if k == 8:
+            sent.append(("duplicate", scene.frame(8)))  # at once
+        if k == 12:
+            sent.append(("duplicate", scene.frame(5)))  # late
+        if k == 16:
+            sent.append(("out_of_order", held[14]))
+        if k == 22:
+            sent.append(("out_of_order", held[21]))
+        if k == 27:  # seq 100 and 101: a sender's numbering moves on while its stamps are wrong
+            sent.append(
+                ("time_ahead", IrFrame(seq=100, time_boot_us=scene.t_us(27) + 3600 * US, pixels=scene.image(27)))
+            )
+        if k == 31:
+            sent.append(("time_behind", IrFrame(seq=101, time_boot_us=1000, pixels=scene.image(31))))
+    got = []
+    for expected, frame in sent:
+        rig.feed_until(frame.time_boot_us + 45_000 if expected == "ok" else rig.fed_us or 0)
+        try:
+            tr = rig.pipe.process(frame, 0)
+            got.append(("ok", tr.seq))
+        except FrameRejected as exc:
+            got.append((exc.reason, frame.seq))
+    assert [g[0] for g in got] == [e for e, _ in sent]
+    assert {k: v for k, v in rig.counter.counts.items() if k.startswith("frame_")} == {
+        "frame_duplicate": 2,
+        "frame_out_of_order": 2,
+        "frame_time_ahead": 1,
+        "frame_time_behind": 1,
+    }
+    assert rig.pipe.estimator_resets == 0 and ("reset", math.nan) not in [(c[0], math.nan) for c in rig.est.calls]
+    assert rig.pipe.frames_processed == 38 and rig.pipe.last_track.seq == 39
+
+
+def test_a_stream_that_starts_with_a_far_stamp_is_judged_by_the_telemetry():
+    rig = Rig(ready_after=100)
+    rig.feed_until(rig.scene.t_us(0) + 45_000)
+    for t_us, reason in ((rig.scene.t_us(0) + 3600 * US, "time_ahead"), (1000, "time_behind")):
+        with pytest.raises(FrameRejected) as ei:
+            rig.pipe.process(IrFrame(seq=0, time_boot_us=t_us, pixels=rig.scene.image(0)))
+        assert ei.value.reason == reason
+    assert [tr.seq for tr in rig.run(5)] == [0, 1, 2, 3, 4]
+    assert rig.counter["frame_time_reset"] == 0 and rig.counter["frame_time_ahead"] == 1

@@ -1,0 +1,165 @@
+"""Frame admission, pure: is this frame's (sequence number, capture time) the next one of the stream?
+
+No pixels, no clocks, no I/O: :class:`FrameAdmission` keeps the stream's state and answers each
+frame with an :class:`Admission`; :class:`~onboard.pipeline.frame_pipeline.FramePipeline` counts
+and acts on it.  Times are ``time_boot_us`` (the autopilot's boot clock), ``threshold_us`` is
+``input.time_reset_threshold_s``.
+
+With ``L`` the last accepted capture time and ``t`` the frame's, each refused frame is named by
+what is wrong with it, so that a status reader can tell a sender problem from a clock problem:
+
+* ``duplicate``: the sequence number and capture time of a recently accepted frame (sent twice,
+  however late);
+* ``out_of_order``: before ``L`` with the sequence number going back too (an old frame delivered
+  late);
+* ``time_ahead``: more than ``threshold_us`` after ``L`` (a stamp far in the future);
+* ``time_behind``: before ``L`` with the sequence number moving forward (a bad stamp, such as one
+  taken just after boot).
+
+Accepted, and named by the event: ``""`` (the next frame), ``sequence_reset`` (time forward,
+sequence back: the sender restarted), ``time_reset`` (``TIME_CONFIRM_FRAMES`` mutually consistent
+frames far from ``L``: a clock step or an autopilot reboot; the estimator restarts),
+``stream_restart`` (``restart_count`` mutually consistent frames at most ``threshold_us`` before
+``L``: the sender restarted its clock; the estimator restarts).  A run is consistent when each
+frame of it is after the previous one by at most ``threshold_us`` with a sequence number moving
+forward: duplicates and scattered odd frames never add up to a run, so one odd frame (or a few
+unrelated ones) never restarts the estimator, and a real step never locks the stream out.
+
+The first frame is accepted unless a telemetry time is known (``reference_us``, the pose buffer's
+newest sample) and the frame is more than ``threshold_us`` from it: a stream that starts with a
+stamp an hour ahead, or one at boot, would otherwise become the clock the good frames are judged
+by.  Such a frame waits for a consistent run, as a clock step does.
+"""
+
+from __future__ import annotations
+
+import collections
+from dataclasses import dataclass
+
+__all__ = ["SEQ_MOD", "TIME_CONFIRM_FRAMES", "RECENT_FRAMES", "Admission", "FrameAdmission"]
+
+SEQ_MOD = 2**32
+#: consecutive, mutually consistent frames far from the running clock that confirm a clock step
+TIME_CONFIRM_FRAMES = 3
+#: accepted (seq, time) pairs remembered to recognise a duplicate sent late (4 s at 30 Hz)
+RECENT_FRAMES = 128
+
+
+@dataclass(frozen=True)
+class Admission:
+    """The decision on one frame.
+
+    ``accepted``; ``reason``: the refusal reason (``duplicate``, ``out_of_order``, ``time_ahead``,
+    ``time_behind``) or the accepted event (``""``, ``sequence_reset``, ``time_reset``,
+    ``stream_restart``); ``restart``: the estimator must restart (accepted steps only);
+    ``message``: one line for the log, naming the frame and the stream's last accepted one.
+    """
+
+    accepted: bool
+    reason: str
+    message: str = ""
+    restart: bool = False
+
+
+def _forward(seq: int, after: int) -> bool:
+    """``seq`` comes after ``after`` in the wrapping uint32 sequence."""
+    return 0 < (seq - after) % SEQ_MOD < SEQ_MOD // 2
+
+
+class FrameAdmission:
+    """Stateful admission of (seq, time_boot_us) pairs; see the module docstring.  Not thread-safe."""
+
+    def __init__(self, threshold_us: int, restart_count: int) -> None:
+        if threshold_us <= 0 or restart_count < 1:
+            raise ValueError(f"threshold_us must be > 0 and restart_count >= 1, got {threshold_us}, {restart_count}")
+        self.threshold_us = int(threshold_us)
+        self.restart_count = int(restart_count)
+        self.last_seq: int | None = None
+        self.last_t_us: int | None = None
+        self._recent: collections.deque[tuple[int, int]] = collections.deque(maxlen=RECENT_FRAMES)
+        self._recent_set: collections.Counter[tuple[int, int]] = collections.Counter()
+        self._run: list[tuple[int, int]] = []  # (seq, t) of refused, mutually consistent frames
+        self._run_far = False  # the run is far from the running clock (else: shortly before it)
+
+    def reset(self) -> None:
+        """Forget the stream."""
+        self.last_seq = self.last_t_us = None
+        self._recent.clear()
+        self._recent_set.clear()
+        self._run.clear()
+
+    def admit(self, seq: int, t_us: int, reference_us: int | None = None) -> Admission:
+        """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any."""
+        last_seq, last_t = self.last_seq, self.last_t_us
+        thr = self.threshold_us
+        if last_t is None or last_seq is None:  # the first frame (both are set together)
+            if reference_us is None or abs(t_us - reference_us) <= thr:
+                return self._accept(seq, t_us, "")
+            step = (t_us - reference_us) / 1e6
+            return self._candidate(
+                seq,
+                t_us,
+                far=True,
+                reason="time_ahead" if step > 0 else "time_behind",
+                message=f"first frame seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the telemetry",
+            )
+        if (seq, t_us) in self._recent_set:
+            return Admission(False, "duplicate", f"frame seq {seq} (time_boot_us {t_us}) again")
+        seq_forward = _forward(seq, last_seq)
+        step = (t_us - last_t) / 1e6
+        where = f"seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the last accepted one (seq {last_seq})"
+        if t_us > last_t + thr:
+            return self._candidate(seq, t_us, far=True, reason="time_ahead", message=f"frame {where}")
+        if t_us > last_t:
+            return self._accept(
+                seq,
+                t_us,
+                "" if seq_forward else "sequence_reset",
+                f"seq {last_seq} -> {seq} while time moved forward: the sender restarted",
+            )
+        far = t_us < last_t - thr
+        if seq_forward:
+            return self._candidate(seq, t_us, far=far, reason="time_behind", message=f"frame {where}")
+        return self._candidate(seq, t_us, far=False, reason="out_of_order", message=f"frame {where}")
+
+    # ------------------------------------------------------------------ internals
+
+    def _candidate(self, seq: int, t_us: int, *, far: bool, reason: str, message: str) -> Admission:
+        """Refuse, unless this frame completes a consistent run (module docstring)."""
+        run = self._run
+        if run and far == self._run_far and run[-1][1] < t_us <= run[-1][1] + self.threshold_us:
+            if _forward(seq, run[-1][0]):
+                run.append((seq, t_us))
+            else:
+                run[:] = [(seq, t_us)]
+        else:
+            run[:] = [(seq, t_us)]
+            self._run_far = far
+        need = TIME_CONFIRM_FRAMES if far else self.restart_count
+        if len(run) < need:
+            return Admission(False, reason, message)
+        first_seq = run[0][0]
+        last_t = self.last_t_us
+        if last_t is None:
+            what = f"{need} consistent frames from seq {first_seq} stand apart from the telemetry"
+        else:
+            what = f"capture time stepped {(t_us - last_t) / 1e6:+.3f} s (seq {self.last_seq} -> {seq})"
+            what += f", confirmed by {need} consistent frames from seq {first_seq}"
+        event = "time_reset" if far else "stream_restart"
+        return self._accept(seq, t_us, event, what, restart=True)
+
+    def _accept(self, seq: int, t_us: int, event: str, message: str = "", restart: bool = False) -> Admission:
+        """Take the frame as the stream's newest; ``event`` names a step (module docstring), ``""`` none."""
+        if event:  # a new clock or a new sequence: the old numbers say nothing about the new ones
+            self._recent.clear()
+            self._recent_set.clear()
+        if len(self._recent) == self._recent.maxlen:
+            old = self._recent[0]
+            self._recent_set[old] -= 1
+            if self._recent_set[old] <= 0:
+                del self._recent_set[old]
+        self._recent.append((seq, t_us))
+        self._recent_set[(seq, t_us)] += 1
+        self.last_seq, self.last_t_us = seq, t_us
+        self._run.clear()
+        return Admission(True, event, message, restart)
