@@ -96,6 +96,16 @@ def _nav_noise_option(p: argparse.ArgumentParser, help_text: str, nargs: str | N
     p.add_argument("--nav-noise", nargs=nargs, default=None, metavar="NAME", help=help_text)
 
 
+def _gnss_dropout_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--gnss-dropout",
+        default=None,
+        metavar="START_S:DURATION_S",
+        help="a GNSS dropout: from START_S (scenario time) for DURATION_S the vehicle withholds GLOBAL_POSITION_INT"
+        " and reports GPS_RAW_INT without a fix, attitude and frames going on (e.g. 8:5)",
+    )
+
+
 def _add_run(p: argparse.ArgumentParser) -> None:
     _scenario_option(p)
     p.add_argument(
@@ -153,6 +163,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         "navigation errors of the telemetry: a case of config/noise_cases.yaml (exact, RTK, GNSS, ...;"
         " default: the scenario's nav_noise, RTK unless it says otherwise)",
     )
+    _gnss_dropout_option(p)
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
     p.add_argument(
         "--record",
@@ -187,6 +198,7 @@ def _run_config(args):
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
     from groundsim.app.run import RateSpec, RunConfig
+    from groundsim.world.nav_errors import parse_gnss_dropout
     from onboard.io.zenoh_session import ZenohSettings
 
     rate = RateSpec.parse(args.rate)
@@ -213,6 +225,7 @@ def _run_config(args):
         nav_noise=args.nav_noise,
         record_path=Path(args.record) if args.record else None,
         guided=bool(getattr(args, "guided", False)),
+        gnss_dropout=parse_gnss_dropout(args.gnss_dropout) if args.gnss_dropout else None,
     )
 
 
@@ -343,6 +356,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         " with each, side by side (default: RTK; e.g. --nav-noise RTK exact)",
         nargs="+",
     )
+    _gnss_dropout_option(p)
     p.add_argument(
         "--estimator",
         default=None,

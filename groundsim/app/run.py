@@ -148,6 +148,7 @@ class RunConfig:
     nav_noise: str | None = None
     record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.io.record)
     guided: bool = False  # --guided: the vehicle reports GUIDED and its observer follows velocity setpoints
+    gnss_dropout: object | None = None  # --gnss-dropout: a groundsim.world.nav_errors.GnssDropout
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -498,7 +499,14 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         session = open_session(zs)
         if config.render:
             publisher = FramePublisher(session, config.vehicle)
-        vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed, guided=config.guided)
+        outage = None if config.gnss_dropout is None else config.gnss_dropout.boot_window_us(core.boot_start_us)
+        vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed, guided=config.guided, gnss_outage_us=outage)
+        if config.gnss_dropout is not None:
+            log.info(
+                "GNSS dropout from %.2f s for %.2f s: no GLOBAL_POSITION_INT, GPS_RAW_INT without a fix",
+                config.gnss_dropout.start_s,
+                config.gnss_dropout.duration_s,
+            )
         if config.truth_path is not None:
             writer = TruthWriter(config.truth_path)
         if config.record_path is not None:

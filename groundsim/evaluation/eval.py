@@ -107,6 +107,9 @@ DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")  # the daemon's shipped con
 DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain measured no centroid (reference px0.3)
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10
+#: how far past a frame the lockstep feed goes for the telemetry that brackets it (the widest bracket a lookup
+#: accepts, ``pose.position_max_gap_ms``)
+FEED_LEAD_MAX_US = 300_000
 US_PER_S = 1_000_000
 
 
@@ -132,6 +135,9 @@ class EvalOptions:
     #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
     #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
     guidance: bool = False
+    #: a GNSS dropout (``--gnss-dropout``, :class:`groundsim.world.nav_errors.GnssDropout`): no position telemetry
+    #: in its window, attitude and frames going on
+    gnss_dropout: object | None = None
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -219,8 +225,10 @@ class TelemetryFeed:
         pose_buffer,
         gimballed: bool,
         rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ),
+        gnss_outage_us: tuple[int, int] | None = None,
     ) -> None:
         self.core = core
+        self.gnss_outage_us = gnss_outage_us
         self.pose = pose_buffer
         self.gimballed = gimballed
         self.next_tick = 0
@@ -266,6 +274,10 @@ class TelemetryFeed:
                 )
                 self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body)
             elif name == "pos":
+                w = self.gnss_outage_us
+                if w is not None and w[0] <= now < w[1]:  # withheld, as MavlinkVehicle does in a GNSS dropout
+                    self._due_us[name] = now + interval
+                    continue
                 pos = GlobalPositionInt.from_message(
                     wire_roundtrip(
                         GlobalPositionInt(
@@ -293,10 +305,12 @@ class TelemetryFeed:
             self._due_us[name] = nxt if nxt > now else now + interval
 
     def feed_for(self, frame_tick: int, time_boot_us: int) -> None:
-        """Feed through ``frame_tick``, then on until the pose at ``time_boot_us`` is known or will not be."""
+        """Feed through ``frame_tick``, then on until the pose at ``time_boot_us`` is known or will not be, at
+        most ``FEED_LEAD_MAX_US`` past it (a stream that stopped, as in a GNSS dropout: the pose is
+        extrapolated then, as in the daemon)."""
         while self.next_tick <= frame_tick and not self.exhausted:
             self.feed_next()
-        while not self.exhausted:
+        while not self.exhausted and self.core.time_boot_us(self.next_tick) <= time_boot_us + FEED_LEAD_MAX_US:
             res = self.pose.lookup(time_boot_us)
             if res.pose is not None or not res.retry:
                 return
@@ -359,6 +373,12 @@ class RunResult:
     guidance: dict | None = None
     mot_gt: str = ""  # gt.txt of every object (groundsim.evaluation.mot)
     mot_tracker: str = ""  # the pipeline's objects, MOT tracker lines
+    #: the GNSS dropout's window, scenario seconds [start, end) (None: none), and the scenario time the daemon's
+    #: watchdog first named it (``gnss_dropout``) from the frames' poses (NaN: never)
+    gnss_window_s: tuple[float, float] | None = None
+    gnss_warning_t_s: float = math.nan
+    #: (F,) the frame's track had a line of sight (None: not recorded)
+    los_valid: np.ndarray | None = None
 
     @property
     def has_estimate(self) -> np.ndarray:
@@ -384,6 +404,7 @@ def _result_columns(F: int) -> dict[str, np.ndarray]:
         state=np.empty(F, dtype="<U9"),
         measurement_valid=np.zeros(F, dtype=bool),
         pose_valid=np.zeros(F, dtype=bool),
+        los_valid=np.zeros(F, dtype=bool),
         uv_px=np.full((F, 2), nan),
         bbox=np.full((F, 4), nan),
         est_p_ned_m=np.full((F, 3), nan),
@@ -485,7 +506,22 @@ def run_lockstep(
     )
     baseline = make_estimator(cfg)
     m = cfg.mavlink
-    feed = TelemetryFeed(core, buffer, core.gimballed, (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz))
+    gd = options.gnss_dropout
+    feed = TelemetryFeed(
+        core,
+        buffer,
+        core.gimballed,
+        (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz),
+        None if gd is None else gd.boot_window_us(core.boot_start_us),
+    )
+    gnss_warning_t_s = math.nan
+    watchdog = None
+    if gd is not None:  # the daemon's own check, on the frames' time
+        from onboard.app.watchdog import Watchdog
+
+        watchdog = Watchdog(
+            started_s=0.0, frame_key="", zenoh_where="", mavlink_connection="", camera_size_px=(K.width_px, K.height_px)
+        )
     rng = scenario.rng("eval.centroid_noise", seed)
 
     F = core.frame_count
@@ -542,8 +578,13 @@ def run_lockstep(
                 log.debug("frame %d rejected: %s", k, exc)
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         _, pose = source.take()
+        if watchdog is not None and track is not None:
+            watchdog.navigation(float(tr.t_s), pipeline.last_position_age_s)
+            if math.isnan(gnss_warning_t_s) and gd.active(float(tr.t_s)) and "gnss_dropout" in watchdog.warned:
+                gnss_warning_t_s = float(tr.t_s)
         if track is not None:
             c.state[k] = track.state
+            c.los_valid[k] = track.los is not None
             c.measurement_valid[k] = track.measurement_valid
             if track.u_px is not None:
                 c.uv_px[k] = (track.u_px, track.v_px)
@@ -690,7 +731,54 @@ def run_lockstep(
         },
         mot_gt="".join(mot_gt),
         mot_tracker="".join(mot_tracker),
+        gnss_window_s=None if gd is None else (gd.start_s, gd.start_s + gd.duration_s),
+        gnss_warning_t_s=gnss_warning_t_s,
     )
+
+
+def gnss_dropout_figures(r: RunResult) -> dict | None:
+    """What a run did in its GNSS dropout (None without one): ``frames`` in the window with the target in view
+    (visible and measured), the share of them with a line of sight (``los``) and with a 3-D position
+    (``position``); ``beyond_3sigma`` among those positions (``||e|| > 3 sqrt(trace cov)``, the closed-loop
+    figure's definition); ``warning_after_s``: from the window's start to the watchdog's ``gnss_dropout``."""
+    if r.gnss_window_s is None or r.frames == 0:
+        return None
+    t0, t1 = r.gnss_window_s
+    gap = (r.t_s >= t0) & (r.t_s < t1) & r.visible & r.measurement_valid
+    n = int(gap.sum())
+    if n == 0:
+        return {"frames": 0}
+    has = gap & r.has_estimate
+    e = np.linalg.norm(r.est_p_ned_m[has] - r.truth_p_ned_m[has], axis=1)
+    sig3 = 3.0 * np.sqrt(np.trace(r.est_cov_ned_m2[has], axis1=1, axis2=2))
+    rng = r.range_m[has]
+    return {
+        "frames": n,
+        "los": math.nan if r.los_valid is None else float((gap & r.los_valid).sum() / n),
+        "position": float(has.sum() / n),
+        "beyond_3sigma": float((e > sig3).mean()) if has.any() else None,
+        "median_error_pct_range": float(np.median(100.0 * e / rng)) if has.any() else None,
+        "warning_after_s": r.gnss_warning_t_s - t0,
+    }
+
+
+def format_gnss_dropout(runs: list[RunResult]) -> str:
+    """One line per run: the GNSS dropout's figures (:func:`gnss_dropout_figures`)."""
+    lines = ["GNSS dropout: frames in the window with the target in view, and what they got"]
+    lines.append(f"{'run':<14} {'frames':>6} {'los':>7} {'3-D':>7} {'>3sigma':>8} {'med err':>8} {'warned after':>13}")
+    for r in runs:
+        f = gnss_dropout_figures(r)
+        if f is None or not f.get("frames"):
+            lines.append(f"{r.scenario + ' s' + str(r.seed):<14} {'no frames in the window' if f else 'no dropout'}")
+            continue
+        b3 = "-" if f["beyond_3sigma"] is None else f"{100 * f['beyond_3sigma']:.1f} %"
+        med = "-" if f["median_error_pct_range"] is None else f"{f['median_error_pct_range']:.2f} %"
+        warned = "never" if math.isnan(f["warning_after_s"]) else f"{f['warning_after_s']:.2f} s"
+        lines.append(
+            f"{r.scenario + ' s' + str(r.seed):<14} {f['frames']:>6} {100 * f['los']:>6.1f}% {100 * f['position']:>6.1f}%"
+            f" {b3:>8} {med:>8} {warned:>13}"
+        )
+    return "\n".join(lines)
 
 
 def _batch(
@@ -891,6 +979,15 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
         )
 
 
+def _gnss_dropout(args):
+    text = getattr(args, "gnss_dropout", None)
+    if not text:
+        return None
+    from groundsim.world.nav_errors import parse_gnss_dropout
+
+    return parse_gnss_dropout(text)
+
+
 def cmd_eval(args) -> int:
     """The ``eval`` command: run, write the report, print the table and the report's path."""
     import sys
@@ -915,6 +1012,7 @@ def cmd_eval(args) -> int:
             nav_noise=nav_noises[0],
             estimator=getattr(args, "estimator", None),
             guidance=bool(getattr(args, "guidance", False)),
+            gnss_dropout=_gnss_dropout(args),
         )
         for n in nav_noises[1:]:
             dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
@@ -965,6 +1063,9 @@ def cmd_eval(args) -> int:
                 f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
             print()
             print(table)
+        if options.gnss_dropout is not None:
+            print()
+            print(format_gnss_dropout(result.runs))
         failed = sum(1 for s in result.scores if "error" in s)
         print(
             f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "

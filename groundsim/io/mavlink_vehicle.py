@@ -30,7 +30,8 @@ SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, G
                                                        present/enabled/healthy; 4S battery volts,
                                                        current, remaining (linear drain from 100 %)
 EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
-GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position
+GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position; inside
+                                                       ``gnss_outage_us`` no fix, 0 satellites (and no #33)
 ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
 BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
 HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon/alt (and on request)
@@ -375,6 +376,7 @@ class MavlinkVehicle:
         gimbal_yaw_frame: str = "earth",
         unix_time_at_boot_us: int | None = None,
         guided: bool = False,
+        gnss_outage_us: tuple[int, int] | None = None,
     ) -> None:
         # guided: heartbeat as ArduPilot in GUIDED and take velocity setpoints (SET_POSITION_TARGET_LOCAL_NED) for
         # the flight (take_setpoints); otherwise they are counted and ignored
@@ -392,6 +394,8 @@ class MavlinkVehicle:
                 f"MavlinkVehicle.gimbal_yaw_frame must be 'earth' or 'vehicle', got {gimbal_yaw_frame!r}"
             )
         self.gimbal_yaw_frame = gimbal_yaw_frame
+        #: [start, end) on the boot clock without GNSS: no #33, GPS_RAW_INT without a fix
+        self.gnss_outage_us = None if gnss_outage_us is None else (int(gnss_outage_us[0]), int(gnss_outage_us[1]))
         self.connection = connection
         self.sysid = sysid
         self.compid = compid
@@ -531,6 +535,8 @@ class MavlinkVehicle:
                 return 0
             if msg_id == MSG_GIMBAL_DEVICE_ATTITUDE_STATUS and state.q_ned_from_gimbal is None:
                 return 0
+            if msg_id == MSG_GLOBAL_POSITION_INT and self._no_gnss(state.time_boot_us):
+                return 0
             if not forced and self._last_state_us_sent.get(msg_id) == state.time_boot_us:
                 return 0
             self._last_state_us_sent[msg_id] = state.time_boot_us
@@ -568,6 +574,10 @@ class MavlinkVehicle:
             return 0
         self.counters[f"tx_{msg_id}"] += 1
         return 1
+
+    def _no_gnss(self, time_boot_us: int) -> bool:
+        w = self.gnss_outage_us
+        return w is not None and w[0] <= time_boot_us < w[1]
 
     def battery_remaining_pct(self, now_us: int) -> float:
         """The simulated battery's charge, %: linear drain from 100 % at boot."""
@@ -619,17 +629,18 @@ class MavlinkVehicle:
             lat, lon, alt_mm, vx, vy = gpi.lat, gpi.lon, gpi.alt, gpi.vx, gpi.vy
             vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
             cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
+            no_fix = self._no_gnss(state.time_boot_us)
             mav.gps_raw_int_send(
                 self._unix_at_boot_us + state.time_boot_us,
-                mavlink2.GPS_FIX_TYPE_3D_FIX,
+                mavlink2.GPS_FIX_TYPE_NO_FIX if no_fix else mavlink2.GPS_FIX_TYPE_3D_FIX,
                 lat,
                 lon,
                 alt_mm,
-                80,
-                120,
+                _UINT16_MAX if no_fix else 80,
+                _UINT16_MAX if no_fix else 120,
                 vel,
                 cog,
-                14,
+                0 if no_fix else 14,
                 alt_mm,
                 500,
                 800,

@@ -58,9 +58,52 @@ __all__ = [
     "NavErrorSample",
     "NavErrorModel",
     "offset_geodetic",
+    "GnssDropout",
+    "parse_gnss_dropout",
     "resolve_nav_noise",
     "reported_state",
 ]
+
+
+@dataclass(frozen=True)
+class GnssDropout:
+    """A window of the flight without GNSS: ``start_s`` (scenario time) for ``duration_s``.
+
+    The simulated autopilot then withholds GLOBAL_POSITION_INT (#33) and reports GPS_RAW_INT (#24)
+    with no fix, while attitude, the gimbal and the frames go on (what a daemon sees of an autopilot
+    that does not dead-reckon through a GNSS gap).  ``--gnss-dropout START_S:DURATION_S``.
+    """
+
+    start_s: float
+    duration_s: float
+
+    def __post_init__(self) -> None:
+        for name in ("start_s", "duration_s"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ConfigError(f"--gnss-dropout: {name} must be a finite number >= 0 s, got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    def active(self, t_s: float) -> bool:
+        """No GNSS at scenario time ``t_s``."""
+        return self.start_s <= t_s < self.start_s + self.duration_s
+
+    def boot_window_us(self, boot_start_us: int) -> tuple[int, int]:
+        """The window on the vehicle's boot clock, ``[start, end)`` microseconds."""
+        t0 = boot_start_us + round(self.start_s * 1e6)
+        return t0, t0 + round(self.duration_s * 1e6)
+
+
+def parse_gnss_dropout(text: str) -> GnssDropout:
+    """``"START_S:DURATION_S"`` (e.g. ``"8:5"``) -> :class:`GnssDropout`; ConfigError naming the option."""
+    start, sep, duration = str(text).partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return GnssDropout(float(start), float(duration))
+    except ValueError:
+        raise ConfigError(f"--gnss-dropout: expected START_S:DURATION_S (e.g. 8:5), got {text!r}") from None
+
 
 #: The scenario random stream the errors are drawn from (``Scenario.rng(NAV_ERROR_STREAM, run_seed)``).
 NAV_ERROR_STREAM = "nav.errors"

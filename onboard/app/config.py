@@ -232,6 +232,7 @@ class EstimatorConfig:
     worker: Annotated[Literal["process", "thread", "inline"], Text()] = "process"
     result_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 2.0
     max_extrapolation_s: Annotated[float, Number(0.0, 60.0)] = 1.0
+    coast_accel_sigma_mps2: Annotated[float, Number(0.0, 100.0)] = 1.0
     # SlidingConfig fields, checked against onboard.estimation.sliding.SlidingConfig when the config is built
     sliding: Annotated[
         dict[str, Any], Instance(dict, what="a mapping of SlidingConfig fields", check=_sliding_mapping)

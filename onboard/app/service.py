@@ -177,6 +177,7 @@ class OnboardService:
         self._health_failed = False
         self._started_s = clock()
         self.status_count = 0
+        self._warnings_published = 0  # the watchdog's change count at the last status
         self.watchdog = Watchdog(
             started_s=self._started_s,
             frame_key=frame_key(config.vehicle),
@@ -386,6 +387,7 @@ class OnboardService:
             now_s = self._clock()
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
             self.watchdog.residual(now_s, track.residual_rms_norm)
+            self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
             return track
         except FrameRejected as exc:
             if exc.reason == "dims_mismatch":
@@ -473,7 +475,9 @@ class OnboardService:
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
             for tap in self.taps:  # guidance in the loop: setpoints to the autopilot (never raises; guidance_tap)
                 getattr(tap, "setpoint_step", lambda now, link: None)(now, self.link)
-            if now >= next_status:
+            if now >= next_status or self.watchdog.changes != self._warnings_published:
+                # a warning raised or cleared goes out at once, not up to a status interval later
+                self._warnings_published = self.watchdog.changes
                 last_cpu = self._publish_status(now, last_cpu)
                 next_status = max(next_status + cfg.output.status_interval_s, now)
             self._idle(turn_s, period, min(next_watch, next_status))

@@ -28,6 +28,12 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     is true (no frame gets a pose).  The residuals cannot show a mount error (a constant pitch offset
     of the camera is explained exactly by a target higher up), so this is checked on the messages.
 
+``gnss_dropout``
+    The position stream (GLOBAL_POSITION_INT #33) has been silent for more than ``nav_gap_s``
+    (0.3 s: seven missed samples at 25 Hz) at a frame's capture time while attitude and frames go on:
+    the position is dead-reckoned with a growing sigma (``pose.dead_reckoning_max_s``) and the 3-D
+    estimate coasts.  Checked on every processed frame, cleared by the first frame with fresh position.
+
 Each code is logged at WARNING the first time only (``warned``); it is in :attr:`active` while the
 condition holds (the status JSON lists them) and leaves it when the condition clears (logged at
 INFO), coming back without a new WARNING.
@@ -42,9 +48,10 @@ from dataclasses import dataclass
 
 from onboard.core.errors import InputError
 
-__all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "RESIDUAL_THRESHOLD"]
+__all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
 
 INPUT_TIMEOUT_S = 5.0
+NAV_GAP_S = 0.3
 RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
@@ -129,6 +136,8 @@ class Watchdog:
         self._active: dict[str, WatchdogWarning] = {}
         self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
         self.warned: set[str] = set()
+        #: raised or cleared conditions so far (the service publishes a status at once when it moves)
+        self.changes = 0
 
     def restart(self, now_s: float) -> None:
         """The inputs were (re)opened at ``now_s``: the input timeouts run from here."""
@@ -205,6 +214,21 @@ class Watchdog:
             f"camera that sends them",
         )
 
+    def navigation(self, now_s: float, position_age_s: float | None, nav_gap_s: float = NAV_GAP_S) -> None:
+        """One frame's age of the newest position sample at its capture time (None: no pose, ignored)."""
+        if position_age_s is None:
+            return
+        if position_age_s <= nav_gap_s:
+            self._clear("gnss_dropout")
+            return
+        age = "over the dead-reckoning limit" if math.isinf(position_age_s) else f"for {position_age_s:.1f} s"
+        self._raise(
+            "gnss_dropout",
+            f"no GLOBAL_POSITION_INT (#33) {age} while attitude and frames go on: the position is dead-reckoned "
+            f"with a growing sigma (pose.dead_reckoning_max_s) and 3-D positions coast; check the GNSS (GPS_RAW_INT "
+            f"fix type) and the #33 stream",
+        )
+
     def residual(self, now_s: float, residual_rms_norm: float | None) -> None:
         """One estimate's residual statistic (None or NaN: unknown, ignored)."""
         r = residual_rms_norm
@@ -247,6 +271,8 @@ class Watchdog:
             self._active[code] = WatchdogWarning(code, message)
             first = code not in self.warned
             self.warned.add(code)
+            if not was_active:
+                self.changes += 1
         if was_active:
             return
         if first:
@@ -257,5 +283,6 @@ class Watchdog:
     def _clear(self, code: str) -> None:
         with self._lock:
             gone = self._active.pop(code, None) is not None
+            self.changes += gone
         if gone:
             self._log.info("%s cleared", code)

@@ -47,6 +47,13 @@ horizon: no pose, reason ``<stream>_extrapolation_limit``.  Every extrapolated p
 ``pose_extrapolated`` (logged at DEBUG only: it is a normal event) and says so in
 :attr:`PoseAt.mode` and the ``*_extrapolated_us`` horizons.
 
+Dead reckoning.  Position alone goes on past that horizon, through a gap in the position stream (a
+GNSS dropout: no #33 while attitude continues), for up to ``pose.dead_reckoning_max_s``, with the
+same formula and the same growing sigma: seconds of it add metres, which the pose says
+(:attr:`PoseAt.sigma_extrapolation_m`) and the frame pipeline carries into the 3-D estimate as
+camera-position noise instead of adding such a pose to the estimator's window.  The line of sight
+needs attitude only and stays exact.
+
 Added uncertainty (1 sigma, per axis).  Attitude: ``sigma_rad(h) = sqrt((sigma_w h)^2 +
 (sigma_alpha h^2 / 2)^2)`` -- the rate's error over the horizon and an unmodelled angular
 acceleration; position: ``sigma_m(h) = sqrt((sigma_v h)^2 + (sigma_a h^2 / 2)^2)``.  The
@@ -291,6 +298,13 @@ class PoseBuffer:
         if last - thr <= t < last:
             self.counter.count(f"{s.name}_out_of_order", f"time_boot_us={t} is {last - t} us before {last}")
             return False
+        if t > last and self._agrees_with_other_streams(s, t):
+            # a stream that was silent (a GNSS dropout) resumes on the clock the others run on: not an outlier
+            s.pending_t_us.clear()
+            self.counter.count(
+                f"{s.name}_resumed", f"after {(t - last) / US_PER_S:.3f} s without samples", level=logging.INFO
+            )
+            return True
         run = s.pending_t_us
         if run and run[-1] < t <= run[-1] + thr:
             run.append(t)
@@ -318,6 +332,14 @@ class PoseBuffer:
             f"{s.name} time_boot_us went back {last - t} us ({last} -> {t}), confirmed by {TIME_CONFIRM_COUNT} samples"
         )
         return True
+
+    def _agrees_with_other_streams(self, s: SampleStream, t: int) -> bool:
+        """``t`` is within the reboot threshold of the newest sample of another attitude/position stream."""
+        thr = self.config.reboot_threshold_us
+        for other in (self._att, self._pos):
+            if other is not s and other.last_t is not None and abs(t - other.last_t) <= thr:
+                return True
+        return False
 
     def _reboot(self, detail: str) -> None:
         self.clear()
@@ -548,9 +570,19 @@ class PoseBuffer:
         )
         if ba[0] is None:
             return PoseLookup(None, ba[1], ba[2])
-        bp = self._bracket_or_extrapolate(
-            pos, t, extrapolate, self.horizons.position_us, lambda: _finite_from(pos.values[-1], 3)
-        )
+        # past the bounded horizon, dead reckoning through a position gap (module docstring)
+        pos_horizon_us = max(self.horizons.position_us, c.dead_reckoning_us)
+        bp = self._bracket_or_extrapolate(pos, t, extrapolate, pos_horizon_us, lambda: _finite_from(pos.values[-1], 3))
+        if bp[0] is None and extrapolate and bp[1] == "position_gap" and pos.t_us[0] < t:
+            # a silent stream (past its newest sample by more than the max gap), or a gap it has since closed (a
+            # frame older than the first sample after a dropout): dead-reckoned from the sample before the time
+            j = bisect.bisect_right(pos.t_us, t) - 1
+            if not _finite_from(pos.values[j], 3):
+                pass  # no velocity: no dead reckoning, the gap stands
+            elif t - pos.t_us[j] <= pos_horizon_us:
+                bp = (j, _AFTER, 0.0)
+            elif j == len(pos.t_us) - 1:
+                bp = (None, "position_extrapolation_limit", True)
         if bp[0] is None:
             return PoseLookup(None, bp[1], bp[2])
         bg = None

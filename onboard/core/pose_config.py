@@ -93,6 +93,9 @@ class PoseConfig:
     ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.  Extrapolation past the newest
     sample (the docstring of :mod:`onboard.core.pose`): :meth:`extrapolation_horizons`; the error model of
     :attr:`~onboard.core.pose.PoseAt.sigma_extrapolation_rad` / ``_m``: the ``*_sigma_*`` fields.
+    ``dead_reckoning_max_s``: how long position is carried on with the last reported velocity through a
+    gap in the position stream (a GNSS dropout), its sigma growing as ``velocity_sigma_mps`` and
+    ``accel_sigma_mps2`` say; 0: not at all.
     """
 
     window_s: Annotated[float, Number(0.1, 600.0)] = 5.0
@@ -112,6 +115,7 @@ class PoseConfig:
     angular_accel_sigma_dps2: Annotated[float, Number(0.0, 100000.0)] = 20.0
     velocity_sigma_mps: Annotated[float, Number(0.0, 1000.0)] = 0.1
     accel_sigma_mps2: Annotated[float, Number(0.0, 1000.0)] = 2.0
+    dead_reckoning_max_s: Annotated[float, Number(0.0, 60.0)] = 10.0
     origin: OriginConfig | None = None
 
     def __post_init__(self) -> None:
@@ -139,6 +143,10 @@ class PoseConfig:
     @functools.cached_property
     def reboot_threshold_us(self) -> int:
         return _us(self.reboot_threshold_s * 1000.0)
+
+    @functools.cached_property
+    def dead_reckoning_us(self) -> int:
+        return _us(self.dead_reckoning_max_s * 1000.0)
 
     @functools.cached_property
     def body_rate_sigma_rps(self) -> float:

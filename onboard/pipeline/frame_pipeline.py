@@ -21,7 +21,9 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
 4. Estimator: reset on a new track id (a new target association), on a lost track and on a reboot;
    ``add`` only when the tracker's ``measurement_valid`` and a pose exist; otherwise ``predict``
-   (coasting, or no pose).
+   (coasting, or no pose). A pose whose position is dead-reckoned (a GNSS gap) past the
+   camera-position noise the estimator assumes is never added: the frame's estimate is the window's
+   last one coasted to it and corrected by its line of sight (:mod:`onboard.pipeline.coast`).
 5. Track: image fields always; the line of sight in local NED with its 1-sigma
    (:func:`onboard.core.track.line_of_sight_ned`, from ``estimator.pixel_sigma_px`` and the attitude white
    and bias sigmas) whenever there is a target centre and a pose, with or without an estimate;
@@ -65,12 +67,16 @@ from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
 from onboard.pipeline.admission import FrameAdmission
+from onboard.pipeline.coast import coast_estimate
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 
 log = logging.getLogger(__name__)
 
 US_PER_S = 1_000_000
+#: the least camera-position error (1 sigma, m) that makes a frame coast instead of joining the window: 50 ms of
+#: extrapolation adds 6 mm, a dead-reckoned second 1 m
+CAMERA_SIGMA_FLOOR_M = 0.02
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
 
 
@@ -195,10 +201,19 @@ class FramePipeline:
         self._est_track_id: int | None = None
         self._est_epoch: int | None = None
         self._est_has_data = False
+        self._window_est = None  # the newest estimate the window solved: what a dead-reckoned frame coasts from
+        self.frames_coasted = 0
+        #: how old the newest position sample was at the last frame's capture time (s; inf: past the dead-reckoning
+        #: limit; None: no pose for another reason).  The daemon's watchdog names a GNSS dropout from it.
+        self.last_position_age_s: float | None = None
         ec = config.estimator
-
+        # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
+        self._camera_sigma_m = max(float(ec.camera_position_white_sigma_m), CAMERA_SIGMA_FLOOR_M)
+        self._coast_max_s = float(getattr(getattr(config, "pose", None), "dead_reckoning_max_s", 10.0))
         self._pixel_sigma_px = float(ec.pixel_sigma_px)
         self._attitude_sigma_rad = math.radians(math.hypot(ec.attitude_white_sigma_deg, ec.attitude_bias_sigma_deg))
+        f_px = math.sqrt(self.intrinsics.fx_px * self.intrinsics.fy_px)
+        self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self._attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
         self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
         self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
@@ -315,6 +330,7 @@ class FramePipeline:
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
                 self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
 
+        self.last_position_age_s = self._position_age_s(pose)
         e0 = self._clock_ns()
         est = self._estimate(upd, pose, t_us)
         self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
@@ -373,6 +389,7 @@ class FramePipeline:
             log.info("estimator reset: %s", why)
         self._est_has_data = False
         self._est_track_id = None
+        self._window_est = None
         self._residuals.clear()
 
     def _estimate(self, upd, pose: PoseAt | None, t_us: int):
@@ -393,11 +410,15 @@ class FramePipeline:
             self._est_track_id = tid
         t_s = t_us / US_PER_S
         try:
+            if pose is not None and getattr(pose, "sigma_extrapolation_m", 0.0) > self._camera_sigma_m:
+                return self._coast(upd, pose, t_s)
             if upd.measurement_valid and pose is not None:
                 self._est_has_data = True
-                return self.estimator.add(
+                est = self.estimator.add(
                     t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam
                 )
+                self._window_est = est if est is not None else self._window_est
+                return est
             if not self._est_has_data:
                 return None
             return self.estimator.predict(t_s, None if pose is None else pose.p_cam_ned_m)
@@ -406,6 +427,33 @@ class FramePipeline:
         except Exception as exc:  # noqa: BLE001 - the estimator must never stop the frame loop
             self.counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
         return None
+
+    def _position_age_s(self, pose: PoseAt | None) -> float | None:
+        if pose is not None:
+            return getattr(pose, "pos_extrapolated_us", 0) / US_PER_S  # a pose source of a test may not say
+        miss = getattr(self.pose_source, "last_miss_reason", None)
+        return math.inf if miss == "position_extrapolation_limit" else None
+
+    def _coast(self, upd, pose: PoseAt, t_s: float):
+        """A frame whose camera position is dead-reckoned: the window's last estimate coasted to it
+        (:mod:`onboard.pipeline.coast`), never an observation of the window."""
+        self.frames_coasted += 1
+        base = self._window_est
+        if base is None or not self._est_has_data or t_s - base.t_s > self._coast_max_s:
+            return None
+        u_ned = None
+        if upd.measurement_valid and upd.u_px is not None:
+            u_ned = rotmat_from_quat(pose.q_ned_from_cam) @ self.intrinsics.bearing_cam_from_pixel((upd.u_px, upd.v_px))
+            u_ned = u_ned / np.linalg.norm(u_ned)
+        return coast_estimate(
+            base,
+            t_s,
+            pose.p_cam_ned_m,
+            pose.sigma_extrapolation_m,
+            u_ned,
+            self._bearing_sigma_rad,
+            self.config.estimator.coast_accel_sigma_mps2,
+        )
 
     # ------------------------------------------------------------------ output
 

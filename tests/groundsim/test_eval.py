@@ -21,10 +21,13 @@ from hypothesis import strategies as st
 
 from groundsim.app import cli
 from groundsim.evaluation.eval import (
+    FEED_LEAD_MAX_US,
     EvalOptions,
     EvalResult,
     RunResult,
     TelemetryFeed,
+    format_gnss_dropout,
+    gnss_dropout_figures,
     onboard_config_for,
     run_eval,
     run_lockstep,
@@ -248,6 +251,9 @@ class _FakeCore:
         self.origin = GeodeticOrigin(32.0, 118.8, 0.0)
         self.gimbal = gimbal
 
+    def time_boot_us(self, i: int) -> int:
+        return 1_000_000 + round(i / self.tick_rate_hz * 1e6)
+
     def vehicle_state(self, i: int) -> dict:
         from onboard.core.frames import geodetic_from_ned
 
@@ -296,6 +302,44 @@ def test_telemetry_feed_for_waits_for_the_bracketing_sample():
     feed.feed_for(40, t_frame_us)
     assert buf.lookup(t_frame_us).pose is not None
     assert feed.next_tick <= 40 + 6  # fed only until a position sample after the frame (40 ms = 5 ticks)
+
+
+def test_telemetry_feed_withholds_position_in_a_gnss_dropout_and_feed_for_stops_short_of_its_end():
+    core = _FakeCore(3.0, gimbal=False)
+    from groundsim.world.nav_errors import parse_gnss_dropout
+    from onboard.core.frames import CameraMount
+
+    dropout = parse_gnss_dropout("1:1")
+    window = dropout.boot_window_us(1_000_000)
+    assert window == (2_000_000, 3_000_000)
+    buf = PoseBuffer(CameraMount(), PoseConfig(), core.origin)
+    feed = TelemetryFeed(core, buf, gimballed=False, gnss_outage_us=window)
+    t_frame_us = 2_500_000  # mid-dropout: the feed goes at most FEED_LEAD_MAX_US past it, then dead reckoning
+    feed.feed_for(int(1.5 * 120), t_frame_us)
+    assert core.time_boot_us(feed.next_tick - 1) <= t_frame_us + FEED_LEAD_MAX_US
+    assert buf._pos.t_us[-1] < window[0] and buf._att.t_us[-1] >= t_frame_us
+    pose = buf.pose_at(t_frame_us)
+    assert pose is not None and pose.pos_extrapolated_us > 500_000
+    np.testing.assert_allclose(pose.body.p_ned_m, [15.0, 0.0, -60.0], atol=0.05)  # 10 m/s north, dead-reckoned
+    while not feed.exhausted:
+        feed.feed_next()
+    assert not [t for t in buf._pos.t_us if window[0] <= t < window[1]] and buf.counter["position_resumed"] == 1
+
+
+def test_gnss_dropout_figures_count_the_window_frames():
+    r = _synthetic_run("A", 0)
+    F = r.frames
+    los = np.ones(F, bool)
+    los[5] = False
+    t0, t1 = float(r.t_s[4]), float(r.t_s[14])
+    r = dataclasses.replace(r, gnss_window_s=(t0, t1), gnss_warning_t_s=t0 + 0.2, los_valid=los)
+    f = gnss_dropout_figures(r)
+    in_gap = (r.t_s >= t0) & (r.t_s < t1) & r.visible & r.measurement_valid
+    assert f["frames"] == int(in_gap.sum()) == 10
+    assert f["los"] == pytest.approx(0.9) and f["warning_after_s"] == pytest.approx(0.2)
+    assert f["position"] == pytest.approx(float((in_gap & r.has_estimate).sum()) / 10)
+    assert gnss_dropout_figures(dataclasses.replace(r, gnss_window_s=None)) is None
+    assert "warned after" in format_gnss_dropout([r])
 
 
 # --------------------------------------------------------------------------- configuration

@@ -21,7 +21,7 @@ from groundsim.io.mavlink_vehicle import (
 from groundsim.io.ports import free_udp_port
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import euler_from_quat, quat_from_euler, quat_multiply
-from onboard.io.mavlink_wire import parse_endpoint
+from onboard.io.mavlink_wire import mavlink2, parse_endpoint
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -603,3 +603,27 @@ def test_mavsdk_discovers_the_autopilot_and_reads_position_and_attitude():
         assert pos.absolute_altitude_m == pytest.approx(ALT_AMSL_M, abs=1e-3)
         assert pos.relative_altitude_m == pytest.approx(ALT_REL_M, abs=1e-3)
         assert (att.w, att.x, att.y, att.z) == pytest.approx(Q_NED_FROM_BODY, abs=1e-6)
+
+
+@pytest.mark.integration
+def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude_goes_on():
+    port = free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
+    outage = (1_000_000, 2_000_000)
+    with MavlinkVehicle(
+        f"udpout:127.0.0.1:{port}", unix_time_at_boot_us=1_700_000_000_000_000, gnss_outage_us=outage
+    ) as vehicle:
+        _lockstep(vehicle, 0, 3_000_000)
+        msgs = _drain(rx)
+    rx.close()
+    inside = lambda m: outage[0] <= m.time_boot_ms * 1000 < outage[1]  # noqa: E731
+    pos = _of(msgs, "GLOBAL_POSITION_INT")
+    att = _of(msgs, "ATTITUDE_QUATERNION")
+    assert not any(inside(m) for m in pos)
+    assert sum(m.time_boot_ms < 1000 for m in pos) == 25 and sum(m.time_boot_ms >= 2000 for m in pos) >= 20  # 25 Hz
+    assert sum(inside(m) for m in att) == 50  # attitude goes on at 50 Hz
+    gps = _of(msgs, "GPS_RAW_INT")
+    in_fix = [g.fix_type for g in gps if outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
+    out_fix = [g.fix_type for g in gps if not outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
+    assert in_fix and set(in_fix) == {mavlink2.GPS_FIX_TYPE_NO_FIX}
+    assert out_fix and set(out_fix) == {mavlink2.GPS_FIX_TYPE_3D_FIX}

@@ -18,6 +18,7 @@ from groundsim.world.nav_errors import (
     NavErrorModel,
     NavErrorSample,
     offset_geodetic,
+    parse_gnss_dropout,
     reported_state,
     resolve_nav_noise,
 )
@@ -292,3 +293,16 @@ def test_eval_and_demo_default_to_rtk_and_the_shipped_daemon_config():
     assert parser.parse_args(["eval"]).nav_noise is None  # cmd_eval: None -> [DEFAULT_NAV_NOISE]
     assert parser.parse_args(["demo"]).onboard_config == "config/onboard.yaml"
     assert isinstance(OnboardConfig().mavlink.gimbal_rate_hz, float)
+
+
+@pytest.mark.parametrize("bad", ["5", "a:b", "-1:5", "3:-2", "3:inf", ""])
+def test_gnss_dropout_option_names_itself_when_bad(bad):
+    with pytest.raises(ConfigError, match="--gnss-dropout"):
+        parse_gnss_dropout(bad)
+
+
+def test_gnss_dropout_window_on_the_boot_clock():
+    d = parse_gnss_dropout("8:5")
+    assert (d.start_s, d.duration_s) == (8.0, 5.0)
+    assert d.active(8.0) and d.active(12.999) and not d.active(13.0) and not d.active(7.99)
+    assert d.boot_window_us(1_000_000) == (9_000_000, 14_000_000)

@@ -142,14 +142,14 @@ class Rig:
         self.pipe = FramePipeline(self.config, self.pose, make_tracker(self.config), self.est, counter=self.counter)
         self.fed_us = None
 
-    def feed_until(self, t_us: int, skip=None) -> None:
+    def feed_until(self, t_us: int, skip=None, skip_position=None) -> None:
         start = self.scene.t_us(0) - 100_000 if self.fed_us is None else self.fed_us + 1
         if t_us < start:
             return
         for t, p, v, q in self.scene.telemetry(start, t_us, 50.0):
             if skip is None or not skip(t):
                 self.pose.add_attitude(t, q)
-                if (t // 20_000) % 2 == 0:  # position at 25 Hz
+                if (t // 20_000) % 2 == 0 and (skip_position is None or not skip_position(t)):  # position at 25 Hz
                     self.pose.add_position_ned(t, p, v)
         self.fed_us = t_us
 
@@ -685,3 +685,32 @@ def test_a_stream_that_starts_with_a_far_stamp_is_judged_by_the_telemetry():
         assert ei.value.reason == reason
     assert [tr.seq for tr in rig.run(5)] == [0, 1, 2, 3, 4]
     assert rig.counter["frame_time_reset"] == 0 and rig.counter["frame_time_ahead"] == 1
+
+
+def test_a_gnss_gap_keeps_the_line_of_sight_and_coasts_the_3d_estimate_without_feeding_the_window():
+    rig = Rig(ready_after=5)
+    rig.run(30)
+    gap = (rig.scene.t_us(30), rig.scene.t_us(90))  # 2 s without position telemetry
+
+    def in_gap(t):
+        return gap[0] <= t < gap[1]
+
+    adds_before = sum(1 for c in rig.est.calls if c[0] == "add")
+    traces = []
+    for k in range(30, 90):
+        rig.feed_until(rig.scene.t_us(k) + 45_000, skip_position=in_gap)
+        tr = rig.pipe.process(rig.scene.frame(k), 0)
+        assert tr.los is not None and tr.has_position, k
+        t_s = (rig.scene.t_us(k) - rig.scene.boot_us0) / 1e6
+        err = np.asarray(tr.p_ned_m) - rig.scene.target(t_s)[0]
+        C = np.asarray(tr.cov_p_ned_m2)
+        assert err @ np.linalg.solve(C, err) < 3.0**2 * 3, k  # honest: well inside 3 sigma (3 dof)
+        traces.append(np.trace(C))
+    assert rig.pipe.last_position_age_s is not None and rig.pipe.last_position_age_s > 1.5
+    assert rig.pipe.frames_coasted > 45  # all but the first few hundred ms, still within the assumed noise
+    assert sum(1 for c in rig.est.calls if c[0] == "add") - adds_before < 15  # dead-reckoned poses never added
+    assert traces[-1] > 2.0 * traces[10]  # the covariance grows with the gap
+    rig.feed_until(rig.scene.t_us(91) + 45_000)  # position back
+    n_add = sum(1 for c in rig.est.calls if c[0] == "add")
+    tr = rig.step(91)
+    assert rig.pipe.last_position_age_s < 0.1 and sum(1 for c in rig.est.calls if c[0] == "add") == n_add + 1

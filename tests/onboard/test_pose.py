@@ -576,7 +576,8 @@ def test_no_rates_no_extrapolation_and_the_miss_stays_not_yet():
 )
 def test_the_horizon_is_enforced_and_beyond_it_the_miss_is_counted_by_name(stream, horizon_field):
     horizon_us = 15_000  # every stream's (the others run on: only this stream's matters)
-    cfg = PoseConfig(max_extrapolation_ms=horizon_us / 1000)
+    # no dead reckoning: position's horizon is then the bounded one (dead reckoning: test_position_is_dead_reckoned_...)
+    cfg = PoseConfig(max_extrapolation_ms=horizon_us / 1000, dead_reckoning_max_s=0.0)
     buf = PoseBuffer(mount=CameraMount(gimballed=True), origin=ORIGIN, config=cfg)
     last = {"attitude": 0, "position": 0, "gimbal": 0}
     last[stream] = 100_000  # this stream ends 100 ms in; the others run on
@@ -826,3 +827,49 @@ def test_a_miss_before_the_first_pose_is_start_up_info_and_after_it_a_warning(ca
     assert [r.levelno for r in misses] == [logging.INFO, logging.WARNING]
     assert "(start-up)" in misses[0].getMessage() and "(start-up)" not in misses[1].getMessage()
     assert buf.counter.total == 2
+
+
+# --------------------------------------------------------------------------- GNSS gap: dead reckoning
+
+
+def gnss_gap_buffer(config: PoseConfig | None = None) -> PoseBuffer:
+    """Attitude at 50 Hz for 6 s; position (straight line, 5 m/s north) at 25 Hz until 1 s, none after."""
+    buf = PoseBuffer(origin=ORIGIN, config=config or PoseConfig())
+    for t in range(0, 6_000_001, 20_000):
+        assert buf.add_attitude(t, [1, 0, 0, 0])
+    for t in range(0, 1_000_001, 40_000):
+        assert buf.add_position_ned(t, [5.0 * t / 1e6, 2.0, -50.0], [5.0, 0.0, 0.0])
+    return buf
+
+
+def test_position_is_dead_reckoned_through_a_gnss_gap_with_a_growing_sigma():
+    buf = gnss_gap_buffer()
+    c = buf.config
+    sigmas = []
+    for h_s in (0.5, 2.0, 4.0):
+        t_us = 1_000_000 + int(h_s * 1e6)
+        pose = buf.pose_at(t_us)
+        assert pose is not None, buf.last_miss_reason
+        np.testing.assert_allclose(pose.body.p_ned_m, [5.0 * t_us / 1e6, 2.0, -50.0], atol=ATOL_M)
+        assert pose.pos_extrapolated_us == int(h_s * 1e6) and pose.att_extrapolated_us == 0  # attitude bracketed
+        expected = math.hypot(c.velocity_sigma_mps * h_s, 0.5 * c.accel_sigma_mps2 * h_s * h_s)
+        assert pose.sigma_extrapolation_m == pytest.approx(expected, rel=1e-9)
+        sigmas.append(pose.sigma_extrapolation_m)
+    assert sigmas[0] < sigmas[1] < sigmas[2] and sigmas[2] > 10.0  # 4 s of dead reckoning: metres, said so
+
+
+def test_dead_reckoning_stops_at_its_limit():
+    buf = gnss_gap_buffer(PoseConfig(dead_reckoning_max_s=2.0))
+    assert buf.pose_at(2_900_000) is not None
+    assert buf.pose_at(3_100_000) is None and buf.last_miss_reason == "position_extrapolation_limit"
+
+
+def test_position_resuming_after_a_gap_is_taken_on_the_attitude_clock_not_refused_as_an_outlier():
+    buf = gnss_gap_buffer()
+    assert buf.add_position_ned(6_000_000, [30.0, 2.0, -50.0], [5.0, 0.0, 0.0])  # 5 s after the last one
+    assert buf.counter["position_resumed"] == 1 and buf.counter["position_time_outlier"] == 0
+    pose = buf.pose_at(6_000_000)
+    assert pose is not None and pose.pos_extrapolated_us == 0 and pose.sigma_extrapolation_m == 0.0
+    # a lone far stamp with no other stream near it is still an outlier
+    assert not buf.add_position_ned(60_000_000, [30.0, 2.0, -50.0], [5.0, 0.0, 0.0])
+    assert buf.counter["position_time_outlier"] == 1

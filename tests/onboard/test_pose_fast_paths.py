@@ -179,7 +179,15 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
     ba = b_or_x(buf._att, h.attitude_us, lambda: bool(np.all(np.isfinite(buf._att.values[-1][4:]))))
     if ba[0] is None:
         return PoseLookup(None, ba[1], ba[2])
-    bp = b_or_x(buf._pos, h.position_us, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:]))))
+    pos_h = max(h.position_us, c.dead_reckoning_us)  # dead reckoning through a GNSS gap extends position's horizon
+    bp = b_or_x(buf._pos, pos_h, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:]))))
+    if extrapolate and bp[0] is None and bp[1] == "position_gap" and buf._pos.t_us[0] < t:
+        j = int(np.searchsorted(buf._pos.t_us, t, side="right")) - 1
+        if bool(np.all(np.isfinite(buf._pos.values[j][3:]))):
+            if t - buf._pos.t_us[j] <= pos_h:
+                bp = (j, P._AFTER, 0.0)
+            elif j == len(buf._pos.t_us) - 1:
+                bp = (None, "position_extrapolation_limit", True)
     if bp[0] is None:
         return PoseLookup(None, bp[1], bp[2])
     bg = None

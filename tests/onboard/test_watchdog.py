@@ -128,3 +128,18 @@ def test_a_gimballed_mount_without_gimbal_messages_warns_after_the_timeout():
     assert "gimbal_mismatch" in {w.code for w in wd.active}
     wd.gimbal(7.0, gimballed=True, gimbal_reports=4, telemetry_since_s=1.0)  # the gimbal speaks: cleared
     assert "gimbal_mismatch" not in {w.code for w in wd.active}
+
+
+def test_gnss_dropout_is_named_from_the_frames_position_age_and_cleared_when_position_is_back(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for age_s in (0.0, 0.04, 0.3, None):  # fresh, normal lag, at the limit, a frame without a pose
+            wd.navigation(101.0, age_s)
+        assert wd.active == () and wd.changes == 0
+        wd.navigation(101.5, 0.35)
+        assert [w.code for w in wd.active] == ["gnss_dropout"] and wd.changes == 1
+        wd.navigation(102.0, 1.2)  # still out: no second warning
+        wd.navigation(102.5, 0.02)
+    assert wd.active == () and wd.changes == 2
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and "GLOBAL_POSITION_INT" in msgs[0] and "dead-reckoned" in msgs[0]
