@@ -399,6 +399,12 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         "the simulator's navigation errors, a case of config/noise_cases.yaml (default: the scenario's nav_noise, RTK)",
     )
     p.add_argument(
+        "--mount-as-configured",
+        action="store_true",
+        help="the daemon keeps --onboard-config's camera mount instead of the scenario's (a wrong mount"
+        " configuration: e.g. the shipped fixed pod flown on a gimballed scenario)",
+    )
+    p.add_argument(
         "--no-eval",
         dest="with_eval",
         action="store_false",

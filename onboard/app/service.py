@@ -84,6 +84,7 @@ log = logging.getLogger(__name__)
 WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 #: ``frame_*`` counter keys that are accepted events, not refusals
+MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
 ACCEPTED_FRAME_EVENTS = frozenset({"frame_time_reset", "frame_sequence_reset", "frame_stream_restart"})
 
 
@@ -382,6 +383,8 @@ class OnboardService:
     def _process(self, frame: IrFrame, received_ns: int) -> Track | None:
         """One frame through the pipeline, with the watchdog's frame checks; None when it was refused or failed."""
         c0 = time.thread_time()
+        # fail-safe: while the configured camera disagrees with the vehicle, no direction or position goes out
+        self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
         try:
             track = self.pipeline.process(frame, received_ns)
             now_s = self._clock()
@@ -630,6 +633,7 @@ class OnboardService:
                 "estimator": self.pipeline.estimator_ms.summary(),
             },
             warnings=warnings,
+            withheld_because=self.pipeline.withheld_because,
         )
         if self.camera is not None:
             status["camera"] = self._camera_status(self.camera)

@@ -72,6 +72,7 @@ def build_status(
     publish_ms: Mapping[str, Any] | None = None,
     stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
     warnings: list[Mapping[str, str]] | tuple = (),
+    withheld_because: tuple[str, ...] | list[str] = (),
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
@@ -89,7 +90,9 @@ def build_status(
     ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
     latest track's state in short.  ``warnings``: the conditions active now that an operator must
     fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
-    empty when all is well.
+    empty when all is well.  ``geometry``: ``published`` (line of sight and 3-D positions go out) or
+    ``withheld``, with ``withheld_because`` the warnings that withhold them (a configuration mismatch:
+    the camera attitude the daemon computes is wrong, so is any direction or position made from it).
     """
     t = last_track
     return {
@@ -103,6 +106,10 @@ def build_status(
             "rejected": int(frames_rejected),
             "published": int(tracks_published),
             "queue_length": int(queue_length),
+        },
+        "geometry": {
+            "output": "withheld" if withheld_because else "published",
+            "withheld_because": list(withheld_because),
         },
         "processing_ms": dict(processing_ms),
         "latency_ms": dict(latency_ms),

@@ -206,6 +206,11 @@ class FramePipeline:
         #: how old the newest position sample was at the last frame's capture time (s; inf: past the dead-reckoning
         #: limit; None: no pose for another reason).  The daemon's watchdog names a GNSS dropout from it.
         self.last_position_age_s: float | None = None
+        #: warnings (``gimbal_mismatch``, ``camera_mismatch``) that withhold the line of sight and the 3-D position
+        #: (the daemon sets them from its watchdog); the image fields still go out.  Set by another thread: read once
+        #: per frame.
+        self.withheld_because: tuple[str, ...] = ()
+        self._was_withheld = False
         ec = config.estimator
         # a pose whose position is dead-reckoned beyond the camera-position noise the window assumes coasts
         self._camera_sigma_m = max(float(ec.camera_position_white_sigma_m), CAMERA_SIGMA_FLOOR_M)
@@ -514,6 +519,20 @@ class FramePipeline:
         return float((du * du + dv * dv) / s2)
 
     def _track(self, frame: IrFrame, upd, state: str, pose: PoseAt | None, est) -> Track:
+        withheld = bool(self.withheld_because)
+        if withheld != self._was_withheld:
+            self._was_withheld = withheld
+            if withheld:
+                log.warning("line of sight and 3-D positions withheld: %s", ", ".join(self.withheld_because))
+            else:  # the window holds rows made with the wrong camera: start again
+                log.info("line of sight and 3-D positions published again")
+                self._reset_estimator("configuration mismatch cleared")
+                est = None
+        residual = None
+        if withheld and est is not None:
+            # the image fields only, but the residual figure still goes out: it is what clears camera_mismatch
+            residual = self._residual_rms_norm(upd, pose, est, frame.time_boot_us)
+            est = None
         origin = self._origin(pose)
         base = dict(
             vehicle=self.vehicle,
@@ -526,10 +545,12 @@ class FramePipeline:
             v_px=upd.v_px,
             bbox=upd.bbox,
             pose_valid=pose is not None,
-            los=self._line_of_sight(upd, pose),
+            los=None if withheld else self._line_of_sight(upd, pose),
             origin=origin,
         )
         if est is None:
+            if residual is not None:
+                base["residual_rms_norm"] = residual
             return Track(**base)
         base.update(
             observable=bool(est.observable),

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from onboard.app.service import MISMATCH_WARNINGS
 from onboard.app.watchdog import Watchdog
 from onboard.core.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
 from onboard.core.pose import PoseBuffer
@@ -145,3 +146,41 @@ def test_matching_mount_raises_no_camera_warning(caplog):
     wd, rr = _watch(_mismatched_rig(0.0), 240, caplog)
     assert not [r for r in caplog.records if r.levelno == logging.WARNING] and wd.active == ()
     assert max(r for r in rr if r is not None) < 1
+
+
+def test_while_the_camera_mismatches_no_direction_or_position_goes_out_and_the_residual_still_does(caplog):
+    rig = _mismatched_rig(-10.0)
+    wd = Watchdog(
+        started_s=0.0, frame_key="k", zenoh_where="peer", mavlink_connection="udpin:x", camera_size_px=(640, 512)
+    )
+    tracks = []
+    for k in range(240):  # 8 s; the daemon's order: the warnings set the pipeline, then the frame
+        rig.pipe.withheld_because = tuple(w.code for w in wd.active if w.code in MISMATCH_WARNINGS)
+        tr = rig.step(k)
+        wd.residual((tr.time_boot_us - rig.scene.boot_us0) / 1e6, tr.residual_rms_norm)
+        tracks.append(tr)
+    first = next(k for k, tr in enumerate(tracks) if tr.los is None)
+    assert 0 < first < 240 and rig.pipe.withheld_because == ("camera_mismatch",)
+    assert tracks[first - 1].los is not None and tracks[first - 1].has_position  # before the warning: published
+    after = tracks[first:]
+    assert all(tr.los is None and not tr.has_position and tr.pose_valid for tr in after)
+    assert all(tr.u_px is not None and tr.residual_rms_norm is not None for tr in after)  # image fields, residual
+    assert [w.code for w in wd.active] == ["camera_mismatch"]  # still judged on the residuals
+    n_resets = rig.pipe.estimator_resets
+    rig.pipe.withheld_because = ()  # cleared: published again, from a fresh window
+    tr = rig.step(240)
+    assert tr.los is not None and rig.pipe.estimator_resets == n_resets + 1
+
+
+def test_the_status_says_whether_geometry_is_withheld_and_why():
+    from onboard.core.status import build_status
+
+    kw = dict(
+        vehicle="uav1", uptime_s=1.0, frames_in=1, frames_processed=1, frames_dropped=0, frames_rejected=0,
+        tracks_published=1, processing_ms={}, latency_ms={}, pose_wait_ms={}, capture_to_track_ms=None,
+        rejected={}, link=None, cpu_share=None, pipeline_cpu_share=None, last_track=None, estimator="inline",
+        queue_length=0,
+    )  # fmt: skip
+    assert build_status(**kw)["geometry"] == {"output": "published", "withheld_because": []}
+    got = build_status(**kw, withheld_because=("gimbal_mismatch",))["geometry"]
+    assert got == {"output": "withheld", "withheld_because": ["gimbal_mismatch"]}
