@@ -398,6 +398,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         p,
         "the simulator's navigation errors, a case of config/noise_cases.yaml (default: the scenario's nav_noise, RTK)",
     )
+    _gnss_dropout_option(p)
     p.add_argument(
         "--mount-as-configured",
         action="store_true",

@@ -103,6 +103,7 @@ class DemoPlan:
     python: str = sys.executable
     nav_noise: str = "RTK"  # the simulator's navigation-error case (groundsim run --nav-noise)
     live_view_port: int | None = None  # passed to the daemon as --live-view PORT (Foxglove WebSocket on 127.0.0.1)
+    gnss_dropout: str | None = None  # passed to the simulator as --gnss-dropout START_S:DURATION_S
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -230,6 +231,7 @@ def sim_command(plan: DemoPlan) -> list[str]:
         str(plan.truth_path),
         "--nav-noise",
         plan.nav_noise,
+        *([] if plan.gnss_dropout is None else ["--gnss-dropout", plan.gnss_dropout]),
     ]
 
 
@@ -904,6 +906,12 @@ def cmd_demo(args) -> int:
             getattr(args, "nav_noise", None),
             mount_as_configured=bool(getattr(args, "mount_as_configured", False)),
         )
+        gnss = getattr(args, "gnss_dropout", None)
+        if gnss:
+            from groundsim.world.nav_errors import parse_gnss_dropout
+
+            parse_gnss_dropout(gnss)  # a bad value fails here, before any process starts
+            plan = dataclasses.replace(plan, gnss_dropout=gnss)
         live_port = getattr(args, "live_view", None)  # --live-view PORT: passed through to the daemon
         if live_port is not None:
             plan = dataclasses.replace(plan, live_view_port=int(live_port))

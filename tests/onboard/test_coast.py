@@ -55,3 +55,14 @@ def test_the_verdict_holds_only_while_the_coasted_range_sigma_stays_small():
     assert near.observable and near.range_sigma_ratio < OBSERVABLE_MAX_RANGE_SIGMA_RATIO
     assert not far.observable and far.range_sigma_ratio > OBSERVABLE_MAX_RANGE_SIGMA_RATIO
     assert not coast_estimate(_estimate(observable=False), 10.5, np.zeros(3), 1.0).observable
+
+
+def test_an_unobservable_estimate_is_only_propagated_its_range_floor_kept():
+    est = _estimate(observable=False)
+    u = np.array([0.0, 0.3, -0.1])
+    u = u + est.p_ned_m / np.linalg.norm(est.p_ned_m)
+    u /= np.linalg.norm(u)  # a bearing some degrees off the estimate's ray
+    with_u = coast_estimate(est, 11.0, np.zeros(3), 1.0, u_ned=u, bearing_sigma_rad=1e-3, accel_sigma_mps2=1.0)
+    without = coast_estimate(est, 11.0, np.zeros(3), 1.0, accel_sigma_mps2=1.0)
+    np.testing.assert_array_equal(with_u.cov_p_ned_m2, without.cov_p_ned_m2)
+    np.testing.assert_array_equal(with_u.p_ned_m, without.p_ned_m)
