@@ -96,6 +96,16 @@ def _nav_noise_option(p: argparse.ArgumentParser, help_text: str, nargs: str | N
     p.add_argument("--nav-noise", nargs=nargs, default=None, metavar="NAME", help=help_text)
 
 
+def _camera_clock_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--camera-time-offset-ms",
+        default=None,
+        metavar="MS[:DRIFT_PPM]",
+        help="stamp the frames MS milliseconds late (+ DRIFT_PPM parts per million of the flight time): a camera"
+        " clock off the autopilot's (e.g. 50 or 50:20)",
+    )
+
+
 def _gnss_dropout_option(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--gnss-dropout",
@@ -164,6 +174,7 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         " default: the scenario's nav_noise, RTK unless it says otherwise)",
     )
     _gnss_dropout_option(p)
+    _camera_clock_option(p)
     p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
     p.add_argument(
         "--record",
@@ -198,7 +209,7 @@ def _run_config(args):
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
     from groundsim.app.run import RateSpec, RunConfig
-    from groundsim.world.nav_errors import parse_gnss_dropout
+    from groundsim.world.nav_errors import parse_camera_time_offset, parse_gnss_dropout
     from onboard.io.zenoh_session import ZenohSettings
 
     rate = RateSpec.parse(args.rate)
@@ -226,6 +237,7 @@ def _run_config(args):
         record_path=Path(args.record) if args.record else None,
         guided=bool(getattr(args, "guided", False)),
         gnss_dropout=parse_gnss_dropout(args.gnss_dropout) if args.gnss_dropout else None,
+        camera_clock=parse_camera_time_offset(args.camera_time_offset_ms) if args.camera_time_offset_ms else None,
     )
 
 
@@ -357,6 +369,7 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         nargs="+",
     )
     _gnss_dropout_option(p)
+    _camera_clock_option(p)
     p.add_argument(
         "--estimator",
         default=None,

@@ -149,6 +149,7 @@ class RunConfig:
     record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.io.record)
     guided: bool = False  # --guided: the vehicle reports GUIDED and its observer follows velocity setpoints
     gnss_dropout: object | None = None  # --gnss-dropout: a groundsim.world.nav_errors.GnssDropout
+    camera_clock: object | None = None  # --camera-time-offset-ms: a groundsim.world.nav_errors.CameraClockError
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -334,8 +335,10 @@ def run_loop(
     truth: TruthWriter | None = None,
     stop: threading.Event | None = None,
     clock=None,
+    camera_clock=None,
 ) -> RunReport:
     """Drive ``core`` tick by tick into the sinks (any may be None); see the module docstring.
+    ``camera_clock``: a :class:`groundsim.world.nav_errors.CameraClockError` that stamps the frames (None: exact).
 
     ``mavlink``: has ``update_state(**state, nav_error=sample)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
     ``publisher``: has ``publish(IrFrame)`` (a FramePublisher); ``truth``: a TruthWriter.
@@ -411,7 +414,10 @@ def run_loop(
                     jitter.add(wall, late)
                 if publisher is not None and frame.pixels is not None:
                     try:
-                        publisher.publish(IrFrame(frame.seq, frame.time_boot_us, frame.pixels))
+                        stamp = frame.time_boot_us
+                        if camera_clock is not None:
+                            stamp = camera_clock.stamp_us(stamp, frame.truth.t_s)
+                        publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
                         published += 1
                     except sink_errors as exc:
                         publish_errors(f"frame {frame.seq}: publish", exc)
@@ -524,7 +530,16 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             frame_key(config.vehicle),
             "" if config.render else " (rendering off: no frames)",
         )
-        return run_loop(core, config.rate, mavlink=vehicle, publisher=publisher, truth=writer, stop=stop, clock=clock)
+        return run_loop(
+            core,
+            config.rate,
+            mavlink=vehicle,
+            publisher=publisher,
+            truth=writer,
+            stop=stop,
+            clock=clock,
+            camera_clock=config.camera_clock,
+        )
     finally:
         for closer in (writer, publisher, vehicle, session, recorder):
             if closer is not None:

@@ -138,6 +138,9 @@ class EvalOptions:
     #: a GNSS dropout (``--gnss-dropout``, :class:`groundsim.world.nav_errors.GnssDropout`): no position telemetry
     #: in its window, attitude and frames going on
     gnss_dropout: object | None = None
+    #: the camera's clock off the autopilot's (``--camera-time-offset-ms``,
+    #: :class:`groundsim.world.nav_errors.CameraClockError`): the frames' stamps, not their content
+    camera_clock: object | None = None
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -571,8 +574,13 @@ def run_lockstep(
         p0 = time.perf_counter()
         track = None
         if fr.pixels is not None:  # None: the camera model dropped the frame (its shutter was closed)
+            stamp = (
+                fr.time_boot_us
+                if options.camera_clock is None
+                else options.camera_clock.stamp_us(fr.time_boot_us, tr.t_s)
+            )
             try:
-                track = pipeline.process(IrFrame(fr.seq, fr.time_boot_us, fr.pixels))
+                track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
             except FrameRejected as exc:  # counted by the pipeline; the frame has no track
                 rejected += 1
                 log.debug("frame %d rejected: %s", k, exc)
@@ -979,6 +987,15 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
         )
 
 
+def _camera_clock(args):
+    text = getattr(args, "camera_time_offset_ms", None)
+    if not text:
+        return None
+    from groundsim.world.nav_errors import parse_camera_time_offset
+
+    return parse_camera_time_offset(text)
+
+
 def _gnss_dropout(args):
     text = getattr(args, "gnss_dropout", None)
     if not text:
@@ -1013,6 +1030,7 @@ def cmd_eval(args) -> int:
             estimator=getattr(args, "estimator", None),
             guidance=bool(getattr(args, "guidance", False)),
             gnss_dropout=_gnss_dropout(args),
+            camera_clock=_camera_clock(args),
         )
         for n in nav_noises[1:]:
             dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs

@@ -60,6 +60,8 @@ __all__ = [
     "offset_geodetic",
     "GnssDropout",
     "parse_gnss_dropout",
+    "CameraClockError",
+    "parse_camera_time_offset",
     "resolve_nav_noise",
     "reported_state",
 ]
@@ -103,6 +105,37 @@ def parse_gnss_dropout(text: str) -> GnssDropout:
         return GnssDropout(float(start), float(duration))
     except ValueError:
         raise ConfigError(f"--gnss-dropout: expected START_S:DURATION_S (e.g. 8:5), got {text!r}") from None
+
+
+@dataclass(frozen=True)
+class CameraClockError:
+    """The camera's clock against the autopilot's: frames stamped ``offset_ms + drift_ppm * 1e-6 * t``
+    late (positive: the stamp is later than the true capture), ``t`` the scenario time.  What an unmeasured
+    USB/CSI buffer or encoder latency, and a free-running camera oscillator, do.
+    ``--camera-time-offset-ms MS[:DRIFT_PPM]``."""
+
+    offset_ms: float
+    drift_ppm: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("offset_ms", "drift_ppm"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or abs(v) > 1e6:
+                raise ConfigError(f"--camera-time-offset-ms: {name} must be a finite number within 1e6, got {v!r}")
+            object.__setattr__(self, name, float(v))
+
+    def stamp_us(self, time_boot_us: int, t_s: float) -> int:
+        """The stamp a frame captured at ``time_boot_us`` (scenario time ``t_s``) carries."""
+        return int(time_boot_us) + round(self.offset_ms * 1000.0 + self.drift_ppm * t_s)
+
+
+def parse_camera_time_offset(text: str) -> CameraClockError:
+    """``"MS"`` or ``"MS:DRIFT_PPM"`` (e.g. ``"50"``, ``"50:20"``) -> :class:`CameraClockError`."""
+    offset, _, drift = str(text).partition(":")
+    try:
+        return CameraClockError(float(offset), float(drift) if drift else 0.0)
+    except ValueError:
+        raise ConfigError(f"--camera-time-offset-ms: expected MS or MS:DRIFT_PPM (e.g. 50:20), got {text!r}") from None
 
 
 #: The scenario random stream the errors are drawn from (``Scenario.rng(NAV_ERROR_STREAM, run_seed)``).

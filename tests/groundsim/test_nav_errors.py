@@ -18,6 +18,7 @@ from groundsim.world.nav_errors import (
     NavErrorModel,
     NavErrorSample,
     offset_geodetic,
+    parse_camera_time_offset,
     parse_gnss_dropout,
     reported_state,
     resolve_nav_noise,
@@ -306,3 +307,14 @@ def test_gnss_dropout_window_on_the_boot_clock():
     assert (d.start_s, d.duration_s) == (8.0, 5.0)
     assert d.active(8.0) and d.active(12.999) and not d.active(13.0) and not d.active(7.99)
     assert d.boot_window_us(1_000_000) == (9_000_000, 14_000_000)
+
+
+def test_camera_clock_error_stamps_frames_late_with_a_drift():
+    c = parse_camera_time_offset("50:20")
+    assert (c.offset_ms, c.drift_ppm) == (50.0, 20.0)
+    assert c.stamp_us(1_000_000, 0.0) == 1_050_000
+    assert c.stamp_us(101_000_000, 100.0) == 101_000_000 + 50_000 + 2_000  # 20 ppm of 100 s = 2 ms
+    assert parse_camera_time_offset("-12.5").stamp_us(1_000_000, 5.0) == 987_500
+    for bad in ("", "x", "50:y", "inf"):
+        with pytest.raises(ConfigError, match="--camera-time-offset-ms"):
+            parse_camera_time_offset(bad)
