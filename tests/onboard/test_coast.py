@@ -57,12 +57,16 @@ def test_the_verdict_holds_only_while_the_coasted_range_sigma_stays_small():
     assert not coast_estimate(_estimate(observable=False), 10.5, np.zeros(3), 1.0).observable
 
 
-def test_an_unobservable_estimate_is_only_propagated_its_range_floor_kept():
+def test_an_unobservable_estimate_is_put_on_the_frames_ray_at_its_last_range():
     est = _estimate(observable=False)
-    u = np.array([0.0, 0.3, -0.1])
-    u = u + est.p_ned_m / np.linalg.norm(est.p_ned_m)
+    u = np.array([0.0, 0.3, -0.1]) + est.p_ned_m / np.linalg.norm(est.p_ned_m)
     u /= np.linalg.norm(u)  # a bearing some degrees off the estimate's ray
-    with_u = coast_estimate(est, 11.0, np.zeros(3), 1.0, u_ned=u, bearing_sigma_rad=1e-3, accel_sigma_mps2=1.0)
-    without = coast_estimate(est, 11.0, np.zeros(3), 1.0, accel_sigma_mps2=1.0)
-    np.testing.assert_array_equal(with_u.cov_p_ned_m2, without.cov_p_ned_m2)
-    np.testing.assert_array_equal(with_u.p_ned_m, without.p_ned_m)
+    cam = np.array([1.0, 2.0, 0.0])
+    out = coast_estimate(est, 11.0, cam, 1.0, u_ned=u, bearing_sigma_rad=1e-3, accel_sigma_mps2=1.0)
+    np.testing.assert_allclose(out.p_ned_m, cam + est.range_m * u, atol=ATOL_M)
+    r = est.range_m
+    along = (0.01 * r) ** 2 + 1.0 * 0.04 + 0.5**2  # window's range sigma, dt^2 V, (a dt^2 / 2)^2
+    across = (r * 1e-3) ** 2 + 1.0 + 0.5**2
+    assert float(u @ out.cov_p_ned_m2 @ u) == pytest.approx(along, rel=1e-9)
+    assert float(np.trace(out.cov_p_ned_m2)) == pytest.approx(along + 2 * across, rel=1e-9)
+    assert not out.observable
