@@ -34,6 +34,7 @@ from onboard.app.shared_pose import SharedPoseBuffer  # noqa: E402
 from onboard.core.counters import RejectCounter  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 from onboard.core.frames import geodetic_from_ned  # noqa: E402
+from onboard.core.irframe import decode_irframe  # noqa: E402
 from onboard.core.pose import PoseBuffer  # noqa: E402
 from onboard.core.status import STATUS_SCHEMA  # noqa: E402
 from onboard.core.track import track_from_json  # noqa: E402
@@ -426,6 +427,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         last = state["last_payload"]
         pub.put(last)  # duplicate
         pub.put(scene.payload(0, seq=1, time_boot_us=scene.boot_us0 + 1))  # out of order (long ago, seq back)
+        odd_seq = decode_irframe(last).seq + 100_000  # numbering moving on, stamps wrong: one frame each
+        pub.put(scene.payload(0, seq=odd_seq, time_boot_us=decode_irframe(last).time_boot_us + 3_600_000_000))
+        pub.put(scene.payload(0, seq=odd_seq + 1, time_boot_us=1000))  # 1 ms after boot
         for _ in range(20):  # repeated: counted 20 times, logged once
             pub.put(np.random.default_rng(5).integers(0, 256, 4000, dtype=np.uint8).tobytes())
         pub.put(last[:-640])  # wrong size
@@ -440,6 +444,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
             "position_zero": 1,
             "frame_duplicate": 1,
             "frame_out_of_order": 1,
+            "frame_time_ahead": 1,
+            "frame_time_behind": 1,
             "frame_magic": 20,
             "frame_size": 1,
             "frame_too_large": 1,
@@ -452,6 +458,8 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         n_before = len(got_tracks)
         run_until(lambda: len(got_tracks) >= n_before + 10, 10, "tracks after the bad input")
         assert got_tracks[-1].state == "tracking" and got_tracks[-1].pose_valid
+        restarts = {"frame_time_reset", "frame_stream_restart", "frame_sequence_reset"}
+        assert not restarts & set(got_status[-1]["rejected"])  # no odd frame restarted the stream or the estimator
 
         # 3. status document and MAVLink tracking status
         st = got_status[-1]
