@@ -318,7 +318,7 @@ def _run_interrupted(received: list[int], config, report) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from groundsim.evaluation.eval import cmd_eval
+    from groundsim.app.eval_command import cmd_eval
 
     return cmd_eval(args)
 

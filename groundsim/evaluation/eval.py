@@ -75,13 +75,10 @@ from groundsim.evaluation.parallel import (
     JobsInterrupted,
     limit_blas_threads,
     progress_bar,
-    quiet_run_logs,
     report_progress,
     run_jobs,
 )
-from groundsim.evaluation.report import make_out_dir
 from groundsim.evaluation.scoring import score_run, summarise
-from groundsim.io.stop_signals import print_interrupted
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
@@ -98,7 +95,6 @@ __all__ = [
     "load_base_config",
     "run_lockstep",
     "run_eval",
-    "cmd_eval",
 ]
 
 log = logging.getLogger(__name__)
@@ -744,51 +740,6 @@ def run_lockstep(
     )
 
 
-def gnss_dropout_figures(r: RunResult) -> dict | None:
-    """What a run did in its GNSS dropout (None without one): ``frames`` in the window with the target in view
-    (visible and measured), the share of them with a line of sight (``los``) and with a 3-D position
-    (``position``); ``beyond_3sigma`` among those positions (``||e|| > 3 sqrt(trace cov)``, the closed-loop
-    figure's definition); ``warning_after_s``: from the window's start to the watchdog's ``gnss_dropout``."""
-    if r.gnss_window_s is None or r.frames == 0:
-        return None
-    t0, t1 = r.gnss_window_s
-    gap = (r.t_s >= t0) & (r.t_s < t1) & r.visible & r.measurement_valid
-    n = int(gap.sum())
-    if n == 0:
-        return {"frames": 0}
-    has = gap & r.has_estimate
-    e = np.linalg.norm(r.est_p_ned_m[has] - r.truth_p_ned_m[has], axis=1)
-    sig3 = 3.0 * np.sqrt(np.trace(r.est_cov_ned_m2[has], axis1=1, axis2=2))
-    rng = r.range_m[has]
-    return {
-        "frames": n,
-        "los": math.nan if r.los_valid is None else float((gap & r.los_valid).sum() / n),
-        "position": float(has.sum() / n),
-        "beyond_3sigma": float((e > sig3).mean()) if has.any() else None,
-        "median_error_pct_range": float(np.median(100.0 * e / rng)) if has.any() else None,
-        "warning_after_s": r.gnss_warning_t_s - t0,
-    }
-
-
-def format_gnss_dropout(runs: list[RunResult]) -> str:
-    """One line per run: the GNSS dropout's figures (:func:`gnss_dropout_figures`)."""
-    lines = ["GNSS dropout: frames in the window with the target in view, and what they got"]
-    lines.append(f"{'run':<14} {'frames':>6} {'los':>7} {'3-D':>7} {'>3sigma':>8} {'med err':>8} {'warned after':>13}")
-    for r in runs:
-        f = gnss_dropout_figures(r)
-        if f is None or not f.get("frames"):
-            lines.append(f"{r.scenario + ' s' + str(r.seed):<14} {'no frames in the window' if f else 'no dropout'}")
-            continue
-        b3 = "-" if f["beyond_3sigma"] is None else f"{100 * f['beyond_3sigma']:.1f} %"
-        med = "-" if f["median_error_pct_range"] is None else f"{f['median_error_pct_range']:.2f} %"
-        warned = "never" if math.isnan(f["warning_after_s"]) else f"{f['warning_after_s']:.2f} s"
-        lines.append(
-            f"{r.scenario + ' s' + str(r.seed):<14} {f['frames']:>6} {100 * f['los']:>6.1f}% {100 * f['position']:>6.1f}%"
-            f" {b3:>8} {med:>8} {warned:>13}"
-        )
-    return "\n".join(lines)
-
-
 def _batch(
     cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px, nav_case=None
 ) -> dict:
@@ -949,145 +900,3 @@ def keep_interrupted(exc: EvalInterrupted, out_dir) -> str:
     if exc.result.runs:
         kept = f"partial report in {write_eval_report(out_dir, exc.result)['report.md']}"
     return f"{len(exc.result.runs)} of {exc.planned} runs done; {kept}"
-
-
-# --------------------------------------------------------------------------- command line
-
-
-DEFAULT_EVAL_SCENARIOS = ("P1", "P2", "P3")
-
-
-def add_mot_scores(out: Path, seqs: list[str]) -> None:
-    """TrackEval's scores of the MOT files (groundsim.evaluation.mot.score_mot) into report.json: a top-level
-    ``mot`` {SEQ: metrics} and each run row's ``mot``; printed one line a SEQ.  A scoring failure is logged
-    and leaves report.json as it was (the 3-D report does not depend on it)."""
-    import json
-
-    from groundsim.evaluation.mot import score_mot, seq_name
-
-    try:
-        scores = score_mot(out, seqs)
-    except Exception as exc:  # noqa: BLE001 - TrackEval's own errors are many; the report stands without them
-        log.warning("MOT scoring failed: %s: %s", type(exc).__name__, exc)
-        return
-    if not scores:
-        return
-    path = Path(out) / "report.json"
-    report = json.loads(path.read_text(encoding="utf-8"))
-    report["mot"] = scores
-    for row in report.get("runs", []):
-        seq = seq_name(row.get("scenario", ""), row.get("nav_noise", ""), row.get("seed", 0))
-        if seq in scores:
-            row["mot"] = scores[seq]
-    path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    for seq, m in scores.items():
-        print(
-            f"MOT {seq}: HOTA {m['HOTA']:.3f} DetA {m['DetA']:.3f} AssA {m['AssA']:.3f} MOTA {m['MOTA']:.3f}"
-            f" IDF1 {m['IDF1']:.3f} IDSW {m['IDSW']}"
-        )
-
-
-def _camera_clock(args):
-    text = getattr(args, "camera_time_offset_ms", None)
-    if not text:
-        return None
-    from groundsim.world.nav_errors import parse_camera_time_offset
-
-    return parse_camera_time_offset(text)
-
-
-def _gnss_dropout(args):
-    text = getattr(args, "gnss_dropout", None)
-    if not text:
-        return None
-    from groundsim.world.nav_errors import parse_gnss_dropout
-
-    return parse_gnss_dropout(text)
-
-
-def cmd_eval(args) -> int:
-    """The ``eval`` command: run, write the report, print the table and the report's path."""
-    import sys
-
-    from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
-    from groundsim.world.scenario import load_scenario, resolve_scenario_path
-
-    limit_blas_threads(1)
-    with quiet_run_logs():  # per-track chatter would drown the progress bar
-        names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
-        scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
-        if isinstance(args.seeds, bool) or args.seeds < 1:
-            raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
-        workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
-        if workers < 1:
-            raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
-        nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
-        options = EvalOptions(
-            duration_s=args.duration,
-            pixel_sigma_px=args.pixel_sigma,
-            batch=not args.no_batch,
-            nav_noise=nav_noises[0],
-            estimator=getattr(args, "estimator", None),
-            guidance=bool(getattr(args, "guidance", False)),
-            gnss_dropout=_gnss_dropout(args),
-            camera_clock=_camera_clock(args),
-        )
-        for n in nav_noises[1:]:
-            dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
-        base = load_base_config(args.onboard_config)
-        source = args.onboard_config or (
-            str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
-        )
-        out = make_out_dir(args.out)
-        log.info(
-            "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
-            len(scenarios),
-            args.seeds,
-            workers,
-            source,
-        )
-        try:
-            result = run_eval(
-                scenarios,
-                range(args.seeds),
-                options,
-                base,
-                workers=workers,
-                progress=not args.no_progress,
-                config_source=source,
-                nav_noises=nav_noises,
-            )
-        except EvalInterrupted as exc:
-            return print_interrupted(keep_interrupted(exc, out))
-        files = write_eval_report(out, result)
-        from groundsim.evaluation.mot import write_mot
-
-        cameras = {
-            sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz)
-            for sc in scenarios
-        }
-        seqs = write_mot(out, result.runs, cameras)
-        log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
-        add_mot_scores(out, seqs)
-        descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
-        print(format_table2(result.summary, descriptions))
-        print()
-        print(format_closed_loop(result.summary))
-        if options.guidance:
-            from groundsim.evaluation.scoring import format_guidance_summary
-
-            table = format_guidance_summary(result.runs)
-            with open(files["report.md"], "a", encoding="utf-8") as f:
-                f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
-            print()
-            print(table)
-        if options.gnss_dropout is not None:
-            print()
-            print(format_gnss_dropout(result.runs))
-        failed = sum(1 for s in result.scores if "error" in s)
-        print(
-            f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
-            f"report: {files['report.md']}"
-        )
-        sys.stdout.flush()
-        return 0

@@ -348,3 +348,48 @@ def format_guidance_summary(runs) -> str:
             f"{f(float(np.median(adv)) if adv else None, '.0f')}; {f(float(np.median(first)) if first else None, '.1f')} |"
         )
     return "\n".join(lines)
+
+
+def gnss_dropout_figures(r) -> dict | None:
+    """What a run did in its GNSS dropout (None without one): ``frames`` in the window with the target in view
+    (visible and measured), the share of them with a line of sight (``los``) and with a 3-D position
+    (``position``); ``beyond_3sigma`` among those positions (``||e|| > 3 sqrt(trace cov)``, the closed-loop
+    figure's definition); ``warning_after_s``: from the window's start to the watchdog's ``gnss_dropout``."""
+    if r.gnss_window_s is None or r.frames == 0:
+        return None
+    t0, t1 = r.gnss_window_s
+    gap = (r.t_s >= t0) & (r.t_s < t1) & r.visible & r.measurement_valid
+    n = int(gap.sum())
+    if n == 0:
+        return {"frames": 0}
+    has = gap & r.has_estimate
+    e = np.linalg.norm(r.est_p_ned_m[has] - r.truth_p_ned_m[has], axis=1)
+    sig3 = 3.0 * np.sqrt(np.trace(r.est_cov_ned_m2[has], axis1=1, axis2=2))
+    rng = r.range_m[has]
+    return {
+        "frames": n,
+        "los": math.nan if r.los_valid is None else float((gap & r.los_valid).sum() / n),
+        "position": float(has.sum() / n),
+        "beyond_3sigma": float((e > sig3).mean()) if has.any() else None,
+        "median_error_pct_range": float(np.median(100.0 * e / rng)) if has.any() else None,
+        "warning_after_s": r.gnss_warning_t_s - t0,
+    }
+
+
+def format_gnss_dropout(runs: list) -> str:
+    """One line per run: the GNSS dropout's figures (:func:`gnss_dropout_figures`)."""
+    lines = ["GNSS dropout: frames in the window with the target in view, and what they got"]
+    lines.append(f"{'run':<14} {'frames':>6} {'los':>7} {'3-D':>7} {'>3sigma':>8} {'med err':>8} {'warned after':>13}")
+    for r in runs:
+        f = gnss_dropout_figures(r)
+        if f is None or not f.get("frames"):
+            lines.append(f"{r.scenario + ' s' + str(r.seed):<14} {'no frames in the window' if f else 'no dropout'}")
+            continue
+        b3 = "-" if f["beyond_3sigma"] is None else f"{100 * f['beyond_3sigma']:.1f} %"
+        med = "-" if f["median_error_pct_range"] is None else f"{f['median_error_pct_range']:.2f} %"
+        warned = "never" if math.isnan(f["warning_after_s"]) else f"{f['warning_after_s']:.2f} s"
+        lines.append(
+            f"{r.scenario + ' s' + str(r.seed):<14} {f['frames']:>6} {100 * f['los']:>6.1f}% {100 * f['position']:>6.1f}%"
+            f" {b3:>8} {med:>8} {warned:>13}"
+        )
+    return "\n".join(lines)

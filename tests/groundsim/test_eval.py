@@ -26,14 +26,12 @@ from groundsim.evaluation.eval import (
     EvalResult,
     RunResult,
     TelemetryFeed,
-    format_gnss_dropout,
-    gnss_dropout_figures,
     onboard_config_for,
     run_eval,
     run_lockstep,
 )
 from groundsim.evaluation.report import ape_rmse_m, read_tum, write_eval_report, write_tum
-from groundsim.evaluation.scoring import score_run, summarise
+from groundsim.evaluation.scoring import format_gnss_dropout, gnss_dropout_figures, score_run, summarise
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError

@@ -9,9 +9,9 @@ import logging
 import pytest
 
 from groundsim.app.cli import build_parser
+from groundsim.app.eval_command import cmd_eval
 from groundsim.evaluation.campaign import cmd_campaign
 from groundsim.evaluation.dataset import cmd_dataset
-from groundsim.evaluation.eval import cmd_eval
 from groundsim.evaluation.parallel import RUN_LOGGERS, quiet_run_logs
 from onboard.core.errors import IrtrackError
 
