@@ -595,6 +595,12 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
     estimate's gate is counted (``bearing_gate``) and not fused."""
     dt = t - float(est.t_s)
     if abs(dt) > max_extrapolation_s:
+        if obs is not None:  # a frame's own position withheld (not a query between frames): the daemon is behind
+            counter.count(
+                "estimate_stale",
+                f"newest estimate {dt:.2f} s older than the frame (estimator.max_extrapolation_s "
+                f"{max_extrapolation_s:g}): position withheld",
+            )
         return None
     if dt == 0.0 and p_cam_ned_m is None:
         return est

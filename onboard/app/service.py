@@ -58,6 +58,7 @@ from typing import TYPE_CHECKING, Any
 
 from onboard.app.components import make_camera_protocol, zenoh_where
 from onboard.app.config import OnboardConfig
+from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
 from onboard.app.frame_queue import FrameQueue
 from onboard.app.locked_counter import LockedCounter
@@ -186,6 +187,7 @@ class OnboardService:
             mavlink_connection=config.mavlink.connection,
             camera_size_px=(self.pipeline.intrinsics.width_px, self.pipeline.intrinsics.height_px),
         )
+        self.cpu_load = CpuLoad()
 
     def _wait_for_pose(self, time_boot_us: int) -> None:
         """The pipeline's wait for telemetry that brackets a frame (``pose.wait_ms`` at most)."""
@@ -530,6 +532,12 @@ class OnboardService:
             except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
                 self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
         self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx)
+        self.watchdog.load(
+            now,
+            frames_dropped=self.frames_dropped,
+            estimates_stale=self.counter.counts.get("estimate_stale", 0),
+            cpu_words=self.cpu_load.words(),
+        )
         if self.link is not None:
             if self._first_telemetry_s is None and self.pose.newest_time_boot_us() is not None:
                 self._first_telemetry_s = now
@@ -666,6 +674,7 @@ class OnboardService:
         p1, w1 = time.process_time(), self._pipeline_cpu_s + self._worker_cpu()
         wall = max(now - t0, 1e-9)
         status = self.status(now, (p1 - p0) / wall, (w1 - w0) / wall)
+        status["cpu"].update(self.cpu_load.sample(now, self._worker_cpu()))
         try:
             data = json.dumps(status, separators=(",", ":"), allow_nan=False).encode()
         except (TypeError, ValueError) as exc:

@@ -27,6 +27,12 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     reference scenarios), or none has arrived ``input_timeout_s`` after the first telemetry although it
     is true (no frame gets a pose).  The residuals cannot show a mount error (a constant pitch offset
     of the camera is explained exactly by a target higher up), so this is checked on the messages.
+``overload``
+    Frames were dropped because the pipeline was behind, or a frame's position was withheld because the
+    newest estimate was older than ``estimator.max_extrapolation_s`` (``estimate_stale``): the daemon
+    does not get the CPU it needs.  Raised at the first check (every 0.5 s) that sees either count grow,
+    cleared ``overload_clear_s`` (5 s) after the last; the message gives the counts, the CPU the daemon got
+    and was refused, and what to do.
 
 ``gnss_dropout``
     The position stream (GLOBAL_POSITION_INT #33) has been silent for more than ``nav_gap_s``
@@ -55,6 +61,7 @@ NAV_GAP_S = 0.3
 RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
+OVERLOAD_CLEAR_S = 5.0
 
 _log = logging.getLogger(__name__)
 
@@ -133,6 +140,10 @@ class Watchdog:
         self._high_since_s: float | None = None
         self._high_n = 0
         self._high_max = 0.0
+        self._load_counts: tuple[int, int] | None = None
+        self._load_since_s: float | None = None
+        self._load_seen = (0, 0)  # dropped, stale since the overload was raised
+        self._last_overload_s = -math.inf
         self._active: dict[str, WatchdogWarning] = {}
         self._lock = threading.Lock()  # the service feeds frames from one thread, the clock from another
         self.warned: set[str] = set()
@@ -255,6 +266,33 @@ class Watchdog:
             )
 
     # ------------------------------------------------------------------ state
+
+    def load(self, now_s: float, *, frames_dropped: int, estimates_stale: int, cpu_words: str = "") -> None:
+        """Update with the running counts of frames dropped and positions withheld as too old;
+        ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``)."""
+        counts = (int(frames_dropped), int(estimates_stale))
+        last, self._load_counts = self._load_counts, counts
+        if last is None:
+            return
+        grew = counts[0] > last[0] or counts[1] > last[1]
+        if grew:
+            if "overload" not in self._active:
+                self._load_since_s, self._load_seen = now_s, (0, 0)
+            self._last_overload_s = now_s
+            self._load_seen = (
+                self._load_seen[0] + max(counts[0] - last[0], 0),
+                self._load_seen[1] + max(counts[1] - last[1], 0),
+            )
+            since = now_s - (self._load_since_s if self._load_since_s is not None else now_s)
+            self._raise(
+                "overload",
+                f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old "
+                f"in the last {since:.1f} s: the daemon does not get the CPU it needs{cpu_words}; raise its "
+                "CPU limit (compose deploy.resources.limits.cpus, sized in deploy/README.md), lower the camera's "
+                "frame rate, or move other work off this computer",
+            )
+        elif now_s - self._last_overload_s >= OVERLOAD_CLEAR_S:
+            self._clear("overload")
 
     @property
     def active(self) -> tuple[WatchdogWarning, ...]:

@@ -87,7 +87,9 @@ def build_status(
     synced).  Each is ``{n, p50, p99, max}`` over the last samples.  ``rejected``: every counted
     rejection by reason (frames, telemetry, MAVLink, estimator).  ``link``: the MAVLink link state.
     ``cpu``: ``share`` = process CPU time / wall time over the last interval (1.0 = one core),
-    ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine.  ``track``: the
+    ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine; the service adds
+    ``gets_share``, ``throttled_share``, ``needs_share``, ``throttled_periods`` and ``quota_cores`` from
+    ``/proc/self/stat`` and the cgroup's ``cpu.stat`` (:class:`onboard.app.cpu_load.CpuLoad`).  ``track``: the
     latest track's state in short.  ``warnings``: the conditions active now that an operator must
     fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
     empty when all is well.  ``geometry``: ``published`` (line of sight and 3-D positions go out) or

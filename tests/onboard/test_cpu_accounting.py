@@ -1,0 +1,198 @@
+"""The CPU accounting parsers on sample file contents, the reader on a fake /proc and cgroup tree, and
+the ``overload`` warning on counts."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from onboard.app.cpu_load import CpuLoad
+from onboard.app.watchdog import OVERLOAD_CLEAR_S, Watchdog
+from onboard.core.cpu_accounting import (
+    parse_cfs_quota,
+    parse_cgroup_cpu_stat,
+    parse_cpu_max,
+    parse_proc_cgroup,
+    parse_proc_stat,
+    share_per_s,
+)
+from onboard.core.errors import InputError
+from onboard.io.cpu_usage import CpuUsageReader
+
+TICKS_PER_S = 100.0
+ATOL_S = 1e-9
+
+# a real /proc/self/stat line (python3, 52 fields)
+PROC_STAT = (
+    "20379 (python3) R 20362 20362 19308 0 -1 4194304 123 0 0 0 1234 56 78 9 20 0 1 0 1904927 3932160 526 "
+    "18446744073709551615 94286720086016 94286720166169 140731478750000 0 0 0 0 0 0 0 0 0 17 1 0 0 0 0 0 "
+    "94286720194992 94286720197892 94286904745984 140731478756058 140731478756086 140731478756086 "
+    "140731478757355 0\n"
+)
+V1_CPU_STAT = "nr_periods 23\nnr_throttled 20\nthrottled_time 916747447\nnr_bursts 0\nburst_time 0\n"
+V2_CPU_STAT = (
+    "usage_usec 5000000\nuser_usec 4000000\nsystem_usec 1000000\nnr_periods 100\nnr_throttled 7\n"
+    "throttled_usec 350000\nnr_bursts 0\nburst_usec 0\n"
+)
+
+
+def test_proc_stat_fields():
+    t = parse_proc_stat(PROC_STAT)
+    assert (t.utime_ticks, t.stime_ticks, t.cutime_ticks, t.cstime_ticks) == (1234, 56, 78, 9)
+    assert t.total_s(TICKS_PER_S) == pytest.approx(13.77, abs=ATOL_S)
+
+
+@given(
+    name=st.text(min_size=0, max_size=16).filter(lambda s: "\n" not in s),
+    ticks=st.lists(st.integers(0, 2**62), min_size=4, max_size=4),
+)
+def test_proc_stat_any_command_name(name, ticks):
+    """A command name may hold spaces and parentheses: the fields count from the last ')'."""
+    line = f"42 ({name}) S 1 1 1 0 -1 0 0 0 0 0 {' '.join(map(str, ticks))} 20 0 1 0 5 6 7\n"
+    t = parse_proc_stat(line)
+    assert [t.utime_ticks, t.stime_ticks, t.cutime_ticks, t.cstime_ticks] == ticks
+
+
+@given(st.text(max_size=200))
+def test_proc_stat_garbage_raises_input_error_only(text):
+    try:
+        parse_proc_stat(text)
+    except InputError:
+        pass
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [
+        ("0::/system.slice/irtrack.service\n", (2, "/system.slice/irtrack.service")),
+        ("12:pids:/\n4:cpu,cpuacct:/docker/abc\n0::/\n", (1, "/docker/abc")),
+        ("1:cpu:/bench\n0::/\n", (1, "/bench")),
+        ("3:memory:/x\n", None),
+        ("", None),
+    ],
+)
+def test_proc_cgroup(text, expected):
+    assert parse_proc_cgroup(text) == expected
+
+
+@given(st.text(max_size=300))
+def test_proc_cgroup_never_raises(text):
+    parse_proc_cgroup(text)
+
+
+def test_cpu_stat_v1_and_v2():
+    v1 = parse_cgroup_cpu_stat(V1_CPU_STAT)
+    assert v1 is not None and (v1.nr_periods, v1.nr_throttled) == (23, 20)
+    assert v1.throttled_s == pytest.approx(0.916747447, abs=ATOL_S)
+    v2 = parse_cgroup_cpu_stat(V2_CPU_STAT)
+    assert v2 is not None and (v2.nr_periods, v2.nr_throttled) == (100, 7)
+    assert v2.throttled_s == pytest.approx(0.35, abs=ATOL_S)
+    assert parse_cgroup_cpu_stat("usage_usec 5\nuser_usec 4\n") is None
+
+
+@given(st.text(max_size=300))
+def test_cpu_stat_garbage(text):
+    try:
+        parse_cgroup_cpu_stat(text)
+    except InputError:
+        pass
+
+
+@given(quota_us=st.integers(1, 10**7), period_us=st.integers(1000, 10**6))
+def test_quota_round_trip(quota_us, period_us):
+    cores = quota_us / period_us
+    assert parse_cpu_max(f"{quota_us} {period_us}\n") == pytest.approx(cores)
+    assert parse_cfs_quota(f"{quota_us}\n", f"{period_us}\n") == pytest.approx(cores)
+
+
+@pytest.mark.parametrize("bad", ["", "max", "50000", "a b", "0 100000", "-5 100000", "5 0"])
+def test_cpu_max_refused(bad):
+    with pytest.raises(InputError):
+        parse_cpu_max(bad)
+
+
+def test_no_quota():
+    assert parse_cpu_max("max 100000\n") is None
+    assert parse_cfs_quota("-1\n", "100000\n") is None
+
+
+def test_share_per_s():
+    assert share_per_s(1.0, 1.5, 2.0) == pytest.approx(0.25)
+    assert share_per_s(None, 1.0, 1.0) is None
+    assert share_per_s(2.0, 1.0, 1.0) is None  # a counter that went back
+    assert share_per_s(1.0, 2.0, 0.0) is None
+
+
+def _tree(tmp_path, version: int, stat_ticks: int, throttled: str, quota: tuple[str, str]):
+    proc = tmp_path / "proc" / "self"
+    proc.mkdir(parents=True, exist_ok=True)
+    (proc / "stat").write_text(f"1 (onboard) S 0 0 0 0 -1 0 0 0 0 0 {stat_ticks} 0 0 0 20 0 1 0 5\n")
+    root = tmp_path / "cg"
+    if version == 1:
+        (proc / "cgroup").write_text("3:cpu,cpuacct:/bench/daemon\n0::/\n")
+        d = root / "cpu,cpuacct" / "bench" / "daemon"
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "cpu.cfs_quota_us").write_text(quota[0])
+        (d / "cpu.cfs_period_us").write_text(quota[1])
+        (d / "cpu.stat").write_text(f"nr_periods 10\nnr_throttled 4\nthrottled_time {throttled}\n")
+    else:
+        (proc / "cgroup").write_text("0::/bench\n")
+        d = root / "bench"
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "cpu.max").write_text(f"{quota[0]} {quota[1]}\n")
+        (d / "cpu.stat").write_text(f"usage_usec 1\nnr_periods 10\nnr_throttled 4\nthrottled_usec {throttled}\n")
+    return tmp_path / "proc", root
+
+
+@pytest.mark.parametrize("version, throttled0, throttled1", [(1, "0", "500000000"), (2, "0", "500000")])
+def test_reader_and_load(tmp_path, version, throttled0, throttled1):
+    proc, root = _tree(tmp_path, version, 100, throttled0, ("25000", "100000"))
+    load = CpuLoad(CpuUsageReader(proc, root))
+    first = load.sample(10.0, worker_cpu_s=0.0)
+    assert first["gets_share"] is None and first["quota_cores"] == pytest.approx(0.25)
+    _tree(tmp_path, version, 150, throttled1, ("25000", "100000"))  # +0.5 s of process CPU at 100 ticks/s
+    s = load.sample(12.0, worker_cpu_s=0.2)
+    ticks = load.reader._ticks_per_s
+    assert s["gets_share"] == pytest.approx((50 / ticks + 0.2) / 2.0)
+    assert s["throttled_share"] == pytest.approx(0.25)
+    assert s["needs_share"] == pytest.approx(s["gets_share"] + 0.25)
+    assert "quota of 0.25 cores" in load.words()
+
+
+def test_reader_without_cgroup(tmp_path):
+    (tmp_path / "proc" / "self").mkdir(parents=True)
+    r = CpuUsageReader(tmp_path / "proc", tmp_path / "none").read()
+    assert r.process_cpu_s is None and r.throttled_s is None and r.quota_cores is None
+
+
+def _watchdog(caplog) -> Watchdog:
+    return Watchdog(
+        started_s=0.0,
+        frame_key="irtrack/v/frames",
+        zenoh_where="peer",
+        mavlink_connection="udpin:127.0.0.1:14540",
+        camera_size_px=(640, 512),
+        logger=logging.getLogger("test.overload"),
+    )
+
+
+def test_overload_raised_on_the_first_growth_and_cleared(caplog):
+    wd = _watchdog(caplog)
+    caplog.set_level(logging.INFO, "test.overload")
+    wd.load(0.0, frames_dropped=0, estimates_stale=0)
+    wd.load(0.5, frames_dropped=0, estimates_stale=0)
+    assert not wd.active
+    wd.load(1.0, frames_dropped=3, estimates_stale=0, cpu_words=" (it got 0.25 of a core)")
+    (w,) = wd.active
+    assert w.code == "overload" and "3 frames dropped" in w.message and "cpus" in w.message
+    wd.load(1.5, frames_dropped=3, estimates_stale=2)
+    assert "2 positions withheld" in wd.active[0].message and "3 frames dropped" in wd.active[0].message
+    wd.load(1.5 + OVERLOAD_CLEAR_S / 2, frames_dropped=3, estimates_stale=2)
+    assert wd.active
+    wd.load(1.5 + OVERLOAD_CLEAR_S, frames_dropped=3, estimates_stale=2)
+    assert not wd.active
+    warned = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warned) == 1  # logged once
