@@ -104,6 +104,7 @@ class DemoPlan:
     nav_noise: str = "RTK"  # the simulator's navigation-error case (groundsim run --nav-noise)
     live_view_port: int | None = None  # passed to the daemon as --live-view PORT (Foxglove WebSocket on 127.0.0.1)
     gnss_dropout: str | None = None  # passed to the simulator as --gnss-dropout START_S:DURATION_S
+    daemon_prefix: tuple[str, ...] = ()  # run the daemon through this (bench.companion: into a CPU-limited cgroup)
 
     @property
     def zenoh_endpoint(self) -> str:
@@ -202,7 +203,7 @@ def plan_demo(
 
 def daemon_command(plan: DemoPlan) -> list[str]:
     live = [] if plan.live_view_port is None else ["--live-view", str(int(plan.live_view_port))]
-    return [plan.python, "-m", "onboard", "--config", str(plan.onboard_config_path), *live]
+    return [*plan.daemon_prefix, plan.python, "-m", "onboard", "--config", str(plan.onboard_config_path), *live]
 
 
 def sim_command(plan: DemoPlan) -> list[str]:

@@ -287,7 +287,7 @@ class Watchdog:
             self._raise(
                 "overload",
                 f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old "
-                f"in the last {since:.1f} s: the daemon does not get the CPU it needs{cpu_words}; raise its "
+                f"since the overload began {since:.1f} s ago: the daemon does not get the CPU it needs{cpu_words}; raise its "
                 "CPU limit (compose deploy.resources.limits.cpus, sized in deploy/README.md), lower the camera's "
                 "frame rate, or move other work off this computer",
             )
