@@ -65,7 +65,7 @@ from onboard.estimation.map_estimator import (
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
 
-__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad"]
+__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad", "process_cov_ned_m2"]
 
 #: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
 BEARING_GATE_CHI2 = 18.42
@@ -118,6 +118,19 @@ class SlidingConfig:
             raise InputError(f"SlidingConfig: invalid values {self}")
 
 
+def process_cov_ned_m2(prior: MotionPrior | None, dt_s: float) -> np.ndarray:
+    """The position covariance (3, 3) a motion model's process noise adds over ``dt_s`` seconds from a
+    known state (Bar-Shalom, Li, Kirubarajan, *Estimation with Applications to Tracking and Navigation*,
+    2001, sections 6.2.2-6.2.3): white-noise acceleration with PSD ``q`` (m^2/s^3) gives ``q dt^3 / 3``
+    per axis, white-noise jerk with PSD ``q`` (m^2/s^5) ``q dt^5 / 20``; horizontal PSD on north and
+    east, vertical on down.  Zeros for no model.  The coordinated turn's rate is carried at the turn
+    the window estimated, not as noise: its uncertainty is in the velocity's covariance."""
+    if prior is None or not dt_s > 0:
+        return np.zeros((3, 3))
+    k = dt_s**5 / 20.0 if prior.jerk else dt_s**3 / 3.0
+    return np.diag([prior.q_horizontal_m2ps3 * k, prior.q_horizontal_m2ps3 * k, prior.q_vertical_m2ps3 * k])
+
+
 @dataclass(frozen=True)
 class TrackEstimate:
     """The target's state at ``t_s`` from the window ending there (NED metres about the local origin)."""
@@ -139,20 +152,27 @@ class TrackEstimate:
     adequacy_p: float = math.nan
     #: posterior mass of far solutions at the last selection (``MapResult.ambiguity``)
     ambiguity: float = math.nan
+    #: the selected motion model, whose process noise :meth:`propagated` adds for the time carried (None:
+    #: none selected yet; the velocity's uncertainty alone is then carried)
+    motion_prior: MotionPrior | None = None
 
     @property
     def sigma_ned_m(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
 
     def propagated(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate:
-        """This estimate carried to ``t_s`` at constant velocity: ``p + v dt``, ``P + dt^2 V`` (the
-        velocity's uncertainty only; the estimator's own prediction is :meth:`SlidingWindowEstimator.predict`).
+        """This estimate carried to ``t_s`` at constant velocity: ``p + v dt``, ``P + dt^2 V + Q(|dt|)``:
+        the velocity's uncertainty and the motion model's process noise over the time carried
+        (:func:`process_cov_ned_m2`), so an estimate that arrives late, or is carried over frames the
+        estimator did not keep up with, is published with a covariance that knows its age.  The
+        position-velocity correlation is not kept.  The estimator's own prediction is
+        :meth:`SlidingWindowEstimator.predict`.
 
         ``p_cam_ned_m`` (the camera at ``t_s``) sets the new range and range sigma ratio; without it the
         range keeps the old line of sight's length."""
         dt = float(t_s) - self.t_s
         p = self.p_ned_m + self.v_ned_mps * dt
-        P = self.cov_p_ned_m2 + dt * dt * self.cov_v_ned_m2ps2
+        P = self.cov_p_ned_m2 + dt * dt * self.cov_v_ned_m2ps2 + process_cov_ned_m2(self.motion_prior, abs(dt))
         rng, ratio = self.range_m, self.range_sigma_ratio
         if p_cam_ned_m is not None:
             los = p - np.asarray(p_cam_ned_m, dtype=float)
@@ -571,7 +591,9 @@ class SlidingWindowEstimator:
         observable = bool(self._window_observable and self._edge_pinned)
         if not observable:  # honest, not confident (module docstring)
             P, ratio = self._range_floored(P, u, ratio, rng)
-        return TrackEstimate(t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag)
+        return TrackEstimate(
+            t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag, motion_prior=self._prior
+        )
 
     def carry(self, est: TrackEstimate, t_s: float, p_cam_ned_m) -> TrackEstimate:
         """``est`` propagated to ``t_s`` and seen from ``p_cam_ned_m``; an unobservable one keeps its range
