@@ -470,6 +470,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         assert st["link"]["state"] == "connected" and st["link"]["autopilot_sysid"] == 1
         assert st["processing_ms"]["n"] > 0 and st["processing_ms"]["p50"] > 0
         assert st["latency_ms"]["p50"] is not None and st["cpu"]["share"] is not None
+        # what the daemon got (/proc/self/stat + its worker) from the second status on
+        assert {"gets_share", "throttled_share", "needs_share", "quota_cores"} <= set(st["cpu"])
+        assert st["cpu"]["gets_share"] is None or st["cpu"]["gets_share"] >= 0
         run_until(lambda: got_status[-1]["capture_to_track_ms"] is not None, 10, "TIMESYNC-based capture latency")
         assert 0 < got_status[-1]["capture_to_track_ms"]["p50"] < 1000
 
