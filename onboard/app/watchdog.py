@@ -265,8 +265,6 @@ class Watchdog:
                 f"(estimator.*_sigma_*) is too optimistic; 3-D positions are not to be trusted",
             )
 
-    # ------------------------------------------------------------------ state
-
     def load(self, now_s: float, *, frames_dropped: int, estimates_stale: int, cpu_words: str = "") -> None:
         """Update with the running counts of frames dropped and positions withheld as too old;
         ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``)."""
@@ -293,6 +291,8 @@ class Watchdog:
             )
         elif now_s - self._last_overload_s >= OVERLOAD_CLEAR_S:
             self._clear("overload")
+
+    # ------------------------------------------------------------------ state
 
     @property
     def active(self) -> tuple[WatchdogWarning, ...]:
