@@ -182,8 +182,9 @@ class EmulatedQuota:
     of CPU per period; past that it is stopped until the period ends.  Finds the daemon as this process's
     child running ``-m onboard``."""
 
-    def __init__(self, quota_cores: float, period_s: float = CFS_PERIOD_US / 1e6) -> None:
+    def __init__(self, quota_cores: float, period_s: float = CFS_PERIOD_US / 1e6, find_pid=None) -> None:
         self.budget_ns = int(quota_cores * period_s * 1e9)
+        self._find_pid = find_pid or self._daemon_pid
         self.period_s = period_s
         self.stopped_s = 0.0
         self._stop = threading.Event()
@@ -214,7 +215,7 @@ class EmulatedQuota:
     def _run(self) -> None:
         root = None
         while root is None and not self._stop.wait(EMULATION_POLL_S):
-            root = self._daemon_pid()
+            root = self._find_pid()
         pids: list[int] = []
         next_tree = 0.0
         while not self._stop.is_set():

@@ -53,3 +53,32 @@ def test_score_row():
     assert r["honest"] == pytest.approx(6 / 7)
     r.update(label="x", overload_s=None, first_cause_s=None, daemon_cpu=0.2, throttled=None)
     assert "| x | 10 of 10 |" in format_table([r])
+
+
+def test_emulated_quota_stops_and_continues_a_busy_process():
+    """The emulation on a real busy child: it is stopped once past its share of a period, and left running
+    (continued) when the emulation ends."""
+    import subprocess
+    import sys
+    import threading
+
+    from bench.companion import EmulatedQuota
+
+    child = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    em = EmulatedQuota(0.1, find_pid=lambda: child.pid)
+    try:
+        stopped = threading.Event()
+        em.start()
+        for _ in range(400):  # at most 20 s; a stop comes within the first periods
+            if em.stopped_s > 0:
+                stopped.set()
+                break
+            stopped.wait(0.05)
+        em.close()
+        assert stopped.is_set()
+        state = open(f"/proc/{child.pid}/stat").read().rsplit(")", 1)[1].split()[0]
+        assert state in ("R", "S")  # continued, not left stopped
+    finally:
+        em.close()
+        child.kill()
+        child.wait(5)
