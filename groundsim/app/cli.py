@@ -184,9 +184,11 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--guided",
-        action="store_true",
-        help="the vehicle heartbeats as ArduPilot in GUIDED and its observer follows the velocity setpoints"
-        " (SET_POSITION_TARGET_LOCAL_NED) it receives, after flying its scripted motion until the first",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="the vehicle heartbeats as ArduPilot in GUIDED and its observer flies its scripted motion until the"
+        " first velocity setpoint (SET_POSITION_TARGET_LOCAL_NED) arrives, then follows the setpoints (the daemon"
+        " sends none unless guidance.enabled); --no-guided: a generic autopilot that ignores them (default: guided)",
     )
     p.add_argument(
         "--no-render", action="store_true", help="do not render or publish IR frames (MAVLink and truth only)"
@@ -235,7 +237,7 @@ def _run_config(args):
         render=not args.no_render,
         nav_noise=args.nav_noise,
         record_path=Path(args.record) if args.record else None,
-        guided=bool(getattr(args, "guided", False)),
+        guided=bool(getattr(args, "guided", True)),
         gnss_dropout=parse_gnss_dropout(args.gnss_dropout) if args.gnss_dropout else None,
         camera_clock=parse_camera_time_offset(args.camera_time_offset_ms) if args.camera_time_offset_ms else None,
     )

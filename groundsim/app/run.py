@@ -147,7 +147,7 @@ class RunConfig:
     flight_chunk_s: float | None = None
     nav_noise: str | None = None
     record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.io.record)
-    guided: bool = False  # --guided: the vehicle reports GUIDED and its observer follows velocity setpoints
+    guided: bool = True  # the vehicle reports GUIDED and its observer follows velocity setpoints (--no-guided: not)
     gnss_dropout: object | None = None  # --gnss-dropout: a groundsim.world.nav_errors.GnssDropout
     camera_clock: object | None = None  # --camera-time-offset-ms: a groundsim.world.nav_errors.CameraClockError
 
