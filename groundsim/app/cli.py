@@ -26,6 +26,7 @@ from pathlib import Path
 
 from groundsim.app.report import add_report
 from groundsim.io.stop_signals import EXIT_INTERRUPTED, install_stop_signals, print_interrupted
+from onboard.app.cli_args import EXIT_USAGE, OneLineParser
 from onboard.app.logs import setup_logging
 from onboard.core.errors import ConfigError, IrtrackError
 
@@ -41,15 +42,8 @@ DEFAULT_ZENOH_CONNECT_TIMEOUT_S = 5.0
 LOG_LEVELS = ("debug", "info", "warning", "error")
 
 
-class _OneLineError(Exception):
-    """Raised by the parser instead of printing usage and exiting."""
-
-
-class _Parser(argparse.ArgumentParser):
-    """An ArgumentParser whose mistakes become one line + exit code 2 (raised, printed by main)."""
-
-    def error(self, message: str):  # type: ignore[override]
-        raise _OneLineError(f"{self.prog}: error: {message} (see --help)")
+class _Parser(OneLineParser):
+    error_format = "{prog}: error: {message} (see --help)"  # as a handler's errors ("groundsim <command>: error: ...")
 
 
 # --------------------------------------------------------------------------- run
@@ -69,6 +63,12 @@ def _scenario_option(p: argparse.ArgumentParser) -> None:
 
 def _scenarios_and_seeds_options(p: argparse.ArgumentParser, scenarios: str, seeds: int, seeds_help: str) -> None:
     """``--scenario`` (repeatable lists, default: ``scenarios``) and ``--seeds N``."""
+    _scenarios_option(p, scenarios)
+    p.add_argument("--seeds", type=int, default=seeds, metavar="N", help=seeds_help)
+
+
+def _scenarios_option(p: argparse.ArgumentParser, scenarios: str) -> None:
+    """``--scenario`` as repeatable lists (default: ``scenarios``)."""
     p.add_argument(
         "--scenario",
         action="append",
@@ -77,7 +77,6 @@ def _scenarios_and_seeds_options(p: argparse.ArgumentParser, scenarios: str, see
         metavar="FILE|NAME",
         help=f"scenario YAML file(s) or shipped names, repeatable (default: {scenarios})",
     )
-    p.add_argument("--seeds", type=int, default=seeds, metavar="N", help=seeds_help)
 
 
 def _duration_option(p: argparse.ArgumentParser, help_text: str, default: float | None = None) -> None:
@@ -483,14 +482,7 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
 
 
 def _add_scenes(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--scenario",
-        action="append",
-        nargs="+",
-        default=None,
-        metavar="FILE|NAME",
-        help="scenario YAML file(s) or shipped names, repeatable (default: C1 C2 C3 C4 C5 P2)",
-    )
+    _scenarios_option(p, "C1 C2 C3 C4 C5 P2")
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: %(default)s)")
     p.add_argument("--every", type=int, default=10, metavar="K", help="measure every K-th frame (default: %(default)s)")
     p.add_argument(
@@ -542,8 +534,9 @@ def main(argv=None) -> int:
     prefix = f"groundsim {command}" if command in {c[0] for c in COMMANDS} else "groundsim"
     try:
         args = build_parser().parse_args(argv)
-    except _OneLineError as exc:
-        print(str(exc), file=sys.stderr)
+    except SystemExit as exc:  # a usage mistake (its line printed) is a return code, as a handler's error
+        if exc.code != EXIT_USAGE:  # --help
+            raise
         return EXIT_ERROR
     _configure_logging(args.log_level)
     try:

@@ -40,11 +40,11 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from typing import NoReturn
 
 import numpy as np
 
-from onboard.app.watch import DEFAULT_CONNECT, zenoh_settings
+from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
+from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_settings
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import GeodeticOrigin
@@ -194,19 +194,7 @@ class Fusion:
         }
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
-
-
-def _positive(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {text!r}")
-    return v
+_positive = nonnegative_float("expected a number", "expected a number >= 0")
 
 
 def _origin(text: str) -> GeodeticOrigin:
@@ -242,7 +230,7 @@ def _vehicle(text: str) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="python -m onboard.fuse",
         description="Fuse the vehicles' lines of sight (zenoh irtrack/*/track) into fleet tracks "
         "(irtrack/fleet/track, irtrack/<vehicle>/fleet/track).",
@@ -265,17 +253,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--camera-white-m", type=_positive, default=0.02, help="white camera-position noise (0.02)")
     p.add_argument("--camera-offset-m", type=_positive, default=0.0, help="camera-position offset prior (0)")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
-    p.add_argument(
-        "--zenoh-connect",
-        metavar="ENDPOINT",
-        action="append",
-        help=f"zenoh endpoint to connect to; repeatable (default {DEFAULT_CONNECT} when no --zenoh-connect, "
-        "--zenoh-listen or --zenoh-config is given)",
+    add_zenoh_options(
+        p,
+        connect_help=ZENOH_CONNECT_HELP,
+        listen_help="zenoh endpoint to listen on",
+        scouting_help=None,
+        no_scouting_help=None,
     )
-    p.add_argument("--zenoh-listen", metavar="ENDPOINT", action="append", help="zenoh endpoint to listen on")
-    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file")
-    p.add_argument("--zenoh-multicast-scouting", dest="zenoh_scouting", action="store_true", default=None)
-    p.add_argument("--no-zenoh-multicast-scouting", dest="zenoh_scouting", action="store_false")
     return p
 
 

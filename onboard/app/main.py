@@ -31,7 +31,9 @@ import signal  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
-from typing import Any, NoReturn  # noqa: E402
+from typing import Any  # noqa: E402
+
+from onboard.app.cli_args import OneLineParser, add_zenoh_options  # noqa: E402
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -42,15 +44,8 @@ HARD_EXIT_MARGIN_S = 0.7  # past the budget: faulthandler dumps the stacks and e
 log = logging.getLogger("onboard")
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse, but errors are one line with our exit code (2, as argparse's own)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
-
-
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="python -m onboard", description="irtrack onboard daemon: IR target tracking and 3-D reconstruction."
     )
     p.add_argument(
@@ -65,33 +60,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="autopilot link, e.g. udpin:127.0.0.1:14540 (default), udpout:HOST:PORT, tcp:HOST:PORT, "
         "serial:/dev/ttyS0:921600 (config: mavlink.connection)",
     )
-    p.add_argument(
-        "--zenoh-connect",
-        metavar="ENDPOINT",
-        action="append",
-        help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)",
-    )
-    p.add_argument(
-        "--zenoh-listen",
-        metavar="ENDPOINT",
-        action="append",
-        help="zenoh endpoint to listen on; repeatable (config: zenoh.listen)",
-    )
-    p.add_argument(
-        "--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file (config: zenoh.config_file)"
-    )
-    p.add_argument(
-        "--zenoh-multicast-scouting",
-        dest="zenoh_scouting",
-        action="store_true",
-        default=None,
-        help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)",
-    )
-    p.add_argument(
-        "--no-zenoh-multicast-scouting",
-        dest="zenoh_scouting",
-        action="store_false",
-        help="disable zenoh multicast scouting",
+    add_zenoh_options(
+        p,
+        connect_help="zenoh endpoint to connect to, e.g. tcp/127.0.0.1:7447; repeatable (config: zenoh.connect)",
+        listen_help="zenoh endpoint to listen on; repeatable (config: zenoh.listen)",
+        config_help="zenoh JSON5/JSON/YAML config file (config: zenoh.config_file)",
+        scouting_help="enable zenoh multicast scouting (off by default; config: zenoh.multicast_scouting)",
     )
     p.add_argument(
         "--gcs",

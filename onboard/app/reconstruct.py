@@ -73,6 +73,7 @@ from pathlib import Path
 
 import numpy as np
 
+from onboard.app.cli_args import OneLineParser, nonnegative_float
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
@@ -388,24 +389,12 @@ def format_output_csv(t_s: np.ndarray, p_ned_m: np.ndarray, sigma_ned_m: np.ndar
 # --------------------------------------------------------------------------- entry point (I/O)
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse whose usage errors are one line on stderr (exit 2)."""
-
-    def error(self, message):
-        self.exit(EXIT_INPUT, f"error: {self.prog}: {message}\n")
+class _Parser(OneLineParser):
+    error_format = "error: {prog}: {message}"  # as this command's other errors ("error: ...")
 
 
 def _nonneg(name):
-    def conv(text):
-        try:
-            v = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not math.isfinite(v) or v < 0:
-            raise argparse.ArgumentTypeError(f"{name} must be a finite number >= 0, got {text!r}")
-        return v
-
-    return conv
+    return nonnegative_float(f"{name} must be a number", f"{name} must be a finite number >= 0")
 
 
 def _positive(name):

@@ -32,14 +32,16 @@ import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import NoReturn, TextIO
+from typing import TextIO
 
+from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.track import Track, track_from_json
 from onboard.io.zenoh_session import ZenohSettings, open_session, track_key
 
 __all__ = [
     "DEFAULT_CONNECT",
+    "ZENOH_CONNECT_HELP",
     "DEFAULT_SECONDS",
     "NO_TRACK_HINT_S",
     "EXIT_OK",
@@ -153,25 +155,17 @@ def interrupted_line(counts: WatchCounts) -> str:
     return f"interrupted: {counts.tracks} tracks received, {_counts_text(counts)}"
 
 
-class _Parser(argparse.ArgumentParser):
-    """argparse, with its errors on one line and exit code 2 (argparse's own)."""
+_seconds = nonnegative_float("expected a number of seconds", "expected seconds >= 0 (0: until Ctrl-C)")
 
-    def error(self, message: str) -> NoReturn:
-        self.exit(EXIT_CONFIG, f"{self.prog}: {message}\n")
-
-
-def _seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected seconds >= 0 (0: until Ctrl-C), got {text!r}")
-    return value
+# the default endpoint as --help words it; onboard.fuse shares it (and zenoh_settings)
+ZENOH_CONNECT_HELP = (
+    f"zenoh endpoint to connect to; repeatable (default {DEFAULT_CONNECT} when no --zenoh-connect, "
+    "--zenoh-listen or --zenoh-config is given)"
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = _Parser(
+    p = OneLineParser(
         prog="python -m onboard.watch",
         description="Print the onboard daemon's tracks (zenoh irtrack/<vehicle>/track) as they arrive, "
         "one line each, then a summary.",
@@ -189,30 +183,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--json", action="store_true", help="print the JSON payloads as received, one per line (other lines on stderr)"
     )
-    p.add_argument(
-        "--zenoh-connect",
-        metavar="ENDPOINT",
-        action="append",
-        help=f"zenoh endpoint to connect to; repeatable (default {DEFAULT_CONNECT} when no --zenoh-connect, "
-        "--zenoh-listen or --zenoh-config is given)",
-    )
-    p.add_argument(
-        "--zenoh-listen", metavar="ENDPOINT", action="append", help="zenoh endpoint to listen on; repeatable"
-    )
-    p.add_argument("--zenoh-config", metavar="FILE", help="zenoh JSON5/JSON/YAML config file")
-    p.add_argument(
-        "--zenoh-multicast-scouting",
-        dest="zenoh_scouting",
-        action="store_true",
-        default=None,
-        help="enable zenoh multicast scouting (off by default)",
-    )
-    p.add_argument(
-        "--no-zenoh-multicast-scouting",
-        dest="zenoh_scouting",
-        action="store_false",
-        help="disable zenoh multicast scouting",
-    )
+    add_zenoh_options(p, connect_help=ZENOH_CONNECT_HELP)
     return p
 
 
