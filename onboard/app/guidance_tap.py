@@ -137,9 +137,7 @@ class GuidanceTap:
                 self.published += 1
             except Exception as exc:  # noqa: BLE001 - a failed put is counted, the tap carries on
                 self.publish_errors += 1
-                if "publish" not in self._logged:
-                    self._logged.add("publish")
-                    log.warning("guidance: publish failed: %s: %s", type(exc).__name__, exc)
+                self._log_failure_once("publish", "publish", exc)
         return payload
 
     def setpoint_step(self, now: float, link: Any) -> bool:
@@ -157,9 +155,7 @@ class GuidanceTap:
             return self._setpoint_step(now, link)
         except Exception as exc:  # noqa: BLE001 - the main loop must go on; counted in the status, logged once
             self.setpoint_errors += 1
-            if "setpoint" not in self._logged:
-                self._logged.add("setpoint")
-                log.warning("guidance: setpoint step failed: %s: %s", type(exc).__name__, exc)
+            self._log_failure_once("setpoint", "setpoint step", exc)
             return False
 
     def _setpoint_step(self, now: float, link: Any) -> bool:
@@ -191,9 +187,14 @@ class GuidanceTap:
                 self.step(*slot)
             except Exception as exc:  # noqa: BLE001 - guidance must never stop the daemon
                 self.advisor.skipped["error"] = self.advisor.skipped.get("error", 0) + 1
-                if "error" not in self._logged:
-                    self._logged.add("error")
-                    log.warning("guidance: update failed: %s: %s", type(exc).__name__, exc)
+                self._log_failure_once("error", "update", exc)
+
+    def _log_failure_once(self, key: str, what: str, exc: Exception) -> None:
+        """Log the first failure of ``key`` ("guidance: <what> failed: ..."); the status counts every one, and
+        a failure that repeats each frame would flood the log."""
+        if key not in self._logged:
+            self._logged.add(key)
+            log.warning("guidance: %s failed: %s: %s", what, type(exc).__name__, exc)
 
     def status(self) -> dict[str, Any]:
         a = self.advisor

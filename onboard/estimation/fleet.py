@@ -386,18 +386,13 @@ def triangulate(
     prior_diag = [1.0 / cfg.verdict.position_prior_sigma_m**2] * 3 + [1.0 / s_v**2] * 3
     n = 6
     for m in models:
-        if m.camera_position_offset_sigma_m > 0:
-            cols_beta.append(n)
-            prior_diag += [1.0 / m.camera_position_offset_sigma_m**2] * 3
-            n += 3
-        else:
-            cols_beta.append(None)
-        if m.attitude_bias_sigma_rad > 0:
-            cols_phi.append(n)
-            prior_diag += [1.0 / m.attitude_bias_sigma_rad**2] * 3
-            n += 3
-        else:
-            cols_phi.append(None)
+        for sigma, cols in ((m.camera_position_offset_sigma_m, cols_beta), (m.attitude_bias_sigma_rad, cols_phi)):
+            if sigma > 0:
+                cols.append(n)
+                prior_diag += [1.0 / sigma**2] * 3
+                n += 3
+            else:
+                cols.append(None)
     P_prior = np.asarray(prior_diag)
     p_prior = _vec3(p_prior_ned_m, "triangulate: p_prior_ned_m")
     g_prior = np.zeros(n)

@@ -161,6 +161,16 @@ def _vec3(x, what: str) -> np.ndarray:
     return a
 
 
+def _check_t_p_v(state: ObserverState | TargetPosterior) -> None:
+    """A frozen state's ``t_s`` finite, its ``p_ned_m`` and ``v_ned_mps`` made (3,) float arrays (errors name
+    the class and the field)."""
+    what = type(state).__name__
+    if not math.isfinite(state.t_s):
+        raise InputError(f"{what}.t_s: expected a finite time, got {state.t_s!r}")
+    object.__setattr__(state, "p_ned_m", _vec3(state.p_ned_m, f"{what}.p_ned_m"))
+    object.__setattr__(state, "v_ned_mps", _vec3(state.v_ned_mps, f"{what}.v_ned_mps"))
+
+
 @dataclass(frozen=True)
 class ObserverState:
     """The observer (camera) at ``t_s``: position ``p_ned_m`` (3,) and velocity ``v_ned_mps`` (3,)."""
@@ -170,10 +180,7 @@ class ObserverState:
     v_ned_mps: np.ndarray
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.t_s):
-            raise InputError(f"ObserverState.t_s: expected a finite time, got {self.t_s!r}")
-        object.__setattr__(self, "p_ned_m", _vec3(self.p_ned_m, "ObserverState.p_ned_m"))
-        object.__setattr__(self, "v_ned_mps", _vec3(self.v_ned_mps, "ObserverState.v_ned_mps"))
+        _check_t_p_v(self)
 
 
 @dataclass(frozen=True)
@@ -187,10 +194,7 @@ class TargetPosterior:
     cov_pv: np.ndarray
 
     def __post_init__(self) -> None:
-        if not math.isfinite(self.t_s):
-            raise InputError(f"TargetPosterior.t_s: expected a finite time, got {self.t_s!r}")
-        object.__setattr__(self, "p_ned_m", _vec3(self.p_ned_m, "TargetPosterior.p_ned_m"))
-        object.__setattr__(self, "v_ned_mps", _vec3(self.v_ned_mps, "TargetPosterior.v_ned_mps"))
+        _check_t_p_v(self)
         c = np.asarray(self.cov_pv, dtype=float)
         if c.shape != (6, 6) or not np.all(np.isfinite(c)):
             raise InputError(f"TargetPosterior.cov_pv: expected a finite (6, 6) matrix, got shape {c.shape}")
