@@ -230,12 +230,13 @@ def _scene_poses(n: int, height_m: float, pitch_deg: float, target_range_m: floa
     return out
 
 
-def _run_scene(scene, renderer, sensor, poses) -> tuple[np.ndarray, np.ndarray]:
-    """(wall ms, CPU ms) per frame of scene.render + sensor.apply (or renderer.quantise)."""
+def _run_scene(scene, renderer, sensor, poses, ground_d_m: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """(wall ms, CPU ms) per frame of scene.render + sensor.apply (or renderer.quantise); a pose is
+    ``(t, p_cam, R_nc, p_t, R_nt)``, then whatever else scene.render takes after ``ground_d_m``."""
     wall, cpu = [], []
-    for k, (t, p_cam, R_nc, p_t, R_nt) in enumerate(poses):
+    for k, (t, p_cam, R_nc, p_t, R_nt, *rest) in enumerate(poses):
         c0, t0 = time.process_time(), time.perf_counter()
-        frame = scene.render(t, p_cam, R_nc, p_t, R_nt, 0.0)
+        frame = scene.render(t, p_cam, R_nc, p_t, R_nt, ground_d_m, *rest)
         if sensor is not None:
             sensor.apply(frame.radiance, t, k)
         else:
@@ -350,19 +351,7 @@ def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
                     others,
                 )
             )
-        wall, cpu = [], []
-        renderer = core.renderer()
-        for k, (t, p_cam, R_nc, p_t, R_nt, others) in enumerate(poses):
-            c0, w0 = time.process_time(), time.perf_counter()
-            frame = scene.render(t, p_cam, R_nc, p_t, R_nt, GROUND_D_M, others)
-            if sensor is not None:
-                sensor.apply(frame.radiance, t, k)
-            else:
-                renderer.quantise(frame.radiance)
-            if k >= WARMUP_FRAMES:
-                wall.append((time.perf_counter() - w0) * 1e3)
-                cpu.append((time.process_time() - c0) * 1e3)
-        wall, cpu = np.asarray(wall), np.asarray(cpu)
+        wall, cpu = _run_scene(scene, core.renderer(), sensor, poses, GROUND_D_M)
         print(
             f"{name}: {sc.description[:42]:<42s} {wall.mean():6.2f} {np.median(wall):6.2f} {np.percentile(wall, 95):6.2f}"
             f" {wall.max():6.2f} {cpu.mean():6.2f} {1e3 / wall.mean():6.0f} fps wall, {1e3 / cpu.mean():4.0f} fps CPU"
