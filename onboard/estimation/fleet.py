@@ -99,6 +99,7 @@ from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.estimation.map_estimator import MapConfig, MapEstimator, NoiseModel
 from onboard.estimation.sliding import BEARING_GATE_CHI2
+from onboard.estimation.state_estimate import StateEstimate
 
 __all__ = [
     "CLOSEST_APPROACH_GATE_CHI2",
@@ -495,7 +496,7 @@ class Contribution:
 
 
 @dataclass(frozen=True)
-class FleetEstimate:
+class FleetEstimate(StateEstimate):
     """A fleet target's state at ``t_s`` (fleet clock, s) in the fleet's NED frame: ``p_ned_m``,
     ``v_ned_mps`` (3,), ``cov_p_ned_m2``, ``cov_v_ned_m2ps2`` (3, 3; the position's range floor applied when
     unobservable), ``observable`` (module docstring, "Verdict"), ``range_sigma_ratio`` (the worst
@@ -503,12 +504,6 @@ class FleetEstimate:
     ``contributions`` (one per vehicle in the solve) and the :class:`Triangulation` it came from."""
 
     target_id: int
-    t_s: float
-    p_ned_m: np.ndarray
-    v_ned_mps: np.ndarray
-    cov_p_ned_m2: np.ndarray
-    cov_v_ned_m2ps2: np.ndarray
-    observable: bool
     range_sigma_ratio: float
     adequacy_p: float
     contributions: tuple[Contribution, ...]
@@ -517,10 +512,6 @@ class FleetEstimate:
     @property
     def vehicles(self) -> tuple[str, ...]:
         return tuple(c.vehicle for c in self.contributions)
-
-    @property
-    def sigma_ned_m(self) -> np.ndarray:
-        return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
 
     def propagated(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
         """(position, covariance) carried to ``t_s`` at constant velocity (``p + v dt``, the (p, v) joint

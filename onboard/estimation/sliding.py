@@ -64,6 +64,7 @@ from onboard.estimation.map_estimator import (
 )
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
+from onboard.estimation.state_estimate import StateEstimate
 
 __all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad", "process_cov_ned_m2"]
 
@@ -132,15 +133,9 @@ def process_cov_ned_m2(prior: MotionPrior | None, dt_s: float) -> np.ndarray:
 
 
 @dataclass(frozen=True)
-class TrackEstimate:
+class TrackEstimate(StateEstimate):
     """The target's state at ``t_s`` from the window ending there (NED metres about the local origin)."""
 
-    t_s: float
-    p_ned_m: np.ndarray
-    v_ned_mps: np.ndarray
-    cov_p_ned_m2: np.ndarray
-    cov_v_ned_m2ps2: np.ndarray
-    observable: bool
     range_m: float
     range_sigma_ratio: float
     window_frames: int
@@ -155,10 +150,6 @@ class TrackEstimate:
     #: the selected motion model, whose process noise :meth:`propagated` adds for the time carried (None:
     #: none selected yet; the velocity's uncertainty alone is then carried)
     motion_prior: MotionPrior | None = None
-
-    @property
-    def sigma_ned_m(self) -> np.ndarray:
-        return np.sqrt(np.maximum(np.diag(self.cov_p_ned_m2), 0.0))
 
     def propagated(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate:
         """This estimate carried to ``t_s`` at constant velocity: ``p + v dt``, ``P + dt^2 V + Q(|dt|)``:
