@@ -175,6 +175,29 @@ def _quantile(x: np.ndarray, q: float) -> float:
     return float(np.partition(x, k)[k])
 
 
+def _mip_map(foot_m, mask, t, p, dn, de, texel_m: float, levels) -> tuple:
+    """Where a tiled surface's mip pyramid ``levels`` (level 0's texel ``texel_m``) is read, for the terrain
+    and the cloud layer alike: ``(x, y, far weight, near level, far level)``.
+
+    The near level from the 10th percentile of the footprint ``foot_m`` (m) over ``mask`` (every third
+    pixel), the far level ``FAR_LEVELS`` coarser; ``x, y`` the hits ``p + t (dn, de)`` in texels of the
+    near level, the camera placed in the tile (the textures repeat); the far weight 0 to 1 as the footprint
+    goes from 2 to 8 texels of the near level."""
+    f32 = np.float32
+    lv = 0
+    if np.any(mask):
+        q = _quantile(foot_m[::3, ::3][mask[::3, ::3]], 0.1)
+        lv = int(np.clip(math.floor(math.log2(max(q / texel_m, 1.0))), 0, len(levels) - 1))
+    lv_far = min(lv + FAR_LEVELS, len(levels) - 1)
+    texel = texel_m * 2**lv
+    period = texel * levels[lv].shape[0]
+    off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))  # camera in the tile
+    x = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+    y = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+    w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+    return x, y, w_far, lv, lv_far
+
+
 def _rot_z(yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
     cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
@@ -456,19 +479,9 @@ class SceneContent:
         f32 = np.float32
         tex = self.terrain
         foot_m = r_g * r_g / f32(self._f_px * max(h_g, 1e-3))
-        lv = 0
-        if np.any(on_ground):
-            q = _quantile(foot_m[::3, ::3][on_ground[::3, ::3]], 0.1)
-            lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.levels) - 1))
-        lv_far = min(lv + FAR_LEVELS, len(tex.levels) - 1)
-        texel = tex.texel_m * 2**lv
         t = np.where(on_ground, t_g, f32(0.0))
-        period = texel * tex.levels[lv].shape[0]
-        off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))  # camera in the tile
-        gx = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
-        gy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
+        gx, gy, w_far, lv, lv_far = _mip_map(foot_m, on_ground, t, p, dn, de, tex.texel_m, tex.levels)
         tau = np.where(on_ground, np.exp(f32(-ext_per_m) * r_g), f32(0.0))
-        w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
         return [gx, gy, tau, w_far], lv, lv_far, on_ground & (w_far < 1.0), w_far > 0.0
 
     def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m):
@@ -488,17 +501,7 @@ class SceneContent:
         hit = (t_c > 0.0) & (r_c < f32(cfg.max_range_m)) & (r_c < r_g)
         t = np.where(hit, t_c, f32(0.0))
         foot_m = r_c * r_c / f32(self._f_px * max(abs(h_c), 1e-3))
-        lv = 0
-        if np.any(hit):
-            q = _quantile(foot_m[::3, ::3][hit[::3, ::3]], 0.1)
-            lv = int(np.clip(math.floor(math.log2(max(q / tex.texel_m, 1.0))), 0, len(tex.density_levels) - 1))
-        lv_far = min(lv + FAR_LEVELS, len(tex.density_levels) - 1)
-        texel = tex.texel_m * 2**lv
-        period = texel * tex.density_levels[lv].shape[0]
-        off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))
-        cx = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
-        cy = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
-        w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+        cx, cy, w_far, lv, lv_far = _mip_map(foot_m, hit, t, p, dn, de, tex.texel_m, tex.density_levels)
         w_far = np.where(hit, w_far, f32(0.0))
         tau_v = f32(cfg.optical_depth_per_km * cfg.thickness_m * 1e-3)
         optical = np.where(hit, tau_v * np.minimum(self._rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
