@@ -281,8 +281,11 @@ class PartRaster:
         if occluder is not None:
             range_m = range_km * 1e3
             ref = np.where(occluder.depth_m[i0:i1, j0:j1] < range_m, occluder.base_radiance[i0:i1, j0:j1], ref)
-        bg_sub = np.repeat(np.repeat(ref, ss, axis=0), ss, axis=1)
-        delta = np.where(covered.reshape(ny * ss, nx * ss), part_grey[nearest].reshape(ny * ss, nx * ss) - bg_sub, 0.0)
+        # each sub-sample minus its pixel's background, broadcast over the (ss, ss) sub-samples of a pixel
+        # (the same float64 differences as repeating the background, without the two repeated copies)
+        obj = part_grey[nearest].reshape(ny, ss, nx, ss)
+        obj -= ref[:, None, :, None]
+        delta = np.where(covered.reshape(ny * ss, nx * ss), obj.reshape(ny * ss, nx * ss), 0.0)
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)

@@ -147,15 +147,20 @@ def _fold(m: np.ndarray, n: int) -> np.ndarray:
     return m - np.float32(n) * np.floor(m * np.float32(1.0 / n))
 
 
-def _lookup(texture: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, rows: slice) -> np.ndarray:
-    """Bilinear, periodic texture look-up at (map_x, map_y) texels (texel centres at integers) in ``rows``
-    only (0 elsewhere: the rows that see the surface)."""
-    n = texture.shape[0]
-    out = np.zeros(map_x.shape, np.float32)
+def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: np.float32 | None = None):
+    """Bilinear, periodic look-ups of ``textures`` (equal sides) at (map_x, map_y) texels (texel centres at
+    integers), times ``scale`` if given, in ``rows`` only (0 elsewhere: the rows that see the surface).
+    One list of images, one per texture: the coordinates are folded once for all of them."""
+    n = textures[0].shape[0]
+    outs = [np.zeros(map_x.shape, np.float32) for _ in textures]
     if rows.stop > rows.start:
-        mx, my = _fold(map_x[rows], n), _fold(map_y[rows], n)
-        out[rows] = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-    return out
+        mx, my = map_x[rows], map_y[rows]
+        if scale is not None:
+            mx, my = mx * scale, my * scale
+        mx, my = _fold(mx, n), _fold(my, n)
+        for texture, out in zip(textures, outs):
+            out[rows] = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    return outs
 
 
 def _half_rows(mask: np.ndarray, limit: int) -> slice:
@@ -441,11 +446,10 @@ class SceneContent:
             lv, lv_far = terrain[1], terrain[2]
             levels = self.terrain.levels
             rows = _half_rows(terrain[3], gx.shape[0])  # rows wholly at the far level skip the near one
-            dL = _lookup(levels[lv], gx, gy, rows)
+            (dL,) = _lookup((levels[lv],), gx, gy, rows)
             far_rows = _half_rows(terrain[4], gx.shape[0])
             if lv_far != lv and far_rows.stop > far_rows.start:
-                sc = f32(2.0 ** (lv - lv_far))
-                far = _lookup(levels[lv_far], gx * sc, gy * sc, far_rows)
+                (far,) = _lookup((levels[lv_far],), gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
                 dL += w_far * (far - dL)
             b_t = tau_g * dL
         if clouds is None:
@@ -454,13 +458,14 @@ class SceneContent:
         cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
         lv, lv_far = clouds[3], clouds[4]
         rows = _half_rows(clouds[6], cx.shape[0])  # rows wholly at the far level skip the near one
-        rho = _lookup(self.clouds.density_levels[lv], cx, cy, rows)
-        L_c = _lookup(self.clouds.radiance_levels[lv], cx, cy, rows)
+        tex = self.clouds
+        rho, L_c = _lookup((tex.density_levels[lv], tex.radiance_levels[lv]), cx, cy, rows)
         far_rows = _half_rows(clouds[5], cx.shape[0])
         if lv_far != lv and far_rows.stop > far_rows.start:
-            sc = f32(2.0 ** (lv - lv_far))
-            rho += w_far * (_lookup(self.clouds.density_levels[lv_far], cx * sc, cy * sc, far_rows) - rho)
-            L_c += w_far * (_lookup(self.clouds.radiance_levels[lv_far], cx * sc, cy * sc, far_rows) - L_c)
+            far_levels = (tex.density_levels[lv_far], tex.radiance_levels[lv_far])
+            rho_far, L_c_far = _lookup(far_levels, cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
+            rho += w_far * (rho_far - rho)
+            L_c += w_far * (L_c_far - L_c)
         alpha = f32(1.0) - np.exp(-(optical * rho))
         a_seen = alpha * seen
         b = a_seen * L_c if b_t is None else b_t + a_seen * (L_c - b_t)
