@@ -466,11 +466,18 @@ class SceneContent:
             rho_far, L_c_far = _lookup(far_levels, cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
             rho += w_far * (rho_far - rho)
             L_c += w_far * (L_c_far - L_c)
-        alpha = f32(1.0) - np.exp(-(optical * rho))
-        a_seen = alpha * seen
-        b = a_seen * L_c if b_t is None else b_t + a_seen * (L_c - b_t)
+        # the same float32 operations as alpha = 1 - exp(-(optical rho)), a_seen = alpha seen, written
+        # into the buffers they consume (no temporaries: these are the per-frame hot path)
+        alpha = np.multiply(optical, rho, out=rho)
+        np.negative(alpha, out=alpha)
+        np.exp(alpha, out=alpha)
+        np.subtract(f32(1.0), alpha, out=alpha)
+        a_seen = np.multiply(alpha, seen, out=seen)
+        b = np.multiply(a_seen, L_c, out=L_c) if b_t is None else b_t + a_seen * (L_c - b_t)
         H, W = self._H, self._W
-        radiance = base - up(a_seen)[:H, :W] * base
+        radiance = up(a_seen)[:H, :W]
+        np.multiply(radiance, base, out=radiance)
+        np.subtract(base, radiance, out=radiance)
         radiance += up(b)[:H, :W]
         base_t = base if b_t is None else base + up(b_t)[:H, :W]
         return SceneBackground(radiance, base_t, depth, np.ascontiguousarray(up(alpha)[:H, :W]))
