@@ -313,6 +313,9 @@ class PartRaster:
         n = d_b.shape[1]
         t_best = np.full(n, np.inf, dtype=np.float32)
         part = np.zeros(n, dtype=np.intp)
+        closer = np.empty(n, dtype=bool)
+        # the nearest hit so far, part by part in index order (strictly closer wins: ties keep the
+        # earlier part); written in place: these arrays are small and the call count per frame high
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if self._box_idx.size:
                 inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
@@ -320,32 +323,56 @@ class PartRaster:
                 lo = (-self._box_h - oc)[:, :, None] * inv[None]  # (Pb, 3, n)
                 hi = (self._box_h - oc)[:, :, None] * inv[None]
                 t1 = np.minimum(lo, hi)
-                t2 = np.maximum(lo, hi)
-                t_in = np.maximum(np.maximum(t1[:, 0], t1[:, 1]), t1[:, 2])  # (Pb, n)
-                t_out = np.minimum(np.minimum(t2[:, 0], t2[:, 1]), t2[:, 2])
-                t = np.where((t_in <= t_out) & (t_out > 0.0), np.maximum(t_in, 0.0), np.inf)
+                t2 = np.maximum(lo, hi, out=lo)
+                t_in = np.maximum(t1[:, 0], t1[:, 1])  # (Pb, n)
+                np.maximum(t_in, t1[:, 2], out=t_in)
+                t_out = np.minimum(t2[:, 0], t2[:, 1])
+                np.minimum(t_out, t2[:, 2], out=t_out)
+                hit = t_in <= t_out
+                hit &= t_out > 0.0
+                t = np.where(hit, np.maximum(t_in, 0.0, out=t_in), np.inf)
                 for k, p in enumerate(self._box_idx):
-                    closer = t[k] < t_best
-                    t_best = np.where(closer, t[k], t_best)
-                    part = np.where(closer, p, part)
+                    np.less(t[k], t_best, out=closer)
+                    np.copyto(t_best, t[k], where=closer)
+                    np.copyto(part, p, where=closer)
             if self._ell_idx.size:
                 oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
                 de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
-                a = de[:, 0] ** 2 + de[:, 1] ** 2 + de[:, 2] ** 2
-                b = de[:, 0] * oe[:, 0, None] + de[:, 1] * oe[:, 1, None] + de[:, 2] * oe[:, 2, None]
+                d0, d1, d2 = de[:, 0], de[:, 1], de[:, 2]
+                a = d0 * d0
+                a += d1 * d1
+                a += d2 * d2
+                o0, o1, o2 = oe[:, 0, None], oe[:, 1, None], oe[:, 2, None]
+                b = d0 * o0
+                b += d1 * o1
+                b += d2 * o2
                 # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
                 # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
-                cx = oe[:, 1, None] * de[:, 2] - oe[:, 2, None] * de[:, 1]
-                cy = oe[:, 2, None] * de[:, 0] - oe[:, 0, None] * de[:, 2]
-                cz = oe[:, 0, None] * de[:, 1] - oe[:, 1, None] * de[:, 0]
-                disc = a - (cx * cx + cy * cy + cz * cz)
-                sq = np.sqrt(np.maximum(disc, 0.0))
-                t_out = (sq - b) / a
-                t = np.where((disc >= 0.0) & (t_out > 0.0), np.maximum(-(b + sq) / a, 0.0), np.inf)
+                cx = o1 * d2
+                cx -= o2 * d1
+                cy = o2 * d0
+                cy -= o0 * d2
+                cz = o0 * d1
+                cz -= o1 * d0
+                cx *= cx
+                cy *= cy
+                cz *= cz
+                cx += cy
+                cx += cz
+                disc = np.subtract(a, cx, out=cx)
+                sq = np.sqrt(np.maximum(disc, 0.0, out=cy), out=cy)
+                t_out = np.subtract(sq, b, out=cz)
+                t_out /= a
+                hit = disc >= 0.0
+                hit &= t_out > 0.0
+                near = np.add(b, sq, out=b)
+                np.negative(near, out=near)
+                near /= a
+                t = np.where(hit, np.maximum(near, 0.0, out=near), np.inf)
                 for k, p in enumerate(self._ell_idx):
-                    closer = t[k] < t_best
-                    t_best = np.where(closer, t[k], t_best)
-                    part = np.where(closer, p, part)
+                    np.less(t[k], t_best, out=closer)
+                    np.copyto(t_best, t[k], where=closer)
+                    np.copyto(part, p, where=closer)
         return t_best, part
 
 
