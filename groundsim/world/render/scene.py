@@ -235,6 +235,12 @@ class SceneContent:
         self.netd_radiance = float(s.netd_k) * float(band_radiance_derivative(s.netd_reference_k, s.band_um))
         L_sky_mean = float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um))
         self._init_rays()
+        # the depth of a frame without clouds and terrain, and the opacity of a frame without clouds: the
+        # same every frame, so built once and shared read-only (a caller that wrote into them would raise)
+        self._far_depth = np.full((self._H, self._W), FAR_M, np.float32)
+        self._no_cloud = np.zeros((self._H, self._W), np.float32)
+        self._far_depth.flags.writeable = False
+        self._no_cloud.flags.writeable = False
         c = config
         self.clouds = (
             cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
@@ -414,8 +420,7 @@ class SceneContent:
         """The background with clouds and terrain (see the module docstring); today's when both are off."""
         base = self.renderer.base_radiance(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
         if self.clouds is None and self.terrain is None:
-            depth = np.full(base.shape, FAR_M, np.float32)
-            return SceneBackground(base, base, depth, np.zeros(base.shape, np.float32))
+            return SceneBackground(base, base, self._far_depth, self._no_cloud)
         p = np.asarray(p_cam_ned_m, dtype=float)
         R = np.asarray(R_ned_from_cam, dtype=float)
         f32 = np.float32
@@ -454,7 +459,7 @@ class SceneContent:
             b_t = tau_g * dL
         if clouds is None:
             radiance = base + up(b_t)[: self._H, : self._W]
-            return SceneBackground(radiance, radiance, depth, np.zeros_like(base))
+            return SceneBackground(radiance, radiance, depth, self._no_cloud)
         cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
         lv, lv_far = clouds[3], clouds[4]
         rows = _half_rows(clouds[6], cx.shape[0])  # rows wholly at the far level skip the near one
