@@ -706,7 +706,8 @@ class IrRenderer:
         L = np.asarray(radiance, dtype=np.float32)
         if L.shape != (self._H, self._W):
             raise InputError(f"radiance: expected shape {(self._H, self._W)}, got {L.shape}")
-        grey = (L - np.float32(self._L_min)) * np.float32(self._grey_per_L)
+        grey = np.subtract(L, np.float32(self._L_min), out=self._mx)  # scratch: cv2.add below makes the output
+        grey *= np.float32(self._grey_per_L)
         n = self._H * self._W
         off = int(self._rng.integers(self._noise_offsets))
         noise = self._noise_bank[off : off + n].reshape(self._H, self._W)

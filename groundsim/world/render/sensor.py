@@ -128,6 +128,8 @@ class Sensor:
         )
         self._noise_offsets = n * (NOISE_BANK_FRAMES - 1) + 1
         self._seed = int(seed)
+        self._offset_now = np.empty((H, W), np.float32)
+        self._x = np.empty((H, W), np.float32)
         self._lut: np.ndarray | None = None
         self._last: SensorFrame | None = None
 
@@ -165,10 +167,13 @@ class Sensor:
         if L.shape != (self._H, self._W):
             raise InputError(f"radiance: expected shape {(self._H, self._W)}, got {L.shape}")
         _, since_s, _ = self.ffc_state(t_s)
+        # per-frame scratch images (the counts below are a new array: the caller keeps them)
         offset = (
-            self._offset_at_zero if self._drift is None else cv2.scaleAdd(self._drift, since_s, self._offset_at_zero)
+            self._offset_at_zero
+            if self._drift is None
+            else cv2.scaleAdd(self._drift, since_s, self._offset_at_zero, dst=self._offset_now)
         )
-        x = cv2.multiply(L, self._gain)
+        x = cv2.multiply(L, self._gain, dst=self._x)
         x += offset
         n = self._H * self._W
         off = int(np.random.default_rng([self._seed, int(frame_index)]).integers(self._noise_offsets))
