@@ -151,13 +151,15 @@ def _check_extensible(role: str, spec: VehicleSpec, scenario: Scenario, duration
         )
 
 
-def _check_speed(role: str, motion, scenario: Scenario, t_s: np.ndarray, duration_s: float) -> None:
-    """Refuses a continued path faster than :data:`MAX_EXTENDED_SPEED_MPS`, naming when it gets there and the
-    longest ``--duration`` that stays below it."""
+def _check_speed(
+    role: str, motion, v_ned_mps: np.ndarray, scenario: Scenario, t_s: np.ndarray, duration_s: float
+) -> None:
+    """Refuses a continued path (``motion``, its velocities ``v_ned_mps`` at ``t_s``) faster than
+    :data:`MAX_EXTENDED_SPEED_MPS`, naming when it gets there and the longest ``--duration`` that stays below it."""
     if not t_s.size:
         return
     with np.errstate(all="ignore"):
-        speed_mps = np.linalg.norm(motion.state(t_s).v_ned_mps, axis=-1)
+        speed_mps = np.linalg.norm(v_ned_mps, axis=-1)
     fast = np.flatnonzero(~(speed_mps <= MAX_EXTENDED_SPEED_MPS))
     if fast.size:
         k = int(fast[0])
@@ -198,15 +200,19 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     t_s = np.arange(frame_count(d, scenario.frame_rate_hz)) / scenario.frame_rate_hz
     t_s = t_s[t_s >= scenario.duration_s - DURATION_EPS_S]
     with np.errstate(all="ignore"):
-        p_obs = scenario.observer.base_motion.state(t_s).p_ned_m
-        p_tgt = target.base_motion.state(t_s).p_ned_m
+        s_obs = scenario.observer.base_motion.state(t_s)
+        s_tgt = target.base_motion.state(t_s)
+        p_obs, p_tgt = s_obs.p_ned_m, s_tgt.p_ned_m
         r_m = np.linalg.norm(p_tgt - p_obs, axis=-1)
     if not (np.all(np.isfinite(p_obs)) and np.all(np.isfinite(p_tgt))):
         raise ConfigError(f"--duration: {scenario.name}'s scripted paths overflow before {d:g} s")
-    for role, motion in (("observer", scenario.observer.base_motion), ("target", target.base_motion)):
-        _check_speed(role, motion, scenario, t_s, d)
+    _check_speed("observer", scenario.observer.base_motion, s_obs.v_ned_mps, scenario, t_s, d)
+    _check_speed("target", target.base_motion, s_tgt.v_ned_mps, scenario, t_s, d)
     for i, o in enumerate(others):
-        _check_speed(f"other_targets[{i}]", o.vehicle.base_motion, scenario, t_s, d)
+        m = o.vehicle.base_motion
+        with np.errstate(all="ignore"):
+            v = m.state(t_s).v_ned_mps
+        _check_speed(f"other_targets[{i}]", m, v, scenario, t_s, d)
     k = int(np.argmin(r_m)) if r_m.size else 0
     if r_m.size and not r_m[k] >= MIN_SEPARATION_M:
         raise ConfigError(
