@@ -91,10 +91,10 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
-        ref_m = None if pose is None else reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
-        if ref_m is not None and self.in_loop:  # the gate's altitude band has the planner's reference
-            p_ref = pose.body.p_ned_m - [0.0, 0.0, ref_m]
-            self._pose = (self._clock(), p_ref, pose.body.v_ned_mps)
+        if pose is not None and self.in_loop:  # the gate's altitude band has the planner's reference
+            ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
+            if ref_m is not None:
+                self._pose = (self._clock(), pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
