@@ -134,12 +134,26 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         help="paced to the wall clock, as fast as possible, or FACTOR x real time (default: realtime)",
     )
     p.add_argument(
-        "--mavlink", default=DEFAULT_MAVLINK, metavar="CONN", help="pymavlink connection string (default: %(default)s)"
+        "--mavlink",
+        action="append",
+        default=[],
+        metavar="CONN|NAME=CONN",
+        help=f"pymavlink connection string (default: {DEFAULT_MAVLINK}); a scenario of several observers takes"
+        " NAME=CONN per observer (repeatable; an observer not named sends to udpout:127.0.0.1:<14540 + its index>)",
     )
     p.add_argument(
         "--vehicle",
-        default=DEFAULT_VEHICLE,
-        help="zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: %(default)s)",
+        default=None,
+        help=f"zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: {DEFAULT_VEHICLE}); a scenario of"
+        " several observers publishes each on irtrack/<NAME>/ir/frame with its observer's name instead",
+    )
+    p.add_argument(
+        "--start-time-utc",
+        default=None,
+        metavar="now|ISO",
+        help="the simulated UTC at scenario time 0 (SYSTEM_TIME, the truth's time_unix_us): an ISO 8601 time"
+        " such as 2026-01-01T12:00:00Z, or now (the wall clock at start); default: the scenario's start_time_utc,"
+        " so runs are reproducible",
     )
     p.add_argument(
         "--zenoh-listen",
@@ -174,7 +188,13 @@ def _add_run(p: argparse.ArgumentParser) -> None:
     )
     _gnss_dropout_option(p)
     _camera_clock_option(p)
-    p.add_argument("--truth", default=None, metavar="PATH", help="write the ground-truth CSV here")
+    p.add_argument(
+        "--truth",
+        default=None,
+        metavar="PATH",
+        help="write the ground-truth CSV here; a scenario of several observers writes one per observer,"
+        " PATH's stem + .NAME.csv (out/truth.csv -> out/truth.uav1.csv, out/truth.uav2.csv)",
+    )
     p.add_argument(
         "--record",
         default=None,
@@ -209,7 +229,7 @@ def _run_config(args):
 
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
-    from groundsim.app.run import RateSpec, RunConfig
+    from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time
     from groundsim.world.nav_errors import parse_camera_time_offset, parse_gnss_dropout
     from onboard.io.zenoh_session import ZenohSettings
 
@@ -224,13 +244,22 @@ def _run_config(args):
         multicast_scouting=True if args.zenoh_multicast_scouting else None,
         connect_timeout_s=timeout,
     )
+    if scenario.is_fleet and args.vehicle is not None:
+        raise ConfigError(
+            f"--vehicle: {scenario.name} has several observers, each published under its own name"
+            f" ({', '.join(o.name for o in scenario.observers)}); expected no --vehicle"
+        )
+    vehicle = args.vehicle or DEFAULT_VEHICLE
+    endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
     return RunConfig(
         scenario=scenario,
         run_seed=args.seed,
         duration_s=args.duration,
         rate=rate,
-        mavlink=args.mavlink,
-        vehicle=args.vehicle,
+        mavlink=DEFAULT_MAVLINK if scenario.is_fleet else endpoints[0][1],
+        mavlink_by_vehicle=endpoints if scenario.is_fleet else (),
+        start_time_unix_us=parse_start_time(args.start_time_utc),
+        vehicle=vehicle,
         zenoh=zenoh,
         truth_path=Path(args.truth) if args.truth else None,
         render=not args.no_render,
@@ -308,7 +337,10 @@ def _run_interrupted(received: list[int], config, report) -> int:
     else:
         kept = f"{report.frames} of {report.frames_total} frames sent"
         if config.truth_path is not None:
-            kept += f"; truth of those frames in {config.truth_path}"
+            where = config.truth_path
+            if config.scenario.is_fleet:
+                where = where.with_name(f"{where.stem}.<NAME>{where.suffix or '.csv'}")
+            kept += f"; truth of those frames in {where}"
         if config.record_path is not None:
             kept += f"; recording in {config.record_path}"
     return print_interrupted(kept)

@@ -23,6 +23,15 @@ once per ``STATUS_EVERY_S`` of wall time.  While paced, the heap left by the set
 wake-ups themselves come late; ``groundsim run --rt-priority N`` (opt-in SCHED_FIFO) fixes that
 (``python -m bench.simrate`` measures both).
 
+Several observers (a fleet scenario, ``observers:``).  Each observer is a vehicle of its own: a
+:class:`~groundsim.world.sim.SimCore` of its view of the scenario (one shared world and targets; its own
+path, camera, navigation errors, boot clock), its own MAVLink endpoint (``--mavlink NAME=ENDPOINT``; an
+observer not named gets ``udpout:127.0.0.1:<14540 + its index>``), its frames on ``irtrack/<NAME>/ir/frame``
+and its own truth file (``--truth out/truth.csv`` -> ``out/truth.<NAME>.csv``).  They step through the same
+ticks in lockstep, one after the other within a tick, so a fleet run is as deterministic as a single one.
+Every vehicle's SYSTEM_TIME maps its boot clock to the one simulated UTC (``start_time_utc`` of the scenario,
+or ``--start-time-utc``), which the truth's ``time_unix_us`` column also carries.
+
 Stopping.  ``stop`` (a ``threading.Event``, set by SIGINT/SIGTERM in the CLI) is checked at every
 tick and while sleeping (at most ``STOP_POLL_S``); the loop then returns at once, the truth file
 holds whole lines for every frame published, and :func:`run` closes the sockets.
@@ -33,6 +42,7 @@ from __future__ import annotations
 import gc
 import logging
 import math
+import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -56,11 +66,18 @@ __all__ = [
     "RateSpec",
     "RunConfig",
     "RunReport",
+    "VehicleLeg",
+    "DEFAULT_FLEET_MAVLINK_PORT",
+    "split_mavlink_option",
+    "mavlink_endpoints",
+    "fleet_truth_path",
+    "parse_start_time",
     "JitterSummary",
     "JitterStats",
     "Pacer",
     "SystemClock",
     "run_loop",
+    "run_fleet_loop",
     "run",
 ]
 
@@ -72,6 +89,8 @@ STATUS_EVERY_S = 1.0  # wall seconds between status lines
 JITTER_LOG_EVERY_S = 5.0  # wall seconds between jitter reports when paced
 STOP_POLL_S = 0.05  # longest uninterrupted sleep: the stop flag is seen within this
 MIN_FACTOR, MAX_FACTOR = 0.01, 1000.0
+DEFAULT_FLEET_MAVLINK_PORT = 14540  # a fleet's observer i without --mavlink NAME=... sends to this port + i
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")  # an observer's name (groundsim.world.scenario.NAME_PATTERN)
 
 
 # --------------------------------------------------------------------------- options
@@ -121,6 +140,84 @@ REALTIME = RateSpec(1.0, "realtime")
 MAX_RATE = RateSpec(None, "max")
 
 
+def split_mavlink_option(text: str) -> tuple[str | None, str]:
+    """``--mavlink NAME=ENDPOINT`` -> ``(NAME, ENDPOINT)``; a plain connection string -> ``(None, text)``
+    (pymavlink's connection strings hold no ``=`` before their first ``:``)."""
+    name, sep, conn = str(text).partition("=")
+    if sep and _NAME_RE.match(name) and ":" not in name:
+        return name, conn
+    return None, str(text)
+
+
+def mavlink_endpoints(scenario: Scenario, values, vehicle: str) -> tuple[tuple[str, str], ...]:
+    """The ``--mavlink`` options (a list of strings, possibly empty) as ``((vehicle name, connection), ...)``
+    in observer order; ConfigError naming ``--mavlink`` for a mistake.
+
+    One observer: at most one option, ``CONN`` or ``NAME=CONN`` with NAME the ``--vehicle`` (default: the
+    simulator's default connection).  A fleet: every option ``NAME=CONN`` naming one of its observers, each at
+    most once; an observer left out sends to ``udpout:127.0.0.1:<DEFAULT_FLEET_MAVLINK_PORT + index>``."""
+    from groundsim.io.mavlink_vehicle import DEFAULT_CONNECTION
+
+    values = list(values or ())
+    if not scenario.is_fleet:
+        if len(values) > 1:
+            raise ConfigError(
+                f"--mavlink: {scenario.name} has one observer: expected one connection, got {len(values)}"
+            )
+        if not values:
+            return ((vehicle, DEFAULT_CONNECTION),)
+        name, conn = split_mavlink_option(values[0])
+        if name is not None and name != vehicle:
+            raise ConfigError(
+                f"--mavlink: {scenario.name} has one observer, vehicle {vehicle!r}: expected CONN or {vehicle}=CONN,"
+                f" got {values[0]!r}"
+            )
+        return ((vehicle, conn),)
+    names = [o.name for o in scenario.observers]
+    given: dict[str, str] = {}
+    for text in values:
+        name, conn = split_mavlink_option(text)
+        if name is None:
+            raise ConfigError(
+                f"--mavlink: {scenario.name} has several observers ({', '.join(names)}): expected NAME=ENDPOINT,"
+                f" got {text!r}"
+            )
+        if name not in names:
+            raise ConfigError(f"--mavlink: expected an observer of {scenario.name} ({', '.join(names)}), got {name!r}")
+        if name in given:
+            raise ConfigError(f"--mavlink: observer {name!r} given twice")
+        given[name] = conn
+    out = tuple((n, given.get(n, f"udpout:127.0.0.1:{DEFAULT_FLEET_MAVLINK_PORT + i}")) for i, n in enumerate(names))
+    conns = [c for _, c in out]
+    for i, c in enumerate(conns):
+        if c in conns[:i]:
+            raise ConfigError(f"--mavlink: observers {out[conns.index(c)][0]} and {out[i][0]} share endpoint {c!r}")
+    return out
+
+
+def fleet_truth_path(truth_path, name: str) -> Path:
+    """A fleet's per-observer truth file: ``out/truth.csv`` -> ``out/truth.<name>.csv``."""
+    p = Path(truth_path)
+    return p.with_name(f"{p.stem}.{name}{p.suffix or '.csv'}")
+
+
+def parse_start_time(text: str | None) -> int | None:
+    """``--start-time-utc``: None (the scenario's ``start_time_utc``), ``now`` (the wall clock when the run
+    starts) or an ISO 8601 UTC time -> us since the UNIX epoch (None for the scenario's); ConfigError otherwise."""
+    from groundsim.world.scenario import parse_utc_us
+
+    if text is None:
+        return None
+    if str(text).strip().lower() == "now":
+        return time.time_ns() // 1000
+    try:
+        return parse_utc_us(text)
+    except ValueError:
+        raise ConfigError(
+            f"--start-time-utc: expected now or an ISO 8601 UTC time such as 2026-01-01T12:00:00Z, got {text!r}"
+        ) from None
+
+
 @dataclass(frozen=True)
 class RunConfig:
     """Everything ``run`` needs, typed (built once by the CLI).
@@ -131,7 +228,10 @@ class RunConfig:
     :class:`onboard.io.zenoh_session.ZenohSettings` (None: no endpoints, scouting off).
     ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic (``PACED_CHUNK_S`` or
     ``MAX_MODE_CHUNK_S``).  ``nav_noise``: a case name of ``config/noise_cases.yaml`` for the
-    telemetry's navigation errors; None = the scenario's ``nav_noise``.
+    telemetry's navigation errors; None = the scenario's ``nav_noise`` (every observer's own in a fleet).
+    ``mavlink_by_vehicle``: ``((name, connection), ...)`` of a fleet (:func:`mavlink_endpoints`; empty: each
+    observer's default); a single observer uses ``mavlink`` and ``vehicle``.  ``start_time_unix_us``: the
+    simulated UTC of t_s = 0 (None: the scenario's ``start_time_utc``).
     """
 
     scenario: Scenario
@@ -150,11 +250,23 @@ class RunConfig:
     guided: bool = True  # the vehicle reports GUIDED and its observer follows velocity setpoints (--no-guided: not)
     gnss_dropout: object | None = None  # --gnss-dropout: a groundsim.world.nav_errors.GnssDropout
     camera_clock: object | None = None  # --camera-time-offset-ms: a groundsim.world.nav_errors.CameraClockError
+    mavlink_by_vehicle: tuple = ()
+    start_time_unix_us: int | None = None
 
     def __post_init__(self) -> None:
         sc = self.scenario
         if not isinstance(sc, Scenario):
             raise ConfigError(f"RunConfig.scenario must be a Scenario, got {type(sc).__name__}")
+        if sc.is_fleet:
+            given = [f"{n}={c}" for n, c in self.mavlink_by_vehicle]
+            object.__setattr__(self, "mavlink_by_vehicle", mavlink_endpoints(sc, given, self.vehicle))
+            if self.record_path is not None:
+                raise ConfigError(f"--record: not supported for a scenario of several observers ({sc.name}) yet")
+        elif self.mavlink_by_vehicle:
+            raise ConfigError(f"RunConfig.mavlink_by_vehicle: {sc.name} has one observer: use mavlink and vehicle")
+        u = self.start_time_unix_us
+        if u is not None and (isinstance(u, bool) or not isinstance(u, int) or not 0 <= u < 2**62):
+            raise ConfigError(f"RunConfig.start_time_unix_us must be a UNIX time in us or None, got {u!r}")
         object.__setattr__(self, "run_seed", check_run_seed(self.run_seed))
         object.__setattr__(self, "duration_s", check_duration_s(self.duration_s, sc))
         object.__setattr__(self, "scenario", extend_scenario(sc, self.duration_s))
@@ -326,6 +438,18 @@ class RunReport:
         return s
 
 
+@dataclass
+class VehicleLeg:
+    """One simulated vehicle of a run: its :class:`SimCore` and its sinks (any may be None), see :func:`run_loop`.
+    ``name``: the vehicle's name (a fleet's observer; it prefixes the fleet's MAVLink counters)."""
+
+    core: SimCore
+    mavlink: object | None = None
+    publisher: object | None = None
+    truth: object | None = None
+    name: str = ""
+
+
 def run_loop(
     core: SimCore,
     rate: RateSpec,
@@ -346,6 +470,21 @@ def run_loop(
     counted in ``RunReport.errors`` and logged at most every 10 s, never raised; a flight failure
     (FlightError) or a truth file that cannot be written ends the run by raising.
     """
+    leg = VehicleLeg(core, mavlink, publisher, truth)
+    return run_fleet_loop([leg], rate, stop=stop, clock=clock, camera_clock=camera_clock)
+
+
+def run_fleet_loop(
+    legs,
+    rate: RateSpec,
+    *,
+    stop: threading.Event | None = None,
+    clock=None,
+    camera_clock=None,
+) -> RunReport:
+    """:func:`run_loop` for one or several vehicles (:class:`VehicleLeg`), stepped in lockstep on one tick
+    grid (their cores share the scenario's timing): within a tick each vehicle in turn gets its MAVLink poll,
+    and at a frame's tick each publishes its frame and writes its truth row."""
     from onboard.core.irframe import IrFrame
 
     try:
@@ -354,17 +493,24 @@ def run_loop(
         sink_errors: tuple = (IrtrackError, zenoh.ZError)
     except ImportError:  # pragma: no cover - zenoh is a dependency
         sink_errors = (IrtrackError,)
+    legs = list(legs)
+    core = legs[0].core
+    for leg in legs[1:]:
+        if (leg.core.tick_count, leg.core.ticks_per_frame) != (core.tick_count, core.ticks_per_frame):
+            raise ConfigError("run_fleet_loop: the vehicles' cores must share one tick grid")
+    fleet = len(legs) > 1
     stop = stop if stop is not None else threading.Event()
     clock = clock if clock is not None else SystemClock()
     pacer = Pacer(rate.factor, clock)
     jitter = JitterStats(1.0 / core.frame_rate_hz / (rate.factor or 1.0)) if rate.paced else None
 
     t_setup = clock.now_s()
-    pending = core.frame(0) if not stop.is_set() else None
+    pending = [leg.core.frame(0) if not stop.is_set() else None for leg in legs]
     setup_s = clock.now_s() - t_setup
-    flight_setup_s, render_setup_s = core.flight.flight_s, core.render_s
+    flight_setup_s = sum(leg.core.flight.flight_s for leg in legs)
+    render_setup_s = sum(leg.core.render_s for leg in legs)
     log.info(
-        "set-up %.2f s (flight %.2f s); %d frames at %g Hz, %d ticks at %g Hz, rate %s",
+        "set-up %.2f s (flight %.2f s); %d frames at %g Hz, %d ticks at %g Hz, rate %s%s",
         setup_s,
         flight_setup_s,
         core.frame_count,
@@ -372,6 +518,7 @@ def run_loop(
         core.tick_count,
         core.tick_rate_hz,
         rate.text,
+        f", {len(legs)} vehicles" if fleet else "",
     )
 
     if rate.paced:
@@ -397,37 +544,43 @@ def run_loop(
             late = pacer.wait_until(core.tick_time_s(i), stop)
             if stop.is_set():
                 break
-            if mavlink is not None:
+            for leg in legs:
+                if leg.mavlink is None:
+                    continue
+                c, vehicle = leg.core, leg.mavlink
                 t0 = clock.now_s()
                 try:
-                    mavlink.update_state(**core.vehicle_state(i), nav_error=core.nav_error(i))
-                    mavlink.poll(core.time_boot_us(i))
-                    for v_ned_mps in getattr(mavlink, "take_setpoints", list)():  # guided: the observer follows them
-                        core.flight.command_observer(core.tick_time_s(i), v_ned_mps)
+                    vehicle.update_state(**c.vehicle_state(i), nav_error=c.nav_error(i))
+                    vehicle.poll(c.time_boot_us(i))
+                    for v_ned_mps in getattr(vehicle, "take_setpoints", list)():  # guided: the observer follows them
+                        c.flight.command_observer(c.tick_time_s(i), v_ned_mps)
                 except sink_errors as exc:
-                    mavlink_errors(f"tick {i}: mavlink", exc)
+                    mavlink_errors(f"tick {i}: mavlink{' ' + leg.name if fleet else ''}", exc)
                 acc["mavlink"] += clock.now_s() - t0
             if r == 0:
-                frame = pending
                 wall = clock.now_s()
                 if jitter is not None:
                     jitter.add(wall, late)
-                if publisher is not None and frame.pixels is not None:
-                    try:
-                        stamp = frame.time_boot_us
-                        if camera_clock is not None:
-                            stamp = camera_clock.stamp_us(stamp, frame.truth.t_s)
-                        publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
-                        published += 1
-                    except sink_errors as exc:
-                        publish_errors(f"frame {frame.seq}: publish", exc)
-                t1 = clock.now_s()
-                acc["publish"] += t1 - wall
-                if truth is not None:
-                    truth.write(frame.truth, frame.labels)
-                acc["truth"] += clock.now_s() - t1
+                t_prev = wall  # one clock reading per step, as many as for one vehicle (fake clocks count them)
+                for n, leg in enumerate(legs):
+                    frame = pending[n]
+                    if leg.publisher is not None and frame.pixels is not None:
+                        try:
+                            stamp = frame.time_boot_us
+                            if camera_clock is not None:
+                                stamp = camera_clock.stamp_us(stamp, frame.truth.t_s)
+                            leg.publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
+                            published += 1
+                        except sink_errors as exc:
+                            publish_errors(f"frame {frame.seq}: publish{' ' + leg.name if fleet else ''}", exc)
+                    t1 = clock.now_s()
+                    acc["publish"] += t1 - t_prev
+                    if leg.truth is not None:
+                        leg.truth.write(frame.truth, frame.labels)
+                    t_prev = clock.now_s()
+                    acc["truth"] += t_prev - t1
                 frames += 1
-                pending = core.frame(k + 1) if k + 1 < n_frames else None
+                pending = [leg.core.frame(k + 1) if k + 1 < n_frames else None for leg in legs]
             now = clock.now_s()
             if now >= next_status:
                 next_status = now + STATUS_EVERY_S
@@ -452,12 +605,20 @@ def run_loop(
     sim_s = frames / core.frame_rate_hz
     nf = max(frames, 1)
     per_frame = {
-        "flight": 1e3 * (core.flight.flight_s - flight_setup_s) / nf,
-        "render": 1e3 * (core.render_s - render_setup_s) / nf,
+        "flight": 1e3 * (sum(leg.core.flight.flight_s for leg in legs) - flight_setup_s) / nf,
+        "render": 1e3 * (sum(leg.core.render_s for leg in legs) - render_setup_s) / nf,
         "publish": 1e3 * acc["publish"] / nf,
         "mavlink": 1e3 * acc["mavlink"] / nf,
         "truth": 1e3 * acc["truth"] / nf,
     }
+    errors = {e.kind: e.count for e in (mavlink_errors, publish_errors) if e.count}
+    render_errors = sum(leg.core.render_errors.count for leg in legs)
+    if render_errors:
+        errors[core.render_errors.kind] = render_errors
+    counters: dict = {}
+    for leg in legs:
+        for key, value in dict(getattr(leg.mavlink, "counters", {}) or {}).items():
+            counters[f"{leg.name}.{key}" if fleet else key] = value
     report = RunReport(
         frames=frames,
         frames_total=n_frames,
@@ -469,8 +630,8 @@ def run_loop(
         rate=rate.text,
         jitter=jitter.summary() if jitter is not None else None,
         per_frame_ms=per_frame,
-        errors={e.kind: e.count for e in (mavlink_errors, publish_errors, core.render_errors) if e.count},
-        mavlink_counters=dict(getattr(mavlink, "counters", {}) or {}),
+        errors=errors,
+        mavlink_counters=counters,
         frames_published=published,
     )
     log.info("%s", report.line())
@@ -482,66 +643,101 @@ def run_loop(
 def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> RunReport:
     """Open the adapters of ``config`` (zenoh, MAVLink, truth file), run, close them.
 
-    Opening errors (port in use, unreachable zenoh peer, bad endpoint, unwritable truth path)
-    raise :class:`~onboard.core.errors.IrtrackError` subclasses with one-line messages before any
-    flying starts.
+    A fleet scenario opens them per observer (see the module docstring).  Opening errors (port in use,
+    unreachable zenoh peer, bad endpoint, unwritable truth path) raise
+    :class:`~onboard.core.errors.IrtrackError` subclasses with one-line messages before any flying starts.
     """
     from groundsim.io.mavlink_vehicle import MavlinkVehicle
     from groundsim.io.zenoh_video import FramePublisher
     from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 
-    frame_key(config.vehicle)  # validates the vehicle name before opening anything
+    sc = config.scenario
+    fleet = sc.is_fleet
+    endpoints = config.mavlink_by_vehicle if fleet else ((config.vehicle, config.mavlink),)
+    for name, _ in endpoints:
+        frame_key(name)  # validates the vehicle names before opening anything
     chunk_s = config.flight_chunk_s
     if chunk_s is None:
         chunk_s = PACED_CHUNK_S if config.rate.paced else MAX_MODE_CHUNK_S
-    sc = config.scenario
-    core = SimCore(
-        sc, config.run_seed, config.duration_s, config.render, config.boot_start_us, chunk_s, nav_noise=config.nav_noise
-    )
+    boot = None if fleet else config.boot_start_us  # a fleet's vehicles: each view's own boot clock
+    cores = [
+        SimCore(
+            view,
+            config.run_seed,
+            config.duration_s,
+            config.render,
+            boot,
+            chunk_s,
+            nav_noise=config.nav_noise,
+            start_time_unix_us=config.start_time_unix_us,
+        )
+        for view in sc.observer_views()
+    ]
 
     zs = config.zenoh if config.zenoh is not None else ZenohSettings()
-    session = publisher = vehicle = writer = recorder = None
+    legs: list[VehicleLeg] = []
+    session = recorder = None
     try:
         session = open_session(zs)
-        if config.render:
-            publisher = FramePublisher(session, config.vehicle)
-        outage = None if config.gnss_dropout is None else config.gnss_dropout.boot_window_us(core.boot_start_us)
-        vehicle = MavlinkVehicle(config.mavlink, gimballed=core.gimballed, guided=config.guided, gnss_outage_us=outage)
+        for core, (name, conn) in zip(cores, endpoints):
+            leg = VehicleLeg(core, name=name)
+            legs.append(leg)
+            if config.render:
+                leg.publisher = FramePublisher(session, name)
+            outage = None if config.gnss_dropout is None else config.gnss_dropout.boot_window_us(core.boot_start_us)
+            leg.mavlink = MavlinkVehicle(
+                conn,
+                gimballed=core.gimballed,
+                guided=config.guided,
+                gnss_outage_us=outage,
+                unix_time_at_boot_us=core.unix_time_at_boot_us,
+            )
+            if config.truth_path is not None:
+                leg.truth = TruthWriter(fleet_truth_path(config.truth_path, name) if fleet else config.truth_path)
         if config.gnss_dropout is not None:
             log.info(
                 "GNSS dropout from %.2f s for %.2f s: no GLOBAL_POSITION_INT, GPS_RAW_INT without a fix",
                 config.gnss_dropout.start_s,
                 config.gnss_dropout.duration_s,
             )
-        if config.truth_path is not None:
-            writer = TruthWriter(config.truth_path)
-        if config.record_path is not None:
-            recorder = _start_recorder(config, core)
-            publisher, writer = _RecordingPublisher(publisher, recorder), _RecordingTruth(writer, recorder)
-            _tap_mavlink(vehicle, recorder)
-        log.info(
-            "scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s",
-            sc.name,
-            config.run_seed,
-            core.duration_s,
-            "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
-            core.nav_noise.name,
-            config.mavlink,
-            frame_key(config.vehicle),
-            "" if config.render else " (rendering off: no frames)",
-        )
-        return run_loop(
-            core,
-            config.rate,
-            mavlink=vehicle,
-            publisher=publisher,
-            truth=writer,
-            stop=stop,
-            clock=clock,
-            camera_clock=config.camera_clock,
-        )
+        if config.record_path is not None:  # one vehicle (RunConfig refuses --record for a fleet)
+            leg = legs[0]
+            recorder = _start_recorder(config, leg.core)
+            leg.publisher, leg.truth = (
+                _RecordingPublisher(leg.publisher, recorder),
+                _RecordingTruth(leg.truth, recorder),
+            )
+            _tap_mavlink(leg.mavlink, recorder)
+        for leg in legs:
+            core = leg.core
+            log.info(
+                "scenario %s (seed %d), %.2f s, %s, navigation errors %s, mavlink %s, zenoh key %s%s%s",
+                sc.name,
+                config.run_seed,
+                core.duration_s,
+                "gimballed" if core.gimballed else "fixed pod (observer yaws toward the target)",
+                core.nav_noise.name,
+                getattr(leg.mavlink, "connection", ""),
+                frame_key(leg.name),
+                "" if config.render else " (rendering off: no frames)",
+                f", boot clock {core.boot_start_us / 1e6:.3f} s at t = 0" if fleet else "",
+            )
+        if not fleet:
+            leg = legs[0]
+            return run_loop(
+                leg.core,
+                config.rate,
+                mavlink=leg.mavlink,
+                publisher=leg.publisher,
+                truth=leg.truth,
+                stop=stop,
+                clock=clock,
+                camera_clock=config.camera_clock,
+            )
+        return run_fleet_loop(legs, config.rate, stop=stop, clock=clock, camera_clock=config.camera_clock)
     finally:
-        for closer in (writer, publisher, vehicle, session, recorder):
+        closers = [c for leg in legs for c in (leg.truth, leg.publisher, leg.mavlink)] + [session, recorder]
+        for closer in closers:
             if closer is not None:
                 try:
                     closer.close()

@@ -28,6 +28,7 @@ drawn from ``scenario.rng("target.disturbance", run_seed)``, which depends only 
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import logging
 import math
 import re
@@ -37,9 +38,10 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BeforeValidator, PlainValidator
+from pydantic import BeforeValidator
 
-from groundsim.world.motion import Circular, Cubic, FigureEight, Motion, Perturbed, SingerPerturbation, Waypoints
+from groundsim.world.motion import Motion, Perturbed, SingerPerturbation
+from groundsim.world.motion_files import MOTION_MODELS, MotionFile
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import IrSettings, TargetPart
 from onboard.core.camera_section import PinholeSection
@@ -71,7 +73,10 @@ __all__ = [
     "OtherTarget",
     "GimbalSpec",
     "CameraSpec",
+    "ObserverSpec",
     "Scenario",
+    "OBSERVER_STREAMS",
+    "DEFAULT_START_TIME_UTC",
     "NoiseCase",
     "MOTION_MODELS",
     "REFERENCE_GIMBAL",
@@ -108,6 +113,14 @@ DEFAULT_DURATION_S = 10.0
 DEFAULT_FRAME_RATE_HZ = 30.0
 DEFAULT_SEED = 0
 DEFAULT_NAV_NOISE = "RTK"  # navigation errors of the telemetry when nothing else is asked (groundsim.world.nav_errors)
+#: the simulated UTC of t_s = 0 when a scenario names none: fixed, so a run at --rate max is reproducible
+DEFAULT_START_TIME_UTC = "2026-01-01T12:00:00Z"
+MAX_OBSERVERS = 16
+#: a fleet vehicle's boot clock reads between these at t_s = 0 unless the file says (powered on before take-off)
+FLEET_BOOT_MIN_US, FLEET_BOOT_SPAN_MS = 1_000_000, 600_000
+#: random streams that belong to one observer (its camera, gimbal and navigation) rather than to the shared world:
+#: in a fleet, each observer's view draws them from its own stream (Scenario.rng)
+OBSERVER_STREAMS = frozenset({"nav.errors", "gimbal.pointing_phase", "render.noise", "render.sensor"})
 
 _CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 _REFERENCE_ORDER = ("P1", "P2", "P3", "P1g", "P2g", "P3g", "H1", "H2", "H3")
@@ -237,6 +250,30 @@ class CameraSpec:
     gimbal: Annotated[GimbalSpec | None, Instance(GimbalSpec, what="a GimbalSpec")] = REFERENCE_GIMBAL
 
 
+@_scenario_model(kw_only=True)
+class ObserverSpec:
+    """One observer of a fleet (``observers`` in the file): its ``name`` (the vehicle's name: frame key
+    ``irtrack/<name>/ir/frame``, ``groundsim run --mavlink NAME=ENDPOINT``), its path (``vehicle``), its
+    ``camera``, its navigation-error case ``nav_noise`` and ``boot_start_us``, what its boot clock reads at
+    scenario time 0 (different per vehicle, as real autopilots powered on at different times)."""
+
+    name: _NAME
+    vehicle: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
+    camera: Annotated[CameraSpec, Instance(CameraSpec, what="a CameraSpec")]
+    nav_noise: Annotated[str, Text(pattern=NAME_PATTERN.pattern, what="a noise-case name")] = DEFAULT_NAV_NOISE
+    boot_start_us: Annotated[int, Integer(0, 2**40 - 1)] = FLEET_BOOT_MIN_US
+
+
+def parse_utc_us(text: str) -> int:
+    """``2026-01-01T12:00:00Z`` (ISO 8601 with a UTC offset) -> microseconds since the UNIX epoch; ValueError
+    for a malformed text or one without an offset (a local time would make runs differ between machines)."""
+    t = datetime.datetime.fromisoformat(str(text).strip().replace("Z", "+00:00").replace("z", "+00:00"))
+    if t.tzinfo is None:
+        raise ValueError(f"{text!r} has no UTC offset")
+    delta = t - datetime.datetime(1970, 1, 1, tzinfo=datetime.UTC)
+    return (delta.days * 86_400 + delta.seconds) * 1_000_000 + delta.microseconds
+
+
 def _frame_count(duration_s: float, frame_rate_hz: float) -> int:
     return max(1, math.ceil(duration_s * frame_rate_hz - FRAME_COUNT_EPS))
 
@@ -253,7 +290,13 @@ class Scenario:
     ``observer``/``target``: :class:`VehicleSpec` in local NED about ``origin``; ``camera``: on the
     observer; ``ir``: the renderer's settings; ``wind_ned_mps``: (n, e, d) m/s; ``seed``: the root
     of every random stream of the scenario (see :meth:`rng`); ``source_path``: the file it came
-    from, or ``None``.
+    from, or ``None``; ``start_time_utc_us``: the simulated UTC of ``t_s = 0`` (us since the UNIX epoch).
+
+    A fleet (``observers``, :class:`ObserverSpec`, one shared world and targets): ``observer``, ``camera`` and
+    ``nav_noise`` are the first observer's, so code that knows one observer sees that one;
+    :meth:`observer_views` gives one single-observer scenario per observer (``observer_name`` and
+    ``boot_start_us`` set, its own streams of :data:`OBSERVER_STREAMS`).  ``boot_start_us`` None: the simulator's
+    default boot clock.
     """
 
     name: _NAME
@@ -281,6 +324,35 @@ class Scenario:
     )
     # more targets, flown like ``target`` and drawn as scene objects 1..n (OtherTarget)
     other_targets: Annotated[tuple, Instance(tuple, what="a tuple of OtherTarget")] = ()
+    start_time_utc_us: Annotated[int, Integer(0, 2**62)] = dataclasses.field(
+        default_factory=lambda: parse_utc_us(DEFAULT_START_TIME_UTC)
+    )
+    observers: Annotated[tuple, Instance(tuple, what="a tuple of ObserverSpec")] = ()
+    observer_name: Annotated[str | None, Text(pattern=NAME_PATTERN.pattern, what="an observer name")] = None
+    boot_start_us: Annotated[int | None, Integer(0, 2**40 - 1)] = None
+
+    @property
+    def is_fleet(self) -> bool:
+        """True for a scenario with an ``observers`` list (even of one)."""
+        return bool(self.observers)
+
+    def observer_views(self) -> tuple[Scenario, ...]:
+        """One single-observer scenario per observer of a fleet, in file order (``(self,)`` otherwise): the
+        shared world and targets, the observer's path, camera, navigation errors, name and boot clock."""
+        if not self.observers:
+            return (self,)
+        return tuple(
+            dataclasses.replace(
+                self,
+                observer=o.vehicle,
+                camera=o.camera,
+                nav_noise=o.nav_noise,
+                observers=(),
+                observer_name=o.name,
+                boot_start_us=o.boot_start_us,
+            )
+            for o in self.observers
+        )
 
     @property
     def frame_count(self) -> int:
@@ -295,11 +367,16 @@ class Scenario:
         """An independent generator per (scenario seed, run seed, stream name); deterministic.
 
         Streams used here: ``"target.disturbance"``.  Other components pick their own names
-        (e.g. ``"noise.pixel"``) so adding a stream never shifts another.
+        (e.g. ``"noise.pixel"``) so adding a stream never shifts another.  An observer's view of a fleet
+        (``observer_name`` set) draws the streams of :data:`OBSERVER_STREAMS` from
+        ``"observers.<name>.<stream>"``: each vehicle has its own navigation errors, render noise and gimbal
+        phases, while the world's streams (targets, scene) stay shared.
         """
         run_seed = check_value(
             Annotated[int, Integer(lo=0)], run_seed, "run_seed", f"<Scenario {self.name}>", ScenarioError
         )
+        if self.observer_name is not None and stream in OBSERVER_STREAMS:
+            stream = f"observers.{self.observer_name}.{stream}"
         return _stream_rng(self.seed, stream, run_seed)
 
     def target_motion(self, run_seed: int = 0) -> Motion:
@@ -365,92 +442,6 @@ class NoiseCase:
 _VUE = PinholeIntrinsics.vue_pro_640()
 _IR = IrSettings()
 _SCALE_K = Annotated[float, Number(0.0, lo_open=True, unit="K")]
-
-
-@_scenario_model(kw_only=True)
-class UniformLinearFile:
-    model: Annotated[Literal["uniform_linear"], Text()] = "uniform_linear"
-    p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
-
-    def motion(self) -> Motion:
-        return Cubic(self.p0_ned_m, self.v0_ned_mps, _ZERO3, _ZERO3)
-
-
-@_scenario_model(kw_only=True)
-class UniformAccelerationFile:
-    model: Annotated[Literal["uniform_acceleration"], Text()] = "uniform_acceleration"
-    p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
-    a0_ned_mps2: _VEC3 = _ZERO3
-
-    def motion(self) -> Motion:
-        return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, _ZERO3)
-
-
-@_scenario_model(kw_only=True)
-class CubicFile:
-    model: Annotated[Literal["cubic"], Text()] = "cubic"
-    p0_ned_m: _VEC3
-    v0_ned_mps: _VEC3 = _ZERO3
-    a0_ned_mps2: _VEC3 = _ZERO3
-    j_ned_mps3: _VEC3 = _ZERO3
-
-    def motion(self) -> Motion:
-        return Cubic(self.p0_ned_m, self.v0_ned_mps, self.a0_ned_mps2, self.j_ned_mps3)
-
-
-@_scenario_model(kw_only=True)
-class CircularFile:
-    model: Annotated[Literal["circular"], Text()] = "circular"
-    center_ned_m: _VEC3
-    radius_m: Annotated[float, Number(0.0, lo_open=True)]
-    azimuth0_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
-    rate_degps: Annotated[float, Number(-360.0, 360.0, unit="deg/s (signed: > 0 clockwise from above)")]
-
-    def motion(self) -> Motion:
-        return Circular(
-            self.center_ned_m, self.radius_m, math.radians(self.azimuth0_deg), math.radians(self.rate_degps)
-        )
-
-
-@_scenario_model(kw_only=True)
-class FigureEightFile:
-    model: Annotated[Literal["figure_eight"], Text()] = "figure_eight"
-    center_ned_m: _VEC3
-    amp1_ned_m: _VEC3
-    amp2_ned_m: _VEC3 = _ZERO3
-    period_s: Annotated[float, Number(0.0, lo_open=True)]
-
-    def motion(self) -> Motion:
-        return FigureEight(self.center_ned_m, self.amp1_ned_m, self.amp2_ned_m, self.period_s)
-
-
-def _points(value: Any) -> tuple[tuple[float, ...], ...]:
-    if not isinstance(value, (list, tuple)) or len(value) < 2:
-        raise Invalid("", "a list of at least 2 points [n, e, d]", value)
-    out = []
-    for i, q in enumerate(value):
-        try:
-            out.append(check_value(_VEC3, q, f"[{i}]", "<points>"))
-        except SchemaError as exc:
-            raise Invalid(exc.field, exc.expected, got_text=exc.got) from None
-    return tuple(out)
-
-
-@_scenario_model(kw_only=True)
-class WaypointsFile:
-    model: Annotated[Literal["waypoints"], Text()] = "waypoints"
-    points_ned_m: Annotated[tuple, PlainValidator(_points)]
-    speed_mps: Annotated[float, Number(0.0, lo_open=True)]
-
-    def motion(self) -> Motion:
-        return Waypoints(self.points_ned_m, self.speed_mps)
-
-
-_MOTION_FILES = (UniformLinearFile, UniformAccelerationFile, CubicFile, CircularFile, FigureEightFile, WaypointsFile)
-MOTION_MODELS: tuple[str, ...] = tuple(dataclasses.fields(m)[0].default for m in _MOTION_FILES)
-MotionFile = UniformLinearFile | UniformAccelerationFile | CubicFile | CircularFile | FigureEightFile | WaypointsFile
 
 
 @_scenario_model(kw_only=True)
@@ -613,6 +604,35 @@ class WindFile:
 
 
 @_scenario_model(kw_only=True)
+class FleetObserverFile:
+    """An entry of ``observers``: a named observer with its own path; its camera and navigation errors default
+    to the scenario's ``camera`` and ``nav_noise``, its boot clock at t = 0 to one drawn from the seed and name."""
+
+    name: _NAME
+    motion: MotionFile
+    camera: CameraFile | None = None
+    nav_noise: Annotated[str | None, Text()] = None
+    boot_time_s: Annotated[float | None, Number(0.0, 1e6, unit="s")] = None
+
+    def boot_start_us(self, seed: int) -> int:
+        if self.boot_time_s is not None:
+            return round(self.boot_time_s * 1e6)
+        # whole milliseconds: the boot time MAVLink carries (time_boot_ms) is then exact
+        rng = _stream_rng(seed, f"observers.{self.name}.boot_clock", 0)
+        return FLEET_BOOT_MIN_US + 1000 * int(rng.integers(0, FLEET_BOOT_SPAN_MS))
+
+
+def _utc_text(value: Any) -> Any:
+    if isinstance(value, datetime.datetime):  # YAML reads an unquoted timestamp as one
+        value = value.isoformat()
+    try:
+        parse_utc_us(value)
+    except (TypeError, ValueError):
+        raise Invalid("", "an ISO 8601 UTC time such as 2026-01-01T12:00:00Z", value) from None
+    return value
+
+
+@_scenario_model(kw_only=True)
 class ScenarioFile:
     """A scenario file's top level (``docs/scenarios.md``)."""
 
@@ -622,7 +642,11 @@ class ScenarioFile:
     duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
     frame_rate_hz: Annotated[float, Number(0.0, MAX_FRAME_RATE_HZ, lo_open=True, unit="Hz")] = DEFAULT_FRAME_RATE_HZ
     seed: Annotated[int, Integer(0, 2**63 - 1)] = DEFAULT_SEED
-    observer: ObserverFile
+    observer: ObserverFile | None = None
+    # several observers (a fleet): one shared world and targets, each its own path, camera, errors, boot clock
+    observers: tuple[FleetObserverFile, ...] = ()
+    # the simulated UTC of t_s = 0 (SYSTEM_TIME, the truth's time_unix_us)
+    start_time_utc: Annotated[str, BeforeValidator(_utc_text)] = DEFAULT_START_TIME_UTC
     target: TargetFile
     camera: CameraFile = dataclasses.field(default_factory=CameraFile)
     ir: IrFile = dataclasses.field(default_factory=IrFile)
@@ -635,23 +659,40 @@ class ScenarioFile:
     other_targets: tuple[OtherTargetFile, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.nav_noise != DEFAULT_NAV_NOISE:
-            cases = tuple(load_noise_cases())
-            if self.nav_noise not in cases:
-                raise Invalid(
-                    "nav_noise", "one of " + ", ".join(cases), self.nav_noise, did_you_mean(self.nav_noise, cases)
-                )
+        if self.observer is None and not self.observers:
+            raise Invalid("observer", "a value (required)", hint="or several named ones as a list `observers`")
+        if self.observer is not None and self.observers:
+            raise Invalid("observers", "either observer or observers, not both", got_text="both given")
+        if len(self.observers) > MAX_OBSERVERS:
+            raise Invalid("observers", f"at most {MAX_OBSERVERS} observers", got_text=f"{len(self.observers)}")
+        names = [o.name for o in self.observers]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise Invalid(f"observers[{i}].name", "a name not used by an earlier observer", name)
+        named = [("nav_noise", self.nav_noise)]
+        named += [(f"observers[{i}].nav_noise", o.nav_noise) for i, o in enumerate(self.observers)]
+        for field_path, case in named:
+            if case is not None and case != DEFAULT_NAV_NOISE:
+                cases = tuple(load_noise_cases())
+                if case not in cases:
+                    raise Invalid(field_path, "one of " + ", ".join(cases), case, did_you_mean(case, cases))
 
 
 def _check_paths(
-    observer: Motion, target: Motion, t_s: np.ndarray, fail: SpecFail, field: str = "target.motion"
+    observer: Motion,
+    target: Motion,
+    t_s: np.ndarray,
+    fail: SpecFail,
+    field: str = "target.motion",
+    observer_field: str = "observer.motion",
+    what: str = "the observer",
 ) -> None:
     """The commanded paths stay finite and apart at every frame."""
     with np.errstate(all="ignore"):
         p_obs = observer.state(t_s).p_ned_m
         p_tgt = target.state(t_s).p_ned_m
         if not np.all(np.isfinite(p_obs)):
-            fail("observer.motion", "a path that stays finite over duration_s", "overflow")
+            fail(observer_field, "a path that stays finite over duration_s", "overflow")
         if not np.all(np.isfinite(p_tgt)):
             fail(field, "a path that stays finite over duration_s", "overflow")
         r = np.linalg.norm(p_tgt - p_obs, axis=-1)
@@ -659,9 +700,40 @@ def _check_paths(
     if not r[k] >= MIN_SEPARATION_M:
         fail.text(
             field,
-            f"a path at least {MIN_SEPARATION_M:g} m from the observer at every frame",
+            f"a path at least {MIN_SEPARATION_M:g} m from {what} at every frame",
             f"{r[k]:.3g} m at t = {t_s[k]:.3f} s",
         )
+
+
+def _fleet(f: ScenarioFile, fail: SpecFail, t_s: np.ndarray) -> tuple[ObserverSpec, ...]:
+    """The observers of a fleet file (empty for a single observer): each with the scenario's camera and
+    navigation errors unless it has its own, its path checked against the target's and the earlier observers'."""
+    out: list[ObserverSpec] = []
+    tgt = f.target.motion.motion()
+    for i, o in enumerate(f.observers):
+        motion = o.motion.motion()
+        field = f"observers[{i}].motion"
+        _check_paths(motion, tgt, t_s, fail, observer_field=field, what=f"observers[{i}] ({o.name})")
+        for j, earlier in enumerate(out):
+            _check_paths(
+                earlier.vehicle.motion,
+                motion,
+                t_s,
+                fail,
+                field,
+                f"observers[{j}].motion",
+                f"observers[{j}] ({earlier.name})",
+            )
+        out.append(
+            ObserverSpec(
+                name=o.name,
+                vehicle=VehicleSpec(motion),
+                camera=(o.camera or f.camera).spec(),
+                nav_noise=o.nav_noise or f.nav_noise,
+                boot_start_us=o.boot_start_us(f.seed),
+            )
+        )
+    return tuple(out)
 
 
 # --------------------------------------------------------------------------- scenario
@@ -678,15 +750,19 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
         f = build(ScenarioFile, d, none_is_default=False)
     except SchemaError as exc:
         raise exc.as_(ScenarioError, source) from None
-    obs_motion = f.observer.motion.motion()
     tgt_base = f.target.motion.motion()
     disturbance = None if f.target.disturbance is None else f.target.disturbance.spec()
     t_s = np.arange(_frame_count(f.duration_s, f.frame_rate_hz)) / f.frame_rate_hz
-    _check_paths(obs_motion, tgt_base, t_s, fail)
+    fleet = _fleet(f, fail, t_s)
+    obs_motion = fleet[0].vehicle.motion if fleet else f.observer.motion.motion()
+    obs_field = "observers[0].motion" if fleet else "observer.motion"
+    _check_paths(obs_motion, tgt_base, t_s, fail, observer_field=obs_field)
     others = []
     for i, o in enumerate(f.other_targets):
         base = o.motion.motion()
-        _check_paths(obs_motion, base, t_s, fail, f"other_targets[{i}].motion")
+        _check_paths(obs_motion, base, t_s, fail, f"other_targets[{i}].motion", obs_field)
+        for j, ob in enumerate(fleet[1:], start=1):
+            _check_paths(ob.vehicle.motion, base, t_s, fail, f"other_targets[{i}].motion", f"observers[{j}].motion")
         parts = tuple(p.part() for p in (o.target_parts or f.ir.target_parts)) or _IR.target_parts
         if o.disturbance is None:
             vehicle = VehicleSpec(base)
@@ -712,13 +788,15 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
             seed=f.seed,
             observer=VehicleSpec(obs_motion),
             target=target,
-            camera=f.camera.spec(),
+            camera=fleet[0].camera if fleet else f.camera.spec(),
             ir=f.ir.settings(),
             wind_ned_mps=(f.wind.n_mps, f.wind.e_mps, f.wind.d_mps),
-            nav_noise=f.nav_noise,
+            nav_noise=fleet[0].nav_noise if fleet else f.nav_noise,
             source_path=Path(source) if isinstance(source, Path) else None,
             scene=f.scene,
             other_targets=tuple(others),
+            start_time_utc_us=parse_utc_us(f.start_time_utc),
+            observers=fleet,
         )
     except ConfigError as exc:  # a library object's own consistency check (IrSettings, CameraMount ...)
         if isinstance(exc, SchemaError):
@@ -890,7 +968,10 @@ def main(argv=None) -> int:
             print(f"error: {e}", file=sys.stderr)
             rc = ScenarioError.exit_code
         else:
-            print(f"ok: {p}: {sc.name}, {sc.frame_count} frames at {sc.frame_rate_hz:g} Hz")
+            fleet = (
+                f", {len(sc.observers)} observers ({', '.join(o.name for o in sc.observers)})" if sc.is_fleet else ""
+            )
+            print(f"ok: {p}: {sc.name}, {sc.frame_count} frames at {sc.frame_rate_hz:g} Hz{fleet}")
     return rc
 
 

@@ -7,7 +7,10 @@ Clock and events
 ----------------
 The simulation clock *is* the vehicle's boot clock: ``time_boot_us = boot_start_us + round(t_s *
 1e6)`` with ``t_s`` the scenario time (``boot_start_us`` = 1 s, so a receiver never sees boot time
-0).  Time advances in *ticks* of ``1 / (frame_rate_hz * ticks_per_frame)`` seconds, with
+0; an observer of a fleet has its own, ``Scenario.boot_start_us`` of its view).  Beside it runs one
+simulated UTC shared by every vehicle: ``time_unix_us = start_time_unix_us + round(t_s * 1e6)``
+(default: the scenario's ``start_time_utc``, so it never depends on the wall clock); the vehicle's
+SYSTEM_TIME carries it (:attr:`SimCore.unix_time_at_boot_us`) and every truth row has it.  Time advances in *ticks* of ``1 / (frame_rate_hz * ticks_per_frame)`` seconds, with
 ``ticks_per_frame = ceil(MIN_POLL_RATE_HZ / frame_rate_hz)`` (4 at 30 Hz: a 120 Hz tick).  At
 every tick the observer's true state is available as :meth:`SimCore.vehicle_state` (what the
 MAVLink vehicle is handed) with its navigation error :meth:`SimCore.nav_error`; every
@@ -207,6 +210,11 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
     if not (np.all(np.isfinite(p_obs)) and np.all(np.isfinite(p_tgt))):
         raise ConfigError(f"--duration: {scenario.name}'s scripted paths overflow before {d:g} s")
     _check_speed("observer", scenario.observer.base_motion, s_obs.v_ned_mps, scenario, t_s, d)
+    for o in scenario.observers[1:]:  # a fleet's other observers: the first is ``observer``
+        _check_extensible(f"observer {o.name}", o.vehicle, scenario, d)
+        with np.errstate(all="ignore"):
+            v = o.vehicle.base_motion.state(t_s).v_ned_mps
+        _check_speed(f"observer {o.name}", o.vehicle.base_motion, v, scenario, t_s, d)
     _check_speed("target", target.base_motion, s_tgt.v_ned_mps, scenario, t_s, d)
     for i, o in enumerate(others):
         m = o.vehicle.base_motion
@@ -464,6 +472,9 @@ class SimCore:
     flight chunks are dropped).  ``duration_s``: None = the scenario's; a longer one extends the scenario
     (:func:`extend_scenario`; ``self.scenario`` is then the extended one).  ``nav_noise``: a
     :class:`~groundsim.world.scenario.NoiseCase`, a case name, or None (the scenario's ``nav_noise``).
+    ``boot_start_us``: the boot clock at t_s = 0 (None: the scenario view's, else ``BOOT_START_US``);
+    ``start_time_unix_us``: the simulated UTC at t_s = 0 (None: the scenario's ``start_time_utc``).
+    A fleet scenario is simulated as its first observer's view (``scenario.observer_views()[0]``).
     """
 
     def __init__(
@@ -472,16 +483,29 @@ class SimCore:
         run_seed: int = 0,
         duration_s: float | None = None,
         render: bool = True,
-        boot_start_us: int = BOOT_START_US,
+        boot_start_us: int | None = None,
         flight_chunk_s: float | None = None,
         nav_noise=None,
+        start_time_unix_us: int | None = None,
     ) -> None:
         from groundsim.world.nav_errors import NAV_ERROR_STREAM, NavErrorModel, resolve_nav_noise
 
         if not isinstance(scenario, Scenario):
             raise ConfigError(f"SimCore: expected a Scenario, got {type(scenario).__name__}")
+        if scenario.is_fleet:  # the fleet's first observer, exactly as a fleet run flies it
+            scenario = scenario.observer_views()[0]
+        if boot_start_us is None:
+            boot_start_us = BOOT_START_US if scenario.boot_start_us is None else scenario.boot_start_us
         if isinstance(boot_start_us, bool) or not isinstance(boot_start_us, int) or not 0 <= boot_start_us < 2**40:
             raise ConfigError(f"SimCore: boot_start_us must be a non-negative integer, got {boot_start_us!r}")
+        if start_time_unix_us is None:
+            start_time_unix_us = scenario.start_time_utc_us
+        u = start_time_unix_us
+        if isinstance(u, bool) or not isinstance(u, int) or not boot_start_us <= u < 2**62:
+            raise ConfigError(
+                f"SimCore: start_time_unix_us must be an integer UNIX time in us not before boot, got {u!r}"
+            )
+        self.start_time_unix_us = u
         self.run_seed = check_run_seed(run_seed)
         self.duration_s = check_duration_s(duration_s, scenario)
         scenario = extend_scenario(scenario, self.duration_s)
@@ -513,6 +537,15 @@ class SimCore:
 
     def time_boot_us(self, i: int) -> int:
         return self.boot_start_us + round(float(self.times_s[i]) * 1e6)
+
+    def time_unix_us(self, i: int) -> int:
+        """Tick ``i``'s simulated UTC, us since the UNIX epoch (the same for every vehicle of a run)."""
+        return self.start_time_unix_us + round(float(self.times_s[i]) * 1e6)
+
+    @property
+    def unix_time_at_boot_us(self) -> int:
+        """UTC when the boot clock read 0: SYSTEM_TIME's ``time_unix_usec - time_boot`` for this vehicle."""
+        return self.start_time_unix_us - self.boot_start_us
 
     def tick_time_s(self, i: int) -> float:
         return float(self.times_s[i])
@@ -635,5 +668,6 @@ class SimCore:
             target_lla=(c.tgt_lat_deg[j], c.tgt_lon_deg[j], c.tgt_alt_m[j]),
             observer_lla=(c.obs_lat_deg[j], c.obs_lon_deg[j], c.obs_alt_m[j]),
             nav_error=self.nav_error(i),
+            time_unix_us=self.time_unix_us(i),
         )
         return SimFrame(k, t_us, pixels, row, labels, status)

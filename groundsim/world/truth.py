@@ -27,6 +27,9 @@ follow them and may grow at the end only)::
                                    * t_s + white), applied to #33; the velocity error is the drift rate
                                    All six are 0 with ``--nav-noise exact``.  Every other column is the
                                    truth, never the reported value.
+    time_unix_us                   capture time in UTC (us since the UNIX epoch): the simulation's one wall
+                                   clock (the scenario's ``start_time_utc`` + t_s), the same instant for every
+                                   vehicle of a fleet whatever its boot clock; what SYSTEM_TIME maps boot time to
 
 Altitudes are WGS84 ellipsoidal heights (treated as AMSL, as ``onboard.core.frames`` says).  Numbers
 are written with Python's shortest round-trip ``repr`` (deterministic, lossless), NaN as ``nan``.
@@ -103,7 +106,7 @@ REQUIRED_COLUMNS = (
 class TruthRow:
     """One frame's truth; field order is the CSV column order (see the module docstring).
 
-    Integers: ``time_boot_us`` (>= 0), ``target_visible`` (0 or 1), ``seq`` (>= 0).  Every other
+    Integers: ``time_boot_us`` (>= 0), ``target_visible`` (0 or 1), ``seq`` (>= 0), ``time_unix_us`` (>= 0).  Every other
     field is a finite float except ``target_u_px``/``target_v_px``, which are NaN when the target
     is behind the camera.
     """
@@ -143,6 +146,7 @@ class TruthRow:
     nav_p_err_n_m: float = 0.0
     nav_p_err_e_m: float = 0.0
     nav_p_err_d_m: float = 0.0
+    time_unix_us: int = 0
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -166,7 +170,7 @@ class TruthRow:
         return tuple(getattr(self, name) for name in TRUTH_COLUMNS)
 
 
-_INT_FIELDS = frozenset({"time_boot_us", "target_visible", "seq"})
+_INT_FIELDS = frozenset({"time_boot_us", "target_visible", "seq", "time_unix_us"})
 _NAN_OK = frozenset({"target_u_px", "target_v_px"})
 
 #: Every column, in order: :data:`REQUIRED_COLUMNS` first.
@@ -190,6 +194,7 @@ def truth_row(
     target_lla=None,
     observer_lla=None,
     nav_error=None,
+    time_unix_us: int = 0,
 ) -> TruthRow:
     """The truth row of one frame from true poses (pure).
 
@@ -199,6 +204,7 @@ def truth_row(
     computed with :func:`onboard.core.frames.geodetic_from_ned` about ``origin`` (a caller converting
     many rows at once passes them; otherwise they are computed here).  ``nav_error``: the
     :class:`groundsim.world.nav_errors.NavErrorSample` injected into the telemetry at this frame (None: zero).
+    ``time_unix_us``: the frame's capture time in UTC (us since the UNIX epoch).
     """
     from groundsim.world.render import truth_pixel  # the renderer's projection; imported on first use
 
@@ -244,6 +250,7 @@ def truth_row(
         q_ned_from_cam_y=q_c[2],
         q_ned_from_cam_z=q_c[3],
         range_m=float(np.linalg.norm(p_t - p_c)),
+        time_unix_us=time_unix_us,
         **(
             {}
             if nav_error is None

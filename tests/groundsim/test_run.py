@@ -880,7 +880,7 @@ def test_truth_csv_round_trips_any_values_exactly(tmp_path_factory, rows):
     with TruthWriter(path) as w:
         for n, (t_us, x, u) in enumerate(rows):
             vals = {c: x for c in TRUTH_COLUMNS}
-            vals.update(time_boot_us=t_us, seq=n, target_visible=n % 2, target_u_px=u, target_v_px=u)
+            vals.update(time_boot_us=t_us, seq=n, target_visible=n % 2, target_u_px=u, target_v_px=u, time_unix_us=t_us)
             row = TruthRow(**vals)
             w.write(row)
             written.append(row)

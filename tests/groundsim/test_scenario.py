@@ -625,7 +625,7 @@ def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
         f"error: {bad}: wnid: expected a key of the document (name, description, origin, duration_s, "
-        "frame_rate_hz, seed, observer, target, camera, ir, wind, nav_noise, scene, other_targets), got unknown key 'wnid'; "
+        "frame_rate_hz, seed, observer, observers, start_time_utc, target, camera, ir, wind, nav_noise, scene, other_targets), got unknown key 'wnid'; "
         "did you mean 'wind'?"
     ]
     assert main([str(REPO / "config/scenarios/P1.yaml")]) == 0
