@@ -14,6 +14,8 @@ message                                      default   content
 HEARTBEAT (#0)                               1 Hz      MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_GENERIC,
                                                        armed + guided + stabilised, MAV_STATE_ACTIVE
 SYSTEM_TIME (#2)                             1 Hz      time_unix_usec = unix time at boot + boot time
+                                                       (``unix_time_at_boot_us``: ``groundsim run`` passes
+                                                       the simulated UTC's; None: the wall clock's)
 ATTITUDE_QUATERNION (#31)                    50 Hz     q1..q4 = w, x, y, z of ``q_ned_from_body``
                                                        (body FRD -> NED, Hamilton); rollspeed,
                                                        pitchspeed, yawspeed = body rates p, q, r rad/s;
