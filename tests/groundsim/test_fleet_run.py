@@ -32,7 +32,7 @@ F1_START_UNIX_US = 1_780_304_400_000_000  # F1's start_time_utc, 2026-06-01T09:0
 PROCESS_TIMEOUT_S = 150.0  # two vehicles, 1 s at --rate max, on a loaded 2-core machine
 DELIVERY_WAIT_S = 5.0
 BOOT_MS_TOL_US = 1000  # SYSTEM_TIME carries the boot time in whole ms, UTC in us
-LON_GAP_DEG = 2e-3  # uav2 flies 280 m east of uav1: 0.003 deg of longitude at 32 N
+LON_GAP_DEG = 2e-3  # uav2 flies 290 m east of uav1: 0.003 deg of longitude at 32 N
 
 
 def _env() -> dict:
@@ -130,10 +130,10 @@ def test_the_run_writes_one_truth_file_per_observer(fleet_run):
     np.testing.assert_array_equal(t1["time_unix_us"], t2["time_unix_us"])
     np.testing.assert_array_equal(t1["time_unix_us"], F1_START_UNIX_US + np.round(t1["t_s"] * 1e6).astype(np.int64))
     assert len(set(t1["time_boot_us"] - t2["time_boot_us"])) == 1 and t1["time_boot_us"][0] != t2["time_boot_us"][0]
-    # one shared target, two observers 280 m apart
+    # one shared target, two observers 290 m apart
     for c in ("target_n_m", "target_e_m", "target_d_m"):
         np.testing.assert_allclose(t1[c], t2[c], atol=1e-9)
-    np.testing.assert_allclose(t2["observer_e_m"] - t1["observer_e_m"], 280.0, atol=1.0)
+    np.testing.assert_allclose(t2["observer_e_m"] - t1["observer_e_m"], 290.0, atol=1.0)
     assert t1["target_visible"].all() and t2["target_visible"].all()
 
 

@@ -178,7 +178,7 @@ def _bad_name(d):
 
 
 def _collide(d):
-    d["observers"][1]["motion"] = dict(d["observers"][0]["motion"], p0_ned_m=[0.0, -139.5, -100.0])
+    d["observers"][1]["motion"] = dict(d["observers"][0]["motion"], p0_ned_m=[0.0, -144.5, -100.0])
 
 
 def _empty(d):
@@ -241,11 +241,11 @@ def test_views_fly_one_world_on_their_own_boot_clocks_and_one_utc():
             assert r.time_unix_us == F1_START_UNIX_US + round(r.t_s * 1e6)
     for a, b in zip(*rows):
         assert a.time_unix_us == b.time_unix_us and a.time_boot_us != b.time_boot_us
-        # the shared target flies the same path for both vehicles; the observers are 280 m apart
+        # the shared target flies the same path for both vehicles; the observers are 290 m apart
         np.testing.assert_allclose(
             [a.target_n_m, a.target_e_m, a.target_d_m], [b.target_n_m, b.target_e_m, b.target_d_m], atol=ATOL_M
         )
-        assert b.observer_e_m - a.observer_e_m == pytest.approx(280.0, abs=1.0)
+        assert b.observer_e_m - a.observer_e_m == pytest.approx(290.0, abs=1.0)
     # each vehicle has its own navigation errors
     assert cores[0].nav_error(3).att_err_ned_rad.tolist() != cores[1].nav_error(3).att_err_ned_rad.tolist()
     # SimCore given the fleet itself simulates its first observer, as the fleet run does
