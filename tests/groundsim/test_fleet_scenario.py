@@ -16,10 +16,13 @@ from hypothesis import strategies as st
 
 from groundsim.app.run import (
     DEFAULT_FLEET_MAVLINK_PORT,
+    RateSpec,
     RunConfig,
+    VehicleLeg,
     fleet_truth_path,
     mavlink_endpoints,
     parse_start_time,
+    run_fleet_loop,
     split_mavlink_option,
 )
 from groundsim.world.scenario import (
@@ -315,3 +318,58 @@ def test_truth_paths_start_times_and_fleet_run_configs():
         RunConfig(sc, duration_s=1.0, record_path=Path("x.mcap"))
     with pytest.raises(ConfigError, match="mavlink_by_vehicle"):
         RunConfig(load_scenario(P1), mavlink_by_vehicle=(("uav1", "udpout:127.0.0.1:9"),))
+
+
+# --------------------------------------------------------------------------- the loop, in process
+
+
+class _Vehicle:
+    def __init__(self) -> None:
+        self.polls: list[int] = []
+        self.counters = {"tx": 0}
+
+    def update_state(self, **state):
+        pass
+
+    def poll(self, now_us):
+        self.polls.append(now_us)
+        self.counters["tx"] += 1
+
+
+class _Truth:
+    def __init__(self) -> None:
+        self.rows = []
+
+    def write(self, row, labels=()):
+        self.rows.append(row)
+
+
+def test_the_fleet_loop_steps_every_vehicle_on_its_own_boot_clock_in_lockstep():
+    sc = scenario_from_dict(fleet_dict())
+    legs = [
+        VehicleLeg(SimCore(v, 0, 0.1, render=False), _Vehicle(), None, _Truth(), v.observer_name)
+        for v in sc.observer_views()
+    ]
+    report = run_fleet_loop(legs, RateSpec.parse("max"))
+    assert report.frames == 3 and not report.stopped
+    assert report.mavlink_counters == {"uav1.tx": 12, "uav2.tx": 12}
+    for leg, o in zip(legs, sc.observers):
+        assert leg.mavlink.polls == [o.boot_start_us + round(i * 1e6 / 120.0) for i in range(12)]
+        assert [r.time_boot_us for r in leg.truth.rows] == leg.mavlink.polls[::4]
+    assert [r.time_unix_us for r in legs[0].truth.rows] == [r.time_unix_us for r in legs[1].truth.rows]
+
+
+def test_cli_refuses_a_plain_mavlink_or_a_vehicle_for_a_fleet(capsys):
+    from groundsim.app import cli
+
+    for extra, text in (
+        (
+            ["--mavlink", "udpout:127.0.0.1:9"],
+            "--mavlink: F1 has several observers (uav1, uav2): expected NAME=ENDPOINT",
+        ),
+        (["--vehicle", "uav9"], "--vehicle: F1 has several observers"),
+        (["--start-time-utc", "soon"], "--start-time-utc: expected now or an ISO 8601 UTC time"),
+    ):
+        assert cli.main(["run", "--scenario", "F1", "--rate", "max", "--no-render", *extra]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("groundsim run: error: ") and text in err[0], err
