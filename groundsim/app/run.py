@@ -42,7 +42,6 @@ from __future__ import annotations
 import gc
 import logging
 import math
-import re
 import threading
 import time
 from dataclasses import dataclass, field
@@ -50,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.world.scenario import Scenario
+from groundsim.world.scenario import NAME_PATTERN, Scenario
 from groundsim.world.sim import (
     BOOT_START_US,
     SimCore,
@@ -90,7 +89,6 @@ JITTER_LOG_EVERY_S = 5.0  # wall seconds between jitter reports when paced
 STOP_POLL_S = 0.05  # longest uninterrupted sleep: the stop flag is seen within this
 MIN_FACTOR, MAX_FACTOR = 0.01, 1000.0
 DEFAULT_FLEET_MAVLINK_PORT = 14540  # a fleet's observer i without --mavlink NAME=... sends to this port + i
-_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")  # an observer's name (groundsim.world.scenario.NAME_PATTERN)
 
 
 # --------------------------------------------------------------------------- options
@@ -144,7 +142,7 @@ def split_mavlink_option(text: str) -> tuple[str | None, str]:
     """``--mavlink NAME=ENDPOINT`` -> ``(NAME, ENDPOINT)``; a plain connection string -> ``(None, text)``
     (pymavlink's connection strings hold no ``=`` before their first ``:``)."""
     name, sep, conn = str(text).partition("=")
-    if sep and _NAME_RE.match(name) and ":" not in name:
+    if sep and NAME_PATTERN.match(name):
         return name, conn
     return None, str(text)
 

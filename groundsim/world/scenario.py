@@ -23,6 +23,11 @@ Randomness is data until it is realised: a target's ``disturbance`` is a
 :class:`SingerDisturbance` spec; ``scenario.target_motion(run_seed)`` realises it with a generator
 drawn from ``scenario.rng("target.disturbance", run_seed)``, which depends only on the scenario's
 ``seed``, the run seed and the stream name.  ``scenario.target.motion`` is run 0's realisation.
+
+Several observers (``observers:`` instead of ``observer:``, a fleet): :class:`ObserverSpec` each, one shared
+world; :meth:`Scenario.observer_views` gives one single-observer scenario per observer, with its own boot clock
+and its own draws of the streams in :data:`OBSERVER_STREAMS`.  Every scenario has a simulated UTC of t = 0,
+``start_time_utc`` (``Scenario.start_time_utc_us``).
 """
 
 from __future__ import annotations
@@ -77,6 +82,7 @@ __all__ = [
     "Scenario",
     "OBSERVER_STREAMS",
     "DEFAULT_START_TIME_UTC",
+    "parse_utc_us",
     "NoiseCase",
     "MOTION_MODELS",
     "REFERENCE_GIMBAL",
@@ -626,9 +632,11 @@ def _utc_text(value: Any) -> Any:
     if isinstance(value, datetime.datetime):  # YAML reads an unquoted timestamp as one
         value = value.isoformat()
     try:
-        parse_utc_us(value)
+        ok = parse_utc_us(value) >= 0
     except (TypeError, ValueError):
-        raise Invalid("", "an ISO 8601 UTC time such as 2026-01-01T12:00:00Z", value) from None
+        ok = False
+    if not ok:
+        raise Invalid("", "an ISO 8601 UTC time such as 2026-01-01T12:00:00Z, not before 1970", value)
     return value
 
 

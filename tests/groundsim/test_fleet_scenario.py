@@ -211,7 +211,7 @@ def test_bad_fleets_are_one_line_naming_file_and_field(mutate, head, text):
     assert text in msg, msg
 
 
-@pytest.mark.parametrize("text", ["yesterday", "2026-01-01T00:00:00", 20260101])
+@pytest.mark.parametrize("text", ["yesterday", "2026-01-01T00:00:00", 20260101, "1969-12-31T23:59:59Z"])
 def test_bad_start_time_is_one_line(text):
     d = fleet_dict()
     d["start_time_utc"] = text
