@@ -71,6 +71,7 @@ from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, deco
 from onboard.core.pose import PoseBuffer
 from onboard.core.status import RollingStats, build_status
 from onboard.core.track import Track, track_to_bytes
+from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
@@ -154,6 +155,7 @@ class OnboardService:
         self.observers: list[FrameObserver] = [*self.taps, self.newest]
         self.recorder = next((t.recorder for t in self.taps if isinstance(t, RecorderTap)), None)
         self.link: MavlinkLink | None = None  # the autopilot link, opened by start()
+        self.utc = UtcClock(counter=self.counter)  # boot clock -> UTC from the link's SYSTEM_TIME (read lock-free)
         self.gcs: GcsLink | None = None  # the camera component's sockets (gcs.endpoints), opened by start()
         self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
         self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
@@ -226,6 +228,7 @@ class OnboardService:
             gimballed=self.mount.gimballed,
             clock=self._clock,
             clock_ns=self._clock_ns,
+            utc_clock=self.utc,
         )
         if self.recorder is not None:
             self.link.raw_tap = self.recorder.on_mavlink
@@ -368,10 +371,10 @@ class OnboardService:
                 continue
             frame, received_ns = item
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
-            track = self._process(frame, received_ns)
+            track = with_utc(self._process(frame, received_ns), self.utc.mapping)
             payload = self._publish_track(track) if track is not None and publish else None
             if track is not None and publish and self._objects_pub is not None:
-                self._publish_objects(track.time_boot_us)
+                self._publish_objects(track)
             looked_up, pose = self._pose_memo.take() if self._pose_memo is not None else (False, None)
             result = FrameResult(received_ns, looked_up, pose, track, payload)
             for tap in self.observers:
@@ -406,15 +409,16 @@ class OnboardService:
         finally:
             self._pipeline_cpu_s += time.thread_time() - c0
 
-    def _publish_objects(self, time_boot_us: int) -> None:
-        """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects``."""
+    def _publish_objects(self, track: Track) -> None:
+        """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects`` (``track``'s times)."""
         upd = getattr(self.pipeline.tracker, "last_objects", None)
         if upd is None or self._objects_pub is None:
             return
         try:
             from onboard.imaging.objects import objects_message
 
-            self._objects_pub.put(json.dumps(objects_message(upd, time_boot_us), separators=(",", ":")).encode())
+            msg = objects_message(upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us)
+            self._objects_pub.put(json.dumps(msg, separators=(",", ":")).encode())
         except Exception as exc:  # noqa: BLE001 - a failed publication must not stop the frame loop
             self.counter.count("objects_publish_error", f"{type(exc).__name__}: {exc}")
 
@@ -643,6 +647,7 @@ class OnboardService:
             warnings=warnings,
             withheld_because=self.pipeline.withheld_because,
         )
+        status["utc"] = self.utc.status()  # boot clock -> UTC (onboard.core.utc_clock)
         if self.camera is not None:
             status["camera"] = self._camera_status(self.camera)
         for tap in self.taps:

@@ -48,6 +48,11 @@ residual_rms_norm   number or null               (new in /2) RMS of the standard
                                                  and noise model match; null when unknown)
 window_frames       integer >= 0                 observations in the estimator's window
 model               string or null               the estimator's motion model for this estimate
+time_unix_us        integer or null              (new, optional) the capture time in UTC, microseconds since
+                                                 1970 (``time_boot_us`` through the autopilot's SYSTEM_TIME,
+                                                 :mod:`onboard.core.utc_clock`); null until that mapping exists
+time_unix_sigma_us  integer or null              (new, optional) 1-sigma of ``time_unix_us``, microseconds
+                                                 (null: unknown; never set without ``time_unix_us``)
 ==================  ===========================  ===================================================
 
 What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
@@ -289,6 +294,8 @@ class Track:
     residual_rms_norm: float | None = None
     window_frames: int = 0
     model: str | None = None
+    time_unix_us: int | None = None
+    time_unix_sigma_us: int | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.vehicle, str) or not self.vehicle:
@@ -366,6 +373,14 @@ class Track:
             object.__setattr__(self, "range_sigma_ratio", float(r))
         if self.model is not None and not isinstance(self.model, str):
             raise InputError(f"Track.model must be a string or None, got {self.model!r}")
+        if self.time_unix_us is None and self.time_unix_sigma_us is not None:
+            raise InputError("Track.time_unix_sigma_us without a time_unix_us")
+        for name in ("time_unix_us", "time_unix_sigma_us"):
+            v = getattr(self, name)
+            if v is not None:
+                if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**63:
+                    raise InputError(f"Track.{name} must be None or an integer in [0, 2**63), got {v!r}")
+                object.__setattr__(self, name, int(v))
 
     @property
     def has_position(self) -> bool:
@@ -432,6 +447,8 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "residual_rms_norm": json_number(track.residual_rms_norm),
         "window_frames": track.window_frames,
         "model": track.model,
+        "time_unix_us": track.time_unix_us,
+        "time_unix_sigma_us": track.time_unix_sigma_us,
     }
 
 
@@ -510,4 +527,6 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         residual_rms_norm=obj.get("residual_rms_norm"),
         window_frames=obj["window_frames"],
         model=obj.get("model"),
+        time_unix_us=obj.get("time_unix_us"),
+        time_unix_sigma_us=obj.get("time_unix_sigma_us"),
     )

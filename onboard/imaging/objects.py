@@ -540,15 +540,20 @@ class ObjectChain:
         self.objects.clear_tracks()
 
 
-def objects_message(update: ObjectsUpdate, time_boot_us: int) -> dict:
+def objects_message(
+    update: ObjectsUpdate, time_boot_us: int, time_unix_us: int | None = None, time_unix_sigma_us: int | None = None
+) -> dict:
     """The ``irtrack/<vehicle>/objects`` message of one frame (JSON-ready, schema ``irtrack.objects/1``):
-    ``time_boot_us``, ``frame_index``, ``primary_id`` and ``objects``, one per confirmed or coasting
+    ``time_boot_us``, ``time_unix_us`` and ``time_unix_sigma_us`` (the frame's UTC and its 1-sigma, us, as in
+    the track; null until the daemon maps its boot clock to UTC), ``frame_index``, ``primary_id`` and ``objects``, one per confirmed or coasting
     object: ``id``, ``state``, ``u_px``, ``v_px``, ``box_px`` [x, y, w, h], ``los_ned`` (unit line of
     sight, local NED, or null), ``los_sigma_rad`` (its 1-sigma), ``score`` (detection contrast over
     the local threshold, 0 while coasting) and ``primary``."""
     return {
         "schema": "irtrack.objects/1",
         "time_boot_us": int(time_boot_us),
+        "time_unix_us": None if time_unix_us is None else int(time_unix_us),
+        "time_unix_sigma_us": None if time_unix_sigma_us is None else int(time_unix_sigma_us),
         "frame_index": update.frame_index,
         "primary_id": update.primary_id,
         "objects": [

@@ -144,12 +144,9 @@ class CommonClock:
 
 def parse_track(obj: Mapping) -> tuple[Track, int | None]:
     """(the track, its ``time_unix_us`` or None) of an ``irtrack.track/2`` dict; :class:`InputError` naming
-    the key otherwise."""
+    the key otherwise (the reader checks ``time_unix_us``: an integer in [0, 2**63))."""
     track = track_from_json(obj)
-    t = obj.get("time_unix_us")
-    if t is not None and (isinstance(t, bool) or not isinstance(t, int) or not 0 <= t < 2**63):
-        raise InputError(f"track message time_unix_us: expected an integer >= 0 (UTC microseconds), got {t!r}")
-    return track, t
+    return track, track.time_unix_us
 
 
 def ray_from_track(timed: TimedTrack, fleet_origin: GeodeticOrigin) -> Ray:

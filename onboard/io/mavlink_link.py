@@ -20,6 +20,9 @@ module decides what to do with them (MAVLink common, v2 framing):
   before any frame, so a frame's gimbal extrapolation stays within its horizon).
 * ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; answers feed :class:`ClockSync`;
   the autopilot's requests are answered with ``tc1 = clock_ns()``.
+* ``SYSTEM_TIME`` (#2) of the autopilot (its default stream, about 1 Hz; not requested): ``time_boot_ms * 1000``
+  and ``time_unix_usec`` feed :class:`~onboard.core.utc_clock.UtcClock` (boot clock -> UTC), reset with
+  :class:`ClockSync` on a reboot.
 
 Out: ``HEARTBEAT`` at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER`` / ``MAV_AUTOPILOT_INVALID`` from
 component 191 (``MAV_COMP_ID_ONBOARD_COMPUTER``) with the autopilot's system id;
@@ -66,6 +69,7 @@ from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
+from onboard.core.utc_clock import UtcClock
 from onboard.io.mavlink_signing import load_signing_key
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
@@ -76,6 +80,7 @@ from onboard.io.mavlink_wire import (
     GlobalPositionInt,
     Heartbeat,
     SetPositionTargetLocalNed,
+    SystemTime,
     Timesync,
     connect,
     parse_endpoint,
@@ -415,6 +420,7 @@ class MavlinkLink:
         clock: Callable[[], float] = time.monotonic,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         clock_sync: ClockSync | None = None,
+        utc_clock: UtcClock | None = None,
         signing_key: bytes | None = None,
         signing_link_id: int = 0,
         extra_destinations: tuple[tuple[str, int], ...] = (),
@@ -450,6 +456,7 @@ class MavlinkLink:
         self._clock = clock
         self._clock_ns = clock_ns
         self.clock_sync = clock_sync if clock_sync is not None else ClockSync(counter=counters)
+        self.utc_clock = utc_clock if utc_clock is not None else UtcClock(counter=counters)
         rates = [
             (MSG_ID_ATTITUDE_QUATERNION, config.attitude_rate_hz),
             (MSG_ID_GLOBAL_POSITION_INT, config.position_rate_hz),
@@ -679,6 +686,9 @@ class MavlinkLink:
                 self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), from_autopilot)
         elif mtype == "TIMESYNC":
             self._on_timesync(Timesync.from_message(msg))
+        elif mtype == "SYSTEM_TIME" and from_autopilot:
+            st = SystemTime.from_message(msg)
+            self.utc_clock.add_system_time(st.time_boot_us, st.time_unix_us)
         elif mtype == "COMMAND_ACK" and from_autopilot:
             self._on_ack(msg, now)
 
@@ -789,6 +799,7 @@ class MavlinkLink:
             self._seen_reboots = self._pose.reboots
             log.warning("autopilot reboot detected; clock sync reset, message rates re-requested")
             self.clock_sync.reset()
+            self.utc_clock.reset()
             self._ts_outstanding.clear()
             if self.state == LINK_CONNECTED:
                 self._request_rates()

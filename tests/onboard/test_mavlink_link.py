@@ -29,6 +29,7 @@ from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
     Heartbeat,
     MavlinkEndpoint,
+    SystemTime,
     Timesync,
     command_ack_message,
     pack,
@@ -264,6 +265,30 @@ def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
     assert rig.counters["reboot"] == 1
     assert rig.pose.sizes()["attitude"] == 1
     assert rig.link.clock_sync.n_samples == 0 and rig.link.to_boot_us(time.monotonic_ns()) is None
+
+
+def test_system_time_maps_the_boot_clock_to_utc_and_a_reboot_forgets_it(rig):
+    """SYSTEM_TIME of the autopilot feeds the UTC mapping (whole ms of boot time, half a ms added back); the same
+    message from another component does not; the autopilot's reboot clears it."""
+    rig.connect()
+    unix0_us = 1_800_000_000_000_000
+    rig.ap.as_component(AP_SYSID, 154)  # a gimbal's clock is not the autopilot's
+    rig.ap.send(SystemTime(unix0_us + 500, 500))
+    for k in range(1, 4):
+        rig.ap.as_component(AP_SYSID, 1)
+        rig.ap.send(SystemTime(unix0_us + k * 1_000_000 + 700, k * 1_000_000 + 700))
+    assert rig.drive(lambda: rig.link.utc_clock.mapping is not None)
+    m = rig.link.utc_clock.mapping
+    assert m.n_samples == 3
+    utc_us, sigma_us = m.at(3_500_000)
+    assert abs(utc_us - (unix0_us + 3_500_000)) <= 2 * sigma_us and sigma_us < 1000
+    rig.ap.send(SystemTime(0, 4_000_000))  # no GNSS time: refused, counted
+    assert rig.drive(lambda: rig.counters["utc_no_time"] == 1)
+    rig.ap.attitude(60_000_000, [1, 0, 0, 0])
+    for t_ms in (800, 820, 840):  # the autopilot rebooted
+        rig.ap.attitude(1000 * t_ms, [1, 0, 0, 0])
+    assert rig.drive(lambda: rig.pose.reboots == 1)
+    assert rig.link.utc_clock.mapping is None and rig.link.utc_clock.resets == 1
 
 
 def test_other_systems_and_non_autopilot_heartbeats_are_ignored(rig):

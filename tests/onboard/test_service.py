@@ -771,3 +771,49 @@ def test_every_output_tap_sees_each_frame_once_taken_or_refused():
     assert tap.frames == [(0, True), (1, False), (2, True)]
     assert svc.newest.value is not None and svc.newest.value[0].seq == 2
     assert svc.status(clock())["test_tap"] == {"frames": 3}
+
+
+class _Put:
+    def __init__(self) -> None:
+        self.payloads: list[dict] = []
+
+    def put(self, data) -> None:
+        self.payloads.append(json.loads(data))
+
+
+def test_tracks_and_objects_carry_utc_once_system_time_maps_the_boot_clock():
+    """Before SYSTEM_TIME: ``time_unix_us`` is null in the track and the objects message (never a made-up time);
+    after three samples: both carry the frame's UTC with its sigma, and the status says where it came from."""
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service({"imaging": {"chain": "objects"}})
+    svc._track_pub, svc._objects_pub = _Put(), _Put()
+    assert svc.status(clock())["utc"]["state"] == "none"
+    unix0_us = 1_800_000_000_000_000
+    pixels = np.zeros((512, 640), np.uint8)
+    svc.queue.push((IrFrame(seq=0, time_boot_us=3_200_000, pixels=pixels), clock.ns()))
+    t = threading.Thread(target=svc._pipeline_loop)
+    t.start()
+    try:
+        deadline = time.monotonic() + 10.0
+        while len(svc._objects_pub.payloads) < 1 and time.monotonic() < deadline:
+            svc._pipe_stop.wait(0.01)
+        for k in (1, 2, 3):  # the MAVLink thread's SYSTEM_TIME, whole ms of boot time
+            assert svc.utc.add_system_time(k * 1_000_000, unix0_us + k * 1_000_000)
+        svc.queue.push((IrFrame(seq=1, time_boot_us=3_233_333, pixels=pixels), clock.ns()))
+        while len(svc._objects_pub.payloads) < 2 and time.monotonic() < deadline:
+            svc._pipe_stop.wait(0.01)
+    finally:
+        svc._pipe_stop.set()
+        svc.queue.close()
+        t.join(10)
+    tracks, objects = svc._track_pub.payloads, svc._objects_pub.payloads
+    assert [m["time_boot_us"] for m in tracks] == [m["time_boot_us"] for m in objects] == [3_200_000, 3_233_333]
+    assert tracks[0]["time_unix_us"] is None and objects[0]["time_unix_us"] is None
+    sigma = tracks[1]["time_unix_sigma_us"]
+    assert 289 <= sigma < 1000 and objects[1]["time_unix_sigma_us"] == sigma
+    assert abs(tracks[1]["time_unix_us"] - (unix0_us + 3_233_333)) <= 2 * sigma
+    assert objects[1]["time_unix_us"] == tracks[1]["time_unix_us"]
+    utc = svc.status(clock())["utc"]
+    assert utc["state"] == "ok" and utc["source"] == "SYSTEM_TIME" and utc["samples"] == 3
+    assert abs(utc["offset_us"] - unix0_us) <= 2 * utc["sigma_us"]
