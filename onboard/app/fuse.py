@@ -10,7 +10,12 @@ It subscribes ``irtrack/*/track`` (every vehicle; ``--vehicles`` keeps only thos
 with a line of sight into a ray in one frame and on one clock (:mod:`onboard.io.fleet_wire`), feeds the
 :class:`~onboard.estimation.fleet.FleetTracker` and publishes each updated target on ``irtrack/fleet/track``
 and, in each vehicle's own frame, on ``irtrack/<vehicle>/fleet/track``; ``irtrack/fleet/status`` (JSON,
-``--status-interval-s``) carries the counts.  The zenoh options and their default (connect
+``--status-interval-s``) carries the counts, ``silent`` (vehicles heard before but not for ``--silent-after-s``:
+a daemon that stopped; the fleet track goes on with the others, unobservable when one is left, and the vehicle
+rejoins with its next line of sight that gates), ``clocks`` (each vehicle's latency floor off the fleet's
+median, ms) and ``clock_inconsistent`` (the vehicles whose ``time_unix_us`` disagrees with the others' beyond
+``--clock-tolerance-ms``: :class:`~onboard.io.fleet_wire.ClockConsistency`).  Counted on each change:
+``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle) and ``vehicle_back`` (INFO).  The zenoh options and their default (connect
 ``tcp/127.0.0.1:7447``) are :mod:`onboard.app.watch`'s, i.e. the daemon's.
 
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
@@ -54,6 +59,7 @@ from onboard.io.fleet_wire import (
     FLEET_NAME,
     FLEET_TRACK_ENCODING,
     TRACKS_KEY_EXPR,
+    ClockConsistency,
     CommonClock,
     TimedTrack,
     fleet_track_json,
@@ -87,6 +93,8 @@ class Fusion:
         origin: GeodeticOrigin | None = None,
         max_age_s: float = 2.0,
         counter: RejectCounter | None = None,
+        clock_check: ClockConsistency | None = None,
+        silent_after_s: float = 1.0,
     ) -> None:
         self.tracker = tracker
         self.clock = clock
@@ -102,12 +110,21 @@ class Fusion:
         self._time_sources: dict[str, str] = {}
         self._origins: dict[str, GeodeticOrigin] = {}
         self._cameras: dict[str, np.ndarray] = {}
+        self.clock_check = clock_check if clock_check is not None else ClockConsistency()
+        self.silent_after_s = float(silent_after_s)
+        self._last_arrival: dict[str, float] = {}  # fusion clock, UTC s: the vehicle's newest track of any kind
+        self._silent: set[str] = set()
+        self._clock_flagged: set[str] = set()
 
     def receive(self, key: str, payload: bytes, arrival_unix_s: float) -> None:
         vehicle = vehicle_from_track_key(key)
         if vehicle is None or (self.vehicles is not None and vehicle not in self.vehicles):
             return  # the fusion's own output, or a vehicle not asked for
         self.received += 1
+        self._last_arrival[vehicle] = arrival_unix_s
+        if vehicle in self._silent:
+            self._silent.discard(vehicle)
+            self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO)
         try:
             obj = json.loads(payload)
         except (ValueError, UnicodeDecodeError) as exc:
@@ -133,6 +150,8 @@ class Fusion:
             self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
         t_s, source = self.clock.time_s(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
+        if source == "vehicle":
+            self.clock_check.add(vehicle, t_s, arrival_unix_s)
         if t_s < arrival_unix_s - self.max_age_s:
             self.counter.count("stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)")
             return
@@ -182,7 +201,29 @@ class Fusion:
         self.published += len(out)
         return out
 
-    def status(self) -> dict:
+    def watch(self, now_unix_s: float) -> tuple[list[str], dict[str, float], list[str]]:
+        """(silent vehicles, clock deviations s, clock-inconsistent vehicles) now; each change is counted."""
+        silent = {v for v, t in self._last_arrival.items() if now_unix_s - t > self.silent_after_s}
+        for v in sorted(silent - self._silent):
+            self.counter.count(
+                "vehicle_silent", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.1f} s; fusing the others"
+            )
+        self._silent = silent
+        devs = self.clock_check.deviations_s(now_unix_s)
+        flagged = self.clock_check.inconsistent(devs)
+        for v in flagged:
+            if v not in self._clock_flagged:
+                self.counter.count(
+                    "clock_inconsistent",
+                    f"{v}: its time_unix_us is {-devs[v] * 1e3:+.1f} ms off the other vehicles' (shortest arrival "
+                    "lag); check its UTC (SYSTEM_TIME) mapping",
+                )
+        self._clock_flagged = set(flagged)
+        return sorted(silent), devs, flagged
+
+    def status(self, now_unix_s: float | None = None) -> dict:
+        """The ``irtrack.fleet_status/1`` dict (module docstring); ``now_unix_s``: the fusion's clock (UTC s)."""
+        silent, devs, flagged = self.watch(time.time() if now_unix_s is None else now_unix_s)
         return {
             "schema": FLEET_STATUS_SCHEMA,
             "received": self.received,
@@ -190,6 +231,9 @@ class Fusion:
             "published": self.published,
             "targets": len(self.tracker.targets),
             "vehicles": dict(sorted(self._time_sources.items())),
+            "silent": silent,
+            "clocks": {v: round(d * 1e3, 2) for v, d in devs.items()},
+            "clock_inconsistent": flagged,
             "rejected": self.counter.counts,
         }
 
@@ -248,6 +292,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=_positive, default=0.0, help="stop after S seconds (default 0: until a signal)")
     p.add_argument("--max-age-s", type=_positive, default=2.0, help="refuse frames older or newer than this (2)")
     p.add_argument("--status-interval-s", type=_positive, default=1.0, help="irtrack/fleet/status period (1)")
+    p.add_argument("--silent-after-s", type=_positive, default=1.0, help="a vehicle unheard this long is silent (1)")
+    p.add_argument(
+        "--clock-tolerance-ms", type=_positive, default=10.0, help="name a vehicle whose UTC is this far off (10)"
+    )
     p.add_argument("--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often")
     p.add_argument("--attitude-bias-deg", type=_positive, default=0.1, help="attitude bias prior, 1 sigma (0.1)")
     p.add_argument("--camera-white-m", type=_positive, default=0.02, help="white camera-position noise (0.02)")
@@ -278,6 +326,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         vehicles=args.vehicles,
         origin=args.origin,
         max_age_s=args.max_age_s,
+        clock_check=ClockConsistency(tolerance_s=args.clock_tolerance_ms / 1e3),
+        silent_after_s=args.silent_after_s,
     )
     stop = threading.Event()
     session = None

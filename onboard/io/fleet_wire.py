@@ -24,6 +24,20 @@ minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the 
 vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
 vehicle's clock and resets when the boot clock goes backwards).
 
+Clock check (:class:`ClockConsistency`): a vehicle whose ``time_unix_us`` is off the others' (a wrong
+UTC mapping, an injected 20 ms) is found from arrival times.  For each vehicle the fusion keeps the
+shortest ``arrival - time_unix`` over ``window_s``: the floor of its capture-to-arrival latency.  Vehicles
+that run the same daemon over the same kind of link share that floor within a few ms (the processing's
+fastest frame plus the link's shortest delay), so a vehicle whose floor is ``tolerance_s`` (10 ms) off the
+median of the vehicles' floors is named: its clock says its frames were taken later (floor lower) or
+earlier (higher) than they were.  The fusion's own clock error is common to every vehicle and cancels.  It
+needs three vehicles with UTC times to say which one is off (with two, only their disagreement shows), and a
+vehicle whose floor genuinely differs (a slower computer, a longer radio hop) is named too: the status gives
+the deviation so an operator can tell.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
+at 500 m, no more than one ray's bearing noise, and as long as the target's angular rate is steady that
+error is a constant angle, which the solve's per-vehicle attitude-bias nuisance absorbs; it would take a
+manoeuvring target and many seconds, where the latency floor shows 20 ms within its first window.
+
 Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
 ``origin``); both are mapped into the fleet's frame (the first origin seen, or a configured one) by the exact
 affine map between the two tangent frames (:func:`ned_transform`, through ECEF).
@@ -55,6 +69,7 @@ __all__ = [
     "vehicle_from_track_key",
     "ned_transform",
     "CommonClock",
+    "ClockConsistency",
     "TimedTrack",
     "parse_track",
     "ray_from_track",
@@ -140,6 +155,63 @@ class CommonClock:
         while hist and hist[0][0] < arrival_unix_s - self.window_s:
             hist.popleft()
         return boot_s + min(o for _, o in hist), "arrival"
+
+
+class ClockConsistency:
+    """Which vehicles' UTC stamps disagree with the others' (module docstring, "Clock check").
+
+    Step methods: :meth:`add` (one frame with a ``time_unix_us``: its common time and arrival, UTC seconds
+    on the fusion's clock) and :meth:`deviations_s` (each judged vehicle's latency floor minus the median
+    floor, s; a vehicle is judged once it has ``min_samples`` frames in the last ``window_s``).
+    :meth:`inconsistent` names those beyond ``tolerance_s``, only with three or more vehicles judged."""
+
+    def __init__(self, window_s: float = 10.0, tolerance_s: float = 0.010, min_samples: int = 20) -> None:
+        self.window_s = float(window_s)
+        self.tolerance_s = float(tolerance_s)
+        self.min_samples = int(min_samples)
+        self._floor: dict[str, deque[tuple[float, float]]] = {}  # (arrival, lag), lags increasing: sliding min
+        self._arrivals: dict[str, deque[float]] = {}
+
+    def add(self, vehicle: str, t_s: float, arrival_unix_s: float) -> None:
+        lag = arrival_unix_s - t_s
+        floor = self._floor.setdefault(vehicle, deque())
+        while floor and floor[-1][1] >= lag:
+            floor.pop()
+        floor.append((arrival_unix_s, lag))
+        self._arrivals.setdefault(vehicle, deque()).append(arrival_unix_s)
+        self._trim(vehicle, arrival_unix_s)
+
+    def _trim(self, vehicle: str, now_unix_s: float) -> None:
+        cutoff = now_unix_s - self.window_s
+        floor, arrivals = self._floor[vehicle], self._arrivals[vehicle]
+        while floor and floor[0][0] < cutoff:
+            floor.popleft()
+        while arrivals and arrivals[0] < cutoff:
+            arrivals.popleft()
+
+    def floors_s(self, now_unix_s: float) -> dict[str, float]:
+        """Each judged vehicle's shortest ``arrival - time_unix`` in the window ending at ``now_unix_s``."""
+        out = {}
+        for v in sorted(self._floor):
+            self._trim(v, now_unix_s)
+            if len(self._arrivals[v]) >= self.min_samples and self._floor[v]:
+                out[v] = self._floor[v][0][1]
+        return out
+
+    def deviations_s(self, now_unix_s: float) -> dict[str, float]:
+        """Each judged vehicle's floor minus the median of the judged vehicles' floors, s (negative: its
+        stamps are late, its clock ahead)."""
+        floors = self.floors_s(now_unix_s)
+        if len(floors) < 2:
+            return {}
+        med = float(np.median(list(floors.values())))
+        return {v: f - med for v, f in floors.items()}
+
+    def inconsistent(self, deviations_s: Mapping[str, float]) -> list[str]:
+        """The vehicles of ``deviations_s`` beyond ``tolerance_s``, when three or more were judged."""
+        if len(deviations_s) < 3:
+            return []
+        return sorted(v for v, d in deviations_s.items() if abs(d) > self.tolerance_s)
 
 
 def parse_track(obj: Mapping) -> tuple[Track, int | None]:
