@@ -25,8 +25,9 @@ CTRL_C_AFTER_S = 2.0  # after the replay began
 
 
 def test_compare_tracks_reports_fields_and_distances():
-    a = [
-        {"seq": 1, "time_boot_us": 10, "ned_m": [0.0, 0.0, 0.0], "u_px": 1.0, "v_px": 2.0, "state": "tracking"},
+    a = [  # the recording's UTC stamps come from the autopilot link, which a replay does not have: not compared
+        {"seq": 1, "time_boot_us": 10, "ned_m": [0.0, 0.0, 0.0], "u_px": 1.0, "v_px": 2.0, "state": "tracking"}
+        | {"time_unix_us": 1_800_000_000_000_010, "time_unix_sigma_us": 300},
         {"seq": 2, "time_boot_us": 20, "ned_m": None, "u_px": None, "v_px": None, "state": "lost"},
         {"seq": 3, "time_boot_us": 30, "state": "lost"},
     ]

@@ -450,13 +450,18 @@ def _matched(recorded: list, replayed: list) -> tuple[list[tuple[dict, dict]], i
     return pairs, unmatched
 
 
+#: track keys a replay does not make: the daemon stamps UTC from the autopilot link's SYSTEM_TIME, not the pipeline
+UNREPLAYED_KEYS = frozenset({"time_unix_us", "time_unix_sigma_us"})
+
+
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
     """Per-frame differences of two track lists matched on (seq, time_boot_us); returns (diffs, matched,
-    unmatched).  A field differs when its JSON values differ at all (floats bit for bit)."""
+    unmatched).  A field differs when its JSON values differ at all (floats bit for bit); the
+    ``UNREPLAYED_KEYS`` are not compared."""
     pairs, unmatched = _matched(recorded, replayed)
     diffs = []
     for a, b in pairs:
-        names = tuple(sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k)))
+        names = tuple(sorted(k for k in (set(a) | set(b)) - UNREPLAYED_KEYS if a.get(k) != b.get(k)))
         if not names:
             continue
         dp = duv = None
