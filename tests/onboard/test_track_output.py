@@ -11,6 +11,7 @@ import pytest
 
 from onboard.app.service import MISMATCH_WARNINGS
 from onboard.app.watchdog import Watchdog
+from onboard.core.errors import InputError
 from onboard.core.frames import CameraMount, PinholeIntrinsics, quat_from_euler, quat_from_rotmat, rotmat_from_quat
 from onboard.core.pose import PoseBuffer
 from onboard.core.track import (
@@ -24,6 +25,7 @@ from onboard.core.track import (
 )
 from onboard.io.mavlink_wire import geo_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
+from tests.fakes import positioned_track
 from tests.onboard.test_pipeline import Rig
 
 LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
@@ -184,3 +186,15 @@ def test_the_status_says_whether_geometry_is_withheld_and_why():
     assert build_status(**kw)["geometry"] == {"output": "published", "withheld_because": []}
     got = build_status(**kw, withheld_because=("gimbal_mismatch",))["geometry"]
     assert got == {"output": "withheld", "withheld_because": ["gimbal_mismatch"]}
+
+
+def test_utc_time_round_trips_and_is_null_until_known():
+    plain = track_to_json(positioned_track())
+    assert plain["time_unix_us"] is None and plain["time_unix_sigma_us"] is None
+    stamped = positioned_track(time_unix_us=1_800_000_000_000_010, time_unix_sigma_us=312)
+    back = track_from_json(track_to_bytes(stamped))
+    assert (back.time_unix_us, back.time_unix_sigma_us) == (1_800_000_000_000_010, 312)
+    assert track_from_json({**plain, "time_unix_us": 5}).time_unix_sigma_us is None  # a sender without a sigma
+    for bad in ({"time_unix_us": 1.8e15}, {"time_unix_us": -1}, {"time_unix_us": True}, {"time_unix_sigma_us": 3}):
+        with pytest.raises(InputError, match="time_unix"):
+            track_from_json({**plain, **bad})
