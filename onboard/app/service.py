@@ -371,7 +371,7 @@ class OnboardService:
                 continue
             frame, received_ns = item
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
-            track = with_utc(self._process(frame, received_ns), self.utc.mapping)
+            track = self._process(frame, received_ns)
             payload = self._publish_track(track) if track is not None and publish else None
             if track is not None and publish and self._objects_pub is not None:
                 self._publish_objects(track)
@@ -391,7 +391,7 @@ class OnboardService:
         # fail-safe: while the configured camera disagrees with the vehicle, no direction or position goes out
         self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
         try:
-            track = self.pipeline.process(frame, received_ns)
+            track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
             self.watchdog.residual(now_s, track.residual_rms_norm)

@@ -24,8 +24,8 @@ variance; the term is dropped while no slope is fitted) and ``k`` the assumed sk
 
 Refused samples (counted in the shared :class:`~onboard.core.counters.RejectCounter`, never raised):
 ``utc_no_time`` (``time_unix_usec`` = 0: the autopilot has no GNSS time yet, PX4 and ArduPilot send 0; INFO),
-``utc_implausible`` (before ``min_unix_us``, 2020-01-01: a clock that was never set, or a boot time
-that is not an integer >= 0), ``utc_duplicate`` (the same boot time as the newest sample: a message
+``utc_implausible`` (before ``min_unix_us``, 2020-01-01: a clock that was never set; from
+``max_unix_us``, 2100, on; a boot time that is not an integer >= 0), ``utc_duplicate`` (the same boot time as the newest sample: a message
 repeated), ``utc_outlier`` (off the fit by more than ``jump_us`` plus 4 sigma), ``utc_step`` (``jump_count``
 consecutive outliers that agree with each other within ``jump_us``: UTC itself stepped, e.g. from an RTC
 guess to GNSS time; the estimate re-seeds from them).  A mapping older than ``max_age_us`` of boot time
@@ -57,11 +57,12 @@ _GATE_SIGMAS = 4.0
 class UtcClockConfig:
     """The SYSTEM_TIME filter's settings (us of boot time unless named otherwise; module docstring).
 
-    ``window``: samples kept (SYSTEM_TIME comes at about 1 Hz: a minute).  ``min_samples``: samples before a
-    mapping is published.  ``jump_us`` / ``jump_count``: the outlier gate and the run of agreeing outliers
-    that re-seeds.  ``min_skew_span_us``: history span before the skew is fitted; ``max_skew_ppm`` bounds it;
-    ``skew_sigma_ppm``: the drift assumed in the sigma before that.  ``max_age_us``: how far beyond its
-    newest sample the mapping is used.  ``min_unix_us``: earlier UTC is a clock that was never set."""
+        ``window``: samples kept (SYSTEM_TIME comes at about 1 Hz: a minute).  ``min_samples``: samples before a
+        mapping is published.  ``jump_us`` / ``jump_count``: the outlier gate and the run of agreeing outliers
+        that re-seeds.  ``min_skew_span_us``: history span before the skew is fitted; ``max_skew_ppm`` bounds it;
+        ``skew_sigma_ppm``: the drift assumed in the sigma before that.  ``max_age_us``: how far beyond its
+        newest sample the mapping is used.  ``min_unix_us``: earlier UTC is a clock that was never set; ``max_unix_us``:
+    later is a corrupt field."""
 
     window: int = 60
     min_samples: int = 3
@@ -72,9 +73,19 @@ class UtcClockConfig:
     skew_sigma_ppm: float = 50.0
     max_age_us: int = 30_000_000
     min_unix_us: int = 1_577_836_800_000_000  # 2020-01-01T00:00:00Z
+    max_unix_us: int = 4_102_444_800_000_000  # 2100-01-01T00:00:00Z: later is a corrupt field, not a date
 
     def __post_init__(self) -> None:
-        for name in ("window", "min_samples", "jump_us", "jump_count", "min_skew_span_us", "max_age_us", "min_unix_us"):
+        for name in (
+            "window",
+            "min_samples",
+            "jump_us",
+            "jump_count",
+            "min_skew_span_us",
+            "max_age_us",
+            "min_unix_us",
+            "max_unix_us",
+        ):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
                 raise ConfigError(f"UtcClockConfig.{name}: expected a positive integer, got {v!r}")
@@ -201,8 +212,10 @@ class UtcClock:
         if unix == 0:
             self.counter.count("utc_no_time", "SYSTEM_TIME without UTC (no GNSS time yet)", level=logging.INFO)
             return False
-        if unix < cfg.min_unix_us:
-            self.counter.count("utc_implausible", f"time_unix_us={unix} is before 2020: a clock never set")
+        if not cfg.min_unix_us <= unix < cfg.max_unix_us:
+            self.counter.count(
+                "utc_implausible", f"time_unix_us={unix} is before 2020 (a clock never set) or after 2100"
+            )
             return False
         if self._samples and boot == self._samples[-1].boot_us:
             self.counter.count("utc_duplicate", f"a second SYSTEM_TIME at time_boot_ms={boot // 1000}")
@@ -272,10 +285,10 @@ class UtcClock:
         )
 
 
-def with_utc(track: Track | None, mapping: UtcMapping | None) -> Track | None:
+def with_utc(track: Track, mapping: UtcMapping | None) -> Track:
     """``track`` with ``time_unix_us`` / ``time_unix_sigma_us`` of its ``time_boot_us`` through ``mapping``;
     ``track`` itself (its UTC fields None) when there is no mapping or it does not cover that time."""
-    if track is None or mapping is None:
+    if mapping is None:
         return track
     got = mapping.at(track.time_boot_us)
     if got is None:

@@ -102,6 +102,7 @@ def test_nothing_before_min_samples_and_nothing_far_beyond_the_newest_sample():
         (4_000_000, 0, "utc_no_time"),  # PX4 / ArduPilot: no GNSS time yet
         (4_000_000, 1_000_000, "utc_implausible"),  # a clock that counts from power-on
         (-1, UNIX0_US, "utc_implausible"),
+        (4_000_000, 2**64 - 1, "utc_implausible"),  # a corrupt field: would overflow the track's time
         (4_000_000, 1.5e15, "utc_implausible"),  # not an integer
         (3_000_000, UNIX0_US + 3_000_000, "utc_duplicate"),  # the newest sample again
         (4_000_000, UNIX0_US + 4_000_000 + 60_000, "utc_outlier"),  # 60 ms off: one wild sample
