@@ -13,7 +13,7 @@ and, in each vehicle's own frame, on ``irtrack/<vehicle>/fleet/track``; ``irtrac
 ``--status-interval-s``) carries the counts, ``silent`` (vehicles heard before but not for ``--silent-after-s``:
 a daemon that stopped; the fleet track goes on with the others, unobservable when one is left, and the vehicle
 rejoins with its next line of sight that gates), ``clocks`` (each vehicle's latency floor off the fleet's
-median, ms) and ``clock_inconsistent`` (the vehicles whose ``time_unix_us`` disagrees with the others' beyond
+median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsistent`` (the vehicles whose ``time_unix_us`` disagrees with the others' beyond
 ``--clock-tolerance-ms``: :class:`~onboard.io.fleet_wire.ClockConsistency`).  Counted on each change:
 ``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle) and ``vehicle_back`` (INFO).  The zenoh options and their default (connect
 ``tcp/127.0.0.1:7447``) are :mod:`onboard.app.watch`'s, i.e. the daemon's.
@@ -210,20 +210,23 @@ class Fusion:
             )
         self._silent = silent
         devs = self.clock_check.deviations_s(now_unix_s)
-        flagged = self.clock_check.inconsistent(devs)
+        flagged = self.clock_check.inconsistent(now_unix_s)
+        floors = self.clock_check.floors_s(now_unix_s)
         for v in flagged:
             if v not in self._clock_flagged:
+                others = ", ".join(f"{o} {f * 1e3:.1f}" for o, f in floors.items() if o != v)
                 self.counter.count(
                     "clock_inconsistent",
-                    f"{v}: its time_unix_us is {-devs[v] * 1e3:+.1f} ms off the other vehicles' (shortest arrival "
-                    "lag); check its UTC (SYSTEM_TIME) mapping",
+                    f"{v}: its frames' shortest arrival lag is {floors[v] * 1e3:.1f} ms (others: {others} ms): its "
+                    "time_unix_us is off; check its UTC (SYSTEM_TIME) mapping",
                 )
         self._clock_flagged = set(flagged)
         return sorted(silent), devs, flagged
 
     def status(self, now_unix_s: float | None = None) -> dict:
         """The ``irtrack.fleet_status/1`` dict (module docstring); ``now_unix_s``: the fusion's clock (UTC s)."""
-        silent, devs, flagged = self.watch(time.time() if now_unix_s is None else now_unix_s)
+        now_s = time.time() if now_unix_s is None else now_unix_s
+        silent, devs, flagged = self.watch(now_s)
         return {
             "schema": FLEET_STATUS_SCHEMA,
             "received": self.received,
@@ -233,6 +236,7 @@ class Fusion:
             "vehicles": dict(sorted(self._time_sources.items())),
             "silent": silent,
             "clocks": {v: round(d * 1e3, 2) for v, d in devs.items()},
+            "latency_floor_ms": {v: round(f * 1e3, 2) for v, f in self.clock_check.floors_s(now_s).items()},
             "clock_inconsistent": flagged,
             "rejected": self.counter.counts,
         }

@@ -30,10 +30,13 @@ shortest ``arrival - time_unix`` over ``window_s``: the floor of its capture-to-
 that run the same daemon over the same kind of link share that floor within a few ms (the processing's
 fastest frame plus the link's shortest delay), so a vehicle whose floor is ``tolerance_s`` (10 ms) off the
 median of the vehicles' floors is named: its clock says its frames were taken later (floor lower) or
-earlier (higher) than they were.  The fusion's own clock error is common to every vehicle and cancels.  It
-needs three vehicles with UTC times to say which one is off (with two, only their disagreement shows), and a
-vehicle whose floor genuinely differs (a slower computer, a longer radio hop) is named too: the status gives
-the deviation so an operator can tell.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
+earlier (higher) than they were.  The fusion's own clock error is common to every vehicle and cancels.  With
+two vehicles the median is their midpoint and cannot say which is off: then the one whose floor is farther
+from zero is named when they disagree by more than the tolerance, which takes the fusion's clock as a third
+reference (a floor is small and positive on a clock that agrees with theirs: one machine, or GNSS/PTP-disciplined
+clocks; a fusion clock off by more than the vehicle's error can name the wrong one).  A vehicle whose floor
+genuinely differs (a slower computer, a longer radio hop) is named too: the status gives the floors and the
+deviations so an operator can tell.  Why not the geometry: 20 ms of a 20 m/s target is 0.4 m, 0.8 mrad
 at 500 m, no more than one ray's bearing noise, and as long as the target's angular rate is steady that
 error is a constant angle, which the solve's per-vehicle attitude-bias nuisance absorbs; it would take a
 manoeuvring target and many seconds, where the latency floor shows 20 ms within its first window.
@@ -163,7 +166,8 @@ class ClockConsistency:
     Step methods: :meth:`add` (one frame with a ``time_unix_us``: its common time and arrival, UTC seconds
     on the fusion's clock) and :meth:`deviations_s` (each judged vehicle's latency floor minus the median
     floor, s; a vehicle is judged once it has ``min_samples`` frames in the last ``window_s``).
-    :meth:`inconsistent` names those beyond ``tolerance_s``, only with three or more vehicles judged."""
+    :meth:`inconsistent` names the vehicles off the others by more than ``tolerance_s`` (with two judged, the one
+    farther from the fusion's own clock)."""
 
     def __init__(self, window_s: float = 10.0, tolerance_s: float = 0.010, min_samples: int = 20) -> None:
         self.window_s = float(window_s)
@@ -207,11 +211,19 @@ class ClockConsistency:
         med = float(np.median(list(floors.values())))
         return {v: f - med for v, f in floors.items()}
 
-    def inconsistent(self, deviations_s: Mapping[str, float]) -> list[str]:
-        """The vehicles of ``deviations_s`` beyond ``tolerance_s``, when three or more were judged."""
-        if len(deviations_s) < 3:
-            return []
-        return sorted(v for v, d in deviations_s.items() if abs(d) > self.tolerance_s)
+    def inconsistent(self, now_unix_s: float) -> list[str]:
+        """The judged vehicles whose floor is more than ``tolerance_s`` off the median floor (three or more
+        judged); with two judged that disagree by more than ``tolerance_s``, the one whose floor is farther from
+        zero (module docstring, "Clock check"); none with fewer."""
+        floors = self.floors_s(now_unix_s)
+        if len(floors) >= 3:
+            med = float(np.median(list(floors.values())))
+            return sorted(v for v, f in floors.items() if abs(f - med) > self.tolerance_s)
+        if len(floors) == 2:
+            (a, fa), (b, fb) = floors.items()
+            if abs(fa - fb) > self.tolerance_s:
+                return [a if abs(fa) > abs(fb) else b]
+        return []
 
 
 def parse_track(obj: Mapping) -> tuple[Track, int | None]:

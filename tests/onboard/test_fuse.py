@@ -347,22 +347,24 @@ def test_a_vehicle_whose_clock_is_20_ms_off_is_named_and_counted_once(error_ms):
     assert abs(st["clocks"]["uav1"]) < 3.0 and abs(st["clocks"]["uav2"]) < 3.0
     fusion.status(T0_UNIX_S + 2.0)
     assert fusion.counter["clock_inconsistent"] == 1  # counted when it starts, not on every status
-    assert st["silent"] == []
+    assert st["silent"] == [] and st["latency_floor_ms"]["uav1"] == pytest.approx(5.0, abs=1.0)
 
 
-def test_consistent_clocks_are_not_named_and_two_vehicles_cannot_say_which():
+def test_consistent_clocks_are_not_named_and_two_vehicles_name_the_one_off_the_fusions_clock():
     fusion = new_fusion()
     run_three(fusion, 2.0, np.random.default_rng(12), {})
     st = fusion.status(T0_UNIX_S + 2.0)
     assert st["clock_inconsistent"] == [] and "clock_inconsistent" not in fusion.counter.counts
     assert max(abs(d) for d in st["clocks"].values()) < 3.0
-    check = ClockConsistency(tolerance_s=0.010, min_samples=5)
-    for k in range(30):  # two vehicles 20 ms apart: the disagreement shows, no culprit can be named
-        check.add("uav1", 100.0 + k / 30, 100.0 + k / 30 + 0.005)
-        check.add("uav2", 100.0 + k / 30 + 0.020, 100.0 + k / 30 + 0.005)
-    devs = check.deviations_s(101.0)
-    assert devs["uav1"] - devs["uav2"] == pytest.approx(0.020) and check.inconsistent(devs) == []
-    assert check.deviations_s(112.0) == {}  # the window moved past every frame: nothing judged
+    for error_s in (0.020, -0.020):  # two vehicles, uav2 20 ms ahead / behind: the median is their midpoint
+        check = ClockConsistency(tolerance_s=0.010, min_samples=5)
+        for k in range(30):  # each frame arrives 5 ms after capture on the fusion's clock
+            check.add("uav1", 100.0 + k / 30, 100.0 + k / 30 + 0.005)
+            check.add("uav2", 100.0 + k / 30 + error_s, 100.0 + k / 30 + 0.005)
+        devs = check.deviations_s(101.0)
+        assert devs["uav1"] - devs["uav2"] == pytest.approx(error_s)
+        assert check.inconsistent(101.0) == ["uav2"]  # its floor (-15 / 25 ms) is the one far from the fusion's clock
+        assert check.deviations_s(112.0) == {} and check.inconsistent(112.0) == []  # the window moved past them
 
 
 def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns():
