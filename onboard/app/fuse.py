@@ -142,6 +142,8 @@ class Fusion:
         if track.vehicle != vehicle:
             self.counter.count("bad_track", f"{key}: vehicle {track.vehicle!r} on another vehicle's key")
             return
+        if time_unix_us is not None:  # every frame times the vehicle's clock, with a target or not
+            self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
         if los is None:
             self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
@@ -150,8 +152,6 @@ class Fusion:
             self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
         t_s, source = self.clock.time_s(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
-        if source == "vehicle":
-            self.clock_check.add(vehicle, t_s, arrival_unix_s)
         if t_s < arrival_unix_s - self.max_age_s:
             self.counter.count("stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)")
             return
