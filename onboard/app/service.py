@@ -62,7 +62,7 @@ from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
 from onboard.app.frame_queue import FrameQueue
 from onboard.app.locked_counter import LockedCounter
-from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, make_observers
+from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, frame_objects, make_observers
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
 from onboard.app.watchdog import Watchdog
@@ -370,10 +370,11 @@ class OnboardService:
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
             track = self._process(frame, received_ns)
             payload = self._publish_track(track) if track is not None and publish else None
-            if track is not None and publish and self._objects_pub is not None:
-                self._publish_objects(track.time_boot_us)
+            objects = frame_objects(self.pipeline.tracker, track)  # the objects chain's, for zenoh and the taps
+            if objects is not None and publish and self._objects_pub is not None:
+                self._publish_objects(objects)
             looked_up, pose = self._pose_memo.take() if self._pose_memo is not None else (False, None)
-            result = FrameResult(received_ns, looked_up, pose, track, payload)
+            result = FrameResult(received_ns, looked_up, pose, track, payload, objects)
             for tap in self.observers:
                 tap.on_frame(frame, result)
             if track is None:
@@ -406,15 +407,12 @@ class OnboardService:
         finally:
             self._pipeline_cpu_s += time.thread_time() - c0
 
-    def _publish_objects(self, time_boot_us: int) -> None:
+    def _publish_objects(self, objects: dict) -> None:
         """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects``."""
-        upd = getattr(self.pipeline.tracker, "last_objects", None)
-        if upd is None or self._objects_pub is None:
+        if self._objects_pub is None:
             return
         try:
-            from onboard.imaging.objects import objects_message
-
-            self._objects_pub.put(json.dumps(objects_message(upd, time_boot_us), separators=(",", ":")).encode())
+            self._objects_pub.put(json.dumps(objects, separators=(",", ":")).encode())
         except Exception as exc:  # noqa: BLE001 - a failed publication must not stop the frame loop
             self.counter.count("objects_publish_error", f"{type(exc).__name__}: {exc}")
 

@@ -8,18 +8,22 @@ with SIGKILL leaves a file that reads up to its last written chunk (at most ``re
 
 Channels (topic: schema name, schema encoding / message encoding):
 
-=============================  ==============================  ===================  =========================
-topic                          schema                          encoding             one message per
-=============================  ==============================  ===================  =========================
-``/mavlink/<link>``            ``irtrack.mavlink_raw/1``       jsonschema / json    received datagram (or read)
-``irtrack/<v>/ir/frame``       ``foxglove.RawImage``           protobuf             frame as received
-``/onboard/frame_input``       ``irtrack.frame_input/1``       jsonschema / json    frame the pipeline took
-``irtrack/<v>/track``          ``irtrack.track/2``             jsonschema / json    track (bytes as published)
-``irtrack/<v>/status``         ``irtrack.status/1``            jsonschema / json    status (bytes as published)
-``/onboard/target_fix``        ``foxglove.LocationFix``        protobuf             track with a position
-``/onboard/camera_fix``        ``foxglove.LocationFix``        protobuf             frame with a pose
-``/groundsim/truth``           ``irtrack.truth/1``             jsonschema / json    simulator frame (groundsim)
-=============================  ==============================  ===================  =========================
+================================  =============================  =================  ============================
+topic                             schema                         encoding           one message per
+================================  =============================  =================  ============================
+``/mavlink/<link>``               ``irtrack.mavlink_raw/1``      jsonschema / json  received datagram (or read)
+``irtrack/<v>/ir/frame``          ``foxglove.RawImage``          protobuf           frame as received
+``/onboard/frame_input``          ``irtrack.frame_input/1``      jsonschema / json  frame the pipeline took
+``irtrack/<v>/track``             ``irtrack.track/2``            jsonschema / json  track (bytes as published)
+``irtrack/<v>/status``            ``irtrack.status/1``           jsonschema / json  status (bytes as published)
+``/onboard/target_fix``           ``foxglove.LocationFix``       protobuf           track with a position
+``/onboard/camera_fix``           ``foxglove.LocationFix``       protobuf           frame with a pose
+``irtrack/<v>/objects``           ``irtrack.objects/1``          jsonschema / json  frame (image chain objects)
+``/onboard/object_annotations``   ``foxglove.ImageAnnotations``  protobuf           frame (image chain objects)
+``/groundsim/truth``              ``irtrack.truth/1``            jsonschema / json  simulator frame (groundsim)
+``/groundsim/truth/objects``      ``irtrack.truth_objects/1``    jsonschema / json  simulator frame with a scene
+``/groundsim/truth/annotations``  ``foxglove.ImageAnnotations``  protobuf           simulator frame with a scene
+================================  =============================  =================  ============================
 
 * ``irtrack.mavlink_raw/1``: ``{"link": "autopilot", "direction": "rx" | "tx", "receive_time_ns":
   int (monotonic clock of the recorder's process, the clock frames are stamped with), "source": "host:port"
@@ -33,6 +37,15 @@ topic                          schema                          encoding         
   interpolated pose it got (:func:`pose_to_json`; floats printed by ``repr``, so they read back bit for
   bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
   these frames with these poses through a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline`.
+* ``irtrack.objects/1``: the message published on ``irtrack/<v>/objects`` (:func:`onboard.imaging.objects.objects_message`:
+  every confirmed or coasting object of the frame with its id, state, centre, box, line of sight and score,
+  and the primary target's id); the MCAP message's ``sequence`` is the frame's ``seq``.
+  ``/onboard/object_annotations`` draws the same objects over the frame in Foxglove's Image panel (a box and
+  the id of each, the primary target green; :func:`onboard.io.foxglove_messages.objects_annotations`;
+  ``timestamp`` = the frame's capture time, as the RawImage's).
+* ``irtrack.truth_objects/1`` (groundsim): ``{"seq", "time_boot_us", "t_s", "objects": [{"id", "cls", "u_px",
+  "v_px", "box_px": [x, y, w, h] or null, "visibility", "contrast_netd", "range_m", "p_ned_m"}]}``, the rows of
+  ``<truth>.objects.csv`` of that frame (:mod:`groundsim.world.truth`), drawn by ``/groundsim/truth/annotations``.
 * Log times are the recorder's wall clock at the event (``time.time_ns`` at start, advanced by the
   monotonic clock, so they never go back).
 
@@ -86,10 +99,14 @@ from onboard.io.foxglove_messages import (
     FRAME_INPUT_SCHEMA,
     JSON_SCHEMAS,
     MAVLINK_RAW_SCHEMA,
+    OBJECTS_SCHEMA,
+    TRUTH_OBJECTS_SCHEMA,
     camera_fix_fields,
     file_descriptor_set,
     location_fix_fields,
+    objects_annotations,
     rawimage_pieces,
+    truth_objects_annotations,
 )
 
 if TYPE_CHECKING:
@@ -102,6 +119,9 @@ __all__ = [
     "TARGET_FIX_TOPIC",
     "CAMERA_FIX_TOPIC",
     "TRUTH_TOPIC",
+    "OBJECT_ANNOTATIONS_TOPIC",
+    "TRUTH_OBJECTS_TOPIC",
+    "TRUTH_ANNOTATIONS_TOPIC",
     "RecordConfig",
     "FlightRecorder",
     "RecordingPoseSource",
@@ -117,6 +137,9 @@ FRAME_INPUT_TOPIC = "/onboard/frame_input"
 TARGET_FIX_TOPIC = "/onboard/target_fix"
 CAMERA_FIX_TOPIC = "/onboard/camera_fix"
 TRUTH_TOPIC = "/groundsim/truth"
+OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
+TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
+TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
 MB = 1_000_000
 
 
@@ -321,6 +344,7 @@ class FlightRecorder:
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
         self.track_topic = f"irtrack/{vehicle}/track"
         self.status_topic = f"irtrack/{vehicle}/status"
+        self.objects_topic = f"irtrack/{vehicle}/objects"
         # counters (written by the writer thread or under the lock; read without it: ints)
         self.messages_written = 0
         self.bytes_written = 0  # bytes of closed files + the open one's position
@@ -388,6 +412,17 @@ class FlightRecorder:
     def on_track(self, track, payload: bytes | None = None) -> bool:
         """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
         return self._put("track", self.track_topic, 1500, (track, payload, self._clock_ns()))
+
+    def on_objects(self, message: Mapping[str, Any], seq: int) -> bool:
+        """The ``irtrack.objects/1`` message of frame ``seq`` (a dict, not changed afterwards): its JSON and its
+        foxglove.ImageAnnotations."""
+        nbytes = 200 + 400 * len(message.get("objects", ()))
+        return self._put("objects", self.objects_topic, nbytes, (message, int(seq), self._clock_ns()))
+
+    def on_truth_objects(self, message: Mapping[str, Any]) -> bool:
+        """The simulator's ``irtrack.truth_objects/1`` message of one frame: its JSON and its annotations."""
+        nbytes = 200 + 400 * len(message.get("objects", ()))
+        return self._put("truth_objects", TRUTH_OBJECTS_TOPIC, nbytes, (message, self._clock_ns()))
 
     def on_status(self, payload: bytes) -> bool:
         return self._put(
@@ -560,10 +595,15 @@ class FlightRecorder:
 
     def _protobuf(self) -> dict[str, Any]:
         if self._pb is None:
+            from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
             from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
             from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-            self._pb = {"foxglove.RawImage": RawImage, "foxglove.LocationFix": LocationFix}
+            self._pb = {
+                "foxglove.RawImage": RawImage,
+                "foxglove.LocationFix": LocationFix,
+                "foxglove.ImageAnnotations": ImageAnnotations,
+            }
         return self._pb
 
     def _channel(self, w: ChunkWriter, topic: str, schema: str) -> int:
@@ -674,6 +714,17 @@ class FlightRecorder:
                     ),
                     now,
                 )
+        elif kind == "objects":
+            message, seq, now = item
+            self._add(topic, OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq & 0xFFFFFFFF)
+            ann = objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
+            self._add(OBJECT_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
+        elif kind == "truth_objects":
+            message, now = item
+            seq = int(message.get("seq", 0)) & 0xFFFFFFFF
+            self._add(topic, TRUTH_OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq)
+            ann = truth_objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
+            self._add(TRUTH_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
         elif kind == "mavlink":
             data, link, source, direction, now = item
             self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now)
