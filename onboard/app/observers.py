@@ -23,6 +23,7 @@ from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics
 from onboard.core.irframe import IrFrame
 from onboard.core.track import Track
+from onboard.io.record import NOT_LOOKED_UP
 
 __all__ = [
     "FrameResult",
@@ -45,7 +46,9 @@ class FrameResult:
     ``pose``: the answer (a :class:`~onboard.core.pose.PoseAt` or None); ``track``: None when the frame was
     refused or failed; ``payload``: the track JSON as published (None when not published); ``objects``: every
     object of the frame as published on ``irtrack/<vehicle>/objects`` (the ``irtrack.objects/1`` dict of
-    :func:`frame_objects`; None without the objects image chain or without a track)."""
+    :func:`frame_objects`; None without the objects image chain or without a track); ``imaging_pose``: the pose
+    the image chain got before the telemetry wait, when it asked for one (else
+    :data:`~onboard.io.record.NOT_LOOKED_UP`; :meth:`onboard.io.record.RecordingPoseSource.take_lookups`)."""
 
     received_ns: int
     pose_looked_up: bool
@@ -53,6 +56,7 @@ class FrameResult:
     track: Track | None
     payload: bytes | None
     objects: dict[str, Any] | None = None
+    imaging_pose: Any = NOT_LOOKED_UP
 
 
 def frame_objects(tracker: Any, track: Track | None) -> dict[str, Any] | None:
@@ -111,7 +115,7 @@ class RecorderTap:
         self.recorder.on_frame(frame, received_ns)
 
     def on_frame(self, frame: IrFrame, result: FrameResult) -> None:
-        self.recorder.on_frame_input(frame, result.received_ns, result.pose_looked_up, result.pose)
+        self.recorder.on_frame_input(frame, result.received_ns, result.pose_looked_up, result.pose, result.imaging_pose)
         if result.track is not None:
             self.recorder.on_track(result.track, result.payload)
         if result.objects is not None:

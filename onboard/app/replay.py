@@ -56,7 +56,7 @@ from typing import Any  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
 __all__ = [
     "RecordedMessage",
@@ -143,6 +143,7 @@ class Recording:
     truncated: str | None
     counts: dict
     objects: list = field(default_factory=list)
+    imaging_poses: dict = field(default_factory=dict)  # (seq, time_boot_us) -> irtrack.imaging_pose/1 dicts in order
 
 
 def load_recording(path: str) -> Recording:
@@ -151,6 +152,7 @@ def load_recording(path: str) -> Recording:
     meta: dict[str, str] = {}
     frames: dict = {}
     inputs, tracks, truth, objects = [], [], [], []
+    imaging_poses: dict = {}
     counts: dict[str, int] = {}
     first = last = None
     truncated = None
@@ -177,7 +179,10 @@ def load_recording(path: str) -> Recording:
             truth.append(json.loads(m.data))
         elif m.schema == OBJECTS_SCHEMA:
             objects.append(json.loads(m.data))
-    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects)
+        elif m.topic == IMAGING_POSE_TOPIC:
+            obj = json.loads(m.data)
+            imaging_poses.setdefault((int(obj["seq"]), int(obj["time_boot_us"])), []).append(obj)
+    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
 
 
 def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
@@ -223,14 +228,23 @@ def recorded_worker(rec: Recording) -> str | None:
 
 
 class _RecordedPose:
-    """A pose source answering with the pose recorded for the frame being replayed."""
+    """A pose source answering with the pose recorded for the frame being replayed: the image chain's first
+    (``irtrack.imaging_pose/1``, when recorded for the frame), then the frame's."""
 
     def __init__(self, counter: Any) -> None:
         self.pose: Any = None  # the PoseAt recorded for the frame being replayed
         self.counter = counter
         self.origin = None
+        self._first: list = []  # the image chain's pose of the frame, answered once
+
+    def set_frame(self, pose: Any, imaging_pose: list | None = None) -> None:
+        """The frame's pose and (a one-element list, when recorded) the image chain's."""
+        self.pose = pose
+        self._first = imaging_pose or []
 
     def pose_at(self, time_boot_us: int, *args, **kwargs):
+        if self._first:
+            return self._first.pop()
         return self.pose
 
 
@@ -383,6 +397,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
     out: list = []
     out_objects: list = []
+    chain_used: dict = {}  # (seq, time_boot_us) -> the image chain's poses of that frame used so far
     missing = refused = fed = 0
     rx0 = None
     interrupted = False
@@ -391,7 +406,12 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
             if frame is None:
                 missing += 1
                 continue
-            poses.pose = pose_from_json(inp.get("pose"), f"{rec.path}: frame_input {i} pose")
+            where = f"{rec.path}: frame_input {i} pose"
+            key = (int(inp["seq"]), int(inp["time_boot_us"]))
+            chain_poses, n = rec.imaging_poses.get(key, ()), chain_used.get(key, 0)
+            chain_used[key] = n + 1
+            chain_pose = [pose_from_json(chain_poses[n]["pose"], where)] if n < len(chain_poses) else None
+            poses.set_frame(pose_from_json(inp.get("pose"), where), chain_pose)
             if rate == "realtime":
                 rx = int(inp["received_ns"])
                 rx0 = rx if rx0 is None else rx0

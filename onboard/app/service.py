@@ -71,6 +71,7 @@ from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, deco
 from onboard.core.pose import PoseBuffer
 from onboard.core.status import RollingStats, build_status
 from onboard.core.track import Track, track_to_bytes
+from onboard.io.record import NOT_LOOKED_UP
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
@@ -373,8 +374,10 @@ class OnboardService:
             objects = frame_objects(self.pipeline.tracker, track)  # the objects chain's, for zenoh and the taps
             if objects is not None and publish and self._objects_pub is not None:
                 self._publish_objects(objects)
-            looked_up, pose = self._pose_memo.take() if self._pose_memo is not None else (False, None)
-            result = FrameResult(received_ns, looked_up, pose, track, payload, objects)
+            looked_up, pose, imaging_pose = (
+                self._pose_memo.take_lookups() if self._pose_memo is not None else (False, None, NOT_LOOKED_UP)
+            )
+            result = FrameResult(received_ns, looked_up, pose, track, payload, objects, imaging_pose)
             for tap in self.observers:
                 tap.on_frame(frame, result)
             if track is None:

@@ -6,7 +6,7 @@ numbers:
 
 * :data:`JSON_SCHEMAS`: the JSON Schema of each irtrack JSON channel, by schema name
   (``irtrack.mavlink_raw/1``, ``irtrack.frame_input/1``, ``irtrack.track/2``, ``irtrack.status/1``,
-  ``irtrack.truth/1``, ``irtrack.objects/1``, ``irtrack.truth_objects/1``; the recorder's module docstring
+  ``irtrack.truth/1``, ``irtrack.objects/1``, ``irtrack.truth_objects/1``, ``irtrack.imaging_pose/1``; the recorder's module docstring
   says what each message holds).
 * ``foxglove.RawImage`` of an :class:`~onboard.core.irframe.IrFrame`: :func:`rawimage_fields` (a dict of
   the message's fields), :func:`rawimage_pieces` / :func:`rawimage_bytes` (the serialized protobuf, the
@@ -43,6 +43,7 @@ __all__ = [
     "TRUTH_SCHEMA",
     "OBJECTS_SCHEMA",
     "TRUTH_OBJECTS_SCHEMA",
+    "IMAGING_POSE_SCHEMA",
     "JSON_SCHEMAS",
     "CAMERA_FRAME_ID",
     "stamp_from_us",
@@ -63,6 +64,7 @@ __all__ = [
 MAVLINK_RAW_SCHEMA = "irtrack.mavlink_raw/1"
 FRAME_INPUT_SCHEMA = "irtrack.frame_input/1"
 TRUTH_SCHEMA = "irtrack.truth/1"
+IMAGING_POSE_SCHEMA = "irtrack.imaging_pose/1"
 OBJECTS_SCHEMA = "irtrack.objects/1"  # the zenoh key irtrack/<v>/objects (onboard.io.zenoh_session, the same name)
 TRUTH_OBJECTS_SCHEMA = "irtrack.truth_objects/1"
 CAMERA_FRAME_ID = "ir_camera"
@@ -177,6 +179,12 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 "origin": {"type": "object"},
             },
             ["seq", "time_boot_us"],
+        ),
+        _object_schema(
+            IMAGING_POSE_SCHEMA,
+            "The pose the image chain got for a frame before the telemetry wait (image chain objects).",
+            {**_FRAME_STAMP, "pose": {"type": ["object", "null"]}},
+            ["seq", "time_boot_us", "pose"],
         ),
         _object_schema(
             OBJECTS_SCHEMA,

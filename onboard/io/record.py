@@ -14,6 +14,7 @@ topic                             schema                         encoding       
 ``/mavlink/<link>``               ``irtrack.mavlink_raw/1``      jsonschema / json  received datagram (or read)
 ``irtrack/<v>/ir/frame``          ``foxglove.RawImage``          protobuf           frame as received
 ``/onboard/frame_input``          ``irtrack.frame_input/1``      jsonschema / json  frame the pipeline took
+``/onboard/imaging_pose``         ``irtrack.imaging_pose/1``     jsonschema / json  frame (image chain objects)
 ``irtrack/<v>/track``             ``irtrack.track/2``            jsonschema / json  track (bytes as published)
 ``irtrack/<v>/status``            ``irtrack.status/1``           jsonschema / json  status (bytes as published)
 ``/onboard/target_fix``           ``foxglove.LocationFix``       protobuf           track with a position
@@ -46,6 +47,10 @@ topic                             schema                         encoding       
 * ``irtrack.truth_objects/1`` (groundsim): ``{"seq", "time_boot_us", "t_s", "objects": [{"id", "cls", "u_px",
   "v_px", "box_px": [x, y, w, h] or null, "visibility", "contrast_netd", "range_m", "p_ned_m"}]}``, the rows of
   ``<truth>.objects.csv`` of that frame (:mod:`groundsim.world.truth`), drawn by ``/groundsim/truth/annotations``.
+* ``irtrack.imaging_pose/1``: ``{"seq", "time_boot_us", "pose": null | PoseAt}``: the pose an image chain that
+  associates with the camera's rotation (``imaging.chain: objects``) got for the frame before the pipeline
+  waited for its telemetry (the frame's own pose, in ``frame_input``, is looked up after that wait, so the two can
+  differ); replay gives the chain this one.
 * Log times are the recorder's wall clock at the event (``time.time_ns`` at start, advanced by the
   monotonic clock, so they never go back).
 
@@ -97,6 +102,7 @@ from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, track_to_bytes
 from onboard.io.foxglove_messages import (
     FRAME_INPUT_SCHEMA,
+    IMAGING_POSE_SCHEMA,
     JSON_SCHEMAS,
     MAVLINK_RAW_SCHEMA,
     OBJECTS_SCHEMA,
@@ -120,6 +126,8 @@ __all__ = [
     "CAMERA_FIX_TOPIC",
     "TRUTH_TOPIC",
     "OBJECT_ANNOTATIONS_TOPIC",
+    "IMAGING_POSE_TOPIC",
+    "NOT_LOOKED_UP",
     "TRUTH_OBJECTS_TOPIC",
     "TRUTH_ANNOTATIONS_TOPIC",
     "RecordConfig",
@@ -141,6 +149,9 @@ OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
 TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
 TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
 MB = 1_000_000
+IMAGING_POSE_TOPIC = "/onboard/imaging_pose"
+#: no pose was looked up for the image chain (as distinct from a look-up that answered None)
+NOT_LOOKED_UP: Any = type("NotLookedUp", (), {"__repr__": lambda self: "NOT_LOOKED_UP"})()
 
 
 def mavlink_topic(link: str) -> str:
@@ -277,23 +288,35 @@ class RecordConfig:
 
 
 class RecordingPoseSource:
-    """A pose source that remembers the last ``pose_at`` answer (for the ``frame_input`` channel).
+    """A pose source that remembers the ``pose_at`` answers of a frame (for the ``frame_input`` and
+    ``imaging_pose`` channels).
 
-    The pipeline calls ``pose_at`` once per frame from its one thread; :meth:`take` returns
-    ``(looked_up, pose)`` for the frame just processed and forgets it.  Other attributes read through."""
+    The pipeline calls ``pose_at`` from its one thread: once per frame, or twice with an image chain that
+    associates with the camera's rotation (before imaging, without waiting for telemetry; then the frame's pose,
+    after the wait).  :meth:`take` returns ``(looked_up, pose)`` -- the last answer -- for the frame just
+    processed and forgets it; :meth:`take_lookups` also the first answer when there were two (else
+    :data:`NOT_LOOKED_UP`).  Other attributes read through."""
 
     def __init__(self, source) -> None:
         self._source = source
-        self._last: tuple[bool, Any] = (False, None)
+        self._answers: list[Any] = []
 
     def pose_at(self, time_boot_us: int, *args, **kwargs):
         pose = self._source.pose_at(time_boot_us, *args, **kwargs)
-        self._last = (True, pose)
+        self._answers.append(pose)
         return pose
 
     def take(self) -> tuple[bool, Any]:
-        out, self._last = self._last, (False, None)
-        return out
+        looked_up, pose, _ = self.take_lookups()
+        return looked_up, pose
+
+    def take_lookups(self) -> tuple[bool, Any, Any]:
+        """``(looked_up, pose, imaging_pose)``: the frame's pose (its last answer) and, when the frame was looked
+        up twice, the first answer (the image chain's, which may be None); else :data:`NOT_LOOKED_UP`."""
+        answers, self._answers = self._answers, []
+        if not answers:
+            return False, None, NOT_LOOKED_UP
+        return True, answers[-1], answers[0] if len(answers) > 1 else NOT_LOOKED_UP
 
     def __getattr__(self, name: str):
         return getattr(self._source, name)
@@ -400,14 +423,20 @@ class FlightRecorder:
             return False
         return self._put("frame", self.frame_topic, int(frame.pixels.nbytes) + 100, (frame, int(received_ns)))
 
-    def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose) -> bool:
-        """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup)."""
-        return self._put(
+    def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose, imaging_pose=NOT_LOOKED_UP) -> bool:
+        """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup);
+        ``imaging_pose``: the pose its image chain got before the telemetry wait, when it asked for one
+        (:meth:`RecordingPoseSource.take_lookups`; on ``/onboard/imaging_pose``)."""
+        ok = self._put(
             "frame_input",
             FRAME_INPUT_TOPIC,
             700,
             (int(frame.seq), int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
         )
+        if imaging_pose is not NOT_LOOKED_UP:
+            item = (int(frame.seq), int(frame.time_boot_us), imaging_pose, self._clock_ns())
+            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item) and ok
+        return ok
 
     def on_track(self, track, payload: bytes | None = None) -> bool:
         """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
@@ -714,6 +743,10 @@ class FlightRecorder:
                     ),
                     now,
                 )
+        elif kind == "imaging_pose":
+            seq, t_us, pose, now = item
+            obj = {"seq": seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
+            self._add(topic, IMAGING_POSE_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
         elif kind == "objects":
             message, seq, now = item
             self._add(topic, OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq & 0xFFFFFFFF)

@@ -28,6 +28,8 @@ from tests.onboard.test_pipeline import Rig
 N_FRAMES = 40
 STATIC_UV = (120, 90)  # a second warm object, still in the image
 BOX_TOL_PX = 1e-9
+TELEMETRY_LATE_US = 30_000  # the telemetry before the wait ends this long before the frame's capture time
+TELEMETRY_AFTER_WAIT_US = 45_000
 
 
 def _record(path, n: int = N_FRAMES):
@@ -39,12 +41,15 @@ def _record(path, n: int = N_FRAMES):
     rig = Rig(estimator=None, config=config)
     memo = RecordingPoseSource(rig.pose)
     rig.pipe.pose_source = memo
+    # as in the daemon: the frame's telemetry arrives during the pipeline's wait, after the image chain looked up
+    # its pose (extrapolated then), so the chain's pose and the frame's differ
+    rig.pipe.pose_wait = lambda t_us: rig.feed_until(t_us + TELEMETRY_AFTER_WAIT_US)
     tap = RecorderTap(FlightRecorder(config.record, vehicle=config.vehicle, metadata=recording_metadata(config)), path)
     tap.start()
     sent, tracks = [], []
     try:
         for k in range(n):
-            rig.feed_until(rig.scene.t_us(k) + 45_000)
+            rig.feed_until(rig.scene.t_us(k) - TELEMETRY_LATE_US)
             frame = rig.scene.frame(k)
             px = frame.pixels.copy()
             u, v = STATIC_UV
@@ -54,8 +59,8 @@ def _record(path, n: int = N_FRAMES):
             tap.on_received(frame, rx_ns)
             track = rig.pipe.process(frame, rx_ns)
             objects = frame_objects(rig.pipe.tracker, track)
-            looked_up, pose = memo.take()
-            tap.on_frame(frame, FrameResult(rx_ns, looked_up, pose, track, None, objects))
+            looked_up, pose, imaging_pose = memo.take_lookups()
+            tap.on_frame(frame, FrameResult(rx_ns, looked_up, pose, track, None, objects, imaging_pose))
             sent.append(objects)
             tracks.append(track)
     finally:
@@ -122,6 +127,11 @@ def test_replay_reads_the_objects_back_and_makes_the_same_ones(recorded):
     changed[-1] = {**changed[-1], "primary_id": None}
     assert compare_objects(changed, res.objects) == (N_FRAMES, N_FRAMES - 1, 0)
     assert [t["track_id"] for t in res.tracks] == [t.track_id for t in tracks]
+    # the image chain's own poses were recorded (/onboard/imaging_pose) and are what makes it bit for bit: the
+    # frames' poses alone give the chain other rotations
+    assert sum(len(v) for v in rec.imaging_poses.values()) == N_FRAMES
+    alone = replay(dataclasses.replace(load_recording(str(path)), imaging_poses={}), config_of(rec))
+    assert compare_objects(rec.objects, alone.objects)[1] < N_FRAMES
 
 
 def test_annotations_draw_small_boxes_at_least_min_size_and_truth_labels():
