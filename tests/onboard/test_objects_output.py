@@ -242,3 +242,34 @@ def test_overlay_boxes_survive_h264_decoded_by_pyav():
     assert primary_edge > 240 and 150 < other_edge < primary_edge - 20
     sky = dec[100, 40]  # far from any box (the decoder maps the encoder's luma range: 40 reads about 28)
     assert sky < 60 and abs(dec[60, 80] - sky) <= 3  # inside a box: the sky too
+
+
+# --------------------------------------------------------------------------- live view
+
+
+@pytest.mark.integration
+def test_the_live_view_serves_the_objects_and_their_annotations():
+    import asyncio
+
+    from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+
+    from onboard.io.live_view import LiveView, LiveViewConfig
+    from tests.onboard.test_live_view import _watch
+
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")
+    lv.start()
+    try:
+        msg = _objects_msg()
+        topics = {lv.objects_topic, OBJECT_ANNOTATIONS_TOPIC}
+        got = asyncio.run(
+            _watch(f"ws://127.0.0.1:{lv.port}", topics, {t: 1 for t in topics}, lambda: lv.on_objects(msg))
+        )
+    finally:
+        lv.close()
+    adv = got["advertised"]
+    assert adv[lv.objects_topic]["schemaName"] == OBJECTS_SCHEMA and adv[lv.objects_topic]["encoding"] == "json"
+    assert adv[OBJECT_ANNOTATIONS_TOPIC]["schemaName"] == "foxglove.ImageAnnotations"
+    assert json.loads(got["messages"][lv.objects_topic][0]) == msg
+    ann = ImageAnnotations()
+    ann.ParseFromString(got["messages"][OBJECT_ANNOTATIONS_TOPIC][0])
+    assert [t.text for t in ann.texts] == ["4 target", "9", "12"]
