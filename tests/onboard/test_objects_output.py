@@ -273,3 +273,68 @@ def test_the_live_view_serves_the_objects_and_their_annotations():
     ann = ImageAnnotations()
     ann.ParseFromString(got["messages"][OBJECT_ANNOTATIONS_TOPIC][0])
     assert [t.text for t in ann.texts] == ["4 target", "9", "12"]
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_the_video_tap_streams_the_objects_drawn():
+    """The daemon's video tap: FrameResult.objects -> VideoStreamer (AGC, overlay, H.264 in MPEG-TS over UDP on
+    127.0.0.1) -> PyAV decodes the datagrams: the boxes are in the picture."""
+    import socket
+    import threading
+    import time
+
+    av = pytest.importorskip("av")
+    from onboard.app.observers import VideoTap
+    from onboard.core.irframe import IrFrame
+    from onboard.core.track import Track
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
+    rx.bind(("127.0.0.1", 0))
+    rx.settimeout(0.2)
+    chunks: list[bytes] = []
+    done = threading.Event()
+
+    def receive():
+        while not done.is_set():
+            try:
+                chunks.append(rx.recv(65536))
+            except TimeoutError:
+                continue
+
+    th = threading.Thread(target=receive, daemon=True)
+    th.start()
+    config = build_config(
+        {
+            "camera": {"intrinsics": {"width_px": W_PX, "height_px": H_PX, "fx_px": 300.0, "fy_px": 300.0}},
+            "video": {"destination": f"127.0.0.1:{rx.getsockname()[1]}", "transport": "mpegts", "queue_length": 16},
+        }
+    )
+    tap = VideoTap(config, config.camera.pinhole())
+    n = 12
+    sky = np.full((H_PX, W_PX), 1000, np.uint16) + (np.arange(W_PX, dtype=np.uint16) % 7)[None, :]
+    try:
+        tap.start()
+        for k in range(n):
+            track = Track(vehicle="uav1", seq=k, time_boot_us=k * 33_333, state="searching")
+            tap.on_frame(IrFrame(k, k * 33_333, sky), FrameResult(0, True, None, track, None, _objects_msg()))
+            time.sleep(0.02)
+        deadline = time.monotonic() + 20.0
+        while tap.streamer.frames_encoded < n and time.monotonic() < deadline:
+            time.sleep(0.05)
+    finally:
+        tap.close(2.0)
+        done.wait(0.5)
+        done.set()
+        th.join(5)
+        rx.close()
+    c = av.open(io.BytesIO(b"".join(chunks)), format="mpegts")
+    try:
+        frames = [f.to_ndarray(format="gray").astype(int) for f in c.decode(video=0)]
+    finally:
+        c.close()
+    assert len(frames) >= n - 3  # MPEG-TS holds the last picture or two back until the next
+    dec = frames[-1]
+    sky_grey = np.median(dec)
+    assert dec[50, 72:89].mean() > sky_grey + 100 and dec[150, 212:229].mean() > sky_grey + 60
