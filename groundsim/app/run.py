@@ -58,7 +58,7 @@ from groundsim.world.sim import (
     check_run_seed,
     extend_scenario,
 )
-from groundsim.world.truth import TruthRow, TruthWriter, truth_json
+from groundsim.world.truth import TruthRow, TruthWriter, truth_json, truth_objects_json
 from onboard.core.errors import ConfigError, IrtrackError
 
 __all__ = [
@@ -788,7 +788,8 @@ class _RecordingPublisher:
 
 
 class _RecordingTruth:
-    """The truth writer (or none), each frame's truth row also recorded (``irtrack.truth/1``)."""
+    """The truth writer (or none), each frame's truth row also recorded (``irtrack.truth/1``), and with a scene its
+    objects' labels (``irtrack.truth_objects/1`` and their boxes as foxglove.ImageAnnotations)."""
 
     def __init__(self, writer, recorder) -> None:
         self._writer, self._rec = writer, recorder
@@ -800,6 +801,8 @@ class _RecordingTruth:
         if self._writer is not None:
             self._writer.write(row, labels)
         self._rec.on_json(TRUTH_TOPIC, TRUTH_SCHEMA, truth_json(row))
+        if labels:  # a scene's objects (the rows of <truth>.objects.csv): /groundsim/truth/objects
+            self._rec.on_truth_objects(truth_objects_json(row, labels))
 
     def close(self) -> None:
         if self._writer is not None:

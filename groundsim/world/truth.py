@@ -82,6 +82,7 @@ __all__ = [
     "TruthWriteError",
     "truth_row",
     "truth_json",
+    "truth_objects_json",
     "read_truth_csv",
 ]
 
@@ -427,3 +428,30 @@ def truth_json(row: TruthRow) -> dict:
     out["target_vel_ned_mps"] = [row.target_vn_mps, row.target_ve_mps, row.target_vd_mps]
     out["camera_ned_m"] = [row.cam_n_m, row.cam_e_m, row.cam_d_m]
     return out
+
+
+def truth_objects_json(row: TruthRow, labels) -> dict:
+    """A frame's object labels as ``irtrack.truth_objects/1`` (``groundsim run --record``): the lines
+    :func:`object_rows` writes to ``<truth>.objects.csv``, with the box as ``[x, y, w, h]`` pixels (the CSV's
+    end-exclusive ``x0, y0, x1, y1``; null when not drawn) and NaN as null."""
+
+    def num(x: float):
+        return float(x) if math.isfinite(x) else None
+
+    objects = []
+    for lab in labels:
+        box = None if lab.box_px is None else [int(b) for b in lab.box_px]
+        objects.append(
+            {
+                "id": int(lab.object_id),
+                "cls": lab.cls,
+                "u_px": num(lab.u_px),
+                "v_px": num(lab.v_px),
+                "box_px": None if box is None else [box[0], box[1], box[2] - box[0], box[3] - box[1]],
+                "visibility": lab.visibility,
+                "contrast_netd": num(lab.contrast_netd),
+                "range_m": num(lab.range_m),
+                "p_ned_m": [num(c) for c in lab.p_ned_m],
+            }
+        )
+    return {"seq": int(row.seq), "time_boot_us": int(row.time_boot_us), "t_s": num(row.t_s), "objects": objects}

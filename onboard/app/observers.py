@@ -23,6 +23,7 @@ from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics
 from onboard.core.irframe import IrFrame
 from onboard.core.track import Track
+from onboard.io.record import NOT_LOOKED_UP
 
 __all__ = [
     "FrameResult",
@@ -33,6 +34,7 @@ __all__ = [
     "NewestTrack",
     "make_observers",
     "recording_metadata",
+    "frame_objects",
 ]
 
 
@@ -42,13 +44,31 @@ class FrameResult:
 
     ``pose_looked_up``: the pipeline asked for the frame's pose (False: refused before the look-up);
     ``pose``: the answer (a :class:`~onboard.core.pose.PoseAt` or None); ``track``: None when the frame was
-    refused or failed; ``payload``: the track JSON as published (None when not published)."""
+    refused or failed; ``payload``: the track JSON as published (None when not published); ``objects``: every
+    object of the frame as published on ``irtrack/<vehicle>/objects`` (the ``irtrack.objects/1`` dict of
+    :func:`frame_objects`; None without the objects image chain or without a track); ``imaging_pose``: the pose
+    the image chain got before the telemetry wait, when it asked for one (else
+    :data:`~onboard.io.record.NOT_LOOKED_UP`; :meth:`onboard.io.record.RecordingPoseSource.take_lookups`)."""
 
     received_ns: int
     pose_looked_up: bool
     pose: Any
     track: Track | None
     payload: bytes | None
+    objects: dict[str, Any] | None = None
+    imaging_pose: Any = NOT_LOOKED_UP
+
+
+def frame_objects(tracker: Any, track: Track | None) -> dict[str, Any] | None:
+    """The ``irtrack.objects/1`` message of the frame ``tracker`` (the pipeline's image chain) just took and
+    ``track`` came of (:func:`onboard.imaging.objects.objects_message`, stamped with the frame's capture time);
+    None when the chain tracks one object only (no ``last_objects``) or the frame got no track (refused)."""
+    upd = getattr(tracker, "last_objects", None)
+    if upd is None or track is None:
+        return None
+    from onboard.imaging.objects import objects_message
+
+    return objects_message(upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us)
 
 
 class FrameObserver(Protocol):
@@ -95,9 +115,11 @@ class RecorderTap:
         self.recorder.on_frame(frame, received_ns)
 
     def on_frame(self, frame: IrFrame, result: FrameResult) -> None:
-        self.recorder.on_frame_input(frame, result.received_ns, result.pose_looked_up, result.pose)
+        self.recorder.on_frame_input(frame, result.received_ns, result.pose_looked_up, result.pose, result.imaging_pose)
         if result.track is not None:
             self.recorder.on_track(result.track, result.payload)
+        if result.objects is not None:
+            self.recorder.on_objects(result.objects, frame.seq)
 
     def on_status(self, data: bytes) -> None:
         self.recorder.on_status(data)
@@ -127,6 +149,8 @@ class LiveViewTap:
         self.live_view.on_pose(frame, result.pose)
         if result.track is not None:
             self.live_view.on_track(result.track, result.payload)
+        if result.objects is not None:
+            self.live_view.on_objects(result.objects)
 
     def on_status(self, data: bytes) -> None:
         self.live_view.on_status(data)
@@ -139,7 +163,8 @@ class LiveViewTap:
 
 
 class VideoTap:
-    """The IR video with the track overlaid (:class:`onboard.io.video.VideoStreamer`), opened at :meth:`start`."""
+    """The IR video with the track and every object overlaid (:class:`onboard.io.video.VideoStreamer`), opened at
+    :meth:`start`."""
 
     name = "video"
 
@@ -171,7 +196,8 @@ class VideoTap:
 
     def on_frame(self, frame: IrFrame, result: FrameResult) -> None:
         if self.streamer is not None and result.track is not None:
-            self.streamer.submit(frame.pixels, result.track, frame.time_boot_us)  # drops its oldest when behind
+            # drops its oldest when behind
+            self.streamer.submit(frame.pixels, result.track, frame.time_boot_us, result.objects)
 
     def on_status(self, data: bytes) -> None:
         pass

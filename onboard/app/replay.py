@@ -1,7 +1,7 @@
 """``python -m onboard.replay``: a recorded flight (:mod:`onboard.io.record`) fed again through the pipeline.
 
     python -m onboard.replay FILE.mcap [--rate max|realtime] [--jobs 1|2] [--config FILE] [--set FIELD=VALUE]...
-                             [--out tracks.jsonl] [--compare] [--live-view PORT]
+                             [--out tracks.jsonl] [--objects-out objects.jsonl] [--compare] [--live-view PORT]
 
 The recording's ``irtrack.frame_input/1`` messages say which frames the daemon's pipeline took, in
 which order, and the pose it interpolated for each; the frames themselves are the
@@ -16,6 +16,12 @@ gives them again: ``--compare`` then says so and also counts the 3-D positions t
 ``SIGMA_GATE`` times the recorded covariance (:func:`compare_within_sigma`).  A changed estimator or
 tracker shows as differences: ``--compare`` prints them per frame (a regression check on yesterday's
 flights).
+
+With the objects image chain (``imaging.chain: objects``) the recording also holds every object of every frame
+(``irtrack.objects/1`` on ``irtrack/<vehicle>/objects``): replay makes them again (``--objects-out``), shows them
+in the live view (the JSON and the boxes over the frame, as the daemon's live view does) and ``--compare``
+compares them frame by frame.  That chain associates objects with each frame's camera rotation, so its tracker
+runs in this process (``--jobs 2`` falls back to one: the imaging process has no poses).
 
 Not replayed: operator selections (MAVLink camera TRACK_POINT/RECTANGLE/STOP are not recorded as
 such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded poses are used).
@@ -48,9 +54,9 @@ from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
-from onboard.io.foxglove_messages import irframe_from_rawimage  # noqa: E402
+from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
-from onboard.io.record import FRAME_INPUT_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC, pose_from_json  # noqa: E402
 
 __all__ = [
     "RecordedMessage",
@@ -61,6 +67,7 @@ __all__ = [
     "replay",
     "compare_tracks",
     "compare_within_sigma",
+    "compare_objects",
     "recorded_worker",
     "main",
 ]
@@ -122,7 +129,8 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
 
 @dataclass
 class Recording:
-    """What replay needs of a file: config text, frames by (seq, time), the pipeline's inputs, tracks, truth."""
+    """What replay needs of a file: config text, frames by (seq, time), the pipeline's inputs, tracks, truth, and
+    the objects image chain's objects (``irtrack.objects/1`` dicts in file order; empty without that chain)."""
 
     path: str
     metadata: dict[str, str]
@@ -134,6 +142,8 @@ class Recording:
     last_log_ns: int | None
     truncated: str | None
     counts: dict
+    objects: list = field(default_factory=list)
+    imaging_poses: dict = field(default_factory=dict)  # (seq, time_boot_us) -> irtrack.imaging_pose/1 dicts in order
 
 
 def load_recording(path: str) -> Recording:
@@ -141,7 +151,8 @@ def load_recording(path: str) -> Recording:
 
     meta: dict[str, str] = {}
     frames: dict = {}
-    inputs, tracks, truth = [], [], []
+    inputs, tracks, truth, objects = [], [], [], []
+    imaging_poses: dict = {}
     counts: dict[str, int] = {}
     first = last = None
     truncated = None
@@ -166,7 +177,12 @@ def load_recording(path: str) -> Recording:
             tracks.append(json.loads(m.data))
         elif m.topic == TRUTH_TOPIC:
             truth.append(json.loads(m.data))
-    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts)
+        elif m.schema == OBJECTS_SCHEMA:
+            objects.append(json.loads(m.data))
+        elif m.topic == IMAGING_POSE_TOPIC:
+            obj = json.loads(m.data)
+            imaging_poses.setdefault((int(obj["seq"]), int(obj["time_boot_us"])), []).append(obj)
+    return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
 
 
 def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
@@ -212,14 +228,23 @@ def recorded_worker(rec: Recording) -> str | None:
 
 
 class _RecordedPose:
-    """A pose source answering with the pose recorded for the frame being replayed."""
+    """A pose source answering with the pose recorded for the frame being replayed: the image chain's first
+    (``irtrack.imaging_pose/1``, when recorded for the frame), then the frame's."""
 
     def __init__(self, counter: Any) -> None:
         self.pose: Any = None  # the PoseAt recorded for the frame being replayed
         self.counter = counter
         self.origin = None
+        self._first: list = []  # the image chain's pose of the frame, answered once
+
+    def set_frame(self, pose: Any, imaging_pose: list | None = None) -> None:
+        """The frame's pose and (a one-element list, when recorded) the image chain's."""
+        self.pose = pose
+        self._first = imaging_pose or []
 
     def pose_at(self, time_boot_us: int, *args, **kwargs):
+        if self._first:
+            return self._first.pop()
         return self.pose
 
 
@@ -233,6 +258,7 @@ class ReplayResult:
     flight_s: float
     counts: dict = field(default_factory=dict)
     interrupted: bool = False  # Ctrl-C: the tracks of the frames fed so far
+    objects: list = field(default_factory=list)  # irtrack.objects/1 dicts in processing order (objects chain)
 
     @property
     def speed_x(self) -> float:
@@ -352,7 +378,9 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     ``live``: an :class:`onboard.io.live_view.LiveView` shown each frame, its pose and track (never waited for).
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
-    imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe)."""
+    imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe, and for
+    the objects image chain, which needs each frame's pose)."""
+    from onboard.app.observers import frame_objects
     from onboard.core.counters import RejectCounter
     from onboard.core.track import track_to_json
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
@@ -363,11 +391,13 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     poses = _RecordedPose(counter)
     wall0 = time.perf_counter()
     proc = conn = None
-    if jobs == 2 and live is None:
+    if jobs == 2 and live is None and config.imaging.chain != "objects":
         proc, conn = _start_imaging_process(rec, config)
     tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
     pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
     out: list = []
+    out_objects: list = []
+    chain_used: dict = {}  # (seq, time_boot_us) -> the image chain's poses of that frame used so far
     missing = refused = fed = 0
     rx0 = None
     interrupted = False
@@ -376,7 +406,12 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
             if frame is None:
                 missing += 1
                 continue
-            poses.pose = pose_from_json(inp.get("pose"), f"{rec.path}: frame_input {i} pose")
+            where = f"{rec.path}: frame_input {i} pose"
+            key = (int(inp["seq"]), int(inp["time_boot_us"]))
+            chain_poses, n = rec.imaging_poses.get(key, ()), chain_used.get(key, 0)
+            chain_used[key] = n + 1
+            chain_pose = [pose_from_json(chain_poses[n]["pose"], where)] if n < len(chain_poses) else None
+            poses.set_frame(pose_from_json(inp.get("pose"), where), chain_pose)
             if rate == "realtime":
                 rx = int(inp["received_ns"])
                 rx0 = rx if rx0 is None else rx0
@@ -394,8 +429,13 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
             finally:
                 if live is not None:
                     live.on_pose(frame, poses.pose)
+            objects = frame_objects(pipe.tracker, track)
             if live is not None:
                 live.on_track(track)
+                if objects is not None:
+                    live.on_objects(objects)
+            if objects is not None:
+                out_objects.append(json.loads(json.dumps(objects, allow_nan=False)))
             obj = json.loads(json.dumps(track_to_json(track), allow_nan=False))
             out.append(obj)
             if on_track is not None:
@@ -414,7 +454,7 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     flight_s = 0.0
     if rec.inputs:
         flight_s = (int(rec.inputs[-1]["received_ns"]) - int(rec.inputs[0]["received_ns"])) / 1e9
-    return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts, interrupted)
+    return ReplayResult(out, fed, missing, refused, wall, flight_s, counter.counts, interrupted, out_objects)
 
 
 # --------------------------------------------------------------------------- comparison (pure)
@@ -514,6 +554,28 @@ def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIG
     return SigmaComparison(compared, beyond, worst, one_only, gate_sigma)
 
 
+def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
+    """Two lists of ``irtrack.objects/1`` messages matched on (time_boot_us, frame_index) in order; returns
+    (matched, identical, unmatched): a frame is identical when its message is equal (floats bit for bit)."""
+
+    def key(m):
+        return (m.get("time_boot_us"), m.get("frame_index"))
+
+    theirs: dict = {}
+    for m in replayed:
+        theirs.setdefault(key(m), []).append(m)
+    matched = identical = unmatched = 0
+    for a in recorded:
+        lst = theirs.get(key(a))
+        if not lst:
+            unmatched += 1
+            continue
+        matched += 1
+        identical += a == lst.pop(0)
+    unmatched += sum(len(v) for v in theirs.values())
+    return matched, identical, unmatched
+
+
 def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=sys.stdout) -> None:
     """The per-frame differences, then (``within``, a :class:`SigmaComparison`) the positions against the
     recorded sigma, with why a worker's recording cannot replay bit for bit, then the summary line."""
@@ -571,6 +633,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable"
     )
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
+    p.add_argument(
+        "--objects-out",
+        metavar="objects.jsonl",
+        help="write every frame's objects (imaging.chain objects: irtrack.objects/1) here, one JSON per line",
+    )
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
     p.add_argument(
         "--live-view",
@@ -626,6 +693,7 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     print(
         f"{args.mcap}: {sum(rec.counts.values())} messages, {len(rec.inputs)} frames taken by the pipeline, "
         f"{len(rec.tracks)} recorded tracks"
+        + (f", {len(rec.objects)} frames of objects" if rec.objects else "")
         + (f"; file cut short ({rec.truncated}): read to its last chunk" if rec.truncated else "")
     )
     live = None
@@ -663,12 +731,18 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     if args.out:
         _write_tracks(args.out, res.tracks, progress)
         print(f"tracks: {args.out}")
+    if args.objects_out:
+        _write_tracks(args.objects_out, res.objects, _Progress())
+        print(f"objects: {args.objects_out} ({len(res.objects)} frames)")
     if args.compare:
         diffs, matched, unmatched = compare_tracks(rec.tracks, res.tracks)
         worker = recorded_worker(rec)
         timed = worker is not None and worker != "inline"
         within = compare_within_sigma(rec.tracks, res.tracks) if timed or any(d.d_pos_m for d in diffs) else None
         _print_compare(diffs, matched, unmatched, within, worker)
+        if rec.objects or res.objects:
+            n, same, left = compare_objects(rec.objects, res.objects)
+            print(f"compare: objects: {same}/{n} frames identical, {n - same} differ, {left} unmatched")
     return EXIT_OK
 
 

@@ -62,7 +62,7 @@ from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
 from onboard.app.frame_queue import FrameQueue
 from onboard.app.locked_counter import LockedCounter
-from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, make_observers
+from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, frame_objects, make_observers
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
 from onboard.app.watchdog import Watchdog
@@ -72,6 +72,7 @@ from onboard.core.pose import PoseBuffer
 from onboard.core.status import RollingStats, build_status
 from onboard.core.track import Track, track_to_bytes
 from onboard.core.utc_clock import UtcClock, with_utc
+from onboard.io.record import NOT_LOOKED_UP
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
@@ -373,10 +374,13 @@ class OnboardService:
             self.queue_wait_ms.add((self._clock_ns() - received_ns) / 1e6)
             track = self._process(frame, received_ns)
             payload = self._publish_track(track) if track is not None and publish else None
-            if track is not None and publish and self._objects_pub is not None:
-                self._publish_objects(track)
-            looked_up, pose = self._pose_memo.take() if self._pose_memo is not None else (False, None)
-            result = FrameResult(received_ns, looked_up, pose, track, payload)
+            objects = frame_objects(self.pipeline.tracker, track)  # the objects chain's, for zenoh and the taps
+            if objects is not None and publish and self._objects_pub is not None:
+                self._publish_objects(objects)
+            looked_up, pose, imaging_pose = (
+                self._pose_memo.take_lookups() if self._pose_memo is not None else (False, None, NOT_LOOKED_UP)
+            )
+            result = FrameResult(received_ns, looked_up, pose, track, payload, objects, imaging_pose)
             for tap in self.observers:
                 tap.on_frame(frame, result)
             if track is None:
@@ -409,16 +413,12 @@ class OnboardService:
         finally:
             self._pipeline_cpu_s += time.thread_time() - c0
 
-    def _publish_objects(self, track: Track) -> None:
-        """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects`` (``track``'s times)."""
-        upd = getattr(self.pipeline.tracker, "last_objects", None)
-        if upd is None or self._objects_pub is None:
+    def _publish_objects(self, objects: dict) -> None:
+        """Every confirmed object of the frame just processed on ``irtrack/<vehicle>/objects``."""
+        if self._objects_pub is None:
             return
         try:
-            from onboard.imaging.objects import objects_message
-
-            msg = objects_message(upd, track.time_boot_us, track.time_unix_us, track.time_unix_sigma_us)
-            self._objects_pub.put(json.dumps(msg, separators=(",", ":")).encode())
+            self._objects_pub.put(json.dumps(objects, separators=(",", ":")).encode())
         except Exception as exc:  # noqa: BLE001 - a failed publication must not stop the frame loop
             self.counter.count("objects_publish_error", f"{type(exc).__name__}: {exc}")
 

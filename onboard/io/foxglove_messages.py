@@ -1,4 +1,4 @@
-"""The messages irtrack shows in Foxglove: JSON schemas, foxglove.RawImage and foxglove.LocationFix fields.
+"""The messages irtrack shows in Foxglove: JSON schemas, foxglove.RawImage, LocationFix and ImageAnnotations.
 
 One module for the two places that write them, so that a recording (:mod:`onboard.io.record`, MCAP) and
 the live view (:mod:`onboard.io.live_view`, Foxglove WebSocket) carry the same schemas and the same
@@ -6,7 +6,8 @@ numbers:
 
 * :data:`JSON_SCHEMAS`: the JSON Schema of each irtrack JSON channel, by schema name
   (``irtrack.mavlink_raw/1``, ``irtrack.frame_input/1``, ``irtrack.track/2``, ``irtrack.status/1``,
-  ``irtrack.truth/1``; the recorder's module docstring says what each message holds).
+  ``irtrack.truth/1``, ``irtrack.objects/1``, ``irtrack.truth_objects/1``, ``irtrack.imaging_pose/1``; the recorder's module docstring
+  says what each message holds).
 * ``foxglove.RawImage`` of an :class:`~onboard.core.irframe.IrFrame`: :func:`rawimage_fields` (a dict of
   the message's fields), :func:`rawimage_pieces` / :func:`rawimage_bytes` (the serialized protobuf, the
   pixels not copied), :func:`irframe_from_rawimage` (back).  ``timestamp`` = capture time on the
@@ -14,6 +15,9 @@ numbers:
   (little-endian), ``step`` = width x bytes per pixel.
 * ``foxglove.LocationFix``: :func:`location_fix_fields` (a WGS84 position with its NED covariance
   turned into the ENU covariance LocationFix wants), :func:`camera_fix_fields` (a pose's camera centre).
+* ``foxglove.ImageAnnotations``: :func:`objects_annotations` (every object of an ``irtrack.objects/1``
+  message: a box and its id, the primary target highlighted) and :func:`truth_objects_annotations` (the
+  simulator's labels), drawn by Foxglove's Image panel over the frame of the same ``timestamp``.
 * :func:`file_descriptor_set`: a protobuf message class's schema as MCAP stores it.
 
 Field dicts carry ``timestamp`` as ``(sec, nsec)`` (:func:`stamp_from_us`): the recorder sets it on a
@@ -37,6 +41,9 @@ __all__ = [
     "MAVLINK_RAW_SCHEMA",
     "FRAME_INPUT_SCHEMA",
     "TRUTH_SCHEMA",
+    "OBJECTS_SCHEMA",
+    "TRUTH_OBJECTS_SCHEMA",
+    "IMAGING_POSE_SCHEMA",
     "JSON_SCHEMAS",
     "CAMERA_FRAME_ID",
     "stamp_from_us",
@@ -46,12 +53,20 @@ __all__ = [
     "irframe_from_rawimage",
     "location_fix_fields",
     "camera_fix_fields",
+    "MIN_DRAWN_BOX_PX",
+    "ANNOTATION_STYLES",
+    "drawn_box",
+    "objects_annotations",
+    "truth_objects_annotations",
     "file_descriptor_set",
 ]
 
 MAVLINK_RAW_SCHEMA = "irtrack.mavlink_raw/1"
 FRAME_INPUT_SCHEMA = "irtrack.frame_input/1"
 TRUTH_SCHEMA = "irtrack.truth/1"
+IMAGING_POSE_SCHEMA = "irtrack.imaging_pose/1"
+OBJECTS_SCHEMA = "irtrack.objects/1"  # the zenoh key irtrack/<v>/objects (onboard.io.zenoh_session, the same name)
+TRUTH_OBJECTS_SCHEMA = "irtrack.truth_objects/1"
 CAMERA_FRAME_ID = "ir_camera"
 US_PER_S = 1_000_000
 NS_PER_US = 1_000
@@ -61,6 +76,7 @@ NS_PER_US = 1_000
 
 _NUM_OR_NULL = {"type": ["number", "null"]}
 _VEC3 = {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+_BOX = {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems": 4, "description": "x, y, w, h px"}
 _FRAME_STAMP = {"seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}}  # which frame, when (boot clock)
 
 
@@ -163,6 +179,69 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 "origin": {"type": "object"},
             },
             ["seq", "time_boot_us"],
+        ),
+        _object_schema(
+            IMAGING_POSE_SCHEMA,
+            "The pose the image chain got for a frame before the telemetry wait (image chain objects).",
+            {**_FRAME_STAMP, "pose": {"type": ["object", "null"]}},
+            ["seq", "time_boot_us", "pose"],
+        ),
+        _object_schema(
+            OBJECTS_SCHEMA,
+            "Every confirmed or coasting object of one frame (image chain objects), as published on "
+            "irtrack/<vehicle>/objects.",
+            {
+                "schema": {"type": "string"},
+                "time_boot_us": {"type": "integer"},
+                "frame_index": {"type": "integer", "description": "the image chain's frame count, from 0"},
+                "primary_id": {"type": ["integer", "null"], "description": "the selected target's id"},
+                "objects": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "properties": {
+                            "id": {"type": "integer"},
+                            "state": {"type": "string", "enum": ["confirmed", "coasting"]},
+                            "u_px": {"type": "number"},
+                            "v_px": {"type": "number"},
+                            "box_px": _BOX,
+                            "los_ned": _VEC3,
+                            "los_sigma_rad": {"type": "number"},
+                            "score": {"type": "number", "description": "contrast over the local threshold"},
+                            "primary": {"type": "boolean"},
+                        },
+                        "required": ["id", "state", "u_px", "v_px", "box_px", "primary"],
+                    },
+                },
+            },
+            ["schema", "time_boot_us", "frame_index", "primary_id", "objects"],
+        ),
+        _object_schema(
+            TRUTH_OBJECTS_SCHEMA,
+            "The simulator's label of every object of a scene at one rendered frame (groundsim run --record).",
+            {
+                **_FRAME_STAMP,
+                "t_s": {"type": "number"},
+                "objects": {
+                    "type": "array",
+                    "items": {
+                        "type": "object",
+                        "properties": {
+                            "id": {"type": "integer", "description": "0 is the target of irtrack.truth/1"},
+                            "cls": {"type": "string", "enum": ["target", "bird", "aircraft", "glint"]},
+                            "u_px": _NUM_OR_NULL,
+                            "v_px": _NUM_OR_NULL,
+                            "box_px": {**_BOX, "type": ["array", "null"]},
+                            "visibility": {"type": "string", "enum": ["visible", "occluded", "out_of_frame"]},
+                            "contrast_netd": {"type": "number"},
+                            "range_m": {"type": "number"},
+                            "p_ned_m": _VEC3,
+                        },
+                        "required": ["id", "cls", "u_px", "v_px", "box_px", "visibility"],
+                    },
+                },
+            },
+            ["seq", "time_boot_us", "objects"],
         ),
     )
 }
@@ -290,6 +369,80 @@ def camera_fix_fields(pose: PoseAt, t_us: int) -> dict[str, Any]:
     n, e, d = (float(v) for v in pose.p_cam_ned_m)
     lat, lon, alt = geodetic_from_ned1(n, e, d, pose.origin)
     return location_fix_fields(lat, lon, alt, t_us, "camera")
+
+
+# --------------------------------------------------------------------------- foxglove.ImageAnnotations
+
+#: the least side of a drawn box: a point target's box of 2 x 2 px is drawn as a square of this side about its
+#: centre, which frames the object instead of covering it (and stays visible when the image is zoomed out)
+MIN_DRAWN_BOX_PX = 8.0
+#: (r, g, b, a) and line thickness (px) of each kind of object drawn
+ANNOTATION_STYLES: dict[str, tuple[tuple[float, float, float, float], float]] = {
+    "primary": ((0.2, 1.0, 0.3, 1.0), 2.0),  # the selected target
+    "confirmed": ((0.3, 0.8, 1.0, 1.0), 1.0),
+    "coasting": ((1.0, 0.8, 0.1, 1.0), 1.0),
+    "truth": ((1.0, 0.3, 1.0, 1.0), 1.0),  # the simulator's labels
+}
+ANNOTATION_FONT_PX = 10.0
+
+
+def drawn_box(x: float, y: float, w: float, h: float, min_side_px: float = MIN_DRAWN_BOX_PX) -> tuple[float, ...]:
+    """The box (x, y, w, h) as drawn: each side at least ``min_side_px``, about the same centre."""
+    cx, cy = x + w / 2, y + h / 2
+    w, h = max(w, min_side_px), max(h, min_side_px)
+    return cx - w / 2, cy - h / 2, w, h
+
+
+def _box_annotations(t_us: int, boxes: list[tuple[tuple[float, ...], str, str]], cls: Any = None) -> Any:
+    """A foxglove.ImageAnnotations protobuf of ``boxes`` (``(box_px (x, y, w, h), label, style)``, style a key of
+    :data:`ANNOTATION_STYLES`): each box a line loop (:func:`drawn_box`), its label above its top-left corner."""
+    if cls is None:
+        from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations as cls
+    msg = cls()
+    sec, nsec = stamp_from_us(int(t_us))
+    for box, label, style in boxes:
+        rgba, thickness = ANNOTATION_STYLES[style]
+        x, y, w, h = drawn_box(*box)
+        pa = msg.points.add()
+        pa.timestamp.seconds, pa.timestamp.nanos = sec, nsec
+        pa.type = 2  # LINE_LOOP
+        pa.thickness = thickness
+        pa.outline_color.r, pa.outline_color.g, pa.outline_color.b, pa.outline_color.a = rgba
+        for px, py in ((x, y), (x + w, y), (x + w, y + h), (x, y + h)):
+            pt = pa.points.add()
+            pt.x, pt.y = float(px), float(py)
+        ta = msg.texts.add()
+        ta.timestamp.seconds, ta.timestamp.nanos = sec, nsec
+        ta.position.x, ta.position.y = float(x), float(y) - 2.0
+        ta.text = label
+        ta.font_size = ANNOTATION_FONT_PX
+        ta.text_color.r, ta.text_color.g, ta.text_color.b, ta.text_color.a = rgba
+        ta.background_color.a = 0.0
+    return msg
+
+
+def objects_annotations(message: dict[str, Any], cls: Any = None) -> Any:
+    """foxglove.ImageAnnotations (protobuf; ``cls`` the class) of an ``irtrack.objects/1`` message: every
+    object's box labelled with its id, the primary target's green and thicker (label ``<id> target``),
+    coasting ones amber, the others blue; stamped with the frame's capture time (``time_boot_us``), as its
+    foxglove.RawImage is, so the Image panel draws them over that frame."""
+    boxes = []
+    for o in message.get("objects", ()):
+        style = "primary" if o.get("primary") else ("coasting" if o.get("state") == "coasting" else "confirmed")
+        label = f"{o['id']} target" if style == "primary" else str(o["id"])
+        boxes.append((tuple(o["box_px"]), label, style))
+    return _box_annotations(int(message["time_boot_us"]), boxes, cls)
+
+
+def truth_objects_annotations(message: dict[str, Any], cls: Any = None) -> Any:
+    """foxglove.ImageAnnotations of an ``irtrack.truth_objects/1`` message: each drawn object's box (magenta)
+    labelled ``<cls> <id>`` (objects not drawn on the frame -- no box -- are left out)."""
+    boxes = [
+        (tuple(o["box_px"]), f"{o['cls']} {o['id']}", "truth")
+        for o in message.get("objects", ())
+        if o.get("box_px") is not None
+    ]
+    return _box_annotations(int(message["time_boot_us"]), boxes, cls)
 
 
 # --------------------------------------------------------------------------- protobuf schemas

@@ -18,6 +18,8 @@ topic                          schema                      what
 ``/onboard/target_fix``        ``foxglove.LocationFix``    track positions (Map panel)
 ``/onboard/camera_fix``        ``foxglove.LocationFix``    camera positions
 ``/onboard/annotations``       ``foxglove.ImageAnnotations``  the box and centre on the frame (Image panel)
+``irtrack/<v>/objects``        ``irtrack.objects/1`` (JSON) every object of the frame (image chain objects)
+``/onboard/object_annotations``  ``foxglove.ImageAnnotations``  their boxes and ids, the target highlighted
 ``/onboard/scene``             ``foxglove.SceneUpdate``    3-D: camera frustum, line of sight, the target's
                                                            1-sigma ellipsoid, both trails (frame ``ned``)
 ``/tf``                        ``foxglove.FrameTransform`` ``ned`` in ``enu`` (so the 3-D panel shows up as up)
@@ -35,6 +37,7 @@ The geometry (frustum, line of sight, ellipsoid) is pure numpy, in the functions
 from __future__ import annotations
 
 import collections
+import json
 import logging
 import math
 import threading
@@ -49,12 +52,15 @@ from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, track_to_bytes
 from onboard.io.foxglove_messages import (
     JSON_SCHEMAS,
+    OBJECTS_SCHEMA,
     camera_fix_fields,
+    file_descriptor_set,
     location_fix_fields,
+    objects_annotations,
     rawimage_fields,
     stamp_from_us,
 )
-from onboard.io.record import CAMERA_FIX_TOPIC, TARGET_FIX_TOPIC
+from onboard.io.record import CAMERA_FIX_TOPIC, OBJECT_ANNOTATIONS_TOPIC, TARGET_FIX_TOPIC
 
 if TYPE_CHECKING:
     from foxglove import Context
@@ -173,6 +179,7 @@ class LiveView:
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
         self.track_topic = f"irtrack/{vehicle}/track"
         self.status_topic = f"irtrack/{vehicle}/status"
+        self.objects_topic = f"irtrack/{vehicle}/objects"
         self._q: collections.deque = collections.deque()
         self._cond = threading.Condition(threading.Lock())
         self._frames_queued = 0
@@ -219,8 +226,21 @@ class LiveView:
                 context=ctx,
             )
 
+        from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
+
+        # the objects' annotations as the recording holds them (one encoder for both: the same boxes and colours)
+        object_annotations = foxglove.Channel(
+            OBJECT_ANNOTATIONS_TOPIC,
+            schema=foxglove.Schema(
+                name="foxglove.ImageAnnotations", encoding="protobuf", data=file_descriptor_set(ImageAnnotations)
+            ),
+            message_encoding="protobuf",
+            context=ctx,
+        )
         self._ch = {
             "frame": RawImageChannel(self.frame_topic, context=ctx),
+            "objects": json_channel(self.objects_topic, OBJECTS_SCHEMA),
+            "object_annotations": object_annotations,
             "track": json_channel(self.track_topic, TRACK_SCHEMA),
             "status": json_channel(self.status_topic, STATUS_SCHEMA),
             "target_fix": LocationFixChannel(TARGET_FIX_TOPIC, context=ctx),
@@ -291,6 +311,10 @@ class LiveView:
     def on_status(self, payload: bytes) -> bool:
         return self._put("status", (bytes(payload),))
 
+    def on_objects(self, message: dict[str, Any]) -> bool:
+        """The ``irtrack.objects/1`` message of a frame (a dict, not changed afterwards): JSON and annotations."""
+        return self._put("objects", (message,))
+
     # ------------------------------------------------------------------ publisher thread
 
     def _run(self) -> None:
@@ -322,6 +346,10 @@ class LiveView:
 
     def _pub_status(self, payload: bytes) -> None:
         self._ch["status"].log(payload)
+
+    def _pub_objects(self, message: dict[str, Any]) -> None:
+        self._ch["objects"].log(json.dumps(message, separators=(",", ":")).encode())  # the bytes zenoh carries
+        self._ch["object_annotations"].log(objects_annotations(message).SerializeToString())
 
     def _pub_pose(self, t_us: int, pose) -> None:
         self._pose = pose
@@ -511,8 +539,6 @@ def _location_fix(fields: dict[str, Any]):
 
 
 def _json_bytes(obj) -> bytes:
-    import json
-
     return json.dumps(obj).encode()
 
 

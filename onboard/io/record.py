@@ -8,18 +8,23 @@ with SIGKILL leaves a file that reads up to its last written chunk (at most ``re
 
 Channels (topic: schema name, schema encoding / message encoding):
 
-=============================  ==============================  ===================  =========================
-topic                          schema                          encoding             one message per
-=============================  ==============================  ===================  =========================
-``/mavlink/<link>``            ``irtrack.mavlink_raw/1``       jsonschema / json    received datagram (or read)
-``irtrack/<v>/ir/frame``       ``foxglove.RawImage``           protobuf             frame as received
-``/onboard/frame_input``       ``irtrack.frame_input/1``       jsonschema / json    frame the pipeline took
-``irtrack/<v>/track``          ``irtrack.track/2``             jsonschema / json    track (bytes as published)
-``irtrack/<v>/status``         ``irtrack.status/1``            jsonschema / json    status (bytes as published)
-``/onboard/target_fix``        ``foxglove.LocationFix``        protobuf             track with a position
-``/onboard/camera_fix``        ``foxglove.LocationFix``        protobuf             frame with a pose
-``/groundsim/truth``           ``irtrack.truth/1``             jsonschema / json    simulator frame (groundsim)
-=============================  ==============================  ===================  =========================
+================================  =============================  =================  ============================
+topic                             schema                         encoding           one message per
+================================  =============================  =================  ============================
+``/mavlink/<link>``               ``irtrack.mavlink_raw/1``      jsonschema / json  received datagram (or read)
+``irtrack/<v>/ir/frame``          ``foxglove.RawImage``          protobuf           frame as received
+``/onboard/frame_input``          ``irtrack.frame_input/1``      jsonschema / json  frame the pipeline took
+``/onboard/imaging_pose``         ``irtrack.imaging_pose/1``     jsonschema / json  frame (image chain objects)
+``irtrack/<v>/track``             ``irtrack.track/2``            jsonschema / json  track (bytes as published)
+``irtrack/<v>/status``            ``irtrack.status/1``           jsonschema / json  status (bytes as published)
+``/onboard/target_fix``           ``foxglove.LocationFix``       protobuf           track with a position
+``/onboard/camera_fix``           ``foxglove.LocationFix``       protobuf           frame with a pose
+``irtrack/<v>/objects``           ``irtrack.objects/1``          jsonschema / json  frame (image chain objects)
+``/onboard/object_annotations``   ``foxglove.ImageAnnotations``  protobuf           frame (image chain objects)
+``/groundsim/truth``              ``irtrack.truth/1``            jsonschema / json  simulator frame (groundsim)
+``/groundsim/truth/objects``      ``irtrack.truth_objects/1``    jsonschema / json  simulator frame with a scene
+``/groundsim/truth/annotations``  ``foxglove.ImageAnnotations``  protobuf           simulator frame with a scene
+================================  =============================  =================  ============================
 
 * ``irtrack.mavlink_raw/1``: ``{"link": "autopilot", "direction": "rx" | "tx", "receive_time_ns":
   int (monotonic clock of the recorder's process, the clock frames are stamped with), "source": "host:port"
@@ -33,6 +38,19 @@ topic                          schema                          encoding         
   interpolated pose it got (:func:`pose_to_json`; floats printed by ``repr``, so they read back bit for
   bit).  A frame received but never taken was dropped by the queue.  :mod:`onboard.app.replay` feeds
   these frames with these poses through a new :class:`~onboard.pipeline.frame_pipeline.FramePipeline`.
+* ``irtrack.objects/1``: the message published on ``irtrack/<v>/objects`` (:func:`onboard.imaging.objects.objects_message`:
+  every confirmed or coasting object of the frame with its id, state, centre, box, line of sight and score,
+  and the primary target's id); the MCAP message's ``sequence`` is the frame's ``seq``.
+  ``/onboard/object_annotations`` draws the same objects over the frame in Foxglove's Image panel (a box and
+  the id of each, the primary target green; :func:`onboard.io.foxglove_messages.objects_annotations`;
+  ``timestamp`` = the frame's capture time, as the RawImage's).
+* ``irtrack.truth_objects/1`` (groundsim): ``{"seq", "time_boot_us", "t_s", "objects": [{"id", "cls", "u_px",
+  "v_px", "box_px": [x, y, w, h] or null, "visibility", "contrast_netd", "range_m", "p_ned_m"}]}``, the rows of
+  ``<truth>.objects.csv`` of that frame (:mod:`groundsim.world.truth`), drawn by ``/groundsim/truth/annotations``.
+* ``irtrack.imaging_pose/1``: ``{"seq", "time_boot_us", "pose": null | PoseAt}``: the pose an image chain that
+  associates with the camera's rotation (``imaging.chain: objects``) got for the frame before the pipeline
+  waited for its telemetry (the frame's own pose, in ``frame_input``, is looked up after that wait, so the two can
+  differ); replay gives the chain this one.
 * Log times are the recorder's wall clock at the event (``time.time_ns`` at start, advanced by the
   monotonic clock, so they never go back).
 
@@ -84,12 +102,17 @@ from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA, track_to_bytes
 from onboard.io.foxglove_messages import (
     FRAME_INPUT_SCHEMA,
+    IMAGING_POSE_SCHEMA,
     JSON_SCHEMAS,
     MAVLINK_RAW_SCHEMA,
+    OBJECTS_SCHEMA,
+    TRUTH_OBJECTS_SCHEMA,
     camera_fix_fields,
     file_descriptor_set,
     location_fix_fields,
+    objects_annotations,
     rawimage_pieces,
+    truth_objects_annotations,
 )
 
 if TYPE_CHECKING:
@@ -102,6 +125,11 @@ __all__ = [
     "TARGET_FIX_TOPIC",
     "CAMERA_FIX_TOPIC",
     "TRUTH_TOPIC",
+    "OBJECT_ANNOTATIONS_TOPIC",
+    "IMAGING_POSE_TOPIC",
+    "NOT_LOOKED_UP",
+    "TRUTH_OBJECTS_TOPIC",
+    "TRUTH_ANNOTATIONS_TOPIC",
     "RecordConfig",
     "FlightRecorder",
     "RecordingPoseSource",
@@ -117,7 +145,13 @@ FRAME_INPUT_TOPIC = "/onboard/frame_input"
 TARGET_FIX_TOPIC = "/onboard/target_fix"
 CAMERA_FIX_TOPIC = "/onboard/camera_fix"
 TRUTH_TOPIC = "/groundsim/truth"
+OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
+TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
+TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
 MB = 1_000_000
+IMAGING_POSE_TOPIC = "/onboard/imaging_pose"
+#: no pose was looked up for the image chain (as distinct from a look-up that answered None)
+NOT_LOOKED_UP: Any = type("NotLookedUp", (), {"__repr__": lambda self: "NOT_LOOKED_UP"})()
 
 
 def mavlink_topic(link: str) -> str:
@@ -254,23 +288,35 @@ class RecordConfig:
 
 
 class RecordingPoseSource:
-    """A pose source that remembers the last ``pose_at`` answer (for the ``frame_input`` channel).
+    """A pose source that remembers the ``pose_at`` answers of a frame (for the ``frame_input`` and
+    ``imaging_pose`` channels).
 
-    The pipeline calls ``pose_at`` once per frame from its one thread; :meth:`take` returns
-    ``(looked_up, pose)`` for the frame just processed and forgets it.  Other attributes read through."""
+    The pipeline calls ``pose_at`` from its one thread: once per frame, or twice with an image chain that
+    associates with the camera's rotation (before imaging, without waiting for telemetry; then the frame's pose,
+    after the wait).  :meth:`take` returns ``(looked_up, pose)`` -- the last answer -- for the frame just
+    processed and forgets it; :meth:`take_lookups` also the first answer when there were two (else
+    :data:`NOT_LOOKED_UP`).  Other attributes read through."""
 
     def __init__(self, source) -> None:
         self._source = source
-        self._last: tuple[bool, Any] = (False, None)
+        self._answers: list[Any] = []
 
     def pose_at(self, time_boot_us: int, *args, **kwargs):
         pose = self._source.pose_at(time_boot_us, *args, **kwargs)
-        self._last = (True, pose)
+        self._answers.append(pose)
         return pose
 
     def take(self) -> tuple[bool, Any]:
-        out, self._last = self._last, (False, None)
-        return out
+        looked_up, pose, _ = self.take_lookups()
+        return looked_up, pose
+
+    def take_lookups(self) -> tuple[bool, Any, Any]:
+        """``(looked_up, pose, imaging_pose)``: the frame's pose (its last answer) and, when the frame was looked
+        up twice, the first answer (the image chain's, which may be None); else :data:`NOT_LOOKED_UP`."""
+        answers, self._answers = self._answers, []
+        if not answers:
+            return False, None, NOT_LOOKED_UP
+        return True, answers[-1], answers[0] if len(answers) > 1 else NOT_LOOKED_UP
 
     def __getattr__(self, name: str):
         return getattr(self._source, name)
@@ -321,6 +367,7 @@ class FlightRecorder:
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
         self.track_topic = f"irtrack/{vehicle}/track"
         self.status_topic = f"irtrack/{vehicle}/status"
+        self.objects_topic = f"irtrack/{vehicle}/objects"
         # counters (written by the writer thread or under the lock; read without it: ints)
         self.messages_written = 0
         self.bytes_written = 0  # bytes of closed files + the open one's position
@@ -376,18 +423,35 @@ class FlightRecorder:
             return False
         return self._put("frame", self.frame_topic, int(frame.pixels.nbytes) + 100, (frame, int(received_ns)))
 
-    def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose) -> bool:
-        """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup)."""
-        return self._put(
+    def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose, imaging_pose=NOT_LOOKED_UP) -> bool:
+        """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup);
+        ``imaging_pose``: the pose its image chain got before the telemetry wait, when it asked for one
+        (:meth:`RecordingPoseSource.take_lookups`; on ``/onboard/imaging_pose``)."""
+        ok = self._put(
             "frame_input",
             FRAME_INPUT_TOPIC,
             700,
             (int(frame.seq), int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
         )
+        if imaging_pose is not NOT_LOOKED_UP:
+            item = (int(frame.seq), int(frame.time_boot_us), imaging_pose, self._clock_ns())
+            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item) and ok
+        return ok
 
     def on_track(self, track, payload: bytes | None = None) -> bool:
         """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
         return self._put("track", self.track_topic, 1500, (track, payload, self._clock_ns()))
+
+    def on_objects(self, message: Mapping[str, Any], seq: int) -> bool:
+        """The ``irtrack.objects/1`` message of frame ``seq`` (a dict, not changed afterwards): its JSON and its
+        foxglove.ImageAnnotations."""
+        nbytes = 200 + 400 * len(message.get("objects", ()))
+        return self._put("objects", self.objects_topic, nbytes, (message, int(seq), self._clock_ns()))
+
+    def on_truth_objects(self, message: Mapping[str, Any]) -> bool:
+        """The simulator's ``irtrack.truth_objects/1`` message of one frame: its JSON and its annotations."""
+        nbytes = 200 + 400 * len(message.get("objects", ()))
+        return self._put("truth_objects", TRUTH_OBJECTS_TOPIC, nbytes, (message, self._clock_ns()))
 
     def on_status(self, payload: bytes) -> bool:
         return self._put(
@@ -560,10 +624,15 @@ class FlightRecorder:
 
     def _protobuf(self) -> dict[str, Any]:
         if self._pb is None:
+            from foxglove_schemas_protobuf.ImageAnnotations_pb2 import ImageAnnotations
             from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
             from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 
-            self._pb = {"foxglove.RawImage": RawImage, "foxglove.LocationFix": LocationFix}
+            self._pb = {
+                "foxglove.RawImage": RawImage,
+                "foxglove.LocationFix": LocationFix,
+                "foxglove.ImageAnnotations": ImageAnnotations,
+            }
         return self._pb
 
     def _channel(self, w: ChunkWriter, topic: str, schema: str) -> int:
@@ -674,6 +743,21 @@ class FlightRecorder:
                     ),
                     now,
                 )
+        elif kind == "imaging_pose":
+            seq, t_us, pose, now = item
+            obj = {"seq": seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
+            self._add(topic, IMAGING_POSE_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
+        elif kind == "objects":
+            message, seq, now = item
+            self._add(topic, OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq & 0xFFFFFFFF)
+            ann = objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
+            self._add(OBJECT_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
+        elif kind == "truth_objects":
+            message, now = item
+            seq = int(message.get("seq", 0)) & 0xFFFFFFFF
+            self._add(topic, TRUTH_OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq)
+            ann = truth_objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
+            self._add(TRUTH_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
         elif kind == "mavlink":
             data, link, source, direction, now = item
             self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now)

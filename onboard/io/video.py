@@ -3,7 +3,8 @@
 Pure parts (no sockets, no threads): :func:`agc_limits` / :func:`agc_u8` (the display mapping a
 thermal core applies: the 1st..99th percentile of the frame, smoothed over frames, stretched
 linearly onto 0..255, so mono16 and mono8 frames look alike and the sky does not flicker),
-:func:`draw_overlay` (the track box and its range / 1-sigma), and two encoders over PyAV's libx264
+:func:`draw_overlay` (the track box and its range / 1-sigma; with the objects image chain every object's box and
+id, the selected target's drawn white and thicker), and two encoders over PyAV's libx264
 with the same settings (``preset ultrafast``, ``tune zerolatency``, no B-frames, an IDR every
 ``gop_frames`` frames with the SPS/PPS repeated, so a ground station can join at any second):
 :class:`H264RtpEncoder` (access units packetised as RTP, RFC 6184, by
@@ -47,6 +48,7 @@ from fractions import Fraction
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.io.foxglove_messages import drawn_box
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
 from onboard.io.worker_queue import next_or_stop
 
@@ -55,6 +57,8 @@ __all__ = [
     "agc_u8",
     "AgcState",
     "draw_overlay",
+    "draw_objects",
+    "OBJECT_GREY",
     "H264TsEncoder",
     "H264RtpEncoder",
     "VideoStreamer",
@@ -125,11 +129,34 @@ def agc_u8(pixels: np.ndarray, low: float, high: float) -> np.ndarray:
     return out.astype(np.uint8)
 
 
-def draw_overlay(img_u8: np.ndarray, track) -> np.ndarray:
-    """The track's box (white, 1 px) and, with a 3-D position, ``range m +- sigma`` beside it; a copy."""
+#: grey levels of the objects drawn: the selected target, the other confirmed objects, coasting ones
+OBJECT_GREY = {"primary": 255, "confirmed": 200, "coasting": 130}
+
+
+def draw_objects(out: np.ndarray, objects) -> None:
+    """Every object of an ``irtrack.objects/1`` message drawn on ``out`` (in place): its box (at least
+    :data:`~onboard.io.foxglove_messages.MIN_DRAWN_BOX_PX` a side about its centre, so a point target is framed,
+    not covered) and its id above it; the selected target white and 2 px thick, others 1 px and greyer."""
+    import cv2
+
+    for o in objects.get("objects", ()):
+        kind = "primary" if o.get("primary") else ("coasting" if o.get("state") == "coasting" else "confirmed")
+        grey = OBJECT_GREY[kind]
+        x, y, w, h = drawn_box(*o["box_px"])
+        p0 = (int(round(x)), int(round(y)))
+        p1 = (int(round(x + w)), int(round(y + h)))
+        cv2.rectangle(out, p0, p1, grey, 2 if kind == "primary" else 1)
+        cv2.putText(out, str(o["id"]), (p0[0], max(p0[1] - 3, 8)), cv2.FONT_HERSHEY_PLAIN, 0.7, grey, 1)
+
+
+def draw_overlay(img_u8: np.ndarray, track, objects=None) -> np.ndarray:
+    """The track's box (white, 1 px) and, with a 3-D position, ``range m +- sigma`` beside it; ``objects`` (an
+    ``irtrack.objects/1`` dict, the objects image chain's) each object's box and id (:func:`draw_objects`); a copy."""
     import cv2
 
     out = img_u8.copy()
+    if objects is not None:
+        draw_objects(out, objects)
     if track is None or track.bbox is None or track.state not in ("tracking", "coasting"):
         return out
     x, y, w, h = track.bbox
@@ -406,9 +433,10 @@ class VideoStreamer:
         self._thread = threading.Thread(target=self._run, name="irtrack-video", daemon=True)
         self._thread.start()
 
-    def submit(self, pixels: np.ndarray, track=None, capture_time_us: int | None = None) -> None:
-        """Queue a frame (and its track, for the overlay) captured at ``capture_time_us`` (the frame's
-        ``time_boot_us``; None: the time of this call), never blocks; drops the oldest when full."""
+    def submit(self, pixels: np.ndarray, track=None, capture_time_us: int | None = None, objects=None) -> None:
+        """Queue a frame (and its track and objects -- an ``irtrack.objects/1`` dict --, for the overlay) captured
+        at ``capture_time_us`` (the frame's ``time_boot_us``; None: the time of this call), never blocks; drops the
+        oldest when full."""
         if capture_time_us is None:
             capture_time_us = time.monotonic_ns() // 1000
         with self._cond:
@@ -416,7 +444,7 @@ class VideoStreamer:
             while len(self._q) >= self._maxlen:
                 self._q.popleft()
                 self.frames_dropped += 1
-            self._q.append((pixels, track, int(capture_time_us)))
+            self._q.append((pixels, track, int(capture_time_us), objects))
             self._cond.notify()
 
     def _run(self) -> None:
@@ -424,13 +452,13 @@ class VideoStreamer:
             item = next_or_stop(self._cond, self._q, lambda: self._stop)
             if item is None:
                 return
-            pixels, track, capture_time_us = item
+            pixels, track, capture_time_us, objects = item
             t0 = time.perf_counter()
             try:
                 lo, hi = self._agc.update(pixels)
                 img = agc_u8(pixels, lo, hi)
                 if self.overlay:
-                    img = draw_overlay(img, track)
+                    img = draw_overlay(img, track, objects)
                 self._encoder.encode(img, capture_time_us)
                 self._sink.flush()
                 self.frames_encoded += 1

@@ -1,0 +1,313 @@
+"""``python -m onboard.track_video``: the objects image chain over anyone's video, MOT-format tracks out.
+
+    python -m onboard.track_video INPUT --out tracks.txt [--encoding auto|mono8|mono16] [--fps HZ]
+                                  [--box-px N] [--primary-only] [--quiet]
+
+``INPUT`` is one of:
+
+* a video file (anything FFmpeg decodes: mp4, avi, mkv ...; read with PyAV), its luma as the frame (mono16 when
+  the stream has more than 8 bits per sample, e.g. ``gray16le`` or ``yuv420p10le``);
+* a folder of frames: PNG (8- or 16-bit), TIFF, JPEG or BMP files, sorted by name (numbers in names by value:
+  ``2.png`` before ``10.png``), read with OpenCV as stored (``IMREAD_UNCHANGED``: a 16-bit PNG stays 16-bit;
+  colour frames are turned to grey);
+* a sequence folder of a public tracking benchmark: MOT's (its ``img1/``, ``000001.jpg`` ...), Anti-UAV's (its
+  frames, or its ``IR.mp4`` / ``infrared.mp4`` with ``IR_label.json`` beside).
+
+Every frame goes through the daemon's ``imaging.chain: objects`` (:class:`onboard.imaging.objects.ObjectTracker`,
+its default parameters) without a pose: the camera is taken as still, so association is in image space (the
+bearings are those of a nominal pinhole, ``fx = fy = width``, which changes nothing in the image).  The output is
+the MOT Challenge tracker format, one line per confirmed object measured on a frame::
+
+    frame,id,x,y,w,h,conf,-1,-1,-1
+
+``frame`` from 1; ``x, y`` the box's top-left in MOT's 1-based pixels (the chain's box of the detection, or with
+``--box-px N`` an N x N square about its centre, as ``groundsim eval`` writes for point targets); ``conf`` the
+detection's contrast over its local threshold.  ``--primary-only``: only the primary target (the chain's choice
+in auto mode: the steady object nearest the image centre), for single-target benchmarks such as Anti-UAV.
+TrackEval (MOT Challenge 2-D) or the Anti-UAV toolkit score the file against the benchmark's truth.
+
+``--encoding``: ``auto`` takes the frames as stored (the first frame's depth; all must match);
+``mono8`` takes a 16-bit frame's high byte; ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate
+of a folder (default 30; a video's own rate otherwise).  A progress line goes to stderr every few seconds.
+
+Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth, an
+output that cannot be written -- in one line naming the file; 130 interrupted (the tracks of the frames done are
+in the output).
+"""
+
+from __future__ import annotations
+
+from onboard.core.blas import single_thread_blas_env
+
+single_thread_blas_env()  # the chain is single-threaded like the daemon's: before numpy is imported
+
+import argparse  # noqa: E402
+import logging  # noqa: E402
+import os  # noqa: E402
+import re  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from collections.abc import Iterator, Sequence  # noqa: E402
+from dataclasses import dataclass  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import TYPE_CHECKING  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from onboard.core.errors import InputError  # noqa: E402
+
+if TYPE_CHECKING:
+    from onboard.imaging.objects import ObjectsUpdate
+
+__all__ = [
+    "FRAME_SUFFIXES",
+    "VIDEO_NAMES",
+    "FrameSource",
+    "open_frames",
+    "mot_rows",
+    "track_frames",
+    "build_parser",
+    "main",
+]
+
+log = logging.getLogger(__name__)
+
+EXIT_OK, EXIT_INPUT, EXIT_INTERRUPTED = 0, 2, 130
+FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
+#: the video a benchmark's sequence folder holds instead of frames (Anti-UAV: IR.mp4, its 2021 edition infrared.mp4)
+VIDEO_NAMES = ("IR.mp4", "infrared.mp4")
+DEFAULT_FOLDER_FPS = 30.0
+PROGRESS_EVERY_S = 5.0
+ENCODINGS = ("auto", "mono8", "mono16")
+
+
+def _natural_key(name: str) -> list:
+    """Sort key of a file name with its digit runs compared by value (``2.png`` before ``10.png``)."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+@dataclass
+class FrameSource:
+    """Where the frames come from: ``path`` (the video file or the frames' folder), ``kind`` ``video`` or
+    ``folder``, ``fps``, ``total`` (frames, None when the container does not say) and ``frames``: the iterator of
+    ``(name, pixels)`` -- the pixels 2-D uint8 or uint16, in the encoding asked for."""
+
+    path: Path
+    kind: str
+    fps: float
+    total: int | None
+    frames: Iterator[tuple[str, np.ndarray]]
+
+
+def _frame_files(folder: Path) -> list[Path]:
+    return sorted(
+        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES),
+        key=lambda p: _natural_key(p.name),
+    )
+
+
+def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
+    """``px`` (2-D uint8/uint16) in ``encoding`` (``auto``: as it is)."""
+    if px.dtype not in (np.uint8, np.uint16):
+        raise InputError(f"{where}: pixels of type {px.dtype}: expected 8- or 16-bit grey")
+    if encoding == "mono8" and px.dtype == np.uint16:
+        return (px >> 8).astype(np.uint8)
+    if encoding == "mono16" and px.dtype == np.uint8:
+        return px.astype(np.uint16)
+    return px
+
+
+def _read_image(path: Path) -> np.ndarray:
+    import cv2
+
+    px = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if px is None:
+        raise InputError(f"{path}: cannot read this frame (not an image OpenCV decodes, or truncated)")
+    if px.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if px.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        px = px[:, :, 0] if px.shape[2] == 1 else cv2.cvtColor(px, code)
+    return px
+
+
+def _folder_frames(files: list[Path], encoding: str) -> Iterator[tuple[str, np.ndarray]]:
+    first: tuple[tuple[int, ...], np.dtype, Path] | None = None
+    for path in files:
+        px = _read_image(path)
+        if first is None:
+            first = (px.shape, px.dtype, path)
+        elif px.shape != first[0]:
+            raise InputError(
+                f"{path}: frame of {px.shape[1]} x {px.shape[0]} px, the first ({first[2].name}) is "
+                f"{first[0][1]} x {first[0][0]}: all frames must have one size"
+            )
+        elif px.dtype != first[1] and encoding == "auto":
+            raise InputError(
+                f"{path}: {8 * px.dtype.itemsize}-bit frame, the first ({first[2].name}) is "
+                f"{8 * first[1].itemsize}-bit: give --encoding mono8 or mono16 to convert"
+            )
+        yield path.name, _convert(px, encoding, str(path))
+
+
+def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterator[tuple[str, np.ndarray]]]:
+    import av
+
+    try:
+        container = av.open(str(path))
+    except (av.error.FFmpegError, OSError) as exc:
+        raise InputError(f"{path}: not a video FFmpeg reads: {exc}") from None
+    if not container.streams.video:
+        container.close()
+        raise InputError(f"{path}: no video stream")
+    stream = container.streams.video[0]
+    rate = stream.average_rate or stream.guessed_rate
+    fps = float(rate) if rate else DEFAULT_FOLDER_FPS
+    total = int(stream.frames) or None
+    deep = any(c.bits > 8 for c in stream.format.components) if stream.format is not None else False
+    wide = encoding == "mono16" or (encoding == "auto" and deep)
+
+    def frames() -> Iterator[tuple[str, np.ndarray]]:
+        k = 0
+        try:
+            for frame in container.decode(stream):
+                k += 1
+                px = frame.to_ndarray(format="gray16le" if wide else "gray")
+                yield f"{path.name} frame {k}", np.ascontiguousarray(px)
+        except av.error.FFmpegError as exc:
+            raise InputError(f"{path}: frame {k + 1} cannot be decoded: {exc}") from None
+        finally:
+            container.close()
+
+    return fps, total, frames()
+
+
+def open_frames(input_path: str, encoding: str = "auto", fps: float | None = None) -> FrameSource:
+    """The :class:`FrameSource` of ``input_path`` (module docstring); :class:`InputError` naming the path when it
+    is missing or holds no frames."""
+    if encoding not in ENCODINGS:
+        raise InputError(f"--encoding: expected one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    path = Path(input_path)
+    if not path.exists():
+        raise InputError(f"{path}: no such file or folder")
+    if path.is_dir():
+        files = _frame_files(path)
+        if not files and (path / "img1").is_dir():  # a MOT sequence folder
+            path = path / "img1"
+            files = _frame_files(path)
+        if not files:
+            video = next((path / n for n in VIDEO_NAMES if (path / n).is_file()), None)
+            if video is None:
+                raise InputError(
+                    f"{path}: no frames ({', '.join(FRAME_SUFFIXES)} files), no img1/ and no "
+                    f"{' or '.join(VIDEO_NAMES)} in this folder"
+                )
+            path = video
+        else:
+            rate = DEFAULT_FOLDER_FPS if fps is None else fps
+            return FrameSource(path, "folder", rate, len(files), _folder_frames(files, encoding))
+    video_fps, total, frames = _video_frames(path, encoding)
+    return FrameSource(path, "video", video_fps if fps is None else fps, total, frames)
+
+
+def mot_rows(frame_number: int, update, box_px: float | None = None, primary_only: bool = False) -> list[str]:
+    """The MOT lines (``frame,id,x,y,w,h,conf,-1,-1,-1``) of one :class:`~onboard.imaging.objects.ObjectsUpdate`:
+    its confirmed objects measured on the frame (``primary_only``: the primary target's only); boxes in MOT's
+    1-based pixels, the chain's box or a ``box_px`` square about the centre."""
+    rows = []
+    for o in update.confirmed:
+        if primary_only and o.object_id != update.primary_id:
+            continue
+        if box_px is None:
+            x, y, w, h = o.bbox
+        else:
+            x, y, w, h = o.u_px - box_px / 2, o.v_px - box_px / 2, box_px, box_px
+        rows.append(f"{frame_number},{o.object_id},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},{o.score:.3f},-1,-1,-1\n")
+    return rows
+
+
+def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsUpdate]]:
+    """``(frame number from 1, pixels, ObjectsUpdate)`` of each frame of ``frames`` (``(name, pixels)``) through a
+    fresh objects chain sized by the first frame; an unusable frame raises :class:`InputError` naming it."""
+    from onboard.core.frames import PinholeIntrinsics
+    from onboard.imaging.objects import ObjectTracker
+
+    tracker = None
+    for k, (name, px) in enumerate(frames, start=1):
+        if tracker is None:
+            h, w = px.shape
+            K = PinholeIntrinsics(float(w), float(w), w / 2.0, h / 2.0, w, h)  # nominal: image space (docstring)
+            tracker = ObjectTracker(K, frame_rate_hz=fps)
+        try:
+            upd = tracker.update(px, None)
+        except InputError as exc:
+            raise InputError(f"{name}: {exc}") from None
+        yield k, px, upd
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0])
+    p.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a MOT / Anti-UAV sequence")
+    p.add_argument("--out", metavar="tracks.txt", required=True, help="the MOT-format tracks to write")
+    p.add_argument("--encoding", choices=ENCODINGS, default="auto", help="pixel depth (default: %(default)s)")
+    p.add_argument("--fps", type=float, help="frame rate (default: the video's; 30 for a folder)")
+    p.add_argument("--box-px", type=float, help="write N x N boxes about the centres instead of the detected ones")
+    p.add_argument("--primary-only", action="store_true", help="only the primary target (single-target benchmarks)")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.fps is not None and not args.fps > 0:
+        print(f"--fps: expected a rate > 0, got {args.fps}", file=sys.stderr)
+        return EXIT_INPUT
+    if args.box_px is not None and not args.box_px > 0:
+        print(f"--box-px: expected a side > 0, got {args.box_px}", file=sys.stderr)
+        return EXIT_INPUT
+    done = 0
+    out = None
+    try:
+        src = open_frames(args.input, args.encoding, args.fps)
+        try:
+            os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+            out = open(args.out, "w", encoding="ascii")
+        except OSError as exc:
+            raise InputError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
+        t0 = last = time.monotonic()
+        ids: set[int] = set()
+        lines = 0
+        size = None
+        for k, px, upd in track_frames(src.frames, src.fps):
+            rows = mot_rows(k, upd, args.box_px, args.primary_only)
+            out.writelines(rows)
+            lines += len(rows)
+            ids.update(o.object_id for o in upd.confirmed)
+            done = k
+            now = time.monotonic()
+            if not args.quiet and now - last >= PROGRESS_EVERY_S:
+                last = now
+                of = f"/{src.total} ({100.0 * k / src.total:.0f} %)" if src.total else ""
+                print(f"track_video: frame {k}{of}, {k / (now - t0):.0f} frames/s, {len(ids)} ids", file=sys.stderr)
+            if size is None:
+                size = f"{px.shape[1]} x {px.shape[0]} {'mono16' if px.dtype == np.uint16 else 'mono8'}"
+        wall = time.monotonic() - t0
+    except InputError as exc:
+        print(str(exc), file=sys.stderr)
+        return EXIT_INPUT
+    except KeyboardInterrupt:
+        print(f"interrupted: {done} frames tracked; {args.out} holds their tracks", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    finally:
+        if out is not None:
+            out.close()
+    if done == 0:
+        print(f"{src.path}: no frames", file=sys.stderr)
+        return EXIT_INPUT
+    print(
+        f"{src.path}: {done} frames of {size} ({src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids, {lines} lines in "
+        f"{args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
+    )
+    return EXIT_OK

@@ -1,0 +1,6 @@
+"""``python -m onboard.track_video``: a stable entry point for :mod:`onboard.app.track_video`."""
+
+from onboard.app.track_video import main
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,175 @@
+"""``python -m onboard.track_video``: synthetic thermal sequences with warm points moving on a known path -- a
+folder of 16-bit PNG frames, a MOT sequence folder (img1/, 8-bit), an mp4 written by PyAV -- through the real
+command; the MOT lines read back: one id per object for the whole sequence, distinct ids, centres where the
+points were drawn, frames numbered from 1, nothing else confirmed.  Bad inputs: one line naming the file, exit 2."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from onboard.app.track_video import EXIT_INPUT, main, open_frames
+
+REPO = Path(__file__).resolve().parents[2]
+W_PX, H_PX = 192, 144
+N_FRAMES = 45
+SETTLE_FRAMES = 8  # the chain confirms a track after 5 hits: frames before this are not checked
+CENTRE_TOL_PX = 0.5  # lossless frames: a 0.7 px Gaussian on noise, its centroid
+CENTRE_TOL_MP4_PX = 1.0  # H.264 at crf 12
+MIN_FRAMES_FOUND = 0.9  # of the frames after SETTLE_FRAMES, per object
+CLI_TIMEOUT_S = 120.0
+
+
+def _truth(k: int) -> list[tuple[float, float]]:
+    """The centres (u, v) of three objects on frame k (pixel i spans [i, i + 1)): two crossing paths far apart
+    and one slow."""
+    return [
+        (30.3 + 1.2 * k, 40.6 + 0.3 * k),
+        (160.7 - 1.1 * k, 100.2 - 0.2 * k),
+        (96.5 + 0.2 * k, 20.4 + 0.1 * k),
+    ]
+
+
+def _frame(k: int, sky: float, noise: float, amp: float, dtype) -> np.ndarray:
+    rng = np.random.default_rng(k)
+    yy, xx = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+    img = sky + 0.05 * sky * yy / H_PX + rng.normal(0.0, noise, (H_PX, W_PX))
+    for u, v in _truth(k):
+        img += amp * np.exp(-((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2) / (2 * 0.7**2))
+    return np.clip(np.round(img), 0, np.iinfo(dtype).max).astype(dtype)
+
+
+def _mono16(k: int) -> np.ndarray:
+    return _frame(k, 3000.0, 8.0, 400.0, np.uint16)
+
+
+def _mono8(k: int) -> np.ndarray:
+    return _frame(k, 60.0, 0.7, 45.0, np.uint8)
+
+
+def _run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "onboard.track_video", *args],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=CLI_TIMEOUT_S,
+        env={"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
+    )
+
+
+def _read_mot(path: Path) -> list[tuple[int, int, float, float, float, float, float]]:
+    rows = []
+    for line in path.read_text().splitlines():
+        f = line.split(",")
+        assert len(f) == 10 and f[7:] == ["-1", "-1", "-1"]
+        rows.append((int(f[0]), int(f[1]), *map(float, f[2:7])))
+    return rows
+
+
+def _check_tracks(rows, tol_px: float) -> None:
+    """Each truth object followed by one id of its own on >= MIN_FRAMES_FOUND of the settled frames; every line
+    of a settled frame on a truth object (no false confirmed track)."""
+    assert rows and min(r[0] for r in rows) >= 1 and max(r[0] for r in rows) <= N_FRAMES
+    ids_of: list[set[int]] = [set() for _ in _truth(0)]
+    found = [0] * len(ids_of)
+    for frame, oid, x, y, w, h, conf in rows:
+        k = frame - 1  # MOT frames from 1
+        u, v = x - 1 + w / 2, y - 1 + h / 2  # MOT's 1-based box -> the centre in the chain's pixels
+        d = [math.hypot(u - tu, v - tv) for tu, tv in _truth(k)]
+        j = int(np.argmin(d))
+        assert d[j] <= tol_px, (frame, oid, u, v)
+        assert conf > 0
+        if k >= SETTLE_FRAMES:
+            ids_of[j].add(oid)
+            found[j] += 1
+    settled = N_FRAMES - SETTLE_FRAMES
+    assert all(n >= MIN_FRAMES_FOUND * settled for n in found), found
+    assert all(len(s) == 1 for s in ids_of), ids_of
+    assert len(set.union(*ids_of)) == len(ids_of)  # distinct ids
+
+
+def test_a_folder_of_16_bit_pngs_through_the_command(tmp_path):
+    seq = tmp_path / "seq16"
+    seq.mkdir()
+    for k in range(N_FRAMES):
+        assert cv2.imwrite(str(seq / f"{k + 1}.png"), _mono16(k))  # unpadded names: sorted by value
+    out = tmp_path / "out" / "tracks.txt"
+    res = _run(str(seq), "--out", str(out))
+    assert res.returncode == 0, res.stderr
+    assert f"{N_FRAMES} frames of {W_PX} x {H_PX} mono16 (folder" in res.stdout
+    _check_tracks(_read_mot(out), CENTRE_TOL_PX)
+
+
+def test_an_mp4_through_the_command_and_a_mot_sequence_folder(tmp_path):
+    av = pytest.importorskip("av")
+    mp4 = tmp_path / "ir.mp4"
+    c = av.open(str(mp4), mode="w")
+    s = c.add_stream("libx264", rate=25)
+    s.width, s.height, s.pix_fmt = W_PX, H_PX, "yuv420p"
+    s.options = {"crf": "12", "preset": "ultrafast"}
+    for k in range(N_FRAMES):
+        frame = av.VideoFrame.from_ndarray(_mono8(k), format="gray")
+        c.mux(s.encode(frame))
+    c.mux(s.encode(None))
+    c.close()
+    out = tmp_path / "mp4.txt"
+    res = _run(str(mp4), "--out", str(out), "--box-px", "6")
+    assert res.returncode == 0, res.stderr
+    assert "mono8 (video, 25 frames/s)" in res.stdout
+    rows = _read_mot(out)
+    assert all(r[4] == 6.0 and r[5] == 6.0 for r in rows)
+    _check_tracks(rows, CENTRE_TOL_MP4_PX)
+    # a MOT sequence folder: its frames in img1/ (8-bit), in process: the same chain
+    mot = tmp_path / "MOT-01"
+    (mot / "img1").mkdir(parents=True)
+    for k in range(N_FRAMES):
+        cv2.imwrite(str(mot / "img1" / f"{k + 1:06d}.png"), _mono8(k))
+    out2 = tmp_path / "mot.txt"
+    assert main([str(mot), "--out", str(out2), "--quiet"]) == 0
+    _check_tracks(_read_mot(out2), CENTRE_TOL_PX)
+    prim = tmp_path / "primary.txt"
+    assert main([str(mot), "--out", str(prim), "--quiet", "--primary-only"]) == 0
+    assert len({r[1] for r in _read_mot(prim) if r[0] > SETTLE_FRAMES}) == 1  # one target
+
+
+def test_encoding_is_taken_from_the_pngs_or_converted(tmp_path):
+    seq = tmp_path / "s"
+    seq.mkdir()
+    cv2.imwrite(str(seq / "a.png"), _mono16(0))
+    src = open_frames(str(seq))
+    name, px = next(src.frames)
+    assert name == "a.png" and px.dtype == np.uint16 and np.array_equal(px, _mono16(0))
+    _, px8 = next(open_frames(str(seq), "mono8").frames)
+    assert px8.dtype == np.uint8 and np.array_equal(px8, (_mono16(0) >> 8).astype(np.uint8))
+    assert src.fps == 30.0 and open_frames(str(seq), fps=9.0).fps == 9.0
+
+
+@pytest.mark.parametrize("case", ["missing", "unreadable", "mixed_size", "mixed_depth", "empty"])
+def test_bad_input_is_one_line_naming_the_file_and_exit_2(tmp_path, capsys, case):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), _mono8(k))
+    bad = seq / "001.png"
+    if case == "unreadable":
+        bad.write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    elif case == "mixed_size":
+        cv2.imwrite(str(bad), _mono8(1)[:-8])
+    elif case == "mixed_depth":
+        cv2.imwrite(str(bad), _mono16(1))
+    elif case == "empty":
+        for p in seq.iterdir():
+            p.unlink()
+    target = tmp_path / "nowhere" if case == "missing" else seq
+    code = main([str(target), "--out", str(tmp_path / "t.txt"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code == EXIT_INPUT and len(err.splitlines()) == 1
+    named = {"missing": str(target), "empty": str(seq)}.get(case, str(bad))
+    assert err.startswith(named), err
