@@ -41,6 +41,8 @@ and one more ``pyrUp`` applies it to the full-resolution ``L_base``.  The cloud 
 composited on the 4 x 4 px grid itself and taken to the full resolution by two ``pyrUp`` steps: its
 edges are soft over ~4 px (a cloud 0.5-3 km away is smooth over a few metres, and near the camera the
 6 m texels are magnified to several pixels anyway), at a quarter of the half-resolution look-ups' cost.
+The depth and the cloud opacity stay on the coarse grid (:class:`~groundsim.world.render.raster.PyrUpImage`)
+and are taken up only around the objects and label pixels that read them, or whole when read whole.
 The horizon, the sharpest edge, keeps the renderer's exact treatment.  Mip-mapping: a near level from
 the 10th percentile of the pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended
 into a level ``FAR_LEVELS`` coarser where the footprint reaches 2 to 8 texels, so that far ground and
@@ -63,7 +65,7 @@ import cv2
 import numpy as np
 
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
-from groundsim.world.render.raster import IrRenderer, PartRaster, SceneBackground
+from groundsim.world.render.raster import IrRenderer, PartRaster, PyrUpImage, SceneBackground
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture, terrain_texture
@@ -474,7 +476,7 @@ class SceneContent:
         if clouds is not None:
             chans[0] = np.where(clouds[1], clouds[2], r_g)  # depth: the cloud layer where the ray meets it
         up = cv2.pyrUp
-        depth = up(up(chans[0]))[: self._H, : self._W]
+        depth = PyrUpImage(chans[0], (self._H, self._W))
         # ---- textures and compositing weights at half resolution
         b_t = None
         if terrain is not None:
@@ -518,7 +520,7 @@ class SceneContent:
         np.multiply(radiance, below, out=radiance)
         np.subtract(below, radiance, out=radiance)
         radiance += up(up(lit))[:H, :W]
-        return SceneBackground(radiance, below, depth, np.ascontiguousarray(up(up(alpha))[:H, :W]))
+        return SceneBackground(radiance, below, depth, PyrUpImage(alpha, (H, W)))
 
     def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), tau(r_g), far weight]`` and the two mip levels.
@@ -608,7 +610,8 @@ class SceneContent:
         if not (0.0 <= u < self._W and 0.0 <= v < self._H):
             return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
         i, j = int(v), int(u)
-        behind = background.depth_m[i, j] < range_m and background.cloud_alpha[i, j] >= OCCLUDED_ALPHA
+        px = slice(i, i + 1), slice(j, j + 1)
+        behind = background.depth_window(*px)[0, 0] < range_m and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
         vis = "occluded" if behind else "visible"
         return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned)
 
