@@ -65,7 +65,7 @@ import cv2
 import numpy as np
 
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
-from groundsim.world.render.raster import IrRenderer, PartRaster, PyrUpImage, SceneBackground
+from groundsim.world.render.raster import IrRenderer, PartRaster, PyrUpImage, SceneBackground, project_in_front
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture, terrain_texture
@@ -268,6 +268,8 @@ class SceneContent:
         self._no_cloud = np.zeros((self._H, self._W), np.float32)
         self._far_depth.flags.writeable = False
         self._no_cloud.flags.writeable = False
+        self._up_half = np.empty((2 * self._hc, 2 * self._wc), np.float32)  # pyrUp scratch, see render_background
+        self._up_whole = np.empty((4 * self._hc, 4 * self._wc), np.float32)
         c = config
         self.clouds = (
             cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
@@ -516,10 +518,11 @@ class SceneContent:
         a_seen = np.multiply(alpha, seen, out=seen)
         lit = np.multiply(a_seen, L_c, out=L_c)
         # L = L_below + a_seen (L_c - L_below) = L_below (1 - a_seen) + a_seen L_c, each weight upsampled
-        radiance = up(up(a_seen))[:H, :W]
-        np.multiply(radiance, below, out=radiance)
+        # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults)
+        half, whole = self._up_half, self._up_whole
+        radiance = np.multiply(up(up(a_seen, dst=half), dst=whole)[:H, :W], below)
         np.subtract(below, radiance, out=radiance)
-        radiance += up(up(lit))[:H, :W]
+        radiance += up(up(lit, dst=half), dst=whole)[:H, :W]
         return SceneBackground(radiance, below, depth, PyrUpImage(alpha, (H, W)))
 
     def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
@@ -592,7 +595,7 @@ class SceneContent:
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
-        u, v = (float(c) for c in intr.project(p_c))
+        u, v = (float(c) for c in project_in_front(intr, p_c))
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
