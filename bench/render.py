@@ -20,7 +20,8 @@ F450-class target in view, with NETD noise (40 mK) and optics blur (0.6 px) on, 
   their own flown camera, target(s) and distractors, through ``SceneContent.render`` and
   ``Sensor.apply`` (or ``IrRenderer.quantise``) -- the renderer's share of ``groundsim run`` on them
   (the flight is flown beforehand, outside the timing).  ``python -m bench.render --reference-scenes``
-  runs only these.
+  runs only these; ``--reference-scenes --stages`` also prints where each scene's time goes (CPU ms per
+  frame: cv2.remap, cv2.pyrUp, sky and ground, the whole background, objects, quantise or camera model).
 
 The process is pinned to one CPU and OpenCV to one thread, so the numbers are single-core; both
 wall time and this process's CPU time are printed (on a shared machine the wall time includes
@@ -316,11 +317,73 @@ def reference_scenes_main() -> None:
     import cv2
 
     cv2.setNumThreads(1)
-    reference_scene_cases()
+    reference_scene_cases(stages="--stages" in sys.argv[1:])
 
 
-def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
-    """Frames/s of the renderer on the reference scenes C1-C5, along each scenario's flown poses."""
+STAGES = (
+    "cv2.remap",
+    "cv2.pyrUp",
+    "sky/ground",
+    "background",
+    "objects",
+    "quantise/camera",
+)
+
+
+class _StageClock:
+    """CPU time per stage of the reference scenes' frames (``--stages``): the library kernels (every
+    ``cv2.remap`` and ``cv2.pyrUp`` call), the renderer's sky and ground (``IrRenderer.base_radiance``),
+    the whole background with clouds and terrain (``SceneContent.render_background``, the kernels and the
+    sky included), the objects (``SceneContent.draw_objects``: ray casting, occlusion, labels) and the
+    noise and quantisation or the camera model.  Wraps those functions while it is active (the wrappers
+    add ~1 us a call)."""
+
+    def __init__(self) -> None:
+        self.ms = dict.fromkeys(STAGES, 0.0)
+        self._saved: list[tuple[object, str, object]] = []
+
+    def _wrap(self, owner, name: str, stage: str) -> None:
+        f = getattr(owner, name)
+        ms = self.ms
+
+        def timed(*a, **k):
+            c0 = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                ms[stage] += (time.process_time() - c0) * 1e3
+
+        self._saved.append((owner, name, f))
+        setattr(owner, name, timed)
+
+    def __enter__(self) -> _StageClock:
+        import cv2
+
+        from groundsim.world.render import IrRenderer
+        from groundsim.world.render.scene import SceneContent
+        from groundsim.world.render.sensor import Sensor
+
+        for owner, name, stage in (
+            (cv2, "remap", "cv2.remap"),
+            (cv2, "pyrUp", "cv2.pyrUp"),
+            (IrRenderer, "base_radiance", "sky/ground"),
+            (SceneContent, "render_background", "background"),
+            (SceneContent, "draw_objects", "objects"),
+            (IrRenderer, "quantise", "quantise/camera"),
+            (Sensor, "apply", "quantise/camera"),
+        ):
+            self._wrap(owner, name, stage)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for owner, name, f in reversed(self._saved):
+            setattr(owner, name, f)
+        self._saved.clear()
+
+
+def reference_scene_cases(n_frames: int = REFERENCE_FRAMES, stages: bool = False) -> None:
+    """Frames/s of the renderer on the reference scenes C1-C5, along each scenario's flown poses; with
+    ``stages`` (``--stages``) also the CPU ms per frame of each stage (:class:`_StageClock`)."""
     from groundsim.world.scenario import load_scenario, scenarios_dir
     from groundsim.world.sim import GROUND_D_M, SimCore
     from onboard.core.frames import rotmat_from_quat
@@ -357,6 +420,15 @@ def reference_scene_cases(n_frames: int = REFERENCE_FRAMES) -> None:
             f" {wall.max():6.2f} {cpu.mean():6.2f} {1e3 / wall.mean():6.0f} fps wall, {1e3 / cpu.mean():4.0f} fps CPU"
             f" | setup {setup_s:.1f} s"
         )
+        if stages:
+            # a second pass over the same poses with the stage clocks on (the first one stays unwrapped)
+            with _StageClock() as clock:
+                _, cpu_staged = _run_scene(scene, core.renderer(), sensor, poses, GROUND_D_M)
+            n = len(poses)
+            print(
+                f"{name} stages, CPU ms/frame (total {cpu_staged.mean():.2f}; the background includes the sky and"
+                " the kernels it calls): " + ", ".join(f"{k} {v / n:.2f}" for k, v in clock.ms.items())
+            )
 
 
 if __name__ == "__main__":

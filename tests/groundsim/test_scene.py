@@ -14,6 +14,7 @@ from scipy.ndimage import minimum_filter
 from groundsim.world.render import IrRenderer, IrSettings, SceneBackground
 from groundsim.world.render.clutter import point_detections
 from groundsim.world.render.planck import band_radiance
+from groundsim.world.render.raster import PyrUpImage
 from groundsim.world.render.scene import FAR_M, SceneContent, section_rng
 from groundsim.world.render.scene_config import CloudsConfig, SceneConfig, scene_config_from_dict
 from groundsim.world.render.settings import TargetPart
@@ -195,6 +196,28 @@ def test_cloud_depth_is_the_layer_and_clouds_are_warmer_than_the_sky():
     assert np.array_equal(bg.radiance[clear], bg.base_radiance[clear])
     down = sc.render_background(p, looking(-60.0), 0.0)
     assert not down.cloud_alpha.any()  # the layer is above a camera looking down
+
+
+def test_depth_and_opacity_windows_are_the_whole_images_values():
+    """The objects and labels read the depth and the cloud opacity by window from the coarse grid: the same
+    values as the whole image there, inside and at every border (where pyrUp reflects), for odd sizes too."""
+    rng = np.random.default_rng(5)
+    for shape in ((512, 640), (30, 45)):
+        coarse = rng.uniform(0.0, 1.0, (-(-shape[0] // 4), -(-shape[1] // 4))).astype(np.float32)
+        coarse[rng.uniform(size=coarse.shape) < 0.3] = FAR_M  # the depth's far value beside cloud ranges
+        whole = PyrUpImage(coarse, shape).full()
+        assert whole.shape == shape
+        for _ in range(300):
+            i0, j0 = int(rng.integers(0, shape[0])), int(rng.integers(0, shape[1]))
+            i1, j1 = int(rng.integers(i0 + 1, shape[0] + 1)), int(rng.integers(j0 + 1, shape[1] + 1))
+            win = PyrUpImage(coarse, shape).window(slice(i0, i1), slice(j0, j1))
+            assert np.array_equal(win, whole[i0:i1, j0:j1]), (shape, i0, i1, j0, j1)
+    sc, _ = scene(CLOUDS)
+    bg = sc.render_background(np.array([0.0, 0.0, -100.0]), looking(30.0), 0.0)
+    rows, cols = slice(100, 140), slice(0, 37)
+    depth_w, alpha_w = bg.depth_window(rows, cols), bg.alpha_window(rows, cols)
+    assert np.array_equal(depth_w, bg.depth_m[rows, cols]) and np.array_equal(alpha_w, bg.cloud_alpha[rows, cols])
+    assert bg.cloud_alpha.any() and bg.depth_m.min() < 2000.0  # the window held clouds to compare
 
 
 def test_target_behind_a_cloud_is_occluded_in_front_visible():

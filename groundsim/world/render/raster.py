@@ -86,7 +86,16 @@ from groundsim.world.render.settings import IrSettings
 from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics
 
-__all__ = ["IrRenderer", "RenderTiming", "PartRaster", "SceneBackground", "truth_pixel", "LUT_SIZE"]
+__all__ = [
+    "IrRenderer",
+    "RenderTiming",
+    "PartRaster",
+    "PyrUpImage",
+    "project_in_front",
+    "SceneBackground",
+    "truth_pixel",
+    "LUT_SIZE",
+]
 
 log = logging.getLogger(__name__)
 
@@ -127,6 +136,22 @@ def truth_pixel(intrinsics: PinholeIntrinsics, p_cam_ned_m, R_ned_from_cam, p_ta
     return float(uv[0]), float(uv[1])
 
 
+def project_in_front(intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``intrinsics.project`` of camera-frame points ``(..., 3)`` with ``z > 0``, as ``(u_px, v_px)``.
+
+    Without lens distortion the same float64 operations written out (``f (x / z) + c``): the same
+    pixels, without the general path's NaN masking and stacking, which cost more than the arithmetic
+    for the few points per object and frame (bounding-box corners, label centres)."""
+    if intrinsics.has_distortion:
+        uv = intrinsics.project(p_cam_m)
+        return uv[..., 0], uv[..., 1]
+    z = p_cam_m[..., 2]
+    return (
+        intrinsics.fx_px * (p_cam_m[..., 0] / z) + intrinsics.cx_px,
+        intrinsics.fy_px * (p_cam_m[..., 1] / z) + intrinsics.cy_px,
+    )
+
+
 def _aperture_weights(centres_px: np.ndarray, samples_px: np.ndarray, sigma_px: float, ss: int) -> np.ndarray:
     """``W[i, k] = K(centres_i - samples_k) / ss``: 1-D pixel box (width 1) convolved with a Gaussian PSF.
 
@@ -163,7 +188,39 @@ def _rotation(R, name: str) -> np.ndarray:
     return a
 
 
-@dataclass(frozen=True)
+class PyrUpImage:
+    """An (H, W) float32 image held as the coarse image two ``cv2.pyrUp`` steps below it (one sample per
+    4 x 4 px): :meth:`full` takes it up once and keeps it; :meth:`window` takes up only the coarse samples
+    around a window, with the same values as the full image there (a pixel of two pyrUp steps depends on
+    the coarse samples within 2 of its own; at the image's border the window reaches the same border).
+    The scene's depth and cloud opacity are read per object and per label, rarely whole."""
+
+    MARGIN = 2  # coarse samples around a window
+
+    def __init__(self, coarse: np.ndarray, shape: tuple[int, int]):
+        self.coarse = coarse
+        self.shape = (int(shape[0]), int(shape[1]))
+        self._full: np.ndarray | None = None
+
+    def full(self) -> np.ndarray:
+        if self._full is None:
+            H, W = self.shape
+            self._full = np.ascontiguousarray(cv2.pyrUp(cv2.pyrUp(self.coarse))[:H, :W])
+        return self._full
+
+    def window(self, rows: slice, cols: slice) -> np.ndarray:
+        if self._full is not None:
+            return self._full[rows, cols]
+        i0, i1, _ = rows.indices(self.shape[0])
+        j0, j1, _ = cols.indices(self.shape[1])
+        hc, wc = self.coarse.shape
+        m = self.MARGIN
+        a, b = max(i0 // 4 - m, 0), min(-(-i1 // 4) + m, hc)
+        c, d = max(j0 // 4 - m, 0), min(-(-j1 // 4) + m, wc)
+        up = cv2.pyrUp(cv2.pyrUp(np.ascontiguousarray(self.coarse[a:b, c:d])))
+        return up[i0 - 4 * a : i1 - 4 * a, j0 - 4 * c : j1 - 4 * c]
+
+
 class SceneBackground:
     """A background with scene content, per pixel, (H, W) float32 each, as the renderer's hook takes it.
 
@@ -171,19 +228,37 @@ class SceneBackground:
     ``base_radiance``: the same without clouds (what a cloud hides); ``depth_m``: range along the
     ray to the nearest surface (the cloud layer where the ray meets it, else the ground, else a far
     value); ``cloud_alpha``: opacity of the cloud there (0 where the layer is clear or absent).  An object at range ``R`` behind
-    ``depth_m`` is seen through ``1 - cloud_alpha`` of the cloud.
+    ``depth_m`` is seen through ``1 - cloud_alpha`` of the cloud.  ``depth_m`` and ``cloud_alpha`` may be
+    given as :class:`PyrUpImage`: taken up whole when read whole, by window through :meth:`depth_window`
+    and :meth:`alpha_window` (the objects' regions).
     """
 
-    radiance: np.ndarray
-    base_radiance: np.ndarray
-    depth_m: np.ndarray
-    cloud_alpha: np.ndarray
+    __slots__ = ("radiance", "base_radiance", "_depth", "_alpha")
 
-    def __post_init__(self) -> None:
-        shape = np.shape(self.radiance)
-        for name in ("base_radiance", "depth_m", "cloud_alpha"):
-            if np.shape(getattr(self, name)) != shape or len(shape) != 2:
+    def __init__(self, radiance, base_radiance, depth_m, cloud_alpha):
+        self.radiance = radiance
+        self.base_radiance = base_radiance
+        self._depth = depth_m
+        self._alpha = cloud_alpha
+        shape = np.shape(radiance)
+        for name, v in (("base_radiance", base_radiance), ("depth_m", depth_m), ("cloud_alpha", cloud_alpha)):
+            v_shape = v.shape if isinstance(v, PyrUpImage) else np.shape(v)
+            if tuple(v_shape) != shape or len(shape) != 2:
                 raise InputError(f"SceneBackground.{name}: expected shape {shape} like radiance")
+
+    @property
+    def depth_m(self) -> np.ndarray:
+        return self._depth.full() if isinstance(self._depth, PyrUpImage) else self._depth
+
+    @property
+    def cloud_alpha(self) -> np.ndarray:
+        return self._alpha.full() if isinstance(self._alpha, PyrUpImage) else self._alpha
+
+    def depth_window(self, rows: slice, cols: slice) -> np.ndarray:
+        return self._depth.window(rows, cols) if isinstance(self._depth, PyrUpImage) else self._depth[rows, cols]
+
+    def alpha_window(self, rows: slice, cols: slice) -> np.ndarray:
+        return self._alpha.window(rows, cols) if isinstance(self._alpha, PyrUpImage) else self._alpha[rows, cols]
 
 
 class PartRaster:
@@ -240,12 +315,12 @@ class PartRaster:
         if np.any(z <= NEAR_M):
             i0, i1, j0, j1 = 0, H, 0, W
         else:
-            uv = intr.project(corners_cam)
+            cu, cv = project_in_front(intr, corners_cam)
             pad = 1 if intr.has_distortion else 0
-            j0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
-            j1 = min(int(math.ceil(uv[:, 0].max())) + pad, W)
-            i0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
-            i1 = min(int(math.ceil(uv[:, 1].max())) + pad, H)
+            j0 = max(int(math.floor(cu.min())) - pad, 0)
+            j1 = min(int(math.ceil(cu.max())) + pad, W)
+            i0 = max(int(math.floor(cv.min())) - pad, 0)
+            i1 = min(int(math.ceil(cv.max())) + pad, H)
             if j1 <= j0 or i1 <= i0:
                 return None
         ny, nx = i1 - i0, j1 - j0
@@ -278,9 +353,13 @@ class PartRaster:
             return None
         # difference to the background per sub-sample (the background of the sub-sample's pixel)
         ref = bg[i0:i1, j0:j1]
+        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
+        pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
+        pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
         if occluder is not None:
             range_m = range_km * 1e3
-            ref = np.where(occluder.depth_m[i0:i1, j0:j1] < range_m, occluder.base_radiance[i0:i1, j0:j1], ref)
+            behind = occluder.depth_window(slice(pi0, pi1), slice(pj0, pj1)) < range_m
+            ref = np.where(behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref)
         # each sub-sample minus its pixel's background, broadcast over the (ss, ss) sub-samples of a pixel
         # (the same float64 differences as repeating the background, without the two repeated copies)
         obj = part_grey[nearest].reshape(ny, ss, nx, ss)
@@ -289,16 +368,12 @@ class PartRaster:
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
-        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
-        pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
-        pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
         A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
         A_cols = _aperture_weights(np.arange(pj0, pj1) + 0.5, u, s.blur_sigma_px, ss)
         delta = (A_rows @ delta) @ A_cols.T
         i0, i1, j0, j1 = pi0, pi1, pj0, pj1
         if occluder is not None:
-            behind = occluder.depth_m[i0:i1, j0:j1] < range_m
-            delta = delta * np.where(behind, 1.0 - occluder.cloud_alpha[i0:i1, j0:j1], 1.0)
+            delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
         return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
 
     def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -35,14 +35,18 @@ range ``R > depth_m`` is seen through ``1 - alpha`` of the cloud, against ``L_be
 (``PartRaster.delta(..., occluder=background)``; ``cloud_alpha`` is 0 where the layer is clear).
 
 How it is fast: the plane intersections (ranges, texture coordinates, atmosphere, mip weights) are
-computed on a grid of one ray per 4 x 4 pixels and taken to half resolution by ``cv2.pyrUp``; the
-texture look-ups (``cv2.remap``, bilinear, periodic, only in the rows that see the surface) and the
-compositing weights at half resolution; one more ``pyrUp`` applies them to the full-resolution
-``L_base``.  The textures are smooth over two pixels at the ranges where they are seen (their finest
-features are several pixels wide; the optics PSF is 0.6 px), while the horizon, the sharpest edge,
-keeps the renderer's exact treatment.  Mip-mapping: a near level from the 10th percentile of the
-pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended into a level ``FAR_LEVELS``
-coarser where the footprint reaches 2 to 8 texels, so that far ground and far clouds do not alias.
+computed on a grid of one ray per 4 x 4 pixels.  The terrain is taken to half resolution by ``cv2.pyrUp``,
+its texture looked up there (``cv2.remap``, bilinear, periodic, only in the rows that see the surface)
+and one more ``pyrUp`` applies it to the full-resolution ``L_base``.  The cloud layer is looked up and
+composited on the 4 x 4 px grid itself and taken to the full resolution by two ``pyrUp`` steps: its
+edges are soft over ~4 px (a cloud 0.5-3 km away is smooth over a few metres, and near the camera the
+6 m texels are magnified to several pixels anyway), at a quarter of the half-resolution look-ups' cost.
+The depth and the cloud opacity stay on the coarse grid (:class:`~groundsim.world.render.raster.PyrUpImage`)
+and are taken up only around the objects and label pixels that read them, or whole when read whole.
+The horizon, the sharpest edge, keeps the renderer's exact treatment.  Mip-mapping: a near level from
+the 10th percentile of the pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended
+into a level ``FAR_LEVELS`` coarser where the footprint reaches 2 to 8 texels, so that far ground and
+far clouds do not alias.
 
 Objects: the target (id 0, class ``target``) and the distractors (ids from 1: birds, aircraft,
 glints), each a set of box and ellipsoid parts drawn by the renderer's
@@ -61,7 +65,7 @@ import cv2
 import numpy as np
 
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
-from groundsim.world.render.raster import IrRenderer, PartRaster, SceneBackground
+from groundsim.world.render.raster import IrRenderer, PartRaster, PyrUpImage, SceneBackground, project_in_front
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture, terrain_texture
@@ -82,7 +86,7 @@ OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this o
 BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
 DISTRACTOR_SUPERSAMPLE = 8  # sub-samples per pixel side for distractors (the target keeps the renderer's)
-COARSE_STEP = 4  # plane geometry on a 4 x 4 px grid, textures at 2 x 2 px: fixed by the pyrUp steps
+COARSE_STEP = 4  # plane geometry and clouds on a 4 x 4 px grid, terrain at 2 x 2 px: fixed by the pyrUp steps
 MAP_LIMIT = 30000.0  # texture coordinates are clamped to +-this many texels (remap holds them in 16 bits)
 FAR_LEVELS = 3  # far ground and far clouds are read this many mip levels coarser
 SEAM_PAD = 2  # texture look-ups read copies of the textures padded by this many wrapped texels
@@ -178,6 +182,14 @@ def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: 
     return outs
 
 
+def _mask_rows(mask: np.ndarray) -> slice:
+    """The rows of a coarse-grid mask from its first true row to its last (empty: none)."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return slice(0, 0)
+    return slice(int(rows[0]), int(rows[-1]) + 1)
+
+
 def _half_rows(mask: np.ndarray, limit: int) -> slice:
     """Rows of the half-resolution image that a coarse-grid mask's true rows reach (one coarse row
     spreads over the half-resolution rows 2 k - 1 .. 2 k + 1 through pyrUp)."""
@@ -256,6 +268,8 @@ class SceneContent:
         self._no_cloud = np.zeros((self._H, self._W), np.float32)
         self._far_depth.flags.writeable = False
         self._no_cloud.flags.writeable = False
+        self._up_half = np.empty((2 * self._hc, 2 * self._wc), np.float32)  # pyrUp scratch, see render_background
+        self._up_whole = np.empty((4 * self._hc, 4 * self._wc), np.float32)
         c = config
         self.clouds = (
             cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
@@ -464,7 +478,7 @@ class SceneContent:
         if clouds is not None:
             chans[0] = np.where(clouds[1], clouds[2], r_g)  # depth: the cloud layer where the ray meets it
         up = cv2.pyrUp
-        depth = up(up(chans[0]))[: self._H, : self._W]
+        depth = PyrUpImage(chans[0], (self._H, self._W))
         # ---- textures and compositing weights at half resolution
         b_t = None
         if terrain is not None:
@@ -478,35 +492,38 @@ class SceneContent:
                 (far,) = _lookup((levels[lv_far],), gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
                 dL += w_far * (far - dL)
             b_t = tau_g * dL
+        H, W = self._H, self._W
+        below = base if b_t is None else base + up(b_t)[:H, :W]
         if clouds is None:
-            radiance = base + up(b_t)[: self._H, : self._W]
-            return SceneBackground(radiance, radiance, depth, self._no_cloud)
-        cx, cy, optical, seen, w_far = (up(c) for c in clouds[0])
+            return SceneBackground(below, below, depth, self._no_cloud)
+        # ---- the cloud layer on the coarse grid itself: its look-ups and compositing weights at one ray per
+        # 4 x 4 px, two pyrUp steps to the full resolution (the layer is smooth over 4 px at the mip level
+        # read there, see _cloud_geometry; near the camera the texture is magnified far more than that)
+        cx, cy, optical, seen, w_far = clouds[0]
         lv, lv_far = clouds[3], clouds[4]
-        rows = _half_rows(clouds[6], cx.shape[0])  # rows wholly at the far level skip the near one
+        rows = _mask_rows(clouds[6])  # rows wholly at the far level skip the near one
         dens, rad = self._cloud_density_pad, self._cloud_radiance_pad
         rho, L_c = _lookup((dens[lv], rad[lv]), cx, cy, rows)
-        far_rows = _half_rows(clouds[5], cx.shape[0])
+        far_rows = _mask_rows(clouds[5])
         if lv_far != lv and far_rows.stop > far_rows.start:
             far_levels = (dens[lv_far], rad[lv_far])
             rho_far, L_c_far = _lookup(far_levels, cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
             rho += w_far * (rho_far - rho)
             L_c += w_far * (L_c_far - L_c)
-        # the same float32 operations as alpha = 1 - exp(-(optical rho)), a_seen = alpha seen, written
-        # into the buffers they consume (no temporaries: these are the per-frame hot path)
+        # alpha = 1 - exp(-(optical rho)), a_seen = alpha seen, written into the buffers they consume
         alpha = np.multiply(optical, rho, out=rho)
         np.negative(alpha, out=alpha)
         np.exp(alpha, out=alpha)
         np.subtract(f32(1.0), alpha, out=alpha)
         a_seen = np.multiply(alpha, seen, out=seen)
-        b = np.multiply(a_seen, L_c, out=L_c) if b_t is None else b_t + a_seen * (L_c - b_t)
-        H, W = self._H, self._W
-        radiance = up(a_seen)[:H, :W]
-        np.multiply(radiance, base, out=radiance)
-        np.subtract(base, radiance, out=radiance)
-        radiance += up(b)[:H, :W]
-        base_t = base if b_t is None else base + up(b_t)[:H, :W]
-        return SceneBackground(radiance, base_t, depth, np.ascontiguousarray(up(alpha)[:H, :W]))
+        lit = np.multiply(a_seen, L_c, out=L_c)
+        # L = L_below + a_seen (L_c - L_below) = L_below (1 - a_seen) + a_seen L_c, each weight upsampled
+        # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults)
+        half, whole = self._up_half, self._up_whole
+        radiance = np.multiply(up(up(a_seen, dst=half), dst=whole)[:H, :W], below)
+        np.subtract(below, radiance, out=radiance)
+        radiance += up(up(lit, dst=half), dst=whole)[:H, :W]
+        return SceneBackground(radiance, below, depth, PyrUpImage(alpha, (H, W)))
 
     def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), tau(r_g), far weight]`` and the two mip levels.
@@ -538,6 +555,8 @@ class SceneContent:
         r_c = t_c * self._rnorm
         hit = (t_c > 0.0) & (r_c < f32(cfg.max_range_m)) & (r_c < r_g)
         t = np.where(hit, t_c, f32(0.0))
+        # the footprint of one coarse-grid sample (COARSE_STEP px, the layer is looked up there): a pixel's
+        # r^2 / (f h) times the samples' spacing in half-resolution pixels, where the mip thresholds hold
         foot_m = r_c * r_c / f32(self._f_px * max(abs(h_c), 1e-3))
         cx, cy, w_far, lv, lv_far = _mip_map(foot_m, hit, t, p, dn, de, tex.texel_m, tex.density_levels)
         w_far = np.where(hit, w_far, f32(0.0))
@@ -576,7 +595,7 @@ class SceneContent:
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
-        u, v = (float(c) for c in intr.project(p_c))
+        u, v = (float(c) for c in project_in_front(intr, p_c))
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
@@ -594,7 +613,8 @@ class SceneContent:
         if not (0.0 <= u < self._W and 0.0 <= v < self._H):
             return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
         i, j = int(v), int(u)
-        behind = background.depth_m[i, j] < range_m and background.cloud_alpha[i, j] >= OCCLUDED_ALPHA
+        px = slice(i, i + 1), slice(j, j + 1)
+        behind = background.depth_window(*px)[0, 0] < range_m and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
         vis = "occluded" if behind else "visible"
         return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned)
 
