@@ -556,7 +556,11 @@ def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIG
 
 def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
     """Two lists of ``irtrack.objects/1`` messages matched on (time_boot_us, frame_index) in order; returns
-    (matched, identical, unmatched): a frame is identical when its message is equal (floats bit for bit)."""
+    (matched, identical, unmatched): a frame is identical when its message is equal (floats bit for bit), the
+    ``UNREPLAYED_KEYS`` aside."""
+
+    def made(m):
+        return {k: v for k, v in m.items() if k not in UNREPLAYED_KEYS}
 
     def key(m):
         return (m.get("time_boot_us"), m.get("frame_index"))
@@ -571,7 +575,7 @@ def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
             unmatched += 1
             continue
         matched += 1
-        identical += a == lst.pop(0)
+        identical += made(a) == made(lst.pop(0))
     unmatched += sum(len(v) for v in theirs.values())
     return matched, identical, unmatched
 
