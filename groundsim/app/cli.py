@@ -152,8 +152,9 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="now|ISO",
         help="the simulated UTC at scenario time 0 (SYSTEM_TIME, the truth's time_unix_us): an ISO 8601 time"
-        " such as 2026-01-01T12:00:00Z, or now (the wall clock at start); default: the scenario's start_time_utc,"
-        " so runs are reproducible",
+        " such as 2026-01-01T12:00:00Z, or now (the wall clock at start); default: now with --rate realtime (a real"
+        " vehicle's GNSS time, which daemons and the fusion node compare with their own clocks), else the"
+        " scenario's start_time_utc, so that runs are reproducible",
     )
     p.add_argument(
         "--zenoh-listen",
@@ -258,7 +259,9 @@ def _run_config(args):
         rate=rate,
         mavlink=DEFAULT_MAVLINK if scenario.is_fleet else endpoints[0][1],
         mavlink_by_vehicle=endpoints if scenario.is_fleet else (),
-        start_time_unix_us=parse_start_time(args.start_time_utc),
+        start_time_unix_us=parse_start_time(
+            args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
+        ),
         vehicle=vehicle,
         zenoh=zenoh,
         truth_path=Path(args.truth) if args.truth else None,
