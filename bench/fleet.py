@@ -2,6 +2,7 @@
 
     python -m bench.fleet [--vehicles 8] [--rate 30] [--seconds 20]
     python -m bench.fleet --accuracy      # the core alone: two drones 200 m apart, a target at ~800 m
+    python -m bench.fleet --flight F1 [--seeds N] [--kill-at 15]   # end to end: bench.fleet_flight
 
 This process opens a zenoh router on a free loopback port, N vehicle sessions (one publisher each on
 ``irtrack/<vehicle>/track``, ``irtrack.track/2`` with ``time_unix_us``) and a subscriber; ``python -m
@@ -135,7 +136,17 @@ def main(argv=None) -> int:
     p.add_argument("--rate", type=float, default=30.0, help="camera rate per vehicle, Hz (30)")
     p.add_argument("--seconds", type=float, default=20.0, help="publishing time (20)")
     p.add_argument("--accuracy", action="store_true", help="the core's accuracy on two observers, no zenoh")
+    p.add_argument("--flight", metavar="SCENARIO", help="fly SCENARIO (F1) end to end instead (bench.fleet_flight)")
+    p.add_argument("--seeds", type=int, default=1, help="--flight: runs, seeds 0..N-1 (1)")
+    p.add_argument("--kill-at", type=float, default=None, metavar="S", help="--flight: SIGKILL uav2's daemon at S s")
+    p.add_argument("--restart-at", type=float, default=None, metavar="S", help="--flight: restart it at S s (kill + 5)")
+    p.add_argument("--out", default="out/fleet", help="--flight: logs, truth and scores (out/fleet)")
+    p.add_argument("--duration", type=float, default=None, help="--flight: flight length, s (the scenario's)")
     args = p.parse_args(argv)
+    if args.flight:
+        from bench.fleet_flight import main_flight
+
+        return main_flight(args.flight, args.seeds, args.kill_at, args.restart_at, args.out, args.duration)
     if args.accuracy:
         accuracy()
         return 0
