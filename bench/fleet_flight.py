@@ -1,6 +1,6 @@
 """Two drones, one target, end to end: F1 through a zenoh router, two daemons and the fusion node, scored.
 
-    python -m bench.fleet --flight F1 [--seeds N] [--kill-at 15 [--restart-at 20]] [--out out/fleet]
+    python -m bench.fleet --flight F1 [--seeds N] [--kill-at 15 [--restart-at 20]] [--duration S] [--out out/fleet]
 
 One run per seed, every process real and on 127.0.0.1 (the deployment of deploy/compose.fleet.yaml on one
 machine, free ports instead of the fixed ones)::
@@ -21,8 +21,8 @@ behind the wall clock) and started again at ``--restart-at`` (default T + 5).
 Scoring (:func:`score_flight`, pure): a *step* is one simulator tick (both vehicles' frames of it share
 the truth's ``t_s``).  A step is *tracked* by a vehicle when its daemon's track of that frame carries a line
 of sight.  Each fleet track is matched to the step of its newest line of sight (the contribution times
-put on each vehicle's frames: its own ``time_unix_us`` when the tracks carry it, else boot time plus the
-smallest arrival-minus-boot seen here, as the fusion's arrival clock does) and scored against the truth
+put on each vehicle's frames by the fusion's own :class:`~onboard.io.fleet_wire.CommonClock` replayed over
+the tracks as they arrived here: the tracks' ``time_unix_us``, else the arrival clock) and scored against the truth
 target at its time, in the fleet track's own NED frame: error over the true range from that vehicle's
 camera, beyond 3 sigma = ``||e|| > 3 sqrt(trace cov)`` (as ``groundsim eval``).  The share with a fleet
 position: of the steps from one second after the first step both vehicles track (to the end, or to the
@@ -54,9 +54,9 @@ FLEET_CONFIGS = {v: REPO / "config" / "fleet" / f"{v}.yaml" for v in VEHICLES}
 READY_TIMEOUT_S = 60.0  # imports and zenoh on a loaded 2-core machine
 SIM_ALLOWANCE_S = 30.0  # wall seconds beyond the flight before the simulator counts as stuck
 DRAIN_S = 1.5
-SETTLE_S = 1.0
-RESTART_FLIGHT_S = 25.0
-FUSE_MAX_AGE_S = 30.0  # the first second in which both vehicles track is not scored (the issue's words)
+SETTLE_S = 1.0  # the first second in which both vehicles track is not scored (the issue's words)
+RESTART_FLIGHT_S = 25.0  # with a kill: the flight goes on this long after the restart
+FUSE_MAX_AGE_S = 30.0  # the fusion's --max-age-s here (see FlightPlan.fuse_command)
 GOALS = (
     "goals: fleet position >= 95 % of steps, observable, median <= 0.5 % of range, <= 1 % beyond 3 sigma, "
     "each vehicle alone unobservable; latency p99 <= 50 ms; kill: continues within 1 s, fused again within 2 s"
