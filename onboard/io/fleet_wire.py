@@ -19,7 +19,10 @@ camera position, null if it did not contribute).
 
 Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's
 ``time_unix_us`` when it carries one (``time_source: vehicle``), else its ``time_boot_us`` plus a
-configured per-vehicle offset (``configured``), else plus an offset estimated from arrival times, the
+configured per-vehicle offset (``configured``), else plus the ``UTC - boot`` offset of the vehicle's latest
+stamped track (``remembered``: a daemon restarted on a running autopilot publishes its first seconds unstamped,
+on the same boot clock; the memory ends when the boot clock goes backwards, a reboot), else plus an offset
+estimated from arrival times, the
 minimum of ``arrival - time_boot`` over the last ``window_s`` (``arrival``: the fusion's clock, biased by the
 vehicle's shortest capture-to-arrival latency, typically a few ms on one machine; it drifts with the
 vehicle's clock and resets when the boot clock goes backwards).
@@ -122,7 +125,7 @@ def ned_transform(origin_from: GeodeticOrigin, origin_to: GeodeticOrigin) -> tup
 @dataclass(frozen=True)
 class TimedTrack:
     """A vehicle's track with its time on the common clock: ``t_s`` (UTC seconds) and where it came from
-    (``vehicle`` | ``configured`` | ``arrival``)."""
+    (``vehicle`` | ``configured`` | ``remembered`` | ``arrival``)."""
 
     track: Track
     t_s: float
@@ -140,20 +143,25 @@ class CommonClock:
         self.window_s = float(window_s)
         self._arrivals: dict[str, deque[tuple[float, float]]] = {}
         self._last_boot_s: dict[str, float] = {}
+        self._stamped_offset_s: dict[str, float] = {}  # UTC - boot of each vehicle's latest stamped track
 
     def time_s(
         self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float
     ) -> tuple[float, str]:
         """(common time s, its source) of a frame of ``vehicle``."""
-        if time_unix_us is not None:
-            return time_unix_us / 1e6, "vehicle"
         boot_s = time_boot_us / 1e6
-        if vehicle in self.offsets_s:
-            return boot_s + self.offsets_s[vehicle], "configured"
         hist = self._arrivals.setdefault(vehicle, deque())
         if boot_s < self._last_boot_s.get(vehicle, -math.inf) - 1.0:  # the boot clock went back: a reboot
             hist.clear()
+            self._stamped_offset_s.pop(vehicle, None)
         self._last_boot_s[vehicle] = boot_s
+        if time_unix_us is not None:
+            self._stamped_offset_s[vehicle] = time_unix_us / 1e6 - boot_s
+            return time_unix_us / 1e6, "vehicle"
+        if vehicle in self.offsets_s:
+            return boot_s + self.offsets_s[vehicle], "configured"
+        if vehicle in self._stamped_offset_s:
+            return boot_s + self._stamped_offset_s[vehicle], "remembered"
         hist.append((arrival_unix_s, arrival_unix_s - boot_s))
         while hist and hist[0][0] < arrival_unix_s - self.window_s:
             hist.popleft()

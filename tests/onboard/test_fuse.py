@@ -323,6 +323,19 @@ def test_the_arrival_clock_takes_the_shortest_latency_and_forgets_it_on_a_reboot
     assert clock.time_s("uav1", 1, 1_234_000_000, 0.0) == (pytest.approx(1234.0), "vehicle")
 
 
+def test_a_restarted_daemons_unstamped_tracks_keep_the_utc_offset_its_stamped_ones_had():
+    """A daemon restarted on a running autopilot publishes its first seconds without UTC (its mapping needs a few
+    SYSTEM_TIME samples): its frames stay on the UTC its earlier stamps gave that boot clock, not the arrival clock;
+    an autopilot reboot (the boot clock goes back) ends that memory."""
+    clock = CommonClock(window_s=10.0)
+    utc_minus_boot_s = 1_700_000_000.25
+    assert clock.time_s("uav1", 5_000_000, int((5.0 + utc_minus_boot_s) * 1e6), 0.0)[1] == "vehicle"
+    t, src = clock.time_s("uav1", 9_000_000, None, 1_700_000_100.0)  # arrival says nothing like it: ignored
+    assert (t, src) == (pytest.approx(9.0 + utc_minus_boot_s, abs=1e-6), "remembered")
+    t, src = clock.time_s("uav1", 2_000_000, None, 1_700_000_200.0)  # rebooted: back to the arrival estimate
+    assert (t, src) == (pytest.approx(1_700_000_200.0), "arrival")
+
+
 # --------------------------------------------------------------------------- the fleet's clocks and silent vehicles
 
 
