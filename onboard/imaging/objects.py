@@ -14,15 +14,16 @@ candidate inside a gate that widens while a track coasts (points of a few pixels
 means nothing after a one-pixel shift).  The filter is an alpha-beta filter on the line of sight
 (Kalata 1984, "The tracking index", IEEE TAES 20, 174) re-normalised to a unit vector.
 
-States: ``tentative`` until ``confirm_hits`` detections (dropped after ``tentative_misses`` misses),
-then ``confirmed``; ``coasting`` while it misses (predicted, not measured), for at most
+States: ``tentative`` until confirmed (see :class:`ObjectParams`: M of N detections moving
+consistently and unlike the background; dropped after ``tentative_misses`` misses), then ``confirmed``; ``coasting`` while it misses (predicted, not measured), for at most
 ``coast_frames`` frames, then ``lost`` (reported once, then gone).  Ids are never reused.
 
 Primary target (``mode`` auto): the current primary is kept while its track lives (confirmed or
 coasting); otherwise, of the tracks measured on this frame with at least ``confirm_hits`` hits on at
-least ``primary_hit_ratio`` of their frames, the one nearest the principal point becomes it (the
-observer's gimbal points the camera at its target, so of the steady objects the target is the one
-the camera centres); being chosen confirms it even where the clutter map would still hold it back.  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
+least ``primary_hit_ratio`` of their frames, the one nearest the principal point becomes it once it
+is confirmed (the observer's gimbal points the camera at its target, so of the steady objects the
+target is the one the camera centres; a fragment of terrain or cloud there is never confirmed, so
+never chosen).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
 change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
 continued on another object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
@@ -38,6 +39,7 @@ import logging
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from onboard.core.errors import InputError
@@ -48,7 +50,7 @@ from onboard.imaging.clutter import (
     cfar_threshold,
     column_offsets,
     frame_event,
-    local_noise,
+    local_noise_coarse,
     point_candidates,
     point_contrast,
     remove_column_offsets,
@@ -69,6 +71,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
+BACKGROUND_SCALE = 4  # the background motion is measured on frames this many times smaller
+TEXTURE_RING_PX = 32  # the texture about a track is sampled this far from it (beyond the noise window's half)
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 
 
@@ -77,11 +81,23 @@ class ObjectParams:
     """Track management (frames at the camera's rate, pixels).  ``gate_px`` association gate of a
     measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``;
     ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
-    ``defect_every``: frames between defect-map updates; clutter map: candidates per frame not held by a
-    confirmed track, averaged over ``clutter_frames`` in ``clutter_cell_px`` cells; a track whose 3 x 3
-    cells hold more than ``max_clutter_density`` others' candidates per frame needs
-    ``cluttered_confirm_hits`` hits to be confirmed; ``primary_hit_ratio``: the least fraction of its
-    frames a track must have been measured on to be chosen as the primary."""
+    ``defect_every``: frames between defect-map updates; ``primary_hit_ratio``: the least fraction of
+    its frames a track must have been measured on to be chosen as the primary.
+
+    Confirmation (M of N with consistent motion in bearing space, moving unlike the background):
+    besides ``confirm_hits`` hits, the track must have been measured on ``confirm_in_window`` of the
+    last ``confirm_window`` frames, its lines of sight over them projected through this frame's
+    rotation (the camera's own rotation removed) must fit a constant image velocity within
+    ``max_fit_rms_px`` rms (a fragment of a cloud edge or a thin streak slides back and forth along
+    it), and its velocity must differ by ``min_relative_speed_pxpf`` px per frame from the
+    background's: the median velocity of the other tentative tracks within ``background_radius_px``
+    when there are ``background_min_tracks`` (the local clutter: cloud-edge or terrain fragments
+    move with their background), else, where the track lies on texture (local noise over
+    ``textured_noise_ratio`` times the frame's median), the frame's dominant motion measured by phase
+    correlation over ``background_frames`` frames (accepted when its peak response is at least
+    ``background_min_response``).  On a clear sky there is no background to differ from: no test.
+    Measured on C1-C3 (docs/perception.md): this, not a higher threshold, removes the false tracks.
+    """
 
     gate_px: float = 4.0
     gate_growth_px: float = 0.5
@@ -92,11 +108,16 @@ class ObjectParams:
     tentative_misses: int = 2
     coast_frames: int = 45
     defect_every: int = 4
-    clutter_cell_px: int = 16
-    clutter_frames: int = 30
-    max_clutter_density: float = 0.3
-    cluttered_confirm_hits: int = 60
     primary_hit_ratio: float = 0.8
+    confirm_window: int = 15
+    confirm_in_window: int = 12
+    max_fit_rms_px: float = 0.5
+    background_radius_px: float = 120.0
+    background_min_tracks: int = 1
+    min_relative_speed_pxpf: float = 0.15
+    background_frames: int = 4
+    background_min_response: float = 0.1
+    textured_noise_ratio: float = 2.0
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -157,8 +178,9 @@ class _Track:
     age: int = 1
     confirmed: bool = False
     score: float = 0.0
-    own: float = 0.0  # its own detections' share of the clutter map, candidates per frame
-    history: list = field(default_factory=list)
+    history: list = field(default_factory=list)  # (frame index, los) of its last measured frames
+    velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
+    fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
 
 
 class ObjectTracker:
@@ -189,9 +211,12 @@ class ObjectTracker:
         self._defects: DefectMap | None = None
         self._prev: np.ndarray | None = None
         self._prev_median: float | None = None
-        self._clutter_map: np.ndarray | None = None
+        self._window: np.ndarray | None = None
+        self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey)
+        self._noise_median = 0.0
         self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
-        self._clutter_frames = 0  # frames the clutter map has seen (it is normalised by their weight)
+        self._coarse: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, coarse image, R) of recent frames
+        self._background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
@@ -221,7 +246,9 @@ class ObjectTracker:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self._frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
             img = remove_column_offsets(img, self._stripes)
-        noise = local_noise(img, p.noise_window_px)
+        noise = local_noise_coarse(img, p.noise_window_px)
+        self._noise = noise
+        self._noise_median = float(np.median(noise[::16, ::16]))
         if self._defects is None or self._defects.mask.shape != img.shape:
             self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
         if self._frame_index % self.params.defect_every == 0:
@@ -254,6 +281,7 @@ class ObjectTracker:
                 self._defects.reset()
             self._stripes = None
         cands = self.detect(image)
+        self._background_motion(image, R)
         measured = self._associate(cands, R)
         changed = self._select(R)
         return self._output(image, R, event, measured, changed)
@@ -274,15 +302,6 @@ class ObjectTracker:
                 if d <= gate:
                     pairs.append((d, ti, ci))
         pairs.sort()
-        decay = 1.0 - 1.0 / max(p.clutter_frames, 1)
-        cm = self._clutter_map
-        if cm is None:
-            h, w = self.K.height_px, self.K.width_px
-            cm = self._clutter_map = np.zeros((-(-h // p.clutter_cell_px), -(-w // p.clutter_cell_px)), np.float32)
-        cm *= np.float32(decay)
-        self._clutter_frames += 1
-        for t in self._tracks:
-            t.own *= decay
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -303,13 +322,7 @@ class ObjectTracker:
             t.misses = 0
             t.age += 1
             if not t.confirmed:
-                self._add_clutter(c, 1.0 - decay)
-                t.own += 1.0 - decay
-            if not t.confirmed and t.hits >= p.confirm_hits:
-                need = p.cluttered_confirm_hits if self._density(t) > p.max_clutter_density else p.confirm_hits
-                t.confirmed = t.hits >= need
-                if t.confirmed:
-                    log.debug("object %d confirmed at (%.1f, %.1f)", t.object_id, c.u_px, c.v_px)
+                t.history.append((self._frame_index, z))
             measured.add(t.object_id)
         keep: list[_Track] = []
         for ti, t in enumerate(self._tracks):
@@ -329,31 +342,140 @@ class ObjectTracker:
         for ci, c in enumerate(cands):
             if ci in used_c:
                 continue
-            self._add_clutter(c, 1.0 - decay)
             los = self._los(c.u_px, c.v_px, R)
             keep.append(
-                _Track(self._next_id, los, np.zeros(3), (c.u_px, c.v_px), c.bbox, score=c.score, own=1.0 - decay)
+                _Track(
+                    self._next_id,
+                    los,
+                    np.zeros(3),
+                    (c.u_px, c.v_px),
+                    c.bbox,
+                    score=c.score,
+                    history=[(self._frame_index, los)],
+                )
             )
             measured.add(self._next_id)
             self._next_id += 1
         self._tracks = keep
+        self._confirm(R)
         return measured
 
-    def _add_clutter(self, c: PointCandidate, amount: float) -> None:
-        cm = self._clutter_map
-        assert cm is not None
-        i = min(max(int(c.v_px) // self.params.clutter_cell_px, 0), cm.shape[0] - 1)
-        j = min(max(int(c.u_px) // self.params.clutter_cell_px, 0), cm.shape[1] - 1)
-        cm[i, j] += np.float32(amount)
+    def _background_motion(self, image: np.ndarray, R: np.ndarray) -> None:
+        """The dominant image motion of the background over the last ``background_frames`` frames, the
+        camera's rotation removed (px per frame, in this frame's image), by phase correlation of
+        ``BACKGROUND_SCALE`` times smaller frames (Kuglin & Hines 1975); None on a featureless frame
+        (a clear sky: the correlation peak is weak and the shift meaningless)."""
+        p = self.params
+        h, w = image.shape
+        small = cv2.resize(
+            np.asarray(image, dtype=np.float32),
+            (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE),
+            interpolation=cv2.INTER_AREA,
+        )
+        k = self._frame_index
+        self._coarse = [c for c in self._coarse if c[0] >= k - p.background_frames]
+        self._background_pxpf = None
+        if self._coarse and self._coarse[0][1].shape == small.shape:
+            k0, old, R0 = self._coarse[0]
+            if self._window is None or self._window.shape != small.shape:
+                self._window = cv2.createHanningWindow((small.shape[1], small.shape[0]), cv2.CV_32F)
+            (du, dv), response = cv2.phaseCorrelate(old, small, self._window)
+            if response >= p.background_min_response:
+                # where a point at infinity seen at the image centre on frame k0 is now: the rotation's share
+                K = self.K
+                c = R.T @ (R0 @ np.array([0.0, 0.0, 1.0]))
+                if c[2] > 1e-6:
+                    ru = K.fx_px * c[0] / c[2]
+                    rv = K.fy_px * c[1] / c[2]
+                    n = k - k0
+                    self._background_pxpf = (
+                        (du * BACKGROUND_SCALE - ru) / n,
+                        (dv * BACKGROUND_SCALE - rv) / n,
+                    )
+        self._coarse.append((k, small, R))
 
-    def _density(self, t: _Track) -> float:
-        """Other candidates per frame in the 3 x 3 clutter cells about the track."""
-        cm = self._clutter_map
-        assert cm is not None
-        i = min(max(int(t.uv[1]) // self.params.clutter_cell_px, 0), cm.shape[0] - 1)
-        j = min(max(int(t.uv[0]) // self.params.clutter_cell_px, 0), cm.shape[1] - 1)
-        weight = 1.0 - (1.0 - 1.0 / max(self.params.clutter_frames, 1)) ** self._clutter_frames
-        return (float(cm[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2].sum()) - t.own) / max(weight, 1e-6)
+    def _confirm(self, R: np.ndarray) -> None:
+        """Confirm the tentative tracks that pass the M-of-N, constant-velocity and moves-unlike-its-
+        background tests (see :class:`ObjectParams`)."""
+        p = self.params
+        k = self._frame_index
+        tentative = [t for t in self._tracks if not t.confirmed]
+        for t in tentative:
+            t.history = [h for h in t.history if h[0] > k - p.confirm_window]
+            t.velocity_pxpf = None
+            if len(t.history) >= 3:
+                t.velocity_pxpf, rms = self._fit(t.history, R)
+                t.fit_rms_px = rms
+        for t in tentative:
+            if t.hits < p.confirm_hits or t.misses > 0 or len(t.history) < p.confirm_in_window:
+                continue
+            if t.velocity_pxpf is None or t.fit_rms_px > p.max_fit_rms_px:
+                continue
+            bg = [
+                o.velocity_pxpf
+                for o in tentative
+                if o is not t
+                and o.velocity_pxpf is not None
+                and math.hypot(o.uv[0] - t.uv[0], o.uv[1] - t.uv[1]) <= p.background_radius_px
+            ]
+            rel = math.nan
+            vb = None
+            if len(bg) >= p.background_min_tracks:
+                vb = np.median(np.asarray(bg), axis=0)
+            elif self._background_pxpf is not None and self._textured(t):
+                vb = np.asarray(self._background_pxpf)
+            if vb is not None:
+                rel = math.hypot(t.velocity_pxpf[0] - vb[0], t.velocity_pxpf[1] - vb[1])
+                if rel < p.min_relative_speed_pxpf:
+                    continue
+            t.confirmed = True
+            log.debug(
+                "object %d confirmed at (%.1f, %.1f): rms %.2f px, velocity (%.2f, %.2f) px/frame, %d background"
+                " tracks, relative %.2f px/frame",
+                t.object_id,
+                t.uv[0],
+                t.uv[1],
+                t.fit_rms_px,
+                t.velocity_pxpf[0],
+                t.velocity_pxpf[1],
+                len(bg),
+                rel,
+            )
+
+    def _textured(self, t: _Track) -> bool:
+        """The track lies where the local noise (texture) is ``textured_noise_ratio`` times the frame's
+        median: cloud or terrain, whose motion the frame's background motion stands for; on a clear
+        sky there is no background to differ from."""
+        noise = self._noise
+        if noise is None:
+            return False
+        h, w = noise.shape
+        # sampled on a ring about the track, not under it: a bright point raises its own local noise
+        r = TEXTURE_RING_PX
+        samples = [
+            noise[min(max(int(t.uv[1]) + di, 0), h - 1), min(max(int(t.uv[0]) + dj, 0), w - 1)]
+            for di, dj in ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (-r, r), (r, -r), (r, r))
+        ]
+        return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_median)
+
+    def _fit(self, history: list, R: np.ndarray) -> tuple[tuple[float, float], float]:
+        """Constant-velocity least-squares fit of a track's measured lines of sight projected through
+        this frame's camera rotation (the camera's own rotation removed): velocity (px per frame) and
+        the rms residual (px)."""
+        K = self.K
+        los = np.array([h[1] for h in history])
+        c = los @ R  # rows: R.T @ los
+        z = np.maximum(c[:, 2], 1e-6)
+        u = K.fx_px * c[:, 0] / z
+        v = K.fy_px * c[:, 1] / z
+        f = np.array([h[0] for h in history], dtype=np.float64)
+        f -= f.mean()
+        den = float(f @ f)
+        vu = float(f @ (u - u.mean())) / den
+        vv = float(f @ (v - v.mean())) / den
+        ru = u - u.mean() - vu * f
+        rv = v - v.mean() - vv * f
+        return (vu, vv), math.sqrt(float(np.mean(ru * ru + rv * rv)))
 
     def _select(self, R: np.ndarray) -> bool:
         alive = {t.object_id: t for t in self._tracks if t.confirmed}
@@ -370,8 +492,11 @@ class ObjectTracker:
             ]
             if steady:
                 best = min(steady, key=lambda t: (math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px), t.object_id))
-                best.confirmed = True  # chosen as the target: confirmed whatever the clutter around it
-                self._primary = best.object_id
+                # chosen once confirmed, i.e. once it has moved unlike its background: a fragment of
+                # terrain or cloud near the centre is never chosen, and until the steady track nearest
+                # the centre is confirmed no other is taken in its place
+                if best.confirmed:
+                    self._primary = best.object_id
         if self._primary != old:
             self.primary_changes += 1
             log.info("primary target: object %s (was %s)", self._primary, old)

@@ -210,22 +210,28 @@ def test_camera_rotation_is_compensated_from_the_pose():
             assert len(ids) != 1  # without the pose the gate cannot follow the pan
 
 
+def _near_far(k: int) -> tuple[tuple[float, float], tuple[float, float]]:
+    """Two objects drifting apart (each other's only neighbour: they must move unlike each other to be
+    confirmed, see ObjectParams): one near the image centre, one near a corner."""
+    return (W_PX / 2 + 3 + 0.1 * k, H_PX / 2 - 2), (20.0, 20.0 + 0.3 * k)
+
+
 def test_primary_is_the_steady_object_nearest_the_centre_and_a_change_is_reported():
     rng = np.random.default_rng(7)
     tr = ObjectTracker(K)
-    near, far = (W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)
     changes = []
     primary_uv = None
-    for _ in range(20):
+    for k in range(24):
+        near, far = _near_far(k)
         out = tr.update(_frame(rng, [near, far]), None)
         changes.append(out.primary_changed)
         if out.primary is not None:
             primary_uv = (out.primary.u_px, out.primary.v_px)
     assert primary_uv is not None and math.hypot(primary_uv[0] - near[0], primary_uv[1] - near[1]) < CENTRE_TOL_PX
     assert sum(changes) == 1
-    first = tr.update(_frame(rng, [near, far]), None).primary_id
-    for _ in range(tr.params.coast_frames + 2):  # the primary disappears for good
-        out = tr.update(_frame(rng, [far]), None)
+    first = tr.update(_frame(rng, list(_near_far(24))), None).primary_id
+    for k in range(tr.params.coast_frames + 2):  # the primary disappears for good
+        out = tr.update(_frame(rng, [_near_far(25 + k)[1]]), None)
     assert out.primary_id is not None and out.primary_id != first
     assert tr.primary_changes == 2
 
@@ -257,8 +263,8 @@ def test_object_chain_reports_the_primary_as_the_track_and_a_new_id_on_a_change(
 
     rng = np.random.default_rng(9)
     chain = ObjectChain(K)
-    near, far = (W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)
-    for _ in range(10):
+    for k in range(20):
+        near, far = _near_far(k)
         upd = chain.update(_frame(rng, [near, far]), np.eye(3))
     assert upd.state is TrackState.TRACKING and upd.measurement_valid
     assert math.hypot(upd.u_px - near[0], upd.v_px - near[1]) < CENTRE_TOL_PX
@@ -280,9 +286,8 @@ def test_objects_message_carries_every_confirmed_object_as_json():
 
     rng = np.random.default_rng(10)
     tr = ObjectTracker(K)
-    pts = [(W_PX / 2 + 3, H_PX / 2 - 2), (20.0, 20.0)]
-    for _ in range(8):
-        out = tr.update(_frame(rng, pts), np.eye(3))
+    for k in range(20):
+        out = tr.update(_frame(rng, list(_near_far(k))), np.eye(3))
     msg = json.loads(json.dumps(objects_message(out, 123456)))
     assert msg["schema"] == "irtrack.objects/1" and msg["time_boot_us"] == 123456
     assert len(msg["objects"]) == 2 and sum(o["primary"] for o in msg["objects"]) == 1
@@ -301,7 +306,7 @@ def test_pipeline_runs_the_objects_chain_with_the_pose():
 
     rig = Rig(config=build_config({"imaging": {"chain": "objects"}}))
     assert isinstance(rig.pipe.tracker, ObjectChain)
-    tracks = rig.run(20)
+    tracks = rig.run(30)  # confirmation takes confirm_in_window (12) of the first frames
     tracking = [t for t in tracks if t.state == "tracking"]
     assert len(tracking) >= 12 and len({t.track_id for t in tracking}) == 1
     assert rig.pipe.tracker._R is not None  # the pose's rotation reached the chain
