@@ -20,6 +20,7 @@ from onboard.imaging.clutter import (
     isolated_outliers,
     local_contrast,
     local_noise,
+    local_noise_coarse,
     point_candidates,
     point_contrast,
     remove_column_offsets,
@@ -313,3 +314,75 @@ def test_pipeline_runs_the_objects_chain_with_the_pose():
     assert (
         rig.pipe.tracker.last_objects is not None and rig.pipe.tracker.last_objects.primary_id == tracking[0].track_id
     )
+
+
+def test_point_candidates_components_match_opencv_stats():
+    """The sparse statistics (area, box, centre) agree with OpenCV's own component statistics."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    img = _sky(rng)
+    for u, v in ((30.3, 40.6), (100.7, 20.2), (64.0, 70.0), (10.0, 85.0)):
+        _blob(img, u, v, 25.0, sigma_px=1.2)
+    p = ClutterParams()
+    f = img.astype(np.float32)
+    contrast = point_contrast(f, p)
+    thr = cfar_threshold(local_noise(f), p.threshold_sigma, 0.8)
+    cands = point_candidates(contrast, thr, p)
+    mask = (contrast >= thr).astype(np.uint8)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    assert len(cands) == n - 1 == 4
+    for c in cands:
+        lab = labels[c.bbox[1] + c.bbox[3] // 2, c.bbox[0] + c.bbox[2] // 2]
+        lab = lab if lab else labels[int(c.v_px), int(c.u_px)]
+        assert tuple(int(x) for x in stats[lab, :4]) == c.bbox and int(stats[lab, 4]) == c.area_px
+        w = np.where(labels == lab, contrast, 0.0)
+        jj, ii = np.meshgrid(np.arange(W_PX) + 0.5, np.arange(H_PX) + 0.5)
+        assert abs(c.u_px - (w * jj).sum() / w.sum()) < 1e-4 and abs(c.v_px - (w * ii).sum() / w.sum()) < 1e-4
+
+
+def test_local_noise_coarse_follows_the_full_size_estimate():
+    rng = np.random.default_rng(12)
+    img = np.full((H_PX, W_PX), 50.0)
+    img[:, W_PX // 2 :] += rng.normal(0.0, 4.0, (H_PX, W_PX // 2))
+    f = img.astype(np.float32)
+    full, coarse = local_noise(f, 31), local_noise_coarse(f, 31)
+    # away from the step between the halves (both are window means there, of slightly different windows)
+    for sl in (np.s_[:, : W_PX // 2 - 20], np.s_[:, W_PX // 2 + 20 :]):
+        assert np.median(np.abs(coarse[sl] - full[sl])) < 0.1 * max(float(np.median(full[sl])), 0.1)
+
+
+GROUND_SPOTS = ((30.0, 60.0), (45.0, 90.0), (15.0, 110.0))  # (u, v) on the ground texture, before its scroll
+
+
+def _textured_scene(k: int, target: tuple[float, float]) -> np.ndarray:
+    """A frame whose left half is terrain-like texture with three warm spots on it (roofs), all
+    scrolling down at 0.5 px per frame, the right half clear sky, and a target moving across."""
+    import cv2
+
+    rng = np.random.default_rng(13)
+    big = cv2.blur(rng.normal(0.0, 12.0, (H_PX + 80, W_PX)), (5, 5))
+    for u, v in GROUND_SPOTS:
+        _blob(big, u, v, 25.0)
+    m = np.float32([[1, 0, 0], [0, 1, 0.5 * k - 40.0]])
+    tex = cv2.warpAffine(big.astype(np.float32), m, (W_PX, H_PX), flags=cv2.INTER_LINEAR)
+    img = _sky(np.random.default_rng(100 + k))
+    img[:, : W_PX // 2] += tex[:, : W_PX // 2]
+    _blob(img, target[0], target[1], 30.0)
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def test_points_moving_with_their_background_are_not_confirmed_and_a_target_is():
+    """Warm spots on scrolling terrain move together (each other's background); a target crossing
+    them moves unlike them."""
+    tr = ObjectTracker(K)
+    spots_confirmed, target_confirmed = 0, 0
+    for k in range(40):
+        target = (15.0 + 0.6 * k, 70.0)
+        out = tr.update(_textured_scene(k, target), np.eye(3))
+        spots = [(u, v - 40.0 + 0.5 * k) for u, v in GROUND_SPOTS]
+        for o in out.confirmed:
+            spots_confirmed += any(math.hypot(o.u_px - u, o.v_px - v) < 3.0 for u, v in spots)
+            target_confirmed += math.hypot(o.u_px - target[0], o.v_px - target[1]) < 3.0
+    assert target_confirmed >= 20  # confirmed within ~15 frames, then measured on every frame
+    assert spots_confirmed == 0
