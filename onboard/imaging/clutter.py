@@ -242,11 +242,12 @@ def local_noise(image: np.ndarray, window_px: int = 31) -> np.ndarray:
     return cv2.blur(dev, (window_px, window_px), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
 
 
-def local_noise_coarse(image: np.ndarray, window_px: int = 31, factor: int = 4) -> np.ndarray:
+def local_noise_coarse(image: np.ndarray, window_px: int = 31, factor: int = 4, full: bool = True) -> np.ndarray:
     """:func:`local_noise` with its window mean taken on a ``factor`` times coarser grid (the
     deviations averaged over ``factor`` x ``factor`` cells, a ``window_px / factor`` box mean there,
     bilinear back to full size): the noise field varies over tens of pixels, and the full-size
-    31 x 31 box mean was a third of the chain's cost.  Float32, image shape."""
+    31 x 31 box mean was a third of the chain's cost.  Float32, image shape (``full``) or the coarse
+    grid's (``H // factor, W // factor``: cell (i, j) covers pixels ``factor * i ...``)."""
     img = np.asarray(image, dtype=np.float32)
     dev = cv2.absdiff(img, cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE))
     h, w = img.shape
@@ -254,7 +255,7 @@ def local_noise_coarse(image: np.ndarray, window_px: int = 31, factor: int = 4) 
     coarse = cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)
     k = max(window_px // factor, 1) | 1
     coarse = cv2.blur(coarse, (k, k), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
-    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR) if full else coarse
 
 
 def cfar_threshold(noise: np.ndarray, k_sigma: float, floor: float) -> np.ndarray:

@@ -71,6 +71,7 @@ log = logging.getLogger(__name__)
 
 OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
 BACKGROUND_SCALE = 4  # the background motion is measured on frames this many times smaller
+NOISE_FACTOR = 4  # the local noise (CFAR) is estimated on a grid this many times coarser
 TEXTURE_RING_PX = 32  # the texture about a track is sampled this far from it (beyond the noise window's half)
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 
@@ -117,6 +118,8 @@ class ObjectParams:
     background_frames: int = 4
     background_min_response: float = 0.1
     textured_noise_ratio: float = 2.0
+    aided_threshold_factor: float = 0.35
+    aided_max_run: int = 10
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -180,6 +183,7 @@ class _Track:
     history: list = field(default_factory=list)  # (frame index, los) of its last measured frames
     velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
     fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
+    aided_run: int = 0  # consecutive frames measured by track-aided detections only
 
 
 class ObjectTracker:
@@ -211,8 +215,10 @@ class ObjectTracker:
         self._prev: np.ndarray | None = None
         self._prev_median: float | None = None
         self._window: np.ndarray | None = None
-        self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey)
+        self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey), coarse grid
         self._noise_median = 0.0
+        self._contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
+        self._threshold: np.ndarray | None = None
         self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
         self._coarse: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, coarse image, R) of recent frames
         self._background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
@@ -245,17 +251,66 @@ class ObjectTracker:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self._frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
             img -= self._stripes[None, :]  # in place on the frame's float copy (remove_column_offsets, one pass less)
-        noise = local_noise_coarse(img, p.noise_window_px)
+        # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
+        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False)
         self._noise = noise
-        self._noise_median = float(np.median(noise[::16, ::16]))
+        self._noise_median = float(np.median(noise))
+        h, w = img.shape
+        threshold = cv2.resize(
+            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
+        )
         if self._defects is None or self._defects.mask.shape != img.shape:
             self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
         if self._frame_index % self.params.defect_every == 0:
-            sigma = max(p.defect_outlier_sigma * float(np.median(noise[::16, ::16])), 2.0 * p.min_threshold_lsb)
+            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
             self._defects.update(img, sigma)
         img = self._defects.repair(img)
         contrast = point_contrast(img, p)
-        return point_candidates(contrast, cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), p)
+        self._contrast, self._threshold = contrast, threshold
+        return point_candidates(contrast, threshold, p)
+
+    def _aided_candidates(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
+        """Track-aided detection: inside the gate of each confirmed track (measured or coasting) that no
+        candidate falls in, the strongest component of the point contrast above ``aided_threshold_factor``
+        times the CFAR threshold.  Where an object is already known the prior is strong and a lower
+        threshold costs few false alarms (a gate is ~0.1 % of the frame); it bridges the frames where a
+        dim or flickering object dips below the whole-frame threshold.  Candidates are added to ``cands``
+        (a new list)."""
+        p = self.params
+        contrast, threshold = self._contrast, self._threshold
+        if contrast is None or threshold is None or p.aided_threshold_factor >= 1.0:
+            return cands
+        h, w = contrast.shape
+        out = list(cands)
+        for t in self._tracks:
+            # a track held only by aided detections for long may have slid onto clutter: it must be
+            # seen by the whole-frame threshold again
+            if not t.confirmed or t.aided_run >= p.aided_max_run:
+                continue
+            puv = self._project(_unit(t.los + t.rate), R)
+            if puv is None:
+                continue
+            gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
+            if any(math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate for c in out):
+                continue
+            r = int(math.ceil(gate)) + 2
+            x0, y0 = max(int(puv[0]) - r, 0), max(int(puv[1]) - r, 0)
+            x1, y1 = min(int(puv[0]) + r + 1, w), min(int(puv[1]) + r + 1, h)
+            if x1 - x0 < 3 or y1 - y0 < 3:
+                continue
+            roi = point_candidates(
+                contrast[y0:y1, x0:x1], threshold[y0:y1, x0:x1] * np.float32(p.aided_threshold_factor), self.clutter
+            )
+            best = None
+            for c in roi:
+                u, v = c.u_px + x0, c.v_px + y0
+                if math.hypot(u - puv[0], v - puv[1]) <= gate and (best is None or c.score > best.score):
+                    best = dataclasses.replace(
+                        c, u_px=u, v_px=v, bbox=(c.bbox[0] + x0, c.bbox[1] + y0, c.bbox[2], c.bbox[3])
+                    )
+            if best is not None:
+                out.append(best)
+        return out
 
     # ------------------------------------------------------------------ step
 
@@ -279,14 +334,18 @@ class ObjectTracker:
             if self._defects is not None:
                 self._defects.reset()
             self._stripes = None
-        cands = self.detect(image)
+        regular = self.detect(image)
+        cands = self._aided_candidates(regular, R)
         self._background_motion(image, R)
-        measured = self._associate(cands, R)
+        measured = self._associate(cands, R, len(regular))
         changed = self._select(R)
         return self._output(image, R, event, measured, changed)
 
-    def _associate(self, cands: list[PointCandidate], R: np.ndarray) -> set[int]:
+    def _associate(self, cands: list[PointCandidate], R: np.ndarray, n_regular: int | None = None) -> set[int]:
+        """Greedy nearest-first association; ``cands[n_regular:]`` are track-aided candidates, which
+        update their track but never start one."""
         p = self.params
+        n_regular = len(cands) if n_regular is None else n_regular
         preds = []
         for t in self._tracks:
             pl = _unit(t.los + t.rate)
@@ -320,6 +379,7 @@ class ObjectTracker:
             t.hits += 1
             t.misses = 0
             t.age += 1
+            t.aided_run = t.aided_run + 1 if ci >= n_regular else 0
             if not t.confirmed:
                 t.history.append((self._frame_index, z))
             measured.add(t.object_id)
@@ -338,7 +398,7 @@ class ObjectTracker:
                     log.debug("object %d lost after %d frames without a detection", t.object_id, t.misses)
                 continue
             keep.append(t)
-        for ci, c in enumerate(cands):
+        for ci, c in enumerate(cands[:n_regular]):
             if ci in used_c:
                 continue
             los = self._los(c.u_px, c.v_px, R)
@@ -450,11 +510,14 @@ class ObjectTracker:
         noise = self._noise
         if noise is None:
             return False
-        h, w = noise.shape
+        h, w = noise.shape  # the coarse grid: NOISE_FACTOR pixels a cell
         # sampled on a ring about the track, not under it: a bright point raises its own local noise
         r = TEXTURE_RING_PX
         samples = [
-            noise[min(max(int(t.uv[1]) + di, 0), h - 1), min(max(int(t.uv[0]) + dj, 0), w - 1)]
+            noise[
+                min(max((int(t.uv[1]) + di) // NOISE_FACTOR, 0), h - 1),
+                min(max((int(t.uv[0]) + dj) // NOISE_FACTOR, 0), w - 1),
+            ]
             for di, dj in ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (-r, r), (r, -r), (r, r))
         ]
         return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_median)

@@ -386,3 +386,27 @@ def test_points_moving_with_their_background_are_not_confirmed_and_a_target_is()
             target_confirmed += math.hypot(o.u_px - target[0], o.v_px - target[1]) < 3.0
     assert target_confirmed >= 20  # confirmed within ~15 frames, then measured on every frame
     assert spots_confirmed == 0
+
+
+@pytest.mark.parametrize("factor, measured", [(0.35, 10), (1.0, 0)])
+def test_track_aided_detection_bridges_a_dim_spell_of_a_confirmed_object(factor, measured):
+    """A confirmed object dims to 4 grey (below the whole-frame threshold) for 10 frames: the lower
+    threshold inside its gate keeps it measured; without it (factor 1) it is not.  A point of the same
+    4 grey elsewhere, with no track, never starts one."""
+    from onboard.imaging.objects import ObjectParams
+
+    rng = np.random.default_rng(14)
+    tr = ObjectTracker(K, params=ObjectParams(aided_threshold_factor=factor))
+    seen = 0
+    for k in range(34):
+        uv = (30.0 + 0.5 * k, 40.0)
+        if k < 24:
+            out = tr.update(_frame(rng, [uv], 30.0), None)
+            continue
+        img = _sky(rng)
+        _blob(img, uv[0], uv[1], 4.0)
+        _blob(img, 100.0, 70.0, 4.0)  # as dim, nothing known there
+        out = tr.update(np.clip(np.round(img), 0, 255).astype(np.uint8), None)
+        seen += any(math.hypot(o.u_px - uv[0], o.v_px - uv[1]) < 2.0 for o in out.confirmed)
+        assert all(math.hypot(o.u_px - 100.0, o.v_px - 70.0) > 5.0 for o in out.objects)
+    assert seen == measured
