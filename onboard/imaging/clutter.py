@@ -200,10 +200,13 @@ def _centre(img: np.ndarray, centre_px: int) -> np.ndarray:
     return cv2.dilate(mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE)
 
 
-def _surround_max(img: np.ndarray, cell_px: int, guard_px: int) -> np.ndarray:
+def _surround_max(img: np.ndarray, cell_px: int, guard_px: int, box_mean: np.ndarray | None = None) -> np.ndarray:
     """The largest of the eight ``cell_px`` box means ``guard_px`` away, in one dilation by a kernel
-    holding the eight offsets."""
-    m = img if cell_px == 1 else cv2.blur(img, (cell_px, cell_px), borderType=cv2.BORDER_REPLICATE)
+    holding the eight offsets (``box_mean``: those box means, when already computed)."""
+    if box_mean is not None:
+        m = box_mean
+    else:
+        m = img if cell_px == 1 else cv2.blur(img, (cell_px, cell_px), borderType=cv2.BORDER_REPLICATE)
     kernel = _RINGS.get(guard_px)
     if kernel is None:
         kernel = np.zeros((2 * guard_px + 1, 2 * guard_px + 1), np.uint8)
@@ -221,14 +224,15 @@ def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centr
     return cv2.subtract(_centre(img, centre_px), _surround_max(img, cell_px, guard_px))
 
 
-def point_contrast(image: np.ndarray, params: ClutterParams) -> np.ndarray:
+def point_contrast(image: np.ndarray, params: ClutterParams, box_mean: np.ndarray | None = None) -> np.ndarray:
     """The smaller of two local contrasts: ``cell_px`` cells ``guard_px`` away, and single pixels
     ``sharp_guard_px`` away.  A protrusion of a cloud edge a few pixels wide beats a surround 4 px away
     but not one 2 px away, which lies inside it; a blurred 2 x 2 target beats both.  Measured on the
     reference scenes' frames (threshold 5 sigma): C1's candidates per frame fall from ~100 (guard 4
-    alone) to ~7, the target still detected on every frame."""
+    alone) to ~7, the target still detected on every frame.  ``box_mean``: the image's ``cell_px``
+    box mean (edges replicated), when the caller has it already (the noise estimate uses the 3 x 3 one)."""
     img = np.asarray(image, dtype=np.float32)
-    surround = _surround_max(img, params.cell_px, params.guard_px)
+    surround = _surround_max(img, params.cell_px, params.guard_px, box_mean)
     if params.sharp_guard_px > 0:  # min over both contrasts = the centre minus the larger surround
         surround = cv2.max(surround, _surround_max(img, 1, params.sharp_guard_px))
     return cv2.subtract(_centre(img, 2), surround)
@@ -242,14 +246,19 @@ def local_noise(image: np.ndarray, window_px: int = 31) -> np.ndarray:
     return cv2.blur(dev, (window_px, window_px), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
 
 
-def local_noise_coarse(image: np.ndarray, window_px: int = 31, factor: int = 4, full: bool = True) -> np.ndarray:
+def local_noise_coarse(
+    image: np.ndarray, window_px: int = 31, factor: int = 4, full: bool = True, box3: np.ndarray | None = None
+) -> np.ndarray:
     """:func:`local_noise` with its window mean taken on a ``factor`` times coarser grid (the
     deviations averaged over ``factor`` x ``factor`` cells, a ``window_px / factor`` box mean there,
     bilinear back to full size): the noise field varies over tens of pixels, and the full-size
     31 x 31 box mean was a third of the chain's cost.  Float32, image shape (``full``) or the coarse
-    grid's (``H // factor, W // factor``: cell (i, j) covers pixels ``factor * i ...``)."""
+    grid's (``H // factor, W // factor``: cell (i, j) covers pixels ``factor * i ...``).  ``box3``: the
+    image's 3 x 3 box mean (edges replicated), when the caller has it already."""
     img = np.asarray(image, dtype=np.float32)
-    dev = cv2.absdiff(img, cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE))
+    if box3 is None:
+        box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    dev = cv2.absdiff(img, box3)
     h, w = img.shape
     hc, wc = max(h // factor, 1), max(w // factor, 1)
     coarse = cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)

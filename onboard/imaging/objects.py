@@ -251,21 +251,24 @@ class ObjectTracker:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self._frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
             img -= self._stripes[None, :]  # in place on the frame's float copy (remove_column_offsets, one pass less)
+        if self._defects is None or self._defects.mask.shape != img.shape:
+            self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
+        if self._frame_index % self.params.defect_every == 0:
+            # the outlier level from the previous frame's noise (the noise is measured after the repair)
+            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
+            self._defects.update(img, sigma)
+        img = self._defects.repair(img)
+        # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
+        box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE) if p.cell_px == 3 else None
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
-        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False)
+        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False, box3=box3)
         self._noise = noise
         self._noise_median = float(np.median(noise))
         h, w = img.shape
         threshold = cv2.resize(
             cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
         )
-        if self._defects is None or self._defects.mask.shape != img.shape:
-            self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
-        if self._frame_index % self.params.defect_every == 0:
-            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
-            self._defects.update(img, sigma)
-        img = self._defects.repair(img)
-        contrast = point_contrast(img, p)
+        contrast = point_contrast(img, p, box3)
         self._contrast, self._threshold = contrast, threshold
         return point_candidates(contrast, threshold, p)
 
