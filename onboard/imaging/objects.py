@@ -353,16 +353,18 @@ class ObjectTracker:
         for t in self._tracks:
             pl = _unit(t.los + t.rate)
             preds.append((pl, self._project(pl, R)))
-        pairs = []
-        for ti, (t, (_, puv)) in enumerate(zip(self._tracks, preds)):
-            if puv is None:
-                continue
-            gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
-            for ci, c in enumerate(cands):
-                d = math.hypot(c.u_px - puv[0], c.v_px - puv[1])
-                if d <= gate:
-                    pairs.append((d, ti, ci))
-        pairs.sort()
+        pairs: list[tuple[float, int, int]] = []
+        live = [ti for ti, (_, puv) in enumerate(preds) if puv is not None]
+        if live and cands:
+            # every track-candidate distance at once (tens of each on a cluttered frame)
+            puv_a = np.array([preds[ti][1] for ti in live])
+            cuv = np.array([(c.u_px, c.v_px) for c in cands])
+            d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
+            gate = np.minimum(
+                p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
+            )
+            li, ci_a = np.nonzero(d <= gate[:, None])
+            pairs = sorted((float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -465,9 +467,16 @@ class ObjectTracker:
         for t in tentative:
             t.history = [h for h in t.history if h[0] > k - p.confirm_window]
             t.velocity_pxpf = None
-            if len(t.history) >= 3:
-                t.velocity_pxpf, rms = self._fit(t.history, R)
-                t.fit_rms_px = rms
+        if not any(
+            t.hits >= p.confirm_hits and t.misses == 0 and len(t.history) >= p.confirm_in_window for t in tentative
+        ):
+            return  # nothing to confirm on this frame: no fits needed
+        fitted = [t for t in tentative if len(t.history) >= 3]
+        if fitted:
+            vel, rms = self._fit_all([t.history for t in fitted], R)
+            for t, v, r in zip(fitted, vel, rms):
+                t.velocity_pxpf = (float(v[0]), float(v[1]))
+                t.fit_rms_px = float(r)
         for t in tentative:
             if t.hits < p.confirm_hits or t.misses > 0 or len(t.history) < p.confirm_in_window:
                 continue
@@ -525,24 +534,37 @@ class ObjectTracker:
         ]
         return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_median)
 
-    def _fit(self, history: list, R: np.ndarray) -> tuple[tuple[float, float], float]:
-        """Constant-velocity least-squares fit of a track's measured lines of sight projected through
-        this frame's camera rotation (the camera's own rotation removed): velocity (px per frame) and
-        the rms residual (px)."""
+    def _fit_all(self, histories: list[list], R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Constant-velocity least-squares fits of tracks' measured lines of sight projected through
+        this frame's camera rotation (the camera's own rotation removed), all tracks at once (padded
+        rows, weights 0 on the padding): velocities (n, 2) px per frame and rms residuals (n,) px."""
         K = self.K
-        los = np.array([h[1] for h in history])
+        n = len(histories)
+        width = max(len(h) for h in histories)
+        los = np.array([e[1] for h in histories for e in h])
         c = los @ R  # rows: R.T @ los
         z = np.maximum(c[:, 2], 1e-6)
-        u = K.fx_px * c[:, 0] / z
-        v = K.fy_px * c[:, 1] / z
-        f = np.array([h[0] for h in history], dtype=np.float64)
-        f -= f.mean()
-        den = float(f @ f)
-        vu = float(f @ (u - u.mean())) / den
-        vv = float(f @ (v - v.mean())) / den
-        ru = u - u.mean() - vu * f
-        rv = v - v.mean() - vv * f
-        return (vu, vv), math.sqrt(float(np.mean(ru * ru + rv * rv)))
+        row = np.repeat(np.arange(n), [len(h) for h in histories])
+        col = np.concatenate([np.arange(len(h)) for h in histories])
+        w = np.zeros((n, width))
+        f = np.zeros((n, width))
+        u = np.zeros((n, width))
+        v = np.zeros((n, width))
+        w[row, col] = 1.0
+        f[row, col] = [e[0] for h in histories for e in h]
+        u[row, col] = K.fx_px * c[:, 0] / z
+        v[row, col] = K.fy_px * c[:, 1] / z
+        cnt = w.sum(axis=1, keepdims=True)
+        fc = (f - (w * f).sum(axis=1, keepdims=True) / cnt) * w
+        uc = (u - (w * u).sum(axis=1, keepdims=True) / cnt) * w
+        vc = (v - (w * v).sum(axis=1, keepdims=True) / cnt) * w
+        den = np.maximum((fc * fc).sum(axis=1), 1e-12)
+        vu = (fc * uc).sum(axis=1) / den
+        vv = (fc * vc).sum(axis=1) / den
+        ru = (uc - vu[:, None] * fc) * w
+        rv = (vc - vv[:, None] * fc) * w
+        rms = np.sqrt((ru * ru + rv * rv).sum(axis=1) / cnt[:, 0])
+        return np.stack([vu, vv], axis=1), rms
 
     def _select(self, R: np.ndarray) -> bool:
         alive = {t.object_id: t for t in self._tracks if t.confirmed}
