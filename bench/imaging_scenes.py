@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|both] [--seed 0]
-[--frames N] [--cache DIR]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -26,7 +26,9 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   primary is its one track, so this counts its track ids);
 * ``ms p50``, ``ms p95``, ``cpu p50``: wall ms (median, 95th percentile) and median CPU ms of the
   chain's update per frame (OpenCV on one thread; the machine is shared, so the figures are noisy;
-  CPU ms is the steadier of the two, at the clock's granularity).
+  CPU ms is the steadier of the two, at the clock's granularity).  ``--repeat N`` runs each chain N
+  times and takes each frame's least time over the runs (the closest to an idle core's figure on a
+  loaded machine; the scores are the same every run).
 
 Numbers only: nothing asserts.
 """
@@ -215,7 +217,22 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         ms_p95=float(np.percentile(ms, 95)) if ms else math.nan,
         cpu_ms_p50=float(np.median(cpu_ms)) if cpu_ms else math.nan,
         primary_selections=selections,
+        ms_frames=ms,
+        cpu_ms_frames=cpu_ms,
     )
+
+
+def score_repeated(run: SceneRun, chain_cls, repeat: int) -> dict:
+    """:func:`score` ``repeat`` times with a fresh chain each time (the chains are deterministic: the
+    same scores), the times per frame being the least over the runs: on a shared machine the least of
+    several runs of the same work is the closest to its cost on an idle core."""
+    runs = [score(run, chain_cls(run)) for _ in range(max(repeat, 1))]
+    s = dict(runs[0])
+    if len(runs) > 1:
+        ms = np.min(np.array([r["ms_frames"] for r in runs]), axis=0)
+        cpu = np.min(np.array([r["cpu_ms_frames"] for r in runs]), axis=0)
+        s.update(ms_p50=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), cpu_ms_p50=float(np.median(cpu)))
+    return s
 
 
 def main(argv: list[str]) -> None:
@@ -227,6 +244,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=None, help="first N frames only (default: the whole scenario)")
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)")
+    ap.add_argument(
+        "--repeat", type=int, default=1, help="run each chain N times; times per frame are the least over the runs"
+    )
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
@@ -242,7 +262,7 @@ def main(argv: list[str]) -> None:
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache)
         for c in chains:
-            s = score(run, CHAINS[c](run))
+            s = score_repeated(run, CHAINS[c], a.repeat)
             print(
                 f"{name:<6s} {c:<8s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
