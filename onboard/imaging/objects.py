@@ -126,6 +126,15 @@ class ObjectParams:
             raise InputError(f"ObjectParams alpha in (0, 1] and beta in [0, 1], got {self.alpha}, {self.beta}")
         if self.confirm_hits < 1 or self.coast_frames < 0 or self.tentative_misses < 0:
             raise InputError("ObjectParams confirm_hits >= 1, coast_frames and tentative_misses >= 0")
+        if not 3 <= self.confirm_in_window <= self.confirm_window:
+            raise InputError(
+                f"ObjectParams 3 <= confirm_in_window <= confirm_window, got {self.confirm_in_window}, {self.confirm_window}"
+            )
+        if self.background_frames < 1 or not 0 < self.aided_threshold_factor <= 1:
+            raise InputError(
+                "ObjectParams background_frames >= 1 and aided_threshold_factor in (0, 1], got "
+                f"{self.background_frames}, {self.aided_threshold_factor}"
+            )
 
 
 @dataclass(frozen=True)

@@ -410,3 +410,13 @@ def test_track_aided_detection_bridges_a_dim_spell_of_a_confirmed_object(factor,
         seen += any(math.hypot(o.u_px - uv[0], o.v_px - uv[1]) < 2.0 for o in out.confirmed)
         assert all(math.hypot(o.u_px - 100.0, o.v_px - 70.0) > 5.0 for o in out.objects)
     assert seen == measured
+
+
+@pytest.mark.parametrize(
+    "kwargs", [dict(confirm_in_window=16), dict(confirm_in_window=2), dict(aided_threshold_factor=0.0)]
+)
+def test_object_params_refuse_inconsistent_confirmation_settings(kwargs):
+    from onboard.imaging.objects import ObjectParams
+
+    with pytest.raises(Exception, match="ObjectParams"):
+        ObjectParams(**kwargs)
