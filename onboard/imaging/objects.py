@@ -189,7 +189,7 @@ class _Track:
     age: int = 1
     confirmed: bool = False
     score: float = 0.0
-    history: list = field(default_factory=list)  # (frame index, los) of its last measured frames
+    history: list = field(default_factory=list)  # (frame index, los, u, v) of its last measured frames
     velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
     fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
@@ -395,7 +395,7 @@ class ObjectTracker:
             t.age += 1
             t.aided_run = t.aided_run + 1 if ci >= n_regular else 0
             if not t.confirmed:
-                t.history.append((self._frame_index, z))
+                t.history.append((self._frame_index, z, c.u_px, c.v_px))
             measured.add(t.object_id)
         keep: list[_Track] = []
         for ti, t in enumerate(self._tracks):
@@ -424,7 +424,7 @@ class ObjectTracker:
                     (c.u_px, c.v_px),
                     c.bbox,
                     score=c.score,
-                    history=[(self._frame_index, los)],
+                    history=[(self._frame_index, los, c.u_px, c.v_px)],
                 )
             )
             measured.add(self._next_id)
@@ -546,7 +546,11 @@ class ObjectTracker:
     def _fit_all(self, histories: list[list], R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Constant-velocity least-squares fits of tracks' measured lines of sight projected through
         this frame's camera rotation (the camera's own rotation removed), all tracks at once (padded
-        rows, weights 0 on the padding): velocities (n, 2) px per frame and rms residuals (n,) px."""
+        rows, weights 0 on the padding): velocities (n, 2) px per frame and rms residuals (n,) px.  The
+        rms is the smaller of that fit's and the same fit's on the measured pixels: an attitude that
+        jitters or lags the frame (an extrapolated pose) scatters the projected positions of a point
+        the image holds still; the velocities stay the projected ones, the frame every track and the
+        background motion are compared in."""
         K = self.K
         n = len(histories)
         width = max(len(h) for h in histories)
@@ -557,23 +561,17 @@ class ObjectTracker:
         col = np.concatenate([np.arange(len(h)) for h in histories])
         w = np.zeros((n, width))
         f = np.zeros((n, width))
-        u = np.zeros((n, width))
-        v = np.zeros((n, width))
         w[row, col] = 1.0
         f[row, col] = [e[0] for h in histories for e in h]
+        u = np.zeros((n, width))
+        v = np.zeros((n, width))
         u[row, col] = K.fx_px * c[:, 0] / z
         v[row, col] = K.fy_px * c[:, 1] / z
-        cnt = w.sum(axis=1, keepdims=True)
-        fc = (f - (w * f).sum(axis=1, keepdims=True) / cnt) * w
-        uc = (u - (w * u).sum(axis=1, keepdims=True) / cnt) * w
-        vc = (v - (w * v).sum(axis=1, keepdims=True) / cnt) * w
-        den = np.maximum((fc * fc).sum(axis=1), 1e-12)
-        vu = (fc * uc).sum(axis=1) / den
-        vv = (fc * vc).sum(axis=1) / den
-        ru = (uc - vu[:, None] * fc) * w
-        rv = (vc - vv[:, None] * fc) * w
-        rms = np.sqrt((ru * ru + rv * rv).sum(axis=1) / cnt[:, 0])
-        return np.stack([vu, vv], axis=1), rms
+        vel, rms = _cv_fit(f, u, v, w)
+        u[row, col] = [e[2] for h in histories for e in h]
+        v[row, col] = [e[3] for h in histories for e in h]
+        _, rms_px = _cv_fit(f, u, v, w)
+        return vel, np.minimum(rms, rms_px)
 
     def _select(self, R: np.ndarray) -> bool:
         alive = {t.object_id: t for t in self._tracks if t.confirmed}
@@ -670,6 +668,21 @@ class ObjectTracker:
                 )
             )
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _cv_fit(f: np.ndarray, u: np.ndarray, v: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Row-wise least-squares fits ``(u, v) = a + b f`` over the entries with weight ``w`` 1 (padding
+    0): the slopes (n, 2) and the rms residuals (n,)."""
+    cnt = w.sum(axis=1, keepdims=True)
+    fc = (f - (w * f).sum(axis=1, keepdims=True) / cnt) * w
+    uc = (u - (w * u).sum(axis=1, keepdims=True) / cnt) * w
+    vc = (v - (w * v).sum(axis=1, keepdims=True) / cnt) * w
+    den = np.maximum((fc * fc).sum(axis=1), 1e-12)
+    vu = (fc * uc).sum(axis=1) / den
+    vv = (fc * vc).sum(axis=1) / den
+    ru = (uc - vu[:, None] * fc) * w
+    rv = (vc - vv[:, None] * fc) * w
+    return np.stack([vu, vv], axis=1), np.sqrt((ru * ru + rv * rv).sum(axis=1) / cnt[:, 0])
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
