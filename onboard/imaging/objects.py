@@ -20,10 +20,10 @@ consistently and unlike the background; dropped after ``tentative_misses`` misse
 
 Primary target (``mode`` auto): the current primary is kept while its track lives (confirmed or
 coasting); otherwise, of the tracks measured on this frame with at least ``confirm_hits`` hits on at
-least ``primary_hit_ratio`` of their frames, the one nearest the principal point becomes it once it
-is confirmed (the observer's gimbal points the camera at its target, so of the steady objects the
-target is the one the camera centres; a fragment of terrain or cloud there is never confirmed, so
-never chosen).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
+least ``primary_hit_ratio`` of their frames, the longest-tracked within ``primary_radius_px`` of the
+principal point (else the nearest to it) becomes it once it is confirmed and measured (the observer's
+gimbal points the camera at its target, so of the steady objects the target is the one the camera
+centres and holds; a fragment of terrain or cloud there is never confirmed, so never chosen).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
 change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
 continued on another object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
@@ -82,7 +82,8 @@ class ObjectParams:
     measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``;
     ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
     ``defect_every``: frames between defect-map updates; ``primary_hit_ratio``: the least fraction of
-    its frames a track must have been measured on to be chosen as the primary.
+    its frames a track must have been measured on to be chosen as the primary; ``primary_radius_px``:
+    of the steady tracks this close to the principal point the longest-tracked is chosen.
 
     Confirmation (M of N with consistent motion in bearing space, moving unlike the background):
     besides ``confirm_hits`` hits, the track must have been measured on ``confirm_in_window`` of the
@@ -120,6 +121,7 @@ class ObjectParams:
     textured_noise_ratio: float = 2.0
     aided_threshold_factor: float = 0.35
     aided_max_run: int = 10
+    primary_radius_px: float = 40.0
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -581,17 +583,29 @@ class ObjectTracker:
         self._primary = None
         if self.mode == "auto":
             p, K = self.params, self.K
+            # a steady track that missed this frame still counts (a target dips below the threshold
+            # now and then): otherwise a farther one is taken in its place on that frame
             steady = [
                 t
                 for t in self._tracks
-                if t.misses == 0 and t.hits >= p.confirm_hits and t.hits >= p.primary_hit_ratio * t.age
+                if t.misses <= p.tentative_misses and t.hits >= p.confirm_hits and t.hits >= p.primary_hit_ratio * t.age
             ]
             if steady:
-                best = min(steady, key=lambda t: (math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px), t.object_id))
-                # chosen once confirmed, i.e. once it has moved unlike its background: a fragment of
-                # terrain or cloud near the centre is never chosen, and until the steady track nearest
-                # the centre is confirmed no other is taken in its place
-                if best.confirmed:
+
+                def off_centre(t: _Track) -> float:
+                    return math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px)
+
+                # where the gimbal points: of the steady tracks about the centre the longest-tracked one
+                # (two objects near one line of sight: the one the camera has been holding), else the nearest
+                central = [t for t in steady if off_centre(t) <= p.primary_radius_px]
+                if central:
+                    best = max(central, key=lambda t: (t.hits, -off_centre(t), -t.object_id))
+                else:
+                    best = min(steady, key=lambda t: (off_centre(t), t.object_id))
+                # chosen once confirmed, i.e. once it has moved unlike its background, and measured on
+                # this frame: a fragment of terrain or cloud near the centre is never chosen, and until
+                # the steady track nearest the centre is confirmed no other is taken in its place
+                if best.confirmed and best.misses == 0:
                     self._primary = best.object_id
         if self._primary != old:
             self.primary_changes += 1
