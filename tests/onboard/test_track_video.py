@@ -19,7 +19,7 @@ from onboard.app.track_video import EXIT_INPUT, main, open_frames
 REPO = Path(__file__).resolve().parents[2]
 W_PX, H_PX = 192, 144
 N_FRAMES = 45
-SETTLE_FRAMES = 14  # the chain confirms a track after 12 of 15 frames (ObjectParams): frames before this are not checked
+SETTLE_FRAMES = 14  # the chain confirms after 12 of 15 frames (ObjectParams): earlier frames unchecked
 CENTRE_TOL_PX = 0.5  # lossless frames: a 0.7 px Gaussian on noise, its centroid
 CENTRE_TOL_MP4_PX = 1.0  # H.264 at crf 12
 MIN_FRAMES_FOUND = 0.9  # of the frames after SETTLE_FRAMES, per object
