@@ -43,8 +43,14 @@ def _fly(uv_offset=None, seconds: float = 60.0):
     return sw, np.array(selections), last
 
 
-def test_confirmed_full_window_selections_back_off_to_the_cap_and_the_estimate_stays_honest():
-    sw, sel, (est, p_true, rng) = _fly()
+@pytest.fixture(scope="module")
+def quiet_flight():
+    """``_fly()`` without an offset, shared: both tests read it, and a minute of estimation costs seconds."""
+    return _fly()
+
+
+def test_confirmed_full_window_selections_back_off_to_the_cap_and_the_estimate_stays_honest(quiet_flight):
+    sw, sel, (est, p_true, rng) = quiet_flight
     cfg = sw.config
     gaps = np.diff(sel[sel >= cfg.window_s])
     assert gaps.size >= 2
@@ -57,8 +63,8 @@ def test_confirmed_full_window_selections_back_off_to_the_cap_and_the_estimate_s
     assert err / rng < 0.03 and est.observable
 
 
-def test_a_target_that_leaves_the_model_calls_a_selection_before_the_backed_off_period():
-    _, quiet, _ = _fly()
+def test_a_target_that_leaves_the_model_calls_a_selection_before_the_backed_off_period(quiet_flight):
+    _, quiet, _ = quiet_flight
     cfg = SlidingConfig()
     # the quiet flight's longest full-window gap, and a manoeuvre that starts inside it
     starts, gaps = quiet[:-1], np.diff(quiet)
