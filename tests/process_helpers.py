@@ -12,7 +12,7 @@ import threading
 import time
 from pathlib import Path
 
-__all__ = ["WatchedCommand", "alive", "descendants", "kill_all", "wait_gone"]
+__all__ = ["WatchedCommand", "alive", "descendants", "kill_all", "terminate", "wait_gone"]
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -60,6 +60,17 @@ def kill_all(pids) -> None:
                 pass
 
 
+def terminate(proc: subprocess.Popen, timeout_s: float) -> int:
+    """SIGTERM to ``proc``, SIGKILL if it has not exited within ``timeout_s``; its exit code (negative: the
+    signal that ended it, so a test that wants 0 sees a hang as a failure and leaves no process behind)."""
+    proc.terminate()
+    try:
+        return proc.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    return proc.wait()
+
+
 class WatchedCommand:
     """``python -m MODULE ARGS`` from the repository's root, with one stream (``watch``: ``"stdout"`` or
     ``"stderr"``) read line by line into :attr:`lines` (so that a test can wait for a line) and the other read
@@ -98,6 +109,12 @@ class WatchedCommand:
         if any(needle in line for line in self.lines):
             self.seen.set()
         assert self.seen.wait(timeout_s), f"no {needle!r} within {timeout_s} s:\n{''.join(self.lines)[-3000:]}"
+
+    def kill(self) -> None:
+        """SIGKILL the command if it still runs, and reap it (a test's clean-up, whatever happened)."""
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(5)
 
     def interrupt(self, group: bool, exit_timeout_s: float) -> tuple[int, str, str]:
         """SIGINT to the process group (a terminal's Ctrl-C; ``new_session`` needed) or to the command's PID

@@ -7,8 +7,6 @@ that is not a recording is refused in one line; Ctrl-C stops it in one line."""
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
 import time
@@ -18,10 +16,12 @@ import numpy as np
 import pytest
 
 from onboard.app.replay import EXIT_CONFIG, UNREPLAYED_KEYS, compare_tracks, compare_within_sigma, main
+from tests.process_helpers import WatchedCommand
 
 REPO = Path(__file__).resolve().parents[1]
 REPLAY_TIMEOUT_S = 240.0
 CTRL_C_AFTER_S = 2.0  # after the replay began
+REPLAY_START_TIMEOUT_S = 60.0  # imports and reading the recording on a busy 2-core machine
 
 
 def test_compare_tracks_reports_fields_and_distances():
@@ -231,28 +231,27 @@ def test_ctrl_c_stops_a_replay_in_one_line_with_what_was_written(recorded, tmp_p
     """SIGINT to the process group (a terminal's Ctrl-C; the tracker's process too, with --jobs 2): exit 130, one
     line naming the frames replayed and the partial --out file, no traceback from either process."""
     out = tmp_path / "partial.jsonl"
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "onboard.replay", str(recorded.daemon_mcap), "--rate", "realtime", "--jobs", "2"]
-        + ["--out", str(out)],
-        cwd=REPO,
-        env={**os.environ, "PYTHONUNBUFFERED": "1"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        start_new_session=True,
+    cmd = WatchedCommand(
+        "onboard.replay",
+        str(recorded.daemon_mcap),
+        "--rate",
+        "realtime",
+        "--jobs",
+        "2",
+        "--out",
+        str(out),
+        watch="stdout",
+        new_session=True,
     )
     try:
-        assert proc.stdout is not None
-        first = proc.stdout.readline()  # the recording's summary: the replay starts next
+        cmd.wait_for("frames taken by the pipeline", REPLAY_START_TIMEOUT_S)
+        first = cmd.lines[0]  # the recording's summary: the replay starts next
         assert "frames taken by the pipeline" in first, first
         time.sleep(CTRL_C_AFTER_S)  # mid-replay: the 10 s flight replays in real time
-        os.killpg(proc.pid, signal.SIGINT)
-        _, err = proc.communicate(timeout=30)
+        returncode, _, err = cmd.interrupt(group=True, exit_timeout_s=30)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(5)
-    assert proc.returncode == 130, err
+        cmd.kill()
+    assert returncode == 130, err
     assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
     # the replay's own log records may come first (a recording made on a loaded machine can hold a gap in its
     # frames, which the replay reports as the daemon did); the interruption itself is one line, the last

@@ -56,14 +56,6 @@ def test_proc_stat_any_command_name(name, ticks):
     assert [t.utime_ticks, t.stime_ticks, t.cutime_ticks, t.cstime_ticks] == ticks
 
 
-@given(st.text(max_size=200))
-def test_proc_stat_garbage_raises_input_error_only(text):
-    try:
-        parse_proc_stat(text)
-    except InputError:
-        pass
-
-
 @pytest.mark.parametrize(
     "text, expected",
     [
@@ -93,10 +85,11 @@ def test_cpu_stat_v1_and_v2():
     assert parse_cgroup_cpu_stat("usage_usec 5\nuser_usec 4\n") is None
 
 
+@pytest.mark.parametrize("parse", [parse_proc_stat, parse_cgroup_cpu_stat], ids=["proc_stat", "cpu_stat"])
 @given(st.text(max_size=300))
-def test_cpu_stat_garbage(text):
+def test_garbage_raises_input_error_only(parse, text):
     try:
-        parse_cgroup_cpu_stat(text)
+        parse(text)
     except InputError:
         pass
 

@@ -27,6 +27,7 @@ from onboard.io.fleet_wire import (
     vehicle_fleet_track_key,
     vehicle_from_track_key,
 )
+from tests.process_helpers import terminate
 
 REPO = Path(__file__).resolve().parents[2]
 ATOL_M = 1e-6  # 1 um: frame maps
@@ -200,6 +201,7 @@ def test_bad_options_exit_2_on_one_line(argv, words, capsys):
 
 START_TIMEOUT_S = 30.0  # imports and the zenoh session on a busy 2-core machine
 DATA_TIMEOUT_S = 15.0
+STOP_TIMEOUT_S = 10.0  # SIGTERM -> exit (a hang guard: a SIGKILL after it fails the exit-code check)
 
 
 class _Collector:
@@ -283,12 +285,7 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
     finally:
         for s in sessions:
             s.close()
-        proc.terminate()
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        terminate(proc, STOP_TIMEOUT_S)
     assert proc.returncode == 0, proc.stderr.read().decode() if proc.stderr else ""
     both = [m for m in got.fleet if len(m["vehicles"]) == 2 and m["observable"]]
     assert both, "no observable two-vehicle fleet track"

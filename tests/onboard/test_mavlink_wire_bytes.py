@@ -169,21 +169,14 @@ def test_autopilot_link_output_is_byte_identical():
         link.poll()  # TIMESYNC reply, next SET_MESSAGE_INTERVAL
         clock.t_s += 1.5
         link.tick()  # retry, heartbeat, TIMESYNC
-        assert link.send_tracking_image_status(
-            mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
-            mav.CAMERA_TRACKING_MODE_POINT,
-            point_x=0.25,
-            point_y=0.75,
-            radius=0.01,
-        )
-        assert link.send_tracking_image_status(
-            mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
-            mav.CAMERA_TRACKING_MODE_RECTANGLE,
-            rec_top_x=0.1,
-            rec_top_y=0.2,
-            rec_bottom_x=0.3,
-            rec_bottom_y=0.4,
-        )
+        for mode, where in (
+            (mav.CAMERA_TRACKING_MODE_POINT, dict(point_x=0.25, point_y=0.75, radius=0.01)),
+            (
+                mav.CAMERA_TRACKING_MODE_RECTANGLE,
+                dict(rec_top_x=0.1, rec_top_y=0.2, rec_bottom_x=0.3, rec_bottom_y=0.4),
+            ),
+        ):
+            assert link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mode, **where)
         assert link.send_tracking_geo_status(
             47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=130.0, hdg_rad=0.3, hdg_acc_rad=0.05
         )
