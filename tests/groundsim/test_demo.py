@@ -33,10 +33,10 @@ from groundsim.world.truth import TruthWriter, truth_row
 from onboard.app.config import load_config
 from onboard.core.errors import ConfigError
 from onboard.core.frames import geodetic_from_ned, quat_from_euler
+from tests.process_helpers import REPO
 
 pytestmark = pytest.mark.timeout(90)
 
-REPO = Path(__file__).resolve().parents[2]
 P1 = scenarios_dir() / "P1.yaml"
 DEMO_WALL_LIMIT_S = 60.0  # the whole real demo test, start to exit (the pytest timeout's basis: a hang guard)
 SIGINT_AFTER_LINES = 3  # live status lines with frames flowing before Ctrl-C

@@ -13,14 +13,8 @@ from pymavlink.dialects.v20 import common as mav
 
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.pose import GimbalReference
+from onboard.io import mavlink_wire as wire
 from onboard.io.mavlink_wire import (
-    AttitudeQuaternion,
-    CameraTrackingGeoStatus,
-    CameraTrackingImageStatus,
-    FollowTarget,
-    GimbalDeviceAttitudeStatus,
-    GlobalPositionInt,
-    Heartbeat,
     SystemTime,
     Timesync,
     command_ack_message,
@@ -57,7 +51,7 @@ def _close(a, b, tol) -> bool:
 @ROUND_TRIP
 @given(TIME_US, st.tuples(UNIT, UNIT, UNIT, UNIT), st.tuples(RATE, RATE, RATE))
 def test_attitude_quaternion_round_trip(t_us, q, w):
-    back = AttitudeQuaternion.from_message(wire_roundtrip(AttitudeQuaternion(t_us, q, w).to_message()))
+    back = wire.AttitudeQuaternion.from_message(wire_roundtrip(wire.AttitudeQuaternion(t_us, q, w).to_message()))
     assert back.time_boot_us == t_us // 1000 * 1000
     assert all(_close(a, b, _f32(b)) for a, b in zip(back.q_ned_from_body + back.omega_frd_rps, q + w))
 
@@ -73,8 +67,8 @@ def test_attitude_quaternion_round_trip(t_us, q, w):
     st.one_of(st.just(math.nan), st.floats(-10.0, 10.0)),
 )
 def test_global_position_int_round_trip(t_us, lat, lon, alt, alt_rel, v, hdg):
-    back = GlobalPositionInt.from_message(
-        wire_roundtrip(GlobalPositionInt(t_us, lat, lon, alt, alt_rel, v, hdg).to_message())
+    back = wire.GlobalPositionInt.from_message(
+        wire_roundtrip(wire.GlobalPositionInt(t_us, lat, lon, alt, alt_rel, v, hdg).to_message())
     )
     assert back.time_boot_us == t_us // 1000 * 1000
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
@@ -103,8 +97,8 @@ def test_global_position_int_round_trip(t_us, lat, lon, alt, alt_rel, v, hdg):
     st.integers(0, 2**32 - 1),
 )
 def test_gimbal_device_attitude_status_round_trip(t_us, q, flags, w, failure):
-    sent = GimbalDeviceAttitudeStatus(t_us, q, flags, w, 0.5, failure)
-    back = GimbalDeviceAttitudeStatus.from_message(wire_roundtrip(sent.to_message()))
+    sent = wire.GimbalDeviceAttitudeStatus(t_us, q, flags, w, 0.5, failure)
+    back = wire.GimbalDeviceAttitudeStatus.from_message(wire_roundtrip(sent.to_message()))
     assert back.time_boot_us == t_us // 1000 * 1000 and (back.flags, back.failure_flags) == (flags, failure)
     assert all(_close(a, b, _f32(b)) for a, b in zip(back.q_ref_from_gimbal + back.omega_ref_rps, q + w))
     assert back.reference == sent.reference
@@ -125,8 +119,8 @@ def test_timesync_and_system_time_round_trip(tc1, ts1, unix_us, t_us):
 @ROUND_TRIP
 @given(st.integers(0, 255), st.sampled_from([0, 1, 2]), st.integers(0, 255), st.tuples(*[NORM] * 7), st.integers(0, 6))
 def test_camera_tracking_image_status_round_trip(status, mode, data, coords, dev):
-    sent = CameraTrackingImageStatus(status, mode, data, *coords, dev)
-    back = CameraTrackingImageStatus.from_message(wire_roundtrip(sent.to_message()))
+    sent = wire.CameraTrackingImageStatus(status, mode, data, *coords, dev)
+    back = wire.CameraTrackingImageStatus.from_message(wire_roundtrip(sent.to_message()))
     assert (back.tracking_status, back.tracking_mode, back.target_data, back.camera_device_id) == (
         status,
         mode,
@@ -134,7 +128,8 @@ def test_camera_tracking_image_status_round_trip(status, mode, data, coords, dev
         dev,
     )
     assert all(
-        _close(getattr(back, n), getattr(sent, n), _f32(getattr(sent, n))) for n in CameraTrackingImageStatus._COORDS
+        _close(getattr(back, n), getattr(sent, n), _f32(getattr(sent, n)))
+        for n in wire.CameraTrackingImageStatus._COORDS
     )
 
 
@@ -150,8 +145,8 @@ VEL = st.one_of(st.just(math.nan), st.floats(-1e3, 1e3))
     st.tuples(ACC, ACC, VEL, VEL, VEL, ACC, ACC, VEL, ACC),
 )
 def test_camera_tracking_geo_status_round_trip(lat, lon, alt, rest):
-    sent = CameraTrackingGeoStatus(lat, lon, alt, *rest)
-    back = CameraTrackingGeoStatus.from_message(wire_roundtrip(sent.to_message()))
+    sent = wire.CameraTrackingGeoStatus(lat, lon, alt, *rest)
+    back = wire.CameraTrackingGeoStatus.from_message(wire_roundtrip(sent.to_message()))
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
     for name in (
         "alt_m",
@@ -179,7 +174,9 @@ def test_camera_tracking_geo_status_round_trip(lat, lon, alt, rest):
     st.floats(0, 1e4),
 )
 def test_follow_target_round_trip(t_us, lat, lon, alt, v, h_acc, v_acc):
-    back = FollowTarget.from_message(wire_roundtrip(FollowTarget(t_us, lat, lon, alt, v, h_acc, v_acc).to_message()))
+    back = wire.FollowTarget.from_message(
+        wire_roundtrip(wire.FollowTarget(t_us, lat, lon, alt, v, h_acc, v_acc).to_message())
+    )
     assert back.time_boot_us == t_us // 1000 * 1000
     assert abs(back.lat_deg - lat) <= DEGE7_TOL_DEG + 1e-15 and abs(back.lon_deg - lon) <= DEGE7_TOL_DEG + 1e-15
     assert all(
@@ -189,8 +186,8 @@ def test_follow_target_round_trip(t_us, lat, lon, alt, v, h_acc, v_acc):
 
 
 def test_heartbeat_commands_and_generic_messages_round_trip():
-    hb = Heartbeat(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 7, mav.MAV_STATE_ACTIVE)
-    assert Heartbeat.from_message(wire_roundtrip(hb.to_message())) == hb
+    hb = wire.Heartbeat(mav.MAV_TYPE_CAMERA, mav.MAV_AUTOPILOT_INVALID, 0, 7, mav.MAV_STATE_ACTIVE)
+    assert wire.Heartbeat.from_message(wire_roundtrip(hb.to_message())) == hb
     cmd = wire_roundtrip(set_message_interval_message(7, 1, 285, 20_000, 300))
     assert (cmd.command, cmd.param1, cmd.param2, cmd.confirmation) == (
         mav.MAV_CMD_SET_MESSAGE_INTERVAL,
@@ -208,21 +205,21 @@ def test_heartbeat_commands_and_generic_messages_round_trip():
 @pytest.mark.parametrize(
     "value, field",
     [
-        (AttitudeQuaternion(1000, (math.nan, 0, 0, 1)), "ATTITUDE_QUATERNION.q_ned_from_body[0]"),
-        (AttitudeQuaternion(-1, (1, 0, 0, 0)), "ATTITUDE_QUATERNION.time_boot_us"),
-        (AttitudeQuaternion(0, (1, 0, 0)), "ATTITUDE_QUATERNION.q_ned_from_body"),
-        (GlobalPositionInt(0, 91.0, 8.0, 500.0), "GLOBAL_POSITION_INT.lat_deg"),
-        (GlobalPositionInt(0, 47.0, 8.0, 500.0, 0.0, (400.0, 0.0, 0.0)), "GLOBAL_POSITION_INT.v_ned_mps[0]"),
-        (GlobalPositionInt(0, 47.0, 8.0, 3e6), "GLOBAL_POSITION_INT.alt_amsl_m"),
-        (GimbalDeviceAttitudeStatus(0, (1, 0, 0, 0), 1 << 16), "GIMBAL_DEVICE_ATTITUDE_STATUS.flags"),
-        (CameraTrackingImageStatus(1, 3), "CAMERA_TRACKING_IMAGE_STATUS.tracking_mode"),
-        (CameraTrackingImageStatus(1, 1, point_x=1.5), "CAMERA_TRACKING_IMAGE_STATUS.point_x"),
-        (CameraTrackingGeoStatus(47.0, math.nan, 0, 1, 1, 0, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.lon_deg"),
-        (CameraTrackingGeoStatus(47.0, 8.0, 0, -1.0, 1, 0, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.h_acc_m"),
-        (CameraTrackingGeoStatus(47.0, 8.0, 0, 1, 1, math.inf, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.vel_n_mps"),
-        (FollowTarget(0, 47.0, 8.0, 0.0, (0, 0, 0), -1.0, 1.0), "FOLLOW_TARGET.h_acc_m"),
+        (wire.AttitudeQuaternion(1000, (math.nan, 0, 0, 1)), "ATTITUDE_QUATERNION.q_ned_from_body[0]"),
+        (wire.AttitudeQuaternion(-1, (1, 0, 0, 0)), "ATTITUDE_QUATERNION.time_boot_us"),
+        (wire.AttitudeQuaternion(0, (1, 0, 0)), "ATTITUDE_QUATERNION.q_ned_from_body"),
+        (wire.GlobalPositionInt(0, 91.0, 8.0, 500.0), "GLOBAL_POSITION_INT.lat_deg"),
+        (wire.GlobalPositionInt(0, 47.0, 8.0, 500.0, 0.0, (400.0, 0.0, 0.0)), "GLOBAL_POSITION_INT.v_ned_mps[0]"),
+        (wire.GlobalPositionInt(0, 47.0, 8.0, 3e6), "GLOBAL_POSITION_INT.alt_amsl_m"),
+        (wire.GimbalDeviceAttitudeStatus(0, (1, 0, 0, 0), 1 << 16), "GIMBAL_DEVICE_ATTITUDE_STATUS.flags"),
+        (wire.CameraTrackingImageStatus(1, 3), "CAMERA_TRACKING_IMAGE_STATUS.tracking_mode"),
+        (wire.CameraTrackingImageStatus(1, 1, point_x=1.5), "CAMERA_TRACKING_IMAGE_STATUS.point_x"),
+        (wire.CameraTrackingGeoStatus(47.0, math.nan, 0, 1, 1, 0, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.lon_deg"),
+        (wire.CameraTrackingGeoStatus(47.0, 8.0, 0, -1.0, 1, 0, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.h_acc_m"),
+        (wire.CameraTrackingGeoStatus(47.0, 8.0, 0, 1, 1, math.inf, 0, 0, 0), "CAMERA_TRACKING_GEO_STATUS.vel_n_mps"),
+        (wire.FollowTarget(0, 47.0, 8.0, 0.0, (0, 0, 0), -1.0, 1.0), "FOLLOW_TARGET.h_acc_m"),
         (Timesync(2**63, 0), "TIMESYNC.tc1_ns"),
-        (Heartbeat(256, 0), "HEARTBEAT.mav_type"),
+        (wire.Heartbeat(256, 0), "HEARTBEAT.mav_type"),
     ],
 )
 def test_bad_values_are_refused_naming_the_message_and_field(value, field):
@@ -233,9 +230,9 @@ def test_bad_values_are_refused_naming_the_message_and_field(value, field):
 
 def test_decoding_passes_hostile_values_on_for_the_pose_buffer_to_judge():
     raw = mav.MAVLink_attitude_quaternion_message(5, math.nan, 0, 0, 0, 0, 0, 0, [0.0] * 4)
-    assert math.isnan(AttitudeQuaternion.from_message(wire_roundtrip(raw)).q_ned_from_body[0])
+    assert math.isnan(wire.AttitudeQuaternion.from_message(wire_roundtrip(raw)).q_ned_from_body[0])
     sentinel = mav.MAVLink_global_position_int_message(5, 2**31 - 1, 2**31 - 1, 0, 0, 0, 0, 0, 65535)
-    back = GlobalPositionInt.from_message(wire_roundtrip(sentinel))
+    back = wire.GlobalPositionInt.from_message(wire_roundtrip(sentinel))
     assert back.lat_deg == pytest.approx(214.7483647) and math.isnan(back.heading_rad)
 
 
