@@ -24,6 +24,7 @@ from onboard.io.foxglove_messages import (
 )
 from onboard.io.record import OBJECT_ANNOTATIONS_TOPIC, FlightRecorder, RecordingPoseSource
 from tests.onboard.test_pipeline import Rig
+from tests.udp_capture import UdpCapture
 
 N_FRAMES = 40
 STATIC_UV = (120, 90)  # a second warm object, still in the image
@@ -280,8 +281,6 @@ def test_the_live_view_serves_the_objects_and_their_annotations():
 def test_the_video_tap_streams_the_objects_drawn():
     """The daemon's video tap: FrameResult.objects -> VideoStreamer (AGC, overlay, H.264 in MPEG-TS over UDP on
     127.0.0.1) -> PyAV decodes the datagrams: the boxes are in the picture."""
-    import socket
-    import threading
     import time
 
     av = pytest.importorskip("av")
@@ -289,26 +288,11 @@ def test_the_video_tap_streams_the_objects_drawn():
     from onboard.core.irframe import IrFrame
     from onboard.core.track import Track
 
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)
-    rx.bind(("127.0.0.1", 0))
-    rx.settimeout(0.2)
-    chunks: list[bytes] = []
-    done = threading.Event()
-
-    def receive():
-        while not done.is_set():
-            try:
-                chunks.append(rx.recv(65536))
-            except TimeoutError:
-                continue
-
-    th = threading.Thread(target=receive, daemon=True)
-    th.start()
+    rx = UdpCapture()
     config = build_config(
         {
             "camera": {"intrinsics": {"width_px": W_PX, "height_px": H_PX, "fx_px": 300.0, "fy_px": 300.0}},
-            "video": {"destination": f"127.0.0.1:{rx.getsockname()[1]}", "transport": "mpegts", "queue_length": 16},
+            "video": {"destination": f"127.0.0.1:{rx.port}", "transport": "mpegts", "queue_length": 16},
         }
     )
     tap = VideoTap(config, config.camera.pinhole())
@@ -325,11 +309,8 @@ def test_the_video_tap_streams_the_objects_drawn():
             time.sleep(0.05)
     finally:
         tap.close(2.0)
-        done.wait(0.5)
-        done.set()
-        th.join(5)
         rx.close()
-    c = av.open(io.BytesIO(b"".join(chunks)), format="mpegts")
+    c = av.open(io.BytesIO(b"".join(rx.chunks)), format="mpegts")
     try:
         frames = [f.to_ndarray(format="gray").astype(int) for f in c.decode(video=0)]
     finally:

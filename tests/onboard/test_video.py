@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import io
 import math
-import socket
 import threading
 import time
 
@@ -31,6 +30,7 @@ from onboard.io.video import (  # noqa: E402
     draw_overlay,
 )
 from tests.fakes import tracking_track  # noqa: E402
+from tests.udp_capture import UdpCapture  # noqa: E402
 
 W, H = 640, 512
 N_FRAMES = 90  # 3 s at 30 Hz: three IDR periods
@@ -240,30 +240,12 @@ def test_rtp_stream_is_decoded_by_ffmpegs_rtp_demuxer_from_an_sdp_file(tmp_path)
 @pytest.mark.integration
 @pytest.mark.timeout(60)
 def test_mpegts_stream_is_decoded_with_the_target_where_it_is():
-    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 22)  # as the ground-station receivers do
-    rx.bind(("127.0.0.1", 0))
-    rx.settimeout(0.2)
-    port = rx.getsockname()[1]
-    chunks: list[bytes] = []
-    done = threading.Event()
-
-    def receive():
-        while not done.is_set():
-            try:
-                chunks.append(rx.recv(65536))
-            except TimeoutError:
-                continue
-
-    th = threading.Thread(target=receive, daemon=True)
-    th.start()
+    rx = UdpCapture()
     try:
-        _, truth = _stream(f"127.0.0.1:{port}", "mpegts")
+        _, truth = _stream(f"127.0.0.1:{rx.port}", "mpegts")
     finally:
-        done.wait(0.5)  # the last datagrams
-        done.set()
-        th.join(5)
-        rx.close()
+        rx.close()  # after the last datagrams
+    chunks = rx.chunks
     assert all(len(c) % 188 == 0 and c[0] == 0x47 for c in chunks)  # whole TS packets per datagram
     _assert_target_seen(_decode(b"".join(chunks)), truth)
 
