@@ -12,7 +12,7 @@ import threading
 import time
 from pathlib import Path
 
-__all__ = ["WatchedCommand", "alive", "descendants", "kill_all", "terminate", "wait_gone"]
+__all__ = ["WatchedCommand", "alive", "descendants", "kill_all", "repo_env", "run_module", "terminate", "wait_gone"]
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -58,6 +58,28 @@ def kill_all(pids) -> None:
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def repo_env() -> dict:
+    """This process's environment for a child started from the repository's root: the repository on PYTHONPATH,
+    one BLAS/OpenMP thread unless set (the pipeline is single-threaded by design)."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    return env
+
+
+def run_module(module: str, *args: str, timeout_s: float) -> subprocess.CompletedProcess:
+    """``python -m MODULE ARGS`` to its end from the repository's root (:func:`repo_env`), output captured as text."""
+    return subprocess.run(
+        [sys.executable, "-m", module, *args],
+        cwd=REPO,
+        env=repo_env(),
+        capture_output=True,
+        text=True,
+        timeout=timeout_s,
+    )
 
 
 def terminate(proc: subprocess.Popen, timeout_s: float) -> int:

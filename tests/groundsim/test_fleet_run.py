@@ -4,12 +4,8 @@ every vehicle has its own boot clock and sends SYSTEM_TIME mapping it to the one
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +16,10 @@ from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.truth import read_truth_csv
 from onboard.core.irframe import decode_irframe
 from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+from tests.process_helpers import run_module
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
 
-REPO = Path(__file__).resolve().parents[2]
 F1 = scenarios_dir() / "F1.yaml"
 NAMES = ("uav1", "uav2")
 DURATION_S = 1.0
@@ -33,14 +29,6 @@ PROCESS_TIMEOUT_S = 150.0  # two vehicles, 1 s at --rate max, on a loaded 2-core
 DELIVERY_WAIT_S = 5.0
 BOOT_MS_TOL_US = 1000  # SYSTEM_TIME carries the boot time in whole ms, UTC in us
 LON_GAP_DEG = 2e-3  # uav2 flies 290 m east of uav1: 0.003 deg of longitude at 32 N
-
-
-def _env() -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("OMP_NUM_THREADS", "1")
-    env.setdefault("OPENBLAS_NUM_THREADS", "1")
-    return env
 
 
 class _Listener:
@@ -95,14 +83,7 @@ def fleet_run(tmp_path_factory):
         argv += ["--zenoh-connect", endpoint, "--truth", str(out / "truth.csv")]
         for n in NAMES:
             argv += ["--mavlink", f"{n}=udpout:127.0.0.1:{ports[n]}"]
-        proc = subprocess.run(
-            [sys.executable, "-m", "groundsim", *argv],
-            cwd=REPO,
-            env=_env(),
-            capture_output=True,
-            text=True,
-            timeout=PROCESS_TIMEOUT_S,
-        )
+        proc = run_module("groundsim", *argv, timeout_s=PROCESS_TIMEOUT_S)
         deadline = time.monotonic() + DELIVERY_WAIT_S
         while time.monotonic() < deadline:
             with lock:

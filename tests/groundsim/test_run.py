@@ -45,6 +45,7 @@ from onboard.core.frames import (
 from onboard.core.irframe import ENCODING_MONO8, decode_irframe
 from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
 from tests.fakes import FakeClock
+from tests.process_helpers import repo_env, run_module
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -64,23 +65,8 @@ QUAT_F32_TOL = 1e-5  # float32 quaternion fields
 SHORT_TIMEOUT_S = 60.0
 
 
-def _env() -> dict:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
-    env.setdefault("OMP_NUM_THREADS", "1")
-    env.setdefault("OPENBLAS_NUM_THREADS", "1")
-    return env
-
-
 def _groundsim(*args: str, timeout: float = SHORT_TIMEOUT_S) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "groundsim", *args],
-        cwd=REPO,
-        env=_env(),
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
+    return run_module("groundsim", *args, timeout_s=timeout)
 
 
 def _assert_one_line_error(proc: subprocess.CompletedProcess, *needles: str) -> str:
@@ -329,7 +315,7 @@ def test_signal_mid_run_leaves_complete_truth_and_exit_0(tmp_path, sig):
             "warning",
         ],
         cwd=REPO,
-        env=_env(),
+        env=repo_env(),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
