@@ -273,9 +273,19 @@ class PartRaster:
     """
 
     def __init__(
-        self, intrinsics: PinholeIntrinsics, settings: IrSettings, parts, L_env: float, L_min: float, grey_per_L: float
+        self,
+        intrinsics: PinholeIntrinsics,
+        settings: IrSettings,
+        parts,
+        L_env: float,
+        L_min: float,
+        grey_per_L: float,
+        splat_max_px: int = 0,
     ):
         s = settings
+        # objects whose projected bounding box spans at most this many pixels each way are drawn as an
+        # analytic splat (:meth:`_splat`) instead of the ray cast; 0: always the ray cast
+        self.splat_max_px = int(splat_max_px)
         self.intrinsics = intrinsics
         self.settings = settings
         self._H, self._W = int(intrinsics.height_px), int(intrinsics.width_px)
@@ -288,15 +298,55 @@ class PartRaster:
         centre = np.array([p.center_frd_m for p in parts], dtype=float)
         half = np.array([p.half_extent_m for p in parts], dtype=float)
         is_box = np.array([p.shape == "box" for p in parts])
+        # for the splat (small objects): per part centre, half extents, box or ellipsoid, emitted radiance
+        self._splat_parts = [
+            (tuple(c), tuple(h), bool(b), float(L))
+            for c, h, b, L in zip(centre.tolist(), half.tolist(), is_box, self._part_L_emit)
+        ]
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
         hi = (centre + half).max(axis=0)
+        self._radius_b = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))  # bounding sphere, body origin
+        self._f_max_px = max(intrinsics.fx_px, intrinsics.fy_px)
         self.bbox_corners_b = np.array(
             [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
         )
+        self._parts = tuple(parts)
+        self._splat_table: tuple[np.ndarray, np.ndarray] | None = None  # built at the first splat (~0.1 s)
+
+    def _visible_fractions(self, parts, n_dirs: int = 256, n_grid: int = 48) -> tuple[np.ndarray, np.ndarray]:
+        """For the splat: the fraction of each part's silhouette that is in front of the other parts (the ray
+        cast's nearest-part rule), seen from ``n_dirs`` directions (a Fibonacci sphere, body frame), by
+        casting a ``n_grid`` x ``n_grid`` grid of nearly parallel rays (from 200 bounding radii) at the
+        object and at each part alone.  ``(dirs (n_dirs, 3), fractions (n_dirs, parts))``."""
+        k = np.arange(n_dirs) + 0.5
+        zc = 1.0 - 2.0 * k / n_dirs
+        phi = math.pi * (1.0 + math.sqrt(5.0)) * k
+        r = np.sqrt(1.0 - zc * zc)
+        dirs = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
+        frac = np.ones((n_dirs, len(parts)))
+        if len(parts) < 2:
+            return dirs, frac
+        alone = [PartRaster(self.intrinsics, self.settings, (p,), 0.0, 0.0, 1.0) for p in parts]
+        R = self._radius_b
+        g = ((np.arange(n_grid) + 0.5) / n_grid * 2.0 - 1.0) * R
+        for n, d in enumerate(dirs):
+            e1 = np.cross(d, (0.0, 0.0, 1.0) if abs(d[2]) < 0.9 else (1.0, 0.0, 0.0))
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(d, e1)
+            o = (-200.0 * R * d).astype(np.float32)
+            aim = (g[:, None, None] * e1 + g[None, :, None] * e2).reshape(-1, 3)
+            d_b = (aim - o).T.astype(np.float32)
+            t, part = self.intersect(o, d_b)
+            hit = np.isfinite(t)
+            seen = np.bincount(part[hit], minlength=len(parts))
+            for p, single in enumerate(alone):
+                n_alone = int(np.isfinite(single.intersect(o, d_b)[0]).sum())
+                frac[n, p] = seen[p] / n_alone if n_alone else 1.0
+        return dirs, frac
 
     def delta(self, bg, p_cam, R_nc, p_t, R_nt, occluder: SceneBackground | None = None):
         """Object minus background (through PSF and pixel aperture) over the object's ROI, or None.
@@ -308,6 +358,12 @@ class PartRaster:
         intr = self.intrinsics
         s = self.settings
         H, W = self._H, self._W
+        if self.splat_max_px and not intr.has_distortion:
+            t_c = ((p_t - p_cam) @ R_nc).tolist()
+            z_near = t_c[2] - self._radius_b
+            # the bounding sphere's diameter on the image, an upper bound of the object's footprint
+            if z_near > NEAR_M and 2.0 * self._radius_b * self._f_max_px <= self.splat_max_px * z_near:
+                return self._splat(bg, t_c, R_nc, R_nt, occluder)
         corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
         z = corners_cam[:, 2]
         if np.all(z <= NEAR_M):
@@ -375,6 +431,93 @@ class PartRaster:
         if occluder is not None:
             delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
         return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
+
+    def _splat(self, bg, t_c: list[float], R_nc, R_nt, occluder: SceneBackground | None):
+        """:meth:`delta` of an object a few pixels across, without the ray cast: its radiance integral and
+        its first and second moments on the image, drawn as a separable box x Gaussian spot.
+
+        Each part is projected through the pinhole's Jacobian at its centre (the object is small against
+        its range): generators ``A = J R_cam_from_body diag(half)``; the silhouette's area (px^2) is
+        ``4 sum |det(a_i, a_j)|`` for a box (the hexagon of a projected cube), ``pi |det(A A^T)|^1/2`` for an
+        ellipsoid, its covariance ``A A^T / 3`` or ``/ 4``.  The integral is ``sum_p area_p (L_p - L_bg)``
+        (``L_bg`` the background at the centroid's pixel), ``area_p`` times the fraction of it in front of the
+        other parts from the nearest tabulated view direction (:meth:`_visible_fractions`: the ray cast's
+        nearest-part rule, e.g. a bird's body over its wings).
+        Centroid and spread are the ``|area contrast|``-weighted mixture of the parts'; the spread adds
+        to the PSF's, the pixel box is kept, so the pixels sum to the integral (within the 3 sigma cut)
+        and the intensity centroid is the parts' centroid.  A cloud in front (``occluder``) is read at the
+        centroid's pixel only.  Written in scalar arithmetic over the few parts: numpy's per-call cost on
+        arrays of 2-4 parts is larger than the arithmetic."""
+        intr = self.intrinsics
+        s = self.settings
+        H, W = self._H, self._W
+        R_cb = (R_nc.T @ R_nt).tolist()
+        r0, r1, r2 = R_cb
+        fx, fy, cx, cy = intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px
+        range_m = math.sqrt(t_c[0] ** 2 + t_c[1] ** 2 + t_c[2] ** 2)
+        tau = math.exp(-s.extinction_per_km * range_m * 1e-3)
+        # the view direction in the body frame picks the parts' visible fractions (nearest tabulated one)
+        if self._splat_table is None:
+            self._splat_table = self._visible_fractions(self._parts)
+        dirs, fractions = self._splat_table
+        view_b = np.dot(R_nt.T, R_nc @ np.array(t_c))
+        visible = fractions[int(np.argmax(dirs @ view_b))].tolist()
+        parts = []  # (area px^2, contrast-free radiance, u, v, var_u, var_v) per part
+        for ((bx, by, bz), (hx, hy, hz), is_box, L_emit), seen in zip(self._splat_parts, visible):
+            x = t_c[0] + r0[0] * bx + r0[1] * by + r0[2] * bz
+            y = t_c[1] + r1[0] * bx + r1[1] * by + r1[2] * bz
+            z = t_c[2] + r2[0] * bx + r2[1] * by + r2[2] * bz
+            if z <= NEAR_M:
+                return None
+            xz, yz = x / z, y / z
+            ju = [fx / z * (r0[k] - xz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
+            jv = [fy / z * (r1[k] - yz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
+            c0 = ju[1] * jv[2] - ju[2] * jv[1]
+            c1 = ju[2] * jv[0] - ju[0] * jv[2]
+            c2 = ju[0] * jv[1] - ju[1] * jv[0]
+            if is_box:
+                area, mk = 4.0 * (abs(c0) + abs(c1) + abs(c2)), 1.0 / 3.0
+            else:
+                area, mk = math.pi * math.sqrt(c0 * c0 + c1 * c1 + c2 * c2), 0.25
+            area *= seen
+            L = ((tau * L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
+            var_u = mk * (ju[0] ** 2 + ju[1] ** 2 + ju[2] ** 2)
+            var_v = mk * (jv[0] ** 2 + jv[1] ** 2 + jv[2] ** 2)
+            parts.append((area, L, fx * xz + cx, fy * yz + cy, var_u, var_v))
+        # the spot's centre: the parts weighted by |area x contrast| against the background near the
+        # object's projected centre (one background read; the weights only place and shape the spot)
+        u0 = min(max(int(parts[0][2]), 0), W - 1)
+        v0 = min(max(int(parts[0][3]), 0), H - 1)
+        ref = float(bg[v0, u0])
+        w = [abs(a * (L - ref)) + 1e-30 for a, L, *_ in parts]
+        w_sum = sum(w)
+        u_c = sum(wk * p[2] for wk, p in zip(w, parts)) / w_sum
+        v_c = sum(wk * p[3] for wk, p in zip(w, parts)) / w_sum
+        var_u = sum(wk * (p[4] + (p[2] - u_c) ** 2) for wk, p in zip(w, parts)) / w_sum
+        var_v = sum(wk * (p[5] + (p[3] - v_c) ** 2) for wk, p in zip(w, parts)) / w_sum
+        sig_u = max(math.sqrt(s.blur_sigma_px**2 + var_u), 1e-3)
+        sig_v = max(math.sqrt(s.blur_sigma_px**2 + var_v), 1e-3)
+        ru, rv = int(math.ceil(3.0 * sig_u + 0.5)), int(math.ceil(3.0 * sig_v + 0.5))
+        i0, i1 = max(math.floor(v_c) - rv, 0), min(math.floor(v_c) + rv + 1, H)
+        j0, j1 = max(math.floor(u_c) - ru, 0), min(math.floor(u_c) + ru + 1, W)
+        if i1 <= i0 or j1 <= j0:
+            return None
+        ic, jc = min(max(int(v_c), 0), H - 1), min(max(int(u_c), 0), W - 1)
+        gain = 1.0
+        ref = float(bg[ic, jc])
+        if occluder is not None:
+            px = slice(ic, ic + 1), slice(jc, jc + 1)
+            if occluder.depth_window(*px)[0, 0] < range_m:
+                ref = float(occluder.base_radiance[ic, jc])
+                gain = 1.0 - float(occluder.alpha_window(*px)[0, 0])
+        energy = gain * sum(a * (L - ref) for a, L, *_ in parts)
+        # pixel j spans [j, j + 1]: box x Gaussian weights Phi((j + 1 - u_c) / sig) - Phi((j - u_c) / sig)
+        cu = [0.5 * math.erfc((u_c - j) / (math.sqrt(2.0) * sig_u)) for j in range(j0, j1 + 1)]
+        cv = [0.5 * math.erfc((v_c - i) / (math.sqrt(2.0) * sig_v)) for i in range(i0, i1 + 1)]
+        ku = np.diff(np.array(cu))
+        kv = np.diff(np.array(cv)) * energy
+        delta = np.multiply.outer(kv, ku).astype(np.float32)
+        return slice(i0, i1), slice(j0, j1), delta, 1
 
     def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Nearest hit of rays ``o_b + t d_b`` (body FRD; ``d_b`` shape (3, n)) with the parts.

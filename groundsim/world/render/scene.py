@@ -85,7 +85,11 @@ FAR_M = 1.0e7  # depth of a ray that meets nothing (finite, so that upsampling s
 OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque is "occluded"
 BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
-DISTRACTOR_SUPERSAMPLE = 8  # sub-samples per pixel side for distractors (the target keeps the renderer's)
+DISTRACTOR_SUPERSAMPLE = 4  # sub-samples per pixel side for ray-cast distractors (the target keeps the renderer's)
+# a distractor whose projected bounding box spans at most this many pixels each way is drawn as an analytic
+# spot with its radiance integral and moments (PartRaster._splat), not ray cast: a bird or a distant
+# aircraft is a blur-sized blob either way, and the ray cast's fixed cost was most of a crowded frame
+SPLAT_MAX_PX = 4
 COARSE_STEP = 4  # plane geometry and clouds on a 4 x 4 px grid, terrain at 2 x 2 px: fixed by the pyrUp steps
 MAP_LIMIT = 30000.0  # texture coordinates are clamped to +-this many texels (remap holds them in 16 bits)
 FAR_LEVELS = 3  # far ground and far clouds are read this many mip levels coarser
@@ -353,7 +357,7 @@ class SceneContent:
                         b.emissivity,
                     ),
                 )
-                self._bird_rasters.append(PartRaster(intr, s, parts, env, 0.0, 1.0))
+                self._bird_rasters.append(PartRaster(intr, s, parts, env, 0.0, 1.0, SPLAT_MAX_PX))
             c0 = np.asarray(b.center_ned_m, dtype=float)
             for _ in range(b.count):
                 centre = c0 + rng.uniform(-1.0, 1.0, 3) * np.array([b.spread_m, b.spread_m, 0.25 * b.spread_m])
@@ -391,7 +395,7 @@ class SceneContent:
             v = np.asarray(a.v_ned_mps, dtype=float)
             R = _rot_z(math.atan2(v[1], v[0]), math.atan2(-v[2], max(math.hypot(v[0], v[1]), 1e-9)))
             self._aircraft.append(
-                (np.asarray(a.p0_ned_m, dtype=float), v, R, PartRaster(intr, s, parts, env, 0.0, 1.0))
+                (np.asarray(a.p0_ned_m, dtype=float), v, R, PartRaster(intr, s, parts, env, 0.0, 1.0, SPLAT_MAX_PX))
             )
         self._glints = []
         for i, g in enumerate(cfg.glints):
@@ -404,7 +408,7 @@ class SceneContent:
                 1.0,
             )
             phase = section_rng(self.seed, "glints", i).uniform(0, 2 * math.pi)
-            self._glints.append((g, phase, PartRaster(intr, s, (part,), env, 0.0, 1.0)))
+            self._glints.append((g, phase, PartRaster(intr, s, (part,), env, 0.0, 1.0, SPLAT_MAX_PX)))
 
     # ------------------------------------------------------------------ objects
 
