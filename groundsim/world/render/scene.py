@@ -50,7 +50,8 @@ far clouds do not alias.
 
 Objects: the target (id 0, class ``target``) and the distractors (ids from 1: birds, aircraft,
 glints), each a set of box and ellipsoid parts drawn by the renderer's
-:class:`~groundsim.world.render.raster.PartRaster` far to near, each over what is already drawn.
+:class:`~groundsim.world.render.raster.PartRaster` far to near, each over what is already drawn (a distractor at
+most ``SPLAT_MAX_PX`` across as an analytic spot with its radiance integral and moments, not ray cast).
 Labels per object and frame: :class:`ObjectLabel`.
 """
 
