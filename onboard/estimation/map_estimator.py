@@ -465,7 +465,10 @@ class MapEstimator:
             return memo[id(m)]
 
         close = [(f, m) for f, ts in tops.items() for m in ts if m.log_evidence >= top_ev - cfg.model_margin_nats]
-        ratios = [moments(m)[2] for _, m in close]
+        ratios = []
+        for _, m in close:  # a covariance each: a piece of work of its own
+            ratios.append(moments(m)[2])
+            yield FACTOR_WORK
         cands = [m for ts in tops.values() for m in ts]
         logw = np.array([m.log_evidence for m in cands])
         w = np.exp(logw - np.logaddexp.reduce(logw))

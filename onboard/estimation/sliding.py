@@ -71,6 +71,11 @@ __all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_
 
 #: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
 BEARING_GATE_CHI2 = 18.42
+#: one residual evaluation of the window problem (with its share of the normal equations) costs about as much
+#: as this many rows more: ~0.16 ms at 30-75 rows, 0.23 at 150, 0.44 at 300 (P1 RTK, 1 s knots, loaded
+#: development machine), i.e. a fixed part and one proportional to the rows; the selection's share of a
+#: frame is counted in full-window evaluations with it
+EVALUATION_OVERHEAD_ROWS = 100
 
 log = logging.getLogger(__name__)
 
@@ -97,10 +102,11 @@ class SlidingConfig:
     iterations_per_frame: int = 1
     resolve_every_frames: int = 5
     # the model selection runs as an anytime computation spread over the kept frames (module docstring):
-    # each frame advances it until it has done this much work, in residual evaluations of a window of
-    # max_frames rows (MapEstimator.selection; a smaller window's evaluations count in proportion to its
-    # rows), so that no frame pays for a whole selection; 0 runs it at once
-    selection_work_per_frame: int = 40
+    # each frame advances it until it has done this much work, in residual evaluations (with their
+    # normal-equation solves, MapEstimator.selection) of a max_frames window, ~0.3-0.45 ms each on the
+    # development machine; a younger window's evaluations are cheaper and more of them make one frame's
+    # share (EVALUATION_OVERHEAD_ROWS).  No frame pays for a whole selection; 0 runs it at once
+    selection_work_per_frame: int = 30
     # a frame is observable when the last selection's window was and its own range sigma (at the window's
     # newest edge, the least constrained point: ~1.4x the window median on P2) is below this many times
     # MapConfig.observability_max_sigma_range_ratio
@@ -484,8 +490,9 @@ class SlidingWindowEstimator:
         if pending is None:
             return None
         c = self.config
-        # in evaluations of this window: a younger, smaller window's cost less
-        budget = c.selection_work_per_frame * c.max_frames / max(len(pending.obs), 1)
+        # in evaluations of this window: a younger, smaller window's are cheaper (module-level cost model)
+        budget = c.selection_work_per_frame * (EVALUATION_OVERHEAD_ROWS + c.max_frames)
+        budget /= EVALUATION_OVERHEAD_ROWS + len(pending.obs)
         work = 0
         try:
             while budget <= 0 or work < budget:
