@@ -9,8 +9,9 @@ its Laplace log evidence (MacKay 1992).  A mode whose mean range falls below ``m
 collapsed solution (the trajectory shrunk onto the camera track, where the cost keeps falling); the solve
 stops there and drops it.
 
-Selection (:meth:`MapEstimator.solve`): every family x q model is solved (loose to stiff, warm
-started).  The point estimate is the model that pins range best among those within
+Selection (:meth:`MapEstimator.solve`; :meth:`MapEstimator.selection` is the same computation in pieces
+of one Levenberg-Marquardt iteration, which a caller can spread over time): every family x q model is
+solved (loose to stiff, warm started).  The point estimate is the model that pins range best among those within
 ``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
 near-camera solution, and never blindly the highest evidence, which a vague model can win by
 leaving range free.  Its covariance is model-averaged over the evidence weights w_k of the models

@@ -18,6 +18,14 @@ Every observation gets a fresh estimate of the target's state at its own time:
   window's span, between ``warmup_reselect_period_s`` (1 s, while the window is young and the estimate
   changes fastest) and ``reselect_period_s`` (5 s, once the window is full): it is the expensive part
   (~0.2-0.4 s of one core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget.
+  It is an anytime computation (:meth:`MapEstimator.selection`) spread over the kept frames: when it is
+  due, the window's rows are frozen for it, and each frame runs ``selection_work_per_frame`` residual
+  evaluations of it (~10-20 ms of CPU; a frame never pays for a whole selection), then updates its own
+  estimate with the current model as usual.  The frame that ends it adopts the new model and solution,
+  carried from the frozen window to its own and re-solved warm (4-30 kept frames later; nothing to
+  publish before the first one ends).  A selection under way is not snapshotted: a restored estimator
+  starts it again.  Its result is the batch selection's on those rows, bit for bit; the periods below
+  count from the newest of those rows.
   Once the window is full, a selection that confirms the previous one (same motion
   model and intensity, same verdict) doubles the period, up to ``reselect_max_period_s`` (20 s); any
   other outcome sets it back.  The data calls a selection early, after at least ``reselect_period_s``:
@@ -491,8 +499,11 @@ class SlidingWindowEstimator:
             return None
         c = self.config
         # in evaluations of this window: a younger, smaller window's are cheaper (module-level cost model)
-        budget = c.selection_work_per_frame * (EVALUATION_OVERHEAD_ROWS + c.max_frames)
-        budget /= EVALUATION_OVERHEAD_ROWS + len(pending.obs)
+        budget = (
+            c.selection_work_per_frame
+            * (EVALUATION_OVERHEAD_ROWS + c.max_frames)
+            / (EVALUATION_OVERHEAD_ROWS + len(pending.obs))
+        )
         work = 0
         try:
             while budget <= 0 or work < budget:
