@@ -84,6 +84,9 @@ BEARING_GATE_CHI2 = 18.42
 #: development machine), i.e. a fixed part and one proportional to the rows; the selection's share of a
 #: frame is counted in full-window evaluations with it
 EVALUATION_OVERHEAD_ROWS = 100
+#: at most this many iterations carry a finished selection's solution to the newest window (it stops at
+#: convergence, usually after 1-3)
+COMMIT_ITERATIONS = 10
 
 log = logging.getLogger(__name__)
 
@@ -552,19 +555,21 @@ class SlidingWindowEstimator:
             self._H = J.T @ J
             self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
             return self._estimate(prob, theta, t, self._H)
-        # selected on the window of a few frames ago: carried over to this one and re-solved warm
+        # selected on the window of a few frames ago: carried over to this one and solved there to convergence
+        # (the rows added since can move a young window's solution more than one iteration's worth)
         self._theta, self._first = theta, prob.first
-        return self._resolve(t)
+        return self._resolve(t, COMMIT_ITERATIONS)
 
-    def _resolve(self, t: float) -> TrackEstimate:
-        """``iterations_per_frame`` iterations on the whole window, warm-started from the last solution."""
+    def _resolve(self, t: float, iterations: int | None = None) -> TrackEstimate:
+        """``iterations`` (default ``iterations_per_frame``) iterations on the whole window, warm-started from the
+        last solution."""
         if self._prior is None:
             raise EstimationError("no motion model selected yet")
         obs = self._observations()
         prob = self.map.problem(obs, self._prior, self._grid)
         theta = self._shift(prob)
         prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
-        sol = prob.solve(theta, max_iterations=self.config.iterations_per_frame, want_factor=False)
+        sol = prob.solve(theta, max_iterations=iterations or self.config.iterations_per_frame, want_factor=False)
         theta = sol.theta
         if not math.isfinite(sol.cost) or prob.last_jacobian is None:
             raise EstimationError("warm-started window solution is invalid (target behind the camera)")
