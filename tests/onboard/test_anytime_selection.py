@@ -75,13 +75,18 @@ def test_a_spread_selection_chooses_what_the_whole_one_chooses_on_its_window(win
     noise = estimator_noise_model(nc)
     sw = SlidingWindowEstimator(SlidingConfig(selection_work_per_frame=10), noise=noise)
     i = 0
-    while sw._pending is None:  # up to the frame that starts the first selection
-        assert sw.stats["selections"] == 0
+    while sw.stats["selections"] == 0:  # the track's first selection runs at once, in the frame that calls it
+        pending_before = sw._pending
+        _feed(sw, sc, obs, [i])
+        i += 1
+        assert pending_before is None and sw._pending is None
+    first_at = i - 1
+    while sw._pending is None:  # up to the frame that starts the second one
         _feed(sw, sc, obs, [i])
         i += 1
     frozen, t_sel = sw._pending.obs, sw._pending.t_s
     spread_over = 0
-    while sw.stats["selections"] == 0:
+    while sw.stats["selections"] == 1:
         est = _feed(sw, sc, obs, [i])
         i += 1
         spread_over += 1
@@ -91,10 +96,12 @@ def test_a_spread_selection_chooses_what_the_whole_one_chooses_on_its_window(win
     assert (sw._model, sw._prior) == (whole.model, whole.prior)
     assert sw._window_observable == whole.observable
     assert sw._last_select_t == t_sel
-    # and at once (budget 0) on the same rows: the same choice, in the frame that called it
+    # and at once (budget 0): the first selection in the same frame, the second on the same rows, same choice
     at_once = SlidingWindowEstimator(SlidingConfig(selection_work_per_frame=0), noise=noise)
-    _feed(at_once, sc, obs, range(len(frozen)))
-    assert at_once.stats["selections"] == 1 and at_once._pending is None
+    _feed(at_once, sc, obs, range(first_at + 1))
+    assert at_once.stats["selections"] == 1
+    _feed(at_once, sc, obs, range(first_at + 1, len(frozen)))
+    assert at_once.stats["selections"] == 2 and at_once._pending is None
     assert (at_once._model, at_once._prior) == (whole.model, whole.prior)
 
 
