@@ -9,8 +9,9 @@ its Laplace log evidence (MacKay 1992).  A mode whose mean range falls below ``m
 collapsed solution (the trajectory shrunk onto the camera track, where the cost keeps falling); the solve
 stops there and drops it.
 
-Selection (:meth:`MapEstimator.solve`): every family x q model is solved (loose to stiff, warm
-started).  The point estimate is the model that pins range best among those within
+Selection (:meth:`MapEstimator.solve`; :meth:`MapEstimator.selection` is the same computation in pieces
+of one Levenberg-Marquardt iteration, which a caller can spread over time): every family x q model is
+solved (loose to stiff, warm started).  The point estimate is the model that pins range best among those within
 ``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
 near-camera solution, and never blindly the highest evidence, which a vague model can win by
 leaving range free.  Its covariance is model-averaged over the evidence weights w_k of the models
@@ -42,11 +43,13 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+from collections.abc import Generator
 from dataclasses import dataclass
 from typing import Annotated
 
 import numpy as np
 from pydantic import AfterValidator
+from scipy.special import chdtrc
 
 from onboard.core.errors import IrtrackError
 from onboard.core.schema import (
@@ -61,7 +64,7 @@ from onboard.core.schema import (
 )
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls
-from onboard.estimation.window_problem import MotionPrior, NoiseModel, SolveResult, WindowProblem
+from onboard.estimation.window_problem import MotionPrior, NoiseModel, SolveResult, WindowProblem, drain
 
 # NoiseModel, MotionPrior, WindowProblem and SolveResult live in window_problem; they are the nouns of this
 # module's interface too (a caller builds a NoiseModel for the estimator), so they are importable from here
@@ -88,6 +91,11 @@ def _check_families(v: tuple[str, ...]) -> tuple[str, ...]:
 
 #: ``MapConfig.families``: a non-empty list of the motion families cv, ca, ct (each once)
 Families = Annotated[tuple[str, ...], Texts(), AfterValidator(_check_families)]
+
+
+#: the work :meth:`MapEstimator.selection` counts for one solution's factorisations (square-root information
+#: and evidence: QR decompositions of the Jacobian), in residual evaluations (``WindowProblem.solve_steps``)
+FACTOR_WORK = 3
 
 
 class EstimationError(IrtrackError):
@@ -255,8 +263,7 @@ class MapEstimator:
         self.config = config or MapConfig()
         self.noise = noise or NoiseModel()
         self._span_cache: dict = {}
-        self._weight_range_m: np.ndarray | None = None
-        self._camera_cache: tuple | None = None
+        self._camera_cache: list[tuple] = []  # (observations, smoothed, noise model), newest first
 
     @staticmethod
     def _ranges(prob: WindowProblem, theta: np.ndarray) -> np.ndarray:
@@ -276,14 +283,15 @@ class MapEstimator:
 
         The spline has ``count`` controls per axis for F positions, so the smoothed positions keep
         about ``count / F`` of the white variance: the noise model's sigma is scaled by its root.
-        Cached for the last window (one selection builds a dozen problems on the same observations).
+        Cached for the last two windows: one selection builds a dozen problems on the same observations,
+        and a selection spread over frames (:meth:`selection`) alternates with the newest window's.
         """
         h = self.config.camera_track_knot_s
         if self.noise.camera_position_white_sigma_m <= 0 or h <= 0:
             return obs, self.noise
-        cached = self._camera_cache
-        if cached is not None and cached[0] is obs:
-            return cached[1], cached[2]
+        for cached in self._camera_cache:
+            if cached[0] is obs:
+                return cached[1], cached[2]
         t = obs.t_s
         grid = KnotGrid(float(t[0]), h)
         first, count = grid.control_span(float(t[0]), float(t[-1]))
@@ -294,7 +302,7 @@ class MapEstimator:
             camera_position_white_sigma_m=self.noise.camera_position_white_sigma_m
             * math.sqrt(min(1.0, count / len(obs))),
         )
-        self._camera_cache = (obs, smoothed, noise)
+        self._camera_cache = [(obs, smoothed, noise), *self._camera_cache[:1]]
         return smoothed, noise
 
     def initial_guesses(self, prob: WindowProblem, ranges_m=None) -> list[np.ndarray]:
@@ -310,25 +318,42 @@ class MapEstimator:
         starts: list[np.ndarray] | None = None,
         grid: KnotGrid | None = None,
         max_modes: int = 3,
+        weight_range_m: np.ndarray | None = None,
     ):
         """MAP modes for one prior from several starts; returns (best, modes), :class:`Mode` each, at most
         ``max_modes`` modes by decreasing log evidence.
 
         The best is the one with the largest Laplace posterior mass (log evidence), not the lowest
-        cost: near-camera (collapsed) modes fit noise cheaply but carry little mass.
+        cost: near-camera (collapsed) modes fit noise cheaply but carry little mass.  ``weight_range_m``
+        (F,): the ranges the range-dependent pixel weights are taken at (the model comparison's common
+        weighting, see :meth:`selection`); default each solution's own.
         """
+        return drain(self._prior_steps(obs, prior, starts, grid, max_modes, weight_range_m))
+
+    def _prior_steps(
+        self,
+        obs: Observations,
+        prior: MotionPrior,
+        starts: list[np.ndarray] | None,
+        grid: KnotGrid | None,
+        max_modes: int,
+        fixed: np.ndarray | None,
+    ) -> Generator[int, None, tuple[Mode, list[Mode]]]:
+        """:meth:`solve_prior` as an anytime computation: yields the work done (residual evaluations of each
+        Levenberg-Marquardt iteration, :data:`FACTOR_WORK` per solution kept), returns (best, modes)."""
         prob = self.problem(obs, prior, grid)
         starts = starts if starts is not None else self.initial_guesses(prob)
         modes: list[Mode] = []
-        fixed = self._weight_range_m
         reweight = self.noise.camera_position_white_sigma_m > 0 and fixed is None
         for th0 in starts:
             th = th0
             # the pixel weights depend on range (camera-position noise): iterate them to the mode,
-            # unless a common weighting range is fixed (model comparison, see solve())
+            # unless a common weighting range is fixed (model comparison, see selection())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
-                sol = prob.solve(th, max_iterations=self.config.max_iterations, min_range_m=self.config.min_range_m)
+                sol = yield from prob.solve_steps(
+                    th, max_iterations=self.config.max_iterations, min_range_m=self.config.min_range_m
+                )
                 th, cost, fac = sol.theta, sol.cost, sol.factor
                 if fac is None or not math.isfinite(cost):
                     break
@@ -340,6 +365,7 @@ class MapEstimator:
             modes.append(
                 Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean)
             )
+            yield FACTOR_WORK
         if not modes:
             raise EstimationError("no initial guess gave a valid solution (target behind the camera?)")
         modes.sort(key=lambda m: -m.log_evidence)
@@ -353,7 +379,25 @@ class MapEstimator:
         warm: np.ndarray | None = None,
         trust_warm: bool = False,
     ) -> MapResult:
-        """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence.
+        """Reconstruct; with ``prior=None`` the motion model and its intensity are chosen by evidence
+        (:meth:`selection`, run to its end).  ``grid``, ``warm``, ``trust_warm``: as there."""
+        if prior is not None:
+            best, _ = self.solve_prior(obs, prior, grid=grid)
+            return self.result(best)
+        return drain(self.selection(obs, grid, warm, trust_warm))
+
+    def selection(
+        self,
+        obs: Observations,
+        grid: KnotGrid | None = None,
+        warm: np.ndarray | None = None,
+        trust_warm: bool = False,
+    ) -> Generator[int, None, MapResult]:
+        """The model selection, an anytime computation: a generator that yields after each Levenberg-Marquardt
+        iteration of each start's solve the work it did (residual evaluations; :data:`FACTOR_WORK` per
+        solution kept) and returns the :class:`MapResult`; the caller decides how much of it runs at a time (the sliding
+        window spreads it over frames).  Run at once or in pieces, it computes the same result: it reads
+        only ``obs`` and its own state.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
         coordinated turn (CT, turn rate estimated), each over the q grid, solved loose to stiff with
@@ -364,22 +408,11 @@ class MapEstimator:
         first family's cold multi-start; with ``trust_warm`` (the caller's last selection was observable)
         it replaces that multi-start, beside one fresh range hypothesis.
         """
-        self._weight_range_m = None
-        if prior is not None:
-            best, _ = self.solve_prior(obs, prior, grid=grid)
-            return self.result(best)
-        try:
-            return self._select(obs, grid, warm, trust_warm)
-        finally:
-            self._weight_range_m = None
-
-    def _select(
-        self, obs: Observations, grid: KnotGrid | None, warm: np.ndarray | None, trust_warm: bool = False
-    ) -> MapResult:
         cfg = self.config
         families = [f for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0]
         tops: dict[str, list] = {}
         carry: list[np.ndarray] = [] if warm is None else [warm]
+        weight_range_m: np.ndarray | None = None
         for fam in families:
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
@@ -397,15 +430,17 @@ class MapEstimator:
                     # warm start alone kept an online window in a wrong basin for seconds)
                     starts = self.initial_guesses(prob) + [self._adapt(th, prob) for th in carry]
                 try:
-                    top, modes = self.solve_prior(obs, pr, starts=starts, grid=grid, max_modes=2)
+                    top, modes = yield from self._prior_steps(obs, pr, starts, grid, 2, weight_range_m)
                 except EstimationError:  # every start collapsed or left the field of view: no mode here
                     continue
-                if self._weight_range_m is None and self.noise.camera_position_white_sigma_m > 0:
+                if weight_range_m is None and self.noise.camera_position_white_sigma_m > 0:
                     # one weighting geometry for every model compared: the range-dependent pixel
                     # weights would otherwise reward far solutions through the likelihood's
                     # normaliser (a few hundredths of a pixel per row, tens of nats over a window)
-                    self._weight_range_m = self._ranges(top.problem, top.theta)
-                    top, modes = self.solve_prior(obs, pr, starts=[m.theta for m in modes], grid=grid, max_modes=2)
+                    weight_range_m = self._ranges(top.problem, top.theta)
+                    top, modes = yield from self._prior_steps(
+                        obs, pr, [m.theta for m in modes], grid, 2, weight_range_m
+                    )
                 seeds = [m.theta for m in modes]
                 tops[fam].append(top)
             carry = [
@@ -431,7 +466,10 @@ class MapEstimator:
             return memo[id(m)]
 
         close = [(f, m) for f, ts in tops.items() for m in ts if m.log_evidence >= top_ev - cfg.model_margin_nats]
-        ratios = [moments(m)[2] for _, m in close]
+        ratios = []
+        for _, m in close:  # a covariance each: a piece of work of its own
+            ratios.append(moments(m)[2])
+            yield FACTOR_WORK
         cands = [m for ts in tops.values() for m in ts]
         logw = np.array([m.log_evidence for m in cands])
         w = np.exp(logw - np.logaddexp.reduce(logw))
@@ -441,13 +479,13 @@ class MapEstimator:
         # sits would report its own narrow sigma about the wrong range): then the next one that does,
         # failing that the highest-evidence model
         order = [close[i] for i in np.argsort(ratios)]
-        top = max(close, key=lambda fm: fm[1].log_evidence)
+        top_fm = max(close, key=lambda fm: fm[1].log_evidence)
         chosen, best = order[0]
         split = self._split(best, cands, w, cam, moments)
         if split[1] < cfg.min_solution_mass:
-            for f, m in order[1:] + [top]:
+            for f, m in order[1:] + [top_fm]:
                 sp = self._split(m, cands, w, cam, moments)
-                if sp[1] >= cfg.min_solution_mass or m is top[1]:
+                if sp[1] >= cfg.min_solution_mass or m is top_fm[1]:
                     chosen, best, split = f, m, sp
                     break
         w_best, w_near, extra_near, extra_far = split
@@ -456,7 +494,7 @@ class MapEstimator:
             mix = (w_best / w_near, extra_near / w_near)
         else:
             mix = (w_best, extra_near + extra_far)
-        res = self.result(best, mix=mix, ambiguity=ambiguity)
+        res = self.result(best, mix=mix, ambiguity=ambiguity, weight_range_m=weight_range_m)
         grid_ev = {f: [(t.problem.prior.q_horizontal_m2ps3, t.log_evidence) for t in ts] for f, ts in tops.items()}
         return dataclasses.replace(
             res, model=chosen, family_log_evidence=fam_ev, grid_log_evidence=grid_ev, best_model_weight=w_best
@@ -523,15 +561,16 @@ class MapEstimator:
             out[prob.nc :] = theta[prob.nc + 1 :]
         return out
 
-    def result(self, mode: Mode, mix=None, ambiguity: float = 0.0) -> MapResult:
+    def result(
+        self, mode: Mode, mix=None, ambiguity: float = 0.0, weight_range_m: np.ndarray | None = None
+    ) -> MapResult:
         """The named result of one solution (``mode``); ``mix = (weight, extra)`` turns its point covariance into
         ``weight * P + extra`` (the model-averaged covariance of :meth:`solve`); ``ambiguity`` is the
-        posterior mass of far solutions (see :meth:`solve`)."""
+        posterior mass of far solutions (see :meth:`solve`); ``weight_range_m`` the ranges the pixel
+        weights were taken at (:meth:`solve_prior`; default the solution's own)."""
         prob, theta, cost, fac = mode.problem, mode.theta, mode.cost, mode.factor
         # the problem object served several starts: its weights must be this solution's
-        prob.set_measurement_weights(
-            self._weight_range_m if self._weight_range_m is not None else self._ranges(prob, theta)
-        )
+        prob.set_measurement_weights(weight_range_m if weight_range_m is not None else self._ranges(prob, theta))
         Sigma = prob.covariance(fac)
         P = prob.point_covariances(Sigma)
         if mix is not None:
@@ -605,6 +644,5 @@ class MapEstimator:
             return 1.0
         means = r_std[: B * m].reshape(B, m, 2).mean(axis=1)
         stat = float(m * np.sum(means**2))
-        from scipy.stats import chi2
-
-        return float(chi2.sf(stat, 2 * B))
+        # scipy.stats.chi2.sf(stat, 2 B) is this function; scipy.stats costs ~0.9 s of CPU to import
+        return float(chdtrc(2 * B, stat))

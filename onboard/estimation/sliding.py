@@ -18,6 +18,14 @@ Every observation gets a fresh estimate of the target's state at its own time:
   window's span, between ``warmup_reselect_period_s`` (1 s, while the window is young and the estimate
   changes fastest) and ``reselect_period_s`` (5 s, once the window is full): it is the expensive part
   (~0.2-0.4 s of one core), and at 1 Hz it alone cost a third of a core, twice the daemon's budget.
+  It is an anytime computation (:meth:`MapEstimator.selection`) spread over the kept frames: when it is
+  due, the window's rows are frozen for it, and each frame runs ``selection_work_per_frame`` residual
+  evaluations of it (~10-20 ms of CPU; a frame never pays for a whole selection), then updates its own
+  estimate with the current model as usual.  The frame that ends it adopts the new model and solution,
+  carried from the frozen window to its own and re-solved warm (4-30 kept frames later; nothing to
+  publish before the first one ends, which runs at once).  A selection under way is not snapshotted: a restored estimator
+  starts it again.  Its result is the batch selection's on those rows, bit for bit; the periods below
+  count from the newest of those rows.
   Once the window is full, a selection that confirms the previous one (same motion
   model and intensity, same verdict) doubles the period, up to ``reselect_max_period_s`` (20 s); any
   other outcome sets it back.  The data calls a selection early, after at least ``reselect_period_s``:
@@ -45,7 +53,7 @@ import logging
 import math
 import pickle
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Generator, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +66,7 @@ from onboard.estimation.map_estimator import (
     EstimationError,
     MapConfig,
     MapEstimator,
+    MapResult,
     MotionPrior,
     NoiseModel,
     WindowProblem,
@@ -70,6 +79,14 @@ __all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_
 
 #: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
 BEARING_GATE_CHI2 = 18.42
+#: one residual evaluation of the window problem (with its share of the normal equations) costs about as much
+#: as this many rows more: ~0.16 ms at 30-75 rows, 0.23 at 150, 0.44 at 300 (P1 RTK, 1 s knots, loaded
+#: development machine), i.e. a fixed part and one proportional to the rows; the selection's share of a
+#: frame is counted in full-window evaluations with it
+EVALUATION_OVERHEAD_ROWS = 100
+#: at most this many iterations carry a finished selection's solution to the newest window (it stops at
+#: convergence, usually after 1-3)
+COMMIT_ITERATIONS = 10
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +112,12 @@ class SlidingConfig:
     reselect_innovation_frames: int = 15
     iterations_per_frame: int = 1
     resolve_every_frames: int = 5
+    # the model selection runs as an anytime computation spread over the kept frames (module docstring):
+    # each frame advances it until it has done this much work, in residual evaluations (with their
+    # normal-equation solves, MapEstimator.selection) of a max_frames window, ~0.3-0.45 ms each on the
+    # development machine; a younger window's evaluations are cheaper and more of them make one frame's
+    # share (EVALUATION_OVERHEAD_ROWS).  No frame pays for a whole selection; 0 runs it at once
+    selection_work_per_frame: int = 30
     # a frame is observable when the last selection's window was and its own range sigma (at the window's
     # newest edge, the least constrained point: ~1.4x the window median on P2) is below this many times
     # MapConfig.observability_max_sigma_range_ratio
@@ -115,6 +138,7 @@ class SlidingConfig:
             and self.iterations_per_frame >= 1
             and self.min_span_s >= 0
             and self.resolve_every_frames >= 1
+            and self.selection_work_per_frame >= 0
         ):
             raise InputError(f"SlidingConfig: invalid values {self}")
 
@@ -221,6 +245,17 @@ class TrackEstimate(StateEstimate):
         return dataclasses.replace(self, p_ned_m=p, cov_p_ned_m2=0.5 * (P + P.T), range_m=rng, range_sigma_ratio=ratio)
 
 
+@dataclass(frozen=True, eq=False)
+class _PendingSelection:
+    """A model selection under way: the newest frame's time ``t_s`` of the window it was started on, whether
+    that window was full, its rows ``obs`` and the running selection (:meth:`MapEstimator.selection`)."""
+
+    t_s: float
+    full: bool
+    obs: Observations
+    steps: Generator[int, None, MapResult]
+
+
 def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
     """One frame's line-of-sight 1-sigma per axis under ``noise``: the pixel noise over the focal length with
     the attitude's white noise and bias (the bias is kept: conservative)."""
@@ -243,8 +278,9 @@ class SlidingWindowEstimator:
     """
 
     #: left out of a snapshot: the MAP solver (its config and caches, ~11 MB pickled), which the estimator
-    #: being restored has built for itself
-    NOT_SNAPSHOTTED = ("map",)
+    #: being restored has built for itself, and a model selection under way (a running generator cannot be
+    #: pickled; the restored estimator starts it again, as it is still due)
+    NOT_SNAPSHOTTED = ("map", "_pending")
 
     def __init__(
         self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None
@@ -277,6 +313,7 @@ class SlidingWindowEstimator:
         self._edge_pinned_at_selection = False  # ... and at the last selection
         self._diag = (math.nan, math.nan, math.nan)  # residual_rms_norm, adequacy_p, ambiguity of the last selection
         self._last_est: TrackEstimate | None = None
+        self._pending: _PendingSelection | None = None  # the model selection under way (module docstring)
         self._prob: WindowProblem | None = None
         self._H: np.ndarray | None = None
         self._since_full = 0
@@ -305,6 +342,7 @@ class SlidingWindowEstimator:
         if not isinstance(state, dict) or set(state) & set(self.NOT_SNAPSHOTTED):
             raise ValueError("not an estimator snapshot")
         vars(self).update(state)
+        self._pending = None
 
     def rebuild(self, rows: Iterable[tuple]) -> TrackEstimate | None:
         """Replay ``rows`` (:meth:`add`'s arguments, oldest first) into this estimator, reset first, with one
@@ -329,7 +367,12 @@ class SlidingWindowEstimator:
                     pass
         finally:
             self.config = config
-        return self.add(*rows[-1])
+        # the newest row's selection runs at once: the caller asked for the estimate there
+        self.config = dataclasses.replace(config, selection_work_per_frame=0)
+        try:
+            return self.add(*rows[-1])
+        finally:
+            self.config = config
 
     # ------------------------------------------------------------------ input
     def add(
@@ -408,7 +451,7 @@ class SlidingWindowEstimator:
         )
 
     # ------------------------------------------------------------------ solve
-    def _update(self, t: float) -> TrackEstimate:
+    def _update(self, t: float) -> TrackEstimate | None:
         c = self.config
         period = min(c.reselect_period_s, max(c.warmup_reselect_period_s, (t - self._t[0]) / 4.0))
         full = t - self._t[0] >= 0.95 * c.window_s
@@ -423,59 +466,119 @@ class SlidingWindowEstimator:
                 or (not self._window_observable and self._edge_pinned and not self._edge_pinned_at_selection)
             )
         )
-        if self._theta is None or self._prior is None or due:
-            obs = self._observations()
-            warm = None
-            if self._theta is not None and self._prob is not None and self._prior is not None:
-                warm = self._shift(self.map.problem(obs, self._prior, self._grid))
-            # a window the last selection called observable is warm-started alone (plus one fresh range
-            # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
-            res = self.map.solve(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
-            prob, theta = res.problem, res.theta
-            self._prior = res.prior
-            self._model = res.model or "map"
-            # the window's verdict (batch: median range sigma over the window, ambiguity, adequacy) gates the
-            # frames until the next selection; each frame's own range sigma, at the window's newest edge
-            # where it is largest, must also stay below edge_sigma_factor x the threshold
-            self._window_observable = bool(res.observable)
-            self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
-            self._last_select_t = t
-            self.stats["selections"] += 1
-            self._edge_pinned_at_selection = self._edge_pinned
-            choice = (self._prior, self._window_observable)
-            confirmed = full and choice == self._last_choice
-            self._period_scale = 2.0 * self._period_scale if confirmed else 1.0
-            self._last_choice = choice
-            inn.clear()
-            # the problem object served several starts: re-linearise at the chosen solution
-            prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
-            _, J, _ = prob.evaluate(theta)
-            prob.last_jacobian = J
-            # per-frame covariances come from this model's information; scale them so that at this
-            # frame they equal the batch result's model-averaged, inflated covariance
-            own = self._estimate(prob, theta, t, J.T @ J, scale=1.0)
-            # the batch covariance before the unobservable range floor (the floor is applied per frame)
-            P_last = res.cov_p_model_ned_m2[-1]
-            self._cov_scale = max(
-                self.map.config.sigma_inflation**2, float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30))
-            )
-
-        elif (
+        if self._pending is None and (self._theta is None or self._prior is None or due):
+            self._start_selection(t, full)
+        pending = self._pending
+        if pending is not None:
+            res = self._advance_selection()
+            if res is not None:
+                return self._commit(res, pending, t)
+            if self._theta is None or self._prior is None:
+                # no solution to update until the selection ends: the newest estimate carried, if any
+                return None if self._last_est is None else self.carry(self._last_est, t, self._p[-1])
+        if (
             self._since_full + 1 < self.config.resolve_every_frames
             and self._prob is not None
             and t < self._span_end(self._prob)
         ):
             return self._incremental(t)
-        else:
-            obs = self._observations()
-            prob = self.map.problem(obs, self._prior, self._grid)
-            theta = self._shift(prob)
-            prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
-            sol = prob.solve(theta, max_iterations=self.config.iterations_per_frame, want_factor=False)
-            theta = sol.theta
-            if not math.isfinite(sol.cost) or prob.last_jacobian is None:
-                raise EstimationError("warm-started window solution is invalid (target behind the camera)")
-            self.stats["updates"] += 1
+        return self._resolve(t)
+
+    def _start_selection(self, t: float, full: bool) -> None:
+        """Begin a model selection on the window as it is now (its rows are frozen for the selection)."""
+        obs = self._observations()
+        warm = None
+        if self._theta is not None and self._prob is not None and self._prior is not None:
+            warm = self._shift(self.map.problem(obs, self._prior, self._grid))
+        # a window the last selection called observable is warm-started alone (plus one fresh range
+        # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
+        steps = self.map.selection(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
+        self._pending = _PendingSelection(t, full, obs, steps)
+
+    def _advance_selection(self) -> MapResult | None:
+        """Run the selection under way for this frame's share of work; its MapResult when it ended, else None."""
+        pending = self._pending
+        if pending is None:
+            return None
+        c = self.config
+        if self._prior is None:
+            # the track's first selection, on its first min_frames rows, runs at once: nothing is published
+            # before it ends, and spread it would delay the first estimate (and what waits on it, guidance)
+            # by a few hundred milliseconds; it is the cheapest of a track's selections (~35 ms of CPU)
+            budget = 0.0
+        else:  # in evaluations of this window: a younger, smaller window's are cheaper (module-level cost model)
+            budget = (
+                c.selection_work_per_frame
+                * (EVALUATION_OVERHEAD_ROWS + c.max_frames)
+                / (EVALUATION_OVERHEAD_ROWS + len(pending.obs))
+            )
+        work = 0
+        try:
+            while budget <= 0 or work < budget:
+                work += next(pending.steps)
+        except StopIteration as done:
+            self._pending = None
+            return done.value
+        except BaseException:
+            self._pending = None
+            raise
+        return None
+
+    def _commit(self, res: MapResult, pending: _PendingSelection, t: float) -> TrackEstimate:
+        """Adopt a finished selection's model and solution, and give the estimate at ``t`` (the newest frame,
+        at or after the newest frame of the window the selection was made on)."""
+        pending_t, full, obs = pending.t_s, pending.full, pending.obs
+        prob, theta = res.problem, res.theta
+        self._prior = res.prior
+        self._model = res.model or "map"
+        # the window's verdict (batch: median range sigma over the window, ambiguity, adequacy) gates the
+        # frames until the next selection; each frame's own range sigma, at the window's newest edge
+        # where it is largest, must also stay below edge_sigma_factor x the threshold
+        self._window_observable = bool(res.observable)
+        self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
+        self._last_select_t = pending_t
+        self.stats["selections"] += 1
+        self._edge_pinned_at_selection = self._edge_pinned
+        choice = (self._prior, self._window_observable)
+        confirmed = full and choice == self._last_choice
+        self._period_scale = 2.0 * self._period_scale if confirmed else 1.0
+        self._last_choice = choice
+        self._innovations.clear()
+        # the problem object served several starts: re-linearise at the chosen solution
+        prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
+        _, J, _ = prob.evaluate(theta)
+        prob.last_jacobian = J
+        # per-frame covariances come from this model's information; scale them so that at the selection's
+        # newest frame they equal the batch result's model-averaged, inflated covariance
+        own = self._estimate(prob, theta, pending_t, J.T @ J, p_cam_ned_m=obs.p_cam_ned_m[-1], scale=1.0)
+        # the batch covariance before the unobservable range floor (the floor is applied per frame)
+        P_last = res.cov_p_model_ned_m2[-1]
+        self._cov_scale = max(
+            self.map.config.sigma_inflation**2, float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30))
+        )
+        if pending_t == t:  # selected on this very window
+            self._H = J.T @ J
+            self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
+            return self._estimate(prob, theta, t, self._H)
+        # selected on the window of a few frames ago: carried over to this one and solved there to convergence
+        # (the rows added since can move a young window's solution more than one iteration's worth)
+        self._theta, self._first = theta, prob.first
+        return self._resolve(t, COMMIT_ITERATIONS)
+
+    def _resolve(self, t: float, iterations: int | None = None) -> TrackEstimate:
+        """``iterations`` (default ``iterations_per_frame``) iterations on the whole window, warm-started from the
+        last solution."""
+        if self._prior is None:
+            raise EstimationError("no motion model selected yet")
+        obs = self._observations()
+        prob = self.map.problem(obs, self._prior, self._grid)
+        theta = self._shift(prob)
+        prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
+        sol = prob.solve(theta, max_iterations=iterations or self.config.iterations_per_frame, want_factor=False)
+        theta = sol.theta
+        if not math.isfinite(sol.cost) or prob.last_jacobian is None:
+            raise EstimationError("warm-started window solution is invalid (target behind the camera)")
+        self.stats["updates"] += 1
         J = prob.last_jacobian
         self._H = J.T @ J
         self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0

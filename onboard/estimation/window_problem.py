@@ -44,8 +44,9 @@ their MAP values (:meth:`WindowProblem.log_evidence` says why).
 from __future__ import annotations
 
 import math
+from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Protocol, TypeVar
 
 import numpy as np
 import scipy.linalg as sla
@@ -55,7 +56,19 @@ from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cross
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
-__all__ = ["NoiseModel", "MotionPrior", "WeakPriorSettings", "WindowProblem", "SolveResult"]
+__all__ = ["NoiseModel", "MotionPrior", "WeakPriorSettings", "WindowProblem", "SolveResult", "drain"]
+
+_T = TypeVar("_T")
+
+
+def drain(steps: Generator[int, None, _T]) -> _T:
+    """Run an anytime computation to its end (a generator that yields its work as it goes: :meth:`WindowProblem.solve_steps`,
+    :meth:`~onboard.estimation.map_estimator.MapEstimator.selection`); its return value."""
+    while True:
+        try:
+            next(steps)
+        except StopIteration as done:
+            return done.value
 
 
 @config_dataclass
@@ -253,6 +266,9 @@ class WindowProblem:
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
+        #: calls of :meth:`evaluate` so far (the work measure of :meth:`solve_steps`)
+        self.evaluations = 0
+        self._prior_logdet: float | None = None  # prior_logdet() without a turn rate, computed once
         # flat positions in J of the control-point block, as (F, 4 controls, 2 rows x 3 axes): the
         # layout of w0[f, m] * Mw[f, a, k] with the shortest broadcast (see evaluate)
         rows_fi = np.arange(2 * F).reshape(F, 2)
@@ -302,6 +318,7 @@ class WindowProblem:
 
         Invalid (False) when any predicted direction is not in front of the camera.
         """
+        self.evaluations += 1
         F, G, cnt = self.F, self.G, self.count
         c = theta[: self.nc].reshape(cnt, 3)
         X = self.B0 @ c
@@ -419,6 +436,8 @@ class WindowProblem:
 
     def prior_logdet(self, theta: np.ndarray) -> float:
         """log det of the prior precision of the model's own parameters (controls, turn rate) at this turn rate."""
+        if self.i_omega is None and self._prior_logdet is not None:  # no turn rate: one value per problem
+            return self._prior_logdet
         om = theta[self.i_omega] if self.i_omega is not None else 0.0
         Jp = self._prior_c_jacobian(om)
         Jw = np.zeros((9, self.nc))
@@ -432,6 +451,8 @@ class WindowProblem:
         logdet = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         if self.i_omega is not None:
             logdet += -2 * math.log(self.prior.turn_rate_sigma_radps)
+        else:
+            self._prior_logdet = float(logdet)
         return float(logdet)
 
     def _nuisances(self) -> list[tuple[int, int, float]]:
@@ -460,8 +481,22 @@ class WindowProblem:
         cost_tol: float = 1e-4,
         want_factor: bool = True,
         min_range_m: float | None = None,
-    ):
-        """Levenberg-Marquardt from theta0 (More's column scaling).
+    ) -> SolveResult:
+        """Levenberg-Marquardt from theta0: :meth:`solve_steps` run to its end."""
+        return drain(self.solve_steps(theta0, max_iterations, lam0, cost_tol, want_factor, min_range_m))
+
+    def solve_steps(
+        self,
+        theta0: np.ndarray,
+        max_iterations: int,
+        lam0: float = 0.0,
+        cost_tol: float = 1e-4,
+        want_factor: bool = True,
+        min_range_m: float | None = None,
+    ) -> Generator[int, None, SolveResult]:
+        """Levenberg-Marquardt from theta0 (More's column scaling), one iteration at a time: yields after each
+        iteration the residual evaluations it made (its work: each costs about one normal-equation solve
+        more), returns the :class:`SolveResult`.
 
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
         damping finds a lower cost, or after ``max_iterations``.  Returns a :class:`SolveResult` whose
@@ -471,6 +506,7 @@ class WindowProblem:
         cost inf and factor None, like a start that put the target behind the camera.
         """
         theta = theta0.copy()
+        evaluations = self.evaluations
         r, J, valid = self.evaluate(theta)
         if not valid:
             return SolveResult(theta, math.inf, 0, False, None)
@@ -527,6 +563,8 @@ class WindowProblem:
                         J_current = True
                     break
                 lam = max(lam * 10, 1e-6)
+            yield self.evaluations - evaluations
+            evaluations = self.evaluations
             if decrease is None:
                 converged = True
                 break
@@ -575,14 +613,11 @@ class WindowProblem:
         "wins" by several nats for knowing less.  Conditioning puts every model on the same footing.
         """
         k = self.n_model_params
-        if k == self.n_params:
-            R, d = fac
-        else:
-            _, J, _ = self.evaluate(theta)
-            Jk = J[:, :k]
-            d = np.sqrt(np.einsum("ij,ij->j", Jk, Jk))
-            d[d == 0] = 1.0
-            R = qr_r(Jk / d)
+        # the model's parameters lead the parameter vector, so the square-root information of their block
+        # with the nuisances held fixed is the leading k x k block of the whole one (QR of the first k
+        # columns of J: the same column scales, the same Householder steps)
+        R, d = fac
+        R, d = R[:k, :k], d[:k]
         logdet_H = 2 * np.sum(np.log(np.abs(np.diag(R)))) + 2 * np.sum(np.log(d))
         meas_norm = -np.sum(np.log(1.0 / self.s))  # -sum log sigma (normalised units)
         return float(-cost + 0.5 * self.prior_logdet(theta) - 0.5 * logdet_H + meas_norm)

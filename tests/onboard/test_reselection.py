@@ -22,7 +22,8 @@ RATE_HZ = 30.0
 def _fly(uv_offset=None, seconds: float = 60.0):
     """A minute of steady geometry under RTK navigation errors: the observer circles (40 m, 8 m/s, 70 m
     up), the target flies a wide circle 150-300 m away (6 m/s, 85 m up; the coordinated-turn model's
-    case).  Returns the estimator, the selection times and the last estimate with its truth.
+    case).  Returns the estimator, the selection times (each selection's window's newest frame; it ends a few
+    frames later, spread over them) and the last estimate with its truth.
     ``uv_offset(t_s)`` adds pixels to the measured centre (a target leaving the model)."""
     t = np.arange(int(seconds * RATE_HZ)) / RATE_HZ
     nc = load_noise_cases()["RTK"]
@@ -36,8 +37,8 @@ def _fly(uv_offset=None, seconds: float = 60.0):
         uv = obs.uv_px[i] + (uv_offset(t[i]) if uv_offset else 0.0)
         n0 = sw.stats["selections"]
         est = sw.add(t[i], uv, K, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
-        if sw.stats["selections"] != n0:
-            selections.append(float(t[i]))
+        if sw.stats["selections"] != n0:  # a selection ended: the newest frame of the window it was made on
+            selections.append(sw._last_select_t)
         if est is not None:
             last = (est, truth.p_target_ned_m[i], truth.range_m[i])
     return sw, np.array(selections), last
