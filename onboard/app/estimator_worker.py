@@ -508,7 +508,7 @@ class ProcessEstimator:
             if est is not None:
                 self._latest = (epoch, est)
             if until_t is not None and t == until_t:
-                found, value = True, est
+                return True, est  # the rest, if any, on the next call: no poll that finds nothing, per frame
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
