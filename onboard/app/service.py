@@ -191,6 +191,7 @@ class OnboardService:
             camera_size_px=(self.pipeline.intrinsics.width_px, self.pipeline.intrinsics.height_px),
         )
         self.cpu_load = CpuLoad()
+        self._name_frames_thread = True  # zenoh's thread for _on_frame, named in the OS on its first frame
 
     def _wait_for_pose(self, time_boot_us: int) -> None:
         """The pipeline's wait for telemetry that brackets a frame (``pose.wait_ms`` at most)."""
@@ -322,6 +323,9 @@ class OnboardService:
 
     def _on_frame(self, sample) -> None:
         received = self._clock_ns()
+        if self._name_frames_thread:  # for top -H and /proc (bench.onboard's CPU by thread)
+            self._name_frames_thread = False
+            name_os_thread("irtrack-frames")
         with self._stats_lock:
             self.frames_in += 1
         try:
