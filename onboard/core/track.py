@@ -411,9 +411,15 @@ def _list(v) -> list | None:
 
 
 def track_to_json(track: Track) -> dict[str, Any]:
-    """The ``irtrack.track/2`` object of ``track`` (a dict ready for ``json.dumps``)."""
+    """The ``irtrack.track/2`` object of ``track`` (a dict ready for ``json.dumps``).
+
+    A :class:`Track`'s numbers are Python floats, finite where they must be (``__post_init__``), so they go
+    out as they are: only ``range_sigma_ratio`` and ``residual_rms_norm`` may be infinite (written as null).
+    Once a frame, with cold caches, per-number conversions cost the daemon's pipeline thread more than the
+    encoding itself."""
     o = track.origin
     los = track.los
+    cov = track.cov_p_ned_m2
     return {
         "schema": TRACK_SCHEMA,
         "vehicle": track.vehicle,
@@ -422,26 +428,26 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "track_id": track.track_id,
         "state": track.state,
         "measurement_valid": track.measurement_valid,
-        "u_px": json_number(track.u_px),
-        "v_px": json_number(track.v_px),
-        "bbox": _list(track.bbox),
+        "u_px": track.u_px,
+        "v_px": track.v_px,
+        "bbox": None if track.bbox is None else list(track.bbox),
         "pose_valid": track.pose_valid,
-        "los_ned": None if los is None else _list(los.u_ned),
-        "los_az_deg": None if los is None else json_number(los.azimuth_deg),
-        "los_el_deg": None if los is None else json_number(los.elevation_deg),
-        "los_sigma_az_deg": None if los is None else json_number(los.sigma_azimuth_deg),
-        "los_sigma_el_deg": None if los is None else json_number(los.sigma_elevation_deg),
-        "camera_ned_m": None if los is None else _list(los.p_cam_ned_m),
-        "lat_deg": json_number(track.lat_deg),
-        "lon_deg": json_number(track.lon_deg),
-        "alt_m": json_number(track.alt_m),
-        "ned_m": _list(track.p_ned_m),
+        "los_ned": None if los is None else list(los.u_ned),
+        "los_az_deg": None if los is None else los.azimuth_deg,
+        "los_el_deg": None if los is None else los.elevation_deg,
+        "los_sigma_az_deg": None if los is None else los.sigma_azimuth_deg,
+        "los_sigma_el_deg": None if los is None else los.sigma_elevation_deg,
+        "camera_ned_m": None if los is None else list(los.p_cam_ned_m),
+        "lat_deg": track.lat_deg,
+        "lon_deg": track.lon_deg,
+        "alt_m": track.alt_m,
+        "ned_m": None if track.p_ned_m is None else list(track.p_ned_m),
         "origin": None if o is None else {"lat_deg": o.lat_deg, "lon_deg": o.lon_deg, "alt_m": o.alt_m},
-        "vel_ned_mps": _list(track.v_ned_mps),
-        "sigma_ned_m": _list(track.sigma_ned_m),
+        "vel_ned_mps": None if track.v_ned_mps is None else list(track.v_ned_mps),
+        "sigma_ned_m": None if cov is None else list(_sigmas3(cov)),
         "sigma_vel_ned_mps": _list(track.sigma_vel_ned_mps),
-        "cov_ned_m2": None if track.cov_p_ned_m2 is None else [_list(r) for r in track.cov_p_ned_m2],
-        "range_m": json_number(track.range_m),
+        "cov_ned_m2": None if cov is None else cov.tolist(),
+        "range_m": track.range_m,
         "range_sigma_ratio": json_number(track.range_sigma_ratio),
         "observable": track.observable,
         "residual_rms_norm": json_number(track.residual_rms_norm),
