@@ -13,9 +13,11 @@ the target moves as a polynomial of degree ``poly_degree`` (2: constant accelera
 included, while the regressor ``x = v_c + rho (w x u)`` carries what the attitude does that the target's
 motion cannot: a gimbal's pointing corrections, the airframe's attitude loop, turbulence.  Per block the
 rows are the two components across the line of sight in radians (divided by ``rho``) and one along it that
-only holds the target near the range (sigma ``range_sigma_frac`` of it: without it the fit's range is free, and
-a target riding along with the camera explains a short block about as well as the true one); ``dt`` enters the
-rows across only.  Projecting the rows ``y = p_c + rho u`` and the regressor off the polynomial's columns
+only holds the target's mean range near ``rho`` (sigma ``range_sigma_frac`` of it, its linear change over the
+block left free: without it the fit's range is free, and a target riding along with the camera explains a
+short block about as well as the true one; held constant, a range that moved by 10 m in a block biased a
+noise-free record by 5 to 15 ms); ``dt`` enters the rows across only.  Projecting the rows
+``y = p_c + rho u`` and the regressor off the polynomial's and the range's columns
 (Frisch-Waugh-Lovell) leaves the block's sums; the blocks of the last ``window_s`` (60 s) pool into::
 
     dt_hat = sum(r_z . r_y) / sum(r_z . r_x),   sigma_dt^2 = s^2 sum(r_z . r_z) / sum(r_z . r_x)^2
@@ -43,10 +45,10 @@ was; the estimate is ``confident`` once ``sigma_ms <= confident_sigma_ms`` (8) o
 blocks, ``estimating`` before, ``unknown`` with no block yet.  A block is closed early (and used if long enough)
 on a gap in the measurements, a new track or a time going backwards; a block whose residual RMS is
 ``outlier_factor`` (5) times the median of the blocks before (a centroid jumping between objects) is refused and
-counted.  The block length and the degree were chosen on P2 lockstep records (RTK noise): 3 s and degree 2
-recovered 50 ms to 49.6 +- 3.7 ms and 0 ms to 5.6 +- 3.5 ms in 30 s; 2.5 s, 4 s or degree 3 absorbed most of
-the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer blocks let the
-target's and observer's model errors in.
+counted.  The block length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree
+2 recovered 50 ms as 48.1 +- 4.2 ms and 0 ms as 2.7 +- 3.7 ms, both confident 7 s in; 2.5 s, 4 s or degree 3
+absorbed most of the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer
+blocks let the target's and observer's model errors in.
 
 Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
 takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
@@ -70,6 +72,7 @@ __all__ = ["TimeOffsetParams", "TimeOffsetEstimate", "TimeOffsetEstimator", "STA
 
 STATES = ("unknown", "estimating", "confident")
 MS_PER_S = 1000.0
+FREE_RANGE_TERMS = 1  # the range's change over a block left free: linear (module docstring)
 
 
 @dataclass(frozen=True)
@@ -86,7 +89,7 @@ class TimeOffsetParams:
     compensate: bool = True
     outlier_factor: float = 5.0
     #: the range's 1-sigma as a fraction of itself (the along-the-line-of-sight rows' weight)
-    range_sigma_frac: float = 1.0
+    range_sigma_frac: float = 3.0
     #: the range assumed while the caller has none (the estimate hardly depends on it: module docstring)
     default_range_m: float = 300.0
     #: a gap between measurements longer than this closes the block
@@ -279,7 +282,7 @@ class TimeOffsetEstimator:
         step_s = float(np.median(np.diff(t)))
         m = max(1, int(round(p.rate_span_s / 2.0 / step_s))) if step_s > 0 else 1
         idx = np.arange(m + 2, n - m - 2)
-        n_par = 3 * (p.poly_degree + 1)
+        n_par = 3 * (p.poly_degree + 1) + FREE_RANGE_TERMS
         if idx.size < n_par:
             return None
         uu, pc, vc, tt = u[idx], p_cam[idx], v_cam[idx], t[idx]
@@ -292,22 +295,20 @@ class TimeOffsetEstimator:
         e1[flat] = np.cross(uu[flat], [1.0, 0.0, 0.0])
         e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
         e2 = np.cross(uu, e1)
-        # one range for the block (the estimator's, which moves from frame to frame and restarts with the track)
-        rng_m = float(np.median(r_m[idx]))
-        # rows in radians across the line of sight, and one along it that only holds the target near that range
-        # (sigma range_sigma_frac): without it the fit's range is free, and a target riding with the camera at
-        # any distance explains a short block as well as the true one
-        W = np.stack([e1, e2, uu / p.range_sigma_frac], axis=1) / rng_m  # (N, 3, 3)
         tau = (2.0 * tt - tt[0] - tt[-1]) / max(tt[-1] - tt[0], 1e-9)
         L = np.polynomial.legendre.legvander(tau, p.poly_degree)  # (N, d+1)
-        # W_k P(t_k): P's coefficients (d+1 of 3 NED each) -> (N, 3, 3(d+1))
-        A = np.einsum("kij,kl->kijl", W, L).reshape(3 * idx.size, -1)
-        p_tgt = pc + rng_m * uu  # the target where the stamp's pose and the range put it
-        y = np.einsum("kij,kj->ki", W, p_tgt).reshape(-1)
+        # one range for the block (the caller's median: its scale hardly matters, module docstring); the along rows
+        # hold the target's mean range to it but leave its linear change over the block free (a nuisance column)
+        rng_m = np.full(idx.size, float(np.median(r_m[idx])))
+        A, y = self._rows(e1, e2, uu, pc, rng_m, L)
+        free = np.zeros((idx.size, 3, FREE_RANGE_TERMS))
+        free[:, 2, :] = L[:, 1 : 1 + FREE_RANGE_TERMS] / (p.range_sigma_frac * rng_m[:, None])
+        A = np.hstack([A, free.reshape(3 * idx.size, FREE_RANGE_TERMS)])
         # the regressor across the line of sight only: along it, the range is the estimator's, not the stamp's
         across = np.array([1.0, 1.0, 0.0])
-        x = (np.einsum("kij,kj->ki", W, vc + rng_m * g) * across).reshape(-1)
-        z = (np.einsum("kij,kj->ki", W, vc + rng_m * g_iv) * across).reshape(-1)
+        W = self._weights(e1, e2, uu, rng_m)
+        x = (np.einsum("kij,kj->ki", W, vc + rng_m[:, None] * g) * across).reshape(-1)
+        z = (np.einsum("kij,kj->ki", W, vc + rng_m[:, None] * g_iv) * across).reshape(-1)
         Q, _ = np.linalg.qr(A)
         r_y, r_x, r_z = (v - Q @ (Q.T @ v) for v in (y, x, z))
         return _Block(
@@ -321,6 +322,18 @@ class TimeOffsetEstimator:
             dof=int(3 * idx.size - n_par - 1),
             frames=int(idx.size),
         )
+
+    def _weights(self, e1, e2, uu, rng_m) -> np.ndarray:
+        """(N, 3, 3): rows in radians across the line of sight, and one along it that only holds the target near
+        the range (sigma ``range_sigma_frac`` of it; without it the fit's range is free: module docstring)."""
+        return np.stack([e1, e2, uu / self.params.range_sigma_frac], axis=1) / rng_m[:, None, None]
+
+    def _rows(self, e1, e2, uu, pc, rng_m, L) -> tuple[np.ndarray, np.ndarray]:
+        """The target's polynomial columns ``A`` (3N, 3(d+1)) and the rows ``y`` (3N,) of ``p_c + rho u``."""
+        W = self._weights(e1, e2, uu, rng_m)
+        A = np.einsum("kij,kl->kijl", W, L).reshape(3 * uu.shape[0], -1)
+        y = np.einsum("kij,kj->ki", W, pc + rng_m[:, None] * uu).reshape(-1)
+        return A, y
 
     @staticmethod
     def _rate_ned(t: np.ndarray, q: np.ndarray, idx: np.ndarray, j: int) -> np.ndarray:
