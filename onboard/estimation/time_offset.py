@@ -52,8 +52,9 @@ blocks let the target's and observer's model errors in.
 
 Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
 takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
-:attr:`TimeOffsetEstimator.compensated_ms` follows the estimate while it is confident and within
-``max_offset_ms`` and holds its last value otherwise (the offset belongs to the camera, not to the target: a
+:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it first becomes confident (within
+``max_offset_ms``) and again whenever a confident estimate leaves it by more than two sigmas; it holds its value
+otherwise (the offset belongs to the camera, not to the target: a
 lost track does not make it go away).
 """
 
@@ -267,8 +268,12 @@ class TimeOffsetEstimator:
         p = self.params
         e = self.estimate
         if p.compensate and e.confident and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
-            self._compensated_ms = float(e.estimate_ms)
-            self.estimate = self._summarise()
+            # moved only when the estimate left the compensation by two sigmas: each move of the caller's pose
+            # lookup may restart its 3-D window, and a block's noise is no reason to
+            sigma_ms = e.sigma_ms if e.sigma_ms is not None else 0.0
+            if not self._compensated_ms or abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms:
+                self._compensated_ms = float(e.estimate_ms)
+                self.estimate = self._summarise()
 
     # ------------------------------------------------------------------ internals
 

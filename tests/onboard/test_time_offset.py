@@ -84,8 +84,8 @@ def test_recovers_the_offset_and_its_sign(offset_ms):
     assert e.state == "confident"
     assert e.sigma_ms is not None and e.sigma_ms < 5.0
     assert e.estimate_ms == pytest.approx(offset_ms, abs=max(4 * e.sigma_ms, 3.0))
-    # compensation follows the confident estimate
-    assert est.compensated_ms == pytest.approx(e.estimate_ms)
+    # compensation follows the confident estimate (moved when it leaves it by two sigmas)
+    assert est.compensated_ms != 0.0 and abs(est.compensated_ms - e.estimate_ms) <= 2 * e.sigma_ms
 
 
 def test_compensation_off_keeps_zero():
