@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import os
 from pathlib import Path
 
@@ -23,7 +24,7 @@ from groundsim.io.stop_signals import print_interrupted
 from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.errors import ConfigError
 
-__all__ = ["cmd_eval", "add_mot_scores", "DEFAULT_EVAL_SCENARIOS"]
+__all__ = ["cmd_eval", "add_mot_scores", "format_time_offset", "DEFAULT_EVAL_SCENARIOS"]
 
 log = logging.getLogger("groundsim.evaluation.eval")  # the eval's own logger: its lines and its quiet levels
 
@@ -77,6 +78,32 @@ def _gnss_dropout(args):
     from groundsim.world.nav_errors import parse_gnss_dropout
 
     return parse_gnss_dropout(text)
+
+
+def format_time_offset(runs: list) -> str:
+    """One line per run: the camera clock offset's estimate at the end, and when (seconds after the first frame with a
+    measured target) it first became confident and the watchdog first raised ``camera_time_offset``."""
+
+    def since(t_s: float, t0_s: float) -> str:
+        return "never" if t_s is None or math.isnan(t_s) or math.isnan(t0_s) else f"{t_s - t0_s:.1f} s"
+
+    lines = [
+        "Camera clock offset (time_offset): injected, estimated at the end, confident and warned after tracking began"
+    ]
+    for r in runs:
+        to = getattr(r, "time_offset", None)
+        name = f"{r.scenario} s{r.seed}"
+        if not to:
+            lines.append(f"{name:<14} no estimate (time_offset.enabled false, or the run failed)")
+            continue
+        est = "-" if to["estimate_ms"] is None else f"{to['estimate_ms']:+.1f} +- {to['sigma_ms']:.1f} ms"
+        t0 = to["first_measurement_t_s"]
+        lines.append(
+            f"{name:<14} injected {to['injected_ms']:g} ms, estimate {est} ({to['state']}), compensated "
+            f"{to['compensated_ms']:.1f} ms; confident after {since(to['confident_t_s'], t0)}, warned after "
+            f"{since(to['warning_t_s'], t0)}"
+        )
+    return "\n".join(lines)
 
 
 def cmd_eval(args) -> int:
@@ -158,6 +185,9 @@ def cmd_eval(args) -> int:
         if options.gnss_dropout is not None:
             print()
             print(format_gnss_dropout(result.runs))
+        if options.camera_clock is not None:
+            print()
+            print(format_time_offset(result.runs))
         failed = sum(1 for s in result.scores if "error" in s)
         print(
             f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "

@@ -376,6 +376,11 @@ class RunResult:
     #: watchdog first named it (``gnss_dropout``) from the frames' poses (NaN: never)
     gnss_window_s: tuple[float, float] | None = None
     gnss_warning_t_s: float = math.nan
+    #: the camera clock's offset estimate at the end (``TimeOffsetEstimate.as_dict``) with the scenario times of the
+    #: first measured frame, the first confident estimate and the first ``camera_time_offset`` warning (NaN: never),
+    #: the largest confident |estimate| (``max_abs_confident_ms``), ``injected_ms`` and ``warned``; None when
+    #: ``time_offset.enabled`` is false
+    time_offset: dict | None = None
     #: (F,) the frame's track had a line of sight (None: not recorded)
     los_valid: np.ndarray | None = None
 
@@ -514,13 +519,19 @@ def run_lockstep(
         None if gd is None else gd.boot_window_us(core.boot_start_us),
     )
     gnss_warning_t_s = math.nan
-    watchdog = None
-    if gd is not None:  # the daemon's own check, on the frames' time
-        from onboard.app.watchdog import Watchdog
+    # the daemon's own checks (gnss_dropout, camera_time_offset), on the frames' time
+    from onboard.app.watchdog import Watchdog
 
-        watchdog = Watchdog(
-            started_s=0.0, frame_key="", zenoh_where="", mavlink_connection="", camera_size_px=(K.width_px, K.height_px)
-        )
+    watchdog = Watchdog(
+        started_s=0.0, frame_key="", zenoh_where="", mavlink_connection="", camera_size_px=(K.width_px, K.height_px)
+    )
+    clock = options.camera_clock
+    offset_times = {
+        "first_measurement_t_s": math.nan,
+        "confident_t_s": math.nan,
+        "warning_t_s": math.nan,
+        "max_abs_confident_ms": math.nan,
+    }
     rng = scenario.rng("eval.centroid_noise", seed)
 
     F = core.frame_count
@@ -546,7 +557,9 @@ def run_lockstep(
     for k in range(F):
         i = k * core.ticks_per_frame
         t_frame_us = core.time_boot_us(i)
-        feed.feed_for(i, t_frame_us)
+        # a frame stamped late is looked up at its stamp: the daemon waits for that telemetry, so does the feed
+        late_us = 0 if clock is None else max(clock.stamp_us(t_frame_us, core.tick_time_s(i)) - t_frame_us, 0)
+        feed.feed_for(i, t_frame_us + late_us)
         if feed.exhausted and buffer.lookup(t_frame_us).pose is None:
             # the simulation ends before a telemetry sample after this frame: the run's last frame or two
             # can have no pose in lockstep (nor in a real run that stops there); they are not processed
@@ -582,10 +595,14 @@ def run_lockstep(
                 log.debug("frame %d rejected: %s", k, exc)
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         _, pose = source.take()
-        if watchdog is not None and track is not None:
+        if gd is not None and track is not None:
             watchdog.navigation(float(tr.t_s), pipeline.last_position_age_s)
             if math.isnan(gnss_warning_t_s) and gd.active(float(tr.t_s)) and "gnss_dropout" in watchdog.warned:
                 gnss_warning_t_s = float(tr.t_s)
+        if track is not None and pipeline.time_offset is not None:
+            _time_offset_times(
+                offset_times, float(tr.t_s), track, pipeline, watchdog, cfg.time_offset.warn_threshold_ms
+            )
         if track is not None:
             c.state[k] = track.state
             c.los_valid[k] = track.los is not None
@@ -737,7 +754,30 @@ def run_lockstep(
         mot_tracker="".join(mot_tracker),
         gnss_window_s=None if gd is None else (gd.start_s, gd.start_s + gd.duration_s),
         gnss_warning_t_s=gnss_warning_t_s,
+        time_offset=None
+        if pipeline.time_offset_estimate is None
+        else {
+            **pipeline.time_offset_estimate.as_dict(),
+            **offset_times,
+            "injected_ms": None if clock is None else clock.offset_ms,
+            "warned": "camera_time_offset" in watchdog.warned,
+        },
     )
+
+
+def _time_offset_times(times: dict, t_s: float, track, pipeline, watchdog, threshold_ms: float) -> None:
+    """Scenario times of the first measured frame, the first confident clock-offset estimate and the first
+    ``camera_time_offset`` warning (the daemon's watchdog, on the frame's time); the largest confident |estimate|."""
+    if track.measurement_valid and math.isnan(times["first_measurement_t_s"]):
+        times["first_measurement_t_s"] = t_s
+    est = pipeline.time_offset_estimate
+    watchdog.camera_time_offset(t_s, est, threshold_ms)
+    if est.confident:
+        if math.isnan(times["confident_t_s"]):
+            times["confident_t_s"] = t_s
+        times["max_abs_confident_ms"] = float(np.nanmax([times["max_abs_confident_ms"], abs(est.estimate_ms)]))
+    if math.isnan(times["warning_t_s"]) and "camera_time_offset" in watchdog.warned:
+        times["warning_t_s"] = t_s
 
 
 def _batch(

@@ -81,6 +81,7 @@ __all__ = [
     "MountConfig",
     "CameraConfig",
     "EstimatorConfig",
+    "TimeOffsetConfig",
     "OriginConfig",
     "PoseConfig",
     "OutputConfig",
@@ -344,6 +345,32 @@ class FollowConfig:
 
 
 @config_dataclass
+class TimeOffsetConfig:
+    """``time_offset``: the camera clock's offset against the autopilot's, estimated online from the target's line
+    of sight against the reported attitude (:mod:`onboard.estimation.time_offset`), in the status
+    (``camera_time_offset``), warned above ``warn_threshold_ms`` (``camera_time_offset``) and compensated in the
+    pose lookup once confident (``compensate``)."""
+
+    enabled: Bool = True
+    compensate: Bool = True
+    warn_threshold_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 20.0
+    confident_sigma_ms: Annotated[float, Number(0.0, 1000.0, lo_open=True)] = 8.0
+    max_offset_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 250.0
+    window_s: Annotated[float, Number(1.0, 3600.0)] = 60.0
+
+    def params(self):
+        """The estimator's :class:`~onboard.estimation.time_offset.TimeOffsetParams`."""
+        from onboard.estimation.time_offset import TimeOffsetParams
+
+        return TimeOffsetParams(
+            window_s=self.window_s,
+            confident_sigma_ms=self.confident_sigma_ms,
+            max_offset_ms=self.max_offset_ms,
+            compensate=self.compensate,
+        )
+
+
+@config_dataclass
 class LoggingConfig:
     """``logging``: level, line format, and how often a repeated rejection is logged."""
 
@@ -377,6 +404,7 @@ class OnboardConfig:
     guidance: GuidanceConfig = _section(GuidanceConfig)
     record: RecordConfig = _section(RecordConfig)
     live_view: LiveViewConfig = _section(LiveViewConfig)
+    time_offset: TimeOffsetConfig = _section(TimeOffsetConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
     def bearing_white_sigma_rad(self) -> float:

@@ -404,6 +404,9 @@ class OnboardService:
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
             self.watchdog.residual(now_s, track.residual_rms_norm)
             self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
+            self.watchdog.camera_time_offset(
+                now_s, self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
+            )
             return track
         except FrameRejected as exc:
             if exc.reason == "dims_mismatch":
@@ -650,6 +653,7 @@ class OnboardService:
             },
             warnings=warnings,
             withheld_because=self.pipeline.withheld_because,
+            camera_time_offset=self._time_offset_status(),
         )
         status["utc"] = self.utc.status()  # boot clock -> UTC (onboard.core.utc_clock)
         if self.camera is not None:
@@ -659,6 +663,12 @@ class OnboardService:
             if section is not None:
                 status[tap.name] = section
         return status
+
+    def _time_offset_status(self) -> dict[str, Any] | None:
+        est = self.pipeline.time_offset_estimate  # a frozen snapshot: safe to read from this thread
+        if est is None:
+            return None
+        return {**est.as_dict(), "warn_threshold_ms": self.config.time_offset.warn_threshold_ms}
 
     def _camera_status(self, camera: CameraProtocol) -> dict[str, Any]:
         st = camera.status()

@@ -40,6 +40,13 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     the position is dead-reckoned with a growing sigma (``pose.dead_reckoning_max_s``) and the 3-D
     estimate coasts.  Checked on every processed frame, cleared by the first frame with fresh position.
 
+``camera_time_offset``
+    The camera's clock is off the autopilot's: the estimate of :mod:`onboard.estimation.time_offset` is
+    ``confident`` and its magnitude above ``time_offset.warn_threshold_ms`` by more than two sigmas (20 ms: at
+    0.1 rad/s of camera rotation, 2 mrad of line-of-sight error, twice the attitude noise).  The message gives the offset,
+    its sigma and whether the pose lookup compensates it.  Cleared by a confident estimate at or below the
+    threshold; an estimate that is not confident (no target, a still camera) changes nothing.
+
 Each code is logged at WARNING the first time only (``warned``); it is in :attr:`active` while the
 condition holds (the status JSON lists them) and leaves it when the condition clears (logged at
 INFO), coming back without a new WARNING.
@@ -238,6 +245,32 @@ class Watchdog:
             f"no GLOBAL_POSITION_INT (#33) {age} while attitude and frames go on: the position is dead-reckoned "
             f"with a growing sigma (pose.dead_reckoning_max_s) and 3-D positions coast; check the GNSS (GPS_RAW_INT "
             f"fix type) and the #33 stream",
+        )
+
+    def camera_time_offset(self, now_s: float, estimate, threshold_ms: float) -> None:
+        """The camera clock's offset now (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`, or None
+        when the estimator is off: ignored) against ``threshold_ms``."""
+        if estimate is None or estimate.state != "confident" or estimate.estimate_ms is None:
+            return
+        dt_ms, sigma_ms = float(estimate.estimate_ms), float(estimate.sigma_ms or 0.0)
+        if abs(dt_ms) <= threshold_ms:
+            self._clear("camera_time_offset")
+            return
+        if abs(dt_ms) - 2.0 * sigma_ms <= threshold_ms:
+            return  # above the threshold, but not by two sigmas: neither raised nor cleared
+        late = "late" if dt_ms > 0 else "early"
+        comp = float(estimate.compensated_ms)
+        done = (
+            f"the pose lookup compensates {comp:.0f} ms (time_offset.compensate)"
+            if comp
+            else "not compensated (time_offset.compensate is false or the offset is beyond time_offset.max_offset_ms)"
+        )
+        self._raise(
+            "camera_time_offset",
+            f"IR frames are stamped {abs(dt_ms):.0f} +- {sigma_ms:.0f} ms {late} against the autopilot's clock "
+            f"(> {threshold_ms:g} ms): lines of sight and 3-D positions made with the pose at the stamp are off by "
+            f"the camera's rotation over that time; {done}; fix the camera's time stamping (capture time on the "
+            f"autopilot's boot clock, the capture-to-stamp latency)",
         )
 
     def residual(self, now_s: float, residual_rms_norm: float | None) -> None:

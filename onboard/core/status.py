@@ -73,6 +73,7 @@ def build_status(
     stages_ms: Mapping[str, Mapping[str, Any]] | None = None,
     warnings: list[Mapping[str, str]] | tuple = (),
     withheld_because: tuple[str, ...] | list[str] = (),
+    camera_time_offset: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
@@ -95,6 +96,9 @@ def build_status(
     empty when all is well.  ``geometry``: ``published`` (line of sight and 3-D positions go out) or
     ``withheld``, with ``withheld_because`` the warnings that withhold them (a configuration mismatch:
     the camera attitude the daemon computes is wrong, so is any direction or position made from it).
+    ``camera_time_offset``: the camera clock's offset against the autopilot's (:mod:`onboard.estimation.time_offset`),
+    ``{estimate_ms, sigma_ms, state: unknown|estimating|confident, compensated_ms, blocks, frames, refused_blocks,
+    excitation_mradps, warn_threshold_ms}`` (positive: frames stamped late); null when ``time_offset.enabled`` is false.
     """
     t = last_track
     return {
@@ -125,6 +129,7 @@ def build_status(
         "cpu": {"share": json_number(cpu_share), "pipeline_share": json_number(pipeline_cpu_share), "cores": _cores()},
         "estimator": estimator,
         "warnings": [{"code": str(w["code"]), "message": str(w["message"])} for w in warnings],
+        "camera_time_offset": None if camera_time_offset is None else _jsonable(camera_time_offset),
         "track": None
         if t is None
         else {

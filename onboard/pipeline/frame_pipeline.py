@@ -37,6 +37,14 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    f^2 s_perp^2 / range^2`` (``s_perp^2`` the estimate's position variance across the line of
    sight, per axis).  About 1 or below when camera and noise model match; a mount or intrinsics
    mismatch drives it far above (:mod:`onboard.app.watchdog` warns).
+7. Camera clock (``time_offset``): every frame with a measured target feeds
+   :class:`~onboard.estimation.time_offset.TimeOffsetEstimator` with its bearing and the pose at its own
+   stamp (and the estimate's range, once there is one).  While the estimator's ``compensated_ms`` is not 0,
+   step 3 looks the pose up a second time, at ``t - compensated_ms``, and that pose (the last looked up: a
+   recorder keeps it) makes the estimator's rows, the line of sight and the 3-D output; the track keeps the
+   frame's stamp.  A compensation that moved by more than ``COMPENSATION_RESTART_MS`` since the estimator's
+   window began restarts the estimator (its rows made with the old one would disagree with the new ones).
+   The offset estimator starts again on an autopilot reboot and on a frame-stream restart or clock step.
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
 in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
@@ -66,6 +74,7 @@ from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
+from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimator
 from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.coast import coast_estimate
 
@@ -78,6 +87,9 @@ US_PER_S = 1_000_000
 #: extrapolation adds 6 mm, a dead-reckoned second 1 m
 CAMERA_SIGMA_FLOOR_M = 0.02
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
+#: a change of the camera clock's compensation beyond this restarts the estimator: the window's rows made with the
+#: old one would disagree with the new ones (50 ms at 0.1 rad/s of camera rotation: 5 mrad, ten times the noise)
+COMPENSATION_RESTART_MS = 10.0
 
 
 class FrameRejected(InputError):
@@ -221,6 +233,10 @@ class FramePipeline:
         self._bearing_sigma_rad = math.hypot(self._pixel_sigma_px / f_px, self._attitude_sigma_rad)
         self._residuals: collections.deque = collections.deque()  # (time_boot_us, z_u^2 + z_v^2)
         self._selections: collections.deque = collections.deque()  # (TrackRequest, on_done): any thread appends
+        to = getattr(config, "time_offset", None)  # a test's config may lack the section: then none
+        #: the camera clock's offset estimator (None: ``time_offset.enabled`` false); step 7 of the module docstring
+        self.time_offset = TimeOffsetEstimator(to.params()) if to is not None and to.enabled else None
+        self._window_comp_ms = 0.0  # the clock compensation the estimator's window was made with
         self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
 
     # ------------------------------------------------------------------ public
@@ -328,16 +344,21 @@ class FramePipeline:
             except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
                 self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
             waited_ns = self._clock_ns() - w0
-        pose = None
+        stamp_pose = pose = None
         if self.pose_source is not None:
             try:
-                pose = self.pose_source.pose_at(t_us)
+                stamp_pose = pose = self.pose_source.pose_at(t_us)
+                shift_us = self._compensation_us()
+                if shift_us and stamp_pose is not None:  # looked up last: the pose the frame's 3-D is made with
+                    pose = self.pose_source.pose_at(t_us - shift_us)
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
                 self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
 
         self.last_position_age_s = self._position_age_s(pose)
+        self._follow_compensation()
         e0 = self._clock_ns()
         est = self._estimate(upd, pose, t_us)
+        self._time_offset_add(upd, stamp_pose, est, t_us)
         self.estimator_ms.add((self._clock_ns() - e0) / 1e6)
         track = self._track(frame, upd, state, pose, est)
         self.last_track = track
@@ -352,7 +373,7 @@ class FramePipeline:
         if self.pose_source is None:
             return None
         try:
-            pose = self.pose_source.pose_at(t_us)
+            pose = self.pose_source.pose_at(t_us - self._compensation_us())
         except Exception:  # noqa: BLE001 - counted where the frame's own pose is looked up below
             return None
         return None if pose is None else rotmat_from_quat(pose.q_ned_from_cam)
@@ -381,6 +402,8 @@ class FramePipeline:
             self.counter.count(f"frame_{verdict.reason}", detail)
         if verdict.restart:
             self._reset_estimator(verdict.reason.replace("_", " "))
+            if self.time_offset is not None:  # a clock step or a restarted camera: its offset may have changed
+                self.time_offset.reset()
 
     # ------------------------------------------------------------------ estimation
 
@@ -408,6 +431,8 @@ class FramePipeline:
         if pose is not None:
             if self._est_epoch is not None and pose.epoch != self._est_epoch:
                 self._reset_estimator("autopilot reboot")
+                if self.time_offset is not None:  # the autopilot's clock started again
+                    self.time_offset.reset()
             self._est_epoch = pose.epoch
         if tid != self._est_track_id:
             if self._est_track_id is not None and self.config.estimator.reset_on_new_track:
@@ -459,6 +484,53 @@ class FramePipeline:
             self._bearing_sigma_rad,
             self.config.estimator.coast_accel_sigma_mps2,
         )
+
+    # ------------------------------------------------------------------ camera clock
+
+    @property
+    def time_offset_estimate(self) -> TimeOffsetEstimate | None:
+        """The camera clock's offset now (None: ``time_offset.enabled`` false)."""
+        return None if self.time_offset is None else self.time_offset.estimate
+
+    def _follow_compensation(self) -> None:
+        """Restart the estimator when the clock compensation moved by more than ``COMPENSATION_RESTART_MS`` since
+        its window began; a window that starts takes the compensation of now."""
+        comp_ms = self._compensation_us() / 1000.0
+        if self._est_has_data and abs(comp_ms - self._window_comp_ms) > COMPENSATION_RESTART_MS:
+            self._reset_estimator(f"camera clock compensation now {comp_ms:.0f} ms (was {self._window_comp_ms:.0f} ms)")
+        if not self._est_has_data:
+            self._window_comp_ms = comp_ms
+
+    def _compensation_us(self) -> int:
+        return 0 if self.time_offset is None else int(round(self.time_offset.compensated_ms * 1000.0))
+
+    def _time_offset_add(self, upd, stamp_pose: PoseAt | None, est, t_us: int) -> None:
+        """Feed the offset estimator with the frame's bearing and the pose at its own stamp (step 7)."""
+        if self.time_offset is None or stamp_pose is None or not upd.measurement_valid or upd.u_px is None:
+            return
+        range_m = getattr(est, "range_m", None) if est is not None else None
+        if range_m is not None and not (math.isfinite(float(range_m)) and float(range_m) > 0):
+            range_m = None  # no range yet: the estimator's default (the estimate hardly depends on it)
+        v = stamp_pose.body.v_ned_mps
+        if not np.all(np.isfinite(v)):
+            self.counter.count(
+                "time_offset_no_velocity", "the pose has no velocity: frame not used for the clock offset"
+            )
+            return
+        try:
+            self.time_offset.add(
+                t_us / US_PER_S,
+                self.intrinsics.bearing_cam_from_pixel((upd.u_px, upd.v_px)),
+                stamp_pose.q_ned_from_cam,
+                stamp_pose.p_cam_ned_m,
+                v,
+                None if range_m is None else float(range_m),
+                upd.track_id,
+            )
+        except InputError as exc:
+            self.counter.count("time_offset_input", str(exc))
+        except Exception as exc:  # noqa: BLE001 - the clock estimate must never stop the frame loop
+            self.counter.count("time_offset_error", f"{type(exc).__name__}: {exc}")
 
     # ------------------------------------------------------------------ output
 

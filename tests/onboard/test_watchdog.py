@@ -143,3 +143,30 @@ def test_gnss_dropout_is_named_from_the_frames_position_age_and_cleared_when_pos
     assert wd.active == () and wd.changes == 2
     msgs = _warnings(caplog)
     assert len(msgs) == 1 and "GLOBAL_POSITION_INT" in msgs[0] and "dead-reckoned" in msgs[0]
+
+
+def _offset(estimate_ms, sigma_ms=3.0, state="confident", compensated_ms=0.0):
+    from onboard.estimation.time_offset import TimeOffsetEstimate
+
+    return TimeOffsetEstimate(estimate_ms, sigma_ms, state, compensated_ms, 3, 300, 0, 5.0)
+
+
+def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clears_below(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.camera_time_offset(1.0, None, 20.0)  # estimator off
+        wd.camera_time_offset(2.0, _offset(None, None, "unknown"), 20.0)
+        wd.camera_time_offset(3.0, _offset(60.0, 30.0, "estimating"), 20.0)  # not confident: nothing
+        wd.camera_time_offset(4.0, _offset(24.0, 3.0), 20.0)  # above, but not by two sigmas
+        assert wd.active == ()
+        wd.camera_time_offset(5.0, _offset(50.0, 3.0, compensated_ms=50.0), 20.0)
+        wd.camera_time_offset(6.0, _offset(-48.0, 3.0), 20.0)  # still active: warned once
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("camera_time_offset")
+    assert "50 +- 3 ms late" in msgs[0] and "compensates 50 ms" in msgs[0]
+    assert [w.code for w in wd.active] == ["camera_time_offset"]
+    assert "early" in wd.active[0].message and "not compensated" in wd.active[0].message  # the newest estimate's
+    wd.camera_time_offset(7.0, _offset(30.0, 10.0, "estimating"), 20.0)
+    assert [w.code for w in wd.active] == ["camera_time_offset"]  # a doubtful estimate neither raises nor clears
+    wd.camera_time_offset(8.0, _offset(5.0, 3.0), 20.0)
+    assert wd.active == ()

@@ -1,0 +1,377 @@
+"""The camera clock's offset against the autopilot's, estimated online from the target's line of sight.
+
+Model.  A frame stamped ``t`` (boot clock) but captured at ``t - dt`` (``dt > 0``: the stamp is late, as an
+unmeasured USB/CSI buffer or encoder latency makes it) is given the pose at ``t``: the attitude
+``R = R_ned_from_cam`` and the camera position ``p_c``.  With ``dR/dt = [w]x R`` (``w_ned`` the camera's angular
+rate in NED), ``b`` the target's bearing in the camera frame and ``u = R b``, the target point that pose puts at
+range ``rho`` is, to first order in ``dt``::
+
+    p_c(t) + rho u(t) = P(t - dt) + dt * (v_c + rho * (w_ned x u))
+
+``P`` the target's true position, ``v_c`` the camera's velocity.  Over a block of frames (``block_s``, 3 s)
+the target moves as a polynomial of degree ``poly_degree`` (2: constant acceleration) in time, ``P(t - dt)``
+included, while the regressor ``x = v_c + rho (w x u)`` carries what the attitude does that the target's
+motion cannot: a gimbal's pointing corrections, the airframe's attitude loop, turbulence.  Per block the
+rows are the two components across the line of sight in radians (divided by ``rho``) and one along it that
+only holds the target's mean range near ``rho`` (sigma ``range_sigma_frac`` of it, its linear change over the
+block left free: without it the fit's range is free, and a target riding along with the camera explains a
+short block about as well as the true one; held constant, a range that moved by 10 m in a block biased a
+noise-free record by 5 to 15 ms); ``dt`` enters the rows across only.  Projecting the rows
+``y = p_c + rho u`` and the regressor off the polynomial's and the range's columns
+(Frisch-Waugh-Lovell) leaves the block's sums; the blocks of the last ``window_s`` (60 s) pool into::
+
+    dt_hat = sum(r_z . r_y) / sum(r_z . r_x),   sigma_dt^2 = s^2 sum(r_z . r_z) / sum(r_z . r_x)^2
+
+an instrumental-variable estimate: ``w_ned`` is the rotation between the reported attitudes ``rate_span_s``
+(0.2 s) apart around the frame, ``rotvec(R(t+h) R(t-h)^T) / 2h``, and the attitude's white noise
+differentiated that way is a large part of ``x`` (0.05 deg of noise is 6 mrad/s); ordinary least squares would
+shrink ``dt_hat`` by the noise's share of ``sum r_x^2`` (13 % at 0.03 deg in the tests' geometry).  The
+instrument ``z`` is the same regressor from the attitudes two frames further out on each side: other telemetry
+samples, so its noise is independent of ``x``'s and of the frame's own.  ``s^2`` is the larger of the pooled
+residual variance and the weighted scatter of the blocks' own ``dt`` around ``dt_hat`` (the telemetry's
+interpolation and the centroid's errors are correlated from frame to frame; the scatter sees that).
+
+The range ``rho`` is the 3-D estimator's when the caller has one (``default_range_m`` before): it scales the
+attitude's part of both ``y`` and ``x`` alike, so the estimate hardly depends on it (measured on P2 lockstep
+records with exact navigation: 50 ms injected, block estimates within 1.5 ms whether ``rho`` was the true range,
+the estimator's early one at half of it, 50 m, 300 m or 1 km).  Reference: the same idea as camera-IMU
+temporal calibration from rotational motion (Furgale, Rehder and Siegwart, IROS 2013, which estimates ``dt``
+inside a continuous-time batch); here linearised and online, with the target's line of sight in place of the
+calibration pattern.
+
+Excitation.  A camera that holds the target perfectly still in the image while flying straight sees no offset
+at all: the line of sight labelled ``t`` is then the true one at ``t``.  ``sigma_dt`` says how much motion there
+was; the estimate is ``confident`` once ``sigma_ms <= confident_sigma_ms`` (8) over at least ``min_blocks`` (2)
+blocks, ``estimating`` before, ``unknown`` with no block yet.  A block is closed early (and used if long enough)
+on a gap in the measurements, a new track or a time going backwards; a block whose residual RMS is
+``outlier_factor`` (5) times the median of the blocks before (a centroid jumping between objects) is refused and
+counted.  The block length and the degree were chosen on P2 lockstep records (RTK noise, 30 s): 3 s and degree
+2 recovered 50 ms as 48.1 +- 4.2 ms and 0 ms as 2.7 +- 3.7 ms, both confident 7 s in; 2.5 s, 4 s or degree 3
+absorbed most of the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer
+blocks let the target's and observer's model errors in.
+
+Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
+takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
+:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it first becomes confident (within
+``max_offset_ms``) and again whenever a confident estimate leaves it by more than two sigmas; it holds its value
+otherwise (the offset belongs to the camera, not to the target: a
+lost track does not make it go away).
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.core.frames import quat_conjugate, quat_multiply, rotmat_from_quat, rotvec_from_quat
+
+__all__ = ["TimeOffsetParams", "TimeOffsetEstimate", "TimeOffsetEstimator", "STATES"]
+
+STATES = ("unknown", "estimating", "confident")
+MS_PER_S = 1000.0
+FREE_RANGE_TERMS = 1  # the range's change over a block left free: linear (module docstring)
+
+
+@dataclass(frozen=True)
+class TimeOffsetParams:
+    """Tuning of :class:`TimeOffsetEstimator` (module docstring); times in seconds unless ``_ms``."""
+
+    block_s: float = 3.0
+    poly_degree: int = 2
+    rate_span_s: float = 0.2
+    window_s: float = 60.0
+    confident_sigma_ms: float = 8.0
+    min_blocks: int = 2
+    max_offset_ms: float = 250.0
+    compensate: bool = True
+    outlier_factor: float = 5.0
+    #: the range's 1-sigma as a fraction of itself (the along-the-line-of-sight rows' weight)
+    range_sigma_frac: float = 3.0
+    #: the range assumed while the caller has none (the estimate hardly depends on it: module docstring)
+    default_range_m: float = 300.0
+    #: a gap between measurements longer than this closes the block
+    max_gap_s: float = 0.25
+
+    def __post_init__(self) -> None:
+        for name in (
+            "block_s",
+            "rate_span_s",
+            "range_sigma_frac",
+            "default_range_m",
+            "window_s",
+            "confident_sigma_ms",
+            "max_offset_ms",
+            "outlier_factor",
+        ):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+                raise InputError(f"TimeOffsetParams.{name} must be a positive number, got {v!r}")
+        if not isinstance(self.poly_degree, int) or not 0 <= self.poly_degree <= 6:
+            raise InputError(f"TimeOffsetParams.poly_degree must be an integer in 0..6, got {self.poly_degree!r}")
+        if not isinstance(self.min_blocks, int) or self.min_blocks < 1:
+            raise InputError(f"TimeOffsetParams.min_blocks must be a positive integer, got {self.min_blocks!r}")
+        if self.rate_span_s >= self.block_s / 2:
+            raise InputError(
+                f"TimeOffsetParams.rate_span_s ({self.rate_span_s}) must be under half of block_s ({self.block_s})"
+            )
+
+
+@dataclass(frozen=True)
+class TimeOffsetEstimate:
+    """The offset now: ``estimate_ms`` (positive: frames stamped late) with ``sigma_ms`` (None while
+    ``state`` is ``unknown``), ``compensated_ms`` (what the caller subtracts from the stamp for its pose
+    lookup), ``blocks`` / ``frames`` pooled, ``refused_blocks`` so far, ``excitation_mradps`` (RMS of the
+    high-passed regressor ``w x u``: the motion the estimate rests on)."""
+
+    estimate_ms: float | None
+    sigma_ms: float | None
+    state: str
+    compensated_ms: float
+    blocks: int
+    frames: int
+    refused_blocks: int
+    excitation_mradps: float | None
+
+    @property
+    def confident(self) -> bool:
+        return self.state == "confident"
+
+    def as_dict(self) -> dict:
+        r = lambda x, n: None if x is None else round(float(x), n)  # noqa: E731
+        return {
+            "estimate_ms": r(self.estimate_ms, 2),
+            "sigma_ms": r(self.sigma_ms, 2),
+            "state": self.state,
+            "compensated_ms": round(float(self.compensated_ms), 2),
+            "blocks": int(self.blocks),
+            "frames": int(self.frames),
+            "refused_blocks": int(self.refused_blocks),
+            "excitation_mradps": r(self.excitation_mradps, 2),
+        }
+
+
+@dataclass(frozen=True)
+class _Block:
+    """One block's sums after projecting off the target's trajectory: ``r_y`` the target positions the stamped
+    poses give, ``r_x`` the regressor, ``r_z`` its instrument (module docstring)."""
+
+    t_end_s: float
+    s_zx: float
+    s_zy: float
+    s_zz: float
+    s_xx: float
+    s_xy: float
+    s_yy: float
+    dof: int
+    frames: int
+
+    def dt_s(self) -> float:
+        return self.s_zy / self.s_zx
+
+    def residual_var(self, dt_s: float) -> float:
+        """Mean square of ``r_y - dt r_x`` per degree of freedom."""
+        return max(self.s_yy - 2.0 * dt_s * self.s_xy + dt_s * dt_s * self.s_xx, 0.0) / max(self.dof, 1)
+
+
+class TimeOffsetEstimator:
+    """``add(t_s, bearing_cam, q_ned_from_cam, track_id)`` once per frame with a measured target and a
+    pose at the frame's stamp; :attr:`estimate` is updated when a block closes.  Not thread-safe."""
+
+    def __init__(self, params: TimeOffsetParams | None = None) -> None:
+        self.params = params if params is not None else TimeOffsetParams()
+        self._blocks: collections.deque[_Block] = collections.deque()
+        self._t: list[float] = []
+        self._u: list[np.ndarray] = []
+        self._q: list[np.ndarray] = []
+        self._p: list[np.ndarray] = []
+        self._v: list[np.ndarray] = []
+        self._r: list[float] = []
+        self._track_id: object = None
+        self._refused = 0
+        self._compensated_ms = 0.0
+        self.estimate = self._summarise()
+
+    @property
+    def compensated_ms(self) -> float:
+        return self._compensated_ms
+
+    def reset(self) -> None:
+        """Forget everything (the clocks changed: an autopilot reboot, a camera restart); no compensation."""
+        self._blocks.clear()
+        self._clear_block()
+        self._compensated_ms = 0.0
+        self.estimate = self._summarise()
+
+    def add(
+        self,
+        t_s: float,
+        bearing_cam,
+        q_ned_from_cam,
+        p_cam_ned_m,
+        v_cam_ned_mps,
+        range_m: float | None = None,
+        track_id: object = None,
+    ) -> TimeOffsetEstimate:
+        """One frame: its stamp (s), the target's bearing in the camera frame (3,), the reported pose at the
+        stamp (attitude (w, x, y, z), camera position and velocity in NED), the track it belongs to.
+        Returns :attr:`estimate`."""
+        t = float(t_s)
+        b = np.asarray(bearing_cam, dtype=float).reshape(3)
+        q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
+        pc = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
+        vc = np.asarray(v_cam_ned_mps, dtype=float).reshape(3)
+        r = self.params.default_range_m if range_m is None else float(range_m)
+        if not (math.isfinite(t) and all(np.all(np.isfinite(a)) for a in (b, q, pc, vc))):
+            raise InputError("TimeOffsetEstimator.add: non-finite time, bearing or pose")
+        if not (math.isfinite(r) and r > 0):
+            raise InputError(f"TimeOffsetEstimator.add: range_m must be a positive number, got {range_m!r}")
+        if self._t and (track_id != self._track_id or t <= self._t[-1] or t - self._t[-1] > self.params.max_gap_s):
+            self.close_block()
+        if self._t and t - self._t[0] >= self.params.block_s:
+            self.close_block()
+        if not self._t:
+            self._track_id = track_id
+        u = rotmat_from_quat(q) @ (b / np.linalg.norm(b))
+        self._t.append(t)
+        self._u.append(u)
+        self._q.append(q)
+        self._p.append(pc)
+        self._v.append(vc)
+        self._r.append(r)
+        return self.estimate
+
+    def close_block(self) -> None:
+        """End the block being filled (used when long enough) and start an empty one."""
+        t, u, q = np.array(self._t), np.array(self._u), np.array(self._q)
+        pc, vc, r = np.array(self._p), np.array(self._v), np.array(self._r)
+        self._clear_block()
+        if t.size < 2:
+            return
+        block = self._block_sums(t, u, q, pc, vc, r)
+        if block is None:
+            return
+        if len(self._blocks) >= 3:
+            dt_s = self.estimate.estimate_ms / MS_PER_S if self.estimate.estimate_ms is not None else 0.0
+            rms = [math.sqrt(k.residual_var(dt_s)) for k in self._blocks]
+            if math.sqrt(block.residual_var(dt_s)) > self.params.outlier_factor * float(np.median(rms)):
+                self._refused += 1
+                self.estimate = self._summarise()
+                return
+        self._blocks.append(block)
+        while self._blocks and self._blocks[0].t_end_s < block.t_end_s - self.params.window_s:
+            self._blocks.popleft()
+        self.estimate = self._summarise()
+        p = self.params
+        e = self.estimate
+        if p.compensate and e.confident and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
+            # moved only when the estimate left the compensation by two sigmas: each move of the caller's pose
+            # lookup may restart its 3-D window, and a block's noise is no reason to
+            sigma_ms = e.sigma_ms if e.sigma_ms is not None else 0.0
+            if not self._compensated_ms or abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms:
+                self._compensated_ms = float(e.estimate_ms)
+                self.estimate = self._summarise()
+
+    # ------------------------------------------------------------------ internals
+
+    def _clear_block(self) -> None:
+        self._t, self._u, self._q, self._p, self._v, self._r = [], [], [], [], [], []
+        self._track_id = None
+
+    def _block_sums(self, t, u, q, p_cam, v_cam, r_m) -> _Block | None:
+        p = self.params
+        n = t.size
+        step_s = float(np.median(np.diff(t)))
+        m = max(1, int(round(p.rate_span_s / 2.0 / step_s))) if step_s > 0 else 1
+        idx = np.arange(m + 2, n - m - 2)
+        n_par = 3 * (p.poly_degree + 1) + FREE_RANGE_TERMS
+        if idx.size < n_par:
+            return None
+        uu, pc, vc, tt = u[idx], p_cam[idx], v_cam[idx], t[idx]
+        # the camera's rate in NED, centred on each frame: rotvec(R(t+h) R(t-h)^T) / 2h, once over
+        # frames k -+ m (the regressor), once over k -+ (m + 2) (its instrument: other telemetry samples)
+        g, g_iv = (np.cross(self._rate_ned(t, q, idx, j), uu) for j in (m, m + 2))
+        # each frame's axes: two across the line of sight (e1, e2), one along it (u)
+        e1 = np.cross(uu, [0.0, 0.0, 1.0])
+        flat = np.linalg.norm(e1, axis=1) < 1e-6
+        e1[flat] = np.cross(uu[flat], [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+        e2 = np.cross(uu, e1)
+        tau = (2.0 * tt - tt[0] - tt[-1]) / max(tt[-1] - tt[0], 1e-9)
+        L = np.polynomial.legendre.legvander(tau, p.poly_degree)  # (N, d+1)
+        # one range for the block (the caller's median: its scale hardly matters, module docstring); the along rows
+        # hold the target's mean range to it but leave its linear change over the block free (a nuisance column)
+        rng_m = np.full(idx.size, float(np.median(r_m[idx])))
+        A, y = self._rows(e1, e2, uu, pc, rng_m, L)
+        free = np.zeros((idx.size, 3, FREE_RANGE_TERMS))
+        free[:, 2, :] = L[:, 1 : 1 + FREE_RANGE_TERMS] / (p.range_sigma_frac * rng_m[:, None])
+        A = np.hstack([A, free.reshape(3 * idx.size, FREE_RANGE_TERMS)])
+        # the regressor across the line of sight only: along it, the range is the estimator's, not the stamp's
+        across = np.array([1.0, 1.0, 0.0])
+        W = self._weights(e1, e2, uu, rng_m)
+        x = (np.einsum("kij,kj->ki", W, vc + rng_m[:, None] * g) * across).reshape(-1)
+        z = (np.einsum("kij,kj->ki", W, vc + rng_m[:, None] * g_iv) * across).reshape(-1)
+        Q, _ = np.linalg.qr(A)
+        r_y, r_x, r_z = (v - Q @ (Q.T @ v) for v in (y, x, z))
+        return _Block(
+            t_end_s=float(t[-1]),
+            s_zx=float(r_z @ r_x),
+            s_zy=float(r_z @ r_y),
+            s_zz=float(r_z @ r_z),
+            s_xx=float(r_x @ r_x),
+            s_xy=float(r_x @ r_y),
+            s_yy=float(r_y @ r_y),
+            dof=int(3 * idx.size - n_par - 1),
+            frames=int(idx.size),
+        )
+
+    def _weights(self, e1, e2, uu, rng_m) -> np.ndarray:
+        """(N, 3, 3): rows in radians across the line of sight, and one along it that only holds the target near
+        the range (sigma ``range_sigma_frac`` of it; without it the fit's range is free: module docstring)."""
+        return np.stack([e1, e2, uu / self.params.range_sigma_frac], axis=1) / rng_m[:, None, None]
+
+    def _rows(self, e1, e2, uu, pc, rng_m, L) -> tuple[np.ndarray, np.ndarray]:
+        """The target's polynomial columns ``A`` (3N, 3(d+1)) and the rows ``y`` (3N,) of ``p_c + rho u``."""
+        W = self._weights(e1, e2, uu, rng_m)
+        A = np.einsum("kij,kl->kijl", W, L).reshape(3 * uu.shape[0], -1)
+        y = np.einsum("kij,kj->ki", W, pc + rng_m[:, None] * uu).reshape(-1)
+        return A, y
+
+    @staticmethod
+    def _rate_ned(t: np.ndarray, q: np.ndarray, idx: np.ndarray, j: int) -> np.ndarray:
+        q_rel = quat_multiply(q[idx + j], quat_conjugate(q[idx - j]))
+        q_rel *= np.where(q_rel[:, :1] < 0.0, -1.0, 1.0)  # q and -q are one rotation: take the short way
+        return rotvec_from_quat(q_rel) / (t[idx + j] - t[idx - j])[:, None]
+
+    def _summarise(self) -> TimeOffsetEstimate:
+        p = self.params
+        blocks = list(self._blocks)
+        frames = sum(k.frames for k in blocks)
+        s_zx = sum(k.s_zx for k in blocks)
+        s_zz = sum(k.s_zz for k in blocks)
+        if not blocks or s_zx <= 0 or s_zz <= 0:
+            return TimeOffsetEstimate(
+                None, None, "unknown", self._compensated_ms, len(blocks), frames, self._refused, None
+            )
+        dt_s = sum(k.s_zy for k in blocks) / s_zx
+        # the instrumental-variable estimate's variance: s^2 sum(r_z^2) / (sum(r_z r_x))^2
+        var = sum(k.residual_var(dt_s) * k.dof for k in blocks) / max(sum(k.dof for k in blocks), 1)
+        used = [k for k in blocks if k.s_zx > 0]
+        if len(used) >= 3:
+            scatter = sum(k.s_zx**2 / k.s_zz * (k.dt_s() - dt_s) ** 2 for k in used) / (len(used) - 1)
+            var = max(var, scatter)
+        sigma_ms = math.sqrt(var * s_zz) / s_zx * MS_PER_S
+        confident = len(blocks) >= p.min_blocks and sigma_ms <= p.confident_sigma_ms
+        return TimeOffsetEstimate(
+            estimate_ms=dt_s * MS_PER_S,
+            sigma_ms=sigma_ms,
+            state="confident" if confident else "estimating",
+            compensated_ms=self._compensated_ms,
+            blocks=len(blocks),
+            frames=frames,
+            refused_blocks=self._refused,
+            excitation_mradps=math.sqrt(s_zx / max(2 * frames, 1)) * 1e3,
+        )

@@ -1,0 +1,123 @@
+"""The frame pipeline's camera-clock handling: the offset estimator sees the pose at the frame's stamp, the 3-D and
+the line of sight the pose at the stamp minus the compensation, and a compensation that moves restarts the window."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from onboard.app.config import OnboardConfig
+from onboard.core.status import build_status
+from onboard.estimation.time_offset import TimeOffsetEstimate
+from tests.onboard.test_pipeline import Rig
+
+POS_TOL_M = 1e-9  # the same interpolation twice
+
+
+class StubOffset:
+    """An offset estimator whose compensation the test sets; records what it is fed."""
+
+    def __init__(self) -> None:
+        self.compensated_ms = 0.0
+        self.fed: list[tuple] = []
+        self.resets = 0
+        self.estimate = TimeOffsetEstimate(None, None, "unknown", 0.0, 0, 0, 0, None)
+
+    def add(self, t_s, bearing_cam, q_ned_from_cam, p_cam_ned_m, v_cam_ned_mps, range_m=None, track_id=None):
+        self.fed.append((t_s, np.array(p_cam_ned_m), range_m, track_id))
+        return self.estimate
+
+    def reset(self) -> None:
+        self.resets += 1
+
+
+class LookupLog:
+    """A pose source that logs the times looked up."""
+
+    def __init__(self, source) -> None:
+        self.source, self.times = source, []
+
+    def pose_at(self, t_us, *args, **kwargs):
+        self.times.append(t_us)
+        return self.source.pose_at(t_us, *args, **kwargs)
+
+    def __getattr__(self, name):
+        return getattr(self.source, name)
+
+
+def _rig(compensated_ms: float) -> tuple[Rig, StubOffset, LookupLog]:
+    rig = Rig()
+    stub = StubOffset()
+    stub.compensated_ms = compensated_ms
+    rig.pipe.time_offset = stub
+    log = LookupLog(rig.pose)
+    rig.pipe.pose_source = log
+    return rig, stub, log
+
+
+def test_compensated_frames_get_the_pose_at_stamp_minus_offset_and_the_estimator_the_stamps():
+    rig, stub, log = _rig(40.0)
+    tracks = [rig.step(k) for k in range(15)]
+    k = 14
+    t_us = rig.scene.t_us(k)
+    assert log.times[-2:] == [t_us, t_us - 40_000]  # the stamp's, then the compensated one last (what a recorder keeps)
+    assert [name for name, _ in rig.est.calls].count("add") == 15
+    # the offset estimator got the stamp's pose, with the estimator's range once there was an estimate
+    t_s, p_fed, range_m, track_id = stub.fed[-1]
+    assert t_s == pytest.approx(t_us / 1e6)
+    np.testing.assert_allclose(p_fed, rig.pose.pose_at(t_us).p_cam_ned_m, atol=POS_TOL_M)
+    assert range_m is not None and range_m > 0 and track_id == tracks[-1].track_id
+    assert stub.fed[0][2] is None  # before the estimator's first estimate: no range
+    # the line of sight starts at the compensated camera position
+    los = tracks[-1].los
+    assert los is not None
+    np.testing.assert_allclose(los.p_cam_ned_m, rig.pose.pose_at(t_us - 40_000).p_cam_ned_m, atol=POS_TOL_M)
+    assert not np.allclose(los.p_cam_ned_m, rig.pose.pose_at(t_us).p_cam_ned_m, atol=0.05)
+
+
+def test_a_compensation_that_moves_restarts_the_estimator_a_small_drift_does_not():
+    rig, stub, _ = _rig(0.0)
+    rig.run(12)
+    stub.compensated_ms = 6.0  # within COMPENSATION_RESTART_MS
+    rig.run(3, start=12)
+    assert not any(name == "reset" for name, _ in rig.est.calls)
+    stub.compensated_ms = 45.0
+    rig.run(3, start=15)
+    assert sum(name == "reset" for name, _ in rig.est.calls) == 1
+    assert rig.pipe.estimator_resets == 1
+
+
+def test_the_offset_estimator_is_on_by_default_and_off_by_config_and_in_the_status():
+    rig = Rig()
+    assert rig.pipe.time_offset is not None and rig.pipe.time_offset_estimate.state == "unknown"
+    off = dataclasses.replace(
+        OnboardConfig(), time_offset=dataclasses.replace(OnboardConfig().time_offset, enabled=False)
+    )
+    assert Rig(config=off).pipe.time_offset_estimate is None
+    status = build_status(
+        vehicle="uav1",
+        uptime_s=1.0,
+        frames_in=0,
+        frames_processed=0,
+        frames_dropped=0,
+        frames_rejected=0,
+        tracks_published=0,
+        processing_ms={},
+        latency_ms={},
+        pose_wait_ms={},
+        capture_to_track_ms=None,
+        rejected={},
+        link=None,
+        cpu_share=None,
+        pipeline_cpu_share=None,
+        last_track=None,
+        estimator="map",
+        queue_length=0,
+        camera_time_offset={**TimeOffsetEstimate(48.2, 3.1, "confident", 48.2, 4, 320, 0, 6.5).as_dict()},
+    )
+    assert status["camera_time_offset"]["state"] == "confident"
+    assert (
+        status["camera_time_offset"]["estimate_ms"] == 48.2 and status["camera_time_offset"]["compensated_ms"] == 48.2
+    )
