@@ -349,7 +349,7 @@ class TimeOffsetConfig:
     """``time_offset``: the camera clock's offset against the autopilot's, estimated online from the target's line
     of sight against the reported attitude (:mod:`onboard.estimation.time_offset`), in the status
     (``camera_time_offset``), warned above ``warn_threshold_ms`` (``camera_time_offset``) and compensated in the
-    pose lookup once confident (``compensate``)."""
+    pose lookup once confident and beyond that threshold by two sigmas (``compensate``)."""
 
     enabled: Bool = True
     compensate: Bool = True
@@ -367,6 +367,7 @@ class TimeOffsetConfig:
             confident_sigma_ms=self.confident_sigma_ms,
             max_offset_ms=self.max_offset_ms,
             compensate=self.compensate,
+            min_compensated_ms=self.warn_threshold_ms,
         )
 
 

@@ -52,8 +52,8 @@ blocks let the target's and observer's model errors in.
 
 Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
 takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
-:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it first becomes confident (within
-``max_offset_ms``) and again whenever a confident estimate leaves it by more than two sigmas; it holds its value
+:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it first becomes confident and beyond
+``min_compensated_ms`` by two sigmas (within ``max_offset_ms``), and again whenever a confident estimate leaves it by more than two sigmas; it holds its value
 otherwise (the offset belongs to the camera, not to the target: a
 lost track does not make it go away).
 """
@@ -88,6 +88,10 @@ class TimeOffsetParams:
     min_blocks: int = 2
     max_offset_ms: float = 250.0
     compensate: bool = True
+    #: compensation starts only for an offset beyond this by two sigmas: a smaller one is absorbed by the 3-D
+    #: estimator's attitude-bias nuisance, while each start of compensation restarts its window; and on a flight
+    #: without an offset a confident estimate can still read 15-20 ms (measured), which must not cost a restart
+    min_compensated_ms: float = 20.0
     outlier_factor: float = 5.0
     #: the range's 1-sigma as a fraction of itself (the along-the-line-of-sight rows' weight)
     range_sigma_frac: float = 3.0
@@ -105,6 +109,7 @@ class TimeOffsetParams:
             "window_s",
             "confident_sigma_ms",
             "max_offset_ms",
+            "min_compensated_ms",
             "outlier_factor",
         ):
             v = getattr(self, name)
@@ -271,7 +276,9 @@ class TimeOffsetEstimator:
             # moved only when the estimate left the compensation by two sigmas: each move of the caller's pose
             # lookup may restart its 3-D window, and a block's noise is no reason to
             sigma_ms = e.sigma_ms if e.sigma_ms is not None else 0.0
-            if not self._compensated_ms or abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms:
+            significant = abs(e.estimate_ms) - 2.0 * sigma_ms > p.min_compensated_ms
+            moved = abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms
+            if (significant and not self._compensated_ms) or (self._compensated_ms and moved):
                 self._compensated_ms = float(e.estimate_ms)
                 self.estimate = self._summarise()
 
