@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from groundsim.world.motion import KinematicState
 from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat, rotmat_from_rotvec
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.estimation.observations import Observations
@@ -32,6 +33,8 @@ __all__ = [
     "synthesize",
     "synthesize_scenario",
     "estimator_noise_model",
+    "Racetrack",
+    "Weave",
 ]
 
 
@@ -147,3 +150,75 @@ def synthesize_scenario(
         frac,
         period,
     )
+
+
+@dataclass(frozen=True)
+class Racetrack:
+    """A target switching motion model every leg: straight legs (constant velocity) joined by half-turns
+    (constant turn rate) around ``center_ned_m``, long axis north, flown counter-clockwise seen from above at
+    ``speed_mps`` and constant height.  Bounded for any duration, so minutes-long flights keep their
+    range; each corner is a model change a sliding window must follow."""
+
+    center_ned_m: tuple
+    straight_m: float
+    radius_m: float
+    speed_mps: float
+
+    def state(self, t_s) -> KinematicState:
+        t = np.asarray(t_s, dtype=float)
+        L, r, v = self.straight_m, self.radius_m, self.speed_mps
+        t_leg, t_turn = L / v, np.pi * r / v
+        lap = 2 * (t_leg + t_turn)
+        tau = np.mod(t, lap)
+        c = np.asarray(self.center_ned_m, dtype=float)
+        # leg 1: east side heading north; turn 1 about the north end; leg 2: west side heading south;
+        # turn 2 about the south end
+        p = np.zeros(t.shape + (3,))
+        vel = np.zeros_like(p)
+        acc = np.zeros_like(p)
+        seg_ends = np.cumsum([t_leg, t_turn, t_leg, t_turn])
+        for k, (start, end) in enumerate(zip(np.concatenate([[0.0], seg_ends[:-1]]), seg_ends)):
+            m = (tau >= start) & (tau < end)
+            s = tau[m] - start
+            if k in (0, 2):
+                sign = 1.0 if k == 0 else -1.0
+                p[m, 0] = c[0] + sign * (-L / 2 + v * s)
+                p[m, 1] = c[1] + sign * r
+                vel[m, 0] = sign * v
+            else:
+                n0 = c[0] + (L / 2 if k == 1 else -L / 2)
+                # the turn's centre is (n0, c_e); az_c is the azimuth from it (from north towards east)
+                az_c = (np.pi / 2 if k == 1 else 3 * np.pi / 2) - v * s / r
+                p[m, 0] = n0 + r * np.cos(az_c)
+                p[m, 1] = c[1] + r * np.sin(az_c)
+                w = -v / r
+                vel[m, 0] = -r * w * np.sin(az_c)
+                vel[m, 1] = r * w * np.cos(az_c)
+                acc[m, 0] = -r * w * w * np.cos(az_c)
+                acc[m, 1] = -r * w * w * np.sin(az_c)
+        p[..., 2] = c[2]
+        return KinematicState(p, vel, acc)
+
+
+@dataclass(frozen=True)
+class Weave:
+    """An observer flying S-turns: ``p0 + v t`` plus ``amplitude_m sin(2 pi t / period_s)`` along
+    ``across_ned`` (a unit vector across the mean track): the manoeuvre that keeps range observable while
+    following a target."""
+
+    p0_ned_m: tuple
+    v_ned_mps: tuple
+    across_ned: tuple
+    amplitude_m: float
+    period_s: float
+
+    def state(self, t_s) -> KinematicState:
+        t = np.asarray(t_s, dtype=float)[..., None]
+        w = 2 * np.pi / self.period_s
+        u = np.asarray(self.across_ned, dtype=float)
+        u = u / np.linalg.norm(u)
+        v0 = np.asarray(self.v_ned_mps, dtype=float)
+        p = np.asarray(self.p0_ned_m, dtype=float) + v0 * t + self.amplitude_m * np.sin(w * t) * u
+        v = v0 + self.amplitude_m * w * np.cos(w * t) * u
+        a = -self.amplitude_m * w * w * np.sin(w * t) * u
+        return KinematicState(p, v, a)
