@@ -1,7 +1,7 @@
 """Honest over minutes: the sliding-window estimator alone on long synthetic flights, per scenario family.
 
     python -m bench.honesty [--families circling,weaving,switching] [--minutes 2] [--seeds 4] [--workers 2]
-                            [--bin-s 30] [--json out/honesty.json]
+                            [--bin-s 30] [--monitor] [--json out/honesty.json]
 
 Each run is a perfect-geometry flight (``groundsim.evaluation.synth``) under the RTK noise case, 15 frames
 a second (every frame kept by the window), fed frame by frame to
@@ -26,6 +26,7 @@ observable).  Numbers are printed, never asserted.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -43,7 +44,8 @@ from bench import run_benchmark  # noqa: E402
 from groundsim.evaluation.synth import Racetrack, Weave, estimator_noise_model, synthesize  # noqa: E402
 from groundsim.world.motion import Circular, KinematicState  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
-from onboard.estimation.sliding import SlidingWindowEstimator  # noqa: E402
+from onboard.estimation.consistency import ConsistencyMonitor  # noqa: E402
+from onboard.estimation.sliding import SlidingWindowEstimator, bearing_sigma_rad, line_of_sight_unit_ned  # noqa: E402
 
 FAMILIES = ("circling", "weaving", "switching")
 FRAME_RATE_HZ = 15.0
@@ -80,7 +82,7 @@ def family_motions(family: str, seed: int):
     raise ValueError(f"unknown family {family!r}")
 
 
-def run_flight(family: str, seed: int, duration_s: float, noise: str = "RTK") -> dict:
+def run_flight(family: str, seed: int, duration_s: float, monitor: bool = False, noise: str = "RTK") -> dict:
     """One flight: per published position its time, error, 3-sigma test, verdict, range and selected model."""
     nc = load_noise_cases()[noise]
     intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
@@ -88,12 +90,19 @@ def run_flight(family: str, seed: int, duration_s: float, noise: str = "RTK") ->
     t = np.arange(0.0, duration_s, 1.0 / FRAME_RATE_HZ)
     truth, obs = synthesize(obs_m, tgt_m, t, intr, nc, np.random.default_rng([seed, 7]))
     sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
+    # the attitude bias is common to the carried estimate and the new bearing: left out of the monitor's sigma
+    no_bias = dataclasses.replace(sw.noise, attitude_bias_sigma_rad=0.0)
+    mon = ConsistencyMonitor(bearing_sigma_rad(no_bias, intr)) if monitor else None
     rows = []
     t0 = time.thread_time()
     for i in range(t.size):
         est = sw.add(t[i], obs.uv_px[i], intr, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
         if est is None:
             continue
+        if mon is not None:
+            cam = obs.p_cam_ned_m[i]
+            los = line_of_sight_unit_ned(obs.uv_px[i], intr, obs.q_ned_from_cam[i])
+            est = mon.check(est, cam, los, lambda e, cam=cam: sw.carry(e, e.t_s, cam))
         e = est.p_ned_m - truth.p_target_ned_m[i]
         err = float(np.linalg.norm(e))
         sig = float(math.sqrt(max(np.trace(est.cov_p_ned_m2), 0.0)))
@@ -109,15 +118,15 @@ def run_flight(family: str, seed: int, duration_s: float, noise: str = "RTK") ->
             )
         )
     cpu = time.thread_time() - t0
-    return {"family": family, "seed": seed, "duration_s": duration_s, "cpu_s": cpu, "rows": rows}
+    return {"family": family, "seed": seed, "duration_s": duration_s, "cpu_s": cpu, "monitor": monitor, "rows": rows}
 
 
 def _run_one(args):
     return run_flight(*args)
 
 
-def run_all(families, seeds, duration_s: float, workers: int) -> list[dict]:
-    jobs = [(f, s, duration_s) for f in families for s in seeds]
+def run_all(families, seeds, duration_s: float, workers: int, monitor: bool = False) -> list[dict]:
+    jobs = [(f, s, duration_s, monitor) for f in families for s in seeds]
     out = []
     if workers > 1:
         import multiprocessing as mp
@@ -238,6 +247,9 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--monitor", action="store_true", help="publish through onboard.estimation.consistency.ConsistencyMonitor"
+    )
     ap.add_argument("--bin-s", type=float, default=30.0)
     ap.add_argument("--json", default=None, help="write the per-position rows here (re-read with --from-json)")
     ap.add_argument("--from-json", default=None, nargs="+", help="print the tables of earlier runs, no flights")
@@ -247,7 +259,9 @@ def main(argv=None) -> int:
     else:
         fams = args.families.split(",")
         t0 = time.perf_counter()
-        runs = run_all(fams, range(args.first_seed, args.first_seed + args.seeds), 60.0 * args.minutes, args.workers)
+        runs = run_all(
+            fams, range(args.first_seed, args.first_seed + args.seeds), 60.0 * args.minutes, args.workers, args.monitor
+        )
         cpu = [r["cpu_s"] / r["duration_s"] for r in runs]
         print(
             f"== {len(runs)} flights of {args.minutes:g} min ({time.perf_counter() - t0:.0f} s wall; estimator "
