@@ -1,7 +1,7 @@
 """Honest over minutes: the sliding-window estimator alone on long synthetic flights, per scenario family.
 
     python -m bench.honesty [--families circling,weaving,switching] [--minutes 2] [--seeds 4] [--workers 2]
-                            [--bin-s 30] [--monitor] [--json out/honesty.json]
+                            [--bin-s 30] [--monitor [--model-hold-s S]] [--json out/honesty.json]
 
 Each run is a perfect-geometry flight (``groundsim.evaluation.synth``) under the RTK noise case, 15 frames
 a second (every frame kept by the window), fed frame by frame to
@@ -82,7 +82,9 @@ def family_motions(family: str, seed: int):
     raise ValueError(f"unknown family {family!r}")
 
 
-def run_flight(family: str, seed: int, duration_s: float, monitor: bool = False, noise: str = "RTK") -> dict:
+def run_flight(
+    family: str, seed: int, duration_s: float, monitor: bool = False, model_hold_s: float = 0.0, noise: str = "RTK"
+) -> dict:
     """One flight: per published position its time, error, 3-sigma test, verdict, range and selected model."""
     nc = load_noise_cases()[noise]
     intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
@@ -92,7 +94,7 @@ def run_flight(family: str, seed: int, duration_s: float, monitor: bool = False,
     sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
     # the attitude bias is common to the carried estimate and the new bearing: left out of the monitor's sigma
     no_bias = dataclasses.replace(sw.noise, attitude_bias_sigma_rad=0.0)
-    mon = ConsistencyMonitor(bearing_sigma_rad(no_bias, intr)) if monitor else None
+    mon = ConsistencyMonitor(bearing_sigma_rad(no_bias, intr), model_hold_s=model_hold_s) if monitor else None
     rows = []
     t0 = time.thread_time()
     for i in range(t.size):
@@ -125,8 +127,10 @@ def _run_one(args):
     return run_flight(*args)
 
 
-def run_all(families, seeds, duration_s: float, workers: int, monitor: bool = False) -> list[dict]:
-    jobs = [(f, s, duration_s, monitor) for f in families for s in seeds]
+def run_all(
+    families, seeds, duration_s: float, workers: int, monitor: bool = False, model_hold_s: float = 0.0
+) -> list[dict]:
+    jobs = [(f, s, duration_s, monitor, model_hold_s) for f in families for s in seeds]
     out = []
     if workers > 1:
         import multiprocessing as mp
@@ -250,6 +254,7 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--monitor", action="store_true", help="publish through onboard.estimation.consistency.ConsistencyMonitor"
     )
+    ap.add_argument("--model-hold-s", type=float, default=0.0, help="with --monitor: demote after a model change")
     ap.add_argument("--bin-s", type=float, default=30.0)
     ap.add_argument("--json", default=None, help="write the per-position rows here (re-read with --from-json)")
     ap.add_argument("--from-json", default=None, nargs="+", help="print the tables of earlier runs, no flights")

@@ -31,7 +31,10 @@ class ConsistencyMonitor:
     """``bearing_sigma_rad``: one bearing's 1-sigma per axis without the attitude's constant bias (common to the
     carried estimate and the new bearing); ``horizon_s``: how old the estimate that predicts the bearing is
     (over 1 s a target turning at 0.7 m/s^2 leaves its constant-velocity prediction by 0.35 m, less than
-    RTK navigation's bearing noise at 250 m; over 2 s by 1.4 m)."""
+    RTK navigation's bearing noise at 250 m; over 2 s by 1.4 m); ``model_hold_s``: how long an estimate
+    is demoted after the selected motion model (family or intensity) changed (0: not at all), a new
+    selection being unconfirmed (a constant-velocity model selected over a window that holds a turn can
+    be a wrong-range solution that explains every bearing, which no bearing innovation shows)."""
 
     def __init__(
         self,
@@ -39,11 +42,14 @@ class ConsistencyMonitor:
         horizon_s: float = 2.0,
         nis_threshold: float = 13.8,  # chi-square(2) at 1e-3
         hold_s: float = 3.0,
+        model_hold_s: float = 0.0,
     ):
         self.bearing_sigma_rad = float(bearing_sigma_rad)
         self.horizon_s = float(horizon_s)
         self.nis_threshold = float(nis_threshold)
         self.hold_s = float(hold_s)
+        self.model_hold_s = float(model_hold_s)
+        self._model: str | None = None
         self._past: deque[TrackEstimate] = deque()
         self._inconsistent_until = -math.inf
         self.last_nis = math.nan
@@ -87,6 +93,10 @@ class ConsistencyMonitor:
             if self.last_nis > self.nis_threshold:
                 self._inconsistent_until = t + self.hold_s
         self._past.append(est)
+        model = f"{est.model}:{est.motion_prior}"
+        if self._model is not None and model != self._model:
+            self._inconsistent_until = max(self._inconsistent_until, t + self.model_hold_s)
+        self._model = model
         if est.observable and t <= self._inconsistent_until:
             self.demoted += 1
             return demote(dataclasses.replace(est, observable=False))

@@ -69,3 +69,17 @@ def test_unobservable_estimates_pass_through_untouched():
     mon.check(e0, CAM, _los(e0.p_ned_m), calls.append)
     assert mon.check(e1, CAM, _los(e1.p_ned_m), calls.append) is e1
     assert calls == []
+
+
+def test_a_model_change_demotes_for_model_hold_s():
+    mon = ConsistencyMonitor(bearing_sigma_rad=1e-3, model_hold_s=2.0)
+    v = np.array([0.0, 5.0, 0.0])
+    verdicts = []
+    for k in range(60):
+        t = k / 15.0
+        p = np.array([200.0, 5.0 * t, -50.0])
+        e = _est(t, p, v)
+        if t >= 1.0:  # the selection moved to another model at 1 s (consistent bearings all along)
+            e = TrackEstimate(**{**e.__dict__, "model": "ct"})
+        verdicts.append(mon.check(e, CAM, _los(p), _demote).observable)
+    assert all(verdicts[:15]) and not any(verdicts[15:46]) and all(verdicts[46:])
