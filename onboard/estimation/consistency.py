@@ -19,10 +19,12 @@ import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from onboard.estimation.sliding import TrackEstimate
+if TYPE_CHECKING:  # sliding may call this monitor itself: no import cycle at run time
+    from onboard.estimation.sliding import TrackEstimate
 
 __all__ = ["ConsistencyMonitor"]
 
