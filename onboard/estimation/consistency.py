@@ -19,14 +19,16 @@ import dataclasses
 import math
 from collections import deque
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
-if TYPE_CHECKING:  # sliding may call this monitor itself: no import cycle at run time
-    from onboard.estimation.sliding import TrackEstimate
-
 __all__ = ["ConsistencyMonitor"]
+
+
+#: an :class:`~onboard.estimation.sliding.TrackEstimate` (its ``t_s``, ``observable``, ``model``,
+#: ``motion_prior``, ``cov_p_ned_m2`` and ``propagated``): sliding calls this monitor, so it is not imported here
+TrackEstimate = Any
 
 
 class ConsistencyMonitor:
