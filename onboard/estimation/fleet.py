@@ -346,6 +346,27 @@ def _noise_for(noise: NoiseModel | Mapping[str, NoiseModel], vehicle: str) -> No
         raise ConfigError(f"no noise model for vehicle {vehicle!r}") from None
 
 
+def _linear_start(C: np.ndarray, U: np.ndarray, dt: np.ndarray, prior_w: np.ndarray, prior_x: np.ndarray) -> np.ndarray:
+    """The first linearisation point (p, v): the linear least-squares point moving at constant velocity closest
+    to every ray (perpendicular distances, the weak priors as regularisation: Hartley & Zisserman, Multiple
+    View Geometry, 2nd ed., sec. 12.2, with time), or the prior's centre when that point is behind a camera.
+    Gauss-Newton from the prior's centre can run out of iterations where two rays nearly oppose each other
+    (cameras on either side of the target: the cost is flat along the line between them); from this start
+    noiseless rays are met exactly."""
+    Pp = np.eye(3)[None] - U[:, :, None] * U[:, None, :]  # (N, 3, 3) projectors across each ray
+    A = np.concatenate([Pp, Pp * dt[:, None, None]], axis=2)  # (N, 3, 6): p + dt v
+    b = np.einsum("nij,nj->ni", Pp, C)
+    H = np.einsum("nki,nkj->ij", A, A) + np.diag(prior_w)
+    g = np.einsum("nki,nk->i", A, b) + prior_w * prior_x
+    try:
+        x = np.linalg.solve(H, g)
+    except np.linalg.LinAlgError:
+        return prior_x
+    if not np.all(np.isfinite(x)) or np.any(np.einsum("ni,ni->n", U, x[:3] + dt[:, None] * x[3:6] - C) <= 0):
+        return prior_x
+    return x
+
+
 def triangulate(
     rays: Sequence[Ray],
     noise: NoiseModel | Mapping[str, NoiseModel],
@@ -403,6 +424,7 @@ def triangulate(
     BU = np.cross(Bm, U[:, None, :])  # rows e_k x u: e^T [u]x phi = phi . (e x u)
     x_prior = g_prior / P_prior
     x = x_prior.copy()
+    x[:6] = _linear_start(C, U, dt, P_prior[:6], x_prior[:6])
     beta_of = np.zeros((N, 3))
     iterations = 0
 

@@ -126,6 +126,7 @@ class _Pose:
             q_ned_from_cam=np.array([1.0, 0.0, 0.0, 0.0]),
             origin=GeodeticOrigin(32.0, 118.8, 0.0),
             epoch=0,
+            body=SimpleNamespace(v_ned_mps=np.zeros(3)),  # still: the camera clock's offset estimator reads it
         )
 
 
