@@ -9,11 +9,12 @@ scenario's."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
 import yaml
+
+from tests.test_deploy_files import expand, load_compose, memory_bytes
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
@@ -25,22 +26,9 @@ INTRINSICS_ATOL_PX = 1e-9  # the fleet files copy the scenario's numbers
 MOUNT_ATOL = 1e-12
 
 
-def memory_bytes(text: str) -> int:
-    m = re.fullmatch(r"(\d+)([kKmMgG])?[bB]?", str(text))
-    assert m, f"memory limit {text!r}"
-    return int(m.group(1)) * {None: 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30}[(m.group(2) or "").lower() or None]
-
-
-def expand(value: str) -> str:
-    """Compose's ${VAR:-default} with nothing set."""
-    return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", value)
-
-
 @pytest.fixture(scope="module")
 def fleet() -> dict:
-    data = yaml.safe_load(FLEET_COMPOSE.read_text(encoding="utf-8"))
-    assert isinstance(data, dict) and isinstance(data.get("services"), dict)
-    return data
+    return load_compose(FLEET_COMPOSE)
 
 
 @pytest.fixture(scope="module")
