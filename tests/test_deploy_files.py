@@ -384,7 +384,7 @@ def test_dockerignore_keeps_the_rest_out(rel):
 # ============================================================================ compose.yaml
 
 
-# load_compose, memory_bytes and expand serve tests/test_deploy_fleet.py too: both compose files are read alike
+# load_compose, memory_bytes, expand and assert_service_hardened serve tests/test_deploy_fleet.py too: both compose files are read alike
 
 
 def load_compose(path: Path) -> dict:
@@ -409,6 +409,21 @@ def expand(value: str) -> str:
     return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", value)
 
 
+# a daemon's memory limit leaves headroom over its measured ~120 MiB footprint
+DAEMON_MIN_MEMORY_BYTES = 384 << 20
+
+
+def assert_service_hardened(name: str, svc: dict) -> None:
+    """What every service of both stacks must have: host networking, CPU and memory limits, a read-only root with a
+    /tmp tmpfs, no capabilities."""
+    assert svc.get("network_mode") == "host", f"{name}: host networking (UDP MAVLink, loopback zenoh)"
+    limits = svc["deploy"]["resources"]["limits"]
+    assert 0.0 < float(limits["cpus"]) <= 4.0, name
+    assert 32 << 20 <= memory_bytes(limits["memory"]) <= 4 << 30, name
+    assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
+    assert any(str(t).startswith("/tmp") for t in svc.get("tmpfs", [])), f"{name}: /tmp tmpfs on a read-only root"
+
+
 def _opt(command: list[str], name: str) -> list[str]:
     return [command[k + 1] for k, a in enumerate(command[:-1]) if a == name]
 
@@ -417,14 +432,8 @@ def test_compose_services_host_network_and_limits(compose):
     services = compose["services"]
     assert {"onboard", "groundsim", "zenoh"} <= set(services)
     for name, svc in services.items():
-        assert svc.get("network_mode") == "host", f"{name}: host networking (UDP MAVLink, loopback zenoh)"
-        limits = svc["deploy"]["resources"]["limits"]
-        assert 0.0 < float(limits["cpus"]) <= 4.0, name
-        assert 32 << 20 <= memory_bytes(limits["memory"]) <= 4 << 30, name
-        assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
-        assert any(str(t).startswith("/tmp") for t in svc.get("tmpfs", [])), f"{name}: /tmp tmpfs on a read-only root"
-    # the daemon's memory limit leaves headroom over its measured ~120 MiB footprint
-    assert memory_bytes(services["onboard"]["deploy"]["resources"]["limits"]["memory"]) >= 384 << 20
+        assert_service_hardened(name, svc)
+    assert memory_bytes(services["onboard"]["deploy"]["resources"]["limits"]["memory"]) >= DAEMON_MIN_MEMORY_BYTES
 
 
 def test_compose_builds_the_repository_dockerfile(compose, instructions):
