@@ -1,12 +1,15 @@
 """Test doubles shared by several test files: the fake clock, the fake autopilot (groundsim's scripted one), and
-valid tracks to hand to the code that consumes them."""
+valid tracks and status documents to hand to the code that consumes them."""
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 
 from groundsim.io.scripted_autopilot import ScriptedAutopilot
 from onboard.core.frames import GeodeticOrigin
+from onboard.core.status import build_status
 from onboard.core.track import Track
 from onboard.io.mavlink_link import LinkStatus
 
@@ -97,3 +100,30 @@ def positioned_track(**fields) -> Track:
     )
     kw.update(fields)
     return tracking_track(**kw)
+
+
+def idle_status(**fields) -> dict[str, Any]:
+    """:func:`onboard.core.status.build_status` of a daemon that has seen nothing yet: no frames, no statistics, no
+    link, no track.  ``fields`` replace any argument (for a test about one part of the document)."""
+    kw: dict[str, Any] = dict(
+        vehicle="uav1",
+        uptime_s=1.0,
+        frames_in=0,
+        frames_processed=0,
+        frames_dropped=0,
+        frames_rejected=0,
+        tracks_published=0,
+        processing_ms={},
+        latency_ms={},
+        pose_wait_ms={},
+        capture_to_track_ms=None,
+        rejected={},
+        link=None,
+        cpu_share=None,
+        pipeline_cpu_share=None,
+        last_track=None,
+        estimator="map",
+        queue_length=0,
+    )
+    kw.update(fields)
+    return build_status(**kw)

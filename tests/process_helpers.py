@@ -70,12 +70,13 @@ def repo_env() -> dict:
     return env
 
 
-def run_module(module: str, *args: str, timeout_s: float) -> subprocess.CompletedProcess:
-    """``python -m MODULE ARGS`` to its end from the repository's root (:func:`repo_env`), output captured as text."""
+def run_module(module: str, *args: str, timeout_s: float, env: dict | None = None) -> subprocess.CompletedProcess:
+    """``python -m MODULE ARGS`` to its end from the repository's root, output captured as text; in ``env``, by
+    default :func:`repo_env`."""
     return subprocess.run(
         [sys.executable, "-m", module, *args],
         cwd=REPO,
-        env=repo_env(),
+        env=repo_env() if env is None else env,
         capture_output=True,
         text=True,
         timeout=timeout_s,

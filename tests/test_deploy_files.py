@@ -384,22 +384,44 @@ def test_dockerignore_keeps_the_rest_out(rel):
 # ============================================================================ compose.yaml
 
 
-@pytest.fixture(scope="module")
-def compose() -> dict:
-    data = yaml.safe_load(COMPOSE.read_text(encoding="utf-8"))
+# load_compose, memory_bytes, expand and assert_service_hardened serve tests/test_deploy_fleet.py too: both compose files are read alike
+
+
+def load_compose(path: Path) -> dict:
+    data = yaml.safe_load(path.read_text(encoding="utf-8"))
     assert isinstance(data, dict) and isinstance(data.get("services"), dict)
     return data
 
 
-def _memory_bytes(text: str) -> int:
+@pytest.fixture(scope="module")
+def compose() -> dict:
+    return load_compose(COMPOSE)
+
+
+def memory_bytes(text: str) -> int:
     m = re.fullmatch(r"(\d+)([kKmMgG])?[bB]?", str(text))
     assert m, f"memory limit {text!r}"
     return int(m.group(1)) * {None: 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30}[(m.group(2) or "").lower() or None]
 
 
-def _expand(value: str) -> str:
+def expand(value: str) -> str:
     """Compose's ${VAR:-default} with nothing set."""
     return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", value)
+
+
+# a daemon's memory limit leaves headroom over its measured ~120 MiB footprint
+DAEMON_MIN_MEMORY_BYTES = 384 << 20
+
+
+def assert_service_hardened(name: str, svc: dict) -> None:
+    """What every service of both stacks must have: host networking, CPU and memory limits, a read-only root with a
+    /tmp tmpfs, no capabilities."""
+    assert svc.get("network_mode") == "host", f"{name}: host networking (UDP MAVLink, loopback zenoh)"
+    limits = svc["deploy"]["resources"]["limits"]
+    assert 0.0 < float(limits["cpus"]) <= 4.0, name
+    assert 32 << 20 <= memory_bytes(limits["memory"]) <= 4 << 30, name
+    assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
+    assert any(str(t).startswith("/tmp") for t in svc.get("tmpfs", [])), f"{name}: /tmp tmpfs on a read-only root"
 
 
 def _opt(command: list[str], name: str) -> list[str]:
@@ -410,14 +432,8 @@ def test_compose_services_host_network_and_limits(compose):
     services = compose["services"]
     assert {"onboard", "groundsim", "zenoh"} <= set(services)
     for name, svc in services.items():
-        assert svc.get("network_mode") == "host", f"{name}: host networking (UDP MAVLink, loopback zenoh)"
-        limits = svc["deploy"]["resources"]["limits"]
-        assert 0.0 < float(limits["cpus"]) <= 4.0, name
-        assert 32 << 20 <= _memory_bytes(limits["memory"]) <= 4 << 30, name
-        assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
-        assert any(str(t).startswith("/tmp") for t in svc.get("tmpfs", [])), f"{name}: /tmp tmpfs on a read-only root"
-    # the daemon's memory limit leaves headroom over its measured ~120 MiB footprint
-    assert _memory_bytes(services["onboard"]["deploy"]["resources"]["limits"]["memory"]) >= 384 << 20
+        assert_service_hardened(name, svc)
+    assert memory_bytes(services["onboard"]["deploy"]["resources"]["limits"]["memory"]) >= DAEMON_MIN_MEMORY_BYTES
 
 
 def test_compose_builds_the_repository_dockerfile(compose, instructions):
@@ -475,7 +491,7 @@ def test_compose_zenoh_image_matches_the_python_binding(compose):
 
 @pytest.fixture(scope="module")
 def compose_env(compose) -> dict[str, str]:
-    return {k: _expand(str(v)) for k, v in compose["services"]["onboard"].get("environment", {}).items()}
+    return {k: expand(str(v)) for k, v in compose["services"]["onboard"].get("environment", {}).items()}
 
 
 @pytest.fixture(scope="module")

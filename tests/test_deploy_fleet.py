@@ -9,11 +9,17 @@ scenario's."""
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import pytest
-import yaml
+
+from tests.test_deploy_files import (
+    DAEMON_MIN_MEMORY_BYTES,
+    assert_service_hardened,
+    expand,
+    load_compose,
+    memory_bytes,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 DEPLOY = REPO / "deploy"
@@ -25,22 +31,9 @@ INTRINSICS_ATOL_PX = 1e-9  # the fleet files copy the scenario's numbers
 MOUNT_ATOL = 1e-12
 
 
-def memory_bytes(text: str) -> int:
-    m = re.fullmatch(r"(\d+)([kKmMgG])?[bB]?", str(text))
-    assert m, f"memory limit {text!r}"
-    return int(m.group(1)) * {None: 1, "k": 1 << 10, "m": 1 << 20, "g": 1 << 30}[(m.group(2) or "").lower() or None]
-
-
-def expand(value: str) -> str:
-    """Compose's ${VAR:-default} with nothing set."""
-    return re.sub(r"\$\{[A-Za-z_][A-Za-z0-9_]*:?-([^}]*)\}", r"\1", value)
-
-
 @pytest.fixture(scope="module")
 def fleet() -> dict:
-    data = yaml.safe_load(FLEET_COMPOSE.read_text(encoding="utf-8"))
-    assert isinstance(data, dict) and isinstance(data.get("services"), dict)
-    return data
+    return load_compose(FLEET_COMPOSE)
 
 
 @pytest.fixture(scope="module")
@@ -89,18 +82,13 @@ def test_services_host_network_hardening_and_limits(fleet):
     services = fleet["services"]
     assert set(services) == {"zenoh", *DAEMONS, "fuse", "groundsim"}
     for name, svc in services.items():
-        assert svc.get("network_mode") == "host", f"{name}: host networking (UDP MAVLink, loopback zenoh)"
-        limits = svc["deploy"]["resources"]["limits"]
-        assert 0.0 < float(limits["cpus"]) <= 4.0, name
-        assert 32 << 20 <= memory_bytes(limits["memory"]) <= 4 << 30, name
-        assert svc.get("read_only") is True and svc.get("cap_drop") == ["ALL"], name
-        assert any(str(t).startswith("/tmp") for t in svc.get("tmpfs", [])), f"{name}: /tmp tmpfs on a read-only root"
-    for name in DAEMONS:  # as the single-vehicle stack's daemon: headroom over its ~120 MiB
-        assert memory_bytes(services[name]["deploy"]["resources"]["limits"]["memory"]) >= 384 << 20
+        assert_service_hardened(name, svc)
+    for name in DAEMONS:  # as the single-vehicle stack's daemon
+        assert memory_bytes(services[name]["deploy"]["resources"]["limits"]["memory"]) >= DAEMON_MIN_MEMORY_BYTES
 
 
 def test_images_and_router_are_the_single_vehicle_stacks(fleet):
-    single = yaml.safe_load(COMPOSE.read_text(encoding="utf-8"))["services"]
+    single = load_compose(COMPOSE)["services"]
     services = fleet["services"]
     assert services["zenoh"]["image"] == single["zenoh"]["image"]
     assert services["zenoh"]["volumes"] == single["zenoh"]["volumes"]

@@ -48,6 +48,7 @@ from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from onboard.core.blas import single_thread_blas_env
+from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 __all__ = [
@@ -155,12 +156,7 @@ def plan_demo(
     from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
 
-    if (
-        isinstance(duration_s, bool)
-        or not isinstance(duration_s, (int, float))
-        or not math.isfinite(duration_s)
-        or duration_s <= 0
-    ):
+    if not is_positive_number(duration_s):
         raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"--seed: expected an integer >= 0, got {seed!r}")

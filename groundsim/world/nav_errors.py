@@ -42,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_noise_cases, noise_cases_path  # DEFAULT_NAV_NOISE: "RTK"
+from onboard.core.checks import is_nonnegative_number
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
     GeodeticOrigin,
@@ -82,7 +83,7 @@ class GnssDropout:
     def __post_init__(self) -> None:
         for name in ("start_s", "duration_s"):
             v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+            if not is_nonnegative_number(v):
                 raise ConfigError(f"--gnss-dropout: {name} must be a finite number >= 0 s, got {v!r}")
             object.__setattr__(self, name, float(v))
 

@@ -6,6 +6,7 @@ import collections
 import threading
 from typing import Any
 
+from onboard.core.checks import is_positive_int
 from onboard.core.errors import InputError
 
 __all__ = ["FrameQueue"]
@@ -15,7 +16,7 @@ class FrameQueue:
     """Bounded FIFO (of ``(IrFrame, received_mono_ns)`` in the service); pushing onto a full queue drops the oldest."""
 
     def __init__(self, maxlen: int) -> None:
-        if isinstance(maxlen, bool) or not isinstance(maxlen, int) or maxlen < 1:
+        if not is_positive_int(maxlen):
             raise InputError(f"FrameQueue maxlen must be a positive integer, got {maxlen!r}")
         self._d: collections.deque = collections.deque()
         self._maxlen = maxlen

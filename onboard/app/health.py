@@ -25,7 +25,6 @@ Only the standard library is imported: the probe runs every few seconds and must
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -33,6 +32,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NoReturn
 
+from onboard.core.checks import is_finite_number, is_positive_number
 from onboard.core.errors import ConfigError
 
 __all__ = [
@@ -107,12 +107,7 @@ class Liveness:
 
 
 def _check_max_age(max_age_s: float) -> float:
-    if (
-        isinstance(max_age_s, bool)
-        or not isinstance(max_age_s, (int, float))
-        or not math.isfinite(max_age_s)
-        or max_age_s <= 0
-    ):
+    if not is_positive_number(max_age_s):
         raise ConfigError(f"max_age_s: expected a positive finite number of seconds, got {max_age_s!r}")
     return float(max_age_s)
 
@@ -123,7 +118,7 @@ def judge_liveness(mtime_s: float | None, now_s: float, max_age_s: float = DEFAU
     if mtime_s is None:
         return Liveness(False, REASON_MISSING, None, max_age_s)
     for name, value in (("mtime_s", mtime_s), ("now_s", now_s)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if not is_finite_number(value):
             raise ConfigError(f"{name}: expected a finite time in seconds, got {value!r}")
     age_s = float(now_s) - float(mtime_s)
     if age_s < -FUTURE_TOLERANCE_S:

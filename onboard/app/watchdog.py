@@ -59,6 +59,7 @@ import math
 import threading
 from dataclasses import dataclass
 
+from onboard.core.checks import is_positive_number
 from onboard.core.errors import InputError
 
 __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESIDUAL_THRESHOLD"]
@@ -129,7 +130,7 @@ class Watchdog:
             ("residual_threshold", residual_threshold),
             ("residual_persist_s", residual_persist_s),
         ):
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+            if not is_positive_number(v):
                 raise InputError(f"Watchdog.{name} must be a positive number, got {v!r}")
         self.frame_key = frame_key
         self.zenoh_where = zenoh_where

@@ -102,6 +102,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core.checks import is_positive_int, require_each
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (
@@ -832,18 +833,21 @@ class ClockSyncConfig:
     jump_count: int = 3
 
     def __post_init__(self) -> None:
-        for name in (
-            "max_rtt_ns",
-            "window",
-            "min_samples",
-            "rtt_floor_ns",
-            "min_skew_span_ns",
-            "jump_ns",
-            "jump_count",
-        ):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ConfigError(f"ClockSyncConfig.{name} must be a positive integer, got {v!r}")
+        require_each(
+            self,
+            (
+                "max_rtt_ns",
+                "window",
+                "min_samples",
+                "rtt_floor_ns",
+                "min_skew_span_ns",
+                "jump_ns",
+                "jump_count",
+            ),
+            is_positive_int,
+            ConfigError,
+            "ClockSyncConfig.{name} must be a positive integer, got {value!r}",
+        )
         if self.min_samples > self.window:
             raise ConfigError(f"ClockSyncConfig.min_samples ({self.min_samples}) must be <= window ({self.window})")
         if not (math.isfinite(self.max_skew_ppm) and self.max_skew_ppm >= 0):

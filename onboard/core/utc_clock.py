@@ -40,6 +40,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from onboard.core.checks import is_nonnegative_number, is_positive_int, require_each
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
 from onboard.core.track import Track
@@ -76,25 +77,31 @@ class UtcClockConfig:
     max_unix_us: int = 4_102_444_800_000_000  # 2100-01-01T00:00:00Z: later is a corrupt field, not a date
 
     def __post_init__(self) -> None:
-        for name in (
-            "window",
-            "min_samples",
-            "jump_us",
-            "jump_count",
-            "min_skew_span_us",
-            "max_age_us",
-            "min_unix_us",
-            "max_unix_us",
-        ):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v <= 0:
-                raise ConfigError(f"UtcClockConfig.{name}: expected a positive integer, got {v!r}")
+        require_each(
+            self,
+            (
+                "window",
+                "min_samples",
+                "jump_us",
+                "jump_count",
+                "min_skew_span_us",
+                "max_age_us",
+                "min_unix_us",
+                "max_unix_us",
+            ),
+            is_positive_int,
+            ConfigError,
+            "UtcClockConfig.{name}: expected a positive integer, got {value!r}",
+        )
         if self.min_samples > self.window:
             raise ConfigError(f"UtcClockConfig.min_samples ({self.min_samples}) must be <= window ({self.window})")
-        for name in ("max_skew_ppm", "skew_sigma_ppm"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"UtcClockConfig.{name}: expected a number >= 0, got {v!r}")
+        require_each(
+            self,
+            ("max_skew_ppm", "skew_sigma_ppm"),
+            is_nonnegative_number,
+            ConfigError,
+            "UtcClockConfig.{name}: expected a number >= 0, got {value!r}",
+        )
 
 
 @dataclass(frozen=True)

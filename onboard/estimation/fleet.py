@@ -95,6 +95,7 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.special import gammaincc
 
+from onboard.core.checks import is_nonnegative_number, is_positive_int, is_positive_number, require_each
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
 from onboard.estimation.map_estimator import MapConfig, MapEstimator, NoiseModel
@@ -222,22 +223,28 @@ class FleetConfig:
     verdict: MapConfig = field(default_factory=lambda: MapConfig(observability_max_sigma_range_ratio=0.02))
 
     def __post_init__(self) -> None:
-        for name in (
-            "window_s",
-            "vehicle_timeout_s",
-            "member_timeout_s",
-            "pair_max_dt_s",
-            "min_range_m",
-            "max_defer_s",
-        ):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0):
-                raise ConfigError(f"FleetConfig.{name}: expected a positive number of its unit, got {v!r}")
-        for name in ("max_speed_mps", "q_m2ps3"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v >= 0):
-                raise ConfigError(f"FleetConfig.{name}: expected a number >= 0, got {v!r}")
-        if isinstance(self.iterations, bool) or not isinstance(self.iterations, int) or self.iterations < 1:
+        require_each(
+            self,
+            (
+                "window_s",
+                "vehicle_timeout_s",
+                "member_timeout_s",
+                "pair_max_dt_s",
+                "min_range_m",
+                "max_defer_s",
+            ),
+            is_positive_number,
+            ConfigError,
+            "FleetConfig.{name}: expected a positive number of its unit, got {value!r}",
+        )
+        require_each(
+            self,
+            ("max_speed_mps", "q_m2ps3"),
+            is_nonnegative_number,
+            ConfigError,
+            "FleetConfig.{name}: expected a number >= 0, got {value!r}",
+        )
+        if not is_positive_int(self.iterations):
             raise ConfigError(f"FleetConfig.iterations: expected an integer >= 1, got {self.iterations!r}")
         if not isinstance(self.verdict, MapConfig):
             raise ConfigError(f"FleetConfig.verdict: expected a MapConfig, got {type(self.verdict).__name__}")

@@ -63,6 +63,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg as sla
 
+from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError
 from onboard.estimation.map_estimator import EstimationError
 from onboard.estimation.observations import Observations
@@ -92,12 +93,7 @@ class PaperConfig:
     order: int = 1
 
     def __post_init__(self) -> None:
-        if (
-            isinstance(self.delta, bool)
-            or not isinstance(self.delta, (int, float))
-            or not math.isfinite(self.delta)
-            or self.delta <= 0
-        ):
+        if not is_positive_number(self.delta):
             raise ConfigError(f"PaperConfig.delta must be a finite number > 0, got {self.delta!r}")
         if isinstance(self.order, bool) or self.order not in _STENCILS:
             raise ConfigError(f"PaperConfig.order must be 1 or 2, got {self.order!r}")

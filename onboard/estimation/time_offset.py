@@ -66,6 +66,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from onboard.core.checks import is_positive_number, require_each
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_conjugate, quat_multiply, rotmat_from_quat, rotvec_from_quat
 
@@ -101,20 +102,23 @@ class TimeOffsetParams:
     max_gap_s: float = 0.25
 
     def __post_init__(self) -> None:
-        for name in (
-            "block_s",
-            "rate_span_s",
-            "range_sigma_frac",
-            "default_range_m",
-            "window_s",
-            "confident_sigma_ms",
-            "max_offset_ms",
-            "min_compensated_ms",
-            "outlier_factor",
-        ):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-                raise InputError(f"TimeOffsetParams.{name} must be a positive number, got {v!r}")
+        require_each(
+            self,
+            (
+                "block_s",
+                "rate_span_s",
+                "range_sigma_frac",
+                "default_range_m",
+                "window_s",
+                "confident_sigma_ms",
+                "max_offset_ms",
+                "min_compensated_ms",
+                "outlier_factor",
+            ),
+            is_positive_number,
+            InputError,
+            "TimeOffsetParams.{name} must be a positive number, got {value!r}",
+        )
         if not isinstance(self.poly_degree, int) or not 0 <= self.poly_degree <= 6:
             raise InputError(f"TimeOffsetParams.poly_degree must be an integer in 0..6, got {self.poly_degree!r}")
         if not isinstance(self.min_blocks, int) or self.min_blocks < 1:

@@ -67,6 +67,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
+from onboard.core.checks import is_nonnegative_number, is_positive_number, require_each
 from onboard.core.errors import InputError
 from onboard.core.selection import TrackRequest, TrackResult
 from onboard.core.track import Track
@@ -153,7 +154,7 @@ _TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, M
 
 
 def _finite_positive(name: str, v) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+    if not is_positive_number(v):
         raise InputError(f"{name} must be a finite number > 0, got {v!r}")
     return float(v)
 
@@ -363,10 +364,13 @@ class CameraProtocol:
 
     def __post_init__(self) -> None:
         _int_in("CameraProtocol.component_id", self.component_id, 1, 255)
-        for name in ("image_status_hz", "geo_status_hz"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
-                raise InputError(f"CameraProtocol.{name} must be a rate >= 0 Hz, got {v!r}")
+        require_each(
+            self,
+            ("image_status_hz", "geo_status_hz"),
+            is_nonnegative_number,
+            InputError,
+            "CameraProtocol.{name} must be a rate >= 0 Hz, got {value!r}",
+        )
         self._default_interval_s = {
             MSG_TRACKING_IMAGE_STATUS: _interval_s(self.image_status_hz),
             MSG_TRACKING_GEO_STATUS: _interval_s(self.geo_status_hz),

@@ -44,13 +44,13 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import os
 import re
 from dataclasses import dataclass
 
 import zenoh
 
+from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA
@@ -195,7 +195,7 @@ class ZenohSettings:
                 f"ZenohSettings.multicast_scouting must be a bool or None, got {self.multicast_scouting!r}"
             )
         t = self.connect_timeout_s
-        if t is not None and (isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t <= 0):
+        if t is not None and not is_positive_number(t):
             raise ZenohConfigError(
                 f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}"
             )

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 
 from onboard.app import health
 from onboard.core.errors import ConfigError
+from tests.process_helpers import run_module
 
 REPO = Path(__file__).resolve().parents[2]
 PROBE_TIMEOUT_S = 20.0  # generous: a cold interpreter on a loaded 2-core box
@@ -24,14 +25,7 @@ def _run_probe(*args: str, env_file: str | None = None) -> subprocess.CompletedP
     env = {k: v for k, v in os.environ.items() if k != health.HEALTH_FILE_ENV}
     if env_file is not None:
         env[health.HEALTH_FILE_ENV] = env_file
-    return subprocess.run(
-        [sys.executable, "-m", "onboard.health", *args],
-        cwd=REPO,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=PROBE_TIMEOUT_S,
-    )
+    return run_module("onboard.health", *args, timeout_s=PROBE_TIMEOUT_S, env=env)
 
 
 # ----------------------------------------------------------------------------- pure verdict

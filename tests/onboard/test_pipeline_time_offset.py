@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from onboard.app.config import OnboardConfig
-from onboard.core.status import build_status
 from onboard.estimation.time_offset import TimeOffsetEstimate
+from tests.fakes import idle_status
 from tests.onboard.test_pipeline import Rig
 
 POS_TOL_M = 1e-9  # the same interpolation twice
@@ -96,26 +96,8 @@ def test_the_offset_estimator_is_on_by_default_and_off_by_config_and_in_the_stat
         OnboardConfig(), time_offset=dataclasses.replace(OnboardConfig().time_offset, enabled=False)
     )
     assert Rig(config=off).pipe.time_offset_estimate is None
-    status = build_status(
-        vehicle="uav1",
-        uptime_s=1.0,
-        frames_in=0,
-        frames_processed=0,
-        frames_dropped=0,
-        frames_rejected=0,
-        tracks_published=0,
-        processing_ms={},
-        latency_ms={},
-        pose_wait_ms={},
-        capture_to_track_ms=None,
-        rejected={},
-        link=None,
-        cpu_share=None,
-        pipeline_cpu_share=None,
-        last_track=None,
-        estimator="map",
-        queue_length=0,
-        camera_time_offset={**TimeOffsetEstimate(48.2, 3.1, "confident", 48.2, 4, 320, 0, 6.5).as_dict()},
+    status = idle_status(
+        camera_time_offset={**TimeOffsetEstimate(48.2, 3.1, "confident", 48.2, 4, 320, 0, 6.5).as_dict()}
     )
     assert status["camera_time_offset"]["state"] == "confident"
     assert (

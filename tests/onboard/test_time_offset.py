@@ -77,6 +77,20 @@ def _feed(
     return out
 
 
+def _recorded_calls(offset_s: float, duration_s: float, seed: int) -> list[tuple[tuple, dict]]:
+    """The ``add`` calls :func:`_feed` makes, (args, kwargs) each, recorded rather than fed: for a test that alters
+    them on their way to a real estimator."""
+    calls: list[tuple[tuple, dict]] = []
+
+    class Recorder(TimeOffsetEstimator):
+        def add(self, *args, **kwargs):
+            calls.append((args, kwargs))
+            return self.estimate
+
+    _feed(Recorder(), offset_s, duration_s, seed)
+    return calls
+
+
 @pytest.mark.parametrize("offset_ms", [50.0, -30.0, 0.0])
 def test_recovers_the_offset_and_its_sign(offset_ms):
     est = TimeOffsetEstimator()
@@ -130,14 +144,7 @@ def test_still_camera_is_never_confident():
 
 def test_new_track_closes_the_block_and_reset_forgets():
     est = TimeOffsetEstimator()
-    rows = []
-
-    class Recorder(TimeOffsetEstimator):
-        def add(self, *args, **kwargs):
-            rows.append((args, kwargs))
-            return est.estimate
-
-    _feed(Recorder(), 0.05, 7.0, seed=5)
+    rows = _recorded_calls(0.05, 7.0, seed=5)
     for k, (args, kwargs) in enumerate(rows):  # a new track 2.5 s in: the first block ends there, not at 3 s
         est.add(*args, **{**kwargs, "track_id": 1 if k < 75 else 2})
     # blocks of 75 (to the new track) and 90 frames (3 s), each without its 2 x 5 edge frames (the rate's span and
@@ -151,14 +158,7 @@ def test_new_track_closes_the_block_and_reset_forgets():
 def test_outlier_block_is_refused():
     """A block whose residual is far above the others' (a centroid jumping between two objects) is not pooled."""
     est = TimeOffsetEstimator()
-    rows = []
-
-    class Recorder(TimeOffsetEstimator):
-        def add(self, *args, **kwargs):
-            rows.append((args, kwargs))
-            return est.estimate
-
-    _feed(Recorder(), 0.05, 16.0, seed=6)
+    rows = _recorded_calls(0.05, 16.0, seed=6)
     rng = np.random.default_rng(7)
     for args, kwargs in rows:
         t, b = args[0], np.array(args[1])

@@ -25,7 +25,7 @@ from onboard.core.track import (
 )
 from onboard.io.mavlink_wire import geo_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, make_tracker
-from tests.fakes import positioned_track
+from tests.fakes import idle_status, positioned_track
 from tests.onboard.test_pipeline import Rig
 
 LOS_TOL_DEG = 0.05  # centroid error ~0.03 px at f = 765 px is ~0.002 deg; the pointing is exact
@@ -175,16 +175,9 @@ def test_while_the_camera_mismatches_no_direction_or_position_goes_out_and_the_r
 
 
 def test_the_status_says_whether_geometry_is_withheld_and_why():
-    from onboard.core.status import build_status
-
-    kw = dict(
-        vehicle="uav1", uptime_s=1.0, frames_in=1, frames_processed=1, frames_dropped=0, frames_rejected=0,
-        tracks_published=1, processing_ms={}, latency_ms={}, pose_wait_ms={}, capture_to_track_ms=None,
-        rejected={}, link=None, cpu_share=None, pipeline_cpu_share=None, last_track=None, estimator="inline",
-        queue_length=0,
-    )  # fmt: skip
-    assert build_status(**kw)["geometry"] == {"output": "published", "withheld_because": []}
-    got = build_status(**kw, withheld_because=("gimbal_mismatch",))["geometry"]
+    kw = dict(frames_in=1, frames_processed=1, tracks_published=1, estimator="inline")
+    assert idle_status(**kw)["geometry"] == {"output": "published", "withheld_because": []}
+    got = idle_status(**kw, withheld_because=("gimbal_mismatch",))["geometry"]
     assert got == {"output": "withheld", "withheld_because": ["gimbal_mismatch"]}
 
 

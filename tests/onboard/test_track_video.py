@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import math
 import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -15,8 +14,8 @@ import numpy as np
 import pytest
 
 from onboard.app.track_video import EXIT_INPUT, main, open_frames
+from tests.process_helpers import run_module
 
-REPO = Path(__file__).resolve().parents[2]
 W_PX, H_PX = 192, 144
 N_FRAMES = 45
 SETTLE_FRAMES = 14  # the chain confirms after 12 of 15 frames (ObjectParams): earlier frames unchecked
@@ -54,12 +53,10 @@ def _mono8(k: int) -> np.ndarray:
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "onboard.track_video", *args],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=CLI_TIMEOUT_S,
+    return run_module(
+        "onboard.track_video",
+        *args,
+        timeout_s=CLI_TIMEOUT_S,
         env={"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"},
     )
 

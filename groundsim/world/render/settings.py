@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
+from onboard.core.checks import is_positive_int, require_each
 from onboard.core.errors import ConfigError
 
 __all__ = ["TargetPart", "IrSettings", "default_target_parts", "TARGET_SHAPES", "ENCODINGS"]
@@ -149,10 +150,13 @@ class IrSettings:
         for name in ("netd_k", "blur_sigma_px", "extinction_per_km", "background_reuse_tol_rad"):
             _finite(self, name, 0.0)
         _finite(self, "ground_emissivity", 0.0, hi=1.0)
-        for name, lo in (("supersample", 1), ("max_target_rays", 1), ("noise_bank_frames", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-                raise ConfigError(f"IrSettings.{name}: expected an integer >= {lo}, got {v!r}")
+        require_each(
+            self,
+            ("supersample", "max_target_rays", "noise_bank_frames"),
+            is_positive_int,
+            ConfigError,
+            "IrSettings.{name}: expected an integer >= 1, got {value!r}",
+        )
         parts = tuple(self.target_parts)
         if not parts or not all(isinstance(p, TargetPart) for p in parts):
             raise ConfigError("IrSettings.target_parts: expected a non-empty sequence of TargetPart")
