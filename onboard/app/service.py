@@ -558,6 +558,7 @@ class OnboardService:
                 gimbal_reports=int(getattr(self.link, "gimbal_reports", 0)),
                 telemetry_since_s=self._first_telemetry_s,
             )
+            self.watchdog.gnss(now, getattr(self.link, "gnss", None))
 
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)

@@ -40,6 +40,15 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     the position is dead-reckoned with a growing sigma (``pose.dead_reckoning_max_s``) and the 3-D
     estimate coasts.  Checked on every processed frame, cleared by the first frame with fresh position.
 
+``gnss_degraded``
+    The autopilot's GNSS receiver has reported no 3-D fix (GPS_RAW_INT #24 ``fix_type`` below 3D_FIX: no GPS,
+    no fix or 2-D) for more than ``GNSS_DEGRADED_S`` (1 s: five reports at the usual 5 Hz, so one glitch is
+    not a warning): the autopilot's position (#33) is dead-reckoned by its estimator and its error grows, and
+    so does the camera position behind every 3-D position.  Kept apart from ``gnss_dropout`` because either
+    comes alone (an autopilot goes on sending #33 from its estimator without a fix; #33 can stop with a good
+    fix): ``gnss_dropout`` says what the daemon does (its own dead reckoning), this one says why the position
+    is poor; with both active, both are listed.  Cleared by the first report with a 3-D fix or better.
+
 ``camera_time_offset``
     The camera's clock is off the autopilot's: the estimate of :mod:`onboard.estimation.time_offset` is
     ``confident`` and its magnitude above ``time_offset.warn_threshold_ms`` by more than two sigmas (20 ms: at
@@ -66,6 +75,7 @@ __all__ = ["WatchdogWarning", "Watchdog", "INPUT_TIMEOUT_S", "NAV_GAP_S", "RESID
 
 INPUT_TIMEOUT_S = 5.0
 NAV_GAP_S = 0.3
+GNSS_DEGRADED_S = 1.0
 RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
@@ -246,6 +256,25 @@ class Watchdog:
             f"no GLOBAL_POSITION_INT (#33) {age} while attitude and frames go on: the position is dead-reckoned "
             f"with a growing sigma (pose.dead_reckoning_max_s) and 3-D positions coast; check the GNSS (GPS_RAW_INT "
             f"fix type) and the #33 stream",
+        )
+
+    def gnss(self, now_s: float, state) -> None:
+        """The latest GPS_RAW_INT (a :class:`~onboard.core.gnss.GnssState` on the same clock; None: none yet)."""
+        if state is None:
+            return
+        if state.has_3d_fix:
+            self._clear("gnss_degraded")
+            return
+        lasted = now_s - state.degraded_since_s
+        if lasted <= GNSS_DEGRADED_S:
+            return
+        sats = "unknown" if state.satellites is None else str(state.satellites)
+        self._raise(
+            "gnss_degraded",
+            f"the GNSS receiver reports {state.fix} (GPS_RAW_INT #24, {sats} satellites) for {lasted:.1f} s: no "
+            f"3-D fix, so the autopilot dead-reckons its position (#33, or stops it: gnss_dropout) and the camera "
+            f"position behind every 3-D position drifts, its error growing with time; check the GNSS antenna, "
+            f"receiver and its view of the sky",
         )
 
     def camera_time_offset(self, now_s: float, estimate, threshold_ms: float) -> None:

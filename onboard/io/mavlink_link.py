@@ -20,6 +20,9 @@ module decides what to do with them (MAVLink common, v2 framing):
   before any frame, so a frame's gimbal extrapolation stays within its horizon).
 * ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; answers feed :class:`ClockSync`;
   the autopilot's requests are answered with ``tc1 = clock_ns()``.
+* ``GPS_RAW_INT`` (#24) of the autopilot (its default stream; not requested): fix type, satellites, DOPs and
+  accuracies -> :class:`~onboard.core.gnss.GnssState` (``gnss``, the status's ``link.gnss``; the watchdog's
+  ``gnss_degraded``).  A fix type outside GPS_FIX_TYPE is counted (``gps_raw_fix_type``) and dropped.
 * ``SYSTEM_TIME`` (#2) of the autopilot (its default stream, about 1 Hz; not requested): ``time_boot_ms * 1000``
   and ``time_unix_usec`` feed :class:`~onboard.core.utc_clock.UtcClock` (boot clock -> UTC), reset with
   :class:`ClockSync` on a reboot.
@@ -67,6 +70,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from onboard.core.clock_sync import ClockSync
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
+from onboard.core.gnss import GPS_FIX_NAMES, GnssState
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
 from onboard.core.utc_clock import UtcClock
@@ -78,6 +82,7 @@ from onboard.io.mavlink_wire import (
     FollowTarget,
     GimbalDeviceAttitudeStatus,
     GlobalPositionInt,
+    GpsRawInt,
     Heartbeat,
     SetPositionTargetLocalNed,
     SystemTime,
@@ -240,6 +245,7 @@ class LinkStatus:
     messages_rx: int
     link_losses: int
     reboots: int
+    gnss: dict[str, Any] | None = None  # GnssState.summary of the latest GPS_RAW_INT; None until one
 
 
 @dataclass
@@ -486,6 +492,7 @@ class MavlinkLink:
         )
         #: the autopilot's home altitude (m AMSL): GLOBAL_POSITION_INT's alt minus its relative_alt (None until one)
         self.home_alt_amsl_m: float | None = None
+        self.gnss: GnssState | None = None  # the latest GPS_RAW_INT (None until one)
         self._last_hb_rx_s: float | None = None
         self._last_hb_tx_s = -math.inf
         self._last_ts_tx_s = -math.inf
@@ -680,6 +687,13 @@ class MavlinkLink:
             home = pos.alt_amsl_m - pos.alt_rel_m
             if math.isfinite(home):
                 self.home_alt_amsl_m = home
+        elif mtype == "GPS_RAW_INT" and from_autopilot:
+            g = GpsRawInt.from_message(msg)
+            if g.fix_type not in GPS_FIX_NAMES:
+                self._counters.count("gps_raw_fix_type", f"GPS_RAW_INT fix_type {g.fix_type} is not a GPS_FIX_TYPE")
+                return
+            fields = (g.satellites_visible, g.hdop, g.vdop, g.h_acc_m, g.v_acc_m)
+            self.gnss = GnssState.updated(self.gnss, now, g.fix_type, *fields)
         elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
             self.gimbal_reports += 1  # the watchdog checks it against the configured mount
             if self.gimballed:
@@ -976,4 +990,5 @@ class MavlinkLink:
             messages_rx=self.messages_rx,
             link_losses=self.link_losses,
             reboots=self._pose.reboots,
+            gnss=None if self.gnss is None else self.gnss.summary(now),
         )

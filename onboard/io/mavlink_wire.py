@@ -20,6 +20,10 @@ GLOBAL_POSITION_INT (#33)              lat, lon (degE7) -> ``lat_deg``, ``lon_de
 :class:`GlobalPositionInt`             ``alt_amsl_m``; relative_alt (mm) -> ``alt_rel_m``; vx, vy, vz (cm/s,
                                        north, east, down; int16) -> ``v_ned_mps``; hdg (cdeg 0..35999,
                                        UINT16_MAX unknown) -> ``heading_rad`` (NaN unknown)
+GPS_RAW_INT (#24) :class:`GpsRawInt`   time_usec, fix_type (GPS_FIX_TYPE) as they are; satellites_visible (UINT8_MAX
+                                       unknown -> None); eph, epv (DOP * 100, UINT16_MAX unknown) -> ``hdop``,
+                                       ``vdop`` (NaN unknown); h_acc, v_acc (mm, 0 unknown) -> ``h_acc_m``,
+                                       ``v_acc_m`` (NaN unknown); lat, lon, alt sent as zeros (#33 is the position)
 TIMESYNC (#111) :class:`Timesync`      tc1, ts1 (ns) -> ``tc1_ns``, ``ts1_ns`` (tc1 = 0: a request)
 COMMAND_LONG (#76)                     :func:`set_message_interval_message` (MAV_CMD_SET_MESSAGE_INTERVAL:
                                        param1 message id, param2 interval us)
@@ -91,6 +95,7 @@ __all__ = [
     "SystemTime",
     "AttitudeQuaternion",
     "GlobalPositionInt",
+    "GpsRawInt",
     "GimbalDeviceAttitudeStatus",
     "Timesync",
     "TIMESYNC_HAS_TARGET",
@@ -446,6 +451,49 @@ class GlobalPositionInt:
             (msg.vx * 0.01, msg.vy * 0.01, msg.vz * 0.01),
             hdg,
         )
+
+
+@dataclass(frozen=True)
+class GpsRawInt:
+    """GPS_RAW_INT (#24): the GNSS receiver's own fix, not the autopilot's estimate (#33: the daemon's position,
+    so position and velocity are not carried here and go out as zeros, speed and course as unknown).
+
+    ``time_usec`` as it is (UNIX or boot us: common.xml lets the reader tell by its size); ``fix_type``: a
+    GPS_FIX_TYPE (:data:`onboard.core.gnss.GPS_FIX_NAMES`; the link refuses others); ``satellites_visible``
+    (None: UINT8_MAX, unknown); ``hdop`` / ``vdop``: eph / epv over 100, dilutions of precision (unitless in
+    common.xml, not the centimetres of MAVLink 1's text; NaN: UINT16_MAX); ``h_acc_m`` / ``v_acc_m``: the
+    extension's position and altitude uncertainty (mm; 0, what a sender without the extension leaves: NaN)."""
+
+    time_usec: int
+    fix_type: int
+    satellites_visible: int | None = None
+    hdop: float = math.nan
+    vdop: float = math.nan
+    h_acc_m: float = math.nan
+    v_acc_m: float = math.nan
+
+    def to_message(self):
+        m, sats = "GPS_RAW_INT", self.satellites_visible
+        dop = [_num(m, "dop", v, 0.0, 655.34, nan_ok=True) for v in (self.hdop, self.vdop)]
+        acc = [_num(m, "acc_m", v, 0.0005, UINT32_MAX / 1000.0, nan_ok=True) for v in (self.h_acc_m, self.v_acc_m)]
+        return mavlink2.MAVLink_gps_raw_int_message(
+            _int(m, "time_usec", self.time_usec, 0, 2**64 - 1),
+            _int(m, "fix_type", self.fix_type, 0, 255),
+            *(0, 0, 0),
+            *(UINT16_MAX if math.isnan(d) else round(d * 100.0) for d in dop),
+            *(UINT16_MAX, UINT16_MAX),
+            255 if sats is None else _int(m, "satellites_visible", sats, 0, 254),
+            0,
+            *(0 if math.isnan(a) else max(round(a * 1000.0), 1) for a in acc),  # at least 1 mm: 0 is unknown
+            *(0, 0, 0),
+        )
+
+    @classmethod
+    def from_message(cls, msg) -> GpsRawInt:
+        dop = [math.nan if v == UINT16_MAX else v / 100.0 for v in (msg.eph, msg.epv)]
+        acc = [math.nan if v == 0 else v / 1000.0 for v in (msg.h_acc, msg.v_acc)]
+        sats = None if msg.satellites_visible == 255 else int(msg.satellites_visible)
+        return cls(int(msg.time_usec), int(msg.fix_type), sats, *dop, *acc)
 
 
 #: gimbal failures that make its reported attitude unusable (limits alone do not)

@@ -27,6 +27,7 @@ from onboard.core.pose import PoseBuffer
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkConfig, MavlinkLink
 from onboard.io.mavlink_wire import (
     GimbalDeviceAttitudeStatus,
+    GpsRawInt,
     Heartbeat,
     MavlinkEndpoint,
     SystemTime,
@@ -486,3 +487,34 @@ def test_unopenable_connection_is_counted_and_retried():
     link.tick()
     assert counters["mavlink_open_failed"] == 2 and link.state == LINK_WAITING
     link.close()
+
+
+def test_gps_raw_int_is_decoded_into_the_gnss_state_and_a_bad_fix_type_counted(rig):
+    """GPS_RAW_INT of the autopilot (not requested: its default stream) sets ``link.gnss`` and the status's
+    ``gnss``; another component's is ignored; a fix type outside GPS_FIX_TYPE is counted and dropped."""
+    rig.connect()
+    assert rig.link.gnss is None and rig.link.status().gnss is None
+    assert 24 not in rig.link.rate_plan  # an autopilot streams it unasked
+    rig.clock.t_s = 50.0
+    rig.ap.send(GpsRawInt(1_800_000_000_000_000, mav.GPS_FIX_TYPE_3D_FIX, 14, 0.8, 1.2, 0.5, 0.8))
+    assert rig.drive(lambda: rig.link.gnss is not None)
+    g = rig.link.gnss
+    assert (g.fix, g.satellites, g.hdop, g.h_acc_m, g.received_s, g.degraded_since_s) == (
+        "3d",
+        14,
+        0.8,
+        0.5,
+        50.0,
+        None,
+    )
+    rig.ap.as_component(AP_SYSID, 154)  # not the autopilot: ignored
+    rig.ap.send(GpsRawInt(0, mav.GPS_FIX_TYPE_NO_FIX, 0))
+    rig.ap.as_component(AP_SYSID, 1)
+    rig.ap.send(GpsRawInt(0, 42, 3))  # out of range: counted, the state kept
+    rig.clock.t_s = 51.0
+    rig.ap.send(GpsRawInt(1_800_000_001_000_000, mav.GPS_FIX_TYPE_NO_FIX, 0))
+    assert rig.drive(lambda: rig.link.gnss.fix_type == mav.GPS_FIX_TYPE_NO_FIX)
+    assert rig.counters["gps_raw_fix_type"] == 1
+    rig.clock.t_s = 52.5
+    s = rig.link.status().gnss
+    assert (s["fix"], s["satellites"], s["age_s"], s["degraded_s"], s["hdop"]) == ("no_fix", 0, 1.5, 1.5, None)
