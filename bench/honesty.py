@@ -83,9 +83,17 @@ def family_motions(family: str, seed: int):
 
 
 def run_flight(
-    family: str, seed: int, duration_s: float, monitor: bool = False, model_hold_s: float = 0.0, noise: str = "RTK"
+    family: str,
+    seed: int,
+    duration_s: float,
+    monitor: bool = False,
+    model_hold_s: float = 0.0,
+    noise: str = "RTK",
+    in_estimator: bool = False,
 ) -> dict:
-    """One flight: per published position its time, error, 3-sigma test, verdict, range and selected model."""
+    """One flight: per published position its time, error, 3-sigma test, verdict, range and selected model.
+    ``in_estimator``: the monitor the estimator runs itself (``SlidingConfig.consistency_check``) instead of
+    the bench's own (the same numbers without ``model_hold_s``)."""
     nc = load_noise_cases()[noise]
     intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
     obs_m, tgt_m = family_motions(family, seed)
@@ -93,10 +101,14 @@ def run_flight(
     truth, obs = synthesize(obs_m, tgt_m, t, intr, nc, np.random.default_rng([seed, 7]))
     # the estimator's own monitor (SlidingConfig.consistency_check) off: the bench compares the window alone
     # with the window through the monitor built here, whose hold after a model change can be varied
-    sw = SlidingWindowEstimator(SlidingConfig(consistency_check=False), noise=estimator_noise_model(nc))
+    sw = SlidingWindowEstimator(SlidingConfig(consistency_check=in_estimator), noise=estimator_noise_model(nc))
     # the attitude bias is common to the carried estimate and the new bearing: left out of the monitor's sigma
     no_bias = dataclasses.replace(sw.noise, attitude_bias_sigma_rad=0.0)
-    mon = ConsistencyMonitor(bearing_sigma_rad(no_bias, intr), model_hold_s=model_hold_s) if monitor else None
+    mon = (
+        ConsistencyMonitor(bearing_sigma_rad(no_bias, intr), model_hold_s=model_hold_s)
+        if monitor and not in_estimator
+        else None
+    )
     rows = []
     t0 = time.thread_time()
     for i in range(t.size):

@@ -6,7 +6,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.honesty import FAMILIES, family_motions, recall_table, switch_table, time_table
+from bench.honesty import FAMILIES, family_motions, recall_table, run_flight, switch_table, time_table
 from groundsim.evaluation.synth import Racetrack, Weave
 
 
@@ -73,3 +73,13 @@ def test_tables_count_what_is_beyond_3_sigma_and_the_end_verdict():
     # run a: 0.5 % at the end and observable; run b: 5 % and not: one good run, recalled
     assert "err/range <= 2 % at the end: 1; of them called observable: 1 (recall 100.00 %)" in rec
     assert "honest (<= 1 % beyond 3 sigma over the flight) 0/1" in rec
+
+
+def test_the_estimators_own_monitor_publishes_what_the_benchs_monitor_measured():
+    """``estimator.sliding.consistency_check`` runs the monitor bench.honesty --monitor measures, on the same
+    estimates: a racetrack target's flight gives the same rows either way, some of them demoted."""
+    own = run_flight("switching", 3, 36.0, monitor=True, in_estimator=True)["rows"]
+    bench = run_flight("switching", 3, 36.0, monitor=True)["rows"]
+    plain = run_flight("switching", 3, 36.0)["rows"]
+    assert own == bench
+    assert sum(r[3] for r in own) < sum(r[3] for r in plain)  # fewer called observable: some demoted
