@@ -65,6 +65,7 @@ from onboard.app.locked_counter import LockedCounter
 from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, frame_objects, make_observers
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
+from onboard.app.status_sections import camera_section, time_offset_section
 from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
 from onboard.core.irframe import IrFrame, IrFrameError, check_payload_size, decode_irframe
@@ -76,7 +77,6 @@ from onboard.io.record import NOT_LOOKED_UP
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
-    from onboard.io.camera_protocol import CameraProtocol
     from onboard.io.gcs_link import GcsLink
     from onboard.io.mavlink_link import MavlinkLink
 
@@ -654,30 +654,16 @@ class OnboardService:
             },
             warnings=warnings,
             withheld_because=self.pipeline.withheld_because,
-            camera_time_offset=self._time_offset_status(),
+            camera_time_offset=time_offset_section(self.pipeline, self.config),
         )
         status["utc"] = self.utc.status()  # boot clock -> UTC (onboard.core.utc_clock)
         if self.camera is not None:
-            status["camera"] = self._camera_status(self.camera)
+            status["camera"] = camera_section(self.camera, self.config, self.pipeline)
         for tap in self.taps:
             section = tap.status()
             if section is not None:
                 status[tap.name] = section
         return status
-
-    def _time_offset_status(self) -> dict[str, Any] | None:
-        est = self.pipeline.time_offset_estimate  # a frozen snapshot: safe to read from this thread
-        if est is None:
-            return None
-        return {**est.as_dict(), "warn_threshold_ms": self.config.time_offset.warn_threshold_ms}
-
-    def _camera_status(self, camera: CameraProtocol) -> dict[str, Any]:
-        st = camera.status()
-        st["endpoints"] = list(self.config.gcs.endpoints)
-        st["tracker_mode"] = self.config.gcs.tracker_mode
-        st["tracker_holding"] = bool(getattr(self.pipeline.tracker, "holding", False))
-        st["last_selection"] = self.pipeline.last_selection
-        return st
 
     def _drain_capture_latency(self) -> None:
         sync = getattr(self.link, "clock_sync", None)
