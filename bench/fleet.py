@@ -142,11 +142,28 @@ def main(argv=None) -> int:
     p.add_argument("--restart-at", type=float, default=None, metavar="S", help="--flight: restart it at S s (kill + 5)")
     p.add_argument("--out", default="out/fleet", help="--flight: logs, truth and scores (out/fleet)")
     p.add_argument("--duration", type=float, default=None, help="--flight: flight length, s (the scenario's)")
+    p.add_argument(
+        "--utc-error",
+        action="append",
+        default=[],
+        metavar="NAME=MS",
+        help="--flight: vehicle NAME's SYSTEM_TIME reports UTC MS ms off (groundsim run --utc-error-ms); the fusion's"
+        " clock check should name it; repeatable",
+    )
     args = p.parse_args(argv)
     if args.flight:
         from bench.fleet_flight import main_flight
 
-        return main_flight(args.flight, args.seeds, args.kill_at, args.restart_at, args.out, args.duration)
+        errors = []
+        for text in args.utc_error:
+            name, _, ms = text.partition("=")
+            try:
+                errors.append((name, float(ms)))
+            except ValueError:
+                p.error(f"--utc-error: expected NAME=MS, got {text!r}")
+        return main_flight(
+            args.flight, args.seeds, args.kill_at, args.restart_at, args.out, args.duration, tuple(errors)
+        )
     if args.accuracy:
         accuracy()
         return 0

@@ -84,6 +84,8 @@ class FlightRecord:
     killed: str | None = None
     pids: list = field(default_factory=list)  # every child started (the tests check that none is left)
     sim_pacing: str = ""  # the simulator's last pacing line (how far its frames fell behind the wall clock)
+    clock_status: list = field(default_factory=list)  # [(arrival, the fleet status's clock_inconsistent, clocks)]
+    utc_error_ms: dict = field(default_factory=dict)  # vehicle -> the UTC error injected in its SYSTEM_TIME, ms
 
 
 class _Collector:
@@ -129,9 +131,11 @@ class _Collector:
             self.status[parts[1]] = time.time()
             if parts[1] == "fleet":
                 try:
-                    self.rec.fleet_status = json.loads(sample.payload.to_bytes())
+                    self.rec.fleet_status = st = json.loads(sample.payload.to_bytes())
                 except ValueError:
-                    pass
+                    return
+                if isinstance(st, dict):
+                    self.rec.clock_status.append((time.time(), st.get("clock_inconsistent"), st.get("clocks")))
 
 
 # --------------------------------------------------------------------------- processes
@@ -145,6 +149,7 @@ class FlightPlan:
     router_port: int
     mavlink_ports: dict
     duration_s: float | None = None
+    utc_error_ms: tuple = ()  # ((vehicle, ms), ...): groundsim run --utc-error-ms
 
     @property
     def endpoint(self) -> str:
@@ -211,15 +216,19 @@ class FlightPlan:
             "10",
             "--truth",
             str(self.out_dir / "truth.csv"),
+            *[a for v, ms in self.utc_error_ms for a in ("--utc-error-ms", f"{v}={ms:g}")],
         ]
 
 
-def plan_flight(scenario: str, seed: int, out_dir, duration_s: float | None = None) -> FlightPlan:
+def plan_flight(
+    scenario: str, seed: int, out_dir, duration_s: float | None = None, utc_error_ms: tuple = ()
+) -> FlightPlan:
     from groundsim.io.ports import free_tcp_port, free_udp_port
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    return FlightPlan(scenario, int(seed), out, free_tcp_port(), {v: free_udp_port() for v in VEHICLES}, duration_s)
+    ports = {v: free_udp_port() for v in VEHICLES}
+    return FlightPlan(scenario, int(seed), out, free_tcp_port(), ports, duration_s, tuple(utc_error_ms))
 
 
 def open_router(endpoint: str):
@@ -606,7 +615,31 @@ def format_score(s: dict, seed: int) -> str:
                 f"{_ms(s['restart_first_los_s'])}; fused again {_ms(s['fused_again_s'])} after the restart "
                 f"({_ms(s['fused_again_after_los_s'])} after its first line of sight)"
             )
+    if s.get("clock_statuses"):
+        named = ", ".join(f"{v} after {t:.1f} s" for v, t in s["clock_first_named_s"].items()) or "nobody"
+        lines.append(
+            f"  clock check: injected UTC errors {s['utc_error_ms'] or 'none'}; named inconsistent: {named}; "
+            f"{s['clock_statuses_naming']} of {s['clock_statuses']} fleet statuses name someone"
+        )
     return "\n".join(lines)
+
+
+def clock_figures(rec: FlightRecord) -> dict:
+    """The fusion node's clock check over the flight: when each vehicle was first named inconsistent (s after the
+    simulator's start) and how many fleet statuses named anyone."""
+    first: dict[str, float] = {}
+    naming = 0
+    for t, names, _ in rec.clock_status:
+        if names:
+            naming += 1
+            for v in names:
+                first.setdefault(v, t - rec.sim_start_unix_s)
+    return {
+        "utc_error_ms": dict(rec.utc_error_ms),
+        "clock_first_named_s": first,
+        "clock_statuses": len(rec.clock_status),
+        "clock_statuses_naming": naming,
+    }
 
 
 def save_record(rec: FlightRecord, path) -> None:
@@ -636,6 +669,7 @@ def main_flight(
     restart_at_s: float | None,
     out_dir,
     duration_s: float | None = None,
+    utc_error_ms: tuple = (),
 ) -> int:
     """``python -m bench.fleet --flight``: run and print each seed, then the medians over seeds.  With a kill and
     no ``duration_s``, the flight is extended to RESTART_FLIGHT_S past the restart: a daemon's cold start alone
@@ -648,7 +682,7 @@ def main_flight(
             duration_s = max(30.0, restart_at_s + RESTART_FLIGHT_S)
     scores = []
     for seed in range(seeds):
-        plan = plan_flight(scenario, seed, Path(out_dir) / f"seed{seed}", duration_s)
+        plan = plan_flight(scenario, seed, Path(out_dir) / f"seed{seed}", duration_s, utc_error_ms)
         print(f"flying {scenario}, seed {seed} (realtime; logs in {plan.out_dir}) ...", flush=True)
         try:
             rec = run_flight(plan, kill_at_s, restart_at_s)
@@ -656,7 +690,8 @@ def main_flight(
             print(f"seed {seed}: failed: {exc}", flush=True)
             continue
         save_record(rec, plan.out_dir / "record.json")
-        s = score_flight(rec)
+        rec.utc_error_ms = dict(utc_error_ms)
+        s = score_flight(rec) | clock_figures(rec)
         scores.append(s)
         print(format_score(s, seed), flush=True)
         print(f"  simulator pacing: {rec.sim_pacing or 'n/a'}", flush=True)

@@ -148,6 +148,14 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         " several observers publishes each on irtrack/<NAME>/ir/frame with its observer's name instead",
     )
     p.add_argument(
+        "--utc-error-ms",
+        action="append",
+        default=[],
+        metavar="NAME=MS",
+        help="vehicle NAME's SYSTEM_TIME reports UTC off by MS milliseconds (a wrong GNSS time or clock"
+        " mapping, for the fusion node's clock check); the truth keeps the true UTC; repeatable",
+    )
+    p.add_argument(
         "--start-time-utc",
         default=None,
         metavar="now|ISO",
@@ -230,7 +238,7 @@ def _run_config(args):
 
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
-    from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time
+    from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time, utc_errors
     from groundsim.world.nav_errors import parse_camera_time_offset, parse_gnss_dropout
     from onboard.io.zenoh_session import ZenohSettings
 
@@ -252,6 +260,7 @@ def _run_config(args):
         )
     vehicle = args.vehicle or DEFAULT_VEHICLE
     endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
+    start = args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
     return RunConfig(
         scenario=scenario,
         run_seed=args.seed,
@@ -259,9 +268,9 @@ def _run_config(args):
         rate=rate,
         mavlink=DEFAULT_MAVLINK if scenario.is_fleet else endpoints[0][1],
         mavlink_by_vehicle=endpoints if scenario.is_fleet else (),
-        start_time_unix_us=parse_start_time(
-            args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
-        ),
+        utc_error_us=utc_errors(scenario, args.utc_error_ms, vehicle),
+        start_time_unix_us=parse_start_time(start),
+        start_time_now=str(start).strip().lower() == "now",
         vehicle=vehicle,
         zenoh=zenoh,
         truth_path=Path(args.truth) if args.truth else None,

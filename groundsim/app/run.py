@@ -147,6 +147,28 @@ def split_mavlink_option(text: str) -> tuple[str | None, str]:
     return None, str(text)
 
 
+def utc_errors(scenario: Scenario, values, vehicle: str) -> tuple[tuple[str, int], ...]:
+    """The ``--utc-error-ms NAME=MS`` options as ``((vehicle name, error us), ...)``: NAME one of the
+    scenario's vehicles (the ``--vehicle`` of a single observer), each at most once, MS a finite number of
+    milliseconds within a minute; ConfigError naming ``--utc-error-ms`` otherwise."""
+    names = [o.name for o in scenario.observers] if scenario.is_fleet else [vehicle]
+    out: dict[str, int] = {}
+    for text in values or ():
+        name, sep, ms_text = str(text).partition("=")
+        name = name.strip()
+        try:
+            ms = float(ms_text)
+        except ValueError:
+            ms = math.nan
+        if not sep or name not in names or name in out or not (math.isfinite(ms) and abs(ms) <= 60_000.0):
+            raise ConfigError(
+                f"--utc-error-ms: expected NAME=MS with NAME one of {', '.join(names)} (each once) and MS a number of"
+                f" milliseconds within +-60000, got {text!r}"
+            )
+        out[name] = round(ms * 1000.0)
+    return tuple(out.items())
+
+
 def mavlink_endpoints(scenario: Scenario, values, vehicle: str) -> tuple[tuple[str, str], ...]:
     """The ``--mavlink`` options (a list of strings, possibly empty) as ``((vehicle name, connection), ...)``
     in observer order; ConfigError naming ``--mavlink`` for a mistake.
@@ -250,6 +272,10 @@ class RunConfig:
     camera_clock: object | None = None  # --camera-time-offset-ms: a groundsim.world.nav_errors.CameraClockError
     mavlink_by_vehicle: tuple = ()
     start_time_unix_us: int | None = None
+    utc_error_us: tuple = ()  # --utc-error-ms: ((vehicle name, us), ...), :func:`utc_errors`
+    # --start-time-utc now: t = 0 is put on the wall clock again when the loop starts (start-up took ~0.5 s, which
+    # every vehicle's UTC then trailed the machine's clock by, and the fusion node's clock check measured)
+    start_time_now: bool = False
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -458,9 +484,11 @@ def run_loop(
     stop: threading.Event | None = None,
     clock=None,
     camera_clock=None,
+    on_start=None,
 ) -> RunReport:
     """Drive ``core`` tick by tick into the sinks (any may be None); see the module docstring.
     ``camera_clock``: a :class:`groundsim.world.nav_errors.CameraClockError` that stamps the frames (None: exact).
+    ``on_start``: called at the instant t = 0 is paced from (``--start-time-utc now`` puts UTC there).
 
     ``mavlink``: has ``update_state(**state, nav_error=sample)`` and ``poll(now_boot_us)`` (a MavlinkVehicle);
     ``publisher``: has ``publish(IrFrame)`` (a FramePublisher); ``truth``: a TruthWriter.
@@ -469,7 +497,7 @@ def run_loop(
     (FlightError) or a truth file that cannot be written ends the run by raising.
     """
     leg = VehicleLeg(core, mavlink, publisher, truth)
-    return run_fleet_loop([leg], rate, stop=stop, clock=clock, camera_clock=camera_clock)
+    return run_fleet_loop([leg], rate, stop=stop, clock=clock, camera_clock=camera_clock, on_start=on_start)
 
 
 def run_fleet_loop(
@@ -479,6 +507,7 @@ def run_fleet_loop(
     stop: threading.Event | None = None,
     clock=None,
     camera_clock=None,
+    on_start=None,
 ) -> RunReport:
     """:func:`run_loop` for one or several vehicles (:class:`VehicleLeg`), stepped in lockstep on one tick
     grid (their cores share the scenario's timing): within a tick each vehicle in turn gets its MAVLink poll,
@@ -530,6 +559,8 @@ def run_fleet_loop(
     acc = {"publish": 0.0, "mavlink": 0.0, "truth": 0.0}
     published = 0
     frames = 0
+    if on_start is not None:
+        on_start()  # the instant t = 0 is paced from (--start-time-utc now puts UTC there)
     pacer.start(0.0)
     wall0 = clock.now_s()
     next_status = wall0 + STATUS_EVERY_S
@@ -688,7 +719,8 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 gimballed=core.gimballed,
                 guided=config.guided,
                 gnss_outage_us=outage,
-                unix_time_at_boot_us=core.unix_time_at_boot_us,
+                # a wrong UTC in SYSTEM_TIME only: the frames and the truth keep the true one
+                unix_time_at_boot_us=core.unix_time_at_boot_us + dict(config.utc_error_us).get(name, 0),
             )
             if config.truth_path is not None:
                 leg.truth = TruthWriter(fleet_truth_path(config.truth_path, name) if fleet else config.truth_path)
@@ -720,6 +752,15 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 "" if config.render else " (rendering off: no frames)",
                 f", boot clock {core.boot_start_us / 1e6:.3f} s at t = 0" if fleet else "",
             )
+
+        def utc_now() -> None:
+            now_us = time.time_ns() // 1000
+            for leg in legs:
+                leg.core.start_time_unix_us = now_us
+                err_us = dict(config.utc_error_us).get(leg.name, 0)
+                leg.mavlink.set_unix_time_at_boot_us(leg.core.unix_time_at_boot_us + err_us)
+
+        on_start = utc_now if config.start_time_now else None
         if not fleet:
             leg = legs[0]
             return run_loop(
@@ -731,8 +772,11 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 stop=stop,
                 clock=clock,
                 camera_clock=config.camera_clock,
+                on_start=on_start,
             )
-        return run_fleet_loop(legs, config.rate, stop=stop, clock=clock, camera_clock=config.camera_clock)
+        return run_fleet_loop(
+            legs, config.rate, stop=stop, clock=clock, camera_clock=config.camera_clock, on_start=on_start
+        )
     finally:
         closers = [c for leg in legs for c in (leg.truth, leg.publisher, leg.mavlink)] + [session, recorder]
         for closer in closers:

@@ -427,6 +427,11 @@ class MavlinkVehicle:
         self._conn = open_mavlink2(connection, sysid, compid)
         log.info("mavlink vehicle %d/%d on %s", sysid, compid, connection)
 
+    def set_unix_time_at_boot_us(self, unix_time_at_boot_us: int) -> None:
+        """UTC when the boot clock read 0 (SYSTEM_TIME, GPS_RAW_INT and HOME_POSITION's times), set again before
+        the first message (a paced run puts its t = 0 on the wall clock when its loop starts)."""
+        self._unix_at_boot_us = int(unix_time_at_boot_us)
+
     # -- inputs ---------------------------------------------------------------
 
     def update_state(

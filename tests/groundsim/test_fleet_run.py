@@ -25,6 +25,7 @@ NAMES = ("uav1", "uav2")
 DURATION_S = 1.0
 FRAMES = 30
 F1_START_UNIX_US = 1_780_304_400_000_000  # F1's start_time_utc, 2026-06-01T09:00:00Z
+UTC_ERROR_US = {"uav1": 0, "uav2": 20_000}  # --utc-error-ms uav2=20: its SYSTEM_TIME's UTC 20 ms late
 PROCESS_TIMEOUT_S = 150.0  # two vehicles, 1 s at --rate max, on a loaded 2-core machine
 DELIVERY_WAIT_S = 5.0
 BOOT_MS_TOL_US = 1000  # SYSTEM_TIME carries the boot time in whole ms, UTC in us
@@ -37,6 +38,7 @@ class _Listener:
     def __init__(self, port: int) -> None:
         self.conn = open_mavlink2(f"udpin:127.0.0.1:{port}", 255, 190)
         self.msgs: list = []
+        self.arrivals_unix_s: list[float] = []  # each message's receipt on this machine's clock, while running
         self._done = threading.Event()
         self._thread = threading.Thread(target=self._drain, daemon=True)
         self._thread.start()
@@ -46,6 +48,7 @@ class _Listener:
             m = self.conn.recv_match(blocking=True, timeout=0.05)
             if m is not None and m.get_type() != "BAD_DATA":
                 self.msgs.append(m)
+                self.arrivals_unix_s.append(time.time())
 
     def close(self) -> None:
         self._done.set()
@@ -80,7 +83,7 @@ def fleet_run(tmp_path_factory):
     listeners = {n: _Listener(p) for n, p in ports.items()}
     try:
         argv = ["run", "--scenario", "F1", "--rate", "max", "--duration", str(DURATION_S), "--log-level", "warning"]
-        argv += ["--zenoh-connect", endpoint, "--truth", str(out / "truth.csv")]
+        argv += ["--zenoh-connect", endpoint, "--truth", str(out / "truth.csv"), "--utc-error-ms", "uav2=20"]
         for n in NAMES:
             argv += ["--mavlink", f"{n}=udpout:127.0.0.1:{ports[n]}"]
         proc = run_module("groundsim", *argv, timeout_s=PROCESS_TIMEOUT_S)
@@ -134,10 +137,12 @@ def test_each_endpoint_gets_its_own_vehicle_with_its_boot_clock_and_a_consistent
             assert boot0 - 1000 <= m.time_boot_ms * 1000 <= boot1 + 1000, (n, m)
         for st in lst.of("SYSTEM_TIME"):
             unix_at_boot_us = st.time_unix_usec - st.time_boot_ms * 1000
-            # UTC at boot + boot time = the one simulated UTC, to the ms the boot time is rounded to
-            assert 0 <= unix_at_boot_us - (F1_START_UNIX_US - boots[n]) < BOOT_MS_TOL_US, (n, st)
+            # UTC at boot + boot time = the one simulated UTC (plus the injected error), to the ms the boot
+            # time is rounded to
+            err = UTC_ERROR_US[n]
+            assert 0 <= unix_at_boot_us - (F1_START_UNIX_US + err - boots[n]) < BOOT_MS_TOL_US, (n, st)
         first = lst.of("SYSTEM_TIME")[0]
-        assert first.time_unix_usec == F1_START_UNIX_US and first.time_boot_ms * 1000 == boots[n]
+        assert first.time_unix_usec == F1_START_UNIX_US + UTC_ERROR_US[n] and first.time_boot_ms * 1000 == boots[n]
         lon[n] = np.mean([m.lon for m in lst.of("GLOBAL_POSITION_INT")]) * 1e-7
     assert lon["uav2"] - lon["uav1"] > LON_GAP_DEG  # each endpoint has its own vehicle, not a copy
     assert listeners["uav1"].of("SYSTEM_TIME")[0].time_boot_ms != listeners["uav2"].of("SYSTEM_TIME")[0].time_boot_ms
@@ -152,3 +157,30 @@ def test_each_observers_frames_are_on_its_own_key_stamped_on_its_boot_clock(flee
         assert len(got) >= FRAMES * 0.9, (n, len(got))
         for seq, stamp in got.items():
             assert stamp == truth["time_boot_us"][seq]
+
+
+def test_a_paced_fleet_run_puts_utc_on_the_wall_clock_when_its_loop_starts():
+    """``--rate realtime`` starts UTC at the machine's clock (``--start-time-utc now`` by default) when the loop
+    starts, not when the process did: each SYSTEM_TIME's UTC is its receipt time on loopback, within a few
+    ms (start-up put it ~0.5 s behind before); the injected ``--utc-error-ms`` shows on its vehicle only."""
+    ports = {n: free_udp_port() for n in NAMES}
+    listeners = {n: _Listener(p) for n, p in ports.items()}
+    try:
+        argv = ["run", "--scenario", "F1", "--rate", "realtime", "--duration", "2", "--no-render"]
+        argv += ["--log-level", "warning", "--utc-error-ms", "uav2=20"]
+        for n in NAMES:
+            argv += ["--mavlink", f"{n}=udpout:127.0.0.1:{ports[n]}"]
+        proc = run_module("groundsim", *argv, timeout_s=PROCESS_TIMEOUT_S)
+    finally:
+        for lst in listeners.values():
+            lst.close()
+    assert proc.returncode == 0, proc.stderr
+    lag_s = {}
+    for n, lst in listeners.items():
+        lags = [
+            t - m.time_unix_usec / 1e6 for m, t in zip(lst.msgs, lst.arrivals_unix_s) if m.get_type() == "SYSTEM_TIME"
+        ]
+        assert len(lags) >= 2, n
+        lag_s[n] = float(np.min(lags))  # the fastest delivery: the clock offset, not the queueing
+    assert abs(lag_s["uav1"]) < 0.05, lag_s
+    assert lag_s["uav1"] - lag_s["uav2"] == pytest.approx(0.020, abs=0.010), lag_s

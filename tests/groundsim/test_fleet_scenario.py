@@ -369,7 +369,18 @@ def test_cli_refuses_a_plain_mavlink_or_a_vehicle_for_a_fleet(capsys):
         ),
         (["--vehicle", "uav9"], "--vehicle: F1 has several observers"),
         (["--start-time-utc", "soon"], "--start-time-utc: expected now or an ISO 8601 UTC time"),
+        (["--utc-error-ms", "uav9=20"], "--utc-error-ms: expected NAME=MS with NAME one of uav1, uav2"),
+        (["--utc-error-ms", "uav2=soon"], "--utc-error-ms: expected NAME=MS"),
+        (["--utc-error-ms", "uav2=20", "--utc-error-ms", "uav2=5"], "--utc-error-ms: expected NAME=MS"),
     ):
         assert cli.main(["run", "--scenario", "F1", "--rate", "max", "--no-render", *extra]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("groundsim run: error: ") and text in err[0], err
+
+
+def test_utc_error_options_name_vehicles_and_become_microseconds():
+    from groundsim.app.run import utc_errors
+
+    sc = scenario_from_dict(fleet_dict())
+    assert utc_errors(sc, ["uav2=20", "uav1=-0.5"], "uav1") == (("uav2", 20_000), ("uav1", -500))
+    assert utc_errors(sc, [], "uav1") == ()
