@@ -2,12 +2,22 @@
 
 from __future__ import annotations
 
+import signal
+
 import pytest
 
 try:  # BLAS threads contend badly on small shared machines (a MAP solve ran ~9x slower with them)
     from threadpoolctl import threadpool_limits
 except ImportError:  # a dev dependency; without it the tests only run slower
     threadpool_limits = None
+
+
+# A shell that starts a job in the background (`make test &`, `nohup`) passes it SIGINT ignored, and an
+# ignored signal stays ignored across exec: every child the tests start would then shrug off the Ctrl-C that
+# the interrupt tests send it (five of them failed so in a background CI dry run). Tests own their children's
+# signals: SIGINT is caught here, so that the children start with its default action, as from a terminal.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 @pytest.fixture(scope="session", autouse=True)
