@@ -16,9 +16,8 @@ from pymavlink.dialects.v20 import common as mav
 from onboard.app.watchdog import Watchdog
 from onboard.core.errors import InputError
 from onboard.core.gnss import FIX_3D, GPS_FIX_NAMES, GnssState
-from onboard.core.status import build_status
 from onboard.io.mavlink_wire import GpsRawInt, wire_roundtrip
-from tests.fakes import quiet_link_status
+from tests.fakes import idle_status, quiet_link_status
 from tests.fuzz_budget import fuzz_settings
 
 DOP = st.one_of(st.just(math.nan), st.floats(0.0, 655.34))
@@ -142,26 +141,7 @@ def test_status_shows_the_gnss_section_in_the_link():
         link = {k: getattr(st, k) for k in st.__dataclass_fields__}  # as the service makes it
         link["gnss"] = gnss
         empty = {"n": 0, "p50": None, "p99": None, "max": None}
-        return build_status(
-            vehicle="uav1",
-            uptime_s=1.0,
-            frames_in=0,
-            frames_processed=0,
-            frames_dropped=0,
-            frames_rejected=0,
-            tracks_published=0,
-            processing_ms=empty,
-            latency_ms=empty,
-            pose_wait_ms=empty,
-            capture_to_track_ms=None,
-            rejected={},
-            link=link,
-            cpu_share=None,
-            pipeline_cpu_share=None,
-            last_track=None,
-            estimator="ekf",
-            queue_length=0,
-        )
+        return idle_status(processing_ms=empty, latency_ms=empty, pose_wait_ms=empty, link=link, estimator="ekf")
 
     assert quiet_link_status("waiting", None, 0).gnss is None and status(None)["link"]["gnss"] is None
     g = GnssState.updated(None, 5.0, 1, 3, math.nan, 2.5, 12.0, math.nan)
