@@ -703,6 +703,13 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         for view in sc.observer_views()
     ]
 
+    utc_error_us = dict(config.utc_error_us)
+
+    def reported_unix_at_boot_us(core: SimCore, name: str) -> int:
+        """UTC at boot as the vehicle's SYSTEM_TIME says it: wrong by its ``--utc-error-ms`` (its frames and the
+        truth keep the true UTC)."""
+        return core.unix_time_at_boot_us + utc_error_us.get(name, 0)
+
     zs = config.zenoh if config.zenoh is not None else ZenohSettings()
     legs: list[VehicleLeg] = []
     session = recorder = None
@@ -719,8 +726,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 gimballed=core.gimballed,
                 guided=config.guided,
                 gnss_outage_us=outage,
-                # a wrong UTC in SYSTEM_TIME only: the frames and the truth keep the true one
-                unix_time_at_boot_us=core.unix_time_at_boot_us + dict(config.utc_error_us).get(name, 0),
+                unix_time_at_boot_us=reported_unix_at_boot_us(core, name),
             )
             if config.truth_path is not None:
                 leg.truth = TruthWriter(fleet_truth_path(config.truth_path, name) if fleet else config.truth_path)
@@ -757,8 +763,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             now_us = time.time_ns() // 1000
             for leg in legs:
                 leg.core.start_time_unix_us = now_us
-                err_us = dict(config.utc_error_us).get(leg.name, 0)
-                leg.mavlink.set_unix_time_at_boot_us(leg.core.unix_time_at_boot_us + err_us)
+                leg.mavlink.set_unix_time_at_boot_us(reported_unix_at_boot_us(leg.core, leg.name))
 
         on_start = utc_now if config.start_time_now else None
         if not fleet:
