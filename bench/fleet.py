@@ -153,14 +153,15 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.flight:
         from bench.fleet_flight import main_flight
+        from groundsim.app.run import utc_errors
+        from groundsim.world.scenario import load_scenario, resolve_scenario_path
+        from onboard.core.errors import ConfigError
 
-        errors = []
-        for text in args.utc_error:
-            name, _, ms = text.partition("=")
-            try:
-                errors.append((name, float(ms)))
-            except ValueError:
-                p.error(f"--utc-error: expected NAME=MS, got {text!r}")
+        try:  # groundsim run's own parsing of --utc-error-ms, against the scenario's vehicle names
+            scenario = load_scenario(resolve_scenario_path(args.flight))
+            errors = [(name, us / 1000.0) for name, us in utc_errors(scenario, args.utc_error, "uav1")]
+        except ConfigError as exc:
+            p.error(str(exc).replace("--utc-error-ms", "--utc-error"))
         return main_flight(
             args.flight, args.seeds, args.kill_at, args.restart_at, args.out, args.duration, tuple(errors)
         )
