@@ -26,7 +26,6 @@ observable).  Numbers are printed, never asserted.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import math
 import os
@@ -44,8 +43,12 @@ from bench import run_benchmark  # noqa: E402
 from groundsim.evaluation.synth import Racetrack, Weave, estimator_noise_model, synthesize  # noqa: E402
 from groundsim.world.motion import Circular, KinematicState  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
-from onboard.estimation.consistency import ConsistencyMonitor  # noqa: E402
-from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator, bearing_sigma_rad, line_of_sight_unit_ned  # noqa: E402
+from onboard.estimation.sliding import (  # noqa: E402
+    SlidingConfig,
+    SlidingWindowEstimator,
+    consistency_monitor,
+    line_of_sight_unit_ned,
+)
 
 FAMILIES = ("circling", "weaving", "switching")
 FRAME_RATE_HZ = 15.0
@@ -102,13 +105,7 @@ def run_flight(
     # the estimator's own monitor (SlidingConfig.consistency_check) off: the bench compares the window alone
     # with the window through the monitor built here, whose hold after a model change can be varied
     sw = SlidingWindowEstimator(SlidingConfig(consistency_check=in_estimator), noise=estimator_noise_model(nc))
-    # the attitude bias is common to the carried estimate and the new bearing: left out of the monitor's sigma
-    no_bias = dataclasses.replace(sw.noise, attitude_bias_sigma_rad=0.0)
-    mon = (
-        ConsistencyMonitor(bearing_sigma_rad(no_bias, intr), model_hold_s=model_hold_s)
-        if monitor and not in_estimator
-        else None
-    )
+    mon = consistency_monitor(sw.noise, intr, model_hold_s) if monitor and not in_estimator else None
     rows = []
     t0 = time.thread_time()
     for i in range(t.size):

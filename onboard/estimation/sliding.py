@@ -76,7 +76,14 @@ from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
 from onboard.estimation.state_estimate import StateEstimate
 
-__all__ = ["SlidingConfig", "TrackEstimate", "SlidingWindowEstimator", "bearing_sigma_rad", "process_cov_ned_m2"]
+__all__ = [
+    "SlidingConfig",
+    "TrackEstimate",
+    "SlidingWindowEstimator",
+    "bearing_sigma_rad",
+    "consistency_monitor",
+    "process_cov_ned_m2",
+]
 
 #: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
 BEARING_GATE_CHI2 = 18.42
@@ -270,6 +277,15 @@ def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float
     return math.sqrt(
         (noise.pixel_sigma_px / f) ** 2 + noise.attitude_white_sigma_rad**2 + noise.attitude_bias_sigma_rad**2
     )
+
+
+def consistency_monitor(
+    noise: NoiseModel, intrinsics: PinholeIntrinsics, model_hold_s: float = 0.0
+) -> ConsistencyMonitor:
+    """The :class:`ConsistencyMonitor` of estimates solved under ``noise``: the bearing sigma without the attitude's
+    constant bias, which is common to the carried estimate and the new bearing."""
+    no_bias = dataclasses.replace(noise, attitude_bias_sigma_rad=0.0)
+    return ConsistencyMonitor(bearing_sigma_rad(no_bias, intrinsics), model_hold_s=model_hold_s)
 
 
 def line_of_sight_unit_ned(uv_px, intrinsics: PinholeIntrinsics, q_ned_from_cam) -> np.ndarray:
@@ -704,9 +720,7 @@ class SlidingWindowEstimator:
         """``est`` through the consistency monitor (``SlidingConfig.consistency_check``): demoted, with the
         range floor, while an older estimate carried to now misses this bearing."""
         if self._consistency is None:
-            # the attitude's constant bias is common to the carried estimate and the new bearing: left out
-            noise = dataclasses.replace(self.map.noise, attitude_bias_sigma_rad=0.0)
-            self._consistency = ConsistencyMonitor(bearing_sigma_rad(noise, intrinsics))
+            self._consistency = consistency_monitor(self.map.noise, intrinsics)
         los = line_of_sight_unit_ned(uv, intrinsics, q)
         return self._consistency.check(est, p, los, lambda e: self.carry(e, e.t_s, p))
 
