@@ -41,7 +41,7 @@ from groundsim.evaluation.estimator_eval import format_table, format_verdict_tab
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
-from onboard.estimation.crb import efficient_error_range_pct  # noqa: E402
+from onboard.estimation.crb import bayesian_crb  # noqa: E402
 from onboard.estimation.map_estimator import MapConfig, MapEstimator  # noqa: E402
 from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator  # noqa: E402
 
@@ -75,15 +75,10 @@ def statistical_floor(results, seeds: int) -> list[str]:
         sc, nc = load_scenario(paths[r.scenario]), ncs[r.noise]
         truth, obs = synthesize_scenario(sc, nc, r.seed)
         prior = cfg.motion_prior(r.model, r.q_m2ps3)
-        pct = efficient_error_range_pct(
-            MapEstimator(cfg, estimator_noise_model(nc)),
-            obs,
-            truth.p_target_ned_m,
-            prior,
-            r.turn_rate_radps,
-            draws=8000,
-            rng=np.random.default_rng(1),
+        bound = bayesian_crb(
+            MapEstimator(cfg, estimator_noise_model(nc)), obs, truth.p_target_ned_m, prior, r.turn_rate_radps
         )
+        pct = bound.efficient_error_range_pct(draws=8000, rng=np.random.default_rng(1))
         rng = np.random.default_rng(2)
         meds = np.median(pct[rng.integers(0, pct.size, (4000, seeds))], axis=1)
         ours = [x.err_range_pct for x in results if (x.scenario, x.noise) == key]

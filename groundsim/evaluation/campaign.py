@@ -337,7 +337,7 @@ def _assumed_config(cfg, noise: NoiseCase, noise_model: str):
 
 def _case_bound(cfg, obs, truth) -> dict:
     """Whole-window MAP (model selection) and the Bayesian CRB at the truth with the prior it selected."""
-    from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_rms_m
+    from onboard.estimation.crb import bayesian_crb
     from onboard.estimation.map_estimator import EstimationError, MapEstimator
     from onboard.estimation.metrics import evaluate
 
@@ -360,10 +360,9 @@ def _case_bound(cfg, obs, truth) -> dict:
     )
     out["batch_observable"] = bool(res.observable)
     try:
-        out["crb_rms_m"] = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps)
-        out["crb_range_sigma_pct"] = 100 * bayesian_crb_range_sigma_ratio(
-            est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps
-        )
+        bound = bayesian_crb(est, obs, truth.p_target_ned_m, res.prior, res.turn_rate_radps)
+        out["crb_rms_m"] = bound.rms_m()
+        out["crb_range_sigma_pct"] = 100 * bound.range_sigma_ratio()
     except (EstimationError, ValueError, np.linalg.LinAlgError) as exc:
         out["bound_note"] = f"CRB failed: {type(exc).__name__}: {' '.join(str(exc).split())}"
     return out

@@ -31,7 +31,7 @@ from groundsim.evaluation.report import PAPER_TABLE2_PCT
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
 from groundsim.world.scenario import NoiseCase, Scenario
 from onboard.core.errors import InputError
-from onboard.estimation.crb import bayesian_crb_range_sigma_ratio, bayesian_crb_rms_m, efficient_error_range_pct
+from onboard.estimation.crb import bayesian_crb
 from onboard.estimation.map_estimator import EstimationError, MapEstimator
 from onboard.estimation.metrics import evaluate
 
@@ -111,23 +111,12 @@ def run_case(
         nees = math.nan if m.mean_nees is None else m.mean_nees
         observable, ratio = res.observable, res.range_sigma_ratio
         model, q, om = res.model or "map", res.prior.q_horizontal_m2ps3, res.turn_rate_radps
-        crb = bayesian_crb_rms_m(est, obs, truth.p_target_ned_m, res.prior, om) if with_crb else math.nan
-        crb_pct = (
-            float(
-                np.median(
-                    efficient_error_range_pct(
-                        est, obs, truth.p_target_ned_m, res.prior, om, rng=np.random.default_rng(seed)
-                    )
-                )
-            )
-            if with_crb and with_efficient
-            else math.nan
-        )
-        crb_sig = (
-            100 * bayesian_crb_range_sigma_ratio(est, obs, truth.p_target_ned_m, res.prior, om)
-            if with_crb
-            else math.nan
-        )
+        crb = crb_pct = crb_sig = math.nan
+        if with_crb:
+            bound = bayesian_crb(est, obs, truth.p_target_ned_m, res.prior, om)
+            crb, crb_sig = bound.rms_m(), 100 * bound.range_sigma_ratio()
+            if with_efficient:
+                crb_pct = float(np.median(bound.efficient_error_range_pct(rng=np.random.default_rng(seed))))
         amb = res.ambiguity
     p_err, p_ms = math.nan, math.nan
     if with_paper:

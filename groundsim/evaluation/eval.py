@@ -47,7 +47,7 @@ both report observable, so a late acquisition by the image chain is not counted 
 
 Batch columns (``batch=True``): :class:`~onboard.estimation.map_estimator.MapEstimator` with model
 selection on the whole flight, once on the pipeline's measured centroids and once on the perfect
-centroids; the Bayesian Cramer-Rao bound (:func:`~onboard.estimation.crb.bayesian_crb_rms_m`) of
+centroids; the Bayesian Cramer-Rao bound (:meth:`~onboard.estimation.crb.BayesianCrb.rms_m`) of
 the flown trajectory is taken with the perfect-centroid solution's motion prior, for the noise
 actually simulated (the baseline's pixel noise and the run's navigation-error case: ``crb_rms_m``) and
 for the noise model the estimator assumes (``crb_model_rms_m``).
@@ -785,7 +785,7 @@ def _batch(
 ) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
     from groundsim.evaluation.synth import estimator_noise_model
-    from onboard.estimation.crb import bayesian_crb_rms_m
+    from onboard.estimation.crb import bayesian_crb
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
 
@@ -836,8 +836,8 @@ def _batch(
                         else estimator_noise_model(nav_case, pixel_sigma_px=pixel_sigma_px)
                     )
                     sim = MapEstimator(est.config, simulated)
-                    entry["crb_rms_m"] = bayesian_crb_rms_m(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps)
-                entry["crb_model_rms_m"] = bayesian_crb_rms_m(est, obs, truth_p[idx], res.prior, res.turn_rate_radps)
+                    entry["crb_rms_m"] = bayesian_crb(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps).rms_m()
+                entry["crb_model_rms_m"] = bayesian_crb(est, obs, truth_p[idx], res.prior, res.turn_rate_radps).rms_m()
             except (EstimationError, InputError, np.linalg.LinAlgError) as exc:
                 entry["error"] = f"CRB: {type(exc).__name__}: {exc}"
     return out

@@ -8,7 +8,7 @@ are set to their true values where known (zero otherwise), and the information m
 Gauss-Newton Hessian of the MAP cost with the same prior and noise model the estimator used.  The
 bound per point is ``B(t) H^-1 B(t)^T``; its RMS is ``sqrt(mean trace)``.
 
-:func:`efficient_error_range_pct` turns the bound into the figure an accuracy table reports: an
+:meth:`BayesianCrb.efficient_error_range_pct` turns the bound into the figure an accuracy table reports: an
 efficient estimator's errors are Gaussian with the bound's joint covariance over the whole window,
 so drawing from it gives the distribution of the per-run "mean error / range" -- the floor against
 which a median over a handful of seeds has to be read (a 10-seed median of that skewed, scale-error
@@ -17,6 +17,8 @@ dominated figure scatters by a factor of ~3 between its 5th and 95th percentiles
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 
@@ -24,29 +26,72 @@ from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowPr
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
 
-__all__ = [
-    "predicted_point_covariance",
-    "bayesian_crb_rms_m",
-    "bayesian_crb_covariance",
-    "bayesian_crb_range_sigma_ratio",
-    "efficient_error_range_pct",
-]
+__all__ = ["BayesianCrb", "bayesian_crb", "predicted_point_covariance"]
 
 
-def bayesian_crb_covariance(
+@dataclass(frozen=True)
+class BayesianCrb:
+    """The bound of one window at the truth (:func:`bayesian_crb`): ``problem``, the window problem
+    linearised there; ``covariance``, the bound on its full parameter covariance; ``p_true_ned_m`` and
+    ``p_cam_ned_m`` (F, 3), the truth and the camera positions it was computed for.  Each figure below is
+    read from this one factorisation: the callers that report several compute it once."""
+
+    problem: WindowProblem
+    covariance: np.ndarray
+    p_true_ned_m: np.ndarray
+    p_cam_ned_m: np.ndarray
+
+    def point_covariances(self) -> np.ndarray:
+        """(F, 3, 3): the bound per window point, ``B(t) H^-1 B(t)^T``."""
+        return self.problem.point_covariances(self.covariance)
+
+    def rms_m(self) -> float:
+        """RMS over the window of sqrt(trace) of the per-point bound, metres."""
+        return float(np.sqrt(np.mean(np.einsum("fii->f", self.point_covariances()))))
+
+    def range_sigma_ratio(self) -> float:
+        """Median over the window of the bound's range sigma over the true range: the smallest
+        ``range_sigma_ratio`` an estimator that knows the motion model could honestly report."""
+        P = self.point_covariances()
+        los = self.p_true_ned_m - self.p_cam_ned_m
+        r = np.linalg.norm(los, axis=1)
+        u = los / r[:, None]
+        return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
+
+    def efficient_error_range_pct(self, draws: int = 4000, rng: np.random.Generator | None = None) -> np.ndarray:
+        """Per-run "mean over the window of ||e|| / range" (percent) of ``draws`` runs of an efficient estimator.
+
+        Each draw is one window's error, Gaussian with the bound's joint covariance (the errors of
+        neighbouring points are strongly correlated: they share the range scale).
+        """
+        prob = self.problem
+        S = self.covariance[: prob.nc, : prob.nc]
+        # eigen-decomposition rather than Cholesky: the bound can be numerically semi-definite
+        lam, V = np.linalg.eigh(0.5 * (S + S.T))
+        L = V * np.sqrt(np.maximum(lam, 0.0))
+        rng = rng or np.random.default_rng(0)
+        c = (rng.standard_normal((draws, S.shape[0])) @ L.T).reshape(draws, prob.count, 3)
+        e = np.einsum("fm,nfmk->nfk", prob.rows.w0, c[:, prob.rows.index])
+        rng_m = np.linalg.norm(self.p_true_ned_m - self.p_cam_ned_m, axis=1)
+        return np.mean(np.linalg.norm(e, axis=2) / rng_m, axis=1) * 100.0
+
+
+def bayesian_crb(
     estimator: MapEstimator,
     obs: Observations,
     p_true_ned_m: np.ndarray,
     prior: MotionPrior,
     turn_rate_radps: float = 0.0,
     grid=None,
-):
-    """(problem, Sigma): the window problem at the truth and the bound on its full parameter covariance."""
+) -> BayesianCrb:
+    """The bound of ``estimator``'s window problem on ``obs`` at the truth ``p_true_ned_m`` (F, 3), with
+    ``prior`` and the turn rate ``turn_rate_radps`` (module docstring)."""
+    p_true = np.asarray(p_true_ned_m, dtype=float)
     prob = estimator.problem(obs, prior, grid)
-    theta = prob.theta_from_positions(np.asarray(p_true_ned_m, dtype=float), omega=turn_rate_radps)
-    prob.set_measurement_weights(np.linalg.norm(p_true_ned_m - obs.p_cam_ned_m, axis=1))
+    theta = prob.theta_from_positions(p_true, omega=turn_rate_radps)
+    prob.set_measurement_weights(np.linalg.norm(p_true - obs.p_cam_ned_m, axis=1))
     _, J, _ = prob.evaluate(theta)
-    return prob, prob.covariance(prob.factor(J))
+    return BayesianCrb(prob, prob.covariance(prob.factor(J)), p_true, np.asarray(obs.p_cam_ned_m, dtype=float))
 
 
 def predicted_point_covariance(
@@ -64,7 +109,7 @@ def predicted_point_covariance(
 
     ``obs`` are predicted observations (a planned camera path looking at the predicted target
     ``p_true_ned_m``); the information matrix is the same Gauss-Newton Hessian as
-    :func:`bayesian_crb_covariance` (same motion prior, noise model and nuisances), each measurement row
+    :func:`bayesian_crb` (same motion prior, noise model and nuisances), each measurement row
     weighted by ``sqrt(information_scale)`` (``information_scale`` bearings per predicted one: the
     estimator keeps more frames than the prediction needs to sample), plus, when ``state_prior =
     (t_s, I)`` is given, what is already known: a Gaussian prior on ``x = (p(t_s), v(t_s))`` with
@@ -103,64 +148,3 @@ def predicted_point_covariance(
         B[:, 3 * k : 3 * k + 3] = rows.w0[0, m] * np.eye(3)
     X = sla.solve_triangular(R, (B / d).T, trans="T", check_finite=False)
     return X.T @ X
-
-
-def bayesian_crb_rms_m(
-    estimator: MapEstimator,
-    obs: Observations,
-    p_true_ned_m: np.ndarray,
-    prior: MotionPrior,
-    turn_rate_radps: float = 0.0,
-    grid=None,
-) -> float:
-    """RMS over the window of sqrt(trace) of the per-point Bayesian CRB, metres."""
-    prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true_ned_m, prior, turn_rate_radps, grid)
-    P = prob.point_covariances(Sigma)
-    return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
-
-
-def bayesian_crb_range_sigma_ratio(
-    estimator: MapEstimator,
-    obs: Observations,
-    p_true_ned_m: np.ndarray,
-    prior: MotionPrior,
-    turn_rate_radps: float = 0.0,
-    grid=None,
-) -> float:
-    """Median over the window of the bound's range sigma over the true range: the smallest
-    ``range_sigma_ratio`` an estimator that knows the motion model could honestly report."""
-    p_true = np.asarray(p_true_ned_m, dtype=float)
-    prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true, prior, turn_rate_radps, grid)
-    P = prob.point_covariances(Sigma)
-    los = p_true - obs.p_cam_ned_m
-    r = np.linalg.norm(los, axis=1)
-    u = los / r[:, None]
-    return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
-
-
-def efficient_error_range_pct(
-    estimator: MapEstimator,
-    obs: Observations,
-    p_true_ned_m: np.ndarray,
-    prior: MotionPrior,
-    turn_rate_radps: float = 0.0,
-    draws: int = 4000,
-    rng: np.random.Generator | None = None,
-    grid=None,
-) -> np.ndarray:
-    """Per-run "mean over the window of ||e|| / range" (percent) of ``draws`` runs of an efficient estimator.
-
-    Each draw is one window's error, Gaussian with the Bayesian CRB's joint covariance (the errors of
-    neighbouring points are strongly correlated: they share the range scale).
-    """
-    p_true = np.asarray(p_true_ned_m, dtype=float)
-    prob, Sigma = bayesian_crb_covariance(estimator, obs, p_true, prior, turn_rate_radps, grid)
-    S = Sigma[: prob.nc, : prob.nc]
-    # eigen-decomposition rather than Cholesky: the bound can be numerically semi-definite
-    lam, V = np.linalg.eigh(0.5 * (S + S.T))
-    L = V * np.sqrt(np.maximum(lam, 0.0))
-    rng = rng or np.random.default_rng(0)
-    c = (rng.standard_normal((draws, S.shape[0])) @ L.T).reshape(draws, prob.count, 3)
-    e = np.einsum("fm,nfmk->nfk", prob.rows.w0, c[:, prob.rows.index])
-    rng_m = np.linalg.norm(p_true - obs.p_cam_ned_m, axis=1)
-    return np.mean(np.linalg.norm(e, axis=2) / rng_m, axis=1) * 100.0
