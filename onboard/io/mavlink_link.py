@@ -889,36 +889,10 @@ class MavlinkLink:
 
     # ------------------------------------------------------------------ tracking status out
 
-    def send_tracking_image_status(
-        self,
-        tracking_status: int,
-        tracking_mode: int,
-        target_data: int = mavlink2.CAMERA_TRACKING_TARGET_DATA_IN_STATUS,
-        point_x: float = math.nan,
-        point_y: float = math.nan,
-        radius: float = math.nan,
-        rec_top_x: float = math.nan,
-        rec_top_y: float = math.nan,
-        rec_bottom_x: float = math.nan,
-        rec_bottom_y: float = math.nan,
-        camera_device_id: int = 0,
-    ) -> bool:
-        """CAMERA_TRACKING_IMAGE_STATUS (#275), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingImageStatus`
-        (normalised image units, NaN = unknown).  Returns True when written.  Bad values raise InputError."""
-        msg = CameraTrackingImageStatus(
-            tracking_status,
-            tracking_mode,
-            target_data,
-            point_x,
-            point_y,
-            radius,
-            rec_top_x,
-            rec_top_y,
-            rec_bottom_x,
-            rec_bottom_y,
-            camera_device_id,
-        ).to_message()
-        return self._send("CAMERA_TRACKING_IMAGE_STATUS", msg)
+    def send_tracking_image_status(self, status: CameraTrackingImageStatus) -> bool:
+        """CAMERA_TRACKING_IMAGE_STATUS (#275) (normalised image units, NaN = unknown).  Returns True when written.
+        Bad values raise InputError."""
+        return self._send("CAMERA_TRACKING_IMAGE_STATUS", status.to_message())
 
     def send_setpoint(self, v_ned_mps) -> bool:
         """SET_POSITION_TARGET_LOCAL_NED (#84), velocity only, to the locked autopilot (its system, component
@@ -934,42 +908,10 @@ class MavlinkLink:
         """FOLLOW_TARGET (#144) of :func:`onboard.io.follow.follow_target`; True when written."""
         return self._send("FOLLOW_TARGET", target.to_message())
 
-    def send_tracking_geo_status(
-        self,
-        lat_deg: float,
-        lon_deg: float,
-        alt_m: float,
-        h_acc_m: float,
-        v_acc_m: float,
-        vel_n_mps: float,
-        vel_e_mps: float,
-        vel_d_mps: float,
-        vel_acc_mps: float,
-        dist_m: float = math.nan,
-        hdg_rad: float = math.nan,
-        hdg_acc_rad: float = math.nan,
-        tracking_status: int = mavlink2.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
-        camera_device_id: int = 0,
-    ) -> bool:
-        """CAMERA_TRACKING_GEO_STATUS (#276), fields as :class:`~onboard.io.mavlink_wire.CameraTrackingGeoStatus`
-        (deg, m AMSL, m/s NED, rad; NaN = unknown).  Returns True when written.  Bad values raise InputError."""
-        msg = CameraTrackingGeoStatus(
-            lat_deg,
-            lon_deg,
-            alt_m,
-            h_acc_m,
-            v_acc_m,
-            vel_n_mps,
-            vel_e_mps,
-            vel_d_mps,
-            vel_acc_mps,
-            dist_m,
-            hdg_rad,
-            hdg_acc_rad,
-            tracking_status,
-            camera_device_id,
-        ).to_message()
-        return self._send("CAMERA_TRACKING_GEO_STATUS", msg)
+    def send_tracking_geo_status(self, status: CameraTrackingGeoStatus) -> bool:
+        """CAMERA_TRACKING_GEO_STATUS (#276) (deg, m AMSL, m/s NED, rad; NaN = unknown).  Returns True when
+        written.  Bad values raise InputError."""
+        return self._send("CAMERA_TRACKING_GEO_STATUS", status.to_message())
 
     # ------------------------------------------------------------------ queries
 

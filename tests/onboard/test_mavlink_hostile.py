@@ -13,6 +13,7 @@ import pytest
 from pymavlink.dialects.v20 import common as mav
 
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_WAITING, MavlinkConfig
+from onboard.io.mavlink_wire import CameraTrackingGeoStatus
 from tests.onboard.test_mavlink_link import AP_SYSID, WAIT_S, Rig
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
@@ -107,7 +108,7 @@ def test_garbage_and_other_systems_never_receive_anything(rig, stranger):
     # the link sends heartbeats, TIMESYNC, rate requests and tracking status: all to the autopilot only
     for _ in range(3):
         rig.clock.t_s += 1.0
-        rig.link.send_tracking_geo_status(47.0, 8.0, 500.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.1)
+        rig.link.send_tracking_geo_status(CameraTrackingGeoStatus(47.0, 8.0, 500.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.1))
         stranger.send(os.urandom(50))
         assert rig.drive(lambda: len(rig.ap.got("CAMERA_TRACKING_GEO_STATUS")) >= 1)
     rig.drive(lambda: False, timeout_s=0.2)

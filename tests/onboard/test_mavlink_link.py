@@ -26,6 +26,8 @@ from onboard.core.frames import (
 from onboard.core.pose import PoseBuffer
 from onboard.io.mavlink_link import LINK_CONNECTED, LINK_LOST, LINK_WAITING, MavlinkConfig, MavlinkLink
 from onboard.io.mavlink_wire import (
+    CameraTrackingGeoStatus,
+    CameraTrackingImageStatus,
     GimbalDeviceAttitudeStatus,
     GpsRawInt,
     Heartbeat,
@@ -379,10 +381,16 @@ def test_body_rates_and_gimbal_rates_reach_the_pose_buffer_for_extrapolation():
 def test_tracking_status_messages_on_the_wire(rig):
     rig.connect()
     assert rig.link.send_tracking_geo_status(
-        47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=800.0, hdg_rad=0.3
+        CameraTrackingGeoStatus(47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=800.0, hdg_rad=0.3)
     )
     assert rig.link.send_tracking_image_status(
-        mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mav.CAMERA_TRACKING_MODE_POINT, point_x=0.25, point_y=0.75, radius=0.01
+        CameraTrackingImageStatus(
+            mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE,
+            mav.CAMERA_TRACKING_MODE_POINT,
+            point_x=0.25,
+            point_y=0.75,
+            radius=0.01,
+        )
     )
     assert rig.drive(lambda: rig.ap.got("CAMERA_TRACKING_GEO_STATUS") and rig.ap.got("CAMERA_TRACKING_IMAGE_STATUS"))
     geo = rig.ap.got("CAMERA_TRACKING_GEO_STATUS")[0]
@@ -423,14 +431,14 @@ def test_geo_status_rejects_bad_fields_by_name(rig, kwargs, field):
     )
     args.update(kwargs)
     with pytest.raises(InputError, match=field):
-        rig.link.send_tracking_geo_status(**args)
+        rig.link.send_tracking_geo_status(CameraTrackingGeoStatus(**args))
 
 
 def test_image_status_rejects_bad_fields_by_name(rig):
     with pytest.raises(InputError, match="point_x"):
-        rig.link.send_tracking_image_status(1, 1, point_x=1.5)
+        rig.link.send_tracking_image_status(CameraTrackingImageStatus(1, 1, point_x=1.5))
     with pytest.raises(InputError, match="tracking_mode"):
-        rig.link.send_tracking_image_status(1, 3)
+        rig.link.send_tracking_image_status(CameraTrackingImageStatus(1, 3))
 
 
 # --------------------------------------------------------------------------- connection strings (pure)

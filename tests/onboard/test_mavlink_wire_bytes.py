@@ -128,6 +128,7 @@ def test_autopilot_link_output_is_byte_identical():
     from onboard.core.pose import PoseBuffer
     from onboard.io.follow import follow_target
     from onboard.io.mavlink_link import MavlinkConfig, MavlinkLink
+    from onboard.io.mavlink_wire import CameraTrackingGeoStatus, CameraTrackingImageStatus
     from tests.onboard.test_camera_protocol import _track
 
     clock = FakeClock(1000.0)
@@ -176,11 +177,28 @@ def test_autopilot_link_output_is_byte_identical():
                 dict(rec_top_x=0.1, rec_top_y=0.2, rec_bottom_x=0.3, rec_bottom_y=0.4),
             ),
         ):
-            assert link.send_tracking_image_status(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mode, **where)
+            assert link.send_tracking_image_status(
+                CameraTrackingImageStatus(mav.CAMERA_TRACKING_STATUS_FLAGS_ACTIVE, mode, **where)
+            )
         assert link.send_tracking_geo_status(
-            47.123456789, -122.5, 512.25, 3.0, 5.0, 10.0, -2.0, 0.5, 1.5, dist_m=130.0, hdg_rad=0.3, hdg_acc_rad=0.05
+            CameraTrackingGeoStatus(
+                47.123456789,
+                -122.5,
+                512.25,
+                3.0,
+                5.0,
+                10.0,
+                -2.0,
+                0.5,
+                1.5,
+                dist_m=130.0,
+                hdg_rad=0.3,
+                hdg_acc_rad=0.05,
+            )
         )
-        assert link.send_tracking_geo_status(-33.9, 151.2, -10.0, 1.0, 2.0, math.nan, math.nan, math.nan, math.nan)
+        assert link.send_tracking_geo_status(
+            CameraTrackingGeoStatus(-33.9, 151.2, -10.0, 1.0, 2.0, math.nan, math.nan, math.nan, math.nan)
+        )
         assert link.send_follow_target(follow_target(_track(observable=True)))
     finally:
         link.close()
