@@ -16,15 +16,50 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import numpy as np
 
 from onboard.core.counters import RejectCounter
 from onboard.core.pose import NS_PER_US, ClockSyncConfig
 
-__all__ = ["ClockSync"]
+__all__ = ["ClockSync", "JumpWindow"]
 
 log = logging.getLogger(__name__)
+
+S = TypeVar("S")
+
+
+class JumpWindow(Generic[S]):
+    """The samples a clock filter fits: the newest ``window`` that agree with the fit, and the run of
+    consecutive ones that do not.  A run of ``jump_count`` replaces every sample: the remote clock restarted
+    or stepped, and the old samples describe a clock that is gone; a shorter run is outliers, dropped.  The
+    one rule of both of the daemon's clock filters (:class:`ClockSync`, :class:`~onboard.core.utc_clock.UtcClock`)."""
+
+    def __init__(self) -> None:
+        self.samples: list[S] = []
+        self.outliers: list[S] = []
+
+    def accept(self, sample: S, window: int) -> None:
+        """``sample`` agrees with the fit: it ends any run of outliers and joins the newest ``window``."""
+        self.outliers.clear()
+        self.samples.append(sample)
+        if len(self.samples) > window:
+            del self.samples[: len(self.samples) - window]
+
+    def reject(self, sample: S, jump_count: int) -> bool:
+        """``sample`` is off the fit: True when it completes a run of ``jump_count``, which then replaces the
+        samples (the caller re-fits); False while the run is shorter (an outlier)."""
+        self.outliers.append(sample)
+        if len(self.outliers) < jump_count:
+            return False
+        self.samples = list(self.outliers)
+        self.outliers.clear()
+        return True
+
+    def clear(self) -> None:
+        self.samples.clear()
+        self.outliers.clear()
 
 
 @dataclass
@@ -50,8 +85,7 @@ class ClockSync:
     def __init__(self, config: ClockSyncConfig | None = None, counter: RejectCounter | None = None) -> None:
         self.config = config if config is not None else ClockSyncConfig()
         self.counter = counter if counter is not None else RejectCounter()
-        self._ex: list[_Exchange] = []
-        self._outliers: list[_Exchange] = []
+        self._window: JumpWindow[_Exchange] = JumpWindow()
         self._ref_local_ns = 0
         self._ref_offset_ns = 0
         self._a_ns = 0.0
@@ -63,11 +97,11 @@ class ClockSync:
 
     @property
     def synced(self) -> bool:
-        return len(self._ex) >= self.config.min_samples
+        return len(self._window.samples) >= self.config.min_samples
 
     @property
     def n_samples(self) -> int:
-        return len(self._ex)
+        return len(self._window.samples)
 
     @property
     def skew_ppm(self) -> float:
@@ -75,12 +109,12 @@ class ClockSync:
 
     @property
     def min_rtt_ns(self) -> int | None:
-        return min(e.rtt_ns for e in self._ex) if self._ex else None
+        ex = self._window.samples
+        return min(e.rtt_ns for e in ex) if ex else None
 
     def reset(self) -> None:
         """Forget every exchange (call on an autopilot reboot)."""
-        self._ex.clear()
-        self._outliers.clear()
+        self._window.clear()
         self._a_ns, self._b = 0.0, 0.0
         self._long_rtt_run = 0
 
@@ -114,35 +148,30 @@ class ClockSync:
         if self.synced:
             err = abs(ex.offset_ns - self.offset_ns_at(mid))
             if err > self.config.jump_ns + rtt / 2:
-                self._outliers.append(ex)
-                if len(self._outliers) < self.config.jump_count:
+                if not self._window.reject(ex, self.config.jump_count):
                     self.counter.count("timesync_outlier", f"offset off the estimate by {err / 1e6:.1f} ms")
                     return False
                 self.counter.count(
                     "timesync_reset",
-                    f"{len(self._outliers)} consecutive exchanges off by > "
+                    f"{self.config.jump_count} consecutive exchanges off by > "
                     f"{self.config.jump_ns / 1e6:g} ms: remote clock restarted",
                 )
-                self._ex = list(self._outliers)
-                self._outliers.clear()
                 self.resets += 1
                 self._fit()
                 return True
-        self._outliers.clear()
-        self._ex.append(ex)
-        if len(self._ex) > self.config.window:
-            del self._ex[: len(self._ex) - self.config.window]
+        self._window.accept(ex, self.config.window)
         self._fit()
         return True
 
     def _fit(self) -> None:
-        if not self._ex:
+        ex = self._window.samples
+        if not ex:
             return
-        self._ref_local_ns = self._ex[0].mid_local_ns
-        self._ref_offset_ns = self._ex[0].offset_ns
-        x = np.array([e.mid_local_ns - self._ref_local_ns for e in self._ex], dtype=float)
-        y = np.array([e.offset_ns - self._ref_offset_ns for e in self._ex], dtype=float)
-        w = 1.0 / (np.array([e.rtt_ns for e in self._ex], dtype=float) + self.config.rtt_floor_ns) ** 2
+        self._ref_local_ns = ex[0].mid_local_ns
+        self._ref_offset_ns = ex[0].offset_ns
+        x = np.array([e.mid_local_ns - self._ref_local_ns for e in ex], dtype=float)
+        y = np.array([e.offset_ns - self._ref_offset_ns for e in ex], dtype=float)
+        w = 1.0 / (np.array([e.rtt_ns for e in ex], dtype=float) + self.config.rtt_floor_ns) ** 2
         w /= w.sum()
         xm, ym = float(w @ x), float(w @ y)
         b = 0.0

@@ -41,6 +41,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from onboard.core.checks import is_nonnegative_number, is_positive_int, require_each
+from onboard.core.clock_sync import JumpWindow
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
 from onboard.core.track import Track
@@ -175,16 +176,14 @@ class UtcClock:
     def __init__(self, config: UtcClockConfig | None = None, counter: RejectCounter | None = None) -> None:
         self.config = config if config is not None else UtcClockConfig()
         self.counter = counter if counter is not None else RejectCounter()
-        self._samples: list[_Sample] = []
-        self._outliers: list[_Sample] = []
+        self._window: JumpWindow[_Sample] = JumpWindow()
         self.mapping: UtcMapping | None = None
         self.steps = 0  # re-seeds on a UTC step
         self.resets = 0  # autopilot reboots (:meth:`reset`)
 
     def reset(self) -> None:
         """Forget every sample (the boot clock restarted: an autopilot reboot)."""
-        self._samples.clear()
-        self._outliers.clear()
+        self._window.clear()
         self.mapping = None
         self.resets += 1
 
@@ -201,7 +200,7 @@ class UtcClock:
                 "offset_us": None,
                 "sigma_us": None,
                 "skew_ppm": None,
-                "samples": len(self._samples),
+                "samples": len(self._window.samples),
                 "newest_boot_us": None,
             }
         )
@@ -224,7 +223,7 @@ class UtcClock:
                 "utc_implausible", f"time_unix_us={unix} is before 2020 (a clock never set) or after 2100"
             )
             return False
-        if self._samples and boot == self._samples[-1].boot_us:
+        if self._window.samples and boot == self._window.samples[-1].boot_us:
             self.counter.count("utc_duplicate", f"a second SYSTEM_TIME at time_boot_ms={boot // 1000}")
             return False
         s = _Sample(boot, unix - boot - BOOT_QUANTUM_US // 2)
@@ -233,40 +232,36 @@ class UtcClock:
             err = abs(s.offset_us - m.offset_us(boot))
             if err > cfg.jump_us + _GATE_SIGMAS * m.sigma_us(boot):
                 return self._outlier(s, err)
-        self._outliers.clear()
-        self._samples.append(s)
-        if len(self._samples) > cfg.window:
-            del self._samples[: len(self._samples) - cfg.window]
+        self._window.accept(s, cfg.window)
         self._fit()
         return True
 
     def _outlier(self, s: _Sample, err: float) -> bool:
         cfg = self.config
-        if self._outliers and abs(s.offset_us - self._outliers[0].offset_us) > cfg.jump_us:
-            self._outliers.clear()  # a lone wild sample, then another one elsewhere: no agreeing run
-        self._outliers.append(s)
-        if len(self._outliers) < cfg.jump_count:
+        run = self._window.outliers
+        if run and abs(s.offset_us - run[0].offset_us) > cfg.jump_us:
+            run.clear()  # a lone wild sample, then another one elsewhere: no agreeing run
+        if not self._window.reject(s, cfg.jump_count):
             self.counter.count("utc_outlier", f"SYSTEM_TIME off the UTC estimate by {err / 1000:.1f} ms")
             return False
         self.counter.count(
             "utc_step",
-            f"{len(self._outliers)} SYSTEM_TIME samples agree on a UTC {err / 1000:.1f} ms off: UTC stepped, re-seeded",
+            f"{cfg.jump_count} SYSTEM_TIME samples agree on a UTC {err / 1000:.1f} ms off: UTC stepped, re-seeded",
         )
-        self._samples = list(self._outliers)
-        self._outliers.clear()
         self.steps += 1
         self._fit()
         return True
 
     def _fit(self) -> None:
         cfg = self.config
-        n = len(self._samples)
+        samples = self._window.samples
+        n = len(samples)
         if n < cfg.min_samples:
             self.mapping = None
             return
-        ref_b, ref_o = self._samples[0].boot_us, self._samples[0].offset_us
-        x = np.array([p.boot_us - ref_b for p in self._samples], dtype=float)
-        y = np.array([p.offset_us - ref_o for p in self._samples], dtype=float)
+        ref_b, ref_o = samples[0].boot_us, samples[0].offset_us
+        x = np.array([p.boot_us - ref_b for p in samples], dtype=float)
+        y = np.array([p.offset_us - ref_o for p in samples], dtype=float)
         xm, ym = float(x.mean()), float(y.mean())
         sxx = float(((x - xm) ** 2).sum())
         fitted = bool(x.max() - x.min() >= cfg.min_skew_span_us and sxx > 0)
@@ -284,8 +279,8 @@ class UtcClock:
             resid_rms_us=rms,
             sxx_us2=sxx if fitted else 0.0,
             n_samples=n,
-            newest_boot_us=max(p.boot_us for p in self._samples),
-            oldest_boot_us=min(p.boot_us for p in self._samples),
+            newest_boot_us=max(p.boot_us for p in samples),
+            oldest_boot_us=min(p.boot_us for p in samples),
             skew_fitted=fitted,
             skew_sigma=cfg.skew_sigma_ppm * 1e-6,
             max_age_us=cfg.max_age_us,
