@@ -31,6 +31,7 @@ from groundsim.world.scenario import (
     load_scenario,
     read_spec_yaml,
     reference_scenario_paths,
+    too_close,
 )
 
 __all__ = [
@@ -158,13 +159,13 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
         f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, "
         f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
     )
-    r = np.linalg.norm(pt - po, axis=1)
-    k = int(np.argmin(r))
-    if not r[k] >= MIN_SEPARATION_M:
+    close = too_close(po, pt)
+    if close is not None:
+        k, r_m = close
         fail.text(
             source,
             f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
-            f"{what}: {r[k]:.3g} m at t = {t[k]:.2f} s",
+            f"{what}: {r_m:.3g} m at t = {t[k]:.2f} s",
         )
     for who, p in (("observer", po), ("target", pt)):
         k = int(np.argmax(p[:, 2]))

@@ -97,6 +97,7 @@ __all__ = [
     "noise_cases_from_dict",
     "read_spec_yaml",
     "SpecFail",
+    "too_close",
     "check_number",
     "check_integer",
     "check_string",
@@ -686,6 +687,19 @@ class ScenarioFile:
                     raise Invalid(field_path, "one of " + ", ".join(cases), case, did_you_mean(case, cases))
 
 
+def too_close(p_a_ned_m: np.ndarray, p_b_ned_m: np.ndarray) -> tuple[int, float] | None:
+    """The frame and the distance (m) of the closest approach of two paths sampled at the same frames ((N, 3)
+    each) when it is under ``MIN_SEPARATION_M`` or not a number (a path that overflowed); None when the paths
+    stay apart or hold no frame.  The one separation rule of a scenario file, a campaign's derived geometry and a
+    run's extended duration."""
+    with np.errstate(all="ignore"):
+        r = np.linalg.norm(np.asarray(p_b_ned_m) - np.asarray(p_a_ned_m), axis=-1)
+    if not r.size:
+        return None
+    k = int(np.argmin(r))
+    return None if r[k] >= MIN_SEPARATION_M else (k, float(r[k]))
+
+
 def _check_paths(
     observer: Motion,
     target: Motion,
@@ -703,13 +717,13 @@ def _check_paths(
             fail(observer_field, "a path that stays finite over duration_s", "overflow")
         if not np.all(np.isfinite(p_tgt)):
             fail(field, "a path that stays finite over duration_s", "overflow")
-        r = np.linalg.norm(p_tgt - p_obs, axis=-1)
-    k = int(np.argmin(r))
-    if not r[k] >= MIN_SEPARATION_M:
+    close = too_close(p_obs, p_tgt)
+    if close is not None:
+        k, r_m = close
         fail.text(
             field,
             f"a path at least {MIN_SEPARATION_M:g} m from {what} at every frame",
-            f"{r[k]:.3g} m at t = {t_s[k]:.3f} s",
+            f"{r_m:.3g} m at t = {t_s[k]:.3f} s",
         )
 
 

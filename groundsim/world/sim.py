@@ -68,6 +68,7 @@ from groundsim.world.scenario import (
     SINGER_MARGIN_S,
     Scenario,
     VehicleSpec,
+    too_close,
 )
 from groundsim.world.truth import TruthRow, truth_row
 from onboard.core.errors import ConfigError, InputError
@@ -206,7 +207,6 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
         s_obs = scenario.observer.base_motion.state(t_s)
         s_tgt = target.base_motion.state(t_s)
         p_obs, p_tgt = s_obs.p_ned_m, s_tgt.p_ned_m
-        r_m = np.linalg.norm(p_tgt - p_obs, axis=-1)
     if not (np.all(np.isfinite(p_obs)) and np.all(np.isfinite(p_tgt))):
         raise ConfigError(f"--duration: {scenario.name}'s scripted paths overflow before {d:g} s")
     _check_speed("observer", scenario.observer.base_motion, s_obs.v_ned_mps, scenario, t_s, d)
@@ -221,10 +221,11 @@ def extend_scenario(scenario: Scenario, duration_s: float) -> Scenario:
         with np.errstate(all="ignore"):
             v = m.state(t_s).v_ned_mps
         _check_speed(f"other_targets[{i}]", m, v, scenario, t_s, d)
-    k = int(np.argmin(r_m)) if r_m.size else 0
-    if r_m.size and not r_m[k] >= MIN_SEPARATION_M:
+    close = too_close(p_obs, p_tgt)
+    if close is not None:
+        k, r_m = close
         raise ConfigError(
-            f"--duration: {scenario.name}'s scripted paths, continued to {d:g} s, come within {r_m[k]:.3g} m"
+            f"--duration: {scenario.name}'s scripted paths, continued to {d:g} s, come within {r_m:.3g} m"
             f" of each other at t = {t_s[k]:.3f} s (at least {MIN_SEPARATION_M:g} m expected)"
         )
     log.info(
