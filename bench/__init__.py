@@ -6,6 +6,7 @@ stopped part-way; <what was kept>`` and exits 130 (143 for SIGTERM).  ``python -
 and prints that one line itself (:data:`SUITE_ENV` tells a benchmark so).
 """
 
+import json
 import os
 import signal
 
@@ -14,6 +15,14 @@ from groundsim.io.stop_signals import EXIT_INTERRUPTED, print_interrupted
 #: set by ``python -m bench`` for the benchmarks it runs: the suite prints the one "interrupted" line
 SUITE_ENV = "BENCH_SUITE"
 EXIT_SIGNALLED = {signal.SIGINT: EXIT_INTERRUPTED, signal.SIGTERM: 128 + signal.SIGTERM}  # as a shell reports it
+
+
+def write_json(path: str, document, **dump_options) -> None:
+    """``document`` as JSON in ``path`` (its folder made first): a benchmark's ``--json`` file.  ``dump_options``
+    go to :func:`json.dump` (e.g. ``indent=2, default=float`` for numpy numbers)."""
+    os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+    with open(path, "w") as fh:
+        json.dump(document, fh, **dump_options)
 
 
 def run_benchmark(name: str, main, kept: str = "the figures printed above are kept") -> int:

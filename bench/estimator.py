@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import os
 import sys
 import time
 
@@ -36,7 +34,7 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark  # noqa: E402
+from bench import run_benchmark, write_json  # noqa: E402
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
@@ -223,9 +221,7 @@ def verdict(args) -> int:
         f"all published runs honest: {sum(r['honest_all'] for r in rows)}/{sum(r['runs'] - r['failed'] for r in rows)}"
     )
     if args.json:
-        os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
-        with open(args.json, "w") as fh:
-            json.dump({"verdict": rows}, fh, indent=2, default=float)
+        write_json(args.json, {"verdict": rows}, indent=2, default=float)
     return 0
 
 
@@ -297,9 +293,7 @@ def main(argv=None) -> int:
         for line in statistical_floor(results, args.seeds):
             print(line)
     if args.json:
-        os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
-        with open(args.json, "w") as fh:
-            json.dump(report, fh, indent=2, default=float)
+        write_json(args.json, report, indent=2, default=float)
     return 0
 
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -39,7 +38,7 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark  # noqa: E402
+from bench import run_benchmark, write_json  # noqa: E402
 from groundsim.evaluation.synth import Racetrack, Weave, estimator_noise_model, synthesize  # noqa: E402
 from groundsim.world.motion import Circular, KinematicState  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
@@ -284,9 +283,7 @@ def main(argv=None) -> int:
             f"{np.median(cpu):.3f} CPU s per s of flight, median) =="
         )
         if args.json:
-            os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
-            with open(args.json, "w") as fh:
-                json.dump({"runs": runs}, fh)
+            write_json(args.json, {"runs": runs})
     print(time_table(runs, args.bin_s))
     print()
     print(switch_table(runs))
