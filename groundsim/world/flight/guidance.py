@@ -47,6 +47,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from onboard.core.checks import is_positive_number, require_each
 from onboard.core.errors import IrtrackError
 from onboard.core.frames import (
     CameraMount,
@@ -89,13 +90,6 @@ class GuidanceError(IrtrackError, ValueError):
     """Invalid guidance configuration or input; the message names the field."""
 
 
-def _check_positive(obj, names) -> None:
-    for name in names:
-        v = getattr(obj, name)
-        if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-            raise GuidanceError(f"{type(obj).__name__}.{name} must be a finite number > 0, got {v!r}")
-
-
 @dataclass(frozen=True)
 class GuidanceGains:
     """Gains and limits of :class:`MulticopterController` (SI units, radians).
@@ -118,7 +112,7 @@ class GuidanceGains:
     max_yaw_rate_radps: float = 0.75
 
     def __post_init__(self) -> None:
-        _check_positive(
+        require_each(
             self,
             (
                 "pos_bandwidth_radps",
@@ -131,6 +125,9 @@ class GuidanceGains:
                 "max_rate_radps",
                 "max_yaw_rate_radps",
             ),
+            is_positive_number,
+            GuidanceError,
+            "GuidanceGains.{name} must be a finite number > 0, got {value!r}",
         )
         if not (math.isfinite(self.pos_integral_radps) and self.pos_integral_radps >= 0):
             raise GuidanceError(f"GuidanceGains.pos_integral_radps must be >= 0, got {self.pos_integral_radps!r}")
