@@ -116,6 +116,9 @@ from onboard.core.frames import (
     quat_normalize,
 )
 from onboard.io.mavlink_wire import (
+    INT16_MAX,
+    INT32_MAX,
+    UINT16_MAX,
     AttitudeQuaternion,
     GimbalDeviceAttitudeStatus,
     GlobalPositionInt,
@@ -204,9 +207,6 @@ _ACK_COUNTER = {
     mavlink2.MAV_RESULT_UNSUPPORTED: "ack_unsupported",
 }
 
-_INT16_MAX = 32767
-_INT32_MAX = 2**31 - 1
-_UINT16_MAX = 65535
 _LOG_EVERY_S = 10.0  # a repeated network complaint is logged at most this often per reason
 
 _BASE_MODE = (
@@ -337,7 +337,7 @@ class VehicleState:
         object.__setattr__(self, "time_boot_us", int(t))
         object.__setattr__(self, "lat_deg", _finite("lat_deg", self.lat_deg, -90.0, 90.0))
         object.__setattr__(self, "lon_deg", _finite("lon_deg", self.lon_deg, -180.0, 180.0))
-        alt_lim = _INT32_MAX / 1000.0
+        alt_lim = INT32_MAX / 1000.0
         object.__setattr__(self, "alt_amsl_m", _finite("alt_amsl_m", self.alt_amsl_m, -alt_lim, alt_lim))
         object.__setattr__(self, "alt_rel_m", _finite("alt_rel_m", self.alt_rel_m, -alt_lim, alt_lim))
         object.__setattr__(self, "v_ned_mps", _vec("v_ned_mps", self.v_ned_mps, 3))
@@ -613,13 +613,13 @@ class MavlinkVehicle:
         elif msg_id == MSG_EXTENDED_SYS_STATE:
             mav.extended_sys_state_send(mavlink2.MAV_VTOL_STATE_UNDEFINED, mavlink2.MAV_LANDED_STATE_IN_AIR)
         elif msg_id == MSG_BATTERY_STATUS:
-            cells = [round(cell_v * 1000)] * BATTERY_CELLS + [_UINT16_MAX] * (10 - BATTERY_CELLS)
+            cells = [round(cell_v * 1000)] * BATTERY_CELLS + [UINT16_MAX] * (10 - BATTERY_CELLS)
             used_mah = round(BATTERY_CURRENT_A * 1000 * now / 1e6 / 3600)
             mav.battery_status_send(
                 0,
                 mavlink2.MAV_BATTERY_FUNCTION_ALL,
                 mavlink2.MAV_BATTERY_TYPE_LIPO,
-                _INT16_MAX,
+                INT16_MAX,
                 cells,
                 round(BATTERY_CURRENT_A * 100),
                 used_mah,
@@ -634,8 +634,8 @@ class MavlinkVehicle:
         elif msg_id == MSG_GPS_RAW_INT:
             gpi = self._global_position_int(state).to_message()  # the #33 position, quantised alike
             lat, lon, alt_mm, vx, vy = gpi.lat, gpi.lon, gpi.alt, gpi.vx, gpi.vy
-            vel = min(round(math.hypot(vx, vy)), _UINT16_MAX - 1)
-            cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else _UINT16_MAX
+            vel = min(round(math.hypot(vx, vy)), UINT16_MAX - 1)
+            cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else UINT16_MAX
             no_fix = self._no_gnss(state.time_boot_us)
             mav.gps_raw_int_send(
                 self._unix_at_boot_us + state.time_boot_us,
@@ -643,8 +643,8 @@ class MavlinkVehicle:
                 lat,
                 lon,
                 alt_mm,
-                _UINT16_MAX if no_fix else 80,
-                _UINT16_MAX if no_fix else 120,
+                UINT16_MAX if no_fix else 80,
+                UINT16_MAX if no_fix else 120,
                 vel,
                 cog,
                 0 if no_fix else 14,
@@ -698,10 +698,10 @@ class MavlinkVehicle:
 
     def _global_position_int(self, s: VehicleState) -> GlobalPositionInt:
         """GLOBAL_POSITION_INT of the state, each velocity component saturated to the wire's int16 cm/s (logged)."""
-        v_lim = _INT16_MAX / 100.0
+        v_lim = INT16_MAX / 100.0
         v_sat = []
         for name, v in zip(("vx", "vy", "vz"), s.v_ned_mps):
-            if abs(round(v * 100.0)) > _INT16_MAX:
+            if abs(round(v * 100.0)) > INT16_MAX:
                 self._log_limited(
                     "velocity_saturated", "GLOBAL_POSITION_INT %s %.1f m/s saturated to int16 cm/s", name, v
                 )

@@ -120,6 +120,10 @@ __all__ = [
     "geo_status_fields",
     "message_from_fields",
     "wire_fields",
+    "INT16_MAX",
+    "INT32_MAX",
+    "UINT16_MAX",
+    "UINT32_MAX",
 ]
 
 DEFAULT_SERIAL_BAUD = 115200
