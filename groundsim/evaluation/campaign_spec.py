@@ -23,6 +23,7 @@ from groundsim.world.scenario import (
     Scenario,
     SpecFail,
     VehicleSpec,
+    check_apart,
     check_integer,
     check_mapping,
     check_number,
@@ -31,7 +32,6 @@ from groundsim.world.scenario import (
     load_scenario,
     read_spec_yaml,
     reference_scenario_paths,
-    too_close,
 )
 
 __all__ = [
@@ -159,14 +159,7 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
         f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, "
         f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
     )
-    close = too_close(po, pt)
-    if close is not None:
-        k, r_m = close
-        fail.text(
-            source,
-            f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart",
-            f"{what}: {r_m:.3g} m at t = {t[k]:.2f} s",
-        )
+    check_apart(fail, source, f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart", po, pt, t, f"{what}: ")
     for who, p in (("observer", po), ("target", pt)):
         k = int(np.argmax(p[:, 2]))
         if not p[k, 2] < -GROUND_CLEARANCE_M:

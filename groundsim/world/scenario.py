@@ -98,6 +98,7 @@ __all__ = [
     "read_spec_yaml",
     "SpecFail",
     "too_close",
+    "check_apart",
     "check_number",
     "check_integer",
     "check_string",
@@ -700,6 +701,23 @@ def too_close(p_a_ned_m: np.ndarray, p_b_ned_m: np.ndarray) -> tuple[int, float]
     return None if r[k] >= MIN_SEPARATION_M else (k, float(r[k]))
 
 
+def check_apart(
+    fail: SpecFail,
+    field: str,
+    expected: str,
+    p_a_ned_m: np.ndarray,
+    p_b_ned_m: np.ndarray,
+    t_s: np.ndarray,
+    what: str = "",
+) -> None:
+    """``fail.text(field, expected, ...)`` with the distance and the time of the closest approach (after ``what``)
+    when two paths sampled at ``t_s`` come too close (:func:`too_close`)."""
+    close = too_close(p_a_ned_m, p_b_ned_m)
+    if close is not None:
+        k, r_m = close
+        fail.text(field, expected, f"{what}{r_m:.3g} m at t = {t_s[k]:.3f} s")
+
+
 def _check_paths(
     observer: Motion,
     target: Motion,
@@ -717,14 +735,7 @@ def _check_paths(
             fail(observer_field, "a path that stays finite over duration_s", "overflow")
         if not np.all(np.isfinite(p_tgt)):
             fail(field, "a path that stays finite over duration_s", "overflow")
-    close = too_close(p_obs, p_tgt)
-    if close is not None:
-        k, r_m = close
-        fail.text(
-            field,
-            f"a path at least {MIN_SEPARATION_M:g} m from {what} at every frame",
-            f"{r_m:.3g} m at t = {t_s[k]:.3f} s",
-        )
+    check_apart(fail, field, f"a path at least {MIN_SEPARATION_M:g} m from {what} at every frame", p_obs, p_tgt, t_s)
 
 
 def _fleet(f: ScenarioFile, fail: SpecFail, t_s: np.ndarray) -> tuple[ObserverSpec, ...]:
