@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from groundsim.evaluation.campaign_spec import CampaignSpec
+from groundsim.evaluation.report import markdown_head
 
 __all__ = [
     "TABLE_NAME",
@@ -292,12 +293,11 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     )
     for a in dict.fromkeys(r["algorithm"] for r in t2):
         L.append(f"### {a}\n")
-        L.append(
+        L += markdown_head(
             "| scenario | noise | runs | paper Table 2 | err/range observable | err/range published | final | "
             "RMSE m (published) | observable share (settled) | honest | NEES (published) | CRB RMS m | "
             "CRB range sigma | batch MAP err/range |"
         )
-        L.append("|" + "---|" * 14)
         for r in (x for x in t2 if x["algorithm"] == a):
             paper = PAPER_TABLE2_PCT.get(r["scenario"])
             L.append(
@@ -315,8 +315,9 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
             f"of sight over the window. *Works from*: the smallest measured level from which every larger "
             f"level swept has a median err/range <= {GOOD_ERR_PCT:g} % (published estimates, settled).\n"
         )
-        L.append("| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |")
-        L.append("|---|---|---|---|---|---|")
+        L += markdown_head(
+            "| algorithm | scenario | noise | levels | works from (m/s^2, normal to LOS) | manoeuvre_scale |"
+        )
         for w in works_from(mrows):
             L.append(
                 f"| {w['algorithm']} | {w['scenario']} | {w['noise']} | {w['levels']} | "
@@ -324,11 +325,10 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
                 f"{_num(w['works_from_scale'], 3)} |"
             )
         L.append("")
-        L.append(
+        L += markdown_head(
             "| algorithm | scenario | noise | manoeuvre_scale | runs | accel normal to LOS m/s^2 | err/range published | "
             "err/range last frame | err/range observable | observable share | CRB / range |"
         )
-        L.append("|" + "---|" * 11)
         for r in mrows:
             L.append(
                 f"| {r['algorithm']} | {r['scenario']} | {r['noise']} | {r['manoeuvre_scale']:g} | {r['runs']} | "

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from groundsim.evaluation.report import PAPER_TABLE2_PCT
+from groundsim.evaluation.report import PAPER_TABLE2_PCT, markdown_head
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
 from groundsim.world.scenario import NoiseCase, Scenario
 from onboard.core.errors import InputError
@@ -238,12 +238,11 @@ def summarise(results: list[CaseResult]) -> list[dict]:
 def format_table(rows: list[dict]) -> str:
     """Markdown table of :func:`summarise` rows.  "efficient median" is what an estimator at the Bayesian
     CRB would reach on the same windows (the floor of the median column); RMSE is pooled over seeds."""
-    head = (
+    lines = markdown_head(
         "| scenario | noise | runs | MAP err/range (median, 90 % interval) | efficient median | paper metric | "
         "RMSE m (pooled) | Bayesian CRB m | observable | "
         "honest (<=1% beyond 3 sigma) | NEES | paper closed form err/range | paper Table 2 |"
     )
-    lines = [head, "|" + "---|" * 13]
     for r in rows:
         paper = PAPER_TABLE2_PCT.get(r["scenario"])
         lo, hi = r.get("err_range_pct_interval", (math.nan, math.nan))
@@ -306,12 +305,11 @@ def verdict_rows(results: list[CaseResult], good_pct: float = VERDICT_GOOD_PCT) 
 
 def format_verdict_table(rows: list[dict], threshold_pct: float) -> str:
     """Markdown table of :func:`verdict_rows`; ``threshold_pct`` is the verdict's range-sigma threshold."""
-    head = (
+    lines = markdown_head(
         "| scenario | noise | runs | called observable | their median err/range | honest (observable) | "
         f"runs with err <= {VERDICT_GOOD_PCT:g} % | recall | honest (all published) | median err/range | "
         f"reported range sigma (median; verdict < {threshold_pct:g} %) | CRB range sigma | ambiguity |"
     )
-    lines = [head, "|" + "---|" * 13]
     for r in rows:
         rec = "-" if not r["good"] else f"{100 * r['recall']:.0f} %"
         eo = "-" if not r["observable"] else f"{r['err_observable_pct']:.2f} %"

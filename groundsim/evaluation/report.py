@@ -179,15 +179,20 @@ def _ratio_text(x, baseline_failed: bool) -> str:
     return f"{x:.2f}" + (" ok" if x <= RATIO_LIMIT else " **over**")
 
 
+def markdown_head(head: str) -> list[str]:
+    """A markdown table's first two lines: ``head`` (``"| a | b |"``) and its delimiter row, one ``---`` a column
+    (counted from ``head``, so the two cannot disagree)."""
+    return [head, "|" + "---|" * (head.count("|") - 1)]
+
+
 def format_table2(summary: list[dict], descriptions: dict[str, str] | None = None) -> str:
     """The Table-2 style markdown table of :func:`groundsim.evaluation.eval.summarise` rows, the paper's figure beside ours."""
     descriptions = descriptions or {}
-    head = (
+    lines = markdown_head(
         "| scenario | geometry | paper Table 2 | ours: paper metric | ours: err / range | RMSE m | NEES | "
         "continuity | perfect centroids: err / range | ratio (<= 1.5) | CRB RMS m | batch err / range | "
         "batch perfect err / range | batch ratio (<= 1.5) |"
     )
-    lines = [head, "|" + "---|" * 14]
     for r in summary:
         paper = PAPER_TABLE2_PCT.get(r["scenario"])
         lines.append(
@@ -216,13 +221,12 @@ def format_closed_loop(summary: list[dict]) -> str:
     """The closed-loop figures per (scenario, navigation case), medians over seeds, with the goal
     beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them)."""
     g = CLOSED_LOOP_GOALS
-    lines = [
+    lines = markdown_head(
         "| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
         "published beyond 3 sigma (<= 1 %) | observable, frames after 5 s (>= 60 %; P2 40 %) | "
         "median err / range, observable frames (<= 2 %) | median err / range, all published after 5 s | "
-        "first observable s | centroid sigma px (chain; baseline) |",
-        "|" + "---|" * 9,
-    ]
+        "first observable s | centroid sigma px (chain; baseline) |"
+    )
     for r in summary:
         obs_goal = g["observable"].get(r["scenario"], g["observable_default"])
 
@@ -761,11 +765,10 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     )
     L.append(format_table2(report["summary"], descriptions))
     L.append("")
-    L.append(
+    L += markdown_head(
         "| scenario | all frames with an estimate: err / range | RMSE m | 2-D continuity | first observable s | "
         "centroid error RMS px | perfect-centroid continuity | APE RMSE m (TUM, evo way) | runs failed | reference study: best MAP / CRB m (px0.3) |"
     )
-    L.append("|" + "---|" * 10)
     for r in report["summary"]:
         ref = REFERENCE_PX03.get(r["scenario"])
         L.append(
@@ -810,11 +813,10 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
         "second) lands on single frames: that is the p99 / max; the daemon runs it in a worker thread (see "
         "`python -m groundsim demo` for its real-time latency).\n"
     )
-    L.append(
+    L += markdown_head(
         "| scenario | pipeline fps | latency p50 / p90 / p99 / max ms | flight ms/frame | render ms/frame | "
         "pipeline ms/frame | baseline ms/frame | batch s/run | run wall s | CPU share of the run's process |"
     )
-    L.append("|" + "---|" * 10)
     for p in perf["per_scenario"]:
         lm = p["latency_ms"]
         L.append(
@@ -838,11 +840,10 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
                 L.append(f"![{name} {kind}]({f})")
         L.append("")
     L.append("## Runs\n")
-    L.append(
+    L += markdown_head(
         "| scenario | seed | err / range | RMSE m | NEES | continuity | perfect err / range | batch err / range | CRB m | "
         "centroid RMS px | pipeline fps | wall s | note |"
     )
-    L.append("|" + "---|" * 13)
     for s in report["runs"]:
         if "error" in s:
             L.append(

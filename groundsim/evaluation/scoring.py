@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT
+from groundsim.evaluation.report import BASELINE_FAIL_PCT, RATIO_LIMIT, markdown_head
 from onboard.estimation.metrics import score_frames
 
 __all__ = [
@@ -309,12 +309,11 @@ def format_guidance_summary(runs) -> str:
     for r in runs:
         if r.error is None:
             groups.setdefault((r.scenario, r.nav_noise), []).append(r)
-    lines = [
+    lines = markdown_head(
         "| scenario | navigation errors | seeds | observable within 10 s of first track (>= 90 %) | median err / range,"
         " observable frames (<= 1 %) | beyond 3 sigma, published (<= 1 %) | observable, frames after 5 s |"
-        " first observable after track s (median) | advices per run (median); first at s |",
-        "|" + "---|" * 9,
-    ]
+        " first observable after track s (median) | advices per run (median); first at s |"
+    )
     for (name, nav), rs in groups.items():
         figs = [guidance_figures(r) for r in rs]
         within = sum(f["observable_within_goal"] for f in figs)
