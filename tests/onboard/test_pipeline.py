@@ -21,7 +21,7 @@ from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
 from onboard.core.irframe import HEADER, MAGIC, IrFrame, encode_irframe
 from onboard.core.pose import PoseBuffer
-from onboard.core.status import STATUS_SCHEMA, RollingStats, build_status
+from onboard.core.status import STATUS_SCHEMA, RollingStats
 from onboard.core.track import (
     TRACK_SCHEMA,
     Track,
@@ -32,7 +32,7 @@ from onboard.core.track import (
 from onboard.estimation.sliding import TrackEstimate
 from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
-from tests.fakes import positioned_track
+from tests.fakes import idle_status, positioned_track
 
 US = 1_000_000  # microseconds per second
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
@@ -580,8 +580,7 @@ def test_rolling_stats_and_status_document():
         s["n"] == 100 and s["max"] == 200.0 and s["p50"] == pytest.approx(150.5) and s["p99"] == pytest.approx(199.01)
     )
     assert RollingStats().summary() == {"n": 0, "p50": None, "p99": None, "max": None}
-    st_ = build_status(
-        vehicle="uav1",
+    st_ = idle_status(
         uptime_s=3.0,
         frames_in=10,
         frames_processed=7,
@@ -591,14 +590,12 @@ def test_rolling_stats_and_status_document():
         processing_ms=s,
         latency_ms=s,
         pose_wait_ms=s,
-        capture_to_track_ms=None,
         rejected={"frame_magic": 2, "dropped_queue": 1},
         link={"state": "connected", "rates_confirmed": (31, 33), "heartbeat_age_s": math.nan},
         cpu_share=0.5,
         pipeline_cpu_share=0.25,
         last_track=_track(),
         estimator="x",
-        queue_length=0,
     )
     text = json.dumps(st_, allow_nan=False)
     back = json.loads(text)
