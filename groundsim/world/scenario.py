@@ -689,33 +689,19 @@ class ScenarioFile:
 
 
 def too_close(p_a_ned_m: np.ndarray, p_b_ned_m: np.ndarray) -> tuple[int, float] | None:
-    """The frame and the distance (m) of the closest approach of two paths sampled at the same frames ((N, 3)
-    each) when it is under ``MIN_SEPARATION_M`` or not a number (a path that overflowed); None when the paths
-    stay apart or hold no frame.  The one separation rule of a scenario file, a campaign's derived geometry and a
-    run's extended duration."""
+    """(frame, distance m) of the closest approach of two paths ((N, 3) at the same frames) when under
+    ``MIN_SEPARATION_M`` or not a number (an overflowed path); None while they stay apart: the one separation rule."""
     with np.errstate(all="ignore"):
         r = np.linalg.norm(np.asarray(p_b_ned_m) - np.asarray(p_a_ned_m), axis=-1)
-    if not r.size:
-        return None
-    k = int(np.argmin(r))
-    return None if r[k] >= MIN_SEPARATION_M else (k, float(r[k]))
+    k = int(np.argmin(r)) if r.size else 0
+    return (k, float(r[k])) if r.size and not r[k] >= MIN_SEPARATION_M else None
 
 
-def check_apart(
-    fail: SpecFail,
-    field: str,
-    expected: str,
-    p_a_ned_m: np.ndarray,
-    p_b_ned_m: np.ndarray,
-    t_s: np.ndarray,
-    what: str = "",
-) -> None:
-    """``fail.text(field, expected, ...)`` with the distance and the time of the closest approach (after ``what``)
-    when two paths sampled at ``t_s`` come too close (:func:`too_close`)."""
+def check_apart(fail: SpecFail, field: str, expected: str, p_a_ned_m, p_b_ned_m, t_s, what: str = "") -> None:
+    """``fail.text(field, expected, ...)`` naming the closest approach (after ``what``) of paths :func:`too_close`."""
     close = too_close(p_a_ned_m, p_b_ned_m)
     if close is not None:
-        k, r_m = close
-        fail.text(field, expected, f"{what}{r_m:.3g} m at t = {t_s[k]:.3f} s")
+        fail.text(field, expected, f"{what}{close[1]:.3g} m at t = {t_s[close[0]]:.3f} s")
 
 
 def _check_paths(
