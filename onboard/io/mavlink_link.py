@@ -74,6 +74,7 @@ from onboard.core.gnss import GPS_FIX_NAMES, GnssState
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
 from onboard.core.utc_clock import UtcClock
+from onboard.io.mavlink_fast import decode_telemetry
 from onboard.io.mavlink_signing import load_signing_key
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
@@ -627,6 +628,10 @@ class MavlinkLink:
             if len(data) > _MAX_DATAGRAM_PARSE_BYTES:
                 self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
                 return 0
+            fast = None if self._signing.secret_key else decode_telemetry(data)  # 50 + 25 Hz: see mavlink_fast
+            if fast is not None:
+                self._dispatch(fast, "", addr, now)
+                return 1
             parser = _new_parser(self._signing)
         else:
             parser = self._stream_parser
