@@ -1,6 +1,6 @@
 """Benchmark of the onboard daemon: loopback latency through it, and per-frame processing on one core.
 
-``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency]``.  Prints:
+``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency] [--parts-s S]``.  Prints:
 
 * Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1,
   default configuration: estimator in a worker process): a fake autopilot (pymavlink, UDP) sends
@@ -22,6 +22,14 @@
   the mean, each stage's median (decode, imaging, estimator ``add``), the share of frames hit by
   the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
   without the estimator as a baseline measured in the same run.
+
+* With ``--parts-s S``: two parts of the daemon alone, each paced as in flight for ``S`` seconds, CPU
+  s per s from the thread and process clocks (``--parts-repeats`` times, alternating): the main loop's
+  telemetry input (a thread in ``select`` on a :class:`MavlinkLink` that polls it, the fake autopilot
+  sending attitude / position at 50 / 25 Hz) and the estimator hand-off (a :class:`ProcessEstimator`
+  fed the scene at 30 Hz once its 20 s window is full: the caller thread's CPU, the worker process's,
+  the frames answered late).  Smaller than the daemon's figures and steadier than them on a loaded
+  machine: before/after figures of one part.
 
 The autopilot of the latency benchmark is the tests' fake (``groundsim.io.scripted_autopilot.ScriptedAutopilot``, MAVLink
 through :mod:`onboard.io.mavlink_wire`) flying :class:`SyntheticScene`'s observer.
@@ -610,6 +618,115 @@ def bench_latency(
             session.close()
 
 
+# --------------------------------------------------------------------------- benchmark 3: two parts, paced
+
+
+def _paced_mavlink_cpu(duration_s: float, scene: SyntheticScene) -> tuple[float, int]:
+    """CPU s per s of a thread that does what the daemon's main loop does with telemetry: sleeps in
+    ``select`` on a :class:`MavlinkLink` and polls it, while the tests' fake autopilot sends the scene's
+    attitude / position at 50 / 25 Hz; and the messages it handled."""
+    import select
+
+    from groundsim.io.scripted_autopilot import ScriptedAutopilot
+    from onboard.app.config import OnboardConfig, build_config
+    from onboard.app.locked_counter import LockedCounter
+    from onboard.app.shared_pose import SharedPoseBuffer
+    from onboard.core.pose import PoseBuffer
+    from onboard.io.mavlink_link import MavlinkLink
+
+    port = free_udp_port()
+    cfg: OnboardConfig = build_config({"mavlink": {"connection": f"udpin:127.0.0.1:{port}"}})
+    counter = LockedCounter(log_interval_s=3600.0)
+    pose = SharedPoseBuffer(PoseBuffer(mount=cfg.camera.camera_mount(), config=cfg.pose, counter=counter))
+    link = MavlinkLink(cfg.mavlink, pose, counter, gimballed=False)
+    ap = ScriptedAutopilot(port, scene=scene)
+    stop = threading.Event()
+    cpu: list[float] = []
+
+    def loop() -> None:
+        c0 = time.thread_time()
+        while not stop.is_set():
+            fd = link.fileno()
+            if fd is not None:
+                select.select([fd], [], [], 0.05)
+            link.poll()
+            link.tick()
+        cpu.append(time.thread_time() - c0)
+
+    th = threading.Thread(target=loop, daemon=True)
+    try:
+        th.start()
+        t0 = time.monotonic()
+        n = 0
+        while time.monotonic() - t0 < duration_s:
+            ap.pump()
+            if n % 50 == 0:
+                ap.heartbeat()
+            t = ap.boot_us()
+            ap.attitude(t)
+            if n % 2 == 0:
+                ap.position(t)
+            n += 1
+            time.sleep(max(t0 + n * 0.02 - time.monotonic(), 0.0))
+        stop.set()
+        th.join(1.0)
+        return (cpu[0] if cpu else math.nan) / (time.monotonic() - t0), int(link.messages_rx)
+    finally:
+        stop.set()
+        ap.close()
+        link.close()
+
+
+def _paced_estimator_cpu(duration_s: float, fill_s: float, scene: SyntheticScene) -> tuple[float, float, int]:
+    """The estimator hand-off at 30 Hz: a thread adds the scene's observations to a
+    :class:`ProcessEstimator` (the daemon's default worker) and sleeps to the next frame.  After ``fill_s``
+    of scene time (the window filling), returns over ``duration_s``: the caller thread's CPU s per s, the
+    worker process's CPU s per s, and the frames answered late (propagated instead)."""
+    from onboard.app.config import OnboardConfig
+    from onboard.app.estimator_worker import ProcessEstimator
+    from onboard.app.locked_counter import LockedCounter
+
+    cfg = OnboardConfig()
+    wait_s = cfg.estimator.result_wait_ms / 1000.0
+    pe = ProcessEstimator(cfg, LockedCounter(log_interval_s=3600.0), 30.0)  # the window filled answer by answer
+    K = scene.intrinsics
+    n_frames = int((fill_s + duration_s) * scene.frame_rate_hz) + 1
+    rows = []  # made before any timing: the scene's own numpy is not the daemon's
+    for k in range(n_frames):
+        ts = k / scene.frame_rate_hz
+        p_cam, q = scene.camera(ts)
+        rows.append((ts, scene.t_us(k) / 1e6, scene.uv(ts), p_cam, q))
+    try:
+        marks = None
+        for ts, t_s, uv, p_cam, q in rows:
+            if marks is None and ts >= fill_s:
+                pe.result_wait_s = wait_s  # the daemon's wait from here on
+                marks = (time.monotonic(), time.thread_time(), pe.worker_cpu_s, pe.late_results)
+            pe.add(t_s, uv, K, p_cam, q)
+            if marks is not None:  # paced once the window is full
+                time.sleep(max(marks[0] + (ts + 1 / scene.frame_rate_hz - fill_s) - time.monotonic(), 0.0))
+        assert marks is not None
+        span = time.monotonic() - marks[0]
+        pe.predict(0.0)  # the worker's newest CPU figure
+        return (time.thread_time() - marks[1]) / span, (pe.worker_cpu_s - marks[2]) / span, pe.late_results - marks[3]
+    finally:
+        pe.close()
+
+
+def bench_parts(duration_s: float, repeats: int) -> None:
+    """Two parts of the daemon alone, paced as in flight, CPU from the thread / process clocks."""
+    scene = SyntheticScene()
+    print(f"parts of the daemon, paced, {duration_s:.0f} s each, {repeats} times (CPU s per s; load varies):")
+    for i in range(repeats):
+        mav, n_msgs = _paced_mavlink_cpu(duration_s, scene)
+        caller, worker, late = _paced_estimator_cpu(duration_s, 20.0, scene)
+        print(
+            f"   run {i + 1}: MAVLink telemetry in (50 + 25 Hz, select + poll): {mav:.4f} ({n_msgs} messages);"
+            f"  estimator hand-off at 30 Hz, window full: caller {caller:.4f}, worker process {worker:.4f}"
+            f" ({late} frames late)"
+        )
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.onboard", description=__doc__.split("\n\n")[0])
     ap.add_argument("--frames", type=int, default=600, help="frames for the processing benchmark (default 600 = 20 s)")
@@ -622,6 +739,13 @@ def main(argv=None) -> int:
         default=[0.0, 10.0, 25.0, 50.0],
         help="capture lags to time (frame stamped that long before it is sent), ms",
     )
+    ap.add_argument(
+        "--parts-s",
+        type=float,
+        default=0.0,
+        help="also time two parts alone, paced (MAVLink in, estimator hand-off), this many seconds each",
+    )
+    ap.add_argument("--parts-repeats", type=int, default=2, help="repeats of --parts-s")
     args = ap.parse_args(argv)
     print(
         f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
@@ -646,6 +770,8 @@ def main(argv=None) -> int:
                     f" median per-frame processing {r['processing_p50_ms']:.2f} ms"
                 )
         print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
+    if args.parts_s > 0:
+        bench_parts(args.parts_s, args.parts_repeats)  # before the pinning of bench_processing
     bench_processing(args.frames)
     return 0
 
