@@ -157,6 +157,20 @@ def _sigmas3(cov) -> tuple[float, float, float]:
     return sx, sy, sz
 
 
+def _utc_fields(time_unix_us, time_unix_sigma_us) -> tuple[int | None, int | None]:
+    """A track's UTC stamp checked: None or integers in [0, 2**63); no sigma without a time."""
+    if time_unix_us is None and time_unix_sigma_us is not None:
+        raise InputError("Track.time_unix_sigma_us without a time_unix_us")
+    out = []
+    for name, v in (("time_unix_us", time_unix_us), ("time_unix_sigma_us", time_unix_sigma_us)):
+        if v is not None:
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**63:
+                raise InputError(f"Track.{name} must be None or an integer in [0, 2**63), got {v!r}")
+            v = int(v)
+        out.append(v)
+    return out[0], out[1]
+
+
 SIGMA_AZ_CAP_DEG = 180.0  # an azimuth near the zenith/nadir is unknown, not infinitely uncertain
 _UNIT_TOL = 1e-6
 
@@ -373,14 +387,20 @@ class Track:
             object.__setattr__(self, "range_sigma_ratio", float(r))
         if self.model is not None and not isinstance(self.model, str):
             raise InputError(f"Track.model must be a string or None, got {self.model!r}")
-        if self.time_unix_us is None and self.time_unix_sigma_us is not None:
-            raise InputError("Track.time_unix_sigma_us without a time_unix_us")
-        for name in ("time_unix_us", "time_unix_sigma_us"):
-            v = getattr(self, name)
-            if v is not None:
-                if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v < 2**63:
-                    raise InputError(f"Track.{name} must be None or an integer in [0, 2**63), got {v!r}")
-                object.__setattr__(self, name, int(v))
+        unix_us, sigma_us = _utc_fields(self.time_unix_us, self.time_unix_sigma_us)
+        object.__setattr__(self, "time_unix_us", unix_us)
+        object.__setattr__(self, "time_unix_sigma_us", sigma_us)
+
+    def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
+        """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
+        other field as it was checked when this track was made: ``dataclasses.replace`` would check them
+        all again, once a frame, for more CPU than the rest of the frame's track output."""
+        unix_us, sigma_us = _utc_fields(time_unix_us, time_unix_sigma_us)
+        out = object.__new__(Track)
+        fields = out.__dict__
+        fields.update(self.__dict__)  # the checked values (the covariances are read-only: shared safely)
+        fields["time_unix_us"], fields["time_unix_sigma_us"] = unix_us, sigma_us
+        return out
 
     @property
     def has_position(self) -> bool:

@@ -36,7 +36,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -295,4 +295,4 @@ def with_utc(track: Track, mapping: UtcMapping | None) -> Track:
     got = mapping.at(track.time_boot_us)
     if got is None:
         return track
-    return replace(track, time_unix_us=got[0], time_unix_sigma_us=got[1])
+    return track.with_time_unix(got[0], got[1])

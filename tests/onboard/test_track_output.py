@@ -3,6 +3,7 @@ gated, #276 only for observable positions; and the camera-mismatch warning fed b
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -191,3 +192,20 @@ def test_utc_time_round_trips_and_is_null_until_known():
     for bad in ({"time_unix_us": 1.8e15}, {"time_unix_us": -1}, {"time_unix_us": True}, {"time_unix_sigma_us": 3}):
         with pytest.raises(InputError, match="time_unix"):
             track_from_json({**plain, **bad})
+
+
+@pytest.mark.parametrize("unix_us, sigma_us", [(1_800_000_000_000_010, 312), (7, None), (None, None), (np.int64(9), 0)])
+def test_a_utc_stamp_gives_the_track_replace_would_and_refuses_what_it_refuses(unix_us, sigma_us):
+    for track in (positioned_track(), positioned_track(measurement_valid=False, observable=False)):
+        got = track.with_time_unix(unix_us, sigma_us)
+        want = dataclasses.replace(track, time_unix_us=unix_us, time_unix_sigma_us=sigma_us)
+        assert track_to_bytes(got) == track_to_bytes(want)
+        for name in Track.__dataclass_fields__:
+            a, b = getattr(got, name), getattr(want, name)
+            assert type(a) is type(b) and (np.array_equal(a, b) if isinstance(a, np.ndarray) else a == b), name
+        assert track.time_unix_us is None  # the stamped one is a new track
+    for bad in ((1.8e15, None), (-1, None), (True, None), (None, 3), (2**63, None), (5, -1)):
+        with pytest.raises(InputError, match="time_unix"):
+            positioned_track().with_time_unix(*bad)
+        with pytest.raises(InputError, match="time_unix"):
+            dataclasses.replace(positioned_track(), time_unix_us=bad[0], time_unix_sigma_us=bad[1])
