@@ -24,6 +24,8 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   between its matched frames, summed over objects (``tgt``: over objects of class target);
 * ``prim``: primary targets the chain chose over the run (1: chosen once and kept; the single chain's
   primary is its one track, so this counts its track ids);
+* ``conf s``: seconds from the target's first visible frame to the first frame the primary is on it
+  (``nan``: never); ``after``: the on-target fraction over the visible frames from then on;
 * ``ms p50``, ``ms p95``, ``cpu p50``: wall ms (median, 95th percentile) and median CPU ms of the
   chain's update per frame (OpenCV on one thread; the machine is shared, so the figures are noisy;
   CPU ms is the steadier of the two, at the clock's granularity).  ``--repeat N`` runs each chain N
@@ -147,6 +149,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     fr = run.frame_rate_hz
     first_visible: dict[int, int] = {}
     on_target = target_frames = 0
+    first_on: int | None = None  # the frame the primary is first on the target
+    on_after = frames_after = 0  # visible frames from then on, and those with the primary on the target
     det = det_all = det_t = det_t_all = 0
     last_id: dict[int, int] = {}
     switches: dict[int, int] = {}
@@ -187,6 +191,15 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                 if primary is not None and primary in tpos:
                     pu, pv = tpos[primary]
                     on_target += math.hypot(pu - u, pv - v) <= MATCH_PX
+                    if first_on is None and math.hypot(pu - u, pv - v) <= MATCH_PX:
+                        first_on = k
+                if first_on is not None:
+                    frames_after += 1
+                    on_after += (
+                        primary is not None
+                        and primary in tpos
+                        and math.hypot(tpos[primary][0] - u, tpos[primary][1] - v) <= MATCH_PX
+                    )
             best, best_d = None, MATCH_PX
             for tid, (tu, tv) in tpos.items():
                 d = math.hypot(tu - u, tv - v)
@@ -208,6 +221,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     return dict(
         frames=n_frames,
         on_target=pct(on_target, target_frames),
+        confirm_s=(first_on - first_visible[0]) / fr if first_on is not None else math.nan,
+        tracked_after=pct(on_after, frames_after),
         pd=pct(det, det_all),
         pd_target=pct(det_t, det_t_all),
         false_per_min=false_tracks / minutes if minutes else math.nan,
@@ -257,7 +272,7 @@ def main(argv: list[str]) -> None:
     )
     print(
         f"{'scene':<6s} {'chain':<8s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
-        f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s}"
+        f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
     )
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache)
@@ -266,6 +281,6 @@ def main(argv: list[str]) -> None:
             print(
                 f"{name:<6s} {c:<8s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
-                f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f}",
+                f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%",
                 flush=True,
             )

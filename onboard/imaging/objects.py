@@ -56,6 +56,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.preprocess import ImagingParams, check_frame
+from onboard.imaging.tbd import TbdParams, TrackBeforeDetect
 
 __all__ = [
     "ObjectParams",
@@ -73,6 +74,7 @@ OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
 BACKGROUND_SCALE = 4  # the background motion is measured on frames this many times smaller
 NOISE_FACTOR = 4  # the local noise (CFAR) is estimated on a grid this many times coarser
 TEXTURE_RING_PX = 32  # the texture about a track is sampled this far from it (beyond the noise window's half)
+GREY16_PER_GREY8 = 257.0  # 65535 / 255
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 
 
@@ -236,6 +238,15 @@ class ObjectTracker:
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
+        im = self.imaging
+        self.tbd = (
+            TrackBeforeDetect(
+                intrinsics, TbdParams(threshold_sigma=im.tbd_threshold_sigma, max_speed_pxpf=im.tbd_max_speed_pxpf)
+            )
+            if im.tbd
+            else None
+        )
+        self._clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
 
     # ------------------------------------------------------------------ geometry
 
@@ -269,6 +280,7 @@ class ObjectTracker:
             sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
             self._defects.update(img, sigma)
         img = self._defects.repair(img)
+        self._clean = img
         # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
         box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE) if p.cell_px == 3 else None
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
@@ -334,7 +346,10 @@ class ObjectTracker:
         R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
             raise InputError(f"R_ned_from_cam must be a finite 3 x 3 rotation, got shape {R.shape}")
-        event, med = frame_event(image, self._prev, self._prev_median, self.clutter.step_lsb)
+        # step_lsb is in 8-bit grey: a 16-bit frame's grey is 257 times finer (its noise alone moves the
+        # median by more than 3 of its steps, and every frame would restart the defect map)
+        step = self.clutter.step_lsb * (GREY16_PER_GREY8 if image.dtype == np.uint16 else 1.0)
+        event, med = frame_event(image, self._prev, self._prev_median, step)
         self._prev, self._prev_median = image, med
         if event == "frozen":
             self.frozen_frames += 1
@@ -349,11 +364,24 @@ class ObjectTracker:
                 self._defects.reset()
             self._stripes = None
         regular = self.detect(image)
+        if self.tbd is not None and self._clean is not None:
+            regular = regular + self._tbd_candidates(self.tbd, self._clean, regular, R)
         cands = self._aided_candidates(regular, R)
         self._background_motion(image, R)
         measured = self._associate(cands, R, len(regular))
         changed = self._select(R)
         return self._output(image, R, event, measured, changed)
+
+    def _tbd_candidates(
+        self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
+    ) -> list[PointCandidate]:
+        """Track-before-detect's confirmed dim points (:mod:`onboard.imaging.tbd`): it searches the whole
+        frame while there is no primary target and then follows the primary only if it found it."""
+        focus = None
+        prim = next((t for t in self._tracks if t.object_id == self._primary), None)
+        if prim is not None:
+            focus = self._project(_unit(prim.los + prim.rate), R) or prim.uv
+        return tbd.update(clean, R, focus, [(c.u_px, c.v_px) for c in regular])
 
     def _associate(self, cands: list[PointCandidate], R: np.ndarray, n_regular: int | None = None) -> set[int]:
         """Greedy nearest-first association; ``cands[n_regular:]`` are track-aided candidates, which

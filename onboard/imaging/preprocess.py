@@ -62,6 +62,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.schema import (
+    Bool,
     Integer,
     Invalid,
     NonNegativeFloat,
@@ -132,6 +133,10 @@ class ImagingParams:
     ``chain``: ``single`` is the one-target chain above (:class:`onboard.imaging.TargetTracker`);
     ``objects`` detects against clutter and tracks every object, the primary one reported as the
     track (:class:`onboard.imaging.objects.ObjectChain`; measured with ``python -m bench.imaging --scene``).
+    ``tbd`` (objects chain): search for dim points by track-before-detect while no target is held
+    (:mod:`onboard.imaging.tbd`), thresholded at ``tbd_threshold_sigma`` local sigmas of the integrated
+    image, over image velocities up to ``tbd_max_speed_pxpf`` px per frame per axis (the camera's rotation
+    removed).
     """
 
     mean_kernel_px: PositiveInt = 3
@@ -159,6 +164,9 @@ class ImagingParams:
     coast_frames: NonNegativeInt = 5
     lost_frames: PositiveInt = 15
     chain: Annotated[Literal["single", "objects"], Text()] = "single"
+    tbd: Bool = True
+    tbd_threshold_sigma: Annotated[float, Number(lo=1.0)] = 6.0
+    tbd_max_speed_pxpf: NonNegativeFloat = 0.3
 
     def __post_init__(self) -> None:
         if self.mean_kernel_px % 2 != 1:
