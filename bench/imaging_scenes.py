@@ -1,6 +1,6 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
-``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|both] [--seed 0]
+``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
 [--frames N] [--cache DIR] [--repeat N]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
@@ -9,7 +9,7 @@ never receives them) and the frames are fed in lockstep to
   ``tracker_mode`` auto): one track, reported while its state is ``tracking``;
 * ``objects``: :class:`onboard.imaging.objects.ObjectTracker` (clutter-suppressed detection, every
   object a track; the camera's rotation from the truth attitude of each frame); its confirmed tracks
-  and its primary target.
+  and its primary target (``objects-notbd``: the same without track-before-detect, ``imaging.tbd: false``).
 
 Rendered frames are cached (``--cache``, default ``/tmp/irtrack-scene-frames``) so that a second run
 times only the chain.  Per scene it prints (frames: those the camera delivered):
@@ -129,11 +129,14 @@ class _TrackerChain:
 
 class _ObjectsChain:
     name = "objects"
+    tbd = True
 
     def __init__(self, run: SceneRun) -> None:
+        from onboard.imaging import ImagingParams
         from onboard.imaging.objects import ObjectTracker
 
-        self._tr = ObjectTracker(run.intrinsics, frame_rate_hz=run.frame_rate_hz)
+        imaging = ImagingParams(chain="objects", tbd=self.tbd)
+        self._tr = ObjectTracker(run.intrinsics, frame_rate_hz=run.frame_rate_hz, imaging=imaging)
 
     def update(self, image, R_ned_from_cam):
         out = self._tr.update(image, R_ned_from_cam)
@@ -141,7 +144,14 @@ class _ObjectsChain:
         return tracks, out.primary_id
 
 
-CHAINS = {"tracker": _TrackerChain, "objects": _ObjectsChain}
+class _ObjectsNoTbdChain(_ObjectsChain):
+    """The objects chain without track-before-detect (``imaging.tbd: false``): its cost and scores without it."""
+
+    name = "objects-notbd"
+    tbd = False
+
+
+CHAINS = {"tracker": _TrackerChain, "objects": _ObjectsChain, "objects-notbd": _ObjectsNoTbdChain}
 
 
 def score(run: SceneRun, chain) -> dict[str, float]:
@@ -255,7 +265,7 @@ def main(argv: list[str]) -> None:
 
     ap = argparse.ArgumentParser(prog="python -m bench.imaging --scene", description=__doc__.splitlines()[0])
     ap.add_argument("--scene", nargs="+", required=True, help="scenario names (config/scenarios), e.g. C1 P2")
-    ap.add_argument("--chain", choices=("tracker", "objects", "both"), default="both")
+    ap.add_argument("--chain", choices=(*CHAINS, "both"), default="both")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--frames", type=int, default=None, help="first N frames only (default: the whole scenario)")
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)")
@@ -271,7 +281,7 @@ def main(argv: list[str]) -> None:
         f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; wall ms on a shared machine (noisy)"
     )
     print(
-        f"{'scene':<6s} {'chain':<8s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
+        f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
         f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
     )
     for name in a.scene:
@@ -279,7 +289,7 @@ def main(argv: list[str]) -> None:
         for c in chains:
             s = score_repeated(run, CHAINS[c], a.repeat)
             print(
-                f"{name:<6s} {c:<8s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
+                f"{name:<6s} {c:<13s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
                 f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%",
                 flush=True,

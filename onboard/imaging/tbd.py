@@ -192,7 +192,8 @@ class TrackBeforeDetect:
         frame = self._suppressed(image, win)
         self._integrate(frame, R, win)
         self._R = R
-        found = self._peaks(focus_uv is None)
+        focus_cell = None if focus_uv is None else (focus_uv[1] / d - win[0], focus_uv[0] / d - win[1])
+        found = self._peaks(focus_cell)
         found = [f for f in found if all(math.hypot(f[1] - a, f[2] - b) > p.confirm_radius_px for a, b in known_uv)]
         if focus_uv is not None:
             return self._in_focus(found, focus_uv)
@@ -289,10 +290,14 @@ class TrackBeforeDetect:
         self._age = (self._age + 1.0) * w_old / self._weight
         self._origin = (i0, j0)
 
-    def _peaks(self, search: bool) -> list[tuple]:
+    def _peaks(self, focus_cell: tuple[float, float] | None) -> list[tuple]:
         """This frame's peaks above the (lower, ``track_threshold_sigma``) CFAR threshold, strongest first:
-        (local sigmas, u, v, velocity, bbox, area, peak) tuples, one per local maximum (non-maximum suppression over ``NMS_CELLS``)."""
+        (local sigmas, u, v, velocity, bbox, area, peak) tuples, one per local maximum (non-maximum
+        suppression over ``NMS_CELLS``).  ``focus_cell`` (row, column in the window; None: a search):
+        only peaks within ``FOCUS_RADIUS_PX`` of it, against the window's own mean and deviation (the
+        window is about one CFAR window wide)."""
         p = self.params
+        search = focus_cell is None
         acc = self._acc
         if acc is None or self._weight < 0.5:  # under ~5 frames integrated: the statistics mean little
             return []
@@ -300,7 +305,15 @@ class TrackBeforeDetect:
         for a in acc[1:]:
             cv2.max(best, a, dst=best)
         k = p.track_threshold_sigma  # the lower one: a peak already pending continues above it
-        thr, mean, sd = self._threshold(best, k)
+        if search:
+            thr, mean, sd = self._threshold(best, k)
+        else:
+            m, sdev = cv2.meanStdDev(best)
+            mean, sd = (
+                _Coarse(np.full((1, 1), m[0, 0], np.float32), 1 << 30),
+                _Coarse(np.full((1, 1), sdev[0, 0], np.float32), 1 << 30),
+            )
+            thr = np.full_like(best, m[0, 0] + k * sdev[0, 0])
         mask = (best >= thr).view(np.uint8)
         # a border as wide as the fastest hypothesis' drift over the memory: cells there hold fewer frames
         b = 1 + int(math.ceil(float(np.abs(self._v_cells).max(initial=0.0)) / p.gain))
@@ -320,6 +333,7 @@ class TrackBeforeDetect:
         d = p.decimation
         i0, j0 = self._origin
         h, w = best.shape
+        focus_cells = FOCUS_RADIUS_PX / d + p.smooth_cells
         found: list[tuple] = []
         taken: list[tuple[int, int]] = []
         for n in order:
@@ -327,6 +341,8 @@ class TrackBeforeDetect:
             if any(abs(r - tr) <= NMS_CELLS and abs(c - tc) <= NMS_CELLS for tr, tc in taken):
                 continue
             taken.append((r, c))
+            if focus_cell is not None and max(abs(r - focus_cell[0]), abs(c - focus_cell[1])) > focus_cells:
+                continue  # a peak away from the followed target: of no use, not measured
             r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, h), max(c - 1, 0), min(c + 2, w)
             area = int(np.count_nonzero(mask[r0:r1, c0:c1]))
             if area > p.max_area_cells:
