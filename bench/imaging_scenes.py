@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
-[--frames N] [--cache DIR] [--repeat N]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -65,15 +65,23 @@ class SceneRun:
     frame_rate_hz: float
 
 
-def render_scene(name: str, seed: int, n_frames: int | None, cache: Path | None) -> SceneRun:
+def render_scene(
+    name: str, seed: int, n_frames: int | None, cache: Path | None, encoding: str | None = None
+) -> SceneRun:
+    """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``."""
+    import dataclasses
+
     from groundsim.world.scenario import load_scenario, scenarios_dir
     from groundsim.world.sim import SimCore
     from onboard.core.frames import rotmat_from_quat
 
     sc = load_scenario(scenarios_dir() / f"{name}.yaml")
+    if encoding is not None:
+        sc = dataclasses.replace(sc, ir=dataclasses.replace(sc.ir, encoding=encoding))
     duration = sc.duration_s if n_frames is None else min(sc.duration_s, n_frames / sc.frame_rate_hz)
     K = sc.camera.intrinsics
-    path = None if cache is None else cache / f"{name}-s{seed}-{duration:.3f}.npz"
+    # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
+    path = None if cache is None else cache / f"{name}-{sc.ir.encoding}-s{seed}-{duration:.3f}.npz"
     if path is not None and path.exists():
         z = np.load(path, allow_pickle=True)
         frames = [None if f.size == 0 else f for f in z["frames"]]
@@ -272,6 +280,9 @@ def main(argv: list[str]) -> None:
     ap.add_argument(
         "--repeat", type=int, default=1, help="run each chain N times; times per frame are the least over the runs"
     )
+    ap.add_argument(
+        "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
+    )
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
@@ -285,7 +296,7 @@ def main(argv: list[str]) -> None:
         f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
     )
     for name in a.scene:
-        run = render_scene(name, a.seed, a.frames, cache)
+        run = render_scene(name, a.seed, a.frames, cache, a.encoding)
         for c in chains:
             s = score_repeated(run, CHAINS[c], a.repeat)
             print(

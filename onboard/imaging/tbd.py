@@ -4,12 +4,13 @@
 on the objects chain's cleaned frame (column offsets removed, defects repaired; float, the input's grey).
 
 A target a few NETD above its background is below any single-frame threshold that keeps the false alarms
-down (scene C4: ~2.4 NETD peak, a single-frame signal-to-noise of ~3 after background suppression), but its
-signal adds coherently over frames along its path while the noise adds in quadrature.  The stage:
+down, but its signal adds coherently over frames along its path while the noise adds in quadrature
+(docs/perception.md has the figures on scene C4).  The stage:
 
-1. **Background suppression on a decimated grid**: the frame's ``decimation`` x ``decimation`` block means
-   (a 2 x 2 px target stays within one to four cells) minus their ``background_cells`` box mean: a linear
-   high-pass, so the noise stays zero-mean and integrates down as ``1/sqrt(frames)``.
+1. **Background suppression**: the frame's ``decimation`` x ``decimation`` block means (1: full
+   resolution), their ``smooth_cells`` box mean (about a blurred point's size: the matched filter's
+   cheap stand-in), minus the local background (a box mean ``background_px`` wide, taken on a coarser
+   grid): a linear high-pass, so the noise stays zero-mean and integrates down as ``1/sqrt(frames)``.
 2. **Integration along hypotheses** (a bank of image velocities ``v_h`` in px per frame, on a grid of step
    ``speed_step_pxpf`` up to ``max_speed_pxpf`` per axis): one recursive mean per hypothesis,
    ``A_h <- (1 - gain) shift(A_h, s_rot + v_h) + gain F``, where ``s_rot`` is the image shift the camera's
@@ -18,22 +19,28 @@ signal adds coherently over frames along its path while the noise adds in quadra
    where the gimbal points keeps it small).  Shifts are applied in whole cells and the remainder carried
    to the next frame (never interpolated, so the integrated image is not blurred frame after frame); the
    misregistration this leaves (under half a cell per frame, signal-weighted over the memory) is tracked
-   per hypothesis and removed from the reported centre.  Memory ~``1 / gain`` frames (the recursive
-   form of a sliding sum; Reed, Gagliardi & Shao 1983, IEEE TAES 19, 898 (the 3-D matched filter);
-   Blostein & Huang 1991, IEEE TSP 39, 1611 (velocity hypotheses)).
+   per hypothesis and removed from the reported centre, and so is the lag of a hypothesis slower or faster
+   than the target (the peak's velocity interpolated between hypotheses, times the content's mean age).
+   Memory ~``1 / gain`` frames (the recursive form of a sliding sum; Reed, Gagliardi & Shao 1983, IEEE
+   TAES 19, 898 (the 3-D matched filter); Blostein & Huang 1991, IEEE TSP 39, 1611 (velocity hypotheses)).
 3. **CFAR on the integrated image**: ``M = max_h A_h`` is thresholded at its local mean plus
    ``threshold_sigma`` local standard deviations (both over ``noise_window_px``, on a 4x coarser grid):
    the threshold follows whatever survives integration (noise down by ``sqrt(gain / (2 - gain))``,
    static cloud structure not), so the false-alarm rate stays near constant over sky and cloud.
-4. **Confirmation**: a peak reported above threshold on ``confirm_frames`` consecutive frames within
-   ``confirm_radius_px`` of where the last one predicts (its hypothesis' motion) is a candidate, handed
-   to the multi-object tracker (which still applies its own M-of-N, fit and relative-motion tests).
+4. **Confirmation**: a peak above ``threshold_sigma`` starts a pending peak; one above the lower
+   ``track_threshold_sigma`` within ``confirm_radius_px`` of where a pending peak's velocity puts it
+   continues it (hysteresis: a dim target's integrated peak hovers about the threshold); seen on
+   ``confirm_frames`` frames in a row it is reported on every frame it is seen, to the multi-object
+   tracker (which still applies its own M-of-N, fit and relative-motion tests).  Peaks within
+   ``confirm_radius_px`` of a point the single-frame detector found are not reported (no duplicates).
 
-The stage searches the whole frame only while ``focus_uv`` is None (the chain has no primary target);
-while the primary is the object this stage confirmed, it integrates only a ``roi_px`` window about the
-primary's prediction (carrying the integration over) and reports the peak nearest it above
-``track_threshold_sigma``; with any other primary it is idle (and forgets).  So its cost falls on the
-frames where no target is held, and on a dim target's window.
+The stage searches only while ``focus_uv`` is None (the chain has no primary target), over the
+``search_px`` square about the principal point (where a pointing gimbal holds its target, and where the
+chain's primary rule looks first; 0: the whole frame).  While the primary is the object this stage
+confirmed, it integrates only a ``roi_px`` window about the primary's prediction (carrying the
+integration over) and reports the peak nearest it above ``track_threshold_sigma`` against the window's own
+statistics; with any other primary it is idle (and forgets).  So its cost falls on the frames where no
+target is held, and on a dim target's window.
 
 Positions are full-resolution pixels in the frames.py convention (pixel (i, j) centred at (j + 0.5,
 i + 0.5)); decimated cell (i, j) covers pixels ``decimation * i ...``, centred at ``decimation * (j + 0.5)``.
@@ -65,7 +72,13 @@ STATS_FACTOR = 4  # the CFAR's local mean and deviation are taken on a grid this
 
 @dataclass(frozen=True)
 class TbdParams:
-    """Knobs of :class:`TrackBeforeDetect` (pixels are full-resolution; see the module docstring)."""
+    """Knobs of :class:`TrackBeforeDetect` (pixels are full-resolution; see the module docstring):
+    ``decimation`` (cells of that many pixels a side), ``smooth_cells``, ``background_px``,
+    ``search_px``; ``gain`` of the recursive means; the bank ``max_speed_pxpf``, ``speed_step_pxpf``;
+    ``threshold_sigma`` to start and ``track_threshold_sigma`` to continue a peak; ``noise_window_px``
+    of the CFAR statistics; ``confirm_frames``, ``confirm_radius_px``; ``roi_px`` the window about a
+    followed target; ``max_candidates`` reported per frame; ``max_area_cells`` of the 5 x 5 about a peak
+    above the threshold (a larger blob is not a point)."""
 
     decimation: int = 1
     smooth_cells: int = 2
@@ -81,7 +94,7 @@ class TbdParams:
     confirm_radius_px: float = 3.0
     roi_px: int = 96
     max_candidates: int = 4
-    max_area_cells: int = 16
+    max_area_cells: int = 20
 
     def __post_init__(self) -> None:
         if self.decimation < 1 or self.smooth_cells < 1 or self.background_px < 3 * self.decimation:
@@ -343,10 +356,11 @@ class TrackBeforeDetect:
             taken.append((r, c))
             if focus_cell is not None and max(abs(r - focus_cell[0]), abs(c - focus_cell[1])) > focus_cells:
                 continue  # a peak away from the followed target: of no use, not measured
-            r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, h), max(c - 1, 0), min(c + 2, w)
-            area = int(np.count_nonzero(mask[r0:r1, c0:c1]))
+            g = NMS_CELLS
+            area = int(np.count_nonzero(mask[max(r - g, 0) : r + g + 1, max(c - g, 0) : c + g + 1]))
             if area > p.max_area_cells:
-                continue
+                continue  # a blob filling its surround: structure, not a point
+            r0, r1, c0, c1 = max(r - 1, 0), min(r + 2, h), max(c - 1, 0), min(c + 2, w)
             hyp = int(np.argmax(acc[:, r, c]))
             cu, cv_ = _centroid(acc[hyp], r, c)
             vel_cells = self._velocity_cells(hyp, r, c)

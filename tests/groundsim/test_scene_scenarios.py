@@ -32,7 +32,7 @@ RING_PX = 3  # local background: the median of a ring this wide around the objec
 
 @pytest.fixture(scope="module")
 def rendered():
-    """Per scene: (scenario, {k: SimFrame}) of FRAMES, run seed 0, as shipped (mono8)."""
+    """Per scene: (scenario, {k: SimFrame}) of FRAMES, run seed 0, as shipped (mono8; C4 mono16)."""
     out = {}
     for name in SCENES:
         sc = load_scenario(scenarios_dir() / f"{name}.yaml")
@@ -55,8 +55,10 @@ def _sha(frames) -> str:
 def test_scene_renders_with_labels_and_the_default_rtk_navigation(rendered, name):
     sc, frames = rendered[name]
     assert sc.nav_noise == "RTK"
+    # C4's 2-NETD target does not survive 8-bit quantisation (docs/scenes.md): it ships 16-bit
+    dtype = np.uint16 if name == "C4" else np.uint8
     for k, fr in frames.items():
-        assert fr.pixels is not None and fr.pixels.dtype == np.uint8 and fr.pixels.shape == (512, 640), (name, k)
+        assert fr.pixels is not None and fr.pixels.dtype == dtype and fr.pixels.shape == (512, 640), (name, k)
         assert fr.labels[0].object_id == 0 and fr.labels[0].cls == "target"
         assert fr.labels[0].visibility != "out_of_frame"
         # the label's centre is the truth row's projection of the target
