@@ -94,7 +94,7 @@ class TbdParams:
     confirm_radius_px: float = 3.0
     roi_px: int = 96
     max_candidates: int = 4
-    max_area_cells: int = 20
+    max_area_cells: int = 23
 
     def __post_init__(self) -> None:
         if self.decimation < 1 or self.smooth_cells < 1 or self.background_px < 3 * self.decimation:
