@@ -239,13 +239,12 @@ class ObjectTracker:
         self.frozen_frames = 0
         self.offset_steps = 0
         im = self.imaging
-        self.tbd = (
-            TrackBeforeDetect(
-                intrinsics, TbdParams(threshold_sigma=im.tbd_threshold_sigma, max_speed_pxpf=im.tbd_max_speed_pxpf)
-            )
-            if im.tbd
-            else None
+        tbd = TbdParams(
+            threshold_sigma=im.tbd_threshold_sigma,
+            track_threshold_sigma=min(TbdParams.track_threshold_sigma, im.tbd_threshold_sigma),
+            max_speed_pxpf=im.tbd_max_speed_pxpf,
         )
+        self.tbd = TrackBeforeDetect(intrinsics, tbd) if im.tbd else None
         self._clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
 
     # ------------------------------------------------------------------ geometry
@@ -375,8 +374,8 @@ class ObjectTracker:
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
     ) -> list[PointCandidate]:
-        """Track-before-detect's confirmed dim points (:mod:`onboard.imaging.tbd`): it searches the whole
-        frame while there is no primary target and then follows the primary only if it found it."""
+        """Track-before-detect's confirmed dim points (:mod:`onboard.imaging.tbd`): it searches while there
+        is no primary target, then follows the primary (at its prediction) only if it found it."""
         focus = None
         prim = next((t for t in self._tracks if t.object_id == self._primary), None)
         if prim is not None:

@@ -102,6 +102,11 @@ class TbdParams:
                 "TbdParams decimation >= 1, smooth_cells >= 1 and background_px >= 3 cells, got "
                 f"{self.decimation}, {self.smooth_cells}, {self.background_px}"
             )
+        if not 0 < self.track_threshold_sigma <= self.threshold_sigma:
+            raise InputError(
+                "TbdParams 0 < track_threshold_sigma <= threshold_sigma, got "
+                f"{self.track_threshold_sigma}, {self.threshold_sigma}"
+            )
         if not 0 < self.gain <= 1:
             raise InputError(f"TbdParams gain in (0, 1], got {self.gain}")
         if self.max_speed_pxpf < 0 or (self.max_speed_pxpf > 0 and not self.speed_step_pxpf > 0):

@@ -182,8 +182,24 @@ def test_velocity_bank_is_a_square_grid_with_zero():
 
 @pytest.mark.parametrize(
     "kwargs",
-    [dict(gain=0.0), dict(gain=1.5), dict(decimation=0), dict(max_speed_pxpf=0.3, speed_step_pxpf=0.0), dict(roi_px=4)],
+    [
+        dict(gain=0.0),
+        dict(gain=1.5),
+        dict(decimation=0),
+        dict(max_speed_pxpf=0.3, speed_step_pxpf=0.0),
+        dict(roi_px=4),
+        dict(threshold_sigma=3.0, track_threshold_sigma=4.0),
+    ],
 )
 def test_tbd_params_refuse_nonsense(kwargs):
     with pytest.raises(InputError):
         TbdParams(**kwargs)
+
+
+def test_config_keys_reach_the_stage():
+    im = ImagingParams.from_mapping({"chain": "objects", "tbd_threshold_sigma": 3.0, "tbd_max_speed_pxpf": 0.6})
+    tr = ObjectTracker(K, imaging=im)
+    assert tr.tbd is not None
+    assert tr.tbd.params.threshold_sigma == 3.0 and tr.tbd.params.track_threshold_sigma == 3.0  # never above it
+    assert len(tr.tbd.params.velocities_pxpf()) == 25
+    assert ObjectTracker(K, imaging=ImagingParams.from_mapping({"chain": "objects", "tbd": False})).tbd is None
