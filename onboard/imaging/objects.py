@@ -380,7 +380,7 @@ class ObjectTracker:
         prim = next((t for t in self._tracks if t.object_id == self._primary), None)
         if prim is not None:
             focus = self._project(_unit(prim.los + prim.rate), R) or prim.uv
-        return tbd.update(clean, R, focus, [(c.u_px, c.v_px) for c in regular])
+        return tbd.update(clean, R, focus, regular)
 
     def _associate(self, cands: list[PointCandidate], R: np.ndarray, n_regular: int | None = None) -> set[int]:
         """Greedy nearest-first association; ``cands[n_regular:]`` are track-aided candidates, which

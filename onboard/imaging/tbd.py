@@ -63,6 +63,7 @@ __all__ = ["TbdParams", "TrackBeforeDetect"]
 
 log = logging.getLogger(__name__)
 
+KNOWN_MARGIN_PX = 3  # about a known point's box, left out of the integration (its blur and sub-pixel motion)
 FOCUS_RADIUS_PX = 6.0  # a primary this close to a peak this stage confirmed is that peak's object
 CONFIRMED_MISSES = 3  # frames a confirmed peak may go unseen before it is forgotten
 MAX_ABOVE_CELLS = 2000  # more cells above the threshold than this: a frame-wide change, not point targets
@@ -172,12 +173,13 @@ class TrackBeforeDetect:
         image: np.ndarray,
         R_ned_from_cam: np.ndarray,
         focus_uv: tuple[float, float] | None = None,
-        known_uv: Sequence[tuple[float, float]] = (),
+        known: Sequence[PointCandidate] = (),
     ) -> list[PointCandidate]:
         """One frame (float or integer (H, W) grey, the frame's pose): the confirmed candidates, strongest
         first.  ``focus_uv``: the chain's primary target's predicted centre (None: no primary; see the
-        module docstring); ``known_uv``: centres the single-frame detection found on this frame (a peak
-        within ``confirm_radius_px`` of one is not reported: it is detected already)."""
+        module docstring); ``known``: the points the single-frame detection found on this frame: left out
+        of the integration (their box and ``KNOWN_MARGIN_PX`` about it: a bright point moving faster
+        than the bank would leave a trail of peaks behind it) and never reported."""
         p = self.params
         if focus_uv is None:
             if self._mode != "search":
@@ -208,11 +210,12 @@ class TrackBeforeDetect:
             win = (i0, j0, min(side, h), min(side, w))
             self.windowed_frames += 1
         frame = self._suppressed(image, win)
+        self._mask_known(frame, win, known)
         self._integrate(frame, R, win)
         self._R = R
         focus_cell = None if focus_uv is None else (focus_uv[1] / d - win[0], focus_uv[0] / d - win[1])
         found = self._peaks(focus_cell)
-        found = [f for f in found if all(math.hypot(f[1] - a, f[2] - b) > p.confirm_radius_px for a, b in known_uv)]
+        found = [f for f in found if all(math.hypot(f[1] - c.u_px, f[2] - c.v_px) > p.confirm_radius_px for c in known)]
         if focus_uv is not None:
             return self._in_focus(found, focus_uv)
         return self._confirm(found)
@@ -253,6 +256,18 @@ class TrackBeforeDetect:
         )
         hp = cv2.subtract(cells, bg)
         return hp[i0 - a0 : i0 - a0 + wh, j0 - b0 : j0 - b0 + ww]
+
+    def _mask_known(self, frame: np.ndarray, win: tuple[int, int, int, int], known: Sequence[PointCandidate]) -> None:
+        """Zero the suppressed window (in place) over each known point's box grown by ``KNOWN_MARGIN_PX``."""
+        d = self.params.decimation
+        i0, j0, wh, ww = win
+        m = KNOWN_MARGIN_PX + self.params.smooth_cells * d  # the smoothing box reaches back that far
+        for c in known:
+            x, y, w, h = c.bbox
+            a0, a1 = max((y - m) // d - i0, 0), min((y + h + KNOWN_MARGIN_PX) // d + 1 - i0, wh)
+            b0, b1 = max((x - m) // d - j0, 0), min((x + w + KNOWN_MARGIN_PX) // d + 1 - j0, ww)
+            if a1 > a0 and b1 > b0:
+                frame[a0:a1, b0:b1] = 0.0
 
     def _rotation_shift_cells(self, R: np.ndarray, win: tuple[int, int, int, int]) -> np.ndarray:
         """Where a point at infinity seen at the window's centre on the previous frame is now, minus

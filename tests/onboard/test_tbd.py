@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics, quat_from_euler, rotmat_from_quat
+from onboard.imaging.clutter import PointCandidate
 from onboard.imaging.objects import ObjectTracker
 from onboard.imaging.preprocess import ImagingParams
 from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, _shift_in_place, _shift_into
@@ -122,7 +123,8 @@ def test_a_point_the_single_frame_detector_sees_is_not_reported_again():
     rng = np.random.default_rng(5)
     truth = (70.0, 60.0)
     tbd = TrackBeforeDetect(K, TbdParams(search_px=0))
-    outs = [tbd.update(_frame(rng, [truth], peak_netd=8.0), R_MOUNT, known_uv=[truth]) for _ in range(30)]
+    known = [PointCandidate(truth[0], truth[1], (69, 59, 2, 2), 4, 200.0, 1.5)]
+    outs = [tbd.update(_frame(rng, [truth], peak_netd=8.0), R_MOUNT, known=known) for _ in range(30)]
     assert all(out == [] for out in outs)
 
 
