@@ -26,7 +26,9 @@ down, but its signal adds coherently over frames along its path while the noise 
 3. **CFAR on the integrated image**: ``M = max_h A_h`` is thresholded at its local mean plus
    ``threshold_sigma`` local standard deviations (both over ``noise_window_px``, on a 4x coarser grid):
    the threshold follows whatever survives integration (noise down by ``sqrt(gain / (2 - gain))``,
-   static cloud structure not), so the false-alarm rate stays near constant over sky and cloud.
+   static cloud structure not), so the false-alarm rate stays near constant over sky and cloud.  A
+   search skips peaks where the frame's own local rms is ``TEXTURED_RATIO`` times the window's quietest
+   tenth: static cloud or terrain integrates as well as a target does, and a dim target is sought on sky.
 4. **Confirmation**: a peak above ``threshold_sigma`` starts a pending peak; one above the lower
    ``track_threshold_sigma`` within ``confirm_radius_px`` of where a pending peak's velocity puts it
    continues it (hysteresis: a dim target's integrated peak hovers about the threshold); seen on
@@ -64,6 +66,8 @@ __all__ = ["TbdParams", "TrackBeforeDetect"]
 log = logging.getLogger(__name__)
 
 KNOWN_MARGIN_PX = 3  # about a known point's box, left out of the integration (its blur and sub-pixel motion)
+TEXTURED_RATIO = 2.0  # a search skips cells whose local rms is this many times the window's quietest
+TEXTURE_FLOOR_PERCENT = 10.0  # ... tenth's (the clear sky's noise where there is any clear sky)
 FOCUS_RADIUS_PX = 6.0  # a primary this close to a peak this stage confirmed is that peak's object
 CONFIRMED_MISSES = 3  # frames a confirmed peak may go unseen before it is forgotten
 MAX_ABOVE_CELLS = 2000  # more cells above the threshold than this: a frame-wide change, not point targets
@@ -151,6 +155,7 @@ class TrackBeforeDetect:
         self._misreg = np.zeros_like(self._v_cells)  # signal-weighted misplacement of the content, cells
         self._weight = 0.0  # the recursive mean's total weight (1 - (1 - gain)^frames)
         self._age = 0.0  # the signal-weighted mean age of its content, frames
+        self._texture: np.ndarray | None = None  # this frame's textured cells (coarse grid), while searching
         self._n_axis = int(round(math.sqrt(len(self._v_cells))))  # hypotheses per velocity axis
         self._step_cells = self.params.speed_step_pxpf / self.params.decimation
         self._origin = (0, 0)  # the window's top-left cell (row, column)
@@ -211,6 +216,7 @@ class TrackBeforeDetect:
             self.windowed_frames += 1
         frame = self._suppressed(image, win)
         self._mask_known(frame, win, known)
+        self._texture = self._texture_map(frame) if focus_uv is None else None
         self._integrate(frame, R, win)
         self._R = R
         focus_cell = None if focus_uv is None else (focus_uv[1] / d - win[0], focus_uv[0] / d - win[1])
@@ -246,8 +252,8 @@ class TrackBeforeDetect:
         cells = cv2.resize(crop, (b1 - b0, a1 - a0), interpolation=cv2.INTER_AREA) if d > 1 else crop
         if p.smooth_cells > 1:  # a box about the size of a blurred point: its mean, anchored at the top left
             cells = cv2.blur(cells, (p.smooth_cells, p.smooth_cells), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
-        # the local background: a 3 x 3 box mean on a grid background_cells / 3 times coarser, interpolated
-        # back (a box mean of background_cells at full size costs ~5x more; the background is smooth)
+        # the local background: a 3 x 3 box mean on a grid background_px / 3 times coarser, interpolated
+        # back (a full-size box mean costs ~5x more; the background is smooth)
         ch, cw = cells.shape
         f = max(bc // 3, 1)
         coarse = cv2.resize(cells, (max(cw // f, 1), max(ch // f, 1)), interpolation=cv2.INTER_AREA)
@@ -256,6 +262,18 @@ class TrackBeforeDetect:
         )
         hp = cv2.subtract(cells, bg)
         return hp[i0 - a0 : i0 - a0 + wh, j0 - b0 : j0 - b0 + ww]
+
+    def _texture_map(self, frame: np.ndarray) -> np.ndarray:
+        """Per ``STATS_FACTOR`` cells, whether this frame's local rms (over ``noise_window_px``) is above
+        ``TEXTURED_RATIO`` times the window's quietest tenth: cloud or terrain, where static structure
+        integrates as well as a target does (bool, coarse grid)."""
+        p = self.params
+        h, w = frame.shape
+        f = STATS_FACTOR if min(h, w) >= 4 * STATS_FACTOR else 1
+        k = max(p.noise_window_px // (p.decimation * f), 1) | 1
+        sq = cv2.resize(cv2.multiply(frame, frame), (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
+        rms = np.sqrt(cv2.blur(sq, (k, k), borderType=cv2.BORDER_REFLECT))
+        return rms > TEXTURED_RATIO * float(np.percentile(rms, TEXTURE_FLOOR_PERCENT))
 
     def _mask_known(self, frame: np.ndarray, win: tuple[int, int, int, int], known: Sequence[PointCandidate]) -> None:
         """Zero the suppressed window (in place) over each known point's box grown by ``KNOWN_MARGIN_PX``."""
@@ -376,6 +394,12 @@ class TrackBeforeDetect:
             taken.append((r, c))
             if focus_cell is not None and max(abs(r - focus_cell[0]), abs(c - focus_cell[1])) > focus_cells:
                 continue  # a peak away from the followed target: of no use, not measured
+            tex = self._texture
+            if (
+                tex is not None
+                and tex[min(r // STATS_FACTOR, tex.shape[0] - 1), min(c // STATS_FACTOR, tex.shape[1] - 1)]
+            ):
+                continue  # on cloud or terrain: their static structure integrates like a target
             g = NMS_CELLS
             area = int(np.count_nonzero(mask[max(r - g, 0) : r + g + 1, max(c - g, 0) : c + g + 1]))
             if area > p.max_area_cells:
