@@ -689,8 +689,14 @@ class ObjectTracker:
             x, y, w, h = t.bbox
             box = (u - w / 2, v - h / 2, float(w), float(h))
             if t.object_id == self._primary and state == "confirmed":
-                det = measure_blob(image, Blob(t.bbox, max(w * h, 1), t.score), self.imaging, 0.0)
-                if det is not None and math.hypot(det.u_px - u, det.v_px - v) <= self.params.gate_px:
+                # a point only track-before-detect saw: its integrated centre is the measurement (the single
+                # frame's centroid fails or wanders by pixels at a few NETD)
+                det = None if self.tbd is None else self.tbd.detection_at(t.uv, image)
+                if det is None:
+                    det = measure_blob(image, Blob(t.bbox, max(w * h, 1), t.score), self.imaging, 0.0)
+                    if det is not None and math.hypot(det.u_px - u, det.v_px - v) > self.params.gate_px:
+                        det = None
+                if det is not None:
                     primary_det = det
                     u, v = det.u_px, det.v_px
             los = tuple(float(a) for a in self._los(u, v, R))

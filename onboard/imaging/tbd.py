@@ -60,6 +60,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.imaging.clutter import PointCandidate
+from onboard.imaging.detect import Detection
 
 __all__ = ["TbdParams", "TrackBeforeDetect"]
 
@@ -162,6 +163,7 @@ class TrackBeforeDetect:
         self._R: np.ndarray | None = None
         self._pending: list[_Pending] = []
         self._mode = "search"  # search (no primary), window (the primary is this stage's), idle (another's)
+        self._reports: list[tuple[PointCandidate, float]] = []  # this frame's reports and their local sigmas
         self.searched_frames = 0
         self.windowed_frames = 0
         self.confirmed = 0
@@ -199,6 +201,7 @@ class TrackBeforeDetect:
             self._mode = "window" if mine else "idle"
             if not mine:
                 self.reset()  # a primary this stage did not find: nothing to do until it is gone
+        self._reports = []
         if self._mode == "idle":
             self._R = None
             return []
@@ -445,13 +448,31 @@ class TrackBeforeDetect:
                     v[axis] += min(max(0.5 * (fm - fp) / den, -0.5), 0.5) * self._step_cells
         return v
 
+    def detection_at(self, uv: tuple[float, float], image: np.ndarray) -> Detection | None:
+        """This frame's report at ``uv`` (the very centre a track took from it) as a
+        :class:`~onboard.imaging.detect.Detection`, else None.  A dim target's single-frame centroid fails
+        or wanders on most frames; the integrated centre is its measurement: ``contrast`` the integrated
+        mean contrast (grey, over the smoothing box), ``snr`` its local sigmas in the integrated image,
+        ``peak`` the raw grey at the centre."""
+        for c, z in self._reports:
+            if c.u_px == uv[0] and c.v_px == uv[1]:
+                h, w = image.shape
+                i, j = min(max(int(c.v_px), 0), h - 1), min(max(int(c.u_px), 0), w - 1)
+                x, y, bw, bh = c.bbox
+                border = x <= 0 or y <= 0 or x + bw >= w or y + bh >= h
+                flux = c.peak * self.params.smooth_cells**2 * self.params.decimation**2
+                return Detection(c.u_px, c.v_px, c.area_px, c.peak, flux, c.bbox, float(image[i, j]), z, border)
+        return None
+
     def _in_focus(self, found: list, focus_uv: tuple[float, float]) -> list[PointCandidate]:
         p = self.params
         near = [f for f in found if math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]) <= p.confirm_radius_px * 2]
         if not near:
             return []
-        s, u, v, _, bbox, area, peak = min(near, key=lambda f: math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]))
-        return [PointCandidate(u, v, bbox, area, peak, max(s / p.track_threshold_sigma, 1.0))]
+        z, u, v, _, bbox, area, peak = min(near, key=lambda f: math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]))
+        c = PointCandidate(u, v, bbox, area, peak, max(z / p.track_threshold_sigma, 1.0))
+        self._reports = [(c, z)]
+        return [c]
 
     def _confirm(self, found: list) -> list[PointCandidate]:
         """Match this frame's peaks to the pending ones (moved by their hypothesis' velocity); those
@@ -482,6 +503,7 @@ class TrackBeforeDetect:
                     self.confirmed += 1
                     log.debug("track-before-detect: peak confirmed at (%.1f, %.1f), %.1f sigma", u, v, z)
                 out.append(PointCandidate(u, v, bbox, area, peak, max(z / p.threshold_sigma, 1.0)))
+                self._reports.append((out[-1], z))
         # a confirmed peak survives a few frames unseen (a dim target dips), a pending one none
         self._pending = [
             q for q in self._pending if q.seen or (q.count >= p.confirm_frames and q.misses < CONFIRMED_MISSES)

@@ -205,3 +205,21 @@ def test_config_keys_reach_the_stage():
     assert tr.tbd.params.threshold_sigma == 3.0 and tr.tbd.params.track_threshold_sigma == 3.0  # never above it
     assert len(tr.tbd.params.velocities_pxpf()) == 25
     assert ObjectTracker(K, imaging=ImagingParams.from_mapping({"chain": "objects", "tbd": False})).tbd is None
+
+
+def test_the_daemons_track_is_measured_by_the_integrated_centre():
+    """Through ObjectChain (what the daemon runs): once confirmed, the dim primary is ``tracking`` with a
+    detection on nearly every frame (its single-frame centroid fails on most), at the target."""
+    from onboard.imaging import TrackState
+    from onboard.imaging.objects import ObjectChain
+
+    rng = np.random.default_rng(7)
+    truth = [(82.0 + 0.15 * k, 62.0 + 0.05 * k) for k in range(60)]
+    chain = ObjectChain(K, ImagingParams(chain="objects"))
+    outs = [chain.update(_frame(rng, [t]), R_MOUNT) for t in truth]
+    first = next(k for k, o in enumerate(outs) if o.state is TrackState.TRACKING)
+    measured = [k for k in range(first, len(outs)) if outs[k].state is TrackState.TRACKING]
+    assert first <= 45 and len(measured) >= 0.9 * (len(outs) - first)
+    for k in measured:
+        d = outs[k].detection
+        assert d is not None and math.hypot(d.u_px - truth[k][0], d.v_px - truth[k][1]) <= 2.0
