@@ -135,6 +135,19 @@ class ThreadedEstimator:
         with self._cond:
             return self._extrapolate(float(t_s), p_cam_ned_m)
 
+    def rebuild(self, rows) -> None:
+        """Replace the window with ``rows`` (``add``'s arguments, oldest first: the same frames at a new camera
+        clock compensation), made by the worker with one model selection (:meth:`SlidingWindowEstimator.rebuild`).
+        Returns None: the estimate comes with the next frames."""
+        packed = [_observation(*r) for r in rows]
+        with self._cond:
+            self._epoch += 1
+            self._q.clear()
+            self._q.append(("rebuild", self._epoch, packed[-1][0] if packed else None, packed))
+            self._latest = None
+            self._result = None
+            self._cond.notify_all()
+
     def reset(self) -> None:
         with self._cond:
             self._epoch += 1
@@ -171,17 +184,18 @@ class ThreadedEstimator:
                 if kind == "reset":
                     self._est.reset()
                     continue
-                est = self._est.add(*args)
+                est = self._est.rebuild(args) if kind == "rebuild" else self._est.add(*args)
             except InputError as exc:
                 self._counter.count("estimator_input", str(exc))
             except Exception as exc:  # noqa: BLE001 - the worker must never die
                 self._counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
             finally:
                 self.worker_cpu_s += time.thread_time() - c0
-            if kind != "add":
-                continue
             with self._cond:
                 if epoch == self._epoch:
+                    if kind == "rebuild":
+                        self._latest = (epoch, est) if est is not None else self._latest
+                        continue
                     self._result = (epoch, t, est)
                     if est is not None:
                         self._latest = (epoch, est)
@@ -645,6 +659,16 @@ class ProcessEstimator:
     def predict(self, t_s: float, p_cam_ned_m=None):
         self._drain()
         return self._extrapolate(float(t_s), p_cam_ned_m)
+
+    def rebuild(self, rows) -> None:
+        """Replace the window with ``rows`` (``add``'s arguments, oldest first: the same frames at a new camera
+        clock compensation), made by the worker with one model selection, as for a replacement worker.  Returns
+        None: the estimate comes with the next frames."""
+        self.reset()
+        for r in rows:
+            self._remember(_observation(*r))
+        if self._window and self._alive():
+            self._send(("rebuild", self._epoch, self._packed_window(), None))
 
     def reset(self) -> None:
         self._epoch += 1

@@ -50,9 +50,10 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     is poor; with both active, both are listed.  Cleared by the first report with a 3-D fix or better.
 
 ``camera_time_offset``
-    The camera's clock is off the autopilot's: the estimate of :mod:`onboard.estimation.time_offset` is
-    ``confident`` and its magnitude above ``time_offset.warn_threshold_ms`` by more than two sigmas (20 ms: at
-    0.1 rad/s of camera rotation, 2 mrad of line-of-sight error, twice the attitude noise).  The message gives the offset,
+    The camera's clock is off the autopilot's: the estimate of :mod:`onboard.estimation.time_offset` is above
+    ``time_offset.warn_threshold_ms`` (20 ms: at 0.1 rad/s of camera rotation, 2 mrad of line-of-sight error, twice
+    the attitude noise) by more than two sigmas that can be trusted (a ``confident`` estimate's, or one pooled over
+    three blocks: ``TimeOffsetEstimate.significantly_beyond``).  The message gives the offset,
     its sigma and whether the pose lookup compensates it.  Cleared by a confident estimate at or below the
     threshold; an estimate that is not confident (no target, a still camera) changes nothing.
 
@@ -280,14 +281,15 @@ class Watchdog:
     def camera_time_offset(self, now_s: float, estimate, threshold_ms: float) -> None:
         """The camera clock's offset now (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`, or None
         when the estimator is off: ignored) against ``threshold_ms``."""
-        if estimate is None or estimate.state != "confident" or estimate.estimate_ms is None:
+        if estimate is None or estimate.estimate_ms is None:
             return
         dt_ms, sigma_ms = float(estimate.estimate_ms), float(estimate.sigma_ms or 0.0)
         if abs(dt_ms) <= threshold_ms:
-            self._clear("camera_time_offset")
+            if estimate.confident:
+                self._clear("camera_time_offset")
             return
-        if abs(dt_ms) - 2.0 * sigma_ms <= threshold_ms:
-            return  # above the threshold, but not by two sigmas: neither raised nor cleared
+        if not estimate.significantly_beyond(threshold_ms):
+            return  # above the threshold, but not by two trusted sigmas: neither raised nor cleared
         late = "late" if dt_ms > 0 else "early"
         comp = float(estimate.compensated_ms)
         done = (

@@ -50,12 +50,18 @@ counted.  The block length and the degree were chosen on P2 lockstep records (RT
 absorbed most of the gimbal's 3 to 7 s pointing motion into the target's polynomial (sigma 8 to 30 ms); longer
 blocks let the target's and observer's model errors in.
 
+Significance.  Whether the offset is beyond a threshold (the warning's question) needs less than a confident
+estimate: :meth:`TimeOffsetEstimate.significantly_beyond` asks for the estimate beyond it by two sigmas, the
+sigma a confident estimate's or one pooled over ``SIGNIFICANT_MIN_BLOCKS`` (3) blocks, whose scatter then checks
+it.  A weakly excited camera (the gimbal's pointing motion a few mrad/s) gives 20 to 30 ms per block, and a sigma
+under 8 ms takes tens of seconds, while 50 ms against a 20 ms threshold is plain after three blocks.
+
 Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
 takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
-:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it first becomes confident and beyond
-``min_compensated_ms`` by two sigmas (within ``max_offset_ms``), and again whenever a confident estimate leaves it by more than two sigmas; it holds its value
-otherwise (the offset belongs to the camera, not to the target: a
-lost track does not make it go away).
+:attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it is first significantly beyond
+``min_compensated_ms`` (within ``max_offset_ms``): compensating 50 ms as 46 +- 13 leaves 4 ms, not 50; it takes it
+again whenever a confident estimate leaves it by more than two sigmas, and holds its value otherwise (the offset
+belongs to the camera, not to the target: a lost track does not make it go away).
 """
 
 from __future__ import annotations
@@ -70,11 +76,14 @@ from onboard.core.checks import is_positive_number, require_each
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_conjugate, quat_multiply, rotmat_from_quat, rotvec_from_quat
 
-__all__ = ["TimeOffsetParams", "TimeOffsetEstimate", "TimeOffsetEstimator", "STATES"]
+__all__ = ["TimeOffsetParams", "TimeOffsetEstimate", "TimeOffsetEstimator", "STATES", "SIGNIFICANT_MIN_BLOCKS"]
 
 STATES = ("unknown", "estimating", "confident")
 MS_PER_S = 1000.0
 FREE_RANGE_TERMS = 1  # the range's change over a block left free: linear (module docstring)
+#: blocks pooled before a sigma that is not yet confident is trusted for a warning: from three on, the blocks'
+#: scatter bounds it from below (a sigma from the residuals alone misses their frame-to-frame correlation)
+SIGNIFICANT_MIN_BLOCKS = 3
 
 
 @dataclass(frozen=True)
@@ -148,6 +157,17 @@ class TimeOffsetEstimate:
     @property
     def confident(self) -> bool:
         return self.state == "confident"
+
+    def significantly_beyond(self, threshold_ms: float) -> bool:
+        """The offset is beyond ``threshold_ms`` by more than two sigmas, with a sigma that can be trusted: a
+        confident estimate's, or one pooled over ``SIGNIFICANT_MIN_BLOCKS`` blocks (their scatter checks it).
+
+        A test of the offset against the threshold, not a demand for precision (module docstring)."""
+        if self.estimate_ms is None or self.sigma_ms is None:
+            return False
+        if not (self.confident or self.blocks >= SIGNIFICANT_MIN_BLOCKS):
+            return False
+        return abs(self.estimate_ms) - 2.0 * self.sigma_ms > threshold_ms
 
     def as_dict(self) -> dict:
         r = lambda x, n: None if x is None else round(float(x), n)  # noqa: E731
@@ -276,13 +296,14 @@ class TimeOffsetEstimator:
         self.estimate = self._summarise()
         p = self.params
         e = self.estimate
-        if p.compensate and e.confident and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
-            # moved only when the estimate left the compensation by two sigmas: each move of the caller's pose
-            # lookup may restart its 3-D window, and a block's noise is no reason to
+        if p.compensate and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
+            # started by the same test as the warning (an offset of 50 ms compensated as 46 +- 13 leaves 4, not
+            # 50); moved only when a confident estimate left it by two sigmas: each move makes the caller's 3-D
+            # window again, and a block's noise is no reason to
             sigma_ms = e.sigma_ms if e.sigma_ms is not None else 0.0
-            significant = abs(e.estimate_ms) - 2.0 * sigma_ms > p.min_compensated_ms
-            moved = abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms
-            if (significant and not self._compensated_ms) or (self._compensated_ms and moved):
+            start = not self._compensated_ms and e.significantly_beyond(p.min_compensated_ms)
+            moved = e.confident and abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms
+            if start or (self._compensated_ms and moved):
                 self._compensated_ms = float(e.estimate_ms)
                 self.estimate = self._summarise()
 

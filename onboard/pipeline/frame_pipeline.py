@@ -43,7 +43,10 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    step 3 looks the pose up a second time, at ``t - compensated_ms``, and that pose (the last looked up: a
    recorder keeps it) makes the estimator's rows, the line of sight and the 3-D output; the track keeps the
    frame's stamp.  A compensation that moved by more than ``COMPENSATION_RESTART_MS`` since the estimator's
-   window began restarts the estimator (its rows made with the old one would disagree with the new ones).
+   window was made makes the window's rows again with the poses at their stamps minus the new compensation,
+   interpolated in the poses looked up at the frames' stamps (:mod:`onboard.pipeline.restamp`), and hands them
+   to the estimator's ``rebuild`` (one model selection, no window lost: its rows made with the old compensation
+   would disagree with the new ones); an estimator without ``rebuild`` is restarted instead.
    The offset estimator starts again on an autopilot reboot and on a frame-stream restart or clock step.
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
@@ -77,6 +80,7 @@ from onboard.core.track import LineOfSight, Track, line_of_sight_ned
 from onboard.estimation.time_offset import TimeOffsetEstimate, TimeOffsetEstimator
 from onboard.pipeline.admission import FrameAdmission
 from onboard.pipeline.coast import coast_estimate
+from onboard.pipeline.restamp import StampPoseHistory
 
 __all__ = ["FrameRejected", "PoseSource", "Estimator", "FramePipeline", "make_estimator", "make_tracker"]
 
@@ -87,8 +91,8 @@ US_PER_S = 1_000_000
 #: extrapolation adds 6 mm, a dead-reckoned second 1 m
 CAMERA_SIGMA_FLOOR_M = 0.02
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
-#: a change of the camera clock's compensation beyond this restarts the estimator: the window's rows made with the
-#: old one would disagree with the new ones (50 ms at 0.1 rad/s of camera rotation: 5 mrad, ten times the noise)
+#: a change of the camera clock's compensation beyond this makes the estimator's window again: its rows made with
+#: the old one would disagree with the new ones (50 ms at 0.1 rad/s of camera rotation: 5 mrad, ten times the noise)
 COMPENSATION_RESTART_MS = 10.0
 
 
@@ -237,6 +241,13 @@ class FramePipeline:
         #: the camera clock's offset estimator (None: ``time_offset.enabled`` false); step 7 of the module docstring
         self.time_offset = TimeOffsetEstimator(to.params()) if to is not None and to.enabled else None
         self._window_comp_ms = 0.0  # the clock compensation the estimator's window was made with
+        # the estimator's rows (time_boot_us, (u, v)) and the poses at the frames' stamps, to make the window again
+        # at a new compensation (step 7); kept only with the offset estimator on
+        window_s = float((getattr(ec, "sliding", None) or {}).get("window_s", getattr(ec, "window_s", 20.0)))
+        self._window_rows: collections.deque = collections.deque()
+        self._window_span_us = int(round(window_s * US_PER_S))
+        self._stamp_poses = StampPoseHistory(window_s + 1.0)
+        self.window_restamps = 0  # windows made again at a new compensation
         self.last_selection: dict[str, Any] | None = None  # the last operator request decided: kind, accepted, reason
 
     # ------------------------------------------------------------------ public
@@ -348,6 +359,8 @@ class FramePipeline:
         if self.pose_source is not None:
             try:
                 stamp_pose = pose = self.pose_source.pose_at(t_us)
+                if stamp_pose is not None and self.time_offset is not None:
+                    self._stamp_poses.append(t_us, stamp_pose.q_ned_from_cam, stamp_pose.p_cam_ned_m)
                 shift_us = self._compensation_us()
                 if shift_us and stamp_pose is not None:  # looked up last: the pose the frame's 3-D is made with
                     pose = self.pose_source.pose_at(t_us - shift_us)
@@ -418,6 +431,7 @@ class FramePipeline:
         self._est_has_data = False
         self._est_track_id = None
         self._window_est = None
+        self._window_rows.clear()
         self._residuals.clear()
 
     def _estimate(self, upd, pose: PoseAt | None, t_us: int):
@@ -444,6 +458,10 @@ class FramePipeline:
                 return self._coast(upd, pose, t_s)
             if upd.measurement_valid and pose is not None:
                 self._est_has_data = True
+                if self.time_offset is not None:
+                    self._window_rows.append((t_us, (upd.u_px, upd.v_px)))
+                    while self._window_rows[0][0] < t_us - self._window_span_us:
+                        self._window_rows.popleft()
                 est = self.estimator.add(
                     t_s, (upd.u_px, upd.v_px), self.intrinsics, pose.p_cam_ned_m, pose.q_ned_from_cam
                 )
@@ -493,13 +511,41 @@ class FramePipeline:
         return None if self.time_offset is None else self.time_offset.estimate
 
     def _follow_compensation(self) -> None:
-        """Restart the estimator when the clock compensation moved by more than ``COMPENSATION_RESTART_MS`` since
-        its window began; a window that starts takes the compensation of now."""
+        """Make the estimator's window again (or restart it) when the clock compensation moved by more than
+        ``COMPENSATION_RESTART_MS`` since the window was made; a window that starts takes the compensation of now."""
         comp_ms = self._compensation_us() / 1000.0
         if self._est_has_data and abs(comp_ms - self._window_comp_ms) > COMPENSATION_RESTART_MS:
-            self._reset_estimator(f"camera clock compensation now {comp_ms:.0f} ms (was {self._window_comp_ms:.0f} ms)")
+            why = f"camera clock compensation now {comp_ms:.0f} ms (was {self._window_comp_ms:.0f} ms)"
+            if not self._restamp_window(comp_ms, why):
+                self._reset_estimator(why)
         if not self._est_has_data:
             self._window_comp_ms = comp_ms
+
+    def _restamp_window(self, comp_ms: float, why: str) -> bool:
+        """The estimator's window made again with each row's pose at its stamp minus ``comp_ms`` (step 7); False
+        when it cannot be (no ``rebuild``, no row with a pose there, the rebuild failed): restart it then."""
+        rebuild = getattr(self.estimator, "rebuild", None)
+        if not callable(rebuild) or not self._window_rows:
+            return False
+        t_us = np.fromiter((r[0] for r in self._window_rows), dtype=np.int64, count=len(self._window_rows))
+        q, p, ok = self._stamp_poses.poses_at(t_us - int(round(comp_ms * 1000.0)))
+        rows = [
+            (int(t_us[i]) / US_PER_S, self._window_rows[i][1], self.intrinsics, p[i], q[i]) for i in np.flatnonzero(ok)
+        ]
+        if not rows:
+            return False
+        try:
+            est = rebuild(rows)
+        except Exception as exc:  # noqa: BLE001 - a failed rebuild costs the window, never the frame loop
+            self.counter.count("estimator_error", f"rebuild at a new clock compensation: {type(exc).__name__}: {exc}")
+            return False
+        kept = {int(t_us[i]) for i in np.flatnonzero(ok)}
+        self._window_rows = collections.deque(r for r in self._window_rows if r[0] in kept)
+        self._window_est = est if est is not None else self._window_est
+        self._window_comp_ms = comp_ms
+        self.window_restamps += 1
+        log.info("estimator window made again (%d of %d rows): %s", len(rows), len(t_us), why)
+        return True
 
     def _compensation_us(self) -> int:
         return 0 if self.time_offset is None else int(round(self.time_offset.compensated_ms * 1000.0))

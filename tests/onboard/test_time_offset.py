@@ -10,7 +10,12 @@ import pytest
 
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_rotmat, quat_from_rotvec, quat_multiply, rotmat_from_quat
-from onboard.estimation.time_offset import TimeOffsetEstimator, TimeOffsetParams
+from onboard.estimation.time_offset import (
+    SIGNIFICANT_MIN_BLOCKS,
+    TimeOffsetEstimate,
+    TimeOffsetEstimator,
+    TimeOffsetParams,
+)
 
 FRAME_RATE_HZ = 30.0
 
@@ -177,3 +182,31 @@ def test_refuses_non_finite_and_bad_params():
         TimeOffsetParams(block_s=0.0)
     with pytest.raises(InputError):
         TimeOffsetParams(rate_span_s=1.5, block_s=2.0)
+
+
+@pytest.mark.parametrize(
+    ("estimate_ms", "sigma_ms", "state", "blocks", "beyond"),
+    [
+        (50.0, 13.0, "estimating", SIGNIFICANT_MIN_BLOCKS, True),  # 50 - 26 = 24 > 20
+        (-50.0, 13.0, "estimating", SIGNIFICANT_MIN_BLOCKS, True),  # either sign
+        (50.0, 13.0, "estimating", SIGNIFICANT_MIN_BLOCKS - 1, False),  # too few blocks to trust that sigma
+        (50.0, 16.0, "estimating", 10, False),  # 50 - 32 = 18
+        (30.0, 4.0, "confident", 2, True),  # a confident sigma is trusted at once
+        (24.0, 3.0, "confident", 5, False),  # above the threshold, not by two sigmas
+        (None, None, "unknown", 0, False),
+    ],
+)
+def test_significantly_beyond_tests_the_offset_against_the_threshold(estimate_ms, sigma_ms, state, blocks, beyond):
+    e = TimeOffsetEstimate(estimate_ms, sigma_ms, state, 0.0, blocks, 100 * blocks, 0, 3.0)
+    assert e.significantly_beyond(20.0) is beyond
+
+
+def test_compensation_starts_on_a_significant_estimate_that_is_not_yet_confident():
+    est = TimeOffsetEstimator(TimeOffsetParams(confident_sigma_ms=0.5))  # a precision never reached here
+    out = _feed(est, 0.05, 12.0, seed=1)
+    e = out[-1]
+    assert e.state == "estimating" and e.blocks >= SIGNIFICANT_MIN_BLOCKS
+    started = next(i for i, x in enumerate(out) if x.compensated_ms)
+    assert out[started].blocks == SIGNIFICANT_MIN_BLOCKS  # not on two blocks: that sigma is not trusted
+    assert est.compensated_ms == pytest.approx(50.0, abs=4 * out[started].sigma_ms)
+    assert est.compensated_ms == out[started].estimate_ms  # never moved by an estimate that is not confident

@@ -145,10 +145,10 @@ def test_gnss_dropout_is_named_from_the_frames_position_age_and_cleared_when_pos
     assert len(msgs) == 1 and "GLOBAL_POSITION_INT" in msgs[0] and "dead-reckoned" in msgs[0]
 
 
-def _offset(estimate_ms, sigma_ms=3.0, state="confident", compensated_ms=0.0):
+def _offset(estimate_ms, sigma_ms=3.0, state="confident", compensated_ms=0.0, blocks=3):
     from onboard.estimation.time_offset import TimeOffsetEstimate
 
-    return TimeOffsetEstimate(estimate_ms, sigma_ms, state, compensated_ms, 3, 300, 0, 5.0)
+    return TimeOffsetEstimate(estimate_ms, sigma_ms, state, compensated_ms, blocks, 300, 0, 5.0)
 
 
 def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clears_below(caplog):
@@ -156,7 +156,7 @@ def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clear
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
         wd.camera_time_offset(1.0, None, 20.0)  # estimator off
         wd.camera_time_offset(2.0, _offset(None, None, "unknown"), 20.0)
-        wd.camera_time_offset(3.0, _offset(60.0, 30.0, "estimating"), 20.0)  # not confident: nothing
+        wd.camera_time_offset(3.0, _offset(60.0, 30.0, "estimating"), 20.0)  # not beyond by two sigmas: nothing
         wd.camera_time_offset(4.0, _offset(24.0, 3.0), 20.0)  # above, but not by two sigmas
         assert wd.active == ()
         wd.camera_time_offset(5.0, _offset(50.0, 3.0, compensated_ms=50.0), 20.0)
@@ -170,3 +170,16 @@ def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clear
     assert [w.code for w in wd.active] == ["camera_time_offset"]  # a doubtful estimate neither raises nor clears
     wd.camera_time_offset(8.0, _offset(5.0, 3.0), 20.0)
     assert wd.active == ()
+
+
+def test_camera_time_offset_warns_on_a_significant_estimate_before_it_is_confident():
+    wd = _wd()
+    wd.camera_time_offset(1.0, _offset(50.0, 13.0, "estimating", blocks=2), 20.0)  # two blocks: sigma not trusted
+    assert wd.active == ()
+    wd.camera_time_offset(2.0, _offset(5.0, 13.0, "estimating", blocks=3), 20.0)  # below: nothing to clear either
+    wd.camera_time_offset(3.0, _offset(50.0, 16.0, "estimating", blocks=3), 20.0)  # 50 - 2 x 16 = 18: not beyond
+    assert wd.active == ()
+    wd.camera_time_offset(4.0, _offset(50.0, 13.0, "estimating", blocks=3), 20.0)  # 50 - 2 x 13 = 24 > 20
+    assert [w.code for w in wd.active] == ["camera_time_offset"] and "50 +- 13 ms late" in wd.active[0].message
+    wd.camera_time_offset(5.0, _offset(12.0, 13.0, "estimating", blocks=4), 20.0)  # not confident: not cleared
+    assert [w.code for w in wd.active] == ["camera_time_offset"]
