@@ -348,8 +348,8 @@ class FollowConfig:
 class TimeOffsetConfig:
     """``time_offset``: the camera clock's offset against the autopilot's, estimated online from the target's line
     of sight against the reported attitude (:mod:`onboard.estimation.time_offset`), in the status
-    (``camera_time_offset``), warned above ``warn_threshold_ms`` (``camera_time_offset``) and compensated in the
-    pose lookup once confident and beyond that threshold by two sigmas (``compensate``)."""
+    (``camera_time_offset``), warned and compensated in the pose lookup (``compensate``) once beyond
+    ``warn_threshold_ms`` by two sigmas that can be trusted (``TimeOffsetEstimate.significantly_beyond``)."""
 
     enabled: Bool = True
     compensate: Bool = True
