@@ -351,17 +351,24 @@ class MapEstimator:
             # unless a common weighting range is fixed (model comparison, see selection())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
+                # the factor (a QR, the costliest step of a converged start) is taken below, only for a
+                # solution kept as a mode: not for a first reweighting pass, nor for a start that fell
+                # into a mode already found
                 sol = yield from prob.solve_steps(
-                    th, max_iterations=self.config.max_iterations, min_range_m=self.config.min_range_m
+                    th,
+                    max_iterations=self.config.max_iterations,
+                    want_factor=False,
+                    min_range_m=self.config.min_range_m,
                 )
-                th, cost, fac = sol.theta, sol.cost, sol.factor
-                if fac is None or not math.isfinite(cost):
+                th, cost = sol.theta, sol.cost
+                if prob.last_jacobian is None or not math.isfinite(cost):
                     break
-            if fac is None or not math.isfinite(cost):
+            if prob.last_jacobian is None or not math.isfinite(cost):
                 continue
             r_mean = float(np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)))
             if any(abs(r_mean - m.mean_range_m) < 0.01 * r_mean for m in modes):
                 continue
+            fac = prob.factor(prob.last_jacobian)
             modes.append(
                 Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean)
             )

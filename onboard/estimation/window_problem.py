@@ -539,8 +539,10 @@ class WindowProblem:
                     # (saves the damping ladder that would otherwise have to prove it)
                     break
                 cand = theta - step / d
-                # while undamped steps are being taken, evaluate the Jacobian with the residual (one call)
-                r2, J2, ok = self.evaluate(cand, jacobian=lam == 0.0 and gn_taken)
+                # evaluate the Jacobian with the residual (one call) when the step is likely to be taken: a
+                # damped one nearly always is, an undamped one while the last undamped one was; a step
+                # refused costs the Jacobian's share of the call, one taken then saves a second call
+                r2, J2, ok = self.evaluate(cand, jacobian=lam > 0.0 or gn_taken)
                 J_current = J2 is None and J_current
                 c2 = 0.5 * float(r2 @ r2) if ok else math.inf
                 if lam == 0.0:
