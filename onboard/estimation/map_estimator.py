@@ -399,6 +399,7 @@ class MapEstimator:
         grid: KnotGrid | None = None,
         warm: np.ndarray | None = None,
         trust_warm: bool = False,
+        models: tuple[str, tuple[float, ...]] | None = None,
     ) -> Generator[int, None, MapResult]:
         """The model selection, an anytime computation: a generator that yields after each Levenberg-Marquardt
         iteration of each start's solve the work it did (residual evaluations; :data:`FACTOR_WORK` per
@@ -413,10 +414,15 @@ class MapEstimator:
         covariance is averaged over the models near it by evidence (see the module docstring).  ``warm``
         (a solution on the same ``grid``, e.g. the sliding window's current one) is one more start of the
         first family's cold multi-start; with ``trust_warm`` (the caller's last selection was observable)
-        it replaces that multi-start, beside one fresh range hypothesis.
+        it replaces that multi-start, beside one fresh range hypothesis.  ``models`` (a family and its
+        intensities) restricts the selection to those models instead of every family over the q grid (the
+        sliding window's provisional first choice).
         """
         cfg = self.config
         families = [f for f in cfg.families if f != "ct" or cfg.turn_rate_sigma_radps > 0]
+        q_grid = cfg.q_grid_m2ps3
+        if models is not None:
+            families, q_grid = [models[0]], models[1]
         tops: dict[str, list] = {}
         carry: list[np.ndarray] = [] if warm is None else [warm]
         weight_range_m: np.ndarray | None = None
@@ -424,7 +430,7 @@ class MapEstimator:
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
             # loose to stiff: a stiff prior's basin is narrow, the looser solution starts it well
-            for q in sorted(cfg.q_grid_m2ps3, reverse=True):
+            for q in sorted(q_grid, reverse=True):
                 pr = cfg.motion_prior(fam, q)
                 prob = self.problem(obs, pr, grid)
                 if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose

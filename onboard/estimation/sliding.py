@@ -22,8 +22,10 @@ Every observation gets a fresh estimate of the target's state at its own time:
   due, the window's rows are frozen for it, and each frame runs ``selection_work_per_frame`` residual
   evaluations of it (~10-20 ms of CPU; a frame never pays for a whole selection), then updates its own
   estimate with the current model as usual.  The frame that ends it adopts the new model and solution,
-  carried from the frozen window to its own and re-solved warm (4-30 kept frames later; nothing to
-  publish before the first one ends, which runs at once).  A selection under way is not snapshotted: a restored estimator
+  carried from the frozen window to its own and re-solved warm (4-30 kept frames later).  A track's first
+  choice is provisional, at once, on its first rows: one model (:data:`PROVISIONAL_MODEL`) from every range
+  hypothesis, its estimates published unobservable; the full selection starts on the next kept frame, spread
+  like the others.  A selection under way is not snapshotted: a restored estimator
   starts it again.  Its result is the batch selection's on those rows, bit for bit; the periods below
   count from the newest of those rows.
   Once the window is full, a selection that confirms the previous one (same motion
@@ -95,6 +97,12 @@ EVALUATION_OVERHEAD_ROWS = 100
 #: at most this many iterations carry a finished selection's solution to the newest window (it stops at
 #: convergence, usually after 1-3)
 COMMIT_ITERATIONS = 10
+#: the model of a track's provisional first choice (family, intensities): a cruising target's constant velocity,
+#: the middle of the q grid.  Solved at once on the track's first rows (~1/4 of a full selection's work there:
+#: 5 range hypotheses under one prior instead of 11 models), so the first estimate is not delayed and no step
+#: pays for a whole selection; its estimates are published unobservable, with the range floor, until the full
+#: selection, started on the next kept frame and spread like any other, replaces it
+PROVISIONAL_MODEL = ("cv", (1e-3,))
 
 log = logging.getLogger(__name__)
 
@@ -262,12 +270,14 @@ class TrackEstimate(StateEstimate):
 @dataclass(frozen=True, eq=False)
 class _PendingSelection:
     """A model selection under way: the newest frame's time ``t_s`` of the window it was started on, whether
-    that window was full, its rows ``obs`` and the running selection (:meth:`MapEstimator.selection`)."""
+    that window was full, its rows ``obs``, the running selection (:meth:`MapEstimator.selection`) and whether it
+    is the track's provisional first choice (:data:`PROVISIONAL_MODEL`)."""
 
     t_s: float
     full: bool
     obs: Observations
     steps: Generator[int, None, MapResult]
+    provisional: bool = False
 
 
 def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
@@ -344,7 +354,7 @@ class SlidingWindowEstimator:
         # per-frame covariances come from the chosen model's information, inflated like the batch
         # result's; model doubt is the 1 Hz selection's job (its observability verdict gates ours)
         self._cov_scale = self.map.config.sigma_inflation**2
-        self.stats = {"selections": 0, "updates": 0, "incremental": 0, "failures": 0, "skipped": 0}
+        self.stats = {"selections": 0, "provisional": 0, "updates": 0, "incremental": 0, "failures": 0, "skipped": 0}
 
     @property
     def noise(self) -> NoiseModel:
@@ -519,6 +529,10 @@ class SlidingWindowEstimator:
             warm = self._shift(self.map.problem(obs, self._prior, self._grid))
         # a window the last selection called observable is warm-started alone (plus one fresh range
         # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
+        if self._prior is None and self.config.selection_work_per_frame > 0:  # the track's first: provisional
+            steps = self.map.selection(obs, grid=self._grid, models=PROVISIONAL_MODEL)
+            self._pending = _PendingSelection(t, full, obs, steps, provisional=True)
+            return
         steps = self.map.selection(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
         self._pending = _PendingSelection(t, full, obs, steps)
 
@@ -529,9 +543,10 @@ class SlidingWindowEstimator:
             return None
         c = self.config
         if self._prior is None:
-            # the track's first selection, on its first min_frames rows, runs at once: nothing is published
+            # the track's first choice, on its first min_frames rows, runs at once: nothing is published
             # before it ends, and spread it would delay the first estimate (and what waits on it, guidance)
-            # by a few hundred milliseconds; it is the cheapest of a track's selections (~35 ms of CPU)
+            # by a few hundred milliseconds.  It is the provisional one (PROVISIONAL_MODEL, 5-35 ms of CPU on
+            # the loaded development machine), or with selection_work_per_frame 0 the full selection as before
             budget = 0.0
         else:  # in evaluations of this window: a younger, smaller window's are cheaper (module-level cost model)
             budget = (
@@ -560,17 +575,22 @@ class SlidingWindowEstimator:
         self._model = res.model or "map"
         # the window's verdict (batch: median range sigma over the window, ambiguity, adequacy) gates the
         # frames until the next selection; each frame's own range sigma, at the window's newest edge
-        # where it is largest, must also stay below edge_sigma_factor x the threshold
-        self._window_observable = bool(res.observable)
+        # where it is largest, must also stay below edge_sigma_factor x the threshold.  A provisional choice
+        # compared no models (no ambiguity, no model doubt): never observable
+        self._window_observable = bool(res.observable) and not pending.provisional
         self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
-        self._last_select_t = pending_t
-        self.stats["selections"] += 1
         self._edge_pinned_at_selection = self._edge_pinned
-        choice = (self._prior, self._window_observable)
-        confirmed = full and choice == self._last_choice
-        self._period_scale = 2.0 * self._period_scale if confirmed else 1.0
-        self._last_choice = choice
         self._innovations.clear()
+        if pending.provisional:  # the full selection is due at once, on the next kept frame
+            self._last_select_t = -math.inf
+            self.stats["provisional"] += 1
+        else:
+            self._last_select_t = pending_t
+            self.stats["selections"] += 1
+            choice = (self._prior, self._window_observable)
+            confirmed = full and choice == self._last_choice
+            self._period_scale = 2.0 * self._period_scale if confirmed else 1.0
+            self._last_choice = choice
         # the problem object served several starts: re-linearise at the chosen solution
         prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
         _, J, _ = prob.evaluate(theta)

@@ -9,7 +9,7 @@ import pytest
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.estimation.map_estimator import FACTOR_WORK, MapConfig, MapEstimator
-from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+from onboard.estimation.sliding import PROVISIONAL_MODEL, SlidingConfig, SlidingWindowEstimator
 from onboard.estimation.window_problem import drain
 
 #: one Levenberg-Marquardt iteration evaluates the residuals at most this often (12 steps, Gauss-Newton then
@@ -75,34 +75,36 @@ def test_a_spread_selection_chooses_what_the_whole_one_chooses_on_its_window(win
     noise = estimator_noise_model(nc)
     sw = SlidingWindowEstimator(SlidingConfig(selection_work_per_frame=10), noise=noise)
     i = 0
-    while sw.stats["selections"] == 0:  # the track's first selection runs at once, in the frame that calls it
+    est = None
+    while est is None:  # the track's provisional first choice runs at once, in the frame that calls it
         pending_before = sw._pending
-        _feed(sw, sc, obs, [i])
+        est = _feed(sw, sc, obs, [i])
         i += 1
         assert pending_before is None and sw._pending is None
     first_at = i - 1
-    while sw._pending is None:  # up to the frame that starts the second one
-        _feed(sw, sc, obs, [i])
-        i += 1
+    assert sw.stats["provisional"] == 1 and sw.stats["selections"] == 0
+    family, (q,) = PROVISIONAL_MODEL
+    assert sw._model == family and sw._prior == sw.map.config.motion_prior(family, q)
+    assert est.t_s == obs.t_s[first_at] and not est.observable  # published at once, never confident
+    _feed(sw, sc, obs, [i])  # the full selection starts on the next kept frame ...
+    i += 1
+    assert sw._pending is not None and not sw._pending.provisional
     frozen, t_sel = sw._pending.obs, sw._pending.t_s
-    spread_over = 0
-    while sw.stats["selections"] == 1:
+    spread_over = 1
+    while sw.stats["selections"] == 0:  # ... and is spread over frames, each with its own estimate
         est = _feed(sw, sc, obs, [i])
+        assert est is not None and est.t_s == obs.t_s[i]
         i += 1
         spread_over += 1
     assert spread_over > 2  # it did take several frames
-    assert est is not None and est.t_s == obs.t_s[i - 1]  # the frame that ended it has its own estimate
     whole = sw.map.solve(frozen, grid=sw._grid)
     assert (sw._model, sw._prior) == (whole.model, whole.prior)
     assert sw._window_observable == whole.observable
     assert sw._last_select_t == t_sel
-    # and at once (budget 0): the first selection in the same frame, the second on the same rows, same choice
+    # and at once (budget 0): the full selection first, in the same frame, no provisional choice
     at_once = SlidingWindowEstimator(SlidingConfig(selection_work_per_frame=0), noise=noise)
     _feed(at_once, sc, obs, range(first_at + 1))
-    assert at_once.stats["selections"] == 1
-    _feed(at_once, sc, obs, range(first_at + 1, len(frozen)))
-    assert at_once.stats["selections"] == 2 and at_once._pending is None
-    assert (at_once._model, at_once._prior) == (whole.model, whole.prior)
+    assert at_once.stats["selections"] == 1 and at_once.stats["provisional"] == 0 and at_once._pending is None
 
 
 def test_frames_during_a_selection_keep_their_estimates_and_a_snapshot_drops_it(window):
@@ -111,7 +113,7 @@ def test_frames_during_a_selection_keep_their_estimates_and_a_snapshot_drops_it(
     cfg = SlidingConfig(selection_work_per_frame=5, warmup_reselect_period_s=0.5)
     sw = SlidingWindowEstimator(cfg, noise=noise)
     i = 0
-    while sw.stats["selections"] == 0:  # the first selection (no estimates before it ends)
+    while sw.stats["selections"] == 0:  # the provisional first choice, then the first full selection
         _feed(sw, sc, obs, [i])
         i += 1
     while sw._pending is None:  # the next one starts ...
