@@ -143,7 +143,7 @@ def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray,
     """
     y = np.einsum("fij,fj->fi", R_cn, w_rot)
     z = y[:, 2]
-    valid = bool(np.all(z * z > 1e-12 * np.einsum("fi,fi->f", w_rot, w_rot)) and np.all(z > 0))
+    valid = bool((z * z > 1e-12 * np.einsum("fi,fi->f", w_rot, w_rot)).all() and (z > 0).all())
     zs = np.where(z > 1e-9, z, 1e-9)
     pred = y[:, :2] / zs[:, None]
     res = (pred - xy) * s
@@ -266,6 +266,9 @@ class WindowProblem:
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
+        #: the positions p(t_i) (F, 3) at the parameters of the last :meth:`evaluate` (its own product, ready
+        #: for the collapse check of :meth:`solve_steps`)
+        self.last_positions = np.zeros((F, 3))
         #: calls of :meth:`evaluate` so far (the work measure of :meth:`solve_steps`)
         self.evaluations = 0
         self._prior_logdet: float | None = None  # prior_logdet() without a turn rate, computed once
@@ -322,7 +325,10 @@ class WindowProblem:
         F, G, cnt = self.F, self.G, self.count
         c = theta[: self.nc].reshape(cnt, 3)
         X = self.B0 @ c
-        w = X - self.obs.p_cam_ned_m + self._offset(theta)
+        self.last_positions = X
+        w = X - self.obs.p_cam_ned_m
+        if self.i_beta is not None or self.i_gamma is not None:
+            w = w + self._offset(theta)
         if self.i_phi is not None:
             phi = theta[self.i_phi : self.i_phi + 3]
             Rphi = _rodrigues(phi)
@@ -514,22 +520,26 @@ class WindowProblem:
         lam = lam0
         converged = False
         it = 0
-        eye = np.eye(self.n_params)
+        eye = None
         # evaluate() fills one Jacobian buffer in place: J_current says whether it still holds theta's
         J_current = True
         gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
         for it in range(1, max_iterations + 1):
             H = J.T @ J
-            d = np.sqrt(np.diag(H))
+            d = np.sqrt(H.diagonal())
             d[d == 0] = 1.0
-            Hs = H / np.outer(d, d)
+            Hs = H / (d[:, None] * d[None, :])
             g = (J.T @ r) / d
             decrease = None
             # Gauss-Newton first (lam = 0): the range direction of a stiff prior has a tiny scaled
             # eigenvalue, and any fixed damping makes LM crawl along it
             for _ in range(12):
                 try:
-                    ch, _ = cho_factor_lower(Hs + lam * eye)
+                    if lam == 0.0:
+                        ch, _ = cho_factor_lower(Hs)
+                    else:
+                        eye = np.eye(self.n_params) if eye is None else eye
+                        ch, _ = cho_factor_lower(Hs + lam * eye)
                 except np.linalg.LinAlgError:
                     lam = max(lam * 10, 1e-9)
                     continue
@@ -552,7 +562,7 @@ class WindowProblem:
                     theta, cost = cand, c2
                     if (
                         min_range_m is not None
-                        and float(np.mean(np.linalg.norm(self.positions(theta) - self.obs.p_cam_ned_m, axis=1)))
+                        and float(np.mean(np.linalg.norm(self.last_positions - self.obs.p_cam_ned_m, axis=1)))
                         < min_range_m
                     ):
                         self.last_jacobian = None
