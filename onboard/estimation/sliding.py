@@ -24,8 +24,9 @@ Every observation gets a fresh estimate of the target's state at its own time:
   estimate with the current model as usual.  The frame that ends it adopts the new model and solution,
   carried from the frozen window to its own and re-solved warm (4-30 kept frames later).  A track's first
   choice is provisional, at once, on its first rows: one model (:data:`PROVISIONAL_MODEL`) from every range
-  hypothesis, its estimates published unobservable; the full selection starts on the next kept frame, spread
-  like the others.  A selection under way is not snapshotted: a restored estimator
+  hypothesis, its estimates published unobservable; the full selection on the same rows follows, spread like
+  the others (the choice, and the schedule of the later ones, as when it ran at once).  A selection under
+  way is not snapshotted: a restored estimator
   starts it again.  Its result is the batch selection's on those rows, bit for bit; the periods below
   count from the newest of those rows.
   Once the window is full, a selection that confirms the previous one (same motion
@@ -271,13 +272,18 @@ class TrackEstimate(StateEstimate):
 class _PendingSelection:
     """A model selection under way: the newest frame's time ``t_s`` of the window it was started on, whether
     that window was full, its rows ``obs``, the running selection (:meth:`MapEstimator.selection`) and whether it
-    is the track's provisional first choice (:data:`PROVISIONAL_MODEL`)."""
+    is the track's provisional first choice (:data:`PROVISIONAL_MODEL`): then ``full_steps`` is the full selection
+    on the same rows, run after it."""
 
     t_s: float
     full: bool
     obs: Observations
     steps: Generator[int, None, MapResult]
-    provisional: bool = False
+    full_steps: Generator[int, None, MapResult] | None = None
+
+    @property
+    def provisional(self) -> bool:
+        return self.full_steps is not None
 
 
 def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
@@ -529,11 +535,11 @@ class SlidingWindowEstimator:
             warm = self._shift(self.map.problem(obs, self._prior, self._grid))
         # a window the last selection called observable is warm-started alone (plus one fresh range
         # hypothesis); otherwise every range hypothesis too (a warm start alone kept a wrong basin)
-        if self._prior is None and self.config.selection_work_per_frame > 0:  # the track's first: provisional
-            steps = self.map.selection(obs, grid=self._grid, models=PROVISIONAL_MODEL)
-            self._pending = _PendingSelection(t, full, obs, steps, provisional=True)
-            return
         steps = self.map.selection(obs, grid=self._grid, warm=warm, trust_warm=self._window_observable)
+        if self._prior is None and self.config.selection_work_per_frame > 0:  # the track's first: provisional
+            provisional = self.map.selection(obs, grid=self._grid, models=PROVISIONAL_MODEL)
+            self._pending = _PendingSelection(t, full, obs, provisional, full_steps=steps)
+            return
         self._pending = _PendingSelection(t, full, obs, steps)
 
     def _advance_selection(self) -> MapResult | None:
@@ -581,8 +587,9 @@ class SlidingWindowEstimator:
         self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
         self._edge_pinned_at_selection = self._edge_pinned
         self._innovations.clear()
-        if pending.provisional:  # the full selection is due at once, on the next kept frame
-            self._last_select_t = -math.inf
+        if pending.full_steps is not None:  # provisional: the full selection on its rows runs from the next frame
+            self._pending = _PendingSelection(pending_t, full, obs, pending.full_steps)
+            self._last_select_t = -math.inf  # (due at once for an estimator restored before it ends)
             self.stats["provisional"] += 1
         else:
             self._last_select_t = pending_t

@@ -77,21 +77,19 @@ def test_a_spread_selection_chooses_what_the_whole_one_chooses_on_its_window(win
     i = 0
     est = None
     while est is None:  # the track's provisional first choice runs at once, in the frame that calls it
-        pending_before = sw._pending
+        assert sw._pending is None
         est = _feed(sw, sc, obs, [i])
         i += 1
-        assert pending_before is None and sw._pending is None
     first_at = i - 1
     assert sw.stats["provisional"] == 1 and sw.stats["selections"] == 0
     family, (q,) = PROVISIONAL_MODEL
     assert sw._model == family and sw._prior == sw.map.config.motion_prior(family, q)
     assert est.t_s == obs.t_s[first_at] and not est.observable  # published at once, never confident
-    _feed(sw, sc, obs, [i])  # the full selection starts on the next kept frame ...
-    i += 1
-    assert sw._pending is not None and not sw._pending.provisional
+    # the full selection on the same rows follows, spread over the next frames, each with its own estimate
+    assert sw._pending is not None and not sw._pending.provisional and sw._pending.t_s == obs.t_s[first_at]
     frozen, t_sel = sw._pending.obs, sw._pending.t_s
-    spread_over = 1
-    while sw.stats["selections"] == 0:  # ... and is spread over frames, each with its own estimate
+    spread_over = 0
+    while sw.stats["selections"] == 0:
         est = _feed(sw, sc, obs, [i])
         assert est is not None and est.t_s == obs.t_s[i]
         i += 1
@@ -101,10 +99,11 @@ def test_a_spread_selection_chooses_what_the_whole_one_chooses_on_its_window(win
     assert (sw._model, sw._prior) == (whole.model, whole.prior)
     assert sw._window_observable == whole.observable
     assert sw._last_select_t == t_sel
-    # and at once (budget 0): the full selection first, in the same frame, no provisional choice
+    # and at once (budget 0): the full selection first, on the same rows in the same frame, the same choice
     at_once = SlidingWindowEstimator(SlidingConfig(selection_work_per_frame=0), noise=noise)
     _feed(at_once, sc, obs, range(first_at + 1))
     assert at_once.stats["selections"] == 1 and at_once.stats["provisional"] == 0 and at_once._pending is None
+    assert (at_once._model, at_once._prior, at_once._last_select_t) == (sw._model, sw._prior, t_sel)
 
 
 def test_frames_during_a_selection_keep_their_estimates_and_a_snapshot_drops_it(window):
