@@ -338,10 +338,12 @@ class MapEstimator:
         grid: KnotGrid | None,
         max_modes: int,
         fixed: np.ndarray | None,
+        prob: WindowProblem | None = None,
     ) -> Generator[int, None, tuple[Mode, list[Mode]]]:
         """:meth:`solve_prior` as an anytime computation: yields the work done (residual evaluations of each
-        Levenberg-Marquardt iteration, :data:`FACTOR_WORK` per solution kept), returns (best, modes)."""
-        prob = self.problem(obs, prior, grid)
+        Levenberg-Marquardt iteration, :data:`FACTOR_WORK` per solution kept), returns (best, modes).  ``prob``:
+        the window problem of ``prior`` on ``obs`` if the caller has built it already."""
+        prob = prob if prob is not None else self.problem(obs, prior, grid)
         starts = starts if starts is not None else self.initial_guesses(prob)
         modes: list[Mode] = []
         reweight = self.noise.camera_position_white_sigma_m > 0 and fixed is None
@@ -443,7 +445,7 @@ class MapEstimator:
                     # warm start alone kept an online window in a wrong basin for seconds)
                     starts = self.initial_guesses(prob) + [self._adapt(th, prob) for th in carry]
                 try:
-                    top, modes = yield from self._prior_steps(obs, pr, starts, grid, 2, weight_range_m)
+                    top, modes = yield from self._prior_steps(obs, pr, starts, grid, 2, weight_range_m, prob)
                 except EstimationError:  # every start collapsed or left the field of view: no mode here
                     continue
                 if weight_range_m is None and self.noise.camera_position_white_sigma_m > 0:
