@@ -108,6 +108,7 @@ MAX_EXACT_STRIPS = 16  # ... in at most this many block strips, else the whole i
 COARSE_TOL_FS = 4e-4  # ... where the interpolation error could exceed this fraction of full scale (0.1 grey)
 ROT_TOL = 5e-3  # max |R^T R - I| accepted (a quaternion off unit norm by frames.QUAT_NORM_TOL gives ~2e-3)
 NEAR_M = 1e-3  # target bounding-box corners closer than this (camera z) -> whole-image ROI
+APERTURE_KEPT = 256  # aperture weight matrices kept per object raster (by region size and offset)
 
 
 @dataclass(frozen=True)
@@ -193,14 +194,23 @@ class PyrUpImage:
     4 x 4 px): :meth:`full` takes it up once and keeps it; :meth:`window` takes up only the coarse samples
     around a window, with the same values as the full image there (a pixel of two pyrUp steps depends on
     the coarse samples within 2 of its own; at the image's border the window reaches the same border).
-    The scene's depth and cloud opacity are read per object and per label, rarely whole."""
+    The scene's depth and cloud opacity are read per object and per label, rarely whole.
 
-    MARGIN = 2  # coarse samples around a window
+    A window is taken up with one more coarse sample around it than it needs and kept: later windows
+    inside the region it holds exactly (an object's label pixel inside its region, a spot's centre next to
+    its label's) are read from it without another two ``pyrUp`` calls, whose fixed cost is most of a small
+    window's.  Windows are read-only views (the kept images are shared)."""
+
+    MARGIN = 2  # coarse samples a pixel depends on, each way
+    SPARE = 1  # ... and this many more taken up around each window, for the windows that follow
+    MAX_KEPT = 32  # windows kept per image (an image lives one frame; a frame reads a few per object)
 
     def __init__(self, coarse: np.ndarray, shape: tuple[int, int]):
         self.coarse = coarse
         self.shape = (int(shape[0]), int(shape[1]))
         self._full: np.ndarray | None = None
+        # (first row, end row, first col, end col) of the pixels a kept window holds exactly, and its image
+        self._kept: list[tuple[int, int, int, int, np.ndarray]] = []
 
     def full(self) -> np.ndarray:
         if self._full is None:
@@ -211,14 +221,28 @@ class PyrUpImage:
     def window(self, rows: slice, cols: slice) -> np.ndarray:
         if self._full is not None:
             return self._full[rows, cols]
-        i0, i1, _ = rows.indices(self.shape[0])
-        j0, j1, _ = cols.indices(self.shape[1])
+        H, W = self.shape
+        i0, i1, _ = rows.indices(H)
+        j0, j1, _ = cols.indices(W)
+        for r0, r1, c0, c1, img in self._kept:
+            if r0 <= i0 and i1 <= r1 and c0 <= j0 and j1 <= c1:
+                return img[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0]
         hc, wc = self.coarse.shape
         m = self.MARGIN
-        a, b = max(i0 // 4 - m, 0), min(-(-i1 // 4) + m, hc)
-        c, d = max(j0 // 4 - m, 0), min(-(-j1 // 4) + m, wc)
+        # the coarse samples of the window's own pixels, grown by SPARE (within the image) ...
+        k0, k1 = max(i0 // 4 - self.SPARE, 0), min(-(-i1 // 4) + self.SPARE, hc)
+        l0, l1 = max(j0 // 4 - self.SPARE, 0), min(-(-j1 // 4) + self.SPARE, wc)
+        # ... and the MARGIN samples they depend on
+        a, b = max(k0 - m, 0), min(k1 + m, hc)
+        c, d = max(l0 - m, 0), min(l1 + m, wc)
         up = cv2.pyrUp(cv2.pyrUp(np.ascontiguousarray(self.coarse[a:b, c:d])))
-        return up[i0 - 4 * a : i1 - 4 * a, j0 - 4 * c : j1 - 4 * c]
+        up.flags.writeable = False
+        r0, r1 = 4 * k0, min(4 * k1, H)
+        c0, c1 = 4 * l0, min(4 * l1, W)
+        held = up[r0 - 4 * a : r1 - 4 * a, c0 - 4 * c : c1 - 4 * c]
+        if len(self._kept) < self.MAX_KEPT:
+            self._kept.append((r0, r1, c0, c1, held))
+        return held[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0]
 
 
 class SceneBackground:
@@ -305,6 +329,7 @@ class PartRaster:
         ]
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
+        self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the rows of intersect's t_all
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
@@ -316,6 +341,7 @@ class PartRaster:
         )
         self._parts = tuple(parts)
         self._splat_table: tuple[np.ndarray, np.ndarray] | None = None  # built at the first splat (~0.1 s)
+        self._aperture_kept: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _aperture
 
     def _visible_fractions(self, parts, n_dirs: int = 256, n_grid: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """For the splat: the fraction of each part's silhouette that is in front of the other parts (the ray
@@ -424,13 +450,31 @@ class PartRaster:
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
-        A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
-        A_cols = _aperture_weights(np.arange(pj0, pj1) + 0.5, u, s.blur_sigma_px, ss)
+        A_rows = self._aperture(pi0, pi1, i0, v, ss)
+        A_cols = self._aperture(pj0, pj1, j0, u, ss)
         delta = (A_rows @ delta) @ A_cols.T
         i0, i1, j0, j1 = pi0, pi1, pj0, pj1
         if occluder is not None:
             delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
         return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
+
+    def _aperture(self, p0: int, p1: int, k0: int, samples: np.ndarray, ss: int) -> np.ndarray:
+        """``_aperture_weights`` of the output pixels ``p0 .. p1 - 1`` and the sub-samples ``samples`` (from
+        pixel ``k0``, ``ss`` a pixel), kept per offset and size when ``ss`` is a power of two: then every
+        offset between a pixel centre and a sample is a short binary fraction, exact wherever the region
+        lies, so the kept weights are the very values a fresh computation gives (other ``ss``: computed)."""
+        if ss & (ss - 1):
+            return _aperture_weights(np.arange(p0, p1) + 0.5, samples, self.settings.blur_sigma_px, ss)
+        key = (p0 - k0, p1 - k0, samples.size, ss)
+        w = self._aperture_kept.get(key)
+        if w is None:
+            if len(self._aperture_kept) >= APERTURE_KEPT:
+                self._aperture_kept.clear()
+            rel = (np.arange(samples.size) + 0.5) / ss
+            w = _aperture_weights(np.arange(p0 - k0, p1 - k0) + 0.5, rel, self.settings.blur_sigma_px, ss)
+            w.flags.writeable = False
+            self._aperture_kept[key] = w
+        return w
 
     def _splat(self, bg, t_c: list[float], R_nc, R_nt, occluder: SceneBackground | None):
         """:meth:`delta` of an object a few pixels across, without the ray cast: its radiance integral and
@@ -526,14 +570,14 @@ class PartRaster:
         ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
         Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
         and the far root is > 0.  A camera inside a part sees it at t = 0.
-        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index.
+        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index (any part's
+        where there is no hit).  Ties go to the boxes before the ellipsoids, each in index order.
         """
         n = d_b.shape[1]
-        t_best = np.full(n, np.inf, dtype=np.float32)
-        part = np.zeros(n, dtype=np.intp)
-        closer = np.empty(n, dtype=bool)
-        # the nearest hit so far, part by part in index order (strictly closer wins: ties keep the
-        # earlier part); written in place: these arrays are small and the call count per frame high
+        nb = self._box_idx.size
+        # every part's hit distance in one (parts, n) array, boxes first, reduced once at the end (one
+        # argmin instead of three calls per part: the arrays are small and the call count per frame high)
+        t_all = np.empty((nb + self._ell_idx.size, n), dtype=np.float32)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if self._box_idx.size:
                 inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
@@ -548,11 +592,9 @@ class PartRaster:
                 np.minimum(t_out, t2[:, 2], out=t_out)
                 hit = t_in <= t_out
                 hit &= t_out > 0.0
-                t = np.where(hit, np.maximum(t_in, 0.0, out=t_in), np.inf)
-                for k, p in enumerate(self._box_idx):
-                    np.less(t[k], t_best, out=closer)
-                    np.copyto(t_best, t[k], where=closer)
-                    np.copyto(part, p, where=closer)
+                t = t_all[:nb]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(t_in, 0.0, out=t_in), where=hit)
             if self._ell_idx.size:
                 oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
                 de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
@@ -586,12 +628,11 @@ class PartRaster:
                 near = np.add(b, sq, out=b)
                 np.negative(near, out=near)
                 near /= a
-                t = np.where(hit, np.maximum(near, 0.0, out=near), np.inf)
-                for k, p in enumerate(self._ell_idx):
-                    np.less(t[k], t_best, out=closer)
-                    np.copyto(t_best, t[k], where=closer)
-                    np.copyto(part, p, where=closer)
-        return t_best, part
+                t = t_all[nb:]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(near, 0.0, out=near), where=hit)
+        # argmin: the first of equal minima, i.e. the order above
+        return t_all.min(axis=0), self._part_order.take(t_all.argmin(axis=0))
 
 
 class IrRenderer:
