@@ -392,12 +392,15 @@ class PartRaster:
                 return self._splat(bg, t_c, R_nc, R_nt, occluder)
         corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
         z = corners_cam[:, 2]
-        if np.all(z <= NEAR_M):
+        if z.max() <= NEAR_M:
             return None
-        if np.any(z <= NEAR_M):
+        box_uv = None  # the projected bounding box (u0, u1, v0, v1), px, when the ROI is drawn around it
+        if z.min() <= NEAR_M:
             i0, i1, j0, j1 = 0, H, 0, W
         else:
             cu, cv = project_in_front(intr, corners_cam)
+            if not intr.has_distortion:
+                box_uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
             pad = 1 if intr.has_distortion else 0
             j0 = max(int(math.floor(cu.min())) - pad, 0)
             j1 = min(int(math.ceil(cu.max())) + pad, W)
@@ -409,15 +412,24 @@ class PartRaster:
         ss = max(1, min(s.supersample, int(math.sqrt(s.max_target_rays / (ny * nx)))))
         u = j0 + (np.arange(nx * ss) + 0.5) / ss
         v = i0 + (np.arange(ny * ss) + 0.5) / ss
+        # only the sub-sample rows and columns within one sub-sample of the projected bounding box are cast
+        # (the ROI is that box rounded out to whole pixels: for a target 2 px across about half of it lies
+        # outside); the others cannot meet the object and keep a delta of 0
+        r0, r1, c0, c1 = 0, ny * ss, 0, nx * ss
+        if box_uv is not None:
+            c0 = max(math.floor((box_uv[0] - j0) * ss - 0.5) - 1, 0)
+            c1 = min(math.ceil((box_uv[1] - j0) * ss - 0.5) + 2, nx * ss)
+            r0 = max(math.floor((box_uv[2] - i0) * ss - 0.5) - 1, 0)
+            r1 = min(math.ceil((box_uv[3] - i0) * ss - 0.5) + 2, ny * ss)
         R_bc = R_nt.T @ R_nc
         o_b = R_nt.T @ (p_cam - p_t)
         if intr.has_distortion:
-            uu, vv = np.meshgrid(u, v)
+            uu, vv = np.meshgrid(u[c0:c1], v[r0:r1])
             xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
             d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
         else:
-            x = (u - intr.cx_px) / intr.fx_px
-            y = (v - intr.cy_px) / intr.fy_px
+            x = (u[c0:c1] - intr.cx_px) / intr.fx_px
+            y = (v[r0:r1] - intr.cy_px) / intr.fy_px
             d_b = (
                 R_bc[:, 0, None, None] * x[None, None, :]
                 + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
@@ -438,15 +450,21 @@ class PartRaster:
         pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
         pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
         pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
+        behind = None  # where a surface (a cloud) is nearer than the object, when anywhere in its region
         if occluder is not None:
             range_m = range_km * 1e3
             behind = occluder.depth_window(slice(pi0, pi1), slice(pj0, pj1)) < range_m
-            ref = np.where(behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref)
-        # each sub-sample minus its pixel's background, broadcast over the (ss, ss) sub-samples of a pixel
-        # (the same float64 differences as repeating the background, without the two repeated copies)
-        obj = part_grey[nearest].reshape(ny, ss, nx, ss)
-        obj -= ref[:, None, :, None]
-        delta = np.where(covered.reshape(ny * ss, nx * ss), obj.reshape(ny * ss, nx * ss), 0.0)
+            if behind.any():
+                ref = np.where(
+                    behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref
+                )
+            else:
+                behind = None  # the usual case: nothing in front, no opacity to read
+        # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64)
+        obj = part_grey[nearest].reshape(r1 - r0, c1 - c0)
+        obj -= ref.repeat(ss, axis=0)[r0:r1].repeat(ss, axis=1)[:, c0:c1]
+        delta = np.zeros((ny * ss, nx * ss))
+        np.copyto(delta[r0:r1, c0:c1], obj, where=covered.reshape(r1 - r0, c1 - c0))
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
@@ -454,7 +472,7 @@ class PartRaster:
         A_cols = self._aperture(pj0, pj1, j0, u, ss)
         delta = (A_rows @ delta) @ A_cols.T
         i0, i1, j0, j1 = pi0, pi1, pj0, pj1
-        if occluder is not None:
+        if behind is not None:
             delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
         return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
 
@@ -586,10 +604,8 @@ class PartRaster:
                 hi = (self._box_h - oc)[:, :, None] * inv[None]
                 t1 = np.minimum(lo, hi)
                 t2 = np.maximum(lo, hi, out=lo)
-                t_in = np.maximum(t1[:, 0], t1[:, 1])  # (Pb, n)
-                np.maximum(t_in, t1[:, 2], out=t_in)
-                t_out = np.minimum(t2[:, 0], t2[:, 1])
-                np.minimum(t_out, t2[:, 2], out=t_out)
+                t_in = t1.max(axis=1)  # (Pb, n)
+                t_out = t2.min(axis=1)
                 hit = t_in <= t_out
                 hit &= t_out > 0.0
                 t = t_all[:nb]

@@ -596,7 +596,7 @@ class SceneContent:
 
     def _label(self, o: SceneObject, roi, range_m: float, background, p_cam, R_nc) -> ObjectLabel:
         intr = self.renderer.intrinsics
-        p_ned = tuple(float(x) for x in o.p_ned_m)
+        p_ned = tuple(o.p_ned_m.tolist())
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
@@ -604,7 +604,9 @@ class SceneContent:
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
-            mag = np.abs(delta) * abs(o.gain)
+            mag = np.abs(delta)
+            if o.gain != 1.0:
+                mag *= abs(o.gain)
             peak = float(mag.max())
             if peak > 0.0:
                 ii, jj = np.nonzero(mag >= BOX_FRACTION * peak)
