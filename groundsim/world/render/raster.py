@@ -137,13 +137,16 @@ def truth_pixel(intrinsics: PinholeIntrinsics, p_cam_ned_m, R_ned_from_cam, p_ta
     return float(uv[0]), float(uv[1])
 
 
-def project_in_front(intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project_in_front(
+    intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray, distorted: bool | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``intrinsics.project`` of camera-frame points ``(..., 3)`` with ``z > 0``, as ``(u_px, v_px)``.
 
     Without lens distortion the same float64 operations written out (``f (x / z) + c``): the same
     pixels, without the general path's NaN masking and stacking, which cost more than the arithmetic
-    for the few points per object and frame (bounding-box corners, label centres)."""
-    if intrinsics.has_distortion:
+    for the few points per object and frame (bounding-box corners, label centres).  ``distorted``:
+    ``intrinsics.has_distortion`` if the caller holds it (that property loops over the coefficients)."""
+    if intrinsics.has_distortion if distorted is None else distorted:
         uv = intrinsics.project(p_cam_m)
         return uv[..., 0], uv[..., 1]
     z = p_cam_m[..., 2]
@@ -311,6 +314,7 @@ class PartRaster:
         # analytic splat (:meth:`_splat`) instead of the ray cast; 0: always the ray cast
         self.splat_max_px = int(splat_max_px)
         self.intrinsics = intrinsics
+        self._distorted = intrinsics.has_distortion  # read per call (the property loops over coefficients)
         self.settings = settings
         self._H, self._W = int(intrinsics.height_px), int(intrinsics.width_px)
         self._L_min = L_min
@@ -384,7 +388,8 @@ class PartRaster:
         intr = self.intrinsics
         s = self.settings
         H, W = self._H, self._W
-        if self.splat_max_px and not intr.has_distortion:
+        distorted = self._distorted
+        if self.splat_max_px and not distorted:
             t_c = ((p_t - p_cam) @ R_nc).tolist()
             z_near = t_c[2] - self._radius_b
             # the bounding sphere's diameter on the image, an upper bound of the object's footprint
@@ -398,10 +403,10 @@ class PartRaster:
         if z.min() <= NEAR_M:
             i0, i1, j0, j1 = 0, H, 0, W
         else:
-            cu, cv = project_in_front(intr, corners_cam)
-            if not intr.has_distortion:
+            cu, cv = project_in_front(intr, corners_cam, distorted)
+            if not distorted:
                 box_uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
-            pad = 1 if intr.has_distortion else 0
+            pad = 1 if distorted else 0
             j0 = max(int(math.floor(cu.min())) - pad, 0)
             j1 = min(int(math.ceil(cu.max())) + pad, W)
             i0 = max(int(math.floor(cv.min())) - pad, 0)
@@ -423,7 +428,7 @@ class PartRaster:
             r1 = min(math.ceil((box_uv[3] - i0) * ss - 0.5) + 2, ny * ss)
         R_bc = R_nt.T @ R_nc
         o_b = R_nt.T @ (p_cam - p_t)
-        if intr.has_distortion:
+        if distorted:
             uu, vv = np.meshgrid(u[c0:c1], v[r0:r1])
             xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
             d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)

@@ -263,6 +263,7 @@ class SceneContent:
         self.settings = s
         intr = renderer.intrinsics
         self._H, self._W = int(intr.height_px), int(intr.width_px)
+        self._distorted = intr.has_distortion  # read per label (the property loops over coefficients)
         self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
         self.netd_radiance = float(s.netd_k) * float(band_radiance_derivative(s.netd_reference_k, s.band_um))
         L_sky_mean = float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um))
@@ -633,7 +634,7 @@ class SceneContent:
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
-        u, v = (float(c) for c in project_in_front(intr, p_c))
+        u, v = (float(c) for c in project_in_front(intr, p_c, self._distorted))
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
