@@ -445,7 +445,8 @@ class PartRaster:
         o_b = o_b.astype(np.float32)
         t_near, nearest = self.intersect(o_b, d_b)
         covered = np.isfinite(t_near)
-        range_km = float(np.linalg.norm(p_t - p_cam)) * 1e-3
+        d_m = p_t - p_cam
+        range_km = math.sqrt(d_m.dot(d_m)) * 1e-3  # np.linalg.norm's own sqrt(x . x), without its checks
         tau = math.exp(-s.extinction_per_km * range_km)
         part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
         if not np.any(covered):

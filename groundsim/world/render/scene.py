@@ -615,7 +615,8 @@ class SceneContent:
         p_cam = np.asarray(p_cam_ned_m, dtype=float)
         R_nc = np.asarray(R_ned_from_cam, dtype=float)
         out = np.array(radiance, dtype=np.float32, copy=True)
-        ranges = [float(np.linalg.norm(o.p_ned_m - p_cam)) for o in objects]
+        offsets = [o.p_ned_m - p_cam for o in objects]
+        ranges = [math.sqrt(d.dot(d)) for d in offsets]  # np.linalg.norm's own sqrt(x . x), without its checks
         labels: dict[int, ObjectLabel] = {}
         for k in sorted(range(len(objects)), key=lambda i: -ranges[i]):
             o = objects[k]
