@@ -48,7 +48,8 @@ How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``pytho
   change is an exact reuse).
 * The target is cast only in the bounding box of its projected body-frame bounding box, with
   ``supersample x supersample`` stratified rays per pixel (16 x 16 unless the box needs more than
-  ``max_target_rays``), as a *difference* to the background.  PSF and pixel aperture act on the
+  ``max_target_rays``; only those within one sub-sample of the projected box are cast, the rest of the
+  whole-pixel box cannot meet it), as a *difference* to the background.  PSF and pixel aperture act on the
   sub-samples in one separable linear map (two small matrix products with ``K = box * Gaussian``
   weights), so the sub-pixel position of a target thinner than a pixel survives; the result,
   over the box padded by 3 sigma, is added to the background, which is never blurred per frame.
