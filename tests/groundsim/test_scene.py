@@ -207,11 +207,22 @@ def test_depth_and_opacity_windows_are_the_whole_images_values():
         coarse[rng.uniform(size=coarse.shape) < 0.3] = FAR_M  # the depth's far value beside cloud ranges
         whole = PyrUpImage(coarse, shape).full()
         assert whole.shape == shape
+        shared = PyrUpImage(coarse, shape)  # keeps its windows: later ones inside them are read from them
         for _ in range(300):
             i0, j0 = int(rng.integers(0, shape[0])), int(rng.integers(0, shape[1]))
             i1, j1 = int(rng.integers(i0 + 1, shape[0] + 1)), int(rng.integers(j0 + 1, shape[1] + 1))
             win = PyrUpImage(coarse, shape).window(slice(i0, i1), slice(j0, j1))
             assert np.array_equal(win, whole[i0:i1, j0:j1]), (shape, i0, i1, j0, j1)
+            # a small window and single pixels in and next to it, as an object's region and its label read them
+            i1, j1 = min(i0 + int(rng.integers(1, 12)), shape[0]), min(j0 + int(rng.integers(1, 12)), shape[1])
+            for a, b, c, d in ((i0, i1, j0, j1), (i0, i0 + 1, j0, j0 + 1), (i1 - 1, i1, j1 - 1, j1)):
+                for di, dj in ((0, 0), (3, -2), (-5, 6)):
+                    a2, c2 = min(max(a + di, 0), shape[0] - 1), min(max(c + dj, 0), shape[1] - 1)
+                    rows, cols = (
+                        slice(a2, max(min(b + di, shape[0]), a2 + 1)),
+                        slice(c2, max(min(d + dj, shape[1]), c2 + 1)),
+                    )
+                    assert np.array_equal(shared.window(rows, cols), whole[rows, cols]), (shape, rows, cols)
     sc, _ = scene(CLOUDS)
     bg = sc.render_background(np.array([0.0, 0.0, -100.0]), looking(30.0), 0.0)
     rows, cols = slice(100, 140), slice(0, 37)

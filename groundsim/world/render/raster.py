@@ -48,7 +48,8 @@ How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``pytho
   change is an exact reuse).
 * The target is cast only in the bounding box of its projected body-frame bounding box, with
   ``supersample x supersample`` stratified rays per pixel (16 x 16 unless the box needs more than
-  ``max_target_rays``), as a *difference* to the background.  PSF and pixel aperture act on the
+  ``max_target_rays``; only those within one sub-sample of the projected box are cast, the rest of the
+  whole-pixel box cannot meet it), as a *difference* to the background.  PSF and pixel aperture act on the
   sub-samples in one separable linear map (two small matrix products with ``K = box * Gaussian``
   weights), so the sub-pixel position of a target thinner than a pixel survives; the result,
   over the box padded by 3 sigma, is added to the background, which is never blurred per frame.
@@ -108,6 +109,7 @@ MAX_EXACT_STRIPS = 16  # ... in at most this many block strips, else the whole i
 COARSE_TOL_FS = 4e-4  # ... where the interpolation error could exceed this fraction of full scale (0.1 grey)
 ROT_TOL = 5e-3  # max |R^T R - I| accepted (a quaternion off unit norm by frames.QUAT_NORM_TOL gives ~2e-3)
 NEAR_M = 1e-3  # target bounding-box corners closer than this (camera z) -> whole-image ROI
+APERTURE_KEPT = 256  # aperture weight matrices kept per object raster (by region size and offset)
 
 
 @dataclass(frozen=True)
@@ -136,13 +138,16 @@ def truth_pixel(intrinsics: PinholeIntrinsics, p_cam_ned_m, R_ned_from_cam, p_ta
     return float(uv[0]), float(uv[1])
 
 
-def project_in_front(intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def project_in_front(
+    intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray, distorted: bool | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """``intrinsics.project`` of camera-frame points ``(..., 3)`` with ``z > 0``, as ``(u_px, v_px)``.
 
     Without lens distortion the same float64 operations written out (``f (x / z) + c``): the same
     pixels, without the general path's NaN masking and stacking, which cost more than the arithmetic
-    for the few points per object and frame (bounding-box corners, label centres)."""
-    if intrinsics.has_distortion:
+    for the few points per object and frame (bounding-box corners, label centres).  ``distorted``:
+    ``intrinsics.has_distortion`` if the caller holds it (that property loops over the coefficients)."""
+    if intrinsics.has_distortion if distorted is None else distorted:
         uv = intrinsics.project(p_cam_m)
         return uv[..., 0], uv[..., 1]
     z = p_cam_m[..., 2]
@@ -193,14 +198,23 @@ class PyrUpImage:
     4 x 4 px): :meth:`full` takes it up once and keeps it; :meth:`window` takes up only the coarse samples
     around a window, with the same values as the full image there (a pixel of two pyrUp steps depends on
     the coarse samples within 2 of its own; at the image's border the window reaches the same border).
-    The scene's depth and cloud opacity are read per object and per label, rarely whole."""
+    The scene's depth and cloud opacity are read per object and per label, rarely whole.
 
-    MARGIN = 2  # coarse samples around a window
+    A window is taken up with one more coarse sample around it than it needs and kept: later windows
+    inside the region it holds exactly (an object's label pixel inside its region, a spot's centre next to
+    its label's) are read from it without another two ``pyrUp`` calls, whose fixed cost is most of a small
+    window's.  Windows are read-only views (the kept images are shared)."""
+
+    MARGIN = 2  # coarse samples a pixel depends on, each way
+    SPARE = 1  # ... and this many more taken up around each window, for the windows that follow
+    MAX_KEPT = 32  # windows kept per image (an image lives one frame; a frame reads a few per object)
 
     def __init__(self, coarse: np.ndarray, shape: tuple[int, int]):
         self.coarse = coarse
         self.shape = (int(shape[0]), int(shape[1]))
         self._full: np.ndarray | None = None
+        # (first row, end row, first col, end col) of the pixels a kept window holds exactly, and its image
+        self._kept: list[tuple[int, int, int, int, np.ndarray]] = []
 
     def full(self) -> np.ndarray:
         if self._full is None:
@@ -211,14 +225,28 @@ class PyrUpImage:
     def window(self, rows: slice, cols: slice) -> np.ndarray:
         if self._full is not None:
             return self._full[rows, cols]
-        i0, i1, _ = rows.indices(self.shape[0])
-        j0, j1, _ = cols.indices(self.shape[1])
+        H, W = self.shape
+        i0, i1, _ = rows.indices(H)
+        j0, j1, _ = cols.indices(W)
+        for r0, r1, c0, c1, img in self._kept:
+            if r0 <= i0 and i1 <= r1 and c0 <= j0 and j1 <= c1:
+                return img[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0]
         hc, wc = self.coarse.shape
         m = self.MARGIN
-        a, b = max(i0 // 4 - m, 0), min(-(-i1 // 4) + m, hc)
-        c, d = max(j0 // 4 - m, 0), min(-(-j1 // 4) + m, wc)
+        # the coarse samples of the window's own pixels, grown by SPARE (within the image) ...
+        k0, k1 = max(i0 // 4 - self.SPARE, 0), min(-(-i1 // 4) + self.SPARE, hc)
+        l0, l1 = max(j0 // 4 - self.SPARE, 0), min(-(-j1 // 4) + self.SPARE, wc)
+        # ... and the MARGIN samples they depend on
+        a, b = max(k0 - m, 0), min(k1 + m, hc)
+        c, d = max(l0 - m, 0), min(l1 + m, wc)
         up = cv2.pyrUp(cv2.pyrUp(np.ascontiguousarray(self.coarse[a:b, c:d])))
-        return up[i0 - 4 * a : i1 - 4 * a, j0 - 4 * c : j1 - 4 * c]
+        up.flags.writeable = False
+        r0, r1 = 4 * k0, min(4 * k1, H)
+        c0, c1 = 4 * l0, min(4 * l1, W)
+        held = up[r0 - 4 * a : r1 - 4 * a, c0 - 4 * c : c1 - 4 * c]
+        if len(self._kept) < self.MAX_KEPT:
+            self._kept.append((r0, r1, c0, c1, held))
+        return held[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0]
 
 
 class SceneBackground:
@@ -287,6 +315,7 @@ class PartRaster:
         # analytic splat (:meth:`_splat`) instead of the ray cast; 0: always the ray cast
         self.splat_max_px = int(splat_max_px)
         self.intrinsics = intrinsics
+        self._distorted = intrinsics.has_distortion  # read per call (the property loops over coefficients)
         self.settings = settings
         self._H, self._W = int(intrinsics.height_px), int(intrinsics.width_px)
         self._L_min = L_min
@@ -305,6 +334,7 @@ class PartRaster:
         ]
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
+        self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the rows of intersect's t_all
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
@@ -316,6 +346,7 @@ class PartRaster:
         )
         self._parts = tuple(parts)
         self._splat_table: tuple[np.ndarray, np.ndarray] | None = None  # built at the first splat (~0.1 s)
+        self._aperture_kept: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _aperture
 
     def _visible_fractions(self, parts, n_dirs: int = 256, n_grid: int = 48) -> tuple[np.ndarray, np.ndarray]:
         """For the splat: the fraction of each part's silhouette that is in front of the other parts (the ray
@@ -358,7 +389,8 @@ class PartRaster:
         intr = self.intrinsics
         s = self.settings
         H, W = self._H, self._W
-        if self.splat_max_px and not intr.has_distortion:
+        distorted = self._distorted
+        if self.splat_max_px and not distorted:
             t_c = ((p_t - p_cam) @ R_nc).tolist()
             z_near = t_c[2] - self._radius_b
             # the bounding sphere's diameter on the image, an upper bound of the object's footprint
@@ -366,13 +398,16 @@ class PartRaster:
                 return self._splat(bg, t_c, R_nc, R_nt, occluder)
         corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
         z = corners_cam[:, 2]
-        if np.all(z <= NEAR_M):
+        if z.max() <= NEAR_M:
             return None
-        if np.any(z <= NEAR_M):
+        box_uv = None  # the projected bounding box (u0, u1, v0, v1), px, when the ROI is drawn around it
+        if z.min() <= NEAR_M:
             i0, i1, j0, j1 = 0, H, 0, W
         else:
-            cu, cv = project_in_front(intr, corners_cam)
-            pad = 1 if intr.has_distortion else 0
+            cu, cv = project_in_front(intr, corners_cam, distorted)
+            if not distorted:
+                box_uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
+            pad = 1 if distorted else 0
             j0 = max(int(math.floor(cu.min())) - pad, 0)
             j1 = min(int(math.ceil(cu.max())) + pad, W)
             i0 = max(int(math.floor(cv.min())) - pad, 0)
@@ -383,15 +418,24 @@ class PartRaster:
         ss = max(1, min(s.supersample, int(math.sqrt(s.max_target_rays / (ny * nx)))))
         u = j0 + (np.arange(nx * ss) + 0.5) / ss
         v = i0 + (np.arange(ny * ss) + 0.5) / ss
+        # only the sub-sample rows and columns within one sub-sample of the projected bounding box are cast
+        # (the ROI is that box rounded out to whole pixels: for a target 2 px across about half of it lies
+        # outside); the others cannot meet the object and keep a delta of 0
+        r0, r1, c0, c1 = 0, ny * ss, 0, nx * ss
+        if box_uv is not None:
+            c0 = max(math.floor((box_uv[0] - j0) * ss - 0.5) - 1, 0)
+            c1 = min(math.ceil((box_uv[1] - j0) * ss - 0.5) + 2, nx * ss)
+            r0 = max(math.floor((box_uv[2] - i0) * ss - 0.5) - 1, 0)
+            r1 = min(math.ceil((box_uv[3] - i0) * ss - 0.5) + 2, ny * ss)
         R_bc = R_nt.T @ R_nc
         o_b = R_nt.T @ (p_cam - p_t)
-        if intr.has_distortion:
-            uu, vv = np.meshgrid(u, v)
+        if distorted:
+            uu, vv = np.meshgrid(u[c0:c1], v[r0:r1])
             xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
             d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
         else:
-            x = (u - intr.cx_px) / intr.fx_px
-            y = (v - intr.cy_px) / intr.fy_px
+            x = (u[c0:c1] - intr.cx_px) / intr.fx_px
+            y = (v[r0:r1] - intr.cy_px) / intr.fy_px
             d_b = (
                 R_bc[:, 0, None, None] * x[None, None, :]
                 + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
@@ -402,7 +446,8 @@ class PartRaster:
         o_b = o_b.astype(np.float32)
         t_near, nearest = self.intersect(o_b, d_b)
         covered = np.isfinite(t_near)
-        range_km = float(np.linalg.norm(p_t - p_cam)) * 1e-3
+        d_m = p_t - p_cam
+        range_km = math.sqrt(d_m.dot(d_m)) * 1e-3  # np.linalg.norm's own sqrt(x . x), without its checks
         tau = math.exp(-s.extinction_per_km * range_km)
         part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
         if not np.any(covered):
@@ -412,25 +457,49 @@ class PartRaster:
         pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
         pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
         pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
+        behind = None  # where a surface (a cloud) is nearer than the object, when anywhere in its region
         if occluder is not None:
             range_m = range_km * 1e3
             behind = occluder.depth_window(slice(pi0, pi1), slice(pj0, pj1)) < range_m
-            ref = np.where(behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref)
-        # each sub-sample minus its pixel's background, broadcast over the (ss, ss) sub-samples of a pixel
-        # (the same float64 differences as repeating the background, without the two repeated copies)
-        obj = part_grey[nearest].reshape(ny, ss, nx, ss)
-        obj -= ref[:, None, :, None]
-        delta = np.where(covered.reshape(ny * ss, nx * ss), obj.reshape(ny * ss, nx * ss), 0.0)
+            if behind.any():
+                ref = np.where(
+                    behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref
+                )
+            else:
+                behind = None  # the usual case: nothing in front, no opacity to read
+        # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64)
+        obj = part_grey[nearest].reshape(r1 - r0, c1 - c0)
+        obj -= ref.repeat(ss, axis=0)[r0:r1].repeat(ss, axis=1)[:, c0:c1]
+        delta = np.zeros((ny * ss, nx * ss))
+        np.copyto(delta[r0:r1, c0:c1], obj, where=covered.reshape(r1 - r0, c1 - c0))
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
-        A_rows = _aperture_weights(np.arange(pi0, pi1) + 0.5, v, s.blur_sigma_px, ss)
-        A_cols = _aperture_weights(np.arange(pj0, pj1) + 0.5, u, s.blur_sigma_px, ss)
+        A_rows = self._aperture(pi0, pi1, i0, v, ss)
+        A_cols = self._aperture(pj0, pj1, j0, u, ss)
         delta = (A_rows @ delta) @ A_cols.T
         i0, i1, j0, j1 = pi0, pi1, pj0, pj1
-        if occluder is not None:
+        if behind is not None:
             delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
         return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
+
+    def _aperture(self, p0: int, p1: int, k0: int, samples: np.ndarray, ss: int) -> np.ndarray:
+        """``_aperture_weights`` of the output pixels ``p0 .. p1 - 1`` and the sub-samples ``samples`` (from
+        pixel ``k0``, ``ss`` a pixel), kept per offset and size when ``ss`` is a power of two: then every
+        offset between a pixel centre and a sample is a short binary fraction, exact wherever the region
+        lies, so the kept weights are the very values a fresh computation gives (other ``ss``: computed)."""
+        if ss & (ss - 1):
+            return _aperture_weights(np.arange(p0, p1) + 0.5, samples, self.settings.blur_sigma_px, ss)
+        key = (p0 - k0, p1 - k0, samples.size, ss)
+        w = self._aperture_kept.get(key)
+        if w is None:
+            if len(self._aperture_kept) >= APERTURE_KEPT:
+                self._aperture_kept.clear()
+            rel = (np.arange(samples.size) + 0.5) / ss
+            w = _aperture_weights(np.arange(p0 - k0, p1 - k0) + 0.5, rel, self.settings.blur_sigma_px, ss)
+            w.flags.writeable = False
+            self._aperture_kept[key] = w
+        return w
 
     def _splat(self, bg, t_c: list[float], R_nc, R_nt, occluder: SceneBackground | None):
         """:meth:`delta` of an object a few pixels across, without the ray cast: its radiance integral and
@@ -526,14 +595,14 @@ class PartRaster:
         ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
         Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
         and the far root is > 0.  A camera inside a part sees it at t = 0.
-        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index.
+        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index (any part's
+        where there is no hit).  Ties go to the boxes before the ellipsoids, each in index order.
         """
         n = d_b.shape[1]
-        t_best = np.full(n, np.inf, dtype=np.float32)
-        part = np.zeros(n, dtype=np.intp)
-        closer = np.empty(n, dtype=bool)
-        # the nearest hit so far, part by part in index order (strictly closer wins: ties keep the
-        # earlier part); written in place: these arrays are small and the call count per frame high
+        nb = self._box_idx.size
+        # every part's hit distance in one (parts, n) array, boxes first, reduced once at the end (one
+        # argmin instead of three calls per part: the arrays are small and the call count per frame high)
+        t_all = np.empty((nb + self._ell_idx.size, n), dtype=np.float32)
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             if self._box_idx.size:
                 inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
@@ -542,17 +611,13 @@ class PartRaster:
                 hi = (self._box_h - oc)[:, :, None] * inv[None]
                 t1 = np.minimum(lo, hi)
                 t2 = np.maximum(lo, hi, out=lo)
-                t_in = np.maximum(t1[:, 0], t1[:, 1])  # (Pb, n)
-                np.maximum(t_in, t1[:, 2], out=t_in)
-                t_out = np.minimum(t2[:, 0], t2[:, 1])
-                np.minimum(t_out, t2[:, 2], out=t_out)
+                t_in = t1.max(axis=1)  # (Pb, n)
+                t_out = t2.min(axis=1)
                 hit = t_in <= t_out
                 hit &= t_out > 0.0
-                t = np.where(hit, np.maximum(t_in, 0.0, out=t_in), np.inf)
-                for k, p in enumerate(self._box_idx):
-                    np.less(t[k], t_best, out=closer)
-                    np.copyto(t_best, t[k], where=closer)
-                    np.copyto(part, p, where=closer)
+                t = t_all[:nb]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(t_in, 0.0, out=t_in), where=hit)
             if self._ell_idx.size:
                 oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
                 de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
@@ -586,12 +651,11 @@ class PartRaster:
                 near = np.add(b, sq, out=b)
                 np.negative(near, out=near)
                 near /= a
-                t = np.where(hit, np.maximum(near, 0.0, out=near), np.inf)
-                for k, p in enumerate(self._ell_idx):
-                    np.less(t[k], t_best, out=closer)
-                    np.copyto(t_best, t[k], where=closer)
-                    np.copyto(part, p, where=closer)
-        return t_best, part
+                t = t_all[nb:]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(near, 0.0, out=near), where=hit)
+        # argmin: the first of equal minima, i.e. the order above
+        return t_all.min(axis=0), self._part_order.take(t_all.argmin(axis=0))
 
 
 class IrRenderer:

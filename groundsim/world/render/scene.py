@@ -263,6 +263,7 @@ class SceneContent:
         self.settings = s
         intr = renderer.intrinsics
         self._H, self._W = int(intr.height_px), int(intr.width_px)
+        self._distorted = intr.has_distortion  # read per label (the property loops over coefficients)
         self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
         self.netd_radiance = float(s.netd_k) * float(band_radiance_derivative(s.netd_reference_k, s.band_um))
         L_sky_mean = float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um))
@@ -479,9 +480,14 @@ class SceneContent:
             r_g = np.where(on_ground, t_g * self._rnorm, f32(FAR_M))
             chans = [r_g]
             terrain = self._terrain_geometry(p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m) if self.terrain else None
-            clouds = self._cloud_geometry(p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m) if self.clouds else None
+            band = self._cloud_band(p, dd, ground_d) if self.clouds else slice(0, 0)
+            clouds = None
+            if band.stop > band.start:
+                b = band
+                clouds = self._cloud_geometry(p, dn[b], de[b], dd[b], inv_dd[b], r_g[b], b, ground_d, ext_per_m)
         if clouds is not None:
-            chans[0] = np.where(clouds[1], clouds[2], r_g)  # depth: the cloud layer where the ray meets it
+            chans[0] = r_g.copy()  # depth: the cloud layer where the ray meets it
+            chans[0][band] = np.where(clouds[1], clouds[2], r_g[band])
         up = cv2.pyrUp
         depth = PyrUpImage(chans[0], (self._H, self._W))
         # ---- textures and compositing weights at half resolution
@@ -500,7 +506,8 @@ class SceneContent:
         H, W = self._H, self._W
         below = base if b_t is None else base + up(b_t)[:H, :W]
         if clouds is None:
-            return SceneBackground(below, below, depth, self._no_cloud)
+            # no cloud layer, or none of its plane in view: a copy, as a composite would be
+            return SceneBackground(below if self.clouds is None else below.copy(), below, depth, self._no_cloud)
         # ---- the cloud layer on the coarse grid itself: its look-ups and compositing weights at one ray per
         # 4 x 4 px, two pyrUp steps to the full resolution (the layer is smooth over 4 px at the mip level
         # read there, see _cloud_geometry; near the camera the texture is magnified far more than that)
@@ -523,12 +530,37 @@ class SceneContent:
         a_seen = np.multiply(alpha, seen, out=seen)
         lit = np.multiply(a_seen, L_c, out=L_c)
         # L = L_below + a_seen (L_c - L_below) = L_below (1 - a_seen) + a_seen L_c, each weight upsampled
-        # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults)
-        half, whole = self._up_half, self._up_whole
-        radiance = np.multiply(up(up(a_seen, dst=half), dst=whole)[:H, :W], below)
-        np.subtract(below, radiance, out=radiance)
-        radiance += up(up(lit, dst=half), dst=whole)[:H, :W]
-        return SceneBackground(radiance, below, depth, PyrUpImage(alpha, (H, W)))
+        # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults),
+        # over the band's pixel rows only: the others depend only on coarse rows where the weights are 0
+        # (a pixel two pyrUp steps up depends on the coarse rows within 2 of its own), L = L_below there
+        n = band.stop - band.start
+        half, whole = self._up_half[: 2 * n], self._up_whole[: 4 * n]
+        e0 = 0 if band.start == 0 else 4 * (band.start + 2)
+        e1 = H if band.stop == self._hc else min(4 * (band.stop - 2), H)
+        w0, w1 = e0 - 4 * band.start, e1 - 4 * band.start  # those rows in the band's upsampled images
+        radiance = np.empty_like(below)
+        radiance[:e0] = below[:e0]
+        radiance[e1:] = below[e1:]
+        seg = np.multiply(up(up(a_seen, dst=half), dst=whole)[w0:w1, :W], below[e0:e1], out=radiance[e0:e1])
+        np.subtract(below[e0:e1], seg, out=seg)
+        seg += up(up(lit, dst=half), dst=whole)[w0:w1, :W]
+        alpha_whole = np.zeros((self._hc, self._wc), np.float32)
+        alpha_whole[band] = alpha
+        return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W)))
+
+    def _cloud_band(self, p, dd, ground_d: float) -> slice:
+        """The coarse rows the cloud geometry is computed on: those whose rays can meet the layer (pointing
+        up to a layer above the camera, down to one below), grown by 4 rows each way (the two pyrUp steps
+        read 2; the band's first row a multiple of 3, as _mip_map's every-third-sample quantile reads).
+        Outside them the layer is not hit: no opacity, depth to the ground, the same as computed whole."""
+        h_c = ground_d - self.config.clouds.base_altitude_m - float(p[2])  # layer below the camera: > 0
+        if h_c == 0.0:
+            return slice(0, 0)
+        rows = np.flatnonzero(((dd > 0.0) if h_c > 0.0 else (dd < 0.0)).any(axis=1))
+        if rows.size == 0:
+            return slice(0, 0)
+        start = max(int(rows[0]) - 4, 0)
+        return slice(start - start % 3, min(int(rows[-1]) + 5, self._hc))
 
     def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), tau(r_g), far weight]`` and the two mip levels.
@@ -544,10 +576,11 @@ class SceneContent:
         tau = np.where(on_ground, np.exp(f32(-ext_per_m) * r_g), f32(0.0))
         return [gx, gy, tau, w_far], lv, lv_far, on_ground & (w_far < 1.0), w_far > 0.0
 
-    def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, ground_d, ext_per_m):
+    def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, band, ground_d, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), optical depth per unit density, how much
         is seen, far weight]``, the hit mask, the range to the layer, the near and far mip levels (chosen as
-        for the terrain) and where the far level is used.
+        for the terrain) and where the far level is used, over the coarse rows ``band`` (the arrays given are
+        those rows).
 
         ``seen = tau(r_c) * fade``: the cloud's radiance replaces the background by ``alpha seen``, the
         atmosphere in front of it radiating like the clear sky along that ray (far clouds fade into the
@@ -556,8 +589,9 @@ class SceneContent:
         cfg = self.config.clouds
         tex = self.clouds
         h_c = ground_d - cfg.base_altitude_m - float(p[2])  # layer below the camera: > 0
+        rnorm = self._rnorm[band]
         t_c = f32(h_c) * inv_dd
-        r_c = t_c * self._rnorm
+        r_c = t_c * rnorm
         hit = (t_c > 0.0) & (r_c < f32(cfg.max_range_m)) & (r_c < r_g)
         t = np.where(hit, t_c, f32(0.0))
         # the footprint of one coarse-grid sample (COARSE_STEP px, the layer is looked up there): a pixel's
@@ -566,7 +600,7 @@ class SceneContent:
         cx, cy, w_far, lv, lv_far = _mip_map(foot_m, hit, t, p, dn, de, tex.texel_m, tex.density_levels)
         w_far = np.where(hit, w_far, f32(0.0))
         tau_v = f32(cfg.optical_depth_per_km * cfg.thickness_m * 1e-3)
-        optical = np.where(hit, tau_v * np.minimum(self._rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
+        optical = np.where(hit, tau_v * np.minimum(rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
         fade = np.clip((f32(cfg.max_range_m) - r_c) / f32(0.2 * cfg.max_range_m), 0.0, 1.0)
         seen = np.where(hit, np.exp(f32(-ext_per_m) * r_c) * fade, f32(0.0))
         near = hit & (w_far < 1.0)
@@ -581,7 +615,8 @@ class SceneContent:
         p_cam = np.asarray(p_cam_ned_m, dtype=float)
         R_nc = np.asarray(R_ned_from_cam, dtype=float)
         out = np.array(radiance, dtype=np.float32, copy=True)
-        ranges = [float(np.linalg.norm(o.p_ned_m - p_cam)) for o in objects]
+        offsets = [o.p_ned_m - p_cam for o in objects]
+        ranges = [math.sqrt(d.dot(d)) for d in offsets]  # np.linalg.norm's own sqrt(x . x), without its checks
         labels: dict[int, ObjectLabel] = {}
         for k in sorted(range(len(objects)), key=lambda i: -ranges[i]):
             o = objects[k]
@@ -596,15 +631,17 @@ class SceneContent:
 
     def _label(self, o: SceneObject, roi, range_m: float, background, p_cam, R_nc) -> ObjectLabel:
         intr = self.renderer.intrinsics
-        p_ned = tuple(float(x) for x in o.p_ned_m)
+        p_ned = tuple(o.p_ned_m.tolist())
         p_c = R_nc.T @ (o.p_ned_m - p_cam)
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
-        u, v = (float(c) for c in project_in_front(intr, p_c))
+        u, v = (float(c) for c in project_in_front(intr, p_c, self._distorted))
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
-            mag = np.abs(delta) * abs(o.gain)
+            mag = np.abs(delta)
+            if o.gain != 1.0:
+                mag *= abs(o.gain)
             peak = float(mag.max())
             if peak > 0.0:
                 ii, jj = np.nonzero(mag >= BOX_FRACTION * peak)
