@@ -26,6 +26,9 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   primary is its one track, so this counts its track ids);
 * ``conf s``: seconds from the target's first visible frame to the first frame the primary is on it
   (``nan``: never); ``after``: the on-target fraction over the visible frames from then on;
+* ``HOTA`` (and ``DetA``, ``AssA``): TrackEval's HOTA of the chain's confirmed tracks against every
+  labelled object (visible and occluded), in the layout and with the 6 px boxes ``groundsim eval`` writes
+  (:mod:`groundsim.evaluation.mot`), so the figure is the one the loop reports; nan without TrackEval;
 * ``ms p50``, ``ms p95``, ``cpu p50``: wall ms (median, 95th percentile) and median CPU ms of the
   chain's update per frame (OpenCV on one thread; the machine is shared, so the figures are noisy;
   CPU ms is the steadier of the two, at the clock's granularity).  ``--repeat N`` runs each chain N
@@ -37,13 +40,19 @@ Numbers only: nothing asserts.
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
+
+from groundsim.evaluation.mot import gt_rows, score_mot, tracker_rows, write_mot
 
 MATCH_PX = 3.0
 MIN_CONTRAST_NETD = 3.0
@@ -179,7 +188,10 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     n_frames = 0
     selections = 0  # primary targets chosen (the first one included)
     last_primary = None
+    mot_gt: list[str] = []
+    mot_tracker: list[str] = []
     for k, (img, labels) in enumerate(zip(run.frames, run.labels)):
+        mot_gt += gt_rows(k + 1, [_Label(*lb) for lb in labels])
         vis = []
         for oid, cls, u, v, visibility, contrast in labels:
             cls_of[oid] = cls
@@ -197,6 +209,10 @@ def score(run: SceneRun, chain) -> dict[str, float]:
             selections += 1
             last_primary = primary
         tpos = {tid: (u, v) for tid, u, v in tracks}
+        confirmed = SimpleNamespace(
+            confirmed=[SimpleNamespace(object_id=t, u_px=u, v_px=v, score=1.0) for t, u, v in tracks]
+        )
+        mot_tracker += tracker_rows(k + 1, confirmed)
         all_pos = [(u, v) for _, _, u, v, vv, _ in labels if math.isfinite(u) and math.isfinite(v)]
         for tid, u, v in tracks:
             rec = track_frames.setdefault(tid, [0, 0])
@@ -236,7 +252,9 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     minutes = n_frames / fr / 60.0
     false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
     pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
+    hota = _hota(run, "".join(mot_gt), "".join(mot_tracker))
     return dict(
+        **hota,
         frames=n_frames,
         on_target=pct(on_target, target_frames),
         confirm_s=(first_on - first_visible[0]) / fr if first_on is not None else math.nan,
@@ -253,6 +271,27 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         ms_frames=ms,
         cpu_ms_frames=cpu_ms,
     )
+
+
+class _Label(SimpleNamespace):
+    """A cached label tuple with the attribute names :func:`groundsim.evaluation.mot.gt_rows` reads."""
+
+    def __init__(self, object_id, cls, u_px, v_px, visibility, contrast_netd) -> None:
+        super().__init__(object_id=object_id, cls=cls, u_px=u_px, v_px=v_px, visibility=visibility)
+
+
+def _hota(run: SceneRun, gt: str, tracker: str) -> dict[str, float]:
+    """TrackEval's HOTA, DetA and AssA of one run's MOT lines (nan each without TrackEval)."""
+    K = run.intrinsics
+    r = SimpleNamespace(
+        mot_gt=gt, mot_tracker=tracker, error=None, frames=len(run.frames), scenario=run.name, nav_noise="bench", seed=0
+    )
+    with tempfile.TemporaryDirectory(prefix="irtrack-bench-mot-") as d:
+        seqs = write_mot(Path(d), [r], {run.name: (K.width_px, K.height_px, run.frame_rate_hz)})
+        with contextlib.redirect_stdout(io.StringIO()):  # TrackEval prints its progress
+            res = score_mot(Path(d), seqs) if seqs else {}
+    m = res.get(seqs[0], {}) if seqs else {}
+    return {k: float(m.get(k, math.nan)) for k in ("HOTA", "DetA", "AssA")}
 
 
 def score_repeated(run: SceneRun, chain_cls, repeat: int) -> dict:
@@ -293,7 +332,8 @@ def main(argv: list[str]) -> None:
     )
     print(
         f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
-        f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
+        f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'HOTA':>5s} {'DetA':>5s} {'AssA':>5s}"
+        f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
     )
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache, a.encoding)
@@ -302,6 +342,7 @@ def main(argv: list[str]) -> None:
             print(
                 f"{name:<6s} {c:<13s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
+                f" {s['HOTA']:5.3f} {s['DetA']:5.3f} {s['AssA']:5.3f}"
                 f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%",
                 flush=True,
             )

@@ -47,12 +47,15 @@ from onboard.imaging.clutter import (
     ClutterParams,
     DefectMap,
     PointCandidate,
+    background_difference,
     cfar_threshold,
     column_offsets,
+    difference_peak,
     frame_event,
     local_noise_coarse,
     point_candidates,
     point_contrast,
+    surround_residuals,
 )
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.preprocess import ImagingParams, check_frame
@@ -75,6 +78,12 @@ BACKGROUND_SCALE = 4  # the background motion is measured on frames this many ti
 NOISE_FACTOR = 4  # the local noise (CFAR) is estimated on a grid this many times coarser
 TEXTURE_RING_PX = 32  # the texture about a track is sampled this far from it (beyond the noise window's half)
 GREY16_PER_GREY8 = 257.0  # 65535 / 255
+TEXTURE_REFERENCE_PERCENTILE = 10  # texture is judged against the frame's quietest tenth, not its median
+DIFFERENCE_LAG = 8  # frames between the two frames of a track-aided background difference
+DIFFERENCE_HALF_PX = 16  # half-side of its square
+DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
+DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
+SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 
 
@@ -96,10 +105,16 @@ class ObjectParams:
     background's: the median velocity of the other tentative tracks within ``background_radius_px``
     when there are ``background_min_tracks`` (the local clutter: cloud-edge or terrain fragments
     move with their background), else, where the track lies on texture (local noise over
-    ``textured_noise_ratio`` times the frame's median), the frame's dominant motion measured by phase
-    correlation over ``background_frames`` frames (accepted when its peak response is at least
-    ``background_min_response``).  On a clear sky there is no background to differ from: no test.
+    ``textured_noise_ratio`` times the frame's quietest tenth), the frame's dominant motion measured by
+    phase correlation over ``background_frames`` frames (accepted when its peak response is at least
+    ``background_min_response``; and its mean over the window).  On a clear sky there is no
+    background to differ from: no test.  Last, the texture about the track must not have moved with
+    it (``_surroundings_follow``: the background's motion where the track is).
     Measured on C1-C3 (docs/perception.md): this, not a higher threshold, removes the false tracks.
+
+    Track-aided detection (in a confirmed track's gate, ``aided_threshold_factor`` x the threshold):
+    ``aided_max_run`` frames in a row, up to ``aided_max_run_moving`` while its positions still move
+    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more).
     """
 
     gate_px: float = 4.0
@@ -123,6 +138,8 @@ class ObjectParams:
     textured_noise_ratio: float = 2.0
     aided_threshold_factor: float = 0.35
     aided_max_run: int = 10
+    aided_max_run_moving: int = 90
+    aided_max_fit_rms_px: float = 1.0
     primary_radius_px: float = 40.0
 
     def __post_init__(self) -> None:
@@ -134,6 +151,8 @@ class ObjectParams:
             raise InputError(
                 f"ObjectParams 3 <= confirm_in_window <= confirm_window, got {self.confirm_in_window}, {self.confirm_window}"
             )
+        if self.aided_max_run_moving < self.aided_max_run:
+            raise InputError(f"ObjectParams aided_max_run_moving < aided_max_run ({self.aided_max_run})")
         if self.background_frames < 1 or not 0 < self.aided_threshold_factor <= 1:
             raise InputError(
                 "ObjectParams background_frames >= 1 and aided_threshold_factor in (0, 1], got "
@@ -197,6 +216,7 @@ class _Track:
     velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
     fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
+    difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
 
 
 class ObjectTracker:
@@ -230,11 +250,17 @@ class ObjectTracker:
         self._window: np.ndarray | None = None
         self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey), coarse grid
         self._noise_median = 0.0
+        self._noise_floor = 0.0  # the least textured tenth of the frame's local noise (grey)
+        self._noise_floor_frame = -1
         self._contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self._threshold: np.ndarray | None = None
         self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
         self._coarse: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, coarse image, R) of recent frames
         self._background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
+        self._background_history: list[tuple[int, tuple[float, float]]] = []  # (frame, that motion) of recent frames
+        self._difference_ids: set[int] = set()  # id() of this frame's background-difference candidates
+        self._poses: dict[int, np.ndarray] = {}  # frame -> R_ned_from_cam, the last confirm_window frames
+        self._recent: list[tuple[int, np.ndarray]] = []  # (frame, its pixels) of the last confirm_window
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
@@ -268,6 +294,11 @@ class ObjectTracker:
         """The frame's point candidates (fixed pattern handled first; updates the defect map)."""
         p = self.clutter
         img = image.astype(np.float32)
+        k = self._frame_index
+        # a confirming track's surroundings are compared over its window (the raw frames: the fixed
+        # pattern stays put while the scene moves, adding alike to every displacement tried)
+        self._recent = [r for r in self._recent if r[0] > k - self.params.confirm_window]
+        self._recent.append((k, image.copy() if image.dtype == np.uint8 else img.copy()))
         if p.destripe:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self._frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
@@ -285,7 +316,8 @@ class ObjectTracker:
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
         noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False, box3=box3)
         self._noise = noise
-        self._noise_median = float(np.median(noise))
+        if (self._frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
+            self._noise_median = float(np.median(noise))
         h, w = img.shape
         threshold = cv2.resize(
             cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
@@ -307,10 +339,15 @@ class ObjectTracker:
             return cands
         h, w = contrast.shape
         out = list(cands)
+        self._difference_ids = set()
         for t in self._tracks:
             # a track held only by aided detections for long may have slid onto clutter: it must be
-            # seen by the whole-frame threshold again
-            if not t.confirmed or t.aided_run >= p.aided_max_run:
+            # seen by the whole-frame threshold again, unless it still moves unlike its textured
+            # background (a fragment of terrain or cloud it slid onto would move with it)
+            if not t.confirmed or (
+                t.aided_run >= p.aided_max_run
+                and (t.aided_run >= p.aided_max_run_moving or not self._moves_unlike_background(t, R))
+            ):
                 continue
             puv = self._project(_unit(t.los + t.rate), R)
             if puv is None:
@@ -333,9 +370,40 @@ class ObjectTracker:
                     best = dataclasses.replace(
                         c, u_px=u, v_px=v, bbox=(c.bbox[0] + x0, c.bbox[1] + y0, c.bbox[2], c.bbox[3])
                     )
+            if best is None:
+                best = self._difference_candidate(t, puv, gate, R)
+                if best is not None:
+                    self._difference_ids.add(id(best))
             if best is not None:
                 out.append(best)
         return out
+
+    def _difference_candidate(self, t: _Track, puv: tuple[float, float], gate: float, R: np.ndarray):
+        """Track-aided detection against the background (where its motion is known): this frame minus the
+        one ``DIFFERENCE_LAG`` frames earlier registered on the prediction's surroundings, searched about
+        the camera's rotation plus that motion (:func:`onboard.imaging.clutter.background_difference`)."""
+        k = self._frame_index
+        bg = self._background_over_window()
+        # another object in the square moves unlike the background too: whose difference is whose is
+        # ambiguous (at C3's crossing it swapped the two targets' ids)
+        if any(
+            o is not t and o.confirmed and max(abs(o.uv[0] - puv[0]), abs(o.uv[1] - puv[1])) <= DIFFERENCE_HALF_PX
+            for o in self._tracks
+        ):
+            return None
+        old, R0 = dict(self._recent).get(k - DIFFERENCE_LAG), self._poses.get(k - DIFFERENCE_LAG)
+        if bg is None or old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
+            return None
+        # where the background now at puv was DIFFERENCE_LAG frames ago: the rotation's share, then its own motion
+        p0 = self._project(self._los(puv[0], puv[1], R), R0)
+        if p0 is None:
+            return None
+        du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
+        diff, _ = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
+        return difference_peak(
+            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb
+        )
 
     # ------------------------------------------------------------------ step
 
@@ -365,8 +433,8 @@ class ObjectTracker:
         regular = self.detect(image)
         if self.tbd is not None and self._clean is not None:
             regular = regular + self._tbd_candidates(self.tbd, self._clean, regular, R)
+        self._background_motion(image, R)  # before the aided detections: it may extend their runs
         cands = self._aided_candidates(regular, R)
-        self._background_motion(image, R)
         measured = self._associate(cands, R, len(regular))
         changed = self._select(R)
         return self._output(image, R, event, measured, changed)
@@ -423,8 +491,11 @@ class ObjectTracker:
             t.misses = 0
             t.age += 1
             t.aided_run = t.aided_run + 1 if ci >= n_regular else 0
-            if not t.confirmed:
-                t.history.append((self._frame_index, z, c.u_px, c.v_px))
+            t.difference = c if id(c) in self._difference_ids else None
+            # confirmed tracks keep theirs too: an aided run is extended only while it moves unlike its background
+            t.history.append((self._frame_index, z, c.u_px, c.v_px))
+            if t.confirmed and len(t.history) > p.confirm_window:
+                del t.history[0]
             measured.add(t.object_id)
         keep: list[_Track] = []
         for ti, t in enumerate(self._tracks):
@@ -495,6 +566,40 @@ class ObjectTracker:
                         (dv * BACKGROUND_SCALE - rv) / n,
                     )
         self._coarse.append((k, small, R))
+        self._poses = {q: r for q, r in self._poses.items() if q > k - p.confirm_window}
+        self._poses[k] = R
+        self._background_history = [b for b in self._background_history if b[0] > k - p.confirm_window]
+        if self._background_pxpf is not None:
+            self._background_history.append((k, self._background_pxpf))
+
+    def _surroundings_follow(self, t: _Track) -> bool:
+        """The texture about the track on the oldest of its recent frames, moved by the track's own image
+        displacement since, matches this frame's ``SURROUND_MATCH_RATIO`` times better than moved 2 px
+        otherwise (:func:`onboard.imaging.clutter.surround_residuals`): the background's motion where
+        the track is, which the frame-wide one misses (looking down at a slant the nearer ground flows
+        ~30 % faster than the whole frame, C2) and no neighbour track always stands for."""
+        if len(t.history) < 2:
+            return False
+        k0, _, u0, v0 = t.history[0]
+        old = next((img for k, img in self._recent if k == k0), None)
+        cur = self._recent[-1][1] if self._recent and self._recent[-1][0] == self._frame_index else None
+        if old is None or cur is None:
+            return False
+        # the displacement from a straight-line fit of its measured pixels (each jitters by tenths of a px)
+        f = np.array([e[0] for e in t.history], dtype=np.float64)
+        slope = np.polyfit(f, np.array([(e[2], e[3]) for e in t.history]), 1)[0] * (self._frame_index - k0)
+        own, alt = surround_residuals(cur, old, t.uv, (float(slope[0]), float(slope[1])))
+        log.debug("surroundings of %d: own %.3f alt %.3f", t.object_id, own, alt)
+        return bool(own * SURROUND_MATCH_RATIO < alt)  # False when either is nan (too few pixels)
+
+    def _background_over_window(self) -> tuple[float, float] | None:
+        """The frame's background motion averaged over the ``confirm_window`` frames a velocity is fitted
+        over (one 4-frame estimate wanders by 0.1-0.2 px/frame); None unless measured on half of them."""
+        hist = self._background_history
+        if 2 * len(hist) < self.params.confirm_window:
+            return None
+        m = np.mean(np.array([b[1] for b in hist]), axis=0)
+        return float(m[0]), float(m[1])
 
     def _confirm(self, R: np.ndarray) -> None:
         """Confirm the tentative tracks that pass the M-of-N, constant-velocity and moves-unlike-its-
@@ -533,11 +638,16 @@ class ObjectTracker:
                 backgrounds.append(np.median(np.asarray(bg), axis=0))
             if self._background_pxpf is not None and self._textured(t):
                 backgrounds.append(np.asarray(self._background_pxpf))
+                mean_bg = self._background_over_window()
+                if mean_bg is not None:
+                    backgrounds.append(np.asarray(mean_bg))
             rel = min(
                 (math.hypot(t.velocity_pxpf[0] - vb[0], t.velocity_pxpf[1] - vb[1]) for vb in backgrounds),
                 default=math.nan,
             )
             if rel < p.min_relative_speed_pxpf:
+                continue
+            if self._surroundings_follow(t):
                 continue
             t.confirmed = True
             log.debug(
@@ -552,6 +662,18 @@ class ObjectTracker:
                 len(bg),
                 rel,
             )
+
+    def _moves_unlike_background(self, t: _Track, R: np.ndarray) -> bool:
+        """The background's motion is known (no: a clear sky) and the track's last ``confirm_window``
+        frames' positions (``confirm_hits`` at least) fit a constant velocity within
+        ``aided_max_fit_rms_px`` differing from it by ``min_relative_speed_pxpf``."""
+        p, bg = self.params, self._background_over_window()
+        recent = [h for h in t.history if h[0] > self._frame_index - p.confirm_window]
+        if bg is None or len(recent) < max(p.confirm_hits, 3):
+            return False
+        vel, rms = self._fit_all([recent], R)
+        rel = math.hypot(float(vel[0, 0]) - bg[0], float(vel[0, 1]) - bg[1])
+        return bool(rms[0] <= p.aided_max_fit_rms_px and rel >= p.min_relative_speed_pxpf)
 
     def _textured(self, t: _Track) -> bool:
         """The track lies where the local noise (texture) is ``textured_noise_ratio`` times the frame's
@@ -570,7 +692,10 @@ class ObjectTracker:
             ]
             for di, dj in ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (-r, r), (r, -r), (r, r))
         ]
-        return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_median)
+        if self._noise_floor_frame != self._frame_index:  # once a frame, and only when asked
+            self._noise_floor = float(np.percentile(noise, TEXTURE_REFERENCE_PERCENTILE))
+            self._noise_floor_frame = self._frame_index
+        return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_floor)
 
     def _fit_all(self, histories: list[list], R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Constant-velocity least-squares fits of tracks' measured lines of sight projected through
@@ -688,7 +813,16 @@ class ObjectTracker:
                 u, v = t.uv
             x, y, w, h = t.bbox
             box = (u - w / 2, v - h / 2, float(w), float(h))
-            if t.object_id == self._primary and state == "confirmed":
+            if t.object_id == self._primary and state == "confirmed" and t.difference is not None:
+                # measured against the background only: a centroid on the raw frame there is pulled towards
+                # the field edge beside it (C2: 0.98 px rms in v against ~0.3 px for the difference's own)
+                c, (ih, iw) = t.difference, image.shape
+                raw = float(image[min(max(int(v), 0), ih - 1), min(max(int(u), 0), iw - 1)])
+                # contrast and flux: the difference's; snr: its peak in its noise sigmas (unless the floor set its threshold)
+                primary_det = Detection(
+                    u, v, c.area_px, c.peak, c.peak * c.area_px, c.bbox, raw, c.score * DIFFERENCE_SIGMA
+                )
+            elif t.object_id == self._primary and state == "confirmed":
                 # a point only track-before-detect saw: its integrated centre is the measurement (the single
                 # frame's centroid fails or wanders by pixels at a few NETD)
                 det = None if self.tbd is None else self.tbd.detection_at(t.uv, image)
