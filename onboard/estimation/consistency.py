@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ConsistencyMonitor"]
+__all__ = ["ConsistencyMonitor", "ManoeuvreDetector", "SelectionHistory"]
 
 
 #: an :class:`~onboard.estimation.sliding.TrackEstimate` (its ``t_s``, ``observable``, ``model``,
@@ -105,3 +105,125 @@ class ConsistencyMonitor:
             self.demoted += 1
             return demote(dataclasses.replace(est, observable=False))
         return est
+
+
+class ManoeuvreDetector:
+    """A CUSUM (Page 1954; Basseville & Nikiforov, *Detection of Abrupt Changes*, 1993, section 2.2) on the
+    sliding window's per-frame innovations: the newest bearing's squared standardised residual before its
+    incremental step, per axis (``0.5 r^T r``: exponential with mean 1 while the selected model follows the
+    target).  ``S_k = max(0, S_{k-1} + min(x_k, clip) - reference)``; it fires when ``S_k`` exceeds
+    ``threshold``.
+
+    Why: a stiff model selected over a window the target flew steadily (a racetrack leg, or a turn) is
+    confidently wrong as soon as the target changes motion model; the window then slides range to explain
+    the new bearings (1 % -> 40 % of range within 4 s at a range sigma of 0.7 %), while the innovations of
+    the first frames after the change are already 5-20 per axis.  The mean over the newest 15 frames that
+    calls a selection early waits for 15 frames and for the selection period; this test fires after
+    2-3 frames of such innovations.  Under the null hypothesis (increments ``x - 2`` with ``x`` ~ Exp(1))
+    the threshold 10 is crossed about once in 1e4 frames; ``clip`` keeps one outlier (a wrong detection)
+    from firing it alone."""
+
+    def __init__(self, reference: float = 2.0, threshold: float = 10.0, clip: float = 8.0):
+        if not (reference > 1.0 and threshold > 0 and clip > reference):
+            raise ValueError(f"ManoeuvreDetector: invalid reference {reference}, threshold {threshold}, clip {clip}")
+        self.reference = float(reference)
+        self.threshold = float(threshold)
+        self.clip = float(clip)
+        self.statistic = 0.0
+        self.fired = 0
+        self._rise_t_s = math.inf
+        #: the estimated time of the change the last firing detected: the first frame of the statistic's
+        #: excursion from 0 that crossed the threshold (Page's change-time estimate); -inf before any
+        self.onset_t_s = -math.inf
+
+    def add(self, innovation_per_axis: float, t_s: float) -> bool:
+        """One frame's innovation (``0.5 r^T r``) at ``t_s``; True when the statistic crosses the threshold (the
+        model no longer explains the bearings; :attr:`onset_t_s` is then set).  A non-finite innovation counts
+        as ``clip``."""
+        x = float(innovation_per_axis)
+        x = min(x, self.clip) if math.isfinite(x) else self.clip
+        was_zero = self.statistic <= 0.0
+        self.statistic = max(0.0, self.statistic + x - self.reference)
+        if self.statistic <= 0.0:
+            self._rise_t_s = math.inf
+        elif was_zero:
+            self._rise_t_s = float(t_s)
+        if self.statistic > self.threshold:
+            self.fired += 1
+            self.onset_t_s = min(self._rise_t_s, float(t_s))
+            return True
+        return False
+
+    def reset(self) -> None:
+        """A new model selection: the statistic starts again from 0 (:attr:`onset_t_s` is kept)."""
+        self.statistic = 0.0
+        self._rise_t_s = math.inf
+
+
+class SelectionHistory:
+    """Consecutive model selections must agree on the target's range where their windows overlap.
+
+    Why: a window that holds a change of motion model (a racetrack's leg and half of its turn) is followed
+    by no single family; a stiff one can explain every bearing at the wrong range (30-50 % short, range
+    sigma 2-5 %, adequacy test passed: the bearings cannot tell the two apart), and the selection calls it
+    observable.  The selection made a few seconds earlier on a window of one motion model put the same
+    frames at another range, confidently.  Two solutions of largely the same bearings that disagree beyond
+    their covariances cannot both be right: the posterior over motion models that includes a switch would
+    hold both (Bayesian model averaging over the selections: the spread between their means), so neither
+    is confident.  Such a selection is demoted (unobservable, with the range floor), and kept: a later
+    selection must agree with it too, until the window has slid past their common frames.
+
+    The test is on range only (the bearings pin the rest of the position in both): at the frames both windows
+    hold (sampled every ``sample_s``), ``(u^T (p_new - p_old))^2 > nsigma^2 u^T (P_new + P_old) u`` with ``u``
+    the new solution's line of sight.  Both solutions share most of their bearings, so the difference's own
+    spread is smaller than the summed covariances: the test errs towards agreement."""
+
+    def __init__(self, nsigma: float = 3.0, sample_s: float = 1.0):
+        if not (nsigma > 0 and sample_s > 0):
+            raise ValueError(f"SelectionHistory: invalid nsigma {nsigma} or sample_s {sample_s}")
+        self.nsigma = float(nsigma)
+        self.sample_s = float(sample_s)
+        self._t = np.zeros(0)
+        self._p = np.zeros((0, 3))
+        self._P = np.zeros((0, 3, 3))
+        self.conflicts = 0
+        self.last_max_nsigma = math.nan
+
+    def check(self, t_s, p_ned_m, cov_p_ned_m2, p_cam_ned_m, observable: bool) -> bool:
+        """Whether a selection's window solution (rows at times ``t_s`` (F,), positions (F, 3), model-averaged
+        point covariances (F, 3, 3) before any range floor, cameras (F, 3)) agrees on range with the
+        observable selections kept whose frames it holds; an ``observable`` one is kept for the next."""
+        t = np.asarray(t_s, dtype=float)
+        p = np.asarray(p_ned_m, dtype=float)
+        P = np.asarray(cov_p_ned_m2, dtype=float)
+        keep = self._t >= t[0]
+        self._t, self._p, self._P = self._t[keep], self._p[keep], self._P[keep]
+        i = np.searchsorted(t, self._t)
+        i = np.minimum(i, t.size - 1)
+        common = np.abs(t[i] - self._t) <= 1e-9  # the windows' rows are the same kept frames
+        agree = True
+        self.last_max_nsigma = math.nan
+        if np.any(common):
+            j = i[common]
+            los = p[j] - np.asarray(p_cam_ned_m, dtype=float)[j]
+            u = los / np.maximum(np.linalg.norm(los, axis=1), 1e-9)[:, None]
+            d = np.einsum("fi,fi->f", u, p[j] - self._p[common])
+            var = np.einsum("fi,fij,fj->f", u, P[j] + self._P[common], u)
+            z = np.abs(d) / np.sqrt(np.maximum(var, 1e-30))
+            self.last_max_nsigma = float(np.max(z))
+            agree = self.last_max_nsigma <= self.nsigma
+            if not agree:
+                self.conflicts += 1
+        if observable:
+            # one row per sample_s bin of absolute time: the next window picks the same frames
+            b = np.floor(t / self.sample_s)
+            first = np.concatenate([[True], b[1:] != b[:-1]])
+            self._t = np.concatenate([self._t, t[first]])
+            self._p = np.concatenate([self._p, p[first]])
+            self._P = np.concatenate([self._P, P[first]])
+        return agree
+
+    def reset(self) -> None:
+        self._t = np.zeros(0)
+        self._p = np.zeros((0, 3))
+        self._P = np.zeros((0, 3, 3))

@@ -64,7 +64,7 @@ import scipy.linalg as sla
 
 from onboard.core.errors import InputError
 from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
-from onboard.estimation.consistency import ConsistencyMonitor
+from onboard.estimation.consistency import ConsistencyMonitor, ManoeuvreDetector, SelectionHistory
 from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, qr_r
 from onboard.estimation.map_estimator import (
     EstimationError,
@@ -145,6 +145,13 @@ class SlidingConfig:
     # to 8.5 %, but on the realistic flow (bench.companion, P2, RTK) it cut the observable share after 5 s
     # from 0.44 to 0.33 with every position honest either way (docs/performance.md, "Honest over minutes")
     consistency_check: bool = False
+    # a target that changes motion model (onboard.estimation.consistency, docs/performance.md "Honest over
+    # minutes"): the CUSUM threshold on the newest frames' innovations above which the window is called
+    # unobservable and a selection is due at once (ManoeuvreDetector; 0: off), and how many sigmas of range
+    # a selection may differ from the observable selections before it on their common frames before it is
+    # called unobservable (SelectionHistory; 0: off)
+    manoeuvre_cusum_threshold: float = 10.0
+    selection_consistency_nsigma: float = 3.0
 
     def __post_init__(self) -> None:
         if not (
@@ -162,6 +169,8 @@ class SlidingConfig:
             and self.min_span_s >= 0
             and self.resolve_every_frames >= 1
             and self.selection_work_per_frame >= 0
+            and self.manoeuvre_cusum_threshold >= 0
+            and self.selection_consistency_nsigma >= 0
         ):
             raise InputError(f"SlidingConfig: invalid values {self}")
 
@@ -354,13 +363,33 @@ class SlidingWindowEstimator:
         self._last_est: TrackEstimate | None = None
         self._consistency: ConsistencyMonitor | None = None  # made at the first row (it needs the intrinsics)
         self._pending: _PendingSelection | None = None  # the model selection under way (module docstring)
+        # a change of the target's motion model (SlidingConfig.manoeuvre_cusum_threshold,
+        # selection_consistency_nsigma): fired since the last selection ended
+        self._manoeuvre = (
+            ManoeuvreDetector(threshold=c.manoeuvre_cusum_threshold) if c.manoeuvre_cusum_threshold > 0 else None
+        )
+        self._manoeuvre_fired = False
+        self._manoeuvre_t_s = -math.inf
+        self._change_t_s = -math.inf  # the onset of the last change of motion model the innovations showed
+        self._selections = (
+            SelectionHistory(c.selection_consistency_nsigma) if c.selection_consistency_nsigma > 0 else None
+        )
         self._prob: WindowProblem | None = None
         self._H: np.ndarray | None = None
         self._since_full = 0
         # per-frame covariances come from the chosen model's information, inflated like the batch
         # result's; model doubt is the 1 Hz selection's job (its observability verdict gates ours)
         self._cov_scale = self.map.config.sigma_inflation**2
-        self.stats = {"selections": 0, "provisional": 0, "updates": 0, "incremental": 0, "failures": 0, "skipped": 0}
+        self.stats = {
+            "selections": 0,
+            "provisional": 0,
+            "updates": 0,
+            "incremental": 0,
+            "failures": 0,
+            "skipped": 0,
+            "manoeuvres": 0,
+            "inconsistent_selections": 0,
+        }
 
     @property
     def noise(self) -> NoiseModel:
@@ -502,11 +531,15 @@ class SlidingWindowEstimator:
             period = min(period * self._period_scale, c.reselect_max_period_s)
         inn = self._innovations
         since = t - self._last_select_t
-        due = since >= period or (
-            since >= c.reselect_period_s
-            and (
-                (len(inn) == inn.maxlen and sum(inn) / len(inn) > c.reselect_innovation_trigger)
-                or (not self._window_observable and self._edge_pinned and not self._edge_pinned_at_selection)
+        due = (
+            since >= period
+            or self._manoeuvre_fired
+            or (
+                since >= c.reselect_period_s
+                and (
+                    (len(inn) == inn.maxlen and sum(inn) / len(inn) > c.reselect_innovation_trigger)
+                    or (not self._window_observable and self._edge_pinned and not self._edge_pinned_at_selection)
+                )
             )
         )
         if self._pending is None and (self._theta is None or self._prior is None or due):
@@ -584,6 +617,22 @@ class SlidingWindowEstimator:
         # where it is largest, must also stay below edge_sigma_factor x the threshold.  A provisional choice
         # compared no models (no ambiguity, no model doubt): never observable
         self._window_observable = bool(res.observable) and not pending.provisional
+        if self._selections is not None and not self._selections.check(
+            res.t_s, res.p_ned_m, res.cov_p_model_ned_m2, obs.p_cam_ned_m, self._window_observable
+        ):
+            # it and an observable selection before it put their common frames at different ranges: a change
+            # of motion model neither follows (onboard.estimation.consistency.SelectionHistory)
+            self._window_observable = False
+            self.stats["inconsistent_selections"] += 1
+        if self._manoeuvre is not None:
+            if obs.t_s[0] <= self._change_t_s:
+                # the window holds a change of the target's motion model the innovations showed: one motion model
+                # over all of it can explain the bearings at the wrong range (the selection cannot tell), so
+                # no verdict from it until the window has slid past the change
+                self._window_observable = False
+            if pending_t >= self._manoeuvre_t_s:
+                self._manoeuvre_fired = False  # else the manoeuvre began after these rows: the next selection is due
+            self._manoeuvre.reset()
         self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
         self._edge_pinned_at_selection = self._edge_pinned
         self._innovations.clear()
@@ -660,6 +709,17 @@ class SlidingWindowEstimator:
         if not ok:
             raise EstimationError("new observation is behind the camera for the current solution")
         self._innovations.append(0.5 * float(r @ r))
+        if self._manoeuvre is not None and self._manoeuvre.add(self._innovations[-1], t) and not self._manoeuvre_fired:
+            # the selected model no longer explains the bearings: unobservable until a selection, due now, ends
+            # (onboard.estimation.consistency.ManoeuvreDetector)
+            self._manoeuvre_fired = True
+            self._manoeuvre_t_s = t
+            self._window_observable = False
+            if self._manoeuvre.onset_t_s - self._t[0] >= 0.5 * self.config.window_s:
+                # a change after a model held for half a window at least (a young window's model is only
+                # inadequate: the next selection replaces it without a change in the window to mislead it)
+                self._change_t_s = self._manoeuvre.onset_t_s
+            self.stats["manoeuvres"] += 1
         H = H_window + Jr.T @ Jr
         d = np.sqrt(np.diag(H))
         d[d == 0] = 1.0

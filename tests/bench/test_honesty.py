@@ -6,7 +6,15 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from bench.honesty import FAMILIES, family_motions, recall_table, run_flight, switch_table, time_table
+from bench.honesty import (
+    FAMILIES,
+    family_motions,
+    recall_table,
+    run_flight,
+    summary_table,
+    switch_table,
+    time_table,
+)
 from groundsim.evaluation.synth import Racetrack, Weave
 
 
@@ -53,8 +61,9 @@ def test_families_keep_the_target_in_front_between_50_and_400_m():
         assert 50.0 < r.min() and r.max() < 400.0, (fam, r.min(), r.max())
 
 
-def _run(family, rows, duration_s=60.0):
-    return {"family": family, "seed": 0, "duration_s": duration_s, "cpu_s": 1.0, "rows": rows}
+def _run(family, rows, duration_s=60.0, manoeuvres=0):
+    stats = {"manoeuvres": manoeuvres, "inconsistent_selections": 1}
+    return {"family": family, "seed": 0, "duration_s": duration_s, "cpu_s": 1.0, "stats": stats, "rows": rows}
 
 
 def test_tables_count_what_is_beyond_3_sigma_and_the_end_verdict():
@@ -62,10 +71,16 @@ def test_tables_count_what_is_beyond_3_sigma_and_the_end_verdict():
     rows_a = [(float(t), 1.0, 1.0, True, 200.0, "cv:1e-06", 0.02) for t in range(60)]
     rows_a[40] = (40.0, 5.0, 1.0, True, 200.0, "ct:1e-06", 0.02)  # beyond 3 sigma, right after a change
     rows_b = [(float(t), 10.0, 100.0, False, 200.0, "cv:1e-06", 0.08) for t in range(60)]
-    runs = [_run("weaving", rows_a), _run("weaving", rows_b)]
+    runs = [_run("weaving", rows_a, manoeuvres=3), _run("weaving", rows_b)]
     tt = time_table(runs, 30.0)
-    assert "| weaving | 2 | 30-60 | 60 | 1.67 % | 50 % | 0.50 % |" in tt
-    assert "| weaving | 2 | all | 120 | 0.83 % | 50 % | 0.50 % |" in tt
+    assert "| weaving | 1 | 2 | 30-60 | 60 | 1.67 % | 50 % | 0.50 % |" in tt
+    assert "| weaving | 1 | 2 | all | 120 | 0.83 % | 50 % | 0.50 % |" in tt
+    # per family and flight length: 1 of 120 beyond, 1 of 60 in the worst bin (30-60 s) and of 60 in run a;
+    # 3 manoeuvres and 2 inconsistent selections in 2 minutes of flight
+    assert "| weaving | 1 | 2 | 120 | 0.83 % | 1.67 % | 1.67 % | 50 % | 0.50 % | 1.5 | 1.0 |" in summary_table(runs, 30.0)
+    # another flight length is another row
+    longer = summary_table(runs + [_run("weaving", rows_b, duration_s=120.0)], 30.0)
+    assert "| weaving | 2 | 1 | 60 | 0.00 % | 0.00 % | 0.00 % | 0 % | - | 0.0 | 0.5 |" in longer
     st_ = switch_table(runs)
     # two changes (cv -> ct at 40 s, back at 41 s) in 2 minutes of flight; 40-46 s are near a change
     assert "| weaving | 1.0 | 7 | 14.29 % | 0.00 % |" in st_

@@ -1,0 +1,109 @@
+"""A target that changes motion model: the innovation CUSUM and the agreement of consecutive selections."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from onboard.estimation.consistency import ManoeuvreDetector, SelectionHistory
+
+FRAME_S = 1.0 / 15.0
+
+
+def _run(det: ManoeuvreDetector, x: np.ndarray) -> list[int]:
+    """The frames at which ``det`` fired (reset after each firing, as the estimator's next selection does)."""
+    fired = []
+    for k, xk in enumerate(x):
+        if det.add(float(xk), k * FRAME_S):
+            fired.append(k)
+            det.reset()
+    return fired
+
+
+def test_cusum_is_quiet_on_white_innovations():
+    # a followed target: 0.5 r^T r of two standard normal residuals, exponential with mean 1; 20000 frames
+    # (22 minutes of incremental updates at 15 Hz) fire it a few times at most
+    rng = np.random.default_rng(5)
+    x = 0.5 * np.sum(rng.standard_normal((20000, 2)) ** 2, axis=1)
+    assert len(_run(ManoeuvreDetector(), x)) <= 3
+
+
+@settings(max_examples=30, deadline=None)
+@given(change=st.integers(20, 200), level=st.floats(6.0, 50.0), seed=st.integers(0, 1000))
+def test_cusum_fires_within_three_frames_of_a_change_and_dates_it(change, level, seed):
+    # innovations of 6-50 per axis once the target left the selected model (what a racetrack turn gave)
+    rng = np.random.default_rng(seed)
+    x = 0.5 * np.sum(rng.standard_normal((change + 20, 2)) ** 2, axis=1)
+    x[change:] = level
+    det = ManoeuvreDetector()
+    fired = next(k for k in range(x.size) if det.add(float(x[k]), k * FRAME_S))
+    assert change <= fired <= change + 2 or fired < change  # a white-noise excursion may fire first: rare
+    if fired >= change:
+        # the onset is the start of the excursion that fired: the change, or a frame or two of noise before it
+        assert change - 3 <= round(det.onset_t_s / FRAME_S) <= change
+
+
+def test_one_outlier_does_not_fire_it_but_two_in_a_row_do():
+    det = ManoeuvreDetector()
+    assert not det.add(1e6, 0.0) and det.statistic == pytest.approx(6.0)  # a wrong detection: clipped to 8
+    for k in range(1, 10):  # then white innovations: the statistic decays to 0
+        assert not det.add(0.5, k * FRAME_S)
+    assert det.statistic == 0.0
+    assert not det.add(1e6, 1.0)
+    assert det.add(float("nan"), 1.0 + FRAME_S)  # a second one (non-finite counts as the clip): 12 > 10
+    assert det.onset_t_s == pytest.approx(1.0) and det.fired == 1
+
+
+def _window(t, range_m, sigma_m):
+    """A window solution: the target due north of a camera at the origin, at ``range_m``, range sigma ``sigma_m``."""
+    t = np.asarray(t, float)
+    p = np.zeros((t.size, 3))
+    p[:, 0] = range_m
+    P = np.tile(np.diag([sigma_m**2, 0.01, 0.01]), (t.size, 1, 1))
+    return t, p, P, np.zeros((t.size, 3))
+
+
+def test_selections_agreeing_on_range_pass_and_a_jump_beyond_their_sigmas_does_not():
+    rows = np.arange(0.0, 40.0, FRAME_S)
+    hist = SelectionHistory(nsigma=3.0)
+    a = rows[(rows >= 0) & (rows < 20)]
+    b = rows[(rows >= 5) & (rows < 25)]
+    assert hist.check(*_window(a, 230.0, 5.0), observable=True)  # nothing to compare: passes, kept
+    assert hist.check(*_window(b, 235.0, 5.0), observable=True)  # 5 m apart, sigma sqrt(50): agrees
+    assert hist.last_max_nsigma == pytest.approx(5.0 / np.sqrt(50.0), rel=1e-6)
+    c = rows[(rows >= 10) & (rows < 30)]
+    # the racetrack's wrong-range selection: 30 % short at a 2 % range sigma
+    assert not hist.check(*_window(c, 160.0, 3.0), observable=True)
+    assert hist.conflicts == 1
+    # it was kept: the next one at the true range disagrees with it on their common frames, and is demoted too
+    d = rows[(rows >= 15) & (rows < 35)]
+    assert not hist.check(*_window(d, 231.0, 5.0), observable=True)
+    # once the window has slid past the kept ones' frames there is nothing left to disagree with
+    e = rows[(rows >= 36) & (rows < 40)]
+    assert hist.check(*_window(e, 231.0, 5.0), observable=True) and np.isnan(hist.last_max_nsigma)
+
+
+def test_unobservable_selections_are_compared_but_not_kept():
+    rows = np.arange(0.0, 30.0, FRAME_S)
+    hist = SelectionHistory()
+    a = rows[rows < 20]
+    assert hist.check(*_window(a, 160.0, 100.0), observable=False)
+    b = rows[(rows >= 5) & (rows < 25)]
+    assert hist.check(*_window(b, 230.0, 5.0), observable=True)  # the unobservable one left nothing behind
+
+
+def test_only_common_frames_are_compared():
+    hist = SelectionHistory()
+    t = np.arange(0.0, 20.0, 0.5)
+    assert hist.check(*_window(t, 230.0, 5.0), observable=True)
+    # another window whose rows are other frames (shifted by a quarter frame): nothing in common
+    assert hist.check(*_window(t[4:] + 0.25, 100.0, 1.0), observable=True) and np.isnan(hist.last_max_nsigma)
+
+
+def test_invalid_settings_are_refused():
+    with pytest.raises(ValueError):
+        ManoeuvreDetector(reference=1.0)
+    with pytest.raises(ValueError):
+        SelectionHistory(nsigma=0.0)
