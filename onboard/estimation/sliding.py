@@ -47,6 +47,14 @@ last selection's residuals passed the adequacy test with an ambiguity of at most
 An unobservable estimate keeps its position, with its range sigma raised to at least
 ``unobservable_range_sigma_floor`` of the range and ``unobservable_range_sigma_min_m`` (honest, not
 confident).
+
+A target that changes motion model (a racetrack: legs and turns) defeats a selection made over one model
+(:mod:`onboard.estimation.consistency`): a CUSUM on the incremental updates' innovations
+(``manoeuvre_cusum_threshold``) calls the window unobservable and a selection due at once when the
+selected model stops explaining the bearings, and after a model held over a whole window no window that
+holds the change's onset is called observable (one model over it can explain the bearings at the wrong
+range); a selection that puts the frames it shares with an observable selection before it at another
+range (``selection_consistency_nsigma``) is called unobservable.
 """
 
 from __future__ import annotations
@@ -624,6 +632,11 @@ class SlidingWindowEstimator:
             # of motion model neither follows (onboard.estimation.consistency.SelectionHistory)
             self._window_observable = False
             self.stats["inconsistent_selections"] += 1
+            log.debug(
+                "selection at %.2f s: range %.1f sigma from an earlier one's: unobservable",
+                pending_t,
+                self._selections.last_max_nsigma,
+            )
         if self._manoeuvre is not None:
             if obs.t_s[0] <= self._change_t_s:
                 # the window holds a change of the target's motion model the innovations showed: one motion model
@@ -715,9 +728,11 @@ class SlidingWindowEstimator:
             self._manoeuvre_fired = True
             self._manoeuvre_t_s = t
             self._window_observable = False
-            if self._manoeuvre.onset_t_s - self._t[0] >= 0.5 * self.config.window_s:
-                # a change after a model held for half a window at least (a young window's model is only
-                # inadequate: the next selection replaces it without a change in the window to mislead it)
+            log.debug("manoeuvre at %.2f s (onset %.2f s): unobservable, selection due", t, self._manoeuvre.onset_t_s)
+            if self._manoeuvre.onset_t_s - self._t[0] >= 0.95 * self.config.window_s:
+                # a change after a model held over a whole window (a younger window's model is only
+                # inadequate: on circling targets blocking after those cost 10 % of the observable positions
+                # with nothing dishonest to remove)
                 self._change_t_s = self._manoeuvre.onset_t_s
             self.stats["manoeuvres"] += 1
         H = H_window + Jr.T @ Jr

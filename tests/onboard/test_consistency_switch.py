@@ -41,8 +41,9 @@ def test_cusum_fires_within_three_frames_of_a_change_and_dates_it(change, level,
     fired = next(k for k in range(x.size) if det.add(float(x[k]), k * FRAME_S))
     assert change <= fired <= change + 2 or fired < change  # a white-noise excursion may fire first: rare
     if fired >= change:
-        # the onset is the start of the excursion that fired: the change, or a frame or two of noise before it
-        assert change - 3 <= round(det.onset_t_s / FRAME_S) <= change
+        # the onset is the start of the excursion that fired: the change, or the start of a short noise
+        # excursion just before it (the statistic drifts down by 1 a frame under white innovations)
+        assert change - 15 <= round(det.onset_t_s / FRAME_S) <= change
 
 
 def test_one_outlier_does_not_fire_it_but_two_in_a_row_do():
@@ -107,3 +108,37 @@ def test_invalid_settings_are_refused():
         ManoeuvreDetector(reference=1.0)
     with pytest.raises(ValueError):
         SelectionHistory(nsigma=0.0)
+
+
+def test_a_racetrack_turn_after_a_leg_is_not_published_confidently_at_the_wrong_range():
+    """The sliding window on bench.honesty's racetrack: the target leaves a 25 s leg for a half-turn at 33.5 s;
+    the stiff constant-velocity model selected over the leg put it 1-7 % of range off at a 0.4 % range sigma
+    within 2 s (positions beyond 3 sigma) until innovations are caught: they no longer are."""
+    from bench.honesty import FRAME_RATE_HZ, family_motions
+    from groundsim.evaluation.synth import estimator_noise_model, synthesize
+    from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+    from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+
+    nc = load_noise_cases()["RTK"]
+    intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
+    obs_m, tgt_m = family_motions("switching", 1)
+    t = np.arange(0.0, 38.0, 1.0 / FRAME_RATE_HZ)
+    truth, obs = synthesize(obs_m, tgt_m, t, intr, nc, np.random.default_rng([1, 7]))
+
+    def flight(config):
+        sw = SlidingWindowEstimator(config, noise=estimator_noise_model(nc))
+        beyond = []
+        for i in range(t.size):
+            est = sw.add(t[i], obs.uv_px[i], intr, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
+            if est is not None:
+                err_m = float(np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]))
+                if err_m > 3.0 * np.sqrt(np.trace(est.cov_p_ned_m2)):
+                    beyond.append((float(t[i]), est.observable))
+        return sw.stats, beyond
+
+    stats_off, beyond_off = flight(SlidingConfig(manoeuvre_cusum_threshold=0.0, selection_consistency_nsigma=0.0))
+    stats_on, beyond_on = flight(SlidingConfig())
+    assert len(beyond_off) > 20 and all(obs for _, obs in beyond_off)  # confident and wrong, after the change
+    assert min(ts for ts, _ in beyond_off) > 33.5
+    assert stats_off["manoeuvres"] == 0
+    assert stats_on["manoeuvres"] >= 1 and beyond_on == []
