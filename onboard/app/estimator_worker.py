@@ -48,6 +48,7 @@ from onboard.pipeline.frame_pipeline import make_estimator
 
 __all__ = [
     "ESTIMATE_QUEUE_MAX",
+    "as_observation",
     "SNAPSHOT_PERIOD_S",
     "FORKSERVER_PRELOAD",
     "ThreadedEstimator",
@@ -108,7 +109,7 @@ class ThreadedEstimator:
     # ------------------------------------------------------------------ caller side
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
-        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
@@ -139,7 +140,7 @@ class ThreadedEstimator:
         """Replace the window with ``rows`` (``add``'s arguments, oldest first: the same frames at a new camera
         clock compensation), made by the worker with one model selection (:meth:`SlidingWindowEstimator.rebuild`).
         Returns None: the estimate comes with the next frames."""
-        packed = [_observation(*r) for r in rows]
+        packed = [as_observation(*r) for r in rows]
         with self._cond:
             self._epoch += 1
             self._q.clear()
@@ -267,7 +268,7 @@ def _recv_msg(conn: Connection) -> Any:
 
 
 def row_message(epoch: int, args: tuple, k_index: int) -> tuple | None:
-    """An observation (:func:`_observation`) as ``("row", epoch, t, u, v, k_index, p (3), q (4))``; None when
+    """An observation (:func:`as_observation`) as ``("row", epoch, t, u, v, k_index, p (3), q (4))``; None when
     its arrays are not the float64 (3,) and (4,) a row has (sent whole instead)."""
     t, uv, _, p, q = args
     if p.shape != (3,) or q.shape != (4,) or p.dtype != np.float64 or q.dtype != np.float64 or len(uv) != 2:
@@ -276,7 +277,7 @@ def row_message(epoch: int, args: tuple, k_index: int) -> tuple | None:
 
 
 def row_args(msg: tuple, intrinsics: dict) -> tuple:
-    """The observation of a ``row`` message, as :func:`_observation` made it in the parent."""
+    """The observation of a ``row`` message, as :func:`as_observation` made it in the parent."""
     return (msg[2], (msg[3], msg[4]), intrinsics[msg[5]], np.array(msg[6:9]), np.array(msg[9:13]))
 
 
@@ -630,7 +631,7 @@ class ProcessEstimator:
                 return True, est  # the rest, if any, on the next call: no poll that finds nothing, per frame
 
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
-        args = _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
+        args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
@@ -666,7 +667,7 @@ class ProcessEstimator:
         None: the estimate comes with the next frames."""
         self.reset()
         for r in rows:
-            self._remember(_observation(*r))
+            self._remember(as_observation(*r))
         if self._window and self._alive():
             self._send(("rebuild", self._epoch, self._packed_window(), None))
 
@@ -704,7 +705,7 @@ class ProcessEstimator:
         self._proc = None
 
 
-def _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
+def as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
     """One estimator observation as the workers take it (and as the process worker pickles it)."""
     return (
         float(t_s),

@@ -11,8 +11,6 @@ import logging
 import numpy as np
 import pytest
 
-from groundsim.evaluation.synth import synthesize_scenario
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator
 from onboard.app.locked_counter import LockedCounter
@@ -23,18 +21,12 @@ ROWS = 240  # 8 s at 30 Hz: a window that can be solved
 HONEST_SIGMAS = 4.0  # the rebuilt window's estimate is within this many reported sigma (sqrt trace P) of the truth
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_blas_thread():
-    from groundsim.evaluation.parallel import limit_blas_threads
-
-    limit_blas_threads(1)
+pytestmark = pytest.mark.usefixtures("one_blas_thread")
 
 
 @pytest.fixture(scope="module")
-def scene():
-    sc = load_scenario(reference_scenario_paths()["P3"])
-    truth, obs = synthesize_scenario(sc, load_noise_cases()["px0.3"], seed=1)
-    K = sc.camera.intrinsics
+def scene(p3_px03_flight):
+    K, truth, obs = p3_px03_flight
     rows = [(obs.t_s[i], obs.uv_px[i], K, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i]) for i in range(ROWS + 1)]
     return rows, truth.p_target_ned_m[ROWS]
 

@@ -16,8 +16,6 @@ import time
 import numpy as np
 import pytest
 
-from groundsim.evaluation.synth import synthesize_scenario
-from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.config import OnboardConfig
 from onboard.app.estimator_worker import SNAPSHOT_PERIOD_S, ProcessEstimator
 from onboard.app.locked_counter import LockedCounter
@@ -29,18 +27,12 @@ FRAMES_BEFORE_KILL = 240  # 8 s at 30 Hz: the window holds estimates before the 
 HONEST_SIGMAS = 4.0  # the rebuilt estimate is within this many reported sigma (sqrt trace P) of the truth
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_blas_thread():
-    from groundsim.evaluation.parallel import limit_blas_threads
-
-    limit_blas_threads(1)
+pytestmark = pytest.mark.usefixtures("one_blas_thread")
 
 
 @pytest.fixture(scope="module")
-def scene():
-    sc = load_scenario(reference_scenario_paths()["P3"])
-    truth, obs = synthesize_scenario(sc, load_noise_cases()["px0.3"], seed=1)
-    return sc.camera.intrinsics, truth, obs
+def scene(p3_px03_flight):
+    return p3_px03_flight
 
 
 def _add(pe, obs, K, i):

@@ -10,7 +10,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.app.estimator_worker import pack_estimate, row_args, row_message, unpack_estimate
+from onboard.app.estimator_worker import as_observation, pack_estimate, row_args, row_message, unpack_estimate
 from onboard.core.frames import PinholeIntrinsics
 from onboard.estimation.sliding import TrackEstimate
 from onboard.estimation.window_problem import MotionPrior
@@ -31,17 +31,6 @@ def _same(a, b) -> bool:
     if isinstance(a, float) and isinstance(b, float) and math.isnan(a):
         return math.isnan(b)
     return type(a) is type(b) and a == b
-
-
-def _observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple:
-    """An observation as ``ProcessEstimator.add`` makes it before it sends it."""
-    return (
-        float(t_s),
-        tuple(float(x) for x in uv_px),
-        intrinsics,
-        np.array(p_cam_ned_m, dtype=float),
-        np.array(q_ned_from_cam, dtype=float),
-    )
 
 
 def _estimate(values: list[float], prior: MotionPrior | None, observable: bool, model: str) -> TrackEstimate:
@@ -106,7 +95,7 @@ def test_what_is_not_a_plain_estimate_goes_as_it_is():
 )
 def test_a_row_reads_back_as_the_observation_the_parent_made(t, uv, p, q, k_index):
     K = PinholeIntrinsics.vue_pro_640()
-    args = _observation(t, uv, K, p, q)
+    args = as_observation(t, uv, K, p, q)
     msg = row_message(3, args, k_index)
     assert msg is not None and msg[:2] == ("row", 3)
     got = row_args(pickle.loads(pickle.dumps(msg, pickle.HIGHEST_PROTOCOL)), {k_index: K})
@@ -117,5 +106,5 @@ def test_a_row_reads_back_as_the_observation_the_parent_made(t, uv, p, q, k_inde
 
 def test_a_row_of_another_shape_is_sent_whole():
     K = PinholeIntrinsics.vue_pro_640()
-    assert row_message(0, _observation(1.0, (1.0, 2.0), K, np.zeros((3, 1)), np.ones(4)), 0) is None
-    assert row_message(0, _observation(1.0, (1.0, 2.0), K, np.zeros(3), np.ones(5)), 0) is None
+    assert row_message(0, as_observation(1.0, (1.0, 2.0), K, np.zeros((3, 1)), np.ones(4)), 0) is None
+    assert row_message(0, as_observation(1.0, (1.0, 2.0), K, np.zeros(3), np.ones(5)), 0) is None
