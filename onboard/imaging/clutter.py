@@ -50,6 +50,7 @@ __all__ = [
     "cfar_threshold",
     "point_candidates",
     "frame_event",
+    "rotation_shift_px",
     "surround_residuals",
     "background_difference",
     "difference_peak",
@@ -349,6 +350,17 @@ def frame_event(image: np.ndarray, previous: np.ndarray | None, previous_median:
     if previous_median is not None and abs(med - previous_median) > step_lsb:
         return "step", med
     return "ok", med
+
+
+def rotation_shift_px(K, u_px: float, v_px: float, R_then: np.ndarray, R_now: np.ndarray) -> tuple[float, float] | None:
+    """Where a point at infinity seen at ``(u_px, v_px)`` on an earlier frame (camera attitude ``R_then``,
+    ned_from_cam) is on this one (``R_now``), minus ``(u_px, v_px)``: the image motion the camera's own
+    rotation alone makes there (pinhole ``K``; px).  None when the point is now behind the camera."""
+    ray = np.array([(u_px - K.cx_px) / K.fx_px, (v_px - K.cy_px) / K.fy_px, 1.0])
+    c = R_now.T @ (R_then @ ray)
+    if c[2] <= 1e-6:
+        return None
+    return K.fx_px * c[0] / c[2] + K.cx_px - u_px, K.fy_px * c[1] / c[2] + K.cy_px - v_px
 
 
 def surround_residuals(

@@ -55,6 +55,7 @@ from onboard.imaging.clutter import (
     local_noise_coarse,
     point_candidates,
     point_contrast,
+    rotation_shift_px,
     surround_residuals,
 )
 from onboard.imaging.detect import Blob, Detection, measure_blob
@@ -555,11 +556,9 @@ class ObjectTracker:
             (du, dv), response = cv2.phaseCorrelate(old, small, self._window)
             if response >= p.background_min_response:
                 # where a point at infinity seen at the image centre on frame k0 is now: the rotation's share
-                K = self.K
-                c = R.T @ (R0 @ np.array([0.0, 0.0, 1.0]))
-                if c[2] > 1e-6:
-                    ru = K.fx_px * c[0] / c[2]
-                    rv = K.fy_px * c[1] / c[2]
+                shift = rotation_shift_px(self.K, self.K.cx_px, self.K.cy_px, R0, R)
+                if shift is not None:
+                    ru, rv = shift
                     n = k - k0
                     self._background_pxpf = (
                         (du * BACKGROUND_SCALE - ru) / n,

@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.imaging.clutter import PointCandidate
+from onboard.imaging.clutter import PointCandidate, rotation_shift_px
 from onboard.imaging.detect import Detection
 
 __all__ = ["TbdParams", "TrackBeforeDetect"]
@@ -297,13 +297,8 @@ class TrackBeforeDetect:
             return np.zeros(2)
         d = self.params.decimation
         i0, j0, wh, ww = win
-        K = self.K
-        u, v = d * (j0 + ww / 2), d * (i0 + wh / 2)
-        ray = np.array([(u - K.cx_px) / K.fx_px, (v - K.cy_px) / K.fy_px, 1.0])
-        c = R.T @ (self._R @ ray)
-        if c[2] <= 1e-6:
-            return np.zeros(2)
-        return np.array([K.fx_px * c[0] / c[2] + K.cx_px - u, K.fy_px * c[1] / c[2] + K.cy_px - v]) / d
+        shift = rotation_shift_px(self.K, d * (j0 + ww / 2), d * (i0 + wh / 2), self._R, R)
+        return np.zeros(2) if shift is None else np.array(shift) / d
 
     def _integrate(self, frame: np.ndarray, R: np.ndarray, win: tuple[int, int, int, int]) -> None:
         p = self.params
