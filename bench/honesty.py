@@ -32,6 +32,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 from onboard.core.blas import single_thread_blas_env  # noqa: E402 - imports nothing but os
@@ -181,6 +182,15 @@ def _groups(runs: list[dict]) -> dict[tuple[str, float], list[dict]]:
     return out
 
 
+def _group_rows(runs: list[dict]) -> Iterator[tuple[str, float, list[dict], np.ndarray]]:
+    """Per (family, flight minutes) with published rows: the family, the minutes, its runs and their rows as
+    an (N, 5) array of time, error, sigma, observable, range."""
+    for (fam, minutes), rs in _groups(runs).items():
+        rows = [row for r in rs for row in r["rows"]]
+        if rows:
+            yield fam, minutes, rs, np.array([row[:5] for row in rows], dtype=float)
+
+
 def summary_table(runs: list[dict], bin_s: float) -> str:
     """Per family and flight length: the share beyond 3 sigma over all published positions, in the worst time
     bin and in the worst run; the observable share and median err/range; how often the estimator saw a change
@@ -190,11 +200,7 @@ def summary_table(runs: list[dict], bin_s: float) -> str:
         "median err/range, observable | manoeuvres / min | inconsistent selections / min |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for (fam, minutes), rs in _groups(runs).items():
-        allrows = [row for r in rs for row in r["rows"]]
-        if not allrows:
-            continue
-        a = np.array([(row[0], row[1], row[2], row[3], row[4]) for row in allrows], dtype=float)
+    for fam, minutes, rs, a in _group_rows(runs):
         bad = a[:, 1] > 3 * a[:, 2]
         bins = np.floor(a[:, 0] / bin_s)
         worst_bin = max(100 * float(np.mean(bad[bins == b])) for b in np.unique(bins))
@@ -218,11 +224,7 @@ def time_table(runs: list[dict], bin_s: float) -> str:
         "| family | minutes | runs | time bin s | published | beyond 3 sigma | observable | median err/range, observable |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    for (fam, minutes), rs in _groups(runs).items():
-        allrows = [row for r in rs for row in r["rows"]]
-        if not allrows:
-            continue
-        a = np.array([(row[0], row[1], row[2], row[3], row[4]) for row in allrows], dtype=float)
+    for fam, minutes, rs, a in _group_rows(runs):
         edges = np.arange(0.0, a[:, 0].max() + bin_s, bin_s)
         for lo in list(edges) + [None]:
             m = np.ones(len(a), bool) if lo is None else (a[:, 0] >= lo) & (a[:, 0] < lo + bin_s)
