@@ -43,7 +43,7 @@ from onboard.app.os_thread import name_os_thread
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
-from onboard.io.worker_queue import next_or_stop
+from onboard.io.worker_queue import items_until_stopped
 from onboard.pipeline.frame_pipeline import make_estimator
 
 __all__ = [
@@ -174,11 +174,7 @@ class ThreadedEstimator:
 
     def _run(self) -> None:
         name_os_thread("irtrack-estim")
-        while True:
-            item = next_or_stop(self._cond, self._q, lambda: self._stop)
-            if item is None:
-                return
-            kind, epoch, t, args = item
+        for kind, epoch, t, args in items_until_stopped(self._cond, self._q, lambda: self._stop):
             c0 = time.thread_time()
             est = None
             try:

@@ -50,7 +50,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.io.foxglove_messages import drawn_box
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
-from onboard.io.worker_queue import next_or_stop
+from onboard.io.worker_queue import items_until_stopped
 
 __all__ = [
     "agc_limits",
@@ -448,11 +448,7 @@ class VideoStreamer:
             self._cond.notify()
 
     def _run(self) -> None:
-        while True:
-            item = next_or_stop(self._cond, self._q, lambda: self._stop)
-            if item is None:
-                return
-            pixels, track, capture_time_us, objects = item
+        for pixels, track, capture_time_us, objects in items_until_stopped(self._cond, self._q, lambda: self._stop):
             t0 = time.perf_counter()
             try:
                 lo, hi = self._agc.update(pixels)
