@@ -266,7 +266,7 @@ def scene_cases(intr, base) -> None:
         renderer = IrRenderer(intr, base, seed=1)
         t0 = time.perf_counter()
         scene = SceneContent.from_config(cfg, renderer, seed=1)
-        sensor = Sensor.from_config(cfg.sensor, intr, base, seed=1) if cfg.sensor.enabled else None
+        sensor = Sensor(cfg.sensor, intr, base, seed=1) if cfg.sensor.enabled else None
         setup_s = time.perf_counter() - t0
         wall, cpu = _run_scene(scene, renderer, sensor, _scene_poses(SCENE_FRAMES + WARMUP_FRAMES, height, pitch))
         print(

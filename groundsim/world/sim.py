@@ -594,9 +594,7 @@ class SimCore:
             self._other_rasters = tuple(self._scene.target_raster(o.parts) for o in sc.other_targets)
             if sc.scene.sensor.enabled:
                 sensor_seed = int(sc.rng("render.sensor", self.run_seed).integers(0, 2**63 - 1))
-                self._sensor = Sensor.from_config(
-                    sc.scene.sensor, sc.camera.intrinsics, sc.ir, sensor_seed, self.frame_rate_hz
-                )
+                self._sensor = Sensor(sc.scene.sensor, sc.camera.intrinsics, sc.ir, sensor_seed, self.frame_rate_hz)
         return self._scene, self._sensor
 
     def other_targets_at(self, i: int) -> list:

@@ -25,7 +25,7 @@ SIGMA_RTOL = 0.1  # sample standard deviation over hundreds to 300k samples
 
 def sensor(cfg: dict, ir: IrSettings = QUIET, seed: int = 1, rate: float = 30.0) -> Sensor:
     raw = {"enabled": True, **cfg}
-    return Sensor.from_config(scene_config_from_dict({"sensor": raw}).sensor, INTR, ir, seed, rate)
+    return Sensor(scene_config_from_dict({"sensor": raw}).sensor, INTR, ir, seed, rate)
 
 
 def flat(T_k: float) -> np.ndarray:

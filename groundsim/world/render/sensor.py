@@ -2,7 +2,7 @@
 
 Public API::
 
-    sensor = Sensor.from_config(sensor_config, renderer.intrinsics, renderer.settings, seed, frame_rate_hz)
+    sensor = Sensor(sensor_config, renderer.intrinsics, renderer.settings, seed, frame_rate_hz)
     out = sensor.apply(radiance, t_s, frame_index)   # SensorFrame(counts, mono8, status)
 
 ``radiance``: (H, W) W m^-2 sr^-1 at the aperture, no noise (``SceneFrame.radiance`` or
@@ -132,17 +132,6 @@ class Sensor:
         self._x = np.empty((H, W), np.float32)
         self._lut: np.ndarray | None = None
         self._last: SensorFrame | None = None
-
-    @classmethod
-    def from_config(
-        cls,
-        config: SensorConfig,
-        intrinsics: PinholeIntrinsics,
-        settings: IrSettings,
-        seed: int = 0,
-        frame_rate_hz: float = 30.0,
-    ) -> Sensor:
-        return cls(config, intrinsics, settings, seed, frame_rate_hz)
 
     # ------------------------------------------------------------------ flat-field events
 
