@@ -1,6 +1,7 @@
 """Benchmark of the onboard daemon: loopback latency through it, and per-frame processing on one core.
 
-``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency] [--parts-s S]``.  Prints:
+``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency] [--parts-s S] [--scene C1 [--scene-s S]]``.
+Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:`bench.onboard_scene`):
 
 * Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1,
   default configuration: estimator in a worker process): a fake autopilot (pymavlink, UDP) sends
@@ -746,11 +747,19 @@ def main(argv=None) -> int:
         help="also time two parts alone, paced (MAVLink in, estimator hand-off), this many seconds each",
     )
     ap.add_argument("--parts-repeats", type=int, default=2, help="repeats of --parts-s")
+    ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
+    ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
     print(
         f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
         f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms (lower is faster)"
     )
+    if args.scene:
+        from bench.onboard_scene import bench_scene
+
+        bench_scene(args.scene, args.scene_s, _cpu_snapshot)
+        print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
+        return 0
     if not args.no_latency:
         # first, before this process pins itself to one core
         print("loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")

@@ -1,0 +1,339 @@
+"""The selected target's 3-D in the reference scenes C1-C5, against each scene's clean-sky twin.
+
+``python -m bench.scenes3d [--scenes C1 C2 C3 C4 C5] [--seeds N] [--duration S] [--nav-noise RTK]
+[--chain objects|single] [--onboard-config FILE] [--workers N] [--json FILE]``.
+
+Each (scene, seed) is flown twice through the lockstep closed loop of ``groundsim eval``
+(:func:`groundsim.evaluation.eval.run_lockstep`: the simulator's flight, renderer and MAVLink-quantised
+telemetry with the run's navigation errors, RTK by default, into the daemon's :class:`FramePipeline`, its
+image chain and sliding-window estimator, frame by frame, deterministic):
+
+* the **scene** as shipped (``config/scenarios/C*.yaml``);
+* its **clean-sky twin** (:func:`clean_twin`): the same scenario with its ``scene`` section set to the
+  default (no clouds, terrain, distractors, nor camera model: every part off) and no ``other_targets``.
+  Everything else is the scene's: the observer's and the target's flight, the gimbal's pointing, the
+  camera, the ``ir`` section (band, NETD, haze, encoding: C4's twin is its dim target, mono16, on a clean
+  sky), the scenario seed and so every random stream of the flight and of the navigation errors (streams
+  are named, :meth:`Scenario.rng`, so switching the scene off shifts none of them).  Only the pixels
+  differ, and the pixel noise with them (the renderer's own noise stream instead of the camera model's).
+
+Both go through the same daemon configuration: the shipped ``config/onboard.yaml`` with
+``imaging.chain: objects`` (``--chain single`` for the default chain, which locks clutter on C1-C4;
+docs/perception.md), the scenario's camera and unobservable positions published (as ``groundsim eval``).
+
+Per run and pooled over the seeds, per scene (definitions in :func:`run_figures` / :func:`pair_row`):
+frames with a 3-D position, the median error of those positions (m, and per cent of the range) for the
+scene and its twin and their ratio (asked: <= 1.5), the ratio on the frames where both have a position,
+the share of positions beyond 3 sigma (asked: <= 1 %), the observable fraction and the share of visible
+frames whose measured centre is on the target (within 3 px of its truth pixel: a wrong object selected
+shows here first).
+
+Numbers only; nothing asserts.  Timing is not measured here (``python -m bench.onboard --scene C1``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import sys
+from dataclasses import dataclass
+
+from onboard.core.blas import single_thread_blas_env  # noqa: E402 - imports nothing but os
+
+if __name__ == "__main__":  # one BLAS thread per process: must precede the numpy import
+    single_thread_blas_env()
+
+import numpy as np  # noqa: E402
+
+from bench import run_benchmark, write_json  # noqa: E402
+
+__all__ = [
+    "SCENES",
+    "RATIO_LIMIT",
+    "BEYOND_3SIGMA_LIMIT",
+    "ON_TARGET_PX",
+    "clean_twin",
+    "RunFigures",
+    "run_figures",
+    "pair_row",
+    "format_table",
+    "main",
+]
+
+SCENES = ("C1", "C2", "C3", "C4", "C5")
+RATIO_LIMIT = 1.5  # the scene's median 3-D error at most this times its twin's (issue's figure)
+BEYOND_3SIGMA_LIMIT = 0.01  # at most this share of published positions beyond 3 sigma
+ON_TARGET_PX = 3.0  # a measured centre this close to the target's truth pixel is on the target
+
+
+def clean_twin(scenario):
+    """``scenario``'s clean-sky twin: its ``scene`` section at the default (every part off) and no
+    ``other_targets``; everything else, the seed included, unchanged (module docstring)."""
+    from groundsim.world.render.scene_config import SceneConfig
+
+    return dataclasses.replace(scenario, scene=SceneConfig(), other_targets=())
+
+
+@dataclass(frozen=True)
+class RunFigures:
+    """One lockstep run's 3-D figures.  Per published position (a finite 3-D estimate in the frame's track,
+    observable or not, as the daemon publishes with ``output.unobservable_positions``): ``frame`` (index in
+    the run), ``err_m`` (Euclidean error against the truth), ``err_range_pct`` (per cent of the true range),
+    ``beyond_3sigma`` (``err_m > 3 sqrt(trace cov)``: the honesty test of ``groundsim eval``'s closed-loop
+    figures), ``observable``.  Per run: ``frames`` processed, ``visible`` frames (target in the image),
+    ``on_target`` of them (measured centre within :data:`ON_TARGET_PX` of the truth pixel), ``first_position_s``
+    (from the run's first frame; NaN: none), ``error`` (a failed run's one line, else None)."""
+
+    scenario: str
+    seed: int
+    twin: bool
+    frames: int
+    visible: int
+    on_target: int
+    frame: np.ndarray
+    err_m: np.ndarray
+    err_range_pct: np.ndarray
+    beyond_3sigma: np.ndarray
+    observable: np.ndarray
+    first_position_s: float = math.nan
+    error: str | None = None
+
+    @property
+    def positions(self) -> int:
+        return int(self.frame.size)
+
+
+def run_figures(r, twin: bool) -> RunFigures:
+    """:class:`RunFigures` of a :class:`groundsim.evaluation.eval.RunResult` (or any object with its arrays)."""
+    empty_f, empty_b = np.zeros(0), np.zeros(0, dtype=bool)
+    if r.error is not None or r.frames == 0:
+        return RunFigures(r.scenario, r.seed, twin, r.frames, 0, 0, np.zeros(0, int), empty_f, empty_f, empty_b, empty_b,
+                          error=r.error or "no frame processed")  # fmt: skip
+    est = np.asarray(r.est_p_ned_m, dtype=float)
+    cov = np.asarray(r.est_cov_ned_m2, dtype=float)
+    with np.errstate(invalid="ignore"):
+        sig3 = 3.0 * np.sqrt(np.maximum(np.einsum("fii->f", cov), 0.0))
+    pub = np.all(np.isfinite(est), axis=1) & np.isfinite(sig3)
+    e = np.linalg.norm(est - np.asarray(r.truth_p_ned_m, dtype=float), axis=1)
+    visible = np.asarray(r.visible, dtype=bool)
+    d_px = np.linalg.norm(np.asarray(r.uv_px, dtype=float) - np.asarray(r.truth_uv_px, dtype=float), axis=1)
+    on = visible & np.asarray(r.measurement_valid, dtype=bool) & (d_px <= ON_TARGET_PX)  # NaN compares False
+    t = np.asarray(r.t_s, dtype=float)
+    return RunFigures(
+        scenario=r.scenario,
+        seed=int(r.seed),
+        twin=twin,
+        frames=int(r.frames),
+        visible=int(visible.sum()),
+        on_target=int(on.sum()),
+        frame=np.flatnonzero(pub),
+        err_m=e[pub],
+        err_range_pct=100.0 * e[pub] / np.asarray(r.range_m, dtype=float)[pub],
+        beyond_3sigma=e[pub] > sig3[pub],
+        observable=np.asarray(r.observable, dtype=bool)[pub],
+        first_position_s=float(t[pub][0] - t[0]) if pub.any() else math.nan,
+    )
+
+
+def _median(a) -> float:
+    return float(np.median(a)) if len(a) else math.nan
+
+
+def _share(num: int, den: int) -> float:
+    return num / den if den else math.nan
+
+
+def pair_row(scene: list[RunFigures], twin: list[RunFigures]) -> dict:
+    """One scene's row, pooled over its seeds: every published position of every run counts once.
+
+    ``positions`` (scene, twin), ``frames``; ``median_err_m`` / ``median_err_range_pct``: the median over
+    the pooled positions; ``ratio``: the scene's median error (per cent of range) over its twin's (asked
+    <= :data:`RATIO_LIMIT`); ``ratio_common``: the same on the (seed, frame) pairs where both published a
+    position (same frames, same ranges, same window age: what is left is the image); ``beyond_3sigma``: share
+    of published positions (asked <= :data:`BEYOND_3SIGMA_LIMIT`); ``observable``: observable positions /
+    frames processed; ``on_target``: on-target frames / visible frames; ``met``: both asks met by the scene
+    (None when a ratio cannot be formed).  Runs are paired by seed; a failed run counts in ``failed``."""
+
+    def pooled(runs: list[RunFigures]) -> dict:
+        ok = [f for f in runs if f.error is None]
+        err_m = np.concatenate([f.err_m for f in ok]) if ok else np.zeros(0)
+        pct = np.concatenate([f.err_range_pct for f in ok]) if ok else np.zeros(0)
+        n_pos = int(err_m.size)
+        frames = sum(f.frames for f in ok)
+        return {
+            "runs": len(runs),
+            "failed": len(runs) - len(ok),
+            "frames": frames,
+            "positions": n_pos,
+            "median_err_m": _median(err_m),
+            "median_err_range_pct": _median(pct),
+            "beyond_3sigma": _share(int(sum(int(f.beyond_3sigma.sum()) for f in ok)), n_pos),
+            "observable": _share(int(sum(int(f.observable.sum()) for f in ok)), frames),
+            "on_target": _share(sum(f.on_target for f in ok), sum(f.visible for f in ok)),
+            "first_position_s": _median([f.first_position_s for f in ok if math.isfinite(f.first_position_s)]),
+        }
+
+    s, t = pooled(scene), pooled(twin)
+    common_s, common_t = [], []
+    twins = {f.seed: f for f in twin if f.error is None}
+    for f in scene:
+        g = twins.get(f.seed)
+        if f.error is not None or g is None:
+            continue
+        _, i, j = np.intersect1d(f.frame, g.frame, assume_unique=True, return_indices=True)
+        common_s.append(f.err_range_pct[i])
+        common_t.append(g.err_range_pct[j])
+    cs = np.concatenate(common_s) if common_s else np.zeros(0)
+    ct = np.concatenate(common_t) if common_t else np.zeros(0)
+    ratio = s["median_err_range_pct"] / t["median_err_range_pct"] if t["median_err_range_pct"] > 0 else math.nan
+    ratio_common = _median(cs) / _median(ct) if ct.size and _median(ct) > 0 else math.nan
+    met = None
+    if math.isfinite(ratio):
+        met = bool(
+            ratio <= RATIO_LIMIT and math.isfinite(s["beyond_3sigma"]) and s["beyond_3sigma"] <= BEYOND_3SIGMA_LIMIT
+        )
+    name = scene[0].scenario if scene else (twin[0].scenario if twin else "?")
+    return {
+        "scenario": name,
+        "scene": s,
+        "twin": t,
+        "ratio": ratio,
+        "common_positions": int(cs.size),
+        "ratio_common": ratio_common,
+        "met": met,
+    }
+
+
+def _f(x: float, fmt: str, scale: float = 1.0) -> str:
+    return "-" if x is None or not math.isfinite(x) else format(scale * x, fmt)
+
+
+def format_run(f: RunFigures) -> str:
+    """One line per run."""
+    kind = "twin " if f.twin else "scene"
+    if f.error is not None:
+        return f"   {f.scenario} s{f.seed} {kind}: failed: {f.error}"
+    return (
+        f"   {f.scenario} s{f.seed} {kind}: {f.frames} frames, {f.positions} with a 3-D position (first at"
+        f" {_f(f.first_position_s, '.1f')} s); median error {_f(_median(f.err_m), '.1f')} m"
+        f" ({_f(_median(f.err_range_pct), '.1f')} % of range); beyond 3 sigma"
+        f" {_f(_share(int(f.beyond_3sigma.sum()), f.positions), '.1f', 100)} %; observable"
+        f" {_f(_share(int(f.observable.sum()), f.frames), '.0f', 100)} % of frames; on target"
+        f" {_f(_share(f.on_target, f.visible), '.1f', 100)} % of visible frames"
+    )
+
+
+def format_table(rows: list[dict]) -> str:
+    """The per-scene table (markdown), scene / twin in each cell."""
+    lines = [
+        "| scene | seeds | frames with a 3-D position | median error, m | median error, % of range |"
+        f" ratio (<= {RATIO_LIMIT:g}) | ratio, common frames | beyond 3 sigma (<= {100 * BEYOND_3SIGMA_LIMIT:g} %) |"
+        " observable, % of frames | on target, % of visible frames | met |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        s, t = row["scene"], row["twin"]
+        failed = f" ({s['failed']} + {t['failed']} failed)" if s["failed"] or t["failed"] else ""
+        met = "-" if row["met"] is None else ("yes" if row["met"] else "no")
+        lines.append(
+            f"| {row['scenario']} | {s['runs']}{failed} | {s['positions']} / {t['positions']} |"
+            f" {_f(s['median_err_m'], '.1f')} / {_f(t['median_err_m'], '.1f')} |"
+            f" {_f(s['median_err_range_pct'], '.1f')} / {_f(t['median_err_range_pct'], '.1f')} |"
+            f" {_f(row['ratio'], '.2f')} | {_f(row['ratio_common'], '.2f')} ({row['common_positions']}) |"
+            f" {_f(s['beyond_3sigma'], '.2f', 100)} / {_f(t['beyond_3sigma'], '.2f', 100)} % |"
+            f" {_f(s['observable'], '.0f', 100)} / {_f(t['observable'], '.0f', 100)} |"
+            f" {_f(s['on_target'], '.1f', 100)} / {_f(t['on_target'], '.1f', 100)} | {met} |"
+        )
+    return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def _job(args) -> RunFigures:
+    """One lockstep run (in a pool worker or here), reduced to its figures; a run that cannot be made fails alone."""
+    from groundsim.evaluation.eval import run_lockstep
+    from groundsim.evaluation.parallel import report_progress
+    from onboard.core.errors import IrtrackError
+
+    scenario, seed, twin, options, cfg = args
+    try:
+        r = run_lockstep(clean_twin(scenario) if twin else scenario, seed, options, cfg, report_progress)
+    except IrtrackError as exc:
+        from types import SimpleNamespace
+
+        return run_figures(SimpleNamespace(scenario=scenario.name, seed=seed, frames=0, error=str(exc)), twin)
+    return run_figures(r, twin)
+
+
+def onboard_config(path: str | None, chain: str):
+    """The daemon's configuration for both runs: ``path`` (default the shipped ``config/onboard.yaml``) with
+    ``imaging.chain`` set to ``chain``."""
+    from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
+    from onboard.app.config import load_config
+
+    src = path if path is not None else (DEFAULT_ONBOARD_CONFIG if DEFAULT_ONBOARD_CONFIG.is_file() else None)
+    return load_config(src, overrides={"imaging.chain": (chain, "bench.scenes3d --chain")}, environ={})
+
+
+def main(argv=None) -> int:
+    from groundsim.evaluation.eval import EvalOptions
+    from groundsim.evaluation.parallel import limit_blas_threads, progress_bar, quiet_run_logs, run_jobs
+    from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_scenario, resolve_scenario_path
+    from groundsim.world.sim import frame_count
+
+    ap = argparse.ArgumentParser(prog="python -m bench.scenes3d", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scenarios (default C1-C5)")
+    ap.add_argument("--seeds", type=int, default=2, help="run seeds 0..N-1 per scene (default 2)")
+    ap.add_argument("--duration", type=float, default=None, help="seconds flown (default the scenario's, 10 s)")
+    ap.add_argument("--nav-noise", default=DEFAULT_NAV_NOISE, help="navigation-error case (default RTK)")
+    ap.add_argument("--chain", choices=("objects", "single"), default="objects", help="imaging.chain (default objects)")
+    ap.add_argument("--onboard-config", default=None, help="the daemon's configuration (default config/onboard.yaml)")
+    ap.add_argument("--workers", type=int, default=1, help="processes (default 1: the machine is shared)")
+    ap.add_argument("--json", default=None, help="also write the rows and runs as JSON here")
+    args = ap.parse_args(argv)
+    if args.seeds < 1 or args.workers < 1:
+        ap.error("--seeds and --workers: expected integers >= 1")
+    limit_blas_threads(1)
+    with quiet_run_logs():
+        scenarios = [load_scenario(resolve_scenario_path(n)) for n in args.scenes]
+        options = EvalOptions(duration_s=args.duration, batch=False, keep_frame=False, nav_noise=args.nav_noise)
+        cfg = onboard_config(args.onboard_config, args.chain)
+        jobs = [
+            (sc, seed, twin, options, cfg) for sc in scenarios for seed in range(args.seeds) for twin in (False, True)
+        ]
+        total = sum(frame_count(args.duration or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
+        print(
+            f"bench.scenes3d: {', '.join(sc.name for sc in scenarios)} x {args.seeds} seed(s), each beside its clean-sky"
+            f" twin; lockstep, navigation errors {args.nav_noise}, imaging.chain {args.chain};"
+            f" {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f}",
+            flush=True,
+        )
+        bar = progress_bar(total, "frame", "scenes3d")
+        try:
+            figures = run_jobs(_job, jobs, min(args.workers, len(jobs)), bar.update)
+        finally:
+            bar.close()
+    for f in figures:
+        print(format_run(f))
+    rows = [
+        pair_row(
+            [f for f in figures if f.scenario == sc.name and not f.twin],
+            [f for f in figures if f.scenario == sc.name and f.twin],
+        )
+        for sc in scenarios
+    ]
+    print(format_table(rows))
+    if args.json:
+        runs = [
+            {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in dataclasses.asdict(f).items()}
+            for f in figures
+        ]
+        write_json(args.json, {"rows": rows, "runs": runs, "options": vars(args)}, indent=1, default=float)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(run_benchmark("scenes3d", main))
