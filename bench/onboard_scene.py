@@ -110,12 +110,15 @@ def bench_scene(scene: str, duration_s: float, cpu_snapshot, chain: str = "objec
             daemon = subprocess.Popen(daemon_command(plan), env=env, stdout=subprocess.DEVNULL, stderr=dlog)
         session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
         statuses: list[tuple[float, dict]] = []
-        tracks = {"n": 0, "position": 0, "first": None}
+        tracks: dict = {"n": 0, "position": 0, "first": None, "ids": set(), "states": {}}
 
         def on_track(sample) -> None:
             j = json.loads(sample.payload.to_bytes())
             tracks["n"] += 1
             tracks["position"] += j.get("ned_m") is not None
+            tracks["states"][j.get("state")] = tracks["states"].get(j.get("state"), 0) + 1
+            if j.get("track_id") is not None:
+                tracks["ids"].add(j["track_id"])
             if tracks["first"] is None:
                 tracks["first"] = time.monotonic()
 
@@ -161,7 +164,8 @@ def bench_scene(scene: str, duration_s: float, cpu_snapshot, chain: str = "objec
         last = statuses[-1][1]
         f = last["frames"]
         print(
-            f"   {tracks['n']} tracks received, {tracks['position']} with a 3-D position; daemon frames in {f['in']},"
+            f"   {tracks['n']} tracks received ({', '.join(f'{k} {v}' for k, v in tracks['states'].items())};"
+            f" {len(tracks['ids'])} track ids), {tracks['position']} with a 3-D position; daemon frames in {f['in']},"
             f" processed {f['processed']}, dropped {f['dropped']}, rejected {f['rejected']};"
             f" median processing {last['processing_ms']['p50']:.2f} ms (status, last 1000 frames)"
         )

@@ -1,7 +1,8 @@
 """The selected target's 3-D in the reference scenes C1-C5, against each scene's clean-sky twin.
 
 ``python -m bench.scenes3d [--scenes C1 C2 C3 C4 C5] [--seeds N] [--duration S] [--nav-noise RTK]
-[--chain objects|single] [--onboard-config FILE] [--workers N] [--json FILE]``.
+[--chain objects|single] [--onboard-config FILE] [--workers N] [--json FILE]``; ``--table-from FILE`` prints a
+``--json`` file's runs and table again without running.
 
 Each (scene, seed) is flown twice through the lockstep closed loop of ``groundsim eval``
 (:func:`groundsim.evaluation.eval.run_lockstep`: the simulator's flight, renderer and MAVLink-quantised
@@ -149,7 +150,7 @@ def pair_row(scene: list[RunFigures], twin: list[RunFigures]) -> dict:
     """One scene's row, pooled over its seeds: every published position of every run counts once.
 
     ``positions`` (scene, twin), ``frames``; ``median_err_m`` / ``median_err_range_pct``: the median over
-    the pooled positions; ``ratio``: the scene's median error (per cent of range) over its twin's (asked
+    the pooled positions (``median_err_observable_range_pct``: over those flagged observable only); ``ratio``: the scene's median error (per cent of range) over its twin's (asked
     <= :data:`RATIO_LIMIT`); ``ratio_common``: the same on the (seed, frame) pairs where both published a
     position (same frames, same ranges, same window age: what is left is the image); ``beyond_3sigma``: share
     of published positions (asked <= :data:`BEYOND_3SIGMA_LIMIT`); ``observable``: observable positions /
@@ -160,6 +161,7 @@ def pair_row(scene: list[RunFigures], twin: list[RunFigures]) -> dict:
         ok = [f for f in runs if f.error is None]
         err_m = np.concatenate([f.err_m for f in ok]) if ok else np.zeros(0)
         pct = np.concatenate([f.err_range_pct for f in ok]) if ok else np.zeros(0)
+        obs = np.concatenate([f.observable for f in ok]) if ok else np.zeros(0, dtype=bool)
         n_pos = int(err_m.size)
         frames = sum(f.frames for f in ok)
         return {
@@ -169,6 +171,7 @@ def pair_row(scene: list[RunFigures], twin: list[RunFigures]) -> dict:
             "positions": n_pos,
             "median_err_m": _median(err_m),
             "median_err_range_pct": _median(pct),
+            "median_err_observable_range_pct": _median(pct[obs]) if n_pos else math.nan,
             "beyond_3sigma": _share(int(sum(int(f.beyond_3sigma.sum()) for f in ok)), n_pos),
             "observable": _share(int(sum(int(f.observable.sum()) for f in ok)), frames),
             "on_target": _share(sum(f.on_target for f in ok), sum(f.visible for f in ok)),
@@ -230,13 +233,16 @@ def format_table(rows: list[dict]) -> str:
     lines = [
         "| scene | seeds | frames with a 3-D position | median error, m | median error, % of range |"
         f" ratio (<= {RATIO_LIMIT:g}) | ratio, common frames | beyond 3 sigma (<= {100 * BEYOND_3SIGMA_LIMIT:g} %) |"
-        " observable, % of frames | on target, % of visible frames | met |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        " observable, % of frames | median error of observable positions, % of range | on target, % of visible"
+        " frames | met |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
         s, t = row["scene"], row["twin"]
         failed = f" ({s['failed']} + {t['failed']} failed)" if s["failed"] or t["failed"] else ""
         met = "-" if row["met"] is None else ("yes" if row["met"] else "no")
+        if row["met"] is not None and not t["observable"]:  # two unobservable estimates: their ratio says little
+            met += " (unobservable)"
         lines.append(
             f"| {row['scenario']} | {s['runs']}{failed} | {s['positions']} / {t['positions']} |"
             f" {_f(s['median_err_m'], '.1f')} / {_f(t['median_err_m'], '.1f')} |"
@@ -244,6 +250,7 @@ def format_table(rows: list[dict]) -> str:
             f" {_f(row['ratio'], '.2f')} | {_f(row['ratio_common'], '.2f')} ({row['common_positions']}) |"
             f" {_f(s['beyond_3sigma'], '.2f', 100)} / {_f(t['beyond_3sigma'], '.2f', 100)} % |"
             f" {_f(s['observable'], '.0f', 100)} / {_f(t['observable'], '.0f', 100)} |"
+            f" {_f(s['median_err_observable_range_pct'], '.2f')} / {_f(t['median_err_observable_range_pct'], '.2f')} |"
             f" {_f(s['on_target'], '.1f', 100)} / {_f(t['on_target'], '.1f', 100)} | {met} |"
         )
     return "\n".join(lines)
@@ -278,6 +285,31 @@ def onboard_config(path: str | None, chain: str):
     return load_config(src, overrides={"imaging.chain": (chain, "bench.scenes3d --chain")}, environ={})
 
 
+def figures_from_json(runs: list[dict]) -> list[RunFigures]:
+    """The runs of a ``--json`` file back as :class:`RunFigures` (``--table-from``)."""
+    arrays = {"frame": int, "err_m": float, "err_range_pct": float, "beyond_3sigma": bool, "observable": bool}
+    out = []
+    for d in runs:
+        kw = {k: (np.asarray(v, dtype=arrays[k]) if k in arrays else v) for k, v in d.items()}
+        out.append(RunFigures(**kw))
+    return out
+
+
+def _report(figures: list[RunFigures], names: list[str]) -> list[dict]:
+    """Print one line per run and the per-scene table; the rows."""
+    for f in figures:
+        print(format_run(f))
+    rows = [
+        pair_row(
+            [f for f in figures if f.scenario == name and not f.twin],
+            [f for f in figures if f.scenario == name and f.twin],
+        )
+        for name in names
+    ]
+    print(format_table(rows))
+    return rows
+
+
 def main(argv=None) -> int:
     from groundsim.evaluation.eval import EvalOptions
     from groundsim.evaluation.parallel import limit_blas_threads, progress_bar, quiet_run_logs, run_jobs
@@ -293,7 +325,16 @@ def main(argv=None) -> int:
     ap.add_argument("--onboard-config", default=None, help="the daemon's configuration (default config/onboard.yaml)")
     ap.add_argument("--workers", type=int, default=1, help="processes (default 1: the machine is shared)")
     ap.add_argument("--json", default=None, help="also write the rows and runs as JSON here")
+    ap.add_argument("--table-from", default=None, help="run nothing: print the runs and table of this --json file")
     args = ap.parse_args(argv)
+    if args.table_from:
+        import json
+
+        with open(args.table_from) as fh:
+            doc = json.load(fh)
+        figures = figures_from_json(doc["runs"])
+        _report(figures, list(dict.fromkeys(f.scenario for f in figures)))
+        return 0
     if args.seeds < 1 or args.workers < 1:
         ap.error("--seeds and --workers: expected integers >= 1")
     limit_blas_threads(1)
@@ -316,16 +357,7 @@ def main(argv=None) -> int:
             figures = run_jobs(_job, jobs, min(args.workers, len(jobs)), bar.update)
         finally:
             bar.close()
-    for f in figures:
-        print(format_run(f))
-    rows = [
-        pair_row(
-            [f for f in figures if f.scenario == sc.name and not f.twin],
-            [f for f in figures if f.scenario == sc.name and f.twin],
-        )
-        for sc in scenarios
-    ]
-    print(format_table(rows))
+    rows = _report(figures, [sc.name for sc in scenarios])
     if args.json:
         runs = [
             {k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in dataclasses.asdict(f).items()}

@@ -125,6 +125,14 @@ def test_pair_row_pools_seeds_and_forms_both_ratios():
     assert row["common_positions"] == 4
     assert row["ratio_common"] == pytest.approx(np.median([3, 3, 9, 3]) / np.median([2, 2, 2, 1]))
     assert s["beyond_3sigma"] == 0.0 and row["met"] is True  # 1.5 is within "at most 1.5x"
+    assert math.isnan(s["median_err_observable_range_pct"])  # no position flagged observable
+
+
+def test_pair_row_medians_of_observable_positions_alone():
+    f = run_figures(_run([1.0, 5.0, 3.0, 7.0], 10.0, range_m=100.0, observable=[False, True, True, False]), False)
+    row = pair_row([f], [f])
+    assert row["scene"]["median_err_observable_range_pct"] == pytest.approx(4.0)  # of 5 and 3 m at 100 m
+    assert row["scene"]["observable"] == pytest.approx(0.5)
 
 
 def test_pair_row_verdict_fails_on_dishonest_positions_and_survives_a_failed_run():
@@ -190,3 +198,8 @@ def test_command_pairs_each_scene_run_with_its_twin_and_writes_json(tmp_path, ca
     assert [r["scenario"] for r in doc["rows"]] == ["C1", "C4"]
     for row in doc["rows"]:
         assert row["ratio"] == pytest.approx(1.5) and row["common_positions"] == 8 and row["met"] is True
+    # the same lines again from the file, nothing run
+    calls.clear()
+    assert main(["--table-from", str(out)]) == 0
+    again = capsys.readouterr().out
+    assert calls == [] and again.strip() == text[text.index("   C1 s0") :].strip()
