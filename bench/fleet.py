@@ -54,7 +54,7 @@ from groundsim.io.ports import free_tcp_port
 from onboard.core.blas import single_thread_blas_env
 from onboard.core.frames import GeodeticOrigin
 from onboard.io.fleet_wire import fleet_track_key
-from onboard.io.zenoh_session import TRACK_ENCODING, ZenohSettings, open_session, track_key
+from onboard.io.zenoh_session import TRACK_ENCODING, ZenohConfig, open_session, track_key
 
 REPO = Path(__file__).resolve().parents[1]
 ORIGIN = GeodeticOrigin(32.0, 118.8, 20.0)
@@ -196,7 +196,7 @@ def main(argv=None) -> int:
             cwd=REPO,
             env=env,
         )
-        settings = ZenohSettings(connect=(endpoint,), config_file=client_cfg)
+        settings = ZenohConfig(connect=(endpoint,), config_file=client_cfg)
         sub = open_session(settings)
         sessions.append(sub)
         ready = threading.Event()

@@ -268,7 +268,7 @@ def run_flight(
     happens.  Raises :class:`FlightError` on a child's failure."""
     from groundsim.evaluation.demo import log_tail, stop_process
     from groundsim.world.truth import read_truth_csv
-    from onboard.io.zenoh_session import ZenohSettings, open_session
+    from onboard.io.zenoh_session import ZenohConfig, open_session
 
     rec = FlightRecord(truth={}) if record is None else record
     col = _Collector(rec)
@@ -277,7 +277,7 @@ def run_flight(
     router = open_router(plan.endpoint)
     session = None
     try:
-        session = open_session(ZenohSettings(connect=(plan.endpoint,), listen=("tcp/127.0.0.1:0",)))
+        session = open_session(ZenohConfig(connect=(plan.endpoint,), listen=("tcp/127.0.0.1:0",)))
         session.declare_subscriber("irtrack/*/ir/frame", col.on_frame)
         session.declare_subscriber("irtrack/*/track", col.on_track)
         session.declare_subscriber("irtrack/*/status", col.on_status)

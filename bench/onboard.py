@@ -409,7 +409,7 @@ def bench_latency(
     import zenoh
 
     from groundsim.io.scripted_autopilot import ScriptedAutopilot as FakeAutopilot  # the tests' fake autopilot too
-    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
     mport, zport = free_udp_port(), free_tcp_port()
@@ -434,7 +434,7 @@ def bench_latency(
     threading.Thread(target=lambda: [err_lines.append(ln) for ln in proc.stderr], daemon=True).start()
     session = None
     try:
-        session = open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{zport}",)))
+        session = open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",)))
         arrivals: queue.Queue = queue.Queue()
         statuses: list = []
 

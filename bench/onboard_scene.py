@@ -93,7 +93,7 @@ def bench_scene(scene: str, duration_s: float, cpu_snapshot, chain: str = "objec
     from bench.scenes3d import onboard_config
     from groundsim.evaluation.demo import child_env, daemon_command, plan_demo, sim_command, stop_process
     from onboard.app.config import config_to_dict
-    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohConfig, open_session, status_key, track_key
 
     tmp = Path(tempfile.mkdtemp(prefix="irtrack-bench-scene-"))
     daemon = sim = session = None
@@ -108,7 +108,7 @@ def bench_scene(scene: str, duration_s: float, cpu_snapshot, chain: str = "objec
         env = child_env()
         with open(tmp / "daemon.log", "w") as dlog:
             daemon = subprocess.Popen(daemon_command(plan), env=env, stdout=subprocess.DEVNULL, stderr=dlog)
-        session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
+        session = open_session(ZenohConfig(connect=(plan.zenoh_endpoint,)))
         statuses: list[tuple[float, dict]] = []
         tracks: dict = {"n": 0, "position": 0, "first": None, "ids": set(), "states": {}}
 

@@ -37,7 +37,7 @@ from groundsim.app.run import RateSpec, RunConfig, run
 from groundsim.io.ports import free_tcp_port
 from groundsim.world.scenario import load_scenario, resolve_scenario_path
 from groundsim.world.sim import SimCore
-from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
 
 
 def _load() -> str:
@@ -52,7 +52,7 @@ class _Receivers:
 
     def __init__(self, vehicle: str = "uav1") -> None:
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-        self.session = open_session(ZenohSettings(listen=(self.endpoint,)))
+        self.session = open_session(ZenohConfig(listen=(self.endpoint,)))
         self.frames = 0
         self.sub = self.session.declare_subscriber(frame_key(vehicle), self._on_frame)
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -93,7 +93,7 @@ def _run(scenario, duration_s: float, rate: str, rx: _Receivers):
         duration_s=duration_s,
         rate=RateSpec.parse(rate),
         mavlink=rx.mavlink,
-        zenoh=ZenohSettings(connect=(rx.endpoint,), connect_timeout_s=5.0),
+        zenoh=ZenohConfig(connect=(rx.endpoint,), connect_timeout_s=5.0),
     )
     rx.reset()
     c0, w0 = time.process_time(), time.perf_counter()

@@ -152,7 +152,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
     from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
     from groundsim.world.truth import read_truth_csv
-    from onboard.io.zenoh_session import ZenohSettings, open_session
+    from onboard.io.zenoh_session import ZenohConfig, open_session
 
     out = Path(out_dir)
     duration_s = load_scenario(resolve_scenario_path(scenario)).duration_s
@@ -167,7 +167,7 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
     wall0 = time.monotonic()
     try:
         daemon = _start(daemon_command(plan), logs["daemon"], env)
-        session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
+        session = open_session(ZenohConfig(connect=(plan.zenoh_endpoint,)))
         subs += store.subscribe(session, plan.vehicle)
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):

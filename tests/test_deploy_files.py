@@ -14,6 +14,7 @@ README's own script).
 from __future__ import annotations
 
 import configparser
+import dataclasses
 import importlib.metadata
 import json
 import os
@@ -611,21 +612,18 @@ def test_router_relays_daemon_simulator_and_ground(compose, container_config):
     sessions built from their shipped settings, a ground client; only ports are changed."""
     import zenoh
 
-    from onboard.io.zenoh_session import ZenohSettings, build_config, frame_key, status_key
+    from onboard.io.zenoh_session import ZenohConfig, build_config, frame_key, status_key
 
     port = free_tcp_port()
     local = f"tcp/127.0.0.1:{port}"
     router_cfg = zenoh.Config.from_file(str(ROUTER_JSON5))
     router_cfg.insert_json5("listen/endpoints", json.dumps([local]))
-    daemon_settings = container_config.zenoh.settings()
-    daemon_settings = ZenohSettings(
-        connect=tuple(local if ep == "tcp/127.0.0.1:7447" else ep for ep in daemon_settings.connect),
-        listen=daemon_settings.listen,
-        config_file=daemon_settings.config_file,
-        multicast_scouting=daemon_settings.multicast_scouting,
+    daemon_settings = dataclasses.replace(
+        container_config.zenoh,
+        connect=tuple(local if ep == "tcp/127.0.0.1:7447" else ep for ep in container_config.zenoh.connect),
     )
     sim_cmd = compose["services"]["groundsim"]["command"]
-    sim_settings = ZenohSettings(
+    sim_settings = ZenohConfig(
         connect=tuple(local if ep == "tcp/127.0.0.1:7447" else ep for ep in _opt(sim_cmd, "--zenoh-connect")),
         listen=tuple(_opt(sim_cmd, "--zenoh-listen")),
     )
@@ -706,7 +704,7 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
     over mutual TLS; without a client certificate the ground client is refused."""
     import zenoh
 
-    from onboard.io.zenoh_session import ZenohSettings, build_config, status_key
+    from onboard.io.zenoh_session import ZenohConfig, build_config, status_key
 
     (script,) = _fenced_blocks("sh")
     env = {**os.environ, "VEHICLE_DNS": "localhost", "VEHICLE_IP": "127.0.0.1"}
@@ -735,7 +733,7 @@ def test_readme_tls_example_works_on_loopback(tmp_path, container_config):
     sessions = []
     try:
         sessions.append(zenoh.open(zenoh.Config.from_json5(router_text)))
-        daemon_settings = ZenohSettings(connect=(f"tcp/127.0.0.1:{tcp_port}",), listen=container_config.zenoh.listen)
+        daemon_settings = ZenohConfig(connect=(f"tcp/127.0.0.1:{tcp_port}",), listen=container_config.zenoh.listen)
         sessions.append(daemon := zenoh.open(build_config(daemon_settings)))
         sessions.append(ground := zenoh.open(zenoh.Config.from_json5(ground_text)))
         assert _await_delivery(daemon, status_key(container_config.vehicle), ground, b'{"tls": true}')

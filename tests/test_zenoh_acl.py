@@ -237,7 +237,7 @@ def test_a_node_without_a_certificate_cannot_connect(tls_dir):
 def test_the_daemon_opens_its_session_from_the_sample_client_file(tls_dir, tmp_path):
     """``zenoh.config_file`` = the client sample (connect/listen left empty): the daemon's own session
     builder keeps the file's mode and TLS, adds only its receive limit, and reaches the router."""
-    from onboard.io.zenoh_session import ZenohSettings, build_config
+    from onboard.io.zenoh_session import ZenohConfig, build_config
 
     port = free_tcp_port()
     client_file = tmp_path / "daemon.json5"
@@ -247,7 +247,7 @@ def test_the_daemon_opens_its_session_from_the_sample_client_file(tls_dir, tmp_p
         .replace("tls/uav1.irtrack.lan:7448", f"tls/localhost:{port}"),
         encoding="utf-8",
     )
-    cfg = build_config(ZenohSettings(connect=(), listen=(), config_file=str(client_file), max_message_bytes=1 << 20))
+    cfg = build_config(ZenohConfig(config_file=str(client_file)), max_payload_bytes=1 << 20)
     assert json.loads(cfg.get_json("mode")) == "client"
     assert json.loads(cfg.get_json("connect/endpoints")) == [f"tls/localhost:{port}"]
     import zenoh

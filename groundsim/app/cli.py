@@ -240,13 +240,13 @@ def _run_config(args):
 
     from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time, utc_errors
     from groundsim.world.nav_errors import parse_camera_time_offset, parse_gnss_dropout
-    from onboard.io.zenoh_session import ZenohSettings
+    from onboard.io.zenoh_session import config_from_options
 
     rate = RateSpec.parse(args.rate)
     if args.zenoh_connect_timeout < 0 or args.zenoh_connect_timeout != args.zenoh_connect_timeout:
         raise ConfigError(f"--zenoh-connect-timeout: expected >= 0 seconds, got {args.zenoh_connect_timeout}")
     timeout = args.zenoh_connect_timeout if (args.zenoh_connect and args.zenoh_connect_timeout > 0) else None
-    zenoh = ZenohSettings(
+    zenoh = config_from_options(
         connect=tuple(args.zenoh_connect),
         listen=tuple(args.zenoh_listen),
         config_file=args.zenoh_config,

@@ -245,7 +245,7 @@ class RunConfig:
     ``duration_s`` None = the scenario's; a longer one extends the scenario's scripted motions
     (:func:`groundsim.world.sim.extend_scenario`).  ``run_seed``
     >= 0 selects the realisation (see the module docstring).  ``zenoh`` is an
-    :class:`onboard.io.zenoh_session.ZenohSettings` (None: no endpoints, scouting off).
+    :class:`onboard.io.zenoh_session.ZenohConfig` (None: no endpoints, scouting off).
     ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic (``PACED_CHUNK_S`` or
     ``MAX_MODE_CHUNK_S``).  ``nav_noise``: a case name of ``config/noise_cases.yaml`` for the
     telemetry's navigation errors; None = the scenario's ``nav_noise`` (every observer's own in a fleet).
@@ -313,10 +313,10 @@ class RunConfig:
 
             resolve_nav_noise(self.nav_noise)  # an unknown name fails here, naming the file and the choices
         if self.zenoh is not None:
-            from onboard.io.zenoh_session import ZenohSettings
+            from onboard.io.zenoh_session import ZenohConfig
 
-            if not isinstance(self.zenoh, ZenohSettings):
-                raise ConfigError(f"RunConfig.zenoh must be a ZenohSettings or None, got {type(self.zenoh).__name__}")
+            if not isinstance(self.zenoh, ZenohConfig):
+                raise ConfigError(f"RunConfig.zenoh must be a ZenohConfig or None, got {type(self.zenoh).__name__}")
 
 
 # --------------------------------------------------------------------------- clock, pacing, jitter
@@ -678,7 +678,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
     """
     from groundsim.io.mavlink_vehicle import MavlinkVehicle
     from groundsim.io.zenoh_video import FramePublisher
-    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+    from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
 
     sc = config.scenario
     fleet = sc.is_fleet
@@ -710,7 +710,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         truth keep the true UTC)."""
         return core.unix_time_at_boot_us + utc_error_us.get(name, 0)
 
-    zs = config.zenoh if config.zenoh is not None else ZenohSettings()
+    zs = config.zenoh if config.zenoh is not None else ZenohConfig()
     legs: list[VehicleLeg] = []
     session = recorder = None
     try:

@@ -155,6 +155,7 @@ def plan_demo(
     from groundsim.world.nav_errors import resolve_nav_noise
     from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
+    from onboard.io.zenoh_session import ZenohConfig
 
     if not is_positive_number(duration_s):
         raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s!r}")
@@ -176,13 +177,7 @@ def plan_demo(
     mav, zport = free_udp_port(), free_tcp_port()
     raw = config_to_dict(cfg)
     raw["mavlink"]["connection"] = f"udpin:127.0.0.1:{mav}"
-    raw["zenoh"].update(
-        connect=[],
-        listen=[f"tcp/127.0.0.1:{zport}"],
-        config_file=None,
-        multicast_scouting=False,
-        connect_timeout_s=None,
-    )
+    raw["zenoh"] = config_to_dict(ZenohConfig(listen=(f"tcp/127.0.0.1:{zport}",)))
     raw["output"]["health_file"] = str((out / "onboard.alive").resolve())
     path = out / "onboard.yaml"
     header = (
@@ -642,7 +637,7 @@ def child_env() -> dict:
 def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> DemoOutcome:
     """Start both children, print a line per second, stop, score, write the files (module docstring)."""
     from groundsim.evaluation.proc_cpu import ProcCpu
-    from onboard.io.zenoh_session import ZenohSettings, open_session
+    from onboard.io.zenoh_session import ZenohConfig, open_session
 
     stop = stop if stop is not None else threading.Event()
     out = out if out is not None else (lambda s: print(s, flush=True))
@@ -669,7 +664,7 @@ def run_demo(plan: DemoPlan, stop: threading.Event | None = None, out=None) -> D
         )
         daemon = _start(daemon_command(plan), plan.out_dir / "onboard.log", env)
         cpu_daemon = ProcCpu(daemon.pid)
-        session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
+        session = open_session(ZenohConfig(connect=(plan.zenoh_endpoint,)))
         subs += store.subscribe(session, plan.vehicle)
         t_ready = time.monotonic() + DAEMON_READY_TIMEOUT_S
         while not store.ready.wait(0.1):

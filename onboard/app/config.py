@@ -11,7 +11,8 @@ The models are those of the one config system, :mod:`onboard.core.schema` (stric
 ``extra="forbid"``, one YAML loader, one error format).  Sections are declared where they are consumed
 and composed here, each the one declaration of its settings, which its component takes as is: ``pose``
 :class:`onboard.core.pose_config.PoseConfig` (the pose buffer's), ``mavlink``
-:class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``imaging``
+:class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``zenoh``
+:class:`onboard.io.zenoh_session.ZenohConfig` (the session's), ``imaging``
 :class:`onboard.imaging.preprocess.ImagingParams`, ``record`` :class:`onboard.io.record.RecordConfig`,
 ``live_view`` :class:`onboard.io.live_view.LiveViewConfig`; the others are below.
 
@@ -47,7 +48,6 @@ from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
 from onboard.core.pose_config import ExtrapolationHorizons, OriginConfig, PoseConfig
 from onboard.core.schema import (
     Bool,
-    Flag,
     Instance,
     Integer,
     Invalid,
@@ -71,6 +71,7 @@ from onboard.imaging.preprocess import ImagingParams
 from onboard.io.live_view import LiveViewConfig
 from onboard.io.mavlink_link import MavlinkConfig, parse_connection
 from onboard.io.record import RecordConfig
+from onboard.io.zenoh_session import ZenohConfig
 
 __all__ = [
     "OnboardConfigError",
@@ -113,43 +114,6 @@ class OnboardConfigError(SchemaError):
 
 
 # --------------------------------------------------------------------------- sections
-
-
-@config_dataclass
-class ZenohConfig:
-    """``zenoh``: the session (see :mod:`onboard.io.zenoh_session`)."""
-
-    connect: Annotated[tuple[str, ...], Texts()] = ()
-    listen: Annotated[tuple[str, ...], Texts()] = ()
-    config_file: Annotated[str | None, Text()] = None
-    multicast_scouting: Annotated[bool | None, Flag()] = False
-    connect_timeout_s: Annotated[float | None, Number(0.0, 3600.0, lo_open=True)] = None
-
-    def __post_init__(self) -> None:
-        for name in ("connect", "listen"):
-            for i, ep in enumerate(getattr(self, name)):
-                if "/" not in ep or not ep.split("/", 1)[1]:
-                    raise Invalid(f"{name}[{i}]", "a zenoh endpoint <protocol>/<address>, e.g. tcp/127.0.0.1:7447", ep)
-                proto, addr = ep.split("/", 1)
-                if proto in ("tcp", "udp", "tls", "quic", "ws"):
-                    hostport = addr.split("?", 1)[0].split("#", 1)[0]
-                    port = hostport.rsplit(":", 1)[1] if ":" in hostport else ""
-                    if not port.isdigit() or int(port) > 65535:
-                        raise Invalid(f"{name}[{i}]", f"a {proto} endpoint {proto}/HOST:PORT with PORT in 0..65535", ep)
-
-    def settings(self, max_payload_bytes: int | None = None):
-        """The :class:`~onboard.io.zenoh_session.ZenohSettings` of this section; ``max_payload_bytes`` (the
-        daemon passes ``input.max_frame_bytes``) becomes zenoh's own receive limit, plus framing."""
-        from onboard.io.zenoh_session import MESSAGE_OVERHEAD_BYTES, ZenohSettings
-
-        return ZenohSettings(
-            connect=self.connect,
-            listen=self.listen,
-            config_file=self.config_file,
-            multicast_scouting=self.multicast_scouting,
-            connect_timeout_s=self.connect_timeout_s,
-            max_message_bytes=None if max_payload_bytes is None else int(max_payload_bytes) + MESSAGE_OVERHEAD_BYTES,
-        )
 
 
 @config_dataclass

@@ -49,7 +49,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
-from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_settings
+from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import GeodeticOrigin
@@ -336,7 +336,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     session = None
     try:
-        settings = zenoh_settings(args)
+        settings = zenoh_config(args)
         session = open_session(settings)
         inbox: queue.SimpleQueue = queue.SimpleQueue()
         session.declare_subscriber(

@@ -238,7 +238,7 @@ class OnboardService:
             from onboard.io.gcs_link import GcsLink
 
             self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
-        self.session = open_session(cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes))
+        self.session = open_session(cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes)
         self._track_pub = self.session.declare_publisher(
             track_key(cfg.vehicle),
             encoding=zenoh.Encoding(TRACK_ENCODING),

@@ -37,7 +37,7 @@ from typing import TextIO
 from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.track import Track, track_from_json
-from onboard.io.zenoh_session import ZenohSettings, open_session, track_key
+from onboard.io.zenoh_session import ZenohConfig, config_from_options, open_session, track_key
 
 __all__ = [
     "DEFAULT_CONNECT",
@@ -52,7 +52,7 @@ __all__ = [
     "summary_line",
     "interrupted_line",
     "build_parser",
-    "zenoh_settings",
+    "zenoh_config",
     "main",
 ]
 
@@ -157,7 +157,7 @@ def interrupted_line(counts: WatchCounts) -> str:
 
 _seconds = nonnegative_float("expected a number of seconds", "expected seconds >= 0 (0: until Ctrl-C)")
 
-# the default endpoint as --help words it; onboard.fuse shares it (and zenoh_settings)
+# the default endpoint as --help words it; onboard.fuse shares it (and zenoh_config)
 ZENOH_CONNECT_HELP = (
     f"zenoh endpoint to connect to; repeatable (default {DEFAULT_CONNECT} when no --zenoh-connect, "
     "--zenoh-listen or --zenoh-config is given)"
@@ -187,18 +187,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
-    """The session's :class:`~onboard.io.zenoh_session.ZenohSettings` from the parsed options."""
+def zenoh_config(args: argparse.Namespace) -> ZenohConfig:
+    """The session's :class:`~onboard.io.zenoh_session.ZenohConfig` from the parsed options."""
     connect = tuple(args.zenoh_connect or ())
     listen = tuple(args.zenoh_listen or ())
     if not connect and not listen and args.zenoh_config is None:
         connect = (DEFAULT_CONNECT,)
-    return ZenohSettings(
+    return config_from_options(
         connect=connect, listen=listen, config_file=args.zenoh_config, multicast_scouting=args.zenoh_scouting
     )
 
 
-def _where(settings: ZenohSettings) -> str:
+def _where(settings: ZenohConfig) -> str:
     parts = [*settings.connect, *(f"listening {ep}" for ep in settings.listen)]
     if settings.config_file is not None:
         parts.append(f"config {settings.config_file}")
@@ -253,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     counts = WatchCounts()
     session = None
     try:
-        settings = zenoh_settings(args)
+        settings = zenoh_config(args)
         key = track_key(args.vehicle)
         session = open_session(settings)
         inbox: queue.Queue[bytes] = queue.Queue()

@@ -13,7 +13,8 @@ bridges that keep only typed payloads keep ours: frames ``application/octet-stre
 untyped payloads too (:func:`encoding_schema` is None for them); the daemon refuses only a frame whose
 encoding names another schema (``frame_schema``).
 
-Options map one to one onto the command line: ``--zenoh-connect ENDPOINT`` and
+The settings, :class:`ZenohConfig` (also the daemon's ``zenoh`` section), map one to one onto the
+command line (:func:`config_from_options`): ``--zenoh-connect ENDPOINT`` and
 ``--zenoh-listen ENDPOINT`` (repeatable, zenoh locators such as ``tcp/127.0.0.1:7447``),
 ``--zenoh-config FILE`` (a zenoh JSON5/JSON/YAML configuration).  Endpoints given on the command
 line are appended to those of the file.  Multicast scouting is off unless asked for (by the
@@ -31,12 +32,14 @@ Behaviour measured with eclipse-zenoh 1.10 (peer mode):
   With ``connect_timeout_s`` set, the session instead requires a peer within that time
   (zenoh ``connect/exit_on_failure`` + ``connect/timeout_ms``) and raises
   :class:`ZenohSessionError` otherwise.
-* A malformed endpoint (``bogus``) is refused when inserted into the config: raises
-  :class:`ZenohConfigError`.  A well-formed but unresolvable host is accepted and retried.
+* A malformed endpoint (``bogus``) is refused by :class:`ZenohConfig` (a
+  :class:`~onboard.core.schema.SchemaError` naming the field or option); one that passes that check
+  but not zenoh's is refused when inserted into the config: raises :class:`ZenohConfigError`.  A
+  well-formed but unresolvable host is accepted and retried.
 * A missing, unreadable, unknown-extension or invalid config file: :class:`ZenohConfigError`
   naming the file.
 
-Both errors are :class:`~onboard.core.errors.IrtrackError`; entry points print them on one line and
+All three errors are :class:`~onboard.core.errors.IrtrackError`; entry points print them on one line and
 exit with code 2.
 """
 
@@ -46,18 +49,19 @@ import json
 import logging
 import os
 import re
-from dataclasses import dataclass
+from typing import Annotated, Any
 
 import zenoh
 
-from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError, IrtrackError
+from onboard.core.schema import Flag, Invalid, Number, SchemaError, Text, Texts, config_dataclass
 from onboard.core.status import STATUS_SCHEMA
 from onboard.core.track import TRACK_SCHEMA
 
 __all__ = [
     "DEFAULT_VEHICLE",
-    "ZenohSettings",
+    "ZenohConfig",
+    "config_from_options",
     "ZenohConfigError",
     "ZenohSessionError",
     "build_config",
@@ -149,9 +153,11 @@ def status_key(vehicle: str = DEFAULT_VEHICLE) -> str:
     return f"irtrack/{check_vehicle_name(vehicle)}/status"
 
 
-@dataclass(frozen=True)
-class ZenohSettings:
-    """What the ``--zenoh-*`` options say.
+@config_dataclass
+class ZenohConfig:
+    """The session: the ``zenoh`` section of the daemon's configuration (``config/onboard.yaml``; composed
+    by :class:`onboard.app.config.OnboardConfig`) and what the ``--zenoh-*`` options of every command say
+    (:func:`config_from_options`).
 
     connect, listen
         Zenoh endpoints (``<protocol>/<address>[?<metadata>][#<config>]``), appended to the
@@ -159,49 +165,50 @@ class ZenohSettings:
     config_file
         Path of a zenoh config (``.json5``, ``.json`` or ``.yaml``), or None.
     multicast_scouting
-        True/False forces it; None means off unless the config file enables it.
+        True/False forces it; None means off unless the config file enables it.  The default, False, is
+        the daemon's; the commands pass None when neither option is given.
     connect_timeout_s
         None: opening never waits for a connect endpoint (zenoh retries in the background).
         A positive number: opening fails unless a connect endpoint answers within it.
-    max_message_bytes
-        zenoh's own receive limit (``transport/link/rx/max_message_size``, default 1 GiB): a larger
-        message is dropped by the transport before the application sees it.  The daemon sets it from
-        ``input.max_frame_bytes`` (plus ``MESSAGE_OVERHEAD_BYTES``); None keeps the file's or zenoh's.
     """
 
-    connect: tuple[str, ...] = ()
-    listen: tuple[str, ...] = ()
-    config_file: str | None = None
-    multicast_scouting: bool | None = None
-    connect_timeout_s: float | None = None
-    max_message_bytes: int | None = None
+    connect: Annotated[tuple[str, ...], Texts()] = ()
+    listen: Annotated[tuple[str, ...], Texts()] = ()
+    config_file: Annotated[str | None, Text()] = None
+    multicast_scouting: Annotated[bool | None, Flag()] = False
+    connect_timeout_s: Annotated[float | None, Number(0.0, 3600.0, lo_open=True)] = None
 
     def __post_init__(self) -> None:
         for name in ("connect", "listen"):
-            value = getattr(self, name)
-            if isinstance(value, str):
-                raise ZenohConfigError(f"ZenohSettings.{name} must be a sequence of endpoints, not one string")
-            value = tuple(value)
-            for ep in value:
-                if not isinstance(ep, str) or "/" not in ep or not ep.split("/", 1)[1]:
-                    raise ZenohConfigError(
-                        f"--zenoh-{name} {ep!r}: expected <protocol>/<address>, e.g. tcp/127.0.0.1:7447"
-                    )
-            object.__setattr__(self, name, value)
-        if self.config_file is not None and not isinstance(self.config_file, (str, os.PathLike)):
-            raise ZenohConfigError(f"--zenoh-config must be a path, got {type(self.config_file).__name__}")
-        if self.multicast_scouting not in (None, True, False):
-            raise ZenohConfigError(
-                f"ZenohSettings.multicast_scouting must be a bool or None, got {self.multicast_scouting!r}"
-            )
-        t = self.connect_timeout_s
-        if t is not None and not is_positive_number(t):
-            raise ZenohConfigError(
-                f"ZenohSettings.connect_timeout_s must be a positive number of seconds or None, got {t!r}"
-            )
-        m = self.max_message_bytes
-        if m is not None and (isinstance(m, bool) or not isinstance(m, int) or m < 1024):
-            raise ZenohConfigError(f"ZenohSettings.max_message_bytes must be None or an integer >= 1024, got {m!r}")
+            for i, ep in enumerate(getattr(self, name)):
+                if "/" not in ep or not ep.split("/", 1)[1]:
+                    raise Invalid(f"{name}[{i}]", "a zenoh endpoint <protocol>/<address>, e.g. tcp/127.0.0.1:7447", ep)
+                proto, addr = ep.split("/", 1)
+                if proto in ("tcp", "udp", "tls", "quic", "ws"):
+                    hostport = addr.split("?", 1)[0].split("#", 1)[0]
+                    port = hostport.rsplit(":", 1)[1] if ":" in hostport else ""
+                    if not port.isdigit() or int(port) > 65535:
+                        raise Invalid(f"{name}[{i}]", f"a {proto} endpoint {proto}/HOST:PORT with PORT in 0..65535", ep)
+
+
+#: the command-line option of each :class:`ZenohConfig` field, the same in every command that opens a session
+_OPTION_OF_FIELD = {
+    "connect": "--zenoh-connect",
+    "listen": "--zenoh-listen",
+    "config_file": "--zenoh-config",
+    "multicast_scouting": "--zenoh-multicast-scouting",
+    "connect_timeout_s": "--zenoh-connect-timeout",
+}
+
+
+def config_from_options(**fields: Any) -> ZenohConfig:
+    """:class:`ZenohConfig` from a command's ``--zenoh-*`` options (its fields by name); an invalid value's
+    :class:`~onboard.core.schema.SchemaError` names the option it came from, as the daemon's does."""
+    try:
+        return ZenohConfig(**fields)
+    except SchemaError as exc:
+        name = re.split(r"[.\[]", exc.field, maxsplit=1)[0]
+        raise exc.as_(SchemaError, _OPTION_OF_FIELD.get(name, exc.source)) from None
 
 
 #: key expression, encoding and framing of one zenoh put around its payload, bytes (generous)
@@ -224,8 +231,17 @@ def _file_list(config, key: str) -> list[str]:
     return [str(v) for v in value] if isinstance(value, list) else []
 
 
-def build_config(settings: ZenohSettings):
-    """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file."""
+def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None):
+    """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file.
+
+    ``max_payload_bytes``: the largest payload the session must receive (the daemon passes
+    ``input.max_frame_bytes``, a setting of another section); plus :data:`MESSAGE_OVERHEAD_BYTES` it
+    becomes zenoh's own receive limit (``transport/link/rx/max_message_size``, default 1 GiB), so the
+    transport drops a larger message before the application sees it.  None keeps the file's or zenoh's.
+    """
+    p = max_payload_bytes
+    if p is not None and (isinstance(p, bool) or not isinstance(p, int) or p < 1):
+        raise ZenohConfigError(f"max_payload_bytes must be None or a positive integer, got {p!r}")
     file_sets_listen = False
     if settings.config_file is not None:
         path = os.fspath(settings.config_file)
@@ -259,19 +275,16 @@ def build_config(settings: ZenohSettings):
     if settings.connect_timeout_s is not None:
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")
         _insert(config, "connect/timeout_ms", int(round(settings.connect_timeout_s * 1000)), "connect/timeout_ms")
-    if settings.max_message_bytes is not None:
-        _insert(
-            config,
-            "transport/link/rx/max_message_size",
-            int(settings.max_message_bytes),
-            "transport/link/rx/max_message_size",
-        )
+    if p is not None:
+        key = "transport/link/rx/max_message_size"
+        _insert(config, key, p + MESSAGE_OVERHEAD_BYTES, key)
     return config
 
 
-def open_session(settings: ZenohSettings):
-    """Open a zenoh session for ``settings``; typed, one-line errors (see the module docstring)."""
-    config = build_config(settings)
+def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None):
+    """Open a zenoh session for ``settings`` (``max_payload_bytes`` as :func:`build_config`); typed, one-line
+    errors (see the module docstring)."""
+    config = build_config(settings, max_payload_bytes=max_payload_bytes)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:

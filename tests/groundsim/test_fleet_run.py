@@ -15,7 +15,7 @@ from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.truth import read_truth_csv
 from onboard.core.irframe import decode_irframe
-from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
 from tests.process_helpers import run_module
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(180)]
@@ -69,7 +69,7 @@ def fleet_run(tmp_path_factory):
     ports = {n: free_udp_port() for n in NAMES}
     zport = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    session = open_session(ZenohSettings(listen=(endpoint,)))
+    session = open_session(ZenohConfig(listen=(endpoint,)))
     payloads: dict[str, list[bytes]] = {n: [] for n in NAMES}
     lock = threading.Lock()
     subs = []

@@ -43,7 +43,7 @@ from onboard.core.frames import (
     rotmat_from_rotvec,
 )
 from onboard.core.irframe import ENCODING_MONO8, decode_irframe
-from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session
+from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
 from tests.fakes import FakeClock
 from tests.process_helpers import repo_env, run_module
 
@@ -105,7 +105,7 @@ def e2e(tmp_path_factory):
     truth_path = out / "truth.csv"
     zport, mport = free_tcp_port(), free_udp_port()
     endpoint = f"tcp/127.0.0.1:{zport}"
-    session = open_session(ZenohSettings(listen=(endpoint,)))
+    session = open_session(ZenohConfig(listen=(endpoint,)))
     payloads: list[bytes] = []
     lock = threading.Lock()
 

@@ -14,12 +14,14 @@ from groundsim.io.ports import free_tcp_port
 from groundsim.io.zenoh_video import FramePublisher
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.irframe import IrFrame, decode_irframe, encode_irframe
+from onboard.core.schema import SchemaError
 from onboard.io.zenoh_session import (
+    ZenohConfig,
     ZenohConfigError,
     ZenohSessionError,
-    ZenohSettings,
     build_config,
     check_vehicle_name,
+    config_from_options,
     frame_key,
     open_session,
     status_key,
@@ -42,8 +44,8 @@ def _frame(seq: int, h=512, w=640) -> IrFrame:
 def peers():
     """A listening peer on a free loopback port and a peer that connects to it."""
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    listener = open_session(ZenohSettings(listen=(ep,)))
-    connector = open_session(ZenohSettings(connect=(ep,)))
+    listener = open_session(ZenohConfig(listen=(ep,)))
+    connector = open_session(ZenohConfig(connect=(ep,)))
     try:
         yield listener, connector
     finally:
@@ -133,7 +135,7 @@ def test_listen_port_in_use_is_a_typed_one_line_error():
         s.listen()
         ep = f"tcp/127.0.0.1:{s.getsockname()[1]}"
         with pytest.raises(ZenohSessionError) as e:
-            open_session(ZenohSettings(listen=(ep,)))
+            open_session(ZenohConfig(listen=(ep,)))
     msg = str(e.value)
     assert isinstance(e.value, IrtrackError)
     assert "\n" not in msg and ep in msg and "in use" in msg and ".rs" not in msg
@@ -142,10 +144,10 @@ def test_listen_port_in_use_is_a_typed_one_line_error():
 @pytest.mark.integration
 def test_unreachable_peer_does_not_fail_open_and_joins_later():
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    late = open_session(ZenohSettings(connect=(ep,)))  # nobody listening yet
+    late = open_session(ZenohConfig(connect=(ep,)))  # nobody listening yet
     try:
         assert not late.is_closed()
-        listener = open_session(ZenohSettings(listen=(ep,)))
+        listener = open_session(ZenohConfig(listen=(ep,)))
         try:
             probe = listener.declare_publisher("irtrack/test/late")
             got = _receive(late, "irtrack/test/late", 1, lambda: probe.put(b"hello"))
@@ -161,7 +163,7 @@ def test_connect_timeout_makes_an_unreachable_peer_a_typed_error():
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
     t0 = time.monotonic()
     with pytest.raises(ZenohSessionError) as e:
-        open_session(ZenohSettings(connect=(ep,), connect_timeout_s=0.5))
+        open_session(ZenohConfig(connect=(ep,), connect_timeout_s=0.5))
     assert time.monotonic() - t0 < 10.0
     assert ep in str(e.value) and "\n" not in str(e.value)
 
@@ -169,28 +171,42 @@ def test_connect_timeout_makes_an_unreachable_peer_a_typed_error():
 @pytest.mark.parametrize("field", ["connect", "listen"])
 @pytest.mark.parametrize("ep", ["bogus", "tcp/", 7447])
 def test_malformed_endpoint_is_a_config_error_naming_it(field, ep):
-    with pytest.raises(ZenohConfigError) as e:
-        build_config(ZenohSettings(**{field: (ep,)}))
+    with pytest.raises(SchemaError) as e:
+        config_from_options(**{field: (ep,)})
     assert isinstance(e.value, ConfigError)
-    assert f"--zenoh-{field}" in str(e.value) and repr(ep) in str(e.value)
+    assert str(e.value).startswith(f"--zenoh-{field}: {field}") and repr(ep) in str(e.value)
+
+
+@pytest.mark.parametrize(
+    "fields, option",
+    [
+        (dict(config_file=""), "--zenoh-config"),
+        (dict(multicast_scouting="yes"), "--zenoh-multicast-scouting"),
+        (dict(connect_timeout_s=-1.0), "--zenoh-connect-timeout"),
+    ],
+)
+def test_an_invalid_option_is_named(fields, option):
+    with pytest.raises(SchemaError) as e:
+        config_from_options(**fields)
+    assert str(e.value).startswith(f"{option}: {next(iter(fields))}: expected ")
 
 
 def test_endpoint_zenoh_itself_refuses_is_a_config_error():
     with pytest.raises(ZenohConfigError) as e:
-        build_config(ZenohSettings(connect=("tcp/127.0.0.1:7447#iface=eth0#x=y?",)))
+        build_config(ZenohConfig(connect=("tcp/127.0.0.1:7447#iface=eth0#x=y?",)))
     assert "--zenoh-connect" in str(e.value)
 
 
 def test_options_map_onto_the_config(tmp_path):
-    cfg = build_config(ZenohSettings(connect=("tcp/127.0.0.1:7001",), listen=("tcp/127.0.0.1:7002",)))
+    cfg = build_config(ZenohConfig(connect=("tcp/127.0.0.1:7001",), listen=("tcp/127.0.0.1:7002",)))
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7001"]
     assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7002"]
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
     # only connecting: listens nowhere (no port opened on every interface)
-    cfg = build_config(ZenohSettings(connect=("tcp/127.0.0.1:7001",)))
+    cfg = build_config(ZenohConfig(connect=("tcp/127.0.0.1:7001",)))
     assert json.loads(cfg.get_json("listen/endpoints")) == []
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False
-    assert json.loads(build_config(ZenohSettings(multicast_scouting=True)).get_json("scouting/multicast/enabled"))
+    assert json.loads(build_config(ZenohConfig(multicast_scouting=True)).get_json("scouting/multicast/enabled"))
 
 
 def test_config_file_is_merged_under_the_options(tmp_path):
@@ -201,11 +217,11 @@ def test_config_file_is_merged_under_the_options(tmp_path):
         '  listen: { endpoints: ["tcp/127.0.0.1:7101"] },\n'
         "  scouting: { multicast: { enabled: true } } }\n"
     )
-    cfg = build_config(ZenohSettings(config_file=str(f), connect=("tcp/127.0.0.1:7200",)))
+    cfg = build_config(ZenohConfig(config_file=str(f), connect=("tcp/127.0.0.1:7200",), multicast_scouting=None))
     assert json.loads(cfg.get_json("connect/endpoints")) == ["tcp/127.0.0.1:7100", "tcp/127.0.0.1:7200"]
     assert json.loads(cfg.get_json("listen/endpoints")) == ["tcp/127.0.0.1:7101"]
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is True  # the file asked for it
-    cfg = build_config(ZenohSettings(config_file=str(f), multicast_scouting=False))
+    cfg = build_config(ZenohConfig(config_file=str(f), multicast_scouting=False))
     assert json.loads(cfg.get_json("scouting/multicast/enabled")) is False  # the option wins
 
 
@@ -221,28 +237,29 @@ def test_bad_config_file_is_a_config_error_naming_the_file(tmp_path, name, text)
     f = tmp_path / name
     f.write_text(text)
     with pytest.raises(ZenohConfigError) as e:
-        build_config(ZenohSettings(config_file=str(f)))
+        build_config(ZenohConfig(config_file=str(f)))
     assert str(f) in str(e.value) and "\n" not in str(e.value)
 
 
 def test_missing_config_file(tmp_path):
     with pytest.raises(ZenohConfigError) as e:
-        build_config(ZenohSettings(config_file=str(tmp_path / "nope.json5")))
+        build_config(ZenohConfig(config_file=str(tmp_path / "nope.json5")))
     assert "no such file" in str(e.value)
 
 
 @pytest.mark.parametrize(
     "kwargs",
     [
-        dict(connect="tcp/127.0.0.1:1"),
+        dict(connect=("bogus",)),
+        dict(listen=("tcp/127.0.0.1:99999",)),
         dict(connect_timeout_s=0),
         dict(connect_timeout_s=float("nan")),
         dict(multicast_scouting="yes"),
     ],
 )
 def test_settings_validation(kwargs):
-    with pytest.raises(ZenohConfigError):
-        ZenohSettings(**kwargs)
+    with pytest.raises(SchemaError):
+        ZenohConfig(**kwargs)
 
 
 @pytest.mark.integration

@@ -234,7 +234,7 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
     import time
 
     from groundsim.io.ports import free_tcp_port
-    from onboard.io.zenoh_session import TRACK_ENCODING, ZenohSettings, open_session, track_key
+    from onboard.io.zenoh_session import TRACK_ENCODING, ZenohConfig, open_session, track_key
 
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     proc = subprocess.Popen(
@@ -252,7 +252,7 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
     got = _Collector()
     t_stop, t_back, t_end = 1.2, 3.4, 4.2  # uav2's daemon "dies" at t_stop and is restarted at t_back
     try:
-        listen = ZenohSettings(connect=(endpoint,))
+        listen = ZenohConfig(connect=(endpoint,))
         watcher = open_session(listen)
         sessions.append(watcher)
         watcher.declare_subscriber(fleet_track_key(), got.on_fleet)

@@ -76,7 +76,7 @@ def record_pair(
         plan_demo,
         sim_command,
     )
-    from onboard.io.zenoh_session import ZenohSettings, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohConfig, open_session, status_key, track_key
 
     out.mkdir(parents=True, exist_ok=True)
     plan = plan_demo("P1", duration_s, 0, out, str(ONBOARD_CONFIG))
@@ -90,7 +90,7 @@ def record_pair(
     daemon_rc = sim_rc = None
     try:
         daemon = _start(dcmd, out / "onboard.log", env)
-        session = open_session(ZenohSettings(connect=(plan.zenoh_endpoint,)))
+        session = open_session(ZenohConfig(connect=(plan.zenoh_endpoint,)))
         encodings: set = set()
         subs.append(
             session.declare_subscriber(

@@ -17,7 +17,7 @@ from onboard.io.zenoh_session import (
     FRAME_ENCODING,
     STATUS_ENCODING,
     TRACK_ENCODING,
-    ZenohSettings,
+    ZenohConfig,
     encoding_schema,
     frame_key,
     open_session,
@@ -40,8 +40,8 @@ def test_frame_publisher_sends_typed_frames_that_a_generic_subscriber_sees():
     from groundsim.io.zenoh_video import FramePublisher
 
     ep = f"tcp/127.0.0.1:{free_tcp_port()}"
-    a = open_session(ZenohSettings(listen=(ep,)))
-    b = open_session(ZenohSettings(connect=(ep,)))
+    a = open_session(ZenohConfig(listen=(ep,)))
+    b = open_session(ZenohConfig(connect=(ep,)))
     got, ev = [], threading.Event()
     try:
         sub = b.declare_subscriber(frame_key("uav1"), lambda s: (got.append(str(s.encoding)), ev.set()))

@@ -313,7 +313,7 @@ def daemon_env(tmp_path):
 def test_daemon_end_to_end(tmp_path, daemon_env):
     import zenoh
 
-    from onboard.io.zenoh_session import ZenohSettings, frame_key, open_session, status_key, track_key
+    from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session, status_key, track_key
 
     scene = SyntheticScene()
     mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
@@ -345,7 +345,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
     try:
         assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
         # the zenoh peer appears only now: the daemon must have started without it and connect later
-        session = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{zport}",)))
+        session = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{zport}",)))
         tracks: queue.Queue = queue.Queue()
         statuses: queue.Queue = queue.Queue()
         subs = [

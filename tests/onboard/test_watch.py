@@ -23,7 +23,7 @@ from onboard.app.watch import (
     interrupted_line,
     main,
     summary_line,
-    zenoh_settings,
+    zenoh_config,
 )
 from onboard.core.track import LineOfSight, Track, track_from_json, track_to_bytes
 from tests.fakes import positioned_track, tracking_track
@@ -118,7 +118,7 @@ def test_counts_summary_and_interrupted_lines():
     ],
 )
 def test_zenoh_defaults_to_the_sim_daemons_listener(argv, connect, listen):
-    settings = zenoh_settings(build_parser().parse_args(argv))
+    settings = zenoh_config(build_parser().parse_args(argv))
     assert (settings.connect, settings.listen, settings.multicast_scouting) == (connect, listen, None)
 
 
@@ -156,10 +156,10 @@ class Publisher:
 
     def __init__(self) -> None:
         from groundsim.io.ports import free_tcp_port
-        from onboard.io.zenoh_session import TRACK_ENCODING, ZenohSettings, open_session, track_key
+        from onboard.io.zenoh_session import TRACK_ENCODING, ZenohConfig, open_session, track_key
 
         self.endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-        self.session = open_session(ZenohSettings(listen=(self.endpoint,)))
+        self.session = open_session(ZenohConfig(listen=(self.endpoint,)))
         self.publisher = self.session.declare_publisher(track_key("uav1"), encoding=TRACK_ENCODING)
         self._matched = threading.Event()
         self._listener = self.publisher.declare_matching_listener(

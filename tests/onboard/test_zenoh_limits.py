@@ -11,7 +11,7 @@ import pytest
 from groundsim.io.ports import free_tcp_port
 from onboard.app.config import build_config
 from onboard.core.errors import ConfigError
-from onboard.io.zenoh_session import ZenohSettings, open_session
+from onboard.io.zenoh_session import ZenohConfig, open_session
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
 
@@ -21,8 +21,8 @@ WAIT_S = 5.0
 
 def test_the_transport_drops_a_message_over_the_receivers_limit():
     port = free_tcp_port()
-    rx = open_session(ZenohSettings(listen=(f"tcp/127.0.0.1:{port}",), max_message_bytes=LIMIT_BYTES + 4096))
-    tx = open_session(ZenohSettings(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=WAIT_S))
+    rx = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)), max_payload_bytes=LIMIT_BYTES)
+    tx = open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",), connect_timeout_s=WAIT_S))
     got: list[int] = []
     small = threading.Event()
 
@@ -55,11 +55,10 @@ def test_the_transport_drops_a_message_over_the_receivers_limit():
 
 def test_config_passes_max_frame_bytes_to_zenoh():
     cfg = build_config({"input": {"max_frame_bytes": 2_000_000}})
-    st = cfg.zenoh.settings(max_payload_bytes=cfg.input.max_frame_bytes)
-    assert st.max_message_bytes == 2_000_000 + 4096
     from onboard.io.zenoh_session import build_config as zenoh_config
 
-    assert zenoh_config(st).get_json("transport/link/rx/max_message_size") == str(2_000_000 + 4096)
+    zc = zenoh_config(cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes)
+    assert zc.get_json("transport/link/rx/max_message_size") == str(2_000_000 + 4096)
 
 
 @pytest.mark.parametrize(
