@@ -103,7 +103,7 @@ def bench_scene(scene: str, duration_s: float, cpu_snapshot, chain: str = "objec
         plan = plan_demo(scene, duration_s, seed, tmp / "out", str(base))
         print(
             f"the daemon on {plan.scenario.name} in real time ({plan.duration_s:.0f} s flown by `groundsim run`,"
-            f" navigation errors {plan.nav_noise}, imaging.chain {chain}, estimator worker process), 127.0.0.1"
+            f" navigation errors {plan.injected.nav_noise}, imaging.chain {chain}, estimator worker process), 127.0.0.1"
         )
         env = child_env()
         with open(tmp / "daemon.log", "w") as dlog:

@@ -313,6 +313,7 @@ def _report(figures: list[RunFigures], names: list[str]) -> list[dict]:
 def main(argv=None) -> int:
     from groundsim.evaluation.eval import EvalOptions
     from groundsim.evaluation.parallel import limit_blas_threads, progress_bar, quiet_run_logs, run_jobs
+    from groundsim.world.nav_errors import InjectedErrors
     from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_scenario, resolve_scenario_path
     from groundsim.world.sim import frame_count
 
@@ -340,7 +341,9 @@ def main(argv=None) -> int:
     limit_blas_threads(1)
     with quiet_run_logs():
         scenarios = [load_scenario(resolve_scenario_path(n)) for n in args.scenes]
-        options = EvalOptions(duration_s=args.duration, batch=False, keep_frame=False, nav_noise=args.nav_noise)
+        options = EvalOptions(
+            duration_s=args.duration, batch=False, keep_frame=False, injected=InjectedErrors(args.nav_noise)
+        )
         cfg = onboard_config(args.onboard_config, args.chain)
         jobs = [
             (sc, seed, twin, options, cfg) for sc in scenarios for seed in range(args.seeds) for twin in (False, True)

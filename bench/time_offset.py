@@ -36,14 +36,17 @@ GOALS = "goals: detected and warned <= 10 s after tracking starts; 3-D RMS <= 1.
 def _run(task: tuple) -> dict:
     """One lockstep run: (scenario, seed, offset_ms, compensate, duration_s) -> figures and per-frame errors."""
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_lockstep
-    from groundsim.world.nav_errors import CameraClockError
+    from groundsim.world.nav_errors import DEFAULT_NAV_NOISE, CameraClockError, InjectedErrors
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     name, seed, offset_ms, compensate, duration_s = task
     base = load_base_config(None)
     base = dataclasses.replace(base, time_offset=dataclasses.replace(base.time_offset, compensate=compensate))
     options = EvalOptions(
-        duration_s=duration_s, batch=False, keep_frame=False, camera_clock=CameraClockError(float(offset_ms))
+        duration_s=duration_s,
+        batch=False,
+        keep_frame=False,
+        injected=InjectedErrors(DEFAULT_NAV_NOISE, camera_clock=CameraClockError(float(offset_ms))),
     )
     r = run_lockstep(load_scenario(resolve_scenario_path(name)), seed, options, base)
     err = np.linalg.norm(r.est_p_ned_m - r.truth_p_ned_m, axis=1)

@@ -239,7 +239,7 @@ def _run_config(args):
     scenario = load_scenario(resolve_scenario_path(args.scenario))  # first: a bad file fails fast
 
     from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time, utc_errors
-    from groundsim.world.nav_errors import parse_camera_time_offset, parse_gnss_dropout
+    from groundsim.world.nav_errors import InjectedErrors
     from onboard.io.zenoh_session import config_from_options
 
     rate = RateSpec.parse(args.rate)
@@ -275,11 +275,9 @@ def _run_config(args):
         zenoh=zenoh,
         truth_path=Path(args.truth) if args.truth else None,
         render=not args.no_render,
-        nav_noise=args.nav_noise,
+        injected=InjectedErrors.from_options(args.nav_noise, args.gnss_dropout, args.camera_time_offset_ms),
         record_path=Path(args.record) if args.record else None,
         guided=bool(getattr(args, "guided", True)),
-        gnss_dropout=parse_gnss_dropout(args.gnss_dropout) if args.gnss_dropout else None,
-        camera_clock=parse_camera_time_offset(args.camera_time_offset_ms) if args.camera_time_offset_ms else None,
     )
 
 

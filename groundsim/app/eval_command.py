@@ -3,7 +3,6 @@ line, the run, the report, TrackEval's scores of the MOT files, the tables print
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import os
@@ -21,6 +20,7 @@ from groundsim.evaluation.parallel import limit_blas_threads, quiet_run_logs
 from groundsim.evaluation.report import make_out_dir
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import print_interrupted
+from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.errors import ConfigError
 
@@ -60,24 +60,6 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
             f"MOT {seq}: HOTA {m['HOTA']:.3f} DetA {m['DetA']:.3f} AssA {m['AssA']:.3f} MOTA {m['MOTA']:.3f}"
             f" IDF1 {m['IDF1']:.3f} IDSW {m['IDSW']}"
         )
-
-
-def _camera_clock(args):
-    text = getattr(args, "camera_time_offset_ms", None)
-    if not text:
-        return None
-    from groundsim.world.nav_errors import parse_camera_time_offset
-
-    return parse_camera_time_offset(text)
-
-
-def _gnss_dropout(args):
-    text = getattr(args, "gnss_dropout", None)
-    if not text:
-        return None
-    from groundsim.world.nav_errors import parse_gnss_dropout
-
-    return parse_gnss_dropout(text)
 
 
 def format_time_offset(runs: list) -> str:
@@ -127,14 +109,14 @@ def cmd_eval(args) -> int:
             duration_s=args.duration,
             pixel_sigma_px=args.pixel_sigma,
             batch=not args.no_batch,
-            nav_noise=nav_noises[0],
+            injected=InjectedErrors.from_options(
+                nav_noises[0], getattr(args, "gnss_dropout", None), getattr(args, "camera_time_offset_ms", None)
+            ),
             estimator=getattr(args, "estimator", None),
             guidance=bool(getattr(args, "guidance", False)),
-            gnss_dropout=_gnss_dropout(args),
-            camera_clock=_camera_clock(args),
         )
         for n in nav_noises[1:]:
-            dataclasses.replace(options, nav_noise=n)  # validates every name before anything runs
+            options.with_nav_noise(n)  # validates every name before anything runs
         base = load_base_config(args.onboard_config)
         source = args.onboard_config or (
             str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
@@ -182,10 +164,10 @@ def cmd_eval(args) -> int:
                 f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
             print()
             print(table)
-        if options.gnss_dropout is not None:
+        if options.injected.gnss_dropout is not None:
             print()
             print(format_gnss_dropout(result.runs))
-        if options.camera_clock is not None:
+        if options.injected.camera_clock is not None:
             print()
             print(format_time_offset(result.runs))
         failed = sum(1 for s in result.scores if "error" in s)

@@ -49,6 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
+from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import NAME_PATTERN, Scenario
 from groundsim.world.sim import (
     BOOT_START_US,
@@ -247,8 +248,9 @@ class RunConfig:
     >= 0 selects the realisation (see the module docstring).  ``zenoh`` is an
     :class:`onboard.io.zenoh_session.ZenohConfig` (None: no endpoints, scouting off).
     ``truth_path`` None writes no truth.  ``flight_chunk_s`` None = automatic (``PACED_CHUNK_S`` or
-    ``MAX_MODE_CHUNK_S``).  ``nav_noise``: a case name of ``config/noise_cases.yaml`` for the
-    telemetry's navigation errors; None = the scenario's ``nav_noise`` (every observer's own in a fleet).
+    ``MAX_MODE_CHUNK_S``).  ``injected``: the navigation-error case (None = the scenario's ``nav_noise``,
+    every observer's own in a fleet), GNSS dropout and camera clock error the run injects
+    (:class:`groundsim.world.nav_errors.InjectedErrors`).
     ``mavlink_by_vehicle``: ``((name, connection), ...)`` of a fleet (:func:`mavlink_endpoints`; empty: each
     observer's default); a single observer uses ``mavlink`` and ``vehicle``.  ``start_time_unix_us``: the
     simulated UTC of t_s = 0 (None: the scenario's ``start_time_utc``).
@@ -265,11 +267,9 @@ class RunConfig:
     render: bool = True
     boot_start_us: int = BOOT_START_US
     flight_chunk_s: float | None = None
-    nav_noise: str | None = None
+    injected: InjectedErrors = field(default_factory=InjectedErrors)
     record_path: Path | None = None  # --record FILE.mcap: frames, MAVLink both ways and the truth (onboard.io.record)
     guided: bool = True  # the vehicle reports GUIDED and its observer follows velocity setpoints (--no-guided: not)
-    gnss_dropout: object | None = None  # --gnss-dropout: a groundsim.world.nav_errors.GnssDropout
-    camera_clock: object | None = None  # --camera-time-offset-ms: a groundsim.world.nav_errors.CameraClockError
     mavlink_by_vehicle: tuple = ()
     start_time_unix_us: int | None = None
     utc_error_us: tuple = ()  # --utc-error-ms: ((vehicle name, us), ...), :func:`utc_errors`
@@ -308,10 +308,8 @@ class RunConfig:
             if not str(self.record_path).endswith(".mcap"):
                 raise ConfigError(f"--record: expected a file name ending in .mcap, got {str(self.record_path)!r}")
             object.__setattr__(self, "record_path", Path(self.record_path))
-        if self.nav_noise is not None:
-            from groundsim.world.nav_errors import resolve_nav_noise
-
-            resolve_nav_noise(self.nav_noise)  # an unknown name fails here, naming the file and the choices
+        if not isinstance(self.injected, InjectedErrors):
+            raise ConfigError(f"RunConfig.injected must be an InjectedErrors, got {type(self.injected).__name__}")
         if self.zenoh is not None:
             from onboard.io.zenoh_session import ZenohConfig
 
@@ -697,7 +695,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             config.render,
             boot,
             chunk_s,
-            nav_noise=config.nav_noise,
+            nav_noise=config.injected.nav_noise,
             start_time_unix_us=config.start_time_unix_us,
         )
         for view in sc.observer_views()
@@ -711,6 +709,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         return core.unix_time_at_boot_us + utc_error_us.get(name, 0)
 
     zs = config.zenoh if config.zenoh is not None else ZenohConfig()
+    dropout = config.injected.gnss_dropout
     legs: list[VehicleLeg] = []
     session = recorder = None
     try:
@@ -720,7 +719,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             legs.append(leg)
             if config.render:
                 leg.publisher = FramePublisher(session, name)
-            outage = None if config.gnss_dropout is None else config.gnss_dropout.boot_window_us(core.boot_start_us)
+            outage = None if dropout is None else dropout.boot_window_us(core.boot_start_us)
             leg.mavlink = MavlinkVehicle(
                 conn,
                 gimballed=core.gimballed,
@@ -730,11 +729,11 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
             )
             if config.truth_path is not None:
                 leg.truth = TruthWriter(fleet_truth_path(config.truth_path, name) if fleet else config.truth_path)
-        if config.gnss_dropout is not None:
+        if dropout is not None:
             log.info(
                 "GNSS dropout from %.2f s for %.2f s: no GLOBAL_POSITION_INT, GPS_RAW_INT without a fix",
-                config.gnss_dropout.start_s,
-                config.gnss_dropout.duration_s,
+                dropout.start_s,
+                dropout.duration_s,
             )
         if config.record_path is not None:  # one vehicle (RunConfig refuses --record for a fleet)
             leg = legs[0]
@@ -776,11 +775,11 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 truth=leg.truth,
                 stop=stop,
                 clock=clock,
-                camera_clock=config.camera_clock,
+                camera_clock=config.injected.camera_clock,
                 on_start=on_start,
             )
         return run_fleet_loop(
-            legs, config.rate, stop=stop, clock=clock, camera_clock=config.camera_clock, on_start=on_start
+            legs, config.rate, stop=stop, clock=clock, camera_clock=config.injected.camera_clock, on_start=on_start
         )
     finally:
         closers = [c for leg in legs for c in (leg.truth, leg.publisher, leg.mavlink)] + [session, recorder]

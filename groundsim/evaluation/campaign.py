@@ -432,6 +432,7 @@ def _failed_row(params, exc: BaseException, w0: float, case: dict | None = None)
 def _run_closed_loop(job: Job) -> list[dict]:
     from groundsim.evaluation.eval import EvalOptions, run_lockstep
     from groundsim.evaluation.scoring import score_run
+    from groundsim.world.nav_errors import InjectedErrors
 
     rows = []
     for params in job.runs:
@@ -440,7 +441,7 @@ def _run_closed_loop(job: Job) -> list[dict]:
             duration_s=params.duration_s,
             batch=params.crb,
             keep_frame=False,
-            nav_noise=job.noise.name,
+            injected=InjectedErrors(job.noise.name),
             estimator=params.algorithm,
         )
         try:

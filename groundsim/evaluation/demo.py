@@ -47,6 +47,8 @@ from groundsim.evaluation.eval import EvalInterrupted, keep_interrupted
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.io.stop_signals import install_stop_signals, print_interrupted
+from groundsim.world.nav_errors import GnssDropout, InjectedErrors, resolve_nav_noise
+from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.blas import single_thread_blas_env
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError, InputError, IrtrackError
@@ -102,9 +104,9 @@ class DemoPlan:
     onboard_config_path: Path
     truth_path: Path
     python: str = sys.executable
-    nav_noise: str = "RTK"  # the simulator's navigation-error case (groundsim run --nav-noise)
+    # the simulator's navigation-error case (RTK by default), GNSS dropout ...: passed to its groundsim run
+    injected: InjectedErrors = field(default_factory=lambda: InjectedErrors(DEFAULT_NAV_NOISE))
     live_view_port: int | None = None  # passed to the daemon as --live-view PORT (Foxglove WebSocket on 127.0.0.1)
-    gnss_dropout: str | None = None  # passed to the simulator as --gnss-dropout START_S:DURATION_S
     daemon_prefix: tuple[str, ...] = ()  # run the daemon through this (bench.companion: into a CPU-limited cgroup)
 
     @property
@@ -144,15 +146,16 @@ def plan_demo(
     onboard_config: str | None,
     nav_noise: str | None = None,
     mount_as_configured: bool = False,
+    gnss_dropout: GnssDropout | None = None,
 ) -> DemoPlan:
     """Load and check everything, write OUT/onboard.yaml (and OUT/scenario.yaml), pick the ports.
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default);
+    ``gnss_dropout``: one for the simulator to inject (None: none);
     ``mount_as_configured``: the daemon keeps the configuration's camera mount (gimballed or not, angles)
     instead of the scenario's: what an operator's wrong mount configuration does."""
     import yaml
 
     from groundsim.evaluation.eval import onboard_config_for
-    from groundsim.world.nav_errors import resolve_nav_noise
     from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
     from onboard.io.zenoh_session import ZenohConfig
@@ -188,7 +191,17 @@ def plan_demo(
     path.write_text(header + yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
     load_config(path, environ={})  # what the daemon will read must be valid
     return DemoPlan(
-        sc, Path(sc_path), duration, int(seed), out, mav, zport, cfg.vehicle, path, out / "truth.csv", nav_noise=nav
+        sc,
+        Path(sc_path),
+        duration,
+        int(seed),
+        out,
+        mav,
+        zport,
+        cfg.vehicle,
+        path,
+        out / "truth.csv",
+        injected=InjectedErrors(nav, gnss_dropout),
     )
 
 
@@ -221,9 +234,7 @@ def sim_command(plan: DemoPlan) -> list[str]:
         plan.vehicle,
         "--truth",
         str(plan.truth_path),
-        "--nav-noise",
-        plan.nav_noise,
-        *([] if plan.gnss_dropout is None else ["--gnss-dropout", plan.gnss_dropout]),
+        *plan.injected.run_options(),
     ]
 
 
@@ -889,21 +900,18 @@ def cmd_demo(args) -> int:
     try:
         for name in ("onboard", "groundsim.app.run", "groundsim.world.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
+        # a bad option fails here, before any process starts
+        injected = InjectedErrors.from_options(getattr(args, "nav_noise", None), getattr(args, "gnss_dropout", None))
         plan = plan_demo(
             args.scenario,
             args.duration,
             args.seed,
             args.out,
             args.onboard_config,
-            getattr(args, "nav_noise", None),
+            injected.nav_noise,
             mount_as_configured=bool(getattr(args, "mount_as_configured", False)),
+            gnss_dropout=injected.gnss_dropout,
         )
-        gnss = getattr(args, "gnss_dropout", None)
-        if gnss:
-            from groundsim.world.nav_errors import parse_gnss_dropout
-
-            parse_gnss_dropout(gnss)  # a bad value fails here, before any process starts
-            plan = dataclasses.replace(plan, gnss_dropout=gnss)
         live_port = getattr(args, "live_view", None)  # --live-view PORT: passed through to the daemon
         if live_port is not None:
             plan = dataclasses.replace(plan, live_view_port=int(live_port))
@@ -920,7 +928,7 @@ def cmd_demo(args) -> int:
             eval_dir = plan.out_dir / "eval"
             restore()  # Ctrl-C during the evaluation interrupts it: its pool is terminated, its finished runs kept
             try:
-                _quick_eval(eval_dir, stop, plan.nav_noise)
+                _quick_eval(eval_dir, stop, plan.injected.nav_noise)
             except KeyboardInterrupt as exc:  # EvalInterrupted in its runs, else in the paper table after its report
                 ev = keep_interrupted(exc, eval_dir) if isinstance(exc, EvalInterrupted) else "report written"
                 return print_interrupted(f"{kept}; the evaluation: {ev}")
@@ -931,7 +939,7 @@ def cmd_demo(args) -> int:
         restore()
 
 
-def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") -> None:
+def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str | None = DEFAULT_NAV_NOISE) -> None:
     """The lockstep evaluation of P1-P3, one seed, and its Table-2 style and closed-loop tables."""
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_eval
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
@@ -947,7 +955,7 @@ def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str = "RTK") ->
     result = run_eval(
         scenarios,
         [0],
-        EvalOptions(nav_noise=nav_noise),
+        EvalOptions(injected=InjectedErrors(nav_noise)),
         load_base_config(),
         workers=max(1, min(2, os.cpu_count() or 1)),
     )

@@ -20,7 +20,7 @@ last telemetry sample, can have no pose; they are not processed (``RunResult.fra
 frames that were).
 
 Navigation errors.  The telemetry is what the simulated vehicle reports: the truth with the run's
-navigation errors (``EvalOptions.nav_noise``, ``--nav-noise``, default RTK; :mod:`groundsim.world.nav_errors`,
+navigation errors (``EvalOptions.injected``, ``--nav-noise``, default RTK; :mod:`groundsim.world.nav_errors`,
 drawn from ``scenario.rng("nav.errors", seed)``), applied by the very function the MAVLink vehicle
 uses.  Stream rates are the ones the daemon's configuration requests (``mavlink.attitude_rate_hz``,
 ``position_rate_hz``, ``gimbal_rate_hz``), which the simulated vehicle honours.
@@ -79,6 +79,7 @@ from groundsim.evaluation.parallel import (
     run_jobs,
 )
 from groundsim.evaluation.scoring import score_run, summarise
+from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, Scenario
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 
@@ -117,26 +118,22 @@ class EvalOptions:
     """How each run is made.  ``duration_s`` None = the scenario's; ``pixel_sigma_px`` the baseline's
     centroid noise (None: the image chain's own centroid error measured in the run, see the module
     docstring); ``batch`` adds the whole-flight MAP columns and the CRB; ``keep_frame`` keeps one IR
-    frame per run for the report's picture; ``nav_noise``: the telemetry's navigation-error case
-    (``config/noise_cases.yaml``; None = the scenario's ``nav_noise``, RTK by default)."""
+    frame per run for the report's picture; ``injected``: the telemetry's navigation-error case
+    (``config/noise_cases.yaml``, RTK by default; None = the scenario's ``nav_noise``), GNSS dropout and camera
+    clock error (:class:`groundsim.world.nav_errors.InjectedErrors`: no position telemetry in a dropout's
+    window, attitude and frames going on; a camera clock changes the frames' stamps, not their content)."""
 
     duration_s: float | None = None
     pixel_sigma_px: float | None = None
     batch: bool = True
     keep_frame: bool = True
-    nav_noise: str | None = DEFAULT_NAV_NOISE
+    injected: InjectedErrors = field(default_factory=lambda: InjectedErrors(DEFAULT_NAV_NOISE))
     #: the trajectory estimator, a plug-in name (``onboard.pipeline.plugins``: an ``irtrack.estimators`` entry point or
     #: ``module:Attribute``); None = the daemon's own (the configuration's sliding-window MAP estimator)
     estimator: str | None = None
     #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
     #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
     guidance: bool = False
-    #: a GNSS dropout (``--gnss-dropout``, :class:`groundsim.world.nav_errors.GnssDropout`): no position telemetry
-    #: in its window, attitude and frames going on
-    gnss_dropout: object | None = None
-    #: the camera's clock off the autopilot's (``--camera-time-offset-ms``,
-    #: :class:`groundsim.world.nav_errors.CameraClockError`): the frames' stamps, not their content
-    camera_clock: object | None = None
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -145,14 +142,16 @@ class EvalOptions:
         s = self.pixel_sigma_px
         if s is not None and (isinstance(s, bool) or not isinstance(s, (int, float)) or not math.isfinite(s) or s < 0):
             raise ConfigError(f"--pixel-sigma: expected a number of pixels >= 0, got {s!r}")
-        if self.nav_noise is not None:
-            from groundsim.world.nav_errors import resolve_nav_noise
-
-            resolve_nav_noise(self.nav_noise)
+        if not isinstance(self.injected, InjectedErrors):
+            raise ConfigError(f"EvalOptions.injected must be an InjectedErrors, got {type(self.injected).__name__}")
         if self.estimator is not None:
             from onboard.pipeline.plugins import load_factory
 
             load_factory(self.estimator)  # an unknown name fails here, before any run
+
+    def with_nav_noise(self, nav_noise: str | None) -> EvalOptions:
+        """These options with another navigation-error case (the other injected errors kept)."""
+        return dataclasses.replace(self, injected=dataclasses.replace(self.injected, nav_noise=nav_noise))
 
 
 def load_base_config(path: str | os.PathLike | None = None):
@@ -494,7 +493,9 @@ def run_lockstep(
     K = cfg.camera.pinhole()
     # guided: fly short chunks, so that an advice takes effect within a few frames (the ticks flown ahead keep their path)
     chunk_s = GUIDED_FLIGHT_CHUNK_S if options.guidance else 1.0
-    core = SimCore(scenario, seed, options.duration_s, render=True, flight_chunk_s=chunk_s, nav_noise=options.nav_noise)
+    core = SimCore(
+        scenario, seed, options.duration_s, render=True, flight_chunk_s=chunk_s, nav_noise=options.injected.nav_noise
+    )
     advisor = _guidance_advisor(cfg) if options.guidance else None
     advices: list[tuple[float, str]] = []  # (scenario t_s, manoeuvre) of each advice followed
     buffer = PoseBuffer(cfg.camera.camera_mount(), cfg.pose, cfg.pose.geodetic_origin())
@@ -510,7 +511,7 @@ def run_lockstep(
     )
     baseline = make_estimator(cfg)
     m = cfg.mavlink
-    gd = options.gnss_dropout
+    gd = options.injected.gnss_dropout
     feed = TelemetryFeed(
         core,
         buffer,
@@ -525,7 +526,7 @@ def run_lockstep(
     watchdog = Watchdog(
         started_s=0.0, frame_key="", zenoh_where="", mavlink_connection="", camera_size_px=(K.width_px, K.height_px)
     )
-    clock = options.camera_clock
+    clock = options.injected.camera_clock
     offset_times = {
         "first_measurement_t_s": math.nan,
         "confident_t_s": math.nan,
@@ -583,11 +584,7 @@ def run_lockstep(
         p0 = time.perf_counter()
         track = None
         if fr.pixels is not None:  # None: the camera model dropped the frame (its shutter was closed)
-            stamp = (
-                fr.time_boot_us
-                if options.camera_clock is None
-                else options.camera_clock.stamp_us(fr.time_boot_us, tr.t_s)
-            )
+            stamp = fr.time_boot_us if clock is None else clock.stamp_us(fr.time_boot_us, tr.t_s)
             try:
                 track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
             except FrameRejected as exc:  # counted by the pipeline; the frame has no track
@@ -890,9 +887,9 @@ def run_eval(
     nav_noises=None,
 ) -> EvalResult:
     """All (navigation case, scenario, seed) runs, over ``workers`` processes (1 = in this process), then
-    scored.  ``nav_noises``: case names to run each scenario with (default: ``options.nav_noise`` only)."""
+    scored.  ``nav_noises``: case names to run each scenario with (default: ``options.injected.nav_noise`` only)."""
     options = options if options is not None else EvalOptions()
-    variants = [options] if not nav_noises else [dataclasses.replace(options, nav_noise=n) for n in nav_noises]
+    variants = [options] if not nav_noises else [options.with_nav_noise(n) for n in nav_noises]
     limit_blas_threads(1)  # here and, through the environment, in the worker processes
     seeds = [int(s) for s in seeds]
     if not scenarios:

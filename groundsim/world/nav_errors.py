@@ -64,6 +64,7 @@ __all__ = [
     "CameraClockError",
     "parse_camera_time_offset",
     "resolve_nav_noise",
+    "InjectedErrors",
     "reported_state",
 ]
 
@@ -252,6 +253,62 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
     )
     hint_text = f"; did you mean '{hint[0]}'?" if hint else ""
     raise ConfigError(f"{p}: {option}: expected one of {', '.join(cases)}, got {name!r}{hint_text}")
+
+
+def _option_number(x: float) -> str:
+    """A float as an option's text that reads back to the same float (``8.0`` -> ``"8"``)."""
+    return repr(float(x)).removesuffix(".0")
+
+
+@dataclass(frozen=True)
+class InjectedErrors:
+    """What a simulated run makes the daemon's inputs get wrong, beside the world itself: ``nav_noise``, the
+    telemetry's navigation-error case (a name of ``config/noise_cases.yaml``; None: the scenario's own);
+    ``gnss_dropout`` (:class:`GnssDropout`) and ``camera_clock`` (:class:`CameraClockError`), None: none.
+
+    One group for ``groundsim run`` (``RunConfig.injected``), the lockstep evaluation (``EvalOptions.injected``,
+    hence ``eval`` and ``campaign``) and ``demo`` (which passes it on to its ``groundsim run``): options
+    ``--nav-noise``, ``--gnss-dropout``, ``--camera-time-offset-ms`` (:meth:`from_options`,
+    :meth:`run_options`).  An unknown case name fails at construction, naming the file and the choices.
+    """
+
+    nav_noise: str | None = None
+    gnss_dropout: GnssDropout | None = None
+    camera_clock: CameraClockError | None = None
+
+    def __post_init__(self) -> None:
+        if self.nav_noise is not None:
+            resolve_nav_noise(self.nav_noise)
+        for name, cls in (("gnss_dropout", GnssDropout), ("camera_clock", CameraClockError)):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, cls):
+                raise ConfigError(f"InjectedErrors.{name} must be a {cls.__name__} or None, got {type(value).__name__}")
+
+    @classmethod
+    def from_options(
+        cls,
+        nav_noise: str | None = None,
+        gnss_dropout: str | None = None,
+        camera_time_offset_ms: str | None = None,
+    ) -> InjectedErrors:
+        """From the options' text (``--nav-noise NAME``, ``--gnss-dropout START_S:DURATION_S``,
+        ``--camera-time-offset-ms MS[:DRIFT_PPM]``; None or empty: not given); ConfigError naming the option."""
+        return cls(
+            nav_noise,
+            parse_gnss_dropout(gnss_dropout) if gnss_dropout else None,
+            parse_camera_time_offset(camera_time_offset_ms) if camera_time_offset_ms else None,
+        )
+
+    def run_options(self) -> list[str]:
+        """The ``groundsim run`` options that inject these errors (what :meth:`from_options` reads back)."""
+        out = [] if self.nav_noise is None else ["--nav-noise", self.nav_noise]
+        if self.gnss_dropout is not None:
+            g = self.gnss_dropout
+            out += ["--gnss-dropout", f"{_option_number(g.start_s)}:{_option_number(g.duration_s)}"]
+        if self.camera_clock is not None:
+            c = self.camera_clock
+            out += ["--camera-time-offset-ms", f"{_option_number(c.offset_ms)}:{_option_number(c.drift_ppm)}"]
+        return out
 
 
 def offset_geodetic(lat_deg: float, lon_deg: float, alt_m: float, d_ned_m) -> tuple[float, float, float]:

@@ -183,7 +183,7 @@ def test_command_pairs_each_scene_run_with_its_twin_and_writes_json(tmp_path, ca
 
     def fake_run_lockstep(scenario, seed, options, cfg, progress=None):
         twin = not (scenario.scene.has_content or scenario.scene.sensor.enabled)
-        calls.append((scenario.name, seed, twin, options.duration_s, options.nav_noise, cfg.imaging.chain))
+        calls.append((scenario.name, seed, twin, options.duration_s, options.injected.nav_noise, cfg.imaging.chain))
         return _run([2.0 if twin else 3.0] * 4, 10.0, seed=seed, name=scenario.name)
 
     monkeypatch.setattr("groundsim.evaluation.eval.run_lockstep", fake_run_lockstep)

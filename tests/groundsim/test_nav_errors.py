@@ -15,6 +15,9 @@ from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
 from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
 from groundsim.world.nav_errors import (
     NAV_ERROR_STREAM,
+    CameraClockError,
+    GnssDropout,
+    InjectedErrors,
     NavErrorModel,
     NavErrorSample,
     offset_geodetic,
@@ -270,7 +273,7 @@ def test_bad_nav_noise_name_is_one_line_exit_2(capsys):
         in err[0]
     )
     with pytest.raises(ConfigError, match=r"noise_cases.yaml: --nav-noise: expected one of .*got 'nope'"):
-        EvalOptions(nav_noise="nope")
+        InjectedErrors("nope")
 
 
 def test_scenario_nav_noise_key_is_validated():
@@ -288,7 +291,7 @@ def test_scenario_nav_noise_key_is_validated():
 def test_eval_and_demo_default_to_rtk_and_the_shipped_daemon_config():
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
 
-    assert EvalOptions().nav_noise == "RTK"
+    assert EvalOptions().injected == InjectedErrors("RTK")
     assert str(DEFAULT_ONBOARD_CONFIG) == "config/onboard.yaml"
     parser = cli.build_parser()
     assert parser.parse_args(["eval"]).nav_noise is None  # cmd_eval: None -> [DEFAULT_NAV_NOISE]
@@ -318,3 +321,29 @@ def test_camera_clock_error_stamps_frames_late_with_a_drift():
     for bad in ("", "x", "50:y", "inf"):
         with pytest.raises(ConfigError, match="--camera-time-offset-ms"):
             parse_camera_time_offset(bad)
+
+
+def test_injected_errors_from_the_options_text():
+    inj = InjectedErrors.from_options("GNSS", "8:5", "50:20")
+    assert inj == InjectedErrors("GNSS", GnssDropout(8.0, 5.0), CameraClockError(50.0, 20.0))
+    assert inj.run_options() == ["--nav-noise", "GNSS", "--gnss-dropout", "8:5", "--camera-time-offset-ms", "50:20"]
+    assert InjectedErrors.from_options(None, "", None) == InjectedErrors()  # empty text: not given
+    assert InjectedErrors().run_options() == []  # the scenario's own case, nothing injected
+    with pytest.raises(ConfigError, match="--gnss-dropout"):
+        InjectedErrors.from_options("RTK", "8")
+    with pytest.raises(ConfigError, match="gnss_dropout must be a GnssDropout"):
+        InjectedErrors(gnss_dropout="8:5")
+
+
+_OPTION_FLOATS = st.floats(0.0, 1e6, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=60, deadline=None)
+@given(start_s=_OPTION_FLOATS, duration_s=_OPTION_FLOATS, offset_ms=_OPTION_FLOATS, drift_ppm=_OPTION_FLOATS)
+def test_injected_errors_round_trip_through_the_run_options(start_s, duration_s, offset_ms, drift_ppm):
+    """What demo passes to its ``groundsim run`` is read back to the same errors, to the last bit."""
+    inj = InjectedErrors("exact", GnssDropout(start_s, duration_s), CameraClockError(-offset_ms, drift_ppm))
+    argv = inj.run_options()
+    text = dict(zip(argv[::2], argv[1::2]))
+    back = InjectedErrors.from_options(text["--nav-noise"], text["--gnss-dropout"], text["--camera-time-offset-ms"])
+    assert back == inj
