@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 from pathlib import Path
 
 from groundsim.evaluation.eval import (
@@ -16,7 +15,7 @@ from groundsim.evaluation.eval import (
     load_base_config,
     run_eval,
 )
-from groundsim.evaluation.parallel import limit_blas_threads, quiet_run_logs
+from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import make_out_dir
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import print_interrupted
@@ -101,9 +100,7 @@ def cmd_eval(args) -> int:
         scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
-        workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
-        if workers < 1:
-            raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
+        workers = pool_workers(args.workers)
         nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
         options = EvalOptions(
             duration_s=args.duration,

@@ -88,7 +88,14 @@ from groundsim.evaluation.campaign_spec import (
     derive_scenario,
     load_spec,
 )
-from groundsim.evaluation.parallel import init_worker, limit_blas_threads, mp_context, progress_bar, quiet_run_logs
+from groundsim.evaluation.parallel import (
+    init_worker,
+    limit_blas_threads,
+    mp_context,
+    pool_workers,
+    progress_bar,
+    quiet_run_logs,
+)
 from groundsim.evaluation.report import make_out_dir
 from groundsim.world.scenario import (
     NoiseCase,
@@ -768,9 +775,7 @@ def cmd_campaign(args) -> int:
             raise ConfigError(
                 f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
             )
-        workers = args.workers or spec.workers or max(1, min(2, os.cpu_count() or 1))
-        if workers < 1:
-            raise ConfigError(f"--workers: expected an integer >= 1, got {workers}")
+        workers = pool_workers(args.workers or spec.workers)
         cfg_path = spec.onboard_config
         if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
             cfg_path = DEFAULT_ONBOARD_CONFIG

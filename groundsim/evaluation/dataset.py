@@ -65,7 +65,6 @@ import hashlib
 import json
 import logging
 import math
-import os
 import sys
 import time
 from dataclasses import dataclass
@@ -73,7 +72,14 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.parallel import JobsInterrupted, progress_bar, quiet_run_logs, report_progress, run_jobs
+from groundsim.evaluation.parallel import (
+    JobsInterrupted,
+    pool_workers,
+    progress_bar,
+    quiet_run_logs,
+    report_progress,
+    run_jobs,
+)
 from groundsim.evaluation.report import make_out_dir
 from groundsim.io.stop_signals import print_interrupted
 from onboard.core.errors import ConfigError, InputError
@@ -680,7 +686,7 @@ def cmd_dataset(args) -> int:
         scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
-        workers = args.workers if args.workers is not None else max(1, min(2, os.cpu_count() or 1))
+        workers = pool_workers(args.workers)
         options = DatasetOptions(
             nav_noise=args.nav_noise,
             duration_s=args.duration,

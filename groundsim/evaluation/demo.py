@@ -942,6 +942,7 @@ def cmd_demo(args) -> int:
 def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str | None = DEFAULT_NAV_NOISE) -> None:
     """The lockstep evaluation of P1-P3, one seed, and its Table-2 style and closed-loop tables."""
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_eval
+    from groundsim.evaluation.parallel import pool_workers
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
     from groundsim.world.scenario import load_scenario, reference_scenario_paths
 
@@ -957,7 +958,7 @@ def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str | None = DE
         [0],
         EvalOptions(injected=InjectedErrors(nav_noise)),
         load_base_config(),
-        workers=max(1, min(2, os.cpu_count() or 1)),
+        workers=pool_workers(None),
     )
     files = write_eval_report(out_dir, result)
     print(format_table2(result.summary, {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}))

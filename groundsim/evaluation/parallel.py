@@ -16,6 +16,7 @@ from contextlib import contextmanager
 __all__ = [
     "DEFAULT_PRELOAD",
     "JobsInterrupted",
+    "pool_workers",
     "mp_context",
     "init_worker",
     "limit_blas_threads",
@@ -44,6 +45,19 @@ class JobsInterrupted(KeyboardInterrupt):
     @property
     def done(self) -> int:
         return sum(r is not None for r in self.results)
+
+
+def pool_workers(workers: int | None) -> int:
+    """The worker processes a command's ``--workers`` asks for; None: ``min(2, CPUs)``, as every command's help
+    says (the lockstep runs are CPU-bound, and two leave a small machine usable).  ConfigError below 1."""
+    import os
+
+    from onboard.core.errors import ConfigError
+
+    n = workers if workers is not None else max(1, min(2, os.cpu_count() or 1))
+    if n < 1:
+        raise ConfigError(f"--workers: expected an integer >= 1, got {n}")
+    return n
 
 
 def limit_blas_threads(n: int = 1) -> int:

@@ -12,8 +12,8 @@ from groundsim.app.cli import build_parser
 from groundsim.app.eval_command import cmd_eval
 from groundsim.evaluation.campaign import cmd_campaign
 from groundsim.evaluation.dataset import cmd_dataset
-from groundsim.evaluation.parallel import RUN_LOGGERS, quiet_run_logs
-from onboard.core.errors import IrtrackError
+from groundsim.evaluation.parallel import RUN_LOGGERS, pool_workers, quiet_run_logs
+from onboard.core.errors import ConfigError, IrtrackError
 
 EXTRA = "groundsim.world.truth"
 NAMES = ("", *RUN_LOGGERS, EXTRA, "groundsim.evaluation.eval")  # "" is the root logger
@@ -78,3 +78,12 @@ def test_a_command_run_in_process_leaves_the_logger_levels_as_it_found_them(leve
         command(args)
     assert _snapshot() == before
     assert logging.getLogger("onboard").isEnabledFor(logging.INFO)
+
+
+def test_pool_workers_is_the_option_else_two_at_most(monkeypatch):
+    assert pool_workers(3) == 3
+    for cpus, expected in ((None, 1), (1, 1), (2, 2), (16, 2)):
+        monkeypatch.setattr("os.cpu_count", lambda cpus=cpus: cpus)
+        assert pool_workers(None) == expected
+    with pytest.raises(ConfigError, match=r"^--workers: expected an integer >= 1, got 0$"):
+        pool_workers(0)
