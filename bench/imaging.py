@@ -180,6 +180,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    if "--loop" in sys.argv[1:]:
+        from bench.imaging_loop import main as loop_main
+
+        sys.exit(run_benchmark("imaging", lambda: loop_main(sys.argv[1:])))
     if "--scene" in sys.argv[1:]:
         from bench.imaging_scenes import main as scenes_main
 

@@ -148,6 +148,9 @@ class OnboardService:
             config.pose.geodetic_origin(),
             counter=self.counter,
             pose_wait=self._wait_for_pose if wait_s > 0 else None,
+            chain_pose_wait=self._wait_for_chain_pose
+            if config.imaging.chain == "objects" and config.imaging.pose_wait_ms > 0
+            else None,
             clock_ns=clock_ns,
         )
         # the output taps, and the newest track for the main thread (the GCS camera, FOLLOW_TARGET, status)
@@ -196,6 +199,11 @@ class OnboardService:
     def _wait_for_pose(self, time_boot_us: int) -> None:
         """The pipeline's wait for telemetry that brackets a frame (``pose.wait_ms`` at most)."""
         self.pose.wait_for(time_boot_us, self.config.pose.wait_ms / 1000.0, self._clock)
+
+    def _wait_for_chain_pose(self, time_boot_us: int) -> None:
+        """The objects chain's wait for the telemetry that brackets its frame (``imaging.pose_wait_ms`` at
+        most), even where the newest samples could be extrapolated."""
+        self.pose.wait_for(time_boot_us, self.config.imaging.pose_wait_ms / 1000.0, self._clock, bracket=True)
 
     # ------------------------------------------------------------------ life cycle
 

@@ -117,7 +117,9 @@ class SharedPoseBuffer:
         with self._cond:
             return self._buffer.pose_at(time_boot_us, extrapolate, result=self._lookup(time_boot_us, extrapolate))
 
-    def wait_for(self, time_boot_us: int, timeout_s: float, clock: Callable[[], float] = time.monotonic) -> bool:
+    def wait_for(
+        self, time_boot_us: int, timeout_s: float, clock: Callable[[], float] = time.monotonic, bracket: bool = False
+    ) -> bool:
         """Wait until a lookup at ``time_boot_us`` is decided by the data (the telemetry reaches that
         time, or a miss that waiting cannot fix) or ``timeout_s`` passed.  True when the telemetry
         covers the time (``pose_at`` then answers; it may still be a gap), False otherwise (then
@@ -125,12 +127,21 @@ class SharedPoseBuffer:
         all once the newest samples can be extrapolated to the time: waiting would buy a bracket
         whose gain (a few thousandths of a degree, :mod:`onboard.core.pose`) is not worth the latency;
         it waits only for streams that cannot be extrapolated (no rates, no velocity, beyond the
-        horizon)."""
+        horizon).  ``bracket``: wait for the samples that bracket the time even where the newest ones could
+        be extrapolated (the objects image chain's registration of frames, whose error an extrapolated
+        attitude's noise dominates: ``imaging.pose_wait_ms``)."""
         deadline = clock() + max(timeout_s, 0.0)
         buf = self._buffer
         cheap = not buf.mount.gimballed  # newest_time_boot_us covers attitude and position only
         with self._cond:
             while True:
+                if bracket:
+                    plain = buf.lookup(time_boot_us)
+                    left = deadline - clock()
+                    if plain.pose is not None or not plain.retry or left <= 0:
+                        return plain.pose is not None
+                    self._cond.wait(left)
+                    continue
                 if cheap:
                     newest = buf.newest_time_boot_us()
                     if newest is not None and newest >= time_boot_us:

@@ -115,7 +115,9 @@ class ObjectParams:
 
     Track-aided detection (in a confirmed track's gate, ``aided_threshold_factor`` x the threshold):
     ``aided_max_run`` frames in a row, up to ``aided_max_run_moving`` while its positions still move
-    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more).
+    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more).  A track
+    measured mostly by track-before-detect is confirmed within ``dim_max_fit_rms_px`` (its integrated
+    centres scatter by 0.3-0.5 px on their own, more with a noisy attitude; the integration tested its motion).
     """
 
     gate_px: float = 4.0
@@ -141,6 +143,7 @@ class ObjectParams:
     aided_max_run: int = 10
     aided_max_run_moving: int = 90
     aided_max_fit_rms_px: float = 1.0
+    dim_max_fit_rms_px: float = 1.0
     primary_radius_px: float = 40.0
 
     def __post_init__(self) -> None:
@@ -217,6 +220,7 @@ class _Track:
     velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
     fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
+    dim_hits: int = 0  # frames measured by track-before-detect's reports
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
 
 
@@ -260,6 +264,7 @@ class ObjectTracker:
         self._background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
         self._background_history: list[tuple[int, tuple[float, float]]] = []  # (frame, that motion) of recent frames
         self._difference_ids: set[int] = set()  # id() of this frame's background-difference candidates
+        self._tbd_ids: set[int] = set()  # id() of this frame's track-before-detect candidates
         self._poses: dict[int, np.ndarray] = {}  # frame -> R_ned_from_cam, the last confirm_window frames
         self._recent: list[tuple[int, np.ndarray]] = []  # (frame, its pixels) of the last confirm_window
         self.primary_changes = 0
@@ -432,8 +437,8 @@ class ObjectTracker:
                 self._defects.reset()
             self._stripes = None
         regular = self.detect(image)
-        if self.tbd is not None and self._clean is not None:
-            regular = regular + self._tbd_candidates(self.tbd, self._clean, regular, R)
+        dim = [] if self.tbd is None or self._clean is None else self._tbd_candidates(self.tbd, self._clean, regular, R)
+        self._tbd_ids, regular = {id(c) for c in dim}, regular + dim
         self._background_motion(image, R)  # before the aided detections: it may extend their runs
         cands = self._aided_candidates(regular, R)
         measured = self._associate(cands, R, len(regular))
@@ -493,6 +498,7 @@ class ObjectTracker:
             t.age += 1
             t.aided_run = t.aided_run + 1 if ci >= n_regular else 0
             t.difference = c if id(c) in self._difference_ids else None
+            t.dim_hits += id(c) in self._tbd_ids
             # confirmed tracks keep theirs too: an aided run is extended only while it moves unlike its background
             t.history.append((self._frame_index, z, c.u_px, c.v_px))
             if t.confirmed and len(t.history) > p.confirm_window:
@@ -622,7 +628,8 @@ class ObjectTracker:
         for t in tentative:
             if t.hits < p.confirm_hits or t.misses > 0 or len(t.history) < p.confirm_in_window:
                 continue
-            if t.velocity_pxpf is None or t.fit_rms_px > p.max_fit_rms_px:
+            fit_limit = p.dim_max_fit_rms_px if 2 * t.dim_hits >= t.hits else p.max_fit_rms_px
+            if t.velocity_pxpf is None or t.fit_rms_px > fit_limit:
                 continue
             bg = [
                 o.velocity_pxpf

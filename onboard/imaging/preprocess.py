@@ -136,7 +136,11 @@ class ImagingParams:
     ``tbd`` (objects chain): search for dim points by track-before-detect while no target is held
     (:mod:`onboard.imaging.tbd`), thresholded at ``tbd_threshold_sigma`` local sigmas of the integrated
     image, over image velocities up to ``tbd_max_speed_pxpf`` px per frame per axis (the camera's rotation
-    removed).
+    removed).  ``pose_wait_ms`` (objects chain, in the daemon): how long the chain waits for the telemetry
+    that brackets its frame before it takes the camera's rotation (0: never; then it takes the newest
+    samples extrapolated, or the last rotation when they are too old).  The chain registers frames with
+    those rotations (track-before-detect's integration, the tracks' motion fit); an extrapolated or held
+    rotation misplaces a dim target's integrated peak by about a pixel (docs/perception.md, C4 in the loop).
     """
 
     mean_kernel_px: PositiveInt = 3
@@ -167,6 +171,7 @@ class ImagingParams:
     tbd: Bool = True
     tbd_threshold_sigma: Annotated[float, Number(lo=1.0)] = 6.0
     tbd_max_speed_pxpf: NonNegativeFloat = 0.3
+    pose_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 40.0
 
     def __post_init__(self) -> None:
         if self.mean_kernel_px % 2 != 1:

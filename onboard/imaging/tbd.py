@@ -161,6 +161,7 @@ class TrackBeforeDetect:
         self._step_cells = self.params.speed_step_pxpf / self.params.decimation
         self._origin = (0, 0)  # the window's top-left cell (row, column)
         self._R: np.ndarray | None = None
+        self._rotation_px = np.zeros(2)  # the image shift the camera's rotation made since the last frame (px)
         self._pending: list[_Pending] = []
         self._mode = "search"  # search (no primary), window (the primary is this stage's), idle (another's)
         self._reports: list[tuple[PointCandidate, float]] = []  # this frame's reports and their local sigmas
@@ -304,6 +305,7 @@ class TrackBeforeDetect:
         p = self.params
         i0, j0, wh, ww = win
         acc = self._acc
+        self._rotation_px = np.zeros(2)
         if acc is None:
             self._acc = acc = np.zeros((len(self._v_cells), wh, ww), np.float32)
             self._resid[:] = 0.0
@@ -313,7 +315,9 @@ class TrackBeforeDetect:
         else:
             # content moves by the rotation and the hypothesis' own motion; the window's move (cells)
             # shifts it the other way
-            moved = self._rotation_shift_cells(R, win)[None, :] + self._v_cells
+            rot = self._rotation_shift_cells(R, win)
+            self._rotation_px = rot * p.decimation
+            moved = rot[None, :] + self._v_cells
             moved -= np.array([j0 - self._origin[1], i0 - self._origin[0]], dtype=float)[None, :]
             self._resid += moved
             whole = np.rint(self._resid)
@@ -473,9 +477,13 @@ class TrackBeforeDetect:
         """Match this frame's peaks to the pending ones (moved by their hypothesis' velocity); those
         seen on ``confirm_frames`` frames in a row are reported."""
         p = self.params
+        # a pending peak moves with the camera's rotation as well as by its own velocity: a frame-to-frame
+        # rotation is well inside the matching radius, but a frame the daemon dropped (its queue full on a
+        # loaded computer) lets it grow past it, and the peak would start over from nothing
+        rot_u, rot_v = (float(x) for x in self._rotation_px)
         for q in self._pending:
-            q.u_px += q.velocity_pxpf[0]
-            q.v_px += q.velocity_pxpf[1]
+            q.u_px += q.velocity_pxpf[0] + rot_u
+            q.v_px += q.velocity_pxpf[1] + rot_v
             q.misses = 0 if q.seen else q.misses + 1
             q.seen = False
         out: list[PointCandidate] = []

@@ -15,7 +15,11 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    ``frame_time_ahead``, ``frame_time_behind``) and costs only itself; a clock step, an autopilot
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
-2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`).
+2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`); a chain that
+   ``uses_pose`` (the objects chain) gets the camera's rotation at ``t``, after the optional
+   ``chain_pose_wait(t)`` hook (the daemon waits there for the telemetry that brackets ``t``,
+   ``imaging.pose_wait_ms``: the chain registers frames with it, and an extrapolated rotation's noise
+   costs a dim target its confirmation).
 3. Pose at ``t`` (after imaging, so that late telemetry has more time to arrive): the optional
    ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
    (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
@@ -168,7 +172,8 @@ class FramePipeline:
     (default: the pose's own origin).  ``tracker``: has ``update(pixels) -> TrackUpdate``.
     ``estimator``: the sliding-window interface, or None (2-D only).  ``counter``: where refusals
     are counted (default: the pose source's ``counter`` if it has one).  ``pose_wait``: called with
-    the frame time before the pose lookup (the daemon waits there for lagging telemetry).
+    the frame time before the pose lookup (the daemon waits there for lagging telemetry);
+    ``chain_pose_wait``: the same before the image chain's rotation (a chain that ``uses_pose``).
     ``clock_ns``: monotonic clock for the timing statistics.
     """
 
@@ -182,6 +187,7 @@ class FramePipeline:
         *,
         counter: RejectCounter | None = None,
         pose_wait: Callable[[int], None] | None = None,
+        chain_pose_wait: Callable[[int], None] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         stats_window: int = 1000,
     ) -> None:
@@ -202,6 +208,7 @@ class FramePipeline:
         self.origin = origin
         self.counter = counter if counter is not None else getattr(pose_source, "counter", None) or RejectCounter()
         self.pose_wait = pose_wait
+        self.chain_pose_wait = chain_pose_wait
         self._clock_ns = clock_ns
         self.processing_ms = RollingStats(stats_window)
         self.pose_wait_ms = RollingStats(stats_window)
@@ -334,6 +341,14 @@ class FramePipeline:
             )
         self._admit(frame)
 
+        chain_waited_ns = 0
+        if self.chain_pose_wait is not None and not self._selections and getattr(self.tracker, "uses_pose", False):
+            w0 = self._clock_ns()
+            try:
+                self.chain_pose_wait(frame.time_boot_us - self._compensation_us())
+            except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
+                self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
+            chain_waited_ns = self._clock_ns() - w0
         i0 = self._clock_ns()
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
@@ -347,14 +362,14 @@ class FramePipeline:
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us
-        waited_ns = 0
+        waited_ns = chain_waited_ns
         if self.pose_wait is not None and self.pose_source is not None:
             w0 = self._clock_ns()
             try:
                 self.pose_wait(t_us)
             except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
                 self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
-            waited_ns = self._clock_ns() - w0
+            waited_ns += self._clock_ns() - w0
         stamp_pose = pose = None
         if self.pose_source is not None:
             try:

@@ -1,0 +1,129 @@
+"""The objects chain's wait for the telemetry that brackets its frame (``imaging.pose_wait_ms``).
+
+In the loop the frame often arrives before the attitude and gimbal samples after it; the chain then got
+an extrapolated rotation (or none, and kept the last one), and track-before-detect's integration and the
+tracks' motion fit carried that error (docs/perception.md, C4 in the loop).  These tests pin the two
+hooks: :meth:`SharedPoseBuffer.wait_for` with ``bracket=True`` waits for the bracketing sample where the
+plain wait would extrapolate, and :class:`FramePipeline` calls ``chain_pose_wait`` before it looks up the
+chain's rotation, so the chain gets the sample that arrived during the wait.
+"""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from onboard.app.config import OnboardConfig, build_config
+from onboard.app.shared_pose import SharedPoseBuffer
+from onboard.core.frames import GeodeticOrigin, quat_from_rotvec, quat_multiply, rotmat_from_quat
+from onboard.core.irframe import IrFrame
+from onboard.core.pose import PoseBuffer
+from onboard.imaging import TrackState, TrackUpdate
+from onboard.pipeline.frame_pipeline import FramePipeline
+
+US = 1_000_000
+ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)
+ATOL_RAD = 1e-6  # float rounding of a SLERP between two samples
+JOIN_TIMEOUT_S = 10.0  # a waiter that has not returned by then is a failure, not a slow machine
+W_FRD_RPS = np.array([0.0, 0.0, 0.5])  # a steady yaw rate: extrapolation is possible, so the plain wait never waits
+
+
+def q_at(t_us: int) -> np.ndarray:
+    return quat_from_rotvec(W_FRD_RPS * t_us / US)
+
+
+def filled(until_us: int) -> PoseBuffer:
+    """Attitude (with body rates) and position at 50 Hz up to ``until_us``."""
+    buf = PoseBuffer(origin=ORIGIN)
+    for t in range(0, until_us + 1, 20_000):
+        buf.add_attitude(t, q_at(t), W_FRD_RPS)
+        buf.add_position_ned(t, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+    return buf
+
+
+class _Signal:
+    """A clock for ``wait_for`` that sets ``event`` once the waiter is inside its loop (second call), while
+    it still holds the buffer's lock: a sample added after ``event`` is therefore added while it waits."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self.calls = 0
+
+    def __call__(self) -> float:
+        import time
+
+        self.calls += 1
+        if self.calls >= 2:
+            self.event.set()
+        return time.monotonic()
+
+
+def test_plain_wait_extrapolates_but_bracket_wait_waits_for_the_sample_after():
+    t_frame = 110_000  # 10 ms past the newest sample (100 ms): extrapolable with the body rates
+    shared = SharedPoseBuffer(filled(100_000))
+    assert shared.wait_for(t_frame, 0.0) is False  # extrapolation is possible: the plain wait returns at once
+    assert shared.pose_at(t_frame).mode == "extrapolated"
+    assert shared.wait_for(t_frame, 0.0, bracket=True) is False  # no time to wait: not bracketed
+
+    clock = _Signal()
+    result: list[bool] = []
+    waiter = threading.Thread(target=lambda: result.append(shared.wait_for(t_frame, 60.0, clock, bracket=True)))
+    waiter.start()
+    assert clock.event.wait(JOIN_TIMEOUT_S)
+    shared.add_attitude(120_000, q_at(120_000), W_FRD_RPS)  # the attitude after the frame; position stays behind
+    shared.add_position_ned(120_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+    waiter.join(JOIN_TIMEOUT_S)
+    assert not waiter.is_alive() and result == [True]
+    pose = shared.pose_at(t_frame)
+    assert pose.mode != "extrapolated" and pose.att_extrapolated_us == 0
+
+
+def test_bracket_wait_does_not_wait_for_what_cannot_come():
+    shared = SharedPoseBuffer(filled(100_000))
+    # before the buffer's first sample: no later sample can bracket it, so it returns at once even with time left
+    clock = _Signal()
+    assert shared.wait_for(-50_000, 60.0, clock, bracket=True) is False
+    assert clock.calls <= 2
+
+
+class _PoseChain:
+    """A stand-in for the objects chain: records the rotation it is given, reports searching."""
+
+    uses_pose = True
+
+    def __init__(self) -> None:
+        self.rotations: list = []
+
+    def update(self, pixels, R_ned_from_cam=None):
+        self.rotations.append(R_ned_from_cam)
+        return TrackUpdate(TrackState.SEARCHING, None, None, None, None, False, None, None, len(self.rotations))
+
+
+def test_pipeline_waits_before_the_chain_looks_its_rotation_up():
+    cfg = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    assert isinstance(cfg, OnboardConfig) and cfg.imaging.pose_wait_ms > 0
+    buf = filled(100_000)
+    chain = _PoseChain()
+    t_frame = 130_000  # 30 ms past the newest sample: the newest samples alone would be extrapolated
+    extrapolated = buf.pose_at(t_frame)
+    assert extrapolated is not None and extrapolated.mode == "extrapolated"
+    # the attitude after the frame is off the constant-rate path (the gimbal or the airframe moved otherwise)
+    q_after = quat_multiply(quat_from_rotvec([0.0, 0.01, 0.0]), q_at(140_000))
+    waited: list[int] = []
+
+    def arrive(t_us: int) -> None:  # the telemetry after the frame comes in while the pipeline waits
+        waited.append(t_us)
+        buf.add_attitude(140_000, q_after, W_FRD_RPS)
+        buf.add_position_ned(140_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+
+    pipe = FramePipeline(cfg, buf, chain, None, ORIGIN, chain_pose_wait=arrive)
+    K = cfg.camera.intrinsics
+    pipe.process(IrFrame(0, t_frame, np.zeros((K.height_px, K.width_px), np.uint8)))
+    assert waited == [t_frame]
+    R = chain.rotations[0]
+    pose = buf.pose_at(t_frame)
+    assert pose is not None and pose.mode != "extrapolated"
+    assert np.allclose(R, rotmat_from_quat(pose.q_ned_from_cam), atol=ATOL_RAD)
+    # what the chain got without the wait: 0.0075 rad (~6 px at 765 px) away
+    assert not np.allclose(R, rotmat_from_quat(extrapolated.q_ned_from_cam), atol=1e-3)
