@@ -60,7 +60,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.preprocess import ImagingParams, check_frame
-from onboard.imaging.tbd import TbdParams, TrackBeforeDetect
+from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_steps
 
 __all__ = [
     "ObjectParams",
@@ -115,9 +115,8 @@ class ObjectParams:
 
     Track-aided detection (in a confirmed track's gate, ``aided_threshold_factor`` x the threshold):
     ``aided_max_run`` frames in a row, up to ``aided_max_run_moving`` while its positions still move
-    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more).  A track
-    measured mostly by track-before-detect is confirmed within ``dim_max_fit_rms_px`` (its integrated
-    centres scatter by 0.3-0.5 px on their own, more with a noisy attitude; the integration tested its motion).
+    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more); one measured mostly
+    by track-before-detect, within ``dim_max_fit_rms_px`` (its centres scatter 0.3-0.5 px, more on a noisy pose).
     """
 
     gate_px: float = 4.0
@@ -249,6 +248,7 @@ class ObjectTracker:
         self._next_id = 1  # ids from 1, as the track output counts them
         self._primary: int | None = None
         self._frame_index = -1
+        self._last_time_us: int | None = None  # the last frame's time (frame_steps: periods since it)
         self._defects: DefectMap | None = None
         self._prev: np.ndarray | None = None
         self._prev_median: float | None = None
@@ -413,9 +413,13 @@ class ObjectTracker:
 
     # ------------------------------------------------------------------ step
 
-    def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None) -> ObjectsUpdate:
+    def update(self, image: np.ndarray, R_ned_from_cam=None, time_boot_us: int | None = None) -> ObjectsUpdate:
         image = check_frame(image)
         self._frame_index += 1
+        self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
+        self._last_time_us = time_boot_us
+        for t in self._tracks:  # frames a loaded daemon dropped: time passed, nothing was measured (as when frozen)
+            t.los = _unit(t.los + (self.frame_steps - 1) * t.rate)
         R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):
             raise InputError(f"R_ned_from_cam must be a finite 3 x 3 rotation, got shape {R.shape}")
@@ -448,8 +452,7 @@ class ObjectTracker:
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
     ) -> list[PointCandidate]:
-        """Track-before-detect's confirmed dim points (:mod:`onboard.imaging.tbd`): it searches while there
-        is no primary target, then follows the primary (at its prediction) only if it found it."""
+        """Track-before-detect's dim points (:mod:`onboard.imaging.tbd`; it follows only a primary it found)."""
         focus = None
         prim = next((t for t in self._tracks if t.object_id == self._primary), None)
         if prim is not None:
@@ -897,7 +900,7 @@ class ObjectChain:
         self._R: np.ndarray | None = None
         self._last_primary: int | None = None
 
-    def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None):
+    def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None, time_boot_us: int | None = None):
         try:
             image = check_frame(image)
         except InputError:
@@ -905,7 +908,7 @@ class ObjectChain:
             raise
         if R_ned_from_cam is not None:
             self._R = np.asarray(R_ned_from_cam, dtype=np.float64)
-        out = self.objects.update(image, self._R)
+        out = self.objects.update(image, self._R, time_boot_us)
         self.last_objects = out
         return self._track_update(out)
 

@@ -16,7 +16,8 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
 2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`); a chain that
-   ``uses_pose`` (the objects chain) gets the camera's rotation at ``t``, after the optional
+   ``uses_pose`` (the objects chain) gets the camera's rotation at ``t`` and ``t`` itself (frames the daemon
+   dropped are time its tracks must be predicted over), after the optional
    ``chain_pose_wait(t)`` hook (the daemon waits there for the telemetry that brackets ``t``,
    ``imaging.pose_wait_ms``: the chain registers frames with it, and an extrapolated rotation's noise
    costs a dim target its confirmation).
@@ -353,7 +354,7 @@ class FramePipeline:
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
             if upd is None and getattr(self.tracker, "uses_pose", False):
-                upd = self.tracker.update(frame.pixels, self._camera_rotation(frame.time_boot_us))
+                upd = self.tracker.update(frame.pixels, self._camera_rotation(frame.time_boot_us), frame.time_boot_us)
             elif upd is None:
                 upd = self.tracker.update(frame.pixels)
         except InputError as exc:

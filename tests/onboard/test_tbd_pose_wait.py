@@ -95,7 +95,7 @@ class _PoseChain:
     def __init__(self) -> None:
         self.rotations: list = []
 
-    def update(self, pixels, R_ned_from_cam=None):
+    def update(self, pixels, R_ned_from_cam=None, time_boot_us=None):
         self.rotations.append(R_ned_from_cam)
         return TrackUpdate(TrackState.SEARCHING, None, None, None, None, False, None, None, len(self.rotations))
 
