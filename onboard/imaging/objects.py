@@ -418,7 +418,7 @@ class ObjectTracker:
         self._frame_index += 1
         self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
         self._last_time_us = time_boot_us
-        for t in self._tracks:  # frames a loaded daemon dropped: time passed, nothing was measured (as when frozen)
+        for t in (t for t in self._tracks if 2 * t.dim_hits < t.hits):  # dropped frames (see tbd.frame_steps)
             t.los = _unit(t.los + (self.frame_steps - 1) * t.rate)
         R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
         if R.shape != (3, 3) or not np.all(np.isfinite(R)):

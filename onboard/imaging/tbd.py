@@ -82,7 +82,11 @@ def frame_steps(last_us: int | None, now_us: int | None, frame_rate_hz: float) -
     """Frame periods from a frame stamped ``last_us`` to one stamped ``now_us`` (us): 1 without both stamps or
     when time goes back, at most ``MAX_FRAME_STEPS``.  A daemon on a loaded computer drops frames (its queue
     full), and a track's motion counted per frame must cover the time that passed: a bright target crossing at
-    1 px a frame is 5 px off a one-frame prediction after 4 drops (used by :mod:`onboard.imaging.objects`)."""
+    1 px a frame is 5 px off a one-frame prediction after 4 drops.  :mod:`onboard.imaging.objects` predicts its
+    tracks over the gap as over frozen frames (time passes, nothing measured), except a track measured mostly
+    by this stage: a dim target's rate, from integrated centres that scatter by a pixel, is too noisy to carry
+    over a long gap (0.3 px/frame of noise, 14 frames: lost in a replay of C4 in the loop), and this stage
+    does not scale its hypotheses either (see :meth:`TrackBeforeDetect.update`)."""
     if last_us is None or now_us is None or now_us <= last_us:
         return 1
     return min(max(round((now_us - last_us) * frame_rate_hz / US_PER_S), 1), MAX_FRAME_STEPS)
