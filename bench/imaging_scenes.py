@@ -26,6 +26,10 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   primary is its one track, so this counts its track ids);
 * ``conf s``: seconds from the target's first visible frame to the first frame the primary is on it
   (``nan``: never); ``after``: the on-target fraction over the visible frames from then on;
+* ``ffc s``: per flat-field event (a run of frames identical to the one before: the shutter closed), seconds
+  from its first frame to the first frame the primary is on the target again (``-``: no event);
+  ``defect``: confirmed-track frames within 2 px of a stuck pixel (at the frame's lowest or highest grey on
+  every frame: the camera model's dead and hot pixels; ``-``: none);
 * ``HOTA`` (and ``DetA``, ``AssA``): TrackEval's HOTA of the chain's confirmed tracks against every
   labelled object (visible and occluded), in the layout and with the 6 px boxes ``groundsim eval`` writes
   (:mod:`groundsim.evaluation.mot`), so the figure is the one the loop reports; nan without TrackEval;
@@ -55,6 +59,7 @@ import numpy as np
 from groundsim.evaluation.mot import gt_rows, score_mot, tracker_rows, write_mot
 
 MATCH_PX = 3.0
+DEFECT_PX = 2.0
 MIN_CONTRAST_NETD = 3.0
 SETTLE_S = 1.0
 DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
@@ -190,6 +195,11 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     last_primary = None
     mot_gt: list[str] = []
     mot_tracker: list[str] = []
+    stuck = _stuck_pixels(run.frames)
+    on_defect = 0
+    ffc_starts: list[int] = []
+    prev_img, was_frozen = None, False
+    on_frames: set[int] = set()  # frames with the primary on the target
     for k, (img, labels) in enumerate(zip(run.frames, run.labels)):
         mot_gt += gt_rows(k + 1, [_Label(*lb) for lb in labels])
         vis = []
@@ -200,6 +210,10 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                 vis.append((oid, cls, u, v, contrast))
         if img is None:
             continue
+        frozen = prev_img is not None and np.array_equal(img, prev_img)
+        if frozen and not was_frozen:  # the shutter closed: the camera repeats its last image
+            ffc_starts.append(k)
+        was_frozen, prev_img = frozen, img
         n_frames += 1
         t0, c0 = time.perf_counter(), time.process_time()
         tracks, primary = chain.update(img, run.R_ned_from_cam[k])
@@ -215,6 +229,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         mot_tracker += tracker_rows(k + 1, confirmed)
         all_pos = [(u, v) for _, _, u, v, vv, _ in labels if math.isfinite(u) and math.isfinite(v)]
         for tid, u, v in tracks:
+            if len(stuck) and float(np.min(np.hypot(stuck[:, 0] - u, stuck[:, 1] - v))) <= DEFECT_PX:
+                on_defect += 1
             rec = track_frames.setdefault(tid, [0, 0])
             rec[0] += 1
             if all(math.hypot(u - a, v - b) > MATCH_PX for a, b in all_pos):
@@ -225,6 +241,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                 if primary is not None and primary in tpos:
                     pu, pv = tpos[primary]
                     on_target += math.hypot(pu - u, pv - v) <= MATCH_PX
+                    if math.hypot(pu - u, pv - v) <= MATCH_PX:
+                        on_frames.add(k)
                     if first_on is None and math.hypot(pu - u, pv - v) <= MATCH_PX:
                         first_on = k
                 if first_on is not None:
@@ -268,9 +286,25 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         ms_p95=float(np.percentile(ms, 95)) if ms else math.nan,
         cpu_ms_p50=float(np.median(cpu_ms)) if cpu_ms else math.nan,
         primary_selections=selections,
+        ffc_s=[min((f - k0 for f in on_frames if f >= k0), default=math.nan) / fr for k0 in ffc_starts],
+        on_defect=on_defect if len(stuck) else None,
         ms_frames=ms,
         cpu_ms_frames=cpu_ms,
     )
+
+
+def _stuck_pixels(frames) -> np.ndarray:
+    """(n, 2) centres (u, v) of the pixels at the frame type's lowest or highest grey on every frame."""
+    lo = hi = None
+    for f in frames:
+        if f is not None:
+            lo = f.copy() if lo is None else np.minimum(lo, f)
+            hi = f.copy() if hi is None else np.maximum(hi, f)
+    if lo is None or hi is None:
+        return np.zeros((0, 2))
+    top = np.iinfo(lo.dtype).max if np.issubdtype(lo.dtype, np.integer) else np.inf
+    i, j = np.nonzero((lo == hi) & ((lo == 0) | (lo == top)))
+    return np.stack([j + 0.5, i + 0.5], axis=1)
 
 
 class _Label(SimpleNamespace):
@@ -333,7 +367,7 @@ def main(argv: list[str]) -> None:
     print(
         f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
         f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'HOTA':>5s} {'DetA':>5s} {'AssA':>5s}"
-        f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s}"
+        f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s} {'ffc s':>6s} {'defect':>6s}"
     )
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache, a.encoding)
@@ -343,6 +377,7 @@ def main(argv: list[str]) -> None:
                 f"{name:<6s} {c:<13s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
                 f" {s['HOTA']:5.3f} {s['DetA']:5.3f} {s['AssA']:5.3f}"
-                f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%",
+                f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%"
+                f" {' '.join(f'{x:.2f}' for x in s['ffc_s']) or '-':>6s} {'-' if s['on_defect'] is None else s['on_defect']:>6}",
                 flush=True,
             )
