@@ -117,6 +117,7 @@ def main(argv: list[str]) -> None:
     import argparse
 
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_lockstep
+    from groundsim.world.nav_errors import InjectedErrors
     from groundsim.world.scenario import load_scenario, scenarios_dir
 
     ap = argparse.ArgumentParser(prog="python -m bench.imaging --loop", description=__doc__.splitlines()[0])
@@ -141,7 +142,7 @@ def main(argv: list[str]) -> None:
         sc = load_scenario(scenarios_dir() / f"{name}.yaml")
         for seed in range(a.seeds):
             t0 = time.perf_counter()
-            r = run_lockstep(sc, seed, EvalOptions(nav_noise=a.nav_noise, batch=False), base)
+            r = run_lockstep(sc, seed, EvalOptions(batch=False, injected=InjectedErrors(a.nav_noise)), base)
             s = score_run(r, sc, defect_pixels(sc, seed))
             ffc = " ".join(f"{x:.2f}" for x in s["ffc_s"]) or "-"
             od = "-" if s["on_defect"] is None else str(s["on_defect"])
