@@ -46,6 +46,7 @@ the session and the MAVLink connection, and removes the liveness file.
 from __future__ import annotations
 
 import collections
+import functools
 import json
 import logging
 import math
@@ -130,7 +131,7 @@ class OnboardService:
         est = make_estimator_worker(config, self.counter)
         self.estimator_kind = "disabled" if est is None else f"sliding window ({config.estimator.worker})"
         self.estimator = est
-        wait_s = config.pose.wait_ms / 1000.0
+        wait_s, chain_wait_s = config.pose.wait_ms / 1000.0, config.imaging.pose_wait_ms / 1000.0
         from onboard.io.zenoh_session import FRAME_SCHEMA, frame_key
 
         self._frame_schema = FRAME_SCHEMA  # frames typed with another schema are refused (frame_schema)
@@ -147,9 +148,11 @@ class OnboardService:
             est,
             config.pose.geodetic_origin(),
             counter=self.counter,
-            pose_wait=self._wait_for_pose if wait_s > 0 else None,
-            chain_pose_wait=self._wait_for_chain_pose
-            if config.imaging.chain == "objects" and config.imaging.pose_wait_ms > 0
+            # the pipeline waits for telemetry that brackets a frame (pose.wait_ms at most); the objects chain
+            # for the bracket even where the newest samples could be extrapolated (imaging.pose_wait_ms)
+            pose_wait=functools.partial(self.pose.wait_for, timeout_s=wait_s, clock=clock) if wait_s > 0 else None,
+            chain_pose_wait=functools.partial(self.pose.wait_for, timeout_s=chain_wait_s, clock=clock, bracket=True)
+            if config.imaging.chain == "objects" and chain_wait_s > 0
             else None,
             clock_ns=clock_ns,
         )
@@ -195,15 +198,6 @@ class OnboardService:
         )
         self.cpu_load = CpuLoad()
         self._name_frames_thread = True  # zenoh's thread for _on_frame, named in the OS on its first frame
-
-    def _wait_for_pose(self, time_boot_us: int) -> None:
-        """The pipeline's wait for telemetry that brackets a frame (``pose.wait_ms`` at most)."""
-        self.pose.wait_for(time_boot_us, self.config.pose.wait_ms / 1000.0, self._clock)
-
-    def _wait_for_chain_pose(self, time_boot_us: int) -> None:
-        """The objects chain's wait for the telemetry that brackets its frame (``imaging.pose_wait_ms`` at
-        most), even where the newest samples could be extrapolated."""
-        self.pose.wait_for(time_boot_us, self.config.imaging.pose_wait_ms / 1000.0, self._clock, bracket=True)
 
     # ------------------------------------------------------------------ life cycle
 

@@ -187,8 +187,8 @@ class FramePipeline:
         origin: GeodeticOrigin | None = None,
         *,
         counter: RejectCounter | None = None,
-        pose_wait: Callable[[int], None] | None = None,
-        chain_pose_wait: Callable[[int], None] | None = None,
+        pose_wait: Callable[[int], object] | None = None,
+        chain_pose_wait: Callable[[int], object] | None = None,
         clock_ns: Callable[[], int] = time.monotonic_ns,
         stats_window: int = 1000,
     ) -> None:
