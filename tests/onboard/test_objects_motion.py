@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from onboard.core.frames import PinholeIntrinsics
 from onboard.imaging.clutter import surround_residuals
 from onboard.imaging.objects import ObjectParams, ObjectTracker
+from onboard.imaging.objects_detection import ObjectDetector
 
 W_PX, H_PX = 256, 192  # the background motion is measured on 4x smaller frames: 64 x 48 here
 K = PinholeIntrinsics(300.0, 300.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
@@ -103,7 +104,7 @@ def test_a_feature_carried_by_its_own_surroundings_is_not_confirmed(surroundings
     motion: the frame-wide test alone confirms it (a false track); compared with its own surroundings
     it is not confirmed, while the target crossing the far ground is."""
     if not surroundings_test:
-        monkeypatch.setattr(ObjectTracker, "_surroundings_follow", lambda self, t: False)
+        monkeypatch.setattr(ObjectDetector, "surroundings_follow", lambda self, t: False)
     # fine texture over the coarse one: what the surroundings are matched by at one-pixel shifts
     fine = cv2.GaussianBlur(np.random.default_rng(17).normal(0.0, 20.0, (H_PX + 80, W_PX)), (0, 0), 1.5)
     terrain = _terrain() + fine.astype(np.float32)

@@ -1,0 +1,232 @@
+"""The objects chain's detection side: each frame's point candidates and what the tracker asks of the background.
+
+``ObjectDetector(intrinsics, params, clutter)``; per frame :meth:`ObjectDetector.detect` (column offsets
+removed, dead/hot pixels repaired, the two-scale point contrast against the CFAR threshold,
+:mod:`onboard.imaging.clutter`), then :meth:`ObjectDetector.background_motion` (the frame's dominant image
+motion, the camera's rotation removed).  It keeps the recent frames and poses those need and answers the
+tracker's questions about the background where a track is: is it textured (:meth:`textured`), did its
+surroundings move with it (:meth:`surroundings_follow`), and, for track-aided detection, the difference
+against the background moved with the camera (:meth:`difference_candidate`).  The tracker itself
+(association, confirmation, the primary) is :mod:`onboard.imaging.objects`.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+
+from onboard.imaging.clutter import (
+    ClutterParams,
+    DefectMap,
+    PointCandidate,
+    background_difference,
+    cfar_threshold,
+    column_offsets,
+    difference_peak,
+    local_noise_coarse,
+    point_candidates,
+    point_contrast,
+    rotation_shift_px,
+    surround_residuals,
+)
+from onboard.imaging.objects_model import ObjectParams, TrackRecord, los_from_pixel, pixel_from_los
+
+__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA"]
+
+log = logging.getLogger(__name__)
+
+BACKGROUND_SCALE = 4  # the background motion is measured on frames this many times smaller
+NOISE_FACTOR = 4  # the local noise (CFAR) is estimated on a grid this many times coarser
+TEXTURE_RING_PX = 32  # the texture about a track is sampled this far from it (beyond the noise window's half)
+TEXTURE_REFERENCE_PERCENTILE = 10  # texture is judged against the frame's quietest tenth, not its median
+DIFFERENCE_LAG = 8  # frames between the two frames of a track-aided background difference
+DIFFERENCE_HALF_PX = 16  # half-side of its square
+DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
+DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
+SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
+STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
+
+
+class ObjectDetector:
+    """See the module docstring.  ``intrinsics``: :class:`onboard.core.frames.PinholeIntrinsics`;
+    ``params`` the tracker's (its windows: ``confirm_window``, ``defect_every``, ``background_frames``,
+    ``textured_noise_ratio``); ``clutter`` the detector's.  After :meth:`detect`, ``contrast`` and
+    ``threshold`` hold the frame's point contrast and CFAR threshold (full size, grey) and ``clean`` the
+    frame with its fixed pattern handled (float32); after :meth:`background_motion`, ``background_pxpf``
+    the frame's dominant background motion (px/frame, None when not measured)."""
+
+    def __init__(self, intrinsics, params: ObjectParams, clutter: ClutterParams) -> None:
+        self.K = intrinsics
+        self.params = params
+        self.clutter = clutter
+        self.frame_index = -1  # the frame detect() saw last
+        self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
+        self.threshold: np.ndarray | None = None
+        self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
+        self.background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
+        self._defects: DefectMap | None = None
+        self._window: np.ndarray | None = None
+        self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey), coarse grid
+        self._noise_median = 0.0
+        self._noise_floor = 0.0  # the least textured tenth of the frame's local noise (grey)
+        self._noise_floor_frame = -1
+        self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
+        self._coarse: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, coarse image, R) of recent frames
+        self._background_history: list[tuple[int, tuple[float, float]]] = []  # (frame, that motion) of recent frames
+        self._poses: dict[int, np.ndarray] = {}  # frame -> R_ned_from_cam, the last confirm_window frames
+        self._recent: list[tuple[int, np.ndarray]] = []  # (frame, its pixels) of the last confirm_window
+
+    def restart(self) -> None:
+        """An offset step (flat-field correction): the defect map and the column offsets start again."""
+        if self._defects is not None:
+            self._defects.reset()
+        self._stripes = None
+
+    def detect(self, image: np.ndarray, frame_index: int) -> list[PointCandidate]:
+        """Frame ``frame_index``'s point candidates (fixed pattern handled first; updates the defect map)."""
+        self.frame_index = frame_index
+        p = self.clutter
+        img = image.astype(np.float32)
+        k = self.frame_index
+        # a confirming track's surroundings are compared over its window (the raw frames: the fixed
+        # pattern stays put while the scene moves, adding alike to every displacement tried)
+        self._recent = [r for r in self._recent if r[0] > k - self.params.confirm_window]
+        self._recent.append((k, image.copy() if image.dtype == np.uint8 else img.copy()))
+        if p.destripe:
+            if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self.frame_index % STRIPE_EVERY == 0:
+                self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
+            img -= self._stripes[None, :]  # in place on the frame's float copy (remove_column_offsets, one pass less)
+        if self._defects is None or self._defects.mask.shape != img.shape:
+            self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
+        if self.frame_index % self.params.defect_every == 0:
+            # the outlier level from the previous frame's noise (the noise is measured after the repair)
+            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
+            self._defects.update(img, sigma)
+        img = self._defects.repair(img)
+        self.clean = img
+        # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
+        box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE) if p.cell_px == 3 else None
+        # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
+        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False, box3=box3)
+        self._noise = noise
+        if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
+            self._noise_median = float(np.median(noise))
+        h, w = img.shape
+        threshold = cv2.resize(
+            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
+        )
+        contrast = point_contrast(img, p, box3)
+        self.contrast, self.threshold = contrast, threshold
+        return point_candidates(contrast, threshold, p)
+
+    def background_motion(self, image: np.ndarray, R: np.ndarray) -> None:
+        """After :meth:`detect` on the same frame: the dominant image motion of the background over the last ``background_frames`` frames, the
+        camera's rotation removed (px per frame, in this frame's image), by phase correlation of
+        ``BACKGROUND_SCALE`` times smaller frames (Kuglin & Hines 1975); None on a featureless frame
+        (a clear sky: the correlation peak is weak and the shift meaningless)."""
+        p = self.params
+        h, w = image.shape
+        small = cv2.resize(
+            np.asarray(image, dtype=np.float32),
+            (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE),
+            interpolation=cv2.INTER_AREA,
+        )
+        k = self.frame_index
+        self._coarse = [c for c in self._coarse if c[0] >= k - p.background_frames]
+        self.background_pxpf = None
+        if self._coarse and self._coarse[0][1].shape == small.shape:
+            k0, old, R0 = self._coarse[0]
+            if self._window is None or self._window.shape != small.shape:
+                self._window = cv2.createHanningWindow((small.shape[1], small.shape[0]), cv2.CV_32F)
+            (du, dv), response = cv2.phaseCorrelate(old, small, self._window)
+            if response >= p.background_min_response:
+                # where a point at infinity seen at the image centre on frame k0 is now: the rotation's share
+                shift = rotation_shift_px(self.K, self.K.cx_px, self.K.cy_px, R0, R)
+                if shift is not None:
+                    ru, rv = shift
+                    n = k - k0
+                    self.background_pxpf = (
+                        (du * BACKGROUND_SCALE - ru) / n,
+                        (dv * BACKGROUND_SCALE - rv) / n,
+                    )
+        self._coarse.append((k, small, R))
+        self._poses = {q: r for q, r in self._poses.items() if q > k - p.confirm_window}
+        self._poses[k] = R
+        self._background_history = [b for b in self._background_history if b[0] > k - p.confirm_window]
+        if self.background_pxpf is not None:
+            self._background_history.append((k, self.background_pxpf))
+
+    def background_over_window(self) -> tuple[float, float] | None:
+        """The frame's background motion averaged over the ``confirm_window`` frames a velocity is fitted
+        over (one 4-frame estimate wanders by 0.1-0.2 px/frame); None unless measured on half of them."""
+        hist = self._background_history
+        if 2 * len(hist) < self.params.confirm_window:
+            return None
+        m = np.mean(np.array([b[1] for b in hist]), axis=0)
+        return float(m[0]), float(m[1])
+
+    def textured(self, uv: tuple[float, float]) -> bool:
+        """The point ``uv`` (px) lies where the local noise (texture) is ``textured_noise_ratio`` times the frame's
+        median: cloud or terrain, whose motion the frame's background motion stands for; on a clear
+        sky there is no background to differ from."""
+        noise = self._noise
+        if noise is None:
+            return False
+        h, w = noise.shape  # the coarse grid: NOISE_FACTOR pixels a cell
+        # sampled on a ring about the track, not under it: a bright point raises its own local noise
+        r = TEXTURE_RING_PX
+        samples = [
+            noise[
+                min(max((int(uv[1]) + di) // NOISE_FACTOR, 0), h - 1),
+                min(max((int(uv[0]) + dj) // NOISE_FACTOR, 0), w - 1),
+            ]
+            for di, dj in ((-r, 0), (r, 0), (0, -r), (0, r), (-r, -r), (-r, r), (r, -r), (r, r))
+        ]
+        if self._noise_floor_frame != self.frame_index:  # once a frame, and only when asked
+            self._noise_floor = float(np.percentile(noise, TEXTURE_REFERENCE_PERCENTILE))
+            self._noise_floor_frame = self.frame_index
+        return bool(float(np.median(samples)) > self.params.textured_noise_ratio * self._noise_floor)
+
+    def surroundings_follow(self, t: TrackRecord) -> bool:
+        """The texture about the track on the oldest of its recent frames, moved by the track's own image
+        displacement since, matches this frame's ``SURROUND_MATCH_RATIO`` times better than moved 2 px
+        otherwise (:func:`onboard.imaging.clutter.surround_residuals`): the background's motion where
+        the track is, which the frame-wide one misses (looking down at a slant the nearer ground flows
+        ~30 % faster than the whole frame, C2) and no neighbour track always stands for."""
+        if len(t.history) < 2:
+            return False
+        k0, _, u0, v0 = t.history[0]
+        old = next((img for k, img in self._recent if k == k0), None)
+        cur = self._recent[-1][1] if self._recent and self._recent[-1][0] == self.frame_index else None
+        if old is None or cur is None:
+            return False
+        # the displacement from a straight-line fit of its measured pixels (each jitters by tenths of a px)
+        f = np.array([e[0] for e in t.history], dtype=np.float64)
+        slope = np.polyfit(f, np.array([(e[2], e[3]) for e in t.history]), 1)[0] * (self.frame_index - k0)
+        own, alt = surround_residuals(cur, old, t.uv, (float(slope[0]), float(slope[1])))
+        log.debug("surroundings of %d: own %.3f alt %.3f", t.object_id, own, alt)
+        return bool(own * SURROUND_MATCH_RATIO < alt)  # False when either is nan (too few pixels)
+
+    def difference_candidate(self, puv: tuple[float, float], gate: float, R: np.ndarray) -> PointCandidate | None:
+        """Track-aided detection against the background (where its motion is known): this frame minus the
+        one ``DIFFERENCE_LAG`` frames earlier registered on the prediction's surroundings, searched about
+        the camera's rotation plus that motion (:func:`onboard.imaging.clutter.background_difference`); None
+        without a detection there (or without the frames or the motion it needs).  The caller leaves out
+        a prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
+        k = self.frame_index
+        bg = self.background_over_window()
+        old, R0 = dict(self._recent).get(k - DIFFERENCE_LAG), self._poses.get(k - DIFFERENCE_LAG)
+        if bg is None or old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
+            return None
+        # where the background now at puv was DIFFERENCE_LAG frames ago: the rotation's share, then its own motion
+        p0 = pixel_from_los(self.K, los_from_pixel(self.K, puv[0], puv[1], R), R0)
+        if p0 is None:
+            return None
+        du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
+        diff, _ = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
+        return difference_peak(
+            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb
+        )
