@@ -245,15 +245,15 @@ class ObjectTracker:
         return tbd.update(clean, R, focus, regular)
 
     def _associate(self, cands: list[PointCandidate], R: np.ndarray, n_regular: int | None = None) -> set[int]:
-        """Greedy nearest-first association; ``cands[n_regular:]`` are track-aided candidates, which
-        update their track but never start one."""
+        """Greedy nearest-first association, confirmed tracks before tentative ones; ``cands[n_regular:]``
+        are track-aided candidates, which update their track but never start one."""
         p = self.params
         n_regular = len(cands) if n_regular is None else n_regular
         preds = []
         for t in self._tracks:
             pl = unit_vector(t.los + t.rate)
             preds.append((pl, self._project(pl, R)))
-        pairs: list[tuple[float, int, int]] = []
+        pairs: list[tuple[bool, float, int, int]] = []
         live = [ti for ti, (_, puv) in enumerate(preds) if puv is not None]
         if live and cands:
             # every track-candidate distance at once (tens of each on a cluttered frame)
@@ -264,11 +264,17 @@ class ObjectTracker:
                 p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
             )
             li, ci_a = np.nonzero(d <= gate[:, None])
-            pairs = sorted((float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
+            # confirmed tracks first: a large bright object (a bird) now and then splits into two
+            # candidates; the second starts a tentative track, and nearest-first alone then hands the
+            # object to that track whenever its prediction lies nearer, and the confirmed track is lost
+            # (C3's bird 2, frames 108-170)
+            pairs = sorted(
+                (not self._tracks[live[a]].confirmed, float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a)
+            )
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
-        for _, ti, ci in pairs:
+        for _, _, ti, ci in pairs:
             if ti in used_t or ci in used_c:
                 continue
             used_t.add(ti)
@@ -347,35 +353,53 @@ class ObjectTracker:
             for t, v, r in zip(fitted, vel, rms):
                 t.velocity_pxpf = (float(v[0]), float(v[1]))
                 t.fit_rms_px = float(r)
+        follows: dict[int, bool] = {}  # object id -> its surroundings moved with it (asked once a frame)
+
+        def carried(o: TrackRecord) -> bool:
+            if o.object_id not in follows:
+                follows[o.object_id] = self.detector.surroundings_follow(o)
+            return follows[o.object_id]
+
         for t in tentative:
             if t.hits < p.confirm_hits or t.misses > 0 or len(t.history) < p.confirm_in_window:
                 continue
             fit_limit = p.dim_max_fit_rms_px if 2 * t.dim_hits >= t.hits else p.max_fit_rms_px
             if t.velocity_pxpf is None or t.fit_rms_px > fit_limit:
                 continue
-            bg = [
-                o.velocity_pxpf
+            tv = t.velocity_pxpf
+            nbrs = [
+                o
                 for o in tentative
                 if o is not t
                 and o.velocity_pxpf is not None
                 and math.hypot(o.uv[0] - t.uv[0], o.uv[1] - t.uv[1]) <= p.background_radius_px
             ]
             # the background's motion, from each source available; the track must move unlike every one
-            backgrounds = []
-            if len(bg) >= p.background_min_tracks:
-                backgrounds.append(np.median(np.asarray(bg), axis=0))
+            frame_bgs = []
             if self.detector.background_pxpf is not None and self.detector.textured(t.uv):
-                backgrounds.append(np.asarray(self.detector.background_pxpf))
+                frame_bgs.append(self.detector.background_pxpf)
                 mean_bg = self.detector.background_over_window()
                 if mean_bg is not None:
-                    backgrounds.append(np.asarray(mean_bg))
-            rel = min(
-                (math.hypot(t.velocity_pxpf[0] - vb[0], t.velocity_pxpf[1] - vb[1]) for vb in backgrounds),
-                default=math.nan,
-            )
+                    frame_bgs.append(mean_bg)
+            rels = [math.hypot(tv[0] - b[0], tv[1] - b[1]) for b in frame_bgs]
+            if len(nbrs) >= p.background_min_tracks:
+                rel_nbrs = _relative_to_median(tv, nbrs)
+                if (
+                    len(nbrs) == 1
+                    and rel_nbrs < p.min_relative_speed_pxpf
+                    and min(rels, default=math.inf) >= p.min_relative_speed_pxpf
+                    and not self.detector.textured(nbrs[0].uv)
+                    and not carried(nbrs[0])
+                ):
+                    # decided by one neighbour alone, on a clear sky and not carried by its surroundings:
+                    # another object flying alongside, not a fragment of the background (C3's two targets,
+                    # tentative together 0.10-0.15 px/frame apart, frames 14-41, were each other's)
+                    rel_nbrs = math.inf
+                rels.append(rel_nbrs)
+            rel = min(rels, default=math.nan)  # nan: no background to differ from (a clear sky)
             if rel < p.min_relative_speed_pxpf:
                 continue
-            if self.detector.surroundings_follow(t):
+            if carried(t):
                 continue
             t.confirmed = True
             log.debug(
@@ -387,7 +411,7 @@ class ObjectTracker:
                 t.fit_rms_px,
                 t.velocity_pxpf[0],
                 t.velocity_pxpf[1],
-                len(bg),
+                len(nbrs),
                 rel,
             )
 
@@ -525,6 +549,12 @@ class ObjectTracker:
                 )
             )
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _relative_to_median(v_pxpf: tuple[float, float], tracks: list[TrackRecord]) -> float:
+    """|v - the median velocity of ``tracks``| (px/frame)."""
+    m = np.median(np.asarray([o.velocity_pxpf for o in tracks]), axis=0)
+    return math.hypot(v_pxpf[0] - float(m[0]), v_pxpf[1] - float(m[1]))
 
 
 class ObjectChain:
