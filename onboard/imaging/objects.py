@@ -228,7 +228,7 @@ class ObjectTracker:
         clean = self.detector.clean
         dim = [] if self.tbd is None or clean is None else self._tbd_candidates(self.tbd, clean, regular, R)
         self._tbd_ids, regular = {id(c) for c in dim}, regular + dim
-        self.detector.background_motion(image, R)  # before the aided detections: it may extend their runs
+        self.detector.background_motion(R)  # before the aided detections: it may extend their runs
         cands = self._aided_candidates(regular, R)
         measured = self._associate(cands, R, len(regular))
         changed = self._select(R)

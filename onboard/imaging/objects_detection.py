@@ -77,6 +77,7 @@ class ObjectDetector:
         self._background_history: list[tuple[int, tuple[float, float]]] = []  # (frame, that motion) of recent frames
         self._poses: dict[int, np.ndarray] = {}  # frame -> R_ned_from_cam, the last confirm_window frames
         self._recent: list[tuple[int, np.ndarray]] = []  # (frame, its pixels) of the last confirm_window
+        self._small: np.ndarray | None = None  # the last frame BACKGROUND_SCALE times smaller (float32)
 
     def restart(self) -> None:
         """An offset step (flat-field correction): the defect map and the column offsets start again."""
@@ -92,8 +93,26 @@ class ObjectDetector:
         k = self.frame_index
         # a confirming track's surroundings are compared over its window (the raw frames: the fixed
         # pattern stays put while the scene moves, adding alike to every displacement tried)
-        self._recent = [r for r in self._recent if r[0] > k - self.params.confirm_window]
-        self._recent.append((k, image.copy() if image.dtype == np.uint8 else img.copy()))
+        kept = [r for r in self._recent if r[0] > k - self.params.confirm_window]
+        src = image if image.dtype == np.uint8 else img
+        # the copy goes into a frame that left the window (a fresh 0.3-1.3 MB array a frame, freed 15
+        # frames later, made the allocator return memory to the system and fault it back in)
+        spare = next(
+            (
+                a
+                for q, a in self._recent
+                if q <= k - self.params.confirm_window and a.shape == src.shape and a.dtype == src.dtype
+            ),
+            None,
+        )
+        if spare is None:
+            spare = src.copy()
+        else:
+            np.copyto(spare, src)
+        self._recent = [*kept, (k, spare)]
+        # the background motion's reduced frame, from the float copy before the fixed pattern is handled
+        h, w = img.shape
+        self._small = cv2.resize(img, (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE), interpolation=cv2.INTER_AREA)
         if p.destripe:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self.frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
@@ -113,7 +132,6 @@ class ObjectDetector:
         self._noise = noise
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(noise))
-        h, w = img.shape
         threshold = cv2.resize(
             cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
         )
@@ -121,18 +139,16 @@ class ObjectDetector:
         self.contrast, self.threshold = contrast, threshold
         return point_candidates(contrast, threshold, p)
 
-    def background_motion(self, image: np.ndarray, R: np.ndarray) -> None:
-        """After :meth:`detect` on the same frame: the dominant image motion of the background over the last ``background_frames`` frames, the
-        camera's rotation removed (px per frame, in this frame's image), by phase correlation of
-        ``BACKGROUND_SCALE`` times smaller frames (Kuglin & Hines 1975); None on a featureless frame
-        (a clear sky: the correlation peak is weak and the shift meaningless)."""
+    def background_motion(self, R: np.ndarray) -> None:
+        """After :meth:`detect` on the same frame (``R`` its R_ned_from_cam): the dominant image motion
+        of the background over the last ``background_frames`` frames, the camera's rotation removed (px
+        per frame, in this frame's image), by phase correlation of ``BACKGROUND_SCALE`` times smaller
+        frames (Kuglin & Hines 1975); None on a featureless frame (a clear sky: the correlation peak is
+        weak and the shift meaningless)."""
         p = self.params
-        h, w = image.shape
-        small = cv2.resize(
-            np.asarray(image, dtype=np.float32),
-            (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE),
-            interpolation=cv2.INTER_AREA,
-        )
+        small = self._small
+        if small is None:
+            return
         k = self.frame_index
         self._coarse = [c for c in self._coarse if c[0] >= k - p.background_frames]
         self.background_pxpf = None

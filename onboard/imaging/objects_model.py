@@ -177,7 +177,7 @@ def los_from_pixel(K, u: float, v: float, R: np.ndarray) -> np.ndarray:
     """The unit line of sight (local NED) of pixel (u, v) through ``R`` = R_ned_from_cam (pinhole ``K``)."""
     ray = np.array([(u - K.cx_px) / K.fx_px, (v - K.cy_px) / K.fy_px, 1.0])
     b = R @ ray
-    return b / np.linalg.norm(b)
+    return b / math.sqrt(b.dot(b))  # np.linalg.norm's own formula for a vector, without its overhead
 
 
 def pixel_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> tuple[float, float] | None:
@@ -235,7 +235,7 @@ def cv_fit(f: np.ndarray, u: np.ndarray, v: np.ndarray, w: np.ndarray) -> tuple[
 
 def unit_vector(v: np.ndarray) -> np.ndarray:
     """``v`` scaled to unit length (the zero vector as it is)."""
-    n = float(np.linalg.norm(v))
+    n = math.sqrt(v.dot(v))
     return v / n if n > 0 else v
 
 
