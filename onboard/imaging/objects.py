@@ -264,13 +264,14 @@ class ObjectTracker:
                 p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
             )
             li, ci_a = np.nonzero(d <= gate[:, None])
-            # confirmed tracks first: a large bright object (a bird) now and then splits into two
-            # candidates; the second starts a tentative track, and nearest-first alone then hands the
-            # object to that track whenever its prediction lies nearer, and the confirmed track is lost
-            # (C3's bird 2, frames 108-170)
-            pairs = sorted(
-                (not self._tracks[live[a]].confirmed, float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a)
-            )
+            # confirmed tracks measured on the last frame first: a large bright object (a bird) now and
+            # then splits into two candidates; the second starts a tentative track, and nearest-first
+            # alone then hands the object to that track whenever its prediction lies nearer, and the
+            # confirmed track is lost (C3's bird 2, frames 108-170).  A coasting one competes by distance
+            # only: its gate widens to 12 px, and first it would take a new object's candidate from the
+            # tentative track on it
+            held = [t.confirmed and t.misses == 0 for t in self._tracks]
+            pairs = sorted((not held[live[a]], float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
