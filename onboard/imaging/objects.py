@@ -14,7 +14,8 @@ image, so the camera's own rotation (a gimbal slewing, the airframe rolling) mov
 with it and only the objects' own motion is left to the filter; without a pose (None) the camera is
 taken as still.  Association is greedy nearest-first on the image distance between prediction and
 candidate inside a gate that widens while a track coasts (points of a few pixels: overlap of boxes
-means nothing after a one-pixel shift).  The filter is an alpha-beta filter on the line of sight
+means nothing after a one-pixel shift), the confirmed tracks measured on the last frame served before
+the others.  The filter is an alpha-beta filter on the line of sight
 (Kalata 1984, "The tracking index", IEEE TAES 20, 174) re-normalised to a unit vector.
 
 States: ``tentative`` until confirmed (see :class:`ObjectParams`: M of N detections moving
