@@ -134,9 +134,11 @@ class ObjectTracker:
         return self.detector.detect(image, self._frame_index)
 
     def _aided_candidates(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
-        """Track-aided detection: inside the gate of each confirmed track (measured or coasting) that no
-        candidate falls in, the strongest component of the point contrast above ``aided_threshold_factor``
-        times the CFAR threshold.  Where an object is already known the prior is strong and a lower
+        """Track-aided detection: inside the gate of each confirmed track (measured or coasting), and of
+        each tentative one with ``confirm_hits`` hits for at most ``aided_tentative_max_run`` frames in a
+        row, that no candidate falls in, the strongest component of the point contrast above
+        ``aided_threshold_factor`` times the CFAR threshold (a confirmed track's, failing that, the
+        background difference).  Where an object is already known the prior is strong and a lower
         threshold costs few false alarms (a gate is ~0.1 % of the frame); it bridges the frames where a
         dim or flickering object dips below the whole-frame threshold.  Candidates are added to ``cands``
         (a new list)."""
@@ -151,9 +153,14 @@ class ObjectTracker:
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
             # background (a fragment of terrain or cloud it slid onto would move with it)
-            if not t.confirmed or (
-                t.aided_run >= p.aided_max_run
-                and (t.aided_run >= p.aided_max_run_moving or not self._moves_unlike_background(t, R))
+            if not t.confirmed:
+                # a tentative track with confirm_hits hits may bridge single misses (a target near the
+                # threshold, detected on two frames of three, never reached 12 of 15: C3 seed 1's second
+                # target, frames 30-124); two aided frames in a row confirmed a terrain fragment on C2
+                if t.hits < p.confirm_hits or t.aided_run >= p.aided_tentative_max_run:
+                    continue
+            elif t.aided_run >= p.aided_max_run and (
+                t.aided_run >= p.aided_max_run_moving or not self._moves_unlike_background(t, R)
             ):
                 continue
             puv = self._project(unit_vector(t.los + t.rate), R)
@@ -177,7 +184,7 @@ class ObjectTracker:
                     best = dataclasses.replace(
                         c, u_px=u, v_px=v, bbox=(c.bbox[0] + x0, c.bbox[1] + y0, c.bbox[2], c.bbox[3])
                     )
-            if best is None:
+            if best is None and t.confirmed:
                 best = self._difference_candidate(t, puv, gate, R)
                 if best is not None:
                     self._difference_ids.add(id(best))

@@ -64,7 +64,8 @@ class ObjectParams:
     Track-aided detection (in a confirmed track's gate, ``aided_threshold_factor`` x the threshold):
     ``aided_max_run`` frames in a row, up to ``aided_max_run_moving`` while its positions still move
     unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more); one measured mostly
-    by track-before-detect, within ``dim_max_fit_rms_px`` (its centres scatter 0.3-0.5 px, more on a noisy pose).
+    by track-before-detect, within ``dim_max_fit_rms_px`` (its centres scatter 0.3-0.5 px, more on a noisy pose);
+    in a tentative track's with ``confirm_hits`` hits, ``aided_tentative_max_run`` frames in a row (0: never).
     """
 
     gate_px: float = 4.0
@@ -91,6 +92,7 @@ class ObjectParams:
     aided_max_run_moving: int = 90
     aided_max_fit_rms_px: float = 1.0
     dim_max_fit_rms_px: float = 1.0
+    aided_tentative_max_run: int = 1
     primary_radius_px: float = 40.0
 
     def __post_init__(self) -> None:
