@@ -24,10 +24,11 @@ consistently and unlike the background; dropped after ``tentative_misses`` misse
 
 Primary target (``mode`` auto): the current primary is kept while its track lives (confirmed or
 coasting); otherwise, of the tracks measured on this frame with at least ``confirm_hits`` hits on at
-least ``primary_hit_ratio`` of their frames, the longest-tracked within ``primary_radius_px`` of the
-principal point (else the nearest to it) becomes it once it is confirmed and measured (the observer's
+least ``primary_hit_ratio`` of their frames and at most ``primary_max_off_axis_rad`` off the optical axis,
+the longest-tracked within ``primary_radius_px`` of the principal point (else the nearest to it) becomes it once it is confirmed and measured (the observer's
 gimbal points the camera at its target, so of the steady objects the target is the one the camera
-centres and holds; a fragment of terrain or cloud there is never confirmed, so never chosen).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
+centres and holds; a fragment of terrain or cloud there is never confirmed, so never chosen; a track far
+off the axis is never chosen, even confirmed: no primary rather than a wrong one).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
 change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
 continued on another object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
@@ -444,18 +445,27 @@ class ObjectTracker:
         self._primary = None
         if self.mode == "auto":
             p, K = self.params, self.K
+
+            def off_centre(t: TrackRecord) -> float:
+                return math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px)
+
+            def off_axis_rad(t: TrackRecord) -> float:
+                return math.atan(math.hypot((t.uv[0] - K.cx_px) / K.fx_px, (t.uv[1] - K.cy_px) / K.fy_px))
+
             # a steady track that missed this frame still counts (a target dips below the threshold
-            # now and then): otherwise a farther one is taken in its place on that frame
+            # now and then): otherwise a farther one is taken in its place on that frame.  None far off
+            # the axis: the gimbal holds its target near the centre, and a confirmed fragment of terrain
+            # in a corner made primary would hand the 3-D estimator a confident wrong object, the worst
+            # failure; no primary is the honest answer there
             steady = [
                 t
                 for t in self._tracks
-                if t.misses <= p.tentative_misses and t.hits >= p.confirm_hits and t.hits >= p.primary_hit_ratio * t.age
+                if t.misses <= p.tentative_misses
+                and t.hits >= p.confirm_hits
+                and t.hits >= p.primary_hit_ratio * t.age
+                and off_axis_rad(t) <= p.primary_max_off_axis_rad
             ]
             if steady:
-
-                def off_centre(t: TrackRecord) -> float:
-                    return math.hypot(t.uv[0] - K.cx_px, t.uv[1] - K.cy_px)
-
                 # where the gimbal points: of the steady tracks about the centre the longest-tracked one
                 # (two objects near one line of sight: the one the camera has been holding), else the nearest
                 central = [t for t in steady if off_centre(t) <= p.primary_radius_px]

@@ -43,7 +43,9 @@ class ObjectParams:
     ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
     ``defect_every``: frames between defect-map updates; ``primary_hit_ratio``: the least fraction of
     its frames a track must have been measured on to be chosen as the primary; ``primary_radius_px``:
-    of the steady tracks this close to the principal point the longest-tracked is chosen.
+    of the steady tracks this close to the principal point the longest-tracked is chosen;
+    ``primary_max_off_axis_rad``: no track farther off the optical axis is chosen by the auto rule (the
+    gimbal points the camera at its target: a steady track far off the axis is not the target).
 
     Confirmation (M of N with consistent motion in bearing space, moving unlike the background):
     besides ``confirm_hits`` hits, the track must have been measured on ``confirm_in_window`` of the
@@ -94,6 +96,9 @@ class ObjectParams:
     dim_max_fit_rms_px: float = 1.0
     aided_tentative_max_run: int = 1
     primary_radius_px: float = 40.0
+    # 8.6 deg, 116 px at the reference 765 px lens: 4-5 times the reference gimbal's pointing error (the
+    # target within ~25 px of the centre), and about the central 256 px that track-before-detect searches
+    primary_max_off_axis_rad: float = 0.15
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -106,6 +111,8 @@ class ObjectParams:
             )
         if self.aided_max_run_moving < self.aided_max_run:
             raise InputError(f"ObjectParams aided_max_run_moving < aided_max_run ({self.aided_max_run})")
+        if not 0 < self.primary_max_off_axis_rad < math.pi / 2:
+            raise InputError(f"ObjectParams primary_max_off_axis_rad in (0, pi/2), got {self.primary_max_off_axis_rad}")
         if self.background_frames < 1 or not 0 < self.aided_threshold_factor <= 1:
             raise InputError(
                 "ObjectParams background_frames >= 1 and aided_threshold_factor in (0, 1], got "

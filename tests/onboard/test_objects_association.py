@@ -92,3 +92,29 @@ def test_a_tentative_track_bridges_single_dim_frames_by_aided_detection(max_run,
         if first is None and any(math.hypot(o.u_px - uv[0], o.v_px - uv[1]) <= MATCH_PX for o in out.confirmed):
             first = k
     assert (first is not None and first <= 20) is confirmed, f"first confirmed on frame {first}"
+
+
+@pytest.mark.parametrize(
+    ("start_uv", "chosen"),
+    [
+        ((W_PX / 2 - 20.0, H_PX / 2 + 8.0), True),  # 0.11 rad off the axis: where the gimbal holds its target
+        ((12.0, 10.0), False),  # 0.32 rad, in the corner: C2 seed 1's terrain fragment at (114, 5) of 640 x 512
+    ],
+)
+def test_a_lone_confirmed_object_far_off_the_axis_is_never_made_the_primary(start_uv, chosen):
+    """The auto rule's fallback (no steady track about the centre: the nearest one) is bounded by
+    ``primary_max_off_axis_rad``: a confirmed object in a corner stays an object, reported, but is not handed
+    to the 3-D estimator as the target; the same object near the centre is."""
+    rng = np.random.default_rng(31)
+    tr = ObjectTracker(K)
+    confirmed = primaries = 0
+    for k in range(30):
+        u, v = start_uv[0] + 0.3 * k, start_uv[1]
+        out = tr.update(_frame(rng, [(u, v)]), None)
+        confirmed += any(math.hypot(o.u_px - u, o.v_px - v) <= MATCH_PX for o in out.confirmed)
+        primaries += out.primary_id is not None
+    assert confirmed >= 15  # confirmed in both cases: only the selection differs
+    if chosen:
+        assert primaries >= 15 and tr.primary_changes == 1
+    else:
+        assert primaries == 0 and tr.primary_changes == 0
