@@ -10,8 +10,12 @@ collapsed solution (the trajectory shrunk onto the camera track, where the cost 
 stops there and drops it.
 
 Selection (:meth:`MapEstimator.solve`; :meth:`MapEstimator.selection` is the same computation in pieces
-of one Levenberg-Marquardt iteration, which a caller can spread over time): every family x q model is
-solved (loose to stiff, warm started).  The point estimate is the model that pins range best among those within
+of one Levenberg-Marquardt iteration, which a caller can spread over time): each family is solved over a
+coarse q grid (loose to stiff, warm started), then at the grid's other intensities next to its best while its
+evidence rises towards them; a mode far below the best so far starts no stiffer model, and a family whose
+evidence falls hopelessly as its prior stiffens stops (``coarse_q_grid_m2ps3``, ``hopeless_nats``: the log
+evidence is smooth and single-peaked in log q, and the models left out carry no posterior weight on the
+reference windows).  The point estimate is the model that pins range best among those within
 ``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
 near-camera solution, and never blindly the highest evidence, which a vague model can win by
 leaving range free.  Its covariance is model-averaged over the evidence weights w_k of the models
@@ -110,6 +114,22 @@ class MapConfig:
     knot_spacing_s: PositiveFloat = 0.5
     q_grid_m2ps3: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (1e-6, 1e-3, 1e-2, 1e-1)
     model_margin_nats: NonNegativeFloat = 15.0
+    # the intensities every family solves (loose to stiff, each warm started from the looser one); another
+    # intensity of q_grid_m2ps3 is solved only next to a family's best one (at the coarse grid's edge, the
+    # family's evidence rising towards it) and while that family is not hopeless (hopeless_nats).  Empty, or
+    # none of q_grid: the whole grid.  The loosest q (0.1) sat 20-140 nats below the best on the reference
+    # flights, and cost ~45 % of the selection's iterations (P1: its collapsing CV starts)
+    coarse_q_grid_m2ps3: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True)] = (1e-6, 1e-3, 1e-2)
+    # a mode whose evidence is this far below the best so far (posterior weight below e^-hopeless_nats, 2e-9)
+    # starts no stiffer model (the collapsed near-camera modes crawled on through every q), and a family whose
+    # evidence falls below it as its prior stiffens stops there (the evidence is smooth and single-peaked in
+    # log q: the stiffer ones are more hopeless still; P2/P3's CV at -90 .. -12000 nats); 0: never
+    hopeless_nats: NonNegativeFloat = 20.0
+    # the next family starts from the best solution so far alone (plus a fresh range hypothesis) when the
+    # runner-up's mean range is within this fraction of the best's (the same basin under another intensity:
+    # a second start there converges to the same mode); 0: from both.  The three settings at (), 0 and 0
+    # are the selection before them, bit for bit (every family over the whole grid, every mode a start)
+    same_basin_ratio: NonNegativeFloat = 0.02
     vertical_ratio: NonNegativeFloat = 0.25
     turn_rate_sigma_radps: NonNegativeFloat = 0.3
     init_ranges_m: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (
@@ -410,8 +430,9 @@ class MapEstimator:
         only ``obs`` and its own state.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
-        coordinated turn (CT, turn rate estimated), each over the q grid, solved loose to stiff with
-        warm starts plus one fresh range hypothesis per model.  The point estimate is the model that
+        coordinated turn (CT, turn rate estimated), each over the coarse q grid, solved loose to stiff with
+        warm starts plus one fresh range hypothesis per model, then at the other intensities of the q grid next
+        to the family's best while the family is not hopeless (see ``MapConfig.hopeless_nats``).  The point estimate is the model that
         pins range best among those within ``model_margin_nats`` of the highest evidence; its
         covariance is averaged over the models near it by evidence (see the module docstring).  ``warm``
         (a solution on the same ``grid``, e.g. the sliding window's current one) is one more start of the
@@ -428,11 +449,22 @@ class MapEstimator:
         tops: dict[str, list] = {}
         carry: list[np.ndarray] = [] if warm is None else [warm]
         weight_range_m: np.ndarray | None = None
+        grid_q = sorted(
+            q_grid, reverse=True
+        )  # loose to stiff: a stiff prior's basin is narrow, a looser solution starts it well
+        coarse = [q for q in grid_q if q in cfg.coarse_q_grid_m2ps3] or grid_q
+        hopeless = cfg.hopeless_nats if cfg.hopeless_nats > 0 else math.inf
+        top_ev = -math.inf  # the highest log evidence so far
+        refines: list[tuple[str, dict[float, list[Mode]], set[float]]] = []
         for fam in families:
             tops[fam] = []
             seeds: list[np.ndarray] | None = None
-            # loose to stiff: a stiff prior's basin is narrow, the looser solution starts it well
-            for q in sorted(q_grid, reverse=True):
+            modes_at: dict[float, list[Mode]] = {}  # this family's solved intensities and their modes
+            tried: set[float] = set()
+            refines.append((fam, modes_at, tried))
+            last_ev = -math.inf  # the previous intensity's best evidence in this family
+            for q in coarse:
+                tried.add(q)
                 pr = cfg.motion_prior(fam, q)
                 prob = self.problem(obs, pr, grid)
                 if seeds is not None:  # the previous q's modes, plus one fresh range hypothesis: a loose
@@ -456,11 +488,50 @@ class MapEstimator:
                     top, modes = yield from self._prior_steps(
                         obs, pr, [m.theta for m in modes], grid, 2, weight_range_m
                     )
-                seeds = [m.theta for m in modes]
                 tops[fam].append(top)
-            carry = [
-                m.theta for m in sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]
-            ]
+                modes_at[q] = modes
+                top_ev = max(top_ev, top.log_evidence)
+                # a hopeless mode (posterior weight below e^-hopeless_nats of the best so far) starts no
+                # stiffer model: it is a collapsed or far solution whose chain would only crawl
+                seeds = [m.theta for m in modes if m.log_evidence >= top_ev - hopeless] or [top.theta]
+                if top.log_evidence < last_ev and top.log_evidence < top_ev - hopeless:
+                    # the family's evidence falls as its prior stiffens, and is hopeless already: the
+                    # evidence is smooth and single-peaked in log q, the stiffer models are more hopeless still
+                    break
+                last_ev = top.log_evidence
+            ranked = sorted((m for ts in tops.values() for m in ts), key=lambda m: -m.log_evidence)[:2]
+            if (
+                len(ranked) == 2
+                and abs(ranked[1].mean_range_m - ranked[0].mean_range_m) < cfg.same_basin_ratio * ranked[0].mean_range_m
+            ):
+                # the runner-up is the best one's basin under another intensity: a second start there
+                # would only converge to the same mode
+                ranked = ranked[:1]
+            carry = [m.theta for m in ranked]
+        for fam, modes_at, tried in refines:
+            # refine around the family's best intensity: its neighbours on the full grid that the coarse
+            # chain left out, while the family is not hopeless, each warm started from that best's modes
+            while modes_at:
+                q_best = max(modes_at, key=lambda q: modes_at[q][0].log_evidence)
+                if modes_at[q_best][0].log_evidence < top_ev - hopeless:
+                    break
+                i = grid_q.index(q_best)
+                nxt = [grid_q[j] for j in (i - 1, i + 1) if 0 <= j < len(grid_q) and grid_q[j] not in tried]
+                if not nxt:
+                    break
+                for q in nxt:
+                    tried.add(q)
+                    pr = cfg.motion_prior(fam, q)
+                    prob = self.problem(obs, pr, grid)
+                    starts = [self._adapt(m.theta, prob) for m in modes_at[q_best]] + [self._fresh(prob)]
+                    try:
+                        top, modes = yield from self._prior_steps(obs, pr, starts, grid, 2, weight_range_m, prob)
+                    except EstimationError:
+                        continue
+                    tops[fam].append(top)
+                    modes_at[q] = modes
+                    top_ev = max(top_ev, top.log_evidence)
+            tops[fam].sort(key=lambda m: -m.problem.prior.q_horizontal_m2ps3)  # loose to stiff, as the grid
         tops = {f: ts for f, ts in tops.items() if ts}
         if not tops:
             raise EstimationError(
