@@ -117,7 +117,7 @@ class MapConfig:
     # the intensities every family solves (loose to stiff, each warm started from the looser one); another
     # intensity of q_grid_m2ps3 is solved only next to a family's best one (at the coarse grid's edge, the
     # family's evidence rising towards it) and while that family is not hopeless (hopeless_nats).  Empty, or
-    # none of q_grid: the whole grid.  The loosest q (0.1) sat 20-140 nats below the best on the reference
+    # none of q_grid: the whole grid.  The loosest q (0.1) sat 10-135 nats below the best on the reference
     # flights, and cost ~45 % of the selection's iterations (P1: its collapsing CV starts)
     coarse_q_grid_m2ps3: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True)] = (1e-6, 1e-3, 1e-2)
     # a mode whose evidence is this far below the best so far (posterior weight below e^-hopeless_nats, 2e-9)
