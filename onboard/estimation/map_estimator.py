@@ -130,6 +130,8 @@ class MapConfig:
     # a second start there converges to the same mode); 0: from both.  The three settings at (), 0 and 0
     # are the selection before them, bit for bit (every family over the whole grid, every mode a start)
     same_basin_ratio: NonNegativeFloat = 0.02
+    # the first family, started cold from every range hypothesis, solves the whole q grid (see selection())
+    cold_whole_grid: bool = True
     vertical_ratio: NonNegativeFloat = 0.25
     turn_rate_sigma_radps: NonNegativeFloat = 0.3
     init_ranges_m: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (
@@ -463,7 +465,11 @@ class MapEstimator:
             tried: set[float] = set()
             refines.append((fam, modes_at, tried))
             last_ev = -math.inf  # the previous intensity's best evidence in this family
-            for q in coarse:
+            # a cold start (every range hypothesis) runs over the whole grid from its loosest q: there the
+            # hypotheses reach the basins they did before, where range is ill-posed (C2, C3, F1: from q = 0.01
+            # the multi-start settled 4-7 times farther out); the later families and warm starts, coarse
+            cold = cfg.cold_whole_grid and fam == families[0] and not (carry and trust_warm)
+            for q in grid_q if cold else coarse:
                 tried.add(q)
                 pr = cfg.motion_prior(fam, q)
                 prob = self.problem(obs, pr, grid)

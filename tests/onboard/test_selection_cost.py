@@ -65,15 +65,33 @@ def test_the_cheaper_selection_chooses_what_the_whole_grid_chooses(name, seed):
 
 def test_a_family_solves_its_loosest_intensity_only_while_its_evidence_rises_towards_it():
     """H1 (a figure-eight, gusty): CA's evidence rises to the loose edge of the coarse grid, so its loosest q is
-    solved (and chosen); CV's falls by hundreds of nats as it stiffens, so it stops before its stiffest q.
-    P1: every family's evidence peaks at a stiff q, so no family solves the loosest."""
+    solved (and chosen); CV, the first family, cold, solves from the loosest q and stops before its stiffest
+    when its evidence falls by hundreds of nats.  P1: every family's evidence peaks at a stiff q, so no later
+    family solves the loosest; the cold first family does."""
     nc, obs = _window("H1", 0)
     res, _ = _select(nc, obs)
     grid = {f: [q for q, _ in g] for f, g in res.grid_log_evidence.items()}
     loosest, stiffest = max(MapConfig().q_grid_m2ps3), min(MapConfig().q_grid_m2ps3)
     assert loosest in grid["ca"] and (res.model, res.prior.q_horizontal_m2ps3) == ("ca", loosest)
-    assert stiffest not in grid["cv"] and loosest not in grid["cv"]
+    assert stiffest not in grid["cv"]
     nc, obs = _window("P1", 0)
     res, _ = _select(nc, obs)
-    assert all(loosest not in [q for q, _ in g] for g in res.grid_log_evidence.values())
-    assert all(stiffest in [q for q, _ in g] for g in res.grid_log_evidence.values())
+    grid = {f: [q for q, _ in g] for f, g in res.grid_log_evidence.items()}
+    assert loosest in grid["cv"] and loosest not in grid["ca"] and loosest not in grid["ct"]
+    assert all(stiffest in g for g in grid.values())
+
+
+def test_a_trusted_warm_start_runs_the_first_family_over_the_coarse_grid_only():
+    nc, obs = _window("P1", 0)
+    cold, cold_work = _select(nc, obs)
+    est = MapEstimator(MapConfig(knot_spacing_s=1.0), estimator_noise_model(nc))
+    warm = est.selection(obs, warm=cold.theta, trust_warm=True)
+    work = 0
+    while True:
+        try:
+            work += next(warm)
+        except StopIteration as done:
+            res = done.value
+            break
+    assert max(MapConfig().q_grid_m2ps3) not in [q for q, _ in res.grid_log_evidence["cv"]]
+    assert (res.model, res.prior) == (cold.model, cold.prior) and work < cold_work
