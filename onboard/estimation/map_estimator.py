@@ -11,10 +11,11 @@ stops there and drops it.
 
 Selection (:meth:`MapEstimator.solve`; :meth:`MapEstimator.selection` is the same computation in pieces
 of one Levenberg-Marquardt iteration, which a caller can spread over time): each family is solved over a
-coarse q grid (loose to stiff, warm started), then at the grid's other intensities next to its best while its
+coarse q grid (loose to stiff, warm started; the first family's cold multi-start over the whole grid, where
+its range hypotheses find the basins they always did), then at the grid's other intensities next to its best while its
 evidence rises towards them; a mode far below the best so far starts no stiffer model, and a family whose
 evidence falls hopelessly as its prior stiffens stops (``coarse_q_grid_m2ps3``, ``hopeless_nats``: the log
-evidence is smooth and single-peaked in log q, and the models left out carry no posterior weight on the
+evidence is smooth and single-peaked in log q, and the models left out carried below 1e-3 of the posterior on the
 reference windows).  The point estimate is the model that pins range best among those within
 ``model_margin_nats`` of the highest evidence -- never the lowest cost, which favours the collapsed
 near-camera solution, and never blindly the highest evidence, which a vague model can win by
@@ -114,7 +115,8 @@ class MapConfig:
     knot_spacing_s: PositiveFloat = 0.5
     q_grid_m2ps3: Annotated[tuple[float, ...], Numbers(lo=0.0, lo_open=True, min_length=1)] = (1e-6, 1e-3, 1e-2, 1e-1)
     model_margin_nats: NonNegativeFloat = 15.0
-    # the intensities every family solves (loose to stiff, each warm started from the looser one); another
+    # the intensities every family solves (loose to stiff, each warm started from the looser one; a first family
+    # started cold solves the whole grid, cold_whole_grid); another
     # intensity of q_grid_m2ps3 is solved only next to a family's best one (at the coarse grid's edge, the
     # family's evidence rising towards it) and while that family is not hopeless (hopeless_nats).  Empty, or
     # none of q_grid: the whole grid.  The loosest q (0.1) sat 10-135 nats below the best on the reference
@@ -432,7 +434,8 @@ class MapEstimator:
         only ``obs`` and its own state.
 
         Three model families: constant velocity (CV), constant acceleration (CA, white jerk) and
-        coordinated turn (CT, turn rate estimated), each over the coarse q grid, solved loose to stiff with
+        coordinated turn (CT, turn rate estimated), each over the coarse q grid (the first family, started cold
+        from every range hypothesis, over the whole grid), solved loose to stiff with
         warm starts plus one fresh range hypothesis per model, then at the other intensities of the q grid next
         to the family's best while the family is not hopeless (see ``MapConfig.hopeless_nats``).  The point estimate is the model that
         pins range best among those within ``model_margin_nats`` of the highest evidence; its
