@@ -41,7 +41,7 @@ and one more ``pyrUp`` applies it to the full-resolution ``L_base``.  The cloud 
 composited on the 4 x 4 px grid itself and taken to the full resolution by two ``pyrUp`` steps: its
 edges are soft over ~4 px (a cloud 0.5-3 km away is smooth over a few metres, and near the camera the
 6 m texels are magnified to several pixels anyway), at a quarter of the half-resolution look-ups' cost.
-The depth and the cloud opacity stay on the coarse grid (:class:`~groundsim.world.render.raster.PyrUpImage`)
+The depth and the cloud opacity stay on the coarse grid (:class:`~groundsim.world.render.background.PyrUpImage`)
 and are taken up only around the objects and label pixels that read them, or whole when read whole.
 The horizon, the sharpest edge, keeps the renderer's exact treatment.  Mip-mapping: a near level from
 the 10th percentile of the pixels' footprint on the surface along the ray (``r^2 / (f h)``), blended
@@ -50,7 +50,7 @@ far clouds do not alias.
 
 Objects: the target (id 0, class ``target``) and the distractors (ids from 1: birds, aircraft,
 glints), each a set of box and ellipsoid parts drawn by the renderer's
-:class:`~groundsim.world.render.raster.PartRaster` far to near, each over what is already drawn (a distractor at
+:class:`~groundsim.world.render.parts.PartRaster` far to near, each over what is already drawn (a distractor at
 most ``SPLAT_MAX_PX`` across as an analytic spot with its radiance integral and moments, not ray cast).
 Labels per object and frame: :class:`ObjectLabel`.
 """
@@ -65,8 +65,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from groundsim.world.render.background import PyrUpImage, SceneBackground
+from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
-from groundsim.world.render.raster import IrRenderer, PartRaster, PyrUpImage, SceneBackground, project_in_front
+from groundsim.world.render.raster import IrRenderer
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture, terrain_texture

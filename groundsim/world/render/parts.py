@@ -1,0 +1,422 @@
+"""Ray-cast rasteriser of rigid objects made of box and ellipsoid parts: the renderer's target and the
+scene's distractors (model and sampling in the ``raster`` module docstring; the splat of small objects in
+``docs/scenes.md``).  Frames and pixel conventions of ``onboard.core.frames``."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.special import ndtr
+
+from groundsim.world.render.background import SceneBackground
+from groundsim.world.render.planck import band_radiance
+from groundsim.world.render.settings import IrSettings
+from onboard.core.frames import PinholeIntrinsics
+
+__all__ = ["PartRaster", "project_in_front", "NEAR_M"]
+
+NEAR_M = 1e-3  # target bounding-box corners closer than this (camera z) -> whole-image ROI
+APERTURE_KEPT = 256  # aperture weight matrices kept per object raster (by region size and offset)
+
+
+def project_in_front(
+    intrinsics: PinholeIntrinsics, p_cam_m: np.ndarray, distorted: bool | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``intrinsics.project`` of camera-frame points ``(..., 3)`` with ``z > 0``, as ``(u_px, v_px)``.
+
+    Without lens distortion the same float64 operations written out (``f (x / z) + c``): the same
+    pixels, without the general path's NaN masking and stacking, which cost more than the arithmetic
+    for the few points per object and frame (bounding-box corners, label centres).  ``distorted``:
+    ``intrinsics.has_distortion`` if the caller holds it (that property loops over the coefficients)."""
+    if intrinsics.has_distortion if distorted is None else distorted:
+        uv = intrinsics.project(p_cam_m)
+        return uv[..., 0], uv[..., 1]
+    z = p_cam_m[..., 2]
+    return (
+        intrinsics.fx_px * (p_cam_m[..., 0] / z) + intrinsics.cx_px,
+        intrinsics.fy_px * (p_cam_m[..., 1] / z) + intrinsics.cy_px,
+    )
+
+
+def _aperture_weights(centres_px: np.ndarray, samples_px: np.ndarray, sigma_px: float, ss: int) -> np.ndarray:
+    """``W[i, k] = K(centres_i - samples_k) / ss``: 1-D pixel box (width 1) convolved with a Gaussian PSF.
+
+    ``K(x) = Phi((x + 1/2) / sigma) - Phi((x - 1/2) / sigma)`` (Phi the standard normal CDF); with
+    ``sigma = 0`` the box alone.  Each sub-sample stands for ``1 / ss`` of a pixel side.
+    """
+    x = centres_px[:, None] - samples_px[None, :]
+    if sigma_px > 0.0:
+        K = ndtr((x + 0.5) / sigma_px) - ndtr((x - 0.5) / sigma_px)
+    else:
+        K = ((x > -0.5) & (x <= 0.5)).astype(float)
+    return K / ss
+
+
+class PartRaster:
+    """Ray-cast rasteriser of one rigid object made of box and ellipsoid parts (``TargetPart``).
+
+    ``delta(bg, p_cam, R_ned_from_cam, p_obj, R_ned_from_body)`` returns the object's image minus the
+    background ``bg`` over its region of interest, through the pixel aperture and the optics PSF, in the
+    units of ``bg``: grey when built with the renderer's ``(L_min, grey_per_L)``, radiance with
+    ``(0, 1)``.  Each part radiates ``eps L(T) + (1 - eps) L_env`` (``L_env`` the surround it
+    reflects), seen through the atmosphere over the camera-object range.  The renderer's target and
+    the scene's distractors are drawn by this one class.
+    """
+
+    def __init__(
+        self,
+        intrinsics: PinholeIntrinsics,
+        settings: IrSettings,
+        parts,
+        L_env: float,
+        L_min: float,
+        grey_per_L: float,
+        splat_max_px: int = 0,
+    ):
+        s = settings
+        # objects whose projected bounding box spans at most this many pixels each way are drawn as an
+        # analytic splat (:meth:`_splat`) instead of the ray cast; 0: always the ray cast
+        self.splat_max_px = int(splat_max_px)
+        self.intrinsics = intrinsics
+        self._distorted = intrinsics.has_distortion  # read per call (the property loops over coefficients)
+        self.settings = settings
+        self._H, self._W = int(intrinsics.height_px), int(intrinsics.width_px)
+        self._L_min = L_min
+        self._grey_per_L = grey_per_L
+        self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
+        T = np.array([p.temperature_k for p in parts])
+        eps = np.array([p.emissivity for p in parts])
+        self._part_L_emit = eps * band_radiance(T, s.band_um) + (1.0 - eps) * L_env  # at the target
+        centre = np.array([p.center_frd_m for p in parts], dtype=float)
+        half = np.array([p.half_extent_m for p in parts], dtype=float)
+        is_box = np.array([p.shape == "box" for p in parts])
+        # for the splat (small objects): per part centre, half extents, box or ellipsoid, emitted radiance
+        self._splat_parts = [
+            (tuple(c), tuple(h), bool(b), float(L))
+            for c, h, b, L in zip(centre.tolist(), half.tolist(), is_box, self._part_L_emit)
+        ]
+        self._box_idx = np.flatnonzero(is_box)
+        self._ell_idx = np.flatnonzero(~is_box)
+        self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the rows of intersect's t_all
+        self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
+        self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
+        lo = (centre - half).min(axis=0)
+        hi = (centre + half).max(axis=0)
+        self._radius_b = float(np.linalg.norm(np.maximum(np.abs(lo), np.abs(hi))))  # bounding sphere, body origin
+        self._f_max_px = max(intrinsics.fx_px, intrinsics.fy_px)
+        self.bbox_corners_b = np.array(
+            [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
+        )
+        self._parts = tuple(parts)
+        self._splat_table: tuple[np.ndarray, np.ndarray] | None = None  # built at the first splat (~0.1 s)
+        self._aperture_kept: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _aperture
+
+    def _visible_fractions(self, parts, n_dirs: int = 256, n_grid: int = 48) -> tuple[np.ndarray, np.ndarray]:
+        """For the splat: the fraction of each part's silhouette that is in front of the other parts (the ray
+        cast's nearest-part rule), seen from ``n_dirs`` directions (a Fibonacci sphere, body frame), by
+        casting a ``n_grid`` x ``n_grid`` grid of nearly parallel rays (from 200 bounding radii) at the
+        object and at each part alone.  ``(dirs (n_dirs, 3), fractions (n_dirs, parts))``."""
+        k = np.arange(n_dirs) + 0.5
+        zc = 1.0 - 2.0 * k / n_dirs
+        phi = math.pi * (1.0 + math.sqrt(5.0)) * k
+        r = np.sqrt(1.0 - zc * zc)
+        dirs = np.stack([r * np.cos(phi), r * np.sin(phi), zc], axis=1)
+        frac = np.ones((n_dirs, len(parts)))
+        if len(parts) < 2:
+            return dirs, frac
+        alone = [PartRaster(self.intrinsics, self.settings, (p,), 0.0, 0.0, 1.0) for p in parts]
+        R = self._radius_b
+        g = ((np.arange(n_grid) + 0.5) / n_grid * 2.0 - 1.0) * R
+        for n, d in enumerate(dirs):
+            e1 = np.cross(d, (0.0, 0.0, 1.0) if abs(d[2]) < 0.9 else (1.0, 0.0, 0.0))
+            e1 /= np.linalg.norm(e1)
+            e2 = np.cross(d, e1)
+            o = (-200.0 * R * d).astype(np.float32)
+            aim = (g[:, None, None] * e1 + g[None, :, None] * e2).reshape(-1, 3)
+            d_b = (aim - o).T.astype(np.float32)
+            t, part = self.intersect(o, d_b)
+            hit = np.isfinite(t)
+            seen = np.bincount(part[hit], minlength=len(parts))
+            for p, single in enumerate(alone):
+                n_alone = int(np.isfinite(single.intersect(o, d_b)[0]).sum())
+                frac[n, p] = seen[p] / n_alone if n_alone else 1.0
+        return dirs, frac
+
+    def delta(self, bg, p_cam, R_nc, p_t, R_nt, occluder: SceneBackground | None = None):
+        """Object minus background (through PSF and pixel aperture) over the object's ROI, or None.
+
+        Returns ``(rows slice, cols slice, delta float32, supersample)``.  With ``occluder`` (a
+        :class:`SceneBackground` in the units of ``bg``), pixels whose ``depth_m`` is nearer than the
+        object show it through ``1 - cloud_alpha`` of the cloud, against the cloud-free background.
+        """
+        intr = self.intrinsics
+        s = self.settings
+        H, W = self._H, self._W
+        distorted = self._distorted
+        if self.splat_max_px and not distorted:
+            t_c = ((p_t - p_cam) @ R_nc).tolist()
+            z_near = t_c[2] - self._radius_b
+            # the bounding sphere's diameter on the image, an upper bound of the object's footprint
+            if z_near > NEAR_M and 2.0 * self._radius_b * self._f_max_px <= self.splat_max_px * z_near:
+                return self._splat(bg, t_c, R_nc, R_nt, occluder)
+        corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
+        z = corners_cam[:, 2]
+        if z.max() <= NEAR_M:
+            return None
+        box_uv = None  # the projected bounding box (u0, u1, v0, v1), px, when the ROI is drawn around it
+        if z.min() <= NEAR_M:
+            i0, i1, j0, j1 = 0, H, 0, W
+        else:
+            cu, cv = project_in_front(intr, corners_cam, distorted)
+            if not distorted:
+                box_uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
+            pad = 1 if distorted else 0
+            j0 = max(int(math.floor(cu.min())) - pad, 0)
+            j1 = min(int(math.ceil(cu.max())) + pad, W)
+            i0 = max(int(math.floor(cv.min())) - pad, 0)
+            i1 = min(int(math.ceil(cv.max())) + pad, H)
+            if j1 <= j0 or i1 <= i0:
+                return None
+        ny, nx = i1 - i0, j1 - j0
+        ss = max(1, min(s.supersample, int(math.sqrt(s.max_target_rays / (ny * nx)))))
+        u = j0 + (np.arange(nx * ss) + 0.5) / ss
+        v = i0 + (np.arange(ny * ss) + 0.5) / ss
+        # only the sub-sample rows and columns within one sub-sample of the projected bounding box are cast
+        # (the ROI is that box rounded out to whole pixels: for a target 2 px across about half of it lies
+        # outside); the others cannot meet the object and keep a delta of 0
+        r0, r1, c0, c1 = 0, ny * ss, 0, nx * ss
+        if box_uv is not None:
+            c0 = max(math.floor((box_uv[0] - j0) * ss - 0.5) - 1, 0)
+            c1 = min(math.ceil((box_uv[1] - j0) * ss - 0.5) + 2, nx * ss)
+            r0 = max(math.floor((box_uv[2] - i0) * ss - 0.5) - 1, 0)
+            r1 = min(math.ceil((box_uv[3] - i0) * ss - 0.5) + 2, ny * ss)
+        R_bc = R_nt.T @ R_nc
+        o_b = R_nt.T @ (p_cam - p_t)
+        if distorted:
+            uu, vv = np.meshgrid(u[c0:c1], v[r0:r1])
+            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
+            d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
+        else:
+            x = (u[c0:c1] - intr.cx_px) / intr.fx_px
+            y = (v[r0:r1] - intr.cy_px) / intr.fy_px
+            d_b = (
+                R_bc[:, 0, None, None] * x[None, None, :]
+                + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
+            )
+            d_b = d_b.reshape(3, -1)  # (3, n), row-major over (sub-row, sub-column)
+        # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
+        d_b = d_b.astype(np.float32)
+        o_b = o_b.astype(np.float32)
+        t_near, nearest = self.intersect(o_b, d_b)
+        covered = np.isfinite(t_near)
+        d_m = p_t - p_cam
+        range_km = math.sqrt(d_m.dot(d_m)) * 1e-3  # np.linalg.norm's own sqrt(x . x), without its checks
+        tau = math.exp(-s.extinction_per_km * range_km)
+        part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
+        if not np.any(covered):
+            return None
+        # difference to the background per sub-sample (the background of the sub-sample's pixel)
+        ref = bg[i0:i1, j0:j1]
+        pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
+        pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
+        pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
+        behind = None  # where a surface (a cloud) is nearer than the object, when anywhere in its region
+        if occluder is not None:
+            range_m = range_km * 1e3
+            behind = occluder.depth_window(slice(pi0, pi1), slice(pj0, pj1)) < range_m
+            if behind.any():
+                ref = np.where(
+                    behind[i0 - pi0 : i1 - pi0, j0 - pj0 : j1 - pj0], occluder.base_radiance[i0:i1, j0:j1], ref
+                )
+            else:
+                behind = None  # the usual case: nothing in front, no opacity to read
+        # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64)
+        obj = part_grey[nearest].reshape(r1 - r0, c1 - c0)
+        obj -= ref.repeat(ss, axis=0)[r0:r1].repeat(ss, axis=1)[:, c0:c1]
+        delta = np.zeros((ny * ss, nx * ss))
+        np.copyto(delta[r0:r1, c0:c1], obj, where=covered.reshape(r1 - r0, c1 - c0))
+        # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
+        # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
+        # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
+        A_rows = self._aperture(pi0, pi1, i0, v, ss)
+        A_cols = self._aperture(pj0, pj1, j0, u, ss)
+        delta = (A_rows @ delta) @ A_cols.T
+        i0, i1, j0, j1 = pi0, pi1, pj0, pj1
+        if behind is not None:
+            delta = delta * np.where(behind, 1.0 - occluder.alpha_window(slice(i0, i1), slice(j0, j1)), 1.0)
+        return slice(i0, i1), slice(j0, j1), delta.astype(np.float32, copy=False), ss
+
+    def _aperture(self, p0: int, p1: int, k0: int, samples: np.ndarray, ss: int) -> np.ndarray:
+        """``_aperture_weights`` of the output pixels ``p0 .. p1 - 1`` and the sub-samples ``samples`` (from
+        pixel ``k0``, ``ss`` a pixel), kept per offset and size when ``ss`` is a power of two: then every
+        offset between a pixel centre and a sample is a short binary fraction, exact wherever the region
+        lies, so the kept weights are the very values a fresh computation gives (other ``ss``: computed)."""
+        if ss & (ss - 1):
+            return _aperture_weights(np.arange(p0, p1) + 0.5, samples, self.settings.blur_sigma_px, ss)
+        key = (p0 - k0, p1 - k0, samples.size, ss)
+        w = self._aperture_kept.get(key)
+        if w is None:
+            if len(self._aperture_kept) >= APERTURE_KEPT:
+                self._aperture_kept.clear()
+            rel = (np.arange(samples.size) + 0.5) / ss
+            w = _aperture_weights(np.arange(p0 - k0, p1 - k0) + 0.5, rel, self.settings.blur_sigma_px, ss)
+            w.flags.writeable = False
+            self._aperture_kept[key] = w
+        return w
+
+    def _splat(self, bg, t_c: list[float], R_nc, R_nt, occluder: SceneBackground | None):
+        """:meth:`delta` of an object a few pixels across, without the ray cast: its radiance integral and
+        its first and second moments on the image, drawn as a separable box x Gaussian spot.
+
+        Each part is projected through the pinhole's Jacobian at its centre (the object is small against
+        its range): generators ``A = J R_cam_from_body diag(half)``; the silhouette's area (px^2) is
+        ``4 sum |det(a_i, a_j)|`` for a box (the hexagon of a projected cube), ``pi |det(A A^T)|^1/2`` for an
+        ellipsoid, its covariance ``A A^T / 3`` or ``/ 4``.  The integral is ``sum_p area_p (L_p - L_bg)``
+        (``L_bg`` the background at the centroid's pixel), ``area_p`` times the fraction of it in front of the
+        other parts from the nearest tabulated view direction (:meth:`_visible_fractions`: the ray cast's
+        nearest-part rule, e.g. a bird's body over its wings).
+        Centroid and spread are the ``|area contrast|``-weighted mixture of the parts'; the spread adds
+        to the PSF's, the pixel box is kept, so the pixels sum to the integral (within the 3 sigma cut)
+        and the intensity centroid is the parts' centroid.  A cloud in front (``occluder``) is read at the
+        centroid's pixel only.  Written in scalar arithmetic over the few parts: numpy's per-call cost on
+        arrays of 2-4 parts is larger than the arithmetic."""
+        intr = self.intrinsics
+        s = self.settings
+        H, W = self._H, self._W
+        R_cb = (R_nc.T @ R_nt).tolist()
+        r0, r1, r2 = R_cb
+        fx, fy, cx, cy = intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px
+        range_m = math.sqrt(t_c[0] ** 2 + t_c[1] ** 2 + t_c[2] ** 2)
+        tau = math.exp(-s.extinction_per_km * range_m * 1e-3)
+        # the view direction in the body frame picks the parts' visible fractions (nearest tabulated one)
+        if self._splat_table is None:
+            self._splat_table = self._visible_fractions(self._parts)
+        dirs, fractions = self._splat_table
+        view_b = np.dot(R_nt.T, R_nc @ np.array(t_c))
+        visible = fractions[int(np.argmax(dirs @ view_b))].tolist()
+        parts = []  # (area px^2, contrast-free radiance, u, v, var_u, var_v) per part
+        for ((bx, by, bz), (hx, hy, hz), is_box, L_emit), seen in zip(self._splat_parts, visible):
+            x = t_c[0] + r0[0] * bx + r0[1] * by + r0[2] * bz
+            y = t_c[1] + r1[0] * bx + r1[1] * by + r1[2] * bz
+            z = t_c[2] + r2[0] * bx + r2[1] * by + r2[2] * bz
+            if z <= NEAR_M:
+                return None
+            xz, yz = x / z, y / z
+            ju = [fx / z * (r0[k] - xz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
+            jv = [fy / z * (r1[k] - yz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
+            c0 = ju[1] * jv[2] - ju[2] * jv[1]
+            c1 = ju[2] * jv[0] - ju[0] * jv[2]
+            c2 = ju[0] * jv[1] - ju[1] * jv[0]
+            if is_box:
+                area, mk = 4.0 * (abs(c0) + abs(c1) + abs(c2)), 1.0 / 3.0
+            else:
+                area, mk = math.pi * math.sqrt(c0 * c0 + c1 * c1 + c2 * c2), 0.25
+            area *= seen
+            L = ((tau * L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
+            var_u = mk * (ju[0] ** 2 + ju[1] ** 2 + ju[2] ** 2)
+            var_v = mk * (jv[0] ** 2 + jv[1] ** 2 + jv[2] ** 2)
+            parts.append((area, L, fx * xz + cx, fy * yz + cy, var_u, var_v))
+        # the spot's centre: the parts weighted by |area x contrast| against the background near the
+        # object's projected centre (one background read; the weights only place and shape the spot)
+        u0 = min(max(int(parts[0][2]), 0), W - 1)
+        v0 = min(max(int(parts[0][3]), 0), H - 1)
+        ref = float(bg[v0, u0])
+        w = [abs(a * (L - ref)) + 1e-30 for a, L, *_ in parts]
+        w_sum = sum(w)
+        u_c = sum(wk * p[2] for wk, p in zip(w, parts)) / w_sum
+        v_c = sum(wk * p[3] for wk, p in zip(w, parts)) / w_sum
+        var_u = sum(wk * (p[4] + (p[2] - u_c) ** 2) for wk, p in zip(w, parts)) / w_sum
+        var_v = sum(wk * (p[5] + (p[3] - v_c) ** 2) for wk, p in zip(w, parts)) / w_sum
+        sig_u = max(math.sqrt(s.blur_sigma_px**2 + var_u), 1e-3)
+        sig_v = max(math.sqrt(s.blur_sigma_px**2 + var_v), 1e-3)
+        ru, rv = int(math.ceil(3.0 * sig_u + 0.5)), int(math.ceil(3.0 * sig_v + 0.5))
+        i0, i1 = max(math.floor(v_c) - rv, 0), min(math.floor(v_c) + rv + 1, H)
+        j0, j1 = max(math.floor(u_c) - ru, 0), min(math.floor(u_c) + ru + 1, W)
+        if i1 <= i0 or j1 <= j0:
+            return None
+        ic, jc = min(max(int(v_c), 0), H - 1), min(max(int(u_c), 0), W - 1)
+        gain = 1.0
+        ref = float(bg[ic, jc])
+        if occluder is not None:
+            px = slice(ic, ic + 1), slice(jc, jc + 1)
+            if occluder.depth_window(*px)[0, 0] < range_m:
+                ref = float(occluder.base_radiance[ic, jc])
+                gain = 1.0 - float(occluder.alpha_window(*px)[0, 0])
+        energy = gain * sum(a * (L - ref) for a, L, *_ in parts)
+        # pixel j spans [j, j + 1]: box x Gaussian weights Phi((j + 1 - u_c) / sig) - Phi((j - u_c) / sig)
+        cu = [0.5 * math.erfc((u_c - j) / (math.sqrt(2.0) * sig_u)) for j in range(j0, j1 + 1)]
+        cv = [0.5 * math.erfc((v_c - i) / (math.sqrt(2.0) * sig_v)) for i in range(i0, i1 + 1)]
+        ku = np.diff(np.array(cu))
+        kv = np.diff(np.array(cv)) * energy
+        delta = np.multiply.outer(kv, ku).astype(np.float32)
+        return slice(i0, i1), slice(j0, j1), delta, 1
+
+    def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Nearest hit of rays ``o_b + t d_b`` (body FRD; ``d_b`` shape (3, n)) with the parts.
+
+        Boxes: slab test (Kay & Kajiya 1986): ``t_near = max_k min(t1_k, t2_k)``,
+        ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
+        Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
+        and the far root is > 0.  A camera inside a part sees it at t = 0.
+        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index (any part's
+        where there is no hit).  Ties go to the boxes before the ellipsoids, each in index order.
+        """
+        n = d_b.shape[1]
+        nb = self._box_idx.size
+        # every part's hit distance in one (parts, n) array, boxes first, reduced once at the end (one
+        # argmin instead of three calls per part: the arrays are small and the call count per frame high)
+        t_all = np.empty((nb + self._ell_idx.size, n), dtype=np.float32)
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            if self._box_idx.size:
+                inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
+                oc = o_b - self._box_c  # (Pb, 3)
+                lo = (-self._box_h - oc)[:, :, None] * inv[None]  # (Pb, 3, n)
+                hi = (self._box_h - oc)[:, :, None] * inv[None]
+                t1 = np.minimum(lo, hi)
+                t2 = np.maximum(lo, hi, out=lo)
+                t_in = t1.max(axis=1)  # (Pb, n)
+                t_out = t2.min(axis=1)
+                hit = t_in <= t_out
+                hit &= t_out > 0.0
+                t = t_all[:nb]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(t_in, 0.0, out=t_in), where=hit)
+            if self._ell_idx.size:
+                oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
+                de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
+                d0, d1, d2 = de[:, 0], de[:, 1], de[:, 2]
+                a = d0 * d0
+                a += d1 * d1
+                a += d2 * d2
+                o0, o1, o2 = oe[:, 0, None], oe[:, 1, None], oe[:, 2, None]
+                b = d0 * o0
+                b += d1 * o1
+                b += d2 * o2
+                # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
+                # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
+                cx = o1 * d2
+                cx -= o2 * d1
+                cy = o2 * d0
+                cy -= o0 * d2
+                cz = o0 * d1
+                cz -= o1 * d0
+                cx *= cx
+                cy *= cy
+                cz *= cz
+                cx += cy
+                cx += cz
+                disc = np.subtract(a, cx, out=cx)
+                sq = np.sqrt(np.maximum(disc, 0.0, out=cy), out=cy)
+                t_out = np.subtract(sq, b, out=cz)
+                t_out /= a
+                hit = disc >= 0.0
+                hit &= t_out > 0.0
+                near = np.add(b, sq, out=b)
+                np.negative(near, out=near)
+                near /= a
+                t = t_all[nb:]
+                t.fill(np.inf)
+                np.copyto(t, np.maximum(near, 0.0, out=near), where=hit)
+        # argmin: the first of equal minima, i.e. the order above
+        return t_all.min(axis=0), self._part_order.take(t_all.argmin(axis=0))
