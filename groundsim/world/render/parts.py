@@ -10,6 +10,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import SceneBackground
+from groundsim.world.render.kernels import cast_part_rays, nearest_parts
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.settings import IrSettings
 from onboard.core.frames import PinholeIntrinsics
@@ -98,7 +99,7 @@ class PartRaster:
         ]
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
-        self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the rows of intersect's t_all
+        self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the kernels' part numbers
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
@@ -192,30 +193,19 @@ class PartRaster:
             r0 = max(math.floor((box_uv[2] - i0) * ss - 0.5) - 1, 0)
             r1 = min(math.ceil((box_uv[3] - i0) * ss - 0.5) + 2, ny * ss)
         R_bc = R_nt.T @ R_nc
-        o_b = R_nt.T @ (p_cam - p_t)
+        # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
+        o_b = (R_nt.T @ (p_cam - p_t)).astype(np.float32)
         if distorted:
             uu, vv = np.meshgrid(u[c0:c1], v[r0:r1])
-            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1)).reshape(-1, 2)
-            d_b = R_bc[:, :2] @ xy.T + R_bc[:, 2:3]  # (3, n)
-        else:
-            x = (u[c0:c1] - intr.cx_px) / intr.fx_px
-            y = (v[r0:r1] - intr.cy_px) / intr.fy_px
-            d_b = (
-                R_bc[:, 0, None, None] * x[None, None, :]
-                + (R_bc[:, 1, None] * y[None, :] + R_bc[:, 2, None])[:, :, None]
-            )
-            d_b = d_b.reshape(3, -1)  # (3, n), row-major over (sub-row, sub-column)
-        # float32 ray casting: ~3e-5 m resolution at 300 m, far below the 16 mm thinnest part
-        d_b = d_b.astype(np.float32)
-        o_b = o_b.astype(np.float32)
-        t_near, nearest = self.intersect(o_b, d_b)
-        covered = np.isfinite(t_near)
+            xy = intr.normalized_from_pixel(np.stack([uu, vv], axis=-1))
+            x, y = np.ascontiguousarray(xy[..., 0]), np.ascontiguousarray(xy[..., 1])
+        else:  # separable: one row of x, one column of y
+            x = ((u[c0:c1] - intr.cx_px) / intr.fx_px)[None, :]
+            y = ((v[r0:r1] - intr.cy_px) / intr.fy_px)[:, None]
         d_m = p_t - p_cam
         range_km = math.sqrt(d_m.dot(d_m)) * 1e-3  # np.linalg.norm's own sqrt(x . x), without its checks
         tau = math.exp(-s.extinction_per_km * range_km)
         part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
-        if not np.any(covered):
-            return None
         # difference to the background per sub-sample (the background of the sub-sample's pixel)
         ref = bg[i0:i1, j0:j1]
         pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
@@ -231,11 +221,27 @@ class PartRaster:
                 )
             else:
                 behind = None  # the usual case: nothing in front, no opacity to read
-        # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64)
-        obj = part_grey[nearest].reshape(r1 - r0, c1 - c0)
-        obj -= ref.repeat(ss, axis=0)[r0:r1].repeat(ss, axis=1)[:, c0:c1]
+        # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64); the rows
+        # and columns outside [r0, r1) x [c0, c1) are not cast
         delta = np.zeros((ny * ss, nx * ss))
-        np.copyto(delta[r0:r1, c0:c1], obj, where=covered.reshape(r1 - r0, c1 - c0))
+        n_hit = cast_part_rays(
+            R_bc,
+            o_b,
+            x,
+            y,
+            self._box_c,
+            self._box_h,
+            self._ell_c,
+            self._ell_h,
+            part_grey[self._part_order],
+            np.ascontiguousarray(ref),
+            ss,
+            r0,
+            c0,
+            delta,
+        )  # fmt: skip  (one compiled signature: the background's window is a strided view)
+        if n_hit == 0:
+            return None
         # optics PSF and pixel aperture applied to the sub-samples in one separable linear map:
         # pixel = sum_k delta_k K(u_pix - u_k) K(v_pix - v_k) / ss^2, K = box(1 px) * Gaussian(sigma)
         # (blurring pixel values instead would lose the sub-pixel position of a sub-pixel target)
@@ -353,70 +359,19 @@ class PartRaster:
         return slice(i0, i1), slice(j0, j1), delta, 1
 
     def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Nearest hit of rays ``o_b + t d_b`` (body FRD; ``d_b`` shape (3, n)) with the parts.
+        """Nearest hit of rays ``o_b + t d_b`` (body FRD, float32; ``d_b`` shape (3, n)) with the parts.
 
         Boxes: slab test (Kay & Kajiya 1986): ``t_near = max_k min(t1_k, t2_k)``,
         ``t_far = min_k max(t1_k, t2_k)``, hit when ``t_near <= t_far`` and ``t_far > 0``.
         Ellipsoids: scale to the unit sphere, ``a t^2 + 2 b t + c = 0``, hit when ``b^2 - a c >= 0``
-        and the far root is > 0.  A camera inside a part sees it at t = 0.
-        Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's index (any part's
-        where there is no hit).  Ties go to the boxes before the ellipsoids, each in index order.
+        and the far root is > 0 (``b^2 - a c`` as ``a - |o x d|^2``, Lagrange's identity: no cancellation
+        of two ~1e12 terms in float32 when the object is hundreds of metres away).  A camera inside a part
+        sees it at t = 0.  Returns ``(t, part)``: the nearest ``t`` per ray (inf: no hit) and that part's
+        index (-1: no hit).  Ties go to the boxes before the ellipsoids, each in index order.
+        (``kernels.nearest_parts``; :meth:`delta` casts through ``kernels.cast_part_rays``, the same tests.)
         """
-        n = d_b.shape[1]
-        nb = self._box_idx.size
-        # every part's hit distance in one (parts, n) array, boxes first, reduced once at the end (one
-        # argmin instead of three calls per part: the arrays are small and the call count per frame high)
-        t_all = np.empty((nb + self._ell_idx.size, n), dtype=np.float32)
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            if self._box_idx.size:
-                inv = np.float32(1.0) / np.where(d_b == 0.0, np.float32(1e-30), d_b)  # (3, n)
-                oc = o_b - self._box_c  # (Pb, 3)
-                lo = (-self._box_h - oc)[:, :, None] * inv[None]  # (Pb, 3, n)
-                hi = (self._box_h - oc)[:, :, None] * inv[None]
-                t1 = np.minimum(lo, hi)
-                t2 = np.maximum(lo, hi, out=lo)
-                t_in = t1.max(axis=1)  # (Pb, n)
-                t_out = t2.min(axis=1)
-                hit = t_in <= t_out
-                hit &= t_out > 0.0
-                t = t_all[:nb]
-                t.fill(np.inf)
-                np.copyto(t, np.maximum(t_in, 0.0, out=t_in), where=hit)
-            if self._ell_idx.size:
-                oe = ((o_b.astype(float) - self._ell_c) / self._ell_h).astype(np.float32)  # (Pe, 3)
-                de = d_b[None] / self._ell_h[:, :, None]  # (Pe, 3, n)
-                d0, d1, d2 = de[:, 0], de[:, 1], de[:, 2]
-                a = d0 * d0
-                a += d1 * d1
-                a += d2 * d2
-                o0, o1, o2 = oe[:, 0, None], oe[:, 1, None], oe[:, 2, None]
-                b = d0 * o0
-                b += d1 * o1
-                b += d2 * o2
-                # b^2 - a c = a - |oe x de|^2 (Lagrange's identity): no cancellation of two ~1e12 terms
-                # in float32 when the target is hundreds of metres away (|oe| ~ 2e4 motor radii)
-                cx = o1 * d2
-                cx -= o2 * d1
-                cy = o2 * d0
-                cy -= o0 * d2
-                cz = o0 * d1
-                cz -= o1 * d0
-                cx *= cx
-                cy *= cy
-                cz *= cz
-                cx += cy
-                cx += cz
-                disc = np.subtract(a, cx, out=cx)
-                sq = np.sqrt(np.maximum(disc, 0.0, out=cy), out=cy)
-                t_out = np.subtract(sq, b, out=cz)
-                t_out /= a
-                hit = disc >= 0.0
-                hit &= t_out > 0.0
-                near = np.add(b, sq, out=b)
-                np.negative(near, out=near)
-                near /= a
-                t = t_all[nb:]
-                t.fill(np.inf)
-                np.copyto(t, np.maximum(near, 0.0, out=near), where=hit)
-        # argmin: the first of equal minima, i.e. the order above
-        return t_all.min(axis=0), self._part_order.take(t_all.argmin(axis=0))
+        t, part = nearest_parts(
+            np.ascontiguousarray(o_b, np.float32), np.ascontiguousarray(d_b, np.float32),
+            self._box_c, self._box_h, self._ell_c, self._ell_h,
+        )  # fmt: skip
+        return t, np.where(part >= 0, self._part_order[np.maximum(part, 0)], -1)

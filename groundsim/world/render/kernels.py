@@ -1,0 +1,137 @@
+"""Compiled inner loops of the renderer (numba, compiled once and cached beside this file).
+
+Why compiled: an object on the image is a few thousand sub-sample rays against a handful of parts, a
+frame draws several objects, and in numpy each step of the ray cast was a call over a small array whose
+fixed cost was most of its time (a crowded frame spent more on calls than on arithmetic).  One loop per
+object does the same float operations per ray in the same order, so the results are bit-identical to the
+numpy formulation they replace (``PartRaster.intersect``, kept as the reference and for batch use;
+``tests/groundsim/test_raster.py`` checks the two against each other).
+
+Rules the loops keep so that they stay bit-identical: every constant of a float32 expression is a
+float32 (a float64 literal would promote the expression), sums are written in numpy's left-to-right
+order, no ``fastmath`` (no reassociation, no fused multiply-add).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+__all__ = ["cast_part_rays", "nearest_parts"]
+
+_F32 = np.float32
+
+
+@njit(cache=True, nogil=True)
+def _relative_origins(o_b, box_c, ell_c, ell_h):
+    """The ray origin relative to each box's centre (float32), and to each ellipsoid's centre in its
+    semi-axes (float64, then rounded to float32)."""
+    oc = np.empty((box_c.shape[0], 3), np.float32)
+    for p in range(box_c.shape[0]):
+        for k in range(3):
+            oc[p, k] = o_b[k] - box_c[p, k]
+    oe = np.empty((ell_c.shape[0], 3), np.float32)
+    for p in range(ell_c.shape[0]):
+        for k in range(3):
+            oe[p, k] = _F32((np.float64(o_b[k]) - ell_c[p, k]) / np.float64(ell_h[p, k]))
+    return oc, oe
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _nearest(d0, d1, d2, oc, box_h, oe, ell_h):
+    """``(t, part)`` of the nearest part along float32 direction ``(d0, d1, d2)`` (``part`` -1, ``t`` inf:
+    none), parts numbered boxes first, then ellipsoids."""
+    zero = _F32(0.0)
+    one = _F32(1.0)
+    tiny = _F32(1e-30)
+    nb = oc.shape[0]
+    best = _F32(np.inf)
+    part = -1
+    if nb > 0:
+        i0 = one / (d0 if d0 != zero else tiny)
+        i1 = one / (d1 if d1 != zero else tiny)
+        i2 = one / (d2 if d2 != zero else tiny)
+        for p in range(nb):
+            lo = (-box_h[p, 0] - oc[p, 0]) * i0
+            hi = (box_h[p, 0] - oc[p, 0]) * i0
+            t_in = min(lo, hi)
+            t_out = max(lo, hi)
+            lo = (-box_h[p, 1] - oc[p, 1]) * i1
+            hi = (box_h[p, 1] - oc[p, 1]) * i1
+            t_in = max(t_in, min(lo, hi))
+            t_out = min(t_out, max(lo, hi))
+            lo = (-box_h[p, 2] - oc[p, 2]) * i2
+            hi = (box_h[p, 2] - oc[p, 2]) * i2
+            t_in = max(t_in, min(lo, hi))
+            t_out = min(t_out, max(lo, hi))
+            if t_in <= t_out and t_out > zero:
+                t = max(t_in, zero)
+                if t < best:
+                    best = t
+                    part = p
+    for p in range(oe.shape[0]):
+        e0 = d0 / ell_h[p, 0]
+        e1 = d1 / ell_h[p, 1]
+        e2 = d2 / ell_h[p, 2]
+        q0 = oe[p, 0]
+        q1 = oe[p, 1]
+        q2 = oe[p, 2]
+        a = e0 * e0 + e1 * e1 + e2 * e2
+        b = e0 * q0 + e1 * q1 + e2 * q2
+        cx = q1 * e2 - q2 * e1
+        cy = q2 * e0 - q0 * e2
+        cz = q0 * e1 - q1 * e0
+        disc = a - (cx * cx + cy * cy + cz * cz)
+        sq = np.sqrt(max(disc, zero))
+        if disc >= zero and (sq - b) / a > zero:
+            t = max(-(b + sq) / a, zero)
+            if t < best:
+                best = t
+                part = nb + p
+    return best, part
+
+
+@njit(cache=True, nogil=True)
+def nearest_parts(o_b, d_b, box_c, box_h, ell_c, ell_h):
+    """Nearest hit of rays ``o_b + t d_b[:, n]`` (float32, body frame) with the parts: ``(t (n,) float32,
+    inf where none; part (n,) int64, -1 where none)``, parts numbered boxes first, then ellipsoids."""
+    oc, oe = _relative_origins(o_b, box_c, ell_c, ell_h)
+    n = d_b.shape[1]
+    t = np.empty(n, np.float32)
+    part = np.empty(n, np.int64)
+    for k in range(n):
+        t[k], part[k] = _nearest(d_b[0, k], d_b[1, k], d_b[2, k], oc, box_h, oe, ell_h)
+    return t, part
+
+
+@njit(cache=True, nogil=True)
+def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, part_value, ref, ss, r0, c0, out):
+    """Cast the rays of sub-sample rows ``r0 + i`` and columns ``c0 + j`` at the parts; where a ray meets
+    one, ``out[r0 + i, c0 + j] = part_value[nearest] - ref[(r0 + i) // ss, (c0 + j) // ss]`` (float64;
+    ``out`` is left alone elsewhere).  Returns how many rays met a part.
+
+    Rays in the body frame from ``o_b`` (3, float32) along ``float32(R_bc[:, 0] x + (R_bc[:, 1] y +
+    R_bc[:, 2]))``, ``x``, ``y`` the normalised image coordinates of the sub-samples (float64, (rows, cols);
+    ``x`` may have one row and ``y`` one column when they are separable, a camera without distortion).
+    Parts as in :func:`nearest_parts` (``part_value`` in that order).  ``ref`` (float32) is the background
+    of each sub-sample's pixel."""
+    oc, oe = _relative_origins(o_b, box_c, ell_c, ell_h)
+    n_rows = y.shape[0]
+    n_cols = x.shape[1]
+    x_rows = x.shape[0] > 1
+    y_cols = y.shape[1] > 1
+    n_hit = 0
+    for i in range(n_rows):
+        row = (r0 + i) // ss
+        xi = i if x_rows else 0
+        for j in range(n_cols):
+            xv = x[xi, j]
+            yv = y[i, j if y_cols else 0]
+            d0 = _F32(R_bc[0, 0] * xv + (R_bc[0, 1] * yv + R_bc[0, 2]))
+            d1 = _F32(R_bc[1, 0] * xv + (R_bc[1, 1] * yv + R_bc[1, 2]))
+            d2 = _F32(R_bc[2, 0] * xv + (R_bc[2, 1] * yv + R_bc[2, 2]))
+            _, part = _nearest(d0, d1, d2, oc, box_h, oe, ell_h)
+            if part >= 0:
+                out[r0 + i, c0 + j] = part_value[part] - np.float64(ref[row, (c0 + j) // ss])
+                n_hit += 1
+    return n_hit
