@@ -135,3 +135,92 @@ def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, part_value, ref,
                 out[r0 + i, c0 + j] = part_value[part] - np.float64(ref[row, (c0 + j) // ss])
                 n_hit += 1
     return n_hit
+
+
+# ---------------------------------------------------------------------------- the sky and ground table
+
+
+@njit(cache=True, nogil=True)
+def table_lookup_coarse(kr0, kr1, kr2, off, xs, ys, invn, lut, flags):
+    """The background table on the coarse grid: index ``int32(((kr0 xs[j] + (kr1 ys[i] + kr2)) invn[i, j])
+    + off)`` (float32, numpy's order: ``IrRenderer._background_coarse``); returns ``(lut[index],
+    flags[index], whether any flag is set)``."""
+    h, w = invn.shape
+    grey = np.empty((h, w), np.float32)
+    near = np.empty((h, w), np.uint8)
+    any_near = False
+    for i in range(h):
+        b = kr1 * ys[i] + kr2
+        for j in range(w):
+            k = np.int32((kr0 * xs[j] + b) * invn[i, j] + off)
+            grey[i, j] = lut[k]
+            near[i, j] = flags[k]
+            any_near |= near[i, j] != 0
+    return grey, near, any_near
+
+
+@njit(cache=True, nogil=True)
+def table_lookup_blocks(near, kr0, kr1, kr2, off, ray_x, ray_y, invn, lut, st, out):
+    """The exact table look-up at every pixel of the ``st`` x ``st`` blocks next to a flagged coarse sample
+    (``near`` on the coarse grid with its ring: block ``(bi, bj)`` is coarse sample ``(bi + 1, bj + 1)``,
+    flagged when any of its 3 x 3 neighbours is, cv2.dilate's rule), written into ``out[i + st, j + st]``
+    (the upsampled image with its ring); pixels beyond ``invn``'s shape are skipped."""
+    h, w = invn.shape
+    for bi in range(near.shape[0] - 2):
+        for bj in range(near.shape[1] - 2):
+            flagged = False
+            for a in range(3):
+                for c in range(3):
+                    flagged |= near[bi + a, bj + c] != 0
+            if not flagged:
+                continue
+            for i in range(st * bi, min(st * bi + st, h)):
+                b = kr1 * ray_y[i] + kr2
+                for j in range(st * bj, min(st * bj + st, w)):
+                    out[i + st, j + st] = lut[np.int32((kr0 * ray_x[j] + b) * invn[i, j] + off)]
+
+
+@njit(cache=True, nogil=True)
+def scale_offset(src, a, b):
+    """``src a + b`` in float32, two roundings (numpy's ``src * a``, then ``+= b``), as a new array."""
+    h, w = src.shape
+    out = np.empty((h, w), np.float32)
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = src[i, j] * a + b
+    return out
+
+
+# ---------------------------------------------------------------------------- compositing and output
+
+
+@njit(cache=True, nogil=True)
+def composite_band(below, a_up, lit_up, e0, e1, w0, out):
+    """``out = below`` outside rows ``e0 .. e1 - 1``, and ``(below - a below) + lit`` there with ``a``, ``lit``
+    the rows ``w0 ..`` of ``a_up``, ``lit_up`` (float32, numpy's three passes in one: a layer of opacity
+    ``a`` seen over the background, radiating ``lit = a L_layer``)."""
+    h, w = below.shape
+    for i in range(h):
+        if e0 <= i < e1:
+            k = i - e0 + w0
+            for j in range(w):
+                x = below[i, j]
+                out[i, j] = (x - a_up[k, j] * x) + lit_up[k, j]
+        else:
+            for j in range(w):
+                out[i, j] = below[i, j]
+
+
+@njit(cache=True, nogil=True)
+def quantise_grey(radiance, L_min, grey_per_L, noise, full_scale, out):
+    """``out = saturate(round(((radiance - L_min) grey_per_L) + noise))`` (float32, round half to even,
+    0 .. ``full_scale``): numpy's subtract and multiply, then ``cv2.add(..., dtype=CV_8U/CV_16U)``'s
+    rounding and saturation, in one pass (NaN gives full scale, as cv2's does)."""
+    h, w = radiance.shape
+    top = np.float32(full_scale)
+    for i in range(h):
+        for j in range(w):
+            v = np.rint((radiance[i, j] - L_min) * grey_per_L + noise[i, j])
+            if v != v:
+                v = top
+            out[i, j] = min(max(v, np.float32(0.0)), top)

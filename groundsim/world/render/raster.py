@@ -84,6 +84,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
+from groundsim.world.render.kernels import quantise_grey, scale_offset, table_lookup_blocks, table_lookup_coarse
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, grey_full_scale, noise_sigma_grey
 from groundsim.world.render.settings import IrSettings
@@ -235,8 +236,6 @@ class IrRenderer:
         self._coarse_x = xc.astype(np.float32)
         self._coarse_y = yc.astype(np.float32)
         self._coarse_invn = (1.0 / np.sqrt(xc[None, :] ** 2 + yc[:, None] ** 2 + 1.0)).astype(np.float32)
-        self._block_di, self._block_dj = (a.astype(np.intp) for a in np.divmod(np.arange(st * st), st))
-        self._ray_invn_flat = self._ray_invn.ravel()
         self._coarse_ds = st / min(intr.fx_px, intr.fy_px)  # upper bound of the change of s between samples
 
     def _init_sky(self) -> None:
@@ -369,27 +368,18 @@ class IrRenderer:
         k = np.float32(-0.5 * (LUT_SIZE - 1))
         off = np.float32(0.5 * (LUT_SIZE - 1) + 0.5 + _LUT_PAD)
         r0, r1, r2 = (np.float32(v) for v in row)
-        idx_c = ((k * r0 * self._coarse_x)[None, :] + (k * r1 * self._coarse_y + k * r2)[:, None]) * self._coarse_invn
-        idx_c = (idx_c + off).astype(np.int32)
-        grey_c = self._lut.take(idx_c)
+        # one compiled pass each (``kernels``): the same float32 operations as the numpy formulation
+        # (``_background_exact``), without its index arrays over the horizon's blocks
+        grey_c, near, any_near = table_lookup_coarse(
+            k * r0, k * r1, k * r2, off, self._coarse_x, self._coarse_y, self._coarse_invn, self._lut, self._exact_flags
+        )
         st = COARSE_STEP
         big = cv2.resize(grey_c, (self._Wc * st, self._Hc * st), interpolation=cv2.INTER_LINEAR)
-        bg = big[st : st + self._H, st : st + self._W]
-        near = self._exact_flags.take(idx_c)
-        if not near.any():
-            return bg
-        near = cv2.dilate(near, np.ones((3, 3), np.uint8))[1:-1, 1:-1]  # image blocks only
-        bi, bj = np.nonzero(near)
-        ii = (st * bi[:, None] + self._block_di[None, :]).ravel()  # pixel rows and columns of the blocks
-        jj = (st * bj[:, None] + self._block_dj[None, :]).ravel()
-        if self._H % st or self._W % st:
-            keep = (ii < self._H) & (jj < self._W)
-            ii, jj = ii[keep], jj[keep]
-        m = (k * r0) * self._ray_x.take(jj) + ((k * r1) * self._ray_y.take(ii) + k * r2)
-        m *= self._ray_invn_flat.take(ii * self._W + jj)
-        m += off
-        big.ravel()[(ii + st) * (self._Wc * st) + (jj + st)] = self._lut.take(m.astype(np.int32))
-        return bg
+        if any_near:
+            table_lookup_blocks(
+                near, k * r0, k * r1, k * r2, off, self._ray_x, self._ray_y, self._ray_invn, self._lut, st, big
+            )
+        return big[st : st + self._H, st : st + self._W]
 
     # ------------------------------------------------------------------ frame
 
@@ -458,9 +448,7 @@ class IrRenderer:
         p_cam = _vec3(p_cam_ned_m, "p_cam_ned_m")
         R_nc = _rotation(R_ned_from_cam, "R_ned_from_cam")
         bg, _, _ = self._background(R_nc, float(altitude_ground_d_m) - float(p_cam[2]))
-        L = bg * np.float32(1.0 / self._grey_per_L)
-        L += np.float32(self._L_min)
-        return L
+        return scale_offset(bg, np.float32(1.0 / self._grey_per_L), np.float32(self._L_min))
 
     def render_radiance(
         self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, background: SceneBackground
@@ -493,9 +481,12 @@ class IrRenderer:
         L = np.asarray(radiance, dtype=np.float32)
         if L.shape != (self._H, self._W):
             raise InputError(f"radiance: expected shape {(self._H, self._W)}, got {L.shape}")
-        grey = np.subtract(L, np.float32(self._L_min), out=self._mx)  # scratch: cv2.add below makes the output
-        grey *= np.float32(self._grey_per_L)
         n = self._H * self._W
         off = int(self._rng.integers(self._noise_offsets))
         noise = self._noise_bank[off : off + n].reshape(self._H, self._W)
-        return cv2.add(grey, noise, dtype=self._dtype)
+        out = np.empty((self._H, self._W), np.uint8 if self._fs == 255 else np.uint16)
+        # one pass: the grey map, then cv2.add(grey, noise, dtype)'s rounding and saturation (render's)
+        quantise_grey(
+            np.ascontiguousarray(L), np.float32(self._L_min), np.float32(self._grey_per_L), noise, self._fs, out
+        )
+        return out

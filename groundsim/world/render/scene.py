@@ -66,6 +66,7 @@ import cv2
 import numpy as np
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
+from groundsim.world.render.kernels import composite_band
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
 from groundsim.world.render.raster import IrRenderer
@@ -226,7 +227,7 @@ def _mip_map(foot_m, mask, t, p, dn, de, texel_m: float, levels) -> tuple:
     lv = 0
     if np.any(mask):
         q = _quantile(foot_m[::3, ::3][mask[::3, ::3]], 0.1)
-        lv = int(np.clip(math.floor(math.log2(max(q / texel_m, 1.0))), 0, len(levels) - 1))
+        lv = min(max(math.floor(math.log2(max(q / texel_m, 1.0))), 0), len(levels) - 1)  # (np.clip: ~10 us)
     lv_far = min(lv + FAR_LEVELS, len(levels) - 1)
     texel = texel_m * 2**lv
     period = texel * levels[lv].shape[0]
@@ -277,7 +278,7 @@ class SceneContent:
         self._far_depth.flags.writeable = False
         self._no_cloud.flags.writeable = False
         self._up_half = np.empty((2 * self._hc, 2 * self._wc), np.float32)  # pyrUp scratch, see render_background
-        self._up_whole = np.empty((4 * self._hc, 4 * self._wc), np.float32)
+        self._up_whole = np.empty((2, 4 * self._hc, 4 * self._wc), np.float32)  # the opacity's and the light's
         c = config
         self.clouds = (
             cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
@@ -536,16 +537,14 @@ class SceneContent:
         # over the band's pixel rows only: the others depend only on coarse rows where the weights are 0
         # (a pixel two pyrUp steps up depends on the coarse rows within 2 of its own), L = L_below there
         n = band.stop - band.start
-        half, whole = self._up_half[: 2 * n], self._up_whole[: 4 * n]
+        half, whole_a, whole_lit = self._up_half[: 2 * n], self._up_whole[0, : 4 * n], self._up_whole[1, : 4 * n]
         e0 = 0 if band.start == 0 else 4 * (band.start + 2)
         e1 = H if band.stop == self._hc else min(4 * (band.stop - 2), H)
-        w0, w1 = e0 - 4 * band.start, e1 - 4 * band.start  # those rows in the band's upsampled images
+        w0 = e0 - 4 * band.start  # row e0 in the band's upsampled images
         radiance = np.empty_like(below)
-        radiance[:e0] = below[:e0]
-        radiance[e1:] = below[e1:]
-        seg = np.multiply(up(up(a_seen, dst=half), dst=whole)[w0:w1, :W], below[e0:e1], out=radiance[e0:e1])
-        np.subtract(below[e0:e1], seg, out=seg)
-        seg += up(up(lit, dst=half), dst=whole)[w0:w1, :W]
+        a_up = up(up(a_seen, dst=half), dst=whole_a)
+        lit_up = up(up(lit, dst=half), dst=whole_lit)
+        composite_band(below, a_up, lit_up, e0, e1, w0, radiance)  # (below - a below) + lit, one pass
         alpha_whole = np.zeros((self._hc, self._wc), np.float32)
         alpha_whole[band] = alpha
         return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W)))
