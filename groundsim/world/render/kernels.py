@@ -14,6 +14,8 @@ order, no ``fastmath`` (no reassociation, no fused multiply-add).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numba import njit
 
@@ -224,3 +226,99 @@ def quantise_grey(radiance, L_min, grey_per_L, noise, full_scale, out):
             if v != v:
                 v = top
             out[i, j] = min(max(v, np.float32(0.0)), top)
+
+
+# ---------------------------------------------------------------------------- the splat of small objects
+
+
+@njit(cache=True, nogil=True)
+def splat_moments(t_c, R_cb, centre, half, is_box, L_emit, visible, tau, L_air, L_min, grey_per_L, intr, bg, sigma_px):
+    """The parts of a small object projected through the pinhole's Jacobian (``PartRaster._splat``):
+    ``(parts, u_c, v_c, sig_u, sig_v)``, ``parts`` (P, 6) rows of area (px^2, times the part's visible
+    fraction), grey, u, v, var_u, var_v; the spot's centre and spreads (PSF added) from the parts weighted
+    by ``|area (grey - bg)|`` at the first part's pixel.  ``parts`` is empty when a part lies behind the
+    camera.  ``t_c`` the object's centre in the camera frame, ``R_cb`` camera from body, ``intr`` (fx, fy,
+    cx, cy); float64 scalar arithmetic in the order of the Python it replaced."""
+    fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    n = centre.shape[0]
+    parts = np.empty((n, 6))
+    for p in range(n):
+        bx, by, bz = centre[p, 0], centre[p, 1], centre[p, 2]
+        x = t_c[0] + R_cb[0, 0] * bx + R_cb[0, 1] * by + R_cb[0, 2] * bz
+        y = t_c[1] + R_cb[1, 0] * bx + R_cb[1, 1] * by + R_cb[1, 2] * bz
+        z = t_c[2] + R_cb[2, 0] * bx + R_cb[2, 1] * by + R_cb[2, 2] * bz
+        if z <= 1e-3:
+            return np.empty((0, 6)), 0.0, 0.0, 0.0, 0.0
+        xz = x / z
+        yz = y / z
+        ju0 = fx / z * (R_cb[0, 0] - xz * R_cb[2, 0]) * half[p, 0]
+        ju1 = fx / z * (R_cb[0, 1] - xz * R_cb[2, 1]) * half[p, 1]
+        ju2 = fx / z * (R_cb[0, 2] - xz * R_cb[2, 2]) * half[p, 2]
+        jv0 = fy / z * (R_cb[1, 0] - yz * R_cb[2, 0]) * half[p, 0]
+        jv1 = fy / z * (R_cb[1, 1] - yz * R_cb[2, 1]) * half[p, 1]
+        jv2 = fy / z * (R_cb[1, 2] - yz * R_cb[2, 2]) * half[p, 2]
+        c0 = ju1 * jv2 - ju2 * jv1
+        c1 = ju2 * jv0 - ju0 * jv2
+        c2 = ju0 * jv1 - ju1 * jv0
+        if is_box[p]:
+            area = 4.0 * (abs(c0) + abs(c1) + abs(c2))
+            mk = 1.0 / 3.0
+        else:
+            area = math.pi * math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            mk = 0.25
+        parts[p, 0] = area * visible[p]
+        parts[p, 1] = ((tau * L_emit[p] + (1.0 - tau) * L_air) - L_min) * grey_per_L
+        parts[p, 2] = fx * xz + cx
+        parts[p, 3] = fy * yz + cy
+        parts[p, 4] = mk * (ju0 * ju0 + ju1 * ju1 + ju2 * ju2)
+        parts[p, 5] = mk * (jv0 * jv0 + jv1 * jv1 + jv2 * jv2)
+    H, W = bg.shape
+    u0 = min(max(int(parts[0, 2]), 0), W - 1)
+    v0 = min(max(int(parts[0, 3]), 0), H - 1)
+    ref = np.float64(bg[v0, u0])
+    w = np.empty(n)
+    w_sum = 0.0
+    for p in range(n):
+        w[p] = abs(parts[p, 0] * (parts[p, 1] - ref)) + 1e-30
+        w_sum += w[p]
+    su = 0.0
+    sv = 0.0
+    for p in range(n):
+        su += w[p] * parts[p, 2]
+        sv += w[p] * parts[p, 3]
+    u_c = su / w_sum
+    v_c = sv / w_sum
+    su = 0.0
+    sv = 0.0
+    for p in range(n):
+        su += w[p] * (parts[p, 4] + (parts[p, 2] - u_c) * (parts[p, 2] - u_c))
+        sv += w[p] * (parts[p, 5] + (parts[p, 3] - v_c) * (parts[p, 3] - v_c))
+    sig_u = max(math.sqrt(sigma_px * sigma_px + su / w_sum), 1e-3)
+    sig_v = max(math.sqrt(sigma_px * sigma_px + sv / w_sum), 1e-3)
+    return parts, u_c, v_c, sig_u, sig_v
+
+
+@njit(cache=True, nogil=True)
+def splat_spot(parts, ref, gain, u_c, v_c, sig_u, sig_v, i0, i1, j0, j1):
+    """The spot of :func:`splat_moments`' parts over pixels ``[i0, i1) x [j0, j1)`` (float32): energy
+    ``gain sum area (grey - ref)`` times the separable box x Gaussian weights ``Phi((j + 1 - u_c) / sig) -
+    Phi((j - u_c) / sig)`` (as ``0.5 erfc``)."""
+    energy = 0.0
+    for p in range(parts.shape[0]):
+        energy += parts[p, 0] * (parts[p, 1] - ref)
+    energy = gain * energy
+    ku = np.empty(j1 - j0)
+    prev = 0.5 * math.erfc((u_c - j0) / (math.sqrt(2.0) * sig_u))
+    for j in range(j0, j1):
+        nxt = 0.5 * math.erfc((u_c - (j + 1)) / (math.sqrt(2.0) * sig_u))
+        ku[j - j0] = nxt - prev
+        prev = nxt
+    out = np.empty((i1 - i0, j1 - j0), np.float32)
+    prev = 0.5 * math.erfc((v_c - i0) / (math.sqrt(2.0) * sig_v))
+    for i in range(i0, i1):
+        nxt = 0.5 * math.erfc((v_c - (i + 1)) / (math.sqrt(2.0) * sig_v))
+        kv = (nxt - prev) * energy
+        prev = nxt
+        for j in range(j1 - j0):
+            out[i - i0, j] = np.float32(kv * ku[j])
+    return out

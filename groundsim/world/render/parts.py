@@ -10,7 +10,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import SceneBackground
-from groundsim.world.render.kernels import cast_part_rays, nearest_parts
+from groundsim.world.render.kernels import cast_part_rays, nearest_parts, splat_moments, splat_spot
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.settings import IrSettings
 from onboard.core.frames import PinholeIntrinsics
@@ -93,10 +93,8 @@ class PartRaster:
         half = np.array([p.half_extent_m for p in parts], dtype=float)
         is_box = np.array([p.shape == "box" for p in parts])
         # for the splat (small objects): per part centre, half extents, box or ellipsoid, emitted radiance
-        self._splat_parts = [
-            (tuple(c), tuple(h), bool(b), float(L))
-            for c, h, b, L in zip(centre.tolist(), half.tolist(), is_box, self._part_L_emit)
-        ]
+        self._splat_parts = (centre, half, is_box, self._part_L_emit)
+        self._intr_array = np.array([intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px])
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
         self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the kernels' part numbers
@@ -285,14 +283,10 @@ class PartRaster:
         Centroid and spread are the ``|area contrast|``-weighted mixture of the parts'; the spread adds
         to the PSF's, the pixel box is kept, so the pixels sum to the integral (within the 3 sigma cut)
         and the intensity centroid is the parts' centroid.  A cloud in front (``occluder``) is read at the
-        centroid's pixel only.  Written in scalar arithmetic over the few parts: numpy's per-call cost on
-        arrays of 2-4 parts is larger than the arithmetic."""
-        intr = self.intrinsics
+        centroid's pixel only.  Compiled scalar arithmetic over the few parts (``kernels.splat_moments``,
+        ``splat_spot``): numpy's per-call cost on arrays of 2-4 parts is larger than the arithmetic."""
         s = self.settings
         H, W = self._H, self._W
-        R_cb = (R_nc.T @ R_nt).tolist()
-        r0, r1, r2 = R_cb
-        fx, fy, cx, cy = intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px
         range_m = math.sqrt(t_c[0] ** 2 + t_c[1] ** 2 + t_c[2] ** 2)
         tau = math.exp(-s.extinction_per_km * range_m * 1e-3)
         # the view direction in the body frame picks the parts' visible fractions (nearest tabulated one)
@@ -300,42 +294,16 @@ class PartRaster:
             self._splat_table = self._visible_fractions(self._parts)
         dirs, fractions = self._splat_table
         view_b = np.dot(R_nt.T, R_nc @ np.array(t_c))
-        visible = fractions[int(np.argmax(dirs @ view_b))].tolist()
-        parts = []  # (area px^2, contrast-free radiance, u, v, var_u, var_v) per part
-        for ((bx, by, bz), (hx, hy, hz), is_box, L_emit), seen in zip(self._splat_parts, visible):
-            x = t_c[0] + r0[0] * bx + r0[1] * by + r0[2] * bz
-            y = t_c[1] + r1[0] * bx + r1[1] * by + r1[2] * bz
-            z = t_c[2] + r2[0] * bx + r2[1] * by + r2[2] * bz
-            if z <= NEAR_M:
-                return None
-            xz, yz = x / z, y / z
-            ju = [fx / z * (r0[k] - xz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
-            jv = [fy / z * (r1[k] - yz * r2[k]) * h for k, h in enumerate((hx, hy, hz))]
-            c0 = ju[1] * jv[2] - ju[2] * jv[1]
-            c1 = ju[2] * jv[0] - ju[0] * jv[2]
-            c2 = ju[0] * jv[1] - ju[1] * jv[0]
-            if is_box:
-                area, mk = 4.0 * (abs(c0) + abs(c1) + abs(c2)), 1.0 / 3.0
-            else:
-                area, mk = math.pi * math.sqrt(c0 * c0 + c1 * c1 + c2 * c2), 0.25
-            area *= seen
-            L = ((tau * L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
-            var_u = mk * (ju[0] ** 2 + ju[1] ** 2 + ju[2] ** 2)
-            var_v = mk * (jv[0] ** 2 + jv[1] ** 2 + jv[2] ** 2)
-            parts.append((area, L, fx * xz + cx, fy * yz + cy, var_u, var_v))
-        # the spot's centre: the parts weighted by |area x contrast| against the background near the
-        # object's projected centre (one background read; the weights only place and shape the spot)
-        u0 = min(max(int(parts[0][2]), 0), W - 1)
-        v0 = min(max(int(parts[0][3]), 0), H - 1)
-        ref = float(bg[v0, u0])
-        w = [abs(a * (L - ref)) + 1e-30 for a, L, *_ in parts]
-        w_sum = sum(w)
-        u_c = sum(wk * p[2] for wk, p in zip(w, parts)) / w_sum
-        v_c = sum(wk * p[3] for wk, p in zip(w, parts)) / w_sum
-        var_u = sum(wk * (p[4] + (p[2] - u_c) ** 2) for wk, p in zip(w, parts)) / w_sum
-        var_v = sum(wk * (p[5] + (p[3] - v_c) ** 2) for wk, p in zip(w, parts)) / w_sum
-        sig_u = max(math.sqrt(s.blur_sigma_px**2 + var_u), 1e-3)
-        sig_v = max(math.sqrt(s.blur_sigma_px**2 + var_v), 1e-3)
+        visible = fractions[int(np.argmax(dirs @ view_b))]
+        # the parts' areas, grey levels, positions and spreads, and the spot's centre and spread: the parts
+        # weighted by |area x contrast| against the background near the object's projected centre (one
+        # background read; the weights only place and shape the spot)
+        parts, u_c, v_c, sig_u, sig_v = splat_moments(
+            np.array(t_c), R_nc.T @ R_nt, *self._splat_parts, visible, tau, self._L_air, self._L_min,
+            self._grey_per_L, self._intr_array, bg, s.blur_sigma_px,
+        )  # fmt: skip
+        if parts.shape[0] == 0:  # a part behind the camera
+            return None
         ru, rv = int(math.ceil(3.0 * sig_u + 0.5)), int(math.ceil(3.0 * sig_v + 0.5))
         i0, i1 = max(math.floor(v_c) - rv, 0), min(math.floor(v_c) + rv + 1, H)
         j0, j1 = max(math.floor(u_c) - ru, 0), min(math.floor(u_c) + ru + 1, W)
@@ -349,13 +317,8 @@ class PartRaster:
             if occluder.depth_window(*px)[0, 0] < range_m:
                 ref = float(occluder.base_radiance[ic, jc])
                 gain = 1.0 - float(occluder.alpha_window(*px)[0, 0])
-        energy = gain * sum(a * (L - ref) for a, L, *_ in parts)
         # pixel j spans [j, j + 1]: box x Gaussian weights Phi((j + 1 - u_c) / sig) - Phi((j - u_c) / sig)
-        cu = [0.5 * math.erfc((u_c - j) / (math.sqrt(2.0) * sig_u)) for j in range(j0, j1 + 1)]
-        cv = [0.5 * math.erfc((v_c - i) / (math.sqrt(2.0) * sig_v)) for i in range(i0, i1 + 1)]
-        ku = np.diff(np.array(cu))
-        kv = np.diff(np.array(cv)) * energy
-        delta = np.multiply.outer(kv, ku).astype(np.float32)
+        delta = splat_spot(parts, ref, gain, u_c, v_c, sig_u, sig_v, i0, i1, j0, j1)
         return slice(i0, i1), slice(j0, j1), delta, 1
 
     def intersect(self, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
