@@ -322,3 +322,218 @@ def splat_spot(parts, ref, gain, u_c, v_c, sig_u, sig_v, i0, i1, j0, j1):
         for j in range(j1 - j0):
             out[i - i0, j] = np.float32(kv * ku[j])
     return out
+
+
+# ---------------------------------------------------------------------------- the scene's planes (coarse grid)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def plane_rays(R, x, y, rnorm, h_g, far_m):
+    """The rays of the coarse grid (``x``, ``y`` their image coordinates, ``rnorm`` their norms, float32)
+    in NED and where they meet the ground ``h_g`` below the camera (``SceneContent.render_background``):
+    ``(dn, de, dd, inv_dd, t_g, r_g, on_ground, rows)``; ``t_g`` -1 everywhere when the camera is not above
+    the ground, ``r_g`` ``far_m`` off the ground; ``rows`` the first and last row with a ray pointing
+    down (``dd > 0``) and up (``dd < 0``), -1 when none."""
+    f32 = np.float32
+    h, w = x.shape
+    a0, a1, a2 = f32(R[0, 0]), f32(R[0, 1]), f32(R[0, 2])
+    b0, b1, b2 = f32(R[1, 0]), f32(R[1, 1]), f32(R[1, 2])
+    c0, c1, c2 = f32(R[2, 0]), f32(R[2, 1]), f32(R[2, 2])
+    hg = f32(h_g)
+    far = f32(far_m)
+    dn = np.empty((h, w), np.float32)
+    de = np.empty((h, w), np.float32)
+    dd = np.empty((h, w), np.float32)
+    inv_dd = np.empty((h, w), np.float32)
+    t_g = np.empty((h, w), np.float32)
+    r_g = np.empty((h, w), np.float32)
+    on_ground = np.empty((h, w), np.bool_)
+    rows = np.full(4, -1, np.int64)
+    for i in range(h):
+        down = False
+        up = False
+        for j in range(w):
+            xv = x[i, j]
+            yv = y[i, j]
+            dn[i, j] = a0 * xv + a1 * yv + a2
+            de[i, j] = b0 * xv + b1 * yv + b2
+            d = c0 * xv + c1 * yv + c2
+            dd[i, j] = d
+            down |= d > f32(0.0)
+            up |= d < f32(0.0)
+            inv = f32(1.0) / d
+            inv_dd[i, j] = inv
+            t = hg * inv if h_g > 0.0 else f32(-1.0)
+            t_g[i, j] = t
+            on_ground[i, j] = t > f32(0.0)
+            r_g[i, j] = t * rnorm[i, j] if t > f32(0.0) else far
+        if down:
+            if rows[0] < 0:
+                rows[0] = i
+            rows[1] = i
+        if up:
+            if rows[2] < 0:
+                rows[2] = i
+            rows[3] = i
+    return dn, de, dd, inv_dd, t_g, r_g, on_ground, rows
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def layer_rays(h_c, inv_dd, rnorm, r_g, r0, r1, max_range_m, foot_scale):
+    """Where the rays of coarse rows ``r0 .. r1 - 1`` meet a layer ``h_c`` below the camera (the cloud
+    layer, ``SceneContent._cloud_geometry``): ``(t, r_c, hit, foot_m, samples)`` over those rows, ``t`` the
+    ray parameter where hit (0 elsewhere), ``r_c`` the range, ``hit`` in front (t > 0), within
+    ``max_range_m`` and nearer than the ground ``r_g``, ``foot_m = r_c^2 / foot_scale``, ``samples`` the
+    footprints of the hit rays in every third row and column (row-major; the mip level's quantile)."""
+    f32 = np.float32
+    n = r1 - r0
+    w = inv_dd.shape[1]
+    hc = f32(h_c)
+    mr = f32(max_range_m)
+    fs = f32(foot_scale)
+    t = np.empty((n, w), np.float32)
+    r_c = np.empty((n, w), np.float32)
+    hit = np.empty((n, w), np.bool_)
+    foot = np.empty((n, w), np.float32)
+    samples = np.empty(((n + 2) // 3) * ((w + 2) // 3), np.float32)
+    k = 0
+    for i in range(n):
+        for j in range(w):
+            tc = hc * inv_dd[r0 + i, j]
+            r = tc * rnorm[r0 + i, j]
+            r_c[i, j] = r
+            ok = tc > f32(0.0) and r < mr and r < r_g[r0 + i, j]
+            hit[i, j] = ok
+            t[i, j] = tc if ok else f32(0.0)
+            foot[i, j] = r * r / fs
+            if ok and i % 3 == 0 and j % 3 == 0:
+                samples[k] = foot[i, j]
+                k += 1
+    return t, r_c, hit, foot, samples[:k]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def surface_maps(t, dn, de, r0, foot_m, off_e, off_n, inv_texel, texel, limit):
+    """Texture coordinates of a tiled surface where the rays (``dn``, ``de`` from row ``r0``) meet it at
+    ``t`` (``_mip_map``): ``x = clip((off_e + t de) inv_texel - 0.5, -limit, limit)``, ``y`` the same with
+    north, and ``max(foot_m / texel, 1e-6)`` (float32; its log2 places the far level's weight)."""
+    f32 = np.float32
+    n, w = t.shape
+    x = np.empty((n, w), np.float32)
+    y = np.empty((n, w), np.float32)
+    ratio = np.empty((n, w), np.float32)
+    lo = f32(-limit)
+    hi = f32(limit)
+    for i in range(n):
+        for j in range(w):
+            tv = t[i, j]
+            x[i, j] = min(max((off_e + tv * de[r0 + i, j]) * inv_texel - f32(0.5), lo), hi)
+            y[i, j] = min(max((off_n + tv * dn[r0 + i, j]) * inv_texel - f32(0.5), lo), hi)
+            ratio[i, j] = max(foot_m[i, j] / texel, f32(1e-6))
+    return x, y, ratio
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def layer_weights(hit, w_far_all, attenuation, r_c, r_g, rnorm, inv_dd, r0, tau_v, max_range_m, fade_m):
+    """The cloud layer's compositing channels over its rows (``SceneContent._cloud_geometry``), where hit
+    (0 elsewhere): ``w_far`` (from ``w_far_all``), ``optical = tau_v min(|r / d_down|, 1e3)``, ``seen =
+    attenuation clip((max_range_m - r_c) / fade_m, 0, 1)``; ``depth`` (``r_c`` where hit, the ground's
+    ``r_g`` elsewhere) and ``rows``: the first and last row where the near level is read (hit, w_far < 1)
+    and where the far one is (w_far > 0), -1 when none.  ``rnorm``, ``inv_dd``, ``r_g`` from row ``r0``."""
+    f32 = np.float32
+    n, w = hit.shape
+    w_far = np.empty((n, w), np.float32)
+    optical = np.empty((n, w), np.float32)
+    seen = np.empty((n, w), np.float32)
+    depth = np.empty((n, w), np.float32)
+    rows = np.full(4, -1, np.int64)
+    mr = f32(max_range_m)
+    fd = f32(fade_m)
+    zero = f32(0.0)
+    one = f32(1.0)
+    for i in range(n):
+        near_row = False
+        far_row = False
+        for j in range(w):
+            if hit[i, j]:
+                wf = w_far_all[i, j]
+                optical[i, j] = tau_v * min(rnorm[r0 + i, j] * abs(inv_dd[r0 + i, j]), f32(1e3))
+                fade = min(max((mr - r_c[i, j]) / fd, zero), one)
+                seen[i, j] = attenuation[i, j] * fade
+                depth[i, j] = r_c[i, j]
+                near_row |= wf < one
+            else:
+                wf = zero
+                optical[i, j] = zero
+                seen[i, j] = zero
+                depth[i, j] = r_g[r0 + i, j]
+            w_far[i, j] = wf
+            far_row |= wf > zero
+        if near_row:
+            if rows[0] < 0:
+                rows[0] = i
+            rows[1] = i
+        if far_row:
+            if rows[2] < 0:
+                rows[2] = i
+            rows[3] = i
+    return w_far, optical, seen, depth, rows
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fold_maps(map_x, map_y, r0, r1, n, scale):
+    """Texture coordinates of rows ``r0 .. r1 - 1`` (times ``scale`` unless it is 0) folded into one period
+    ``[0, n)``: ``m - n floor(m (1 / n))`` (float32), and whether every folded
+    coordinate lies in ``[0, n]``."""
+    f32 = np.float32
+    h = r1 - r0
+    w = map_x.shape[1]
+    fn = f32(n)
+    inv = f32(1.0 / n)
+    mx = np.empty((h, w), np.float32)
+    my = np.empty((h, w), np.float32)
+    inside = True
+    for i in range(h):
+        for j in range(w):
+            a = map_x[r0 + i, j]
+            b = map_y[r0 + i, j]
+            if scale != 0.0:
+                a = a * scale
+                b = b * scale
+            a = a - fn * np.floor(a * inv)
+            b = b - fn * np.floor(b * inv)
+            mx[i, j] = a
+            my[i, j] = b
+            inside &= a >= f32(0.0) and a <= fn and b >= f32(0.0) and b <= fn
+    return mx, my, inside
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def layer_blend(rho, L_c, rho_far, L_c_far, w_far, optical):
+    """The far mip level blended into the near one in place (``x += w_far (x_far - x)``; ``rho_far``
+    empty: no far level), and ``-(optical rho)`` returned (its exp is the layer's transmission)."""
+    n, w = rho.shape
+    out = np.empty((n, w), np.float32)
+    blend = rho_far.size > 0
+    for i in range(n):
+        for j in range(w):
+            if blend:
+                wf = w_far[i, j]
+                rho[i, j] += wf * (rho_far[i, j] - rho[i, j])
+                L_c[i, j] += wf * (L_c_far[i, j] - L_c[i, j])
+            out[i, j] = -(optical[i, j] * rho[i, j])
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def layer_light(transmission, seen, L_c):
+    """In place: ``transmission`` becomes the opacity ``1 - transmission``, ``seen`` the opacity seen
+    (``alpha seen``) and ``L_c`` the light the layer adds (``alpha seen L_c``)."""
+    n, w = seen.shape
+    for i in range(n):
+        for j in range(w):
+            a = np.float32(1.0) - transmission[i, j]
+            transmission[i, j] = a
+            s = a * seen[i, j]
+            seen[i, j] = s
+            L_c[i, j] = s * L_c[i, j]

@@ -66,7 +66,16 @@ import cv2
 import numpy as np
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
-from groundsim.world.render.kernels import composite_band
+from groundsim.world.render.kernels import (
+    composite_band,
+    fold_maps,
+    layer_blend,
+    layer_light,
+    layer_rays,
+    layer_weights,
+    plane_rays,
+    surface_maps,
+)
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
 from groundsim.world.render.raster import IrRenderer
@@ -154,12 +163,6 @@ class SceneFrame:
     labels: tuple[ObjectLabel, ...]
 
 
-def _fold(m: np.ndarray, n: int) -> np.ndarray:
-    """Texture coordinates folded into one period ``[0, n)``: cv2.remap reads texels outside the image
-    through a per-pixel border path several times slower than the inside."""
-    return m - np.float32(n) * np.floor(m * np.float32(1.0 / n))
-
-
 def _wrap_padded(levels: list[np.ndarray]) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """Each (n, n) level with its first ``SEAM_PAD`` rows and columns repeated after its last, and the level
     itself as a view into that copy (so the texture is held once)."""
@@ -179,23 +182,13 @@ def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: 
     n = textures[0].shape[0] - SEAM_PAD
     outs = [np.zeros(map_x.shape, np.float32) for _ in textures]
     if rows.stop > rows.start:
-        mx, my = map_x[rows], map_y[rows]
-        if scale is not None:
-            mx, my = mx * scale, my * scale
-        mx, my = _fold(mx, n), _fold(my, n)
-        inside = min(mx.min(), my.min()) >= 0.0 and max(mx.max(), my.max()) <= n
+        # scaled and folded into one period [0, n) in one compiled pass: cv2.remap reads texels outside the
+        # image through a per-pixel border path several times slower than the inside
+        mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, np.float32(0.0 if scale is None else scale))
         for texture, out in zip(textures, outs):
             src = texture if inside else texture[:n, :n]
             out[rows] = cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return outs
-
-
-def _mask_rows(mask: np.ndarray) -> slice:
-    """The rows of a coarse-grid mask from its first true row to its last (empty: none)."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
-        return slice(0, 0)
-    return slice(int(rows[0]), int(rows[-1]) + 1)
 
 
 def _half_rows(mask: np.ndarray, limit: int) -> slice:
@@ -215,26 +208,31 @@ def _quantile(x: np.ndarray, q: float) -> float:
     return float(np.partition(x, k)[k])
 
 
-def _mip_map(foot_m, mask, t, p, dn, de, texel_m: float, levels) -> tuple:
+def _mip_map(foot_m, samples, t, p, dn, de, r0: int, texel_m: float, levels) -> tuple:
     """Where a tiled surface's mip pyramid ``levels`` (level 0's texel ``texel_m``) is read, for the terrain
     and the cloud layer alike: ``(x, y, far weight, near level, far level)``.
 
-    The near level from the 10th percentile of the footprint ``foot_m`` (m) over ``mask`` (every third
-    pixel), the far level ``FAR_LEVELS`` coarser; ``x, y`` the hits ``p + t (dn, de)`` in texels of the
-    near level, the camera placed in the tile (the textures repeat); the far weight 0 to 1 as the footprint
-    goes from 2 to 8 texels of the near level."""
+    The near level from the 10th percentile of the footprint ``foot_m`` (m) over ``samples`` (the footprints
+    of the rays that meet the surface in every third pixel), the far level ``FAR_LEVELS`` coarser; ``x, y``
+    the hits ``p + t (dn, de)`` (``dn``, ``de`` from row ``r0``) in texels of the near level, the camera
+    placed in the tile (the textures repeat); the far weight 0 to 1 as the footprint goes from 2 to 8 texels
+    of the near level (before any mask)."""
     f32 = np.float32
     lv = 0
-    if np.any(mask):
-        q = _quantile(foot_m[::3, ::3][mask[::3, ::3]], 0.1)
+    if samples.size:
+        q = _quantile(samples, 0.1)
         lv = min(max(math.floor(math.log2(max(q / texel_m, 1.0))), 0), len(levels) - 1)  # (np.clip: ~10 us)
     lv_far = min(lv + FAR_LEVELS, len(levels) - 1)
     texel = texel_m * 2**lv
     period = texel * levels[lv].shape[0]
     off_n, off_e = (float(c) - period * math.floor(float(c) / period) for c in (p[0], p[1]))  # camera in the tile
-    x = np.clip((f32(off_e) + t * de) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
-    y = np.clip((f32(off_n) + t * dn) * f32(1.0 / texel) - f32(0.5), -MAP_LIMIT, MAP_LIMIT)
-    w_far = np.clip((np.log2(np.maximum(foot_m / f32(texel), f32(1e-6))) - f32(1.0)) * f32(0.5), 0.0, 1.0)
+    x, y, w_far = surface_maps(t, dn, de, r0, foot_m, f32(off_e), f32(off_n), f32(1.0 / texel), f32(texel), MAP_LIMIT)
+    # w_far = clip((log2(max(foot / texel, 1e-6)) - 1) / 2, 0, 1), numpy's log2 (the compiled one rounds
+    # differently), in place
+    np.log2(w_far, out=w_far)
+    w_far -= f32(1.0)
+    w_far *= f32(0.5)
+    np.clip(w_far, 0.0, 1.0, out=w_far)
     return x, y, w_far, lv, lv_far
 
 
@@ -277,6 +275,7 @@ class SceneContent:
         self._no_cloud = np.zeros((self._H, self._W), np.float32)
         self._far_depth.flags.writeable = False
         self._no_cloud.flags.writeable = False
+        self._empty = np.empty((0, 0), np.float32)  # no far level (kernels.layer_blend)
         self._up_half = np.empty((2 * self._hc, 2 * self._wc), np.float32)  # pyrUp scratch, see render_background
         self._up_whole = np.empty((2, 4 * self._hc, 4 * self._wc), np.float32)  # the opacity's and the light's
         c = config
@@ -468,29 +467,21 @@ class SceneContent:
         p = np.asarray(p_cam_ned_m, dtype=float)
         R = np.asarray(R_ned_from_cam, dtype=float)
         f32 = np.float32
-        # ---- plane geometry on the coarse grid
-        x, y = self._rx, self._ry
-        dn = f32(R[0, 0]) * x + f32(R[0, 1]) * y + f32(R[0, 2])
-        de = f32(R[1, 0]) * x + f32(R[1, 1]) * y + f32(R[1, 2])
-        dd = f32(R[2, 0]) * x + f32(R[2, 1]) * y + f32(R[2, 2])
+        # ---- plane geometry on the coarse grid (one compiled pass: the numpy formulation's float32 operations)
         ext_per_m = self.settings.extinction_per_km * 1e-3
         ground_d = float(altitude_ground_d_m)
         h_g = ground_d - float(p[2])  # camera height above the ground
+        dn, de, dd, inv_dd, t_g, r_g, on_ground, dir_rows = plane_rays(R, self._rx, self._ry, self._rnorm, h_g, FAR_M)
+        chans = [r_g]
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            inv_dd = f32(1.0) / dd
-            t_g = f32(h_g) * inv_dd if h_g > 0.0 else np.full_like(dd, -1.0)
-            on_ground = t_g > 0.0
-            r_g = np.where(on_ground, t_g * self._rnorm, f32(FAR_M))
-            chans = [r_g]
             terrain = self._terrain_geometry(p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m) if self.terrain else None
-            band = self._cloud_band(p, dd, ground_d) if self.clouds else slice(0, 0)
+            band = self._cloud_band(p, dir_rows, ground_d) if self.clouds else slice(0, 0)
             clouds = None
             if band.stop > band.start:
-                b = band
-                clouds = self._cloud_geometry(p, dn[b], de[b], dd[b], inv_dd[b], r_g[b], b, ground_d, ext_per_m)
+                clouds = self._cloud_geometry(p, dn, de, inv_dd, r_g, band, ground_d, ext_per_m)
         if clouds is not None:
             chans[0] = r_g.copy()  # depth: the cloud layer where the ray meets it
-            chans[0][band] = np.where(clouds[1], clouds[2], r_g[band])
+            chans[0][band] = clouds[2]
         up = cv2.pyrUp
         depth = PyrUpImage(chans[0], (self._H, self._W))
         # ---- textures and compositing weights at half resolution
@@ -516,22 +507,20 @@ class SceneContent:
         # read there, see _cloud_geometry; near the camera the texture is magnified far more than that)
         cx, cy, optical, seen, w_far = clouds[0]
         lv, lv_far = clouds[3], clouds[4]
-        rows = _mask_rows(clouds[6])  # rows wholly at the far level skip the near one
+        rows = clouds[6]  # rows wholly at the far level skip the near one
         dens, rad = self._cloud_density_pad, self._cloud_radiance_pad
         rho, L_c = _lookup((dens[lv], rad[lv]), cx, cy, rows)
-        far_rows = _mask_rows(clouds[5])
+        far_rows = clouds[5]
+        rho_far = L_c_far = self._empty
         if lv_far != lv and far_rows.stop > far_rows.start:
             far_levels = (dens[lv_far], rad[lv_far])
             rho_far, L_c_far = _lookup(far_levels, cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
-            rho += w_far * (rho_far - rho)
-            L_c += w_far * (L_c_far - L_c)
-        # alpha = 1 - exp(-(optical rho)), a_seen = alpha seen, written into the buffers they consume
-        alpha = np.multiply(optical, rho, out=rho)
-        np.negative(alpha, out=alpha)
+        # rho, L_c += w_far (far - near); alpha = 1 - exp(-(optical rho)) (numpy's exp: the compiled one
+        # rounds differently), a_seen = alpha seen, lit = a_seen L_c, written into the buffers they consume
+        alpha = layer_blend(rho, L_c, rho_far, L_c_far, w_far, optical)
         np.exp(alpha, out=alpha)
-        np.subtract(f32(1.0), alpha, out=alpha)
-        a_seen = np.multiply(alpha, seen, out=seen)
-        lit = np.multiply(a_seen, L_c, out=L_c)
+        layer_light(alpha, seen, L_c)
+        a_seen, lit = seen, L_c
         # L = L_below + a_seen (L_c - L_below) = L_below (1 - a_seen) + a_seen L_c, each weight upsampled
         # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults),
         # over the band's pixel rows only: the others depend only on coarse rows where the weights are 0
@@ -549,19 +538,20 @@ class SceneContent:
         alpha_whole[band] = alpha
         return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W)))
 
-    def _cloud_band(self, p, dd, ground_d: float) -> slice:
+    def _cloud_band(self, p, dir_rows, ground_d: float) -> slice:
         """The coarse rows the cloud geometry is computed on: those whose rays can meet the layer (pointing
-        up to a layer above the camera, down to one below), grown by 4 rows each way (the two pyrUp steps
-        read 2; the band's first row a multiple of 3, as _mip_map's every-third-sample quantile reads).
-        Outside them the layer is not hit: no opacity, depth to the ground, the same as computed whole."""
+        up to a layer above the camera, down to one below: ``dir_rows`` from ``kernels.plane_rays``), grown
+        by 4 rows each way (the two pyrUp steps read 2; the band's first row a multiple of 3, as _mip_map's
+        every-third-sample quantile reads).  Outside them the layer is not hit: no opacity, depth to the
+        ground, the same as computed whole."""
         h_c = ground_d - self.config.clouds.base_altitude_m - float(p[2])  # layer below the camera: > 0
         if h_c == 0.0:
             return slice(0, 0)
-        rows = np.flatnonzero(((dd > 0.0) if h_c > 0.0 else (dd < 0.0)).any(axis=1))
-        if rows.size == 0:
+        first, last = (int(dir_rows[0]), int(dir_rows[1])) if h_c > 0.0 else (int(dir_rows[2]), int(dir_rows[3]))
+        if first < 0:
             return slice(0, 0)
-        start = max(int(rows[0]) - 4, 0)
-        return slice(start - start % 3, min(int(rows[-1]) + 5, self._hc))
+        start = max(first - 4, 0)
+        return slice(start - start % 3, min(last + 5, self._hc))
 
     def _terrain_geometry(self, p, dn, de, t_g, r_g, on_ground, h_g, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), tau(r_g), far weight]`` and the two mip levels.
@@ -573,39 +563,41 @@ class SceneContent:
         tex = self.terrain
         foot_m = r_g * r_g / f32(self._f_px * max(h_g, 1e-3))
         t = np.where(on_ground, t_g, f32(0.0))
-        gx, gy, w_far, lv, lv_far = _mip_map(foot_m, on_ground, t, p, dn, de, tex.texel_m, tex.levels)
+        samples = foot_m[::3, ::3][on_ground[::3, ::3]]
+        gx, gy, w_far, lv, lv_far = _mip_map(foot_m, samples, t, p, dn, de, 0, tex.texel_m, tex.levels)
         tau = np.where(on_ground, np.exp(f32(-ext_per_m) * r_g), f32(0.0))
         return [gx, gy, tau, w_far], lv, lv_far, on_ground & (w_far < 1.0), w_far > 0.0
 
-    def _cloud_geometry(self, p, dn, de, dd, inv_dd, r_g, band, ground_d, ext_per_m):
+    def _cloud_geometry(self, p, dn, de, inv_dd, r_g, band, ground_d, ext_per_m):
         """Coarse-grid channels ``[x, y (texels of the near level), optical depth per unit density, how much
-        is seen, far weight]``, the hit mask, the range to the layer, the near and far mip levels (chosen as
-        for the terrain) and where the far level is used, over the coarse rows ``band`` (the arrays given are
-        those rows).
+        is seen, far weight]`` over the coarse rows ``band``, the hit mask, the depth (the range to the layer
+        where hit, else the ground's), the near and far mip levels (chosen as for the terrain), and the rows
+        where the far level and the near level are read (slices of the band's rows).
 
         ``seen = tau(r_c) * fade``: the cloud's radiance replaces the background by ``alpha seen``, the
         atmosphere in front of it radiating like the clear sky along that ray (far clouds fade into the
-        horizon haze); ``fade`` goes from 1 to 0 over the last fifth of ``max_range_m``."""
+        horizon haze); ``fade`` goes from 1 to 0 over the last fifth of ``max_range_m``.  Compiled passes
+        (``kernels.layer_rays``, ``surface_maps``, ``layer_weights``) around numpy's log2 and exp."""
         f32 = np.float32
         cfg = self.config.clouds
         tex = self.clouds
         h_c = ground_d - cfg.base_altitude_m - float(p[2])  # layer below the camera: > 0
-        rnorm = self._rnorm[band]
-        t_c = f32(h_c) * inv_dd
-        r_c = t_c * rnorm
-        hit = (t_c > 0.0) & (r_c < f32(cfg.max_range_m)) & (r_c < r_g)
-        t = np.where(hit, t_c, f32(0.0))
         # the footprint of one coarse-grid sample (COARSE_STEP px, the layer is looked up there): a pixel's
         # r^2 / (f h) times the samples' spacing in half-resolution pixels, where the mip thresholds hold
-        foot_m = r_c * r_c / f32(self._f_px * max(abs(h_c), 1e-3))
-        cx, cy, w_far, lv, lv_far = _mip_map(foot_m, hit, t, p, dn, de, tex.texel_m, tex.density_levels)
-        w_far = np.where(hit, w_far, f32(0.0))
+        foot_scale = self._f_px * max(abs(h_c), 1e-3)
+        t, r_c, hit, foot_m, samples = layer_rays(
+            h_c, inv_dd, self._rnorm, r_g, band.start, band.stop, cfg.max_range_m, foot_scale
+        )
+        cx, cy, w_far, lv, lv_far = _mip_map(foot_m, samples, t, p, dn, de, band.start, tex.texel_m, tex.density_levels)
+        attenuation = np.exp(np.multiply(r_c, f32(-ext_per_m), out=t), out=t)  # t is spent
         tau_v = f32(cfg.optical_depth_per_km * cfg.thickness_m * 1e-3)
-        optical = np.where(hit, tau_v * np.minimum(rnorm * np.abs(inv_dd), f32(1e3)), f32(0.0))
-        fade = np.clip((f32(cfg.max_range_m) - r_c) / f32(0.2 * cfg.max_range_m), 0.0, 1.0)
-        seen = np.where(hit, np.exp(f32(-ext_per_m) * r_c) * fade, f32(0.0))
-        near = hit & (w_far < 1.0)
-        return [cx, cy, optical, seen, w_far], hit, np.where(hit, r_c, f32(FAR_M)), lv, lv_far, w_far > 0.0, near
+        w_far, optical, seen, depth, rows = layer_weights(
+            hit, w_far, attenuation, r_c, r_g, self._rnorm, inv_dd, band.start, tau_v, cfg.max_range_m,
+            0.2 * cfg.max_range_m,
+        )  # fmt: skip
+        near_rows = slice(int(rows[0]), int(rows[1]) + 1) if rows[0] >= 0 else slice(0, 0)
+        far_rows = slice(int(rows[2]), int(rows[3]) + 1) if rows[2] >= 0 else slice(0, 0)
+        return [cx, cy, optical, seen, w_far], hit, depth, lv, lv_far, far_rows, near_rows
 
     # ------------------------------------------------------------------ objects on the image
 
