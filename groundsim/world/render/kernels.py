@@ -537,3 +537,36 @@ def layer_light(transmission, seen, L_c):
             s = a * seen[i, j]
             seen[i, j] = s
             L_c[i, j] = s * L_c[i, j]
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def peak_box(delta, gain, fraction):
+    """``(peak, i0, i1, j0, j1)`` of ``|delta gain|`` (float32, ``gain`` rounded to float32 as numpy's
+    in-place multiply rounds it): its maximum and the rows ``i0 .. i1 - 1``, columns ``j0 .. j1 - 1`` of the
+    values at least ``fraction`` of it (the threshold rounded to float32 as numpy's comparison rounds it);
+    the box is -1s when the peak is not > 0 (``SceneContent._label``)."""
+    g = np.float32(abs(gain))
+    scale = gain != 1.0
+    h, w = delta.shape
+    peak = np.float32(0.0)
+    for i in range(h):
+        for j in range(w):
+            m = abs(delta[i, j])
+            if scale:
+                m = m * g
+            peak = max(peak, m)
+    if not peak > np.float32(0.0):
+        return np.float64(peak), -1, -1, -1, -1
+    thr = np.float32(fraction * np.float64(peak))
+    i0, i1, j0, j1 = h, -1, w, -1
+    for i in range(h):
+        for j in range(w):
+            m = abs(delta[i, j])
+            if scale:
+                m = m * g
+            if m >= thr:
+                i0 = min(i0, i)
+                i1 = max(i1, i)
+                j0 = min(j0, j)
+                j1 = max(j1, j)
+    return np.float64(peak), i0, i1 + 1, j0, j1 + 1

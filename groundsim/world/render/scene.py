@@ -73,6 +73,7 @@ from groundsim.world.render.kernels import (
     layer_light,
     layer_rays,
     layer_weights,
+    peak_box,
     plane_rays,
     surface_maps,
 )
@@ -632,18 +633,10 @@ class SceneContent:
         box, contrast = None, 0.0
         if roi is not None:
             rows, cols, delta, _ = roi
-            mag = np.abs(delta)
-            if o.gain != 1.0:
-                mag *= abs(o.gain)
-            peak = float(mag.max())
+            # the peak of |delta gain| and the box of the values at least BOX_FRACTION of it, one compiled pass
+            peak, i0, i1, j0, j1 = peak_box(delta, float(o.gain), BOX_FRACTION)
             if peak > 0.0:
-                ii, jj = np.nonzero(mag >= BOX_FRACTION * peak)
-                box = (
-                    int(cols.start + jj.min()),
-                    int(rows.start + ii.min()),
-                    int(cols.start + jj.max() + 1),
-                    int(rows.start + ii.max() + 1),
-                )
+                box = (cols.start + j0, rows.start + i0, cols.start + j1, rows.start + i1)
                 contrast = peak / self.netd_radiance if self.netd_radiance > 0.0 else math.inf
         if not (0.0 <= u < self._W and 0.0 <= v < self._H):
             return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
