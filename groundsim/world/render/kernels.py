@@ -107,10 +107,12 @@ def nearest_parts(o_b, d_b, box_c, box_h, ell_c, ell_h):
 
 
 @njit(cache=True, nogil=True)
-def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, part_value, ref, ss, r0, c0, out):
-    """Cast the rays of sub-sample rows ``r0 + i`` and columns ``c0 + j`` at the parts; where a ray meets
-    one, ``out[r0 + i, c0 + j] = part_value[nearest] - ref[(r0 + i) // ss, (c0 + j) // ss]`` (float64;
-    ``out`` is left alone elsewhere).  Returns how many rays met a part.
+def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, L_emit, L_seen, ref, ss, r0, c0, shape):
+    """Cast the rays of sub-sample rows ``r0 + i`` and columns ``c0 + j`` at the parts: ``(out, hits)``,
+    ``out`` (``shape``, float64) ``part_value[nearest] - ref[(r0 + i) // ss, (c0 + j) // ss]`` where a ray
+    meets a part and 0 elsewhere, ``hits`` how many rays met one.  ``part_value = ((tau L_emit + (1 - tau)
+    L_air) - L_min) grey_per_L`` from ``L_seen = (tau, L_air, L_min, grey_per_L)`` (numpy's order), the
+    part's radiance through the atmosphere in the units of ``ref``.
 
     Rays in the body frame from ``o_b`` (3, float32) along ``float32(R_bc[:, 0] x + (R_bc[:, 1] y +
     R_bc[:, 2]))``, ``x``, ``y`` the normalised image coordinates of the sub-samples (float64, (rows, cols);
@@ -118,6 +120,11 @@ def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, part_value, ref,
     Parts as in :func:`nearest_parts` (``part_value`` in that order).  ``ref`` (float32) is the background
     of each sub-sample's pixel."""
     oc, oe = _relative_origins(o_b, box_c, ell_c, ell_h)
+    tau, L_air, L_min, grey_per_L = L_seen[0], L_seen[1], L_seen[2], L_seen[3]
+    part_value = np.empty(L_emit.size)
+    for p in range(L_emit.size):
+        part_value[p] = ((tau * L_emit[p] + (1.0 - tau) * L_air) - L_min) * grey_per_L
+    out = np.zeros((shape[0], shape[1]))
     n_rows = y.shape[0]
     n_cols = x.shape[1]
     x_rows = x.shape[0] > 1
@@ -136,7 +143,34 @@ def cast_part_rays(R_bc, o_b, x, y, box_c, box_h, ell_c, ell_h, part_value, ref,
             if part >= 0:
                 out[r0 + i, c0 + j] = part_value[part] - np.float64(ref[row, (c0 + j) // ss])
                 n_hit += 1
-    return n_hit
+    return out, n_hit
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def project_box(corners_cam, fx, fy, cx, cy, near_m):
+    """Camera-frame points ``(n, 3)`` (an object's bounding-box corners) through the pinhole without
+    distortion (``f x / z + c``, as ``parts.project_in_front``): ``(z_max, z_min, u_min, u_max, v_min,
+    v_max)``; the image extents are NaN unless every point lies beyond ``near_m``."""
+    z_max = -np.inf
+    z_min = np.inf
+    for k in range(corners_cam.shape[0]):
+        z_max = max(z_max, corners_cam[k, 2])
+        z_min = min(z_min, corners_cam[k, 2])
+    if not z_min > near_m:
+        return z_max, z_min, np.nan, np.nan, np.nan, np.nan
+    u_min = np.inf
+    u_max = -np.inf
+    v_min = np.inf
+    v_max = -np.inf
+    for k in range(corners_cam.shape[0]):
+        z = corners_cam[k, 2]
+        u = fx * (corners_cam[k, 0] / z) + cx
+        v = fy * (corners_cam[k, 1] / z) + cy
+        u_min = min(u_min, u)
+        u_max = max(u_max, u)
+        v_min = min(v_min, v)
+        v_max = max(v_max, v)
+    return z_max, z_min, u_min, u_max, v_min, v_max
 
 
 # ---------------------------------------------------------------------------- the sky and ground table

@@ -10,7 +10,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import SceneBackground
-from groundsim.world.render.kernels import cast_part_rays, nearest_parts, splat_moments, splat_spot
+from groundsim.world.render.kernels import cast_part_rays, nearest_parts, project_box, splat_moments, splat_spot
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.settings import IrSettings
 from onboard.core.frames import PinholeIntrinsics
@@ -98,6 +98,7 @@ class PartRaster:
         self._box_idx = np.flatnonzero(is_box)
         self._ell_idx = np.flatnonzero(~is_box)
         self._part_order = np.concatenate([self._box_idx, self._ell_idx])  # the kernels' part numbers
+        self._part_L_emit_cast = self._part_L_emit[self._part_order]
         self._box_c, self._box_h = centre[is_box].astype(np.float32), half[is_box].astype(np.float32)
         self._ell_c, self._ell_h = centre[~is_box], half[~is_box].astype(np.float32)
         lo = (centre - half).min(axis=0)
@@ -160,21 +161,27 @@ class PartRaster:
             if z_near > NEAR_M and 2.0 * self._radius_b * self._f_max_px <= self.splat_max_px * z_near:
                 return self._splat(bg, t_c, R_nc, R_nt, occluder)
         corners_cam = (p_t + self.bbox_corners_b @ R_nt.T - p_cam) @ R_nc
-        z = corners_cam[:, 2]
-        if z.max() <= NEAR_M:
+        if distorted:
+            z = corners_cam[:, 2]
+            z_max, z_min = float(z.max()), float(z.min())
+            if z_min > NEAR_M:
+                cu, cv = project_in_front(intr, corners_cam, distorted)
+                uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
+        else:  # one compiled pass: project_in_front's pixels and their extents
+            z_max, z_min, *uv = project_box(corners_cam, intr.fx_px, intr.fy_px, intr.cx_px, intr.cy_px, NEAR_M)
+        if z_max <= NEAR_M:
             return None
         box_uv = None  # the projected bounding box (u0, u1, v0, v1), px, when the ROI is drawn around it
-        if z.min() <= NEAR_M:
+        if z_min <= NEAR_M:
             i0, i1, j0, j1 = 0, H, 0, W
         else:
-            cu, cv = project_in_front(intr, corners_cam, distorted)
             if not distorted:
-                box_uv = (float(cu.min()), float(cu.max()), float(cv.min()), float(cv.max()))
+                box_uv = (uv[0], uv[1], uv[2], uv[3])
             pad = 1 if distorted else 0
-            j0 = max(int(math.floor(cu.min())) - pad, 0)
-            j1 = min(int(math.ceil(cu.max())) + pad, W)
-            i0 = max(int(math.floor(cv.min())) - pad, 0)
-            i1 = min(int(math.ceil(cv.max())) + pad, H)
+            j0 = max(int(math.floor(uv[0])) - pad, 0)
+            j1 = min(int(math.ceil(uv[1])) + pad, W)
+            i0 = max(int(math.floor(uv[2])) - pad, 0)
+            i1 = min(int(math.ceil(uv[3])) + pad, H)
             if j1 <= j0 or i1 <= i0:
                 return None
         ny, nx = i1 - i0, j1 - j0
@@ -203,7 +210,6 @@ class PartRaster:
         d_m = p_t - p_cam
         range_km = math.sqrt(d_m.dot(d_m)) * 1e-3  # np.linalg.norm's own sqrt(x . x), without its checks
         tau = math.exp(-s.extinction_per_km * range_km)
-        part_grey = ((tau * self._part_L_emit + (1.0 - tau) * self._L_air) - self._L_min) * self._grey_per_L
         # difference to the background per sub-sample (the background of the sub-sample's pixel)
         ref = bg[i0:i1, j0:j1]
         pad = int(math.ceil(3.0 * s.blur_sigma_px + 0.5))  # K reaches half a pixel + 3 sigma
@@ -221,8 +227,7 @@ class PartRaster:
                 behind = None  # the usual case: nothing in front, no opacity to read
         # each cast sub-sample minus its pixel's background, 0 where it meets nothing (float64); the rows
         # and columns outside [r0, r1) x [c0, c1) are not cast
-        delta = np.zeros((ny * ss, nx * ss))
-        n_hit = cast_part_rays(
+        delta, n_hit = cast_part_rays(
             R_bc,
             o_b,
             x,
@@ -231,12 +236,13 @@ class PartRaster:
             self._box_h,
             self._ell_c,
             self._ell_h,
-            part_grey[self._part_order],
+            self._part_L_emit_cast,
+            np.array((tau, self._L_air, self._L_min, self._grey_per_L)),
             np.ascontiguousarray(ref),
             ss,
             r0,
             c0,
-            delta,
+            (ny * ss, nx * ss),
         )  # fmt: skip  (one compiled signature: the background's window is a strided view)
         if n_hit == 0:
             return None
