@@ -266,14 +266,32 @@ def quantise_grey(radiance, L_min, grey_per_L, noise, full_scale, out):
 
 
 @njit(cache=True, nogil=True)
-def splat_moments(t_c, R_cb, centre, half, is_box, L_emit, visible, tau, L_air, L_min, grey_per_L, intr, bg, sigma_px):
+def splat_moments(t_c, R_cb, R_nc, R_nt, centre, half, is_box, L_emit, dirs, fractions, L_seen, intr, bg, sigma_px):
     """The parts of a small object projected through the pinhole's Jacobian (``PartRaster._splat``):
     ``(parts, u_c, v_c, sig_u, sig_v)``, ``parts`` (P, 6) rows of area (px^2, times the part's visible
     fraction), grey, u, v, var_u, var_v; the spot's centre and spreads (PSF added) from the parts weighted
     by ``|area (grey - bg)|`` at the first part's pixel.  ``parts`` is empty when a part lies behind the
     camera.  ``t_c`` the object's centre in the camera frame, ``R_cb`` camera from body, ``intr`` (fx, fy,
-    cx, cy); float64 scalar arithmetic in the order of the Python it replaced."""
+    cx, cy); float64 scalar arithmetic in the order of the Python it replaced.  The parts' visible fractions:
+    the row of ``fractions`` whose direction in ``dirs`` is nearest the view direction in the body frame,
+    ``R_nt^T R_nc t_c`` (it only picks a row: sums in loop order, not numpy's matmul order).  ``L_seen`` =
+    ``(tau, L_air, L_min, grey_per_L)``: a part's grey is ``((tau L + (1 - tau) L_air) - L_min) grey_per_L``."""
     fx, fy, cx, cy = intr[0], intr[1], intr[2], intr[3]
+    tau, L_air, L_min, grey_per_L = L_seen[0], L_seen[1], L_seen[2], L_seen[3]
+    best = -np.inf
+    row = 0
+    w0 = R_nc[0, 0] * t_c[0] + R_nc[0, 1] * t_c[1] + R_nc[0, 2] * t_c[2]
+    w1 = R_nc[1, 0] * t_c[0] + R_nc[1, 1] * t_c[1] + R_nc[1, 2] * t_c[2]
+    w2 = R_nc[2, 0] * t_c[0] + R_nc[2, 1] * t_c[1] + R_nc[2, 2] * t_c[2]
+    v0 = R_nt[0, 0] * w0 + R_nt[1, 0] * w1 + R_nt[2, 0] * w2
+    v1 = R_nt[0, 1] * w0 + R_nt[1, 1] * w1 + R_nt[2, 1] * w2
+    v2 = R_nt[0, 2] * w0 + R_nt[1, 2] * w1 + R_nt[2, 2] * w2
+    for k in range(dirs.shape[0]):
+        c = dirs[k, 0] * v0 + dirs[k, 1] * v1 + dirs[k, 2] * v2
+        if c > best:
+            best = c
+            row = k
+    visible = fractions[row]
     n = centre.shape[0]
     parts = np.empty((n, 6))
     for p in range(n):

@@ -295,18 +295,15 @@ class PartRaster:
         H, W = self._H, self._W
         range_m = math.sqrt(t_c[0] ** 2 + t_c[1] ** 2 + t_c[2] ** 2)
         tau = math.exp(-s.extinction_per_km * range_m * 1e-3)
-        # the view direction in the body frame picks the parts' visible fractions (nearest tabulated one)
         if self._splat_table is None:
             self._splat_table = self._visible_fractions(self._parts)
-        dirs, fractions = self._splat_table
-        view_b = np.dot(R_nt.T, R_nc @ np.array(t_c))
-        visible = fractions[int(np.argmax(dirs @ view_b))]
-        # the parts' areas, grey levels, positions and spreads, and the spot's centre and spread: the parts
-        # weighted by |area x contrast| against the background near the object's projected centre (one
-        # background read; the weights only place and shape the spot)
+        # the parts' areas (times their visible fractions from the tabulated view direction nearest this
+        # one), grey levels, positions and spreads, and the spot's centre and spread: the parts weighted by
+        # |area x contrast| against the background near the object's projected centre (one background read;
+        # the weights only place and shape the spot)
         parts, u_c, v_c, sig_u, sig_v = splat_moments(
-            np.array(t_c), R_nc.T @ R_nt, *self._splat_parts, visible, tau, self._L_air, self._L_min,
-            self._grey_per_L, self._intr_array, bg, s.blur_sigma_px,
+            np.array(t_c), R_nc.T @ R_nt, R_nc, R_nt, *self._splat_parts, *self._splat_table,
+            np.array((tau, self._L_air, self._L_min, self._grey_per_L)), self._intr_array, bg, s.blur_sigma_px,
         )  # fmt: skip
         if parts.shape[0] == 0:  # a part behind the camera
             return None

@@ -239,8 +239,10 @@ def _mip_map(foot_m, samples, t, p, dn, de, r0: int, texel_m: float, levels) -> 
 
 def _rot_z(yaw_rad: float, pitch_rad: float = 0.0) -> np.ndarray:
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
     Rz = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
+    if pitch_rad == 0.0:  # the birds, every frame: Rz @ I is Rz to the bit (each entry one product by 1)
+        return Rz
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
     Ry = np.array([[cp, 0.0, sp], [0.0, 1.0, 0.0], [-sp, 0.0, cp]])
     return Rz @ Ry
 
