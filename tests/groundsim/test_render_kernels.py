@@ -1,0 +1,135 @@
+"""The renderer's compiled loops (groundsim.world.render.kernels) against the numpy and OpenCV formulations
+they replaced, bit for bit: the ray cast's nearest part (slab test and scaled-sphere quadratic in numpy
+float32, written out here as the reference), the quantisation against cv2.add's rounding and saturation,
+the cloud composite and the grey-to-radiance map against numpy's passes.  Byte identity of whole frames
+is checked by the P1 goldens (tests/groundsim/test_scene.py) and the reference scenes' determinism tests."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundsim.world.render import IrSettings, PartRaster, TargetPart
+from groundsim.world.render.kernels import cast_part_rays, composite_band, quantise_grey, scale_offset
+from onboard.core.frames import PinholeIntrinsics
+
+INTR = PinholeIntrinsics.vue_pro_640()
+PARTS = (
+    TargetPart("body", "box", (0.0, 0.0, 0.0), (0.075, 0.075, 0.02), 305.0, 0.9),
+    TargetPart("arm", "box", (0.0, 0.0, 0.0), (0.16, 0.012, 0.008), 303.0, 0.9),
+    TargetPart("motor", "ellipsoid", (0.11, 0.11, -0.01), (0.014, 0.014, 0.016), 330.0, 0.8),
+    TargetPart("dome", "ellipsoid", (0.0, 0.0, -0.03), (0.05, 0.05, 0.03), 310.0, 0.9),
+)
+
+
+def numpy_nearest(raster: PartRaster, o_b: np.ndarray, d_b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The numpy float32 formulation the kernel replaced: ``(t, part)`` per ray (inf, -1: none), parts
+    numbered in ``PARTS`` order, ties to the boxes first, each in index order."""
+    f32 = np.float32
+    c = np.array([p.center_frd_m for p in PARTS])
+    h = np.array([p.half_extent_m for p in PARTS])
+    is_box = np.array([p.shape == "box" for p in PARTS])
+    box_c, box_h = c[is_box].astype(f32), h[is_box].astype(f32)
+    ell_c, ell_h = c[~is_box], h[~is_box].astype(f32)
+    order = np.concatenate([np.flatnonzero(is_box), np.flatnonzero(~is_box)])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        inv = f32(1.0) / np.where(d_b == 0.0, f32(1e-30), d_b)
+        oc = o_b - box_c
+        lo = (-box_h - oc)[:, :, None] * inv[None]
+        hi = (box_h - oc)[:, :, None] * inv[None]
+        t_in = np.minimum(lo, hi).max(axis=1)
+        t_out = np.maximum(lo, hi).min(axis=1)
+        t_box = np.where((t_in <= t_out) & (t_out > 0.0), np.maximum(t_in, f32(0.0)), f32(np.inf))
+        oe = ((o_b.astype(float) - ell_c) / ell_h).astype(f32)
+        de = d_b[None] / ell_h[:, :, None]
+        d0, d1, d2 = de[:, 0], de[:, 1], de[:, 2]
+        o0, o1, o2 = oe[:, 0, None], oe[:, 1, None], oe[:, 2, None]
+        a = d0 * d0 + d1 * d1 + d2 * d2
+        b = d0 * o0 + d1 * o1 + d2 * o2
+        cross = (o1 * d2 - o2 * d1) ** 2 + (o2 * d0 - o0 * d2) ** 2 + (o0 * d1 - o1 * d0) ** 2
+        disc = a - cross
+        sq = np.sqrt(np.maximum(disc, f32(0.0)))
+        hit = (disc >= 0.0) & ((sq - b) / a > 0.0)
+        t_ell = np.where(hit, np.maximum(-(b + sq) / a, f32(0.0)), f32(np.inf))
+    t_all = np.concatenate([t_box, t_ell])
+    t = t_all.min(axis=0)
+    return t, np.where(np.isfinite(t), order[t_all.argmin(axis=0)], -1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    origin=st.tuples(*[st.floats(-400.0, 400.0) for _ in range(3)]),
+    aim=st.tuples(*[st.floats(-0.2, 0.2) for _ in range(3)]),
+    seed=st.integers(0, 2**31),
+)
+def test_nearest_part_is_the_numpy_formulation_bit_for_bit(origin, aim, seed):
+    raster = PartRaster(INTR, IrSettings(), PARTS, 0.0, 0.0, 1.0)
+    o_b = np.array(origin, np.float32)
+    # rays from the origin towards points scattered around `aim` (most meet a part, some graze or miss)
+    rng = np.random.default_rng(seed)
+    targets = np.array(aim) + rng.normal(0.0, 0.08, (400, 3))
+    d_b = (targets - o_b).T.astype(np.float32)
+    d_b[:, :4] = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]]).T  # axis rays
+    t, part = raster.intersect(o_b, d_b)
+    t_ref, part_ref = numpy_nearest(raster, o_b, d_b)
+    assert np.array_equal(t, t_ref)
+    assert np.array_equal(part, part_ref)
+
+
+def test_cast_part_rays_writes_part_minus_background_where_a_ray_meets_a_part():
+    raster = PartRaster(INTR, IrSettings(), PARTS, 0.0, 0.0, 1.0)
+    R_bc = np.eye(3)
+    o_b = np.array([0.0, 0.0, -20.0], np.float32)  # 20 m in front of the object along its body z
+    ss, r0, c0 = 4, 2, 3
+    x = (np.linspace(-0.012, 0.012, 40))[None, :]
+    y = (np.linspace(-0.012, 0.012, 36))[:, None]
+    ref = np.arange(10 * 11, dtype=np.float32).reshape(10, 11)  # (38 // 4 + 1, 43 // 4 + 1) pixels
+    L_emit = np.array([10.0, 20.0, 30.0, 40.0])  # in the kernels' part order: boxes, then ellipsoids
+    out, hits = cast_part_rays(
+        R_bc, o_b, x, y, raster._box_c, raster._box_h, raster._ell_c, raster._ell_h, L_emit,
+        np.array([1.0, 0.0, 0.0, 1.0]), ref, ss, r0, c0, (40, 44),
+    )  # fmt: skip
+    d_b = np.stack(np.broadcast_arrays(x, y, np.ones_like(y) * np.ones_like(x))).reshape(3, -1).astype(np.float32)
+    t_ref, part_ref = numpy_nearest(raster, o_b, d_b)
+    part_ref = part_ref.reshape(36, 40)
+    assert hits == int(np.count_nonzero(part_ref >= 0)) and 0 < hits < part_ref.size
+    kernel_index = np.argsort(raster._part_order)  # PARTS index -> the kernels' part number
+    for i, j in zip(*np.nonzero(part_ref >= 0)):
+        want = L_emit[kernel_index[part_ref[i, j]]] - float(ref[(r0 + i) // ss, (c0 + j) // ss])
+        assert out[r0 + i, c0 + j] == want
+    untouched = np.ones_like(out, bool)
+    untouched[r0 : r0 + 36, c0 : c0 + 40] = part_ref < 0
+    assert not out[untouched].any()
+
+
+def test_quantise_grey_is_cv2_adds_rounding_and_saturation():
+    rng = np.random.default_rng(3)
+    for full_scale, dtype, cv_type in ((255, np.uint8, cv2.CV_8U), (65535, np.uint16, cv2.CV_16U)):
+        L_min, grey_per_L = np.float32(1.7), np.float32(37.3)
+        L = (rng.uniform(-0.2, 1.2, (64, 80)) * full_scale / grey_per_L + L_min).astype(np.float32)
+        L.ravel()[:500] = (np.round((L.ravel()[:500] - L_min) * grey_per_L) + 0.5) / grey_per_L + L_min  # ties
+        L.ravel()[500:506] = [np.nan, np.inf, -np.inf, 3e9, -3e9, 1e30]
+        noise = (rng.standard_normal((64, 80)) * 0.3).astype(np.float32)
+        out = np.empty((64, 80), dtype)
+        quantise_grey(L, L_min, grey_per_L, noise, full_scale, out)
+        want = cv2.add((L - L_min) * grey_per_L, noise, dtype=cv_type)
+        assert np.array_equal(out, want), full_scale
+
+
+def test_composite_and_scale_offset_are_numpys_passes():
+    rng = np.random.default_rng(4)
+    below = rng.uniform(1.0, 50.0, (40, 30)).astype(np.float32)
+    a_up = rng.uniform(0.0, 1.0, (60, 30)).astype(np.float32)
+    lit_up = rng.uniform(0.0, 30.0, (60, 30)).astype(np.float32)
+    out = np.empty_like(below)
+    composite_band(below, a_up, lit_up, 8, 31, 5, out)
+    want = below.copy()
+    seg = a_up[5 : 5 + 23] * below[8:31]
+    want[8:31] = (below[8:31] - seg) + lit_up[5 : 5 + 23]
+    assert np.array_equal(out, want)
+    grey = rng.uniform(0.0, 255.0, (40, 30)).astype(np.float32)
+    want = grey * np.float32(0.0173)
+    want += np.float32(2.5)
+    assert np.array_equal(scale_offset(grey, np.float32(0.0173), np.float32(2.5)), want)
