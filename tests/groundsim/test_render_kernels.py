@@ -1,7 +1,8 @@
 """The renderer's compiled loops (groundsim.world.render.kernels) against the numpy and OpenCV formulations
 they replaced, bit for bit: the ray cast's nearest part (slab test and scaled-sphere quadratic in numpy
 float32, written out here as the reference), the quantisation against cv2.add's rounding and saturation,
-the cloud composite and the grey-to-radiance map against numpy's passes.  Byte identity of whole frames
+the cloud composite and the grey-to-radiance map against numpy's passes; and the coarse-grid bound that
+spares the objects' depth windows (``PyrUpImage.lower_bound``) against the windows.  Byte identity of whole frames
 is checked by the P1 goldens (tests/groundsim/test_scene.py) and the reference scenes' determinism tests."""
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.world.render import IrSettings, PartRaster, TargetPart
+from groundsim.world.render.background import PyrUpImage, SceneBackground
 from groundsim.world.render.kernels import cast_part_rays, composite_band, quantise_grey, scale_offset
 from onboard.core.frames import PinholeIntrinsics
 
@@ -133,3 +135,30 @@ def test_composite_and_scale_offset_are_numpys_passes():
     want = grey * np.float32(0.0173)
     want += np.float32(2.5)
     assert np.array_equal(scale_offset(grey, np.float32(0.0173), np.float32(2.5)), want)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    far=st.booleans(),
+    i0=st.integers(0, 60),
+    j0=st.integers(0, 80),
+    h=st.integers(1, 12),
+    w=st.integers(1, 12),
+)
+def test_pyrup_lower_bound_is_below_every_pixel_of_the_window(seed, far, i0, j0, h, w):
+    """The coarse-grid bound that spares the objects' depth windows: never above a pixel the window holds
+    (ranges of 100 m - 5 km, and the far value 1e7 m beside them, as the cloud depth has)."""
+    rng = np.random.default_rng(seed)
+    coarse = rng.uniform(100.0, 5000.0, (18, 22)).astype(np.float32)
+    if far:
+        coarse[rng.uniform(size=coarse.shape) < 0.3] = np.float32(1e7)
+    img = PyrUpImage(coarse, (70, 86))
+    rows, cols = slice(i0, min(i0 + h, 70)), slice(j0, min(j0 + w, 86))
+    bound = img.lower_bound(rows, cols)
+    window = img.window(rows, cols)
+    assert bound <= float(window.min())
+    assert np.array_equal(window, PyrUpImage(coarse, (70, 86)).full()[rows, cols])
+    background = SceneBackground(np.zeros((70, 86), np.float32), np.zeros((70, 86), np.float32), img, img)
+    assert background.nothing_nearer(rows, cols, bound)
+    assert not background.nothing_nearer(rows, cols, float(window.min()) + 1.0)

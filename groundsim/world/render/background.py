@@ -28,6 +28,7 @@ class PyrUpImage:
     MARGIN = 2  # coarse samples a pixel depends on, each way
     SPARE = 1  # ... and this many more taken up around each window, for the windows that follow
     MAX_KEPT = 32  # windows kept per image (an image lives one frame; a frame reads a few per object)
+    ROUNDING = 1e-5  # lower_bound's margin, of the largest magnitude: far above float32 rounding of the sums
 
     def __init__(self, coarse: np.ndarray, shape: tuple[int, int]):
         self.coarse = coarse
@@ -68,6 +69,24 @@ class PyrUpImage:
             self._kept.append((r0, r1, c0, c1, held))
         return held[i0 - r0 : i1 - r0, j0 - c0 : j1 - c0]
 
+    def lower_bound(self, rows: slice, cols: slice) -> float:
+        """A value no pixel of the window falls below, without taking it up: the least coarse sample it
+        depends on (within MARGIN of its own), less ``ROUNDING`` of the largest magnitude there (each
+        ``pyrUp`` step's weights are non-negative and sum to 1, so a pixel is a convex combination of those
+        samples up to float32 rounding of a few sums).  Exact (the window's minimum) once taken up whole."""
+        if self._full is not None:
+            return float(self._full[rows, cols].min())
+        H, W = self.shape
+        i0, i1, _ = rows.indices(H)
+        j0, j1, _ = cols.indices(W)
+        hc, wc = self.coarse.shape
+        m = self.MARGIN
+        region = self.coarse[
+            max(i0 // 4 - m, 0) : min(-(-i1 // 4) + m, hc), max(j0 // 4 - m, 0) : min(-(-j1 // 4) + m, wc)
+        ]
+        lo, hi = float(region.min()), float(region.max())
+        return lo - self.ROUNDING * max(abs(lo), abs(hi))
+
 
 class SceneBackground:
     """A background with scene content, per pixel, (H, W) float32 each, as the renderer's hook takes it.
@@ -107,3 +126,8 @@ class SceneBackground:
 
     def alpha_window(self, rows: slice, cols: slice) -> np.ndarray:
         return self._alpha.window(rows, cols) if isinstance(self._alpha, PyrUpImage) else self._alpha[rows, cols]
+
+    def nothing_nearer(self, rows: slice, cols: slice, range_m: float) -> bool:
+        """True when certainly no pixel of the window has ``depth_m < range_m`` (decided on the coarse grid
+        by :meth:`PyrUpImage.lower_bound`, no ``pyrUp``); False when one may have (read the window)."""
+        return isinstance(self._depth, PyrUpImage) and self._depth.lower_bound(rows, cols) >= range_m

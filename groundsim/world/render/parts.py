@@ -216,7 +216,9 @@ class PartRaster:
         pi0, pi1 = max(i0 - pad, 0), min(i1 + pad, H)
         pj0, pj1 = max(j0 - pad, 0), min(j1 + pad, W)
         behind = None  # where a surface (a cloud) is nearer than the object, when anywhere in its region
-        if occluder is not None:
+        # (nothing_nearer: a coarse-grid bound that spares the window's two pyrUp steps when no cloud can be
+        # nearer; otherwise the window decides, pixel by pixel)
+        if occluder is not None and not occluder.nothing_nearer(slice(pi0, pi1), slice(pj0, pj1), range_km * 1e3):
             range_m = range_km * 1e3
             behind = occluder.depth_window(slice(pi0, pi1), slice(pj0, pj1)) < range_m
             if behind.any():
@@ -317,7 +319,7 @@ class PartRaster:
         ref = float(bg[ic, jc])
         if occluder is not None:
             px = slice(ic, ic + 1), slice(jc, jc + 1)
-            if occluder.depth_window(*px)[0, 0] < range_m:
+            if not occluder.nothing_nearer(*px, range_m) and occluder.depth_window(*px)[0, 0] < range_m:
                 ref = float(occluder.base_radiance[ic, jc])
                 gain = 1.0 - float(occluder.alpha_window(*px)[0, 0])
         # pixel j spans [j, j + 1]: box x Gaussian weights Phi((j + 1 - u_c) / sig) - Phi((j - u_c) / sig)

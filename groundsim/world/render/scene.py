@@ -644,7 +644,11 @@ class SceneContent:
             return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
         i, j = int(v), int(u)
         px = slice(i, i + 1), slice(j, j + 1)
-        behind = background.depth_window(*px)[0, 0] < range_m and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
+        behind = (
+            not background.nothing_nearer(*px, range_m)
+            and background.depth_window(*px)[0, 0] < range_m
+            and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
+        )
         vis = "occluded" if behind else "visible"
         return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned)
 
