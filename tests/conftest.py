@@ -20,6 +20,38 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+# `make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``).  The tests that start
+# processes (marked ``integration`` or ``slow``: closed-loop flights paced in real time, daemons, process pools)
+# all go to one worker, one after the other as in a serial run: two real-time flights at once on the two cores
+# would test the machine rather than the code (the flights of tests/test_integration.py alone take 1.5 cores),
+# and a session fixture they share (``recorded_p1_flight``) is made once.  The other worker meanwhile runs the
+# in-process tests, which a serial run made wait while a flight slept through its real time.
+PROCESS_GROUP = "processes"
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(items):
+    for item in items:
+        if item.get_closest_marker("integration") or item.get_closest_marker("slow"):
+            item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
+
+
+def pytest_configure(config):
+    """Refuse ``--dist loadgroup`` where it would not group: pytest-xdist (3.8) groups by appending ``@group`` to
+    each test's node id, which pytest 9.2 ignores (its node ids became structured): the process tests were then
+    spread over both workers, silently, real-time flights beside each other (pyproject.toml pins pytest < 9.2)."""
+    if config.getoption("dist", "no") == "loadgroup" and _pytest_version() >= (9, 2):
+        raise pytest.UsageError(
+            f"--dist loadgroup does not group tests under pytest {pytest.__version__} (pytest-xdist appends the "
+            "group to node ids, which pytest >= 9.2 ignores): install pyproject.toml's pytest (<9.2) or run without -n"
+        )
+
+
+def _pytest_version() -> tuple[int, int]:
+    major, minor = pytest.__version__.split(".")[:2]
+    return int(major), int(minor)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _one_blas_thread():
     """Every test in-process on one BLAS thread, as the daemon and the benchmarks run."""
