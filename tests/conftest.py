@@ -21,18 +21,20 @@ if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
 
 
 # `make test` runs the suite on two pytest-xdist workers (``-n 2 --dist loadgroup``).  The tests that start
-# processes (marked ``integration`` or ``slow``: closed-loop flights paced in real time, daemons, process pools)
-# all go to one worker, one after the other as in a serial run: two real-time flights at once on the two cores
-# would test the machine rather than the code (the flights of tests/test_integration.py alone take 1.5 cores),
-# and a session fixture they share (``recorded_p1_flight``) is made once.  The other worker meanwhile runs the
-# in-process tests, which a serial run made wait while a flight slept through its real time.
+# processes (marked ``integration``: closed-loop flights paced in real time, daemons, Dask clusters; or
+# ``multicore``: a process pool) all go to one worker, one after the other as in a serial run: two real-time
+# flights at once on the two cores would test the machine rather than the code (the flights of
+# tests/test_integration.py alone take 1.5 cores), and a session fixture they share (``recorded_p1_flight``) is
+# made once.  The other worker meanwhile runs the in-process tests (``slow`` ones too: one core, no real time),
+# which a serial run made wait while a flight slept through its real time.
 PROCESS_GROUP = "processes"
+PROCESS_MARKERS = ("integration", "multicore")
 
 
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(items):
     for item in items:
-        if item.get_closest_marker("integration") or item.get_closest_marker("slow"):
+        if any(item.get_closest_marker(m) for m in PROCESS_MARKERS):
             item.add_marker(pytest.mark.xdist_group(PROCESS_GROUP))
 
 

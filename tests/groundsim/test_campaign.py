@@ -233,6 +233,7 @@ def test_a_torn_last_line_is_skipped_and_rows_round_trip(tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.multicore
 def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp_path):
     # every dimension varied (scenario, noise, algorithm, geometry: 16 runs); one seed, as a second seed varies
     # nothing the pool could order or merge differently
