@@ -173,6 +173,15 @@ class SelectionHistory:
     is confident.  Such a selection is demoted (unobservable, with the range floor), and kept: a later
     selection must agree with it too, until the window has slid past their common frames.
 
+    Which of two such selections is wrong is unknown, and the wrong one is wrong over its whole window (it is a
+    basin of the solution, not a frame): every frame either holds stays *disputed* until the window has slid
+    past it.  A later selection that shares disputed frames is not confirmed by agreeing with what is kept
+    there (the other solution may have left the window already), so it is demoted too.  On the racetrack a
+    wrong-range selection over a window that held a turn and a leg conflicted with the right one before it; the
+    next selections, over the turn alone, fell into the same wrong basin (their warm start), agreed with it
+    once the right one's frames had left the window, and were published 30-40 % of range off at a 1 % range
+    sigma.
+
     The test is on range only (the bearings pin the rest of the position in both): at the frames both windows
     hold (sampled every ``sample_s``), ``(u^T (p_new - p_old))^2 > nsigma^2 u^T (P_new + P_old) u`` with ``u``
     the new solution's line of sight.  Both solutions share most of their bearings, so the difference's own
@@ -186,7 +195,10 @@ class SelectionHistory:
         self._t = np.zeros(0)
         self._p = np.zeros((0, 3))
         self._P = np.zeros((0, 3, 3))
+        self._disputed = np.zeros(0, dtype=bool)  # per kept row: two selections disagreed on this frame
         self.conflicts = 0
+        #: selections demoted for sharing disputed frames, though they agreed with the rows kept there
+        self.disputed = 0
         self.last_max_nsigma = math.nan
 
     def check(self, t_s, p_ned_m, cov_p_ned_m2, p_cam_ned_m, observable: bool) -> bool:
@@ -198,10 +210,11 @@ class SelectionHistory:
         P = np.asarray(cov_p_ned_m2, dtype=float)
         keep = self._t >= t[0]
         self._t, self._p, self._P = self._t[keep], self._p[keep], self._P[keep]
+        self._disputed = self._disputed[keep]
         i = np.searchsorted(t, self._t)
         i = np.minimum(i, t.size - 1)
         common = np.abs(t[i] - self._t) <= 1e-9  # the windows' rows are the same kept frames
-        agree = True
+        agree, conflict = True, False
         self.last_max_nsigma = math.nan
         if np.any(common):
             j = i[common]
@@ -211,9 +224,14 @@ class SelectionHistory:
             var = np.einsum("fi,fij,fj->f", u, P[j] + self._P[common], u)
             z = np.abs(d) / np.sqrt(np.maximum(var, 1e-30))
             self.last_max_nsigma = float(np.max(z))
-            agree = self.last_max_nsigma <= self.nsigma
-            if not agree:
+            conflict = self.last_max_nsigma > self.nsigma
+            agree = not conflict
+            if conflict:
                 self.conflicts += 1
+                self._disputed[:] = True  # every row kept within this window: the earlier selections' solutions
+            elif np.any(self._disputed[common]):
+                agree = False
+                self.disputed += 1
         if observable:
             # one row per sample_s bin of absolute time: the next window picks the same frames
             b = np.floor(t / self.sample_s)
@@ -221,9 +239,13 @@ class SelectionHistory:
             self._t = np.concatenate([self._t, t[first]])
             self._p = np.concatenate([self._p, p[first]])
             self._P = np.concatenate([self._P, P[first]])
+            # a conflicting selection's rows are disputed, all of them; not those of a selection demoted only for
+            # sharing disputed frames (a chain of those would not end while the window keeps sliding)
+            self._disputed = np.concatenate([self._disputed, np.full(int(first.sum()), conflict)])
         return agree
 
     def reset(self) -> None:
         self._t = np.zeros(0)
         self._p = np.zeros((0, 3))
         self._P = np.zeros((0, 3, 3))
+        self._disputed = np.zeros(0, dtype=bool)

@@ -51,10 +51,11 @@ confident).
 A target that changes motion model (a racetrack: legs and turns) defeats a selection made over one model
 (:mod:`onboard.estimation.consistency`): a CUSUM on the incremental updates' innovations
 (``manoeuvre_cusum_threshold``) calls the window unobservable and a selection due at once when the
-selected model stops explaining the bearings, and after a model held for half a window no window that
-holds the change's onset is called observable (one model over it can explain the bearings at the wrong
-range); a selection that puts the frames it shares with an observable selection before it at another
-range (``selection_consistency_nsigma``) is called unobservable.
+selected model stops explaining the bearings, and no window that holds the change's onset is called
+observable (one model over it can explain the bearings at the wrong range, however young the window); a
+selection that puts the frames it shares with an observable selection before it at another range
+(``selection_consistency_nsigma``) is called unobservable, and so is one that shares frames with either of
+two such selections (which of them is wrong is unknown) until the window has slid past them.
 """
 
 from __future__ import annotations
@@ -379,6 +380,7 @@ class SlidingWindowEstimator:
         self._manoeuvre_fired = False
         self._manoeuvre_t_s = -math.inf
         self._change_t_s = -math.inf  # the onset of the last change of motion model the innovations showed
+        self._provisional = False  # the model in use is the track's provisional first choice (PROVISIONAL_MODEL)
         self._selections = (
             SelectionHistory(c.selection_consistency_nsigma) if c.selection_consistency_nsigma > 0 else None
         )
@@ -649,6 +651,7 @@ class SlidingWindowEstimator:
         self._diag = (res.residual_rms_norm, res.adequacy_p, res.ambiguity)
         self._edge_pinned_at_selection = self._edge_pinned
         self._innovations.clear()
+        self._provisional = pending.provisional
         if pending.full_steps is not None:  # provisional: the full selection on its rows runs from the next frame
             self._pending = _PendingSelection(pending_t, full, obs, pending.full_steps)
             self._last_select_t = -math.inf  # (due at once for an estimator restored before it ends)
@@ -729,11 +732,11 @@ class SlidingWindowEstimator:
             self._manoeuvre_t_s = t
             self._window_observable = False
             log.debug("manoeuvre at %.2f s (onset %.2f s): unobservable, selection due", t, self._manoeuvre.onset_t_s)
-            if self._manoeuvre.onset_t_s - self._t[0] >= 0.5 * self.config.window_s:
-                # a change after a model held for half a window at least (a younger window's model is only
-                # inadequate, not misleading).  Half, not a whole window: a racetrack's changes in the track's
-                # first 20 s mislead as much; steady circling targets pay for it in observable positions
-                # (docs/performance.md, "Honest over minutes")
+            if not self._provisional:
+                # a change however young the window: a racetrack's leg of 4 s, then its turn, was explained by
+                # every model at 0.6-0.7 of the range over the windows that held both, at a 3-5 % range sigma
+                # (docs/performance.md, "Honest over minutes").  Not under the provisional choice, which compared
+                # no models: its misfit says nothing of a change
                 self._change_t_s = self._manoeuvre.onset_t_s
             self.stats["manoeuvres"] += 1
         H = H_window + Jr.T @ Jr

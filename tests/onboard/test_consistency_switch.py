@@ -86,6 +86,25 @@ def test_selections_agreeing_on_range_pass_and_a_jump_beyond_their_sigmas_does_n
     assert hist.check(*_window(e, 231.0, 5.0), observable=True) and np.isnan(hist.last_max_nsigma)
 
 
+def test_agreeing_with_a_disputed_selection_is_no_confirmation():
+    # the right selection, then a wrong-range one over a window that held a change (they conflict), then one
+    # over the change's second motion model alone in the wrong one's basin: the right one's frames have left
+    # the window, so it agrees with the wrong one alone, whose frames are disputed (all of them: which of the
+    # two is wrong is unknown, and the wrong one is wrong over its whole window)
+    rows = np.arange(0.0, 60.0, FRAME_S)
+    hist = SelectionHistory(nsigma=3.0)
+    assert hist.check(*_window(rows[rows < 20], 230.0, 5.0), observable=True)
+    assert not hist.check(*_window(rows[(rows >= 10) & (rows < 30)], 160.0, 3.0), observable=True)
+    assert hist.conflicts == 1
+    c = rows[(rows >= 21) & (rows < 41)]
+    assert not hist.check(*_window(c, 161.0, 3.0), observable=True)
+    assert hist.last_max_nsigma < 1.0 and hist.conflicts == 1 and hist.disputed == 1
+    # once the window has slid past the disputed frames, agreeing with the last one is agreeing again: the one
+    # demoted only for sharing disputed frames did not make its own frames disputed
+    d = rows[(rows >= 30) & (rows < 50)]
+    assert hist.check(*_window(d, 161.0, 3.0), observable=True) and hist.disputed == 1
+
+
 def test_unobservable_selections_are_compared_but_not_kept():
     rows = np.arange(0.0, 30.0, FRAME_S)
     hist = SelectionHistory()
@@ -110,35 +129,54 @@ def test_invalid_settings_are_refused():
         SelectionHistory(nsigma=0.0)
 
 
+def _racetrack_flight(seed: int, duration_s: float, config) -> tuple[dict, list[tuple[float, bool]]]:
+    """bench.honesty's switching flight ``seed`` (RTK) through the sliding window under ``config``: the estimator's
+    counters and the (time, observable) of every position beyond 3 sigma."""
+    from bench.honesty import FRAME_RATE_HZ, family_motions
+    from groundsim.evaluation.synth import estimator_noise_model, synthesize
+    from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+    from onboard.estimation.sliding import SlidingWindowEstimator
+
+    nc = load_noise_cases()["RTK"]
+    intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
+    obs_m, tgt_m = family_motions("switching", seed)
+    t = np.arange(0.0, duration_s, 1.0 / FRAME_RATE_HZ)
+    truth, obs = synthesize(obs_m, tgt_m, t, intr, nc, np.random.default_rng([seed, 7]))
+    sw = SlidingWindowEstimator(config, noise=estimator_noise_model(nc))
+    beyond = []
+    for i in range(t.size):
+        est = sw.add(t[i], obs.uv_px[i], intr, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
+        if est is not None:
+            err_m = float(np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]))
+            if err_m > 3.0 * np.sqrt(np.trace(est.cov_p_ned_m2)):
+                beyond.append((float(t[i]), est.observable))
+    return sw.stats, beyond
+
+
+GUARDS_OFF = {"manoeuvre_cusum_threshold": 0.0, "selection_consistency_nsigma": 0.0}
+
+
 def test_a_racetrack_turn_after_a_leg_is_not_published_confidently_at_the_wrong_range():
     """The sliding window on bench.honesty's racetrack: the target leaves a 25 s leg for a half-turn at 33.5 s;
     the stiff constant-velocity model selected over the leg put it 1-7 % of range off at a 0.4 % range sigma
     within 2 s (positions beyond 3 sigma) until innovations are caught: they no longer are."""
-    from bench.honesty import FRAME_RATE_HZ, family_motions
-    from groundsim.evaluation.synth import estimator_noise_model, synthesize
-    from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-    from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+    from onboard.estimation.sliding import SlidingConfig
 
-    nc = load_noise_cases()["RTK"]
-    intr = load_scenario(reference_scenario_paths()["P1"]).camera.intrinsics
-    obs_m, tgt_m = family_motions("switching", 1)
-    t = np.arange(0.0, 38.0, 1.0 / FRAME_RATE_HZ)
-    truth, obs = synthesize(obs_m, tgt_m, t, intr, nc, np.random.default_rng([1, 7]))
-
-    def flight(config):
-        sw = SlidingWindowEstimator(config, noise=estimator_noise_model(nc))
-        beyond = []
-        for i in range(t.size):
-            est = sw.add(t[i], obs.uv_px[i], intr, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
-            if est is not None:
-                err_m = float(np.linalg.norm(est.p_ned_m - truth.p_target_ned_m[i]))
-                if err_m > 3.0 * np.sqrt(np.trace(est.cov_p_ned_m2)):
-                    beyond.append((float(t[i]), est.observable))
-        return sw.stats, beyond
-
-    stats_off, beyond_off = flight(SlidingConfig(manoeuvre_cusum_threshold=0.0, selection_consistency_nsigma=0.0))
-    stats_on, beyond_on = flight(SlidingConfig())
+    stats_off, beyond_off = _racetrack_flight(1, 38.0, SlidingConfig(**GUARDS_OFF))
+    stats_on, beyond_on = _racetrack_flight(1, 38.0, SlidingConfig())
     assert len(beyond_off) > 20 and all(obs for _, obs in beyond_off)  # confident and wrong, after the change
     assert min(ts for ts, _ in beyond_off) > 33.5
     assert stats_off["manoeuvres"] == 0
+    assert stats_on["manoeuvres"] >= 1 and beyond_on == []
+
+
+def test_a_change_in_a_young_window_is_not_published_confidently_at_the_wrong_range():
+    """Racetrack seed 4: a 4 s leg, then the turn, both in the track's first window.  Every model explains the
+    windows that hold both at 0.6-0.7 of the range with a 3-5 % range sigma; the CUSUM fires 2-3 s after the
+    change, when no model had yet been held for long.  Such a change blocks the verdict like any other."""
+    from onboard.estimation.sliding import SlidingConfig
+
+    _, beyond_off = _racetrack_flight(4, 30.0, SlidingConfig(**GUARDS_OFF))
+    stats_on, beyond_on = _racetrack_flight(4, 30.0, SlidingConfig())
+    assert len(beyond_off) > 50 and all(obs for _, obs in beyond_off)  # confident and wrong, from 13.6 s on
     assert stats_on["manoeuvres"] >= 1 and beyond_on == []
