@@ -194,11 +194,11 @@ def _group_rows(runs: list[dict]) -> Iterator[tuple[str, float, list[dict], np.n
 def summary_table(runs: list[dict], bin_s: float) -> str:
     """Per family and flight length: the share beyond 3 sigma over all published positions, in the worst time
     bin and in the worst run; the observable share and median err/range; how often the estimator saw a change
-    of motion model (``SlidingWindowEstimator.stats``: manoeuvres, inconsistent selections) per minute."""
+    of motion model (``SlidingWindowEstimator.stats``: manoeuvres, inconsistent and unsteady selections) per minute."""
     lines = [
         "| family | minutes | runs | published | beyond 3 sigma | worst bin | worst run | observable | "
-        "median err/range, observable | manoeuvres / min | inconsistent selections / min |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "median err/range, observable | manoeuvres / min | inconsistent selections / min | unsteady selections / min |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for fam, minutes, rs, a in _group_rows(runs):
         bad = a[:, 1] > 3 * a[:, 2]
@@ -210,9 +210,10 @@ def summary_table(runs: list[dict], bin_s: float) -> str:
         total_min = sum(r["duration_s"] for r in rs) / 60.0
         man = sum(r.get("stats", {}).get("manoeuvres", 0) for r in rs) / total_min
         inc = sum(r.get("stats", {}).get("inconsistent_selections", 0) for r in rs) / total_min
+        uns = sum(r.get("stats", {}).get("unsteady_selections", 0) for r in rs) / total_min
         lines.append(
             f"| {fam} | {minutes:g} | {len(rs)} | {len(a)} | {100 * bad.mean():.2f} % | {worst_bin:.2f} % | "
-            f"{worst_run:.2f} % | {100 * obs.mean():.0f} % | {_pct(med)} | {man:.1f} | {inc:.1f} |"
+            f"{worst_run:.2f} % | {100 * obs.mean():.0f} % | {_pct(med)} | {man:.1f} | {inc:.1f} | {uns:.1f} |"
         )
     return "\n".join(lines)
 

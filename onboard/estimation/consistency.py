@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ConsistencyMonitor", "ManoeuvreDetector", "SelectionHistory"]
+__all__ = ["ConsistencyMonitor", "ManoeuvreDetector", "SelectionHistory", "unsteady_evidence_nats"]
 
 
 #: an :class:`~onboard.estimation.sliding.TrackEstimate` (its ``t_s``, ``observable``, ``model``,
@@ -249,3 +249,25 @@ class SelectionHistory:
         self._p = np.zeros((0, 3))
         self._P = np.zeros((0, 3, 3))
         self._disputed = np.zeros(0, dtype=bool)
+
+
+def unsteady_evidence_nats(grid_log_evidence: dict[str, list[tuple[float, float]]] | None) -> float:
+    """How far (nats of log evidence) the best model of a selection (``MapResult.grid_log_evidence``: per family,
+    (q, log evidence) of each intensity solved) is above the best *steady* one: each family at its stiffest
+    intensity, a constant velocity, acceleration or turn with next to no process noise.  0 without a selection.
+
+    Why: a target that keeps one motion (a racetrack's leg, or its turn; a circling or a cruising target) is
+    explained by a steady model about as well as by a loose one (0-2.4 nats apart on the racetrack's single legs
+    and turns, circling targets and the realistic P1/P2 flights under RTK); a window that holds a change of
+    motion needs the process noise of a loose intensity to bend through it (22-440 nats once both motions hold a
+    few seconds of it).  A single model over such a window can explain the bearings at the wrong range (0.6-0.9
+    of it at a 3-5 % range sigma), so beyond ``MapConfig.model_margin_nats`` (the margin within which the
+    selection calls models indistinguishable) the window is no ground for a verdict."""
+    if not grid_log_evidence:
+        return 0.0
+    rows = [qe for qes in grid_log_evidence.values() for qe in qes]
+    if not rows:
+        return 0.0
+    best = max(e for _, e in rows)
+    steady = max(min(qes, key=lambda qe: qe[0])[1] for qes in grid_log_evidence.values() if qes)
+    return float(best - steady)

@@ -51,11 +51,14 @@ confident).
 A target that changes motion model (a racetrack: legs and turns) defeats a selection made over one model
 (:mod:`onboard.estimation.consistency`): a CUSUM on the incremental updates' innovations
 (``manoeuvre_cusum_threshold``) calls the window unobservable and a selection due at once when the
-selected model stops explaining the bearings, and no window that holds the change's onset is called
-observable (one model over it can explain the bearings at the wrong range, however young the window); a
-selection that puts the frames it shares with an observable selection before it at another range
-(``selection_consistency_nsigma``) is called unobservable, and so is one that shares frames with either of
-two such selections (which of them is wrong is unknown) until the window has slid past them.
+selected model stops explaining the bearings, and after a model held for half a window no window that
+holds the change's onset is called observable (one model over it can explain the bearings at the wrong
+range).  Nor is a window that no steady motion explains (every family at its stiffest intensity more than
+``MapConfig.model_margin_nats`` below the best model: the target changed its motion in it); such a selection
+also confirms a CUSUM firing in a younger window whose onset it holds as a change.  A selection that puts the
+frames it shares with an observable selection before it at another range (``selection_consistency_nsigma``)
+is called unobservable, and so is one that shares frames with either of two such selections (which of them
+is wrong is unknown) until the window has slid past them.
 """
 
 from __future__ import annotations
@@ -73,7 +76,12 @@ import scipy.linalg as sla
 
 from onboard.core.errors import InputError
 from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
-from onboard.estimation.consistency import ConsistencyMonitor, ManoeuvreDetector, SelectionHistory
+from onboard.estimation.consistency import (
+    ConsistencyMonitor,
+    ManoeuvreDetector,
+    SelectionHistory,
+    unsteady_evidence_nats,
+)
 from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, qr_r
 from onboard.estimation.map_estimator import (
     EstimationError,
@@ -381,6 +389,7 @@ class SlidingWindowEstimator:
         self._manoeuvre_t_s = -math.inf
         self._change_t_s = -math.inf  # the onset of the last change of motion model the innovations showed
         self._provisional = False  # the model in use is the track's provisional first choice (PROVISIONAL_MODEL)
+        self._young_onset_t_s = -math.inf  # the onset of a firing in a young window, a change once confirmed
         self._selections = (
             SelectionHistory(c.selection_consistency_nsigma) if c.selection_consistency_nsigma > 0 else None
         )
@@ -399,6 +408,7 @@ class SlidingWindowEstimator:
             "skipped": 0,
             "manoeuvres": 0,
             "inconsistent_selections": 0,
+            "unsteady_selections": 0,
         }
 
     @property
@@ -640,6 +650,16 @@ class SlidingWindowEstimator:
                 self._selections.last_max_nsigma,
             )
         if self._manoeuvre is not None:
+            unsteady_nats = unsteady_evidence_nats(res.grid_log_evidence)
+            if unsteady_nats > self.map.config.model_margin_nats:
+                # no steady motion (a family at its stiffest intensity) explains the window as well as process
+                # noise does: the target changed its motion in it, and one model over all of it can explain the
+                # bearings at the wrong range (onboard.estimation.consistency.unsteady_evidence_nats)
+                self._window_observable = False
+                self.stats["unsteady_selections"] += 1
+                if obs.t_s[0] <= self._young_onset_t_s:
+                    self._change_t_s = max(self._change_t_s, self._young_onset_t_s)  # the young firing was a change
+                log.debug("selection at %.2f s: no steady motion (%.1f nats): unobservable", pending_t, unsteady_nats)
             if obs.t_s[0] <= self._change_t_s:
                 # the window holds a change of the target's motion model the innovations showed: one motion model
                 # over all of it can explain the bearings at the wrong range (the selection cannot tell), so
@@ -732,12 +752,17 @@ class SlidingWindowEstimator:
             self._manoeuvre_t_s = t
             self._window_observable = False
             log.debug("manoeuvre at %.2f s (onset %.2f s): unobservable, selection due", t, self._manoeuvre.onset_t_s)
-            if not self._provisional:
-                # a change however young the window: a racetrack's leg of 4 s, then its turn, was explained by
-                # every model at 0.6-0.7 of the range over the windows that held both, at a 3-5 % range sigma
-                # (docs/performance.md, "Honest over minutes").  Not under the provisional choice, which compared
-                # no models: its misfit says nothing of a change
+            if self._manoeuvre.onset_t_s - self._t[0] >= 0.5 * self.config.window_s:
+                # a change after a model held for half a window at least.  Half, not a whole window: a racetrack's
+                # changes in the track's first 20 s mislead as much; steady circling targets pay for it in
+                # observable positions (docs/performance.md, "Honest over minutes")
                 self._change_t_s = self._manoeuvre.onset_t_s
+            elif not self._provisional:
+                # in a younger window the model that no longer explains the bearings may only have been chosen on
+                # too little data (P1 and P2 fire so in their first 10 s, at no change): a change once a selection
+                # over the onset finds no steady motion explaining its window (_commit); the provisional choice
+                # compared no models, its misfit says nothing
+                self._young_onset_t_s = self._manoeuvre.onset_t_s
             self.stats["manoeuvres"] += 1
         H = H_window + Jr.T @ Jr
         d = np.sqrt(np.diag(H))

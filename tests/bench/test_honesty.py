@@ -62,7 +62,7 @@ def test_families_keep_the_target_in_front_between_50_and_400_m():
 
 
 def _run(family, rows, duration_s=60.0, manoeuvres=0):
-    stats = {"manoeuvres": manoeuvres, "inconsistent_selections": 1}
+    stats = {"manoeuvres": manoeuvres, "inconsistent_selections": 1, "unsteady_selections": 2}
     return {"family": family, "seed": 0, "duration_s": duration_s, "cpu_s": 1.0, "stats": stats, "rows": rows}
 
 
@@ -76,12 +76,12 @@ def test_tables_count_what_is_beyond_3_sigma_and_the_end_verdict():
     assert "| weaving | 1 | 2 | 30-60 | 60 | 1.67 % | 50 % | 0.50 % |" in tt
     assert "| weaving | 1 | 2 | all | 120 | 0.83 % | 50 % | 0.50 % |" in tt
     # per family and flight length: 1 of 120 beyond, 1 of 60 in the worst bin (30-60 s) and of 60 in run a;
-    # 3 manoeuvres and 2 inconsistent selections in 2 minutes of flight
+    # 3 manoeuvres, 2 inconsistent and 4 unsteady selections in 2 minutes of flight
     summary = summary_table(runs, 30.0)
-    assert "| weaving | 1 | 2 | 120 | 0.83 % | 1.67 % | 1.67 % | 50 % | 0.50 % | 1.5 | 1.0 |" in summary
+    assert "| weaving | 1 | 2 | 120 | 0.83 % | 1.67 % | 1.67 % | 50 % | 0.50 % | 1.5 | 1.0 | 2.0 |" in summary
     # another flight length is another row
     longer = summary_table(runs + [_run("weaving", rows_b, duration_s=120.0)], 30.0)
-    assert "| weaving | 2 | 1 | 60 | 0.00 % | 0.00 % | 0.00 % | 0 % | - | 0.0 | 0.5 |" in longer
+    assert "| weaving | 2 | 1 | 60 | 0.00 % | 0.00 % | 0.00 % | 0 % | - | 0.0 | 0.5 | 1.0 |" in longer
     st_ = switch_table(runs)
     # two changes (cv -> ct at 40 s, back at 41 s) in 2 minutes of flight; 40-46 s are near a change
     assert "| weaving | 1.0 | 7 | 14.29 % | 0.00 % |" in st_
