@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.estimation.consistency import ManoeuvreDetector, SelectionHistory
+from onboard.estimation.consistency import ManoeuvreDetector, SelectionHistory, unsteady_evidence_nats
 
 FRAME_S = 1.0 / 15.0
 
@@ -122,6 +122,18 @@ def test_only_common_frames_are_compared():
     assert hist.check(*_window(t[4:] + 0.25, 100.0, 1.0), observable=True) and np.isnan(hist.last_max_nsigma)
 
 
+def test_unsteady_evidence_is_the_best_models_lead_over_the_best_stiffest_one():
+    # a single leg: the stiff CV is the best model
+    leg = {"cv": [(1e-1, -30.0), (1e-2, -8.0), (1e-6, 0.0)], "ct": [(1e-1, -25.0), (1e-6, -5.0)]}
+    assert unsteady_evidence_nats(leg) == 0.0
+    # a leg and a turn: only a loose intensity bends through them; the best steady model is CT's stiffest
+    both = {"cv": [(1e-2, 0.0), (1e-3, -20.0), (1e-6, -300.0)], "ct": [(1e-2, -3.0), (1e-6, -27.5)]}
+    assert unsteady_evidence_nats(both) == pytest.approx(27.5)
+    # the order of the intensities does not matter; a family without a solution is left out
+    assert unsteady_evidence_nats({"cv": [(1e-6, -300.0), (1e-2, 0.0)], "ca": []}) == pytest.approx(300.0)
+    assert unsteady_evidence_nats(None) == 0.0 and unsteady_evidence_nats({}) == 0.0
+
+
 def test_invalid_settings_are_refused():
     with pytest.raises(ValueError):
         ManoeuvreDetector(reference=1.0)
@@ -173,7 +185,8 @@ def test_a_racetrack_turn_after_a_leg_is_not_published_confidently_at_the_wrong_
 def test_a_change_in_a_young_window_is_not_published_confidently_at_the_wrong_range():
     """Racetrack seed 4: a 4 s leg, then the turn, both in the track's first window.  Every model explains the
     windows that hold both at 0.6-0.7 of the range with a 3-5 % range sigma; the CUSUM fires 2-3 s after the
-    change, when no model had yet been held for long.  Such a change blocks the verdict like any other."""
+    change, when no model had yet been held for long.  The selections over both motions find no steady model
+    near the best one: no verdict from them, and the young firing's onset is a change."""
     from onboard.estimation.sliding import SlidingConfig
 
     _, beyond_off = _racetrack_flight(4, 30.0, SlidingConfig(**GUARDS_OFF))
