@@ -257,9 +257,9 @@ def unsteady_evidence_nats(grid_log_evidence: dict[str, list[tuple[float, float]
     intensity, a constant velocity, acceleration or turn with next to no process noise.  0 without a selection.
 
     Why: a target that keeps one motion (a racetrack's leg, or its turn; a circling or a cruising target) is
-    explained by a steady model about as well as by a loose one (0-2.4 nats apart on the racetrack's single legs
-    and turns, circling targets and the realistic P1/P2 flights under RTK); a window that holds a change of
-    motion needs the process noise of a loose intensity to bend through it (22-440 nats once both motions hold a
+    explained by a steady model about as well as by a loose one (0-4.2 nats apart on the racetrack's single legs
+    and turns, circling targets and synthetic P1/P2 flights under RTK); a window that holds a change of
+    motion needs the process noise of a loose intensity to bend through it (17-440 nats once both motions hold a
     few seconds of it).  A single model over such a window can explain the bearings at the wrong range (0.6-0.9
     of it at a 3-5 % range sigma), so beyond ``MapConfig.model_margin_nats`` (the margin within which the
     selection calls models indistinguishable) the window is no ground for a verdict."""
