@@ -96,9 +96,9 @@ class ObjectTracker:
             raise InputError(f"ObjectTracker mode must be auto or operator, got {mode!r}")
         self.K = intrinsics
         self.frame_rate_hz = float(frame_rate_hz)
-        self.params = params or ObjectParams()
-        self.clutter = clutter or ClutterParams()
         self.imaging = imaging or ImagingParams()
+        self.params = params or ObjectParams(primary_max_off_axis_rad=self.imaging.primary_max_off_axis_rad)
+        self.clutter = clutter or ClutterParams()
         self.mode = mode
         self._tracks: list[TrackRecord] = []
         self._next_id = 1  # ids from 1, as the track output counts them

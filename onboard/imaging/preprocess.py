@@ -141,6 +141,10 @@ class ImagingParams:
     samples extrapolated, or the last rotation when they are too old).  The chain registers frames with
     those rotations (track-before-detect's integration, the tracks' motion fit); an extrapolated or held
     rotation misplaces a dim target's integrated peak by about a pixel (docs/perception.md, C4 in the loop).
+    ``primary_max_off_axis_rad`` (objects chain, auto mode): no track farther off the optical axis becomes the
+    primary target: a gimbal centres its target, and a confirmed fragment of terrain in a corner handed to the
+    3-D estimator would be a confident wrong object; a fixed pod, whose target crosses the frame, needs it
+    larger (an operator's selection is never bounded).
     """
 
     mean_kernel_px: PositiveInt = 3
@@ -172,6 +176,7 @@ class ImagingParams:
     tbd_threshold_sigma: Annotated[float, Number(lo=1.0)] = 6.0
     tbd_max_speed_pxpf: NonNegativeFloat = 0.3
     pose_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 40.0
+    primary_max_off_axis_rad: Annotated[float, Number(0.0, 1.5707963267948966, lo_open=True, hi_open=True)] = 0.15
 
     def __post_init__(self) -> None:
         if self.mean_kernel_px % 2 != 1:

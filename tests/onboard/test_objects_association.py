@@ -11,6 +11,7 @@ import pytest
 
 from onboard.core.frames import PinholeIntrinsics
 from onboard.imaging.objects import ObjectParams, ObjectTracker
+from onboard.imaging.preprocess import ImagingParams
 
 H_PX, W_PX = 96, 128
 K = PinholeIntrinsics(200.0, 200.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
@@ -118,3 +119,16 @@ def test_a_lone_confirmed_object_far_off_the_axis_is_never_made_the_primary(star
         assert primaries >= 15 and tr.primary_changes == 1
     else:
         assert primaries == 0 and tr.primary_changes == 0
+
+
+def test_the_daemons_imaging_section_sets_the_primarys_off_axis_bound():
+    """``imaging.primary_max_off_axis_rad`` reaches the auto rule: the corner object of the test above, 0.32 rad
+    off the axis, becomes the primary under a fixed pod's wider bound (0.5 rad)."""
+    rng = np.random.default_rng(31)
+    tr = ObjectTracker(K, imaging=ImagingParams(primary_max_off_axis_rad=0.5))
+    assert tr.params.primary_max_off_axis_rad == 0.5
+    primaries = 0
+    for k in range(30):
+        out = tr.update(_frame(rng, [(12.0 + 0.3 * k, 10.0)]), None)
+        primaries += out.primary_id is not None
+    assert primaries >= 15 and tr.primary_changes == 1
