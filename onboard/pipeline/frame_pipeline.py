@@ -342,14 +342,9 @@ class FramePipeline:
             )
         self._admit(frame)
 
-        chain_waited_ns = 0
+        waited_ns = 0
         if self.chain_pose_wait is not None and not self._selections and getattr(self.tracker, "uses_pose", False):
-            w0 = self._clock_ns()
-            try:
-                self.chain_pose_wait(frame.time_boot_us - self._compensation_us())
-            except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
-                self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
-            chain_waited_ns = self._clock_ns() - w0
+            waited_ns = self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
         i0 = self._clock_ns()
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
@@ -363,14 +358,8 @@ class FramePipeline:
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us
-        waited_ns = chain_waited_ns
         if self.pose_wait is not None and self.pose_source is not None:
-            w0 = self._clock_ns()
-            try:
-                self.pose_wait(t_us)
-            except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
-                self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
-            waited_ns += self._clock_ns() - w0
+            waited_ns += self._timed_wait(self.pose_wait, t_us)
         stamp_pose = pose = None
         if self.pose_source is not None:
             try:
@@ -562,6 +551,16 @@ class FramePipeline:
         self.window_restamps += 1
         log.info("estimator window made again (%d of %d rows): %s", len(rows), len(t_us), why)
         return True
+
+    def _timed_wait(self, wait: Callable[[int], object], t_us: int) -> int:
+        """Call a telemetry wait hook at ``t_us``; the ns it took.  A failing wait is counted
+        (``pose_wait_error``) and never loses the frame."""
+        w0 = self._clock_ns()
+        try:
+            wait(t_us)
+        except Exception as exc:  # noqa: BLE001 - a failing wait must not lose the frame
+            self.counter.count("pose_wait_error", f"{type(exc).__name__}: {exc}")
+        return self._clock_ns() - w0
 
     def _compensation_us(self) -> int:
         return 0 if self.time_offset is None else int(round(self.time_offset.compensated_ms * 1000.0))
