@@ -124,6 +124,10 @@ class WeakPriorSettings(Protocol):
 
 _EYE3 = np.eye(3)
 _EYE3.flags.writeable = False
+#: cyclic permutations of the three axes: component i of a cross product is a[i+1] b[i+2] - a[i+2] b[i+1]
+#: (fastmath.cross3's formula, on axis 0)
+_NEXT = np.array([1, 2, 0])
+_PREV = np.array([2, 0, 1])
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
@@ -187,6 +191,96 @@ class _SpanPrior:
             self.P_acc[ax::3, ax::3] = sq[:, None] * self.Bq2
         self.P_turn[0::3, 1::3] = self.sq_h[:, None] * self.Bq1
         self.P_turn[1::3, 0::3] = -self.sq_h[:, None] * self.Bq1
+        self._grams: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+
+    def grams(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The prior rows' normal matrix as a polynomial in the turn rate: ``(P_acc + omega P_turn)^T (P_acc +
+        omega P_turn) = A + omega B + omega^2 C``, returns (A, B, C), computed once per span and prior."""
+        if self._grams is None:
+            cross = self.P_acc.T @ self.P_turn
+            self._grams = (self.P_acc.T @ self.P_acc, cross + cross.T, self.P_turn.T @ self.P_turn)
+        return self._grams
+
+
+class _WindowConstants:
+    """What a window's problems share whatever their motion prior and noise model: the basis at the observations,
+    the observations laid out observation-last (:meth:`WindowProblem._linearise`), the knot intervals' weights
+    (:meth:`WindowProblem.normal_matrix`), and per parameter layout the index maps of :meth:`layout`.  Read only."""
+
+    def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int):
+        self.obs = obs  # (the cache key holds its id: the entry keeps it alive)
+        F = len(obs)
+        self.rows = rows = grid.basis(obs.t_s, first, count)
+        self.B0 = np.zeros((F, count))  # (F, count) dense basis of p(t_i)
+        np.put_along_axis(self.B0, rows.index, rows.w0, axis=1)
+        self.R_cn = np.transpose(obs.R_ned_from_cam, (0, 2, 1))
+        self.f = np.stack([obs.fx_px, obs.fy_px], axis=1)
+        self.t_ref = 0.5 * (obs.t_s[0] + obs.t_s[-1])
+        self.dt = obs.t_s - self.t_ref
+        ref = grid.basis(np.array([self.t_ref]), first, count)
+        self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = ref.index[0], ref.w0[0], ref.w1[0], ref.w2[0]
+        self.p_ref = obs.p_cam_ned_m.mean(axis=0)
+        # observation-last copies
+        self.B0T = np.ascontiguousarray(self.B0.T)
+        self.p_cam_T = np.ascontiguousarray(obs.p_cam_ned_m.T)
+        self.xy_T = np.ascontiguousarray(obs.xy_norm.T)
+        self.R_T = np.ascontiguousarray(np.transpose(self.R_cn, (1, 2, 0)))  # R_T[i, j, f] = R_cn[f, i, j]
+        self.w0_T = np.ascontiguousarray(rows.w0.T)
+        # the observations interval by interval: (intervals, the fullest interval's count), padded with
+        # observation 0 at weight 0
+        seg = rows.index[:, 0]
+        nseg = self.intervals = count - 3
+        per_seg = np.bincount(seg, minlength=nseg)
+        order = np.argsort(seg, kind="stable")
+        slot = np.arange(F) - np.repeat(np.cumsum(per_seg) - per_seg, per_seg)
+        width = int(per_seg.max())
+        self.interval_obs = np.zeros((nseg, width), dtype=np.int64)
+        self.interval_obs[seg[order], slot] = order
+        w0 = np.zeros((nseg, width, 4))
+        w0[seg[order], slot] = rows.w0[order]
+        # the weights of the interval sums: w0[m] w0[n] (16 columns), then w0[m] (4; for the nuisances)
+        self.interval_weights = np.concatenate(
+            [(w0[:, :, :, None] * w0[:, :, None, :]).reshape(nseg, width, 16), w0], axis=2
+        )
+        self._layouts: dict[tuple, tuple] = {}
+
+    def layout(self, n_params: int, nuisance_first: tuple[int, ...]) -> tuple:
+        """Index maps of a parameter layout (n_params, the first columns of the navigation nuisances):
+        (flat positions in J of the control-point block in the order (2 rows, 4 controls, 3 axes, F), then
+        where the entries of the interval sums land in J^T J: source and destination flat indices, and the
+        flat indices of the nuisances' block)."""
+        key = (n_params, nuisance_first)
+        if key not in self._layouts:
+            F, n, nseg, index = len(self.obs), n_params, self.intervals, self.rows.index
+            meas_flat = (
+                (2 * np.arange(F) + np.arange(2)[:, None])[:, None, None, :] * n
+                + 3 * index.T[None, :, None, :]
+                + np.arange(3)[None, None, :, None]
+            )
+            nuis_cols = np.array([i0 + k for i0 in nuisance_first for k in range(3)], dtype=np.int64)
+            nm = nuis_cols.size
+            u = 3 + nm
+            # the interval sums are (intervals, 3 x u, 20): entry (s, k u + l, 4 m + n) the control-control
+            # block, (s, k u + 3 + j, 16 + m) the control-nuisance one (landing in both triangles)
+            s_, m_, n_, k_, l_ = np.meshgrid(
+                np.arange(nseg), np.arange(4), np.arange(4), np.arange(3), np.arange(3), indexing="ij"
+            )
+            src = [((s_ * 3 + k_) * u + l_) * 20 + 4 * m_ + n_]
+            dst = [(3 * (s_ + m_) + k_) * n + 3 * (s_ + n_) + l_]
+            if nm:
+                s_, m_, k_, j_ = np.meshgrid(np.arange(nseg), np.arange(4), np.arange(3), np.arange(nm), indexing="ij")
+                at = ((s_ * 3 + k_) * u + 3 + j_) * 20 + 16 + m_
+                ctrl, nuis = 3 * (s_ + m_) + k_, nuis_cols[j_]
+                src += [at, at]
+                dst += [ctrl * n + nuis, nuis * n + ctrl]
+            self._layouts[key] = (
+                meas_flat,
+                np.concatenate([x.reshape(-1) for x in src]),
+                np.concatenate([x.reshape(-1) for x in dst]),
+                nuis_cols,
+                (nuis_cols[:, None] * n + nuis_cols[None, :]).reshape(-1),
+            )
+        return self._layouts[key]
 
 
 @dataclass(frozen=True, eq=False)
@@ -230,13 +324,25 @@ class WindowProblem:
         self._nuis: list[tuple[int, int, float]] | None = None  # _nuisances(), computed once
         F = len(obs)
         self.F = F
-        self.rows = grid.basis(obs.t_s, first, count)
-        self.B0 = np.zeros((F, count))  # (F, count) dense basis of p(t_i)
-        np.put_along_axis(self.B0, self.rows.index, self.rows.w0, axis=1)
-        self.R_cn = np.transpose(obs.R_ned_from_cam, (0, 2, 1))
-        self.f = np.stack([obs.fx_px, obs.fy_px], axis=1)
-        self.t_ref = 0.5 * (obs.t_s[0] + obs.t_s[-1])
-        self.dt = obs.t_s - self.t_ref
+        # what depends only on the window (observations and control span) is shared by the problems of one
+        # selection (a dozen motion models on the same rows)
+        key = ("window", id(obs), grid, first, count)
+        win = None if span_cache is None else span_cache.get(key)
+        if win is None or win.obs is not obs:
+            win = _WindowConstants(obs, grid, first, count)
+            if span_cache is not None:
+                if len(span_cache) > 64:
+                    span_cache.clear()
+                span_cache[key] = win
+        self._win = win
+        self.rows, self.B0, self.R_cn, self.f, self.t_ref, self.dt = (
+            win.rows,
+            win.B0,
+            win.R_cn,
+            win.f,
+            win.t_ref,
+            win.dt,
+        )
         span = None if span_cache is None else span_cache.get((grid, first, count, prior))
         if span is None:
             span = _SpanPrior(grid, first, count, prior)
@@ -244,11 +350,11 @@ class WindowProblem:
                 if len(span_cache) > 64:
                     span_cache.clear()
                 span_cache[(grid, first, count, prior)] = span
+        self._span = span
         self.Bq1, self.Bq2, self.sq_h, self.sq_v = span.Bq1, span.Bq2, span.sq_h, span.sq_v
         self.G, self.P_acc, self.P_turn = span.G, span.P_acc, span.P_turn
-        ref = grid.basis(np.array([self.t_ref]), first, count)
-        self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = ref.index[0], ref.w0[0], ref.w1[0], ref.w2[0]
-        self.p_ref = obs.p_cam_ned_m.mean(axis=0)
+        self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = win.ref_idx, win.ref_w0, win.ref_w1, win.ref_w2
+        self.p_ref = win.p_ref
         self.sigma_a = config.ca_acceleration_sigma_mps2 if prior.jerk else config.acceleration_prior_sigma_mps2
         # parameter layout
         self.nc = 3 * count
@@ -272,14 +378,7 @@ class WindowProblem:
         #: calls of :meth:`evaluate` so far (the work measure of :meth:`solve_steps`)
         self.evaluations = 0
         self._prior_logdet: float | None = None  # prior_logdet() without a turn rate, computed once
-        # flat positions in J of the control-point block, as (F, 4 controls, 2 rows x 3 axes): the
-        # layout of w0[f, m] * Mw[f, a, k] with the shortest broadcast (see evaluate)
-        rows_fi = np.arange(2 * F).reshape(F, 2)
-        self._meas_flat = (
-            rows_fi[:, None, :, None] * self.n_params
-            + 3 * self.rows.index[:, :, None, None]
-            + np.arange(3)[None, None, None, :]
-        ).reshape(F, 4, 6)
+        self._local_layout()
 
     # ------------------------------------------------------------------ helpers
     def set_measurement_weights(self, range_m) -> None:
@@ -319,65 +418,185 @@ class WindowProblem:
     def evaluate(self, theta: np.ndarray, jacobian: bool = True):
         """Residual vector r (n_rows,), Jacobian (n_rows, n_params) or None, and validity flag.
 
-        Invalid (False) when any predicted direction is not in front of the camera.
+        Invalid (False) when any predicted direction is not in front of the camera.  The Jacobian is one buffer,
+        overwritten by the next evaluation with a Jacobian.
+        """
+        r, valid = self._linearise(theta, jacobian)
+        return r, (self._fill_jacobian() if jacobian else None), valid
+
+    def _linearise(self, theta: np.ndarray, jacobian: bool) -> tuple[np.ndarray, bool]:
+        """The residuals at theta and, with ``jacobian``, the Jacobian's non-constant pieces (the local rows of
+        :meth:`_local_layout`, the turn rate): what :meth:`normal_matrix`, :meth:`gradient` and
+        :meth:`_fill_jacobian` read.  Returns (r, valid).
+
+        The arithmetic of :func:`_project` on arrays laid out observation-last ((3, F) rather than (F, 3)), so
+        that every elementwise operation runs along the F observations rather than along 2 or 3 axes.
         """
         self.evaluations += 1
         F, G, cnt = self.F, self.G, self.count
         c = theta[: self.nc].reshape(cnt, 3)
-        X = self.B0 @ c
-        self.last_positions = X
-        w = X - self.obs.p_cam_ned_m
-        if self.i_beta is not None or self.i_gamma is not None:
-            w = w + self._offset(theta)
+        X = c.T @ self._B0T  # (3, F)
+        self.last_positions = X.T
+        w = X - self._p_cam_T
+        if self.i_beta is not None:
+            w += theta[self.i_beta : self.i_beta + 3, None]
+        if self.i_gamma is not None:
+            w += theta[self.i_gamma : self.i_gamma + 3, None] * self.dt
         if self.i_phi is not None:
-            phi = theta[self.i_phi : self.i_phi + 3]
-            Rphi = _rodrigues(phi)
-            w_rot = w @ Rphi.T
+            Rphi = _rodrigues(theta[self.i_phi : self.i_phi + 3])
+            w_rot = Rphi @ w
         else:
             w_rot = w
-        res, M, valid = _project(w_rot, self.R_cn, self.obs.xy_norm, self.s, jacobian)
+        R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
+        y = R[:, 0] * w_rot[0]
+        y += R[:, 1] * w_rot[1]
+        y += R[:, 2] * w_rot[2]
+        z = y[2]
+        valid = bool((z * z > 1e-12 * np.einsum("if,if->f", w_rot, w_rot)).all() and (z > 0).all())
+        zs = np.where(z > 1e-9, z, 1e-9)
+        pred = y[:2] / zs
+        sT = self.s.T
         r = np.empty(self.n_rows)
-        r[: 2 * F] = res.reshape(-1)
-        # prior rows
-        v = self.Bq1 @ c
-        a = self.Bq2 @ c
-        om = theta[self.i_omega] if self.i_omega is not None else 0.0
-        o = 2 * F
-        rp = r[o : o + 3 * G]
-        rp[0::3] = self.sq_h * (a[:, 0] + om * v[:, 1])
-        rp[1::3] = self.sq_h * (a[:, 1] - om * v[:, 0])
-        rp[2::3] = self.sq_v * a[:, 2]
-        o += 3 * G
-        cr = c[self.ref_idx]
-        r[o : o + 3] = (self.ref_w0 @ cr - self.p_ref) / self.config.position_prior_sigma_m
-        r[o + 3 : o + 6] = (self.ref_w1 @ cr) / self.config.velocity_prior_sigma_mps
-        r[o + 6 : o + 9] = (self.ref_w2 @ cr) / self.sigma_a
-        o += 9
-        for i0, n, sig in self._nuisances():
-            r[o : o + n] = theta[i0 : i0 + n] / sig
-            o += n
+        r[: 2 * F].reshape(F, 2).T[...] = (pred - self._xy_T) * sT
+        # the prior rows: linear in theta (their rows of J, constant) but the motion prior's with a turn rate
+        o = self._fixed_rows
+        r[o:] = self._J[o:] @ theta - self._fixed_offset
+        om = 0.0
+        if self.i_omega is not None:
+            om = theta[self.i_omega]
+            v = self.Bq1 @ c
+            a = self.Bq2 @ c
+            rp = r[2 * F : 2 * F + 3 * G]
+            rp[0::3] = self.sq_h * (a[:, 0] + om * v[:, 1])
+            rp[1::3] = self.sq_h * (a[:, 1] - om * v[:, 0])
+            rp[2::3] = self.sq_v * a[:, 2]
         if not jacobian:
-            return r, None, valid
-
-        J = self._J
+            return r, valid
+        # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y (both rows at once): (2, 3, F)
+        M = (R[:2] - pred[:, None, :] * R[2]) * ((1.0 / zs) * sT)[:, None, :]
+        U = self._U  # (2 rows, 3 + nuisance columns, F): d r / d w, then the nuisances' local columns
+        k = 3
         if self.i_phi is not None:
-            Mw = M @ Rphi  # d r / d w
+            U[:, :3] = np.matmul(Rphi.T, M)  # d r / d w
             # d r / d phi = -M [w_rot]x, whose rows are w_rot x m
-            J[: 2 * F, self.i_phi : self.i_phi + 3] = cross3(w_rot[:, None, :], M).reshape(2 * F, 3)
+            U[:, 3:6] = w_rot[_NEXT] * M[:, _PREV] - w_rot[_PREV] * M[:, _NEXT]
+            k = 6
         else:
-            Mw = M
-        # the control-point block: 12 non-zeros per row at fixed places (the basis pattern)
-        J.reshape(-1)[self._meas_flat] = self.rows.w0[:, :, None] * Mw.reshape(F, 1, 6)
+            U[:, :3] = M
         if self.i_beta is not None:
-            J[: 2 * F, self.i_beta : self.i_beta + 3] = Mw.reshape(2 * F, 3)
+            U[:, k : k + 3] = U[:, :3]
+            k += 3
         if self.i_gamma is not None:
-            J[: 2 * F, self.i_gamma : self.i_gamma + 3] = (Mw * self.dt[:, None, None]).reshape(2 * F, 3)
-        o = 2 * F
+            np.multiply(U[:, :3], self.dt, out=U[:, k : k + 3])
+        self._omega_lin = om
+        if self.i_omega is not None:
+            self._j_omega[0::3] = self.sq_h * v[:, 1]
+            self._j_omega[1::3] = -self.sq_h * v[:, 0]
+        return r, valid
+
+    def _fill_jacobian(self) -> np.ndarray:
+        """The dense Jacobian of the last :meth:`_linearise` with ``jacobian``, in its buffer (the rows that never
+        change are there already)."""
+        F, G = self.F, self.G
+        J, U = self._J, self._U
+        # the control-point block: 12 non-zeros per row at fixed places (the basis pattern)
+        J.reshape(-1)[self._meas_flat] = self._w0_T[None, :, None, :] * U[:, None, :3, :]
+        meas = J[: 2 * F].reshape(F, 2, self.n_params)
+        for k, i0 in enumerate(self._nuisance_first):
+            meas[:, :, i0 : i0 + 3] = U[:, 3 + 3 * k : 6 + 3 * k].transpose(2, 0, 1)
         if self.i_omega is not None:  # the prior rows depend on the turn rate (else: constant rows)
-            self._fill_prior_c_jacobian(J[o : o + 3 * G, : self.nc], om)
-            J[o : o + 3 * G : 3, self.i_omega] = self.sq_h * v[:, 1]
-            J[o + 1 : o + 3 * G : 3, self.i_omega] = -self.sq_h * v[:, 0]
-        return r, J, valid
+            o = 2 * F
+            self._fill_prior_c_jacobian(J[o : o + 3 * G, : self.nc], self._omega_lin)
+            J[o : o + 3 * G, self.i_omega] = self._j_omega
+        return J
+
+    def _local_layout(self) -> None:
+        """The measurement rows' local Jacobian, and the sums over knot intervals :meth:`normal_matrix` builds
+        ``J^T J`` from.
+
+        Row ``(f, a)`` of the measurement block is ``u_fa = d r_fa / d w_f`` (3) times the basis weights
+        ``w0[f, m]`` in the 3 columns of each of the four control points m of observation f's knot interval, and
+        the navigation nuisances' local columns ``n_fa`` (phi: ``w_rot x m``, beta: ``u``, gamma: ``dt_f u``)
+        in theirs.  So with ``U_f = [u_f | n_f]`` (2 rows) and ``P_f = u_f^T U_f`` (3 x (3 + nuisances)), the
+        measurement rows' ``J^T J`` is, per knot interval s and its controls m, n:
+
+        - control m, control n: ``sum_f w0[f, m] w0[f, n] P_f[:, :3]`` (the Kronecker structure of the rows);
+        - control m, nuisances: ``sum_f w0[f, m] P_f[:, 3:]``;
+        - nuisances, nuisances: ``sum_f n_f^T n_f`` over every observation;
+
+        the sums over each interval's observations are one small matrix product per interval, the weights
+        (constant: the observation times) zero-padded to the fullest interval's count.
+        """
+        F, win = self.F, self._win
+        self._nuisance_first = tuple(i0 for i0 in (self.i_phi, self.i_beta, self.i_gamma) if i0 is not None)
+        self._U = np.zeros((2, 3 + 3 * len(self._nuisance_first), F))
+        self._j_omega = np.zeros(3 * self.G)
+        self._B0T, self._p_cam_T, self._xy_T, self._R_T, self._w0_T = win.B0T, win.p_cam_T, win.xy_T, win.R_T, win.w0_T
+        self._interval_obs, self._interval_weights = win.interval_obs, win.interval_weights
+        layout = win.layout(self.n_params, self._nuisance_first)
+        self._meas_flat, self._gram_src, self._gram_dst, self._nuis_cols, self._nuis_block = layout
+        # the rows whose part of J^T J is fixed: every row after the measurements' (the motion prior's too
+        # without a turn rate; with one, normal_matrix adds them at the turn rate of the evaluation)
+        o = 2 * F + (3 * self.G if self.i_omega is not None else 0)
+        self._fixed_rows = o
+        self._H_fixed = self._J[o:].T @ self._J[o:]
+        # r[o:] = J[o:] theta - offset: the weak prior's on the mean position is the only one not at zero
+        self._fixed_offset = np.zeros(self.n_rows - o)
+        w = 2 * F + 3 * self.G - o
+        self._fixed_offset[w : w + 3] = self.p_ref / self.config.position_prior_sigma_m
+        self._omega_lin = 0.0  # the turn rate of the last linearisation
+
+    def normal_matrix(self) -> np.ndarray:
+        """``J^T J`` (n_params, n_params) at the last evaluation with a Jacobian, from the Jacobian's structure.
+
+        The dense product's matrix up to rounding (its sums run in another order), at a fraction of its cost:
+        the measurement rows by knot interval (:meth:`_local_layout`), the motion prior's rows as a polynomial
+        in the turn rate (:meth:`_SpanPrior.grams`; constant without one), the other prior rows constant.
+        """
+        F, n = self.F, self.n_params
+        U = self._U
+        u = U.shape[1]
+        # P_f = u_f^T U_f, the two rows' outer products: (3, u, F)
+        P = U[0, :3, None, :] * U[0, None, :, :]
+        P += U[1, :3, None, :] * U[1, None, :, :]
+        per = np.take(P.reshape(3 * u, F), self._interval_obs, axis=1)  # (3 u, intervals, width)
+        sums = np.matmul(per.transpose(1, 0, 2), self._interval_weights)  # (intervals, 3 u, 16 or 20)
+        H = np.bincount(self._gram_dst, np.take(sums, self._gram_src), minlength=n * n)
+        if u > 3:
+            N = U[:, 3:]
+            H[self._nuis_block] += (N[0] @ N[0].T + N[1] @ N[1].T).reshape(-1)
+        H = H.reshape(n, n)
+        H += self._H_fixed
+        if self.i_omega is not None:
+            om, nc, io = self._omega_lin, self.nc, self.i_omega
+            A, B, C = self._span.grams()
+            H[:nc, :nc] += A + om * B + (om * om) * C
+            j_om = self._j_omega
+            h = self._span.P_acc.T @ j_om + om * (self._span.P_turn.T @ j_om)
+            H[:nc, io] += h
+            H[io, :nc] += h
+            H[io, io] += j_om @ j_om
+        return H
+
+    def gradient(self, r: np.ndarray) -> np.ndarray:
+        """``J^T r`` (n_params,) at the last evaluation with a Jacobian, r its residuals, from the Jacobian's
+        structure (as :meth:`normal_matrix`)."""
+        F, G, nc = self.F, self.G, self.nc
+        U = self._U
+        Ur = U[0] * r[0 : 2 * F : 2]
+        Ur += U[1] * r[1 : 2 * F : 2]  # (3 + nuisances, F)
+        g = np.empty(self.n_params)
+        g[:nc] = (Ur[:3] @ self.B0).T.reshape(-1)
+        g[nc:] = 0.0
+        if U.shape[1] > 3:
+            g[self._nuis_cols] = Ur[3:].sum(axis=1)
+        o = self._fixed_rows  # (the motion prior's rows among them without a turn rate)
+        g += self._J[o:].T @ r[o:]
+        if self.i_omega is not None:
+            rp = r[2 * F : 2 * F + 3 * G]
+            g[:nc] += self._span.P_acc.T @ rp + self._omega_lin * (self._span.P_turn.T @ rp)
+            g[self.i_omega] += self._j_omega @ rp
+        return g
 
     def measurement_rows(self, theta: np.ndarray, t_s: float, xy_norm, f_px, p_cam_ned_m, R_ned_from_cam):
         """Residual (2,) and Jacobian (2, n_params) of one extra observation at ``t_s`` inside the span
@@ -513,7 +732,7 @@ class WindowProblem:
         """
         theta = theta0.copy()
         evaluations = self.evaluations
-        r, J, valid = self.evaluate(theta)
+        r, valid = self._linearise(theta, True)
         if not valid:
             return SolveResult(theta, math.inf, 0, False, None)
         cost = 0.5 * float(r @ r)
@@ -521,15 +740,16 @@ class WindowProblem:
         converged = False
         it = 0
         eye = None
-        # evaluate() fills one Jacobian buffer in place: J_current says whether it still holds theta's
-        J_current = True
+        # _linearise() keeps one linearisation (the Jacobian's pieces) in place: current says whether it is
+        # still theta's; the dense Jacobian is filled once, at the end
+        current = True
         gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
         for it in range(1, max_iterations + 1):
-            H = J.T @ J
+            H = self.normal_matrix()
             d = np.sqrt(H.diagonal())
             d[d == 0] = 1.0
             Hs = H / (d[:, None] * d[None, :])
-            g = (J.T @ r) / d
+            g = self.gradient(r) / d
             decrease = None
             # Gauss-Newton first (lam = 0): the range direction of a stiff prior has a tiny scaled
             # eigenvalue, and any fixed damping makes LM crawl along it
@@ -549,11 +769,12 @@ class WindowProblem:
                     # (saves the damping ladder that would otherwise have to prove it)
                     break
                 cand = theta - step / d
-                # evaluate the Jacobian with the residual (one call) when the step is likely to be taken: a
-                # damped one nearly always is, an undamped one while the last undamped one was; a step
-                # refused costs the Jacobian's share of the call, one taken then saves a second call
-                r2, J2, ok = self.evaluate(cand, jacobian=lam > 0.0 or gn_taken)
-                J_current = J2 is None and J_current
+                # linearise with the residual (one call) when the step is likely to be taken: a damped one
+                # nearly always is, an undamped one while the last undamped one was; a step refused costs the
+                # Jacobian's share of the call, one taken then saves a second call
+                with_jacobian = lam > 0.0 or gn_taken
+                r2, ok = self._linearise(cand, with_jacobian)
+                current = current and not with_jacobian
                 c2 = 0.5 * float(r2 @ r2) if ok else math.inf
                 if lam == 0.0:
                     gn_taken = c2 < cost
@@ -568,11 +789,11 @@ class WindowProblem:
                         self.last_jacobian = None
                         return SolveResult(theta, math.inf, it, False, None)
                     lam = lam / 10 if lam > 1e-9 else 0.0
-                    if J2 is not None:
-                        r, J, J_current = r2, J2, True
+                    if with_jacobian:
+                        r = r2
                     else:
-                        r, J, _ = self.evaluate(theta)
-                        J_current = True
+                        r, _ = self._linearise(theta, True)
+                    current = True
                     break
                 lam = max(lam * 10, 1e-6)
             yield self.evaluations - evaluations
@@ -583,9 +804,9 @@ class WindowProblem:
             if decrease < cost_tol:
                 converged = True
                 break
-        if not J_current:
-            r, J, _ = self.evaluate(theta)
-        self.last_jacobian = J
+        if not current:
+            r, _ = self._linearise(theta, True)
+        J = self.last_jacobian = self._fill_jacobian()
         return SolveResult(theta, cost, it, converged, self.factor(J) if want_factor else None)
 
     def factor(self, J: np.ndarray):
