@@ -331,9 +331,8 @@ class MapEstimator:
 
     def initial_guesses(self, prob: WindowProblem, ranges_m=None) -> list[np.ndarray]:
         """Trajectories along the measured lines of sight at each range hypothesis (default: init_ranges_m)."""
-        b = prob.obs.bearings_ned()
         ranges = self.config.init_ranges_m if ranges_m is None else ranges_m
-        return [prob.theta_from_positions(prob.obs.p_cam_ned_m + r0 * b) for r0 in ranges]
+        return [prob.theta_along_lines_of_sight(r0) for r0 in ranges]
 
     def solve_prior(
         self,

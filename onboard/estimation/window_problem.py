@@ -122,22 +122,29 @@ class WeakPriorSettings(Protocol):
     def ca_acceleration_sigma_mps2(self) -> float: ...
 
 
-_EYE3 = np.eye(3)
-_EYE3.flags.writeable = False
-#: cyclic permutations of the three axes: component i of a cross product is a[i+1] b[i+2] - a[i+2] b[i+1]
-#: (fastmath.cross3's formula, on axis 0)
-_NEXT = np.array([1, 2, 0])
-_PREV = np.array([2, 0, 1])
+#: the axes 0, 1, 2, 0, 1: in a 3-vector extended so, its cyclic shifts by one and two are the slices 1:4 and 2:5
+_CYCLE5 = np.array([0, 1, 2, 0, 1])
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
-    """Rotation matrix Exp(phi) of one rotation vector (Rodrigues' formula; frames.rotmat_from_rotvec, unbatched)."""
-    a = math.sqrt(float(phi @ phi))
+    """Rotation matrix Exp(phi) of one rotation vector (Rodrigues' formula ``I + sin(a)/a K + (1 - cos(a))/a^2 K^2``,
+    ``K = [phi]x``; frames.rotmat_from_rotvec, unbatched), in scalar arithmetic: it runs once per evaluation."""
     x, y, z = phi.tolist()
-    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    xx, yy, zz = x * x, y * y, z * z
+    a2 = xx + yy + zz
+    a = math.sqrt(a2)
     if a < 1e-9:
-        return _EYE3 + K
-    return _EYE3 + (math.sin(a) / a) * K + ((1 - math.cos(a)) / (a * a)) * (K @ K)
+        return np.array([[1.0, -z, y], [z, 1.0, -x], [-y, x, 1.0]])
+    s = math.sin(a) / a
+    c = (1 - math.cos(a)) / a2
+    xy, xz, yz = c * x * y, c * x * z, c * y * z
+    return np.array(
+        [
+            [1.0 - c * (yy + zz), xy - s * z, xz + s * y],
+            [xy + s * z, 1.0 - c * (xx + zz), yz - s * x],
+            [xz - s * y, yz + s * x, 1.0 - c * (xx + yy)],
+        ]
+    )
 
 
 def _project(w_rot: np.ndarray, R_cn: np.ndarray, xy: np.ndarray, s: np.ndarray, jacobian: bool):
@@ -225,6 +232,7 @@ class _WindowConstants:
         self.p_cam_T = np.ascontiguousarray(obs.p_cam_ned_m.T)
         self.xy_T = np.ascontiguousarray(obs.xy_norm.T)
         self.R_T = np.ascontiguousarray(np.transpose(self.R_cn, (1, 2, 0)))  # R_T[i, j, f] = R_cn[f, i, j]
+        self.R5_T = np.ascontiguousarray(self.R_T[:, _CYCLE5])
         self.w0_T = np.ascontiguousarray(rows.w0.T)
         # the observations interval by interval: (intervals, the fullest interval's count), padded with
         # observation 0 at weight 0
@@ -243,6 +251,18 @@ class _WindowConstants:
             [(w0[:, :, :, None] * w0[:, :, None, :]).reshape(nseg, width, 16), w0], axis=2
         )
         self._layouts: dict[tuple, tuple] = {}
+        self._bearings: np.ndarray | None = None
+        self._controls_at: dict[float, np.ndarray] = {}
+
+    def controls_at_range(self, range_m: float) -> np.ndarray:
+        """The control points (count, 3) fitted through the measured lines of sight at ``range_m`` (a range
+        hypothesis of the multi-start; every model of a selection starts from the same ones)."""
+        c = self._controls_at.get(range_m)
+        if c is None:
+            if self._bearings is None:
+                self._bearings = self.obs.bearings_ned()
+            c = self._controls_at[range_m] = fit_controls(self.B0, self.obs.p_cam_ned_m + range_m * self._bearings)
+        return c
 
     def layout(self, n_params: int, nuisance_first: tuple[int, ...]) -> tuple:
         """Index maps of a parameter layout (n_params, the first columns of the navigation nuisances):
@@ -372,9 +392,9 @@ class WindowProblem:
         self.set_measurement_weights(None)
         self._J = self._constant_jacobian_rows()
         self.last_jacobian: np.ndarray | None = None
-        #: the positions p(t_i) (F, 3) at the parameters of the last :meth:`evaluate` (its own product, ready
-        #: for the collapse check of :meth:`solve_steps`)
+        #: the positions p(t_i) (F, 3) at the parameters of the last :meth:`evaluate` (its own product)
         self.last_positions = np.zeros((F, 3))
+        self._los = np.zeros((3, F))  # and their lines of sight from the camera (the collapse check)
         #: calls of :meth:`evaluate` so far (the work measure of :meth:`solve_steps`)
         self.evaluations = 0
         self._prior_logdet: float | None = None  # prior_logdet() without a turn rate, computed once
@@ -414,6 +434,13 @@ class WindowProblem:
             theta[self.i_omega] = omega
         return theta
 
+    def theta_along_lines_of_sight(self, range_m: float) -> np.ndarray:
+        """:meth:`theta_from_positions` of the positions at ``range_m`` along each observation's measured line
+        of sight (``obs.bearings_ned()``), the fit computed once per window and range."""
+        theta = np.zeros(self.n_params)
+        theta[: self.nc] = self._win.controls_at_range(range_m).reshape(-1)
+        return theta
+
     # ------------------------------------------------------------------ residuals and Jacobian
     def evaluate(self, theta: np.ndarray, jacobian: bool = True):
         """Residual vector r (n_rows,), Jacobian (n_rows, n_params) or None, and validity flag.
@@ -437,14 +464,16 @@ class WindowProblem:
         c = theta[: self.nc].reshape(cnt, 3)
         X = c.T @ self._B0T  # (3, F)
         self.last_positions = X.T
-        w = X - self._p_cam_T
+        w = self._los = X - self._p_cam_T
         if self.i_beta is not None:
-            w += theta[self.i_beta : self.i_beta + 3, None]
+            w = w + theta[self.i_beta : self.i_beta + 3, None]
         if self.i_gamma is not None:
-            w += theta[self.i_gamma : self.i_gamma + 3, None] * self.dt
+            w = w + theta[self.i_gamma : self.i_gamma + 3, None] * self.dt
         if self.i_phi is not None:
             Rphi = _rodrigues(theta[self.i_phi : self.i_phi + 3])
-            w_rot = Rphi @ w
+            # rows 0, 1, 2, 0, 1: the cross product's cyclic shifts are views of it (below)
+            w_rot5 = Rphi[_CYCLE5] @ w
+            w_rot = w_rot5[:3]
         else:
             w_rot = w
         R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
@@ -473,16 +502,17 @@ class WindowProblem:
         if not jacobian:
             return r, valid
         # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y (both rows at once): (2, 3, F)
-        M = (R[:2] - pred[:, None, :] * R[2]) * ((1.0 / zs) * sT)[:, None, :]
         U = self._U  # (2 rows, 3 + nuisance columns, F): d r / d w, then the nuisances' local columns
         k = 3
         if self.i_phi is not None:
-            U[:, :3] = np.matmul(Rphi.T, M)  # d r / d w
-            # d r / d phi = -M [w_rot]x, whose rows are w_rot x m
-            U[:, 3:6] = w_rot[_NEXT] * M[:, _PREV] - w_rot[_PREV] * M[:, _NEXT]
+            R5 = self._R5_T  # R's columns 0, 1, 2, 0, 1
+            M = (R5[:2] - pred[:, None, :] * R5[2]) * ((1.0 / zs) * sT)[:, None, :]
+            np.matmul(Rphi.T, M[:, :3], out=U[:, :3])  # d r / d w
+            # d r / d phi = -M [w_rot]x, whose rows are w_rot x m: component i is w[i+1] m[i+2] - w[i+2] m[i+1]
+            np.subtract(w_rot5[1:4] * M[:, 2:5], w_rot5[2:5] * M[:, 1:4], out=U[:, 3:6])
             k = 6
         else:
-            U[:, :3] = M
+            np.multiply(R[:2] - pred[:, None, :] * R[2], ((1.0 / zs) * sT)[:, None, :], out=U[:, :3])
         if self.i_beta is not None:
             U[:, k : k + 3] = U[:, :3]
             k += 3
@@ -493,6 +523,11 @@ class WindowProblem:
             self._j_omega[0::3] = self.sq_h * v[:, 1]
             self._j_omega[1::3] = -self.sq_h * v[:, 0]
         return r, valid
+
+    def _mean_range(self) -> float:
+        """The mean distance of the positions of the last evaluation from the camera (the collapse check)."""
+        los = self._los
+        return float(np.sqrt(np.einsum("if,if->f", los, los)).mean())
 
     def _fill_jacobian(self) -> np.ndarray:
         """The dense Jacobian of the last :meth:`_linearise` with ``jacobian``, in its buffer (the rows that never
@@ -532,6 +567,7 @@ class WindowProblem:
         self._U = np.zeros((2, 3 + 3 * len(self._nuisance_first), F))
         self._j_omega = np.zeros(3 * self.G)
         self._B0T, self._p_cam_T, self._xy_T, self._R_T, self._w0_T = win.B0T, win.p_cam_T, win.xy_T, win.R_T, win.w0_T
+        self._R5_T = win.R5_T
         self._interval_obs, self._interval_weights = win.interval_obs, win.interval_weights
         layout = win.layout(self.n_params, self._nuisance_first)
         self._meas_flat, self._gram_src, self._gram_dst, self._nuis_cols, self._nuis_block = layout
@@ -781,11 +817,7 @@ class WindowProblem:
                 if c2 < cost:
                     decrease = cost - c2
                     theta, cost = cand, c2
-                    if (
-                        min_range_m is not None
-                        and float(np.mean(np.linalg.norm(self.last_positions - self.obs.p_cam_ned_m, axis=1)))
-                        < min_range_m
-                    ):
+                    if min_range_m is not None and self._mean_range() < min_range_m:
                         self.last_jacobian = None
                         return SolveResult(theta, math.inf, it, False, None)
                     lam = lam / 10 if lam > 1e-9 else 0.0
