@@ -211,7 +211,7 @@ class _SpanPrior:
 
 class _WindowConstants:
     """What a window's problems share whatever their motion prior and noise model: the basis at the observations,
-    the observations laid out observation-last (:meth:`WindowProblem._linearise`), the knot intervals' weights
+    the observations laid out observation-last (:meth:`WindowProblem.linearise`), the knot intervals' weights
     (:meth:`WindowProblem.normal_matrix`), and per parameter layout the index maps of :meth:`layout`.  Read only."""
 
     def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int):
@@ -448,16 +448,17 @@ class WindowProblem:
         Invalid (False) when any predicted direction is not in front of the camera.  The Jacobian is one buffer,
         overwritten by the next evaluation with a Jacobian.
         """
-        r, valid = self._linearise(theta, jacobian)
+        r, valid = self.linearise(theta, jacobian)
         return r, (self._fill_jacobian() if jacobian else None), valid
 
-    def _linearise(self, theta: np.ndarray, jacobian: bool) -> tuple[np.ndarray, bool]:
-        """The residuals at theta and, with ``jacobian``, the Jacobian's non-constant pieces (the local rows of
-        :meth:`_local_layout`, the turn rate): what :meth:`normal_matrix`, :meth:`gradient` and
-        :meth:`_fill_jacobian` read.  Returns (r, valid).
+    def linearise(self, theta: np.ndarray, jacobian: bool = True) -> tuple[np.ndarray, bool]:
+        """The solver's evaluation: :meth:`evaluate` without the dense Jacobian.  Returns (r, valid); with
+        ``jacobian`` it keeps the Jacobian's pieces that change with theta (the measurement rows' local columns of
+        :meth:`_local_layout`, the turn rate's column), which :meth:`normal_matrix` and :meth:`gradient` read
+        until the next linearisation with ``jacobian``.
 
-        The arithmetic of :func:`_project` on arrays laid out observation-last ((3, F) rather than (F, 3)), so
-        that every elementwise operation runs along the F observations rather than along 2 or 3 axes.
+        The arithmetic of :func:`_project`, on arrays laid out observation-last ((3, F) rather than (F, 3)) so
+        that each elementwise operation runs along the F observations rather than along 2 or 3 axes.
         """
         self.evaluations += 1
         F, G, cnt = self.F, self.G, self.count
@@ -495,10 +496,10 @@ class WindowProblem:
             om = theta[self.i_omega]
             v = self.Bq1 @ c
             a = self.Bq2 @ c
-            rp = r[2 * F : 2 * F + 3 * G]
-            rp[0::3] = self.sq_h * (a[:, 0] + om * v[:, 1])
-            rp[1::3] = self.sq_h * (a[:, 1] - om * v[:, 0])
-            rp[2::3] = self.sq_v * a[:, 2]
+            rp = r[2 * F : 2 * F + 3 * G].reshape(G, 3)
+            rp[:, 0] = self.sq_h * (a[:, 0] + om * v[:, 1])
+            rp[:, 1] = self.sq_h * (a[:, 1] - om * v[:, 0])
+            rp[:, 2] = self.sq_v * a[:, 2]
         if not jacobian:
             return r, valid
         # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y (both rows at once): (2, 3, F)
@@ -530,7 +531,7 @@ class WindowProblem:
         return float(np.sqrt(np.einsum("if,if->f", los, los)).mean())
 
     def _fill_jacobian(self) -> np.ndarray:
-        """The dense Jacobian of the last :meth:`_linearise` with ``jacobian``, in its buffer (the rows that never
+        """The dense Jacobian of the last :meth:`linearise` with ``jacobian``, in its buffer (the rows that never
         change are there already)."""
         F, G = self.F, self.G
         J, U = self._J, self._U
@@ -580,6 +581,7 @@ class WindowProblem:
         self._fixed_offset = np.zeros(self.n_rows - o)
         w = 2 * F + 3 * self.G - o
         self._fixed_offset[w : w + 3] = self.p_ref / self.config.position_prior_sigma_m
+        self._sq3 = np.stack([self.sq_h, self.sq_h, self.sq_v], axis=1)  # (the motion prior's rows, _prior_transpose)
         self._omega_lin = 0.0  # the turn rate of the last linearisation
 
     def normal_matrix(self) -> np.ndarray:
@@ -600,7 +602,7 @@ class WindowProblem:
         H = np.bincount(self._gram_dst, np.take(sums, self._gram_src), minlength=n * n)
         if u > 3:
             N = U[:, 3:]
-            H[self._nuis_block] += (N[0] @ N[0].T + N[1] @ N[1].T).reshape(-1)
+            H[self._nuis_block] += np.einsum("akf,alf->kl", N, N).reshape(-1)
         H = H.reshape(n, n)
         H += self._H_fixed
         if self.i_omega is not None:
@@ -608,11 +610,24 @@ class WindowProblem:
             A, B, C = self._span.grams()
             H[:nc, :nc] += A + om * B + (om * om) * C
             j_om = self._j_omega
-            h = self._span.P_acc.T @ j_om + om * (self._span.P_turn.T @ j_om)
+            h = self._prior_transpose(j_om).reshape(-1)
             H[:nc, io] += h
             H[io, :nc] += h
             H[io, io] += j_om @ j_om
         return H
+
+    def _prior_transpose(self, x: np.ndarray) -> np.ndarray:
+        """``J_p^T x`` (count, 3) for the motion prior's rows J_p (the turn rate's column aside) at the last
+        linearisation's turn rate, x (3G,), from the bases: ``d rp / d c`` is ``sq Bq2`` on each axis, plus
+        ``omega sq_h Bq1`` from the east control to the north row and minus it from north to east."""
+        x3 = x.reshape(self.G, 3)
+        out = self.Bq2.T @ (self._sq3 * x3)
+        if self.i_omega is not None:
+            t = np.zeros_like(x3)
+            t[:, 0] = -x3[:, 1]
+            t[:, 1] = x3[:, 0]
+            out += self._omega_lin * (self.Bq1.T @ (self.sq_h[:, None] * t))
+        return out
 
     def gradient(self, r: np.ndarray) -> np.ndarray:
         """``J^T r`` (n_params,) at the last evaluation with a Jacobian, r its residuals, from the Jacobian's
@@ -622,16 +637,17 @@ class WindowProblem:
         Ur = U[0] * r[0 : 2 * F : 2]
         Ur += U[1] * r[1 : 2 * F : 2]  # (3 + nuisances, F)
         g = np.empty(self.n_params)
-        g[:nc] = (Ur[:3] @ self.B0).T.reshape(-1)
         g[nc:] = 0.0
         if U.shape[1] > 3:
             g[self._nuis_cols] = Ur[3:].sum(axis=1)
         o = self._fixed_rows  # (the motion prior's rows among them without a turn rate)
-        g += self._J[o:].T @ r[o:]
-        if self.i_omega is not None:
+        if self.i_omega is None:
+            g[:nc] = (Ur[:3] @ self.B0).T.reshape(-1)
+        else:
             rp = r[2 * F : 2 * F + 3 * G]
-            g[:nc] += self._span.P_acc.T @ rp + self._omega_lin * (self._span.P_turn.T @ rp)
-            g[self.i_omega] += self._j_omega @ rp
+            g[:nc] = ((Ur[:3] @ self.B0).T + self._prior_transpose(rp)).reshape(-1)
+            g[self.i_omega] = self._j_omega @ rp
+        g += self._J[o:].T @ r[o:]
         return g
 
     def measurement_rows(self, theta: np.ndarray, t_s: float, xy_norm, f_px, p_cam_ned_m, R_ned_from_cam):
@@ -768,7 +784,7 @@ class WindowProblem:
         """
         theta = theta0.copy()
         evaluations = self.evaluations
-        r, valid = self._linearise(theta, True)
+        r, valid = self.linearise(theta, True)
         if not valid:
             return SolveResult(theta, math.inf, 0, False, None)
         cost = 0.5 * float(r @ r)
@@ -776,7 +792,7 @@ class WindowProblem:
         converged = False
         it = 0
         eye = None
-        # _linearise() keeps one linearisation (the Jacobian's pieces) in place: current says whether it is
+        # linearise() keeps one linearisation (the Jacobian's pieces) in place: current says whether it is
         # still theta's; the dense Jacobian is filled once, at the end
         current = True
         gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
@@ -809,7 +825,7 @@ class WindowProblem:
                 # nearly always is, an undamped one while the last undamped one was; a step refused costs the
                 # Jacobian's share of the call, one taken then saves a second call
                 with_jacobian = lam > 0.0 or gn_taken
-                r2, ok = self._linearise(cand, with_jacobian)
+                r2, ok = self.linearise(cand, with_jacobian)
                 current = current and not with_jacobian
                 c2 = 0.5 * float(r2 @ r2) if ok else math.inf
                 if lam == 0.0:
@@ -824,7 +840,7 @@ class WindowProblem:
                     if with_jacobian:
                         r = r2
                     else:
-                        r, _ = self._linearise(theta, True)
+                        r, _ = self.linearise(theta, True)
                     current = True
                     break
                 lam = max(lam * 10, 1e-6)
@@ -837,7 +853,7 @@ class WindowProblem:
                 converged = True
                 break
         if not current:
-            r, _ = self._linearise(theta, True)
+            r, _ = self.linearise(theta, True)
         J = self.last_jacobian = self._fill_jacobian()
         return SolveResult(theta, cost, it, converged, self.factor(J) if want_factor else None)
 
