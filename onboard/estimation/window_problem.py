@@ -244,6 +244,8 @@ class _WindowConstants:
         width = int(per_seg.max())
         self.interval_obs = np.zeros((nseg, width), dtype=np.int64)
         self.interval_obs[seg[order], slot] = order
+        self.interval_slot = np.empty(F, dtype=np.int64)  # observation f's place in (intervals x width)
+        self.interval_slot[order] = seg[order] * width + slot
         w0 = np.zeros((nseg, width, 4))
         w0[seg[order], slot] = rows.w0[order]
         # the weights of the interval sums: w0[m] w0[n] (16 columns), then w0[m] (4; for the nuisances)
@@ -478,9 +480,7 @@ class WindowProblem:
         else:
             w_rot = w
         R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
-        y = R[:, 0] * w_rot[0]
-        y += R[:, 1] * w_rot[1]
-        y += R[:, 2] * w_rot[2]
+        y = np.einsum("ijf,jf->if", R, w_rot)
         z = y[2]
         valid = bool((z * z > 1e-12 * np.einsum("if,if->f", w_rot, w_rot)).all() and (z > 0).all())
         zs = np.where(z > 1e-9, z, 1e-9)
@@ -873,8 +873,15 @@ class WindowProblem:
 
     def point_covariances(self, Sigma: np.ndarray, rows=None) -> np.ndarray:
         """Covariance (N, 3, 3) of p(t) at the basis rows (default: the observations)."""
-        rows = self.rows if rows is None else rows
         S = Sigma[: self.nc, : self.nc].reshape(self.count, 3, self.count, 3)
+        if rows is None:
+            # the observations of a knot interval share its 4 controls: the interval's 4 x 4 blocks of Sigma,
+            # weighted by w0[m] w0[l] (the interval weights), one small product per interval
+            win = self._win
+            span = np.arange(self.count - 3)[:, None] + np.arange(4)
+            blocks = S[span[:, :, None], :, span[:, None, :], :].reshape(-1, 16, 9)  # (intervals, 4 x 4, 3 x 3)
+            per = np.matmul(win.interval_weights[:, :, :16], blocks)  # (intervals, width, 9)
+            return per.reshape(-1, 9)[win.interval_slot].reshape(-1, 3, 3)
         idx, w = rows.index, rows.w0
         blocks = S[idx[:, :, None], :, idx[:, None, :], :]  # (N, 4, 4, 3, 3)
         return np.einsum("nm,nl,nmlij->nij", w, w, blocks)

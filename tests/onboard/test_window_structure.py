@@ -90,3 +90,14 @@ def test_the_range_hypotheses_are_the_line_of_sight_fits_and_shared_by_a_windows
         on_ct = ct.theta_along_lines_of_sight(r0)
         np.testing.assert_array_equal(on_ct[: ct.nc], expected[: cv.nc])
         assert on_ct[ct.i_omega] == 0.0
+
+
+def test_the_observations_point_covariances_by_knot_interval_are_the_per_row_ones(window):
+    prob, theta = _problem(window, NOISE_LAYOUTS["attitude bias"], "ct")
+    _, J, _ = prob.evaluate(theta)
+    Sigma = prob.covariance(prob.factor(J))
+    by_interval = prob.point_covariances(Sigma)
+    per_row = prob.point_covariances(Sigma, rows=prob.rows)  # rows given: the general path
+    assert by_interval.shape == (prob.F, 3, 3)
+    scale = np.sqrt(np.einsum("fii->fi", per_row))
+    np.testing.assert_array_less(np.abs(by_interval - per_row), 1e-12 * scale[:, :, None] * scale[:, None, :])
