@@ -119,6 +119,7 @@ def speed(noise_name: str = "RTK") -> dict:
     out["map_cold_single_prior_ms"] = float(np.median(_timeit(lambda: est.solve(obs, pr), 5)))
     out["map_model_selection_ms"] = float(np.median(_timeit(lambda: est.solve(obs), 3)))
     out.update(selection_floor(est, obs))
+    out["selection_breakdown"] = selection_breakdown(est, obs)
     # the selection before MapConfig's cost settings (every family over the whole q grid, every mode a start),
     # timed in the same run: the ratio holds on a loaded machine where the milliseconds do not
     whole = MapEstimator(MapConfig(**WHOLE_GRID), noise=estimator_noise_model(nc))
@@ -211,6 +212,62 @@ def selection_floor(est: MapEstimator, obs) -> dict:
         "factor_ms": qr,
         "selection_floor_ms": counted["iterations"] * sum(per.values()),
     }
+
+
+#: the window problem's methods the selection spends its CPU in (selection_breakdown times each)
+_TIMED_METHODS = (
+    "linearise",
+    "normal_matrix",
+    "gradient",
+    "factor",
+    "log_evidence",
+    "covariance",
+    "point_covariances",
+    "set_measurement_weights",
+    "positions",
+)
+
+
+def selection_breakdown(est: MapEstimator, obs, repeat: int = 5) -> dict:
+    """Where one batch selection's CPU goes: calls and CPU ms of the window problem's kernels and of the Cholesky
+    solves, as run inside the selection (caches and all), the rest being the solver's own arithmetic and
+    bookkeeping between them; the selection of the fastest of ``repeat`` runs."""
+    spent: dict[str, list[float]] = {}
+
+    def timed(name, fn):
+        def run(*args, **kwargs):
+            t0 = time.thread_time()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                item = spent.setdefault(name, [0, 0.0])
+                item[0] += 1
+                item[1] += (time.thread_time() - t0) * 1e3
+
+        return run
+
+    originals = {name: getattr(WindowProblem, name) for name in _TIMED_METHODS}
+    module = sys.modules[WindowProblem.__module__]
+    solvers = {name: getattr(module, name) for name in ("cho_factor_lower", "cho_solve_lower")}
+    for name, fn in originals.items():
+        setattr(WindowProblem, name, timed(name, fn))
+    for name, fn in solvers.items():
+        setattr(module, name, timed(name, fn))
+    best: dict = {}
+    try:
+        for _ in range(repeat):
+            spent.clear()
+            t0 = time.thread_time()
+            est.solve(obs)
+            total = (time.thread_time() - t0) * 1e3
+            if not best or total < best["total_ms"]:
+                best = {"total_ms": total, "items": {k: (n, ms) for k, (n, ms) in spent.items()}}
+    finally:
+        for name, fn in originals.items():
+            setattr(WindowProblem, name, fn)
+        for name, fn in solvers.items():
+            setattr(module, name, fn)
+    return best
 
 
 def _sliding_run(sc, nc, t_s, obs, selection_work_per_frame: int):
@@ -329,6 +386,16 @@ def main(argv=None) -> int:
         f"linearisation {k['evaluation']:.3f} + Cholesky {k['cholesky']:.3f} ms) = {s['selection_floor_ms']:.0f} ms "
         f"with no other overhead; {s['selection_factors']} QR factors x {s['factor_ms']:.3f} ms = "
         f"{s['selection_factors'] * s['factor_ms']:.0f} ms"
+    )
+    b = s["selection_breakdown"]
+    rest = b["total_ms"] - sum(ms for _, ms in b["items"].values())  # (the timed calls do not nest)
+    print(
+        f"  where one selection's CPU goes (the fastest of 5, {b['total_ms']:.0f} ms; calls x CPU per call): "
+        + ", ".join(
+            f"{name} {n} x {1e3 * ms / n:.0f} us = {ms:.1f} ms"
+            for name, (n, ms) in sorted(b["items"].items(), key=lambda kv: -kv[1][1])
+        )
+        + f"; the rest (the solver's own arithmetic and bookkeeping) {rest:.0f} ms"
     )
     print(
         "  where they go (model: solves (starts and re-weighting passes), iterations): "

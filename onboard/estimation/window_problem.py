@@ -43,6 +43,7 @@ their MAP values (:meth:`WindowProblem.log_evidence` says why).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -122,6 +123,9 @@ class WeakPriorSettings(Protocol):
     def ca_acceleration_sigma_mps2(self) -> float: ...
 
 
+#: the span cache's key of the last few windows' constants (WindowProblem), and how many it keeps
+_WINDOWS = "windows"
+_WINDOWS_KEPT = 4
 #: the axes 0, 1, 2, 0, 1: in a 3-vector extended so, its cyclic shifts by one and two are the slices 1:4 and 2:5
 _CYCLE5 = np.array([0, 1, 2, 0, 1])
 
@@ -209,13 +213,48 @@ class _SpanPrior:
         return self._grams
 
 
+@functools.lru_cache(maxsize=32)
+def _gram_layout(intervals: int, n_params: int, nuisance_first: tuple[int, ...]) -> tuple[np.ndarray, ...]:
+    """Where the entries of :meth:`WindowProblem.normal_matrix`'s interval sums land in J^T J, for a parameter
+    layout (the intervals, n_params, the first columns of the navigation nuisances): (source and destination
+    flat indices, the nuisances' columns and the flat indices of their block), read only.
+
+    The interval sums are (intervals, 3 x u, 20) with u = 3 + nuisance columns: entry (s, k u + l, 4 m + n) the
+    control-control block, (s, k u + 3 + j, 16 + m) the control-nuisance one (landing in both triangles).
+    """
+    nseg, n = intervals, n_params
+    nuis_cols = np.array([i0 + k for i0 in nuisance_first for k in range(3)], dtype=np.int64)
+    nm = nuis_cols.size
+    u = 3 + nm
+    s_, m_, n_, k_, l_ = np.meshgrid(
+        np.arange(nseg), np.arange(4), np.arange(4), np.arange(3), np.arange(3), indexing="ij"
+    )
+    src = [((s_ * 3 + k_) * u + l_) * 20 + 4 * m_ + n_]
+    dst = [(3 * (s_ + m_) + k_) * n + 3 * (s_ + n_) + l_]
+    if nm:
+        s_, m_, k_, j_ = np.meshgrid(np.arange(nseg), np.arange(4), np.arange(3), np.arange(nm), indexing="ij")
+        at = ((s_ * 3 + k_) * u + 3 + j_) * 20 + 16 + m_
+        ctrl, nuis = 3 * (s_ + m_) + k_, nuis_cols[j_]
+        src += [at, at]
+        dst += [ctrl * n + nuis, nuis * n + ctrl]
+    out = (
+        np.concatenate([x.reshape(-1) for x in src]),
+        np.concatenate([x.reshape(-1) for x in dst]),
+        nuis_cols,
+        (nuis_cols[:, None] * n + nuis_cols[None, :]).reshape(-1),
+    )
+    for x in out:
+        x.flags.writeable = False
+    return out
+
+
 class _WindowConstants:
     """What a window's problems share whatever their motion prior and noise model: the basis at the observations,
     the observations laid out observation-last (:meth:`WindowProblem.linearise`), the knot intervals' weights
     (:meth:`WindowProblem.normal_matrix`), and per parameter layout the index maps of :meth:`layout`.  Read only."""
 
     def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int):
-        self.obs = obs  # (the cache key holds its id: the entry keeps it alive)
+        self.obs, self.key = obs, (grid, first, count)
         F = len(obs)
         self.rows = rows = grid.basis(obs.t_s, first, count)
         self.B0 = np.zeros((F, count))  # (F, count) dense basis of p(t_i)
@@ -252,7 +291,7 @@ class _WindowConstants:
         self.interval_weights = np.concatenate(
             [(w0[:, :, :, None] * w0[:, :, None, :]).reshape(nseg, width, 16), w0], axis=2
         )
-        self._layouts: dict[tuple, tuple] = {}
+        self._meas_flat: dict[int, np.ndarray] = {}
         self._bearings: np.ndarray | None = None
         self._controls_at: dict[float, np.ndarray] = {}
 
@@ -266,43 +305,17 @@ class _WindowConstants:
             c = self._controls_at[range_m] = fit_controls(self.B0, self.obs.p_cam_ned_m + range_m * self._bearings)
         return c
 
-    def layout(self, n_params: int, nuisance_first: tuple[int, ...]) -> tuple:
-        """Index maps of a parameter layout (n_params, the first columns of the navigation nuisances):
-        (flat positions in J of the control-point block in the order (2 rows, 4 controls, 3 axes, F), then
-        where the entries of the interval sums land in J^T J: source and destination flat indices, and the
-        flat indices of the nuisances' block)."""
-        key = (n_params, nuisance_first)
-        if key not in self._layouts:
-            F, n, nseg, index = len(self.obs), n_params, self.intervals, self.rows.index
-            meas_flat = (
-                (2 * np.arange(F) + np.arange(2)[:, None])[:, None, None, :] * n
+    def meas_flat(self, n_params: int) -> np.ndarray:
+        """Flat positions in J (n_params columns) of the control-point block of the measurement rows, in the
+        order (2 rows, 4 controls, 3 axes, F)."""
+        if n_params not in self._meas_flat:
+            F, index = len(self.obs), self.rows.index
+            self._meas_flat[n_params] = (
+                (2 * np.arange(F) + np.arange(2)[:, None])[:, None, None, :] * n_params
                 + 3 * index.T[None, :, None, :]
                 + np.arange(3)[None, None, :, None]
             )
-            nuis_cols = np.array([i0 + k for i0 in nuisance_first for k in range(3)], dtype=np.int64)
-            nm = nuis_cols.size
-            u = 3 + nm
-            # the interval sums are (intervals, 3 x u, 20): entry (s, k u + l, 4 m + n) the control-control
-            # block, (s, k u + 3 + j, 16 + m) the control-nuisance one (landing in both triangles)
-            s_, m_, n_, k_, l_ = np.meshgrid(
-                np.arange(nseg), np.arange(4), np.arange(4), np.arange(3), np.arange(3), indexing="ij"
-            )
-            src = [((s_ * 3 + k_) * u + l_) * 20 + 4 * m_ + n_]
-            dst = [(3 * (s_ + m_) + k_) * n + 3 * (s_ + n_) + l_]
-            if nm:
-                s_, m_, k_, j_ = np.meshgrid(np.arange(nseg), np.arange(4), np.arange(3), np.arange(nm), indexing="ij")
-                at = ((s_ * 3 + k_) * u + 3 + j_) * 20 + 16 + m_
-                ctrl, nuis = 3 * (s_ + m_) + k_, nuis_cols[j_]
-                src += [at, at]
-                dst += [ctrl * n + nuis, nuis * n + ctrl]
-            self._layouts[key] = (
-                meas_flat,
-                np.concatenate([x.reshape(-1) for x in src]),
-                np.concatenate([x.reshape(-1) for x in dst]),
-                nuis_cols,
-                (nuis_cols[:, None] * n + nuis_cols[None, :]).reshape(-1),
-            )
-        return self._layouts[key]
+        return self._meas_flat[n_params]
 
 
 @dataclass(frozen=True, eq=False)
@@ -347,15 +360,13 @@ class WindowProblem:
         F = len(obs)
         self.F = F
         # what depends only on the window (observations and control span) is shared by the problems of one
-        # selection (a dozen motion models on the same rows)
-        key = ("window", id(obs), grid, first, count)
-        win = None if span_cache is None else span_cache.get(key)
-        if win is None or win.obs is not obs:
+        # selection (a dozen motion models on the same rows): the last few windows, newest first, under one key
+        # (a selection spread over frames alternates with the sliding window's own, a new one every frame)
+        recent = [] if span_cache is None else span_cache.setdefault(_WINDOWS, [])
+        win = next((w for w in recent if w.obs is obs and w.key == (grid, first, count)), None)
+        if win is None:
             win = _WindowConstants(obs, grid, first, count)
-            if span_cache is not None:
-                if len(span_cache) > 64:
-                    span_cache.clear()
-                span_cache[key] = win
+        recent[:] = [win, *(w for w in recent if w is not win)][:_WINDOWS_KEPT]
         self._win = win
         self.rows, self.B0, self.R_cn, self.f, self.t_ref, self.dt = (
             win.rows,
@@ -570,8 +581,9 @@ class WindowProblem:
         self._B0T, self._p_cam_T, self._xy_T, self._R_T, self._w0_T = win.B0T, win.p_cam_T, win.xy_T, win.R_T, win.w0_T
         self._R5_T = win.R5_T
         self._interval_obs, self._interval_weights = win.interval_obs, win.interval_weights
-        layout = win.layout(self.n_params, self._nuisance_first)
-        self._meas_flat, self._gram_src, self._gram_dst, self._nuis_cols, self._nuis_block = layout
+        self._meas_flat = win.meas_flat(self.n_params)
+        layout = _gram_layout(win.intervals, self.n_params, self._nuisance_first)
+        self._gram_src, self._gram_dst, self._nuis_cols, self._nuis_block = layout
         # the rows whose part of J^T J is fixed: every row after the measurements' (the motion prior's too
         # without a turn rate; with one, normal_matrix adds them at the turn rate of the evaluation)
         o = 2 * F + (3 * self.G if self.i_omega is not None else 0)
