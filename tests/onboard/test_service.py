@@ -46,7 +46,7 @@ REPO = Path(__file__).resolve().parents[2]
 WAIT_S = 5.0  # upper bound of one in-process wait
 STOP_BUDGET_S = 2.0  # SIGTERM -> exit, from the issue (enforced by the daemon; the test only guards hangs)
 NEVER_S = 3600.0  # a timeout that cannot pass during a test: a wait that ends was woken
-CENTROID_TOL_PX = 0.3  # synthetic blob, live daemon
+CENTROID_TOL_PX = 0.15  # synthetic blob (as test_pipeline): the error measured ~0.01-0.03 px
 LOG_LINE = re.compile(r'^\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z level=[A-Z]+ logger=\S+ msg=".*"$')
 
 
@@ -390,7 +390,10 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
                 state["next_tel"] += 0.02
             if now >= state["next_frame"]:
                 k = state["k"]
-                payload = scene.payload(k, time_boot_us=ap.boot_us())
+                # the camera sees the scene at its stamp, however late this loop gets round to the frame (under
+                # load by tens of ms, while the target crosses the image at ~20 px/s)
+                t_us = ap.boot_us()
+                payload = scene.payload(k, time_boot_us=t_us, content_us=t_us)
                 pub.put(payload)
                 state["last_payload"] = payload
                 state["k"] += 1
@@ -411,9 +414,9 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         run_until(lambda: sum(t.pose_valid for t in got_tracks) >= 20, 30, "20 tracks with a pose")
         good = [t for t in got_tracks if t.pose_valid]
         assert all(t.vehicle == "uav1" and t.state == "tracking" and t.track_id == 1 for t in good)
-        for t in good[-5:]:
+        for t in good:
             truth = scene.uv((t.time_boot_us - scene.boot_us0) / 1e6)
-            assert math.hypot(t.u_px - truth[0], t.v_px - truth[1]) < CENTROID_TOL_PX
+            assert math.hypot(t.u_px - truth[0], t.v_px - truth[1]) < CENTROID_TOL_PX, (t.seq, t.u_px, t.v_px, truth)
         assert good[-1].origin is not None and abs(good[-1].origin.lat_deg - 32.0) < 0.01
 
         # 2. bad input of every kind, each survived
