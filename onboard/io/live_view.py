@@ -61,6 +61,7 @@ from onboard.io.foxglove_messages import (
     stamp_from_us,
 )
 from onboard.io.record import CAMERA_FIX_TOPIC, OBJECT_ANNOTATIONS_TOPIC, TARGET_FIX_TOPIC
+from onboard.io.worker_queue import stop_and_join
 
 if TYPE_CHECKING:
     from foxglove import Context
@@ -183,7 +184,7 @@ class LiveView:
         self._q: collections.deque = collections.deque()
         self._cond = threading.Condition(threading.Lock())
         self._frames_queued = 0
-        self._stop = False
+        self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._server: WebSocketServer | None = None
         self._ctx: Context | None = None
@@ -258,11 +259,7 @@ class LiveView:
         return int(self._server.port) if self._server is not None else self._bind_port
 
     def close(self, timeout_s: float = 2.0) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
+        stop_and_join(self._cond, self._stop, self._thread, timeout_s)
         if self._server is not None:
             self._server.stop()
             self._server = None
@@ -281,7 +278,7 @@ class LiveView:
 
     def _put(self, kind: str, item: tuple) -> bool:
         with self._cond:
-            if self._stop:
+            if self._stop.is_set():
                 return False
             if len(self._q) >= self.settings.queue_length or (kind == "frame" and self._frames_queued >= 1):
                 self.dropped += 1
@@ -320,7 +317,7 @@ class LiveView:
     def _run(self) -> None:
         while True:
             with self._cond:
-                while not self._q and not self._stop:
+                while not self._q and not self._stop.is_set():
                     self._cond.wait()
                 if not self._q:
                     return

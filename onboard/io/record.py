@@ -114,6 +114,7 @@ from onboard.io.foxglove_messages import (
     rawimage_pieces,
     truth_objects_annotations,
 )
+from onboard.io.worker_queue import stop_and_join
 
 if TYPE_CHECKING:
     from io import FileIO
@@ -362,7 +363,7 @@ class FlightRecorder:
         # the writer is woken when a chunk's worth is queued or at its flush deadline, not per message: a wake-up
         # per message (6 a frame) costs the writer and the callers GIL hand-offs
         self._wake_bytes = min(settings.chunk_bytes, settings.queue_bytes // 4)
-        self._stop = False
+        self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self.frame_topic = f"irtrack/{vehicle}/ir/frame"
         self.track_topic = f"irtrack/{vehicle}/track"
@@ -396,7 +397,7 @@ class FlightRecorder:
 
     def _put(self, kind: str, topic: str, nbytes: int, item: tuple) -> bool:
         with self._cond:
-            if self._stop:
+            if self._stop.is_set():
                 return False
             if self._queued_bytes + nbytes > self.settings.queue_bytes:
                 self.dropped += 1
@@ -492,14 +493,9 @@ class FlightRecorder:
 
     def close(self, timeout_s: float = 5.0) -> None:
         """Write what is queued (within ``timeout_s``), finish the file (summary, footer), stop the thread."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        if self._thread is not None:
-            self._thread.join(timeout_s)
-            if self._thread.is_alive():
-                log.warning("recorder: backlog not written within %.1f s; the file ends at its last chunk", timeout_s)
-                return
+        if not stop_and_join(self._cond, self._stop, self._thread, timeout_s):
+            log.warning("recorder: backlog not written within %.1f s; the file ends at its last chunk", timeout_s)
+            return
         self._finish()
 
     # ------------------------------------------------------------------ writer thread
@@ -509,7 +505,7 @@ class FlightRecorder:
         next_flush = time.monotonic() + s.flush_interval_s
         while True:
             with self._cond:
-                while self._queued_bytes < self._wake_bytes and not self._stop:
+                while self._queued_bytes < self._wake_bytes and not self._stop.is_set():
                     left = next_flush - time.monotonic()
                     if left <= 0:
                         break
@@ -517,7 +513,7 @@ class FlightRecorder:
                 batch = list(self._q)
                 self._q.clear()
                 self._queued_bytes = 0
-                stop = self._stop
+                stop = self._stop.is_set()
             c0 = time.thread_time()
             for kind, topic, _n, item in batch:
                 try:

@@ -50,7 +50,7 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.io.foxglove_messages import drawn_box
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
-from onboard.io.worker_queue import items_until_stopped
+from onboard.io.worker_queue import items_until_stopped, stop_and_join
 
 __all__ = [
     "agc_limits",
@@ -424,7 +424,7 @@ class VideoStreamer:
         self._q: collections.deque = collections.deque()
         self._maxlen = int(queue_length)
         self._cond = threading.Condition(threading.Lock())
-        self._stop = False
+        self._stop = threading.Event()
         self.frames_in = 0
         self.frames_encoded = 0
         self.frames_dropped = 0
@@ -448,7 +448,7 @@ class VideoStreamer:
             self._cond.notify()
 
     def _run(self) -> None:
-        for pixels, track, capture_time_us, objects in items_until_stopped(self._cond, self._q, lambda: self._stop):
+        for pixels, track, capture_time_us, objects in items_until_stopped(self._cond, self._q, self._stop.is_set):
             t0 = time.perf_counter()
             try:
                 lo, hi = self._agc.update(pixels)
@@ -479,10 +479,7 @@ class VideoStreamer:
         }
 
     def close(self, timeout_s: float = 1.0) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._thread.join(timeout_s)
+        stop_and_join(self._cond, self._stop, self._thread, timeout_s)
         try:
             self._encoder.close()
             self._sink.flush()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import threading
 from collections import deque
 
-from onboard.io.worker_queue import items_until_stopped
+from onboard.io.worker_queue import items_until_stopped, stop_and_join
 
 WAIT_S = 10.0  # a hang guard only
 
@@ -50,3 +50,40 @@ def test_a_waiting_worker_wakes_for_an_item_and_for_the_stop():
         cond.notify_all()
     th.join(WAIT_S)
     assert not th.is_alive() and taken == ["frame"]
+
+
+def test_stop_and_join_wakes_a_waiting_worker_and_says_it_ended():
+    """The worker waits with an hour's timeout: it ends only because the stop woke it (the join is a hang guard)."""
+    cond = threading.Condition(threading.Lock())
+    stop = threading.Event()
+    waiting = threading.Event()
+
+    def worker() -> None:
+        with cond:
+            while not stop.is_set():
+                waiting.set()
+                cond.wait(3600.0)
+
+    th = threading.Thread(target=worker)
+    th.start()
+    assert waiting.wait(WAIT_S)
+    assert stop_and_join(cond, stop, th, WAIT_S) is True
+    assert stop.is_set() and not th.is_alive()
+
+
+def test_stop_and_join_says_when_the_worker_is_still_running():
+    cond = threading.Condition(threading.Lock())
+    stop, release = threading.Event(), threading.Event()
+    th = threading.Thread(target=lambda: release.wait(WAIT_S))  # busy with an item: deaf to the stop
+    th.start()
+    try:
+        assert stop_and_join(cond, stop, th, 0.01) is False
+        assert stop.is_set() and th.is_alive()
+    finally:
+        release.set()
+        th.join(WAIT_S)
+
+
+def test_stop_and_join_of_a_worker_never_started_only_sets_the_stop():
+    cond, stop = threading.Condition(threading.Lock()), threading.Event()
+    assert stop_and_join(cond, stop, None, WAIT_S) is True and stop.is_set()
