@@ -143,7 +143,7 @@ def _receiver(transport: str, kind: str, on_frame):
 
 
 def loopback_latency(frames: int, fps: float = 30.0, transport: str = "rtp", kind: str = "ffmpeg-sdp") -> None:
-    from onboard.io.video import VideoStreamer
+    from onboard.io.video import VideoConfig, VideoStreamer
 
     base, noise = _scene(np.random.default_rng(1))
     submit_ns: dict[int, int] = {}
@@ -162,7 +162,7 @@ def loopback_latency(frames: int, fps: float = 30.0, transport: str = "rtp", kin
 
     rx = _receiver(transport, kind, on_frame)
     streamer = VideoStreamer(
-        f"127.0.0.1:{rx.port}", W, H, fps, 2_000_000, 1.0, overlay=True, queue_length=2, transport=transport
+        VideoConfig(destination=f"127.0.0.1:{rx.port}", transport=transport, fps=fps, queue_length=2), W, H
     )
     period_ns = int(1e9 / fps)
     t_next = time.monotonic_ns()

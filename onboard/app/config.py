@@ -14,7 +14,8 @@ and composed here, each the one declaration of its settings, which its component
 :class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``zenoh``
 :class:`onboard.io.zenoh_session.ZenohConfig` (the session's), ``imaging``
 :class:`onboard.imaging.preprocess.ImagingParams`, ``record`` :class:`onboard.io.record.RecordConfig`,
-``live_view`` :class:`onboard.io.live_view.LiveViewConfig`; the others are below.
+``live_view`` :class:`onboard.io.live_view.LiveViewConfig`, ``video`` :class:`onboard.io.video.VideoConfig`; the
+others are below.
 
 Every problem raises :class:`OnboardConfigError` (a :class:`~onboard.core.schema.SchemaError`), one line::
 
@@ -71,6 +72,7 @@ from onboard.imaging.preprocess import ImagingParams
 from onboard.io.live_view import LiveViewConfig
 from onboard.io.mavlink_link import MavlinkConfig, parse_connection
 from onboard.io.record import RecordConfig
+from onboard.io.video import VideoConfig
 from onboard.io.zenoh_session import ZenohConfig
 
 __all__ = [
@@ -284,20 +286,6 @@ class GcsConfig:
         for name in ("vendor_name", "model_name"):
             if len(getattr(self, name).encode()) > 32:
                 raise Invalid(name, "at most 32 bytes (CAMERA_INFORMATION)", getattr(self, name))
-
-
-@config_dataclass
-class VideoConfig:
-    """``video``: the IR video for ground stations (see :mod:`onboard.io.video`)."""
-
-    destination: Annotated[str | None, Text(pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT")] = None
-    # RTP/UDP (RFC 6184) or MPEG-TS/UDP; see onboard.io.video
-    transport: Annotated[Literal["rtp", "mpegts"], Text()] = "rtp"
-    fps: Annotated[float, Number(1.0, 120.0)] = 30.0
-    bitrate_bps: Annotated[int, Integer(100_000, 50_000_000)] = 2_000_000
-    gop_s: Annotated[float, Number(0.1, 1.0)] = 1.0
-    overlay: Bool = True
-    queue_length: Annotated[int, Integer(1, 30)] = 2
 
 
 @config_dataclass

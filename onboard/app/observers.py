@@ -176,20 +176,8 @@ class VideoTap:
     def start(self) -> None:
         from onboard.io.video import VideoStreamer
 
-        v, K = self._config, self._intrinsics
-        if v.destination is None:  # make_observers adds the tap only for a configured destination
-            raise InputError("video.destination: a VideoTap needs a destination (host:port)")
-        self.streamer = VideoStreamer(
-            v.destination,
-            K.width_px,
-            K.height_px,
-            v.fps,
-            v.bitrate_bps,
-            v.gop_s,
-            v.overlay,
-            v.queue_length,
-            v.transport,
-        )
+        # make_observers adds the tap only for a configured destination (the streamer refuses none)
+        self.streamer = VideoStreamer(self._config, self._intrinsics.width_px, self._intrinsics.height_px)
 
     def on_received(self, frame: IrFrame, received_ns: int) -> None:
         pass

@@ -44,10 +44,12 @@ import threading
 import time
 from dataclasses import dataclass
 from fractions import Fraction
+from typing import Annotated, Literal, get_args
 
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
 from onboard.io.foxglove_messages import drawn_box
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
 from onboard.io.worker_queue import items_until_stopped, stop_and_join
@@ -61,6 +63,7 @@ __all__ = [
     "OBJECT_GREY",
     "H264TsEncoder",
     "H264RtpEncoder",
+    "VideoConfig",
     "VideoStreamer",
     "TS_DATAGRAM_BYTES",
     "TRANSPORTS",
@@ -74,7 +77,8 @@ AGC_LOW_PCT, AGC_HIGH_PCT = 1.0, 99.0
 AGC_SMOOTHING = 0.1  # weight of the newest frame's limits (exponential smoothing)
 AGC_MIN_SPAN = 8.0  # grey levels: a flat frame is not stretched into noise
 AGC_SAMPLE_STEP = 4  # percentiles over every 4th pixel in each direction (1/16 of the frame)
-TRANSPORTS = ("rtp", "mpegts")  # config video.transport
+Transport = Literal["rtp", "mpegts"]  # RTP/UDP (RFC 6184) or MPEG-TS/UDP (module docstring)
+TRANSPORTS: tuple[str, ...] = get_args(Transport)
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
 
 
@@ -389,32 +393,41 @@ def parse_destination(text: str, field: str = "video.destination") -> tuple[str,
     return host, int(port)
 
 
-class VideoStreamer:
-    """The encoder thread (module docstring).  ``submit`` from the pipeline thread; ``close`` to stop."""
+@config_dataclass
+class VideoConfig:
+    """``video``: the IR video for ground stations (the daemon's section, composed by
+    :class:`onboard.app.config.OnboardConfig`; no ``destination``, no video).  ``queue_length``: frames
+    :class:`VideoStreamer` holds while the encoder is behind."""
 
-    def __init__(
-        self,
-        destination: str,
-        width_px: int,
-        height_px: int,
-        fps: float = 30.0,
-        bitrate_bps: int = 2_000_000,
-        gop_s: float = 1.0,
-        overlay: bool = True,
-        queue_length: int = 2,
-        transport: str = "rtp",
-    ) -> None:
-        host, port = parse_destination(destination)
-        if transport not in TRANSPORTS:
-            raise InputError(f"video.transport: expected one of {', '.join(TRANSPORTS)}, got {transport!r}")
-        self.destination = destination
+    destination: Annotated[str | None, Text(pattern=r"^[^\s:]+:\d{1,5}$", what="HOST:PORT")] = None
+    transport: Annotated[Transport, Text()] = "rtp"
+    fps: Annotated[float, Number(1.0, 120.0)] = 30.0
+    bitrate_bps: Annotated[int, Integer(100_000, 50_000_000)] = 2_000_000
+    gop_s: Annotated[float, Number(0.1, 1.0)] = 1.0
+    overlay: Bool = True
+    queue_length: Annotated[int, Integer(1, 30)] = 2
+
+
+class VideoStreamer:
+    """The encoder thread (module docstring) sending ``width_px`` x ``height_px`` frames as ``settings`` says (its
+    destination required).  ``submit`` from the pipeline thread; ``close`` to stop."""
+
+    def __init__(self, settings: VideoConfig, width_px: int, height_px: int) -> None:
+        if not isinstance(settings, VideoConfig):
+            raise InputError(f"VideoStreamer needs a VideoConfig, got {type(settings).__name__}")
+        if settings.destination is None:
+            raise InputError("video.destination: a VideoStreamer needs a destination (host:port)")
+        host, port = parse_destination(settings.destination)
+        self.settings = settings
+        self.destination = settings.destination
         self.port = port
-        self.transport = transport
-        self.overlay = bool(overlay)
-        gop_frames = max(1, int(round(gop_s * fps)))
+        self.transport = settings.transport
+        self.overlay = settings.overlay
+        fps, bitrate_bps = settings.fps, settings.bitrate_bps
+        gop_frames = max(1, int(round(settings.gop_s * fps)))
         self._sink: _UdpRtpSink | _UdpTsSink
         self._encoder: H264RtpEncoder | H264TsEncoder
-        if transport == "rtp":
+        if self.transport == "rtp":
             self._sink = _UdpRtpSink(host, port)
             self._encoder = H264RtpEncoder(self._sink.send, width_px, height_px, fps, bitrate_bps, gop_frames)
         else:
@@ -422,7 +435,7 @@ class VideoStreamer:
             self._encoder = H264TsEncoder(self._sink, width_px, height_px, fps, bitrate_bps, gop_frames)
         self._agc = AgcState()
         self._q: collections.deque = collections.deque()
-        self._maxlen = int(queue_length)
+        self._maxlen = settings.queue_length
         self._cond = threading.Condition(threading.Lock())
         self._stop = threading.Event()
         self.frames_in = 0

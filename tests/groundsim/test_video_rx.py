@@ -12,7 +12,7 @@ import pytest
 
 from bench.video import H, W, read_index, stamp_index
 from groundsim.io.video_rx import RtpMarkerDecoder, SdpRtpDecoder, UdpTsDecoder
-from onboard.io.video import VideoStreamer
+from onboard.io.video import VideoConfig, VideoStreamer
 
 FRAMES = 45  # one and a half GOPs at 30 Hz
 WAIT_S = 10.0
@@ -49,15 +49,17 @@ def test_every_frame_is_decoded_in_order_from_the_first_idr(receiver):
             done.set()
 
     rx = cls(on_frame)
-    streamer = VideoStreamer(
-        f"127.0.0.1:{rx.port}", W, H, 30.0, 2_000_000, 1.0, overlay=False, queue_length=FRAMES, transport=transport
-    )
+    video = VideoConfig(destination=f"127.0.0.1:{rx.port}", transport=transport, overlay=False, queue_length=30)
+    streamer = VideoStreamer(video, W, H)
     rng = np.random.default_rng(3)
     try:
         for k in range(FRAMES):
             img = (3000 + rng.normal(0, 10, (H, W))).astype(np.uint16)
             img[250:255, 300:305] = 4500
             stamp_index(img, k)
+            # once the queue has room (the one in the encoder counted too): no drop however slow the encoder
+            while streamer.frames_in - streamer.frames_encoded - streamer.errors >= video.queue_length:
+                threading.Event().wait(0.005)
             streamer.submit(img)
             time.sleep(1 / 30)
         assert done.wait(WAIT_S), f"decoded {len(got)} of {FRAMES} frames; receiver error {rx.error}"

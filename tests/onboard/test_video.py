@@ -19,11 +19,13 @@ from hypothesis import strategies as st
 
 av = pytest.importorskip("av")
 
+from onboard.core.errors import InputError  # noqa: E402
 from onboard.io.rtp_h264 import depacketize, parse_rtp, rtp_timestamp  # noqa: E402
 from onboard.io.video import (  # noqa: E402
     AgcState,
     H264RtpEncoder,
     H264TsEncoder,
+    VideoConfig,
     VideoStreamer,
     agc_limits,
     agc_u8,
@@ -157,18 +159,27 @@ def _udp_bound(port: int) -> bool:
     return False
 
 
+def _submit_without_drop(streamer: VideoStreamer, img: np.ndarray, capture_time_us: int) -> None:
+    """Submit once the streamer's queue has room (frames in, less those encoded or failed, counts the one in the
+    encoder too): however far a loaded machine's encoder falls behind, no frame is dropped."""
+    while streamer.frames_in - streamer.frames_encoded - streamer.errors >= streamer.settings.queue_length:
+        threading.Event().wait(0.005)
+    streamer.submit(img, capture_time_us=capture_time_us)
+
+
 def _stream(destination: str, transport: str) -> tuple[dict, list]:
-    """N_FRAMES through a VideoStreamer, submitted at twice the camera's rate (queue long enough for all);
-    (status, truth (u, v) per frame).  Paced, not all at once: 90 frames encoded back to back leave as one
+    """N_FRAMES through a VideoStreamer, submitted at up to twice the camera's rate (each once the queue has
+    room); (status, truth (u, v) per frame).  Paced, not all at once: 90 frames encoded back to back leave as one
     burst of ~1 MB of datagrams, more than a loopback receive buffer holds when the receiving thread is
     slow on a loaded machine (a CI run lost a third of the MPEG-TS packets that way); a camera never bursts."""
-    streamer = VideoStreamer(destination, W, H, fps=30.0, overlay=False, queue_length=N_FRAMES, transport=transport)
+    video = VideoConfig(destination=destination, transport=transport, fps=30.0, overlay=False, queue_length=30)
+    streamer = VideoStreamer(video, W, H)
     truth = []
     try:
         for k in range(N_FRAMES):
             img, uv = _mono16(k)
             truth.append(uv)
-            streamer.submit(img, capture_time_us=k * FRAME_US)
+            _submit_without_drop(streamer, img, k * FRAME_US)
             time.sleep(FRAME_US / 2e6)
         deadline = time.monotonic() + WAIT_S
         while streamer.frames_encoded < N_FRAMES and time.monotonic() < deadline:
@@ -300,7 +311,7 @@ def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
             pass
 
     monkeypatch.setattr("onboard.io.video.H264TsEncoder", SlowEncoder)
-    streamer = VideoStreamer("127.0.0.1:9", W, H, queue_length=2)
+    streamer = VideoStreamer(VideoConfig(destination="127.0.0.1:9", queue_length=2), W, H)
     try:
         img, _ = _mono16(0)
         t0 = time.perf_counter()
@@ -344,10 +355,17 @@ def test_transport_is_checked_by_name():
 
     with pytest.raises(Exception, match="video.transport"):
         build_config({"video": {"destination": "10.0.0.5:5600", "transport": "rtsp"}})
-    with pytest.raises(Exception, match="video.transport"):
-        VideoStreamer("127.0.0.1:9", W, H, transport="srt")
+    with pytest.raises(Exception, match="transport: expected one of rtp, mpegts, got 'srt'"):
+        VideoConfig(destination="127.0.0.1:9", transport="srt")
     with pytest.raises(Exception, match="video.transport"):
         video_stream_type("webrtc")
+
+
+def test_the_streamer_needs_the_sections_destination():
+    with pytest.raises(InputError, match="video.destination"):
+        VideoStreamer(VideoConfig(), W, H)  # the section's default: no video
+    with pytest.raises(InputError, match=r"video.destination: expected HOST:PORT with PORT in 1..65535"):
+        VideoStreamer(VideoConfig(destination="127.0.0.1:70000"), W, H)  # the section checks the form, not the range
 
 
 @settings(max_examples=200, deadline=None)
