@@ -210,3 +210,18 @@ def test_compensation_starts_on_a_significant_estimate_that_is_not_yet_confident
     assert out[started].blocks == SIGNIFICANT_MIN_BLOCKS  # not on two blocks: that sigma is not trusted
     assert est.compensated_ms == pytest.approx(50.0, abs=4 * out[started].sigma_ms)
     assert est.compensated_ms == out[started].estimate_ms  # never moved by an estimate that is not confident
+
+
+def test_the_daemons_defaults_are_the_estimators():
+    """The ``time_offset`` section exposes five of the tuning fields (``warn_threshold_ms`` as
+    ``min_compensated_ms``) with defaults of its own: the estimator these tests build from ``TimeOffsetParams()``
+    is the one the daemon runs by default; and each exposed field reaches it."""
+    from onboard.app.config import TimeOffsetConfig
+
+    assert TimeOffsetConfig().params() == TimeOffsetParams()
+    section = TimeOffsetConfig(
+        compensate=False, warn_threshold_ms=35.0, confident_sigma_ms=6.0, max_offset_ms=120.0, window_s=45.0
+    )
+    assert section.params() == TimeOffsetParams(
+        compensate=False, min_compensated_ms=35.0, confident_sigma_ms=6.0, max_offset_ms=120.0, window_s=45.0
+    )
