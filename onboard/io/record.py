@@ -659,6 +659,11 @@ class FlightRecorder:
         w.add_message(self._channel(w, topic, schema), t, data, t if publish_ns is None else publish_ns, sequence)
         self.messages_written += 1
 
+    def _add_json(self, topic: str, schema: str, obj: Any, mono_ns: int, seq: int = 0) -> None:
+        """``obj`` as the bytes ``json.dumps(obj, separators=(",", ":"))`` gives, its sequence ``seq`` (a frame's,
+        wrapped to the record's 32 bits)."""
+        self._add(topic, schema, _COMPACT_JSON.encode(obj).encode(), mono_ns, sequence=seq & 0xFFFFFFFF)
+
     def _pb_bytes(self, schema: str, fields: dict[str, Any]) -> bytes:
         cls = self._protobuf()[schema]
         ts = fields.pop("timestamp")
@@ -714,7 +719,7 @@ class FlightRecorder:
                 "pose": pose_to_json(pose),
             }
             now = self._clock_ns()
-            self._add(topic, FRAME_INPUT_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
+            self._add_json(topic, FRAME_INPUT_SCHEMA, obj, now, seq)
             if pose is not None:
                 self._add(
                     CAMERA_FIX_TOPIC,
@@ -742,16 +747,15 @@ class FlightRecorder:
         elif kind == "imaging_pose":
             seq, t_us, pose, now = item
             obj = {"seq": seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
-            self._add(topic, IMAGING_POSE_SCHEMA, _COMPACT_JSON.encode(obj).encode(), now, sequence=seq & 0xFFFFFFFF)
+            self._add_json(topic, IMAGING_POSE_SCHEMA, obj, now, seq)
         elif kind == "objects":
             message, seq, now = item
-            self._add(topic, OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq & 0xFFFFFFFF)
+            self._add_json(topic, OBJECTS_SCHEMA, message, now, seq)
             ann = objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
             self._add(OBJECT_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
         elif kind == "truth_objects":
             message, now = item
-            seq = int(message.get("seq", 0)) & 0xFFFFFFFF
-            self._add(topic, TRUTH_OBJECTS_SCHEMA, _COMPACT_JSON.encode(message).encode(), now, sequence=seq)
+            self._add_json(topic, TRUTH_OBJECTS_SCHEMA, message, now, int(message.get("seq", 0)))
             ann = truth_objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
             self._add(TRUTH_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
         elif kind == "mavlink":
