@@ -427,18 +427,26 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         )  # refused by the typed encoder: sent raw
         ap.attitude(t + 2, q=(0.0, 0.0, 0.0, 0.0))
         ap.position(t + 3, 0.0, 0.0, 100.0)  # GNSS dropout
+
+        def put_bad(payload: bytes) -> None:
+            """One bad frame, then a turn of the fake world: the camera streams on meanwhile, as a real one would
+            (sent all at once, the bad input can hold the good frames back by more than
+            input.time_reset_threshold_s on a loaded machine: a clock step, which restarts the estimator)."""
+            pub.put(payload)
+            tick()
+
         last = state["last_payload"]
-        pub.put(last)  # duplicate
-        pub.put(scene.payload(0, seq=1, time_boot_us=scene.boot_us0 + 1))  # out of order (long ago, seq back)
+        put_bad(last)  # duplicate
+        put_bad(scene.payload(0, seq=1, time_boot_us=scene.boot_us0 + 1))  # out of order (long ago, seq back)
         odd_seq = decode_irframe(last).seq + 100_000  # numbering moving on, stamps wrong: one frame each
-        pub.put(scene.payload(0, seq=odd_seq, time_boot_us=decode_irframe(last).time_boot_us + 3_600_000_000))
-        pub.put(scene.payload(0, seq=odd_seq + 1, time_boot_us=1000))  # 1 ms after boot
+        put_bad(scene.payload(0, seq=odd_seq, time_boot_us=decode_irframe(last).time_boot_us + 3_600_000_000))
+        put_bad(scene.payload(0, seq=odd_seq + 1, time_boot_us=1000))  # 1 ms after boot
         for _ in range(20):  # repeated: counted 20 times, logged once
-            pub.put(np.random.default_rng(5).integers(0, 256, 4000, dtype=np.uint8).tobytes())
-        pub.put(last[:-640])  # wrong size
+            put_bad(np.random.default_rng(5).integers(0, 256, 4000, dtype=np.uint8).tobytes())
+        put_bad(last[:-640])  # wrong size
         # too large for input.max_frame_bytes (16 MiB default) but within zenoh's own limit (that + 4 KiB):
         # counted by the daemon; far larger payloads never reach it (zenoh drops them, test_zenoh_limits)
-        pub.put(last + bytes(16 * 1024 * 1024 + 1 - len(last)))
+        put_bad(last + bytes(16 * 1024 * 1024 + 1 - len(last)))
 
         want = {
             "mavlink_bad_data": 1,
