@@ -39,6 +39,7 @@ import numpy as np
 __all__ = [
     "ClutterParams",
     "PointCandidate",
+    "Scratch",
     "column_offsets",
     "remove_column_offsets",
     "isolated_outliers",
@@ -108,6 +109,30 @@ class ClutterParams:
             raise ValueError(f"ClutterParams.defect_fraction must be in (0, 1], got {self.defect_fraction!r}")
 
 
+class Scratch:
+    """Arrays kept from one frame to the next, by name: a function given one writes its full-frame
+    intermediates and its result there instead of into fresh arrays.  A fresh 640 x 512 float32 array
+    (1.3 MB) is above the allocator's threshold for memory it returns to the system when freed, and
+    the next frame's faults it back in page by page: on the same frames the chain took 0 or ~930 page
+    faults a frame depending on where earlier arrays happened to lie, 3.9 against 7.1 CPU ms.  A result
+    written into one is valid until the next call that writes the same name."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray:
+        """The array ``name`` of that shape and dtype (uninitialised when new or reshaped)."""
+        a = self._arrays.get(name)
+        if a is None or a.shape != tuple(shape) or a.dtype != dtype:
+            a = self._arrays[name] = np.empty(shape, dtype)
+        return a
+
+
+def _dst(scratch: Scratch | None, name: str, shape: tuple[int, ...], dtype=np.float32) -> np.ndarray | None:
+    """``scratch``'s array ``name`` as an OpenCV ``dst`` (None: OpenCV allocates a new one)."""
+    return None if scratch is None else scratch.get(name, shape, dtype)
+
+
 @dataclass(frozen=True)
 class PointCandidate:
     """One point-like component of the thresholded local contrast: ``u_px, v_px`` its contrast-weighted
@@ -137,15 +162,20 @@ def remove_column_offsets(image: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     return np.asarray(image, dtype=np.float32) - offsets[None, :]
 
 
-def isolated_outliers(image: np.ndarray, sigma: float) -> np.ndarray:
+_RING3 = np.array([[1, 1, 1], [1, 0, 1], [1, 1, 1]], np.uint8)  # the eight neighbours
+
+
+def isolated_outliers(image: np.ndarray, sigma: float, scratch: Scratch | None = None) -> np.ndarray:
     """Bool mask of pixels more than ``sigma`` above the largest, or below the smallest, of their eight
-    neighbours (a one-pixel spike or hole)."""
+    neighbours (a one-pixel spike or hole).  ``scratch``: the arrays to work in (the mask is one)."""
     img = np.asarray(image, dtype=np.float32)
-    ring = np.ones((3, 3), np.uint8)
-    ring[1, 1] = 0
-    nmax = cv2.dilate(img, ring, borderType=cv2.BORDER_REPLICATE)
-    nmin = cv2.erode(img, ring, borderType=cv2.BORDER_REPLICATE)
-    return (img > nmax + sigma) | (img < nmin - sigma)
+    nmax = cv2.dilate(img, _RING3, dst=_dst(scratch, "outlier_max", img.shape), borderType=cv2.BORDER_REPLICATE)
+    nmin = cv2.erode(img, _RING3, dst=_dst(scratch, "outlier_min", img.shape), borderType=cv2.BORDER_REPLICATE)
+    # numpy's float32 arithmetic as ``img > nmax + sigma`` does it (sigma rounded to float32 first), in place
+    s = np.float32(sigma)
+    above = np.greater(img, np.add(nmax, s, out=nmax), out=_dst(scratch, "outlier_above", img.shape, np.bool_))
+    below = np.less(img, np.subtract(nmin, s, out=nmin), out=_dst(scratch, "outlier_below", img.shape, np.bool_))
+    return np.logical_or(above, below, out=above)
 
 
 class DefectMap:
@@ -163,6 +193,7 @@ class DefectMap:
         self._seen = 0
         self.mask = np.zeros(shape, bool)
         self._where = np.nonzero(self.mask)
+        self._scratch = Scratch()
 
     def reset(self) -> None:
         self._rate[:] = 0
@@ -171,13 +202,13 @@ class DefectMap:
         self._where = np.nonzero(self.mask)
 
     def update(self, image: np.ndarray, sigma: float) -> None:
-        out = isolated_outliers(image, sigma)
+        out = isolated_outliers(image, sigma, self._scratch)
         self._rate *= self._decay
-        self._rate[out] += np.float32(1.0) - self._decay
+        np.add(self._rate, np.float32(1.0) - self._decay, out=self._rate, where=out)  # rate[out] += ..., no gather
         self._seen += 1
         # from the first frame on: repairing a pixel that was an outlier once costs nothing (a target
         # covers several pixels, never an isolated one), and a hot pixel is repaired before it is tracked
-        self.mask = self._rate >= self._fraction * np.float32(1.0 - self._decay**self._seen)
+        np.greater_equal(self._rate, self._fraction * np.float32(1.0 - self._decay**self._seen), out=self.mask)
         # repair() runs every frame, the map changes only here; OpenCV's scan of the mask costs ~1/40 of
         # numpy's nonzero (0.6 ms on a 640 x 512 frame), in the same row-major order
         pts = cv2.findNonZero(self.mask.view(np.uint8))
@@ -187,35 +218,51 @@ class DefectMap:
             pts = pts.reshape(-1, 2)
             self._where = (pts[:, 1].astype(np.intp), pts[:, 0].astype(np.intp))
 
-    def repair(self, image: np.ndarray) -> np.ndarray:
+    def repair(self, image: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """``image`` (float32) with the defects replaced, written to ``out`` (``image`` itself may be
+        given: the medians are gathered before any pixel is written); a copy when None and there are
+        defects, ``image`` itself when there are none."""
         img = np.asarray(image, dtype=np.float32)
         ii, jj = self._where
         if ii.size == 0:
-            return img
+            if out is None or out is img:
+                return img
+            np.copyto(out, img)
+            return out
         # the 3 x 3 median at the few defects only (a whole-frame median filter costs ~0.3 ms a frame)
         h, w = img.shape
         di, dj = np.mgrid[-1:2, -1:2]
         ni = np.clip(ii[:, None] + di.ravel()[None, :], 0, h - 1)
         nj = np.clip(jj[:, None] + dj.ravel()[None, :], 0, w - 1)
-        out = img.copy()
-        out[ii, jj] = np.median(img[ni, nj], axis=1)
+        medians = np.median(img[ni, nj], axis=1)
+        if out is None:
+            out = img.copy()
+        elif out is not img:
+            np.copyto(out, img)
+        out[ii, jj] = medians
         return out
 
 
-def _centre(img: np.ndarray, centre_px: int) -> np.ndarray:
+def _centre(
+    img: np.ndarray, centre_px: int, dst: np.ndarray | None = None, mean_dst: np.ndarray | None = None
+) -> np.ndarray:
     """The largest ``centre_px`` box mean covering each pixel: ``mc(i, j)`` is the mean of the square
     starting at (i, j), dilated over the squares holding (i, j) (anchors chosen so that no half-pixel
-    shift creeps in)."""
+    shift creeps in).  ``dst``, ``mean_dst``: where to write it and ``mc`` (None: new arrays)."""
     if centre_px == 1:
         return img
-    mc = cv2.blur(img, (centre_px, centre_px), anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
+    mc = cv2.blur(img, (centre_px, centre_px), dst=mean_dst, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)
     a = centre_px - 1
-    return cv2.dilate(mc, np.ones((centre_px, centre_px), np.uint8), anchor=(a, a), borderType=cv2.BORDER_REPLICATE)
+    kernel = np.ones((centre_px, centre_px), np.uint8)
+    return cv2.dilate(mc, kernel, dst=dst, anchor=(a, a), borderType=cv2.BORDER_REPLICATE)
 
 
-def _surround_max(img: np.ndarray, cell_px: int, guard_px: int, box_mean: np.ndarray | None = None) -> np.ndarray:
+def _surround_max(
+    img: np.ndarray, cell_px: int, guard_px: int, box_mean: np.ndarray | None = None, dst: np.ndarray | None = None
+) -> np.ndarray:
     """The largest of the eight ``cell_px`` box means ``guard_px`` away, in one dilation by a kernel
-    holding the eight offsets (``box_mean``: those box means, when already computed)."""
+    holding the eight offsets (``box_mean``: those box means, when already computed; ``dst``: where to
+    write the result, None: a new array)."""
     if box_mean is not None:
         m = box_mean
     else:
@@ -226,7 +273,7 @@ def _surround_max(img: np.ndarray, cell_px: int, guard_px: int, box_mean: np.nda
         for di, dj in _DIRECTIONS:
             kernel[guard_px + di * guard_px, guard_px + dj * guard_px] = 1
         kernel = _RINGS.setdefault(guard_px, kernel)
-    return cv2.dilate(m, kernel, borderType=cv2.BORDER_REPLICATE)
+    return cv2.dilate(m, kernel, dst=dst, borderType=cv2.BORDER_REPLICATE)
 
 
 def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centre_px: int = 2) -> np.ndarray:
@@ -237,18 +284,27 @@ def local_contrast(image: np.ndarray, cell_px: int = 3, guard_px: int = 4, centr
     return cv2.subtract(_centre(img, centre_px), _surround_max(img, cell_px, guard_px))
 
 
-def point_contrast(image: np.ndarray, params: ClutterParams, box_mean: np.ndarray | None = None) -> np.ndarray:
+def point_contrast(
+    image: np.ndarray, params: ClutterParams, box_mean: np.ndarray | None = None, scratch: Scratch | None = None
+) -> np.ndarray:
     """The smaller of two local contrasts: ``cell_px`` cells ``guard_px`` away, and single pixels
     ``sharp_guard_px`` away.  A protrusion of a cloud edge a few pixels wide beats a surround 4 px away
     but not one 2 px away, which lies inside it; a blurred 2 x 2 target beats both.  Measured on the
     reference scenes' frames (threshold 5 sigma): C1's candidates per frame fall from ~100 (guard 4
     alone) to ~7, the target still detected on every frame.  ``box_mean``: the image's ``cell_px``
-    box mean (edges replicated), when the caller has it already (the noise estimate uses the 3 x 3 one)."""
+    box mean (edges replicated), when the caller has it already (the noise estimate uses the 3 x 3 one).
+    ``scratch``: the arrays to work in (the result is its ``contrast``)."""
     img = np.asarray(image, dtype=np.float32)
-    surround = _surround_max(img, params.cell_px, params.guard_px, box_mean)
+    surround = _surround_max(img, params.cell_px, params.guard_px, box_mean, _dst(scratch, "contrast", img.shape))
+    spare = None
     if params.sharp_guard_px > 0:  # min over both contrasts = the centre minus the larger surround
-        cv2.max(surround, _surround_max(img, 1, params.sharp_guard_px), dst=surround)
-    return cv2.subtract(_centre(img, 2), surround, dst=surround)  # in place: one full-size array less
+        spare = _surround_max(img, 1, params.sharp_guard_px, dst=_dst(scratch, "contrast_sharp", img.shape))
+        cv2.max(surround, spare, dst=surround)
+    # the sharp surround's array, done with, takes the centre (one full-size array less)
+    if spare is None:
+        spare = _dst(scratch, "contrast_sharp", img.shape)
+    centre = _centre(img, 2, spare, _dst(scratch, "contrast_mean", img.shape))
+    return cv2.subtract(centre, surround, dst=surround)  # in place: one full-size array less
 
 
 def local_noise(image: np.ndarray, window_px: int = 31) -> np.ndarray:
@@ -260,18 +316,24 @@ def local_noise(image: np.ndarray, window_px: int = 31) -> np.ndarray:
 
 
 def local_noise_coarse(
-    image: np.ndarray, window_px: int = 31, factor: int = 4, full: bool = True, box3: np.ndarray | None = None
+    image: np.ndarray,
+    window_px: int = 31,
+    factor: int = 4,
+    full: bool = True,
+    box3: np.ndarray | None = None,
+    scratch: Scratch | None = None,
 ) -> np.ndarray:
     """:func:`local_noise` with its window mean taken on a ``factor`` times coarser grid (the
     deviations averaged over ``factor`` x ``factor`` cells, a ``window_px / factor`` box mean there,
     bilinear back to full size): the noise field varies over tens of pixels, and the full-size
     31 x 31 box mean was a third of the chain's cost.  Float32, image shape (``full``) or the coarse
     grid's (``H // factor, W // factor``: cell (i, j) covers pixels ``factor * i ...``).  ``box3``: the
-    image's 3 x 3 box mean (edges replicated), when the caller has it already."""
+    image's 3 x 3 box mean (edges replicated), when the caller has it already; ``scratch``: the arrays to
+    work in (the coarse grid's result is a new array)."""
     img = np.asarray(image, dtype=np.float32)
     if box3 is None:
-        box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE)
-    dev = cv2.absdiff(img, box3)
+        box3 = cv2.blur(img, (3, 3), dst=_dst(scratch, "noise_box3", img.shape), borderType=cv2.BORDER_REPLICATE)
+    dev = cv2.absdiff(img, box3, dst=_dst(scratch, "noise_deviation", img.shape))
     h, w = img.shape
     hc, wc = max(h // factor, 1), max(w // factor, 1)
     coarse = cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)
@@ -311,15 +373,19 @@ def label_points(jj: np.ndarray, ii: np.ndarray) -> tuple[np.ndarray, int]:
     return rank[inv] + 1, len(comps) + 1
 
 
-def point_candidates(contrast: np.ndarray, threshold: np.ndarray, params: ClutterParams) -> list[PointCandidate]:
+def point_candidates(
+    contrast: np.ndarray, threshold: np.ndarray, params: ClutterParams, scratch: Scratch | None = None
+) -> list[PointCandidate]:
     """Components (8-connected) of ``contrast >= threshold`` of at most ``max_area_px`` pixels,
     strongest ``score`` first, at most ``max_candidates``.
 
     The component statistics are gathered over the thresholded pixels only (a few hundred): OpenCV's
     ``connectedComponentsWithStats`` scans the whole frame again for them and costs ~8x the labelling.
     Up to ``SPARSE_LABEL_MAX_PX`` thresholded pixels (C1-C3: 20-40 a frame) are labelled among
-    themselves (:func:`label_points`, OpenCV's labels and their order) instead of over the whole frame."""
-    mask = (contrast >= threshold).view(np.uint8)
+    themselves (:func:`label_points`, OpenCV's labels and their order) instead of over the whole frame.
+    ``scratch``: where the thresholded mask goes (None: a new array)."""
+    mask = np.greater_equal(contrast, threshold, out=_dst(scratch, "candidates_mask", contrast.shape, np.bool_))
+    mask = mask.view(np.uint8)
     found = cv2.findNonZero(mask)  # (x, y) row-major; several times faster than numpy's nonzero
     if found is None:
         return []

@@ -386,7 +386,8 @@ class ObjectTracker:
             ]
             # the background's motion, from each source available; the track must move unlike every one
             frame_bgs = []
-            if self.detector.background_pxpf is not None and self.detector.textured(t.uv):
+            # texture first: the background's motion is measured only when asked for (ObjectDetector)
+            if self.detector.textured(t.uv) and self.detector.background_pxpf is not None:
                 frame_bgs.append(self.detector.background_pxpf)
                 mean_bg = self.detector.background_over_window()
                 if mean_bg is not None:
@@ -429,9 +430,12 @@ class ObjectTracker:
         """The background's motion is known (no: a clear sky) and the track's last ``confirm_window``
         frames' positions (``confirm_hits`` at least) fit a constant velocity within
         ``aided_max_fit_rms_px`` differing from it by ``min_relative_speed_pxpf``."""
-        p, bg = self.params, self.detector.background_over_window()
+        p = self.params
         recent = [h for h in t.history if h[0] > self._frame_index - p.confirm_window]
-        if bg is None or len(recent) < max(p.confirm_hits, 3):
+        if len(recent) < max(p.confirm_hits, 3):
+            return False
+        bg = self.detector.background_over_window()  # measured when asked for: only after the cheap test
+        if bg is None:
             return False
         vel, rms = fit_constant_velocity(self.K, [recent], R)
         rel = math.hypot(float(vel[0, 0]) - bg[0], float(vel[0, 1]) - bg[1])

@@ -21,6 +21,7 @@ from onboard.imaging.clutter import (
     ClutterParams,
     DefectMap,
     PointCandidate,
+    Scratch,
     background_difference,
     cfar_threshold,
     column_offsets,
@@ -65,7 +66,6 @@ class ObjectDetector:
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
-        self.background_pxpf: tuple[float, float] | None = None  # the frame's dominant background motion
         self._defects: DefectMap | None = None
         self._window: np.ndarray | None = None
         self._noise: np.ndarray | None = None  # the last frame's local noise sigma (grey), coarse grid
@@ -73,11 +73,18 @@ class ObjectDetector:
         self._noise_floor = 0.0  # the least textured tenth of the frame's local noise (grey)
         self._noise_floor_frame = -1
         self._stripes: np.ndarray | None = None  # column offsets, re-measured every STRIPE_EVERY frames
-        self._coarse: list[tuple[int, np.ndarray, np.ndarray]] = []  # (frame, coarse image, R) of recent frames
-        self._background_history: list[tuple[int, tuple[float, float]]] = []  # (frame, that motion) of recent frames
-        self._poses: dict[int, np.ndarray] = {}  # frame -> R_ned_from_cam, the last confirm_window frames
-        self._recent: list[tuple[int, np.ndarray]] = []  # (frame, its pixels) of the last confirm_window
-        self._small: np.ndarray | None = None  # the last frame BACKGROUND_SCALE times smaller (float32)
+        # the background motion, measured when asked for: frame -> R_ned_from_cam (the last
+        # confirm_window + background_frames frames background_motion registered), -> the frame
+        # BACKGROUND_SCALE times smaller (float32), -> its motion (px/frame, None: not measured)
+        self._poses: dict[int, np.ndarray] = {}
+        self._smalls: dict[int, np.ndarray] = {}
+        self._motions: dict[int, tuple[float, float] | None] = {}
+        self._registered: int | None = None  # the frame background_motion registered last
+        # (frame, its pixels) of the last confirm_window + background_frames frames (raw; a 16-bit frame as float32)
+        self._recent: list[tuple[int, np.ndarray]] = []
+        # the full-frame arrays of detect(), written again each frame (clutter.Scratch: fresh ones cost
+        # page faults); contrast, threshold and clean live there until the next frame
+        self._scratch = Scratch()
 
     def restart(self) -> None:
         """An offset step (flat-field correction): the defect map and the column offsets start again."""
@@ -89,20 +96,19 @@ class ObjectDetector:
         """Frame ``frame_index``'s point candidates (fixed pattern handled first; updates the defect map)."""
         self.frame_index = frame_index
         p = self.clutter
-        img = image.astype(np.float32)
+        sc = self._scratch
+        img = sc.get("clean", image.shape)
+        np.copyto(img, image)  # image.astype(np.float32), into last frame's array
         k = self.frame_index
         # a confirming track's surroundings are compared over its window (the raw frames: the fixed
         # pattern stays put while the scene moves, adding alike to every displacement tried)
-        kept = [r for r in self._recent if r[0] > k - self.params.confirm_window]
+        held = self.params.confirm_window + self.params.background_frames  # the background motion's too
+        kept = [r for r in self._recent if r[0] > k - held]
         src = image if image.dtype == np.uint8 else img
         # the copy goes into a frame that left the window (a fresh 0.3-1.3 MB array a frame, freed 15
         # frames later, made the allocator return memory to the system and fault it back in)
         spare = next(
-            (
-                a
-                for q, a in self._recent
-                if q <= k - self.params.confirm_window and a.shape == src.shape and a.dtype == src.dtype
-            ),
+            (a for q, a in self._recent if q <= k - held and a.shape == src.shape and a.dtype == src.dtype),
             None,
         )
         if spare is None:
@@ -110,9 +116,7 @@ class ObjectDetector:
         else:
             np.copyto(spare, src)
         self._recent = [*kept, (k, spare)]
-        # the background motion's reduced frame, from the float copy before the fixed pattern is handled
         h, w = img.shape
-        self._small = cv2.resize(img, (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE), interpolation=cv2.INTER_AREA)
         if p.destripe:
             if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self.frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
@@ -123,64 +127,103 @@ class ObjectDetector:
             # the outlier level from the previous frame's noise (the noise is measured after the repair)
             sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
             self._defects.update(img, sigma)
-        img = self._defects.repair(img)
+        img = self._defects.repair(img, out=img)
         self.clean = img
         # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
-        box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE) if p.cell_px == 3 else None
+        box3 = None
+        if p.cell_px == 3:
+            box3 = cv2.blur(img, (3, 3), dst=sc.get("box3", img.shape), borderType=cv2.BORDER_REPLICATE)
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
-        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False, box3=box3)
+        noise = local_noise_coarse(img, p.noise_window_px, NOISE_FACTOR, full=False, box3=box3, scratch=sc)
         self._noise = noise
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(noise))
         threshold = cv2.resize(
-            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb), (w, h), interpolation=cv2.INTER_LINEAR
+            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb),
+            (w, h),
+            dst=sc.get("threshold", img.shape),
+            interpolation=cv2.INTER_LINEAR,
         )
-        contrast = point_contrast(img, p, box3)
+        contrast = point_contrast(img, p, box3, sc)
         self.contrast, self.threshold = contrast, threshold
-        return point_candidates(contrast, threshold, p)
+        return point_candidates(contrast, threshold, p, sc)
 
     def background_motion(self, R: np.ndarray) -> None:
-        """After :meth:`detect` on the same frame (``R`` its R_ned_from_cam): the dominant image motion
-        of the background over the last ``background_frames`` frames, the camera's rotation removed (px
-        per frame, in this frame's image), by phase correlation of ``BACKGROUND_SCALE`` times smaller
-        frames (Kuglin & Hines 1975); None on a featureless frame (a clear sky: the correlation peak is
-        weak and the shift meaningless)."""
-        p = self.params
-        small = self._small
-        if small is None:
-            return
+        """After :meth:`detect` on the same frame (``R`` its R_ned_from_cam): registers the frame for the
+        dominant image motion of the background over the last ``background_frames`` frames, the camera's
+        rotation removed (px per frame, in this frame's image), by phase correlation of
+        ``BACKGROUND_SCALE`` times smaller frames (Kuglin & Hines 1975); None on a featureless frame (a
+        clear sky: the correlation peak is weak and the shift meaningless).  Measured when first asked
+        for (:attr:`background_pxpf`, :meth:`background_over_window`), the same figures as every frame:
+        most frames nobody asks (on 0-1 of the 300 frames of C1, C4, C5, P1-P3; ~110 of C2 and C3), and
+        the correlation and its reduced frames were ~10 % of the chain's median frame."""
         k = self.frame_index
-        self._coarse = [c for c in self._coarse if c[0] >= k - p.background_frames]
-        self.background_pxpf = None
-        if self._coarse and self._coarse[0][1].shape == small.shape:
-            k0, old, R0 = self._coarse[0]
+        if not self._recent or self._recent[-1][0] != k:
+            return  # detect() has not seen this frame
+        p = self.params
+        oldest = k - p.confirm_window - p.background_frames  # a window's first motion looks this far back
+        self._poses = {q: r for q, r in self._poses.items() if q > oldest}
+        self._poses[k] = R
+        self._motions = {q: m for q, m in self._motions.items() if q > oldest}
+        self._smalls = {q: a for q, a in self._smalls.items() if q > oldest}
+        self._registered = k
+
+    @property
+    def background_pxpf(self) -> tuple[float, float] | None:
+        """The dominant background motion of the last frame :meth:`background_motion` registered (px per
+        frame; None when not measured)."""
+        return None if self._registered is None else self._motion(self._registered)
+
+    def _small(self, q: int) -> np.ndarray | None:
+        """Frame ``q`` ``BACKGROUND_SCALE`` times smaller (float32; None once it left the recent frames)."""
+        a = self._smalls.get(q)
+        if a is None:
+            raw = next((f for i, f in self._recent if i == q), None)
+            if raw is None:
+                return None
+            h, w = raw.shape
+            size = (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE)
+            a = self._smalls[q] = cv2.resize(raw.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        return a
+
+    def _motion(self, q: int) -> tuple[float, float] | None:
+        """Frame ``q``'s background motion against the earliest frame registered in the
+        ``background_frames`` before it (memoised)."""
+        if q in self._motions:
+            return self._motions[q]
+        p = self.params
+        motion = None
+        R = self._poses.get(q)
+        k0 = min((i for i in self._poses if q - p.background_frames <= i < q), default=None)
+        small = self._small(q)
+        old = None if k0 is None else self._small(k0)
+        if k0 is not None and R is not None and small is not None and old is not None and old.shape == small.shape:
             if self._window is None or self._window.shape != small.shape:
                 self._window = cv2.createHanningWindow((small.shape[1], small.shape[0]), cv2.CV_32F)
             (du, dv), response = cv2.phaseCorrelate(old, small, self._window)
             if response >= p.background_min_response:
                 # where a point at infinity seen at the image centre on frame k0 is now: the rotation's share
-                shift = rotation_shift_px(self.K, self.K.cx_px, self.K.cy_px, R0, R)
+                shift = rotation_shift_px(self.K, self.K.cx_px, self.K.cy_px, self._poses[k0], R)
                 if shift is not None:
                     ru, rv = shift
-                    n = k - k0
-                    self.background_pxpf = (
-                        (du * BACKGROUND_SCALE - ru) / n,
-                        (dv * BACKGROUND_SCALE - rv) / n,
-                    )
-        self._coarse.append((k, small, R))
-        self._poses = {q: r for q, r in self._poses.items() if q > k - p.confirm_window}
-        self._poses[k] = R
-        self._background_history = [b for b in self._background_history if b[0] > k - p.confirm_window]
-        if self.background_pxpf is not None:
-            self._background_history.append((k, self.background_pxpf))
+                    n = q - k0
+                    motion = ((du * BACKGROUND_SCALE - ru) / n, (dv * BACKGROUND_SCALE - rv) / n)
+        self._motions[q] = motion
+        return motion
 
     def background_over_window(self) -> tuple[float, float] | None:
         """The frame's background motion averaged over the ``confirm_window`` frames a velocity is fitted
         over (one 4-frame estimate wanders by 0.1-0.2 px/frame); None unless measured on half of them."""
-        hist = self._background_history
+        k = self._registered
+        if k is None:
+            return None
+        frames = sorted(q for q in self._poses if q > k - self.params.confirm_window)
+        if 2 * len(frames) < self.params.confirm_window:
+            return None  # too few frames, measured or not (no correlation needed to know)
+        hist = [m for m in (self._motion(q) for q in frames) if m is not None]
         if 2 * len(hist) < self.params.confirm_window:
             return None
-        m = np.mean(np.array([b[1] for b in hist]), axis=0)
+        m = np.mean(np.array(hist), axis=0)
         return float(m[0]), float(m[1])
 
     def textured(self, uv: tuple[float, float]) -> bool:
@@ -232,9 +275,11 @@ class ObjectDetector:
         without a detection there (or without the frames or the motion it needs).  The caller leaves out
         a prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
         k = self.frame_index
-        bg = self.background_over_window()
         old, R0 = dict(self._recent).get(k - DIFFERENCE_LAG), self._poses.get(k - DIFFERENCE_LAG)
-        if bg is None or old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
+        if old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
+            return None
+        bg = self.background_over_window()  # measured when asked for: only once the frames are there
+        if bg is None:
             return None
         # where the background now at puv was DIFFERENCE_LAG frames ago: the rotation's share, then its own motion
         p0 = pixel_from_los(self.K, los_from_pixel(self.K, puv[0], puv[1], R), R0)

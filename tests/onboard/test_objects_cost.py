@@ -1,0 +1,135 @@
+"""The objects chain's cost cuts change nothing: arrays reused from frame to frame
+(:class:`onboard.imaging.clutter.Scratch`) and the background motion measured only when asked for
+(:class:`onboard.imaging.objects_detection.ObjectDetector`) give the figures of fresh arrays and of a
+motion measured on every frame, bit for bit."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from onboard.core.frames import PinholeIntrinsics, quat_from_euler, rotmat_from_quat
+from onboard.imaging.clutter import (
+    ClutterParams,
+    DefectMap,
+    Scratch,
+    isolated_outliers,
+    local_noise_coarse,
+    point_candidates,
+    point_contrast,
+)
+from onboard.imaging.objects import ObjectParams, ObjectTracker
+from onboard.imaging.objects_detection import ObjectDetector
+
+W_PX, H_PX = 256, 192
+K = PinholeIntrinsics(300.0, 300.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
+SCROLL_PXPF = 0.5  # the terrain's own image motion, straight down
+YAW_RAD_PER_FRAME = 0.002  # the camera's pan: 0.6 px/frame at the centre, removed from the measured motion
+N_FRAMES = 30
+MOTION_TOL_PXPF = 0.15  # 64 x 48 px phase correlations scattering by 0.2-0.3 px/frame, averaged over 12-15 frames
+
+
+def _terrain() -> np.ndarray:
+    rng = np.random.default_rng(13)
+    return cv2.GaussianBlur(rng.normal(0.0, 30.0, (H_PX + 80, W_PX + 80)), (0, 0), 6.0).astype(np.float32)
+
+
+def _frame(terrain: np.ndarray, k: int) -> np.ndarray:
+    """Terrain scrolling down by SCROLL_PXPF and right by the pan's share, a warm point, noise, mono8."""
+    pan_px = K.fx_px * math.tan(YAW_RAD_PER_FRAME * k)
+    m = np.float32([[1, 0, -40.0 - pan_px], [0, 1, SCROLL_PXPF * k - 40.0]])
+    img = 80.0 + cv2.warpAffine(terrain, m, (W_PX, H_PX), flags=cv2.INTER_LINEAR).astype(np.float64)
+    img += np.random.default_rng(100 + k).normal(0.0, 0.5, img.shape)
+    img[90:92, 100 + k : 102 + k] += 25.0
+    return np.clip(np.round(img), 0, 255).astype(np.uint8)
+
+
+def _pose(k: int) -> np.ndarray:
+    # camera yawing right (about the NED down axis) while looking north, level: OpenCV camera axes
+    R_ned_from_level_cam = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    return rotmat_from_quat(quat_from_euler(0.0, 0.0, YAW_RAD_PER_FRAME * k)) @ R_ned_from_level_cam
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[np.ndarray]:
+    terrain = _terrain()
+    return [_frame(terrain, k) for k in range(N_FRAMES)]
+
+
+def test_scratch_arrays_give_the_fresh_arrays_figures_frame_after_frame(frames):
+    p = ClutterParams()
+    scratch = Scratch()
+    for img8 in frames[:3]:
+        img = img8.astype(np.float32)
+        fresh_contrast = point_contrast(img, p)
+        fresh_noise = local_noise_coarse(img, p.noise_window_px, 4, full=False)
+        fresh_thr = cv2.resize(fresh_noise * np.float32(5.0), (W_PX, H_PX))
+        contrast = point_contrast(img, p, scratch=scratch)
+        noise = local_noise_coarse(img, p.noise_window_px, 4, full=False, scratch=scratch)
+        assert np.array_equal(contrast, fresh_contrast)
+        assert np.array_equal(noise, fresh_noise)
+        assert point_candidates(contrast, fresh_thr, p, scratch) == point_candidates(fresh_contrast, fresh_thr, p)
+        assert np.array_equal(isolated_outliers(img, 3.0, scratch), isolated_outliers(img, 3.0))
+    # the next frame's call writes over the last one's result (documented: valid until then)
+    again = point_contrast(frames[5].astype(np.float32), p, scratch=scratch)
+    assert again is contrast
+
+
+def test_defect_repair_into_its_own_frame_equals_the_copy(frames):
+    dm = DefectMap((H_PX, W_PX), frames=4, fraction=0.5)
+    hot = [(10, 20), (50, 90), (1, 1), (H_PX - 2, 7)]  # the border replicated: a pixel there is its own neighbour
+    for img8 in frames[:6]:
+        img = img8.astype(np.float32)
+        for i, j in hot:
+            img[i, j] = 255.0
+        dm.update(img, 8.0)
+    assert set(zip(*np.nonzero(dm.mask))) == set(hot)
+    copy = dm.repair(img)
+    assert copy is not img and img[10, 20] == 255.0  # the input untouched
+    in_place = dm.repair(img, out=img)
+    assert in_place is img and np.array_equal(in_place, copy)
+    assert all(copy[i, j] < 200.0 for i, j in hot)
+
+
+def _detector_run(frames, ask_every_frame: bool, skip: frozenset = frozenset()):
+    det = ObjectDetector(K, ObjectParams(), ClutterParams())
+    seen = []
+    for k, img in enumerate(frames):
+        if k in skip:  # a frozen frame: the tracker neither detects nor registers it
+            continue
+        det.detect(img, k)
+        det.background_motion(_pose(k))
+        if ask_every_frame:
+            seen.append(det.background_pxpf)
+    return det, seen
+
+
+@pytest.mark.parametrize("skip", [frozenset(), frozenset({12, 13, 20})])
+def test_background_motion_asked_late_equals_the_motion_measured_every_frame(frames, skip):
+    eager, per_frame = _detector_run(frames, True, skip)
+    lazy, _ = _detector_run(frames, False, skip)
+    assert lazy.background_over_window() == eager.background_over_window()
+    assert lazy.background_pxpf == eager.background_pxpf == per_frame[-1]
+    # and the figure is the terrain's own motion, the camera's pan removed
+    bg = lazy.background_over_window()
+    assert bg is not None
+    assert abs(bg[0]) < MOTION_TOL_PXPF and abs(bg[1] - SCROLL_PXPF) < MOTION_TOL_PXPF
+    assert per_frame[0] is None  # the first frame has nothing to be compared with
+
+
+def test_tracker_output_does_not_depend_on_who_asked_for_the_background(frames):
+    """Reading the background motion on every frame (as a debugger would) changes no output."""
+
+    def run(ask: bool):
+        tr = ObjectTracker(K)
+        outs = []
+        for k, img in enumerate(frames):
+            outs.append(tr.update(img, _pose(k)))
+            if ask:
+                tr.detector.background_over_window()
+        return outs
+
+    assert repr(run(True)) == repr(run(False))
