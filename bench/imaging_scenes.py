@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
-[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--stages]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -38,6 +38,10 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   CPU ms is the steadier of the two, at the clock's granularity).  ``--repeat N`` runs each chain N
   times and takes each frame's least time over the runs (the closest to an idle core's figure on a
   loaded machine; the scores are the same every run).
+* ``--stages`` (objects chains): below each row, the chain's CPU ms by stage
+  (:class:`onboard.imaging.objects_model.StageTimes` on ``time.process_time``), each frame's least over the
+  runs: the median frame's and the mean (the mean carries the stages that run every few frames: the
+  column offsets every 8th, the defect map every 4th, and the background motion where it is asked for).
 
 Numbers only: nothing asserts.
 """
@@ -135,8 +139,9 @@ class _TrackerChain:
     """TargetTracker as the daemon builds it: one output, confirmed while ``tracking``."""
 
     name = "tracker"
+    stage_s = None  # not timed by stage
 
-    def __init__(self, run: SceneRun) -> None:
+    def __init__(self, run: SceneRun, stages: bool = False) -> None:
         from onboard.imaging import ImagingParams, TargetTracker, TrackState
 
         self._tr = TargetTracker(ImagingParams(), mode="auto")
@@ -153,12 +158,18 @@ class _ObjectsChain:
     name = "objects"
     tbd = True
 
-    def __init__(self, run: SceneRun) -> None:
+    def __init__(self, run: SceneRun, stages: bool = False) -> None:
         from onboard.imaging import ImagingParams
         from onboard.imaging.objects import ObjectTracker
 
         imaging = ImagingParams(chain="objects", tbd=self.tbd)
-        self._tr = ObjectTracker(run.intrinsics, frame_rate_hz=run.frame_rate_hz, imaging=imaging)
+        clock = time.process_time if stages else None
+        self._tr = ObjectTracker(run.intrinsics, frame_rate_hz=run.frame_rate_hz, imaging=imaging, stage_clock=clock)
+
+    @property
+    def stage_s(self) -> dict[str, float] | None:
+        """The last frame's seconds by stage (None when not timed)."""
+        return self._tr.stages.seconds if self._tr.stages.clock is not None else None
 
     def update(self, image, R_ned_from_cam):
         out = self._tr.update(image, R_ned_from_cam)
@@ -190,6 +201,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     track_frames: dict[int, list[int]] = {}  # track id -> [confirmed frames, frames off every object]
     ms: list[float] = []
     cpu_ms: list[float] = []
+    stage_ms: list[dict[str, float]] = []  # per frame, when the chain times its stages
     n_frames = 0
     selections = 0  # primary targets chosen (the first one included)
     last_primary = None
@@ -219,6 +231,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         tracks, primary = chain.update(img, run.R_ned_from_cam[k])
         ms.append((time.perf_counter() - t0) * 1e3)
         cpu_ms.append((time.process_time() - c0) * 1e3)
+        if chain.stage_s is not None:
+            stage_ms.append({k: v * 1e3 for k, v in chain.stage_s.items()})
         if primary is not None and primary != last_primary:
             selections += 1
             last_primary = primary
@@ -290,6 +304,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         on_defect=on_defect if len(stuck) else None,
         ms_frames=ms,
         cpu_ms_frames=cpu_ms,
+        stage_ms_frames=stage_ms,
     )
 
 
@@ -328,16 +343,23 @@ def _hota(run: SceneRun, gt: str, tracker: str) -> dict[str, float]:
     return {k: float(m.get(k, math.nan)) for k in ("HOTA", "DetA", "AssA")}
 
 
-def score_repeated(run: SceneRun, chain_cls, repeat: int) -> dict:
+def score_repeated(run: SceneRun, chain_cls, repeat: int, stages: bool = False) -> dict:
     """:func:`score` ``repeat`` times with a fresh chain each time (the chains are deterministic: the
     same scores), the times per frame being the least over the runs: on a shared machine the least of
-    several runs of the same work is the closest to its cost on an idle core."""
-    runs = [score(run, chain_cls(run)) for _ in range(max(repeat, 1))]
+    several runs of the same work is the closest to its cost on an idle core.  ``stages``: time the
+    chain's stages too; ``stages_ms`` is then {stage: (median, mean) over the frames of each frame's least}."""
+    runs = [score(run, chain_cls(run, stages)) for _ in range(max(repeat, 1))]
     s = dict(runs[0])
     if len(runs) > 1:
         ms = np.min(np.array([r["ms_frames"] for r in runs]), axis=0)
         cpu = np.min(np.array([r["cpu_ms_frames"] for r in runs]), axis=0)
         s.update(ms_p50=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), cpu_ms_p50=float(np.median(cpu)))
+    if runs[0]["stage_ms_frames"]:
+        names = list(dict.fromkeys(k for r in runs for f in r["stage_ms_frames"] for k in f))
+        s["stages_ms"] = {}
+        for k in names:
+            least = np.min(np.array([[f.get(k, 0.0) for f in r["stage_ms_frames"]] for r in runs]), axis=0)
+            s["stages_ms"][k] = (float(np.median(least)), float(np.mean(least)))
     return s
 
 
@@ -356,6 +378,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument(
         "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
     )
+    ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
@@ -372,7 +395,7 @@ def main(argv: list[str]) -> None:
     for name in a.scene:
         run = render_scene(name, a.seed, a.frames, cache, a.encoding)
         for c in chains:
-            s = score_repeated(run, CHAINS[c], a.repeat)
+            s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
             print(
                 f"{name:<6s} {c:<13s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
                 f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
@@ -381,3 +404,11 @@ def main(argv: list[str]) -> None:
                 f" {' '.join(f'{x:.2f}' for x in s['ffc_s']) or '-':>6s} {'-' if s['on_defect'] is None else s['on_defect']:>6}",
                 flush=True,
             )
+            if "stages_ms" in s:
+                st = s["stages_ms"]
+                print(
+                    f"       stages, CPU ms p50 / mean (each frame's least of {max(a.repeat, 1)}; sum of means"
+                    f" {sum(m for _, m in st.values()):.2f}): "
+                    + ", ".join(f"{k} {p:.2f} / {m:.2f}" for k, (p, m) in st.items()),
+                    flush=True,
+                )

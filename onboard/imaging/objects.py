@@ -54,6 +54,7 @@ from onboard.imaging.objects_model import (
     ObjectParams,
     ObjectsUpdate,
     ObjectTrack,
+    StageTimes,
     TrackRecord,
     fit_constant_velocity,
     los_from_pixel,
@@ -81,7 +82,9 @@ GREY16_PER_GREY8 = 257.0  # 65535 / 255
 
 class ObjectTracker:
     """See the module docstring.  ``intrinsics``: :class:`onboard.core.frames.PinholeIntrinsics`
-    (distortion ignored: the bearing is the pinhole's); ``mode`` ``auto`` or ``operator``."""
+    (distortion ignored: the bearing is the pinhole's); ``mode`` ``auto`` or ``operator``;
+    ``stage_clock``: a clock (seconds) to time each frame's stages by, into :attr:`stages`
+    (:class:`~onboard.imaging.objects_model.StageTimes`; None, the default: not timed)."""
 
     def __init__(
         self,
@@ -91,6 +94,7 @@ class ObjectTracker:
         clutter: ClutterParams | None = None,
         imaging: ImagingParams | None = None,
         mode: str = "auto",
+        stage_clock=None,
     ) -> None:
         if mode not in ("auto", "operator"):
             raise InputError(f"ObjectTracker mode must be auto or operator, got {mode!r}")
@@ -109,7 +113,8 @@ class ObjectTracker:
         self._prev_median: float | None = None
         self._difference_ids: set[int] = set()  # id() of this frame's background-difference candidates
         self._tbd_ids: set[int] = set()  # id() of this frame's track-before-detect candidates
-        self.detector = ObjectDetector(intrinsics, self.params, self.clutter)
+        self.stages = StageTimes(stage_clock)  # seconds by stage of the last frame (benchmarks; see StageTimes)
+        self.detector = ObjectDetector(intrinsics, self.params, self.clutter, self.stages)
         self.primary_changes = 0
         self.frozen_frames = 0
         self.offset_steps = 0
@@ -209,6 +214,7 @@ class ObjectTracker:
     # ------------------------------------------------------------------ step
 
     def update(self, image: np.ndarray, R_ned_from_cam=None, time_boot_us: int | None = None) -> ObjectsUpdate:
+        self.stages.start()
         image = check_frame(image)
         self._frame_index += 1
         self.frame_steps = frame_steps(self._last_time_us, time_boot_us, self.frame_rate_hz)
@@ -223,12 +229,15 @@ class ObjectTracker:
         step = self.clutter.step_lsb * (GREY16_PER_GREY8 if image.dtype == np.uint16 else 1.0)
         event, med = frame_event(image, self._prev, self._prev_median, step)
         self._prev, self._prev_median = image, med
+        self.stages.lap("frame event")
         if event == "frozen":
             self.frozen_frames += 1
             for t in self._tracks:  # time passes, nothing is measured: predict without counting a miss
                 t.los = unit_vector(t.los + t.rate)
                 t.age += 1
-            return self._output(image, R, event, measured=set(), changed=False)
+            out = self._output(image, R, event, measured=set(), changed=False)
+            self.stages.lap("output")
+            return out
         if event == "step":
             self.offset_steps += 1
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
@@ -237,11 +246,16 @@ class ObjectTracker:
         clean = self.detector.clean
         dim = [] if self.tbd is None or clean is None else self._tbd_candidates(self.tbd, clean, regular, R)
         self._tbd_ids, regular = {id(c) for c in dim}, regular + dim
+        self.stages.lap("track-before-detect")
         self.detector.background_motion(R)  # before the aided detections: it may extend their runs
         cands = self._aided_candidates(regular, R)
+        self.stages.lap("aided detection")
         measured = self._associate(cands, R, len(regular))
+        self.stages.lap("association, confirmation")
         changed = self._select(R)
-        return self._output(image, R, event, measured, changed)
+        out = self._output(image, R, event, measured, changed)
+        self.stages.lap("primary, output")
+        return out
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray

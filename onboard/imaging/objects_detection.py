@@ -32,7 +32,7 @@ from onboard.imaging.clutter import (
     rotation_shift_px,
     surround_residuals,
 )
-from onboard.imaging.objects_model import ObjectParams, TrackRecord, los_from_pixel, pixel_from_los
+from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
 __all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA"]
 
@@ -58,8 +58,11 @@ class ObjectDetector:
     frame with its fixed pattern handled (float32); after :meth:`background_motion`, ``background_pxpf``
     the frame's dominant background motion (px/frame, None when not measured)."""
 
-    def __init__(self, intrinsics, params: ObjectParams, clutter: ClutterParams) -> None:
+    def __init__(
+        self, intrinsics, params: ObjectParams, clutter: ClutterParams, stages: StageTimes | None = None
+    ) -> None:
         self.K = intrinsics
+        self.stages = stages or StageTimes()  # detect()'s stages, on the tracker's clock
         self.params = params
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
@@ -129,6 +132,7 @@ class ObjectDetector:
             self._defects.update(img, sigma)
         img = self._defects.repair(img, out=img)
         self.clean = img
+        self.stages.lap("fixed pattern")
         # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
         box3 = None
         if p.cell_px == 3:
@@ -144,9 +148,13 @@ class ObjectDetector:
             dst=sc.get("threshold", img.shape),
             interpolation=cv2.INTER_LINEAR,
         )
+        self.stages.lap("noise, threshold")
         contrast = point_contrast(img, p, box3, sc)
         self.contrast, self.threshold = contrast, threshold
-        return point_candidates(contrast, threshold, p, sc)
+        self.stages.lap("point contrast")
+        cands = point_candidates(contrast, threshold, p, sc)
+        self.stages.lap("candidates")
+        return cands
 
     def background_motion(self, R: np.ndarray) -> None:
         """After :meth:`detect` on the same frame (``R`` its R_ned_from_cam): registers the frame for the

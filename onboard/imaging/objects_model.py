@@ -11,6 +11,7 @@ track-aided runs use, and the published message (:func:`objects_message`).  The 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,6 +25,7 @@ __all__ = [
     "ObjectParams",
     "ObjectTrack",
     "ObjectsUpdate",
+    "StageTimes",
     "TrackRecord",
     "cv_fit",
     "fit_constant_velocity",
@@ -180,6 +182,29 @@ class TrackRecord:
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
     dim_hits: int = 0  # frames measured by track-before-detect's reports
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
+
+
+class StageTimes:
+    """Where a frame's time goes: ``seconds`` by stage of the last frame, read from ``clock`` (a callable
+    returning seconds, e.g. ``time.process_time``; None: nothing is timed, the default).  The tracker and
+    its detector share one: :meth:`start` at the frame's start, :meth:`lap` at each stage's end charges
+    the time since the last lap to that stage (benchmarks read it; the chain never does)."""
+
+    def __init__(self, clock: Callable[[], float] | None = None) -> None:
+        self.clock = clock
+        self.seconds: dict[str, float] = {}
+        self._last = 0.0
+
+    def start(self) -> None:
+        if self.clock is not None:
+            self.seconds = {}
+            self._last = self.clock()
+
+    def lap(self, stage: str) -> None:
+        if self.clock is not None:
+            now = self.clock()
+            self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._last
+            self._last = now
 
 
 def los_from_pixel(K, u: float, v: float, R: np.ndarray) -> np.ndarray:

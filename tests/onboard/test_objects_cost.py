@@ -133,3 +133,30 @@ def test_tracker_output_does_not_depend_on_who_asked_for_the_background(frames):
         return outs
 
     assert repr(run(True)) == repr(run(False))
+
+
+def test_stage_times_charge_every_tick_of_the_clock_to_one_stage(frames):
+    """A clock that advances one second per reading: each lap charges the time since the last one, so the
+    stages of a frame add up to every reading but the first; without a clock nothing is recorded."""
+    ticks = iter(range(10_000))
+    tr = ObjectTracker(K, stage_clock=lambda: float(next(ticks)))
+    for k, img in enumerate(frames[:3]):
+        before = next(ticks)
+        tr.update(img, _pose(k))
+        readings = next(ticks) - before - 1
+        assert sum(tr.stages.seconds.values()) == readings - 1
+    assert list(tr.stages.seconds) == [
+        "frame event",
+        "fixed pattern",
+        "noise, threshold",
+        "point contrast",
+        "candidates",
+        "track-before-detect",
+        "aided detection",
+        "association, confirmation",
+        "primary, output",
+    ]
+    assert all(s == 1.0 for s in tr.stages.seconds.values())
+    untimed = ObjectTracker(K)
+    untimed.update(frames[0], _pose(0))
+    assert untimed.stages.seconds == {}
