@@ -152,7 +152,13 @@ def column_offsets(image: np.ndarray, window_px: int = 15, row_step: int = 4) ->
     minus its ``1 x window_px`` horizontal running mean, minus the median of those (a zero-mean set)."""
     rows = np.asarray(image[::row_step], dtype=np.float32)
     hmean = cv2.blur(rows, (window_px, 1), borderType=cv2.BORDER_REFLECT)
-    off = np.median(rows - hmean, axis=0).astype(np.float32)
+    # np.median(rows - hmean, axis=0), from each column's sorted values (a frame's grey is never nan): a
+    # partition down the strided columns cost ~3x the sort of the transposed copy (1.3 against 0.4 ms)
+    cols = np.ascontiguousarray((rows - hmean).T)
+    cols.sort(axis=1)
+    n = cols.shape[1]
+    off = cols[:, n // 2].copy() if n % 2 else (cols[:, n // 2 - 1] + cols[:, n // 2]) / 2
+    off = off.astype(np.float32)
     off -= np.float32(np.median(off))
     return off
 

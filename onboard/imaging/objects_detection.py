@@ -100,30 +100,28 @@ class ObjectDetector:
         self.frame_index = frame_index
         p = self.clutter
         sc = self._scratch
-        img = sc.get("clean", image.shape)
-        np.copyto(img, image)  # image.astype(np.float32), into last frame's array
         k = self.frame_index
         # a confirming track's surroundings are compared over its window (the raw frames: the fixed
         # pattern stays put while the scene moves, adding alike to every displacement tried)
         held = self.params.confirm_window + self.params.background_frames  # the background motion's too
         kept = [r for r in self._recent if r[0] > k - held]
-        src = image if image.dtype == np.uint8 else img
+        kind = np.uint8 if image.dtype == np.uint8 else np.float32  # what surroundings_follow's sub-pixel reads take
         # the copy goes into a frame that left the window (a fresh 0.3-1.3 MB array a frame, freed 15
         # frames later, made the allocator return memory to the system and fault it back in)
-        spare = next(
-            (a for q, a in self._recent if q <= k - held and a.shape == src.shape and a.dtype == src.dtype),
-            None,
-        )
+        spare = next((a for q, a in self._recent if q <= k - held and a.shape == image.shape and a.dtype == kind), None)
         if spare is None:
-            spare = src.copy()
-        else:
-            np.copyto(spare, src)
+            spare = np.empty(image.shape, kind)
+        np.copyto(spare, image)
         self._recent = [*kept, (k, spare)]
-        h, w = img.shape
+        h, w = image.shape
+        img = sc.get("clean", image.shape)  # the frame as float32, written over last frame's
         if p.destripe:
-            if self._stripes is None or self._stripes.shape[0] != img.shape[1] or self.frame_index % STRIPE_EVERY == 0:
-                self._stripes = column_offsets(img, p.stripe_window_px)  # they drift over minutes: every few frames
-            img -= self._stripes[None, :]  # in place on the frame's float copy (remove_column_offsets, one pass less)
+            if self._stripes is None or self._stripes.shape[0] != w or self.frame_index % STRIPE_EVERY == 0:
+                self._stripes = column_offsets(image, p.stripe_window_px)  # they drift over minutes: every few frames
+            # image.astype(np.float32) - the offsets, in one pass (remove_column_offsets without its array)
+            np.subtract(image, self._stripes[None, :], out=img, dtype=np.float32)
+        else:
+            np.copyto(img, image)
         if self._defects is None or self._defects.mask.shape != img.shape:
             self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
         if self.frame_index % self.params.defect_every == 0:
