@@ -60,6 +60,7 @@ __all__ = [
 
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
 SPARSE_LABEL_MAX_PX = 256  # up to this many thresholded pixels are labelled among themselves
+FEW_PX = 24  # up to this many, in plain Python (numpy's ~25 calls cost more than the loops over them)
 _RINGS: dict[int, np.ndarray] = {}  # guard_px -> the dilation kernel of the eight surround cells
 _DIRECTIONS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
@@ -399,6 +400,11 @@ def point_candidates(
     jj = pts[:, 0].astype(np.intp)
     ii = pts[:, 1].astype(np.intp)
     sel = ii * contrast.shape[1] + jj
+    if len(pts) <= FEW_PX:
+        c_few = contrast.ravel()[sel]
+        return _few_candidates(
+            ii.tolist(), jj.tolist(), c_few.tolist(), (c_few / threshold.ravel()[sel]).tolist(), params
+        )
     lab_px: np.ndarray
     if len(pts) <= SPARSE_LABEL_MAX_PX:
         lab_px, n = label_points(jj, ii)
@@ -447,6 +453,57 @@ def point_candidates(
                 float(peak[lab]),
                 float(best[lab]),
             )
+        )
+    return out
+
+
+def _few_candidates(
+    ii: list[int], jj: list[int], c_px: list[float], r_px: list[float], params: ClutterParams
+) -> list[PointCandidate]:
+    """:func:`point_candidates` on a few thresholded pixels (row-major: rows ``ii``, columns ``jj``, their
+    contrast ``c_px`` and contrast over threshold ``r_px``, float32 values) in plain Python, the same
+    candidates bit for bit: components (union-find over the 8-neighbours) numbered in OpenCV's order
+    (:func:`label_points`), sums in pixel order as ``np.bincount`` takes them."""
+    n = len(ii)
+    index = {(i, j): q for q, (i, j) in enumerate(zip(ii, jj))}
+    parent = list(range(n))
+
+    def root(q: int) -> int:
+        while parent[q] != q:
+            parent[q] = parent[parent[q]]
+            q = parent[q]
+        return q
+
+    for q in range(n):
+        i, j = ii[q], jj[q]
+        for o in (index.get((i - 1, j - 1)), index.get((i - 1, j)), index.get((i - 1, j + 1)), index.get((i, j - 1))):
+            if o is not None:
+                a, b = root(q), root(o)
+                if a != b:
+                    parent[max(a, b)] = min(a, b)
+    members: dict[int, list[int]] = {}
+    for q in range(n):
+        members.setdefault(root(q), []).append(q)
+    # OpenCV's order: by the first 2 x 2 block (row-major) holding one of the component's pixels
+    comps = sorted(members.values(), key=lambda m: min((ii[q] // 2, jj[q] // 2) for q in m))
+    kept = [m for m in comps if len(m) <= params.max_area_px]
+    best = [max(r_px[q] for q in m) for m in kept]
+    order = sorted(range(len(kept)), key=lambda x: -best[x])[: params.max_candidates]  # stable: label order
+    out: list[PointCandidate] = []
+    for x in order:
+        m = kept[x]
+        s = su = sv = 0.0
+        for q in m:
+            c = c_px[q]
+            s += c
+            su += c * (jj[q] + 0.5)
+            sv += c * (ii[q] + 0.5)
+        if not s > 0:
+            continue
+        i0, i1 = min(ii[q] for q in m), max(ii[q] for q in m)
+        j0, j1 = min(jj[q] for q in m), max(jj[q] for q in m)
+        out.append(
+            PointCandidate(su / s, sv / s, (j0, i0, j1 - j0 + 1, i1 - i0 + 1), len(m), max(c_px[q] for q in m), best[x])
         )
     return out
 

@@ -56,3 +56,36 @@ def test_point_candidates_are_the_same_with_either_labelling(monkeypatch):
         ((70, 5, 1, 1), 1),
         ((40, 40, 1, 1), 1),
     ]
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(3, 30),
+    st.integers(3, 30),
+    st.floats(0.01, 0.3),
+    st.integers(0, 2**31 - 1),
+    st.integers(1, 6),
+    st.integers(1, 8),
+)
+def test_few_pixels_in_plain_python_give_numpys_candidates(h, w, density, seed, max_area, max_candidates):
+    """Up to ``FEW_PX`` thresholded pixels go through plain Python: the same candidates, bit for bit and in
+    order, as the array path (random masks, contrasts on a few levels so that scores tie, areas and
+    counts over the limits)."""
+    import onboard.imaging.clutter as clutter
+
+    rng = np.random.default_rng(seed)
+    mask = rng.random((h, w)) < density
+    if not 0 < mask.sum() <= clutter.FEW_PX:
+        return
+    threshold = rng.choice(np.float32([0.7, 1.0, 1.3]), (h, w))
+    contrast = np.where(mask, threshold * rng.choice(np.float32([1.0, 1.5, 2.25]), (h, w)), 0.0).astype(np.float32)
+    params = ClutterParams(max_area_px=max_area, max_candidates=max_candidates)
+    few = clutter.point_candidates(contrast, threshold, params)
+    saved = clutter.FEW_PX
+    clutter.FEW_PX = 0
+    try:
+        ref = clutter.point_candidates(contrast, threshold, params)
+    finally:
+        clutter.FEW_PX = saved
+    assert few == ref
+    assert [type(x) for c in few for x in (c.u_px, c.peak, c.score, c.area_px)] == [float, float, float, int] * len(few)
