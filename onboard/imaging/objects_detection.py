@@ -189,7 +189,9 @@ class ObjectDetector:
                 return None
             h, w = raw.shape
             size = (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE)
-            a = self._smalls[q] = cv2.resize(raw.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+            full = self._scratch.get("background_float", raw.shape)  # raw.astype(np.float32), no fresh array
+            np.copyto(full, raw)
+            a = self._smalls[q] = cv2.resize(full, size, interpolation=cv2.INTER_AREA)
         return a
 
     def _motion(self, q: int) -> tuple[float, float] | None:
