@@ -117,12 +117,28 @@ _U64_MAX = 2**64 - 1
 
 
 def _finite(x: float, what: str) -> float:
+    # a finite Python float, the pipeline's case, checked in two operations (x - x is NaN for inf and NaN): a
+    # Track is made every frame, and its checks were a large share of the pipeline thread's Python
+    if type(x) is float and x - x == 0.0:
+        return x
     if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)) or not math.isfinite(x):
         raise InputError(f"Track.{what} must be a finite number, got {x!r}")
     return float(x)
 
 
+def _finite_floats(v: tuple, n: int) -> bool:
+    """``v`` is already what :func:`_vec` returns: a tuple of ``n`` finite Python floats."""
+    if len(v) != n:
+        return False
+    for c in v:
+        if type(c) is not float or c - c != 0.0:
+            return False
+    return True
+
+
 def _vec(v, n: int, what: str) -> tuple[float, ...]:
+    if type(v) is tuple and _finite_floats(v, n):
+        return v
     try:
         a = np.asarray(v, dtype=float)
     except (TypeError, ValueError):
@@ -143,9 +159,10 @@ def _cov(c, what: str) -> np.ndarray:
         a = np.array(c, dtype=float)
     except (TypeError, ValueError):
         raise InputError(f"Track.{what} must be a 3 x 3 matrix, got {c!r}") from None
-    if a.shape != (3, 3) or not np.isfinite(a).all():
+    values = a.ravel().tolist() if a.shape == (3, 3) else []  # nine floats: math beats numpy's calls on them
+    if not values or not all(map(math.isfinite, values)):
         raise InputError(f"Track.{what} must be a finite 3 x 3 matrix, got shape {a.shape}")
-    if min(a[0, 0], a[1, 1], a[2, 2]) < 0:
+    if min(values[0], values[4], values[8]) < 0:
         raise InputError(f"Track.{what} has a negative variance on its diagonal: {np.diag(a).tolist()}")
     a.setflags(write=False)
     return a
@@ -153,8 +170,8 @@ def _cov(c, what: str) -> np.ndarray:
 
 def _sigmas3(cov) -> tuple[float, float, float]:
     """The 1-sigma per axis of a (3, 3) covariance (negative round-off on the diagonal read as 0)."""
-    sx, sy, sz = (float(math.sqrt(max(d, 0.0))) for d in np.diag(cov))
-    return sx, sy, sz
+    dx, dy, dz = cov.diagonal().tolist()
+    return math.sqrt(max(dx, 0.0)), math.sqrt(max(dy, 0.0)), math.sqrt(max(dz, 0.0))
 
 
 def _utc_fields(time_unix_us, time_unix_sigma_us) -> tuple[int | None, int | None]:
@@ -193,22 +210,32 @@ class LineOfSight:
     p_cam_ned_m: tuple[float, float, float]
 
     def __post_init__(self) -> None:
+        # each field set again only when its checked value is another object (a list made a tuple, an int a
+        # float): one made every frame from checked floats costs its checks only
         u = _vec(self.u_ned, 3, "los.u_ned")
-        if abs(math.sqrt(sum(c * c for c in u)) - 1.0) > _UNIT_TOL:
+        x, y, z = u
+        if abs(math.sqrt(x * x + y * y + z * z) - 1.0) > _UNIT_TOL:
             raise InputError(f"LineOfSight.u_ned must be a unit vector, got {u}")
-        object.__setattr__(self, "u_ned", u)
-        object.__setattr__(self, "p_cam_ned_m", _vec(self.p_cam_ned_m, 3, "los.p_cam_ned_m"))
+        if u is not self.u_ned:
+            object.__setattr__(self, "u_ned", u)
+        p = _vec(self.p_cam_ned_m, 3, "los.p_cam_ned_m")
+        if p is not self.p_cam_ned_m:
+            object.__setattr__(self, "p_cam_ned_m", p)
         az = _finite(self.azimuth_deg, "los.azimuth_deg")
         el = _finite(self.elevation_deg, "los.elevation_deg")
         if not -180.0 <= az <= 180.0 or not -90.0 <= el <= 90.0:
             raise InputError(f"LineOfSight azimuth/elevation out of range: {az}, {el} deg")
-        object.__setattr__(self, "azimuth_deg", az)
-        object.__setattr__(self, "elevation_deg", el)
+        if az is not self.azimuth_deg:
+            object.__setattr__(self, "azimuth_deg", az)
+        if el is not self.elevation_deg:
+            object.__setattr__(self, "elevation_deg", el)
         for name in ("sigma_azimuth_deg", "sigma_elevation_deg"):
-            v = _finite(getattr(self, name), f"los.{name}")
+            given = getattr(self, name)
+            v = _finite(given, f"los.{name}")
             if v < 0:
                 raise InputError(f"LineOfSight.{name} must be >= 0, got {v}")
-            object.__setattr__(self, name, v)
+            if v is not given:
+                object.__setattr__(self, name, v)
 
 
 def line_of_sight_ned(
@@ -314,34 +341,48 @@ class Track:
     def __post_init__(self) -> None:
         if not isinstance(self.vehicle, str) or not self.vehicle:
             raise InputError(f"Track.vehicle must be a non-empty string, got {self.vehicle!r}")
+        # A field is set again only when its checked value is another object (an np.int64 made an int, a list a
+        # tuple): a Track is made every frame from values of the right types, and the checks alone were a large
+        # share of the pipeline thread's Python.  Same checks, same messages.
+        setattr_ = object.__setattr__
         for name, hi in (("seq", 2**32 - 1), ("time_boot_us", _U64_MAX), ("window_frames", 2**31)):
             v = getattr(self, name)
+            if type(v) is int and 0 <= v <= hi:
+                continue
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or not 0 <= v <= hi:
                 raise InputError(f"Track.{name} must be an integer in [0, {hi}], got {v!r}")
-            object.__setattr__(self, name, int(v))
+            setattr_(self, name, int(v))
         if self.state not in TRACK_STATES:
             raise InputError(f"Track.state must be one of {', '.join(TRACK_STATES)}, got {self.state!r}")
         tid = self.track_id
-        if tid is not None:
+        if tid is not None and not (type(tid) is int and tid >= 1):
             if isinstance(tid, (bool, np.bool_)) or not isinstance(tid, (int, np.integer)) or tid < 1:
                 raise InputError(f"Track.track_id must be None or an integer >= 1, got {tid!r}")
-            object.__setattr__(self, "track_id", int(tid))
+            setattr_(self, "track_id", int(tid))
         for name in ("measurement_valid", "pose_valid", "observable"):
-            if not isinstance(getattr(self, name), (bool, np.bool_)):
-                raise InputError(f"Track.{name} must be a bool, got {getattr(self, name)!r}")
-            object.__setattr__(self, name, bool(getattr(self, name)))
-        if (self.u_px is None) != (self.v_px is None):
+            flag = getattr(self, name)
+            if type(flag) is bool:
+                continue
+            if not isinstance(flag, (bool, np.bool_)):
+                raise InputError(f"Track.{name} must be a bool, got {flag!r}")
+            setattr_(self, name, bool(flag))
+        u_px, v_px = self.u_px, self.v_px
+        if (u_px is None) != (v_px is None):
             raise InputError("Track.u_px and Track.v_px must both be set or both be None")
-        if self.u_px is not None and self.v_px is not None:
-            object.__setattr__(self, "u_px", _finite(self.u_px, "u_px"))
-            object.__setattr__(self, "v_px", _finite(self.v_px, "v_px"))
-        if self.measurement_valid and self.u_px is None:
+        if u_px is not None and v_px is not None:
+            u, v = _finite(u_px, "u_px"), _finite(v_px, "v_px")
+            if u is not u_px:
+                setattr_(self, "u_px", u)
+            if v is not v_px:
+                setattr_(self, "v_px", v)
+        if self.measurement_valid and u_px is None:
             raise InputError("Track.measurement_valid requires u_px and v_px")
         if self.bbox is not None:
             bb = _vec(self.bbox, 4, "bbox")
             if bb[2] < 0 or bb[3] < 0:
                 raise InputError(f"Track.bbox width and height must be >= 0, got {bb}")
-            object.__setattr__(self, "bbox", bb)
+            if bb is not self.bbox:
+                setattr_(self, "bbox", bb)
         if self.los is not None:
             if not isinstance(self.los, LineOfSight):
                 raise InputError(f"Track.los must be a LineOfSight or None, got {type(self.los).__name__}")
@@ -356,40 +397,48 @@ class Track:
                 or rr < 0
             ):
                 raise InputError(f"Track.residual_rms_norm must be None or >= 0, got {rr!r}")
-            object.__setattr__(self, "residual_rms_norm", float(rr))
+            if type(rr) is not float:
+                setattr_(self, "residual_rms_norm", float(rr))
         if self.origin is not None and not isinstance(self.origin, GeodeticOrigin):
             raise InputError(f"Track.origin must be a GeodeticOrigin or None, got {type(self.origin).__name__}")
         have = [getattr(self, n) is not None for n in _POSITION_FIELDS]
         if any(have) and not all(have):
             missing = [n for n, h in zip(_POSITION_FIELDS, have) if not h]
             raise InputError(f"Track position fields must be all set or all None; missing {missing}")
-        if all(have):
-            lat, lon, alt, rng = (_finite(getattr(self, n), n) for n in ("lat_deg", "lon_deg", "alt_m", "range_m"))
-            for name, value in (("lat_deg", lat), ("lon_deg", lon), ("alt_m", alt), ("range_m", rng)):
-                object.__setattr__(self, name, value)
+        if have[0]:  # all set
+            for name in ("lat_deg", "lon_deg", "alt_m", "range_m"):
+                given = getattr(self, name)
+                value = _finite(given, name)
+                if value is not given:
+                    setattr_(self, name, value)
+            lat, lon, rng = self.lat_deg, self.lon_deg, self.range_m
             if not -90.0 <= lat <= 90.0 or not -180.0 <= lon <= 180.0:
                 raise InputError(f"Track lat/lon out of range: {lat}, {lon}")
             if rng < 0:
                 raise InputError(f"Track.range_m must be >= 0, got {rng}")
-            object.__setattr__(self, "p_ned_m", _vec(self.p_ned_m, 3, "p_ned_m"))
-            object.__setattr__(self, "v_ned_mps", _vec(self.v_ned_mps, 3, "v_ned_mps"))
-            object.__setattr__(self, "cov_p_ned_m2", _cov(self.cov_p_ned_m2, "cov_p_ned_m2"))
+            for name in ("p_ned_m", "v_ned_mps"):
+                given = getattr(self, name)
+                vec = _vec(given, 3, name)
+                if vec is not given:
+                    setattr_(self, name, vec)
+            setattr_(self, "cov_p_ned_m2", _cov(self.cov_p_ned_m2, "cov_p_ned_m2"))
             if self.cov_v_ned_m2ps2 is not None:
-                object.__setattr__(self, "cov_v_ned_m2ps2", _cov(self.cov_v_ned_m2ps2, "cov_v_ned_m2ps2"))
+                setattr_(self, "cov_v_ned_m2ps2", _cov(self.cov_v_ned_m2ps2, "cov_v_ned_m2ps2"))
             if self.origin is None:
                 raise InputError("Track with a position needs its origin")
         elif self.cov_v_ned_m2ps2 is not None:
             raise InputError("Track.cov_v_ned_m2ps2 without a position")
-        if self.range_sigma_ratio is not None:
-            r = self.range_sigma_ratio
+        r = self.range_sigma_ratio
+        if r is not None and not (type(r) is float and r >= 0):  # a float >= 0 (inf allowed) is kept as it is
             if isinstance(r, bool) or not isinstance(r, (int, float, np.floating)) or math.isnan(r) or r < 0:
                 raise InputError(f"Track.range_sigma_ratio must be None or >= 0 (inf allowed), got {r!r}")
-            object.__setattr__(self, "range_sigma_ratio", float(r))
+            setattr_(self, "range_sigma_ratio", float(r))
         if self.model is not None and not isinstance(self.model, str):
             raise InputError(f"Track.model must be a string or None, got {self.model!r}")
-        unix_us, sigma_us = _utc_fields(self.time_unix_us, self.time_unix_sigma_us)
-        object.__setattr__(self, "time_unix_us", unix_us)
-        object.__setattr__(self, "time_unix_sigma_us", sigma_us)
+        if self.time_unix_us is not None or self.time_unix_sigma_us is not None:
+            unix_us, sigma_us = _utc_fields(self.time_unix_us, self.time_unix_sigma_us)
+            setattr_(self, "time_unix_us", unix_us)
+            setattr_(self, "time_unix_sigma_us", sigma_us)
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
@@ -426,10 +475,6 @@ def json_number(x) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _list(v) -> list | None:
-    return None if v is None else [json_number(x) for x in v]
-
-
 def track_to_json(track: Track) -> dict[str, Any]:
     """The ``irtrack.track/2`` object of ``track`` (a dict ready for ``json.dumps``).
 
@@ -439,7 +484,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
     encoding itself."""
     o = track.origin
     los = track.los
-    cov = track.cov_p_ned_m2
+    cov, cov_v = track.cov_p_ned_m2, track.cov_v_ned_m2ps2
     return {
         "schema": TRACK_SCHEMA,
         "vehicle": track.vehicle,
@@ -465,7 +510,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "origin": None if o is None else {"lat_deg": o.lat_deg, "lon_deg": o.lon_deg, "alt_m": o.alt_m},
         "vel_ned_mps": None if track.v_ned_mps is None else list(track.v_ned_mps),
         "sigma_ned_m": None if cov is None else list(_sigmas3(cov)),
-        "sigma_vel_ned_mps": _list(track.sigma_vel_ned_mps),
+        "sigma_vel_ned_mps": None if cov_v is None else list(_sigmas3(cov_v)),  # finite: checked by the Track
         "cov_ned_m2": None if cov is None else cov.tolist(),
         "range_m": track.range_m,
         "range_sigma_ratio": json_number(track.range_sigma_ratio),
@@ -478,9 +523,14 @@ def track_to_json(track: Track) -> dict[str, Any]:
     }
 
 
+#: ``json.dumps(..., separators=(",", ":"), allow_nan=False)`` made once: ``dumps`` with options builds an encoder
+#: per call (an encoder keeps no state between calls)
+_COMPACT_JSON = json.JSONEncoder(separators=(",", ":"), allow_nan=False)
+
+
 def track_to_bytes(track: Track) -> bytes:
     """Compact UTF-8 JSON of :func:`track_to_json` (``allow_nan=False``: never emits NaN)."""
-    return json.dumps(track_to_json(track), separators=(",", ":"), allow_nan=False).encode()
+    return _COMPACT_JSON.encode(track_to_json(track)).encode()
 
 
 def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
