@@ -29,6 +29,7 @@ import os
 import pickle
 import select
 import signal
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -244,7 +245,7 @@ def _unpack_rows(packed) -> list:
 
 # The worker's wire.  A kept frame's row goes out as a flat tuple of Python numbers (its intrinsics by index,
 # each object sent once) and its estimate comes back as the dataclass's field values (arrays as lists),
-# both through plain ``pickle`` on ``send_bytes``/``recv_bytes``.  Why: ``Connection.send`` pickles with
+# both through plain ``pickle`` in ``Connection``'s framing (:func:`_send_msg`).  Why: ``Connection.send`` pickles with
 # ``ForkingPickler``, which copies copyreg's dispatch table on every call, and numpy arrays and dataclasses
 # pickle through ``__reduce__``: ~130 us of both processes' CPU per round trip, against ~30 us this way, on
 # every kept frame (15 a second).  The numbers are the same floats: ``tolist``/``np.array`` round-trip float64
@@ -255,12 +256,46 @@ _PACKED_ESTIMATE = "TrackEstimate.fields"  # first item of a packed estimate (an
 MAX_INTRINSICS_SENT = 8  # camera models a worker remembers by index (nearly always one)
 
 
+_LENGTH = struct.Struct("!i")  # Connection's framing: a signed big-endian length, then the bytes
+_LONG_MESSAGE = 0x7FFFFFFF  # longer: Connection's own long header (never, in practice)
+
+
 def _send_msg(conn: Connection, msg: tuple) -> None:
-    conn.send_bytes(pickle.dumps(msg, _PICKLE_PROTOCOL))
+    """``msg`` pickled, framed as ``Connection.send_bytes`` frames it, in one ``write`` on the pipe's descriptor:
+    ``send_bytes``'s Python layers (checks, a memoryview, the header) cost more than the row, twice a round trip."""
+    data = pickle.dumps(msg, _PICKLE_PROTOCOL)
+    if len(data) >= _LONG_MESSAGE:
+        conn.send_bytes(data)
+        return
+    fd = conn.fileno()  # OSError once closed, as send_bytes
+    buf = memoryview(_LENGTH.pack(len(data)) + data)
+    while buf:  # a blocking pipe writes it all, but for a signal
+        buf = buf[os.write(fd, buf) :]
+
+
+def _read_exact(fd: int, n: int) -> bytes:
+    data = os.read(fd, n)
+    if len(data) == n:
+        return data
+    parts = [data]
+    left = n - len(data)
+    while data and left:  # a message longer than the pipe's buffer (a snapshot) comes in pieces
+        data = os.read(fd, left)
+        parts.append(data)
+        left -= len(data)
+    if left:
+        raise EOFError("estimator pipe closed")
+    return b"".join(parts)
 
 
 def _recv_msg(conn: Connection) -> Any:
-    return pickle.loads(conn.recv_bytes())
+    """The next message of :func:`_send_msg` (or of ``Connection.send_bytes``): exactly its bytes are read, so the
+    pipe's readiness still says whether another one waits."""
+    fd = conn.fileno()
+    (n,) = _LENGTH.unpack(_read_exact(fd, 4))
+    if n == -1:  # Connection's long header
+        (n,) = struct.unpack("!Q", _read_exact(fd, 8))
+    return pickle.loads(_read_exact(fd, n))
 
 
 def row_message(epoch: int, args: tuple, k_index: int) -> tuple | None:

@@ -25,6 +25,7 @@ single_thread_blas_env()  # the pipeline is single-threaded by design: before nu
 
 import argparse  # noqa: E402
 import faulthandler  # noqa: E402
+import gc  # noqa: E402
 import logging  # noqa: E402
 import os  # noqa: E402
 import signal  # noqa: E402
@@ -240,6 +241,9 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         service.close(0.5)
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
+    # what start-up made (modules, config, sessions, the estimator's copy) lives as long as the daemon: out of the
+    # collector's generations, so that its full collections walk only what the frames make
+    gc.freeze()
     try:
         service.run()
     except Exception:  # noqa: BLE001 - log, close, non-zero exit

@@ -135,6 +135,7 @@ class OnboardService:
         from onboard.io.zenoh_session import FRAME_SCHEMA, frame_key
 
         self._frame_schema = FRAME_SCHEMA  # frames typed with another schema are refused (frame_schema)
+        self._frame_encoding: Any = None  # zenoh's Encoding of FRAME_ENCODING, made by start()
         pose_source: Any = self.pose
         self._pose_memo = None  # remembers each frame's pose for the recorder, the live view's 3-D scene and guidance
         if config.record.path or config.live_view.port is not None or config.guidance.advise:  # guidance: the pose
@@ -189,6 +190,7 @@ class OnboardService:
         self._started_s = clock()
         self.status_count = 0
         self._warnings_published = 0  # the watchdog's change count at the last status
+        self._withheld_at = -1  # the watchdog's change count when the pipeline's withheld_because was set
         self.watchdog = Watchdog(
             started_s=self._started_s,
             frame_key=frame_key(config.vehicle),
@@ -210,6 +212,7 @@ class OnboardService:
 
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
+            FRAME_ENCODING,
             GUIDANCE_ENCODING,
             OBJECTS_ENCODING,
             STATUS_ENCODING,
@@ -255,6 +258,7 @@ class OnboardService:
                 encoding=zenoh.Encoding(OBJECTS_ENCODING),
                 congestion_control=zenoh.CongestionControl.DROP,
             )
+        self._frame_encoding = zenoh.Encoding(FRAME_ENCODING)
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
         guidance = next((t for t in self.taps if t.name == "guidance"), None)
         if guidance is not None:  # advised manoeuvres on irtrack/<vehicle>/guidance (onboard.app.guidance_tap)
@@ -332,7 +336,9 @@ class OnboardService:
             self.frames_in += 1
         try:
             enc = getattr(sample, "encoding", None)
-            if enc is not None:  # typed: it must name the IRF1 schema; untyped (octet-stream) is accepted too
+            # typed: it must name the IRF1 schema; untyped (octet-stream) is accepted too.  The usual encoding is
+            # matched by zenoh's own equality, a fraction of the cost of formatting it as a string
+            if enc is not None and not (self._frame_encoding is not None and enc == self._frame_encoding):
                 schema = str(enc).partition(";")[2]
                 if schema and schema != self._frame_schema:
                     self.counter.count(
@@ -399,7 +405,11 @@ class OnboardService:
         """One frame through the pipeline, with the watchdog's frame checks; None when it was refused or failed."""
         c0 = time.thread_time()
         # fail-safe: while the configured camera disagrees with the vehicle, no direction or position goes out
-        self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
+        # (looked up again when the watchdog's conditions changed: its change count is read before them)
+        changes = self.watchdog.changes
+        if changes != self._withheld_at:
+            self._withheld_at = changes
+            self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
         try:
             track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()
@@ -472,6 +482,8 @@ class OnboardService:
         last_cpu = (now, time.process_time(), self._pipeline_cpu_s + self._worker_cpu())
         next_watch = now
         turn_s = now
+        # the taps that act in the loop (guidance: setpoints to the autopilot; never raises), looked up once
+        setpoint_steps = [step for step in (getattr(tap, "setpoint_step", None) for tap in self.taps) if step]
         while not self._stop.is_set() and now < end:
             try:
                 if self.link is not None:  # None until start()
@@ -491,8 +503,8 @@ class OnboardService:
                 self.follow_step(now)
             except Exception as exc:  # noqa: BLE001 - the follow output must not stop the loop
                 self.counter.count("follow_loop_error", f"{type(exc).__name__}: {exc}")
-            for tap in self.taps:  # guidance in the loop: setpoints to the autopilot (never raises; guidance_tap)
-                getattr(tap, "setpoint_step", lambda now, link: None)(now, self.link)
+            for step in setpoint_steps:
+                step(now, self.link)
             if now >= next_status or self.watchdog.changes != self._warnings_published:
                 # a warning raised or cleared goes out at once, not up to a status interval later
                 self._warnings_published = self.watchdog.changes
@@ -509,22 +521,23 @@ class OnboardService:
         loop woke 200 times a second whether or not anything had come: ~0.02 CPU s per s on a
         companion-class core for nothing.  Without a file descriptor to wait on (a
         link being reopened, a test double), the loop turns at ``poll_rate_hz`` as it used to."""
-        fds: list[int] = []
-        link_fd = getattr(self.link, "fileno", lambda: None)()
-        if link_fd is not None:
-            fds.append(link_fd)
+        link = self.link
+        fileno = getattr(link, "fileno", None)
+        link_fd = None if fileno is None else fileno()
+        fds: list[int] = [] if link_fd is None else [link_fd]
         if self.gcs is not None:
             fds += self.gcs.filenos()
         now = self._clock()
         if not fds:
             self._stop.wait(max(turn_s + period_s - now, 0.0))
             return
-        due = [next_own_s, now + getattr(self.link, "seconds_to_next_due", lambda: 0.0)()]
+        to_next_due = getattr(link, "seconds_to_next_due", None)
+        due_s = min(next_own_s, now + (0.0 if to_next_due is None else to_next_due()))
         if self.camera is not None:
-            due.append(self.camera.next_due_s())
+            due_s = min(due_s, self.camera.next_due_s())
         if self.config.follow.enabled:
-            due.append(self._next_follow_s)
-        timeout = min(max(min(due) - now, 0.0), MAIN_LOOP_MAX_IDLE_S)
+            due_s = min(due_s, self._next_follow_s)
+        timeout = min(max(due_s - now, 0.0), MAIN_LOOP_MAX_IDLE_S)
         try:
             ready, _, _ = select.select(fds, [], [], timeout)
         except (OSError, ValueError):  # a descriptor closed under us: the next turn reopens or counts it

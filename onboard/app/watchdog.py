@@ -384,6 +384,8 @@ class Watchdog:
             self._log.info("%s again (warned before): %s", code, message)
 
     def _clear(self, code: str) -> None:
+        if code not in self._active:  # the usual case, several times a frame: no lock for nothing to clear
+            return
         with self._lock:
             gone = self._active.pop(code, None) is not None
             self.changes += gone

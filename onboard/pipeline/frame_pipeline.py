@@ -149,11 +149,11 @@ def make_estimator(config: Any):
 
 
 def _finite_estimate(est: Any) -> bool:
-    try:
+    try:  # the arrays' own all(): np.all's Python wrapper costs more than the check, twice a frame
         return bool(
-            np.all(np.isfinite(est.p_ned_m))
-            and np.all(np.isfinite(est.v_ned_mps))
-            and np.all(np.isfinite(est.cov_p_ned_m2))
+            np.isfinite(est.p_ned_m).all()
+            and np.isfinite(est.v_ned_mps).all()
+            and np.isfinite(est.cov_p_ned_m2).all()
             and math.isfinite(float(est.range_m))
         )
     except (AttributeError, TypeError, ValueError):
@@ -343,12 +343,13 @@ class FramePipeline:
         self._admit(frame)
 
         waited_ns = 0
-        if self.chain_pose_wait is not None and not self._selections and getattr(self.tracker, "uses_pose", False):
+        uses_pose = getattr(self.tracker, "uses_pose", False)
+        if self.chain_pose_wait is not None and not self._selections and uses_pose:
             waited_ns = self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
         i0 = self._clock_ns()
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
-            if upd is None and getattr(self.tracker, "uses_pose", False):
+            if upd is None and uses_pose:
                 upd = self.tracker.update(frame.pixels, self._camera_rotation(frame.time_boot_us), frame.time_boot_us)
             elif upd is None:
                 upd = self.tracker.update(frame.pixels)
@@ -573,7 +574,7 @@ class FramePipeline:
         if range_m is not None and not (math.isfinite(float(range_m)) and float(range_m) > 0):
             range_m = None  # no range yet: the estimator's default (the estimate hardly depends on it)
         v = stamp_pose.body.v_ned_mps
-        if not np.all(np.isfinite(v)):
+        if not np.isfinite(v).all():
             self.counter.count(
                 "time_offset_no_velocity", "the pose has no velocity: frame not used for the clock offset"
             )
@@ -697,7 +698,7 @@ class FramePipeline:
             p = np.asarray(est.p_ned_m, dtype=float)
             lat, lon, alt = geodetic_from_ned(p, origin)
             lon_deg = (float(lon) + 180.0) % 360.0 - 180.0
-            p_n, p_e, p_d = (float(x) for x in p)
+            p_n, p_e, p_d = p.tolist()
             cov_v = getattr(est, "cov_v_ned_m2ps2", None)
             ratio = getattr(est, "range_sigma_ratio", None)
             return Track(
