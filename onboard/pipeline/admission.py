@@ -61,6 +61,9 @@ class Admission:
     restart: bool = False
 
 
+_ACCEPTED = Admission(True, "")  # the usual verdict (immutable: one for every frame)
+
+
 def _forward(seq: int, after: int) -> bool:
     """``seq`` comes after ``after`` in the wrapping uint32 sequence."""
     return 0 < (seq - after) % SEQ_MOD < SEQ_MOD // 2
@@ -77,7 +80,7 @@ class FrameAdmission:
         self.last_seq: int | None = None
         self.last_t_us: int | None = None
         self._recent: collections.deque[tuple[int, int]] = collections.deque(maxlen=RECENT_FRAMES)
-        self._recent_set: collections.Counter[tuple[int, int]] = collections.Counter()
+        self._recent_set: dict[tuple[int, int], int] = {}  # how often each pair is in _recent
         self._run: list[tuple[int, int]] = []  # (seq, t) of refused, mutually consistent frames
         self._run_far = False  # the run is far from the running clock (else: shortly before it)
 
@@ -106,17 +109,16 @@ class FrameAdmission:
         if (seq, t_us) in self._recent_set:
             return Admission(False, "duplicate", f"frame seq {seq} (time_boot_us {t_us}) again")
         seq_forward = _forward(seq, last_seq)
+        if last_t < t_us <= last_t + thr:  # the usual frame: no message made for it
+            if seq_forward:
+                return self._accept(seq, t_us, "")
+            return self._accept(
+                seq, t_us, "sequence_reset", f"seq {last_seq} -> {seq} while time moved forward: the sender restarted"
+            )
         step = (t_us - last_t) / 1e6
         where = f"seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the last accepted one (seq {last_seq})"
         if t_us > last_t + thr:
             return self._candidate(seq, t_us, far=True, reason="time_ahead", message=f"frame {where}")
-        if t_us > last_t:
-            return self._accept(
-                seq,
-                t_us,
-                "" if seq_forward else "sequence_reset",
-                f"seq {last_seq} -> {seq} while time moved forward: the sender restarted",
-            )
         far = t_us < last_t - thr
         if seq_forward:
             return self._candidate(seq, t_us, far=far, reason="time_behind", message=f"frame {where}")
@@ -153,13 +155,20 @@ class FrameAdmission:
         if event:  # a new clock or a new sequence: the old numbers say nothing about the new ones
             self._recent.clear()
             self._recent_set.clear()
-        if len(self._recent) == self._recent.maxlen:
-            old = self._recent[0]
-            self._recent_set[old] -= 1
-            if self._recent_set[old] <= 0:
-                del self._recent_set[old]
-        self._recent.append((seq, t_us))
-        self._recent_set[(seq, t_us)] += 1
+        recent, counts = self._recent, self._recent_set
+        if len(recent) == recent.maxlen:
+            old = recent[0]
+            n = counts.get(old, 0) - 1
+            if n <= 0:
+                counts.pop(old, None)
+            else:
+                counts[old] = n
+        pair = (seq, t_us)
+        recent.append(pair)
+        counts[pair] = counts.get(pair, 0) + 1
         self.last_seq, self.last_t_us = seq, t_us
-        self._run.clear()
+        if self._run:
+            self._run.clear()
+        if not event and not message and not restart:
+            return _ACCEPTED
         return Admission(True, event, message, restart)
