@@ -24,6 +24,9 @@ Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:
   the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
   without the estimator as a baseline measured in the same run.
 
+* With ``--floor-s S``: the daemon's floor, its I/O with nothing done (:mod:`bench.onboard_floor`): zenoh frames
+  in (and a track out), MAVLink in, the worker's round trips, a thread woken at 30 Hz, each in a child interpreter.
+
 * With ``--parts-s S``: two parts of the daemon alone, each paced as in flight for ``S`` seconds, CPU
   s per s from the thread and process clocks (``--parts-repeats`` times, alternating): the main loop's
   telemetry input (a thread in ``select`` on a :class:`MavlinkLink` that polls it, the fake autopilot
@@ -747,6 +750,12 @@ def main(argv=None) -> int:
         help="also time two parts alone, paced (MAVLink in, estimator hand-off), this many seconds each",
     )
     ap.add_argument("--parts-repeats", type=int, default=2, help="repeats of --parts-s")
+    ap.add_argument(
+        "--floor-s",
+        type=float,
+        default=0.0,
+        help="also time the daemon's I/O with nothing done (bench.onboard_floor), this many seconds per case",
+    )
     ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
     ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
@@ -781,6 +790,10 @@ def main(argv=None) -> int:
         print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
     if args.parts_s > 0:
         bench_parts(args.parts_s, args.parts_repeats)  # before the pinning of bench_processing
+    if args.floor_s > 0:
+        from bench.onboard_floor import bench_floor
+
+        bench_floor(args.floor_s, _cpu_snapshot)
     bench_processing(args.frames)
     return 0
 
