@@ -793,7 +793,7 @@ def main(argv=None) -> int:
     if args.floor_s > 0:
         from bench.onboard_floor import bench_floor
 
-        bench_floor(args.floor_s, _cpu_snapshot)
+        bench_floor(args.floor_s, _cpu_snapshot, SyntheticScene())
     bench_processing(args.frames)
     return 0
 

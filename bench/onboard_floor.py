@@ -113,15 +113,13 @@ def floor_child(case: str, port: int, duration_s: float) -> None:
     raise ValueError(f"unknown floor case {case!r}")
 
 
-def _feed(case: str, port: int, until_s: float) -> None:
-    """The sending side of ``case`` until ``until_s`` (monotonic)."""
+def _feed(case: str, port: int, until_s: float, scene) -> None:
+    """The sending side of ``case`` until ``until_s`` (monotonic), from ``scene`` (``bench.onboard.SyntheticScene``)."""
     if case.startswith("zenoh"):
         import zenoh
 
-        from bench.onboard import SyntheticScene
         from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
 
-        scene = SyntheticScene()
         payloads = [scene.payload(k) for k in range(8)]
         session = open_session(ZenohConfig(connect=(f"tcp/127.0.0.1:{port}",)))
         pub = session.declare_publisher(frame_key(), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -133,10 +131,9 @@ def _feed(case: str, port: int, until_s: float) -> None:
         pub.undeclare()
         session.close()
     elif case == "MAVLink in":
-        from bench.onboard import SyntheticScene
         from groundsim.io.scripted_autopilot import ScriptedAutopilot
 
-        ap = ScriptedAutopilot(port, scene=SyntheticScene())
+        ap = ScriptedAutopilot(port, scene=scene)
         n, t0 = 0, time.monotonic()
         while time.monotonic() < until_s:
             t = ap.boot_us()
@@ -150,8 +147,9 @@ def _feed(case: str, port: int, until_s: float) -> None:
         time.sleep(max(until_s - time.monotonic(), 0.0))
 
 
-def bench_floor(duration_s: float, cpu_snapshot) -> dict[str, float]:
-    """Each case's child CPU s per s and wake-ups per s over ``duration_s``; printed, and returned by case."""
+def bench_floor(duration_s: float, cpu_snapshot, scene) -> dict[str, float]:
+    """Each case's child CPU s per s and wake-ups per s over ``duration_s``; printed, and returned by case.
+    ``cpu_snapshot``: ``bench.onboard._cpu_snapshot``; ``scene``: a ``bench.onboard.SyntheticScene`` (frames, telemetry)."""
     from groundsim.io.ports import free_tcp_port, free_udp_port
 
     print(f"the daemon's floor: its I/O with nothing done, each case in a child interpreter, {duration_s:.0f} s each")
@@ -164,7 +162,9 @@ def bench_floor(duration_s: float, cpu_snapshot) -> dict[str, float]:
         try:
             time.sleep(1.0)  # the child's session or socket is up
             start = time.monotonic()
-            feeder = threading.Thread(target=_feed, args=(case, port, start + SETTLE_S + duration_s), daemon=True)
+            feeder = threading.Thread(
+                target=_feed, args=(case, port, start + SETTLE_S + duration_s, scene), daemon=True
+            )
             feeder.start()
             time.sleep(SETTLE_S)
             a = cpu_snapshot(child.pid)
