@@ -406,12 +406,10 @@ class Track:
             missing = [n for n, h in zip(_POSITION_FIELDS, have) if not h]
             raise InputError(f"Track position fields must be all set or all None; missing {missing}")
         if have[0]:  # all set
-            for name in ("lat_deg", "lon_deg", "alt_m", "range_m"):
-                given = getattr(self, name)
-                value = _finite(given, name)
-                if value is not given:
+            lat, lon, alt, rng = (_finite(getattr(self, n), n) for n in ("lat_deg", "lon_deg", "alt_m", "range_m"))
+            for name, value in (("lat_deg", lat), ("lon_deg", lon), ("alt_m", alt), ("range_m", rng)):
+                if value is not getattr(self, name):
                     setattr_(self, name, value)
-            lat, lon, rng = self.lat_deg, self.lon_deg, self.range_m
             if not -90.0 <= lat <= 90.0 or not -180.0 <= lon <= 180.0:
                 raise InputError(f"Track lat/lon out of range: {lat}, {lon}")
             if rng < 0:
