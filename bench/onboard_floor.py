@@ -149,7 +149,8 @@ def _feed(case: str, port: int, until_s: float, scene) -> None:
 
 def bench_floor(duration_s: float, cpu_snapshot, scene) -> dict[str, float]:
     """Each case's child CPU s per s and wake-ups per s over ``duration_s``; printed, and returned by case.
-    ``cpu_snapshot``: ``bench.onboard._cpu_snapshot``; ``scene``: a ``bench.onboard.SyntheticScene`` (frames, telemetry)."""
+    ``cpu_snapshot``: ``bench.onboard._cpu_snapshot``; ``scene``: a ``bench.onboard.SyntheticScene`` (the frames
+    and the telemetry sent)."""
     from groundsim.io.ports import free_tcp_port, free_udp_port
 
     print(f"the daemon's floor: its I/O with nothing done, each case in a child interpreter, {duration_s:.0f} s each")
