@@ -59,9 +59,15 @@ under 8 ms takes tens of seconds, while 50 ms against a 20 ms threshold is plain
 Compensation (the caller's): look the pose up at ``t - compensated_ms`` instead of ``t``.  The estimator always
 takes the pose at the frame's own stamp, so it estimates the whole offset, compensated or not;
 :attr:`TimeOffsetEstimator.compensated_ms` takes the estimate when it is first significantly beyond
-``min_compensated_ms`` (within ``max_offset_ms``): compensating 50 ms as 46 +- 13 leaves 4 ms, not 50; it takes it
-again whenever a confident estimate leaves it by more than two sigmas, and holds its value otherwise (the offset
-belongs to the camera, not to the target: a lost track does not make it go away).
+``min_compensated_ms`` (within ``max_offset_ms``): compensating 50 ms as 46 +- 13 leaves 4 ms, not 50.  It takes a
+confident estimate again when that leaves it by more than two sigmas, or when that rests on twice the information
+of the one it holds (its variance halved: ``REFINE_VARIANCE_RATIO``), and holds its value otherwise (the offset
+belongs to the camera, not to the target: a lost track does not make it go away).  Each move makes the caller's 3-D
+window again (one model selection), so block noise is no reason to move; but the first value taken rests on two or
+three blocks, and held against the two-sigma test alone it could stay for the whole flight further off than the
+estimate beside it, the later sigmas shrinking as fast as the difference (docs/performance.md, "A camera clock off
+the autopilot's").  Halving the variance bounds the moves to a few per flight (the sigma of a full window stops
+shrinking).
 """
 
 from __future__ import annotations
@@ -76,7 +82,14 @@ from onboard.core.checks import is_positive_number, require_each
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_conjugate, quat_multiply, rotmat_from_quat, rotvec_from_quat
 
-__all__ = ["TimeOffsetParams", "TimeOffsetEstimate", "TimeOffsetEstimator", "STATES", "SIGNIFICANT_MIN_BLOCKS"]
+__all__ = [
+    "TimeOffsetParams",
+    "TimeOffsetEstimate",
+    "TimeOffsetEstimator",
+    "STATES",
+    "SIGNIFICANT_MIN_BLOCKS",
+    "REFINE_VARIANCE_RATIO",
+]
 
 STATES = ("unknown", "estimating", "confident")
 MS_PER_S = 1000.0
@@ -84,6 +97,9 @@ FREE_RANGE_TERMS = 1  # the range's change over a block left free: linear (modul
 #: blocks pooled before a sigma that is not yet confident is trusted for a warning: from three on, the blocks'
 #: scatter bounds it from below (a sigma from the residuals alone misses their frame-to-frame correlation)
 SIGNIFICANT_MIN_BLOCKS = 3
+#: the compensation takes a confident estimate whose variance is at most this share of the one it holds (module
+#: docstring, "Compensation"): twice the information, whatever the difference
+REFINE_VARIANCE_RATIO = 0.5
 
 
 @dataclass(frozen=True)
@@ -222,6 +238,8 @@ class TimeOffsetEstimator:
         self._track_id: object = None
         self._refused = 0
         self._compensated_ms = 0.0
+        #: the sigma of the estimate the compensation holds (None: none held)
+        self._compensated_sigma_ms: float | None = None
         self.estimate = self._summarise()
 
     @property
@@ -233,6 +251,7 @@ class TimeOffsetEstimator:
         self._blocks.clear()
         self._clear_block()
         self._compensated_ms = 0.0
+        self._compensated_sigma_ms = None
         self.estimate = self._summarise()
 
     def add(
@@ -298,13 +317,16 @@ class TimeOffsetEstimator:
         e = self.estimate
         if p.compensate and e.estimate_ms is not None and abs(e.estimate_ms) <= p.max_offset_ms:
             # started by the same test as the warning (an offset of 50 ms compensated as 46 +- 13 leaves 4, not
-            # 50); moved only when a confident estimate left it by two sigmas: each move makes the caller's 3-D
-            # window again, and a block's noise is no reason to
+            # 50); moved by a confident estimate that left it by two sigmas or rests on twice its information (each
+            # move makes the caller's 3-D window again, and a block's noise is no reason to: module docstring)
             sigma_ms = e.sigma_ms if e.sigma_ms is not None else 0.0
+            held = self._compensated_sigma_ms
             start = not self._compensated_ms and e.significantly_beyond(p.min_compensated_ms)
             moved = e.confident and abs(e.estimate_ms - self._compensated_ms) > 2.0 * sigma_ms
-            if start or (self._compensated_ms and moved):
+            refined = e.confident and held is not None and sigma_ms**2 <= REFINE_VARIANCE_RATIO * held**2
+            if start or (self._compensated_ms and (moved or refined)):
                 self._compensated_ms = float(e.estimate_ms)
+                self._compensated_sigma_ms = sigma_ms
                 self.estimate = self._summarise()
 
     # ------------------------------------------------------------------ internals

@@ -11,6 +11,7 @@ import pytest
 from onboard.core.errors import InputError
 from onboard.core.frames import quat_from_rotmat, quat_from_rotvec, quat_multiply, rotmat_from_quat
 from onboard.estimation.time_offset import (
+    REFINE_VARIANCE_RATIO,
     SIGNIFICANT_MIN_BLOCKS,
     TimeOffsetEstimate,
     TimeOffsetEstimator,
@@ -225,3 +226,24 @@ def test_the_daemons_defaults_are_the_estimators():
     assert section.params() == TimeOffsetParams(
         compensate=False, min_compensated_ms=35.0, confident_sigma_ms=6.0, max_offset_ms=120.0, window_s=45.0
     )
+
+
+def test_compensation_takes_an_estimate_resting_on_twice_the_information():
+    """The first value taken rests on two or three blocks; a later confident estimate with half its variance is
+    taken even within two of its sigmas (else a first value off by 1.5 sigmas could be held all flight), and no
+    confident estimate is ever held against with more than that information."""
+    est = TimeOffsetEstimator()
+    out = _feed(est, 0.05, 30.0, seed=6, noise_rad=1e-3)
+    held_sigma_ms = None
+    moves_within_two_sigmas = 0
+    for prev, e in zip(out, out[1:]):
+        if e.compensated_ms != prev.compensated_ms:
+            assert e.compensated_ms == e.estimate_ms
+            if held_sigma_ms is not None:
+                assert e.confident
+                moves_within_two_sigmas += abs(e.compensated_ms - prev.compensated_ms) <= 2.0 * e.sigma_ms
+            held_sigma_ms = e.sigma_ms
+        elif e.confident and held_sigma_ms is not None:
+            assert e.sigma_ms**2 > REFINE_VARIANCE_RATIO * held_sigma_ms**2
+    assert held_sigma_ms is not None and moves_within_two_sigmas >= 1
+    assert est.compensated_ms == pytest.approx(50.0, abs=3 * held_sigma_ms)
