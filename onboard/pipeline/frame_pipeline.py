@@ -47,11 +47,12 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    stamp (and the estimate's range, once there is one).  While the estimator's ``compensated_ms`` is not 0,
    step 3 looks the pose up a second time, at ``t - compensated_ms``, and that pose (the last looked up: a
    recorder keeps it) makes the estimator's rows, the line of sight and the 3-D output; the track keeps the
-   frame's stamp.  A compensation that moved by more than ``COMPENSATION_RESTART_MS`` since the estimator's
+   frame's stamp.  A compensation that moved by more than ``COMPENSATION_REBUILD_MS`` since the estimator's
    window was made makes the window's rows again with the poses at their stamps minus the new compensation,
    interpolated in the poses looked up at the frames' stamps (:mod:`onboard.pipeline.restamp`), and hands them
    to the estimator's ``rebuild`` (one model selection, no window lost: its rows made with the old compensation
-   would disagree with the new ones); an estimator without ``rebuild`` is restarted instead.
+   would disagree with the new ones); an estimator without ``rebuild`` is restarted instead, beyond
+   ``COMPENSATION_RESTART_MS`` only.
    The offset estimator starts again on an autopilot reboot and on a frame-stream restart or clock step.
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
@@ -96,8 +97,11 @@ US_PER_S = 1_000_000
 #: extrapolation adds 6 mm, a dead-reckoned second 1 m
 CAMERA_SIGMA_FLOOR_M = 0.02
 RESIDUAL_WINDOW_S = 1.0  # own reprojection-residual statistic: RMS over this much of the latest frames
-#: a change of the camera clock's compensation beyond this makes the estimator's window again: its rows made with
-#: the old one would disagree with the new ones (50 ms at 0.1 rad/s of camera rotation: 5 mrad, ten times the noise)
+#: a change of the camera clock's compensation beyond this makes the estimator's window again (``rebuild``): its rows
+#: made with the old one would disagree with the new ones, and the offset estimator moves it only a few times a flight
+COMPENSATION_REBUILD_MS = 0.5
+#: an estimator without ``rebuild`` is restarted instead, which loses its window: only beyond this (50 ms at 0.1 rad/s
+#: of camera rotation: 5 mrad, ten times the noise)
 COMPENSATION_RESTART_MS = 10.0
 
 
@@ -517,13 +521,16 @@ class FramePipeline:
         return None if self.time_offset is None else self.time_offset.estimate
 
     def _follow_compensation(self) -> None:
-        """Make the estimator's window again (or restart it) when the clock compensation moved by more than
-        ``COMPENSATION_RESTART_MS`` since the window was made; a window that starts takes the compensation of now."""
+        """Make the estimator's window again when the clock compensation moved by more than
+        ``COMPENSATION_REBUILD_MS`` since the window was made (restart one without ``rebuild``, beyond
+        ``COMPENSATION_RESTART_MS`` only); a window that starts takes the compensation of now."""
         comp_ms = self._compensation_us() / 1000.0
-        if self._est_has_data and abs(comp_ms - self._window_comp_ms) > COMPENSATION_RESTART_MS:
-            why = f"camera clock compensation now {comp_ms:.0f} ms (was {self._window_comp_ms:.0f} ms)"
-            if not self._restamp_window(comp_ms, why):
-                self._reset_estimator(why)
+        moved_ms = abs(comp_ms - self._window_comp_ms)
+        if self._est_has_data and moved_ms > COMPENSATION_REBUILD_MS:
+            if callable(getattr(self.estimator, "rebuild", None)) or moved_ms > COMPENSATION_RESTART_MS:
+                why = f"camera clock compensation now {comp_ms:.1f} ms (was {self._window_comp_ms:.1f} ms)"
+                if not self._restamp_window(comp_ms, why):
+                    self._reset_estimator(why)
         if not self._est_has_data:
             self._window_comp_ms = comp_ms
 

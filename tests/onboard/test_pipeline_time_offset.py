@@ -80,7 +80,9 @@ def test_compensated_frames_get_the_pose_at_stamp_minus_offset_and_the_estimator
 def test_a_compensation_that_moves_restarts_the_estimator_a_small_drift_does_not():
     rig, stub, _ = _rig(0.0)
     rig.run(12)
-    stub.compensated_ms = 6.0  # within COMPENSATION_RESTART_MS
+    stub.compensated_ms = (
+        6.0  # within COMPENSATION_RESTART_MS: this estimator has no rebuild, and a restart loses its window
+    )
     rig.run(3, start=12)
     assert not any(name == "reset" for name, _ in rig.est.calls)
     stub.compensated_ms = 45.0

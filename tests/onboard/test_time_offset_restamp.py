@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import quat_from_rotvec, rotvec_from_quat
+from onboard.pipeline.frame_pipeline import COMPENSATION_REBUILD_MS
 from onboard.pipeline.restamp import StampPoseHistory
 from tests.onboard.test_pipeline import Rig
 from tests.onboard.test_pipeline_time_offset import LookupLog, StubOffset
@@ -109,8 +110,14 @@ def test_a_compensation_that_moves_makes_the_window_again_at_the_new_stamps_with
         angle = 2.0 * math.acos(min(1.0, abs(float(np.dot(q, truth.q_ned_from_cam)))))
         assert angle < INTERP_ANGLE_TOL_RAD
         assert np.all(np.isfinite(uv))
-    # a later frame after the move adds as usual; a second move within COMPENSATION_RESTART_MS does nothing
+    # a later frame after the move adds as usual
+    rig.run(1, start=22)
+    assert len(est.rebuilt) == 1 and rig.est.calls[-1][0] == "add"
+    # a small move makes it again too (a window mixing rows of two compensations disagrees with itself); still no
+    # restart, and a move under COMPENSATION_REBUILD_MS does nothing
     stub.compensated_ms = 50.0
-    rig.run(2, start=22)
-    assert len(est.rebuilt) == 1
-    assert rig.est.calls[-1][0] == "add"
+    rig.run(1, start=23)
+    assert len(est.rebuilt) == 2 and rig.pipe.window_restamps == 2 and rig.pipe.estimator_resets == 0
+    stub.compensated_ms = 50.0 + COMPENSATION_REBUILD_MS / 2
+    rig.run(1, start=24)
+    assert len(est.rebuilt) == 2 and rig.est.calls[-1][0] == "add"
