@@ -66,8 +66,7 @@ belongs to the camera, not to the target: a lost track does not make it go away)
 window again (one model selection), so block noise is no reason to move; but the first value taken rests on two or
 three blocks, and held against the two-sigma test alone it could stay for the whole flight further off than the
 estimate beside it, the later sigmas shrinking as fast as the difference (docs/performance.md, "A camera clock off
-the autopilot's").  Halving the variance bounds the moves to a few per flight (the sigma of a full window stops
-shrinking).
+the autopilot's").  The variance halves only a few times per flight (the sigma of a full window stops shrinking).
 """
 
 from __future__ import annotations
