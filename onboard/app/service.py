@@ -46,6 +46,7 @@ the session and the MAVLink connection, and removes the liveness file.
 from __future__ import annotations
 
 import collections
+import contextlib
 import functools
 import json
 import logging
@@ -75,6 +76,7 @@ from onboard.core.status import RollingStats, build_status
 from onboard.core.track import Track, track_to_bytes
 from onboard.core.utc_clock import UtcClock, with_utc
 from onboard.io.record import NOT_LOOKED_UP
+from onboard.io.zenoh_session import FRAME_SCHEMA, foreign_schema, frame_key
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
 if TYPE_CHECKING:
@@ -132,8 +134,6 @@ class OnboardService:
         self.estimator_kind = "disabled" if est is None else f"sliding window ({config.estimator.worker})"
         self.estimator = est
         wait_s, chain_wait_s = config.pose.wait_ms / 1000.0, config.imaging.pose_wait_ms / 1000.0
-        from onboard.io.zenoh_session import FRAME_SCHEMA, frame_key
-
         self._frame_schema = FRAME_SCHEMA  # frames typed with another schema are refused (frame_schema)
         self._frame_encoding: Any = None  # zenoh's Encoding of FRAME_ENCODING, made by start()
         pose_source: Any = self.pose
@@ -217,7 +217,6 @@ class OnboardService:
             OBJECTS_ENCODING,
             STATUS_ENCODING,
             TRACK_ENCODING,
-            frame_key,
             guidance_key,
             objects_key,
             open_session,
@@ -316,10 +315,8 @@ class OnboardService:
         for tap in self.observers:
             tap.close(timeout_s)  # after the pipeline: the recorder's last frames are in the file
         if self._health_path:
-            try:
+            with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
                 os.unlink(self._health_path)
-            except OSError:
-                pass
         if self._pipe_thread is not None:
             log.info(
                 "onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published
@@ -336,15 +333,9 @@ class OnboardService:
             self.frames_in += 1
         try:
             enc = getattr(sample, "encoding", None)
-            # typed: it must name the IRF1 schema; untyped (octet-stream) is accepted too.  The usual encoding is
-            # matched by zenoh's own equality, a fraction of the cost of formatting it as a string
-            if enc is not None and not (self._frame_encoding is not None and enc == self._frame_encoding):
-                schema = str(enc).partition(";")[2]
-                if schema and schema != self._frame_schema:
-                    self.counter.count(
-                        "frame_schema", f"frame encoding {enc} names another schema than {self._frame_schema}"
-                    )
-                    return
+            if (named := foreign_schema(enc, self._frame_schema, self._frame_encoding)) is not None:
+                self.counter.count("frame_schema", f"frame encoding {enc} names {named}, not {self._frame_schema}")
+                return
             payload = sample.payload
             max_bytes = self.config.input.max_frame_bytes
             check_payload_size(len(payload), max_bytes)  # before any copy: a 100x frame costs nothing
@@ -514,16 +505,13 @@ class OnboardService:
             turn_s = now = self._clock()
 
     def _idle(self, turn_s: float, period_s: float, next_own_s: float) -> None:
-        """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or
-        the next timer is due (the link's heartbeats and TIMESYNC, the camera's messages, FOLLOW_TARGET,
-        the watchdog, the status), at most ``MAIN_LOOP_MAX_IDLE_S``; and never turn more often than
-        ``mavlink.poll_rate_hz`` (a flood of datagrams costs at most that many turns).  A fixed-rate
-        loop woke 200 times a second whether or not anything had come: ~0.02 CPU s per s on a
-        companion-class core for nothing.  Without a file descriptor to wait on (a
-        link being reopened, a test double), the loop turns at ``poll_rate_hz`` as it used to."""
+        """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or the next
+        timer is due (heartbeats, TIMESYNC, the camera's messages, FOLLOW_TARGET, the watchdog, the status), at most
+        ``MAIN_LOOP_MAX_IDLE_S``, turning at most ``mavlink.poll_rate_hz`` times a second (a flood costs no more): a
+        fixed-rate loop woke 200 times a second for nothing, ~0.02 CPU s per s on a companion-class core.  Without a
+        descriptor to wait on (a link being reopened, a test double) the loop turns at ``poll_rate_hz``."""
         link = self.link
-        fileno = getattr(link, "fileno", None)
-        link_fd = None if fileno is None else fileno()
+        link_fd = getattr(link, "fileno", lambda: None)()
         fds: list[int] = [] if link_fd is None else [link_fd]
         if self.gcs is not None:
             fds += self.gcs.filenos()

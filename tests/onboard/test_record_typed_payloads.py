@@ -19,6 +19,7 @@ from onboard.io.zenoh_session import (
     TRACK_ENCODING,
     ZenohConfig,
     encoding_schema,
+    foreign_schema,
     frame_key,
     open_session,
 )
@@ -31,6 +32,18 @@ def test_encoding_schema_reads_typed_and_untyped():
     assert encoding_schema(TRACK_ENCODING) == "irtrack.track/2"
     assert encoding_schema(STATUS_ENCODING) == "irtrack.status/1"
     assert encoding_schema("application/octet-stream") is None and encoding_schema(None) is None
+
+
+def test_foreign_schema_names_only_another_schema():
+    import zenoh
+
+    schema = "irtrack.irf1/1"
+    for untyped_or_same in (None, "application/octet-stream", FRAME_ENCODING):
+        assert foreign_schema(untyped_or_same, schema) is None
+    assert foreign_schema("application/octet-stream;irtrack.irf2/1", schema) == "irtrack.irf2/1"
+    usual = zenoh.Encoding(FRAME_ENCODING)  # the daemon's fast path: zenoh's equality before any text
+    assert foreign_schema(zenoh.Encoding(FRAME_ENCODING), schema, usual) is None
+    assert foreign_schema(zenoh.Encoding("application/json;irtrack.track/2"), schema, usual) == "irtrack.track/2"
 
 
 @pytest.mark.integration
