@@ -1,7 +1,8 @@
 """The renderer's compiled loops (groundsim.world.render.kernels) against the numpy and OpenCV formulations
 they replaced, bit for bit: the ray cast's nearest part (slab test and scaled-sphere quadratic in numpy
 float32, written out here as the reference), the quantisation against cv2.add's rounding and saturation,
-the cloud composite and the grey-to-radiance map against numpy's passes; and the coarse-grid bound that
+the cloud composite and the grey-to-radiance map against numpy's passes; the camera model's counts, AGC
+map and look-up against the numpy and OpenCV passes ``Sensor`` ran before them; and the coarse-grid bound that
 spares the objects' depth windows (``PyrUpImage.lower_bound``) against the windows.  Byte identity of whole frames
 is checked by the P1 goldens (tests/groundsim/test_scene.py) and the reference scenes' determinism tests."""
 
@@ -14,7 +15,17 @@ from hypothesis import strategies as st
 
 from groundsim.world.render import IrSettings, PartRaster, TargetPart
 from groundsim.world.render.background import PyrUpImage, SceneBackground
-from groundsim.world.render.kernels import cast_part_rays, composite_band, quantise_grey, scale_offset
+from groundsim.world.render.kernels import (
+    agc_map,
+    cast_part_rays,
+    composite_band,
+    lut_take,
+    pairwise_sum_pow2,
+    quantise_grey,
+    scale_offset,
+    sensor_counts,
+)
+from groundsim.world.render.sensor import AGC_TAIL
 from onboard.core.frames import PinholeIntrinsics
 
 INTR = PinholeIntrinsics.vue_pro_640()
@@ -162,3 +173,81 @@ def test_pyrup_lower_bound_is_below_every_pixel_of_the_window(seed, far, i0, j0,
     background = SceneBackground(np.zeros((70, 86), np.float32), np.zeros((70, 86), np.float32), img, img)
     assert background.nothing_nearer(rows, cols, bound)
     assert not background.nothing_nearer(rows, cols, float(window.min()) + 1.0)
+
+
+def test_sensor_counts_are_cv2s_multiply_add_rounding_saturation_and_the_raw_full_scale():
+    rng = np.random.default_rng(5)
+    shape = (48, 72)
+    gain = rng.uniform(150.0, 160.0, shape).astype(np.float32)
+    offset = rng.uniform(-4000.0, -3000.0, shape).astype(np.float32)
+    noise = (rng.standard_normal(shape) * 7.3).astype(np.float32)
+    L = rng.uniform(-5.0, 140.0, shape).astype(np.float32)  # counts below 0 and above 14 and 16 bits
+    # ties: radiances whose sum lands on k + 0.5 exactly in float32
+    x = L.ravel()[:300] * gain.ravel()[:300] + offset.ravel()[:300]
+    noise.ravel()[:300] = (np.floor(x) + np.float32(0.5)) - x
+    L.ravel()[300:306] = [np.nan, np.inf, -np.inf, 3e9, -3e9, 1e30]
+    for full_scale in (255, 16383, 65535):
+        out = np.empty(shape, np.uint16)
+        sensor_counts(L, gain, offset, noise, full_scale, out)
+        want = cv2.multiply(L, gain)
+        want += offset
+        want = cv2.add(want, noise, dtype=cv2.CV_16U)
+        np.minimum(want, full_scale, out=want)
+        assert np.array_equal(out, want), full_scale
+
+
+def numpy_agc_map(counts, n_bins, plateau_fraction, max_gain, linear_fraction):
+    """The numpy formulation ``Sensor.agc_map`` ran before the kernel (the reference)."""
+    h = np.bincount(counts[::2, ::2].ravel(), minlength=n_bins)[:n_bins].astype(np.float64)
+    total = h.sum()
+    cap = plateau_fraction * total
+    for _ in range(2):
+        clipped = np.minimum(h, cap)
+        cap = min(plateau_fraction * total, max_gain * clipped.sum() / 255.0)
+    clipped = np.minimum(h, cap)
+    cdf = np.cumsum(clipped)
+    eq = 255.0 * cdf / max(cdf[-1], 1.0)
+    raw_cdf = np.cumsum(h) / max(total, 1.0)
+    lo = float(np.searchsorted(raw_cdf, AGC_TAIL))
+    hi = float(np.searchsorted(raw_cdf, 1.0 - AGC_TAIL))
+    span = max(hi - lo, 255.0 / max_gain)
+    mid = 0.5 * (lo + hi)
+    lin = np.clip((np.arange(n_bins) - (mid - span / 2)) * (255.0 / span), 0.0, 255.0)
+    return (1.0 - linear_fraction) * eq + linear_fraction * lin
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    raw_bits=st.sampled_from((8, 12, 14, 16)),
+    spread=st.floats(0.5, 3000.0),
+    plateau_fraction=st.floats(0.001, 1.0),
+    max_gain=st.floats(0.05, 8.0),
+    linear_fraction=st.floats(0.0, 1.0),
+    odd_shape=st.booleans(),
+)
+def test_agc_map_is_the_numpy_formulation_bit_for_bit(
+    seed, raw_bits, spread, plateau_fraction, max_gain, linear_fraction, odd_shape
+):
+    rng = np.random.default_rng(seed)
+    n_bins = 2**raw_bits
+    shape = (61, 83) if odd_shape else (64, 80)
+    # a sky (one narrow mode), a warm patch (a second one) and a few saturated and dead pixels
+    x = rng.normal(0.4 * n_bins, min(spread, n_bins / 8), shape)
+    x[:10, :20] = rng.normal(0.7 * n_bins, min(spread, n_bins / 8) / 3, (10, 20))
+    x.ravel()[rng.integers(0, x.size, 12)] = [0] * 6 + [n_bins - 1] * 6
+    counts = np.clip(np.rint(x), 0, n_bins - 1).astype(np.uint16)
+    got = agc_map(counts, n_bins, plateau_fraction, max_gain, linear_fraction, AGC_TAIL)
+    want = numpy_agc_map(counts, n_bins, plateau_fraction, max_gain, linear_fraction)
+    assert np.array_equal(got, want)
+    mono8 = np.empty(shape, np.uint8)
+    lut_take(got, counts, mono8)
+    assert np.array_equal(mono8, np.rint(got).astype(np.uint8).take(counts))
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), log2_n=st.integers(0, 16), scale=st.sampled_from((1.0, 1e-3, 1e12)))
+def test_pairwise_sum_rounds_as_numpys_sum(seed, log2_n, scale):
+    a = np.random.default_rng(seed).standard_normal(2**log2_n) * scale
+    a[::7] *= 1e6  # magnitudes apart, so that the order of the additions shows in the last bits
+    assert pairwise_sum_pow2(a) == a.sum()

@@ -622,3 +622,156 @@ def peak_box(delta, gain, fraction):
                 j0 = min(j0, j)
                 j1 = max(j1, j)
     return np.float64(peak), i0, i1 + 1, j0, j1 + 1
+
+
+# ---------------------------------------------------------------------------- the camera model (sensor)
+
+
+@njit(cache=True, nogil=True)
+def sensor_counts(radiance, gain, offset, noise, full_scale, out):
+    """``out = min(saturate(round((radiance gain + offset) + noise)), full_scale)`` (float32, round half to
+    even): ``cv2.multiply``, ``+=``, ``cv2.add(..., dtype=CV_16U)``'s rounding and saturation (NaN and +inf
+    to 65535, -inf to 0) and numpy's ``minimum`` with the full scale, in one pass (``Sensor.counts``)."""
+    h, w = radiance.shape
+    top = np.float32(min(full_scale, 65535))
+    for i in range(h):
+        for j in range(w):
+            x = radiance[i, j] * gain[i, j]
+            x = x + offset[i, j]
+            v = np.rint(x + noise[i, j])
+            if v != v:
+                v = top
+            out[i, j] = min(max(v, np.float32(0.0)), top)
+
+
+@njit(cache=True, nogil=True)
+def _block_sum(a, i0, n):
+    """numpy's pairwise summation of a block ``a[i0 : i0 + n]``, ``n <= 128`` (float64): below 8 in order,
+    else in eight interleaved partial sums combined as a tree, then the rest in order."""
+    if n < 8:
+        res = 0.0
+        for i in range(i0, i0 + n):
+            res += a[i]
+        return res
+    r0, r1, r2, r3 = a[i0], a[i0 + 1], a[i0 + 2], a[i0 + 3]
+    r4, r5, r6, r7 = a[i0 + 4], a[i0 + 5], a[i0 + 6], a[i0 + 7]
+    m = n - n % 8
+    for i in range(i0 + 8, i0 + m, 8):
+        r0 += a[i]
+        r1 += a[i + 1]
+        r2 += a[i + 2]
+        r3 += a[i + 3]
+        r4 += a[i + 4]
+        r5 += a[i + 5]
+        r6 += a[i + 6]
+        r7 += a[i + 7]
+    res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+    for i in range(i0 + m, i0 + n):
+        res += a[i]
+    return res
+
+
+@njit(cache=True, nogil=True)
+def pairwise_sum_pow2(a):
+    """``a.sum()`` rounded as numpy rounds it (float64, ``len(a)`` a power of two): numpy's pairwise
+    summation halves the array down to blocks of 128 (:func:`_block_sum`) and adds the halves' sums, which
+    for a power of two is a perfect binary tree over the blocks (written as a loop: numba's cache does not
+    keep recursive functions)."""
+    n = a.shape[0]
+    if n & (n - 1) != 0:
+        raise ValueError("pairwise_sum_pow2: the length must be a power of two")
+    if n <= 128:
+        return _block_sum(a, 0, n)
+    m = n // 128
+    s = np.empty(m, np.float64)
+    for k in range(m):
+        s[k] = _block_sum(a, 128 * k, 128)
+    while m > 1:
+        m //= 2
+        for k in range(m):
+            s[k] = s[2 * k] + s[2 * k + 1]
+    return s[0]
+
+
+@njit(cache=True, nogil=True)
+def agc_map(counts, n_bins, plateau_fraction, max_gain, linear_fraction, tail):
+    """The AGC map (float64, ``n_bins`` entries, a power of two, 0..255) of ``counts[::2, ::2]`` (``Sensor.agc_map``, whose
+    docstring has the model): the histogram, its plateau-clipped cumulative sum and the linear map between
+    the ``tail`` and ``1 - tail`` points, with numpy's float64 operations in numpy's order (pairwise sums,
+    sequential cumulative sums, ``searchsorted``'s left side)."""
+    h, w = counts.shape
+    # four partial histograms, one per column modulo 8: a sky's samples fall in a few bins, and one
+    # histogram's increments of the same bin would wait on each other
+    part = np.zeros((4, n_bins), np.int32)
+    for i in range(0, h, 2):
+        j = 0
+        while j + 6 < w:
+            part[0, counts[i, j]] += 1
+            part[1, counts[i, j + 2]] += 1
+            part[2, counts[i, j + 4]] += 1
+            part[3, counts[i, j + 6]] += 1
+            j += 8
+        while j < w:
+            part[0, counts[i, j]] += 1
+            j += 2
+    hist = np.empty(n_bins, np.float64)
+    for k in range(n_bins):
+        hist[k] = np.float64((part[0, k] + part[1, k]) + (part[2, k] + part[3, k]))
+    total = 0.0  # integers: exact in any order
+    for k in range(n_bins):
+        total += hist[k]
+    cap = plateau_fraction * total
+    clipped = np.empty(n_bins, np.float64)
+    for _ in range(2):  # as Sensor.agc_map: the slope cap depends on the clipped total
+        for k in range(n_bins):
+            clipped[k] = min(hist[k], cap)
+        s = max_gain * pairwise_sum_pow2(clipped) / 255.0
+        a = plateau_fraction * total
+        cap = s if s < a else a
+    # both cumulative sums in one loop (two independent chains of additions)
+    cdf = np.empty(n_bins, np.float64)
+    raw = np.empty(n_bins, np.float64)
+    c = 0.0
+    r = 0.0
+    for k in range(n_bins):
+        c += min(hist[k], cap)
+        r += hist[k]
+        cdf[k] = c
+        raw[k] = r
+    eq_den = max(c, 1.0)
+    raw_den = max(total, 1.0)
+    lo_t = tail
+    hi_t = 1.0 - tail
+    lo = n_bins
+    hi = n_bins
+    for k in range(n_bins):
+        q = raw[k] / raw_den
+        if lo == n_bins and q >= lo_t:
+            lo = k
+        if q >= hi_t:
+            hi = k
+            break
+    lo_f = np.float64(lo)
+    hi_f = np.float64(hi)
+    span = max(hi_f - lo_f, 255.0 / max_gain)
+    start = 0.5 * (lo_f + hi_f) - span / 2
+    slope = 255.0 / span
+    out = np.empty(n_bins, np.float64)
+    for k in range(n_bins):
+        eq = 255.0 * cdf[k] / eq_den
+        lin = min(max((np.float64(k) - start) * slope, 0.0), 255.0)
+        out[k] = (1.0 - linear_fraction) * eq + linear_fraction * lin
+    return out
+
+
+@njit(cache=True, nogil=True)
+def lut_take(lut, counts, out):
+    """``out = rint(lut).astype(uint8)[counts]`` (``lut`` float64 in 0..255, ``counts`` indices into it)."""
+    n = lut.shape[0]
+    lut8 = np.empty(n, np.uint8)
+    for k in range(n):
+        lut8[k] = np.uint8(np.rint(lut[k]))
+    h, w = counts.shape
+    for i in range(h):
+        for j in range(w):
+            out[i, j] = lut8[counts[i, j]]

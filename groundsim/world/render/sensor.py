@@ -43,6 +43,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from groundsim.world.render.kernels import agc_map, lut_take, sensor_counts
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
 from groundsim.world.render.scene import section_rng
 from groundsim.world.render.scene_config import SensorConfig
@@ -129,7 +130,6 @@ class Sensor:
         self._noise_offsets = n * (NOISE_BANK_FRAMES - 1) + 1
         self._seed = int(seed)
         self._offset_now = np.empty((H, W), np.float32)
-        self._x = np.empty((H, W), np.float32)
         self._lut: np.ndarray | None = None
         self._last: SensorFrame | None = None
 
@@ -162,14 +162,13 @@ class Sensor:
             if self._drift is None
             else cv2.scaleAdd(self._drift, since_s, self._offset_at_zero, dst=self._offset_now)
         )
-        x = cv2.multiply(L, self._gain, dst=self._x)
-        x += offset
         n = self._H * self._W
         off = int(np.random.default_rng([self._seed, int(frame_index)]).integers(self._noise_offsets))
         noise = self._noise[off : off + n].reshape(self._H, self._W)
-        out = cv2.add(x, noise, dtype=cv2.CV_16U)
-        if self.full_scale < 65535:
-            np.minimum(out, self.full_scale, out=out)
+        out = np.empty((self._H, self._W), np.uint16)
+        # one pass: gain, offset, noise, then cv2.add(..., dtype=CV_16U)'s rounding and saturation and the
+        # raw full scale (the numpy/OpenCV formulation, in tests/groundsim/test_render_kernels.py, is bit for bit)
+        sensor_counts(np.ascontiguousarray(L), self._gain, offset, noise, self.full_scale, out)
         flat = out.reshape(-1)
         flat[self._dead] = 0
         flat[self._hot] = self.full_scale
@@ -178,23 +177,14 @@ class Sensor:
     def agc_map(self, counts: np.ndarray) -> np.ndarray:
         """This frame's AGC map (float, ``2^raw_bits`` entries, 0..255) before the temporal smoothing."""
         a = self.config.agc
-        nb = self.full_scale + 1
-        h = np.bincount(counts[::2, ::2].ravel(), minlength=nb)[:nb].astype(np.float64)
-        total = h.sum()
-        cap = a.plateau_fraction * total
-        for _ in range(2):  # the slope cap depends on the clipped total: two passes converge closely
-            clipped = np.minimum(h, cap)
-            cap = min(a.plateau_fraction * total, a.max_gain * clipped.sum() / 255.0)
-        clipped = np.minimum(h, cap)
-        cdf = np.cumsum(clipped)
-        eq = 255.0 * cdf / max(cdf[-1], 1.0)
-        raw_cdf = np.cumsum(h) / max(total, 1.0)
-        lo = float(np.searchsorted(raw_cdf, AGC_TAIL))
-        hi = float(np.searchsorted(raw_cdf, 1.0 - AGC_TAIL))
-        span = max(hi - lo, 255.0 / a.max_gain)
-        mid = 0.5 * (lo + hi)
-        lin = np.clip((np.arange(nb) - (mid - span / 2)) * (255.0 / span), 0.0, 255.0)
-        return (1.0 - a.linear_fraction) * eq + a.linear_fraction * lin
+        return agc_map(
+            counts,
+            self.full_scale + 1,
+            float(a.plateau_fraction),
+            float(a.max_gain),
+            float(a.linear_fraction),
+            AGC_TAIL,
+        )
 
     def apply(self, radiance, t_s: float, frame_index: int) -> SensorFrame:
         """One frame through the camera: a :class:`SensorFrame` (see the module docstring)."""
@@ -213,7 +203,8 @@ class Sensor:
                 self._lut = new
             else:
                 self._lut = self._lut + (1.0 - math.exp(-1.0 / (self.frame_rate_hz * tc))) * (new - self._lut)
-            mono8 = np.rint(self._lut).astype(np.uint8).take(counts)
+            mono8 = np.empty(counts.shape, np.uint8)
+            lut_take(self._lut, counts, mono8)
         frame = SensorFrame(counts, mono8, "ok", events)
         self._last = frame
         return frame
