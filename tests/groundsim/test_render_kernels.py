@@ -1,7 +1,8 @@
 """The renderer's compiled loops (groundsim.world.render.kernels) against the numpy and OpenCV formulations
 they replaced, bit for bit: the ray cast's nearest part (slab test and scaled-sphere quadratic in numpy
 float32, written out here as the reference), the quantisation against cv2.add's rounding and saturation,
-the cloud composite and the grey-to-radiance map against numpy's passes; the camera model's counts, AGC
+the cloud composite (with and without its last pyrUp step inside) and the grey-to-radiance map against
+numpy's and OpenCV's passes; the camera model's counts, AGC
 map and look-up against the numpy and OpenCV passes ``Sensor`` ran before them; and the coarse-grid bound that
 spares the objects' depth windows (``PyrUpImage.lower_bound``) against the windows.  Byte identity of whole frames
 is checked by the P1 goldens (tests/groundsim/test_scene.py) and the reference scenes' determinism tests."""
@@ -19,6 +20,7 @@ from groundsim.world.render.kernels import (
     agc_map,
     cast_part_rays,
     composite_band,
+    composite_up,
     lut_take,
     pairwise_sum_pow2,
     quantise_grey,
@@ -146,6 +148,31 @@ def test_composite_and_scale_offset_are_numpys_passes():
     want = grey * np.float32(0.0173)
     want += np.float32(2.5)
     assert np.array_equal(scale_offset(grey, np.float32(0.0173), np.float32(2.5)), want)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    hh=st.integers(2, 40),
+    wh=st.integers(2, 50),
+    top=st.integers(0, 12),
+    rows=st.integers(0, 90),
+    w0=st.integers(0, 6),
+)
+def test_composite_up_is_cv2_pyrup_then_the_composite(seed, hh, wh, top, rows, w0):
+    """The cloud composite with the weights' last pyrUp step inside: cv2.pyrUp's values (its first and last
+    rows and columns included), then composite_band's, bit for bit."""
+    rng = np.random.default_rng(seed)
+    a_half = rng.uniform(0.0, 1.0, (hh, wh)).astype(np.float32)
+    lit_half = rng.uniform(0.0, 30.0, (hh, wh)).astype(np.float32)
+    a_half[rng.uniform(size=a_half.shape) < 0.3] = 0.0  # clear sky between clouds
+    w0 = min(w0, 2 * hh - 1)
+    rows = min(rows, 2 * hh - w0)  # the band's rows that the upsampled images hold
+    below = rng.uniform(1.0, 50.0, (top + rows + 5, 2 * wh - seed % 2)).astype(np.float32)  # a cropped column
+    out, want = np.empty_like(below), np.empty_like(below)
+    composite_up(below, a_half, lit_half, top, top + rows, w0, out)
+    composite_band(below, cv2.pyrUp(a_half), cv2.pyrUp(lit_half), top, top + rows, w0, want)
+    assert np.array_equal(out, want)
 
 
 @settings(max_examples=60, deadline=None)

@@ -775,3 +775,68 @@ def lut_take(lut, counts, out):
     for i in range(h):
         for j in range(w):
             out[i, j] = lut8[counts[i, j]]
+
+
+@njit(cache=True, nogil=True)
+def _pyrup_row(src, k, row):
+    """``cv2.pyrUp``'s horizontal pass over row ``k`` of ``src`` into ``row`` (float32, 2 w values; the row
+    index mapped as pyrUp maps it: -1 to 1, past the end to the last row; its first and last columns' rules)."""
+    h, w = src.shape
+    if k < 0:
+        k = 1 if h > 1 else 0
+    elif k >= h:
+        k = h - 1
+    six, two, four = _F32(6.0), _F32(2.0), _F32(4.0)
+    row[0] = src[k, 0] * six + src[k, 1] * two
+    row[1] = (src[k, 0] + src[k, 1]) * four
+    for sx in range(1, w - 1):
+        row[2 * sx] = (src[k, sx - 1] + src[k, sx] * six) + src[k, sx + 1]
+        row[2 * sx + 1] = (src[k, sx] + src[k, sx + 1]) * four
+    row[2 * w - 2] = src[k, w - 2] + src[k, w - 1] * _F32(7.0)
+    row[2 * w - 1] = src[k, w - 1] * _F32(8.0)
+
+
+@njit(cache=True, nogil=True)
+def composite_up(below, a_half, lit_half, e0, e1, w0, out):
+    """:func:`composite_band` with ``a_up = cv2.pyrUp(a_half)``, ``lit_up = cv2.pyrUp(lit_half)`` taken up
+    row by row as they are read, with pyrUp's arithmetic (:func:`_pyrup_row`, then the vertical pass and the
+    scale 1/64 in OpenCV's order), without the two full-resolution images in between (written, then read
+    back: most of the cloud band's memory traffic).  ``out = below`` outside rows ``e0 .. e1 - 1``; the
+    half images at least 2 x 2."""
+    h, w = below.shape
+    wh = a_half.shape[1]
+    rows = np.empty((6, 2 * wh), np.float32)  # the three half rows a full row pair reads, per image
+    six, four, scale = _F32(6.0), _F32(4.0), _F32(1.0 / 64.0)
+    for i in range(0, e0):
+        for j in range(w):
+            out[i, j] = below[i, j]
+    have = -10  # the half row held in rows[1] / rows[4] (rows[0], [2]: the ones before and after it)
+    for i in range(e0, e1):
+        r = i - e0 + w0
+        sy = r >> 1
+        if sy != have:
+            if sy == have + 1:
+                rows[0], rows[1], rows[3], rows[4] = rows[1], rows[2], rows[4], rows[5]
+            else:
+                _pyrup_row(a_half, sy - 1, rows[0])
+                _pyrup_row(a_half, sy, rows[1])
+                _pyrup_row(lit_half, sy - 1, rows[3])
+                _pyrup_row(lit_half, sy, rows[4])
+            _pyrup_row(a_half, sy + 1, rows[2])
+            _pyrup_row(lit_half, sy + 1, rows[5])
+            have = sy
+        if r & 1 == 0:
+            for j in range(w):
+                a = ((rows[0, j] + rows[1, j] * six) + rows[2, j]) * scale
+                lit = ((rows[3, j] + rows[4, j] * six) + rows[5, j]) * scale
+                x = below[i, j]
+                out[i, j] = (x - a * x) + lit
+        else:
+            for j in range(w):
+                a = ((rows[1, j] + rows[2, j]) * four) * scale
+                lit = ((rows[4, j] + rows[5, j]) * four) * scale
+                x = below[i, j]
+                out[i, j] = (x - a * x) + lit
+    for i in range(max(e1, e0), h):
+        for j in range(w):
+            out[i, j] = below[i, j]

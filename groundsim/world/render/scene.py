@@ -67,7 +67,7 @@ import numpy as np
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
 from groundsim.world.render.kernels import (
-    composite_band,
+    composite_up,
     fold_maps,
     layer_blend,
     layer_light,
@@ -279,8 +279,8 @@ class SceneContent:
         self._far_depth.flags.writeable = False
         self._no_cloud.flags.writeable = False
         self._empty = np.empty((0, 0), np.float32)  # no far level (kernels.layer_blend)
-        self._up_half = np.empty((2 * self._hc, 2 * self._wc), np.float32)  # pyrUp scratch, see render_background
-        self._up_whole = np.empty((2, 4 * self._hc, 4 * self._wc), np.float32)  # the opacity's and the light's
+        # pyrUp scratch of the opacity and the light at half resolution, see render_background
+        self._up_half = np.empty((2, 2 * self._hc, 2 * self._wc), np.float32)
         c = config
         self.clouds = (
             cloud_texture(c.clouds, s.band_um, section_rng(seed, "clouds", c.clouds.seed)) if c.clouds.enabled else None
@@ -525,18 +525,19 @@ class SceneContent:
         layer_light(alpha, seen, L_c)
         a_seen, lit = seen, L_c
         # L = L_below + a_seen (L_c - L_below) = L_below (1 - a_seen) + a_seen L_c, each weight upsampled
-        # (the two weights go up through scratch buffers: fresh 1.3 MB images per frame cost page faults),
-        # over the band's pixel rows only: the others depend only on coarse rows where the weights are 0
-        # (a pixel two pyrUp steps up depends on the coarse rows within 2 of its own), L = L_below there
+        # (the two weights go up to half resolution through scratch buffers: fresh images per frame cost
+        # page faults), over the band's pixel rows only: the others depend only on coarse rows where the
+        # weights are 0 (a pixel two pyrUp steps up depends on the coarse rows within 2 of its own), L =
+        # L_below there
         n = band.stop - band.start
-        half, whole_a, whole_lit = self._up_half[: 2 * n], self._up_whole[0, : 4 * n], self._up_whole[1, : 4 * n]
         e0 = 0 if band.start == 0 else 4 * (band.start + 2)
         e1 = H if band.stop == self._hc else min(4 * (band.stop - 2), H)
         w0 = e0 - 4 * band.start  # row e0 in the band's upsampled images
         radiance = np.empty_like(below)
-        a_up = up(up(a_seen, dst=half), dst=whole_a)
-        lit_up = up(up(lit, dst=half), dst=whole_lit)
-        composite_band(below, a_up, lit_up, e0, e1, w0, radiance)  # (below - a below) + lit, one pass
+        a_half = up(a_seen, dst=self._up_half[0, : 2 * n])
+        lit_half = up(lit, dst=self._up_half[1, : 2 * n])
+        # the second pyrUp step of both weights inside the composite, (below - a below) + lit, one pass
+        composite_up(below, a_half, lit_half, e0, e1, w0, radiance)
         alpha_whole = np.zeros((self._hc, self._wc), np.float32)
         alpha_whole[band] = alpha
         return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W)))
