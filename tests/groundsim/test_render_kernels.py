@@ -22,6 +22,7 @@ from groundsim.world.render.kernels import (
     composite_band,
     composite_up,
     lut_take,
+    min_max,
     pairwise_sum_pow2,
     quantise_grey,
     scale_offset,
@@ -278,3 +279,16 @@ def test_pairwise_sum_rounds_as_numpys_sum(seed, log2_n, scale):
     a = np.random.default_rng(seed).standard_normal(2**log2_n) * scale
     a[::7] *= 1e6  # magnitudes apart, so that the order of the additions shows in the last bits
     assert pairwise_sum_pow2(a) == a.sum()
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**31), i0=st.integers(0, 9), j0=st.integers(0, 9), h=st.integers(1, 9), w=st.integers(1, 9))
+def test_min_max_is_numpys_min_and_max_nan_included(seed, i0, j0, h, w):
+    rng = np.random.default_rng(seed)
+    a = rng.uniform(-1e4, 1e7, (18, 18)).astype(np.float32)
+    if seed % 3 == 0:
+        a[rng.integers(0, 18), rng.integers(0, 18)] = np.nan
+    window = a[i0 : i0 + h, j0 : j0 + w]
+    got = min_max(a, i0, i0 + h, j0, j0 + w)
+    want = (float(window.min()), float(window.max()))
+    assert np.array_equal(got, want, equal_nan=True)

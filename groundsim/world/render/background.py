@@ -8,6 +8,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from groundsim.world.render.kernels import min_max
 from onboard.core.errors import InputError
 
 __all__ = ["PyrUpImage", "SceneBackground"]
@@ -81,10 +82,9 @@ class PyrUpImage:
         j0, j1, _ = cols.indices(W)
         hc, wc = self.coarse.shape
         m = self.MARGIN
-        region = self.coarse[
-            max(i0 // 4 - m, 0) : min(-(-i1 // 4) + m, hc), max(j0 // 4 - m, 0) : min(-(-j1 // 4) + m, wc)
-        ]
-        lo, hi = float(region.min()), float(region.max())
+        lo, hi = min_max(
+            self.coarse, max(i0 // 4 - m, 0), min(-(-i1 // 4) + m, hc), max(j0 // 4 - m, 0), min(-(-j1 // 4) + m, wc)
+        )
         return lo - self.ROUNDING * max(abs(lo), abs(hi))
 
 

@@ -840,3 +840,21 @@ def composite_up(below, a_half, lit_half, e0, e1, w0, out):
     for i in range(max(e1, e0), h):
         for j in range(w):
             out[i, j] = below[i, j]
+
+
+@njit(cache=True, nogil=True)
+def min_max(a, i0, i1, j0, j1):
+    """``(a[i0:i1, j0:j1].min(), .max())`` as float64 (``a`` float32; NaN, NaN if one is NaN): exact, one call
+    where numpy's two on a few dozen samples cost ~5 us each (``PyrUpImage.lower_bound``, ~14 a frame)."""
+    if i1 <= i0 or j1 <= j0:
+        raise ValueError("min_max: empty window")
+    lo = a[i0, j0]
+    hi = lo
+    for i in range(i0, i1):
+        for j in range(j0, j1):
+            v = a[i, j]
+            if v != v:  # numpy's min and max propagate NaN
+                return np.nan, np.nan
+            lo = min(lo, v)
+            hi = max(hi, v)
+    return np.float64(lo), np.float64(hi)
