@@ -27,6 +27,7 @@ from groundsim.world.render.kernels import (
     quantise_grey,
     scale_offset,
     sensor_counts,
+    table_lookup_blocks,
 )
 from groundsim.world.render.sensor import AGC_TAIL
 from onboard.core.frames import PinholeIntrinsics
@@ -292,3 +293,29 @@ def test_min_max_is_numpys_min_and_max_nan_included(seed, i0, j0, h, w):
     got = min_max(a, i0, i0 + h, j0, j0 + w)
     want = (float(window.min()), float(window.max()))
     assert np.array_equal(got, want, equal_nan=True)
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), hc=st.integers(3, 12), wc=st.integers(3, 14), crop=st.integers(0, 3))
+def test_table_lookup_blocks_is_the_exact_lookup_in_the_dilated_blocks(seed, hc, wc, crop):
+    """The sky's exact look-up near the horizon: in every 4 x 4 block next to a flagged coarse sample (3 x 3
+    dilation), numpy's float32 index formula; elsewhere the image is untouched."""
+    rng = np.random.default_rng(seed)
+    st_px = 4
+    near = (rng.uniform(size=(hc, wc)) < 0.15).astype(np.uint8)
+    h, w = st_px * (hc - 2) - crop, st_px * (wc - 2) - crop
+    ray_x = rng.uniform(-0.4, 0.4, w).astype(np.float32)
+    ray_y = rng.uniform(-0.3, 0.3, h).astype(np.float32)
+    invn = (1.0 / np.sqrt(ray_x[None, :] ** 2 + ray_y[:, None] ** 2 + 1.0)).astype(np.float32)
+    lut = rng.uniform(0.0, 255.0, 4096).astype(np.float32)
+    k = np.float32(-0.5 * 4000)
+    kr0, kr1, kr2 = k * np.float32(0.3), k * np.float32(-0.5), k * np.float32(0.8)
+    off = np.float32(2048.5)
+    out = np.full((h + 2 * st_px, w + 2 * st_px), -1.0, np.float32)
+    table_lookup_blocks(near, kr0, kr1, kr2, off, ray_x, ray_y, invn, lut, st_px, out)
+    want = np.full_like(out, -1.0)
+    grown = cv2.dilate(near, np.ones((3, 3), np.uint8))[1:-1, 1:-1]  # block (bi, bj) is sample (bi + 1, bj + 1)
+    mask = np.kron(grown, np.ones((st_px, st_px), np.uint8))[:h, :w].astype(bool)
+    index = (((kr0 * ray_x)[None, :] + (kr1 * ray_y + kr2)[:, None]) * invn + off).astype(np.int32)
+    want[st_px : st_px + h, st_px : st_px + w][mask] = lut[index][mask]
+    assert np.array_equal(out, want)

@@ -202,18 +202,30 @@ def table_lookup_blocks(near, kr0, kr1, kr2, off, ray_x, ray_y, invn, lut, st, o
     flagged when any of its 3 x 3 neighbours is, cv2.dilate's rule), written into ``out[i + st, j + st]``
     (the upsampled image with its ring); pixels beyond ``invn``'s shape are skipped."""
     h, w = invn.shape
+    nb = near.shape[1] - 2
+    flagged = np.zeros(nb + 1, np.bool_)  # one block row's flags, and a False past its end
     for bi in range(near.shape[0] - 2):
-        for bj in range(near.shape[1] - 2):
-            flagged = False
+        for bj in range(nb):
+            f = False
             for a in range(3):
                 for c in range(3):
-                    flagged |= near[bi + a, bj + c] != 0
-            if not flagged:
+                    f |= near[bi + a, bj + c] != 0
+            flagged[bj] = f
+        # runs of flagged blocks side by side, each row of a run in one loop (the same values per pixel)
+        bj = 0
+        while bj < nb:
+            if not flagged[bj]:
+                bj += 1
                 continue
+            end = bj
+            while flagged[end]:
+                end += 1
+            j0, j1 = st * bj, min(st * end, w)
             for i in range(st * bi, min(st * bi + st, h)):
                 b = kr1 * ray_y[i] + kr2
-                for j in range(st * bj, min(st * bj + st, w)):
+                for j in range(j0, j1):
                     out[i + st, j + st] = lut[np.int32((kr0 * ray_x[j] + b) * invn[i, j] + off)]
+            bj = end
 
 
 @njit(cache=True, nogil=True)
