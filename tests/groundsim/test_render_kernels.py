@@ -26,6 +26,7 @@ from groundsim.world.render.kernels import (
     pairwise_sum_pow2,
     quantise_grey,
     scale_offset,
+    scale_offset_window,
     sensor_counts,
     table_lookup_blocks,
 )
@@ -150,6 +151,8 @@ def test_composite_and_scale_offset_are_numpys_passes():
     want = grey * np.float32(0.0173)
     want += np.float32(2.5)
     assert np.array_equal(scale_offset(grey, np.float32(0.0173), np.float32(2.5)), want)
+    ringed = np.pad(grey, 4, mode="edge")  # the window of a larger image, read in place
+    assert np.array_equal(scale_offset_window(ringed, 4, 4, 40, 30, np.float32(0.0173), np.float32(2.5)), want)
 
 
 @settings(max_examples=40, deadline=None)

@@ -232,10 +232,20 @@ def table_lookup_blocks(near, kr0, kr1, kr2, off, ray_x, ray_y, invn, lut, st, o
 def scale_offset(src, a, b):
     """``src a + b`` in float32, two roundings (numpy's ``src * a``, then ``+= b``), as a new array."""
     h, w = src.shape
+    return scale_offset_window(src, 0, 0, h, w, a, b)
+
+
+@njit(cache=True, nogil=True)
+def scale_offset_window(src, r0, c0, h, w, a, b):
+    """:func:`scale_offset` of the window ``src[r0 : r0 + h, c0 : c0 + w]`` read in place: given the whole
+    (C-ordered) image rather than a strided view of it, the loop knows its rows are contiguous and is
+    vectorised (~4x faster on a 640 x 512 window)."""
     out = np.empty((h, w), np.float32)
     for i in range(h):
+        row = src[r0 + i, c0 : c0 + w]  # contiguous rows, and indices the loop knows are not negative
+        o = out[i]
         for j in range(w):
-            out[i, j] = src[i, j] * a + b
+            o[j] = row[j] * a + b
     return out
 
 

@@ -84,7 +84,13 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
-from groundsim.world.render.kernels import quantise_grey, scale_offset, table_lookup_blocks, table_lookup_coarse
+from groundsim.world.render.kernels import (
+    quantise_grey,
+    scale_offset,
+    scale_offset_window,
+    table_lookup_blocks,
+    table_lookup_coarse,
+)
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, grey_full_scale, noise_sigma_grey
 from groundsim.world.render.settings import IrSettings
@@ -200,6 +206,7 @@ class IrRenderer:
         self._lut: np.ndarray | None = None
         self._exact_flags: np.ndarray | None = None
         self._bg: np.ndarray | None = None
+        self._bg_big: np.ndarray | None = None  # the upsampled image _bg is the window (COARSE_STEP, COARSE_STEP) of
         self._bg_row: np.ndarray | None = None
         self._mx = np.empty((self._H, self._W), dtype=np.float32)
         self.last_timing: RenderTiming | None = None
@@ -323,8 +330,10 @@ class IrRenderer:
         if self._bg is not None and np.max(np.abs(row - self._bg_row)) <= self.settings.background_reuse_tol_rad:
             return self._bg, True, rebuilt
         if self._ray_x.ndim == 1:
-            self._bg = self._background_coarse(row)
+            self._bg_big = self._background_upsampled(row)
+            self._bg = self._bg_big[COARSE_STEP : COARSE_STEP + self._H, COARSE_STEP : COARSE_STEP + self._W]
         else:
+            self._bg_big = None
             self._bg = self._background_exact(row)
         self._bg_row = row.copy()
         return self._bg, False, rebuilt
@@ -365,6 +374,11 @@ class IrRenderer:
     def _background_coarse(self, row: np.ndarray) -> np.ndarray:
         """Table look-up on the coarse grid, bilinear upsampling, exact look-up in the blocks next to
         coarse samples flagged by ``_exact_table`` (the horizon and the fast-changing ground near it)."""
+        st = COARSE_STEP
+        return self._background_upsampled(row)[st : st + self._H, st : st + self._W]
+
+    def _background_upsampled(self, row: np.ndarray) -> np.ndarray:
+        """:meth:`_background_coarse` with its ring of ``COARSE_STEP`` px: the image it is the window of."""
         k = np.float32(-0.5 * (LUT_SIZE - 1))
         off = np.float32(0.5 * (LUT_SIZE - 1) + 0.5 + _LUT_PAD)
         r0, r1, r2 = (np.float32(v) for v in row)
@@ -379,7 +393,7 @@ class IrRenderer:
             table_lookup_blocks(
                 near, k * r0, k * r1, k * r2, off, self._ray_x, self._ray_y, self._ray_invn, self._lut, st, big
             )
-        return big[st : st + self._H, st : st + self._W]
+        return big
 
     # ------------------------------------------------------------------ frame
 
@@ -448,7 +462,10 @@ class IrRenderer:
         p_cam = _vec3(p_cam_ned_m, "p_cam_ned_m")
         R_nc = _rotation(R_ned_from_cam, "R_ned_from_cam")
         bg, _, _ = self._background(R_nc, float(altitude_ground_d_m) - float(p_cam[2]))
-        return scale_offset(bg, np.float32(1.0 / self._grey_per_L), np.float32(self._L_min))
+        a, b = np.float32(1.0 / self._grey_per_L), np.float32(self._L_min)
+        if self._bg_big is not None:  # bg is a window of it: read in place, row-contiguous (see the kernel)
+            return scale_offset_window(self._bg_big, COARSE_STEP, COARSE_STEP, self._H, self._W, a, b)
+        return scale_offset(bg, a, b)
 
     def render_radiance(
         self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, background: SceneBackground
