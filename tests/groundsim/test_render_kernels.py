@@ -21,10 +21,12 @@ from groundsim.world.render.kernels import (
     cast_part_rays,
     composite_band,
     composite_up,
+    fold_maps,
     lut_take,
     min_max,
     pairwise_sum_pow2,
     quantise_grey,
+    remap_pair,
     scale_offset,
     scale_offset_window,
     sensor_counts,
@@ -322,3 +324,35 @@ def test_table_lookup_blocks_is_the_exact_lookup_in_the_dilated_blocks(seed, hc,
     index = (((kr0 * ray_x)[None, :] + (kr1 * ray_y + kr2)[:, None]) * invn + off).astype(np.int32)
     want[st_px : st_px + h, st_px : st_px + w][mask] = lut[index][mask]
     assert np.array_equal(out, want)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    log2_n=st.integers(3, 10),
+    h=st.integers(1, 40),
+    w=st.integers(1, 90),
+    scale=st.sampled_from((0.0, 0.125, 1.0)),
+)
+def test_remap_pair_is_cv2_remap_of_each_texture(seed, log2_n, h, w, scale):
+    """The cloud layer's look-up of density and radiance held interleaved: cv2.remap's values (INTER_LINEAR,
+    the folded coordinates inside the padded texture) for each, bit for bit, on this CPU (OpenCV's SIMD
+    path rounds each of its three blends once: a fused multiply-add where the CPU has one)."""
+    rng = np.random.default_rng(seed)
+    n = 2**log2_n
+    a = rng.uniform(0.0, 1.0, (n, n)).astype(np.float32)
+    b = rng.uniform(0.0, 40.0, (n, n)).astype(np.float32)
+    pa, pb = (np.ascontiguousarray(np.pad(t, ((0, 2), (0, 2)), mode="wrap")) for t in (a, b))
+    pair = np.ascontiguousarray(np.stack([pa, pb], axis=-1))
+    map_x = rng.normal(0.0, 3.0 * n, (h + 3, w)).astype(np.float32)
+    map_y = rng.normal(0.0, 3.0 * n, (h + 3, w)).astype(np.float32)
+    edges = [0.0, n, n - 1e-3, 1e-7, -1e-7, 2 * n + 0.5][:w]  # the seam and the period's ends
+    map_x[2, : len(edges)] = edges
+    mx, my, inside = fold_maps(map_x, map_y, 2, 2 + h, n, np.float32(scale))
+    assert inside
+    out0, out1 = np.zeros((h + 3, w), np.float32), np.zeros((h + 3, w), np.float32)
+    remap_pair(pair, mx, my, 2, out0, out1)
+    for texture, out in ((pa, out0), (pb, out1)):
+        want = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+        assert np.array_equal(out[2 : 2 + h], want)
+        assert not out[:2].any() and not out[2 + h :].any()

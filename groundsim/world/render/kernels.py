@@ -17,11 +17,25 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+from numba.extending import intrinsic
 
 __all__ = ["cast_part_rays", "nearest_parts"]
 
 _F32 = np.float32
+
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """``a b + c`` rounded once (LLVM's ``fma``: the CPU's fused multiply-add, else libm's ``fma``): the
+    rounding of OpenCV's SIMD kernels on a CPU with fused multiply-adds."""
+    if not (a == b == c and isinstance(a, types.Float)):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return a(a, a, a), codegen
 
 
 @njit(cache=True, nogil=True)
@@ -880,3 +894,36 @@ def min_max(a, i0, i1, j0, j1):
             lo = min(lo, v)
             hi = max(hi, v)
     return np.float64(lo), np.float64(hi)
+
+
+@njit(cache=True, nogil=True)
+def remap_pair(pair, mx, my, r0, out0, out1):
+    """``cv2.remap(level, mx, my, INTER_LINEAR)`` of two textures held interleaved, into rows ``r0 ..`` of
+    ``out0``, ``out1``: ``pair`` (n + 2, n + 2, 2) float32 (``scene._wrap_padded_pair``: one look-up reads
+    both channels from the same cache lines), ``mx``, ``my`` folded into ``[0, n]`` by :func:`fold_maps`
+    (which says whether they are).  OpenCV's arithmetic on a CPU with fused multiply-adds (its SIMD path):
+    ``a = x - floor(x)``, ``b = y - floor(y)``, ``top = fma(a, s01 - s00, s00)``, ``bottom = fma(a, s11 -
+    s10, s10)``, ``fma(b, bottom - top, top)``."""
+    flat = pair.reshape(-1)
+    stride = np.uint64(2 * pair.shape[1])
+    h, w = mx.shape
+    u1, u2, u3 = np.uint64(1), np.uint64(2), np.uint64(3)
+    for i in range(h):
+        o0 = out0[r0 + i]
+        o1 = out1[r0 + i]
+        for j in range(w):
+            x = mx[i, j]
+            y = my[i, j]
+            fx = np.floor(x)
+            fy = np.floor(y)
+            k = np.uint64(np.int64(fy)) * stride + np.uint64(np.int64(fx)) * u2
+            ax = x - fx
+            ay = y - fy
+            s00, s01, s10, s11 = flat[k], flat[k + u2], flat[k + stride], flat[k + stride + u2]
+            top = _fma(ax, s01 - s00, s00)
+            bottom = _fma(ax, s11 - s10, s10)
+            o0[j] = _fma(ay, bottom - top, top)
+            s00, s01, s10, s11 = flat[k + u1], flat[k + u3], flat[k + stride + u1], flat[k + stride + u3]
+            top = _fma(ax, s01 - s00, s00)
+            bottom = _fma(ax, s11 - s10, s10)
+            o1[j] = _fma(ay, bottom - top, top)

@@ -75,6 +75,7 @@ from groundsim.world.render.kernels import (
     layer_weights,
     peak_box,
     plane_rays,
+    remap_pair,
     surface_maps,
 )
 from groundsim.world.render.parts import PartRaster, project_in_front
@@ -192,6 +193,31 @@ def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: 
     return outs
 
 
+def _wrap_padded_pair(levels_a: list[np.ndarray], levels_b: list[np.ndarray]) -> tuple[list, list, list]:
+    """:func:`_wrap_padded` of two textures looked up together (the cloud layer's density and radiance),
+    held interleaved, (n + SEAM_PAD, n + SEAM_PAD, 2) per level, so that a look-up reads both from the same
+    cache lines: ``(pairs, levels of a, levels of b)``, the levels views into the pairs."""
+    pairs = [
+        np.ascontiguousarray(np.stack([np.pad(x, ((0, SEAM_PAD), (0, SEAM_PAD)), mode="wrap") for x in ab], axis=-1))
+        for ab in zip(levels_a, levels_b)
+    ]
+    return pairs, [q[:-SEAM_PAD, :-SEAM_PAD, 0] for q in pairs], [q[:-SEAM_PAD, :-SEAM_PAD, 1] for q in pairs]
+
+
+def _lookup_pair(pair: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: np.float32 | None = None):
+    """:func:`_lookup` of the two textures of ``pair`` (from :func:`_wrap_padded_pair`), the same values:
+    ``kernels.remap_pair``, cv2.remap's interior arithmetic on both at once (cv2.remap itself where a folded
+    coordinate would leave ``[0, n]``, not expected)."""
+    n = pair.shape[0] - SEAM_PAD
+    if rows.stop > rows.start:
+        mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, np.float32(0.0 if scale is None else scale))
+        if inside:
+            outs = [np.zeros(map_x.shape, np.float32), np.zeros(map_x.shape, np.float32)]
+            remap_pair(pair, mx, my, rows.start, *outs)
+            return outs
+    return _lookup([np.ascontiguousarray(pair[..., c]) for c in (0, 1)], map_x, map_y, rows, scale)
+
+
 def _half_rows(mask: np.ndarray, limit: int) -> slice:
     """Rows of the half-resolution image that a coarse-grid mask's true rows reach (one coarse row
     spreads over the half-resolution rows 2 k - 1 .. 2 k + 1 through pyrUp)."""
@@ -299,8 +325,9 @@ class SceneContent:
         )
         # the look-ups read padded copies (see _lookup); the textures' level lists become views into them
         if self.clouds is not None:
-            self._cloud_density_pad, self.clouds.density_levels = _wrap_padded(self.clouds.density_levels)
-            self._cloud_radiance_pad, self.clouds.radiance_levels = _wrap_padded(self.clouds.radiance_levels)
+            self._cloud_pair_pad, self.clouds.density_levels, self.clouds.radiance_levels = _wrap_padded_pair(
+                self.clouds.density_levels, self.clouds.radiance_levels
+            )
         if self.terrain is not None:
             self._terrain_pad, self.terrain.levels = _wrap_padded(self.terrain.levels)
         env = renderer.environment_radiance
@@ -511,13 +538,12 @@ class SceneContent:
         cx, cy, optical, seen, w_far = clouds[0]
         lv, lv_far = clouds[3], clouds[4]
         rows = clouds[6]  # rows wholly at the far level skip the near one
-        dens, rad = self._cloud_density_pad, self._cloud_radiance_pad
-        rho, L_c = _lookup((dens[lv], rad[lv]), cx, cy, rows)
+        pairs = self._cloud_pair_pad
+        rho, L_c = _lookup_pair(pairs[lv], cx, cy, rows)
         far_rows = clouds[5]
         rho_far = L_c_far = self._empty
         if lv_far != lv and far_rows.stop > far_rows.start:
-            far_levels = (dens[lv_far], rad[lv_far])
-            rho_far, L_c_far = _lookup(far_levels, cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
+            rho_far, L_c_far = _lookup_pair(pairs[lv_far], cx, cy, far_rows, f32(2.0 ** (lv - lv_far)))
         # rho, L_c += w_far (far - near); alpha = 1 - exp(-(optical rho)) (numpy's exp: the compiled one
         # rounds differently), a_seen = alpha seen, lit = a_seen L_c, written into the buffers they consume
         alpha = layer_blend(rho, L_c, rho_far, L_c_far, w_far, optical)
