@@ -21,7 +21,8 @@ F450-class target in view, with NETD noise (40 mK) and optics blur (0.6 px) on, 
   ``Sensor.apply`` (or ``IrRenderer.quantise``) -- the renderer's share of ``groundsim run`` on them
   (the flight is flown beforehand, outside the timing).  ``python -m bench.render --reference-scenes``
   runs only these; ``--reference-scenes --stages`` also prints where each scene's time goes (CPU ms per
-  frame: cv2.remap, cv2.pyrUp, sky and ground, the whole background, objects, quantise or camera model).
+  frame: texture look-ups (remap), cv2.pyrUp, sky and ground, the whole background, objects, quantise or
+  camera model).
 
 The process is pinned to one CPU and OpenCV to one thread, so the numbers are single-core; both
 wall time and this process's CPU time are printed (on a shared machine the wall time includes
@@ -321,7 +322,7 @@ def reference_scenes_main() -> None:
 
 
 STAGES = (
-    "cv2.remap",
+    "remap",
     "cv2.pyrUp",
     "sky/ground",
     "background",
@@ -331,12 +332,13 @@ STAGES = (
 
 
 class _StageClock:
-    """CPU time per stage of the reference scenes' frames (``--stages``): the library kernels (every
-    ``cv2.remap`` and ``cv2.pyrUp`` call), the renderer's sky and ground (``IrRenderer.base_radiance``),
-    the whole background with clouds and terrain (``SceneContent.render_background``, the kernels and the
-    sky included), the objects (``SceneContent.draw_objects``: ray casting, occlusion, labels) and the
-    noise and quantisation or the camera model.  Wraps those functions while it is active (the wrappers
-    add ~1 us a call)."""
+    """CPU time per stage of the reference scenes' frames (``--stages``): the texture look-ups (every
+    ``cv2.remap`` call, the terrain's, and ``kernels.remap_pair``, the clouds'), every ``cv2.pyrUp`` call
+    (the cloud weights' second step is inside the compositing kernel), the renderer's sky and ground
+    (``IrRenderer.base_radiance``), the whole background with clouds and terrain
+    (``SceneContent.render_background``, the kernels and the sky included), the objects
+    (``SceneContent.draw_objects``: ray casting, occlusion, labels) and the noise and quantisation or the
+    camera model.  Wraps those functions while it is active (the wrappers add ~1 us a call)."""
 
     def __init__(self) -> None:
         self.ms = dict.fromkeys(STAGES, 0.0)
@@ -359,12 +361,13 @@ class _StageClock:
     def __enter__(self) -> _StageClock:
         import cv2
 
-        from groundsim.world.render import IrRenderer
+        from groundsim.world.render import IrRenderer, scene
         from groundsim.world.render.scene import SceneContent
         from groundsim.world.render.sensor import Sensor
 
         for owner, name, stage in (
-            (cv2, "remap", "cv2.remap"),
+            (cv2, "remap", "remap"),
+            (scene, "remap_pair", "remap"),
             (cv2, "pyrUp", "cv2.pyrUp"),
             (IrRenderer, "base_radiance", "sky/ground"),
             (SceneContent, "render_background", "background"),
