@@ -841,38 +841,43 @@ def composite_up(below, a_half, lit_half, e0, e1, w0, out):
     half images at least 2 x 2."""
     h, w = below.shape
     wh = a_half.shape[1]
-    rows = np.empty((6, 2 * wh), np.float32)  # the three half rows a full row pair reads, per image
+    ring = np.empty((2, 3, 2 * wh), np.float32)  # per image, the three half rows a full row pair reads
     six, four, scale = _F32(6.0), _F32(4.0), _F32(1.0 / 64.0)
     for i in range(0, e0):
         for j in range(w):
             out[i, j] = below[i, j]
-    have = -10  # the half row held in rows[1] / rows[4] (rows[0], [2]: the ones before and after it)
+    have = -10  # the half row ``sy`` whose rows sy - 1, sy, sy + 1 the ring's slots k0, k1, k2 hold
+    k0, k1, k2 = 0, 1, 2
     for i in range(e0, e1):
         r = i - e0 + w0
         sy = r >> 1
         if sy != have:
-            if sy == have + 1:
-                rows[0], rows[1], rows[3], rows[4] = rows[1], rows[2], rows[4], rows[5]
+            if sy == have + 1:  # one row on: the slots turn, one new row
+                k0, k1, k2 = k1, k2, k0
             else:
-                _pyrup_row(a_half, sy - 1, rows[0])
-                _pyrup_row(a_half, sy, rows[1])
-                _pyrup_row(lit_half, sy - 1, rows[3])
-                _pyrup_row(lit_half, sy, rows[4])
-            _pyrup_row(a_half, sy + 1, rows[2])
-            _pyrup_row(lit_half, sy + 1, rows[5])
+                _pyrup_row(a_half, sy - 1, ring[0, k0])
+                _pyrup_row(a_half, sy, ring[0, k1])
+                _pyrup_row(lit_half, sy - 1, ring[1, k0])
+                _pyrup_row(lit_half, sy, ring[1, k1])
+            _pyrup_row(a_half, sy + 1, ring[0, k2])
+            _pyrup_row(lit_half, sy + 1, ring[1, k2])
             have = sy
+        a0, a1, a2 = ring[0, k0], ring[0, k1], ring[0, k2]
+        l0, l1, l2 = ring[1, k0], ring[1, k1], ring[1, k2]
+        b_row = below[i]
+        o_row = out[i]
         if r & 1 == 0:
             for j in range(w):
-                a = ((rows[0, j] + rows[1, j] * six) + rows[2, j]) * scale
-                lit = ((rows[3, j] + rows[4, j] * six) + rows[5, j]) * scale
-                x = below[i, j]
-                out[i, j] = (x - a * x) + lit
+                a = ((a0[j] + a1[j] * six) + a2[j]) * scale
+                lit = ((l0[j] + l1[j] * six) + l2[j]) * scale
+                x = b_row[j]
+                o_row[j] = (x - a * x) + lit
         else:
             for j in range(w):
-                a = ((rows[1, j] + rows[2, j]) * four) * scale
-                lit = ((rows[4, j] + rows[5, j]) * four) * scale
-                x = below[i, j]
-                out[i, j] = (x - a * x) + lit
+                a = ((a1[j] + a2[j]) * four) * scale
+                lit = ((l1[j] + l2[j]) * four) * scale
+                x = b_row[j]
+                o_row[j] = (x - a * x) + lit
     for i in range(max(e1, e0), h):
         for j in range(w):
             out[i, j] = below[i, j]
