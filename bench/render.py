@@ -371,6 +371,7 @@ class _StageClock:
             (cv2, "pyrUp", "cv2.pyrUp"),
             (IrRenderer, "base_radiance", "sky/ground"),
             (SceneContent, "render_background", "background"),
+            (SceneContent, "background_and_copy", "background"),
             (SceneContent, "draw_objects", "objects"),
             (IrRenderer, "quantise", "quantise/camera"),
             (Sensor, "apply", "quantise/camera"),

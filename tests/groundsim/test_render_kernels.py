@@ -29,6 +29,7 @@ from groundsim.world.render.kernels import (
     remap_pair,
     scale_offset,
     scale_offset_window,
+    scale_offset_window_twice,
     sensor_counts,
     table_lookup_blocks,
 )
@@ -155,6 +156,8 @@ def test_composite_and_scale_offset_are_numpys_passes():
     assert np.array_equal(scale_offset(grey, np.float32(0.0173), np.float32(2.5)), want)
     ringed = np.pad(grey, 4, mode="edge")  # the window of a larger image, read in place
     assert np.array_equal(scale_offset_window(ringed, 4, 4, 40, 30, np.float32(0.0173), np.float32(2.5)), want)
+    image, copy = scale_offset_window_twice(ringed, 4, 4, 40, 30, np.float32(0.0173), np.float32(2.5))
+    assert np.array_equal(image, want) and np.array_equal(copy, want) and not np.shares_memory(image, copy)
 
 
 @settings(max_examples=40, deadline=None)
@@ -176,10 +179,13 @@ def test_composite_up_is_cv2_pyrup_then_the_composite(seed, hh, wh, top, rows, w
     w0 = min(w0, 2 * hh - 1)
     rows = min(rows, 2 * hh - w0)  # the band's rows that the upsampled images hold
     below = rng.uniform(1.0, 50.0, (top + rows + 5, 2 * wh - seed % 2)).astype(np.float32)  # a cropped column
-    out, want = np.empty_like(below), np.empty_like(below)
-    composite_up(below, a_half, lit_half, top, top + rows, w0, out)
+    out, copy, want = np.empty_like(below), np.empty_like(below), np.empty_like(below)
+    composite_up(below, a_half, lit_half, top, top + rows, w0, out, copy)
     composite_band(below, cv2.pyrUp(a_half), cv2.pyrUp(lit_half), top, top + rows, w0, want)
-    assert np.array_equal(out, want)
+    assert np.array_equal(out, want) and np.array_equal(copy, want)
+    alone = np.empty_like(below)
+    composite_up(below, a_half, lit_half, top, top + rows, w0, alone, np.empty((0, 0), np.float32))  # no copy
+    assert np.array_equal(alone, want)
 
 
 @settings(max_examples=60, deadline=None)

@@ -446,3 +446,23 @@ def test_lens_distortion_depth_follows_each_pixels_ray():
     for i, j in ((256, 320), (60, 60), (450, 580)):
         ray = distorted.bearing_cam_from_pixel(np.array([j + 0.5, i + 0.5]))
         assert bg.depth_m[i, j] == pytest.approx(1100.0 / ray[2], rel=DEPTH_RTOL)
+
+
+@pytest.mark.parametrize("cfg", [{}, CLOUDS, {**CLOUDS, "terrain": TERRAIN["terrain"]}], ids=["sky", "clouds", "both"])
+def test_background_and_copy_draws_as_render_background_and_a_copy_do(cfg):
+    """``render``'s path (the background's radiance and the copy drawn on written in one pass) against the
+    public one (``render_background``, ``draw_objects`` copying), bit for bit; the background is not drawn on."""
+    sc, _ = scene(cfg)
+    p, R = np.array([0.0, 0.0, -300.0]), looking(4.0)
+    objs = (sc.target_object(p + R @ np.array([0.02, 0.01, 1.0]) * 200.0, np.eye(3)),)
+    bg, copy = sc.background_and_copy(p, R, 0.0)
+    ref = sc.render_background(p, R, 0.0)
+    assert np.array_equal(bg.radiance, ref.radiance) and np.array_equal(copy, ref.radiance)
+    assert not np.shares_memory(copy, bg.radiance)
+    before = bg.radiance.copy()
+    drawn, labels = sc.draw_objects(bg.radiance, bg, objs, p, R, out=copy)
+    want, want_labels = sc.draw_objects(ref.radiance, ref, objs, p, R)
+    assert drawn is copy and np.array_equal(drawn, want) and labels == want_labels
+    assert np.array_equal(bg.radiance, before) and not np.array_equal(drawn, before)  # the target is drawn
+    with pytest.raises(InputError, match="out"):
+        sc.draw_objects(bg.radiance, bg, objs, p, R, out=np.zeros((4, 4), np.float32))

@@ -250,6 +250,23 @@ def scale_offset(src, a, b):
 
 
 @njit(cache=True, nogil=True)
+def scale_offset_window_twice(src, r0, c0, h, w, a, b):
+    """:func:`scale_offset_window` written into two new arrays in the same pass (the image and a copy of it
+    to draw on: one read of ``src`` fewer than a copy afterwards)."""
+    out = np.empty((h, w), np.float32)
+    copy = np.empty((h, w), np.float32)
+    for i in range(h):
+        row = src[r0 + i, c0 : c0 + w]
+        o = out[i]
+        c = copy[i]
+        for j in range(w):
+            v = row[j] * a + b
+            o[j] = v
+            c[j] = v
+    return out, copy
+
+
+@njit(cache=True, nogil=True)
 def scale_offset_window(src, r0, c0, h, w, a, b):
     """:func:`scale_offset` of the window ``src[r0 : r0 + h, c0 : c0 + w]`` read in place: given the whole
     (C-ordered) image rather than a strided view of it, the loop knows its rows are contiguous and is
@@ -833,19 +850,24 @@ def _pyrup_row(src, k, row):
 
 
 @njit(cache=True, nogil=True)
-def composite_up(below, a_half, lit_half, e0, e1, w0, out):
+def composite_up(below, a_half, lit_half, e0, e1, w0, out, copy):
     """:func:`composite_band` with ``a_up = cv2.pyrUp(a_half)``, ``lit_up = cv2.pyrUp(lit_half)`` taken up
     row by row as they are read, with pyrUp's arithmetic (:func:`_pyrup_row`, then the vertical pass and the
     scale 1/64 in OpenCV's order), without the two full-resolution images in between (written, then read
     back: most of the cloud band's memory traffic).  ``out = below`` outside rows ``e0 .. e1 - 1``; the
-    half images at least 2 x 2."""
+    half images at least 2 x 2.  ``copy`` gets the same values in the same pass (an image to draw on: one
+    read of ``out`` fewer than a copy afterwards), unless it is empty (0 x 0)."""
     h, w = below.shape
     wh = a_half.shape[1]
+    twice = copy.shape[0] > 0
     ring = np.empty((2, 3, 2 * wh), np.float32)  # per image, the three half rows a full row pair reads
     six, four, scale = _F32(6.0), _F32(4.0), _F32(1.0 / 64.0)
     for i in range(0, e0):
         for j in range(w):
             out[i, j] = below[i, j]
+        if twice:
+            for j in range(w):
+                copy[i, j] = below[i, j]
     have = -10  # the half row ``sy`` whose rows sy - 1, sy, sy + 1 the ring's slots k0, k1, k2 hold
     k0, k1, k2 = 0, 1, 2
     for i in range(e0, e1):
@@ -866,21 +888,29 @@ def composite_up(below, a_half, lit_half, e0, e1, w0, out):
         l0, l1, l2 = ring[1, k0], ring[1, k1], ring[1, k2]
         b_row = below[i]
         o_row = out[i]
+        c_row = copy[i] if twice else o_row
         if r & 1 == 0:
             for j in range(w):
                 a = ((a0[j] + a1[j] * six) + a2[j]) * scale
                 lit = ((l0[j] + l1[j] * six) + l2[j]) * scale
                 x = b_row[j]
-                o_row[j] = (x - a * x) + lit
+                v = (x - a * x) + lit
+                o_row[j] = v
+                c_row[j] = v
         else:
             for j in range(w):
                 a = ((a1[j] + a2[j]) * four) * scale
                 lit = ((l1[j] + l2[j]) * four) * scale
                 x = b_row[j]
-                o_row[j] = (x - a * x) + lit
+                v = (x - a * x) + lit
+                o_row[j] = v
+                c_row[j] = v
     for i in range(max(e1, e0), h):
         for j in range(w):
             out[i, j] = below[i, j]
+        if twice:
+            for j in range(w):
+                copy[i, j] = below[i, j]
 
 
 @njit(cache=True, nogil=True)

@@ -88,6 +88,7 @@ from groundsim.world.render.kernels import (
     quantise_grey,
     scale_offset,
     scale_offset_window,
+    scale_offset_window_twice,
     table_lookup_blocks,
     table_lookup_coarse,
 )
@@ -466,6 +467,19 @@ class IrRenderer:
         if self._bg_big is not None:  # bg is a window of it: read in place, row-contiguous (see the kernel)
             return scale_offset_window(self._bg_big, COARSE_STEP, COARSE_STEP, self._H, self._W, a, b)
         return scale_offset(bg, a, b)
+
+    def base_radiance_and_copy(
+        self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m: float = 0.0
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`base_radiance` and a copy of it made in the same pass (an image to draw objects on)."""
+        p_cam = _vec3(p_cam_ned_m, "p_cam_ned_m")
+        R_nc = _rotation(R_ned_from_cam, "R_ned_from_cam")
+        bg, _, _ = self._background(R_nc, float(altitude_ground_d_m) - float(p_cam[2]))
+        a, b = np.float32(1.0 / self._grey_per_L), np.float32(self._L_min)
+        if self._bg_big is not None:
+            return scale_offset_window_twice(self._bg_big, COARSE_STEP, COARSE_STEP, self._H, self._W, a, b)
+        radiance = scale_offset(bg, a, b)
+        return radiance, radiance.copy()
 
     def render_radiance(
         self, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, background: SceneBackground

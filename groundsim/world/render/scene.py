@@ -491,9 +491,26 @@ class SceneContent:
 
     def render_background(self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m: float = 0.0) -> SceneBackground:
         """The background with clouds and terrain (see the module docstring); today's when both are off."""
-        base = self.renderer.base_radiance(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+        return self._background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m, False)[0]
+
+    def background_and_copy(
+        self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m: float = 0.0
+    ) -> tuple[SceneBackground, np.ndarray]:
+        """:meth:`render_background` and a copy of its radiance, written in the same pass where the last pass
+        makes the radiance (the sky's or the cloud composite's): the image :meth:`draw_objects` draws on."""
+        bg, copy = self._background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m, True)
+        return bg, copy if copy is not None else bg.radiance.copy()
+
+    def _background(self, p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m, want_copy: bool):
+        """``(SceneBackground, a copy of its radiance or None)``: None when ``want_copy`` is False or when no
+        pass of this frame makes one cheaply (the caller copies)."""
         if self.clouds is None and self.terrain is None:
-            return SceneBackground(base, base, self._far_depth, self._no_cloud)
+            if want_copy:
+                base, copy = self.renderer.base_radiance_and_copy(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+                return SceneBackground(base, base, self._far_depth, self._no_cloud), copy
+            base = self.renderer.base_radiance(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+            return SceneBackground(base, base, self._far_depth, self._no_cloud), None
+        base = self.renderer.base_radiance(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
         p = np.asarray(p_cam_ned_m, dtype=float)
         R = np.asarray(R_ned_from_cam, dtype=float)
         f32 = np.float32
@@ -531,7 +548,7 @@ class SceneContent:
         below = base if b_t is None else base + up(b_t)[:H, :W]
         if clouds is None:
             # no cloud layer, or none of its plane in view: a copy, as a composite would be
-            return SceneBackground(below if self.clouds is None else below.copy(), below, depth, self._no_cloud)
+            return SceneBackground(below if self.clouds is None else below.copy(), below, depth, self._no_cloud), None
         # ---- the cloud layer on the coarse grid itself: its look-ups and compositing weights at one ray per
         # 4 x 4 px, two pyrUp steps to the full resolution (the layer is smooth over 4 px at the mip level
         # read there, see _cloud_geometry; near the camera the texture is magnified far more than that)
@@ -560,13 +577,14 @@ class SceneContent:
         e1 = H if band.stop == self._hc else min(4 * (band.stop - 2), H)
         w0 = e0 - 4 * band.start  # row e0 in the band's upsampled images
         radiance = np.empty_like(below)
+        copy = np.empty_like(below) if want_copy else self._empty
         a_half = up(a_seen, dst=self._up_half[0, : 2 * n])
         lit_half = up(lit, dst=self._up_half[1, : 2 * n])
         # the second pyrUp step of both weights inside the composite, (below - a below) + lit, one pass
-        composite_up(below, a_half, lit_half, e0, e1, w0, radiance)
+        composite_up(below, a_half, lit_half, e0, e1, w0, radiance, copy)
         alpha_whole = np.zeros((self._hc, self._wc), np.float32)
         alpha_whole[band] = alpha
-        return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W)))
+        return SceneBackground(radiance, below, depth, PyrUpImage(alpha_whole, (H, W))), (copy if want_copy else None)
 
     def _cloud_band(self, p, dir_rows, ground_d: float) -> slice:
         """The coarse rows the cloud geometry is computed on: those whose rays can meet the layer (pointing
@@ -632,12 +650,24 @@ class SceneContent:
     # ------------------------------------------------------------------ objects on the image
 
     def draw_objects(
-        self, radiance: np.ndarray, background: SceneBackground, objects, p_cam_ned_m, R_ned_from_cam
+        self,
+        radiance: np.ndarray,
+        background: SceneBackground,
+        objects,
+        p_cam_ned_m,
+        R_ned_from_cam,
+        out: np.ndarray | None = None,
     ) -> tuple[np.ndarray, tuple[ObjectLabel, ...]]:
-        """``objects`` (SceneObject) drawn far to near on a copy of ``radiance``; labels in the given order."""
+        """``objects`` (SceneObject) drawn far to near on a copy of ``radiance`` (``out``: that copy, made by
+        the caller, e.g. :meth:`background_and_copy`, and drawn on in place); labels in the given order."""
         p_cam = np.asarray(p_cam_ned_m, dtype=float)
         R_nc = np.asarray(R_ned_from_cam, dtype=float)
-        out = np.array(radiance, dtype=np.float32, copy=True)
+        if out is None:
+            out = np.array(radiance, dtype=np.float32, copy=True)
+        elif out.shape != np.shape(radiance) or out.dtype != np.float32:
+            raise InputError(
+                f"out: expected a float32 image of shape {np.shape(radiance)}, got {out.dtype} {out.shape}"
+            )
         offsets = [o.p_ned_m - p_cam for o in objects]
         ranges = [math.sqrt(d.dot(d)) for d in offsets]  # np.linalg.norm's own sqrt(x . x), without its checks
         labels: dict[int, ObjectLabel] = {}
@@ -693,13 +723,13 @@ class SceneContent:
     ) -> SceneFrame:
         """Background, target (``p_target_ned_m=None``: none), ``others`` (more targets: SceneObjects with
         ids 1..n, rasters from :meth:`target_raster`) and the distractors (ids after them) at ``t_s``."""
-        bg = self.render_background(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
+        bg, out = self.background_and_copy(p_cam_ned_m, R_ned_from_cam, altitude_ground_d_m)
         others = tuple(others)
         objs = self.objects(t_s, 1 + max((o.object_id for o in others), default=0))
         objs = (*others, *objs)
         if p_target_ned_m is not None:
             objs = (self.target_object(p_target_ned_m, R_ned_from_target_body, t_s), *objs)
-        radiance, labels = self.draw_objects(bg.radiance, bg, objs, p_cam_ned_m, R_ned_from_cam)
+        radiance, labels = self.draw_objects(bg.radiance, bg, objs, p_cam_ned_m, R_ned_from_cam, out)
         return SceneFrame(radiance, bg, labels)
 
 
