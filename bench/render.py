@@ -335,7 +335,7 @@ class _StageClock:
     """CPU time per stage of the reference scenes' frames (``--stages``): the texture look-ups (every
     ``cv2.remap`` call, the terrain's, and ``kernels.remap_pair``, the clouds'), every ``cv2.pyrUp`` call
     (the cloud weights' second step is inside the compositing kernel), the renderer's sky and ground
-    (``IrRenderer.base_radiance``), the whole background with clouds and terrain
+    (``IrRenderer.base_radiance`` or ``base_radiance_and_copy``), the whole background with clouds and terrain
     (``SceneContent.render_background``, the kernels and the sky included), the objects
     (``SceneContent.draw_objects``: ray casting, occlusion, labels) and the noise and quantisation or the
     camera model.  Wraps those functions while it is active (the wrappers add ~1 us a call)."""
@@ -370,6 +370,7 @@ class _StageClock:
             (scene, "remap_pair", "remap"),
             (cv2, "pyrUp", "cv2.pyrUp"),
             (IrRenderer, "base_radiance", "sky/ground"),
+            (IrRenderer, "base_radiance_and_copy", "sky/ground"),
             (SceneContent, "render_background", "background"),
             (SceneContent, "background_and_copy", "background"),
             (SceneContent, "draw_objects", "objects"),
