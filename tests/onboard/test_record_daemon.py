@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,10 +64,13 @@ def record_pair(
     out: Path,
     *,
     duration_s: float = DURATION_S,
-    kill_daemon_after_s: float | None = None,
+    kill_daemon_when: Callable[[Path], bool] | None = None,
     extra_daemon_args: tuple = (),
 ) -> RecordedRun:
-    """Daemon (worker inline, --record) then simulator (--record, real time) on loopback; returns what they wrote."""
+    """Daemon (worker inline, --record) then simulator (--record, real time) on loopback; returns what they wrote.
+
+    ``kill_daemon_when(daemon_mcap)``: polled while the simulator runs; once true the daemon is SIGKILLed. The
+    simulator ending first, or its time allowance passing, fails the calling test: the condition never held."""
     from groundsim.evaluation.demo import (
         TrackStore,
         child_env,
@@ -116,11 +120,16 @@ def record_pair(
         while sim.poll() is None:
             assert daemon.poll() is None, f"daemon crashed {daemon.returncode}:\n{log_tail(out / 'onboard.log')}"
             assert time.monotonic() < deadline, f"simulator stuck:\n{log_tail(out / 'sim.log')}"
-            if kill_daemon_after_s is not None and time.monotonic() - t0 > kill_daemon_after_s and store.tracks:
+            if kill_daemon_when is not None and kill_daemon_when(d_mcap):
                 daemon_rc = _kill(daemon, signal.SIGKILL)
                 break
             time.sleep(0.05)
-        if kill_daemon_after_s is None:
+        if kill_daemon_when is not None:
+            assert daemon_rc is not None, (
+                f"never {kill_daemon_when!r} while the simulator ran (rc {sim.returncode}):\n"
+                f"{log_tail(out / 'onboard.log')}"
+            )
+        else:
             assert sim.returncode == 0, f"simulator exited {sim.returncode}:\n{log_tail(out / 'sim.log')}"
             last = len(store.tracks)
             t_end = time.monotonic() + 5.0
@@ -197,22 +206,65 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
     )
 
 
-def test_sigkilled_recording_daemon_leaves_a_file_readable_up_to_its_last_chunk(tmp_path):
+def _readable_frames(path: Path) -> tuple[dict[int, bytes], Exception | None]:
+    """The frames (sequence -> RawImage bytes) the independent `mcap` reader reads from the start of ``path``,
+    and the error that ended the reading (None: the file ended with its footer)."""
     from mcap.stream_reader import StreamReader
 
-    r = record_pair(tmp_path, duration_s=8.0, kill_daemon_after_s=4.0)
-    assert r.daemon_rc == -signal.SIGKILL
-    topics, n_frames, ended = {}, 0, None
-    with open(r.daemon_mcap, "rb") as f:
+    topics, frames = {}, {}
+    with open(path, "rb") as f:
         try:
             for rec in StreamReader(f).records:
                 name = type(rec).__name__
                 if name == "Channel":
                     topics[rec.id] = rec.topic
-                elif name == "Message":
-                    n_frames += topics[rec.channel_id] == "irtrack/uav1/ir/frame"
-        except Exception as exc:  # noqa: BLE001 - the end of a killed file: whichever error the reader gives
-            ended = exc
+                elif name == "Message" and topics[rec.channel_id] == "irtrack/uav1/ir/frame":
+                    frames[rec.sequence] = rec.data
+        except Exception as exc:  # noqa: BLE001 - the end of an unfinished file: whichever error the reader gives
+            return frames, exc
+    return frames, None
+
+
+class FramesOnDisk:
+    """Kill condition: the file on disk holds at least ``floor`` frames in finished chunks, as the `mcap` reader
+    reads them while the daemon still writes (the file is re-read only when it has grown)."""
+
+    def __init__(self, floor: int) -> None:
+        self.floor = floor
+        self.size = 0
+        self.frames_before_kill = 0
+
+    def __call__(self, path: Path) -> bool:
+        size = path.stat().st_size if path.exists() else 0
+        if size == self.size:
+            return False
+        self.size = size
+        self.frames_before_kill = len(_readable_frames(path)[0])
+        return self.frames_before_kill >= self.floor
+
+    def __repr__(self) -> str:
+        return f"{self.floor} frames on disk (last read {self.frames_before_kill} in {self.size} bytes)"
+
+
+def test_sigkilled_recording_daemon_leaves_a_file_readable_up_to_its_last_chunk(tmp_path):
+    # The guarantee: finished chunks reach the file while the daemon runs (each ``record.chunk_kb`` or
+    # ``record.flush_interval_s``), and a SIGKILL loses only the unfinished one. The kill waits for > 1 s of frames
+    # (30 Hz) in finished chunks on disk, not for a wall-clock time: a loaded machine starts the simulator late.
+    on_disk = FramesOnDisk(floor=30)
+    r = record_pair(tmp_path, duration_s=8.0, kill_daemon_when=on_disk)
+    assert r.daemon_rc == -signal.SIGKILL
+    frames, ended = _readable_frames(r.daemon_mcap)
     assert ended is not None, "a killed recording has no footer"
-    assert n_frames >= 30, f"only {n_frames} frames readable"  # > 1 s of frames at 30 Hz before the kill
-    print(f"SIGKILL after ~4 s: {n_frames} frames readable, ended by {type(ended).__name__}")
+    # what was readable before the kill still is (the kill may have let the writer finish one more chunk)
+    assert len(frames) >= on_disk.frames_before_kill >= on_disk.floor, (len(frames), on_disk.frames_before_kill)
+    # the frames are the ones the simulator sent, byte for byte
+    from mcap.reader import make_reader
+
+    with open(r.sim_mcap, "rb") as f:
+        sent = {m.sequence: m.data for _s, _c, m in make_reader(f).iter_messages(topics=["irtrack/uav1/ir/frame"])}
+    assert frames.keys() <= sent.keys()
+    assert all(frames[seq] == sent[seq] for seq in frames)
+    print(
+        f"SIGKILL once {on_disk.frames_before_kill} frames were on disk: {len(frames)} frames readable, "
+        f"ended by {type(ended).__name__}"
+    )
