@@ -12,7 +12,11 @@ what is wrong with it, so that a status reader can tell a sender problem from a 
   however late);
 * ``out_of_order``: before ``L`` with the sequence number going back too (an old frame delivered
   late);
-* ``time_ahead``: more than ``threshold_us`` after ``L`` (a stamp far in the future);
+* ``time_ahead``: more than ``threshold_us`` after ``L`` (a stamp far in the future), unless the
+  sequence number moved on with it: a frame within ``threshold_us`` of where the stream's own rate
+  (its frames accepted since the last event, at least ``RATE_FRAMES``) puts its number is the next
+  one after a gap, frames missing in between (dropped by the sender, the network, or the daemon's
+  bounded queue while its pipeline was starved of CPU): a stall is not a clock step;
 * ``time_behind``: before ``L`` with the sequence number moving forward (a bad stamp, such as one
   taken just after boot).
 
@@ -36,13 +40,15 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 
-__all__ = ["SEQ_MOD", "TIME_CONFIRM_FRAMES", "RECENT_FRAMES", "Admission", "FrameAdmission"]
+__all__ = ["SEQ_MOD", "TIME_CONFIRM_FRAMES", "RECENT_FRAMES", "RATE_FRAMES", "Admission", "FrameAdmission"]
 
 SEQ_MOD = 2**32
 #: consecutive, mutually consistent frames far from the running clock that confirm a clock step
 TIME_CONFIRM_FRAMES = 3
 #: accepted (seq, time) pairs remembered to recognise a duplicate sent late (4 s at 30 Hz)
 RECENT_FRAMES = 128
+#: accepted frames (since the last event) the stream's rate is learnt from before a gap is told from a clock step
+RATE_FRAMES = 8
 
 
 @dataclass(frozen=True)
@@ -118,6 +124,8 @@ class FrameAdmission:
         step = (t_us - last_t) / 1e6
         where = f"seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the last accepted one (seq {last_seq})"
         if t_us > last_t + thr:
+            if seq_forward and self._on_the_streams_rate(seq, t_us):
+                return self._accept(seq, t_us, "")
             return self._candidate(seq, t_us, far=True, reason="time_ahead", message=f"frame {where}")
         far = t_us < last_t - thr
         if seq_forward:
@@ -125,6 +133,19 @@ class FrameAdmission:
         return self._candidate(seq, t_us, far=False, reason="out_of_order", message=f"frame {where}")
 
     # ------------------------------------------------------------------ internals
+
+    def _on_the_streams_rate(self, seq: int, t_us: int) -> bool:
+        """``t_us`` is within ``threshold_us`` of where the rate of the frames accepted since the last event puts
+        frame ``seq`` (from the oldest remembered one to the newest: their jitter averages out over the span)."""
+        if len(self._recent) < RATE_FRAMES:
+            return False
+        seq0, t0 = self._recent[0]
+        seq1, t1 = self._recent[-1]
+        n = (seq1 - seq0) % SEQ_MOD
+        if n == 0 or t1 <= t0:
+            return False
+        expected_us = t1 + (t1 - t0) / n * ((seq - seq1) % SEQ_MOD)
+        return abs(t_us - expected_us) <= self.threshold_us
 
     def _candidate(self, seq: int, t_us: int, *, far: bool, reason: str, message: str) -> Admission:
         """Refuse, unless this frame completes a consistent run (module docstring)."""

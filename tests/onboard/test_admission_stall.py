@@ -1,0 +1,112 @@
+"""Frame admission under CPU starvation, in lockstep (no sockets, no threads): a pipeline stall is not a clock step.
+
+A stall (the pipeline thread starved, e.g. under a CFS quota) changes two things: the frames arrive late in wall
+time, and the daemon's bounded frame queue (``input.queue_length``, oldest dropped) hands the pipeline the newest
+few frames only, so the stamps it sees jump by the stall. Neither is a clock step: the frames' own sequence numbers
+and stamps still agree with the stream's rate. A real step (stamps jumping with the numbering moving by one) still
+restarts the estimator once confirmed, as before.
+"""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from onboard.app.frame_queue import FrameQueue
+from onboard.pipeline.admission import SEQ_MOD, TIME_CONFIRM_FRAMES, FrameAdmission
+from onboard.pipeline.frame_pipeline import FrameRejected
+from tests.onboard.test_pipeline import Rig
+
+FRAME_RATE_HZ = 30.0
+STALL_S = 1.5  # longer than input.time_reset_threshold_s (1 s) plus the queue's 4 frames
+THRESHOLD_US = 1_000_000  # input.time_reset_threshold_s default
+RESTART_COUNT = 5  # input.sequence_restart_count default
+
+
+def _kinds(rig: Rig) -> list[str]:
+    return [c[0] for c in rig.est.calls]
+
+
+def test_frames_delivered_late_after_a_stall_are_taken_and_keep_the_estimator():
+    """All frames kept (a long queue), delivered in one burst 1.5 s late, telemetry already 1.5 s ahead."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    n_stall = int(STALL_S * FRAME_RATE_HZ)
+    rig.feed_until(rig.scene.t_us(10 + n_stall) + 45_000)  # the MAVLink thread went on meanwhile
+    late_ns = 10**12  # one received time for the whole burst: wall time plays no part in admission
+    tracks = [rig.pipe.process(rig.scene.frame(k), late_ns) for k in range(10, 10 + n_stall)]
+    assert [t.seq for t in tracks] == list(range(10, 10 + n_stall))
+    assert rig.counter.total == 0 and rig.pipe.frames_rejected == 0
+    assert _kinds(rig) == ["add"] * (10 + n_stall) and rig.pipe.estimator_resets == 0
+    assert tracks[-1].has_position
+
+
+def test_frames_the_queue_dropped_during_a_stall_are_a_gap_not_a_clock_step():
+    """The daemon's FrameQueue during a 1.5 s stall: the pipeline then takes the newest frames only."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    queue = FrameQueue(rig.config.input.queue_length)
+    n_stall = int(STALL_S * FRAME_RATE_HZ)
+    dropped = sum(queue.push(rig.scene.frame(k)) for k in range(10, 10 + n_stall))
+    assert dropped == n_stall - rig.config.input.queue_length
+    rig.feed_until(rig.scene.t_us(10 + n_stall) + 45_000)
+    taken = []
+    while (frame := queue.pop(0.0)) is not None:
+        taken.append(rig.pipe.process(frame, 0))
+    first = taken[0]
+    assert first.time_boot_us - rig.scene.t_us(9) > THRESHOLD_US  # the stamps the pipeline sees jump by the stall
+    assert [t.seq for t in taken] == list(range(10 + dropped, 10 + n_stall))
+    assert rig.counter.total == 0 and rig.pipe.frames_rejected == 0
+    assert "reset" not in _kinds(rig) and rig.pipe.estimator_resets == 0
+    assert all(t.has_position for t in taken)
+    assert rig.step(10 + n_stall).seq == 10 + n_stall  # and the stream goes on
+
+
+def test_a_stamp_step_of_1_2_s_with_the_numbering_moving_by_one_is_a_clock_step():
+    """Stamps 1.2 s ahead, each frame numbered next: refused until TIME_CONFIRM_FRAMES agree, then a time reset."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    step_us = 1_200_000
+    rig.feed_until(rig.scene.t_us(10 + 36 + TIME_CONFIRM_FRAMES) + 45_000)
+    for i in range(TIME_CONFIRM_FRAMES - 1):
+        with pytest.raises(FrameRejected) as ei:
+            rig.pipe.process(rig.scene.frame(10 + i, time_boot_us=rig.scene.t_us(10 + i) + step_us))
+        assert ei.value.reason == "time_ahead"
+    k = 10 + TIME_CONFIRM_FRAMES - 1
+    tr = rig.pipe.process(rig.scene.frame(k, time_boot_us=rig.scene.t_us(k) + step_us))
+    assert tr.seq == k
+    assert rig.counter.counts == {"frame_time_ahead": TIME_CONFIRM_FRAMES - 1, "frame_time_reset": 1}
+    assert rig.pipe.estimator_resets == 1 and "reset" in _kinds(rig)
+
+
+def test_a_frame_far_ahead_with_its_numbering_far_ahead_too_is_one_odd_frame():
+    """An hour ahead and 100 000 numbers on (36 ms a number: near the stream's rate, yet not where it puts them)."""
+    adm = FrameAdmission(THRESHOLD_US, RESTART_COUNT)
+    period_us = 33_333
+    for k in range(20):
+        assert adm.admit(k, k * period_us).accepted
+    odd = adm.admit(19 + 100_000, 19 * period_us + 3_600_000_000)
+    assert (odd.accepted, odd.reason) == (False, "time_ahead")
+    good = adm.admit(20, 20 * period_us)
+    assert (good.accepted, good.reason, good.restart) == (True, "", False)
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    period_us=st.integers(10_000, 100_000),
+    seq0=st.integers(0, SEQ_MOD - 1),
+    steps=st.lists(st.integers(1, 600), min_size=1, max_size=30),
+    jitter_us=st.lists(st.integers(-3_000, 3_000), min_size=40, max_size=40),
+)
+def test_any_frames_missing_from_a_steady_stream_never_refuse_or_restart(period_us, seq0, steps, jitter_us):
+    """Frames numbered and stamped at the stream's rate (stamps jittered by 3 ms) with any of them missing (up to
+    600 in a row: 6 to 60 s), the numbering wrapping: each frame taken as the next one. The first ten come without
+    gaps (the rate is learnt from the frames taken)."""
+    adm = FrameAdmission(THRESHOLD_US, RESTART_COUNT)
+    ks = list(range(10))
+    for s in steps:
+        ks.append(ks[-1] + s)
+    for i, k in enumerate(ks):
+        v = adm.admit((seq0 + k) % SEQ_MOD, 10**9 + k * period_us + jitter_us[i])
+        assert (v.accepted, v.reason, v.restart) == (True, "", False), (k, v)
