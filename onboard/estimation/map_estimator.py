@@ -99,7 +99,9 @@ Families = Annotated[tuple[str, ...], Texts(), AfterValidator(_check_families)]
 
 
 #: the work :meth:`MapEstimator.selection` counts for one solution's factorisations (square-root information
-#: and evidence: QR decompositions of the Jacobian), in residual evaluations (``WindowProblem.solve_steps``)
+#: and evidence), in residual evaluations (``WindowProblem.solve_steps``).  Kept at what the QR of the dense
+#: Jacobian cost although the factor now comes from the normal equations (about one evaluation's worth): the
+#: work count sets where a selection spread over frames ends, and so the sliding window's results
 FACTOR_WORK = 3
 
 
@@ -376,24 +378,24 @@ class MapEstimator:
             # unless a common weighting range is fixed (model comparison, see selection())
             for _ in range(2 if reweight else 1):
                 prob.set_measurement_weights(fixed if fixed is not None else self._ranges(prob, th))
-                # the factor (a QR, the costliest step of a converged start) is taken below, only for a
-                # solution kept as a mode: not for a first reweighting pass, nor for a start that fell
-                # into a mode already found
+                # the factor is taken below, only for a solution kept as a mode: not for a first reweighting
+                # pass, nor for a start that fell into a mode already found (nor is the dense Jacobian formed)
                 sol = yield from prob.solve_steps(
                     th,
                     max_iterations=self.config.max_iterations,
                     want_factor=False,
                     min_range_m=self.config.min_range_m,
+                    dense_jacobian=False,
                 )
                 th, cost = sol.theta, sol.cost
-                if prob.last_jacobian is None or not math.isfinite(cost):
+                if not math.isfinite(cost):  # an invalid start, or collapsed
                     break
-            if prob.last_jacobian is None or not math.isfinite(cost):
+            if not math.isfinite(cost):
                 continue
             r_mean = float(np.mean(np.linalg.norm(prob.positions(th) - obs.p_cam_ned_m, axis=1)))
             if any(abs(r_mean - m.mean_range_m) < 0.01 * r_mean for m in modes):
                 continue
-            fac = prob.factor(prob.last_jacobian)
+            fac = prob.normal_factor()  # at the last linearisation: theta's (nothing has linearised since)
             modes.append(
                 Mode(prob, th, cost, sol.iterations, sol.converged, fac, prob.log_evidence(th, cost, fac), r_mean)
             )

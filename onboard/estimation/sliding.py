@@ -689,14 +689,15 @@ class SlidingWindowEstimator:
         prob.last_jacobian = J
         # per-frame covariances come from this model's information; scale them so that at the selection's
         # newest frame they equal the batch result's model-averaged, inflated covariance
-        own = self._estimate(prob, theta, pending_t, J.T @ J, p_cam_ned_m=obs.p_cam_ned_m[-1], scale=1.0)
+        H = prob.normal_matrix()  # J^T J from the Jacobian's structure (WindowProblem.normal_matrix)
+        own = self._estimate(prob, theta, pending_t, H, p_cam_ned_m=obs.p_cam_ned_m[-1], scale=1.0)
         # the batch covariance before the unobservable range floor (the floor is applied per frame)
         P_last = res.cov_p_model_ned_m2[-1]
         self._cov_scale = max(
             self.map.config.sigma_inflation**2, float(np.trace(P_last) / max(np.trace(own.cov_p_ned_m2), 1e-30))
         )
         if pending_t == t:  # selected on this very window
-            self._H = J.T @ J
+            self._H = H
             self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
             return self._estimate(prob, theta, t, self._H)
         # selected on the window of a few frames ago: carried over to this one and solved there to convergence
@@ -718,8 +719,7 @@ class SlidingWindowEstimator:
         if not math.isfinite(sol.cost) or prob.last_jacobian is None:
             raise EstimationError("warm-started window solution is invalid (target behind the camera)")
         self.stats["updates"] += 1
-        J = prob.last_jacobian
-        self._H = J.T @ J
+        self._H = prob.normal_matrix()  # at theta: the solve's last linearisation
         self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
         return self._estimate(prob, theta, t, self._H)
 

@@ -128,6 +128,9 @@ class WeakPriorSettings(Protocol):
 #: the span cache's key of the last few windows' constants (WindowProblem), and how many it keeps
 _WINDOWS = "windows"
 _WINDOWS_KEPT = 4
+#: the largest span of the squared diagonal of the Cholesky factor of the scaled normal matrix at which
+#: WindowProblem.normal_factor keeps that factor (the log evidence then within ~1e-6 nats of the QR's)
+_NORMAL_FACTOR_MAX_SPAN = 1e7
 #: the axes 0, 1, 2, 0, 1: in a 3-vector extended so, its cyclic shifts by one and two are the slices 1:4 and 2:5
 _CYCLE5 = np.array([0, 1, 2, 0, 1])
 
@@ -541,7 +544,8 @@ class WindowProblem:
     def _mean_range(self) -> float:
         """The mean distance of the positions of the last evaluation from the camera (the collapse check)."""
         los = self._los
-        return float(np.sqrt(np.einsum("if,if->f", los, los)).mean())
+        # the sum over F: what .mean() computes (one pairwise sum, then the division), without its wrapper
+        return float(np.add.reduce(np.sqrt(np.einsum("if,if->f", los, los)))) / self.F
 
     def _fill_jacobian(self) -> np.ndarray:
         """The dense Jacobian of the last :meth:`linearise` with ``jacobian``, in its buffer (the rows that never
@@ -772,9 +776,10 @@ class WindowProblem:
         cost_tol: float = 1e-4,
         want_factor: bool = True,
         min_range_m: float | None = None,
+        dense_jacobian: bool = True,
     ) -> SolveResult:
         """Levenberg-Marquardt from theta0: :meth:`solve_steps` run to its end."""
-        return drain(self.solve_steps(theta0, max_iterations, lam0, cost_tol, want_factor, min_range_m))
+        return drain(self.solve_steps(theta0, max_iterations, lam0, cost_tol, want_factor, min_range_m, dense_jacobian))
 
     def solve_steps(
         self,
@@ -784,6 +789,7 @@ class WindowProblem:
         cost_tol: float = 1e-4,
         want_factor: bool = True,
         min_range_m: float | None = None,
+        dense_jacobian: bool = True,
     ) -> Generator[int, None, SolveResult]:
         """Levenberg-Marquardt from theta0 (More's column scaling), one iteration at a time: yields after each
         iteration the residual evaluations it made (its work: each costs about one normal-equation solve
@@ -792,7 +798,8 @@ class WindowProblem:
         Stops when an accepted step lowers the cost (1/2 chi^2) by less than ``cost_tol``, when no
         damping finds a lower cost, or after ``max_iterations``.  Returns a :class:`SolveResult` whose
         factor is (square-root information R, scales) at theta, or None when ``want_factor`` is False.
-        Either way ``self.last_jacobian`` is the Jacobian at the returned theta.
+        Either way ``self.last_jacobian`` is the Jacobian at the returned theta; with ``dense_jacobian`` False
+        it is not formed (None), and the linearisation at theta is left for :meth:`normal_factor`.
         With ``min_range_m``, a step that takes the mean range below it ends the solve as collapsed:
         cost inf and factor None, like a start that put the target behind the camera.
         """
@@ -868,6 +875,9 @@ class WindowProblem:
                 break
         if not current:
             r, _ = self.linearise(theta, True)
+        if not dense_jacobian:
+            self.last_jacobian = None
+            return SolveResult(theta, cost, it, converged, self.normal_factor() if want_factor else None)
         J = self.last_jacobian = self._fill_jacobian()
         return SolveResult(theta, cost, it, converged, self.factor(J) if want_factor else None)
 
@@ -879,6 +889,28 @@ class WindowProblem:
         d[d == 0] = 1.0
         R = qr_r(J / d)
         return R, d
+
+    def normal_factor(self) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`factor` at the last linearisation with a Jacobian, from the normal equations the solver factorises
+        anyway: the Cholesky factor of the column-scaled ``J^T J`` (:meth:`normal_matrix`), ``R^T R = H / (d d^T)``,
+        instead of a QR of the dense Jacobian (a tenth of its cost).  The same R up to the rows' signs (which
+        neither the covariance nor the log determinant sees) and rounding, but the normal matrix squares the
+        Jacobian's condition number, and the log determinant's error grows with it: ~1e-9 nats where the factor's
+        squared diagonal spans 1e4, ~1e-6 at 1e7, ~1e-3 at 3e10 (the stiffest CA models, which the QR keeps to
+        ~1e-10).  So the QR of the dense Jacobian stays where that span, a lower bound of the scaled condition
+        number, exceeds :data:`_NORMAL_FACTOR_MAX_SPAN`, or where the Cholesky factorisation fails."""
+        H = self.normal_matrix()
+        d = np.sqrt(H.diagonal())
+        d[d == 0] = 1.0
+        H /= np.multiply.outer(d, d)
+        try:
+            ch, _ = cho_factor_lower(H)
+        except np.linalg.LinAlgError:
+            return self.factor(self._fill_jacobian())
+        diag = ch.diagonal()
+        if diag.max() ** 2 > _NORMAL_FACTOR_MAX_SPAN * diag.min() ** 2:
+            return self.factor(self._fill_jacobian())
+        return np.tril(ch).T, d
 
     def covariance(self, fac) -> np.ndarray:
         R, d = fac

@@ -101,3 +101,38 @@ def test_the_observations_point_covariances_by_knot_interval_are_the_per_row_one
     assert by_interval.shape == (prob.F, 3, 3)
     scale = np.sqrt(np.einsum("fii->fi", per_row))
     np.testing.assert_array_less(np.abs(by_interval - per_row), 1e-12 * scale[:, :, None] * scale[:, None, :])
+
+
+@pytest.mark.parametrize("family", ["cv", "ct", "ca"])
+def test_the_factor_from_the_normal_equations_is_the_qr_ones(window, family):
+    est = MapEstimator(noise=NOISE_LAYOUTS["attitude bias"])
+    prob = est.problem(window, est.config.motion_prior(family, 1e-3))
+    sol = prob.solve(est.initial_guesses(prob)[2], max_iterations=20, want_factor=False, dense_jacobian=False)
+    assert prob.last_jacobian is None  # not formed
+    R, d = prob.normal_factor()
+    _, J, _ = prob.evaluate(sol.theta)
+    R_qr, d_qr = prob.factor(J)
+    # R^T R is the scaled normal matrix either way; the rows' signs are the QR's own
+    np.testing.assert_allclose(np.abs(np.diag(R)), np.abs(np.diag(R_qr)), rtol=1e-6)
+    np.testing.assert_allclose(d, d_qr, rtol=1e-12)
+    assert prob.log_evidence(sol.theta, sol.cost, (R, d)) == pytest.approx(
+        prob.log_evidence(sol.theta, sol.cost, (R_qr, d_qr)), abs=1e-5
+    )
+    Sigma, Sigma_qr = prob.covariance((R, d)), prob.covariance((R_qr, d_qr))
+    scale = np.sqrt(np.diag(Sigma_qr))
+    np.testing.assert_array_less(np.abs(Sigma - Sigma_qr), 1e-6 * np.outer(scale, scale))
+
+
+def test_an_ill_conditioned_normal_factor_falls_back_to_the_qr(window, monkeypatch):
+    from onboard.estimation import window_problem
+
+    est = MapEstimator(noise=NOISE_LAYOUTS["attitude bias"])
+    prob = est.problem(window, est.config.motion_prior("cv", 1e-3))
+    theta = prob.solve(est.initial_guesses(prob)[2], max_iterations=20, want_factor=False).theta
+    J = prob.last_jacobian.copy()
+    prob.linearise(theta)
+    monkeypatch.setattr(window_problem, "_NORMAL_FACTOR_MAX_SPAN", 1.0)  # every factor "ill-conditioned"
+    R, d = prob.normal_factor()
+    R_qr, d_qr = prob.factor(J)
+    np.testing.assert_array_equal(R, R_qr)
+    np.testing.assert_array_equal(d, d_qr)
