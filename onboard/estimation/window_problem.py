@@ -131,6 +131,8 @@ _WINDOWS_KEPT = 4
 #: the largest span of the squared diagonal of the Cholesky factor of the scaled normal matrix at which
 #: WindowProblem.normal_factor keeps that factor (the log evidence then within ~1e-6 nats of the QR's)
 _NORMAL_FACTOR_MAX_SPAN = 1e7
+#: numpy's own reduction of booleans: ``.all()`` without its Python wrapper (~400 validity tests a selection)
+_all = np.logical_and.reduce
 #: the axes 0, 1, 2, 0, 1: in a 3-vector extended so, its cyclic shifts by one and two are the slices 1:4 and 2:5
 _CYCLE5 = np.array([0, 1, 2, 0, 1])
 
@@ -498,8 +500,9 @@ class WindowProblem:
         R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
         y = np.einsum("ijf,jf->if", R, w_rot)
         z = y[2]
-        valid = bool((z * z > 1e-12 * np.einsum("if,if->f", w_rot, w_rot)).all() and (z > 0).all())
-        zs = np.where(z > 1e-9, z, 1e-9)
+        # (the ufuncs' own reductions: .all()'s wrapper costs more than the test on 300 numbers)
+        valid = bool(_all(z * z > 1e-12 * np.einsum("if,if->f", w_rot, w_rot)) and _all(z > 0))
+        zs = np.fmax(z, 1e-9)  # np.where(z > 1e-9, z, 1e-9) in one call, NaN included
         pred = y[:2] / zs
         sT = self.s.T
         r = np.empty(self.n_rows)
@@ -657,7 +660,7 @@ class WindowProblem:
         g = np.empty(self.n_params)
         g[nc:] = 0.0
         if U.shape[1] > 3:
-            g[self._nuis_cols] = Ur[3:].sum(axis=1)
+            g[self._nuis_cols] = np.add.reduce(Ur[3:], axis=1)  # .sum(axis=1) without its wrapper
         o = self._fixed_rows  # (the motion prior's rows among them without a turn rate)
         if self.i_omega is None:
             g[:nc] = (Ur[:3] @ self.B0).T.reshape(-1)
@@ -818,11 +821,12 @@ class WindowProblem:
         current = True
         gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
         for it in range(1, max_iterations + 1):
-            H = self.normal_matrix()
-            d = np.sqrt(H.diagonal())
+            Hs = self.normal_matrix()  # a new array: scaled in place
+            d = np.sqrt(Hs.diagonal())
             d[d == 0] = 1.0
-            Hs = H / (d[:, None] * d[None, :])
-            g = self.gradient(r) / d
+            Hs /= np.multiply.outer(d, d)
+            g = self.gradient(r)
+            g /= d
             decrease = None
             # Gauss-Newton first (lam = 0): the range direction of a stiff prior has a tiny scaled
             # eigenvalue, and any fixed damping makes LM crawl along it
