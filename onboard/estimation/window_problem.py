@@ -618,9 +618,9 @@ class WindowProblem:
         # P_f = u_f^T U_f, the two rows' outer products: (3, u, F)
         P = U[0, :3, None, :] * U[0, None, :, :]
         P += U[1, :3, None, :] * U[1, None, :, :]
-        per = np.take(P.reshape(3 * u, F), self._interval_obs, axis=1)  # (3 u, intervals, width)
+        per = P.reshape(3 * u, F).take(self._interval_obs, axis=1)  # (3 u, intervals, width)
         sums = np.matmul(per.transpose(1, 0, 2), self._interval_weights)  # (intervals, 3 u, 16 or 20)
-        H = np.bincount(self._gram_dst, np.take(sums, self._gram_src), minlength=n * n)
+        H = np.bincount(self._gram_dst, sums.take(self._gram_src), minlength=n * n)
         if u > 3:
             N = U[:, 3:]
             H[self._nuis_block] += np.einsum("akf,alf->kl", N, N).reshape(-1)
