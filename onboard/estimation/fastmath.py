@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg import lapack
 
-__all__ = ["cross3", "cho_factor_lower", "cho_solve_lower", "qr_r"]
+__all__ = ["cross3", "cho_factor_lower", "cho_solve_lower", "cho_solve_spd_lower", "qr_r"]
 
 #: cyclic permutations of the three axes: component i of a cross product is a[i+1] b[i+2] - a[i+2] b[i+1]
 _NEXT = np.array([1, 2, 0])
@@ -49,6 +49,18 @@ def cho_solve_lower(c: np.ndarray, b: np.ndarray) -> np.ndarray:
     x, info = lapack.dpotrs(c, b, lower=1)
     if info != 0:
         raise ValueError(f"illegal value in {-info}th argument of internal potrs")
+    return x
+
+
+def cho_solve_spd_lower(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``cho_solve_lower(cho_factor_lower(A)[0], b)`` in one LAPACK call: dposv, which is dpotrf then dpotrs with
+    the same arguments (one wrapper's overhead instead of two, for a solver that needs the solution only).
+    Raises ``np.linalg.LinAlgError`` when A is not positive definite, as :func:`cho_factor_lower`."""
+    _, x, info = lapack.dposv(A, b, lower=1)
+    if info > 0:
+        raise np.linalg.LinAlgError(f"{info}-th leading minor of the array is not positive definite")
+    if info < 0:
+        raise ValueError(f'LAPACK reported an illegal value in {-info}-th argument on entry to "POSV".')
     return x
 
 

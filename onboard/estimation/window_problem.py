@@ -55,7 +55,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.schema import NonNegativeFloat, PositiveFloat, config_dataclass
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cross3, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, qr_r
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
@@ -833,14 +833,13 @@ class WindowProblem:
             for _ in range(12):
                 try:
                     if lam == 0.0:
-                        ch, _ = cho_factor_lower(Hs)
+                        step = cho_solve_spd_lower(Hs, g)
                     else:
                         eye = np.eye(self.n_params) if eye is None else eye
-                        ch, _ = cho_factor_lower(Hs + lam * eye)
+                        step = cho_solve_spd_lower(Hs + lam * eye, g)
                 except np.linalg.LinAlgError:
                     lam = max(lam * 10, 1e-9)
                     continue
-                step = cho_solve_lower(ch, g)
                 if lam == 0.0 and 0.5 * float(g @ step) < 0.1 * cost_tol:
                     # the Gauss-Newton model predicts less than the tolerance: at the minimum already
                     # (saves the damping ladder that would otherwise have to prove it)
@@ -888,7 +887,8 @@ class WindowProblem:
     def factor(self, J: np.ndarray):
         """Square-root information at the solution: upper-triangular R of the column-scaled J (QR),
         and the scales d, so that H = J^T J = D R^T R D.  QR, not Cholesky of J^T J: the prior and
-        measurement scales span ~14 decades here and the normal equations lose definiteness."""
+        measurement scales span ~14 decades here and the normal equations lose precision where the scaled
+        problem is ill-conditioned (:meth:`normal_factor` uses them where it is not)."""
         d = np.sqrt(np.einsum("ij,ij->j", J, J))
         d[d == 0] = 1.0
         R = qr_r(J / d)

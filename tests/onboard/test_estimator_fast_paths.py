@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cross3, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cho_solve_spd_lower, cross3, qr_r
 
 FINITE = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, allow_subnormal=False)
 
@@ -41,12 +41,15 @@ def test_cholesky_and_qr_are_scipys_bit_for_bit(data, n, extra_rows, ridge):
     except np.linalg.LinAlgError:  # numerically singular: the fast path must refuse it too
         with pytest.raises(np.linalg.LinAlgError):
             cho_factor_lower(H)
+        with pytest.raises(np.linalg.LinAlgError):
+            cho_solve_spd_lower(H, np.ones(n))
         return
     c, lower = cho_factor_lower(H)
     assert lower is lower_ref is True and np.array_equal(c, c_ref)
     g = data.draw(_vectors((n,)))
     x, x_ref = cho_solve_lower(c, g), sla.cho_solve((c_ref, True), g, check_finite=False)
     assert x.shape == x_ref.shape and np.array_equal(x, x_ref)
+    assert np.array_equal(cho_solve_spd_lower(H, g), x_ref)  # factor and solve in one call: the same bits
     E = data.draw(_vectors((n, 3)))
     assert np.array_equal(cho_solve_lower(c, E), sla.cho_solve((c_ref, True), E, check_finite=False))
 
