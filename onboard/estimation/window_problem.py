@@ -55,7 +55,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.schema import NonNegativeFloat, PositiveFloat, config_dataclass
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, einsum, qr_r
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
@@ -431,7 +431,7 @@ class WindowProblem:
 
     def positions(self, theta: np.ndarray) -> np.ndarray:
         c = theta[: self.nc].reshape(self.count, 3)
-        return np.einsum("fm,fmk->fk", self.rows.w0, c[self.rows.index])
+        return einsum("fm,fmk->fk", self.rows.w0, c[self.rows.index])
 
     def velocities(self, theta: np.ndarray) -> np.ndarray:
         c = theta[: self.nc].reshape(self.count, 3)
@@ -498,10 +498,10 @@ class WindowProblem:
         else:
             w_rot = w
         R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
-        y = np.einsum("ijf,jf->if", R, w_rot)
+        y = einsum("ijf,jf->if", R, w_rot)
         z = y[2]
         # (the ufuncs' own reductions: .all()'s wrapper costs more than the test on 300 numbers)
-        valid = bool(_all(z * z > 1e-12 * np.einsum("if,if->f", w_rot, w_rot)) and _all(z > 0))
+        valid = bool(_all(z * z > 1e-12 * einsum("if,if->f", w_rot, w_rot)) and _all(z > 0))
         zs = np.fmax(z, 1e-9)  # np.where(z > 1e-9, z, 1e-9) in one call, NaN included
         pred = y[:2] / zs
         sT = self.s.T
@@ -548,7 +548,7 @@ class WindowProblem:
         """The mean distance of the positions of the last evaluation from the camera (the collapse check)."""
         los = self._los
         # the sum over F: what .mean() computes (one pairwise sum, then the division), without its wrapper
-        return float(np.add.reduce(np.sqrt(np.einsum("if,if->f", los, los)))) / self.F
+        return float(np.add.reduce(np.sqrt(einsum("if,if->f", los, los)))) / self.F
 
     def _fill_jacobian(self) -> np.ndarray:
         """The dense Jacobian of the last :meth:`linearise` with ``jacobian``, in its buffer (the rows that never
@@ -623,7 +623,7 @@ class WindowProblem:
         H = np.bincount(self._gram_dst, sums.take(self._gram_src), minlength=n * n)
         if u > 3:
             N = U[:, 3:]
-            H[self._nuis_block] += np.einsum("akf,alf->kl", N, N).reshape(-1)
+            H[self._nuis_block] += einsum("akf,alf->kl", N, N).reshape(-1)
         H = H.reshape(n, n)
         H += self._H_fixed
         if self.i_omega is not None:

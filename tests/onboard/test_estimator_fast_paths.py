@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cho_solve_spd_lower, cross3, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_lower, cho_solve_spd_lower, cross3, einsum, qr_r
 
 FINITE = st.floats(-1e6, 1e6, allow_nan=False, allow_infinity=False, allow_subnormal=False)
 
@@ -60,3 +60,19 @@ def test_cho_factor_lower_raises_like_scipy_on_a_matrix_that_is_not_positive_def
         sla.cho_factor(H, lower=True, check_finite=False)
     with pytest.raises(np.linalg.LinAlgError, match="2-th leading minor"):
         cho_factor_lower(H)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.data(), st.integers(1, 40))
+def test_einsum_is_np_einsum_bit_for_bit(data, n):
+    # the contractions the window problem writes
+    R, w = data.draw(_vectors((3, 3, n))), data.draw(_vectors((3, n)))
+    N = data.draw(_vectors((2, 3, n)))
+    w0, c = data.draw(_vectors((n, 4))), data.draw(_vectors((n, 4, 3)))
+    for subscripts, ops in (
+        ("ijf,jf->if", (R, w)),
+        ("if,if->f", (w, w)),
+        ("akf,alf->kl", (N, N)),
+        ("fm,fmk->fk", (w0, c)),
+    ):
+        assert np.array_equal(einsum(subscripts, *ops), np.einsum(subscripts, *ops))
