@@ -129,7 +129,7 @@ class WeakPriorSettings(Protocol):
 _WINDOWS = "windows"
 _WINDOWS_KEPT = 4
 #: the largest span of the squared diagonal of the Cholesky factor of the scaled normal matrix at which
-#: WindowProblem.normal_factor keeps that factor (the log evidence then within ~1e-6 nats of the QR's)
+#: WindowProblem.normal_factor keeps that factor (the log evidence then within ~1e-5 nats of the QR's)
 _NORMAL_FACTOR_MAX_SPAN = 1e7
 #: numpy's own reduction of booleans: ``.all()`` without its Python wrapper (~400 validity tests a selection)
 _all = np.logical_and.reduce
