@@ -35,9 +35,9 @@ the jerk of a cubic spline is constant per interval).  Weak priors on the window
 Solve: Gauss-Newton first, Levenberg-Marquardt damping only when a step fails (Marquardt 1963;
 More 1978 column scaling), normal equations by Cholesky on the column-scaled Jacobian (~80 unknowns
 for a 10 s window), ``J^T J`` and ``J^T r`` built from the Jacobian's knot-interval structure
-(:meth:`WindowProblem.normal_matrix`) and the dense Jacobian formed once per solve; the covariance and the
-evidence come from a QR square-root factor of it, which stays
-sound where the prior and the data span ~14 decades.  A step that takes the mean range below
+(:meth:`WindowProblem.normal_matrix`); the covariance and the evidence come from a square-root factor: the
+Cholesky factor of those normal equations where they are well conditioned (:meth:`WindowProblem.normal_factor`),
+else a QR of the dense Jacobian, which stays sound where the prior and the data span ~14 decades.  A step that takes the mean range below
 ``min_range_m`` ends the solve as collapsed (the trajectory shrunk onto the camera track, where the cost
 keeps falling).  The Laplace log evidence (MacKay 1992) is conditional on the navigation nuisances at
 their MAP values (:meth:`WindowProblem.log_evidence` says why).
