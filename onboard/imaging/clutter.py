@@ -40,6 +40,8 @@ __all__ = [
     "ClutterParams",
     "PointCandidate",
     "Scratch",
+    "TRANSIENT_A",
+    "TRANSIENT_B",
     "column_offsets",
     "remove_column_offsets",
     "isolated_outliers",
@@ -61,6 +63,7 @@ __all__ = [
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
 SPARSE_LABEL_MAX_PX = 256  # up to this many thresholded pixels are labelled among themselves
 FEW_PX = 64  # up to this many in plain Python: numpy's ~25 calls cost more (C3, 24-48 px: 0.21 against 0.15 ms)
+TRANSIENT_A, TRANSIENT_B = "transient_a", "transient_b"  # Scratch names of intermediates no function returns
 _RINGS: dict[int, np.ndarray] = {}  # guard_px -> the dilation kernel of the eight surround cells
 _DIRECTIONS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
 
@@ -116,7 +119,9 @@ class Scratch:
     (1.3 MB) is above the allocator's threshold for memory it returns to the system when freed, and
     the next frame's faults it back in page by page: on the same frames the chain took 0 or ~930 page
     faults a frame depending on where earlier arrays happened to lie, 3.9 against 7.1 CPU ms.  A result
-    written into one is valid until the next call that writes the same name."""
+    written into one is valid until the next call that writes the same name.  The intermediates no
+    function returns share the names :data:`TRANSIENT_A` and :data:`TRANSIENT_B`: fewer distinct arrays a
+    frame, fewer of them evicted from the caches by the time they are read again."""
 
     def __init__(self) -> None:
         self._arrays: dict[str, np.ndarray] = {}
@@ -176,8 +181,8 @@ def isolated_outliers(image: np.ndarray, sigma: float, scratch: Scratch | None =
     """Bool mask of pixels more than ``sigma`` above the largest, or below the smallest, of their eight
     neighbours (a one-pixel spike or hole).  ``scratch``: the arrays to work in (the mask is one)."""
     img = np.asarray(image, dtype=np.float32)
-    nmax = cv2.dilate(img, _RING3, dst=_dst(scratch, "outlier_max", img.shape), borderType=cv2.BORDER_REPLICATE)
-    nmin = cv2.erode(img, _RING3, dst=_dst(scratch, "outlier_min", img.shape), borderType=cv2.BORDER_REPLICATE)
+    nmax = cv2.dilate(img, _RING3, dst=_dst(scratch, TRANSIENT_A, img.shape), borderType=cv2.BORDER_REPLICATE)
+    nmin = cv2.erode(img, _RING3, dst=_dst(scratch, TRANSIENT_B, img.shape), borderType=cv2.BORDER_REPLICATE)
     # numpy's float32 arithmetic as ``img > nmax + sigma`` does it (sigma rounded to float32 first), in place
     s = np.float32(sigma)
     above = np.greater(img, np.add(nmax, s, out=nmax), out=_dst(scratch, "outlier_above", img.shape, np.bool_))
@@ -191,16 +196,19 @@ class DefectMap:
     ``update(image, sigma)`` counts the frame's isolated outliers; ``mask`` is True at pixels that were
     outliers on at least ``fraction`` of the last ``frames`` frames (counts decay geometrically, so a
     pixel that recovers leaves the map); ``repair(image)`` returns a float32 copy with the defects
-    replaced by their 3 x 3 median.  ``reset()`` after an offset step."""
+    replaced by their 3 x 3 median.  ``reset()`` after an offset step.  ``scratch``: the arrays to work
+    in (a detector's own, so that its frame's intermediates and the update's are the same arrays)."""
 
-    def __init__(self, shape: tuple[int, int], frames: int = 30, fraction: float = 0.6) -> None:
+    def __init__(
+        self, shape: tuple[int, int], frames: int = 30, fraction: float = 0.6, scratch: Scratch | None = None
+    ) -> None:
         self._decay = np.float32(1.0 - 1.0 / frames)
         self._rate = np.zeros(shape, np.float32)  # decayed fraction of frames as an outlier
         self._fraction = np.float32(fraction)
         self._seen = 0
         self.mask = np.zeros(shape, bool)
         self._where = np.nonzero(self.mask)
-        self._scratch = Scratch()
+        self._scratch = Scratch() if scratch is None else scratch
 
     def reset(self) -> None:
         self._rate[:] = 0
@@ -305,12 +313,12 @@ def point_contrast(
     surround = _surround_max(img, params.cell_px, params.guard_px, box_mean, _dst(scratch, "contrast", img.shape))
     spare = None
     if params.sharp_guard_px > 0:  # min over both contrasts = the centre minus the larger surround
-        spare = _surround_max(img, 1, params.sharp_guard_px, dst=_dst(scratch, "contrast_sharp", img.shape))
+        spare = _surround_max(img, 1, params.sharp_guard_px, dst=_dst(scratch, TRANSIENT_B, img.shape))
         cv2.max(surround, spare, dst=surround)
     # the sharp surround's array, done with, takes the centre (one full-size array less)
     if spare is None:
-        spare = _dst(scratch, "contrast_sharp", img.shape)
-    centre = _centre(img, 2, spare, _dst(scratch, "contrast_mean", img.shape))
+        spare = _dst(scratch, TRANSIENT_B, img.shape)
+    centre = _centre(img, 2, spare, _dst(scratch, TRANSIENT_A, img.shape))
     return cv2.subtract(centre, surround, dst=surround)  # in place: one full-size array less
 
 
@@ -340,7 +348,7 @@ def local_noise_coarse(
     img = np.asarray(image, dtype=np.float32)
     if box3 is None:
         box3 = cv2.blur(img, (3, 3), dst=_dst(scratch, "noise_box3", img.shape), borderType=cv2.BORDER_REPLICATE)
-    dev = cv2.absdiff(img, box3, dst=_dst(scratch, "noise_deviation", img.shape))
+    dev = cv2.absdiff(img, box3, dst=_dst(scratch, TRANSIENT_A, img.shape))
     h, w = img.shape
     hc, wc = max(h // factor, 1), max(w // factor, 1)
     coarse = cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from onboard.imaging.clutter import (
+    TRANSIENT_A,
     ClutterParams,
     DefectMap,
     PointCandidate,
@@ -115,15 +116,16 @@ class ObjectDetector:
         self._recent = [*kept, (k, spare)]
         h, w = image.shape
         img = sc.get("clean", image.shape)  # the frame as float32, written over last frame's
+        # image.astype(np.float32) - the offsets (remove_column_offsets without its array) as a cast, then
+        # an in-place float32 subtraction: the same values, ~2/3 of the time of numpy's mixed-type subtraction
+        np.copyto(img, image)
         if p.destripe:
             if self._stripes is None or self._stripes.shape[0] != w or self.frame_index % STRIPE_EVERY == 0:
                 self._stripes = column_offsets(image, p.stripe_window_px)  # they drift over minutes: every few frames
-            # image.astype(np.float32) - the offsets, in one pass (remove_column_offsets without its array)
-            np.subtract(image, self._stripes[None, :], out=img, dtype=np.float32)
-        else:
-            np.copyto(img, image)
+            np.subtract(img, self._stripes[None, :], out=img)
         if self._defects is None or self._defects.mask.shape != img.shape:
-            self._defects = DefectMap(img.shape, max(p.defect_frames // self.params.defect_every, 2), p.defect_fraction)
+            frames = max(p.defect_frames // self.params.defect_every, 2)
+            self._defects = DefectMap(img.shape, frames, p.defect_fraction, sc)
         if self.frame_index % self.params.defect_every == 0:
             # the outlier level from the previous frame's noise (the noise is measured after the repair)
             sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
@@ -189,7 +191,7 @@ class ObjectDetector:
                 return None
             h, w = raw.shape
             size = (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE)
-            full = self._scratch.get("background_float", raw.shape)  # raw.astype(np.float32), no fresh array
+            full = self._scratch.get(TRANSIENT_A, raw.shape)  # raw.astype(np.float32), no fresh array
             np.copyto(full, raw)
             a = self._smalls[q] = cv2.resize(full, size, interpolation=cv2.INTER_AREA)
         return a
