@@ -1,5 +1,5 @@
-"""The objects chain's cost cuts change nothing: arrays reused from frame to frame
-(:class:`onboard.imaging.clutter.Scratch`), the background motion measured only when asked for
+"""The objects chain's cost cuts change nothing: arrays reused from frame to frame and shared by
+intermediates (:class:`onboard.imaging.clutter.Scratch`), the background motion measured only when asked for
 (:class:`onboard.imaging.objects_detection.ObjectDetector`) and the column offsets' medians from sorted
 columns give the figures of fresh arrays, of a motion measured on every frame and of ``np.median``, bit
 for bit; and the stage timing the benchmark reads."""
@@ -19,6 +19,7 @@ from onboard.imaging.clutter import (
     ClutterParams,
     DefectMap,
     Scratch,
+    cfar_threshold,
     column_offsets,
     isolated_outliers,
     local_noise_coarse,
@@ -96,6 +97,41 @@ def test_defect_repair_into_its_own_frame_equals_the_copy(frames):
     in_place = dm.repair(img, out=img)
     assert in_place is img and np.array_equal(in_place, copy)
     assert all(copy[i, j] < 200.0 for i, j in hot)
+
+
+def test_defect_map_in_a_shared_scratch_equals_its_own(frames):
+    # the detector's intermediates overwrite the shared arrays between two updates
+    p = ClutterParams()
+    shared = Scratch()
+    own, in_shared = DefectMap((H_PX, W_PX), 4, 0.5), DefectMap((H_PX, W_PX), 4, 0.5, shared)
+    for k, img8 in enumerate(frames[:8]):
+        img = img8.astype(np.float32)
+        img[30, 40] = 250.0  # a hot pixel
+        if k % 3 == 0:
+            img[60, 100] = 0.0  # a pixel that is an outlier on every third frame: never a defect
+        own.update(img, 6.0)
+        in_shared.update(img, 6.0)
+        point_contrast(img, p, scratch=shared)
+        local_noise_coarse(img, p.noise_window_px, 4, full=False, scratch=shared)
+        assert np.array_equal(in_shared.mask, own.mask)
+        assert np.array_equal(in_shared.repair(img), own.repair(img))
+    assert in_shared.mask[30, 40] and not in_shared.mask[60, 100]
+
+
+def test_detector_results_equal_the_functions_on_fresh_arrays(frames):
+    # its contrast, threshold and candidates survive the intermediates that share its arrays
+    p = ClutterParams()
+    det = ObjectDetector(K, ObjectParams(), p)
+    for k, img in enumerate(frames[:6]):
+        cands = det.detect(img, k)
+        assert det.clean is not None and det.contrast is not None and det.threshold is not None
+        clean = det.clean.copy()
+        assert np.array_equal(det.contrast, point_contrast(clean, p))
+        noise = local_noise_coarse(clean, p.noise_window_px, 4, full=False)
+        threshold = cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb)
+        assert np.array_equal(det.threshold, cv2.resize(threshold, (W_PX, H_PX), interpolation=cv2.INTER_LINEAR))
+        assert cands == point_candidates(det.contrast, det.threshold, p)
+        assert any(abs(c.v_px - 91.0) < 1.5 and abs(c.u_px - (101.0 + k)) < 1.5 for c in cands)  # the warm point
 
 
 def _detector_run(frames, ask_every_frame: bool, skip: frozenset = frozenset()):
