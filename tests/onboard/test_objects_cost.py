@@ -188,8 +188,8 @@ def test_stage_times_charge_every_tick_of_the_clock_to_one_stage(frames):
     assert list(tr.stages.seconds) == [
         "frame event",
         "fixed pattern",
-        "noise, threshold",
         "point contrast",
+        "noise, threshold",
         "candidates",
         "track-before-detect",
         "aided detection",
