@@ -146,10 +146,11 @@ class ObjectDetector:
         self._noise = noise
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(noise))
+        # the box mean is done with: its array takes the threshold (one distinct full-size array less)
         threshold = cv2.resize(
             cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb),
             (w, h),
-            dst=sc.get("threshold", img.shape),
+            dst=sc.get("threshold", img.shape) if box3 is None else box3,
             interpolation=cv2.INTER_LINEAR,
         )
         self.stages.lap("noise, threshold")
