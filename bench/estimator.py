@@ -131,7 +131,7 @@ def speed(noise_name: str = "RTK") -> dict:
     truth2, obs2 = synthesize_scenario(sc, nc, 0, t_s=t2, rng=np.random.default_rng(1))
     full = int(SlidingConfig().window_s * 30)
     for key, work in (("", SlidingConfig().selection_work_per_frame), ("at_once_", 0)):
-        per, kinds, selections = _sliding_run(sc, nc, t2, obs2, work)
+        per, kinds, selections, work_done = _sliding_run(sc, nc, t2, obs2, work)
         # every step, from the first frame: the first selections (cold, on a young window) are bursts too
         out[key + "sliding_step_max_ms"] = float(np.max(per))
         # the track's first choice runs at once (SlidingWindowEstimator: nothing is published before it): the
@@ -141,6 +141,9 @@ def speed(noise_name: str = "RTK") -> dict:
         out[key + "sliding_step_max_after_first_ms"] = float(np.max(np.delete(per, first)))
         out[key + "sliding_step_p99_ms"] = float(np.percentile(per, 99))
         out[key + "selection_cpu_median_ms"] = float(np.median(selections[-4:]))  # the full window's
+        # and their work: the same both ways (the same windows, starts and iterations), so a difference in CPU
+        # between the two runs is the machine's, not repeated work (docs/performance.md, "Estimator bursts")
+        out[key + "selection_work_full_window"] = [int(w) for w in work_done[-4:]]
         out[key + "selection_cpu_max_ms"] = float(np.max(selections))
         out[key + "selections"] = len(selections)
         if key:
@@ -280,15 +283,18 @@ def selection_breakdown(est: MapEstimator, obs, repeat: int = 5) -> dict:
 
 def _sliding_run(sc, nc, t_s, obs, selection_work_per_frame: int):
     """The sliding window over ``obs``: CPU ms of each step, whether a model selection ran in it ("selection")
-    or not, and the CPU ms of each whole selection (the sum of its pieces)."""
+    or not, the CPU ms of each whole selection (the sum of its pieces) and its work (residual evaluations and
+    factors, the units its pieces yield)."""
     cfg = dataclasses.replace(SlidingConfig(), selection_work_per_frame=selection_work_per_frame)
     sw = SlidingWindowEstimator(cfg, noise=estimator_noise_model(nc))
     selection = sw.map.selection
     spent: list[float] = []
+    done_work: list[int] = []
 
     def timed_selection(*args, **kwargs):  # the selection's own CPU, piece by piece
         steps = selection(*args, **kwargs)
         spent.append(0.0)
+        done_work.append(0)
         while True:
             t0 = time.thread_time()
             try:
@@ -297,6 +303,7 @@ def _sliding_run(sc, nc, t_s, obs, selection_work_per_frame: int):
                 spent[-1] += (time.thread_time() - t0) * 1e3
                 return done.value
             spent[-1] += (time.thread_time() - t0) * 1e3
+            done_work[-1] += work
             yield work
 
     sw.map.selection = timed_selection  # type: ignore[method-assign]
@@ -308,7 +315,7 @@ def _sliding_run(sc, nc, t_s, obs, selection_work_per_frame: int):
         sw.add(t_s[i], obs.uv_px[i], sc.camera.intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i])
         per.append((time.thread_time() - t0) * 1e3)
         kinds.append("selection" if busy or len(spent) != n0 else "none")
-    return np.array(per), np.array(kinds), np.array(spent)
+    return np.array(per), np.array(kinds), np.array(spent), np.array(done_work)
 
 
 def verdict(args) -> int:
@@ -431,7 +438,8 @@ def main(argv=None) -> int:
             f"{s[key + 'sliding_step_max_after_first_ms']:6.1f} ms), p99 "
             f"{s[key + 'sliding_step_p99_ms']:5.1f} ms; one whole online selection (1 s knots, full 20 s window) "
             f"median {s[key + 'selection_cpu_median_ms']:5.0f} ms, largest {s[key + 'selection_cpu_max_ms']:5.0f} ms "
-            f"({s[key + 'selections']} selections)"
+            f"({s[key + 'selections']} selections; the full window's work {s[key + 'selection_work_full_window']} "
+            "residual evaluations)"
         )
     if not args.speed_only:
         paths = reference_scenario_paths()
