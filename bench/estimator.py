@@ -1,11 +1,12 @@
 """Reconstruction benchmark: speed per window and accuracy table with the Bayesian CRB.
 
     python -m bench.estimator [--seeds 50] [--scenarios P1,P2,P3] [--noises px0.3,RTK] [--workers 2]
-                              [--speed-only] [--verdict] [--json out/bench_estimator.json]
+                              [--speed-only] [--verdict] [--spread-pairs N] [--json out/bench_estimator.json]
 
 ``--verdict``: the observability verdict's precision and recall over every reference scenario x
 px0.3/RTK/GNSS (scenarios and noises default to all of them then, seeds to 50; no speed
-figures, no paper closed form).
+figures, no paper closed form).  ``--spread-pairs N``: only whether spreading the model selection over frames
+costs CPU (:func:`spread_pairs`).
 
 Prints numbers; asserts nothing.  Speed is CPU time of the measuring thread (``time.thread_time``: what
 the work costs, not how long the loaded machine took to schedule it), on one core (BLAS threads limited to 1
@@ -318,6 +319,76 @@ def _sliding_run(sc, nc, t_s, obs, selection_work_per_frame: int):
     return np.array(per), np.array(kinds), np.array(spent), np.array(done_work)
 
 
+def spread_pairs(pairs: int, flush_mb: int = 16) -> list[str]:
+    """Does spreading a selection over frames cost CPU?  Two measurements, alternated in one process so that load
+    drift hits both sides alike:
+
+    - ``pairs`` pairs of the 60 s flight spread (the default work per frame) and at once (0), the order swapped
+      every pair: the four full-window selections' summed CPU, spread / at once (both make the same selections
+      with the same work, see :func:`speed`);
+    - the same four selections replayed at once, against the same in the default's pieces (30 residual
+      evaluations a frame, the full window's budget) with ``flush_mb`` of memory swept between frames (what a
+      frame's image work does to the caches), the sweep untimed."""
+    sc = load_scenario(reference_scenario_paths()["P1"])
+    nc = load_noise_cases()["RTK"]
+    t2 = np.arange(1800) / 30.0
+    _, obs2 = synthesize_scenario(sc, nc, 0, t_s=t2, rng=np.random.default_rng(1))
+    ratios = []
+    for i in range(pairs):
+        order = (
+            (SlidingConfig().selection_work_per_frame, 0)
+            if i % 2 == 0
+            else (0, SlidingConfig().selection_work_per_frame)
+        )
+        total = {}
+        for work in order:
+            total[work] = float(np.sum(_sliding_run(sc, nc, t2, obs2, work)[2][-4:]))
+        ratios.append(total[SlidingConfig().selection_work_per_frame] / total[0])
+    sw = SlidingWindowEstimator(SlidingConfig(), noise=estimator_noise_model(nc))
+    selection = sw.map.selection
+    calls = []
+
+    def recorded(*args, **kwargs):
+        calls.append((args, kwargs))
+        return (yield from selection(*args, **kwargs))
+
+    sw.map.selection = recorded  # type: ignore[method-assign]
+    for i in range(len(t2)):
+        sw.add(t2[i], obs2.uv_px[i], sc.camera.intrinsics, obs2.p_cam_ned_m[i], obs2.q_ned_from_cam[i])
+    sweep = np.ones(flush_mb * 1024 * 128)
+
+    def replay(budget: int) -> float:
+        spent = 0.0
+        for args, kwargs in calls[-4:]:
+            steps, work = selection(*args, **kwargs), 0
+            while True:
+                t0 = time.thread_time()
+                try:
+                    work += next(steps)
+                except StopIteration:
+                    spent += time.thread_time() - t0
+                    break
+                spent += time.thread_time() - t0
+                if budget and work >= budget:
+                    sweep[::8] += 1.0
+                    work = 0
+        return spent * 1e3
+
+    replay(0)
+    flushed = []
+    for i in range(pairs):
+        t = {b: replay(b) for b in ((0, 30) if i % 2 == 0 else (30, 0))}
+        flushed.append(t[30] / t[0])
+    return [
+        f"spread / at once, the four full-window selections' CPU, {pairs} alternated pairs: "
+        + ", ".join(f"{r:.2f}" for r in sorted(ratios))
+        + f" (median {np.median(ratios):.2f})",
+        f"the same selections in 30-evaluation pieces with {flush_mb} MB swept between them / at once: "
+        + ", ".join(f"{r:.2f}" for r in sorted(flushed))
+        + f" (median {np.median(flushed):.2f})",
+    ]
+
+
 def verdict(args) -> int:
     paths, ncs = reference_scenario_paths(), load_noise_cases()
     names = args.scenarios.split(",") if args.scenarios else sorted(paths)
@@ -377,11 +448,20 @@ def main(argv=None) -> int:
     ap.add_argument("--verdict", action="store_true", help="the verdict's precision/recall table only")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--speed-only", action="store_true")
+    ap.add_argument(
+        "--spread-pairs",
+        type=int,
+        default=0,
+        help="only: does spreading the selection over frames cost CPU (N alternated pairs, spread vs at once)",
+    )
     ap.add_argument("--json", default=None)
     args = ap.parse_args(argv)
     limit_blas_threads(1)
     if args.verdict:
         return verdict(args)
+    if args.spread_pairs > 0:
+        print("\n".join(spread_pairs(args.spread_pairs)))
+        return 0
     args.scenarios = args.scenarios or "P1,P2,P3"
     args.noises = args.noises or "px0.3,RTK"
     report = {"speed": speed()}
