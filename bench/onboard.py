@@ -661,17 +661,7 @@ def _paced_mavlink_cpu(duration_s: float, scene: SyntheticScene) -> tuple[float,
     try:
         th.start()
         t0 = time.monotonic()
-        n = 0
-        while time.monotonic() - t0 < duration_s:
-            ap.pump()
-            if n % 50 == 0:
-                ap.heartbeat()
-            t = ap.boot_us()
-            ap.attitude(t)
-            if n % 2 == 0:
-                ap.position(t)
-            n += 1
-            time.sleep(max(t0 + n * 0.02 - time.monotonic(), 0.0))
+        ap.fly_paced(t0 + duration_s, answer=True)
         stop.set()
         th.join(1.0)
         return (cpu[0] if cpu else math.nan) / (time.monotonic() - t0), int(link.messages_rx)

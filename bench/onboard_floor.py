@@ -134,14 +134,7 @@ def _feed(case: str, port: int, until_s: float, scene) -> None:
         from groundsim.io.scripted_autopilot import ScriptedAutopilot
 
         ap = ScriptedAutopilot(port, scene=scene)
-        n, t0 = 0, time.monotonic()
-        while time.monotonic() < until_s:
-            t = ap.boot_us()
-            ap.attitude(t)
-            if n % 2 == 0:
-                ap.position(t)
-            n += 1
-            time.sleep(max(t0 + n * 0.02 - time.monotonic(), 0.0))
+        ap.fly_paced(until_s)  # telemetry only: the floor's receiver reads datagrams and answers nothing
         ap.close()
     else:
         time.sleep(max(until_s - time.monotonic(), 0.0))

@@ -106,6 +106,28 @@ class ScriptedAutopilot:
             GlobalPositionInt(int(t_us), lat_deg, lon_deg, alt_m, alt_rel_m, tuple(float(c) for c in v_ned_mps), 0.0)
         )
 
+    def fly_paced(self, until_s: float, answer: bool = False) -> None:
+        """The scene's observer in real time until ``until_s`` (``time.monotonic``): ATTITUDE_QUATERNION at
+        50 Hz and GLOBAL_POSITION_INT at 25 Hz, the rates the daemon asks PX4 for.  With ``answer`` it also
+        reads what came back (:meth:`pump`: the daemon's interval requests are answered) and sends a
+        HEARTBEAT a second, as an autopilot does; without, it only sends telemetry (a receiver that parses
+        nothing)."""
+        import time
+
+        n, t0 = 0, time.monotonic()
+        while time.monotonic() < until_s:
+            if answer:
+                self.pump()
+                if n % 50 == 0:
+                    self.heartbeat()
+            t_us = self.boot_us()
+            self.attitude(t_us)
+            if n % 2 == 0:
+                self.position(t_us)
+            n += 1
+            # paced against the start, not the last wake-up, so that late wake-ups do not slow the rate
+            time.sleep(max(t0 + n * 0.02 - time.monotonic(), 0.0))
+
     def raw(self, data: bytes) -> None:
         self.conn.write(data)
 
