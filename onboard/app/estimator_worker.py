@@ -44,7 +44,7 @@ from onboard.app.os_thread import name_os_thread
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
-from onboard.io.worker_queue import items_until_stopped
+from onboard.io.worker_queue import items_until_stopped, stop_and_join
 from onboard.pipeline.frame_pipeline import make_estimator
 
 __all__ = [
@@ -101,7 +101,7 @@ class ThreadedEstimator:
         self._epoch = 0
         self._latest: tuple[int, Any] | None = None  # (epoch, estimate): the newest non-None estimate
         self._result: tuple[int, float, Any] | None = None  # (epoch, t_s, estimate or None): the last processed
-        self._stop = False
+        self._stop = threading.Event()
         self.worker_cpu_s = 0.0
         self.late_results = 0
         self._thread = threading.Thread(target=self._run, name="irtrack-estimator", daemon=True)
@@ -160,10 +160,7 @@ class ThreadedEstimator:
             self._cond.notify_all()
 
     def close(self, timeout_s: float = 1.0) -> None:
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        self._thread.join(timeout_s)
+        stop_and_join(self._cond, self._stop, self._thread, timeout_s)
 
     def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
@@ -175,7 +172,7 @@ class ThreadedEstimator:
 
     def _run(self) -> None:
         name_os_thread("irtrack-estim")
-        for kind, epoch, t, args in items_until_stopped(self._cond, self._q, lambda: self._stop):
+        for kind, epoch, t, args in items_until_stopped(self._cond, self._q, self._stop.is_set):
             c0 = time.thread_time()
             est = None
             try:
