@@ -1,4 +1,5 @@
-"""What the command lines share: a parser whose usage mistakes are one line, and the zenoh session's options.
+"""What the command lines share: a parser whose usage mistakes are one line, the zenoh session's options, and the
+options that override the daemon's configuration (``--config``, ``--set``, ``--live-view``).
 
 The daemon (``python -m onboard``), ``onboard.watch``, ``onboard.fuse``, ``onboard.reconstruct`` and
 ``groundsim`` all print a usage mistake as one line on stderr with exit code 2 (argparse's own code), not
@@ -9,10 +10,19 @@ from __future__ import annotations
 
 import argparse
 import math
-from collections.abc import Callable
-from typing import NoReturn
+from collections.abc import Callable, Iterable
+from typing import Any, NoReturn
 
-__all__ = ["EXIT_USAGE", "OneLineParser", "add_zenoh_options", "nonnegative_float"]
+__all__ = [
+    "EXIT_USAGE",
+    "OneLineParser",
+    "add_config_option",
+    "add_live_view_option",
+    "add_set_option",
+    "add_zenoh_options",
+    "config_overrides",
+    "nonnegative_float",
+]
 
 EXIT_USAGE = 2  # argparse's own exit code for a usage mistake
 
@@ -64,3 +74,44 @@ def add_zenoh_options(
         "--zenoh-multicast-scouting", dest="zenoh_scouting", action="store_true", default=None, help=scouting_help
     )
     p.add_argument("--no-zenoh-multicast-scouting", dest="zenoh_scouting", action="store_false", help=no_scouting_help)
+
+
+# The daemon (``python -m onboard``) and its replay (``python -m onboard.replay``) both build an OnboardConfig
+# from a file and ``--set`` overrides, and both serve a live view: the options are declared here once, each
+# command wording the help its own way (where its configuration comes from).
+
+
+def add_config_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    """``--config FILE``: ``args.config``, the YAML configuration (None when not given)."""
+    p.add_argument("--config", metavar="FILE", help=help_text)
+
+
+def add_set_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    """``--set FIELD.PATH=VALUE``, repeatable: ``args.set``, the texts in order (empty when not given); read
+    them with :func:`config_overrides`."""
+    p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help=help_text)
+
+
+def add_live_view_option(p: argparse.ArgumentParser, help_text: str) -> None:
+    """``--live-view PORT``: ``args.live_view``, the Foxglove WebSocket port (None when not given)."""
+    p.add_argument("--live-view", metavar="PORT", type=int, help=help_text)
+
+
+def config_overrides(
+    set_texts: Iterable[str], options: Iterable[tuple[str, Any, str]] = ()
+) -> dict[str, tuple[Any, str]]:
+    """The configuration overrides of a command line, ``{field path: (value, source)}`` as
+    :func:`onboard.app.config.load_config` takes them: each ``--set`` text (its value parsed as YAML and its
+    path checked against the configuration's fields: :class:`~onboard.app.config.OnboardConfigError` names
+    a wrong one), then each ``(field path, value, option)`` of ``options`` whose value was given (not
+    None), which wins over a ``--set`` of the same field."""
+    from onboard.app.config import parse_set_option  # the configuration's types, only for a command that has one
+
+    out: dict[str, tuple[Any, str]] = {}
+    for text in set_texts:
+        path, value = parse_set_option(text)
+        out[path] = (value, "--set")
+    for path, value, option in options:
+        if value is not None:
+            out[path] = (value, option)
+    return out

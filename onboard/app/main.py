@@ -34,7 +34,14 @@ import threading  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from typing import Any  # noqa: E402
 
-from onboard.app.cli_args import OneLineParser, add_zenoh_options  # noqa: E402
+from onboard.app.cli_args import (  # noqa: E402
+    OneLineParser,
+    add_config_option,
+    add_live_view_option,
+    add_set_option,
+    add_zenoh_options,
+    config_overrides,
+)
 
 EXIT_OK = 0
 EXIT_ERROR = 1
@@ -49,9 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m onboard", description="irtrack onboard daemon: IR target tracking and 3-D reconstruction."
     )
-    p.add_argument(
-        "--config", metavar="FILE", help="YAML configuration (default: built-in defaults; see config/onboard.yaml)"
-    )
+    add_config_option(p, "YAML configuration (default: built-in defaults; see config/onboard.yaml)")
     p.add_argument(
         "--vehicle", help="vehicle name in the zenoh keys irtrack/<vehicle>/... (config: vehicle; default uav1)"
     )
@@ -86,11 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE.mcap",
         help="record inputs and outputs to this MCAP file (config: record.path; see onboard/io/record.py)",
     )
-    p.add_argument(
-        "--live-view",
-        metavar="PORT",
-        type=int,
-        help="serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
+    add_live_view_option(
+        p,
+        "serve the channels and a 3-D scene over the Foxglove WebSocket protocol on this port "
         "(bound to live_view.host, 127.0.0.1 by default; config: live_view.port; see onboard/io/live_view.py)",
     )
     p.add_argument(
@@ -100,26 +103,15 @@ def build_parser() -> argparse.ArgumentParser:
         help="log level (config: logging.level)",
     )
     p.add_argument("--log-format", choices=("text", "json"), help="log line format (config: logging.format)")
-    p.add_argument(
-        "--set",
-        metavar="FIELD.PATH=VALUE",
-        action="append",
-        default=[],
-        help="override any config field, e.g. --set estimator.window_s=8; repeatable",
-    )
+    add_set_option(p, "override any config field, e.g. --set estimator.window_s=8; repeatable")
     p.add_argument("--check", action="store_true", help="validate the configuration and exit 0")
     p.add_argument("--print-config", action="store_true", help="print the effective configuration as YAML and exit")
     return p
 
 
 def _overrides(args: argparse.Namespace) -> dict:
-    from onboard.app.config import parse_set_option
-
-    out: dict = {}
-    for text in args.set:
-        path, value = parse_set_option(text)
-        out[path] = (value, "--set")
-    pairs = (
+    """Each option's config field, over the ``--set`` ones."""
+    fields = (
         ("vehicle", args.vehicle, "--vehicle"),
         ("mavlink.connection", args.mavlink, "--mavlink"),
         ("zenoh.connect", args.zenoh_connect, "--zenoh-connect"),
@@ -133,10 +125,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         ("logging.level", args.log_level, "--log-level"),
         ("logging.format", args.log_format, "--log-format"),
     )
-    for path, value, src in pairs:
-        if value is not None:
-            out[path] = (value, src)
-    return out
+    return config_overrides(args.set, fields)
 
 
 # --------------------------------------------------------------------------- main

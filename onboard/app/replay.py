@@ -53,6 +53,7 @@ from collections.abc import Iterator, Sequence  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
+from onboard.app.cli_args import add_config_option, add_live_view_option, add_set_option, config_overrides  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
@@ -632,10 +633,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="2: the tracker runs ahead in a second process, overlapping the estimator (same tracks; "
         "needs fork and no --live-view; default: %(default)s)",
     )
-    p.add_argument("--config", metavar="FILE", help="configuration to replay with (default: the recording's)")
-    p.add_argument(
-        "--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help="override a config field; repeatable"
-    )
+    add_config_option(p, "configuration to replay with (default: the recording's)")
+    add_set_option(p, "override a config field; repeatable")
     p.add_argument("--out", metavar="tracks.jsonl", help="write the replayed tracks here, one JSON per line")
     p.add_argument(
         "--objects-out",
@@ -643,11 +642,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="write every frame's objects (imaging.chain objects: irtrack.objects/1) here, one JSON per line",
     )
     p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
-    p.add_argument(
-        "--live-view",
-        metavar="PORT",
-        type=int,
-        help="serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
+    add_live_view_option(
+        p,
+        "serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
         "with --rate realtime to watch it as flown)",
     )
     # the flight report moved to the ground side (python -m groundsim report): the old options say where
@@ -682,13 +679,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, progress: _Progress) -> int:
-    from onboard.app.config import OnboardConfigError, parse_set_option
+    from onboard.app.config import OnboardConfigError
 
     try:
-        overrides = {}
-        for text in args.set:
-            path, value = parse_set_option(text)
-            overrides[path] = (value, "--set")
+        overrides = config_overrides(args.set)
         rec = load_recording(args.mcap)
         config = config_of(rec, args.config, overrides)
     except (OnboardConfigError, IrtrackError) as exc:
