@@ -15,7 +15,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from onboard.app.replay import EXIT_CONFIG, UNREPLAYED_KEYS, compare_tracks, compare_within_sigma, main
+from onboard.app.replay import (
+    EXIT_CONFIG,
+    UNREPLAYED_KEYS,
+    compare_objects,
+    compare_tracks,
+    compare_within_sigma,
+    main,
+)
 from tests.process_helpers import WatchedCommand
 
 REPO = Path(__file__).resolve().parents[1]
@@ -40,6 +47,21 @@ def test_compare_tracks_reports_fields_and_distances():
     assert matched == 2 and unmatched == 2
     assert len(diffs) == 1 and diffs[0].seq == 1 and diffs[0].fields == ("ned_m",) and diffs[0].d_pos_m == 5.0
     assert diffs[0].d_uv_px == 0.0
+
+
+def test_compare_objects_matches_frames_in_order_and_counts_the_identical_ones():
+    def frame(t_us: int, index: int, n: int, **extra) -> dict:
+        return {"time_boot_us": t_us, "frame_index": index, "objects": [{"id": k} for k in range(n)], **extra}
+
+    recorded = [
+        frame(10, 0, 1, time_unix_us=5),  # a replay has no UTC stamp: not compared
+        frame(20, 1, 2),
+        frame(20, 1, 3),  # the same key twice (a duplicated frame): matched in turn
+        frame(30, 2, 1),  # not replayed
+    ]
+    replayed = [frame(10, 0, 1), frame(20, 1, 2), frame(20, 1, 4), frame(40, 3, 1)]
+    assert compare_objects(recorded, replayed) == (3, 2, 2)  # (matched, identical, unmatched of either list)
+    assert compare_objects(replayed, replayed) == (4, 4, 0)
 
 
 def _track(seq: int, ned_m, cov=None) -> dict:

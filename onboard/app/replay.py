@@ -470,12 +470,14 @@ class FrameDiff:
     d_uv_px: float | None
 
 
-def _matched(recorded: list, replayed: list) -> tuple[list[tuple[dict, dict]], int]:
-    """The two track lists' pairs matched on (seq, time_boot_us), in recorded order (duplicates in turn), and
-    the number of tracks of either list left unmatched."""
+def _matched(
+    recorded: list, replayed: list, keys: tuple[str, ...] = ("seq", "time_boot_us")
+) -> tuple[list[tuple[dict, dict]], int]:
+    """The two message lists' pairs matched on ``keys`` (a track's seq and time_boot_us by default), in recorded
+    order (duplicates in turn), and the number of messages of either list left unmatched."""
 
     def key(t):
-        return (t.get("seq"), t.get("time_boot_us"))
+        return tuple(t.get(k) for k in keys)
 
     theirs: dict = {}
     for t in replayed:
@@ -563,22 +565,8 @@ def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
     def made(m):
         return {k: v for k, v in m.items() if k not in UNREPLAYED_KEYS}
 
-    def key(m):
-        return (m.get("time_boot_us"), m.get("frame_index"))
-
-    theirs: dict = {}
-    for m in replayed:
-        theirs.setdefault(key(m), []).append(m)
-    matched = identical = unmatched = 0
-    for a in recorded:
-        lst = theirs.get(key(a))
-        if not lst:
-            unmatched += 1
-            continue
-        matched += 1
-        identical += made(a) == made(lst.pop(0))
-    unmatched += sum(len(v) for v in theirs.values())
-    return matched, identical, unmatched
+    pairs, unmatched = _matched(recorded, replayed, ("time_boot_us", "frame_index"))
+    return len(pairs), sum(made(a) == made(b) for a, b in pairs), unmatched
 
 
 def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=sys.stdout) -> None:
