@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench import children_by_parent
 from onboard.core.cpu_accounting import parse_cgroup_cpu_stat, parse_proc_cgroup
 from onboard.core.errors import IrtrackError
 
@@ -137,27 +138,13 @@ def _remove_cgroup(d: Path) -> None:
     print(f"bench.companion: cgroup {d} still holds processes; remove it by hand (rmdir)", file=sys.stderr)
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for name in os.listdir("/proc"):
-        if not name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        if ppid == pid:
-            out.append(int(name))
-    return out
-
-
 def _tree(pid: int) -> list[int]:
+    kids = children_by_parent()
     out, frontier = [pid], [pid]
     while frontier:
-        kids = _children(frontier.pop())
-        out += kids
-        frontier += kids
+        below = kids.get(frontier.pop(), [])
+        out += below
+        frontier += below
     return out
 
 
@@ -198,7 +185,7 @@ class EmulatedQuota:
         self._thread.join(2.0)
 
     def _daemon_pid(self) -> int | None:
-        for pid in _children(os.getpid()):
+        for pid in children_by_parent().get(os.getpid(), []):
             try:
                 cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
             except OSError:

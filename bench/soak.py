@@ -32,7 +32,7 @@ import threading
 import time
 from pathlib import Path
 
-from bench import run_benchmark
+from bench import children_by_parent, run_benchmark
 
 CONTAINER_LIMIT_MB = 512.0  # deploy/compose.yaml, service onboard
 FRAME_RATE_HZ = 30.0
@@ -40,24 +40,10 @@ STOP_GRACE_S = 5.0
 KB_PER_MB = 1024.0
 
 
-def _children_of() -> dict[int, list[int]]:
-    kids: dict[int, list[int]] = {}
-    for name in os.listdir("/proc"):
-        if not name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
-                rest = f.read().rsplit(")", 1)[1].split()
-        except OSError:
-            continue
-        kids.setdefault(int(rest[1]), []).append(int(name))
-    return kids
-
-
 def process_tree(pid: int) -> list[tuple[int, str]]:
     """``pid`` and all its live descendants, each with what it is (a forked child shows its parent's
     command line, so an estimator worker is recognised as the fork server's child)."""
-    kids = _children_of()
+    kids = children_by_parent()
     out, frontier = [], [(pid, None)]
     while frontier:
         p, parent_kind = frontier.pop()
