@@ -45,9 +45,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from bench import machine_speed_ms
+from bench.fleet_flight import open_router
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
 from groundsim.evaluation.proc_cpu import ProcCpu
 from groundsim.io.ports import free_tcp_port
@@ -61,14 +61,6 @@ ORIGIN = GeodeticOrigin(32.0, 118.8, 20.0)
 GOALS = "goals: fusion <= 0.3 of a core, nothing dropped, latency p99 <= 50 ms on loopback"
 START_TIMEOUT_S = 30.0
 DRAIN_S = 2.0  # after the last period: time for the last fleet tracks to arrive
-
-
-def _router(endpoint: str):
-    cfg = zenoh.Config()
-    cfg.insert_json5("mode", json.dumps("router"))
-    cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
-    cfg.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(cfg)
 
 
 def _scene(n: int, rng: np.random.Generator) -> tuple[list[SynthVehicle], SynthTarget]:
@@ -178,7 +170,7 @@ def main(argv=None) -> int:
     ]
 
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    router = _router(endpoint)
+    router = open_router(endpoint, gossip=None)
     tmp = tempfile.TemporaryDirectory(prefix="bench-fleet-")
     client_cfg = os.path.join(tmp.name, "client.json5")
     with open(client_cfg, "w", encoding="utf-8") as f:

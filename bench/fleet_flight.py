@@ -231,15 +231,18 @@ def plan_flight(
     return FlightPlan(scenario, int(seed), out, free_tcp_port(), ports, duration_s, tuple(utc_error_ms))
 
 
-def open_router(endpoint: str):
-    """A zenoh router in this process, configured as deploy/zenoh-router.json5 (gossip on, no multicast)."""
+def open_router(endpoint: str, gossip: bool | None = True):
+    """A zenoh router in this process listening on ``endpoint``, configured as deploy/zenoh-router.json5 (gossip
+    on, no multicast); ``gossip=None`` leaves gossip to zenoh's default (bench.fleet, whose sessions are all
+    clients of this router)."""
     import zenoh
 
     cfg = zenoh.Config()
     cfg.insert_json5("mode", json.dumps("router"))
     cfg.insert_json5("listen/endpoints", json.dumps([endpoint]))
     cfg.insert_json5("scouting/multicast/enabled", "false")
-    cfg.insert_json5("scouting/gossip/enabled", "true")
+    if gossip is not None:
+        cfg.insert_json5("scouting/gossip/enabled", json.dumps(gossip))
     return zenoh.open(cfg)
 
 
