@@ -200,6 +200,27 @@ def _check_size(width_px: int, height_px: int) -> None:
         raise InputError(f"H.264 4:2:0 needs even frame sizes, got {width_px} x {height_px}")
 
 
+class _GreyFrames:
+    """The encoders' input: grey pictures of one (even) size, each checked and made the next numbered yuv420p
+    frame (``pts`` 0, 1, 2 ...)."""
+
+    def __init__(self, width_px: int, height_px: int) -> None:
+        _check_size(width_px, height_px)
+        self.width_px, self.height_px = int(width_px), int(height_px)
+        self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
+        self._n = 0
+
+    def next(self, img_u8: np.ndarray):
+        if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
+            raise InputError(
+                f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
+            )
+        frame = _yuv420p_frame(img_u8, self._chroma)
+        frame.pts = self._n
+        self._n += 1
+        return frame
+
+
 class H264TsEncoder:
     """Grey frames -> H.264 in MPEG-TS written to ``sink`` (anything with ``write(bytes)``).
 
@@ -212,8 +233,8 @@ class H264TsEncoder:
     ) -> None:
         import av
 
-        _check_size(width_px, height_px)
-        self.width_px, self.height_px = int(width_px), int(height_px)
+        self._frames = _GreyFrames(width_px, height_px)
+        self.width_px, self.height_px = self._frames.width_px, self._frames.height_px
         self.fps = float(fps)
         self._container = av.open(sink, mode="w", format="mpegts", options={"flush_packets": "1"})
         s = self._container.add_stream("libx264", rate=int(round(fps)))
@@ -222,22 +243,13 @@ class H264TsEncoder:
         s.options = dict(_x264_options(gop_frames, bitrate_bps))  # av types it dict[str, object]
         s.codec_context.thread_count = 1
         self._stream = s
-        self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
-        self._n = 0
         self.closed = False
 
     def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
         """Encode and mux one frame; returns the number of packets written (``capture_time_us`` unused:
         the MPEG-TS time stamps count frames)."""
 
-        if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
-            raise InputError(
-                f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
-            )
-        frame = _yuv420p_frame(img_u8, self._chroma)
-        frame.pts = self._n
-        self._n += 1
-        packets = self._stream.encode(frame)
+        packets = self._stream.encode(self._frames.next(img_u8))
         self._container.mux(packets)
         return len(packets)
 
@@ -275,8 +287,8 @@ class H264RtpEncoder:
     ) -> None:
         import av
 
-        _check_size(width_px, height_px)
-        self.width_px, self.height_px = int(width_px), int(height_px)
+        self._frames = _GreyFrames(width_px, height_px)
+        self.width_px, self.height_px = self._frames.width_px, self._frames.height_px
         self.fps = float(fps)
         rng = rng or random.SystemRandom()
         self.packetizer = RtpH264Packetizer(
@@ -293,8 +305,6 @@ class H264RtpEncoder:
         ctx.thread_count = 1
         ctx.open()
         self._ctx = ctx
-        self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
-        self._n = 0
         self.packets = 0
         self.closed = False
 
@@ -302,15 +312,9 @@ class H264RtpEncoder:
         """Encode one frame captured at ``capture_time_us`` (any monotonic microsecond clock; None: now)
         and send its RTP packets; returns their number."""
 
-        if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
-            raise InputError(
-                f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
-            )
+        frame = self._frames.next(img_u8)
         if capture_time_us is None:
             capture_time_us = time.monotonic_ns() // 1000
-        frame = _yuv420p_frame(img_u8, self._chroma)
-        frame.pts = self._n
-        self._n += 1
         return self._send_units(self._ctx.encode(frame), rtp_timestamp(capture_time_us, self._ts_offset))
 
     def _send_units(self, packets, timestamp: int) -> int:
