@@ -49,13 +49,13 @@ import functools
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
-from typing import Protocol, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.schema import NonNegativeFloat, PositiveFloat, config_dataclass
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, einsum, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, csr_matvec, einsum, qr_r
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
@@ -223,8 +223,11 @@ class _SpanPrior:
 @functools.lru_cache(maxsize=32)
 def _gram_layout(intervals: int, n_params: int, nuisance_first: tuple[int, ...]) -> tuple[np.ndarray, ...]:
     """Where the entries of :meth:`WindowProblem.normal_matrix`'s interval sums land in J^T J, for a parameter
-    layout (the intervals, n_params, the first columns of the navigation nuisances): (source and destination
-    flat indices, the nuisances' columns and the flat indices of their block), read only.
+    layout (the intervals, n_params, the first columns of the navigation nuisances): the scatter as a sparse
+    0/1 matrix in CSR form (row pointers and column indices: row = flat index in J^T J, column = flat index in
+    the sums; within a row the sums in the order the old ``np.bincount`` scatter added them, so that the
+    matrix-vector product adds the same numbers in the same order), the nuisances' columns and the flat
+    indices of their block; read only.
 
     The interval sums are (intervals, 3 x u, 20) with u = 3 + nuisance columns: entry (s, k u + l, 4 m + n) the
     control-control block, (s, k u + 3 + j, 16 + m) the control-nuisance one (landing in both triangles).
@@ -244,9 +247,12 @@ def _gram_layout(intervals: int, n_params: int, nuisance_first: tuple[int, ...])
         ctrl, nuis = 3 * (s_ + m_) + k_, nuis_cols[j_]
         src += [at, at]
         dst += [ctrl * n + nuis, nuis * n + ctrl]
+    src_flat = np.concatenate([x.reshape(-1) for x in src])
+    dst_flat = np.concatenate([x.reshape(-1) for x in dst])
+    order = np.argsort(dst_flat, kind="stable")  # by row, each row's entries in their scatter order
     out = (
-        np.concatenate([x.reshape(-1) for x in src]),
-        np.concatenate([x.reshape(-1) for x in dst]),
+        np.concatenate([[0], np.cumsum(np.bincount(dst_flat, minlength=n * n))]).astype(np.intp),
+        src_flat[order].astype(np.intp),
         nuis_cols,
         (nuis_cols[:, None] * n + nuis_cols[None, :]).reshape(-1),
     )
@@ -526,10 +532,16 @@ class WindowProblem:
         k = 3
         if self.i_phi is not None:
             R5 = self._R5_T  # R's columns 0, 1, 2, 0, 1
-            M = (R5[:2] - pred[:, None, :] * R5[2]) * ((1.0 / zs) * sT)[:, None, :]
+            # M = (R5[:2] - pred R5[2]) / zs * s, in the problem's buffers (the same operations, no temporaries)
+            M, T = self._M, self._cross_tmp
+            np.multiply(pred[:, None, :], R5[2], out=M)
+            np.subtract(R5[:2], M, out=M)
+            M *= ((1.0 / zs) * sT)[:, None, :]
             np.matmul(Rphi.T, M[:, :3], out=U[:, :3])  # d r / d w
             # d r / d phi = -M [w_rot]x, whose rows are w_rot x m: component i is w[i+1] m[i+2] - w[i+2] m[i+1]
-            np.subtract(w_rot5[1:4] * M[:, 2:5], w_rot5[2:5] * M[:, 1:4], out=U[:, 3:6])
+            np.multiply(w_rot5[1:4], M[:, 2:5], out=T)
+            np.multiply(w_rot5[2:5], M[:, 1:4], out=U[:, 3:6])
+            np.subtract(T, U[:, 3:6], out=U[:, 3:6])
             k = 6
         else:
             np.multiply(R[:2] - pred[:, None, :] * R[2], ((1.0 / zs) * sT)[:, None, :], out=U[:, :3])
@@ -586,13 +598,16 @@ class WindowProblem:
         F, win = self.F, self._win
         self._nuisance_first = tuple(i0 for i0 in (self.i_phi, self.i_beta, self.i_gamma) if i0 is not None)
         self._U = np.zeros((2, 3 + 3 * len(self._nuisance_first), F))
+        self._M = np.empty((2, 5, F))  # linearise()'s scratch with an attitude bias: d r / d w_rot, in R5's columns
+        self._cross_tmp = np.empty((2, 3, F))
         self._j_omega = np.zeros(3 * self.G)
         self._B0T, self._p_cam_T, self._xy_T, self._R_T, self._w0_T = win.B0T, win.p_cam_T, win.xy_T, win.R_T, win.w0_T
         self._R5_T = win.R5_T
         self._interval_obs, self._interval_weights = win.interval_obs, win.interval_weights
         self._meas_flat = win.meas_flat(self.n_params)
         layout = _gram_layout(win.intervals, self.n_params, self._nuisance_first)
-        self._gram_src, self._gram_dst, self._nuis_cols, self._nuis_block = layout
+        self._gram_indptr, self._gram_indices, self._nuis_cols, self._nuis_block = layout
+        self._gram_ones = np.ones(self._gram_indices.size)
         # the rows whose part of J^T J is fixed: every row after the measurements' (the motion prior's too
         # without a turn rate; with one, normal_matrix adds them at the turn rate of the evaluation)
         o = 2 * F + (3 * self.G if self.i_omega is not None else 0)
@@ -615,12 +630,13 @@ class WindowProblem:
         F, n = self.F, self.n_params
         U = self._U
         u = U.shape[1]
-        # P_f = u_f^T U_f, the two rows' outer products: (3, u, F)
-        P = U[0, :3, None, :] * U[0, None, :, :]
-        P += U[1, :3, None, :] * U[1, None, :, :]
+        # P_f = u_f^T U_f, the sum of the two rows' outer products: (3, u, F)
+        P = einsum("aif,ajf->ijf", U[:, :3], U)
         per = P.reshape(3 * u, F).take(self._interval_obs, axis=1)  # (3 u, intervals, width)
         sums = np.matmul(per.transpose(1, 0, 2), self._interval_weights)  # (intervals, 3 u, 16 or 20)
-        H = np.bincount(self._gram_dst, sums.take(self._gram_src), minlength=n * n)
+        # scattered into J^T J: the layout's 0/1 matrix times the sums, one C call; the same additions, in the
+        # same order, as a bincount over the gathered sums (one gather and one scatter)
+        H = csr_matvec(self._gram_indptr, self._gram_indices, self._gram_ones, sums.reshape(-1), n * n)
         if u > 3:
             N = U[:, 3:]
             H[self._nuis_block] += einsum("akf,alf->kl", N, N).reshape(-1)
@@ -771,18 +787,9 @@ class WindowProblem:
         return out
 
     # ------------------------------------------------------------------ Levenberg-Marquardt
-    def solve(
-        self,
-        theta0: np.ndarray,
-        max_iterations: int,
-        lam0: float = 0.0,
-        cost_tol: float = 1e-4,
-        want_factor: bool = True,
-        min_range_m: float | None = None,
-        dense_jacobian: bool = True,
-    ) -> SolveResult:
-        """Levenberg-Marquardt from theta0: :meth:`solve_steps` run to its end."""
-        return drain(self.solve_steps(theta0, max_iterations, lam0, cost_tol, want_factor, min_range_m, dense_jacobian))
+    def solve(self, theta0: np.ndarray, max_iterations: int, **options: Any) -> SolveResult:
+        """Levenberg-Marquardt from theta0: :meth:`solve_steps` run to its end (``options`` its keyword arguments)."""
+        return drain(self.solve_steps(theta0, max_iterations, **options))
 
     def solve_steps(
         self,
