@@ -169,7 +169,7 @@ def selection_floor(est: MapEstimator, obs) -> dict:
     the fastest of 200 calls each, on the chosen model's problem), with no other overhead; beside them the dense
     product J^T J they replace, and the factors of the modes it keeps (from the normal equations, or the QR of the
     dense Jacobian where those are ill-conditioned: WindowProblem.normal_factor)."""
-    counted = {"iterations": 0, "evaluations": 0, "factors": 0, "normal_factors": 0}
+    counted = {"iterations": 0, "evaluations": 0, "factors": 0, "normal_factors": 0, "capped": 0, "lost": 0}
     per_model: dict[str, list[int]] = {}  # "family q": [starts, iterations]
     solve_steps, factor, normal_factor = WindowProblem.solve_steps, WindowProblem.factor, WindowProblem.normal_factor
 
@@ -178,6 +178,12 @@ def selection_floor(est: MapEstimator, obs) -> dict:
         sol = yield from solve_steps(self, *args, **kwargs)
         counted["iterations"] += sol.iterations
         counted["evaluations"] += self.evaluations - e0
+        # where the evaluations go: solves that stopped at the iteration cap (crawling along an ill-posed valley)
+        # and starts lost (collapsed onto the camera, or out of the field of view: no mode)
+        if not np.isfinite(sol.cost):
+            counted["lost"] += self.evaluations - e0
+        elif not sol.converged and sol.iterations >= est.config.max_iterations:
+            counted["capped"] += self.evaluations - e0
         model = per_model.setdefault(f"{self.prior.family} {self.prior.q_horizontal_m2ps3:g}", [0, 0])
         model[0] += 1
         model[1] += sol.iterations
@@ -217,6 +223,8 @@ def selection_floor(est: MapEstimator, obs) -> dict:
         "selection_iterations": counted["iterations"],
         "selection_per_model": per_model,
         "selection_evaluations": counted["evaluations"],
+        "selection_evaluations_at_cap": counted["capped"],
+        "selection_evaluations_lost_starts": counted["lost"],
         "selection_factors": counted["factors"],
         "selection_kept_modes": counted["normal_factors"],
         "iteration_kernels_ms": per,
@@ -496,6 +504,9 @@ def main(argv=None) -> int:
     print(
         "  where they go (model: solves (starts and re-weighting passes), iterations): "
         + ", ".join(f"{m}: {n}, {it}" for m, (n, it) in s["selection_per_model"].items())
+        + f"; of the {s['selection_evaluations']} evaluations {s['selection_evaluations_at_cap']} in solves stopped at "
+        f"the {MapConfig().max_iterations}-iteration cap, {s['selection_evaluations_lost_starts']} in starts that "
+        "collapsed onto the camera or left the field of view"
     )
     print(f"sliding window per frame, median:       {s['sliding_per_frame_median_ms']:8.2f} ms")
     print(
