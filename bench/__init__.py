@@ -69,28 +69,6 @@ def pin_to_one_cpu(unpinned: str = "not pinned") -> str:
     return f"pinned to CPU {cpu}"
 
 
-def children_by_parent() -> dict[int, list[int]]:
-    """Every live process's children by parent pid, from ``/proc/<pid>/stat`` (Linux; empty elsewhere): the
-    daemon's process tree, whose estimator worker is a child of its fork server.  A process that ends while
-    it is read is left out."""
-    kids: dict[int, list[int]] = {}
-    try:
-        names = os.listdir("/proc")
-    except OSError:
-        return kids
-    for name in names:
-        if not name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{name}/stat", encoding="ascii", errors="replace") as f:
-                # the command name may hold spaces and parentheses: the parent pid is the 2nd field after its ")"
-                ppid = int(f.read().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            continue
-        kids.setdefault(ppid, []).append(int(name))
-    return kids
-
-
 def machine_speed_ms(repeats: int = 3) -> float:
     """This machine's speed right now: CPU ms of this thread for a fixed pure-Python loop (the kind of code
     the daemon's per-frame and per-message paths run), the fastest of ``repeats``.  Printed beside CPU

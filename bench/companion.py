@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bench import children_by_parent
+from groundsim.evaluation.proc_cpu import children_by_parent
 from onboard.core.cpu_accounting import parse_cgroup_cpu_stat, parse_proc_cgroup
 from onboard.core.errors import IrtrackError
 

@@ -32,7 +32,8 @@ import threading
 import time
 from pathlib import Path
 
-from bench import children_by_parent, run_benchmark
+from bench import run_benchmark
+from groundsim.evaluation.proc_cpu import children_by_parent
 
 CONTAINER_LIMIT_MB = 512.0  # deploy/compose.yaml, service onboard
 FRAME_RATE_HZ = 30.0

@@ -6,7 +6,7 @@ from __future__ import annotations
 import os
 import time
 
-__all__ = ["ProcCpu"]
+__all__ = ["ProcCpu", "children_by_parent"]
 
 
 def _proc_stat(pid: int) -> list[str] | None:
@@ -16,6 +16,24 @@ def _proc_stat(pid: int) -> list[str] | None:
             return f.read().rsplit(")", 1)[1].split()
     except (OSError, IndexError):
         return None
+
+
+def children_by_parent() -> dict[int, list[int]]:
+    """Every live process's children by parent pid, from ``/proc/<pid>/stat`` (Linux; empty elsewhere): the
+    daemon's process tree, whose estimator worker is a child of its fork server.  A process that ends while
+    it is read is left out."""
+    kids: dict[int, list[int]] = {}
+    try:
+        names = os.listdir("/proc")
+    except OSError:
+        return kids
+    for name in names:
+        if name.isdigit():
+            # the command name may hold spaces and parentheses: the parent pid is the 2nd field after its ")"
+            st = _proc_stat(int(name))
+            if st is not None and len(st) > 1 and st[1].isdigit():
+                kids.setdefault(int(st[1]), []).append(int(name))
+    return kids
 
 
 class ProcCpu:
@@ -33,22 +51,12 @@ class ProcCpu:
         self.final: float | None = None
 
     def _descendants(self) -> list[int]:
-        parent: dict[int, int] = {}
-        try:
-            names = os.listdir("/proc")
-        except OSError:
-            return []
-        for name in names:
-            if name.isdigit():
-                st = _proc_stat(int(name))
-                if st is not None and len(st) > 1 and st[1].isdigit():
-                    parent[int(name)] = int(st[1])
+        kids = children_by_parent()
         out, frontier = [], [self.pid]
         while frontier:
-            p = frontier.pop()
-            kids = [c for c, pp in parent.items() if pp == p]
-            out += kids
-            frontier += kids
+            found = kids.get(frontier.pop(), [])
+            out += found
+            frontier += found
         return out
 
     def cpu_s(self) -> float | None:

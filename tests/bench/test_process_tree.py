@@ -1,4 +1,4 @@
-"""bench.children_by_parent: the /proc parent map the companion and soak benchmarks walk the daemon's tree with."""
+"""children_by_parent: the /proc parent map that ProcCpu, bench.companion and bench.soak walk the daemon's tree with."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import sys
 
 import pytest
 
-from bench import children_by_parent
 from bench.soak import process_tree
+from groundsim.evaluation.proc_cpu import children_by_parent
 
 pytestmark = pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="reads /proc (Linux)")
 
