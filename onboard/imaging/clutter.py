@@ -62,6 +62,7 @@ __all__ = [
 
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
 SPARSE_LABEL_MAX_PX = 256  # up to this many thresholded pixels are labelled among themselves
+SURROUND_STEP_PX = 0.5  # surround_residuals' grid of displacements
 FEW_PX = 64  # up to this many in plain Python: numpy's ~25 calls cost more (C3, 24-48 px: 0.21 against 0.15 ms)
 TRANSIENT_A, TRANSIENT_B = "transient_a", "transient_b"  # Scratch names of intermediates no function returns
 _RINGS: dict[int, np.ndarray] = {}  # guard_px -> the dilation kernel of the eight surround cells
@@ -552,19 +553,25 @@ def surround_residuals(
     displacement_px: tuple[float, float],
     half_px: int = 16,
     blank_px: int = 4,
-    alt_px: float = 2.0,
+    own_px: float = 1.0,
+    alt_px: float = 3.0,
     min_pixels: int = 200,
 ) -> tuple[float, float]:
     """How well an object's displacement explains the motion of its surroundings: ``(own, alt)``, the
     mean absolute difference between ``current``'s ``2 half_px + 1`` square about ``uv_px`` (its
     ``2 blank_px + 1`` core, the object itself, left out) and ``previous``'s square moved by
-    ``displacement_px`` (the best within half a pixel of it: ``own``) or by any of the eight
-    displacements ``alt_px`` away from it (the best: ``alt``); bilinear sub-pixel squares, grey.
+    ``displacement_px`` (the best within ``own_px`` of it: ``own``) or by any displacement within half a
+    pixel of the eight ``alt_px`` away from it (the best: ``alt``); displacements on a half-pixel grid
+    (the diagonal ones 2.83 px away at 3 px), bilinear sub-pixel squares, grey.
 
     Surroundings carried with the object (a terrain or cloud feature: it is part of them) give ``own``
     well under ``alt``; an object moving across textured surroundings gives ``own`` no better than
-    ``alt``; featureless surroundings (a clear sky) give both alike.  Only pixels inside both frames
-    count (``alt_px + 1`` px of margin in ``previous``); nan when fewer than ``min_pixels`` remain."""
+    ``alt``; featureless surroundings (a clear sky) give both alike.  Both are searched: an object's
+    measured displacement is off by up to a pixel (a fragment's centroid on a quantised frame moves in
+    half-pixel steps), and a minimum over many bilinear squares of noise is lower than over few (the
+    half-pixel ones average the noise), so a search on one side only biases the comparison.  Only
+    pixels inside both frames count (``alt_px + 1`` px of margin in ``previous``); nan when fewer than
+    ``min_pixels`` remain."""
     u1, v1 = uv_px
     du, dv = displacement_px
     side = 2 * half_px + 1
@@ -581,19 +588,49 @@ def surround_residuals(
     ring &= ((v1 + off >= m) & (v1 + off < h - m))[:, None] & ((u1 + off >= m) & (u1 + off < w - m))[None, :]
     ring &= ((v1 - dv + off >= m) & (v1 - dv + off < h - m))[:, None]
     ring &= ((u1 - du + off >= m) & (u1 - du + off < w - m))[None, :]
-    if int(ring.sum()) < min_pixels:
+    n = int(ring.sum())
+    if n < min_pixels:
         return math.nan, math.nan
-    idx = np.flatnonzero(ring)
+    # displacements (du, dv) + (i, j) / 2: own's within own_px, alt's about the eight points alt_px away
+    r_own = own_px / SURROUND_STEP_PX
+    a, d = round(alt_px / SURROUND_STEP_PX), round(alt_px / math.sqrt(2) / SURROUND_STEP_PX)
+    own_ij = [
+        (i, j)
+        for i in range(-int(r_own), int(r_own) + 1)
+        for j in range(-int(r_own), int(r_own) + 1)
+        if i * i + j * j <= r_own * r_own
+    ]
+    alt_ij = [
+        (ci + x, cj + y)
+        for ci, cj in ((a, 0), (-a, 0), (0, a), (0, -a), (d, d), (d, -d), (-d, d), (-d, -d))
+        for x in (-1, 0, 1)
+        for y in (-1, 0, 1)
+    ]
+    # the square moved by (du + i / 2, dv + j / 2) is previous's centred at (u1 - du - i / 2, v1 - dv - j / 2):
+    # one larger bilinear square per half-pixel phase, whole-pixel slices of it
+    reach = max(abs(k) for ij in own_ij + alt_ij for k in ij) // 2 + 1
+    big = {
+        (pi, pj): cv2.getRectSubPix(
+            previous,
+            (side + 2 * reach, side + 2 * reach),
+            (u1 - du - pi * SURROUND_STEP_PX - 0.5, v1 - dv - pj * SURROUND_STEP_PX - 0.5),
+            patchType=cv2.CV_32F,
+        )
+        for pi in (0, 1)
+        for pj in (0, 1)
+    }
+    weight = ring.astype(np.float32) / np.float32(n)
 
-    def residual(x: float, y: float) -> float:
-        # previous's square whose content is now about (u1, v1) if it moved by (x, y)
-        o = cv2.getRectSubPix(previous, (side, side), (u1 - x - 0.5, v1 - y - 0.5), patchType=cv2.CV_32F)
-        return float(np.mean(np.abs(c.ravel()[idx] - o.ravel()[idx])))
+    def best(ij: list[tuple[int, int]]) -> float:
+        squares = np.stack(
+            [
+                big[i % 2, j % 2][reach - j // 2 : reach - j // 2 + side, reach - i // 2 : reach - i // 2 + side]
+                for i, j in ij
+            ]
+        )
+        return float(np.min((np.abs(squares - c) * weight).sum(axis=(1, 2))))
 
-    d = alt_px / math.sqrt(2)
-    own = min(residual(du + x, dv + y) for x in (-0.5, 0.0, 0.5) for y in (-0.5, 0.0, 0.5))
-    alts = ((alt_px, 0), (-alt_px, 0), (0, alt_px), (0, -alt_px), (d, d), (d, -d), (-d, d), (-d, -d))
-    return own, min(residual(du + x, dv + y) for x, y in alts)
+    return best(own_ij), best(alt_ij)
 
 
 def _parabola_vertex(a: float, b: float, c: float) -> float:

@@ -48,7 +48,12 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
-from onboard.imaging.objects_detection import DIFFERENCE_HALF_PX, DIFFERENCE_SIGMA, ObjectDetector
+from onboard.imaging.objects_detection import (
+    DIFFERENCE_HALF_PX,
+    DIFFERENCE_SIGMA,
+    SURROUND_MATCH_RATIO,
+    ObjectDetector,
+)
 from onboard.imaging.objects_model import (
     OBJECT_STATES,
     ObjectParams,
@@ -78,6 +83,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 GREY16_PER_GREY8 = 257.0  # 65535 / 255
+# a track is carried by its surroundings when the median of its last this many tests says so (SURROUND_MATCH_RATIO)
+SURROUND_TESTS_KEPT = 15
 
 
 class ObjectTracker:
@@ -377,12 +384,19 @@ class ObjectTracker:
             for t, v, r in zip(fitted, vel, rms):
                 t.velocity_pxpf = (float(v[0]), float(v[1]))
                 t.fit_rms_px = float(r)
-        follows: dict[int, bool] = {}  # object id -> its surroundings moved with it (asked once a frame)
+        asked: set[int] = set()  # object ids whose surroundings were compared on this frame
 
         def carried(o: TrackRecord) -> bool:
-            if o.object_id not in follows:
-                follows[o.object_id] = self.detector.surroundings_follow(o)
-            return follows[o.object_id]
+            # the median of its last tests, not this frame's alone: C2 seed 1's terrain fragment, a warm spot
+            # on a flat field near the frame's edge, matched its surroundings 1.5-4.4x better than 3 px off
+            # (median 2.3) but 0.93-1.2x on four frames in a row (field edges, a pixel of error in its
+            # displacement); the targets on the reference scenes measure 0.65-1.12
+            if o.object_id not in asked:
+                asked.add(o.object_id)
+                match = self.detector.surroundings_match(o)
+                if not math.isnan(match):
+                    o.surround_matches = [*o.surround_matches, match][-SURROUND_TESTS_KEPT:]
+            return bool(o.surround_matches) and float(np.median(o.surround_matches)) > SURROUND_MATCH_RATIO
 
         for t in tentative:
             if t.hits < p.confirm_hits or t.misses > 0 or len(t.history) < p.confirm_in_window:

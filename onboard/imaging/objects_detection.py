@@ -35,7 +35,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
-__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA"]
+__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA", "SURROUND_MATCH_RATIO"]
 
 log = logging.getLogger(__name__)
 
@@ -264,22 +264,31 @@ class ObjectDetector:
     def surroundings_follow(self, t: TrackRecord) -> bool:
         """The texture about the track on the oldest of its recent frames, moved by the track's own image
         displacement since, matches this frame's ``SURROUND_MATCH_RATIO`` times better than moved 2 px
-        otherwise (:func:`onboard.imaging.clutter.surround_residuals`): the background's motion where
-        the track is, which the frame-wide one misses (looking down at a slant the nearer ground flows
-        ~30 % faster than the whole frame, C2) and no neighbour track always stands for."""
+        otherwise (:meth:`surroundings_match`): the background's motion where the track is, which the
+        frame-wide one misses (looking down at a slant the nearer ground flows ~30 % faster than the
+        whole frame, C2) and no neighbour track always stands for."""
+        return bool(self.surroundings_match(t) > SURROUND_MATCH_RATIO)  # False when nan
+
+    def surroundings_match(self, t: TrackRecord) -> float:
+        """How much better the track's own displacement fits its surroundings than any 2 px away: ``alt /
+        own`` of :func:`onboard.imaging.clutter.surround_residuals` over the track's recent frames (nan:
+        too few frames or pixels).  Carried by them well over 1; crossing them, or on a featureless sky,
+        about 1 or under."""
         if len(t.history) < 2:
-            return False
+            return float("nan")
         k0, _, u0, v0 = t.history[0]
         old = next((img for k, img in self._recent if k == k0), None)
         cur = self._recent[-1][1] if self._recent and self._recent[-1][0] == self.frame_index else None
         if old is None or cur is None:
-            return False
+            return float("nan")
         # the displacement from a straight-line fit of its measured pixels (each jitters by tenths of a px)
         f = np.array([e[0] for e in t.history], dtype=np.float64)
         slope = np.polyfit(f, np.array([(e[2], e[3]) for e in t.history]), 1)[0] * (self.frame_index - k0)
         own, alt = surround_residuals(cur, old, t.uv, (float(slope[0]), float(slope[1])))
         log.debug("surroundings of %d: own %.3f alt %.3f", t.object_id, own, alt)
-        return bool(own * SURROUND_MATCH_RATIO < alt)  # False when either is nan (too few pixels)
+        if not own > 0:  # nan (too few pixels), or a perfect match
+            return float("inf") if alt > 0 else float("nan")
+        return alt / own
 
     def difference_candidate(self, puv: tuple[float, float], gate: float, R: np.ndarray) -> PointCandidate | None:
         """Track-aided detection against the background (where its motion is known): this frame minus the

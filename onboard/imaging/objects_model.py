@@ -182,6 +182,8 @@ class TrackRecord:
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
     dim_hits: int = 0  # frames measured by track-before-detect's reports
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
+    # its last surroundings tests (ObjectDetector.surroundings_match: how much better its own displacement fits them)
+    surround_matches: list = field(default_factory=list)
 
 
 class StageTimes:

@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 from onboard.core.frames import PinholeIntrinsics
 from onboard.imaging.clutter import surround_residuals
 from onboard.imaging.objects import ObjectParams, ObjectTracker
-from onboard.imaging.objects_detection import ObjectDetector
+from onboard.imaging.objects_detection import SURROUND_MATCH_RATIO, ObjectDetector
 
 W_PX, H_PX = 256, 192  # the background motion is measured on 4x smaller frames: 64 x 48 here
 K = PinholeIntrinsics(300.0, 300.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
@@ -104,7 +104,7 @@ def test_a_feature_carried_by_its_own_surroundings_is_not_confirmed(surroundings
     motion: the frame-wide test alone confirms it (a false track); compared with its own surroundings
     it is not confirmed, while the target crossing the far ground is."""
     if not surroundings_test:
-        monkeypatch.setattr(ObjectDetector, "surroundings_follow", lambda self, t: False)
+        monkeypatch.setattr(ObjectDetector, "surroundings_match", lambda self, t: float("nan"))
     # fine texture over the coarse one: what the surroundings are matched by at one-pixel shifts
     fine = cv2.GaussianBlur(np.random.default_rng(17).normal(0.0, 20.0, (H_PX + 80, W_PX)), (0, 0), 1.5)
     terrain = _terrain() + fine.astype(np.float32)
@@ -221,3 +221,47 @@ def test_a_target_on_a_warm_field_edge_is_held_by_the_background_difference(diff
     assert (held >= 20) if difference else (held <= 5)
     if difference:
         assert len(primary_err) >= 20 and float(np.median(primary_err)) <= DIFFERENCE_CENTRE_TOL_PX
+
+
+@pytest.mark.parametrize("dropouts, spot_kept_out", [(1, True), (2, True), (4, False)])
+def test_a_carried_feature_stays_carried_through_a_few_tests_that_say_otherwise(dropouts, spot_kept_out, monkeypatch):
+    """The surroundings test decides by the median of a track's last tests: the warm spot carried by the
+    nearer ground, whose test says 'not carried' on ``dropouts`` frames after its first three (what faint
+    texture near the frame's edge gave C2 seed 1's terrain fragment: 1.48x and 1.19x on the frames it was
+    confirmed, 1.9-2.4x before), is not confirmed while those are fewer than the others; the target is."""
+    original = ObjectDetector.surroundings_match
+    tested: dict[int, int] = {}  # object id -> its tests so far
+
+    def flaky(self, t):
+        tested[t.object_id] = tested.get(t.object_id, 0) + 1
+        match = original(self, t)
+        if match > SURROUND_MATCH_RATIO and 4 <= tested[t.object_id] <= 3 + dropouts:
+            return 1.0  # own no better than 3 px off: this frame's test alone would confirm it
+        return match
+
+    monkeypatch.setattr(ObjectDetector, "surroundings_match", flaky)
+    fine = cv2.GaussianBlur(np.random.default_rng(17).normal(0.0, 20.0, (H_PX + 80, W_PX)), (0, 0), 1.5)
+    terrain = _terrain() + fine.astype(np.float32)
+    tr = ObjectTracker(K)
+    spot_confirmed = target_confirmed = 0
+    for k in range(45):
+        target = (40.0 + TARGET_PXPF * k, 50.0)
+        out = tr.update(_slanted_frame(terrain, k, target), np.eye(3))
+        spot = (SPOT_UV[0], SPOT_UV[1] + NEAR_SCROLL_PXPF * k)
+        for o in out.confirmed:
+            spot_confirmed += math.hypot(o.u_px - spot[0], o.v_px - spot[1]) <= MATCH_PX
+            target_confirmed += math.hypot(o.u_px - target[0], o.v_px - target[1]) <= MATCH_PX
+    assert max(tested.values()) >= 3 + dropouts  # the spot was asked through the flaky answers
+    assert (spot_confirmed == 0) == spot_kept_out
+    assert target_confirmed >= 25
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(-6.0, 6.0), st.floats(-6.0, 6.0), st.floats(0.0, 0.9), st.floats(0.0, 2 * math.pi))
+def test_surround_residuals_forgive_a_displacement_off_by_under_a_pixel(du, dv, error_px, angle_rad):
+    """A fragment's measured displacement is off by up to a pixel (its centroid on a quantised frame moves
+    in half-pixel steps): its surroundings still match it far better than 3 px away."""
+    previous, current = _shifted_texture(du, dv)
+    measured = (du + error_px * math.cos(angle_rad), dv + error_px * math.sin(angle_rad))
+    own, alt = surround_residuals(current, previous, (64.0, 64.0), measured)
+    assert own * 2.0 < alt
