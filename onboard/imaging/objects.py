@@ -165,22 +165,31 @@ class ObjectTracker:
         for t in self._tracks:
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
-            # background (a fragment of terrain or cloud it slid onto would move with it)
+            # background (a fragment of terrain or cloud it slid onto would move with it); beyond
+            # aided_max_run_moving frames only the background difference, which cancels whatever moves
+            # with the background, measures it
             if not t.confirmed:
                 # a tentative track with confirm_hits hits may bridge single misses (a target near the
                 # threshold, detected on two frames of three, never reached 12 of 15: C3 seed 1's second
                 # target, frames 30-124); two aided frames in a row confirmed a terrain fragment on C2
                 if t.hits < p.confirm_hits or t.aided_run >= p.aided_tentative_max_run:
                     continue
-            elif t.aided_run >= p.aided_max_run and (
-                t.aided_run >= p.aided_max_run_moving or not self._moves_unlike_background(t, R)
-            ):
+            elif t.aided_run >= p.aided_max_run and not self._moves_unlike_background(t, R):
                 continue
             puv = self._project(unit_vector(t.los + t.rate), R)
             if puv is None:
                 continue
             gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
             if any(math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate for c in out):
+                continue
+            if t.confirmed and t.aided_run >= p.aided_max_run_moving:
+                # C2's clean twin's target, 2 grey of point contrast on flat ground whose pixels toggle
+                # between two grey levels (the threshold 5.5 x 0.5 grey), is never over the whole-frame
+                # threshold after ~14 s; the difference finds it on 91-99 % of the frames
+                best = self._difference_candidate(t, puv, gate, R)
+                if best is not None:
+                    self._difference_ids.add(id(best))
+                    out.append(best)
                 continue
             r = int(math.ceil(gate)) + 2
             x0, y0 = max(int(puv[0]) - r, 0), max(int(puv[1]) - r, 0)

@@ -67,7 +67,8 @@ class ObjectParams:
 
     Track-aided detection (in a confirmed track's gate, ``aided_threshold_factor`` x the threshold):
     ``aided_max_run`` frames in a row, up to ``aided_max_run_moving`` while its positions still move
-    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more); one measured mostly
+    unlike the background (fit within ``aided_max_fit_rms_px``: dim positions scatter more), and past that, while
+    they do, by the background difference alone (which cancels what moves with the background); one measured mostly
     by track-before-detect, within ``dim_max_fit_rms_px`` (its centres scatter 0.3-0.5 px, more on a noisy pose);
     in a tentative track's with ``confirm_hits`` hits, ``aided_tentative_max_run`` frames in a row (0: never).
     """

@@ -48,7 +48,8 @@ def _frame(terrain: np.ndarray, k: int, uv: tuple[float, float], amp: float) -> 
     "with_terrain, max_run_moving, low, high",
     [
         (False, ObjectParams().aided_max_run_moving, 36, DIM_FRAMES),  # moving unlike the terrain: held
-        (False, ObjectParams().aided_max_run, 0, 12),  # the extension off: the fixed run only
+        # the point contrast's extension off: past the fixed run the background difference measures it
+        (False, ObjectParams().aided_max_run, 36, DIM_FRAMES),
         (True, ObjectParams().aided_max_run_moving, 0, 12),  # slid onto the terrain's motion: not extended
     ],
 )
@@ -56,9 +57,9 @@ def test_aided_run_is_extended_only_while_the_object_moves_unlike_its_background
     with_terrain, max_run_moving, low, high
 ):
     """A confirmed object over scrolling terrain dims below the whole-frame threshold for 40 frames.
-    The aided detections hold it beyond ``aided_max_run`` while it keeps moving unlike the terrain; when
-    its measured points move with the terrain (what a track that slid onto a terrain feature sees) the
-    run ends after ``aided_max_run`` frames, as it does with the extension off."""
+    The aided detections hold it beyond ``aided_max_run`` while it keeps moving unlike the terrain (past
+    ``aided_max_run_moving``, the background difference alone); when its measured points move with the
+    terrain (what a track that slid onto a terrain feature sees) the run ends after ``aided_max_run`` frames."""
     terrain = _terrain()
     tr = ObjectTracker(K, params=ObjectParams(aided_max_run_moving=max_run_moving))
     seen = 0
@@ -265,3 +266,31 @@ def test_surround_residuals_forgive_a_displacement_off_by_under_a_pixel(du, dv, 
     measured = (du + error_px * math.cos(angle_rad), dv + error_px * math.sin(angle_rad))
     own, alt = surround_residuals(current, previous, (64.0, 64.0), measured)
     assert own * 2.0 < alt
+
+
+LONG_DIM_FRAMES = 160  # past aided_max_run_moving (90) aided frames in a row
+FAINT_GREY = 3.5  # under the whole-frame threshold at this speed (DIM_GREY is not, now and then)
+
+
+@pytest.mark.parametrize("faint_grey", [FAINT_GREY, 0.0])
+def test_beyond_the_extended_aided_run_the_background_difference_holds_the_object(faint_grey):
+    """A confirmed object over scrolling terrain dims below the whole-frame threshold for 160 frames (C2's
+    clean twin: 2 grey of point contrast on ground whose pixels toggle between two grey levels, from ~14 s
+    on).  Past ``aided_max_run_moving`` aided frames in a row (reached at ~125 here) the background
+    difference, which cancels what moves with the terrain, measures it; an object that is gone
+    (``faint_grey`` 0) is not held by it."""
+    terrain = _terrain()
+    tr = ObjectTracker(K)
+    seen_late = seen = 0
+    for k in range(BRIGHT_FRAMES + LONG_DIM_FRAMES):
+        d = max(k - BRIGHT_FRAMES, 0)
+        uv = (60.0 + 0.5 * TARGET_PXPF * k, 100.0)
+        out = tr.update(_frame(terrain, k, uv, BRIGHT_GREY if d == 0 else faint_grey), np.eye(3))
+        if d > 0:
+            here = any(math.hypot(o.u_px - uv[0], o.v_px - uv[1]) <= MATCH_PX for o in out.confirmed)
+            seen += here
+            seen_late += here and d > 130
+    if faint_grey > 0:
+        assert seen_late >= 10  # 15 of these 30 frames; none when the run ended at 90 (coasted, then lost)
+    else:
+        assert seen <= ObjectParams().aided_max_run
