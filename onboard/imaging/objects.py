@@ -49,6 +49,7 @@ from onboard.core.errors import InputError
 from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.objects_detection import (
+    DIFFERENCE_GATE_PX,
     DIFFERENCE_HALF_PX,
     DIFFERENCE_SIGMA,
     SURROUND_MATCH_RATIO,
@@ -83,6 +84,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 GREY16_PER_GREY8 = 257.0  # 65535 / 255
+DIFFERENCE_SEARCH_MAX = 8  # points tried a frame by the background difference while there is no primary (0.2 ms each)
 # a track is carried by its surroundings when the median of its last this many tests says so (SURROUND_MATCH_RATIO)
 SURROUND_TESTS_KEPT = 15
 
@@ -161,7 +163,6 @@ class ObjectTracker:
             return cands
         h, w = contrast.shape
         out = list(cands)
-        self._difference_ids = set()
         for t in self._tracks:
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
@@ -214,6 +215,51 @@ class ObjectTracker:
                 out.append(best)
         return out
 
+    def _difference_search(self, found: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
+        """While there is no primary target: the background difference as a detector where the gimbal points.
+        Of the points within ``primary_max_off_axis_rad`` of the optical axis whose point contrast is over
+        ``aided_threshold_factor`` times the CFAR threshold but under it, none within ``gate_px`` of a
+        candidate already found nor with a confirmed track in its square, on texture, the
+        ``DIFFERENCE_SEARCH_MAX`` strongest are tried (:meth:`ObjectDetector.difference_candidate`, 5 of its
+        own sigmas within ``DIFFERENCE_GATE_PX`` of the point); what it finds is a candidate like any (it may
+        start a track, which must still pass every confirmation test).  Over textured ground the point
+        contrast of a look-down target falls under a threshold the texture sets (C2 seeds 1 and 2: median 0.58
+        and 0.53 of it), while the difference, registered on the point's surroundings 8 frames back, cancels
+        what moves with the ground; on a clear sky the whole-frame threshold is the detector."""
+        p, K = self.params, self.K
+        contrast, threshold = self.detector.contrast, self.detector.threshold
+        if contrast is None or threshold is None:
+            return []
+        h, w = contrast.shape
+        reach = math.tan(p.primary_max_off_axis_rad)
+        x0, x1 = max(int(K.cx_px - K.fx_px * reach), 0), min(int(K.cx_px + K.fx_px * reach) + 1, w)
+        y0, y1 = max(int(K.cy_px - K.fy_px * reach), 0), min(int(K.cy_px + K.fy_px * reach) + 1, h)
+        if x1 - x0 < 3 or y1 - y0 < 3:
+            return []
+        factor = np.float32(p.aided_threshold_factor)
+        weak = point_candidates(contrast[y0:y1, x0:x1], threshold[y0:y1, x0:x1] * factor, self.clutter)
+        out: list[PointCandidate] = []
+        tried = 0
+        for c in sorted(weak, key=lambda c: -c.score):  # score: contrast over the lowered threshold
+            if tried >= DIFFERENCE_SEARCH_MAX:
+                break
+            u, v = c.u_px + x0, c.v_px + y0
+            off = math.hypot((u - K.cx_px) / K.fx_px, (v - K.cy_px) / K.fy_px)
+            if c.score * p.aided_threshold_factor >= 1.0 or off > reach:
+                continue  # a candidate of the whole-frame threshold already, or outside the circle
+            if any(math.hypot(f.u_px - u, f.v_px - v) <= p.gate_px for f in found):
+                continue
+            if any(o.confirmed and max(abs(o.uv[0] - u), abs(o.uv[1] - v)) <= DIFFERENCE_HALF_PX for o in self._tracks):
+                continue
+            if not self.detector.textured((u, v)):
+                continue
+            tried += 1
+            d = self.detector.difference_candidate((u, v), DIFFERENCE_GATE_PX, R)
+            if d is not None:
+                self._difference_ids.add(id(d))
+                out.append(d)
+        return out
+
     def _difference_candidate(
         self, t: TrackRecord, puv: tuple[float, float], gate: float, R: np.ndarray
     ) -> PointCandidate | None:
@@ -264,6 +310,9 @@ class ObjectTracker:
         self._tbd_ids, regular = {id(c) for c in dim}, regular + dim
         self.stages.lap("track-before-detect")
         self.detector.background_motion(R)  # before the aided detections: it may extend their runs
+        self._difference_ids = set()
+        if self._primary is None:  # its time is the aided detection's stage's
+            regular = regular + self._difference_search(regular, R)
         cands = self._aided_candidates(regular, R)
         self.stages.lap("aided detection")
         measured = self._associate(cands, R, len(regular))

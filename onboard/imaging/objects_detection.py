@@ -35,7 +35,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
-__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA", "SURROUND_MATCH_RATIO"]
+__all__ = ["ObjectDetector", "DIFFERENCE_GATE_PX", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA", "SURROUND_MATCH_RATIO"]
 
 log = logging.getLogger(__name__)
 
