@@ -35,7 +35,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
-__all__ = ["ObjectDetector", "DIFFERENCE_GATE_PX", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA", "SURROUND_MATCH_RATIO"]
+__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA"]
 
 log = logging.getLogger(__name__)
 
@@ -263,14 +263,14 @@ class ObjectDetector:
 
     def surroundings_follow(self, t: TrackRecord) -> bool:
         """The texture about the track on the oldest of its recent frames, moved by the track's own image
-        displacement since, matches this frame's ``SURROUND_MATCH_RATIO`` times better than moved 2 px
+        displacement since, matches this frame's ``SURROUND_MATCH_RATIO`` times better than moved ~3 px
         otherwise (:meth:`surroundings_match`): the background's motion where the track is, which the
         frame-wide one misses (looking down at a slant the nearer ground flows ~30 % faster than the
         whole frame, C2) and no neighbour track always stands for."""
         return bool(self.surroundings_match(t) > SURROUND_MATCH_RATIO)  # False when nan
 
     def surroundings_match(self, t: TrackRecord) -> float:
-        """How much better the track's own displacement fits its surroundings than any 2 px away: ``alt /
+        """How much better the track's own displacement fits its surroundings than any ~3 px away: ``alt /
         own`` of :func:`onboard.imaging.clutter.surround_residuals` over the track's recent frames (nan:
         too few frames or pixels).  Carried by them well over 1; crossing them, or on a featureless sky,
         about 1 or under."""
