@@ -4,7 +4,9 @@
 
 Detection (:mod:`onboard.imaging.objects_detection` over :mod:`onboard.imaging.clutter`): column offsets
 removed, dead/hot pixels repaired, the two-scale point contrast thresholded at ``threshold_sigma`` local
-(CFAR) noise sigmas.  The nouns (parameters, outputs, the track record, the bearing geometry) are
+(CFAR) noise sigmas; while there is no primary, also the background difference at the strongest points
+under that threshold near the optical axis (``ObjectTracker._difference_search``).  The nouns (parameters,
+outputs, the track record, the bearing geometry) are
 :mod:`onboard.imaging.objects_model`; this module is the tracker: association, confirmation, track-aided
 detection, the primary target, and :class:`ObjectChain` (the daemon's interface).
 
