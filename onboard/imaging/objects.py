@@ -165,6 +165,12 @@ class ObjectTracker:
             return cands
         h, w = contrast.shape
         out = list(cands)
+        # the predictions of the confirmed tracks measured on the last frame: a candidate nearer another's
+        # than a track's own is that one's, and leaves the track's gate open (C3: the second target, 3-5
+        # px beside the primary, coasted while the primary's candidate lay in its gate)
+        held = [
+            (t, self._project(unit_vector(t.los + t.rate), R)) for t in self._tracks if t.confirmed and t.misses == 0
+        ]
         for t in self._tracks:
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
@@ -183,7 +189,8 @@ class ObjectTracker:
             if puv is None:
                 continue
             gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
-            if any(math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate for c in out):
+            others = [q for o, q in held if o is not t and q is not None]
+            if any(_in_own_gate(c.u_px, c.v_px, puv, gate, others) for c in out):
                 continue
             if t.confirmed and t.aided_run >= p.aided_max_run_moving:
                 # C2's clean twin's target, 2 grey of point contrast on flat ground whose pixels toggle
@@ -205,7 +212,7 @@ class ObjectTracker:
             best = None
             for c in roi:
                 u, v = c.u_px + x0, c.v_px + y0
-                if math.hypot(u - puv[0], v - puv[1]) <= gate and (best is None or c.score > best.score):
+                if _in_own_gate(u, v, puv, gate, others) and (best is None or c.score > best.score):
                     best = dataclasses.replace(
                         c, u_px=u, v_px=v, bbox=(c.bbox[0] + x0, c.bbox[1] + y0, c.bbox[2], c.bbox[3])
                     )
@@ -307,6 +314,8 @@ class ObjectTracker:
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
             self.detector.restart()
         regular = self.detect(image)
+        regular = regular + self._deblended(regular, R)
+        self.stages.lap("deblending")
         clean = self.detector.clean
         dim = [] if self.tbd is None or clean is None else self._tbd_candidates(self.tbd, clean, regular, R)
         self._tbd_ids, regular = {id(c) for c in dim}, regular + dim
@@ -323,6 +332,16 @@ class ObjectTracker:
         out = self._output(image, R, event, measured, changed)
         self.stages.lap("primary, output")
         return out
+
+    def _deblended(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
+        """Points beside a bright confirmed track measured on the last frame that its light hid
+        (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any candidate."""
+        bright = [
+            puv
+            for t in self._tracks
+            if t.confirmed and t.misses == 0 and (puv := self._project(unit_vector(t.los + t.rate), R)) is not None
+        ]
+        return self.detector.deblended_candidates(cands, bright, self.params.gate_px)
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
@@ -660,6 +679,12 @@ class ObjectTracker:
                 )
             )
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _in_own_gate(u: float, v: float, puv: tuple[float, float], gate: float, others: list[tuple[float, float]]) -> bool:
+    """(u, v) lies within ``gate`` of the prediction ``puv`` and no nearer any of ``others`` (px)."""
+    d = math.hypot(u - puv[0], v - puv[1])
+    return d <= gate and not any(math.hypot(u - q[0], v - q[1]) < d for q in others)
 
 
 def _relative_to_median(v_pxpf: tuple[float, float], tracks: list[TrackRecord]) -> float:

@@ -6,13 +6,16 @@ removed, dead/hot pixels repaired, the two-scale point contrast against the CFAR
 motion, the camera's rotation removed).  It keeps the recent frames and poses those need and answers the
 tracker's questions about the background where a track is: is it textured (:meth:`textured`), did its
 surroundings move with it (:meth:`surroundings_follow`), and, for track-aided detection, the difference
-against the background moved with the camera (:meth:`difference_candidate`).  The tracker itself
+against the background moved with the camera (:meth:`difference_candidate`); about a bright neighbour,
+the fainter points its light hid (:meth:`deblended_candidates`, :func:`symmetric_deblend`).  The tracker itself
 (association, confirmation, the primary) is :mod:`onboard.imaging.objects`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 
 import cv2
 import numpy as np
@@ -35,7 +38,7 @@ from onboard.imaging.clutter import (
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
-__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA"]
+__all__ = ["ObjectDetector", "DIFFERENCE_HALF_PX", "DIFFERENCE_SIGMA", "symmetric_deblend"]
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +52,11 @@ DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
 SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
+DEBLEND_MIN_SCORE = 2.0  # a neighbour this many thresholds bright is deblended (C3's primary: 2.3-3.7)
+DEBLEND_RADIUS_PX = 10.0  # fainter points searched again this far from it
+DEBLEND_CORE_PX = 2.0  # its own core: within this of its centre, the background
+DEBLEND_MIN_SEPARATION_PX = 2.5  # a deblended point at least this far from it (nearer: its core's residual)
+DEBLEND_SAME_PX = 2.0  # a deblended point this near a regular candidate is that one
 
 
 class ObjectDetector:
@@ -158,6 +166,63 @@ class ObjectDetector:
         cands = point_candidates(contrast, threshold, p, sc)
         self.stages.lap("candidates")
         return cands
+
+    def deblended_candidates(
+        self, cands: list[PointCandidate], bright_uv: list[tuple[float, float]], gate_px: float
+    ) -> list[PointCandidate]:
+        """After :meth:`detect` on the same frame: the points a bright neighbour's light hid.  A fainter
+        object 3-8 px from a brighter one has the brighter one in its point-contrast surround (the larger
+        of the cells 4 px away and the pixels 2 px away), so its contrast is negative however bright it
+        is alone (C3: the second target beside the primary, 3x fainter).  About each of ``cands`` that
+        scores ``DEBLEND_MIN_SCORE`` thresholds and lies within ``gate_px`` of one of ``bright_uv`` (the
+        caller's confirmed tracks: clutter is not searched again), the frame with that object taken out
+        (:func:`symmetric_deblend`) gets the point contrast again, against the same CFAR threshold; its
+        components ``DEBLEND_MIN_SEPARATION_PX`` to ``DEBLEND_RADIUS_PX`` from the bright one, not within
+        ``DEBLEND_SAME_PX`` of a candidate already found, are returned (frame coordinates)."""
+        img, threshold = self.clean, self.threshold
+        if img is None or threshold is None or not bright_uv:
+            return []
+        p = self.clutter
+        h, w = img.shape
+        # the contrast of a pixel DEBLEND_RADIUS_PX away reads pixels guard + cell / 2 beyond it
+        half = int(math.ceil(DEBLEND_RADIUS_PX)) + p.guard_px + p.cell_px // 2 + 1
+        found: list[tuple[float, float]] = [(c.u_px, c.v_px) for c in cands]
+        out: list[PointCandidate] = []
+        for c in cands:
+            if c.score < DEBLEND_MIN_SCORE or not any(
+                math.hypot(c.u_px - u, c.v_px - v) <= gate_px for u, v in bright_uv
+            ):
+                continue
+            x0, y0 = max(int(c.u_px) - half, 0), max(int(c.v_px) - half, 0)
+            x1, y1 = min(int(c.u_px) + half + 1, w), min(int(c.v_px) + half + 1, h)
+            if x1 - x0 < 2 * p.guard_px + p.cell_px or y1 - y0 < 2 * p.guard_px + p.cell_px:
+                continue  # at the frame's edge: too little left to measure a contrast in
+            roi = img[y0:y1, x0:x1]
+            # the square is mostly background: its median is the level the bright object stands on
+            rest = symmetric_deblend(
+                roi, (c.u_px - x0, c.v_px - y0), DEBLEND_CORE_PX, DEBLEND_RADIUS_PX, float(np.median(roi))
+            )
+            con = point_contrast(rest, p)
+            if self.contrast is not None:
+                # the frame's contrast about it becomes the deblended one, so that track-aided detection
+                # reads it too: a fainter object's track is measured through the frames where it dips below
+                # the full threshold beside the bright one, and never on the bright one itself (its own
+                # point, already a candidate, is gone from there)
+                jj = np.arange(x0, x1, dtype=np.float32)[None, :] + np.float32(0.5 - c.u_px)
+                ii = np.arange(y0, y1, dtype=np.float32)[:, None] + np.float32(0.5 - c.v_px)
+                disc = jj * jj + ii * ii <= np.float32(DEBLEND_RADIUS_PX**2)
+                self.contrast[y0:y1, x0:x1][disc] = con[disc]
+            for f in point_candidates(con, threshold[y0:y1, x0:x1], p):
+                u, v = f.u_px + x0, f.v_px + y0
+                if not DEBLEND_MIN_SEPARATION_PX <= math.hypot(u - c.u_px, v - c.v_px) <= DEBLEND_RADIUS_PX:
+                    continue
+                if any(math.hypot(u - a, v - b) <= DEBLEND_SAME_PX for a, b in found):
+                    continue
+                found.append((u, v))
+                out.append(
+                    dataclasses.replace(f, u_px=u, v_px=v, bbox=(f.bbox[0] + x0, f.bbox[1] + y0, f.bbox[2], f.bbox[3]))
+                )
+        return out
 
     def background_motion(self, R: np.ndarray) -> None:
         """After :meth:`detect` on the same frame (``R`` its R_ned_from_cam): registers the frame for the
@@ -313,3 +378,36 @@ class ObjectDetector:
         return difference_peak(
             diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb
         )
+
+
+def symmetric_deblend(
+    image: np.ndarray, centre_uv: tuple[float, float], core_px: float, radius_px: float, background: float
+) -> np.ndarray:
+    """``image`` (float32, not modified) with a bright object centred at ``centre_uv`` (px, frames.py
+    convention: pixel (i, j) centred at j + 0.5, i + 0.5) taken out, so that a fainter object beside it
+    keeps its own light and its surround is the background's.  The object's template is symmetric about
+    its centre (the SDSS deblender's: Lupton 2005, "The SDSS imaging pipelines", and Bosch et al. 2018,
+    PASJ 70, S5, sec. 4.9): ``T(x) = max(min(I(x), I(2c - x)) - b, 0)``, the lesser of a pixel and its
+    reflection through the centre (bilinear) above the background ``b``, within ``radius_px`` of it.  A
+    fainter object at ``c + d`` adds light at ``c + d`` only, so the minimum is the bright one's own
+    there; a linear background gradient reflects below itself and is left alone.  Within ``core_px`` of
+    the centre the pixels are the bright object's alone and are set to ``b`` (a sub-pixel error in the
+    centre leaves residuals of several grey on a core's steep sides, which would stand in the fainter
+    object's surround again).  Returns a new float32 array of ``image``'s shape."""
+    img = np.asarray(image, dtype=np.float32)
+    h, w = img.shape
+    # the centre in index coordinates (pixel index j at j); the reflection j -> 2 cj - j
+    cj, ci = centre_uv[0] - 0.5, centre_uv[1] - 0.5
+    m = np.array([[-1.0, 0.0, 2.0 * cj], [0.0, -1.0, 2.0 * ci]], dtype=np.float32)
+    mirrored = cv2.warpAffine(
+        img, m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+    )
+    jj = np.arange(w, dtype=np.float32)[None, :] - np.float32(cj)
+    ii = np.arange(h, dtype=np.float32)[:, None] - np.float32(ci)
+    r2 = jj * jj + ii * ii
+    template = np.minimum(img, mirrored) - np.float32(background)
+    np.maximum(template, 0.0, out=template)
+    template[r2 > np.float32(radius_px * radius_px)] = 0.0
+    out = img - template
+    out[r2 <= np.float32(core_px * core_px)] = np.float32(background)
+    return out

@@ -191,6 +191,7 @@ def test_stage_times_charge_every_tick_of_the_clock_to_one_stage(frames):
         "point contrast",
         "noise, threshold",
         "candidates",
+        "deblending",
         "track-before-detect",
         "aided detection",
         "association, confirmation",
