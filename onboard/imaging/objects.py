@@ -89,6 +89,10 @@ GREY16_PER_GREY8 = 257.0  # 65535 / 255
 DIFFERENCE_SEARCH_MAX = 8  # points tried a frame by the background difference while there is no primary (0.2 ms each)
 # a track is carried by its surroundings when the median of its last this many tests says so (SURROUND_MATCH_RATIO)
 SURROUND_TESTS_KEPT = 15
+# a candidate this near another held track's prediction is that track's object (C3's primary: within 1 px of
+# its prediction); a fainter one beside it, 3 px or more away, may be nearer the bright one's prediction than
+# its own coasting track's and is still its own
+OWNED_PX = 2.0
 
 
 class ObjectTracker:
@@ -165,9 +169,9 @@ class ObjectTracker:
             return cands
         h, w = contrast.shape
         out = list(cands)
-        # the predictions of the confirmed tracks measured on the last frame: a candidate nearer another's
-        # than a track's own is that one's, and leaves the track's gate open (C3: the second target, 3-5
-        # px beside the primary, coasted while the primary's candidate lay in its gate)
+        # the predictions of the confirmed tracks measured on the last frame: a candidate within OWNED_PX of
+        # another's is that one's, and leaves a track's gate open (C3: the second target, 3-5 px beside
+        # the primary, coasted while the primary's candidate lay in its gate)
         held = [
             (t, self._project(unit_vector(t.los + t.rate), R)) for t in self._tracks if t.confirmed and t.misses == 0
         ]
@@ -314,7 +318,7 @@ class ObjectTracker:
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
             self.detector.restart()
         regular = self.detect(image)
-        regular = regular + self._deblended(regular, R)
+        regular = self._deblended(regular, R)
         self.stages.lap("deblending")
         clean = self.detector.clean
         dim = [] if self.tbd is None or clean is None else self._tbd_candidates(self.tbd, clean, regular, R)
@@ -334,8 +338,8 @@ class ObjectTracker:
         return out
 
     def _deblended(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
-        """Points beside a bright confirmed track measured on the last frame that its light hid
-        (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any candidate."""
+        """``cands`` with the points beside a bright confirmed track measured on the last frame that its light
+        hid or pulled (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any."""
         bright = [
             puv
             for t in self._tracks
@@ -682,9 +686,9 @@ class ObjectTracker:
 
 
 def _in_own_gate(u: float, v: float, puv: tuple[float, float], gate: float, others: list[tuple[float, float]]) -> bool:
-    """(u, v) lies within ``gate`` of the prediction ``puv`` and no nearer any of ``others`` (px)."""
-    d = math.hypot(u - puv[0], v - puv[1])
-    return d <= gate and not any(math.hypot(u - q[0], v - q[1]) < d for q in others)
+    """(u, v) lies within ``gate`` of the prediction ``puv`` and farther than ``OWNED_PX`` from each of
+    ``others`` (px)."""
+    return math.hypot(u - puv[0], v - puv[1]) <= gate and all(math.hypot(u - q[0], v - q[1]) > OWNED_PX for q in others)
 
 
 def _relative_to_median(v_pxpf: tuple[float, float], tracks: list[TrackRecord]) -> float:
