@@ -51,6 +51,8 @@ from onboard.core.errors import InputError
 from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.objects_detection import (
+    DEBLEND_MIN_SCORE,
+    DEBLEND_RADIUS_PX,
     DIFFERENCE_GATE_PX,
     DIFFERENCE_HALF_PX,
     DIFFERENCE_SIGMA,
@@ -339,11 +341,24 @@ class ObjectTracker:
 
     def _deblended(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
         """``cands`` with the points beside a bright confirmed track measured on the last frame that its light
-        hid or pulled (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any."""
+        hid or pulled (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any.
+        Only about one with another track (confirmed, coasting or tentative: the fainter object's) predicted
+        within ``DEBLEND_RADIUS_PX``: elsewhere no track looks for what it hid, and each square costs ~0.1-0.2
+        ms (C3: 4-6 bright confirmed tracks a frame; deblended about each, 1.1 ms of a 4.6 ms frame)."""
+        if len(self._tracks) < 2 or not any(c.score >= DEBLEND_MIN_SCORE for c in cands):
+            return cands  # no bright point, or one track alone (P1-P3): nothing to project or deblend
+        # every track's prediction at once (a loop over pixel_from_los cost ~0.1 ms on C3's 7-30 tracks)
+        c = np.array([t.los + t.rate for t in self._tracks]) @ R  # rows: R.T @ los
+        ok = c[:, 2] > 1e-6
+        z = np.where(ok, c[:, 2], 1.0)
+        uv = np.stack([self.K.fx_px * c[:, 0] / z + self.K.cx_px, self.K.fy_px * c[:, 1] / z + self.K.cy_px], axis=1)
+        near = np.hypot(uv[:, None, 0] - uv[None, :, 0], uv[:, None, 1] - uv[None, :, 1]) <= DEBLEND_RADIUS_PX
+        np.fill_diagonal(near, False)
+        beside = (near & ok[None, :]).any(axis=1) & ok
         bright = [
-            puv
-            for t in self._tracks
-            if t.confirmed and t.misses == 0 and (puv := self._project(unit_vector(t.los + t.rate), R)) is not None
+            (float(uv[i, 0]), float(uv[i, 1]))
+            for i, t in enumerate(self._tracks)
+            if beside[i] and t.confirmed and t.misses == 0
         ]
         return self.detector.deblended_candidates(cands, bright, self.params.gate_px)
 
