@@ -343,11 +343,12 @@ class ObjectTracker:
         """``cands`` with the points beside a bright confirmed track measured on the last frame that its light
         hid or pulled (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any.
         Only about one with another track (confirmed, coasting or tentative: the fainter object's) predicted
-        within ``DEBLEND_RADIUS_PX``: elsewhere no track looks for what it hid, and each square costs ~0.1-0.2
-        ms (C3: 4-6 bright confirmed tracks a frame; deblended about each, 1.1 ms of a 4.6 ms frame)."""
+        within ``DEBLEND_RADIUS_PX``: elsewhere no track looks for what it hid, and about every bright track
+        (C3's birds, its two targets far apart) the squares cost a fifth of the frame's time for the
+        same scores (docs/perception.md)."""
         if len(self._tracks) < 2 or not any(c.score >= DEBLEND_MIN_SCORE for c in cands):
             return cands  # no bright point, or one track alone (P1-P3): nothing to project or deblend
-        # every track's prediction at once (a loop over pixel_from_los cost ~0.1 ms on C3's 7-30 tracks)
+        # every track's prediction at once: one pixel_from_los per track cost more than the rest of this step
         c = np.array([t.los + t.rate for t in self._tracks]) @ R  # rows: R.T @ los
         ok = c[:, 2] > 1e-6
         z = np.where(ok, c[:, 2], 1.0)

@@ -59,7 +59,7 @@ DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
 SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
-DEBLEND_MIN_SCORE = 2.0  # a neighbour this many thresholds bright is deblended (C3's primary: 2.3-3.7)
+DEBLEND_MIN_SCORE = 2.0  # a neighbour this many thresholds bright is deblended (C3's primary dips to 2.3 beside it)
 DEBLEND_RADIUS_PX = 8.0  # fainter points searched again this far from it (C3: hidden at 3-8 px)
 DEBLEND_CORE_PX = 2.0  # its own core: within this of its centre, the background
 DEBLEND_MIN_SEPARATION_PX = 2.5  # a deblended point at least this far from it (nearer: its core's residual)
@@ -186,9 +186,8 @@ class ObjectDetector:
         (:func:`symmetric_deblend`) gets the point contrast again, against the same CFAR threshold.  Its
         components ``DEBLEND_MIN_SEPARATION_PX`` to ``DEBLEND_RADIUS_PX`` from the bright one are new
         candidates, or take the place of a fainter candidate within ``DEBLEND_SAME_PX`` (the same object,
-        measured without the bright one's light: two synthetic points 4-6 px apart, 3:1, the fainter's
-        centre off by 0.6 px on the frame's contrast, 0.25 px on the deblended one).  Returns ``cands``
-        so amended (a new list; frame coordinates)."""
+        measured without the bright one's light, whose surround pulls the frame's contrast-weighted centre
+        towards it).  Returns ``cands`` so amended (a new list; frame coordinates)."""
         img, threshold = self.clean, self.threshold
         if img is None or threshold is None or not bright_uv:
             return list(cands)
@@ -209,7 +208,7 @@ class ObjectDetector:
                 continue  # at the frame's edge: too little left to measure a contrast in
             roi = img[y0:y1, x0:x1]
             # the square is mostly background: its median is the level the bright object stands on (every
-            # other pixel's: the same within noise, at a quarter of the cost)
+            # other pixel's: a quarter of the pixels to sort)
             rest = symmetric_deblend(
                 roi, (c.u_px - x0, c.v_px - y0), DEBLEND_CORE_PX, DEBLEND_RADIUS_PX, float(np.median(roi[::2, ::2]))
             )
@@ -405,8 +404,7 @@ def symmetric_deblend(
     fainter object at ``c + d`` adds light at ``c + d`` only, so the minimum is the bright one's own
     there; a linear background gradient reflects below itself and is left alone.  Within ``core_px`` of
     the centre the pixels are the bright object's alone and are set to ``b`` (a sub-pixel error in the
-    centre leaves residuals of several grey on a core's steep sides, which would stand in the fainter
-    object's surround again).  Returns a new float32 array of ``image``'s shape."""
+    centre would leave residuals on a core's steep sides, standing in the fainter object's surround again).  Returns a new float32 array of ``image``'s shape."""
     img = np.asarray(image, dtype=np.float32)
     h, w = img.shape
     # the centre in index coordinates (pixel index j at j); the reflection j -> 2 cj - j
