@@ -130,6 +130,8 @@ class ObjectTracker:
         self._prev_median: float | None = None
         self._difference_ids: set[int] = set()  # id() of this frame's background-difference candidates
         self._tbd_ids: set[int] = set()  # id() of this frame's track-before-detect candidates
+        self._pred_frame = -1  # the frame _pred_px (each track's predicted pixel) was computed for
+        self._pred_px: list[tuple[float, float] | None] = []
         self.stages = StageTimes(stage_clock)  # seconds by stage of the last frame (benchmarks; see StageTimes)
         self.detector = ObjectDetector(intrinsics, self.params, self.clutter, self.stages)
         self.primary_changes = 0
@@ -174,9 +176,8 @@ class ObjectTracker:
         # the predictions of the confirmed tracks measured on the last frame: a candidate within OWNED_PX of
         # another's is that one's, and leaves a track's gate open (C3: the second target, 3-5 px beside
         # the primary, coasted while the primary's candidate lay in its gate)
-        held = [
-            (t, self._project(unit_vector(t.los + t.rate), R)) for t in self._tracks if t.confirmed and t.misses == 0
-        ]
+        pred = self._predicted_px(R)
+        held = [(t, pred[i]) for i, t in enumerate(self._tracks) if t.confirmed and t.misses == 0]
         for t in self._tracks:
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
@@ -348,20 +349,31 @@ class ObjectTracker:
         same scores (docs/perception.md)."""
         if len(self._tracks) < 2 or not any(c.score >= DEBLEND_MIN_SCORE for c in cands):
             return cands  # no bright point, or one track alone (P1-P3): nothing to project or deblend
-        # every track's prediction at once: one pixel_from_los per track cost more than the rest of this step
-        c = np.array([t.los + t.rate for t in self._tracks]) @ R  # rows: R.T @ los
-        ok = c[:, 2] > 1e-6
-        z = np.where(ok, c[:, 2], 1.0)
-        uv = np.stack([self.K.fx_px * c[:, 0] / z + self.K.cx_px, self.K.fy_px * c[:, 1] / z + self.K.cy_px], axis=1)
-        near = np.hypot(uv[:, None, 0] - uv[None, :, 0], uv[:, None, 1] - uv[None, :, 1]) <= DEBLEND_RADIUS_PX
-        np.fill_diagonal(near, False)
-        beside = (near & ok[None, :]).any(axis=1) & ok
+        pred = self._predicted_px(R)
         bright = [
-            (float(uv[i, 0]), float(uv[i, 1]))
-            for i, t in enumerate(self._tracks)
-            if beside[i] and t.confirmed and t.misses == 0
+            q
+            for i, (t, q) in enumerate(zip(self._tracks, pred))
+            if q is not None
+            and t.confirmed
+            and t.misses == 0
+            and any(
+                j != i and r is not None and math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
+                for j, r in enumerate(pred)
+            )
         ]
         return self.detector.deblended_candidates(cands, bright, self.params.gate_px)
+
+    def _predicted_px(self, R: np.ndarray) -> list[tuple[float, float] | None]:
+        """Each track's predicted pixel on this frame, before association (None: behind the camera), all at
+        once and once a frame: one pixel_from_los per track, asked by deblending and aided detection, cost
+        more than either's own work on most frames."""
+        if self._pred_frame != self._frame_index or len(self._pred_px) != len(self._tracks):
+            self._pred_frame, self._pred_px = self._frame_index, []
+            if self._tracks:
+                c = np.array([t.los + t.rate for t in self._tracks]) @ R  # rows: R.T @ (los + rate)
+                fx, fy, cx, cy = self.K.fx_px, self.K.fy_px, self.K.cx_px, self.K.cy_px
+                self._pred_px = [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
+        return self._pred_px
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
