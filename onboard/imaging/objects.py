@@ -177,8 +177,9 @@ class ObjectTracker:
         # another's is that one's, and leaves a track's gate open (C3: the second target, 3-5 px beside
         # the primary, coasted while the primary's candidate lay in its gate)
         pred = self._predicted_px(R)
-        held = [(t, pred[i]) for i, t in enumerate(self._tracks) if t.confirmed and t.misses == 0]
-        for t in self._tracks:
+        held = [(t, q) for t, q in zip(self._tracks, pred) if t.confirmed and t.misses == 0 and q is not None]
+        owners = [_owners(c.u_px, c.v_px, held) for c in out]  # mostly none
+        for t, puv in zip(self._tracks, pred):
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
             # background (a fragment of terrain or cloud it slid onto would move with it); beyond
@@ -192,12 +193,13 @@ class ObjectTracker:
                     continue
             elif t.aided_run >= p.aided_max_run and not self._moves_unlike_background(t, R):
                 continue
-            puv = self._project(unit_vector(t.los + t.rate), R)
             if puv is None:
                 continue
             gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
-            others = [q for o, q in held if o is not t and q is not None]
-            if any(_in_own_gate(c.u_px, c.v_px, puv, gate, others) for c in out):
+            if any(
+                math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate and all(o is t for o in ow)
+                for c, ow in zip(out, owners)
+            ):
                 continue
             if t.confirmed and t.aided_run >= p.aided_max_run_moving:
                 # C2's clean twin's target, 2 grey of point contrast on flat ground whose pixels toggle
@@ -207,7 +209,9 @@ class ObjectTracker:
                 if best is not None:
                     self._difference_ids.add(id(best))
                     out.append(best)
+                    owners.append(_owners(best.u_px, best.v_px, held))
                 continue
+            others = [q for o, q in held if o is not t]
             r = int(math.ceil(gate)) + 2
             x0, y0 = max(int(puv[0]) - r, 0), max(int(puv[1]) - r, 0)
             x1, y1 = min(int(puv[0]) + r + 1, w), min(int(puv[1]) + r + 1, h)
@@ -229,6 +233,7 @@ class ObjectTracker:
                     self._difference_ids.add(id(best))
             if best is not None:
                 out.append(best)
+                owners.append(_owners(best.u_px, best.v_px, held))
         return out
 
     def _difference_search(self, found: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
@@ -344,7 +349,8 @@ class ObjectTracker:
         """``cands`` with the points beside a bright confirmed track measured on the last frame that its light
         hid or pulled (:meth:`ObjectDetector.deblended_candidates`); they start and update tracks as any.
         Only about one with another track (confirmed, coasting or tentative: the fainter object's) predicted
-        within ``DEBLEND_RADIUS_PX``: elsewhere no track looks for what it hid, and about every bright track
+        ``OWNED_PX`` to ``DEBLEND_RADIUS_PX`` from it (nearer, the two images are one: nothing the deblending
+        could part, C3's occlusion); elsewhere no track looks for what it hid, and about every bright track
         (C3's birds, its two targets far apart) the squares cost a fifth of the frame's time for the
         same scores (docs/perception.md)."""
         if len(self._tracks) < 2 or not any(c.score >= DEBLEND_MIN_SCORE for c in cands):
@@ -357,7 +363,7 @@ class ObjectTracker:
             and t.confirmed
             and t.misses == 0
             and any(
-                j != i and r is not None and math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
+                j != i and r is not None and OWNED_PX < math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
                 for j, r in enumerate(pred)
             )
         ]
@@ -711,6 +717,11 @@ class ObjectTracker:
                 )
             )
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _owners(u: float, v: float, held: list[tuple[TrackRecord, tuple[float, float]]]) -> list[TrackRecord]:
+    """The tracks of ``held`` (track, predicted pixel) whose prediction lies within ``OWNED_PX`` of (u, v)."""
+    return [t for t, q in held if math.hypot(u - q[0], v - q[1]) <= OWNED_PX]
 
 
 def _in_own_gate(u: float, v: float, puv: tuple[float, float], gate: float, others: list[tuple[float, float]]) -> bool:
