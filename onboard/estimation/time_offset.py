@@ -99,6 +99,19 @@ SIGNIFICANT_MIN_BLOCKS = 3
 #: the compensation takes a confident estimate whose variance is at most this share of the one it holds (module
 #: docstring, "Compensation"): twice the information, whatever the difference
 REFINE_VARIANCE_RATIO = 0.5
+#: a frame's numbers kept for its block: bearing (3), q_ned_from_cam (4), camera position (3), velocity (3)
+ROW_SIZE = 13
+
+
+def _unit_ned(bearing_cam: np.ndarray, q_ned_from_cam: np.ndarray) -> np.ndarray:
+    """(N, 3) unit lines of sight in NED, ``R(q) b / |b|`` for (N, 3) bearings and (N, 4) attitudes.
+
+    Bit for bit what ``rotmat_from_quat(q) @ (b / np.linalg.norm(b))`` gives frame by frame (``norm`` of a
+    vector is a dot product, and a stacked ``matmul`` makes each row's products as the single one does), so a
+    block gives the same sums whether its lines of sight are made per frame or here, once per block."""
+    b = bearing_cam
+    sq = np.matmul(b[:, None, :], b[:, :, None])[:, 0, 0]
+    return np.matmul(rotmat_from_quat(q_ned_from_cam), (b / np.sqrt(sq)[:, None])[:, :, None])[:, :, 0]
 
 
 @dataclass(frozen=True)
@@ -229,10 +242,9 @@ class TimeOffsetEstimator:
         self.params = params if params is not None else TimeOffsetParams()
         self._blocks: collections.deque[_Block] = collections.deque()
         self._t: list[float] = []
-        self._u: list[np.ndarray] = []
-        self._q: list[np.ndarray] = []
-        self._p: list[np.ndarray] = []
-        self._v: list[np.ndarray] = []
+        #: the block's frames as they came, (13,) each: bearing in the camera frame, q_ned_from_cam, camera position
+        #: and velocity (the line of sight in NED is made once per block, in :meth:`close_block`)
+        self._frames: list[np.ndarray] = []
         self._r: list[float] = []
         self._track_id: object = None
         self._refused = 0
@@ -267,12 +279,21 @@ class TimeOffsetEstimator:
         stamp (attitude (w, x, y, z), camera position and velocity in NED), the track it belongs to.
         Returns :attr:`estimate`."""
         t = float(t_s)
-        b = np.asarray(bearing_cam, dtype=float).reshape(3)
-        q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
-        pc = np.asarray(p_cam_ned_m, dtype=float).reshape(3)
-        vc = np.asarray(v_cam_ned_mps, dtype=float).reshape(3)
+        # one array for the frame, checked at once: this runs on every frame of the daemon's pipeline thread, and
+        # numpy's per-call overhead on four small arrays was most of its cost
+        row = np.concatenate((bearing_cam, q_ned_from_cam, p_cam_ned_m, v_cam_ned_mps), axis=None, dtype=float)
+        if (
+            row.size != ROW_SIZE
+            or np.size(bearing_cam) != 3
+            or np.size(q_ned_from_cam) != 4
+            or np.size(p_cam_ned_m) != 3
+        ):
+            raise InputError(
+                "TimeOffsetEstimator.add: expected a bearing (3,), q_ned_from_cam (4,), a camera position (3,) and "
+                "velocity (3,)"
+            )
         r = self.params.default_range_m if range_m is None else float(range_m)
-        if not (math.isfinite(t) and all(np.all(np.isfinite(a)) for a in (b, q, pc, vc))):
+        if not (math.isfinite(t) and np.isfinite(row).all()):
             raise InputError("TimeOffsetEstimator.add: non-finite time, bearing or pose")
         if not (math.isfinite(r) and r > 0):
             raise InputError(f"TimeOffsetEstimator.add: range_m must be a positive number, got {range_m!r}")
@@ -282,22 +303,20 @@ class TimeOffsetEstimator:
             self.close_block()
         if not self._t:
             self._track_id = track_id
-        u = rotmat_from_quat(q) @ (b / np.linalg.norm(b))
         self._t.append(t)
-        self._u.append(u)
-        self._q.append(q)
-        self._p.append(pc)
-        self._v.append(vc)
+        self._frames.append(row)
         self._r.append(r)
         return self.estimate
 
     def close_block(self) -> None:
         """End the block being filled (used when long enough) and start an empty one."""
-        t, u, q = np.array(self._t), np.array(self._u), np.array(self._q)
-        pc, vc, r = np.array(self._p), np.array(self._v), np.array(self._r)
+        t, r = np.array(self._t), np.array(self._r)
+        rows = np.array(self._frames).reshape(-1, ROW_SIZE)
         self._clear_block()
         if t.size < 2:
             return
+        q, pc, vc = rows[:, 3:7].copy(), rows[:, 7:10].copy(), rows[:, 10:13].copy()
+        u = _unit_ned(rows[:, 0:3].copy(), q)
         block = self._block_sums(t, u, q, pc, vc, r)
         if block is None:
             return
@@ -331,7 +350,7 @@ class TimeOffsetEstimator:
     # ------------------------------------------------------------------ internals
 
     def _clear_block(self) -> None:
-        self._t, self._u, self._q, self._p, self._v, self._r = [], [], [], [], [], []
+        self._t, self._frames, self._r = [], [], []
         self._track_id = None
 
     def _block_sums(self, t, u, q, p_cam, v_cam, r_m) -> _Block | None:

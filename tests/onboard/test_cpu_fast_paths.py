@@ -1,0 +1,68 @@
+"""The per-frame paths made cheaper for the daemon's CPU give what they gave before, bit for bit: the camera clock
+estimator's lines of sight made once per block instead of once per frame, the pipeline's pixel bearing in floats."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from onboard.app.config import OnboardConfig
+from onboard.core.errors import InputError
+from onboard.core.frames import PinholeIntrinsics, quat_normalize, rotmat_from_quat
+from onboard.estimation.time_offset import TimeOffsetEstimator, _unit_ned
+from onboard.pipeline.frame_pipeline import FramePipeline
+
+UNIT = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    arrays(np.float64, st.tuples(st.integers(1, 40), st.just(3)), elements=UNIT),
+    arrays(np.float64, (40, 4), elements=UNIT),
+)
+def test_a_blocks_lines_of_sight_are_the_per_frame_ones(bearings, quats):
+    """``R(q) b / |b|`` for the whole block at once equals what the estimator made frame by frame before."""
+    b = bearings + np.array([0.0, 0.0, 1.5])  # |b| > 0: a bearing in front of the camera
+    q = quat_normalize(quats[: len(b)] + np.array([0.5, 0.0, 0.0, 0.0]))
+    per_frame = np.array([rotmat_from_quat(q[k]) @ (b[k] / np.linalg.norm(b[k])) for k in range(len(b))])
+    np.testing.assert_array_equal(_unit_ned(b, q), per_frame)
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ([0.0, 1.0], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0, 0]),  # a 2-vector bearing
+        ([0.0, 0, 1], [1.0, 0, 0], [0.0, 0, 0, 0], [0.0, 0, 0]),  # sizes that add up, wrongly split
+        ([0.0, 0, 1], [1.0, 0, 0, 0], [0.0, 0, 0], [0.0, 0]),
+    ],
+)
+def test_a_frame_of_the_wrong_shape_is_refused_and_not_kept(args):
+    est = TimeOffsetEstimator()
+    with pytest.raises(InputError):
+        est.add(1.0, *args, 100.0)
+    est.add(2.0, [0.0, 0, 1], [1.0, 0, 0, 0], [0.0, 0, 0], [1.0, 0, 0], 100.0)
+    est.close_block()  # one frame: nothing to pool, and no leftover of the refused one
+    assert est.estimate.blocks == 0 and est.estimate.frames == 0
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.floats(-2000.0, 2000.0, allow_nan=False), st.floats(-2000.0, 2000.0, allow_nan=False))
+def test_the_pipelines_pixel_bearing_is_the_cameras(u_px, v_px):
+    pipe = FramePipeline(OnboardConfig(), None, tracker=None)
+    expected = pipe.intrinsics.bearing_cam_from_pixel((u_px, v_px))
+    got = pipe._bearing_cam(u_px, v_px)
+    assert isinstance(got, tuple)
+    np.testing.assert_array_equal(np.array(got), expected)
+
+
+def test_a_camera_with_distortion_keeps_the_cameras_own_bearing():
+    pipe = FramePipeline(OnboardConfig(), None, tracker=None)
+    pipe.intrinsics = PinholeIntrinsics(500.0, 500.0, 320.0, 256.0, 640, 512, distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    pipe._has_distortion = pipe.intrinsics.has_distortion
+    np.testing.assert_array_equal(pipe._bearing_cam(600.0, 30.0), pipe.intrinsics.bearing_cam_from_pixel((600.0, 30.0)))
+    assert pipe._bearing_cam(600.0, 30.0)[0] != pytest.approx(
+        FramePipeline(OnboardConfig(), None, tracker=None)._bearing_cam(600.0, 30.0)[0], abs=1e-6
+    )
