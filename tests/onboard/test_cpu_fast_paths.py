@@ -26,7 +26,7 @@ UNIT = st.floats(-1.0, 1.0, allow_nan=False, allow_infinity=False)
 def test_a_blocks_lines_of_sight_are_the_per_frame_ones(bearings, quats):
     """``R(q) b / |b|`` for the whole block at once equals what the estimator made frame by frame before."""
     b = bearings + np.array([0.0, 0.0, 1.5])  # |b| > 0: a bearing in front of the camera
-    q = quat_normalize(quats[: len(b)] + np.array([0.5, 0.0, 0.0, 0.0]))
+    q = quat_normalize(quats[: len(b)] + np.array([2.0, 0.0, 0.0, 0.0]))  # w >= 1: never a zero quaternion
     per_frame = np.array([rotmat_from_quat(q[k]) @ (b[k] / np.linalg.norm(b[k])) for k in range(len(b))])
     np.testing.assert_array_equal(_unit_ned(b, q), per_frame)
 
