@@ -67,6 +67,7 @@ from onboard.core.schema import (
     Texts,
     config_dataclass,
 )
+from onboard.estimation import kernels
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls
 from onboard.estimation.window_problem import MotionPrior, NoiseModel, SolveResult, WindowProblem, drain
@@ -289,6 +290,9 @@ class MapEstimator:
         self.config = config or MapConfig()
         self.noise = noise or NoiseModel()
         self._span_cache: dict = {}
+        # the window problem's compiled kernels, here rather than in the first estimator step that needs them
+        # (seconds to compile, ~0.1 s from numba's cache: once per process)
+        kernels.warm()
         self._camera_cache: list[tuple] = []  # (observations, smoothed, noise model), newest first
 
     @staticmethod

@@ -45,7 +45,6 @@ their MAP values (:meth:`WindowProblem.log_evidence` says why).
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -55,7 +54,14 @@ import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.schema import NonNegativeFloat, PositiveFloat, config_dataclass
-from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, csr_matvec, einsum, qr_r
+from onboard.estimation.fastmath import cho_factor_lower, cho_solve_spd_lower, cross3, einsum, qr_r
+from onboard.estimation.kernels import (
+    add_turn_prior_gram,
+    add_turn_prior_transpose,
+    linearise_measurements,
+    measurement_gradient,
+    measurement_gram,
+)
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
@@ -131,10 +137,9 @@ _WINDOWS_KEPT = 4
 #: the largest span of the squared diagonal of the Cholesky factor of the scaled normal matrix at which
 #: WindowProblem.normal_factor keeps that factor (the log evidence then within ~1e-5 nats of the QR's)
 _NORMAL_FACTOR_MAX_SPAN = 1e7
-#: numpy's own reduction of booleans: ``.all()`` without its Python wrapper (~400 validity tests a selection)
-_all = np.logical_and.reduce
-#: the axes 0, 1, 2, 0, 1: in a 3-vector extended so, its cyclic shifts by one and two are the slices 1:4 and 2:5
-_CYCLE5 = np.array([0, 1, 2, 0, 1])
+#: what the kernels are passed for a nuisance the problem does not have (an offset, a drift, a rotation)
+_NONE = np.zeros(0)
+_NONE_3X3 = np.zeros((0, 0))
 
 
 def _rodrigues(phi: np.ndarray) -> np.ndarray:
@@ -220,51 +225,10 @@ class _SpanPrior:
         return self._grams
 
 
-@functools.lru_cache(maxsize=32)
-def _gram_layout(intervals: int, n_params: int, nuisance_first: tuple[int, ...]) -> tuple[np.ndarray, ...]:
-    """Where the entries of :meth:`WindowProblem.normal_matrix`'s interval sums land in J^T J, for a parameter
-    layout (the intervals, n_params, the first columns of the navigation nuisances): the scatter as a sparse
-    0/1 matrix in CSR form (row pointers and column indices: row = flat index in J^T J, column = flat index in
-    the sums; within a row the sums in the order the old ``np.bincount`` scatter added them, so that the
-    matrix-vector product adds the same numbers in the same order), the nuisances' columns and the flat
-    indices of their block; read only.
-
-    The interval sums are (intervals, 3 x u, 20) with u = 3 + nuisance columns: entry (s, k u + l, 4 m + n) the
-    control-control block, (s, k u + 3 + j, 16 + m) the control-nuisance one (landing in both triangles).
-    """
-    nseg, n = intervals, n_params
-    nuis_cols = np.array([i0 + k for i0 in nuisance_first for k in range(3)], dtype=np.int64)
-    nm = nuis_cols.size
-    u = 3 + nm
-    s_, m_, n_, k_, l_ = np.meshgrid(
-        np.arange(nseg), np.arange(4), np.arange(4), np.arange(3), np.arange(3), indexing="ij"
-    )
-    src = [((s_ * 3 + k_) * u + l_) * 20 + 4 * m_ + n_]
-    dst = [(3 * (s_ + m_) + k_) * n + 3 * (s_ + n_) + l_]
-    if nm:
-        s_, m_, k_, j_ = np.meshgrid(np.arange(nseg), np.arange(4), np.arange(3), np.arange(nm), indexing="ij")
-        at = ((s_ * 3 + k_) * u + 3 + j_) * 20 + 16 + m_
-        ctrl, nuis = 3 * (s_ + m_) + k_, nuis_cols[j_]
-        src += [at, at]
-        dst += [ctrl * n + nuis, nuis * n + ctrl]
-    src_flat = np.concatenate([x.reshape(-1) for x in src])
-    dst_flat = np.concatenate([x.reshape(-1) for x in dst])
-    order = np.argsort(dst_flat, kind="stable")  # by row, each row's entries in their scatter order
-    out = (
-        np.concatenate([[0], np.cumsum(np.bincount(dst_flat, minlength=n * n))]).astype(np.intp),
-        src_flat[order].astype(np.intp),
-        nuis_cols,
-        (nuis_cols[:, None] * n + nuis_cols[None, :]).reshape(-1),
-    )
-    for x in out:
-        x.flags.writeable = False
-    return out
-
-
 class _WindowConstants:
     """What a window's problems share whatever their motion prior and noise model: the basis at the observations,
     the observations laid out observation-last (:meth:`WindowProblem.linearise`), the knot intervals' weights
-    (:meth:`WindowProblem.normal_matrix`), and per parameter layout the index maps of :meth:`layout`.  Read only."""
+    (:meth:`WindowProblem.point_covariances`), and per parameter layout the index maps of :meth:`meas_flat`.  Read only."""
 
     def __init__(self, obs: Observations, grid: KnotGrid, first: int, count: int):
         self.obs, self.key = obs, (grid, first, count)
@@ -280,11 +244,9 @@ class _WindowConstants:
         self.ref_idx, self.ref_w0, self.ref_w1, self.ref_w2 = ref.index[0], ref.w0[0], ref.w1[0], ref.w2[0]
         self.p_ref = obs.p_cam_ned_m.mean(axis=0)
         # observation-last copies
-        self.B0T = np.ascontiguousarray(self.B0.T)
         self.p_cam_T = np.ascontiguousarray(obs.p_cam_ned_m.T)
         self.xy_T = np.ascontiguousarray(obs.xy_norm.T)
         self.R_T = np.ascontiguousarray(np.transpose(self.R_cn, (1, 2, 0)))  # R_T[i, j, f] = R_cn[f, i, j]
-        self.R5_T = np.ascontiguousarray(self.R_T[:, _CYCLE5])
         self.w0_T = np.ascontiguousarray(rows.w0.T)
         # the observations interval by interval: (intervals, the fullest interval's count), padded with
         # observation 0 at weight 0
@@ -294,8 +256,6 @@ class _WindowConstants:
         order = np.argsort(seg, kind="stable")
         slot = np.arange(F) - np.repeat(np.cumsum(per_seg) - per_seg, per_seg)
         width = int(per_seg.max())
-        self.interval_obs = np.zeros((nseg, width), dtype=np.int64)
-        self.interval_obs[seg[order], slot] = order
         self.interval_slot = np.empty(F, dtype=np.int64)  # observation f's place in (intervals x width)
         self.interval_slot[order] = seg[order] * width + slot
         w0 = np.zeros((nseg, width, 4))
@@ -434,6 +394,7 @@ class WindowProblem:
             r = np.full(self.F, 100.0) if range_m is None else np.maximum(np.asarray(range_m, float), 1.0)
             var = var + (self.f * n.camera_position_white_sigma_m / r[:, None]) ** 2
         self.s = self.f / np.sqrt(var)  # (F, 2): normalised-coordinate residual -> standard units
+        self._sT = np.ascontiguousarray(self.s.T)  # (the kernels' observation-last layout)
 
     def positions(self, theta: np.ndarray) -> np.ndarray:
         c = theta[: self.nc].reshape(self.count, 3)
@@ -483,36 +444,22 @@ class WindowProblem:
         :meth:`_local_layout`, the turn rate's column), which :meth:`normal_matrix` and :meth:`gradient` read
         until the next linearisation with ``jacobian``.
 
-        The arithmetic of :func:`_project`, on arrays laid out observation-last ((3, F) rather than (F, 3)) so
-        that each elementwise operation runs along the F observations rather than along 2 or 3 axes.
+        The arithmetic of :func:`_project`, the measurement rows in one compiled loop over the observations
+        (:func:`~onboard.estimation.kernels.linearise_measurements`, on arrays laid out observation-last).
         """
         self.evaluations += 1
         F, G, cnt = self.F, self.G, self.count
         c = theta[: self.nc].reshape(cnt, 3)
-        X = c.T @ self._B0T  # (3, F)
-        self.last_positions = X.T
-        w = self._los = X - self._p_cam_T
-        if self.i_beta is not None:
-            w = w + theta[self.i_beta : self.i_beta + 3, None]
-        if self.i_gamma is not None:
-            w = w + theta[self.i_gamma : self.i_gamma + 3, None] * self.dt
-        if self.i_phi is not None:
-            Rphi = _rodrigues(theta[self.i_phi : self.i_phi + 3])
-            # rows 0, 1, 2, 0, 1: the cross product's cyclic shifts are views of it (below)
-            w_rot5 = Rphi[_CYCLE5] @ w
-            w_rot = w_rot5[:3]
-        else:
-            w_rot = w
-        R = self._R_T  # R[i, j, f] = R_cn[f, i, j]
-        y = einsum("ijf,jf->if", R, w_rot)
-        z = y[2]
-        # (the ufuncs' own reductions: .all()'s wrapper costs more than the test on 300 numbers)
-        valid = bool(_all(z * z > 1e-12 * einsum("if,if->f", w_rot, w_rot)) and _all(z > 0))
-        zs = np.fmax(z, 1e-9)  # np.where(z > 1e-9, z, 1e-9) in one call, NaN included
-        pred = y[:2] / zs
-        sT = self.s.T
-        r = np.empty(self.n_rows)
-        r[: 2 * F].reshape(F, 2).T[...] = (pred - self._xy_T) * sT
+        X, los, r = np.empty((3, F)), np.empty((3, F)), np.empty(self.n_rows)
+        Rphi = _rodrigues(theta[self.i_phi : self.i_phi + 3]) if self.i_phi is not None else _NONE_3X3
+        beta = theta[self.i_beta : self.i_beta + 3] if self.i_beta is not None else _NONE
+        gamma = theta[self.i_gamma : self.i_gamma + 3] if self.i_gamma is not None else _NONE
+        win = self._win
+        valid = linearise_measurements(
+            c, win.rows.index, win.rows.w0, win.p_cam_T, beta, gamma, self.dt, Rphi, win.R_T, win.xy_T, self._sT,
+            bool(jacobian), X, los, r[: 2 * F], self._U,
+        )  # fmt: skip
+        self.last_positions, self._los = X.T, los
         # the prior rows: linear in theta (their rows of J, constant) but the motion prior's with a turn rate
         o = self._fixed_rows
         r[o:] = self._J[o:] @ theta - self._fixed_offset
@@ -527,29 +474,6 @@ class WindowProblem:
             rp[:, 2] = self.sq_v * a[:, 2]
         if not jacobian:
             return r, valid
-        # d pred / d w_rot = (R_cn[0] - pred_x R_cn[2]) / z, likewise for y (both rows at once): (2, 3, F)
-        U = self._U  # (2 rows, 3 + nuisance columns, F): d r / d w, then the nuisances' local columns
-        k = 3
-        if self.i_phi is not None:
-            R5 = self._R5_T  # R's columns 0, 1, 2, 0, 1
-            # M = (R5[:2] - pred R5[2]) / zs * s, in the problem's buffers (the same operations, no temporaries)
-            M, T = self._M, self._cross_tmp
-            np.multiply(pred[:, None, :], R5[2], out=M)
-            np.subtract(R5[:2], M, out=M)
-            M *= ((1.0 / zs) * sT)[:, None, :]
-            np.matmul(Rphi.T, M[:, :3], out=U[:, :3])  # d r / d w
-            # d r / d phi = -M [w_rot]x, whose rows are w_rot x m: component i is w[i+1] m[i+2] - w[i+2] m[i+1]
-            np.multiply(w_rot5[1:4], M[:, 2:5], out=T)
-            np.multiply(w_rot5[2:5], M[:, 1:4], out=U[:, 3:6])
-            np.subtract(T, U[:, 3:6], out=U[:, 3:6])
-            k = 6
-        else:
-            np.multiply(R[:2] - pred[:, None, :] * R[2], ((1.0 / zs) * sT)[:, None, :], out=U[:, :3])
-        if self.i_beta is not None:
-            U[:, k : k + 3] = U[:, :3]
-            k += 3
-        if self.i_gamma is not None:
-            np.multiply(U[:, :3], self.dt, out=U[:, k : k + 3])
         self._omega_lin = om
         if self.i_omega is not None:
             self._j_omega[0::3] = self.sq_h * v[:, 1]
@@ -579,8 +503,7 @@ class WindowProblem:
         return J
 
     def _local_layout(self) -> None:
-        """The measurement rows' local Jacobian, and the sums over knot intervals :meth:`normal_matrix` builds
-        ``J^T J`` from.
+        """The measurement rows' local Jacobian, from which :meth:`normal_matrix` builds ``J^T J``.
 
         Row ``(f, a)`` of the measurement block is ``u_fa = d r_fa / d w_f`` (3) times the basis weights
         ``w0[f, m]`` in the 3 columns of each of the four control points m of observation f's knot interval, and
@@ -592,22 +515,16 @@ class WindowProblem:
         - control m, nuisances: ``sum_f w0[f, m] P_f[:, 3:]``;
         - nuisances, nuisances: ``sum_f n_f^T n_f`` over every observation;
 
-        the sums over each interval's observations are one small matrix product per interval, the weights
-        (constant: the observation times) zero-padded to the fullest interval's count.
+        summed observation by observation in one compiled loop (:func:`~onboard.estimation.kernels.measurement_gram`,
+        the upper triangle, mirrored).
         """
         F, win = self.F, self._win
         self._nuisance_first = tuple(i0 for i0 in (self.i_phi, self.i_beta, self.i_gamma) if i0 is not None)
         self._U = np.zeros((2, 3 + 3 * len(self._nuisance_first), F))
-        self._M = np.empty((2, 5, F))  # linearise()'s scratch with an attitude bias: d r / d w_rot, in R5's columns
-        self._cross_tmp = np.empty((2, 3, F))
         self._j_omega = np.zeros(3 * self.G)
-        self._B0T, self._p_cam_T, self._xy_T, self._R_T, self._w0_T = win.B0T, win.p_cam_T, win.xy_T, win.R_T, win.w0_T
-        self._R5_T = win.R5_T
-        self._interval_obs, self._interval_weights = win.interval_obs, win.interval_weights
+        self._w0_T = win.w0_T
         self._meas_flat = win.meas_flat(self.n_params)
-        layout = _gram_layout(win.intervals, self.n_params, self._nuisance_first)
-        self._gram_indptr, self._gram_indices, self._nuis_cols, self._nuis_block = layout
-        self._gram_ones = np.ones(self._gram_indices.size)
+        self._nuis_cols = np.array([i0 + k for i0 in self._nuisance_first for k in range(3)], dtype=np.int64)
         # the rows whose part of J^T J is fixed: every row after the measurements' (the motion prior's too
         # without a turn rate; with one, normal_matrix adds them at the turn rate of the evaluation)
         o = 2 * F + (3 * self.G if self.i_omega is not None else 0)
@@ -617,7 +534,6 @@ class WindowProblem:
         self._fixed_offset = np.zeros(self.n_rows - o)
         w = 2 * F + 3 * self.G - o
         self._fixed_offset[w : w + 3] = self.p_ref / self.config.position_prior_sigma_m
-        self._sq3 = np.stack([self.sq_h, self.sq_h, self.sq_v], axis=1)  # (the motion prior's rows, _prior_transpose)
         self._omega_lin = 0.0  # the turn rate of the last linearisation
 
     def normal_matrix(self) -> np.ndarray:
@@ -627,62 +543,26 @@ class WindowProblem:
         the measurement rows by knot interval (:meth:`_local_layout`), the motion prior's rows as a polynomial
         in the turn rate (:meth:`_SpanPrior.grams`; constant without one), the other prior rows constant.
         """
-        F, n = self.F, self.n_params
-        U = self._U
-        u = U.shape[1]
-        # P_f = u_f^T U_f, the sum of the two rows' outer products: (3, u, F)
-        P = einsum("aif,ajf->ijf", U[:, :3], U)
-        per = P.reshape(3 * u, F).take(self._interval_obs, axis=1)  # (3 u, intervals, width)
-        sums = np.matmul(per.transpose(1, 0, 2), self._interval_weights)  # (intervals, 3 u, 16 or 20)
-        # scattered into J^T J: the layout's 0/1 matrix times the sums, one C call; the same additions, in the
-        # same order, as a bincount over the gathered sums (one gather and one scatter)
-        H = csr_matvec(self._gram_indptr, self._gram_indices, self._gram_ones, sums.reshape(-1), n * n)
-        if u > 3:
-            N = U[:, 3:]
-            H[self._nuis_block] += einsum("akf,alf->kl", N, N).reshape(-1)
-        H = H.reshape(n, n)
-        H += self._H_fixed
+        n, win = self.n_params, self._win
+        H = np.empty((n, n))
+        measurement_gram(self._U, win.rows.index, win.rows.w0, self._nuis_cols, self._H_fixed, H)
         if self.i_omega is not None:
-            om, nc, io = self._omega_lin, self.nc, self.i_omega
             A, B, C = self._span.grams()
-            H[:nc, :nc] += A + om * B + (om * om) * C
-            j_om = self._j_omega
-            h = self._prior_transpose(j_om).reshape(-1)
-            H[:nc, io] += h
-            H[io, :nc] += h
-            H[io, io] += j_om @ j_om
+            add_turn_prior_gram(
+                H, A, B, C, self._omega_lin, self.Bq1, self.Bq2, self.sq_h, self.sq_v, self._j_omega, self.i_omega
+            )
         return H
-
-    def _prior_transpose(self, x: np.ndarray) -> np.ndarray:
-        """``J_p^T x`` (count, 3) for the motion prior's rows J_p (the turn rate's column aside) at the last
-        linearisation's turn rate, x (3G,), from the bases: ``d rp / d c`` is ``sq Bq2`` on each axis, plus
-        ``omega sq_h Bq1`` from the east control to the north row and minus it from north to east."""
-        x3 = x.reshape(self.G, 3)
-        out = self.Bq2.T @ (self._sq3 * x3)
-        if self.i_omega is not None:
-            t = np.zeros_like(x3)
-            t[:, 0] = -x3[:, 1]
-            t[:, 1] = x3[:, 0]
-            out += self._omega_lin * (self.Bq1.T @ (self.sq_h[:, None] * t))
-        return out
 
     def gradient(self, r: np.ndarray) -> np.ndarray:
         """``J^T r`` (n_params,) at the last evaluation with a Jacobian, r its residuals, from the Jacobian's
         structure (as :meth:`normal_matrix`)."""
-        F, G, nc = self.F, self.G, self.nc
-        U = self._U
-        Ur = U[0] * r[0 : 2 * F : 2]
-        Ur += U[1] * r[1 : 2 * F : 2]  # (3 + nuisances, F)
+        F, G, win = self.F, self.G, self._win
         g = np.empty(self.n_params)
-        g[nc:] = 0.0
-        if U.shape[1] > 3:
-            g[self._nuis_cols] = np.add.reduce(Ur[3:], axis=1)  # .sum(axis=1) without its wrapper
+        measurement_gradient(self._U, r, win.rows.index, win.rows.w0, self._nuis_cols, g)
         o = self._fixed_rows  # (the motion prior's rows among them without a turn rate)
-        if self.i_omega is None:
-            g[:nc] = (Ur[:3] @ self.B0).T.reshape(-1)
-        else:
+        if self.i_omega is not None:
             rp = r[2 * F : 2 * F + 3 * G]
-            g[:nc] = ((Ur[:3] @ self.B0).T + self._prior_transpose(rp)).reshape(-1)
+            add_turn_prior_transpose(self.Bq1, self.Bq2, self.sq_h, self.sq_v, rp, self._omega_lin, g)
             g[self.i_omega] = self._j_omega @ rp
         g += self._J[o:].T @ r[o:]
         return g
