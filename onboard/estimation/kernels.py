@@ -40,6 +40,8 @@ __all__ = [
     "measurement_gradient_reference",
     "add_turn_prior_transpose",
     "add_turn_prior_gram",
+    "turn_prior_rows",
+    "scale_normal_equations",
     "warm",
 ]
 
@@ -321,6 +323,55 @@ def add_turn_prior_gram(H, A, B, C, om, Bq1, Bq2, sq_h, sq_v, j_om, i_omega):
     H[i_omega, i_omega] += d
 
 
+@njit(cache=True, nogil=True)
+def turn_prior_rows(Bq1, Bq2, sq_h, sq_v, c, om, rp, j_omega, jacobian):
+    """The coordinated-turn motion prior's residuals at controls ``c`` (count, 3) and turn rate ``om``, into ``rp``
+    (3G,): ``sq_h (a_n + om v_e)``, ``sq_h (a_e - om v_n)``, ``sq_v a_d`` with ``v = Bq1 c``, ``a = Bq2 c`` (the
+    bases' zeros skipped); with ``jacobian`` the turn rate's column ``j_omega`` (3G,): ``sq_h v_e``, ``-sq_h v_n``, 0
+    (its third entries are not written: they stay zero)."""
+    G, count = Bq2.shape
+    for g in range(G):
+        v0 = 0.0
+        v1 = 0.0
+        a0 = 0.0
+        a1 = 0.0
+        a2 = 0.0
+        for k in range(count):
+            b1 = Bq1[g, k]
+            if b1 != 0.0:
+                v0 += b1 * c[k, 0]
+                v1 += b1 * c[k, 1]
+            b2 = Bq2[g, k]
+            if b2 != 0.0:
+                a0 += b2 * c[k, 0]
+                a1 += b2 * c[k, 1]
+                a2 += b2 * c[k, 2]
+        rp[3 * g] = sq_h[g] * (a0 + om * v1)
+        rp[3 * g + 1] = sq_h[g] * (a1 - om * v0)
+        rp[3 * g + 2] = sq_v[g] * a2
+        if jacobian:
+            j_omega[3 * g] = sq_h[g] * v1
+            j_omega[3 * g + 1] = -sq_h[g] * v0
+
+
+@njit(cache=True, nogil=True)
+def scale_normal_equations(H, g):
+    """More's column scaling of the normal equations, in place: ``d = sqrt(diag H)`` (1 where 0), ``H / (d d^T)``,
+    ``g / d``; returns d.  Elementwise as the numpy it replaces (``H /= np.multiply.outer(d, d)``), bit for bit."""
+    n = H.shape[0]
+    d = np.empty(n)
+    for i in range(n):
+        d[i] = np.sqrt(H[i, i])
+        if d[i] == 0.0:
+            d[i] = 1.0
+    for i in range(n):
+        for j in range(n):
+            H[i, j] /= d[i] * d[j]
+    for i in range(g.size):
+        g[i] /= d[i]
+    return d
+
+
 def measurement_gram_reference(U, index, w0, nuis_cols, H_fixed, H):
     """:func:`measurement_gram` as the dense product of the measurement rows' Jacobian, in numpy."""
     F = w0.shape[0]
@@ -404,4 +455,8 @@ def warm() -> None:
     A = np.ones((9, 9))
     add_turn_prior_gram(np.zeros((n, n)), A, A, A, 0.1, Bq, Bq, np.ones(G), np.ones(G), np.ones(3 * G), 3 * count)
     add_turn_prior_transpose(Bq, Bq, np.ones(G), np.ones(G), np.ones(3 * G), 0.1, np.zeros(3 * count))
+    for jacobian in (True, False):
+        turn_prior_rows(Bq, Bq, np.ones(G), np.ones(G), c, 0.1, np.empty(3 * G), np.zeros(3 * G), jacobian)
+    for size in (n, 0):  # the solver's scaling (a gradient), the factor's (none)
+        scale_normal_equations(np.eye(n), np.ones(size))
     _WARM = True

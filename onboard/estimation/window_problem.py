@@ -61,6 +61,8 @@ from onboard.estimation.kernels import (
     linearise_measurements,
     measurement_gradient,
     measurement_gram,
+    scale_normal_equations,
+    turn_prior_rows,
 )
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
@@ -465,19 +467,11 @@ class WindowProblem:
         r[o:] = self._J[o:] @ theta - self._fixed_offset
         om = 0.0
         if self.i_omega is not None:
-            om = theta[self.i_omega]
-            v = self.Bq1 @ c
-            a = self.Bq2 @ c
-            rp = r[2 * F : 2 * F + 3 * G].reshape(G, 3)
-            rp[:, 0] = self.sq_h * (a[:, 0] + om * v[:, 1])
-            rp[:, 1] = self.sq_h * (a[:, 1] - om * v[:, 0])
-            rp[:, 2] = self.sq_v * a[:, 2]
-        if not jacobian:
-            return r, valid
-        self._omega_lin = om
-        if self.i_omega is not None:
-            self._j_omega[0::3] = self.sq_h * v[:, 1]
-            self._j_omega[1::3] = -self.sq_h * v[:, 0]
+            om = float(theta[self.i_omega])
+            rp = r[2 * F : 2 * F + 3 * G]
+            turn_prior_rows(self.Bq1, self.Bq2, self.sq_h, self.sq_v, c, om, rp, self._j_omega, bool(jacobian))
+        if jacobian:
+            self._omega_lin = om
         return r, valid
 
     def _mean_range(self) -> float:
@@ -708,12 +702,9 @@ class WindowProblem:
         current = True
         gn_taken = True  # was the last Gauss-Newton step accepted (then the next one likely is too)
         for it in range(1, max_iterations + 1):
-            Hs = self.normal_matrix()  # a new array: scaled in place
-            d = np.sqrt(Hs.diagonal())
-            d[d == 0] = 1.0
-            Hs /= np.multiply.outer(d, d)
+            Hs = self.normal_matrix()  # new arrays: scaled in place
             g = self.gradient(r)
-            g /= d
+            d = scale_normal_equations(Hs, g)
             decrease = None
             # Gauss-Newton first (lam = 0): the range direction of a stiff prior has a tiny scaled
             # eigenvalue, and any fixed damping makes LM crawl along it
@@ -791,9 +782,7 @@ class WindowProblem:
         ~1e-10).  So the QR of the dense Jacobian stays where that span, a lower bound of the scaled condition
         number, exceeds :data:`_NORMAL_FACTOR_MAX_SPAN`, or where the Cholesky factorisation fails."""
         H = self.normal_matrix()
-        d = np.sqrt(H.diagonal())
-        d[d == 0] = 1.0
-        H /= np.multiply.outer(d, d)
+        d = scale_normal_equations(H, _NONE)
         try:
             ch, _ = cho_factor_lower(H)
         except np.linalg.LinAlgError:

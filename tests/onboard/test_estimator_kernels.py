@@ -152,6 +152,30 @@ def test_the_turn_priors_kernels_are_the_dense_products(seed, count, om):
     kernels.add_turn_prior_gram(H, A, B, C, om, Bq1, Bq2, sq_h, sq_v, j_om, nc)
     _close(H, J.T @ J)
 
+    c = rng.normal(0.0, 100.0, (count, 3))
+    rp, j_omega = np.full(3 * G, np.nan), np.zeros(3 * G)
+    kernels.turn_prior_rows(Bq1, Bq2, sq_h, sq_v, c, om, rp, j_omega, True)
+    _close(rp, P_acc @ c.reshape(-1) + om * (P_turn @ c.reshape(-1)))
+    v = Bq1 @ c
+    _close(j_omega, np.stack([sq_h * v[:, 1], -sq_h * v[:, 0], np.zeros(G)], axis=1).reshape(-1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.integers(0, 2**32 - 1), st.integers(1, 30), st.booleans())
+def test_the_column_scaling_is_numpys_bit_for_bit(seed, n, zero_column):
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(n + 3, n)) * np.exp(rng.uniform(-10.0, 10.0, n))
+    if zero_column:
+        A[:, rng.integers(n)] = 0.0
+    H, g = A.T @ A, rng.normal(size=n)
+    d_ref = np.sqrt(H.diagonal())
+    d_ref[d_ref == 0] = 1.0
+    H_ref, g_ref = H / np.multiply.outer(d_ref, d_ref), g / d_ref
+    d = kernels.scale_normal_equations(H, g)
+    np.testing.assert_array_equal(d, d_ref)
+    np.testing.assert_array_equal(H, H_ref)
+    np.testing.assert_array_equal(g, g_ref)
+
 
 @pytest.fixture(scope="module")
 def bench_window():
@@ -171,6 +195,8 @@ def test_the_estimator_compiles_the_kernels_at_construction_for_the_types_a_sele
         kernels.measurement_gradient,
         kernels.add_turn_prior_gram,
         kernels.add_turn_prior_transpose,
+        kernels.turn_prior_rows,
+        kernels.scale_normal_equations,
     ]
     compiled = [list(d.signatures) for d in dispatchers]
     assert all(len(s) == 1 for s in compiled)
