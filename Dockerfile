@@ -13,7 +13,9 @@
 FROM python:3.11-slim-bookworm
 
 # Single-threaded numerics by design (one pipeline thread, one MAVLink thread): no BLAS/OpenMP/OpenCV
-# thread pools competing with them for the companion computer's cores.
+# thread pools competing with them for the companion computer's cores. numba compiles the estimator's kernels
+# on first use and caches the machine code; the package tree is read-only at run time, so the cache lives in
+# the /tmp tmpfs (deploy/README.md: what the first start costs, and a volume that keeps it).
 ENV PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
@@ -22,6 +24,7 @@ ENV PYTHONUNBUFFERED=1 \
     MKL_NUM_THREADS=1 \
     OPENCV_FOR_THREADS_NUM=1 \
     MPLCONFIGDIR=/tmp/matplotlib \
+    NUMBA_CACHE_DIR=/tmp/numba-cache \
     IRTRACK_HEALTH_FILE=/tmp/irtrack-alive \
     PATH=/opt/venv/bin:$PATH
 
