@@ -11,16 +11,9 @@ in its operation order), so swapping one for the other changes no result;
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse
 from scipy.linalg import lapack
 
-__all__ = ["cross3", "cho_factor_lower", "cho_solve_lower", "cho_solve_spd_lower", "qr_r", "einsum", "csr_matvec"]
-
-try:
-    #: the C kernel of scipy's CSR matrix-vector product, without the sparse matrix class around it (~5 us a call)
-    from scipy.sparse._sparsetools import csr_matvec as _csr_matvec
-except ImportError:  # a scipy that moved it: the public class, the same kernel and numbers
-    _csr_matvec = None
+__all__ = ["cross3", "cho_factor_lower", "cho_solve_lower", "cho_solve_spd_lower", "qr_r", "einsum"]
 
 try:
     #: ``np.einsum`` without its Python layer (argument dispatch, the ``optimize`` branch): the C function it calls
@@ -90,14 +83,3 @@ def qr_r(A: np.ndarray) -> np.ndarray:
     if info < 0:
         raise ValueError(f"illegal value in {-info}th argument of internal geqrf")
     return np.triu(qr[:N])
-
-
-def csr_matvec(indptr: np.ndarray, indices: np.ndarray, data: np.ndarray, x: np.ndarray, n_rows: int) -> np.ndarray:
-    """``scipy.sparse.csr_matrix((data, indices, indptr), shape=(n_rows, x.size)) @ x`` for float64 ``data`` and
-    ``x`` and intp index arrays: the kernel it calls (``csr_matvec``, each row's products summed in the stored
-    order onto a zero), into a new array, without building the matrix object."""
-    y = np.zeros(n_rows)
-    if _csr_matvec is None:
-        return scipy.sparse.csr_matrix((data, indices, indptr), shape=(n_rows, x.size)) @ x
-    _csr_matvec(n_rows, x.size, indptr, indices, data, x, y)
-    return y

@@ -262,10 +262,8 @@ class _WindowConstants:
         self.interval_slot[order] = seg[order] * width + slot
         w0 = np.zeros((nseg, width, 4))
         w0[seg[order], slot] = rows.w0[order]
-        # the weights of the interval sums: w0[m] w0[n] (16 columns), then w0[m] (4; for the nuisances)
-        self.interval_weights = np.concatenate(
-            [(w0[:, :, :, None] * w0[:, :, None, :]).reshape(nseg, width, 16), w0], axis=2
-        )
+        # the weights of the interval sums: w0[m] w0[n] (16 columns)
+        self.interval_weights = (w0[:, :, :, None] * w0[:, :, None, :]).reshape(nseg, width, 16)
         self._meas_flat: dict[int, np.ndarray] = {}
         self._bearings: np.ndarray | None = None
         self._controls_at: dict[float, np.ndarray] = {}
@@ -806,7 +804,7 @@ class WindowProblem:
             win = self._win
             span = np.arange(self.count - 3)[:, None] + np.arange(4)
             blocks = S[span[:, :, None], :, span[:, None, :], :].reshape(-1, 16, 9)  # (intervals, 4 x 4, 3 x 3)
-            per = np.matmul(win.interval_weights[:, :, :16], blocks)  # (intervals, width, 9)
+            per = np.matmul(win.interval_weights, blocks)  # (intervals, width, 9)
             return per.reshape(-1, 9)[win.interval_slot].reshape(-1, 3, 3)
         idx, w = rows.index, rows.w0
         blocks = S[idx[:, :, None], :, idx[:, None, :], :]  # (N, 4, 4, 3, 3)

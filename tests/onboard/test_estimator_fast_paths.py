@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import scipy.linalg as sla
-import scipy.sparse
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -15,7 +14,6 @@ from onboard.estimation.fastmath import (
     cho_solve_lower,
     cho_solve_spd_lower,
     cross3,
-    csr_matvec,
     einsum,
     qr_r,
 )
@@ -85,24 +83,3 @@ def test_einsum_is_np_einsum_bit_for_bit(data, n):
         ("fm,fmk->fk", (w0, c)),
     ):
         assert np.array_equal(einsum(subscripts, *ops), np.einsum(subscripts, *ops))
-
-
-@settings(max_examples=100, deadline=None)
-@given(st.data(), st.integers(1, 60), st.integers(1, 30), st.integers(0, 200))
-def test_csr_matvec_is_the_sparse_product_and_the_bincount_scatter_bit_for_bit(data, n_src, n_rows, n_entries):
-    # the normal matrix's scatter: entry k adds x[src[k]] to row dst[k]; as a 0/1 CSR matrix whose rows keep the
-    # entries in their scatter order, the product adds the same numbers in the same order as the bincount
-    x = data.draw(_vectors((n_src,)))
-    src = np.array(
-        data.draw(st.lists(st.integers(0, n_src - 1), min_size=n_entries, max_size=n_entries)), dtype=np.intp
-    )
-    dst = np.array(
-        data.draw(st.lists(st.integers(0, n_rows - 1), min_size=n_entries, max_size=n_entries)), dtype=np.intp
-    )
-    order = np.argsort(dst, kind="stable")
-    indptr = np.concatenate([[0], np.cumsum(np.bincount(dst, minlength=n_rows))]).astype(np.intp)
-    indices = src[order]
-    ones = np.ones(n_entries)
-    y = csr_matvec(indptr, indices, ones, x, n_rows)
-    assert np.array_equal(y, np.bincount(dst, x[src], minlength=n_rows))
-    assert np.array_equal(y, scipy.sparse.csr_matrix((ones, indices, indptr), shape=(n_rows, n_src)) @ x)
