@@ -10,7 +10,8 @@ Each kernel has a numpy reference here with the same signature (``*_reference``:
 order; the sums that numpy handed to BLAS (the spline's basis product, the rotation by the attitude bias, the knot
 intervals' sums of ``J^T J``, ``J^T r``'s basis product) run here in plain index order, and BLAS's order (blocked,
 with fused multiply-adds on CPUs that have them) differs by the machine, so those agree to rounding (~1e-15 of the
-values), not to the bit.  No ``fastmath``: no reassociation, no fused multiply-add of our own.
+values), not to the bit.  No ``fastmath``: no reassociation, no fused multiply-add of our own; numpy's error model
+(a division by zero gives inf or NaN as in the references, not an exception).
 
 The kernels compile on first use, or load from numba's cache (``cache=True``: beside this module, else in
 ``NUMBA_CACHE_DIR``); :func:`warm` does that once per process at the estimator's construction, so that no estimator
@@ -46,7 +47,7 @@ __all__ = [
 ]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def linearise_measurements(c, index, w0, p_cam_T, beta, gamma, dt, Rphi, R_T, xy_T, sT, jacobian, X, los, r, U):
     """The measurement rows of the window problem at control points ``c`` (count, 3), in place; returns validity.
 
@@ -188,7 +189,7 @@ _PAIRS4 = np.array([(m, n) for m in range(4) for n in range(m, 4)], dtype=np.int
 _PAIRS3 = np.array([(i, j) for i in range(3) for j in range(i, 3)], dtype=np.int64)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
     """``J^T J`` of the measurement rows plus ``H_fixed``, into ``H`` (n, n), from their local Jacobian ``U`` (2, 3 +
     nuisances, F) of :func:`linearise_measurements`: row (f, a) is ``w0[f, m] U[a, :3, f]`` in the columns of control
@@ -269,7 +270,7 @@ def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
             H[i, j] += H_fixed[i, j]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def add_turn_prior_transpose(Bq1, Bq2, sq_h, sq_v, x, om, out):
     """Adds ``J_p^T x`` to ``out`` (3 count,), J_p the coordinated-turn motion prior's rows (3G) at turn rate ``om``
     without the turn rate's column, x (3G,): ``d rp / d c`` is ``sq Bq2`` on each axis (``sq_h`` north and east,
@@ -301,7 +302,7 @@ def add_turn_prior_transpose(Bq1, Bq2, sq_h, sq_v, x, om, out):
         out[3 * c + 2] += a2[c, 2]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def add_turn_prior_gram(H, A, B, C, om, Bq1, Bq2, sq_h, sq_v, j_om, i_omega):
     """Adds the coordinated-turn motion prior's rows' ``J^T J`` at turn rate ``om`` to ``H``: ``A + om B + om^2 C``
     on the controls (the span's polynomial, ``_SpanPrior.grams``), ``J_p^T j_om`` (:func:`add_turn_prior_transpose`)
@@ -323,7 +324,7 @@ def add_turn_prior_gram(H, A, B, C, om, Bq1, Bq2, sq_h, sq_v, j_om, i_omega):
     H[i_omega, i_omega] += d
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def turn_prior_rows(Bq1, Bq2, sq_h, sq_v, c, om, rp, j_omega, jacobian):
     """The coordinated-turn motion prior's residuals at controls ``c`` (count, 3) and turn rate ``om``, into ``rp``
     (3G,): ``sq_h (a_n + om v_e)``, ``sq_h (a_e - om v_n)``, ``sq_v a_d`` with ``v = Bq1 c``, ``a = Bq2 c`` (the
@@ -354,7 +355,7 @@ def turn_prior_rows(Bq1, Bq2, sq_h, sq_v, c, om, rp, j_omega, jacobian):
             j_omega[3 * g + 1] = -sq_h[g] * v0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def scale_normal_equations(H, g):
     """More's column scaling of the normal equations, in place: ``d = sqrt(diag H)`` (1 where 0), ``H / (d d^T)``,
     ``g / d``; returns d.  Elementwise as the numpy it replaces (``H /= np.multiply.outer(d, d)``), bit for bit."""
@@ -386,7 +387,7 @@ def measurement_gram_reference(U, index, w0, nuis_cols, H_fixed, H):
     H[...] = J.T @ J + H_fixed
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def measurement_gradient(U, r, index, w0, nuis_cols, g):
     """``J^T r`` of the measurement rows (their residuals ``r``, 2F of them first), into ``g`` (n,): per observation
     ``U[0] r[2f] + U[1] r[2f + 1]``, its first three times ``w0[f, m]`` into control ``index[f, m]``'s columns, the
