@@ -17,6 +17,7 @@ from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenari
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.estimation import kernels, window_problem
 from onboard.estimation.map_estimator import MapEstimator
+from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -183,11 +184,11 @@ def bench_window():
     sc = load_scenario(reference_scenario_paths()["P1"])
     noise = load_noise_cases()["RTK"]
     _, obs = synthesize_scenario(sc, noise, 0)
-    return obs, estimator_noise_model(noise)
+    return obs, estimator_noise_model(noise), sc.camera.intrinsics
 
 
 def test_the_estimator_compiles_the_kernels_at_construction_for_the_types_a_selection_passes(bench_window):
-    obs, noise = bench_window
+    obs, noise, intrinsics = bench_window
     est = MapEstimator(noise=noise)
     dispatchers = [
         kernels.linearise_measurements,
@@ -202,12 +203,18 @@ def test_the_estimator_compiles_the_kernels_at_construction_for_the_types_a_sele
     assert all(len(s) == 1 for s in compiled)
     sel = est.solve(obs)
     assert np.isfinite(sel.p_ned_m).all()
-    # no kernel compiled again: every call of the selection (every family and nuisance layout) matched warm()'s types
+    # the sliding window's own calls too: its provisional first choice, the spread selections, the re-solves
+    sw = SlidingWindowEstimator(SlidingConfig(), noise=noise)
+    estimates = [
+        sw.add(obs.t_s[i], obs.uv_px[i], intrinsics, obs.p_cam_ned_m[i], obs.q_ned_from_cam[i]) for i in range(len(obs))
+    ]
+    assert sum(e is not None for e in estimates) > len(obs) // 2
+    # no kernel compiled again: every call (every family and nuisance layout) matched warm()'s types
     assert [list(d.signatures) for d in dispatchers] == compiled
 
 
 def test_a_selection_with_the_kernels_is_the_numpy_formulations(bench_window, monkeypatch):
-    obs, noise = bench_window
+    obs, noise, _ = bench_window
     ours = MapEstimator(noise=noise).solve(obs)
     monkeypatch.setattr(window_problem, "linearise_measurements", kernels.linearise_measurements_reference)
     monkeypatch.setattr(window_problem, "measurement_gram", kernels.measurement_gram_reference)
