@@ -207,9 +207,9 @@ def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
     pairs4, pairs3 = _PAIRS4, _PAIRS3
     H[:, :] = 0.0
     S = np.zeros((10, 6))  # the interval's control-control sums, (m, n) pair by (i, j) pair
-    Sn = np.zeros((4, 3, nm))  # its control-nuisance sums
+    Sn = np.zeros((4, 3 * nm))  # its control-nuisance sums, (control, axis x nuisance)
     N = np.zeros((nm, nm))
-    Q = np.empty((3, nm))
+    Q = np.empty(3 * nm)
     seg = -1
     for f in range(F + 1):
         if f == F or index[f, 0] != seg:
@@ -225,12 +225,12 @@ def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
                 for m in range(4):
                     for i in range(3):
                         for j in range(nm):
-                            H[3 * (seg + m) + i, nuis_cols[j]] += Sn[m, i, j]
+                            H[3 * (seg + m) + i, nuis_cols[j]] += Sn[m, i * nm + j]
             if f == F:
                 break
             seg = index[f, 0]
             S[:, :] = 0.0
-            Sn[:, :, :] = 0.0
+            Sn[:, :] = 0.0
         a0, a1, a2 = U[0, 0, f], U[0, 1, f], U[0, 2, f]
         b0, b1, b2 = U[1, 0, f], U[1, 1, f], U[1, 2, f]
         # P[q] for the axis pairs (0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)
@@ -240,9 +240,12 @@ def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
         p3 = a1 * a1 + b1 * b1
         p4 = a1 * a2 + b1 * b2
         p5 = a2 * a2 + b2 * b2
-        for i in range(3):
-            for j in range(nm):
-                Q[i, j] = U[0, i, f] * U[0, 3 + j, f] + U[1, i, f] * U[1, 3 + j, f]
+        for j in range(nm):
+            c0 = U[0, 3 + j, f]
+            c1 = U[1, 3 + j, f]
+            Q[j] = a0 * c0 + b0 * c1
+            Q[nm + j] = a1 * c0 + b1 * c1
+            Q[2 * nm + j] = a2 * c0 + b2 * c1
         for p in range(10):
             w = w0[f, pairs4[p, 0]] * w0[f, pairs4[p, 1]]
             S[p, 0] += w * p0
@@ -252,9 +255,9 @@ def measurement_gram(U, index, w0, nuis_cols, H_fixed, H):
             S[p, 4] += w * p4
             S[p, 5] += w * p5
         for m in range(4):
-            for i in range(3):
-                for j in range(nm):
-                    Sn[m, i, j] += w0[f, m] * Q[i, j]
+            w = w0[f, m]
+            for k in range(3 * nm):
+                Sn[m, k] += w * Q[k]
         for i in range(nm):
             for j in range(i, nm):
                 N[i, j] += U[0, 3 + i, f] * U[0, 3 + j, f] + U[1, 3 + i, f] * U[1, 3 + j, f]
