@@ -4,20 +4,21 @@ Why compiled: the model selection evaluates a window problem's residuals, Jacobi
 hundred times on arrays of a few hundred numbers, and in numpy each of those took 15-45 calls whose fixed cost
 was most of their time.  One loop over the observations does the arithmetic without the calls.
 
-Each kernel has a numpy reference here with the same signature (``*_reference``: the formulation
-:class:`~onboard.estimation.window_problem.WindowProblem` used before, kept for the tests,
-``tests/onboard/test_estimator_kernels.py``).  The elementwise arithmetic is the same operations in the same
-order; the sums that numpy handed to BLAS (the spline's basis product, the rotation by the attitude bias, the knot
-intervals' sums of ``J^T J``, ``J^T r``'s basis product) run here in plain index order, and BLAS's order (blocked,
-with fused multiply-adds on CPUs that have them) differs by the machine, so those agree to rounding (~1e-15 of the
-values), not to the bit.  No ``fastmath``: no reassociation, no fused multiply-add of our own; numpy's error model
-(a division by zero gives inf or NaN as in the references, not an exception).
+The measurement rows' kernels have numpy references here with the same signature (``*_reference``: the
+formulation :class:`~onboard.estimation.window_problem.WindowProblem` used before, or the dense product); the turn
+prior's and the scaling's are checked against the dense products and numpy's expressions
+(``tests/onboard/test_estimator_kernels.py``, over random windows).  The elementwise arithmetic is the same
+operations in the same order; the sums that numpy handed to BLAS (the spline's basis product, the rotation by the
+attitude bias, the knot intervals' sums of ``J^T J``, ``J^T r``'s basis product) run here in plain index order,
+and BLAS's order (blocked, with fused multiply-adds on CPUs that have them) differs by the machine, so those agree
+to rounding (~1e-15 of the values), not to the bit.  No ``fastmath``: no reassociation, no fused multiply-add of
+our own; numpy's error model (a division by zero gives inf or NaN as in the references, not an exception).
 
-The kernels compile on first use, or load from numba's cache (``cache=True``: beside this module, else in
-``NUMBA_CACHE_DIR``); :func:`warm` does that once per process at the estimator's construction, so that no estimator
-step pays it (about 4 s to compile, ~0.1 s to load from the cache: docs/performance.md).  numba is a declared
-dependency of the onboard service: without it this module raises ImportError naming it, rather than falling back to
-the numpy formulation at several times the CPU.
+The kernels compile on first use, or load from numba's cache (``cache=True``: in ``NUMBA_CACHE_DIR`` when it is
+set, else beside this module); :func:`warm` does that once per process at the estimator's construction, so that no
+estimator step pays it (seconds to compile, a fraction of a second to load from the cache: docs/performance.md).
+numba is a declared dependency of the onboard service: without it this module raises ImportError naming it, rather
+than falling back to the numpy formulation at several times the CPU.
 """
 
 from __future__ import annotations

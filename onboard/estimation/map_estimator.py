@@ -291,7 +291,7 @@ class MapEstimator:
         self.noise = noise or NoiseModel()
         self._span_cache: dict = {}
         # the window problem's compiled kernels, here rather than in the first estimator step that needs them
-        # (seconds to compile, ~0.1 s from numba's cache: once per process)
+        # (seconds to compile, a fraction of a second from numba's cache: once per process)
         kernels.warm()
         self._camera_cache: list[tuple] = []  # (observations, smoothed, noise model), newest first
 
