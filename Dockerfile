@@ -13,9 +13,10 @@
 FROM python:3.11-slim-bookworm
 
 # Single-threaded numerics by design (one pipeline thread, one MAVLink thread): no BLAS/OpenMP/OpenCV
-# thread pools competing with them for the companion computer's cores. numba compiles the estimator's kernels
-# on first use and caches the machine code; the package tree is read-only at run time, so the cache lives in
-# the /tmp tmpfs (deploy/README.md: what the first start costs, and a volume that keeps it).
+# thread pools competing with them for the companion computer's cores. numba loads the estimator's compiled
+# kernels only from a writable cache (NUMBA_CACHE_DIR, in the /tmp tmpfs: the package tree is read-only at run
+# time); the build compiles them once into IRTRACK_NUMBA_CACHE_SEED and the daemon copies that seed into the
+# cache at start (onboard/app/numba_seed.py), so a start does not compile them again.
 ENV PYTHONUNBUFFERED=1 \
     PYTHONDONTWRITEBYTECODE=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
@@ -25,6 +26,7 @@ ENV PYTHONUNBUFFERED=1 \
     OPENCV_FOR_THREADS_NUM=1 \
     MPLCONFIGDIR=/tmp/matplotlib \
     NUMBA_CACHE_DIR=/tmp/numba-cache \
+    IRTRACK_NUMBA_CACHE_SEED=/opt/numba-seed \
     IRTRACK_HEALTH_FILE=/tmp/irtrack-alive \
     PATH=/opt/venv/bin:$PATH
 
@@ -50,6 +52,7 @@ ARG IRTRACK_EXTRAS=""
 RUN --mount=type=cache,target=/root/.cache/pip \
     bash scripts/install.sh /opt/venv "$IRTRACK_EXTRAS" \
  && python -m compileall -q onboard groundsim bench \
+ && NUMBA_CACHE_DIR=/opt/numba-seed python -c "from onboard.estimation import kernels; kernels.warm()" \
  && install -d -m 0755 /config \
  && cp config/onboard.yaml /config/onboard.yaml
 

@@ -210,7 +210,10 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
 
     cv2.setNumThreads(1)  # OpenCV's own pool would fight the pipeline for the cores
 
+    from onboard.app.numba_seed import seed_numba_cache
     from onboard.app.service import OnboardService
+
+    seed_numba_cache()  # before the estimator's kernels are loaded (in this process and the worker it starts)
 
     try:
         built = OnboardService(config)
