@@ -99,13 +99,9 @@ def _slanted_frame(terrain: np.ndarray, k: int, target: tuple[float, float]) -> 
     return np.clip(np.round(img), 0, 255).astype(np.uint8)
 
 
-@pytest.mark.parametrize("surroundings_test", [True, False])
-def test_a_feature_carried_by_its_own_surroundings_is_not_confirmed(surroundings_test, monkeypatch):
-    """A warm spot on the nearer ground moves with its surroundings but unlike the frame's dominant
-    motion: the frame-wide test alone confirms it (a false track); compared with its own surroundings
-    it is not confirmed, while the target crossing the far ground is."""
-    if not surroundings_test:
-        monkeypatch.setattr(ObjectDetector, "surroundings_match", lambda self, t: float("nan"))
+def _fly_spot_and_target() -> tuple[int, int]:
+    """45 frames of the slanted terrain with a warm spot carried by it and a target crossing it: the frames on
+    which a confirmed object stood on each."""
     # fine texture over the coarse one: what the surroundings are matched by at one-pixel shifts
     fine = cv2.GaussianBlur(np.random.default_rng(17).normal(0.0, 20.0, (H_PX + 80, W_PX)), (0, 0), 1.5)
     terrain = _terrain() + fine.astype(np.float32)
@@ -118,6 +114,17 @@ def test_a_feature_carried_by_its_own_surroundings_is_not_confirmed(surroundings
         for o in out.confirmed:
             spot_confirmed += math.hypot(o.u_px - spot[0], o.v_px - spot[1]) <= MATCH_PX
             target_confirmed += math.hypot(o.u_px - target[0], o.v_px - target[1]) <= MATCH_PX
+    return spot_confirmed, target_confirmed
+
+
+@pytest.mark.parametrize("surroundings_test", [True, False])
+def test_a_feature_carried_by_its_own_surroundings_is_not_confirmed(surroundings_test, monkeypatch):
+    """A warm spot on the nearer ground moves with its surroundings but unlike the frame's dominant
+    motion: the frame-wide test alone confirms it (a false track); compared with its own surroundings
+    it is not confirmed, while the target crossing the far ground is."""
+    if not surroundings_test:
+        monkeypatch.setattr(ObjectDetector, "surroundings_match", lambda self, t: float("nan"))
+    spot_confirmed, target_confirmed = _fly_spot_and_target()
     assert target_confirmed >= 25  # confirmed within ~15 frames, then measured on every frame
     assert (spot_confirmed == 0) == surroundings_test
 
@@ -241,17 +248,7 @@ def test_a_carried_feature_stays_carried_through_a_few_tests_that_say_otherwise(
         return match
 
     monkeypatch.setattr(ObjectDetector, "surroundings_match", flaky)
-    fine = cv2.GaussianBlur(np.random.default_rng(17).normal(0.0, 20.0, (H_PX + 80, W_PX)), (0, 0), 1.5)
-    terrain = _terrain() + fine.astype(np.float32)
-    tr = ObjectTracker(K)
-    spot_confirmed = target_confirmed = 0
-    for k in range(45):
-        target = (40.0 + TARGET_PXPF * k, 50.0)
-        out = tr.update(_slanted_frame(terrain, k, target), np.eye(3))
-        spot = (SPOT_UV[0], SPOT_UV[1] + NEAR_SCROLL_PXPF * k)
-        for o in out.confirmed:
-            spot_confirmed += math.hypot(o.u_px - spot[0], o.v_px - spot[1]) <= MATCH_PX
-            target_confirmed += math.hypot(o.u_px - target[0], o.v_px - target[1]) <= MATCH_PX
+    spot_confirmed, target_confirmed = _fly_spot_and_target()
     assert max(tested.values()) >= 3 + dropouts  # the spot was asked through the flaky answers
     assert (spot_confirmed == 0) == spot_kept_out
     assert target_confirmed >= 25
