@@ -35,6 +35,7 @@ from onboard.imaging.clutter import (
     point_contrast,
     rotation_shift_px,
     surround_residuals,
+    two_level_cap,
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
@@ -162,8 +163,9 @@ class ObjectDetector:
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(noise))
         # the box mean is done with: its array takes the threshold (one distinct full-size array less)
+        cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction)
         threshold = cv2.resize(
-            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb),
+            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
             (w, h),
             dst=sc.get("threshold", img.shape) if box3 is None else box3,
             interpolation=cv2.INTER_LINEAR,
