@@ -63,6 +63,7 @@ __all__ = [
     "surround_residuals",
     "background_difference",
     "difference_peak",
+    "two_level_difference_cap",
 ]
 
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
@@ -737,15 +738,55 @@ def background_difference(
     return cur - old, (float(du), float(dv))
 
 
+def two_level_difference_cap(
+    current: np.ndarray,
+    previous: np.ndarray,
+    uv_px: tuple[float, float],
+    displacement_px: tuple[float, float],
+    cap_lsb: float,
+    half_px: int = 8,
+    min_fraction: float = 0.9,
+) -> float:
+    """The most a :func:`background_difference` square's 2 x 2 means can owe to noise where both frames'
+    squares lie on two adjacent grey levels: ``cap_lsb`` (+inf elsewhere, for float frames or
+    ``cap_lsb`` 0).  Pixels on {L, L+1} differ by at most one level, and so do their bilinear
+    interpolations and 2 x 2 means; its own-sigma threshold there reads the toggling as noise (C2 seed 1,
+    flat ground, frames 50-100: sigma 0.3-0.57 grey, 5 sigmas over the target's 1.7-2.1 grey).  Judged
+    on the ``2 half_px + 1`` squares (whole pixels) about ``uv_px`` in ``current`` and about ``uv_px``
+    minus ``displacement_px`` (:func:`background_difference`'s) in ``previous``, the gate's
+    neighbourhood: each is two-level when at least ``min_fraction`` of its pixels lie on its two most
+    common adjacent levels, so that the target's own few pixels, now and where it was, do not lift the
+    cap (the 33 px square about C2 seed 1's target held a warm patch, 8 % of it, 10 px away)."""
+    if cap_lsb <= 0 or not (np.issubdtype(current.dtype, np.integer) and np.issubdtype(previous.dtype, np.integer)):
+        return math.inf
+    for img, (u, v) in ((current, uv_px), (previous, (uv_px[0] - displacement_px[0], uv_px[1] - displacement_px[1]))):
+        i, j = int(math.floor(v)), int(math.floor(u))
+        sq = img[max(i - half_px, 0) : i + half_px + 1, max(j - half_px, 0) : j + half_px + 1]
+        if sq.size == 0:
+            return math.inf
+        lo = int(sq.min())
+        counts = np.bincount((sq.ravel() - lo).astype(np.intp))
+        pairs = counts[:-1] + counts[1:] if counts.size > 1 else counts
+        if int(pairs.max()) < min_fraction * sq.size:
+            return math.inf
+    return cap_lsb
+
+
 def difference_peak(
-    diff: np.ndarray, uv_px: tuple[float, float], gate_px: float, k_sigma: float, floor: float
+    diff: np.ndarray,
+    uv_px: tuple[float, float],
+    gate_px: float,
+    k_sigma: float,
+    floor: float,
+    cap: float = math.inf,
 ) -> PointCandidate | None:
     """The strongest 2 x 2 mean of a :func:`background_difference` square (centred at ``uv_px``) within
-    ``gate_px`` of its centre, if it reaches ``max(k_sigma * sigma, floor)``, sigma the square's noise
-    (1.2533 x the mean absolute 2 x 2 mean more than 4.5 px from the centre), as a candidate at the
-    centroid of the positive 2 x 2 means about it (``score``: peak over that threshold); else None.
-    A target on a field edge beside a warmer field has a negative point contrast but stands out here
-    (C2: ~40 frames, 1.2-3.8 grey against a noise of ~0.23 grey)."""
+    ``gate_px`` of its centre, if it reaches ``min(max(k_sigma * sigma, floor), cap)``, sigma the
+    square's noise (1.2533 x the mean absolute 2 x 2 mean more than 4.5 px from the centre), as a
+    candidate at the centroid of the positive 2 x 2 means about it (``score``: peak over that
+    threshold); else None.  A target on a field edge beside a warmer field has a negative point
+    contrast but stands out here (C2: ~40 frames, 1.2-3.8 grey against a noise of ~0.23 grey).
+    ``cap``: :func:`two_level_difference_cap`'s."""
     d2 = cv2.blur(diff, (2, 2))  # d2[i, j]: the mean of diff[i - 1 : i + 1, j - 1 : j + 1]
     h = diff.shape[0] // 2
     off = np.arange(diff.shape[0]) - h - 0.5  # d2's centres relative to the square's centre
@@ -754,7 +795,7 @@ def difference_peak(
     inside = np.where(dist <= gate_px, d2, -np.inf)
     i, j = np.unravel_index(int(np.argmax(inside)), inside.shape)
     peak = float(inside[i, j])
-    thr = max(k_sigma * sigma, floor)
+    thr = min(max(k_sigma * sigma, floor), cap)
     if not peak >= thr or not 1 <= i < 2 * h or not 1 <= j < 2 * h:
         return None
     w = np.maximum(d2[i - 1 : i + 2, j - 1 : j + 2], 0.0)

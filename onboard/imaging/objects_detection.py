@@ -36,6 +36,7 @@ from onboard.imaging.clutter import (
     rotation_shift_px,
     surround_residuals,
     two_level_cap,
+    two_level_difference_cap,
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
@@ -58,6 +59,7 @@ DIFFERENCE_LAG = 8  # frames between the two frames of a track-aided background 
 DIFFERENCE_HALF_PX = 16  # half-side of its square
 DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
+DIFFERENCE_TWO_LEVEL_CAP = 1.25  # its threshold's cap on two-level ground, in levels: over one needs a third level
 SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
 STRIPE_EVERY = 8  # frames between column-offset measurements (and at once after an offset step)
 DEBLEND_MIN_SCORE = 2.0  # a neighbour this many thresholds bright is deblended (C3's primary dips to 2.3 beside it)
@@ -386,10 +388,13 @@ class ObjectDetector:
         if p0 is None:
             return None
         du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
-        diff, _ = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        diff, moved = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
+        cap = two_level_difference_cap(
+            self._recent[-1][1], old, puv, moved, DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
+        )
         # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
         return difference_peak(
-            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb
+            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb, cap
         )
 
 

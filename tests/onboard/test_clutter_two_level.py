@@ -1,6 +1,7 @@
-"""The CFAR threshold's cap where an integer frame's ground quantises to two adjacent grey levels
-(onboard.imaging.clutter.two_level_cap): the premise (noise on two levels makes no point contrast over
-one level), where the cap applies and where not, and a faint target found under it."""
+"""The thresholds' caps where an integer frame's ground quantises to two adjacent grey levels
+(onboard.imaging.clutter.two_level_cap for the CFAR threshold, two_level_difference_cap for the
+background difference's): the premise (noise on two levels makes no point contrast, and no difference,
+over one level), where the caps apply and where not, and a faint target found under them."""
 
 from __future__ import annotations
 
@@ -15,13 +16,22 @@ from hypothesis import strategies as st
 from onboard.core.frames import PinholeIntrinsics
 from onboard.imaging.clutter import (
     ClutterParams,
+    background_difference,
     cfar_threshold,
+    difference_peak,
     local_noise_coarse,
     point_candidates,
     point_contrast,
     two_level_cap,
+    two_level_difference_cap,
 )
-from onboard.imaging.objects_detection import NOISE_FACTOR, ObjectDetector
+from onboard.imaging.objects_detection import (
+    DIFFERENCE_GATE_PX,
+    DIFFERENCE_SIGMA,
+    DIFFERENCE_TWO_LEVEL_CAP,
+    NOISE_FACTOR,
+    ObjectDetector,
+)
 from onboard.imaging.objects_model import ObjectParams
 
 H_PX, W_PX = 96, 128
@@ -148,3 +158,68 @@ def test_detector_finds_the_faint_target_on_a_mono8_frame_only_with_the_cap():
     assert found[0.0] == []
     assert len(found[1.0]) == 1
     assert math.hypot(found[1.0][0].u_px - u, found[1.0][0].v_px - v) < TARGET_TOL_PX
+
+
+DIFFERENCE_CAP_LSB = DIFFERENCE_TWO_LEVEL_CAP * ClutterParams().two_level_cap_lsb
+
+
+def _ground_pair(
+    seed: int, shift_px: tuple[int, int], mover: tuple[float, float] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Two frames of two-level ground 8 frames apart, the ground moved by ``shift_px`` (whole pixels: its
+    quantisation toggles afresh anyway), the target at ``mover`` (current frame) and 4 px left of it
+    before (it moves against the ground), as uint8."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k, offset in ((0, (-4.0, 0.0)), (1, (0.0, 0.0))):
+        g = LEVEL + 0.5 + rng.normal(0.0, SENSOR_NOISE_GREY, (H_PX, W_PX))
+        if mover is not None:
+            _target(
+                g,
+                mover[0] + offset[0] - shift_px[0] * (1 - k),
+                mover[1] + offset[1] - shift_px[1] * (1 - k),
+                TARGET_GREY,
+                TARGET_SIGMA_PX,
+            )
+        frames.append(np.rint(g).clip(0, 255).astype(np.uint8))
+    return frames[0], frames[1]
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0), st.floats(0.05, 0.95))
+def test_two_level_frames_make_no_difference_peak_over_the_cap(seed, du, dv, q):
+    # any two frames on levels {L, L+1}: whatever the registration found, no 2 x 2 mean of the
+    # difference reaches the cap, so the cap adds no detection of noise
+    rng = np.random.default_rng(seed)
+    prev = (LEVEL + (rng.random((H_PX, W_PX)) < q)).astype(np.uint8)
+    cur = (LEVEL + (rng.random((H_PX, W_PX)) < q)).astype(np.uint8)
+    uv = (64.0, 48.0)
+    diff, moved = background_difference(cur, prev, uv, (du, dv))
+    cap = two_level_difference_cap(cur, prev, uv, moved, DIFFERENCE_CAP_LSB)
+    assert cap == DIFFERENCE_CAP_LSB
+    assert float(np.abs(diff).max()) <= 1.0 + CONTRAST_TOL_GREY
+    assert difference_peak(diff, uv, DIFFERENCE_GATE_PX, DIFFERENCE_SIGMA, 0.8, cap) is None
+
+
+def test_the_difference_finds_a_faint_mover_on_two_level_ground_only_with_the_cap():
+    uv = (64.3, 47.6)
+    prev, cur = _ground_pair(22, (3, 2), uv)  # its 2 x 2 peak 1.39 grey, 5 own sigmas of the toggling 1.51
+    diff, moved = background_difference(cur, prev, uv, (3.0, 2.0))
+    cap = two_level_difference_cap(cur, prev, uv, moved, DIFFERENCE_CAP_LSB)
+    assert cap == DIFFERENCE_CAP_LSB  # its own pixels, now and 4 px away before, do not lift it
+    assert difference_peak(diff, uv, DIFFERENCE_GATE_PX, DIFFERENCE_SIGMA, 0.8) is None  # 5 own sigmas: too high
+    found = difference_peak(diff, uv, DIFFERENCE_GATE_PX, DIFFERENCE_SIGMA, 0.8, cap)
+    assert found is not None
+    assert math.hypot(found.u_px - uv[0], found.v_px - uv[1]) < TARGET_TOL_PX
+
+
+def test_no_difference_cap_on_texture_float_frames_or_switched_off():
+    rng = np.random.default_rng(9)
+    textured = np.rint(LEVEL + rng.normal(0.0, 0.8, (H_PX, W_PX))).astype(np.uint8)
+    uv = (64.0, 48.0)
+    assert two_level_difference_cap(textured, textured, uv, (0.0, 0.0), DIFFERENCE_CAP_LSB) == math.inf
+    prev, cur = _ground_pair(3, (0, 0), None)
+    assert two_level_difference_cap(cur, prev, uv, (0.0, 0.0), DIFFERENCE_CAP_LSB) == DIFFERENCE_CAP_LSB
+    as_float = cur.astype(np.float32), prev.astype(np.float32)
+    assert two_level_difference_cap(*as_float, uv, (0.0, 0.0), DIFFERENCE_CAP_LSB) == math.inf
+    assert two_level_difference_cap(cur, prev, uv, (0.0, 0.0), 0.0) == math.inf
