@@ -403,25 +403,28 @@ def two_level_cap(
     grey under thresholds of median 2.30; capped, a candidate on 187 of its 270 frames (0 before), no
     candidate more elsewhere on C1, C2 (seeds 0-2) or C3.  Frame sizes not a multiple of ``factor``:
     the last rows and columns are left out of the cells (the noise grid's cells span them)."""
-    if cap_lsb <= 0 or not np.issubdtype(image.dtype, np.integer):
-        return None
     h, w = image.shape
+    if cap_lsb <= 0 or not np.issubdtype(image.dtype, np.integer) or min(h, w) < factor:
+        return None
     hc, wc = max(h // factor, 1), max(w // factor, 1)
-    kernel = np.ones((factor, factor), np.uint8)
     img = image if image.dtype in (np.uint8, np.uint16) else image.astype(np.float32)
-    # each cell's extremes: a dilation anchored at its first pixel, read at every factor-th
-    hi = cv2.dilate(img, kernel, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[
-        : hc * factor : factor, : wc * factor : factor
-    ]
-    lo = cv2.erode(img, kernel, anchor=(0, 0), borderType=cv2.BORDER_REPLICATE)[
-        : hc * factor : factor, : wc * factor : factor
-    ]
+    # each cell's extremes: its rows' first (whole contiguous rows, numpy), then every factor-th of a
+    # dilation along the row anchored at the cell's first column (4x less to dilate: 0.08 against
+    # 0.45 ms for a 4 x 4 dilation of the whole frame read at every fourth pixel)
+    rows = [img[r : hc * factor : factor] for r in range(factor)]
+    hi_rows, lo_rows = rows[0].copy(), rows[0].copy()
+    for r in rows[1:]:
+        np.maximum(hi_rows, r, out=hi_rows)
+        np.minimum(lo_rows, r, out=lo_rows)
+    kernel = np.ones((1, factor), np.uint8)
+    hi = cv2.dilate(hi_rows, kernel, anchor=(0, 0))[:, : wc * factor : factor]
+    lo = cv2.erode(lo_rows, kernel, anchor=(0, 0))[:, : wc * factor : factor]
     k = max(window_px // factor, 1) | 1
     lowest = cv2.erode(np.ascontiguousarray(lo), np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     # hi >= lo >= lowest, so the difference never saturates
     two = (cv2.subtract(np.ascontiguousarray(hi), lowest) <= 1).astype(np.float32)
     share = cv2.blur(two, (k, k), borderType=cv2.BORDER_REPLICATE)
-    return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb), np.float32(np.inf)).astype(np.float32)
+    return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb), np.float32(np.inf))
 
 
 def label_points(jj: np.ndarray, ii: np.ndarray) -> tuple[np.ndarray, int]:

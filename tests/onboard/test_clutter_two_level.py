@@ -105,6 +105,28 @@ def test_a_faint_target_on_two_level_ground_is_found_under_the_cap_and_nothing_e
     assert math.hypot(after[0].u_px - u, after[0].v_px - v) < TARGET_TOL_PX
 
 
+@settings(max_examples=30, deadline=None)
+@given(st.integers(29, 70), st.integers(29, 70), st.integers(0, 2**31 - 1), st.sampled_from([np.uint8, np.uint16]))
+def test_two_level_cap_matches_its_definition_cell_by_cell(h, w, seed, dtype):
+    # the cells' extremes by plain reshaping against the function's faster path, on frame sizes that
+    # are not multiples of the cell, patches of two and of three levels
+    rng = np.random.default_rng(seed)
+    levels = rng.integers(1, 4, (h // 8 + 1, w // 8 + 1)).repeat(8, 0).repeat(8, 1)[:h, :w]
+    img = (100 + rng.integers(0, 1_000_000, (h, w)) % levels).astype(dtype)
+    f, k = NOISE_FACTOR, max(31 // NOISE_FACTOR, 1) | 1
+    hc, wc = h // f, w // f
+    cells = img[: hc * f, : wc * f].astype(np.int64).reshape(hc, f, wc, f)
+    hi, lo = cells.max(axis=(1, 3)), cells.min(axis=(1, 3))
+    padded = np.pad(lo, k // 2, mode="edge")
+    lowest = np.array([[padded[i : i + k, j : j + k].min() for j in range(wc)] for i in range(hc)])
+    two = np.pad((hi - lowest <= 1).astype(np.float64), k // 2, mode="edge")
+    share = np.array([[two[i : i + k, j : j + k].mean() for j in range(wc)] for i in range(hc)])
+    expected = np.where(share >= 0.9 - 1e-6, 1.0, np.inf)
+    cap = two_level_cap(img, 31, NOISE_FACTOR, 1.0, 0.9)
+    assert cap is not None and cap.shape == (hc, wc)
+    assert np.array_equal(cap, expected)
+
+
 @pytest.mark.parametrize(
     "what, make",
     [
