@@ -759,14 +759,16 @@ def two_level_difference_cap(
     minus ``displacement_px`` (:func:`background_difference`'s) in ``previous``, the gate's
     neighbourhood: each is two-level when at least ``min_fraction`` of its pixels lie on its two most
     common adjacent levels, so that the target's own few pixels, now and where it was, do not lift the
-    cap (the 33 px square about C2 seed 1's target held a warm patch, 8 % of it, 10 px away)."""
+    cap (the 33 px square about C2 seed 1's target held a warm patch, 8 % of it, 10 px away).  Not within
+    ``half_px`` of either frame's edge (C3 seed 1: a track leaving through the left edge, measured there
+    once more with the cap)."""
     if cap_lsb <= 0 or not (np.issubdtype(current.dtype, np.integer) and np.issubdtype(previous.dtype, np.integer)):
         return math.inf
     for img, (u, v) in ((current, uv_px), (previous, (uv_px[0] - displacement_px[0], uv_px[1] - displacement_px[1]))):
         i, j = int(math.floor(v)), int(math.floor(u))
-        sq = img[max(i - half_px, 0) : i + half_px + 1, max(j - half_px, 0) : j + half_px + 1]
-        if sq.size == 0:
-            return math.inf
+        if not (half_px <= i < img.shape[0] - half_px and half_px <= j < img.shape[1] - half_px):
+            return math.inf  # the difference there reads replicated edge pixels: no easier threshold
+        sq = img[i - half_px : i + half_px + 1, j - half_px : j + half_px + 1]
         lo = int(sq.min())
         counts = np.bincount((sq.ravel() - lo).astype(np.intp))
         pairs = counts[:-1] + counts[1:] if counts.size > 1 else counts

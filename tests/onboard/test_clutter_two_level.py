@@ -245,3 +245,6 @@ def test_no_difference_cap_on_texture_float_frames_or_switched_off():
     as_float = cur.astype(np.float32), prev.astype(np.float32)
     assert two_level_difference_cap(*as_float, uv, (0.0, 0.0), DIFFERENCE_CAP_LSB) == math.inf
     assert two_level_difference_cap(cur, prev, uv, (0.0, 0.0), 0.0) == math.inf
+    # about the frame's edge, or where the ground was beyond it: the squares are not whole
+    assert two_level_difference_cap(cur, prev, (3.0, 48.0), (0.0, 0.0), DIFFERENCE_CAP_LSB) == math.inf
+    assert two_level_difference_cap(cur, prev, uv, (0.0, 45.0), DIFFERENCE_CAP_LSB) == math.inf
