@@ -421,10 +421,16 @@ def two_level_cap(
     lo = cv2.erode(lo_rows, kernel, anchor=(0, 0))[:, : wc * factor : factor]
     k = max(window_px // factor, 1) | 1
     lowest = cv2.erode(np.ascontiguousarray(lo), np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    # hi >= lo >= lowest, so the difference never saturates
-    two = (cv2.subtract(np.ascontiguousarray(hi), lowest) <= 1).astype(np.float32)
-    share = cv2.blur(two, (k, k), borderType=cv2.BORDER_REPLICATE)
-    return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb), np.float32(np.inf))
+    # hi >= lo >= lowest, so the difference never saturates; 1 where two-level (uint8)
+    two = np.less_equal(cv2.subtract(np.ascontiguousarray(hi), lowest), 1).view(np.uint8)
+    # the two-level cells of each window, counted exactly (k * k <= 255 here: the noise window's cells)
+    if k * k > 255:
+        share = cv2.blur(two.astype(np.float32), (k, k), borderType=cv2.BORDER_REPLICATE)
+        return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb), np.float32(np.inf))
+    count = cv2.boxFilter(two, -1, (k, k), normalize=False, borderType=cv2.BORDER_REPLICATE)
+    table = np.full(256, np.inf, np.float32)
+    table[math.ceil(min_fraction * k * k - 1e-9) :] = cap_lsb
+    return cv2.LUT(count, table)
 
 
 def label_points(jj: np.ndarray, ii: np.ndarray) -> tuple[np.ndarray, int]:
