@@ -164,8 +164,8 @@ class ObjectDetector:
         self._noise = noise
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(noise))
-        # the box mean is done with: its array takes the threshold (one distinct full-size array less)
         cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction)
+        # the box mean is done with: its array takes the threshold (one distinct full-size array less)
         threshold = cv2.resize(
             cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
             (w, h),
