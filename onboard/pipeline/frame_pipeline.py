@@ -207,7 +207,6 @@ class FramePipeline:
         self.config = config
         self.vehicle = config.vehicle
         self.intrinsics = config.camera.pinhole()
-        self._has_distortion = self.intrinsics.has_distortion
         self.pose_source = pose_source
         self.tracker = tracker
         self.estimator = estimator
@@ -590,7 +589,7 @@ class FramePipeline:
         try:
             self.time_offset.add(
                 t_us / US_PER_S,
-                self._bearing_cam(upd.u_px, upd.v_px),
+                self.intrinsics.bearing_cam_from_uv(upd.u_px, upd.v_px),
                 stamp_pose.q_ned_from_cam,
                 stamp_pose.p_cam_ned_m,
                 v,
@@ -601,16 +600,6 @@ class FramePipeline:
             self.counter.count("time_offset_input", str(exc))
         except Exception as exc:  # noqa: BLE001 - the clock estimate must never stop the frame loop
             self.counter.count("time_offset_error", f"{type(exc).__name__}: {exc}")
-
-    def _bearing_cam(self, u_px: float, v_px: float):
-        """The unit bearing of a pixel in the camera frame: ``intrinsics.bearing_cam_from_pixel``'s, bit for bit,
-        in floats for a camera without distortion (numpy's per-call overhead was most of its cost, every frame)."""
-        K = self.intrinsics
-        if self._has_distortion:
-            return K.bearing_cam_from_pixel((u_px, v_px))
-        x, y = (u_px - K.cx_px) / K.fx_px, (v_px - K.cy_px) / K.fy_px
-        n = math.sqrt(x * x + y * y + 1.0)
-        return (x / n, y / n, 1.0 / n)
 
     # ------------------------------------------------------------------ output
 

@@ -51,18 +51,16 @@ def test_a_frame_of_the_wrong_shape_is_refused_and_not_kept(args):
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-2000.0, 2000.0, allow_nan=False), st.floats(-2000.0, 2000.0, allow_nan=False))
 def test_the_pipelines_pixel_bearing_is_the_cameras(u_px, v_px):
-    pipe = FramePipeline(OnboardConfig(), None, tracker=None)
-    expected = pipe.intrinsics.bearing_cam_from_pixel((u_px, v_px))
-    got = pipe._bearing_cam(u_px, v_px)
+    K = FramePipeline(OnboardConfig(), None, tracker=None).intrinsics
+    expected = K.bearing_cam_from_pixel((u_px, v_px))
+    got = K.bearing_cam_from_uv(u_px, v_px)
     assert isinstance(got, tuple)
     np.testing.assert_array_equal(np.array(got), expected)
 
 
 def test_a_camera_with_distortion_keeps_the_cameras_own_bearing():
-    pipe = FramePipeline(OnboardConfig(), None, tracker=None)
-    pipe.intrinsics = PinholeIntrinsics(500.0, 500.0, 320.0, 256.0, 640, 512, distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
-    pipe._has_distortion = pipe.intrinsics.has_distortion
-    np.testing.assert_array_equal(pipe._bearing_cam(600.0, 30.0), pipe.intrinsics.bearing_cam_from_pixel((600.0, 30.0)))
-    assert pipe._bearing_cam(600.0, 30.0)[0] != pytest.approx(
-        FramePipeline(OnboardConfig(), None, tracker=None)._bearing_cam(600.0, 30.0)[0], abs=1e-6
+    K = PinholeIntrinsics(500.0, 500.0, 320.0, 256.0, 640, 512, distortion=(-0.2, 0.05, 0.0, 0.0, 0.0))
+    np.testing.assert_array_equal(K.bearing_cam_from_uv(600.0, 30.0), K.bearing_cam_from_pixel((600.0, 30.0)))
+    assert K.bearing_cam_from_uv(600.0, 30.0)[0] != pytest.approx(
+        FramePipeline(OnboardConfig(), None, tracker=None).intrinsics.bearing_cam_from_uv(600.0, 30.0)[0], abs=1e-6
     )
