@@ -53,6 +53,13 @@ def _target(img: np.ndarray, u: float, v: float, amp: float, sigma_px: float = 0
     img += amp * np.exp(-((xx + 0.5 - u) ** 2 + (yy + 0.5 - v) ** 2) / (2 * sigma_px**2))
 
 
+def _two_level_frame_with_target(seed: int, u: float, v: float) -> np.ndarray:
+    """:func:`_two_level_ground` with a faint target at (u, v) added before quantisation (uint8)."""
+    ground = LEVEL + 0.5 + np.random.default_rng(seed).normal(0.0, SENSOR_NOISE_GREY, (H_PX, W_PX))
+    _target(ground, u, v, TARGET_GREY, TARGET_SIGMA_PX)
+    return np.rint(ground).clip(0, 255).astype(np.uint8)
+
+
 def _thresholds(img: np.ndarray, p: ClutterParams) -> tuple[np.ndarray, np.ndarray]:
     """The uncapped and capped CFAR thresholds on the noise grid, ``img`` an integer frame."""
     noise = local_noise_coarse(img.astype(np.float32), p.noise_window_px, NOISE_FACTOR, full=False)
@@ -87,11 +94,8 @@ def test_cap_lowers_the_threshold_on_two_level_ground_to_one_level():
 
 
 def test_a_faint_target_on_two_level_ground_is_found_under_the_cap_and_nothing_else():
-    rng = np.random.default_rng(11)
     u, v = 64.3, 47.6
-    ground = LEVEL + 0.5 + rng.normal(0.0, SENSOR_NOISE_GREY, (H_PX, W_PX))
-    _target(ground, u, v, TARGET_GREY, TARGET_SIGMA_PX)
-    img = np.rint(ground).clip(0, 255).astype(np.uint8)
+    img = _two_level_frame_with_target(11, u, v)
     p = ClutterParams()
     c = point_contrast(img.astype(np.float32), p)
     plain, capped = _thresholds(img, p)
@@ -165,11 +169,8 @@ def test_clutter_params_refuse_a_cap_under_the_floor(kwargs):
 
 
 def test_detector_finds_the_faint_target_on_a_mono8_frame_only_with_the_cap():
-    rng = np.random.default_rng(13)
     u, v = 40.4, 50.2
-    ground = LEVEL + 0.5 + rng.normal(0.0, SENSOR_NOISE_GREY, (H_PX, W_PX))
-    _target(ground, u, v, TARGET_GREY, TARGET_SIGMA_PX)
-    img = np.rint(ground).clip(0, 255).astype(np.uint8)
+    img = _two_level_frame_with_target(13, u, v)
     K = PinholeIntrinsics(200.0, 200.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
     found = {}
     for cap_lsb in (0.0, 1.0):
