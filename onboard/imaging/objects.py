@@ -70,6 +70,7 @@ from onboard.imaging.objects_model import (
     los_from_pixel,
     objects_message,
     pixel_from_los,
+    pixels_from_los,
     unit_vector,
 )
 from onboard.imaging.preprocess import ImagingParams, check_frame
@@ -376,9 +377,7 @@ class ObjectTracker:
         if self._pred_frame != self._frame_index or len(self._pred_px) != len(self._tracks):
             self._pred_frame, self._pred_px = self._frame_index, []
             if self._tracks:
-                c = np.array([t.los + t.rate for t in self._tracks]) @ R  # rows: R.T @ (los + rate)
-                fx, fy, cx, cy = self.K.fx_px, self.K.fy_px, self.K.cx_px, self.K.cy_px
-                self._pred_px = [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
+                self._pred_px = pixels_from_los(self.K, np.array([t.los + t.rate for t in self._tracks]), R)
         return self._pred_px
 
     def _tbd_candidates(

@@ -32,6 +32,7 @@ __all__ = [
     "los_from_pixel",
     "objects_message",
     "pixel_from_los",
+    "pixels_from_los",
     "unit_vector",
 ]
 
@@ -223,6 +224,13 @@ def pixel_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> tuple[float, float]
     if c[2] <= 1e-6:
         return None
     return K.fx_px * c[0] / c[2] + K.cx_px, K.fy_px * c[1] / c[2] + K.cy_px
+
+
+def pixels_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> list[tuple[float, float] | None]:
+    """:func:`pixel_from_los` of each row of ``los_ned`` (n, 3; lines of sight, any length), in one product."""
+    c = np.asarray(los_ned, dtype=float).reshape(-1, 3) @ R  # rows: R.T @ los
+    fx, fy, cx, cy = K.fx_px, K.fy_px, K.cx_px, K.cy_px
+    return [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
 
 
 def fit_constant_velocity(K, histories: list[list], R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
