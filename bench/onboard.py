@@ -66,7 +66,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 
 import numpy as np  # noqa: E402
 
-from bench import machine_speed_ms, pin_to_one_cpu, run_benchmark  # noqa: E402
+from bench import machine_speed_ms, pacing_factor, pin_to_one_cpu, run_benchmark  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -752,6 +752,11 @@ def main(argv=None) -> int:
     print(
         f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
         f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms (lower is faster)"
+    )
+    tight_ms, paced_ratio = pacing_factor()
+    print(
+        f"   pacing: a fixed {tight_ms:.2f} ms workload costs x{paced_ratio:.2f} its CPU when run 30 times a second"
+        " instead of back to back (the daemon's per-frame work pays this machine's factor)"
     )
     if args.scene:
         from bench.onboard_scene import bench_scene
