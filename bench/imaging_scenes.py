@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
-[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--stages]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -12,12 +12,15 @@ never receives them) and the frames are fed in lockstep to
   and its primary target (``objects-notbd``: the same without track-before-detect, ``imaging.tbd: false``).
 
 Rendered frames are cached (``--cache``, default ``/tmp/irtrack-scene-frames``) so that a second run
-times only the chain.  Per scene it prints (frames: those the camera delivered):
+times only the chain (a cache written before the labels carried ``warm`` is rendered again, not read).  Per scene it prints (frames: those the camera delivered):
 
 * ``on target``: frames where the chain's primary output is within 3 px of the target (object 0), over
   the frames where the target is visible;
 * ``Pd``: visible objects with contrast >= 3 NETD, on frames at least 1 s after the object first became
-  visible, that have a confirmed track within 3 px (all classes; ``Pd tgt``: objects of class target);
+  visible, that have a confirmed track within 3 px (all classes; ``Pd tgt``: objects of class target;
+  ``Pd warm``: objects of class target that are also warm, their signal above the local background: the
+  label's contrast is a magnitude, and a target colder than the roof behind it is a cold point, which the
+  chains, looking for warm points, do not see by design);
 * ``false/min``: confirmed track ids farther than 3 px from every labelled object on more than half of
   their confirmed frames, per minute of scene;
 * ``id sw``: per object, changes of the track id matched to it (nearest confirmed track within 3 px)
@@ -38,6 +41,8 @@ times only the chain.  Per scene it prints (frames: those the camera delivered):
   CPU ms is the steadier of the two, at the clock's granularity).  ``--repeat N`` runs each chain N
   times and takes each frame's least time over the runs (the closest to an idle core's figure on a
   loaded machine; the scores are the same every run).
+* ``--misses``: below each row, the frames ``Pd tgt`` counts where object 0 (the target) had no confirmed
+  track within 3 px, as ranges of frame indices, warm and cold apart.
 * ``--stages`` (objects chains): below each row, the chain's CPU ms by stage
   (:class:`onboard.imaging.objects_model.StageTimes` on ``time.process_time``), each frame's least over the
   runs: the median frame's and the mean (the mean carries the stages that run every few frames: the
@@ -51,6 +56,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import sys
 import tempfile
 import time
 from dataclasses import dataclass
@@ -67,12 +73,13 @@ DEFECT_PX = 2.0
 MIN_CONTRAST_NETD = 3.0
 SETTLE_S = 1.0
 DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
+LABEL_FIELDS = 7  # (object_id, cls, u_px, v_px, visibility, contrast_netd, warm); 6 before warm
 
 
 @dataclass
 class SceneRun:
     """Rendered frames of one scenario: ``frames`` list of (H, W) arrays (None: dropped), ``labels``
-    per frame a list of (object_id, cls, u_px, v_px, visibility, contrast_netd), ``R_ned_from_cam``
+    per frame a list of (object_id, cls, u_px, v_px, visibility, contrast_netd, warm), ``R_ned_from_cam``
     (N, 3, 3) truth attitude, ``intrinsics`` the camera's PinholeIntrinsics, ``frame_rate_hz``."""
 
     name: str
@@ -100,10 +107,12 @@ def render_scene(
     K = sc.camera.intrinsics
     # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
     path = None if cache is None else cache / f"{name}-{sc.ir.encoding}-s{seed}-{duration:.3f}.npz"
+    cached = None if path is None or not path.exists() else load_cache(path)
+    if cached is not None:
+        frames, labels, R = cached
+        return SceneRun(name, frames, labels, R, K, float(sc.frame_rate_hz))
     if path is not None and path.exists():
-        z = np.load(path, allow_pickle=True)
-        frames = [None if f.size == 0 else f for f in z["frames"]]
-        return SceneRun(name, frames, list(z["labels"]), z["R"], K, float(sc.frame_rate_hz))
+        print(f"{path}: cached before the labels carried warm; rendering it again", file=sys.stderr, flush=True)
     core = SimCore(sc, seed, duration_s=duration)
     frames, labels, Rs = [], [], []
     truth_only = not core.scene_enabled
@@ -112,11 +121,12 @@ def render_scene(
         frames.append(f.pixels)
         if truth_only:  # a clean scenario has the target only, in its truth row
             r = f.truth
+            # no labels to say it: the clean renderer's target is the warm quad-rotor against the sky
             vis = "visible" if r.target_visible else "out_of_frame"
-            labels.append([(0, "target", r.target_u_px, r.target_v_px, vis, math.inf)])
+            labels.append([(0, "target", r.target_u_px, r.target_v_px, vis, math.inf, True)])
         else:
             labels.append(
-                [(lb.object_id, lb.cls, lb.u_px, lb.v_px, lb.visibility, lb.contrast_netd) for lb in f.labels]
+                [(lb.object_id, lb.cls, lb.u_px, lb.v_px, lb.visibility, lb.contrast_netd, lb.warm) for lb in f.labels]
             )
         q = np.array(
             [f.truth.q_ned_from_cam_w, f.truth.q_ned_from_cam_x, f.truth.q_ned_from_cam_y, f.truth.q_ned_from_cam_z]
@@ -133,6 +143,17 @@ def render_scene(
             larr[i] = lb
         np.savez(path, frames=farr, labels=larr, R=R)
     return SceneRun(name, frames, labels, R, K, float(sc.frame_rate_hz))
+
+
+def load_cache(path: Path) -> tuple[list, list, np.ndarray] | None:
+    """``(frames, labels, R)`` of a cache file, or None when its labels predate ``warm`` (six fields): read
+    with every object taken as warm, a cold target would count in ``Pd warm`` and raise it silently."""
+    z = np.load(path, allow_pickle=True)
+    labels = list(z["labels"])
+    if any(len(lb) != LABEL_FIELDS for frame in labels for lb in frame):
+        return None
+    frames = [None if f.size == 0 else f for f in z["frames"]]
+    return frames, labels, z["R"]
 
 
 class _TrackerChain:
@@ -194,7 +215,9 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     on_target = target_frames = 0
     first_on: int | None = None  # the frame the primary is first on the target
     on_after = frames_after = 0  # visible frames from then on, and those with the primary on the target
-    det = det_all = det_t = det_t_all = 0
+    det = det_all = det_t = det_t_all = det_w = det_w_all = 0
+    misses: list[tuple[int, bool]] = []  # (frame, warm) of the target's frames Pd tgt counts and it missed
+    counted0 = 0  # the target's frames Pd tgt counts
     last_id: dict[int, int] = {}
     switches: dict[int, int] = {}
     cls_of: dict[int, str] = {}
@@ -215,11 +238,11 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     for k, (img, labels) in enumerate(zip(run.frames, run.labels)):
         mot_gt += gt_rows(k + 1, [_Label(*lb) for lb in labels])
         vis = []
-        for oid, cls, u, v, visibility, contrast in labels:
+        for oid, cls, u, v, visibility, contrast, warm in labels:
             cls_of[oid] = cls
             if visibility == "visible":
                 first_visible.setdefault(oid, k)
-                vis.append((oid, cls, u, v, contrast))
+                vis.append((oid, cls, u, v, contrast, warm))
         if img is None:
             continue
         frozen = prev_img is not None and np.array_equal(img, prev_img)
@@ -241,7 +264,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
             confirmed=[SimpleNamespace(object_id=t, u_px=u, v_px=v, score=1.0) for t, u, v in tracks]
         )
         mot_tracker += tracker_rows(k + 1, confirmed)
-        all_pos = [(u, v) for _, _, u, v, vv, _ in labels if math.isfinite(u) and math.isfinite(v)]
+        all_pos = [(u, v) for _, _, u, v, *_ in labels if math.isfinite(u) and math.isfinite(v)]
         for tid, u, v in tracks:
             if len(stuck) and float(np.min(np.hypot(stuck[:, 0] - u, stuck[:, 1] - v))) <= DEFECT_PX:
                 on_defect += 1
@@ -249,7 +272,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
             rec[0] += 1
             if all(math.hypot(u - a, v - b) > MATCH_PX for a, b in all_pos):
                 rec[1] += 1
-        for oid, cls, u, v, contrast in vis:
+        for oid, cls, u, v, contrast, warm in vis:
             if oid == 0:
                 target_frames += 1
                 if primary is not None and primary in tpos:
@@ -281,6 +304,12 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                 if cls == "target":
                     det_t_all += 1
                     det_t += best is not None
+                    det_w_all += warm
+                    det_w += warm and best is not None
+                if oid == 0:
+                    counted0 += 1
+                    if best is None:
+                        misses.append((k, bool(warm)))
     minutes = n_frames / fr / 60.0
     false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
     pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
@@ -293,6 +322,9 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         tracked_after=pct(on_after, frames_after),
         pd=pct(det, det_all),
         pd_target=pct(det_t, det_t_all),
+        pd_warm=pct(det_w, det_w_all),
+        target_counted=counted0,
+        misses=misses,
         false_per_min=false_tracks / minutes if minutes else math.nan,
         id_switches=sum(switches.values()),
         id_switches_target=sum(n for o, n in switches.items() if cls_of.get(o) == "target"),
@@ -325,7 +357,7 @@ def _stuck_pixels(frames) -> np.ndarray:
 class _Label(SimpleNamespace):
     """A cached label tuple with the attribute names :func:`groundsim.evaluation.mot.gt_rows` reads."""
 
-    def __init__(self, object_id, cls, u_px, v_px, visibility, contrast_netd) -> None:
+    def __init__(self, object_id, cls, u_px, v_px, visibility, contrast_netd, warm) -> None:
         super().__init__(object_id=object_id, cls=cls, u_px=u_px, v_px=v_px, visibility=visibility)
 
 
@@ -363,6 +395,28 @@ def score_repeated(run: SceneRun, chain_cls, repeat: int, stages: bool = False) 
     return s
 
 
+def frame_ranges(frames: list[int]) -> str:
+    """``[3, 4, 5, 9]`` -> ``"3-5, 9"``."""
+    out: list[str] = []
+    for k in sorted(frames):
+        if out and k == int(out[-1].split("-")[-1]) + 1:
+            out[-1] = f"{out[-1].split('-')[0]}-{k}"
+        else:
+            out.append(str(k))
+    return ", ".join(out)
+
+
+def misses_line(misses: list[tuple[int, bool]], counted: int) -> str:
+    """The ``--misses`` line: how many of the target's counted frames were missed, warm and cold apart."""
+    warm = [k for k, w in misses if w]
+    cold = [k for k, w in misses if not w]
+    return (
+        f"target missed on {len(misses)} of {counted} frames (visible, >= {MIN_CONTRAST_NETD:.0f} NETD, after"
+        f" {SETTLE_S:.0f} s); warm {len(warm)}: {frame_ranges(warm) or '-'}; cold {len(cold)}:"
+        f" {frame_ranges(cold) or '-'}"
+    )
+
+
 def main(argv: list[str]) -> None:
     import argparse
 
@@ -379,6 +433,7 @@ def main(argv: list[str]) -> None:
         "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
     )
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
+    ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
@@ -388,7 +443,8 @@ def main(argv: list[str]) -> None:
         f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; wall ms on a shared machine (noisy)"
     )
     print(
-        f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'false/min':>9s}"
+        f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'Pd warm':>7s}"
+        f" {'false/min':>9s}"
         f" {'id sw':>5s} {'tgt':>3s} {'prim':>4s} {'HOTA':>5s} {'DetA':>5s} {'AssA':>5s}"
         f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s} {'ffc s':>6s} {'defect':>6s}"
     )
@@ -398,12 +454,14 @@ def main(argv: list[str]) -> None:
             s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
             print(
                 f"{name:<6s} {c:<13s} {s['frames']:6d} {s['on_target']:8.1f}% {s['pd']:5.1f}% {s['pd_target']:5.1f}%"
-                f" {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
+                f" {s['pd_warm']:6.1f}% {s['false_per_min']:9.1f} {s['id_switches']:5d} {s['id_switches_target']:3d} {s['primary_selections']:4d}"
                 f" {s['HOTA']:5.3f} {s['DetA']:5.3f} {s['AssA']:5.3f}"
                 f" {s['ms_p50']:6.2f} {s['ms_p95']:6.2f} {s['cpu_ms_p50']:7.2f} {s['confirm_s']:6.2f} {s['tracked_after']:5.1f}%"
                 f" {' '.join(f'{x:.2f}' for x in s['ffc_s']) or '-':>6s} {'-' if s['on_defect'] is None else s['on_defect']:>6}",
                 flush=True,
             )
+            if a.misses:
+                print("       " + misses_line(s["misses"], s["target_counted"]), flush=True)
             if "stages_ms" in s:
                 st = s["stages_ms"]
                 print(

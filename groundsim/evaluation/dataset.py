@@ -12,7 +12,7 @@ truth of every frame (the same flight, frames and navigation errors as ``grounds
     DIR/<seq>/truth.csv               the 3-D truth (groundsim.world.truth columns, as ``groundsim run --truth``)
     DIR/<seq>/truth.objects.csv       with a scene: every object per frame (groundsim.world.truth.OBJECT_COLUMNS:
                                       id, class, sub-pixel centroid, box, visible / occluded / out_of_frame,
-                                      contrast to the local background in NETD units)
+                                      contrast to the local background in NETD units, warm: above it)
     DIR/<seq>/seqinfo.ini, gt/gt.txt  --format mot: MOT Challenge layout (TrackEval's MotChallenge2DBox reads it)
     DIR/coco.json                     --format coco: COCO detection + 1-keypoint ("centroid") JSON, every sequence
 
@@ -40,8 +40,8 @@ target, object 0, keeps id 1 and its label above); box = the pixels holding >= 1
 signal; MOT class :data:`MOT_CLASSES` (other targets 1; birds, aircraft, glints classes of MOT17 that
 TrackEval neither evaluates nor treats as distractors, so a tracker's box on a bird is a false positive),
 visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
-``visibility_state`` and ``contrast_netd``.  A frame the camera model dropped (its shutter closed, ``ffc.mode:
-dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
+``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the signal above the local background).
+A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
 continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
 ``visibility``, ``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
 each image.
@@ -543,6 +543,7 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                         "centroid_px": [float(o.u_px), float(o.v_px)],
                         "visibility_state": o.visibility,
                         "contrast_netd": round(float(o.contrast_netd), 4),
+                        "warm": bool(o.warm),
                         "track_id": int(o.object_id) + 1,
                     }
                 )

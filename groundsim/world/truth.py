@@ -50,6 +50,8 @@ glints; ``groundsim.world.render.scene.ObjectLabel``) goes to a second file besi
                                    NaN when not drawn)
     visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5), out_of_frame
     contrast_netd                  peak |signal - local background| in NETD units (0 when not drawn)
+    warm                           1 when the signal at that peak is above the local background, 0 when below
+                                   it or not drawn (contrast_netd is a magnitude: a cold object has it too)
     range_m                        camera to the object's centre
     n_m, e_m, d_m                  the object's centre, local NED about the scenario origin (3-D truth)
 
@@ -288,6 +290,7 @@ OBJECT_COLUMNS = (
     "y1_px",
     "visibility",
     "contrast_netd",
+    "warm",
     "range_m",
     "n_m",
     "e_m",
@@ -318,6 +321,7 @@ def object_rows(row: TruthRow, labels) -> list[list[str]]:
                 *map(_fmt, box),
                 lab.visibility,
                 _fmt(lab.contrast_netd),
+                str(int(lab.warm)),
                 _fmt(lab.range_m),
                 *map(_fmt, lab.p_ned_m),
             ]
@@ -450,6 +454,7 @@ def truth_objects_json(row: TruthRow, labels) -> dict:
                 "box_px": None if box is None else [box[0], box[1], box[2] - box[0], box[3] - box[1]],
                 "visibility": lab.visibility,
                 "contrast_netd": num(lab.contrast_netd),
+                "warm": bool(lab.warm),
                 "range_m": num(lab.range_m),
                 "p_ned_m": [num(c) for c in lab.p_ned_m],
             }

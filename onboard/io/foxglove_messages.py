@@ -234,6 +234,7 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                             "box_px": {**_BOX, "type": ["array", "null"]},
                             "visibility": {"type": "string", "enum": ["visible", "occluded", "out_of_frame"]},
                             "contrast_netd": {"type": "number"},
+                            "warm": {"type": "boolean"},
                             "range_m": {"type": "number"},
                             "p_ned_m": _VEC3,
                         },

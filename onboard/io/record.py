@@ -45,8 +45,8 @@ topic                             schema                         encoding       
   the id of each, the primary target green; :func:`onboard.io.foxglove_messages.objects_annotations`;
   ``timestamp`` = the frame's capture time, as the RawImage's).
 * ``irtrack.truth_objects/1`` (groundsim): ``{"seq", "time_boot_us", "t_s", "objects": [{"id", "cls", "u_px",
-  "v_px", "box_px": [x, y, w, h] or null, "visibility", "contrast_netd", "range_m", "p_ned_m"}]}``, the rows of
-  ``<truth>.objects.csv`` of that frame (:mod:`groundsim.world.truth`), drawn by ``/groundsim/truth/annotations``.
+  "v_px", "box_px": [x, y, w, h] or null, "visibility", "contrast_netd", "warm", "range_m", "p_ned_m"}]}``, the
+  rows of ``<truth>.objects.csv`` of that frame (:mod:`groundsim.world.truth`), drawn by ``/groundsim/truth/annotations``.
 * ``irtrack.imaging_pose/1``: ``{"seq", "time_boot_us", "pose": null | PoseAt}``: the pose an image chain that
   associates with the camera's rotation (``imaging.chain: objects``) got for the frame before the pipeline
   waited for its telemetry (the frame's own pose, in ``frame_input``, is looked up after that wait, so the two can

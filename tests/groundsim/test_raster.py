@@ -11,6 +11,7 @@ and thresholds the difference at 2 grey levels (the quantisation flicker of a no
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import replace
@@ -348,6 +349,40 @@ def test_no_noise_frames_repeat_exactly():
     np.testing.assert_array_equal(
         r.render(CAMERA_P_NED_M, R, p_t, np.eye(3)), r.render(CAMERA_P_NED_M, R, p_t, np.eye(3))
     )
+
+
+GREY_STRIP_PX = 64  # one row of pixels, one temperature each
+
+
+@functools.cache
+def _strip_renderer(encoding: str) -> IrRenderer:
+    """A noiseless renderer one row of GREY_STRIP_PX pixels high (the grey map alone: no noise to reorder it)."""
+    intr = PinholeIntrinsics(400.0, 400.0, GREY_STRIP_PX / 2, 0.5, GREY_STRIP_PX, 1)
+    return IrRenderer(intr, IrSettings(netd_k=0.0, encoding=encoding))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    encoding=st.sampled_from(("mono8", "mono16")),
+    temps_k=st.lists(st.floats(150.0, 450.0), min_size=GREY_STRIP_PX, max_size=GREY_STRIP_PX),
+)
+def test_fixed_span_grey_map_is_monotonic_and_saturates_within_the_encoding(encoding, temps_k):
+    # the camera without a sensor section (C2's): a fixed linear span t_min_k .. t_max_k in radiance onto
+    # 0 .. full scale, no AGC.  Warmer is never darker, and a scene outside the span saturates at 0 or
+    # full scale instead of wrapping round (a uint cast of an out-of-range float would wrap).
+    r = _strip_renderer(encoding)
+    s = r.settings
+    full_scale = 255 if encoding == "mono8" else 65535
+    T_k = np.sort(np.asarray(temps_k))
+    L = band_radiance(T_k, s.band_um).astype(np.float32)[None, :]
+    grey = r.quantise(L)[0].astype(np.int64)
+    assert r.quantise(L).dtype == (np.uint8 if encoding == "mono8" else np.uint16)
+    assert np.all(np.diff(grey) >= 0)
+    assert grey.min() >= 0 and grey.max() <= full_scale
+    want = np.clip(np.rint(grey_float_from_radiance(L[0], s)), 0, full_scale)
+    assert np.all(np.abs(grey - want) <= 1)  # float32 arithmetic vs float64 at a rounding tie
+    assert np.all(grey[T_k <= s.t_min_k - 1.0] == 0)
+    assert np.all(grey[T_k >= s.t_max_k + 1.0] == full_scale)
 
 
 @pytest.mark.parametrize("encoding, dtype", [("mono8", np.uint8), ("mono16", np.uint16)])

@@ -251,6 +251,23 @@ def test_target_behind_a_cloud_is_occluded_in_front_visible():
     assert front.contrast_netd > 10.0
 
 
+@pytest.mark.parametrize("temperature_k, warm", [(320.0, True), (260.0, False)])
+def test_warm_is_the_sign_of_the_contrast_the_label_measures(temperature_k, warm):
+    # looking down at the 290 K ground: a 320 K body is a warm point, a 260 K one a cold point of about
+    # the same |contrast| (both far above 3 NETD), which contrast_netd alone does not tell apart
+    parts = (TargetPart("body", "ellipsoid", (0.0, 0.0, 0.0), (0.5, 0.5, 0.5), temperature_k, 0.9),)
+    r = IrRenderer(INTR, IrSettings(encoding="mono16", target_parts=parts), seed=1)
+    sc = SceneContent.from_config(scene_config_from_dict(None), r, 3)
+    p, R = np.array([0.0, 0.0, -100.0]), looking(-60.0)
+    fr = sc.render(0.0, p, R, p + R[:, 2] * 60.0, np.eye(3), 0.0)
+    lab = fr.labels[0]
+    assert lab.visibility == "visible" and lab.contrast_netd > 100.0
+    assert lab.warm is warm
+    x0, y0, x1, y1 = lab.box_px
+    diff = fr.radiance[y0:y1, x0:x1] - fr.background.radiance[y0:y1, x0:x1]
+    assert bool(diff.max() > -diff.min()) is warm  # the image agrees with the label
+
+
 # ---------------------------------------------------------------------------- terrain
 
 TERRAIN = {"terrain": {"enabled": True, "texture_px": 1024, "texel_m": 0.5}}

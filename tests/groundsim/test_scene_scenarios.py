@@ -259,7 +259,7 @@ def test_truth_writer_writes_every_object_beside_the_truth_file(rendered, tmp_pa
     assert [float(t0[c]) for c in ("n_m", "e_m", "d_m")] == pytest.approx([tr.target_n_m, tr.target_e_m, tr.target_d_m])
     t1 = next(r for r in crossing if r["object_id"] == "1")
     assert float(t1["e_m"]) == pytest.approx(-41.3 + 6.8 * 5.0, abs=1.0)  # the other target, flown east at 6.8 m/s
-    assert float(t0["contrast_netd"]) > 10.0
+    assert float(t0["contrast_netd"]) > 10.0 and t0["warm"] == "1"  # the warm quad-rotor against the sky
 
 
 def test_truth_without_a_scene_writes_no_objects_file(tmp_path):
@@ -298,6 +298,7 @@ def test_dataset_carries_every_object_in_mot_and_coco(c3_dataset):
     assert {"target", "bird", "aircraft"} <= set(cats)
     birds = [a for a in doc["annotations"] if a["category_id"] == cats["bird"]]
     assert birds and all(a["contrast_netd"] > 0 and a["visibility_state"] in ("visible", "occluded") for a in birds)
+    assert all(a["warm"] is True for a in birds)  # 311 K birds against C3's sky
     COCO = pytest.importorskip("pycocotools.coco").COCO
     coco = COCO(str(out / "coco.json"))
     assert len(coco.getImgIds()) == 6
@@ -409,12 +410,15 @@ def test_crossover_target_contrast_goes_through_zero():
     p_cam = np.zeros(3)
     R = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # looking north, level
     p_t = np.array([120.0, 0.0, -5.0])
-    signal = []
+    signal, warm = [], []
     for t in (0.0, 2.5, 4.0):
         fr = scene.render(t, p_cam, R, p_t, np.eye(3))
         signal.append(float((fr.radiance - fr.background.radiance).sum()))
+        warm.append(fr.labels[0].warm)
         assert fr.labels[0].visibility == "visible"
     assert signal[0] > 0.0 and signal[1] == 0.0 and signal[2] == pytest.approx(-0.5 * signal[0], rel=1e-4)
+    # after the crossover the target is colder than its background: contrast still, but not warm
+    assert warm == [True, False, False] and fr.labels[0].contrast_netd > 3.0
 
 
 def test_gallery_image_shows_the_frame_beside_its_labels(rendered):

@@ -7,6 +7,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from groundsim.world.render import IrSettings
 from groundsim.world.render.planck import band_radiance
@@ -19,8 +21,10 @@ INTR = PinholeIntrinsics.vue_pro_640()
 IR = IrSettings()
 QUIET = IrSettings(netd_k=0.0)
 H, W = 512, 640
+SMALL_INTR = PinholeIntrinsics(80.0, 80.0, 40.0, 32.0, 80, 64)  # the property tests' frames: 5120 pixels
 COUNT_ATOL = 1.0  # rounding of a count
 SIGMA_RTOL = 0.1  # sample standard deviation over hundreds to 300k samples
+AGC_MAP_ATOL = 1e-9  # the float map's rounding at its top (measured 3e-14 over 255)
 
 
 def sensor(cfg: dict, ir: IrSettings = QUIET, seed: int = 1, rate: float = 30.0) -> Sensor:
@@ -178,6 +182,50 @@ def test_agc_uses_the_8_bit_range_monotonically():
     assert out.mono8.min() <= 5 and out.mono8.max() >= 250
     order = np.argsort(out.counts.ravel(), kind="stable")
     assert np.all(np.diff(out.mono8.ravel()[order].astype(int)) >= 0)  # brighter counts never darker
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    raw_bits=st.sampled_from((12, 14, 16)),
+    T_lo_k=st.floats(150.0, 300.0),
+    T_span_k=st.floats(0.5, 200.0),
+    plateau_fraction=st.floats(0.001, 1.0),
+    max_gain=st.floats(0.05, 8.0),
+    linear_fraction=st.floats(0.0, 1.0),
+)
+def test_counts_and_agc_are_monotonic_and_within_their_ranges(
+    seed, raw_bits, T_lo_k, T_span_k, plateau_fraction, max_gain, linear_fraction
+):
+    # noiseless, no fixed pattern: every pixel has the same gain, so a warmer pixel has no fewer counts,
+    # the counts stay within 0 .. 2^raw_bits - 1 (not only within the uint16 they are stored in), and the
+    # AGC map (whatever its knobs and the scene's histogram) never maps more counts to a darker grey
+    full = 2**raw_bits - 1
+    raw = {
+        "enabled": True,
+        "raw_bits": raw_bits,
+        "counts_at_t_min": full // 8,
+        "counts_at_t_max": full - full // 8,
+        "agc": {
+            "enabled": True,
+            "plateau_fraction": plateau_fraction,
+            "max_gain": max_gain,
+            "linear_fraction": linear_fraction,
+        },
+    }
+    s = Sensor(scene_config_from_dict({"sensor": raw}).sensor, SMALL_INTR, QUIET, 1, 30.0)
+    rng = np.random.default_rng(seed)
+    T_k = np.sort(rng.uniform(T_lo_k, T_lo_k + T_span_k, SMALL_INTR.width_px * SMALL_INTR.height_px))
+    L = band_radiance(T_k, IR.band_um).astype(np.float32).reshape(SMALL_INTR.height_px, SMALL_INTR.width_px)
+    out = s.apply(L, 0.0, 0)
+    counts = out.counts.ravel().astype(np.int64)
+    assert np.all(np.diff(counts) >= 0)
+    assert counts.min() >= 0 and counts.max() <= full
+    agc = s.agc_map(out.counts)
+    assert np.all(np.diff(agc) >= 0) and agc.min() >= 0.0 and agc.max() <= 255.0 + AGC_MAP_ATOL
+    # lut_take casts rint(map) to uint8 without saturating: it must already be in range
+    assert np.rint(agc).max() <= 255.0
+    assert np.all(np.diff(out.mono8.ravel().astype(np.int64)) >= 0)
 
 
 def test_agc_gain_follows_the_scene_with_its_time_constant():

@@ -15,7 +15,7 @@ from onboard.io.foxglove_messages import JSON_SCHEMAS, TRUTH_OBJECTS_SCHEMA
 from onboard.io.record import TRUTH_ANNOTATIONS_TOPIC, TRUTH_OBJECTS_TOPIC, FlightRecorder, RecordConfig
 
 LABELS = (
-    ObjectLabel(0, "target", 320.25, 240.5, (319, 239, 322, 242), "visible", 7.5, 150.0, (10.0, 20.0, -50.0)),
+    ObjectLabel(0, "target", 320.25, 240.5, (319, 239, 322, 242), "visible", 7.5, 150.0, (10.0, 20.0, -50.0), True),
     ObjectLabel(1, "bird", 100.0, 80.0, (99, 79, 101, 81), "occluded", 2.0, 60.0, (1.0, 2.0, -3.0)),
     ObjectLabel(2, "aircraft", math.nan, math.nan, None, "out_of_frame", 0.0, 900.0),
 )
@@ -58,6 +58,7 @@ def test_truth_objects_are_recorded_as_the_csv_rows_with_their_schema(tmp_path):
         )
     )
     assert [o["id"] for o in msg["objects"]] == [int(r["object_id"]) for r in lines] == [0, 1, 2]
+    assert [o["warm"] for o in msg["objects"]] == [True, False, False]
     for o, r in zip(msg["objects"], lines):
         assert o["cls"] == r["cls"] and o["visibility"] == r["visibility"]
         if o["box_px"] is None:
@@ -66,6 +67,7 @@ def test_truth_objects_are_recorded_as_the_csv_rows_with_their_schema(tmp_path):
         x, y, w, h = o["box_px"]
         assert (x, y, x + w, y + h) == tuple(int(r[k]) for k in ("x0_px", "y0_px", "x1_px", "y1_px"))
         assert o["u_px"] == float(r["u_px"]) and o["contrast_netd"] == float(r["contrast_netd"])
+        assert o["warm"] is (r["warm"] == "1") and r["warm"] in ("0", "1")
         assert o["p_ned_m"] == [float(r["n_m"]), float(r["e_m"]), float(r["d_m"])]
     # annotations: the drawn objects only (the aircraft out of frame has no box), labelled by class and id
     assert [t.text for t in anns[2].texts] == ["target 0", "bird 1"]

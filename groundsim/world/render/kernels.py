@@ -646,22 +646,26 @@ def layer_light(transmission, seen, L_c):
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def peak_box(delta, gain, fraction):
-    """``(peak, i0, i1, j0, j1)`` of ``|delta gain|`` (float32, ``gain`` rounded to float32 as numpy's
+    """``(peak, i0, i1, j0, j1, warm)`` of ``|delta gain|`` (float32, ``gain`` rounded to float32 as numpy's
     in-place multiply rounds it): its maximum and the rows ``i0 .. i1 - 1``, columns ``j0 .. j1 - 1`` of the
     values at least ``fraction`` of it (the threshold rounded to float32 as numpy's comparison rounds it);
-    the box is -1s when the peak is not > 0 (``SceneContent._label``)."""
+    ``warm``: ``delta gain`` is > 0 at the first pixel (row by row) where the maximum is reached; the box is
+    -1s and ``warm`` False when the peak is not > 0 (``SceneContent._label``)."""
     g = np.float32(abs(gain))
     scale = gain != 1.0
     h, w = delta.shape
     peak = np.float32(0.0)
+    warm = False
     for i in range(h):
         for j in range(w):
             m = abs(delta[i, j])
             if scale:
                 m = m * g
-            peak = max(peak, m)
+            if m > peak:  # max(peak, m), and the sign where it was reached
+                peak = m
+                warm = (delta[i, j] > 0.0) == (gain > 0.0)
     if not peak > np.float32(0.0):
-        return np.float64(peak), -1, -1, -1, -1
+        return np.float64(peak), -1, -1, -1, -1, False
     thr = np.float32(fraction * np.float64(peak))
     i0, i1, j0, j1 = h, -1, w, -1
     for i in range(h):
@@ -674,7 +678,7 @@ def peak_box(delta, gain, fraction):
                 i1 = max(i1, i)
                 j0 = min(j0, j)
                 j1 = max(j1, j)
-    return np.float64(peak), i0, i1 + 1, j0, j1 + 1
+    return np.float64(peak), i0, i1 + 1, j0, j1 + 1, warm
 
 
 # ---------------------------------------------------------------------------- the camera model (sensor)

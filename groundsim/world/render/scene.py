@@ -141,7 +141,10 @@ class ObjectLabel:
     ``visibility``: ``visible``, ``occluded`` (its centre behind a cloud of opacity >= 0.5, or inside
     the box of a nearer object drawn over it) or ``out_of_frame``; ``contrast_netd``: peak |signal -
     local background| over the NETD in radiance (``netd_k * dL/dT(netd_reference_k)``), 0 when not
-    drawn; ``range_m``: camera to centre; ``p_ned_m``: the centre in local NED (its 3-D truth).
+    drawn; ``range_m``: camera to centre; ``p_ned_m``: the centre in local NED (its 3-D truth); ``warm``:
+    the signal at that peak is above the local background (False: below it, or not drawn).  ``contrast_netd``
+    is a magnitude, so a target colder than the roof behind it counts as contrast too; a detector that
+    looks for warm points sees only the ``warm`` ones.
     """
 
     object_id: int
@@ -153,6 +156,7 @@ class ObjectLabel:
     contrast_netd: float
     range_m: float
     p_ned_m: tuple[float, float, float] = (math.nan, math.nan, math.nan)
+    warm: bool = False
 
 
 @dataclass(frozen=True)
@@ -689,16 +693,17 @@ class SceneContent:
         if p_c[2] <= 0.0:
             return ObjectLabel(o.object_id, o.cls, math.nan, math.nan, None, "out_of_frame", 0.0, range_m, p_ned)
         u, v = (float(c) for c in project_in_front(intr, p_c, self._distorted))
-        box, contrast = None, 0.0
+        box, contrast, warm = None, 0.0, False
         if roi is not None:
             rows, cols, delta, _ = roi
-            # the peak of |delta gain| and the box of the values at least BOX_FRACTION of it, one compiled pass
-            peak, i0, i1, j0, j1 = peak_box(delta, float(o.gain), BOX_FRACTION)
+            # the peak of |delta gain|, its sign and the box of the values at least BOX_FRACTION of it, one
+            # compiled pass
+            peak, i0, i1, j0, j1, warm = peak_box(delta, float(o.gain), BOX_FRACTION)
             if peak > 0.0:
                 box = (cols.start + j0, rows.start + i0, cols.start + j1, rows.start + i1)
                 contrast = peak / self.netd_radiance if self.netd_radiance > 0.0 else math.inf
         if not (0.0 <= u < self._W and 0.0 <= v < self._H):
-            return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned)
+            return ObjectLabel(o.object_id, o.cls, u, v, box, "out_of_frame", contrast, range_m, p_ned, bool(warm))
         i, j = int(v), int(u)
         px = slice(i, i + 1), slice(j, j + 1)
         behind = (
@@ -707,7 +712,7 @@ class SceneContent:
             and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
         )
         vis = "occluded" if behind else "visible"
-        return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned)
+        return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned, bool(warm))
 
     # ------------------------------------------------------------------ a frame
 

@@ -1,0 +1,74 @@
+"""The scene benchmark's scoring (bench.imaging_scenes): Pd over the warm target frames, the missed frames,
+and its frame cache refusing labels written before they carried ``warm``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from bench.imaging_scenes import LABEL_FIELDS, SceneRun, frame_ranges, load_cache, misses_line, score
+from onboard.core.frames import PinholeIntrinsics
+
+RATE_HZ = 30.0
+N_FRAMES = 90  # the first 30 (1 s) are not counted: Pd counts frames 30..89
+COLD_FROM = 60  # the target is colder than its background from this frame on
+MISSED_WARM = (30, 31, 32)  # warm frames the fake chain misses
+TARGET_UV = (20.5, 10.5)
+
+
+class _FakeChain:
+    """Reports one confirmed track on the target on the warm frames it does not miss, none otherwise."""
+
+    stage_s = None
+
+    def __init__(self) -> None:
+        self.k = 0
+
+    def update(self, image, R_ned_from_cam):
+        k, self.k = self.k, self.k + 1
+        if k < COLD_FROM and k not in MISSED_WARM:
+            return [(7, *TARGET_UV)], 7
+        return [], None
+
+
+def _run() -> SceneRun:
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 255, (32, 40), dtype=np.uint8) for _ in range(N_FRAMES)]
+    labels = [[(0, "target", *TARGET_UV, "visible", 8.0, k < COLD_FROM)] for k in range(N_FRAMES)]
+    R = np.repeat(np.eye(3)[None], N_FRAMES, axis=0)
+    intr = PinholeIntrinsics(50.0, 50.0, 20.0, 16.0, 40, 32)
+    return SceneRun("fake", frames, labels, R, intr, RATE_HZ)
+
+
+def test_pd_warm_counts_only_the_frames_where_the_target_is_warm():
+    s = score(_run(), _FakeChain())
+    counted = N_FRAMES - int(RATE_HZ)  # 60
+    warm = COLD_FROM - int(RATE_HZ)  # 30
+    assert s["pd_target"] == pytest.approx(100.0 * (warm - len(MISSED_WARM)) / counted)  # 45 %
+    assert s["pd_warm"] == pytest.approx(100.0 * (warm - len(MISSED_WARM)) / warm)  # 90 %
+    assert s["target_counted"] == counted
+    assert s["misses"] == [(k, True) for k in MISSED_WARM] + [(k, False) for k in range(COLD_FROM, N_FRAMES)]
+    line = misses_line(s["misses"], s["target_counted"])
+    assert "missed on 33 of 60 frames" in line and "warm 3: 30-32;" in line and "cold 30: 60-89" in line
+
+
+def test_frame_ranges():
+    assert frame_ranges([9, 3, 4, 5, 11, 12]) == "3-5, 9, 11-12"
+    assert frame_ranges([]) == ""
+
+
+def test_cache_without_warm_is_not_read(tmp_path):
+    def write(path, label):
+        frames = np.empty(1, dtype=object)
+        frames[0] = np.zeros((2, 2), np.uint8)
+        labels = np.empty(1, dtype=object)
+        labels[0] = [label]
+        np.savez(path, frames=frames, labels=labels, R=np.eye(3)[None])
+
+    old = (0, "target", 1.0, 1.0, "visible", 5.0)
+    write(tmp_path / "old.npz", old)
+    write(tmp_path / "new.npz", (*old, False))
+    assert LABEL_FIELDS == len(old) + 1
+    assert load_cache(tmp_path / "old.npz") is None  # read as all warm, it would count a cold target
+    frames, labels, R = load_cache(tmp_path / "new.npz")
+    assert labels[0][0][-1] is False and frames[0].shape == (2, 2) and R.shape == (1, 3, 3)
