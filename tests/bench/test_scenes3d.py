@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from bench.onboard_scene import FRAME_RATE_HZ, window_figures
-from bench.scenes3d import ON_TARGET_PX, clean_twin, main, noise_twin, pair_row, run_figures
+from bench.scenes3d import ON_TARGET_PX, PULLED_PX, clean_twin, main, noise_twin, pair_row, run_figures
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.sim import SimCore
 
@@ -19,7 +19,7 @@ ATOL_M = 1e-9  # same flight: identical numbers, not merely close
 
 
 def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0, name="C9", visible=None,
-         cross_m=None):  # fmt: skip
+         cross_m=None, resets=0):  # fmt: skip
     """A RunResult-like object of len(err_m) frames: the estimate err_m (NaN: none) north of the truth (along the
     line of sight from the camera at the origin) and cross_m (default 0) east of it (across), an isotropic
     covariance of sigma_m per axis, the measured centre uv_off_px (NaN: none) off the truth pixel along u."""
@@ -47,6 +47,7 @@ def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0,
         measurement_valid=np.isfinite(off),
         uv_px=truth_uv + np.stack([off, np.zeros(F)], axis=1),
         truth_uv_px=truth_uv,
+        counters={"estimator_resets": resets},
     )
 
 
@@ -117,16 +118,20 @@ def test_run_figures_scores_published_positions_only():
     assert f.observable.tolist() == [False, False, True]
     assert (f.visible, f.on_target) == (4, 2)  # no centre on frame 0; 3.5 px off on frame 2
     assert f.first_position_s == pytest.approx(1 / 30.0)
+    assert f.pulled == 1 and f.max_pull_px == pytest.approx(1.0)  # frame 1's 1 px; frame 3 dead on
     np.testing.assert_allclose(f.angle_mrad, 0.0, atol=1e-12)  # errors along the line of sight only
 
 
 def test_run_figures_angular_error_is_across_the_line_of_sight():
     # camera at the origin, truth 100 m north: 1 m east is atan(1/100) whatever the along-range error
-    r = _run([0.0, 50.0, -20.0, 0.0], 1.0, cross_m=[1.0, 1.0, 1.0, 0.0])
+    r = _run([0.0, 50.0, -20.0, 0.0], 1.0, cross_m=[1.0, 1.0, 1.0, 0.0], uv_off_px=[0.2, PULLED_PX + 0.01, 2.9, 3.1],
+             resets=2)  # fmt: skip
     f = run_figures(r, twin=False)
     np.testing.assert_allclose(
         f.angle_mrad, 1e3 * np.array([math.atan(1 / 100), math.atan(1 / 150), math.atan(1 / 80), 0.0]), rtol=1e-12
     )
+    assert (f.on_target, f.pulled, f.resets) == (3, 2, 2)  # 0.2 px is not pulled, 3.1 px is not on target
+    assert f.max_pull_px == pytest.approx(2.9)
 
 
 def test_run_figures_of_a_failed_run_has_no_positions():
@@ -180,7 +185,7 @@ def test_pair_row_verdict_fails_on_dishonest_positions_and_survives_a_failed_run
 
 
 def test_pair_row_angular_ratio_and_noise_spread():
-    scene = [run_figures(_run([5.0] * 4, 10.0, cross_m=[2.0] * 4, seed=s), False)
+    scene = [run_figures(_run([5.0] * 4, 10.0, cross_m=[2.0] * 4, seed=s, uv_off_px=[0.5] * 4, resets=1), False)
              for s in (0, 1)]  # fmt: skip
     twin = [run_figures(_run([2.0] * 4, 10.0, cross_m=[1.0] * 4, seed=s), True) for s in (0, 1)]
     # draw 1 pooled over its two seeds: median of [1, 1, 1, 1, 6, 6, 6, 6] = 3.5 m; draw 2: 4 m
@@ -195,6 +200,7 @@ def test_pair_row_angular_ratio_and_noise_spread():
     assert row["ratio"] == pytest.approx(math.hypot(5.0, 2.0) / math.hypot(2.0, 1.0))
     assert row["noise_medians"] == pytest.approx([math.hypot(2.0, 1.0), 3.5, 4.0])  # % of the 100 m range
     assert row["noise_spread"] == pytest.approx(4.0 / math.hypot(2.0, 1.0))
+    assert (row["scene"]["pulled"], row["scene"]["resets"], row["twin"]["pulled"]) == (8, 2, 0)
     assert math.isnan(pair_row(scene, twin)["noise_spread"])  # no noise twins: no spread
 
 
@@ -256,7 +262,7 @@ def test_command_pairs_each_scene_run_with_its_twin_and_writes_json(tmp_path, ca
     assert calls == [] and again.strip() == text[text.index("   C1 s0") :].strip()
 
 
-def test_command_flies_noise_twins(tmp_path, capsys, monkeypatch):
+def test_command_flies_noise_twins_and_drops_other_targets(tmp_path, capsys, monkeypatch):
     from bench.scenes3d import NoiseTwinScenario
 
     calls = []
@@ -270,13 +276,14 @@ def test_command_flies_noise_twins(tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr("groundsim.evaluation.eval.run_lockstep", fake_run_lockstep)
     out = tmp_path / "s.json"
-    argv = ["--scenes", "C3", "--seeds", "1", "--noise-twins", "2", "--json", str(out)]
+    argv = ["--scenes", "C3", "--seeds", "1", "--noise-twins", "2", "--no-other-targets", "--json", str(out)]
     assert main(argv) == 0
-    # the scene (with its second target), the twin, noise twins 1 and 2
-    assert sorted(calls, key=str) == sorted([(0, False, None, 1), (0, True, None, 0), (0, True, 1, 0), (0, True, 2, 0)],
+    # the scene without its second target (C3 has one), the twin, noise twins 1 and 2
+    assert sorted(calls, key=str) == sorted([(0, False, None, 0), (0, True, None, 0), (0, True, 1, 0), (0, True, 2, 0)],
                                             key=str)  # fmt: skip
     text = capsys.readouterr().out
-    assert "C3 s0 twin2:" in text
+    assert "C3 s0 twin2:" in text and "no other targets" in text
     row = json.loads(out.read_text())["rows"][0]
     assert row["noise_medians"] == pytest.approx([2.0, 3.0, 4.0]) and row["noise_spread"] == pytest.approx(2.0)
     assert row["ratio"] == pytest.approx(1.5)  # against the twin, not the noise twins
+    assert load_scenario(scenarios_dir() / "C3.yaml").other_targets  # the premise: C3 has another target
