@@ -11,20 +11,23 @@ import numpy as np
 import pytest
 
 from bench.onboard_scene import FRAME_RATE_HZ, window_figures
-from bench.scenes3d import ON_TARGET_PX, clean_twin, main, pair_row, run_figures
+from bench.scenes3d import ON_TARGET_PX, PULLED_PX, clean_twin, main, noise_twin, pair_row, run_figures
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.sim import SimCore
 
 ATOL_M = 1e-9  # same flight: identical numbers, not merely close
 
 
-def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0, name="C9", visible=None):
-    """A RunResult-like object of len(err_m) frames: the estimate err_m (NaN: none) north of the truth, an isotropic
+def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0, name="C9", visible=None,
+         cross_m=None, resets=0):  # fmt: skip
+    """A RunResult-like object of len(err_m) frames: the estimate err_m (NaN: none) north of the truth (along the
+    line of sight from the camera at the origin) and cross_m (default 0) east of it (across), an isotropic
     covariance of sigma_m per axis, the measured centre uv_off_px (NaN: none) off the truth pixel along u."""
     err = np.asarray(err_m, dtype=float)
     F = err.size
-    truth = np.tile([100.0, 0.0, -50.0], (F, 1))
-    est = truth + np.stack([err, np.zeros(F), np.zeros(F)], axis=1)
+    cross = np.zeros(F) if cross_m is None else np.asarray(cross_m, dtype=float)
+    truth = np.tile([100.0, 0.0, 0.0], (F, 1))
+    est = truth + np.stack([err, cross, np.zeros(F)], axis=1)
     cov = np.stack([np.eye(3) * s**2 for s in np.broadcast_to(np.asarray(sigma_m, float), (F,))])
     off = np.zeros(F) if uv_off_px is None else np.asarray(uv_off_px, dtype=float)
     truth_uv = np.tile([320.0, 256.0], (F, 1))
@@ -35,6 +38,7 @@ def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0,
         error=None,
         t_s=1.0 + np.arange(F) / 30.0,
         truth_p_ned_m=truth,
+        cam_p_ned_m=np.zeros((F, 3)),
         est_p_ned_m=est,
         est_cov_ned_m2=cov,
         range_m=np.full(F, range_m),
@@ -43,6 +47,7 @@ def _run(err_m, sigma_m, range_m=100.0, observable=None, uv_off_px=None, seed=0,
         measurement_valid=np.isfinite(off),
         uv_px=truth_uv + np.stack([off, np.zeros(F)], axis=1),
         truth_uv_px=truth_uv,
+        counters={"estimator_resets": resets},
     )
 
 
@@ -59,12 +64,13 @@ def test_clean_twin_switches_the_scene_off_and_keeps_everything_else(name):
         assert getattr(twin, field) == getattr(sc, field), field
 
 
-def test_clean_twin_flies_the_same_flight_with_the_same_navigation_errors():
+@pytest.mark.parametrize("twin_of", [clean_twin, lambda sc: noise_twin(sc, 2)], ids=["twin", "noise twin"])
+def test_clean_twin_flies_the_same_flight_with_the_same_navigation_errors(twin_of):
     # C3 has a second target and distractors: none of them may shift the observer's, the target's or the
-    # navigation errors' random streams
+    # navigation errors' random streams; nor may the noise twin's renamed render-noise stream
     sc = load_scenario(scenarios_dir() / "C3.yaml")
     kw = dict(duration_s=1.0, render=False, flight_chunk_s=1.0)  # one chunk: every tick kept
-    a, b = SimCore(sc, 1, **kw), SimCore(clean_twin(sc), 1, **kw)
+    a, b = SimCore(sc, 1, **kw), SimCore(twin_of(sc), 1, **kw)
     assert b.scene_enabled is False and a.scene_enabled is True
     for i in (0, 37, a.tick_count - 1):
         sa, sb = a.vehicle_state(i), b.vehicle_state(i)
@@ -77,6 +83,23 @@ def test_clean_twin_flies_the_same_flight_with_the_same_navigation_errors():
     ta, tb = a.frame(20).truth, b.frame(20).truth
     assert (ta.target_n_m, ta.target_e_m, ta.target_d_m) == (tb.target_n_m, tb.target_e_m, tb.target_d_m)
     assert (ta.target_u_px, ta.target_v_px) == (tb.target_u_px, tb.target_v_px)
+
+
+def test_noise_twin_changes_the_render_noise_and_nothing_else():
+    sc = load_scenario(scenarios_dir() / "C3.yaml")
+    twin, n1, n2 = clean_twin(sc), noise_twin(sc, 1), noise_twin(sc, 2)
+    assert n1.other_targets == () and not n1.scene.has_content and n1.seed == sc.seed
+    draw = lambda s, stream: s.rng(stream, 1).integers(0, 2**62, 4).tolist()  # noqa: E731
+    for stream in ("nav.errors", "gimbal.pointing_phase", "target.disturbance", "render.scene", "render.sensor"):
+        assert draw(n1, stream) == draw(twin, stream), stream
+    assert len({tuple(draw(s, "render.noise")) for s in (twin, n1, n2)}) == 3
+    assert draw(noise_twin(sc, 0), "render.noise") == draw(twin, "render.noise")
+    # the pixels differ by the noise alone: the same frame of the twin and its noise twin, rendered
+    kw = dict(duration_s=1.0, render=True, flight_chunk_s=1.0)
+    fa, fb = SimCore(twin, 1, **kw).frame(5), SimCore(n1, 1, **kw).frame(5)
+    diff = fa.pixels.astype(float) - fb.pixels.astype(float)
+    assert np.any(diff != 0) and abs(float(diff.mean())) < 0.5  # zero-mean noise, not a moved target
+    assert (fa.truth.target_u_px, fa.truth.target_v_px) == (fb.truth.target_u_px, fb.truth.target_v_px)
 
 
 # ---------------------------------------------------------------------------- per-run figures
@@ -95,6 +118,20 @@ def test_run_figures_scores_published_positions_only():
     assert f.observable.tolist() == [False, False, True]
     assert (f.visible, f.on_target) == (4, 2)  # no centre on frame 0; 3.5 px off on frame 2
     assert f.first_position_s == pytest.approx(1 / 30.0)
+    assert f.pulled == 1 and f.max_pull_px == pytest.approx(1.0)  # frame 1's 1 px; frame 3 dead on
+    np.testing.assert_allclose(f.angle_mrad, 0.0, atol=1e-12)  # errors along the line of sight only
+
+
+def test_run_figures_angular_error_is_across_the_line_of_sight():
+    # camera at the origin, truth 100 m north: 1 m east is atan(1/100) whatever the along-range error
+    r = _run([0.0, 50.0, -20.0, 0.0], 1.0, cross_m=[1.0, 1.0, 1.0, 0.0], uv_off_px=[0.2, PULLED_PX + 0.01, 2.9, 3.1],
+             resets=2)  # fmt: skip
+    f = run_figures(r, twin=False)
+    np.testing.assert_allclose(
+        f.angle_mrad, 1e3 * np.array([math.atan(1 / 100), math.atan(1 / 150), math.atan(1 / 80), 0.0]), rtol=1e-12
+    )
+    assert (f.on_target, f.pulled, f.resets) == (3, 2, 2)  # 0.2 px is not pulled, 3.1 px is not on target
+    assert f.max_pull_px == pytest.approx(2.9)
 
 
 def test_run_figures_of_a_failed_run_has_no_positions():
@@ -145,6 +182,26 @@ def test_pair_row_verdict_fails_on_dishonest_positions_and_survives_a_failed_run
     assert row["scene"]["beyond_3sigma"] == pytest.approx(0.02)
     assert row["ratio"] == pytest.approx(1.0) and row["met"] is False
     assert row["twin"]["failed"] == 1 and row["twin"]["runs"] == 2
+
+
+def test_pair_row_angular_ratio_and_noise_spread():
+    scene = [run_figures(_run([5.0] * 4, 10.0, cross_m=[2.0] * 4, seed=s, uv_off_px=[0.5] * 4, resets=1), False)
+             for s in (0, 1)]  # fmt: skip
+    twin = [run_figures(_run([2.0] * 4, 10.0, cross_m=[1.0] * 4, seed=s), True) for s in (0, 1)]
+    # draw 1 pooled over its two seeds: median of [1, 1, 1, 1, 6, 6, 6, 6] = 3.5 m; draw 2: 4 m
+    noise = [
+        run_figures(_run([1.0] * 4, 10.0, seed=0), True, 1),
+        run_figures(_run([6.0] * 4, 10.0, seed=1), True, 1),
+        run_figures(_run([4.0] * 4, 10.0, seed=0), True, 2),
+    ]
+    row = pair_row(scene, twin, noise)
+    # camera at the origin, truth 100 m north: the scene 5 m along and 2 m across, the twin 2 m along and 1 across
+    assert row["angular_ratio"] == pytest.approx(math.atan2(2.0, 105.0) / math.atan2(1.0, 102.0), rel=1e-12)
+    assert row["ratio"] == pytest.approx(math.hypot(5.0, 2.0) / math.hypot(2.0, 1.0))
+    assert row["noise_medians"] == pytest.approx([math.hypot(2.0, 1.0), 3.5, 4.0])  # % of the 100 m range
+    assert row["noise_spread"] == pytest.approx(4.0 / math.hypot(2.0, 1.0))
+    assert (row["scene"]["pulled"], row["scene"]["resets"], row["twin"]["pulled"]) == (8, 2, 0)
+    assert math.isnan(pair_row(scene, twin)["noise_spread"])  # no noise twins: no spread
 
 
 def test_pair_row_without_twin_positions_has_no_verdict():
@@ -203,3 +260,30 @@ def test_command_pairs_each_scene_run_with_its_twin_and_writes_json(tmp_path, ca
     assert main(["--table-from", str(out)]) == 0
     again = capsys.readouterr().out
     assert calls == [] and again.strip() == text[text.index("   C1 s0") :].strip()
+
+
+def test_command_flies_noise_twins_and_drops_other_targets(tmp_path, capsys, monkeypatch):
+    from bench.scenes3d import NoiseTwinScenario
+
+    calls = []
+
+    def fake_run_lockstep(scenario, seed, options, cfg, progress=None):
+        draw = scenario.render_noise_draw if isinstance(scenario, NoiseTwinScenario) else None
+        twin = not (scenario.scene.has_content or scenario.scene.sensor.enabled)
+        calls.append((seed, twin, draw, len(scenario.other_targets)))
+        err = 3.0 if not twin else (2.0 if draw is None else 2.0 + draw)  # the twins' medians 2, 3, 4 m
+        return _run([err] * 4, 10.0, seed=seed, name=scenario.name)
+
+    monkeypatch.setattr("groundsim.evaluation.eval.run_lockstep", fake_run_lockstep)
+    out = tmp_path / "s.json"
+    argv = ["--scenes", "C3", "--seeds", "1", "--noise-twins", "2", "--no-other-targets", "--json", str(out)]
+    assert main(argv) == 0
+    # the scene without its second target (C3 has one), the twin, noise twins 1 and 2
+    assert sorted(calls, key=str) == sorted([(0, False, None, 0), (0, True, None, 0), (0, True, 1, 0), (0, True, 2, 0)],
+                                            key=str)  # fmt: skip
+    text = capsys.readouterr().out
+    assert "C3 s0 twin2:" in text and "no other targets" in text
+    row = json.loads(out.read_text())["rows"][0]
+    assert row["noise_medians"] == pytest.approx([2.0, 3.0, 4.0]) and row["noise_spread"] == pytest.approx(2.0)
+    assert row["ratio"] == pytest.approx(1.5)  # against the twin, not the noise twins
+    assert load_scenario(scenarios_dir() / "C3.yaml").other_targets  # the premise: C3 has another target
