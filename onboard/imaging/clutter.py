@@ -405,7 +405,7 @@ def quietest_block_noise(cells: np.ndarray, window_cells: int, block_cells: int)
     window (float32, ``cells``' grid; :func:`noise_cells`'): the least, over the window, of the blocks'
     mean deviation, x 1.2533.  A roof, a warmer field or a cloud edge in part of the window raises its
     mean deviation, which the point contrast of the ground beside it does not share; the quietest block
-    is the ground's own (a low quantile of the window, in two passes on the coarse grid, ~0.03 ms on
+    is the ground's own (a low quantile of the window, in two passes on the coarse grid: 0.04 ms on
     the whole 128 x 160 grid).  Lower than the window's mean wherever texture is uneven: beside a cloud
     the quietest block is the clear sky's, not the cloud texture a point on the cloud's edge lies in, so
     the detector takes it only while acquiring, near the axis.  Measured in docs/perception.md ("Robust
