@@ -22,7 +22,11 @@ input's units, pixel indices ``(row i, column j)``, the frames.py pixel centre o
    frame about its 3 x 3 mean over a ``noise_window_px`` square (x 1.25: a normal's sigma per unit of
    mean absolute deviation), so textured cloud or terrain raises the threshold where it is and the
    false-alarm rate stays near constant across the frame (cell-averaging CFAR; Rohling 1983, IEEE
-   TAES 19, 608).  Floored at ``min_threshold_lsb`` (8-bit quantisation leaves a flat sky noiseless).
+   TAES 19, 608).  While the tracker has no primary, where the gimbal points, the threshold's noise is
+   at most that of the window's quietest ``quiet_block_px`` square (:func:`quietest_block_noise`): a
+   roof or a warmer field filling part of the window lifts the window's mean deviation (C2 seed 1:
+   3.5-4.1 grey thresholds over the fields its target crosses at 1-2 grey) but not that of the ground
+   beside it.  Floored at ``min_threshold_lsb`` (8-bit quantisation leaves a flat sky noiseless).
    Capped at ``two_level_cap_lsb`` where the ground quantises to two adjacent grey levels
    (:func:`two_level_cap`): a sensor noise well under one level that straddles a level boundary
    toggles pixels between the two, which the mean absolute deviation reads as ~0.45 grey of noise
@@ -54,6 +58,8 @@ __all__ = [
     "point_contrast",
     "local_noise",
     "local_noise_coarse",
+    "noise_cells",
+    "quietest_block_noise",
     "cfar_threshold",
     "two_level_cap",
     "point_candidates",
@@ -91,7 +97,10 @@ class ClutterParams:
     that many sigmas above or below all its neighbours on that fraction of ``defect_frames`` frames
     is a defect; ``step_lsb``: a frame median jump that is an offset step; ``two_level_cap_lsb``: the
     threshold's cap where an integer frame's noise window lies on two adjacent grey levels (0: no cap),
-    ``two_level_fraction``: the least fraction of the window's cells that must (:func:`two_level_cap`).
+    ``two_level_fraction``: the least fraction of the window's cells that must (:func:`two_level_cap`);
+    ``quiet_block_px``: while acquiring, the CFAR threshold's noise near the optical axis is at most that
+    of the quietest square of this side within the noise window (:func:`quietest_block_noise`; 0: the
+    window's mean everywhere; where and when: ``ObjectDetector``'s rule).
     """
 
     cell_px: int = 3
@@ -110,6 +119,7 @@ class ClutterParams:
     step_lsb: float = 3.0
     two_level_cap_lsb: float = 1.0
     two_level_fraction: float = 0.9
+    quiet_block_px: int = 12
 
     def __post_init__(self) -> None:
         for name in ("cell_px", "noise_window_px", "stripe_window_px"):
@@ -126,6 +136,11 @@ class ClutterParams:
             raise ValueError(
                 "ClutterParams.two_level_cap_lsb must be 0 (no cap) or >= min_threshold_lsb "
                 f"({self.min_threshold_lsb!r}), got {self.two_level_cap_lsb!r}"
+            )
+        if not (self.quiet_block_px == 0 or 1 <= self.quiet_block_px < self.noise_window_px):
+            raise ValueError(
+                "ClutterParams.quiet_block_px must be 0 (the window's mean) or in [1, noise_window_px "
+                f"({self.noise_window_px!r})), got {self.quiet_block_px!r}"
             )
         if not 0 < self.two_level_fraction <= 1:
             raise ValueError(f"ClutterParams.two_level_fraction must be in (0, 1], got {self.two_level_fraction!r}")
@@ -363,16 +378,43 @@ def local_noise_coarse(
     grid's (``H // factor, W // factor``: cell (i, j) covers pixels ``factor * i ...``).  ``box3``: the
     image's 3 x 3 box mean (edges replicated), when the caller has it already; ``scratch``: the arrays to
     work in (the coarse grid's result is a new array)."""
+    h, w = image.shape
+    coarse = noise_cells(image, factor, box3, scratch)
+    k = max(window_px // factor, 1) | 1
+    coarse = cv2.blur(coarse, (k, k), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
+    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR) if full else coarse
+
+
+def noise_cells(
+    image: np.ndarray, factor: int = 4, box3: np.ndarray | None = None, scratch: Scratch | None = None
+) -> np.ndarray:
+    """The mean of ``|g - mean3x3(g)|`` over each ``factor`` x ``factor`` cell (float32, ``H // factor,
+    W // factor``; :func:`local_noise_coarse`'s grid, before its window mean).  ``box3``, ``scratch``: as
+    there."""
     img = np.asarray(image, dtype=np.float32)
     if box3 is None:
         box3 = cv2.blur(img, (3, 3), dst=_dst(scratch, "noise_box3", img.shape), borderType=cv2.BORDER_REPLICATE)
     dev = cv2.absdiff(img, box3, dst=_dst(scratch, TRANSIENT_A, img.shape))
     h, w = img.shape
     hc, wc = max(h // factor, 1), max(w // factor, 1)
-    coarse = cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)
-    k = max(window_px // factor, 1) | 1
-    coarse = cv2.blur(coarse, (k, k), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
-    return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR) if full else coarse
+    return cv2.resize(dev, (wc, hc), interpolation=cv2.INTER_AREA)
+
+
+def quietest_block_noise(cells: np.ndarray, window_cells: int, block_cells: int) -> np.ndarray:
+    """The local noise sigma of the quietest ``block_cells`` square of cells within each ``window_cells``
+    window (float32, ``cells``' grid; :func:`noise_cells`'): the least, over the window, of the blocks'
+    mean deviation, x 1.2533.  A roof, a warmer field or a cloud edge in part of the window raises its
+    mean deviation, which the point contrast of the ground beside it does not share; the quietest block
+    is the ground's own (a low quantile of the window, in two passes on the coarse grid: 0.04 ms on
+    the whole 128 x 160 grid).  Lower than the window's mean wherever texture is uneven: beside a cloud
+    the quietest block is the clear sky's, not the cloud texture a point on the cloud's edge lies in, so
+    the detector takes it only while acquiring, near the axis.  Measured in docs/perception.md ("Robust
+    noise and surround (an experiment)")."""
+    b = max(block_cells, 1)
+    blocks = cv2.blur(cells, (b, b), borderType=cv2.BORDER_REPLICATE) if b > 1 else cells
+    span = max(window_cells - b + 1, 1)  # block centres whose block lies inside the window
+    quiet = cv2.erode(blocks, np.ones((span, span), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return quiet * np.float32(MEAN_ABS_TO_SIGMA)
 
 
 def cfar_threshold(noise: np.ndarray, k_sigma: float, floor: float, cap: np.ndarray | None = None) -> np.ndarray:

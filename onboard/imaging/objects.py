@@ -157,6 +157,7 @@ class ObjectTracker:
 
     def detect(self, image: np.ndarray) -> list[PointCandidate]:
         """The frame's point candidates (:meth:`ObjectDetector.detect` on the current frame)."""
+        self.detector.acquiring = self._primary is None
         return self.detector.detect(image, self._frame_index)
 
     def _aided_candidates(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:

@@ -23,6 +23,7 @@ from onboard.imaging.clutter import (
     column_offsets,
     isolated_outliers,
     local_noise_coarse,
+    noise_cells,
     point_candidates,
     point_contrast,
 )
@@ -118,16 +119,21 @@ def test_defect_map_in_a_shared_scratch_equals_its_own(frames):
     assert in_shared.mask[30, 40] and not in_shared.mask[60, 100]
 
 
-def test_detector_results_equal_the_functions_on_fresh_arrays(frames):
-    # its contrast, threshold and candidates survive the intermediates that share its arrays
+@pytest.mark.parametrize("acquiring", [False, True])
+def test_detector_results_equal_the_functions_on_fresh_arrays(frames, acquiring):
+    # its contrast, threshold and candidates survive the intermediates that share its arrays (while
+    # acquiring, the threshold's noise near the axis is at most the window's quietest block's)
     p = ClutterParams()
     det = ObjectDetector(K, ObjectParams(), p)
+    det.acquiring = acquiring
     for k, img in enumerate(frames[:6]):
         cands = det.detect(img, k)
         assert det.clean is not None and det.contrast is not None and det.threshold is not None
         clean = det.clean.copy()
         assert np.array_equal(det.contrast, point_contrast(clean, p))
         noise = local_noise_coarse(clean, p.noise_window_px, 4, full=False)
+        if acquiring:
+            noise = det._quiet_noise(noise_cells(clean, 4), noise, p.noise_window_px // 4 | 1)
         threshold = cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb)
         assert np.array_equal(det.threshold, cv2.resize(threshold, (W_PX, H_PX), interpolation=cv2.INTER_LINEAR))
         assert cands == point_candidates(det.contrast, det.threshold, p)

@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
-from onboard.imaging.clutter import surround_residuals
+from onboard.imaging.clutter import ClutterParams, surround_residuals
 from onboard.imaging.objects import ObjectParams, ObjectTracker
 from onboard.imaging.objects_detection import SURROUND_MATCH_RATIO, ObjectDetector
 
@@ -326,7 +326,9 @@ def test_without_a_primary_the_background_difference_finds_a_point_under_the_thr
 
     monkeypatch.setattr(ObjectDetector, "detect", recorded)
     terrain = _terrain()
-    tr = ObjectTracker(K)
+    # the search alone: while acquiring, the threshold's quiet-block noise near the axis finds this point
+    # on 5 frames without the search, over the premise's 3 (the window's mean), so it is off here
+    tr = ObjectTracker(K, clutter=ClutterParams(quiet_block_px=0))
     regular_near = on_primary = confirmed_near = 0
     for k in range(SEARCH_FRAMES):
         uv = (K.cx_px - 15.0 + 0.5 * TARGET_PXPF * k, K.cy_px + 2.0)
