@@ -22,7 +22,7 @@ input's units, pixel indices ``(row i, column j)``, the frames.py pixel centre o
    frame about its 3 x 3 mean over a ``noise_window_px`` square (x 1.25: a normal's sigma per unit of
    mean absolute deviation), so textured cloud or terrain raises the threshold where it is and the
    false-alarm rate stays near constant across the frame (cell-averaging CFAR; Rohling 1983, IEEE
-   TAES 19, 608).  While the tracker has no primary, where the gimbal points, the threshold's noise is
+   TAES 19, 608).  Until the tracker's first primary, where the gimbal points, the threshold's noise is
    at most that of the window's quietest ``quiet_block_px`` square (:func:`quietest_block_noise`): a
    roof or a warmer field filling part of the window lifts the window's mean deviation (C2 seed 1:
    3.5-4.1 grey thresholds over the fields its target crosses at 1-2 grey) but not that of the ground
@@ -98,7 +98,7 @@ class ClutterParams:
     is a defect; ``step_lsb``: a frame median jump that is an offset step; ``two_level_cap_lsb``: the
     threshold's cap where an integer frame's noise window lies on two adjacent grey levels (0: no cap),
     ``two_level_fraction``: the least fraction of the window's cells that must (:func:`two_level_cap`);
-    ``quiet_block_px``: while acquiring, the CFAR threshold's noise near the optical axis is at most that
+    ``quiet_block_px``: until the first primary, the CFAR threshold's noise near the optical axis is at most that
     of the quietest square of this side within the noise window (:func:`quietest_block_noise`; 0: the
     window's mean everywhere; where and when: ``ObjectDetector``'s rule).
     """
@@ -408,7 +408,7 @@ def quietest_block_noise(cells: np.ndarray, window_cells: int, block_cells: int)
     is the ground's own (a low quantile of the window, in two passes on the coarse grid: 0.04 ms on
     the whole 128 x 160 grid).  Lower than the window's mean wherever texture is uneven: beside a cloud
     the quietest block is the clear sky's, not the cloud texture a point on the cloud's edge lies in, so
-    the detector takes it only while acquiring, near the axis.  Measured in docs/perception.md ("Robust
+    the detector takes it only until the first primary, near the axis.  Measured in docs/perception.md ("Robust
     noise and surround (an experiment)")."""
     b = max(block_cells, 1)
     blocks = cv2.blur(cells, (b, b), borderType=cv2.BORDER_REPLICATE) if b > 1 else cells

@@ -157,7 +157,9 @@ class ObjectTracker:
 
     def detect(self, image: np.ndarray) -> list[PointCandidate]:
         """The frame's point candidates (:meth:`ObjectDetector.detect` on the current frame)."""
-        self.detector.acquiring = self._primary is None
+        # the first acquisition only: the lowered threshold, once a primary has been lost, let a terrain
+        # feature be re-acquired in the target's place (the detector's _quiet_noise says where)
+        self.detector.acquiring = self._primary is None and self.primary_changes == 0
         return self.detector.detect(image, self._frame_index)
 
     def _aided_candidates(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:

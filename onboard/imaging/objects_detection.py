@@ -87,7 +87,7 @@ class ObjectDetector:
         self.params = params
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
-        self.acquiring = True  # no primary target yet (the tracker's to say): the threshold's quiet-block noise applies
+        self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
@@ -189,7 +189,7 @@ class ObjectDetector:
         return cands
 
     def _quiet_noise(self, cells: np.ndarray, noise: np.ndarray, window_cells: int) -> np.ndarray:
-        """While there is no primary (``acquiring``), the CFAR threshold's noise where the gimbal points:
+        """Until the first primary (``acquiring``), the CFAR threshold's noise where the gimbal points:
         within ``primary_max_off_axis_rad`` of the principal point (a square), the lesser of the window's
         mean and its quietest block (:func:`clutter.quietest_block_noise`, 0.01 ms for the central 66 x 66
         cells), so a roof, a warmer field or a cloud edge in part of the window no longer lifts the
@@ -203,7 +203,9 @@ class ObjectDetector:
         offline) and C3 seed 1's second target lost its track after the crossing, where the lower
         thresholds on the clouds' texture beside clear sky kept 5-15 tentative tracks about it (0-3
         before).  While acquiring, more candidates cost little: the confirmation tests reject clutter,
-        and the primary rule chooses nothing farther off the axis than this square."""
+        and the primary rule chooses nothing farther off the axis than this square.  Not after a primary
+        was lost: in the closed loop (RTK attitude, 30 s) re-acquiring so made C2 seed 1 select a terrain
+        feature 19-25 s in, off the target for 6 s, where the window's mean re-acquired the target."""
         p = self.clutter
         f = NOISE_FACTOR
         hc, wc = cells.shape

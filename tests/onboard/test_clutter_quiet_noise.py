@@ -110,3 +110,19 @@ def test_only_while_acquiring_and_only_near_the_axis(acquiring):
     np.testing.assert_array_equal(thr[12][:, far_cols], thr[0][:, far_cols])
     far_rows = slice(int(H_PX / 2 + half_px) + 8, H_PX)
     np.testing.assert_array_equal(thr[12][far_rows], thr[0][far_rows])
+
+
+def test_the_tracker_lowers_the_threshold_for_its_first_acquisition_only():
+    """The tracker tells its detector it is acquiring until a primary is first chosen, and not again once
+    that primary is lost (re-acquiring with the lowered threshold picked terrain in the closed loop)."""
+    from onboard.imaging.objects import ObjectTracker
+
+    K = PinholeIntrinsics(200.0, 200.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
+    tr = ObjectTracker(K)
+    img = _frame_with_roof_and_target(0, 60.3, 48.6)
+    tr.detect(img)
+    assert tr.detector.acquiring
+    tr.primary_changes = 1  # a primary was chosen once ...
+    tr.clear_primary()  # ... and is gone (clear_primary counts nothing without one)
+    tr.detect(img)
+    assert not tr.detector.acquiring
