@@ -12,6 +12,8 @@ every ``every``-th frame:
   (between consecutive measured frames);
 * ``contrast_netd``: the target's peak |signal - local background| in NETD units (its label's
   ``contrast_netd``), median, 10th and 90th percentile, and the fraction of frames with >= 3 NETD;
+  ``warm_ge_3_netd`` the fraction with >= 3 NETD *and* the target above its local background (its label's
+  ``warm``): the contrast is a magnitude, and a target colder than the roof it hides is a cold point;
 * ``false_points_per_frame`` (``--clutter``): detections of the plain point detector
   (:func:`groundsim.world.render.clutter.point_detections`: 15 x 15 local mean, 5 sigma of the temporal
   noise, blobs <= 50 px) farther than ``MATCH_PX`` from every object's box, per frame.  The detector
@@ -71,6 +73,7 @@ class SceneStats:
     contrast_netd_median: float
     contrast_netd_p90: float
     contrast_ge_3_netd: float
+    warm_ge_3_netd: float
     objects_per_frame: float
     false_points_per_frame: float | None
 
@@ -82,6 +85,7 @@ class SceneStats:
             contrast = (
                 f"contrast NETD median {self.contrast_netd_median:.1f} (p10 {self.contrast_netd_p10:.1f}, p90"
                 f" {self.contrast_netd_p90:.1f}), >= 3 NETD on {100 * self.contrast_ge_3_netd:.0f} % of frames"
+                f" (warm on {100 * self.warm_ge_3_netd:.0f} %)"
             )
         return (
             f"{self.scenario}: {self.frames} frames; cloud cover seen {100 * self.cloud_cover:.0f} %; target in image"
@@ -150,7 +154,7 @@ def measure_scene(scenario, run_seed: int = 0, every: int = 10, clutter: bool = 
         raise ConfigError(f"--every: expected an integer >= 1, got {every!r}")
     core = SimCore(_mono16(scenario), run_seed, render=True, flight_chunk_s=1.0)
     intr = scenario.camera.intrinsics
-    cover, in_front, behind, in_image, contrast, n_obj, fps = [], [], [], [], [], [], []
+    cover, in_front, behind, in_image, contrast, warm, n_obj, fps = [], [], [], [], [], [], [], []
     for k in range(0, core.frame_count, every):
         fr = core.frame(k)
         labels = fr.labels
@@ -178,6 +182,7 @@ def measure_scene(scenario, run_seed: int = 0, every: int = 10, clutter: bool = 
         behind.append(tgt is not None and tgt.visibility == "occluded")
         if tgt is not None and tgt.visibility != "out_of_frame":
             contrast.append(tgt.contrast_netd)
+            warm.append(bool(tgt.warm))
         n_obj.append(sum(1 for lab in labels if lab.visibility != "out_of_frame") if labels else int(seen))
         if clutter and fr.pixels is not None:
             fps.append(false_points(fr.pixels, labels or _target_only(tr), _noise_sigma(core)))
@@ -194,6 +199,7 @@ def measure_scene(scenario, run_seed: int = 0, every: int = 10, clutter: bool = 
         contrast_netd_median=float(np.median(con)),
         contrast_netd_p90=float(np.percentile(con, 90)),
         contrast_ge_3_netd=float(np.mean(con >= 3.0)) if contrast else 0.0,
+        warm_ge_3_netd=float(np.mean((con >= 3.0) & np.asarray(warm, dtype=bool))) if contrast else 0.0,
         objects_per_frame=float(np.mean(n_obj)),
         false_points_per_frame=float(np.mean(fps)) if clutter and fps else (None if not clutter else 0.0),
     )
