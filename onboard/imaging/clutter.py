@@ -59,6 +59,8 @@ __all__ = [
     "local_noise",
     "local_noise_coarse",
     "noise_cells",
+    "noise_window_cells",
+    "window_noise",
     "quietest_block_noise",
     "cfar_threshold",
     "two_level_cap",
@@ -379,10 +381,21 @@ def local_noise_coarse(
     image's 3 x 3 box mean (edges replicated), when the caller has it already; ``scratch``: the arrays to
     work in (the coarse grid's result is a new array)."""
     h, w = image.shape
-    coarse = noise_cells(image, factor, box3, scratch)
-    k = max(window_px // factor, 1) | 1
-    coarse = cv2.blur(coarse, (k, k), borderType=cv2.BORDER_REPLICATE) * np.float32(MEAN_ABS_TO_SIGMA)
+    coarse = window_noise(noise_cells(image, factor, box3, scratch), noise_window_cells(window_px, factor))
     return cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR) if full else coarse
+
+
+def noise_window_cells(window_px: int, factor: int) -> int:
+    """The noise window's side in cells of ``factor`` px: odd, at least 1."""
+    return max(window_px // factor, 1) | 1
+
+
+def window_noise(cells: np.ndarray, window_cells: int) -> np.ndarray:
+    """The local noise sigma on the cells' grid (float32): the mean of :func:`noise_cells` over each
+    ``window_cells`` square (edges replicated), x 1.2533."""
+    return cv2.blur(cells, (window_cells, window_cells), borderType=cv2.BORDER_REPLICATE) * np.float32(
+        MEAN_ABS_TO_SIGMA
+    )
 
 
 def noise_cells(
@@ -461,7 +474,7 @@ def two_level_cap(
     kernel = np.ones((1, factor), np.uint8)
     hi = cv2.dilate(hi_rows, kernel, anchor=(0, 0))[:, : wc * factor : factor]
     lo = cv2.erode(lo_rows, kernel, anchor=(0, 0))[:, : wc * factor : factor]
-    k = max(window_px // factor, 1) | 1
+    k = noise_window_cells(window_px, factor)
     lowest = cv2.erode(np.ascontiguousarray(lo), np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     # hi >= lo >= lowest, so the difference never saturates; 1 where two-level (uint8)
     two = np.less_equal(cv2.subtract(np.ascontiguousarray(hi), lowest), 1).view(np.uint8)

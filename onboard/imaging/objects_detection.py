@@ -21,7 +21,6 @@ import cv2
 import numpy as np
 
 from onboard.imaging.clutter import (
-    MEAN_ABS_TO_SIGMA,
     TRANSIENT_A,
     ClutterParams,
     DefectMap,
@@ -32,6 +31,7 @@ from onboard.imaging.clutter import (
     column_offsets,
     difference_peak,
     noise_cells,
+    noise_window_cells,
     point_candidates,
     point_contrast,
     quietest_block_noise,
@@ -39,6 +39,7 @@ from onboard.imaging.clutter import (
     surround_residuals,
     two_level_cap,
     two_level_difference_cap,
+    window_noise,
 )
 from onboard.imaging.objects_model import ObjectParams, StageTimes, TrackRecord, los_from_pixel, pixel_from_los
 
@@ -164,11 +165,9 @@ class ObjectDetector:
         self.stages.lap("point contrast")  # the box mean's cost is here
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
         cells = noise_cells(img, NOISE_FACTOR, box3, sc)
-        window_cells = max(p.noise_window_px // NOISE_FACTOR, 1) | 1
+        window_cells = noise_window_cells(p.noise_window_px, NOISE_FACTOR)
         # the window's mean deviation: the texture measure the tracker's tests and the defect level read
-        noise = cv2.blur(cells, (window_cells, window_cells), borderType=cv2.BORDER_REPLICATE) * np.float32(
-            MEAN_ABS_TO_SIGMA
-        )
+        noise = window_noise(cells, window_cells)
         self._noise = noise
         if p.quiet_block_px > 0 and self.acquiring:
             noise = self._quiet_noise(cells, noise, window_cells)

@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.imaging.clutter import PointCandidate, rotation_shift_px
+from onboard.imaging.clutter import PointCandidate, noise_window_cells, rotation_shift_px
 from onboard.imaging.detect import Detection
 
 __all__ = ["TbdParams", "TrackBeforeDetect", "frame_steps"]
@@ -293,7 +293,7 @@ class TrackBeforeDetect:
         p = self.params
         h, w = frame.shape
         f = STATS_FACTOR if min(h, w) >= 4 * STATS_FACTOR else 1
-        k = max(p.noise_window_px // (p.decimation * f), 1) | 1
+        k = noise_window_cells(p.noise_window_px, p.decimation * f)
         sq = cv2.resize(cv2.multiply(frame, frame), (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
         rms = np.sqrt(cv2.blur(sq, (k, k), borderType=cv2.BORDER_REFLECT))
         return rms > TEXTURED_RATIO * float(np.percentile(rms, TEXTURE_FLOOR_PERCENT))
@@ -540,7 +540,7 @@ class TrackBeforeDetect:
         h, w = img.shape
         f = STATS_FACTOR if min(h, w) >= 4 * STATS_FACTOR else 1
         hc, wc = max(h // f, 1), max(w // f, 1)
-        k = max(p.noise_window_px // (p.decimation * f), 1) | 1
+        k = noise_window_cells(p.noise_window_px, p.decimation * f)
         m1 = cv2.blur(cv2.resize(img, (wc, hc), interpolation=cv2.INTER_AREA), (k, k), borderType=cv2.BORDER_REFLECT)
         sq = cv2.multiply(img, img)
         m2 = cv2.blur(cv2.resize(sq, (wc, hc), interpolation=cv2.INTER_AREA), (k, k), borderType=cv2.BORDER_REFLECT)
