@@ -397,13 +397,13 @@ def score_repeated(run: SceneRun, chain_cls, repeat: int, stages: bool = False) 
 
 def frame_ranges(frames: list[int]) -> str:
     """``[3, 4, 5, 9]`` -> ``"3-5, 9"``."""
-    out: list[str] = []
+    runs: list[list[int]] = []  # [first, last] of each run of consecutive frames
     for k in sorted(frames):
-        if out and k == int(out[-1].split("-")[-1]) + 1:
-            out[-1] = f"{out[-1].split('-')[0]}-{k}"
+        if runs and k == runs[-1][1] + 1:
+            runs[-1][1] = k
         else:
-            out.append(str(k))
-    return ", ".join(out)
+            runs.append([k, k])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def misses_line(misses: list[tuple[int, bool]], counted: int) -> str:
