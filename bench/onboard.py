@@ -1,6 +1,6 @@
 """Benchmark of the onboard daemon: loopback latency through it, and per-frame processing on one core.
 
-``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency] [--parts-s S] [--scene C1 [--scene-s S]]``.
+``python -m bench.onboard [--frames N] [--latency-s S] [--no-latency] [--parts-s S] [--paced] [--scene C1 [--scene-s S]]``.
 Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:`bench.onboard_scene`):
 
 * Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1,
@@ -23,6 +23,10 @@ Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:
   the mean, each stage's median (decode, imaging, estimator ``add``), the share of frames hit by
   the estimator's periodic model re-selection, the 3-D error of the last frame, and the same chain
   without the estimator as a baseline measured in the same run.
+
+* With ``--paced``: the per-frame processing again over the same frames, one every 1/30 s (a sleep before
+  each), its CPU per frame (thread clock, the last half: the estimator's window full) against back to back:
+  the daemon's per-frame work as in flight, with none of its threads, processes, sockets or JSON.
 
 * With ``--floor-s S``: the daemon's floor, its I/O with nothing done (:mod:`bench.onboard_floor`): zenoh frames
   in (and a track out), MAVLink in, the worker's round trips, a thread woken at 30 Hz, each in a child interpreter.
@@ -259,7 +263,7 @@ def _pct(a, q) -> float:
     return float(np.percentile(np.asarray(a, dtype=float), q)) if len(a) else math.nan
 
 
-def bench_processing(n_frames: int) -> None:
+def bench_processing(n_frames: int, paced: bool = False) -> None:
     import cv2
 
     from onboard.app.config import OnboardConfig, build_config
@@ -280,13 +284,14 @@ def bench_processing(n_frames: int) -> None:
     print(f"per-frame processing, 640 x 512 mono8, {n_frames} frames at 30 Hz scene time, one thread, {pinned}")
     payloads = [scene.payload(k) for k in range(n_frames)]
 
-    def run(cfg: OnboardConfig, with_estimator: bool):
+    def run(cfg: OnboardConfig, with_estimator: bool, pace_s: float = 0.0):
+        """``pace_s`` > 0: one frame every ``pace_s`` (a sleep before each), as the daemon gets them."""
         counter = RejectCounter(log_interval_s=3600.0)
         pose = PoseBuffer(mount=scene.mount, config=cfg.pose, origin=scene.origin, counter=counter)
         tracker = _Timed(make_tracker(cfg), "update")
         est = _Timed(make_estimator(cfg), "add") if with_estimator else None
         pipe = FramePipeline(cfg, pose, tracker, est, counter=counter)
-        total, fed = [], scene.t_us(0) - 100_000
+        total, cpu_ms, fed = [], [], scene.t_us(0) - 100_000
         n_pos = 0
         last_pos = None
         for k, payload in enumerate(payloads):
@@ -295,12 +300,15 @@ def bench_processing(n_frames: int) -> None:
                 pose.add_attitude(t, q)
                 pose.add_position_ned(t, p, v)
             fed = t_hi
-            t0 = time.perf_counter()
+            if pace_s > 0:
+                time.sleep(pace_s)
+            c0, t0 = time.thread_time_ns(), time.perf_counter()
             tr = pipe.process_payload(payload, 0)
             total.append((time.perf_counter() - t0) * 1e3)
+            cpu_ms.append((time.thread_time_ns() - c0) / 1e6)
             n_pos += tr.has_position
             last_pos = tr if tr.has_position else last_pos
-        return total, tracker.ms, (est.ms if est else []), n_pos, counter.total, last_pos
+        return total, tracker.ms, (est.ms if est else []), n_pos, counter.total, last_pos, cpu_ms
 
     decode_ms = []
     for p in payloads[:200]:
@@ -308,8 +316,8 @@ def bench_processing(n_frames: int) -> None:
         decode_irframe(p)
         decode_ms.append((time.perf_counter() - t0) * 1e3)
     cfg = OnboardConfig()
-    base, base_img, _, _, _, _ = run(build_config({"estimator": {"enabled": False}}), False)
-    total, img, est, n_pos, rejects, last = run(cfg, True)
+    base, base_img, _, _, _, _, _ = run(build_config({"estimator": {"enabled": False}}), False)
+    total, img, est, n_pos, rejects, last, cpu_ms = run(cfg, True)
     fps = 1000.0 / _pct(total, 50)
     print("   full chain (decode + filter + detect + track + pose + estimator):")
     print(
@@ -340,6 +348,17 @@ def bench_processing(n_frames: int) -> None:
         f"   baseline without estimator: p50 {_pct(base, 50):.2f} ms -> {1000.0 / _pct(base, 50):.0f} frames/s;"
         f" ratio full / baseline (median) {_pct(total, 50) / _pct(base, 50):.2f}"
     )
+    if paced:
+        # the same frames and chain, one every 1/30 s: what the per-frame work costs when it runs as in flight,
+        # with no thread, process, socket or JSON of the daemon's around it (the last half: the window full)
+        *_, paced_ms = run(cfg, True, pace_s=1.0 / 30.0)
+        half = slice(len(cpu_ms) // 2, None)
+        b2b, inflight = float(np.mean(cpu_ms[half])), float(np.mean(paced_ms[half]))
+        print(
+            f"   paced as in flight (a sleep of 1/30 s before each frame; CPU, the last {len(cpu_ms[half])} frames):"
+            f" mean {inflight:.2f} ms a frame against {b2b:.2f} back to back (x{inflight / b2b:.2f})"
+            f" = {inflight * 30.0 / 1000.0:.3f} CPU s per s at 30 Hz, the daemon's per-frame work alone"
+        )
 
 
 # --------------------------------------------------------------------------- benchmark 2: loopback latency
@@ -746,6 +765,11 @@ def main(argv=None) -> int:
         default=0.0,
         help="also time the daemon's I/O with nothing done (bench.onboard_floor), this many seconds per case",
     )
+    ap.add_argument(
+        "--paced",
+        action="store_true",
+        help="also run the per-frame processing paced at 30 Hz (its CPU as in flight; use --frames 600 or more)",
+    )
     ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
     ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
@@ -789,7 +813,7 @@ def main(argv=None) -> int:
         from bench.onboard_floor import bench_floor
 
         bench_floor(args.floor_s, _cpu_snapshot, SyntheticScene())
-    bench_processing(args.frames)
+    bench_processing(args.frames, args.paced)
     return 0
 
 

@@ -24,3 +24,31 @@ def test_pacing_factor_returns_a_cost_and_a_ratio():
 def test_pacing_factor_refuses_bad_arguments(rate_hz, calls):
     with pytest.raises(ValueError, match="pacing_factor"):
         pacing_factor(rate_hz=rate_hz, calls=calls)
+
+
+def test_bench_onboard_paced_processing_prints_its_figures():
+    """``python -m bench.onboard --no-latency --paced``: the paced line, over the last half of the frames, with
+    the CPU s per s that is its mean per frame at 30 Hz (a child: the bench pins its process to one CPU)."""
+    import re
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "bench.onboard", "--no-latency", "--frames", "6", "--paced"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    ).stdout
+    m = re.search(
+        r"paced as in flight .*the last (\d+) frames\): mean ([\d.]+) ms a frame against ([\d.]+) back to back"
+        r" \(x([\d.]+)\) = ([\d.]+) CPU s per s",
+        out,
+    )
+    assert m is not None, out
+    n, paced_ms, b2b_ms, ratio, cpu_s_per_s = int(m[1]), *map(float, m.group(2, 3, 4, 5))
+    assert n == 3
+    assert paced_ms > 0 and b2b_ms > 0
+    # from the printed figures, rounded to 0.01 ms: the ratio to within their rounding
+    assert (paced_ms - 0.005) / (b2b_ms + 0.005) - 0.005 <= ratio <= (paced_ms + 0.005) / (b2b_ms - 0.005) + 0.005
+    assert cpu_s_per_s == pytest.approx(paced_ms * 30 / 1000, abs=0.001)
