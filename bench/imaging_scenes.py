@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
-[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--full-resolution-terrain] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -91,9 +91,15 @@ class SceneRun:
 
 
 def render_scene(
-    name: str, seed: int, n_frames: int | None, cache: Path | None, encoding: str | None = None
+    name: str,
+    seed: int,
+    n_frames: int | None,
+    cache: Path | None,
+    encoding: str | None = None,
+    full_resolution_terrain: bool = False,
 ) -> SceneRun:
-    """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``."""
+    """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``;
+    ``full_resolution_terrain``: with ``scene.terrain.full_resolution`` true."""
     import dataclasses
 
     from groundsim.world.scenario import load_scenario, scenarios_dir
@@ -103,10 +109,15 @@ def render_scene(
     sc = load_scenario(scenarios_dir() / f"{name}.yaml")
     if encoding is not None:
         sc = dataclasses.replace(sc, ir=dataclasses.replace(sc.ir, encoding=encoding))
+    full = full_resolution_terrain and sc.scene.terrain.enabled  # a scene without terrain renders as it is
+    if full:
+        terrain = dataclasses.replace(sc.scene.terrain, full_resolution=True)
+        sc = dataclasses.replace(sc, scene=dataclasses.replace(sc.scene, terrain=terrain))
     duration = sc.duration_s if n_frames is None else min(sc.duration_s, n_frames / sc.frame_rate_hz)
     K = sc.camera.intrinsics
     # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
-    path = None if cache is None else cache / f"{name}-{sc.ir.encoding}-s{seed}-{duration:.3f}.npz"
+    tag = "-fullterrain" if full else ""
+    path = None if cache is None else cache / f"{name}-{sc.ir.encoding}{tag}-s{seed}-{duration:.3f}.npz"
     cached = None if path is None or not path.exists() else load_cache(path)
     if cached is not None:
         frames, labels, R = cached
@@ -432,6 +443,11 @@ def main(argv: list[str]) -> None:
     ap.add_argument(
         "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
     )
+    ap.add_argument(
+        "--full-resolution-terrain",
+        action="store_true",
+        help="render with scene.terrain.full_resolution true (scenes with terrain; cached apart)",
+    )
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
@@ -449,7 +465,7 @@ def main(argv: list[str]) -> None:
         f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s} {'ffc s':>6s} {'defect':>6s}"
     )
     for name in a.scene:
-        run = render_scene(name, a.seed, a.frames, cache, a.encoding)
+        run = render_scene(name, a.seed, a.frames, cache, a.encoding, a.full_resolution_terrain)
         for c in chains:
             s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
             print(

@@ -231,6 +231,15 @@ def _half_rows(mask: np.ndarray, limit: int) -> slice:
     return slice(max(2 * int(rows[0]) - 2, 0), min(2 * int(rows[-1]) + 3, limit))
 
 
+def _full_rows(mask: np.ndarray, limit: int) -> slice:
+    """Rows of the full-resolution image that a coarse-grid mask's true rows reach through two pyrUp steps
+    (:func:`_half_rows` twice: a coarse row ``k`` spreads over the full rows ``4 k - 3 .. 4 k + 3``)."""
+    half = _half_rows(mask, 2 * mask.shape[0])
+    if half.stop <= half.start:
+        return half
+    return slice(max(2 * half.start - 2, 0), min(2 * half.stop + 1, limit))
+
+
 def _quantile(x: np.ndarray, q: float) -> float:
     """The ``q`` quantile (nearest rank) of a 1-D array, 0 when empty (np.partition: no sort)."""
     if x.size == 0:
@@ -298,6 +307,7 @@ class SceneContent:
         intr = renderer.intrinsics
         self._H, self._W = int(intr.height_px), int(intr.width_px)
         self._distorted = intr.has_distortion  # read per label (the property loops over coefficients)
+        self._psf_sigma_px = float(s.blur_sigma_px)  # the optics' PSF, on a full-resolution terrain
         self._L_air = float(band_radiance(s.air_temperature_k, s.band_um))
         self.netd_radiance = float(s.netd_k) * float(band_radiance_derivative(s.netd_reference_k, s.band_um))
         L_sky_mean = float(band_radiance(0.5 * (s.sky_zenith_k + s.sky_horizon_k), s.band_um))
@@ -334,6 +344,7 @@ class SceneContent:
             )
         if self.terrain is not None:
             self._terrain_pad, self.terrain.levels = _wrap_padded(self.terrain.levels)
+        self._terrain_full = bool(c.terrain.full_resolution)
         env = renderer.environment_radiance
         self._target_raster = PartRaster(intr, s, s.target_parts, env, 0.0, 1.0)
         self._distractor_settings = dataclasses.replace(s, supersample=min(s.supersample, DISTRACTOR_SUPERSAMPLE))
@@ -535,21 +546,29 @@ class SceneContent:
             chans[0][band] = clouds[2]
         up = cv2.pyrUp
         depth = PyrUpImage(chans[0], (self._H, self._W))
-        # ---- textures and compositing weights at half resolution
+        # ---- textures and compositing weights at half resolution (the terrain at full resolution if asked)
         b_t = None
+        H, W = self._H, self._W
+        full = self._terrain_full
         if terrain is not None:
-            gx, gy, tau_g, w_far = (up(c) for c in terrain[0])
+            if full:
+                gx, gy, tau_g, w_far = (up(up(c))[:H, :W] for c in terrain[0])
+                rows, far_rows = _full_rows(terrain[3], H), _full_rows(terrain[4], H)
+            else:
+                gx, gy, tau_g, w_far = (up(c) for c in terrain[0])
+                # rows wholly at the far level skip the near one
+                rows, far_rows = _half_rows(terrain[3], gx.shape[0]), _half_rows(terrain[4], gx.shape[0])
             lv, lv_far = terrain[1], terrain[2]
             levels = self._terrain_pad
-            rows = _half_rows(terrain[3], gx.shape[0])  # rows wholly at the far level skip the near one
             (dL,) = _lookup((levels[lv],), gx, gy, rows)
-            far_rows = _half_rows(terrain[4], gx.shape[0])
             if lv_far != lv and far_rows.stop > far_rows.start:
                 (far,) = _lookup((levels[lv_far],), gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
                 dL += w_far * (far - dL)
             b_t = tau_g * dL
-        H, W = self._H, self._W
-        below = base if b_t is None else base + up(b_t)[:H, :W]
+            if full and self._psf_sigma_px > 0.0:
+                # the optics' PSF, as a camera's sampling of its optical image has it (see TerrainConfig)
+                b_t = cv2.GaussianBlur(b_t, (0, 0), self._psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
+        below = base if b_t is None else base + (b_t if full else up(b_t)[:H, :W])
         if clouds is None:
             # no cloud layer, or none of its plane in view: a copy, as a composite would be
             return SceneBackground(below if self.clouds is None else below.copy(), below, depth, self._no_cloud), None

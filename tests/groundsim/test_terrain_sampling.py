@@ -1,0 +1,53 @@
+"""The terrain's sampling: with ``terrain.full_resolution`` an edge moved by the camera renders as the same edge
+moved (as a camera samples its optical image); the default half-resolution look-up aliases (docs/scenes.md)."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from groundsim.world.render.scene import SceneContent
+from groundsim.world.scenario import load_scenario, scenarios_dir
+from groundsim.world.sim import GROUND_D_M, SimCore
+from onboard.core.frames import rotmat_from_quat
+
+HALF_PX = 16
+
+
+@pytest.fixture(scope="module")
+def c2_pose():
+    sc = load_scenario(scenarios_dir() / "C2.yaml")
+    core = SimCore(sc, 1, duration_s=8.5)
+    i = 250 * core.ticks_per_frame  # the target over roofs: their edges in the square
+    c = core.flight.chunk_of(i)
+    j = i - c.i0
+    return sc, core.renderer(), c.cam_p_ned_m[j], rotmat_from_quat(c.cam_q_ned_from_cam[j])
+
+
+def _one_pixel_residual(sc, renderer, p, R, full: bool) -> tuple[float, float]:
+    """(largest residual, span) of a square near the principal point between the background rendered with
+    the camera turned by one pixel's angle about its y axis (seed 1's frame 250) and the first rendering moved by that pixel."""
+    terrain = dataclasses.replace(sc.scene.terrain, full_resolution=full)
+    scene = SceneContent.from_config(dataclasses.replace(sc.scene, terrain=terrain), renderer, 7)
+    a = 1.0 / sc.camera.intrinsics.fx_px  # one pixel near the centre
+    turn = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
+    bg0 = scene.render_background(p, R, GROUND_D_M).radiance.astype(np.float64)
+    bg1 = scene.render_background(p, R @ turn, GROUND_D_M).radiance.astype(np.float64)
+    u, v = 300, 258  # 20 px from the principal point: the turn moves the image there by 1.000 px
+    sq = np.s_[v - HALF_PX : v + HALF_PX + 1, u - HALF_PX : u + HALF_PX + 1]
+    moved = np.s_[v - HALF_PX : v + HALF_PX + 1, u - HALF_PX - 1 : u + HALF_PX]
+    a1, a0 = bg1[sq], bg0[moved]
+    return float(np.abs(a1 - a0).max()), float(a0.max() - a0.min())
+
+
+def test_full_resolution_terrain_moves_as_its_edges_do(c2_pose):
+    residual, span = _one_pixel_residual(*c2_pose, full=True)
+    assert span > 1.0  # textured ground (roofs, fields) in the square, in radiance units
+    assert residual < 0.01 * span
+
+
+def test_default_terrain_aliases_as_documented(c2_pose):
+    """The default's half-resolution look-up: what ``full_resolution`` is for (docs/scenes.md's figure)."""
+    residual, span = _one_pixel_residual(*c2_pose, full=False)
+    assert residual > 0.03 * span
