@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0]
-[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--full-resolution-terrain] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -96,10 +96,11 @@ def render_scene(
     n_frames: int | None,
     cache: Path | None,
     encoding: str | None = None,
-    full_resolution_terrain: bool = False,
+    terrain_resolution: str | None = None,
 ) -> SceneRun:
     """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``;
-    ``full_resolution_terrain``: with ``scene.terrain.full_resolution`` true."""
+    ``terrain_resolution`` (full / half): ``scene.terrain.full_resolution`` true / false instead of the
+    scenario's."""
     import dataclasses
 
     from groundsim.world.scenario import load_scenario, scenarios_dir
@@ -109,10 +110,11 @@ def render_scene(
     sc = load_scenario(scenarios_dir() / f"{name}.yaml")
     if encoding is not None:
         sc = dataclasses.replace(sc, ir=dataclasses.replace(sc.ir, encoding=encoding))
-    full = full_resolution_terrain and sc.scene.terrain.enabled  # a scene without terrain renders as it is
-    if full:
-        terrain = dataclasses.replace(sc.scene.terrain, full_resolution=True)
+    if terrain_resolution is not None:
+        terrain = dataclasses.replace(sc.scene.terrain, full_resolution=terrain_resolution == "full")
         sc = dataclasses.replace(sc, scene=dataclasses.replace(sc.scene, terrain=terrain))
+    # frames cached before the terrain was looked up at full resolution have no tag: never read for it
+    full = sc.scene.terrain.enabled and sc.scene.terrain.full_resolution
     duration = sc.duration_s if n_frames is None else min(sc.duration_s, n_frames / sc.frame_rate_hz)
     K = sc.camera.intrinsics
     # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
@@ -444,9 +446,10 @@ def main(argv: list[str]) -> None:
         "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
     )
     ap.add_argument(
-        "--full-resolution-terrain",
-        action="store_true",
-        help="render with scene.terrain.full_resolution true (scenes with terrain; cached apart)",
+        "--terrain-resolution",
+        choices=("full", "half"),
+        default=None,
+        help="render the terrain so (scene.terrain.full_resolution) instead of as the scenario has it",
     )
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
@@ -465,7 +468,7 @@ def main(argv: list[str]) -> None:
         f" {'ms p50':>6s} {'ms p95':>6s} {'cpu p50':>7s} {'conf s':>6s} {'after':>6s} {'ffc s':>6s} {'defect':>6s}"
     )
     for name in a.scene:
-        run = render_scene(name, a.seed, a.frames, cache, a.encoding, a.full_resolution_terrain)
+        run = render_scene(name, a.seed, a.frames, cache, a.encoding, a.terrain_resolution)
         for c in chains:
             s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
             print(

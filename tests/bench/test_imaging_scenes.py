@@ -74,18 +74,21 @@ def test_cache_without_warm_is_not_read(tmp_path):
     assert labels[0][0][-1] is False and frames[0].shape == (2, 2) and R.shape == (1, 3, 3)
 
 
-def test_full_resolution_terrain_renders_and_caches_apart(tmp_path):
-    """``--full-resolution-terrain``: C2's frames rendered with ``terrain.full_resolution``, cached under their own
-    name (never read back as the default's), the labels as the default's; a scene without terrain as it is."""
+def test_terrain_resolution_renders_and_caches_apart(tmp_path):
+    """``--terrain-resolution``: C2's frames with its terrain looked up at full resolution (the default) or at half,
+    cached under their own names (frames cached before the default changed, untagged, are read only as half), the
+    labels' positions the same; a scene without terrain as it is."""
     from bench.imaging_scenes import render_scene
 
-    default = render_scene("C2", 0, 2, tmp_path)
-    full = render_scene("C2", 0, 2, tmp_path, full_resolution_terrain=True)
+    full = render_scene("C2", 0, 2, tmp_path)
+    half = render_scene("C2", 0, 2, tmp_path, terrain_resolution="half")
     names = sorted(p.name for p in tmp_path.iterdir())
     assert names == ["C2-mono8-fullterrain-s0-0.067.npz", "C2-mono8-s0-0.067.npz"]
-    assert len(full.frames) == len(default.frames) == 2
-    assert not np.array_equal(full.frames[0], default.frames[0])
+    again = render_scene("C2", 0, 2, tmp_path, terrain_resolution="full")  # read back from its cache
+    assert np.array_equal(again.frames[1], full.frames[1])
+    assert len(full.frames) == len(half.frames) == 2
+    assert not np.array_equal(full.frames[0], half.frames[0])
     # the same target where it is: the terrain's sampling moves no label
-    assert [lb[2:4] for lb in full.labels[0]] == [lb[2:4] for lb in default.labels[0]]
-    render_scene("C4", 0, 1, tmp_path, full_resolution_terrain=True)  # no terrain: the default's name
+    assert [lb[2:4] for lb in full.labels[0]] == [lb[2:4] for lb in half.labels[0]]
+    render_scene("C4", 0, 1, tmp_path, terrain_resolution="half")  # no terrain: the one name
     assert any(p.name.startswith("C4-mono16-s0-") for p in tmp_path.iterdir())

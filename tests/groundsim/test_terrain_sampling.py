@@ -1,5 +1,5 @@
-"""The terrain's sampling: with ``terrain.full_resolution`` an edge moved by the camera renders as the same edge
-moved (as a camera samples its optical image); the default half-resolution look-up aliases (docs/scenes.md)."""
+"""The terrain's sampling: with ``terrain.full_resolution`` (the default) an edge moved by the camera renders as the
+same edge moved (as a camera samples its optical image); the half-resolution look-up aliases (docs/scenes.md)."""
 
 import dataclasses
 import math
@@ -42,12 +42,13 @@ def _one_pixel_residual(sc, renderer, p, R, full: bool) -> tuple[float, float]:
 
 
 def test_full_resolution_terrain_moves_as_its_edges_do(c2_pose):
+    assert load_scenario(scenarios_dir() / "C2.yaml").scene.terrain.full_resolution  # the default
     residual, span = _one_pixel_residual(*c2_pose, full=True)
     assert span > 1.0  # textured ground (roofs, fields) in the square, in radiance units
     assert residual < 0.01 * span
 
 
-def test_default_terrain_aliases_as_documented(c2_pose):
-    """The default's half-resolution look-up: what ``full_resolution`` is for (docs/scenes.md's figure)."""
+def test_half_resolution_terrain_aliases_as_documented(c2_pose):
+    """``full_resolution: false``, the cheaper look-up: why it is not the default (docs/scenes.md's figure)."""
     residual, span = _one_pixel_residual(*c2_pose, full=False)
     assert residual > 0.03 * span

@@ -546,7 +546,7 @@ class SceneContent:
             chans[0][band] = clouds[2]
         up = cv2.pyrUp
         depth = PyrUpImage(chans[0], (self._H, self._W))
-        # ---- textures and compositing weights at half resolution (the terrain at full resolution if asked)
+        # ---- textures and compositing weights at half resolution (the terrain at full, unless asked otherwise)
         b_t = None
         H, W = self._H, self._W
         full = self._terrain_full

@@ -104,14 +104,15 @@ class TerrainConfig:
     temperature and emissivity; roofs and roads are hot by day, water is cool.  The texture has
     ``texture_px`` texels of ``texel_m`` a side and repeats every ``texel_m * texture_px`` metres.
 
-    ``full_resolution``: the texture looked up at every pixel and blurred by the optics' PSF
-    (``ir.blur_sigma_px``), as a camera samples its optical image, instead of at every second pixel and
-    taken up by ``cv2.pyrUp`` (the default, 2.5x cheaper).  The default aliases: an edge rendered one pixel
-    further on differs from the same edge moved by up to ~8 % of the local span (0.1 % at full resolution),
-    which a background difference reads as texture (docs/scenes.md, "Terrain sampling")."""
+    ``full_resolution`` (default): the texture looked up at every pixel and blurred by the optics' PSF
+    (``ir.blur_sigma_px``), as a camera samples its optical image; false: at every second pixel and taken up
+    by ``cv2.pyrUp``, the background ~2.5x cheaper, but aliased (an edge rendered one pixel further on
+    differs from the same edge moved by up to ~8 % of the local span, 0.1 % at full resolution, which a
+    background difference reads as texture) and smoother at the finest scale than the optics leave it
+    (docs/scenes.md, "Terrain sampling")."""
 
     enabled: bool = False
-    full_resolution: bool = False
+    full_resolution: bool = True
     texel_m: Positive = 0.5
     texture_px: TexturePx = 2048
     field_temperature_k: Kelvin = 296.0
