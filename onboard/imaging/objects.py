@@ -578,8 +578,15 @@ class ObjectTracker:
         frames' positions (``confirm_hits`` at least) fit a constant velocity within
         ``aided_max_fit_rms_px`` differing from it by ``min_relative_speed_pxpf``."""
         p = self.params
+        need = max(p.confirm_hits, 3)
         recent = [h for h in t.history if h[0] > self._frame_index - p.confirm_window]
-        if len(recent) < max(p.confirm_hits, 3):
+        if len(recent) < need:
+            # coasting: its last measured positions, however long ago (within the coast), or the test could
+            # never pass again while it coasts, and a primary coasting over textured ground lost its aided
+            # search for good (C2 seed 1); a track that slid onto clutter still fails, its last positions
+            # moving with the background.  Only the last few: a longer span would fit a turn it made badly
+            recent = t.history[-need:]
+        if len(recent) < need:
             return False
         bg = self.detector.background_over_window()  # measured when asked for: only after the cheap test
         if bg is None:

@@ -340,3 +340,25 @@ def test_without_a_primary_the_background_difference_finds_a_point_under_the_thr
     assert regular_near <= 3  # the whole-frame threshold (almost) never finds it
     assert (on_primary >= 20) == search
     assert (confirmed_near == 0) == (not search)
+
+
+def test_a_coasting_track_is_judged_on_its_last_measured_positions(monkeypatch):
+    """The motion test of a track that has coasted past its window takes its last measured positions (else it
+    could never pass again while coasting, and a coasting primary lost its aided search for good); a track whose
+    last positions moved with the background still fails it."""
+    from onboard.imaging.objects_model import TrackRecord
+
+    tr = ObjectTracker(K)
+    R = np.eye(3)
+    # measured on frames 1-8 moving 0.5 px a frame, then coasting: frame 28 is 20 frames after the last
+    hist = [(k, tr._los(100.0 + 0.5 * k, 80.0, R), 100.0 + 0.5 * k, 80.0) for k in range(1, 9)]
+    t = TrackRecord(1, hist[-1][1], np.zeros(3), (104.0, 80.0), (103, 79, 2, 2), history=hist)
+    tr._frame_index = 28
+    assert not [h for h in t.history if h[0] > tr._frame_index - tr.params.confirm_window]  # none recent
+    monkeypatch.setattr(tr.detector, "background_over_window", lambda: (0.0, 0.0))
+    assert tr._moves_unlike_background(t, R)
+    monkeypatch.setattr(tr.detector, "background_over_window", lambda: (0.5, 0.0))  # it moved as the ground did
+    assert not tr._moves_unlike_background(t, R)
+    t.history = hist[-3:]  # fewer than confirm_hits measured positions: no verdict
+    monkeypatch.setattr(tr.detector, "background_over_window", lambda: (0.0, 0.0))
+    assert not tr._moves_unlike_background(t, R)
