@@ -575,8 +575,9 @@ class ObjectTracker:
 
     def _moves_unlike_background(self, t: TrackRecord, R: np.ndarray) -> bool:
         """The background's motion is known (no: a clear sky) and the track's last ``confirm_window``
-        frames' positions (``confirm_hits`` at least) fit a constant velocity within
-        ``aided_max_fit_rms_px`` differing from it by ``min_relative_speed_pxpf``."""
+        frames' positions (``confirm_hits`` at least; a track coasting with fewer: its last ``confirm_hits``
+        measured positions) fit a constant velocity within ``aided_max_fit_rms_px`` differing from it by
+        ``min_relative_speed_pxpf``."""
         p = self.params
         need = max(p.confirm_hits, 3)
         recent = [h for h in t.history if h[0] > self._frame_index - p.confirm_window]
