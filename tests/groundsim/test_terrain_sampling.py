@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from groundsim.world.render.scene import SceneContent
 from groundsim.world.scenario import load_scenario, scenarios_dir
@@ -52,3 +54,24 @@ def test_half_resolution_terrain_aliases_as_documented(c2_pose):
     """``full_resolution: false``, the cheaper look-up: why it is not the default (docs/scenes.md's figure)."""
     residual, span = _one_pixel_residual(*c2_pose, full=False)
     assert residual > 0.03 * span
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(4, 40), st.integers(0, 39), st.integers(0, 39))
+def test_full_rows_cover_every_row_two_pyrup_steps_reach(n_rows, first, last):
+    """The full-resolution rows looked up (``_full_rows``) hold every row where two pyrUp steps of a coarse
+    field, non-zero only on a mask's rows, are non-zero: outside them the terrain reads 0 and the far level's
+    weight is exactly 0 (the blend then leaves the near level as it is)."""
+    import cv2
+
+    from groundsim.world.render.scene import _full_rows
+
+    first, last = sorted((min(first, n_rows - 1), min(last, n_rows - 1)))
+    mask = np.zeros((n_rows, 12), bool)
+    mask[first : last + 1] = True
+    field = np.where(mask, np.float32(1.0), np.float32(0.0))
+    full = cv2.pyrUp(cv2.pyrUp(field))
+    reached = np.flatnonzero(np.abs(full).max(axis=1) > 0.0)
+    rows = _full_rows(mask, full.shape[0])
+    assert rows.start <= reached[0] and reached[-1] < rows.stop
+    assert not _full_rows(np.zeros((n_rows, 12), bool), full.shape[0]).stop  # nothing to look up
