@@ -2,7 +2,6 @@
 same edge moved (as a camera samples its optical image); the half-resolution look-up aliases (docs/scenes.md)."""
 
 import dataclasses
-import math
 
 import numpy as np
 import pytest
@@ -12,7 +11,7 @@ from hypothesis import strategies as st
 from groundsim.world.render.scene import SceneContent
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.sim import GROUND_D_M, SimCore
-from onboard.core.frames import rotmat_from_quat
+from onboard.core.frames import rotmat_from_quat, rotmat_from_rotvec
 
 HALF_PX = 16
 
@@ -29,11 +28,11 @@ def c2_pose():
 
 def _one_pixel_residual(sc, renderer, p, R, full: bool) -> tuple[float, float]:
     """(largest residual, span) of a square near the principal point between the background rendered with
-    the camera turned by one pixel's angle about its y axis (seed 1's frame 250) and the first rendering moved by that pixel."""
+    the camera turned by one pixel's angle about its y axis (seed 1's frame 250) and the first rendering
+    moved by that pixel."""
     terrain = dataclasses.replace(sc.scene.terrain, full_resolution=full)
     scene = SceneContent.from_config(dataclasses.replace(sc.scene, terrain=terrain), renderer, 7)
-    a = 1.0 / sc.camera.intrinsics.fx_px  # one pixel near the centre
-    turn = np.array([[math.cos(a), 0.0, -math.sin(a)], [0.0, 1.0, 0.0], [math.sin(a), 0.0, math.cos(a)]])
+    turn = rotmat_from_rotvec(np.array([0.0, -1.0 / sc.camera.intrinsics.fx_px, 0.0]))  # one pixel near the centre
     bg0 = scene.render_background(p, R, GROUND_D_M).radiance.astype(np.float64)
     bg1 = scene.render_background(p, R @ turn, GROUND_D_M).radiance.astype(np.float64)
     u, v = 300, 258  # 20 px from the principal point: the turn moves the image there by 1.000 px
@@ -44,7 +43,7 @@ def _one_pixel_residual(sc, renderer, p, R, full: bool) -> tuple[float, float]:
 
 
 def test_full_resolution_terrain_moves_as_its_edges_do(c2_pose):
-    assert load_scenario(scenarios_dir() / "C2.yaml").scene.terrain.full_resolution  # the default
+    assert c2_pose[0].scene.terrain.full_resolution  # the default, as C2 is loaded
     residual, span = _one_pixel_residual(*c2_pose, full=True)
     assert span > 1.0  # textured ground (roofs, fields) in the square, in radiance units
     assert residual < 0.01 * span
