@@ -32,6 +32,7 @@ from groundsim.world.render.kernels import (
     scale_offset_window_twice,
     sensor_counts,
     table_lookup_blocks,
+    terrain_blend,
 )
 from groundsim.world.render.sensor import AGC_TAIL
 from onboard.core.frames import PinholeIntrinsics
@@ -362,3 +363,34 @@ def test_remap_pair_is_cv2_remap_of_each_texture(seed, log2_n, h, w, scale):
         want = cv2.remap(texture, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
         assert np.array_equal(out[2 : 2 + h], want)
         assert not out[:2].any() and not out[2 + h :].any()
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    h=st.integers(1, 30),
+    w=st.integers(1, 40),
+    f0=st.integers(0, 30),
+    nf=st.integers(0, 30),
+)
+def test_terrain_blend_is_numpys_blend_then_extinction(seed, h, w, f0, nf):
+    """The terrain's far mip level blended in and the extinction applied in one pass: numpy's ``near +=
+    w_far * (far - near); tau * near`` over the whole frame (the far look-up zero outside its rows, where
+    the far weight is 0), bit for bit; no far rows: ``tau * near``."""
+    rng = np.random.default_rng(seed)
+    f0, nf = min(f0, h), min(nf, h - min(f0, h))
+    near = rng.uniform(-5.0, 40.0, (h, w)).astype(np.float32)
+    tau = rng.uniform(0.0, 1.0, (h, w)).astype(np.float32)
+    w_far = np.zeros((h, w), np.float32)
+    w_far[f0 : f0 + nf] = rng.uniform(0.0, 1.0, (nf, w)).astype(np.float32)
+    w_far[f0 : f0 + nf][rng.uniform(size=(nf, w)) < 0.2] = 1.0  # wholly the far level
+    far = rng.uniform(-5.0, 40.0, (nf, w)).astype(np.float32)
+    out = np.empty_like(near)
+    terrain_blend(near, far, f0, w_far, tau, out)
+    far_whole = np.zeros_like(near)
+    far_whole[f0 : f0 + nf] = far
+    want = near.copy()
+    want += w_far * (far_whole - want)
+    assert np.array_equal(out, tau * want)
+    terrain_blend(near, np.empty((0, 0), np.float32), 0, w_far, tau, out)
+    assert np.array_equal(out, tau * near)

@@ -284,6 +284,26 @@ def scale_offset_window(src, r0, c0, h, w, a, b):
 
 
 @njit(cache=True, nogil=True)
+def terrain_blend(near, far, f0, w_far, tau, out):
+    """``out = tau (near + w_far (far - near))`` on the rows ``f0 .. f0 + len(far) - 1`` (``far``: the far mip
+    level's look-up over those rows only), ``tau near`` elsewhere (where the far weight is 0): numpy's
+    ``near += w_far * (far - near); out = tau * near`` over the whole frame in one pass, the same float32
+    roundings (no fused multiply-add)."""
+    h, w = near.shape
+    f1 = f0 + far.shape[0]
+    for i in range(h):
+        if f0 <= i < f1:
+            k = i - f0
+            for j in range(w):
+                x = near[i, j]
+                x = x + w_far[i, j] * (far[k, j] - x)
+                out[i, j] = tau[i, j] * x
+        else:
+            for j in range(w):
+                out[i, j] = tau[i, j] * near[i, j]
+
+
+@njit(cache=True, nogil=True)
 def composite_band(below, a_up, lit_up, e0, e1, w0, out):
     """``out = below`` outside rows ``e0 .. e1 - 1``, and ``(below - a below) + lit`` there with ``a``, ``lit``
     the rows ``w0 ..`` of ``a_up``, ``lit_up`` (float32, numpy's three passes in one: a layer of opacity

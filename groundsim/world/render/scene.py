@@ -77,6 +77,7 @@ from groundsim.world.render.kernels import (
     plane_rays,
     remap_pair,
     surface_maps,
+    terrain_blend,
 )
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
@@ -186,15 +187,28 @@ def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: 
     fetches, but read by its interior path (the per-pixel border path is 1.5-2x slower on the 5-25 % of
     the pixels next to the seam).  Coordinates outside ``[0, n]`` (not expected) take the border path."""
     n = textures[0].shape[0] - SEAM_PAD
-    outs = [np.zeros(map_x.shape, np.float32) for _ in textures]
+    # rows outside ``rows`` only are zeroed: the look-up writes the others in place (a whole-frame zeros and
+    # a copy of the look-up into it cost ~0.1 ms a frame at 640 x 512)
+    outs = [np.empty(map_x.shape, np.float32) for _ in textures]
+    for out in outs:
+        out[: rows.start] = 0.0
+        out[max(rows.stop, rows.start) :] = 0.0
     if rows.stop > rows.start:
         # scaled and folded into one period [0, n) in one compiled pass: cv2.remap reads texels outside the
         # image through a per-pixel border path several times slower than the inside
         mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, np.float32(0.0 if scale is None else scale))
         for texture, out in zip(textures, outs):
             src = texture if inside else texture[:n, :n]
-            out[rows] = cv2.remap(src, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+            cv2.remap(src, mx, my, cv2.INTER_LINEAR, dst=out[rows], borderMode=cv2.BORDER_WRAP)
     return outs
+
+
+def _lookup_rows(texture, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: np.float32) -> np.ndarray:
+    """:func:`_lookup` of one texture over ``rows`` only (non-empty): an image of ``rows``' length, the same
+    values as those rows of :func:`_lookup`'s."""
+    n = texture.shape[0] - SEAM_PAD
+    mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, scale)
+    return cv2.remap(texture if inside else texture[:n, :n], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
 
 
 def _wrap_padded_pair(levels_a: list[np.ndarray], levels_b: list[np.ndarray]) -> tuple[list, list, list]:
@@ -551,20 +565,25 @@ class SceneContent:
         H, W = self._H, self._W
         full = self._terrain_full
         if terrain is not None:
+            lv, lv_far = terrain[1], terrain[2]
             if full:
-                gx, gy, tau_g, w_far = (up(up(c))[:H, :W] for c in terrain[0])
                 rows, far_rows = _full_rows(terrain[3], H), _full_rows(terrain[4], H)
             else:
-                gx, gy, tau_g, w_far = (up(c) for c in terrain[0])
                 # rows wholly at the far level skip the near one
-                rows, far_rows = _half_rows(terrain[3], gx.shape[0]), _half_rows(terrain[4], gx.shape[0])
-            lv, lv_far = terrain[1], terrain[2]
+                rows, far_rows = _half_rows(terrain[3], 2 * self._hc), _half_rows(terrain[4], 2 * self._hc)
+            blend = lv_far != lv and far_rows.stop > far_rows.start
+            # the far weight is taken up only when a far level is blended in (~40 % of C2's frames have none)
+            gx, gy, tau_g, w_far = (
+                (up(up(c))[:H, :W] if full else up(c)) if k < 3 or blend else None for k, c in enumerate(terrain[0])
+            )
             levels = self._terrain_pad
             (dL,) = _lookup((levels[lv],), gx, gy, rows)
-            if lv_far != lv and far_rows.stop > far_rows.start:
-                (far,) = _lookup((levels[lv_far],), gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
-                dL += w_far * (far - dL)
-            b_t = tau_g * dL
+            b_t = np.empty_like(dL)
+            if blend:
+                far = _lookup_rows(levels[lv_far], gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
+                terrain_blend(dL, far, far_rows.start, w_far, tau_g, b_t)
+            else:
+                terrain_blend(dL, self._empty, 0, tau_g, tau_g, b_t)
             if full and self._psf_sigma_px > 0.0:
                 # the optics' PSF, as a camera's sampling of its optical image has it (see TerrainConfig)
                 b_t = cv2.GaussianBlur(b_t, (0, 0), self._psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
