@@ -22,6 +22,7 @@ from groundsim.world.render.kernels import (
     composite_band,
     composite_up,
     fold_maps,
+    fold_maps_up,
     lut_take,
     min_max,
     pairwise_sum_pow2,
@@ -33,6 +34,7 @@ from groundsim.world.render.kernels import (
     sensor_counts,
     table_lookup_blocks,
     terrain_blend,
+    terrain_blend_up,
 )
 from groundsim.world.render.sensor import AGC_TAIL
 from onboard.core.frames import PinholeIntrinsics
@@ -394,3 +396,52 @@ def test_terrain_blend_is_numpys_blend_then_extinction(seed, h, w, f0, nf):
     assert np.array_equal(out, tau * want)
     terrain_blend(near, np.empty((0, 0), np.float32), 0, w_far, tau, out)
     assert np.array_equal(out, tau * near)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    hh=st.integers(2, 20),
+    wh=st.integers(2, 24),
+    crop=st.tuples(st.integers(0, 1), st.integers(0, 1)),
+    span=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+    log2_n=st.integers(3, 10),
+    scale=st.sampled_from((0.0, 0.25)),
+)
+def test_fold_maps_up_is_fold_maps_of_the_pyrup_maps(seed, hh, wh, crop, span, log2_n, scale):
+    """The terrain's coordinates taken up their last pyrUp step while they are folded: fold_maps of
+    cv2.pyrUp's maps (cropped as the renderer crops them; its first and last rows and columns included),
+    bit for bit, over any run of rows."""
+    rng = np.random.default_rng(seed)
+    hx, hy = (rng.normal(0.0, 300.0, (hh, wh)).astype(np.float32) for _ in range(2))
+    H, W = 2 * hh - crop[0], 2 * wh - crop[1]
+    r0 = int(span[0] * H)
+    r1 = r0 + int(span[1] * (H - r0))
+    n = 2**log2_n
+    fx, fy = (np.ascontiguousarray(cv2.pyrUp(x)[:H, :W]) for x in (hx, hy))
+    want = fold_maps(fx, fy, r0, r1, n, np.float32(scale))
+    got = fold_maps_up(hx, hy, r0, r1, W, n, np.float32(scale))
+    assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1]) and got[2] == want[2]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    hh=st.integers(2, 16),
+    wh=st.integers(2, 20),
+    crop=st.tuples(st.integers(0, 1), st.integers(0, 1)),
+    span=st.tuples(st.floats(0.0, 1.0), st.floats(0.0, 1.0)),
+)
+def test_terrain_blend_up_is_terrain_blend_of_the_pyrup_weights(seed, hh, wh, crop, span):
+    """The blend with the transmission's and the far weight's last pyrUp step inside: terrain_blend of
+    cv2.pyrUp's images (cropped), bit for bit, with far rows anywhere or none."""
+    rng = np.random.default_rng(seed)
+    tau, w_far = (rng.uniform(0.0, 1.0, (hh, wh)).astype(np.float32) for _ in range(2))
+    H, W = 2 * hh - crop[0], 2 * wh - crop[1]
+    f0 = int(span[0] * H)
+    far = rng.uniform(0.0, 40.0, (int(span[1] * (H - f0)), W)).astype(np.float32)
+    near = rng.uniform(0.0, 40.0, (H, W)).astype(np.float32)
+    want, got = np.empty_like(near), np.empty_like(near)
+    terrain_blend(near, far, f0, *(np.ascontiguousarray(cv2.pyrUp(x)[:H, :W]) for x in (w_far, tau)), want)
+    terrain_blend_up(near, far, f0, w_far, tau, got)
+    assert np.array_equal(got, want)

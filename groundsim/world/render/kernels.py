@@ -873,6 +873,98 @@ def _pyrup_row(src, k, row):
     row[2 * w - 1] = src[k, w - 1] * _F32(8.0)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _pyrup_ring(src, sy, have, ring, k):
+    """Slot order ``k`` = (k0, k1, k2) of ``ring`` (3 rows) holding :func:`_pyrup_row` of ``src``'s rows
+    ``sy - 1, sy, sy + 1``, given that it held those of ``have``: one new row when ``sy = have + 1``."""
+    k0, k1, k2 = k
+    if sy == have + 1:
+        k0, k1, k2 = k1, k2, k0
+    else:
+        _pyrup_row(src, sy - 1, ring[k0])
+        _pyrup_row(src, sy, ring[k1])
+    _pyrup_row(src, sy + 1, ring[k2])
+    return k0, k1, k2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pyrup_at(ring, k, odd, j):
+    """Column ``j`` of a full row of ``cv2.pyrUp`` from the three horizontal rows in ``ring`` (slot order
+    ``k``): its vertical pass and the scale 1/64 in OpenCV's order, ``odd`` the full row's parity."""
+    if odd:
+        return ((ring[k[1], j] + ring[k[2], j]) * _F32(4.0)) * _F32(1.0 / 64.0)
+    return ((ring[k[0], j] + ring[k[1], j] * _F32(6.0)) + ring[k[2], j]) * _F32(1.0 / 64.0)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def fold_maps_up(hx, hy, r0, r1, w, n, scale):
+    """:func:`fold_maps` of ``cv2.pyrUp(hx)[:, :w]``, ``cv2.pyrUp(hy)[:, :w]`` (rows ``r0 .. r1 - 1``), the
+    last pyrUp step taken row by row as the maps are folded: the same values without the two full-resolution
+    maps in between (written, then read back)."""
+    f32 = np.float32
+    h = r1 - r0
+    fn = f32(n)
+    inv = f32(1.0 / n)
+    mx = np.empty((h, w), np.float32)
+    my = np.empty((h, w), np.float32)
+    ring_x = np.empty((3, 2 * hx.shape[1]), np.float32)
+    ring_y = np.empty((3, 2 * hx.shape[1]), np.float32)
+    inside = True
+    have = -10
+    k = (0, 1, 2)
+    for i in range(h):
+        sy = (r0 + i) >> 1
+        if sy != have:
+            kx = _pyrup_ring(hx, sy, have, ring_x, k)
+            _pyrup_ring(hy, sy, have, ring_y, k)
+            k = kx
+            have = sy
+        odd = (r0 + i) & 1 == 1
+        for j in range(w):
+            a = _pyrup_at(ring_x, k, odd, j)
+            b = _pyrup_at(ring_y, k, odd, j)
+            if scale != 0.0:
+                a = a * scale
+                b = b * scale
+            a = a - fn * np.floor(a * inv)
+            b = b - fn * np.floor(b * inv)
+            mx[i, j] = a
+            my[i, j] = b
+            inside &= a >= f32(0.0) and a <= fn and b >= f32(0.0) and b <= fn
+    return mx, my, inside
+
+
+@njit(cache=True, nogil=True)
+def terrain_blend_up(near, far, f0, w_half, tau_half, out):
+    """:func:`terrain_blend` with ``w_far = cv2.pyrUp(w_half)``, ``tau = cv2.pyrUp(tau_half)`` (cropped to
+    ``near``'s shape) taken up row by row as they are read (``w_half`` read on the far rows only: any
+    array when ``far`` has none)."""
+    h, w = near.shape
+    f1 = f0 + far.shape[0]
+    ring_t = np.empty((3, 2 * tau_half.shape[1]), np.float32)
+    ring_w = np.empty((3, 2 * tau_half.shape[1]), np.float32)
+    have_t = have_w = -10
+    kt = kw = (0, 1, 2)
+    for i in range(h):
+        sy = i >> 1
+        odd = i & 1 == 1
+        if sy != have_t:
+            kt = _pyrup_ring(tau_half, sy, have_t, ring_t, kt)
+            have_t = sy
+        if f0 <= i < f1:
+            if sy != have_w:
+                kw = _pyrup_ring(w_half, sy, have_w, ring_w, kw)
+                have_w = sy
+            r = i - f0
+            for j in range(w):
+                x = near[i, j]
+                x = x + _pyrup_at(ring_w, kw, odd, j) * (far[r, j] - x)
+                out[i, j] = _pyrup_at(ring_t, kt, odd, j) * x
+        else:
+            for j in range(w):
+                out[i, j] = _pyrup_at(ring_t, kt, odd, j) * near[i, j]
+
+
 @njit(cache=True, nogil=True)
 def composite_up(below, a_half, lit_half, e0, e1, w0, out, copy):
     """:func:`composite_band` with ``a_up = cv2.pyrUp(a_half)``, ``lit_up = cv2.pyrUp(lit_half)`` taken up

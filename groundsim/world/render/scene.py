@@ -69,6 +69,7 @@ from groundsim.world.render.background import PyrUpImage, SceneBackground
 from groundsim.world.render.kernels import (
     composite_up,
     fold_maps,
+    fold_maps_up,
     layer_blend,
     layer_light,
     layer_rays,
@@ -78,6 +79,7 @@ from groundsim.world.render.kernels import (
     remap_pair,
     surface_maps,
     terrain_blend,
+    terrain_blend_up,
 )
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
@@ -209,6 +211,26 @@ def _lookup_rows(texture, map_x: np.ndarray, map_y: np.ndarray, rows: slice, sca
     n = texture.shape[0] - SEAM_PAD
     mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, scale)
     return cv2.remap(texture if inside else texture[:n, :n], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+
+
+def _lookup_up(texture, half_x, half_y, rows: slice, shape: tuple[int, int], scale=None, compact: bool = False):
+    """:func:`_lookup` of one texture at the coordinates ``cv2.pyrUp(half_x)``, ``cv2.pyrUp(half_y)`` cropped
+    to ``shape`` (half resolution, the last pyrUp step taken as they are folded: ``kernels.fold_maps_up``): a
+    ``shape`` image, 0 outside ``rows``; ``compact``: ``rows``' (non-empty) look-up alone, as
+    :func:`_lookup_rows` gives it."""
+    n = texture.shape[0] - SEAM_PAD
+    if compact:
+        out = dst = np.empty((rows.stop - rows.start, shape[1]), np.float32)
+    else:
+        out = np.empty(shape, np.float32)
+        out[: rows.start] = 0.0
+        out[max(rows.stop, rows.start) :] = 0.0
+        dst = out[rows]
+    if rows.stop > rows.start:
+        f = np.float32(0.0 if scale is None else scale)
+        mx, my, inside = fold_maps_up(half_x, half_y, rows.start, rows.stop, shape[1], n, f)
+        cv2.remap(texture if inside else texture[:n, :n], mx, my, cv2.INTER_LINEAR, dst=dst, borderMode=cv2.BORDER_WRAP)
+    return out
 
 
 def _wrap_padded_pair(levels_a: list[np.ndarray], levels_b: list[np.ndarray]) -> tuple[list, list, list]:
@@ -566,6 +588,7 @@ class SceneContent:
         full = self._terrain_full
         if terrain is not None:
             lv, lv_far = terrain[1], terrain[2]
+            levels = self._terrain_pad
             if full:
                 rows, far_rows = _full_rows(terrain[3], H), _full_rows(terrain[4], H)
             else:
@@ -573,17 +596,26 @@ class SceneContent:
                 rows, far_rows = _half_rows(terrain[3], 2 * self._hc), _half_rows(terrain[4], 2 * self._hc)
             blend = lv_far != lv and far_rows.stop > far_rows.start
             # the far weight is taken up only when a far level is blended in (~40 % of C2's frames have none)
-            gx, gy, tau_g, w_far = (
-                (up(up(c))[:H, :W] if full else up(c)) if k < 3 or blend else None for k, c in enumerate(terrain[0])
-            )
-            levels = self._terrain_pad
-            (dL,) = _lookup((levels[lv],), gx, gy, rows)
-            b_t = np.empty_like(dL)
-            if blend:
-                far = _lookup_rows(levels[lv_far], gx, gy, far_rows, f32(2.0 ** (lv - lv_far)))
-                terrain_blend(dL, far, far_rows.start, w_far, tau_g, b_t)
+            halves = [up(c) if k < 3 or blend else self._empty for k, c in enumerate(terrain[0])]
+            far_scale = f32(2.0 ** (lv - lv_far))
+            if full:
+                # the second pyrUp step of the coordinates, the transmission and the far weight is taken where
+                # they are read (kernels.fold_maps_up, terrain_blend_up: the same values without four
+                # full-resolution images written and read back)
+                hx, hy, tau_h, w_h = halves
+                dL = _lookup_up(levels[lv], hx, hy, rows, (H, W))
+                b_t = np.empty_like(dL)
+                far = _lookup_up(levels[lv_far], hx, hy, far_rows, (H, W), far_scale, True) if blend else self._empty
+                terrain_blend_up(dL, far, far_rows.start if blend else 0, w_h, tau_h, b_t)
             else:
-                terrain_blend(dL, self._empty, 0, tau_g, tau_g, b_t)
+                gx, gy, tau_g, w_far = halves
+                (dL,) = _lookup((levels[lv],), gx, gy, rows)
+                b_t = np.empty_like(dL)
+                if blend:
+                    far = _lookup_rows(levels[lv_far], gx, gy, far_rows, far_scale)
+                    terrain_blend(dL, far, far_rows.start, w_far, tau_g, b_t)
+                else:
+                    terrain_blend(dL, self._empty, 0, tau_g, tau_g, b_t)
             if full and self._psf_sigma_px > 0.0:
                 # the optics' PSF, as a camera's sampling of its optical image has it (see TerrainConfig)
                 b_t = cv2.GaussianBlur(b_t, (0, 0), self._psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
