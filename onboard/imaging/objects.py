@@ -17,7 +17,8 @@ with it and only the objects' own motion is left to the filter; without a pose (
 taken as still.  Association is greedy nearest-first on the image distance between prediction and
 candidate inside a gate that widens while a track coasts (points of a few pixels: overlap of boxes
 means nothing after a one-pixel shift), the confirmed tracks measured on the last frame served before
-the others.  The filter is an alpha-beta filter on the line of sight
+the others; a candidate within ``OWNED_PX`` of two such tracks' predictions (their images merged) goes to
+the one with the most hits, the others coasting on their own rates until the images part.  The filter is an alpha-beta filter on the line of sight
 (Kalata 1984, "The tracking index", IEEE TAES 20, 174) re-normalised to a unit vector.
 
 States: ``tentative`` until confirmed (see :class:`ObjectParams`: M of N detections moving
@@ -421,6 +422,7 @@ class ObjectTracker:
             # tentative track on it
             held = [t.confirmed and t.misses == 0 for t in self._tracks]
             pairs = sorted((not held[live[a]], float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
+            pairs = _merged_to_the_elder(pairs, held, [t.hits for t in self._tracks])
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -727,6 +729,27 @@ class ObjectTracker:
                 )
             )
         return ObjectsUpdate(tuple(objs), self._primary, primary_det, changed, event, self._frame_index)
+
+
+def _merged_to_the_elder(
+    pairs: list[tuple[bool, float, int, int]], held: list[bool], hits: list[int]
+) -> list[tuple[bool, float, int, int]]:
+    """``pairs`` (not held, distance, track, candidate) without those that would hand a merged image to the
+    younger track: a candidate within ``OWNED_PX`` of two or more held tracks' predictions is the image of
+    their objects merged, and only the track with the most hits may take it; the others coast on their own
+    rates until the images part.  Nearest-first gave it to whichever prediction lay nearer, so a bird crossing
+    the primary target took the target's track over its own rate while the primary coasted into the bird's
+    (C3 seed 3, frames 162-166: the primary on the target 48 % of the frames)."""
+    claims: dict[int, list[int]] = {}
+    for _, d, ti, ci in pairs:
+        if held[ti] and d <= OWNED_PX:
+            claims.setdefault(ci, []).append(ti)
+    drop = set()
+    for ci, tis in claims.items():
+        if len(tis) > 1:
+            elder = max(tis, key=lambda ti: (hits[ti], -ti))
+            drop.update((ti, ci) for ti in tis if ti != elder)
+    return [q for q in pairs if (q[2], q[3]) not in drop] if drop else pairs
 
 
 def _owners(u: float, v: float, held: list[tuple[TrackRecord, tuple[float, float]]]) -> list[TrackRecord]:

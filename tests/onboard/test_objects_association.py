@@ -132,3 +132,27 @@ def test_the_daemons_imaging_section_sets_the_primarys_off_axis_bound():
         out = tr.update(_frame(rng, [(12.0 + 0.3 * k, 10.0)]), None)
         primaries += out.primary_id is not None
     assert primaries >= 15 and tr.primary_changes == 1
+
+
+def test_a_merged_image_goes_to_the_held_track_with_the_most_hits():
+    """Candidate 0 lies within OWNED_PX of held tracks 0 (40 hits) and 1 (12 hits), nearer track 1: only
+    track 0 may take it; candidate 1, near track 1 alone, stays its own; a coasting track (2) and a held
+    one beyond OWNED_PX (3) claim nothing and lose nothing."""
+    from onboard.imaging.objects import OWNED_PX, _merged_to_the_elder
+
+    pairs = sorted(
+        [
+            (False, 0.4, 1, 0),  # the younger held track is nearer the merged image
+            (False, 0.9, 0, 0),
+            (False, 2.5, 1, 1),
+            (True, 0.2, 2, 0),  # coasting: not held, served after the held ones as before
+            (False, OWNED_PX + 0.5, 3, 0),
+        ]
+    )
+    held = [True, True, False, True]
+    hits = [40, 12, 90, 99]
+    kept = _merged_to_the_elder(pairs, held, hits)
+    assert (False, 0.4, 1, 0) not in kept
+    assert kept == [q for q in pairs if q != (False, 0.4, 1, 0)]
+    # no contest (one held track near each candidate): the pairs as they were
+    assert _merged_to_the_elder(pairs[1:], held, hits) == pairs[1:]
