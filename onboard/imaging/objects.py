@@ -744,7 +744,7 @@ def _merged_to_the_elder(
     for _, d, ti, ci in pairs:
         if held[ti] and d <= OWNED_PX:
             claims.setdefault(ci, []).append(ti)
-    drop = set()
+    drop: set[tuple[int, int]] = set()
     for ci, tis in claims.items():
         if len(tis) > 1:
             elder = max(tis, key=lambda ti: (hits[ti], -ti))
