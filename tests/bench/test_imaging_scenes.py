@@ -92,3 +92,16 @@ def test_terrain_resolution_renders_and_caches_apart(tmp_path):
     assert [lb[2:4] for lb in full.labels[0]] == [lb[2:4] for lb in half.labels[0]]
     render_scene("C4", 0, 1, tmp_path, terrain_resolution="half")  # no terrain: the one name
     assert any(p.name.startswith("C4-mono16-s0-") for p in tmp_path.iterdir())
+
+
+def test_seeds_summary_counts_the_seeds_that_reach_95_percent():
+    from bench.imaging_scenes import seeds_summary
+
+    runs = [
+        (0, {"pd": 96.3, "HOTA": 0.855, "false_per_min": 0.0}),
+        (1, {"pd": 70.1, "HOTA": 0.612, "false_per_min": 6.0}),
+        (4, {"pd": 95.0, "HOTA": 0.951, "false_per_min": 0.0}),
+    ]
+    line = seeds_summary("C2", "objects", runs)
+    assert "seeds 0, 1, 4" in line and "Pd 96.3 / 70.1 / 95.0 %" in line
+    assert ">= 95 % on 2 of 3" in line and "at most 6.0" in line and "HOTA 0.612-0.951" in line
