@@ -362,3 +362,46 @@ def test_a_coasting_track_is_judged_on_its_last_measured_positions(monkeypatch):
     t.history = hist[-3:]  # fewer than confirm_hits measured positions: no verdict
     monkeypatch.setattr(tr.detector, "background_over_window", lambda: (0.0, 0.0))
     assert not tr._moves_unlike_background(t, R)
+
+
+@pytest.mark.parametrize("stack", [4, 1])
+def test_a_target_too_faint_for_one_difference_square_is_found_in_the_mean_of_the_last_ones(monkeypatch, stack):
+    """The track-aided background difference on a target 3.6 of its 2 x 2 noise sigmas above the ground (5
+    needed): no single square finds it; the mean of the last ``difference_stack`` squares, each centred on
+    its frame's prediction, has half the noise and finds it at the prediction (7 sigmas) from the fourth on;
+    ``difference_stack: 1`` never does.  Bad values are refused by name."""
+    from onboard.imaging.objects_model import TrackRecord
+
+    tr = ObjectTracker(K, params=ObjectParams(difference_stack=stack))
+    rng = np.random.default_rng(7)
+    half = 16
+    puv = (120.3, 90.6)
+
+    def square() -> np.ndarray:
+        d = rng.normal(0.0, 1.0, (2 * half + 1, 2 * half + 1)).astype(np.float32)
+        d[half - 1 : half + 1, half - 1 : half + 1] += 1.8  # its 2 x 2 mean: 1.8 over a noise of 0.5
+        return d
+
+    def candidate(uv, gate, R):
+        tr.detector.last_difference = (square(), math.inf)
+        return None  # what one square gives: nothing over 5 sigmas (checked below)
+
+    monkeypatch.setattr(tr.detector, "difference_candidate", candidate)
+    t = TrackRecord(1, tr._los(*puv, np.eye(3)), np.zeros(3), puv, (119, 89, 2, 2), confirmed=True)
+    found = [tr._difference_candidate(t, puv, 3.0, np.eye(3)) for _ in range(6)]
+    if stack == 1:
+        assert found == [None] * 6
+    else:
+        assert found[:3] == [None] * 3
+        assert all(c is not None and math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= 1.0 for c in found[3:])
+    from onboard.imaging.clutter import difference_peak
+
+    assert difference_peak(square(), puv, 3.0, 5.0, 0.4) is None  # one square alone
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True])
+def test_difference_stack_refuses_what_is_not_a_count(bad):
+    from onboard.core.errors import InputError
+
+    with pytest.raises(InputError, match="difference_stack"):
+        ObjectParams(difference_stack=bad)
