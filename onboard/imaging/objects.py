@@ -49,7 +49,7 @@ import math
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.imaging.clutter import ClutterParams, PointCandidate, difference_peak, frame_event, point_candidates
+from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.objects_detection import (
     DEBLEND_MIN_SCORE,
@@ -297,29 +297,7 @@ class ObjectTracker:
             for o in self._tracks
         ):
             return None
-        best = self.detector.difference_candidate(puv, gate, R)
-        n = self.params.difference_stack
-        if n < 2 or self.detector.last_difference is None:
-            return best
-        # track-before-detect on the difference: each square is centred on its frame's prediction, so a target
-        # that follows it sits at one offset in all of them and adds up, while terrain edges and registration
-        # residuals, fixed to the ground, lie elsewhere in each and smear; its noise falls as 1/sqrt(n), and so
-        # do the floor and the two-level cap (C2 seeds 0-5: a 2-4 grey target's single-frame peak drops under
-        # 5 sigmas for a few frames at a time, ~10 % of them on seed 3)
-        t.difference_squares.append(self.detector.last_difference)
-        del t.difference_squares[:-n]
-        if best is not None or len(t.difference_squares) < n:
-            return best
-        stacked = np.asarray(np.mean([d for d, _ in t.difference_squares], axis=0, dtype=np.float32))
-        shrink = 1.0 / math.sqrt(n)
-        return difference_peak(
-            stacked,
-            puv,
-            min(gate, DIFFERENCE_GATE_PX),
-            DIFFERENCE_SIGMA,
-            self.detector.clutter.min_threshold_lsb * shrink,
-            max(c for _, c in t.difference_squares) * shrink,
-        )
+        return self.detector.difference_candidate(puv, gate, R)
 
     # ------------------------------------------------------------------ step
 

@@ -89,8 +89,6 @@ class ObjectDetector:
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
-        # the last difference_candidate's square and its two-level cap (None: no square was taken)
-        self.last_difference: tuple[np.ndarray, float] | None = None
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
@@ -425,7 +423,6 @@ class ObjectDetector:
         the camera's rotation plus that motion (:func:`onboard.imaging.clutter.background_difference`); None
         without a detection there (or without the frames or the motion it needs).  The caller leaves out
         a prediction with another confirmed track within ``DIFFERENCE_HALF_PX``."""
-        self.last_difference = None
         k = self.frame_index
         old, R0 = dict(self._recent).get(k - DIFFERENCE_LAG), self._poses.get(k - DIFFERENCE_LAG)
         if old is None or R0 is None or not self._recent or self._recent[-1][0] != k:
@@ -442,7 +439,6 @@ class ObjectDetector:
         cap = two_level_difference_cap(
             self._recent[-1][1], old, puv, moved, DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
         )
-        self.last_difference = (diff, cap)
         # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
         return difference_peak(
             diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb, cap

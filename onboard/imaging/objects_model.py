@@ -72,9 +72,6 @@ class ObjectParams:
     they do, by the background difference alone (which cancels what moves with the background); one measured mostly
     by track-before-detect, within ``dim_max_fit_rms_px`` (its centres scatter 0.3-0.5 px, more on a noisy pose);
     in a tentative track's with ``confirm_hits`` hits, ``aided_tentative_max_run`` frames in a row (0: never).
-    Where one frame's background difference finds nothing, the mean of the track's last ``difference_stack``
-    difference squares, each centred on its frame's prediction, is searched the same way (1: never): a target
-    that follows its prediction adds up there, what moves with the ground smears.
     """
 
     gate_px: float = 4.0
@@ -102,7 +99,6 @@ class ObjectParams:
     aided_max_fit_rms_px: float = 1.0
     dim_max_fit_rms_px: float = 1.0
     aided_tentative_max_run: int = 1
-    difference_stack: int = 4
     primary_radius_px: float = 40.0
     # 8.6 deg, 116 px at the reference 765 px lens: 4-5 times the reference gimbal's pointing error (the
     # target within ~25 px of the centre), and about the central 256 px that track-before-detect searches
@@ -116,14 +112,6 @@ class ObjectParams:
         if not 3 <= self.confirm_in_window <= self.confirm_window:
             raise InputError(
                 f"ObjectParams 3 <= confirm_in_window <= confirm_window, got {self.confirm_in_window}, {self.confirm_window}"
-            )
-        if (
-            isinstance(self.difference_stack, bool)
-            or not isinstance(self.difference_stack, int)
-            or self.difference_stack < 1
-        ):
-            raise InputError(
-                f"ObjectParams difference_stack: an integer >= 1 (1: no stacking), got {self.difference_stack!r}"
             )
         if self.aided_max_run_moving < self.aided_max_run:
             raise InputError(f"ObjectParams aided_max_run_moving < aided_max_run ({self.aided_max_run})")
@@ -198,8 +186,6 @@ class TrackRecord:
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
     # its last surroundings tests (ObjectDetector.surroundings_match: how much better its own displacement fits them)
     surround_matches: list = field(default_factory=list)
-    # its last background-difference squares, each centred on that frame's prediction (stacked when one fails)
-    difference_squares: list = field(default_factory=list)
 
 
 class StageTimes:
