@@ -605,6 +605,19 @@ def layer_weights(hit, w_far_all, attenuation, r_c, r_g, rnorm, inv_dd, r0, tau_
     return w_far, optical, seen, depth, rows
 
 
+@njit(cache=True, nogil=True, inline="always", error_model="numpy")
+def _fold_pair(a, b, scale, fn, inv):
+    """One texture coordinate pair (times ``scale`` unless it is 0) folded into one period ``[0, fn)``:
+    ``m - fn floor(m inv)`` (float32), and whether both lie in ``[0, fn]``."""
+    if scale != 0.0:
+        a = a * scale
+        b = b * scale
+    a = a - fn * np.floor(a * inv)
+    b = b - fn * np.floor(b * inv)
+    zero = np.float32(0.0)
+    return a, b, a >= zero and a <= fn and b >= zero and b <= fn
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def fold_maps(map_x, map_y, r0, r1, n, scale):
     """Texture coordinates of rows ``r0 .. r1 - 1`` (times ``scale`` unless it is 0) folded into one period
@@ -620,16 +633,10 @@ def fold_maps(map_x, map_y, r0, r1, n, scale):
     inside = True
     for i in range(h):
         for j in range(w):
-            a = map_x[r0 + i, j]
-            b = map_y[r0 + i, j]
-            if scale != 0.0:
-                a = a * scale
-                b = b * scale
-            a = a - fn * np.floor(a * inv)
-            b = b - fn * np.floor(b * inv)
+            a, b, ok = _fold_pair(map_x[r0 + i, j], map_y[r0 + i, j], scale, fn, inv)
             mx[i, j] = a
             my[i, j] = b
-            inside &= a >= f32(0.0) and a <= fn and b >= f32(0.0) and b <= fn
+            inside &= ok
     return mx, my, inside
 
 
@@ -921,16 +928,10 @@ def fold_maps_up(hx, hy, r0, r1, w, n, scale):
             have = sy
         odd = (r0 + i) & 1 == 1
         for j in range(w):
-            a = _pyrup_at(ring_x, k, odd, j)
-            b = _pyrup_at(ring_y, k, odd, j)
-            if scale != 0.0:
-                a = a * scale
-                b = b * scale
-            a = a - fn * np.floor(a * inv)
-            b = b - fn * np.floor(b * inv)
+            a, b, ok = _fold_pair(_pyrup_at(ring_x, k, odd, j), _pyrup_at(ring_y, k, odd, j), scale, fn, inv)
             mx[i, j] = a
             my[i, j] = b
-            inside &= a >= f32(0.0) and a <= fn and b >= f32(0.0) and b <= fn
+            inside &= ok
     return mx, my, inside
 
 
