@@ -1,7 +1,7 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0 [1 ...]]
-[--frames N] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--duration S] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
@@ -100,10 +100,12 @@ def render_scene(
     cache: Path | None,
     encoding: str | None = None,
     terrain_resolution: str | None = None,
+    duration_s: float | None = None,
 ) -> SceneRun:
     """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``;
     ``terrain_resolution`` (full / half): ``scene.terrain.full_resolution`` true / false instead of the
-    scenario's."""
+    scenario's; ``duration_s``: fly this long instead of the scenario's ``duration_s`` (its motions
+    continued, as ``groundsim eval --duration`` flies them); ``n_frames`` then the first N of those."""
     import dataclasses
 
     from groundsim.world.scenario import load_scenario, scenarios_dir
@@ -118,7 +120,8 @@ def render_scene(
         sc = dataclasses.replace(sc, scene=dataclasses.replace(sc.scene, terrain=terrain))
     # frames cached before the terrain was looked up at full resolution have no tag: never read for it
     full = sc.scene.terrain.enabled and sc.scene.terrain.full_resolution
-    duration = sc.duration_s if n_frames is None else min(sc.duration_s, n_frames / sc.frame_rate_hz)
+    flown = sc.duration_s if duration_s is None else float(duration_s)
+    duration = flown if n_frames is None else min(flown, n_frames / sc.frame_rate_hz)
     K = sc.camera.intrinsics
     # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
     tag = "-fullterrain" if full else ""
@@ -443,6 +446,12 @@ def main(argv: list[str]) -> None:
         "--seed", type=int, nargs="+", default=[0], help="run seed(s) (default 0); several: a row each and a summary"
     )
     ap.add_argument("--frames", type=int, default=None, help="first N frames only (default: the whole scenario)")
+    ap.add_argument(
+        "--duration",
+        type=float,
+        default=None,
+        help="seconds flown instead of the scenario's (its motions continued, as groundsim eval --duration)",
+    )
     ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)")
     ap.add_argument(
         "--repeat", type=int, default=1, help="run each chain N times; times per frame are the least over the runs"
@@ -459,6 +468,8 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
+    if a.duration is not None and not (math.isfinite(a.duration) and a.duration > 0):
+        ap.error(f"--duration: expected seconds > 0, got {a.duration}")
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
     chains = ("tracker", "objects") if a.chain == "both" else (a.chain,)
@@ -476,7 +487,7 @@ def main(argv: list[str]) -> None:
     for name in a.scene:
         per_chain: dict[str, list[tuple[int, dict]]] = {c: [] for c in chains}
         for seed in a.seed:
-            run = render_scene(name, seed, a.frames, cache, a.encoding, a.terrain_resolution)
+            run = render_scene(name, seed, a.frames, cache, a.encoding, a.terrain_resolution, a.duration)
             for c in chains:
                 s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
                 per_chain[c].append((seed, s))

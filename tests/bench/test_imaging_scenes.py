@@ -105,3 +105,23 @@ def test_seeds_summary_counts_the_seeds_that_reach_95_percent():
     line = seeds_summary("C2", "objects", runs)
     assert "seeds 0, 1, 4" in line and "Pd 96.3 / 70.1 / 95.0 %" in line
     assert ">= 95 % on 2 of 3" in line and "at most 6.0" in line and "HOTA 0.612-0.951" in line
+
+
+def test_duration_flies_past_the_scenarios_end_and_caches_apart(tmp_path):
+    """``--duration``: P1 (10 s) flown 10.5 s, its motions continued: 315 frames, the last labelled, cached
+    under its own duration; the default stays the scenario's 300."""
+    from bench.imaging_scenes import render_scene
+
+    longer = render_scene("P1", 0, None, tmp_path, duration_s=10.5)
+    assert len(longer.frames) == 315 and longer.labels[-1]
+    assert [p.name for p in tmp_path.iterdir()] == ["P1-mono8-s0-10.500.npz"]
+    assert len(render_scene("P1", 0, 3, tmp_path, duration_s=10.5).frames) == 3  # --frames still the first N
+
+
+@pytest.mark.parametrize("bad", ["0", "-3", "nan"])
+def test_duration_refuses_what_is_not_seconds(bad, capsys):
+    from bench.imaging_scenes import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--scene", "P1", "--duration", bad])
+    assert exc.value.code == 2 and "--duration" in capsys.readouterr().err
