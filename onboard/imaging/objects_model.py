@@ -179,8 +179,10 @@ class TrackRecord:
     confirmed: bool = False
     score: float = 0.0
     history: list = field(default_factory=list)  # (frame index, los, u, v) of its last measured frames
-    velocity_pxpf: tuple[float, float] | None = None  # rotation-compensated image velocity, this frame
-    fit_rms_px: float = math.inf  # rms residual of that constant-velocity fit
+    # rotation-compensated image velocity and the rms residual of its constant-velocity fit: refitted on the frames
+    # a tentative track may be confirmed (confirmation alone reads them); a confirmed track keeps its last
+    velocity_pxpf: tuple[float, float] | None = None
+    fit_rms_px: float = math.inf
     aided_run: int = 0  # consecutive frames measured by track-aided detections only
     dim_hits: int = 0  # frames measured by track-before-detect's reports
     difference: PointCandidate | None = None  # this frame's background-difference detection, if that measured it
