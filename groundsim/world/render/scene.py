@@ -189,28 +189,39 @@ def _lookup(textures, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: 
     fetches, but read by its interior path (the per-pixel border path is 1.5-2x slower on the 5-25 % of
     the pixels next to the seam).  Coordinates outside ``[0, n]`` (not expected) take the border path."""
     n = textures[0].shape[0] - SEAM_PAD
-    # rows outside ``rows`` only are zeroed: the look-up writes the others in place (a whole-frame zeros and
-    # a copy of the look-up into it cost ~0.1 ms a frame at 640 x 512)
-    outs = [np.empty(map_x.shape, np.float32) for _ in textures]
-    for out in outs:
-        out[: rows.start] = 0.0
-        out[max(rows.stop, rows.start) :] = 0.0
+    outs = [_zeroed_outside(map_x.shape, rows) for _ in textures]
     if rows.stop > rows.start:
         # scaled and folded into one period [0, n) in one compiled pass: cv2.remap reads texels outside the
         # image through a per-pixel border path several times slower than the inside
         mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, np.float32(0.0 if scale is None else scale))
         for texture, out in zip(textures, outs):
-            src = texture if inside else texture[:n, :n]
-            cv2.remap(src, mx, my, cv2.INTER_LINEAR, dst=out[rows], borderMode=cv2.BORDER_WRAP)
+            _remap_folded(texture, mx, my, inside, out[rows])
     return outs
+
+
+def _zeroed_outside(shape: tuple[int, int], rows: slice) -> np.ndarray:
+    """A float32 image of ``shape``, 0 outside ``rows``; the look-up writes ``rows`` in place (a whole-frame
+    zeros and a copy of the look-up into it cost ~0.1 ms a frame at 640 x 512)."""
+    out = np.empty(shape, np.float32)
+    out[: rows.start] = 0.0
+    out[max(rows.stop, rows.start) :] = 0.0
+    return out
+
+
+def _remap_folded(texture: np.ndarray, mx: np.ndarray, my: np.ndarray, inside: bool, dst=None) -> np.ndarray:
+    """``cv2.remap`` (bilinear) of a :func:`_wrap_padded` texture at coordinates folded into its period
+    (``inside``: every one within ``[0, n]``, read by the interior path of the padded copy; else the
+    unpadded texture through BORDER_WRAP), into ``dst`` if given."""
+    n = texture.shape[0] - SEAM_PAD
+    src = texture if inside else texture[:n, :n]
+    return cv2.remap(src, mx, my, cv2.INTER_LINEAR, dst=dst, borderMode=cv2.BORDER_WRAP)
 
 
 def _lookup_rows(texture, map_x: np.ndarray, map_y: np.ndarray, rows: slice, scale: np.float32) -> np.ndarray:
     """:func:`_lookup` of one texture over ``rows`` only (non-empty): an image of ``rows``' length, the same
     values as those rows of :func:`_lookup`'s."""
-    n = texture.shape[0] - SEAM_PAD
-    mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, n, scale)
-    return cv2.remap(texture if inside else texture[:n, :n], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    mx, my, inside = fold_maps(map_x, map_y, rows.start, rows.stop, texture.shape[0] - SEAM_PAD, scale)
+    return _remap_folded(texture, mx, my, inside)
 
 
 def _lookup_up(texture, half_x, half_y, rows: slice, shape: tuple[int, int], scale=None, compact: bool = False):
@@ -218,18 +229,16 @@ def _lookup_up(texture, half_x, half_y, rows: slice, shape: tuple[int, int], sca
     to ``shape`` (half resolution, the last pyrUp step taken as they are folded: ``kernels.fold_maps_up``): a
     ``shape`` image, 0 outside ``rows``; ``compact``: ``rows``' (non-empty) look-up alone, as
     :func:`_lookup_rows` gives it."""
-    n = texture.shape[0] - SEAM_PAD
     if compact:
         out = dst = np.empty((rows.stop - rows.start, shape[1]), np.float32)
     else:
-        out = np.empty(shape, np.float32)
-        out[: rows.start] = 0.0
-        out[max(rows.stop, rows.start) :] = 0.0
+        out = _zeroed_outside(shape, rows)
         dst = out[rows]
     if rows.stop > rows.start:
         f = np.float32(0.0 if scale is None else scale)
+        n = texture.shape[0] - SEAM_PAD
         mx, my, inside = fold_maps_up(half_x, half_y, rows.start, rows.stop, shape[1], n, f)
-        cv2.remap(texture if inside else texture[:n, :n], mx, my, cv2.INTER_LINEAR, dst=dst, borderMode=cv2.BORDER_WRAP)
+        _remap_folded(texture, mx, my, inside, dst)
     return out
 
 
@@ -598,24 +607,20 @@ class SceneContent:
             # the far weight is taken up only when a far level is blended in (~40 % of C2's frames have none)
             halves = [up(c) if k < 3 or blend else self._empty for k, c in enumerate(terrain[0])]
             far_scale = f32(2.0 ** (lv - lv_far))
+            hx, hy, tau, w_far = halves  # w_far is read on the far rows only (empty: there are none)
             if full:
                 # the second pyrUp step of the coordinates, the transmission and the far weight is taken where
                 # they are read (kernels.fold_maps_up, terrain_blend_up: the same values without four
                 # full-resolution images written and read back)
-                hx, hy, tau_h, w_h = halves
                 dL = _lookup_up(levels[lv], hx, hy, rows, (H, W))
-                b_t = np.empty_like(dL)
                 far = _lookup_up(levels[lv_far], hx, hy, far_rows, (H, W), far_scale, True) if blend else self._empty
-                terrain_blend_up(dL, far, far_rows.start if blend else 0, w_h, tau_h, b_t)
+                blend_into = terrain_blend_up
             else:
-                gx, gy, tau_g, w_far = halves
-                (dL,) = _lookup((levels[lv],), gx, gy, rows)
-                b_t = np.empty_like(dL)
-                if blend:
-                    far = _lookup_rows(levels[lv_far], gx, gy, far_rows, far_scale)
-                    terrain_blend(dL, far, far_rows.start, w_far, tau_g, b_t)
-                else:
-                    terrain_blend(dL, self._empty, 0, tau_g, tau_g, b_t)
+                (dL,) = _lookup((levels[lv],), hx, hy, rows)
+                far = _lookup_rows(levels[lv_far], hx, hy, far_rows, far_scale) if blend else self._empty
+                blend_into = terrain_blend
+            b_t = np.empty_like(dL)
+            blend_into(dL, far, far_rows.start if blend else 0, w_far, tau, b_t)
             if full and self._psf_sigma_px > 0.0:
                 # the optics' PSF, as a camera's sampling of its optical image has it (see TerrainConfig)
                 b_t = cv2.GaussianBlur(b_t, (0, 0), self._psf_sigma_px, borderType=cv2.BORDER_REPLICATE)
