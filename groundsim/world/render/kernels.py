@@ -990,16 +990,10 @@ def composite_up(below, a_half, lit_half, e0, e1, w0, out, copy):
     for i in range(e0, e1):
         r = i - e0 + w0
         sy = r >> 1
-        if sy != have:
-            if sy == have + 1:  # one row on: the slots turn, one new row
-                k0, k1, k2 = k1, k2, k0
-            else:
-                _pyrup_row(a_half, sy - 1, ring[0, k0])
-                _pyrup_row(a_half, sy, ring[0, k1])
-                _pyrup_row(lit_half, sy - 1, ring[1, k0])
-                _pyrup_row(lit_half, sy, ring[1, k1])
-            _pyrup_row(a_half, sy + 1, ring[0, k2])
-            _pyrup_row(lit_half, sy + 1, ring[1, k2])
+        if sy != have:  # one row on: the slots turn, one new row each
+            turned = _pyrup_ring(a_half, sy, have, ring[0], (k0, k1, k2))
+            _pyrup_ring(lit_half, sy, have, ring[1], (k0, k1, k2))
+            k0, k1, k2 = turned
             have = sy
         a0, a1, a2 = ring[0, k0], ring[0, k1], ring[0, k2]
         l0, l1, l2 = ring[1, k0], ring[1, k1], ring[1, k2]
