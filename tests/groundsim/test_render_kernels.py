@@ -20,9 +20,7 @@ from groundsim.world.render.kernels import (
     agc_map,
     cast_part_rays,
     composite_band,
-    composite_up,
     fold_maps,
-    fold_maps_up,
     lut_take,
     min_max,
     pairwise_sum_pow2,
@@ -34,8 +32,8 @@ from groundsim.world.render.kernels import (
     sensor_counts,
     table_lookup_blocks,
     terrain_blend,
-    terrain_blend_up,
 )
+from groundsim.world.render.pyrup_kernels import composite_up, fold_maps_up, terrain_blend_up
 from groundsim.world.render.sensor import AGC_TAIL
 from onboard.core.frames import PinholeIntrinsics
 

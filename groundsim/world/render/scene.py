@@ -67,9 +67,7 @@ import numpy as np
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
 from groundsim.world.render.kernels import (
-    composite_up,
     fold_maps,
-    fold_maps_up,
     layer_blend,
     layer_light,
     layer_rays,
@@ -79,10 +77,10 @@ from groundsim.world.render.kernels import (
     remap_pair,
     surface_maps,
     terrain_blend,
-    terrain_blend_up,
 )
 from groundsim.world.render.parts import PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
+from groundsim.world.render.pyrup_kernels import composite_up, fold_maps_up, terrain_blend_up
 from groundsim.world.render.raster import IrRenderer
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
@@ -226,7 +224,7 @@ def _lookup_rows(texture, map_x: np.ndarray, map_y: np.ndarray, rows: slice, sca
 
 def _lookup_up(texture, half_x, half_y, rows: slice, shape: tuple[int, int], scale=None, compact: bool = False):
     """:func:`_lookup` of one texture at the coordinates ``cv2.pyrUp(half_x)``, ``cv2.pyrUp(half_y)`` cropped
-    to ``shape`` (half resolution, the last pyrUp step taken as they are folded: ``kernels.fold_maps_up``): a
+    to ``shape`` (half resolution, the last pyrUp step taken as they are folded: ``pyrup_kernels.fold_maps_up``): a
     ``shape`` image, 0 outside ``rows``; ``compact``: ``rows``' (non-empty) look-up alone, as
     :func:`_lookup_rows` gives it."""
     if compact:
@@ -610,7 +608,7 @@ class SceneContent:
             hx, hy, tau, w_far = halves  # w_far is read on the far rows only (empty: there are none)
             if full:
                 # the second pyrUp step of the coordinates, the transmission and the far weight is taken where
-                # they are read (kernels.fold_maps_up, terrain_blend_up: the same values without four
+                # they are read (pyrup_kernels.fold_maps_up, terrain_blend_up: the same values without four
                 # full-resolution images written and read back)
                 dL = _lookup_up(levels[lv], hx, hy, rows, (H, W))
                 far = _lookup_up(levels[lv_far], hx, hy, far_rows, (H, W), far_scale, True) if blend else self._empty
