@@ -187,7 +187,7 @@ DIFFERENCE_CAP_LSB = DIFFERENCE_TWO_LEVEL_CAP * ClutterParams().two_level_cap_ls
 
 
 def _ground_pair(
-    seed: int, shift_px: tuple[int, int], mover: tuple[float, float] | None
+    seed: int, shift_px: tuple[int, int], mover: tuple[float, float] | None, amp_grey: float = TARGET_GREY
 ) -> tuple[np.ndarray, np.ndarray]:
     """Two frames of two-level ground 8 frames apart, the ground moved by ``shift_px`` (whole pixels: its
     quantisation toggles afresh anyway), the target at ``mover`` (current frame) and 4 px left of it
@@ -201,7 +201,7 @@ def _ground_pair(
                 g,
                 mover[0] + offset[0] - shift_px[0] * (1 - k),
                 mover[1] + offset[1] - shift_px[1] * (1 - k),
-                TARGET_GREY,
+                amp_grey,
                 TARGET_SIGMA_PX,
             )
         frames.append(np.rint(g).clip(0, 255).astype(np.uint8))
@@ -231,7 +231,8 @@ def test_two_level_frames_make_no_difference_peak_over_the_cap(seed, du, dv, q):
 
 def test_the_difference_finds_a_faint_mover_on_two_level_ground_only_with_the_cap():
     uv = (64.3, 47.6)
-    prev, cur = _ground_pair(22, (3, 2), uv)  # its 2 x 2 peak 1.39 grey, 5 own sigmas of the toggling 1.51
+    # 2 grey: its 2 x 2 peak 1.58 grey on whole pixels, 5 own sigmas of the toggling 1.62
+    prev, cur = _ground_pair(22, (3, 2), uv, amp_grey=2.0)
     diff, moved = background_difference(cur, prev, uv, (3.0, 2.0))
     cap = two_level_difference_cap(cur, prev, uv, moved, DIFFERENCE_CAP_LSB)
     assert cap == DIFFERENCE_CAP_LSB  # its own pixels, now and 4 px away before, do not lift it
