@@ -1,14 +1,15 @@
 """The image chain over rendered scene frames, scored against every object's truth.
 
 ``python -m bench.imaging --scene C1 C2 C3 C4 C5 P2 [--chain tracker|objects|objects-notbd|both] [--seed 0 [1 ...]]
-[--frames N] [--duration S] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
+[--frames N] [--duration S] [--nav-noise CASE] [--cache DIR] [--repeat N] [--encoding mono8|mono16] [--terrain-resolution full|half] [--stages] [--misses]``.  Each scenario is rendered through ``groundsim.world.sim.SimCore``
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
 * ``tracker``: :class:`onboard.imaging.TargetTracker` as the daemon configures it (``ImagingParams()``,
   ``tracker_mode`` auto): one track, reported while its state is ``tracking``;
 * ``objects``: :class:`onboard.imaging.objects.ObjectTracker` (clutter-suppressed detection, every
-  object a track; the camera's rotation from the truth attitude of each frame); its confirmed tracks
+  object a track; the camera's rotation from each frame's attitude as the telemetry reports it: the
+  scenario's navigation errors, RTK by default, ``--nav-noise exact`` for the truth); its confirmed tracks
   and its primary target (``objects-notbd``: the same without track-before-detect, ``imaging.tbd: false``).
 
 Rendered frames are cached (``--cache``, default ``/tmp/irtrack-scene-frames``) so that a second run
@@ -83,7 +84,9 @@ LABEL_FIELDS = 7  # (object_id, cls, u_px, v_px, visibility, contrast_netd, warm
 class SceneRun:
     """Rendered frames of one scenario: ``frames`` list of (H, W) arrays (None: dropped), ``labels``
     per frame a list of (object_id, cls, u_px, v_px, visibility, contrast_netd, warm), ``R_ned_from_cam``
-    (N, 3, 3) truth attitude, ``intrinsics`` the camera's PinholeIntrinsics, ``frame_rate_hz``."""
+    (N, 3, 3) the camera attitude the chain is given (the truth's, or the one the telemetry reports:
+    :func:`reported_rotations`), ``intrinsics`` the camera's PinholeIntrinsics, ``frame_rate_hz``,
+    ``nav_noise`` the navigation-error case of that attitude (``exact``: the truth)."""
 
     name: str
     frames: list
@@ -91,6 +94,7 @@ class SceneRun:
     R_ned_from_cam: np.ndarray
     intrinsics: object  # onboard.core.frames.PinholeIntrinsics
     frame_rate_hz: float
+    nav_noise: str = "exact"
 
 
 def render_scene(
@@ -101,8 +105,13 @@ def render_scene(
     encoding: str | None = None,
     terrain_resolution: str | None = None,
     duration_s: float | None = None,
+    nav_noise: str | None = None,
 ) -> SceneRun:
-    """``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``;
+    """``nav_noise``: the navigation-error case whose attitude the chain is given (a name in
+    config/noise_cases.yaml; None: the scenario's ``nav_noise``, RTK by default; ``exact``: the truth), drawn
+    as ``groundsim eval`` draws it for that scenario, seed and duration (:func:`reported_rotations`; the
+    cache holds the truth, the error is applied on reading).
+    ``encoding`` (mono8 / mono16): render with it instead of the scenario's ``ir.encoding``;
     ``terrain_resolution`` (full / half): ``scene.terrain.full_resolution`` true / false instead of the
     scenario's; ``duration_s``: fly this long instead of the scenario's ``duration_s`` (its motions
     continued, as ``groundsim eval --duration`` flies them); ``n_frames`` then the first N of those."""
@@ -129,7 +138,8 @@ def render_scene(
     cached = None if path is None or not path.exists() else load_cache(path)
     if cached is not None:
         frames, labels, R = cached
-        return SceneRun(name, frames, labels, R, K, float(sc.frame_rate_hz))
+        R_rep, case = reported_rotations(sc, seed, duration, R, nav_noise)
+        return SceneRun(name, frames, labels, R_rep, K, float(sc.frame_rate_hz), case)
     if path is not None and path.exists():
         print(f"{path}: cached before the labels carried warm; rendering it again", file=sys.stderr, flush=True)
     core = SimCore(sc, seed, duration_s=duration)
@@ -161,7 +171,27 @@ def render_scene(
         for i, lb in enumerate(labels):
             larr[i] = lb
         np.savez(path, frames=farr, labels=larr, R=R)
-    return SceneRun(name, frames, labels, R, K, float(sc.frame_rate_hz))
+    R_rep, case = reported_rotations(sc, seed, duration, R, nav_noise)
+    return SceneRun(name, frames, labels, R_rep, K, float(sc.frame_rate_hz), case)
+
+
+def reported_rotations(sc, seed: int, duration_s: float, R_true: np.ndarray, nav_noise: str | None):
+    """``(R_reported (N, 3, 3), case name)``: each frame's true camera attitude rotated by the attitude error
+    the simulated autopilot reports it with at that frame's tick, ``Exp(phi) R_true``
+    (:mod:`groundsim.world.nav_errors`: the same ``phi`` moves the body's and an earth-frame gimbal's
+    attitude, so the camera's too), from the run's own draws (``SimCore(sc, seed, duration_s).nav_errors``,
+    flown nowhere).  The daemon interpolates the 50 Hz telemetry to each frame's time instead: the same
+    bias, white noise of the same size.  An unknown case is a ConfigError naming the file and the names."""
+    from groundsim.world.sim import SimCore
+    from onboard.core.frames import quat_from_rotvec, rotmat_from_quat
+
+    core = SimCore(sc, seed, duration_s=duration_s, render=False, nav_noise=nav_noise)
+    phi = core.nav_errors.att_err_ned_rad()[:: core.ticks_per_frame]
+    R_true = np.asarray(R_true, dtype=np.float64)
+    if not np.any(phi):
+        return R_true, core.nav_noise.name
+    R_rep = np.array([rotmat_from_quat(quat_from_rotvec(phi[k])) @ R_true[k] for k in range(len(R_true))])
+    return R_rep, core.nav_noise.name
 
 
 def load_cache(path: Path) -> tuple[list, list, np.ndarray] | None:
@@ -465,17 +495,32 @@ def main(argv: list[str]) -> None:
         default=None,
         help="render the terrain so (scene.terrain.full_resolution) instead of as the scenario has it",
     )
+    ap.add_argument(
+        "--nav-noise",
+        default=None,
+        help="navigation-error case of the attitude the chains are given (config/noise_cases.yaml; default: the"
+        " scenario's, RTK; exact: the truth)",
+    )
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
     if a.duration is not None and not (math.isfinite(a.duration) and a.duration > 0):
         ap.error(f"--duration: expected seconds > 0, got {a.duration}")
+    if a.nav_noise is not None:
+        from groundsim.world.nav_errors import resolve_nav_noise
+        from onboard.core.errors import ConfigError
+
+        try:
+            resolve_nav_noise(a.nav_noise)
+        except ConfigError as e:
+            ap.error(str(e))
     cv2.setNumThreads(1)
     cache = a.cache if str(a.cache) else None
     chains = ("tracker", "objects") if a.chain == "both" else (a.chain,)
     print(
         f"image chain over rendered scenes (seed {', '.join(map(str, a.seed))}); match {MATCH_PX:.0f} px, Pd over contrast >= "
-        f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; wall ms on a shared machine (noisy)"
+        f"{MIN_CONTRAST_NETD:.0f} NETD after {SETTLE_S:.0f} s visible; the chains given the camera attitude with the"
+        f" navigation errors {a.nav_noise or 'of each scenario (RTK unless it says)'}; wall ms on a shared machine (noisy)"
     )
     print(
         f"{'scene':<6s} {'chain':<13s} {'frames':>6s} {'on target':>9s} {'Pd':>6s} {'Pd tgt':>6s} {'Pd warm':>7s}"
@@ -487,7 +532,7 @@ def main(argv: list[str]) -> None:
     for name in a.scene:
         per_chain: dict[str, list[tuple[int, dict]]] = {c: [] for c in chains}
         for seed in a.seed:
-            run = render_scene(name, seed, a.frames, cache, a.encoding, a.terrain_resolution, a.duration)
+            run = render_scene(name, seed, a.frames, cache, a.encoding, a.terrain_resolution, a.duration, a.nav_noise)
             for c in chains:
                 s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
                 per_chain[c].append((seed, s))

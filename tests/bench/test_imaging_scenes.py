@@ -125,3 +125,37 @@ def test_duration_refuses_what_is_not_seconds(bad, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--scene", "P1", "--duration", bad])
     assert exc.value.code == 2 and "--duration" in capsys.readouterr().err
+
+
+def test_the_chains_get_the_attitude_the_telemetry_reports(tmp_path):
+    """By default the scenario's navigation errors (RTK): each frame's camera attitude is the truth rotated by
+    the error the simulated autopilot reports at that frame's tick, as ``groundsim eval`` draws it; ``exact``
+    gives the truth, which is what the cache holds."""
+    from bench.imaging_scenes import render_scene
+    from groundsim.world.scenario import load_scenario, scenarios_dir
+    from groundsim.world.sim import SimCore
+    from onboard.core.frames import quat_from_rotvec, rotmat_from_quat
+
+    rtk = render_scene("P1", 0, 3, tmp_path)
+    exact = render_scene("P1", 0, 3, tmp_path, nav_noise="exact")  # read back from the cache
+    _, _, R_cached = load_cache(next(tmp_path.iterdir()))
+    assert (rtk.nav_noise, exact.nav_noise) == ("RTK", "exact")
+    np.testing.assert_array_equal(exact.R_ned_from_cam, R_cached)
+    core = SimCore(load_scenario(scenarios_dir() / "P1.yaml"), 0, duration_s=3 / 30.0, render=False)
+    for k in range(3):
+        phi = core.nav_error(k * core.ticks_per_frame).att_err_ned_rad
+        expected = rotmat_from_quat(quat_from_rotvec(phi)) @ R_cached[k]
+        np.testing.assert_allclose(rtk.R_ned_from_cam[k], expected, atol=1e-12)
+        # RTK: 0.1 deg bias, 0.05 deg white per axis; the rotation between the two is phi's size
+        angle = np.arccos(np.clip((np.trace(rtk.R_ned_from_cam[k] @ R_cached[k].T) - 1) / 2, -1, 1))
+        assert angle == pytest.approx(np.linalg.norm(phi), abs=1e-9) and 0 < angle < np.radians(0.6)
+
+
+def test_an_unknown_nav_noise_is_refused_naming_the_file(capsys):
+    from bench.imaging_scenes import main
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--scene", "P1", "--nav-noise", "rtk"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "noise_cases.yaml" in err and "--nav-noise" in err and "did you mean 'RTK'" in err
