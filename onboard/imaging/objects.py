@@ -501,7 +501,9 @@ class ObjectTracker:
             return  # nothing to confirm on this frame: no fits needed
         fitted = [t for t in tentative if len(t.history) >= 3]
         if fitted:
-            vel, rms = fit_constant_velocity(self.K, [t.history for t in fitted], R)
+            vel, rms = fit_constant_velocity(
+                self.K, [t.history for t in fitted], R, self.params.attitude_white_sigma_rad
+            )
             for t, v, r in zip(fitted, vel, rms):
                 t.velocity_pxpf = (float(v[0]), float(v[1]))
                 t.fit_rms_px = float(r)
@@ -594,14 +596,17 @@ class ObjectTracker:
         bg = self.detector.background_over_window()  # measured when asked for: only after the cheap test
         if bg is None:
             return False
-        vel, rms = fit_constant_velocity(self.K, [recent], R)
+        sigma = self.params.attitude_white_sigma_rad
+        vel, rms = fit_constant_velocity(self.K, [recent], R, sigma)
         for _ in range(min(AIDED_FIT_TRIM, len(recent) - AIDED_FIT_MIN_KEPT)):
             if rms[0] <= p.aided_max_fit_rms_px:
                 break
             # the fit without its worst position: a single measurement a few px off (an extended bird's
             # difference peaking at its far edge, C3 seed 5) would otherwise fail the test for as long as
             # it stays in the window, and a coasting track's last positions keep it for good
-            vels, rmss = fit_constant_velocity(self.K, [recent[:i] + recent[i + 1 :] for i in range(len(recent))], R)
+            vels, rmss = fit_constant_velocity(
+                self.K, [recent[:i] + recent[i + 1 :] for i in range(len(recent))], R, sigma
+            )
             i = int(np.argmin(rmss))
             recent, vel, rms = recent[:i] + recent[i + 1 :], vels[i : i + 1], rmss[i : i + 1]
         rel = math.hypot(float(vel[0, 0]) - bg[0], float(vel[0, 1]) - bg[1])
@@ -793,9 +798,18 @@ class ObjectChain:
     uses_pose = True
 
     def __init__(
-        self, intrinsics, params: ImagingParams | None = None, mode: str = "auto", frame_rate_hz: float = 30.0
+        self,
+        intrinsics,
+        params: ImagingParams | None = None,
+        mode: str = "auto",
+        frame_rate_hz: float = 30.0,
+        attitude_white_sigma_rad: float | None = None,
     ) -> None:
-        self.objects = ObjectTracker(intrinsics, frame_rate_hz, imaging=params, mode=mode)
+        imaging = params or ImagingParams()
+        object_params = ObjectParams(primary_max_off_axis_rad=imaging.primary_max_off_axis_rad)
+        if attitude_white_sigma_rad is not None:  # the estimator's, as configured
+            object_params = dataclasses.replace(object_params, attitude_white_sigma_rad=attitude_white_sigma_rad)
+        self.objects = ObjectTracker(intrinsics, frame_rate_hz, params=object_params, imaging=imaging, mode=mode)
         self.mode = mode
         self.last_objects: ObjectsUpdate | None = None
         self.rejected_frames = 0

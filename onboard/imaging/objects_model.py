@@ -103,6 +103,9 @@ class ObjectParams:
     # 8.6 deg, 116 px at the reference 765 px lens: 4-5 times the reference gimbal's pointing error (the
     # target within ~25 px of the centre), and about the central 256 px that track-before-detect searches
     primary_max_off_axis_rad: float = 0.15
+    # the camera attitude's white error, 1 sigma per axis (the estimator's attitude_white_sigma_deg, RTK's
+    # 0.05 deg): the constant-velocity fits of projected positions allow for it (fit_constant_velocity)
+    attitude_white_sigma_rad: float = math.radians(0.05)
 
     def __post_init__(self) -> None:
         if not 0 < self.alpha <= 1 or not 0 <= self.beta <= 1:
@@ -235,7 +238,18 @@ def pixels_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> list[tuple[float, 
     return [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
 
 
-def fit_constant_velocity(K, histories: list[list], R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def attitude_jitter_px2(K, u_px: float, v_px: float, sigma_rad: float) -> float:
+    """The variance (px^2, u and v summed) that a white attitude error of ``sigma_rad`` per axis (about the
+    camera's three axes) adds to the projection of a line of sight at pixel (u, v): the pinhole's rotation
+    Jacobian, ``f`` at the principal point, ``f + x^2 / f`` and the roll's lever ``|(x, y)|`` off it."""
+    f = 0.5 * (K.fx_px + K.fy_px)
+    x, y = u_px - K.cx_px, v_px - K.cy_px
+    return sigma_rad**2 * (2.0 * (x * y / f) ** 2 + (f + x * x / f) ** 2 + (f + y * y / f) ** 2 + x * x + y * y)
+
+
+def fit_constant_velocity(
+    K, histories: list[list], R: np.ndarray, attitude_sigma_rad: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Constant-velocity least-squares fits of tracks' measured lines of sight projected through
     this frame's camera rotation (the camera's own rotation removed), all tracks at once (padded
     rows, weights 0 on the padding): velocities (n, 2) px per frame and rms residuals (n,) px.  The
@@ -259,6 +273,18 @@ def fit_constant_velocity(K, histories: list[list], R: np.ndarray) -> tuple[np.n
     u[row, col] = K.fx_px * c[:, 0] / z
     v[row, col] = K.fy_px * c[:, 1] / z
     vel, rms = cv_fit(f, u, v, w)
+    if attitude_sigma_rad > 0.0:
+        # each line of sight was made with its own frame's attitude, whose white error moves its projection
+        # (RTK: 0.05 deg, 0.67 px per axis at 765 px, more than the 0.5 px the fit allows): the rms beyond
+        # that error's share, at its upper ~2-sigma quantile (a chi-square of 2 (n - 2) degrees of freedom)
+        for i, h in enumerate(histories):
+            n = len(h)
+            if n > 2:
+                s2 = attitude_jitter_px2(
+                    K, float(np.mean([e[2] for e in h])), float(np.mean([e[3] for e in h])), attitude_sigma_rad
+                )
+                allowance = s2 * (n - 2) / n * (1.0 + 2.0 * math.sqrt(1.0 / (n - 2)))
+                rms[i] = math.sqrt(max(float(rms[i]) ** 2 - allowance, 0.0))
     u[row, col] = [e[2] for h in histories for e in h]
     v[row, col] = [e[3] for h in histories for e in h]
     _, rms_px = cv_fit(f, u, v, w)

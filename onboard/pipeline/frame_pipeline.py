@@ -136,7 +136,12 @@ def make_tracker(config: Any):
     if config.imaging.chain == "objects":
         from onboard.imaging.objects import ObjectChain
 
-        return ObjectChain(config.camera.pinhole(), config.imaging, mode=config.gcs.tracker_mode)
+        return ObjectChain(
+            config.camera.pinhole(),
+            config.imaging,
+            mode=config.gcs.tracker_mode,
+            attitude_white_sigma_rad=math.radians(config.estimator.attitude_white_sigma_deg),
+        )
     return TargetTracker(config.imaging, mode=config.gcs.tracker_mode)
 
 
