@@ -413,6 +413,16 @@ class ObjectTracker:
             gate = np.minimum(
                 p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
             )
+            # every prediction of a frame is made through that frame's attitude, so its error (RTK's white
+            # 0.05 deg: 0.67 px per axis) moves them all alike: measured on the tracks it is unambiguous
+            # for and taken out, two images about to merge are judged on their own geometry (C3 seed 2 under
+            # RTK: the merged image lay over 2 px from the primary's prediction and went to the other target)
+            shift = _common_shift(
+                puv_a, cuv, d, gate, [self._tracks[ti].confirmed and self._tracks[ti].misses == 0 for ti in live]
+            )
+            if shift is not None:
+                puv_a = puv_a + shift
+                d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
             li, ci_a = np.nonzero(d <= gate[:, None])
             # confirmed tracks measured on the last frame first: a large bright object (a bird) now and
             # then splits into two candidates; the second starts a tentative track, and nearest-first
@@ -747,6 +757,30 @@ class ObjectTracker:
 
 AIDED_FIT_TRIM = 2  # positions the aided run's motion test may leave out (its worst, one at a time) ...
 AIDED_FIT_MIN_KEPT = 8  # ... keeping at least these
+
+
+COMMON_SHIFT_MAX_PX = 3.0  # ~3 sigma of RTK's frame-to-frame attitude error in the image: more is not that
+
+
+def _common_shift(puv, cuv, d, gate, held) -> np.ndarray | None:
+    """The frame's common offset (px) of measurements ``cuv`` (m, 2) from predictions ``puv`` (n, 2), ``d`` their
+    distances, ``gate`` (n,) each prediction's gate, ``held`` (n,) the confirmed tracks measured on the frame
+    before: the median, per axis, over the held tracks with exactly one candidate in their gate that lies in
+    no other track's gate; None with fewer than two such tracks (one track's own innovation is not the
+    frame's) or an offset over COMMON_SHIFT_MAX_PX."""
+    inside = d <= gate[:, None]
+    per_cand = inside.sum(axis=0)
+    samples = []
+    for a in range(len(puv)):
+        if not held[a]:
+            continue
+        cs = np.nonzero(inside[a])[0]
+        if len(cs) == 1 and per_cand[cs[0]] == 1:
+            samples.append(cuv[cs[0]] - puv[a])
+    if len(samples) < 2:
+        return None
+    shift = np.median(np.array(samples), axis=0)
+    return shift if float(np.hypot(*shift)) <= COMMON_SHIFT_MAX_PX else None
 
 
 def _merged_to_the_elder(

@@ -42,3 +42,47 @@ def test_a_bird_crossing_the_primary_target_does_not_take_its_track():
             off_px.append(math.hypot(prim.u_px - target.u_px, prim.v_px - target.v_px))
     assert primary is not None and out.primary_id == primary and tr.primary_changes == 1
     assert max(off_px[-15:]) <= ON_TARGET_PX, f"the primary left the target: {[round(d, 1) for d in off_px]}"
+
+
+def test_the_primary_keeps_its_target_through_the_crossing_under_rtk_attitude_errors():
+    """C3 seed 2 with the attitude the telemetry reports (RTK: 0.05 deg white per axis, 0.67 px): the two
+    targets' images merge on frames ~130-161. The frame's attitude error moved both predictions by ~1 px, the
+    merged image lay over 2 px from the primary's, nearest-first gave it to the second target's track and the
+    primary coasted off its target for good (on target 40 % of the run). The frame's common offset, measured on
+    the tracks it is unambiguous for (birds), is taken out before association: the primary keeps its target."""
+    from bench.imaging_scenes import reported_rotations
+
+    sc = load_scenario(scenarios_dir() / "C3.yaml")
+    n = 175
+    duration = n / sc.frame_rate_hz
+    core = SimCore(sc, 2, duration_s=duration)
+    frames = [core.frame(k) for k in range(core.frame_count)]
+    R_true = np.array(
+        [
+            rotmat_from_quat(
+                np.array(
+                    [
+                        f.truth.q_ned_from_cam_w,
+                        f.truth.q_ned_from_cam_x,
+                        f.truth.q_ned_from_cam_y,
+                        f.truth.q_ned_from_cam_z,
+                    ]
+                )
+            )
+            for f in frames
+        ]
+    )
+    R_rep, case = reported_rotations(sc, 2, duration, R_true, None)
+    assert case == "RTK"
+    tr = ObjectTracker(sc.camera.intrinsics, frame_rate_hz=sc.frame_rate_hz, imaging=ImagingParams(chain="objects"))
+    primary, off_px = None, []
+    for k, (f, R) in enumerate(zip(frames, R_rep)):
+        out = tr.update(f.pixels, R)
+        if k == 120:
+            primary = out.primary_id
+        if k >= 160:
+            target = next(lb for lb in f.labels if lb.object_id == 0)
+            prim = next(o for o in out.objects if o.object_id == out.primary_id)
+            off_px.append(math.hypot(prim.u_px - target.u_px, prim.v_px - target.v_px))
+    assert primary is not None and out.primary_id == primary
+    assert max(off_px) <= ON_TARGET_PX, f"the primary left the target: {[round(d, 1) for d in off_px]}"

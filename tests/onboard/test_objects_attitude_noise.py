@@ -98,3 +98,27 @@ def test_the_daemon_gives_the_chain_its_configured_attitude_noise():
     )
     assert math.isclose(other.objects.params.attitude_white_sigma_rad, math.radians(0.2))
     assert other.objects.params.primary_max_off_axis_rad == default.objects.params.primary_max_off_axis_rad
+
+
+def _shift_inputs(preds, cands, held, gate_px=4.0):
+    from onboard.imaging.objects import _common_shift
+
+    puv, cuv = np.array(preds, float), np.array(cands, float)
+    d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
+    return _common_shift(puv, cuv, d, np.full(len(puv), gate_px), held)
+
+
+def test_the_frames_common_offset_is_the_median_over_unambiguous_held_tracks():
+    """Three held tracks each measured (1.2, -0.8) px off its prediction (one 0.3 px more): the median; a track
+    not held, or one whose candidate another gate shares, does not count; fewer than two: none (a lone
+    track's own innovation is not the frame's); over COMMON_SHIFT_MAX_PX: none."""
+    preds = [(100.0, 100.0), (200.0, 150.0), (300.0, 80.0)]
+    off = [(1.2, -0.8), (1.5, -0.8), (1.2, -0.5)]
+    cands = [(p[0] + o[0], p[1] + o[1]) for p, o in zip(preds, off)]
+    np.testing.assert_allclose(_shift_inputs(preds, cands, [True, True, True]), (1.2, -0.8))
+    assert _shift_inputs(preds, cands, [True, False, False]) is None
+    # two predictions 2 px apart share both candidates: neither is unambiguous, the third alone is too few
+    crowded = [(100.0, 100.0), (102.0, 100.0), (300.0, 80.0)]
+    assert _shift_inputs(crowded, [(101.0, 100.0), (103.0, 100.0), (301.2, 79.2)], [True, True, True]) is None
+    far = [(p[0] + 3.5, p[1]) for p in preds]
+    assert _shift_inputs(preds, far, [True, True, True], gate_px=5.0) is None
