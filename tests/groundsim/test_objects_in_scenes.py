@@ -16,6 +16,40 @@ from onboard.imaging.objects import ObjectTracker
 ON_TARGET_PX = 3.0
 
 
+def _truth_rotations(frames) -> np.ndarray:
+    return np.array(
+        [
+            rotmat_from_quat(
+                np.array(
+                    [
+                        f.truth.q_ned_from_cam_w,
+                        f.truth.q_ned_from_cam_x,
+                        f.truth.q_ned_from_cam_y,
+                        f.truth.q_ned_from_cam_z,
+                    ]
+                )
+            )
+            for f in frames
+        ]
+    )
+
+
+def _primary_over(sc, frames, rotations, from_k: int):
+    """The objects chain over ``frames`` given ``rotations``: (the tracker, the primary at frame 120, the primary
+    at the end, the primary's distance to the target, px, on each frame from ``from_k``)."""
+    tr = ObjectTracker(sc.camera.intrinsics, frame_rate_hz=sc.frame_rate_hz, imaging=ImagingParams(chain="objects"))
+    primary, off_px = None, []
+    for k, (f, R) in enumerate(zip(frames, rotations)):
+        out = tr.update(f.pixels, R)
+        if k == 120:
+            primary = out.primary_id
+        if k >= from_k:
+            target = next(lb for lb in f.labels if lb.object_id == 0)
+            prim = next(o for o in out.objects if o.object_id == out.primary_id)
+            off_px.append(math.hypot(prim.u_px - target.u_px, prim.v_px - target.v_px))
+    return tr, primary, out.primary_id, off_px
+
+
 def test_a_bird_crossing_the_primary_target_does_not_take_its_track():
     """C3 seed 3, frames 155-166: a bird (tracked since frame ~150) passes over the primary target. Their
     images merged on frame 163 nearer the bird's prediction; nearest-first association gave the merged
@@ -24,23 +58,10 @@ def test_a_bird_crossing_the_primary_target_does_not_take_its_track():
     id (on the target 48 % of the run; the 3-D estimate would have followed a bird). A merged image now
     goes to the track with the most hits: the primary stays on its target through and after the crossing."""
     sc = load_scenario(scenarios_dir() / "C3.yaml")
-    n = 185
-    core = SimCore(sc, 3, duration_s=n / sc.frame_rate_hz)
-    tr = ObjectTracker(sc.camera.intrinsics, frame_rate_hz=sc.frame_rate_hz, imaging=ImagingParams(chain="objects"))
-    primary = None
-    off_px = []
-    for k in range(core.frame_count):
-        f = core.frame(k)
-        t = f.truth
-        R = rotmat_from_quat(np.array([t.q_ned_from_cam_w, t.q_ned_from_cam_x, t.q_ned_from_cam_y, t.q_ned_from_cam_z]))
-        out = tr.update(f.pixels, R)
-        if k == 120:
-            primary = out.primary_id
-        if k >= 150:
-            target = next(lb for lb in f.labels if lb.object_id == 0)
-            prim = next(o for o in out.objects if o.object_id == out.primary_id)
-            off_px.append(math.hypot(prim.u_px - target.u_px, prim.v_px - target.v_px))
-    assert primary is not None and out.primary_id == primary and tr.primary_changes == 1
+    core = SimCore(sc, 3, duration_s=185 / sc.frame_rate_hz)
+    frames = [core.frame(k) for k in range(core.frame_count)]
+    tr, primary, last, off_px = _primary_over(sc, frames, _truth_rotations(frames), 150)
+    assert primary is not None and last == primary and tr.primary_changes == 1
     assert max(off_px[-15:]) <= ON_TARGET_PX, f"the primary left the target: {[round(d, 1) for d in off_px]}"
 
 
@@ -57,32 +78,8 @@ def test_the_primary_keeps_its_target_through_the_crossing_under_rtk_attitude_er
     duration = n / sc.frame_rate_hz
     core = SimCore(sc, 2, duration_s=duration)
     frames = [core.frame(k) for k in range(core.frame_count)]
-    R_true = np.array(
-        [
-            rotmat_from_quat(
-                np.array(
-                    [
-                        f.truth.q_ned_from_cam_w,
-                        f.truth.q_ned_from_cam_x,
-                        f.truth.q_ned_from_cam_y,
-                        f.truth.q_ned_from_cam_z,
-                    ]
-                )
-            )
-            for f in frames
-        ]
-    )
-    R_rep, case = reported_rotations(sc, 2, duration, R_true, None)
+    R_rep, case = reported_rotations(sc, 2, duration, _truth_rotations(frames), None)
     assert case == "RTK"
-    tr = ObjectTracker(sc.camera.intrinsics, frame_rate_hz=sc.frame_rate_hz, imaging=ImagingParams(chain="objects"))
-    primary, off_px = None, []
-    for k, (f, R) in enumerate(zip(frames, R_rep)):
-        out = tr.update(f.pixels, R)
-        if k == 120:
-            primary = out.primary_id
-        if k >= 160:
-            target = next(lb for lb in f.labels if lb.object_id == 0)
-            prim = next(o for o in out.objects if o.object_id == out.primary_id)
-            off_px.append(math.hypot(prim.u_px - target.u_px, prim.v_px - target.v_px))
-    assert primary is not None and out.primary_id == primary
+    _, primary, last, off_px = _primary_over(sc, frames, R_rep, 160)
+    assert primary is not None and last == primary
     assert max(off_px) <= ON_TARGET_PX, f"the primary left the target: {[round(d, 1) for d in off_px]}"
