@@ -769,17 +769,11 @@ def _common_shift(puv, cuv, d, gate, held) -> np.ndarray | None:
     no other track's gate; None with fewer than two such tracks (one track's own innovation is not the
     frame's) or an offset over COMMON_SHIFT_MAX_PX."""
     inside = d <= gate[:, None]
-    per_cand = inside.sum(axis=0)
-    samples = []
-    for a in range(len(puv)):
-        if not held[a]:
-            continue
-        cs = np.nonzero(inside[a])[0]
-        if len(cs) == 1 and per_cand[cs[0]] == 1:
-            samples.append(cuv[cs[0]] - puv[a])
-    if len(samples) < 2:
+    idx = np.argmax(inside, axis=1)  # each track's candidate, where it has exactly one
+    ok = np.asarray(held, dtype=bool) & (inside.sum(axis=1) == 1) & (inside.sum(axis=0)[idx] == 1)
+    if int(ok.sum()) < 2:
         return None
-    shift = np.median(np.array(samples), axis=0)
+    shift = np.median(cuv[idx[ok]] - puv[ok], axis=0)
     return shift if float(np.hypot(*shift)) <= COMMON_SHIFT_MAX_PX else None
 
 

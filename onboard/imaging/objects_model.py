@@ -238,10 +238,11 @@ def pixels_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> list[tuple[float, 
     return [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
 
 
-def attitude_jitter_px2(K, u_px: float, v_px: float, sigma_rad: float) -> float:
+def attitude_jitter_px2(K, u_px, v_px, sigma_rad: float):
     """The variance (px^2, u and v summed) that a white attitude error of ``sigma_rad`` per axis (about the
-    camera's three axes) adds to the projection of a line of sight at pixel (u, v): the pinhole's rotation
-    Jacobian, ``f`` at the principal point, ``f + x^2 / f`` and the roll's lever ``|(x, y)|`` off it."""
+    camera's three axes) adds to the projection of a line of sight at pixel (u, v) (floats or arrays): the
+    pinhole's rotation Jacobian, ``f`` at the principal point, ``f + x^2 / f`` and the roll's lever ``|(x, y)|``
+    off it."""
     f = 0.5 * (K.fx_px + K.fy_px)
     x, y = u_px - K.cx_px, v_px - K.cy_px
     return sigma_rad**2 * (2.0 * (x * y / f) ** 2 + (f + x * x / f) ** 2 + (f + y * y / f) ** 2 + x * x + y * y)
@@ -273,20 +274,18 @@ def fit_constant_velocity(
     u[row, col] = K.fx_px * c[:, 0] / z
     v[row, col] = K.fy_px * c[:, 1] / z
     vel, rms = cv_fit(f, u, v, w)
+    u[row, col] = [e[2] for h in histories for e in h]
+    v[row, col] = [e[3] for h in histories for e in h]
     if attitude_sigma_rad > 0.0:
         # each line of sight was made with its own frame's attitude, whose white error moves its projection
         # (RTK: 0.05 deg, 0.67 px per axis at 765 px, more than the 0.5 px the fit allows): the rms beyond
-        # that error's share, at its upper ~2-sigma quantile (a chi-square of 2 (n - 2) degrees of freedom)
-        for i, h in enumerate(histories):
-            n = len(h)
-            if n > 2:
-                s2 = attitude_jitter_px2(
-                    K, float(np.mean([e[2] for e in h])), float(np.mean([e[3] for e in h])), attitude_sigma_rad
-                )
-                allowance = s2 * (n - 2) / n * (1.0 + 2.0 * math.sqrt(1.0 / (n - 2)))
-                rms[i] = math.sqrt(max(float(rms[i]) ** 2 - allowance, 0.0))
-    u[row, col] = [e[2] for h in histories for e in h]
-    v[row, col] = [e[3] for h in histories for e in h]
+        # that error's share at the track's mean pixel, at its upper ~2-sigma quantile (a chi-square of
+        # 2 (m - 2) degrees of freedom for m positions)
+        m = w.sum(axis=1)
+        s2 = attitude_jitter_px2(K, (w * u).sum(axis=1) / m, (w * v).sum(axis=1) / m, attitude_sigma_rad)
+        dof = np.maximum(m - 2.0, 1.0)
+        allowance = np.where(m > 2, s2 * (m - 2.0) / m * (1.0 + 2.0 * np.sqrt(1.0 / dof)), 0.0)
+        rms = np.sqrt(np.maximum(rms * rms - allowance, 0.0))
     _, rms_px = cv_fit(f, u, v, w)
     return vel, np.minimum(rms, rms_px)
 
