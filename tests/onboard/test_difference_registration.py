@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import given, settings
+from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics
@@ -19,8 +19,10 @@ K = PinholeIntrinsics(400.0, 400.0, 160.0, 128.0, 320, 256)
 SIDE_PX = 128
 # a band-limited texture sampled exactly at any shift: the registration's error is the method's alone
 _WAVES = np.random.default_rng(5).uniform([0.15, 0.15, 0.0, 3.0], [0.9, 0.9, 2 * np.pi, 9.0], (24, 4))
-REFINED_TOL_PX = 0.02  # Gauss-Newton steps on a smooth ~20 grey texture, no noise
-PARABOLA_ERR_PX = 0.03  # the parabola alone is off by more than this somewhere over the examples
+# Gauss-Newton steps on a smooth ~20 grey texture, no noise: they converge to the bilinear sampling's own bias,
+# up to ~0.022 px on this texture (300 random shifts: median 0.012, p95 0.018)
+REFINED_TOL_PX = 0.03
+PARABOLA_ERR_PX = 2 * REFINED_TOL_PX  # the parabola alone is off by more somewhere over the examples (median 0.045)
 PEAK_TOL_GREY = 1e-3  # float32 arithmetic on whole pixels
 
 
@@ -42,6 +44,7 @@ def _registration_error(du: float, dv: float, steps: int) -> float:
 
 @settings(max_examples=20, deadline=None)
 @given(st.floats(-4.0, 4.0), st.floats(-4.0, 4.0))
+@example(-4.0, -1.25)  # 0.0202 px: over a first tolerance of 0.02 (a CI run found it)
 def test_the_refined_displacement_is_within_hundredths_of_a_pixel(du, dv):
     assert _registration_error(du, dv, 3) < REFINED_TOL_PX
 
