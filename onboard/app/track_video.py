@@ -229,7 +229,6 @@ def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsU
     fresh objects chain sized by the first frame; an unusable frame raises :class:`InputError` naming it."""
     from onboard.core.frames import PinholeIntrinsics
     from onboard.imaging.objects import ObjectTracker
-    from onboard.imaging.objects_model import ObjectParams
 
     tracker = None
     for k, (name, px) in enumerate(frames, start=1):
@@ -237,7 +236,8 @@ def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsU
             h, w = px.shape
             K = PinholeIntrinsics(float(w), float(w), w / 2.0, h / 2.0, w, h)  # nominal: image space (docstring)
             # no attitude here (every frame in image space): its fits have no attitude error to allow for
-            tracker = ObjectTracker(K, frame_rate_hz=fps, params=ObjectParams(attitude_white_sigma_rad=0.0))
+            params = ObjectTracker.default_params(attitude_white_sigma_rad=0.0)
+            tracker = ObjectTracker(K, frame_rate_hz=fps, params=params)
         try:
             upd = tracker.update(px, None)
         except InputError as exc:

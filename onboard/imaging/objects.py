@@ -120,7 +120,7 @@ class ObjectTracker:
         self.K = intrinsics
         self.frame_rate_hz = float(frame_rate_hz)
         self.imaging = imaging or ImagingParams()
-        self.params = params or ObjectParams(primary_max_off_axis_rad=self.imaging.primary_max_off_axis_rad)
+        self.params = params or self.default_params(self.imaging)
         self.clutter = clutter or ClutterParams()
         self.mode = mode
         self._tracks: list[TrackRecord] = []
@@ -146,6 +146,14 @@ class ObjectTracker:
             max_speed_pxpf=im.tbd_max_speed_pxpf,
         )
         self.tbd = TrackBeforeDetect(intrinsics, tbd) if im.tbd else None
+
+    @staticmethod
+    def default_params(imaging: ImagingParams | None = None, **changes) -> ObjectParams:
+        """The track management an ``ObjectTracker`` without ``params`` runs: ``ObjectParams`` with
+        ``imaging``'s ``primary_max_off_axis_rad`` (the daemon's configuration names it there), ``changes``
+        applied."""
+        im = imaging or ImagingParams()
+        return ObjectParams(**{"primary_max_off_axis_rad": im.primary_max_off_axis_rad, **changes})
 
     # ------------------------------------------------------------------ geometry
     def _los(self, u: float, v: float, R: np.ndarray) -> np.ndarray:
@@ -417,9 +425,8 @@ class ObjectTracker:
             # 0.05 deg: 0.67 px per axis) moves them all alike: measured on the tracks it is unambiguous
             # for and taken out, two images about to merge are judged on their own geometry (C3 seed 2 under
             # RTK: the merged image lay over 2 px from the primary's prediction and went to the other target)
-            shift = _common_shift(
-                puv_a, cuv, d, gate, [self._tracks[ti].confirmed and self._tracks[ti].misses == 0 for ti in live]
-            )
+            held = [t.confirmed and t.misses == 0 for t in self._tracks]
+            shift = _common_shift(puv_a, cuv, d, gate, [held[ti] for ti in live])
             if shift is not None:
                 puv_a = puv_a + shift
                 d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
@@ -430,7 +437,6 @@ class ObjectTracker:
             # confirmed track is lost (C3's bird 2, frames 108-170).  A coasting one competes by distance
             # only: its gate widens to 12 px, and first it would take a new object's candidate from the
             # tentative track on it
-            held = [t.confirmed and t.misses == 0 for t in self._tracks]
             pairs = sorted((not held[live[a]], float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
             pairs = _merged_to_the_elder(pairs, held, [t.hits for t in self._tracks])
         used_t: set[int] = set()
@@ -833,11 +839,10 @@ class ObjectChain:
         frame_rate_hz: float = 30.0,
         attitude_white_sigma_rad: float | None = None,
     ) -> None:
-        imaging = params or ImagingParams()
-        object_params = ObjectParams(primary_max_off_axis_rad=imaging.primary_max_off_axis_rad)
-        if attitude_white_sigma_rad is not None:  # the estimator's, as configured
-            object_params = dataclasses.replace(object_params, attitude_white_sigma_rad=attitude_white_sigma_rad)
-        self.objects = ObjectTracker(intrinsics, frame_rate_hz, params=object_params, imaging=imaging, mode=mode)
+        # the attitude error its fits allow for: the estimator's, as configured (None: ObjectParams' default)
+        changes = {} if attitude_white_sigma_rad is None else {"attitude_white_sigma_rad": attitude_white_sigma_rad}
+        params_obj = ObjectTracker.default_params(params, **changes)
+        self.objects = ObjectTracker(intrinsics, frame_rate_hz, params=params_obj, imaging=params, mode=mode)
         self.mode = mode
         self.last_objects: ObjectsUpdate | None = None
         self.rejected_frames = 0
