@@ -231,7 +231,9 @@ class ObjectTracker:
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
             roi = point_candidates(
-                contrast[y0:y1, x0:x1], threshold[y0:y1, x0:x1] * np.float32(p.aided_threshold_factor), self.clutter
+                contrast[y0:y1, x0:x1],
+                threshold[y0:y1, x0:x1] * np.float32(p.aided_threshold_factor * math.sqrt(gate / p.gate_px)),
+                self.clutter,
             )
             best = None
             for c in roi:
@@ -339,6 +341,7 @@ class ObjectTracker:
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
             self.detector.restart()
         regular = self.detect(image)
+        self._shift_predictions(regular, R)
         regular = self._deblended(regular, R)
         self.stages.lap("deblending")
         clean = self.detector.clean
@@ -376,8 +379,11 @@ class ObjectTracker:
             and t.confirmed
             and t.misses == 0
             and any(
-                j != i and r is not None and OWNED_PX < math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
-                for j, r in enumerate(pred)
+                j != i
+                and r is not None
+                and (OWNED_PX < math.hypot(r[0] - q[0], r[1] - q[1]) or (o.confirmed and o.misses > 0))
+                and math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
+                for j, (o, r) in enumerate(zip(self._tracks, pred))
             )
         ]
         return self.detector.deblended_candidates(cands, bright, self.params.gate_px)
@@ -391,6 +397,31 @@ class ObjectTracker:
             if self._tracks:
                 self._pred_px = pixels_from_los(self.K, np.array([t.los + t.rate for t in self._tracks]), R)
         return self._pred_px
+
+    def _shift_predictions(self, cands: list[PointCandidate], R: np.ndarray) -> None:
+        """Take the frame's common offset out of this frame's predictions (:meth:`_predicted_px`), for every
+        use of them (deblending, aided detection, association).  Every prediction of a frame is made through
+        that frame's attitude, so its error (RTK's white 0.05 deg: 0.67 px per axis) moves them all alike:
+        measured on the tracks it is unambiguous for (:func:`_common_shift`, on the whole-frame candidates)
+        and taken out, two images about to merge are judged on their own geometry (C3 seed 2 under RTK: the
+        merged image lay over 2 px from the primary's prediction and went to the other target), and a
+        coasting track's gate is searched about where its object is."""
+        pred = self._predicted_px(R)
+        live = [i for i, q in enumerate(pred) if q is not None]
+        if len(live) < 2 or not cands:
+            return
+        p = self.params
+        puv = np.array([pred[i] for i in live])
+        cuv = np.array([(c.u_px, c.v_px) for c in cands])
+        d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
+        gate = np.minimum(
+            p.gate_px + p.gate_growth_px * np.array([self._tracks[i].misses for i in live]), p.max_gate_px
+        )
+        held = [self._tracks[i].confirmed and self._tracks[i].misses == 0 for i in live]
+        shift = _common_shift(puv, cuv, d, gate, held)
+        if shift is not None:
+            du, dv = float(shift[0]), float(shift[1])
+            self._pred_px = [None if q is None else (q[0] + du, q[1] + dv) for q in pred]
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
@@ -407,10 +438,8 @@ class ObjectTracker:
         are track-aided candidates, which update their track but never start one."""
         p = self.params
         n_regular = len(cands) if n_regular is None else n_regular
-        preds = []
-        for t in self._tracks:
-            pl = unit_vector(t.los + t.rate)
-            preds.append((pl, self._project(pl, R)))
+        pixels = self._predicted_px(R)  # the frame's common offset taken out (_shift_predictions)
+        preds = [(unit_vector(t.los + t.rate), q) for t, q in zip(self._tracks, pixels)]
         pairs: list[tuple[bool, float, int, int]] = []
         live = [ti for ti, (_, puv) in enumerate(preds) if puv is not None]
         if live and cands:
@@ -421,15 +450,7 @@ class ObjectTracker:
             gate = np.minimum(
                 p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
             )
-            # every prediction of a frame is made through that frame's attitude, so its error (RTK's white
-            # 0.05 deg: 0.67 px per axis) moves them all alike: measured on the tracks it is unambiguous
-            # for and taken out, two images about to merge are judged on their own geometry (C3 seed 2 under
-            # RTK: the merged image lay over 2 px from the primary's prediction and went to the other target)
             held = [t.confirmed and t.misses == 0 for t in self._tracks]
-            shift = _common_shift(puv_a, cuv, d, gate, [held[ti] for ti in live])
-            if shift is not None:
-                puv_a = puv_a + shift
-                d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
             li, ci_a = np.nonzero(d <= gate[:, None])
             # confirmed tracks measured on the last frame first: a large bright object (a bird) now and
             # then splits into two candidates; the second starts a tentative track, and nearest-first
@@ -472,6 +493,14 @@ class ObjectTracker:
                 keep.append(t)
                 continue
             t.los = preds[ti][0]
+            if t.confirmed and t.misses == 0 and len(t.history) >= COAST_FIT_MIN:
+                # on the line fitted to its last positions while a constant velocity explains them (within
+                # the attitude error's share); a track that turned or stopped coasts on its filter's rate,
+                # which has followed the manoeuvre (the line would carry it on the old course)
+                _, rms = fit_constant_velocity(self.K, [t.history], R, p.attitude_white_sigma_rad)
+                coast = _fitted_coast(t.history, self._frame_index) if rms[0] <= p.max_fit_rms_px else None
+                if coast is not None:
+                    t.los, t.rate = coast
             t.misses += 1
             t.age += 1
             t.score = 0.0
@@ -499,10 +528,10 @@ class ObjectTracker:
             measured.add(self._next_id)
             self._next_id += 1
         self._tracks = keep
-        self._confirm(R)
+        measured |= self._confirm(R)
         return measured
 
-    def _confirm(self, R: np.ndarray) -> None:
+    def _confirm(self, R: np.ndarray) -> set[int]:
         """Confirm the tentative tracks that pass the M-of-N, constant-velocity and moves-unlike-its-
         background tests (see :class:`ObjectParams`)."""
         p = self.params
@@ -514,7 +543,7 @@ class ObjectTracker:
         if not any(
             t.hits >= p.confirm_hits and t.misses == 0 and len(t.history) >= p.confirm_in_window for t in tentative
         ):
-            return  # nothing to confirm on this frame: no fits needed
+            return set()  # nothing to confirm on this frame: no fits needed
         fitted = [t for t in tentative if len(t.history) >= 3]
         if fitted:
             vel, rms = fit_constant_velocity(
@@ -524,6 +553,7 @@ class ObjectTracker:
                 t.velocity_pxpf = (float(v[0]), float(v[1]))
                 t.fit_rms_px = float(r)
         asked: set[int] = set()  # object ids whose surroundings were compared on this frame
+        continued: dict[int, TrackRecord] = {}  # coasting tracks found again -> the tentative track they took over
 
         def carried(o: TrackRecord) -> bool:
             # the median of its last tests, not this frame's alone: C2 seed 1's terrain fragment, a warm spot
@@ -579,6 +609,15 @@ class ObjectTracker:
                 continue
             if carried(t):
                 continue
+            owner = self._coasting_owner(t, R)
+            if owner is not None:
+                # the coasting track's object found again (a dim target's duplicate, C4 seed 1 over 30 s: a
+                # tentative track took the target's detections beside its coasting primary and was confirmed
+                # under a new id, 3 px off): it keeps its id and takes the new track's state
+                log.debug("object %d found again by tentative track %d", owner.object_id, t.object_id)
+                _continue_with(owner, t, p.confirm_window)
+                continued[owner.object_id] = t
+                continue
             t.confirmed = True
             log.debug(
                 "object %d confirmed at (%.1f, %.1f): rms %.2f px, velocity (%.2f, %.2f) px/frame, %d background"
@@ -592,6 +631,26 @@ class ObjectTracker:
                 len(nbrs),
                 rel,
             )
+        if continued:
+            gone = {id(t) for t in continued.values()}
+            self._tracks = [t for t in self._tracks if id(t) not in gone]
+        return set(continued)
+
+    def _coasting_owner(self, t: TrackRecord, R: np.ndarray) -> TrackRecord | None:
+        """The confirmed coasting track whose gate holds the tentative track ``t`` about to be confirmed (the
+        nearest prediction, this frame's), or None."""
+        p = self.params
+        best, best_d = None, math.inf
+        for o in self._tracks:
+            if not o.confirmed or o.misses == 0:
+                continue
+            q = self._project(o.los, R)  # coasting: its line of sight is this frame's prediction
+            if q is None:
+                continue
+            d = math.hypot(q[0] - t.uv[0], q[1] - t.uv[1])
+            if d <= min(p.gate_px + p.gate_growth_px * o.misses, p.max_gate_px) and d < best_d:
+                best, best_d = o, d
+        return best
 
     def _moves_unlike_background(self, t: TrackRecord, R: np.ndarray) -> bool:
         """The background's motion is known (no: a clear sky) and the track's last ``confirm_window``
@@ -781,6 +840,42 @@ def _common_shift(puv, cuv, d, gate, held) -> np.ndarray | None:
         return None
     shift = np.median(cuv[idx[ok]] - puv[ok], axis=0)
     return shift if float(np.hypot(*shift)) <= COMMON_SHIFT_MAX_PX else None
+
+
+COAST_FIT_MIN = 6  # measured positions a coasting track's line is fitted on (fewer: its filter's rate)
+
+
+def _fitted_coast(history: list, k: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A confirmed track's line of sight on frame ``k`` and its rate per frame from a straight-line fit of its
+    ``history`` ((frame, los, u, v), the last measured frames), for it to coast on; None with fewer than
+    ``COAST_FIT_MIN`` positions.  The filter's rate follows its last few measurements, each with its own
+    frame's attitude error (RTK's white 0.05 deg, 0.67 px per axis): a second target coasting through
+    C3's crossing on it drifted off its object and took a noise point in its widened gate.  Over
+    ``confirm_window`` frames the fit's rate is off by ~0.04 px a frame under that error: 30 frames on, a median
+    1.7 px from the object against the filter's 4.4 (tested)."""
+    if len(history) < COAST_FIT_MIN:
+        return None
+    f = np.array([h[0] for h in history], dtype=np.float64)
+    z = np.array([h[1] for h in history], dtype=np.float64)
+    f -= f.mean()
+    var = float(f @ f)
+    if var <= 0.0:
+        return None
+    mean = z.mean(axis=0)
+    rate = (f @ (z - mean)) / var
+    los = unit_vector(mean + rate * (k - history[-1][0] + f[-1]))
+    return los, rate
+
+
+def _continue_with(o: TrackRecord, t: TrackRecord, window: int) -> None:
+    """The coasting confirmed track ``o`` takes the tentative track ``t``'s state and measured positions (its id,
+    hits and age go on)."""
+    o.los, o.rate, o.uv, o.bbox, o.score = t.los, t.rate, t.uv, t.bbox, t.score
+    o.hits += t.hits
+    o.misses = 0
+    o.aided_run, o.dim_hits = t.aided_run, o.dim_hits + t.dim_hits
+    o.history = list(t.history[-window:])
+    o.velocity_pxpf, o.fit_rms_px, o.difference = t.velocity_pxpf, t.fit_rms_px, t.difference
 
 
 def _merged_to_the_elder(
