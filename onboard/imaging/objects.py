@@ -450,6 +450,9 @@ class ObjectTracker:
             gate = np.minimum(
                 p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
             )
+            fresh = np.array([self._tracks[ti].hits == 1 and not self._tracks[ti].confirmed for ti in live])
+            if fresh.any():
+                gate = np.where(fresh, np.maximum(gate, p.initiation_gate_px), gate)
             held = [t.confirmed and t.misses == 0 for t in self._tracks]
             li, ci_a = np.nonzero(d <= gate[:, None])
             # confirmed tracks measured on the last frame first: a large bright object (a bird) now and
@@ -463,7 +466,7 @@ class ObjectTracker:
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
-        for _, _, ti, ci in pairs:
+        for _, dist, ti, ci in pairs:
             if ti in used_t or ci in used_c:
                 continue
             used_t.add(ti)
@@ -473,8 +476,14 @@ class ObjectTracker:
             pl = preds[ti][0]
             r = z - pl
             n = t.misses + 1
-            t.los = unit_vector(pl + p.alpha * r)
-            t.rate = t.rate + (p.beta / n) * r
+            if t.hits == 1 and not t.confirmed and dist > p.gate_px:
+                # its second hit, beyond a measured track's gate: a fast object, whose velocity is the two
+                # positions' (the filter's beta would take a dozen frames to learn it, each one out of the gate)
+                t.rate = (z - t.los) / n
+                t.los = z
+            else:
+                t.los = unit_vector(pl + p.alpha * r)
+                t.rate = t.rate + (p.beta / n) * r
             t.uv, t.bbox, t.score = (c.u_px, c.v_px), c.bbox, c.score
             t.hits += 1
             t.misses = 0

@@ -42,7 +42,8 @@ OBJECT_STATES = ("tentative", "confirmed", "coasting", "lost")
 @dataclass(frozen=True)
 class ObjectParams:
     """Track management (frames at the camera's rate, pixels).  ``gate_px`` association gate of a
-    measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``;
+    measured track, widened by ``gate_growth_px`` per coasted frame up to ``max_gate_px``; ``initiation_gate_px``
+    at least, a tentative track's with one hit (no velocity yet; the second hit sets it);
     ``alpha``, ``beta``: the filter's gains; ``confirm_hits``; ``tentative_misses``; ``coast_frames``;
     ``defect_every``: frames between defect-map updates; ``primary_hit_ratio``: the least fraction of
     its frames a track must have been measured on to be chosen as the primary; ``primary_radius_px``:
@@ -77,6 +78,10 @@ class ObjectParams:
     gate_px: float = 4.0
     gate_growth_px: float = 0.5
     max_gate_px: float = 12.0
+    # a track with one hit has no velocity yet: its gate holds an object moving up to this many px a frame, and a
+    # second hit beyond gate_px sets the velocity (two-point initiation; a bird near the camera on C3 seed 1 crosses
+    # 6.5 px a frame)
+    initiation_gate_px: float = 10.0
     alpha: float = 0.6
     beta: float = 0.15
     confirm_hits: int = 5
@@ -115,6 +120,11 @@ class ObjectParams:
         if not 3 <= self.confirm_in_window <= self.confirm_window:
             raise InputError(
                 f"ObjectParams 3 <= confirm_in_window <= confirm_window, got {self.confirm_in_window}, {self.confirm_window}"
+            )
+        if not 0 < self.gate_px <= self.max_gate_px or not self.initiation_gate_px > 0:
+            raise InputError(
+                "ObjectParams 0 < gate_px <= max_gate_px and initiation_gate_px > 0, got "
+                f"{self.gate_px}, {self.max_gate_px}, {self.initiation_gate_px}"
             )
         if self.aided_max_run_moving < self.aided_max_run:
             raise InputError(f"ObjectParams aided_max_run_moving < aided_max_run ({self.aided_max_run})")
