@@ -208,7 +208,7 @@ class ObjectTracker:
                 continue
             if puv is None:
                 continue
-            gate = min(p.gate_px + p.gate_growth_px * t.misses, p.max_gate_px)
+            gate = float(_gate(p, t.misses))
             if any(
                 math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate and all(o is t for o in ow)
                 for c, ow in zip(out, owners)
@@ -232,6 +232,9 @@ class ObjectTracker:
                 continue
             roi = point_candidates(
                 contrast[y0:y1, x0:x1],
+                # a coasting track's widened gate holds more noise peaks (12 px: 9 times a measured track's
+                # area; over C1-C5 25 of 41 aided re-finds after 2 or more misses lay off every object): the
+                # threshold rises with the gate's side
                 threshold[y0:y1, x0:x1] * np.float32(p.aided_threshold_factor * math.sqrt(gate / p.gate_px)),
                 self.clutter,
             )
@@ -414,9 +417,7 @@ class ObjectTracker:
         puv = np.array([pred[i] for i in live])
         cuv = np.array([(c.u_px, c.v_px) for c in cands])
         d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
-        gate = np.minimum(
-            p.gate_px + p.gate_growth_px * np.array([self._tracks[i].misses for i in live]), p.max_gate_px
-        )
+        gate = _gate(p, np.array([self._tracks[i].misses for i in live]))
         held = [self._tracks[i].confirmed and self._tracks[i].misses == 0 for i in live]
         shift = _common_shift(puv, cuv, d, gate, held)
         if shift is not None:
@@ -447,9 +448,7 @@ class ObjectTracker:
             puv_a = np.array([preds[ti][1] for ti in live])
             cuv = np.array([(c.u_px, c.v_px) for c in cands])
             d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
-            gate = np.minimum(
-                p.gate_px + p.gate_growth_px * np.array([self._tracks[ti].misses for ti in live]), p.max_gate_px
-            )
+            gate = _gate(p, np.array([self._tracks[ti].misses for ti in live]))
             fresh = np.array([self._tracks[ti].hits == 1 and not self._tracks[ti].confirmed for ti in live])
             if fresh.any():
                 gate = np.where(fresh, np.maximum(gate, p.initiation_gate_px), gate)
@@ -657,7 +656,7 @@ class ObjectTracker:
             if q is None:
                 continue
             d = math.hypot(q[0] - t.uv[0], q[1] - t.uv[1])
-            if d <= min(p.gate_px + p.gate_growth_px * o.misses, p.max_gate_px) and d < best_d:
+            if d <= float(_gate(p, o.misses)) and d < best_d:
                 best, best_d = o, d
         return best
 
@@ -849,6 +848,12 @@ def _common_shift(puv, cuv, d, gate, held) -> np.ndarray | None:
         return None
     shift = np.median(cuv[idx[ok]] - puv[ok], axis=0)
     return shift if float(np.hypot(*shift)) <= COMMON_SHIFT_MAX_PX else None
+
+
+def _gate(p: ObjectParams, misses):
+    """The association gate (px) of a track that missed ``misses`` frames (a number or an array of them):
+    ``gate_px`` widened by ``gate_growth_px`` per frame it coasted, up to ``max_gate_px``."""
+    return np.minimum(p.gate_px + p.gate_growth_px * misses, p.max_gate_px)
 
 
 COAST_FIT_MIN = 6  # measured positions a coasting track's line is fitted on (fewer: its filter's rate)

@@ -50,6 +50,20 @@ def _primary_over(sc, frames, rotations, from_k: int):
     return tr, primary, out.primary_id, off_px
 
 
+def _c3_under_rtk(seed: int, n: int):
+    """C3's first ``n`` frames of ``seed`` with the attitude the telemetry reports them with (the run's own RTK
+    draws, as `bench.imaging --scene` gives them): (scenario, frames, rotations)."""
+    from bench.imaging_scenes import reported_rotations
+
+    sc = load_scenario(scenarios_dir() / "C3.yaml")
+    duration = n / sc.frame_rate_hz
+    core = SimCore(sc, seed, duration_s=duration)
+    frames = [core.frame(k) for k in range(core.frame_count)]
+    R_rep, case = reported_rotations(sc, seed, duration, _truth_rotations(frames), None)
+    assert case == "RTK"
+    return sc, frames, R_rep
+
+
 def test_a_bird_crossing_the_primary_target_does_not_take_its_track():
     """C3 seed 3, frames 155-166: a bird (tracked since frame ~150) passes over the primary target. Their
     images merged on frame 163 nearer the bird's prediction; nearest-first association gave the merged
@@ -71,15 +85,7 @@ def test_the_primary_keeps_its_target_through_the_crossing_under_rtk_attitude_er
     merged image lay over 2 px from the primary's, nearest-first gave it to the second target's track and the
     primary coasted off its target for good (on target 40 % of the run). The frame's common offset, measured on
     the tracks it is unambiguous for (birds), is taken out before association: the primary keeps its target."""
-    from bench.imaging_scenes import reported_rotations
-
-    sc = load_scenario(scenarios_dir() / "C3.yaml")
-    n = 175
-    duration = n / sc.frame_rate_hz
-    core = SimCore(sc, 2, duration_s=duration)
-    frames = [core.frame(k) for k in range(core.frame_count)]
-    R_rep, case = reported_rotations(sc, 2, duration, _truth_rotations(frames), None)
-    assert case == "RTK"
+    sc, frames, R_rep = _c3_under_rtk(2, 175)
     _, primary, last, off_px = _primary_over(sc, frames, R_rep, 160)
     assert primary is not None and last == primary
     assert max(off_px) <= ON_TARGET_PX, f"the primary left the target: {[round(d, 1) for d in off_px]}"
@@ -93,15 +99,8 @@ def test_the_second_target_is_found_again_after_the_crossing_under_rtk_attitude_
     line fitted to its last positions, about predictions with the frame's common offset out, with an aided
     threshold that rises with its gate, and with the primary deblended while a coasting track lies in its
     light, the track finds its target again as the images part, under its own id."""
-    from bench.imaging_scenes import reported_rotations
-
-    sc = load_scenario(scenarios_dir() / "C3.yaml")
     n = 200
-    duration = n / sc.frame_rate_hz
-    core = SimCore(sc, 5, duration_s=duration)
-    frames = [core.frame(k) for k in range(core.frame_count)]
-    R_rep, case = reported_rotations(sc, 5, duration, _truth_rotations(frames), None)
-    assert case == "RTK"
+    sc, frames, R_rep = _c3_under_rtk(5, n)
     tr = ObjectTracker(sc.camera.intrinsics, frame_rate_hz=sc.frame_rate_hz, imaging=ImagingParams(chain="objects"))
     on_second: dict[int, int | None] = {}  # frame -> the confirmed track on the second target (not the primary)
     for k, (f, R) in enumerate(zip(frames, R_rep)):
