@@ -544,14 +544,23 @@ def main(argv: list[str]) -> None:
 
 def seeds_summary(name: str, chain: str, runs: list[tuple[int, dict]]) -> str:
     """One line over a scene's seeds for one chain: Pd per seed, how many reach the issue's 95 %, the
-    false tracks a minute at worst, HOTA's range."""
+    false tracks a minute at worst, HOTA's range, and the chain's CPU per frame: the median over every frame
+    of every seed beside the seeds' medians' range (when the runs carry their frames' times)."""
     pd = [s["pd"] for _, s in runs]
     hota = [s["HOTA"] for _, s in runs]
-    return (
+    line = (
         f"{name} {chain}, seeds {', '.join(str(k) for k, _ in runs)}: Pd {' / '.join(f'{x:.1f}' for x in pd)} %"
         f" (>= 95 % on {sum(x >= 95.0 for x in pd)} of {len(pd)}), false tracks/min at most"
         f" {max(s['false_per_min'] for _, s in runs):.1f}, HOTA {min(hota):.3f}-{max(hota):.3f}"
     )
+    frames = [ms for _, s in runs for ms in s.get("cpu_ms_frames", [])]
+    if frames:
+        per_seed = [s["cpu_ms_p50"] for _, s in runs]
+        line += (
+            f", CPU ms per frame p50 {float(np.median(frames)):.2f} over all {len(frames)} frames"
+            f" ({min(per_seed):.2f}-{max(per_seed):.2f} by seed)"
+        )
+    return line
 
 
 def _print_row(label: str, c: str, s: dict, a) -> None:

@@ -105,6 +105,18 @@ def test_seeds_summary_counts_the_seeds_that_reach_95_percent():
     line = seeds_summary("C2", "objects", runs)
     assert "seeds 0, 1, 4" in line and "Pd 96.3 / 70.1 / 95.0 %" in line
     assert ">= 95 % on 2 of 3" in line and "at most 6.0" in line and "HOTA 0.612-0.951" in line
+    assert "CPU" not in line  # no frames' times: no cost said
+
+
+def test_seeds_summary_gives_the_cpu_median_over_every_frame_beside_each_seeds():
+    from bench.imaging_scenes import seeds_summary
+
+    runs = [
+        (0, {"pd": 99.0, "HOTA": 0.8, "false_per_min": 0.0, "cpu_ms_frames": [1.0, 2.0, 9.0], "cpu_ms_p50": 2.0}),
+        (1, {"pd": 99.0, "HOTA": 0.8, "false_per_min": 0.0, "cpu_ms_frames": [3.0, 4.0, 4.5], "cpu_ms_p50": 4.0}),
+    ]
+    line = seeds_summary("C3", "objects", runs)
+    assert "CPU ms per frame p50 3.50 over all 6 frames (2.00-4.00 by seed)" in line
 
 
 def test_duration_flies_past_the_scenarios_end_and_caches_apart(tmp_path):
