@@ -435,6 +435,7 @@ def score_repeated(run: SceneRun, chain_cls, repeat: int, stages: bool = False) 
         ms = np.min(np.array([r["ms_frames"] for r in runs]), axis=0)
         cpu = np.min(np.array([r["cpu_ms_frames"] for r in runs]), axis=0)
         s.update(ms_p50=float(np.median(ms)), ms_p95=float(np.percentile(ms, 95)), cpu_ms_p50=float(np.median(cpu)))
+        s.update(ms_frames=ms.tolist(), cpu_ms_frames=cpu.tolist())  # the summary's median over seeds reads these
     if runs[0]["stage_ms_frames"]:
         names = list(dict.fromkeys(k for r in runs for f in r["stage_ms_frames"] for k in f))
         s["stages_ms"] = {}

@@ -171,3 +171,19 @@ def test_an_unknown_nav_noise_is_refused_naming_the_file(capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "noise_cases.yaml" in err and "--nav-noise" in err and "did you mean 'RTK'" in err
+
+
+def test_repeated_runs_keep_each_frames_least_time_for_the_summary(monkeypatch):
+    """With --repeat, every per-frame time the summary reads is the frame's least over the runs, as its median is."""
+    import bench.imaging_scenes as sc
+
+    runs = iter(
+        [
+            {"ms_frames": [3.0, 1.0, 5.0], "cpu_ms_frames": [3.0, 1.0, 5.0], "stage_ms_frames": []},
+            {"ms_frames": [2.0, 4.0, 1.0], "cpu_ms_frames": [2.0, 4.0, 1.0], "stage_ms_frames": []},
+        ]
+    )
+    monkeypatch.setattr(sc, "score", lambda run, chain: next(runs))
+    s = sc.score_repeated(None, lambda run, stages: None, 2)
+    assert s["cpu_ms_frames"] == [2.0, 1.0, 1.0] and s["ms_frames"] == [2.0, 1.0, 1.0]
+    assert s["cpu_ms_p50"] == 1.0
