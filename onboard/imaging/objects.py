@@ -410,19 +410,27 @@ class ObjectTracker:
         merged image lay over 2 px from the primary's prediction and went to the other target), and a
         coasting track's gate is searched about where its object is."""
         pred = self._predicted_px(R)
-        live = [i for i, q in enumerate(pred) if q is not None]
+        live, puv, cuv, d, gate = self._gated_distances(pred, cands)
         if len(live) < 2 or not cands:
             return
-        p = self.params
-        puv = np.array([pred[i] for i in live])
-        cuv = np.array([(c.u_px, c.v_px) for c in cands])
-        d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
-        gate = _gate(p, np.array([self._tracks[i].misses for i in live]))
         held = [self._tracks[i].confirmed and self._tracks[i].misses == 0 for i in live]
         shift = _common_shift(puv, cuv, d, gate, held)
         if shift is not None:
             du, dv = float(shift[0]), float(shift[1])
             self._pred_px = [None if q is None else (q[0] + du, q[1] + dv) for q in pred]
+
+    def _gated_distances(self, pixels: list[tuple[float, float] | None], cands: list[PointCandidate]):
+        """``(live, puv, cuv, d, gate)``: the indices of the tracks with a predicted pixel in ``pixels`` (one per
+        track), those pixels (n, 2), the candidates' (m, 2), every track-candidate distance at once (n, m; tens
+        of each on a cluttered frame) and each live track's gate (n,); the arrays None without a live track or a
+        candidate."""
+        live = [i for i, q in enumerate(pixels) if q is not None]
+        if not live or not cands:
+            return live, None, None, None, None
+        puv = np.array([pixels[i] for i in live])
+        cuv = np.array([(c.u_px, c.v_px) for c in cands])
+        d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
+        return live, puv, cuv, d, _gate(self.params, np.array([self._tracks[i].misses for i in live]))
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
@@ -442,13 +450,8 @@ class ObjectTracker:
         pixels = self._predicted_px(R)  # the frame's common offset taken out (_shift_predictions)
         preds = [(unit_vector(t.los + t.rate), q) for t, q in zip(self._tracks, pixels)]
         pairs: list[tuple[bool, float, int, int]] = []
-        live = [ti for ti, (_, puv) in enumerate(preds) if puv is not None]
-        if live and cands:
-            # every track-candidate distance at once (tens of each on a cluttered frame)
-            puv_a = np.array([preds[ti][1] for ti in live])
-            cuv = np.array([(c.u_px, c.v_px) for c in cands])
-            d = np.hypot(puv_a[:, 0:1] - cuv[None, :, 0], puv_a[:, 1:2] - cuv[None, :, 1])
-            gate = _gate(p, np.array([self._tracks[ti].misses for ti in live]))
+        live, _, _, d, gate = self._gated_distances(pixels, cands)
+        if d is not None and gate is not None:
             fresh = np.array([self._tracks[ti].hits == 1 and not self._tracks[ti].confirmed for ti in live])
             if fresh.any():
                 gate = np.where(fresh, np.maximum(gate, p.initiation_gate_px), gate)
