@@ -51,6 +51,18 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
+from onboard.imaging.objects_association import (
+    COAST_FIT_MIN,
+    OWNED_PX,
+    common_shift,
+    continue_with,
+    fitted_coast,
+    in_own_gate,
+    merged_to_the_elder,
+    owning_tracks,
+    relative_to_median,
+    track_gate,
+)
 from onboard.imaging.objects_detection import (
     DEBLEND_MIN_SCORE,
     DEBLEND_RADIUS_PX,
@@ -93,10 +105,6 @@ GREY16_PER_GREY8 = 257.0  # 65535 / 255
 DIFFERENCE_SEARCH_MAX = 8  # points tried a frame by the background difference while there is no primary (0.2 ms each)
 # a track is carried by its surroundings when the median of its last this many tests says so (SURROUND_MATCH_RATIO)
 SURROUND_TESTS_KEPT = 15
-# a candidate this near another held track's prediction is that track's object (C3's primary: within 1 px of
-# its prediction); a fainter one beside it, 3 px or more away, may be nearer the bright one's prediction than
-# its own coasting track's and is still its own
-OWNED_PX = 2.0
 
 
 class ObjectTracker:
@@ -191,7 +199,7 @@ class ObjectTracker:
         # the primary, coasted while the primary's candidate lay in its gate)
         pred = self._predicted_px(R)
         held = [(t, q) for t, q in zip(self._tracks, pred) if t.confirmed and t.misses == 0 and q is not None]
-        owners = [_owners(c.u_px, c.v_px, held) for c in out]  # mostly none
+        owners = [owning_tracks(c.u_px, c.v_px, held) for c in out]  # mostly none
         for t, puv in zip(self._tracks, pred):
             # a track held only by aided detections for long may have slid onto clutter: it must be
             # seen by the whole-frame threshold again, unless it still moves unlike its textured
@@ -208,7 +216,7 @@ class ObjectTracker:
                 continue
             if puv is None:
                 continue
-            gate = float(_gate(p, t.misses))
+            gate = float(track_gate(p, t.misses))
             if any(
                 math.hypot(c.u_px - puv[0], c.v_px - puv[1]) <= gate and all(o is t for o in ow)
                 for c, ow in zip(out, owners)
@@ -222,7 +230,7 @@ class ObjectTracker:
                 if best is not None:
                     self._difference_ids.add(id(best))
                     out.append(best)
-                    owners.append(_owners(best.u_px, best.v_px, held))
+                    owners.append(owning_tracks(best.u_px, best.v_px, held))
                 continue
             others = [q for o, q in held if o is not t]
             r = int(math.ceil(gate)) + 2
@@ -241,7 +249,7 @@ class ObjectTracker:
             best = None
             for c in roi:
                 u, v = c.u_px + x0, c.v_px + y0
-                if _in_own_gate(u, v, puv, gate, others) and (best is None or c.score > best.score):
+                if in_own_gate(u, v, puv, gate, others) and (best is None or c.score > best.score):
                     best = dataclasses.replace(
                         c, u_px=u, v_px=v, bbox=(c.bbox[0] + x0, c.bbox[1] + y0, c.bbox[2], c.bbox[3])
                     )
@@ -251,7 +259,7 @@ class ObjectTracker:
                     self._difference_ids.add(id(best))
             if best is not None:
                 out.append(best)
-                owners.append(_owners(best.u_px, best.v_px, held))
+                owners.append(owning_tracks(best.u_px, best.v_px, held))
         return out
 
     def _difference_search(self, found: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
@@ -405,7 +413,7 @@ class ObjectTracker:
         """Take the frame's common offset out of this frame's predictions (:meth:`_predicted_px`), for every
         use of them (deblending, aided detection, association).  Every prediction of a frame is made through
         that frame's attitude, so its error (RTK's white 0.05 deg: 0.67 px per axis) moves them all alike:
-        measured on the tracks it is unambiguous for (:func:`_common_shift`, on the whole-frame candidates)
+        measured on the tracks it is unambiguous for (:func:`~onboard.imaging.objects_association.common_shift`, on the whole-frame candidates)
         and taken out, two images about to merge are judged on their own geometry (C3 seed 2 under RTK: the
         merged image lay over 2 px from the primary's prediction and went to the other target), and a
         coasting track's gate is searched about where its object is."""
@@ -414,7 +422,7 @@ class ObjectTracker:
         if len(live) < 2 or not cands:
             return
         held = [self._tracks[i].confirmed and self._tracks[i].misses == 0 for i in live]
-        shift = _common_shift(puv, cuv, d, gate, held)
+        shift = common_shift(puv, cuv, d, gate, held)
         if shift is not None:
             du, dv = float(shift[0]), float(shift[1])
             self._pred_px = [None if q is None else (q[0] + du, q[1] + dv) for q in pred]
@@ -430,7 +438,7 @@ class ObjectTracker:
         puv = np.array([pixels[i] for i in live])
         cuv = np.array([(c.u_px, c.v_px) for c in cands])
         d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
-        return live, puv, cuv, d, _gate(self.params, np.array([self._tracks[i].misses for i in live]))
+        return live, puv, cuv, d, track_gate(self.params, np.array([self._tracks[i].misses for i in live]))
 
     def _tbd_candidates(
         self, tbd: TrackBeforeDetect, clean: np.ndarray, regular: list[PointCandidate], R: np.ndarray
@@ -464,7 +472,7 @@ class ObjectTracker:
             # only: its gate widens to 12 px, and first it would take a new object's candidate from the
             # tentative track on it
             pairs = sorted((not held[live[a]], float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
-            pairs = _merged_to_the_elder(pairs, held, [t.hits for t in self._tracks])
+            pairs = merged_to_the_elder(pairs, held, [t.hits for t in self._tracks])
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -509,7 +517,7 @@ class ObjectTracker:
                 # the attitude error's share); a track that turned or stopped coasts on its filter's rate,
                 # which has followed the manoeuvre (the line would carry it on the old course)
                 _, rms = fit_constant_velocity(self.K, [t.history], R, p.attitude_white_sigma_rad)
-                coast = _fitted_coast(t.history, self._frame_index) if rms[0] <= p.max_fit_rms_px else None
+                coast = fitted_coast(t.history, self._frame_index) if rms[0] <= p.max_fit_rms_px else None
                 if coast is not None:
                     t.los, t.rate = coast
             t.misses += 1
@@ -602,7 +610,7 @@ class ObjectTracker:
                     frame_bgs.append(mean_bg)
             rels = [math.hypot(tv[0] - b[0], tv[1] - b[1]) for b in frame_bgs]
             if len(nbrs) >= p.background_min_tracks:
-                rel_nbrs = _relative_to_median(tv, nbrs)
+                rel_nbrs = relative_to_median(tv, nbrs)
                 if (
                     len(nbrs) == 1
                     and rel_nbrs < p.min_relative_speed_pxpf
@@ -626,7 +634,7 @@ class ObjectTracker:
                 # tentative track took the target's detections beside its coasting primary and was confirmed
                 # under a new id, 3 px off): it keeps its id and takes the new track's state
                 log.debug("object %d found again by tentative track %d", owner.object_id, t.object_id)
-                _continue_with(owner, t, p.confirm_window)
+                continue_with(owner, t, p.confirm_window)
                 continued[owner.object_id] = t
                 continue
             t.confirmed = True
@@ -659,7 +667,7 @@ class ObjectTracker:
             if q is None:
                 continue
             d = math.hypot(q[0] - t.uv[0], q[1] - t.uv[1])
-            if d <= float(_gate(p, o.misses)) and d < best_d:
+            if d <= float(track_gate(p, o.misses)) and d < best_d:
                 best, best_d = o, d
         return best
 
@@ -833,104 +841,6 @@ class ObjectTracker:
 
 AIDED_FIT_TRIM = 2  # positions the aided run's motion test may leave out (its worst, one at a time) ...
 AIDED_FIT_MIN_KEPT = 8  # ... keeping at least these
-
-
-COMMON_SHIFT_MAX_PX = 3.0  # ~3 sigma of RTK's frame-to-frame attitude error in the image: more is not that
-
-
-def _common_shift(puv, cuv, d, gate, held) -> np.ndarray | None:
-    """The frame's common offset (px) of measurements ``cuv`` (m, 2) from predictions ``puv`` (n, 2), ``d`` their
-    distances, ``gate`` (n,) each prediction's gate, ``held`` (n,) the confirmed tracks measured on the frame
-    before: the median, per axis, over the held tracks with exactly one candidate in their gate that lies in
-    no other track's gate; None with fewer than two such tracks (one track's own innovation is not the
-    frame's) or an offset over COMMON_SHIFT_MAX_PX."""
-    inside = d <= gate[:, None]
-    idx = np.argmax(inside, axis=1)  # each track's candidate, where it has exactly one
-    ok = np.asarray(held, dtype=bool) & (inside.sum(axis=1) == 1) & (inside.sum(axis=0)[idx] == 1)
-    if int(ok.sum()) < 2:
-        return None
-    shift = np.median(cuv[idx[ok]] - puv[ok], axis=0)
-    return shift if float(np.hypot(*shift)) <= COMMON_SHIFT_MAX_PX else None
-
-
-def _gate(p: ObjectParams, misses):
-    """The association gate (px) of a track that missed ``misses`` frames (a number or an array of them):
-    ``gate_px`` widened by ``gate_growth_px`` per frame it coasted, up to ``max_gate_px``."""
-    return np.minimum(p.gate_px + p.gate_growth_px * misses, p.max_gate_px)
-
-
-COAST_FIT_MIN = 6  # measured positions a coasting track's line is fitted on (fewer: its filter's rate)
-
-
-def _fitted_coast(history: list, k: int) -> tuple[np.ndarray, np.ndarray] | None:
-    """A confirmed track's line of sight on frame ``k`` and its rate per frame from a straight-line fit of its
-    ``history`` ((frame, los, u, v), the last measured frames), for it to coast on; None with fewer than
-    ``COAST_FIT_MIN`` positions.  The filter's rate follows its last few measurements, each with its own
-    frame's attitude error (RTK's white 0.05 deg, 0.67 px per axis): a second target coasting through
-    C3's crossing on it drifted off its object and took a noise point in its widened gate.  Over
-    ``confirm_window`` frames the fit's rate is off by ~0.04 px a frame under that error: 30 frames on, a median
-    1.7 px from the object against the filter's 4.4 (tested)."""
-    if len(history) < COAST_FIT_MIN:
-        return None
-    f = np.array([h[0] for h in history], dtype=np.float64)
-    z = np.array([h[1] for h in history], dtype=np.float64)
-    f -= f.mean()
-    var = float(f @ f)
-    if var <= 0.0:
-        return None
-    mean = z.mean(axis=0)
-    rate = (f @ (z - mean)) / var
-    los = unit_vector(mean + rate * (k - history[-1][0] + f[-1]))
-    return los, rate
-
-
-def _continue_with(o: TrackRecord, t: TrackRecord, window: int) -> None:
-    """The coasting confirmed track ``o`` takes the tentative track ``t``'s state and measured positions (its id,
-    hits and age go on)."""
-    o.los, o.rate, o.uv, o.bbox, o.score = t.los, t.rate, t.uv, t.bbox, t.score
-    o.hits += t.hits
-    o.misses = 0
-    o.aided_run, o.dim_hits = t.aided_run, o.dim_hits + t.dim_hits
-    o.history = list(t.history[-window:])
-    o.velocity_pxpf, o.fit_rms_px, o.difference = t.velocity_pxpf, t.fit_rms_px, t.difference
-
-
-def _merged_to_the_elder(
-    pairs: list[tuple[bool, float, int, int]], held: list[bool], hits: list[int]
-) -> list[tuple[bool, float, int, int]]:
-    """``pairs`` (not held, distance, track, candidate) without those that would hand a merged image to the
-    younger track: a candidate within ``OWNED_PX`` of two or more held tracks' predictions is the image of
-    their objects merged, and only the track with the most hits may take it; the others coast on their own
-    rates until the images part.  Nearest-first gave it to whichever prediction lay nearer, so a bird crossing
-    the primary target took the target's track over its own rate while the primary coasted into the bird's
-    (C3 seed 3, frames 162-166: the primary on the target 48 % of the frames)."""
-    claims: dict[int, list[int]] = {}
-    for _, d, ti, ci in pairs:
-        if held[ti] and d <= OWNED_PX:
-            claims.setdefault(ci, []).append(ti)
-    drop: set[tuple[int, int]] = set()
-    for ci, tis in claims.items():
-        if len(tis) > 1:
-            elder = max(tis, key=lambda ti: (hits[ti], -ti))
-            drop.update((ti, ci) for ti in tis if ti != elder)
-    return [q for q in pairs if (q[2], q[3]) not in drop] if drop else pairs
-
-
-def _owners(u: float, v: float, held: list[tuple[TrackRecord, tuple[float, float]]]) -> list[TrackRecord]:
-    """The tracks of ``held`` (track, predicted pixel) whose prediction lies within ``OWNED_PX`` of (u, v)."""
-    return [t for t, q in held if math.hypot(u - q[0], v - q[1]) <= OWNED_PX]
-
-
-def _in_own_gate(u: float, v: float, puv: tuple[float, float], gate: float, others: list[tuple[float, float]]) -> bool:
-    """(u, v) lies within ``gate`` of the prediction ``puv`` and farther than ``OWNED_PX`` from each of
-    ``others`` (px)."""
-    return math.hypot(u - puv[0], v - puv[1]) <= gate and all(math.hypot(u - q[0], v - q[1]) > OWNED_PX for q in others)
-
-
-def _relative_to_median(v_pxpf: tuple[float, float], tracks: list[TrackRecord]) -> float:
-    """|v - the median velocity of ``tracks``| (px/frame)."""
-    m = np.median(np.asarray([o.velocity_pxpf for o in tracks]), axis=0)
-    return math.hypot(v_pxpf[0] - float(m[0]), v_pxpf[1] - float(m[1]))
 
 
 class ObjectChain:

@@ -140,7 +140,7 @@ def test_a_merged_image_goes_to_the_held_track_with_the_most_hits():
     """Candidate 0 lies within OWNED_PX of held tracks 0 (40 hits) and 1 (12 hits), nearer track 1: only
     track 0 may take it; candidate 1, near track 1 alone, stays its own; a coasting track (2) and a held
     one beyond OWNED_PX (3) claim nothing and lose nothing."""
-    from onboard.imaging.objects import OWNED_PX, _merged_to_the_elder
+    from onboard.imaging.objects_association import OWNED_PX, merged_to_the_elder
 
     pairs = sorted(
         [
@@ -153,11 +153,11 @@ def test_a_merged_image_goes_to_the_held_track_with_the_most_hits():
     )
     held = [True, True, False, True]
     hits = [40, 12, 90, 99]
-    kept = _merged_to_the_elder(pairs, held, hits)
+    kept = merged_to_the_elder(pairs, held, hits)
     assert (False, 0.4, 1, 0) not in kept
     assert kept == [q for q in pairs if q != (False, 0.4, 1, 0)]
     # no contest (one held track near each candidate): the pairs as they were
-    assert _merged_to_the_elder(pairs[1:], held, hits) == pairs[1:]
+    assert merged_to_the_elder(pairs[1:], held, hits) == pairs[1:]
 
 
 @pytest.mark.parametrize(

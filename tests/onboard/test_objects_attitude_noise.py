@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from onboard.core.frames import PinholeIntrinsics, quat_from_rotvec, rotmat_from_quat
-from onboard.imaging.objects import COAST_FIT_MIN, _fitted_coast
+from onboard.imaging.objects_association import COAST_FIT_MIN, fitted_coast
 from onboard.imaging.objects_model import attitude_jitter_px2, fit_constant_velocity, los_from_pixel
 
 K = PinholeIntrinsics(764.7, 764.7, 320.0, 256.0, 640, 512)
@@ -102,11 +102,11 @@ def test_the_daemon_gives_the_chain_its_configured_attitude_noise():
 
 
 def _shift_inputs(preds, cands, held, gate_px=4.0):
-    from onboard.imaging.objects import _common_shift
+    from onboard.imaging.objects_association import common_shift
 
     puv, cuv = np.array(preds, float), np.array(cands, float)
     d = np.hypot(puv[:, 0:1] - cuv[None, :, 0], puv[:, 1:2] - cuv[None, :, 1])
-    return _common_shift(puv, cuv, d, np.full(len(puv), gate_px), held)
+    return common_shift(puv, cuv, d, np.full(len(puv), gate_px), held)
 
 
 def test_the_frames_common_offset_is_the_median_over_unambiguous_held_tracks():
@@ -139,11 +139,11 @@ def test_a_coasting_track_follows_the_line_fitted_to_its_positions(a, b, n, ahea
     frames = [100 + i + (i > 2) for i in range(n)]  # a missed frame inside
     history = [(f, base + rate * f, 0.0, 0.0) for f in frames]
     k = frames[-1] + ahead
-    los, fitted_rate = _fitted_coast(history, k)
+    los, fitted_rate = fitted_coast(history, k)
     expected = base + rate * k
     np.testing.assert_allclose(los, expected / np.linalg.norm(expected), atol=1e-9)
     np.testing.assert_allclose(fitted_rate, rate, atol=1e-10)
-    assert _fitted_coast(history[: COAST_FIT_MIN - 1], k) is None
+    assert fitted_coast(history[: COAST_FIT_MIN - 1], k) is None
 
 
 def test_the_fitted_coast_drifts_less_than_the_filters_rate_under_the_attitude_error():
@@ -167,7 +167,7 @@ def test_the_fitted_coast_drifts_less_than_the_filters_rate_under_the_attitude_e
                 los, rate = pred + alpha * (zm - pred), rate + beta * (zm - pred)
         k = 14 + ahead
         truth = los_from_pixel(K, 300.0 + 0.5 * k, 250.0, np.eye(3))
-        coast, _ = _fitted_coast(history, k)
+        coast, _ = fitted_coast(history, k)
         filt = los + ahead * rate
         err_fit.append(float(np.linalg.norm(coast - truth)) * K.fx_px)
         err_filter.append(float(np.linalg.norm(filt / np.linalg.norm(filt) - truth)) * K.fx_px)
