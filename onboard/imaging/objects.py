@@ -189,7 +189,7 @@ class ObjectTracker:
         dim or flickering object dips below the whole-frame threshold.  Candidates are added to ``cands``
         (a new list)."""
         p = self.params
-        contrast, threshold = self.detector.contrast, self.detector.threshold
+        contrast, threshold = self.detector.contrast, self.detector.lowered_base
         if contrast is None or threshold is None or p.aided_threshold_factor >= 1.0:
             return cands
         h, w = contrast.shape
@@ -274,7 +274,7 @@ class ObjectTracker:
         and 0.53 of it), while the difference, registered on the point's surroundings 8 frames back, cancels
         what moves with the ground; on a clear sky the whole-frame threshold is the detector."""
         p, K = self.params, self.K
-        contrast, threshold = self.detector.contrast, self.detector.threshold
+        contrast, threshold = self.detector.contrast, self.detector.lowered_base
         if contrast is None or threshold is None:
             return []
         h, w = contrast.shape

@@ -30,6 +30,7 @@ from onboard.imaging.clutter import (
     cfar_threshold,
     column_offsets,
     difference_peak,
+    median_window_noise,
     noise_cells,
     noise_window_cells,
     point_candidates,
@@ -91,6 +92,7 @@ class ObjectDetector:
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
+        self._mean_threshold: np.ndarray | None = None  # lowered_base's (coarse until first asked for)
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
         self._defects: DefectMap | None = None
         self._window: np.ndarray | None = None
@@ -167,25 +169,48 @@ class ObjectDetector:
         cells = noise_cells(img, NOISE_FACTOR, box3, sc)
         window_cells = noise_window_cells(p.noise_window_px, NOISE_FACTOR)
         # the window's mean deviation: the texture measure the tracker's tests and the defect level read
-        noise = window_noise(cells, window_cells)
-        self._noise = noise
+        mean = window_noise(cells, window_cells)
+        self._noise = mean
         if p.quiet_block_px > 0 and self.acquiring:
-            noise = self._quiet_noise(cells, noise, window_cells)
+            mean = self._quiet_noise(cells, mean, window_cells)
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(self._noise))
         cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction)
+        mean_threshold = cfar_threshold(mean, p.threshold_sigma, p.min_threshold_lsb, cap)
+        noise = mean
+        if p.median_noise_floor < 1.0:
+            # the whole-frame threshold's: the median where an edge or a roof in part of the window lifts the mean
+            median = median_window_noise(cells, window_cells)
+            np.maximum(median, self._noise * np.float32(p.median_noise_floor), out=median)
+            noise = np.minimum(median, mean, out=median)
         # the box mean is done with: its array takes the threshold (one distinct full-size array less)
         threshold = cv2.resize(
-            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
+            mean_threshold if noise is mean else cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
             (w, h),
             dst=sc.get("threshold", img.shape) if box3 is None else box3,
             interpolation=cv2.INTER_LINEAR,
         )
         self.stages.lap("noise, threshold")
         self.contrast, self.threshold = contrast, threshold
+        self._mean_threshold = None if noise is mean else mean_threshold  # None: the threshold is the mean's
         cands = point_candidates(contrast, threshold, p, sc)
         self.stages.lap("candidates")
         return cands
+
+    @property
+    def lowered_base(self) -> np.ndarray | None:
+        """The CFAR threshold from the noise window's mean alone (full size; the last frame's), which the searches
+        lowered by a track's or the axis' prior scale (track-aided detection, the difference search).  The
+        whole-frame threshold may take the window's median (``ClutterParams.median_noise_floor``), lower beside
+        an edge or a roof; lowered again inside a held track's gate, it let the track slide onto that texture
+        (C2 seed 3 in the loop over 30 s: the primary carried 20 px off its target by the lowered searches'
+        detections over field edges, frames 429-443; with the mean's there, on its target as before)."""
+        if self._mean_threshold is None or self.threshold is None:
+            return self.threshold
+        if self._mean_threshold.shape != self.threshold.shape:  # the coarse grid's, until first asked for
+            h, w = self.threshold.shape
+            self._mean_threshold = cv2.resize(self._mean_threshold, (w, h), interpolation=cv2.INTER_LINEAR)
+        return self._mean_threshold
 
     def _quiet_noise(self, cells: np.ndarray, noise: np.ndarray, window_cells: int) -> np.ndarray:
         """Until the first primary (``acquiring``), the CFAR threshold's noise where the gimbal points:

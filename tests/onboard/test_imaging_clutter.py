@@ -112,6 +112,36 @@ def test_point_contrast_at_most_a_tenth_of_a_straight_edge_on_a_plane(gx, gy, st
     assert float(c.max()) <= STAIR_FRACTION * step + STAIR_SLOPE * slope + FLAT_TOL_GREY * (1 + slope + step)
 
 
+@pytest.mark.parametrize("side", ["left", "right", "top", "bottom"])
+def test_no_point_contrast_where_the_surround_leaves_the_frame(side):
+    """A roof cut by the frame's edge, its surround beyond the edge replicated from itself, is no point: the
+    contrast is 0 within guard_px + cell_px // 2 of every edge; a point just inside that band keeps its own."""
+    p = ClutterParams()
+    band = p.guard_px + p.cell_px // 2
+    img = np.full((H_PX, W_PX), 50.0)
+    inner = band + 3.0  # px from the edge
+    at = {
+        "left": (1.5, H_PX / 2),
+        "right": (W_PX - 1.5, H_PX / 2),
+        "top": (W_PX / 2, 1.5),
+        "bottom": (W_PX / 2, H_PX - 1.5),
+    }
+    inside = {
+        "left": (inner, H_PX / 2 + 20),
+        "right": (W_PX - inner, H_PX / 2 + 20),
+        "top": (W_PX / 2 + 20, inner),
+        "bottom": (W_PX / 2 + 20, H_PX - inner),
+    }
+    _blob(img, *at[side], 30.0)
+    _blob(img, *inside[side], 30.0)
+    c = point_contrast(img.astype(np.float32), p)
+    edge = np.ones_like(c, dtype=bool)
+    edge[band:-band, band:-band] = False
+    assert np.all(c[edge] == 0.0)
+    u, v = inside[side]
+    assert c[int(v) - 1 : int(v) + 2, int(u) - 1 : int(u) + 2].max() > 10.0
+
+
 def test_point_contrast_keeps_a_point_and_drops_a_small_cloud_puff():
     img = np.full((H_PX, W_PX), 50.0)
     img[:, :20] = 70.0  # a warm cloud on the left

@@ -23,6 +23,7 @@ from onboard.imaging.clutter import (
     column_offsets,
     isolated_outliers,
     local_noise_coarse,
+    median_window_noise,
     noise_cells,
     point_candidates,
     point_contrast,
@@ -131,9 +132,11 @@ def test_detector_results_equal_the_functions_on_fresh_arrays(frames, acquiring)
         assert det.clean is not None and det.contrast is not None and det.threshold is not None
         clean = det.clean.copy()
         assert np.array_equal(det.contrast, point_contrast(clean, p))
-        noise = local_noise_coarse(clean, p.noise_window_px, 4, full=False)
+        mean = local_noise_coarse(clean, p.noise_window_px, 4, full=False)
+        cells, window_cells = noise_cells(clean, 4), p.noise_window_px // 4 | 1
+        noise = np.clip(median_window_noise(cells, window_cells), mean * np.float32(p.median_noise_floor), mean)
         if acquiring:
-            noise = det._quiet_noise(noise_cells(clean, 4), noise, p.noise_window_px // 4 | 1)
+            noise = det._quiet_noise(cells, noise, window_cells)
         threshold = cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb)
         assert np.array_equal(det.threshold, cv2.resize(threshold, (W_PX, H_PX), interpolation=cv2.INTER_LINEAR))
         assert cands == point_candidates(det.contrast, det.threshold, p)
