@@ -189,8 +189,8 @@ class ObjectTracker:
         dim or flickering object dips below the whole-frame threshold.  Candidates are added to ``cands``
         (a new list)."""
         p = self.params
-        contrast, threshold = self.detector.contrast, self.detector.lowered_base
-        if contrast is None or threshold is None or p.aided_threshold_factor >= 1.0:
+        contrast = self.detector.contrast
+        if contrast is None or self.detector.threshold is None or p.aided_threshold_factor >= 1.0:
             return cands
         h, w = contrast.shape
         out = list(cands)
@@ -238,6 +238,8 @@ class ObjectTracker:
             x1, y1 = min(int(puv[0]) + r + 1, w), min(int(puv[1]) + r + 1, h)
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
+            threshold = self.detector.lowered_base  # made when first asked for on a frame
+            assert threshold is not None
             roi = point_candidates(
                 contrast[y0:y1, x0:x1],
                 # a coasting track's widened gate holds more noise peaks (12 px: 9 times a measured track's

@@ -92,7 +92,8 @@ class ObjectDetector:
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
-        self._mean_threshold: np.ndarray | None = None  # lowered_base's (coarse until first asked for)
+        self._mean_noise: tuple[np.ndarray, np.ndarray | None] | None = None  # lowered_base's noise and cap (coarse)
+        self._mean_threshold: np.ndarray | None = None  # lowered_base's, once asked for on this frame
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
         self._defects: DefectMap | None = None
         self._window: np.ndarray | None = None
@@ -176,7 +177,6 @@ class ObjectDetector:
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(self._noise))
         cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction)
-        mean_threshold = cfar_threshold(mean, p.threshold_sigma, p.min_threshold_lsb, cap)
         noise = mean
         if p.median_noise_floor < 1.0:
             # the whole-frame threshold's: the median where an edge or a roof in part of the window lifts the mean
@@ -185,14 +185,16 @@ class ObjectDetector:
             noise = np.minimum(median, mean, out=median)
         # the box mean is done with: its array takes the threshold (one distinct full-size array less)
         threshold = cv2.resize(
-            mean_threshold if noise is mean else cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
+            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
             (w, h),
             dst=sc.get("threshold", img.shape) if box3 is None else box3,
             interpolation=cv2.INTER_LINEAR,
         )
         self.stages.lap("noise, threshold")
         self.contrast, self.threshold = contrast, threshold
-        self._mean_threshold = None if noise is mean else mean_threshold  # None: the threshold is the mean's
+        # lowered_base's inputs, made into a threshold only when a search asks (None: the threshold is the mean's)
+        self._mean_noise = None if noise is mean else (mean, cap)
+        self._mean_threshold = None
         cands = point_candidates(contrast, threshold, p, sc)
         self.stages.lap("candidates")
         return cands
@@ -205,11 +207,14 @@ class ObjectDetector:
         an edge or a roof; lowered again inside a held track's gate, it let the track slide onto that texture
         (C2 seed 3 in the loop over 30 s: the primary carried 20 px off its target by the lowered searches'
         detections over field edges, frames 429-443; with the mean's there, on its target as before)."""
-        if self._mean_threshold is None or self.threshold is None:
+        if self._mean_noise is None or self.threshold is None:
             return self.threshold
-        if self._mean_threshold.shape != self.threshold.shape:  # the coarse grid's, until first asked for
+        if self._mean_threshold is None:
+            mean, cap = self._mean_noise
+            c = self.clutter
             h, w = self.threshold.shape
-            self._mean_threshold = cv2.resize(self._mean_threshold, (w, h), interpolation=cv2.INTER_LINEAR)
+            coarse = cfar_threshold(mean, c.threshold_sigma, c.min_threshold_lsb, cap)
+            self._mean_threshold = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
         return self._mean_threshold
 
     def _quiet_noise(self, cells: np.ndarray, noise: np.ndarray, window_cells: int) -> np.ndarray:
