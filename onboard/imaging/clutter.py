@@ -25,11 +25,12 @@ input's units, pixel indices ``(row i, column j)``, the frames.py pixel centre o
    TAES 19, 608).  The threshold takes the window's median deviation where that is lower, down to
    ``median_noise_floor`` of the mean (:func:`median_window_noise`; an order-statistic CFAR, Rohling's
    OS-CFAR in the same paper): a cloud edge or a roof in a few of the window's cells lifts the mean but
-   not the median, and a bird over the clear sky beside it stays over its threshold.  Until the
-   tracker's first primary, where the gimbal points, the threshold's noise is at most that of the window's quietest ``quiet_block_px`` square (:func:`quietest_block_noise`): a
-   roof or a warmer field filling part of the window lifts the window's mean deviation (C2 seed 1:
-   3.5-4.1 grey thresholds over the fields its target crosses at 1-2 grey) but not that of the ground
-   beside it.  Floored at ``min_threshold_lsb`` (8-bit quantisation leaves a flat sky noiseless).
+   not the median, and a bird over the clear sky beside it stays over its threshold (the searches that
+   lower the threshold by a track's prior keep the mean's).  Until the tracker's first primary, where the
+   gimbal points, the threshold's noise is at most that of the window's quietest ``quiet_block_px`` square
+   (:func:`quietest_block_noise`): a roof or a warmer field filling part of the window lifts the window's
+   mean deviation (C2 seed 1: 3.5-4.1 grey thresholds over the fields its target crosses at 1-2 grey) but
+   not that of the ground beside it.  Floored at ``min_threshold_lsb`` (8-bit quantisation leaves a flat sky noiseless).
    Capped at ``two_level_cap_lsb`` where the ground quantises to two adjacent grey levels
    (:func:`two_level_cap`): a sensor noise well under one level that straddles a level boundary
    toggles pixels between the two, which the mean absolute deviation reads as ~0.45 grey of noise

@@ -183,11 +183,11 @@ class ObjectTracker:
         """Track-aided detection: inside the gate of each confirmed track (measured or coasting), and of
         each tentative one with ``confirm_hits`` hits for at most ``aided_tentative_max_run`` frames in a
         row, that no candidate falls in, the strongest component of the point contrast above
-        ``aided_threshold_factor`` times the CFAR threshold (a confirmed track's, failing that, the
-        background difference).  Where an object is already known the prior is strong and a lower
-        threshold costs few false alarms (a gate is ~0.1 % of the frame); it bridges the frames where a
-        dim or flickering object dips below the whole-frame threshold.  Candidates are added to ``cands``
-        (a new list)."""
+        ``aided_threshold_factor`` times the window mean's CFAR threshold (:attr:`ObjectDetector.lowered_base`;
+        a confirmed track's, failing that, the background difference).  Where an object is already known the
+        prior is strong and a lower threshold costs few false alarms (a gate is ~0.1 % of the frame); it
+        bridges the frames where a dim or flickering object dips below the whole-frame threshold.  Candidates
+        are added to ``cands`` (a new list)."""
         p = self.params
         contrast = self.detector.contrast
         if contrast is None or self.detector.threshold is None or p.aided_threshold_factor >= 1.0:
@@ -267,7 +267,7 @@ class ObjectTracker:
     def _difference_search(self, found: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
         """While there is no primary target: the background difference as a detector where the gimbal points.
         Of the points within ``primary_max_off_axis_rad`` of the optical axis whose point contrast is over
-        ``aided_threshold_factor`` times the CFAR threshold but under it, none within ``gate_px`` of a
+        ``aided_threshold_factor`` times the window mean's CFAR threshold but under it, none within ``gate_px`` of a
         candidate already found nor with a confirmed track in its square, on texture, the
         ``DIFFERENCE_SEARCH_MAX`` strongest are tried (:meth:`ObjectDetector.difference_candidate`, 5 of its
         own sigmas within ``DIFFERENCE_GATE_PX`` of the point); what it finds is a candidate like any (it may
@@ -429,6 +429,21 @@ class ObjectTracker:
             du, dv = float(shift[0]), float(shift[1])
             self._pred_px = [None if q is None else (q[0] + du, q[1] + dv) for q in pred]
 
+    def _two_point_px(
+        self, t: TrackRecord, q_filter: tuple[float, float] | None, R: np.ndarray
+    ) -> tuple[float, float] | None:
+        """Where ``t``'s last two measured lines of sight, extrapolated at constant velocity, put it on this frame:
+        moved from its filter prediction ``q_filter`` (the frame's common offset taken out) by the difference of
+        the two projections through ``R`` (None: either behind the camera)."""
+        (f1, z1, *_), (f2, z2, *_) = t.history[-2:]
+        if q_filter is None or f2 <= f1:
+            return None
+        extrapolated = self._project(unit_vector(z2 + (z2 - z1) * ((self._frame_index - f2) / (f2 - f1))), R)
+        filtered = self._project(unit_vector(t.los + t.rate), R)
+        if extrapolated is None or filtered is None:
+            return None
+        return q_filter[0] + extrapolated[0] - filtered[0], q_filter[1] + extrapolated[1] - filtered[1]
+
     def _gated_distances(self, pixels: list[tuple[float, float] | None], cands: list[PointCandidate]):
         """``(live, puv, cuv, d, gate)``: the indices of the tracks with a predicted pixel in ``pixels`` (one per
         track), those pixels (n, 2), the candidates' (m, 2), every track-candidate distance at once (n, m; tens
@@ -460,8 +475,9 @@ class ObjectTracker:
         pixels = self._predicted_px(R)  # the frame's common offset taken out (_shift_predictions)
         preds = [(unit_vector(t.los + t.rate), q) for t, q in zip(self._tracks, pixels)]
         pairs: list[tuple[bool, float, int, int]] = []
-        live, _, _, d, gate = self._gated_distances(pixels, cands)
-        if d is not None and gate is not None:
+        two_point: set[tuple[int, int]] = set()  # (track, candidate) pairs found about a two-point extrapolation
+        live, _, cuv, d, gate = self._gated_distances(pixels, cands)
+        if d is not None and gate is not None and cuv is not None:
             fresh = np.array([self._tracks[ti].hits == 1 and not self._tracks[ti].confirmed for ti in live])
             if fresh.any():
                 gate = np.where(fresh, np.maximum(gate, p.initiation_gate_px), gate)
@@ -475,6 +491,26 @@ class ObjectTracker:
             # tentative track on it
             pairs = sorted((not held[live[a]], float(d[a, b]), live[a], int(b)) for a, b in zip(li, ci_a))
             pairs = merged_to_the_elder(pairs, held, [t.hits for t in self._tracks])
+            # a tentative track with two hits and nothing in its gate: its third is searched about its two positions'
+            # extrapolation.  A second hit 3-4 px on, inside the gate, gets the filter's velocity, a fraction of
+            # the object's, and the third then falls just beyond the gate: objects at 3.5-3.9 px a frame were
+            # never confirmed (a new track every two frames; C3 seed 3's bird entering the frame at 3 px a frame
+            # missed for 25 frames).  Only where the filter's gate is empty, so a slow object's association, and
+            # the attitude jitter its two positions carry, are as before
+            gated = set(li.tolist())
+            for a, ti in enumerate(live):
+                t = self._tracks[ti]
+                if t.confirmed or t.hits != 2 or a in gated or len(t.history) < 2:
+                    continue
+                q = self._two_point_px(t, pixels[ti], R)
+                if q is None:
+                    continue
+                dd = np.hypot(cuv[:, 0] - q[0], cuv[:, 1] - q[1])
+                for ci in np.flatnonzero(dd <= p.gate_px).tolist():
+                    pairs.append((True, float(dd[ci]), ti, ci))
+                    two_point.add((ti, ci))
+            if two_point:
+                pairs.sort()
         used_t: set[int] = set()
         used_c: set[int] = set()
         measured: set[int] = set()
@@ -488,7 +524,11 @@ class ObjectTracker:
             pl = preds[ti][0]
             r = z - pl
             n = t.misses + 1
-            if t.hits == 1 and not t.confirmed and dist > p.gate_px:
+            if (ti, ci) in two_point:
+                f2, z2 = t.history[-1][0], t.history[-1][1]
+                t.rate = (z - z2) / max(self._frame_index - f2, 1)
+                t.los = z
+            elif t.hits == 1 and not t.confirmed and dist > p.gate_px:
                 # its second hit, beyond a measured track's gate: a fast object, whose velocity is the two
                 # positions' (the filter's beta would take a dozen frames to learn it, each one out of the gate)
                 t.rate = (z - t.los) / n

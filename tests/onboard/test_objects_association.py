@@ -161,7 +161,8 @@ def test_a_merged_image_goes_to_the_held_track_with_the_most_hits():
 
 
 @pytest.mark.parametrize(
-    "speed_pxpf, initiation_gate_px, confirmed", [(6.5, 10.0, True), (6.5, 4.0, False), (0.3, 10.0, True)]
+    "speed_pxpf, initiation_gate_px, confirmed",
+    [(6.5, 10.0, True), (6.5, 4.0, False), (0.3, 10.0, True), (3.5, 10.0, True), (3.9, 10.0, True)],
 )
 def test_a_fast_object_is_confirmed_by_two_point_initiation(speed_pxpf, initiation_gate_px, confirmed):
     """An object crossing the frame at 6.5 px a frame (a bird near the camera, C3 seed 1 over 30 s): a new track's
@@ -169,7 +170,10 @@ def test_a_fast_object_is_confirmed_by_two_point_initiation(speed_pxpf, initiati
     started a new track that was never confirmed. A track with one hit is now searched within
     ``initiation_gate_px``, and a second hit beyond the 4 px gate sets its velocity (nearer, the filter's update
     as before: a slow object's two-point velocity carries the attitude error's jitter): the object is confirmed
-    on the 12th frame that can (frame 11), under one id. A slow object is confirmed as before."""
+    on the 12th frame that can (frame 11), under one id. A slow object is confirmed as before. At 3.5-3.9 px a
+    frame the second hit falls inside the gate and gets the filter's velocity, a fraction of the object's, and the
+    third fell just beyond the gate, for a new track every two frames: a tentative track with two hits and nothing
+    in its gate is now searched about its two positions' extrapolation."""
     rng = np.random.default_rng(26)
     tr = ObjectTracker(K, params=ObjectParams(initiation_gate_px=initiation_gate_px))
     ids = []
