@@ -267,8 +267,8 @@ class ObjectTracker:
     def _difference_search(self, found: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
         """While there is no primary target: the background difference as a detector where the gimbal points.
         Of the points within ``primary_max_off_axis_rad`` of the optical axis whose point contrast is over
-        ``aided_threshold_factor`` times the window mean's CFAR threshold but under it, none within ``gate_px`` of a
-        candidate already found nor with a confirmed track in its square, on texture, the
+        ``aided_threshold_factor`` times the window mean's CFAR threshold but under it, none within ``gate_px``
+        of a candidate already found nor with a confirmed track in its square, on texture, the
         ``DIFFERENCE_SEARCH_MAX`` strongest are tried (:meth:`ObjectDetector.difference_candidate`, 5 of its
         own sigmas within ``DIFFERENCE_GATE_PX`` of the point); what it finds is a candidate like any (it may
         start a track, which must still pass every confirmation test).  Over textured ground the point

@@ -92,8 +92,9 @@ class ObjectDetector:
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
-        self._mean_noise: tuple[np.ndarray, np.ndarray | None] | None = None  # lowered_base's noise and cap (coarse)
-        self._mean_threshold: np.ndarray | None = None  # lowered_base's, once asked for on this frame
+        # lowered_base's noise and cap (the coarse grid's), and its threshold once asked for on this frame
+        self._mean_noise: tuple[np.ndarray, np.ndarray | None] | None = None
+        self._mean_threshold: np.ndarray | None = None
         self.clean: np.ndarray | None = None  # the last frame, fixed pattern handled (float32)
         self._defects: DefectMap | None = None
         self._window: np.ndarray | None = None
@@ -201,7 +202,7 @@ class ObjectDetector:
 
     @property
     def lowered_base(self) -> np.ndarray | None:
-        """The CFAR threshold from the noise window's mean alone (full size; the last frame's), which the searches
+        """The CFAR threshold from the noise window's mean (full size; the last frame's), which the searches
         lowered by a track's or the axis' prior scale (track-aided detection, the difference search).  The
         whole-frame threshold may take the window's median (``ClutterParams.median_noise_floor``), lower beside
         an edge or a roof; lowered again inside a held track's gate, it let the track slide onto that texture
