@@ -927,12 +927,15 @@ def difference_peak(
     k_sigma: float,
     floor: float,
     cap: float = math.inf,
+    near_px: float = 0.0,
+    near_k_sigma: float = math.inf,
 ) -> PointCandidate | None:
     """The strongest 2 x 2 mean of a :func:`background_difference` square (taken about ``uv_px``) within
     ``gate_px`` of ``uv_px``, if it reaches ``min(max(k_sigma * sigma, floor), cap)``, sigma the
     square's noise (1.2533 x the mean absolute 2 x 2 mean more than 4.5 px from the centre), as a
     candidate at the centroid of the positive 2 x 2 means about it (``score``: peak over that
-    threshold); else None.  A target on a field edge beside a warmer field has a negative point
+    threshold); failing that, the strongest within ``near_px`` if it reaches ``near_k_sigma`` sigmas (the
+    same floor and cap); else None.  A target on a field edge beside a warmer field has a negative point
     contrast but stands out here (C2: ~40 frames, 1.2-3.8 grey against a noise of ~0.23 grey).
     ``cap``: :func:`two_level_difference_cap`'s."""
     d2 = cv2.blur(diff, (2, 2))  # d2[i, j]: the mean of diff[i - 1 : i + 1, j - 1 : j + 1]
@@ -945,6 +948,11 @@ def difference_peak(
     i, j = np.unravel_index(int(np.argmax(inside)), inside.shape)
     peak = float(inside[i, j])
     thr = min(max(k_sigma * sigma, floor), cap)
+    if not peak >= thr and near_px > 0.0:
+        near = np.where(dist <= near_px, d2, -np.inf)
+        i, j = np.unravel_index(int(np.argmax(near)), near.shape)
+        peak = float(near[i, j])
+        thr = min(max(near_k_sigma * sigma, floor), cap)
     if not peak >= thr or not 1 <= i < 2 * h or not 1 <= j < 2 * h:
         return None
     w = np.maximum(d2[i - 1 : i + 2, j - 1 : j + 2], 0.0)

@@ -62,6 +62,9 @@ TEXTURE_REFERENCE_PERCENTILE = 10  # texture is judged against the frame's quiet
 DIFFERENCE_LAG = 8  # frames between the two frames of a track-aided background difference
 DIFFERENCE_HALF_PX = 16  # half-side of its square
 DIFFERENCE_SIGMA = 5.0  # its threshold in its own noise sigmas
+# and within this of a held track's prediction: about 7 of the gate's 2 x 2 positions, which Gaussian noise passes at
+# 4 sigmas once in ~5000 frames
+DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA = 1.5, 4.0
 DIFFERENCE_GATE_PX = 3.0  # its gate about the track's prediction
 DIFFERENCE_TWO_LEVEL_CAP = 1.25  # its threshold's cap on two-level ground, in levels: over one needs a third level
 SURROUND_MATCH_RATIO = 1.5  # a track's own displacement must fit its surroundings that much better to call them one
@@ -448,7 +451,9 @@ class ObjectDetector:
             return float("inf") if alt > 0 else float("nan")
         return alt / own
 
-    def difference_candidate(self, puv: tuple[float, float], gate: float, R: np.ndarray) -> PointCandidate | None:
+    def difference_candidate(
+        self, puv: tuple[float, float], gate: float, R: np.ndarray, held: bool = False
+    ) -> PointCandidate | None:
         """Track-aided detection against the background (where its motion is known): this frame minus the
         one ``DIFFERENCE_LAG`` frames earlier registered on the prediction's surroundings, searched about
         the camera's rotation plus that motion (:func:`onboard.imaging.clutter.background_difference`); None
@@ -471,8 +476,9 @@ class ObjectDetector:
             self._recent[-1][1], old, puv, moved, DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
         )
         # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
+        near = (DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA) if held else (0.0, math.inf)
         return difference_peak(
-            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb, cap
+            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb, cap, *near
         )
 
 

@@ -255,3 +255,27 @@ def test_no_difference_cap_on_texture_float_frames_or_switched_off():
     # about the frame's edge, or where the ground was beyond it: the squares are not whole
     assert two_level_difference_cap(cur, prev, (3.0, 48.0), (0.0, 0.0), DIFFERENCE_CAP_LSB) == math.inf
     assert two_level_difference_cap(cur, prev, uv, (0.0, 45.0), DIFFERENCE_CAP_LSB) == math.inf
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_the_difference_takes_four_sigmas_only_near_a_held_prediction(seed):
+    """A 2 x 2 peak of 4.5 of the square's own sigmas: under the 5-sigma threshold; taken with the 4-sigma one
+    within ``near_px`` of the prediction (0.7 px away), not 2.5 px away, where only 5 sigmas count."""
+    from onboard.imaging.clutter import MEAN_ABS_TO_SIGMA
+
+    uv = (64.5, 48.5)
+    for col, found_near in ((16, True), (18, False)):
+        rng = np.random.default_rng(seed)
+        diff = rng.normal(0.0, 1.0, (33, 33)).astype(np.float32)
+        d2 = cv2.blur(diff, (2, 2))
+        off = np.arange(33) - 16 - 0.5
+        far = np.hypot(off[:, None], off[None, :]) > 4.5
+        sigma = MEAN_ABS_TO_SIGMA * float(np.mean(np.abs(d2[far])))
+        diff[16:18, col : col + 2] = 4.5 * sigma
+        assert difference_peak(diff, uv, 3.0, 5.0, 0.0) is None
+        got = difference_peak(diff, uv, 3.0, 5.0, 0.0, math.inf, 1.5, 4.0)
+        if found_near:
+            assert got is not None
+            assert math.hypot(got.u_px - 65.0, got.v_px - 49.0) < 0.5  # the centroid of the 2 x 2 means about it
+        else:
+            assert got is None
