@@ -190,7 +190,8 @@ def _dst(scratch: Scratch | None, name: str, shape: tuple[int, ...], dtype=np.fl
 class PointCandidate:
     """One point-like component of the thresholded local contrast: ``u_px, v_px`` its contrast-weighted
     centre (frames.py convention), ``bbox`` (x, y, w, h) whole pixels, ``area_px``, ``peak`` the largest
-    local contrast (grey), ``score`` peak over the local threshold (>= 1)."""
+    local contrast (grey), ``score`` peak over the local threshold (>= 1); ``weak``: a background difference
+    taken only at the lower threshold near a held prediction (:func:`difference_peak`'s ``near_k_sigma``)."""
 
     u_px: float
     v_px: float
@@ -198,6 +199,7 @@ class PointCandidate:
     area_px: int
     peak: float
     score: float
+    weak: bool = False
 
 
 def column_offsets(image: np.ndarray, window_px: int = 15, row_step: int = 4) -> np.ndarray:
@@ -948,7 +950,9 @@ def difference_peak(
     i, j = np.unravel_index(int(np.argmax(inside)), inside.shape)
     peak = float(inside[i, j])
     thr = min(max(k_sigma * sigma, floor), cap)
+    weak = False
     if not peak >= thr and near_px > 0.0:
+        weak = True
         near = np.where(dist <= near_px, d2, -np.inf)
         i, j = np.unravel_index(int(np.argmax(near)), near.shape)
         peak = float(near[i, j])
@@ -958,4 +962,4 @@ def difference_peak(
     w = np.maximum(d2[i - 1 : i + 2, j - 1 : j + 2], 0.0)
     u = cu + off[j] + float((w.sum(axis=0) @ np.array([-1.0, 0.0, 1.0])) / w.sum())
     v = cv_ + off[i] + float((w.sum(axis=1) @ np.array([-1.0, 0.0, 1.0])) / w.sum())
-    return PointCandidate(u, v, (int(u) - 1, int(v) - 1, 2, 2), 4, peak, peak / thr)
+    return PointCandidate(u, v, (int(u) - 1, int(v) - 1, 2, 2), 4, peak, peak / thr, weak)

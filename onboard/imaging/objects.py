@@ -527,7 +527,11 @@ class ObjectTracker:
             pl = preds[ti][0]
             r = z - pl
             n = t.misses + 1
-            if (ti, ci) in two_point:
+            if c.weak and t.confirmed:
+                # a difference taken only at the near threshold: where the track is, not where it goes (bent into
+                # its velocity and its fitted coast, such detections carried C2 seed 0's primary off over 30 s)
+                t.los = unit_vector(pl + p.alpha * r)
+            elif (ti, ci) in two_point:
                 f2, z2 = t.history[-1][0], t.history[-1][1]
                 t.rate = (z - z2) / max(self._frame_index - f2, 1)
                 t.los = z
@@ -547,7 +551,8 @@ class ObjectTracker:
             t.difference = c if id(c) in self._difference_ids else None
             t.dim_hits += id(c) in self._tbd_ids
             # confirmed tracks keep theirs too: an aided run is extended only while it moves unlike its background
-            t.history.append((self._frame_index, z, c.u_px, c.v_px))
+            if not (c.weak and t.confirmed):
+                t.history.append((self._frame_index, z, c.u_px, c.v_px))
             if t.confirmed and len(t.history) > p.confirm_window:
                 del t.history[0]
             measured.add(t.object_id)

@@ -277,5 +277,10 @@ def test_the_difference_takes_four_sigmas_only_near_a_held_prediction(seed):
         if found_near:
             assert got is not None
             assert math.hypot(got.u_px - 65.0, got.v_px - 49.0) < 0.5  # the centroid of the 2 x 2 means about it
+            assert got.weak  # the tracker takes it for a position, not a velocity
         else:
             assert got is None
+        # over 5 sigmas it is an ordinary detection, near or not
+        diff[16:18, col : col + 2] = 6.0 * sigma
+        strong = difference_peak(diff, uv, 3.0, 5.0, 0.0, math.inf, 1.5, 4.0)
+        assert strong is not None and not strong.weak

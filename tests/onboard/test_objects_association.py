@@ -217,3 +217,31 @@ def test_any_motion_drops_and_attitude_jitter_keep_the_outputs_consistent(object
         assert len(ids) == len(set(ids))
         assert all(o.state in OBJECT_STATES and math.isfinite(o.u_px) and math.isfinite(o.v_px) for o in out.objects)
         assert out.primary_id is None or out.primary_id in ids
+
+
+def test_a_weak_difference_moves_a_confirmed_track_but_not_its_velocity():
+    """A background difference taken only at the near threshold (``PointCandidate.weak``) updates where a confirmed
+    track is, not its velocity or the positions its coast is fitted to; an ordinary one updates all three."""
+    from onboard.imaging.clutter import PointCandidate
+
+    def confirmed_tracker():
+        rng = np.random.default_rng(5)
+        tr = ObjectTracker(K)
+        for k in range(16):
+            tr.update(_frame(rng, [(30.0 + 0.8 * k, 40.0)]), None)
+        (t,) = [t for t in tr._tracks if t.confirmed]
+        return tr, t
+
+    for weak in (True, False):
+        tr, t = confirmed_tracker()
+        rate, hist = t.rate.copy(), list(t.history)
+        tr._frame_index += 1
+        u = 30.0 + 0.8 * 16 + 1.0  # 1 px ahead of the object's course
+        tr._associate([PointCandidate(u, 40.0, (int(u) - 1, 39, 2, 2), 4, 2.0, 1.1, weak)], np.eye(3))
+        assert t.misses == 0 and t.uv == (u, 40.0)
+        if weak:
+            np.testing.assert_array_equal(t.rate, rate)
+            assert t.history == hist
+        else:
+            assert not np.array_equal(t.rate, rate)
+            assert t.history[-1][2:] == (u, 40.0)
