@@ -397,8 +397,8 @@ class ObjectTracker:
             and any(
                 j != i
                 and r is not None
-                and (OWNED_PX < math.hypot(r[0] - q[0], r[1] - q[1]) or (o.confirmed and o.misses > 0))
-                and math.hypot(r[0] - q[0], r[1] - q[1]) <= DEBLEND_RADIUS_PX
+                and (d := math.hypot(r[0] - q[0], r[1] - q[1])) <= DEBLEND_RADIUS_PX
+                and (OWNED_PX < d or (o.confirmed and o.misses > 0))
                 for j, (o, r) in enumerate(zip(self._tracks, pred))
             )
         ]
