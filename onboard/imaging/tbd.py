@@ -40,9 +40,9 @@ The stage searches only while ``focus_uv`` is None (the chain has no primary tar
 ``search_px`` square about the principal point (where a pointing gimbal holds its target, and where the
 chain's primary rule looks first; 0: the whole frame).  While the primary is the object this stage
 confirmed, it integrates only a ``roi_px`` window about the primary's prediction (carrying the
-integration over) and reports the peak nearest it above ``track_threshold_sigma`` against the window's own
-statistics; with any other primary it is idle (and forgets).  So its cost falls on the frames where no
-target is held, and on a dim target's window.
+integration over) and reports the strongest peak within ``focus_radius_px`` of it above
+``track_threshold_sigma`` against the window's own statistics; with any other primary it is idle (and
+forgets).  So its cost falls on the frames where no target is held, and on a dim target's window.
 
 Positions are full-resolution pixels in the frames.py convention (pixel (i, j) centred at (j + 0.5,
 i + 0.5)); decimated cell (i, j) covers pixels ``decimation * i ...``, centred at ``decimation * (j + 0.5)``.
@@ -248,6 +248,17 @@ class TrackBeforeDetect:
         if focus_uv is not None:
             return self._in_focus(found, focus_uv)
         return self._confirm(found)
+
+    @property
+    def following(self) -> bool:
+        """True while the stage integrates a window about the primary it confirmed: what it reports is then
+        the strongest peak within ``focus_radius_px`` of the primary's prediction."""
+        return self._mode == "window"
+
+    @property
+    def focus_radius_px(self) -> float:
+        """How far from the primary's prediction a peak it reports while :attr:`following` may lie."""
+        return 2.0 * self.params.confirm_radius_px
 
     def _search_window(self, h: int, w: int) -> tuple[int, int, int, int]:
         """The searched window (top row, left column, rows, columns; cells): ``search_px`` square about
@@ -484,10 +495,13 @@ class TrackBeforeDetect:
 
     def _in_focus(self, found: list, focus_uv: tuple[float, float]) -> list[PointCandidate]:
         p = self.params
-        near = [f for f in found if math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]) <= p.confirm_radius_px * 2]
+        near = [f for f in found if math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]) <= self.focus_radius_px]
         if not near:
             return []
-        z, u, v, _, bbox, area, peak = min(near, key=lambda f: math.hypot(f[1] - focus_uv[0], f[2] - focus_uv[1]))
+        # the strongest, not the nearest: the prediction follows what this stage reports, so a noise peak beside
+        # the target, once taken, draws the prediction after it and the nearest rule keeps it (C4 seed 5 over
+        # 30 s: a z 6.9 peak 4.5 px off, then the target's z 5.6-5.8 ignored 3-6 px from the drifting focus)
+        z, u, v, _, bbox, area, peak = max(near, key=lambda f: f[0])
         c = PointCandidate(u, v, bbox, area, peak, max(z / p.track_threshold_sigma, 1.0))
         self._reports = [(c, z)]
         return [c]

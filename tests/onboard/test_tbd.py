@@ -20,6 +20,7 @@ from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, _shift_in_place, _
 H_PX, W_PX = 128, 160
 NOISE_GREY = 30.0  # one NETD in 16-bit grey, as in scene C4
 PEAK_NETD = 2.4  # C4's median target peak over its background
+FAINT_NETD = 1.4  # a still point whose integrated peak stands over the stage's tracking threshold, below the target's
 CENTRE_TOL_PX = 1.0  # the integrated peak's centre against the truth (C4: 0.26 px std per axis)
 K = PinholeIntrinsics(300.0, 300.0, W_PX / 2, H_PX / 2, W_PX, H_PX)
 R_MOUNT = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # cam z = north, x = east, y = down
@@ -301,3 +302,51 @@ def test_a_track_is_predicted_over_the_frames_the_daemon_dropped():
         ids[with_times] = seen
     assert len(ids[True]) == 1 and missed[True] == 0
     assert len(ids[False]) == 1 and missed[False] >= 5, missed
+
+
+def test_following_its_primary_it_reports_the_strongest_peak_near_the_prediction_not_the_nearest():
+    """The stage follows the primary it confirmed; a prediction that slid 4 px off the target lies 1.5 px from a
+    fainter point.  It reports the target, the strongest peak within its focus radius: reporting the nearest
+    would feed the fainter point to the track, whose next prediction follows it (C4 seed 5 over 30 s)."""
+    rng = np.random.default_rng(11)
+    truth = [(80.0 + 0.1 * k, 64.0) for k in range(50)]
+    faint = (truth[40][0] - 4.0, 64.0 + 1.5)  # still, where the slid prediction lies
+    yy, xx = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
+    faint_grey = FAINT_NETD * NOISE_GREY * np.exp(-((xx + 0.5 - faint[0]) ** 2 + (yy + 0.5 - faint[1]) ** 2) / 0.72)
+    frames = [(_frame(rng, [t]) + np.round(faint_grey)).astype(np.uint16) for t in truth]
+    tbd = TrackBeforeDetect(K, TbdParams(search_px=0, roi_px=48))
+    for k in range(40):
+        tbd.update(frames[k], R_MOUNT)
+    assert tbd.confirmed == 1 and not tbd.following
+    focus = (truth[40][0] - 4.0, 64.0)
+    out = tbd.update(frames[40], R_MOUNT, focus_uv=focus)
+    assert tbd.following and tbd.focus_radius_px == 2.0 * tbd.params.confirm_radius_px
+    assert len(out) == 1 and math.hypot(out[0].u_px - truth[40][0], out[0].v_px - truth[40][1]) <= CENTRE_TOL_PX
+
+
+def test_the_stages_report_beside_its_primary_is_the_primarys_measurement_even_beyond_the_gate():
+    """The dim target held as the primary through the stage: a report 5 px from the primary's prediction (beyond
+    its 4 px gate, inside the stage's focus radius) updates the primary; the same point found by any other
+    detector starts a tentative track beside it (which took the target's reports while the primary coasted out of
+    the stage's focus and was lost: C4 seeds 2 and 4 over 30 s)."""
+    rng = np.random.default_rng(6)
+    truth = [(82.0 + 0.15 * k, 62.0 + 0.05 * k) for k in range(60)]
+    frames = [_frame(rng, [t]) for t in truth]
+    for from_tbd in (True, False):
+        tr = ObjectTracker(K, imaging=ImagingParams(chain="objects"))
+        for f in frames:
+            out = tr.update(f, R_MOUNT)
+        assert tr.tbd is not None and tr.tbd.following and out.primary_id is not None
+        (i,) = [i for i, t in enumerate(tr._tracks) if t.object_id == out.primary_id]
+        prim = tr._tracks[i]
+        q = tr._predicted_px(R_MOUNT)[i]
+        assert q is not None
+        u, v = q[0] + 3.0, q[1] + 4.0  # 5 px
+        c = PointCandidate(u, v, (int(u) - 1, int(v) - 1, 2, 2), 4, 80.0, 1.2)
+        tr._tbd_ids = {id(c)} if from_tbd else set()
+        hits, n_tracks = prim.hits, len(tr._tracks)
+        measured = tr._associate([c], R_MOUNT)
+        if from_tbd:
+            assert out.primary_id in measured and prim.hits == hits + 1 and len(tr._tracks) == n_tracks
+        else:
+            assert out.primary_id not in measured and prim.hits == hits and len(tr._tracks) == n_tracks + 1
