@@ -60,6 +60,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
+import os
 import sys
 import tempfile
 import time
@@ -170,7 +171,11 @@ def render_scene(
         larr = np.empty(len(labels), dtype=object)
         for i, lb in enumerate(labels):
             larr[i] = lb
-        np.savez(path, frames=farr, labels=larr, R=R)
+        # written aside and renamed into place: a second bench reading the cache meanwhile (two trees compared
+        # side by side) found a half-written file and stopped on a BadZipFile
+        part = path.with_name(f"{path.stem}.{os.getpid()}.part.npz")
+        np.savez(part, frames=farr, labels=larr, R=R)
+        os.replace(part, path)
     R_rep, case = reported_rotations(sc, seed, duration, R, nav_noise)
     return SceneRun(name, frames, labels, R_rep, K, float(sc.frame_rate_hz), case)
 
