@@ -43,7 +43,11 @@ times only the chain (a cache written before the labels carried ``warm`` is rend
   times and takes each frame's least time over the runs (the closest to an idle core's figure on a
   loaded machine; the scores are the same every run).
 * ``--misses``: below each row, the frames ``Pd tgt`` counts where object 0 (the target) had no confirmed
-  track within 3 px, as ranges of frame indices, warm and cold apart.
+  track within 3 px, as ranges of frame indices, warm and cold apart, and the warm ones by what the frame
+  shows there (:func:`miss_cause`): a brighter surround (the target warmer than the pixels under it but not
+  than a road or roof edge 2-4 px away: its point contrast, as the objects chain measures it on the raw
+  frame, at most 0), a faint peak (at most ``FAINT_GREY`` 8-bit grey levels over the median about it), or
+  neither.
 * ``--seed`` with several seeds: a row per scene and seed (``C2/s3``), then per scene and chain one line
   over its seeds: the Pd of each, on how many it reaches 95 %, the worst false tracks a minute and
   HOTA's range (a figure met on seed 0 alone may not hold on the next: C2).
@@ -76,6 +80,8 @@ from groundsim.evaluation.mot import gt_rows, score_mot, tracker_rows, write_mot
 MATCH_PX = 3.0
 DEFECT_PX = 2.0
 MIN_CONTRAST_NETD = 3.0
+FAINT_GREY = 2.0  # a missed target's peak this close to the median about it is at the 8-bit grey's own step
+CAUSE_HALF_PX = 15  # the square about a missed target its point contrast is measured in (past the chain's border band)
 SETTLE_S = 1.0
 DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
 LABEL_FIELDS = 7  # (object_id, cls, u_px, v_px, visibility, contrast_netd, warm); 6 before warm
@@ -270,7 +276,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     first_on: int | None = None  # the frame the primary is first on the target
     on_after = frames_after = 0  # visible frames from then on, and those with the primary on the target
     det = det_all = det_t = det_t_all = det_w = det_w_all = 0
-    misses: list[tuple[int, bool]] = []  # (frame, warm) of the target's frames Pd tgt counts and it missed
+    # (frame, warm, cause) of the target's frames Pd tgt counts and it missed (cause: miss_cause's, None when cold)
+    misses: list[tuple[int, bool, str | None]] = []
     counted0 = 0  # the target's frames Pd tgt counts
     last_id: dict[int, int] = {}
     switches: dict[int, int] = {}
@@ -363,7 +370,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                 if oid == 0:
                     counted0 += 1
                     if best is None:
-                        misses.append((k, bool(warm)))
+                        misses.append((k, bool(warm), miss_cause(img, u, v) if warm else None))
     minutes = n_frames / fr / 60.0
     false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
     pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
@@ -461,15 +468,55 @@ def frame_ranges(frames: list[int]) -> str:
     return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in runs)
 
 
-def misses_line(misses: list[tuple[int, bool]], counted: int) -> str:
-    """The ``--misses`` line: how many of the target's counted frames were missed, warm and cold apart."""
-    warm = [k for k, w in misses if w]
-    cold = [k for k, w in misses if not w]
+def miss_cause(image: np.ndarray, u_px: float, v_px: float) -> str:
+    """What the frame shows at a warm target the chain missed: ``edge`` (within the frame's border band, where the
+    chain measures no point contrast), ``surround`` (its point contrast, the objects chain's statistic on the raw
+    frame, is at most 0 within a pixel of it: something 2-4 px away is brighter), ``faint`` (its 3 x 3 peak is at
+    most ``FAINT_GREY`` 8-bit grey levels over the median of the ring 3-5 px about it), else ``other``."""
+    from onboard.imaging.clutter import ClutterParams, point_contrast
+    from onboard.imaging.objects import GREY16_PER_GREY8
+
+    h, w = image.shape
+    j, i = int(u_px), int(v_px)
+    params = ClutterParams()
+    band = params.guard_px + params.cell_px // 2  # the chain measures no contrast this near the frame's edges
+    if not (band <= i < h - band and band <= j < w - band):
+        return "edge"
+    r = CAUSE_HALF_PX
+    y0, x0 = max(i - r, 0), max(j - r, 0)
+    square = np.asarray(image[y0 : min(i + r + 1, h), x0 : min(j + r + 1, w)], dtype=np.float32)
+    contrast = point_contrast(square, params)
+    ci, cj = i - y0, j - x0
+    if float(contrast[max(ci - 1, 0) : ci + 2, max(cj - 1, 0) : cj + 2].max()) <= 0.0:
+        return "surround"
+    grey8 = 1.0 / GREY16_PER_GREY8 if image.dtype == np.uint16 else 1.0
+    yy, xx = np.ogrid[y0 : y0 + square.shape[0], x0 : x0 + square.shape[1]]
+    ring = np.maximum(np.abs(yy - i), np.abs(xx - j))
+    peak = float(square[(ring <= 1)].max())
+    background = float(np.median(square[(ring >= 3) & (ring <= 5)]))
+    return "faint" if (peak - background) * grey8 <= FAINT_GREY else "other"
+
+
+def misses_line(misses: list[tuple[int, bool, str | None]], counted: int) -> str:
+    """The ``--misses`` line: how many of the target's counted frames were missed, warm and cold apart, the warm
+    ones by :func:`miss_cause`."""
+    warm = [k for k, w, _ in misses if w]
+    cold = [k for k, w, _ in misses if not w]
+    causes = [c for _, w, c in misses if w]
+    by_cause = ", ".join(f"{name} {causes.count(c)}" for c, name in MISS_CAUSES if causes.count(c))
     return (
         f"target missed on {len(misses)} of {counted} frames (visible, >= {MIN_CONTRAST_NETD:.0f} NETD, after"
-        f" {SETTLE_S:.0f} s); warm {len(warm)}: {frame_ranges(warm) or '-'}; cold {len(cold)}:"
-        f" {frame_ranges(cold) or '-'}"
+        f" {SETTLE_S:.0f} s); warm {len(warm)}{f' ({by_cause})' if by_cause else ''}: {frame_ranges(warm) or '-'};"
+        f" cold {len(cold)}: {frame_ranges(cold) or '-'}"
     )
+
+
+MISS_CAUSES = (
+    ("edge", "at the edge"),
+    ("surround", "brighter surround"),
+    ("faint", f"<= {FAINT_GREY:.0f} grey"),
+    ("other", "other"),
+)
 
 
 def main(argv: list[str]) -> None:

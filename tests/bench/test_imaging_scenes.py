@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.imaging_scenes import LABEL_FIELDS, SceneRun, frame_ranges, load_cache, misses_line, score
+from bench.imaging_scenes import LABEL_FIELDS, SceneRun, frame_ranges, load_cache, miss_cause, misses_line, score
 from onboard.core.frames import PinholeIntrinsics
 
 RATE_HZ = 30.0
@@ -47,9 +47,58 @@ def test_pd_warm_counts_only_the_frames_where_the_target_is_warm():
     assert s["pd_target"] == pytest.approx(100.0 * (warm - len(MISSED_WARM)) / counted)  # 45 %
     assert s["pd_warm"] == pytest.approx(100.0 * (warm - len(MISSED_WARM)) / warm)  # 90 %
     assert s["target_counted"] == counted
-    assert s["misses"] == [(k, True) for k in MISSED_WARM] + [(k, False) for k in range(COLD_FROM, N_FRAMES)]
+    assert [(k, w) for k, w, _ in s["misses"]] == [(k, True) for k in MISSED_WARM] + [
+        (k, False) for k in range(COLD_FROM, N_FRAMES)
+    ]
+    assert all(c in ("edge", "surround", "faint", "other") for _, w, c in s["misses"] if w)
+    assert all(c is None for _, w, c in s["misses"] if not w)
     line = misses_line(s["misses"], s["target_counted"])
-    assert "missed on 33 of 60 frames" in line and "warm 3: 30-32;" in line and "cold 30: 60-89" in line
+    assert (
+        "missed on 33 of 60 frames" in line and "warm 3 (" in line and "): 30-32;" in line and "cold 30: 60-89" in line
+    )
+
+
+def test_misses_line_counts_the_warm_misses_by_cause():
+    misses = [(5, True, "surround"), (6, True, "surround"), (7, True, "faint"), (9, False, None)]
+    line = misses_line(misses, 20)
+    assert "warm 3 (brighter surround 2, <= 2 grey 1): 5-7; cold 1: 9" in line
+    assert "warm 0: -; cold 0: -" in misses_line([], 20)
+
+
+def _flat(grey: int, dtype=np.uint8) -> np.ndarray:
+    return np.full((64, 64), grey, dtype)
+
+
+@pytest.mark.parametrize(
+    "draw, cause",
+    [
+        # a 2 x 2 target 10 grey over a flat field: seen by any threshold the chain might set
+        (lambda f: f.__setitem__((slice(31, 33), slice(31, 33)), 70), "other"),
+        # the same target 1 grey over the field: the 8-bit grey's own step
+        (lambda f: f.__setitem__((slice(31, 33), slice(31, 33)), 61), "faint"),
+        # 10 grey over the field, with a road 40 grey brighter 3 px to its right: its point contrast is negative
+        (
+            lambda f: (
+                f.__setitem__((slice(0, 64), slice(35, 64)), 100),
+                f.__setitem__((slice(31, 33), slice(31, 33)), 70),
+            ),
+            "surround",
+        ),
+    ],
+)
+def test_miss_cause(draw, cause):
+    f = _flat(60)
+    draw(f)
+    assert miss_cause(f, 32.0, 32.0) == cause
+    assert miss_cause(f, 2.0, 32.0) == "edge"
+
+
+def test_miss_cause_reads_16_bit_grey_as_8_bit():
+    f = _flat(60 * 257, np.uint16)
+    f[31:33, 31:33] = 60 * 257 + 300  # 1.2 grey8
+    assert miss_cause(f, 32.0, 32.0) == "faint"
+    f[31:33, 31:33] = 60 * 257 + 2570  # 10 grey8
+    assert miss_cause(f, 32.0, 32.0) == "other"
 
 
 def test_frame_ranges():
