@@ -48,6 +48,11 @@ times only the chain (a cache written before the labels carried ``warm`` is rend
   than a road or roof edge 2-4 px away: its point contrast, as the objects chain measures it on the raw
   frame, at most 0), a faint peak (at most ``FAINT_GREY`` 8-bit grey levels over the median about it), or
   neither.
+* ``Pd point`` (below each row with ``--misses``, and in the seeds' summary line): the target's ``Pd tgt`` frames
+  where it is a warm point against that surround (warm, neither a brighter surround nor at the edge), and the
+  share of them it was found on: what a point-target detector can be asked for (C2's roof edges:
+  docs/perception.md, "What the cold frames allow").  A dim target on a sky with a gradient (C4 in haze) is no
+  point by this measure on any frame (nan): track-before-detect, not the point contrast, finds it.
 * ``--seed`` with several seeds: a row per scene and seed (``C2/s3``), then per scene and chain one line
   over its seeds: the Pd of each, on how many it reaches 95 %, the worst false tracks a minute and
   HOTA's range (a figure met on seed 0 alone may not hold on the next: C2).
@@ -276,6 +281,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
     first_on: int | None = None  # the frame the primary is first on the target
     on_after = frames_after = 0  # visible frames from then on, and those with the primary on the target
     det = det_all = det_t = det_t_all = det_w = det_w_all = 0
+    det_p = det_p_all = 0  # the target's counted frames where it is a warm point against its surround (Pd point)
     # (frame, warm, cause) of the target's frames Pd tgt counts and it missed (cause: miss_cause's, None when cold)
     misses: list[tuple[int, bool, str | None]] = []
     counted0 = 0  # the target's frames Pd tgt counts
@@ -369,8 +375,12 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                     det_w += warm and best is not None
                 if oid == 0:
                     counted0 += 1
+                    cause = miss_cause(img, u, v) if warm else None
+                    if cause in POINT_CAUSES:
+                        det_p_all += 1
+                        det_p += best is not None
                     if best is None:
-                        misses.append((k, bool(warm), miss_cause(img, u, v) if warm else None))
+                        misses.append((k, bool(warm), cause))
     minutes = n_frames / fr / 60.0
     false_tracks = sum(1 for n, off in track_frames.values() if off > 0.5 * n)
     pct = lambda a, b: 100.0 * a / b if b else math.nan  # noqa: E731
@@ -384,6 +394,8 @@ def score(run: SceneRun, chain) -> dict[str, float]:
         pd=pct(det, det_all),
         pd_target=pct(det_t, det_t_all),
         pd_warm=pct(det_w, det_w_all),
+        pd_point=pct(det_p, det_p_all),
+        point_counted=det_p_all,
         target_counted=counted0,
         misses=misses,
         false_per_min=false_tracks / minutes if minutes else math.nan,
@@ -511,6 +523,16 @@ def misses_line(misses: list[tuple[int, bool, str | None]], counted: int) -> str
     )
 
 
+def point_line(s: dict) -> str:
+    """The target's Pd over the frames where it is a warm point against its surround (``Pd point``)."""
+    return (
+        f"where the target is a warm point against its surround ({s['point_counted']} of {s['target_counted']} counted"
+        f" frames): Pd {s['pd_point']:.1f} %"
+    )
+
+
+# the causes of a frame where the target is a warm point against the surround a point detector compares it with
+POINT_CAUSES = ("faint", "other")
 MISS_CAUSES = (
     ("edge", "at the edge"),
     ("surround", "brighter surround"),
@@ -600,11 +622,14 @@ def seeds_summary(name: str, chain: str, runs: list[tuple[int, dict]]) -> str:
     false tracks a minute at worst, HOTA's range, and the chain's CPU per frame: the median over every frame
     of every seed beside the seeds' medians' range (when the runs carry their frames' times)."""
     pd = [s["pd"] for _, s in runs]
+    point = [s["pd_point"] for _, s in runs]
     hota = [s["HOTA"] for _, s in runs]
     line = (
         f"{name} {chain}, seeds {', '.join(str(k) for k, _ in runs)}: Pd {' / '.join(f'{x:.1f}' for x in pd)} %"
-        f" (>= 95 % on {sum(x >= 95.0 for x in pd)} of {len(pd)}), false tracks/min at most"
-        f" {max(s['false_per_min'] for _, s in runs):.1f}, HOTA {min(hota):.3f}-{max(hota):.3f}"
+        f" (>= 95 % on {sum(x >= 95.0 for x in pd)} of {len(pd)}); the target where it is a warm point"
+        f" {' / '.join(f'{x:.1f}' for x in point)} % (>= 95 % on {sum(x >= 95.0 for x in point)} of"
+        f" {sum(math.isfinite(x) for x in point)} with such frames);"
+        f" false tracks/min at most {max(s['false_per_min'] for _, s in runs):.1f}, HOTA {min(hota):.3f}-{max(hota):.3f}"
     )
     frames = [ms for _, s in runs for ms in s.get("cpu_ms_frames", [])]
     if frames:
@@ -628,6 +653,7 @@ def _print_row(label: str, c: str, s: dict, a) -> None:
     )
     if a.misses:
         print("       " + misses_line(s["misses"], s["target_counted"]), flush=True)
+        print("       " + point_line(s), flush=True)
     if "stages_ms" in s:
         st = s["stages_ms"]
         print(

@@ -3,10 +3,21 @@ and its frame cache refusing labels written before they carried ``warm``."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
-from bench.imaging_scenes import LABEL_FIELDS, SceneRun, frame_ranges, load_cache, miss_cause, misses_line, score
+from bench.imaging_scenes import (
+    LABEL_FIELDS,
+    SceneRun,
+    frame_ranges,
+    load_cache,
+    miss_cause,
+    misses_line,
+    point_line,
+    score,
+)
 from onboard.core.frames import PinholeIntrinsics
 
 RATE_HZ = 30.0
@@ -56,6 +67,27 @@ def test_pd_warm_counts_only_the_frames_where_the_target_is_warm():
     assert (
         "missed on 33 of 60 frames" in line and "warm 3 (" in line and "): 30-32;" in line and "cold 30: 60-89" in line
     )
+
+
+def test_pd_point_counts_the_warm_frames_where_the_target_is_a_point_against_its_surround():
+    """On a flat field the warm target is a point on every frame (10 grey over the field): Pd point is the fake
+    chain's 27 of the 30 counted warm frames; with a road 40 grey brighter 3 px from it, it is a point on none."""
+    for road, counted in ((False, 30), (True, 0)):
+        run = _run()
+        j, i = int(TARGET_UV[0]), int(TARGET_UV[1])
+        for k, f in enumerate(run.frames):
+            f[:] = 60
+            if road:
+                f[:, j + 3 :] = 100
+            if k < COLD_FROM:
+                f[i - 1 : i + 1, j - 1 : j + 1] = 70
+        s = score(run, _FakeChain())
+        assert s["point_counted"] == counted
+        if counted:
+            assert s["pd_point"] == pytest.approx(100.0 * (counted - len(MISSED_WARM)) / counted)
+            assert "(30 of 60 counted frames): Pd 90.0 %" in point_line(s)
+        else:
+            assert np.isnan(s["pd_point"])
 
 
 def test_misses_line_counts_the_warm_misses_by_cause():
@@ -147,13 +179,14 @@ def test_seeds_summary_counts_the_seeds_that_reach_95_percent():
     from bench.imaging_scenes import seeds_summary
 
     runs = [
-        (0, {"pd": 96.3, "HOTA": 0.855, "false_per_min": 0.0}),
-        (1, {"pd": 70.1, "HOTA": 0.612, "false_per_min": 6.0}),
-        (4, {"pd": 95.0, "HOTA": 0.951, "false_per_min": 0.0}),
+        (0, {"pd": 96.3, "pd_point": 97.0, "HOTA": 0.855, "false_per_min": 0.0}),
+        (1, {"pd": 70.1, "pd_point": 99.0, "HOTA": 0.612, "false_per_min": 6.0}),
+        (4, {"pd": 95.0, "pd_point": math.nan, "HOTA": 0.951, "false_per_min": 0.0}),
     ]
     line = seeds_summary("C2", "objects", runs)
     assert "seeds 0, 1, 4" in line and "Pd 96.3 / 70.1 / 95.0 %" in line
     assert ">= 95 % on 2 of 3" in line and "at most 6.0" in line and "HOTA 0.612-0.951" in line
+    assert "a warm point 97.0 / 99.0 / nan % (>= 95 % on 2 of 2 with such frames)" in line
     assert "CPU" not in line  # no frames' times: no cost said
 
 
@@ -161,8 +194,28 @@ def test_seeds_summary_gives_the_cpu_median_over_every_frame_beside_each_seeds()
     from bench.imaging_scenes import seeds_summary
 
     runs = [
-        (0, {"pd": 99.0, "HOTA": 0.8, "false_per_min": 0.0, "cpu_ms_frames": [1.0, 2.0, 9.0], "cpu_ms_p50": 2.0}),
-        (1, {"pd": 99.0, "HOTA": 0.8, "false_per_min": 0.0, "cpu_ms_frames": [3.0, 4.0, 4.5], "cpu_ms_p50": 4.0}),
+        (
+            0,
+            {
+                "pd": 99.0,
+                "pd_point": 99.0,
+                "HOTA": 0.8,
+                "false_per_min": 0.0,
+                "cpu_ms_frames": [1.0, 2.0, 9.0],
+                "cpu_ms_p50": 2.0,
+            },
+        ),
+        (
+            1,
+            {
+                "pd": 99.0,
+                "pd_point": 99.0,
+                "HOTA": 0.8,
+                "false_per_min": 0.0,
+                "cpu_ms_frames": [3.0, 4.0, 4.5],
+                "cpu_ms_p50": 4.0,
+            },
+        ),
     ]
     line = seeds_summary("C3", "objects", runs)
     assert "CPU ms per frame p50 3.50 over all 6 frames (2.00-4.00 by seed)" in line
