@@ -85,8 +85,8 @@ from groundsim.evaluation.mot import gt_rows, score_mot, tracker_rows, write_mot
 MATCH_PX = 3.0
 DEFECT_PX = 2.0
 MIN_CONTRAST_NETD = 3.0
-FAINT_GREY = 2.0  # a missed target's peak this close to the median about it is at the 8-bit grey's own step
-CAUSE_HALF_PX = 15  # the square about a missed target its point contrast is measured in (past the chain's border band)
+FAINT_GREY = 2.0  # a target's peak this close to the median about it is at the 8-bit grey's own step
+CAUSE_HALF_PX = 15  # the square about a target its point contrast is measured in (past the chain's border band)
 SETTLE_S = 1.0
 DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
 LABEL_FIELDS = 7  # (object_id, cls, u_px, v_px, visibility, contrast_netd, warm); 6 before warm
@@ -481,10 +481,11 @@ def frame_ranges(frames: list[int]) -> str:
 
 
 def miss_cause(image: np.ndarray, u_px: float, v_px: float) -> str:
-    """What the frame shows at a warm target the chain missed: ``edge`` (within the frame's border band, where the
-    chain measures no point contrast), ``surround`` (its point contrast, the objects chain's statistic on the raw
-    frame, is at most 0 within a pixel of it: something 2-4 px away is brighter), ``faint`` (its 3 x 3 peak is at
-    most ``FAINT_GREY`` 8-bit grey levels over the median of the ring 3-5 px about it), else ``other``."""
+    """What the frame shows at a warm target (each one ``Pd point`` counts, and why one was missed): ``edge`` (within
+    the frame's border band, where the chain measures no point contrast), ``surround`` (its point contrast, the
+    objects chain's statistic on the raw frame, is at most 0 within a pixel of it: something 2-4 px away is
+    brighter), ``faint`` (its 3 x 3 peak is at most ``FAINT_GREY`` 8-bit grey levels over the median of the ring
+    3-5 px about it), else ``other``."""
     from onboard.imaging.clutter import ClutterParams, point_contrast
     from onboard.imaging.objects import GREY16_PER_GREY8
 
