@@ -193,7 +193,7 @@ def _run(args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
     )
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 @pytest.mark.parametrize("refused", REFUSED)
 def test_control_the_refusal_is_active(refusing_env, refused):
     """Control: under the harness each refused package really fails to import (all are installed
@@ -204,7 +204,7 @@ def test_control_the_refusal_is_active(refusing_env, refused):
     assert log.read_text(encoding="utf-8").split()[1::2] == [refused]
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 @pytest.mark.parametrize(
     "args",
     [
@@ -224,7 +224,7 @@ def test_python_m_onboard_without_the_simulator(refusing_env, args):
     assert attempts == "", f"python -m onboard {' '.join(args)} tried to import: {attempts}"
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_every_onboard_module_imports_without_the_simulator(refusing_env):
     """Import time of every module under onboard/ (desk tools included): nothing refused is touched."""
     env, log = refusing_env
@@ -305,7 +305,7 @@ def _wheel_platform_ok(filename: str) -> bool:
     return all(t == "any" or t in AARCH64_PLATFORMS for t in platform_tag.split("."))
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 @pytest.mark.timeout(RESOLVE_TIMEOUT_S + 60)
 def test_runtime_requirements_resolve_for_linux_aarch64(project, tmp_path):
     """``pip install --dry-run --only-binary=:all:`` of the runtime list for CPython 3.11 on
