@@ -312,7 +312,9 @@ def test_following_its_primary_it_reports_the_strongest_peak_near_the_prediction
     truth = [(80.0 + 0.1 * k, 64.0) for k in range(50)]
     faint = (truth[40][0] - 4.0, 64.0 + 1.5)  # still, where the slid prediction lies
     yy, xx = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
-    faint_grey = FAINT_NETD * NOISE_GREY * np.exp(-((xx + 0.5 - faint[0]) ** 2 + (yy + 0.5 - faint[1]) ** 2) / 0.72)
+    faint_grey = (
+        FAINT_NETD * NOISE_GREY * np.exp(-((xx + 0.5 - faint[0]) ** 2 + (yy + 0.5 - faint[1]) ** 2) / (2 * 0.6**2))
+    )
     frames = [(_frame(rng, [t]) + np.round(faint_grey)).astype(np.uint16) for t in truth]
     tbd = TrackBeforeDetect(K, TbdParams(search_px=0, roi_px=48))
     for k in range(40):
