@@ -188,11 +188,8 @@ class ObjectDetector:
             np.maximum(median, self._noise * np.float32(p.median_noise_floor), out=median)
             noise = np.minimum(median, mean, out=median)
         # the box mean is done with: its array takes the threshold (one distinct full-size array less)
-        threshold = cv2.resize(
-            cfar_threshold(noise, p.threshold_sigma, p.min_threshold_lsb, cap),
-            (w, h),
-            dst=sc.get("threshold", img.shape) if box3 is None else box3,
-            interpolation=cv2.INTER_LINEAR,
+        threshold = self._full_threshold(
+            noise, cap, img.shape, sc.get("threshold", img.shape) if box3 is None else box3
         )
         self.stages.lap("noise, threshold")
         self.contrast, self.threshold = contrast, threshold
@@ -215,11 +212,18 @@ class ObjectDetector:
             return self.threshold
         if self._mean_threshold is None:
             mean, cap = self._mean_noise
-            c = self.clutter
-            h, w = self.threshold.shape
-            coarse = cfar_threshold(mean, c.threshold_sigma, c.min_threshold_lsb, cap)
-            self._mean_threshold = cv2.resize(coarse, (w, h), interpolation=cv2.INTER_LINEAR)
+            self._mean_threshold = self._full_threshold(mean, cap, self.threshold.shape)
         return self._mean_threshold
+
+    def _full_threshold(
+        self, noise: np.ndarray, cap: np.ndarray | None, shape: tuple[int, ...], dst: np.ndarray | None = None
+    ) -> np.ndarray:
+        """The CFAR threshold of the coarse grid's ``noise`` (and ``cap``), bilinear to the frame's ``shape``
+        (into ``dst`` when given)."""
+        c = self.clutter
+        h, w = shape
+        coarse = cfar_threshold(noise, c.threshold_sigma, c.min_threshold_lsb, cap)
+        return cv2.resize(coarse, (w, h), dst=dst, interpolation=cv2.INTER_LINEAR)
 
     def _quiet_noise(self, cells: np.ndarray, noise: np.ndarray, window_cells: int) -> np.ndarray:
         """Until the first primary (``acquiring``), the CFAR threshold's noise where the gimbal points:
