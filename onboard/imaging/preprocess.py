@@ -132,7 +132,7 @@ class ImagingParams:
 
     ``chain``: ``single`` is the one-target chain above (:class:`onboard.imaging.TargetTracker`);
     ``objects`` detects against clutter and tracks every object, the primary one reported as the
-    track (:class:`onboard.imaging.objects.ObjectChain`; measured with ``python -m bench.imaging --scene``).
+    track (:class:`onboard.imaging.objects_chain.ObjectChain`; measured with ``python -m bench.imaging --scene``).
     ``tbd`` (objects chain): search for dim points by track-before-detect while no target is held
     (:mod:`onboard.imaging.tbd`), thresholded at ``tbd_threshold_sigma`` local sigmas of the integrated
     image, over image velocities up to ``tbd_max_speed_pxpf`` px per frame per axis (the camera's rotation

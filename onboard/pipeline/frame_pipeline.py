@@ -134,7 +134,7 @@ def make_tracker(config: Any):
     from onboard.imaging import TargetTracker
 
     if config.imaging.chain == "objects":
-        from onboard.imaging.objects import ObjectChain
+        from onboard.imaging.objects_chain import ObjectChain
 
         return ObjectChain(
             config.camera.pinhole(),

@@ -295,7 +295,7 @@ def test_bad_pose_is_refused():
 
 def test_object_chain_reports_the_primary_as_the_track_and_a_new_id_on_a_change():
     from onboard.imaging import TrackState
-    from onboard.imaging.objects import ObjectChain
+    from onboard.imaging.objects_chain import ObjectChain
 
     rng = np.random.default_rng(9)
     chain = ObjectChain(K)
@@ -337,7 +337,7 @@ def test_objects_message_carries_every_confirmed_object_as_json():
 
 def test_pipeline_runs_the_objects_chain_with_the_pose():
     from onboard.app.config import build_config
-    from onboard.imaging.objects import ObjectChain
+    from onboard.imaging.objects_chain import ObjectChain
     from tests.onboard.test_pipeline import Rig
 
     rig = Rig(config=build_config({"imaging": {"chain": "objects"}}))

@@ -212,7 +212,7 @@ def test_the_daemons_track_is_measured_by_the_integrated_centre():
     """Through ObjectChain (what the daemon runs): once confirmed, the dim primary is ``tracking`` with a
     detection on nearly every frame (its single-frame centroid fails on most), at the target."""
     from onboard.imaging import TrackState
-    from onboard.imaging.objects import ObjectChain
+    from onboard.imaging.objects_chain import ObjectChain
 
     rng = np.random.default_rng(7)
     truth = [(82.0 + 0.15 * k, 62.0 + 0.05 * k) for k in range(60)]

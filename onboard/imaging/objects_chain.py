@@ -1,0 +1,111 @@
+"""The objects chain behind the daemon's single-target interface: :class:`ObjectChain` runs
+:class:`~onboard.imaging.objects.ObjectTracker` and reports its primary target as
+:class:`~onboard.imaging.TargetTracker` reports its one track, every object beside it."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from onboard.core.errors import InputError
+from onboard.imaging.objects import ObjectTracker
+from onboard.imaging.objects_model import ObjectsUpdate
+from onboard.imaging.preprocess import ImagingParams, check_frame
+
+__all__ = ["ObjectChain"]
+
+
+class ObjectChain:
+    """:class:`ObjectTracker` behind :class:`~onboard.imaging.TargetTracker`'s interface: the primary
+    target as a :class:`~onboard.imaging.TrackUpdate` (``track_id`` = its object id, so a change of
+    selection is a new track id and the frame pipeline restarts the 3-D estimate and says so), every
+    object in :attr:`last_objects`.  ``uses_pose``: the frame pipeline passes each frame's
+    ``R_ned_from_cam`` to :meth:`update` (None when it has no pose yet: the last one is kept, the
+    camera taken as still since)."""
+
+    uses_pose = True
+
+    def __init__(
+        self,
+        intrinsics,
+        params: ImagingParams | None = None,
+        mode: str = "auto",
+        frame_rate_hz: float = 30.0,
+        attitude_white_sigma_rad: float | None = None,
+    ) -> None:
+        # the attitude error its fits allow for: the estimator's, as configured (None: ObjectParams' default)
+        changes = {} if attitude_white_sigma_rad is None else {"attitude_white_sigma_rad": attitude_white_sigma_rad}
+        params_obj = ObjectTracker.default_params(params, **changes)
+        self.objects = ObjectTracker(intrinsics, frame_rate_hz, params=params_obj, imaging=params, mode=mode)
+        self.mode = mode
+        self.last_objects: ObjectsUpdate | None = None
+        self.rejected_frames = 0
+        self._R: np.ndarray | None = None
+        self._last_primary: int | None = None
+
+    def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None, time_boot_us: int | None = None):
+        try:
+            image = check_frame(image)
+        except InputError:
+            self.rejected_frames += 1
+            raise
+        if R_ned_from_cam is not None:
+            self._R = np.asarray(R_ned_from_cam, dtype=np.float64)
+        out = self.objects.update(image, self._R, time_boot_us)
+        self.last_objects = out
+        return self._track_update(out)
+
+    def _track_update(self, out: ObjectsUpdate):
+        from onboard.imaging.tracker import TrackState, TrackUpdate
+
+        prim = next((o for o in out.objects if o.object_id == out.primary_id), None)
+        lost = self._last_primary is not None and self._last_primary != out.primary_id
+        self._last_primary = out.primary_id
+        if prim is None:
+            state = TrackState.LOST if lost else TrackState.SEARCHING
+            return TrackUpdate(state, None, None, None, None, False, None, None, out.frame_index)
+        if prim.state == "confirmed" and out.primary is not None:
+            d = out.primary
+            return TrackUpdate(
+                TrackState.TRACKING,
+                d.u_px,
+                d.v_px,
+                prim.bbox,
+                d,
+                not d.touches_border,
+                prim.object_id,
+                0,
+                out.frame_index,
+            )
+        misses = max(prim.age_frames - prim.hits, 1)
+        return TrackUpdate(
+            TrackState.COASTING, prim.u_px, prim.v_px, prim.bbox, None, False, prim.object_id, misses, out.frame_index
+        )
+
+    def select_point(self, image: np.ndarray, u_px: float, v_px: float, radius_px: float):
+        """Update on ``image``, then make the object nearest (u, v) within ``radius_px`` the primary;
+        its TrackUpdate, or None (nothing there: the selection is unchanged)."""
+        self.update(image, None)
+        sel = self.objects.select_point(u_px, v_px, radius_px)
+        if sel is None or self.last_objects is None:
+            return None
+        self.objects.mode = self.mode  # a selection ends a stop's hold
+        # this frame measured the object already (before it was selected): reported from its track,
+        # not fit for 3-D; the next frame measures it as the primary
+        self.last_objects = dataclasses.replace(self.last_objects, primary_id=sel, primary=None, primary_changed=True)
+        return self._track_update(self.last_objects)
+
+    def select_rectangle(self, image: np.ndarray, rect_px: tuple[float, float, float, float]):
+        x0, y0, x1, y1 = rect_px
+        return self.select_point(image, 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * math.hypot(x1 - x0, y1 - y0))
+
+    def stop(self) -> None:
+        """Drop the selection and hold: no automatic choice until the next selection."""
+        self.objects.mode = "operator"
+        self.objects.clear_primary()
+
+    def reset(self) -> None:
+        """Forget every track (ids continue)."""
+        self.objects.clear_tracks()
