@@ -13,7 +13,7 @@
 FROM python:3.11-slim-bookworm
 
 # Single-threaded numerics by design (one pipeline thread, one MAVLink thread): no BLAS/OpenMP/OpenCV
-# thread pools competing with them for the companion computer's cores. numba loads the estimator's compiled
+# thread pools competing with them for the companion computer's cores. numba loads the compiled
 # kernels only from a writable cache (NUMBA_CACHE_DIR, in the /tmp tmpfs: the package tree is read-only at run
 # time); the build compiles them once into IRTRACK_NUMBA_CACHE_SEED and the daemon copies that seed into the
 # cache at start (onboard/app/numba_seed.py), so a start does not compile them again.
@@ -52,7 +52,7 @@ ARG IRTRACK_EXTRAS=""
 RUN --mount=type=cache,target=/root/.cache/pip \
     bash scripts/install.sh /opt/venv "$IRTRACK_EXTRAS" \
  && python -m compileall -q onboard groundsim bench \
- && NUMBA_CACHE_DIR=/opt/numba-seed python -c "from onboard.estimation import kernels; kernels.warm()" \
+ && NUMBA_CACHE_DIR=/opt/numba-seed python -c "from onboard.estimation import kernels; from onboard.imaging import kernels as ik; kernels.warm(); ik.warm()" \
  && install -d -m 0755 /config \
  && cp config/onboard.yaml /config/onboard.yaml
 

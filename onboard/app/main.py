@@ -213,7 +213,7 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     from onboard.app.numba_seed import seed_numba_cache
     from onboard.app.service import OnboardService
 
-    seed_numba_cache()  # before the estimator's kernels are loaded (in this process and the worker it starts)
+    seed_numba_cache()  # before any compiled kernel is loaded (the image chain's, the estimator's, in its worker too)
 
     try:
         built = OnboardService(config)

@@ -1,4 +1,4 @@
-"""The estimator's compiled kernels at a container's start: numba's cache seeded from the image.
+"""Compiled kernels (the estimator's, the image chain's) at a container's start: numba's cache seeded from the image.
 
 numba loads compiled machine code only from a cache directory it can write (``NUMBA_CACHE_DIR``), and the image's
 package tree is read-only at run time, so the image sets that directory in its ``/tmp`` tmpfs, which every start

@@ -20,6 +20,7 @@ import math
 import cv2
 import numpy as np
 
+from onboard.imaging import kernels
 from onboard.imaging.clutter import (
     TRANSIENT_A,
     ClutterParams,
@@ -118,6 +119,8 @@ class ObjectDetector:
         # the full-frame arrays of detect(), written again each frame (clutter.Scratch: fresh ones cost
         # page faults); contrast, threshold and clean live there until the next frame
         self._scratch = Scratch()
+        self._rows: dict[str, np.ndarray] = {}  # the compiled pass's row buffers, kept from frame to frame
+        kernels.warm()  # compiled (or loaded from numba's cache) now, not on the first frame
 
     def restart(self) -> None:
         """An offset step (flat-field correction): the defect map and the column offsets start again."""
@@ -164,14 +167,24 @@ class ObjectDetector:
         self.stages.lap("fixed pattern")
         # one 3 x 3 box mean serves the noise estimate and the contrast's surround cells
         box3 = None
-        if p.cell_px == 3:
-            box3 = cv2.blur(img, (3, 3), dst=sc.get("box3", img.shape), borderType=cv2.BORDER_REPLICATE)
-        # the contrast next to the box mean it reads, the threshold next to the comparison that reads it:
-        # a 1.3 MB array read soon after it was written is partly still in the 2 MB L2 cache
-        contrast = point_contrast(img, p, box3, sc)
-        self.stages.lap("point contrast")  # the box mean's cost is here
+        if kernels.fits(img.shape, p.cell_px, p.guard_px, p.sharp_guard_px, NOISE_FACTOR):
+            # the box mean, the contrast and the noise cells in one compiled pass over the rows, bit for bit the
+            # OpenCV path below (0.70 against 1.12 ms a 640 x 512 frame back to back, 1.4 against 1.9 paced at 30 Hz)
+            box3, contrast = sc.get("box3", img.shape), sc.get("contrast", img.shape)
+            cells = sc.get("cells", (h // NOISE_FACTOR, w // NOISE_FACTOR))
+            kernels.contrast_and_cells(
+                img, p.guard_px, p.sharp_guard_px, NOISE_FACTOR, box3, contrast, cells, self._rows
+            )
+            self.stages.lap("point contrast")  # the noise cells' cost is here too
+        else:
+            if p.cell_px == 3:
+                box3 = cv2.blur(img, (3, 3), dst=sc.get("box3", img.shape), borderType=cv2.BORDER_REPLICATE)
+            # the contrast next to the box mean it reads, the threshold next to the comparison that reads it:
+            # a 1.3 MB array read soon after it was written is partly still in the 2 MB L2 cache
+            contrast = point_contrast(img, p, box3, sc)
+            self.stages.lap("point contrast")  # the box mean's cost is here
+            cells = noise_cells(img, NOISE_FACTOR, box3, sc)
         # the CFAR threshold on the coarse grid, then to full size: one full-size pass instead of three
-        cells = noise_cells(img, NOISE_FACTOR, box3, sc)
         window_cells = noise_window_cells(p.noise_window_px, NOISE_FACTOR)
         # the window's mean deviation: the texture measure the tracker's tests and the defect level read
         mean = window_noise(cells, window_cells)

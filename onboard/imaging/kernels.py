@@ -1,0 +1,254 @@
+r"""The objects chain's whole-frame statistics in one compiled pass (numba), bit for bit the OpenCV formulation.
+
+What it computes, for the usual detector (3 x 3 surround cells): the frame's 3 x 3 box mean, its point contrast
+(:func:`onboard.imaging.clutter.point_contrast`) and the noise estimate's cells
+(:func:`onboard.imaging.clutter.noise_cells`).  In OpenCV those were nine full-frame passes (the box mean, two
+sparse dilations and their maximum, a 2 x 2 box mean and its dilation, the subtraction, the absolute deviation and
+its area resize), each writing a 1.3 MB float32 array that the next pass read back, and OpenCV's float box filters
+and small dilations cost ~0.15 ms each.  Here one loop over the rows computes each row's box mean, the surrounds'
+row maxima and the centre's 2 x 2 means into a few rows of ring buffers, and the contrast of a row as soon as the
+rows it reads exist, while they are still in the cache.
+
+Why bit for bit: the contrast is compared with a threshold, and a candidate, a track and a score that moved by a
+rounding would make every measured figure of the chain suspect.  The arithmetic is OpenCV's: its float box filters
+sum in float64 (exact here: nine float32 grey values) and round the product by the scale to float32; its area
+resize by an integer factor, as the x86-64 wheels run it (on Intel's IPP), sums the cell's float32 deviations in
+row order in float32 and multiplies by ``1 / factor**2``; maxima and the final float32 subtraction are exact.  (OpenCV
+built without IPP, as on ARM, sums each cell row's deviations before adding them: its cells differ from these by a
+rounding, in either direction; the kernel's are the same on every machine.)  ``tests/onboard/test_imaging_kernels.py``
+checks every output against the OpenCV path for random frames, fractional and integer, and every geometry the
+kernel takes.  No ``fastmath`` (numba's comparisons vectorise without it here).
+
+The kernel compiles on first use or loads from numba's cache (``cache=True``; ``NUMBA_CACHE_DIR`` when set, as in
+the container, whose image seeds it: :mod:`onboard.app.numba_seed`); :func:`warm` does that once per process.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+try:
+    from numba import njit
+except ImportError as exc:  # a declared runtime dependency (pyproject): say which, not a bare traceback
+    raise ImportError(
+        "onboard.imaging needs numba (a runtime dependency of the onboard service: `pip install .` installs it); "
+        f"it could not be imported: {exc}"
+    ) from exc
+
+__all__ = ["contrast_and_cells", "fits", "warm"]
+
+_WARM = False
+
+
+def fits(shape: tuple[int, ...], cell_px: int, guard_px: int, sharp_guard_px: int, factor: int) -> bool:
+    """Whether :func:`contrast_and_cells` computes what the OpenCV path does for this frame ``shape`` and geometry:
+    3 x 3 cells, a sharp surround within the cells' reach (``1 <= sharp_guard_px <= guard_px + 1``), a frame whose
+    sides are multiples of ``factor`` (OpenCV's area resize takes another path otherwise) and larger than the
+    contrast's blank border on both sides.  Anything else takes the OpenCV path, which is the reference."""
+    if len(shape) != 2 or cell_px != 3 or guard_px < 1 or not 1 <= sharp_guard_px <= guard_px + 1 or factor < 1:
+        return False
+    h, w = shape
+    border = guard_px + 1
+    return h % factor == 0 and w % factor == 0 and min(h, w) > 2 * border
+
+
+@njit(cache=True, nogil=True)
+def _box3_row(img, i, v, out):
+    """Row ``i`` of the 3 x 3 box mean (edges replicated) into ``out``; ``v`` (w + 2,) float64 work."""
+    h, w = img.shape
+    r0 = img[max(i - 1, 0)]
+    r1 = img[i]
+    r2 = img[min(i + 1, h - 1)]
+    for j in range(w):
+        v[j + 1] = np.float64(r0[j]) + np.float64(r1[j]) + np.float64(r2[j])
+    v[0] = v[1]
+    v[w + 1] = v[w]
+    left = v[0:w]
+    mid = v[1 : w + 1]
+    right = v[2 : w + 2]
+    ninth = 1.0 / 9.0
+    for j in range(w):
+        out[j] = np.float32((left[j] + mid[j] + right[j]) * ninth)
+
+
+@njit(cache=True, nogil=True)
+def _sparse_row_max(row, g, out):
+    """``out[j] = max(row[j - g], row[j], row[j + g])`` for ``g <= j < w - g`` (the rest untouched)."""
+    n = row.shape[0] - 2 * g
+    left = row[0:n]
+    mid = row[g : g + n]
+    right = row[2 * g : 2 * g + n]
+    o = out[g : g + n]
+    for j in range(n):
+        o[j] = max(max(left[j], mid[j]), right[j])
+
+
+@njit(cache=True, nogil=True)
+def _centre_row(upper, lower, means, out):
+    """The larger of the two 2 x 2 box means anchored at (row, j - 1) and (row, j), for ``1 <= j < w - 1``, of the
+    rows ``upper`` and ``lower`` (the row below it); ``means`` (w,) float32 work."""
+    w = upper.shape[0]
+    upper_r = upper[1:]
+    lower_r = lower[1:]
+    for j in range(w - 1):
+        s = np.float64(upper[j]) + np.float64(upper_r[j]) + np.float64(lower[j]) + np.float64(lower_r[j])
+        means[j] = np.float32(s * 0.25)
+    o = out[1 : w - 1]
+    left = means[0 : w - 2]
+    right = means[1 : w - 1]
+    for j in range(w - 2):
+        o[j] = max(left[j], right[j])
+
+
+@njit(cache=True, nogil=True)
+def _contrast_row(centre_above, centre, box_above, box_below, box_row, sharp_above, sharp_below, row, g, s, out):
+    """One row of the point contrast: the centre (the larger of the two rows' 2 x 2 maxima) minus the largest of the
+    eight cell means ``g`` away and the eight pixels ``s`` away; its first and last ``g + 1`` columns 0."""
+    w = row.shape[0]
+    b = g + 1
+    n = w - 2 * b
+    out[:b] = 0.0
+    out[w - b :] = 0.0
+    o = out[b : w - b]
+    c0 = centre_above[b : w - b]
+    c1 = centre[b : w - b]
+    ba = box_above[b : w - b]
+    bb = box_below[b : w - b]
+    bl = box_row[b - g : w - b - g]
+    br = box_row[b + g : w - b + g]
+    sa = sharp_above[b : w - b]
+    sb = sharp_below[b : w - b]
+    sl = row[b - s : w - b - s]
+    sr = row[b + s : w - b + s]
+    for j in range(n):
+        c = max(c0[j], c1[j])
+        m = max(max(ba[j], bb[j]), max(bl[j], br[j]))
+        m = max(m, max(max(sa[j], sb[j]), max(sl[j], sr[j])))
+        o[j] = c - m
+
+
+@njit(cache=True, nogil=True)
+def _cells_row(row, box_row, work, out, factor):
+    """Add one pixel row's ``|g - mean3x3(g)|`` to its cells' sums, column by column within each cell."""
+    wc = out.shape[0]
+    w = wc * factor
+    for j in range(w):
+        work[j] = abs(row[j] - box_row[j])
+    by_cell = work[:w].reshape((wc, factor))
+    for k in range(factor):
+        col = by_cell[:, k]
+        for c in range(wc):
+            out[c] += col[c]
+
+
+@njit(cache=True, nogil=True)
+def _contrast_and_cells(img, g, s, factor, box3, contrast, cells, box_max, sharp_max, centre, v, work):
+    h, w = img.shape
+    b = g + 1
+    lag = max(g, s)  # contrast row k is computed once rows k + g (the cells) and k + s (the pixels) are in
+    ring = box_max.shape[0]  # at least 2 * lag + 1: the rows from k - lag to k + lag
+    hc = cells.shape[0]
+    cells[:, :] = 0.0
+    for i in range(h):
+        _box3_row(img, i, v, box3[i])
+        _sparse_row_max(box3[i], g, box_max[i % ring])
+        _sparse_row_max(img[i], s, sharp_max[i % ring])
+        if i >= 1:
+            _centre_row(img[i - 1], img[i], work, centre[(i - 1) % ring])
+        if i // factor < hc:
+            _cells_row(img[i], box3[i], work, cells[i // factor], factor)
+        k = i - lag
+        if b <= k < h - b:
+            _contrast_row(
+                centre[(k - 1) % ring],
+                centre[k % ring],
+                box_max[(k - g) % ring],
+                box_max[(k + g) % ring],
+                box3[k],
+                sharp_max[(k - s) % ring],
+                sharp_max[(k + s) % ring],
+                img[k],
+                g,
+                s,
+                contrast[k],
+            )
+    for k in range(b):
+        contrast[k, :] = 0.0
+        contrast[h - 1 - k, :] = 0.0
+    scale = np.float32(1.0 / (factor * factor))
+    for ci in range(hc):
+        row = cells[ci]
+        for c in range(cells.shape[1]):
+            row[c] = row[c] * scale
+
+
+def contrast_and_cells(
+    img: np.ndarray,
+    guard_px: int,
+    sharp_guard_px: int,
+    factor: int,
+    box3: np.ndarray,
+    contrast: np.ndarray,
+    cells: np.ndarray,
+    work: dict[str, np.ndarray] | None = None,
+) -> None:
+    """Write ``img``'s 3 x 3 box mean into ``box3``, its point contrast (cells ``guard_px`` away, pixels
+    ``sharp_guard_px`` away) into ``contrast`` and its noise cells (``factor`` px) into ``cells``: bit for bit
+    ``cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE)``, :func:`~onboard.imaging.clutter.point_contrast` and
+    :func:`~onboard.imaging.clutter.noise_cells` for a geometry :func:`fits` accepts.  ``img`` float32, C-ordered;
+    ``box3``, ``contrast`` its shape, ``cells`` ``(h // factor, w // factor)``, all float32 and C-ordered; ``work``: a
+    dict the small row buffers are kept in between calls (None: new ones)."""
+    h, w = img.shape
+    if not fits(img.shape, 3, guard_px, sharp_guard_px, factor):
+        raise ValueError(
+            f"contrast_and_cells takes 3 x 3 cells, 1 <= sharp_guard_px <= guard_px + 1 and a frame whose sides are "
+            f"multiples of factor and over twice guard_px + 1: got a {h} x {w} frame, guard_px {guard_px}, "
+            f"sharp_guard_px {sharp_guard_px}, factor {factor}"
+        )
+    for name, a, shape in (
+        ("box3", box3, (h, w)),
+        ("contrast", contrast, (h, w)),
+        ("cells", cells, (h // factor, w // factor)),
+    ):
+        if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
+            raise ValueError(
+                f"contrast_and_cells: {name} must be C-ordered float32 of shape {shape}, got {a.dtype} {a.shape}"
+            )
+    if img.dtype != np.float32 or not img.flags.c_contiguous:
+        raise ValueError(f"contrast_and_cells: img must be C-ordered float32, got {img.dtype}")
+    ring = 2 * max(guard_px, sharp_guard_px) + 2
+    buffers = {} if work is None else work
+    kept = buffers.get("box_max")
+    if kept is None or kept.shape != (ring, w):
+        buffers.update(
+            box_max=np.empty((ring, w), np.float32),
+            sharp_max=np.empty((ring, w), np.float32),
+            centre=np.empty((ring, w), np.float32),
+            v=np.empty(w + 2, np.float64),
+            work=np.empty(w, np.float32),
+        )
+    _contrast_and_cells(
+        img,
+        guard_px,
+        sharp_guard_px,
+        factor,
+        box3,
+        contrast,
+        cells,
+        buffers["box_max"],
+        buffers["sharp_max"],
+        buffers["centre"],
+        buffers["v"],
+        buffers["work"],
+    )
+
+
+def warm() -> None:
+    """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
+    so that no frame pays it (the detector calls it at construction)."""
+    global _WARM
+    if _WARM:
+        return
+    img = np.zeros((16, 16), np.float32)
+    contrast_and_cells(img, 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((4, 4), np.float32))
+    _WARM = True

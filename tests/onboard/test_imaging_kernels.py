@@ -1,0 +1,137 @@
+"""The compiled whole-frame pass of the objects chain against the OpenCV formulation it replaces: bit for bit."""
+
+from __future__ import annotations
+
+import platform
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+
+from onboard.imaging.clutter import ClutterParams, noise_cells, point_contrast
+from onboard.imaging.kernels import contrast_and_cells, fits
+
+
+def _reference(img: np.ndarray, guard: int, sharp: int, factor: int):
+    """OpenCV's box mean and point contrast; the cells as the kernel's docstring states them (each cell's
+    deviations summed in float32 row by row, then scaled), which is OpenCV's area resize where it runs on IPP."""
+    params = ClutterParams(cell_px=3, guard_px=guard, sharp_guard_px=sharp)
+    box3 = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    dev = np.abs(img - box3)
+    cells = np.zeros((img.shape[0] // factor, img.shape[1] // factor), np.float32)
+    for a in range(factor):
+        for b in range(factor):
+            cells += dev[a::factor, b::factor]
+    cells *= np.float32(1.0 / factor**2)
+    return box3, point_contrast(img, params, box3.copy()), cells
+
+
+def _kernel(img: np.ndarray, guard: int, sharp: int, factor: int, work=None):
+    h, w = img.shape
+    box3, contrast = np.full_like(img, np.nan), np.full_like(img, np.nan)
+    cells = np.full((h // factor, w // factor), np.nan, np.float32)
+    contrast_and_cells(img, guard, sharp, factor, box3, contrast, cells, work)
+    return box3, contrast, cells
+
+
+def _frame(seed: int, h: int, w: int, kind: str) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = rng.normal(100.0, 4.0, (h, w))
+    img[rng.integers(0, h, 6), rng.integers(0, w, 6)] += rng.uniform(5, 60, 6)  # points and hot pixels
+    img += np.linspace(0.0, 30.0, w)[None, :]  # a gradient: the surrounds differ from side to side
+    if kind == "integer":  # an 8-bit frame with no column offsets
+        return np.clip(np.round(img), 0, 255).astype(np.float32)
+    if kind == "destriped":  # integer grey minus fractional column offsets: sums that float32 would round
+        return (np.round(img) - rng.uniform(-0.9, 0.9, w)[None, :]).astype(np.float32)
+    return (img * 3.7 + 1e-3).astype(np.float32)  # wide, fine-grained values (16-bit frames)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    hc=st.integers(3, 12),
+    wc=st.integers(3, 12),
+    guard=st.integers(1, 6),
+    sharp_offset=st.integers(0, 6),
+    factor=st.sampled_from([2, 4]),
+    kind=st.sampled_from(["integer", "destriped", "wide"]),
+)
+@example(seed=0, hc=128, wc=160, guard=4, sharp_offset=2, factor=4, kind="destriped")  # the detector's own
+@example(seed=1, hc=6, wc=7, guard=4, sharp_offset=5, factor=4, kind="integer")  # sharp surround beyond the cells
+def test_bit_for_bit_the_opencv_path(seed, hc, wc, guard, sharp_offset, factor, kind):
+    sharp = min(sharp_offset, guard + 1) or 1
+    h, w = hc * factor, wc * factor
+    if not fits((h, w), 3, guard, sharp, factor):
+        return
+    img = _frame(seed, h, w, kind)
+    ref_box, ref_contrast, ref_cells = _reference(img, guard, sharp, factor)
+    box, contrast, cells = _kernel(img, guard, sharp, factor)
+    np.testing.assert_array_equal(box, ref_box)
+    np.testing.assert_array_equal(contrast, ref_contrast)
+    np.testing.assert_array_equal(cells, ref_cells)
+    # OpenCV's own area resize: the same to the bit where IPP runs it (below), else to rounding (its generic code
+    # sums each cell row's four deviations before adding them)
+    np.testing.assert_allclose(cells, noise_cells(img, factor, ref_box.copy()), rtol=1e-6, atol=0)
+
+
+@pytest.mark.skipif(
+    platform.machine() not in ("x86_64", "AMD64"), reason="OpenCV's wheels run the resize on IPP on x86-64"
+)
+@pytest.mark.parametrize("kind", ["integer", "destriped", "wide"])
+def test_the_detectors_frames_bit_for_bit_opencvs_noise_cells(kind):
+    """At the detector's 640 x 512 frames the kernel's cells are OpenCV's own, so every score of the chain is."""
+    img = _frame(7, 512, 640, kind)
+    box, contrast, cells = _kernel(img, 4, 2, 4)
+    ref_box = cv2.blur(img, (3, 3), borderType=cv2.BORDER_REPLICATE)
+    np.testing.assert_array_equal(box, ref_box)
+    np.testing.assert_array_equal(cells, noise_cells(img, 4, ref_box))
+
+
+def test_buffers_kept_between_frames_and_geometries():
+    """The row buffers a caller keeps serve the next frame, and are rebuilt when the geometry changes."""
+    work: dict = {}
+    for guard, sharp, seed in ((4, 2, 3), (4, 2, 4), (2, 3, 5), (4, 2, 6)):
+        img = _frame(seed, 64, 80, "destriped")
+        for got, want in zip(_kernel(img, guard, sharp, 4, work), _reference(img, guard, sharp, 4), strict=True):
+            np.testing.assert_array_equal(got, want)
+
+
+def test_a_point_stands_out_and_edges_are_blank():
+    img = np.full((32, 40), 50.0, np.float32)
+    img[15:17, 20:22] = 60.0  # a 2 x 2 target 10 grey over a flat sky
+    _, contrast, cells = _kernel(img, 4, 2, 4)
+    assert contrast[15:17, 20:22].max() == pytest.approx(10.0)
+    assert np.unravel_index(np.argmax(contrast), contrast.shape) in {(15, 20), (15, 21), (16, 20), (16, 21)}
+    assert (
+        not contrast[:5].any() and not contrast[-5:].any() and not contrast[:, :5].any() and not contrast[:, -5:].any()
+    )
+    assert cells.max() > 0 and cells[0, 0] == 0.0
+
+
+@pytest.mark.parametrize(
+    "shape, guard, sharp, factor",
+    [((30, 40), 4, 2, 4), ((32, 40), 4, 6, 4), ((32, 40), 0, 1, 4), ((10, 40), 4, 2, 2), ((32, 40, 1), 4, 2, 4)],
+)
+def test_geometries_it_does_not_take(shape, guard, sharp, factor):
+    assert not fits(shape, 3, guard, sharp, factor)
+    if len(shape) == 2:
+        img = np.zeros(shape, np.float32)
+        with pytest.raises(ValueError, match="contrast_and_cells"):
+            _kernel(img, guard, sharp, factor)
+
+
+def test_cells_other_than_three_are_not_its():
+    assert not fits((32, 40), 5, 4, 2, 4)
+    assert fits((32, 40), 3, 4, 2, 4)
+
+
+def test_wrong_arrays_are_named():
+    img = np.zeros((32, 40), np.float32)
+    with pytest.raises(ValueError, match="cells must be"):
+        contrast_and_cells(img, 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((8, 9), np.float32))
+    with pytest.raises(ValueError, match="img must be"):
+        contrast_and_cells(
+            img.astype(np.float64), 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((8, 10), np.float32)
+        )
