@@ -25,13 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:
-    from numba import njit
-except ImportError as exc:  # a declared runtime dependency (pyproject): say which, not a bare traceback
-    raise ImportError(
-        "onboard.estimation needs numba (a runtime dependency of the onboard service: `pip install .` installs it); "
-        f"it could not be imported: {exc}"
-    ) from exc
+from onboard.core.jit import njit
 
 __all__ = [
     "linearise_measurements",

@@ -27,13 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-try:
-    from numba import njit
-except ImportError as exc:  # a declared runtime dependency (pyproject): say which, not a bare traceback
-    raise ImportError(
-        "onboard.imaging needs numba (a runtime dependency of the onboard service: `pip install .` installs it); "
-        f"it could not be imported: {exc}"
-    ) from exc
+from onboard.core.jit import njit
 
 __all__ = ["contrast_and_cells", "fits", "warm"]
 
