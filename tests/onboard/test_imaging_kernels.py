@@ -10,6 +10,7 @@ import pytest
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
+from onboard.imaging import kernels
 from onboard.imaging.clutter import ClutterParams, noise_cells, point_contrast
 from onboard.imaging.kernels import contrast_and_cells, fits
 
@@ -135,3 +136,21 @@ def test_wrong_arrays_are_named():
         contrast_and_cells(
             img.astype(np.float64), 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((8, 10), np.float32)
         )
+
+
+def test_the_detector_calls_only_what_warm_compiled():
+    """A frame through the objects chain, mono8 and mono16, compiles no kernel signature beyond warm()'s (none is
+    compiled on a frame in flight)."""
+    from onboard.core.frames import PinholeIntrinsics
+    from onboard.imaging.objects import ObjectTracker
+
+    kernels.warm()
+    compiled = list(kernels._contrast_and_cells.signatures)
+    assert len(compiled) == 1
+    K = PinholeIntrinsics(fx_px=800.0, fy_px=800.0, cx_px=320.0, cy_px=256.0, width_px=640, height_px=512)
+    for dtype, scale in ((np.uint8, 1), (np.uint16, 256)):
+        tracker = ObjectTracker(K, frame_rate_hz=30.0)
+        frame = _frame(11, 512, 640, "integer") * scale
+        tracker.update(np.clip(frame, 0, np.iinfo(dtype).max).astype(dtype), np.eye(3))
+        assert tracker.detector.contrast is not None and tracker.detector.contrast.any()
+    assert list(kernels._contrast_and_cells.signatures) == compiled
