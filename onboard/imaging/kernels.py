@@ -4,8 +4,8 @@ What it computes, for the usual detector (3 x 3 surround cells): the frame's 3 x
 (:func:`onboard.imaging.clutter.point_contrast`) and the noise estimate's cells
 (:func:`onboard.imaging.clutter.noise_cells`).  In OpenCV those were nine full-frame passes (the box mean, two
 sparse dilations and their maximum, a 2 x 2 box mean and its dilation, the subtraction, the absolute deviation and
-its area resize), each writing a 1.3 MB float32 array that the next pass read back, and OpenCV's float box filters
-and small dilations cost ~0.15 ms each.  Here one loop over the rows computes each row's box mean, the surrounds'
+its area resize), each writing a frame-sized float32 array that the next pass read back: a third of the chain's
+CPU (docs/perception.md, "The whole-frame statistics in one compiled pass").  Here one loop over the rows computes each row's box mean, the surrounds'
 row maxima and the centre's 2 x 2 means into a few rows of ring buffers, and the contrast of a row as soon as the
 rows it reads exist, while they are still in the cache.
 
@@ -16,8 +16,9 @@ resize by an integer factor, as the x86-64 wheels run it (on Intel's IPP), sums 
 row order in float32 and multiplies by ``1 / factor**2``; maxima and the final float32 subtraction are exact.  (OpenCV
 built without IPP, as on ARM, sums each cell row's deviations before adding them: its cells differ from these by a
 rounding, in either direction; the kernel's are the same on every machine.)  ``tests/onboard/test_imaging_kernels.py``
-checks every output against the OpenCV path for random frames, fractional and integer, and every geometry the
-kernel takes.  No ``fastmath`` (numba's comparisons vectorise without it here).
+checks the box mean and the contrast against the OpenCV path, and the cells against that arithmetic (and OpenCV's
+own at the detector's frame size on x86-64), for random frames, fractional and integer, in every geometry the kernel
+takes.  No ``fastmath`` (numba's comparisons vectorise without it here).
 
 The kernel compiles on first use or loads from numba's cache (``cache=True``; ``NUMBA_CACHE_DIR`` when set, as in
 the container, whose image seeds it: :mod:`onboard.app.numba_seed`); :func:`warm` does that once per process.
