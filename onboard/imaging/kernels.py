@@ -30,7 +30,7 @@ import numpy as np
 
 from onboard.core.jit import njit
 
-__all__ = ["contrast_and_cells", "fits", "warm"]
+__all__ = ["area_mean", "contrast_and_cells", "fits", "warm"]
 
 _WARM = False
 
@@ -238,6 +238,47 @@ def contrast_and_cells(
     )
 
 
+@njit(cache=True, nogil=True)
+def _area_mean(img, factor, out, column_sums):
+    """Each ``factor`` x ``factor`` cell's mean of the integer frame ``img`` into ``out`` (float32): the cell's sum in
+    integers (exact), then scaled.  ``column_sums`` (w,) int32 work: each column's sum over the cell's rows first."""
+    hc, wc = out.shape
+    w = wc * factor
+    scale = np.float32(1.0 / (factor * factor))
+    for ci in range(hc):
+        column_sums[:] = 0
+        for a in range(factor):
+            row = img[ci * factor + a]
+            for j in range(w):
+                column_sums[j] += np.int32(row[j])
+        o = out[ci]
+        if factor == 4:  # written out: the loop over the cells then vectorises
+            for c in range(wc):
+                total = column_sums[4 * c] + column_sums[4 * c + 1] + column_sums[4 * c + 2] + column_sums[4 * c + 3]
+                o[c] = np.float32(total) * scale
+        else:
+            for c in range(wc):
+                total = column_sums[c * factor]
+                for k in range(1, factor):
+                    total += column_sums[c * factor + k]
+                o[c] = np.float32(total) * scale
+
+
+def area_mean(img: np.ndarray, factor: int) -> np.ndarray | None:
+    """``cv2.resize(img.astype(np.float32), (w // factor, h // factor), interpolation=cv2.INTER_AREA)``, bit for bit,
+    for a uint8 or uint16 frame whose sides are multiples of ``factor`` (1, 2 or 4), without the frame-sized float32
+    copy: each cell's sum is exact (at most 16 x 65535 < 2**24) and so is its scaling by a power of two, so OpenCV's
+    float sums, in whatever order, give the same value.  None otherwise: the caller takes OpenCV's resize."""
+    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16) or not img.flags.c_contiguous:
+        return None
+    h, w = img.shape
+    if factor not in (1, 2, 4) or h % factor or w % factor or h < factor or w < factor:
+        return None
+    out = np.empty((h // factor, w // factor), np.float32)
+    _area_mean(img, factor, out, np.empty(w, np.int32))
+    return out
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
     so that no frame pays it (the detector calls it at construction)."""
@@ -246,4 +287,6 @@ def warm() -> None:
         return
     img = np.zeros((16, 16), np.float32)
     contrast_and_cells(img, 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((4, 4), np.float32))
+    for dtype in (np.uint8, np.uint16):
+        area_mean(np.zeros((16, 16), dtype), 4)
     _WARM = True

@@ -370,11 +370,15 @@ class ObjectDetector:
             raw = next((f for i, f in self._recent if i == q), None)
             if raw is None:
                 return None
-            h, w = raw.shape
-            size = (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE)
-            full = self._scratch.get(TRANSIENT_A, raw.shape)  # raw.astype(np.float32), no fresh array
-            np.copyto(full, raw)
-            a = self._smalls[q] = cv2.resize(full, size, interpolation=cv2.INTER_AREA)
+            # the cells' means straight from the kept frame (OpenCV's values: exact sums of whole grey levels)
+            a = kernels.area_mean(raw, BACKGROUND_SCALE)
+            if a is None:
+                h, w = raw.shape
+                size = (w // BACKGROUND_SCALE, h // BACKGROUND_SCALE)
+                full = self._scratch.get(TRANSIENT_A, raw.shape)  # raw.astype(np.float32), no fresh array
+                np.copyto(full, raw)
+                a = cv2.resize(full, size, interpolation=cv2.INTER_AREA)
+            self._smalls[q] = a
         return a
 
     def _motion(self, q: int) -> tuple[float, float] | None:

@@ -154,3 +154,32 @@ def test_the_detector_calls_only_what_warm_compiled():
         tracker.update(np.clip(frame, 0, np.iinfo(dtype).max).astype(dtype), np.eye(3))
         assert tracker.detector.contrast is not None and tracker.detector.contrast.any()
     assert list(kernels._contrast_and_cells.signatures) == compiled
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    hc=st.integers(1, 40),
+    wc=st.integers(1, 40),
+    factor=st.sampled_from([1, 2, 4]),
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+)
+@example(seed=0, hc=128, wc=160, factor=4, dtype=np.uint8)  # the detector's background frames
+@example(seed=1, hc=128, wc=160, factor=4, dtype=np.uint16)
+def test_area_mean_is_opencvs_area_resize(seed, hc, wc, factor, dtype):
+    rng = np.random.default_rng(seed)
+    top = 255 if dtype == np.uint8 else 65535
+    img = rng.integers(0, top + 1, (hc * factor, wc * factor)).astype(dtype)
+    want = cv2.resize(img.astype(np.float32), (wc, hc), interpolation=cv2.INTER_AREA)
+    got = kernels.area_mean(img, factor)
+    assert got is not None and got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
+
+
+def test_area_mean_leaves_what_it_cannot_promise_to_opencv():
+    img = np.zeros((32, 40), np.float32)
+    assert kernels.area_mean(img, 4) is None  # a float frame: OpenCV's summation order would matter
+    assert kernels.area_mean(np.zeros((30, 40), np.uint8), 4) is None  # a side not a multiple of the factor
+    assert kernels.area_mean(np.zeros((32, 40), np.int16), 4) is None
+    assert kernels.area_mean(np.zeros((36, 36), np.uint8), 3) is None
+    assert kernels.area_mean(np.zeros((32, 40), np.uint8), 4) is not None
