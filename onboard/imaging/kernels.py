@@ -30,7 +30,7 @@ import numpy as np
 
 from onboard.core.jit import njit
 
-__all__ = ["area_mean", "contrast_and_cells", "fits", "warm"]
+__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "fits", "warm"]
 
 _WARM = False
 
@@ -279,6 +279,55 @@ def area_mean(img: np.ndarray, factor: int) -> np.ndarray | None:
     return out
 
 
+@njit(cache=True, nogil=True)
+def _cell_extremes(img, factor, hi, lo, top, bottom):
+    """Each cell's largest and least pixel into ``hi``, ``lo``; ``top``, ``bottom`` (w,) of ``img``'s dtype, work:
+    each column's extremes over the cell's rows first (contiguous, vectorised in the frame's own type)."""
+    hc, wc = hi.shape
+    w = wc * factor
+    for ci in range(hc):
+        first = img[ci * factor]
+        for j in range(w):
+            top[j] = first[j]
+            bottom[j] = first[j]
+        for a in range(1, factor):
+            row = img[ci * factor + a]
+            for j in range(w):
+                top[j] = max(top[j], row[j])
+                bottom[j] = min(bottom[j], row[j])
+        up = hi[ci]
+        down = lo[ci]
+        if factor == 4:  # written out: the loop over the cells then vectorises
+            for c in range(wc):
+                up[c] = max(max(top[4 * c], top[4 * c + 1]), max(top[4 * c + 2], top[4 * c + 3]))
+                down[c] = min(min(bottom[4 * c], bottom[4 * c + 1]), min(bottom[4 * c + 2], bottom[4 * c + 3]))
+        else:
+            for c in range(wc):
+                t = top[c * factor]
+                b = bottom[c * factor]
+                for k in range(1, factor):
+                    t = max(t, top[c * factor + k])
+                    b = min(b, bottom[c * factor + k])
+                up[c] = t
+                down[c] = b
+
+
+def cell_extremes(img: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """The largest and the least pixel of each ``factor`` x ``factor`` cell of a uint8 or uint16 frame (its dtype,
+    ``(h // factor, w // factor)``; the last rows and columns that fill no cell left out), in one pass; None for
+    another dtype or layout (the caller's numpy and OpenCV formulation)."""
+    if img.ndim != 2 or img.dtype not in (np.uint8, np.uint16) or not img.flags.c_contiguous or factor < 1:
+        return None
+    h, w = img.shape
+    hc, wc = h // factor, w // factor
+    if hc < 1 or wc < 1:
+        return None
+    hi = np.empty((hc, wc), img.dtype)
+    lo = np.empty((hc, wc), img.dtype)
+    _cell_extremes(img, factor, hi, lo, np.empty(w, img.dtype), np.empty(w, img.dtype))
+    return hi, lo
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
     so that no frame pays it (the detector calls it at construction)."""
@@ -289,4 +338,5 @@ def warm() -> None:
     contrast_and_cells(img, 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((4, 4), np.float32))
     for dtype in (np.uint8, np.uint16):
         area_mean(np.zeros((16, 16), dtype), 4)
+        cell_extremes(np.zeros((16, 16), dtype), 4)
     _WARM = True

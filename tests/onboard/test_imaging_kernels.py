@@ -11,7 +11,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from onboard.imaging import kernels
-from onboard.imaging.clutter import ClutterParams, noise_cells, point_contrast
+from onboard.imaging.clutter import ClutterParams, noise_cells, point_contrast, two_level_cap
 from onboard.imaging.kernels import contrast_and_cells, fits
 
 
@@ -183,3 +183,45 @@ def test_area_mean_leaves_what_it_cannot_promise_to_opencv():
     assert kernels.area_mean(np.zeros((32, 40), np.int16), 4) is None
     assert kernels.area_mean(np.zeros((36, 36), np.uint8), 3) is None
     assert kernels.area_mean(np.zeros((32, 40), np.uint8), 4) is not None
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    h=st.integers(1, 70),
+    w=st.integers(1, 90),
+    factor=st.sampled_from([1, 2, 3, 4]),
+    level=st.integers(0, 65000),
+    spread=st.sampled_from([1, 2, 3, 40]),
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+)
+@example(seed=0, h=512, w=640, factor=4, level=143, spread=2, dtype=np.uint8)
+def test_two_level_cap_the_same_with_the_compiled_cell_extremes(seed, h, w, factor, level, spread, dtype):
+    """Flat ground on a few grey levels with warmer patches: the cap is the same array whichever computes the cells'
+    extremes (the compiled pass, or numpy rows and OpenCV's dilation along them)."""
+    rng = np.random.default_rng(seed)
+    base = min(level, np.iinfo(dtype).max - 80)
+    img = base + rng.integers(0, spread, (h, w))
+    patches = rng.integers(0, max(h * w // 200, 1))
+    img[rng.integers(0, h, patches), rng.integers(0, w, patches)] += rng.integers(2, 40, patches)
+    img = img.astype(dtype)
+    hc, wc = h // factor, w // factor
+    extremes = kernels.cell_extremes(img, factor)
+    if hc and wc:
+        cells = img[: hc * factor, : wc * factor].reshape(hc, factor, wc, factor)
+        assert extremes is not None and extremes[0].dtype == dtype
+        np.testing.assert_array_equal(extremes[0], cells.max(axis=(1, 3)))
+        np.testing.assert_array_equal(extremes[1], cells.min(axis=(1, 3)))
+    else:
+        assert extremes is None
+    compiled = two_level_cap(img, 31, factor, 1.0, 0.9)
+    original = kernels.cell_extremes
+    try:
+        kernels.cell_extremes = lambda *_: None  # two_level_cap's own numpy and OpenCV formulation
+        formulated = two_level_cap(img, 31, factor, 1.0, 0.9)
+    finally:
+        kernels.cell_extremes = original
+    if formulated is None:
+        assert compiled is None
+    else:
+        np.testing.assert_array_equal(compiled, formulated)
