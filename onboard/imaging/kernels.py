@@ -1,4 +1,8 @@
-r"""The objects chain's whole-frame statistics in one compiled pass (numba), bit for bit the OpenCV formulation.
+r"""The objects chain's whole-frame passes compiled (numba), bit for bit the OpenCV and numpy formulations.
+
+:func:`contrast_and_cells` is the detector's main pass (below).  Two smaller ones: :func:`area_mean`, the background
+motion's 4x smaller frames summed in integers from the kept frame (no float32 copy), and :func:`cell_extremes`, the
+two-level cap's cell maxima and minima in the frame's own dtype; both are exact by construction (integer arithmetic).
 
 What it computes, for the usual detector (3 x 3 surround cells): the frame's 3 x 3 box mean, its point contrast
 (:func:`onboard.imaging.clutter.point_contrast`) and the noise estimate's cells
