@@ -238,14 +238,14 @@ class ObjectTracker:
             x1, y1 = min(int(puv[0]) + r + 1, w), min(int(puv[1]) + r + 1, h)
             if x1 - x0 < 3 or y1 - y0 < 3:
                 continue
-            threshold = self.detector.lowered_base  # made when first asked for on a frame
+            threshold = self.detector.lowered_base_block(y0, y1, x0, x1)  # the gate's block alone
             assert threshold is not None
             roi = point_candidates(
                 contrast[y0:y1, x0:x1],
                 # a coasting track's widened gate holds more noise peaks (12 px: 9 times a measured track's
                 # area; over C1-C5 25 of 41 aided re-finds after 2 or more misses lay off every object): the
                 # threshold rises with the gate's side
-                threshold[y0:y1, x0:x1] * np.float32(p.aided_threshold_factor * math.sqrt(gate / p.gate_px)),
+                threshold * np.float32(p.aided_threshold_factor * math.sqrt(gate / p.gate_px)),
                 self.clutter,
             )
             best = None
@@ -276,8 +276,8 @@ class ObjectTracker:
         and 0.53 of it), while the difference, registered on the point's surroundings 8 frames back, cancels
         what moves with the ground; on a clear sky the whole-frame threshold is the detector."""
         p, K = self.params, self.K
-        contrast, threshold = self.detector.contrast, self.detector.lowered_base
-        if contrast is None or threshold is None:
+        contrast = self.detector.contrast
+        if contrast is None or self.detector.threshold is None:
             return []
         h, w = contrast.shape
         reach = math.tan(p.primary_max_off_axis_rad)
@@ -286,7 +286,9 @@ class ObjectTracker:
         if x1 - x0 < 3 or y1 - y0 < 3:
             return []
         factor = np.float32(p.aided_threshold_factor)
-        weak = point_candidates(contrast[y0:y1, x0:x1], threshold[y0:y1, x0:x1] * factor, self.clutter)
+        threshold = self.detector.lowered_base_block(y0, y1, x0, x1)
+        assert threshold is not None
+        weak = point_candidates(contrast[y0:y1, x0:x1], threshold * factor, self.clutter)
         out: list[PointCandidate] = []
         tried = 0
         for c in sorted(weak, key=lambda c: -c.score):  # score: contrast over the lowered threshold

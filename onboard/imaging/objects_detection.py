@@ -228,6 +228,29 @@ class ObjectDetector:
             self._mean_threshold = self._full_threshold(mean, cap, self.threshold.shape)
         return self._mean_threshold
 
+    def lowered_base_block(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray | None:
+        """``lowered_base[y0:y1, x0:x1]`` (the same values), computed for that block alone: the searches read a gate or
+        the axis' square of it, not the frame.  Bilinear resizing gives each pixel from its own two rows and columns of
+        cells with weights set by its place within its cell, so a block of cells with one cell of margin, resized by
+        the same whole factor, gives the frame's values inside the margin (where the block meets the frame's edge, its
+        edge is the frame's); ``tests/onboard/test_clutter_median_noise.py`` compares them with the frame's."""
+        if self._mean_noise is None or self.threshold is None or self._mean_threshold is not None:
+            base = self.lowered_base
+            return None if base is None else base[y0:y1, x0:x1]
+        mean, cap = self._mean_noise
+        (h, w), (hc, wc), f = self.threshold.shape, mean.shape, NOISE_FACTOR
+        if hc * f != h or wc * f != w or not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
+            base = self.lowered_base
+            return None if base is None else base[y0:y1, x0:x1]
+        c = self.clutter
+        i0, j0 = max(y0 // f - 1, 0), max(x0 // f - 1, 0)
+        i1, j1 = min((y1 - 1) // f + 2, hc), min((x1 - 1) // f + 2, wc)
+        cells = cfar_threshold(
+            mean[i0:i1, j0:j1], c.threshold_sigma, c.min_threshold_lsb, None if cap is None else cap[i0:i1, j0:j1]
+        )
+        block = cv2.resize(np.ascontiguousarray(cells), ((j1 - j0) * f, (i1 - i0) * f), interpolation=cv2.INTER_LINEAR)
+        return block[y0 - i0 * f : y1 - i0 * f, x0 - j0 * f : x1 - j0 * f]
+
     def _full_threshold(
         self, noise: np.ndarray, cap: np.ndarray | None, shape: tuple[int, ...], dst: np.ndarray | None = None
     ) -> np.ndarray:

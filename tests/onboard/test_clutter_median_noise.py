@@ -132,3 +132,23 @@ def test_lowered_searches_keep_the_mean_threshold(seed):
     assert np.all(det.threshold <= det.lowered_base)
     beside = slice(int(EDGE_ROW_PX - BIRD_GAP_PX) - 2, int(EDGE_ROW_PX - BIRD_GAP_PX) + 3)
     assert np.all(det.threshold[beside] < 0.75 * det.lowered_base[beside])
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seed=st.integers(0, 3),
+    y0=st.integers(0, H_PX - 1),
+    x0=st.integers(0, W_PX - 1),
+    dy=st.integers(1, 60),
+    dx=st.integers(1, 60),
+    floor=st.sampled_from([ClutterParams().median_noise_floor, 1.0]),
+)
+def test_a_block_of_the_lowered_threshold_is_the_frames(seed, y0, x0, dy, dx, floor):
+    """The searches read the lowered threshold block by block: each block is the frame's, edges and corners too."""
+    det = _detector(floor)
+    det.detect(_sky_with_cloud_edge_and_bird(seed, 64.0, EDGE_ROW_PX - BIRD_GAP_PX), 0)
+    y1, x1 = min(y0 + dy, H_PX), min(x0 + dx, W_PX)
+    block = det.lowered_base_block(y0, y1, x0, x1)  # before the whole frame's is made
+    assert block is not None
+    np.testing.assert_array_equal(block, det.lowered_base[y0:y1, x0:x1])
+    np.testing.assert_array_equal(det.lowered_base_block(y0, y1, x0, x1), block)  # and after
