@@ -234,22 +234,18 @@ class ObjectDetector:
         cells with weights set by its place within its cell, so a block of cells with one cell of margin, resized by
         the same whole factor, gives the frame's values inside the margin (where the block meets the frame's edge, its
         edge is the frame's); ``tests/onboard/test_clutter_median_noise.py`` compares them with the frame's."""
-        if self._mean_noise is None or self.threshold is None or self._mean_threshold is not None:
-            base = self.lowered_base
-            return None if base is None else base[y0:y1, x0:x1]
-        mean, cap = self._mean_noise
-        (h, w), (hc, wc), f = self.threshold.shape, mean.shape, NOISE_FACTOR
-        if hc * f != h or wc * f != w or not (0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w):
-            base = self.lowered_base
-            return None if base is None else base[y0:y1, x0:x1]
-        c = self.clutter
-        i0, j0 = max(y0 // f - 1, 0), max(x0 // f - 1, 0)
-        i1, j1 = min((y1 - 1) // f + 2, hc), min((x1 - 1) // f + 2, wc)
-        cells = cfar_threshold(
-            mean[i0:i1, j0:j1], c.threshold_sigma, c.min_threshold_lsb, None if cap is None else cap[i0:i1, j0:j1]
-        )
-        block = cv2.resize(np.ascontiguousarray(cells), ((j1 - j0) * f, (i1 - i0) * f), interpolation=cv2.INTER_LINEAR)
-        return block[y0 - i0 * f : y1 - i0 * f, x0 - j0 * f : x1 - j0 * f]
+        f = NOISE_FACTOR
+        if self._mean_noise is not None and self._mean_threshold is None and self.threshold is not None:
+            mean, cap = self._mean_noise
+            (h, w), (hc, wc) = self.threshold.shape, mean.shape
+            if hc * f == h and wc * f == w and 0 <= y0 < y1 <= h and 0 <= x0 < x1 <= w:
+                i0, j0 = max(y0 // f - 1, 0), max(x0 // f - 1, 0)
+                i1, j1 = min((y1 - 1) // f + 2, hc), min((x1 - 1) // f + 2, wc)
+                block_cap = None if cap is None else cap[i0:i1, j0:j1]
+                block = self._full_threshold(mean[i0:i1, j0:j1], block_cap, ((i1 - i0) * f, (j1 - j0) * f))
+                return block[y0 - i0 * f : y1 - i0 * f, x0 - j0 * f : x1 - j0 * f]
+        base = self.lowered_base  # the frame's, made already, or the only one there is
+        return None if base is None else base[y0:y1, x0:x1]
 
     def _full_threshold(
         self, noise: np.ndarray, cap: np.ndarray | None, shape: tuple[int, ...], dst: np.ndarray | None = None
