@@ -492,7 +492,7 @@ def miss_cause(image: np.ndarray, u_px: float, v_px: float) -> str:
     h, w = image.shape
     j, i = int(u_px), int(v_px)
     params = ClutterParams()
-    band = params.guard_px + params.cell_px // 2  # the chain measures no contrast this near the frame's edges
+    band = params.reach_px  # the chain measures no contrast this near the frame's edges
     if not (band <= i < h - band and band <= j < w - band):
         return "edge"
     r = CAUSE_HALF_PX

@@ -161,6 +161,12 @@ class ClutterParams:
         if not 0 < self.two_level_fraction <= 1:
             raise ValueError(f"ClutterParams.two_level_fraction must be in (0, 1], got {self.two_level_fraction!r}")
 
+    @property
+    def reach_px(self) -> int:
+        """How far from a pixel its point contrast reads (the surround cells' far side): the band along the frame's
+        edges where :func:`point_contrast` measures none, and the margin a crop needs about a pixel it measures."""
+        return self.guard_px + self.cell_px // 2
+
 
 class Scratch:
     """Arrays kept from one frame to the next, by name: a function given one writes its full-frame
@@ -374,7 +380,7 @@ def point_contrast(
     # where the surround cells reach beyond the frame they read the edge's own pixels (replicated), and the part
     # of a roof or a cloud the frame's edge cuts off looks like a point: no contrast is measured there (under the
     # median threshold, C2 seeds 3 and 5: a track 0-1 px from the right edge, confirmed for 10-32 frames)
-    b = min(params.guard_px + params.cell_px // 2, *contrast.shape)
+    b = min(params.reach_px, *contrast.shape)
     contrast[:b] = 0.0
     contrast[-b:] = 0.0
     contrast[:, :b] = 0.0

@@ -314,8 +314,8 @@ class ObjectDetector:
             return list(cands)
         p = self.clutter
         h, w = img.shape
-        # the contrast of a pixel DEBLEND_RADIUS_PX away reads pixels guard + cell / 2 beyond it
-        half = int(math.ceil(DEBLEND_RADIUS_PX)) + p.guard_px + p.cell_px // 2 + 1
+        # the contrast of a pixel DEBLEND_RADIUS_PX away reads pixels reach_px beyond it
+        half = int(math.ceil(DEBLEND_RADIUS_PX)) + p.reach_px + 1
         out = list(cands)
         bright = [
             c
