@@ -58,6 +58,17 @@ def run_benchmark(name: str, main, kept: str = "the figures printed above are ke
     return int(rc or 0)
 
 
+def parse_flags(prog: str, description: str, flags: dict[str, str] | None = None):
+    """The command line of a benchmark that takes no option but on/off ``flags`` (name -> help): ``--help``
+    prints them, anything else is refused by name (exit 2) rather than ignored while the default run starts."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog=prog, description=description)
+    for name, text in (flags or {}).items():
+        ap.add_argument(name, action="store_true", help=text)
+    return ap.parse_args()
+
+
 def pin_to_one_cpu(unpinned: str = "not pinned") -> str:
     """Pin this process to the lowest CPU it may run on; says which ("pinned to CPU N") or ``unpinned``
     where the platform cannot (no ``sched_setaffinity``) or refuses."""

@@ -23,7 +23,7 @@ import time
 
 import numpy as np
 
-from bench import run_benchmark
+from bench import parse_flags, run_benchmark
 from groundsim.world.flight import FlownVehicle, fly, fly_pair
 from groundsim.world.motion import Circular, Cubic
 from onboard.core.frames import GeodeticOrigin, euler_from_quat
@@ -138,4 +138,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    parse_flags("python -m bench.flight", __doc__.splitlines()[0])
     sys.exit(run_benchmark("flight", main))

@@ -27,7 +27,7 @@ import time
 import cv2
 import numpy as np
 
-from bench import run_benchmark
+from bench import parse_flags, run_benchmark
 from onboard.imaging import ImagingParams, TargetTracker, detect_targets
 from onboard.imaging.tracker import create_kcf
 
@@ -188,4 +188,10 @@ if __name__ == "__main__":
         from bench.imaging_scenes import main as scenes_main
 
         sys.exit(run_benchmark("imaging", lambda: scenes_main(sys.argv[1:])))
+    parse_flags(
+        "python -m bench.imaging",
+        __doc__.splitlines()[0] + "  With no option it runs the synthetic and renderer cases.  '--scene NAME ...'"
+        " (bench.imaging_scenes): the chains on rendered scenario frames; '--loop NAME ...' (bench.imaging_loop):"
+        " the chain in the closed loop; each has its own --help.",
+    )
     sys.exit(run_benchmark("imaging", main))

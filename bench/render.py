@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from bench import pin_to_one_cpu, run_benchmark
+from bench import parse_flags, pin_to_one_cpu, run_benchmark
 
 N_FRAMES = 300
 WARMUP_FRAMES = 10
@@ -437,4 +437,12 @@ def reference_scene_cases(n_frames: int = REFERENCE_FRAMES, stages: bool = False
 
 
 if __name__ == "__main__":
-    sys.exit(run_benchmark("render", reference_scenes_main if "--reference-scenes" in sys.argv[1:] else main))
+    flags = parse_flags(
+        "python -m bench.render",
+        __doc__.splitlines()[0],
+        {
+            "--reference-scenes": "only the reference scenes C1-C5",
+            "--stages": "with --reference-scenes: where each scene's time goes",
+        },
+    )
+    sys.exit(run_benchmark("render", reference_scenes_main if flags.reference_scenes else main))
