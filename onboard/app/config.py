@@ -207,23 +207,22 @@ class EstimatorConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "sliding", dict(self.sliding))
-        if not self.sliding:
-            return
+        self.sliding_config()  # its own checks, each naming its field under estimator.sliding
+
+    def sliding_config(self):
+        """The :class:`~onboard.estimation.sliding.SlidingConfig` of ``sliding``, with ``window_s`` (not a key of
+        ``sliding``: configured once, here)."""
         from onboard.estimation.sliding import SlidingConfig
 
-        known = [f.name for f in dataclasses.fields(SlidingConfig)]
-        for key in self.sliding:
-            if key not in known:
-                raise Invalid(
-                    f"sliding.{key}",
-                    f"a SlidingConfig field ({', '.join(known)})",
-                    got_text=f"unknown key {key!r}",
-                    hint=did_you_mean(key, known),
-                )
         try:
-            SlidingConfig(**{"window_s": self.window_s, **self.sliding})
-        except Exception as exc:  # noqa: BLE001 - any refusal of the estimator's own validation
-            raise Invalid("sliding", "valid SlidingConfig values", got_text=f"{self.sliding!r} ({exc})") from None
+            return build(SlidingConfig, self.sliding, given={"window_s": self.window_s})
+        except SchemaError as exc:
+            expected = exc.expected
+            if exc.keys is not None:
+                expected = f"a key of estimator.sliding ({', '.join(exc.keys)})"
+            if exc.field == "window_s":  # given from here
+                expected = "the window's length set once, as estimator.window_s, not in estimator.sliding"
+            raise Invalid(f"sliding.{exc.field}", expected, got_text=exc.got, hint=exc.hint) from None
 
     def noise_model(self):
         """The :class:`~onboard.estimation.map_estimator.NoiseModel` (degrees -> radians)."""

@@ -232,6 +232,6 @@ def make_guidance_tap(config: OnboardConfig, clock: Any = time.monotonic) -> Gui
     if not g.advise:
         return None
     k = config.camera.intrinsics
-    knot_s = float(config.estimator.sliding.get("knot_spacing_s", 1.0))  # the online spline's (SlidingConfig)
+    knot_s = config.estimator.sliding_config().knot_spacing_s  # the online spline's
     planner = GuidancePlanner.for_noise(g, config.estimator.noise_model(), (k.fx_px, k.fy_px), knot_s)
     return GuidanceTap(config, GuidanceAdvisor(planner), clock)

@@ -70,12 +70,14 @@ import pickle
 from collections import deque
 from collections.abc import Generator, Iterable
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.errors import InputError
 from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.core.schema import NOT_A_KEY, Bool, Integer, Invalid, Number, config_dataclass
 from onboard.estimation.consistency import (
     ConsistencyMonitor,
     ManoeuvreDetector,
@@ -125,71 +127,68 @@ PROVISIONAL_MODEL = ("cv", (1e-3,))
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
+#: a number of seconds, frames or sigmas the estimator divides by or counts with: above zero
+_Positive = Annotated[float, Number(0.0, lo_open=True)]
+_NonNegative = Annotated[float, Number(0.0)]
+
+
+@config_dataclass
 class SlidingConfig:
-    window_s: float = 20.0
-    max_frames: int = 300
-    min_spacing_s: float = 0.06
+    """The sliding window's settings; a bad value raises :class:`~onboard.core.schema.SchemaError` naming the
+    field (the daemon's ``estimator.sliding`` section, built with ``window_s`` from ``estimator.window_s``)."""
+
+    # not a key of estimator.sliding: the daemon sets it from estimator.window_s, the one place it is configured
+    window_s: _Positive = dataclasses.field(default=20.0, metadata=NOT_A_KEY)
+    # the window holds at most this many kept frames: at a spacing of s seconds, max_frames * s seconds of them
+    max_frames: Annotated[int, Integer(10)] = 300
+    min_spacing_s: _NonNegative = 0.06
     # the trajectory spline's knot spacing online (MapConfig.knot_spacing_s, 0.5 s in batch): over the 20 s
     # window 1 s knots keep the unknowns as many as 0.5 s knots did over 10 s; on synthetic 40 s RTK flights
     # the same observable shares (70/72/86 % of the frames after 5 s, P1/P2/P3) and errors as 0.5 s, for
     # 40 % less estimator CPU (0.08-0.10 instead of 0.12-0.18 CPU s per s)
-    knot_spacing_s: float = 1.0
-    min_frames: int = 30
-    min_span_s: float = 1.5
-    reselect_period_s: float = 5.0
-    warmup_reselect_period_s: float = 1.0
+    knot_spacing_s: _Positive = 1.0
+    min_frames: Annotated[int, Integer(10)] = 30
+    min_span_s: _NonNegative = 1.5
+    reselect_period_s: _Positive = 5.0
+    warmup_reselect_period_s: _Positive = 1.0
     # full window, confirmed selections: the period doubles up to this (module docstring)
-    reselect_max_period_s: float = 20.0
+    reselect_max_period_s: _Positive = 20.0
     # mean squared standardised innovation per axis over the newest frames that calls a selection early
-    reselect_innovation_trigger: float = 4.0
-    reselect_innovation_frames: int = 15
-    iterations_per_frame: int = 1
-    resolve_every_frames: int = 5
+    reselect_innovation_trigger: _Positive = 4.0
+    reselect_innovation_frames: Annotated[int, Integer(1)] = 15
+    iterations_per_frame: Annotated[int, Integer(1)] = 1
+    resolve_every_frames: Annotated[int, Integer(1)] = 5
     # the model selection runs as an anytime computation spread over the kept frames (module docstring):
     # each frame advances it until it has done this much work, in residual evaluations (with their
     # normal-equation solves, MapEstimator.selection) of a max_frames window, ~0.3-0.45 ms each on the
     # development machine; a younger window's evaluations are cheaper and more of them make one frame's
     # share (EVALUATION_OVERHEAD_ROWS).  No frame pays for a whole selection; 0 runs it at once
-    selection_work_per_frame: int = 30
+    selection_work_per_frame: Annotated[int, Integer(0)] = 30
     # a frame is observable when the last selection's window was and its own range sigma (at the window's
     # newest edge, the least constrained point: ~1.4x the window median on P2) is below this many times
     # MapConfig.observability_max_sigma_range_ratio
-    edge_sigma_factor: float = 2.0
+    edge_sigma_factor: _Positive = 2.0
     # a published estimate is demoted to unobservable while the estimate of 2 s before, carried to now, fails
     # to predict this frame's bearing within its covariance (onboard.estimation.consistency). Off by default:
     # on synthetic racetrack targets (RTK, 2-minute flights) it takes the positions beyond 3 sigma from 15.8 %
     # to 8.5 %, but on the realistic flow (bench.companion, P2, RTK) it cut the observable share after 5 s
     # from 0.44 to 0.33 with every position honest either way (docs/performance.md, "Honest over minutes")
-    consistency_check: bool = False
+    consistency_check: Bool = False
     # a target that changes motion model (onboard.estimation.consistency, docs/performance.md "Honest over
     # minutes"): the CUSUM threshold on the newest frames' innovations above which the window is called
     # unobservable and a selection is due at once (ManoeuvreDetector; 0: off), and how many sigmas of range
     # a selection may differ from the observable selections before it on their common frames before it is
     # called unobservable (SelectionHistory; 0: off)
-    manoeuvre_cusum_threshold: float = 10.0
-    selection_consistency_nsigma: float = 3.0
+    manoeuvre_cusum_threshold: _NonNegative = 10.0
+    selection_consistency_nsigma: _NonNegative = 3.0
 
     def __post_init__(self) -> None:
-        if not (
-            self.window_s > 0
-            and self.max_frames >= 10
-            and self.min_frames >= 10
-            and self.reselect_period_s > 0
-            and self.warmup_reselect_period_s > 0
-            and self.reselect_max_period_s >= self.reselect_period_s
-            and self.reselect_innovation_trigger > 0
-            and self.reselect_innovation_frames >= 1
-            and self.min_spacing_s >= 0
-            and self.knot_spacing_s > 0
-            and self.iterations_per_frame >= 1
-            and self.min_span_s >= 0
-            and self.resolve_every_frames >= 1
-            and self.selection_work_per_frame >= 0
-            and self.manoeuvre_cusum_threshold >= 0
-            and self.selection_consistency_nsigma >= 0
-        ):
-            raise InputError(f"SlidingConfig: invalid values {self}")
+        if self.reselect_max_period_s < self.reselect_period_s:
+            raise Invalid(
+                "reselect_max_period_s",
+                f">= reselect_period_s ({self.reselect_period_s:g})",
+                self.reselect_max_period_s,
+            )
 
 
 def process_cov_ned_m2(prior: MotionPrior | None, dt_s: float) -> np.ndarray:
@@ -546,7 +545,9 @@ class SlidingWindowEstimator:
     def _update(self, t: float) -> TrackEstimate | None:
         c = self.config
         period = min(c.reselect_period_s, max(c.warmup_reselect_period_s, (t - self._t[0]) / 4.0))
-        full = t - self._t[0] >= 0.95 * c.window_s
+        # full: it spans the window, or holds all the rows it may (a window_s longer than max_frames kept frames
+        # span would otherwise never count as full, and its re-selection period never grow)
+        full = t - self._t[0] >= 0.95 * c.window_s or len(self._t) >= c.max_frames
         if full:
             period = min(period * self._period_scale, c.reselect_max_period_s)
         inn = self._innovations

@@ -71,7 +71,6 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from dataclasses import fields
 from typing import Any, NoReturn, Protocol
 
 import numpy as np
@@ -149,12 +148,9 @@ def make_estimator(config: Any):
     """The sliding-window estimator of ``config.estimator`` (None when disabled)."""
     if not config.estimator.enabled:
         return None
-    from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
+    from onboard.estimation.sliding import SlidingWindowEstimator
 
-    known = {f.name for f in fields(SlidingConfig)}
-    kwargs = {"window_s": config.estimator.window_s} if "window_s" in known else {}
-    kwargs.update(config.estimator.sliding)
-    return SlidingWindowEstimator(SlidingConfig(**kwargs), noise=config.estimator.noise_model())
+    return SlidingWindowEstimator(config.estimator.sliding_config(), noise=config.estimator.noise_model())
 
 
 def _finite_estimate(est: Any) -> bool:

@@ -149,7 +149,7 @@ def test_rebuild_ends_its_selection_on_the_newest_row(window):
 
 
 def test_selection_work_per_frame_must_not_be_negative():
-    from onboard.core.errors import InputError
+    from onboard.core.errors import ConfigError
 
-    with pytest.raises(InputError):
+    with pytest.raises(ConfigError, match="selection_work_per_frame: expected an integer >= 0"):
         SlidingConfig(selection_work_per_frame=-1)

@@ -12,14 +12,14 @@ import pytest
 from groundsim.evaluation.synth import estimator_noise_model, synthesize
 from groundsim.world.motion import Circular
 from groundsim.world.scenario import load_noise_cases
-from onboard.core.errors import InputError
+from onboard.core.errors import ConfigError
 from onboard.core.frames import PinholeIntrinsics
 from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
 
 RATE_HZ = 30.0
 
 
-def _fly(uv_offset=None, seconds: float = 60.0):
+def _fly(uv_offset=None, seconds: float = 60.0, config: SlidingConfig | None = None):
     """A minute of steady geometry under RTK navigation errors: the observer circles (40 m, 8 m/s, 70 m
     up), the target flies a wide circle 150-300 m away (6 m/s, 85 m up; the coordinated-turn model's
     case).  Returns the estimator, the selection times (each selection's window's newest frame; it ends a few
@@ -31,7 +31,7 @@ def _fly(uv_offset=None, seconds: float = 60.0):
     target = Circular((220.0, 0.0, -85.0), 70.0, 0.0, 6.0 / 70.0)
     K = PinholeIntrinsics.vue_pro_640()
     truth, obs = synthesize(observer, target, t, K, nc, np.random.default_rng(1))
-    sw = SlidingWindowEstimator(noise=estimator_noise_model(nc))
+    sw = SlidingWindowEstimator(config, noise=estimator_noise_model(nc))
     selections, last = [], None
     for i in range(t.size):
         uv = obs.uv_px[i] + (uv_offset(t[i]) if uv_offset else 0.0)
@@ -91,6 +91,17 @@ def test_a_target_that_leaves_the_model_calls_a_selection_before_the_backed_off_
         ("reselect_innovation_frames", 0),
     ],
 )
-def test_bad_reselection_settings_are_refused_naming_the_config(field, value):
-    with pytest.raises(InputError, match="SlidingConfig"):
+def test_bad_reselection_settings_are_refused_naming_the_field(field, value):
+    with pytest.raises(ConfigError, match=f"SlidingConfig>: {field}: expected"):
         SlidingConfig(**{field: value})
+
+
+def test_a_window_longer_than_its_rows_hold_counts_as_full_and_backs_off():
+    # 150 rows at every other frame of 30 Hz hold 10 s of a 60 s window: full once they are all taken,
+    # else its re-selection period would stay at reselect_period_s for ever
+    cfg = SlidingConfig(window_s=60.0, max_frames=150)
+    sw, sel, _ = _fly(seconds=40.0, config=cfg)
+    assert len(sw._t) == cfg.max_frames
+    gaps = np.diff(sel[sel >= 12.0])
+    assert gaps.size >= 1
+    assert gaps.max() >= 2 * cfg.reselect_period_s - 0.1
