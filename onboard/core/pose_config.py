@@ -65,11 +65,13 @@ class ExtrapolationHorizons(NamedTuple):
 
 @config_dataclass
 class OriginConfig:
-    """``pose.origin`` of the daemon's configuration: a fixed local NED origin (degrees, metres)."""
+    """``pose.origin`` of the daemon's configuration: a fixed local NED origin (degrees, metres).  All three are
+    required: a field left out is an error, not 0 (a latitude alone would put the origin on the prime meridian,
+    thousands of kilometres from the vehicle, with the geofence and altitude band relative to it)."""
 
-    lat_deg: Annotated[float, Number(-90.0, 90.0)] = 0.0
-    lon_deg: Annotated[float, Number(-180.0, 180.0)] = 0.0
-    alt_m: Annotated[float, Number(-1000.0, 100000.0)] = 0.0
+    lat_deg: Annotated[float, Number(-90.0, 90.0)]
+    lon_deg: Annotated[float, Number(-180.0, 180.0)]
+    alt_m: Annotated[float, Number(-1000.0, 100000.0)]
 
     def geodetic(self) -> GeodeticOrigin:
         return GeodeticOrigin(self.lat_deg, self.lon_deg, self.alt_m)
