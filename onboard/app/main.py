@@ -201,6 +201,16 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         sys.stdout.write(yaml.safe_dump(config_to_dict(config), sort_keys=False))
         return EXIT_OK
     if args.check:
+        # the zenoh config file is read as the session would read it (no session is opened)
+        from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
+
+        try:
+            build_config(
+                config.zenoh, max_payload_bytes=config.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD
+            )
+        except ZenohConfigError as exc:
+            print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
+            return EXIT_CONFIG
         print(f"{args.config or '(defaults)'}: ok")
         return EXIT_OK
 

@@ -212,6 +212,7 @@ class OnboardService:
 
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
+            DAEMON_CONFIG_FILE_FIELD,
             FRAME_ENCODING,
             GUIDANCE_ENCODING,
             OBJECTS_ENCODING,
@@ -242,7 +243,9 @@ class OnboardService:
             from onboard.io.gcs_link import GcsLink
 
             self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
-        self.session = open_session(cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes)
+        self.session = open_session(
+            cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD
+        )
         self._track_pub = self.session.declare_publisher(
             track_key(cfg.vehicle),
             encoding=zenoh.Encoding(TRACK_ENCODING),

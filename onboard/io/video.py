@@ -49,7 +49,7 @@ from typing import Annotated, Literal, get_args
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.core.schema import Bool, Integer, Number, Text, config_dataclass
+from onboard.core.schema import Bool, Integer, Invalid, Number, Text, config_dataclass
 from onboard.io.foxglove_messages import drawn_box
 from onboard.io.rtp_h264 import DEFAULT_MAX_PACKET_BYTES, DEFAULT_PAYLOAD_TYPE, RtpH264Packetizer, rtp_timestamp
 from onboard.io.worker_queue import items_until_stopped, stop_and_join
@@ -410,6 +410,11 @@ class VideoConfig:
     gop_s: Annotated[float, Number(0.1, 1.0)] = 1.0
     overlay: Bool = True
     queue_length: Annotated[int, Integer(1, 30)] = 2
+
+    def __post_init__(self) -> None:
+        # the pattern takes up to five digits; the port's range is checked here, so that --check refuses it
+        if self.destination is not None and not 1 <= int(self.destination.rsplit(":", 1)[1]) <= 65535:
+            raise Invalid("destination", "HOST:PORT with PORT in 1..65535", self.destination)
 
 
 class VideoStreamer:

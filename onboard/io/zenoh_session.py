@@ -212,6 +212,10 @@ _OPTION_OF_FIELD = {
 }
 
 
+#: what the daemon's errors about its zenoh config file call it (its --zenoh-config option sets this field)
+DAEMON_CONFIG_FILE_FIELD = "zenoh.config_file"
+
+
 def config_from_options(**fields: Any) -> ZenohConfig:
     """:class:`ZenohConfig` from a command's ``--zenoh-*`` options (its fields by name); an invalid value's
     :class:`~onboard.core.schema.SchemaError` names the option it came from, as the daemon's does."""
@@ -242,8 +246,9 @@ def _file_list(config, key: str) -> list[str]:
     return [str(v) for v in value] if isinstance(value, list) else []
 
 
-def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None):
-    """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file.
+def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
+    """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file, whose
+    errors name it after ``file_option`` (the daemon's ``zenoh.config_file``, a command's ``--zenoh-config``).
 
     ``max_payload_bytes``: the largest payload the session must receive (the daemon passes
     ``input.max_frame_bytes``, a setting of another section); plus :data:`MESSAGE_OVERHEAD_BYTES` it
@@ -257,11 +262,11 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None)
     if settings.config_file is not None:
         path = os.fspath(settings.config_file)
         if not os.path.isfile(path):
-            raise ZenohConfigError(f"--zenoh-config {path}: no such file")
+            raise ZenohConfigError(f"{file_option} {path}: no such file")
         try:
             config = zenoh.Config.from_file(path)
         except zenoh.ZError as exc:
-            raise ZenohConfigError(f"--zenoh-config {path}: {_one_line(exc)}") from None
+            raise ZenohConfigError(f"{file_option} {path}: {_one_line(exc)}") from None
         file_sets_listen = config.get_json("listen/endpoints") != zenoh.Config().get_json("listen/endpoints")
         scouting_in_file = json.loads(config.get_json("scouting/multicast/enabled") or "null")
     else:
@@ -292,10 +297,10 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None)
     return config
 
 
-def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None):
-    """Open a zenoh session for ``settings`` (``max_payload_bytes`` as :func:`build_config`); typed, one-line
-    errors (see the module docstring)."""
-    config = build_config(settings, max_payload_bytes=max_payload_bytes)
+def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
+    """Open a zenoh session for ``settings`` (``max_payload_bytes``, ``file_option`` as :func:`build_config`);
+    typed, one-line errors (see the module docstring)."""
+    config = build_config(settings, max_payload_bytes=max_payload_bytes, file_option=file_option)
     try:
         session = zenoh.open(config)
     except zenoh.ZError as exc:

@@ -70,6 +70,8 @@ def test_config_passes_max_frame_bytes_to_zenoh():
         ("zenoh", {"listen": ["tcp/127.0.0.1:99999"]}, "zenoh.listen[0]"),
         ("zenoh", {"connect": ["tcp/127.0.0.1:7447", "tls/host"]}, "zenoh.connect[1]"),
         ("mavlink", {"connection": "udpin:127.0.0.1:99999"}, "mavlink.connection"),
+        ("video", {"destination": "127.0.0.1:99999"}, "video.destination"),
+        ("video", {"destination": "127.0.0.1:0"}, "video.destination"),
     ],
 )
 def test_bad_ports_fail_naming_the_field(section, value, field):
@@ -85,3 +87,23 @@ def test_check_exits_2_naming_the_port_field(tmp_path):
     )
     assert r.returncode == 2
     assert "zenoh.listen[0]" in r.stderr and "99999" in r.stderr
+
+
+@pytest.mark.parametrize("content", [None, "{ not json5"])
+def test_check_reads_the_zenoh_config_file_naming_its_field(tmp_path, content):
+    zc = tmp_path / "zenoh.json5"
+    if content is not None:
+        zc.write_text(content)
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(f"zenoh:\n  config_file: {zc}\n")
+    r = subprocess.run(
+        [sys.executable, "-m", "onboard", "--config", str(cfg), "--check"], capture_output=True, text=True, timeout=60
+    )
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert r.stderr.startswith(f"{cfg}: zenoh.config_file {zc}: "), r.stderr
+    assert ("no such file" in r.stderr) == (content is None)
+    zc.write_text("{}")
+    ok = subprocess.run(
+        [sys.executable, "-m", "onboard", "--config", str(cfg), "--check"], capture_output=True, text=True, timeout=60
+    )
+    assert ok.returncode == 0 and ok.stdout.strip() == f"{cfg}: ok", ok.stdout + ok.stderr
