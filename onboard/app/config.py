@@ -5,7 +5,9 @@ variables ``IRTRACK_<SECTION>_<FIELD>`` (e.g. ``IRTRACK_MAVLINK_CONNECTION``,
 ``IRTRACK_CAMERA_INTRINSICS_FX_PX``, ``IRTRACK_VEHICLE``; values are parsed as YAML scalars/flow
 collections, so ``IRTRACK_ZENOH_CONNECT='[tcp/10.0.0.2:7447]'`` works) < command-line options.
 ``IRTRACK_HEALTH_FILE`` is an alias of ``IRTRACK_OUTPUT_HEALTH_FILE`` (the container's health check
-reads it too).  An unknown ``IRTRACK_<SECTION>_...`` variable of a known section is an error.
+reads it too; set with ``IRTRACK_OUTPUT_HEALTH_FILE``, both must agree).  An unknown ``IRTRACK_<SECTION>_...``
+variable of a known section is an error, and so is one a letter or two off a field's variable (a misspelt section);
+the tools' own ``IRTRACK_*`` variables are not ours.
 
 The models are those of the one config system, :mod:`onboard.core.schema` (strict pydantic v2,
 ``extra="forbid"``, one YAML loader, one error format).  Sections are declared where they are consumed
@@ -35,6 +37,7 @@ into the radians/microseconds of the core objects where they are read (:meth:`Ca
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import math
 import os
 import re
@@ -43,6 +46,7 @@ from typing import Annotated, Any, Literal
 
 import yaml
 
+from onboard.app.health import DEFAULT_MAX_AGE_S
 from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError
 from onboard.core.frames import CameraMount, FrameError, PinholeIntrinsics
@@ -105,6 +109,8 @@ __all__ = [
 
 ENV_PREFIX = "IRTRACK_"
 ENV_ALIASES = {"IRTRACK_HEALTH_FILE": "output.health_file"}
+#: an unknown IRTRACK_* variable at least this alike (difflib's ratio) to a field's variable is taken for a misspelling
+ENV_MISSPELT_RATIO = 0.9
 DEFAULT_SOURCE = "(defaults)"
 
 
@@ -255,7 +261,9 @@ class OutputConfig:
     camera_device_id: Annotated[int, Integer(0, 6)] = 0
     track_stale_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
     health_file: Annotated[str | None, Text()] = "/tmp/irtrack-alive"
-    health_interval_s: Annotated[float, Number(0.05, 60.0)] = 1.0
+    # at most half the health probe's age limit: a longer period would make the container's probe call a live
+    # daemon stale between two touches
+    health_interval_s: Annotated[float, Number(0.05, DEFAULT_MAX_AGE_S / 2)] = 1.0
 
 
 @config_dataclass
@@ -447,8 +455,10 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, tuple[A
     """``{field.path: (value, "env NAME")}`` from ``IRTRACK_*`` variables.
 
     Values are parsed as YAML (``"5"`` -> 5, ``"true"`` -> True, ``"[a, b]"`` -> list, ``""`` ->
-    null).  An ``IRTRACK_<SECTION>_...`` name whose section exists but whose field does not raises
-    :class:`OnboardConfigError` with a "did you mean"; other ``IRTRACK_*`` names are not ours.
+    null).  An ``IRTRACK_<SECTION>_...`` name whose section exists but whose field does not, or one at least
+    :data:`ENV_MISSPELT_RATIO` alike to a field's name, raises :class:`OnboardConfigError` with a "did you mean";
+    other ``IRTRACK_*`` names are not ours.  ``IRTRACK_HEALTH_FILE`` may not be empty, nor differ from
+    ``IRTRACK_OUTPUT_HEALTH_FILE`` when both are set.
     """
     environ = os.environ if environ is None else environ
     by_name = {_env_name(p): p for p in _leaf_paths()}
@@ -461,11 +471,23 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, tuple[A
         src = f"env {name}"
         path = by_name.get(name)
         if path is None:
-            if any(name.startswith(s) for s in sections):
+            # a misspelt section too (IRTRACK_MAVLNK_CONNECTION): one letter off a field's variable, never one of
+            # the other IRTRACK_* variables the tools read (IRTRACK_EXTRAS ...), which are < 0.75 alike
+            near = difflib.get_close_matches(name, list(by_name), n=1, cutoff=ENV_MISSPELT_RATIO)
+            if any(name.startswith(s) for s in sections) or near:
                 raise OnboardConfigError(
                     src, "(name)", "a known IRTRACK_<SECTION>_<FIELD> variable", repr(name), did_you_mean(name, by_name)
                 )
             continue
+        if path in out:  # an alias and its field's own name, both set
+            first = out[path][1]
+            if environ[name] != environ[first.removeprefix("env ")]:
+                raise OnboardConfigError(
+                    src, path, f"the value of {first.removeprefix('env ')} (the same field)", repr(environ[name])
+                )
+        if name in ENV_ALIASES and not environ[name].strip():
+            # the health probe refuses an empty IRTRACK_HEALTH_FILE: the daemon must not read it as "no file"
+            raise OnboardConfigError(src, path, "a file path (the health probe reads it too)", "an empty value")
         out[path] = (_parse_value(environ[name]), src)
     return out
 

@@ -260,6 +260,7 @@ BAD = [
     ("pose: {origin: {lat_deg: 47, lon_deg: 8.5}}", "pose.origin.alt_m", "a value (required)", "missing", None),
     ("pose: {origin: {}}", "pose.origin.lat_deg", "a value (required)", "missing", None),
     ("output: {tracking_geo_status_hz: -5}", "output.tracking_geo_status_hz", "[0, 100]", "-5", None),
+    ("output: {health_interval_s: 10}", "output.health_interval_s", "[0.05, 2.5]", "10", None),
     ("logging: {level: info}", "logging.level", "one of DEBUG, INFO", "'info'", "did you mean 'INFO'?"),
     ("vehicle: 'uav 1'", "vehicle", "one zenoh key chunk", "'uav 1'", None),
     ("- a\n- b", "(document)", "a mapping of sections", "['a', 'b']", None),
@@ -366,6 +367,35 @@ def test_bad_environment_value_names_the_variable():
 def test_unknown_variable_of_a_known_section_is_an_error_with_a_hint():
     with pytest.raises(OnboardConfigError, match=r"did you mean 'IRTRACK_MAVLINK_CONNECTION'\?$"):
         env_overrides({"IRTRACK_MAVLINK_CONECTION": "x"})
+
+
+@pytest.mark.parametrize(
+    "name, hint",
+    [
+        ("IRTRACK_MAVLNK_CONNECTION", "IRTRACK_MAVLINK_CONNECTION"),
+        ("IRTRACK_VEHICLES", "IRTRACK_VEHICLE"),
+        ("IRTRACK_HEALTHFILE", "IRTRACK_HEALTH_FILE"),
+    ],
+)
+def test_a_misspelt_section_is_an_error_too(name, hint):
+    with pytest.raises(OnboardConfigError, match=rf"got '{name}'; did you mean '{hint}'\?$"):
+        env_overrides({name: "x"})
+
+
+def test_the_tools_own_variables_are_not_taken_for_misspellings():
+    tools = ("IRTRACK_EXTRAS", "IRTRACK_FUZZ_EXAMPLES", "IRTRACK_NUMBA_CACHE_SEED", "IRTRACK_WRITE_GOLDEN")
+    assert env_overrides(dict.fromkeys(tools, "1")) == {}
+
+
+def test_the_health_file_alias_must_agree_with_its_field_and_not_be_empty():
+    both = {"IRTRACK_HEALTH_FILE": "/tmp/a", "IRTRACK_OUTPUT_HEALTH_FILE": "/tmp/b"}
+    with pytest.raises(OnboardConfigError, match="output.health_file: expected the value of IRTRACK_HEALTH_FILE"):
+        load_config(None, environ=both)
+    same = load_config(None, environ={**both, "IRTRACK_OUTPUT_HEALTH_FILE": "/tmp/a"})
+    assert same.output.health_file == "/tmp/a"
+    with pytest.raises(OnboardConfigError, match="IRTRACK_HEALTH_FILE: output.health_file: expected a file path"):
+        load_config(None, environ={"IRTRACK_HEALTH_FILE": " "})
+    assert load_config(None, environ={"IRTRACK_OUTPUT_HEALTH_FILE": ""}).output.health_file is None  # null: none
 
 
 def test_cli_error_names_the_option():
