@@ -2,9 +2,10 @@
 
 ``python -m onboard ... --live-view PORT`` (config ``live_view.port``), ``python -m onboard.replay FILE.mcap
 --live-view PORT`` and ``make demo`` (``LIVE_VIEW=PORT``) start a WebSocket server (foxglove-sdk,
-https://docs.foxglove.dev/docs/sdk/python; subprotocol ``foxglove.websocket.v1``) bound to
-``live_view.host`` (127.0.0.1 unless configured otherwise).  Foxglove: *Open connection* ->
-*Foxglove WebSocket* -> ``ws://127.0.0.1:PORT``.
+https://docs.foxglove.dev/docs/sdk/python; subprotocol ``foxglove.sdk.v1``, the SDK's name for the messages of
+``foxglove.websocket.v1``; a client offering only the old name is refused) bound to ``live_view.host``
+(127.0.0.1 unless configured otherwise).  Foxglove: *Open connection* -> *Foxglove WebSocket* ->
+``ws://127.0.0.1:PORT``.
 
 Channels: the recording's (:mod:`onboard.io.record`, same topics, schemas and encodings:
 :mod:`onboard.io.foxglove_messages`) plus three for display:
