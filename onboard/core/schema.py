@@ -27,8 +27,9 @@ One error format, :class:`SchemaError` (a :class:`~onboard.core.errors.ConfigErr
 ``<source>`` is the file, ``env IRTRACK_...``, ``--option``, ``<dict>``, or ``<ClassName>`` for a
 direct construction; entry points print it and exit with :attr:`SchemaError.exit_code` (2).
 
-One YAML loader, :func:`read_yaml`: safe, duplicate keys refused, and YAML 1.2 floats -- ``3e-1`` and
-``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string).
+One YAML loader, :func:`read_yaml`: safe, duplicate keys refused, and YAML 1.2 floats and booleans -- ``3e-1``
+and ``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string), and only
+``true`` / ``false`` are booleans (``yes``, ``no``, ``on``, ``off`` are strings).
 
 :func:`build` turns a parsed mapping into a config dataclass, descending into the fields whose type is
 another config dataclass (a section), a tuple of them, or a union of them told apart by their ``model``
@@ -722,7 +723,16 @@ PositiveInt = Annotated[int, Integer(lo=1)]
 
 
 class _StrictLoader(yaml.SafeLoader):
-    """SafeLoader that refuses duplicate keys and reads ``1e-3`` / ``3e-1`` as floats (YAML 1.2)."""
+    """SafeLoader that refuses duplicate keys, reads ``1e-3`` / ``3e-1`` as floats and only ``true`` / ``false`` as
+    booleans (YAML 1.2: ``yes``, ``no``, ``on`` and ``off`` are strings, so a vehicle named ``on`` is one, and
+    ``enabled: yes`` is refused by its field rather than read as true)."""
+
+
+# the class's own copy of SafeLoader's implicit resolvers without YAML 1.1's booleans (SafeLoader's left as they are)
+_StrictLoader.yaml_implicit_resolvers = {
+    first: [(tag, rx) for tag, rx in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
 
 
 def _construct_mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False):
@@ -747,6 +757,9 @@ _StrictLoader.add_implicit_resolver(
     "tag:yaml.org,2002:float",
     re.compile(r"^[-+]?(?:[0-9][0-9_]*)(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
     list("-+0123456789"),
+)
+_StrictLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
 )
 
 

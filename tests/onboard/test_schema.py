@@ -79,6 +79,18 @@ _SECTION_VALUES = {
 }
 
 
+@pytest.mark.parametrize("word", ["yes", "no", "on", "off", "Yes", "OFF"])
+def test_only_true_and_false_are_booleans_in_every_file(tmp_path, word):
+    # YAML 1.2: a YAML 1.1 boolean word is a string, so a flag refuses it and a name keeps it
+    p = tmp_path / "c.yaml"
+    p.write_text(f"estimator: {{enabled: {word}}}\n")
+    with pytest.raises(OnboardConfigError, match=f"estimator.enabled: expected true or false, got '{word}'$"):
+        load_config(p, environ={})
+    p.write_text(f"vehicle: {word}\n")
+    assert load_config(p, environ={}).vehicle == word
+    assert yaml.safe_load("on") is True  # PyYAML's own loader is left as it is
+
+
 @settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     st.dictionaries(st.sampled_from(sorted(_SECTION_VALUES)), st.just(None), max_size=4).flatmap(
