@@ -387,7 +387,8 @@ _Sources = Mapping[str, str]
 
 
 def _source_of(path: str, sources: _Sources, default: str) -> str:
-    """The source of the most specific overridden prefix of ``path``."""
+    """The source of the most specific overridden prefix of ``path``; else ``default``, and with it the overrides of
+    the same section (a cross-field rule refusing a field the file set may be broken by another one an override set)."""
     p = path
     while p:
         base = re.sub(r"\[\d+\]$", "", p)
@@ -396,7 +397,9 @@ def _source_of(path: str, sources: _Sources, default: str) -> str:
         if "." not in base:
             break
         p = base.rsplit(".", 1)[0]
-    return default
+    section = re.sub(r"\[\d+\]$", "", path).rsplit(".", 1)[0] if "." in path else None
+    beside = sorted({src for field, src in sources.items() if section and field.startswith(section + ".")})
+    return f"{default} with {', '.join(beside)}" if beside else default
 
 
 def build_config(

@@ -398,6 +398,21 @@ def test_the_health_file_alias_must_agree_with_its_field_and_not_be_empty():
     assert load_config(None, environ={"IRTRACK_OUTPUT_HEALTH_FILE": ""}).output.health_file is None  # null: none
 
 
+def test_a_cross_field_error_names_the_override_beside_the_file(tmp_path):
+    # the file's heartbeat_timeout_s is refused because of the environment's interval: both are named
+    p = write(tmp_path, "mavlink: {heartbeat_timeout_s: 5}")
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(p, environ={"IRTRACK_MAVLINK_HEARTBEAT_INTERVAL_S": "10"})
+    assert str(ei.value).startswith(
+        f"{p} with env IRTRACK_MAVLINK_HEARTBEAT_INTERVAL_S: mavlink.heartbeat_timeout_s: expected a timeout >"
+    )
+    # an override of another section is not named
+    q = write(tmp_path, "mavlink: {heartbeat_interval_s: 9, heartbeat_timeout_s: 5}", "d.yaml")
+    with pytest.raises(OnboardConfigError) as ei:
+        load_config(q, {"vehicle": ("uav9", "--vehicle")}, environ={})
+    assert str(ei.value).startswith(f"{q}: mavlink.heartbeat_timeout_s: expected a timeout >")
+
+
 def test_cli_error_names_the_option():
     with pytest.raises(OnboardConfigError) as ei:
         load_config(None, {"zenoh.listen": (["nope"], "--zenoh-listen")}, environ={})
