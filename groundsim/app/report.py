@@ -14,7 +14,6 @@ from __future__ import annotations
 import argparse
 import logging
 import os
-from pathlib import Path
 
 from groundsim.io.stop_signals import print_interrupted
 
@@ -65,19 +64,27 @@ def flight_inputs(rec) -> tuple[dict, dict]:
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
+    from groundsim.evaluation.report import make_out_dir
     from onboard.app.replay import config_of, load_recording, replay
+    from onboard.core.errors import InputError
 
-    out = Path(args.out)
-    before = set(out.glob("*")) if out.is_dir() else set()
+    out = make_out_dir(args.out)  # before the replay: a folder that cannot be made fails at once
+    before = set(out.glob("*"))
     try:
         rec = load_recording(args.mcap)
         if not rec.inputs:
-            from onboard.core.errors import InputError
-
             raise InputError(
                 f"{args.mcap}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
             )
-        truth = load_recording(args.truth).truth if args.truth else rec.truth
+        if rec.truncated:
+            print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
+        truth = rec.truth
+        if args.truth:
+            truth = load_recording(args.truth).truth
+            if not truth:
+                raise InputError(
+                    f"--truth {args.truth}: no /groundsim/truth messages (groundsim run --record writes them)"
+                )
         config = config_of(rec, args.config)
         res = replay(rec, config)
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)

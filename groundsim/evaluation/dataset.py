@@ -370,6 +370,9 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     seq_dir = Path(out_dir) / name
     img_dir = seq_dir / "img1"
     img_dir.mkdir(parents=True, exist_ok=True)
+    # a run into the same folder before, longer or at another rate, must not leave frames beyond this one's
+    for old in img_dir.glob("*.png"):
+        old.unlink()
     K = scenario.camera.intrinsics
     mount = scenario.camera.mount
     corners = body_box_corners_frd_m(scenario.ir.target_parts)
@@ -687,6 +690,8 @@ def cmd_dataset(args) -> int:
         scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
+        if args.seed0 < 0:
+            raise ConfigError(f"--seed0: expected an integer >= 0, got {args.seed0}")
         workers = pool_workers(args.workers)
         options = DatasetOptions(
             nav_noise=args.nav_noise,

@@ -84,6 +84,10 @@ def flight_run(tracks: list, poses: dict, truth: list | None, name: str) -> Flig
     return FlightRun(name, "", t, est, cov, obs, tru, cam, rng, _nan3(n), np.zeros(n, dtype=bool))
 
 
+#: every file :func:`write_flight_report` may write in its folder
+REPORT_FILES = ("trajectory.png", "errors.png", "frame.png", "summary.json")
+
+
 def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth: list | None, name: str) -> list[Path]:
     """Write the plots (module docstring); ``frames`` {(seq, t_us): pixels (H, W)} for the frame plot.
     Returns the paths written."""
@@ -154,4 +158,7 @@ def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth:
         summary["frame_seq"] = tr["seq"]
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     written.append(out / "summary.json")
+    # an earlier report in the same folder (with truth, or with a frame) must not leave its plot beside this one
+    for stale in set(REPORT_FILES) - {p.name for p in written}:
+        (out / stale).unlink(missing_ok=True)
     return written

@@ -64,13 +64,14 @@ BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / ra
 PNG_DPI = 110
 
 
-def make_out_dir(path) -> Path:
-    """``--out``: the directory, created (with its parents) if missing; a ConfigError when it cannot be."""
+def make_out_dir(path, option: str = "--out") -> Path:
+    """``option``'s directory, created (with its parents) if missing; a ConfigError naming ``option`` when it cannot
+    be."""
     out = Path(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise ConfigError(f"--out {out}: cannot create the directory: {exc.strerror or exc}") from None
+        raise ConfigError(f"{option} {out}: cannot create the directory: {exc.strerror or exc}") from None
     return out
 
 

@@ -275,7 +275,10 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
     if fr.pixels is None:
         raise ConfigError(f"{scenario.name}: frame {k_show} was dropped by the camera model; choose another time")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"--gallery {out}: cannot create the directory: {exc.strerror or exc}") from None
     path = out / f"{scenario.name}.png"
     if not cv2.imwrite(str(path), gallery_image(fr.pixels, fr.labels, fr.truth), [cv2.IMWRITE_PNG_COMPRESSION, 9]):
         raise ConfigError(f"--gallery {out}: cannot write {path}")
@@ -288,12 +291,18 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
 def cmd_scenes(args) -> int:
     """The ``scenes`` command: one line of figures per scenario; pictures with ``--gallery``."""
     from groundsim.evaluation.parallel import quiet_run_logs
+    from groundsim.evaluation.report import make_out_dir
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     quiet_run_logs()
+    if args.no_stats and args.gallery is None:
+        raise ConfigError("--no-stats: pictures only, so --gallery DIR is needed (else there is nothing to do)")
     names = [n for group in (args.scenario or [list(REFERENCE_SCENES)]) for n in group]
-    for name in names:
-        sc = load_scenario(resolve_scenario_path(name))
+    # every file read before the first scene is measured: a typo in the last name fails at once, not minutes in
+    scenarios = [load_scenario(resolve_scenario_path(name)) for name in names]
+    if args.gallery is not None:
+        make_out_dir(args.gallery, "--gallery")
+    for sc in scenarios:
         if args.gallery is not None:
             path = write_gallery(sc, args.gallery, args.seed)
             print(f"{sc.name}: {path} ({path.stat().st_size / 1024:.0f} KB)")

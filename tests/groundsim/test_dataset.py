@@ -268,3 +268,17 @@ def test_cli_bad_format_is_one_line(capsys):
     assert cli_main(["dataset", "--format", "yolo"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--format" in err[0]
+
+
+def test_a_shorter_run_into_the_same_folder_leaves_no_frame_of_the_longer_one(tmp_path):
+    opts = DatasetOptions(duration_s=0.3)
+    summaries, _ = export_dataset([_scenario()], [0], tmp_path, opts, progress=False)
+    img1 = tmp_path / summaries[0].name / "img1"
+    assert len(list(img1.glob("*.png"))) == 9
+    export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    assert sorted(p.name for p in img1.glob("*.png")) == ["000001.png", "000002.png", "000003.png"]
+
+
+def test_cli_negative_first_seed_names_its_option(capsys):
+    assert cli_main(["dataset", "--seed0", "-1"]) == 2
+    assert capsys.readouterr().err.strip() == "groundsim dataset: error: --seed0: expected an integer >= 0, got -1"

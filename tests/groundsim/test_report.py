@@ -55,3 +55,25 @@ def test_report_of_a_file_that_is_not_a_daemon_recording_is_one_line_exit_2(tmp_
     bogus.write_bytes(b"not an mcap file at all")
     p = _report(bogus, "--out", tmp_path / "r")
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "groundsim report: error:" in p.stderr, p.stderr
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_a_report_into_a_used_folder_leaves_none_of_the_earlier_plots(recorded, tmp_path):
+    out = tmp_path / "report"
+    assert _report(recorded.daemon_mcap, "--truth", recorded.sim_mcap, "--out", out).returncode == 0
+    assert (out / "errors.png").exists()
+    p = _report(recorded.daemon_mcap, "--out", out)  # no truth this time: no error plot, not the old one
+    assert p.returncode == 0, p.stderr[-3000:]
+    assert not (out / "errors.png").exists() and (out / "trajectory.png").exists()
+
+
+@pytest.mark.integration
+def test_a_truth_file_without_truth_and_an_out_that_cannot_be_made_are_refused_before_the_replay(recorded, tmp_path):
+    p = _report(recorded.daemon_mcap, "--truth", recorded.daemon_mcap, "--out", tmp_path / "a")
+    assert p.returncode == 2, p.stderr[-3000:]
+    assert f"--truth {recorded.daemon_mcap}: no /groundsim/truth messages" in p.stderr
+    (tmp_path / "afile").write_text("")
+    p = _report(recorded.daemon_mcap, "--out", tmp_path / "afile" / "r")
+    assert p.returncode == 2 and "cannot create the directory" in p.stderr, p.stderr[-3000:]
+    assert "replayed" not in p.stderr  # refused before the replay

@@ -474,3 +474,17 @@ def test_scenes_command_prints_a_line_per_scene_and_writes_small_pictures(tmp_pa
     assert out[0].startswith(f"C4: {tmp_path / 'C4.png'}")
     assert out[1].startswith("C4: 3 frames; cloud cover seen ") and "false points/frame" in out[1]
     assert 10_000 < (tmp_path / "C4.png").stat().st_size < 300_000
+
+
+def test_scenes_command_refuses_nothing_to_do_a_bad_name_and_a_gallery_it_cannot_make(tmp_path, capsys):
+    from groundsim.app.cli import main
+
+    assert main(["scenes", "--scenario", "C4", "--no-stats"]) == 2
+    assert "--no-stats: pictures only, so --gallery DIR is needed" in capsys.readouterr().err
+    # every name is read before the first scene is measured: nothing printed for C4 before the error on C9
+    assert main(["scenes", "--scenario", "C4", "C9", "--every", "100"]) == 2
+    cap = capsys.readouterr()
+    assert cap.out == "" and "C9: (file): expected an existing file" in cap.err
+    (tmp_path / "afile").write_text("")
+    assert main(["scenes", "--scenario", "C4", "--gallery", str(tmp_path / "afile" / "g")]) == 2
+    assert f"--gallery {tmp_path / 'afile' / 'g'}: cannot create the directory" in capsys.readouterr().err
