@@ -140,7 +140,7 @@ class ImagingParams:
     that brackets its frame before it takes the camera's rotation (0: never; then it takes the newest
     samples extrapolated, or the last rotation when they are too old).  The chain registers frames with
     those rotations (track-before-detect's integration, the tracks' motion fit); an extrapolated or held
-    rotation misplaces a dim target's integrated peak by about a pixel (docs/perception.md, C4 in the loop).
+    rotation misplaces a dim target's integrated peak by about a pixel (docs/perception.md, "C4 and C5 in the loop").
     ``primary_max_off_axis_rad`` (objects chain, auto mode): no track farther off the optical axis becomes the
     primary target: a gimbal centres its target, and a confirmed fragment of terrain in a corner handed to the
     3-D estimator would be a confident wrong object; a fixed pod, whose target crosses the frame, needs it

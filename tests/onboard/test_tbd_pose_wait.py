@@ -2,7 +2,7 @@
 
 In the loop the frame often arrives before the attitude and gimbal samples after it; the chain then got
 an extrapolated rotation (or none, and kept the last one), and track-before-detect's integration and the
-tracks' motion fit carried that error (docs/perception.md, C4 in the loop).  These tests pin the two
+tracks' motion fit carried that error (docs/perception.md, "C4 and C5 in the loop").  These tests pin the two
 hooks: :meth:`SharedPoseBuffer.wait_for` with ``bracket=True`` waits for the bracketing sample where the
 plain wait would extrapolate, and :class:`FramePipeline` calls ``chain_pose_wait`` before it looks up the
 chain's rotation, so the chain gets the sample that arrived during the wait.
