@@ -1,7 +1,7 @@
 """Replay: a closed-loop run (daemon with the inline estimator + simulator on 127.0.0.1, 10 s) recorded with
 --record, replayed by ``python -m onboard.replay`` (a real process): the tracks come back equal, field for field
 and bit for bit, to the ones the daemon published; a changed configuration shows as per-frame differences (the
-comparison can fail); a recording of a worker estimator is compared within its own sigma, saying why; a file
+comparison can fail: exit 3); a recording of a worker estimator is compared within its own sigma, saying why; a file
 that is not a recording is refused in one line; Ctrl-C stops it in one line."""
 
 from __future__ import annotations
@@ -17,6 +17,8 @@ import pytest
 
 from onboard.app.replay import (
     EXIT_CONFIG,
+    EXIT_DIFFERENT,
+    EXIT_OK,
     UNREPLAYED_KEYS,
     compare_objects,
     compare_tracks,
@@ -156,7 +158,7 @@ def _rewritten(src: Path, dst: Path, worker: str, shift) -> Path:
     return dst
 
 
-def _replay(*args) -> subprocess.CompletedProcess:
+def _replay(*args, returncode: int = EXIT_OK) -> subprocess.CompletedProcess:
     p = subprocess.run(
         [sys.executable, "-m", "onboard.replay", *map(str, args)],
         cwd=REPO,
@@ -164,7 +166,7 @@ def _replay(*args) -> subprocess.CompletedProcess:
         text=True,
         timeout=REPLAY_TIMEOUT_S,
     )
-    assert p.returncode == 0, f"replay exited {p.returncode}:\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}"
+    assert p.returncode == returncode, f"replay exited {p.returncode}:\n{p.stdout[-2000:]}\n{p.stderr[-3000:]}"
     return p
 
 
@@ -194,7 +196,7 @@ def test_replay_reproduces_the_recorded_tracks_bit_for_bit(recorded, tmp_path):
 @pytest.mark.integration
 @pytest.mark.slow
 def test_replay_with_another_configuration_shows_the_differences(recorded, tmp_path):
-    p = _replay(recorded.daemon_mcap, "--compare", "--set", "estimator.pixel_sigma_px=0.9")
+    p = _replay(recorded.daemon_mcap, "--compare", "--set", "estimator.pixel_sigma_px=0.9", returncode=EXIT_DIFFERENT)
     last = p.stdout.strip().splitlines()[-1]
     assert last.startswith("compare: ") and " 0 differ" not in last, last
     assert "ned_m" in p.stdout and "|d ned|" in p.stdout
@@ -230,7 +232,7 @@ def test_a_worker_recording_is_compared_within_its_own_sigma_and_says_why(record
         return track
 
     copy = _rewritten(recorded.daemon_mcap, tmp_path / "process.mcap", "process", shift)
-    p = _replay(copy, "--compare")
+    p = _replay(copy, "--compare", returncode=EXIT_DIFFERENT)  # one position beyond 3 sigma
     lines = p.stdout.strip().splitlines()
     n = len(recorded.tracks)
     n_3d = sum(t["ned_m"] is not None and t.get("cov_ned_m2") is not None for t in recorded.tracks)

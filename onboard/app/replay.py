@@ -30,10 +30,24 @@ such), and the pose buffer is not rebuilt from the raw MAVLink (the recorded pos
 the pipeline goes and prints the speed against real time.  The flight report (plots of a recording) is
 the ground side's: ``python -m groundsim report FILE.mcap``.
 
-Exit codes: 0 done; 2 a file that is not a readable MCAP recording or a bad option (one line); 130
-interrupted (Ctrl-C: one line saying how many frames were replayed and what was written).
+``--compare`` is a check: it exits 3 when the replay is not the recording's.  With a recording of the inline
+estimator that is any frame whose track differs in any field (floats bit for bit; the UTC stamps a replay cannot
+make aside), any frame in one of the two only, and any frame of objects that differs or is in one only.  With a
+worker's recording, whose estimates no replay gives bit for bit, it is any frame in one only, any 3-D position
+beyond ``SIGMA_GATE`` sigmas of the recorded covariance and any frame of objects that differs or is in one only
+(the image chain does not depend on the estimator's timing).
 
-A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so).
+Exit codes: 0 done (with ``--compare``: the replay is the recording's); 2 a file that is not a readable MCAP
+recording, a damaged message in one, a recording without frame inputs, an output file that cannot be written, or
+a bad option (one line; the outputs are checked before the replay, so one that cannot be written costs no replay
+and nothing is written); 3 ``--compare`` found a difference; 130 interrupted (Ctrl-C: one line saying how many
+frames were replayed and what was written).
+
+A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so); one cut before its
+first message is refused.  A message that does not decode (JSON that does not parse or lacks a field replay reads,
+a RawImage that is not one) is refused in one line naming the file, the topic, the message's index on that topic
+(from 0) and its log time: a replay that skipped it would not be the flight's (a frame left out changes every
+track after it), and the flight report (:func:`load_recording`) refuses it alike.
 """
 
 from __future__ import annotations
@@ -47,6 +61,8 @@ import collections  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
+import os  # noqa: E402
+import struct  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -76,6 +92,8 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
+#: ``--compare`` found a difference; distinct from 1, which an unexpected error (a traceback) also gives
+EXIT_DIFFERENT = 3
 #: a replayed 3-D position is "within" the recorded one when their difference is at most this many sigmas of
 #: the recorded covariance (the Mahalanobis distance)
 SIGMA_GATE = 3.0
@@ -94,7 +112,8 @@ class RecordedMessage:
 def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
     """Every message of an MCAP file in file order (metadata records as ``{"metadata": name, ...}``),
     with the `mcap` package's stream reader; a file cut short ends at its last complete record and
-    yields ``{"truncated": "<reason>"}`` last."""
+    yields ``{"truncated": "<reason>"}`` last.  A record the reader cannot parse before the end of the file
+    is not a cut but damage: :class:`InputError`."""
     from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
 
@@ -121,11 +140,19 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
                     yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data)
                 elif isinstance(rec, Metadata):
                     yield {"metadata": rec.name, **rec.metadata}
-        except Exception as exc:  # noqa: BLE001 - the end of a file cut short: whatever the reader raised
-            if type(exc).__name__ in ("EndOfFile", "InvalidMagic") or isinstance(exc, (EOFError, ValueError)):
-                yield {"truncated": f"{type(exc).__name__} {exc}".strip()}
+        except Exception as exc:  # noqa: BLE001 - whatever the reader raised where the file stops or is damaged
+            # a record cut by the end of the file: the reader found no bytes (EndOfFile), fewer than a field's
+            # (struct.error) or a partial trailing magic; it read up to the end, which tells a cut from damage
+            ended = f.tell() >= os.fstat(f.fileno()).st_size
+            short_read = type(exc).__name__ in ("EndOfFile", "InvalidMagic") or isinstance(
+                exc, (EOFError, ValueError, struct.error)
+            )
+            if ended and short_read:
+                yield {"truncated": f"it ends at byte {f.tell()}"}
                 return
-            raise InputError(f"{path}: not a readable MCAP file: {type(exc).__name__}: {exc}") from None
+            raise InputError(
+                f"{path}: not a readable MCAP file (at byte {f.tell()}): {type(exc).__name__}: {exc}"
+            ) from None
 
 
 @dataclass
@@ -148,7 +175,13 @@ class Recording:
 
 
 def load_recording(path: str) -> Recording:
+    """The :class:`Recording` of the MCAP file ``path``.  Every message that replay and the flight report read is
+    decoded and checked here, once, for the fields they read: a damaged one raises :class:`InputError` naming the
+    file, the topic, the message's index on that topic and its log time.  Damage is refused rather than skipped:
+    a replay without the message would not be the flight's.  A file cut short before its first message is refused
+    too (nothing to read)."""
     from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+    from google.protobuf.message import DecodeError
 
     meta: dict[str, str] = {}
     frames: dict = {}
@@ -164,26 +197,97 @@ def load_recording(path: str) -> Recording:
             elif m.get("metadata") == "irtrack" and not meta:
                 meta = {k: v for k, v in m.items() if k != "metadata"}
             continue
-        counts[m.topic] = counts.get(m.topic, 0) + 1
+        index = counts.get(m.topic, 0)
+        counts[m.topic] = index + 1
         first = m.log_time_ns if first is None else first
         last = m.log_time_ns
-        if m.schema == "foxglove.RawImage":
-            img = RawImage()
-            img.ParseFromString(m.data)
-            t_us = int(img.timestamp.seconds) * 1_000_000 + int(img.timestamp.nanos) // 1000
-            frames.setdefault((m.sequence, t_us), []).append((img, m.publish_time_ns))
-        elif m.topic == FRAME_INPUT_TOPIC:
-            inputs.append(json.loads(m.data))
-        elif m.schema.startswith("irtrack.track/"):
-            tracks.append(json.loads(m.data))
-        elif m.topic == TRUTH_TOPIC:
-            truth.append(json.loads(m.data))
-        elif m.schema == OBJECTS_SCHEMA:
-            objects.append(json.loads(m.data))
-        elif m.topic == IMAGING_POSE_TOPIC:
-            obj = json.loads(m.data)
-            imaging_poses.setdefault((int(obj["seq"]), int(obj["time_boot_us"])), []).append(obj)
+        try:
+            if m.schema == "foxglove.RawImage":
+                img = RawImage()
+                img.ParseFromString(m.data)
+                t_us = int(img.timestamp.seconds) * 1_000_000 + int(img.timestamp.nanos) // 1000
+                frames.setdefault((m.sequence, t_us), []).append((img, m.publish_time_ns))
+            elif m.topic == FRAME_INPUT_TOPIC:
+                inputs.append(_json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
+            elif m.schema.startswith("irtrack.track/"):
+                tracks.append(_track(m.data))
+            elif m.topic == TRUTH_TOPIC:
+                truth.append(_json_object(m.data, ("seq", "time_boot_us")))
+            elif m.schema == OBJECTS_SCHEMA:
+                objects.append(_json_object(m.data, ("time_boot_us", "frame_index")))
+            elif m.topic == IMAGING_POSE_TOPIC:
+                obj = _json_object(m.data, ("seq", "time_boot_us"), pose=True)
+                imaging_poses.setdefault((obj["seq"], obj["time_boot_us"]), []).append(obj)
+        except (ValueError, DecodeError, KeyError, TypeError, RecursionError, InputError) as exc:
+            raise InputError(
+                f"{path}: message {index} on {m.topic} (log time {m.log_time_ns} ns) is damaged: {_damage(exc)}"
+            ) from None
+    if truncated is not None and not counts:
+        raise InputError(f"{path}: file cut short before its first message ({truncated})")
     return Recording(path, meta, frames, inputs, tracks, truth, first, last, truncated, counts, objects, imaging_poses)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _shown(value: Any) -> str:
+    """``value`` as JSON, cut to a length that fits in an error line."""
+    text = json.dumps(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _json_object(data: bytes, ints: tuple[str, ...], pose: bool = False) -> dict:
+    """``data`` as a JSON object whose fields ``ints`` are integers (replay matches frames on them) and, with
+    ``pose``, whose ``pose`` field is null or a pose :func:`pose_from_json` reads; ValueError or InputError
+    saying what is wrong otherwise."""
+    obj = json.loads(data)
+    if not isinstance(obj, dict):
+        raise ValueError(f"{_shown(obj)} is not a JSON object")
+    for name in ints + (("pose",) if pose else ()):
+        if name not in obj:
+            raise ValueError(f"no field {name!r}")
+    for name in ints:
+        if not _is_int(obj[name]):
+            raise ValueError(f"field {name!r} is {_shown(obj[name])}, not an integer")
+    if pose:
+        pose_from_json(obj["pose"], "field 'pose'")
+    return obj
+
+
+def _track(data: bytes) -> dict:
+    """A recorded track's JSON, checked for the fields :func:`compare_tracks` and :func:`compare_within_sigma` read."""
+    obj = _json_object(data, ("seq", "time_boot_us"))
+    u, v = obj.get("u_px"), obj.get("v_px")
+    if not ((u is None and v is None) or (_is_number(u) and _is_number(v))):
+        raise ValueError(f"fields 'u_px', 'v_px' are {_shown(u)}, {_shown(v)}: not two numbers or two nulls")
+    for name, shape in (("ned_m", (3,)), ("cov_ned_m2", (3, 3))):
+        value = obj.get(name)
+        if value is not None and not _numbers_of_shape(value, shape):
+            raise ValueError(f"field {name!r} is {_shown(value)}, not null or {' x '.join(map(str, shape))} numbers")
+    return obj
+
+
+def _numbers_of_shape(value: Any, shape: tuple[int, ...]) -> bool:
+    """Whether ``value`` is nested lists of numbers of ``shape``."""
+    if not shape:
+        return _is_number(value)
+    return isinstance(value, list) and len(value) == shape[0] and all(_numbers_of_shape(v, shape[1:]) for v in value)
+
+
+def _damage(exc: BaseException) -> str:
+    """What a decoding error says is wrong with a message, in words."""
+    if isinstance(exc, (json.JSONDecodeError, UnicodeDecodeError)):
+        return f"not JSON ({exc})"
+    if isinstance(exc, KeyError):
+        return f"no field {exc.args[0]!r}"
+    if isinstance(exc, RecursionError):
+        return "JSON nested too deeply"
+    return str(exc)
 
 
 def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
@@ -569,9 +673,11 @@ def compare_objects(recorded: list, replayed: list) -> tuple[int, int, int]:
     return len(pairs), sum(made(a) == made(b) for a, b in pairs), unmatched
 
 
-def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=sys.stdout) -> None:
+def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None, file=None) -> None:
     """The per-frame differences, then (``within``, a :class:`SigmaComparison`) the positions against the
-    recorded sigma, with why a worker's recording cannot replay bit for bit, then the summary line."""
+    recorded sigma, with why a worker's recording cannot replay bit for bit, then the summary line; on ``file``,
+    by default the ``sys.stdout`` of the call (not of the import: a redirected or captured stdout gets them)."""
+    file = sys.stdout if file is None else file
     for d in diffs:
         extra = []
         if d.d_pos_m is not None:
@@ -610,7 +716,13 @@ def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m onboard.replay", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(
+        prog="python -m onboard.replay",
+        description=__doc__.split("\n\n")[0],
+        epilog=f"Exit 0 done (with --compare: no difference); {EXIT_CONFIG} an unreadable or damaged recording, an "
+        f"output that cannot be written (checked before the replay) or a bad option; {EXIT_DIFFERENT} --compare found "
+        f"a difference; {EXIT_INTERRUPTED} Ctrl-C.",
+    )
     p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
     p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
     p.add_argument(
@@ -629,7 +741,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="objects.jsonl",
         help="write every frame's objects (imaging.chain objects: irtrack.objects/1) here, one JSON per line",
     )
-    p.add_argument("--compare", action="store_true", help="print the per-frame difference to the recorded tracks")
+    p.add_argument(
+        "--compare",
+        action="store_true",
+        help=f"print the per-frame difference to the recorded tracks (and objects); exit {EXIT_DIFFERENT} when the "
+        "replay differs (a worker estimator's recording: positions beyond its sigma; see the module docstring)",
+    )
     add_live_view_option(
         p,
         "serve the replay over the Foxglove WebSocket protocol on 127.0.0.1:PORT (onboard/io/live_view.py; "
@@ -670,8 +787,17 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     from onboard.app.config import OnboardConfigError
 
     try:
+        for path in (args.out, args.objects_out):
+            if path:
+                _check_writable(path)
         overrides = config_overrides(args.set)
         rec = load_recording(args.mcap)
+        if not rec.inputs:  # nothing to replay; without a cut, the flight report's words (it refuses the file too)
+            raise InputError(
+                f"{args.mcap}: file cut short ({rec.truncated}) before its first irtrack.frame_input message"
+                if rec.truncated
+                else f"{args.mcap}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
+            )
         config = config_of(rec, args.config, overrides)
     except (OnboardConfigError, IrtrackError) as exc:
         print(str(exc), file=sys.stderr)
@@ -705,39 +831,75 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     progress.frames = res.frames_fed
     if res.interrupted:
         if args.out:
-            _write_tracks(args.out, res.tracks, progress)
-            progress.written = f"{args.out}: the {len(res.tracks)} tracks of those frames"
+            try:
+                _write_tracks(args.out, res.tracks, progress)
+                progress.written = f"{args.out}: the {len(res.tracks)} tracks of those frames"
+            except InputError as exc:  # still the interruption's one line
+                progress.written = str(exc)
         print(f"interrupted: {progress.frames} frames replayed; {progress.written}", file=sys.stderr)
         return EXIT_INTERRUPTED
-    print(
-        f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the file) "
-        f"-> {len(res.tracks)} tracks in {res.wall_s:.2f} s: {res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, "
-        f"x{res.speed_x:.1f} real time"
-    )
-    if args.out:
-        _write_tracks(args.out, res.tracks, progress)
-        print(f"tracks: {args.out}")
-    if args.objects_out:
-        _write_tracks(args.objects_out, res.objects, _Progress())
-        print(f"objects: {args.objects_out} ({len(res.objects)} frames)")
+    try:
+        print(
+            f"replayed {res.frames_fed} frames ({res.frames_refused} refused, {res.frames_missing} missing from the "
+            f"file) -> {len(res.tracks)} tracks in {res.wall_s:.2f} s: "
+            f"{res.frames_fed / max(res.wall_s, 1e-9):.0f} frames/s, x{res.speed_x:.1f} real time"
+        )
+        if args.out:
+            _write_tracks(args.out, res.tracks, progress)
+            print(f"tracks: {args.out}")
+        if args.objects_out:
+            _write_tracks(args.objects_out, res.objects, _Progress())
+            print(f"objects: {args.objects_out} ({len(res.objects)} frames)")
+    except InputError as exc:  # an output that could be opened before the replay but not written now (disk full)
+        print(str(exc), file=sys.stderr)
+        return EXIT_CONFIG
     if args.compare:
-        diffs, matched, unmatched = compare_tracks(rec.tracks, res.tracks)
-        worker = recorded_worker(rec)
-        timed = worker is not None and worker != "inline"
-        within = compare_within_sigma(rec.tracks, res.tracks) if timed or any(d.d_pos_m for d in diffs) else None
-        _print_compare(diffs, matched, unmatched, within, worker)
-        if rec.objects or res.objects:
-            n, same, left = compare_objects(rec.objects, res.objects)
-            print(f"compare: objects: {same}/{n} frames identical, {n - same} differ, {left} unmatched")
+        return _compare(rec, res)
     return EXIT_OK
 
 
+def _compare(rec: Recording, res: ReplayResult) -> int:
+    """``--compare``: print the differences of the replay to the recording; EXIT_DIFFERENT when it is not the
+    recording's (the module docstring says when), else EXIT_OK."""
+    diffs, matched, unmatched = compare_tracks(rec.tracks, res.tracks)
+    worker = recorded_worker(rec)
+    timed = worker is not None and worker != "inline"
+    within = compare_within_sigma(rec.tracks, res.tracks) if timed or any(d.d_pos_m for d in diffs) else None
+    _print_compare(diffs, matched, unmatched, within, worker)
+    if timed:  # its estimates depend on the worker's timing: only positions beyond the recorded sigma count
+        differs = unmatched > 0 or (within is not None and within.beyond > 0)
+    else:
+        differs = unmatched > 0 or bool(diffs)
+    if rec.objects or res.objects:
+        n, same, left = compare_objects(rec.objects, res.objects)
+        print(f"compare: objects: {same}/{n} frames identical, {n - same} differ, {left} unmatched")
+        differs = differs or same < n or left > 0
+    return EXIT_DIFFERENT if differs else EXIT_OK
+
+
+def _check_writable(path: str) -> None:
+    """InputError unless ``path`` opens for writing; the file system is left as it was (a file made to find out
+    is removed, an existing one is not truncated), so a replay refused after this check has written nothing."""
+    existed = os.path.lexists(path)
+    try:
+        with open(path, "a", encoding="utf-8"):
+            pass
+        if not existed:
+            os.remove(path)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
+
+
 def _write_tracks(path: str, tracks: list, progress: _Progress) -> None:
-    """The tracks as JSON lines (``--out``)."""
+    """The tracks (or objects) as JSON lines (``--out``, ``--objects-out``); InputError when the file cannot be
+    written."""
     progress.written = f"{path}: written in part"
-    with open(path, "w", encoding="utf-8") as f:
-        for t in tracks:
-            f.write(json.dumps(t, separators=(",", ":")) + "\n")
+    try:
+        with open(path, "w", encoding="utf-8") as f:
+            for t in tracks:
+                f.write(json.dumps(t, separators=(",", ":")) + "\n")
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write: {exc.strerror or exc}") from None
     progress.written = f"{path}: all {len(tracks)} tracks"
 
 

@@ -1,0 +1,312 @@
+"""``python -m onboard.replay`` on recordings it must refuse or judge: copies of one small in-process recording (the
+objects chain's, :func:`tests.onboard.test_objects_output._record`), cut short or with a message changed or left
+out by the `mcap` package's writer.  A damaged message, a file cut before its first message and a recording without
+frame inputs are refused in one line (the flight report refuses them alike); an output that cannot be written is
+refused before the replay, with nothing written; ``--compare`` exits 3 when the replay differs from the recording."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from onboard.app.replay import EXIT_CONFIG, EXIT_DIFFERENT, EXIT_OK, main
+from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC
+
+REPO = Path(__file__).resolve().parents[2]
+CONFIG = REPO / "config" / "onboard.yaml"
+N_FRAMES = 8
+FRAME_TOPIC = "irtrack/uav1/ir/frame"
+TRACK_TOPIC = "irtrack/uav1/track"
+OBJECTS_TOPIC = "irtrack/uav1/objects"
+DAMAGED_INDEX = 2  # the message changed on its topic, counted from 0
+REPORT_TIMEOUT_S = 120.0  # a child process importing the simulator on a busy 2-core machine
+
+#: a message's bytes -> the damaged bytes, or None to leave the message out
+Edit = Callable[[bytes], bytes | None]
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory) -> Path:
+    from tests.onboard.test_objects_output import _record
+
+    path = tmp_path_factory.mktemp("replay_input") / "flight.mcap"
+    _record(path, N_FRAMES)
+    return path
+
+
+def _copy(src: Path, dst: Path, topic: str | None = None, edit: Edit | None = None, worker: str | None = None) -> int:
+    """Copy the recording ``src`` to ``dst``, ``edit`` applied to message ``DAMAGED_INDEX`` on ``topic`` and
+    ``worker`` (when given) set as the metadata's ``estimator.worker``.  Returns the edited message's log time (ns),
+    0 when none was edited."""
+    return _rewrite(src, dst, lambda t, i: edit if t == topic and i == DAMAGED_INDEX else None, worker)
+
+
+def _rewrite(src: Path, dst: Path, edit_of: Callable[[str, int], Edit | None], worker: str | None = None) -> int:
+    """Copy ``src`` to ``dst``, each message through ``edit_of(topic, index on that topic)`` when that gives an edit;
+    ``worker`` sets the metadata's ``estimator.worker``.  Returns the last edited message's log time (ns), or 0."""
+    import yaml
+    from mcap.records import Channel, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader
+    from mcap.writer import CompressionType, Writer
+
+    schema_ids: dict = {}
+    channel_ids: dict = {}
+    topics: dict = {}
+    seen: dict = {}
+    edited_log_ns = 0
+    with open(src, "rb") as f, open(dst, "wb") as out:
+        w = Writer(out, compression=CompressionType.NONE)
+        w.start()
+        for rec in StreamReader(f, validate_crcs=False).records:
+            if isinstance(rec, Schema) and rec.id not in schema_ids:
+                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
+            elif isinstance(rec, Channel) and rec.id not in channel_ids:
+                channel_ids[rec.id] = w.register_channel(
+                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
+                )
+                topics[rec.id] = rec.topic
+            elif isinstance(rec, Message):
+                topic = topics[rec.channel_id]
+                index = seen.get(topic, 0)
+                seen[topic] = index + 1
+                data: bytes | None = rec.data
+                edit = edit_of(topic, index)
+                if edit is not None:
+                    data = edit(rec.data)
+                    edited_log_ns = rec.log_time
+                if data is not None:
+                    w.add_message(channel_ids[rec.channel_id], rec.log_time, data, rec.publish_time, rec.sequence)
+            elif isinstance(rec, Metadata):
+                meta = dict(rec.metadata)
+                if rec.name == "irtrack" and worker is not None:
+                    raw = yaml.safe_load(meta["config_yaml"])
+                    raw.setdefault("estimator", {})["worker"] = worker
+                    meta["config_yaml"] = yaml.safe_dump(raw, sort_keys=False)
+                w.add_metadata(rec.name, meta)
+        w.finish()
+    return edited_log_ns
+
+
+def _without_topic(src: Path, dst: Path, topic: str) -> None:
+    """Copy ``src`` to ``dst`` without any message on ``topic``."""
+    _rewrite(src, dst, lambda t, _i: (lambda data: None) if t == topic else None)
+
+
+def _json_edit(change: Callable[[dict], object]) -> Edit:
+    """An edit of a JSON message: ``change`` gets the decoded object and returns the new one."""
+    return lambda data: json.dumps(change(json.loads(data))).encode()
+
+
+def _without(key: str) -> Edit:
+    return _json_edit(lambda obj: {k: v for k, v in obj.items() if k != key})
+
+
+def _with(**fields) -> Edit:
+    return _json_edit(lambda obj: {**obj, **fields})
+
+
+def _json_error(data: bytes) -> str:
+    """What the JSON decoder says of ``data``."""
+    try:
+        json.loads(data)
+    except ValueError as exc:
+        return str(exc)
+    raise AssertionError(f"{data!r} is JSON")
+
+
+def _cut_json(data: bytes) -> bytes:
+    return data[:-3]
+
+
+DAMAGE = {  # id: (topic, edit, what the error line says is wrong, given the edited message's original bytes)
+    "frame_input_not_json": (FRAME_INPUT_TOPIC, _cut_json, lambda d: f"not JSON ({_json_error(_cut_json(d))})"),
+    "frame_input_without_seq": (FRAME_INPUT_TOPIC, _without("seq"), lambda d: "no field 'seq'"),
+    "frame_input_seq_a_string": (FRAME_INPUT_TOPIC, _with(seq="7"), lambda d: "field 'seq' is \"7\", not an integer"),
+    "frame_input_without_received_ns": (FRAME_INPUT_TOPIC, _without("received_ns"), lambda d: "no field 'received_ns'"),
+    "frame_input_pose_without_origin": (
+        FRAME_INPUT_TOPIC,
+        _json_edit(lambda obj: {**obj, "pose": {k: v for k, v in obj["pose"].items() if k != "origin"}}),
+        lambda d: "field 'pose': missing field 'origin'",
+    ),
+    "frame_input_an_array": (
+        FRAME_INPUT_TOPIC,
+        _json_edit(lambda obj: [1, 2]),
+        lambda d: "[1, 2] is not a JSON object",
+    ),
+    "rawimage_cut": (
+        FRAME_TOPIC,
+        lambda data: data[: len(data) // 2],
+        lambda d: "Error parsing message with type 'foxglove.RawImage': Wire format was corrupt",
+    ),
+    "track_not_json": (TRACK_TOPIC, lambda data: b"{", lambda d: f"not JSON ({_json_error(b'{')})"),
+    "track_ned_of_two": (
+        TRACK_TOPIC,
+        _with(ned_m=[1.0, 2.0]),
+        lambda d: "field 'ned_m' is [1.0, 2.0], not null or 3 numbers",
+    ),
+    "imaging_pose_without_pose": (IMAGING_POSE_TOPIC, _without("pose"), lambda d: "no field 'pose'"),
+    "objects_without_frame_index": (OBJECTS_TOPIC, _without("frame_index"), lambda d: "no field 'frame_index'"),
+}
+
+
+def _original(src: Path, topic: str, index: int) -> bytes:
+    from mcap.reader import make_reader
+
+    with open(src, "rb") as f:
+        on_topic = [m.data for _, ch, m in make_reader(f).iter_messages() if ch.topic == topic]
+    return on_topic[index]
+
+
+@pytest.mark.parametrize("damage", list(DAMAGE))
+def test_a_damaged_message_is_refused_in_one_line_naming_the_file_topic_index_and_log_time(
+    recording, tmp_path, capsys, damage
+):
+    topic, edit, what = DAMAGE[damage]
+    bad = tmp_path / "damaged.mcap"
+    log_ns = _copy(recording, bad, topic, edit)
+    out = tmp_path / "tracks.jsonl"
+    assert main([str(bad), "--compare", "--out", str(out)]) == EXIT_CONFIG
+    captured = capsys.readouterr()
+    expected = (
+        f"{bad}: message {DAMAGED_INDEX} on {topic} (log time {log_ns} ns) is damaged: "
+        f"{what(_original(recording, topic, DAMAGED_INDEX))}"
+    )
+    assert captured.err.splitlines() == [expected]
+    assert captured.out == "" and not out.exists()  # nothing replayed, nothing written
+
+
+@pytest.mark.subprocess
+@pytest.mark.parametrize("kind", ["damaged", "no_frame_inputs"])
+def test_the_flight_report_refuses_the_same_recordings_in_the_same_words(recording, tmp_path, capsys, kind):
+    """``groundsim report`` reads recordings through the same :func:`onboard.app.replay.load_recording`."""
+    bad = tmp_path / f"{kind}.mcap"
+    if kind == "damaged":
+        _copy(recording, bad, FRAME_INPUT_TOPIC, _without("seq"))
+    else:
+        _without_topic(recording, bad, FRAME_INPUT_TOPIC)
+    assert main([str(bad), "--config", str(CONFIG)]) == EXIT_CONFIG
+    replay_line = capsys.readouterr().err.strip()
+    p = subprocess.run(
+        [sys.executable, "-m", "groundsim", "report", str(bad), "--out", str(tmp_path / "report")],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=REPORT_TIMEOUT_S,
+    )
+    assert p.returncode == 2, p.stderr
+    assert p.stderr.strip().splitlines() == [f"groundsim report: error: {replay_line}"]
+
+
+def test_a_recording_without_frame_inputs_is_refused_in_the_flight_reports_words(recording, tmp_path, capsys):
+    other = tmp_path / "other.mcap"
+    _without_topic(recording, other, FRAME_INPUT_TOPIC)
+    out = tmp_path / "oo.jsonl"
+    assert main([str(other), "--config", str(CONFIG), "--out", str(out)]) == EXIT_CONFIG
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [
+        f"{other}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
+    ]
+    assert captured.out == "" and not out.exists()
+
+
+@pytest.mark.parametrize("n_bytes", [8, 20], ids=["magic_only", "cut_in_the_header"])
+@pytest.mark.parametrize("with_config", [False, True], ids=["metadata", "config"])
+def test_a_file_cut_before_its_first_message_is_refused_as_cut_short(recording, tmp_path, capsys, n_bytes, with_config):
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(recording.read_bytes()[:n_bytes])
+    assert main([str(cut)] + (["--config", str(CONFIG)] if with_config else [])) == EXIT_CONFIG
+    assert capsys.readouterr().err.splitlines() == [
+        f"{cut}: file cut short before its first message (it ends at byte {n_bytes})"
+    ]
+
+
+def test_a_file_cut_after_some_frames_replays_them_and_says_it_was_cut(recording, tmp_path, capsys):
+    cut = tmp_path / "cut.mcap"
+    data = recording.read_bytes()
+    cut.write_bytes(data[: len(data) * 3 // 4])
+    assert main([str(cut)]) == EXIT_OK
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.endswith(f"; file cut short (it ends at byte {len(data) * 3 // 4}): read to its last chunk"), first
+    assert " 0 frames taken" not in first
+
+
+@pytest.mark.parametrize("option", ["--out", "--objects-out"])
+@pytest.mark.parametrize("where", ["missing_folder", "under_a_file", "a_folder"])
+def test_an_output_that_cannot_be_written_is_refused_before_the_replay(recording, tmp_path, capsys, option, where):
+    (tmp_path / "file").write_text("")
+    bad, code = {
+        "missing_folder": (tmp_path / "nowhere" / "out.jsonl", errno.ENOENT),
+        "under_a_file": (tmp_path / "file" / "out.jsonl", errno.ENOTDIR),
+        "a_folder": (tmp_path, errno.EISDIR),
+    }[where]
+    good = tmp_path / "good.jsonl"  # the other output, writable: not written either
+    other = "--objects-out" if option == "--out" else "--out"
+    assert main([str(recording), option, str(bad), other, str(good), "--compare"]) == EXIT_CONFIG
+    captured = capsys.readouterr()
+    assert captured.err.splitlines() == [f"{bad}: cannot write: {os.strerror(code)}"]
+    assert captured.out == "" and not good.exists()
+
+
+def test_a_refused_replay_leaves_an_existing_output_as_it_was(recording, tmp_path, capsys):
+    bad = tmp_path / "damaged.mcap"
+    _copy(recording, bad, FRAME_INPUT_TOPIC, _without("seq"))
+    out = tmp_path / "tracks.jsonl"
+    out.write_text("yesterday's tracks\n")
+    assert main([str(bad), "--out", str(out)]) == EXIT_CONFIG
+    assert out.read_text() == "yesterday's tracks\n"
+
+
+def _lost(track: dict) -> dict:
+    return {**track, "state": "lost" if track["state"] != "lost" else "tracking"}
+
+
+COMPARED = {  # id: (the recording's estimator.worker, topic, edit, exit code, the compare lines expected)
+    "same": ("inline", None, None, EXIT_OK, [f"compare: {N_FRAMES}/{N_FRAMES} frames identical, 0 differ"]),
+    "track_differs": (
+        "inline",
+        TRACK_TOPIC,
+        _json_edit(_lost),
+        EXIT_DIFFERENT,
+        [f"compare: {N_FRAMES - 1}/{N_FRAMES} frames identical, 1 differ, 0 unmatched"],
+    ),
+    "track_missing": (
+        "inline",
+        TRACK_TOPIC,
+        lambda data: None,
+        EXIT_DIFFERENT,
+        [f"compare: {N_FRAMES - 1}/{N_FRAMES - 1} frames identical, 0 differ, 1 unmatched"],
+    ),
+    "objects_differ": (
+        "process",
+        OBJECTS_TOPIC,
+        _with(primary_id=-1),
+        EXIT_DIFFERENT,
+        [f"compare: objects: {N_FRAMES - 1}/{N_FRAMES} frames identical, 1 differ, 0 unmatched"],
+    ),
+    # a worker's recording: its estimates depend on the worker's timing, so only positions beyond the recorded
+    # sigma, frames in one list only and objects count against the replay
+    "worker_track_differs_off_the_positions": (
+        "process",
+        TRACK_TOPIC,
+        _json_edit(_lost),
+        EXIT_OK,
+        [f"compare: {N_FRAMES - 1}/{N_FRAMES} frames identical, 1 differ, 0 unmatched"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(COMPARED))
+def test_compare_exits_3_when_the_replay_differs_from_the_recording(recording, tmp_path, capsys, case):
+    worker, topic, edit, code, lines = COMPARED[case]
+    copy = tmp_path / "flight.mcap"
+    _copy(recording, copy, topic, edit, worker=worker)
+    assert main([str(copy), "--compare"]) == code
+    out = capsys.readouterr().out.splitlines()
+    assert all(any(ln.startswith(want) for ln in out) for want in lines), out
