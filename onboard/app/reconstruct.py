@@ -34,18 +34,29 @@ Summary (--summary-json)
     from the MAP observability analysis run on the same rows (``observability_source: "map"``):
     the closed form has none.  Non-finite numbers are written as ``null``.
 
+Report (stdout)
+    On success one line: ``OUT.csv: N rows, method M, observable yes|no, range sigma up to R % of
+    range`` (R is ``range_sigma_ratio`` in percent; for ``--method paper`` the last two come from
+    the MAP analysis and say so).
+
 Unobservable geometry (e.g. a straight, constant-velocity observer) is not an error: the command
-exits 0, writes the (unreliable) estimate with its large sigmas, and reports ``observable: false``.
+exits 0, writes the (unreliable) estimate with its large sigmas, reports ``observable no`` (and
+``observable: false`` in the summary) and prints one ``WARNING`` line on stderr: the range is not
+determined, the camera must move across the line of sight.
 
 Exit codes and errors
-    0 success; 2 the input or the arguments are rejected, or the rows cannot be reconstructed; 1
-    the outputs cannot be written, or an internal error.  An error prints exactly one line on
-    stderr and no traceback (``-v`` logs the traceback of an internal error).  Row-level errors
-    name the line and the column: ``line N`` is the physical line number in the file, counting
-    the header as line 1 (so the first data row is line 2), e.g.
+    0 success; 2 the input or the arguments are rejected (among them an output path that exists
+    and is not a regular file, and -o and --summary-json naming one file), or the rows cannot be
+    reconstructed; 1 the outputs cannot be written, or an internal error.  An error prints
+    exactly one line on stderr and no traceback (``-v`` logs the traceback of an internal error).
+    Row-level errors name the line and the column: ``line N`` is the physical line number in the
+    file, counting the header as line 1 (so the first data row is line 2), e.g.
     ``error: obs.csv line 7, column q_w..q_z: quaternion norm 1.02 is not 1 within 0.001``.
-    Outputs are written atomically (a temporary file renamed), so a failed run leaves no partial
-    OUT.csv (and leaves a previous run's files untouched: trust the exit code, not the file).
+    Outputs are written atomically: each to a temporary file beside it (mode 0666 less the umask,
+    as a new file gets), and the temporary files renamed over OUT.csv and S.json only once both
+    are written, so a failed run leaves no partial OUT.csv (and leaves a previous run's files
+    untouched: trust the exit code, not the file).  Through a symbolic link the file it points to
+    is replaced, the link kept.
 
 Rows needed: both methods need at least ``MapConfig.min_frames`` (10) rows, because the MAP
 observability analysis runs on the same rows.
@@ -64,8 +75,8 @@ import json
 import logging
 import math
 import os
+import stat
 import sys
-import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -74,6 +85,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, nonnegative_float
+from onboard.app.output_files import create_beside, file_kind
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
@@ -415,7 +427,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Reconstruct a target's 3-D path (local NED) from one moving camera's observations.",
         epilog="Errors name 'line N' = physical line in OBS.csv (header = line 1). Exit 0 ok, 2 bad input/"
         "arguments or not reconstructable, 1 cannot write outputs / internal error. "
-        "Unobservable geometry exits 0 with observable false in the summary.",
+        "Unobservable geometry exits 0, says observable no and warns on stderr.",
     )
     p.add_argument(
         "obs_csv",
@@ -461,17 +473,57 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+def _check_output_paths(outputs: list[tuple[str, str]]) -> None:
+    """Refuse (:class:`InputError`) an output ``(option, path)`` that exists and is not a regular file, which the
+    rename would replace (a device such as ``/dev/null`` among them), and two options naming one file."""
+    seen: dict[str, str] = {}
+    for option, path in outputs:
+        target = os.path.realpath(path)
+        try:
+            mode = os.stat(target).st_mode
+        except OSError:
+            mode = None  # a new file, or one that cannot be reached: writing it says why
+        if mode is not None and not stat.S_ISREG(mode):
+            raise InputError(f"{option} {path}: it is {file_kind(mode)}: give the path of a file")
+        if target in seen:
+            raise InputError(f"{seen[target]} and {option} name the same file {path}")
+        seen[target] = option
+
+
+class _OutputWriteError(Exception):
+    """An output not written: the message names the user's path and which outputs were replaced."""
+
+
+def _write_outputs(outputs: list[tuple[str, str]]) -> None:
+    """Write each ``(path, text)`` to a temporary file beside ``path``, then, only when all are written, rename
+    them over their paths in the given order.  On an ``OSError`` the temporary files left are removed and
+    :class:`_OutputWriteError` names the path and says which outputs were replaced (none, unless a rename
+    after the first failed)."""
+    staged: list[tuple[str, str, str]] = []  # (path as given, the file it names, temporary file)
+
+    def remove(entries: list[tuple[str, str, str]]) -> None:
+        for _, _, tmp in entries:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+
+    for path, text in outputs:
+        try:
+            target = os.path.realpath(path)  # through a symbolic link: the link is kept, its file replaced
+            tmp, fd = create_beside(target)
+            staged.append((path, target, tmp))
+            with os.fdopen(fd, "w", encoding="utf-8", newline="") as f:
+                f.write(text)
+        except OSError as e:
+            remove(staged)
+            raise _OutputWriteError(f"cannot write {path}: {e.strerror or e}; no output written") from None
+    for k, (path, target, tmp) in enumerate(staged):
+        try:
+            os.replace(tmp, target)
+        except OSError as e:
+            remove(staged[k:])
+            replaced = ", ".join(p for p, _, _ in staged[:k])
+            what = f"only {replaced} replaced" if replaced else "no output written"
+            raise _OutputWriteError(f"cannot write {path}: {e.strerror or e}; {what}") from None
 
 
 def main(argv=None) -> int:
@@ -506,12 +558,19 @@ def _run(args) -> int:
             ),
             paper=PaperConfig(delta=args.delta, order=args.order),
         )
+        outputs = [("-o", args.output)] + ([("--summary-json", args.summary_json)] if args.summary_json else [])
+        _check_output_paths(outputs)
         obs = read_observations_csv(args.obs_csv)
         log.info("%s: %d observations, %.3f s to %.3f s", args.obs_csv, len(obs), obs.t_s[0], obs.t_s[-1])
         try:
             rec = reconstruct(obs, options)
         except EstimationError as e:
             raise CsvInputError(f"{args.obs_csv}: cannot reconstruct: {e}") from None
+        summary = {"input": str(args.obs_csv), **rec.summary}
+        texts = []
+        if args.summary_json:  # renamed first: a new OUT.csv always has its own summary beside it
+            texts.append((args.summary_json, json.dumps(summary, indent=2, allow_nan=False) + "\n"))
+        texts.append((args.output, format_output_csv(rec.t_s, rec.p_ned_m, rec.sigma_ned_m)))
     except IrtrackError as e:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_INPUT
@@ -519,16 +578,33 @@ def _run(args) -> int:
         log.debug("internal error", exc_info=True)
         print(f"error: internal error: {type(e).__name__}: {e}", file=sys.stderr)
         return EXIT_OUTPUT
-    summary = {"input": str(args.obs_csv), **rec.summary}
     try:
-        _write_atomic(Path(args.output), format_output_csv(rec.t_s, rec.p_ned_m, rec.sigma_ned_m))
-        if args.summary_json:
-            _write_atomic(Path(args.summary_json), json.dumps(summary, indent=2, allow_nan=False) + "\n")
-    except (OSError, ValueError) as e:
-        print(f"error: cannot write outputs: {e}", file=sys.stderr)
+        _write_outputs(texts)
+    except _OutputWriteError as e:
+        print(f"error: {e}", file=sys.stderr)
         return EXIT_OUTPUT
-    log.info("%s: %d rows, method %s, observable %s", args.output, len(rec.t_s), args.method, summary["observable"])
+    print(_report_line(args.output, len(rec.t_s), summary))
+    if not summary["observable"]:
+        log.warning(
+            "%s: range not determined (observable no): the camera must move across the line of sight to the target; "
+            "the positions in %s lie along the bearings at an unreliable range (see their sigmas)",
+            args.obs_csv,
+            args.output,
+        )
     return EXIT_OK
+
+
+def _report_line(output: str, rows: int, summary: dict) -> str:
+    """The success line on stdout (the module docstring's ``Report``)."""
+    ratio = summary["range_sigma_ratio"]
+    if ratio is None:
+        sigma = "range sigma not finite"
+    else:
+        pct = 100.0 * ratio
+        sigma = f"range sigma up to {pct:.2g} % of range" if pct < 10 else f"range sigma up to {pct:.0f} % of range"
+    analysis = "" if summary["method"] == "map" else "MAP analysis: "
+    observable = "yes" if summary["observable"] else "no"
+    return f"{output}: {rows} rows, method {summary['method']}, {analysis}observable {observable}, {sigma}"
 
 
 if __name__ == "__main__":

@@ -9,7 +9,7 @@
   the stream has more than 8 bits per sample, e.g. ``gray16le`` or ``yuv420p10le``);
 * a folder of frames: PNG (8- or 16-bit), TIFF, JPEG or BMP files, sorted by name (numbers in names by value:
   ``2.png`` before ``10.png``), read with OpenCV as stored (``IMREAD_UNCHANGED``: a 16-bit PNG stays 16-bit;
-  colour frames are turned to grey);
+  colour frames, and grey frames with an alpha channel, are turned to grey, which the summary line says);
 * a sequence folder of a public tracking benchmark: MOT's (its ``img1/``, ``000001.jpg`` ...), Anti-UAV's (its
   frames, or its ``IR.mp4`` / ``infrared.mp4`` with ``IR_label.json`` beside).
 
@@ -30,6 +30,14 @@ TrackEval (MOT Challenge 2-D) or the Anti-UAV toolkit score the file against the
 ``mono8`` takes a 16-bit frame's high byte; ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate
 of a folder (default 30; a video's own rate otherwise).  A progress line goes to stderr every few seconds.
 
+The tracks are written to a temporary file beside ``--out`` (created with the permissions a new file gets,
+``0666`` less the umask) and renamed over it only when the run ends: a run that fails leaves the previous file as
+it was (or none), never the tracks of the frames before the failure.  An interrupted run (Ctrl-C) is the exception:
+it renames the tracks of the frames done (if any) into place, since they are valid MOT lines of a prefix of the
+input.
+``--out`` must be a regular file or a new path (a folder, device or pipe is refused); through a symbolic link the
+file it points to is replaced, the link kept.
+
 Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth, an
 output that cannot be written -- in one line naming the file; 130 interrupted (the tracks of the frames done are
 in the output).
@@ -42,18 +50,22 @@ from onboard.core.blas import single_thread_blas_env
 single_thread_blas_env()  # the chain is single-threaded like the daemon's: before numpy is imported
 
 import argparse  # noqa: E402
+import contextlib  # noqa: E402
 import logging  # noqa: E402
+import math  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
+import stat  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
-from dataclasses import dataclass  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from onboard.app.output_files import create_beside, file_kind  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
 if TYPE_CHECKING:
@@ -90,13 +102,15 @@ def _natural_key(name: str) -> list:
 class FrameSource:
     """Where the frames come from: ``path`` (the video file or the frames' folder), ``kind`` ``video`` or
     ``folder``, ``fps``, ``total`` (frames, None when the container does not say) and ``frames``: the iterator of
-    ``(name, pixels)`` -- the pixels 2-D uint8 or uint16, in the encoding asked for."""
+    ``(name, pixels)`` -- the pixels 2-D uint8 or uint16, in the encoding asked for.  ``converted_from`` fills as
+    ``frames`` is read: the layouts (``colour``, ``colour+alpha``, ``grey+alpha``) of the frames turned to grey."""
 
     path: Path
     kind: str
     fps: float
     total: int | None
     frames: Iterator[tuple[str, np.ndarray]]
+    converted_from: set[str] = field(default_factory=set)
 
 
 def _frame_files(folder: Path) -> list[Path]:
@@ -117,22 +131,31 @@ def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
     return px
 
 
-def _read_image(path: Path) -> np.ndarray:
+def _read_image(path: Path) -> tuple[np.ndarray, str | None]:
+    """The frame's grey pixels and the layout it was converted from (``colour``, ``colour+alpha``,
+    ``grey+alpha``; None when it was grey)."""
     import cv2
 
     px = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if px is None:
         raise InputError(f"{path}: cannot read this frame (not an image OpenCV decodes, or truncated)")
+    if px.ndim == 3 and px.shape[2] == 1:
+        return px[:, :, 0], None
     if px.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if px.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        px = px[:, :, 0] if px.shape[2] == 1 else cv2.cvtColor(px, code)
-    return px
+        alpha = px.shape[2] == 4
+        # OpenCV hands a grey+alpha PNG over as BGRA with three equal colour planes
+        grey = alpha and np.array_equal(px[:, :, 0], px[:, :, 1]) and np.array_equal(px[:, :, 1], px[:, :, 2])
+        layout = "grey+alpha" if grey else "colour+alpha" if alpha else "colour"
+        return cv2.cvtColor(px, cv2.COLOR_BGRA2GRAY if alpha else cv2.COLOR_BGR2GRAY), layout
+    return px, None
 
 
-def _folder_frames(files: list[Path], encoding: str) -> Iterator[tuple[str, np.ndarray]]:
+def _folder_frames(files: list[Path], encoding: str, converted_from: set[str]) -> Iterator[tuple[str, np.ndarray]]:
     first: tuple[tuple[int, ...], np.dtype, Path] | None = None
     for path in files:
-        px = _read_image(path)
+        px, layout = _read_image(path)
+        if layout is not None:
+            converted_from.add(layout)
         if first is None:
             first = (px.shape, px.dtype, path)
         elif px.shape != first[0]:
@@ -148,13 +171,18 @@ def _folder_frames(files: list[Path], encoding: str) -> Iterator[tuple[str, np.n
         yield path.name, _convert(px, encoding, str(path))
 
 
+def _av_reason(exc: Exception) -> str:
+    """FFmpeg's words for ``exc``, without PyAV's ``[Errno N]`` and the path the message already names."""
+    return getattr(exc, "strerror", None) or str(exc)
+
+
 def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterator[tuple[str, np.ndarray]]]:
     import av
 
     try:
         container = av.open(str(path))
     except (av.error.FFmpegError, OSError) as exc:
-        raise InputError(f"{path}: not a video FFmpeg reads: {exc}") from None
+        raise InputError(f"{path}: not a video FFmpeg reads: {_av_reason(exc)}") from None
     if not container.streams.video:
         container.close()
         raise InputError(f"{path}: no video stream")
@@ -173,7 +201,7 @@ def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterato
                 px = frame.to_ndarray(format="gray16le" if wide else "gray")
                 yield f"{path.name} frame {k}", np.ascontiguousarray(px)
         except av.error.FFmpegError as exc:
-            raise InputError(f"{path}: frame {k + 1} cannot be decoded: {exc}") from None
+            raise InputError(f"{path}: frame {k + 1} cannot be decoded: {_av_reason(exc)}") from None
         finally:
             container.close()
 
@@ -203,7 +231,10 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
             path = video
         else:
             rate = DEFAULT_FOLDER_FPS if fps is None else fps
-            return FrameSource(path, "folder", rate, len(files), _folder_frames(files, encoding))
+            converted_from: set[str] = set()
+            return FrameSource(
+                path, "folder", rate, len(files), _folder_frames(files, encoding, converted_from), converted_from
+            )
     video_fps, total, frames = _video_frames(path, encoding)
     return FrameSource(path, "video", video_fps if fps is None else fps, total, frames)
 
@@ -245,6 +276,75 @@ def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsU
         yield k, px, upd
 
 
+# --------------------------------------------------------------------------- output
+
+
+class OutputError(InputError):
+    """The output cannot be written; ``path`` as the user gave it, ``reason`` the system's words."""
+
+    def __init__(self, path: str, reason: str) -> None:
+        super().__init__(f"{path}: cannot write: {reason}")
+        self.path, self.reason = path, reason
+
+
+class _Replacement:
+    """The text file ``path`` written beside it and renamed over it by :meth:`commit` (the module docstring says
+    why); :meth:`discard` removes the temporary file of a run that did not commit.  ``OSError`` of the writing,
+    closing and renaming becomes :class:`OutputError` naming ``path``."""
+
+    def __init__(self, path: str) -> None:
+        self.path = path
+        self.target = os.path.realpath(path)  # through a symbolic link: the link is kept, its file replaced
+        try:
+            mode = os.stat(self.target).st_mode
+        except (FileNotFoundError, NotADirectoryError):  # a new file (or a file for a folder: said below)
+            mode = None
+        except OSError as exc:
+            raise OutputError(path, exc.strerror or str(exc)) from None
+        if mode is not None and not stat.S_ISREG(mode):
+            raise OutputError(path, f"it is {file_kind(mode)}: give the path of a file")
+        self.existed = mode is not None
+        folder = os.path.dirname(self.target)
+        existing = folder
+        while not os.path.exists(existing):
+            existing = os.path.dirname(existing)
+        if not os.path.isdir(existing):
+            raise OutputError(path, f"{existing} is not a folder")
+        try:
+            os.makedirs(folder, exist_ok=True)
+            self.tmp, fd = create_beside(self.target)
+        except OSError as exc:
+            raise OutputError(path, exc.strerror or str(exc)) from None
+        self.file = os.fdopen(fd, "w", encoding="ascii")
+        self.committed = False
+
+    @property
+    def untouched(self) -> str:
+        """What became of ``path`` when the run did not commit."""
+        return f"{self.path} is as it was" if self.existed else f"{self.path} was not created"
+
+    def writelines(self, rows: list[str]) -> None:
+        try:
+            self.file.writelines(rows)
+        except OSError as exc:
+            raise OutputError(self.path, exc.strerror or str(exc)) from None
+
+    def commit(self) -> None:
+        try:
+            self.file.close()
+            os.replace(self.tmp, self.target)
+        except OSError as exc:
+            raise OutputError(self.path, exc.strerror or str(exc)) from None
+        self.committed = True
+
+    def discard(self) -> None:
+        if not self.committed:
+            with contextlib.suppress(OSError):
+                self.file.close()
+            with contextlib.suppress(OSError):
+                os.unlink(self.tmp)
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -263,21 +363,17 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
-    if args.fps is not None and not args.fps > 0:
-        print(f"--fps: expected a rate > 0, got {args.fps}", file=sys.stderr)
+    if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
+        print(f"--fps: expected a finite rate > 0, got {args.fps}", file=sys.stderr)
         return EXIT_INPUT
-    if args.box_px is not None and not args.box_px > 0:
-        print(f"--box-px: expected a side > 0, got {args.box_px}", file=sys.stderr)
+    if args.box_px is not None and not (math.isfinite(args.box_px) and args.box_px > 0):
+        print(f"--box-px: expected a finite side > 0, got {args.box_px}", file=sys.stderr)
         return EXIT_INPUT
     done = 0
-    out = None
+    out: _Replacement | None = None
     try:
         src = open_frames(args.input, args.encoding, args.fps)
-        try:
-            os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-            out = open(args.out, "w", encoding="ascii")
-        except OSError as exc:
-            raise InputError(f"{args.out}: cannot write: {exc.strerror or exc}") from None
+        out = _Replacement(args.out)
         t0 = last = time.monotonic()
         ids: set[int] = set()
         lines = 0
@@ -296,20 +392,41 @@ def main(argv: Sequence[str] | None = None) -> int:
             if size is None:
                 size = f"{px.shape[1]} x {px.shape[0]} {'mono16' if px.dtype == np.uint16 else 'mono8'}"
         wall = time.monotonic() - t0
+        if done == 0:
+            raise InputError(f"{src.path}: no frames")
+        out.commit()
     except InputError as exc:
-        print(str(exc), file=sys.stderr)
+        if out is None:  # nothing created yet
+            print(str(exc), file=sys.stderr)
+        elif isinstance(exc, OutputError):
+            print(f"{exc} after {done} frames; {out.untouched}", file=sys.stderr)
+        else:
+            print(f"{exc}; {out.untouched}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
-        print(f"interrupted: {done} frames tracked; {args.out} holds their tracks", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return _interrupted(out, done)
     finally:
         if out is not None:
-            out.close()
-    if done == 0:
-        print(f"{src.path}: no frames", file=sys.stderr)
-        return EXIT_INPUT
+            out.discard()
+    converted = f"from {' and '.join(sorted(src.converted_from))}; " if src.converted_from else ""
     print(
-        f"{src.path}: {done} frames of {size} ({src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids, {lines} lines in "
-        f"{args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
+        f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids, "
+        f"{lines} lines in {args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
     )
     return EXIT_OK
+
+
+def _interrupted(out: _Replacement | None, done: int) -> int:
+    """Ctrl-C: the tracks of the frames done into place (the module docstring says why), in one line.  Before the
+    first frame is done there are none, and a previous output is kept rather than emptied."""
+    if out is None or done == 0:
+        kept = f"; {out.untouched}" if out is not None else ""
+        print(f"interrupted before the first frame was tracked: nothing written{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    try:
+        out.commit()
+    except OutputError as exc:
+        print(f"interrupted after {done} frames; {exc}; {out.untouched}", file=sys.stderr)
+    else:
+        print(f"interrupted: {done} frames tracked; {out.path} holds their tracks", file=sys.stderr)
+    return EXIT_INTERRUPTED

@@ -1,4 +1,5 @@
-"""``python -m onboard.reconstruct``: round trips on synthesized P3, every rejected input, fuzzing.
+"""``python -m onboard.reconstruct``: round trips on synthesized P3, every rejected input, the outputs written
+both or neither, fuzzing.
 
 Round trips run the real command as a subprocess (OPENBLAS_NUM_THREADS=1: BLAS threads contend
 badly on small shared machines); rejected inputs run ``main()`` in-process (no MAP solve is
@@ -9,9 +10,11 @@ from __future__ import annotations
 
 import contextlib
 import csv
+import errno
 import io
 import json
 import os
+import stat
 import subprocess
 import sys
 import tempfile
@@ -22,6 +25,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+import onboard.app.reconstruct as reconstruct_module
 from groundsim.evaluation.synth import synthesize
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.reconstruct import OBS_COLUMNS, OUT_COLUMNS, main, parse_observations_csv
@@ -78,10 +82,16 @@ def run_cli(*args, timeout=SUBPROCESS_TIMEOUT_S):
 
 
 def run_main(*args):
+    rc, _, err = run_main_io(*args)
+    return rc, err
+
+
+def run_main_io(*args):
+    """``main()`` in-process: its exit code, stdout and stderr."""
     err, out = io.StringIO(), io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(out):
         rc = main([str(a) for a in args])
-    return rc, err.getvalue()
+    return rc, out.getvalue(), err.getvalue()
 
 
 def read_out(path):
@@ -200,12 +210,31 @@ def test_unobservable_geometry_exits_0_with_observable_false(tmp_path):
     )
     src = tmp_path / "h3.csv"
     src.write_text(obs_csv_text(obs))
-    rc, err = run_main(src, "-o", tmp_path / "out.csv", "--summary-json", tmp_path / "s.json")
-    assert rc == 0 and err == ""
+    out = tmp_path / "out.csv"
+    rc, stdout, err = run_main_io(src, "-o", out, "--summary-json", tmp_path / "s.json")
+    assert rc == 0
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["observable"] is False and s["frames"] == len(obs)
     assert s["range_sigma_ratio"] > MapConfig().observability_max_sigma_range_ratio
-    assert read_out(tmp_path / "out.csv").shape == (len(obs), 7)
+    assert read_out(out).shape == (len(obs), 7)
+    # said where it is seen, not only in the optional summary
+    pct = 100 * s["range_sigma_ratio"]
+    assert stdout == f"{out}: {len(obs)} rows, method map, observable no, range sigma up to {pct:.0f} % of range\n"
+    assert err.count("\n") == 1 and err.startswith(f"WARNING: {src}: range not determined"), err
+    assert "the camera must move across the line of sight" in err
+
+
+@pytest.mark.parametrize("method", ["map", "paper"])
+def test_success_prints_one_line_observable_and_range_sigma(p3_uneven, tmp_path, method):
+    obs = p3_uneven[1]
+    src, out = tmp_path / "obs.csv", tmp_path / "out.csv"
+    src.write_text(obs_csv_text(obs))
+    rc, stdout, err = run_main_io(src, "-o", out, "--method", method, "--pixel-sigma", "0.3")
+    assert rc == 0 and err == "", err
+    analysis = "MAP analysis: " if method == "paper" else ""
+    head = f"{out}: {len(obs)} rows, method {method}, {analysis}observable yes, range sigma up to "
+    assert stdout.startswith(head) and stdout.endswith(" % of range\n") and stdout.count("\n") == 1, stdout
+    assert 0 < float(stdout[len(head) :].split()[0]) < 100 * MapConfig().observability_max_sigma_range_ratio
 
 
 # --------------------------------------------------------------------------- rejected inputs (in-process)
@@ -347,8 +376,114 @@ def test_bad_arguments_exit_2_one_line(small_obs, tmp_path, args, expected):
 def test_unwritable_output_exit_1(small_obs, tmp_path):
     src = tmp_path / "obs.csv"
     src.write_text(obs_csv_text(small_obs))
-    rc, err = run_main(src, "-o", tmp_path / "no_such_dir" / "out.csv")
-    assert rc == 1 and err.count("\n") == 1 and err.startswith("error: cannot write outputs"), err
+    out = tmp_path / "no_such_dir" / "out.csv"
+    rc, err = run_main(src, "-o", out)
+    assert rc == 1 and err == f"error: cannot write {out}: No such file or directory; no output written\n", err
+
+
+# --------------------------------------------------------------------------- outputs: atomic, both or neither
+
+
+def _leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+@pytest.mark.parametrize("option", ["-o", "--summary-json"])
+@pytest.mark.parametrize("kind", ["folder", "pipe"])
+def test_an_output_that_is_not_a_regular_file_is_refused(small_obs, tmp_path, option, kind):
+    """The rename would replace it (as root, a device such as /dev/null): refused before any work, exit 2."""
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(small_obs))
+    special = tmp_path / "special"
+    if kind == "folder":
+        special.mkdir()
+    else:
+        os.mkfifo(special)
+    args = {"-o": tmp_path / "out.csv", option: special}
+    rc, err = run_main(src, *[str(a) for kv in args.items() for a in kv])
+    assert rc == 2 and err == f"error: {option} {special}: it is a {kind}: give the path of a file\n"
+    assert special.is_dir() if kind == "folder" else stat.S_ISFIFO(special.lstat().st_mode)
+    assert not (tmp_path / "out.csv").exists()
+
+
+def test_one_file_for_both_outputs_is_refused(small_obs, tmp_path):
+    src, out = tmp_path / "obs.csv", tmp_path / "out.csv"
+    src.write_text(obs_csv_text(small_obs))
+    rc, err = run_main(src, "-o", out, "--summary-json", out)
+    assert rc == 2 and err == f"error: -o and --summary-json name the same file {out}\n", err
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027], ids=["umask022", "umask027"])
+def test_outputs_get_the_permissions_of_a_new_file(small_obs, tmp_path, umask):
+    src, out, summ = tmp_path / "obs.csv", tmp_path / "out.csv", tmp_path / "s.json"
+    src.write_text(obs_csv_text(small_obs))
+    old = os.umask(umask)
+    try:
+        rc, err = run_main(src, "-o", out, "--summary-json", summ)
+    finally:
+        os.umask(old)
+    assert rc == 0, err
+    assert stat.S_IMODE(out.stat().st_mode) == stat.S_IMODE(summ.stat().st_mode) == 0o666 & ~umask
+
+
+def test_through_a_symbolic_link_its_file_is_replaced(small_obs, tmp_path):
+    src, real, link = tmp_path / "obs.csv", tmp_path / "real.csv", tmp_path / "link.csv"
+    src.write_text(obs_csv_text(small_obs))
+    real.write_text("old\n")
+    link.symlink_to(real)
+    assert run_main(src, "-o", link)[0] == 0
+    assert link.is_symlink() and read_out(real).shape == (len(small_obs), 7)
+
+
+def _read_only_temp(real):
+    """``create_beside`` whose descriptor is read-only: the write into the temporary file fails (EBADF)."""
+
+    def create(target):
+        tmp, fd = real(target)
+        os.close(fd)
+        return tmp, os.open(tmp, os.O_RDONLY)
+
+    return create
+
+
+@pytest.mark.parametrize("failing", ["-o", "--summary-json"])
+def test_a_failed_write_replaces_neither_output(small_obs, tmp_path, monkeypatch, failing):
+    """Both temporary files are written before either is renamed: when one cannot be written, OUT.csv and the
+    summary of the previous run stay as they were, and no temporary file is left."""
+    src, out, summ = tmp_path / "obs.csv", tmp_path / "out.csv", tmp_path / "s.json"
+    src.write_text(obs_csv_text(small_obs))
+    out.write_text("old out\n")
+    summ.write_text("old summary\n")
+    real = reconstruct_module.create_beside
+    failing_target = os.path.realpath(out if failing == "-o" else summ)
+    monkeypatch.setattr(
+        reconstruct_module,
+        "create_beside",
+        lambda target: (_read_only_temp(real) if target == failing_target else real)(target),
+    )
+    rc, stdout, err = run_main_io(src, "-o", out, "--summary-json", summ)
+    named = out if failing == "-o" else summ
+    assert rc == 1 and stdout == "" and err == f"error: cannot write {named}: Bad file descriptor; no output written\n"
+    assert out.read_text() == "old out\n" and summ.read_text() == "old summary\n"
+    assert _leftovers(tmp_path) == []
+
+
+def test_a_failed_rename_says_which_output_was_replaced(small_obs, tmp_path, monkeypatch):
+    src, out, summ = tmp_path / "obs.csv", tmp_path / "out.csv", tmp_path / "s.json"
+    src.write_text(obs_csv_text(small_obs))
+    out.write_text("old out\n")
+    real_replace = os.replace
+
+    def replace(tmp, target):
+        if target == os.path.realpath(out):
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES))
+        real_replace(tmp, target)
+
+    monkeypatch.setattr(reconstruct_module.os, "replace", replace)
+    rc, err = run_main(src, "-o", out, "--summary-json", summ)
+    assert rc == 1 and err == f"error: cannot write {out}: Permission denied; only {summ} replaced\n", err
+    assert out.read_text() == "old out\n" and json.loads(summ.read_text())["frames"] == len(small_obs)
+    assert _leftovers(tmp_path) == []
 
 
 # --------------------------------------------------------------------------- fuzzing: exit 0 or 2, never a traceback

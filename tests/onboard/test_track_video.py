@@ -1,11 +1,15 @@
 """``python -m onboard.track_video``: synthetic thermal sequences with warm points moving on a known path -- a
 folder of 16-bit PNG frames, a MOT sequence folder (img1/, 8-bit), an mp4 written by PyAV -- through the real
 command; the MOT lines read back: one id per object for the whole sequence, distinct ids, centres where the
-points were drawn, frames numbered from 1, nothing else confirmed.  Bad inputs: one line naming the file, exit 2."""
+points were drawn, frames numbered from 1, nothing else confirmed.  Bad inputs: one line naming the file, exit 2.
+The output is replaced only when the run ends (or is interrupted): a bad frame or a full disk leaves it as it was."""
 
 from __future__ import annotations
 
+import errno
 import math
+import os
+import stat
 import subprocess
 from pathlib import Path
 
@@ -13,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 
+import onboard.app.track_video as track_video
 from onboard.app.track_video import EXIT_INPUT, main, open_frames
 from tests.process_helpers import run_module
 
@@ -170,3 +175,197 @@ def test_bad_input_is_one_line_naming_the_file_and_exit_2(tmp_path, capsys, case
     assert code == EXIT_INPUT and len(err.splitlines()) == 1
     named = {"missing": str(target), "empty": str(seq)}.get(case, str(bad))
     assert err.startswith(named), err
+
+
+# --------------------------------------------------------------------------- the output: replaced only on success
+
+
+def _small_seq(folder: Path, n: int = 3) -> Path:
+    folder.mkdir()
+    for k in range(n):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), _mono8(k))
+    return folder
+
+
+def _temporary_files(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+class _FullDisk:
+    """The temporary output's file with ``writelines`` or ``close`` failing as on a full disk."""
+
+    def __init__(self, f, fail: str) -> None:
+        self.f, self.fail = f, fail
+
+    def _full(self) -> OSError:
+        return OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    def writelines(self, rows) -> None:
+        if self.fail == "write":
+            raise self._full()
+        self.f.writelines(rows)
+
+    def close(self) -> None:
+        self.f.close()
+        if self.fail == "close":
+            raise self._full()
+
+
+@pytest.mark.parametrize("fail", ["write", "close"])
+def test_a_write_error_is_one_line_and_leaves_the_output_as_it_was(tmp_path, capsys, monkeypatch, fail):
+    seq = _small_seq(tmp_path / "seq")
+    out = tmp_path / "t.txt"
+    out.write_text("previous\n")
+    init = track_video._Replacement.__init__
+
+    def full_disk_init(self, path):
+        init(self, path)
+        self.file = _FullDisk(self.file, fail)
+
+    monkeypatch.setattr(track_video._Replacement, "__init__", full_disk_init)
+    code = main([str(seq), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    done = 0 if fail == "write" else 3  # the first frame's write fails; the close after the last frame
+    assert code == EXIT_INPUT
+    assert err == f"{out}: cannot write: No space left on device after {done} frames; {out} is as it was\n"
+    assert out.read_text() == "previous\n" and _temporary_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("existed", [True, False], ids=["existing", "new"])
+def test_a_bad_frame_mid_input_leaves_the_output_as_it_was(tmp_path, capsys, existed):
+    seq = _small_seq(tmp_path / "seq")
+    bad = seq / "003.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n truncated")  # after three good frames
+    out = tmp_path / "t.txt"
+    if existed:
+        out.write_text("previous\n")
+    code = main([str(seq), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    kept = f"{out} is as it was" if existed else f"{out} was not created"
+    assert code == EXIT_INPUT and err.startswith(f"{bad}: cannot read") and err.endswith(f"; {kept}\n"), err
+    assert (out.read_text() == "previous\n") if existed else not out.exists()
+    assert _temporary_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("after", [0, 2], ids=["before_a_frame", "after_two_frames"])
+def test_ctrl_c_keeps_the_tracks_of_the_frames_done(tmp_path, capsys, monkeypatch, after):
+    """The documented Ctrl-C path: the frames done are renamed into place; with none done the previous output
+    stays."""
+    seq = _small_seq(tmp_path / "seq")
+    out = tmp_path / "t.txt"
+    out.write_text("previous\n")
+    real = track_video.track_frames
+
+    def interrupted(frames, fps):
+        for k, item in enumerate(real(frames, fps)):
+            if k == after:
+                raise KeyboardInterrupt
+            yield item
+
+    monkeypatch.setattr(track_video, "track_frames", interrupted)
+    code = main([str(seq), "--out", str(out), "--quiet"])
+    err = capsys.readouterr().err
+    assert code == track_video.EXIT_INTERRUPTED and len(err.splitlines()) == 1
+    if after:
+        assert err == f"interrupted: {after} frames tracked; {out} holds their tracks\n"
+        assert out.read_text() == ""  # two frames: nothing confirmed yet, and the previous lines gone
+    else:
+        assert err.startswith("interrupted before the first frame") and err.endswith(f"{out} is as it was\n")
+        assert out.read_text() == "previous\n"
+    assert _temporary_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027], ids=["umask022", "umask027"])
+def test_the_output_gets_the_permissions_of_a_new_file(tmp_path, umask):
+    seq = _small_seq(tmp_path / "seq")
+    out = tmp_path / "t.txt"
+    old = os.umask(umask)
+    try:
+        assert main([str(seq), "--out", str(out), "--quiet"]) == 0
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(out.stat().st_mode) == 0o666 & ~umask
+
+
+@pytest.mark.parametrize(
+    "option, value, expected",
+    [
+        ("--fps", "inf", "--fps: expected a finite rate > 0, got inf"),
+        ("--fps", "nan", "--fps: expected a finite rate > 0, got nan"),
+        ("--box-px", "inf", "--box-px: expected a finite side > 0, got inf"),
+        ("--box-px", "0", "--box-px: expected a finite side > 0, got 0.0"),
+    ],
+)
+def test_rates_and_sides_must_be_finite_and_positive(tmp_path, capsys, option, value, expected):
+    seq = _small_seq(tmp_path / "seq", n=1)
+    out = tmp_path / "t.txt"
+    assert main([str(seq), "--out", str(out), "--quiet", option, value]) == EXIT_INPUT
+    assert capsys.readouterr().err == expected + "\n"
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("case", ["file_as_folder", "file_as_grandparent", "folder", "pipe"])
+def test_an_output_path_that_cannot_be_a_file_is_one_line(tmp_path, capsys, case):
+    seq = _small_seq(tmp_path / "seq", n=1)
+    afile = tmp_path / "afile"
+    afile.write_text("x\n")
+    if case == "pipe":
+        os.mkfifo(tmp_path / "pipe")
+    out, reason = {
+        "file_as_folder": (afile / "t.txt", f"{afile} is not a folder"),
+        "file_as_grandparent": (afile / "sub" / "t.txt", f"{afile} is not a folder"),
+        "folder": (seq, "it is a folder: give the path of a file"),
+        "pipe": (tmp_path / "pipe", "it is a pipe: give the path of a file"),
+    }[case]
+    assert main([str(seq), "--out", str(out), "--quiet"]) == EXIT_INPUT
+    assert capsys.readouterr().err == f"{out}: cannot write: {reason}\n"
+    assert afile.read_text() == "x\n" and _temporary_files(tmp_path) == []
+
+
+def test_a_file_that_is_not_a_video_says_why_once(tmp_path, capsys):
+    pytest.importorskip("av")
+    fake = tmp_path / "fake.mp4"
+    fake.write_text("not a video\n")
+    assert main([str(fake), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err == f"{fake}: not a video FFmpeg reads: Invalid data found when processing input\n", err
+
+
+def _converted_frame(k: int, layout: str) -> np.ndarray:
+    """Frame k in BGR (``colour``) or BGRA (``colour+alpha``, ``grey+alpha``: equal colour planes) as OpenCV
+    writes and reads them."""
+    px = np.repeat(_mono8(k)[:, :, None], 3 if layout == "colour" else 4, axis=2)
+    if layout != "grey+alpha":
+        px[:, :, 1] //= 2  # green differs from blue and red: a colour frame
+    if layout != "colour":
+        px[:, :, 3] = 255
+    return px
+
+
+@pytest.mark.parametrize("layout", ["colour", "colour+alpha", "grey+alpha"])
+def test_frames_turned_to_grey_are_said_in_the_summary(tmp_path, capsys, layout):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k in range(3):
+        assert cv2.imwrite(str(seq / f"{k}.png"), _converted_frame(k, layout))
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 0
+    assert f"3 frames of {W_PX} x {H_PX} mono8 (from {layout}; folder, 30 frames/s)" in capsys.readouterr().out
+
+
+def test_a_grey_and_alpha_png_is_said_to_be_grey_and_alpha(tmp_path, capsys):
+    """A PNG of colour type 4 (grey with alpha), which OpenCV hands over as BGRA with equal colour planes."""
+    image = pytest.importorskip("PIL.Image")
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k in range(3):
+        image.fromarray(np.stack([_mono8(k), np.full((H_PX, W_PX), 255, np.uint8)], axis=2), "LA").save(
+            seq / f"{k}.png"
+        )
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 0
+    assert "mono8 (from grey+alpha; folder" in capsys.readouterr().out
+
+
+def test_grey_frames_are_not_said_to_be_converted(tmp_path, capsys):
+    seq = _small_seq(tmp_path / "seq")
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 0
+    assert "mono8 (folder, 30 frames/s)" in capsys.readouterr().out

@@ -1,0 +1,34 @@
+"""Output files of the desk tools (``python -m onboard.track_video``, ``onboard.reconstruct``): what a path that is
+not a regular file is called in an error, and a temporary file beside an output, renamed over it once written."""
+
+from __future__ import annotations
+
+import os
+import secrets
+import stat
+
+__all__ = ["create_beside", "file_kind"]
+
+
+def file_kind(mode: int) -> str:
+    """What a file of ``st_mode`` ``mode`` that is not a regular file is, in words ("a folder", "a device" ...)."""
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    if stat.S_ISFIFO(mode):
+        return "a pipe"
+    return "a socket" if stat.S_ISSOCK(mode) else "not a regular file"
+
+
+def create_beside(target: str) -> tuple[str, int]:
+    """A new, empty temporary file in ``target``'s folder: its path and a descriptor open for writing.  Created
+    with mode 0666, which the kernel reduces by the umask (and any default ACL) as for a plain ``open()``;
+    ``tempfile.mkstemp`` would make it 0600 and the renamed output private."""
+    folder, name = os.path.split(target)
+    while True:
+        tmp = os.path.join(folder, f".{name}.{secrets.token_hex(4)}.tmp")
+        try:
+            return tmp, os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:
+            continue  # a name already taken: draw another
