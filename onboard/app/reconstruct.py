@@ -585,11 +585,12 @@ def _run(args) -> int:
         return EXIT_OUTPUT
     print(_report_line(args.output, len(rec.t_s), summary))
     if not summary["observable"]:
-        log.warning(
-            "%s: range not determined (observable no): the camera must move across the line of sight to the target; "
-            "the positions in %s lie along the bearings at an unreliable range (see their sigmas)",
-            args.obs_csv,
-            args.output,
+        # printed as the errors are, not logged: it is the run's verdict, whatever handlers the caller's logging has
+        print(
+            f"WARNING: {args.obs_csv}: range not determined (observable no): the camera must move across the line of"
+            f" sight to the target; the positions in {args.output} lie along the bearings at an unreliable range (see"
+            " their sigmas)",
+            file=sys.stderr,
         )
     return EXIT_OK
 

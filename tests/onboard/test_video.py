@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 av = pytest.importorskip("av")
 
-from onboard.core.errors import InputError  # noqa: E402
+from onboard.core.errors import ConfigError, InputError  # noqa: E402
 from onboard.io.rtp_h264 import depacketize, parse_rtp, rtp_timestamp  # noqa: E402
 from onboard.io.video import (  # noqa: E402
     AgcState,
@@ -364,8 +364,10 @@ def test_transport_is_checked_by_name():
 def test_the_streamer_needs_the_sections_destination():
     with pytest.raises(InputError, match="video.destination"):
         VideoStreamer(VideoConfig(), W, H)  # the section's default: no video
-    with pytest.raises(InputError, match=r"video.destination: expected HOST:PORT with PORT in 1..65535"):
-        VideoStreamer(VideoConfig(destination="127.0.0.1:70000"), W, H)  # the section checks the form, not the range
+    with pytest.raises(
+        ConfigError, match=r"destination: expected HOST:PORT with PORT in 1..65535, got '127.0.0.1:70000'"
+    ):
+        VideoConfig(destination="127.0.0.1:70000")  # the section checks the port's range too (--check refuses it)
 
 
 @settings(max_examples=200, deadline=None)
