@@ -26,6 +26,7 @@ from onboard.app.replay import (
     main,
 )
 from tests.process_helpers import WatchedCommand
+from tests.recording_edits import rewrite_recording
 
 REPO = Path(__file__).resolve().parents[1]
 REPLAY_TIMEOUT_S = 240.0
@@ -120,41 +121,11 @@ def recorded(recorded_p1_flight):
 def _rewritten(src: Path, dst: Path, worker: str, shift) -> Path:
     """A copy of the recording ``src`` whose metadata says the daemon ran ``estimator.worker: worker``, and whose
     recorded track dicts went through ``shift`` (which may change them in place)."""
-    import yaml
-    from mcap.records import Channel, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap.writer import CompressionType, Writer
 
-    schema_ids: dict = {}
-    channel_ids: dict = {}
-    tracks_channels: set = set()
-    schema_names: dict = {}
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        w = Writer(out, compression=CompressionType.NONE)
-        w.start()
-        for rec in StreamReader(f, validate_crcs=False).records:
-            if isinstance(rec, Schema) and rec.id not in schema_ids:
-                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-                schema_names[rec.id] = rec.name
-            elif isinstance(rec, Channel) and rec.id not in channel_ids:
-                channel_ids[rec.id] = w.register_channel(
-                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
-                )
-                if schema_names.get(rec.schema_id, "").startswith("irtrack.track/"):
-                    tracks_channels.add(rec.id)
-            elif isinstance(rec, Message):
-                data = rec.data
-                if rec.channel_id in tracks_channels:
-                    data = json.dumps(shift(json.loads(data)), separators=(",", ":")).encode()
-                w.add_message(channel_ids[rec.channel_id], rec.log_time, data, rec.publish_time, rec.sequence)
-            elif isinstance(rec, Metadata):
-                meta = dict(rec.metadata)
-                if rec.name == "irtrack":
-                    raw = yaml.safe_load(meta["config_yaml"])
-                    raw["estimator"]["worker"] = worker
-                    meta["config_yaml"] = yaml.safe_dump(raw, sort_keys=False)
-                w.add_metadata(rec.name, meta)
-        w.finish()
+    def shifted(data: bytes) -> bytes:
+        return json.dumps(shift(json.loads(data)), separators=(",", ":")).encode()
+
+    rewrite_recording(src, dst, lambda _t, _i, schema: shifted if schema.startswith("irtrack.track/") else None, worker)
     return dst
 
 

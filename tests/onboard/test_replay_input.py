@@ -18,6 +18,7 @@ import pytest
 
 from onboard.app.replay import EXIT_CONFIG, EXIT_DIFFERENT, EXIT_OK, main
 from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC
+from tests.recording_edits import Edit, rewrite_recording
 
 REPO = Path(__file__).resolve().parents[2]
 CONFIG = REPO / "config" / "onboard.yaml"
@@ -29,7 +30,6 @@ DAMAGED_INDEX = 2  # the message changed on its topic, counted from 0
 REPORT_TIMEOUT_S = 120.0  # a child process importing the simulator on a busy 2-core machine
 
 #: a message's bytes -> the damaged bytes, or None to leave the message out
-Edit = Callable[[bytes], bytes | None]
 
 
 @pytest.fixture(scope="module")
@@ -49,49 +49,8 @@ def _copy(src: Path, dst: Path, topic: str | None = None, edit: Edit | None = No
 
 
 def _rewrite(src: Path, dst: Path, edit_of: Callable[[str, int], Edit | None], worker: str | None = None) -> int:
-    """Copy ``src`` to ``dst``, each message through ``edit_of(topic, index on that topic)`` when that gives an edit;
-    ``worker`` sets the metadata's ``estimator.worker``.  Returns the last edited message's log time (ns), or 0."""
-    import yaml
-    from mcap.records import Channel, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
-    from mcap.writer import CompressionType, Writer
-
-    schema_ids: dict = {}
-    channel_ids: dict = {}
-    topics: dict = {}
-    seen: dict = {}
-    edited_log_ns = 0
-    with open(src, "rb") as f, open(dst, "wb") as out:
-        w = Writer(out, compression=CompressionType.NONE)
-        w.start()
-        for rec in StreamReader(f, validate_crcs=False).records:
-            if isinstance(rec, Schema) and rec.id not in schema_ids:
-                schema_ids[rec.id] = w.register_schema(rec.name, rec.encoding, rec.data)
-            elif isinstance(rec, Channel) and rec.id not in channel_ids:
-                channel_ids[rec.id] = w.register_channel(
-                    rec.topic, rec.message_encoding, schema_ids.get(rec.schema_id, 0), dict(rec.metadata)
-                )
-                topics[rec.id] = rec.topic
-            elif isinstance(rec, Message):
-                topic = topics[rec.channel_id]
-                index = seen.get(topic, 0)
-                seen[topic] = index + 1
-                data: bytes | None = rec.data
-                edit = edit_of(topic, index)
-                if edit is not None:
-                    data = edit(rec.data)
-                    edited_log_ns = rec.log_time
-                if data is not None:
-                    w.add_message(channel_ids[rec.channel_id], rec.log_time, data, rec.publish_time, rec.sequence)
-            elif isinstance(rec, Metadata):
-                meta = dict(rec.metadata)
-                if rec.name == "irtrack" and worker is not None:
-                    raw = yaml.safe_load(meta["config_yaml"])
-                    raw.setdefault("estimator", {})["worker"] = worker
-                    meta["config_yaml"] = yaml.safe_dump(raw, sort_keys=False)
-                w.add_metadata(rec.name, meta)
-        w.finish()
-    return edited_log_ns
+    """:func:`rewrite_recording` with ``edit_of(topic, index on that topic)``."""
+    return rewrite_recording(src, dst, lambda topic, index, _schema: edit_of(topic, index), worker)
 
 
 def _without_topic(src: Path, dst: Path, topic: str) -> None:
