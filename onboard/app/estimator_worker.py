@@ -43,7 +43,14 @@ from onboard.app.config import OnboardConfig
 from onboard.app.os_thread import name_os_thread
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
-from onboard.estimation.sliding import TrackEstimate, bearing_sigma_rad, line_of_sight_unit_ned
+from onboard.estimation.map_estimator import MapConfig
+from onboard.estimation.sliding import (
+    SlidingWindowEstimator,
+    TrackEstimate,
+    bearing_sigma_rad,
+    line_of_sight_unit_ned,
+    range_floored,
+)
 from onboard.io.worker_queue import items_until_stopped, stop_and_join
 from onboard.pipeline.frame_pipeline import make_estimator
 
@@ -92,6 +99,8 @@ class ThreadedEstimator:
     ) -> None:
         self._est = estimator
         self._noise = getattr(estimator, "noise", None)  # for the bearing update (_propagate)
+        estimator_map = getattr(estimator, "map", None)  # and its range floor (an estimator of a test may have none)
+        self._map_config = getattr(estimator_map, "config", None)
         self._counter = counter
         self.result_wait_s = float(result_wait_s)
         self.max_extrapolation_s = float(max_extrapolation_s)
@@ -166,7 +175,9 @@ class ThreadedEstimator:
         latest = self._latest
         if latest is None or latest[0] != self._epoch:
             return None
-        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
+        return _propagate(
+            latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise, self._map_config
+        )
 
     # ------------------------------------------------------------------ worker
 
@@ -463,6 +474,8 @@ class ProcessEstimator:
 
         self._config = config
         self._noise = config.estimator.noise_model()  # the worker's noise model, for the bearing update (_propagate)
+        # and its range floor: the config the worker's estimator solves with (make_estimator builds it so)
+        self._map_config = SlidingWindowEstimator.default_map_config(config.estimator.sliding_config())
         self._counter = counter
         self._clock = clock
         self.result_wait_s = float(result_wait_s)
@@ -715,7 +728,9 @@ class ProcessEstimator:
         latest = self._latest
         if latest is None or latest[0] != self._epoch:
             return None
-        return _propagate(latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise)
+        return _propagate(
+            latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise, self._map_config
+        )
 
     def close(self, timeout_s: float = 1.0) -> None:
         proc, conn = self._proc, self._conn
@@ -744,14 +759,25 @@ def as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam) -> tuple
     )
 
 
-def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: RejectCounter, obs=None, noise=None):
+def _propagate(
+    est,
+    t: float,
+    p_cam_ned_m,
+    max_extrapolation_s: float,
+    counter: RejectCounter,
+    obs=None,
+    noise=None,
+    map_config: MapConfig | None = None,
+):
     """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s``.
 
     ``obs`` (the frame's ``(uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)``, which ``est`` was solved
     without) with the estimator's ``noise`` model: the propagated position is corrected by the frame's own
     line of sight (:meth:`~onboard.estimation.sliding.TrackEstimate.with_bearing`), so an estimate carried
     over a busy worker's re-selection keeps the target on its current bearing; a bearing outside the
-    estimate's gate is counted (``bearing_gate``) and not fused."""
+    estimate's gate is counted (``bearing_gate``) and not fused.  An unobservable estimate then gets the
+    estimator's range floor (``map_config``'s) again along its new line of sight
+    (:func:`~onboard.estimation.sliding.range_floored`), as the estimator's own carried estimates do."""
     dt = t - float(est.t_s)
     if abs(dt) > max_extrapolation_s:
         if obs is not None:  # a frame's own position withheld (not a query between frames): the daemon is behind
@@ -765,6 +791,7 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
         return est
     try:
         out = est.propagated(t, p_cam_ned_m)
+        camera = p_cam_ned_m
         if obs is not None and noise is not None and dt > 0:
             uv, intrinsics, p_cam, q = obs
             fused = out.with_bearing(
@@ -779,7 +806,9 @@ def _propagate(est, t: float, p_cam_ned_m, max_extrapolation_s: float, counter: 
                     f"the frame's line of sight is outside the propagated estimate's gate at t={t:.3f} s",
                 )
             else:
-                out = fused
+                out, camera = fused, p_cam
+        if map_config is not None and camera is not None:
+            out = range_floored(out, camera, map_config)
         return out
     except (TypeError, ValueError, AttributeError, np.linalg.LinAlgError) as exc:
         counter.count("estimator_error", f"extrapolation: {exc}")

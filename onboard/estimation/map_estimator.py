@@ -84,6 +84,7 @@ __all__ = [
     "WindowProblem",
     "SolveResult",
     "Mode",
+    "range_floor",
 ]
 
 log = logging.getLogger(__name__)
@@ -281,6 +282,19 @@ class Mode:
     factor: tuple[np.ndarray, np.ndarray]
     log_evidence: float
     mean_range_m: float
+
+
+def range_floor(
+    config: MapConfig, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(the range-direction covariance to add (F, 3, 3), the range sigma after it (F,)) so that an
+    unobservable solution's range sigma (``sig_r_m`` along the unit lines of sight ``u``) is at least
+    ``config.unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``; the
+    bearing part is left as it is.  The batch result, the sliding window's frames and the estimates a
+    worker carries to newer frames all use it."""
+    floor = np.maximum(config.unobservable_range_sigma_floor * range_m, config.unobservable_range_sigma_min_m)
+    add = np.maximum(floor**2 - sig_r_m**2, 0.0)
+    return add[:, None, None] * np.einsum("fi,fj->fij", u, u), np.maximum(sig_r_m, floor)
 
 
 class MapEstimator:
@@ -725,15 +739,8 @@ class MapEstimator:
         )
 
     def range_floor(self, u: np.ndarray, sig_r_m: np.ndarray, range_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(the range-direction covariance to add (F, 3, 3), the range sigma after it (F,)) so that an
-        unobservable solution's range sigma (``sig_r_m`` along the unit lines of sight ``u``) is at least
-        ``unobservable_range_sigma_floor`` of its range and ``unobservable_range_sigma_min_m``; the
-        bearing part is left as it is.  The batch result and the sliding window's frames both use it."""
-        floor = np.maximum(
-            self.config.unobservable_range_sigma_floor * range_m, self.config.unobservable_range_sigma_min_m
-        )
-        add = np.maximum(floor**2 - sig_r_m**2, 0.0)
-        return add[:, None, None] * np.einsum("fi,fj->fij", u, u), np.maximum(sig_r_m, floor)
+        """:func:`range_floor` under this estimator's config."""
+        return range_floor(self.config, u, sig_r_m, range_m)
 
     def _adequacy_p(self, r_std: np.ndarray) -> float:
         """p-value that the standardised residuals (F, 2) carry no more low-frequency power than white

@@ -93,6 +93,7 @@ from onboard.estimation.map_estimator import (
     MotionPrior,
     NoiseModel,
     WindowProblem,
+    range_floor,
 )
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
@@ -311,6 +312,20 @@ class _PendingSelection:
         return self.full_steps is not None
 
 
+def range_floored(est: TrackEstimate, p_cam_ned_m, map_config: MapConfig) -> TrackEstimate:
+    """An unobservable ``est`` with ``map_config``'s range floor (:func:`~onboard.estimation.map_estimator.range_floor`)
+    along its line of sight from ``p_cam_ned_m``: honest, not confident, wherever it was carried to or whatever
+    bearing it was corrected by since it was solved (a bearing update across a floor laid along an older line of
+    sight shrinks the range sigma as if a second range had been measured).  An observable one as it is."""
+    if est.observable:
+        return est
+    los = est.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)
+    rng = max(float(np.linalg.norm(los)), 1e-9)
+    u = los / rng
+    add, sig_r = range_floor(map_config, u[None], np.array([est.range_sigma_ratio * rng]), np.array([rng]))
+    return dataclasses.replace(est, cov_p_ned_m2=est.cov_p_ned_m2 + add[0], range_sigma_ratio=float(sig_r[0]) / rng)
+
+
 def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
     """One frame's line-of-sight 1-sigma per axis under ``noise``: the pixel noise over the focal length with
     the attitude's white noise and bias (the bias is kept: conservative)."""
@@ -350,10 +365,14 @@ class SlidingWindowEstimator:
         self, config: SlidingConfig | None = None, noise: NoiseModel | None = None, map_config: MapConfig | None = None
     ):
         self.config = config or SlidingConfig()
-        self.map = MapEstimator(
-            map_config or MapConfig(knot_spacing_s=self.config.knot_spacing_s), noise or NoiseModel()
-        )
+        self.map = MapEstimator(map_config or self.default_map_config(self.config), noise or NoiseModel())
         self.reset()
+
+    @staticmethod
+    def default_map_config(config: SlidingConfig) -> MapConfig:
+        """The :class:`MapConfig` an estimator of ``config`` solves with when given none (a worker that carries its
+        estimates outside it applies this config's range floor too: :func:`range_floored`)."""
+        return MapConfig(knot_spacing_s=config.knot_spacing_s)
 
     def reset(self) -> None:
         c = self.config
@@ -861,13 +880,7 @@ class SlidingWindowEstimator:
         floor along the new line of sight (honest, not confident: module docstring).  What a frame the
         window does not keep gets (:meth:`add`); the daemon's process worker computes it in the parent
         for such frames, from the worker's answer to the newest kept one (the same numbers, no round trip)."""
-        out = est.propagated(t_s, p_cam_ned_m)
-        if out.observable:
-            return out
-        los = out.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)
-        rng = max(float(np.linalg.norm(los)), 1e-9)
-        P, ratio = self._range_floored(out.cov_p_ned_m2, los / rng, out.range_sigma_ratio, rng)
-        return dataclasses.replace(out, cov_p_ned_m2=P, range_sigma_ratio=ratio)
+        return range_floored(est.propagated(t_s, p_cam_ned_m), p_cam_ned_m, self.map.config)
 
     def _range_floored(self, P: np.ndarray, u: np.ndarray, ratio: float, rng: float) -> tuple[np.ndarray, float]:
         """An unobservable estimate's covariance and range sigma ratio with the range floor applied along

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -94,3 +95,52 @@ def test_the_line_of_sight_and_its_sigma_follow_the_camera_model():
     np.testing.assert_allclose(line_of_sight_unit_ned([820.0, 256.0], K, q), _unit([1.0, 1.0, 0.0]), atol=1e-12)
     noise = NoiseModel(pixel_sigma_px=0.5, attitude_white_sigma_rad=3e-4, attitude_bias_sigma_rad=4e-4)
     assert math.isclose(bearing_sigma_rad(noise, K), math.sqrt(1e-6 + 9e-8 + 1.6e-7), rel_tol=1e-12)
+
+
+def _unobservable(p, cam, sigma_cross_m: float, sigma_range_m: float) -> TrackEstimate:
+    """An unobservable estimate at ``p`` seen from ``cam``: ``sigma_range_m`` along the line of sight (the range
+    floor), ``sigma_cross_m`` across it."""
+    p, cam = np.asarray(p, float), np.asarray(cam, float)
+    u = _unit(p - cam)
+    P = sigma_cross_m**2 * (np.eye(3) - np.outer(u, u)) + sigma_range_m**2 * np.outer(u, u)
+    est = _estimate(p, P)
+    rng = float(np.linalg.norm(p - cam))
+    return dataclasses.replace(est, observable=False, range_m=rng, range_sigma_ratio=sigma_range_m / rng)
+
+
+def _camera_looking_at(cam, target):
+    """The frame's quaternion of a camera at ``cam`` whose optical axis (camera z) points at ``target``."""
+    from onboard.core.frames import quat_from_rotmat
+
+    z = _unit(np.asarray(target, float) - np.asarray(cam, float))
+    x = _unit(np.cross([0.0, 0.0, 1.0], z))  # NED down x forward: the image's right
+    R = np.column_stack([x, np.cross(z, x), z])
+    return quat_from_rotmat(R)
+
+
+def test_a_worker_carried_unobservable_estimate_keeps_the_range_floor_after_a_bearing_update():
+    from onboard.app.estimator_worker import _propagate
+    from onboard.core.counters import RejectCounter
+    from onboard.estimation.map_estimator import MapConfig
+    from onboard.estimation.sliding import range_floored
+
+    cfg = MapConfig()
+    target, cam0, cam1 = np.array([120.0, 0.0, 0.0]), np.zeros(3), np.array([0.0, 20.0, 0.0])
+    est = _unobservable(target, cam0, 1.0, 150.0)  # the floor: max(0.5 x 120, 150) m along the first ray
+    K = PinholeIntrinsics(fx_px=500.0, fy_px=500.0, cx_px=320.0, cy_px=256.0, width_px=640, height_px=512)
+    noise = NoiseModel(pixel_sigma_px=0.3)
+    u1 = line_of_sight_unit_ned([320.0, 256.0], K, _camera_looking_at(cam1, target))
+    # the bearing from the moved camera, fused across a floor laid along the first ray, shrinks the range sigma as
+    # if the range had been measured twice
+    fused = est.propagated(1.0, cam1).with_bearing(cam1, u1, bearing_sigma_rad(noise, K))
+    assert fused is not None and fused.range_sigma_ratio * fused.range_m < 0.8 * cfg.unobservable_range_sigma_min_m
+    floored = range_floored(fused, cam1, cfg)
+    sig_r = math.sqrt(u1 @ floored.cov_p_ned_m2 @ u1)
+    assert sig_r >= cfg.unobservable_range_sigma_min_m * 0.999
+    assert floored.range_sigma_ratio * floored.range_m >= cfg.unobservable_range_sigma_min_m * 0.999
+    # what a busy worker publishes for the frame: the same, floored
+    obs = ([320.0, 256.0], K, cam1, _camera_looking_at(cam1, target))
+    out = _propagate(dataclasses.replace(est, t_s=0.9), 1.0, cam1, 1.0, RejectCounter(), obs, noise, cfg)
+    assert out is not None and out.range_sigma_ratio * out.range_m >= cfg.unobservable_range_sigma_min_m * 0.999
+    observable = dataclasses.replace(fused, observable=True)
+    assert range_floored(observable, cam1, cfg) is observable  # an observable estimate is left as it is
