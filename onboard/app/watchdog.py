@@ -88,8 +88,9 @@ _log = logging.getLogger(__name__)
 _SILENT_INPUT = {
     "no_frames": (
         "IR frame",
-        "zenoh key '{frame_key}' ({zenoh_where}): check that the camera or simulator publishes there and "
-        "that a zenoh endpoint connects the two",
+        "zenoh key '{frame_key}' ({zenoh_where}): check that the camera or simulator publishes there, "
+        "that a zenoh endpoint connects the two, and that its frames fit input.max_frame_bytes (zenoh's "
+        "transport drops a larger one before the daemon can count it)",
     ),
     "no_mavlink": (
         "MAVLink message",
