@@ -64,7 +64,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from onboard.core.checks import is_nonnegative_number, is_positive_number, require_each
@@ -151,6 +151,22 @@ TRACKING_FLAGS = (
 )
 STATUSTEXT_MAX_CHARS = 50
 _TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, MAV_CMD_CAMERA_STOP_TRACKING)
+#: ``counters`` key of each command we answer; every other command id shares ``cmd_unsupported``, so a
+#: sender cycling through ids cannot grow the status JSON (the id is 16 bits on COMMAND_LONG)
+_COMMAND_COUNTERS = {
+    MAV_CMD_GET_MESSAGE_INTERVAL: "cmd_get_message_interval",
+    MAV_CMD_SET_MESSAGE_INTERVAL: "cmd_set_message_interval",
+    MAV_CMD_REQUEST_MESSAGE: "cmd_request_message",
+    MAV_CMD_REQUEST_CAMERA_INFORMATION: "cmd_request_camera_information",
+    MAV_CMD_REQUEST_CAMERA_SETTINGS: "cmd_request_camera_settings",
+    MAV_CMD_REQUEST_STORAGE_INFORMATION: "cmd_request_storage_information",
+    MAV_CMD_REQUEST_CAMERA_CAPTURE_STATUS: "cmd_request_camera_capture_status",
+    MAV_CMD_CAMERA_TRACK_POINT: "cmd_camera_track_point",
+    MAV_CMD_CAMERA_TRACK_RECTANGLE: "cmd_camera_track_rectangle",
+    MAV_CMD_CAMERA_STOP_TRACKING: "cmd_camera_stop_tracking",
+    MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION: "cmd_request_video_stream_information",
+    MAV_CMD_REQUEST_VIDEO_STREAM_STATUS: "cmd_request_video_stream_status",
+}
 
 
 def _finite_positive(name: str, v) -> float:
@@ -286,8 +302,9 @@ class CameraCommand:
 class Outgoing:
     """One message to send: pymavlink name (``"command_ack"``), its fields, and to whom.
 
-    ``reply_to``: ``(system, component)`` of the requester (the adapter sends it on the endpoint the
-    request came from), or None for everybody (every ground-station endpoint).
+    ``reply_to``: ``(system, component)`` of the requester, for an ACK, STATUSTEXT or requested message
+    (the adapter sends it where the request came from), or None for everybody (every ground-station
+    endpoint).
     """
 
     msg: str
@@ -389,7 +406,7 @@ class CameraProtocol:
         self, cmd: CameraCommand, now_s: float, time_boot_ms: int, track: Track | None = None
     ) -> tuple[list[Outgoing], TrackRequest | None]:
         """Answer one command (``track``: the newest track, for a one-shot #275/#276 request)."""
-        self._count(f"cmd_{cmd.command}")
+        self._count(_COMMAND_COUNTERS.get(cmd.command, "cmd_unsupported"))
         to = (cmd.src_system, cmd.src_component)
         c, p = cmd.command, cmd.params
         if c in _TRACK_COMMANDS:
@@ -431,8 +448,8 @@ class CameraProtocol:
         msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
         if msgs is None:
             return [self._ack(command, MAV_RESULT_DENIED, to)]
-        # the ACK first, then the message (common.xml: "the message is sent after the ACK")
-        return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + msgs
+        # the ACK first, then the message (common.xml: "the message is sent after the ACK"), both to the requester
+        return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + [replace(m, reply_to=to) for m in msgs]
 
     def _message(self, msg_id: int, index: float, time_boot_ms: int, track: Track | None) -> list[Outgoing] | None:
         ms = int(time_boot_ms) % 2**32
@@ -710,7 +727,10 @@ class CameraProtocol:
         self.counters[key] = self.counters.get(key, 0) + 1
 
     def status(self) -> dict[str, Any]:
-        """For the status JSON: rates, selection mode, pending requests, the last refusal, counters."""
+        """For the status JSON: rates, selection mode, pending requests, the last refusal, counters.
+
+        ``counters``: ``cmd_<name>`` per command we answer and ``cmd_unsupported`` for all others,
+        ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``: a bounded set of keys whatever is received."""
         return {
             "component_id": self.component_id,
             "selection_mode": {0: "none", 1: "point", 2: "rectangle"}[self.selection_mode],

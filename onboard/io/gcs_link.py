@@ -2,21 +2,39 @@
 
 The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this module only moves bytes:
 
-* ``GcsLink(endpoints, component_id)`` opens one pymavlink connection per endpoint
-  (``udpout:HOST:PORT`` -- send to a ground station listening there, QGC's default is UDP 14550 --,
-  ``udpin:HOST:PORT``, ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``; parsed by
-  :func:`onboard.io.mavlink_wire.parse_endpoint`), MAVLink 2, common dialect
-  (:func:`onboard.io.mavlink_wire.connect`), with
-  ``srcComponent = component_id`` and ``srcSystem`` the autopilot's system id once known
-  (:meth:`GcsLink.set_system_id`; nothing is sent before).
+* ``GcsLink(endpoints, component_id)`` opens one connection per endpoint (``udpout:HOST:PORT`` --
+  send to a ground station listening there, QGC's default is UDP 14550 --, ``udpin:HOST:PORT``,
+  ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
+  MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
+  system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
+  are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`); ``udpin`` is our own socket
+  (below).
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
-  :class:`~onboard.io.camera_protocol.CameraCommand`; it remembers on which endpoint each requester
-  (system, component) spoke last, so replies go back there.
+  :class:`~onboard.io.camera_protocol.CameraCommand`; it remembers on which endpoint (and, on
+  ``udpin``, from which address) each requester (system, component) spoke last, so replies go back
+  there.
 * :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` as the message of that
-  name (:func:`onboard.io.mavlink_wire.message_from_fields`): to the requester's endpoint when
-  ``reply_to`` is set and known, else to
-  every endpoint.  Send errors are counted (``gcs_tx_error``), never raised.
+  name (:func:`onboard.io.mavlink_wire.message_from_fields`): to the requester's endpoint and address
+  when ``reply_to`` is set and known, else to every endpoint.  Send errors are counted
+  (``gcs_tx_error``), never raised.
+
+``udpin`` (anyone may send to the port, so who gets our output is decided here, not by pymavlink's
+``mavudp``, which answers every address a datagram ever came from):
+
+* Each datagram is parsed alone by a fresh parser (the autopilot link's, :mod:`onboard.io.mavlink_link`),
+  so a truncated or garbage datagram costs only itself (``gcs_truncated``, ``gcs_bad_data``) and never
+  swallows the next one, whoever sent it; datagrams too large for MAVLink traffic are dropped unparsed
+  (``gcs_datagram_too_large``).
+* A source address becomes a *peer* with its first valid message: a known message id with a good
+  CRC, of any type.  Not only a HEARTBEAT: a forged heartbeat costs a sender no more than any other
+  message, and a router forwards whatever it gets; garbage, a cut packet or an unknown id never makes
+  a peer.
+* Replies (COMMAND_ACK, the requested message, STATUSTEXT) go to the address the command came from.
+  Periodic messages (HEARTBEAT, #275, #276) go to the peers heard within ``peer_timeout_s`` (default
+  :data:`PEER_TIMEOUT_S`); a silent peer is dropped.  At most ``max_peers`` (:data:`MAX_PEERS`) peers:
+  messages from further addresses are still answered but make no peer (``gcs_peer_refused``; a
+  warning once while the table is full).
 
 Why a separate component and separate endpoints, not the autopilot link's component 191: QGC handles
 camera messages only from components 100..105 or the autopilot, and the autopilot link should carry
@@ -29,15 +47,146 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.io.camera_protocol import CameraCommand, Outgoing
+from onboard.io.mavlink_link import MAX_DATAGRAM_PARSE_BYTES, UdpTransport, new_parser
 from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
-__all__ = ["GcsLink", "GcsLinkError"]
+__all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]
 
 log = logging.getLogger(__name__)
+
+#: a udpin peer silent this long (s) gets no more periodic messages: QGC heartbeats at 1 Hz and gives up
+#: on a camera after 5 s of silence, the same patience the other way round
+PEER_TIMEOUT_S = 5.0
+#: udpin peers receiving the periodic messages at once (a GCS or two, a router, a tool)
+MAX_PEERS = 4
+#: requesters remembered for routing replies; the least recently heard is forgotten (ids are sender-chosen)
+_MAX_ROUTES = 64
+
+Address = tuple[str, int]
+
+
+class _UdpInEndpoint:
+    """A ``udpin`` endpoint (module docstring): the autopilot link's UDP socket, a fresh parser per
+    datagram, a bounded table of peers.  ``mav`` packs what :meth:`send_to` writes."""
+
+    def __init__(
+        self,
+        device: str,
+        component_id: int,
+        count: Callable[..., None],
+        peer_timeout_s: float,
+        max_peers: int,
+    ) -> None:
+        _, host, port = device.split(":")
+        self.device = device
+        self._udp = UdpTransport("udpin", host, int(port), ())
+        self.fd = self._udp.fileno()
+        self._count = count
+        self._signing = mavlink2.MAVLinkSigning()  # no key: the camera endpoints are unsigned
+        self.mav = new_parser(self._signing, self, 1, component_id)
+        self.source_system = 1
+        self.peer_timeout_s = peer_timeout_s
+        self.max_peers = max_peers
+        #: address -> time of its latest valid message, least recently heard first
+        self.peers: OrderedDict[Address, float] = OrderedDict()
+        self._full_warned = False
+        self._dest: Sequence[Address] = ()
+
+    def receive(self, now_s: float, max_datagrams: int) -> list[tuple[Any, Address]]:
+        """Every message parsed from up to ``max_datagrams`` waiting datagrams, with its source address
+        (BAD_DATA included, for the caller to count); valid ones make or refresh a peer."""
+        out: list[tuple[Any, Address]] = []
+        for _ in range(max_datagrams):
+            try:
+                got = self._udp.read()
+            except OSError as exc:
+                self._count("gcs_rx_error", f"{type(exc).__name__}: {exc}")
+                break
+            if got is None:
+                break
+            data, addr = got
+            if not data or not isinstance(addr, tuple):
+                continue
+            if len(data) > MAX_DATAGRAM_PARSE_BYTES:
+                self._count("gcs_datagram_too_large", f"{len(data)} bytes from {addr}")
+                continue
+            parser = new_parser(self._signing)
+            try:
+                msg = parser.parse_char(data)
+                while msg is not None:
+                    mtype = msg.get_type()
+                    if mtype != "BAD_DATA" and not mtype.startswith("UNKNOWN_"):
+                        self._heard(addr, now_s)
+                    out.append((msg, addr))
+                    msg = parser.parse_char(b"")
+            except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage
+                self._count("gcs_rx_error", f"{type(exc).__name__}: {exc} (from {addr})")
+            if parser.buf_len() > 0:
+                self._count("gcs_truncated", f"{parser.buf_len()} bytes left over in a datagram from {addr}")
+        return out
+
+    def _heard(self, addr: Address, now_s: float) -> None:
+        if addr in self.peers:
+            self.peers[addr] = now_s
+            self.peers.move_to_end(addr)
+            return
+        self.prune(now_s)
+        if len(self.peers) >= self.max_peers:
+            self._count("gcs_peer_refused", f"{addr[0]}:{addr[1]} on {self.device}", logging.DEBUG)
+            if not self._full_warned:
+                self._full_warned = True
+                log.warning(
+                    "%s: %d ground-station peers already (%s); %s:%d gets replies only",
+                    self.device,
+                    len(self.peers),
+                    ", ".join(f"{a}:{p}" for a, p in self.peers),
+                    *addr,
+                )
+            return
+        self.peers[addr] = now_s
+        log.info("%s: ground-station peer %s:%d", self.device, *addr)
+
+    def prune(self, now_s: float) -> None:
+        """Forget the peers silent for longer than ``peer_timeout_s``."""
+        while self.peers:
+            addr, last_s = next(iter(self.peers.items()))
+            if now_s - last_s <= self.peer_timeout_s:
+                break
+            del self.peers[addr]
+            log.info("%s: ground-station peer %s:%d silent for %.1f s, dropped", self.device, *addr, now_s - last_s)
+        if len(self.peers) < self.max_peers:
+            self._full_warned = False
+
+    def send_to(self, msg, dest: Sequence[Address]) -> None:
+        """Pack ``msg`` once (one sequence number) and send it to each address in ``dest``."""
+        self._dest = dest
+        try:
+            self.mav.send(msg)
+        finally:
+            self._dest = ()
+
+    def write(self, buf) -> None:
+        """The sending parser's ``file``; every destination is tried, the first failure raised after."""
+        failed: OSError | None = None
+        for addr in self._dest:
+            try:
+                self._udp.sock.sendto(bytes(buf), addr)
+            except OSError as exc:
+                failed = failed or exc
+        if failed is not None:
+            raise failed
+
+    def close(self) -> None:
+        self._udp.close()
 
 
 class GcsLinkError(IrtrackError):
@@ -47,18 +196,35 @@ class GcsLinkError(IrtrackError):
 class GcsLink:
     """The camera component's sockets (see the module docstring).  Single-threaded."""
 
-    def __init__(self, endpoints: Sequence[str], component_id: int = 100, counter=None) -> None:
+    def __init__(
+        self,
+        endpoints: Sequence[str],
+        component_id: int = 100,
+        counter=None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+        peer_timeout_s: float = PEER_TIMEOUT_S,
+        max_peers: int = MAX_PEERS,
+    ) -> None:
         if isinstance(component_id, bool) or not isinstance(component_id, int) or not 1 <= component_id <= 255:
             raise ConfigError(f"gcs.component_id: expected an integer in 1..255, got {component_id!r}")
+        if isinstance(peer_timeout_s, bool) or not isinstance(peer_timeout_s, int | float) or not peer_timeout_s > 0:
+            raise ConfigError(f"GcsLink.peer_timeout_s: expected seconds > 0, got {peer_timeout_s!r}")
+        if isinstance(max_peers, bool) or not isinstance(max_peers, int) or max_peers < 1:
+            raise ConfigError(f"GcsLink.max_peers: expected an integer >= 1, got {max_peers!r}")
         self.endpoints = tuple(endpoints)
         parsed = [parse_endpoint(ep, "gcs.endpoints") for ep in self.endpoints]
         self.component_id = component_id
         self.system_id: int | None = None
         self._counter = counter
-        self._route: dict[tuple[int, int], int] = {}
+        self._clock = clock
+        self._peer_timeout_s = float(peer_timeout_s)
+        self._max_peers = max_peers
+        #: requester (system, component) -> (endpoint index, source address on udpin else None)
+        self._route: OrderedDict[tuple[int, int], tuple[int, Address | None]] = OrderedDict()
         self.messages_rx = 0
         self.messages_tx = 0
-        self._conns = []
+        self._conns: list[Any] = []
         try:
             for ep in parsed:
                 self._conns.append(self._open(ep))
@@ -68,6 +234,8 @@ class GcsLink:
 
     def _open(self, ep):
         try:
+            if ep.kind == "udpin":
+                return _UdpInEndpoint(ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers)
             return connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
         except Exception as exc:  # noqa: BLE001 - socket and serial errors of every kind
             raise GcsLinkError(
@@ -84,9 +252,37 @@ class GcsLink:
             conn.source_system = self.system_id
         log.info("camera component %d/%d on %s", self.system_id, self.component_id, ", ".join(self.endpoints))
 
-    def _count(self, key: str, detail: str) -> None:
+    def _count(self, key: str, detail: str, level: int = logging.WARNING) -> None:
         if self._counter is not None:
-            self._counter.count(key, detail)
+            self._counter.count(key, detail, level=level)
+
+    def peers(self) -> list[list[Address]]:
+        """Per endpoint, the udpin peers that receive the periodic messages now ([] for other kinds)."""
+        now_s = self._clock()
+        out: list[list[Address]] = []
+        for conn in self._conns:
+            if isinstance(conn, _UdpInEndpoint):
+                conn.prune(now_s)
+                out.append(list(conn.peers))
+            else:
+                out.append([])
+        return out
+
+    def _receive(self, conn, now_s: float, max_messages: int) -> list[tuple[Any, Address | None]]:
+        """The messages waiting on one endpoint, each with its source address (udpin) or None."""
+        if isinstance(conn, _UdpInEndpoint):
+            return list(conn.receive(now_s, max_messages))
+        out: list[tuple[Any, Address | None]] = []
+        for _ in range(max_messages):
+            try:
+                msg = conn.recv_msg()
+            except Exception as exc:  # noqa: BLE001 - nothing from the wire may stop the loop
+                self._count("gcs_rx_error", f"{type(exc).__name__}: {exc}")
+                break
+            if msg is None:
+                break
+            out.append((msg, None))
+        return out
 
     def filenos(self) -> list[int]:
         """The endpoints' input file descriptors (for select; a serial port without one is left out)."""
@@ -95,15 +291,9 @@ class GcsLink:
     def poll(self, max_messages: int = 100) -> list[CameraCommand]:
         """Commands addressed to us, from every endpoint (never blocks, never raises)."""
         out: list[CameraCommand] = []
+        now_s = self._clock()
         for idx, conn in enumerate(self._conns):
-            for _ in range(max_messages):
-                try:
-                    msg = conn.recv_msg()
-                except Exception as exc:  # noqa: BLE001 - nothing from the wire may stop the loop
-                    self._count("gcs_rx_error", f"{type(exc).__name__}: {exc}")
-                    break
-                if msg is None:
-                    break
+            for msg, addr in self._receive(conn, now_s, max_messages):
                 self.messages_rx += 1
                 mtype = msg.get_type()
                 if mtype == "BAD_DATA":
@@ -116,7 +306,10 @@ class GcsLink:
                     continue
                 if msg.target_system != 0 and (self.system_id is None or msg.target_system != self.system_id):
                     continue
-                self._route[src] = idx
+                self._route[src] = (idx, addr)
+                self._route.move_to_end(src)
+                if len(self._route) > _MAX_ROUTES:
+                    self._route.popitem(last=False)
                 if mtype == "COMMAND_LONG":
                     raw = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
                 else:
@@ -130,14 +323,23 @@ class GcsLink:
         """Send one message; returns on how many endpoints it was written."""
         if self.system_id is None:
             return 0
-        targets: Sequence[int] = range(len(self._conns))
+        targets: list[tuple[int, Address | None]] = [(idx, None) for idx in range(len(self._conns))]
         if out.reply_to is not None and out.reply_to in self._route:
             targets = [self._route[out.reply_to]]
+        now_s = self._clock()
         n = 0
-        for idx in targets:
+        for idx, addr in targets:
             conn = self._conns[idx]
             try:
-                conn.mav.send(message_from_fields(out.msg, out.fields))
+                if isinstance(conn, _UdpInEndpoint):
+                    if addr is None:
+                        conn.prune(now_s)
+                    dest = [addr] if addr is not None else list(conn.peers)
+                    if not dest:
+                        continue  # nobody to send to: not an error, and no sequence number spent
+                    conn.send_to(message_from_fields(out.msg, out.fields), dest)
+                else:
+                    conn.mav.send(message_from_fields(out.msg, out.fields))
                 n += 1
             except Exception as exc:  # noqa: BLE001 - a send failure costs this message only
                 self._count("gcs_tx_error", f"{out.msg} on {self.endpoints[idx]}: {type(exc).__name__}: {exc}")

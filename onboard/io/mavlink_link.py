@@ -102,6 +102,9 @@ __all__ = [
     "MAX_OUTSTANDING_TIMESYNC",
     "LinkStatus",
     "MavlinkLink",
+    "UdpTransport",
+    "new_parser",
+    "MAX_DATAGRAM_PARSE_BYTES",
 ]
 
 log = logging.getLogger(__name__)
@@ -266,7 +269,7 @@ _SIGNING_NEW_STREAM_LAG = 6_000_000
 _MAX_DATAGRAM_BYTES = 65535
 _STREAM_READ_BYTES = 4096
 #: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
-_MAX_DATAGRAM_PARSE_BYTES = 16 * 280
+MAX_DATAGRAM_PARSE_BYTES = 16 * 280
 
 
 class _Parser(mavlink2.MAVLink):
@@ -303,14 +306,14 @@ class _Parser(mavlink2.MAVLink):
         return True
 
 
-def _new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:
+def new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:
     p = _Parser(file, src_system, src_component)
     p.robust_parsing = True
     p.signing = signing
     return p
 
 
-class _UdpTransport:
+class UdpTransport:
     """One UDP socket of our own.  ``udpin`` binds HOST:PORT and answers only the locked autopilot's
     address (``peer``); ``udpout`` sends to its fixed HOST:PORT.  Each datagram is parsed alone."""
 
@@ -479,11 +482,9 @@ class MavlinkLink:
             self._signing.link_id = signing_link_id
             # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
             self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
-        self._transport: _UdpTransport | _StreamTransport | None = None
-        self._stream_parser = _new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
-        self._mav = _new_parser(
-            self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id
-        )
+        self._transport: UdpTransport | _StreamTransport | None = None
+        self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
+        self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
         self._next_open_s = -math.inf
         self.state = LINK_WAITING
@@ -517,13 +518,13 @@ class MavlinkLink:
         try:
             if ep.kind in ("udpin", "udpout"):
                 _, host, port = ep.device.split(":")
-                self._transport = _UdpTransport(ep.kind, host, int(port), self._extra_destinations)
+                self._transport = UdpTransport(ep.kind, host, int(port), self._extra_destinations)
             else:
                 kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
                 self._transport = _StreamTransport(
                     connect(ep, self.autopilot_sysid or 1, self.config.component_id, **kwargs)
                 )
-                self._stream_parser = _new_parser(self._signing)
+                self._stream_parser = new_parser(self._signing)
             log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
             self._transport = None
@@ -569,7 +570,7 @@ class MavlinkLink:
     def peer_address(self):
         """Where UDP output goes besides ``extra_destinations``: the locked autopilot's address (udpin)."""
         t = self._transport
-        if isinstance(t, _UdpTransport) and t.fixed:
+        if isinstance(t, UdpTransport) and t.fixed:
             return t.fixed
         return None if t is None else getattr(t, "peer", None)
 
@@ -597,7 +598,7 @@ class MavlinkLink:
 
         UDP: each datagram is parsed alone by a fresh parser, so a truncated or garbage datagram
         costs only itself (``mavlink_truncated``, ``mavlink_bad_data``); datagrams over
-        ``_MAX_DATAGRAM_PARSE_BYTES`` are dropped unparsed (``mavlink_datagram_too_large``).
+        ``MAX_DATAGRAM_PARSE_BYTES`` are dropped unparsed (``mavlink_datagram_too_large``).
         Serial/TCP: one parser per stream.  Returns how many messages were handled."""
         if self._transport is None:
             return 0
@@ -625,14 +626,14 @@ class MavlinkLink:
     def _feed(self, data: bytes, addr, now: float) -> int:
         datagram = self._transport is not None and self._transport.datagrams
         if datagram:
-            if len(data) > _MAX_DATAGRAM_PARSE_BYTES:
+            if len(data) > MAX_DATAGRAM_PARSE_BYTES:
                 self._counters.count("mavlink_datagram_too_large", f"{len(data)} bytes from {addr}")
                 return 0
             fast = None if self._signing.secret_key else decode_telemetry(data)  # 50 + 25 Hz: see mavlink_fast
             if fast is not None:
                 self._dispatch(fast, "", addr, now)
                 return 1
-            parser = _new_parser(self._signing)
+            parser = new_parser(self._signing)
         else:
             parser = self._stream_parser
         n = 0
@@ -647,7 +648,7 @@ class MavlinkLink:
         except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage
             self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
             if not datagram:
-                self._stream_parser = _new_parser(self._signing)
+                self._stream_parser = new_parser(self._signing)
         if datagram and parser.buf_len() > 0:
             self._counters.count("mavlink_truncated", f"{parser.buf_len()} bytes left over in a datagram from {addr}")
         return n
@@ -749,7 +750,7 @@ class MavlinkLink:
         elif self._mav.srcSystem != src_sys:
             self._set_autopilot(src_sys)
         t = self._transport
-        if addr is not None and isinstance(t, _UdpTransport) and t.kind == "udpin" and t.peer != addr:
+        if addr is not None and isinstance(t, UdpTransport) and t.kind == "udpin" and t.peer != addr:
             if t.peer is not None:
                 self._counters.count("autopilot_address_changed", f"system {src_sys}: {t.peer} -> {addr}")
             else:

@@ -196,6 +196,20 @@ def test_unknown_commands_are_unsupported_and_unknown_messages_denied():
     assert _ack(out)["result"] == mav.MAV_RESULT_DENIED  # MAV_BOOL: only 0 or 1
 
 
+def test_command_counters_are_named_and_stay_bounded_whatever_ids_arrive():
+    proto = _proto()
+    for command in range(1000, 3000):
+        proto.handle(_cmd(command), 0.0, 0)
+    proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 259), 0.0, 0)
+    counters = proto.status()["counters"]
+    # 2004, 2005, 2010, 2504 and 2505 are ours; the other 1995 ids share one key
+    assert counters["cmd_unsupported"] == 1995
+    assert counters["cmd_request_message"] == 1 and counters["cmd_camera_track_point"] == 1
+    assert len(counters) < 20
+    for command, key in cp._COMMAND_COUNTERS.items():  # the key is the dialect's name of the command
+        assert getattr(mav, "MAV_CMD_" + key.removeprefix("cmd_").upper()) == command
+
+
 @settings(max_examples=300, deadline=None)
 @given(
     command=st.sampled_from([0, 16, 400, 511, 512, 521, 522, 525, 527, 2004, 2005, 2010, 2504, 2505, 65535]),

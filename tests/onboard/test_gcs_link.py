@@ -1,0 +1,274 @@
+"""The camera component's ``udpin`` endpoint under hostile input: who receives what, per-datagram
+parsing, peer timeout and cap.  Loopback on 127.0.0.1 only, fake clock, bounded waits."""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import socket
+import time
+
+import pytest
+from pymavlink.dialects.v20 import common as mav
+
+from groundsim.io.ports import free_udp_port
+from onboard.core.counters import RejectCounter
+from onboard.core.errors import ConfigError
+from onboard.io.camera_protocol import CameraCommand
+from onboard.io.gcs_link import MAX_PEERS, PEER_TIMEOUT_S, GcsLink
+from tests.fakes import FakeClock
+from tests.onboard.test_camera_protocol import _proto
+
+pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
+
+WAIT_S = 3.0  # upper bound on any single wait for a loopback event
+SYSID = 1
+GCS = (255, 190)  # QGC's system / component
+CUT_DATAGRAM = b"\xfd\x40\x00\x00\x00"  # a MAVLink 2 header announcing 64 payload bytes, cut after 5
+N_ROUNDS = 5
+
+
+class Peer:
+    """A local UDP socket speaking to the camera port; records every MAVLink message sent back to it."""
+
+    def __init__(self, port: int, sysid: int = GCS[0], compid: int = GCS[1]) -> None:
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.addr = self.sock.getsockname()
+        self.dest = ("127.0.0.1", port)
+        self.mav = mav.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.got: list = []
+
+    def raw(self, data: bytes) -> None:
+        self.sock.sendto(data, self.dest)
+
+    def send(self, msg) -> None:
+        self.raw(bytes(msg.pack(self.mav)))
+        self.mav.seq = (self.mav.seq + 1) % 256
+
+    def heartbeat(self) -> None:
+        self.send(mav.MAVLink_heartbeat_message(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID, 0, 0, 4, 3))
+
+    def request_camera_information(self) -> None:
+        self.send(
+            mav.MAVLink_command_long_message(
+                SYSID, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
+            )
+        )
+
+    def drain(self) -> list:
+        """Parse what arrived (each datagram alone) into ``got``; returns the number of datagrams."""
+        n = 0
+        while True:
+            try:
+                data = self.sock.recv(65535)
+            except BlockingIOError:
+                return n
+            n += 1
+            parser = mav.MAVLink(None)
+            parser.robust_parsing = True
+            self.got += [m for m in parser.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
+
+    def types(self, name: str) -> list:
+        return [m for m in self.got if m.get_type() == name]
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class Rig:
+    """A GcsLink on ``udpin:127.0.0.1:PORT`` with a fake clock, a counter and the camera protocol."""
+
+    def __init__(self, **link_kw) -> None:
+        self.port = free_udp_port()
+        self.clock = FakeClock()
+        self.counters = RejectCounter(clock=self.clock)
+        self.link = GcsLink([f"udpin:127.0.0.1:{self.port}"], 100, counter=self.counters, clock=self.clock, **link_kw)
+        self.link.set_system_id(SYSID)
+        self.proto = _proto()
+        self.peers: list[Peer] = []
+        self.commands: list[CameraCommand] = []
+
+    def peer(self, **kw) -> Peer:
+        p = Peer(self.port, **kw)
+        self.peers.append(p)
+        return p
+
+    def drive(self, cond, timeout_s: float = WAIT_S) -> bool:
+        """Poll the link (answering commands through the protocol) and drain the peers until ``cond()``."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            for c in self.link.poll():
+                self.commands.append(c)
+                for out in self.proto.handle(c, self.clock(), 0)[0]:
+                    self.link.send(out)
+            for p in self.peers:
+                p.drain()
+            if cond():
+                return True
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return False
+            select.select(self.link.filenos() + [p.sock for p in self.peers], [], [], min(left, 0.01))
+
+    def heartbeat_out(self) -> int:
+        return sum(self.link.send(o) for o in self.proto.tick(self.clock(), None) if o.msg == "heartbeat")
+
+    def close(self) -> None:
+        self.link.close()
+        for p in self.peers:
+            p.close()
+
+
+@pytest.fixture
+def rig():
+    r = Rig()
+    yield r
+    r.close()
+
+
+def _became_peer(rig: Rig, peer: Peer) -> bool:
+    return rig.drive(lambda: peer.addr in rig.link.peers()[0])
+
+
+JUNK = {
+    "garbage": lambda p: p.raw(b"not mavlink at all"),
+    "cut": lambda p: p.raw(CUT_DATAGRAM),
+    "random": lambda p: p.raw(os.urandom(200)),
+    # a well-framed MAVLink 2 packet of an id the dialect lacks: pymavlink cannot check its CRC
+    "unknown_id": lambda p: p.raw(b"\xfd\x01\x00\x00\x00\x2a\x01\xff\xff\xff\x00\x12\x34"),
+    "silent": lambda p: None,
+}
+
+
+@pytest.mark.parametrize("junk", sorted(JUNK))
+def test_a_stranger_that_sent_nothing_valid_receives_nothing(rig, junk):
+    gcs, stranger = rig.peer(), rig.peer(sysid=77, compid=1)
+    JUNK[junk](stranger)
+    gcs.heartbeat()
+    assert _became_peer(rig, gcs)
+    for _ in range(3):
+        rig.clock.t_s += 1.0
+        JUNK[junk](stranger)
+        assert rig.heartbeat_out() == 1
+    assert rig.drive(lambda: len(gcs.types("HEARTBEAT")) == 3)
+    assert stranger.drain() == 0
+    assert rig.link.peers() == [[gcs.addr]]
+
+
+def test_a_ground_station_gets_every_ack_despite_cut_datagrams_from_another_address(rig):
+    gcs, stranger = rig.peer(), rig.peer(sysid=77, compid=1)
+    for k in range(N_ROUNDS):
+        stranger.raw(CUT_DATAGRAM)
+        gcs.request_camera_information()
+        assert rig.drive(lambda k=k: len(gcs.types("COMMAND_ACK")) == k + 1)
+        rig.clock.t_s += 1.0
+        assert rig.heartbeat_out() == 1
+    assert rig.drive(lambda: len(gcs.types("HEARTBEAT")) == N_ROUNDS)
+    acks = gcs.types("COMMAND_ACK")
+    assert [a.result for a in acks] == [mav.MAV_RESULT_ACCEPTED] * N_ROUNDS
+    assert len(gcs.types("CAMERA_INFORMATION")) == N_ROUNDS
+    assert rig.counters["gcs_truncated"] == N_ROUNDS
+    assert stranger.drain() == 0
+
+
+def test_a_cut_datagram_from_the_same_address_costs_only_itself(rig):
+    gcs = rig.peer()
+    for k in range(N_ROUNDS):
+        gcs.raw(CUT_DATAGRAM)
+        gcs.request_camera_information()
+        assert rig.drive(lambda k=k: len(gcs.types("COMMAND_ACK")) == k + 1)
+    assert len(rig.commands) == N_ROUNDS
+
+
+def test_a_reply_goes_to_the_address_of_the_command_only(rig):
+    gcs, other = rig.peer(), rig.peer(sysid=200, compid=190)
+    other.heartbeat()
+    assert _became_peer(rig, other)
+    gcs.request_camera_information()
+    assert rig.drive(lambda: len(gcs.types("CAMERA_INFORMATION")) == 1)
+    rig.clock.t_s += 1.0
+    assert rig.heartbeat_out() == 1  # a periodic message, to both peers: shows other's socket is served
+    assert rig.drive(lambda: gcs.types("HEARTBEAT") and other.types("HEARTBEAT"))
+    assert [m.get_type() for m in other.got] == ["HEARTBEAT"]
+
+
+def test_a_silent_peer_is_dropped_after_the_timeout_and_readmitted_when_heard(rig):
+    a, b = rig.peer(), rig.peer(sysid=254, compid=190)
+    a.heartbeat()
+    assert _became_peer(rig, a)
+    rig.clock.t_s += PEER_TIMEOUT_S - 0.5
+    b.heartbeat()
+    assert _became_peer(rig, b)
+    assert rig.heartbeat_out() == 1  # a is still within the timeout
+    assert rig.drive(lambda: len(a.types("HEARTBEAT")) == 1 and len(b.types("HEARTBEAT")) == 1)
+
+    rig.clock.t_s += 1.0  # a silent for PEER_TIMEOUT_S + 0.5
+    assert rig.link.peers() == [[b.addr]]
+    assert rig.heartbeat_out() == 1
+    assert rig.drive(lambda: len(b.types("HEARTBEAT")) == 2)
+    assert len(a.types("HEARTBEAT")) == 1
+
+    a.heartbeat()
+    assert _became_peer(rig, a)
+    rig.clock.t_s += PEER_TIMEOUT_S + 0.5  # both silent now: nobody to send to
+    assert rig.heartbeat_out() == 0
+    assert rig.link.peers() == [[]]
+
+
+def test_peers_beyond_the_cap_get_replies_only_counted_and_logged_once(rig, caplog):
+    inside = [rig.peer(sysid=200 + k) for k in range(MAX_PEERS)]
+    for p in inside:
+        p.heartbeat()
+        assert _became_peer(rig, p)
+    extra = rig.peer(sysid=199)
+    with caplog.at_level(logging.WARNING, logger="onboard.io.gcs_link"):
+        for _ in range(3):
+            extra.heartbeat()
+        extra.request_camera_information()
+        assert rig.drive(lambda: len(extra.types("COMMAND_ACK")) == 1)
+    assert rig.counters["gcs_peer_refused"] == 4  # 3 heartbeats and the command, from the refused address
+    assert sum("ground-station peers already" in r.getMessage() for r in caplog.records) == 1
+    rig.clock.t_s += 1.0
+    assert rig.heartbeat_out() == 1
+    assert rig.drive(lambda: all(len(p.types("HEARTBEAT")) == 1 for p in inside))
+    assert extra.types("HEARTBEAT") == []
+    assert len(rig.link.peers()[0]) == MAX_PEERS
+
+    # one peer falls silent: the next message from the extra address makes it a peer
+    rig.clock.t_s += PEER_TIMEOUT_S - 0.5
+    for p in inside[1:]:
+        p.request_camera_information()  # refreshes the peer; its ACK shows it was read
+    assert rig.drive(lambda: all(len(p.types("COMMAND_ACK")) == 1 for p in inside[1:]))
+    rig.clock.t_s += 1.0
+    extra.heartbeat()
+    assert _became_peer(rig, extra)
+    assert inside[0].addr not in rig.link.peers()[0]
+
+
+def test_udpout_sends_to_its_address_whoever_else_speaks():
+    port = free_udp_port()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", port))
+    listener.settimeout(WAIT_S)
+    link = GcsLink([f"udpout:127.0.0.1:{port}"], 100)
+    try:
+        link.set_system_id(SYSID)
+        assert link.peers() == [[]]
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"]
+        assert link.send(hb[0]) == 1
+        parser = mav.MAVLink(None)
+        assert parser.parse_buffer(listener.recv(65535))[0].get_type() == "HEARTBEAT"
+    finally:
+        link.close()
+        listener.close()
+
+
+@pytest.mark.parametrize(
+    "kw", [dict(peer_timeout_s=0.0), dict(peer_timeout_s=True), dict(max_peers=0), dict(max_peers=2.0)]
+)
+def test_bad_peer_settings_are_refused(kw):
+    with pytest.raises(ConfigError):
+        GcsLink(["udpout:127.0.0.1:9"], 100, **kw)
