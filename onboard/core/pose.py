@@ -88,6 +88,15 @@ with reason ``time_invalid``, ``no_origin`` or
 ``<stream>_empty|before_buffer|not_yet|gap|extrapolation_limit``; an extrapolated pose is counted as
 ``pose_extrapolated``.
 
+Discontinuities
+---------------
+A reboot breaks the boot clock; a position ``reset`` (a GNSS jump or a reset of the
+autopilot's position estimate, persisting for ``jump_reset_count`` samples) breaks the camera's position
+track: the positions after it are tens of metres to kilometres off the ones before, on the same clock.
+Either raises :attr:`PoseBuffer.discontinuities`, which every :class:`PoseAt` carries.  Rows of a 3-D
+estimate made on both sides of a break would place the target by a camera track that never was, with the
+confidence of a consistent one: the frame pipeline starts its estimate again when the count changes.
+
 Limits: ``time_boot_ms`` is uint32 and wraps after 49.7 days; a wrap looks like a reboot.
 """
 
@@ -243,6 +252,7 @@ class PoseBuffer:
         self._mount_cache: tuple[CameraMount, Vec3, Quat, Quat] | None = None
         self._jumps = 0
         self.reboots = 0
+        self.position_resets = 0  # position streams restarted after a persisting jump (``position_reset``)
         self.last_miss_reason: str | None = None
         # The streams arrive one after the other when the link comes up (the gimbal's first report, with
         # no rate to extrapolate by, can trail the first frames): a miss before the first pose served is the
@@ -258,6 +268,11 @@ class PoseBuffer:
     @property
     def epoch(self) -> int:
         return self.reboots
+
+    @property
+    def discontinuities(self) -> int:
+        """Breaks in the camera's pose track so far: reboots and position resets (module docstring)."""
+        return self.reboots + self.position_resets
 
     def newest_time_boot_us(self) -> int | None:
         """Latest time covered by both attitude and position, or None."""
@@ -505,7 +520,12 @@ class PoseBuffer:
                 if self._jumps < self.config.jump_reset_count:
                     self.counter.count("position_jump", f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms")
                     return False
-                self.counter.count("position_reset", f"{self._jumps} consecutive jumps; position stream restarted")
+                self.position_resets += 1
+                self.counter.count(
+                    "position_reset",
+                    f"{self._jumps} consecutive jumps of {step_m:.1f} m; position stream restarted "
+                    f"(pose discontinuity {self.discontinuities}: 3-D estimates start again)",
+                )
                 self._pos.clear()
         self._jumps = 0
         self._pos.append(t, np.array((*p, *v)), self.config.window_us, MAX_SAMPLES)
@@ -665,6 +685,7 @@ class PoseBuffer:
             gim_x_us,
             sigma_rad,
             sigma_m,
+            self.reboots + self.position_resets,
         )
         return PoseLookup(pose)
 

@@ -113,7 +113,10 @@ class PoseAt:
     ``q_mount_from_gimbal`` (4,) or None without a gimbal; ``att_span_us`` / ``pos_span_us`` /
     ``gimbal_span_us``: spacing of the bracketing samples (0 when the query hit a sample);
     ``epoch``: number of autopilot reboots seen so far (poses of different epochs share the origin
-    only when ``keep_origin_on_reboot``).  ``att_extrapolated_us`` / ``pos_extrapolated_us`` /
+    only when ``keep_origin_on_reboot``).  ``discontinuities``: number of breaks in the camera's pose
+    track seen so far, reboots and position resets (a GNSS step the buffer accepted) alike: camera
+    positions of different counts are not on one continuous track, so no estimate may combine rows
+    made with both.  ``att_extrapolated_us`` / ``pos_extrapolated_us`` /
     ``gimbal_extrapolated_us``: how far past its newest sample each stream was extrapolated (0 =
     interpolated; the span is then 0 too); ``sigma_extrapolation_rad`` / ``sigma_extrapolation_m``:
     the 1-sigma attitude / position error that extrapolation adds (:mod:`onboard.core.pose`; 0 when
@@ -134,6 +137,7 @@ class PoseAt:
     gimbal_extrapolated_us: int | None = None
     sigma_extrapolation_rad: float = 0.0
     sigma_extrapolation_m: float = 0.0
+    discontinuities: int = 0
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "p_cam_ned_m", _frozen_vec(self.p_cam_ned_m, (3,), "PoseAt.p_cam_ned_m"))

@@ -194,6 +194,7 @@ def pose_to_json(pose: PoseAt | None) -> dict[str, Any] | None:
         "pos_span_us": int(pose.pos_span_us),
         "gimbal_span_us": None if pose.gimbal_span_us is None else int(pose.gimbal_span_us),
         "epoch": int(pose.epoch),
+        "discontinuities": int(pose.discontinuities),
         "att_extrapolated_us": int(pose.att_extrapolated_us),
         "pos_extrapolated_us": int(pose.pos_extrapolated_us),
         "gimbal_extrapolated_us": None if pose.gimbal_extrapolated_us is None else int(pose.gimbal_extrapolated_us),
@@ -230,6 +231,8 @@ def pose_from_json(obj: Mapping[str, Any] | None, where: str = "pose") -> PoseAt
             gimbal_extrapolated_us=obj.get("gimbal_extrapolated_us"),
             sigma_extrapolation_rad=float(obj.get("sigma_extrapolation_rad", 0.0)),
             sigma_extrapolation_m=float(obj.get("sigma_extrapolation_m", 0.0)),
+            # a recording made before position resets were counted: its reboots are its only breaks
+            discontinuities=int(obj.get("discontinuities", obj["epoch"])),
         )
     except KeyError as exc:
         raise InputError(f"{where}: missing field {exc.args[0]!r}") from None

@@ -24,7 +24,9 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
 3. Pose at ``t`` (after imaging, so that late telemetry has more time to arrive): the optional
    ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
    (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
-4. Estimator: reset on a new track id (a new target association), on a lost track and on a reboot;
+4. Estimator: reset on a new track id (a new target association), on a lost track, on a reboot and
+   on a position reset (a GNSS step the pose buffer accepted: :attr:`PoseAt.discontinuities` changed,
+   counted as ``estimator_position_reset``), before the first frame after the break reaches it;
    ``add`` only when the tracker's ``measurement_valid`` and a pose exist; otherwise ``predict``
    (coasting, or no pose). A pose whose position is dead-reckoned (a GNSS gap) past the
    camera-position noise the estimator assumes is never added: the frame's estimate is the window's
@@ -53,15 +55,17 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    to the estimator's ``rebuild`` (one model selection, no window lost: its rows made with the old compensation
    would disagree with the new ones); an estimator without ``rebuild`` is restarted instead, beyond
    ``COMPENSATION_RESTART_MS`` only.
-   The offset estimator starts again on an autopilot reboot and on a frame-stream restart or clock step.
+   The offset estimator starts again on an autopilot reboot and on a frame-stream restart or clock step; a
+   position reset only closes the block it is filling (its fit takes the camera's positions, the clock is the same).
 
 Refused frames raise :class:`FrameRejected` (``reason``) after being counted as ``frame_<reason>``
 in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``frame_magic``,
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
-events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``.  Estimator problems never refuse a frame: they
-are counted as ``estimator_input`` / ``estimator_error`` and the frame gets no 3-D.
+events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``estimator_position_reset``
+(step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` /
+``estimator_error`` and the frame gets no 3-D.
 """
 
 from __future__ import annotations
@@ -153,6 +157,12 @@ def make_estimator(config: Any):
     return SlidingWindowEstimator(config.estimator.sliding_config(), noise=config.estimator.noise_model())
 
 
+def _track_key(pose: PoseAt) -> tuple[int, int]:
+    """Where ``pose`` is on the camera's pose track: (reboots, breaks of any kind) so far.  A pose source of a test
+    or a recording may not carry the break count: then reboots only."""
+    return int(pose.epoch), int(getattr(pose, "discontinuities", 0))
+
+
 def _finite_estimate(est: Any) -> bool:
     try:  # the arrays' own all(): np.all's Python wrapper costs more than the check, twice a frame
         return bool(
@@ -228,7 +238,8 @@ class FramePipeline:
             int(config.input.time_reset_threshold_s * US_PER_S), config.input.sequence_restart_count
         )
         self._est_track_id: int | None = None
-        self._est_epoch: int | None = None
+        # (epoch, discontinuities) of the last pose: a change is a break in the camera's pose track
+        self._pose_track: tuple[int, int] | None = None
         self._est_has_data = False
         self._window_est = None  # the newest estimate the window solved: what a dead-reckoned frame coasts from
         self.frames_coasted = 0
@@ -370,13 +381,19 @@ class FramePipeline:
         if self.pose_source is not None:
             try:
                 stamp_pose = pose = self.pose_source.pose_at(t_us)
-                if stamp_pose is not None and self.time_offset is not None:
-                    self._stamp_poses.append(t_us, stamp_pose.q_ned_from_cam, stamp_pose.p_cam_ned_m)
                 shift_us = self._compensation_us()
                 if shift_us and stamp_pose is not None:  # looked up last: the pose the frame's 3-D is made with
                     pose = self.pose_source.pose_at(t_us - shift_us)
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
                 self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
+        # before anything made with the frame's pose: the first pose past a break must meet an empty window
+        self._follow_pose_track(stamp_pose)
+        if pose is not stamp_pose:
+            self._follow_pose_track(pose)
+            if stamp_pose is not None and pose is not None and _track_key(stamp_pose) != _track_key(pose):
+                stamp_pose = None  # the telemetry broke between the two look-ups: the stamp's pose is of the old track
+        if stamp_pose is not None and self.time_offset is not None:
+            self._stamp_poses.append(t_us, stamp_pose.q_ned_from_cam, stamp_pose.p_cam_ned_m)
 
         self.last_position_age_s = self._position_age_s(pose)
         self._follow_compensation()
@@ -453,12 +470,6 @@ class FramePipeline:
             if self._est_has_data:
                 self._reset_estimator("no track")
             return None
-        if pose is not None:
-            if self._est_epoch is not None and pose.epoch != self._est_epoch:
-                self._reset_estimator("autopilot reboot")
-                if self.time_offset is not None:  # the autopilot's clock started again
-                    self.time_offset.reset()
-            self._est_epoch = pose.epoch
         if tid != self._est_track_id:
             if self._est_track_id is not None and self.config.estimator.reset_on_new_track:
                 self._reset_estimator(f"new track {tid}")
@@ -486,6 +497,31 @@ class FramePipeline:
         except Exception as exc:  # noqa: BLE001 - the estimator must never stop the frame loop
             self.counter.count("estimator_error", f"{type(exc).__name__}: {exc}")
         return None
+
+    def _follow_pose_track(self, pose: PoseAt | None) -> None:
+        """Start the 3-D estimate again when ``pose`` is past a break in the camera's pose track (module docstring,
+        step 4): an autopilot reboot (``epoch``) or a position reset (``discontinuities``)."""
+        if pose is None:
+            return
+        key = _track_key(pose)
+        last, self._pose_track = self._pose_track, key
+        if last is None or key == last:
+            return
+        self._stamp_poses.clear()  # a window made again at a new compensation takes poses of the new track only
+        if key[0] != last[0]:
+            self._reset_estimator("autopilot reboot")
+            if self.time_offset is not None:  # the autopilot's clock started again
+                self.time_offset.reset()
+            return
+        had_data = self._est_has_data
+        self._reset_estimator("camera position reset (GNSS step)")
+        if self.time_offset is not None:  # same clock, new positions: the block ends at the break, the blocks stay
+            self.time_offset.close_block()
+        self.counter.count(
+            "estimator_position_reset",
+            f"pose discontinuity {key[1]} at time_boot_us={pose.time_boot_us}: the camera's position stepped "
+            f"(GNSS jump or reset); 3-D estimate started again" + ("" if had_data else " (it had no rows)"),
+        )
 
     def _position_age_s(self, pose: PoseAt | None) -> float | None:
         if pose is not None:

@@ -377,6 +377,50 @@ def test_position_jump_rejected_then_stream_restarts_after_persisting():
     assert buf.sizes()["position"] == 1
 
 
+STEP_NED_M = np.array([50.0, 0.0, 0.0])  # a GNSS jump: 50 m north in one 40 ms sample
+
+
+def test_a_position_reset_is_a_discontinuity_of_the_poses_after_it_only():
+    """A step the buffer accepts (``position_reset``) raises ``discontinuities`` on the poses after it, not
+    before (the jumps it refused first are dead-reckoned from the old track); ``epoch`` stays the reboots'."""
+    config = PoseConfig(max_speed_mps=200.0, jump_reset_count=3)
+    buf = PoseBuffer(origin=ORIGIN, config=config)
+    pos_t = [7_000 + 40_000 * k for k in range(76)]  # 25 Hz for 3 s
+    t_step_us = pos_t[50]
+    poses = []
+    for k in range(151):  # attitude at 50 Hz; each position once the attitude has passed it; a frame just before each
+        t_us = 20_000 * k
+        assert buf.add_attitude(t_us, q_true(t_us / 1e6))
+        for tp in [tp for tp in pos_t if t_us - 20_000 < tp <= t_us]:
+            buf.add_position_ned(tp, p_true(tp / 1e6) + (STEP_NED_M if tp >= t_step_us else 0.0), v_true(tp / 1e6))
+        pose = buf.pose_at(t_us - 6_000)
+        assert pose is not None or k < 2, t_us  # the first frames are older than the first position
+        if pose is not None:
+            poses.append(pose)
+    assert buf.counter["position_jump"] == 2 and buf.counter["position_reset"] == 1
+    assert buf.position_resets == 1 and buf.discontinuities == 1 and buf.epoch == 0
+    t_reset_us = pos_t[52]  # the third jump in a row: accepted, the stream restarted at it
+    for pose in poses:
+        assert pose.epoch == 0
+        after = pose.time_boot_us >= t_reset_us
+        assert pose.discontinuities == (1 if after else 0), pose.time_boot_us
+        off_m = pose.body.p_ned_m - p_true(pose.time_boot_us / 1e6)
+        if after:  # the new track only, never a blend of the two
+            np.testing.assert_allclose(off_m, STEP_NED_M, atol=0.05)
+        else:
+            assert np.linalg.norm(off_m) < 0.05, pose.time_boot_us
+
+
+def test_a_reboot_is_a_discontinuity_too():
+    buf = filled_buffer(t_end_s=3.0)
+    assert buf.pose_at(2_000_000).discontinuities == 0  # type: ignore[union-attr]
+    for k in range(3):  # time_boot_us back 2.8 s: a reboot once three samples agree
+        buf.add_attitude(200_000 + 20_000 * k, q_true(0.2))
+    assert buf.add_position_ned(210_000, [0, 0, -10], [0, 0, 0])
+    pose = buf.pose_at(240_000)
+    assert pose is not None and (pose.epoch, pose.discontinuities) == (1, 1) and buf.position_resets == 0
+
+
 def test_invalid_velocity_is_dropped_and_interpolation_falls_back_to_linear():
     buf = PoseBuffer(origin=ORIGIN)
     buf.add_attitude(0, [1, 0, 0, 0])

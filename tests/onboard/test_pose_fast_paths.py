@@ -100,7 +100,7 @@ def assert_same_state(bufs: list[PoseBuffer], logs: list[Log]) -> None:
     a, b = bufs
     assert a.counter.counts == b.counter.counts
     assert logs[0].lines == logs[1].lines
-    assert a.origin == b.origin and a.reboots == b.reboots
+    assert a.origin == b.origin and a.reboots == b.reboots and a.discontinuities == b.discontinuities
     for sa, sb in ((a._att, b._att), (a._pos, b._pos), (a._gim, b._gim)):
         assert sa.t_us == sb.t_us
         assert [bits(r) for r in sa.values] == [bits(r) for r in sb.values]
@@ -241,7 +241,7 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
     sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
     pose = PoseAt(
         body, p_cam, q_nc, q_mg, buf._origin, att_span, pos_span, gim_span, buf.reboots,
-        att_x_us, pos_x_us, gim_x_us, sigma_rad, sigma_m,
+        att_x_us, pos_x_us, gim_x_us, sigma_rad, sigma_m, buf.discontinuities,
     )  # fmt: skip
     return PoseLookup(pose)
 
