@@ -3,8 +3,11 @@ line, the run, the report, TrackEval's scores of the MOT files, the tables print
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
+import signal
+import threading
 from pathlib import Path
 
 from groundsim.evaluation.eval import (
@@ -15,20 +18,35 @@ from groundsim.evaluation.eval import (
     load_base_config,
     run_eval,
 )
+from groundsim.evaluation.mot import write_mot
 from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import make_out_dir
 from groundsim.evaluation.scoring import format_gnss_dropout
-from groundsim.io.stop_signals import print_interrupted
+from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.errors import ConfigError
 
-__all__ = ["cmd_eval", "add_mot_scores", "format_time_offset", "DEFAULT_EVAL_SCENARIOS"]
+__all__ = [
+    "cmd_eval",
+    "add_mot_scores",
+    "format_time_offset",
+    "refuse_duplicate_scenarios",
+    "check_out_paths",
+    "finish_despite_signals",
+    "DEFAULT_EVAL_SCENARIOS",
+    "EXIT_FAILED",
+    "MAX_EVAL_RUNS",
+]
 
 log = logging.getLogger("groundsim.evaluation.eval")  # the eval's own logger: its lines and its quiet levels
 
 
 DEFAULT_EVAL_SCENARIOS = ("P1", "P2", "P3")
+EXIT_FAILED = 1  # every run failed: a report of errors only (bad input is the command line's EXIT_ERROR, 2)
+# eval keeps every run's per-frame columns in memory until the report; the campaign, which streams its runs to
+# disk, allows MAX_RUNS (campaign_spec) and is the tool for more
+MAX_EVAL_RUNS = 1000
 
 
 def add_mot_scores(out: Path, seqs: list[str]) -> None:
@@ -39,6 +57,8 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
 
     from groundsim.evaluation.mot import score_mot, seq_name
 
+    if not seqs:  # every run failed: TrackEval has nothing to read (it would fail on the empty seqmap)
+        return
     try:
         scores = score_mot(out, seqs)
     except Exception as exc:  # noqa: BLE001 - TrackEval's own errors are many; the report stands without them
@@ -88,20 +108,30 @@ def format_time_offset(runs: list) -> str:
 
 
 def cmd_eval(args) -> int:
-    """The ``eval`` command: run, write the report, print the table and the report's path."""
-    import sys
+    """The ``eval`` command: run, write the report, print the table and the report's path.
 
-    from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
+    Exit codes: 0; :data:`EXIT_FAILED` when every run failed (the report holds their errors); the command
+    line's EXIT_ERROR for bad input (a ConfigError); EXIT_INTERRUPTED after Ctrl-C.  Once the runs are done,
+    Ctrl-C (or SIGTERM) no longer stops the writing: the finished work is written, then the interrupted line
+    says where."""
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
     limit_blas_threads(1)
     with quiet_run_logs():  # per-track chatter would drown the progress bar
         names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
-        scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
+        paths = [resolve_scenario_path(n) for n in names]
+        scenarios = [load_scenario(p) for p in paths]
+        refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios])
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         workers = pool_workers(args.workers)
         nav_noises = list(dict.fromkeys(args.nav_noise or [DEFAULT_NAV_NOISE]))
+        runs = len(scenarios) * len(nav_noises) * args.seeds
+        if runs > MAX_EVAL_RUNS:
+            raise ConfigError(
+                f"--seeds: at most {MAX_EVAL_RUNS} runs in one eval (scenarios x navigation cases x seeds), got "
+                f"{len(scenarios)} x {len(nav_noises)} x {args.seeds} = {runs}; groundsim campaign runs more"
+            )
         options = EvalOptions(
             duration_s=args.duration,
             pixel_sigma_px=args.pixel_sigma,
@@ -119,6 +149,12 @@ def cmd_eval(args) -> int:
             str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
         )
         out = make_out_dir(args.out)
+        labels = [f"{sc.name}_{n}" for n in nav_noises for sc in scenarios] if len(nav_noises) > 1 else []
+        check_out_paths(out, labels or [sc.name for sc in scenarios])
+        cameras = {
+            sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz)
+            for sc in scenarios
+        }
         log.info(
             "eval: %d scenario(s) x %d seed(s), %d worker(s), onboard config %s",
             len(scenarios),
@@ -138,39 +174,114 @@ def cmd_eval(args) -> int:
                 nav_noises=nav_noises,
             )
         except EvalInterrupted as exc:
-            return print_interrupted(keep_interrupted(exc, out))
-        files = write_eval_report(out, result)
-        from groundsim.evaluation.mot import write_mot
+            with finish_despite_signals():
+                kept = _writing(out, keep_interrupted, exc, out)
+                if exc.result.runs:
+                    _writing(out, write_mot, out, exc.result.runs, cameras)
+                    kept += f"; MOT files in {out / 'mot'}"
+            return print_interrupted(kept)
+        with finish_despite_signals() as received:
+            return _report(out, result, options, scenarios, cameras, received)
 
-        cameras = {
-            sc.name: (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px, sc.frame_rate_hz)
-            for sc in scenarios
-        }
-        seqs = write_mot(out, result.runs, cameras)
-        log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
+
+def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, received: list[int]) -> int:
+    """Everything after the runs: files, MOT scores, tables; the exit code.  ``received``: the signals that
+    arrived meanwhile (they only skip the MOT scoring, the one step that may take long)."""
+    import sys
+
+    from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
+
+    files = _writing(out, write_eval_report, out, result)
+    seqs = _writing(out, write_mot, out, result.runs, cameras)
+    log.info("MOT files of %d run(s) under %s", len(seqs), out / "mot")
+    if not received:
         add_mot_scores(out, seqs)
-        descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
-        print(format_table2(result.summary, descriptions))
-        print()
-        print(format_closed_loop(result.summary))
-        if options.guidance:
-            from groundsim.evaluation.scoring import format_guidance_summary
+    descriptions = {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}
+    print(format_table2(result.summary, descriptions))
+    print()
+    print(format_closed_loop(result.summary))
+    if options.guidance:
+        from groundsim.evaluation.scoring import format_guidance_summary
 
-            table = format_guidance_summary(result.runs)
+        table = format_guidance_summary(result.runs)
+
+        def append() -> None:
             with open(files["report.md"], "a", encoding="utf-8") as f:
                 f.write("\n## Observer guidance in the loop\n\n" + table + "\n")
-            print()
-            print(table)
-        if options.injected.gnss_dropout is not None:
-            print()
-            print(format_gnss_dropout(result.runs))
-        if options.injected.camera_clock is not None:
-            print()
-            print(format_time_offset(result.runs))
-        failed = sum(1 for s in result.scores if "error" in s)
+
+        _writing(out, append)
+        print()
+        print(table)
+    if options.injected.gnss_dropout is not None:
+        print()
+        print(format_gnss_dropout(result.runs))
+    if options.injected.camera_clock is not None:
+        print()
+        print(format_time_offset(result.runs))
+    failed = sum(1 for s in result.scores if "error" in s)
+    print(
+        f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
+        f"report: {files['report.md']}"
+    )
+    sys.stdout.flush()
+    if signal.SIGINT in received:
+        n = len(result.runs)
+        return print_interrupted(f"{n} of {n} runs done; report in {files['report.md']}; MOT files in {out / 'mot'}")
+    if result.runs and failed == len(result.runs):
         print(
-            f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
-            f"report: {files['report.md']}"
+            f"groundsim eval: every run failed ({failed} of {failed}); their errors in {files['report.md']}",
+            file=sys.stderr,
         )
-        sys.stdout.flush()
-        return 0
+        return EXIT_FAILED
+    return 0
+
+
+def refuse_duplicate_scenarios(names: list[str], paths: list[Path], scenario_names: list[str]) -> None:
+    """A ConfigError naming --scenario when two entries are the same file or the same scenario name: the
+    runs, report rows and files are keyed by the name, so a second entry would repeat the first's runs (and
+    count them twice) or pool a different scenario into its row and overwrite its files."""
+    by_file: dict[Path, str] = {}
+    by_name: dict[str, str] = {}
+    for given, path, name in zip(names, paths, scenario_names):
+        key = Path(path).resolve()
+        if key in by_file:
+            raise ConfigError(f"--scenario: {by_file[key]} and {given} are the same file ({key}); give it once")
+        if name in by_name:
+            raise ConfigError(
+                f"--scenario: {by_name[name]} and {given} are both scenario {name!r} (their runs would share one"
+                " report row and one set of files); give each scenario its own name:"
+            )
+        by_file[key] = by_name[name] = given
+
+
+def check_out_paths(out: Path, labels: list[str]) -> None:
+    """Before the runs: ``out/mot`` created, and no ``out/<label>`` (a scenario's TUM folder) that is not a
+    folder, so that a path the report cannot use fails now, in one line naming --out, not after the runs."""
+    make_out_dir(out / "mot", "--out")
+    for label in labels:
+        p = out / label
+        if p.exists() and not p.is_dir():
+            raise ConfigError(f"--out {out}: {p} is not a directory (the report writes {label}/seed<N>/ there)")
+
+
+def _writing(out: Path, write, *args):
+    """``write(*args)``, an OSError (disk full, a path taken by a file, no permission) as one line naming --out."""
+    try:
+        return write(*args)
+    except OSError as exc:
+        where = f" {exc.filename}" if exc.filename else ""
+        raise ConfigError(f"--out {out}: cannot write{where}: {exc.strerror or exc}") from None
+
+
+@contextlib.contextmanager
+def finish_despite_signals():
+    """While the block runs, SIGINT and SIGTERM are recorded (into the list it yields), not raised: the runs
+    are done and what is left is writing their results, which a Ctrl-C would otherwise throw away half-written."""
+    received: list[int] = []
+    restore = install_stop_signals(
+        threading.Event(), received, on_first=lambda name: log.warning("%s: writing the report first", name)
+    )
+    try:
+        yield received
+    finally:
+        restore()

@@ -935,5 +935,5 @@ def keep_interrupted(exc: EvalInterrupted, out_dir) -> str:
 
     kept = "nothing written"
     if exc.result.runs:
-        kept = f"partial report in {write_eval_report(out_dir, exc.result)['report.md']}"
+        kept = f"partial report in {write_eval_report(out_dir, exc.result, planned=exc.planned)['report.md']}"
     return f"{len(exc.result.runs)} of {exc.planned} runs done; {kept}"

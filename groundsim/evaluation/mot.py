@@ -21,9 +21,10 @@ a 2 px offset along one axis).  The tracker's objects: every confirmed object of
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
-__all__ = ["BOX_SIDE_PX", "gt_rows", "tracker_rows", "seq_name", "write_mot"]
+__all__ = ["BOX_SIDE_PX", "gt_rows", "tracker_rows", "seq_name", "write_mot", "clear_mot"]
 
 BOX_SIDE_PX = 6.0
 
@@ -65,10 +66,29 @@ def seq_name(scenario: str, nav: str, seed: int) -> str:
     return f"{scenario}-{nav or 'nav'}-s{int(seed)}"
 
 
-def write_mot(out: Path, runs, cameras: dict) -> list[str]:
-    """Write every run's files under ``out/mot`` (see the module docstring); the SEQ names written.
-    ``cameras``: scenario name -> (width_px, height_px, frame_rate_hz).  Failed runs are skipped."""
+def clear_mot(out: Path, tracker: str = "irtrack") -> None:
+    """Remove an earlier :func:`write_mot`'s files under ``out/mot``: ``gt/``, ``trackers/<tracker>/``,
+    ``seqmap.txt`` and TrackEval's output folder ``trackeval/``.  Other trackers' folders under ``trackers/``
+    stay (TrackEval compares every tracker there against the same gt)."""
     mot = Path(out) / "mot"
+    for d in (mot / "gt", mot / "trackers" / tracker, mot / "trackeval"):
+        if d.is_dir() and not d.is_symlink():
+            shutil.rmtree(d)
+    (mot / "seqmap.txt").unlink(missing_ok=True)
+    try:
+        (mot / "trackers").rmdir()
+    except OSError:  # absent, or other trackers' files: kept
+        pass
+
+
+def write_mot(out: Path, runs, cameras: dict) -> list[str]:
+    """Write every run's files under ``out/mot`` (see the module docstring), an earlier run's first removed
+    (:func:`clear_mot`); the SEQ names written.  ``cameras``: scenario name -> (width_px, height_px,
+    frame_rate_hz).  Failed runs are skipped; seqmap.txt is written even when every run failed (empty then),
+    so it never lists an earlier run's sequences."""
+    mot = Path(out) / "mot"
+    clear_mot(out)
+    mot.mkdir(parents=True, exist_ok=True)
     seqs = []
     for r in runs:
         gt, trk = getattr(r, "mot_gt", ""), getattr(r, "mot_tracker", "")
@@ -88,8 +108,7 @@ def write_mot(out: Path, runs, cameras: dict) -> list[str]:
         t.mkdir(parents=True, exist_ok=True)
         (t / f"{seq}.txt").write_text(trk, encoding="utf-8")
         seqs.append(seq)
-    if seqs:
-        (mot / "seqmap.txt").write_text("name\n" + "".join(s + "\n" for s in seqs), encoding="utf-8")
+    (mot / "seqmap.txt").write_text("name\n" + "".join(s + "\n" for s in seqs), encoding="utf-8")
     return seqs
 
 

@@ -41,6 +41,7 @@ __all__ = [
     "read_tum",
     "ape_rmse_m",
     "write_eval_report",
+    "clear_eval_report",
     "format_table2",
     "format_closed_loop",
     "plot_trajectory",
@@ -62,6 +63,8 @@ SCHEMA = "irtrack.eval/1"
 RATIO_LIMIT = 1.5  # the goal: the image chain within this factor of perfect centroids
 BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / range) failed: no ratio verdict on it
 PNG_DPI = 110
+EVAL_PLOTS = ("trajectory", "error", "frame")  # <label>_<plot>.png of write_eval_report
+EVAL_TUM_FILES = ("truth.tum", "estimate.tum", "estimate_perfect.tum")  # in <label>/seed<N>/
 
 
 def make_out_dir(path, option: str = "--out") -> Path:
@@ -568,14 +571,60 @@ DEFINITIONS = {
 }
 
 
-def write_eval_report(out_dir, result) -> dict:
+def clear_eval_report(out_dir) -> None:
+    """Remove what an earlier :func:`write_eval_report` left in ``out_dir``, so that a reused folder describes
+    the new run only (an earlier run's other scenarios and seeds would otherwise sit beside it, looking current).
+
+    Only this report's own names go: ``report.json``, ``report.md``, ``performance.png``, the files the earlier
+    report.json lists, and for every label with a ``<label>/seed<N>/`` folder holding TUM files, those TUM files
+    and ``<label>_{trajectory,error,frame}.png``.  A folder left empty goes too; anything else stays.
+    """
+    out = Path(out_dir)
+    if not out.is_dir():
+        return
+    names = {"report.json", "report.md", "performance.png"}
+    try:
+        earlier = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        earlier = None
+    if isinstance(earlier, dict) and earlier.get("schema") == SCHEMA and isinstance(earlier.get("files"), dict):
+        # plain names only: a report.json edited by hand must not point this outside the folder
+        names |= {f for f in earlier["files"].values() if isinstance(f, str) and f == Path(f).name}
+    for seed_dir in sorted(out.glob("*/seed*")):
+        if not (seed_dir.is_dir() and seed_dir.name[4:].isdigit()):
+            continue
+        tum = [seed_dir / n for n in EVAL_TUM_FILES if (seed_dir / n).is_file()]
+        if not tum:
+            continue
+        names |= {f"{seed_dir.parent.name}_{plot}.png" for plot in EVAL_PLOTS}
+        for f in tum:
+            f.unlink()
+        _remove_if_empty(seed_dir)
+        _remove_if_empty(seed_dir.parent)
+    for name in names:
+        f = out / name
+        if f.is_file() and not f.is_symlink():
+            f.unlink()
+
+
+def _remove_if_empty(d: Path) -> None:
+    try:
+        d.rmdir()
+    except OSError:  # not empty: it holds something this report did not write
+        pass
+
+
+def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
     """Write everything for an :class:`groundsim.evaluation.eval.EvalResult` into ``out_dir``; returns ``{what: path}``.
 
     Files: ``report.json``, ``report.md``, ``<scenario>_trajectory.png``, ``<scenario>_error.png``,
     ``<scenario>_frame.png`` (first seed of each scenario), ``performance.png``, and
-    ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run.
+    ``<scenario>/seed<N>/{truth,estimate,estimate_perfect}.tum`` for every run; an earlier report's files go
+    first (:func:`clear_eval_report`).  ``planned``: the runs asked for, when fewer finished (an interrupted
+    eval): both reports then say ``interrupted: N of M runs``.
     """
     out = make_out_dir(out_dir)
+    clear_eval_report(out)
     files: dict[str, str] = {}
     ape: dict[str, dict] = {}
     by_scenario: dict[str, list] = {}  # by label: the scenario, or <scenario>_<nav case> when cases are mixed
@@ -656,6 +705,9 @@ def write_eval_report(out_dir, result) -> dict:
             "batch": result.options.batch,
             "onboard_config": result.config_source,
         },
+        "interrupted": (
+            f"{len(result.runs)} of {planned} runs" if planned is not None and planned > len(result.runs) else None
+        ),
         "wall_s": result.wall_s,
         "paper_table2_pct": PAPER_TABLE2_PCT,
         "summary": summary,
@@ -682,9 +734,10 @@ def _run_plots(tasks: list[tuple], workers: int) -> list[tuple[str, str]]:
     workers = max(1, min(int(workers or 1), len(tasks)))
     if workers == 1:
         return [_plot_task(t) for t in tasks]
-    from groundsim.evaluation.parallel import mp_context
+    from groundsim.evaluation.parallel import init_worker, mp_context
 
-    with mp_context().Pool(workers) as pool:
+    # the workers ignore SIGINT, as the eval's own: a Ctrl-C to the terminal's group must not kill a plot
+    with mp_context().Pool(workers, initializer=init_worker) as pool:
         return pool.map(_plot_task, tasks)
 
 
@@ -736,6 +789,8 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
     perf = report["performance"]
     L = []
     L.append("# irtrack evaluation: lockstep closed loop against the truth\n")
+    if report.get("interrupted"):
+        L.append(f"**interrupted: {report['interrupted']}**: a partial report, of the runs that finished.\n")
     L.append(
         f"Generated {report['generated_utc']} by `python -m groundsim eval`; scenarios "
         f"{', '.join(r['scenario'] for r in report['summary'])}; seeds {o['seeds']}; {o['workers']} worker process(es); "

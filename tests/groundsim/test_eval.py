@@ -459,6 +459,18 @@ def test_write_eval_report_files_tables_and_ape(tmp_path):
     assert "![performance](performance.png)" in md and "evo_ape tum A/seed0/truth.tum A/seed0/estimate.tum" in md
 
 
+def test_an_interrupted_evals_report_says_it_is_partial(tmp_path):
+    runs = [dataclasses.replace(_synthetic_run("A", seed=0), batch=None, frame=None)]
+    scores = [score_run(r) for r in runs]
+    result = EvalResult(runs, scores, summarise(scores), 1.0, 1, EvalOptions(), "built-in defaults")
+    write_eval_report(tmp_path, result, planned=3)
+    assert json.loads((tmp_path / "report.json").read_text())["interrupted"] == "1 of 3 runs"
+    assert "**interrupted: 1 of 3 runs**" in (tmp_path / "report.md").read_text()
+    write_eval_report(tmp_path, result)  # complete: no such line
+    assert json.loads((tmp_path / "report.json").read_text())["interrupted"] is None
+    assert "interrupted" not in (tmp_path / "report.md").read_text()
+
+
 # --------------------------------------------------------------------------- the real chain
 
 
