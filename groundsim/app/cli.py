@@ -240,7 +240,7 @@ def _run_config(args):
 
     from groundsim.app.run import RateSpec, RunConfig, mavlink_endpoints, parse_start_time, utc_errors
     from groundsim.world.nav_errors import InjectedErrors
-    from onboard.io.zenoh_session import config_from_options
+    from onboard.io.zenoh_session import check_vehicle_name, config_from_options
 
     rate = RateSpec.parse(args.rate)
     if args.zenoh_connect_timeout < 0 or args.zenoh_connect_timeout != args.zenoh_connect_timeout:
@@ -258,6 +258,11 @@ def _run_config(args):
             f"--vehicle: {scenario.name} has several observers, each published under its own name"
             f" ({', '.join(o.name for o in scenario.observers)}); expected no --vehicle"
         )
+    if args.vehicle is not None:
+        try:
+            check_vehicle_name(args.vehicle)
+        except ConfigError as exc:
+            raise ConfigError(f"--vehicle: {exc}") from None
     vehicle = args.vehicle or DEFAULT_VEHICLE
     endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
     start = args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
@@ -439,7 +444,10 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
 
 def _add_demo(p: argparse.ArgumentParser) -> None:
     _scenario_option(p)
-    _duration_option(p, "seconds to fly in real time; a shorter scenario is extended (default: %(default)s)", 20.0)
+    _duration_option(
+        p,
+        "seconds to fly in real time; a shorter scenario is extended (default: 20, or as long as the scenario can fly)",
+    )
     p.add_argument("--seed", type=int, default=0, metavar="N", help="run seed (default: 0)")
     p.add_argument(
         "--out", default="out/demo", metavar="DIR", help="where the truth, tracks and report go (default: %(default)s)"

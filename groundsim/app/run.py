@@ -310,6 +310,8 @@ class RunConfig:
             object.__setattr__(self, "record_path", Path(self.record_path))
         if not isinstance(self.injected, InjectedErrors):
             raise ConfigError(f"RunConfig.injected must be an InjectedErrors, got {type(self.injected).__name__}")
+        if self.injected.gnss_dropout is not None:
+            self.injected.gnss_dropout.check_within(self.duration_s)
         if self.zenoh is not None:
             from onboard.io.zenoh_session import ZenohConfig
 
@@ -806,14 +808,19 @@ def _start_recorder(config: RunConfig, core: SimCore):
         "nav_noise": core.nav_noise.name,
         "rate": config.rate.text,
     }
-    rec = FlightRecorder(
-        RecordConfig(path=str(config.record_path)),
-        vehicle=config.vehicle,
-        metadata=meta,
-        recorder="groundsim",
-        clock_ns=_time.monotonic_ns,
-    )
-    rec.start()
+    # the recorder opens its file here: an unwritable path is the operator's mistake, said in one line as --truth's
+    try:
+        rec = FlightRecorder(
+            RecordConfig(path=str(config.record_path)),
+            vehicle=config.vehicle,
+            metadata=meta,
+            recorder="groundsim",
+            clock_ns=_time.monotonic_ns,
+        )
+        rec.start()
+    except OSError as exc:
+        where = f" ({exc.filename})" if exc.filename and str(exc.filename) != str(config.record_path) else ""
+        raise ConfigError(f"--record {config.record_path}: cannot write: {exc.strerror or exc}{where}") from None
     return rec
 
 

@@ -77,6 +77,7 @@ import numpy as np
 
 from groundsim.evaluation.campaign_report import (
     FIGURE_NAME,
+    PARQUET_NAME,
     REPORT_NAME,
     TABLE_NAME,
     write_report,
@@ -115,6 +116,7 @@ __all__ = [
     "run_job",
     "read_log",
     "append_rows",
+    "check_outputs",
     "run_campaign",
     "CampaignResult",
     "cmd_campaign",
@@ -523,12 +525,25 @@ def read_log(path: Path) -> tuple[dict[str, dict], int]:
 
 
 def append_rows(path: Path, rows: Iterable[dict]) -> None:
-    """Append rows to the log, one JSON line each, flushed and fsynced (a kill loses no finished run)."""
-    with path.open("a", encoding="utf-8") as f:
-        for row in rows:
-            f.write(json.dumps(row, sort_keys=True, allow_nan=False) + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+    """Append rows to the log, one JSON line each, flushed and fsynced (a kill loses no finished run).
+    An OSError (the log unwritable, the disk full) is a one-line ConfigError naming the file."""
+    try:
+        with path.open("a", encoding="utf-8") as f:
+            for row in rows:
+                f.write(json.dumps(row, sort_keys=True, allow_nan=False) + "\n")
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot write: {exc.strerror or exc}") from None
+
+
+def check_outputs(out: Path) -> None:
+    """Refuses, before any run, outputs that could not be written after the runs: the log must open for
+    appending, and the table, the report and the figure must not be directories (one-line ConfigError)."""
+    for name in (LOG_NAME, TABLE_NAME, PARQUET_NAME, REPORT_NAME, FIGURE_NAME):
+        if (out / name).is_dir():
+            raise ConfigError(f"{out / name}: cannot write: Is a directory")
+    append_rows(out / LOG_NAME, ())
 
 
 # --------------------------------------------------------------------------- execution
@@ -660,6 +675,7 @@ def run_campaign(
     taken as they complete and appended here; workers never touch ``out``."""
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
+    check_outputs(out)
     if fresh and log_path.exists():
         log_path.unlink()
     done, bad = read_log(log_path)
@@ -754,8 +770,11 @@ def run_campaign(
     done, _ = read_log(log_path)
     rows = [done[i] for i in ids if i in done]
     result = CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted)
-    files = write_table(out, rows)
-    files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
+    try:
+        files = write_table(out, rows)
+        files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot write the table or the report: {exc}") from None
     return dataclasses.replace(result, files=files)
 
 
@@ -775,7 +794,7 @@ def cmd_campaign(args) -> int:
             raise ConfigError(
                 f"--workers: not with --scheduler (the cluster's workers run the jobs), got --workers {args.workers}"
             )
-        workers = pool_workers(args.workers or spec.workers)
+        workers = pool_workers(args.workers if args.workers is not None else spec.workers)
         cfg_path = spec.onboard_config
         if cfg_path is None and DEFAULT_ONBOARD_CONFIG.is_file():
             cfg_path = DEFAULT_ONBOARD_CONFIG

@@ -129,10 +129,13 @@ class MovedTarget:
         return KinematicState(p, b.v_ned_mps @ R.T, b.a_ned_mps2 @ R.T)
 
 
-def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geometry") -> Scenario:
+def derive_scenario(
+    scenario: Scenario, geometry: Geometry, source: str = "<campaign>", field: str = "geometry"
+) -> Scenario:
     """The variant of ``scenario`` with ``geometry`` (module docstring); the reference geometry returns
-    ``scenario`` itself.  Raises :class:`~groundsim.world.scenario.ScenarioError` naming ``source`` when the
-    variant's commanded paths come closer than ``MIN_SEPARATION_M`` or go below the ground."""
+    ``scenario`` itself.  Raises :class:`~groundsim.world.scenario.ScenarioError` naming ``source`` (the spec)
+    and ``field`` when the variant's commanded paths come closer than ``MIN_SEPARATION_M`` or go below the
+    ground."""
     if geometry.is_reference:
         return scenario
     obs_ref = scenario.observer.motion
@@ -159,12 +162,12 @@ def derive_scenario(scenario: Scenario, geometry: Geometry, source: str = "geome
         f"{scenario.name} with range_scale {geometry.range_scale:g}, aspect_deg {geometry.aspect_deg:g}, "
         f"manoeuvre_scale {geometry.manoeuvre_scale:g}"
     )
-    check_apart(fail, source, f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart", po, pt, t, f"{what}: ")
+    check_apart(fail, field, f"a geometry whose paths stay {MIN_SEPARATION_M:g} m apart", po, pt, t, f"{what}: ")
     for who, p in (("observer", po), ("target", pt)):
         k = int(np.argmax(p[:, 2]))
         if not p[k, 2] < -GROUND_CLEARANCE_M:
             fail.text(
-                source,
+                field,
                 f"a geometry whose paths stay {GROUND_CLEARANCE_M:g} m above the ground",
                 f"{what}: the {who} at {-p[k, 2]:.3g} m up at t = {t[k]:.2f} s",
             )
@@ -321,6 +324,9 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         if not p.is_file():
             known = ", ".join(reference_scenario_paths())
             fail(f"scenarios[{i}]", f"a shipped scenario ({known}) or a scenario file", s)
+        same = [j for j, q in enumerate(paths) if q.resolve() == p.resolve()]
+        if same:  # P1, p1 and config/scenarios/P1.yaml are one scenario: its runs would share their run ids
+            fail(f"scenarios[{i}]", f"a scenario not listed before (scenarios[{same[0]}] is the same file)", s)
         paths.append(p)
     noise = _name_list(d["noise"], "noise", fail, "noise-case names")
     cases = load_noise_cases()
@@ -379,12 +385,20 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
     )
     if spec.run_count > MAX_RUNS:
         fail("(document)", f"at most {MAX_RUNS} runs", f"{spec.run_count} runs")
-    for p in paths:  # every scenario loads, every variant is a valid geometry, the duration fits
+    names: dict[str, int] = {}
+    for i, p in enumerate(paths):  # every scenario loads, every variant is a valid geometry, the duration fits
         sc = load_scenario(p)
+        if sc.name in names:  # rows, run ids and the report are keyed by the scenario's name
+            fail.text(
+                f"scenarios[{i}]",
+                f"a scenario whose name is not scenarios[{names[sc.name]}]'s",
+                f"{scenarios[i]!r}, named {sc.name}",
+            )
+        names[sc.name] = i
         if duration is not None and duration > sc.duration_s + 1e-9:
             fail("duration_s", f"at most {sc.name}'s duration_s ({sc.duration_s:g} s)", duration)
         for g in geometries:
-            derive_scenario(sc, g, source=f"{source}: geometry")
+            derive_scenario(sc, g, source=str(source))
     return spec
 
 

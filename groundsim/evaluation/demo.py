@@ -13,8 +13,9 @@ The daemon starts first; the simulator is started once the daemon's first status
 (``--onboard-config``, default the shipped ``config/onboard.yaml``, noise model included) with the
 scenario's camera, pod mount and origin, the loopback endpoints, a liveness file inside OUT and
 ``output.unobservable_positions`` on, as by default (so the live line can show the range before it is
-observable; the table scores both).  A scenario shorter than ``--duration`` is extended (its motion
-models simply continue) into ``OUT/scenario.yaml``.
+observable; the table scores both).  A scenario shorter than ``--duration`` is extended as ``groundsim
+run`` extends it (its motion models simply continue, :func:`groundsim.world.sim.extend_scenario`); a duration
+it cannot fly is refused before anything starts.
 
 Each second one line: simulated frames; frames the daemon processed and dropped and its median
 processing time per frame (its status message's ``frames`` and ``processing_ms``); the track state;
@@ -108,75 +109,119 @@ class DemoPlan:
     injected: InjectedErrors = field(default_factory=lambda: InjectedErrors(DEFAULT_NAV_NOISE))
     live_view_port: int | None = None  # passed to the daemon as --live-view PORT (Foxglove WebSocket on 127.0.0.1)
     daemon_prefix: tuple[str, ...] = ()  # run the daemon through this (bench.companion: into a CPU-limited cgroup)
+    onboard_config_source: str = "(defaults)"  # the daemon's base configuration: a file, or the built-in defaults
+    mount_as_configured: bool = False  # the daemon keeps that configuration's camera mount
 
     @property
     def zenoh_endpoint(self) -> str:
         return f"tcp/127.0.0.1:{self.zenoh_port}"
 
 
-def _extended_scenario(scenario_path: Path, duration_s: float, out_dir: Path):
-    """The scenario, extended to ``duration_s`` when shorter (written to OUT/scenario.yaml)."""
-    import yaml
-
-    from groundsim.world.scenario import ScenarioError, load_scenario
-
-    sc = load_scenario(scenario_path)
-    if duration_s <= sc.duration_s + 1e-9:
-        return sc, scenario_path
-    raw = yaml.safe_load(Path(scenario_path).read_text(encoding="utf-8"))
-    raw["duration_s"] = float(duration_s)
-    raw["description"] = f"{raw.get('description', '')} (extended to {duration_s:g} s for the demo)".strip()
-    path = out_dir / "scenario.yaml"
-    path.write_text(yaml.safe_dump(raw, sort_keys=False), encoding="utf-8")
-    try:
-        return load_scenario(path), path
-    except ScenarioError as exc:
-        log.warning("cannot extend %s to %g s (%s); running its %g s", sc.name, duration_s, exc, sc.duration_s)
-        return sc, scenario_path
-
-
 DEFAULT_DEMO_ONBOARD_CONFIG = "config/onboard.yaml"
+DEFAULT_DEMO_DURATION_S = 20.0  # --duration not given: this long, or as long as the scenario can fly
+CAP_STEP_S = 0.1  # a capped default duration is a multiple of this past the scenario's duration_s
+PORT_MIN, PORT_MAX = 1, 65535  # --live-view: a TCP port (the daemon's live_view.port)
+
+
+def _longest_extension_s(scenario, duration_s: float) -> float:
+    """The longest duration up to ``duration_s`` that :func:`groundsim.world.sim.extend_scenario` accepts for
+    ``scenario`` (its own ``duration_s`` at least), in ``CAP_STEP_S`` steps.  Bisection: an extension that is
+    refused stays refused when longer (its checks cover the added time)."""
+    from groundsim.world.sim import extend_scenario
+
+    lo, hi = 0, max(0, math.floor((duration_s - scenario.duration_s) / CAP_STEP_S))
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        try:
+            extend_scenario(scenario, scenario.duration_s + mid * CAP_STEP_S)
+            lo = mid
+        except ConfigError:
+            hi = mid - 1
+    return round(scenario.duration_s + lo * CAP_STEP_S, 6)
+
+
+def _demo_scenario(scenario: str, duration_s: float | None):
+    """The scenario (``--scenario``) extended to the demo's duration, its file and the duration, checked as
+    ``groundsim run`` checks them (:func:`groundsim.world.sim.check_duration_s`, ``extend_scenario``).  A
+    duration it cannot fly is refused naming ``--duration``; without ``--duration`` the default
+    ``DEFAULT_DEMO_DURATION_S`` is capped at what the scenario can fly, with a note."""
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from groundsim.world.sim import check_duration_s, extend_scenario
+
+    path = resolve_scenario_path(scenario)
+    sc = load_scenario(path)
+    if sc.is_fleet:
+        names = ", ".join(o.name for o in sc.observers)
+        raise ConfigError(
+            f"--scenario: {sc.name} has several observers ({names}); the demo runs one daemon for one observer:"
+            " expected a scenario of one observer"
+        )
+    if duration_s is None:
+        d = check_duration_s(DEFAULT_DEMO_DURATION_S, sc)
+        try:
+            return extend_scenario(sc, d), path, d
+        except ConfigError as exc:
+            capped = _longest_extension_s(sc, d)
+            print(f"demo: {sc.name} flies at most {capped:g} s ({exc}); flying {capped:g} s", flush=True)
+            return extend_scenario(sc, capped), path, capped
+    d = check_duration_s(duration_s, sc)
+    return extend_scenario(sc, d), path, d
+
+
+def _check_live_view_port(port) -> int | None:
+    if port is None:
+        return None
+    if isinstance(port, bool) or not isinstance(port, int) or not PORT_MIN <= port <= PORT_MAX:
+        raise ConfigError(f"--live-view: expected a TCP port {PORT_MIN}..{PORT_MAX}, got {port!r}")
+    return port
 
 
 def plan_demo(
     scenario: str,
-    duration_s: float,
+    duration_s: float | None,
     seed: int,
     out_dir,
     onboard_config: str | None,
     nav_noise: str | None = None,
     mount_as_configured: bool = False,
     gnss_dropout: GnssDropout | None = None,
+    live_view_port: int | None = None,
 ) -> DemoPlan:
-    """Load and check everything, write OUT/onboard.yaml (and OUT/scenario.yaml), pick the ports.
+    """Load and check everything, then write OUT/onboard.yaml and pick the ports; a mistake raises
+    ConfigError before OUT is created.  ``duration_s`` None: ``DEFAULT_DEMO_DURATION_S`` or as long as the
+    scenario can fly (:func:`_demo_scenario`).
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default);
     ``gnss_dropout``: one for the simulator to inject (None: none);
     ``mount_as_configured``: the daemon keeps the configuration's camera mount (gimballed or not, angles)
-    instead of the scenario's: what an operator's wrong mount configuration does."""
+    instead of the scenario's: what an operator's wrong mount configuration does;
+    ``live_view_port``: the daemon's ``--live-view`` port (None: none)."""
     import yaml
 
     from groundsim.evaluation.eval import onboard_config_for
-    from groundsim.world.scenario import resolve_scenario_path
     from onboard.app.config import OnboardConfig, config_to_dict, load_config
     from onboard.io.zenoh_session import ZenohConfig
 
-    if not is_positive_number(duration_s):
+    if duration_s is not None and not is_positive_number(duration_s):
         raise ConfigError(f"--duration: expected a positive number of seconds, got {duration_s!r}")
     if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
         raise ConfigError(f"--seed: expected an integer >= 0, got {seed!r}")
-    out = make_out_dir(out_dir)
-    sc, sc_path = _extended_scenario(resolve_scenario_path(scenario), float(duration_s), out)
-    duration = min(float(duration_s), sc.duration_s)
+    live_view_port = _check_live_view_port(live_view_port)
+    sc, sc_path, duration = _demo_scenario(scenario, duration_s)
+    if gnss_dropout is not None:
+        gnss_dropout.check_within(duration)
     if onboard_config is not None and Path(onboard_config).is_file():
         base = load_config(onboard_config, environ={})
+        config_source = str(onboard_config)
     elif onboard_config is not None and onboard_config != DEFAULT_DEMO_ONBOARD_CONFIG:
         raise ConfigError(f"--onboard-config {onboard_config}: no such file")
     else:
         base = OnboardConfig()
+        config_source = "(defaults)"
     nav = resolve_nav_noise(sc.nav_noise if nav_noise is None else nav_noise).name
     cfg = onboard_config_for(sc, base)
     if mount_as_configured:
         cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, mount=base.camera.mount))
+    out = make_out_dir(out_dir)
     mav, zport = free_udp_port(), free_tcp_port()
     raw = config_to_dict(cfg)
     raw["mavlink"]["connection"] = f"udpin:127.0.0.1:{mav}"
@@ -184,7 +229,7 @@ def plan_demo(
     raw["output"]["health_file"] = str((out / "onboard.alive").resolve())
     path = out / "onboard.yaml"
     header = (
-        f"# generated by `python -m groundsim demo` from {onboard_config or '(defaults)'}:\n"
+        f"# generated by `python -m groundsim demo` from {config_source}:\n"
         f"# scenario {sc.name}'s camera, {'the configured mount' if mount_as_configured else 'mount'} and origin; "
         "loopback endpoints; positions published even when unobservable\n"
     )
@@ -202,6 +247,9 @@ def plan_demo(
         path,
         out / "truth.csv",
         injected=InjectedErrors(nav, gnss_dropout),
+        live_view_port=live_view_port,
+        onboard_config_source=config_source,
+        mount_as_configured=bool(mount_as_configured),
     )
 
 
@@ -900,7 +948,7 @@ def cmd_demo(args) -> int:
     try:
         for name in ("onboard", "groundsim.app.run", "groundsim.world.flight"):
             logging.getLogger(name).setLevel(max(logging.WARNING, logging.getLogger().getEffectiveLevel()))
-        # a bad option fails here, before any process starts
+        # a bad option fails here, before any process starts or OUT is created
         injected = InjectedErrors.from_options(getattr(args, "nav_noise", None), getattr(args, "gnss_dropout", None))
         plan = plan_demo(
             args.scenario,
@@ -911,12 +959,11 @@ def cmd_demo(args) -> int:
             injected.nav_noise,
             mount_as_configured=bool(getattr(args, "mount_as_configured", False)),
             gnss_dropout=injected.gnss_dropout,
+            live_view_port=getattr(args, "live_view", None),  # --live-view PORT: passed through to the daemon
         )
-        live_port = getattr(args, "live_view", None)  # --live-view PORT: passed through to the daemon
-        if live_port is not None:
-            plan = dataclasses.replace(plan, live_view_port=int(live_port))
+        if plan.live_view_port is not None:
             print(
-                f"demo: live view for Foxglove at ws://127.0.0.1:{int(live_port)} (Open connection -> Foxglove WebSocket)",
+                f"demo: live view for Foxglove at ws://127.0.0.1:{plan.live_view_port} (Open connection -> Foxglove WebSocket)",
                 flush=True,
             )
         outcome = run_demo(plan, stop)
@@ -928,7 +975,7 @@ def cmd_demo(args) -> int:
             eval_dir = plan.out_dir / "eval"
             restore()  # Ctrl-C during the evaluation interrupts it: its pool is terminated, its finished runs kept
             try:
-                _quick_eval(eval_dir, stop, plan.injected.nav_noise)
+                _quick_eval(eval_dir, stop, plan)
             except KeyboardInterrupt as exc:  # EvalInterrupted in its runs, else in the paper table after its report
                 ev = keep_interrupted(exc, eval_dir) if isinstance(exc, EvalInterrupted) else "report written"
                 return print_interrupted(f"{kept}; the evaluation: {ev}")
@@ -939,26 +986,39 @@ def cmd_demo(args) -> int:
         restore()
 
 
-def _quick_eval(out_dir: Path, stop: threading.Event, nav_noise: str | None = DEFAULT_NAV_NOISE) -> None:
-    """The lockstep evaluation of P1-P3, one seed, and its Table-2 style and closed-loop tables."""
-    from groundsim.evaluation.eval import EvalOptions, load_base_config, run_eval
+def _quick_eval(out_dir: Path, stop: threading.Event, plan: DemoPlan) -> None:
+    """The lockstep evaluation of P1-P3 with the live run's seed, daemon configuration, navigation-error case
+    and GNSS dropout, and its Table-2 style and closed-loop tables.  Each scenario keeps its own camera mount
+    (``--mount-as-configured`` is the live run's alone: the lockstep evaluation has no such option), which the
+    announcement says."""
+    from groundsim.evaluation.eval import EvalOptions, run_eval
     from groundsim.evaluation.parallel import pool_workers
     from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
     from groundsim.world.scenario import load_scenario, reference_scenario_paths
+    from onboard.app.config import OnboardConfig, load_config
 
     paths = reference_scenario_paths()
     scenarios = [load_scenario(paths[n]) for n in ("P1", "P2", "P3") if n in paths]
+    source = plan.onboard_config_source
+    base = OnboardConfig() if source == "(defaults)" else load_config(source, environ={})
+    injected = InjectedErrors(plan.injected.nav_noise, plan.injected.gnss_dropout)
+    extras = [f"seed {plan.seed}", f"navigation errors {injected.nav_noise}", f"onboard configuration {source}"]
+    if injected.gnss_dropout is not None:
+        g = injected.gnss_dropout
+        extras.append(f"GNSS dropout {g.start_s:g} s for {g.duration_s:g} s")
+    if plan.mount_as_configured:
+        extras.append("each scenario's camera mount, not --mount-as-configured")
     print(
-        f"\ndemo: lockstep evaluation of P1-P3 (one seed, navigation errors {nav_noise};"
-        " `python -m groundsim eval` runs five)",
+        f"\ndemo: lockstep evaluation of P1-P3 ({', '.join(extras)}; `python -m groundsim eval` runs five seeds)",
         flush=True,
     )
     result = run_eval(
         scenarios,
-        [0],
-        EvalOptions(injected=InjectedErrors(nav_noise)),
-        load_base_config(),
+        [plan.seed],
+        EvalOptions(injected=injected),
+        base,
         workers=pool_workers(None),
+        config_source=source,
     )
     files = write_eval_report(out_dir, result)
     print(format_table2(result.summary, {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}))

@@ -88,6 +88,13 @@ class GnssDropout:
                 raise ConfigError(f"--gnss-dropout: {name} must be a finite number >= 0 s, got {v!r}")
             object.__setattr__(self, name, float(v))
 
+    def check_within(self, duration_s: float) -> None:
+        """Refuses a dropout that starts at or after the end of a run of ``duration_s`` (it would never happen)."""
+        if self.start_s >= duration_s:
+            raise ConfigError(
+                f"--gnss-dropout: expected a start before the run's end ({duration_s:g} s), got {self.start_s:g} s"
+            )
+
     def active(self, t_s: float) -> bool:
         """No GNSS at scenario time ``t_s``."""
         return self.start_s <= t_s < self.start_s + self.duration_s

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -28,6 +29,7 @@ from groundsim.evaluation.demo import (
     status_line,
 )
 from groundsim.evaluation.proc_cpu import ProcCpu
+from groundsim.world.nav_errors import GnssDropout
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from groundsim.world.truth import TruthWriter, truth_row
 from onboard.app.config import load_config
@@ -51,7 +53,7 @@ def test_plan_writes_a_valid_daemon_config_and_extends_the_scenario(tmp_path):
     plan = plan_demo("P1", 25.0, 2, tmp_path, None)
     sc = load_scenario(P1)
     assert plan.scenario.duration_s == 25.0 and plan.duration_s == 25.0
-    assert plan.scenario_path == tmp_path / "scenario.yaml"
+    assert plan.scenario_path == P1  # extended by the simulator as `groundsim run --duration 25` extends it
     t = np.array([0.0, 5.0, 9.9])
     np.testing.assert_array_equal(plan.scenario.observer.motion.state(t).p_ned_m, sc.observer.motion.state(t).p_ned_m)
     cfg = load_config(plan.onboard_config_path, environ={})
@@ -75,6 +77,69 @@ def test_plan_keeps_a_long_enough_scenario_and_rejects_bad_options(tmp_path):
         plan_demo("P1", 4.0, -3, tmp_path, None)
     with pytest.raises(ConfigError, match="--onboard-config nope.yaml: no such file"):
         plan_demo("P1", 4.0, 0, tmp_path, "nope.yaml")
+
+
+def test_a_duration_the_scenario_cannot_fly_is_refused_before_out_is_made(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError, match=r"--duration: .*expected --duration at most 15\.4 s"):
+        plan_demo("P3", 20.0, 0, out, None)
+    with pytest.raises(ConfigError, match=r"--duration: expected at most \d+ s, got 1e\+09"):
+        plan_demo("P1", 1e9, 0, out, None)
+    assert not out.exists()
+
+
+def test_the_default_duration_is_capped_at_what_the_scenario_can_fly(tmp_path, capsys):
+    plan = plan_demo("P3", None, 0, tmp_path, None)
+    assert 10.0 < plan.duration_s <= 15.4 and plan.scenario.duration_s == plan.duration_s
+    note = capsys.readouterr().out.strip()
+    assert "\n" not in note and f"flying {plan.duration_s:g} s" in note
+    s = sim_command(plan)
+    assert s[s.index("--duration") + 1] == f"{plan.duration_s:g}"
+    assert plan_demo("P1", None, 0, tmp_path, None).duration_s == 20.0
+
+
+@pytest.mark.parametrize(
+    "scenario, options, match",
+    [
+        ("F1", {}, r"--scenario: F1 has several observers"),
+        ("P1", {"live_view_port": 99999}, r"--live-view: expected a TCP port 1\.\.65535, got 99999"),
+        ("P1", {"live_view_port": -5}, r"--live-view: expected a TCP port 1\.\.65535, got -5"),
+        ("nope", {}, r"nope"),
+        ("P1", {"gnss_dropout": GnssDropout(4.0, 1.0)}, r"--gnss-dropout: expected a start before the run's end"),
+    ],
+)
+def test_what_the_children_would_refuse_is_refused_up_front(tmp_path, scenario, options, match):
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError, match=match):
+        plan_demo(scenario, 4.0, 0, out, None, **options)
+    assert not out.exists()
+
+
+def test_the_follow_up_evaluation_uses_the_demo_seed_config_and_errors(tmp_path, monkeypatch, capsys):
+    import groundsim.evaluation.eval as ev
+    from groundsim.evaluation.demo import _quick_eval
+
+    cfg = REPO / "config" / "onboard.yaml"
+    plan = plan_demo(
+        "P1", 4.0, 7, tmp_path, str(cfg), "exact", mount_as_configured=True, gnss_dropout=GnssDropout(1.0, 2.0)
+    )
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake_run_eval(scenarios, seeds, options, base_config, workers, config_source):
+        seen.update(seeds=seeds, injected=options.injected, base=base_config, source=config_source)
+        raise Stop
+
+    monkeypatch.setattr(ev, "run_eval", fake_run_eval)
+    with pytest.raises(Stop):
+        _quick_eval(tmp_path / "eval", threading.Event(), plan)
+    assert seen["seeds"] == [7] and seen["source"] == str(cfg)
+    assert seen["injected"].nav_noise == "exact" and seen["injected"].gnss_dropout == GnssDropout(1.0, 2.0)
+    assert seen["base"] == load_config(cfg, environ={})
+    line = capsys.readouterr().out
+    assert "seed 7" in line and str(cfg) in line and "not --mount-as-configured" in line
 
 
 # --------------------------------------------------------------------------- collectors and formatting

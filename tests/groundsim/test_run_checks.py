@@ -1,0 +1,45 @@
+"""``groundsim run``: options refused in one line with exit 2 (an unwritable --record, a GNSS dropout after the
+end, a bad --vehicle), in this process, one simulated second at most."""
+
+from __future__ import annotations
+
+import pytest
+
+from groundsim.app.cli import main as cli_main
+from groundsim.world.nav_errors import GnssDropout
+from onboard.core.errors import ConfigError
+
+RUN = ["run", "--scenario", "P1", "--rate", "max", "--duration", "1", "--no-render"]
+
+
+def _one_line_error(capsys) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    return err[-1]
+
+
+@pytest.mark.parametrize("where", ["under_a_file", "a_directory", "in_proc"])
+def test_an_unwritable_record_path_is_one_line_exit_2(tmp_path, capsys, where):
+    if where == "under_a_file":
+        (tmp_path / "afile").write_text("")
+        path = tmp_path / "afile" / "r.mcap"
+    elif where == "a_directory":
+        path = tmp_path / "d.mcap"
+        path.mkdir()
+    else:
+        path = "/proc/r.mcap"
+    assert cli_main([*RUN, "--record", str(path)]) == 2
+    line = _one_line_error(capsys)
+    assert line.startswith(f"groundsim run: error: --record {path}: cannot write: "), line
+
+
+def test_a_gnss_dropout_at_or_after_the_end_is_refused(capsys):
+    assert cli_main([*RUN, "--gnss-dropout=5:1"]) == 2
+    assert "error: --gnss-dropout: expected a start before the run's end (1 s), got 5 s" in _one_line_error(capsys)
+    with pytest.raises(ConfigError, match="--gnss-dropout"):
+        GnssDropout(1.0, 0.5).check_within(1.0)
+    GnssDropout(0.999, 5.0).check_within(1.0)  # starts inside the run: running past the end is fine
+
+
+def test_a_bad_vehicle_name_names_the_option(capsys):
+    assert cli_main([*RUN, "--vehicle", "a/b"]) == 2
+    assert "error: --vehicle: vehicle name must be" in _one_line_error(capsys)
