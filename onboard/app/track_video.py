@@ -114,10 +114,13 @@ class FrameSource:
 
 
 def _frame_files(folder: Path) -> list[Path]:
-    return sorted(
-        (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES),
-        key=lambda p: _natural_key(p.name),
-    )
+    try:
+        return sorted(
+            (p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in FRAME_SUFFIXES),
+            key=lambda p: _natural_key(p.name),
+        )
+    except OSError as exc:  # a folder that cannot be listed (permissions): one line, as for a frame
+        raise InputError(f"{folder}: cannot list the folder: {exc.strerror or exc}") from None
 
 
 def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:

@@ -369,3 +369,20 @@ def test_grey_frames_are_not_said_to_be_converted(tmp_path, capsys):
     seq = _small_seq(tmp_path / "seq")
     assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == 0
     assert "mono8 (folder, 30 frames/s)" in capsys.readouterr().out
+
+
+def test_a_folder_that_cannot_be_listed_is_one_line(tmp_path, monkeypatch, capsys):
+    from pathlib import Path
+
+    from onboard.app import track_video
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+
+    def refuse(self):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(Path, "iterdir", refuse)
+    assert track_video.main([str(folder), "--out", str(tmp_path / "t.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"{folder}: cannot list the folder: Permission denied"]
