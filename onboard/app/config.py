@@ -58,7 +58,6 @@ from onboard.core.schema import (
     Invalid,
     Number,
     Numbers,
-    PositiveFloat,
     SchemaError,
     Text,
     Texts,
@@ -144,8 +143,9 @@ Distortion = Annotated[
 class IntrinsicsConfig(PinholeSection):
     """``camera.intrinsics``: pinhole + Brown-Conrady, as the scenario schema (cx/cy null = centre)."""
 
-    fx_px: PositiveFloat = 13e-3 / 17e-6
-    fy_px: PositiveFloat = 13e-3 / 17e-6
+    # at most 1e7 px (a 640 px wide image would then see 0.004 deg): a larger value is a typo, not a lens
+    fx_px: Annotated[float, Number(0.0, 1e7, lo_open=True)] = 13e-3 / 17e-6
+    fy_px: Annotated[float, Number(0.0, 1e7, lo_open=True)] = 13e-3 / 17e-6
     cx_px: Annotated[float | None, Number()] = None
     cy_px: Annotated[float | None, Number()] = None
     width_px: Annotated[int, Integer(16, 100000)] = 640

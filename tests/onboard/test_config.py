@@ -177,6 +177,7 @@ BAD = [
     ("zenoh: {connect: [bogus]}", "zenoh.connect[0]", "<protocol>/<address>", "'bogus'", None),
     ("zenoh: {listen: 7}", "zenoh.listen", "a list of strings", "7", None),
     ("camera: {intrinsics: {width_px: 640.0}}", "camera.intrinsics.width_px", "an integer", "640.0", None),
+    ("camera: {intrinsics: {fx_px: 1e300}}", "camera.intrinsics.fx_px", "a number in (0, 1e+07]", "1e+300", None),
     ("camera: {intrinsics: {cx_px: 900}}", "camera.intrinsics.cx_px", "inside the image", "900", None),
     (
         "camera: {intrinsics: {distortion: [0, 0, 0]}}",
