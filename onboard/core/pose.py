@@ -92,7 +92,10 @@ Discontinuities
 ---------------
 A reboot breaks the boot clock; a position ``reset`` (a GNSS jump or a reset of the
 autopilot's position estimate, persisting for ``jump_reset_count`` samples) breaks the camera's position
-track: the positions after it are tens of metres to kilometres off the ones before, on the same clock.
+track: the positions after it are tens of metres to kilometres off the ones before, on the same clock.  An
+``attitude_reset`` or ``gimbal_reset`` (a sample turned :data:`ATTITUDE_STEP_RAD` beyond what the reported rates
+allow: the autopilot's attitude estimate reset, e.g. an EKF yaw reset, which an earth-frame gimbal report follows)
+breaks its pointing alike; that stream starts again from the new sample.
 Either raises :attr:`PoseBuffer.discontinuities`, which every :class:`PoseAt` carries.  Rows of a 3-D
 estimate made on both sides of a break would place the target by a camera track that never was, with the
 confidence of a consistent one: the frame pipeline starts its estimate again when the count changes.
@@ -205,6 +208,11 @@ class GimbalReference(str, enum.Enum):
 
 #: samples kept per stream at most (besides the window)
 MAX_SAMPLES = 4096
+#: an attitude sample turned this much beyond what its reported rates allow is a reset of the attitude estimate,
+#: far above the rates' own error over a telemetry interval
+ATTITUDE_STEP_RAD = math.radians(10.0)
+#: the turn rate allowed a gimbal sample whose rates are unknown (#285 may send NaN): a fast slew (rad/s)
+MAX_TURN_RPS = 2.0 * math.pi
 #: consecutive far-off stamps that agree with each other: a clock step, not an outlier
 TIME_CONFIRM_COUNT = 3
 #: a position outside these altitudes (AMSL, m) is refused (``position_alt_out_of_range``)
@@ -253,6 +261,7 @@ class PoseBuffer:
         self._jumps = 0
         self.reboots = 0
         self.position_resets = 0  # position streams restarted after a persisting jump (``position_reset``)
+        self.attitude_resets = 0  # attitude or gimbal steps the reported rates cannot explain (``<stream>_reset``)
         self.last_miss_reason: str | None = None
         # The streams arrive one after the other when the link comes up (the gimbal's first report, with
         # no rate to extrapolate by, can trail the first frames): a miss before the first pose served is the
@@ -271,8 +280,8 @@ class PoseBuffer:
 
     @property
     def discontinuities(self) -> int:
-        """Breaks in the camera's pose track so far: reboots and position resets (module docstring)."""
-        return self.reboots + self.position_resets
+        """Breaks in the camera's pose track so far: reboots, position and attitude resets (module docstring)."""
+        return self.reboots + self.position_resets + self.attitude_resets
 
     def newest_time_boot_us(self) -> int | None:
         """Latest time covered by both attitude and position, or None."""
@@ -428,6 +437,7 @@ class PoseBuffer:
         w = self._rates("attitude", omega_frd_rps)
         if not self._admit(self._att, t):
             return False
+        self._attitude_step(self._att, t, q, w, None)  # the autopilot reports its rates with its attitude
         self._att.append(t, np.array((*q, *w)), self.config.window_us, MAX_SAMPLES)
         return True
 
@@ -563,8 +573,41 @@ class PoseBuffer:
             self._gim_ref = ref
         if not self._admit(self._gim, t):
             return False
+        self._attitude_step(self._gim, t, q, w, MAX_TURN_RPS)  # a gimbal may send no rates (NaN)
         self._gim.append(t, np.array((*q, *w)), self.config.window_us, MAX_SAMPLES)
         return True
+
+    def _attitude_step(self, stream: SampleStream, t: int, q, w, unknown_rate_rps: float | None) -> None:
+        """An attitude sample ``q`` (with its rates ``w``, NaN when unknown) turned from the stream's newest by more
+        than the rates allow over the interval, by :data:`ATTITUDE_STEP_RAD` at least: a reset of the autopilot's
+        attitude estimate (an EKF yaw reset, which a gimbal reporting in the earth frame follows), a break of the
+        camera's pose track like a position reset.  Counted ``<stream>_reset``, the stream restarted (no frame is
+        given an attitude half-way between the two), :attr:`discontinuities` raised.  Without both samples' rates
+        the turn allowed is ``unknown_rate_rps`` over the interval (None: not judged)."""
+        if not stream.t_us:
+            return
+        dt_us = t - stream.t_us[-1]
+        if not 0 < dt_us <= stream.max_gap_us:
+            return
+        last = stream.values[-1].tolist()
+        dot = abs(last[0] * q[0] + last[1] * q[1] + last[2] * q[2] + last[3] * q[3])
+        turned = 2.0 * math.acos(min(dot, 1.0))
+        if all(math.isfinite(x) for x in (*last[4:7], *w)):  # the larger of the two samples' rates
+            rate = math.sqrt(max(sum(x * x for x in last[4:7]), sum(x * x for x in w)))
+        elif unknown_rate_rps is None:
+            return
+        else:
+            rate = unknown_rate_rps
+        dt_s = dt_us / US_PER_S
+        if turned <= rate * dt_s + ATTITUDE_STEP_RAD:
+            return
+        self.attitude_resets += 1
+        self.counter.count(
+            f"{stream.name}_reset",
+            f"turned {math.degrees(turned):.1f} deg in {dt_s * 1e3:.0f} ms against {math.degrees(rate):.0f} deg/s; "
+            f"{stream.name} stream restarted (pose discontinuity {self.discontinuities}: 3-D estimates start again)",
+        )
+        stream.clear()
 
     # ------------------------------------------------------------------ queries
 
@@ -685,7 +728,7 @@ class PoseBuffer:
             gim_x_us,
             sigma_rad,
             sigma_m,
-            self.reboots + self.position_resets,
+            self.discontinuities,
         )
         return PoseLookup(pose)
 

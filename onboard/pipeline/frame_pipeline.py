@@ -25,8 +25,9 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
    (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
 4. Estimator: reset on a new track id (a new target association), on a lost track, on a reboot and
-   on a position reset (a GNSS step the pose buffer accepted: :attr:`PoseAt.discontinuities` changed,
-   counted as ``estimator_position_reset``), before the first frame after the break reaches it;
+   on a position or attitude reset (a GNSS step or an attitude estimate's reset the pose buffer found:
+   :attr:`PoseAt.discontinuities` changed, counted as ``estimator_pose_reset``), before the first frame after
+   the break reaches it;
    ``add`` only when the tracker's ``measurement_valid`` and a pose exist; otherwise ``predict``
    (coasting, or no pose). A pose whose position is dead-reckoned (a GNSS gap) past the
    camera-position noise the estimator assumes is never added: the frame's estimate is the window's
@@ -63,7 +64,7 @@ in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
-events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``estimator_position_reset``
+events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` /
 ``estimator_error`` and the frame gets no 3-D.
 """
@@ -514,13 +515,14 @@ class FramePipeline:
                 self.time_offset.reset()
             return
         had_data = self._est_has_data
-        self._reset_estimator("camera position reset (GNSS step)")
-        if self.time_offset is not None:  # same clock, new positions: the block ends at the break, the blocks stay
+        self._reset_estimator("camera pose reset (a GNSS step or an attitude reset)")
+        if self.time_offset is not None:  # same clock, a new pose track: the block ends at the break, the blocks stay
             self.time_offset.close_block()
         self.counter.count(
-            "estimator_position_reset",
-            f"pose discontinuity {key[1]} at time_boot_us={pose.time_boot_us}: the camera's position stepped "
-            f"(GNSS jump or reset); 3-D estimate started again" + ("" if had_data else " (it had no rows)"),
+            "estimator_pose_reset",
+            f"pose discontinuity {key[1]} at time_boot_us={pose.time_boot_us}: the camera's position or attitude "
+            f"stepped (a GNSS jump, an attitude estimate's reset: the pose buffer's position_reset / attitude_reset / "
+            f"gimbal_reset); 3-D estimate started again" + ("" if had_data else " (it had no rows)"),
         )
 
     def _position_age_s(self, pose: PoseAt | None) -> float | None:

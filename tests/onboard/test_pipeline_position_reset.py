@@ -73,7 +73,7 @@ def test_a_gnss_step_restarts_the_estimator_once_and_no_window_mixes_the_two_tra
     assert rig.pipe.estimator_resets == 0 and before[-1].window_frames == N_BEFORE
     after = rig.run(N_AFTER, start=N_BEFORE)
 
-    assert rig.counter["position_reset"] == 1 and rig.counter["estimator_position_reset"] == 1
+    assert rig.counter["position_reset"] == 1 and rig.counter["estimator_pose_reset"] == 1
     assert rig.pipe.estimator_resets == 1 and [c[0] for c in est.calls].count("reset") == 1
     assert not est.mixed
     # the estimate after the step is made of rows of the new track only, fewer than the frames since the start
@@ -136,5 +136,5 @@ def test_each_break_restarts_the_estimate_once_under_its_own_name(key, position_
     poses.key = key
     rig.run(10, start=10)
     assert rig.pipe.estimator_resets == 1 and [c[0] for c in rig.est.calls].count("reset") == 1
-    assert rig.counter["estimator_position_reset"] == (1 if position_reset else 0)
+    assert rig.counter["estimator_pose_reset"] == (1 if position_reset else 0)
     assert rig.pipe.last_track is not None and rig.pipe.last_track.window_frames == 10

@@ -917,3 +917,34 @@ def test_position_resuming_after_a_gap_is_taken_on_the_attitude_clock_not_refuse
     # a lone far stamp with no other stream near it is still an outlier
     assert not buf.add_position_ned(60_000_000, [30.0, 2.0, -50.0], [5.0, 0.0, 0.0])
     assert buf.counter["position_time_outlier"] == 1
+
+
+def test_an_attitude_step_the_rates_cannot_explain_is_a_reset_and_a_discontinuity():
+    # an EKF yaw reset: 30 deg between two 50 Hz samples whose rates say 0.1 rad/s
+    buf = PoseBuffer(origin=ORIGIN)
+    w = (0.0, 0.0, 0.1)
+    for k in range(10):
+        assert buf.add_attitude(1_000_000 + 20_000 * k, quat_from_euler(0.0, 0.0, 0.002 * k), w)
+    assert buf.discontinuities == 0 and buf.counter["attitude_reset"] == 0
+    buf.add_attitude(1_200_000, quat_from_euler(0.0, 0.0, 0.02 + math.radians(30.0)), w)
+    assert buf.counter["attitude_reset"] == 1 and buf.discontinuities == 1
+    assert buf.sizes()["attitude"] == 1  # restarted from the new sample: nothing half-way between the two
+    # a fast turn its rates report is not one: 3 rad/s for 20 ms (3.4 deg)
+    fast = PoseBuffer(origin=ORIGIN)
+    for k in range(20):
+        fast.add_attitude(1_000_000 + 20_000 * k, quat_from_euler(0.0, 0.0, 0.06 * k), (0.0, 0.0, 3.0))
+    assert fast.discontinuities == 0 and fast.sizes()["attitude"] == 20
+
+
+def test_a_gimbal_without_rates_is_judged_by_the_fastest_slew():
+    from onboard.core.pose import GimbalReference
+
+    nan3 = (math.nan,) * 3
+    buf = PoseBuffer(origin=ORIGIN)
+    for k in range(5):  # a 180 deg/s slew, rates unknown: within what a gimbal does
+        buf.add_gimbal_status(
+            1_000_000 + 20_000 * k, quat_from_euler(0, 0, math.radians(3.6 * k)), GimbalReference.EARTH, nan3
+        )
+    assert buf.discontinuities == 0
+    buf.add_gimbal_status(1_100_000, quat_from_euler(0, 0, math.radians(14.4 + 30.0)), GimbalReference.EARTH, nan3)
+    assert buf.counter["gimbal_reset"] == 1 and buf.discontinuities == 1

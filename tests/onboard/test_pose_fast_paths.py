@@ -476,12 +476,18 @@ def _fill(buf: PoseBuffer, rng: np.random.Generator, att_rates: str, pos_v: str,
     """0.8 s of attitude and gimbal (50 Hz, jittered) and position (25 Hz, a random walk that starts at a
     point with signed zeros; every fifth velocity unknown)."""
     p = np.array([0.0, -0.0, 12.5])
+    # attitudes a vehicle and a gimbal can take 20 ms apart (random, up to ~6 deg a sample): a larger turn than the
+    # rates allow is an attitude reset, which restarts the stream
+    att = rng.uniform(-1.0, 1.0, 3)
+    gim = rng.uniform(-0.5, 0.5, 3)
     for k in range(40):
         t = 1_000_000 + 20_000 * k + int(rng.integers(0, 2_000))
-        q = tuple(float(c) for c in quat_from_euler(*rng.uniform(-1.0, 1.0, 3)))
+        att = att + rng.uniform(-0.05, 0.05, 3)
+        q = tuple(float(c) for c in quat_from_euler(*att))
         w = None if att_rates == "none" else tuple(float(c) for c in rng.normal(0.0, 0.5, 3))
         buf.add_attitude(t, q, w)
-        g = tuple(float(c) for c in quat_from_euler(*rng.uniform(-0.5, 0.5, 3)))
+        gim = gim + rng.uniform(-0.05, 0.05, 3)
+        g = tuple(float(c) for c in quat_from_euler(*gim))
         gw = (math.nan,) * 3 if gim_rates == "nan" else tuple(float(c) for c in rng.normal(0.0, 0.2, 3))
         buf.add_gimbal_status(t + int(rng.integers(0, 5_000)), g, reference, gw)
         if k % 2 == 0:
