@@ -265,6 +265,7 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
     """``<out_dir>/<scenario>.png``: :func:`gallery_image` of the frame nearest ``t_s`` as the scenario outputs it."""
     import cv2
 
+    from groundsim.evaluation.report import make_out_dir
     from groundsim.world.sim import SimCore
 
     core = SimCore(scenario, run_seed, render=True, flight_chunk_s=1.0)
@@ -274,11 +275,7 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
         fr = core.frame(k)
     if fr.pixels is None:
         raise ConfigError(f"{scenario.name}: frame {k_show} was dropped by the camera model; choose another time")
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"--gallery {out}: cannot create the directory: {exc.strerror or exc}") from None
+    out = make_out_dir(out_dir, "--gallery")
     path = out / f"{scenario.name}.png"
     if not cv2.imwrite(str(path), gallery_image(fr.pixels, fr.labels, fr.truth), [cv2.IMWRITE_PNG_COMPRESSION, 9]):
         raise ConfigError(f"--gallery {out}: cannot write {path}")
