@@ -321,9 +321,17 @@ def range_floored(est: TrackEstimate, p_cam_ned_m, map_config: MapConfig) -> Tra
         return est
     los = est.p_ned_m - np.asarray(p_cam_ned_m, dtype=float)
     rng = max(float(np.linalg.norm(los)), 1e-9)
-    u = los / rng
-    add, sig_r = range_floor(map_config, u[None], np.array([est.range_sigma_ratio * rng]), np.array([rng]))
-    return dataclasses.replace(est, cov_p_ned_m2=est.cov_p_ned_m2 + add[0], range_sigma_ratio=float(sig_r[0]) / rng)
+    P, ratio = floored_covariance(map_config, est.cov_p_ned_m2, los / rng, est.range_sigma_ratio, rng)
+    return dataclasses.replace(est, cov_p_ned_m2=P, range_sigma_ratio=ratio)
+
+
+def floored_covariance(
+    map_config: MapConfig, P: np.ndarray, u: np.ndarray, ratio: float, rng: float
+) -> tuple[np.ndarray, float]:
+    """An unobservable estimate's covariance ``P`` and range sigma ratio ``ratio`` at range ``rng`` with the range
+    floor applied along the unit line of sight ``u``."""
+    add, sig_r = range_floor(map_config, u[None], np.array([ratio * rng]), np.array([rng]))
+    return P + add[0], float(sig_r[0]) / max(rng, 1e-9)
 
 
 def bearing_sigma_rad(noise: NoiseModel, intrinsics: PinholeIntrinsics) -> float:
@@ -862,7 +870,7 @@ class SlidingWindowEstimator:
         )
         observable = bool(self._window_observable and self._edge_pinned)
         if not observable:  # honest, not confident (module docstring)
-            P, ratio = self._range_floored(P, u, ratio, rng)
+            P, ratio = floored_covariance(cfg, P, u, ratio, rng)
         return TrackEstimate(
             t, p, v, P, V, observable, rng, ratio, len(self._t), self._model, *self._diag, motion_prior=self._prior
         )
@@ -881,12 +889,6 @@ class SlidingWindowEstimator:
         window does not keep gets (:meth:`add`); the daemon's process worker computes it in the parent
         for such frames, from the worker's answer to the newest kept one (the same numbers, no round trip)."""
         return range_floored(est.propagated(t_s, p_cam_ned_m), p_cam_ned_m, self.map.config)
-
-    def _range_floored(self, P: np.ndarray, u: np.ndarray, ratio: float, rng: float) -> tuple[np.ndarray, float]:
-        """An unobservable estimate's covariance and range sigma ratio with the range floor applied along
-        the line of sight ``u`` (:meth:`MapEstimator.range_floor`)."""
-        add, sig_r = self.map.range_floor(u[None], np.array([ratio * rng]), np.array([rng]))
-        return P + add[0], float(sig_r[0]) / max(rng, 1e-9)
 
     def predict(self, t_s: float, p_cam_ned_m=None) -> TrackEstimate | None:
         """The current solution evaluated at ``t_s`` (no new measurement), for coasting frames.
