@@ -7,7 +7,7 @@ import os
 import secrets
 import stat
 
-__all__ = ["create_beside", "file_kind"]
+__all__ = ["create_beside", "file_kind", "not_a_file"]
 
 
 def file_kind(mode: int) -> str:
@@ -19,6 +19,14 @@ def file_kind(mode: int) -> str:
     if stat.S_ISFIFO(mode):
         return "a pipe"
     return "a socket" if stat.S_ISSOCK(mode) else "not a regular file"
+
+
+def not_a_file(mode: int | None) -> str | None:
+    """Why an output path whose ``st_mode`` is ``mode`` (None: it does not exist) cannot be written by renaming a
+    file over it -- the rename would replace a folder, device or pipe -- or None when it can."""
+    if mode is None or stat.S_ISREG(mode):
+        return None
+    return f"it is {file_kind(mode)}: give the path of a file"
 
 
 def create_beside(target: str) -> tuple[str, int]:

@@ -75,7 +75,6 @@ import json
 import logging
 import math
 import os
-import stat
 import sys
 import time
 import warnings
@@ -85,7 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, nonnegative_float
-from onboard.app.output_files import create_beside, file_kind
+from onboard.app.output_files import create_beside, not_a_file
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
@@ -483,8 +482,9 @@ def _check_output_paths(outputs: list[tuple[str, str]]) -> None:
             mode = os.stat(target).st_mode
         except OSError:
             mode = None  # a new file, or one that cannot be reached: writing it says why
-        if mode is not None and not stat.S_ISREG(mode):
-            raise InputError(f"{option} {path}: it is {file_kind(mode)}: give the path of a file")
+        refused = not_a_file(mode)
+        if refused is not None:
+            raise InputError(f"{option} {path}: {refused}")
         if target in seen:
             raise InputError(f"{seen[target]} and {option} name the same file {path}")
         seen[target] = option

@@ -55,7 +55,6 @@ import logging  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
-import stat  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -65,7 +64,7 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from onboard.app.output_files import create_beside, file_kind  # noqa: E402
+from onboard.app.output_files import create_beside, not_a_file  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
 if TYPE_CHECKING:
@@ -304,8 +303,9 @@ class _Replacement:
             mode = None
         except OSError as exc:
             raise OutputError(path, exc.strerror or str(exc)) from None
-        if mode is not None and not stat.S_ISREG(mode):
-            raise OutputError(path, f"it is {file_kind(mode)}: give the path of a file")
+        refused = not_a_file(mode)
+        if refused is not None:
+            raise OutputError(path, refused)
         self.existed = mode is not None
         folder = os.path.dirname(self.target)
         existing = folder
