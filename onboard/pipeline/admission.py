@@ -16,7 +16,10 @@ what is wrong with it, so that a status reader can tell a sender problem from a 
   sequence number moved on with it: a frame within ``threshold_us`` of where the stream's own rate
   (its frames accepted since the last event, at least ``RATE_FRAMES``) puts its number is the next
   one after a gap, frames missing in between (dropped by the sender, the network, or the daemon's
-  bounded queue while its pipeline was starved of CPU): a stall is not a clock step;
+  bounded queue while its pipeline was starved of CPU): a stall is not a clock step; nor is a frame
+  within ``threshold_us`` of the telemetry's newest time (``reference_us``) with its sequence number
+  moving on by any amount: the camera paused (numbering its frames on from where it stopped) while
+  the clocks ran on together, and the stream goes on from it with the same estimate;
 * ``time_behind``: before ``L`` with the sequence number moving forward (a bad stamp, such as one
   taken just after boot).
 
@@ -98,7 +101,8 @@ class FrameAdmission:
         self._run.clear()
 
     def admit(self, seq: int, t_us: int, reference_us: int | None = None) -> Admission:
-        """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any."""
+        """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any
+        (read for the first frame and for a frame more than ``threshold_us`` after the last accepted one)."""
         last_seq, last_t = self.last_seq, self.last_t_us
         thr = self.threshold_us
         if last_t is None or last_seq is None:  # the first frame (both are set together)
@@ -124,7 +128,9 @@ class FrameAdmission:
         step = (t_us - last_t) / 1e6
         where = f"seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the last accepted one (seq {last_seq})"
         if t_us > last_t + thr:
-            if seq_forward and self._on_the_streams_rate(seq, t_us):
+            if seq_forward and (
+                self._on_the_streams_rate(seq, t_us) or (reference_us is not None and abs(t_us - reference_us) <= thr)
+            ):
                 return self._accept(seq, t_us, "")
             return self._candidate(seq, t_us, far=True, reason="time_ahead", message=f"frame {where}")
         far = t_us < last_t - thr

@@ -64,20 +64,64 @@ def test_frames_the_queue_dropped_during_a_stall_are_a_gap_not_a_clock_step():
 
 
 def test_a_stamp_step_of_1_2_s_with_the_numbering_moving_by_one_is_a_clock_step():
-    """Stamps 1.2 s ahead, each frame numbered next: refused until TIME_CONFIRM_FRAMES agree, then a time reset."""
+    """Stamps 1.2 s ahead of the telemetry, each frame numbered next: refused until TIME_CONFIRM_FRAMES agree, then
+    a time reset. The telemetry runs on at the true time (a stamp in step with it would be a camera pause)."""
     rig = Rig(ready_after=3)
     rig.run(10)
     step_us = 1_200_000
-    rig.feed_until(rig.scene.t_us(10 + 36 + TIME_CONFIRM_FRAMES) + 45_000)
+    rig.feed_until(rig.scene.t_us(10 + TIME_CONFIRM_FRAMES) + 45_000)
     for i in range(TIME_CONFIRM_FRAMES - 1):
         with pytest.raises(FrameRejected) as ei:
             rig.pipe.process(rig.scene.frame(10 + i, time_boot_us=rig.scene.t_us(10 + i) + step_us))
         assert ei.value.reason == "time_ahead"
     k = 10 + TIME_CONFIRM_FRAMES - 1
     tr = rig.pipe.process(rig.scene.frame(k, time_boot_us=rig.scene.t_us(k) + step_us))
-    assert tr.seq == k
-    assert rig.counter.counts == {"frame_time_ahead": TIME_CONFIRM_FRAMES - 1, "frame_time_reset": 1}
+    assert tr.seq == k and not tr.has_position  # its stamp is where the telemetry has not been yet
+    assert rig.counter.counts == {
+        "frame_time_ahead": TIME_CONFIRM_FRAMES - 1,
+        "frame_time_reset": 1,
+        "pose_attitude_gap": 1,
+    }
     assert rig.pipe.estimator_resets == 1 and "reset" in _kinds(rig)
+
+
+def test_a_camera_pause_with_the_telemetry_running_on_is_a_gap_not_a_clock_step():
+    """The camera stops for 1.5 s and numbers its frames on from where it stopped (its rate cannot place them):
+    stamps in step with the telemetry are taken at once, with the same estimate."""
+    rig = Rig(ready_after=3)
+    tracks = rig.run(10)
+    n_pause = int(STALL_S * FRAME_RATE_HZ)
+    for i in range(5):
+        k = 10 + n_pause + i
+        rig.feed_until(rig.scene.t_us(k) + 45_000)
+        tracks.append(rig.pipe.process(rig.scene.frame(k, seq=10 + i), 0))
+    assert [t.seq for t in tracks[10:]] == list(range(10, 15))
+    assert rig.counter.total == 0 and rig.pipe.frames_rejected == 0
+    assert _kinds(rig) == ["add"] * 15 and rig.pipe.estimator_resets == 0
+    assert all(t.has_position for t in tracks[10:])
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    period_us=st.integers(10_000, 100_000),
+    pause_us=st.integers(1_000_001, 600_000_000),
+    seq_on=st.integers(1, 1000),
+    lag_us=st.integers(-999_000, 999_000),
+)
+def test_a_frame_after_any_pause_in_step_with_the_telemetry_is_taken(period_us, pause_us, seq_on, lag_us):
+    """However long the pause and whatever the numbering did (forward), a frame within the threshold of the
+    telemetry's newest time is the next one; the same frame with the telemetry unknown waits for a run."""
+    adm = FrameAdmission(THRESHOLD_US, RESTART_COUNT)
+    for k in range(3):
+        assert adm.admit(k, 10**9 + k * period_us).accepted
+    t_us = 10**9 + 2 * period_us + pause_us
+    blind = FrameAdmission(THRESHOLD_US, RESTART_COUNT)
+    for k in range(3):
+        blind.admit(k, 10**9 + k * period_us)
+    assert blind.admit(2 + seq_on, t_us).reason == "time_ahead"
+    v = adm.admit(2 + seq_on, t_us, reference_us=t_us + lag_us)
+    assert (v.accepted, v.reason, v.restart) == (True, "", False)
+    assert adm.admit(3 + seq_on, t_us + period_us).accepted
 
 
 def test_a_frame_far_ahead_with_its_numbering_far_ahead_too_is_one_odd_frame():
