@@ -25,6 +25,8 @@ ONBOARD_CONFIG = REPO / "config" / "onboard_sim.yaml"
 READY_TIMEOUT_S = 40.0
 SIM_ALLOWANCE_S = 30.0
 DURATION_S = 10.0
+FRAME_RATE_HZ = 30  # the simulator's camera in P1
+DRAIN_TIMEOUT_S = 8.0
 
 
 @dataclass
@@ -131,11 +133,16 @@ def record_pair(
             )
         else:
             assert sim.returncode == 0, f"simulator exited {sim.returncode}:\n{log_tail(out / 'sim.log')}"
+            # The daemon drains its queue, and has received every frame sent (its status, once a second, says
+            # so): stopped earlier, the last frame may still be on its way to it under the suite's load.
+            n_sent = int(duration_s * FRAME_RATE_HZ)
             last = len(store.tracks)
-            t_end = time.monotonic() + 5.0
-            while time.monotonic() < t_end:  # the daemon drains its queue
+            t_end = time.monotonic() + DRAIN_TIMEOUT_S
+            while time.monotonic() < t_end:
                 time.sleep(0.3)
-                if len(store.tracks) == last:
+                status = store.snapshot()[1] or {}
+                frames_in = status.get("frames", {}).get("in", 0)
+                if len(store.tracks) == last and frames_in >= n_sent:
                     break
                 last = len(store.tracks)
     finally:
