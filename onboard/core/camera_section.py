@@ -1,5 +1,6 @@
 """The camera intrinsics section that the daemon's config (``camera.intrinsics``) and the scenario files
-(``camera.intrinsics``) share: its check that a given principal point lies inside the image, and its
+(``camera.intrinsics``) share: its checks that a given principal point lies inside the image and that the
+lens model can be inverted over it, and its
 :class:`~onboard.core.frames.PinholeIntrinsics` (a null ``cx_px`` / ``cy_px`` is the image centre).
 
 A mixin of the two pydantic section classes, which declare the fields (their bounds and defaults differ)."""
@@ -34,6 +35,13 @@ class PinholeSection:
             v = getattr(self, name)
             if v is not None and not 0.0 <= v <= size:
                 raise Invalid(name, f"a number in [0, {size}] (inside the image){self.CENTRE_EXPECT_SUFFIX}", v)
+        if (failure := self.pinhole().undistortion_failure()) is not None:
+            raise Invalid(
+                "distortion",
+                "coefficients (k1, k2, p1, p2, k3) whose lens model can be inverted over the whole image",
+                self.distortion,
+                hint=f"{failure}: check the calibration's signs and scale (OpenCV's order, normalised coordinates)",
+            )
 
     def pinhole(self) -> PinholeIntrinsics:
         cx = self.width_px / 2.0 if self.cx_px is None else self.cx_px

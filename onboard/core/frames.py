@@ -564,6 +564,14 @@ def camera_pose_ned(p_body_ned_m, q_ned_from_body, mount: CameraMount, q_mount_f
     return p_cam, q_nc
 
 
+#: a pixel's undistortion is trusted when re-distorting it lands this close (well under a centroid's error)
+UNDISTORT_TOLERANCE_PX = 0.01
+#: points checked along each ray from the principal point to the image's edge
+RAY_STEPS = 64
+#: Newton's undistortion stops when the model's residual is this small (normalised units: ~1e-10 px)
+NEWTON_DONE = 1e-13
+
+
 @dataclass(frozen=True)
 class PinholeIntrinsics:
     """Pinhole camera with optional radial-tangential distortion (OpenCV order k1, k2, p1, p2, k3)."""
@@ -618,14 +626,71 @@ class PinholeIntrinsics:
         return np.stack([xd, yd], axis=-1)
 
     def undistort_normalized(self, xy_d, iterations: int = 20) -> np.ndarray:
-        """Distorted normalised coordinates -> ideal ones (fixed-point iteration, as OpenCV)."""
+        """Distorted normalised coordinates -> ideal ones, by Newton's method on the model's own Jacobian.
+
+        OpenCV's fixed-point iteration converges only where the model bends little: with a wide thermal lens
+        (fx 300 px on 640 x 512, 94 deg across, k1 -0.3, k2 0.05) twenty of its steps leave the corners 6 px
+        off.  Newton's steps converge wherever the model does not fold, which :meth:`undistortion_failure`
+        checks over the image."""
         xy_d = np.asarray(xy_d, dtype=float)
         if not self.has_distortion:
             return xy_d
+        k1, k2, p1, p2, k3 = self.distortion
         xy = xy_d.copy()
         for _ in range(iterations):
-            xy = xy + (xy_d - self.distort_normalized(xy))
+            res = xy_d - self.distort_normalized(xy)
+            if not np.any(np.abs(res) > NEWTON_DONE):  # NaN goes on to the iteration limit, and stays NaN
+                break
+            x, y = xy[..., 0], xy[..., 1]
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
+            a = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x  # d xd / dx
+            b = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y  # d xd / dy = d yd / dx
+            d = radial + 2 * y * y * d_radial + 6 * p1 * y + 2 * p2 * x  # d yd / dy
+            with np.errstate(divide="ignore", invalid="ignore"):
+                det = a * d - b * b
+                step = np.stack(
+                    [(d * res[..., 0] - b * res[..., 1]) / det, (a * res[..., 1] - b * res[..., 0]) / det], -1
+                )
+            xy = xy + step
         return xy
+
+    def undistortion_failure(self, tolerance_px: float = UNDISTORT_TOLERANCE_PX) -> str | None:
+        """Where :meth:`normalized_from_pixel` fails inside the image, in words, or None where it holds.
+
+        A lens model holds when each pixel has one ideal point the undistortion finds: along rays
+        from the principal point to the image's corners and edge midpoints, the ideal radius grows with the
+        pixel's (no fold), and re-distorting the ideal point lands within ``tolerance_px`` of the pixel.  Strong
+        or mistyped coefficients (a sign or decimal slip) fail one of the two and would turn every pixel near
+        the edges into a confidently wrong bearing."""
+        if not self.has_distortion:
+            return None
+        t = np.linspace(1.0 / RAY_STEPS, 1.0, RAY_STEPS)[:, None]
+        w, h = float(self.width_px), float(self.height_px)
+        centre = np.array([self.cx_px, self.cy_px])
+        ends = [(0.0, 0.0), (w, 0.0), (w, h), (0.0, h), (w / 2, 0.0), (w, h / 2), (w / 2, h), (0.0, h / 2)]
+        for end in ends:
+            d = np.asarray(end) - centre
+            if not d.any():
+                continue
+            uv = centre + t * d
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverging model is what this looks for
+                xy = self.normalized_from_pixel(uv)
+                back = self.distort_normalized(xy)
+            back_px = np.stack([self.fx_px * back[:, 0] + self.cx_px, self.fy_px * back[:, 1] + self.cy_px], axis=-1)
+            err = np.hypot(*(back_px - uv).T)
+            err = np.where(np.isfinite(err), err, np.inf)
+            r = np.hypot(xy[:, 0], xy[:, 1])
+            where = f"towards pixel ({end[0]:g}, {end[1]:g})"
+            bad = err > tolerance_px
+            if bad.any():
+                i = int(np.argmax(bad))
+                return f"pixel ({uv[i, 0]:.0f}, {uv[i, 1]:.0f}) does not undistort (off by {err[i]:.3g} px)"
+            if not np.all(np.diff(r) > 0.0):
+                i = int(np.argmax(np.diff(r) <= 0.0)) + 1
+                return f"the model folds {where}: pixel ({uv[i, 0]:.0f}, {uv[i, 1]:.0f}) maps back towards the centre"
+        return None
 
     def project(self, p_cam_m) -> np.ndarray:
         """Camera-frame points (..., 3) -> pixels (..., 2).  Points with z <= 0 give NaN."""

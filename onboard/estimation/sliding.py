@@ -519,13 +519,8 @@ class SlidingWindowEstimator:
                 return self.carry(self._last_est, t, p)
             return self.predict(t, p)
         if intrinsics.has_distortion:
-            uv = np.asarray(
-                (
-                    intrinsics.cx_px + intrinsics.fx_px * intrinsics.normalized_from_pixel(uv)[0],
-                    intrinsics.cy_px + intrinsics.fy_px * intrinsics.normalized_from_pixel(uv)[1],
-                ),
-                dtype=float,
-            )
+            xy = intrinsics.normalized_from_pixel(uv)
+            uv = np.asarray((intrinsics.cx_px + intrinsics.fx_px * xy[0], intrinsics.cy_px + intrinsics.fy_px * xy[1]))
         self._t.append(t)
         self._uv.append(uv)
         self._k.append((intrinsics.fx_px, intrinsics.fy_px, intrinsics.cx_px, intrinsics.cy_px))

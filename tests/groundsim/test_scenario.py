@@ -513,6 +513,12 @@ BAD_CASES = [
         "camera.intrinsics.distortion",
         "5 finite numbers (k1, k2, p1, p2, k3)",
     ),
+    (
+        "camera.intrinsics.distortion",
+        [0, 0, 0.5, 0, 0],
+        "camera.intrinsics.distortion",
+        "inverted over the whole image",
+    ),
     ("camera.gimbal.pointing_error_period_s", [7, 0, 3], "camera.gimbal.pointing_error_period_s[1]", "> 0 s"),
     (
         "camera.gimbal.pointing_error_frac_of_range",

@@ -194,6 +194,13 @@ BAD = [
         None,
     ),
     (
+        "camera: {intrinsics: {distortion: [-1.0, 0, 0, 0, 0]}}",  # no ideal point reaches the corners
+        "camera.intrinsics.distortion",
+        "can be inverted over the whole image",
+        "(-1.0, 0.0, 0.0, 0.0, 0.0)",
+        "check the calibration's signs and scale (OpenCV's order, normalised coordinates)",
+    ),
+    (
         "camera: {mount: {lever_arm_frd_m: [1, 2]}}",
         "camera.mount.lever_arm_frd_m",
         "a list of 3 finite numbers",

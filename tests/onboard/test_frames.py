@@ -185,6 +185,50 @@ def test_project_and_bearing_round_trip_with_distortion(du, dv):
     assert np.allclose(K.project(b * 37.0), uv, atol=1e-6)
 
 
+@given(
+    fx=st.floats(250.0, 2000.0, **finite),
+    k1=st.floats(-0.6, 0.6, **finite),
+    k2=st.floats(-0.4, 0.4, **finite),
+    p=st.tuples(st.floats(-0.02, 0.02, **finite), st.floats(-0.02, 0.02, **finite)),
+    k3=st.floats(-0.2, 0.2, **finite),
+    uv=st.tuples(st.floats(0.0, 640.0, **finite), st.floats(0.0, 512.0, **finite)),
+)
+@settings(max_examples=300, deadline=None)
+def test_every_pixel_of_a_lens_the_check_passes_undistorts(fx, k1, k2, p, k3, uv):
+    """Wide and narrow lenses, barrel and pincushion: where the check finds no fault, any pixel of the image
+    goes to a bearing that projects back onto it; where it finds one, some pixel really is off."""
+    K = fr.PinholeIntrinsics(fx, fx, 320.0, 256.0, 640, 512, (k1, k2, p[0], p[1], k3))
+    failure = K.undistortion_failure()
+    if failure is None:
+        b = K.bearing_cam_from_pixel(np.array(uv))
+        assert np.allclose(K.project(b * 37.0), uv, atol=1e-6)
+    else:
+        pixels = [np.array([float(v) for v in part.split(")")[0].split(", ")]) for part in failure.split("pixel (")[1:]]
+        with np.errstate(over="ignore", invalid="ignore"):
+            if "does not undistort" in failure:
+                back = K.project(K.bearing_cam_from_pixel(pixels[0]))
+                assert not np.allclose(back, pixels[0], atol=fr.UNDISTORT_TOLERANCE_PX / 2), failure
+            else:  # a fold: along the ray, sampled 16 times as finely, an ideal point goes back towards the centre
+                centre = np.array([K.cx_px, K.cy_px])
+                ray = centre + np.linspace(0.0, 1.0, 16 * fr.RAY_STEPS + 1)[1:, None] * (pixels[0] - centre)
+                r = np.hypot(*K.normalized_from_pixel(ray).T)
+                assert "folds" in failure and not np.all(np.diff(r) > 0.0), failure
+
+
+def test_a_wide_thermal_lens_undistorts_to_its_corners():
+    """fx 300 px on 640 x 512 (94 deg across) with a strong barrel: twenty of OpenCV's fixed-point steps leave the
+    corner 6 px off; Newton's put the corner pixel's bearing back onto it."""
+    K = fr.PinholeIntrinsics(300.0, 300.0, 320.0, 256.0, 640, 512, (-0.3, 0.05, 0.0, 0.0, 0.0))
+    assert K.undistortion_failure() is None
+    xy_d = np.array([-320.0, -256.0]) / 300.0
+    xy = xy_d.copy()
+    for _ in range(20):
+        xy = xy + (xy_d - K.distort_normalized(xy))
+    assert 300.0 * np.hypot(*(K.distort_normalized(xy) - xy_d)) > 1.0
+    for uv in ([0.0, 0.0], [640.0, 512.0], [0.0, 256.0]):
+        assert np.allclose(K.project(K.bearing_cam_from_pixel(np.array(uv))), uv, atol=1e-9)
+
+
 def test_project_signs_and_behind_camera():
     K = fr.PinholeIntrinsics.vue_pro_640()
     u, v = K.project([1.0, 2.0, 100.0])
