@@ -18,8 +18,10 @@ module decides what to do with them (MAVLink common, v2 framing):
   through :class:`ClockSync` instead.  ``angular_velocity_x/y/z`` (rad/s, same frame as ``q``; NaN =
   unknown) -> ``omega_ref_rps``.  Requested at ``gimbal_rate_hz`` (50 Hz: a sample at most 20 ms
   before any frame, so a frame's gimbal extrapolation stays within its horizon).
-* ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; answers feed :class:`ClockSync`;
-  the autopilot's requests are answered with ``tc1 = clock_ns()``.
+* ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; the autopilot component's answers feed
+  :class:`ClockSync` (another component's, on its own clock, are counted ``timesync_foreign``; one
+  addressed to another requester is not ours); requests of the autopilot's system are answered with
+  ``tc1 = clock_ns()``.  Requests and replies name their target where the dialect has the fields.
 * ``GPS_RAW_INT`` (#24) of the autopilot (its default stream; not requested): fix type, satellites, DOPs and
   accuracies -> :class:`~onboard.core.gnss.GnssState` (``gnss``, the status's ``link.gnss``; the watchdog's
   ``gnss_degraded``).  A fix type outside GPS_FIX_TYPE is counted (``gps_raw_fix_type``) and dropped.
@@ -705,7 +707,7 @@ class MavlinkLink:
             if self.gimballed:
                 self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), from_autopilot)
         elif mtype == "TIMESYNC":
-            self._on_timesync(Timesync.from_message(msg))
+            self._on_timesync(Timesync.from_message(msg), src_comp, from_autopilot)
         elif mtype == "SYSTEM_TIME" and from_autopilot:
             st = SystemTime.from_message(msg)
             self.utc_clock.add_system_time(st.time_boot_us, st.time_unix_us)
@@ -783,10 +785,23 @@ class MavlinkLink:
                 return
         self._pose.add_gimbal_status(t_us, gim.q_ref_from_gimbal, gim.reference, gim.omega_ref_rps)
 
-    def _on_timesync(self, ts: Timesync) -> None:
+    def _on_timesync(self, ts: Timesync, src_comp: int, from_autopilot: bool) -> None:
         now_ns = int(self._clock_ns())
+        sysid = self.autopilot_sysid or 0
         if ts.is_request:
-            self._send("TIMESYNC reply", Timesync(now_ns, ts.ts1_ns).to_message())
+            self._send("TIMESYNC reply", Timesync(now_ns, ts.ts1_ns, sysid, src_comp).to_message())
+            return
+        if (ts.target_system, ts.target_component) not in ((0, 0), (sysid, self.config.component_id)):
+            return  # an answer to another component's request
+        if not from_autopilot:
+            # Another component of the vehicle (a companion's MAVLink router, a gimbal) answers broadcast
+            # requests too, with its own clock: only the autopilot's is the boot clock the pose is stamped on.
+            if ts.ts1_ns in self._ts_outstanding:
+                self._counters.count(
+                    "timesync_foreign",
+                    f"TIMESYNC answer from component {src_comp} of system {sysid}: only the autopilot's "
+                    f"(component {self.config.autopilot_compid}) sets the boot clock",
+                )
             return
         if ts.ts1_ns in self._ts_outstanding:
             del self._ts_outstanding[ts.ts1_ns]
@@ -860,7 +875,7 @@ class MavlinkLink:
             self._ts_outstanding[ts1] = None
             while len(self._ts_outstanding) > MAX_OUTSTANDING_TIMESYNC:
                 self._ts_outstanding.popitem(last=False)
-            self._send("TIMESYNC", Timesync(0, ts1).to_message())
+            self._send("TIMESYNC", Timesync(0, ts1, self.autopilot_sysid or 0, self.config.autopilot_compid).to_message())
 
     def _request_rates(self) -> None:
         self.rates_confirmed.clear()

@@ -255,6 +255,23 @@ def test_timesync_maps_local_clock_to_autopilot_boot_clock(rig):
     assert abs(reply.tc1 - time.monotonic_ns()) < 1_000_000_000
 
 
+def test_timesync_answers_of_another_component_do_not_set_the_boot_clock(rig):
+    """A gimbal or a companion's router on the autopilot's system answers our broadcast-era requests with its own
+    clock: counted, never used; the autopilot's own answers are."""
+    rig.connect()
+    assert rig.drive(lambda: rig.link.clock_sync.n_samples == 1)  # the request sent on connecting
+    rig.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
+    for _ in range(3):
+        rig.clock.t_s += 1.0
+        n = len(rig.ap.got("TIMESYNC"))
+        assert rig.drive(lambda n=n: len(rig.ap.got("TIMESYNC")) > n)
+        rig.drive(lambda: False, timeout_s=0.05)
+    assert rig.link.clock_sync.n_samples == 1 and rig.counters["timesync_foreign"] == 3
+    rig.ap.as_component(AP_SYSID, 1)
+    rig.clock.t_s += 1.0
+    assert rig.drive(lambda: rig.link.clock_sync.n_samples == 2)
+
+
 def test_reboot_resets_pose_and_clock_and_rerequests_rates(rig):
     rig.connect()
     for k in range(3):
