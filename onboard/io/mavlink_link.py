@@ -182,6 +182,11 @@ class MavlinkConfig:
     ``autopilot_ambiguous`` is counted: pin the id).  A stray heartbeat cannot win.  After the lock,
     another system heartbeating as an autopilot is counted (``second_autopilot``), never followed.
 
+    ``gimbal_device_id``: the gimbal the camera is on (a gimballed mount), as CAMERA_INFORMATION names it:
+    the gimbal device's component id, or 1-6 for a gimbal its manager (e.g. the autopilot) speaks for
+    (GIMBAL_DEVICE_ATTITUDE_STATUS's ``gimbal_device_id``).  None: the first one heard.  Another gimbal's
+    attitude is counted (``second_gimbal``) and never mixed into the pose.
+
     ``signing_key_file`` / ``signing_key_env``: where the MAVLink 2 signing key is read from
     (:meth:`signing_key`); with a key, unsigned, MAVLink 1, wrongly signed, replayed and stale packets
     are refused and counted, and everything we send is signed.
@@ -203,6 +208,7 @@ class MavlinkConfig:
     autopilot_compid: ComponentId = mavlink2.MAV_COMP_ID_AUTOPILOT1
     component_id: ComponentId = mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER
     poll_rate_hz: Annotated[float, Number(100.0, 10000.0)] = 200.0
+    gimbal_device_id: Annotated[int | None, Integer(1, 255)] = None
 
     def __post_init__(self) -> None:
         try:
@@ -465,6 +471,8 @@ class MavlinkLink:
         self._extra_destinations = extra_destinations
         #: GIMBAL_DEVICE_ATTITUDE_STATUS messages received, used or not (the watchdog's gimbal check)
         self.gimbal_reports = 0
+        #: the gimbal followed (MavlinkConfig.gimbal_device_id's numbering); None until one is heard
+        self.gimbal_device_id: int | None = config.gimbal_device_id
         self._clock = clock
         self._clock_ns = clock_ns
         self.clock_sync = clock_sync if clock_sync is not None else ClockSync(counter=counters)
@@ -705,7 +713,7 @@ class MavlinkLink:
         elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
             self.gimbal_reports += 1  # the watchdog checks it against the configured mount
             if self.gimballed:
-                self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), from_autopilot)
+                self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), src_comp, from_autopilot)
         elif mtype == "TIMESYNC":
             self._on_timesync(Timesync.from_message(msg), src_comp, from_autopilot)
         elif mtype == "SYSTEM_TIME" and from_autopilot:
@@ -771,7 +779,20 @@ class MavlinkLink:
             self._request_rates()
             self._last_ts_tx_s = -math.inf
 
-    def _on_gimbal(self, gim: GimbalDeviceAttitudeStatus, from_autopilot: bool) -> None:
+    def _on_gimbal(self, gim: GimbalDeviceAttitudeStatus, src_comp: int, from_autopilot: bool) -> None:
+        # common.xml: gimbal_device_id is 1-6 when the manager speaks for its device, else 0 and the sender's
+        # component id names the device; a vehicle may carry several (e.g. ArduPilot's MNT1 and MNT2)
+        device = gim.gimbal_device_id or src_comp
+        if self.gimbal_device_id is None:
+            self.gimbal_device_id = device
+            log.info("following gimbal %d (component %d)", device, src_comp)
+        elif device != self.gimbal_device_id:
+            self._counters.count(
+                "second_gimbal",
+                f"gimbal {device} (component {src_comp}) reports too; following gimbal {self.gimbal_device_id} "
+                "only: set mavlink.gimbal_device_id to the camera's",
+            )
+            return
         if not gim.attitude_usable:
             self._counters.count("gimbal_failure", f"failure_flags=0x{gim.failure_flags:x}")
             return

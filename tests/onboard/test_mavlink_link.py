@@ -344,14 +344,15 @@ def test_gimbal_status_reaches_the_pose_buffer():
                     gimbal_device_id=0,
                 )
             )
-        # a separate gimbal component: its clock is unknown until TIMESYNC converged
+        # a second gimbal (its own component) on the same vehicle: never mixed into the camera's pose
         r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
         r.ap.send(
             GimbalDeviceAttitudeStatus(
-                77_000, (1.0, 0.0, 0.0, 0.0), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=0
+                1_050_000, (1.0, 0.0, 0.0, 0.0), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=0
             )
         )
-        assert r.drive(lambda: r.pose.sizes()["gimbal"] == 3 and r.counters["gimbal_clock_unsynced"] == 1)
+        assert r.drive(lambda: r.pose.sizes()["gimbal"] == 3 and r.counters["second_gimbal"] == 1)
+        assert r.link.gimbal_device_id == 1
         for t in (1000, 1050, 1100, 1150, 1200):
             r.pose.add_attitude(t * 1000, quat_from_euler(0.0, 0.0, math.radians(90.0)))
             r.pose.add_position_ned(t * 1000, [0.0, 0.0, -50.0])
@@ -359,6 +360,21 @@ def test_gimbal_status_reaches_the_pose_buffer():
         # vehicle frame: 40 deg down, along the nose (east)
         axis = quat_rotate(pose.q_ned_from_cam, [0.0, 0.0, 1.0])
         np.testing.assert_allclose(axis, [0.0, math.cos(math.radians(40)), math.sin(math.radians(40))], atol=1e-6)
+    finally:
+        r.close()
+
+
+def test_a_separate_gimbal_component_waits_for_timesync():
+    """A gimbal device of its own (component 154, gimbal_device_id 0) stamps on its own clock: its samples wait for
+    TIMESYNC; the autopilot's gimbal 2 (ArduPilot's MNT2) is another gimbal; the configured id picks the camera's."""
+    r = Rig(gimballed=True, config=dataclasses.replace(UNPINNED, gimbal_device_id=mav.MAV_COMP_ID_GIMBAL))
+    try:
+        r.connect()
+        r.ap.send(GimbalDeviceAttitudeStatus(1_000_000, (1.0, 0.0, 0.0, 0.0), 0, gimbal_device_id=2))
+        r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
+        r.ap.send(GimbalDeviceAttitudeStatus(77_000, (1.0, 0.0, 0.0, 0.0), 0, gimbal_device_id=0))
+        assert r.drive(lambda: r.counters["gimbal_clock_unsynced"] == 1 and r.counters["second_gimbal"] == 1)
+        assert r.pose.sizes()["gimbal"] == 0 and r.link.gimbal_device_id == mav.MAV_COMP_ID_GIMBAL
     finally:
         r.close()
 
