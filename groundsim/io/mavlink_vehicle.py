@@ -20,7 +20,8 @@ ATTITUDE_QUATERNION (#31)                    50 Hz     q1..q4 = w, x, y, z of ``
                                                        (body FRD -> NED, Hamilton); rollspeed,
                                                        pitchspeed, yawspeed = body rates p, q, r rad/s;
                                                        repr_offset_q = 0 (not supported, per spec)
-GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AMSL; relative_alt mm;
+GLOBAL_POSITION_INT (#33)                    25 Hz     lat, lon degE7; alt mm AMSL; relative_alt mm
+                                                       (the state's ``alt_rel_m``: above HOME_POSITION);
                                                        vx, vy, vz cm/s NED (int16, saturated);
                                                        hdg cdeg 0..35999 (UINT16_MAX if unknown)
 GIMBAL_DEVICE_ATTITUDE_STATUS (#285)         10 Hz     only when ``gimballed``: q = gimbal attitude
@@ -33,10 +34,13 @@ SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, G
                                                        current, remaining (linear drain from 100 %)
 EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
 GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position; inside
-                                                       ``gnss_outage_us`` no fix, 0 satellites (and no #33)
+                                                       ``gnss_outage_us`` no fix, 0 satellites (and no #33);
+                                                       alt_ellipsoid = alt + :data:`GEOID_UNDULATION_M`
 ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
 BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
-HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon/alt (and on request)
+HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon at the altitude its
+                                                       relative altitude is measured from
+                                                       (``alt_amsl_m - alt_rel_m``; and on request)
 AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | COMMAND_INT | PARAM_FLOAT
 ===========================================  ========  =============================================
 
@@ -187,6 +191,10 @@ _CAPABILITIES = (
     | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
     | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
 )
+#: geoid height above the WGS84 ellipsoid (m) in the simulated world: its positions are ellipsoidal heights
+#: (the NED frames of :mod:`onboard.core.frames`), reported as AMSL, so its geoid is the ellipsoid and GPS_RAW_INT's
+#: alt_ellipsoid equals its alt; common.xml gives alt_ellipsoid no "unknown" value, so 0 would claim sea level
+GEOID_UNDULATION_M = 0.0
 BATTERY_CELLS = 4
 BATTERY_FULL_V, BATTERY_EMPTY_V = 4.2, 3.5  # per cell
 BATTERY_DRAIN_PCT_PER_S = 0.05  # 100 % -> 0 % in 2000 s: a long simulated flight never runs flat
@@ -452,6 +460,9 @@ class MavlinkVehicle:
 
         Units and frames as :class:`VehicleState`; ``q_gimbal`` is ``q_ned_from_gimbal`` (the
         gimbal's attitude in NED, see the module docstring), needed only when ``gimballed``.
+        ``alt_rel_m``: the altitude above home (#33's relative_alt); home is the first sample's lat/lon at
+        its ``alt_amsl_m - alt_rel_m``, so every sample's ``alt_amsl_m - alt_rel_m`` should be that same
+        altitude (the simulator's is the scenario origin's: the ground the observer took off from).
         ``nav_error``: a :class:`groundsim.world.nav_errors.NavErrorSample` (or None: exact) applied by
         :func:`groundsim.world.nav_errors.reported_state` before anything is stored: #31, #33 and #285 carry
         the reported attitude, position, velocity and gimbal attitude; the returned state is the reported one.
@@ -479,7 +490,7 @@ class MavlinkVehicle:
         )
         self._state = state
         if self._home is None:
-            self._home = state  # home = where the first sample was
+            self._home = state  # home: under (or over) the first sample, at the altitude relative_alt starts from
         return state
 
     def message_interval_us(self, msg_id: int) -> int | None:
@@ -648,7 +659,7 @@ class MavlinkVehicle:
                 vel,
                 cog,
                 0 if no_fix else 14,
-                alt_mm,
+                alt_mm + round(GEOID_UNDULATION_M * 1000.0),
                 500,
                 800,
                 200,
@@ -664,7 +675,7 @@ class MavlinkVehicle:
             mav.home_position_send(
                 round(h.lat_deg * 1e7),
                 round(h.lon_deg * 1e7),
-                round(h.alt_amsl_m * 1000.0),
+                round((h.alt_amsl_m - h.alt_rel_m) * 1000.0),  # what every relative_alt is measured from
                 0.0,
                 0.0,
                 0.0,

@@ -552,6 +552,12 @@ class SimCore:
         return float(self.times_s[i])
 
     def vehicle_state(self, i: int) -> dict:
+        """Tick ``i``'s observer as :meth:`groundsim.io.mavlink_vehicle.MavlinkVehicle.update_state` takes it.
+
+        ``alt_rel_m`` (GLOBAL_POSITION_INT's "altitude above home") is above the scenario origin's altitude, the
+        ground the observer took off from: the vehicle's HOME_POSITION is at that altitude (below the first
+        sample), so the two agree on every tick and under navigation errors, which move both altitudes alike.
+        """
         c = self.flight.chunk_of(i)
         j = i - c.i0
         return dict(

@@ -600,6 +600,8 @@ class OnboardService:
         if sysid is None:
             return 0
         gcs.set_system_id(sysid)
+        # CAMERA_INFORMATION names the gimbal the camera is on: the one the link follows (0: none, or not heard yet)
+        cam.gimbal_device_id = (getattr(self.link, "gimbal_device_id", None) or 0) if self.mount.gimballed else 0
         boot_ms = int((now - self._started_s) * 1000)
         track = self._current_track(now)
         sent = 0

@@ -19,8 +19,10 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   MAV_CMD_REQUEST_MESSAGE (512) param1 = 259         CAMERA_INFORMATION
   MAV_CMD_REQUEST_CAMERA_INFORMATION (521)           CAMERA_INFORMATION
   REQUEST_MESSAGE 260 / REQUEST_CAMERA_SETTINGS 522  CAMERA_SETTINGS (mode video, no zoom/focus)
-  REQUEST_MESSAGE 261 / REQUEST_STORAGE_INF. 525     STORAGE_INFORMATION (storage_count 0: none)
-  REQUEST_MESSAGE 262 / REQUEST_CAMERA_CAPT. 527     CAMERA_CAPTURE_STATUS (idle)
+  REQUEST_MESSAGE 261 / REQUEST_STORAGE_INF. 525     STORAGE_INFORMATION (storage_count 0, status
+                                                     NOT_SUPPORTED: we store nothing)
+  REQUEST_MESSAGE 262 / REQUEST_CAMERA_CAPT. 527     CAMERA_CAPTURE_STATUS (idle; available_capacity 0:
+                                                     common.xml has no "unknown" value for it)
   REQUEST_MESSAGE 269 (param2 stream id, 0 = all)    VIDEO_STREAM_INFORMATION (when a stream is
   / REQUEST_VIDEO_STREAM_INFORMATION 2504 (param1)   configured; else DENIED)
   REQUEST_MESSAGE 270 / REQUEST_VIDEO_STREAM_ST. 2505 VIDEO_STREAM_STATUS
@@ -40,10 +42,26 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   (param "target camera ID" not 0 nor our component id) is DENIED.  A tracking request that the
   pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED.
   A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
+* A tracking command while an earlier one of the same id from the same requester waits for the
+  pipeline (the command protocol, mavlink.io services/command; QGC's MavCommandQueue):
+
+  - a retransmission (COMMAND_LONG ``confirmation`` > 0, the same seven parameters) is not acted on
+    again; it is answered IN_PROGRESS (progress unknown) at once, and the decision's ACK follows.  The
+    sender's timeout was shorter than the decision: IN_PROGRESS tells it the command arrived and
+    stops its retries (QGC restarts its timer and tries no more);
+  - any other (``confirmation`` 0, other parameters, or a COMMAND_INT, which has no confirmation
+    field) is a new command: it supersedes the waiting one and gets the ACK of what it does.  The
+    superseded one gets none: COMMAND_ACK names only the command id, and a sender that sends the
+    same id again has given up on the first (QGC refuses to send a command while one of the same id
+    to the same component is unanswered), so an ACK for it would be read as the new one's answer.
+    The pipeline still decides it first (requests are applied in order on the next frame; the later
+    selection wins), and its outcome still sets the selection mode of #275.
 * CAMERA_INFORMATION: vendor/model, ``firmware_version``, focal length (mm) = ``fx_px x pixel
   pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
   a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
-  ``camera_device_id`` 0 (we are the camera component).
+  ``camera_device_id`` 0 (we are the camera component), ``gimbal_device_id`` the gimbal the camera is
+  on (:attr:`CameraProtocol.gimbal_device_id`: the gimbal device's component id, or 1-6 for one its
+  manager speaks for; 0 for a fixed mount or while the gimbal is not yet known).
 * VIDEO_STREAM_INFORMATION / STATUS: stream 1 of 1, type by ``video.transport``
   (:func:`video_stream_type`: ``rtp`` -> RTPUDP 1, ``mpegts`` -> MPEG_TS 3; common.xml, "URI gives
   the port number" for both), ``uri`` the UDP port the ground station listens on (QGC's VideoManager
@@ -54,7 +72,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the
   tracking ends, with status IDLE (QGC clears its box on it), then nothing until tracking resumes.
   #275's mode is the selection's (POINT for TRACK_POINT, RECTANGLE for TRACK_RECTANGLE and for an
-  automatic acquisition); fields of the other mode are NaN.  ACTIVE | COASTING (8) while the
+  automatic acquisition); fields of the other mode are NaN.  POINT's ``radius`` is the tracked
+  object's (half its box's larger side over the image width), NaN without a box: the command's own
+  radius is the search area around the click, not the target.  ACTIVE | COASTING (8) while the
   tracker predicts.  #276 only for a position the estimator calls observable (unless
   ``observable_only`` is off); ``camera_device_id`` 0 in both (common.xml: 0 = the sender is a
   MAVLink camera, its component id identifies it).
@@ -101,6 +121,7 @@ MAV_RESULT_TEMPORARILY_REJECTED = 1
 MAV_RESULT_DENIED = 2
 MAV_RESULT_UNSUPPORTED = 3
 MAV_RESULT_FAILED = 4
+MAV_RESULT_IN_PROGRESS = 5
 MAV_SEVERITY_WARNING = 4
 MAV_SEVERITY_INFO = 6
 
@@ -143,6 +164,9 @@ CAMERA_TRACKING_MODE_NONE = 0
 CAMERA_TRACKING_MODE_POINT = 1
 CAMERA_TRACKING_MODE_RECTANGLE = 2
 CAMERA_TRACKING_STATUS_FLAGS_IDLE = 0
+STORAGE_STATUS_NOT_SUPPORTED = 3
+#: COMMAND_ACK.progress when it is not known
+PROGRESS_UNKNOWN = 255
 
 TRACKING_FLAGS = (
     CAMERA_CAP_FLAGS_HAS_TRACKING_POINT
@@ -285,17 +309,22 @@ class VideoStream:
 @dataclass(frozen=True)
 class CameraCommand:
     """A COMMAND_LONG / COMMAND_INT addressed to the camera (``params``: its 7 parameters as floats;
-    COMMAND_INT's x/y are passed as received, they are not used by any command we support)."""
+    COMMAND_INT's x/y are passed as received, they are not used by any command we support).
+
+    ``confirmation``: COMMAND_LONG's (0 = first transmission, 1-255 = retransmissions); 0 for a
+    COMMAND_INT, which has no such field."""
 
     command: int
     params: tuple[float, float, float, float, float, float, float]
     src_system: int
     src_component: int
+    confirmation: int = 0
 
     def __post_init__(self) -> None:
         if len(self.params) != 7:
             raise InputError(f"CameraCommand.params must be 7 numbers, got {len(self.params)}")
         object.__setattr__(self, "params", tuple(float(p) for p in self.params))
+        _int_in("CameraCommand.confirmation", self.confirmation, 0, 255)
 
 
 @dataclass(frozen=True)
@@ -312,8 +341,10 @@ class Outgoing:
     reply_to: tuple[int, int] | None = None
 
 
-def camera_information(identity: CameraIdentity, time_boot_ms: int, has_video: bool) -> dict[str, Any]:
-    """CAMERA_INFORMATION (#259) fields."""
+def camera_information(
+    identity: CameraIdentity, time_boot_ms: int, has_video: bool, gimbal_device_id: int = 0
+) -> dict[str, Any]:
+    """CAMERA_INFORMATION (#259) fields (``gimbal_device_id``: the camera's gimbal, 0 = none)."""
     flags = TRACKING_FLAGS | (CAMERA_CAP_FLAGS_HAS_VIDEO_STREAM if has_video else 0)
     return dict(
         time_boot_ms=int(time_boot_ms) % 2**32,
@@ -329,7 +360,7 @@ def camera_information(identity: CameraIdentity, time_boot_ms: int, has_video: b
         flags=flags,
         cam_definition_version=0,
         cam_definition_uri=b"",
-        gimbal_device_id=0,
+        gimbal_device_id=_int_in("gimbal_device_id", gimbal_device_id, 0, 255),
         camera_device_id=0,
     )
 
@@ -350,6 +381,12 @@ class _Pending:
     command: int
     requester: tuple[int, int]
     deadline_s: float
+    params: tuple[float, ...]
+
+
+def _same_params(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
+    """Equal parameter lists, NaN equal to NaN (a retransmission repeats the bits it was sent with)."""
+    return len(a) == len(b) and all(x == y or (math.isnan(x) and math.isnan(y)) for x, y in zip(a, b))
 
 
 @dataclass
@@ -362,6 +399,8 @@ class CameraProtocol:
 
     ``width_px``/``height_px``: the image the normalised coordinates refer to.
     ``image_status_hz`` / ``geo_status_hz``: default rates of #275 / #276 (0 = off until asked).
+    ``gimbal_device_id``: CAMERA_INFORMATION's (0 = no gimbal); the caller sets it when it learns the
+    gimbal (the autopilot link follows one gimbal, :attr:`onboard.io.mavlink_link.MavlinkLink.gimbal_device_id`).
     """
 
     identity: CameraIdentity
@@ -374,6 +413,7 @@ class CameraProtocol:
     observable_only: bool = True
     heartbeat_interval_s: float = 1.0
     track_request_timeout_s: float = 1.0
+    gimbal_device_id: int = 0
     interval_s: dict[int, float | None] = field(init=False)
     counters: dict[str, int] = field(init=False, default_factory=dict)
     last_refusal: str | None = field(init=False, default=None)
@@ -381,6 +421,7 @@ class CameraProtocol:
 
     def __post_init__(self) -> None:
         _int_in("CameraProtocol.component_id", self.component_id, 1, 255)
+        _int_in("CameraProtocol.gimbal_device_id", self.gimbal_device_id, 0, 255)
         require_each(
             self,
             ("image_status_hz", "geo_status_hz"),
@@ -396,9 +437,10 @@ class CameraProtocol:
         self._next_due_s = {m: -math.inf for m in self.interval_s}
         self._next_hb_s = -math.inf
         self._pending: dict[int, _Pending] = {}
+        #: requests superseded while the pipeline had them: no ACK, but their outcome still sets the mode
+        self._superseded: dict[int, _Pending] = {}
         self._next_request_id = 1
         self._was_tracking = False
-        self._radius_norm = math.nan
 
     # ------------------------------------------------------------------ commands
 
@@ -454,7 +496,8 @@ class CameraProtocol:
     def _message(self, msg_id: int, index: float, time_boot_ms: int, track: Track | None) -> list[Outgoing] | None:
         ms = int(time_boot_ms) % 2**32
         if msg_id == MSG_CAMERA_INFORMATION:
-            return [Outgoing("camera_information", camera_information(self.identity, ms, self.stream is not None))]
+            info = camera_information(self.identity, ms, self.stream is not None, self.gimbal_device_id)
+            return [Outgoing("camera_information", info)]
         if msg_id == MSG_CAMERA_SETTINGS:
             return [
                 Outgoing(
@@ -476,7 +519,7 @@ class CameraProtocol:
                         time_boot_ms=ms,
                         storage_id=1,
                         storage_count=0,
-                        status=0,
+                        status=STORAGE_STATUS_NOT_SUPPORTED,
                         total_capacity=0.0,
                         used_capacity=0.0,
                         available_capacity=0.0,
@@ -583,9 +626,14 @@ class CameraProtocol:
         }[c]
         if cam_param not in (0.0, float(self.component_id)):
             return self._refuse(c, MAV_RESULT_DENIED, f"camera id {cam_param:g} is not this camera", to), None
-        for pend in self._pending.values():
-            if pend.command == c and pend.requester == to:
-                return [], None  # a retransmission of a request being decided: its ACK is coming
+        for prev_id, pend in list(self._pending.items()):
+            if pend.command != c or pend.requester != to:
+                continue
+            if cmd.confirmation > 0 and _same_params(pend.params, p):  # module docstring: retransmission
+                self._count("track_retransmission")
+                return [self._ack(c, MAV_RESULT_IN_PROGRESS, to, progress=PROGRESS_UNKNOWN)], None
+            self._superseded[prev_id] = self._pending.pop(prev_id)  # module docstring: a new command
+            self._count("track_superseded")
         rid = self._next_request_id
         self._next_request_id += 1
         W, H = self.width_px, self.height_px
@@ -603,26 +651,31 @@ class CameraProtocol:
             req = TrackRequest(rid, "rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H))
         else:
             req = TrackRequest(rid, "stop")
-        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s)
-        if c == MAV_CMD_CAMERA_TRACK_POINT:
-            self._radius_norm = p[2]
+        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s, p)
         return [], req
 
     def complete(self, result: TrackResult) -> list[Outgoing]:
         """The pipeline decided ``result.request_id``: its COMMAND_ACK (and a STATUSTEXT when refused)."""
+        superseded = self._superseded.pop(result.request_id, None)
+        if superseded is not None:  # acted on, never answered (module docstring)
+            if result.accepted:
+                self._accepted(superseded.request.kind)
+            return []
         pend = self._pending.pop(result.request_id, None)
         if pend is None:
             return []  # expired already (ACKed TEMPORARILY_REJECTED)
         if not result.accepted:
             return self._refuse(pend.command, MAV_RESULT_FAILED, result.reason or "refused", pend.requester)
-        kind = pend.request.kind
+        self._accepted(pend.request.kind)
+        return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
+
+    def _accepted(self, kind: str) -> None:
         self.selection_mode = {
             "point": CAMERA_TRACKING_MODE_POINT,
             "rectangle": CAMERA_TRACKING_MODE_RECTANGLE,
             "stop": CAMERA_TRACKING_MODE_NONE,
         }[kind]
         self._count(f"track_{kind}_accepted")
-        return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
 
     def pending_requests(self) -> int:
         return len(self._pending)
@@ -656,6 +709,8 @@ class CameraProtocol:
                 )
             )
             self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
+        for rid in [r for r, p in self._superseded.items() if now_s >= p.deadline_s]:
+            del self._superseded[rid]  # never decided: nothing to answer, nothing to forget later
         for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
             pend = self._pending.pop(rid)
             out += self._refuse(
@@ -690,7 +745,7 @@ class CameraProtocol:
         mode = (
             self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
         )
-        f = image_status_fields(track, self.width_px, self.height_px, mode=mode, radius=self._radius_norm)
+        f = image_status_fields(track, self.width_px, self.height_px, mode=mode)
         return Outgoing(
             "camera_tracking_image_status", wire_fields(CameraTrackingImageStatus(**f, camera_device_id=0).to_message())
         )
@@ -705,12 +760,17 @@ class CameraProtocol:
 
     # ------------------------------------------------------------------ helpers
 
-    def _ack(self, command: int, result: int, to: tuple[int, int]) -> Outgoing:
+    def _ack(self, command: int, result: int, to: tuple[int, int], progress: int = 0) -> Outgoing:
         self._count(f"ack_{result}")
         return Outgoing(
             "command_ack",
             dict(
-                command=command, result=result, progress=0, result_param2=0, target_system=to[0], target_component=to[1]
+                command=command,
+                result=result,
+                progress=progress,
+                result_param2=0,
+                target_system=to[0],
+                target_component=to[1],
             ),
             reply_to=to,
         )
@@ -730,7 +790,8 @@ class CameraProtocol:
         """For the status JSON: rates, selection mode, pending requests, the last refusal, counters.
 
         ``counters``: ``cmd_<name>`` per command we answer and ``cmd_unsupported`` for all others,
-        ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``: a bounded set of keys whatever is received."""
+        ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``, ``track_retransmission``, ``track_superseded``:
+        a bounded set of keys whatever is received."""
         return {
             "component_id": self.component_id,
             "selection_mode": {0: "none", 1: "point", 2: "rectangle"}[self.selection_mode],

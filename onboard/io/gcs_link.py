@@ -11,7 +11,8 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   (below).
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
-  :class:`~onboard.io.camera_protocol.CameraCommand`; it remembers on which endpoint (and, on
+  :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
+  retransmission from a new command); it remembers on which endpoint (and, on
   ``udpin``, from which address) each requester (system, component) spoke last, so replies go back
   there.
 * :meth:`GcsLink.send` sends an :class:`~onboard.io.camera_protocol.Outgoing` as the message of that
@@ -310,13 +311,15 @@ class GcsLink:
                 self._route.move_to_end(src)
                 if len(self._route) > _MAX_ROUTES:
                     self._route.popitem(last=False)
+                confirmation = 0  # COMMAND_INT has no confirmation field: each one is a first transmission
                 if mtype == "COMMAND_LONG":
                     raw = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+                    confirmation = int(msg.confirmation)
                 else:
                     raw = (msg.param1, msg.param2, msg.param3, msg.param4, float(msg.x), float(msg.y), msg.z)
                 p1, p2, p3, p4, p5, p6, p7 = (float(p) if p is not None else math.nan for p in raw)
                 params = (p1, p2, p3, p4, p5, p6, p7)
-                out.append(CameraCommand(int(msg.command), params, src[0], src[1]))
+                out.append(CameraCommand(int(msg.command), params, src[0], src[1], confirmation))
         return out
 
     def send(self, out: Outgoing) -> int:

@@ -29,7 +29,8 @@ COMMAND_LONG (#76)                     :func:`set_message_interval_message` (MAV
                                        param1 message id, param2 interval us)
 COMMAND_ACK (#77)                      :func:`command_ack_message`
 FOLLOW_TARGET (#144)                   timestamp (ms) <- ``time_boot_us``; lat, lon (degE7); alt (m AMSL);
-:class:`FollowTarget`                  vel (m/s NED) <- ``v_ned_mps``; position_cov[0:2] <- ``h_acc_m``, ``v_acc_m``
+:class:`FollowTarget`                  vel (m/s NED) <- ``v_ned_mps``; position_cov[0:2] <- ``h_acc_m``, ``v_acc_m``;
+                                       acc, attitude_q, rates all zeros (unknown); est_capabilities POS, VEL only
 SET_POSITION_TARGET_LOCAL_NED (#84)    time_boot_ms <- ``time_boot_us``; MAV_FRAME_LOCAL_NED; type_mask: velocity only
 :class:`SetPositionTargetLocalNed`     (position, acceleration, yaw, yaw rate ignored); vx, vy, vz (m/s) <- ``v_ned_mps``
 CAMERA_TRACKING_IMAGE_STATUS (#275)    normalised image coordinates (x 0 = left .. 1 = right, y 0 = top ..
@@ -832,8 +833,10 @@ class SetPositionTargetLocalNed:
 class FollowTarget:
     """FOLLOW_TARGET (#144): the target at ``time_boot_us`` (ms on the wire), WGS84 ``lat_deg`` / ``lon_deg``,
     ``alt_m`` (AMSL), ``v_ned_mps``, 1-sigma ``h_acc_m`` / ``v_acc_m`` (position_cov's "eph epv"; third
-    element 0); acceleration, attitude and rates unknown (0, identity, 0); ``est_capabilities`` bits POS 0,
-    VEL 1."""
+    element 0); acceleration, attitude and rates unknown: common.xml's "unknown" values, all zeros
+    (``acc`` (0, 0, 0), ``attitude_q`` (0, 0, 0, 0), ``rates`` (0, 0, 0)).  ``est_capabilities`` bits
+    POS 0, VEL 1 (ACCEL 2 and ATT + RATES 3 never: we estimate neither); without VEL the velocity
+    must be (0, 0, 0), common.xml's "unknown"."""
 
     time_boot_us: int
     lat_deg: float
@@ -847,15 +850,21 @@ class FollowTarget:
     def to_message(self):
         m = "FOLLOW_TARGET"
         _int(m, "time_boot_us", self.time_boot_us, 0, 2**63 - 1)
+        caps = _int(m, "est_capabilities", self.est_capabilities, 0, 255)
+        if caps & ~(FOLLOW_TARGET_CAP_POS | FOLLOW_TARGET_CAP_VEL):
+            raise InputError(f"{m}.est_capabilities: only POS (1) and VEL (2) are estimated, got {caps}")
+        vel = _vec(m, "v_ned_mps", self.v_ned_mps, 3)
+        if not caps & FOLLOW_TARGET_CAP_VEL and any(vel):
+            raise InputError(f"{m}.v_ned_mps must be (0, 0, 0) (unknown) without the VEL bit, got {vel}")
         return mavlink2.MAVLink_follow_target_message(
             int(self.time_boot_us // 1000),
-            _int(m, "est_capabilities", self.est_capabilities, 0, 255),
+            caps,
             _degE7(m, "lat_deg", self.lat_deg, 90.0),
             _degE7(m, "lon_deg", self.lon_deg, 180.0),
             _num(m, "alt_m", self.alt_m, -1e6, 1e6),
-            _vec(m, "v_ned_mps", self.v_ned_mps, 3),
+            vel,
             [0.0, 0.0, 0.0],
-            [1.0, 0.0, 0.0, 0.0],
+            [0.0, 0.0, 0.0, 0.0],
             [0.0, 0.0, 0.0],
             [_num(m, "h_acc_m", self.h_acc_m, 0.0), _num(m, "v_acc_m", self.v_acc_m, 0.0), 0.0],
             0,
@@ -882,16 +891,15 @@ def _unit(x: float, size: float) -> float:
     return min(max(x / size, 0.0), 1.0)
 
 
-def image_status_fields(
-    track, width_px: int, height_px: int, mode: int | None = None, radius: float = math.nan
-) -> dict[str, Any]:
+def image_status_fields(track, width_px: int, height_px: int, mode: int | None = None) -> dict[str, Any]:
     """Fields of :class:`CameraTrackingImageStatus` (#275) for a :class:`~onboard.core.track.Track` (None = idle).
 
     Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
     [0, 1].  Status ACTIVE while tracking, ACTIVE | COASTING while coasting, IDLE otherwise.
-    ``mode`` (CAMERA_TRACKING_MODE): POINT fills ``point_x/point_y`` (and ``radius``: normalised to
-    the image width; NaN = half the box's larger side, or unknown), RECTANGLE fills ``rec_*`` from the
-    box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
+    ``mode`` (CAMERA_TRACKING_MODE): POINT fills ``point_x/point_y`` and ``radius``, the tracked
+    object's: half its box's larger side over the image width (common.xml: "normalized 0..1, 0 is image
+    left, 1 is image right"; QGC draws a square of that half-side), NaN without a box; RECTANGLE fills
+    ``rec_*`` from the box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
     centre.  A mode whose data the track lacks (RECTANGLE without a box) falls back to the other one;
     NONE without either.
     """
@@ -923,9 +931,7 @@ def image_status_fields(
         out["tracking_mode"] = CAMERA_TRACKING_MODE_POINT
         out["point_x"] = _unit(track.u_px, width_px)
         out["point_y"] = _unit(track.v_px, height_px)
-        if math.isfinite(radius):
-            out["radius"] = min(max(float(radius), 0.0), 1.0)
-        elif track.bbox is not None:
+        if track.bbox is not None:
             out["radius"] = _unit(max(track.bbox[2], track.bbox[3]) / 2.0, width_px)
     elif mode == CAMERA_TRACKING_MODE_RECTANGLE:
         x, y, w, h = track.bbox

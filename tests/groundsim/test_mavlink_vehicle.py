@@ -627,3 +627,66 @@ def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude
     out_fix = [g.fix_type for g in gps if not outage[0] <= g.time_usec - 1_700_000_000_000_000 < outage[1]]
     assert in_fix and set(in_fix) == {mavlink2.GPS_FIX_TYPE_NO_FIX}
     assert out_fix and set(out_fix) == {mavlink2.GPS_FIX_TYPE_3D_FIX}
+
+
+# ----------------------------------------------------------------------------- home, relative and ellipsoidal altitude
+
+
+def _captured_vehicle():
+    """A vehicle whose writes are parsed in process (no datagram leaves): (vehicle, messages so far)."""
+    v = MavlinkVehicle("udpout:127.0.0.1:9", unix_time_at_boot_us=1_700_000_000_000_000)
+    parser = mavlink2.MAVLink(None)
+    got: list = []
+
+    def write(buf):
+        m = parser.parse_char(bytes(buf))
+        if m is not None:
+            got.append(m)
+
+    v._conn.write = write
+    return v, got
+
+
+def _request_home(v, now_us: int) -> None:
+    msg = mavlink2.MAVLink_command_long_message(1, 1, mavlink2.MAV_CMD_GET_HOME_POSITION, 0, 0, 0, 0, 0, 0, 0, 0)
+    v._on_command(mavlink2.MAVLink(None).parse_char(bytes(msg.pack(mavlink2.MAVLink(None, 255, 190)))))
+    v.poll(now_us)
+
+
+def test_relative_alt_is_above_the_home_position_the_vehicle_reports():
+    """common.xml GLOBAL_POSITION_INT.relative_alt: "Altitude above home".  The simulator's tick states, with its
+    navigation errors, through the vehicle: every #33's alt - relative_alt is HOME_POSITION's altitude."""
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from groundsim.world.sim import SimCore
+
+    sc = load_scenario(resolve_scenario_path("P1"))
+    core = SimCore(sc, 0, 2.0, render=False)
+    v, got = _captured_vehicle()
+    try:
+        for i in range(0, len(core.times_s), 3):
+            st = v.update_state(**core.vehicle_state(i), nav_error=core.nav_error(i))
+            v.poll(st.time_boot_us)
+        _request_home(v, st.time_boot_us + 1)
+    finally:
+        v.close()
+    (home,) = [m for m in got if m.get_type() == "HOME_POSITION"][-1:]
+    pos = _of(got, "GLOBAL_POSITION_INT")
+    assert len(pos) >= 10 and len({p.alt for p in pos}) > 1  # the observer climbs or sinks: a real check
+    assert home.altitude == round(sc.origin.alt_m * 1000)  # the ground it took off from
+    for p in pos:
+        assert abs(p.alt - p.relative_alt - home.altitude) <= 1  # mm: each rounded once
+
+
+def test_gps_raw_int_alt_ellipsoid_is_alt_plus_the_worlds_geoid_undulation():
+    from groundsim.io.mavlink_vehicle import GEOID_UNDULATION_M
+
+    v, got = _captured_vehicle()
+    try:
+        _state(v, 0)
+        v.poll(0)
+    finally:
+        v.close()
+    (gps,) = _of(got, "GPS_RAW_INT")
+    (pos,) = _of(got, "GLOBAL_POSITION_INT")
+    assert gps.alt == pos.alt == round(ALT_AMSL_M * 1000)
+    assert gps.alt_ellipsoid == gps.alt + round(GEOID_UNDULATION_M * 1000)

@@ -17,6 +17,7 @@ from groundsim.io.mavlink_vehicle import BATTERY_CELLS, DEFAULT_PARAMS, MavlinkV
 from groundsim.io.ports import free_udp_port
 from tests.groundsim.test_mavlink_vehicle import (
     ALT_AMSL_M,
+    ALT_REL_M,
     LAT_DEG,
     LON_DEG,
     WAIT_S,
@@ -95,7 +96,8 @@ def test_requests_are_accepted_and_answered(gcs, command, p1, reply):
     msg = rx.recv_match(type=reply, blocking=True, timeout=WAIT_S)
     assert msg is not None
     if reply == "HOME_POSITION":
-        assert msg.latitude == round(LAT_DEG * 1e7) and msg.altitude == round(ALT_AMSL_M * 1000)
+        # the first state's position, at the altitude its relative altitude is measured from
+        assert msg.latitude == round(LAT_DEG * 1e7) and msg.altitude == round((ALT_AMSL_M - ALT_REL_M) * 1000)
     else:
         assert msg.capabilities & mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2
 
@@ -152,7 +154,7 @@ def test_mavsdk_reads_health_home_gps_and_battery_with_nothing_denied():
         assert health.is_gyrometer_calibration_ok and health.is_accelerometer_calibration_ok
         assert health.is_global_position_ok and health.is_home_position_ok, health
         assert home.latitude_deg == pytest.approx(LAT_DEG, abs=1e-7)
-        assert home.absolute_altitude_m == pytest.approx(ALT_AMSL_M, abs=1e-3)
+        assert home.absolute_altitude_m == pytest.approx(ALT_AMSL_M - ALT_REL_M, abs=1e-3)  # what relative_alt is above
         assert gps.num_satellites == 14 and int(gps.fix_type) >= 3
         assert 0 < battery.remaining_percent <= 100 and battery.voltage_v > 3.5 * BATTERY_CELLS
         time.sleep(1.0)  # let any late request arrive and be answered

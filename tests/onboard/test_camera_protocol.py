@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
 import onboard.io.camera_protocol as cp
+from onboard.core.errors import InputError
 from onboard.core.track import Track
 from onboard.io.camera_protocol import (
     CameraCommand,
@@ -44,9 +45,9 @@ def _proto(**kw) -> CameraProtocol:
     return CameraProtocol(_identity(), W, H, **args)
 
 
-def _cmd(command: int, *params: float) -> CameraCommand:
+def _cmd(command: int, *params: float, confirmation: int = 0, src=GCS) -> CameraCommand:
     p = list(params) + [0.0] * (7 - len(params))
-    return CameraCommand(command, tuple(p), *GCS)
+    return CameraCommand(command, tuple(p), *src, confirmation=confirmation)
 
 
 def _track(
@@ -185,6 +186,27 @@ def test_what_qgc_discovery_asks_after_camera_information_is_answered(command, r
     assert _names(out) == ["command_ack", reply] and _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
 
 
+@pytest.mark.parametrize("command", [(cp.MAV_CMD_REQUEST_MESSAGE, 261), (cp.MAV_CMD_REQUEST_STORAGE_INFORMATION, 0, 1)])
+def test_storage_information_says_none_and_not_supported(command):
+    """No storage: none counted, and status NOT_SUPPORTED ("capacity fields ignored"), not EMPTY (3 vs 0:
+    "Storage is missing", a card slot without a card)."""
+    out, _ = _proto().handle(_cmd(*command), 0.0, 0)
+    info = [o.fields for o in out if o.msg == "storage_information"][0]
+    assert info["storage_count"] == 0 and info["status"] == mav.STORAGE_STATUS_NOT_SUPPORTED
+
+
+@pytest.mark.parametrize("gimbal_device_id", [0, 1, 154])
+def test_camera_information_names_the_gimbal_it_is_told(gimbal_device_id):
+    proto = _proto()
+    proto.gimbal_device_id = gimbal_device_id
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 259), 0.0, 0)
+    info = [o.fields for o in out if o.msg == "camera_information"][0]
+    assert info["gimbal_device_id"] == gimbal_device_id and info["camera_device_id"] == 0
+    assert cp.camera_information(_identity(), 0, True)["gimbal_device_id"] == 0  # none unless told
+    with pytest.raises(InputError, match="gimbal_device_id"):
+        _proto(gimbal_device_id=256)
+
+
 def test_unknown_commands_are_unsupported_and_unknown_messages_denied():
     proto = _proto()
     out, _ = proto.handle(_cmd(mav.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1), 0.0, 0)
@@ -236,19 +258,120 @@ def test_every_command_gets_exactly_one_ack_or_a_deferred_request(command, param
 # --------------------------------------------------------------------------- tracking commands
 
 
+def _image_status(proto, now_s, track):
+    return [o for o in proto.tick(now_s, track) if o.msg == "camera_tracking_image_status"][0].fields
+
+
 def test_track_point_is_converted_to_pixels_and_acked_when_the_pipeline_decides():
     proto = _proto()
     out, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.0, 0)
     assert out == [] and req.kind == "point"
     assert (req.u_px, req.v_px, req.radius_px) == pytest.approx((160.0, 256.0, 20.0))
-    again, req2 = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.1, 0)
-    assert again == [] and req2 is None  # QGC's retransmission while pending: the coming ACK answers it
     done = proto.complete(TrackResult(req.request_id, True, u_px=161.0, v_px=255.0))
     assert _ack(done)["result"] == mav.MAV_RESULT_ACCEPTED and _ack(done)["command"] == cp.MAV_CMD_CAMERA_TRACK_POINT
-    img = [o for o in proto.tick(1.2, _track(u=160.0, v=256.0)) if o.msg == "camera_tracking_image_status"][0].fields
+    img = _image_status(proto, 1.2, _track(u=160.0, v=256.0))
     assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
-    assert (img["point_x"], img["point_y"], img["radius"]) == pytest.approx((0.25, 0.5, 20 / W))
+    assert (img["point_x"], img["point_y"]) == pytest.approx((0.25, 0.5))
     assert math.isnan(img["rec_top_x"]) and img["camera_device_id"] == 0
+
+
+@pytest.mark.parametrize("box_px, radius", [((150.0, 240.0, 24.0, 16.0), 12.0 / W), (None, math.nan)])
+def test_point_status_radius_is_the_tracked_objects_not_the_clicks(box_px, radius):
+    """common.xml #275 radius: "Current tracked radius" (normalised to the width): half the larger side of the
+    object's box, NaN without a box, whatever search radius the click asked for."""
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.1), 1.0, 0)
+    proto.complete(TrackResult(req.request_id, True))
+    img = _image_status(proto, 1.2, _track(u=162.0, v=248.0, bbox=box_px))
+    assert img["tracking_mode"] == mav.CAMERA_TRACKING_MODE_POINT
+    if math.isnan(radius):
+        assert math.isnan(img["radius"])
+    else:
+        assert img["radius"] == pytest.approx(radius, rel=1e-12)
+
+
+# --------------------------------------------------------------------------- a command while one is pending
+
+
+@pytest.mark.parametrize(
+    "command, params",
+    [
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, (0.25, 0.5, 20 / W)),
+        (cp.MAV_CMD_CAMERA_TRACK_RECTANGLE, (0.4, 0.4, 0.6, 0.6)),
+        (cp.MAV_CMD_CAMERA_STOP_TRACKING, ()),
+    ],
+)
+def test_a_retransmission_while_pending_is_acted_on_once_and_answered_in_progress_then_final(command, params):
+    """The command protocol: a resend has confirmation > 0 and the same parameters.  Not a second request;
+    IN_PROGRESS now (QGC then stops retrying and waits), the decision's ACK once."""
+    proto = _proto()
+    _, req = proto.handle(_cmd(command, *params), 1.0, 0)
+    for confirmation in (1, 2):
+        out, again = proto.handle(_cmd(command, *params, confirmation=confirmation), 1.1, 0)
+        assert again is None and _names(out) == ["command_ack"]
+        ack = _ack(out)
+        assert (ack["command"], ack["result"], ack["progress"]) == (command, mav.MAV_RESULT_IN_PROGRESS, 255)
+        assert (ack["target_system"], ack["target_component"]) == GCS
+    assert proto.pending_requests() == 1
+    done = proto.complete(TrackResult(req.request_id, True))
+    assert (_ack(done)["command"], _ack(done)["result"]) == (command, mav.MAV_RESULT_ACCEPTED)
+    assert not any(o.msg == "command_ack" for o in proto.tick(5.0, None))  # nothing else to answer
+    assert proto.status()["counters"]["track_retransmission"] == 2
+
+
+@pytest.mark.parametrize(
+    "second, confirmation",
+    [
+        ((0.25, 0.5, 20 / W), 0),  # the same click again, as a new command (QGC gave up on the first)
+        ((0.75, 0.5, 20 / W), 0),  # another click
+        ((0.75, 0.5, 20 / W), 1),  # other parameters: not a retransmission whatever the confirmation says
+    ],
+)
+def test_a_new_track_command_supersedes_the_pending_one_and_only_it_is_answered(second, confirmation):
+    """COMMAND_ACK names only the command id: a sender that sends the same id again has given up on the first,
+    so the first's ACK would be read as the second's.  The second gets the ACK of what it does."""
+    proto = _proto()
+    _, first = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 20 / W), 1.0, 0)
+    out, new = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *second, confirmation=confirmation), 1.5, 0)
+    assert out == [] and new is not None and new.request_id != first.request_id
+    assert (new.u_px, new.v_px) == pytest.approx((second[0] * W, second[1] * H))
+    assert proto.pending_requests() == 1
+    assert proto.complete(TrackResult(first.request_id, True)) == []  # decided by the pipeline, never answered
+    done = proto.complete(TrackResult(new.request_id, False, "no warm object there"))
+    assert (_ack(done)["command"], _ack(done)["result"]) == (cp.MAV_CMD_CAMERA_TRACK_POINT, mav.MAV_RESULT_FAILED)
+    # the tracker took the first click's target: #275 says so although the second click failed
+    assert proto.status()["selection_mode"] == "point"
+    assert proto.status()["counters"]["track_superseded"] == 1
+
+
+def test_a_superseded_request_nobody_decides_is_forgotten_without_an_ack():
+    proto = _proto(track_request_timeout_s=1.0)
+    proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 10.0, 0)
+    proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03), 10.5, 0)
+    out = proto.tick(11.2, None)  # the first's deadline passed: nothing to say about it
+    assert not any(o.msg == "command_ack" for o in out)
+    acks = [o.fields for o in proto.tick(11.5, None) if o.msg == "command_ack"]
+    assert [a["result"] for a in acks] == [mav.MAV_RESULT_TEMPORARILY_REJECTED]  # the second's, once
+    assert proto._superseded == {} and proto.pending_requests() == 0
+
+
+def test_another_requester_or_another_command_does_not_supersede():
+    proto = _proto()
+    _, a = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 1.0, 0)
+    _, b = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03, confirmation=1, src=(254, 190)), 1.0, 0)
+    _, c = proto.handle(_cmd(cp.MAV_CMD_CAMERA_STOP_TRACKING), 1.0, 0)
+    assert None not in (a, b, c) and proto.pending_requests() == 3
+    answered = [_ack(proto.complete(TrackResult(r.request_id, True))) for r in (a, b, c)]
+    assert [(x["command"], x["target_system"]) for x in answered] == [
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, 255),
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, 254),
+        (cp.MAV_CMD_CAMERA_STOP_TRACKING, 255),
+    ]
+
+
+def test_confirmation_must_be_a_uint8():
+    with pytest.raises(InputError, match="confirmation"):
+        _cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.1, confirmation=256)
 
 
 def test_track_rectangle_gives_rectangle_mode_with_point_fields_nan():

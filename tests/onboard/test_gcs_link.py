@@ -183,6 +183,25 @@ def test_a_cut_datagram_from_the_same_address_costs_only_itself(rig):
     assert len(rig.commands) == N_ROUNDS
 
 
+def test_command_long_confirmation_reaches_the_protocol_and_a_resend_is_answered_in_progress(rig):
+    """COMMAND_LONG's confirmation tells a resend from a new command; COMMAND_INT has none (0)."""
+    gcs = rig.peer()
+    point = (0.25, 0.5, 0.03, 0.0, 0.0, 0.0, 0.0)
+    for confirmation in (0, 1):
+        gcs.send(mav.MAVLink_command_long_message(SYSID, 100, mav.MAV_CMD_CAMERA_TRACK_POINT, confirmation, *point))
+    assert rig.drive(lambda: len(gcs.types("COMMAND_ACK")) == 1)
+    assert [c.confirmation for c in rig.commands] == [0, 1]
+    (ack,) = gcs.types("COMMAND_ACK")
+    assert (ack.command, ack.result, ack.progress) == (mav.MAV_CMD_CAMERA_TRACK_POINT, mav.MAV_RESULT_IN_PROGRESS, 255)
+    gcs.send(
+        mav.MAVLink_command_int_message(
+            SYSID, 100, 0, mav.MAV_CMD_CAMERA_STOP_TRACKING, 0, 0, 0.0, 0.0, 0.0, 0.0, 0, 0, 0.0
+        )
+    )
+    assert rig.drive(lambda: len(rig.commands) == 3)
+    assert rig.commands[2].command == mav.MAV_CMD_CAMERA_STOP_TRACKING and rig.commands[2].confirmation == 0
+
+
 def test_a_reply_goes_to_the_address_of_the_command_only(rig):
     gcs, other = rig.peer(), rig.peer(sysid=200, compid=190)
     other.heartbeat()

@@ -523,12 +523,12 @@ def test_image_status_is_normalised_and_flags_follow_the_state():
         328 / 640,
         136 / 512,
     )
-    pt = image_status_fields(tr, 640, 512, mode=1, radius=20 / 640)  # POINT: point fields only
-    assert (pt["tracking_mode"], pt["point_x"], pt["point_y"], pt["radius"]) == (1, 0.5, 0.25, 20 / 640)
+    pt = image_status_fields(tr, 640, 512, mode=1)  # POINT: point fields only, the object's radius
+    assert (pt["tracking_mode"], pt["point_x"], pt["point_y"], pt["radius"]) == (1, 0.5, 0.25, 8 / 640)
     assert math.isnan(pt["rec_top_x"]) and math.isnan(pt["rec_bottom_y"])
-    assert image_status_fields(tr, 640, 512, mode=1)["radius"] == 8 / 640  # half the box when no radius was asked
     coast = image_status_fields(_track(state="coasting", measurement_valid=False, bbox=None), 640, 512)
     assert coast["tracking_status"] == 1 | 8 and coast["tracking_mode"] == 1  # ACTIVE|COASTING, POINT
+    assert math.isnan(coast["radius"])  # no box: the radius is unknown
     edge = image_status_fields(_track(u_px=-3.0, bbox=(-10.0, 500.0, 20.0, 20.0)), 640, 512)
     assert edge["rec_top_x"] == 0.0 and edge["rec_bottom_y"] == 1.0  # clipped into [0, 1]
     assert image_status_fields(_track(u_px=-3.0, bbox=None), 640, 512)["point_x"] == 0.0

@@ -200,7 +200,7 @@ class _FakeLink:
         return quiet_link_status("connected", autopilot_sysid=7, messages_rx=1)
 
 
-def _service(mode="auto"):
+def _service(mode="auto", gimballed=False):
     from onboard.app.service import OnboardService
 
     cfg = build_config(
@@ -209,6 +209,7 @@ def _service(mode="auto"):
             "output": {"health_file": None},
             "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
             "mavlink": {"connection": "udpin:0.0.0.0:14999", "autopilot_sysid": None},
+            "camera": {"mount": {"gimballed": gimballed}},
         }
     )
     clock = FakeClock()
@@ -227,6 +228,19 @@ def test_camera_is_silent_until_the_autopilot_is_known_then_speaks_as_its_system
     svc.link = _FakeLink()
     assert svc.camera_step(clock()) >= 1 and svc.gcs.system_id == 7
     assert svc.gcs.sent[0].msg == "heartbeat" and svc.gcs.sent[0].fields["type"] == mav.MAV_TYPE_CAMERA
+
+
+@pytest.mark.parametrize("gimballed, followed, expected", [(True, 154, 154), (True, None, 0), (False, 154, 0)])
+def test_camera_information_names_the_gimbal_the_link_follows(gimballed, followed, expected):
+    """common.xml CAMERA_INFORMATION.gimbal_device_id: the gimbal's component id (or 1-6), 0 when none is
+    associated: a fixed mount, or a gimballed one whose gimbal has not been heard yet."""
+    svc, clock = _service(gimballed=gimballed)
+    svc.link = _FakeLink()
+    svc.link.gimbal_device_id = followed
+    svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_REQUEST_MESSAGE, (259, 0, 0, 0, 0, 0, 0), 255, 190))
+    svc.camera_step(clock())
+    (info,) = [o.fields for o in svc.gcs.sent if o.msg == "camera_information"]
+    assert info["gimbal_device_id"] == expected
 
 
 def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
