@@ -896,7 +896,9 @@ class MavlinkLink:
             self._ts_outstanding[ts1] = None
             while len(self._ts_outstanding) > MAX_OUTSTANDING_TIMESYNC:
                 self._ts_outstanding.popitem(last=False)
-            self._send("TIMESYNC", Timesync(0, ts1, self.autopilot_sysid or 0, self.config.autopilot_compid).to_message())
+            self._send(
+                "TIMESYNC", Timesync(0, ts1, self.autopilot_sysid or 0, self.config.autopilot_compid).to_message()
+            )
 
     def _request_rates(self) -> None:
         self.rates_confirmed.clear()
