@@ -59,7 +59,7 @@ from groundsim.world.sim import (
     check_run_seed,
     extend_scenario,
 )
-from groundsim.world.truth import TruthRow, TruthWriter, truth_json, truth_objects_json
+from groundsim.world.truth import TruthRow, TruthWriter, truth_json, truth_json_schema, truth_objects_json
 from onboard.core.errors import ConfigError, IrtrackError
 
 __all__ = [
@@ -799,6 +799,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
 def _start_recorder(config: RunConfig, core: SimCore):
     import time as _time
 
+    from onboard.io.foxglove_messages import TRUTH_SCHEMA
     from onboard.io.record import FlightRecorder, RecordConfig
 
     meta = {
@@ -816,6 +817,7 @@ def _start_recorder(config: RunConfig, core: SimCore):
             metadata=meta,
             recorder="groundsim",
             clock_ns=_time.monotonic_ns,
+            json_schemas={TRUTH_SCHEMA: truth_json_schema(TRUTH_SCHEMA)},
         )
         rec.start()
     except OSError as exc:
@@ -855,7 +857,7 @@ class _RecordingTruth:
 
         if self._writer is not None:
             self._writer.write(row, labels)
-        self._rec.on_json(TRUTH_TOPIC, TRUTH_SCHEMA, truth_json(row))
+        self._rec.on_json(TRUTH_TOPIC, TRUTH_SCHEMA, truth_json(row), sequence=row.seq)
         if labels:  # a scene's objects (the rows of <truth>.objects.csv): /groundsim/truth/objects
             self._rec.on_truth_objects(truth_objects_json(row, labels))
 

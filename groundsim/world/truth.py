@@ -84,6 +84,8 @@ __all__ = [
     "TruthWriteError",
     "truth_row",
     "truth_json",
+    "truth_json_schema",
+    "TRUTH_JSON_VECTORS",
     "truth_objects_json",
     "read_truth_csv",
 ]
@@ -423,15 +425,50 @@ def read_truth_csv(path) -> dict[str, np.ndarray]:
     return {name: np.asarray(vals, dtype=np.int64 if name in _INT_FIELDS else float) for name, vals in cols.items()}
 
 
+#: the vectors :func:`truth_json` adds to a row's columns, for viewers: key -> the columns it repeats
+TRUTH_JSON_VECTORS: dict[str, tuple[str, str, str]] = {
+    "target_ned_m": ("target_n_m", "target_e_m", "target_d_m"),
+    "target_vel_ned_mps": ("target_vn_mps", "target_ve_mps", "target_vd_mps"),
+    "camera_ned_m": ("cam_n_m", "cam_e_m", "cam_d_m"),
+}
+
+
 def truth_json(row: TruthRow) -> dict:
     """A truth row as ``irtrack.truth/1``: every CSV column (NaN as null) plus vectors for viewers."""
     out = {
         k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in dataclasses.asdict(row).items()
     }
-    out["target_ned_m"] = [row.target_n_m, row.target_e_m, row.target_d_m]
-    out["target_vel_ned_mps"] = [row.target_vn_mps, row.target_ve_mps, row.target_vd_mps]
-    out["camera_ned_m"] = [row.cam_n_m, row.cam_e_m, row.cam_d_m]
+    for name, columns in TRUTH_JSON_VECTORS.items():
+        out[name] = [getattr(row, c) for c in columns]
     return out
+
+
+def truth_json_schema(title: str) -> dict:
+    """The JSON Schema (named ``title``: ``irtrack.truth/1``) of :func:`truth_json`'s message, made from
+    :class:`TruthRow`'s fields, so that it names every key the message has: integers as the row's, numbers
+    elsewhere (null where the row may hold NaN), and :data:`TRUTH_JSON_VECTORS`; every key always present."""
+    props: dict[str, dict] = {}
+    for name in TRUTH_COLUMNS:
+        if name in _INT_FIELDS:
+            props[name] = {"type": "integer", "minimum": 0}
+        else:
+            props[name] = {"type": ["number", "null"] if name in _NAN_OK else "number"}
+    for name, columns in TRUTH_JSON_VECTORS.items():
+        props[name] = {
+            "type": "array",
+            "items": {"type": "number"},
+            "minItems": 3,
+            "maxItems": 3,
+            "description": ", ".join(columns),
+        }
+    return {
+        "title": title,
+        "description": "The simulator's exact state at one rendered frame (groundsim run --record; columns: "
+        "groundsim/world/truth.py).",
+        "type": "object",
+        "properties": props,
+        "required": list(props),
+    }
 
 
 def truth_objects_json(row: TruthRow, labels) -> dict:

@@ -31,6 +31,7 @@ import os  # noqa: E402
 import signal  # noqa: E402
 import sys  # noqa: E402
 import threading  # noqa: E402
+import time  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -48,6 +49,8 @@ EXIT_ERROR = 1
 EXIT_CONFIG = 2
 SHUTDOWN_BUDGET_S = 1.8  # SIGTERM -> exit: the daemon promises to be gone within 2 s
 HARD_EXIT_MARGIN_S = 0.7  # past the budget: faulthandler dumps the stacks and exits (the timer could not)
+#: the service's close is done this long before the budget's force exit: the recorder finishes its file by then
+CLOSE_MARGIN_S = 0.3
 
 log = logging.getLogger("onboard")
 
@@ -152,6 +155,7 @@ class _StopSignals:
     def __init__(self) -> None:
         self.service: Any = None  # the OnboardService, once built
         self.early: list[int] = []  # signals that came while it was being built
+        self.deadline_s: float | None = None  # time.monotonic() the service's close must be done by
 
     def __call__(self, signum: int, _frame: Any) -> None:
         service = self.service
@@ -161,6 +165,7 @@ class _StopSignals:
         if service.stopping:
             return
         log.info("signal %s: shutting down", signal.Signals(signum).name)
+        self.deadline_s = time.monotonic() + SHUTDOWN_BUDGET_S - CLOSE_MARGIN_S
         service.request_stop()
         # a last resort: whatever hangs, the process is gone within the budget
         timer = threading.Timer(SHUTDOWN_BUDGET_S, _force_exit)
@@ -250,9 +255,9 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         service.run()
     except Exception:  # noqa: BLE001 - log, close, non-zero exit
         log.exception("onboard service failed")
-        service.close(0.5)
+        service.close(0.5, stop.deadline_s)
         return EXIT_ERROR
-    service.close(0.5)
+    service.close(0.5, stop.deadline_s)  # within the budget: the recording ends with its summary
     logging.shutdown()
     return EXIT_OK
 

@@ -128,7 +128,9 @@ class RecorderTap:
         return self.recorder.stats()
 
     def close(self, timeout_s: float) -> None:
-        self.recorder.close(max(timeout_s, 2.0))  # its last frames are flushed to the file
+        # within the time given: the recorder drops (and counts) what it cannot write by then and finishes the
+        # file, rather than outliving the daemon's shutdown budget with a file left without its summary
+        self.recorder.close(timeout_s)
 
 
 class LiveViewTap:

@@ -88,6 +88,8 @@ __all__ = ["OnboardService"]
 log = logging.getLogger(__name__)
 
 WATCH_PERIOD_S = 0.5  # the watchdog's input checks in the main loop
+#: an output tap's close gets at least this long past a shutdown deadline: enough to finish a file's summary
+MIN_TAP_CLOSE_S = 0.1
 MAIN_LOOP_MAX_IDLE_S = 0.05  # the main loop's longest sleep without input (stop requests, timers it cannot see)
 #: ``frame_*`` counter keys that are accepted events, not refusals
 MISMATCH_WARNINGS = frozenset({"gimbal_mismatch", "camera_mismatch"})
@@ -210,6 +212,7 @@ class OnboardService:
         """
         import zenoh
 
+        from onboard.estimation.guidance import GUIDANCE_SCHEMA
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
             DAEMON_CONFIG_FILE_FIELD,
@@ -264,8 +267,18 @@ class OnboardService:
         self._sub = self.session.declare_subscriber(frame_key(cfg.vehicle), self._on_frame)
         guidance = next((t for t in self.taps if t.name == "guidance"), None)
         if guidance is not None:  # advised manoeuvres on irtrack/<vehicle>/guidance (onboard.app.guidance_tap)
-            pub = self.session.declare_publisher(guidance_key(cfg.vehicle), encoding=zenoh.Encoding(GUIDANCE_ENCODING))
-            guidance.attach(pub.put)  # type: ignore[attr-defined]
+            key = guidance_key(cfg.vehicle)
+            pub = self.session.declare_publisher(key, encoding=zenoh.Encoding(GUIDANCE_ENCODING))
+            recorder = self.recorder
+            if recorder is None:
+                guidance.attach(pub.put)  # type: ignore[attr-defined]
+            else:  # what the operator and the autopilot were advised belongs in the flight's record
+
+                def publish(payload: bytes) -> None:
+                    pub.put(payload)
+                    recorder.on_json(key, GUIDANCE_SCHEMA, payload)
+
+                guidance.attach(publish)  # type: ignore[attr-defined]
         self._pipe_thread = threading.Thread(target=self._pipeline_loop, name="irtrack-pipeline", daemon=True)
         self._pipe_thread.start()
         self._started_s = self._clock()
@@ -286,8 +299,11 @@ class OnboardService:
     def stopping(self) -> bool:
         return self._stop.is_set()
 
-    def close(self, timeout_s: float = 1.0) -> None:
-        """Stop threads and close everything; bounded by about ``timeout_s`` plus zenoh's close."""
+    def close(self, timeout_s: float = 1.0, deadline_s: float | None = None) -> None:
+        """Stop threads and close everything; bounded by about ``timeout_s`` plus zenoh's close.  ``deadline_s``
+        (``time.monotonic()``): when everything must be closed by (the daemon's shutdown budget); the output
+        taps, closed last, then get what is left of it (at least :data:`MIN_TAP_CLOSE_S`) instead of
+        ``timeout_s``: the recorder writes its backlog for that long and finishes its file within it."""
         self._stop.set()
         self._pipe_stop.set()
         self.queue.close()
@@ -316,7 +332,8 @@ class OnboardService:
             self.gcs.close()
             self.gcs = None
         for tap in self.observers:
-            tap.close(timeout_s)  # after the pipeline: the recorder's last frames are in the file
+            left = timeout_s if deadline_s is None else max(deadline_s - time.monotonic(), MIN_TAP_CLOSE_S)
+            tap.close(left)  # after the pipeline: the recorder's last frames are in the file
         if self._health_path:
             with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
                 os.unlink(self._health_path)

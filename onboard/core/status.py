@@ -18,9 +18,141 @@ import numpy as np
 from onboard.core.errors import InputError
 from onboard.core.track import Track, json_number
 
-__all__ = ["STATUS_SCHEMA", "RollingStats", "build_status"]
+__all__ = [
+    "STATUS_SCHEMA",
+    "STATUS_JSON_KEYS",
+    "STATUS_SECTION_KEYS",
+    "RollingStats",
+    "build_status",
+    "status_json_schema",
+]
 
 STATUS_SCHEMA = "irtrack.status/1"
+
+_SUMMARY = {
+    "type": "object",
+    "properties": {
+        "n": {"type": "integer"},
+        "p50": {"type": ["number", "null"]},
+        "p99": {"type": ["number", "null"]},
+        "max": {"type": ["number", "null"]},
+    },
+    "required": ["n", "p50", "p99", "max"],
+    "description": "RollingStats.summary over the last samples",
+}
+_SUMMARY_OR_NULL = {**_SUMMARY, "type": ["object", "null"]}
+
+#: Every top-level key :func:`build_status` writes, in its order, with its JSON Schema (its docstring says what each
+#: holds); a test holds :func:`build_status` to it key for key
+STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("schema", {"type": "string", "const": STATUS_SCHEMA}),
+    ("vehicle", {"type": "string"}),
+    ("uptime_s", {"type": ["number", "null"]}),
+    (
+        "frames",
+        {
+            "type": "object",
+            "properties": {
+                k: {"type": "integer"} for k in ("in", "processed", "dropped", "rejected", "published", "queue_length")
+            },
+            "required": ["in", "processed", "dropped", "rejected", "published", "queue_length"],
+        },
+    ),
+    (
+        "geometry",
+        {
+            "type": "object",
+            "properties": {
+                "output": {"type": "string", "enum": ["published", "withheld"]},
+                "withheld_because": {"type": "array", "items": {"type": "string"}},
+            },
+            "required": ["output", "withheld_because"],
+        },
+    ),
+    ("processing_ms", _SUMMARY),
+    ("latency_ms", _SUMMARY),
+    ("pose_wait_ms", _SUMMARY),
+    ("queue_wait_ms", _SUMMARY_OR_NULL),
+    ("publish_ms", _SUMMARY_OR_NULL),
+    ("stages_ms", {"type": ["object", "null"], "additionalProperties": _SUMMARY}),
+    ("capture_to_track_ms", _SUMMARY_OR_NULL),
+    ("rejected", {"type": "object", "additionalProperties": {"type": "integer"}, "description": "count by reason"}),
+    ("link", {"type": ["object", "null"], "description": "the MAVLink link's state"}),
+    (
+        "cpu",
+        {
+            "type": "object",
+            "properties": {
+                "share": {"type": ["number", "null"]},
+                "pipeline_share": {"type": ["number", "null"]},
+                "cores": {"type": ["integer", "null"]},
+                # the service's (onboard.app.cpu_load), from /proc and the cgroup's cpu.stat
+                "gets_share": {"type": ["number", "null"]},
+                "throttled_share": {"type": ["number", "null"]},
+                "needs_share": {"type": ["number", "null"]},
+                "throttled_periods": {"type": ["integer", "null"]},
+                "quota_cores": {"type": ["number", "null"]},
+            },
+            "required": ["share", "pipeline_share", "cores"],
+        },
+    ),
+    ("estimator", {"type": "string"}),
+    (
+        "warnings",
+        {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "properties": {"code": {"type": "string"}, "message": {"type": "string"}},
+                "required": ["code", "message"],
+            },
+        },
+    ),
+    ("camera_time_offset", {"type": ["object", "null"], "description": "null when time_offset.enabled is false"}),
+    (
+        "track",
+        {
+            "type": ["object", "null"],
+            "properties": {
+                "time_boot_us": {"type": "integer"},
+                "state": {"type": "string"},
+                "track_id": {"type": ["integer", "null"]},
+                "has_los": {"type": "boolean"},
+                "has_position": {"type": "boolean"},
+                "observable": {"type": "boolean"},
+                "window_frames": {"type": "integer"},
+            },
+            "description": "the latest track in short",
+        },
+    ),
+)
+
+#: The sections the daemon's service adds to :func:`build_status`'s object (onboard.app.service ``status``):
+#: ``utc`` always; ``camera`` with the MAVLink camera; each output tap's own (``video``, ``record``, ``live_view``,
+#: ``guidance``) when configured
+STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
+    ("utc", {"type": "object", "description": "boot clock -> UTC (onboard.core.utc_clock)"}, True),
+    ("camera", {"type": "object", "description": "the MAVLink camera component (gcs)"}, False),
+    ("video", {"type": "object", "description": "the H.264 video stream"}, False),
+    ("record", {"type": "object", "description": "the flight recorder (FlightRecorder.stats)"}, False),
+    ("live_view", {"type": "object", "description": "the Foxglove live view"}, False),
+    ("guidance", {"type": "object", "description": "the observer guidance"}, False),
+)
+
+
+def status_json_schema() -> dict[str, Any]:
+    """The JSON Schema of the ``irtrack.status/1`` message the daemon publishes: :data:`STATUS_JSON_KEYS` (always
+    present) and :data:`STATUS_SECTION_KEYS` (``utc`` always, the others when their part is configured)."""
+    props = {key: dict(schema) for key, schema in STATUS_JSON_KEYS}
+    props.update({key: dict(schema) for key, schema, _always in STATUS_SECTION_KEYS})
+    required = [key for key, _ in STATUS_JSON_KEYS] + [key for key, _, always in STATUS_SECTION_KEYS if always]
+    return {
+        "title": STATUS_SCHEMA,
+        "description": "The daemon's status, once a second (keys: onboard/core/status.py build_status).",
+        "type": "object",
+        "properties": props,
+        "required": required,
+    }
 
 
 def _percentile(sorted_values: list[float], q: float) -> float:

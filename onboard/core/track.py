@@ -99,6 +99,8 @@ __all__ = [
     "TRACK_SCHEMA",
     "READABLE_TRACK_SCHEMAS",
     "TRACK_STATES",
+    "TRACK_JSON_KEYS",
+    "track_json_schema",
     "LineOfSight",
     "line_of_sight_ned",
     "Track",
@@ -518,6 +520,100 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "model": track.model,
         "time_unix_us": track.time_unix_us,
         "time_unix_sigma_us": track.time_unix_sigma_us,
+    }
+
+
+_NUM = {"type": ["number", "null"]}
+_INT = {"type": ["integer", "null"]}
+_BOOL = {"type": "boolean"}
+
+
+def _vec3_schema(description: str) -> dict[str, Any]:
+    return {
+        "type": ["array", "null"],
+        "items": {"type": "number"},
+        "minItems": 3,
+        "maxItems": 3,
+        "description": description,
+    }
+
+
+#: Every key :func:`track_to_json` writes, in its order, with its JSON Schema (the module docstring's table): the
+#: recording's ``irtrack.track/2`` schema is made of this (:func:`track_json_schema`), and a test holds
+#: :func:`track_to_json` to it key for key
+TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("schema", {"type": "string", "const": TRACK_SCHEMA}),
+    ("vehicle", {"type": "string", "description": "vehicle name (the key's <vehicle>)"}),
+    ("seq", {"type": "integer", "description": "the IR frame's sequence number"}),
+    ("time_boot_us", {"type": "integer", "description": "capture time, us on the autopilot boot clock"}),
+    ("track_id", {**_INT, "description": "current track (a new id = a new target association)"}),
+    ("state", {"type": "string", "enum": list(TRACK_STATES)}),
+    ("measurement_valid", {**_BOOL, "description": "(u, v) is a blob centroid fed to the estimator"}),
+    ("u_px", {**_NUM, "description": "target centre, pixels (u right, origin at the top-left pixel's corner)"}),
+    ("v_px", {**_NUM, "description": "target centre, pixels (v down)"}),
+    (
+        "bbox",
+        {
+            "type": ["array", "null"],
+            "items": {"type": "number"},
+            "minItems": 4,
+            "maxItems": 4,
+            "description": "tracking box [x, y, w, h], pixels",
+        },
+    ),
+    ("pose_valid", {**_BOOL, "description": "the camera pose at time_boot_us was known"}),
+    ("los_ned", _vec3_schema("unit line of sight camera -> target, local NED")),
+    ("los_az_deg", {**_NUM, "description": "its azimuth, degrees from north towards east, (-180, 180]"}),
+    ("los_el_deg", {**_NUM, "description": "its elevation, degrees, positive up, [-90, 90]"}),
+    ("los_sigma_az_deg", {**_NUM, "description": "1-sigma of los_az_deg, degrees"}),
+    ("los_sigma_el_deg", {**_NUM, "description": "1-sigma of los_el_deg, degrees"}),
+    ("camera_ned_m", _vec3_schema("the line of sight's origin: the camera, local NED, metres")),
+    ("lat_deg", {**_NUM, "description": "target WGS84 latitude, degrees"}),
+    ("lon_deg", {**_NUM, "description": "target WGS84 longitude, degrees"}),
+    ("alt_m", {**_NUM, "description": "target altitude, metres AMSL"}),
+    ("ned_m", _vec3_schema("target position, local NED, metres")),
+    (
+        "origin",
+        {
+            "type": ["object", "null"],
+            "properties": {"lat_deg": {"type": "number"}, "lon_deg": {"type": "number"}, "alt_m": {"type": "number"}},
+            "required": ["lat_deg", "lon_deg", "alt_m"],
+            "description": "the local NED frame's origin (WGS84), null before one is known",
+        },
+    ),
+    ("vel_ned_mps", _vec3_schema("target velocity, local NED, m/s")),
+    ("sigma_ned_m", _vec3_schema("1-sigma position uncertainty per axis, metres")),
+    ("sigma_vel_ned_mps", _vec3_schema("1-sigma velocity uncertainty per axis, m/s")),
+    (
+        "cov_ned_m2",
+        {
+            "type": ["array", "null"],
+            "items": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+            "minItems": 3,
+            "maxItems": 3,
+            "description": "position covariance, local NED, m^2",
+        },
+    ),
+    ("range_m", {**_NUM, "description": "camera-to-target distance, metres"}),
+    ("range_sigma_ratio", {**_NUM, "description": "posterior range sigma / range"}),
+    ("observable", {**_BOOL, "description": "the window's geometry makes range observable and the model fits"}),
+    ("residual_rms_norm", {**_NUM, "description": "RMS of the standardised residuals at the last model selection"}),
+    ("window_frames", {"type": "integer", "minimum": 0, "description": "observations in the estimator's window"}),
+    ("model", {"type": ["string", "null"], "description": "the estimator's motion model"}),
+    ("time_unix_us", {**_INT, "description": "capture time in UTC, us since 1970; null until mapped"}),
+    ("time_unix_sigma_us", {**_INT, "description": "1-sigma of time_unix_us, us"}),
+)
+
+
+def track_json_schema() -> dict[str, Any]:
+    """The JSON Schema of an ``irtrack.track/2`` message as :func:`track_to_json` writes it: every key always
+    present (null where the table allows it), so every key is required."""
+    return {
+        "title": TRACK_SCHEMA,
+        "description": "One processed frame's track and 3-D estimate (table in onboard/core/track.py).",
+        "type": "object",
+        "properties": {key: dict(schema) for key, schema in TRACK_JSON_KEYS},
+        "required": [key for key, _ in TRACK_JSON_KEYS],
     }
 
 

@@ -61,6 +61,8 @@ __all__ = [
     "SetpointDecision",
     "advice_to_json",
     "GUIDANCE_SCHEMA",
+    "GUIDANCE_JSON_KEYS",
+    "guidance_json_schema",
 ]
 
 #: 1 mm/s: a velocity below this has no heading
@@ -511,6 +513,40 @@ _US_PER_S = 1_000_000
 
 def _num(x: float) -> float | None:
     return float(x) if math.isfinite(x) else None
+
+
+_NUM_OR_NULL = {"type": ["number", "null"]}
+
+#: Every key :func:`advice_to_json` writes, in its order, with its JSON Schema: the recording's
+#: ``irtrack.guidance/1`` schema is made of it (:func:`guidance_json_schema`), and a test holds the payload to it
+GUIDANCE_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
+    ("schema", {"type": "string", "const": GUIDANCE_SCHEMA}),
+    ("vehicle", {"type": "string"}),
+    ("time_boot_us", {"type": "integer", "description": "capture time of the track it was planned from, us boot"}),
+    ("valid_until_boot_us", {"type": "integer", "description": "follow the advice until then, us boot"}),
+    ("status", {"type": "string", "description": "advise"}),
+    ("manoeuvre", {"type": ["string", "null"], "description": "the candidate chosen"}),
+    (
+        "v_ned_mps",
+        {"type": ["array", "null"], "items": {"type": "number"}, "minItems": 3, "maxItems": 3, "description": "m/s"},
+    ),
+    ("range_m", {**_NUM_OR_NULL, "description": "the target's range now, m"}),
+    ("sigma_range_now_m", {**_NUM_OR_NULL, "description": "range 1-sigma now, m"}),
+    ("sigma_range_without_m", {**_NUM_OR_NULL, "description": "predicted at the horizon holding course, m"}),
+    ("sigma_range_with_m", {**_NUM_OR_NULL, "description": "predicted at the horizon with the manoeuvre, m"}),
+    ("in_loop", {"type": "boolean", "description": "the daemon also flies it (guidance.enabled)"}),
+)
+
+
+def guidance_json_schema() -> dict[str, Any]:
+    """The JSON Schema of an ``irtrack.guidance/1`` message as :func:`advice_to_json` writes it (every key)."""
+    return {
+        "title": GUIDANCE_SCHEMA,
+        "description": "An advised observer manoeuvre (onboard/estimation/guidance.py), as published.",
+        "type": "object",
+        "properties": {key: dict(schema) for key, schema in GUIDANCE_JSON_KEYS},
+        "required": [key for key, _ in GUIDANCE_JSON_KEYS],
+    }
 
 
 def advice_to_json(advice: Advice, vehicle: str, time_boot_us: int, in_loop: bool = False) -> dict:

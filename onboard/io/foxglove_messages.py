@@ -6,8 +6,11 @@ numbers:
 
 * :data:`JSON_SCHEMAS`: the JSON Schema of each irtrack JSON channel, by schema name
   (``irtrack.mavlink_raw/1``, ``irtrack.frame_input/1``, ``irtrack.track/2``, ``irtrack.status/1``,
-  ``irtrack.truth/1``, ``irtrack.objects/1``, ``irtrack.truth_objects/1``, ``irtrack.imaging_pose/1``; the recorder's module docstring
-  says what each message holds).
+  ``irtrack.objects/1``, ``irtrack.truth_objects/1``, ``irtrack.imaging_pose/1``; the recorder's module docstring
+  says what each message holds).  The track's and the status's are made from the key tables beside their
+  builders (:data:`onboard.core.track.TRACK_JSON_KEYS`, :data:`onboard.core.status.STATUS_JSON_KEYS`);
+  ``irtrack.truth/1`` is the simulator's (:func:`groundsim.world.truth.truth_json_schema`, handed to the recorder
+  by ``groundsim run``).  Every key a message has is declared, and every key it always has is required.
 * ``foxglove.RawImage`` of an :class:`~onboard.core.irframe.IrFrame`: :func:`rawimage_fields` (a dict of
   the message's fields), :func:`rawimage_pieces` / :func:`rawimage_bytes` (the serialized protobuf, the
   pixels not copied), :func:`irframe_from_rawimage` (back).  ``timestamp`` = capture time on the
@@ -34,8 +37,9 @@ from onboard.core.errors import InputError
 from onboard.core.frames import geodetic_from_ned1
 from onboard.core.irframe import IrFrame
 from onboard.core.pose_types import PoseAt
-from onboard.core.status import STATUS_SCHEMA
-from onboard.core.track import TRACK_SCHEMA, TRACK_STATES
+from onboard.core.status import status_json_schema
+from onboard.core.track import track_json_schema
+from onboard.estimation.guidance import guidance_json_schema
 
 __all__ = [
     "MAVLINK_RAW_SCHEMA",
@@ -80,6 +84,59 @@ _BOX = {"type": "array", "items": {"type": "number"}, "minItems": 4, "maxItems":
 _FRAME_STAMP = {"seq": {"type": "integer"}, "time_boot_us": {"type": "integer"}}  # which frame, when (boot clock)
 
 
+_QUAT = {"type": "array", "items": {"type": ["number", "null"]}, "minItems": 4, "maxItems": 4}
+_INT_OR_NULL = {"type": ["integer", "null"]}
+_VEC3_NULLS = {**_VEC3, "items": {"type": ["number", "null"]}}  # a non-finite component written as null
+#: a pose as :func:`onboard.io.record.pose_to_json` writes it (null where it was not looked up or not known)
+_POSE = {
+    "type": ["object", "null"],
+    "properties": {
+        "time_boot_us": {"type": "integer"},
+        "p_ned_m": _VEC3_NULLS,
+        "v_ned_mps": _VEC3_NULLS,
+        "q_ned_from_body": _QUAT,
+        "p_cam_ned_m": _VEC3_NULLS,
+        "q_ned_from_cam": _QUAT,
+        "q_mount_from_gimbal": {**_QUAT, "type": ["array", "null"]},
+        "origin": {
+            "type": "object",
+            "properties": {"lat_deg": {"type": "number"}, "lon_deg": {"type": "number"}, "alt_m": {"type": "number"}},
+            "required": ["lat_deg", "lon_deg", "alt_m"],
+        },
+        "att_span_us": {"type": "integer"},
+        "pos_span_us": {"type": "integer"},
+        "gimbal_span_us": _INT_OR_NULL,
+        "epoch": {"type": "integer"},
+        "discontinuities": {"type": "integer"},
+        "att_extrapolated_us": {"type": "integer"},
+        "pos_extrapolated_us": {"type": "integer"},
+        "gimbal_extrapolated_us": _INT_OR_NULL,
+        "sigma_extrapolation_rad": {"type": "number"},
+        "sigma_extrapolation_m": {"type": "number"},
+    },
+    "required": [
+        "time_boot_us",
+        "p_ned_m",
+        "v_ned_mps",
+        "q_ned_from_body",
+        "p_cam_ned_m",
+        "q_ned_from_cam",
+        "q_mount_from_gimbal",
+        "origin",
+        "att_span_us",
+        "pos_span_us",
+        "gimbal_span_us",
+        "epoch",
+        "discontinuities",
+        "att_extrapolated_us",
+        "pos_extrapolated_us",
+        "gimbal_extrapolated_us",
+        "sigma_extrapolation_rad",
+        "sigma_extrapolation_m",
+    ],
+}
+
+
 def _object_schema(title: str, description: str, properties: dict, required: list[str]) -> dict[str, Any]:
     """The JSON Schema of an object (its keys in the order the recordings have always stored them)."""
     return {
@@ -113,77 +170,17 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                 **_FRAME_STAMP,
                 "received_ns": {"type": "integer"},
                 "pose_looked_up": {"type": "boolean"},
-                "pose": {
-                    "type": ["object", "null"],
-                    "properties": {
-                        "time_boot_us": {"type": "integer"},
-                        "p_ned_m": _VEC3,
-                        "v_ned_mps": _VEC3,
-                        "q_ned_from_body": {"type": "array", "items": {"type": "number"}},
-                        "p_cam_ned_m": _VEC3,
-                        "q_ned_from_cam": {"type": "array", "items": {"type": "number"}},
-                        "q_mount_from_gimbal": {"type": ["array", "null"], "items": {"type": "number"}},
-                        "origin": {"type": "object"},
-                        "epoch": {"type": "integer"},
-                    },
-                },
+                "pose": _POSE,
             },
             ["seq", "time_boot_us", "received_ns", "pose_looked_up", "pose"],
         ),
-        _object_schema(
-            TRACK_SCHEMA,
-            "One processed frame's track and 3-D estimate (full table in onboard/core/track.py).",
-            {
-                "schema": {"type": "string"},
-                "vehicle": {"type": "string"},
-                **_FRAME_STAMP,
-                "track_id": {"type": ["integer", "null"]},
-                "state": {"type": "string", "enum": list(TRACK_STATES)},
-                "measurement_valid": {"type": "boolean"},
-                "u_px": _NUM_OR_NULL,
-                "v_px": _NUM_OR_NULL,
-                "bbox": {"type": ["array", "null"], "items": {"type": "number"}},
-                "pose_valid": {"type": "boolean"},
-                "lat_deg": _NUM_OR_NULL,
-                "lon_deg": _NUM_OR_NULL,
-                "alt_m": _NUM_OR_NULL,
-                "ned_m": _VEC3,
-                "vel_ned_mps": _VEC3,
-                "sigma_ned_m": _VEC3,
-                "range_m": _NUM_OR_NULL,
-                "range_sigma_ratio": _NUM_OR_NULL,
-                "observable": {"type": "boolean"},
-                "window_frames": {"type": "integer"},
-                "model": {"type": ["string", "null"]},
-            },
-            ["schema", "vehicle", "seq", "time_boot_us", "state"],
-        ),
-        _object_schema(
-            STATUS_SCHEMA,
-            "The daemon's status (frames in/processed/dropped/rejected, latencies, link, warnings, record).",
-            {"schema": {"type": "string"}, "vehicle": {"type": "string"}, "uptime_s": {"type": "number"}},
-            ["schema"],
-        ),
-        _object_schema(
-            TRUTH_SCHEMA,
-            "The simulator's exact state at one rendered frame (groundsim run --record).",
-            {
-                **_FRAME_STAMP,
-                "t_s": {"type": "number"},
-                "target_ned_m": _VEC3,
-                "target_vel_ned_mps": _VEC3,
-                "camera_ned_m": _VEC3,
-                "target_lat_deg": {"type": "number"},
-                "target_lon_deg": {"type": "number"},
-                "target_alt_m": {"type": "number"},
-                "origin": {"type": "object"},
-            },
-            ["seq", "time_boot_us"],
-        ),
+        track_json_schema(),
+        status_json_schema(),
+        guidance_json_schema(),
         _object_schema(
             IMAGING_POSE_SCHEMA,
             "The pose the image chain got for a frame before the telemetry wait (image chain objects).",
-            {**_FRAME_STAMP, "pose": {"type": ["object", "null"]}},
+            {**_FRAME_STAMP, "pose": _POSE},
             ["seq", "time_boot_us", "pose"],
         ),
         _object_schema(
@@ -191,8 +188,10 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
             "Every confirmed or coasting object of one frame (image chain objects), as published on "
             "irtrack/<vehicle>/objects.",
             {
-                "schema": {"type": "string"},
+                "schema": {"type": "string", "const": OBJECTS_SCHEMA},
                 "time_boot_us": {"type": "integer"},
+                "time_unix_us": {"type": ["integer", "null"], "description": "the frame's UTC, us; null until mapped"},
+                "time_unix_sigma_us": {"type": ["integer", "null"], "description": "1-sigma of time_unix_us, us"},
                 "frame_index": {"type": "integer", "description": "the image chain's frame count, from 0"},
                 "primary_id": {"type": ["integer", "null"], "description": "the selected target's id"},
                 "objects": {
@@ -202,19 +201,29 @@ JSON_SCHEMAS: dict[str, dict[str, Any]] = {
                         "properties": {
                             "id": {"type": "integer"},
                             "state": {"type": "string", "enum": ["confirmed", "coasting"]},
-                            "u_px": {"type": "number"},
-                            "v_px": {"type": "number"},
-                            "box_px": _BOX,
-                            "los_ned": _VEC3,
+                            "u_px": {"type": "number", "description": "centre, pixels, 3 decimals"},
+                            "v_px": {"type": "number", "description": "centre, pixels, 3 decimals"},
+                            "box_px": {**_BOX, "description": "x, y, w, h px, 2 decimals"},
+                            "los_ned": {**_VEC3, "description": "unit line of sight, local NED, 7 decimals"},
                             "los_sigma_rad": {"type": "number"},
-                            "score": {"type": "number", "description": "contrast over the local threshold"},
+                            "score": {"type": "number", "description": "contrast over the local threshold, 3 decimals"},
                             "primary": {"type": "boolean"},
                         },
-                        "required": ["id", "state", "u_px", "v_px", "box_px", "primary"],
+                        "required": [
+                            "id",
+                            "state",
+                            "u_px",
+                            "v_px",
+                            "box_px",
+                            "los_ned",
+                            "los_sigma_rad",
+                            "score",
+                            "primary",
+                        ],
                     },
                 },
             },
-            ["schema", "time_boot_us", "frame_index", "primary_id", "objects"],
+            ["schema", "time_boot_us", "time_unix_us", "time_unix_sigma_us", "frame_index", "primary_id", "objects"],
         ),
         _object_schema(
             TRUTH_OBJECTS_SCHEMA,

@@ -408,7 +408,11 @@ class _Writer:
         t = self._link._transport
         if t is None:
             raise OSError("link not open")
-        t.write(bytes(buf))
+        data = bytes(buf)
+        t.write(data)
+        tap = self._link.raw_tap
+        if tap is not None:  # the flight recorder: what we told the autopilot (setpoints, rates, FOLLOW_TARGET)
+            tap(data, "autopilot", None, "tx")
 
 
 # --------------------------------------------------------------------------- the adapter
@@ -456,8 +460,9 @@ class MavlinkLink:
                 "MavlinkLink.extra_destinations: expected a tuple of (host, port 1..65535) pairs, "
                 f"got {show(extra_destinations)}"
             )
-        #: called with (bytes, link name, peer address) for every read, before parsing (the flight recorder)
-        self.raw_tap: Callable[[bytes, str, Any], Any] | None = None
+        #: called with (bytes, link name, peer address or None, "rx" | "tx") for every read, before parsing, and
+        #: every message written (the flight recorder)
+        self.raw_tap: Callable[[bytes, str, Any, str], Any] | None = None
         self.config = config
         self.endpoint = parse_connection(config.connection)
         if bool(gimballed) != pose_buffer.mount.gimballed:
@@ -627,7 +632,7 @@ class MavlinkLink:
             data, addr = got
             if data:
                 if self.raw_tap is not None:  # the flight recorder: the bytes as read, before any parsing
-                    self.raw_tap(data, "autopilot", addr)
+                    self.raw_tap(data, "autopilot", addr, "rx")
                 handled += self._feed(data, addr, now)
         if self.state == LINK_CONNECTED:
             self._service_commands(now)

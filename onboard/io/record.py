@@ -2,21 +2,27 @@
 
 ``python -m onboard ... --record FILE.mcap`` (or config ``record.path``) and ``groundsim run --record
 FILE.mcap`` write one.  MCAP (https://mcap.dev) is the container rosbag2 and Foxglove use; every
-channel below has a schema a generic viewer understands, and the file is chunked: a daemon killed
-with SIGKILL leaves a file that reads up to its last written chunk (at most ``record.chunk_kb`` or
-``record.flush_interval_s`` of data lost).
+channel below has a schema a generic viewer understands, and the file is chunked.  A file closed by
+:meth:`FlightRecorder.close` (the daemon's SIGTERM, SIGINT or SIGHUP) ends with its summary and footer: complete
+and indexed, whatever reader opens it.  A daemon killed with SIGKILL (or a power cut) leaves a file without them:
+its finished chunks are whole (at most ``record.chunk_kb`` or ``record.flush_interval_s`` of data lost), but only
+a streaming reader reads it (``mcap.stream_reader.StreamReader``; :mod:`onboard.app.replay` does), not the
+indexed one (``mcap.reader.make_reader``, which reads the footer first);
+``python -m onboard.record_recover CUT.mcap WHOLE.mcap`` (:mod:`onboard.app.record_recover`) writes its whole
+records into a complete, indexed file.
 
 Channels (topic: schema name, schema encoding / message encoding):
 
 ================================  =============================  =================  ============================
 topic                             schema                         encoding           one message per
 ================================  =============================  =================  ============================
-``/mavlink/<link>``               ``irtrack.mavlink_raw/1``      jsonschema / json  received datagram (or read)
+``/mavlink/<link>``               ``irtrack.mavlink_raw/1``      jsonschema / json  datagram (or read) in or out
 ``irtrack/<v>/ir/frame``          ``foxglove.RawImage``          protobuf           frame as received
 ``/onboard/frame_input``          ``irtrack.frame_input/1``      jsonschema / json  frame the pipeline took
 ``/onboard/imaging_pose``         ``irtrack.imaging_pose/1``     jsonschema / json  frame (image chain objects)
 ``irtrack/<v>/track``             ``irtrack.track/2``            jsonschema / json  track (bytes as published)
 ``irtrack/<v>/status``            ``irtrack.status/1``           jsonschema / json  status (bytes as published)
+``irtrack/<v>/guidance``          ``irtrack.guidance/1``         jsonschema / json  advice (bytes as published)
 ``/onboard/target_fix``           ``foxglove.LocationFix``       protobuf           track with a position
 ``/onboard/camera_fix``           ``foxglove.LocationFix``       protobuf           frame with a pose
 ``irtrack/<v>/objects``           ``irtrack.objects/1``          jsonschema / json  frame (image chain objects)
@@ -28,11 +34,12 @@ topic                             schema                         encoding       
 
 * ``irtrack.mavlink_raw/1``: ``{"link": "autopilot", "direction": "rx" | "tx", "receive_time_ns":
   int (monotonic clock of the recorder's process, the clock frames are stamped with), "source": "host:port"
-  or null, "data": base64 of the bytes exactly as read (a UDP datagram, or a serial/TCP read)}``.
+  or null, "data": base64 of the bytes exactly as read (a UDP datagram, or a serial/TCP read) or written
+  (``tx``: one message as packed, its time the hand-over)}``.
 * ``foxglove.RawImage``: ``timestamp`` = capture time on the vehicle's boot clock (``time_boot_us``,
   so it reads as 1970 plus the autopilot's uptime), ``frame_id`` ``ir_camera``, ``encoding`` ``mono8``
   or ``mono16`` (little-endian), ``step`` = width x bytes per pixel; the MCAP message's ``sequence`` is
-  the frame's ``seq`` and its ``publish_time`` the receive time (monotonic ns, as ``receive_time_ns``).
+  the frame's ``seq``.
 * ``irtrack.frame_input/1``: ``{"seq", "time_boot_us", "received_ns", "pose_looked_up": bool,
   "pose": null | PoseAt}``: a frame the pipeline thread took from its queue (in that order), and the
   interpolated pose it got (:func:`pose_to_json`; floats printed by ``repr``, so they read back bit for
@@ -52,12 +59,24 @@ topic                             schema                         encoding       
   waited for its telemetry (the frame's own pose, in ``frame_input``, is looked up after that wait, so the two can
   differ); replay gives the chain this one.
 * Log times are the recorder's wall clock at the event (``time.time_ns`` at start, advanced by the
-  monotonic clock, so they never go back).
+  monotonic clock, so they never go back): a frame's is its receive time (the ``received_ns`` its caller
+  gives), a MAVLink read's its ``receive_ns`` when given, every other message's the moment it is handed to the
+  recorder (its ``on_*`` call), stamped under the queue's lock so that the file's order is that order.  The
+  writer thread writes later and never restamps.  (A frame stamped at receipt may come after messages stamped
+  later: MCAP allows any log-time order within a chunk, a chunk's index records its earliest and latest, and
+  readers sort.)  ``publish_time`` is the log time on every channel (MCAP: the log time when the publish time
+  is not known).
+* ``sequence``: the publisher's number where the message carries one -- the frame's ``seq`` on the frame,
+  ``frame_input``, ``imaging_pose``, ``camera_fix``, track (its ``seq``), ``target_fix``, objects and object
+  annotations channels, the simulator frame's ``seq`` on the truth channels -- else the recorder's count of
+  the channel's messages handed to it, from 0 over the whole recording (rotation continues it): status and
+  ``/mavlink/<link>``.  A message dropped at the queue keeps its number, so a gap in a counted channel is a drop.
+  Numbers are wrapped to the record's 32 bits.
 
 Metadata record ``irtrack``: ``config_yaml`` (the effective configuration, what replay uses by
 default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim``), ``file_index``.
 
-**Never stalls the caller**: every ``on_*`` method timestamps, appends to a deque and returns
+**Never stalls the caller**: every ``on_*`` method timestamps, numbers, appends to a deque and returns
 (microseconds); a writer thread encodes (protobuf, JSON) and writes.  When the backlog passes
 ``record.queue_mb`` new messages are dropped and counted (``dropped``, per topic in
 ``dropped_by_topic``; the daemon's status JSON shows :meth:`FlightRecorder.stats` under ``record``).
@@ -65,6 +84,9 @@ default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim
 ``FILE.2.mcap``, ...) past ``record.max_file_mb`` or ``record.max_file_s``; with
 ``record.max_files`` > 0 the oldest files beyond that many are deleted.  Every ``record.sync_mb`` written the
 file is synced to disk and its pages dropped from the page cache (:meth:`FlightRecorder._maybe_sync`).
+**Finished within its close's time**: :meth:`FlightRecorder.close` writes the backlog until a little before its
+timeout, drops and counts what is left then (``dropped_at_close``), and finishes the file (last chunk, summary,
+footer) in the writer thread: a shutdown bounded in time still leaves a complete file.
 
 **Cheap per frame** (``python -m bench.record`` prints the callers' and the writer's CPU per frame): chunks are
 written by :class:`onboard.io.mcap_chunks.ChunkWriter` (the mcap package's layout byte for byte, one ``writev`` per
@@ -150,6 +172,9 @@ OBJECT_ANNOTATIONS_TOPIC = "/onboard/object_annotations"
 TRUTH_OBJECTS_TOPIC = "/groundsim/truth/objects"
 TRUTH_ANNOTATIONS_TOPIC = "/groundsim/truth/annotations"
 MB = 1_000_000
+#: of a close's time, what the writer keeps for finishing the file (the last chunk, the summary, the footer: a few
+#: small writes) after it stops writing the backlog
+FINISH_RESERVE_S = 0.2
 IMAGING_POSE_TOPIC = "/onboard/imaging_pose"
 #: no pose was looked up for the image chain (as distinct from a look-up that answered None)
 NOT_LOOKED_UP: Any = type("NotLookedUp", (), {"__repr__": lambda self: "NOT_LOOKED_UP"})()
@@ -334,7 +359,8 @@ class FlightRecorder:
 
     ``metadata``: string fields of the ``irtrack`` metadata record (``config_yaml`` ...).
     ``vehicle``: names the zenoh-like topics.  ``clock_ns``: the monotonic clock the caller stamps
-    receive times with; ``wall_ns``: the wall clock for log times (read once).
+    receive times with; ``wall_ns``: the wall clock for log times (read once).  ``json_schemas``: JSON Schemas
+    by name beyond :data:`JSON_SCHEMAS`, for :meth:`on_json` (the simulator's ``irtrack.truth/1``).
     """
 
     def __init__(
@@ -346,6 +372,7 @@ class FlightRecorder:
         recorder: str = "onboard",
         clock_ns: Callable[[], int] = time.monotonic_ns,
         wall_ns: Callable[[], int] = time.time_ns,
+        json_schemas: Mapping[str, Mapping[str, Any]] | None = None,
     ) -> None:
         if not isinstance(settings, RecordConfig):
             raise InputError(f"FlightRecorder needs a RecordConfig, got {type(settings).__name__}")
@@ -392,16 +419,29 @@ class FlightRecorder:
         self._closed_bytes = 0
         self._pb: dict[str, Any] | None = None
         self._mav_parts: dict = {}  # (link, direction, source) -> the constant parts of its mavlink_raw JSON
+        self._json_schemas: dict[str, Mapping[str, Any]] = {**JSON_SCHEMAS, **(json_schemas or {})}
+        self._counts: dict[str, int] = {}  # topic -> messages handed over (the sequence of counted channels)
+        self.dropped_at_close = 0  # backlog not written by close's deadline (also in dropped)
+        self._write_until = math.inf  # time.monotonic() past which a closing writer drops the rest
 
     # ------------------------------------------------------------------ producers (any thread)
 
     def log_time_ns(self, mono_ns: int | None = None) -> int:
         return self._wall0 + ((self._clock_ns() if mono_ns is None else mono_ns) - self._mono0)
 
-    def _put(self, kind: str, topic: str, nbytes: int, item: tuple) -> bool:
+    def _put(
+        self, kind: str, topic: str, nbytes: int, item: tuple, t_ns: int | None = None, seq: int | None = None
+    ) -> bool:
+        """Queue ``item`` for the writer, stamped ``t_ns`` (the recorder's clock; None: now, the hand-over) and
+        numbered ``seq`` (None: the channel's count); False when dropped (counted) or closed."""
         with self._cond:
             if self._stop.is_set():
                 return False
+            if t_ns is None:
+                t_ns = self._clock_ns()  # under the lock: the queue's order is the stamps' order
+            if seq is None:
+                seq = self._counts.get(topic, 0)
+                self._counts[topic] = seq + 1  # a dropped message keeps its number: the gap shows the drop
             if self._queued_bytes + nbytes > self.settings.queue_bytes:
                 self.dropped += 1
                 self.dropped_by_topic[topic] += 1
@@ -409,7 +449,7 @@ class FlightRecorder:
             self._queued_bytes += nbytes
             if self._queued_bytes > self.max_queue_bytes:
                 self.max_queue_bytes = self._queued_bytes
-            self._q.append((kind, topic, nbytes, item))
+            self._q.append((kind, topic, nbytes, item, t_ns, seq & 0xFFFFFFFF))
             if self._queued_bytes >= self._wake_bytes:
                 self._cond.notify()  # a chunk's worth: the writer turns (else at its flush deadline)
             return True
@@ -418,54 +458,60 @@ class FlightRecorder:
         self, data: bytes, link: str = "autopilot", source=None, direction: str = "rx", receive_ns: int | None = None
     ) -> bool:
         """Raw MAVLink bytes read from (or written to) ``link``; ``source`` the peer (host, port) if known."""
-        now = self._clock_ns() if receive_ns is None else receive_ns
-        return self._put("mavlink", mavlink_topic(link), len(data) + 100, (bytes(data), link, source, direction, now))
+        return self._put(
+            "mavlink", mavlink_topic(link), len(data) + 100, (bytes(data), link, source, direction), receive_ns
+        )
 
     def on_frame(self, frame, received_ns: int) -> bool:
         """An :class:`~onboard.core.irframe.IrFrame` as received (its pixels must not change afterwards)."""
         if not self.settings.frames:
             return False
-        return self._put("frame", self.frame_topic, int(frame.pixels.nbytes) + 100, (frame, int(received_ns)))
+        return self._put(
+            "frame", self.frame_topic, int(frame.pixels.nbytes) + 100, (frame,), int(received_ns), int(frame.seq)
+        )
 
     def on_frame_input(self, frame, received_ns: int, pose_looked_up: bool, pose, imaging_pose=NOT_LOOKED_UP) -> bool:
         """A frame the pipeline took, with the pose it got (``pose_looked_up`` False: refused before the lookup);
         ``imaging_pose``: the pose its image chain got before the telemetry wait, when it asked for one
         (:meth:`RecordingPoseSource.take_lookups`; on ``/onboard/imaging_pose``)."""
+        seq = int(frame.seq)
         ok = self._put(
             "frame_input",
             FRAME_INPUT_TOPIC,
             700,
-            (int(frame.seq), int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
+            (seq, int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
+            seq=seq,
         )
         if imaging_pose is not NOT_LOOKED_UP:
-            item = (int(frame.seq), int(frame.time_boot_us), imaging_pose, self._clock_ns())
-            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item) and ok
+            item = (seq, int(frame.time_boot_us), imaging_pose)
+            ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item, seq=seq) and ok
         return ok
 
     def on_track(self, track, payload: bytes | None = None) -> bool:
         """A :class:`~onboard.core.track.Track` (``payload``: its published bytes, made here when None)."""
-        return self._put("track", self.track_topic, 1500, (track, payload, self._clock_ns()))
+        return self._put("track", self.track_topic, 1500, (track, payload), seq=int(track.seq))
 
     def on_objects(self, message: Mapping[str, Any], seq: int) -> bool:
         """The ``irtrack.objects/1`` message of frame ``seq`` (a dict, not changed afterwards): its JSON and its
         foxglove.ImageAnnotations."""
         nbytes = 200 + 400 * len(message.get("objects", ()))
-        return self._put("objects", self.objects_topic, nbytes, (message, int(seq), self._clock_ns()))
+        return self._put("objects", self.objects_topic, nbytes, (message,), seq=int(seq))
 
     def on_truth_objects(self, message: Mapping[str, Any]) -> bool:
         """The simulator's ``irtrack.truth_objects/1`` message of one frame: its JSON and its annotations."""
         nbytes = 200 + 400 * len(message.get("objects", ()))
-        return self._put("truth_objects", TRUTH_OBJECTS_TOPIC, nbytes, (message, self._clock_ns()))
+        return self._put("truth_objects", TRUTH_OBJECTS_TOPIC, nbytes, (message,), seq=int(message.get("seq", 0)))
 
     def on_status(self, payload: bytes) -> bool:
-        return self._put(
-            "json", self.status_topic, len(payload) + 100, (STATUS_SCHEMA, bytes(payload), self._clock_ns())
-        )
+        return self._put("json", self.status_topic, len(payload) + 100, (STATUS_SCHEMA, bytes(payload)))
 
-    def on_json(self, topic: str, schema: str, obj: Mapping[str, Any] | bytes) -> bool:
-        """Any JSON message with one of :data:`JSON_SCHEMAS` (the truth channel)."""
+    def on_json(self, topic: str, schema: str, obj: Mapping[str, Any] | bytes, sequence: int | None = None) -> bool:
+        """Any JSON message with one of :data:`JSON_SCHEMAS` or the constructor's ``json_schemas`` (the truth
+        channel); ``sequence``: the publisher's number for it (None: the channel's count)."""
         data = obj if isinstance(obj, (bytes, bytearray)) else _COMPACT_JSON.encode(obj).encode()
-        return self._put("json", topic, len(data) + 100, (schema, bytes(data), self._clock_ns()))
+        if schema not in self._json_schemas:
+            raise InputError(f"recorder: no JSON Schema named {schema!r} for {topic}")
+        return self._put("json", topic, len(data) + 100, (schema, bytes(data)), seq=sequence)
 
     def stats(self) -> dict[str, Any]:
         """For the status JSON: written/dropped messages, bytes, files, queue."""
@@ -479,6 +525,7 @@ class FlightRecorder:
             "bytes_written": self.bytes_written,
             "dropped": dropped,
             "dropped_by_topic": by_topic,
+            "dropped_at_close": self.dropped_at_close,
             "queue_bytes": queued,
             "max_queue_bytes": self.max_queue_bytes,
             "write_errors": self.write_errors,
@@ -495,11 +542,22 @@ class FlightRecorder:
         self._thread.start()
 
     def close(self, timeout_s: float = 5.0) -> None:
-        """Write what is queued (within ``timeout_s``), finish the file (summary, footer), stop the thread."""
-        if not stop_and_join(self._cond, self._stop, self._thread, timeout_s):
-            log.warning("recorder: backlog not written within %.1f s; the file ends at its last chunk", timeout_s)
+        """Write what is queued until :data:`FINISH_RESERVE_S` (at most a quarter of ``timeout_s``) before
+        ``timeout_s`` is up, drop and count the rest (``dropped_at_close``), finish the file (last chunk, summary,
+        footer) and stop the thread: the writer thread does it all, and this waits for it up to ``timeout_s``.
+        Only a write the disk does not complete in that time leaves the file without its summary (logged)."""
+        self._write_until = time.monotonic() + max(timeout_s - min(FINISH_RESERVE_S, timeout_s / 4), 0.0)
+        if self._thread is None:  # never started: no file open, nothing queued is written
+            stop_and_join(self._cond, self._stop, None, timeout_s)
+            self._finish()
             return
-        self._finish()
+        if not stop_and_join(self._cond, self._stop, self._thread, timeout_s):
+            log.warning(
+                "recorder: %s not finished within %.1f s (a write did not return); it ends at its last chunk:"
+                " python -m onboard.record_recover reads it whole",
+                self.files[-1] if self.files else self.path,
+                timeout_s,
+            )
 
     # ------------------------------------------------------------------ writer thread
 
@@ -518,15 +576,25 @@ class FlightRecorder:
                 self._queued_bytes = 0
                 stop = self._stop.is_set()
             c0 = time.thread_time()
-            for kind, topic, _n, item in batch:
+            for i, (kind, topic, _n, item, t_ns, seq) in enumerate(batch):
+                if self._stop.is_set() and time.monotonic() >= self._write_until:
+                    self._drop_at_close(batch[i:])
+                    break
                 try:
-                    self._write(kind, topic, item)
+                    self._write(kind, topic, item, t_ns, seq)
                 except Exception as exc:  # noqa: BLE001 - the recorder must not die on one message
                     self.write_errors += 1
                     if self.write_errors == 1:
                         log.exception(
                             "recorder: cannot write a %s message (%s: %s); counted", kind, type(exc).__name__, exc
                         )
+            if stop:  # closing: the file is finished here, by the thread that wrote it
+                self._finish()
+                self.writer_cpu_s += time.thread_time() - c0
+                return
+            if self._stop.is_set():  # closing began during this batch: no sync or rotation, take the rest now
+                self.writer_cpu_s += time.thread_time() - c0
+                continue
             now = time.monotonic()
             try:
                 if now >= next_flush:
@@ -539,8 +607,15 @@ class FlightRecorder:
                 self.write_errors += 1
                 log.warning("recorder: flush/rotate failed: %s: %s", type(exc).__name__, exc)
             self.writer_cpu_s += time.thread_time() - c0
-            if stop:
-                return
+
+    def _drop_at_close(self, rest: list) -> None:
+        """The backlog left at close's deadline: dropped, counted, said once."""
+        with self._cond:
+            self.dropped += len(rest)
+            for _kind, topic, *_ in rest:
+                self.dropped_by_topic[topic] += 1
+        self.dropped_at_close += len(rest)
+        log.warning("recorder: %d queued messages not written by the shutdown's deadline: dropped (counted)", len(rest))
 
     def _open(self, index: int) -> None:
         from onboard.io.mcap_chunks import ChunkWriter
@@ -646,26 +721,25 @@ class FlightRecorder:
         else:
             msg_enc = "json"
             if sid is None:
-                sid = w.register_schema(schema, "jsonschema", json.dumps(JSON_SCHEMAS[schema]).encode())
+                sid = w.register_schema(schema, "jsonschema", json.dumps(self._json_schemas[schema]).encode())
         self._schemas[schema] = sid
         cid = w.register_channel(topic, msg_enc, sid, {})
         self._channels[topic] = cid
         return cid
 
-    def _add(
-        self, topic: str, schema: str, data, mono_ns: int, sequence: int = 0, publish_ns: int | None = None
-    ) -> None:
+    def _add(self, topic: str, schema: str, data, mono_ns: int, sequence: int) -> None:
+        """One message stamped ``mono_ns`` (the recorder's clock; its log time and publish time) and numbered
+        ``sequence`` (32 bits)."""
         w = self._writer
         if w is None:
             return
         t = self.log_time_ns(mono_ns)
-        w.add_message(self._channel(w, topic, schema), t, data, t if publish_ns is None else publish_ns, sequence)
+        w.add_message(self._channel(w, topic, schema), t, data, t, sequence)
         self.messages_written += 1
 
-    def _add_json(self, topic: str, schema: str, obj: Any, mono_ns: int, seq: int = 0) -> None:
-        """``obj`` as the bytes ``json.dumps(obj, separators=(",", ":"))`` gives, its sequence ``seq`` (a frame's,
-        wrapped to the record's 32 bits)."""
-        self._add(topic, schema, _COMPACT_JSON.encode(obj).encode(), mono_ns, sequence=seq & 0xFFFFFFFF)
+    def _add_json(self, topic: str, schema: str, obj: Any, mono_ns: int, seq: int) -> None:
+        """``obj`` as the bytes ``json.dumps(obj, separators=(",", ":"))`` gives."""
+        self._add(topic, schema, _COMPACT_JSON.encode(obj).encode(), mono_ns, seq)
 
     def _pb_bytes(self, schema: str, fields: dict[str, Any]) -> bytes:
         cls = self._protobuf()[schema]
@@ -699,29 +773,25 @@ class FlightRecorder:
                 pass
         return b"".join((parts[0], str(int(now)).encode(), parts[1], base64.b64encode(data), b'"}'))
 
-    def _write(self, kind: str, topic: str, item: tuple) -> None:
+    def _write(self, kind: str, topic: str, item: tuple, now: int, seq: int) -> None:
+        """One queued item's messages, stamped ``now`` (its hand-over, or the receipt it was given) and numbered
+        ``seq``; a channel derived from it (a fix, annotations) takes the same stamp and number."""
         if self._writer is None:
             return
         if kind == "frame":
-            frame, received_ns = item
+            (frame,) = item
             self._add(
-                topic,
-                "foxglove.RawImage",
-                rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]),
-                received_ns,
-                sequence=int(frame.seq),
-                publish_ns=received_ns,
+                topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]), now, seq
             )
         elif kind == "frame_input":
-            seq, t_us, received_ns, looked_up, pose = item
+            _seq, t_us, received_ns, looked_up, pose = item
             obj = {
-                "seq": seq,
+                "seq": _seq,
                 "time_boot_us": t_us,
                 "received_ns": received_ns,
                 "pose_looked_up": looked_up,
                 "pose": pose_to_json(pose),
             }
-            now = self._clock_ns()
             self._add_json(topic, FRAME_INPUT_SCHEMA, obj, now, seq)
             if pose is not None:
                 self._add(
@@ -729,12 +799,13 @@ class FlightRecorder:
                     "foxglove.LocationFix",
                     self._pb_bytes("foxglove.LocationFix", camera_fix_fields(pose, t_us)),
                     now,
+                    seq,
                 )
         elif kind == "track":
-            track, payload, now = item
+            track, payload = item
             if payload is None:
                 payload = track_to_bytes(track)
-            self._add(topic, TRACK_SCHEMA, payload, now, sequence=int(track.seq))
+            self._add(topic, TRACK_SCHEMA, payload, now, seq)
             if track.lat_deg is not None:
                 self._add(
                     TARGET_FIX_TOPIC,
@@ -746,26 +817,27 @@ class FlightRecorder:
                         ),
                     ),
                     now,
+                    seq,
                 )
         elif kind == "imaging_pose":
-            seq, t_us, pose, now = item
-            obj = {"seq": seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
+            _seq, t_us, pose = item
+            obj = {"seq": _seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
             self._add_json(topic, IMAGING_POSE_SCHEMA, obj, now, seq)
         elif kind == "objects":
-            message, seq, now = item
+            (message,) = item
             self._add_json(topic, OBJECTS_SCHEMA, message, now, seq)
             ann = objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
-            self._add(OBJECT_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
+            self._add(OBJECT_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now, seq)
         elif kind == "truth_objects":
-            message, now = item
-            self._add_json(topic, TRUTH_OBJECTS_SCHEMA, message, now, int(message.get("seq", 0)))
+            (message,) = item
+            self._add_json(topic, TRUTH_OBJECTS_SCHEMA, message, now, seq)
             ann = truth_objects_annotations(message, self._protobuf()["foxglove.ImageAnnotations"])
-            self._add(TRUTH_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now)
+            self._add(TRUTH_ANNOTATIONS_TOPIC, "foxglove.ImageAnnotations", ann.SerializeToString(), now, seq)
         elif kind == "mavlink":
-            data, link, source, direction, now = item
-            self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now)
+            data, link, source, direction = item
+            self._add(topic, MAVLINK_RAW_SCHEMA, self._mavlink_json(data, link, source, direction, now), now, seq)
         elif kind == "json":
-            schema, data, now = item
-            self._add(topic, schema, data, now)
+            schema, data = item
+            self._add(topic, schema, data, now, seq)
         else:  # pragma: no cover - programming error
             raise InputError(f"unknown record kind {kind!r}")

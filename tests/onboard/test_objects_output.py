@@ -319,3 +319,26 @@ def test_the_video_tap_streams_the_objects_drawn():
     dec = frames[-1]
     sky_grey = np.median(dec)
     assert dec[50, 72:89].mean() > sky_grey + 100 and dec[150, 212:229].mean() > sky_grey + 60
+
+
+def test_every_json_message_of_the_recording_conforms_to_its_embedded_schema(recorded):
+    # objects, frame inputs, the image chain's poses and tracks: each key declared, each required one present, each
+    # value of its type; the annotations numbered as the frames their objects came from
+    from mcap.reader import make_reader
+
+    from tests.json_schema_check import check
+
+    path, config, _sent, _ = recorded
+    seen, annotated, objects_seqs = set(), [], []
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.message_encoding == "json":
+                errors = check(json.loads(message.data), json.loads(schema.data))
+                assert not errors, (channel.topic, errors[:5])
+                seen.add(schema.name)
+            if channel.topic == OBJECT_ANNOTATIONS_TOPIC:
+                annotated.append(message.sequence)
+            elif channel.topic == f"irtrack/{config.vehicle}/objects":
+                objects_seqs.append(message.sequence)
+    assert {"irtrack.objects/1", "irtrack.frame_input/1", "irtrack.track/2"} <= seen
+    assert annotated == objects_seqs == list(range(N_FRAMES))

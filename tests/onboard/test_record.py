@@ -126,7 +126,10 @@ def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path
     assert img.encoding == ("mono8" if dtype == np.uint8 else "mono16")
     assert (img.width, img.height, img.step) == (64, 48, 64 * np.dtype(dtype).itemsize)
     back = irframe_from_rawimage(m.sequence, img)
-    assert back.seq == 5 and back.time_boot_us == frames[5].time_boot_us and m.publish_time == 10_005
+    assert back.seq == 5 and back.time_boot_us == frames[5].time_boot_us
+    # stamped at receipt (10_005 on the recorder's monotonic clock), on the wall clock; published then too (MCAP:
+    # the publish time is the log time when not known), never a monotonic count of nanoseconds
+    assert m.log_time == rec.log_time_ns(10_005) and m.publish_time == m.log_time
     assert np.array_equal(back.pixels, frames[5].pixels) and back.pixels.dtype == dtype
     s, c, m = by_topic["/mavlink/autopilot"][3]
     obj = json.loads(m.data)
@@ -254,3 +257,146 @@ def test_sigkill_leaves_a_file_that_reads_up_to_its_last_chunk(tmp_path):
     print(
         f"killed writer: {len(seqs)} frames readable, file {path.stat().st_size} bytes, ended by {type(ended).__name__}"
     )
+
+
+class SteppedClock:
+    """The recorder's monotonic clock, set by the test."""
+
+    def __init__(self, t_ns: int) -> None:
+        self.t_ns = t_ns
+
+    def __call__(self) -> int:
+        return self.t_ns
+
+
+WALL0_NS = 1_700_000_000_000_000_000
+MONO0_NS = 5_000_000_000
+
+
+def _track(fr: IrFrame) -> Track:
+    """A track of frame ``fr`` with a position (so with a target fix)."""
+    return Track(
+        "uav1",
+        fr.seq,
+        fr.time_boot_us,
+        "tracking",
+        track_id=1,
+        lat_deg=47.4,
+        lon_deg=8.5,
+        alt_m=500.0,
+        p_ned_m=(1.0, 2.0, 3.0),
+        v_ned_mps=(0.0, 0.0, 0.0),
+        cov_p_ned_m2=np.eye(3),
+        range_m=300.0,
+        origin=ORIGIN,
+    )
+
+
+def test_log_times_are_the_hand_over_not_the_write(tmp_path):
+    # every message queued at known instants, the writer started 10 s later: each log time is its hand-over (or
+    # the receipt its caller gave), never the moment the writer wrote it
+    clock = SteppedClock(MONO0_NS)
+    path = tmp_path / "t.mcap"
+    rec = FlightRecorder(RecordConfig(path=str(path)), vehicle="uav1", clock_ns=clock, wall_ns=lambda: WALL0_NS)
+    fr = _frame(3)
+    clock.t_ns = MONO0_NS + 1_000
+    rec.on_frame(fr, MONO0_NS + 500)  # received before it was handed over
+    clock.t_ns = MONO0_NS + 2_000
+    rec.on_frame_input(fr, MONO0_NS + 500, True, _pose(fr.time_boot_us))
+    clock.t_ns = MONO0_NS + 3_000
+    rec.on_track(_track(fr))
+    clock.t_ns = MONO0_NS + 4_000
+    rec.on_status(b'{"schema":"irtrack.status/1"}')
+    rec.on_mavlink(b"\xfd\x01", "autopilot", None, "rx", receive_ns=MONO0_NS + 3_500)
+    clock.t_ns = MONO0_NS + 10_000_000_000
+    rec.start()
+    rec.close()
+    got = {c.topic: (m.log_time - WALL0_NS, m.publish_time - WALL0_NS) for _s, c, m in _read_all(path)}
+    assert got == {
+        "irtrack/uav1/ir/frame": (500, 500),
+        FRAME_INPUT_TOPIC: (2_000, 2_000),
+        "/onboard/camera_fix": (2_000, 2_000),
+        "irtrack/uav1/track": (3_000, 3_000),
+        "/onboard/target_fix": (3_000, 3_000),
+        "irtrack/uav1/status": (4_000, 4_000),
+        "/mavlink/autopilot": (3_500, 3_500),
+    }
+
+
+def test_every_channel_is_numbered_by_its_publisher_or_counted(tmp_path):
+    path = tmp_path / "n.mcap"
+    rec = FlightRecorder(RecordConfig(path=str(path)), vehicle="uav1", json_schemas={"irtrack.truth/1": {}})
+    rec.start()
+    for seq in (7, 8, 10):  # frames numbered by the camera, with a gap
+        fr = _frame(seq)
+        rec.on_frame_input(fr, seq, True, _pose(fr.time_boot_us))
+        rec.on_track(_track(fr))
+        objects = {"schema": "irtrack.objects/1", "time_boot_us": fr.time_boot_us, "primary_id": None, "objects": []}
+        rec.on_objects(objects, seq)
+        rec.on_status(b'{"schema":"irtrack.status/1"}')
+        rec.on_mavlink(b"\xfd", "autopilot")
+        rec.on_mavlink(b"\xfd", "gcs", direction="tx")
+        rec.on_json("/groundsim/truth", "irtrack.truth/1", {"seq": seq}, sequence=seq + 100)
+    rec.close()
+    seqs: dict = {}
+    for _s, c, m in _read_all(path):
+        seqs.setdefault(c.topic, []).append(m.sequence)
+    assert seqs == {
+        FRAME_INPUT_TOPIC: [7, 8, 10],
+        "/onboard/camera_fix": [7, 8, 10],
+        "irtrack/uav1/track": [7, 8, 10],
+        "/onboard/target_fix": [7, 8, 10],
+        "irtrack/uav1/objects": [7, 8, 10],
+        "/onboard/object_annotations": [7, 8, 10],
+        "irtrack/uav1/status": [0, 1, 2],
+        "/mavlink/autopilot": [0, 1, 2],
+        "/mavlink/gcs": [0, 1, 2],
+        "/groundsim/truth": [107, 108, 110],
+    }
+
+
+def test_a_dropped_message_leaves_a_gap_in_its_channels_count(tmp_path):
+    path = tmp_path / "g.mcap"
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(path)), queue_mb=0.0025), vehicle="uav1")
+    pad = b'{"schema":"irtrack.status/1","pad":"' + b"x" * 860 + b'"}'  # 1000 bytes queued with its overhead
+    ok = [rec.on_status(pad) for _ in range(3)]
+    assert ok == [True, True, False]  # the 3rd does not fit the 2500-byte queue
+    rec.start()
+    rec.on_status(pad)
+    rec.close()
+    assert [m.sequence for _s, _c, m in _read_all(path)] == [0, 1, 3]
+
+
+class SlowRecorder(FlightRecorder):
+    """A recorder whose disk takes ``write_s`` per message (a loaded SD card)."""
+
+    write_s = 0.02
+
+    def _write(self, *args) -> None:
+        time.sleep(self.write_s)
+        super()._write(*args)
+
+
+def test_close_with_a_backlog_finishes_the_file_within_its_time(tmp_path):
+    # a backlog the writer needs 4 s for, closed with 0.5 s: the rest is dropped and counted, and the file is
+    # complete (summary, footer) for the indexed reader -- the daemon's SIGTERM gives its recorder what is left of
+    # its 2 s budget, and a force exit would leave the file without its summary
+    path = tmp_path / "b.mcap"
+    rec = SlowRecorder(RecordConfig(path=str(path)), vehicle="uav1")
+    n = 200
+    for i in range(n):
+        assert rec.on_frame(_frame(i), i)
+    rec.start()
+    t0 = time.monotonic()
+    rec.close(0.5)
+    took_s = time.monotonic() - t0
+    msgs = _read_all(path)
+    written = len(msgs)
+    assert 0 < written < n and rec.dropped_at_close == n - written == rec.dropped
+    assert [m.sequence for _s, _c, m in msgs] == list(range(written))  # the oldest written, in order
+    assert took_s < 0.5 * n * SlowRecorder.write_s  # did not wait for the backlog
+    with open(path, "rb") as f:
+        summary = mcap_reader.make_reader(f).get_summary()
+    assert summary is not None and summary.statistics.message_count == written
+    assert rec.stats()["dropped_at_close"] == n - written
+    print(f"closed in {took_s * 1000:.0f} ms with {written} of {n} frames written")

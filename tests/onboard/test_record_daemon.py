@@ -7,6 +7,7 @@ which the replay tests read too."""
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import signal
@@ -179,6 +180,8 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
         "irtrack/uav1/track": ("irtrack.track/2", "jsonschema", "json"),
         "/onboard/target_fix": ("foxglove.LocationFix", "protobuf", "protobuf"),
         "irtrack/uav1/status": ("irtrack.status/1", "jsonschema", "json"),
+        # the manoeuvres advised while the range was unobservable (guidance.advise), as published
+        "irtrack/uav1/guidance": ("irtrack.guidance/1", "jsonschema", "json"),
     }
     sim = _messages(r.sim_mcap)
     sim_by: dict = {}
@@ -201,8 +204,20 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
     for _, _, m in by["irtrack/uav1/ir/frame"][::37]:
         assert m.data == sent[m.sequence]
     # MAVLink: the daemon read what the vehicle sent (datagram for datagram, minus any still in flight at the end)
-    tx = [json.loads(m.data)["data"] for m in sim_by["/mavlink/vehicle"] if json.loads(m.data)["direction"] == "tx"]
-    rx = [json.loads(m.data)["data"] for _, _, m in by["/mavlink/autopilot"]]
+    vehicle = [json.loads(m.data) for m in sim_by["/mavlink/vehicle"]]
+    autopilot = [json.loads(m.data) for _, _, m in by["/mavlink/autopilot"]]
+    tx = [m["data"] for m in vehicle if m["direction"] == "tx"]
+    rx = [m["data"] for m in autopilot if m["direction"] == "rx"]
+    # and what the daemon wrote to the autopilot (heartbeats, rate requests, TIMESYNC) is what the vehicle read
+    # (the daemon's first heartbeats went out before the simulator started, its last after it stopped)
+    ours = [m["data"] for m in autopilot if m["direction"] == "tx"]
+    theirs = [m["data"] for m in vehicle if m["direction"] == "rx"]
+    assert set(theirs) <= set(ours) and len(theirs) >= DURATION_S
+    from onboard.io.mavlink_wire import mavlink2
+
+    parser = mavlink2.MAVLink(None)
+    kinds = {parser.decode(bytearray(base64.b64decode(d))).get_type() for d in ours}
+    assert {"HEARTBEAT", "COMMAND_LONG", "TIMESYNC"} <= kinds, kinds
     assert set(rx) <= set(tx) and len(rx) >= 0.95 * len(tx)
     rec = json.loads(by["irtrack/uav1/status"][-1][2].data)["record"]
     assert rec["dropped"] == 0 and rec["write_errors"] == 0
@@ -275,3 +290,57 @@ def test_sigkilled_recording_daemon_leaves_a_file_readable_up_to_its_last_chunk(
         f"SIGKILL once {on_disk.frames_before_kill} frames were on disk: {len(frames)} frames readable, "
         f"ended by {type(ended).__name__}"
     )
+
+
+def test_every_json_message_conforms_to_the_schema_embedded_in_its_recording(recorded_p1_flight):
+    # every key a message has is declared, every required key present, every value of its declared type: the
+    # schemas a viewer reads from the file describe the messages beside them (daemon: track, status, frame input,
+    # MAVLink; simulator: truth, MAVLink)
+    from tests.json_schema_check import check
+
+    seen = set()
+    for path in (recorded_p1_flight.daemon_mcap, recorded_p1_flight.sim_mcap):
+        for s, c, m in _messages(path):
+            if c.message_encoding != "json":
+                continue
+            assert s.encoding == "jsonschema"
+            errors = check(json.loads(m.data), json.loads(s.data))
+            assert not errors, (c.topic, errors[:5])
+            seen.add(s.name)
+    assert seen == {
+        "irtrack.track/2",
+        "irtrack.status/1",
+        "irtrack.guidance/1",
+        "irtrack.frame_input/1",
+        "irtrack.mavlink_raw/1",
+        "irtrack.truth/1",
+    }
+
+
+def test_log_times_are_the_events_and_sequences_number_every_channel(recorded_p1_flight):
+    msgs = _messages(recorded_p1_flight.daemon_mcap)
+    by: dict = {}
+    for _s, c, m in msgs:
+        by.setdefault(c.topic, []).append(m)
+    # a frame's input is handed to the recorder before its track (the same thread, in that order): its log time
+    # is no later, whenever the writer thread wrote either
+    inputs = {m.sequence: m.log_time for m in by["/onboard/frame_input"]}
+    tracks = by["irtrack/uav1/track"]
+    assert tracks and all(inputs[m.sequence] <= m.log_time for m in tracks)
+    # a received frame is logged at its receipt, before the pipeline took it
+    received = {m.sequence: m.log_time for m in by["irtrack/uav1/ir/frame"]}
+    assert all(received[seq] <= t for seq, t in inputs.items())
+    # publish time: the log time (MCAP's rule when the publisher's is not known), on the wall clock
+    assert all(m.publish_time == m.log_time for ms in by.values() for m in ms)
+    # sequences: the frame's on the frame channels (a fix: its frame's), a count on the others
+    for topic in ("/onboard/frame_input", "/onboard/camera_fix", "irtrack/uav1/track"):
+        assert [m.sequence for m in by[topic]] == sorted(m.sequence for m in by[topic]), topic
+    assert {m.sequence for m in by["/onboard/camera_fix"]} <= set(inputs)
+    assert {m.sequence for m in by["/onboard/target_fix"]} <= {m.sequence for m in tracks}
+    for topic in ("irtrack/uav1/status", "/mavlink/autopilot"):
+        assert [m.sequence for m in by[topic]] == list(range(len(by[topic]))), topic  # nothing dropped
+    sim: dict = {}
+    for _s, c, m in _messages(recorded_p1_flight.sim_mcap):
+        sim.setdefault(c.topic, []).append(m)
+    truth = sim["/groundsim/truth"]
+    assert [m.sequence for m in truth] == [json.loads(m.data)["seq"] for m in truth] == list(range(len(truth)))

@@ -6,6 +6,7 @@ json.dumps' (hypothesis), the LocationFix covariance's permutation equals the NE
 from __future__ import annotations
 
 import math
+import time
 
 import hypothesis.extra.numpy as hnp
 import numpy as np
@@ -59,6 +60,10 @@ def test_periodic_sync_keeps_the_file_whole(tmp_path):
     px = np.full((120, 160), 9, np.uint8)
     for i in range(40):
         rec.on_frame(IrFrame(i, 1_000_000 + i * 33_333, px), 1000 + i)
+    # the writer's own turns sync (a closing writer finishes the file without one): wait for them to write it all
+    t_end = time.monotonic() + 30.0
+    while rec.messages_written < 40 and time.monotonic() < t_end:
+        time.sleep(0.01)
     rec.close(30.0)
     assert (
         rec.syncs >= 1 and rec.write_errors == 0

@@ -1,0 +1,198 @@
+"""onboard.app.record_recover (``python -m onboard.record_recover``): a recording cut in the middle of a chunk, as a
+SIGKILL leaves it, which the `mcap` package's indexed reader refuses, rewritten as a complete file that reader
+reads: every whole record kept, messages byte for byte; bad input refused in one line naming the file."""
+
+from __future__ import annotations
+
+import os
+import struct
+
+import numpy as np
+import pytest
+
+from onboard.app.record_recover import main, whole_length
+from onboard.io.record import FlightRecorder, RecordConfig
+from tests.onboard.test_record import _frame, _pose, _track
+
+mcap_reader = pytest.importorskip("mcap.reader")
+from mcap.exceptions import McapError  # noqa: E402
+from mcap.writer import CompressionType, Writer  # noqa: E402
+
+
+def _recording(path) -> None:
+    """A recording of 60 frames with everything the daemon records around them, in 64 KB chunks."""
+    rec = FlightRecorder(
+        RecordConfig(path=str(path), chunk_kb=64), vehicle="uav1", metadata={"config_yaml": "vehicle: uav1\n"}
+    )
+    rec.start()
+    for i in range(60):
+        fr = _frame(i, np.uint16)
+        rec.on_mavlink(bytes([0xFD, i]), "autopilot", ("127.0.0.1", 14550))
+        rec.on_frame(fr, 1_000 + i)
+        rec.on_frame_input(fr, 1_000 + i, True, _pose(fr.time_boot_us, i))
+        rec.on_track(_track(fr))
+        if i % 10 == 0:
+            rec.on_status(b'{"schema":"irtrack.status/1"}')
+    rec.close()
+
+
+def _in_file_order(path) -> tuple[list, list, list]:
+    """``(messages, channels, metadata)`` of a complete file, read by the indexed reader in file order."""
+    with open(path, "rb") as f:
+        r = mcap_reader.make_reader(f)
+        msgs = [
+            (c.topic, s.name, s.data, m.log_time, m.publish_time, m.sequence, m.data)
+            for s, c, m in r.iter_messages(log_time_order=False)
+        ]
+        summary = r.get_summary()
+        channels = sorted((c.topic, c.message_encoding, c.metadata) for c in summary.channels.values())
+        meta = [(m.name, m.metadata) for m in r.iter_metadata()]
+    return msgs, channels, meta
+
+
+def _chunk_bounds(path) -> list[tuple[int, int]]:
+    with open(path, "rb") as f:
+        return [
+            (ci.chunk_start_offset, ci.chunk_length) for ci in mcap_reader.make_reader(f).get_summary().chunk_indexes
+        ]
+
+
+def _streamed_messages(path) -> int:
+    """How many messages the `mcap` package's stream reader reads from the start of ``path`` before its end."""
+    from mcap.stream_reader import StreamReader
+
+    n = 0
+    with open(path, "rb") as f:
+        try:
+            for rec in StreamReader(f).records:
+                n += type(rec).__name__ == "Message"
+        except Exception:  # noqa: BLE001 - the cut: whichever error the reader gives there
+            pass
+    return n
+
+
+def _cut(src, dst, size: int) -> None:
+    with open(src, "rb") as f:
+        data = f.read(size)
+    with open(dst, "wb") as f:
+        f.write(data)
+
+
+def test_a_recording_cut_mid_chunk_is_recovered_whole_for_the_indexed_reader(tmp_path, capsys):
+    full, cut, out = tmp_path / "full.mcap", tmp_path / "cut.mcap", tmp_path / "whole.mcap"
+    _recording(full)
+    chunks = _chunk_bounds(full)
+    assert len(chunks) >= 6
+    k = len(chunks) // 2
+    start, length = chunks[k]
+    _cut(full, cut, start + length // 2)  # in the middle of chunk k, as a SIGKILL leaves a file
+    with open(cut, "rb") as f, pytest.raises(McapError):
+        list(mcap_reader.make_reader(f).iter_messages())  # the indexed reader reads a garbage footer
+    assert main([str(cut), str(out)]) == 0
+    line = capsys.readouterr().out.strip()
+    assert line.startswith(f"{cut}: cut at byte {start + length // 2}; its whole records end at byte {start};")
+    msgs, channels, meta = _in_file_order(out)
+    full_msgs, full_channels, full_meta = _in_file_order(full)
+    # the messages of the whole chunks (as the package's stream reader reads the cut file), every field byte for
+    # byte, in the file's order; those of chunk k on are lost
+    assert len(msgs) == _streamed_messages(cut) > 0
+    assert msgs == full_msgs[: len(msgs)]
+    assert len(msgs) < len(full_msgs)
+    assert meta == full_meta and meta[0][1]["config_yaml"] == "vehicle: uav1\n"
+    assert {c[0] for c in channels} <= {c[0] for c in full_channels}
+    assert {"irtrack/uav1/ir/frame", "/onboard/frame_input", "irtrack/uav1/track"} <= {c[0] for c in channels}
+    # what the recovered file says of itself: its statistics count its messages
+    with open(out, "rb") as f:
+        assert mcap_reader.make_reader(f).get_summary().statistics.message_count == len(msgs)
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]  # written beside and renamed
+
+
+def test_schemas_metadata_and_attachments_are_kept(tmp_path, capsys):
+    # a file the mcap package wrote (zstd chunks, an attachment and two metadata records between them), cut in
+    # its last chunk
+    full, cut, out = tmp_path / "a.mcap", tmp_path / "a.cut.mcap", tmp_path / "a.whole.mcap"
+    with open(full, "wb") as f:
+        w = Writer(f, chunk_size=2048, compression=CompressionType.ZSTD)
+        w.start(profile="ros2", library="test")
+        sid = w.register_schema("s/1", "jsonschema", b'{"type":"object"}')
+        cid = w.register_channel("/a", "json", sid, {"k": "v"})
+        w.add_metadata("first", {"x": "1"})
+        for i in range(40):
+            w.add_message(cid, 1_000 + i, b'{"i":%d,"pad":"%s"}' % (i, b"y" * 200), 2_000 + i, i)
+            if i == 20:
+                w.add_attachment(5, 6, "cal.yaml", "text/yaml", b"fx: 400\n")
+                w.add_metadata("second", {"y": "2"})
+        w.finish()
+    chunks = _chunk_bounds(full)
+    start, length = chunks[-1]
+    _cut(full, cut, start + length - 3)
+    assert main([str(cut), str(out)]) == 0
+    assert "1 attachments" in capsys.readouterr().out
+    with open(out, "rb") as f:
+        r = mcap_reader.make_reader(f)
+        assert r.get_header().profile == "ros2"
+        msgs = [
+            (s.name, s.data, c.topic, c.metadata, m.data, m.log_time, m.publish_time, m.sequence)
+            for s, c, m in r.iter_messages()
+        ]
+        atts = [(a.name, a.media_type, a.create_time, a.log_time, a.data) for a in r.iter_attachments()]
+        meta = [(m.name, m.metadata) for m in r.iter_metadata()]
+    n = _streamed_messages(cut)
+    assert 20 < n == len(msgs) < 40
+    assert msgs[7] == (
+        "s/1",
+        b'{"type":"object"}',
+        "/a",
+        {"k": "v"},
+        b'{"i":7,"pad":"%s"}' % (b"y" * 200),
+        1_007,
+        2_007,
+        7,
+    )
+    assert atts == [("cal.yaml", "text/yaml", 5, 6, b"fx: 400\n")]
+    assert meta == [("first", {"x": "1"}), ("second", {"y": "2"})]
+
+
+def test_whole_length_of_a_complete_file_is_its_size(tmp_path):
+    full = tmp_path / "c.mcap"
+    _recording(full)
+    size = full.stat().st_size
+    with open(full, "rb") as f:
+        assert whole_length(f, size) == (size, True)
+
+
+def _refused(capsys, argv) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    return err[0]
+
+
+def test_bad_input_is_refused_in_one_line_naming_the_file(tmp_path, capsys):
+    full, out = tmp_path / "f.mcap", tmp_path / "out.mcap"
+    _recording(full)
+    text = tmp_path / "notes.mcap"
+    text.write_text("not a recording\n")
+    assert _refused(capsys, [str(text), str(out)]).startswith(f"error: {text}: not an MCAP file")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    assert _refused(capsys, [str(empty), str(out)]) == f"error: {empty}: not an MCAP file (the file is empty)"
+    # damage inside a whole chunk (the first record in it given an impossible length): not a cut
+    damaged = tmp_path / "d.mcap"
+    data = bytearray(full.read_bytes())
+    start, _ = _chunk_bounds(full)[1]
+    comp_len_at = start + 1 + 8 + 8 + 8 + 8 + 4
+    (comp_len,) = struct.unpack_from("<I", data, comp_len_at)
+    first_record = comp_len_at + 4 + comp_len + 8
+    struct.pack_into("<Q", data, first_record + 1, 2**40)
+    damaged.write_bytes(bytes(data))
+    line = _refused(capsys, [str(damaged), str(out)])
+    assert line.startswith(f"error: {damaged}: damaged: a record at byte 0 of a chunk (log times ")
+    assert (
+        _refused(capsys, [str(full), str(full)])
+        == f"error: {full}: names the input; give another file (the cut original is kept)"
+    )
+    assert _refused(capsys, [str(full), str(tmp_path)]).startswith(f"error: {tmp_path}: it is a folder")
+    missing = tmp_path / "gone.mcap"
+    assert _refused(capsys, [str(missing), str(out)]) == f"error: {missing}: cannot read: no such file"
+    assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
