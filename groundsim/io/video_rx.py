@@ -263,7 +263,8 @@ class RtpMarkerDecoder(_UdpReceiver):
     """RTP H.264 on ``host:port`` (``port`` 0: pick one, see :attr:`port`) assembled into access units
     at the marker bit and decoded at once (module docstring).  An access unit with a gap in its
     sequence numbers or a payload :func:`~onboard.io.rtp_h264.depacketize` refuses is dropped
-    (``lost_units``); packets before the first IDR are skipped."""
+    (``lost_units``); access units before the first IDR reach the decoder, which refuses them (counted in
+    ``decode_errors``)."""
 
     THREAD_NAME = "video-rx-rtp"
 

@@ -5,12 +5,13 @@ thermal core applies: the 1st..99th percentile of the frame, smoothed over frame
 linearly onto 0..255, so mono16 and mono8 frames look alike and the sky does not flicker),
 :func:`draw_overlay` (the track box and its range / 1-sigma; with the objects image chain every object's box and
 id, the selected target's drawn white and thicker), and two encoders over PyAV's libx264
-with the same settings (``preset ultrafast``, ``tune zerolatency``, no B-frames, an IDR every
-``gop_frames`` frames with the SPS/PPS repeated, so a ground station can join at any second):
+with the same settings (``preset ultrafast``, ``tune zerolatency``, no B-frames, an IDR at least every
+``gop_s`` of capture time -- whatever the camera's rate or the frames dropped -- with the SPS/PPS repeated, so a
+ground station can join at any second; grey levels as limited-range luma, said so in the stream):
 :class:`H264RtpEncoder` (access units packetised as RTP, RFC 6184, by
 :class:`onboard.io.rtp_h264.RtpH264Packetizer`: 90 kHz timestamps from each frame's capture time, the
 marker bit on an access unit's last packet) and :class:`H264TsEncoder` (MPEG-TS muxing into any
-``write``-able).
+``write``-able, its 90 kHz time stamps from the capture times too).
 
 Adapter: :class:`VideoStreamer` owns a thread and a UDP socket: :meth:`VideoStreamer.submit` (called by
 the pipeline thread, never blocks) keeps at most ``queue_length`` frames and drops the oldest when the
@@ -73,6 +74,10 @@ log = logging.getLogger(__name__)
 
 TS_PACKET_BYTES = 188
 TS_DATAGRAM_BYTES = 7 * TS_PACKET_BYTES  # 1316
+#: MPEG-TS time stamps (PTS, PCR) count a 90 kHz clock
+TS_CLOCK_HZ = 90_000
+#: FFmpeg's AVColorRange for limited ("TV", "MPEG") range: written into the stream's VUI
+AVCOL_RANGE_MPEG = 1
 AGC_LOW_PCT, AGC_HIGH_PCT = 1.0, 99.0
 AGC_SMOOTHING = 0.1  # weight of the newest frame's limits (exponential smoothing)
 AGC_MIN_SPAN = 8.0  # grey levels: a flat frame is not stretched into noise
@@ -175,16 +180,28 @@ def draw_overlay(img_u8: np.ndarray, track, objects=None) -> np.ndarray:
 
 
 def _x264_options(gop_frames: int, bitrate_bps: int) -> dict[str, str]:
-    """libx264's low-latency settings: ultrafast, zerolatency, no B-frames, an IDR exactly every
-    ``gop_frames`` (no scene-cut IDRs) with SPS/PPS repeated in band, ABR with a VBV of one second."""
+    """libx264's low-latency settings: ultrafast, zerolatency, no B-frames, an IDR at most every ``gop_frames``
+    (no scene-cut IDRs; :class:`_GreyFrames` forces one sooner by capture time) with SPS/PPS repeated in band,
+    ABR with a VBV of one second, the picture signalled as limited ("TV") range, which is what it holds."""
     g, kbps = int(gop_frames), int(bitrate_bps) // 1000
     return {
         "preset": "ultrafast",
         "tune": "zerolatency",
         "bf": "0",
         "g": str(g),
-        "x264-params": f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:vbv-maxrate={kbps}:vbv-bufsize={kbps}",
+        "forced-idr": "1",  # a keyframe asked for by the frame's picture type is an IDR (a viewer can join at it)
+        "x264-params": (
+            f"keyint={g}:min-keyint={g}:scenecut=0:repeat-headers=1:vbv-maxrate={kbps}:vbv-bufsize={kbps}:range=tv"
+            # x264 writes the range into the VUI only beside a colour description: BT.709's (grey has no colour)
+            ":colorprim=bt709:transfer=bt709:colormatrix=bt709"
+        ),
     }
+
+
+#: grey 0..255 -> luma 16..235: decoders and ground stations (GStreamer's, FFmpeg's) read H.264 luma as
+#: limited range unless told otherwise; full-range luma in a limited-range stream clips the sky's darkest and a
+#: warm target's brightest tenth to black and white
+_LIMITED_RANGE = np.round(16.0 + np.arange(256) * (219.0 / 255.0)).astype(np.uint8)
 
 
 def _yuv420p_frame(img_u8: np.ndarray, chroma: np.ndarray):
@@ -201,24 +218,41 @@ def _check_size(width_px: int, height_px: int) -> None:
 
 
 class _GreyFrames:
-    """The encoders' input: grey pictures of one (even) size, each checked and made the next numbered yuv420p
-    frame (``pts`` 0, 1, 2 ...)."""
+    """The encoders' input: grey pictures of one (even) size, each checked and made the next yuv420p frame, its
+    grey levels mapped to limited-range luma (:data:`_LIMITED_RANGE`); ``pts`` 0, 1, 2 ... unless the caller
+    stamps it.  An IDR is asked for when ``gop_us`` of capture time passed since the last keyframe (a camera
+    slower than ``video.fps``, or frames dropped, would otherwise stretch the frame-counted interval)."""
 
-    def __init__(self, width_px: int, height_px: int) -> None:
+    def __init__(self, width_px: int, height_px: int, gop_us: int) -> None:
+        import av
+        import cv2
+
+        self._cv2 = cv2
         _check_size(width_px, height_px)
         self.width_px, self.height_px = int(width_px), int(height_px)
         self._chroma = np.full((self.height_px // 2, self.width_px), 128, np.uint8)  # U and V planes, flat
         self._n = 0
+        self._gop_us = int(gop_us)
+        self._key_us: int | None = None  # capture time of the last keyframe
+        self._picture_i = av.video.frame.PictureType.I
 
-    def next(self, img_u8: np.ndarray):
+    def next(self, img_u8: np.ndarray, capture_time_us: int):
         if img_u8.shape != (self.height_px, self.width_px) or img_u8.dtype != np.uint8:
             raise InputError(
                 f"encoder frame must be uint8 {self.height_px} x {self.width_px}, got {img_u8.dtype} {img_u8.shape}"
             )
-        frame = _yuv420p_frame(img_u8, self._chroma)
+        frame = _yuv420p_frame(self._cv2.LUT(img_u8, _LIMITED_RANGE), self._chroma)  # numpy's take: 7x slower
         frame.pts = self._n
         self._n += 1
+        key = self._key_us
+        if key is None or not 0 <= capture_time_us - key < self._gop_us:
+            frame.pict_type = self._picture_i
+            self._key_us = capture_time_us
         return frame
+
+    def keyframe(self, capture_time_us: int) -> None:
+        """The encoder made a keyframe of its own accord (its frame-counted interval)."""
+        self._key_us = capture_time_us
 
 
 class H264TsEncoder:
@@ -229,11 +263,18 @@ class H264TsEncoder:
     """
 
     def __init__(
-        self, sink, width_px: int, height_px: int, fps: float = 30.0, bitrate_bps: int = 2_000_000, gop_frames: int = 30
+        self,
+        sink,
+        width_px: int,
+        height_px: int,
+        fps: float = 30.0,
+        bitrate_bps: int = 2_000_000,
+        gop_frames: int = 30,
+        gop_s: float = 1.0,
     ) -> None:
         import av
 
-        self._frames = _GreyFrames(width_px, height_px)
+        self._frames = _GreyFrames(width_px, height_px, int(round(gop_s * 1e6)))
         self.width_px, self.height_px = self._frames.width_px, self._frames.height_px
         self.fps = float(fps)
         self._container = av.open(sink, mode="w", format="mpegts", options={"flush_packets": "1"})
@@ -242,14 +283,31 @@ class H264TsEncoder:
         s.bit_rate = int(bitrate_bps)
         s.options = dict(_x264_options(gop_frames, bitrate_bps))  # av types it dict[str, object]
         s.codec_context.thread_count = 1
+        s.codec_context.color_range = AVCOL_RANGE_MPEG
+        # stamps in MPEG-TS's own 90 kHz units from each frame's capture time: a camera gap stays a gap in a
+        # recording of the stream, and a camera off video.fps plays at its own speed
+        s.codec_context.time_base = Fraction(1, TS_CLOCK_HZ)
+        s.time_base = Fraction(1, TS_CLOCK_HZ)
         self._stream = s
+        self._t0_us: int | None = None
+        self._last_pts = -1
         self.closed = False
 
     def encode(self, img_u8: np.ndarray, capture_time_us: int | None = None) -> int:
-        """Encode and mux one frame; returns the number of packets written (``capture_time_us`` unused:
-        the MPEG-TS time stamps count frames)."""
-
-        packets = self._stream.encode(self._frames.next(img_u8))
+        """Encode and mux one frame captured at ``capture_time_us`` (any monotonic microsecond clock; None: now),
+        stamped with it; returns the number of packets written."""
+        if capture_time_us is None:
+            capture_time_us = time.monotonic_ns() // 1000
+        if self._t0_us is None:
+            self._t0_us = capture_time_us
+        frame = self._frames.next(img_u8, capture_time_us)
+        # a stamp that does not move forward (a clock step back) is placed just after the last: PTS must grow
+        pts = max((capture_time_us - self._t0_us) * TS_CLOCK_HZ // 1_000_000, self._last_pts + 1)
+        frame.pts = self._last_pts = pts
+        frame.time_base = self._stream.codec_context.time_base
+        packets = self._stream.encode(frame)
+        if any(p.is_keyframe for p in packets):
+            self._frames.keyframe(capture_time_us)
         self._container.mux(packets)
         return len(packets)
 
@@ -284,10 +342,11 @@ class H264RtpEncoder:
         payload_type: int = DEFAULT_PAYLOAD_TYPE,
         max_packet_bytes: int = DEFAULT_MAX_PACKET_BYTES,
         rng: random.Random | None = None,
+        gop_s: float = 1.0,
     ) -> None:
         import av
 
-        self._frames = _GreyFrames(width_px, height_px)
+        self._frames = _GreyFrames(width_px, height_px, int(round(gop_s * 1e6)))
         self.width_px, self.height_px = self._frames.width_px, self._frames.height_px
         self.fps = float(fps)
         rng = rng or random.SystemRandom()
@@ -303,6 +362,7 @@ class H264RtpEncoder:
         ctx.bit_rate = int(bitrate_bps)
         ctx.options = _x264_options(gop_frames, bitrate_bps)
         ctx.thread_count = 1
+        ctx.color_range = AVCOL_RANGE_MPEG
         ctx.open()
         self._ctx = ctx
         self.packets = 0
@@ -312,10 +372,12 @@ class H264RtpEncoder:
         """Encode one frame captured at ``capture_time_us`` (any monotonic microsecond clock; None: now)
         and send its RTP packets; returns their number."""
 
-        frame = self._frames.next(img_u8)
         if capture_time_us is None:
             capture_time_us = time.monotonic_ns() // 1000
-        return self._send_units(self._ctx.encode(frame), rtp_timestamp(capture_time_us, self._ts_offset))
+        packets = self._ctx.encode(self._frames.next(img_u8, capture_time_us))
+        if any(p.is_keyframe for p in packets):
+            self._frames.keyframe(capture_time_us)
+        return self._send_units(packets, rtp_timestamp(capture_time_us, self._ts_offset))
 
     def _send_units(self, packets, timestamp: int) -> int:
         n = 0
@@ -438,10 +500,14 @@ class VideoStreamer:
         self._encoder: H264RtpEncoder | H264TsEncoder
         if self.transport == "rtp":
             self._sink = _UdpRtpSink(host, port)
-            self._encoder = H264RtpEncoder(self._sink.send, width_px, height_px, fps, bitrate_bps, gop_frames)
+            self._encoder = H264RtpEncoder(
+                self._sink.send, width_px, height_px, fps, bitrate_bps, gop_frames, gop_s=settings.gop_s
+            )
         else:
             self._sink = _UdpTsSink(host, port)
-            self._encoder = H264TsEncoder(self._sink, width_px, height_px, fps, bitrate_bps, gop_frames)
+            self._encoder = H264TsEncoder(
+                self._sink, width_px, height_px, fps, bitrate_bps, gop_frames, gop_s=settings.gop_s
+            )
         self._agc = AgcState()
         self._q: collections.deque = collections.deque()
         self._maxlen = settings.queue_length

@@ -96,7 +96,7 @@ def test_encoder_round_trip_every_frame_with_an_idr_each_second():
     agc = AgcState()
     for k in range(N_FRAMES):
         img, _ = _mono16(k)
-        enc.encode(agc_u8(img, *agc.update(img)))
+        enc.encode(agc_u8(img, *agc.update(img)), capture_time_us=1_000_000 + k * FRAME_US)
     enc.close()
     c = av.open(io.BytesIO(buf.getvalue()), format="mpegts")
     keys, n, bframes = [], 0, 0
@@ -111,6 +111,71 @@ def test_encoder_round_trip_every_frame_with_an_idr_each_second():
     assert bframes == 0  # no reordering: no B-frames
     frames = _decode(buf.getvalue())
     assert len(frames) == N_FRAMES
+
+
+@pytest.mark.parametrize("transport", ["rtp", "mpegts"])
+def test_an_idr_comes_each_second_of_capture_time_whatever_the_cameras_rate_and_gaps(transport):
+    """video.fps says 30 but the camera gives 10 frames a second, then stops for 2 s: an IDR every second of
+    capture time all the same (a ground station joins within it), the first frame after the gap one; MPEG-TS's
+    time stamps are the capture times (the gap stays a gap)."""
+    import random
+
+    t_us = [1_000_000 + k * 100_000 for k in range(25)] + [5_500_000 + k * 100_000 for k in range(15)]
+    img, _ = _mono16(0)
+    grey = agc_u8(img, *AgcState().update(img))
+    keys: list[int] = []
+    if transport == "rtp":
+        datagrams: list[bytes] = []
+        enc = H264RtpEncoder(datagrams.append, W, H, fps=30.0, gop_frames=30, gop_s=1.0, rng=random.Random(1))
+        for k, t in enumerate(t_us):
+            n0 = len(datagrams)
+            enc.encode(grey, capture_time_us=t)
+            types = [n[0] & 0x1F for n in depacketize([parse_rtp(d).payload for d in datagrams[n0:]])]
+            if 5 in types:
+                keys.append(k)
+    else:
+        buf = io.BytesIO()
+        enc_ts = H264TsEncoder(buf, W, H, fps=30.0, gop_frames=30, gop_s=1.0)
+        for t in t_us:
+            enc_ts.encode(grey, capture_time_us=t)
+        enc_ts.close()
+        c = av.open(io.BytesIO(buf.getvalue()), format="mpegts")
+        pts = []
+        for pkt in c.demux(video=0):
+            if pkt.size:
+                keys += [len(pts)] if pkt.is_keyframe else []
+                pts.append(float(pkt.pts * pkt.time_base))
+        c.close()
+        assert np.allclose(np.diff(pts), np.diff(t_us) / 1e6, atol=2e-5)
+    assert keys == [0, 10, 20, 25, 35]
+
+
+@pytest.mark.parametrize("transport", ["rtp", "mpegts"])
+def test_decoded_grey_levels_are_the_pictures_and_the_stream_says_limited_range(transport):
+    """A ramp over every grey level, through the encoder and PyAV's decoder (as a ground station converts it):
+    the levels come back within 2 (a full-range picture in a stream read as limited range clipped ~11 % of a
+    sky frame and stretched the rest by 1.16)."""
+    import random
+
+    ramp = np.tile(np.round(np.linspace(0, 255, W)).astype(np.uint8), (H, 1))
+    if transport == "rtp":
+        datagrams: list[bytes] = []
+        enc = H264RtpEncoder(datagrams.append, W, H, rng=random.Random(2))
+        enc.encode(ramp, capture_time_us=1_000_000)
+        ctx = av.CodecContext.create("h264", "r")
+        unit = b"".join(b"\x00\x00\x00\x01" + n for n in depacketize([parse_rtp(x).payload for x in datagrams]))
+        frames = list(ctx.decode(av.Packet(unit))) + list(ctx.decode(None))
+    else:
+        buf = io.BytesIO()
+        enc_ts = H264TsEncoder(buf, W, H)
+        enc_ts.encode(ramp, capture_time_us=1_000_000)
+        enc_ts.close()
+        c = av.open(io.BytesIO(buf.getvalue()), format="mpegts")
+        frames = list(c.decode(video=0))
+        c.close()
+    assert len(frames) == 1 and frames[0].color_range == 1  # AVCOL_RANGE_MPEG: limited, said in the stream
+    grey = frames[0].to_ndarray(format="gray").astype(int)
+    assert np.abs(grey - ramp).max() <= 2 and grey.min() <= 1 and grey.max() >= 254
 
 
 def test_rtp_packets_are_rfc6184_with_capture_timestamps_markers_and_headers_before_each_idr():
