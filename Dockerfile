@@ -1,6 +1,8 @@
 # syntax=docker/dockerfile:1
-# irtrack onboard image: the daemon `python -m onboard`, with the onboard runtime only (`pip install .`:
-# no simulator, no plotting, no test tools -- every one of its dependencies has a linux/aarch64 wheel).
+# irtrack onboard image: the daemon `python -m onboard`, with the onboard runtime only (scripts/install.sh, an
+# editable install of this tree in /opt/irtrack, without extras: no simulator, no plotting, no test tools --
+# every one of its dependencies has a linux/aarch64 wheel; groundsim/ and bench/ are in the tree but need the
+# `sim` extras to run).
 # The ground simulator `python -m groundsim` needs the `sim` extras: build a second image with
 # --build-arg IRTRACK_EXTRAS=sim (deploy/compose.yaml does, for its `sim` profile).
 #
@@ -44,6 +46,7 @@ COPY onboard/ onboard/
 COPY groundsim/ groundsim/
 COPY bench/ bench/
 COPY config/ config/
+COPY deploy/onboard.container.yaml deploy/onboard.container.yaml
 
 # The same install path as developers and CI; by default no extras (the onboard runtime alone), never
 # the dev extras. The script ends by checking that cv2 is the contrib build with KCF. The pip cache
@@ -54,9 +57,13 @@ RUN --mount=type=cache,target=/root/.cache/pip \
  && python -m compileall -q onboard groundsim bench \
  && NUMBA_CACHE_DIR=/opt/numba-seed python -c "from onboard.estimation import kernels; from onboard.imaging import kernels as ik; kernels.warm(); ik.warm()" \
  && install -d -m 0755 /config \
- && cp config/onboard.yaml /config/onboard.yaml
+ && cp deploy/onboard.container.yaml /config/onboard.yaml \
+ && install -d -m 0755 -o 10001 -g 10001 /recordings
 
-# /config is normally a read-only bind mount (deploy/compose.yaml); the copy above is the default.
+# /config is normally a read-only bind mount (deploy/compose.yaml); the copy above is the default: the stack's
+# configuration (zenoh router on tcp/127.0.0.1:7447, MAVLink on udpin:127.0.0.1:14540), so the image alone joins
+# a router and a simulator or mavlink-router on the host.  /recordings: where a volume for `record.path` goes
+# (the root file system is read-only; a named volume takes this directory's owner).
 USER 10001:10001
 
 HEALTHCHECK --interval=5s --timeout=3s --start-period=30s --retries=3 \

@@ -15,7 +15,7 @@ not inflated by the pages the estimator worker shares with its fork server) of t
 of its descendants (the estimator's fork server and worker), and reads the daemon's
 ``irtrack.status/1`` (frames in / processed / dropped / rejected).  At the end it prints the samples,
 the least-squares slope in MB/min of each total after ``--warmup`` seconds, the peaks against the
-512 MB container limit (deploy/compose.yaml), and the frame counters.  Numbers are printed, never
+768 MB container limit (deploy/compose.yaml), and the frame counters.  Numbers are printed, never
 asserted.  Exit 0 when both children ran to the end, 1 otherwise.  Children are stopped by their
 PIDs (SIGTERM, then SIGKILL after 5 s).
 """
@@ -35,7 +35,7 @@ from pathlib import Path
 from bench import run_benchmark
 from groundsim.evaluation.proc_cpu import children_by_parent
 
-CONTAINER_LIMIT_MB = 512.0  # deploy/compose.yaml, service onboard
+CONTAINER_LIMIT_MB = 768.0  # deploy/compose.yaml, service onboard
 FRAME_RATE_HZ = 30.0
 STOP_GRACE_S = 5.0
 KB_PER_MB = 1024.0

@@ -40,6 +40,8 @@ VEHICLE = "uav1"
 FRAME_KEY = f"irtrack/{VEHICLE}/ir/frame"
 TRACK_KEY = f"irtrack/{VEHICLE}/track"
 STATUS_KEY = f"irtrack/{VEHICLE}/status"
+GUIDANCE_KEY = f"irtrack/{VEHICLE}/guidance"
+OBJECTS_KEY = f"irtrack/{VEHICLE}/objects"
 
 pytestmark = [
     pytest.mark.integration,
@@ -187,7 +189,7 @@ def test_the_acl_sample_loads_and_is_what_the_readme_says():
     who_puts = {tuple(p["subjects"]): sorted(k for r in puts[p["id"]] for k in r["key_exprs"]) for p in acl["policies"]}
     assert who_puts == {
         ("camera",): ["irtrack/*/ir/frame"],
-        ("daemon",): ["irtrack/*/status", "irtrack/*/track"],
+        ("daemon",): ["irtrack/*/guidance", "irtrack/*/objects", "irtrack/*/status", "irtrack/*/track"],
         ("ground",): [],
     }
 
@@ -200,7 +202,7 @@ def test_only_the_camera_publishes_frames_and_only_the_daemon_tracks(tls_dir):
         leaked = _refused(frames, n["camera"], FRAME_KEY, {k: n[k] for k in ("intruder", "ground", "daemon")})
         assert leaked == [], f"frames from unauthorised nodes reached the daemon: {leaked}"
 
-        for key in (TRACK_KEY, STATUS_KEY):
+        for key in (TRACK_KEY, STATUS_KEY, GUIDANCE_KEY, OBJECTS_KEY):
             tracks = Inbox(n["ground"], key)
             spy = Inbox(n["intruder"], key)  # an authenticated node no subject names reads nothing
             leaked = _refused(tracks, n["daemon"], key, {k: n[k] for k in ("intruder", "camera")})
