@@ -272,7 +272,8 @@ def main(argv=None) -> int:
     print(f"  fusion CPU: {(cpu1 - cpu0) / (w1 - w0):.3f} of a core ({cpu1 - cpu0:.2f} CPU s over {w1 - w0:.1f} s)")
     print(
         f"  lines of sight: {sent} published, {final.get('rays', '?')} taken by the fusion "
-        f"({final.get('received', '?')} tracks received); rejected: {final.get('rejected', {})}"
+        f"({final.get('received', '?')} tracks received); rejected: {final.get('rejected', {})}; "
+        f"events: {final.get('events', {})}"
     )
     never = [int(k) for k in np.flatnonzero(~np.isfinite(lat_ms))]
     print(

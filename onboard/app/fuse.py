@@ -3,6 +3,8 @@
     python -m onboard.fuse [--vehicles uav1 uav2 ...] [--origin LAT,LON,ALT] [--clock-offset NAME=SECONDS]...
                            [--seconds S] [--max-age-s 2] [--status-interval-s 1]
                            [--attitude-bias-deg 0.1] [--camera-white-m 0.02] [--camera-offset-m 0]
+                           [--vehicle-noise NAME:attitude_bias_deg=..,camera_white_m=..,camera_offset_m=..]...
+                           [--max-time-sigma-ms 50]
                            [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                            [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
 
@@ -26,8 +28,22 @@ at 30 Hz then cost one solve per period instead of about two, at no latency from
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once
 per ``--reject-log-interval-s`` per reason: ``not_json``, ``bad_track`` (the schema's reader names the key),
 ``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
-after this machine's clock), ``ray_stale``, ``ray_out_of_order``; ``no_line_of_sight`` (a track without a
-target) and the tracker's events are counted at DEBUG level.
+after this machine's clock), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
+:class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (``time_unix_sigma_us`` above
+``--max-time-sigma-ms``), ``sigma_below_floor`` (a line-of-sight sigma below
+:data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the clock check names, off the
+others by more than the pairing window: its rays could not pair and would move a target), ``ray_name_clash``
+(DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``; ``no_line_of_sight`` (a
+track without a target) and the tracker's events are counted at DEBUG level.  The status lists refusals under
+``rejected`` and events (:data:`EVENTS`) under ``events``.
+
+Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
+the camera jumping farther than a vehicle flies: :class:`~onboard.io.fleet_wire.StreamCheck`), ``name_clash`` is
+counted and warned once naming the vehicle and the remedy, the vehicle's objects leave their targets and its rays
+stay out until the clash clears (``name_clash_cleared``, INFO); the status lists it under ``name_clash``.
+
+Noise: ``--attitude-bias-deg`` / ``--camera-white-m`` (> 0) / ``--camera-offset-m`` for every vehicle, and
+``--vehicle-noise`` for one vehicle's keys where they differ (e.g. ``uav2:attitude_bias_deg=0.5``).
 
 Exit codes: 0 after ``--seconds`` or on SIGTERM; 130 on Ctrl-C; 2 for invalid options or a session that
 cannot open (one line on stderr).
@@ -44,7 +60,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -53,7 +69,15 @@ from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import GeodeticOrigin
-from onboard.estimation.fleet import FleetConfig, FleetTracker
+from onboard.estimation.fleet import (
+    MIN_BEARING_SIGMA_RAD,
+    FleetConfig,
+    FleetTracker,
+    Ray,
+    VehicleNoise,
+    fleet_verdict,
+    triangulate,
+)
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.io.fleet_wire import (
     FLEET_NAME,
@@ -61,6 +85,7 @@ from onboard.io.fleet_wire import (
     TRACKS_KEY_EXPR,
     ClockConsistency,
     CommonClock,
+    StreamCheck,
     TimedTrack,
     fleet_track_json,
     fleet_track_key,
@@ -71,13 +96,28 @@ from onboard.io.fleet_wire import (
 )
 from onboard.io.zenoh_session import check_vehicle_name, open_session
 
-__all__ = ["FLEET_STATUS_SCHEMA", "Fusion", "build_parser", "main"]
+__all__ = ["FLEET_STATUS_SCHEMA", "EVENTS", "Fusion", "build_parser", "main", "warm_up"]
 
 log = logging.getLogger(__name__)
 
 FLEET_STATUS_SCHEMA = "irtrack.fleet_status/1"
 EXIT_OK, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 2, 130
 POLL_S = 0.1
+CLOCK_RECHECK_S = 0.1
+#: counted reasons that are events, not refused input: the status lists them under ``events``, the rest under
+#: ``rejected``
+EVENTS = frozenset(
+    {
+        "vehicle_silent",
+        "vehicle_back",
+        "clock_inconsistent",
+        "name_clash",
+        "name_clash_cleared",
+        "target_created",
+        "target_dropped",
+        "object_left",
+    }
+)
 
 
 class Fusion:
@@ -95,6 +135,8 @@ class Fusion:
         counter: RejectCounter | None = None,
         clock_check: ClockConsistency | None = None,
         silent_after_s: float = 1.0,
+        stream_check: StreamCheck | None = None,
+        max_time_sigma_s: float = 0.05,
     ) -> None:
         self.tracker = tracker
         self.clock = clock
@@ -115,6 +157,39 @@ class Fusion:
         self._last_arrival: dict[str, float] = {}  # fusion clock, UTC s: the vehicle's newest track of any kind
         self._silent: set[str] = set()
         self._clock_flagged: set[str] = set()
+        self.stream_check = stream_check if stream_check is not None else StreamCheck()
+        self.max_time_sigma_s = float(max_time_sigma_s)
+        self._clashing: set[str] = set()
+        self._clock_refused: set[str] = set()
+        self._clock_judged_at = -math.inf
+        self._clock_far: dict[str, float] = {}
+
+    def _check_clashes(self, now_unix_s: float) -> list[str]:
+        clashing = self.stream_check.clashing(now_unix_s)
+        for v in clashing:
+            if v not in self._clashing:
+                self.counter.count(
+                    "name_clash",
+                    f"{v}: two vehicles publish as {v!r} (its tracks' seq / time_boot_us go back and forth, or its "
+                    "camera jumps farther than a vehicle flies); its lines of sight are kept out of the fusion while "
+                    "this lasts: give each vehicle its own name (the daemon's 'vehicle' setting)",
+                )
+                self.tracker.withdraw(v, "name clash")
+        for v in sorted(self._clashing - set(clashing)):
+            self.counter.count("name_clash_cleared", f"{v}: one stream again", level=logging.INFO)
+        self._clashing = set(clashing)
+        return clashing
+
+    def _clock_off(self, vehicle: str, now_unix_s: float) -> float | None:
+        """How far ``vehicle``'s UTC is off the others' (s) when the clock check names it and that is more than
+        the pairing window: its rays could not pair, and gated into a target at the wrong time they move it."""
+        # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
+        if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
+            self._clock_judged_at = now_unix_s
+            flagged = self.clock_check.inconsistent(now_unix_s)
+            devs = self.clock_check.deviations_s(now_unix_s) if flagged else {}
+            self._clock_far = {v: devs[v] for v in flagged if abs(devs[v]) > self.tracker.config.pair_max_dt_s}
+        return self._clock_far.get(vehicle)
 
     def receive(self, key: str, payload: bytes, arrival_unix_s: float) -> None:
         vehicle = vehicle_from_track_key(key)
@@ -145,11 +220,12 @@ class Fusion:
         if time_unix_us is not None:  # every frame times the vehicle's clock, with a target or not
             self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
-        if los is None:
-            self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
-            return
-        if track.origin is None:
-            self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
+        if los is None or track.origin is None:
+            self.stream_check.add(vehicle, track.seq, track.time_boot_us, 0.0, None, arrival_unix_s)
+            if los is None:
+                self.counter.count("no_line_of_sight", key, level=logging.DEBUG)
+            else:
+                self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
         t_s, source = self.clock.time_s(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
         if t_s < arrival_unix_s - self.max_age_s:
@@ -161,11 +237,35 @@ class Fusion:
         if self.origin is None:
             self.origin = track.origin
             log.info("fleet origin: %s's, %s", vehicle, track.origin)
+        time_sigma_s = 0.0
+        if source == "vehicle" and track.time_unix_sigma_us is not None:
+            time_sigma_s = track.time_unix_sigma_us / 1e6
         try:
-            ray = ray_from_track(TimedTrack(track, t_s, source), self.origin)
+            ray = ray_from_track(TimedTrack(track, t_s, source, time_sigma_s), self.origin)
         except InputError as exc:
             self.counter.count("bad_track", f"{key}: {exc}")
             return
+        implausible = self.stream_check.add(
+            vehicle, track.seq, track.time_boot_us, t_s, ray.p_cam_ned_m, arrival_unix_s
+        )
+        if vehicle in self._check_clashes(arrival_unix_s):
+            self.counter.count("ray_name_clash", f"{key}: its name is shared", level=logging.DEBUG)
+            return
+        if implausible is not None:
+            where = np.round(ray.p_cam_ned_m, 1).tolist()
+            self.counter.count(implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})")
+            return
+        if not self._ray_plausible(key, ray):
+            return
+        if time_unix_us is not None:
+            off = self._clock_off(vehicle, arrival_unix_s)
+            if off is not None:
+                self.counter.count("clock_off", f"{key}: its time_unix_us is {off:+.3f} s off the other vehicles'")
+                if vehicle not in self._clock_refused:  # what it sent before it was judged goes too
+                    self._clock_refused.add(vehicle)
+                    self.tracker.withdraw(vehicle, "its clock is off")
+                return
+            self._clock_refused.discard(vehicle)
         self._time_sources[vehicle] = source
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
@@ -173,6 +273,22 @@ class Fusion:
         tid = self.tracker.add(ray)
         if tid is not None:
             self._touched.add(tid)
+
+    def _ray_plausible(self, key: str, ray: Ray) -> bool:
+        if ray.time_sigma_s > self.max_time_sigma_s:
+            self.counter.count(
+                "time_sigma",
+                f"{key}: time_unix_sigma_us {ray.time_sigma_s * 1e6:.0f} > {self.max_time_sigma_s * 1e6:.0f}",
+            )
+            return False
+        if min(ray.sigma_az_rad, ray.sigma_el_rad) < MIN_BEARING_SIGMA_RAD:
+            self.counter.count(
+                "sigma_below_floor",
+                f"{key}: line-of-sight sigma {min(ray.sigma_az_rad, ray.sigma_el_rad):.3g} rad "
+                f"< {MIN_BEARING_SIGMA_RAD:g} rad: no camera measures that well",
+            )
+            return False
+        return True
 
     def flush(self, force: bool = False) -> list[tuple[str, dict]]:
         """Solve the touched targets that are due (:meth:`FleetTracker.due`; all of them with ``force``)."""
@@ -221,12 +337,14 @@ class Fusion:
                     "time_unix_us is off; check its UTC (SYSTEM_TIME) mapping",
                 )
         self._clock_flagged = set(flagged)
+        self._check_clashes(now_unix_s)
         return sorted(silent), devs, flagged
 
     def status(self, now_unix_s: float | None = None) -> dict:
         """The ``irtrack.fleet_status/1`` dict (module docstring); ``now_unix_s``: the fusion's clock (UTC s)."""
         now_s = time.time() if now_unix_s is None else now_unix_s
         silent, devs, flagged = self.watch(now_s)
+        counts = self.counter.counts
         return {
             "schema": FLEET_STATUS_SCHEMA,
             "received": self.received,
@@ -238,11 +356,80 @@ class Fusion:
             "clocks": {v: round(d * 1e3, 2) for v, d in devs.items()},
             "latency_floor_ms": {v: round(f * 1e3, 2) for v, f in self.clock_check.floors_s(now_s).items()},
             "clock_inconsistent": flagged,
-            "rejected": self.counter.counts,
+            "name_clash": sorted(self._clashing),
+            "rejected": {k: n for k, n in counts.items() if k not in EVENTS},
+            "events": {k: n for k, n in counts.items() if k in EVENTS},
         }
 
 
 _positive = nonnegative_float("expected a number", "expected a number >= 0")
+_NOISE_KEYS = {  # --vehicle-noise's keys: the global options' names, their NoiseModel field, zero allowed
+    "attitude_bias_deg": ("attitude_bias_sigma_rad", True),
+    "camera_white_m": ("camera_position_white_sigma_m", False),
+    "camera_offset_m": ("camera_position_offset_sigma_m", True),
+}
+
+
+def _above_zero(text: str) -> float:
+    v = _positive(text)
+    if v <= 0:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
+    return v
+
+
+def _vehicle_noise(text: str) -> tuple[str, dict[str, float]]:
+    """``NAME:key=value,...`` with keys of ``_NOISE_KEYS`` (degrees, metres: the global options' units)."""
+    name, sep, rest = text.partition(":")
+    usage = f"expected NAME:KEY=VALUE[,KEY=VALUE...] with KEY one of {', '.join(_NOISE_KEYS)}, got {text!r}"
+    try:
+        name = _vehicle(name)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(usage) from None
+    values: dict[str, float] = {}
+    for item in rest.split(",") if sep else []:
+        k, eq, v = item.strip().partition("=")
+        if k not in _NOISE_KEYS or not eq or k in values:
+            raise argparse.ArgumentTypeError(usage)
+        try:
+            values[k] = (_positive if _NOISE_KEYS[k][1] else _above_zero)(v)
+        except argparse.ArgumentTypeError as exc:
+            raise argparse.ArgumentTypeError(f"{name}: {k}: {exc}") from None
+    if not values:
+        raise argparse.ArgumentTypeError(usage)
+    return name, values
+
+
+def noise_models(args: argparse.Namespace) -> VehicleNoise:
+    """The global noise model with each ``--vehicle-noise`` vehicle's own (unnamed keys: the global values)."""
+    default = {
+        "attitude_bias_deg": args.attitude_bias_deg,
+        "camera_white_m": args.camera_white_m,
+        "camera_offset_m": args.camera_offset_m,
+    }
+
+    def model(v: Mapping[str, float]) -> NoiseModel:
+        return NoiseModel(
+            attitude_bias_sigma_rad=math.radians(v["attitude_bias_deg"]),
+            camera_position_white_sigma_m=v["camera_white_m"],
+            camera_position_offset_sigma_m=v["camera_offset_m"],
+        )
+
+    per: dict[str, dict[str, float]] = {}
+    for name, values in args.vehicle_noise:
+        per.setdefault(name, dict(default)).update(values)
+    return VehicleNoise(model(default), {name: model(v) for name, v in per.items()})
+
+
+def warm_up(config: FleetConfig) -> None:
+    """One solve and verdict of a synthetic pair before the first real one: the first call of each linear
+    algebra and special function pays its dispatch set-up, which would land on the first fleet track's latency."""
+    p = np.array([800.0, 0.0, -100.0])
+    rays = []
+    for i, y in enumerate((-100.0, 100.0)):
+        c = np.array([0.0, y, -100.0])
+        for k in range(2):
+            rays.append(Ray(f"warm{i}", 1, k / 30, c, (p - c) / np.linalg.norm(p - c), 1e-3, 1e-3))
+    fleet_verdict(triangulate(rays, VehicleNoise(NoiseModel()), p, config), rays, config)
 
 
 def _origin(text: str) -> GeodeticOrigin:
@@ -302,8 +489,23 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often")
     p.add_argument("--attitude-bias-deg", type=_positive, default=0.1, help="attitude bias prior, 1 sigma (0.1)")
-    p.add_argument("--camera-white-m", type=_positive, default=0.02, help="white camera-position noise (0.02)")
-    p.add_argument("--camera-offset-m", type=_positive, default=0.0, help="camera-position offset prior (0)")
+    p.add_argument("--camera-white-m", type=_above_zero, default=0.02, help="white camera-position noise, > 0 (0.02)")
+    p.add_argument("--camera-offset-m", type=_positive, default=0.0, help="camera-position offset prior (0: none)")
+    p.add_argument(
+        "--vehicle-noise",
+        type=_vehicle_noise,
+        action="append",
+        default=[],
+        metavar="NAME:KEY=VALUE,...",
+        help="one vehicle's noise where it differs from the options above; KEY: attitude_bias_deg, camera_white_m, "
+        "camera_offset_m (e.g. uav2:attitude_bias_deg=0.5); repeatable",
+    )
+    p.add_argument(
+        "--max-time-sigma-ms",
+        type=_positive,
+        default=50.0,
+        help="refuse lines of sight whose time_unix_sigma_us is larger (50)",
+    )
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     add_zenoh_options(
         p,
@@ -318,20 +520,19 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    noise = NoiseModel(
-        attitude_bias_sigma_rad=math.radians(args.attitude_bias_deg),
-        camera_position_white_sigma_m=args.camera_white_m,
-        camera_position_offset_sigma_m=args.camera_offset_m,
-    )
+    noise = noise_models(args)
+    config = FleetConfig()
+    warm_up(config)
     counter = RejectCounter(log_interval_s=args.reject_log_interval_s, logger=log)
     fusion = Fusion(
-        FleetTracker(FleetConfig(), noise, counter),
+        FleetTracker(config, noise, counter),
         CommonClock(dict(args.clock_offset)),
         vehicles=args.vehicles,
         origin=args.origin,
         max_age_s=args.max_age_s,
         clock_check=ClockConsistency(tolerance_s=args.clock_tolerance_ms / 1e3),
         silent_after_s=args.silent_after_s,
+        max_time_sigma_s=args.max_time_sigma_ms / 1e3,
     )
     stop = threading.Event()
     session = None

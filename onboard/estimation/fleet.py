@@ -48,15 +48,28 @@ weighted by the last iterate's range slides towards the camera, where every ray'
 trajectories and the prior holds it there.  Gauss-Newton from the prior's centre with step halving while
 the cost grows (Bjorck, Numerical Methods for Least Squares Problems, 1996, ch. 9), ``rho`` clamped at
 ``min_range_m``.  The covariance is
-the inverse Gauss-Newton normal matrix ``H^-1`` at the solution (Laplace); ``J(x_hat) ~ chi2(2N - 6)`` when
-the model holds (the nuisances' prior rows count as observations), which the verdict tests.
+the inverse Gauss-Newton normal matrix ``H^-1`` at the solution (Laplace); ``J(x_hat) ~ chi2(d)`` when
+the model holds (the nuisances' prior rows count as observations), which the verdict tests, with ``d = 2N - 6 +
+sum_j w_j (H^-1)_jj`` over the six weak-prior rows ``w_j`` of ``(p, v)``: the residual degrees of freedom of a
+regularised fit (the trace of the hat matrix's complement; Hastie, Tibshirani and Friedman, The Elements of
+Statistical Learning, 2nd ed., sec. 7.6).  A direction only the prior holds gives its row back: two rays taken at
+one time fix the position with one row to spare (their gap) and leave the velocity to its prior, ``d = 1``
+(where ``2N - 6`` says -2); three rays at two or three times keep about one too, the velocity along the lines of
+sight being the prior's.
+
+Time: a ray's capture time is known to ``time_sigma_s`` (the track's ``time_unix_sigma_us``); over it the target
+moves by ``v s_t``, a miss across the ray of ``B v s_t``, added to the ray's white noise with the target's last
+estimated velocity (``max_speed_mps`` in every direction before there is one), to the pairing gate with
+``max_speed_mps`` and to the association gate with the last velocity.
 
 Verdict (the single-vehicle estimator's discipline, :mod:`onboard.estimation.map_estimator`, with its
 thresholds from :class:`~onboard.estimation.map_estimator.MapConfig`): ``observable`` when at least two
 vehicles contribute, the range sigma seen from each contributing vehicle's newest camera position is below
 ``observability_max_sigma_range_ratio`` (5.5 %) of its range (``range_sigma_ratio`` is the worst of them),
-the residuals pass ``chi2.sf(J, 2N - 6) >= adequacy_p_min`` and the covariance is positive definite (ranges
-and range sigmas along each vehicle's newest measured line of sight).  An
+the residuals pass ``chi2.sf(J, d) >= adequacy_p_min`` with at least ``MIN_RESIDUAL_DOF`` (0.5) residual degrees
+of freedom to test (a solution that fits any rays exactly is never observable, whatever its covariance says) and
+the covariance is
+positive definite (ranges and range sigmas along each vehicle's newest measured line of sight).  An
 unobservable estimate (one vehicle, parallel rays, rays that disagree) keeps its position with its range
 sigma raised, along every contributing vehicle's line of sight, to ``MapEstimator.range_floor`` (at least
 50 % and 150 m; the position prior's 1 km for one vehicle's own rays and for an estimate collapsed within
@@ -98,12 +111,16 @@ from scipy.special import gammaincc
 from onboard.core.checks import is_nonnegative_number, is_positive_int, is_positive_number, require_each
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError, InputError
-from onboard.estimation.map_estimator import MapConfig, MapEstimator, NoiseModel
+from onboard.estimation.map_estimator import MapConfig, NoiseModel, range_floor
 from onboard.estimation.sliding import BEARING_GATE_CHI2
 from onboard.estimation.state_estimate import StateEstimate
 
 __all__ = [
     "CLOSEST_APPROACH_GATE_CHI2",
+    "MIN_BEARING_SIGMA_RAD",
+    "MIN_RESIDUAL_DOF",
+    "VehicleNoise",
+    "white_variance_rad2",
     "Ray",
     "FleetConfig",
     "ClosestApproach",
@@ -120,8 +137,53 @@ __all__ = [
 
 #: chi-square(1 dof) at 1e-4: two rays whose closest approach is farther than this (in its sigmas) do not pair
 CLOSEST_APPROACH_GATE_CHI2 = 15.137
+#: no camera and attitude solution measures a bearing better than this (1 urad, 0.2 arcsec: a 640-pixel imager
+#: over a 1-degree field is 27 urad a pixel, a navigation-grade attitude ~50 urad); a smaller published sigma is
+#: a broken publisher, and its weight would be unbounded
+MIN_BEARING_SIGMA_RAD = 1e-6
+#: the residual test needs redundancy: a solution with fewer effective residual degrees of freedom than this
+#: (module docstring, "Verdict") fits any rays, right or wrong, and is never called observable
+MIN_RESIDUAL_DOF = 0.5
 _UNIT_TOL = 1e-6
 _WHITE_FLOOR_FRACTION = 0.1  # the white part of a bearing's variance is at least this fraction of it
+
+
+def white_variance_rad2(sigma_rad, bias_sigma_rad) -> np.ndarray:
+    """The white part of a published bearing variance ``sigma_rad**2`` (any shape) when the attitude bias
+    ``bias_sigma_rad`` is a per-vehicle nuisance of the solve: ``sigma^2 - s_b^2``, floored at a tenth of
+    ``sigma^2`` and at :data:`MIN_BEARING_SIGMA_RAD` squared.  With the nuisance's prior the ray's modelled
+    variance ``white + s_b^2`` is never below the published ``sigma^2`` (a bias larger than the published sigma
+    makes the ray less trusted, never more)."""
+    var = np.asarray(sigma_rad, dtype=float) ** 2
+    bias_var = np.asarray(bias_sigma_rad, dtype=float) ** 2
+    return np.maximum(np.maximum(var - bias_var, _WHITE_FLOOR_FRACTION * var), MIN_BEARING_SIGMA_RAD**2)
+
+
+class VehicleNoise(Mapping[str, NoiseModel]):
+    """One :class:`NoiseModel` per vehicle name with a default for every other vehicle (the fusion's
+    ``--vehicle-noise`` over its global noise options).  A mapping: :func:`triangulate` and
+    :class:`FleetTracker` take it where they take a dict of models."""
+
+    def __init__(self, default: NoiseModel, per_vehicle: Mapping[str, NoiseModel] | None = None) -> None:
+        if not isinstance(default, NoiseModel):
+            raise ConfigError(f"VehicleNoise.default: expected a NoiseModel, got {type(default).__name__}")
+        self.default = default
+        self.per_vehicle = dict(per_vehicle or {})
+        for name, m in self.per_vehicle.items():
+            if not isinstance(m, NoiseModel):
+                raise ConfigError(f"VehicleNoise[{name!r}]: expected a NoiseModel, got {type(m).__name__}")
+
+    def __getitem__(self, vehicle: str) -> NoiseModel:
+        return self.per_vehicle.get(vehicle, self.default)
+
+    def __contains__(self, vehicle: object) -> bool:
+        return isinstance(vehicle, str)
+
+    def __iter__(self):
+        return iter(self.per_vehicle)
+
+    def __len__(self) -> int:
+        return len(self.per_vehicle)
 
 
 def _vec3(v, what: str) -> np.ndarray:
@@ -142,7 +204,8 @@ class Ray:
     ``t_s``: capture time on the fleet's common clock, s.  ``p_cam_ned_m`` (3,): the camera, fleet NED, m.
     ``los_ned`` (3,): unit direction camera -> object, fleet NED.  ``sigma_az_rad`` / ``sigma_el_rad``: the
     1-sigma of its azimuth / elevation as published (white attitude noise and bias included).
-    ``object_id``: the vehicle's own association (its track id).  Derived (not init): ``basis_ned`` (2, 3),
+    ``object_id``: the vehicle's own association (its track id).  ``time_sigma_s``: the 1-sigma of ``t_s``
+    (the vehicle's UTC mapping; 0: taken as exact, module docstring "Time").  Derived (not init): ``basis_ned`` (2, 3),
     the rows ``e_az``, ``e_el`` across the ray, and ``sigma_cross_rad`` (2,), the angular sigma along them
     (``cos(el) sigma_az``, ``sigma_el``)."""
 
@@ -153,6 +216,7 @@ class Ray:
     los_ned: np.ndarray
     sigma_az_rad: float
     sigma_el_rad: float
+    time_sigma_s: float = 0.0
     basis_ned: np.ndarray = field(init=False, repr=False)
     sigma_cross_rad: np.ndarray = field(init=False, repr=False)
 
@@ -175,6 +239,10 @@ class Ray:
             if isinstance(s, bool) or not isinstance(s, (int, float, np.floating)) or not (math.isfinite(s) and s > 0):
                 raise InputError(f"Ray.{name} must be a positive finite number of radians, got {s!r}")
             object.__setattr__(self, name, float(s))
+        ts = self.time_sigma_s
+        if isinstance(ts, bool) or not isinstance(ts, (int, float, np.floating)) or not (math.isfinite(ts) and ts >= 0):
+            raise InputError(f"Ray.time_sigma_s must be a finite number of seconds >= 0, got {ts!r}")
+        object.__setattr__(self, "time_sigma_s", float(ts))
         n, e, d = u.tolist()
         h = math.hypot(n, e)
         if h > 1e-9:
@@ -282,7 +350,8 @@ def closest_approach(
     ``s = (k (u_b . w) - u_a . w) / (1 - k^2)``, ``t = ((u_b . w) - k (u_a . w)) / (1 - k^2)`` (the normal
     equations of ``min |c_a + s u_a - c_b - t u_b|^2``).  The gap is measured along ``n = u_a x u_b / |.|``;
     its variance is each ray's angular variance along ``n`` times its range squared, plus both cameras'
-    position variances and ``(max_speed |t_a - t_b|)^2``."""
+    position variances and ``max_speed^2 ((t_a - t_b)^2 + s_ta^2 + s_tb^2)`` (the target's motion between the
+    two times and over their time sigmas)."""
     ua, ub = a.los_ned, b.los_ned
     n = np.cross(ua, ub)
     sin_ab = float(np.linalg.norm(n))
@@ -306,7 +375,7 @@ def closest_approach(
         + t * t * float(((b.basis_ned @ n) ** 2) @ (b.sigma_cross_rad**2))
         + _camera_sigma_m(noise_a) ** 2
         + _camera_sigma_m(noise_b) ** 2
-        + (max_speed_mps * abs(a.t_s - b.t_s)) ** 2
+        + max_speed_mps**2 * ((a.t_s - b.t_s) ** 2 + a.time_sigma_s**2 + b.time_sigma_s**2)
     )
     sigma = math.sqrt(var)
     return ClosestApproach(abs(gap), sigma, s, t, 0.5 * (pa + pb), gap * gap / var)
@@ -319,7 +388,8 @@ def closest_approach(
 class Triangulation:
     """The MAP estimate of :func:`triangulate` at ``t_s`` (module docstring).  ``p_ned_m``, ``v_ned_mps``
     (3,); ``cov_pv`` (6, 6): the joint covariance of ``(p, v)`` (nuisances marginalised);
-    ``cost``: ``J`` at the solution; ``dof``: ``2N - 6``; ``iterations``; ``condition``: a lower bound of the
+    ``cost``: ``J`` at the solution; ``dof``: its effective residual degrees of freedom, ``2N - 6`` plus
+    the directions of ``(p, v)`` only the weak priors hold (module docstring, "Verdict"); ``iterations``; ``condition``: a lower bound of the
     column-scaled normal matrix's 2-norm condition number (the squared ratio of its Cholesky factor's extreme
     diagonal entries); ``vehicles``: those with rays in the solve."""
 
@@ -328,7 +398,7 @@ class Triangulation:
     v_ned_mps: np.ndarray
     cov_pv: np.ndarray
     cost: float
-    dof: int
+    dof: float
     iterations: int
     condition: float
     vehicles: tuple[str, ...]
@@ -382,13 +452,15 @@ def triangulate(
     t_s: float | None = None,
     v_prior_ned_mps=(0.0, 0.0, 0.0),
     v_prior_sigma_mps: float | None = None,
+    v_time_ned_mps=None,
 ) -> Triangulation:
     """The MAP estimate of the target's position and velocity at ``t_s`` (default: the newest ray's time)
     from ``rays`` (module docstring: the cost, its priors, the iterations).  ``noise``: one
     :class:`NoiseModel` for every vehicle or one per vehicle name; ``p_prior_ned_m``: the centre of the weak
     position prior (and the first linearisation point); ``v_prior_ned_mps`` / ``v_prior_sigma_mps``: the
-    velocity prior (default: zero, ``MapConfig.velocity_prior_sigma_mps``).  Raises :class:`InputError`
-    without rays."""
+    velocity prior (default: zero, ``MapConfig.velocity_prior_sigma_mps``); ``v_time_ned_mps``: the target
+    velocity that turns each ray's ``time_sigma_s`` into a miss across it (default: ``config.max_speed_mps`` in
+    every direction).  Raises :class:`InputError` without rays."""
     cfg = config or FleetConfig()
     if not rays:
         raise InputError("triangulate: no rays")
@@ -402,9 +474,17 @@ def triangulate(
     vehicles = tuple(dict.fromkeys(r.vehicle for r in rays))
     vidx = np.array([vehicles.index(r.vehicle) for r in rays])
     models = [_noise_for(noise, v) for v in vehicles]
-    bias_var = np.array([m.attitude_bias_sigma_rad**2 for m in models])[vidx]  # (N,)
-    white_var = np.maximum(S_total**2 - bias_var[:, None], _WHITE_FLOOR_FRACTION * S_total**2)
+    bias_sigma = np.array([m.attitude_bias_sigma_rad for m in models])[vidx]  # (N,)
+    white_var = white_variance_rad2(S_total, bias_sigma[:, None])
     cam_var = np.array([m.camera_position_white_sigma_m**2 for m in models])[vidx] + cfg.q_m2ps3 * np.abs(dt) ** 3 / 3
+    # a capture time known to s_t moves the target along its velocity by v s_t: a miss across the ray (m^2, (N, 2))
+    t_var = np.array([r.time_sigma_s for r in rays]) ** 2
+    if v_time_ned_mps is None:
+        time_var = np.outer(t_var, np.full(2, cfg.max_speed_mps**2))
+    else:
+        time_var = (
+            np.einsum("nij,j->ni", Bm, _vec3(v_time_ned_mps, "triangulate: v_time_ned_mps")) ** 2 * t_var[:, None]
+        )
 
     # column layout: p (3), v (3), then per vehicle beta (3) where offset sigma > 0, phi (3) where bias sigma > 0
     cols_beta: list[int | None] = []
@@ -449,7 +529,7 @@ def triangulate(
         rho = np.maximum(np.einsum("ni,ni->n", U, d), cfg.min_range_m)
         Bd = np.einsum("nij,nj->ni", Bm, d)
         res = Bd / rho[:, None] - np.einsum("nij,nj->ni", BU, phi_of)
-        W = 1.0 / np.sqrt(white_var + (cam_var / (rho * rho))[:, None])
+        W = 1.0 / np.sqrt(white_var + (cam_var[:, None] + time_var) / (rho * rho)[:, None])
         Jd = (Bm - Bd[:, :, None] * U[:, None, :] / rho[:, None, None]) / rho[:, None, None]
         A = np.zeros((N, 2, n))
         A[:, :, 0:3] = Jd
@@ -496,13 +576,17 @@ def triangulate(
     Z = sla.solve_triangular(L, E, lower=True, check_finite=False)
     cov = (Z.T @ Z) * scale[:6, None] * scale[None, :6]
     cov = 0.5 * (cov + cov.T)
+    # the residual degrees of freedom: 2N rows less what the rays determine; a direction of (p, v) that only the
+    # weak prior holds (the velocity of rays all taken at one time) is not fitted to them, and counts
+    # P_prior_i (H^-1)_ii of its prior row back (the trace of the prior's share of the hat matrix)
+    dof = 2 * N - 6 + float(np.sum(P_prior[:6] * np.diag(cov)))
     return Triangulation(
         t_s=t0,
         p_ned_m=x[:3].copy(),
         v_ned_mps=x[3:6].copy(),
         cov_pv=cov,
         cost=cost,
-        dof=2 * N - 6,
+        dof=dof,
         iterations=iterations,
         condition=cond,
         vehicles=vehicles,
@@ -558,7 +642,6 @@ def fleet_verdict(
     """The fleet estimate of ``sol`` (solved from ``rays``) with its verdict and, when unobservable, its range
     floor (module docstring, "Verdict")."""
     config = config or FleetConfig()
-    floor = MapEstimator(config.verdict)
     P = sol.cov_p_ned_m2
     p = sol.p_ned_m
     contributions = []
@@ -582,6 +665,7 @@ def fleet_verdict(
     dof = sol.dof
     # chi2.sf(cost, dof) = Q(dof / 2, cost / 2), the regularised upper incomplete gamma function (scipy.stats'
     # frozen-distribution machinery cost a millisecond per call)
+    # no redundancy, no test: the p-value is reported as 1 and the verdict below refuses the estimate instead
     adequacy_p = float(gammaincc(dof / 2.0, sol.cost / 2.0)) if dof > 0 else 1.0
     try:
         np.linalg.cholesky(P)
@@ -591,6 +675,7 @@ def fleet_verdict(
     vc = config.verdict
     observable = bool(
         len(sol.vehicles) >= 2
+        and dof >= MIN_RESIDUAL_DOF
         and worst_ratio < vc.observability_max_sigma_range_ratio
         and adequacy_p >= vc.adequacy_p_min
         and pd
@@ -599,7 +684,7 @@ def fleet_verdict(
     if not observable:
         # the floor along every contributing line of sight: a poorly crossing pair's posterior is a banana in
         # the plane of its rays, which one line of sight's floor would not cover
-        add, floor_m = floor.range_floor(np.array(los_u), np.array(los_sig), np.array(los_r))
+        add, floor_m = range_floor(vc, np.array(los_u), np.array(los_sig), np.array(los_r))
         lone = len(sol.vehicles) < 2 and not sol.carried
         for i, rng in enumerate(los_r):
             # one vehicle's own rays over a short window, or an estimate collapsed onto a camera: the range is
@@ -629,9 +714,11 @@ def fleet_verdict(
     )
 
 
-def ray_gate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, noise: NoiseModel) -> float:
+def ray_gate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, noise: NoiseModel, v_ned_mps=None) -> float:
     """The squared Mahalanobis distance (2 dof) of the target at ``p_ned_m`` (covariance ``cov_p_ned_m2``)
-    from ``ray``: ``z = B (p - c)``, ``S = B P B^T + r^2 diag(s_cross^2) + s_cam^2 I``; inf behind the camera."""
+    from ``ray``: ``z = B (p - c)``, ``S = B P B^T + r^2 diag(s_cross^2) + s_cam^2 I + diag((B v)^2) s_t^2``
+    (the last with the target's velocity ``v_ned_mps``, when given, and the ray's time sigma); inf behind the
+    camera."""
     d = p_ned_m - ray.p_cam_ned_m
     r = float(ray.los_ned @ d)
     if r <= 0:
@@ -639,6 +726,8 @@ def ray_gate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, noise
     z = ray.basis_ned @ d
     S = ray.basis_ned @ cov_p_ned_m2 @ ray.basis_ned.T + np.diag((r * ray.sigma_cross_rad) ** 2)
     S += np.eye(2) * _camera_sigma_m(noise) ** 2
+    if v_ned_mps is not None and ray.time_sigma_s > 0:
+        S += np.diag((ray.basis_ned @ np.asarray(v_ned_mps, dtype=float)) ** 2) * ray.time_sigma_s**2
     try:
         return float(z @ np.linalg.solve(S, z))
     except np.linalg.LinAlgError:
@@ -663,7 +752,8 @@ def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, confi
     d = p - ray.p_cam_ned_m
     r = max(float(ray.los_ned @ d), config.min_range_m)
     B = ray.basis_ned
-    R = np.diag((r * ray.sigma_cross_rad) ** 2) + np.eye(2) * _camera_sigma_m(noise) ** 2
+    R = np.diag((r * ray.sigma_cross_rad) ** 2 + (B @ last.v_ned_mps) ** 2 * ray.time_sigma_s**2)
+    R += np.eye(2) * _camera_sigma_m(noise) ** 2
     S = B @ P @ B.T + R
     K = np.linalg.solve(S, B @ P).T  # P B^T S^-1
     p = p - K @ (B @ d)
@@ -672,7 +762,7 @@ def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, confi
     cov = np.zeros((6, 6))
     cov[:3, :3] = 0.5 * (P + P.T)
     cov[3:, 3:] = V
-    return Triangulation(ray.t_s, p, last.v_ned_mps.copy(), cov, 0.0, 0, 0, math.nan, (ray.vehicle,), carried=True)
+    return Triangulation(ray.t_s, p, last.v_ned_mps.copy(), cov, 0.0, 0.0, 0, math.nan, (ray.vehicle,), carried=True)
 
 
 # --------------------------------------------------------------------------- the tracker
@@ -696,10 +786,17 @@ class FleetTracker:
 
     Step methods: :meth:`add` takes one ray and returns the id of the target it went to (None: kept
     unassigned, or refused and counted); :meth:`solve` estimates one target from its rays now.  Refused
-    rays are counted in ``counter`` by reason: ``ray_stale`` (older than the fleet's newest ray by more
+    rays are counted in ``counter`` by reason: ``ray_stale`` (older than the fleet's clock ``now_s`` by more
     than the window), ``ray_out_of_order`` (not newer than the same object's last ray).  Events counted
-    at DEBUG level: ``target_created``, ``target_dropped``, ``object_left`` (failed its target's gate or
-    went silent)."""
+    at DEBUG level: ``target_created``, ``target_dropped``, ``object_left`` (failed its target's gate, went
+    silent or its vehicle was withdrawn, :meth:`withdraw`).
+
+    The fleet's clock ``now_s`` (staleness, silence) is the lower median of the vehicles' newest ray times,
+    over the vehicles whose newest ray is within ``member_timeout_s`` of the newest of all: one vehicle whose
+    clock runs ahead cannot make the others' rays stale (with two vehicles it is the older one's time, so a
+    vehicle is stale only against its own stream; with three or more the outlier is the one refused).  A vehicle
+    further ahead than ``member_timeout_s`` would leave the others out of the median: the fusion refuses such
+    rays first (``--max-age-s``, the clock check)."""
 
     def __init__(
         self,
@@ -714,11 +811,22 @@ class FleetTracker:
         self._owner: dict[tuple[str, int], int] = {}
         self._targets: dict[int, _Target] = {}
         self._next_id = 1
+        self._vehicle_newest_s: dict[str, float] = {}
         self.now_s = -math.inf
+
+    def _fleet_now(self) -> float:
+        times = sorted(self._vehicle_newest_s.values())
+        live = [t for t in times if t >= times[-1] - self.config.member_timeout_s]
+        return live[(len(live) - 1) // 2]
 
     @property
     def targets(self) -> tuple[int, ...]:
         return tuple(self._targets)
+
+    @property
+    def vehicles(self) -> tuple[str, ...]:
+        """The vehicles whose rays the tracker holds, sorted."""
+        return tuple(sorted({v for v, _ in self._rays}))
 
     def members(self, target_id: int) -> frozenset[tuple[str, int]]:
         return frozenset(self._targets[target_id].members)
@@ -733,6 +841,8 @@ class FleetTracker:
         """Take ``ray``; the target it belongs to (None: unassigned or refused)."""
         cfg = self.config
         key = (ray.vehicle, ray.object_id)
+        self._vehicle_newest_s[ray.vehicle] = max(self._vehicle_newest_s.get(ray.vehicle, -math.inf), ray.t_s)
+        self.now_s = self._fleet_now()
         if ray.t_s < self.now_s - cfg.window_s:
             self.counter.count("ray_stale", f"{ray.vehicle} object {ray.object_id} at {ray.t_s:.3f} s")
             return None
@@ -743,7 +853,6 @@ class FleetTracker:
         if buf is None:
             buf = self._rays[key] = deque()
         buf.append(ray)
-        self.now_s = max(self.now_s, ray.t_s)
         while buf and buf[0].t_s < ray.t_s - cfg.window_s:
             buf.popleft()
         self._expire()
@@ -754,12 +863,20 @@ class FleetTracker:
             if last is None:
                 return owner
             p, P = last.propagated(ray.t_s)
-            if ray_gate_chi2(ray, p, P, self._noise(ray.vehicle)) <= BEARING_GATE_CHI2:
+            if ray_gate_chi2(ray, p, P, self._noise(ray.vehicle), last.v_ned_mps) <= BEARING_GATE_CHI2:
                 return owner
             self._leave(key, "failed its target's gate")
             buf.clear()
             buf.append(ray)
         return self._associate(key, ray)
+
+    def withdraw(self, vehicle: str, why: str) -> None:
+        """Take every object of ``vehicle`` out of its target and forget its rays (a name shared by two
+        vehicles: none of its rays can be trusted to be the vehicle's own)."""
+        for key in [k for k in self._rays if k[0] == vehicle]:
+            self._leave(key, why)
+            del self._rays[key]
+        self._vehicle_newest_s.pop(vehicle, None)
 
     def _leave(self, key: tuple[str, int], why: str) -> None:
         tid = self._owner.pop(key, None)
@@ -797,7 +914,7 @@ class FleetTracker:
             if target.last is None:
                 continue
             p, P = target.last.propagated(ray.t_s)
-            c2 = ray_gate_chi2(ray, p, P, noise)
+            c2 = ray_gate_chi2(ray, p, P, noise, target.last.v_ned_mps)
             if c2 <= best_chi2:
                 best, best_chi2 = target, c2
         if best is not None:
@@ -880,7 +997,8 @@ class FleetTracker:
             sol = carried_with_bearing(target.last_multi, newest, self._noise(newest.vehicle), self.config)
             est = fleet_verdict(sol, [newest], self.config, target_id)
         else:
-            sol = triangulate(rays, self.noise, seed, self.config)
+            v_time = None if target.last is None else target.last.v_ned_mps
+            sol = triangulate(rays, self.noise, seed, self.config, v_time_ned_mps=v_time)
             est = fleet_verdict(sol, rays, self.config, target_id)
         target.last = est
         if len(est.contributions) >= 2:

@@ -44,6 +44,23 @@ at 500 m, no more than one ray's bearing noise, and as long as the target's angu
 error is a constant angle, which the solve's per-vehicle attitude-bias nuisance absorbs; it would take a
 manoeuvring target and many seconds, where the latency floor shows 20 ms within its first window.
 
+A ray's time sigma: a stamped track's ``time_unix_sigma_us`` (the vehicle's UTC mapping) becomes the ray's
+``time_sigma_s`` (:class:`~onboard.estimation.fleet.Ray`); a time from a configured, remembered or arrival offset
+carries none and is taken as exact: a configured offset is the operator's, a remembered one the vehicle's own
+earlier mapping, and the arrival estimate's error is the vehicle's shortest capture-to-arrival latency, a few ms
+on one machine or a wired link (a constant lag, which the clock check reports; a radio link's longer floor belongs
+in ``--clock-offset``).
+
+One vehicle per name (:class:`StreamCheck`): a daemon publishes one track per frame, its ``seq`` and
+``time_boot_us`` increasing and its camera moving no faster than an aircraft.  Two vehicles configured with the
+same name interleave two such streams on one key: ``seq`` or ``time_boot_us`` go back and forth, the camera jumps
+hundreds of metres between consecutive tracks.  Each such step is an anomaly; ``clash_anomalies`` (4) within
+``window_s`` (5 s) name the vehicle a name clash until ``clear_after_s`` (5 s) pass without one.  A daemon restart
+(``seq`` from 0) or a reboot (``time_boot_us`` from 0) is one anomaly; a new local origin two (the first track
+there is refused as a jump, the next one, consistent with it, is the stream's new place).  A single camera
+jump (a glitch, a track placed against another origin) is refused alone (``camera_jump``), and a camera farther
+than ``MAX_CAMERA_DISTANCE_M`` from the fleet's origin is refused outright (``camera_far``).
+
 Frames: each vehicle's ``camera_ned_m`` / ``los_ned`` are in its own local NED frame (its track's
 ``origin``); both are mapped into the fleet's frame (the first origin seen, or a configured one) by the exact
 affine map between the two tangent frames (:func:`ned_transform`, through ECEF).
@@ -55,7 +72,7 @@ import functools
 import math
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -76,6 +93,8 @@ __all__ = [
     "ned_transform",
     "CommonClock",
     "ClockConsistency",
+    "StreamCheck",
+    "MAX_CAMERA_DISTANCE_M",
     "TimedTrack",
     "parse_track",
     "ray_from_track",
@@ -124,12 +143,97 @@ def ned_transform(origin_from: GeodeticOrigin, origin_to: GeodeticOrigin) -> tup
 
 @dataclass(frozen=True)
 class TimedTrack:
-    """A vehicle's track with its time on the common clock: ``t_s`` (UTC seconds) and where it came from
-    (``vehicle`` | ``configured`` | ``remembered`` | ``arrival``)."""
+    """A vehicle's track with its time on the common clock: ``t_s`` (UTC seconds), where it came from
+    (``vehicle`` | ``configured`` | ``remembered`` | ``arrival``) and its 1-sigma ``time_sigma_s`` (module
+    docstring, "A ray's time sigma")."""
 
     track: Track
     t_s: float
     time_source: str
+    time_sigma_s: float = 0.0
+
+
+#: farther than this from the fleet's origin a camera is not one of the fleet's (a garbage position, a track
+#: placed against a wrong origin): the fleet works within a radio link's range
+MAX_CAMERA_DISTANCE_M = 200_000.0
+
+
+@dataclass
+class _Stream:
+    seq: int
+    boot_us: int
+    anchor: tuple[float, np.ndarray] | None = None  # (t_s, camera) of the newest accepted camera
+    candidate: tuple[float, np.ndarray] | None = None  # the newest refused one: the stream may have moved there
+    anomalies: deque = field(default_factory=deque)  # arrival times, s
+
+
+class StreamCheck:
+    """Whether each vehicle name carries one vehicle's tracks (module docstring, "One vehicle per name").
+
+    Step method :meth:`add` (one track's ``seq``, ``time_boot_us``, common time, camera in the fleet frame or
+    None, arrival time on the fusion's clock) returns ``camera_far`` / ``camera_jump`` for a track whose camera
+    is not believable (refuse its ray) or None; :meth:`clashing` names the vehicles whose recent anomalies say
+    two vehicles share the name.  ``max_speed_mps``: the fastest vehicle, ``slack_m``: a navigation fix's jump
+    allowed on top of it."""
+
+    def __init__(
+        self,
+        max_speed_mps: float = 100.0,
+        slack_m: float = 20.0,
+        window_s: float = 5.0,
+        clash_anomalies: int = 4,
+        clear_after_s: float = 5.0,
+    ) -> None:
+        self.max_speed_mps = float(max_speed_mps)
+        self.slack_m = float(slack_m)
+        self.window_s = float(window_s)
+        self.clash_anomalies = int(clash_anomalies)
+        self.clear_after_s = float(clear_after_s)
+        self._streams: dict[str, _Stream] = {}
+        self._clash_since: dict[str, float] = {}
+
+    def _near(self, a: tuple[float, np.ndarray], t_s: float, p: np.ndarray) -> bool:
+        return float(np.linalg.norm(p - a[1])) <= self.max_speed_mps * abs(t_s - a[0]) + self.slack_m
+
+    def add(
+        self, vehicle: str, seq: int, time_boot_us: int, t_s: float, p_cam_ned_m, arrival_unix_s: float
+    ) -> str | None:
+        p = None if p_cam_ned_m is None else np.asarray(p_cam_ned_m, dtype=float)
+        if p is not None and not float(np.linalg.norm(p)) <= MAX_CAMERA_DISTANCE_M:
+            return "camera_far"
+        st = self._streams.get(vehicle)
+        if st is None:
+            st = self._streams[vehicle] = _Stream(seq, time_boot_us)
+            if p is not None:
+                st.anchor = (t_s, p)
+            return None
+        anomaly = seq <= st.seq or time_boot_us < st.boot_us
+        st.seq, st.boot_us = seq, time_boot_us
+        verdict = None
+        if p is not None:
+            if st.anchor is None or self._near(st.anchor, t_s, p):
+                st.anchor, st.candidate = (t_s, p), None
+            elif st.candidate is not None and self._near(st.candidate, t_s, p):
+                st.anchor, st.candidate = (t_s, p), None  # two in a row agree: the stream moved (a new origin)
+            else:
+                st.candidate = (t_s, p)
+                anomaly, verdict = True, "camera_jump"
+        if anomaly:
+            st.anomalies.append(arrival_unix_s)
+        while st.anomalies and st.anomalies[0] < arrival_unix_s - self.window_s:
+            st.anomalies.popleft()
+        if len(st.anomalies) >= self.clash_anomalies:
+            self._clash_since.setdefault(vehicle, arrival_unix_s)
+        return verdict
+
+    def clashing(self, now_unix_s: float) -> list[str]:
+        """The vehicles named a name clash now: enough anomalies in a window, the newest less than
+        ``clear_after_s`` ago."""
+        for v in list(self._clash_since):
+            st = self._streams[v]
+            if not st.anomalies or st.anomalies[-1] < now_unix_s - self.clear_after_s:
+                del self._clash_since[v]
+        return sorted(self._clash_since)
 
 
 class CommonClock:
@@ -260,6 +364,7 @@ def ray_from_track(timed: TimedTrack, fleet_origin: GeodeticOrigin) -> Ray:
         los_ned=u / np.linalg.norm(u),
         sigma_az_rad=math.radians(los.sigma_azimuth_deg),
         sigma_el_rad=math.radians(los.sigma_elevation_deg),
+        time_sigma_s=timed.time_sigma_s,
     )
 
 

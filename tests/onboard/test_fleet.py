@@ -3,6 +3,7 @@ consistency under the noise model, honesty without geometry, the issue's two-dro
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -15,12 +16,17 @@ from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.estimation.fleet import (
+    MIN_BEARING_SIGMA_RAD,
+    MIN_RESIDUAL_DOF,
     FleetConfig,
     FleetTracker,
     Ray,
+    VehicleNoise,
     closest_approach,
     fleet_verdict,
+    ray_gate_chi2,
     triangulate,
+    white_variance_rad2,
 )
 from onboard.estimation.map_estimator import NoiseModel
 
@@ -312,3 +318,123 @@ def test_a_target_is_due_once_its_camera_period_is_in_or_a_vehicle_is_late():
     for t in (2 / 30, 3 / 30):
         tracker.add(ray_of(measure(vehicles[2], tgt, t, rng, 0.5e-3), "uav2", t, 1))
     assert tracker.due(tid)
+
+
+# --------------------------------------------------------------------------- redundancy, noise per vehicle, time
+
+
+def _ray_to(p, vehicle: str, cam, t_s: float = 0.0, sigma: float = 0.5e-3, **kw) -> Ray:
+    d = np.asarray(p, float) - np.asarray(cam, float)
+    return Ray(vehicle, 1, t_s, cam, d / np.linalg.norm(d), sigma, sigma, **kw)
+
+
+def test_two_simultaneous_rays_keep_one_residual_degree_of_freedom_and_none_is_never_observable():
+    p = np.array([800.0, 0.0, -100.0])
+    two = [_ray_to(p, "uav1", (0, -100, -100)), _ray_to(p, "uav2", (0, 100, -100))]
+    sol = triangulate(two, EXACT, p + 5.0)
+    # 2N - 6 = -2, but the velocity is the prior's (both rays at one time): their gap is the one spare row
+    assert sol.dof == pytest.approx(1.0, abs=1e-3)
+    four = two + [_ray_to(p, "uav1", (0.4, -100, -100), 1 / 30), _ray_to(p, "uav2", (0.4, 100, -100), 1 / 30)]
+    assert 2.0 < triangulate(four, EXACT, p + 5.0).dof < 4.0
+    est = fleet_verdict(sol, two)
+    assert est.observable
+    # the same estimate with nothing to spare: the residual test cannot run, so it is not observable
+    for dof in (0.0, MIN_RESIDUAL_DOF / 2):
+        bare = fleet_verdict(dataclasses.replace(sol, dof=dof), two)
+        assert not bare.observable and bare.adequacy_p > 0.9  # a perfect fit: the residual test would pass
+        assert bare.sigma_ned_m[0] >= 150.0  # the range floor, as any unobservable estimate
+
+
+@FAST
+@given(
+    sigma=st.floats(1e-7, 0.1),
+    bias=st.floats(0.0, 0.1),
+)
+def test_the_white_part_of_a_published_sigma_is_never_negative_and_the_ray_never_overconfident(sigma, bias):
+    white = float(white_variance_rad2(sigma, bias))
+    assert white >= max(0.1 * sigma * sigma, MIN_BEARING_SIGMA_RAD**2) * (1 - 1e-12)
+    assert white + bias * bias >= sigma * sigma * (1 - 1e-12)  # with the nuisance's prior: at least the published
+    if sigma * sigma * 0.9 >= bias * bias and sigma >= MIN_BEARING_SIGMA_RAD * 1.1:
+        assert white == pytest.approx(sigma * sigma - bias * bias, rel=1e-9)  # the bias taken out exactly
+
+
+def _pv_trial(rng, noise):
+    """uav2's attitude bias is 0.3 deg (1 sigma), uav1's 0.1 deg; both publish sigmas that include their own."""
+    bias = {"uav1": math.radians(0.1), "uav2": math.radians(0.3)}
+    tgt = SynthTarget(tuple(rng.uniform([500, -150, -150], [650, 150, -100])), tuple(rng.uniform(-8, 8, 3)))
+    vehicles = [
+        SynthVehicle(n, (0.0, y, -100.0), (10, 0, 0), attitude_error_rad=tuple(rng.normal(0, bias[n], 3)))
+        for n, y in (("uav1", -150.0), ("uav2", 150.0))
+    ]
+    rays = [
+        ray_of(measure(v, tgt, t, rng, 0.3e-3, bias[v.name]), v.name, t)
+        for t in np.arange(0, 0.5, 1 / 30)
+        for v in vehicles
+    ]
+    config = FleetConfig(q_m2ps3=0.0)
+    est = fleet_verdict(
+        triangulate(rays, noise, tgt.p_ned_m(rays[-1].t_s) + rng.normal(0, 50, 3), config), rays, config
+    )
+    e = est.p_ned_m - tgt.p_ned_m(est.t_s)
+    return float(e @ np.linalg.solve(est.cov_p_ned_m2, e)), est.observable
+
+
+def test_a_vehicle_with_a_larger_bias_is_consistent_only_with_its_own_noise_model():
+    global_only = NoiseModel(attitude_bias_sigma_rad=math.radians(0.1))
+    per_vehicle = VehicleNoise(global_only, {"uav2": NoiseModel(attitude_bias_sigma_rad=math.radians(0.3))})
+    assert per_vehicle["uav1"] is global_only and per_vehicle["uav7"] is global_only
+    trials = 150
+    lo, hi = chi2.ppf([0.0005, 0.9995], 3 * trials) / trials
+    means = {}
+    for name, noise in (("global", global_only), ("per-vehicle", per_vehicle)):
+        rng = np.random.default_rng(7)
+        nees, observable = np.array([_pv_trial(rng, noise) for _ in range(trials)]).T
+        assert observable.all()
+        means[name] = nees.mean()
+    assert lo <= means["per-vehicle"] <= hi, means
+    assert means["global"] > hi, means  # the global model takes uav2's bias for white noise and averages it away
+
+
+def test_a_time_sigma_adds_the_targets_motion_across_the_ray_to_the_gate_and_the_solve():
+    p = np.array([800.0, 0.0, -100.0])
+    cam = np.array([0.0, -100.0, -100.0])
+    exact = _ray_to(p + (0, 0, 2.0), "uav1", cam)  # 2 m off the target, down
+    timed = _ray_to(p + (0, 0, 2.0), "uav1", cam, time_sigma_s=0.05)
+    P = np.eye(3) * 0.25
+    v_across = np.array([0.0, 0.0, 10.0])  # 10 m/s down: 0.5 m in 50 ms, across the ray (elevation)
+    r = float(exact.los_ned @ (p - cam))
+    z = exact.basis_ned @ (p - cam)
+    S = exact.basis_ned @ P @ exact.basis_ned.T + np.diag((r * exact.sigma_cross_rad) ** 2)
+    S_t = S + np.diag((exact.basis_ned @ v_across) ** 2) * 0.05**2
+    assert ray_gate_chi2(exact, p, P, EXACT, v_across) == pytest.approx(float(z @ np.linalg.solve(S, z)))
+    assert ray_gate_chi2(timed, p, P, EXACT, v_across) == pytest.approx(float(z @ np.linalg.solve(S_t, z)))
+    assert ray_gate_chi2(timed, p, P, EXACT, 10.0 * timed.los_ned) == pytest.approx(ray_gate_chi2(exact, p, P, EXACT))
+    # in the solve: a time sigma with the velocity along every ray changes nothing, across them it widens
+    rays = [_ray_to(p, "uav1", (0, -100, -100)), _ray_to(p, "uav2", (0, 100, -100))]
+    timed_rays = [dataclasses.replace(r_, time_sigma_s=0.05) for r_ in rays]
+    base = triangulate(rays, EXACT, p + 5.0, v_time_ned_mps=(0, 0, 0)).cov_p_ned_m2
+    np.testing.assert_allclose(triangulate(timed_rays, EXACT, p + 5.0, v_time_ned_mps=(0, 0, 0)).cov_p_ned_m2, base)
+    wide = triangulate(timed_rays, EXACT, p + 5.0, v_time_ned_mps=v_across).cov_p_ned_m2
+    # down is across both rays: its variance grows by about (10 m/s x 50 ms)^2 / 2 (two rays average it)
+    assert wide[2, 2] - base[2, 2] == pytest.approx(0.5**2 / 2, rel=0.05)
+    with pytest.raises(InputError, match="time_sigma_s"):
+        _ray_to(p, "uav1", cam, time_sigma_s=-1.0)
+
+
+def test_a_vehicle_whose_clock_runs_ahead_does_not_make_the_others_stale():
+    counter = RejectCounter()
+    tracker = FleetTracker(FleetConfig(), EXACT, counter)
+    p = np.array([800.0, 0.0, -100.0])
+    for k in range(30):
+        t = k / 30
+        tracker.add(_ray_to(p, "uav2", (0, 100, -100), t + 1.5))  # 1.5 s ahead
+        tracker.add(_ray_to(p, "uav1", (0, -100, -100), t))
+    assert counter["ray_stale"] == 0 and tracker.now_s == pytest.approx(29 / 30)
+    # three vehicles: the median is the two good ones' time, and the one 1.5 s behind is the stale one
+    tracker = FleetTracker(FleetConfig(), EXACT, counter)
+    for k in range(30):
+        t = 10.0 + k / 30
+        tracker.add(_ray_to(p, "uav1", (0, -100, -100), t))
+        tracker.add(_ray_to(p, "uav2", (0, 100, -100), t))
+        tracker.add(_ray_to(p, "uav3", (0, 0, -300), t - 1.5))
+    assert counter["ray_stale"] == 30 and tracker.vehicles == ("uav1", "uav2")

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
-from onboard.app.fuse import Fusion, build_parser
+from onboard.app.fuse import EVENTS, Fusion, build_parser, noise_models
 from onboard.core.counters import RejectCounter
 from onboard.core.frames import GeodeticOrigin, ned_from_geodetic
 from onboard.estimation.fleet import FleetConfig, FleetTracker
@@ -187,6 +187,14 @@ def test_its_own_output_and_other_vehicles_are_not_input():
         (["--origin", "32,118"], "LAT,LON,ALT"),
         (["--clock-offset", "uav1"], "NAME=SECONDS"),
         (["--max-age-s", "-1"], ">= 0"),
+        (["--camera-white-m", "0"], "--camera-white-m: expected a number > 0"),
+        (["--attitude-bias-deg", "-0.1"], "--attitude-bias-deg"),
+        (["--vehicle-noise", "uav2:camera_white_m=0"], "--vehicle-noise: uav2: camera_white_m: expected a number > 0"),
+        (["--vehicle-noise", "uav2:attitude_bias_deg=-1"], "--vehicle-noise: uav2: attitude_bias_deg"),
+        (["--vehicle-noise", "uav2:attitude_bias=0.5"], "--vehicle-noise: expected NAME:KEY=VALUE"),
+        (["--vehicle-noise", "uav2"], "--vehicle-noise: expected NAME:KEY=VALUE"),
+        (["--vehicle-noise", "fleet:camera_white_m=1"], "--vehicle-noise: expected NAME:KEY=VALUE"),
+        (["--max-time-sigma-ms", "nan"], "--max-time-sigma-ms"),
     ],
 )
 def test_bad_options_exit_2_on_one_line(argv, words, capsys):
@@ -242,8 +250,8 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
         + ["--status-interval-s", "0.2", "--log-level", "WARNING"]
         # the synthetic bearings' published sigma is their 0.3 mrad white noise alone (no attitude bias in it, as
         # new_fusion's NoiseModel() assumes); the default 0.1 deg bias prior would take it for mostly bias and
-        # fail every multi-frame solve's residual test
-        + ["--attitude-bias-deg", "0", "--camera-white-m", "0"],
+        # fail every multi-frame solve's residual test; their camera positions are exact (1 um: it must be > 0)
+        + ["--attitude-bias-deg", "0", "--camera-white-m", "1e-6"],
         cwd=REPO,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
@@ -281,7 +289,7 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
             time.sleep(max(0.0, t0 + t + 1 / 30 - time.time()))  # a 30 Hz camera's pace, not a wait for a result
         end_us = int((t0 + t_end - 0.1) * 1e6)
         assert got.wait_for(lambda g: any(m["time_unix_us"] >= end_us for m in g.fleet), DATA_TIMEOUT_S)
-        assert got.wait_for(lambda g: g.status[-1]["rejected"].get("vehicle_back", 0) >= 1, DATA_TIMEOUT_S)
+        assert got.wait_for(lambda g: g.status[-1]["events"].get("vehicle_back", 0) >= 1, DATA_TIMEOUT_S)
     finally:
         for s in sessions:
             s.close()
@@ -300,7 +308,8 @@ def test_the_fuse_process_fuses_two_vehicles_degrades_to_one_honestly_and_takes_
     odd = [m for m in alone if m["observable"] or [c["vehicle"] for c in m["vehicles"]] != ["uav1"]]
     assert alone and not odd, [(m["time_unix_us"] / 1e6 - t0, m["observable"], m["vehicles"]) for m in odd][:3]
     assert any(st["silent"] == ["uav2"] for st in got.status), "uav2 never named silent"
-    assert got.status[-1]["silent"] == [] and got.status[-1]["rejected"]["vehicle_silent"] == 1
+    assert got.status[-1]["silent"] == [] and got.status[-1]["events"]["vehicle_silent"] == 1
+    assert "vehicle_silent" not in got.status[-1]["rejected"]  # an event, not refused input
     # back: uav2 contributes again (after member_timeout_s it re-associated through the fleet's estimate)
     back = [m for m in got.fleet if m["time_unix_us"] >= (t0 + t_back + 0.3) * 1e6]
     assert any(len(m["vehicles"]) == 2 and m["observable"] for m in back), "uav2 did not rejoin"
@@ -400,3 +409,171 @@ def test_a_vehicle_that_stops_is_named_silent_and_rejoins_when_it_returns():
     assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"] and last["observable"]
     e = np.asarray(last["ned_m"]) - truth_in(last)
     assert np.linalg.norm(e) < 0.01 * np.linalg.norm(truth_in(last))
+
+
+# --------------------------------------------------------------------------- per-vehicle noise, refused rays
+
+
+def test_vehicle_noise_overrides_the_named_keys_of_one_vehicle_and_keeps_the_global_rest():
+    args = build_parser().parse_args(
+        [
+            "--attitude-bias-deg", "0.1", "--camera-white-m", "0.03",
+            "--vehicle-noise", "uav2:attitude_bias_deg=0.5",
+            "--vehicle-noise", "uav2:camera_offset_m=1.5",
+        ]
+    )  # fmt: skip
+    noise = noise_models(args)
+    assert noise["uav1"].attitude_bias_sigma_rad == pytest.approx(np.radians(0.1))
+    assert noise["uav9"] == noise["uav1"] and noise["uav1"].camera_position_offset_sigma_m == 0.0
+    uav2 = noise["uav2"]
+    assert uav2.attitude_bias_sigma_rad == pytest.approx(np.radians(0.5))
+    assert uav2.camera_position_offset_sigma_m == 1.5 and uav2.camera_position_white_sigma_m == 0.03
+
+
+def _payload_dict(vehicle, t_s, rng, seq, **changes) -> dict:
+    obj = json.loads(payload_of(vehicle, t_s, rng, seq))
+    obj.update(changes)
+    return obj
+
+
+def run_pair_with(fusion: Fusion, t_range, rng, bad=lambda k, obj: None, seq0: int = 0) -> list[tuple[str, dict]]:
+    """Both vehicles at 30 Hz; ``bad(k, obj)`` may change uav2's k-th payload dict in place."""
+    out = []
+    for k, t in enumerate(t_range):
+        for v in (UAV1, UAV2):
+            obj = _payload_dict(v, t, rng, seq0 + k)
+            if v is UAV2:
+                bad(k, obj)
+            fusion.receive(f"irtrack/{v.name}/track", json.dumps(obj).encode(), T0_UNIX_S + t + 0.005)
+        out += fusion.flush()
+    return out
+
+
+@pytest.mark.parametrize(
+    "change, reason",
+    [
+        ({"los_sigma_az_deg": 1e-300, "los_sigma_el_deg": 1e-300}, "sigma_below_floor"),
+        ({"camera_ned_m": [1e9, 0.0, -100.0]}, "camera_far"),
+        ({"camera_ned_m": [0.0, 2000.0, -100.0]}, "camera_jump"),  # 2 km from the last camera in 33 ms
+        ({"time_unix_sigma_us": 5_000_000}, "time_sigma"),
+    ],
+)
+def test_an_impossible_ray_is_refused_by_reason_and_leaves_its_vehicles_object_in_the_target(change, reason):
+    fusion = new_fusion()
+    rng = np.random.default_rng(21)
+    run_pair_with(fusion, np.arange(0.0, 1.0, 1 / 30), rng)
+    (tid,) = fusion.tracker.targets
+    members = fusion.tracker.members(tid)
+
+    def bad(k, obj):
+        if k == 0:
+            obj.update(change)
+
+    out = run_pair_with(fusion, np.arange(1.0, 1.5, 1 / 30), rng, bad, seq0=30)
+    assert fusion.counter[reason] == 1
+    assert fusion.counter["object_left"] == 0 and fusion.tracker.members(tid) == members
+    fleet = [p for k, p in out if k == fleet_track_key()]
+    assert fleet and all(p["ned_m"] is not None and all(x is not None for x in p["sigma_ned_m"]) for p in fleet)
+    assert fleet[-1]["observable"] and len(fleet[-1]["vehicles"]) == 2
+    st = fusion.status(T0_UNIX_S + 1.5)
+    assert st["rejected"][reason] == 1 and st["name_clash"] == []
+    assert st["events"] == {"target_created": 1} and not EVENTS & set(st["rejected"])
+
+
+def test_a_time_sigma_within_the_bound_widens_the_fused_covariance():
+    """The same rays with uav2's UTC known to 20 ms: accepted, and its miss v s_t across the ray (~0.1 m here)
+    widens the covariance, never narrows it."""
+    sig = {}
+    for sigma_us in (None, 20_000):
+        fusion = new_fusion()
+
+        def stamp(k, obj, sigma_us=sigma_us):
+            obj["time_unix_sigma_us"] = sigma_us
+
+        out = run_pair_with(fusion, np.arange(0.0, 1.0, 1 / 30), np.random.default_rng(22), stamp)
+        last = [p for k, p in out if k == fleet_track_key()][-1]
+        assert last["observable"] and fusion.counter["time_sigma"] == 0
+        sig[sigma_us] = np.asarray(last["sigma_ned_m"])
+    assert np.all(sig[20_000] >= sig[None] * 0.999) and np.any(sig[20_000] > sig[None] * 1.01)
+
+
+# --------------------------------------------------------------------------- two vehicles under one name
+
+
+def test_two_vehicles_under_one_name_are_named_once_kept_out_and_fused_again_when_one_is_left(caplog):
+    """A second drone also configured uav1, looking at another object: its tracks interleave with uav1's (seq and
+    camera back and forth).  The fusion names the clash once at WARNING, keeps uav1's rays out (no confident ghost
+    point: every fleet track is uav2 alone, unobservable) and fuses uav1 again once one stream is left."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(23)
+    impostor = SynthVehicle("uav1", (0.0, 0.0, -300.0), (12.0, 0.0, 0.0))
+    other = SynthTarget((600.0, 300.0, -100.0))
+    run_pair(fusion, 1.0, rng)
+    out = []
+    with caplog.at_level("WARNING"):
+        for k, t in enumerate(np.arange(1.0, 4.0, 1 / 30)):
+            for v in (UAV1, UAV2):
+                fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, 30 + k), T0_UNIX_S + t + 0.005)
+            t2 = t + 0.016
+            los = measure(impostor, other, t2, rng, 0.3e-3)
+            obj = track_payload("uav1", 5000 + k, int(1e6 + t2 * 1e6), los, ORIGIN_1, int((T0_UNIX_S + t2) * 1e6))
+            fusion.receive("irtrack/uav1/track", json.dumps(obj).encode(), T0_UNIX_S + t2 + 0.005)
+            out += fusion.flush()
+    st = fusion.status(T0_UNIX_S + 4.0)
+    assert st["name_clash"] == ["uav1"] and st["events"]["name_clash"] == 1
+    warned = [r.getMessage() for r in caplog.records if "name_clash" in r.getMessage()]
+    assert len(warned) == 1 and "'uav1'" in warned[0] and "own name" in warned[0]
+    late = [p for k, p in out if k == fleet_track_key() and p["time_unix_us"] >= (T0_UNIX_S + 1.5) * 1e6]
+    assert late and all([c["vehicle"] for c in p["vehicles"]] == ["uav2"] and not p["observable"] for p in late)
+    assert fusion.counter["ray_name_clash"] > 100
+    # the second drone lands: after clear_after_s without an anomaly uav1 is one vehicle again and fuses
+    out = []
+    for k, t in enumerate(np.arange(4.0, 11.0, 1 / 30)):
+        for v in (UAV1, UAV2):
+            fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, 200 + k), T0_UNIX_S + t + 0.005)
+        out += fusion.flush()
+    st = fusion.status(T0_UNIX_S + 11.0)
+    assert st["name_clash"] == [] and st["events"]["name_clash_cleared"] == 1
+    last = [p for k, p in out if k == fleet_track_key()][-1]
+    assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"] and last["observable"]
+    assert np.linalg.norm(np.asarray(last["ned_m"]) - truth_in(last)) < 0.01 * np.linalg.norm(truth_in(last))
+
+
+def test_a_daemon_restart_is_not_a_name_clash():
+    fusion = new_fusion()
+    rng = np.random.default_rng(24)
+    run_pair(fusion, 1.0, rng)
+    out = run_pair_with(fusion, np.arange(1.0, 2.0, 1 / 30), rng, seq0=0)  # both restart their frame counters
+    assert fusion.status(T0_UNIX_S + 2.0)["name_clash"] == [] and fusion.counter["ray_name_clash"] == 0
+    assert [p for k, p in out if k == fleet_track_key()][-1]["observable"]
+
+
+# --------------------------------------------------------------------------- a clock ahead
+
+
+@pytest.mark.parametrize("vehicles", [2, 3])
+def test_a_vehicle_whose_clock_runs_ahead_is_the_one_refused(vehicles):
+    """uav3 (or, with two, uav2) stamps its frames 1.5 s late, within --max-age-s: the others' rays are never
+    stale, the clock check names it and its rays are refused; with three the other two fuse on."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(25)
+    fleet = []
+    bad = "uav3" if vehicles == 3 else "uav2"
+    for k, t in enumerate(np.arange(0.0, 4.0, 1 / 30)):
+        for v in (UAV1, UAV2, UAV3)[:vehicles]:
+            err = 1.5 if v.name == bad else 0.0
+            arrival = T0_UNIX_S + t + 0.005 + rng.exponential(0.002)
+            fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k, clock_error_s=err), arrival)
+        if t >= 1.0:  # the clock check judges a vehicle from its 20th frame in: what it sent by then is withdrawn
+            fleet += [p for key, p in fusion.flush() if key == fleet_track_key()]
+    st = fusion.status(T0_UNIX_S + 4.0)
+    assert st["rejected"].get("ray_stale", 0) == 0
+    assert st["clock_inconsistent"] == [bad] and st["rejected"]["clock_off"] > 60
+    late = fleet
+    assert all(bad not in [c["vehicle"] for c in p["vehicles"]] for p in late)
+    # the good vehicles' rays are in the tracker, the bad one's are not (two: uav1 alone makes no fleet target)
+    assert fusion.tracker.vehicles == (("uav1", "uav2") if vehicles == 3 else ("uav1",))
+    if vehicles == 3:
+        assert late and all(p["observable"] for p in late)
+        e = np.asarray(late[-1]["ned_m"]) - truth_in(late[-1])
+        assert np.linalg.norm(e) < 0.01 * np.linalg.norm(truth_in(late[-1]))
