@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+import os
 import signal
 
 import pytest
@@ -54,6 +56,37 @@ def pytest_configure(config):
 def _pytest_version() -> tuple[int, int]:
     major, minor = pytest.__version__.split(".")[:2]
     return int(major), int(minor)
+
+
+@pytest.fixture(autouse=True)
+def _no_stray_log_handlers():
+    """A handler a test leaves on the root logger (an entry point's ``logging.basicConfig``) holds the ``sys.stderr``
+    of that test, which pytest's capture closes: every record logged in a later test then printed a 'Logging error'
+    traceback into that test's stderr (a one-line-error test failed so in a whole run).  pytest's own handlers come
+    and go by themselves."""
+    root = logging.getLogger()
+    before = set(map(id, root.handlers))
+    yield
+    for handler in list(root.handlers):
+        if id(handler) not in before and not type(handler).__module__.startswith("_pytest"):
+            root.removeHandler(handler)
+
+
+#: ``make test`` (and so CI) sets it: a skipped test is a check that did not run (a missing independent reader, a
+#: command not installed), which must fail the run rather than pass unseen
+NO_SKIPS_ENV = "IRTRACK_NO_SKIPS"
+
+
+def pytest_sessionfinish(session, exitstatus):
+    if not os.environ.get(NO_SKIPS_ENV) or hasattr(session.config, "workerinput"):
+        return  # a developer's run may skip; xdist workers report to the controller, which decides
+    reporter = session.config.pluginmanager.get_plugin("terminalreporter")
+    skipped = reporter.stats.get("skipped", []) if reporter is not None else []
+    if skipped and session.exitstatus == 0:
+        names = ", ".join(r.nodeid for r in skipped[:5]) + (" ..." if len(skipped) > 5 else "")
+        reporter.ensure_newline()
+        reporter.write_line(f"{NO_SKIPS_ENV}: {len(skipped)} test(s) skipped, which fails this run: {names}", red=True)
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 
 @pytest.fixture(scope="session", autouse=True)
