@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from onboard.core.errors import InputError
+from onboard.core.json_schema import object_schema
 from onboard.core.track import Track, json_number
 
 __all__ = [
@@ -143,16 +144,12 @@ STATUS_SECTION_KEYS: tuple[tuple[str, dict[str, Any], bool], ...] = (
 def status_json_schema() -> dict[str, Any]:
     """The JSON Schema of the ``irtrack.status/1`` message the daemon publishes: :data:`STATUS_JSON_KEYS` (always
     present) and :data:`STATUS_SECTION_KEYS` (``utc`` always, the others when their part is configured)."""
-    props = {key: dict(schema) for key, schema in STATUS_JSON_KEYS}
-    props.update({key: dict(schema) for key, schema, _always in STATUS_SECTION_KEYS})
-    required = [key for key, _ in STATUS_JSON_KEYS] + [key for key, _, always in STATUS_SECTION_KEYS if always]
-    return {
-        "title": STATUS_SCHEMA,
-        "description": "The daemon's status, once a second (keys: onboard/core/status.py build_status).",
-        "type": "object",
-        "properties": props,
-        "required": required,
-    }
+    return object_schema(
+        STATUS_SCHEMA,
+        "The daemon's status, once a second (keys: onboard/core/status.py build_status).",
+        [*STATUS_JSON_KEYS, *((key, schema) for key, schema, _always in STATUS_SECTION_KEYS)],
+        [key for key, _ in STATUS_JSON_KEYS] + [key for key, _, always in STATUS_SECTION_KEYS if always],
+    )
 
 
 def _percentile(sorted_values: list[float], q: float) -> float:

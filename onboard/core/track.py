@@ -94,6 +94,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, rotmat_from_quat
+from onboard.core.json_schema import object_schema
 
 __all__ = [
     "TRACK_SCHEMA",
@@ -608,13 +609,9 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
 def track_json_schema() -> dict[str, Any]:
     """The JSON Schema of an ``irtrack.track/2`` message as :func:`track_to_json` writes it: every key always
     present (null where the table allows it), so every key is required."""
-    return {
-        "title": TRACK_SCHEMA,
-        "description": "One processed frame's track and 3-D estimate (table in onboard/core/track.py).",
-        "type": "object",
-        "properties": {key: dict(schema) for key, schema in TRACK_JSON_KEYS},
-        "required": [key for key, _ in TRACK_JSON_KEYS],
-    }
+    return object_schema(
+        TRACK_SCHEMA, "One processed frame's track and 3-D estimate (table in onboard/core/track.py).", TRACK_JSON_KEYS
+    )
 
 
 #: ``json.dumps(..., separators=(",", ":"), allow_nan=False)`` made once: ``dumps`` with options builds an encoder

@@ -43,6 +43,7 @@ import numpy as np
 
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import quat_from_euler, quat_from_rotmat, quat_multiply, rotmat_from_quat
+from onboard.core.json_schema import object_schema
 from onboard.core.schema import Bool, Integer, Invalid, Number, Numbers, Text, config_dataclass
 
 if TYPE_CHECKING:  # the planner imports the estimator when built: the config section stays light to import
@@ -540,13 +541,11 @@ GUIDANCE_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
 
 def guidance_json_schema() -> dict[str, Any]:
     """The JSON Schema of an ``irtrack.guidance/1`` message as :func:`advice_to_json` writes it (every key)."""
-    return {
-        "title": GUIDANCE_SCHEMA,
-        "description": "An advised observer manoeuvre (onboard/estimation/guidance.py), as published.",
-        "type": "object",
-        "properties": {key: dict(schema) for key, schema in GUIDANCE_JSON_KEYS},
-        "required": [key for key, _ in GUIDANCE_JSON_KEYS],
-    }
+    return object_schema(
+        GUIDANCE_SCHEMA,
+        "An advised observer manoeuvre (onboard/estimation/guidance.py), as published.",
+        GUIDANCE_JSON_KEYS,
+    )
 
 
 def advice_to_json(advice: Advice, vehicle: str, time_boot_us: int, in_loop: bool = False) -> dict:
