@@ -617,13 +617,18 @@ class PinholeIntrinsics:
         xy = np.asarray(xy, dtype=float)
         if not self.has_distortion:
             return xy
+        xd, yd, _, _ = self._distorted(xy[..., 0], xy[..., 1])
+        return np.stack([xd, yd], axis=-1)
+
+    def _distorted(self, x, y):
+        """The model at ideal ``x``, ``y``: distorted ``xd``, ``yd`` and the ``r2``, ``radial`` they were made of
+        (which the undistortion's Jacobian reuses)."""
         k1, k2, p1, p2, k3 = self.distortion
-        x, y = xy[..., 0], xy[..., 1]
         r2 = x * x + y * y
         radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
         xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
         yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-        return np.stack([xd, yd], axis=-1)
+        return xd, yd, r2, radial
 
     def undistort_normalized(self, xy_d, iterations: int = 20) -> np.ndarray:
         """Distorted normalised coordinates -> ideal ones, by Newton's method on the model's own Jacobian.
@@ -638,12 +643,11 @@ class PinholeIntrinsics:
         k1, k2, p1, p2, k3 = self.distortion
         xy = xy_d.copy()
         for _ in range(iterations):
-            res = xy_d - self.distort_normalized(xy)
+            x, y = xy[..., 0], xy[..., 1]
+            xd, yd, r2, radial = self._distorted(x, y)
+            res = xy_d - np.stack([xd, yd], axis=-1)
             if not np.any(np.abs(res) > NEWTON_DONE):  # NaN goes on to the iteration limit, and stays NaN
                 break
-            x, y = xy[..., 0], xy[..., 1]
-            r2 = x * x + y * y
-            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
             d_radial = k1 + r2 * (2 * k2 + 3 * k3 * r2)  # d radial / d r2
             a = radial + 2 * x * x * d_radial + 2 * p1 * y + 6 * p2 * x  # d xd / dx
             b = 2 * x * y * d_radial + 2 * p1 * x + 2 * p2 * y  # d xd / dy = d yd / dx
