@@ -363,11 +363,6 @@ class Fusion:
 
 
 _positive = nonnegative_float("expected a number", "expected a number >= 0")
-_NOISE_KEYS = {  # --vehicle-noise's keys: the global options' names, their NoiseModel field, zero allowed
-    "attitude_bias_deg": ("attitude_bias_sigma_rad", True),
-    "camera_white_m": ("camera_position_white_sigma_m", False),
-    "camera_offset_m": ("camera_position_offset_sigma_m", True),
-}
 
 
 def _above_zero(text: str) -> float:
@@ -375,6 +370,11 @@ def _above_zero(text: str) -> float:
     if v <= 0:
         raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
     return v
+
+
+#: --vehicle-noise's keys (the global options' names and units) and the parser each value takes (zero allowed for
+#: the nuisances a zero switches off, not for the white noise)
+_NOISE_KEYS = {"attitude_bias_deg": _positive, "camera_white_m": _above_zero, "camera_offset_m": _positive}
 
 
 def _vehicle_noise(text: str) -> tuple[str, dict[str, float]]:
@@ -391,7 +391,7 @@ def _vehicle_noise(text: str) -> tuple[str, dict[str, float]]:
         if k not in _NOISE_KEYS or not eq or k in values:
             raise argparse.ArgumentTypeError(usage)
         try:
-            values[k] = (_positive if _NOISE_KEYS[k][1] else _above_zero)(v)
+            values[k] = _NOISE_KEYS[k](v)
         except argparse.ArgumentTypeError as exc:
             raise argparse.ArgumentTypeError(f"{name}: {k}: {exc}") from None
     if not values:

@@ -190,7 +190,7 @@ class StreamCheck:
         self.clash_anomalies = int(clash_anomalies)
         self.clear_after_s = float(clear_after_s)
         self._streams: dict[str, _Stream] = {}
-        self._clash_since: dict[str, float] = {}
+        self._clashing: set[str] = set()  # named a clash, until it clears
 
     def _near(self, a: tuple[float, np.ndarray], t_s: float, p: np.ndarray) -> bool:
         return float(np.linalg.norm(p - a[1])) <= self.max_speed_mps * abs(t_s - a[0]) + self.slack_m
@@ -223,17 +223,17 @@ class StreamCheck:
         while st.anomalies and st.anomalies[0] < arrival_unix_s - self.window_s:
             st.anomalies.popleft()
         if len(st.anomalies) >= self.clash_anomalies:
-            self._clash_since.setdefault(vehicle, arrival_unix_s)
+            self._clashing.add(vehicle)
         return verdict
 
     def clashing(self, now_unix_s: float) -> list[str]:
         """The vehicles named a name clash now: enough anomalies in a window, the newest less than
         ``clear_after_s`` ago."""
-        for v in list(self._clash_since):
+        for v in list(self._clashing):
             st = self._streams[v]
             if not st.anomalies or st.anomalies[-1] < now_unix_s - self.clear_after_s:
-                del self._clash_since[v]
-        return sorted(self._clash_since)
+                self._clashing.discard(v)
+        return sorted(self._clashing)
 
 
 class CommonClock:
