@@ -7,7 +7,7 @@ import os
 import secrets
 import stat
 
-__all__ = ["create_beside", "file_kind", "not_a_file"]
+__all__ = ["create_beside", "file_kind", "not_a_file", "output_target"]
 
 
 def file_kind(mode: int) -> str:
@@ -27,6 +27,18 @@ def not_a_file(mode: int | None) -> str | None:
     if mode is None or stat.S_ISREG(mode):
         return None
     return f"it is {file_kind(mode)}: give the path of a file"
+
+
+def output_target(path: str) -> tuple[str, str | None]:
+    """The file ``path`` names (through a symbolic link: the link is kept, its file replaced) and why a rename
+    cannot replace it (:func:`not_a_file`), or None: it can, or it does not exist or cannot be reached (writing it
+    then says why)."""
+    target = os.path.realpath(path)
+    try:
+        mode: int | None = os.stat(target).st_mode
+    except OSError:
+        mode = None
+    return target, not_a_file(mode)
 
 
 def create_beside(target: str) -> tuple[str, int]:

@@ -84,7 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, nonnegative_float
-from onboard.app.output_files import create_beside, not_a_file
+from onboard.app.output_files import create_beside, output_target
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
@@ -477,12 +477,7 @@ def _check_output_paths(outputs: list[tuple[str, str]]) -> None:
     rename would replace (a device such as ``/dev/null`` among them), and two options naming one file."""
     seen: dict[str, str] = {}
     for option, path in outputs:
-        target = os.path.realpath(path)
-        try:
-            mode = os.stat(target).st_mode
-        except OSError:
-            mode = None  # a new file, or one that cannot be reached: writing it says why
-        refused = not_a_file(mode)
+        target, refused = output_target(path)
         if refused is not None:
             raise InputError(f"{option} {path}: {refused}")
         if target in seen:

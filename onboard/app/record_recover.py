@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from onboard.app.cli_args import OneLineParser
-from onboard.app.output_files import create_beside, not_a_file
+from onboard.app.output_files import create_beside, output_target
 from onboard.core.errors import InputError
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
@@ -230,12 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _output_target(src: str, dst: str) -> str:
     """The file ``dst`` names (through a symbolic link); :class:`InputError` when it cannot be written by a
     rename or is the input itself."""
-    target = os.path.realpath(dst)
-    try:
-        mode: int | None = os.stat(target).st_mode
-    except OSError:
-        mode = None
-    refused = not_a_file(mode)
+    target, refused = output_target(dst)
     if refused is not None:
         raise InputError(f"{dst}: {refused}")
     if target == os.path.realpath(src):
