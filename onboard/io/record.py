@@ -479,11 +479,11 @@ class FlightRecorder:
             "frame_input",
             FRAME_INPUT_TOPIC,
             700,
-            (seq, int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
+            (int(frame.time_boot_us), int(received_ns), bool(pose_looked_up), pose),
             seq=seq,
         )
         if imaging_pose is not NOT_LOOKED_UP:
-            item = (seq, int(frame.time_boot_us), imaging_pose)
+            item = (int(frame.time_boot_us), imaging_pose)
             ok = self._put("imaging_pose", IMAGING_POSE_TOPIC, 700, item, seq=seq) and ok
         return ok
 
@@ -784,9 +784,9 @@ class FlightRecorder:
                 topic, "foxglove.RawImage", rawimage_pieces(frame, self._protobuf()["foxglove.RawImage"]), now, seq
             )
         elif kind == "frame_input":
-            _seq, t_us, received_ns, looked_up, pose = item
+            t_us, received_ns, looked_up, pose = item
             obj = {
-                "seq": _seq,
+                "seq": seq,  # the frame's, which is the message's sequence
                 "time_boot_us": t_us,
                 "received_ns": received_ns,
                 "pose_looked_up": looked_up,
@@ -820,8 +820,8 @@ class FlightRecorder:
                     seq,
                 )
         elif kind == "imaging_pose":
-            _seq, t_us, pose = item
-            obj = {"seq": _seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
+            t_us, pose = item
+            obj = {"seq": seq, "time_boot_us": t_us, "pose": pose_to_json(pose)}
             self._add_json(topic, IMAGING_POSE_SCHEMA, obj, now, seq)
         elif kind == "objects":
             (message,) = item
