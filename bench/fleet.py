@@ -22,7 +22,7 @@ It prints:
   contains all N of them (every vehicle's newest line of sight at or after that period), p50 / p99 / max;
 - the machine: cores, load average, and the speed probe of :func:`bench.machine_speed_ms`.
 
-``--accuracy`` runs the core without zenoh (:class:`~onboard.estimation.fleet.FleetTracker` stepped per
+``--accuracy`` runs the core without zenoh (:class:`~onboard.estimation.fleet_tracker.FleetTracker` stepped per
 frame): two observers 200 m apart flying straight and level at 12 m/s, a target ~800 m away, 10 s at 30 Hz,
 5 seeds, for attitude-bias sigmas of 0.1 deg (the shipped RTK noise case), 0.02 deg and 0: the share of
 estimates called observable after the first second, the median error over range, the median reported range
@@ -80,7 +80,8 @@ def _scene(n: int, rng: np.random.Generator) -> tuple[list[SynthVehicle], SynthT
 
 def accuracy(seeds: int = 5) -> None:
     """Print the fleet core's accuracy on two straight-and-level observers (module docstring)."""
-    from onboard.estimation.fleet import FleetConfig, FleetTracker, Ray
+    from onboard.estimation.fleet import FleetConfig, Ray
+    from onboard.estimation.fleet_tracker import FleetTracker
     from onboard.estimation.map_estimator import NoiseModel
 
     white_rad = math.hypot(0.3 / 764.7, math.radians(0.05))  # 0.3 px on a Vue Pro 640, 0.05 deg attitude noise

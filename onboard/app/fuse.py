@@ -10,7 +10,7 @@
 
 It subscribes ``irtrack/*/track`` (every vehicle; ``--vehicles`` keeps only those named), turns each track
 with a line of sight into a ray in one frame and on one clock (:mod:`onboard.io.fleet_wire`), feeds the
-:class:`~onboard.estimation.fleet.FleetTracker` and publishes each updated target on ``irtrack/fleet/track``
+:class:`~onboard.estimation.fleet_tracker.FleetTracker` and publishes each updated target on ``irtrack/fleet/track``
 and, in each vehicle's own frame, on ``irtrack/<vehicle>/fleet/track``; ``irtrack/fleet/status`` (JSON,
 ``--status-interval-s``) carries the counts, ``silent`` (vehicles heard before but not for ``--silent-after-s``:
 a daemon that stopped; the fleet track goes on with the others, unobservable when one is left, and the vehicle
@@ -23,7 +23,7 @@ median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsisten
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
 every ray, then solves each touched target that is due once and publishes: due when every live vehicle's
 frame of the newest camera period is in, or a vehicle is ``max_defer_s`` (50 ms) late on the fleet clock
-(:meth:`~onboard.estimation.fleet.FleetTracker.due`), or the queue has been idle for 0.1 s.  Eight vehicles
+(:meth:`~onboard.estimation.fleet_tracker.FleetTracker.due`), or the queue has been idle for 0.1 s.  Eight vehicles
 at 30 Hz then cost one solve per period instead of about two, at no latency from the later frame.
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once
 per ``--reject-log-interval-s`` per reason: ``not_json``, ``bad_track`` (the schema's reader names the key),
@@ -72,12 +72,12 @@ from onboard.core.frames import GeodeticOrigin
 from onboard.estimation.fleet import (
     MIN_BEARING_SIGMA_RAD,
     FleetConfig,
-    FleetTracker,
     Ray,
     VehicleNoise,
     fleet_verdict,
     triangulate,
 )
+from onboard.estimation.fleet_tracker import FleetTracker
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.io.fleet_wire import (
     FLEET_NAME,

@@ -19,7 +19,6 @@ from onboard.estimation.fleet import (
     MIN_BEARING_SIGMA_RAD,
     MIN_RESIDUAL_DOF,
     FleetConfig,
-    FleetTracker,
     Ray,
     VehicleNoise,
     closest_approach,
@@ -28,6 +27,7 @@ from onboard.estimation.fleet import (
     triangulate,
     white_variance_rad2,
 )
+from onboard.estimation.fleet_tracker import FleetTracker
 from onboard.estimation.map_estimator import NoiseModel
 
 ATOL_M = 1e-3  # 1 mm on noiseless rays (the MAP's weak priors pull it by (sigma_post / sigma_prior)^2 of their offset)

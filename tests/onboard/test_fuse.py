@@ -16,7 +16,8 @@ from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure,
 from onboard.app.fuse import EVENTS, Fusion, build_parser, noise_models
 from onboard.core.counters import RejectCounter
 from onboard.core.frames import GeodeticOrigin, ned_from_geodetic
-from onboard.estimation.fleet import FleetConfig, FleetTracker
+from onboard.estimation.fleet import FleetConfig
+from onboard.estimation.fleet_tracker import FleetTracker
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.io.fleet_wire import (
     FLEET_TRACK_SCHEMA,

@@ -1,0 +1,282 @@
+r"""The fleet's tracker: rays of several vehicles associated with targets, each target estimated from all its
+rays together (:mod:`onboard.estimation.fleet`: the rays, the triangulation and its verdict).
+
+Pure core, as :mod:`onboard.estimation.fleet` is.
+
+Association
+-----------
+A ray carries its vehicle's own object id (the daemon's ``track_id``).  An object already in a target stays
+there while its rays pass the target's gate: the Mahalanobis distance of the ray's cross-range offset from
+the target's estimate, chi-square 2 dof at 1e-4 (``BEARING_GATE_CHI2``).  An unassigned object joins the
+target it gates best with (never a target that has a live object of the same vehicle), else it pairs with
+another vehicle's unassigned object whose rays' closest approach (:func:`closest_approach`) is within the
+chi-square 1 dof gate at 1e-4 of its sigma, the one with the smallest normalised distance.  A vehicle whose
+newest ray is ``vehicle_timeout_s`` older than the target's newest leaves the solution (and comes back
+with its next ray that gates); objects silent for ``member_timeout_s`` leave the target; a target with no
+object left is dropped.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from onboard.core.counters import RejectCounter
+from onboard.estimation.fleet import (
+    CLOSEST_APPROACH_GATE_CHI2,
+    FleetConfig,
+    FleetEstimate,
+    Ray,
+    carried_with_bearing,
+    closest_approach,
+    fleet_verdict,
+    noise_for,
+    ray_gate_chi2,
+    triangulate,
+)
+from onboard.estimation.map_estimator import NoiseModel
+from onboard.estimation.sliding import BEARING_GATE_CHI2
+
+__all__ = ["FleetTracker"]
+
+
+@dataclass
+class _Target:
+    """A fleet target's mutable state: its objects (vehicle, object id), the centre of its weak position
+    prior and its last estimate."""
+
+    target_id: int
+    members: set[tuple[str, int]]
+    p_seed_ned_m: np.ndarray
+    t_seed_s: float
+    last: FleetEstimate | None = None
+    last_multi: FleetEstimate | None = None  # the last estimate several vehicles made
+
+
+class FleetTracker:
+    """Associates rays from several vehicles with targets and estimates them (module docstring).
+
+    Step methods: :meth:`add` takes one ray and returns the id of the target it went to (None: kept
+    unassigned, or refused and counted); :meth:`solve` estimates one target from its rays now.  Refused
+    rays are counted in ``counter`` by reason: ``ray_stale`` (older than the fleet's clock ``now_s`` by more
+    than the window), ``ray_out_of_order`` (not newer than the same object's last ray).  Events counted
+    at DEBUG level: ``target_created``, ``target_dropped``, ``object_left`` (failed its target's gate, went
+    silent or its vehicle was withdrawn, :meth:`withdraw`).
+
+    The fleet's clock ``now_s`` (staleness, silence) is the lower median of the vehicles' newest ray times,
+    over the vehicles whose newest ray is within ``member_timeout_s`` of the newest of all: one vehicle whose
+    clock runs ahead cannot make the others' rays stale (with two vehicles it is the older one's time, so a
+    vehicle is stale only against its own stream; with three or more the outlier is the one refused).  A vehicle
+    further ahead than ``member_timeout_s`` would leave the others out of the median: the fusion refuses such
+    rays first (``--max-age-s``, the clock check)."""
+
+    def __init__(
+        self,
+        config: FleetConfig | None = None,
+        noise: NoiseModel | Mapping[str, NoiseModel] | None = None,
+        counter: RejectCounter | None = None,
+    ) -> None:
+        self.config = config or FleetConfig()
+        self.noise = noise if noise is not None else NoiseModel()
+        self.counter = counter or RejectCounter()
+        self._rays: dict[tuple[str, int], deque[Ray]] = {}
+        self._owner: dict[tuple[str, int], int] = {}
+        self._targets: dict[int, _Target] = {}
+        self._next_id = 1
+        self._vehicle_newest_s: dict[str, float] = {}
+        self.now_s = -math.inf
+
+    def _fleet_now(self) -> float:
+        times = sorted(self._vehicle_newest_s.values())
+        live = [t for t in times if t >= times[-1] - self.config.member_timeout_s]
+        return live[(len(live) - 1) // 2]
+
+    @property
+    def targets(self) -> tuple[int, ...]:
+        return tuple(self._targets)
+
+    @property
+    def vehicles(self) -> tuple[str, ...]:
+        """The vehicles whose rays the tracker holds, sorted."""
+        return tuple(sorted({v for v, _ in self._rays}))
+
+    def members(self, target_id: int) -> frozenset[tuple[str, int]]:
+        return frozenset(self._targets[target_id].members)
+
+    def last_estimate(self, target_id: int) -> FleetEstimate | None:
+        return self._targets[target_id].last
+
+    def _noise(self, vehicle: str) -> NoiseModel:
+        return noise_for(self.noise, vehicle)
+
+    def add(self, ray: Ray) -> int | None:
+        """Take ``ray``; the target it belongs to (None: unassigned or refused)."""
+        cfg = self.config
+        key = (ray.vehicle, ray.object_id)
+        self._vehicle_newest_s[ray.vehicle] = max(self._vehicle_newest_s.get(ray.vehicle, -math.inf), ray.t_s)
+        self.now_s = self._fleet_now()
+        if ray.t_s < self.now_s - cfg.window_s:
+            self.counter.count("ray_stale", f"{ray.vehicle} object {ray.object_id} at {ray.t_s:.3f} s")
+            return None
+        buf = self._rays.get(key)
+        if buf and ray.t_s <= buf[-1].t_s:
+            self.counter.count("ray_out_of_order", f"{ray.vehicle} object {ray.object_id} at {ray.t_s:.3f} s")
+            return None
+        if buf is None:
+            buf = self._rays[key] = deque()
+        buf.append(ray)
+        while buf and buf[0].t_s < ray.t_s - cfg.window_s:
+            buf.popleft()
+        self._expire()
+        owner = self._owner.get(key)
+        if owner is not None:
+            target = self._targets[owner]
+            last = target.last
+            if last is None:
+                return owner
+            p, P = last.propagated(ray.t_s)
+            if ray_gate_chi2(ray, p, P, self._noise(ray.vehicle), last.v_ned_mps) <= BEARING_GATE_CHI2:
+                return owner
+            self._leave(key, "failed its target's gate")
+            buf.clear()
+            buf.append(ray)
+        return self._associate(key, ray)
+
+    def withdraw(self, vehicle: str, why: str) -> None:
+        """Take every object of ``vehicle`` out of its target and forget its rays (a name shared by two
+        vehicles: none of its rays can be trusted to be the vehicle's own)."""
+        for key in [k for k in self._rays if k[0] == vehicle]:
+            self._leave(key, why)
+            del self._rays[key]
+        self._vehicle_newest_s.pop(vehicle, None)
+
+    def _leave(self, key: tuple[str, int], why: str) -> None:
+        tid = self._owner.pop(key, None)
+        if tid is None:
+            return
+        target = self._targets[tid]
+        target.members.discard(key)
+        self.counter.count("object_left", f"{key[0]} object {key[1]} left target {tid}: {why}", level=10)
+        if not target.members:
+            del self._targets[tid]
+            self.counter.count("target_dropped", f"target {tid}", level=10)
+
+    def _expire(self) -> None:
+        cutoff = self.now_s - self.config.member_timeout_s
+        for key in [k for k, buf in self._rays.items() if not buf or buf[-1].t_s < cutoff]:
+            self._leave(key, "silent")
+            del self._rays[key]
+
+    def _live_vehicles(self, target: _Target, t_s: float) -> set[str]:
+        return {
+            v
+            for v, k in target.members
+            if (buf := self._rays.get((v, k))) and buf[-1].t_s >= t_s - self.config.vehicle_timeout_s
+        }
+
+    def _associate(self, key: tuple[str, int], ray: Ray) -> int | None:
+        cfg = self.config
+        noise = self._noise(ray.vehicle)
+        best, best_chi2 = None, BEARING_GATE_CHI2
+        for target in list(self._targets.values()):
+            if ray.vehicle in self._live_vehicles(target, ray.t_s):
+                continue
+            if target.last is None:  # created since the last solve (several rays arrived at once): solve it now
+                self.solve(target.target_id)
+            if target.last is None:
+                continue
+            p, P = target.last.propagated(ray.t_s)
+            c2 = ray_gate_chi2(ray, p, P, noise, target.last.v_ned_mps)
+            if c2 <= best_chi2:
+                best, best_chi2 = target, c2
+        if best is not None:
+            best.members.add(key)
+            self._owner[key] = best.target_id
+            return best.target_id
+        partner, pair, pair_chi2 = None, None, CLOSEST_APPROACH_GATE_CHI2
+        for other, buf in self._rays.items():
+            if other[0] == ray.vehicle or other in self._owner or not buf:
+                continue
+            cand = buf[-1]
+            if abs(cand.t_s - ray.t_s) > cfg.pair_max_dt_s:
+                continue
+            ca = closest_approach(ray, cand, noise, self._noise(other[0]), cfg.max_speed_mps)
+            if ca is not None and ca.chi2 <= pair_chi2:
+                partner, pair, pair_chi2 = other, ca, ca.chi2
+        if partner is None or pair is None:
+            return None
+        tid = self._next_id
+        self._next_id += 1
+        self._targets[tid] = _Target(tid, {key, partner}, pair.midpoint_ned_m, ray.t_s)
+        self._owner[key] = self._owner[partner] = tid
+        self.counter.count("target_created", f"target {tid} from {key} and {partner}", level=10)
+        return tid
+
+    def rays(self, target_id: int) -> list[Ray]:
+        """The rays of ``target_id`` that the next :meth:`solve` uses: its live vehicles' rays in the window."""
+        target = self._targets[target_id]
+        bufs = [self._rays[k] for k in target.members if self._rays.get(k)]
+        if not bufs:
+            return []
+        newest = max(b[-1].t_s for b in bufs)
+        live = self._live_vehicles(target, newest)
+        return [r for b in bufs if b[-1].vehicle in live for r in b if r.t_s >= newest - self.config.window_s]
+
+    def due(self, target_id: int) -> bool:
+        """Whether ``target_id`` has news worth a solve: no estimate yet; every live vehicle has a ray newer than
+        the last estimate (the frames of one camera period are in); every live vehicle caught up with the newest
+        ray and one of them was not in the last estimate (a late frame after a deferred solve); or its newest ray
+        is ``max_defer_s`` past the last estimate (a vehicle is late).  On the fleet clock: no timer involved."""
+        target = self._targets.get(target_id)
+        if target is None:
+            return False
+        if target.last is None:
+            return True
+        newest: dict[str, float] = {}
+        for v, k in target.members:
+            buf = self._rays.get((v, k))
+            if buf:
+                newest[v] = max(newest.get(v, -math.inf), buf[-1].t_s)
+        if not newest:
+            return False
+        t_new = max(newest.values())
+        t_last = target.last.t_s
+        if t_new - t_last >= self.config.max_defer_s:
+            return True
+        live = {v: t for v, t in newest.items() if t >= t_new - self.config.vehicle_timeout_s}
+        used = {c.vehicle: c.t_s for c in target.last.contributions}
+        oldest = min(live.values())
+        if oldest > t_last:  # every live vehicle has a frame past the last estimate: a new camera period is in
+            return True
+        # a late vehicle's frame of the period the last (deferred) estimate already reached
+        return oldest >= t_new and any(t > used.get(v, -math.inf) for v, t in live.items())
+
+    def solve(self, target_id: int) -> FleetEstimate | None:
+        """Estimate ``target_id`` from its rays now (None: no rays in the window)."""
+        target = self._targets.get(target_id)
+        if target is None:
+            return None
+        rays = self.rays(target_id)
+        if not rays:
+            return None
+        t0 = max(r.t_s for r in rays)
+        if target.last is not None:
+            seed = target.last.p_ned_m + (t0 - target.last.t_s) * target.last.v_ned_mps
+        else:
+            seed = target.p_seed_ned_m
+        if target.last_multi is not None and len({r.vehicle for r in rays}) < 2:
+            newest = max(rays, key=lambda r: r.t_s)
+            sol = carried_with_bearing(target.last_multi, newest, self._noise(newest.vehicle), self.config)
+            est = fleet_verdict(sol, [newest], self.config, target_id)
+        else:
+            v_time = None if target.last is None else target.last.v_ned_mps
+            sol = triangulate(rays, self.noise, seed, self.config, v_time_ned_mps=v_time)
+            est = fleet_verdict(sol, rays, self.config, target_id)
+        target.last = est
+        if len(est.contributions) >= 2:
+            target.last_multi = est
+        return est
