@@ -32,6 +32,13 @@ frame of it is after the previous one by at most ``threshold_us`` with a sequenc
 forward: duplicates and scattered odd frames never add up to a run, so one odd frame (or a few
 unrelated ones) never restarts the estimator, and a real step never locks the stream out.
 
+A far run that stands apart from the telemetry too (its newest frame more than ``threshold_us`` from
+``reference_us``) confirms only once it also spans ``APART_CONFIRM_US`` of its own stamps: its frames
+find no pose at their stamps, so taking them at once gains nothing, while a short burst of bogus stamps
+(a sender's glitch an hour ahead) taken as the new clock would restart the estimator twice, once for the
+burst and once for the good frames after it, and lose its window each time.  A step the telemetry shares
+(an autopilot reboot once its new telemetry is in) is confirmed by ``TIME_CONFIRM_FRAMES`` as before.
+
 The first frame is accepted unless a telemetry time is known (``reference_us``, the pose buffer's
 newest sample) and the frame is more than ``threshold_us`` from it: a stream that starts with a
 stamp an hour ahead, or one at boot, would otherwise become the clock the good frames are judged
@@ -43,11 +50,21 @@ from __future__ import annotations
 import collections
 from dataclasses import dataclass
 
-__all__ = ["SEQ_MOD", "TIME_CONFIRM_FRAMES", "RECENT_FRAMES", "RATE_FRAMES", "Admission", "FrameAdmission"]
+__all__ = [
+    "SEQ_MOD",
+    "TIME_CONFIRM_FRAMES",
+    "APART_CONFIRM_US",
+    "RECENT_FRAMES",
+    "RATE_FRAMES",
+    "Admission",
+    "FrameAdmission",
+]
 
 SEQ_MOD = 2**32
 #: consecutive, mutually consistent frames far from the running clock that confirm a clock step
 TIME_CONFIRM_FRAMES = 3
+#: the span of its own stamps a far run standing apart from the telemetry needs before it confirms a clock step
+APART_CONFIRM_US = 500_000
 #: accepted (seq, time) pairs remembered to recognise a duplicate sent late (4 s at 30 Hz)
 RECENT_FRAMES = 128
 #: accepted frames (since the last event) the stream's rate is learnt from before a gap is told from a clock step
@@ -102,7 +119,7 @@ class FrameAdmission:
 
     def admit(self, seq: int, t_us: int, reference_us: int | None = None) -> Admission:
         """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any
-        (read for the first frame and for a frame more than ``threshold_us`` after the last accepted one)."""
+        (read for the first frame and for a frame more than ``threshold_us`` from the last accepted one)."""
         last_seq, last_t = self.last_seq, self.last_t_us
         thr = self.threshold_us
         if last_t is None or last_seq is None:  # the first frame (both are set together)
@@ -113,6 +130,7 @@ class FrameAdmission:
                 seq,
                 t_us,
                 far=True,
+                apart=True,
                 reason="time_ahead" if step > 0 else "time_behind",
                 message=f"first frame seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the telemetry",
             )
@@ -132,10 +150,12 @@ class FrameAdmission:
                 self._on_the_streams_rate(seq, t_us) or (reference_us is not None and abs(t_us - reference_us) <= thr)
             ):
                 return self._accept(seq, t_us, "")
-            return self._candidate(seq, t_us, far=True, reason="time_ahead", message=f"frame {where}")
+            apart = reference_us is not None and abs(t_us - reference_us) > thr
+            return self._candidate(seq, t_us, far=True, apart=apart, reason="time_ahead", message=f"frame {where}")
         far = t_us < last_t - thr
+        apart = far and reference_us is not None and abs(t_us - reference_us) > thr
         if seq_forward:
-            return self._candidate(seq, t_us, far=far, reason="time_behind", message=f"frame {where}")
+            return self._candidate(seq, t_us, far=far, apart=apart, reason="time_behind", message=f"frame {where}")
         return self._candidate(seq, t_us, far=False, reason="out_of_order", message=f"frame {where}")
 
     # ------------------------------------------------------------------ internals
@@ -153,8 +173,11 @@ class FrameAdmission:
         expected_us = t1 + (t1 - t0) / n * ((seq - seq1) % SEQ_MOD)
         return abs(t_us - expected_us) <= self.threshold_us
 
-    def _candidate(self, seq: int, t_us: int, *, far: bool, reason: str, message: str) -> Admission:
-        """Refuse, unless this frame completes a consistent run (module docstring)."""
+    def _candidate(
+        self, seq: int, t_us: int, *, far: bool, reason: str, message: str, apart: bool = False
+    ) -> Admission:
+        """Refuse, unless this frame completes a consistent run (module docstring); ``apart``: the frame is far from
+        the telemetry's newest time as well."""
         run = self._run
         if run and far == self._run_far and run[-1][1] < t_us <= run[-1][1] + self.threshold_us:
             if _forward(seq, run[-1][0]):
@@ -165,15 +188,17 @@ class FrameAdmission:
             run[:] = [(seq, t_us)]
             self._run_far = far
         need = TIME_CONFIRM_FRAMES if far else self.restart_count
-        if len(run) < need:
+        if len(run) < need or (apart and run[-1][1] - run[0][1] < APART_CONFIRM_US):
             return Admission(False, reason, message)
         first_seq = run[0][0]
         last_t = self.last_t_us
         if last_t is None:
-            what = f"{need} consistent frames from seq {first_seq} stand apart from the telemetry"
+            what = f"{len(run)} consistent frames from seq {first_seq} stand apart from the telemetry"
         else:
             what = f"capture time stepped {(t_us - last_t) / 1e6:+.3f} s (seq {self.last_seq} -> {seq})"
-            what += f", confirmed by {need} consistent frames from seq {first_seq}"
+            what += f", confirmed by {len(run)} consistent frames from seq {first_seq}"
+            if apart:
+                what += " (apart from the telemetry's clock too)"
         event = "time_reset" if far else "stream_restart"
         return self._accept(seq, t_us, event, what, restart=True)
 

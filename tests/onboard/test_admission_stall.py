@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from onboard.app.frame_queue import FrameQueue
-from onboard.pipeline.admission import SEQ_MOD, TIME_CONFIRM_FRAMES, FrameAdmission
+from onboard.pipeline.admission import APART_CONFIRM_US, SEQ_MOD, TIME_CONFIRM_FRAMES, FrameAdmission
 from onboard.pipeline.frame_pipeline import FrameRejected
 from tests.onboard.test_pipeline import Rig
 
@@ -64,21 +64,26 @@ def test_frames_the_queue_dropped_during_a_stall_are_a_gap_not_a_clock_step():
 
 
 def test_a_stamp_step_of_1_2_s_with_the_numbering_moving_by_one_is_a_clock_step():
-    """Stamps 1.2 s ahead of the telemetry, each frame numbered next: refused until TIME_CONFIRM_FRAMES agree, then
-    a time reset. The telemetry runs on at the true time (a stamp in step with it would be a camera pause)."""
+    """Stamps 1.2 s ahead of the telemetry, each frame numbered next: refused until TIME_CONFIRM_FRAMES agree and,
+    as they stand apart from the telemetry too, until they span APART_CONFIRM_US; then a time reset. The telemetry
+    runs on at the true time (a stamp in step with it would be a camera pause)."""
     rig = Rig(ready_after=3)
     rig.run(10)
     step_us = 1_200_000
-    rig.feed_until(rig.scene.t_us(10 + TIME_CONFIRM_FRAMES) + 45_000)
-    for i in range(TIME_CONFIRM_FRAMES - 1):
+    t0 = rig.scene.t_us(10)
+    n_refused = next(i for i in range(1, 100) if rig.scene.t_us(10 + i) - t0 >= APART_CONFIRM_US)
+    assert n_refused >= TIME_CONFIRM_FRAMES
+    for i in range(n_refused):
+        rig.feed_until(rig.scene.t_us(10 + i) + 45_000)  # the telemetry at the true time, 1.155 s behind the stamps
         with pytest.raises(FrameRejected) as ei:
             rig.pipe.process(rig.scene.frame(10 + i, time_boot_us=rig.scene.t_us(10 + i) + step_us))
         assert ei.value.reason == "time_ahead"
-    k = 10 + TIME_CONFIRM_FRAMES - 1
+    k = 10 + n_refused
+    rig.feed_until(rig.scene.t_us(k) + 45_000)
     tr = rig.pipe.process(rig.scene.frame(k, time_boot_us=rig.scene.t_us(k) + step_us))
     assert tr.seq == k and not tr.has_position  # its stamp is where the telemetry has not been yet
     assert rig.counter.counts == {
-        "frame_time_ahead": TIME_CONFIRM_FRAMES - 1,
+        "frame_time_ahead": n_refused,
         "frame_time_reset": 1,
         "pose_attitude_gap": 1,
     }

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
 from bench.onboard import SyntheticScene
@@ -31,6 +31,7 @@ from onboard.core.track import (
 )
 from onboard.estimation.sliding import TrackEstimate
 from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
+from onboard.pipeline.admission import APART_CONFIRM_US
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
 from tests.fakes import idle_status, positioned_track
 
@@ -316,18 +317,77 @@ def test_duplicate_and_out_of_order_frames_are_refused():
     assert [c[0] for c in rig.est.calls] == ["add"] * 4  # refused frames never reach the estimator
 
 
+def _feed_new_boot(rig: Rig, t0_us: int, t1_us: int) -> None:
+    """The autopilot's telemetry after a reboot: the scene's samples restamped from ``t0_us`` on its new clock."""
+    base = rig.scene.t_us(3)
+    for t, p, v, q in rig.scene.telemetry(base, base + (t1_us - t0_us), 50.0):
+        rig.pose.add_attitude(t - base + t0_us, q)
+        if (t // 20_000) % 2 == 0:
+            rig.pose.add_position_ned(t - base + t0_us, p, v)
+
+
 def test_reboot_time_going_back_is_accepted_and_restarts_the_estimator():
+    """The autopilot reboots: its telemetry and the frames' stamps go back together; three frames confirm it."""
     rig = Rig(ready_after=100)
     rig.run(3)
     rebooted = rig.scene.boot_us0 - 15_000_000  # 15 s earlier on the boot clock, seq moves on
+    _feed_new_boot(rig, rebooted - 300_000, rebooted + 100_000)
+    assert rig.pose.reboots == 1
     for k in range(2):  # the first frames of the new boot are outliers until three agree
         with pytest.raises(FrameRejected):
             rig.pipe.process(IrFrame(seq=3 + k, time_boot_us=rebooted + 33_333 * k, pixels=rig.scene.image(3)))
     assert rig.counter["frame_time_behind"] == 2
     tr = rig.pipe.process(IrFrame(seq=5, time_boot_us=rebooted + 66_666, pixels=rig.scene.image(3)))
-    assert tr.time_boot_us == rebooted + 66_666 and tr.pose_valid is False  # no telemetry of the new boot yet
+    assert tr.time_boot_us == rebooted + 66_666 and tr.pose_valid  # posed on the new boot's telemetry
     assert rig.counter["frame_time_reset"] == 1
     assert ("reset", math.nan) in [(c[0], math.nan) for c in rig.est.calls]
+
+
+def test_frames_stepped_away_from_the_telemetry_too_confirm_after_half_a_second_of_them():
+    """The frames' stamps go back 15 s but the telemetry does not (none of a new boot yet): the frames find no pose
+    at their stamps, and a clock step is believed only once they have run for APART_CONFIRM_US."""
+    rig = Rig(ready_after=100)
+    rig.run(3)
+    stepped = rig.scene.boot_us0 - 15_000_000
+    period = 33_333
+    n_refused = -(-APART_CONFIRM_US // period)  # the run spans APART_CONFIRM_US with its next frame
+    for k in range(n_refused):
+        with pytest.raises(FrameRejected):
+            rig.pipe.process(IrFrame(seq=3 + k, time_boot_us=stepped + period * k, pixels=rig.scene.image(3)))
+    assert rig.counter["frame_time_behind"] == n_refused and rig.pipe.estimator_resets == 0
+    k = n_refused
+    tr = rig.pipe.process(IrFrame(seq=3 + k, time_boot_us=stepped + period * k, pixels=rig.scene.image(3)))
+    assert tr.seq == 3 + k and not tr.pose_valid  # no telemetry at its stamp
+    assert rig.counter["frame_time_reset"] == 1
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    n_bogus=st.integers(1, 14),
+    offset_s=st.sampled_from([3600.0, -15.0, 5.0, -2.5, 1e5]),
+    seq_jump=st.integers(1, 1000),
+)
+def test_a_burst_of_bogus_stamps_shorter_than_half_a_second_restarts_nothing(n_bogus, offset_s, seq_jump):
+    """A sender's glitch: up to 14 consecutive frames (under APART_CONFIRM_US at 30 Hz) stamped far from both the
+    stream and the telemetry, numbered on; each is refused and counted, the stream goes on with the same estimate."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    t_last = rig.pipe._admission.last_t_us
+    offset_us = int(offset_s * US)
+    # a stamp where the stream's rate puts its number is the next frame after a gap, not a glitch
+    assume(abs(t_last + offset_us - rig.scene.t_us(9 + seq_jump)) > 2 * US)
+    reason = "time_ahead" if offset_us > 0 else "time_behind"
+    for i in range(n_bogus):
+        bogus = IrFrame(seq=10 + seq_jump + i, time_boot_us=t_last + offset_us + 33_333 * i, pixels=rig.scene.image(10))
+        with pytest.raises(FrameRejected) as ei:
+            rig.pipe.process(bogus, 0)
+        assert ei.value.reason == reason
+    k = 10 + seq_jump + n_bogus
+    rig.feed_until(rig.scene.t_us(10) + 45_000)
+    tr = rig.pipe.process(rig.scene.frame(10, seq=k), 0)  # the next good frame, numbered on
+    assert tr.seq == k and tr.pose_valid and tr.has_position
+    assert rig.counter[f"frame_{reason}"] == n_bogus and rig.counter["frame_time_reset"] == 0
+    assert rig.pipe.estimator_resets == 0
 
 
 def test_sender_restart_with_sequence_going_back_is_accepted():
