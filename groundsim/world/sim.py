@@ -448,7 +448,9 @@ class SimFrame:
     :class:`~groundsim.world.truth.TruthRow`.  With a scene (``scenario.scene``): ``labels``, one
     :class:`~groundsim.world.render.scene.ObjectLabel` per object (the target, id 0, first), and
     ``sensor_status`` (``ok`` / ``frozen`` / ``dropped``: the camera model's flat-field events; ``ok``
-    without one).  Without a scene ``labels`` is empty: the truth row holds the one target."""
+    without one).  The labels describe the image delivered: a frozen frame's are those of the image it
+    repeats, a dropped frame's objects are ``occluded``; the truth row stays the frame's own time's.  Without
+    a scene ``labels`` is empty: the truth row holds the one target."""
 
     seq: int
     time_boot_us: int
@@ -530,6 +532,7 @@ class SimCore:
         self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
         self._renderer: IrRenderer | None = None
         self._scene = None  # SceneContent and Sensor, built on first use when the scenario has a scene
+        self._imaged_labels: tuple | None = None  # the labels of the camera model's last image (a frozen frame's)
         self._sensor = None
         self.scene_enabled = scenario.scene.has_content or scenario.scene.sensor.enabled or bool(scenario.other_targets)
         self._other_rasters: tuple = ()
@@ -627,13 +630,25 @@ class SimCore:
         if sensor is None:
             return self.renderer().quantise(fr.radiance), fr.labels, "ok"
         out = sensor.apply(fr.radiance, t_s, k)
+        labels = fr.labels
+        if out.status == "ok":
+            self._imaged_labels = labels
+        elif out.status == "frozen" and self._imaged_labels is not None:
+            # the camera repeats its last image: the objects are where that image shows them, not where they
+            # have flown since (a tracker on the frozen image is right, one following the truth is not)
+            labels = self._imaged_labels
+        else:  # the shutter is closed and nothing is imaged: every object is hidden behind it
+            labels = tuple(
+                dataclasses.replace(lab, visibility="occluded") if lab.visibility == "visible" else lab
+                for lab in labels
+            )
         if out.counts is None:
-            return None, fr.labels, out.status
+            return None, labels, out.status
         if self.scenario.ir.encoding == "mono16":
-            return out.counts, fr.labels, out.status
+            return out.counts, labels, out.status
         if out.mono8 is not None:
-            return out.mono8, fr.labels, out.status
-        return (out.counts >> (sensor.config.raw_bits - 8)).astype(np.uint8), fr.labels, out.status
+            return out.mono8, labels, out.status
+        return (out.counts >> (sensor.config.raw_bits - 8)).astype(np.uint8), labels, out.status
 
     def frame(self, k: int) -> SimFrame:
         if not 0 <= k < self.frame_count:

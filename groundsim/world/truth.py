@@ -48,7 +48,9 @@ glints; ``groundsim.world.render.scene.ObjectLabel``) goes to a second file besi
     u_px, v_px                     sub-pixel projection of the object's centre (NaN behind the camera)
     x0_px, y0_px, x1_px, y1_px     box of the pixels holding >= 10 % of its peak signal (end exclusive;
                                    NaN when not drawn)
-    visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5), out_of_frame
+    visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5 or inside a
+                                   nearer object's box, or the camera's shutter closed), out_of_frame; a
+                                   frozen frame (the camera repeating its last image) repeats that image's rows
     contrast_netd                  peak |signal - local background| in NETD units (0 when not drawn)
     warm                           1 when the signal at that peak is above the local background, 0 when below
                                    it or not drawn (contrast_netd is a magnitude: a cold object has it too)

@@ -186,7 +186,11 @@ def test_c5_flat_field_event_freezes_frames_then_the_offsets_step(rendered):
     assert frames[149].sensor_status == "ok"
     assert frames[150].sensor_status == "frozen"
     assert frames[150].pixels.tobytes() == frames[149].pixels.tobytes()  # the last image repeated
+    # and its labels: the objects are where the repeated image shows them, not where they have flown since
+    assert frames[150].labels == frames[149].labels
+    assert frames[150].truth.target_u_px != frames[149].truth.target_u_px
     assert frames[156].sensor_status == "ok"
+    assert frames[156].labels[0].u_px == pytest.approx(frames[156].truth.target_u_px, abs=0.5)
     # column stripes: the column means of a sky band differ by more than the per-pixel noise averages out to
     sky = frames[0].pixels[20:120].astype(float)
     assert np.std(np.diff(sky.mean(axis=0))) > 0.3
@@ -458,8 +462,12 @@ def test_dropped_flat_field_frames_have_no_pixels_and_the_dataset_writes_them_bl
     d = _c5_with(ffc={"first_s": 0.05, "frames": 2, "mode": "dropped"})
     sc = scenario_from_dict(d, scenarios_dir() / "C5.yaml")
     core = SimCore(sc, 0, duration_s=0.2)
-    status = [core.frame(k).sensor_status for k in range(6)]
-    assert status == ["ok", "ok", "dropped", "dropped", "ok", "ok"]
+    frames = [core.frame(k) for k in range(6)]
+    assert [fr.sensor_status for fr in frames] == ["ok", "ok", "dropped", "dropped", "ok", "ok"]
+    # nothing imaged behind the closed shutter: no object is visible (its gt row is not one to find)
+    assert frames[1].labels[0].visibility == "visible"
+    assert all(lab.visibility != "visible" for fr in frames[2:4] for lab in fr.labels)
+    assert frames[4].labels[0].visibility == "visible"
     summaries, _ = export_dataset([sc], [0], tmp_path, DatasetOptions(duration_s=0.2), progress=False)
     img = tmp_path / summaries[0].name / "img1"
     assert not cv2.imread(str(img / "000003.png"), cv2.IMREAD_UNCHANGED).any()
