@@ -13,7 +13,8 @@ never receives them) and the frames are fed in lockstep to
   and its primary target (``objects-notbd``: the same without track-before-detect, ``imaging.tbd: false``).
 
 Rendered frames are cached (``--cache``, default ``/tmp/irtrack-scene-frames``) so that a second run
-times only the chain (a cache written before the labels carried ``warm`` is rendered again, not read).  Per scene it prints (frames: those the camera delivered):
+times only the chain (a file is named by a digest of ``groundsim/world``'s source and the scenario's file: frames
+rendered before a change there are rendered again, not read).  Per scene it prints (frames: those the camera delivered):
 
 * ``on target``: frames where the chain's primary output is within 3 px of the target (object 0), over
   the frames where the target is visible;
@@ -109,6 +110,22 @@ class SceneRun:
     nav_noise: str = "exact"
 
 
+def world_digest(name: str) -> str:
+    """A digest of what makes a scene's frames and labels: the simulated world's source (``groundsim/world``)
+    and the scenario's file.  Part of a cached file's name, so that frames rendered before a change of the
+    renderer, the flight or the scene are rendered again rather than measured as the new code's."""
+    import hashlib
+
+    from groundsim.world.scenario import scenarios_dir
+
+    world = Path(__file__).resolve().parent.parent / "groundsim" / "world"
+    h = hashlib.sha256()
+    for f in sorted(world.rglob("*.py")) + [scenarios_dir() / f"{name}.yaml"]:
+        h.update(str(f.relative_to(f.parent.parent)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:12]
+
+
 def render_scene(
     name: str,
     seed: int,
@@ -146,7 +163,9 @@ def render_scene(
     K = sc.camera.intrinsics
     # the encoding in the name: a scene's frames cached before its encoding changed are not taken for it
     tag = "-fullterrain" if full else ""
-    path = None if cache is None else cache / f"{name}-{sc.ir.encoding}{tag}-s{seed}-{duration:.3f}.npz"
+    path = None
+    if cache is not None:
+        path = cache / f"{name}-{sc.ir.encoding}{tag}-s{seed}-{duration:.3f}-{world_digest(name)}.npz"
     cached = None if path is None or not path.exists() else load_cache(path)
     if cached is not None:
         frames, labels, R = cached
