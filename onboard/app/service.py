@@ -64,7 +64,15 @@ from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
 from onboard.app.frame_queue import FrameQueue
 from onboard.app.locked_counter import LockedCounter
-from onboard.app.observers import FrameObserver, FrameResult, NewestTrack, RecorderTap, frame_objects, make_observers
+from onboard.app.observers import (
+    FrameObserver,
+    FrameResult,
+    NewestTrack,
+    RecorderTap,
+    VideoTap,
+    frame_objects,
+    make_observers,
+)
 from onboard.app.os_thread import name_os_thread
 from onboard.app.shared_pose import SharedPoseBuffer
 from onboard.app.status_sections import camera_section, time_offset_section
@@ -582,6 +590,10 @@ class OnboardService:
                 telemetry_since_s=self._first_telemetry_s,
             )
             self.watchdog.gnss(now, getattr(self.link, "gnss", None))
+        video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
+        if video is not None and video.streamer is not None:
+            vc = self.config.video
+            self.watchdog.video_rate(now, video.streamer.camera_rate_hz, vc.fps, vc.bitrate_bps)
 
     def _worker_cpu(self) -> float:
         return getattr(self.estimator, "worker_cpu_s", 0.0)

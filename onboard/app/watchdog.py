@@ -57,6 +57,14 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     its sigma and whether the pose lookup compensates it.  Cleared by a confident estimate at or below the
     threshold; an estimate that is not confident (no target, a still camera) changes nothing.
 
+``video_rate``
+    The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
+    (20 %), measured from the frames' capture times (:attr:`onboard.io.video.VideoStreamer.camera_rate_hz`):
+    x264 spreads ``video.bitrate_bps`` over ``video.fps`` frames a second, so a 10 Hz camera under the default 30
+    sends under half the configured bit rate (a poorer picture) and a 60 Hz one about twice it (more than the
+    radio link was sized for).  The message gives both rates and the bit rate that results; cleared when the
+    two agree again.
+
 Each code is logged at WARNING the first time only (``warned``); it is in :attr:`active` while the
 condition holds (the status JSON lists them) and leaves it when the condition clears (logged at
 INFO), coming back without a new WARNING.
@@ -81,6 +89,7 @@ RESIDUAL_THRESHOLD = 3.0
 RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
 OVERLOAD_CLEAR_S = 5.0
+VIDEO_RATE_TOLERANCE = 0.2
 
 _log = logging.getLogger(__name__)
 
@@ -243,6 +252,21 @@ class Watchdog:
             f"frames are {int(width_px)} x {int(height_px)} px but the configured camera is "
             f"{cw} x {ch} px (camera.intrinsics.width_px / height_px): they are refused; configure the "
             f"camera that sends them",
+        )
+
+    def video_rate(self, now_s: float, camera_rate_hz: float | None, video_fps: float, bitrate_bps: int) -> None:
+        """The H.264 stream's camera rate as measured (None: not yet, or no stream) against ``video.fps``."""
+        if camera_rate_hz is None or not math.isfinite(camera_rate_hz) or camera_rate_hz <= 0.0:
+            return
+        ratio = camera_rate_hz / video_fps
+        if abs(ratio - 1.0) <= VIDEO_RATE_TOLERANCE:
+            self._clear("video_rate")
+            return
+        self._raise(
+            "video_rate",
+            f"the camera delivers {camera_rate_hz:.1f} frames/s but video.fps is {video_fps:g}: the H.264 stream "
+            f"gets about {ratio:.2f} x video.bitrate_bps ({ratio * bitrate_bps / 1e6:.2f} of "
+            f"{bitrate_bps / 1e6:.2f} Mbit/s); set video.fps to the camera's rate",
         )
 
     def navigation(self, now_s: float, position_age_s: float | None, nav_gap_s: float = NAV_GAP_S) -> None:

@@ -76,6 +76,9 @@ TS_PACKET_BYTES = 188
 TS_DATAGRAM_BYTES = 7 * TS_PACKET_BYTES  # 1316
 #: MPEG-TS time stamps (PTS, PCR) count a 90 kHz clock
 TS_CLOCK_HZ = 90_000
+#: the capture times the camera's rate is measured over (about 2 s at 30 Hz), and the fewest that measure it
+RATE_FRAMES = 64
+RATE_MIN_FRAMES = 16
 #: FFmpeg's AVColorRange for limited ("TV", "MPEG") range: written into the stream's VUI
 AVCOL_RANGE_MPEG = 1
 AGC_LOW_PCT, AGC_HIGH_PCT = 1.0, 99.0
@@ -518,6 +521,7 @@ class VideoStreamer:
         self.frames_dropped = 0
         self.errors = 0
         self.encode_ms: collections.deque = collections.deque(maxlen=1000)
+        self._capture_us: collections.deque[int] = collections.deque(maxlen=RATE_FRAMES)
         self._thread = threading.Thread(target=self._run, name="irtrack-video", daemon=True)
         self._thread.start()
 
@@ -529,6 +533,7 @@ class VideoStreamer:
             capture_time_us = time.monotonic_ns() // 1000
         with self._cond:
             self.frames_in += 1
+            self._capture_us.append(int(capture_time_us))
             while len(self._q) >= self._maxlen:
                 self._q.popleft()
                 self.frames_dropped += 1
@@ -552,8 +557,23 @@ class VideoStreamer:
                     log.warning("video encoding failed: %s: %s", type(exc).__name__, exc)
             self.encode_ms.append((time.perf_counter() - t0) * 1000.0)
 
+    @property
+    def camera_rate_hz(self) -> float | None:
+        """The rate of the frames submitted, from their capture times: one over the median interval of the last
+        :data:`RATE_FRAMES` (a gap of refused or dropped frames does not lower it); None before
+        :data:`RATE_MIN_FRAMES` or without forward intervals.  x264 spreads ``video.bitrate_bps`` over
+        ``video.fps`` frames a second, so a camera at another rate sends that fraction of it."""
+        with self._cond:
+            t = np.asarray(self._capture_us, dtype=float)
+        if t.size < RATE_MIN_FRAMES:
+            return None
+        dt = np.diff(t)
+        dt = dt[dt > 0]
+        return None if dt.size == 0 else 1e6 / float(np.median(dt))
+
     def status(self) -> dict:
         ms = np.asarray(self.encode_ms, dtype=float)
+        rate = self.camera_rate_hz
         return {
             "destination": self.destination,
             "transport": self.transport,
@@ -564,6 +584,7 @@ class VideoStreamer:
             "datagrams": self._sink.datagrams,
             "encode_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
             "encode_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
+            "camera_rate_hz": None if rate is None else round(rate, 2),
         }
 
     def close(self, timeout_s: float = 1.0) -> None:

@@ -784,6 +784,26 @@ def test_every_output_tap_sees_each_frame_once_taken_or_refused():
     assert svc.status(clock())["test_tap"] == {"frames": 3}
 
 
+def test_a_camera_off_video_fps_is_warned_with_the_bit_rate_it_gets():
+    """The video tap's streamer measures the camera from the frames it is handed; the main loop's checks warn."""
+    from onboard.app.observers import VideoTap
+
+    svc, clock = _quiet_service({"video": {"destination": "127.0.0.1:9", "fps": 30.0}})
+    (video,) = [t for t in svc.taps if isinstance(t, VideoTap)]
+    video.start()
+    try:
+        img = np.zeros((512, 640), np.uint8)
+        for k in range(30):  # a 10 Hz camera
+            video.streamer.submit(img, capture_time_us=1_000_000 + 100_000 * k)
+        svc._watch(clock())
+        (w,) = [w for w in svc.watchdog.active if w.code == "video_rate"]
+        assert "10.0 frames/s but video.fps is 30" in w.message
+        assert svc.status(clock())["video"]["camera_rate_hz"] == 10.0
+        assert "video_rate" in {w["code"] for w in svc.status(clock())["warnings"]}
+    finally:
+        video.close(1.0)
+
+
 class _Put:
     def __init__(self) -> None:
         self.payloads: list[dict] = []

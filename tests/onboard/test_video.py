@@ -450,3 +450,22 @@ def test_agc_limits_are_numpys_linear_percentiles_of_the_subsample(h, w, wide, p
     got = agc_limits(px, pcts[0], pcts[1], 4)
     want = np.percentile(px[::4, ::4], pcts)
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-9)
+
+
+def test_the_streamer_measures_the_cameras_rate_from_capture_times_through_gaps():
+    """10 Hz capture stamps with every fifth frame missing (refused upstream) and jitter: 10 Hz, not the rate of
+    the frames that came; None before it has enough frames."""
+    streamer = VideoStreamer(VideoConfig(destination="127.0.0.1:9", queue_length=2), W, H)
+    try:
+        img = np.zeros((H, W), np.uint16)
+        rng = np.random.default_rng(3)
+        for k in range(10):
+            streamer.submit(img, capture_time_us=k * 100_000)
+        assert streamer.camera_rate_hz is None and streamer.status()["camera_rate_hz"] is None
+        for k in range(10, 80):
+            if k % 5:
+                streamer.submit(img, capture_time_us=k * 100_000 + int(rng.integers(-2000, 2000)))
+        assert streamer.camera_rate_hz == pytest.approx(10.0, rel=0.03)
+        assert streamer.status()["camera_rate_hz"] == pytest.approx(10.0, rel=0.03)
+    finally:
+        streamer.close()

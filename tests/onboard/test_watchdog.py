@@ -183,3 +183,22 @@ def test_camera_time_offset_warns_on_a_significant_estimate_before_it_is_confide
     assert [w.code for w in wd.active] == ["camera_time_offset"] and "50 +- 13 ms late" in wd.active[0].message
     wd.camera_time_offset(5.0, _offset(12.0, 13.0, "estimating", blocks=4), 20.0)  # not confident: not cleared
     assert [w.code for w in wd.active] == ["camera_time_offset"]
+
+
+def test_video_rate_warns_once_when_the_camera_is_off_video_fps_and_clears_when_they_agree(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.video_rate(100.0, None, 30.0, 2_000_000)  # not measured yet: nothing said
+        wd.video_rate(100.5, 25.0, 30.0, 2_000_000)  # within 20 %
+        assert wd.active == ()
+        for i in range(4):
+            wd.video_rate(101.0 + 0.5 * i, 9.0, 30.0, 2_000_000)
+        (w,) = wd.active
+        assert w.code == "video_rate"
+        assert "9.0 frames/s" in w.message and "video.fps is 30" in w.message and "0.30 x" in w.message
+        assert "0.60 of 2.00 Mbit/s" in w.message
+        wd.video_rate(104.0, 30.2, 30.0, 2_000_000)
+        assert wd.active == ()
+        wd.video_rate(104.5, 60.0, 30.0, 2_000_000)  # a faster camera: over the budget, warned again (INFO)
+        assert [x.code for x in wd.active] == ["video_rate"] and "2.00 x" in wd.active[0].message
+    assert len([m for m in _warnings(caplog) if m.startswith("video_rate")]) == 1
