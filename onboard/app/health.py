@@ -6,7 +6,8 @@ Contract between the daemon and the probe (the Dockerfile's ``HEALTHCHECK`` runs
   idle turns (its queue wait must time out at least once a second), so a daemon waiting for a
   camera stays healthy and a pipeline thread that is dead or stuck stops touching the file.
 * The file is ``$IRTRACK_HEALTH_FILE``, default ``/tmp/irtrack-alive``.  Only its modification time
-  matters; its content is ignored.
+  matters: it is empty, and the daemon refuses to start on a path that holds anything else
+  (:func:`claim_health_file`), since it deletes the file when it stops.
 * The probe reads the file's mtime and the wall clock (both ``CLOCK_REALTIME``, the only clock two
   processes share through a file) and calls the pipeline alive when
   ``-FUTURE_TOLERANCE_S <= now - mtime <= max_age_s`` (``max_age_s`` default 5 s).  An mtime more
@@ -25,6 +26,7 @@ Only the standard library is imported: the probe runs every few seconds and must
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 import time
@@ -46,6 +48,8 @@ __all__ = [
     "judge_liveness",
     "health_file_path",
     "check_liveness",
+    "claim_health_file",
+    "release_health_file",
     "mark_alive",
     "main",
 ]
@@ -147,6 +151,38 @@ def check_liveness(path: str, max_age_s: float = DEFAULT_MAX_AGE_S, now_s: float
     except OSError:
         mtime_s = None
     return judge_liveness(mtime_s, time.time() if now_s is None else now_s, max_age_s)
+
+
+def claim_health_file(path: str, field: str = "output.health_file") -> None:
+    """Refuse (``ConfigError`` naming ``field``) a liveness path that holds anything but an empty regular file:
+    the daemon touches the file while it runs and deletes it when it stops, so a path set by mistake onto a
+    real file would lose that file.  An empty file (one a daemon that died left behind) is taken over."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return
+    except OSError as exc:
+        raise ConfigError(f"{field}: cannot check {path}: {exc.strerror or exc}") from None
+    import stat
+
+    if not stat.S_ISREG(st.st_mode):
+        raise ConfigError(f"{field}: {path} exists and is not a regular file; point {field} at a liveness file")
+    if st.st_size:
+        raise ConfigError(
+            f"{field}: {path} exists and holds {st.st_size} bytes: a liveness file is empty, and the daemon deletes "
+            f"it when it stops; point {field} at a file of its own"
+        )
+
+
+def release_health_file(path: str) -> None:
+    """Delete the liveness file when it is still an empty regular file (what :func:`mark_alive` makes); leave
+    anything else (a file someone wrote into meanwhile) in place."""
+    import stat
+
+    with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
+        st = os.lstat(path)
+        if stat.S_ISREG(st.st_mode) and st.st_size == 0:
+            os.unlink(path)
 
 
 def mark_alive(path: str | None = None) -> None:

@@ -46,12 +46,10 @@ the session and the MAVLink connection, and removes the liveness file.
 from __future__ import annotations
 
 import collections
-import contextlib
 import functools
 import json
 import logging
 import math
-import os
 import select
 import threading
 import time
@@ -237,6 +235,10 @@ class OnboardService:
         )
 
         cfg = self.config
+        if self._health_path:
+            from onboard.app.health import claim_health_file
+
+            claim_health_file(self._health_path)  # a real file named by mistake: refused, never touched or deleted
         for tap in self.observers:
             tap.start()  # a file that cannot be written, a port in use: fails the start, in one line (InputError)
         self.link = MavlinkLink(
@@ -343,8 +345,9 @@ class OnboardService:
             left = timeout_s if deadline_s is None else max(deadline_s - time.monotonic(), MIN_TAP_CLOSE_S)
             tap.close(left)  # after the pipeline: the recorder's last frames are in the file
         if self._health_path:
-            with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
-                os.unlink(self._health_path)
+            from onboard.app.health import release_health_file
+
+            release_health_file(self._health_path)
         if self._pipe_thread is not None:
             log.info(
                 "onboard service stopped: %d frames in, %d tracks published", self.frames_in, self.tracks_published

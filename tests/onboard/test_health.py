@@ -187,3 +187,42 @@ def test_probe_imports_only_the_standard_library():
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=PROBE_TIMEOUT_S
     )
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def test_a_liveness_path_on_a_real_file_is_refused_and_left_alone(tmp_path):
+    """The daemon touches its liveness file and deletes it when it stops: a path set by mistake onto a file that
+    holds anything is refused at start, naming the field, and the file keeps its bytes; an empty one (a dead
+    daemon's) is taken over and removed at the end; release leaves a file someone wrote into meanwhile."""
+    victim = tmp_path / "flight-notes.txt"
+    victim.write_text("important\n")
+    with pytest.raises(ConfigError, match=r"output.health_file: .*flight-notes.txt exists and holds 10 bytes"):
+        health.claim_health_file(str(victim))
+    with pytest.raises(ConfigError, match="not a regular file"):
+        health.claim_health_file(str(tmp_path))
+    health.claim_health_file(str(tmp_path / "absent"))  # nothing there: fine
+    stale = tmp_path / "alive"
+    stale.touch()
+    health.claim_health_file(str(stale))
+    health.release_health_file(str(stale))
+    assert not stale.exists()
+    health.release_health_file(str(victim))
+    assert victim.read_text() == "important\n"
+
+
+def test_the_daemon_refuses_a_liveness_path_on_a_real_file_and_keeps_it(tmp_path):
+    from groundsim.io.ports import free_udp_port
+
+    victim = tmp_path / "victim.txt"
+    victim.write_text("important\n")
+    proc = run_module(
+        "onboard",
+        "--mavlink",
+        f"udpin:127.0.0.1:{free_udp_port()}",
+        "--set",
+        f"output.health_file={victim}",
+        timeout_s=60,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "output.health_file" in proc.stderr and "holds 10 bytes" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert victim.read_text() == "important\n"
