@@ -159,6 +159,7 @@ __all__ = [
     "pose_to_json",
     "pose_from_json",
     "rotated_path",
+    "free_recording_path",
     "mavlink_topic",
 ]
 
@@ -277,6 +278,25 @@ def rotated_path(path: str, index: int) -> str:
         return path
     stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
     return f"{stem}.{index}.mcap"
+
+
+def free_recording_path(path: str) -> str:
+    """``path`` when neither it nor any of its rotated files (:func:`rotated_path`) exists, else the first of
+    ``FILE-1.mcap``, ``FILE-2.mcap`` ... that is free in the same way: a daemon restarted with the same
+    ``record.path`` (a container's restart policy) must not write over the flight it recorded before."""
+    import glob
+
+    stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
+
+    def taken(s: str) -> bool:
+        return os.path.lexists(f"{s}.mcap") or bool(glob.glob(f"{glob.escape(s)}.[0-9]*.mcap"))
+
+    if not taken(stem):
+        return path
+    n = 1
+    while taken(f"{stem}-{n}"):
+        n += 1
+    return f"{stem}-{n}.mcap"
 
 
 # --------------------------------------------------------------------------- settings
@@ -536,7 +556,12 @@ class FlightRecorder:
     # ------------------------------------------------------------------ life cycle
 
     def start(self) -> None:
-        """Open the first file (errors here are the caller's: a bad directory fails at start) and the thread."""
+        """Open the first file (errors here are the caller's: a bad directory fails at start) and the thread; a
+        ``path`` an earlier recording holds is kept, this one goes beside it (:func:`free_recording_path`)."""
+        free = free_recording_path(self.path)
+        if free != self.path:
+            log.warning("record.path: %s holds an earlier recording, kept; this one is %s", self.path, free)
+            self.path = free
         self._open(0)
         self._thread = threading.Thread(target=self._run, name="irtrack-recorder", daemon=True)
         self._thread.start()
@@ -624,7 +649,8 @@ class FlightRecorder:
         path = rotated_path(self.path, index)
         d = os.path.dirname(os.path.abspath(path))
         os.makedirs(d, exist_ok=True)
-        f = self._file = open(path, "wb", buffering=0)  # unbuffered: the chunk writer writes whole records (writev)
+        # exclusive: never over a file (start chose a free name); unbuffered: the chunk writer writes whole records
+        f = self._file = open(path, "xb", buffering=0)
         # the mcap package's layout, the frames' pixels written from where they lie (onboard.io.mcap_chunks); no CRCs:
         # a CRC reads every frame's pixels once more (MCAP: a CRC of 0 means "not computed")
         w = self._writer = ChunkWriter(

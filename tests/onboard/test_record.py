@@ -24,6 +24,7 @@ from onboard.io.record import (
     FRAME_INPUT_TOPIC,
     FlightRecorder,
     RecordConfig,
+    free_recording_path,
     pose_from_json,
     pose_to_json,
     rotated_path,
@@ -170,6 +171,28 @@ def test_backlog_beyond_queue_is_dropped_and_counted_without_blocking(tmp_path):
     assert rec.dropped == 7 and rec.dropped_by_topic == {"irtrack/uav1/ir/frame": 7}
     assert rec.stats()["dropped"] == 7
     print(f"10 on_frame calls: {took_s * 1e6 / 10:.1f} us each")
+
+
+def test_a_second_recording_on_the_same_path_goes_beside_the_first(tmp_path, caplog):
+    """A daemon restarted with the same record.path (a container's restart policy) keeps the earlier flight: the new
+    recording is FILE-1.mcap, then FILE-2.mcap; a rotated file of an earlier one holds its name as well."""
+    path = str(tmp_path / "flight.mcap")
+    names = []
+    for k in range(3):
+        rec = FlightRecorder(RecordConfig(path=path), vehicle="uav1")
+        rec.start()
+        rec.on_frame(_frame(k), k)
+        rec.close(5.0)
+        names.append(os.path.basename(rec.files[0]))
+    assert names == ["flight.mcap", "flight-1.mcap", "flight-2.mcap"]
+    assert "flight.mcap holds an earlier recording, kept; this one is" in caplog.text
+    for name in names:  # each whole, each its own frame
+        with open(tmp_path / name, "rb") as f:
+            assert len(list(mcap_reader.make_reader(f).iter_messages())) >= 1
+    other = tmp_path / "other.mcap"
+    (tmp_path / "other.1.mcap").write_bytes(b"a rotated file of an earlier recording")
+    assert free_recording_path(str(other)) == str(tmp_path / "other-1.mcap")
+    assert free_recording_path(str(tmp_path / "new.mcap")) == str(tmp_path / "new.mcap")
 
 
 def test_rotation_by_size_keeps_max_files(tmp_path):
