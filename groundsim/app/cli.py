@@ -264,6 +264,12 @@ def _run_config(args):
         except ConfigError as exc:
             raise ConfigError(f"--vehicle: {exc}") from None
     vehicle = args.vehicle or DEFAULT_VEHICLE
+    from onboard.app.output_files import same_file_clash
+
+    scenario_file = str(resolve_scenario_path(args.scenario))
+    clash = same_file_clash([("--truth", args.truth), ("--record", args.record)], [("--scenario", scenario_file)])
+    if clash is not None:
+        raise ConfigError(clash)
     endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
     start = args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
     return RunConfig(

@@ -6,8 +6,9 @@ from __future__ import annotations
 import os
 import secrets
 import stat
+from collections.abc import Sequence
 
-__all__ = ["create_beside", "file_kind", "not_a_file", "output_target"]
+__all__ = ["create_beside", "file_kind", "not_a_file", "output_target", "same_file_clash"]
 
 
 def file_kind(mode: int) -> str:
@@ -52,3 +53,28 @@ def create_beside(target: str) -> tuple[str, int]:
             return tmp, os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:
             continue  # a name already taken: draw another
+
+
+def _same(a: str, b: str) -> bool:
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:  # two names of one file (a hard link)
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+def same_file_clash(outputs: Sequence[tuple[str, str]], inputs: Sequence[tuple[str, str]] = ()) -> str | None:
+    """Why these outputs cannot all be written, or None: one names an input's file (writing it would destroy the
+    input it is made from) or another output's (one would replace the other).  Each item is ``(what, path)``,
+    ``what`` the option or argument that gave it; empty paths are skipped, and so is an input folder (an output
+    naming it is no file: the tool's own check says so)."""
+    outs = [(w, p) for w, p in outputs if p]
+    for i, (what, path) in enumerate(outs):
+        for in_what, in_path in inputs:
+            if in_path and not os.path.isdir(in_path) and _same(path, in_path):
+                return f"{what} {path}: names the input {in_what} ({in_path}); give another file"
+        for other_what, other in outs[:i]:
+            if _same(path, other):
+                return f"{what} {path}: names the same file as {other_what}; give each output its own file"
+    return None

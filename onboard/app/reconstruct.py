@@ -84,7 +84,7 @@ from pathlib import Path
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, nonnegative_float
-from onboard.app.output_files import create_beside, output_target
+from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
@@ -555,6 +555,9 @@ def _run(args) -> int:
         )
         outputs = [("-o", args.output)] + ([("--summary-json", args.summary_json)] if args.summary_json else [])
         _check_output_paths(outputs)
+        clash = same_file_clash(outputs, [("OBS.csv", args.obs_csv)])
+        if clash is not None:
+            raise InputError(clash)
         obs = read_observations_csv(args.obs_csv)
         log.info("%s: %d observations, %.3f s to %.3f s", args.obs_csv, len(obs), obs.t_s[0], obs.t_s[-1])
         try:

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 from typing import Any, BinaryIO
 
 from onboard.app.cli_args import OneLineParser
-from onboard.app.output_files import create_beside, output_target
+from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
@@ -233,8 +233,9 @@ def _output_target(src: str, dst: str) -> str:
     target, refused = output_target(dst)
     if refused is not None:
         raise InputError(f"{dst}: {refused}")
-    if target == os.path.realpath(src):
-        raise InputError(f"{dst}: names the input; give another file (the cut original is kept)")
+    clash = same_file_clash([("OUT.mcap", dst)], [("IN.mcap", src)])
+    if clash is not None:
+        raise InputError(f"{clash} (the cut original is kept)")
     return target
 
 

@@ -70,6 +70,7 @@ from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
 from onboard.app.cli_args import add_config_option, add_live_view_option, add_set_option, config_overrides  # noqa: E402
+from onboard.app.output_files import same_file_clash  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
 from onboard.io.mcap_chunks import MCAP_MAGIC  # noqa: E402
@@ -787,6 +788,9 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
     from onboard.app.config import OnboardConfigError
 
     try:
+        clash = same_file_clash([("--out", args.out), ("--objects-out", args.objects_out)], [("MCAP", args.mcap)])
+        if clash is not None:
+            raise InputError(clash)
         for path in (args.out, args.objects_out):
             if path:
                 _check_writable(path)

@@ -64,7 +64,7 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from onboard.app.output_files import create_beside, not_a_file  # noqa: E402
+from onboard.app.output_files import create_beside, not_a_file, same_file_clash  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
 if TYPE_CHECKING:
@@ -371,6 +371,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INPUT
     if args.box_px is not None and not (math.isfinite(args.box_px) and args.box_px > 0):
         print(f"--box-px: expected a finite side > 0, got {args.box_px}", file=sys.stderr)
+        return EXIT_INPUT
+    clash = same_file_clash([("--out", args.out)], [("INPUT", args.input)])
+    if clash is not None:
+        print(clash, file=sys.stderr)
         return EXIT_INPUT
     done = 0
     out: _Replacement | None = None

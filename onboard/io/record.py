@@ -289,9 +289,9 @@ def free_recording_path(path: str) -> str:
     stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
 
     def taken(s: str) -> bool:
-        return os.path.lexists(f"{s}.mcap") or bool(glob.glob(f"{glob.escape(s)}.[0-9]*.mcap"))
+        return os.path.isfile(f"{s}.mcap") or bool(glob.glob(f"{glob.escape(s)}.[0-9]*.mcap"))
 
-    if not taken(stem):
+    if not taken(stem) or (os.path.lexists(path) and not os.path.isfile(path)):  # a folder there: opening says so
         return path
     n = 1
     while taken(f"{stem}-{n}"):

@@ -43,3 +43,17 @@ def test_a_gnss_dropout_at_or_after_the_end_is_refused(capsys):
 def test_a_bad_vehicle_name_names_the_option(capsys):
     assert cli_main([*RUN, "--vehicle", "a/b"]) == 2
     assert "error: --vehicle: vehicle name must be" in _one_line_error(capsys)
+
+
+def test_outputs_on_the_scenario_file_or_on_each_other_are_refused(tmp_path, capsys):
+    from groundsim.world.scenario import scenarios_dir
+
+    scenario = tmp_path / "mine.yaml"
+    scenario.write_bytes((scenarios_dir() / "P1.yaml").read_bytes())
+    run = ["run", "--scenario", str(scenario), "--rate", "max", "--duration", "1", "--no-render"]
+    assert cli_main([*run, "--truth", str(scenario)]) == 2
+    assert f"--truth {scenario}: names the input --scenario" in _one_line_error(capsys)
+    same = tmp_path / "x.mcap"
+    assert cli_main([*run, "--truth", str(same), "--record", str(same)]) == 2
+    assert f"--record {same}: names the same file as --truth" in _one_line_error(capsys)
+    assert scenario.read_bytes() == (scenarios_dir() / "P1.yaml").read_bytes() and not same.exists()

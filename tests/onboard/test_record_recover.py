@@ -190,7 +190,7 @@ def test_bad_input_is_refused_in_one_line_naming_the_file(tmp_path, capsys):
     assert line.startswith(f"error: {damaged}: damaged: a record at byte 0 of a chunk (log times ")
     assert (
         _refused(capsys, [str(full), str(full)])
-        == f"error: {full}: names the input; give another file (the cut original is kept)"
+        == f"error: OUT.mcap {full}: names the input IN.mcap ({full}); give another file (the cut original is kept)"
     )
     assert _refused(capsys, [str(full), str(tmp_path)]).startswith(f"error: {tmp_path}: it is a folder")
     missing = tmp_path / "gone.mcap"
