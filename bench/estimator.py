@@ -26,7 +26,6 @@ with threadpoolctl, :func:`groundsim.evaluation.parallel.limit_blas_threads`) on
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import sys
 import time
@@ -38,6 +37,7 @@ single_thread_blas_env()
 import numpy as np  # noqa: E402
 
 from bench import run_benchmark, write_json  # noqa: E402
+from bench.options import BenchParser, choices_list, nonnegative_int, positive_int  # noqa: E402
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402
@@ -399,8 +399,8 @@ def spread_pairs(pairs: int, flush_mb: int = 16) -> list[str]:
 
 def verdict(args) -> int:
     paths, ncs = reference_scenario_paths(), load_noise_cases()
-    names = args.scenarios.split(",") if args.scenarios else sorted(paths)
-    noises = args.noises.split(",") if args.noises else ["px0.3", "RTK", "GNSS"]
+    names = args.scenarios or sorted(paths)
+    noises = args.noises or ["px0.3", "RTK", "GNSS"]
     scen = [load_scenario(paths[n]) for n in names]
     total = len(scen) * len(noises) * args.seeds
 
@@ -447,18 +447,31 @@ def verdict(args) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.estimator", description=__doc__.splitlines()[0])
+    ap = BenchParser(prog="python -m bench.estimator", description=__doc__.splitlines()[0])
     ap.add_argument(
-        "--seeds", type=int, default=50, help="seeds per cell (default 50: the README table; the issue asks >= 10)"
+        "--seeds",
+        type=positive_int,
+        default=50,
+        help="seeds per cell (default 50: the README table; the issue asks >= 10)",
     )
-    ap.add_argument("--scenarios", default=None, help="default P1,P2,P3 (with --verdict: every reference scenario)")
-    ap.add_argument("--noises", default=None, help="default px0.3,RTK (with --verdict: px0.3,RTK,GNSS)")
+    ap.add_argument(
+        "--scenarios",
+        type=choices_list(reference_scenario_paths, "scenario"),
+        default=None,
+        help="default P1,P2,P3 (with --verdict: every reference scenario)",
+    )
+    ap.add_argument(
+        "--noises",
+        type=choices_list(load_noise_cases, "noise case"),
+        default=None,
+        help="default px0.3,RTK (with --verdict: px0.3,RTK,GNSS)",
+    )
     ap.add_argument("--verdict", action="store_true", help="the verdict's precision/recall table only")
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=positive_int, default=2)
     ap.add_argument("--speed-only", action="store_true")
     ap.add_argument(
         "--spread-pairs",
-        type=int,
+        type=nonnegative_int,
         default=0,
         help="only: does spreading the selection over frames cost CPU (N alternated pairs, spread vs at once)",
     )
@@ -470,8 +483,8 @@ def main(argv=None) -> int:
     if args.spread_pairs > 0:
         print("\n".join(spread_pairs(args.spread_pairs)))
         return 0
-    args.scenarios = args.scenarios or "P1,P2,P3"
-    args.noises = args.noises or "px0.3,RTK"
+    args.scenarios = args.scenarios or ["P1", "P2", "P3"]
+    args.noises = args.noises or ["px0.3", "RTK"]
     report = {"speed": speed()}
     s = report["speed"]
     print(f"== reconstruction speed, P1 window F = {s['frames']}, RTK noise model, one core, CPU time ==")
@@ -535,8 +548,8 @@ def main(argv=None) -> int:
     if not args.speed_only:
         paths = reference_scenario_paths()
         ncs = load_noise_cases()
-        scen = [load_scenario(paths[n]) for n in args.scenarios.split(",")]
-        noises = [ncs[n] for n in args.noises.split(",")]
+        scen = [load_scenario(paths[n]) for n in args.scenarios]
+        noises = [ncs[n] for n in args.noises]
         total = len(scen) * len(noises) * args.seeds
 
         def progress(done, tot):

@@ -33,7 +33,6 @@ Numbers, no assertions (the issue's goals are printed beside them).
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -48,6 +47,7 @@ import numpy as np
 
 from bench import machine_speed_ms
 from bench.fleet_flight import open_router
+from bench.options import BenchParser, positive_float, positive_int
 from groundsim.evaluation.fleet_synth import SynthTarget, SynthVehicle, measure, track_payload
 from groundsim.evaluation.proc_cpu import ProcCpu
 from groundsim.io.ports import free_tcp_port
@@ -124,17 +124,17 @@ def accuracy(seeds: int = 5) -> None:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.fleet", description=__doc__.split("\n\n")[0])
-    p.add_argument("--vehicles", type=int, default=8)
-    p.add_argument("--rate", type=float, default=30.0, help="camera rate per vehicle, Hz (30)")
-    p.add_argument("--seconds", type=float, default=20.0, help="publishing time (20)")
+    p = BenchParser(prog="python -m bench.fleet", description=__doc__.split("\n\n")[0])
+    p.add_argument("--vehicles", type=positive_int, default=8)
+    p.add_argument("--rate", type=positive_float, default=30.0, help="camera rate per vehicle, Hz (30)")
+    p.add_argument("--seconds", type=positive_float, default=20.0, help="publishing time (20)")
     p.add_argument("--accuracy", action="store_true", help="the core's accuracy on two observers, no zenoh")
     p.add_argument("--flight", metavar="SCENARIO", help="fly SCENARIO (F1) end to end instead (bench.fleet_flight)")
-    p.add_argument("--seeds", type=int, default=1, help="--flight: runs, seeds 0..N-1 (1)")
+    p.add_argument("--seeds", type=positive_int, default=1, help="--flight: runs, seeds 0..N-1 (1)")
     p.add_argument("--kill-at", type=float, default=None, metavar="S", help="--flight: SIGKILL uav2's daemon at S s")
     p.add_argument("--restart-at", type=float, default=None, metavar="S", help="--flight: restart it at S s (kill + 5)")
     p.add_argument("--out", default="out/fleet", help="--flight: logs, truth and scores (out/fleet)")
-    p.add_argument("--duration", type=float, default=None, help="--flight: flight length, s (the scenario's)")
+    p.add_argument("--duration", type=positive_float, default=None, help="--flight: flight length, s (the scenario's)")
     p.add_argument(
         "--utc-error",
         action="append",
@@ -144,6 +144,8 @@ def main(argv=None) -> int:
         " clock check should name it; repeatable",
     )
     args = p.parse_args(argv)
+    if not args.flight and not args.accuracy and int(args.seconds * args.rate) < 1:
+        p.error(f"argument --seconds: {args.seconds:g} s at --rate {args.rate:g} Hz is not one camera period")
     if args.flight:
         from bench.fleet_flight import main_flight
         from groundsim.app.run import utc_errors

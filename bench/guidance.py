@@ -10,7 +10,6 @@ and the wall ms, median / p90 / max, and how the updates were answered.  The dae
 
 from __future__ import annotations
 
-import argparse
 import collections
 import math
 import sys
@@ -23,13 +22,14 @@ single_thread_blas_env()
 import numpy as np  # noqa: E402
 
 from bench import run_benchmark  # noqa: E402
+from bench.options import BenchParser, positive_int  # noqa: E402
 from onboard.app.config import OnboardConfig  # noqa: E402
 from onboard.estimation.guidance import GuidanceConfig, GuidancePlanner, ObserverState, TargetPosterior  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m bench.guidance", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--updates", type=int, default=200)
+    ap = BenchParser(prog="python -m bench.guidance", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--updates", type=positive_int, default=200)
     args = ap.parse_args(argv)
     cfg = OnboardConfig()
     k = cfg.camera.intrinsics

@@ -27,8 +27,6 @@ observable).  Numbers are printed, never asserted.
 
 from __future__ import annotations
 
-import argparse
-import json
 import math
 import sys
 import time
@@ -42,6 +40,15 @@ single_thread_blas_env()
 import numpy as np  # noqa: E402
 
 from bench import run_benchmark, write_json  # noqa: E402
+from bench.options import (  # noqa: E402
+    BenchParser,
+    choices_list,
+    json_runs,
+    nonnegative_int,
+    nonnegative_number,
+    positive_float,
+    positive_int,
+)
 from groundsim.evaluation.synth import Racetrack, Weave, estimator_noise_model, synthesize  # noqa: E402
 from groundsim.world.motion import Circular, KinematicState  # noqa: E402
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths  # noqa: E402
@@ -306,27 +313,40 @@ def recall_table(runs: list[dict], family: str = "weaving", last_s: float = 1.0)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.honesty", description=__doc__.splitlines()[0])
-    ap.add_argument("--families", default=",".join(FAMILIES))
-    ap.add_argument("--minutes", type=float, default=2.0)
-    ap.add_argument("--seeds", type=int, default=4)
-    ap.add_argument("--first-seed", type=int, default=0)
-    ap.add_argument("--workers", type=int, default=2)
+    ap = BenchParser(prog="python -m bench.honesty", description=__doc__.splitlines()[0])
+    ap.add_argument("--families", type=choices_list(lambda: FAMILIES, "family"), default=list(FAMILIES))
+    ap.add_argument("--minutes", type=positive_float, default=2.0)
+    ap.add_argument("--seeds", type=positive_int, default=4)
+    ap.add_argument("--first-seed", type=nonnegative_int, default=0)
+    ap.add_argument("--workers", type=positive_int, default=2)
     ap.add_argument(
         "--monitor", action="store_true", help="publish through onboard.estimation.consistency.ConsistencyMonitor"
     )
-    ap.add_argument("--model-hold-s", type=float, default=0.0, help="with --monitor: demote after a model change")
-    ap.add_argument("--bin-s", type=float, default=30.0)
+    ap.add_argument(
+        "--model-hold-s", type=nonnegative_number, default=0.0, help="with --monitor: demote after a model change"
+    )
+    ap.add_argument("--bin-s", type=positive_float, default=30.0)
     ap.add_argument("--json", default=None, help="write the per-position rows here (re-read with --from-json)")
-    ap.add_argument("--from-json", default=None, nargs="+", help="print the tables of earlier runs, no flights")
+    ap.add_argument(
+        "--from-json",
+        type=json_runs,
+        default=None,
+        nargs="+",
+        metavar="FILE",
+        help="print the tables of earlier runs, no flights",
+    )
     args = ap.parse_args(argv)
     if args.from_json:
-        runs = [r for p in args.from_json for r in json.load(open(p))["runs"]]
+        runs = [r for file_runs in args.from_json for r in file_runs]  # each file's, read when parsed
     else:
-        fams = args.families.split(",")
         t0 = time.perf_counter()
         runs = run_all(
-            fams, range(args.first_seed, args.first_seed + args.seeds), 60.0 * args.minutes, args.workers, args.monitor
+            args.families,
+            range(args.first_seed, args.first_seed + args.seeds),
+            60.0 * args.minutes,
+            args.workers,
+            args.monitor,
+            args.model_hold_s,
         )
         cpu = [r["cpu_s"] / r["duration_s"] for r in runs]
         print(

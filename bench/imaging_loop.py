@@ -114,16 +114,23 @@ def score_run(r, scenario, defects: np.ndarray) -> dict:
 
 
 def main(argv: list[str]) -> None:
-    import argparse
-
+    from bench.options import BenchParser, known_nav_noise, name_in, positive_int
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_lockstep
     from groundsim.world.nav_errors import InjectedErrors
-    from groundsim.world.scenario import load_scenario, scenarios_dir
+    from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenarios_dir
 
-    ap = argparse.ArgumentParser(prog="python -m bench.imaging --loop", description=__doc__.splitlines()[0])
-    ap.add_argument("--loop", nargs="+", required=True, help="scenario names (config/scenarios), e.g. C4 C5")
-    ap.add_argument("--seeds", type=int, default=3, help="run seeds 0..N-1 (default 3)")
-    ap.add_argument("--nav-noise", default="RTK", help="navigation-error case (config/noise_cases.yaml)")
+    ap = BenchParser(prog="python -m bench.imaging --loop", description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--loop",
+        nargs="+",
+        required=True,
+        type=name_in(reference_scenario_paths, "scenario"),
+        help="scenario names (config/scenarios), e.g. C4 C5",
+    )
+    ap.add_argument("--seeds", type=positive_int, default=3, help="run seeds 0..N-1 (default 3)")
+    ap.add_argument(
+        "--nav-noise", type=known_nav_noise, default="RTK", help="navigation-error case (config/noise_cases.yaml)"
+    )
     ap.add_argument("--onboard-config", default=None, help="the daemon's configuration (default: the shipped one)")
     a = ap.parse_args(argv)
     import dataclasses

@@ -39,6 +39,7 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from bench import run_benchmark  # noqa: E402
+from bench.options import BenchParser, existing_dir, existing_file, nonnegative_number, positive_int  # noqa: E402
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
 from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402
@@ -49,15 +50,19 @@ ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.record")
-    ap.add_argument("--frames", type=int, default=600)
+    ap = BenchParser(prog="python -m bench.record")
+    ap.add_argument("--frames", type=positive_int, default=600)
     ap.add_argument("--compression", default="none", choices=("none", "lz4", "zstd"))
-    ap.add_argument("--sync-mb", type=float, default=8.0, help="record.sync_mb (0: never sync/drop pages)")
-    ap.add_argument("--dir", default=None, help="where the file goes (default: a temporary directory)")
-    ap.add_argument("--replay", metavar="FILE.mcap", help="measure replay speed on this recording instead")
+    ap.add_argument("--sync-mb", type=nonnegative_number, default=8.0, help="record.sync_mb (0: never sync/drop pages)")
+    ap.add_argument(
+        "--dir", type=existing_dir, default=None, help="where the file goes (default: a temporary directory)"
+    )
+    ap.add_argument(
+        "--replay", type=existing_file, metavar="FILE.mcap", help="measure replay speed on this recording instead"
+    )
     args = ap.parse_args(argv)
     if args.replay:
-        return bench_replay(args.replay)
+        return bench_replay(args.replay, ap)
     rng = np.random.default_rng(0)
     base = np.clip(np.linspace(60, 140, 512)[:, None] + np.zeros((1, 640)), 0, 255)
     frames = [
@@ -186,17 +191,25 @@ class _TimedEstimator:
         return getattr(self.inner, name)
 
 
-def bench_replay(path: str) -> int:
+def bench_replay(path: str, ap: argparse.ArgumentParser) -> int:
+    """Replay speed on the recording ``path``; one that cannot be read or holds no frame is refused by
+    ``ap`` (a usage mistake: ``--replay``), before anything is measured."""
     import cProfile
     import logging
     import pstats
 
     import onboard.pipeline.frame_pipeline as fp
     from onboard.app.replay import config_of, load_recording, replay
+    from onboard.core.errors import IrtrackError
 
     logging.disable(logging.WARNING)
     t0 = time.perf_counter()
-    rec = load_recording(path)
+    try:
+        rec = load_recording(path)
+    except IrtrackError as exc:  # names the file and what is wrong with it
+        ap.error(f"argument --replay: {exc}")
+    if not rec.inputs:
+        ap.error(f"argument --replay: {path}: no irtrack.frame_input messages: nothing to replay")
     cfg = config_of(rec)
     print(
         f"replay of {path}: {len(rec.inputs)} frames; load {time.perf_counter() - t0:.2f} s; load {os.getloadavg()[0]:.1f}"

@@ -45,7 +45,6 @@ Numbers only; nothing asserts.  Timing is not measured here (``python -m bench.o
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import os
@@ -61,6 +60,15 @@ if __name__ == "__main__":  # one BLAS thread per process: must precede the nump
 import numpy as np  # noqa: E402
 
 from bench import run_benchmark, write_json  # noqa: E402
+from bench.options import (  # noqa: E402
+    BenchParser,
+    json_runs,
+    known_nav_noise,
+    known_scenario,
+    nonnegative_int,
+    positive_float,
+    positive_int,
+)
 from groundsim.world.scenario import Scenario, ScenarioError  # noqa: E402
 from onboard.core.schema import Integer, config_dataclass  # noqa: E402
 
@@ -424,31 +432,41 @@ def main(argv=None) -> int:
     from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_scenario, resolve_scenario_path
     from groundsim.world.sim import frame_count
 
-    ap = argparse.ArgumentParser(prog="python -m bench.scenes3d", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenes", nargs="+", default=list(SCENES), help="scenarios (default C1-C5)")
-    ap.add_argument("--seeds", type=int, default=2, help="run seeds 0..N-1 per scene (default 2)")
-    ap.add_argument("--duration", type=float, default=None, help="seconds flown (default the scenario's, 10 s)")
-    ap.add_argument("--nav-noise", default=DEFAULT_NAV_NOISE, help="navigation-error case (default RTK)")
+    ap = BenchParser(prog="python -m bench.scenes3d", description=__doc__.split("\n\n")[0])
+    ap.add_argument("--scenes", nargs="+", type=known_scenario, default=list(SCENES), help="scenarios (default C1-C5)")
+    ap.add_argument("--seeds", type=positive_int, default=2, help="run seeds 0..N-1 per scene (default 2)")
+    ap.add_argument(
+        "--duration", type=positive_float, default=None, help="seconds flown (default the scenario's, 10 s)"
+    )
+    ap.add_argument(
+        "--nav-noise", type=known_nav_noise, default=DEFAULT_NAV_NOISE, help="navigation-error case (default RTK)"
+    )
     ap.add_argument("--chain", choices=("objects", "single"), default="objects", help="imaging.chain (default objects)")
     ap.add_argument("--onboard-config", default=None, help="the daemon's configuration (default config/onboard.yaml)")
     ap.add_argument(
-        "--noise-twins", type=int, default=0, help="K more twins per seed, only the render noise changed (default 0)"
+        "--noise-twins",
+        type=nonnegative_int,
+        default=0,
+        help="K more twins per seed, only the render noise changed (default 0)",
     )
     ap.add_argument("--no-other-targets", action="store_true", help="fly every run without the scene's other_targets")
-    ap.add_argument("--workers", type=int, default=1, help="processes (default 1: the machine is shared)")
+    ap.add_argument("--workers", type=positive_int, default=1, help="processes (default 1: the machine is shared)")
     ap.add_argument("--json", default=None, help="also write the rows and runs as JSON here")
-    ap.add_argument("--table-from", default=None, help="run nothing: print the runs and table of this --json file")
+    ap.add_argument(
+        "--table-from",
+        type=json_runs,
+        default=None,
+        metavar="FILE",
+        help="run nothing: print the runs and table of this --json file",
+    )
     args = ap.parse_args(argv)
-    if args.table_from:
-        import json
-
-        with open(args.table_from) as fh:
-            doc = json.load(fh)
-        figures = figures_from_json(doc["runs"])
+    if args.table_from is not None:
+        try:
+            figures = figures_from_json(args.table_from)
+        except (TypeError, ValueError) as exc:  # runs of another benchmark, or edited: fields missing or unknown
+            ap.error(f"argument --table-from: not the runs of a bench.scenes3d --json file ({exc})")
         _report(figures, list(dict.fromkeys(f.scenario for f in figures)))
         return 0
-    if args.seeds < 1 or args.workers < 1 or args.noise_twins < 0:
-        ap.error("--seeds and --workers: expected integers >= 1; --noise-twins: >= 0")
     limit_blas_threads(1)
     with quiet_run_logs():
         scenarios = [load_scenario(resolve_scenario_path(n)) for n in args.scenes]

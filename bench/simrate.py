@@ -21,7 +21,6 @@ figures move with it.  Numbers only: nothing here asserts on time.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 import socket
@@ -32,12 +31,15 @@ import time
 import cv2
 
 from bench import run_benchmark
+from bench.options import BenchParser, choices_list, int_between, known_scenario, positive_float
 from groundsim.app.cli import realtime_priority
 from groundsim.app.run import RateSpec, RunConfig, run
 from groundsim.io.ports import free_tcp_port
 from groundsim.world.scenario import load_scenario, resolve_scenario_path
 from groundsim.world.sim import SimCore
 from onboard.io.zenoh_session import ZenohConfig, frame_key, open_session
+
+MODES = ("max", "realtime")  # --modes: the run's RateSpec (as groundsim run --rate)
 
 
 def _load() -> str:
@@ -132,19 +134,24 @@ def _realtime(sc, duration_s: float, rx: _Receivers, label: str) -> None:
 
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m bench.simrate", description=__doc__.splitlines()[0])
-    ap.add_argument("--scenario", default="P1")
-    ap.add_argument("--duration", type=float, default=10.0)
-    ap.add_argument("--modes", default="max,realtime", help="comma-separated: max, realtime (default: both)")
+    ap = BenchParser(prog="python -m bench.simrate", description=__doc__.splitlines()[0])
+    ap.add_argument("--scenario", type=known_scenario, default="P1")
+    ap.add_argument("--duration", type=positive_float, default=10.0)
+    ap.add_argument(
+        "--modes",
+        type=choices_list(lambda: MODES, "mode"),
+        default=list(MODES),
+        help="comma-separated: max, realtime (default: both)",
+    )
     ap.add_argument(
         "--rt-priority",
-        type=int,
+        type=int_between(1, 99),  # SCHED_FIFO's priorities (groundsim.app.cli.realtime_priority)
         default=None,
         metavar="N",
         help="also run realtime at SCHED_FIFO priority N (as groundsim run --rt-priority)",
     )
     args = ap.parse_args(argv)
-    modes = {m.strip() for m in args.modes.split(",") if m.strip()}
+    modes = set(args.modes)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     cv2.setNumThreads(1)  # as the CLI does (groundsim.app.cli)
     sc = load_scenario(resolve_scenario_path(args.scenario))

@@ -32,7 +32,6 @@ Prints numbers and the machine's load; asserts nothing.
 
 from __future__ import annotations
 
-import argparse
 import io
 import os
 import sys
@@ -42,6 +41,7 @@ import time
 import numpy as np
 
 from bench import run_benchmark
+from bench.options import BenchParser, nonnegative_int
 
 W, H = 640, 512
 CODE_BITS = 16
@@ -206,11 +206,16 @@ def loopback_latency(frames: int, fps: float = 30.0, transport: str = "rtp", kin
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.video")
-    ap.add_argument("--frames", type=int, default=300, help="frames for the encoding cost (default: %(default)s)")
+    ap = BenchParser(prog="python -m bench.video")
+    ap.add_argument(
+        "--frames",
+        type=nonnegative_int,
+        default=300,
+        help="frames for the encoding cost (default: %(default)s; 0 = skip)",
+    )
     ap.add_argument(
         "--latency-frames",
-        type=int,
+        type=nonnegative_int,
         default=300,
         help="frames for the loopback latency, sent in real time at 30 Hz (default: %(default)s; 0 = skip)",
     )
@@ -221,6 +226,8 @@ def main(argv=None) -> int:
         help="the latency's transport(s) (default: %(default)s)",
     )
     args = ap.parse_args(argv)
+    if args.frames == 0 and args.latency_frames == 0:
+        ap.error("argument --frames: 0 with --latency-frames 0 measures nothing")
     if args.frames > 0:
         encode_cost(args.frames)
     if args.latency_frames > 0:

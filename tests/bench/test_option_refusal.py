@@ -1,5 +1,7 @@
 """The benchmarks without options of their own refuse an unknown one by name instead of starting their default
-run (which takes minutes) as if it had not been given; ``--help`` lists what they take."""
+run (which takes minutes) as if it had not been given; ``--help`` lists what they take.  A bad option value is
+refused the same way, on one line naming the option, before anything is measured: never a traceback (a NaN
+rate, a missing file, an unknown scenario), never a run that measures nothing (a count of 0)."""
 
 import subprocess
 import sys
@@ -30,3 +32,57 @@ def test_help_lists_the_flags():
     )
     assert proc.returncode == 0, proc.stderr
     assert "--reference-scenes" in proc.stdout and "--stages" in proc.stdout
+
+
+# (benchmark and arguments, the option its error names); {missing} a file that does not exist, {garbage} a
+# file of text that is neither JSON nor MCAP, {foreign} JSON runs of another benchmark, {nodir} a directory that
+# does not exist
+BAD_VALUES = [
+    (["bench.fleet", "--rate", "nan"], "--rate"),
+    (["bench.fleet", "--rate", "0"], "--rate"),  # was "nan ms"
+    (["bench.fleet", "--seconds", "-1"], "--seconds"),
+    (["bench.fleet", "--rate", "0.5", "--seconds", "1"], "--seconds"),  # not one camera period
+    (["bench.fleet", "--vehicles", "0"], "--vehicles"),
+    (["bench.estimator", "--scenarios", "P1,NOPE"], "--scenarios"),  # was a KeyError after the speed part
+    (["bench.estimator", "--noises", "NOPE"], "--noises"),
+    (["bench.estimator", "--verdict", "--noises", "NOPE"], "--noises"),
+    (["bench.estimator", "--seeds", "0"], "--seeds"),
+    (["bench.estimator", "--seeds", "-1"], "--seeds"),
+    (["bench.estimator", "--workers", "0"], "--workers"),
+    (["bench.record", "--replay", "{missing}"], "--replay"),
+    (["bench.record", "--replay", "{garbage}"], "--replay"),
+    (["bench.record", "--dir", "{nodir}"], "--dir"),
+    (["bench.record", "--frames", "0"], "--frames"),
+    (["bench.guidance", "--updates", "-1"], "--updates"),  # was an UnboundLocalError
+    (["bench.guidance", "--updates", "0"], "--updates"),
+    (["bench.honesty", "--from-json", "{missing}"], "--from-json"),
+    (["bench.honesty", "--from-json", "{garbage}"], "--from-json"),
+    (["bench.honesty", "--families", "circling,nope"], "--families"),
+    (["bench.scenes3d", "--table-from", "{missing}"], "--table-from"),
+    (["bench.scenes3d", "--table-from", "{foreign}"], "--table-from"),  # another benchmark's runs
+    (["bench.scenes3d", "--scenes", "NOPE"], "--scenes"),
+    (["bench.simrate", "--scenario", "NOPE"], "--scenario"),
+    (["bench.simrate", "--modes", "bogus"], "--modes"),  # was exit 0, nothing measured
+    (["bench.simrate", "--rt-priority", "0"], "--rt-priority"),
+    (["bench.imaging", "--loop", "C4", "--seeds", "-1"], "--seeds"),
+    (["bench.imaging", "--loop", "NOPE"], "--loop"),
+    (["bench.video", "--frames", "-1"], "--frames"),
+    (["bench.video", "--frames", "0", "--latency-frames", "0"], "--frames"),
+]
+
+
+@pytest.mark.parametrize("argv, option", BAD_VALUES, ids=[" ".join(a) for a, _ in BAD_VALUES])
+def test_a_bad_value_is_refused_on_one_line_naming_the_option(argv, option, tmp_path):
+    garbage = tmp_path / "garbage.txt"
+    garbage.write_text("neither JSON nor MCAP\n")
+    foreign = tmp_path / "foreign.json"
+    foreign.write_text('{"runs": [{"family": "circling"}]}')
+    paths = {"missing": tmp_path / "missing.json", "garbage": garbage, "foreign": foreign, "nodir": tmp_path / "no"}
+    args = [a.format(**{k: str(v) for k, v in paths.items()}) for a in argv]
+    proc = subprocess.run([sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert f"error: argument {option}: " in lines[0], lines[0]
+    assert proc.stdout == ""  # refused before anything was measured or printed
