@@ -481,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="UTC minus boot time of a vehicle whose tracks carry no time_unix_us (default: estimated from arrivals)",
     )
     p.add_argument("--seconds", type=_positive, default=0.0, help="stop after S seconds (default 0: until a signal)")
-    p.add_argument("--max-age-s", type=_positive, default=2.0, help="refuse frames older or newer than this (2)")
+    p.add_argument("--max-age-s", type=_above_zero, default=2.0, help="refuse frames older or newer than this, > 0 (2)")
     p.add_argument("--status-interval-s", type=_positive, default=1.0, help="irtrack/fleet/status period (1)")
     p.add_argument("--silent-after-s", type=_positive, default=1.0, help="a vehicle unheard this long is silent (1)")
     p.add_argument(
@@ -502,9 +502,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--max-time-sigma-ms",
-        type=_positive,
+        type=_above_zero,  # 0 would refuse every line of sight
         default=50.0,
-        help="refuse lines of sight whose time_unix_sigma_us is larger (50)",
+        help="refuse lines of sight whose time_unix_sigma_us is larger, > 0 (50)",
     )
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     add_zenoh_options(

@@ -196,6 +196,9 @@ def test_its_own_output_and_other_vehicles_are_not_input():
         (["--vehicle-noise", "uav2"], "--vehicle-noise: expected NAME:KEY=VALUE"),
         (["--vehicle-noise", "fleet:camera_white_m=1"], "--vehicle-noise: expected NAME:KEY=VALUE"),
         (["--max-time-sigma-ms", "nan"], "--max-time-sigma-ms"),
+        # zero refuses every line of sight: a window of no age or no clock uncertainty at all
+        (["--max-age-s", "0"], "--max-age-s: expected a number > 0, got '0'"),
+        (["--max-time-sigma-ms", "0"], "--max-time-sigma-ms: expected a number > 0, got '0'"),
     ],
 )
 def test_bad_options_exit_2_on_one_line(argv, words, capsys):
