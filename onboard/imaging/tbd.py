@@ -306,7 +306,11 @@ class TrackBeforeDetect:
         f = STATS_FACTOR if min(h, w) >= 4 * STATS_FACTOR else 1
         k = noise_window_cells(p.noise_window_px, p.decimation * f)
         sq = cv2.resize(cv2.multiply(frame, frame), (max(w // f, 1), max(h // f, 1)), interpolation=cv2.INTER_AREA)
-        rms = np.sqrt(cv2.blur(sq, (k, k), borderType=cv2.BORDER_REFLECT))
+        ms = cv2.blur(sq, (k, k), borderType=cv2.BORDER_REFLECT)
+        # the box filter keeps running sums (adds the entering column, subtracts the leaving one): where the
+        # window leaves texture for an exactly flat area (a flat frame or part of one) it leaves a rounding
+        # residue instead of 0, which may be negative: its sqrt NaN made the percentile NaN, the map all False
+        rms = np.sqrt(np.maximum(ms, np.float32(0.0)))
         return rms > TEXTURED_RATIO * float(np.percentile(rms, TEXTURE_FLOOR_PERCENT))
 
     def _mask_known(self, frame: np.ndarray, win: tuple[int, int, int, int], known: Sequence[PointCandidate]) -> None:
