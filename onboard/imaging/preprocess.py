@@ -65,10 +65,7 @@ from onboard.core.schema import (
     Bool,
     Integer,
     Invalid,
-    NonNegativeFloat,
-    NonNegativeInt,
     Number,
-    PositiveInt,
     SchemaError,
     Text,
     build,
@@ -93,6 +90,7 @@ log = logging.getLogger(__name__)
 
 MAD_TO_SIGMA = 1.4826  # 1-sigma of a normal distribution per unit median absolute deviation
 MIN_FRAME_SIDE_PX = 16
+MAX_IMAGE_PX = 4096  # beyond the largest thermal imager's side: the bound of the parameters' pixel sizes
 NOISE_SUBSAMPLE_FULL_FRAME = 8  # every 8th row/column for the full-frame noise estimate (~5k px)
 NOISE_SUBSAMPLE_REGION = 2  # every 2nd row/column of a region of interest (~1k px)
 SUPPORTED_DTYPES = (np.dtype(np.uint8), np.dtype(np.uint16))
@@ -147,34 +145,36 @@ class ImagingParams:
     larger (an operator's selection is never bounded).
     """
 
-    mean_kernel_px: PositiveInt = 3
-    threshold_low_sigma: NonNegativeFloat = 3.0
-    threshold_high_sigma: NonNegativeFloat = 7.0
-    min_threshold_low_lsb: NonNegativeFloat = 1.0
-    min_threshold_high_lsb: NonNegativeFloat = 1.5
-    background_opening_px: Annotated[int, Integer(lo=3)] = 21
-    min_area_px: PositiveInt = 2
-    max_area_px: PositiveInt = 1024
-    max_blob_side_px: Annotated[int, Integer(lo=3)] = 48
-    max_aspect_ratio: Annotated[float, Number(lo=1.0)] = 6.0
-    max_candidates: PositiveInt = 8
-    centroid_margin_px: NonNegativeInt = 1
-    centroid_window_sigma_px: NonNegativeFloat = 1.0
-    background_ring_px: PositiveInt = 3
-    kcf_box_px: Annotated[int, Integer(lo=4)] = 16
-    kcf_box_scale: NonNegativeFloat = 1.0
-    kcf_max_box_px: Annotated[int, Integer(lo=4)] = 32
+    # upper bounds: sizes within the largest thermal imager (4096 px), counts and thresholds far beyond any use;
+    # a value past them is a typo that would make the chain find nothing, refused at start rather than flown
+    mean_kernel_px: Annotated[int, Integer(1, 31)] = 3
+    threshold_low_sigma: Annotated[float, Number(0.0, 1000.0)] = 3.0
+    threshold_high_sigma: Annotated[float, Number(0.0, 1000.0)] = 7.0
+    min_threshold_low_lsb: Annotated[float, Number(0.0, 65535.0)] = 1.0
+    min_threshold_high_lsb: Annotated[float, Number(0.0, 65535.0)] = 1.5
+    background_opening_px: Annotated[int, Integer(3, 255)] = 21
+    min_area_px: Annotated[int, Integer(1, MAX_IMAGE_PX**2)] = 2
+    max_area_px: Annotated[int, Integer(1, MAX_IMAGE_PX**2)] = 1024
+    max_blob_side_px: Annotated[int, Integer(3, MAX_IMAGE_PX)] = 48
+    max_aspect_ratio: Annotated[float, Number(1.0, 1000.0)] = 6.0
+    max_candidates: Annotated[int, Integer(1, 1000)] = 8
+    centroid_margin_px: Annotated[int, Integer(0, 64)] = 1
+    centroid_window_sigma_px: Annotated[float, Number(0.0, 64.0)] = 1.0
+    background_ring_px: Annotated[int, Integer(1, 64)] = 3
+    kcf_box_px: Annotated[int, Integer(4, 1024)] = 16
+    kcf_box_scale: Annotated[float, Number(0.0, 100.0)] = 1.0
+    kcf_max_box_px: Annotated[int, Integer(4, 1024)] = 32
     kcf_detect_threshold: Annotated[float, Number(0.0, 1.0, what="a number in [0, 1] (KCF peak response)")] = 0.3
-    roi_margin_px: NonNegativeInt = 12
-    max_drift_px: NonNegativeFloat = 3.0
-    kcf_gate_px: NonNegativeFloat = 8.0
-    reacquire_gate_px: NonNegativeFloat = 64.0
-    coast_frames: NonNegativeInt = 5
-    lost_frames: PositiveInt = 15
+    roi_margin_px: Annotated[int, Integer(0, MAX_IMAGE_PX)] = 12
+    max_drift_px: Annotated[float, Number(0.0, MAX_IMAGE_PX)] = 3.0
+    kcf_gate_px: Annotated[float, Number(0.0, MAX_IMAGE_PX)] = 8.0
+    reacquire_gate_px: Annotated[float, Number(0.0, MAX_IMAGE_PX)] = 64.0
+    coast_frames: Annotated[int, Integer(0, 100_000)] = 5
+    lost_frames: Annotated[int, Integer(1, 100_000)] = 15
     chain: Annotated[Literal["single", "objects"], Text()] = "single"
     tbd: Bool = True
-    tbd_threshold_sigma: Annotated[float, Number(lo=1.0)] = 6.0
-    tbd_max_speed_pxpf: NonNegativeFloat = 0.3
+    tbd_threshold_sigma: Annotated[float, Number(1.0, 1000.0)] = 6.0
+    tbd_max_speed_pxpf: Annotated[float, Number(0.0, 100.0)] = 0.3
     pose_wait_ms: Annotated[float, Number(0.0, 1000.0)] = 40.0
     primary_max_off_axis_rad: Annotated[float, Number(0.0, 1.5707963267948966, lo_open=True, hi_open=True)] = 0.15
 

@@ -209,7 +209,7 @@ BAD = [
     ),
     ("camera: {mount: {gimballed: 'yes'}}", "camera.mount.gimballed", "true or false", "'yes'", None),
     ("camera: {lens: {}}", "camera.lens", "a key of camera", "unknown key 'lens'", None),
-    ("imaging: {min_area_px: 0}", "imaging.min_area_px", ">= 1", "0", None),
+    ("imaging: {min_area_px: 0}", "imaging.min_area_px", "in [1, 16777216]", "0", None),
     (
         "imaging: {min_areapx: 3}",
         "imaging.min_areapx",

@@ -127,12 +127,17 @@ def test_params_from_mapping():
         r"got unknown key 'mean_kernel'; did you mean 'mean_kernel_px'\?$",
     ):
         ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml")
-    with pytest.raises(ConfigError, match=r"^cfg: imaging.mean_kernel_px: expected an integer >= 1, got 5.0$"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.mean_kernel_px: expected an integer in \[1, 31\], got 5.0$"):
         ImagingParams.from_mapping({"mean_kernel_px": 5.0}, where="cfg")
-    with pytest.raises(ConfigError, match=r"^cfg: imaging.coast_frames: expected an integer >= 0, got 2.5$"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.coast_frames: expected an integer in \[0, 100000\], got 2.5$"):
         ImagingParams.from_mapping({"coast_frames": 2.5}, where="cfg")
-    with pytest.raises(ConfigError, match=r"^cfg: imaging.max_drift_px: expected a number >= 0, got '3'$"):
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.max_drift_px: expected a number in \[0, 4096\], got '3'$"):
         ImagingParams.from_mapping({"max_drift_px": "3"}, where="cfg")
+    # a size no imager has: a typo that would leave the chain finding nothing, refused
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.background_ring_px: expected an integer in \[1, 64\]"):
+        ImagingParams.from_mapping({"background_ring_px": 10**12}, where="cfg")
+    with pytest.raises(ConfigError, match=r"^cfg: imaging.reacquire_gate_px: expected a number in \[0, 4096\]"):
+        ImagingParams.from_mapping({"reacquire_gate_px": 1e12}, where="cfg")
     with pytest.raises(
         ConfigError, match=r"^cfg: imaging.lost_frames: expected an integer >= coast_frames \(3\), got 1$"
     ):
