@@ -262,7 +262,14 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
     if settings.config_file is not None:
         path = os.fspath(settings.config_file)
         if not os.path.isfile(path):
-            raise ZenohConfigError(f"{file_option} {path}: no such file")
+            what = (
+                "a folder, not a file"
+                if os.path.isdir(path)
+                else "not a file"
+                if os.path.exists(path)
+                else "no such file"
+            )
+            raise ZenohConfigError(f"{file_option} {path}: {what}")
         try:
             config = zenoh.Config.from_file(path)
         except zenoh.ZError as exc:

@@ -107,3 +107,10 @@ def test_check_reads_the_zenoh_config_file_naming_its_field(tmp_path, content):
         [sys.executable, "-m", "onboard", "--config", str(cfg), "--check"], capture_output=True, text=True, timeout=60
     )
     assert ok.returncode == 0 and ok.stdout.strip() == f"{cfg}: ok", ok.stdout + ok.stderr
+
+
+def test_a_zenoh_config_file_that_is_a_folder_is_called_one():
+    from onboard.io.zenoh_session import ZenohConfig, ZenohConfigError, build_config
+
+    with pytest.raises(ZenohConfigError, match=r"/tmp: a folder, not a file$"):
+        build_config(ZenohConfig(config_file="/tmp"))
