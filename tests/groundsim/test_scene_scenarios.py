@@ -61,6 +61,8 @@ def test_scene_renders_with_labels_and_the_default_rtk_navigation(rendered, name
         assert fr.pixels is not None and fr.pixels.dtype == dtype and fr.pixels.shape == (512, 640), (name, k)
         assert fr.labels[0].object_id == 0 and fr.labels[0].cls == "target"
         assert fr.labels[0].visibility != "out_of_frame"
+        if fr.sensor_status == "frozen":  # the labels are the repeated image's, the truth row the frame's time
+            continue
         # the label's centre is the truth row's projection of the target
         assert fr.labels[0].u_px == pytest.approx(fr.truth.target_u_px, abs=1e-6)
         assert fr.labels[0].v_px == pytest.approx(fr.truth.target_v_px, abs=1e-6)
