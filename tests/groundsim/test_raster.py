@@ -507,15 +507,18 @@ def _spot(raster, bg, p_t, R_t, R_c) -> tuple[float, float, float]:
     return total, float((delta * (jj + 0.5)).sum() / total), float((delta * (ii + 0.5)).sum() / total)
 
 
-@pytest.mark.parametrize("parts, flux_rtol", [(DISC_PART, 0.02), (BIRD_PARTS, 0.12)])
+@pytest.mark.parametrize("parts", [DISC_PART, BIRD_PARTS])
 @pytest.mark.parametrize("yaw_deg, pitch_deg", [(0.0, 0.0), (35.0, 20.0), (80.0, -50.0)])
 @pytest.mark.parametrize("du, dv", [(0.0, 0.0), (0.3, -0.2), (0.5, 0.45)])
-def test_small_object_splat_matches_the_ray_cast(parts, flux_rtol, yaw_deg, pitch_deg, du, dv):
-    """An object a few pixels across drawn as a splat keeps the ray cast's radiance integral (the bird's
-    nearest part from the nearest tabulated view: within 12 %) and its intensity centroid."""
+def test_small_object_splat_matches_the_ray_cast(parts, yaw_deg, pitch_deg, du, dv):
+    """An object a few pixels across drawn as a splat keeps a fine ray cast's radiance integral within 2 %
+    (the bird's body over its wings: the visible fractions along the view) and its intensity centroid.  The
+    cast samples 256 x 256 rays a pixel (1 mm at 200 m): the 16 x 16 default is several % off on the bird's
+    12 mm wings alone."""
     settings = IrSettings(netd_k=0.0, encoding="mono16", supersample=16)
     env = 0.5 * float(band_radiance(280.0, settings.band_um))
-    cast = PartRaster(INTR, settings, parts, env, 0.0, 1.0)
+    fine = replace(settings, supersample=256, max_target_rays=10**6)
+    cast = PartRaster(INTR, fine, parts, env, 0.0, 1.0)
     splat = PartRaster(INTR, settings, parts, env, 0.0, 1.0, splat_max_px=6)
     R_c = R_cam()
     p_t = target_at(INTR, CAMERA_P_NED_M, R_c, 320.0 + du, 256.0 + dv, 200.0)
@@ -524,7 +527,7 @@ def test_small_object_splat_matches_the_ray_cast(parts, flux_rtol, yaw_deg, pitc
     assert splat.delta(bg, CAMERA_P_NED_M, R_c, p_t, R_t)[3] == 1  # drawn by the splat
     f_cast, u_cast, v_cast = _spot(cast, bg, p_t, R_t, R_c)
     f_splat, u_splat, v_splat = _spot(splat, bg, p_t, R_t, R_c)
-    assert f_splat == pytest.approx(f_cast, rel=flux_rtol)
+    assert f_splat == pytest.approx(f_cast, rel=0.02)
     assert abs(u_splat - u_cast) < 0.1 and abs(v_splat - v_cast) < 0.1
 
 

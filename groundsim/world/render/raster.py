@@ -53,6 +53,10 @@ How it is fast (the issue asks >= 125 frames/s of 640 x 512 on one core; ``pytho
   sub-samples in one separable linear map (two small matrix products with ``K = box * Gaussian``
   weights), so the sub-pixel position of a target thinner than a pixel survives; the result,
   over the box padded by 3 sigma, is added to the background, which is never blurred per frame.
+  A target whose bounding sphere spans at most ``parts.TARGET_SPLAT_MAX_PX`` (2 px) is not ray cast but drawn
+  as the analytic splat (``PartRaster._splat``): on a fixed sub-sample grid the radiance integral of a target
+  whose thinnest parts are narrower than a sub-sample follows its sub-pixel position, the splat's does not
+  (its parts' projected areas, times the fractions of them in front of the others along the view).
 * Noise: one bank of standard-normal samples (``noise_bank_frames`` frames long, scaled to grey
   levels) drawn once; each frame reads a contiguous window at a random offset (deterministic from
   ``seed``): no per-frame normal draw.  ``cv2.add(..., dtype=CV_8U/16U)`` fuses the noise addition,
@@ -92,7 +96,7 @@ from groundsim.world.render.kernels import (
     table_lookup_blocks,
     table_lookup_coarse,
 )
-from groundsim.world.render.parts import PartRaster, project_in_front
+from groundsim.world.render.parts import TARGET_SPLAT_MAX_PX, PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, grey_full_scale, noise_sigma_grey
 from groundsim.world.render.settings import IrSettings
 from onboard.core.errors import InputError
@@ -274,8 +278,11 @@ class IrRenderer:
             self._ground[0] + self._ground[1] * float(band_radiance(s.sky_horizon_k, s.band_um))
         )
         self.environment_radiance = L_env
-        self._target = PartRaster(self.intrinsics, s, s.target_parts, L_env, self._L_min, self._grey_per_L)
-        self._target_radiance = PartRaster(self.intrinsics, s, s.target_parts, L_env, 0.0, 1.0)
+        # ray cast when resolved, the splat (energy-exact) when at most TARGET_SPLAT_MAX_PX across
+        self._target = PartRaster(
+            self.intrinsics, s, s.target_parts, L_env, self._L_min, self._grey_per_L, TARGET_SPLAT_MAX_PX
+        )
+        self._target_radiance = PartRaster(self.intrinsics, s, s.target_parts, L_env, 0.0, 1.0, TARGET_SPLAT_MAX_PX)
 
     def _init_noise(self) -> None:
         s = self.settings
