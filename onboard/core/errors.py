@@ -1,8 +1,26 @@
 """The one exception base of the onboard package; entry points turn these into one line + exit code."""
 
+from __future__ import annotations
+
+from typing import Any
+
+
+def _rebuild(cls: type[IrtrackError], args: tuple) -> IrtrackError:
+    """An error of ``cls`` holding ``args``, made without its ``__init__`` (see :meth:`IrtrackError.__reduce__`)."""
+    err = cls.__new__(cls, *args)
+    err.args = args
+    return err
+
 
 class IrtrackError(Exception):
     """Base of every error irtrack raises on purpose (bad input, bad config, unobservable...)."""
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        # Exception's own pickling calls the class with ``self.args`` (the message), which subclasses taking other
+        # arguments (SchemaError: source, field, expected ...) refuse; an error a process-pool worker raises must
+        # reach its parent as itself, not as a BrokenProcessPool.  So it is rebuilt without __init__: the same
+        # message (args) and attributes (the instance dict, restored by BaseException.__setstate__).
+        return _rebuild, (type(self), self.args), dict(vars(self)) or None
 
 
 class InputError(IrtrackError, ValueError):
