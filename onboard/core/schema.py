@@ -27,7 +27,8 @@ One error format, :class:`SchemaError` (a :class:`~onboard.core.errors.ConfigErr
 ``<source>`` is the file, ``env IRTRACK_...``, ``--option``, ``<dict>``, or ``<ClassName>`` for a
 direct construction; entry points print it and exit with :attr:`SchemaError.exit_code` (2).
 
-One YAML loader, :func:`read_yaml`: safe, duplicate keys refused, and YAML 1.2 floats and booleans -- ``3e-1``
+One YAML loader, :func:`read_yaml`: safe, duplicate keys, aliases and nesting deeper than :data:`MAX_YAML_DEPTH`
+refused, and YAML 1.2 floats and booleans -- ``3e-1``
 and ``1e-3`` are numbers (YAML 1.1, PyYAML's default, reads an exponent without a dot as a string), and only
 ``true`` / ``false`` are booleans (``yes``, ``no``, ``on``, ``off`` are strings).
 
@@ -84,6 +85,8 @@ __all__ = [
     "to_plain",
     "check_value",
     "parse_yaml_text",
+    "MAX_YAML_DEPTH",
+    "YamlRefused",
 ]
 
 MODEL_CONFIG = ConfigDict(strict=True, extra="forbid", arbitrary_types_allowed=True)
@@ -722,10 +725,59 @@ PositiveInt = Annotated[int, Integer(lo=1)]
 # --------------------------------------------------------------------------- the YAML loader
 
 
+#: the deepest nesting of collections the loader reads: the shipped files nest at most 6, and each level costs the
+#: composer three Python frames, so this stays far below the interpreter's recursion limit (1000)
+MAX_YAML_DEPTH = 64
+
+
+class YamlRefused(yaml.MarkedYAMLError):
+    """YAML the loader refuses although PyYAML would read it; ``expected`` is what it accepts instead."""
+
+    def __init__(self, expected: str, problem: str, mark: Any = None) -> None:
+        super().__init__(None, None, problem, mark)
+        self.expected = expected
+
+
 class _StrictLoader(yaml.SafeLoader):
     """SafeLoader that refuses duplicate keys, reads ``1e-3`` / ``3e-1`` as floats and only ``true`` / ``false`` as
     booleans (YAML 1.2: ``yes``, ``no``, ``on`` and ``off`` are strings, so a vehicle named ``on`` is one, and
-    ``enabled: yes`` is refused by its field rather than read as true)."""
+    ``enabled: yes`` is refused by its field rather than read as true).
+
+    It also refuses aliases (``*name``) and collections nested deeper than :data:`MAX_YAML_DEPTH`: a few hundred
+    bytes of nested aliases expand to billions of values (memory and minutes before any field is checked), and
+    a deep document exhausts the composer's recursion.  No configuration irtrack reads needs either (the
+    compose files under ``deploy/`` use anchors, but Docker reads those, not this loader).  A scalar its tag
+    cannot make (``!!int x``, a timestamp on 30 February) is a YAML error at its line, not a ValueError."""
+
+    _depth = 0
+
+    def compose_node(self, parent: Any, index: Any) -> Any:
+        event = self.peek_event()
+        if isinstance(event, yaml.AliasEvent):
+            raise YamlRefused(
+                "YAML without aliases (write each value out)", f"the alias '*{event.anchor}'", event.start_mark
+            )
+        if self._depth >= MAX_YAML_DEPTH:
+            raise YamlRefused(
+                f"YAML nested at most {MAX_YAML_DEPTH} levels deep",
+                f"a value nested deeper than {MAX_YAML_DEPTH} levels",
+                event.start_mark,
+            )
+        self._depth += 1
+        try:
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+    def construct_object(self, node: Any, deep: bool = False) -> Any:
+        try:
+            return super().construct_object(node, deep)
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:  # the tag's constructor
+            tag = node.tag.replace("tag:yaml.org,2002:", "!!")
+            got = show(node.value) if isinstance(node, yaml.ScalarNode) else f"a {node.id}"
+            if isinstance(exc, (ValueError, OverflowError)):  # their words say what is wrong with the text
+                got += f" ({' '.join(str(exc).split())})"
+            raise YamlRefused(f"a value its tag {tag} can read", got, node.start_mark) from None
 
 
 # the class's own copy of SafeLoader's implicit resolvers without YAML 1.1's booleans (SafeLoader's left as they are)
@@ -766,7 +818,10 @@ _StrictLoader.add_implicit_resolver(
 def parse_yaml_text(text: str) -> Any:
     """A YAML value (a file's text, an ``IRTRACK_...`` variable, a ``--set`` value) by the one loader's
     rules; raises ``yaml.YAMLError``."""
-    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    try:
+        return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+    except RecursionError:  # MAX_YAML_DEPTH keeps the composer shallow; this is a caller already deep in its stack
+        raise YamlRefused(f"YAML nested at most {MAX_YAML_DEPTH} levels deep", "a document too deeply nested") from None
 
 
 def read_yaml(path: str | Path, error: type[SchemaError] = SchemaError) -> Any:
@@ -789,8 +844,9 @@ def read_yaml(path: str | Path, error: type[SchemaError] = SchemaError) -> Any:
         mark = e.problem_mark or e.context_mark
         where = f"line {mark.line + 1}, column {mark.column + 1}" if mark else "(file)"
         problem = " ".join(f"{e.context or ''} {e.problem or ''}".split())
+        expected = e.expected if isinstance(e, YamlRefused) else "valid YAML"
         raise error.make(
-            source, where, "valid YAML", problem or "a syntax error", line=mark.line + 1 if mark else None
+            source, where, expected, problem or "a syntax error", line=mark.line + 1 if mark else None
         ) from None
     except yaml.YAMLError as e:
         raise error.make(source, "(file)", "valid YAML", " ".join(str(e).split())) from None

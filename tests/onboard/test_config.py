@@ -449,3 +449,26 @@ def test_daemon_exits_2_with_one_line_on_a_bad_config(tmp_path):
     lines = proc.stderr.strip().splitlines()
     assert lines == [f"{p}: mavlink.attitude_rate_hz: expected a number in (0, 1000], got 'fast'"]
     assert proc.stdout == ""
+
+
+@pytest.mark.parametrize(
+    "text, where, expected",
+    [
+        ("vehicle: " + "[" * 5000 + "]" * 5000 + "\n", "line 1, column 73", "YAML nested at most 64 levels deep"),
+        (
+            "vehicle:\n  - &a0 [x, x, x]\n"
+            + "".join(f"  - &a{i} [*a{i - 1}, *a{i - 1}, *a{i - 1}]\n" for i in range(1, 20)),
+            "line 3, column 10",
+            "YAML without aliases (write each value out)",
+        ),
+    ],
+    ids=["nested 5000 deep", "alias bomb"],
+)
+def test_check_refuses_a_hostile_yaml_file_in_one_line(tmp_path, capsys, text, where, expected):
+    # refused while composing: neither the recursion of 5000 levels nor the 3^19 strings of the aliases is made
+    from onboard.app.main import main
+
+    p = write(tmp_path, text)
+    assert main(["--check", "--config", p]) == 2
+    err = capsys.readouterr().err.strip()
+    assert ONE_LINE.match(err) and err.startswith(f"{p}: {where}: expected {expected}, got "), err
