@@ -124,6 +124,22 @@ DEFAULT_NAV_NOISE = "RTK"  # navigation errors of the telemetry when nothing els
 #: the simulated UTC of t_s = 0 when a scenario names none: fixed, so a run at --rate max is reproducible
 DEFAULT_START_TIME_UTC = "2026-01-01T12:00:00Z"
 MAX_OBSERVERS = 16
+#: ``camera.intrinsics.width_px`` / ``height_px`` at most: beyond the thermal cores a drone carries (640 x 512
+#: here, 1280 x 1024 the largest uncooled ones), and one float32 image of the renderer stays at 64 MiB (it holds
+#: several per camera)
+MAX_IMAGE_SIDE_PX = 4096
+#: ``ir.supersample`` at most: 64 sub-samples per pixel side are 1/64 px apart, far finer than the optics' blur
+#: (0.6 px sigma); more only multiplies the rays, which ``ir.max_target_rays`` caps anyway
+MAX_SUPERSAMPLE = 64
+#: ``ir.max_target_rays`` at most: a million rays cost about 0.2 s of one core per frame (a few bytes each), so a
+#: scenario at that budget still runs to its end; beyond it a close target would stall the simulation
+MAX_TARGET_RAYS = 1_000_000
+#: ``ir.noise_bank_frames`` at most: each frame reads the bank at a random offset, so two frames already give
+#: width x height + 1 distinct windows; more frames only make two frames' windows overlap less
+MAX_NOISE_BANK_FRAMES = 64
+#: the noise banks' size at most (frames x width x height x 4 bytes of float32, summed over the observers' cameras):
+#: each renderer holds its bank for the whole run, in every worker process of a campaign or an eval
+MAX_NOISE_BANK_BYTES = 256 * 2**20
 #: a fleet vehicle's boot clock reads between these at t_s = 0 unless the file says (powered on before take-off)
 FLEET_BOOT_MIN_US, FLEET_BOOT_SPAN_MS = 1_000_000, 600_000
 #: random streams that belong to one observer (its camera, gimbal and navigation) rather than to the shared world:
@@ -480,8 +496,8 @@ class IntrinsicsFile(PinholeSection):
     fy_px: Annotated[float, Number(0.0, lo_open=True)] = _VUE.fy_px
     cx_px: Annotated[float | None, Number()] = None
     cy_px: Annotated[float | None, Number()] = None
-    width_px: Annotated[int, Integer(1, 100_000)] = _VUE.width_px
-    height_px: Annotated[int, Integer(1, 100_000)] = _VUE.height_px
+    width_px: Annotated[int, Integer(1, MAX_IMAGE_SIDE_PX)] = _VUE.width_px
+    height_px: Annotated[int, Integer(1, MAX_IMAGE_SIDE_PX)] = _VUE.height_px
     distortion: Annotated[tuple[float, ...], Numbers(5, what="a list of 5 finite numbers (k1, k2, p1, p2, k3)")] = (
         tuple(_VUE.distortion)
     )
@@ -573,10 +589,10 @@ class IrFile:
     ground_emissivity: Annotated[float, Number(0.0, 1.0, lo_open=True)] = _IR.ground_emissivity
     target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
     netd_reference_k: _SCALE_K = _IR.netd_reference_k
-    supersample: Annotated[int, Integer(1, 1_000_000)] = _IR.supersample
-    max_target_rays: Annotated[int, Integer(1, 1_000_000)] = _IR.max_target_rays
+    supersample: Annotated[int, Integer(1, MAX_SUPERSAMPLE)] = _IR.supersample
+    max_target_rays: Annotated[int, Integer(1, MAX_TARGET_RAYS)] = _IR.max_target_rays
     background_reuse_tol_rad: NonNegativeFloat = _IR.background_reuse_tol_rad
-    noise_bank_frames: Annotated[int, Integer(1, 1_000_000)] = _IR.noise_bank_frames
+    noise_bank_frames: Annotated[int, Integer(1, MAX_NOISE_BANK_FRAMES)] = _IR.noise_bank_frames
 
     def __post_init__(self) -> None:
         if self.band_um[1] <= self.band_um[0]:
@@ -686,6 +702,23 @@ class ScenarioFile:
                 cases = tuple(load_noise_cases())
                 if case not in cases:
                     raise Invalid(field_path, "one of " + ", ".join(cases), case, did_you_mean(case, cases))
+        self._check_noise_bank()
+
+    def _check_noise_bank(self) -> None:
+        """The renderers' noise banks (one per observer's camera) fit :data:`MAX_NOISE_BANK_BYTES`: the frame count
+        alone is bounded, but a large camera, or many, multiply it."""
+        cameras = [o.camera or self.camera for o in self.observers] or [self.camera]
+        px = sum(c.intrinsics.width_px * c.intrinsics.height_px for c in cameras)
+        frames = self.ir.noise_bank_frames
+        if frames * px * 4 > MAX_NOISE_BANK_BYTES:
+            most = MAX_NOISE_BANK_BYTES // (px * 4)
+            over = f", summed over {len(cameras)} observers' cameras" if len(cameras) > 1 else ""
+            raise Invalid(
+                "ir.noise_bank_frames",
+                f"a noise bank of at most {MAX_NOISE_BANK_BYTES >> 20} MiB (frames x width_px x height_px x 4 bytes"
+                f"{over}): " + (f"at most {most} frames" if most else "a smaller camera"),
+                got_text=f"{frames} ({frames * px * 4 / 2**20:.0f} MiB)",
+            )
 
 
 def too_close(p_a_ned_m: np.ndarray, p_b_ned_m: np.ndarray) -> tuple[int, float] | None:

@@ -19,6 +19,11 @@ from hypothesis import strategies as st
 from groundsim.world.motion import Circular, Cubic, FigureEight, Perturbed, Waypoints
 from groundsim.world.render.settings import IrSettings
 from groundsim.world.scenario import (
+    MAX_IMAGE_SIDE_PX,
+    MAX_NOISE_BANK_BYTES,
+    MAX_NOISE_BANK_FRAMES,
+    MAX_SUPERSAMPLE,
+    MAX_TARGET_RAYS,
     REFERENCE_GIMBAL,
     CameraSpec,
     GimbalSpec,
@@ -378,6 +383,86 @@ def test_yaml_reads_exponent_floats_without_a_dot(tmp_path):
     assert load_scenario(tmp_path / "s.yaml").ir.netd_k == 0.04
 
 
+def _camera_of(width_px: int, height_px: int) -> dict:
+    """P1's camera section at another size (principal point at the centre)."""
+    camera = p1_dict()["camera"]
+    camera["intrinsics"].update(width_px=width_px, height_px=height_px, cx_px=None, cy_px=None)
+    return camera
+
+
+def test_resource_knobs_are_accepted_up_to_their_bounds():
+    d = p1_dict()
+    d["camera"] = _camera_of(MAX_IMAGE_SIDE_PX, MAX_IMAGE_SIDE_PX)
+    d["ir"].update(supersample=MAX_SUPERSAMPLE, max_target_rays=MAX_TARGET_RAYS, noise_bank_frames=4)
+    sc = scenario_from_dict(d)
+    assert (sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px) == (4096, 4096)
+    assert (sc.ir.supersample, sc.ir.max_target_rays, sc.ir.noise_bank_frames) == (64, 1_000_000, 4)
+    d = p1_dict()
+    d["ir"]["noise_bank_frames"] = MAX_NOISE_BANK_FRAMES  # 64 frames of 640 x 512: 80 MiB
+    assert scenario_from_dict(d).ir.noise_bank_frames == 64
+
+
+def test_a_noise_bank_too_large_for_the_camera_names_the_file_and_the_field(tmp_path):
+    # 5 frames of 4096 x 4096 float32 are 320 MiB; 4 fit in 256 MiB: the message says how many would
+    d = p1_dict()
+    d["camera"] = _camera_of(4096, 4096)
+    d["ir"]["noise_bank_frames"] = 5
+    path = tmp_path / "big.yaml"
+    path.write_text(yaml.safe_dump(d))
+    err = _one_line_error(
+        load_scenario,
+        path,
+        f"{path}: ir.noise_bank_frames: expected a noise bank of at most 256 MiB",
+        "(frames x width_px x height_px x 4 bytes): at most 4 frames, got 5 (320 MiB)",
+    )
+    assert err.field == "ir.noise_bank_frames"
+
+
+def test_a_fleet_counts_every_observers_noise_bank():
+    d = yaml.safe_load((REPO / "config/scenarios/F1.yaml").read_text())
+    assert len(d["observers"]) == 2 and all("camera" not in o for o in d["observers"])
+    d["camera"] = _camera_of(4096, 4096)
+    d["ir"] = {"noise_bank_frames": 2}  # 2 x 64 MiB per observer: 256 MiB, the bound
+    assert scenario_from_dict(d).ir.noise_bank_frames == 2
+    d["observers"][1]["camera"] = _camera_of(4096, 2048)  # its own, smaller camera: 192 MiB over both
+    d["ir"] = {"noise_bank_frames": 3}  # 288 MiB
+    with pytest.raises(ScenarioError) as ei:
+        scenario_from_dict(d)
+    assert str(ei.value) == (
+        "<dict>: ir.noise_bank_frames: expected a noise bank of at most 256 MiB (frames x width_px x height_px x "
+        "4 bytes, summed over 2 observers' cameras): at most 2 frames, got 3 (288 MiB)"
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    frames=st.integers(1, 2 * MAX_NOISE_BANK_FRAMES),
+    width=st.integers(16, 2 * MAX_IMAGE_SIDE_PX),
+    height=st.integers(16, 2 * MAX_IMAGE_SIDE_PX),
+)
+def test_a_scenario_is_accepted_exactly_when_its_renderer_fits_the_bounds(frames, width, height):
+    d = p1_dict()
+    d["camera"] = _camera_of(width, height)
+    d["ir"]["noise_bank_frames"] = frames
+    fits = (
+        frames <= MAX_NOISE_BANK_FRAMES
+        and max(width, height) <= MAX_IMAGE_SIDE_PX
+        and frames * width * height * 4 <= MAX_NOISE_BANK_BYTES
+    )
+    try:
+        sc = scenario_from_dict(d)
+    except ScenarioError as e:
+        assert not fits, str(e)
+        assert e.field in ("ir.noise_bank_frames", "camera.intrinsics.width_px", "camera.intrinsics.height_px")
+    else:
+        assert fits
+        assert (sc.ir.noise_bank_frames, sc.camera.intrinsics.width_px, sc.camera.intrinsics.height_px) == (
+            frames,
+            width,
+            height,
+        )
+
+
 # --------------------------------------------------------------------------- validation messages
 
 
@@ -501,7 +586,12 @@ BAD_CASES = [
     ("ir.band_um", [7.5, 10, 13.5], "ir.band_um", "a list of 2 finite numbers"),
     ("ir.encoding", "mono12", "ir.encoding", "one of mono8, mono16, got 'mono12'"),
     ("ir.netd_k", -0.1, "ir.netd_k", ">= 0"),
-    ("ir.supersample", 0, "ir.supersample", "an integer in [1, 1000000], got 0"),
+    ("ir.supersample", 0, "ir.supersample", "an integer in [1, 64], got 0"),
+    ("ir.supersample", 1_000_000, "ir.supersample", "an integer in [1, 64], got 1000000"),
+    ("ir.max_target_rays", 1_000_001, "ir.max_target_rays", "an integer in [1, 1000000], got 1000001"),
+    ("ir.noise_bank_frames", 100_000, "ir.noise_bank_frames", "an integer in [1, 64], got 100000"),
+    ("camera.intrinsics.width_px", 100_000, "camera.intrinsics.width_px", "an integer in [1, 4096], got 100000"),
+    ("camera.intrinsics.height_px", 4097, "camera.intrinsics.height_px", "an integer in [1, 4096], got 4097"),
     ("ir.noise_bank_frames", 2.5, "ir.noise_bank_frames", "an integer"),
     ("ir.netd_reference_k", -3.0, "ir.netd_reference_k", "> 0"),
     ("origin.lat_deg", 95.0, "origin.lat_deg", "in [-90, 90] deg, got 95.0"),
