@@ -42,7 +42,8 @@ Resumability.  A run is identified by :func:`run_id`, a SHA-256 of its parameter
 digest of its file, geometry, noise case and the digest of its numbers, algorithm, seed, mode, duration,
 noise model, the onboard configuration's digest, :data:`RESULT_SCHEMA`).  Each finished run is appended
 to ``OUT/runs.jsonl`` as one line, flushed and fsynced, the moment its result arrives; a new invocation
-reads it (a torn last line is skipped) and runs only what is missing.  ``runs.csv`` (and
+reads it (a line cut short by a kill, damaged, or not a run's row is skipped, one warning names the
+lines, and their runs are redone) and runs only what is missing.  ``runs.csv`` (and
 ``runs.parquet`` when pyarrow is installed), ``report.md`` and ``manoeuvre.png`` are rebuilt from the
 log every time, in the spec's order, so the table does not depend on the order runs finished in, nor
 on interruptions.
@@ -76,6 +77,7 @@ from typing import Any
 import numpy as np
 
 from groundsim.evaluation.campaign_report import (
+    COLUMN_ORDER,
     FIGURE_NAME,
     PARQUET_NAME,
     REPORT_NAME,
@@ -115,6 +117,7 @@ __all__ = [
     "score_track",
     "run_job",
     "read_log",
+    "reusable_rows",
     "append_rows",
     "check_outputs",
     "run_campaign",
@@ -503,25 +506,93 @@ def run_job(job: Job) -> list[dict]:
 # --------------------------------------------------------------------------- the append-only log
 
 
+#: columns of a log row that hold text, and flags (true, false or null); the table's other columns hold numbers or
+#: null: the report sorts, compares and takes medians of them, so a row with another type there is not reused
+_TEXT_COLUMNS = frozenset(
+    {"run_id", "mode", "scenario", "geometry", "noise", "algorithm", "noise_model", "status", "error", "bound_note"}
+    | {"scenario_digest", "noise_digest", "onboard_digest"}
+)
+_FLAG_COLUMNS = frozenset({"crb", "batch_observable"})
+_NUMBER_COLUMNS = frozenset(COLUMN_ORDER) - _TEXT_COLUMNS - _FLAG_COLUMNS
+_STATUSES = ("ok", "failed")
+_PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(RunParams))
+#: at most this many line numbers are listed in the warning about skipped lines (the count is always given)
+_LINES_SHOWN = 10
+
+
+def _not_a_row(row: Any) -> bool:
+    """Whether a parsed log line is not a row :func:`append_rows` could have written: an object whose ``run_id``
+    is text, and whose known columns hold their type (other keys are left alone: a newer version's columns)."""
+    if not isinstance(row, dict) or not isinstance(row.get("run_id"), str):
+        return True
+    for key, value in row.items():
+        if key in _TEXT_COLUMNS:
+            ok = isinstance(value, str) and (key != "status" or value in _STATUSES)
+        elif key in _FLAG_COLUMNS:
+            ok = value is None or isinstance(value, bool)
+        elif key in _NUMBER_COLUMNS:
+            ok = value is None or (isinstance(value, (int, float)) and not isinstance(value, bool))
+        else:
+            continue
+        if not ok:
+            return True
+    return False
+
+
+def _is_row_of(row: dict, rid: str) -> bool:
+    """Whether ``row`` is the result of run ``rid``: it carries the run's parameters, which hash to ``rid``, and the
+    columns every row of the table and the report has."""
+    if any(key not in row for key in (*_PARAM_FIELDS, "geometry", "status")):
+        return False
+    return run_id(RunParams(**{key: row[key] for key in _PARAM_FIELDS})) == rid
+
+
+def _scan_log(path: Path, planned: frozenset[str] = frozenset()) -> tuple[dict[str, dict], list[int]]:
+    """``runs.jsonl`` -> ({run_id: row}, [numbers of the lines skipped]); a later row of a run replaces an earlier
+    one (``--retry-failed`` appends).  Read as bytes, line by line, so a line that is not UTF-8, not JSON or not a
+    row (:func:`_not_a_row`) is skipped without stopping the others; a row under a ``planned`` run id must be that
+    run's (:func:`_is_row_of`), so a damaged one cannot replace a good one before it."""
+    done: dict[str, dict] = {}
+    bad: list[int] = []
+    if not path.is_file():
+        return done, bad
+    try:
+        with path.open("rb") as f:
+            for number, raw in enumerate(f, start=1):
+                if not raw.strip():
+                    continue
+                try:
+                    row = json.loads(raw.decode("utf-8"))
+                except (ValueError, RecursionError):  # not UTF-8 (UnicodeDecodeError is one), not JSON, too deep
+                    bad.append(number)
+                    continue
+                if _not_a_row(row) or (row["run_id"] in planned and not _is_row_of(row, row["run_id"])):
+                    bad.append(number)
+                    continue
+                done[row["run_id"]] = row
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    return done, bad
+
+
 def read_log(path: Path) -> tuple[dict[str, dict], int]:
     """``runs.jsonl`` -> ({run_id: row}, lines skipped).  A torn or foreign line is skipped, not fatal."""
-    done: dict[str, dict] = {}
-    bad = 0
-    if not path.is_file():
-        return done, 0
-    with path.open("r", encoding="utf-8") as f:
-        for line in f:
-            line = line.strip()
-            if not line:
-                continue
-            try:
-                row = json.loads(line)
-                rid = row["run_id"]
-            except (ValueError, KeyError, TypeError):
-                bad += 1
-                continue
-            done[rid] = row
-    return done, bad
+    done, bad = _scan_log(path)
+    return done, len(bad)
+
+
+def reusable_rows(path: Path, planned_ids: Iterable[str]) -> tuple[dict[str, dict], list[int]]:
+    """The rows of the log a campaign of ``planned_ids`` can reuse, and the numbers of the lines skipped: those
+    :func:`read_log` skips, and rows under a planned run id that are not that run's (:func:`_is_row_of`)."""
+    return _scan_log(path, frozenset(planned_ids))
+
+
+def _skipped_text(path: Path, lines: list[int]) -> str:
+    shown = ", ".join(map(str, lines[:_LINES_SHOWN])) + (", ..." if len(lines) > _LINES_SHOWN else "")
+    return (
+        f"{path}: {len(lines)} line(s) skipped, not a run's row (line {shown}): cut short by an interruption, "
+        "damaged or written by something else; any run they held is run again"
+    )
 
 
 def append_rows(path: Path, rows: Iterable[dict]) -> None:
@@ -678,11 +749,11 @@ def run_campaign(
     check_outputs(out)
     if fresh and log_path.exists():
         log_path.unlink()
-    done, bad = read_log(log_path)
-    if bad:
-        log.warning("%s: %d unreadable line(s) skipped (a run cut short by an interruption is redone)", log_path, bad)
     planned = plan_runs(spec, onboard_digest)
     ids = [run_id(p) for p in planned]
+    done, bad = reusable_rows(log_path, ids)
+    if bad:  # said once: the log is read again below for the table, its skipped lines not repeated
+        log.warning("%s", _skipped_text(log_path, bad))
     if retry_failed:
         done = {k: v for k, v in done.items() if v.get("status") == "ok"}
     pending = [p for p, i in zip(planned, ids) if i not in done]
@@ -767,7 +838,7 @@ def run_campaign(
         if bar is not None:
             bar.close()
     wall = time.perf_counter() - t0
-    done, _ = read_log(log_path)
+    done, _ = reusable_rows(log_path, ids)
     rows = [done[i] for i in ids if i in done]
     result = CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted)
     try:

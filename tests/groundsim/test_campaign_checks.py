@@ -1,12 +1,27 @@
-"""``groundsim campaign``: what is refused before any run (duplicate scenarios, unwritable outputs, --workers 0)
-and how a geometry error reads (one line, the spec and the field named once)."""
+"""``groundsim campaign``: what is refused before any run (duplicate scenarios, unwritable outputs, --workers 0),
+how a geometry error reads (one line, the spec and the field named once), and a damaged run log on resume (its
+bad lines skipped, named in one warning, their runs redone)."""
 
 from __future__ import annotations
 
+import json
+import logging
+
+import numpy as np
+import pandas as pd
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from groundsim.app.cli import main as cli_main
-from groundsim.evaluation.campaign import LOG_NAME, check_outputs, run_campaign
+from groundsim.evaluation.campaign import (
+    LOG_NAME,
+    append_rows,
+    check_outputs,
+    read_log,
+    reusable_rows,
+    run_campaign,
+)
 from groundsim.evaluation.campaign_report import TABLE_NAME
 from groundsim.evaluation.campaign_spec import spec_from_dict
 from groundsim.world.scenario import reference_scenario_paths
@@ -71,3 +86,102 @@ def test_cli_workers_below_one_is_refused(tmp_path, capsys, workers):
     assert cli_main(["campaign", str(_spec_file(tmp_path)), "--out", str(out), "--workers", workers]) == 2
     assert "--workers: expected an integer >= 1" in capsys.readouterr().err
     assert not out.exists()
+
+
+# --------------------------------------------------------------------------- a damaged log on resume
+
+
+@pytest.fixture(scope="module")
+def good_row(tmp_path_factory) -> dict:
+    """The row one real run of the one-run spec wrote (its parameters hash to its run id)."""
+    tmp_path = tmp_path_factory.mktemp("campaign")
+    run_campaign(_spec(tmp_path), tmp_path / "good", workers=1, progress=False)
+    (row,) = read_log(tmp_path / "good" / LOG_NAME)[0].values()
+    return row
+
+
+def _line(row) -> bytes:
+    return json.dumps(row).encode() + b"\n"
+
+
+#: one line of each way a log line can fail to be a run's row (the report reads every row it keeps)
+DAMAGED = {
+    "not UTF-8": lambda row: bytes(range(0x80, 0xC0)) + b"\n",
+    "not JSON": lambda row: b'{"run_id": "' + row["run_id"].encode() + b'", "x"\n',
+    "run_id a list": lambda row: _line({"run_id": [1, 2]}),
+    "run_id only": lambda row: _line({"run_id": row["run_id"]}),
+    "a figure that is text": lambda row: _line({**row, "rmse_published_settled_m": "abc"}),
+    "a parameter changed": lambda row: _line({**row, "seed": row["seed"] + 1}),
+    "an unknown status": lambda row: _line({**row, "status": "weird"}),
+    "nested too deep for json": lambda row: b"[" * 100_000 + b"]" * 100_000 + b"\n",
+}
+
+
+@pytest.mark.parametrize("kind", list(DAMAGED))
+def test_a_damaged_line_is_skipped_named_once_and_its_run_redone(tmp_path, good_row, kind, caplog):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOG_NAME).write_bytes(DAMAGED[kind](good_row))
+    with caplog.at_level(logging.WARNING, logger="groundsim.evaluation.campaign"):
+        res = run_campaign(_spec(tmp_path), out, workers=1, progress=False)
+    assert (res.planned, res.reused, res.ran, res.failed) == (1, 0, 1, 0)
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warnings == [
+        f"{out / LOG_NAME}: 1 line(s) skipped, not a run's row (line 1): cut short by an interruption, damaged or "
+        "written by something else; any run they held is run again"
+    ]
+    table = pd.read_csv(out / TABLE_NAME)
+    assert table["run_id"].tolist() == [good_row["run_id"]] and table["status"].tolist() == ["ok"]
+    assert "rmse_published_settled_m" in table and np.isfinite(table["rmse_published_settled_m"]).all()
+
+
+def test_damaged_lines_around_a_good_row_do_not_stop_its_reuse(tmp_path, good_row, caplog):
+    out = tmp_path / "out"
+    out.mkdir()
+    lines = [make(good_row) for make in DAMAGED.values()]
+    (out / LOG_NAME).write_bytes(b"".join(lines[:3] + [b"\n", _line(good_row)] + lines[3:]))
+    with caplog.at_level(logging.WARNING, logger="groundsim.evaluation.campaign"):
+        res = run_campaign(_spec(tmp_path), out, workers=1, progress=False)
+    assert (res.reused, res.ran) == (1, 0)  # the good row (line 5) was read past the bad bytes and reused
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    # the blank line 4 is not a row and not damaged; the rows after the good one do not replace it
+    assert "8 line(s) skipped, not a run's row (line 1, 2, 3, 6, 7, 8, 9, 10)" in warning
+    done, bad = reusable_rows(out / LOG_NAME, [good_row["run_id"]])
+    assert done == {good_row["run_id"]: good_row} and bad == [1, 2, 3, 6, 7, 8, 9, 10]
+
+
+def test_the_skipped_lines_listed_are_capped_but_counted(tmp_path, caplog):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / LOG_NAME).write_bytes(b"\xff\n" * 25)
+    with caplog.at_level(logging.WARNING, logger="groundsim.evaluation.campaign"):
+        run_campaign(_spec(tmp_path), out, workers=1, progress=False)
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "25 line(s) skipped, not a run's row (line 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, ...)" in warning
+
+
+def test_rows_of_other_runs_are_kept_unchecked_and_not_warned_about(tmp_path):
+    # a row the plan does not name (another spec, an older configuration) is not this campaign's business
+    p = tmp_path / LOG_NAME
+    append_rows(p, [{"run_id": "elsewhere", "x": [1]}])
+    assert reusable_rows(p, ["mine"]) == ({"elsewhere": {"run_id": "elsewhere", "x": [1]}}, [])
+
+
+_BAD_FIGURES = st.one_of(
+    st.text(), st.booleans(), st.lists(st.integers(), max_size=2), st.dictionaries(st.text(), st.integers(), max_size=1)
+)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    garbage=st.lists(st.binary(max_size=40).filter(lambda b: b"\n" not in b), max_size=6),
+    column=st.sampled_from(["rmse_published_settled_m", "range_scale", "seed", "err_range_final_pct", "wall_s"]),
+    value=_BAD_FIGURES,
+)
+def test_any_bytes_or_any_mistyped_figure_is_skipped_never_raised(tmp_path, good_row, garbage, column, value):
+    p = tmp_path / LOG_NAME
+    p.write_bytes(b"".join(g + b"\n" for g in garbage) + _line(good_row) + _line({**good_row, column: value}))
+    done, bad = reusable_rows(p, [good_row["run_id"]])
+    assert done == {good_row["run_id"]: good_row}
+    assert bad == [i for i, g in enumerate(garbage, start=1) if g.strip()] + [len(garbage) + 2]
+    assert read_log(p)[1] == len(bad)
