@@ -20,7 +20,6 @@ target 500 m off, flying straight, the observer circling) flies 5 minutes.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import os
@@ -30,6 +29,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from bench import run_benchmark
+from bench.options import BenchParser, known_scenario, nonnegative_int, positive_float, positive_int
 
 GOALS = "goals: detected and warned <= 10 s after tracking starts; 3-D RMS <= 1.2x the 0 ms run; no warning at 0 ms"
 
@@ -95,13 +95,15 @@ def _line(label: str, res: dict, zero: dict | None) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.time_offset", description=__doc__.split("\n\n")[0])
-    p.add_argument("--scenarios", nargs="+", default=["P1", "P2"])
-    p.add_argument("--seeds", type=int, default=3, help="seeds 0 .. N-1 of each scenario (3)")
-    p.add_argument("--seed", type=int, nargs="+", default=None, help="these seeds only (instead of --seeds)")
-    p.add_argument("--duration", type=float, default=40.0, help="seconds flown per run (40)")
+    p = BenchParser(prog="python -m bench.time_offset", description=__doc__.split("\n\n")[0])
+    p.add_argument("--scenarios", nargs="+", type=known_scenario, default=["P1", "P2"])
+    p.add_argument("--seeds", type=positive_int, default=3, help="seeds 0 .. N-1 of each scenario (3)")
+    p.add_argument(
+        "--seed", type=nonnegative_int, nargs="+", default=None, help="these seeds only (instead of --seeds)"
+    )
+    p.add_argument("--duration", type=positive_float, default=40.0, help="seconds flown per run (40)")
     p.add_argument("--offset-ms", type=float, default=50.0, help="the injected offset, ms (50)")
-    p.add_argument("--workers", type=int, default=2)
+    p.add_argument("--workers", type=positive_int, default=2)
     p.add_argument("--zero-only", action="store_true", help="only the 0 ms runs (the false-alarm check)")
     args = p.parse_args(argv)
     seeds = list(range(args.seeds)) if args.seed is None else sorted(set(args.seed))

@@ -64,6 +64,8 @@ BAD_VALUES = [
     (["bench.simrate", "--scenario", "NOPE"], "--scenario"),
     (["bench.simrate", "--modes", "bogus"], "--modes"),  # was exit 0, nothing measured
     (["bench.simrate", "--rt-priority", "0"], "--rt-priority"),
+    (["bench.time_offset", "--scenarios", "NOPE"], "--scenarios"),  # was a traceback from the worker pool
+    (["bench.time_offset", "--seeds", "0"], "--seeds"),
     (["bench.imaging", "--loop", "C4", "--seeds", "-1"], "--seeds"),
     (["bench.imaging", "--loop", "NOPE"], "--loop"),
     (["bench.video", "--frames", "-1"], "--frames"),
