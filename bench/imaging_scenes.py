@@ -68,6 +68,8 @@ Numbers only: nothing asserts.
 from __future__ import annotations
 
 import contextlib
+import functools
+import hashlib
 import io
 import math
 import os
@@ -110,19 +112,27 @@ class SceneRun:
     nav_noise: str = "exact"
 
 
+@functools.cache
+def _world_source_digest() -> str:
+    """The digest of ``groundsim/world``'s source as this process found it, taken once, right after
+    :func:`render_scene` first imported the simulator: a file saved while a long bench runs does not name the
+    frames the code imported before it rendered."""
+    world = Path(__file__).resolve().parent.parent / "groundsim" / "world"
+    h = hashlib.sha256()
+    for f in sorted(world.rglob("*.py")):
+        h.update(str(f.relative_to(world)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
 def world_digest(name: str) -> str:
     """A digest of what makes a scene's frames and labels: the simulated world's source (``groundsim/world``)
     and the scenario's file.  Part of a cached file's name, so that frames rendered before a change of the
     renderer, the flight or the scene are rendered again rather than measured as the new code's."""
-    import hashlib
-
     from groundsim.world.scenario import scenarios_dir
 
-    world = Path(__file__).resolve().parent.parent / "groundsim" / "world"
-    h = hashlib.sha256()
-    for f in sorted(world.rglob("*.py")) + [scenarios_dir() / f"{name}.yaml"]:
-        h.update(str(f.relative_to(f.parent.parent)).encode())
-        h.update(f.read_bytes())
+    h = hashlib.sha256(_world_source_digest().encode())
+    h.update((scenarios_dir() / f"{name}.yaml").read_bytes())
     return h.hexdigest()[:12]
 
 
