@@ -159,12 +159,13 @@ def test_terrain_resolution_renders_and_caches_apart(tmp_path):
     """``--terrain-resolution``: C2's frames with its terrain looked up at full resolution (the default) or at half,
     cached under their own names (frames cached before the default changed, untagged, are read only as half), the
     labels' positions the same; a scene without terrain as it is."""
-    from bench.imaging_scenes import render_scene
+    from bench.imaging_scenes import render_scene, world_digest
 
     full = render_scene("C2", 0, 2, tmp_path)
     half = render_scene("C2", 0, 2, tmp_path, terrain_resolution="half")
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["C2-mono8-fullterrain-s0-0.067.npz", "C2-mono8-s0-0.067.npz"]
+    d = world_digest("C2")  # the simulator's source and the scenario's file: a change renders them again
+    assert names == [f"C2-mono8-fullterrain-s0-0.067-{d}.npz", f"C2-mono8-s0-0.067-{d}.npz"]
     again = render_scene("C2", 0, 2, tmp_path, terrain_resolution="full")  # read back from its cache
     assert np.array_equal(again.frames[1], full.frames[1])
     assert len(full.frames) == len(half.frames) == 2
@@ -224,11 +225,11 @@ def test_seeds_summary_gives_the_cpu_median_over_every_frame_beside_each_seeds()
 def test_duration_flies_past_the_scenarios_end_and_caches_apart(tmp_path):
     """``--duration``: P1 (10 s) flown 10.5 s, its motions continued: 315 frames, the last labelled, cached
     under its own duration; the default stays the scenario's 300."""
-    from bench.imaging_scenes import render_scene
+    from bench.imaging_scenes import render_scene, world_digest
 
     longer = render_scene("P1", 0, None, tmp_path, duration_s=10.5)
     assert len(longer.frames) == 315 and longer.labels[-1]
-    assert [p.name for p in tmp_path.iterdir()] == ["P1-mono8-s0-10.500.npz"]
+    assert [p.name for p in tmp_path.iterdir()] == [f"P1-mono8-s0-10.500-{world_digest('P1')}.npz"]
     assert len(render_scene("P1", 0, 3, tmp_path, duration_s=10.5).frames) == 3  # --frames still the first N
 
 
