@@ -7,7 +7,8 @@ every ``every``-th frame:
 * ``cloud_cover``: the fraction of the image above the horizon covered by cloud of opacity >= 0.5
   (the cover the camera *sees*, not the layer's ``cover_fraction``);
 * ``in_front_of_cloud``: the fraction of frames whose target centre is in the image, in front of a cloud
-  of opacity >= 0.5 (the layer farther than the target on that pixel); ``behind_cloud``: occluded by one;
+  of opacity >= 0.5 (the layer farther than the target on that pixel); ``behind_cloud``: hidden by one (its
+  contrast through it under 3 NETD);
   ``cloud_edge_crossings``: how often the target went from in front of a cloud to clear sky or back
   (between consecutive measured frames);
 * ``contrast_netd``: the target's peak |signal - local background| in NETD units (its label's

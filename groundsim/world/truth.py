@@ -48,7 +48,8 @@ glints; ``groundsim.world.render.scene.ObjectLabel``) goes to a second file besi
     u_px, v_px                     sub-pixel projection of the object's centre (NaN behind the camera)
     x0_px, y0_px, x1_px, y1_px     box of the pixels holding >= 10 % of its peak signal (end exclusive;
                                    NaN when not drawn)
-    visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5 or inside a
+    visibility                     visible, occluded (its centre behind a cloud of opacity >= 0.5 that leaves it
+                                   under 3 NETD of contrast, or inside a
                                    nearer object's box, or the camera's shutter closed), out_of_frame; a
                                    frozen frame (the camera repeating its last image) repeats that image's rows
     contrast_netd                  peak |signal - local background| in NETD units (0 when not drawn)

@@ -99,7 +99,10 @@ __all__ = [
 ]
 
 FAR_M = 1.0e7  # depth of a ray that meets nothing (finite, so that upsampling stays finite)
-OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque is "occluded"
+OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this opaque ...
+# ... and whose contrast left through it is below this (NETD) is "occluded": a hot jet behind a thin cloud still
+# shows tens of NETD, plainly in the image, and a tracker that follows it must not be scored as a false track
+OCCLUDED_MAX_NETD = 3.0
 BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
 DISTRACTOR_SUPERSAMPLE = 4  # sub-samples per pixel side for ray-cast distractors (the target keeps the renderer's)
@@ -802,6 +805,7 @@ class SceneContent:
             not background.nothing_nearer(*px, range_m)
             and background.depth_window(*px)[0, 0] < range_m
             and background.alpha_window(*px)[0, 0] >= OCCLUDED_ALPHA
+            and contrast < OCCLUDED_MAX_NETD
         )
         vis = "occluded" if behind else "visible"
         return ObjectLabel(o.object_id, o.cls, u, v, box, vis, contrast, range_m, p_ned, bool(warm))
