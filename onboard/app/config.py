@@ -477,6 +477,10 @@ def env_overrides(environ: Mapping[str, str] | None = None) -> dict[str, tuple[A
             # a misspelt section too (IRTRACK_MAVLNK_CONNECTION): one letter off a field's variable, never one of
             # the other IRTRACK_* variables the tools read (IRTRACK_EXTRAS ...), which are < 0.75 alike
             near = difflib.get_close_matches(name, list(by_name), n=1, cutoff=ENV_MISSPELT_RATIO)
+            if name + "_" in sections:  # a whole section in one variable: ignoring it would drop it silently
+                raise OnboardConfigError(
+                    src, "(name)", "one IRTRACK_<SECTION>_<FIELD> variable per field", repr(name), None
+                )
             if any(name.startswith(s) for s in sections) or near:
                 raise OnboardConfigError(
                     src, "(name)", "a known IRTRACK_<SECTION>_<FIELD> variable", repr(name), did_you_mean(name, by_name)

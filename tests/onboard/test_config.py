@@ -372,6 +372,15 @@ def test_bad_environment_value_names_the_variable():
     )
 
 
+def test_a_whole_section_in_one_variable_is_refused_not_ignored():
+    with pytest.raises(
+        OnboardConfigError,
+        match=r"^env IRTRACK_CAMERA: \(name\): expected one IRTRACK_<SECTION>_<FIELD> variable per field, got 'IRTRACK_CAMERA'$",
+    ):
+        env_overrides({"IRTRACK_CAMERA": "{intrinsics: 5}"})
+    assert env_overrides({"IRTRACK_EXTRAS": "sim"}) == {}  # a tool's own variable: not ours
+
+
 def test_unknown_variable_of_a_known_section_is_an_error_with_a_hint():
     with pytest.raises(OnboardConfigError, match=r"did you mean 'IRTRACK_MAVLINK_CONNECTION'\?$"):
         env_overrides({"IRTRACK_MAVLINK_CONECTION": "x"})
