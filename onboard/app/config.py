@@ -107,6 +107,7 @@ __all__ = [
 ]
 
 ENV_PREFIX = "IRTRACK_"
+MAX_LEVER_ARM_M = 50.0  # camera.mount.lever_arm_frd_m: each offset at most this, m
 ENV_ALIASES = {"IRTRACK_HEALTH_FILE": "output.health_file"}
 #: an unknown IRTRACK_* variable at least this alike (difflib's ratio) to a field's variable is taken for a misspelling
 ENV_MISSPELT_RATIO = 0.9
@@ -164,6 +165,16 @@ class MountConfig:
     pitch_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     yaw_deg: Annotated[float, Number(-360.0, 360.0)] = 0.0
     gimballed: Bool = False
+
+    def __post_init__(self) -> None:
+        # the camera's offset from the autopilot's reference point on one airframe: metres at most, so a
+        # value of kilometres is a unit or sign slip that would move every line of sight's origin
+        if any(abs(x) > MAX_LEVER_ARM_M for x in self.lever_arm_frd_m):
+            raise Invalid(
+                "lever_arm_frd_m",
+                f"offsets within +-{MAX_LEVER_ARM_M:g} m (the camera on the airframe)",
+                list(self.lever_arm_frd_m),
+            )
 
     def camera_mount(self) -> CameraMount:
         return CameraMount.from_euler_deg(

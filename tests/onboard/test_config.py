@@ -372,6 +372,15 @@ def test_bad_environment_value_names_the_variable():
     )
 
 
+def test_a_lever_arm_of_kilometres_is_refused_naming_the_field():
+    with pytest.raises(OnboardConfigError, match=r"camera.mount.lever_arm_frd_m: expected offsets within \+-50 m"):
+        build_config({"camera": {"mount": {"lever_arm_frd_m": [1e9, 0.0, 0.0]}}})
+    assert (
+        build_config({"camera": {"mount": {"lever_arm_frd_m": [0.3, 0.0, -0.1]}}}).camera.mount.lever_arm_frd_m[0]
+        == 0.3
+    )
+
+
 def test_a_whole_section_in_one_variable_is_refused_not_ignored():
     with pytest.raises(
         OnboardConfigError,
