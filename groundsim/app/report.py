@@ -61,6 +61,46 @@ def flight_inputs(rec) -> tuple[dict, dict]:
     return poses, frames
 
 
+#: a truth recording whose camera looked elsewhere than the flight's telemetry says (median angle between the two
+#: optical axes over the frames both have, deg), or whose observer was elsewhere (median, m), is another run's:
+#: navigation errors are a tenth of a degree and centimetres (RTK) to a few metres (GNSS); another scenario's
+#: camera points at another target (the audit's P1 flight against a P3 truth: 104 deg apart, observers 3 m)
+TRUTH_MATCH_MAX_DEG = 5.0
+TRUTH_MATCH_MAX_M = 25.0
+
+
+def truth_mismatch(inputs: list, truth: list) -> str | None:
+    """Why ``truth`` (``irtrack.truth/1`` rows) is not the truth of the flight whose pipeline ``inputs`` these are,
+    or None: the flight's frames must have truth rows at their capture times, and the camera the truth flew must
+    be where, and look where, the flight's telemetry says (medians over the frames both have)."""
+    import numpy as np
+
+    from onboard.core.frames import GeodeticOrigin, ned_from_geodetic, rotmat_from_quat
+
+    rows = {int(r["time_boot_us"]): r for r in truth if r.get("time_boot_us") is not None}
+    posed = [(int(i["time_boot_us"]), i["pose"]) for i in inputs if i.get("pose") is not None]
+    both = [(rows[t], pose) for t, pose in posed if t in rows]
+    if not both:
+        return f"none of the flight's {len(posed)} posed frames has a truth row at its capture time"
+    miss_m, miss_deg = [], []
+    for row, pose in both:
+        o = pose["origin"]
+        origin = GeodeticOrigin(o["lat_deg"], o["lon_deg"], o["alt_m"])
+        truth_ned = ned_from_geodetic(row["observer_lat_deg"], row["observer_lon_deg"], row["observer_alt_m"], origin)
+        miss_m.append(float(np.hypot(*(np.asarray(truth_ned[:2]) - np.asarray(pose["p_ned_m"][:2])))))
+        q_truth = [row[f"q_ned_from_cam_{c}"] for c in "wxyz"]
+        axes = rotmat_from_quat(np.asarray(pose["q_ned_from_cam"]))[:, 2] @ rotmat_from_quat(np.asarray(q_truth))[:, 2]
+        miss_deg.append(float(np.degrees(np.arccos(np.clip(axes, -1.0, 1.0)))))
+    deg, metres = float(np.median(miss_deg)), float(np.median(miss_m))
+    if deg > TRUTH_MATCH_MAX_DEG or metres > TRUTH_MATCH_MAX_M:
+        return (
+            f"its camera looked {deg:.1f} deg away from, and its observer was {metres:.0f} m from, where the flight's "
+            f"telemetry put them (medians over {len(both)} frames; at most {TRUTH_MATCH_MAX_DEG:g} deg and "
+            f"{TRUTH_MATCH_MAX_M:g} m for one flight): the simulator's recording of another run"
+        )
+    return None
+
+
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
@@ -85,6 +125,9 @@ def cmd_report(args) -> int:
                 raise InputError(
                     f"--truth {args.truth}: no /groundsim/truth messages (groundsim run --record writes them)"
                 )
+            why = truth_mismatch(rec.inputs, truth)
+            if why is not None:
+                raise InputError(f"--truth {args.truth}: not the truth of {args.mcap}: {why}")
         config = config_of(rec, args.config)
         res = replay(rec, config)
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)

@@ -77,3 +77,57 @@ def test_a_truth_file_without_truth_and_an_out_that_cannot_be_made_are_refused_b
     p = _report(recorded.daemon_mcap, "--out", tmp_path / "afile" / "r")
     assert p.returncode == 2 and "cannot create the directory" in p.stderr, p.stderr[-3000:]
     assert "replayed" not in p.stderr  # refused before the replay
+
+
+def test_a_truth_of_another_run_is_told_from_this_flights_by_where_the_camera_was_and_looked():
+    """truth_mismatch: the truth rows' camera against the one the flight's telemetry placed, frame by frame; another
+    run's camera looking elsewhere (the audit's case: observers 3 m apart, axes 104 deg) or flying elsewhere, or a
+    truth with none of the flight's capture times, is named; a tenth of a degree and decimetres of navigation error
+    are one flight."""
+    import math
+
+    from groundsim.app.report import TRUTH_MATCH_MAX_DEG, TRUTH_MATCH_MAX_M, truth_mismatch
+    from onboard.core.frames import GeodeticOrigin, geodetic_from_ned1
+
+    def q_yaw(deg):
+        h = math.radians(deg) / 2  # turned about north: the optical axis (the camera's z) turns by deg
+        return [math.cos(h), math.sin(h), 0.0, 0.0]
+
+    origin = GeodeticOrigin(32.0, 118.8, 10.0)
+    inputs, truth = [], []
+    for k in range(20):
+        t_us = 1_000_000 + 33_333 * k
+        p = [5.0 * k, 2.0 * k, -100.0]
+        inputs.append(
+            {"time_boot_us": t_us, "pose": {"p_ned_m": p, "origin": vars(origin), "q_ned_from_cam": q_yaw(30)}}
+        )
+        lat, lon, alt = geodetic_from_ned1(p[0] + 0.3, p[1] - 0.2, p[2], origin)  # decimetres of navigation error
+        row = {"time_boot_us": t_us, "observer_lat_deg": lat, "observer_lon_deg": lon, "observer_alt_m": alt}
+        truth.append(
+            row
+            | dict(zip(("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z"), q_yaw(30.1)))
+        )
+    assert truth_mismatch(inputs, truth) is None
+    elsewhere = []
+    for row, inp in zip(truth, inputs):
+        p = inp["pose"]["p_ned_m"]
+        lat, lon, alt = geodetic_from_ned1(p[0] + 2 * TRUTH_MATCH_MAX_M, p[1], p[2], origin)
+        elsewhere.append({**row, "observer_lat_deg": lat, "observer_lon_deg": lon, "observer_alt_m": alt})
+    why = truth_mismatch(inputs, elsewhere)
+    assert why is not None and "its observer was 50 m from" in why and "medians over 20 frames" in why
+    turned = [
+        {
+            **row,
+            **dict(
+                zip(
+                    ("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z"),
+                    q_yaw(30 + 2 * TRUTH_MATCH_MAX_DEG),
+                )
+            ),
+        }
+        for row in truth
+    ]
+    why = truth_mismatch(inputs, turned)
+    assert why is not None and why.startswith("its camera looked 10.0 deg away from")
+    later = [{**row, "time_boot_us": row["time_boot_us"] + 7} for row in truth]
+    assert truth_mismatch(inputs, later) == "none of the flight's 20 posed frames has a truth row at its capture time"
