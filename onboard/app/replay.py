@@ -313,7 +313,8 @@ def config_of(rec: Recording, config_path: str | None = None, overrides: dict | 
         for k in keys[:-1]:
             node = node.setdefault(k, {})
         node[keys[-1]] = value
-    return build_config(raw, f"{rec.path} (metadata config_yaml)")
+    # an override's error names its option (--set), the rest the recording's metadata
+    return build_config(raw, f"{rec.path} (metadata config_yaml)", {p: src for p, (_v, src) in ov.items()})
 
 
 def recorded_worker(rec: Recording) -> str | None:

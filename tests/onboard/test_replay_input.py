@@ -269,3 +269,19 @@ def test_compare_exits_3_when_the_replay_differs_from_the_recording(recording, t
     assert main([str(copy), "--compare"]) == code
     out = capsys.readouterr().out.splitlines()
     assert all(any(ln.startswith(want) for ln in out) for want in lines), out
+
+
+def test_a_bad_set_on_a_recordings_configuration_names_the_option_not_the_file():
+    import types
+
+    import yaml
+
+    from onboard.app.config import OnboardConfigError, build_config, config_to_dict
+    from onboard.app.replay import config_of
+
+    rec = types.SimpleNamespace(
+        path="F.mcap", metadata={"config_yaml": yaml.safe_dump(config_to_dict(build_config({})))}
+    )
+    with pytest.raises(OnboardConfigError, match=r"^--set: camera.intrinsics.fx_px: expected a number in \(0, "):
+        config_of(rec, None, {"camera.intrinsics.fx_px": (-1.0, "--set")})
+    assert config_of(rec, None, {"camera.intrinsics.fx_px": (400.0, "--set")}).camera.intrinsics.fx_px == 400.0
