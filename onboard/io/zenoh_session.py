@@ -321,7 +321,11 @@ def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
                 f"zenoh: no peer reachable at {', '.join(settings.connect) or 'the configured endpoints'}"
                 f" within {settings.connect_timeout_s:g} s"
             ) from None
-        raise ZenohSessionError(f"zenoh: cannot open session: {msg}") from None
+        endpoints = [f"listen {e}" for e in settings.listen] + [f"connect {e}" for e in settings.connect]
+        if settings.config_file is not None:
+            endpoints.append(f"{file_option} {settings.config_file}")
+        on = f" ({', '.join(endpoints)})" if endpoints else ""
+        raise ZenohSessionError(f"zenoh: cannot open session{on}: {msg}") from None
     if settings.connect and settings.connect_timeout_s is None:
         try:
             peers = list(session.info.peers_zid()) + list(session.info.routers_zid())

@@ -114,3 +114,10 @@ def test_a_zenoh_config_file_that_is_a_folder_is_called_one():
 
     with pytest.raises(ZenohConfigError, match=r"/tmp: a folder, not a file$"):
         build_config(ZenohConfig(config_file="/tmp"))
+
+
+def test_a_session_that_cannot_open_names_its_endpoints():
+    from onboard.io.zenoh_session import ZenohSessionError
+
+    with pytest.raises(ZenohSessionError, match=r"^zenoh: cannot open session \(listen tcp/999\.1\.1\.1:7447\): "):
+        open_session(ZenohConfig(listen=("tcp/999.1.1.1:7447",)))
