@@ -129,7 +129,9 @@ def test_params_from_mapping():
         ImagingParams.from_mapping({"mean_kernel": 3}, where="onboard.yaml")
     with pytest.raises(ConfigError, match=r"^cfg: imaging.mean_kernel_px: expected an integer in \[1, 31\], got 5.0$"):
         ImagingParams.from_mapping({"mean_kernel_px": 5.0}, where="cfg")
-    with pytest.raises(ConfigError, match=r"^cfg: imaging.coast_frames: expected an integer in \[0, 100000\], got 2.5$"):
+    with pytest.raises(
+        ConfigError, match=r"^cfg: imaging.coast_frames: expected an integer in \[0, 100000\], got 2.5$"
+    ):
         ImagingParams.from_mapping({"coast_frames": 2.5}, where="cfg")
     with pytest.raises(ConfigError, match=r"^cfg: imaging.max_drift_px: expected a number in \[0, 4096\], got '3'$"):
         ImagingParams.from_mapping({"max_drift_px": "3"}, where="cfg")
