@@ -71,6 +71,8 @@ def make_out_dir(path, option: str = "--out") -> Path:
     """``option``'s directory, created (with its parents) if missing; a ConfigError naming ``option`` when it cannot
     be."""
     out = Path(path)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{option} {out}: a file, not a directory; give a directory (made if missing)")
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:

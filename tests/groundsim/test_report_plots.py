@@ -144,3 +144,14 @@ def test_report_texts_state_the_default_of_unobservable_positions_truly():
         found += [(path.name, m.group(1) or m.group(2)) for m in stated.finditer(text)]
     found += [("DEFINITIONS", m.group(1) or m.group(2)) for m in stated.finditer(" ".join(DEFINITIONS.values()))]
     assert len(found) >= 3 and all(value == default for _, value in found), found
+
+
+def test_an_out_directory_that_is_a_file_is_called_one(tmp_path):
+    from groundsim.evaluation.report import make_out_dir
+    from onboard.core.errors import ConfigError
+
+    afile = tmp_path / "results.txt"
+    afile.write_text("kept\n")
+    with pytest.raises(ConfigError, match=r"^--out .*results.txt: a file, not a directory; give a directory"):
+        make_out_dir(afile)
+    assert afile.read_text() == "kept\n" and make_out_dir(tmp_path / "new" / "deeper").is_dir()
