@@ -92,9 +92,20 @@ def add_set_option(p: argparse.ArgumentParser, help_text: str) -> None:
     p.add_argument("--set", metavar="FIELD.PATH=VALUE", action="append", default=[], help=help_text)
 
 
+def _tcp_port(text: str) -> int:
+    """A TCP port to listen on, 1..65535 (as ``live_view.port``), checked when the command line is read."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port 1..65535, got {text!r}") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port 1..65535, got {text!r}")
+    return port
+
+
 def add_live_view_option(p: argparse.ArgumentParser, help_text: str) -> None:
-    """``--live-view PORT``: ``args.live_view``, the Foxglove WebSocket port (None when not given)."""
-    p.add_argument("--live-view", metavar="PORT", type=int, help=help_text)
+    """``--live-view PORT``: ``args.live_view``, the Foxglove WebSocket port (None when not given), 1..65535."""
+    p.add_argument("--live-view", metavar="PORT", type=_tcp_port, help=help_text)
 
 
 def config_overrides(

@@ -31,11 +31,12 @@ def test_the_options_parse_to_their_names_and_types():
     assert (args.config, args.set, args.live_view) == (None, [], None)
 
 
-def test_a_live_view_port_that_is_not_a_number_is_a_usage_error(capsys):
+@pytest.mark.parametrize("text", ["x", "0", "99999", "-1"])
+def test_a_live_view_port_that_is_not_a_port_is_a_usage_error(capsys, text):
     with pytest.raises(SystemExit) as exc:
-        _parser().parse_args(["--live-view", "x"])
+        _parser().parse_args(["--live-view", text])
     assert exc.value.code == 2
-    assert capsys.readouterr().err.startswith("t: argument --live-view: invalid int value")
+    assert capsys.readouterr().err.startswith(f"t: argument --live-view: expected a port 1..65535, got '{text}'")
 
 
 def test_overrides_parse_each_set_and_an_option_wins_over_a_set_of_its_field():
