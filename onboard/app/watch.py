@@ -164,6 +164,16 @@ ZENOH_CONNECT_HELP = (
 )
 
 
+def _vehicle(text: str) -> str:
+    """``--vehicle``: one zenoh key chunk, checked when the command line is read (the error names the option)."""
+    from onboard.io.zenoh_session import check_vehicle_name
+
+    try:
+        return check_vehicle_name(text)
+    except IrtrackError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m onboard.watch",
@@ -171,7 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
         "one line each, then a summary.",
     )
     p.add_argument(
-        "--vehicle", default="uav1", help="vehicle name in the zenoh key irtrack/<vehicle>/track (default uav1)"
+        "--vehicle",
+        default="uav1",
+        type=_vehicle,
+        help="vehicle name in the zenoh key irtrack/<vehicle>/track (default uav1)",
     )
     p.add_argument(
         "--seconds",
@@ -245,7 +258,10 @@ def _receive(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # a usage error, said on one line: its code is the command's
+        return exc.code if isinstance(exc.code, int) else EXIT_CONFIG
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     out = sys.stdout

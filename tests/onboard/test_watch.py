@@ -139,7 +139,7 @@ def test_bad_seconds_exit_2_on_one_line(seconds, capsys):
 
 @pytest.mark.parametrize(
     ("argv", "words"),
-    [(["--vehicle", "uav 1"], "vehicle name"), (["--zenoh-connect", "bogus"], "--zenoh-connect")],
+    [(["--vehicle", "uav 1"], "argument --vehicle: vehicle name"), (["--zenoh-connect", "bogus"], "--zenoh-connect")],
 )
 def test_bad_zenoh_options_exit_2_on_one_line(argv, words, capsys):
     assert main([*argv, "--seconds", "1"]) == EXIT_CONFIG
