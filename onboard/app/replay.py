@@ -69,7 +69,13 @@ from collections.abc import Iterator, Sequence  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 from typing import Any  # noqa: E402
 
-from onboard.app.cli_args import add_config_option, add_live_view_option, add_set_option, config_overrides  # noqa: E402
+from onboard.app.cli_args import (  # noqa: E402
+    OneLineParser,
+    add_config_option,
+    add_live_view_option,
+    add_set_option,
+    config_overrides,
+)
 from onboard.app.output_files import same_file_clash  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
 from onboard.io.foxglove_messages import OBJECTS_SCHEMA, irframe_from_rawimage  # noqa: E402
@@ -718,7 +724,7 @@ def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = OneLineParser(
         prog="python -m onboard.replay",
         description=__doc__.split("\n\n")[0],
         epilog=f"Exit 0 done (with --compare: no difference); {EXIT_CONFIG} an unreadable or damaged recording, an "

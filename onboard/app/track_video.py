@@ -64,6 +64,7 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+from onboard.app.cli_args import OneLineParser  # noqa: E402
 from onboard.app.output_files import create_beside, not_a_file, same_file_clash  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
@@ -352,7 +353,7 @@ class _Replacement:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0])
     p.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a MOT / Anti-UAV sequence")
     p.add_argument("--out", metavar="tracks.txt", required=True, help="the MOT-format tracks to write")
     p.add_argument("--encoding", choices=ENCODINGS, default="auto", help="pixel depth (default: %(default)s)")

@@ -77,3 +77,15 @@ def test_reconstruct_outputs_apart_from_the_input_still_pass_the_check(tmp_path,
         )
         is None
     )
+
+
+@pytest.mark.parametrize("module", ["onboard.replay", "onboard.track_video"])
+def test_a_usage_mistake_is_one_line_naming_the_command(module, capsys):
+    import importlib
+
+    main = importlib.import_module(module.replace("onboard.", "onboard.app.")).main
+    with pytest.raises(SystemExit) as exc:
+        main(["--no-such-option"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"python -m {module}: "), err
