@@ -73,18 +73,57 @@ BAD_VALUES = [
 ]
 
 
-@pytest.mark.parametrize("argv, option", BAD_VALUES, ids=[" ".join(a) for a, _ in BAD_VALUES])
-def test_a_bad_value_is_refused_on_one_line_naming_the_option(argv, option, tmp_path):
-    garbage = tmp_path / "garbage.txt"
+# every case runs in one child process, each as python -m would run it, with the argv it would get (one
+# interpreter start instead of one per case: the cases only parse their command lines); a case that were not
+# refused would start measuring, which the child's time limit stops
+_DRIVER = r"""
+import contextlib, io, json, runpy, sys, traceback
+out = []
+for argv in json.loads(sys.argv[1]):
+    module, args = argv[0], argv[1:]
+    err, std = io.StringIO(), io.StringIO()
+    code = None
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(std):
+        try:
+            sys.argv = [module, *args]
+            runpy.run_module(module, run_name="__main__", alter_sys=True)  # as python -m MODULE ARGS
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        except BaseException:
+            traceback.print_exc()
+            code = 1
+    out.append({"code": code, "stderr": err.getvalue(), "stdout": std.getvalue()})
+print(json.dumps(out))
+"""
+
+
+@pytest.fixture(scope="module")
+def refusals(tmp_path_factory):
+    """``{case index: {"code", "stderr", "stdout"}}`` of every BAD_VALUES case, run in one child process."""
+    import json
+
+    tmp = tmp_path_factory.mktemp("refusals")
+    garbage = tmp / "garbage.txt"
     garbage.write_text("neither JSON nor MCAP\n")
-    foreign = tmp_path / "foreign.json"
+    foreign = tmp / "foreign.json"
     foreign.write_text('{"runs": [{"family": "circling"}]}')
-    paths = {"missing": tmp_path / "missing.json", "garbage": garbage, "foreign": foreign, "nodir": tmp_path / "no"}
-    args = [a.format(**{k: str(v) for k, v in paths.items()}) for a in argv]
-    proc = subprocess.run([sys.executable, "-m", *args], cwd=REPO, capture_output=True, text=True, timeout=120)
-    assert proc.returncode == 2, proc.stdout[-2000:] + proc.stderr[-2000:]
-    assert "Traceback" not in proc.stderr, proc.stderr[-3000:]
-    lines = proc.stderr.splitlines()
-    assert len(lines) == 1, proc.stderr
+    paths = {"missing": tmp / "missing.json", "garbage": garbage, "foreign": foreign, "nodir": tmp / "no"}
+    cases = [[a.format(**{k: str(v) for k, v in paths.items()}) for a in argv] for argv, _ in BAD_VALUES]
+    proc = subprocess.run(
+        [sys.executable, "-c", _DRIVER, json.dumps(cases)], cwd=REPO, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return dict(enumerate(json.loads(proc.stdout.splitlines()[-1])))
+
+
+@pytest.mark.parametrize("k", range(len(BAD_VALUES)), ids=[" ".join(a) for a, _ in BAD_VALUES])
+def test_a_bad_value_is_refused_on_one_line_naming_the_option(refusals, k):
+    option = BAD_VALUES[k][1]
+    got = refusals[k]
+    assert got["code"] == 2, got["stdout"][-2000:] + got["stderr"][-2000:]
+    assert "Traceback" not in got["stderr"], got["stderr"][-3000:]
+    lines = got["stderr"].splitlines()
+    assert len(lines) == 1, got["stderr"]
     assert f"error: argument {option}: " in lines[0], lines[0]
-    assert proc.stdout == ""  # refused before anything was measured or printed
+    assert got["stdout"] == ""  # refused before anything was measured or printed
