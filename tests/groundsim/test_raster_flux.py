@@ -166,7 +166,7 @@ def test_unresolved_targets_integral_times_range_squared_is_constant(renderer_cl
     assert scaled.max() / scaled.min() - 1.0 <= SPREAD_RTOL, scaled
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=10, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     range_m=st.floats(250.0, 1000.0),
     u=st.floats(60.0, 580.0),

@@ -361,7 +361,7 @@ def test_frames_stepped_away_from_the_telemetry_too_confirm_after_half_a_second_
     assert rig.counter["frame_time_reset"] == 1
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
     n_bogus=st.integers(1, 14),
     offset_s=st.sampled_from([3600.0, -15.0, 5.0, -2.5, 1e5]),
