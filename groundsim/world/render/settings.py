@@ -76,8 +76,11 @@ class TargetPart:
 def default_target_parts() -> tuple[TargetPart, ...]:
     """A small F450-class quad-rotor, symmetric about its centre in plan view.
 
-    Body plate and arms at 305 K, four motors at the arm tips at 330 K, a battery on the centre
-    at 312 K (all painted/plastic, emissivity 0.9; motors anodised metal, 0.8).
+    Body plate and arms at 305 K, four motors at 330 K on the diagonals (450 mm apart), a battery on the
+    centre at 312 K (all painted/plastic, emissivity 0.9; motors anodised metal, 0.8).  The parts are boxes
+    and ellipsoids along the body axes, so the arms are a "+" of 0.32 m along them rather than the diagonals
+    reaching the motors: their plan area 0.015 m^2 against 0.022 m^2 for diagonal arms (the target a little
+    dimmer in plan view than a real F450), its shape at a few pixels alike.
     """
     arm = 0.225 / 2**0.5  # 450 mm motor-to-motor diagonal
     parts = [
