@@ -93,6 +93,17 @@ def test_compare_within_sigma_counts_the_positions_beyond_the_recorded_covarianc
     assert compare_within_sigma(recorded, replayed, gate_sigma=2.0).beyond == 2
 
 
+def test_a_workers_recording_differs_only_beyond_what_its_timing_explains():
+    """A few tenths of a per cent of the positions a little beyond 3 sigma are chance (a newcomer's recording of the
+    shipped flow: 3 of 691, at most 3.7 sigma); over 1 % beyond, or one past 6 sigma, is a difference."""
+    from onboard.app.replay import SigmaComparison, beyond_a_workers_sigma
+
+    assert not beyond_a_workers_sigma(SigmaComparison(691, 3, 3.7, 0, 3.0))
+    assert beyond_a_workers_sigma(SigmaComparison(691, 8, 4.1, 0, 3.0))
+    assert beyond_a_workers_sigma(SigmaComparison(691, 1, 10.0, 0, 3.0))
+    assert not beyond_a_workers_sigma(SigmaComparison(0, 0, 0.0, 0, 3.0))
+
+
 @pytest.mark.parametrize("content", [b"", b"not a recording at all\n", b"\x89MCA"], ids=["empty", "text", "cut"])
 @pytest.mark.parametrize("with_config", [False, True], ids=["metadata", "config"])
 def test_a_file_that_is_not_mcap_is_refused_in_one_line(tmp_path, capsys, content, with_config):
