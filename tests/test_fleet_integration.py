@@ -35,6 +35,14 @@ def test_two_daemons_and_the_fusion_triangulate_f1(tmp_path):
     for m in both:
         assert m["schema"] == "irtrack.fleet_track/1"
         assert all(c["rays"] >= 1 and c["range_m"] > 0 for c in m["vehicles"])
+    # what `onboard.watch --vehicle fleet` prints of them: the fusion's own payloads, read as a watcher reads them
+    import json
+
+    from onboard.app.watch import _fleet_track, format_fleet_track
+
+    line = format_fleet_track(_fleet_track(json.dumps(both[-1]).encode()))
+    assert f"target {both[-1]['target_id']}" in line and " UTC " in line, line
+    assert sorted(line.split("  from ")[1].split("  ")[0].split(", ")) == sorted(VEHICLES), line
     for v in VEHICLES:  # the daemons' own tracks came through the same router
         assert any(obj.get("los_ned") is not None for _, obj in rec.tracks.get(v, []))
 

@@ -4,7 +4,8 @@
                             [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                             [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
 
-It subscribes ``irtrack/<vehicle>/track`` (schema ``irtrack.track/2``, :mod:`onboard.core.track`) and
+It subscribes ``irtrack/<vehicle>/track`` (schema ``irtrack.track/2``, :mod:`onboard.core.track`; with
+``--vehicle fleet`` the fusion's ``irtrack.fleet_track/1``, :func:`format_fleet_track`) and
 prints one line per track (:func:`format_track`): the frame's capture time on the autopilot's boot clock,
 the tracker's state, then the 3-D position (WGS84 and local NED) with its 1-sigma per NED axis, the range
 and its relative sigma when the estimator has one, else the line of sight (azimuth / elevation), else the
@@ -49,6 +50,7 @@ __all__ = [
     "EXIT_INTERRUPTED",
     "WatchCounts",
     "format_track",
+    "format_fleet_track",
     "summary_line",
     "interrupted_line",
     "build_parser",
@@ -78,6 +80,15 @@ class WatchCounts:
     first_position_s: float | None = None
     first_observable_s: float | None = None
     bad: int = 0
+
+    def add_fleet(self, obj: dict) -> None:
+        """One ``irtrack.fleet_track/1`` (the fusion's output): a position always, a line of sight never, its time
+        UTC (no boot time, so no "first at t")."""
+        self.tracks += 1
+        if obj.get("lat_deg") is not None:
+            self.with_position += 1
+        if obj.get("observable"):
+            self.observable += 1
 
     def add(self, track: Track) -> None:
         t_s = track.time_boot_us / 1e6
@@ -130,6 +141,45 @@ def format_track(track: Track) -> str:
     return "  ".join(parts)
 
 
+def format_fleet_track(obj: dict) -> str:
+    """One readable line for an ``irtrack.fleet_track/1`` (``python -m onboard.fuse``'s ``irtrack/fleet/track``):
+    the UTC time of day, the fleet's target id, its position (WGS84, NED about the fleet's origin) with the
+    1-sigma per axis, the vehicles whose lines of sight it was triangulated from, and the verdict."""
+    t_us = obj.get("time_unix_us")
+    when = (
+        "-"
+        if t_us is None
+        else time.strftime("%H:%M:%S", time.gmtime(t_us / 1e6)) + f".{int(t_us) % 1_000_000 // 1000:03d}"
+    )
+    parts = [f"{when} UTC", f"target {obj.get('target_id')}"]
+    lat, lon, alt = obj.get("lat_deg"), obj.get("lon_deg"), obj.get("alt_m")
+    if lat is not None and lon is not None and alt is not None:
+        parts.append(f"lat {lat:.6f} lon {lon:.6f} alt {alt:.1f} m")
+    ned = obj.get("ned_m")
+    if ned is not None:
+        parts.append("ned " + " ".join(_f(x, ".1f") for x in ned) + " m")
+    sigma = obj.get("sigma_ned_m")
+    if sigma is not None:
+        parts.append("sigma " + " ".join(_f(x, ".1f") for x in sigma) + " m")
+    vehicles = [v.get("vehicle") for v in obj.get("vehicles") or [] if isinstance(v, dict)]
+    parts.append("from " + (", ".join(str(v) for v in vehicles) if vehicles else "-"))
+    parts.append("observable " + ("yes" if obj.get("observable") else "no"))
+    return "  ".join(parts)
+
+
+def _fleet_track(payload: bytes) -> dict | None:
+    """The payload as an ``irtrack.fleet_track/1`` object, or None when it is not one."""
+    import json
+
+    from onboard.io.fleet_wire import FLEET_TRACK_SCHEMA
+
+    try:
+        obj = json.loads(payload)
+    except ValueError:
+        return None
+    return obj if isinstance(obj, dict) and obj.get("schema") == FLEET_TRACK_SCHEMA else None
+
+
 def _counts_text(counts: WatchCounts) -> str:
     return f"{counts.with_position} with position, {counts.observable} observable"
 
@@ -147,6 +197,8 @@ def summary_line(counts: WatchCounts, seconds: float) -> str:
         text += f" (first at t {counts.first_observable_s:.1f} s)"
     if counts.bad:
         text += f"; {counts.bad} payloads were not tracks"
+    if counts.tracks + counts.bad == 0:
+        text += "; nothing arrived: is the daemon running, and zenoh connected to it?"
     return text
 
 
@@ -247,6 +299,13 @@ def _receive(
         try:
             track = track_from_json(payload)
         except InputError as exc:
+            fleet = _fleet_track(payload)  # --vehicle fleet: the fusion's triangulated targets
+            if fleet is not None:
+                counts.add_fleet(fleet)
+                print(
+                    payload.decode("utf-8", "replace") if as_json else format_fleet_track(fleet), file=out, flush=True
+                )
+                continue
             counts.bad += 1
             if as_json:
                 print(payload.decode("utf-8", "replace"), file=out, flush=True)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import json
+import queue
 import signal
 import subprocess
 import sys
@@ -102,7 +104,8 @@ def test_counts_summary_and_interrupted_lines():
     counts.bad = 2
     assert summary_line(counts, 1.0).endswith("; 2 payloads were not tracks")
     assert summary_line(WatchCounts(), 0.5) == (
-        "summary: 0 tracks in 0.5 s, 0 with line of sight, 0 with position, 0 observable"
+        "summary: 0 tracks in 0.5 s, 0 with line of sight, 0 with position, 0 observable; nothing arrived: is the "
+        "daemon running, and zenoh connected to it?"
     )
 
 
@@ -282,3 +285,52 @@ def test_ctrl_c_exits_130_with_one_interrupted_line(publisher):
     assert lines[-1] == "interrupted: 4 tracks received, 2 with position, 1 observable"
     assert not any(line.startswith("summary") for line in lines)
     assert err == ""
+
+
+def _fleet_payload(observable: bool) -> bytes:
+    """An irtrack.fleet_track/1 as onboard.fuse publishes it (onboard.io.fleet_wire.fleet_track_json's keys)."""
+    return json.dumps(
+        {
+            "schema": "irtrack.fleet_track/1",
+            "seq": 7,
+            "target_id": 3,
+            "time_unix_us": 1_767_268_803_250_000,  # 2026-01-01T12:00:03.250Z
+            "lat_deg": 32.001234,
+            "lon_deg": 118.801234,
+            "alt_m": 101.5,
+            "ned_m": [136.8, 116.1, -101.5],
+            "origin": {"lat_deg": 32.0, "lon_deg": 118.8, "alt_m": 0.0},
+            "vel_ned_mps": [0.0, 5.0, 0.0],
+            "sigma_ned_m": [0.4, 0.5, 0.3],
+            "sigma_vel_ned_mps": [0.2, 0.2, 0.1],
+            "cov_ned_m2": [[0.16, 0, 0], [0, 0.25, 0], [0, 0, 0.09]],
+            "range_sigma_ratio": 0.002,
+            "observable": observable,
+            "vehicles": [{"vehicle": "uav1"}, {"vehicle": "uav2"}],
+        }
+    ).encode()
+
+
+def test_the_fleet_key_shows_the_fusions_targets_one_line_each():
+    """--vehicle fleet subscribes irtrack/fleet/track, where onboard.fuse publishes irtrack.fleet_track/1: each is a
+    line (not 'not a track') and counts in the summary."""
+    from onboard.app.watch import _receive, format_fleet_track
+
+    line = format_fleet_track(json.loads(_fleet_payload(True)))
+    assert line.startswith(
+        "12:00:03.250 UTC  target 3  lat 32.001234 lon 118.801234 alt 101.5 m  ned 136.8 116.1 -101.5 m"
+    )
+    assert line.endswith("sigma 0.4 0.5 0.3 m  from uav1, uav2  observable yes")
+    inbox: queue.Queue[bytes] = queue.Queue()
+    for obs in (False, True):
+        inbox.put(_fleet_payload(obs))
+    counts, out, err = WatchCounts(), io.StringIO(), io.StringIO()
+    _receive(inbox, counts, seconds=0.6, as_json=False, out=out, err=err, hint="")
+    assert out.getvalue().count("target 3") == 2 and err.getvalue() == ""
+    assert (counts.tracks, counts.with_position, counts.observable, counts.bad) == (2, 2, 1, 0)
+
+
+def test_a_summary_of_nothing_says_what_to_check():
+    assert summary_line(WatchCounts(), 2.0).endswith(
+        "; nothing arrived: is the daemon running, and zenoh connected to it?"
+    )
