@@ -334,7 +334,9 @@ class UdpTransport:
         self.fixed: tuple[str, int] | None = None
         try:
             if kind == "udpin":
-                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                # a plain bind, no SO_REUSEADDR: with it a second daemon on the same port bound silently and the
+                # kernel handed each datagram to one of the two; without it the second one's open fails (counted
+                # mavlink_open_failed, retried; no_mavlink warns) while the first holds the port
                 self.sock.bind((host, port))
             else:
                 self.fixed = (socket.gethostbyname(host), port)

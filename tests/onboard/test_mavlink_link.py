@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import select
 import time
@@ -559,3 +560,18 @@ def test_gps_raw_int_is_decoded_into_the_gnss_state_and_a_bad_fix_type_counted(r
     rig.clock.t_s = 52.5
     s = rig.link.status().gnss
     assert (s["fix"], s["satellites"], s["age_s"], s["degraded_s"], s["hdop"]) == ("no_fix", 0, 1.5, 1.5, None)
+
+
+def test_a_second_link_on_a_port_another_holds_is_refused_and_counted_not_shared(rig, caplog):
+    """A second daemon on the first one's udpin port: its open fails (counted, retried) instead of binding beside
+    it, where the kernel would hand each datagram to one of the two; the first one still gets every heartbeat."""
+    with caplog.at_level(logging.WARNING):
+        _clock, counter, _pose, second = loopback_link(rig.port, GeodeticOrigin(LAT0, LON0, ALT0), gimballed=False)
+    try:
+        assert second.fileno() is None
+        assert counter["mavlink_open_failed"] == 1
+        assert f"mavlink_open_failed: udpin:127.0.0.1:{rig.port}: [Errno 98] Address already in use" in caplog.text
+        rig.heartbeats(2)
+        assert rig.drive(lambda: rig.link.status().messages_rx >= 2)
+    finally:
+        second.close()
