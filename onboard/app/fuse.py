@@ -549,7 +549,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
         signal.signal(signal.SIGTERM, lambda *_: stop.set())
         which = "all vehicles" if args.vehicles is None else " ".join(args.vehicles)
-        log.info("fusing %s from %s on %s", which, TRACKS_KEY_EXPR, ", ".join(settings.connect + settings.listen))
+        where = list(settings.connect + settings.listen) + (
+            [f"--zenoh-config {settings.config_file}"] if settings.config_file is not None else []
+        )
+        log.info("fusing %s from %s on %s", which, TRACKS_KEY_EXPR, ", ".join(where) or "zenoh's defaults")
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):

@@ -878,7 +878,8 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
             print(f"tracks: {args.out}")
         if args.objects_out:
             _write_tracks(args.objects_out, res.objects, _Progress())
-            print(f"objects: {args.objects_out} ({len(res.objects)} frames)")
+            note = "" if res.objects else "; the objects chain makes them: --set imaging.chain=objects"
+            print(f"objects: {args.objects_out} ({len(res.objects)} frames{note})")
     except InputError as exc:  # an output that could be opened before the replay but not written now (disk full)
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

@@ -319,7 +319,8 @@ def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
         if "unable to connect" in low:
             raise ZenohSessionError(
                 f"zenoh: no peer reachable at {', '.join(settings.connect) or 'the configured endpoints'}"
-                f" within {settings.connect_timeout_s:g} s"
+                f" within {settings.connect_timeout_s:g} s: start it first (the daemon's or a router's listener), or"
+                " wait longer (--zenoh-connect-timeout)"
             ) from None
         endpoints = [f"listen {e}" for e in settings.listen] + [f"connect {e}" for e in settings.connect]
         if settings.config_file is not None:

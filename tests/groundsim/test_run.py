@@ -412,7 +412,7 @@ def test_unreachable_zenoh_peer_is_one_line_exit_2(capsys):
             "--mavlink",
             f"udpout:127.0.0.1:{free_udp_port()}",
         ],
-        "no peer reachable",
+        "within 0.5 s: start it first (the daemon's or a router's listener), or wait longer (--zenoh-connect-timeout)",
     )
 
 
