@@ -105,7 +105,7 @@ def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
     from groundsim.evaluation.report import make_out_dir
-    from onboard.app.replay import config_of, load_recording, replay
+    from onboard.app.replay import config_of, load_recording, no_frames_text, replay
     from onboard.core.errors import InputError
 
     out = make_out_dir(args.out)  # before the replay: a folder that cannot be made fails at once
@@ -113,9 +113,7 @@ def cmd_report(args) -> int:
     try:
         rec = load_recording(args.mcap)
         if not rec.inputs:
-            raise InputError(
-                f"{args.mcap}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
-            )
+            raise InputError(no_frames_text(rec))
         if rec.truncated:
             print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
         truth = rec.truth

@@ -93,6 +93,7 @@ __all__ = [
     "compare_within_sigma",
     "compare_objects",
     "recorded_worker",
+    "no_frames_text",
     "beyond_a_workers_sigma",
     "main",
 ]
@@ -301,6 +302,17 @@ def _damage(exc: BaseException) -> str:
     if isinstance(exc, RecursionError):
         return "JSON nested too deeply"
     return str(exc)
+
+
+def no_frames_text(rec: Recording) -> str:
+    """Why a recording without ``irtrack.frame_input`` messages has nothing to replay: a daemon's recording (its
+    configuration in the metadata) made while no IR frame came, or not a daemon's recording at all."""
+    if rec.metadata.get("config_yaml") is not None:
+        return (
+            f"{rec.path}: the daemon recorded no frame taken (no irtrack.frame_input messages): no IR frames reached "
+            "it while it recorded (the simulator or camera not running, or not on its zenoh key)"
+        )
+    return f"{rec.path}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
 
 
 def config_of(rec: Recording, config_path: str | None = None, overrides: dict | None = None):
@@ -825,7 +837,7 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
             raise InputError(
                 f"{args.mcap}: file cut short ({rec.truncated}) before its first irtrack.frame_input message"
                 if rec.truncated
-                else f"{args.mcap}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
+                else no_frames_text(rec)
             )
         config = config_of(rec, args.config, overrides)
     except (OnboardConfigError, IrtrackError) as exc:

@@ -169,8 +169,9 @@ def test_a_recording_without_frame_inputs_is_refused_in_the_flight_reports_words
     out = tmp_path / "oo.jsonl"
     assert main([str(other), "--config", str(CONFIG), "--out", str(out)]) == EXIT_CONFIG
     captured = capsys.readouterr()
-    assert captured.err.splitlines() == [
-        f"{other}: no irtrack.frame_input messages (not a recording of python -m onboard --record?)"
+    assert captured.err.splitlines() == [  # a daemon's recording (its configuration in the metadata) with no frame
+        f"{other}: the daemon recorded no frame taken (no irtrack.frame_input messages): no IR frames reached it "
+        "while it recorded (the simulator or camera not running, or not on its zenoh key)"
     ]
     assert captured.out == "" and not out.exists()
 
