@@ -503,8 +503,9 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
         "--format",
         nargs="+",
         default=["mot"],
-        choices=("mot", "coco"),
-        help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, or both (default: mot)",
+        choices=("mot", "coco", "obs"),
+        help="label formats: MOT Challenge gt/gt.txt + seqinfo.ini, COCO JSON, obs.csv (python -m onboard.reconstruct's "
+        "input: the label's pixel, the measured camera pose), any of them (default: mot)",
     )
     p.add_argument(
         "--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)"

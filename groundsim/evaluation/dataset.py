@@ -15,6 +15,10 @@ truth of every frame (the same flight, frames and navigation errors as ``grounds
                                       contrast to the local background in NETD units, warm: above it)
     DIR/<seq>/seqinfo.ini, gt/gt.txt  --format mot: MOT Challenge layout (TrackEval's MotChallenge2DBox reads it)
     DIR/coco.json                     --format coco: COCO detection + 1-keypoint ("centroid") JSON, every sequence
+    DIR/<seq>/obs.csv                 --format obs: python -m onboard.reconstruct's input (onboard.app.reconstruct
+                                      OBS_COLUMNS): each frame with the target in the image, its label's pixel (a
+                                      perfect detector's, as an ideal pinhole's) and the camera pose the telemetry
+                                      MEASURED (the run's navigation errors), t_s on the scenario's clock
 
 ``<seq>`` is ``<scenario>-<nav case>-s<seed>``.  Conventions (``onboard.core.frames``): pixel (i, j) is centred at
 (j + 0.5, i + 0.5), so the image spans [0, W] x [0, H] in continuous pixel coordinates; NED about the
@@ -103,7 +107,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 DATASET_SCHEMA = "irtrack.dataset/1"
-FORMATS = ("mot", "coco")
+FORMATS = ("mot", "coco", "obs")
 TARGET_ID = 1  # the one target of a scenario: its MOT id / COCO track_id
 MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestrian" there; "the target" here)
 # scene objects: MOT17 classes TrackEval reads but neither evaluates nor counts as distractors (car, bicycle,
@@ -140,6 +144,16 @@ CAMERA_COLUMNS = (
 
 
 # --------------------------------------------------------------------------- pure core
+
+
+def _obs_row(K, t_s: float, u_px: float, v_px: float, p_cam_ned_m, q_ned_from_cam) -> list[str]:
+    """One row of ``onboard.reconstruct``'s OBS.csv: the pixel as an ideal pinhole sees it (a distorted camera's
+    label undistorted: the reconstruction takes no lens model), the intrinsics, the camera's NED position and
+    ``q_ned_from_cam``."""
+    if K.has_distortion:
+        x, y = K.normalized_from_pixel(np.array([u_px, v_px], dtype=float))
+        u_px, v_px = K.fx_px * x + K.cx_px, K.fy_px * y + K.cy_px
+    return [_fmt(v) for v in (t_s, u_px, v_px, K.fx_px, K.fy_px, K.cx_px, K.cy_px, *p_cam_ned_m, *q_ned_from_cam)]
 
 
 @dataclass(frozen=True)
@@ -379,6 +393,7 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     origin = scenario.origin
     labels: list[tuple[int, TargetLabel, int]] = []
     objects: list[tuple[int, tuple]] = []
+    obs_rows: list[list[str]] = []  # --format obs: reconstruct's rows
     intr = [K.fx_px, K.fy_px, K.cx_px, K.cy_px, int(K.width_px), int(K.height_px), *map(float, K.distortion)]
     done = 0
     with (
@@ -443,6 +458,8 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             p_meas, q_meas = measured_camera_pose(
                 core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, q_mg
             )
+            if lab.in_image and math.isfinite(lab.u_px) and math.isfinite(lab.v_px):
+                obs_rows.append(_obs_row(K, tr.t_s, lab.u_px, lab.v_px, p_meas, q_meas))
             w_cam.writerow(
                 [
                     frame,
@@ -460,6 +477,13 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
                 done = 0
     if progress is not None and done:
         progress(done)
+    if "obs" in options.formats:
+        from onboard.app.reconstruct import OBS_COLUMNS
+
+        with open(seq_dir / "obs.csv", "w", encoding="ascii", newline="") as f_obs:
+            w_obs = csv.writer(f_obs, lineterminator="\n")
+            w_obs.writerow(OBS_COLUMNS)
+            w_obs.writerows(obs_rows)
     if "mot" in options.formats:
         (seq_dir / "seqinfo.ini").write_text(
             seqinfo_ini(name, scenario.frame_rate_hz, core.frame_count, int(K.width_px), int(K.height_px)),
@@ -624,6 +648,7 @@ def _manifest(scenarios, seeds, options: DatasetOptions, summaries: list[Sequenc
             "images": "<seq>/img1/%06d.png",
             "mot": "<seq>/gt/gt.txt, <seq>/seqinfo.ini",
             "coco": "coco.json",
+            "obs": "<seq>/obs.csv",
         },
     }
 

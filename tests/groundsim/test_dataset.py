@@ -41,7 +41,7 @@ def dataset(tmp_path_factory):
         [_scenario()],
         SEEDS,
         out,
-        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco", "obs")),
         workers=2,
         progress=False,
     )
@@ -218,13 +218,13 @@ def test_same_seed_identical_files_other_seed_differs(dataset, tmp_path):
         [_scenario()],
         [0],
         again,
-        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco")),
+        DatasetOptions(duration_s=DURATION_S, formats=("mot", "coco", "obs")),
         workers=1,
         progress=False,
     )
     a = {k: v for k, v in _tree_digest(out).items() if k.startswith("P1-RTK-s0/")}
     b = {k: v for k, v in _tree_digest(again).items() if k.startswith("P1-RTK-s0/")}
-    assert len(a) == 30 + 5 and a == b
+    assert len(a) == 30 + 6 and a == b  # 30 frames; labels, cameras, truth, obs, seqinfo.ini, gt.txt
     other = {k.replace("-s1/", "-s0/"): v for k, v in _tree_digest(out).items() if k.startswith("P1-RTK-s1/img1/")}
     assert sum(other[k] != a[k] for k in other) == 30  # another seed: other render noise in every frame
 
@@ -282,3 +282,26 @@ def test_a_shorter_run_into_the_same_folder_leaves_no_frame_of_the_longer_one(tm
 def test_cli_negative_first_seed_names_its_option(capsys):
     assert cli_main(["dataset", "--seed0", "-1"]) == 2
     assert capsys.readouterr().err.strip() == "groundsim dataset: error: --seed0: expected an integer >= 0, got -1"
+
+
+def test_obs_csv_is_reconstructs_input_and_it_reads_it(dataset, tmp_path, capsys):
+    """--format obs: each in-image frame's label pixel and the MEASURED camera pose (cameras.csv's meas_*), in
+    onboard.reconstruct's columns; the reconstruction reads it and writes one position per row."""
+    from onboard.app.reconstruct import OBS_COLUMNS
+    from onboard.app.reconstruct import main as reconstruct
+
+    out, summaries = dataset
+    seq = out / summaries[0].name
+    with open(seq / "obs.csv", newline="") as f:
+        assert tuple(next(csv.reader(f))) == OBS_COLUMNS
+    obs, lab, cam = _read_csv(seq / "obs.csv"), _read_csv(seq / "labels.csv"), _read_csv(seq / "cameras.csv")
+    seen = lab["in_image"] == 1
+    assert len(obs["t_s"]) == int(seen.sum()) > 0
+    np.testing.assert_array_equal(obs["t_s"], lab["t_s"][seen])
+    np.testing.assert_allclose(obs["u_px"], lab["u_px"][seen], atol=1e-9)
+    for o, c in (("cam_n_m", "meas_n_m"), ("cam_e_m", "meas_e_m"), ("cam_d_m", "meas_d_m"), ("q_w", "meas_qw")):
+        np.testing.assert_allclose(obs[o], cam[c][seen], atol=1e-9)
+    result = tmp_path / "out.csv"
+    assert reconstruct([str(seq / "obs.csv"), "-o", str(result)]) == 0, capsys.readouterr().err
+    rows = _read_csv(result)
+    assert len(rows["t_s"]) == len(obs["t_s"]) and np.all(np.isfinite(rows["n_m"]))
