@@ -15,7 +15,7 @@ import os
 from collections.abc import Callable, Iterable
 from typing import Any
 
-from onboard.app.cli_args import OneLineParser, nonnegative_float
+from onboard.app.cli_args import OneLineParser, above_zero, nonnegative_float
 
 __all__ = [
     "BenchParser",
@@ -44,15 +44,10 @@ class BenchParser(OneLineParser):
 nonnegative_number = nonnegative_float("expected a number", "expected a finite number >= 0")
 
 
-_finite_number = nonnegative_float("expected a number", "expected a finite number > 0")
-
-
-def positive_float(text: str) -> float:
-    """A finite number > 0 (a rate, a duration)."""
-    value = _finite_number(text)  # refuses text, NaN, infinities and negatives
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return value
+#: a finite number > 0 (a rate, a duration)
+positive_float = above_zero(
+    nonnegative_float("expected a number", "expected a finite number > 0"), "expected a finite number > 0"
+)
 
 
 def int_between(low: int, high: int | None = None) -> Callable[[str], int]:

@@ -22,6 +22,7 @@ __all__ = [
     "add_zenoh_options",
     "config_overrides",
     "nonnegative_float",
+    "above_zero",
 ]
 
 EXIT_USAGE = 2  # argparse's own exit code for a usage mistake
@@ -51,6 +52,19 @@ def nonnegative_float(not_a_number: str, negative: str) -> Callable[[str], float
         return value
 
     return parse
+
+
+def above_zero(parse: Callable[[str], float], zero: str) -> Callable[[str], float]:
+    """An argparse ``type``: what ``parse`` (a :func:`nonnegative_float`) takes, but 0, refused with ``zero``
+    followed by ``, got '<text>'``."""
+
+    def parse_above_zero(text: str) -> float:
+        value = parse(text)
+        if value <= 0:
+            raise argparse.ArgumentTypeError(f"{zero}, got {text!r}")
+        return value
+
+    return parse_above_zero
 
 
 def add_zenoh_options(

@@ -64,7 +64,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float
+from onboard.app.cli_args import OneLineParser, above_zero, add_zenoh_options, nonnegative_float
 from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
@@ -365,11 +365,7 @@ class Fusion:
 _positive = nonnegative_float("expected a number", "expected a number >= 0")
 
 
-def _above_zero(text: str) -> float:
-    v = _positive(text)
-    if v <= 0:
-        raise argparse.ArgumentTypeError(f"expected a number > 0, got {text!r}")
-    return v
+_above_zero = above_zero(_positive, "expected a number > 0")
 
 
 #: --vehicle-noise's keys (the global options' names and units) and the parser each value takes (zero allowed for
