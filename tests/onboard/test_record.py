@@ -86,24 +86,7 @@ def test_recording_reads_back_with_the_mcap_reader_and_foxglove_schemas(tmp_path
         rec.on_mavlink(bytes([0xFD, i, 2, 3]), "autopilot", ("127.0.0.1", 14550))
         rec.on_frame(fr, 10_000 + i)
         rec.on_frame_input(fr, 10_000 + i, True, _pose(fr.time_boot_us, i))
-        cov = np.diag([4.0, 9.0, 16.0])
-        rec.on_track(
-            Track(
-                "uav7",
-                fr.seq,
-                fr.time_boot_us,
-                "tracking",
-                track_id=1,
-                lat_deg=47.4,
-                lon_deg=8.5,
-                alt_m=500.0,
-                p_ned_m=(1.0, 2.0, 3.0),
-                v_ned_mps=(0.0, 0.0, 0.0),
-                cov_p_ned_m2=cov,
-                range_m=300.0,
-                origin=ORIGIN,
-            )
-        )
+        rec.on_track(_track(fr, "uav7", np.diag([4.0, 9.0, 16.0])))
     rec.on_status(b'{"schema":"irtrack.status/1"}')
     rec.close()
     assert rec.dropped == 0 and rec.write_errors == 0
@@ -296,10 +279,10 @@ WALL0_NS = 1_700_000_000_000_000_000
 MONO0_NS = 5_000_000_000
 
 
-def _track(fr: IrFrame) -> Track:
-    """A track of frame ``fr`` with a position (so with a target fix)."""
+def _track(fr: IrFrame, vehicle: str = "uav1", cov_p_ned_m2=None) -> Track:
+    """A track of frame ``fr`` with a position (so with a target fix), its covariance ``cov_p_ned_m2`` (identity)."""
     return Track(
-        "uav1",
+        vehicle,
         fr.seq,
         fr.time_boot_us,
         "tracking",
@@ -309,7 +292,7 @@ def _track(fr: IrFrame) -> Track:
         alt_m=500.0,
         p_ned_m=(1.0, 2.0, 3.0),
         v_ned_mps=(0.0, 0.0, 0.0),
-        cov_p_ned_m2=np.eye(3),
+        cov_p_ned_m2=np.eye(3) if cov_p_ned_m2 is None else cov_p_ned_m2,
         range_m=300.0,
         origin=ORIGIN,
     )
