@@ -18,8 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from groundsim.world.render import IrRenderer, IrSettings, SceneBackground, TargetPart
-from groundsim.world.render.kernels import visible_fractions
 from groundsim.world.render.planck import band_radiance
+from groundsim.world.render.splat_kernels import visible_fractions
 from onboard.core.frames import CameraMount, PinholeIntrinsics, camera_pose_ned, quat_from_euler, rotmat_from_quat
 
 INTR = PinholeIntrinsics.vue_pro_640()

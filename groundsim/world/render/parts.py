@@ -10,9 +10,10 @@ import numpy as np
 from scipy.special import ndtr
 
 from groundsim.world.render.background import SceneBackground
-from groundsim.world.render.kernels import cast_part_rays, nearest_parts, project_box, splat_moments, splat_spot
+from groundsim.world.render.kernels import cast_part_rays, nearest_parts, project_box
 from groundsim.world.render.planck import band_radiance
 from groundsim.world.render.settings import IrSettings
+from groundsim.world.render.splat_kernels import splat_moments, splat_spot
 from onboard.core.frames import PinholeIntrinsics
 
 __all__ = ["PartRaster", "project_in_front", "NEAR_M", "TARGET_SPLAT_MAX_PX"]
@@ -26,7 +27,7 @@ APERTURE_KEPT = 256  # aperture weight matrices kept per object raster (by regio
 # the splat's is exact in position and range.  Below 2 px the splat's image is also the nearer one to a
 # fine ray cast's (rms 3 % against the 16 x 16 cast's 4 % at 200 m); above, the cast keeps the target's shape.
 TARGET_SPLAT_MAX_PX = 2
-# parallel rays per splat for its parts' visible fractions (kernels.visible_fractions): ~40 us for the default
+# parallel rays per splat for its parts' visible fractions (splat_kernels.visible_fractions): ~40 us for the default
 # target's 8 parts, its radiance integral within 1.6 % of the exact one over random views
 SPLAT_VISIBILITY_RAYS = 2048
 
@@ -265,12 +266,12 @@ class PartRaster:
         ``4 sum |det(a_i, a_j)|`` for a box (the hexagon of a projected cube), ``pi |det(A A^T)|^1/2`` for an
         ellipsoid, its covariance ``A A^T / 3`` or ``/ 4``.  The integral is ``sum_p area_p (L_p - L_bg)``
         (``L_bg`` the background at the centroid's pixel), ``area_p`` times the fraction of it in front of the
-        other parts along this view (``kernels.visible_fractions``, parallel rays: the ray cast's nearest-part
+        other parts along this view (``splat_kernels.visible_fractions``, parallel rays: the ray cast's nearest-part
         rule, e.g. a bird's body over its wings).
         Centroid and spread are the ``|area contrast|``-weighted mixture of the parts'; the spread adds
         to the PSF's, the pixel box is kept, so the pixels sum to the integral (within the 3 sigma cut)
         and the intensity centroid is the parts' centroid.  A cloud in front (``occluder``) is read at the
-        centroid's pixel only.  Compiled scalar arithmetic over the few parts (``kernels.splat_moments``,
+        centroid's pixel only.  Compiled scalar arithmetic over the few parts (``splat_kernels.splat_moments``,
         ``splat_spot``): numpy's per-call cost on arrays of 2-4 parts is larger than the arithmetic."""
         s = self.settings
         H, W = self._H, self._W
