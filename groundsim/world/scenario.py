@@ -934,7 +934,7 @@ def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
 
 def load_noise_cases(path=None) -> dict[str, NoiseCase]:
     """Read ``config/noise_cases.yaml`` (or ``path``): case name -> :class:`NoiseCase`."""
-    p = Path(path) if path is not None else _CONFIG_DIR / "noise_cases.yaml"
+    p = Path(path) if path is not None else noise_cases_path()
     return noise_cases_from_dict(read_spec_yaml(p), source=p)
 
 
