@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import stat
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -163,8 +164,6 @@ def claim_health_file(path: str, field: str = "output.health_file") -> None:
         return
     except OSError as exc:
         raise ConfigError(f"{field}: cannot check {path}: {exc.strerror or exc}") from None
-    import stat
-
     if not stat.S_ISREG(st.st_mode):
         raise ConfigError(f"{field}: {path} exists and is not a regular file; point {field} at a liveness file")
     if st.st_size:
@@ -177,8 +176,6 @@ def claim_health_file(path: str, field: str = "output.health_file") -> None:
 def release_health_file(path: str) -> None:
     """Delete the liveness file when it is still an empty regular file (what :func:`mark_alive` makes); leave
     anything else (a file someone wrote into meanwhile) in place."""
-    import stat
-
     with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
         st = os.lstat(path)
         if stat.S_ISREG(st.st_mode) and st.st_size == 0:
