@@ -32,12 +32,26 @@ Summary (--summary-json)
     ``converged``, ``solve_ms``; for ``--method paper`` also ``delta``, ``order``, ``paper_cost``,
     ``paper_solver``, ``paper_refinement_rel`` and ``map_solve_ms``.  ``observable`` always comes
     from the MAP observability analysis run on the same rows (``observability_source: "map"``):
-    the closed form has none.  Non-finite numbers are written as ``null``.
+    the closed form has none.  Non-finite numbers are written as ``null``.  ``windows``: how many MAP
+    problems were solved (``window_s``, below); with more than one, ``observable`` is true only when every
+    window is, ``observable_rows_fraction`` the share of rows taken from observable windows,
+    ``range_sigma_ratio`` the largest, ``model`` the windows' common choice (``null`` when they differ),
+    ``iterations`` summed, ``converged`` when every window did, and ``window_results`` each window's own
+    figures (its rows and times, the rows taken from it, and the fields above).
 
 Report (stdout)
     On success one line: ``OUT.csv: N rows, method M, observable yes|no, range sigma up to R % of
     range`` (R is ``range_sigma_ratio`` in percent; for ``--method paper`` the last two come from
-    the MAP analysis and say so).
+    the MAP analysis and say so), and, when the file was solved in several windows, ``, K windows of W s
+    (observable: P % of rows)``.
+
+Long files (``--window-s``, default 60 s)
+    The MAP problem over a span is dense in its spline's controls, so its time and memory grow with the span
+    cubed.  A file spanning more than ``--window-s`` is solved in windows that long, starting every half
+    window (the last one ending at the last row), each row taken from the window whose middle is nearest to
+    it; rows more than half a window apart from the others are solved apart.  A window or a stretch with fewer
+    rows than needed (below) is refused naming its times.  On a terminal a progress line counts the windows.
+    ``--window-s 0``: one problem over the whole file.
 
 Unobservable geometry (e.g. a straight, constant-velocity observer) is not an error: the command
 exits 0, writes the (unreliable) estimate with its large sigmas, reports ``observable no`` (and
@@ -78,6 +92,7 @@ import os
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -274,6 +289,75 @@ def read_observations_csv(path) -> Observations:
 
 # --------------------------------------------------------------------------- reconstruction (pure)
 
+#: ``--window-s``'s default.  The MAP problem over a span is dense in its spline's controls (two a second per
+#: axis), so its time and memory grow with the span cubed whatever the rows (docs/performance.md, "Long files
+#: offline"); 60 s keeps every shipped scenario's flight, at its own duration, one problem as before
+DEFAULT_WINDOW_S = 60.0
+
+
+@dataclass(frozen=True)
+class Window:
+    """One MAP problem of a windowed reconstruction: rows ``first:stop`` (those in ``t_start_s .. t_end_s``) solved
+    together, rows ``take_first:take_stop`` (within them) taken from its solution."""
+
+    first: int
+    stop: int
+    take_first: int
+    take_stop: int
+    t_start_s: float
+    t_end_s: float
+
+
+class WindowingError(EstimationError):
+    """Rows that a windowed reconstruction cannot solve (too few of them in a window or apart from the others)."""
+
+
+def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window]:
+    """The MAP problems for rows at times ``t_s`` (strictly increasing): one over every row when the rows span at
+    most ``window_s`` (or ``window_s`` is 0); otherwise the rows are cut into stretches at gaps longer than half a
+    window, and a stretch longer than a window into windows ``window_s`` long, starting every half window and the
+    last one ending at the stretch's last row, each row taken from the window whose middle is nearest it (so at
+    least a quarter window from that window's ends, but at the stretch's own ends).
+
+    Raises :class:`WindowingError` naming the times when a problem would have fewer than ``min_rows`` rows."""
+    t = np.asarray(t_s, dtype=float)
+    n = t.size
+    if n == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
+        return [Window(0, n, 0, n, float(t[0]) if n else math.nan, float(t[-1]) if n else math.nan)]
+    half = window_s / 2.0
+    cuts = np.flatnonzero(np.diff(t) > half) + 1
+    bounds = [0, *cuts.tolist(), n]
+    windows: list[Window] = []
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < min_rows:
+            raise WindowingError(
+                f"{b - a} row(s) at t_s {t[a]:g}..{t[b - 1]:g} s lie apart from the others (gaps over {half:g} s, half"
+                f" of --window-s {window_s:g}, split the rows into stretches solved apart), and a stretch needs at"
+                f" least {min_rows}"
+            )
+        t0, t1 = t[a], t[b - 1]
+        if t1 - t0 <= window_s:
+            windows.append(Window(a, b, a, b, float(t0), float(t1)))
+            continue
+        starts = [float(t0 + k * half) for k in range(int(math.ceil((t1 - t0 - window_s) / half)))]
+        starts.append(float(t1 - window_s))
+        middles = np.asarray(starts) + half
+        # the window of each row: the nearest middle (the earlier one on a tie)
+        owner = np.argmin(np.abs(t[a:b, None] - middles[None, :]), axis=1)
+        for k, start in enumerate(starts):
+            first = a + int(np.searchsorted(t[a:b], start, side="left"))
+            stop = a + int(np.searchsorted(t[a:b], start + window_s, side="right"))
+            mine = np.flatnonzero(owner == k)
+            if mine.size == 0:
+                continue
+            if stop - first < min_rows:
+                raise WindowingError(
+                    f"{stop - first} row(s) at t_s {start:g}..{start + window_s:g} s, a window of --window-s"
+                    f" {window_s:g}; each window needs at least {min_rows} (a longer --window-s takes in more rows)"
+                )
+            windows.append(Window(first, stop, a + int(mine[0]), a + int(mine[-1]) + 1, start, start + window_s))
+    return windows
+
 
 @dataclass(frozen=True)
 class ReconstructOptions:
@@ -283,10 +367,15 @@ class ReconstructOptions:
     noise: NoiseModel = field(default_factory=NoiseModel)
     paper: PaperConfig = field(default_factory=PaperConfig)
     map_config: MapConfig = field(default_factory=MapConfig)
+    #: the longest span the MAP estimator solves as one problem; a longer file is solved in windows
+    #: (:func:`plan_windows`); 0: one problem whatever the span
+    window_s: float = DEFAULT_WINDOW_S
 
     def __post_init__(self) -> None:
         if self.method not in ("map", "paper"):
             raise InputError(f"ReconstructOptions.method must be 'map' or 'paper', got {self.method!r}")
+        if not (math.isfinite(self.window_s) and self.window_s >= 0):
+            raise InputError(f"ReconstructOptions.window_s must be a finite number >= 0, got {self.window_s!r}")
 
     @property
     def min_frames(self) -> int:
@@ -326,11 +415,17 @@ def _map_summary(res: MapResult, solve_ms: float) -> dict:
     }
 
 
-def reconstruct(obs: Observations, options: ReconstructOptions | None = None) -> Reconstruction:
-    """Run the chosen method (and the MAP observability analysis) on ``obs``.
+def reconstruct(
+    obs: Observations,
+    options: ReconstructOptions | None = None,
+    progress: Callable[[int, int, float, float], None] | None = None,
+) -> Reconstruction:
+    """Run the chosen method (and the MAP observability analysis) on ``obs``: the MAP estimator over each of
+    :func:`plan_windows`' windows (one, unless the rows span more than ``options.window_s``), the paper's closed
+    form over every row.  ``progress(k, n, t_first_s, t_last_s)`` is called before the k-th (from 1) of n windows.
 
-    Raises :class:`EstimationError` when the rows cannot be reconstructed (too few, degenerate,
-    or a non-finite result).
+    Raises :class:`EstimationError` when the rows cannot be reconstructed (too few, degenerate, apart from the
+    others, or a non-finite result).
     """
     options = options or ReconstructOptions()
     F = len(obs)
@@ -339,16 +434,32 @@ def reconstruct(obs: Observations, options: ReconstructOptions | None = None) ->
             f"{F} data rows; --method {options.method} needs at least {options.min_frames}"
             + (" (the MAP observability analysis runs on the same rows)" if options.method == "paper" else "")
         )
-    t0 = time.perf_counter()
-    res = _guarded(lambda: MapEstimator(options.map_config, options.noise).solve(obs), "map")
-    map_ms = (time.perf_counter() - t0) * 1e3
+    windows = plan_windows(obs.t_s, options.window_s, options.min_frames)
+    p_map, sigma_map = np.empty((F, 3)), np.empty((F, 3))
+    solved: list[tuple[Window, MapResult, float]] = []
+    for k, w in enumerate(windows, 1):
+        if progress is not None:
+            progress(k, len(windows), float(obs.t_s[w.first]), float(obs.t_s[w.stop - 1]))
+        part = obs if (w.first, w.stop) == (0, F) else obs.select(slice(w.first, w.stop))
+        t0 = time.perf_counter()
+        res = _guarded(lambda part=part: MapEstimator(options.map_config, options.noise).solve(part), "map")
+        solved.append((w, res, (time.perf_counter() - t0) * 1e3))
+        take = slice(w.take_first - w.first, w.take_stop - w.first)
+        p_map[w.take_first : w.take_stop] = res.p_ned_m[take]
+        sigma_map[w.take_first : w.take_stop] = res.sigma_ned_m[take]
+    map_ms = sum(ms for _, _, ms in solved)
     summary = {"method": options.method, "frames": F}
-    summary.update(_map_summary(res, map_ms))
+    if len(solved) == 1:
+        summary.update(_map_summary(solved[0][1], map_ms))
+    else:
+        summary.update(_windows_summary(obs, solved, map_ms))
+    summary["windows"] = len(solved)
+    summary["window_s"] = options.window_s
     summary["noise"] = {k: float(v) for k, v in vars(options.noise).items()}
-    if options.noise.attitude_bias_sigma_rad > 0:
-        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in res.attitude_bias_rad]
+    if options.noise.attitude_bias_sigma_rad > 0 and len(solved) == 1:
+        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in solved[0][1].attitude_bias_rad]
     if options.method == "map":
-        p, sigma = res.p_ned_m, res.sigma_ned_m
+        p, sigma = p_map, sigma_map
         summary["solve_ms"] = round(map_ms, 3)
     else:
         pr: PaperResult = _guarded(lambda: PaperEstimator(options.paper).solve(obs), "paper")
@@ -370,6 +481,38 @@ def reconstruct(obs: Observations, options: ReconstructOptions | None = None) ->
     return Reconstruction(
         t_s=obs.t_s.copy(), p_ned_m=np.array(p, dtype=float), sigma_ned_m=np.array(sigma, dtype=float), summary=summary
     )
+
+
+def _windows_summary(obs: Observations, solved: list[tuple[Window, MapResult, float]], map_ms: float) -> dict:
+    """The summary's MAP part over several windows: ``observable`` only when every window is, the largest
+    ``range_sigma_ratio``, ``model`` when every window chose the same one, iterations summed, ``converged`` when
+    every window converged; each window's own figures in ``window_results`` (its rows, times, the rows taken from
+    it, and :func:`_map_summary`'s fields)."""
+    ratios = [r.range_sigma_ratio for _, r, _ in solved]
+    models = {r.model for _, r, _ in solved}
+    taken_observable = sum(w.take_stop - w.take_first for w, r, _ in solved if r.observable)
+    return {
+        "observable": all(r.observable for _, r, _ in solved),
+        "observable_rows_fraction": taken_observable / len(obs),
+        "observability_source": "map",
+        "range_sigma_ratio": _finite_or_none(max(ratios)) if all(math.isfinite(x) for x in ratios) else None,
+        "model": models.pop() if len(models) == 1 else None,
+        "iterations": int(sum(r.iterations for _, r, _ in solved)),
+        "converged": all(r.converged for _, r, _ in solved),
+        "map_solve_ms": round(map_ms, 3),
+        "window_results": [
+            {
+                "rows": w.stop - w.first,
+                "t_first_s": float(obs.t_s[w.first]),
+                "t_last_s": float(obs.t_s[w.stop - 1]),
+                "rows_taken": w.take_stop - w.take_first,
+                "t_taken_first_s": float(obs.t_s[w.take_first]),
+                "t_taken_last_s": float(obs.t_s[w.take_stop - 1]),
+                **_map_summary(r, ms),
+            }
+            for w, r, ms in solved
+        ],
+    }
 
 
 def _guarded(fn, what: str):
@@ -468,6 +611,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=PaperConfig().order,
         help="paper: finite-difference order of D (default %(default)s)",
     )
+    p.add_argument(
+        "--window-s",
+        type=_nonneg("--window-s"),
+        default=DEFAULT_WINDOW_S,
+        metavar="S",
+        help="the longest span the MAP estimator solves as one problem; longer files are solved in windows S long, "
+        "every S/2, each row from the window it is most central in, and rows more than S/2 apart from the others "
+        "solved apart (0: one problem over the whole file, whose time and memory grow with its span cubed; default "
+        "%(default)g)",
+    )
     p.add_argument("-v", "--verbose", action="store_true", help="log progress (and tracebacks of internal errors)")
     return p
 
@@ -552,6 +705,7 @@ def _run(args) -> int:
                 camera_position_white_sigma_m=args.position_sigma_m,
             ),
             paper=PaperConfig(delta=args.delta, order=args.order),
+            window_s=args.window_s,
         )
         outputs = [("-o", args.output)] + ([("--summary-json", args.summary_json)] if args.summary_json else [])
         _check_output_paths(outputs)
@@ -560,10 +714,13 @@ def _run(args) -> int:
             raise InputError(clash)
         obs = read_observations_csv(args.obs_csv)
         log.info("%s: %d observations, %.3f s to %.3f s", args.obs_csv, len(obs), obs.t_s[0], obs.t_s[-1])
+        progress = _Progress(args.obs_csv)
         try:
-            rec = reconstruct(obs, options)
+            rec = reconstruct(obs, options, progress)
         except EstimationError as e:
             raise CsvInputError(f"{args.obs_csv}: cannot reconstruct: {e}") from None
+        finally:
+            progress.close()
         summary = {"input": str(args.obs_csv), **rec.summary}
         texts = []
         if args.summary_json:  # renamed first: a new OUT.csv always has its own summary beside it
@@ -584,13 +741,48 @@ def _run(args) -> int:
     print(_report_line(args.output, len(rec.t_s), summary))
     if not summary["observable"]:
         # printed as the errors are, not logged: it is the run's verdict, whatever handlers the caller's logging has
+        where = ""
+        if "window_results" in summary:
+            spans = [
+                f"{w['t_taken_first_s']:g}..{w['t_taken_last_s']:g} s"
+                for w in summary["window_results"]
+                if not w["observable"]
+            ]
+            where = f" for t_s {', '.join(spans[:5])}{' ...' if len(spans) > 5 else ''}"
         print(
-            f"WARNING: {args.obs_csv}: range not determined (observable no): the camera must move across the line of"
-            f" sight to the target; the positions in {args.output} lie along the bearings at an unreliable range (see"
-            " their sigmas)",
+            f"WARNING: {args.obs_csv}: range not determined (observable no){where}: the camera must move across the"
+            f" line of sight to the target; the positions in {args.output} lie along the bearings at an unreliable"
+            " range (see their sigmas)",
             file=sys.stderr,
         )
     return EXIT_OK
+
+
+class _Progress:
+    """A windowed reconstruction's progress: one line per window logged (``-v``), and on a terminal one line on
+    stderr rewritten in place, erased when done (a pipe or a log file gets nothing: its one-line errors stay one
+    line)."""
+
+    def __init__(self, source: str) -> None:
+        self._source = source
+        self._live = sys.stderr.isatty()
+        self._shown = False
+
+    def __call__(self, k: int, n: int, t_first_s: float, t_last_s: float) -> None:
+        if n == 1:
+            return
+        text = f"{self._source}: window {k} of {n} (t_s {t_first_s:g}..{t_last_s:g} s)"
+        log.info("%s", text)
+        if self._live:
+            sys.stderr.write("\r\x1b[K" + text)
+            sys.stderr.flush()
+            self._shown = True
+
+    def close(self) -> None:
+        if self._shown:
+            sys.stderr.write("\r\x1b[K")
+            sys.stderr.flush()
+            self._shown = False
 
 
 def _report_line(output: str, rows: int, summary: dict) -> str:
@@ -603,7 +795,13 @@ def _report_line(output: str, rows: int, summary: dict) -> str:
         sigma = f"range sigma up to {pct:.2g} % of range" if pct < 10 else f"range sigma up to {pct:.0f} % of range"
     analysis = "" if summary["method"] == "map" else "MAP analysis: "
     observable = "yes" if summary["observable"] else "no"
-    return f"{output}: {rows} rows, method {summary['method']}, {analysis}observable {observable}, {sigma}"
+    line = f"{output}: {rows} rows, method {summary['method']}, {analysis}observable {observable}, {sigma}"
+    if summary.get("windows", 1) > 1:
+        line += (
+            f", {summary['windows']} windows of {summary['window_s']:g} s"
+            f" (observable: {100.0 * summary['observable_rows_fraction']:.0f} % of rows)"
+        )
+    return line
 
 
 if __name__ == "__main__":

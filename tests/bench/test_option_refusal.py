@@ -70,6 +70,9 @@ BAD_VALUES = [
     (["bench.imaging", "--loop", "NOPE"], "--loop"),
     (["bench.video", "--frames", "-1"], "--frames"),
     (["bench.video", "--frames", "0", "--latency-frames", "0"], "--frames"),
+    (["bench.reconstruct", "--durations", "0"], "--durations"),
+    (["bench.reconstruct", "--whole-up-to", "-1"], "--whole-up-to"),
+    (["bench.reconstruct", "--window-s", "0"], "--window-s"),  # the windowed run must have windows
 ]
 
 

@@ -1,0 +1,201 @@
+"""``onboard.reconstruct`` on files longer than one MAP problem: the window plan (properties), a long observable
+flight solved in windows against its truth and against one problem over the whole file, rows apart from the
+others refused naming their times, the summary's and the report line's windows."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from groundsim.evaluation.synth import synthesize
+from groundsim.world.motion import Circular
+from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
+from onboard.app.reconstruct import (
+    DEFAULT_WINDOW_S,
+    ReconstructOptions,
+    WindowingError,
+    plan_windows,
+    reconstruct,
+)
+from tests.onboard.test_reconstruct_cli import obs_csv_text, read_out, run_main_io
+
+MIN_ROWS = 10
+
+
+@st.composite
+def row_times(draw):
+    """Strictly increasing times: steps from dense (30 Hz) to gaps of minutes, with a window between 1 and 90 s."""
+    steps = draw(
+        st.lists(
+            st.one_of(
+                st.floats(0.01, 0.2),
+                st.floats(0.2, 5.0),
+                st.floats(5.0, 400.0),
+            ),
+            min_size=0,
+            max_size=400,
+        )
+    )
+    t0 = draw(st.floats(-1e4, 1e4))
+    return t0 + np.concatenate([[0.0], np.cumsum(steps)]), draw(st.floats(1.0, 90.0))
+
+
+@settings(max_examples=300, deadline=None)
+@given(row_times())
+def test_window_plan_takes_every_row_once_from_a_window_holding_it(case):
+    t, window_s = case
+    try:
+        windows = plan_windows(t, window_s, MIN_ROWS)
+    except WindowingError as e:
+        assert "t_s" in str(e) and f"at least {MIN_ROWS}" in str(e)
+        return
+    taken = np.concatenate([np.arange(w.take_first, w.take_stop) for w in windows])
+    assert np.array_equal(taken, np.arange(t.size))  # each row once, in order
+    for w in windows:
+        assert w.first <= w.take_first < w.take_stop <= w.stop
+        if len(windows) > 1:
+            assert w.stop - w.first >= MIN_ROWS
+            assert t[w.stop - 1] - t[w.first] <= window_s * (1 + 1e-12)  # no problem longer than asked
+            assert np.all(np.diff(t[w.first : w.stop]) <= window_s / 2)  # nor across a gap of over half a window
+    if t[-1] - t[0] <= window_s:
+        assert len(windows) == 1 and (windows[0].first, windows[0].stop) == (0, t.size)
+
+
+@settings(max_examples=200, deadline=None)
+@given(row_times())
+def test_window_plan_takes_rows_away_from_their_windows_ends(case):
+    """A window holds exactly the rows within its interval, and a row is taken from a window whose interval
+    reaches at least a quarter window beyond it on both sides, unless the rows end there (the file's ends, a gap
+    of over half a window)."""
+    t, window_s = case
+    try:
+        windows = plan_windows(t, window_s, MIN_ROWS)
+    except WindowingError:
+        return
+    if len(windows) == 1:
+        return
+    quarter = window_s / 4 * (1 - 1e-9)
+    for w in windows:
+        inside = np.flatnonzero((t >= w.t_start_s) & (t <= w.t_end_s))
+        assert (inside[0], inside[-1] + 1) == (w.first, w.stop)
+        taken = t[w.take_first : w.take_stop]
+        stretch_starts_here = w.first == 0 or t[w.first] - t[w.first - 1] > window_s / 2
+        stretch_ends_here = w.stop == t.size or t[w.stop] - t[w.stop - 1] > window_s / 2
+        if not stretch_starts_here:
+            assert np.all(taken - w.t_start_s >= quarter)
+        if not stretch_ends_here:
+            assert np.all(w.t_end_s - taken >= quarter)
+
+
+def test_window_plan_default_and_zero():
+    t = np.arange(0.0, 200.0, 0.1)
+    assert len(plan_windows(t, 0.0, MIN_ROWS)) == 1  # 0: one problem whatever the span
+    windows = plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
+    # 200 s: windows starting at 0, 30, 60, 90, 120 and the last ending at the last row
+    assert [round(t[w.first], 6) for w in windows] == [0.0, 30.0, 60.0, 90.0, 120.0, 139.9]
+
+
+def test_rows_apart_are_refused_naming_their_times():
+    t = np.concatenate([[-1440.0], np.arange(0.0, 1.2, 0.1)])
+    with pytest.raises(WindowingError, match=r"1 row\(s\) at t_s -1440\.\.-1440 s lie apart"):
+        plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
+    # a sparse stretch: rows 20 s apart leave 3-4 in each 60 s window
+    with pytest.raises(WindowingError, match=r"a window of --window-s 60; each window needs at least 10"):
+        plan_windows(np.arange(0.0, 300.0, 20.0), DEFAULT_WINDOW_S, MIN_ROWS)
+
+
+# --------------------------------------------------------------------------- a long observable flight
+
+
+@pytest.fixture(scope="module")
+def long_circling_flight():
+    """H1's camera circling (40 m at 8 m/s), a target circling 160 m away (30 m at 6 deg/s), 0.3 px, 10 Hz over
+    95 s: observable everywhere, so each window's solution can be held to the truth."""
+    sc = load_scenario(reference_scenario_paths()["H1"])
+    target = Circular((160.0, 0.0, -85.0), 30.0, 0.0, math.radians(6.0))
+    t = np.arange(0.0, 95.0, 0.1)
+    truth, obs = synthesize(
+        sc.observer_motion(), target, t, sc.camera.intrinsics, load_noise_cases()["px0.3"], np.random.default_rng(3)
+    )
+    return truth.p_target_ned_m, obs
+
+
+@pytest.fixture(scope="module")
+def long_solutions(long_circling_flight):
+    _, obs = long_circling_flight
+    calls = []
+    windowed = reconstruct(obs, ReconstructOptions(window_s=40.0), lambda *a: calls.append(a))
+    whole = reconstruct(obs, ReconstructOptions(window_s=0.0))
+    return windowed, whole, calls
+
+
+def test_long_flight_in_windows_is_as_good_as_one_problem(long_circling_flight, long_solutions):
+    truth, obs = long_circling_flight
+    windowed, whole, calls = long_solutions
+    assert windowed.summary["windows"] == 4 and whole.summary["windows"] == 1
+    assert [c[:2] for c in calls] == [(1, 4), (2, 4), (3, 4), (4, 4)]
+    assert calls[0][2] == 0.0 and calls[-1][3] == pytest.approx(obs.t_s[-1])
+    for rec in (windowed, whole):
+        assert rec.summary["observable"] is True
+        err = np.linalg.norm(rec.p_ned_m - truth, axis=1)
+        assert np.median(err) < 0.5  # metres, at 160 m
+        z = np.abs(rec.p_ned_m - truth) / rec.sigma_ned_m
+        assert np.mean(np.any(z > 3, axis=1)) < 0.01
+    gap = np.linalg.norm(windowed.p_ned_m - whole.p_ned_m, axis=1)
+    assert np.median(gap) < 0.2
+
+
+def test_windowed_summary_names_each_window(long_circling_flight, long_solutions):
+    _, obs = long_circling_flight
+    s = long_solutions[0].summary
+    results = s["window_results"]
+    assert len(results) == 4 and s["window_s"] == 40.0
+    assert sum(w["rows_taken"] for w in results) == len(obs)
+    assert all(w["t_last_s"] - w["t_first_s"] <= 40.0 for w in results)
+    assert s["observable_rows_fraction"] == 1.0 and all(w["observable"] for w in results)
+    assert s["range_sigma_ratio"] == max(w["range_sigma_ratio"] for w in results)
+    assert s["iterations"] == sum(w["iterations"] for w in results)
+    assert s["model"] in (None, "cv", "ca", "ct")
+    json.dumps(s, allow_nan=False)
+
+
+def test_cli_windows_in_summary_and_report_line(long_circling_flight, tmp_path):
+    _, obs = long_circling_flight
+    part = obs.select(slice(0, 450))  # 45 s: windows of 30 s from 0 and from 14.9 s
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(part))
+    out, summ = tmp_path / "out.csv", tmp_path / "s.json"
+    rc, stdout, err = run_main_io(src, "-o", out, "--summary-json", summ, "--window-s", "30")
+    assert rc == 0, err
+    assert stdout.strip().endswith(", 2 windows of 30 s (observable: 100 % of rows)")
+    assert err == ""  # not a terminal: no progress line
+    summary = json.loads(summ.read_text())
+    assert summary["windows"] == 2 and len(summary["window_results"]) == 2
+    assert read_out(out).shape == (450, 7)
+    rc, stdout, _ = run_main_io(src, "-o", out, "--window-s", "0")
+    assert rc == 0 and stdout.strip().endswith("% of range")  # one problem: the line as it always was
+
+
+def test_cli_rows_apart_exit_2_with_one_line(long_circling_flight, tmp_path):
+    _, obs = long_circling_flight
+    lines = obs_csv_text(obs.select(slice(0, 12))).splitlines()
+    cells = lines[1].split(",")
+    cells[0] = "-1440"
+    lines[1] = ",".join(cells)
+    src = tmp_path / "obs.csv"
+    src.write_text("\n".join(lines) + "\n")
+    rc, _, err = run_main_io(src, "-o", tmp_path / "out.csv")
+    assert rc == 2
+    assert err.count("\n") == 1 and err.startswith(f"error: {src}: cannot reconstruct: 1 row(s) at t_s -1440..")
+    assert not (tmp_path / "out.csv").exists()
+
+
+@pytest.mark.parametrize("value", ["-1", "nan", "inf", "x"])
+def test_cli_refuses_a_bad_window(tmp_path, value):
+    rc, _, err = run_main_io(tmp_path / "obs.csv", "-o", tmp_path / "out.csv", "--window-s", value)
+    assert rc == 2 and "--window-s" in err and err.count("\n") == 1
