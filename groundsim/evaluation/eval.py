@@ -46,9 +46,10 @@ both report observable, so a late acquisition by the image chain is not counted 
 ``BASELINE_FAIL_PCT`` of range, "failed": its ratio gets no verdict.
 
 Batch columns (``batch=True``): :class:`~onboard.estimation.map_estimator.MapEstimator` with model
-selection on the whole flight, once on the pipeline's measured centroids and once on the perfect
+selection on the whole flight (a flight over 60 s in windows, as ``onboard.reconstruct`` solves a long
+file: :mod:`onboard.estimation.windows`), once on the pipeline's measured centroids and once on the perfect
 centroids; the Bayesian Cramer-Rao bound (:meth:`~onboard.estimation.crb.BayesianCrb.rms_m`) of
-the flown trajectory is taken with the perfect-centroid solution's motion prior, for the noise
+the flown trajectory is taken with the perfect-centroid solution's motion prior (each window's), for the noise
 actually simulated (the baseline's pixel noise and the run's navigation-error case: ``crb_rms_m``) and
 for the noise model the estimator assumes (``crb_model_rms_m``).
 
@@ -782,9 +783,10 @@ def _batch(
 ) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
     from groundsim.evaluation.synth import estimator_noise_model
-    from onboard.estimation.crb import bayesian_crb
+    from onboard.estimation.crb import bayesian_crb_in_windows
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
+    from onboard.estimation.windows import DEFAULT_WINDOW_S, solve_in_windows
 
     has_pose = np.all(np.isfinite(cam_p), axis=1)
     out: dict = {}
@@ -799,6 +801,7 @@ def _batch(
             "observable": False,
             "model": None,
             "solve_s": 0.0,
+            "windows": 0,
             "error": None,
         }
         out[name] = entry
@@ -809,7 +812,7 @@ def _batch(
         obs = Observations.from_intrinsics(t_s[idx], pix[idx], K, cam_p[idx], cam_q[idx])
         t0 = time.perf_counter()
         try:
-            res = est.solve(obs)
+            res = solve_in_windows(est.solve, obs, DEFAULT_WINDOW_S, est.config.min_frames)
         except (EstimationError, InputError) as exc:
             entry["error"] = f"{type(exc).__name__}: {exc}"
             continue
@@ -818,8 +821,9 @@ def _batch(
             p_ned_m=np.asarray(res.p_ned_m),
             cov_ned_m2=np.asarray(res.cov_p_ned_m2),
             observable=bool(res.observable),
-            model=str(res.model or res.prior.family),
+            model=str(res.model or "mixed"),
             range_sigma_ratio=float(res.range_sigma_ratio),
+            windows=len(res.windows),
         )
         if name == "perfect":
             # the bound of the flown trajectory for the noise actually simulated (the baseline's pixel
@@ -833,8 +837,8 @@ def _batch(
                         else estimator_noise_model(nav_case, pixel_sigma_px=pixel_sigma_px)
                     )
                     sim = MapEstimator(est.config, simulated)
-                    entry["crb_rms_m"] = bayesian_crb(sim, obs, truth_p[idx], res.prior, res.turn_rate_radps).rms_m()
-                entry["crb_model_rms_m"] = bayesian_crb(est, obs, truth_p[idx], res.prior, res.turn_rate_radps).rms_m()
+                    entry["crb_rms_m"] = bayesian_crb_in_windows(sim, res, obs, truth_p[idx]).rms_m()
+                entry["crb_model_rms_m"] = bayesian_crb_in_windows(est, res, obs, truth_p[idx]).rms_m()
             except (EstimationError, InputError, np.linalg.LinAlgError) as exc:
                 entry["error"] = f"CRB: {type(exc).__name__}: {exc}"
     return out

@@ -568,7 +568,8 @@ DEFINITIONS = {
     "CRB": "Bayesian Cramer-Rao bound of the flown trajectory (RMS over the flight of sqrt(trace)), with the "
     "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
     "on perfect centroids",
-    "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids)",
+    "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids);"
+    " a flight over 60 s in windows of 60 s, one every 30 s (model 'mixed' when they chose different ones)",
     "medians": "every table figure is the median over seeds",
 }
 

@@ -157,6 +157,7 @@ def score_run(r) -> dict:
                 "observable": e["observable"],
                 "model": e["model"],
                 "solve_s": e["solve_s"],
+                "windows": int(e.get("windows", 0)),
                 "frames": int(len(e["frames"])),
                 "error": e["error"],
             }

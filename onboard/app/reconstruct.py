@@ -90,7 +90,6 @@ import logging
 import math
 import os
 import sys
-import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -105,6 +104,7 @@ from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
+from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowedSolution, solve_in_windows
 
 __all__ = [
     "OBS_COLUMNS",
@@ -289,75 +289,6 @@ def read_observations_csv(path) -> Observations:
 
 # --------------------------------------------------------------------------- reconstruction (pure)
 
-#: ``--window-s``'s default.  The MAP problem over a span is dense in its spline's controls (two a second per
-#: axis), so its time and memory grow with the span cubed whatever the rows (docs/performance.md, "Long files
-#: offline"); 60 s keeps every shipped scenario's flight, at its own duration, one problem as before
-DEFAULT_WINDOW_S = 60.0
-
-
-@dataclass(frozen=True)
-class Window:
-    """One MAP problem of a windowed reconstruction: rows ``first:stop`` (those in ``t_start_s .. t_end_s``) solved
-    together, rows ``take_first:take_stop`` (within them) taken from its solution."""
-
-    first: int
-    stop: int
-    take_first: int
-    take_stop: int
-    t_start_s: float
-    t_end_s: float
-
-
-class WindowingError(EstimationError):
-    """Rows that a windowed reconstruction cannot solve (too few of them in a window or apart from the others)."""
-
-
-def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window]:
-    """The MAP problems for rows at times ``t_s`` (strictly increasing): one over every row when the rows span at
-    most ``window_s`` (or ``window_s`` is 0); otherwise the rows are cut into stretches at gaps longer than half a
-    window, and a stretch longer than a window into windows ``window_s`` long, starting every half window and the
-    last one ending at the stretch's last row, each row taken from the window whose middle is nearest it (so at
-    least a quarter window from that window's ends, but at the stretch's own ends).
-
-    Raises :class:`WindowingError` naming the times when a problem would have fewer than ``min_rows`` rows."""
-    t = np.asarray(t_s, dtype=float)
-    n = t.size
-    if n == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
-        return [Window(0, n, 0, n, float(t[0]) if n else math.nan, float(t[-1]) if n else math.nan)]
-    half = window_s / 2.0
-    cuts = np.flatnonzero(np.diff(t) > half) + 1
-    bounds = [0, *cuts.tolist(), n]
-    windows: list[Window] = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
-        if b - a < min_rows:
-            raise WindowingError(
-                f"{b - a} row(s) at t_s {t[a]:g}..{t[b - 1]:g} s lie apart from the others (gaps over {half:g} s, half"
-                f" of --window-s {window_s:g}, split the rows into stretches solved apart), and a stretch needs at"
-                f" least {min_rows}"
-            )
-        t0, t1 = t[a], t[b - 1]
-        if t1 - t0 <= window_s:
-            windows.append(Window(a, b, a, b, float(t0), float(t1)))
-            continue
-        starts = [float(t0 + k * half) for k in range(int(math.ceil((t1 - t0 - window_s) / half)))]
-        starts.append(float(t1 - window_s))
-        middles = np.asarray(starts) + half
-        # the window of each row: the nearest middle (the earlier one on a tie)
-        owner = np.argmin(np.abs(t[a:b, None] - middles[None, :]), axis=1)
-        for k, start in enumerate(starts):
-            first = a + int(np.searchsorted(t[a:b], start, side="left"))
-            stop = a + int(np.searchsorted(t[a:b], start + window_s, side="right"))
-            mine = np.flatnonzero(owner == k)
-            if mine.size == 0:
-                continue
-            if stop - first < min_rows:
-                raise WindowingError(
-                    f"{stop - first} row(s) at t_s {start:g}..{start + window_s:g} s, a window of --window-s"
-                    f" {window_s:g}; each window needs at least {min_rows} (a longer --window-s takes in more rows)"
-                )
-            windows.append(Window(first, stop, a + int(mine[0]), a + int(mine[-1]) + 1, start, start + window_s))
-    return windows
-
 
 @dataclass(frozen=True)
 class ReconstructOptions:
@@ -434,32 +365,24 @@ def reconstruct(
             f"{F} data rows; --method {options.method} needs at least {options.min_frames}"
             + (" (the MAP observability analysis runs on the same rows)" if options.method == "paper" else "")
         )
-    windows = plan_windows(obs.t_s, options.window_s, options.min_frames)
-    p_map, sigma_map = np.empty((F, 3)), np.empty((F, 3))
-    solved: list[tuple[Window, MapResult, float]] = []
-    for k, w in enumerate(windows, 1):
-        if progress is not None:
-            progress(k, len(windows), float(obs.t_s[w.first]), float(obs.t_s[w.stop - 1]))
-        part = obs if (w.first, w.stop) == (0, F) else obs.select(slice(w.first, w.stop))
-        t0 = time.perf_counter()
-        res = _guarded(lambda part=part: MapEstimator(options.map_config, options.noise).solve(part), "map")
-        solved.append((w, res, (time.perf_counter() - t0) * 1e3))
-        take = slice(w.take_first - w.first, w.take_stop - w.first)
-        p_map[w.take_first : w.take_stop] = res.p_ned_m[take]
-        sigma_map[w.take_first : w.take_stop] = res.sigma_ned_m[take]
-    map_ms = sum(ms for _, _, ms in solved)
+    estimator = MapEstimator(options.map_config, options.noise)
+    solution = solve_in_windows(
+        lambda part: _guarded(lambda: estimator.solve(part), "map"), obs, options.window_s, options.min_frames, progress
+    )
+    map_ms = sum(solution.solve_ms)
     summary = {"method": options.method, "frames": F}
-    if len(solved) == 1:
-        summary.update(_map_summary(solved[0][1], map_ms))
+    if len(solution.windows) == 1:
+        summary.update(_map_summary(solution.results[0], map_ms))
     else:
-        summary.update(_windows_summary(obs, solved, map_ms))
-    summary["windows"] = len(solved)
+        summary.update(_windows_summary(obs, solution, map_ms))
+    summary["windows"] = len(solution.windows)
     summary["window_s"] = options.window_s
     summary["noise"] = {k: float(v) for k, v in vars(options.noise).items()}
-    if options.noise.attitude_bias_sigma_rad > 0 and len(solved) == 1:
-        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in solved[0][1].attitude_bias_rad]
+    if options.noise.attitude_bias_sigma_rad > 0 and len(solution.windows) == 1:
+        bias_rad = solution.results[0].attitude_bias_rad
+        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in bias_rad]
     if options.method == "map":
-        p, sigma = p_map, sigma_map
+        p, sigma = solution.p_ned_m, solution.sigma_ned_m
         summary["solve_ms"] = round(map_ms, 3)
     else:
         pr: PaperResult = _guarded(lambda: PaperEstimator(options.paper).solve(obs), "paper")
@@ -483,22 +406,18 @@ def reconstruct(
     )
 
 
-def _windows_summary(obs: Observations, solved: list[tuple[Window, MapResult, float]], map_ms: float) -> dict:
-    """The summary's MAP part over several windows: ``observable`` only when every window is, the largest
-    ``range_sigma_ratio``, ``model`` when every window chose the same one, iterations summed, ``converged`` when
-    every window converged; each window's own figures in ``window_results`` (its rows, times, the rows taken from
-    it, and :func:`_map_summary`'s fields)."""
-    ratios = [r.range_sigma_ratio for _, r, _ in solved]
-    models = {r.model for _, r, _ in solved}
-    taken_observable = sum(w.take_stop - w.take_first for w, r, _ in solved if r.observable)
+def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: float) -> dict:
+    """The summary's MAP part over several windows (the module docstring's ``Summary``): the solution's verdicts
+    over all windows, iterations summed, and each window's own figures in ``window_results`` (its rows, times, the
+    rows taken from it, and :func:`_map_summary`'s fields)."""
     return {
-        "observable": all(r.observable for _, r, _ in solved),
-        "observable_rows_fraction": taken_observable / len(obs),
+        "observable": solution.observable,
+        "observable_rows_fraction": solution.observable_rows_fraction,
         "observability_source": "map",
-        "range_sigma_ratio": _finite_or_none(max(ratios)) if all(math.isfinite(x) for x in ratios) else None,
-        "model": models.pop() if len(models) == 1 else None,
-        "iterations": int(sum(r.iterations for _, r, _ in solved)),
-        "converged": all(r.converged for _, r, _ in solved),
+        "range_sigma_ratio": _finite_or_none(solution.range_sigma_ratio),
+        "model": solution.model,
+        "iterations": int(sum(r.iterations for r in solution.results)),
+        "converged": all(r.converged for r in solution.results),
         "map_solve_ms": round(map_ms, 3),
         "window_results": [
             {
@@ -510,7 +429,7 @@ def _windows_summary(obs: Observations, solved: list[tuple[Window, MapResult, fl
                 "t_taken_last_s": float(obs.t_s[w.take_stop - 1]),
                 **_map_summary(r, ms),
             }
-            for w, r, ms in solved
+            for w, r, ms in zip(solution.windows, solution.results, solution.solve_ms)
         ],
     }
 

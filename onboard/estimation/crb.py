@@ -25,8 +25,9 @@ import scipy.linalg as sla
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowProblem
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
+from onboard.estimation.windows import WindowedSolution, stitch
 
-__all__ = ["BayesianCrb", "bayesian_crb", "predicted_point_covariance"]
+__all__ = ["BayesianCrb", "WindowedCrb", "bayesian_crb", "bayesian_crb_in_windows", "predicted_point_covariance"]
 
 
 @dataclass(frozen=True)
@@ -47,16 +48,12 @@ class BayesianCrb:
 
     def rms_m(self) -> float:
         """RMS over the window of sqrt(trace) of the per-point bound, metres."""
-        return float(np.sqrt(np.mean(np.einsum("fii->f", self.point_covariances()))))
+        return _rms_m(self.point_covariances())
 
     def range_sigma_ratio(self) -> float:
         """Median over the window of the bound's range sigma over the true range: the smallest
         ``range_sigma_ratio`` an estimator that knows the motion model could honestly report."""
-        P = self.point_covariances()
-        los = self.p_true_ned_m - self.p_cam_ned_m
-        r = np.linalg.norm(los, axis=1)
-        u = los / r[:, None]
-        return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
+        return _range_sigma_ratio(self.point_covariances(), self.p_true_ned_m, self.p_cam_ned_m)
 
     def efficient_error_range_pct(self, draws: int = 4000, rng: np.random.Generator | None = None) -> np.ndarray:
         """Per-run "mean over the window of ||e|| / range" (percent) of ``draws`` runs of an efficient estimator.
@@ -74,6 +71,55 @@ class BayesianCrb:
         e = np.einsum("fm,nfmk->nfk", prob.rows.w0, c[:, prob.rows.index])
         rng_m = np.linalg.norm(self.p_true_ned_m - self.p_cam_ned_m, axis=1)
         return np.mean(np.linalg.norm(e, axis=2) / rng_m, axis=1) * 100.0
+
+
+def _rms_m(P: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
+
+
+def _range_sigma_ratio(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> float:
+    los = p_true_ned_m - p_cam_ned_m
+    r = np.linalg.norm(los, axis=1)
+    u = los / r[:, None]
+    return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
+
+
+@dataclass(frozen=True)
+class WindowedCrb:
+    """The bound of a reconstruction solved in windows (:func:`bayesian_crb_in_windows`): each row's bound from
+    the window its estimate was taken from.  The figures are :class:`BayesianCrb`'s."""
+
+    covariances: np.ndarray  # (F, 3, 3)
+    p_true_ned_m: np.ndarray
+    p_cam_ned_m: np.ndarray
+
+    def point_covariances(self) -> np.ndarray:
+        return self.covariances
+
+    def rms_m(self) -> float:
+        return _rms_m(self.covariances)
+
+    def range_sigma_ratio(self) -> float:
+        return _range_sigma_ratio(self.covariances, self.p_true_ned_m, self.p_cam_ned_m)
+
+
+def bayesian_crb_in_windows(
+    estimator: MapEstimator, solution: WindowedSolution, obs: Observations, p_true_ned_m: np.ndarray
+) -> BayesianCrb | WindowedCrb:
+    """The bound of ``solution`` (:func:`~onboard.estimation.windows.solve_in_windows` of ``obs``) for
+    ``estimator``'s noise model: each window's :func:`bayesian_crb` with the motion prior and turn rate that
+    window's solution chose, each row's from the window that row's estimate came from.  One window: that
+    window's :func:`bayesian_crb` itself."""
+    p_true = np.asarray(p_true_ned_m, dtype=float)
+    windows, results = solution.windows, solution.results
+    if len(windows) == 1:
+        return bayesian_crb(estimator, obs, p_true, results[0].prior, results[0].turn_rate_radps)
+    parts = []
+    for w, res in zip(windows, results):
+        part = slice(w.first, w.stop)
+        bound = bayesian_crb(estimator, obs.select(part), p_true[part], res.prior, res.turn_rate_radps)
+        parts.append(bound.point_covariances())
+    return WindowedCrb(stitch(windows, parts, len(obs)), p_true, np.asarray(obs.p_cam_ned_m, dtype=float))
 
 
 def bayesian_crb(

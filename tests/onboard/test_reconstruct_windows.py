@@ -15,13 +15,10 @@ from hypothesis import strategies as st
 from groundsim.evaluation.synth import synthesize
 from groundsim.world.motion import Circular
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
-from onboard.app.reconstruct import (
-    DEFAULT_WINDOW_S,
-    ReconstructOptions,
-    WindowingError,
-    plan_windows,
-    reconstruct,
-)
+from onboard.app.reconstruct import ReconstructOptions, reconstruct
+from onboard.estimation.crb import bayesian_crb, bayesian_crb_in_windows
+from onboard.estimation.map_estimator import MapEstimator
+from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowingError, plan_windows, solve_in_windows
 from tests.onboard.test_reconstruct_cli import obs_csv_text, read_out, run_main_io
 
 MIN_ROWS = 10
@@ -102,10 +99,15 @@ def test_window_plan_default_and_zero():
 
 def test_rows_apart_are_refused_naming_their_times():
     t = np.concatenate([[-1440.0], np.arange(0.0, 1.2, 0.1)])
-    with pytest.raises(WindowingError, match=r"1 row\(s\) at t_s -1440\.\.-1440 s lie apart"):
+    with pytest.raises(
+        WindowingError,
+        match=r"1 row\(s\) at t_s -1440\.\.-1440 s lie over 30 s \(half a 60 s window\) from the other rows",
+    ):
         plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
     # a sparse stretch: rows 20 s apart leave 3-4 in each 60 s window
-    with pytest.raises(WindowingError, match=r"a window of --window-s 60; each window needs at least 10"):
+    with pytest.raises(
+        WindowingError, match=r"one of the 60 s windows a long span is solved in; each needs at least 10 rows"
+    ):
         plan_windows(np.arange(0.0, 300.0, 20.0), DEFAULT_WINDOW_S, MIN_ROWS)
 
 
@@ -199,3 +201,32 @@ def test_cli_rows_apart_exit_2_with_one_line(long_circling_flight, tmp_path):
 def test_cli_refuses_a_bad_window(tmp_path, value):
     rc, _, err = run_main_io(tmp_path / "obs.csv", "-o", tmp_path / "out.csv", "--window-s", value)
     assert rc == 2 and "--window-s" in err and err.count("\n") == 1
+
+
+def test_windowed_bound_is_each_windows_own_and_close_to_the_whole(long_circling_flight, long_solutions):
+    """The bound of a windowed solution takes each row's from its window: at least the whole problem's (a window
+    sees less of the flight), within a few times it here, and the windowed estimate's errors are of its size."""
+    truth, obs = long_circling_flight
+    est = MapEstimator()
+    windowed = solve_in_windows(est.solve, obs, 40.0, est.config.min_frames)
+    whole = solve_in_windows(est.solve, obs, 0.0, est.config.min_frames)
+    assert len(windowed.windows) == 4 and len(whole.windows) == 1
+    b_windows = bayesian_crb_in_windows(est, windowed, obs, truth)
+    b_whole = bayesian_crb_in_windows(est, whole, obs, truth)
+    # one window: bayesian_crb itself, with that window's prior
+    direct = bayesian_crb(est, obs, truth, whole.results[0].prior, whole.results[0].turn_rate_radps)
+    assert b_whole.rms_m() == direct.rms_m()
+    P_w, P_1 = b_windows.point_covariances(), b_whole.point_covariances()
+    assert P_w.shape == P_1.shape == (len(obs), 3, 3)
+    tr_w, tr_1 = np.einsum("fii->f", P_w), np.einsum("fii->f", P_1)
+    assert np.median(tr_w / tr_1) >= 0.999
+    assert b_whole.rms_m() <= b_windows.rms_m() < 3 * b_whole.rms_m()
+    # each row's bound is its own window's: the first window's rows as that window alone bounds them
+    w0, r0 = windowed.windows[0], windowed.results[0]
+    alone = bayesian_crb(
+        est, obs.select(slice(w0.first, w0.stop)), truth[w0.first : w0.stop], r0.prior, r0.turn_rate_radps
+    )
+    take = slice(w0.take_first, w0.take_stop)
+    np.testing.assert_array_equal(P_w[take], alone.point_covariances()[take.start - w0.first : take.stop - w0.first])
+    err = np.linalg.norm(windowed.p_ned_m - truth, axis=1)
+    assert 0.2 < np.sqrt(np.mean(err**2)) / b_windows.rms_m() < 5
