@@ -51,7 +51,8 @@ file: :mod:`onboard.estimation.windows`), once on the pipeline's measured centro
 centroids; the Bayesian Cramer-Rao bound (:meth:`~onboard.estimation.crb.BayesianCrb.rms_m`) of
 the flown trajectory is taken with the perfect-centroid solution's motion prior (each window's), for the noise
 actually simulated (the baseline's pixel noise and the run's navigation-error case: ``crb_rms_m``) and
-for the noise model the estimator assumes (``crb_model_rms_m``).
+for the noise model the estimator assumes (``crb_model_rms_m``; ``crb_model_range_sigma_ratio``, that bound's
+median range sigma over range: the figure the estimator's observability verdict is held to, at its best).
 
 Scoring: :mod:`groundsim.evaluation.scoring` (its docstring defines every figure).
 
@@ -778,12 +779,16 @@ def _time_offset_times(times: dict, t_s: float, track, pipeline, watchdog, thres
         times["warning_t_s"] = t_s
 
 
+#: how often over a flight the bound the online verdict is held to is taken (:func:`_batch`)
+CAUSAL_BOUND_EVERY_S = 0.5
+
+
 def _batch(
     cfg, K, t_s, uv, meas, truth_uv, visible, cam_p, cam_q, truth_p, scenario, seed, pixel_sigma_px, nav_case=None
 ) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
     from groundsim.evaluation.synth import estimator_noise_model
-    from onboard.estimation.crb import bayesian_crb_in_windows
+    from onboard.estimation.crb import bayesian_crb_in_windows, causal_range_sigma_ratios
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
     from onboard.estimation.windows import DEFAULT_WINDOW_S, solve_in_windows
@@ -828,7 +833,7 @@ def _batch(
         if name == "perfect":
             # the bound of the flown trajectory for the noise actually simulated (the baseline's pixel
             # noise and the telemetry's navigation errors), and for the noise model the estimator assumes
-            entry["crb_rms_m"] = entry["crb_model_rms_m"] = math.nan
+            entry["crb_rms_m"] = entry["crb_model_rms_m"] = entry["crb_model_range_sigma_ratio"] = math.nan
             try:
                 if pixel_sigma_px > 0:
                     simulated = (
@@ -838,7 +843,17 @@ def _batch(
                     )
                     sim = MapEstimator(est.config, simulated)
                     entry["crb_rms_m"] = bayesian_crb_in_windows(sim, res, obs, truth_p[idx]).rms_m()
-                entry["crb_model_rms_m"] = bayesian_crb_in_windows(est, res, obs, truth_p[idx]).rms_m()
+                model_bound = bayesian_crb_in_windows(est, res, obs, truth_p[idx])
+                entry["crb_model_rms_m"] = model_bound.rms_m()
+                entry["crb_model_range_sigma_ratio"] = model_bound.range_sigma_ratio()
+                # what the online verdict could say at best, every half second: the bound of the sliding
+                # window's own rows up to that time
+                sliding = cfg.estimator.sliding_config()
+                t_eval = t_s[0] + np.arange(1.0, t_s[-1] - t_s[0] + 1e-9, CAUSAL_BOUND_EVERY_S)
+                entry["causal_bound_t_s"] = t_eval - t_s[0]
+                entry["causal_bound_range_sigma_ratio"] = causal_range_sigma_ratios(
+                    est, res, obs, truth_p[idx], t_eval, sliding.window_s, sliding.min_spacing_s
+                )
             except (EstimationError, InputError, np.linalg.LinAlgError) as exc:
                 entry["error"] = f"CRB: {type(exc).__name__}: {exc}"
     return out

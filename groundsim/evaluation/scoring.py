@@ -53,7 +53,8 @@ def closed_loop_figures(r) -> dict:
     (honesty; <= 0.01 asked); ``observable_share_after_5s``: observable / all frames at t >= 5 s;
     ``median_err_range_observable_pct``: median over observable frames of ``||e|| / range``, per cent;
     ``median_err_range_published_after_5s_pct``: the same over every published position at t >= 5 s;
-    ``first_observable_s``: time of the first observable frame.
+    ``first_observable_s``: time of the first observable frame; ``observable_share_after_5s_at_bound``: the most
+    of ``observable_share_after_5s`` an estimator at the Bayesian CRB could reach (:func:`_observable_share_at_bound`).
     """
     t = r.t_s - r.t_s[0] if r.t_s.size else r.t_s
     has = r.has_estimate
@@ -77,7 +78,35 @@ def closed_loop_figures(r) -> dict:
             float(np.median(100.0 * e[pub & late] / r.range_m[pub & late])) if (pub & late).any() else None
         ),
         "first_observable_s": float(t[obs][0]) if obs.any() else None,
+        "observable_share_after_5s_at_bound": _observable_share_at_bound(r),
     }
+
+
+def bound_ratio_limit() -> float:
+    """The largest range sigma over range at the Bayesian CRB with which the estimator can call a position
+    observable: its verdict holds the reported sigma, the Laplace one times ``sigma_inflation``, under
+    ``observability_max_sigma_range_ratio``; an estimator at the bound reports the bound times that factor."""
+    from onboard.estimation.map_estimator import MapConfig
+
+    c = MapConfig()
+    return c.observability_max_sigma_range_ratio / c.sigma_inflation
+
+
+def _observable_share_at_bound(r) -> float | None:
+    """The share of the half-second samples at t >= 5 s whose bound (the batch's ``causal_bound_*``: the
+    sliding window's own rows up to that time) is under :func:`bound_ratio_limit`: the most of
+    ``observable_share_after_5s`` an estimator at the bound could reach (a sample without enough rows counts
+    as not observable).  None without the batch's bound."""
+    perfect = (r.batch or {}).get("perfect") or {}
+    t, ratio = perfect.get("causal_bound_t_s"), perfect.get("causal_bound_range_sigma_ratio")
+    if t is None or ratio is None:
+        return None
+    late = np.asarray(t) >= OBSERVABLE_AFTER_S
+    if not late.any():
+        return None
+    with np.errstate(invalid="ignore"):
+        ok = np.asarray(ratio)[late] < bound_ratio_limit()
+    return float(ok.mean())
 
 
 def score_run(r) -> dict:
@@ -163,6 +192,7 @@ def score_run(r) -> dict:
             }
         b["crb_rms_m"] = r.batch["perfect"].get("crb_rms_m")
         b["crb_model_rms_m"] = r.batch["perfect"].get("crb_model_rms_m")
+        b["crb_model_range_sigma_ratio"] = r.batch["perfect"].get("crb_model_range_sigma_ratio")
         out["batch"] = b
     out["counters"] = {str(k): int(v) for k, v in sorted(r.counters.items())}
     return out
@@ -223,6 +253,8 @@ SUMMARY_FIELDS = {
     "baseline_pixel_sigma_px": ("baseline_pixel_sigma_px",),
     "chain_centroid_sigma_px": ("chain_centroid_sigma_px",),
     "crb_model_rms_m": ("batch", "crb_model_rms_m"),
+    "crb_model_range_sigma_ratio": ("batch", "crb_model_range_sigma_ratio"),
+    "observable_share_after_5s_at_bound": ("closed_loop", "observable_share_after_5s_at_bound"),
     "batch_perfect_rmse_m": ("batch", "perfect", "metrics", "rmse_m"),
 }
 

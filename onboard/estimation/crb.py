@@ -17,6 +17,7 @@ dominated figure scatters by a factor of ~3 between its 5th and 95th percentiles
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +28,14 @@ from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid
 from onboard.estimation.windows import WindowedSolution, stitch
 
-__all__ = ["BayesianCrb", "WindowedCrb", "bayesian_crb", "bayesian_crb_in_windows", "predicted_point_covariance"]
+__all__ = [
+    "BayesianCrb",
+    "WindowedCrb",
+    "bayesian_crb",
+    "bayesian_crb_in_windows",
+    "causal_range_sigma_ratios",
+    "predicted_point_covariance",
+]
 
 
 @dataclass(frozen=True)
@@ -194,3 +202,51 @@ def predicted_point_covariance(
         B[:, 3 * k : 3 * k + 3] = rows.w0[0, m] * np.eye(3)
     X = sla.solve_triangular(R, (B / d).T, trans="T", check_finite=False)
     return X.T @ X
+
+
+def causal_range_sigma_ratios(
+    estimator: MapEstimator,
+    solution: WindowedSolution,
+    obs: Observations,
+    p_true_ned_m: np.ndarray,
+    t_eval_s: np.ndarray,
+    window_s: float,
+    min_spacing_s: float,
+) -> np.ndarray:
+    """At each time of ``t_eval_s``: the bound's range sigma over the true range at the newest row at or before
+    it, from the rows of the ``window_s`` seconds up to that row, thinned as the sliding window keeps them (a row
+    closer than ``min_spacing_s`` to the last kept one is left out), with the motion prior and turn rate of the
+    window of ``solution`` that took that row.  The figure the online estimator's verdict at that time is held to
+    (the verdict wants the range sigma at the newest row under ``observability_max_sigma_range_ratio``), at its
+    best: a local bound, blind to a second explanation of the bearings far from the truth.  nan where fewer than
+    the estimator's ``min_frames`` rows are kept."""
+    p_true = np.asarray(p_true_ned_m, dtype=float)
+    t = np.asarray(obs.t_s, dtype=float)
+    kept = []
+    last = -math.inf
+    for i, ti in enumerate(t):
+        if ti - last >= min_spacing_s:
+            kept.append(i)
+            last = ti
+    kept_idx = np.asarray(kept, dtype=np.int64)
+    owner = np.empty(t.size, dtype=np.int64)
+    for k, w in enumerate(solution.windows):
+        owner[w.take_first : w.take_stop] = k
+    out = np.full(np.shape(t_eval_s), math.nan)
+    for j, te in enumerate(np.asarray(t_eval_s, dtype=float)):
+        hi = int(np.searchsorted(t[kept_idx], te, side="right"))
+        if hi == 0:
+            continue
+        newest = kept_idx[hi - 1]
+        lo = int(np.searchsorted(t[kept_idx], t[newest] - window_s, side="left"))
+        rows = kept_idx[lo:hi]
+        if rows.size < estimator.config.min_frames:
+            continue
+        res = solution.results[owner[newest]]
+        bound = bayesian_crb(estimator, obs.select(rows), p_true[rows], res.prior, res.turn_rate_radps)
+        P = bound.point_covariances()[-1]
+        los = p_true[newest] - np.asarray(obs.p_cam_ned_m[newest], dtype=float)
+        r = float(np.linalg.norm(los))
+        u = los / r
+        out[j] = math.sqrt(max(float(u @ P @ u), 0.0)) / r
+    return out

@@ -30,14 +30,21 @@ from groundsim.evaluation.eval import (
     run_eval,
     run_lockstep,
 )
-from groundsim.evaluation.report import ape_rmse_m, read_tum, write_eval_report, write_tum
-from groundsim.evaluation.scoring import format_gnss_dropout, gnss_dropout_figures, score_run, summarise
+from groundsim.evaluation.report import ape_rmse_m, format_closed_loop, read_tum, write_eval_report, write_tum
+from groundsim.evaluation.scoring import (
+    bound_ratio_limit,
+    format_gnss_dropout,
+    gnss_dropout_figures,
+    score_run,
+    summarise,
+)
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import GeodeticOrigin, quat_from_euler
 from onboard.core.pose import PoseBuffer
 from onboard.core.pose_config import PoseConfig
+from onboard.estimation.map_estimator import MapConfig
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -430,6 +437,33 @@ def test_summarise_medians_ratios_and_verdict():
     b = rows["B"]
     assert b["ratio_to_perfect"] == pytest.approx(2.0, rel=1e-9) and b["batch_ratio_to_perfect"] is None
     assert b["within_ratio"] is False
+
+
+def test_the_share_observable_at_the_bound_counts_the_half_seconds_after_5_s():
+    run = _synthetic_run("A", F=330, obs_from=300)  # 11 s, observable from 10 s: 1 s of the 6 after 5 s
+    limit = bound_ratio_limit()
+    batch = _batch_for(run)
+    t = np.arange(1.0, 11.0, 0.5)  # 1 .. 10.5 s: 12 samples at or after 5 s
+    ratio = np.where(t < 8.0, 2 * limit, 0.5 * limit)  # under the limit from 8 s: 6 of the 12
+    ratio[t == 9.0] = np.nan  # too few rows then: not observable
+    batch["perfect"].update(causal_bound_t_s=t, causal_bound_range_sigma_ratio=ratio)
+    s = score_run(dataclasses.replace(run, batch=batch))
+    assert s["closed_loop"]["observable_share_after_5s_at_bound"] == pytest.approx(5 / 12)
+    assert score_run(dataclasses.replace(run, batch=None))["closed_loop"]["observable_share_after_5s_at_bound"] is None
+    # the closed-loop table: the bound's share beside the run's, and a miss the bound shares said to be the flight's
+    row = summarise([score_run(dataclasses.replace(run, batch=batch))])[0]
+    line = format_closed_loop([row]).splitlines()[-1]
+    assert line.endswith("| 42 % |")
+    assert row["observable_share_after_5s"] == pytest.approx(30 / 180)
+    assert "**miss** (the bound's too)" in line
+    batch["perfect"]["causal_bound_range_sigma_ratio"] = np.full(t.size, 0.5 * limit)
+    line = format_closed_loop(summarise([score_run(dataclasses.replace(run, batch=batch))])).splitlines()[-1]
+    assert line.endswith("| 100 % |") and "the bound's too" not in line
+
+
+def test_the_bound_ratio_limit_is_the_verdicts_threshold_over_the_sigma_inflation():
+    c = MapConfig()
+    assert bound_ratio_limit() == pytest.approx(c.observability_max_sigma_range_ratio / c.sigma_inflation)
 
 
 # --------------------------------------------------------------------------- report files
