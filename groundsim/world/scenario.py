@@ -1005,8 +1005,16 @@ def check_mapping(v, path, fail: SpecFail, allowed, required=()) -> dict:
 
 def main(argv=None) -> int:
     """``python -m groundsim.world.scenario [FILE ...]``: validate scenario files (default: the shipped
-    ones); print one line per file; exit 0 if all are valid, else 2."""
-    args = list(sys.argv[1:] if argv is None else argv)
+    ones); print one line per file; exit 0 if all are valid, else 2 (an unknown option too, in one line)."""
+    from onboard.app.cli_args import OneLineParser
+
+    parser = OneLineParser(
+        prog="python -m groundsim.world.scenario",
+        description="Validate scenario files (docs/scenarios.md): one line per file, 'ok: ...' or 'error: ...'; "
+        "exit 0 when every file is valid, else 2.",
+    )
+    parser.add_argument("files", nargs="*", metavar="FILE", help="scenario YAML files (default: the shipped ones)")
+    args = parser.parse_args(sys.argv[1:] if argv is None else argv).files
     try:
         paths = [Path(a) for a in args] or list(reference_scenario_paths().values())
     except IrtrackError as e:

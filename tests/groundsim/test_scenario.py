@@ -742,6 +742,16 @@ def test_module_entry_point_exit_code(tmp_path):
     assert len(r.stderr.strip().splitlines()) == 1 and str(bad) in r.stderr and "line 2" in r.stderr
 
 
+def test_the_validator_takes_help_and_refuses_an_unknown_option_in_one_line(capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["--help"])
+    assert exc.value.code == 0 and "usage: python -m groundsim.world.scenario" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:
+        main(["--bogus", str(REPO / "config/scenarios/P1.yaml")])
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and err.count("\n") == 1 and "unrecognized arguments: --bogus" in err
+
+
 # --------------------------------------------------------------------------- noise cases
 
 
