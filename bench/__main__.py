@@ -62,6 +62,9 @@ def _run_child(name: str, env: dict, stop: threading.Event) -> int:
 
 def main(argv=None) -> int:
     names = list(argv if argv is not None else sys.argv[1:]) or list(BENCHES)
+    if any(n in ("-h", "--help") for n in names):
+        print((__doc__ or "").split("\n\n")[0] + "\n\n" + (__doc__ or "").split("\n\n")[1].strip())
+        return 0
     unknown = [n for n in names if n not in BENCHES]
     if unknown:
         print(f"bench: unknown benchmark(s) {', '.join(unknown)}; choose from {', '.join(BENCHES)}", file=sys.stderr)

@@ -130,3 +130,13 @@ def test_a_bad_value_is_refused_on_one_line_naming_the_option(refusals, k):
     assert len(lines) == 1, got["stderr"]
     assert f"error: argument {option}: " in lines[0], lines[0]
     assert got["stdout"] == ""  # refused before anything was measured or printed
+
+
+def test_the_suite_takes_help_and_names_an_unknown_benchmark(capsys):
+    from bench.__main__ import main
+
+    assert main(["--help"]) == 0
+    assert "python -m bench [NAME ...]" in capsys.readouterr().out
+    assert main(["estimator", "nope"]) == 2  # refused before any benchmark starts
+    captured = capsys.readouterr()
+    assert captured.out == "" and "unknown benchmark(s) nope" in captured.err
