@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+from collections.abc import Mapping
 
 from groundsim.io.stop_signals import print_interrupted
 
@@ -54,11 +55,25 @@ def flight_inputs(rec) -> tuple[dict, dict]:
     for inp in rec.inputs:
         if inp.get("pose") is not None:
             poses[(int(inp["seq"]), int(inp["time_boot_us"]))] = inp["pose"]["p_cam_ned_m"]
-    frames = {}
-    for key, copies in rec.frames.items():
-        img, _rx_ns = copies[0]
-        frames[key] = irframe_from_rawimage(key[0], img, rec.path).pixels
-    return poses, frames
+    return poses, _Pixels(rec, irframe_from_rawimage)
+
+
+class _Pixels(Mapping):
+    """``{(seq, time_boot_us): (H, W) pixels}`` of a recording's frames, each read from the file when looked up:
+    the report draws one frame, and a flight's frames are ~10 MB a second."""
+
+    def __init__(self, rec, decode) -> None:
+        self._rec, self._decode = rec, decode
+
+    def __getitem__(self, key):
+        ref, _rx_ns = self._rec.frames[key][0]
+        return self._decode(key[0], ref.raw_image(), self._rec.path).pixels
+
+    def __iter__(self):
+        return iter(self._rec.frames)
+
+    def __len__(self) -> int:
+        return len(self._rec.frames)
 
 
 #: a truth recording whose camera looked elsewhere than the flight's telemetry says (median angle between the two

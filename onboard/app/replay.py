@@ -84,6 +84,7 @@ from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC, TRUTH_TOPIC
 
 __all__ = [
     "RecordedMessage",
+    "FrameRef",
     "read_recording",
     "Recording",
     "load_recording",
@@ -115,21 +116,82 @@ WORKER_GROSS_SIGMA = 6.0
 
 @dataclass(frozen=True)
 class RecordedMessage:
+    """One message; ``data_offset``: where its data lies in the file (a message of an uncompressed chunk, which
+    can be read again from there), else None."""
+
     topic: str
     schema: str
     log_time_ns: int
     publish_time_ns: int
     sequence: int
     data: bytes
+    data_offset: int | None = None
+
+
+@dataclass(frozen=True)
+class FrameRef:
+    """A recorded ``foxglove.RawImage``, read from its file when asked (:meth:`raw_image`): a recording's frames
+    (~10 MB a second of flight) are not held in memory.  ``data`` holds the message itself where it cannot be
+    read again by offset (a compressed chunk)."""
+
+    path: str
+    offset: int | None
+    size: int
+    data: bytes | None = None
+
+    def raw_image(self):
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+        from google.protobuf.message import DecodeError
+
+        if self.data is not None:
+            data = self.data
+        else:
+            assert self.offset is not None
+            try:
+                with open(self.path, "rb") as f:
+                    data = os.pread(f.fileno(), self.size, self.offset)
+            except OSError as exc:
+                raise InputError(
+                    f"{self.path}: cannot read the frame at byte {self.offset}: {exc.strerror or exc}"
+                ) from None
+        img = RawImage()
+        try:
+            if len(data) != self.size:
+                raise DecodeError(f"{len(data)} of its {self.size} bytes")
+            img.ParseFromString(data)
+        except DecodeError as exc:
+            raise InputError(
+                f"{self.path}: the frame at byte {self.offset} no longer decodes (the file changed since it was"
+                f" read?): {exc}"
+            ) from None
+        return img
+
+
+def _message_data_offsets(records: bytes, start: int) -> Iterator[int]:
+    """The file offset of each message's data among an uncompressed chunk's ``records`` (which begin at byte
+    ``start`` of the file), in order: each record is its opcode, its length and its body, a message's body its
+    channel id, sequence, log and publish times, then its data (https://mcap.dev/spec#message-op0x05)."""
+    pos, n = 0, len(records)
+    while pos + _RECORD_HEAD.size <= n:
+        opcode, length = _RECORD_HEAD.unpack_from(records, pos)
+        if opcode == _OPCODE_MESSAGE:
+            yield start + pos + _RECORD_HEAD.size + _MESSAGE_FIXED
+        pos += _RECORD_HEAD.size + length
+
+
+_RECORD_HEAD = struct.Struct("<BQ")
+_OPCODE_MESSAGE = 0x05
+_MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
 
 
 def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
     """Every message of an MCAP file in file order (metadata records as ``{"metadata": name, ...}``),
     with the `mcap` package's stream reader; a file cut short ends at its last complete record and
     yields ``{"truncated": "<reason>"}`` last.  A record the reader cannot parse before the end of the file
-    is not a cut but damage: :class:`InputError`."""
-    from mcap.records import Channel, Message, Metadata, Schema
-    from mcap.stream_reader import StreamReader
+    is not a cut but damage: :class:`InputError`.  A message of an uncompressed chunk carries where its data lies
+    in the file (``data_offset``)."""
+    from mcap.records import Channel, Chunk, Message, Metadata, Schema
+    from mcap.stream_reader import StreamReader, breakup_chunk
 
     schemas: dict[int, str] = {}
     channels: dict[int, tuple[str, str]] = {}
@@ -144,16 +206,28 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
             raise InputError(f"{path}: not an MCAP recording ({what}); give a file of python -m onboard --record")
         f.seek(0)
         try:
-            for rec in StreamReader(f, validate_crcs=False).records:
-                if isinstance(rec, Schema):
-                    schemas[rec.id] = rec.name
-                elif isinstance(rec, Channel):
-                    channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
-                elif isinstance(rec, Message):
-                    topic, schema = channels.get(rec.channel_id, ("?", ""))
-                    yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data)
-                elif isinstance(rec, Metadata):
-                    yield {"metadata": rec.name, **rec.metadata}
+            for top in StreamReader(f, emit_chunks=True, validate_crcs=False).records:
+                offsets: Iterator[int | None] = iter(())
+                if isinstance(top, Chunk):
+                    if top.compression == "":
+                        # the chunk's records are its last field: they end where the reader stopped
+                        records_start = f.tell() - len(top.data)
+                        if os.pread(f.fileno(), 16, records_start) == top.data[:16]:
+                            offsets = _message_data_offsets(top.data, records_start)
+                    inner = breakup_chunk(top, validate_crc=False)
+                else:
+                    inner = [top]
+                for rec in inner:
+                    if isinstance(rec, Schema):
+                        schemas[rec.id] = rec.name
+                    elif isinstance(rec, Channel):
+                        channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
+                    elif isinstance(rec, Message):
+                        topic, schema = channels.get(rec.channel_id, ("?", ""))
+                        at = next(offsets, None)
+                        yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data, at)
+                    elif isinstance(rec, Metadata):
+                        yield {"metadata": rec.name, **rec.metadata}
         except Exception as exc:  # noqa: BLE001 - whatever the reader raised where the file stops or is damaged
             # a record cut by the end of the file: the reader found no bytes (EndOfFile), fewer than a field's
             # (struct.error) or a partial trailing magic; it read up to the end, which tells a cut from damage
@@ -176,7 +250,7 @@ class Recording:
 
     path: str
     metadata: dict[str, str]
-    frames: dict  # (seq, time_boot_us) -> list of RawImage messages (duplicates kept in order)
+    frames: dict  # (seq, time_boot_us) -> list of (FrameRef, publish time ns) (duplicates kept in order)
     inputs: list  # frame_input dicts in file order
     tracks: list  # recorded track dicts in file order
     truth: list  # irtrack.truth/1 dicts (groundsim recordings)
@@ -220,7 +294,8 @@ def load_recording(path: str) -> Recording:
                 img = RawImage()
                 img.ParseFromString(m.data)
                 t_us = int(img.timestamp.seconds) * 1_000_000 + int(img.timestamp.nanos) // 1000
-                frames.setdefault((m.sequence, t_us), []).append((img, m.publish_time_ns))
+                ref = FrameRef(path, m.data_offset, len(m.data), None if m.data_offset is not None else m.data)
+                frames.setdefault((m.sequence, t_us), []).append((ref, m.publish_time_ns))
             elif m.topic == FRAME_INPUT_TOPIC:
                 inputs.append(_json_object(m.data, ("seq", "time_boot_us", "received_ns"), pose=True))
             elif m.schema.startswith("irtrack.track/"):
@@ -408,8 +483,8 @@ def _frames_taken(rec: Recording) -> Iterator[tuple[int, dict, Any]]:
             yield i, inp, None
             continue
         used[key] = k + 1
-        img, _rx_ns = cands[k]
-        yield i, inp, irframe_from_rawimage(key[0], img, f"{rec.path}: frame seq {key[0]}")
+        ref, _rx_ns = cands[k]
+        yield i, inp, irframe_from_rawimage(key[0], ref.raw_image(), f"{rec.path}: frame seq {key[0]}")
 
 
 class _TappedTracker:

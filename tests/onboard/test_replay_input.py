@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 
 from onboard.app.replay import EXIT_CONFIG, EXIT_DIFFERENT, EXIT_OK, main
+from onboard.core.errors import InputError
 from onboard.io.record import FRAME_INPUT_TOPIC, IMAGING_POSE_TOPIC
 from tests.recording_edits import Edit, rewrite_recording
 
@@ -286,3 +287,54 @@ def test_a_bad_set_on_a_recordings_configuration_names_the_option_not_the_file()
     with pytest.raises(OnboardConfigError, match=r"^--set: camera.intrinsics.fx_px: expected a number in \(0, "):
         config_of(rec, None, {"camera.intrinsics.fx_px": (-1.0, "--set")})
     assert config_of(rec, None, {"camera.intrinsics.fx_px": (400.0, "--set")}).camera.intrinsics.fx_px == 400.0
+
+
+# --------------------------------------------------------------------------- frames read from the file
+
+
+def test_frames_are_read_again_from_where_the_indexed_reader_finds_them(recording):
+    """The recording's frames are not held in memory: each is where it lies in the file, and the bytes there are
+    the message the `mcap` package's indexed reader (another reader than replay's) gives, in order."""
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+    from mcap.reader import make_reader
+
+    from onboard.app.replay import load_recording
+
+    rec = load_recording(str(recording))
+    refs = [ref for copies in rec.frames.values() for ref, _rx in copies]
+    assert len(refs) == N_FRAMES
+    assert all(ref.data is None and ref.offset is not None for ref in refs)
+    with open(recording, "rb") as f:
+        images = [m.data for _s, ch, m in make_reader(f).iter_messages() if ch.topic == FRAME_TOPIC]
+        assert len(images) == N_FRAMES
+        for ref, data in zip(sorted(refs, key=lambda r: r.offset), images):
+            assert os.pread(f.fileno(), ref.size, ref.offset) == data
+            assert ref.raw_image() == RawImage.FromString(data)
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd"])
+def test_a_recording_of_compressed_chunks_keeps_its_frames_and_replays_as_recorded(
+    recording, tmp_path, capsys, compression
+):
+    from onboard.app.replay import load_recording
+
+    packed = tmp_path / f"{compression}.mcap"
+    rewrite_recording(recording, packed, lambda *_: None, compression=compression)
+    refs = [ref for copies in load_recording(str(packed)).frames.values() for ref, _rx in copies]
+    assert len(refs) == N_FRAMES and all(ref.offset is None and ref.data is not None for ref in refs)
+    assert main([str(packed), "--compare"]) == EXIT_OK, capsys.readouterr().err
+
+
+def test_a_frame_whose_file_changed_after_loading_is_refused_naming_the_file_and_byte(recording, tmp_path):
+    from onboard.app.replay import load_recording
+
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(recording.read_bytes())
+    rec = load_recording(str(copy))
+    ref = max((ref for copies in rec.frames.values() for ref, _rx in copies), key=lambda r: r.offset)
+    os.truncate(copy, ref.offset + ref.size // 2)  # the last frame cut in half
+    with pytest.raises(InputError, match=rf"{copy}: the frame at byte {ref.offset} no longer decodes"):
+        ref.raw_image()
+    copy.unlink()
+    with pytest.raises(InputError, match=rf"{copy}: cannot read the frame at byte {ref.offset}"):
+        ref.raw_image()
