@@ -30,7 +30,14 @@ from groundsim.evaluation.eval import (
     run_eval,
     run_lockstep,
 )
-from groundsim.evaluation.report import ape_rmse_m, format_closed_loop, read_tum, write_eval_report, write_tum
+from groundsim.evaluation.report import (
+    ape_rmse_m,
+    closed_loop_notes,
+    format_closed_loop,
+    read_tum,
+    write_eval_report,
+    write_tum,
+)
 from groundsim.evaluation.scoring import (
     bound_ratio_limit,
     format_gnss_dropout,
@@ -459,6 +466,18 @@ def test_the_share_observable_at_the_bound_counts_the_half_seconds_after_5_s():
     batch["perfect"]["causal_bound_range_sigma_ratio"] = np.full(t.size, 0.5 * limit)
     line = format_closed_loop(summarise([score_run(dataclasses.replace(run, batch=batch))])).splitlines()[-1]
     assert line.endswith("| 100 % |") and "the bound's too" not in line
+
+
+def test_a_chain_off_its_target_gets_a_note_under_the_closed_loop_table():
+    rows = [
+        {"scenario": "C3", "label": "C3", "chain_centroid_sigma_px": 108.4},
+        {"scenario": "P1", "label": "P1", "chain_centroid_sigma_px": 0.03},
+        {"scenario": "P2", "label": "P2", "chain_centroid_sigma_px": None},
+    ]
+    notes = closed_loop_notes(rows)
+    assert len(notes) == 1 and notes[0].startswith("- C3: the image chain's centroids lie 108 px (RMS)")
+    assert "imaging: {chain: objects}" in notes[0]
+    assert closed_loop_notes(rows[1:]) == []
 
 
 def test_the_bound_ratio_limit_is_the_verdicts_threshold_over_the_sigma_inflation():
