@@ -37,13 +37,15 @@ Summary (--summary-json)
     window is, ``observable_rows_fraction`` the share of rows taken from observable windows,
     ``range_sigma_ratio`` the largest, ``model`` the windows' common choice (``null`` when they differ),
     ``iterations`` summed, ``converged`` when every window did, and ``window_results`` each window's own
-    figures (its rows and times, the rows taken from it, and the fields above).
+    figures (its rows and times, the rows taken from it, and the fields above); the fields of one solution
+    (``q_horizontal_m2ps3``, ``q_vertical_m2ps3``, ``turn_rate_radps``, ``map_cost``, ``attitude_bias_ned_deg``)
+    are then in ``window_results`` only.
 
 Report (stdout)
     On success one line: ``OUT.csv: N rows, method M, observable yes|no, range sigma up to R % of
     range`` (R is ``range_sigma_ratio`` in percent; for ``--method paper`` the last two come from
-    the MAP analysis and say so), and, when the file was solved in several windows, ``, K windows of W s
-    (observable: P % of rows)``.
+    the MAP analysis and say so), and, when the file was solved in several windows, ``, K windows of at most
+    W s (observable: P % of rows)``.
 
 Long files (``--window-s``, default 60 s)
     The MAP problem over a span is dense in its spline's controls, so its time and memory grow with the span
@@ -374,13 +376,12 @@ def reconstruct(
     if len(solution.windows) == 1:
         summary.update(_map_summary(solution.results[0], map_ms))
     else:
-        summary.update(_windows_summary(obs, solution, map_ms))
+        summary.update(_windows_summary(obs, solution, map_ms, options.noise.attitude_bias_sigma_rad > 0))
     summary["windows"] = len(solution.windows)
     summary["window_s"] = options.window_s
     summary["noise"] = {k: float(v) for k, v in vars(options.noise).items()}
-    if options.noise.attitude_bias_sigma_rad > 0 and len(solution.windows) == 1:
-        bias_rad = solution.results[0].attitude_bias_rad
-        summary["attitude_bias_ned_deg"] = [_finite_or_none(math.degrees(v)) for v in bias_rad]
+    if len(solution.windows) == 1:
+        summary.update(_bias_summary(solution.results[0], options.noise.attitude_bias_sigma_rad > 0))
     if options.method == "map":
         p, sigma = solution.p_ned_m, solution.sigma_ned_m
         summary["solve_ms"] = round(map_ms, 3)
@@ -406,7 +407,14 @@ def reconstruct(
     )
 
 
-def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: float) -> dict:
+def _bias_summary(res: MapResult, estimated: bool) -> dict:
+    """``attitude_bias_ned_deg`` of a solution, when the bias was estimated (``--attitude-bias-deg`` > 0)."""
+    if not estimated:
+        return {}
+    return {"attitude_bias_ned_deg": [_finite_or_none(math.degrees(v)) for v in res.attitude_bias_rad]}
+
+
+def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: float, attitude_bias: bool) -> dict:
     """The summary's MAP part over several windows (the module docstring's ``Summary``): the solution's verdicts
     over all windows, iterations summed, and each window's own figures in ``window_results`` (its rows, times, the
     rows taken from it, and :func:`_map_summary`'s fields)."""
@@ -428,6 +436,7 @@ def _windows_summary(obs: Observations, solution: WindowedSolution, map_ms: floa
                 "t_taken_first_s": float(obs.t_s[w.take_first]),
                 "t_taken_last_s": float(obs.t_s[w.take_stop - 1]),
                 **_map_summary(r, ms),
+                **_bias_summary(r, attitude_bias),
             }
             for w, r, ms in zip(solution.windows, solution.results, solution.solve_ms)
         ],
@@ -633,7 +642,7 @@ def _run(args) -> int:
             raise InputError(clash)
         obs = read_observations_csv(args.obs_csv)
         log.info("%s: %d observations, %.3f s to %.3f s", args.obs_csv, len(obs), obs.t_s[0], obs.t_s[-1])
-        progress = _Progress(args.obs_csv)
+        progress = _Progress(args.obs_csv, args.verbose)
         try:
             rec = reconstruct(obs, options, progress)
         except EstimationError as e:
@@ -663,7 +672,7 @@ def _run(args) -> int:
         where = ""
         if "window_results" in summary:
             spans = [
-                f"{w['t_taken_first_s']:g}..{w['t_taken_last_s']:g} s"
+                f"{w['t_taken_first_s']:.3f}..{w['t_taken_last_s']:.3f} s"
                 for w in summary["window_results"]
                 if not w["observable"]
             ]
@@ -678,19 +687,19 @@ def _run(args) -> int:
 
 
 class _Progress:
-    """A windowed reconstruction's progress: one line per window logged (``-v``), and on a terminal one line on
-    stderr rewritten in place, erased when done (a pipe or a log file gets nothing: its one-line errors stay one
-    line)."""
+    """A windowed reconstruction's progress: one line per window logged (``-v``), or else, on a terminal, one line
+    on stderr rewritten in place, erased when done (a pipe or a log file gets nothing: its one-line errors stay one
+    line; the log's lines are not written over a line without its end)."""
 
-    def __init__(self, source: str) -> None:
+    def __init__(self, source: str, verbose: bool = False) -> None:
         self._source = source
-        self._live = sys.stderr.isatty()
+        self._live = sys.stderr.isatty() and not verbose
         self._shown = False
 
     def __call__(self, k: int, n: int, t_first_s: float, t_last_s: float) -> None:
         if n == 1:
             return
-        text = f"{self._source}: window {k} of {n} (t_s {t_first_s:g}..{t_last_s:g} s)"
+        text = f"{self._source}: window {k} of {n} (t_s {t_first_s:.3f}..{t_last_s:.3f} s)"
         log.info("%s", text)
         if self._live:
             sys.stderr.write("\r\x1b[K" + text)
@@ -717,7 +726,7 @@ def _report_line(output: str, rows: int, summary: dict) -> str:
     line = f"{output}: {rows} rows, method {summary['method']}, {analysis}observable {observable}, {sigma}"
     if summary.get("windows", 1) > 1:
         line += (
-            f", {summary['windows']} windows of {summary['window_s']:g} s"
+            f", {summary['windows']} windows of at most {summary['window_s']:g} s"
             f" (observable: {100.0 * summary['observable_rows_fraction']:.0f} % of rows)"
         )
     return line

@@ -63,6 +63,8 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
     least a quarter window from that window's ends, but at the stretch's own ends).
 
     Raises :class:`WindowingError` naming the times when a problem would have fewer than ``min_rows`` rows."""
+    if not (math.isfinite(window_s) and window_s >= 0):
+        raise ValueError(f"window_s must be a finite number >= 0, got {window_s!r}")
     t = np.asarray(t_s, dtype=float)
     n = t.size
     if n == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
@@ -74,8 +76,8 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
     for a, b in zip(bounds[:-1], bounds[1:]):
         if b - a < min_rows:
             raise WindowingError(
-                f"{b - a} row(s) at t_s {t[a]:g}..{t[b - 1]:g} s lie over {half:g} s (half a {window_s:g} s window)"
-                f" from the other rows, so they are solved apart, which needs at least {min_rows} rows"
+                f"{b - a} row(s) at t_s {t[a]:.3f}..{t[b - 1]:.3f} s lie over {half:g} s (half a {window_s:g} s"
+                f" window) from the other rows, so they are solved apart, which needs at least {min_rows} rows"
             )
         t0, t1 = t[a], t[b - 1]
         if t1 - t0 <= window_s:
@@ -84,21 +86,24 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
         starts = [float(t0 + k * half) for k in range(int(math.ceil((t1 - t0 - window_s) / half)))]
         starts.append(float(t1 - window_s))
         middles = np.asarray(starts) + half
-        # the window of each row: the nearest middle (the earlier one on a tie)
-        owner = np.argmin(np.abs(t[a:b, None] - middles[None, :]), axis=1)
+        # the window of each row: the nearest middle (the earlier one on a tie), between the midpoints of the
+        # sorted middles; and each window's rows, before anything is solved
+        owner_bounds = a + np.searchsorted(t[a:b], (middles[:-1] + middles[1:]) / 2.0, side="right")
+        take_bounds = [a, *owner_bounds.tolist(), b]
+        firsts = a + np.searchsorted(t[a:b], np.asarray(starts), side="left")
+        stops = a + np.searchsorted(t[a:b], np.asarray(starts) + window_s, side="right")
         for k, start in enumerate(starts):
-            first = a + int(np.searchsorted(t[a:b], start, side="left"))
-            stop = a + int(np.searchsorted(t[a:b], start + window_s, side="right"))
-            mine = np.flatnonzero(owner == k)
-            if mine.size == 0:
+            take_first, take_stop = take_bounds[k], take_bounds[k + 1]
+            if take_stop <= take_first:
                 continue
+            first, stop = int(firsts[k]), int(stops[k])
             if stop - first < min_rows:
                 raise WindowingError(
-                    f"{stop - first} row(s) at t_s {start:g}..{start + window_s:g} s, one of the {window_s:g} s"
+                    f"{stop - first} row(s) at t_s {start:.3f}..{start + window_s:.3f} s, one of the {window_s:g} s"
                     f" windows a long span is solved in; each needs at least {min_rows} rows (longer windows take in"
                     " more)"
                 )
-            windows.append(Window(first, stop, a + int(mine[0]), a + int(mine[-1]) + 1, start, start + window_s))
+            windows.append(Window(first, stop, int(take_first), int(take_stop), start, start + window_s))
     return windows
 
 

@@ -101,7 +101,7 @@ def test_rows_apart_are_refused_naming_their_times():
     t = np.concatenate([[-1440.0], np.arange(0.0, 1.2, 0.1)])
     with pytest.raises(
         WindowingError,
-        match=r"1 row\(s\) at t_s -1440\.\.-1440 s lie over 30 s \(half a 60 s window\) from the other rows",
+        match=r"1 row\(s\) at t_s -1440\.000\.\.-1440\.000 s lie over 30 s \(half a 60 s window\) from the other rows",
     ):
         plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
     # a sparse stretch: rows 20 s apart leave 3-4 in each 60 s window
@@ -174,7 +174,7 @@ def test_cli_windows_in_summary_and_report_line(long_circling_flight, tmp_path):
     out, summ = tmp_path / "out.csv", tmp_path / "s.json"
     rc, stdout, err = run_main_io(src, "-o", out, "--summary-json", summ, "--window-s", "30")
     assert rc == 0, err
-    assert stdout.strip().endswith(", 2 windows of 30 s (observable: 100 % of rows)")
+    assert stdout.strip().endswith(", 2 windows of at most 30 s (observable: 100 % of rows)")
     assert err == ""  # not a terminal: no progress line
     summary = json.loads(summ.read_text())
     assert summary["windows"] == 2 and len(summary["window_results"]) == 2
@@ -193,7 +193,7 @@ def test_cli_rows_apart_exit_2_with_one_line(long_circling_flight, tmp_path):
     src.write_text("\n".join(lines) + "\n")
     rc, _, err = run_main_io(src, "-o", tmp_path / "out.csv")
     assert rc == 2
-    assert err.count("\n") == 1 and err.startswith(f"error: {src}: cannot reconstruct: 1 row(s) at t_s -1440..")
+    assert err.count("\n") == 1 and err.startswith(f"error: {src}: cannot reconstruct: 1 row(s) at t_s -1440.000..")
     assert not (tmp_path / "out.csv").exists()
 
 
@@ -258,3 +258,34 @@ def test_causal_bound_is_the_bound_of_the_windows_own_rows_up_to_each_time(long_
     assert ratios[1] == pytest.approx(_range_ratio_at(P, truth[rows[-1]], obs.p_cam_ned_m[rows[-1]]), rel=1e-12)
     assert math.isnan(ratios[0])  # 0.5 s: two rows kept, fewer than the estimator needs
     assert ratios[1] > ratio[0]  # a third of 20 s of rows bounds the range less tightly than all 95 s
+
+
+@pytest.mark.parametrize("window_s", [math.nan, -1.0, math.inf])
+def test_window_plan_refuses_a_window_that_is_no_length(window_s):
+    with pytest.raises(ValueError, match="window_s must be a finite number >= 0"):
+        plan_windows(np.arange(0.0, 100.0, 0.1), window_s, MIN_ROWS)
+
+
+def test_window_plan_of_hours_of_rows_costs_the_rows_not_rows_times_windows():
+    """Two hours of 30 Hz rows: 239 windows planned from the rows' times alone (a rows x windows distance matrix
+    was 1.7 GB here); a window too short for its rows refused as such."""
+    t = np.arange(0.0, 7200.0, 1 / 30)
+    windows = plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
+    assert len(windows) == 239 and windows[-1].take_stop == t.size
+    with pytest.raises(WindowingError, match=r"4 row\(s\) at t_s 0\.000\.\.0\.100 s, one of the 0\.1 s windows"):
+        plan_windows(t, 0.1, MIN_ROWS)
+
+
+def test_verbose_summary_keeps_each_windows_attitude_bias(long_circling_flight, tmp_path):
+    _, obs = long_circling_flight
+    src = tmp_path / "obs.csv"
+    src.write_text(obs_csv_text(obs.select(slice(0, 450))))
+    summ = tmp_path / "s.json"
+    args = [src, "-o", tmp_path / "o.csv", "--summary-json", summ, "--attitude-bias-deg", "0.1"]
+    rc, _, err = run_main_io(*args, "--window-s", "30")
+    assert rc == 0, err
+    s = json.loads(summ.read_text())
+    assert "attitude_bias_ned_deg" not in s
+    assert all(len(w["attitude_bias_ned_deg"]) == 3 for w in s["window_results"])
+    rc, _, err = run_main_io(*args, "--window-s", "0")
+    assert rc == 0 and len(json.loads(summ.read_text())["attitude_bias_ned_deg"]) == 3
