@@ -16,10 +16,12 @@ def rewrite_recording(
     edit_of: Callable[[str, int, str], Edit | None],
     worker: str | None = None,
     compression: str = "none",
+    chunked: bool = True,
 ) -> int:
     """Copy ``src`` to ``dst``, each message through ``edit_of(topic, index on that topic, schema name)`` when that
     gives an edit; ``worker`` sets the metadata's ``estimator.worker``; ``compression`` the chunks' ("none", "lz4",
-    "zstd").  Returns the last edited message's log time (ns), or 0."""
+    "zstd"), ``chunked`` False writes every record outside chunks.  Returns the last edited message's log time (ns),
+    or 0."""
     import yaml
     from mcap.records import Channel, Message, Metadata, Schema
     from mcap.stream_reader import StreamReader
@@ -32,7 +34,7 @@ def rewrite_recording(
     seen: dict = {}
     edited_log_ns = 0
     with open(src, "rb") as f, open(dst, "wb") as out:
-        w = Writer(out, compression=CompressionType[compression.upper()])
+        w = Writer(out, compression=CompressionType[compression.upper()], use_chunking=chunked)
         w.start()
         for rec in StreamReader(f, validate_crcs=False).records:
             if isinstance(rec, Schema) and rec.id not in schema_ids:

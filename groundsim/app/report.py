@@ -69,6 +69,9 @@ class _Pixels(Mapping):
         ref, _rx_ns = self._rec.frames[key][0]
         return self._decode(key[0], ref.raw_image(), self._rec.path).pixels
 
+    def __contains__(self, key) -> bool:  # Mapping's own would read and decode the frame to answer
+        return key in self._rec.frames
+
     def __iter__(self):
         return iter(self._rec.frames)
 

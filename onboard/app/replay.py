@@ -132,7 +132,7 @@ class RecordedMessage:
 class FrameRef:
     """A recorded ``foxglove.RawImage``, read from its file when asked (:meth:`raw_image`): a recording's frames
     (~10 MB a second of flight) are not held in memory.  ``data`` holds the message itself where it cannot be
-    read again by offset (a compressed chunk)."""
+    read again by offset (a compressed chunk, or a record whose layout did not check against the file's bytes)."""
 
     path: str
     offset: int | None
@@ -182,6 +182,20 @@ def _message_data_offsets(records: bytes, start: int) -> Iterator[int]:
 _RECORD_HEAD = struct.Struct("<BQ")
 _OPCODE_MESSAGE = 0x05
 _MESSAGE_FIXED = 2 + 4 + 8 + 8  # channel id, sequence, log time, publish time
+_CHUNK_FIXED = 8 + 8 + 8 + 4  # message start and end times, uncompressed size and CRC; then compression, records
+
+
+def _bytes_at(f, offset: int, data: bytes) -> bool:
+    """Whether the file holds ``data`` at ``offset`` (its first and last 16 bytes): an offset worked out from the
+    records' layout is used only where it is checked."""
+    n = len(data)
+    if n == 0:
+        return False
+    head, tail = min(16, n), max(0, n - 16)
+    return (
+        os.pread(f.fileno(), head, offset) == data[:head]
+        and os.pread(f.fileno(), n - tail, offset + tail) == data[tail:]
+    )
 
 
 def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
@@ -206,17 +220,25 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
             raise InputError(f"{path}: not an MCAP recording ({what}); give a file of python -m onboard --record")
         f.seek(0)
         try:
-            for top in StreamReader(f, emit_chunks=True, validate_crcs=False).records:
+            reader = StreamReader(f, emit_chunks=True, validate_crcs=False).records
+            while True:
+                # the reader reads each record whole, so the file's position between two is where the next starts
+                start = f.tell()
+                top = next(reader, None)
+                if top is None:
+                    break
                 offsets: Iterator[int | None] = iter(())
                 if isinstance(top, Chunk):
                     if top.compression == "":
-                        # the chunk's records are its last field: they end where the reader stopped
-                        records_start = f.tell() - len(top.data)
-                        if os.pread(f.fileno(), 16, records_start) == top.data[:16]:
-                            offsets = _message_data_offsets(top.data, records_start)
+                        at = start + _RECORD_HEAD.size + _CHUNK_FIXED + 4 + len(top.compression.encode()) + 8
+                        if _bytes_at(f, at, top.data):
+                            offsets = _message_data_offsets(top.data, at)
                     inner = breakup_chunk(top, validate_crc=False)
                 else:
                     inner = [top]
+                    if isinstance(top, Message):  # a message outside any chunk
+                        at = start + _RECORD_HEAD.size + _MESSAGE_FIXED
+                        offsets = iter([at if _bytes_at(f, at, top.data) else None])
                 for rec in inner:
                     if isinstance(rec, Schema):
                         schemas[rec.id] = rec.name
@@ -224,8 +246,10 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
                         channels[rec.id] = (rec.topic, schemas.get(rec.schema_id, ""))
                     elif isinstance(rec, Message):
                         topic, schema = channels.get(rec.channel_id, ("?", ""))
-                        at = next(offsets, None)
-                        yield RecordedMessage(topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data, at)
+                        data_at = next(offsets, None)
+                        yield RecordedMessage(
+                            topic, schema, rec.log_time, rec.publish_time, rec.sequence, rec.data, data_at
+                        )
                     elif isinstance(rec, Metadata):
                         yield {"metadata": rec.name, **rec.metadata}
         except Exception as exc:  # noqa: BLE001 - whatever the reader raised where the file stops or is damaged
@@ -548,8 +572,18 @@ def _imaging_child(rec: Recording, config, conn) -> None:
     pipe = FramePipeline(
         config, None, tapped, None, config.pose.geodetic_origin(), counter=RejectCounter(log_interval_s=3600.0)
     )
+    frames = _frames_taken(rec)
     try:
-        for _i, inp, frame in _frames_taken(rec):
+        while True:
+            try:
+                taken = next(frames, None)
+            except InputError:
+                # a frame that cannot be read from the file: the parent reads the same frame and reports it in
+                # its own words; this process sends what it has and stops (no traceback of its own)
+                break
+            if taken is None:
+                break
+            _i, inp, frame = taken
             if frame is None:
                 continue
             try:

@@ -338,3 +338,48 @@ def test_a_frame_whose_file_changed_after_loading_is_refused_naming_the_file_and
     copy.unlink()
     with pytest.raises(InputError, match=rf"{copy}: cannot read the frame at byte {ref.offset}"):
         ref.raw_image()
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_frame_cut_after_loading_stops_the_replay_in_one_error_with_either_job_count(
+    recording, tmp_path, capfd, jobs
+):
+    """With ``--jobs 2`` the forked imaging process meets the cut frame first: it stops without a traceback of its
+    own and the replay reports the frame as one process does."""
+    from onboard.app.replay import config_of, load_recording, replay
+
+    copy = tmp_path / "copy.mcap"
+    copy.write_bytes(recording.read_bytes())
+    rec = load_recording(str(copy))
+    config = config_of(rec, None, {"imaging.chain": ("single", "--set")})  # the objects chain runs in one process
+    ref = sorted((r for copies in rec.frames.values() for r, _rx in copies), key=lambda r: r.offset)[3]
+    os.truncate(copy, ref.offset + 10)
+    with pytest.raises(InputError, match=rf"{copy}: the frame at byte {ref.offset} no longer decodes"):
+        replay(rec, config, jobs=jobs)
+    assert "Traceback" not in capfd.readouterr().err
+
+
+def test_a_recording_without_chunks_is_read_by_offset_and_replays_as_recorded(recording, tmp_path, capsys):
+    from onboard.app.replay import load_recording
+
+    flat = tmp_path / "flat.mcap"
+    rewrite_recording(recording, flat, lambda *_: None, chunked=False)
+    refs = [ref for copies in load_recording(str(flat)).frames.values() for ref, _rx in copies]
+    assert len(refs) == N_FRAMES and all(ref.offset is not None and ref.data is None for ref in refs)
+    assert main([str(flat), "--compare"]) == EXIT_OK, capsys.readouterr().err
+
+
+def test_the_flight_report_reads_only_the_frame_it_draws(recording, monkeypatch):
+    """Asking whether a frame is in the report's frames reads nothing; drawing one reads that one."""
+    from groundsim.app.report import flight_inputs
+    from onboard.app.replay import FrameRef, load_recording
+
+    reads = []
+    real = FrameRef.raw_image
+    monkeypatch.setattr(FrameRef, "raw_image", lambda self: reads.append(self.offset) or real(self))
+    rec = load_recording(str(recording))
+    _poses, frames = flight_inputs(rec)
+    keys = list(rec.frames)
+    assert all(k in frames for k in keys) and ("nope", 0) not in frames and len(frames) == N_FRAMES
+    assert reads == []
+    assert frames[keys[3]].shape == (512, 640) and len(reads) == 1
