@@ -1,5 +1,6 @@
 """Benchmark of ``python -m onboard.reconstruct`` on long files: CPU, peak memory and accuracy, in windows
-(``--window-s``, default 60 s) and as one problem over the whole file (``--window-s 0``).
+(the command's ``--window-s``, default 60 s) and as one problem over the whole file (its ``--window-s 0``, run here
+for the spans up to ``--whole-up-to``).
 
 ``python -m bench.reconstruct [--durations 20 40 80 160 600] [--whole-up-to 160] [--rate-hz 30]``.  Each file is a
 flight that stays observable however long it lasts: the camera circling as in H1 (40 m at 8 m/s, 70 m up), the

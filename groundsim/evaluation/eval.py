@@ -788,9 +788,10 @@ def _batch(
 ) -> dict:
     """Whole-flight MAP on the pipeline's centroids and on perfect centroids, and the Bayesian CRB."""
     from groundsim.evaluation.synth import estimator_noise_model
-    from onboard.estimation.crb import bayesian_crb_in_windows, causal_range_sigma_ratios
+    from onboard.estimation.crb import bayesian_crb_in_windows, online_verdict_bound_ratios
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
+    from onboard.estimation.sliding import SlidingWindowEstimator
     from onboard.estimation.windows import DEFAULT_WINDOW_S, solve_in_windows
 
     has_pose = np.all(np.isfinite(cam_p), axis=1)
@@ -846,13 +847,14 @@ def _batch(
                 model_bound = bayesian_crb_in_windows(est, res, obs, truth_p[idx])
                 entry["crb_model_rms_m"] = model_bound.rms_m()
                 entry["crb_model_range_sigma_ratio"] = model_bound.range_sigma_ratio()
-                # what the online verdict could say at best, every half second: the bound of the sliding
-                # window's own rows up to that time
+                # what the online verdict could say at best, every half second: its figure at the bound of the
+                # sliding window's own rows up to that time, solved as the window solves them
                 sliding = cfg.estimator.sliding_config()
+                online = MapEstimator(SlidingWindowEstimator.default_map_config(sliding), est.noise)
                 t_eval = t_s[0] + np.arange(1.0, t_s[-1] - t_s[0] + 1e-9, CAUSAL_BOUND_EVERY_S)
                 entry["causal_bound_t_s"] = t_eval - t_s[0]
-                entry["causal_bound_range_sigma_ratio"] = causal_range_sigma_ratios(
-                    est, res, obs, truth_p[idx], t_eval, sliding.window_s, sliding.min_spacing_s
+                entry["causal_bound_range_sigma_ratio"] = online_verdict_bound_ratios(
+                    online, res, obs, truth_p[idx], t_eval, sliding
                 )
             except (EstimationError, InputError, np.linalg.LinAlgError) as exc:
                 entry["error"] = f"CRB: {type(exc).__name__}: {exc}"

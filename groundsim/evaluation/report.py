@@ -272,10 +272,11 @@ def closed_loop_notes(summary: list[dict]) -> list[str]:
         sigma = r.get("chain_centroid_sigma_px")
         if sigma is not None and math.isfinite(sigma) and sigma > CHAIN_OFF_TARGET_PX:
             notes.append(
-                f"- {r.get('label', r['scenario'])}: the image chain's centroids lie {sigma:.0f} px (RMS) from the "
+                f"- {r.get('label', r['scenario'])}: the image chain's centroids lie {sigma:.1f} px (RMS) from the "
                 "target's pixel: it followed something else (clutter, another object) for much of the flight, and "
                 "the perfect-centroid baseline, given that as its noise, is no yardstick. In clutter run the objects "
-                "chain: `imaging: {chain: objects}` in the --onboard-config file (README, Perception in clutter)."
+                "chain, if it is not the one that ran: `imaging: {chain: objects}` in the --onboard-config file "
+                "(README, Perception in clutter)."
             )
     return notes
 
@@ -596,12 +597,13 @@ DEFINITIONS = {
     "simulated noise (the baseline's pixel noise and the run's navigation-error case) and the motion prior the batch estimator selected "
     "on perfect centroids",
     "observable after 5 s at the bound": "every half second after 5 s, the Bayesian CRB of the flown trajectory "
-    "from the rows the online window holds then (its last estimator.window_s, thinned as it keeps them), for the "
-    "estimator's own noise model and the motion prior the batch selected on perfect centroids: the share of those "
-    "times at which an estimator at the bound could call the newest position observable (its reported range sigma, "
-    "the bound's times sigma_inflation at best, under observability_max_sigma_range_ratio).  A miss on 'observable' "
-    "that the bound shares ('the bound's too') is the flight's geometry, not the estimator; the bound is local, so "
-    "a flight whose bearings have a second explanation (P1's mirror target) can fall short of it",
+    "from the rows the online window holds then (its last estimator.window_s, thinned as it keeps them, solved on "
+    "its knots), for the estimator's own noise model and the motion prior the batch selected on perfect centroids: "
+    "the share of those times at which an estimator at the bound could pass the online verdict (the window's median "
+    "range sigma over range, and its newest over edge_sigma_factor, each the bound's times sigma_inflation at best, "
+    "under observability_max_sigma_range_ratio).  A miss on 'observable' that the bound shares ('the bound's too') "
+    "is the flight's geometry, not the estimator; the bound is local, so a flight whose bearings have a second "
+    "explanation (P1's mirror target) can fall short of it",
     "batch": "whole-flight MAP smoother with model selection on the pipeline's centroids (and on perfect centroids);"
     " a flight over 60 s in windows of 60 s, one every 30 s (model 'mixed' when they chose different ones)",
     "medians": "every table figure is the median over seeds",

@@ -93,10 +93,11 @@ def bound_ratio_limit() -> float:
 
 
 def _observable_share_at_bound(r) -> float | None:
-    """The share of the half-second samples at t >= 5 s whose bound (the batch's ``causal_bound_*``: the
-    sliding window's own rows up to that time) is under :func:`bound_ratio_limit`: the most of
-    ``observable_share_after_5s`` an estimator at the bound could reach (a sample without enough rows counts
-    as not observable).  None without the batch's bound."""
+    """The share of the half-second samples at t >= 5 s at which the online verdict's figure at the bound (the
+    batch's ``causal_bound_*``: :func:`onboard.estimation.crb.online_verdict_bound_ratios`, the sliding window's
+    own rows up to that time) is under :func:`bound_ratio_limit`: the most of ``observable_share_after_5s`` an
+    estimator at the bound could reach (a sample before the window publishes counts as not observable).  None
+    without the batch's bound."""
     perfect = (r.batch or {}).get("perfect") or {}
     t, ratio = perfect.get("causal_bound_t_s"), perfect.get("causal_bound_range_sigma_ratio")
     if t is None or ratio is None:

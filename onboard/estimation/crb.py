@@ -25,6 +25,7 @@ import scipy.linalg as sla
 
 from onboard.estimation.map_estimator import MapEstimator, MotionPrior, WindowProblem
 from onboard.estimation.observations import Observations
+from onboard.estimation.sliding import SlidingConfig
 from onboard.estimation.spline import KnotGrid
 from onboard.estimation.windows import WindowedSolution, stitch
 
@@ -33,7 +34,7 @@ __all__ = [
     "WindowedCrb",
     "bayesian_crb",
     "bayesian_crb_in_windows",
-    "causal_range_sigma_ratios",
+    "online_verdict_bound_ratios",
     "predicted_point_covariance",
 ]
 
@@ -204,28 +205,30 @@ def predicted_point_covariance(
     return X.T @ X
 
 
-def causal_range_sigma_ratios(
+def online_verdict_bound_ratios(
     estimator: MapEstimator,
     solution: WindowedSolution,
     obs: Observations,
     p_true_ned_m: np.ndarray,
     t_eval_s: np.ndarray,
-    window_s: float,
-    min_spacing_s: float,
+    sliding: SlidingConfig,
 ) -> np.ndarray:
-    """At each time of ``t_eval_s``: the bound's range sigma over the true range at the newest row at or before
-    it, from the rows of the ``window_s`` seconds up to that row, thinned as the sliding window keeps them (a row
-    closer than ``min_spacing_s`` to the last kept one is left out), with the motion prior and turn rate of the
-    window of ``solution`` that took that row.  The figure the online estimator's verdict at that time is held to
-    (the verdict wants the range sigma at the newest row under ``observability_max_sigma_range_ratio``), at its
-    best: a local bound, blind to a second explanation of the bearings far from the truth.  nan where fewer than
-    the estimator's ``min_frames`` rows are kept."""
+    """At each time of ``t_eval_s``: the figure the online estimator's verdict at that time compares with
+    ``observability_max_sigma_range_ratio`` (once its reported sigmas are the Laplace ones times
+    ``sigma_inflation``), at the Bayesian CRB: ``max(median, newest / edge_sigma_factor)`` of the bound's range
+    sigma over the true range, the median over the rows the sliding window holds then, the newest at its newest
+    row.  The window is ``sliding``'s: the rows of the ``window_s`` up to the newest row at or before that time,
+    thinned as it keeps them (a row closer than ``min_spacing_s`` to the last kept one left out), nan while it holds
+    fewer than ``min_frames`` rows or spans less than ``min_span_s`` (it publishes nothing then).  ``estimator``:
+    the one the window solves with (its knot spacing); each time takes the motion prior and turn rate of the window
+    of ``solution`` that took its newest row.  A local bound that knows the motion model: blind to a second
+    explanation of the bearings far from the truth."""
     p_true = np.asarray(p_true_ned_m, dtype=float)
     t = np.asarray(obs.t_s, dtype=float)
     kept = []
     last = -math.inf
     for i, ti in enumerate(t):
-        if ti - last >= min_spacing_s:
+        if ti - last >= sliding.min_spacing_s:
             kept.append(i)
             last = ti
     kept_idx = np.asarray(kept, dtype=np.int64)
@@ -238,15 +241,16 @@ def causal_range_sigma_ratios(
         if hi == 0:
             continue
         newest = kept_idx[hi - 1]
-        lo = int(np.searchsorted(t[kept_idx], t[newest] - window_s, side="left"))
+        lo = int(np.searchsorted(t[kept_idx], t[newest] - sliding.window_s, side="left"))
         rows = kept_idx[lo:hi]
-        if rows.size < estimator.config.min_frames:
+        if rows.size < sliding.min_frames or t[newest] - t[rows[0]] < sliding.min_span_s:
             continue
         res = solution.results[owner[newest]]
         bound = bayesian_crb(estimator, obs.select(rows), p_true[rows], res.prior, res.turn_rate_radps)
-        P = bound.point_covariances()[-1]
-        los = p_true[newest] - np.asarray(obs.p_cam_ned_m[newest], dtype=float)
-        r = float(np.linalg.norm(los))
-        u = los / r
-        out[j] = math.sqrt(max(float(u @ P @ u), 0.0)) / r
+        P = bound.point_covariances()
+        los = p_true[rows] - np.asarray(obs.p_cam_ned_m, dtype=float)[rows]
+        r = np.linalg.norm(los, axis=1)
+        u = los / r[:, None]
+        ratio = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r
+        out[j] = max(float(np.median(ratio)), float(ratio[-1]) / sliding.edge_sigma_factor)
     return out

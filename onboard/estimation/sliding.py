@@ -42,8 +42,9 @@ Every observation gets a fresh estimate of the target's state at its own time:
 The reported covariance is the chosen model's Laplace posterior at this time, scaled at each model
 selection to the batch result's model-averaged, inflated covariance (over the solutions near the
 chosen one; ``MapResult.ambiguity`` is the mass of the far ones).  ``observable`` is true only when
-the range sigma at this time is below ``observability_max_sigma_range_ratio`` of the range, and the
-last selection's residuals passed the adequacy test with an ambiguity of at most ``max_ambiguity``.
+the last selection called its window observable (the window's median range sigma below
+``observability_max_sigma_range_ratio`` of the range, its residuals through the adequacy test, an ambiguity of
+at most ``max_ambiguity``) and the range sigma at this time is below ``edge_sigma_factor`` times that ratio.
 An unobservable estimate keeps its position, with its range sigma raised to at least
 ``unobservable_range_sigma_floor`` of the range and ``unobservable_range_sigma_min_m`` (honest, not
 confident).

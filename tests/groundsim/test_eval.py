@@ -475,7 +475,7 @@ def test_a_chain_off_its_target_gets_a_note_under_the_closed_loop_table():
         {"scenario": "P2", "label": "P2", "chain_centroid_sigma_px": None},
     ]
     notes = closed_loop_notes(rows)
-    assert len(notes) == 1 and notes[0].startswith("- C3: the image chain's centroids lie 108 px (RMS)")
+    assert len(notes) == 1 and notes[0].startswith("- C3: the image chain's centroids lie 108.4 px (RMS)")
     assert "imaging: {chain: objects}" in notes[0]
     assert closed_loop_notes(rows[1:]) == []
 

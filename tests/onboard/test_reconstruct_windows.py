@@ -4,6 +4,7 @@ others refused naming their times, the summary's and the report line's windows."
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -16,8 +17,9 @@ from groundsim.evaluation.synth import synthesize
 from groundsim.world.motion import Circular
 from groundsim.world.scenario import load_noise_cases, load_scenario, reference_scenario_paths
 from onboard.app.reconstruct import ReconstructOptions, reconstruct
-from onboard.estimation.crb import bayesian_crb, bayesian_crb_in_windows, causal_range_sigma_ratios
+from onboard.estimation.crb import bayesian_crb, bayesian_crb_in_windows, online_verdict_bound_ratios
 from onboard.estimation.map_estimator import MapEstimator
+from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
 from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowingError, plan_windows, solve_in_windows
 from tests.onboard.test_reconstruct_cli import obs_csv_text, read_out, run_main_io
 
@@ -232,32 +234,41 @@ def test_windowed_bound_is_each_windows_own_and_close_to_the_whole(long_circling
     assert 0.2 < np.sqrt(np.mean(err**2)) / b_windows.rms_m() < 5
 
 
-def _range_ratio_at(P, p_true, p_cam):
+def _verdict_ratio(bound, p_true, p_cam, edge_factor):
     los = p_true - p_cam
-    r = np.linalg.norm(los)
-    return math.sqrt(float((los / r) @ P @ (los / r))) / r
+    r = np.linalg.norm(los, axis=1)
+    u = los / r[:, None]
+    ratio = np.sqrt(np.einsum("fi,fij,fj->f", u, bound.point_covariances(), u)) / r
+    return max(float(np.median(ratio)), float(ratio[-1]) / edge_factor)
 
 
-def test_causal_bound_is_the_bound_of_the_windows_own_rows_up_to_each_time(long_circling_flight):
+def test_online_bound_is_the_verdicts_figure_on_the_windows_own_rows_up_to_each_time(long_circling_flight):
     truth, obs = long_circling_flight
     est = MapEstimator()
     whole = solve_in_windows(est.solve, obs, 0.0, est.config.min_frames)
     res = whole.results[0]
-    t_end = float(obs.t_s[-1])
-    # every row, every time: the last row's bound over the whole flight
-    ratio = causal_range_sigma_ratios(est, whole, obs, truth, np.array([t_end + 5.0]), 1e3, 0.0)
-    direct = bayesian_crb(est, obs, truth, res.prior, res.turn_rate_radps).point_covariances()[-1]
-    assert ratio[0] == pytest.approx(_range_ratio_at(direct, truth[-1], obs.p_cam_ned_m[-1]), rel=1e-12)
+    online = MapEstimator(SlidingWindowEstimator.default_map_config(SlidingConfig()))
     # 20 s up to 50.05 s, rows 0.25 s apart at least: of the 10 Hz rows every third, the newest at or before then
-    t_eval = np.array([0.5, 50.05])
-    ratios = causal_range_sigma_ratios(est, whole, obs, truth, t_eval, 20.0, 0.25)
+    sliding = SlidingConfig(min_spacing_s=0.25, min_frames=30, min_span_s=1.5, edge_sigma_factor=2.0)
+    t_eval = np.array([2.5, 4.0, 50.05])
+    ratios = online_verdict_bound_ratios(online, whole, obs, truth, t_eval, sliding)
     kept = np.arange(0, len(obs), 3)
-    rows = kept[(obs.t_s[kept] <= 50.05) & (obs.t_s[kept] >= obs.t_s[kept[obs.t_s[kept] <= 50.05][-1]] - 20.0)]
+    rows = kept[(obs.t_s[kept] <= 50.05) & (obs.t_s[kept] >= 49.8 - 20.0)]
     assert obs.t_s[rows[-1]] == pytest.approx(49.8) and obs.t_s[rows[0]] == pytest.approx(30.0)
-    P = bayesian_crb(est, obs.select(rows), truth[rows], res.prior, res.turn_rate_radps).point_covariances()[-1]
-    assert ratios[1] == pytest.approx(_range_ratio_at(P, truth[rows[-1]], obs.p_cam_ned_m[rows[-1]]), rel=1e-12)
-    assert math.isnan(ratios[0])  # 0.5 s: two rows kept, fewer than the estimator needs
-    assert ratios[1] > ratio[0]  # a third of 20 s of rows bounds the range less tightly than all 95 s
+    bound = bayesian_crb(online, obs.select(rows), truth[rows], res.prior, res.turn_rate_radps)
+    expected = _verdict_ratio(bound, truth[rows], obs.p_cam_ned_m[rows], 2.0)
+    assert ratios[2] == pytest.approx(expected, rel=1e-12)
+    assert math.isnan(ratios[0])  # 2.5 s: 9 rows kept, fewer than the window's 30: it publishes nothing yet
+    # 4.0 s: 14 rows; with min_frames 10 the window answers, from those rows
+    ratios = online_verdict_bound_ratios(
+        online, whole, obs, truth, t_eval[:2], dataclasses.replace(sliding, min_frames=10)
+    )
+    rows = kept[obs.t_s[kept] <= 4.0]
+    bound = bayesian_crb(online, obs.select(rows), truth[rows], res.prior, res.turn_rate_radps)
+    assert math.isnan(ratios[0]) and ratios[1] == pytest.approx(
+        _verdict_ratio(bound, truth[rows], obs.p_cam_ned_m[rows], 2.0), rel=1e-12
+    )
+    assert ratios[1] > expected  # 4 s of bearings pin the range less than 20 s
 
 
 @pytest.mark.parametrize("window_s", [math.nan, -1.0, math.inf])
