@@ -792,14 +792,18 @@ def _batch(
     from onboard.estimation.map_estimator import EstimationError, MapEstimator, NoiseModel
     from onboard.estimation.observations import Observations
     from onboard.estimation.sliding import SlidingWindowEstimator
-    from onboard.estimation.windows import DEFAULT_WINDOW_S, solve_in_windows
+    from onboard.estimation.windows import DEFAULT_WINDOW_S, solvable_rows, solve_in_windows
 
     has_pose = np.all(np.isfinite(cam_p), axis=1)
     out: dict = {}
     rng = scenario.rng("eval.batch_centroid_noise", seed)
     noisy_truth_uv = truth_uv + rng.standard_normal(truth_uv.shape) * pixel_sigma_px
     for name, sel, pix in (("pipeline", meas & has_pose, uv), ("perfect", visible & has_pose, noisy_truth_uv)):
+        est = MapEstimator(noise=cfg.estimator.noise_model())
         idx = np.flatnonzero(sel & np.all(np.isfinite(pix), axis=1))
+        # a few frames far from the rest of a long flight (a short sighting between long losses) get no batch
+        # estimate rather than cost the run its whole batch
+        idx = idx[solvable_rows(t_s[idx], DEFAULT_WINDOW_S, est.config.min_frames)]
         entry: dict = {
             "frames": idx,
             "p_ned_m": None,
@@ -811,7 +815,6 @@ def _batch(
             "error": None,
         }
         out[name] = entry
-        est = MapEstimator(noise=cfg.estimator.noise_model())
         if idx.size < est.config.min_frames:
             entry["error"] = f"{idx.size} frames with a centroid and a pose (< {est.config.min_frames})"
             continue

@@ -26,6 +26,7 @@ __all__ = [
     "WindowingError",
     "WindowedSolution",
     "plan_windows",
+    "solvable_rows",
     "solve_in_windows",
     "stitch",
 ]
@@ -105,6 +106,21 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
                 )
             windows.append(Window(first, stop, int(take_first), int(take_stop), start, start + window_s))
     return windows
+
+
+def solvable_rows(t_s: np.ndarray, window_s: float, min_rows: int) -> np.ndarray:
+    """Which rows :func:`plan_windows` can solve apart from the others: False for the rows of a stretch (rows
+    over half a window from the rest, in a span longer than a window) of fewer than ``min_rows``, which it would
+    refuse; a caller that may leave such rows without an estimate (an evaluation's batch) drops them first."""
+    t = np.asarray(t_s, dtype=float)
+    keep = np.ones(t.size, dtype=bool)
+    if t.size == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
+        return keep
+    bounds = [0, *(np.flatnonzero(np.diff(t) > window_s / 2.0) + 1).tolist(), t.size]
+    for a, b in zip(bounds[:-1], bounds[1:]):
+        if b - a < min_rows:
+            keep[a:b] = False
+    return keep
 
 
 def stitch(windows: list[Window] | tuple[Window, ...], per_window: list[np.ndarray], n_rows: int) -> np.ndarray:

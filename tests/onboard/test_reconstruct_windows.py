@@ -20,7 +20,7 @@ from onboard.app.reconstruct import ReconstructOptions, reconstruct
 from onboard.estimation.crb import bayesian_crb, bayesian_crb_in_windows, online_verdict_bound_ratios
 from onboard.estimation.map_estimator import MapEstimator
 from onboard.estimation.sliding import SlidingConfig, SlidingWindowEstimator
-from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowingError, plan_windows, solve_in_windows
+from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowingError, plan_windows, solvable_rows, solve_in_windows
 from tests.onboard.test_reconstruct_cli import obs_csv_text, read_out, run_main_io
 
 MIN_ROWS = 10
@@ -300,3 +300,14 @@ def test_verbose_summary_keeps_each_windows_attitude_bias(long_circling_flight, 
     assert all(len(w["attitude_bias_ned_deg"]) == 3 for w in s["window_results"])
     rc, _, err = run_main_io(*args, "--window-s", "0")
     assert rc == 0 and len(json.loads(summ.read_text())["attitude_bias_ned_deg"]) == 3
+
+
+def test_solvable_rows_drops_only_the_stretches_plan_windows_would_refuse():
+    t = np.concatenate([np.arange(0.0, 40.0, 0.1), [75.0, 75.1], np.arange(110.0, 150.0, 0.1)])
+    keep = solvable_rows(t, DEFAULT_WINDOW_S, MIN_ROWS)
+    assert keep.sum() == t.size - 2 and not keep[400] and not keep[401]
+    with pytest.raises(WindowingError):
+        plan_windows(t, DEFAULT_WINDOW_S, MIN_ROWS)
+    assert len(plan_windows(t[keep], DEFAULT_WINDOW_S, MIN_ROWS)) == 2  # the two stretches, each one problem
+    short = np.array([0.0, 50.0])  # a span within one window: one problem, nothing dropped
+    assert solvable_rows(short, DEFAULT_WINDOW_S, MIN_ROWS).all()
