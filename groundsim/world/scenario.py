@@ -1006,7 +1006,11 @@ def check_mapping(v, path, fail: SpecFail, allowed, required=()) -> dict:
 def main(argv=None) -> int:
     """``python -m groundsim.world.scenario [FILE ...]``: validate scenario files (default: the shipped
     ones); print one line per file; exit 0 if all are valid, else 2 (an unknown option too, in one line)."""
-    from onboard.app.cli_args import OneLineParser
+    import argparse
+
+    class OneLineParser(argparse.ArgumentParser):  # a usage mistake is one line, as every command's (exit 2)
+        def error(self, message: str):
+            self.exit(2, f"{self.prog}: {message}\n")
 
     parser = OneLineParser(
         prog="python -m groundsim.world.scenario",
