@@ -86,11 +86,16 @@ def _rms_m(P: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.einsum("fii->f", P))))
 
 
-def _range_sigma_ratio(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> float:
+def _range_sigma_ratios(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> np.ndarray:
+    """(F,): each point's range sigma under the bound ``P`` (F, 3, 3) over its true range."""
     los = p_true_ned_m - p_cam_ned_m
     r = np.linalg.norm(los, axis=1)
     u = los / r[:, None]
-    return float(np.median(np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r))
+    return np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r
+
+
+def _range_sigma_ratio(P: np.ndarray, p_true_ned_m: np.ndarray, p_cam_ned_m: np.ndarray) -> float:
+    return float(np.median(_range_sigma_ratios(P, p_true_ned_m, p_cam_ned_m)))
 
 
 @dataclass(frozen=True)
@@ -247,10 +252,6 @@ def online_verdict_bound_ratios(
             continue
         res = solution.results[owner[newest]]
         bound = bayesian_crb(estimator, obs.select(rows), p_true[rows], res.prior, res.turn_rate_radps)
-        P = bound.point_covariances()
-        los = p_true[rows] - np.asarray(obs.p_cam_ned_m, dtype=float)[rows]
-        r = np.linalg.norm(los, axis=1)
-        u = los / r[:, None]
-        ratio = np.sqrt(np.maximum(np.einsum("fi,fij,fj->f", u, P, u), 0.0)) / r
+        ratio = _range_sigma_ratios(bound.point_covariances(), bound.p_true_ned_m, bound.p_cam_ned_m)
         out[j] = max(float(np.median(ratio)), float(ratio[-1]) / sliding.edge_sigma_factor)
     return out

@@ -68,13 +68,12 @@ def plan_windows(t_s: np.ndarray, window_s: float, min_rows: int) -> list[Window
         raise ValueError(f"window_s must be a finite number >= 0, got {window_s!r}")
     t = np.asarray(t_s, dtype=float)
     n = t.size
-    if n == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
+    stretches = _stretches(t, window_s)
+    if stretches is None:
         return [Window(0, n, 0, n, float(t[0]) if n else math.nan, float(t[-1]) if n else math.nan)]
     half = window_s / 2.0
-    cuts = np.flatnonzero(np.diff(t) > half) + 1
-    bounds = [0, *cuts.tolist(), n]
     windows: list[Window] = []
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for a, b in stretches:
         if b - a < min_rows:
             raise WindowingError(
                 f"{b - a} row(s) at t_s {t[a]:.3f}..{t[b - 1]:.3f} s lie over {half:g} s (half a {window_s:g} s"
@@ -114,13 +113,19 @@ def solvable_rows(t_s: np.ndarray, window_s: float, min_rows: int) -> np.ndarray
     refuse; a caller that may leave such rows without an estimate (an evaluation's batch) drops them first."""
     t = np.asarray(t_s, dtype=float)
     keep = np.ones(t.size, dtype=bool)
-    if t.size == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
-        return keep
-    bounds = [0, *(np.flatnonzero(np.diff(t) > window_s / 2.0) + 1).tolist(), t.size]
-    for a, b in zip(bounds[:-1], bounds[1:]):
+    for a, b in _stretches(t, window_s) or ():
         if b - a < min_rows:
             keep[a:b] = False
     return keep
+
+
+def _stretches(t: np.ndarray, window_s: float) -> list[tuple[int, int]] | None:
+    """The rows ``(first, stop)`` of each stretch :func:`plan_windows` solves apart (cut at gaps longer than half a
+    window); None when the rows are one problem (no rows, ``window_s`` 0, or a span of at most ``window_s``)."""
+    if t.size == 0 or window_s == 0 or t[-1] - t[0] <= window_s:
+        return None
+    bounds = [0, *(np.flatnonzero(np.diff(t) > window_s / 2.0) + 1).tolist(), t.size]
+    return list(zip(bounds[:-1], bounds[1:]))
 
 
 def stitch(windows: list[Window] | tuple[Window, ...], per_window: list[np.ndarray], n_rows: int) -> np.ndarray:
