@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import struct
 import sys
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -36,12 +35,11 @@ from typing import Any, BinaryIO
 from onboard.app.cli_args import OneLineParser
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError
+from onboard.io.mcap_chunks import MCAP_MAGIC, RECORD_HEAD
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
 
 EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
-MCAP_MAGIC = b"\x89MCAP0\r\n"
-_RECORD_HEAD = struct.Struct("<BQ")  # opcode, length of the record's body
 _OPCODE_FOOTER = 0x02
 _OPCODE_DATA_END = 0x0F
 
@@ -67,10 +65,10 @@ def whole_length(f: BinaryIO, size: int) -> tuple[int, bool]:
     ends with its footer and the closing magic (then ``end`` is ``size``).  A record whose length runs past the end
     of the file is where the file was cut: ``end`` stops before it."""
     pos = len(MCAP_MAGIC)
-    while pos + _RECORD_HEAD.size <= size:
+    while pos + RECORD_HEAD.size <= size:
         f.seek(pos)
-        opcode, length = _RECORD_HEAD.unpack(f.read(_RECORD_HEAD.size))
-        end = pos + _RECORD_HEAD.size + length
+        opcode, length = RECORD_HEAD.unpack(f.read(RECORD_HEAD.size))
+        end = pos + RECORD_HEAD.size + length
         if end > size:
             break
         if opcode == _OPCODE_FOOTER:
@@ -111,18 +109,18 @@ def _records(records: Iterator[Any], src: str) -> Iterator[Any]:
         stream, size = get_chunk_data_stream(record)
         pos = 0
         while pos < size:
-            if pos + _RECORD_HEAD.size > size:
+            if pos + RECORD_HEAD.size > size:
                 length = -1
             else:
                 stream.read1()
                 length = stream.read8()
-            if length < 0 or pos + _RECORD_HEAD.size + length > size:
+            if length < 0 or pos + RECORD_HEAD.size + length > size:
                 raise InputError(
                     f"{src}: damaged: a record at byte {pos} of a chunk (log times {record.message_start_time} to "
                     f"{record.message_end_time} ns) runs past the chunk's {size} bytes"
                 )
             stream.read(length)
-            pos += _RECORD_HEAD.size + length
+            pos += RECORD_HEAD.size + length
         yield from breakup_chunk(record, validate_crc=False)
 
 

@@ -43,11 +43,17 @@ from mcap.records import (
     SummaryOffset,
 )
 
-__all__ = ["ChunkWriter", "MCAP_MAGIC"]
+__all__ = ["ChunkWriter", "MCAP_MAGIC", "RECORD_HEAD", "MESSAGE_FIXED", "CHUNK_FIXED"]
 
 MCAP_MAGIC = struct.pack("<8B", 137, 77, 67, 65, 80, 48, 13, 10)
+#: every record's head: its opcode and the length of its body
+RECORD_HEAD = struct.Struct("<BQ")
 _MESSAGE_HEADER = struct.Struct("<BQHIQQ")  # opcode, record length, channel id, sequence, log time, publish time
-_MESSAGE_FIXED = 2 + 4 + 8 + 8  # the message record's fields before its data
+#: the message record's fields before its data: channel id, sequence, log time, publish time
+MESSAGE_FIXED = 2 + 4 + 8 + 8
+#: the chunk record's fields before its compression and records: message start and end times, uncompressed size
+#: and CRC
+CHUNK_FIXED = 8 + 8 + 8 + 4
 _IOV_MAX = 1024
 
 
@@ -199,7 +205,7 @@ class ChunkWriter:
             index = self._indices[channel_id] = []
         index.append((log_time, self._count))
         self._n_messages += 1
-        head = _MESSAGE_HEADER.pack(Opcode.MESSAGE, _MESSAGE_FIXED + size, channel_id, sequence, log_time, publish_time)
+        head = _MESSAGE_HEADER.pack(Opcode.MESSAGE, MESSAGE_FIXED + size, channel_id, sequence, log_time, publish_time)
         if parts is None and size < 4096:  # the common small message: into the coalescing buffer
             self._tail += head
             self._tail += data

@@ -372,7 +372,8 @@ def test_a_recording_without_chunks_is_read_by_offset_and_replays_as_recorded(re
 def test_the_flight_report_reads_only_the_frame_it_draws(recording, monkeypatch):
     """Asking whether a frame is in the report's frames reads nothing; drawing one reads that one."""
     from groundsim.app.report import flight_inputs
-    from onboard.app.replay import FrameRef, load_recording
+    from onboard.app.replay import load_recording
+    from onboard.io.mcap_read import FrameRef
 
     reads = []
     real = FrameRef.raw_image
