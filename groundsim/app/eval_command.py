@@ -189,12 +189,7 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
     arrived meanwhile (they only skip the MOT scoring, the one step that may take long)."""
     import sys
 
-    from groundsim.evaluation.report import (
-        closed_loop_notes,
-        format_closed_loop,
-        format_table2,
-        write_eval_report,
-    )
+    from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
 
     files = _writing(out, write_eval_report, out, result)
     seqs = _writing(out, write_mot, out, result.runs, cameras)
@@ -205,8 +200,6 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
     print(format_table2(result.summary, descriptions))
     print()
     print(format_closed_loop(result.summary))
-    for note in closed_loop_notes(result.summary):
-        print(note)
     if options.guidance:
         from groundsim.evaluation.scoring import format_guidance_summary
 

@@ -795,12 +795,7 @@ def _quick_eval(out_dir: Path, stop: threading.Event, plan: DemoPlan) -> None:
     announcement says."""
     from groundsim.evaluation.eval import EvalOptions, run_eval
     from groundsim.evaluation.parallel import pool_workers
-    from groundsim.evaluation.report import (
-        closed_loop_notes,
-        format_closed_loop,
-        format_table2,
-        write_eval_report,
-    )
+    from groundsim.evaluation.report import format_closed_loop, format_table2, write_eval_report
     from groundsim.world.scenario import load_scenario, reference_scenario_paths
     from onboard.app.config import OnboardConfig, load_config
 
@@ -831,8 +826,6 @@ def _quick_eval(out_dir: Path, stop: threading.Event, plan: DemoPlan) -> None:
     print(format_table2(result.summary, {sc.name: sc.description.split(":", 1)[-1].strip() for sc in scenarios}))
     print()
     print(format_closed_loop(result.summary))
-    for note in closed_loop_notes(result.summary):
-        print(note)
     print(f"\nevaluation report: {files['report.md']}", flush=True)
     _paper_baseline_table(scenarios)
 

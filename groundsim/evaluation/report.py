@@ -226,7 +226,8 @@ CLOSED_LOOP_GOALS = {
 
 def format_closed_loop(summary: list[dict]) -> str:
     """The closed-loop figures per (scenario, navigation case), medians over seeds, with the goal
-    beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them)."""
+    beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them); under the table, after a
+    blank line, :func:`closed_loop_notes` when there are any."""
     g = CLOSED_LOOP_GOALS
     lines = markdown_head(
         "| scenario | navigation errors | published 3-D position, tracking frames after 3 s (>= 95 %) | "
@@ -256,7 +257,8 @@ def format_closed_loop(summary: list[dict]) -> str:
             f"{_f(r.get('chain_centroid_sigma_px'), '.3f')}; {_f(r.get('baseline_pixel_sigma_px'), '.3f')} | "
             f"{_f(_pct(at_bound), '.0f', ' %')} |"
         )
-    return "\n".join(lines)
+    notes = closed_loop_notes(summary)
+    return "\n".join(lines + ([""] + notes if notes else []))
 
 
 #: a chain whose centroids lie farther than this from the target's pixel (RMS per axis over the frames it measured)
@@ -850,10 +852,6 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
         "Run `groundsim eval --nav-noise RTK exact` to see realistic and exact navigation side by side.\n"
     )
     L.append(format_closed_loop(report["summary"]))
-    notes = closed_loop_notes(report["summary"])
-    if notes:
-        L.append("")
-        L.extend(notes)
     L.append("")
     L.append("## Reconstruction error beside the paper's Table 2\n")
     L.append(

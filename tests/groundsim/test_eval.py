@@ -478,6 +478,10 @@ def test_a_chain_off_its_target_gets_a_note_under_the_closed_loop_table():
     assert len(notes) == 1 and notes[0].startswith("- C3: the image chain's centroids lie 108.4 px (RMS)")
     assert "imaging: {chain: objects}" in notes[0]
     assert closed_loop_notes(rows[1:]) == []
+    # the table carries them: after its last row, a blank line, then the notes
+    with_notes = format_closed_loop(rows).splitlines()
+    assert with_notes[-2:] == ["", notes[0]] and with_notes[-3].startswith("| P2 |")
+    assert format_closed_loop(rows[1:]).splitlines()[-1].startswith("| P2 |")
 
 
 def test_the_bound_ratio_limit_is_the_verdicts_threshold_over_the_sigma_inflation():
