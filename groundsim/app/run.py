@@ -50,7 +50,7 @@ from pathlib import Path
 import numpy as np
 
 from groundsim.world.nav_errors import InjectedErrors
-from groundsim.world.scenario import NAME_PATTERN, Scenario
+from groundsim.world.scenario import Scenario
 from groundsim.world.sim import (
     BOOT_START_US,
     SimCore,
@@ -59,6 +59,7 @@ from groundsim.world.sim import (
     check_run_seed,
     extend_scenario,
 )
+from groundsim.world.spec import NAME_PATTERN
 from groundsim.world.truth import TruthRow, TruthWriter, truth_json, truth_json_schema, truth_objects_json
 from onboard.core.errors import ConfigError, IrtrackError
 

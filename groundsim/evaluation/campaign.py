@@ -100,12 +100,8 @@ from groundsim.evaluation.parallel import (
     quiet_run_logs,
 )
 from groundsim.evaluation.report import make_out_dir
-from groundsim.world.scenario import (
-    NoiseCase,
-    Scenario,
-    load_noise_cases,
-    load_scenario,
-)
+from groundsim.world.noise_cases import NoiseCase, load_noise_cases
+from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError
 
 __all__ = [

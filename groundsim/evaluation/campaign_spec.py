@@ -17,22 +17,17 @@ from pathlib import Path
 import numpy as np
 
 from groundsim.world.motion import KinematicState, Motion, Perturbed
+from groundsim.world.noise_cases import load_noise_cases
 from groundsim.world.scenario import (
     MIN_SEPARATION_M,
     SINGER_MARGIN_S,
     Scenario,
-    SpecFail,
     VehicleSpec,
     check_apart,
-    check_integer,
-    check_mapping,
-    check_number,
-    check_string,
-    load_noise_cases,
     load_scenario,
-    read_spec_yaml,
     reference_scenario_paths,
 )
+from groundsim.world.spec import SpecFail, check_integer, check_mapping, check_number, check_string, read_spec_yaml
 
 __all__ = [
     "MODES",
@@ -311,7 +306,7 @@ def spec_from_dict(d, source="<dict>", spec_dir: Path | None = None) -> Campaign
         fail,
         what="a name of letters, digits, '_', '.', '-'",
     )
-    from groundsim.world.scenario import NAME_PATTERN
+    from groundsim.world.spec import NAME_PATTERN
 
     if not NAME_PATTERN.match(name):
         fail("name", "a name of letters, digits, '_', '.', '-'", name)

@@ -834,7 +834,7 @@ def _paper_baseline_table(scenarios) -> None:
     """Our estimator beside the paper's closed form on the same perfect-geometry observations (0.3 px):
     the closed form's collapse toward the camera track under noise is shown, not hidden."""
     from groundsim.evaluation.estimator_eval import format_table, run_cases, summarise
-    from groundsim.world.scenario import load_noise_cases
+    from groundsim.world.noise_cases import load_noise_cases
 
     print(
         "\ndemo: the reconstruction core against the paper's closed form (analytic truth, 0.3 px, one seed;"

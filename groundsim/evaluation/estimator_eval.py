@@ -29,7 +29,8 @@ import numpy as np
 
 from groundsim.evaluation.report import PAPER_TABLE2_PCT, markdown_head
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario
-from groundsim.world.scenario import NoiseCase, Scenario
+from groundsim.world.noise_cases import NoiseCase
+from groundsim.world.scenario import Scenario
 from onboard.core.errors import InputError
 from onboard.estimation.crb import bayesian_crb
 from onboard.estimation.map_estimator import EstimationError, MapEstimator

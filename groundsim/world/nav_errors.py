@@ -41,7 +41,8 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.world.scenario import DEFAULT_NAV_NOISE, load_noise_cases, noise_cases_path  # DEFAULT_NAV_NOISE: "RTK"
+from groundsim.world.noise_cases import load_noise_cases, noise_cases_path
+from groundsim.world.scenario import DEFAULT_NAV_NOISE  # "RTK"
 from onboard.core.checks import is_nonnegative_number
 from onboard.core.errors import ConfigError, InputError
 from onboard.core.frames import (

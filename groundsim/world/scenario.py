@@ -9,7 +9,7 @@ The file schema is a set of models of the one config system (:mod:`onboard.core.
 pydantic v2 dataclasses, ``extra="forbid"``, one YAML loader): :class:`ScenarioFile` and the models
 it nests (one per YAML mapping, the motion models told apart by ``model``); they build the runtime
 objects (:class:`Scenario` ...), which are models of the same system too.  A case of
-``config/noise_cases.yaml`` is read straight into a :class:`NoiseCase`.  Validation is complete at load: unknown keys (with a
+``config/noise_cases.yaml`` is read straight into a :class:`~groundsim.world.noise_cases.NoiseCase`.  Validation is complete at load: unknown keys (with a
 "did you mean"), wrong types, wrong vector lengths, non-finite numbers, out-of-range values, unknown
 model names, inconsistent pairs (``t_min_k >= t_max_k``), bad YAML syntax and unreadable files all
 raise :class:`ScenarioError` (a :class:`~onboard.core.schema.SchemaError`), whose message is one line::
@@ -36,7 +36,6 @@ import dataclasses
 import datetime
 import logging
 import math
-import re
 import sys
 import zlib
 from pathlib import Path
@@ -47,14 +46,25 @@ from pydantic import BeforeValidator
 
 from groundsim.world.motion import Motion, Perturbed, SingerPerturbation
 from groundsim.world.motion_files import MOTION_MODELS, MotionFile
+from groundsim.world.noise_cases import NoiseCase, load_noise_cases, noise_cases_from_dict, noise_cases_path
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import IrSettings, TargetPart
+from groundsim.world.spec import (
+    NAME,
+    NAME_PATTERN,
+    ScenarioError,
+    SpecFail,
+    check_integer,
+    check_mapping,
+    check_number,
+    check_string,
+    read_spec_yaml,
+    scenario_model,
+)
 from onboard.core.camera_section import PinholeSection
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.core.frames import CameraMount, GeodeticOrigin, PinholeIntrinsics
 from onboard.core.schema import (
-    MISSING_TEXT,
-    NOT_A_KEY,
     Instance,
     Integer,
     Invalid,
@@ -65,13 +75,11 @@ from onboard.core.schema import (
     Text,
     build,
     check_value,
-    config_dataclass,
     did_you_mean,
-    read_yaml,
-    show,
 )
 
 __all__ = [
+    "NAME_PATTERN",
     "ScenarioError",
     "SingerDisturbance",
     "VehicleSpec",
@@ -114,7 +122,6 @@ MAX_SINGER_SIGMA_MPS2 = 100.0  # ~10 g: beyond it a "disturbance" is not one
 MIN_SEPARATION_M = 1.0  # observer and target (commanded paths) must stay this far apart at every frame
 SINGER_MARGIN_S = 1.0  # a disturbance is realised this long past duration_s (no clamping at the end)
 FRAME_COUNT_EPS = 1e-9  # k < duration * rate, robust to 0.1 * 30 = 3.0000000000000004
-NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 DEFAULT_ORIGIN = GeodeticOrigin(32.0, 118.8, 0.0)  # Nanjing, see REFERENCE_SCENARIOS.md
 DEFAULT_DURATION_S = 10.0
@@ -150,48 +157,15 @@ _CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
 _REFERENCE_ORDER = ("P1", "P2", "P3", "P1g", "P2g", "P3g", "H1", "H2", "H3")
 
 
-# --------------------------------------------------------------------------- the error
-
-
-class ScenarioError(SchemaError):
-    """A scenario or noise-case file (or dict) is invalid (the one config error, :class:`~onboard.core.schema.SchemaError`).
-
-    ``str(err)`` is one line: ``"<source>: <field>: expected <expected>, got <got>[; <hint>]"``.
-    Attributes: ``source`` (file or ``"<dict>"``), ``field`` (dotted path, ``"(document)"`` for the
-    whole file, ``"line L, column C"`` for YAML syntax), ``expected``, ``got`` (the value as shown),
-    ``hint`` (e.g. a "did you mean"), ``line`` (1-based, YAML errors only).
-    """
-
-    def __init__(
-        self,
-        source,
-        field_path: str,
-        expected: str,
-        got: Any = dataclasses.MISSING,
-        hint: str | None = None,
-        *,
-        got_text: str | None = None,
-        line: int | None = None,
-    ):
-        if got_text is None:
-            got_text = MISSING_TEXT if got is dataclasses.MISSING else show(got)
-        super().__init__(source, field_path, expected, got_text, hint, line=line)
-
-
-_NAME = Annotated[str, Text(pattern=NAME_PATTERN.pattern, what="a name of letters, digits, '_', '.', '-'")]
 _VEC3 = Annotated[tuple[float, ...], Numbers(3)]
 _VEC3_M = Annotated[tuple[float, ...], Numbers(3, unit="m")]
 _ZERO3 = (0.0, 0.0, 0.0)
 
 
-def _scenario_model(cls=None, /, **kw):
-    return config_dataclass(cls, error=ScenarioError, **kw)
-
-
 # --------------------------------------------------------------------------- typed objects
 
 
-@_scenario_model
+@scenario_model
 class SingerDisturbance:
     """Random (Singer) target acceleration, as data: 1-sigma per horizontal axis (N, E) and for D,
     correlation time ``tau_s``.  :meth:`realise` turns it into a ``SingerPerturbation`` path."""
@@ -218,7 +192,7 @@ _MOTION_CHECK = Instance(object, what="a motion model with a state(t_s) method",
 _MOTION = Annotated[Any, _MOTION_CHECK]
 
 
-@_scenario_model
+@scenario_model
 class VehicleSpec:
     """One vehicle's path.
 
@@ -245,7 +219,7 @@ class VehicleSpec:
         return Perturbed(self.base_motion, self.disturbance.realise(duration_s, rng))
 
 
-@_scenario_model
+@scenario_model
 class GimbalSpec:
     """A gimbal that keeps the target near the image centre with a slowly varying pointing error:
     per NED axis a sinusoid of amplitude ``pointing_error_frac_of_range[i] * range`` and period
@@ -260,7 +234,7 @@ class GimbalSpec:
 REFERENCE_GIMBAL = GimbalSpec()
 
 
-@_scenario_model
+@scenario_model
 class CameraSpec:
     """The camera: intrinsics, its pod mount on the observer, and an optional gimbal (``None`` = a
     fixed pod; the observer then yaws toward the target)."""
@@ -274,14 +248,14 @@ class CameraSpec:
     gimbal: Annotated[GimbalSpec | None, Instance(GimbalSpec, what="a GimbalSpec")] = REFERENCE_GIMBAL
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class ObserverSpec:
     """One observer of a fleet (``observers`` in the file): its ``name`` (the vehicle's name: frame key
     ``irtrack/<name>/ir/frame``, ``groundsim run --mavlink NAME=ENDPOINT``), its path (``vehicle``), its
     ``camera``, its navigation-error case ``nav_noise`` and ``boot_start_us``, what its boot clock reads at
     scenario time 0 (different per vehicle, as real autopilots powered on at different times)."""
 
-    name: _NAME
+    name: NAME
     vehicle: Annotated[VehicleSpec, Instance(VehicleSpec, what="a VehicleSpec")]
     camera: Annotated[CameraSpec, Instance(CameraSpec, what="a CameraSpec")]
     nav_noise: Annotated[str, Text(pattern=NAME_PATTERN.pattern, what="a noise-case name")] = DEFAULT_NAV_NOISE
@@ -307,7 +281,7 @@ def _stream_rng(seed: int, stream: str, run_seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(seed), int(run_seed), key]))
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class Scenario:
     """One simulated encounter (see the module docstring and ``docs/scenarios.md``).
 
@@ -323,7 +297,7 @@ class Scenario:
     default boot clock.
     """
 
-    name: _NAME
+    name: NAME
     description: Annotated[str, Text(empty=True)] = ""
     origin: Annotated[GeodeticOrigin, Instance(GeodeticOrigin, what="a GeodeticOrigin")] = DEFAULT_ORIGIN
     duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
@@ -429,36 +403,6 @@ class Scenario:
         return self.observer.motion
 
 
-@_scenario_model
-class NoiseCase:
-    """Measurement noise of one evaluation case: one case of ``config/noise_cases.yaml`` (angles in degrees
-    there and here; ``*_rad`` in radians), ``name`` its key in the file.
-
-    ``pixel_sigma_px``: 1-sigma per image axis; ``attitude_white_sigma_deg`` / ``attitude_bias_sigma_deg``:
-    per-axis 1-sigma of white attitude noise and of a constant bias drawn once per run;
-    ``camera_position_white_sigma_m``: per-axis white noise on the camera position;
-    ``camera_position_offset_m``: size of a constant position offset; ``camera_position_drift_mps``:
-    size of a constant position drift rate (the noise model draws their directions per run).
-    """
-
-    name: _NAME = dataclasses.field(metadata=NOT_A_KEY)
-    description: Annotated[str, Text(empty=True)] = dataclasses.field(default="", kw_only=True)
-    pixel_sigma_px: NonNegativeFloat
-    attitude_white_sigma_deg: NonNegativeFloat = 0.0
-    attitude_bias_sigma_deg: NonNegativeFloat = 0.0
-    camera_position_white_sigma_m: NonNegativeFloat = 0.0
-    camera_position_offset_m: NonNegativeFloat = 0.0
-    camera_position_drift_mps: NonNegativeFloat = 0.0
-
-    @property
-    def attitude_white_sigma_rad(self) -> float:
-        return math.radians(self.attitude_white_sigma_deg)
-
-    @property
-    def attitude_bias_sigma_rad(self) -> float:
-        return math.radians(self.attitude_bias_sigma_deg)
-
-
 # --------------------------------------------------------------------------- the file schema
 # One model per YAML mapping (docs/scenarios.md); each builds the runtime object above.  Defaults are
 # the runtime defaults: an absent key and its default value give the same scenario.
@@ -468,7 +412,7 @@ _IR = IrSettings()
 _SCALE_K = Annotated[float, Number(0.0, lo_open=True, unit="K")]
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class DisturbanceFile:
     model: Annotated[Literal["singer"], Text()]
     sigma_horizontal_mps2: Annotated[float, Number(0.0, MAX_SINGER_SIGMA_MPS2, unit="m/s^2")]
@@ -479,18 +423,18 @@ class DisturbanceFile:
         return SingerDisturbance(self.sigma_horizontal_mps2, self.sigma_vertical_mps2, self.tau_s)
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class ObserverFile:
     motion: MotionFile
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class TargetFile:
     motion: MotionFile
     disturbance: DisturbanceFile | None = None
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class IntrinsicsFile(PinholeSection):
     fx_px: Annotated[float, Number(0.0, lo_open=True)] = _VUE.fx_px
     fy_px: Annotated[float, Number(0.0, lo_open=True)] = _VUE.fy_px
@@ -503,7 +447,7 @@ class IntrinsicsFile(PinholeSection):
     )
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class MountFile:
     lever_arm_frd_m: _VEC3_M = _ZERO3
     roll_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
@@ -511,7 +455,7 @@ class MountFile:
     yaw_deg: Annotated[float, Number(-360.0, 360.0, unit="deg")] = 0.0
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class CameraFile:
     intrinsics: IntrinsicsFile = dataclasses.field(default_factory=IntrinsicsFile)
     mount: MountFile = dataclasses.field(default_factory=MountFile)
@@ -526,7 +470,7 @@ class CameraFile:
         return CameraSpec(self.intrinsics.pinhole(), mount, self.gimbal)
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class TargetPartFile:
     name: Annotated[str, Text(empty=True, what="a string")]
     shape: Annotated[Literal["ellipsoid", "box"], Text()]
@@ -552,7 +496,7 @@ def _nonempty(value: Any) -> Any:
     return tuple(value) if isinstance(value, list) else value
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class OtherTarget:
     """One more target: its path (``vehicle``, flown by JSBSim like the scenario's target) and the parts it
     is drawn with (``parts``: ``TargetPart``s; the scenario's ``ir.target_parts`` when not given)."""
@@ -561,7 +505,7 @@ class OtherTarget:
     parts: Annotated[tuple, Instance(tuple, what="a tuple of TargetPart")]
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class OtherTargetFile:
     """An entry of ``other_targets``: as ``target``, plus its own ``target_parts`` (default: ``ir``'s)."""
 
@@ -570,7 +514,7 @@ class OtherTargetFile:
     target_parts: Annotated[tuple[TargetPartFile, ...], BeforeValidator(_nonempty)] = ()
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class IrFile:
     """``ir``: the renderer's settings (:class:`~groundsim.world.render.settings.IrSettings`, which keeps its own
     consistency checks); target parts replace the default quadcopter."""
@@ -613,26 +557,26 @@ class IrFile:
         return IrSettings(**kw)
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class OriginFile:
     lat_deg: Annotated[float, Number(-90.0, 90.0, unit="deg")] = DEFAULT_ORIGIN.lat_deg
     lon_deg: Annotated[float, Number(-180.0, 180.0, unit="deg")] = DEFAULT_ORIGIN.lon_deg
     alt_m: Annotated[float, Number(-1000.0, 100_000.0, unit="m")] = DEFAULT_ORIGIN.alt_m
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class WindFile:
     n_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
     e_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
     d_mps: Annotated[float, Number(-100.0, 100.0, unit="m/s")] = 0.0
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class FleetObserverFile:
     """An entry of ``observers``: a named observer with its own path; its camera and navigation errors default
     to the scenario's ``camera`` and ``nav_noise``, its boot clock at t = 0 to one drawn from the seed and name."""
 
-    name: _NAME
+    name: NAME
     motion: MotionFile
     camera: CameraFile | None = None
     nav_noise: Annotated[str | None, Text()] = None
@@ -658,11 +602,11 @@ def _utc_text(value: Any) -> Any:
     return value
 
 
-@_scenario_model(kw_only=True)
+@scenario_model(kw_only=True)
 class ScenarioFile:
     """A scenario file's top level (``docs/scenarios.md``)."""
 
-    name: _NAME
+    name: NAME
     description: Annotated[str, Text(empty=True)] = ""
     origin: OriginFile = dataclasses.field(default_factory=OriginFile)
     duration_s: Annotated[float, Number(0.0, MAX_DURATION_S, lo_open=True, unit="s")] = DEFAULT_DURATION_S
@@ -863,11 +807,6 @@ def scenario_from_dict(d, source="<dict>") -> Scenario:
 # --------------------------------------------------------------------------- YAML files
 
 
-def read_spec_yaml(path) -> Any:
-    """The one YAML loader (:func:`onboard.core.schema.read_yaml`), errors as :class:`ScenarioError`."""
-    return read_yaml(path, ScenarioError)
-
-
 def load_scenario(path) -> Scenario:
     """Read and validate one scenario file; raises :class:`ScenarioError` (one line) on any problem."""
     return scenario_from_dict(read_spec_yaml(path), source=Path(path))
@@ -907,97 +846,6 @@ def resolve_scenario_path(text: str | Path) -> Path:
         "an existing file or one of the shipped scenarios " + ", ".join(shipped),
         got_text="no such file",
     )
-
-
-def noise_cases_path() -> Path:
-    """The repository's shipped ``config/noise_cases.yaml`` (found relative to this file)."""
-    return _CONFIG_DIR / "noise_cases.yaml"
-
-
-# --------------------------------------------------------------------------- noise cases
-
-
-def noise_cases_from_dict(d, source="<dict>") -> dict[str, NoiseCase]:
-    """Validate a parsed noise-case mapping ``{name: {fields}}`` (angles in degrees) into NoiseCases."""
-    if not isinstance(d, dict) or not d:
-        raise ScenarioError(source, "", "a non-empty mapping of case name -> fields", d)
-    out: dict[str, NoiseCase] = {}
-    for name, c in d.items():
-        if not isinstance(name, str) or not NAME_PATTERN.match(name):
-            raise ScenarioError(source, "", "case names of letters, digits, '_', '.', '-'", name)
-        try:
-            out[name] = build(NoiseCase, c, name, none_is_default=False, given={"name": name})
-        except SchemaError as exc:
-            raise exc.as_(ScenarioError, source) from None
-    return out
-
-
-def load_noise_cases(path=None) -> dict[str, NoiseCase]:
-    """Read ``config/noise_cases.yaml`` (or ``path``): case name -> :class:`NoiseCase`."""
-    p = Path(path) if path is not None else noise_cases_path()
-    return noise_cases_from_dict(read_spec_yaml(p), source=p)
-
-
-# --------------------------------------------------------------------------- value checks for other spec files
-# Public for the spec files that validate their mapping field by field (the campaign spec,
-# groundsim.evaluation.campaign): they check through the one system's field types, so the texts are the
-# same as the models', and they raise ScenarioError like the scenario files.
-
-
-class SpecFail:
-    """Raises ScenarioError for one source: ``fail(path, expected, got, hint)``; ``fail.text(...)``
-    when the 'got' part is a description rather than a value."""
-
-    def __init__(self, source) -> None:
-        self.source = source
-
-    def __call__(self, path: str, expected: str, got: Any = dataclasses.MISSING, hint: str | None = None):
-        raise ScenarioError(self.source, path, expected, got, hint)
-
-    def text(self, path: str, expected: str, got_text: str, hint: str | None = None):
-        raise ScenarioError(self.source, path, expected, got_text=got_text, hint=hint)
-
-
-def check_number(v, path, fail: SpecFail, *, lo=None, lo_open=False, hi=None, hi_open=False, unit="") -> float:
-    return check_value(
-        Annotated[float, Number(lo, hi, lo_open=lo_open, hi_open=hi_open, unit=unit)],
-        v,
-        path,
-        fail.source,
-        ScenarioError,
-    )
-
-
-def check_integer(v, path, fail: SpecFail, *, lo=None, hi=None) -> int:
-    return check_value(Annotated[int, Integer(lo, hi)], v, path, fail.source, ScenarioError)
-
-
-def check_string(v, path, fail: SpecFail, *, choices=None, pattern: re.Pattern | None = None, what="a string") -> str:
-    text = Text(pattern=None if pattern is None else pattern.pattern, what=what, empty=True)
-    tp = Annotated[Literal[tuple(choices)], text] if choices else Annotated[str, text]
-    return check_value(tp, v, path, fail.source, ScenarioError)
-
-
-def check_mapping(v, path, fail: SpecFail, allowed, required=()) -> dict:
-    """A dict with string keys, all in ``allowed``, all of ``required`` present."""
-    allowed = tuple(allowed)
-    if not isinstance(v, dict):
-        fail(path, f"a mapping with keys {', '.join(allowed)}", v)
-    for k in v:
-        if not isinstance(k, str):
-            fail(path, f"string keys (one of {', '.join(allowed)})", k)
-    for k in v:
-        if k not in allowed:
-            fail.text(
-                f"{path}.{k}" if path else k,
-                f"a key of {path or 'the document'} ({', '.join(allowed)})",
-                f"unknown key {k!r}",
-                did_you_mean(k, allowed),
-            )
-    for k in required:
-        if k not in v:
-            fail(f"{path}.{k}" if path else k, "a value (required)")
-    return v
 
 
 # --------------------------------------------------------------------------- entry point
