@@ -26,7 +26,8 @@ What QGC does (mavlink/qgroundcontrol src/Camera, read for this test):
   ``stopTracking`` sends MAV_CMD_CAMERA_STOP_TRACKING (2010) then SET_MESSAGE_INTERVAL(275, -1).
 
 Checked: discovery succeeds on the first attempt with the tracking flags and a video stream; the
-stream is MPEG-TS on the advertised UDP port, thermal, H.264; before any click no tracking status
+stream is MPEG-TS on the advertised UDP port, H.264, not flagged thermal (QGC's ``VideoManager`` opens its main
+video only from a stream without VIDEO_STREAM_STATUS_FLAGS_THERMAL and lists a thermal one apart, as an overlay); before any click no tracking status
 (operator mode); the click on the target is ACCEPTED and #275 follows it at 2 Hz in POINT mode, each
 normalised point within 0.01 of the simulator's truth pixel of a frame at most :data:`TRUTH_LAG_FRAMES`
 before the message arrived; in the decoded video the target stands out at each #275 point; STOP is
@@ -314,7 +315,7 @@ def test_qgc_camera_sequence_click_to_track_and_video(tmp_path):
         pump_until(lambda: qgc.since("VIDEO_STREAM_INFORMATION", t0), 2.0, "VIDEO_STREAM_INFORMATION")
         vsi = qgc.since("VIDEO_STREAM_INFORMATION", t0)[0][1]
         assert vsi.type == 1 and vsi.uri == str(rx.port)  # RTPUDP: QGC opens udp://0.0.0.0:<uri> as RTP H.264
-        assert vsi.flags & 2 and vsi.encoding == 1 and (vsi.resolution_h, vsi.resolution_v) == (W, H)
+        assert vsi.flags == 1 and vsi.encoding == 1 and (vsi.resolution_h, vsi.resolution_v) == (W, H)
 
         # 3. the simulator flies; frames reach the daemon (decoded video is the proof)
         sim = _start(sim_command(plan), logs["sim"])

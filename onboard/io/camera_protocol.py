@@ -209,7 +209,8 @@ def _int_in(name: str, v, lo: int, hi: int) -> int:
 class CameraIdentity:
     """What CAMERA_INFORMATION says about the sensor.  Lengths in mm, resolution in px.
 
-    ``firmware_version``: uint32, (major << 24) | (minor << 16) | build, as QGC decodes it.
+    ``firmware_version``: uint32 as common.xml lays it out, (dev << 24) | (patch << 16) | (minor << 8) | major;
+    0 when unknown (what :meth:`from_intrinsics` sends).
     """
 
     vendor_name: str
@@ -274,6 +275,10 @@ class VideoStream:
     ``stream_type``: VIDEO_STREAM_TYPE (RTPUDP 1, MPEG_TS 3); ``uri``: what the ground station opens
     (for UDP types the port number it listens on, e.g. ``"5600"``); ``hfov_deg`` horizontal field of
     view; ``thermal`` sets VIDEO_STREAM_STATUS_FLAGS_THERMAL.
+
+    ``thermal`` is off by default although the stream is thermal imaging: QGroundControl sets up its main video
+    only from a stream without that flag (``VideoManager::autoStreamConfigured``) and leaves a thermal stream out
+    of its stream list, to overlay it on a main one; flagged, the camera's only stream would open no video at all.
     """
 
     stream_type: int
@@ -284,7 +289,7 @@ class VideoStream:
     resolution_v_px: int
     hfov_deg: float
     name: str = "IR"
-    thermal: bool = True
+    thermal: bool = False
     encoding: int = VIDEO_STREAM_ENCODING_H264
 
     def __post_init__(self) -> None:
@@ -309,7 +314,7 @@ class VideoStream:
 @dataclass(frozen=True)
 class CameraCommand:
     """A COMMAND_LONG / COMMAND_INT addressed to the camera (``params``: its 7 parameters as floats;
-    COMMAND_INT's x/y are passed as received, they are not used by any command we support).
+    COMMAND_INT's x/y, as received, are params 5 and 6: MAV_CMD_CAMERA_TRACK_RECTANGLE's target camera id is x).
 
     ``confirmation``: COMMAND_LONG's (0 = first transmission, 1-255 = retransmissions); 0 for a
     COMMAND_INT, which has no such field."""
@@ -488,6 +493,9 @@ class CameraProtocol:
         self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int, track: Track | None
     ) -> list[Outgoing]:
         msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
+        if msgs is None and msg_id == MSG_TRACKING_GEO_STATUS:
+            # no observable position yet: asking again later can work, which DENIED says it cannot
+            return [self._ack(command, MAV_RESULT_TEMPORARILY_REJECTED, to)]
         if msgs is None:
             return [self._ack(command, MAV_RESULT_DENIED, to)]
         # the ACK first, then the message (common.xml: "the message is sent after the ACK"), both to the requester

@@ -154,11 +154,12 @@ def test_no_video_stream_no_video_flag_and_stream_requests_denied():
         (cp.MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION, 0),
     ],
 )
-def test_video_stream_information_is_thermal_h264_with_the_port_as_uri(command):
+def test_video_stream_information_is_a_main_h264_stream_with_the_port_as_uri(command):
     out, _ = _proto().handle(_cmd(*command), 0.0, 0)
     assert _names(out) == ["command_ack", "video_stream_information"]
     f = out[1].fields
-    assert f["flags"] == mav.VIDEO_STREAM_STATUS_FLAGS_RUNNING | mav.VIDEO_STREAM_STATUS_FLAGS_THERMAL
+    # not flagged THERMAL: QGroundControl opens its main video only from a stream without the flag
+    assert f["flags"] == mav.VIDEO_STREAM_STATUS_FLAGS_RUNNING
     assert f["type"] == mav.VIDEO_STREAM_TYPE_MPEG_TS and f["uri"] == b"5600"
     assert f["encoding"] == mav.VIDEO_STREAM_ENCODING_H264 and (f["stream_id"], f["count"]) == (1, 1)
     assert f["hfov"] == 45 and (f["resolution_h"], f["resolution_v"]) == (W, H)  # 2 atan(320 / 764.7) = 45.4 deg
@@ -491,3 +492,13 @@ def test_identity_refuses_bad_values_naming_the_field():
         CameraIdentity("x" * 40, "m", 0, 1.0, 1.0, 1.0, 1, 1)
     with pytest.raises(Exception, match="stream_type"):
         VideoStream(0, "5600", 30.0, 0, W, H, 45.0)
+
+
+def test_geo_status_asked_before_a_position_is_observable_is_temporarily_rejected():
+    """REQUEST_MESSAGE(276) with no observable position: asking again later can work, which DENIED would deny."""
+    proto = _proto()
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 276), 0.0, 0, _track(observable=False))
+    assert _names(out) == ["command_ack"] and _ack(out)["result"] == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 276), 0.0, 0, _track(observable=True))
+    assert _names(out) == ["command_ack", "camera_tracking_geo_status"]
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
