@@ -33,8 +33,9 @@ Out: ``HEARTBEAT`` at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER`` / ``MAV_AUTOPILOT_
 component 191 (``MAV_COMP_ID_ONBOARD_COMPUTER``) with the autopilot's system id;
 ``COMMAND_LONG(MAV_CMD_SET_MESSAGE_INTERVAL, param1 = message id, param2 = interval us)``, one at a
 time (an ACK does not say which message it is for), retried every ``command_retry_s`` until
-``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot;
-``CAMERA_TRACKING_IMAGE_STATUS`` (#275) and ``CAMERA_TRACKING_GEO_STATUS`` (#276).
+``COMMAND_ACK`` ACCEPTED, and re-sent after a link loss or an autopilot reboot; the velocity setpoints and FOLLOW_TARGET of guidance when
+asked.  The tracking statuses (#275, #276) go to ground stations (:mod:`onboard.io.gcs_link`); the
+``send_tracking_*`` methods here serve a deployment whose ground station shares the autopilot's link.
 
 Input (hostile links): UDP links use a socket of our own and parse **each datagram
 alone** with a fresh parser, so a truncated or garbage datagram costs only itself

@@ -412,7 +412,7 @@ class AttitudeQuaternion:
 @dataclass(frozen=True)
 class GlobalPositionInt:
     """GLOBAL_POSITION_INT (#33): WGS84 ``lat_deg`` / ``lon_deg``, ``alt_amsl_m``, ``alt_rel_m`` (above home),
-    ``v_ned_mps`` (north, east, down), ``heading_rad`` (yaw over ground, [0, 2 pi) on the wire; NaN unknown).
+    ``v_ned_mps`` (north, east, down), ``heading_rad`` (the vehicle's heading, its yaw angle, [0, 2 pi) on the wire; NaN unknown).
 
     On the wire: degE7, mm, cm/s as int16 (|v| <= 327.67 m/s: a sender saturates first), cdeg.  A
     decoded dropout position (0, 0 or INT32_MAX) is passed on as the numbers it is."""
