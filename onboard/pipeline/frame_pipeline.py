@@ -644,11 +644,13 @@ class FramePipeline:
     # ------------------------------------------------------------------ output
 
     def _origin(self, pose: PoseAt | None) -> GeodeticOrigin | None:
-        if self.origin is not None:
-            return self.origin
+        # the estimate is in the frame of the poses it was made from: their origin names it, whatever the pipeline
+        # was configured with (a replay's --set pose.origin must not move the recorded target); the configured
+        # origin serves only a pose source that has none
         if pose is not None:
             return pose.origin
-        return getattr(self.pose_source, "origin", None)
+        source_origin = getattr(self.pose_source, "origin", None)
+        return source_origin if source_origin is not None else self.origin
 
     def _line_of_sight(self, upd, pose: PoseAt | None) -> LineOfSight | None:
         if pose is None or upd.u_px is None:

@@ -220,13 +220,14 @@ def test_unobservable_estimate_is_published_graded_unless_configured_off():
     assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
 
 
-def test_configured_origin_overrides_the_pose_origin():
+def test_the_pose_origin_names_the_estimate_whatever_origin_was_configured():
+    """The estimate is in the NED frame of the poses it was made from: a configured origin 111 m north of it (a
+    replay's --set pose.origin) must neither move the published target nor name the track's frame."""
     rig = Rig(ready_after=1)
-    other = GeodeticOrigin(32.001, 118.8, 10.0)
-    rig.pipe.origin = other
+    rig.pipe.origin = GeodeticOrigin(32.001, 118.8, 10.0)
     j = track_to_json(rig.run(2)[-1])
-    assert j["origin"] == {"lat_deg": 32.001, "lon_deg": 118.8, "alt_m": 10.0}
-    lat, lon, alt = geodetic_from_ned(j["ned_m"], other)
+    assert j["origin"] == {"lat_deg": 32.0, "lon_deg": 118.8, "alt_m": 0.0}
+    lat, lon, alt = geodetic_from_ned(j["ned_m"], rig.scene.origin)
     assert abs(j["lat_deg"] - float(lat)) < GEO_TOL_DEG and j["alt_m"] == pytest.approx(float(alt), abs=1e-6)
 
 
