@@ -14,7 +14,12 @@ key                 type                         meaning
 schema              "irtrack.track/2"
 vehicle             string                       vehicle name (the key's ``<vehicle>``)
 seq                 integer                      the IR frame's sequence number
-time_boot_us        integer                      the frame's capture time, us on the autopilot boot clock
+time_boot_us        integer                      the frame's stamp, us on the autopilot boot clock: its
+                                                 capture time unless the camera's clock runs late; then,
+                                                 with ``time_offset.compensate``, the line of sight and the
+                                                 3-D fields are those of ``time_boot_us`` minus the status's
+                                                 ``camera_time_offset.compensated_ms`` (the stamp is kept so
+                                                 that track times never step back)
 track_id            integer >= 1 or null         current track (a new id = a new target association)
 state               string                       ``searching`` | ``tracking`` | ``coasting`` | ``lost``
 measurement_valid   bool                         (u, v) is a blob centroid fit for 3-D (fed to the estimator)
@@ -48,7 +53,7 @@ residual_rms_norm   number or null               (new in /2) RMS of the standard
                                                  and noise model match; null when unknown)
 window_frames       integer >= 0                 observations in the estimator's window
 model               string or null               the estimator's motion model for this estimate
-time_unix_us        integer or null              (new, optional) the capture time in UTC, microseconds since
+time_unix_us        integer or null              (new, optional) ``time_boot_us`` in UTC, microseconds since
                                                  1970 (``time_boot_us`` through the autopilot's SYSTEM_TIME,
                                                  :mod:`onboard.core.utc_clock`); null until that mapping exists
 time_unix_sigma_us  integer or null              (new, optional) 1-sigma of ``time_unix_us``, microseconds
@@ -546,7 +551,14 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("schema", {"type": "string", "const": TRACK_SCHEMA}),
     ("vehicle", {"type": "string", "description": "vehicle name (the key's <vehicle>)"}),
     ("seq", {"type": "integer", "description": "the IR frame's sequence number"}),
-    ("time_boot_us", {"type": "integer", "description": "capture time, us on the autopilot boot clock"}),
+    (
+        "time_boot_us",
+        {
+            "type": "integer",
+            "description": "the frame's stamp, us on the autopilot boot clock (its capture time unless the camera's "
+            "clock runs late: see the status's camera_time_offset.compensated_ms)",
+        },
+    ),
     ("track_id", {**_INT, "description": "current track (a new id = a new target association)"}),
     ("state", {"type": "string", "enum": list(TRACK_STATES)}),
     ("measurement_valid", {**_BOOL, "description": "(u, v) is a blob centroid fed to the estimator"}),
@@ -601,7 +613,7 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("residual_rms_norm", {**_NUM, "description": "RMS of the standardised residuals at the last model selection"}),
     ("window_frames", {"type": "integer", "minimum": 0, "description": "observations in the estimator's window"}),
     ("model", {"type": ["string", "null"], "description": "the estimator's motion model"}),
-    ("time_unix_us", {**_INT, "description": "capture time in UTC, us since 1970; null until mapped"}),
+    ("time_unix_us", {**_INT, "description": "time_boot_us in UTC, us since 1970; null until mapped"}),
     ("time_unix_sigma_us", {**_INT, "description": "1-sigma of time_unix_us, us"}),
 )
 
