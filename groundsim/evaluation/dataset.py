@@ -221,21 +221,27 @@ def target_label(
     return TargetLabel(u, v, cx0, cy0, cx1 - cx0, cy1 - cy0, vis, in_image)
 
 
-def measured_camera_pose(state_true: dict, nav_error, p_body_true_ned_m, mount, q_mount_from_gimbal=None):
+def measured_camera_pose(
+    state_true: dict, nav_error, p_body_true_ned_m, mount, origin, q_mount_from_gimbal=None
+) -> tuple[np.ndarray, np.ndarray]:
     """The camera pose the daemon rebuilds from the telemetry: ``(p_cam_ned_m, q_ned_from_cam)`` (pure).
 
     ``state_true``: ``SimCore.vehicle_state(i)``; ``nav_error``: ``SimCore.nav_error(i)`` (None = exact);
     ``p_body_true_ned_m`` (3,): the true observer position; the reported position is it plus the error's
     NED offset (:func:`groundsim.world.nav_errors.reported_state` moves lat/lon/alt by the same offset).
+    The reported attitude is relative to the local level at the reported position, turned into ``origin``'s
+    NED as the daemon's pose buffer does (:mod:`onboard.core.frames`, "Local level").
     """
     from groundsim.world.nav_errors import reported_state
-    from onboard.core.frames import camera_pose_ned
+    from onboard.core.frames import camera_pose_ned, q_ned_from_level, quat_multiply, quat_normalize
 
     rep = reported_state(state_true, nav_error)
     p_body = np.asarray(p_body_true_ned_m, dtype=float)
     if nav_error is not None:
         p_body = p_body + np.asarray(nav_error.p_err_ned_m, dtype=float)
-    return camera_pose_ned(p_body, np.asarray(rep["q_ned_from_body"], dtype=float), mount, q_mount_from_gimbal)
+    q_lv = q_ned_from_level(float(rep["lat_deg"]), float(rep["lon_deg"]), origin)
+    q_nb = quat_normalize(quat_multiply(q_lv, np.asarray(rep["q_ned_from_body"], dtype=float)))
+    return camera_pose_ned(p_body, q_nb, mount, q_mount_from_gimbal)
 
 
 def sequence_name(scenario_name: str, nav_case: str, seed: int) -> str:
@@ -456,7 +462,7 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
             )
             q_mg = None if c.q_mount_from_gimbal is None else c.q_mount_from_gimbal[j]
             p_meas, q_meas = measured_camera_pose(
-                core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, q_mg
+                core.vehicle_state(i), core.nav_error(i), c.obs_p_ned_m[j], mount, origin, q_mg
             )
             if lab.in_image and math.isfinite(lab.u_px) and math.isfinite(lab.v_px):
                 obs_rows.append(_obs_row(K, tr.t_s, lab.u_px, lab.v_px, p_meas, q_meas))

@@ -76,8 +76,11 @@ from onboard.core.frames import (
     camera_pose_ned,
     euler_from_quat,
     geodetic_from_ned,
+    q_ned_from_level,
+    quat_conjugate,
     quat_multiply,
     quat_normalize,
+    quat_rotate,
     rotmat_from_quat,
 )
 
@@ -255,7 +258,10 @@ class _Chunk:
     obs_lat_deg: np.ndarray
     obs_lon_deg: np.ndarray
     obs_alt_m: np.ndarray
-    obs_yaw_rad: np.ndarray
+    # what the observer's autopilot measures, relative to the local level where it is (onboard.core.frames)
+    obs_q_level_from_body: np.ndarray
+    obs_v_level_mps: np.ndarray
+    obs_heading_rad: np.ndarray
     tgt_p_ned_m: np.ndarray
     tgt_v_ned_mps: np.ndarray
     tgt_q_ned_from_body: np.ndarray
@@ -264,6 +270,7 @@ class _Chunk:
     tgt_alt_m: np.ndarray
     q_mount_from_gimbal: np.ndarray | None
     q_ned_from_gimbal: np.ndarray | None
+    q_level_from_gimbal: np.ndarray | None
     cam_p_ned_m: np.ndarray
     cam_q_ned_from_cam: np.ndarray
     others: tuple = ()  # per other target: (p_ned_m, v_ned_mps, q_ned_from_body) arrays of the ticks
@@ -384,8 +391,10 @@ class PairFlight:
         lat, lon, alt = geodetic_from_ned(
             np.concatenate([obs.p_ned_m, tgt.p_ned_m]), sc.origin
         )  # one call: ~0.5 ms each
-        _, _, yaw = euler_from_quat(obs.q_ned_from_body)
-        q_mg = q_ng = None
+        q_level_from_ned = quat_conjugate(q_ned_from_level(lat[:n], lon[:n], sc.origin))
+        q_level_from_body = quat_normalize(quat_multiply(q_level_from_ned, obs.q_ned_from_body))
+        _, _, heading = euler_from_quat(q_level_from_body)
+        q_mg = q_ng = q_lg = None
         if self.gimballed:
             g = sc.camera.gimbal
             p_cam0, _ = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount)
@@ -397,6 +406,7 @@ class PairFlight:
             q_ng = quat_normalize(
                 quat_multiply(quat_multiply(obs.q_ned_from_body, np.asarray(mount.q_body_from_mount)), q_mg)
             )
+            q_lg = quat_normalize(quat_multiply(q_level_from_ned, q_ng))
         p_cam, q_cam = camera_pose_ned(obs.p_ned_m, obs.q_ned_from_body, mount, q_mg)
         return _Chunk(
             i0=i0,
@@ -411,12 +421,15 @@ class PairFlight:
             tgt_lat_deg=lat[n:],
             tgt_lon_deg=lon[n:],
             tgt_alt_m=alt[n:],
-            obs_yaw_rad=np.asarray(yaw),
+            obs_q_level_from_body=q_level_from_body,
+            obs_v_level_mps=quat_rotate(q_level_from_ned, obs.v_ned_mps),
+            obs_heading_rad=np.asarray(heading),
             tgt_p_ned_m=tgt.p_ned_m,
             tgt_v_ned_mps=tgt.v_ned_mps,
             tgt_q_ned_from_body=tgt.q_ned_from_body,
             q_mount_from_gimbal=q_mg,
             q_ned_from_gimbal=q_ng,
+            q_level_from_gimbal=q_lg,
             cam_p_ned_m=np.asarray(p_cam),
             cam_q_ned_from_cam=np.asarray(q_cam),
         )
@@ -560,6 +573,10 @@ class SimCore:
         ``alt_rel_m`` (GLOBAL_POSITION_INT's "altitude above home") is above the scenario origin's altitude, the
         ground the observer took off from: the vehicle's HOME_POSITION is at that altitude (below the first
         sample), so the two agree on every tick and under navigation errors, which move both altitudes alike.
+
+        The attitude, the velocity, the heading and the gimbal's earth-frame attitude are relative to the local level
+        where the observer is, as an autopilot measures them (:mod:`onboard.core.frames`, "Local level"); the world
+        simulated is in the origin's NED.
         """
         c = self.flight.chunk_of(i)
         j = i - c.i0
@@ -569,11 +586,11 @@ class SimCore:
             lon_deg=float(c.obs_lon_deg[j]),
             alt_amsl_m=float(c.obs_alt_m[j]),
             alt_rel_m=float(c.obs_alt_m[j]) - self.scenario.origin.alt_m,
-            v_ned_mps=c.obs_v_ned_mps[j],
-            q_ned_from_body=c.obs_q_ned_from_body[j],
+            v_ned_mps=c.obs_v_level_mps[j],
+            q_ned_from_body=c.obs_q_level_from_body[j],
             body_rates_radps=c.obs_omega_frd_radps[j],
-            heading_rad=float(c.obs_yaw_rad[j]),
-            q_gimbal=None if c.q_ned_from_gimbal is None else c.q_ned_from_gimbal[j],
+            heading_rad=float(c.obs_heading_rad[j]),
+            q_gimbal=None if c.q_level_from_gimbal is None else c.q_level_from_gimbal[j],
         )
 
     def nav_error(self, i: int):

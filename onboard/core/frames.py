@@ -12,6 +12,15 @@ ECEF
 Local NED
     North, East, Down in metres about a :class:`GeodeticOrigin` (lat, lon, alt); the tangent
     plane of the WGS84 ellipsoid at the origin (``p_ned_m``, ``v_ned_mps``).
+Local level
+    The NED axes where the vehicle is: north, east and the ellipsoid's normal at its own latitude and
+    longitude.  An autopilot measures gravity and north there, so its attitude (``ATTITUDE_QUATERNION``),
+    its velocity (``GLOBAL_POSITION_INT`` vx, vy, vz) and an earth-frame gimbal attitude (#285) are relative
+    to the local level, not to the origin's NED.  The two differ by the angle between the two normals, about
+    0.009 deg per km from the origin (a pixel of the default camera at 7.5 km);
+    ``q_ned_from_level(lat_deg, lon_deg, origin)`` turns one into the other, and the pose buffer applies it
+    to everything the autopilot reports (:mod:`onboard.core.pose`).  A caller that gives positions in NED
+    (``PoseBuffer.add_position_ned``, a flat world such as a test's) gives its attitudes in that NED too.
 Body FRD
     Forward, Right, Down, fixed to the airframe.  MAVLink ``ATTITUDE_QUATERNION`` gives
     ``q_ned_from_body``; Euler angles are the aerospace Z-Y-X sequence (yaw, then pitch, then
@@ -77,6 +86,8 @@ __all__ = [
     "ned_from_geodetic",
     "geodetic_from_ned",
     "geodetic_from_ned1",
+    "q_ned_from_level",
+    "q_ned_from_level1",
     "quat_normalize",
     "quat_multiply",
     "quat_conjugate",
@@ -246,6 +257,47 @@ def geodetic_from_ned1(n_m: float, e_m: float, d_m: float, origin: GeodeticOrigi
         return one
     lat, lon, alt = geodetic_from_ecef(np.array([x, y, z]))
     return float(lat), float(lon), float(alt)
+
+
+def _q_ned_from_level_halves(lat_deg, lon_deg, origin: GeodeticOrigin):
+    """The three half-angles of ``q_ned_from_level``: ``R_ned_from_ecef(origin) R_ned_from_ecef(lat, lon)^T``
+    with ``R_ecef_from_ned(lat, lon) = Rz(lon) Ry(-lat - pi/2)``, so ``Ry(lat0 + pi/2) Rz(lon - lon0) Ry(-lat - pi/2)``."""
+    a = 0.5 * (math.radians(origin.lat_deg) + 0.5 * math.pi)
+    return (
+        a,
+        0.5 * np.radians(np.asarray(lon_deg, dtype=float) - origin.lon_deg),
+        -0.5 * (np.radians(np.asarray(lat_deg, dtype=float)) + 0.5 * math.pi),
+    )
+
+
+def q_ned_from_level(lat_deg, lon_deg, origin: GeodeticOrigin) -> np.ndarray:
+    """``q_ned_from_level`` (..., 4): the rotation from the local level at WGS84 ``(lat_deg, lon_deg)`` (the
+    NED axes there, module docstring) to the local NED of ``origin``; the identity at the origin.  Exact: the
+    product of the two tangent frames' ECEF rotations, ``Ry(lat0 + pi/2) Rz(lon - lon0) Ry(-lat - pi/2)``."""
+    a, b, c = _q_ned_from_level_halves(lat_deg, lon_deg, origin)
+    ca, sa = math.cos(a), math.sin(a)
+    cb, sb, cc, sc = np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    # qy(a) (x) qz(b) (x) qy(c), with qy(t) = (cos t, 0, sin t, 0) and qz(t) = (cos t, 0, 0, sin t)
+    w = ca * cb * cc - sa * cb * sc
+    x = sa * sb * cc - ca * sb * sc
+    y = ca * cb * sc + sa * cb * cc
+    z = sa * sb * sc + ca * sb * cc
+    return np.stack([w, x, y, z], axis=-1)
+
+
+def q_ned_from_level1(lat_deg: float, lon_deg: float, origin: GeodeticOrigin) -> Quat:
+    """:func:`q_ned_from_level` of one position in plain floats (the pose buffer turns one per telemetry sample,
+    where numpy's per-call overhead cost ten times the arithmetic)."""
+    a = 0.5 * (math.radians(origin.lat_deg) + 0.5 * math.pi)
+    b = 0.5 * math.radians(lon_deg - origin.lon_deg)
+    c = -0.5 * (math.radians(lat_deg) + 0.5 * math.pi)
+    ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+    return (
+        ca * cb * cc - sa * cb * sc,
+        sa * sb * cc - ca * sb * sc,
+        ca * cb * sc + sa * cb * cc,
+        sa * sb * sc + ca * sb * cc,
+    )
 
 
 # --------------------------------------------------------------------------- quaternions

@@ -127,6 +127,7 @@ from onboard.core.frames import (
     check_unit_quat,
     euler_from_quat,
     ned_from_geodetic,
+    q_ned_from_level1,
     quat_conjugate1,
     quat_from_euler,
     quat_from_rotvec1,
@@ -164,6 +165,7 @@ ZERO_QUAT_NORM = 1e-6  # a quaternion shorter than this is "zero", not merely "n
 
 _F64 = np.dtype(float)
 _NAN3 = (math.nan, math.nan, math.nan)
+_IDENTITY = (1.0, 0.0, 0.0, 0.0)
 
 Vec3 = tuple[float, float, float]
 _Q_MOUNT_FROM_CAM = tuple(Q_MOUNT_FROM_CAM.tolist())
@@ -185,6 +187,14 @@ def _plain_floats(v, n: int):
     return None
 
 
+def _rotate1(q, v) -> Vec3:
+    """``R(q) v`` of one unit quaternion and one vector, in floats: ``v + 2 w (u x v) + 2 u x (u x v)``."""
+    w, x, y, z = q
+    a, b, c = v
+    tx, ty, tz = 2.0 * (y * c - z * b), 2.0 * (z * a - x * c), 2.0 * (x * b - y * a)
+    return (a + w * tx + (y * tz - z * ty), b + w * ty + (z * tx - x * tz), c + w * tz + (x * ty - y * tx))
+
+
 def _finite_from(row: np.ndarray, k: int) -> bool:
     """All of ``row[k:]`` finite."""
     for c in row[k:].tolist():
@@ -197,8 +207,9 @@ class GimbalReference(str, enum.Enum):
     """What a gimbal quaternion is relative to.
 
     ``MOUNT``: the pod mount frame (``q_mount_from_gimbal``).  ``VEHICLE``: MAVLink gimbal v2
-    "vehicle frame" -- the NED frame turned by the vehicle's heading (roll and pitch relative to the
-    horizon, yaw relative to the nose).  ``EARTH``: NED ("yaw in earth frame").
+    "vehicle frame" -- the local level turned by the vehicle's heading (roll and pitch relative to the
+    horizon, yaw relative to the nose).  ``EARTH``: the local level ("yaw in earth frame"), as the
+    autopilot's attitude (:mod:`onboard.core.frames`).
     """
 
     MOUNT = "mount"
@@ -427,7 +438,11 @@ class PoseBuffer:
 
     def add_attitude(self, time_boot_us: int, q_ned_from_body, omega_frd_rps=None) -> bool:
         """Store ``q_ned_from_body`` (w, x, y, z) at ``time_boot_us`` and the body rates
-        ``omega_frd_rps`` (3,; body FRD, rad/s; None or NaN = unknown: no extrapolation)."""
+        ``omega_frd_rps`` (3,; body FRD, rad/s; None or NaN = unknown: no extrapolation).
+
+        The attitude is relative to the local level where the vehicle is, as an autopilot's
+        (:mod:`onboard.core.frames`); a look-up turns it into the origin's NED with the rotation of the position
+        sample it is paired with (the identity for :meth:`add_position_ned`'s flat world)."""
         t = self._time("attitude", time_boot_us)
         if t is None:
             return False
@@ -442,7 +457,9 @@ class PoseBuffer:
         return True
 
     def add_position(self, time_boot_us: int, lat_deg: float, lon_deg: float, alt_m: float, v_ned_mps=None) -> bool:
-        """Store a WGS84 position (alt treated as ellipsoidal, see frames) and NED velocity (None = unknown)."""
+        """Store a WGS84 position (alt treated as ellipsoidal, see frames) and its velocity (None = unknown) in
+        the local level there, as GLOBAL_POSITION_INT's: both kept in the origin's NED, with the rotation from the
+        local level (:func:`~onboard.core.frames.q_ned_from_level1`) that the attitudes paired with it take."""
         t = self._time("position", time_boot_us)
         if t is None:
             return False
@@ -469,12 +486,16 @@ class PoseBuffer:
         if self._origin is None:  # the position stream is empty whenever the origin is unset
             self._origin = GeodeticOrigin(lat, lon, alt)
             log.info("local NED origin fixed at the first valid position: %s", self._origin)
+        q_lv = q_ned_from_level1(lat, lon, self._origin)
+        if math.isfinite(v[0]):  # _velocity gives three finite numbers or three NaN
+            v = list(_rotate1(q_lv, v))
         # numpy's one-point conversion, kept: its 3 x 3 product may fuse multiply-adds, which floats
         # cannot repeat bit for bit, and at 25 Hz it costs ~2 us more than floats would
-        return self._store_position(t, ned_from_geodetic(lat, lon, alt, self._origin).tolist(), v)
+        return self._store_position(t, ned_from_geodetic(lat, lon, alt, self._origin).tolist(), v, q_lv)
 
     def add_position_ned(self, time_boot_us: int, p_ned_m, v_ned_mps=None) -> bool:
-        """Store a local NED position (needs an origin: configured or fixed by an earlier geodetic sample)."""
+        """Store a local NED position and velocity (needs an origin: configured or fixed by an earlier geodetic
+        sample).  A flat world: the attitudes paired with it are taken in the origin's NED as they are."""
         t = self._time("position", time_boot_us)
         if t is None:
             return False
@@ -495,7 +516,7 @@ class PoseBuffer:
         v = self._velocity(v_ned_mps)
         if not self._admit(self._pos, t):
             return False
-        return self._store_position(t, p, v)
+        return self._store_position(t, p, v, _IDENTITY)
 
     def _velocity(self, v_ned_mps) -> list[float]:
         """3 velocity components, NaN when unknown or invalid (counted; the position is still used)."""
@@ -514,8 +535,9 @@ class PoseBuffer:
             return list(_NAN3)
         return v.tolist()
 
-    def _store_position(self, t: int, p, v) -> bool:
-        """Store ``p`` (3 floats, NED m) and ``v`` (3 floats) unless ``p`` is a jump from the newest position."""
+    def _store_position(self, t: int, p, v, q_lv) -> bool:
+        """Store ``p`` (3 floats, NED m), ``v`` (3 floats) and ``q_lv`` (``q_ned_from_level`` there, 4 floats) unless
+        ``p`` is a jump from the newest position."""
         if self._pos.t_us:
             dt_s = (t - self._pos.t_us[-1]) / US_PER_S
             last = self._pos.values[-1]
@@ -538,7 +560,7 @@ class PoseBuffer:
                 )
                 self._pos.clear()
         self._jumps = 0
-        self._pos.append(t, np.array((*p, *v)), self.config.window_us, MAX_SAMPLES)
+        self._pos.append(t, np.array((*p, *v, *q_lv)), self.config.window_us, MAX_SAMPLES)
         return True
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
@@ -677,7 +699,7 @@ class PoseBuffer:
         j0, j1, s = bp
         if j1 is _AFTER:
             pos_x_us = t - pos.t_us[j0]
-            n, e, d, vn, ve, vd = pos.values[j0].tolist()
+            n, e, d, vn, ve, vd = pos.values[j0].tolist()[:6]
             h_s = pos_x_us / US_PER_S
             p_ned, v_ned = (n + vn * h_s, e + ve * h_s, d + vd * h_s), (vn, ve, vd)
             pos_span = 0
@@ -708,8 +730,11 @@ class PoseBuffer:
                 gim_span = gim.t_us[k1] - gim.t_us[k0]
                 g0 = gim.values[k0].tolist()[:4]
                 q_ref = g0 if k0 == k1 else quat_slerp1(g0, gim.values[k1].tolist()[:4], g)
-            q_mg = self._q_mount_from_gimbal(q_ref, q_nb)
+            q_mg = self._q_mount_from_gimbal(q_ref, q_nb)  # both relative to the local level: q_mg is the mount's
 
+        q_lv = pos.values[j0].tolist()[6:]
+        if q_lv != [1.0, 0.0, 0.0, 0.0]:  # the attitude from the local level to the origin's NED (add_attitude)
+            q_nb = quat_normalize1(quat_multiply1(q_lv, q_nb))
         p_cam, q_nc = self._camera_pose(p_ned, q_nb, q_mg)
         body = PoseSample.from_floats(t, p_ned, v_ned, q_nb)
         sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)
@@ -830,10 +855,10 @@ class PoseBuffer:
     def _interp_position(self, j0: int, j1: int, s: float, dt_s: float) -> tuple[Vec3, Vec3]:
         """(p, v) between position rows ``j0`` and ``j1``, on floats: numpy's element-wise operations, in
         its order (the same bits)."""
-        n0, e0, d0, vn0, ve0, vd0 = self._pos.values[j0].tolist()
+        n0, e0, d0, vn0, ve0, vd0 = self._pos.values[j0].tolist()[:6]
         if j0 == j1:
             return (n0, e0, d0), (vn0, ve0, vd0)
-        n1, e1, d1, vn1, ve1, vd1 = self._pos.values[j1].tolist()
+        n1, e1, d1, vn1, ve1, vd1 = self._pos.values[j1].tolist()[:6]
         have_v = (
             math.isfinite(vn0)
             and math.isfinite(ve0)

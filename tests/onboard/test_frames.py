@@ -39,6 +39,34 @@ def test_ned_geodetic_round_trip(n, e, d):
     assert np.allclose(back, [n, e, d], atol=ATOL_M)
 
 
+@given(st.floats(-89.5, 89.5, **finite), st.floats(-179.9, 179.9, **finite), st.floats(-89.5, 89.5, **finite))
+@settings(max_examples=200, deadline=None)
+def test_the_local_levels_axes_are_the_geodesys_own(lat, lon, lat0):
+    """q_ned_from_level(lat, lon, origin) turns the local level's axes into the origin's NED as the geodesy does:
+    its down is the direction from a point 100 m up to the point beneath it, its north the direction to a point a
+    hair north, both measured with ned_from_geodetic (no rotation matrix shared with the function)."""
+    origin = fr.GeodeticOrigin(lat0, 118.8, 50.0)
+    q = fr.q_ned_from_level(lat, lon, origin)
+    assert np.linalg.norm(q) == pytest.approx(1.0, abs=ATOL_ROT)
+    assert np.allclose(fr.q_ned_from_level1(lat, lon, origin), q, atol=ATOL_ROT)
+    up, down = fr.ned_from_geodetic(lat, lon, 100.0, origin), fr.ned_from_geodetic(lat, lon, 0.0, origin)
+    d = (down - up) / np.linalg.norm(down - up)
+    north = fr.ned_from_geodetic(lat + 1e-5, lon, 0.0, origin) - down
+    north -= d * (north @ d)  # the meridian's step, made horizontal
+    assert np.allclose(fr.quat_rotate(q, [0.0, 0.0, 1.0]), d, atol=1e-9)
+    assert np.allclose(fr.quat_rotate(q, [1.0, 0.0, 0.0]), north / np.linalg.norm(north), atol=1e-6)
+
+
+def test_the_local_level_is_the_origins_ned_at_the_origin_and_tilts_0_009_deg_a_km():
+    assert np.allclose(fr.q_ned_from_level(ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN), [1, 0, 0, 0], atol=ATOL_ROT)
+    north_5km = fr.geodetic_from_ned([5000.0, 0.0, 0.0], ORIGIN)
+    q = fr.q_ned_from_level(float(north_5km[0]), float(north_5km[1]), ORIGIN)
+    tilt_deg = math.degrees(2.0 * math.acos(min(1.0, abs(q[0]))))
+    assert tilt_deg == pytest.approx(0.0452, abs=0.0005)  # 5 km over the meridian's radius of curvature there
+    # a level vehicle 5 km north: its down leans back towards the origin (north component < 0)
+    assert fr.quat_rotate(q, [0.0, 0.0, 1.0])[0] == pytest.approx(-math.radians(tilt_deg), rel=1e-3)
+
+
 @given(st.floats(-89.9, 89.9, **finite), st.floats(-179.9, 179.9, **finite), st.floats(-400, 9000, **finite))
 @settings(max_examples=200, deadline=None)
 def test_ecef_geodetic_round_trip(lat, lon, alt):

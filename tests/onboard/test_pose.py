@@ -18,6 +18,7 @@ from onboard.core.frames import (
     GeodeticOrigin,
     euler_from_quat,
     geodetic_from_ned,
+    ned_from_geodetic,
     quat_conjugate,
     quat_from_euler,
     quat_from_rotvec,
@@ -948,3 +949,51 @@ def test_a_gimbal_without_rates_is_judged_by_the_fastest_slew():
     assert buf.discontinuities == 0
     buf.add_gimbal_status(1_100_000, quat_from_euler(0, 0, math.radians(14.4 + 30.0)), GimbalReference.EARTH, nan3)
     assert buf.counter["gimbal_reset"] == 1 and buf.discontinuities == 1
+
+
+# --------------------------------------------------------------------------- the local level
+
+
+def _level_vehicle_far_north(north_m: float, mount: CameraMount, gimbal_earth=None):
+    """A level vehicle (identity attitude in its local level) ``north_m`` north of ORIGIN, flying 10 m/s north
+    in its local level, reported as an autopilot does: WGS84 position, local-level attitude and velocity."""
+    lat, lon, alt = (float(x) for x in geodetic_from_ned([north_m, 0.0, -100.0], ORIGIN))
+    buf = PoseBuffer(mount=mount, origin=ORIGIN)
+    for t in (0, 20_000):
+        assert buf.add_attitude(t, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        assert buf.add_position(t, lat, lon, alt, [10.0, 0.0, 0.0]) or t > 0  # the second: a jump of 0 m, kept
+        if gimbal_earth is not None:
+            assert buf.add_gimbal_status(t, gimbal_earth, GimbalReference.EARTH)
+    return buf, (lat, lon, alt)
+
+
+def test_the_autopilots_level_and_north_are_where_the_vehicle_is():
+    """5 km north of the origin, a camera looking down the vehicle's local vertical (body-fixed or on an earth-frame
+    gimbal) looks along the geodesy's vertical there, not the origin's down: 0.045 deg apart, 0.6 px of the default
+    camera. The reported velocity turns the same way."""
+    straight_down = quat_from_euler(0.0, -90 * DEG, 0.0)
+    for mount, gimbal in (
+        (CameraMount.from_euler_deg((0.0, 0.0, 0.0), pitch_deg=-90.0), None),
+        (CameraMount(gimballed=True), straight_down),
+    ):
+        buf, (lat, lon, alt) = _level_vehicle_far_north(5000.0, mount, gimbal)
+        pose = buf.pose_at(10_000)
+        up, down = ned_from_geodetic(lat, lon, alt + 100.0, ORIGIN), ned_from_geodetic(lat, lon, alt, ORIGIN)
+        vertical = (down - up) / np.linalg.norm(down - up)
+        axis = quat_rotate(pose.q_ned_from_cam, CAM_Z)
+        np.testing.assert_allclose(axis, vertical, atol=1e-9)
+        assert math.degrees(math.acos(axis[2])) == pytest.approx(0.045, abs=0.001)  # off the origin's down
+        v = np.asarray(pose.body.v_ned_mps)
+        # the local north dips below the origin's horizon as the vertical leans back: v_d = -10 m/s x vertical_n
+        assert np.linalg.norm(v) == pytest.approx(10.0, abs=1e-9) and v[2] == pytest.approx(-10.0 * vertical[0], 1e-6)
+
+
+def test_a_flat_world_given_in_ned_keeps_its_attitudes_as_given():
+    """add_position_ned is a flat world (a test's, a bench's): 5 km out its attitudes are not turned."""
+    buf = PoseBuffer(mount=CameraMount.from_euler_deg((0.0, 0.0, 0.0), pitch_deg=-90.0), origin=ORIGIN)
+    for t in (0, 20_000):
+        buf.add_attitude(t, [1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+        buf.add_position_ned(t, [5000.0, 0.0, -100.0], [10.0, 0.0, 0.0])
+    pose = buf.pose_at(10_000)
+    np.testing.assert_allclose(quat_rotate(pose.q_ned_from_cam, CAM_Z), [0.0, 0.0, 1.0], atol=1e-12)
+    np.testing.assert_allclose(pose.body.v_ned_mps, [10.0, 0.0, 0.0], atol=1e-12)

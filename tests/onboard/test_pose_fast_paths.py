@@ -135,9 +135,9 @@ def _ref_gimbal_rate(buf: PoseBuffer):
 def _ref_interp_position(buf: PoseBuffer, j0, j1, s, dt_s):
     r0 = buf._pos.values[j0]
     if j0 == j1:
-        return r0[:3].copy(), r0[3:].copy()
+        return r0[:3].copy(), r0[3:6].copy()
     r1 = buf._pos.values[j1]
-    p0, v0, p1, v1 = r0[:3], r0[3:], r1[:3], r1[3:]
+    p0, v0, p1, v1 = r0[:3], r0[3:6], r1[:3], r1[3:6]
     have_v = bool(np.all(np.isfinite(v0)) and np.all(np.isfinite(v1)))
     v = (1.0 - s) * v0 + s * v1 if have_v else (p1 - p0) / dt_s
     if have_v and buf.config.position_interp == "hermite":
@@ -180,10 +180,10 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
     if ba[0] is None:
         return PoseLookup(None, ba[1], ba[2])
     pos_h = max(h.position_us, c.dead_reckoning_us)  # dead reckoning through a GNSS gap extends position's horizon
-    bp = b_or_x(buf._pos, pos_h, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:]))))
+    bp = b_or_x(buf._pos, pos_h, lambda: bool(np.all(np.isfinite(buf._pos.values[-1][3:6]))))
     if extrapolate and bp[0] is None and bp[1] == "position_gap" and buf._pos.t_us[0] < t:
         j = int(np.searchsorted(buf._pos.t_us, t, side="right")) - 1
-        if bool(np.all(np.isfinite(buf._pos.values[j][3:]))):
+        if bool(np.all(np.isfinite(buf._pos.values[j][3:6]))):
             if t - buf._pos.t_us[j] <= pos_h:
                 bp = (j, P._AFTER, 0.0)
             elif j == len(buf._pos.t_us) - 1:
@@ -210,7 +210,7 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
     if j1 is P._AFTER:
         pos_x_us = t - buf._pos.t_us[j0]
         row = buf._pos.values[j0]
-        p_ned, v_ned = row[:3] + row[3:] * (pos_x_us / US_PER_S), row[3:].copy()
+        p_ned, v_ned = row[:3] + row[3:6] * (pos_x_us / US_PER_S), row[3:6].copy()
         pos_span = 0
     else:
         pos_span = buf._pos.t_us[j1] - buf._pos.t_us[j0]
@@ -236,6 +236,9 @@ def reference_lookup(buf: PoseBuffer, time_boot_us, extrapolate: bool = False) -
             g0 = buf._gim.values[k0][:4]
             q_ref = g0 if k0 == k1 else quat_slerp(g0, buf._gim.values[k1][:4], g)
         q_mg = _ref_q_mount_from_gimbal(buf, q_ref, q_nb)
+    q_lv = buf._pos.values[j0][6:]
+    if q_lv.tolist() != [1.0, 0.0, 0.0, 0.0]:  # the local level's attitude into the origin's NED
+        q_nb = quat_normalize(quat_multiply(q_lv, q_nb))
     p_cam, q_nc = camera_pose_ned(p_ned, q_nb, buf.mount, q_mg)
     body = PoseSample(t, p_ned, v_ned, q_nb)
     sigma_m = extrapolation_sigma(pos_x_us / US_PER_S, c.velocity_sigma_mps, c.accel_sigma_mps2)

@@ -59,7 +59,15 @@ from groundsim.world.flight.guidance import (
     yaw_toward,
 )
 from onboard.core.errors import IrtrackError
-from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic, quat_from_euler
+from onboard.core.frames import (
+    GeodeticOrigin,
+    geodetic_from_ned,
+    ned_from_geodetic,
+    q_ned_from_level,
+    quat_from_euler,
+    quat_multiply,
+    quat_rotate,
+)
 
 __all__ = [
     "FlightError",
@@ -178,6 +186,19 @@ class FlownTrajectory:
             np.array([s.omega_frd_radps for s in states]),
             tracking,
         )
+
+
+def _level_to_ned(origin: GeodeticOrigin, lat_deg, lon_deg, q_level_from_body, v_level_mps, a_level_mps2):
+    """JSBSim's attitude, velocity and acceleration are relative to the local level where the vehicle is (its
+    Euler angles to the local horizon and north): into the origin's NED, as the simulated world is
+    (:mod:`onboard.core.frames`, "Local level"); an autopilot reports them in the local level again
+    (``SimCore.vehicle_state``).  Rows (..., k)."""
+    q_lv = q_ned_from_level(lat_deg, lon_deg, origin)
+    return (
+        quat_multiply(q_lv, q_level_from_body),
+        quat_rotate(q_lv, v_level_mps),
+        quat_rotate(q_lv, a_level_mps2),
+    )
 
 
 def models_dir() -> Path:
@@ -529,8 +550,8 @@ class FlownVehicle:
         """
         raw, acc = self._advance(t_s, look_at_ned_m, look_at_v_ned_mps)
         p = ned_from_geodetic(raw[0], raw[1], raw[2], self.origin)
-        q = quat_from_euler(raw[6], raw[7], raw[8])
-        state = FlownState(float(t_s), p, raw[3:6], acc, q, raw[9:12])
+        q, v, a = _level_to_ned(self.origin, raw[0], raw[1], quat_from_euler(raw[6], raw[7], raw[8]), raw[3:6], acc)
+        state = FlownState(float(t_s), p, v, a, q, raw[9:12])
         self._last_state = state
         return state
 
@@ -553,8 +574,10 @@ class FlownVehicle:
             accs.append(acc)
         r = np.array(raws)
         p = ned_from_geodetic(r[:, 0], r[:, 1], r[:, 2], self.origin)
-        q = quat_from_euler(r[:, 6], r[:, 7], r[:, 8])
-        traj = FlownTrajectory(times, p, r[:, 3:6].copy(), np.array(accs), q, r[:, 9:12].copy(), self.tracking_error_m)
+        q, v, a = _level_to_ned(
+            self.origin, r[:, 0], r[:, 1], quat_from_euler(r[:, 6], r[:, 7], r[:, 8]), r[:, 3:6], np.array(accs)
+        )
+        traj = FlownTrajectory(times, p, v, a, q, r[:, 9:12].copy(), self.tracking_error_m)
         if not (np.isfinite(p).all() and np.isfinite(r).all()):
             raise FlightError(f"{self.name}: JSBSim state is not finite")
         self._last_state = traj.state(len(traj) - 1)
