@@ -280,7 +280,10 @@ def run_flight(
     router = open_router(plan.endpoint)
     session = None
     try:
-        session = open_session(ZenohConfig(connect=(plan.endpoint,), listen=("tcp/127.0.0.1:0",)))
+        # a peer on the ground, as the fleet's: it meets the daemons through the router's gossip
+        session = open_session(
+            ZenohConfig(connect=(plan.endpoint,), listen=("tcp/127.0.0.1:0",), gossip_autoconnect=None)
+        )
         session.declare_subscriber("irtrack/*/ir/frame", col.on_frame)
         session.declare_subscriber("irtrack/*/track", col.on_track)
         session.declare_subscriber("irtrack/*/status", col.on_status)

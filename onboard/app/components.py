@@ -57,4 +57,6 @@ def zenoh_where(config: OnboardConfig) -> str:
     parts.append("listen " + (", ".join(z.listen) if z.listen else "none (--zenoh-listen)"))
     scout = {True: "on", False: "off", None: "as the config file says"}[z.multicast_scouting]
     parts.append(f"multicast scouting {scout}")
+    gossip = {True: "on", False: "off", None: "as the config file says"}[z.gossip_autoconnect]
+    parts.append(f"dialing gossiped peers {gossip}")
     return "; ".join(parts)

@@ -178,6 +178,13 @@ class ZenohConfig:
     multicast_scouting
         True/False forces it; None means off unless the config file enables it.  The default, False, is
         the daemon's; the commands pass None when neither option is given.
+    gossip_autoconnect
+        Whether the session dials the peers and routers that its peers' and routers' gossip names
+        (``scouting/gossip/autoconnect``): addresses nobody gave the vehicle, which a direct peer link also takes
+        around a router's access control.  False (the daemon's default): only the configured endpoints are
+        dialed; True: zenoh's own peer default (dial routers and peers); None: as the config file says, else
+        zenoh's default (what the commands on the ground pass: the loopback fleet meets that way).  The sessions
+        that gossip introduces still listen and answer; they only do not dial.
     connect_timeout_s
         None: opening never waits for a connect endpoint (zenoh retries in the background).
         A positive number: opening fails unless a connect endpoint answers within it.
@@ -187,6 +194,7 @@ class ZenohConfig:
     listen: Annotated[tuple[str, ...], Texts()] = ()
     config_file: Annotated[str | None, Text()] = None
     multicast_scouting: Annotated[bool | None, Flag()] = False
+    gossip_autoconnect: Annotated[bool | None, Flag()] = False
     connect_timeout_s: Annotated[float | None, Number(0.0, 3600.0, lo_open=True)] = None
 
     def __post_init__(self) -> None:
@@ -208,6 +216,7 @@ _OPTION_OF_FIELD = {
     "listen": "--zenoh-listen",
     "config_file": "--zenoh-config",
     "multicast_scouting": "--zenoh-multicast-scouting",
+    "gossip_autoconnect": "zenoh.gossip_autoconnect",
     "connect_timeout_s": "--zenoh-connect-timeout",
 }
 
@@ -218,7 +227,9 @@ DAEMON_CONFIG_FILE_FIELD = "zenoh.config_file"
 
 def config_from_options(**fields: Any) -> ZenohConfig:
     """:class:`ZenohConfig` from a command's ``--zenoh-*`` options (its fields by name); an invalid value's
-    :class:`~onboard.core.schema.SchemaError` names the option it came from, as the daemon's does."""
+    :class:`~onboard.core.schema.SchemaError` names the option it came from, as the daemon's does.  A command's
+    session dials what gossip names unless its config file says otherwise (``gossip_autoconnect`` None)."""
+    fields.setdefault("gossip_autoconnect", None)
     try:
         return ZenohConfig(**fields)
     except SchemaError as exc:
@@ -294,6 +305,9 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
     if scouting is None:
         scouting = bool(scouting_in_file)
     _insert(config, "scouting/multicast/enabled", scouting, "scouting/multicast/enabled")
+    if settings.gossip_autoconnect is not None:
+        key = "scouting/gossip/autoconnect"
+        _insert(config, key, ["router", "peer"] if settings.gossip_autoconnect else [], key)
 
     if settings.connect_timeout_s is not None:
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")
