@@ -81,7 +81,7 @@ Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid
 ``shape``; quaternions also ``zero``, ``not_unit``.  Position also ``zero`` (lat = lon = 0: GPS
 dropout), ``out_of_range`` (e.g. INT32_MAX sentinels), ``alt_out_of_range``, ``jump`` (implied speed
 above ``max_speed_mps``), ``reset`` (a jump persisted: the stream restarts), ``velocity_invalid``
-(sample kept, velocity dropped), ``no_origin``.  Gimbal also ``time_reset``, ``reference_changed``,
+(not three finite numbers, or a speed above ``max_speed_mps``: sample kept, velocity dropped), ``no_origin``.  Gimbal also ``time_reset``, ``reference_changed``,
 ``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
 position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
 with reason ``time_invalid``, ``no_origin`` or
@@ -519,12 +519,14 @@ class PoseBuffer:
         return self._store_position(t, p, v, _IDENTITY)
 
     def _velocity(self, v_ned_mps) -> list[float]:
-        """3 velocity components, NaN when unknown or invalid (counted; the position is still used)."""
+        """3 velocity components, NaN when unknown or invalid (counted; the position is still used).  A speed the
+        positions themselves may not have (``max_speed_mps``) is invalid too: interpolation and extrapolation would
+        move the camera by it."""
         if v_ned_mps is None:
             return list(_NAN3)
         f = _plain_floats(v_ned_mps, 3)
         if f is not None and math.isfinite(f[0]) and math.isfinite(f[1]) and math.isfinite(f[2]):
-            return list(f)
+            return self._plausible(list(f))
         try:
             v = np.array(v_ned_mps, dtype=float).reshape(3)
         except (TypeError, ValueError):
@@ -533,7 +535,17 @@ class PoseBuffer:
         if not np.all(np.isfinite(v)):
             self.counter.count("position_velocity_invalid", f"v_ned_mps={v.tolist()}; velocity dropped")
             return list(_NAN3)
-        return v.tolist()
+        return self._plausible(v.tolist())
+
+    def _plausible(self, v: list[float]) -> list[float]:
+        speed = math.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+        if speed <= self.config.max_speed_mps:
+            return v
+        self.counter.count(
+            "position_velocity_invalid",
+            f"speed {speed:.1f} m/s above pose.max_speed_mps {self.config.max_speed_mps:g}; velocity dropped",
+        )
+        return list(_NAN3)
 
     def _store_position(self, t: int, p, v, q_lv) -> bool:
         """Store ``p`` (3 floats, NED m), ``v`` (3 floats) and ``q_lv`` (``q_ned_from_level`` there, 4 floats) unless

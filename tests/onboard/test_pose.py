@@ -432,6 +432,24 @@ def test_invalid_velocity_is_dropped_and_interpolation_falls_back_to_linear():
     np.testing.assert_allclose(buf.pose_at(50_000).body.p_ned_m, [1, 0, 0], atol=ATOL_M)
 
 
+@pytest.mark.parametrize("add", ["geodetic", "ned"])
+def test_a_velocity_faster_than_any_position_may_move_is_dropped(add):
+    """A still vehicle reporting 327.67 m/s (#33's int16 saturation) for one sample: kept as a position, its
+    velocity dropped and counted, so neither interpolation nor extrapolation moves the camera by it."""
+    buf = PoseBuffer(origin=ORIGIN)
+    lat, lon, alt = ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.alt_m
+    for k, v in enumerate(([0.0, 0.0, 0.0], [327.67, 0.0, 0.0], [0.0, 0.0, 0.0])):
+        t = k * 40_000
+        buf.add_attitude(t, [1, 0, 0, 0], [0, 0, 0])
+        assert buf.add_position(t, lat, lon, alt, v) if add == "geodetic" else buf.add_position_ned(t, [0, 0, 0], v)
+    assert buf.counter.counts == {"position_velocity_invalid": 1}
+    for t in (20_000, 40_000, 60_000, 80_000 + 30_000):
+        np.testing.assert_allclose(buf.pose_at(t).body.p_ned_m, [0, 0, 0], atol=ATOL_GEO_M)
+    limit = PoseBuffer(origin=ORIGIN).config.max_speed_mps
+    assert buf.add_position_ned(200_000, [0, 0, 0], [limit, 0, 0])  # at the limit: kept
+    assert buf.counter.counts["position_velocity_invalid"] == 1
+
+
 def test_window_bounds_every_stream():
     buf = filled_buffer(t_end_s=12.0)
     sizes = buf.sizes()
