@@ -109,7 +109,7 @@ SURROUND_TESTS_KEPT = 15
 
 class ObjectTracker:
     """See the module docstring.  ``intrinsics``: :class:`onboard.core.frames.PinholeIntrinsics`
-    (distortion ignored: the bearing is the pinhole's); ``mode`` ``auto`` or ``operator``;
+    (its lens distortion, if any, carries the tracks' lines of sight); ``mode`` ``auto`` or ``operator``;
     ``stage_clock``: a clock (seconds) to time each frame's stages by, into :attr:`stages`
     (:class:`~onboard.imaging.objects_model.StageTimes`; None, the default: not timed)."""
 

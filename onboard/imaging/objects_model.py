@@ -1,9 +1,9 @@
 """The objects chain's nouns and the geometry its modules share.
 
 :class:`ObjectParams` (track management and confirmation), :class:`ObjectTrack` and :class:`ObjectsUpdate`
-(one frame's output), :class:`TrackRecord` (one track's mutable state inside the tracker), the pinhole
-bearing geometry (``los_from_pixel``, ``pixel_from_los``: unit line of sight in local NED <-> pixel through a
-frame's ``R_ned_from_cam``, OpenCV camera axes), the constant-velocity fit the confirmation and the
+(one frame's output), :class:`TrackRecord` (one track's mutable state inside the tracker), the bearing
+geometry (``los_from_pixel``, ``pixel_from_los``: unit line of sight in local NED <-> pixel through a frame's
+``R_ned_from_cam``, OpenCV camera axes; the camera's lens distortion when it has one), the constant-velocity fit the confirmation and the
 track-aided runs use, and the published message (:func:`objects_message`).  The detection side is
 :mod:`onboard.imaging.objects_detection`, the tracker :mod:`onboard.imaging.objects`.
 """
@@ -226,8 +226,15 @@ class StageTimes:
             self._last = now
 
 
+# The tracks are carried from frame to frame as lines of sight: a camera that turns moves a track's pixel by the
+# lens's distortion too (several pixels near the edge of a wide lens for a degree of turn), so a distorted camera
+# goes through its own model; the pinhole's closed form serves the cameras without distortion, the shipped ones.
+
+
 def los_from_pixel(K, u: float, v: float, R: np.ndarray) -> np.ndarray:
-    """The unit line of sight (local NED) of pixel (u, v) through ``R`` = R_ned_from_cam (pinhole ``K``)."""
+    """The unit line of sight (local NED) of pixel (u, v) through ``R`` = R_ned_from_cam (camera ``K``)."""
+    if K.has_distortion:
+        return R @ K.bearing_cam_from_pixel((u, v))
     ray = np.array([(u - K.cx_px) / K.fx_px, (v - K.cy_px) / K.fy_px, 1.0])
     b = R @ ray
     return b / math.sqrt(b.dot(b))  # np.linalg.norm's own formula for a vector, without its overhead
@@ -238,12 +245,18 @@ def pixel_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> tuple[float, float]
     c = R.T @ los_ned
     if c[2] <= 1e-6:
         return None
+    if K.has_distortion:
+        u, v = K.project(c).tolist()
+        return u, v
     return K.fx_px * c[0] / c[2] + K.cx_px, K.fy_px * c[1] / c[2] + K.cy_px
 
 
 def pixels_from_los(K, los_ned: np.ndarray, R: np.ndarray) -> list[tuple[float, float] | None]:
     """:func:`pixel_from_los` of each row of ``los_ned`` (n, 3; lines of sight, any length), in one product."""
     c = np.asarray(los_ned, dtype=float).reshape(-1, 3) @ R  # rows: R.T @ los
+    if K.has_distortion:
+        uv = K.project(c).tolist()
+        return [(p[0], p[1]) if z > 1e-6 else None for p, z in zip(uv, c[:, 2].tolist(), strict=True)]
     fx, fy, cx, cy = K.fx_px, K.fy_px, K.cx_px, K.cy_px
     return [(fx * x / z + cx, fy * y / z + cy) if z > 1e-6 else None for x, y, z in c.tolist()]
 
