@@ -292,6 +292,8 @@ def line_of_sight_ned(
 
     h = math.hypot(n, e)
     az = math.degrees(math.atan2(e, n)) if h > 0 else 0.0
+    if az == -180.0:  # atan2(-0.0, n < 0): due south is +180 in the documented (-180, 180]
+        az = 180.0
     el = math.degrees(math.atan2(-d, h))
     s_el = math.degrees(math.sqrt(max(quad((d * n / h, d * e / h, -h) if h > 0 else (0.0, 0.0, -1.0)), 0.0)))
     if h > 1e-9:

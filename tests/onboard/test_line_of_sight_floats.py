@@ -95,3 +95,13 @@ def test_a_non_finite_pixel_is_refused():
 
     with pytest.raises(InputError, match="pixel must be finite"):
         line_of_sight_ned((math.nan, 1.0), K_PLAIN, (1.0, 0, 0, 0), (0, 0, 0), 0.3, 0.002)
+
+
+def test_due_south_is_plus_180_degrees_not_minus():
+    """The documented azimuth range is (-180, 180]: a line of sight due south whose east component rounds to a
+    tiny negative number (atan2 then gives -pi, -180 after rounding) is +180."""
+    from onboard.core.frames import Q_MOUNT_FROM_CAM, quat_from_euler, quat_multiply
+
+    q = quat_multiply(quat_from_euler(0.0, 0.0, -math.pi), Q_MOUNT_FROM_CAM)  # a level camera looking south
+    got = line_of_sight_ned((K_PLAIN.cx_px, K_PLAIN.cy_px), K_PLAIN, q, (0, 0, 0), 0.3, 0.002)
+    assert got.u_ned[0] < -0.999 and got.u_ned[1] <= 0.0 and got.azimuth_deg == 180.0
