@@ -40,6 +40,7 @@ from groundsim.evaluation.report import (
 )
 from groundsim.evaluation.scoring import (
     bound_ratio_limit,
+    closed_loop_figures,
     format_gnss_dropout,
     gnss_dropout_figures,
     score_run,
@@ -352,6 +353,17 @@ def test_gnss_dropout_figures_count_the_window_frames():
     assert f["position"] == pytest.approx(float((in_gap & r.has_estimate).sum()) / 10)
     assert gnss_dropout_figures(dataclasses.replace(r, gnss_window_s=None)) is None
     assert "warned after" in format_gnss_dropout([r])
+
+
+@pytest.mark.parametrize("err_m, beyond", [(7.0, 1.0), (5.9, 0.0)])
+def test_the_honesty_figures_hold_the_error_to_three_square_roots_of_the_trace(err_m, beyond):
+    """cov = 4/3 I: trace 4 m^2, 3 sigma (trace) = 3 sqrt(4) = 6 m; an error of 7 m is beyond it, 5.9 m inside
+    (three times the trace, 12 m, would hold both)."""
+    r = _synthetic_run("A", 0, err_m=(0.0, err_m, 0.0), cov_diag_m2=4.0 / 3.0)
+    assert closed_loop_figures(r)["beyond_3sigma_published"] == beyond
+    t0, t1 = float(r.t_s[12]), float(r.t_s[30])  # all frames in the window have an estimate
+    f = gnss_dropout_figures(dataclasses.replace(r, gnss_window_s=(t0, t1), gnss_warning_t_s=t0))
+    assert f["position"] == 1.0 and f["beyond_3sigma"] == beyond
 
 
 # --------------------------------------------------------------------------- configuration

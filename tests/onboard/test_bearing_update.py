@@ -97,6 +97,20 @@ def test_the_line_of_sight_and_its_sigma_follow_the_camera_model():
     assert math.isclose(bearing_sigma_rad(noise, K), math.sqrt(1e-6 + 9e-8 + 1.6e-7), rel_tol=1e-12)
 
 
+def test_non_square_pixels_give_the_line_of_sight_per_axis_and_the_sigma_of_the_mean_focal_length():
+    """fx 800, fy 790, principal point off the centre: each axis its own focal length; one pixel of noise is
+    1 / sqrt(fx fy) rad (the geometric mean: the sigma of a round pixel of the same area)."""
+    K = PinholeIntrinsics(fx_px=800.0, fy_px=790.0, cx_px=161.5, cy_px=128.0, width_px=320, height_px=256)
+    R = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])  # camera looking north, x east, y down
+    w = math.sqrt(1 + np.trace(R)) / 2
+    q = np.array([w, (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)])
+    # (cx + 0.1 fx, cy + 0.05 fy): 0.1 east and 0.05 down per metre north
+    u = line_of_sight_unit_ned([161.5 + 80.0, 128.0 + 39.5], K, q)
+    np.testing.assert_allclose(u, _unit([1.0, 0.1, 0.05]), atol=1e-12)
+    noise = NoiseModel(pixel_sigma_px=0.5)
+    assert math.isclose(bearing_sigma_rad(noise, K), 0.5 / math.sqrt(800.0 * 790.0), rel_tol=1e-12)
+
+
 def _unobservable(p, cam, sigma_cross_m: float, sigma_range_m: float) -> TrackEstimate:
     """An unobservable estimate at ``p`` seen from ``cam``: ``sigma_range_m`` along the line of sight (the range
     floor), ``sigma_cross_m`` across it."""

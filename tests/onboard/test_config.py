@@ -270,6 +270,12 @@ BAD = [
     ("output: {tracking_geo_status_hz: -5}", "output.tracking_geo_status_hz", "[0, 100]", "-5", None),
     ("output: {health_interval_s: 10}", "output.health_interval_s", "[0.05, 2.5]", "10", None),
     ("logging: {level: info}", "logging.level", "one of DEBUG, INFO", "'info'", "did you mean 'INFO'?"),
+    ("gcs: {component_id: 1}", "gcs.component_id", "an integer in [100, 105]", "1", None),  # the autopilot's
+    ("gcs: {component_id: 106}", "gcs.component_id", "an integer in [100, 105]", "106", None),  # not a camera's
+    ("input: {time_reset_threshold_s: 0}", "input.time_reset_threshold_s", "a number in (0, 3600]", "0", None),
+    # 20 characters, 40 bytes in UTF-8: CAMERA_INFORMATION's field holds 32 bytes
+    ("gcs: {vendor_name: ÄÖÜäöüßÄÖÜäöüßÄÖÜäöü}", "gcs.vendor_name", "at most 32 bytes", "ÄÖÜäöüß", None),
+    ("gcs: {model_name: ÄÖÜäöüßÄÖÜäöüßÄÖÜäöü}", "gcs.model_name", "at most 32 bytes", "ÄÖÜäöüß", None),
     ("vehicle: 'uav 1'", "vehicle", "one zenoh key chunk", "'uav 1'", None),
     ("- a\n- b", "(document)", "a mapping of sections", "['a', 'b']", None),
     ("vehicle: a\nvehicle: b\n", "line 2, column 1", "valid YAML", "duplicate key 'vehicle'", None),
@@ -373,12 +379,23 @@ def test_bad_environment_value_names_the_variable():
 
 
 def test_a_lever_arm_of_kilometres_is_refused_naming_the_field():
-    with pytest.raises(OnboardConfigError, match=r"camera.mount.lever_arm_frd_m: expected offsets within \+-50 m"):
-        build_config({"camera": {"mount": {"lever_arm_frd_m": [1e9, 0.0, 0.0]}}})
+    for arm in ([1e9, 0.0, 0.0], [0.0, -1e9, 0.0], [0.0, 0.0, -50.5]):  # either way along any axis
+        with pytest.raises(OnboardConfigError, match=r"camera.mount.lever_arm_frd_m: expected offsets within \+-50 m"):
+            build_config({"camera": {"mount": {"lever_arm_frd_m": arm}}})
     assert (
         build_config({"camera": {"mount": {"lever_arm_frd_m": [0.3, 0.0, -0.1]}}}).camera.mount.lever_arm_frd_m[0]
         == 0.3
     )
+
+
+def test_the_edges_of_the_gcs_and_input_ranges_are_accepted():
+    """The other side of the refusals in BAD: MAVLink camera ids 100 and 105 (MAV_COMP_ID_CAMERA..CAMERA6), a name of
+    exactly 32 bytes in 16 characters, any positive time reset threshold."""
+    for cid in (100, 105):
+        assert build_config({"gcs": {"component_id": cid}}).gcs.component_id == cid
+    name = "ÄÖÜäöüßÄÖÜäöüßÄÖ"  # 16 characters, 32 bytes
+    assert len(name.encode()) == 32 and build_config({"gcs": {"vendor_name": name}}).gcs.vendor_name == name
+    assert build_config({"input": {"time_reset_threshold_s": 1e-3}}).input.time_reset_threshold_s == 1e-3
 
 
 def test_a_whole_section_in_one_variable_is_refused_not_ignored():

@@ -3,13 +3,15 @@ estimator's lines of sight made once per block instead of once per frame, the pi
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from onboard.app.config import OnboardConfig
+from onboard.app.config import OnboardConfig, build_config
 from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics, quat_normalize, rotmat_from_quat
 from onboard.estimation.time_offset import TimeOffsetEstimator, _unit_ned
@@ -48,14 +50,34 @@ def test_a_frame_of_the_wrong_shape_is_refused_and_not_kept(args):
     assert est.estimate.blocks == 0 and est.estimate.frames == 0
 
 
+BEARING_ATOL = 1e-15  # a unit vector's components, a few ulp
+# fx != fy and an off-centre principal point: a focal length or centre taken for the other axis shows
+NON_SQUARE_INTRINSICS = {"fx_px": 800, "fy_px": 790, "cx_px": 161.5, "cy_px": 128, "width_px": 320, "height_px": 256}
+CAMERAS = {"default": {}, "non-square": {"camera": {"intrinsics": NON_SQUARE_INTRINSICS}}}
+
+
+@functools.cache
+def _pipeline_intrinsics(camera: str) -> PinholeIntrinsics:
+    return FramePipeline(build_config(CAMERAS[camera]), None, tracker=None).intrinsics
+
+
+@pytest.mark.parametrize("camera", list(CAMERAS))
 @settings(max_examples=300, deadline=None)
 @given(st.floats(-2000.0, 2000.0, allow_nan=False), st.floats(-2000.0, 2000.0, allow_nan=False))
-def test_the_pipelines_pixel_bearing_is_the_cameras(u_px, v_px):
-    K = FramePipeline(OnboardConfig(), None, tracker=None).intrinsics
+def test_the_pipelines_pixel_bearing_is_the_cameras(camera, u_px, v_px):
+    K = _pipeline_intrinsics(camera)
     expected = K.bearing_cam_from_pixel((u_px, v_px))
     got = K.bearing_cam_from_uv(u_px, v_px)
     assert isinstance(got, tuple)
     np.testing.assert_array_equal(np.array(got), expected)
+
+
+def test_the_non_square_pipeline_camera_is_the_configured_one():
+    K = _pipeline_intrinsics("non-square")
+    assert (K.fx_px, K.fy_px, K.cx_px, K.cy_px, K.width_px, K.height_px) == (800.0, 790.0, 161.5, 128.0, 320, 256)
+    # pixel (cx + 0.1 fx, cy - 0.2 fy) looks along (0.1, -0.2, 1)
+    b = K.bearing_cam_from_uv(161.5 + 80.0, 128.0 - 158.0)
+    np.testing.assert_allclose(np.array(b), np.array([0.1, -0.2, 1.0]) / np.sqrt(1.05), rtol=0, atol=BEARING_ATOL)
 
 
 def test_a_camera_with_distortion_keeps_the_cameras_own_bearing():

@@ -438,3 +438,32 @@ def test_a_vehicle_whose_clock_runs_ahead_does_not_make_the_others_stale():
         tracker.add(_ray_to(p, "uav2", (0, 100, -100), t))
         tracker.add(_ray_to(p, "uav3", (0, 0, -300), t - 1.5))
     assert counter["ray_stale"] == 30 and tracker.vehicles == ("uav1", "uav2")
+
+
+def test_two_vehicles_whose_rays_disagree_by_two_degrees_fail_the_residual_test_and_are_not_observable():
+    """The issue's geometry (1 km, 200 m baseline, 0.5 mrad), uav2's ray turned 2 deg down: the rays no longer
+    meet, the triangulation's residual is ~70 sigma and the estimate is refused although the crossing alone
+    (its range sigma) and the covariance would pass."""
+    s, tilt = 0.5e-3, math.radians(2.0)
+    p = np.array([1000.0, 0.0, -100.0])
+    cams = {"uav1": np.array([0.0, -100.0, -100.0]), "uav2": np.array([0.0, 100.0, -100.0])}
+    times = np.arange(4) / 30
+    consistent = [_ray_to(p, v, c, t, s) for t in times for v, c in cams.items()]
+    est = _verdict_of(consistent, p + 30.0)
+    assert est.observable and est.adequacy_p > 0.5
+
+    def tilted(ray: Ray) -> Ray:
+        if ray.vehicle != "uav2":
+            return ray
+        u = ray.los_ned
+        down = np.array([0.0, 0.0, 1.0]) - u[2] * u  # the line of sight's vertical plane, towards the ground
+        down /= np.linalg.norm(down)
+        return dataclasses.replace(ray, los_ned=math.cos(tilt) * u + math.sin(tilt) * down)
+
+    bad = [tilted(r) for r in consistent]
+    est = _verdict_of(bad, p + 30.0)
+    assert est.solution.dof >= MIN_RESIDUAL_DOF
+    assert est.adequacy_p == pytest.approx(chi2.sf(est.solution.cost, est.solution.dof), abs=1e-300)
+    assert est.adequacy_p < FleetConfig().verdict.adequacy_p_min
+    assert est.range_sigma_ratio < FleetConfig().verdict.observability_max_sigma_range_ratio  # not what refuses it
+    assert not est.observable

@@ -16,6 +16,7 @@ ATOL_M = 1e-6  # 1 um: geodesy round trips
 ATOL_DEG = 1e-9  # ~0.1 mm of latitude
 ATOL_ROT = 1e-12  # rotation matrices and quaternions, dimensionless
 ATOL_PX = 1e-9  # pixels
+ATOL_OPENCV_PX = 1e-9  # OpenCV's projectPoints: the same model in double, its own order of operations
 
 ORIGIN = fr.GeodeticOrigin(32.0, 118.8, 0.0)
 
@@ -255,6 +256,44 @@ def test_a_wide_thermal_lens_undistorts_to_its_corners():
     assert 300.0 * np.hypot(*(K.distort_normalized(xy) - xy_d)) > 1.0
     for uv in ([0.0, 0.0], [640.0, 512.0], [0.0, 256.0]):
         assert np.allclose(K.project(K.bearing_cam_from_pixel(np.array(uv))), uv, atol=1e-9)
+
+
+# fx != fy, the principal point off the centre: a swapped focal length or centre shows
+NON_SQUARE = fr.PinholeIntrinsics(800.0, 790.0, 161.5, 128.0, 320, 256)
+
+
+@given(st.floats(-0.3, 0.3, **finite), st.floats(-0.3, 0.3, **finite))
+@settings(max_examples=100, deadline=None)
+def test_a_non_square_pixels_bearing_is_its_normalised_coordinates(x, y):
+    """Pixel (cx + fx x, cy + fy y) looks along (x, y, 1): both the array path and the float path."""
+    K = NON_SQUARE
+    uv = (K.cx_px + K.fx_px * x, K.cy_px + K.fy_px * y)
+    expected = np.array([x, y, 1.0]) / math.sqrt(x * x + y * y + 1.0)
+    np.testing.assert_allclose(K.bearing_cam_from_pixel(uv), expected, atol=ATOL_ROT)
+    np.testing.assert_allclose(np.array(K.bearing_cam_from_uv(*uv)), expected, atol=ATOL_ROT)
+    np.testing.assert_allclose(K.normalized_from_pixel(uv), [x, y], atol=ATOL_ROT)
+    np.testing.assert_allclose(K.project(expected * 25.0), uv, atol=ATOL_PX)
+
+
+@given(
+    st.floats(-0.2, 0.2, **finite),
+    st.floats(-0.16, 0.16, **finite),
+    st.floats(1.0, 1e4, **finite),
+)
+@settings(max_examples=100, deadline=None)
+def test_projection_with_every_distortion_term_matches_opencv(x, y, z_m):
+    """``project`` against ``cv2.projectPoints`` (an independent implementation of the same Brown-Conrady model),
+    k1, k2, p1, p2, k3 all non-zero and fx != fy.  Pixel conventions: ours puts a pixel's centre at +0.5 (the
+    top-left pixel's centre is (0.5, 0.5)), OpenCV's on integers (0, 0); the same camera in OpenCV has
+    cx - 0.5, cy - 0.5 and gives u - 0.5, v - 0.5."""
+    import cv2
+
+    dist = (-0.21, 0.06, 0.0021, -0.0032, -0.011)
+    K = fr.PinholeIntrinsics(800.0, 790.0, 161.5, 128.0, 320, 256, dist)
+    p = np.array([x * z_m, y * z_m, z_m])
+    K_cv = np.array([[K.fx_px, 0.0, K.cx_px - 0.5], [0.0, K.fy_px, K.cy_px - 0.5], [0.0, 0.0, 1.0]])
+    uv_cv, _ = cv2.projectPoints(p.reshape(1, 1, 3), np.zeros(3), np.zeros(3), K_cv, np.array(dist))
+    np.testing.assert_allclose(K.project(p) - 0.5, uv_cv.reshape(2), atol=ATOL_OPENCV_PX)
 
 
 def test_project_signs_and_behind_camera():

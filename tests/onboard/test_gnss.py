@@ -58,6 +58,14 @@ def test_gps_raw_int_unknowns_on_the_wire():
     assert (g.fix_type, g.satellites_visible, g.hdop, g.vdop, g.h_acc_m, g.v_acc_m) == (3, 14, 0.8, 1.2, 0.5, 0.8)
 
 
+def test_gps_raw_int_accuracy_below_a_millimetre_goes_out_as_one_not_as_unknown():
+    """0.5 mm rounds to 0 mm, which the wire reads as unknown: it goes out as 1 mm, the smallest it can say."""
+    msg = wire_roundtrip(GpsRawInt(5, mav.GPS_FIX_TYPE_RTK_FIXED, 20, 0.6, 0.9, 0.0005, 0.0005).to_message())
+    assert (msg.h_acc, msg.v_acc) == (1, 1)
+    back = GpsRawInt.from_message(msg)
+    assert (back.h_acc_m, back.v_acc_m) == (0.001, 0.001)
+
+
 @pytest.mark.parametrize(
     "kwargs, field",
     [

@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from onboard.core.errors import ConfigError, InputError
@@ -47,10 +47,11 @@ RAMP_BACKGROUND_TOL = 0.05  # grey; coarse background of a linear ramp (float in
 _YY, _XX = np.mgrid[0:H_PX, 0:W_PX].astype(np.float64)
 
 
-def sky(gradient=40.0, base=60.0, h=H_PX, w=W_PX):
-    """Sky grey rising by ``gradient`` from top to bottom, with a mild horizontal curvature."""
+def sky(gradient=40.0, base=60.0, h=H_PX, w=W_PX, gradient_u=0.0):
+    """Sky grey rising by ``gradient`` from top to bottom and by ``gradient_u`` from left to right (about the
+    image's middle column), with a mild horizontal curvature."""
     yy, xx = (_YY, _XX) if (h, w) == (H_PX, W_PX) else np.mgrid[0:h, 0:w].astype(np.float64)
-    return base + gradient * yy / h + 4.0 * (xx / w - 0.5) ** 2
+    return base + gradient * yy / h + gradient_u * (xx / w - 0.5) + 4.0 * (xx / w - 0.5) ** 2
 
 
 def add_blob(img, u, v, amp, sigma_u, sigma_v=None, angle_rad=0.0):
@@ -69,9 +70,19 @@ def add_blob(img, u, v, amp, sigma_u, sigma_v=None, angle_rad=0.0):
 
 
 def make_frame(
-    u=None, v=None, amp=80.0, sigma=1.2, noise=1.0, rng=None, dtype=np.uint8, sigma_v=None, angle_rad=0.0, gradient=40.0
+    u=None,
+    v=None,
+    amp=80.0,
+    sigma=1.2,
+    noise=1.0,
+    rng=None,
+    dtype=np.uint8,
+    sigma_v=None,
+    angle_rad=0.0,
+    gradient=40.0,
+    gradient_u=0.0,
 ):
-    img = sky(gradient).copy()
+    img = sky(gradient, gradient_u=gradient_u).copy()
     if u is not None:
         add_blob(img, u, v, amp, sigma, sigma_v, angle_rad)
     if noise > 0:
@@ -342,6 +353,27 @@ def test_centroid_noise_free_mono16(u, v, amp, sigma, gradient):
     d = dets[0]
     assert abs(d.u_px - u) < CENTROID_NOISE_FREE_TOL_PX and abs(d.v_px - v) < CENTROID_NOISE_FREE_TOL_PX
     assert not d.touches_border and not d.saturated
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    u=st.floats(40, 600),
+    v=st.floats(40, 470),
+    amp=st.floats(15, 80),
+    sigma=st.floats(0.7, 4.0),
+    gradient_u=st.floats(-60, 60),
+)
+# a faint, wide blob on a steep sideways ramp: the windowed centroid's background plane is what keeps it centred
+@example(u=300.3, v=200.7, amp=15.0, sigma=4.0, gradient_u=60.0)
+@example(u=300.3, v=200.7, amp=15.0, sigma=4.0, gradient_u=-60.0)
+def test_centroid_noise_free_mono16_on_a_sideways_ramp(u, v, amp, sigma, gradient_u):
+    """The sky rising by up to 60 grey across the image (0.09 grey/px) besides its vertical gradient: the same
+    tolerance as on a vertical one (the greys stay within 0..255, nothing clipped)."""
+    img = make_frame(u, v, amp=amp, sigma=sigma, noise=0.0, dtype=np.uint16, gradient_u=gradient_u)
+    dets, _ = detect_targets(img, ImagingParams())
+    assert len(dets) == 1
+    d = dets[0]
+    assert abs(d.u_px - u) < CENTROID_NOISE_FREE_TOL_PX and abs(d.v_px - v) < CENTROID_NOISE_FREE_TOL_PX
 
 
 @settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -81,6 +81,18 @@ def test_global_position_int_round_trip(t_us, lat, lon, alt, alt_rel, v, hdg):
         assert abs(d) <= CDEG_TOL_RAD + 1e-12
 
 
+@pytest.mark.parametrize(
+    "heading_deg, hdg_cdeg",
+    [(359.999, 0), (-0.001, 0), (359.994, 35999), (360.0, 0), (0.004, 0), (0.006, 1), (90.0, 9000), (-90.0, 27000)],
+)
+def test_global_position_int_heading_is_whole_cdeg_below_36000(heading_deg, hdg_cdeg):
+    """common.xml: hdg in [0, 35999] cdeg (65535: unknown); a heading that rounds up to 360.00 deg is 0."""
+    msg = wire_roundtrip(
+        wire.GlobalPositionInt(0, 47.0, 8.0, 500.0, heading_rad=math.radians(heading_deg)).to_message()
+    )
+    assert msg.hdg == hdg_cdeg
+
+
 @ROUND_TRIP
 @given(
     TIME_US,

@@ -18,7 +18,10 @@ from onboard.estimation.metrics import ErrorReport, evaluate, nees_interval_95, 
 
 EXACT_TOL = 1e-12
 INTERVAL_TOL = 1e-9  # gammaincinv vs scipy.stats.chi2.ppf
-AXIS_FRACTION_TOL = 0.004  # |observed - 0.0027| for 20000 Gaussian samples per axis (~5 sigma of the binomial)
+AXIS_FRACTION_SAMPLES = 50000
+# |observed - 0.0027| per axis: ~5 sigma of the binomial, sqrt(0.0027 * 0.9973 / 50000) = 2.3e-4; below 0.0027, so a
+# fraction of 0 (or of the one-sided 0.00135) fails
+AXIS_FRACTION_TOL = 0.0012
 
 TRUTH = np.array([[3.0, 4.0, 0.0], [0.0, 0.0, 10.0]])
 EST = np.array([[3.0, 4.0, 1.0], [0.0, 2.0, 10.0]])
@@ -76,7 +79,7 @@ def _random_spd(rng, n):
 
 def test_honest_covariance_passes_and_overconfident_fails():
     rng = np.random.default_rng(7)
-    n = 20000
+    n = AXIS_FRACTION_SAMPLES
     P = _random_spd(rng, n)
     L = np.linalg.cholesky(P)
     e = np.einsum("nij,nj->ni", L, rng.standard_normal((n, 3)))
@@ -90,6 +93,25 @@ def test_honest_covariance_passes_and_overconfident_fails():
     over = evaluate(truth, truth + e, cam, cov=P / 10.0)
     assert over.nees_consistent is False and over.mean_nees == pytest.approx(10 * r.mean_nees, rel=1e-9)
     assert min(over.outside_3sigma_axis_fraction) > 0.1
+    under = evaluate(truth, truth + e, cam, cov=P * 10.0)  # under-confident: as inconsistent
+    assert under.mean_nees == pytest.approx(r.mean_nees / 10, rel=1e-9)
+    assert under.mean_nees < under.nees_interval_95[0] and under.nees_consistent is False
+
+
+def test_three_sigma_fractions_count_negative_errors_and_take_the_square_root_of_the_trace():
+    """Errors below the estimate count as much as above it; the trace bound is 3 sqrt(trace P), a length."""
+    truth = np.array([[100.0, 0.0, -50.0], [0.0, 100.0, -50.0]])
+    cam = np.zeros((2, 3))
+    cov = np.stack([np.eye(3), np.eye(3)])
+    e = np.array([[-4.0, 0.0, 0.0], [0.0, -0.5, -3.5]])  # 1 sigma per axis: -4 and -3.5 beyond 3 sigma
+    r = evaluate(truth, truth + e, cam, cov=cov)
+    assert r.outside_3sigma_axis_fraction == pytest.approx((0.5, 0.0, 0.5), abs=EXACT_TOL)
+    # trace 4, so 3 sigma (trace) = 6 m: |e| = 7 m lies beyond it, 5.9 m inside (3 * trace = 12 m would hold both)
+    cov = np.stack([np.eye(3) * 4.0 / 3.0] * 2)
+    e = np.array([[0.0, 7.0, 0.0], [0.0, 0.0, -5.9]])
+    r = evaluate(truth, truth + e, cam, cov=cov)
+    assert r.outside_3sigma_trace_fraction == pytest.approx(0.5, abs=EXACT_TOL)
+    assert evaluate(truth[:1], truth[:1] + e[:1], cam[:1], cov=cov[:1]).outside_3sigma_trace_fraction == 1.0
 
 
 @settings(max_examples=50, deadline=None)

@@ -609,6 +609,10 @@ def test_geo_status_accuracies_are_one_sigma_root_sum_squares():
     assert f["dist_m"] == 150.0 and (f["lat_deg"], f["lon_deg"], f["alt_m"]) == (32.001, 118.801, 80.0)
     slow = geo_status_fields(_track(v_ned_mps=(0.05, 0.0, 0.0)))
     assert math.isnan(slow["hdg_rad"]) and math.isnan(slow["hdg_acc_rad"])  # speed below 2 sigma: no heading
+    # the speed's sigma along north is 0.1 m/s: 0.15 m/s is within 2 sigma of standing still (no heading), 0.25 not
+    assert math.isnan(geo_status_fields(_track(v_ned_mps=(0.15, 0.0, 0.0)))["hdg_rad"])
+    north = geo_status_fields(_track(v_ned_mps=(0.25, 0.0, 0.0)))
+    assert north["hdg_rad"] == 0.0 and north["hdg_acc_rad"] == pytest.approx(0.2 / 0.25)  # sigma_east / speed
     assert (
         geo_status_fields(
             _track(

@@ -953,6 +953,13 @@ def test_an_attitude_step_the_rates_cannot_explain_is_a_reset_and_a_discontinuit
     for k in range(20):
         fast.add_attitude(1_000_000 + 20_000 * k, quat_from_euler(0.0, 0.0, 0.06 * k), (0.0, 0.0, 3.0))
     assert fast.discontinuities == 0 and fast.sizes()["attitude"] == 20
+    # ... nor one beyond the step alone that its rates explain: samples 100 ms apart, 0.3 rad (17 deg, more than
+    # ATTITUDE_STEP_RAD's 10) at a reported 3 rad/s
+    sparse = PoseBuffer(origin=ORIGIN)
+    for k in range(5):
+        assert sparse.add_attitude(1_000_000 + 100_000 * k, quat_from_euler(0.0, 0.0, 0.3 * k), (0.0, 0.0, 3.0))
+    assert sparse.discontinuities == 0 and sparse.counter["attitude_reset"] == 0
+    assert sparse.sizes()["attitude"] == 5
 
 
 def test_a_gimbal_without_rates_is_judged_by_the_fastest_slew():

@@ -97,6 +97,40 @@ def _recorded_calls(offset_s: float, duration_s: float, seed: int) -> list[tuple
     return calls
 
 
+def _feed_blocks(est: TimeOffsetEstimator, offsets_s, seed: int, noise_rad: float):
+    """:func:`_feed` with the offset constant over each of the estimator's blocks, one block per entry of
+    ``offsets_s``; the last block closed.  Returns the estimate."""
+    rng = np.random.default_rng(seed)
+    block_s = est.params.block_s
+    t_cap = np.arange(0.0, block_s * len(offsets_s), 1.0 / FRAME_RATE_HZ)
+    t_stamp = t_cap + np.asarray(offsets_s)[np.minimum((t_cap // block_s).astype(int), len(offsets_s) - 1)]
+    p_cap, _ = _observer(t_cap)
+    d = _target(t_cap) - p_cap
+    R_cap = rotmat_from_quat(_attitude(t_cap))
+    b_cam = np.einsum("nji,nj->ni", R_cap, d / np.linalg.norm(d, axis=1, keepdims=True))
+    b_cam += noise_rad * rng.standard_normal(b_cam.shape)
+    q_rep = quat_multiply(quat_from_rotvec(noise_rad * rng.standard_normal((t_cap.size, 3))), _attitude(t_stamp))
+    p_rep, v_rep = _observer(t_stamp)
+    range_m = np.linalg.norm(d, axis=1)
+    for k in range(t_cap.size):
+        est.add(t_stamp[k], b_cam[k], q_rep[k], p_rep[k], v_rep[k], range_m[k], track_id=1)
+    est.close_block()
+    return est.estimate
+
+
+def test_the_sigma_covers_the_scatter_of_blocks_that_disagree():
+    """A clock whose offset alternates 0 / 30 ms from block to block, the bearings nearly noise-free: each block's
+    residuals are tiny, so only the blocks' scatter around the pooled estimate says how far off it may be.  The
+    sigma is at least that scatter's standard error (module docstring: ``s^2`` the larger of the two)."""
+    offsets_s = [0.0, 0.03] * 3
+    est = TimeOffsetEstimator()
+    e = _feed_blocks(est, offsets_s, seed=1, noise_rad=1e-4)
+    assert e.blocks == len(offsets_s)
+    scatter_ms = 1e3 * float(np.std(offsets_s, ddof=1)) / math.sqrt(len(offsets_s))  # 6.7 ms
+    assert e.sigma_ms >= 0.7 * scatter_ms
+    assert e.estimate_ms == pytest.approx(15.0, abs=2 * e.sigma_ms)
+
+
 @pytest.mark.parametrize("offset_ms", [50.0, -30.0, 0.0])
 def test_recovers_the_offset_and_its_sign(offset_ms):
     est = TimeOffsetEstimator()

@@ -107,3 +107,36 @@ def test_sliding_estimates_carry_the_diagnostics_and_propagate():
     np.testing.assert_allclose(later.p_ned_m, est.p_ned_m + 0.5 * est.v_ned_mps)
     np.testing.assert_allclose(later.cov_p_ned_m2, est.cov_p_ned_m2 + 0.25 * est.cov_v_ned_m2ps2)
     assert later.residual_rms_norm == est.residual_rms_norm  # diagnostics travel with the estimate
+
+
+def test_residuals_louder_than_the_assumed_noise_fail_the_adequacy_test_and_are_not_observable():
+    """P3 with 0.3 px pixel noise, the estimator told 0.15 px: the fit is as good (same geometry, same
+    solution) but its standardised residuals are twice the assumed white noise, so the block-whiteness test
+    refuses it although the range sigma and the ambiguity alone would pass."""
+    sc = load_scenario(reference_scenario_paths()["P3"])
+    nc = load_noise_cases()["px0.3"]
+    truth, obs = synthesize_scenario(sc, nc, 0)
+    cfg = MapConfig()
+    honest = MapEstimator(noise=estimator_noise_model(nc)).solve(obs)
+    assert honest.observable and honest.adequacy_p > 0.1
+    res = MapEstimator(noise=estimator_noise_model(nc, pixel_sigma_px=0.15)).solve(obs)
+    assert 1.7 < res.residual_rms_norm < 2.3  # twice the assumed sigma
+    assert res.adequacy_p < cfg.adequacy_p_min
+    assert res.range_sigma_ratio < cfg.observability_max_sigma_range_ratio  # not what refuses it
+    assert res.ambiguity <= cfg.max_ambiguity
+    assert not res.observable
+    err = np.linalg.norm(res.p_ned_m - truth.p_target_ned_m, axis=1)
+    assert float(np.mean(err / truth.range_m)) < GOOD_ERR  # a good fit, refused for its residuals alone
+
+
+def test_the_adequacy_p_value_is_the_chi_square_survival_of_the_block_means():
+    """``m * sum(block mean^2)`` over B blocks of m frames against chi2(2 B) (scipy's, an independent reference)."""
+    from scipy.stats import chi2
+
+    est = MapEstimator(config=MapConfig(adequacy_block_frames=5))
+    rng = np.random.default_rng(3)
+    r_std = rng.standard_normal((23, 2)) + 0.3  # 4 blocks of 5 frames, 3 frames left over
+    means = r_std[:20].reshape(4, 5, 2).mean(axis=1)
+    stat = 5 * float(np.sum(means**2))
+    assert est._adequacy_p(r_std) == pytest.approx(chi2.sf(stat, 8), rel=1e-9)
+    assert est._adequacy_p(r_std[:9]) == 1.0  # one block: no test
