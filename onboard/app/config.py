@@ -380,9 +380,10 @@ class OnboardConfig:
 
     def bearing_white_sigma_rad(self) -> float:
         """The white noise of one bearing the estimator assumes, 1 sigma per axis (rad):
-        ``sqrt(attitude_white^2 + (pixel_sigma / f)^2)``, ``f`` the mean focal length in pixels."""
+        ``sqrt(attitude_white^2 + (pixel_sigma / f)^2)``, ``f = sqrt(fx fy)`` in pixels, the focal length the
+        estimator's own bearing sigma takes (:func:`onboard.estimation.sliding.bearing_sigma_rad`)."""
         e, k = self.estimator, self.camera.intrinsics
-        f_px = 0.5 * (k.fx_px + k.fy_px)
+        f_px = math.sqrt(k.fx_px * k.fy_px)
         return math.hypot(math.radians(e.attitude_white_sigma_deg), e.pixel_sigma_px / f_px)
 
     def extrapolation_horizons(self) -> ExtrapolationHorizons:
