@@ -190,8 +190,13 @@ def test_rotation_by_size_keeps_max_files(tmp_path):
     )
     rec.start()
     for i in range(30):
+        written = rec.messages_written
         rec.on_frame(_frame(i), i)
-        time.sleep(0.01)  # let the writer turn (rotation is checked after each batch)
+        # one frame a batch (rotation is checked after each), however slow the writer: wait until it wrote this one
+        deadline = time.monotonic() + 10.0
+        while rec.messages_written == written and time.monotonic() < deadline:
+            time.sleep(0.002)
+        assert rec.messages_written > written, f"the writer did not write frame {i} within 10 s"
     rec.close()
     assert rotated_path(path, 3) == str(tmp_path / "r.3.mcap")
     left = sorted(p.name for p in tmp_path.iterdir())
