@@ -10,13 +10,17 @@ from onboard.app.config import OnboardConfig
 from onboard.core.frames import PinholeIntrinsics
 
 if TYPE_CHECKING:
+    from onboard.core.counters import RejectCounter
     from onboard.io.camera_protocol import CameraProtocol
 
 __all__ = ["make_camera_protocol", "zenoh_where"]
 
 
-def make_camera_protocol(config: OnboardConfig, intrinsics: PinholeIntrinsics) -> CameraProtocol:
-    """The :class:`~onboard.io.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera)."""
+def make_camera_protocol(
+    config: OnboardConfig, intrinsics: PinholeIntrinsics, counter: RejectCounter | None = None
+) -> CameraProtocol:
+    """The :class:`~onboard.io.camera_protocol.CameraProtocol` of ``config`` (gcs, output rates, camera), counting
+    the commands it refuses in ``counter`` (the daemon's)."""
     from onboard.io.camera_protocol import CameraIdentity, CameraProtocol, VideoStream, video_stream_type
 
     g, o, v = config.gcs, config.output, config.video
@@ -46,6 +50,7 @@ def make_camera_protocol(config: OnboardConfig, intrinsics: PinholeIntrinsics) -
         observable_only=not o.geo_status_unobservable,
         heartbeat_interval_s=g.heartbeat_interval_s,
         track_request_timeout_s=g.track_request_timeout_s,
+        counter=counter,
     )
 
 

@@ -173,7 +173,9 @@ class OnboardService:
         self.link: MavlinkLink | None = None  # the autopilot link, opened by start()
         self.utc = UtcClock(counter=self.counter)  # boot clock -> UTC from the link's SYSTEM_TIME (read lock-free)
         self.gcs: GcsLink | None = None  # the camera component's sockets (gcs.endpoints), opened by start()
-        self.camera = make_camera_protocol(config, self.pipeline.intrinsics) if config.gcs.endpoints else None
+        self.camera = (
+            make_camera_protocol(config, self.pipeline.intrinsics, self.counter) if config.gcs.endpoints else None
+        )
         self._selection_results: collections.deque = collections.deque()  # TrackResults from the pipeline thread
         self.session: Any = None
         self._sub = None

@@ -27,7 +27,8 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   / REQUEST_VIDEO_STREAM_INFORMATION 2504 (param1)   configured; else DENIED)
   REQUEST_MESSAGE 270 / REQUEST_VIDEO_STREAM_ST. 2505 VIDEO_STREAM_STATUS
   REQUEST_MESSAGE 275 / 276                          one CAMERA_TRACKING_*_STATUS now
-  SET_MESSAGE_INTERVAL (511) 275 / 276               ACCEPTED; param2 us, -1 stops, 0 = default
+  SET_MESSAGE_INTERVAL (511) 275 / 276               ACCEPTED; param2 us, -1 stops, 0 = default; faster
+                                                     than 50 Hz is served at 50 Hz (every 20000 us)
   GET_MESSAGE_INTERVAL (510) param1 = message id     MESSAGE_INTERVAL (#244): interval_us of #275 / #276
   / REQUEST_MESSAGE 244, param2 = message id         (-1 = off), of HEARTBEAT (0); 0 = "not available" for
                                                      every other message (we stream none)
@@ -42,6 +43,13 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   (param "target camera ID" not 0 nor our component id) is DENIED.  A tracking request that the
   pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED.
   A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
+* Refusals in the daemon's reject counter (:class:`~onboard.core.counters.RejectCounter`, the status's
+  ``rejected``; logged at INFO, once per reason and log interval): every answer DENIED
+  (``gcs_command_denied``), UNSUPPORTED (``gcs_command_unsupported``), FAILED (``gcs_command_failed``) or
+  TEMPORARILY_REJECTED (``gcs_command_temporarily_rejected``), with the command, the requester and the
+  reason; a SET_MESSAGE_INTERVAL served slower than asked (``gcs_message_interval_clamped``).  INFO, not
+  WARNING: a misclick or a ground station probing for features is no fault of ours.  The camera's own
+  ``counters`` (:meth:`CameraProtocol.status`) count every command and every answer by result.
 * A tracking command while an earlier one of the same id from the same requester waits for the
   pipeline (the command protocol, mavlink.io services/command; QGC's MavCommandQueue):
 
@@ -82,12 +90,14 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
 
 from __future__ import annotations
 
+import logging
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from onboard.core.checks import is_nonnegative_number, is_positive_number, require_each
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.selection import TrackRequest, TrackResult
 from onboard.core.track import Track
@@ -174,6 +184,14 @@ TRACKING_FLAGS = (
     | CAMERA_CAP_FLAGS_HAS_TRACKING_GEO_STATUS
 )
 STATUSTEXT_MAX_CHARS = 50
+#: the fastest a ground station may have #275 / #276 sent.  Each describes the newest track, which changes
+#: once per IR frame at most (thermal cores deliver 9 to 60 frames/s, most 25 or 30): a faster stream repeats
+#: the same track, and it shares a telemetry radio with the autopilot's.  SET_MESSAGE_INTERVAL has no upper
+#: rate in common.xml, so a shorter interval is served at this rate, ACCEPTED, and MESSAGE_INTERVAL reports
+#: the interval applied.  The configured defaults (``output.tracking_*_status_hz``) are the operator's and
+#: are not clamped.
+MAX_TRACKING_STATUS_HZ = 50.0
+MIN_TRACKING_STATUS_INTERVAL_S = 1.0 / MAX_TRACKING_STATUS_HZ
 _TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, MAV_CMD_CAMERA_STOP_TRACKING)
 #: ``counters`` key of each command we answer; every other command id shares ``cmd_unsupported``, so a
 #: sender cycling through ids cannot grow the status JSON (the id is 16 bits on COMMAND_LONG)
@@ -190,6 +208,14 @@ _COMMAND_COUNTERS = {
     MAV_CMD_CAMERA_STOP_TRACKING: "cmd_camera_stop_tracking",
     MAV_CMD_REQUEST_VIDEO_STREAM_INFORMATION: "cmd_request_video_stream_information",
     MAV_CMD_REQUEST_VIDEO_STREAM_STATUS: "cmd_request_video_stream_status",
+}
+#: the shared reject counter's reason for each refusing MAV_RESULT; one reason per result, whatever the
+#: command, so that a sender cycling through ids cannot grow the status's ``rejected`` either
+_REFUSAL_REASONS = {
+    MAV_RESULT_TEMPORARILY_REJECTED: "gcs_command_temporarily_rejected",
+    MAV_RESULT_DENIED: "gcs_command_denied",
+    MAV_RESULT_UNSUPPORTED: "gcs_command_unsupported",
+    MAV_RESULT_FAILED: "gcs_command_failed",
 }
 
 
@@ -406,6 +432,8 @@ class CameraProtocol:
     ``image_status_hz`` / ``geo_status_hz``: default rates of #275 / #276 (0 = off until asked).
     ``gimbal_device_id``: CAMERA_INFORMATION's (0 = no gimbal); the caller sets it when it learns the
     gimbal (the autopilot link follows one gimbal, :attr:`onboard.io.mavlink_link.MavlinkLink.gimbal_device_id`).
+    ``counter``: the daemon's shared reject counter; every refused command is counted there too (module
+    docstring, "Refusals"), besides this component's own ``counters``.
     """
 
     identity: CameraIdentity
@@ -419,6 +447,7 @@ class CameraProtocol:
     heartbeat_interval_s: float = 1.0
     track_request_timeout_s: float = 1.0
     gimbal_device_id: int = 0
+    counter: RejectCounter | None = field(default=None, repr=False, compare=False)
     interval_s: dict[int, float | None] = field(init=False)
     counters: dict[str, int] = field(init=False, default_factory=dict)
     last_refusal: str | None = field(init=False, default=None)
@@ -459,7 +488,8 @@ class CameraProtocol:
         if c in _TRACK_COMMANDS:
             return self._track_command(cmd, now_s)
         if c == MAV_CMD_SET_MESSAGE_INTERVAL:
-            return [self._ack(c, self._set_interval(p[0], p[1], now_s), to)], None
+            result, reason = self._set_interval(p[0], p[1], now_s)
+            return [self._ack(c, result, to, reason=reason)], None
         if c == MAV_CMD_GET_MESSAGE_INTERVAL:
             return self._reply_interval(c, p[0], to), None
         if c == MAV_CMD_REQUEST_MESSAGE:
@@ -481,13 +511,13 @@ class CameraProtocol:
             if msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
                 return self._request(c, msg_id, p[0], to, time_boot_ms, track), None
             if msg_id == MSG_STORAGE_INFORMATION:
-                ok = p[1] in (0.0, 1.0)  # param2 = request (MAV_BOOL); 0 from old senders is tolerated
+                ok, which = p[1] in (0.0, 1.0), "param2"  # param2 = request (MAV_BOOL); 0 from old senders is tolerated
             else:
-                ok = p[0] in (0.0, 1.0)
+                ok, which = p[0] in (0.0, 1.0), "param1"
             if not ok:
-                return [self._ack(c, MAV_RESULT_DENIED, to)], None
+                return [self._ack(c, MAV_RESULT_DENIED, to, reason=f"{which} is not 0 or 1 (MAV_BOOL)")], None
             return self._request(c, msg_id, 0.0, to, time_boot_ms, track), None
-        return [self._ack(c, MAV_RESULT_UNSUPPORTED, to)], None
+        return [self._ack(c, MAV_RESULT_UNSUPPORTED, to, reason="not a command this camera answers")], None
 
     def _request(
         self, command: int, msg_id: int | None, index: float, to, time_boot_ms: int, track: Track | None
@@ -495,9 +525,15 @@ class CameraProtocol:
         msgs = self._message(msg_id, index, time_boot_ms, track) if msg_id is not None else None
         if msgs is None and msg_id == MSG_TRACKING_GEO_STATUS:
             # no observable position yet: asking again later can work, which DENIED says it cannot
-            return [self._ack(command, MAV_RESULT_TEMPORARILY_REJECTED, to)]
+            return [self._ack(command, MAV_RESULT_TEMPORARILY_REJECTED, to, reason="no observable position yet")]
         if msgs is None:
-            return [self._ack(command, MAV_RESULT_DENIED, to)]
+            if msg_id is None:
+                reason = "param1 is not a message id"
+            elif msg_id in (MSG_VIDEO_STREAM_INFORMATION, MSG_VIDEO_STREAM_STATUS):
+                reason = "no video stream configured" if self.stream is None else f"no video stream {index:g}"
+            else:
+                reason = f"message {msg_id} is not one this camera sends"
+            return [self._ack(command, MAV_RESULT_DENIED, to, reason=reason)]
         # the ACK first, then the message (common.xml: "the message is sent after the ACK"), both to the requester
         return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + [replace(m, reply_to=to) for m in msgs]
 
@@ -606,7 +642,7 @@ class CameraProtocol:
     def _reply_interval(self, command: int, p_msg_id: float, to) -> list[Outgoing]:
         msg_id = _msg_id(p_msg_id)
         if msg_id is None or msg_id > 0xFFFF:  # MESSAGE_INTERVAL.message_id is a uint16
-            return [self._ack(command, MAV_RESULT_DENIED, to)]
+            return [self._ack(command, MAV_RESULT_DENIED, to, reason=f"message id {p_msg_id:g} is not a uint16")]
         return [
             self._ack(command, MAV_RESULT_ACCEPTED, to),
             Outgoing(
@@ -614,16 +650,27 @@ class CameraProtocol:
             ),
         ]
 
-    def _set_interval(self, p1: float, p2: float, now_s: float) -> int:
+    def _set_interval(self, p1: float, p2: float, now_s: float) -> tuple[int, str]:
+        """SET_MESSAGE_INTERVAL of #275 / #276: (MAV_RESULT, why when refused).  An interval shorter than
+        :data:`MIN_TRACKING_STATUS_INTERVAL_S` is applied as that one (module docstring)."""
         msg_id = _msg_id(p1)
-        accepted, interval_s = requested_interval(
-            p2, None if msg_id is None else self._default_interval_s.get(msg_id), lambda us: us / 1e6
-        )
-        if msg_id not in self.interval_s or not accepted:
-            return MAV_RESULT_DENIED
+        if msg_id is None or msg_id not in self.interval_s:
+            return MAV_RESULT_DENIED, f"message {p1:g} is not one this camera streams"
+        accepted, interval_s = requested_interval(p2, self._default_interval_s[msg_id], lambda us: us / 1e6)
+        if not accepted:
+            return MAV_RESULT_DENIED, f"interval {p2:g} us is not -1, 0 or a positive interval"
+        if round(p2) > 0 and interval_s is not None and interval_s < MIN_TRACKING_STATUS_INTERVAL_S:
+            if self.counter is not None:
+                self.counter.count(
+                    "gcs_message_interval_clamped",
+                    f"message {msg_id} every {p2:g} us asked; sent every "
+                    f"{MIN_TRACKING_STATUS_INTERVAL_S * 1e6:.0f} us ({MAX_TRACKING_STATUS_HZ:g} Hz at most)",
+                    level=logging.INFO,
+                )
+            interval_s = MIN_TRACKING_STATUS_INTERVAL_S
         self.interval_s[msg_id] = interval_s
         self._next_due_s[msg_id] = now_s
-        return MAV_RESULT_ACCEPTED
+        return MAV_RESULT_ACCEPTED, ""
 
     def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
         c, p, to = cmd.command, cmd.params, (cmd.src_system, cmd.src_component)
@@ -768,8 +815,14 @@ class CameraProtocol:
 
     # ------------------------------------------------------------------ helpers
 
-    def _ack(self, command: int, result: int, to: tuple[int, int], progress: int = 0) -> Outgoing:
+    def _ack(self, command: int, result: int, to: tuple[int, int], progress: int = 0, reason: str = "") -> Outgoing:
+        """The COMMAND_ACK; a refusing result is counted in the shared counter with ``reason`` (module docstring)."""
         self._count(f"ack_{result}")
+        refusal = _REFUSAL_REASONS.get(result)
+        if refusal is not None and self.counter is not None:
+            # INFO: a refused command is the sender's mistake or a limit of ours, not a fault of the daemon, but
+            # an operator asking why a click did nothing finds it in the log
+            self.counter.count(refusal, f"command {command} from {to[0]}/{to[1]}: {reason or '-'}", level=logging.INFO)
         return Outgoing(
             "command_ack",
             dict(
@@ -787,7 +840,7 @@ class CameraProtocol:
         self.last_refusal = f"command {command}: {reason}"
         text = f"irtrack: {reason}"[:STATUSTEXT_MAX_CHARS]
         return [
-            self._ack(command, result, to),
+            self._ack(command, result, to, reason=reason),
             Outgoing("statustext", dict(severity=MAV_SEVERITY_WARNING, text=text.encode()), reply_to=to),
         ]
 

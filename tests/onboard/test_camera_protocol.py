@@ -3,6 +3,7 @@ dialect, and the socket adapter on 127.0.0.1 with a pymavlink ground station."""
 
 from __future__ import annotations
 
+import logging
 import math
 
 import pytest
@@ -11,6 +12,7 @@ from hypothesis import strategies as st
 from pymavlink.dialects.v20 import common as mav
 
 import onboard.io.camera_protocol as cp
+from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.track import Track
 from onboard.io.camera_protocol import (
@@ -20,7 +22,7 @@ from onboard.io.camera_protocol import (
     TrackResult,
     VideoStream,
 )
-from tests.fakes import positioned_track, tracking_track
+from tests.fakes import FakeClock, positioned_track, tracking_track
 
 W, H = 640, 512
 GCS = (255, 190)  # QGC's system / component
@@ -502,3 +504,89 @@ def test_geo_status_asked_before_a_position_is_observable_is_temporarily_rejecte
     out, _ = proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 276), 0.0, 0, _track(observable=True))
     assert _names(out) == ["command_ack", "camera_tracking_geo_status"]
     assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+
+
+# --------------------------------------------------------------------------- refusals in the shared counter
+
+
+def _counted_proto(**kw) -> tuple[CameraProtocol, RejectCounter, FakeClock]:
+    clock = FakeClock()
+    counter = RejectCounter(log_interval_s=10.0, clock=clock, logger=logging.getLogger("test.rejects"))
+    return _proto(counter=counter, **kw), counter, clock
+
+
+def test_every_refusal_is_counted_by_result_in_the_shared_counter_and_logged_once_at_info(caplog):
+    proto, counter, clock = _counted_proto(track_request_timeout_s=1.0)
+    with caplog.at_level(logging.DEBUG, logger="test.rejects"):
+        for _ in range(3):  # a ground station probing for a feature we lack
+            proto.handle(_cmd(mav.MAV_CMD_IMAGE_START_CAPTURE, 0, 0, 1), clock(), 0)
+        proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 33), clock(), 0)  # not a message we send
+        proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 1.5, 0.5, 0.1), clock(), 0)  # a click outside the image
+        _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.1, 0.1, 0.03), clock(), 0)
+        proto.complete(TrackResult(req.request_id, False, "no warm object near the click"))
+        proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_RECTANGLE, 0.1, 0.1, 0.2, 0.2), clock(), 0)
+        proto.tick(clock() + 1.0, None)  # nobody decided: TEMPORARILY_REJECTED
+        proto.handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 259), clock(), 0)  # accepted: not a refusal
+    assert counter.counts == {
+        "gcs_command_unsupported": 3,
+        "gcs_command_denied": 2,
+        "gcs_command_failed": 1,
+        "gcs_command_temporarily_rejected": 1,
+    }
+    lines = [r for r in caplog.records if r.name == "test.rejects"]
+    assert sorted(r.getMessage().split(":")[0] for r in lines) == [
+        "gcs_command_denied",
+        "gcs_command_failed",
+        "gcs_command_temporarily_rejected",
+        "gcs_command_unsupported",
+    ]  # once per reason within the log interval
+    assert {r.levelno for r in lines} == {logging.INFO}
+    text = " ".join(r.getMessage() for r in lines)
+    assert f"command {mav.MAV_CMD_IMAGE_START_CAPTURE} from 255/190" in text
+    assert "no warm object near the click" in text and "message 33 is not one this camera sends" in text
+    # the camera's own counters and last refusal are what they were without the shared counter
+    counters = proto.status()["counters"]
+    assert counters["cmd_unsupported"] == 3 and counters["ack_3"] == 3 and counters["ack_2"] == 2
+    assert counters["ack_4"] == 1 and counters["ack_1"] == 1 and counters["ack_0"] == 1
+    assert "no frame to select on" in proto.status()["last_refusal"]
+
+
+def test_refusals_without_a_shared_counter_are_still_answered():
+    out, _ = _proto().handle(_cmd(mav.MAV_CMD_IMAGE_START_CAPTURE), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_UNSUPPORTED
+
+
+# --------------------------------------------------------------------------- SET_MESSAGE_INTERVAL's fastest rate
+
+
+@pytest.mark.parametrize("interval_us", [1, 1000, 19_999])
+def test_an_interval_faster_than_the_maximum_rate_is_accepted_at_that_rate_and_counted(interval_us):
+    """common.xml gives SET_MESSAGE_INTERVAL's interval no lower bound: served at MAX_TRACKING_STATUS_HZ, ACCEPTED,
+    and MESSAGE_INTERVAL says the interval applied."""
+    proto = _proto(image_status_hz=10.0)
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, interval_us), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_GET_MESSAGE_INTERVAL, 275), 0.0, 0)
+    (reply,) = [o.fields for o in out if o.msg == "message_interval"]
+    assert reply["interval_us"] == 20_000  # 50 Hz
+    t, dt, sent = 0.0, 0.001, 0
+    for _ in range(2000):  # 2 s of a main loop turning at 1 kHz
+        sent += _count(proto.tick(t, _track()), "camera_tracking_image_status")
+        t += dt
+    assert 99 <= sent <= 101
+
+
+def test_a_clamped_interval_is_counted_in_the_shared_counter():
+    proto, counter, _ = _counted_proto()
+    proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 276, 1), 0.0, 0)
+    assert counter.counts == {"gcs_message_interval_clamped": 1}
+    assert cp.MIN_TRACKING_STATUS_INTERVAL_S == pytest.approx(1.0 / cp.MAX_TRACKING_STATUS_HZ)
+
+
+def test_an_interval_at_the_maximum_rate_or_slower_is_applied_as_asked_and_not_counted():
+    proto, counter, _ = _counted_proto()
+    for interval_us in (20_000, 500_000, -1, 0):
+        out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, interval_us), 0.0, 0)
+        assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+    assert counter.total == 0
+    assert proto.message_interval_us(275) == 100_000  # 0: back to the configured 10 Hz

@@ -784,6 +784,39 @@ def test_every_output_tap_sees_each_frame_once_taken_or_refused():
     assert svc.status(clock())["test_tap"] == {"frames": 3}
 
 
+class _FakeGcs:
+    """The camera component's sockets: hands out the commands it is given, keeps what is sent."""
+
+    def __init__(self, commands) -> None:
+        self.commands, self.sent = list(commands), []
+
+    def set_system_id(self, sysid: int) -> None:
+        pass
+
+    def poll(self):
+        out, self.commands = self.commands, []
+        return out
+
+    def send(self, msg) -> int:
+        self.sent.append(msg)
+        return 1
+
+
+def test_commands_the_camera_refuses_are_in_the_status_rejected_counts():
+    from onboard.io.camera_protocol import CameraCommand
+
+    svc, clock = _quiet_service({"gcs": {"endpoints": ["udpout:127.0.0.1:9"]}})
+    unsupported = CameraCommand(mav.MAV_CMD_IMAGE_START_CAPTURE, (0.0,) * 7, 255, 190)
+    denied = CameraCommand(mav.MAV_CMD_REQUEST_MESSAGE, (33.0,) + (0.0,) * 6, 255, 190)
+    svc.gcs = _FakeGcs([unsupported, unsupported, denied])
+    svc.camera_step(clock())
+    acks = [m.fields["result"] for m in svc.gcs.sent if m.msg == "command_ack"]
+    assert acks == [mav.MAV_RESULT_UNSUPPORTED, mav.MAV_RESULT_UNSUPPORTED, mav.MAV_RESULT_DENIED]
+    rejected = svc.status(clock())["rejected"]
+    assert rejected["gcs_command_unsupported"] == 2 and rejected["gcs_command_denied"] == 1
+    assert svc.status(clock())["camera"]["counters"]["cmd_unsupported"] == 2
+
+
 def test_a_camera_off_video_fps_is_warned_with_the_bit_rate_it_gets():
     """The video tap's streamer measures the camera from the frames it is handed; the main loop's checks warn."""
     from onboard.app.observers import VideoTap
