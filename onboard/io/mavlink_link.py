@@ -17,7 +17,9 @@ module decides what to do with them (MAVLink common, v2 framing):
   sends it; a separate gimbal component has its own clock, so its samples are stamped on receipt
   through :class:`ClockSync` instead.  ``angular_velocity_x/y/z`` (rad/s, same frame as ``q``; NaN =
   unknown) -> ``omega_ref_rps``.  Requested at ``gimbal_rate_hz`` (50 Hz: a sample at most 20 ms
-  before any frame, so a frame's gimbal extrapolation stays within its horizon).
+  before any frame, so a frame's gimbal extrapolation stays within its horizon).  The first report
+  with a finite unit quaternion picks the gimbal followed (unless ``gimbal_device_id`` is set); such
+  reports are counted (:attr:`MavlinkLink.gimbal_reports`) whatever the mount, for the watchdog.
 * ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; the autopilot component's answers feed
   :class:`ClockSync` (another component's, on its own clock, are counted ``timesync_foreign``; one
   addressed to another requester is not ours); requests of the autopilot's system are answered with
@@ -42,6 +44,23 @@ alone** with a fresh parser, so a truncated or garbage datagram costs only itsel
 (``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
 parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
 not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
+Every message that is not used is counted, by why; the ones that are normal traffic on a shared link (a ground
+station, a companion computer, a camera) at DEBUG, so that they show in the status's ``rejected`` without a
+log line at the default level:
+
+* ``mavlink_foreign_system`` (DEBUG): any message of a system other than the followed autopilot's, but for an
+  autopilot's HEARTBEAT (``autopilot_compid``, an autopilot MAV_TYPE and MAV_AUTOPILOT: a lock candidate, or
+  ``second_autopilot`` once one is followed); before the lock, a HEARTBEAT that is not an autopilot's (MAV_TYPE
+  GCS, onboard controller, gimbal, camera, ADS-B, or MAV_AUTOPILOT_INVALID) too;
+* ``mavlink_foreign_component`` (DEBUG): ATTITUDE_QUATERNION, GLOBAL_POSITION_INT, GPS_RAW_INT, SYSTEM_TIME and
+  COMMAND_ACK from a component of the autopilot's system other than ``autopilot_compid``, and a HEARTBEAT of
+  that system that is not the autopilot's (another component, or typed as a GCS, a camera ...);
+* ``mavlink_before_lock`` (DEBUG): a message other than HEARTBEAT while no autopilot is followed yet
+  (``autopilot_sysid`` unpinned and not settled);
+* ``mavlink_empty_datagram`` (DEBUG): a UDP datagram of no bytes;
+* ``gimbal_attitude_invalid``: a GIMBAL_DEVICE_ATTITUDE_STATUS whose quaternion is not a finite unit one; it
+  neither picks the gimbal followed nor counts as a report for the watchdog's ``gimbal_mismatch``.
+
 Output goes only to the locked autopilot's address (the source of its latest heartbeat, ``udpin``)
 or the fixed ``udpout`` address, plus ``extra_destinations``: a sender of garbage or of another
 system id never becomes a recipient.  Identity and MAVLink 2 signing: see :class:`MavlinkConfig`.
@@ -73,6 +92,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 from onboard.core.clock_sync import ClockSync
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
+from onboard.core.frames import QUAT_NORM_TOL
 from onboard.core.gnss import GPS_FIX_NAMES, GnssState
 from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
@@ -131,6 +151,9 @@ _NOT_AUTOPILOT_TYPES = frozenset(
         mavlink2.MAV_TYPE_ADSB,
     }
 )
+#: used only from the autopilot component; another component's is counted (``mavlink_foreign_component``).
+#: GIMBAL_DEVICE_ATTITUDE_STATUS and TIMESYNC are judged by their own rules (module docstring)
+_AUTOPILOT_ONLY = frozenset({"ATTITUDE_QUATERNION", "GLOBAL_POSITION_INT", "GPS_RAW_INT", "SYSTEM_TIME", "COMMAND_ACK"})
 _RESULT_NAMES = {
     v: k[len("MAV_RESULT_") :]
     for k, v in vars(mavlink2).items()
@@ -477,7 +500,8 @@ class MavlinkLink:
         self._counters = counters
         self.gimballed = bool(gimballed)
         self._extra_destinations = extra_destinations
-        #: GIMBAL_DEVICE_ATTITUDE_STATUS messages received, used or not (the watchdog's gimbal check)
+        #: GIMBAL_DEVICE_ATTITUDE_STATUS messages of the autopilot's system with an attitude (a finite unit
+        #: quaternion), of any gimbal, used or not (the watchdog's gimbal check)
         self.gimbal_reports = 0
         #: the gimbal followed (MavlinkConfig.gimbal_device_id's numbering); None until one is heard
         self.gimbal_device_id: int | None = config.gimbal_device_id
@@ -637,6 +661,8 @@ class MavlinkLink:
                 if self.raw_tap is not None:  # the flight recorder: the bytes as read, before any parsing
                     self.raw_tap(data, "autopilot", addr, "rx")
                 handled += self._feed(data, addr, now)
+            elif addr is not None:  # a datagram with no bytes (None: the ICMP error of an earlier send, not input)
+                self._counters.count("mavlink_empty_datagram", f"from {addr}", level=logging.DEBUG)
         if self.state == LINK_CONNECTED:
             self._service_commands(now)
         return handled
@@ -699,9 +725,20 @@ class MavlinkLink:
         if mtype == "HEARTBEAT":
             self._on_heartbeat(msg, src_sys, src_comp, now, addr)
             return
-        if self.autopilot_sysid is None or src_sys != self.autopilot_sysid:
+        if self.autopilot_sysid is None:
+            self._counters.count(
+                "mavlink_before_lock",
+                f"{mtype} from {src_sys}/{src_comp}: no autopilot followed yet",
+                level=logging.DEBUG,
+            )
+            return
+        if src_sys != self.autopilot_sysid:
+            self._foreign(mtype, src_sys, src_comp)
             return
         from_autopilot = src_comp == self.config.autopilot_compid
+        if not from_autopilot and mtype in _AUTOPILOT_ONLY:
+            self._foreign(mtype, src_sys, src_comp)
+            return
         if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
             att = AttitudeQuaternion.from_message(msg)
             self._pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
@@ -719,9 +756,7 @@ class MavlinkLink:
             fields = (g.satellites_visible, g.hdop, g.vdop, g.h_acc_m, g.v_acc_m)
             self.gnss = GnssState.updated(self.gnss, now, g.fix_type, *fields)
         elif mtype == "GIMBAL_DEVICE_ATTITUDE_STATUS":
-            self.gimbal_reports += 1  # the watchdog checks it against the configured mount
-            if self.gimballed:
-                self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), src_comp, from_autopilot)
+            self._on_gimbal(GimbalDeviceAttitudeStatus.from_message(msg), src_comp, from_autopilot)
         elif mtype == "TIMESYNC":
             self._on_timesync(Timesync.from_message(msg), src_comp, from_autopilot)
         elif mtype == "SYSTEM_TIME" and from_autopilot:
@@ -749,10 +784,23 @@ class MavlinkLink:
             return False
         return not rivals and now - c[0] >= self.config.lock_settle_s
 
+    def _foreign(self, what: str, src_sys: int, src_comp: int) -> None:
+        """Count a message of another system, or of another component of the autopilot's system, that is not
+        used (module docstring): at DEBUG, a ground station or a companion on the link is normal traffic."""
+        ap_sys, ap_comp = self.autopilot_sysid, self.config.autopilot_compid
+        if src_sys == ap_sys:
+            reason, whose = "mavlink_foreign_component", f"component {src_comp} of the autopilot's system {src_sys}"
+        else:
+            reason, whose = "mavlink_foreign_system", f"system {src_sys} (component {src_comp})"
+        used = "no autopilot followed yet" if ap_sys is None else f"only {ap_sys}/{ap_comp}'s is used"
+        self._counters.count(reason, f"{what} from {whose}: {used}", level=logging.DEBUG)
+
     def _on_heartbeat(self, msg, src_sys: int, src_comp: int, now: float, addr=None) -> None:
         if msg.autopilot == mavlink2.MAV_AUTOPILOT_INVALID or msg.type in _NOT_AUTOPILOT_TYPES:
+            self._foreign(f"HEARTBEAT (MAV_TYPE {msg.type}, MAV_AUTOPILOT {msg.autopilot})", src_sys, src_comp)
             return
         if src_comp != self.config.autopilot_compid:
+            self._foreign(f"HEARTBEAT (MAV_TYPE {msg.type})", src_sys, src_comp)
             return
         if self.autopilot_sysid is None:
             if not self._settled(src_sys, now):
@@ -791,6 +839,19 @@ class MavlinkLink:
         # common.xml: gimbal_device_id is 1-6 when the manager speaks for its device, else 0 and the sender's
         # component id names the device; a vehicle may carry several (e.g. ArduPilot's MNT1 and MNT2)
         device = gim.gimbal_device_id or src_comp
+        # only a report with an attitude is one: a garbage report must neither pick the gimbal that is followed
+        # nor tell the watchdog that the vehicle has (or lacks) the gimbal the configured mount says
+        q = gim.q_ref_from_gimbal
+        norm = math.sqrt(sum(c * c for c in q)) if len(q) == 4 else math.nan
+        if not abs(norm - 1.0) <= QUAT_NORM_TOL:  # False for NaN
+            self._counters.count(
+                "gimbal_attitude_invalid",
+                f"gimbal {device} (component {src_comp}): quaternion {q} is not a unit quaternion; report dropped",
+            )
+            return
+        self.gimbal_reports += 1  # the watchdog checks it against the configured mount
+        if not self.gimballed:
+            return
         if self.gimbal_device_id is None:
             self.gimbal_device_id = device
             log.info("following gimbal %d (component %d)", device, src_comp)

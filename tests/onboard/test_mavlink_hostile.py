@@ -3,6 +3,7 @@ unknown ids, signing.  Loopback on 127.0.0.1 only, fake clock, bounded waits."""
 
 from __future__ import annotations
 
+import logging
 import os
 import select
 import socket
@@ -134,6 +135,18 @@ def test_oversized_datagram_is_dropped_unparsed(rig, stranger):
     rig.ap.attitude(9_000_000, [1, 0, 0, 0])
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
     assert rig.counters["mavlink_datagram_too_large"] == 1
+
+
+def test_empty_datagrams_are_counted_at_debug_and_cost_nothing_else(rig, stranger, caplog):
+    rig.connect()
+    with caplog.at_level(logging.DEBUG, logger="onboard.core.counters"):
+        for _ in range(3):
+            stranger.send(b"")
+        rig.ap.attitude(9_000_000, [1, 0, 0, 0])
+        assert rig.drive(lambda: rig.counters["mavlink_empty_datagram"] == 3 and rig.pose.sizes()["attitude"] == 1)
+    (line,) = [r for r in caplog.records if r.getMessage().startswith("mavlink_empty_datagram")]  # once per interval
+    assert line.levelno == logging.DEBUG and str(stranger.sock.getsockname()[1]) in line.getMessage()
+    assert rig.link.state == LINK_CONNECTED and stranger.received() == []
 
 
 # --------------------------------------------------------------------------- identity

@@ -21,7 +21,9 @@ from onboard.core.frames import (
     GeodeticOrigin,
     euler_from_quat,
     ned_from_geodetic,
+    q_ned_from_level,
     quat_from_euler,
+    quat_multiply,
     quat_rotate,
 )
 from onboard.core.pose import PoseBuffer
@@ -161,8 +163,11 @@ def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
     assert expected[0] == pytest.approx(5.1, abs=0.01)  # ~111.18 km per degree of latitude here
     np.testing.assert_allclose(pose.body.p_ned_m, expected, atol=ATOL_M)
     assert pose.body.p_ned_m[2] == pytest.approx(-1.0, abs=ATOL_M)  # 1 m above the origin: down is negative
-    np.testing.assert_allclose(pose.body.v_ned_mps, [10.0, 0.0, 0.0], atol=1e-6)  # cm/s on the wire
-    np.testing.assert_allclose(pose.body.q_ned_from_body, q, atol=ATOL_RAD)
+    # velocity and attitude are the local level's where the vehicle is, 5 m north: turned into the origin's NED
+    q_lv = q_ned_from_level(LAT0 + 10.0 * 0.51 * dlat_per_m, LON0, GeodeticOrigin(LAT0, LON0, ALT0))
+    np.testing.assert_allclose(pose.body.v_ned_mps, quat_rotate(q_lv, [10.0, 0.0, 0.0]), atol=1e-6)  # cm/s wire
+    assert pose.body.v_ned_mps[2] > 5e-6  # the local north dips below the origin's horizon
+    np.testing.assert_allclose(pose.body.q_ned_from_body, quat_multiply(q_lv, q), atol=ATOL_RAD)
     assert rig.counters.total == 0
     assert rig.link.home_alt_amsl_m == pytest.approx(ALT0 + 1.0, abs=ATOL_M)  # relative_alt 0: home is right here
     ap.position(1_600_000, LAT0, LON0, ALT0 + 60.0, alt_rel_m=55.0)
@@ -328,6 +333,99 @@ def test_other_systems_and_non_autopilot_heartbeats_are_ignored(rig):
     assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
     rig.drive(lambda: False, timeout_s=0.1)
     assert rig.pose.sizes()["attitude"] == 1 and rig.link.autopilot_sysid == AP_SYSID
+
+
+def test_other_systems_and_components_are_counted_at_debug_and_never_used(rig, caplog):
+    """A ground station, a companion and another vehicle on the link: counted in the status's rejected counts by
+    why, logged at DEBUG only (normal traffic), and none of their telemetry reaches the pose buffer."""
+    ap = rig.ap
+    ap.attitude(4_980_000, [1, 0, 0, 0])  # before the unpinned lock settles: nobody is followed yet
+    assert rig.drive(lambda: rig.counters["mavlink_before_lock"] == 1)
+    rig.connect()
+    with caplog.at_level(logging.DEBUG, logger="onboard.core.counters"):
+        ap.as_component(42, 1)  # another vehicle
+        ap.attitude(5_000_000, [1, 0, 0, 0])
+        ap.as_component(255, 190)  # a ground station
+        ap.heartbeat(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID)
+        ap.as_component(AP_SYSID, 190)  # a GCS-typed heartbeat from the autopilot's system
+        ap.heartbeat(mav.MAV_TYPE_GCS, mav.MAV_AUTOPILOT_INVALID)
+        ap.as_component(AP_SYSID, mav.MAV_COMP_ID_ONBOARD_COMPUTER2)  # a companion relaying telemetry
+        ap.attitude(5_010_000, [1, 0, 0, 0])
+        ap.position(5_010_000, LAT0, LON0, ALT0)
+        ap.as_component(AP_SYSID, 1)
+        ap.attitude(5_020_000, [1, 0, 0, 0])
+        assert rig.drive(
+            lambda: rig.counters["mavlink_foreign_system"] == 2 and rig.counters["mavlink_foreign_component"] == 3
+        )
+        assert rig.drive(lambda: rig.pose.sizes()["attitude"] == 1)
+    assert rig.pose.sizes() == {**rig.pose.sizes(), "attitude": 1, "position": 0}
+    lines = [r for r in caplog.records if r.getMessage().startswith("mavlink_foreign")]
+    assert lines and {r.levelno for r in lines} == {logging.DEBUG}
+    assert any(
+        "HEARTBEAT (MAV_TYPE 6, MAV_AUTOPILOT 8) from component 190 of the autopilot's system" in r.getMessage()
+        for r in lines
+    )
+    assert rig.link.autopilot_sysid == AP_SYSID and rig.link.state == LINK_CONNECTED
+
+
+def _nan_gimbal_status(t_ms: int, gimbal_device_id: int = 0):
+    """A #285 with a NaN quaternion (the typed encoder refuses one: the raw pymavlink message)."""
+    nan = math.nan
+    return mav.MAVLink_gimbal_device_attitude_status_message(
+        0,
+        0,
+        t_ms,
+        mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME,
+        [nan] * 4,
+        nan,
+        nan,
+        nan,
+        0,
+        nan,
+        nan,
+        gimbal_device_id,
+    )
+
+
+def test_a_gimbal_report_without_an_attitude_neither_picks_the_gimbal_nor_counts_as_a_report():
+    """A NaN quaternion from another gimbal first: the camera's gimbal, heard next, is still the one followed."""
+    r = Rig(gimballed=True)
+    try:
+        r.connect()
+        r.ap.as_component(AP_SYSID, mav.MAV_COMP_ID_GIMBAL)
+        before = r.link.messages_rx
+        r.ap.send(_nan_gimbal_status(900))
+        assert r.drive(lambda: r.link.messages_rx > before)
+        assert r.link.gimbal_device_id is None and r.link.gimbal_reports == 0
+        assert r.counters["gimbal_attitude_invalid"] == 1
+        r.ap.as_component(AP_SYSID, 1)
+        q_g = quat_from_euler(0.0, math.radians(-40.0), 0.0)
+        r.ap.send(
+            GimbalDeviceAttitudeStatus(
+                1_000_000, tuple(q_g), mav.GIMBAL_DEVICE_FLAGS_YAW_IN_VEHICLE_FRAME, gimbal_device_id=1
+            )
+        )
+        assert r.drive(lambda: r.pose.sizes()["gimbal"] == 1)
+        assert r.link.gimbal_device_id == 1 and r.link.gimbal_reports == 1 and r.counters["second_gimbal"] == 0
+    finally:
+        r.close()
+
+
+@pytest.mark.parametrize("gimballed", [False, True], ids=["fixed", "gimballed"])
+def test_gimbal_reports_count_only_reports_with_an_attitude(gimballed):
+    """The watchdog's gimbal_mismatch reads gimbal_reports: a garbage #285 must not raise it on a fixed mount nor
+    clear it on a gimballed one."""
+    r = Rig(gimballed=gimballed)
+    try:
+        r.connect()
+        before = r.link.messages_rx
+        r.ap.send(_nan_gimbal_status(900, gimbal_device_id=1))
+        assert r.drive(lambda: r.link.messages_rx > before)
+        assert r.link.gimbal_reports == 0 and r.counters["gimbal_attitude_invalid"] == 1
+        r.ap.send(GimbalDeviceAttitudeStatus(1_000_000, (1.0, 0.0, 0.0, 0.0), 0, gimbal_device_id=1))
+        assert r.drive(lambda: r.link.gimbal_reports == 1)
+    finally:
+        r.close()
 
 
 def test_gimbal_status_reaches_the_pose_buffer():
