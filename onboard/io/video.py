@@ -399,9 +399,15 @@ class H264RtpEncoder:
 
 
 class _UdpSink:
-    """One UDP socket to ``host:port``: each datagram sent on its own, counted (``datagrams``) or, when
-    it does not leave, counted as an error and dropped (nobody listening -- ICMP refused -- or a full
-    buffer: the next one goes on)."""
+    """One UDP socket connected to ``host:port``: the kernel delivers it datagrams from that address only (it
+    never reads; unconnected, it would queue anyone's), and it learns when nobody listens there.
+
+    Each datagram is sent on its own and counted (``datagrams``); one that does not leave is counted in
+    ``errors`` and dropped, the next one goes on (a full buffer, no route yet: a destination that is not
+    reachable when the daemon starts is connected again at the next send).  Nobody listening: the ICMP port
+    unreachable of an earlier datagram comes back as ECONNREFUSED on a later send, which Linux then does not
+    send; counted in ``refused`` and that datagram sent once more, so that a ground station that has just
+    opened its port gets whole pictures."""
 
     def __init__(self, host: str, port: int) -> None:
         infos = socket.getaddrinfo(host, port, 0, socket.SOCK_DGRAM)
@@ -409,13 +415,36 @@ class _UdpSink:
         self.sock = socket.socket(family, socket.SOCK_DGRAM)
         self.datagrams = 0
         self.errors = 0
+        self.refused = 0
+        self.connected = False
+        self._connect()
+
+    def _connect(self) -> bool:
+        try:
+            self.sock.connect(self.addr)
+        except OSError as exc:
+            if self.errors == 0:
+                log.warning("video: cannot reach %s:%s yet (%s); retried at each datagram", *self.addr[:2], exc)
+            return False
+        self.connected = True
+        return True
 
     def send(self, datagram: bytes) -> None:
-        try:
-            self.sock.sendto(datagram, self.addr)
-            self.datagrams += 1
-        except OSError:
+        if not self.connected and not self._connect():
             self.errors += 1
+            return
+        for _ in range(2):
+            try:
+                self.sock.send(datagram)
+            except ConnectionRefusedError:
+                self.refused += 1
+                continue
+            except OSError:
+                self.errors += 1
+                return
+            self.datagrams += 1
+            return
+        self.errors += 1  # refused twice: a new ICMP error came back in between
 
     def close(self) -> None:
         self.sock.close()
@@ -582,6 +611,8 @@ class VideoStreamer:
             "dropped": self.frames_dropped,
             "errors": self.errors,
             "datagrams": self._sink.datagrams,
+            "send_errors": self._sink.errors,
+            "refused": self._sink.refused,
             "encode_ms_p50": float(np.percentile(ms, 50)) if ms.size else None,
             "encode_ms_p99": float(np.percentile(ms, 99)) if ms.size else None,
             "camera_rate_hz": None if rate is None else round(rate, 2),

@@ -7,8 +7,10 @@ camera component with the type of its transport."""
 
 from __future__ import annotations
 
+import errno
 import io
 import math
+import socket
 import threading
 import time
 
@@ -27,6 +29,8 @@ from onboard.io.video import (  # noqa: E402
     H264TsEncoder,
     VideoConfig,
     VideoStreamer,
+    _UdpRtpSink,
+    _UdpTsSink,
     agc_limits,
     agc_u8,
     draw_overlay,
@@ -390,6 +394,96 @@ def test_submit_never_blocks_and_drops_the_oldest(monkeypatch):
         streamer.close()
 
 
+def _closed_port() -> int:
+    """A port on 127.0.0.1 that nobody listens on (bound, then let go)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _recv_all(sock: socket.socket, n: int) -> list[bytes]:
+    sock.settimeout(WAIT_S)
+    return [sock.recv(65536) for _ in range(n)]
+
+
+@pytest.mark.parametrize("sink_cls", [_UdpRtpSink, _UdpTsSink], ids=["rtp", "mpegts"])
+def test_the_video_socket_is_connected_to_its_destination_and_takes_nothing_from_others(sink_cls):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as x:
+        rx.bind(("127.0.0.1", 0))
+        sink = sink_cls("127.0.0.1", rx.getsockname()[1])
+        try:
+            assert sink.sock.getpeername() == rx.getsockname()
+            sink.send(b"picture")
+            assert _recv_all(rx, 1) == [b"picture"] and sink.datagrams == 1
+            x.sendto(b"from anyone", sink.sock.getsockname())  # a stranger writing to the sender's port
+            rx.sendto(b"from the destination", sink.sock.getsockname())
+            sink.sock.settimeout(WAIT_S)
+            assert sink.sock.recv(100) == b"from the destination"  # the kernel dropped the stranger's
+        finally:
+            sink.close()
+
+
+def test_nobody_listening_is_counted_not_raised_and_a_receiver_that_opens_gets_every_datagram():
+    port = _closed_port()
+    sink = _UdpRtpSink("127.0.0.1", port)
+    try:
+        sent = 0
+        while sink.refused == 0 and sent < 1000:  # the ICMP port unreachable of one comes back on a later send
+            sink.send(b"nobody")
+            sent += 1
+        assert sink.refused >= 1 and sink.errors == 0 and sink.datagrams == sent
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+            rx.bind(("127.0.0.1", port))  # the ground station opens its port
+            for k in range(3):
+                sink.send(b"unit %d" % k)
+            assert _recv_all(rx, 3) == [b"unit 0", b"unit 1", b"unit 2"]  # none lost to an earlier refusal
+    finally:
+        sink.close()
+
+
+def test_a_destination_unreachable_at_start_fails_nothing_and_is_connected_at_a_later_send(monkeypatch):
+    """No route yet when the daemon starts (the data link comes up later): the datagram is counted and dropped,
+    the next one connects and goes."""
+
+    class NoRouteOnce(socket.socket):
+        fails = 2  # the constructor's connect and the first send's
+
+        def connect(self, address) -> None:
+            if NoRouteOnce.fails:
+                NoRouteOnce.fails -= 1
+                raise OSError(errno.ENETUNREACH, "Network is unreachable")
+            super().connect(address)
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        monkeypatch.setattr(socket, "socket", NoRouteOnce)
+        sink = _UdpRtpSink("127.0.0.1", rx.getsockname()[1])
+        monkeypatch.undo()
+        try:
+            sink.send(b"lost")
+            assert (sink.errors, sink.datagrams, sink.connected) == (1, 0, False)
+            sink.send(b"goes")
+            assert (sink.errors, sink.datagrams, sink.connected) == (1, 1, True)
+            assert _recv_all(rx, 1) == [b"goes"]
+        finally:
+            sink.close()
+
+
+def test_the_streamer_to_nobody_encodes_every_frame_and_counts_the_refusals():
+    streamer = VideoStreamer(VideoConfig(destination=f"127.0.0.1:{_closed_port()}", queue_length=30), W, H)
+    try:
+        for k in range(5):
+            _submit_without_drop(streamer, _mono16(k)[0], k * FRAME_US)
+        deadline = time.monotonic() + WAIT_S
+        while streamer.frames_encoded < 5 and time.monotonic() < deadline:
+            threading.Event().wait(0.05)
+        st = streamer.status()
+    finally:
+        streamer.close()
+    assert st["encoded"] == 5 and st["errors"] == 0 and st["send_errors"] == 0
+    assert st["refused"] >= 1 and st["datagrams"] > 0
+
+
 def test_camera_advertises_the_stream_on_the_destination_port():
     from onboard.app.components import make_camera_protocol
     from onboard.app.config import build_config
@@ -399,7 +493,8 @@ def test_camera_advertises_the_stream_on_the_destination_port():
     proto = make_camera_protocol(cfg, K)
     s = proto.stream
     # RTP/UDP by default: VIDEO_STREAM_TYPE_RTPUDP (1), QGC opens udp://0.0.0.0:5600 as RTP H.264
-    assert s.uri == "5600" and s.stream_type == 1 and s.thermal and (s.resolution_h_px, s.resolution_v_px) == (W, H)
+    # not flagged THERMAL: QGroundControl opens its main video only from a stream without the flag
+    assert s.uri == "5600" and s.stream_type == 1 and not s.thermal and (s.resolution_h_px, s.resolution_v_px) == (W, H)
     ts = make_camera_protocol(
         build_config(
             {
