@@ -744,9 +744,9 @@ class MavlinkLink:
             self._pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
             pos = GlobalPositionInt.from_message(msg)
-            self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
+            stored = self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
             home = pos.alt_amsl_m - pos.alt_rel_m
-            if math.isfinite(home):
+            if stored and math.isfinite(home):  # a dropout's zeros or sentinels are no home
                 self.home_alt_amsl_m = home
         elif mtype == "GPS_RAW_INT" and from_autopilot:
             g = GpsRawInt.from_message(msg)
