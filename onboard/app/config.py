@@ -71,6 +71,12 @@ from onboard.core.schema import (
     to_plain,
 )
 from onboard.estimation.guidance import GuidanceConfig
+from onboard.estimation.window_problem import (
+    SHIPPED_ATTITUDE_BIAS_SIGMA_DEG,
+    SHIPPED_ATTITUDE_WHITE_SIGMA_DEG,
+    SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M,
+    SHIPPED_PIXEL_SIGMA_PX,
+)
 from onboard.imaging.preprocess import ImagingParams
 from onboard.io.live_view import LiveViewConfig
 from onboard.io.mavlink_link import MavlinkConfig, parse_connection
@@ -206,10 +212,10 @@ class EstimatorConfig:
 
     enabled: Bool = True
     window_s: Annotated[float, Number(0.0, 600.0, lo_open=True)] = 20.0
-    pixel_sigma_px: Annotated[float, Number(0.0, 100.0, lo_open=True)] = 0.3
-    attitude_white_sigma_deg: Annotated[float, Number(0.0, 30.0)] = 0.05
-    attitude_bias_sigma_deg: Annotated[float, Number(0.0, 30.0)] = 0.1
-    camera_position_white_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.02
+    pixel_sigma_px: Annotated[float, Number(0.0, 100.0, lo_open=True)] = SHIPPED_PIXEL_SIGMA_PX
+    attitude_white_sigma_deg: Annotated[float, Number(0.0, 30.0)] = SHIPPED_ATTITUDE_WHITE_SIGMA_DEG
+    attitude_bias_sigma_deg: Annotated[float, Number(0.0, 30.0)] = SHIPPED_ATTITUDE_BIAS_SIGMA_DEG
+    camera_position_white_sigma_m: Annotated[float, Number(0.0, 1000.0)] = SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M
     camera_position_offset_sigma_m: Annotated[float, Number(0.0, 1000.0)] = 0.0
     camera_position_drift_sigma_mps: Annotated[float, Number(0.0, 100.0)] = 0.0
     reset_on_new_track: Bool = True

@@ -106,6 +106,12 @@ from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
+from onboard.estimation.window_problem import (
+    SHIPPED_ATTITUDE_BIAS_SIGMA_DEG,
+    SHIPPED_ATTITUDE_WHITE_SIGMA_DEG,
+    SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M,
+    SHIPPED_PIXEL_SIGMA_PX,
+)
 from onboard.estimation.windows import DEFAULT_WINDOW_S, WindowedSolution, solve_in_windows
 
 __all__ = [
@@ -516,16 +522,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--pixel-sigma",
         type=_positive("--pixel-sigma"),
-        default=NoiseModel().pixel_sigma_px,
+        default=SHIPPED_PIXEL_SIGMA_PX,
         metavar="PX",
         help="pixel noise, 1 sigma per axis (default %(default)s)",
     )
-    for option, metavar, help_text in (
-        ("--attitude-sigma-deg", "DEG", "white attitude noise per axis, 1 sigma (default 0)"),
-        ("--attitude-bias-deg", "DEG", "prior sigma of a constant attitude bias per axis, estimated (default 0: none)"),
-        ("--position-sigma-m", "M", "white camera-position noise per axis, 1 sigma (default 0)"),
+    for option, default, metavar, help_text in (
+        ("--attitude-sigma-deg", SHIPPED_ATTITUDE_WHITE_SIGMA_DEG, "DEG", "white attitude noise per axis, 1 sigma"),
+        (
+            "--attitude-bias-deg",
+            SHIPPED_ATTITUDE_BIAS_SIGMA_DEG,
+            "DEG",
+            "prior sigma of a constant attitude bias per axis, estimated (0: none)",
+        ),
+        ("--position-sigma-m", SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M, "M", "white camera-position noise per axis"),
     ):
-        p.add_argument(option, type=_nonneg(option), default=0.0, metavar=metavar, help=help_text)
+        p.add_argument(
+            option,
+            type=_nonneg(option),
+            default=default,
+            metavar=metavar,
+            help=f"{help_text} (default %(default)g: the daemon's shipped configuration, an RTK-class drone's "
+            "navigation; 0 for exact navigation)",
+        )
     p.add_argument(
         "--delta",
         type=_positive("--delta"),

@@ -67,7 +67,25 @@ from onboard.estimation.kernels import (
 from onboard.estimation.observations import Observations
 from onboard.estimation.spline import KnotGrid, fit_controls, gauss_legendre_3
 
-__all__ = ["NoiseModel", "MotionPrior", "WeakPriorSettings", "WindowProblem", "SolveResult", "drain"]
+__all__ = [
+    "NoiseModel",
+    "MotionPrior",
+    "WeakPriorSettings",
+    "WindowProblem",
+    "SolveResult",
+    "drain",
+    "SHIPPED_PIXEL_SIGMA_PX",
+    "SHIPPED_ATTITUDE_WHITE_SIGMA_DEG",
+    "SHIPPED_ATTITUDE_BIAS_SIGMA_DEG",
+    "SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M",
+]
+
+#: the noise the daemon's shipped configuration assumes (its ``estimator`` section's defaults), an RTK-class drone's
+#: (config/noise_cases.yaml RTK) with the image chain's centroid noise; what the offline reconstruction assumes too
+SHIPPED_PIXEL_SIGMA_PX = 0.3
+SHIPPED_ATTITUDE_WHITE_SIGMA_DEG = 0.05
+SHIPPED_ATTITUDE_BIAS_SIGMA_DEG = 0.1
+SHIPPED_CAMERA_POSITION_WHITE_SIGMA_M = 0.02
 
 _T = TypeVar("_T")
 

@@ -569,3 +569,18 @@ def test_mutated_valid_file_never_crashes(valid_lines, data):
             assert np.all(np.isfinite(a[:, :4]))
             assert np.all(np.diff(a[:, 0]) > 0)
             assert (method == "paper") == bool(np.all(np.isnan(a[:, 4:])))
+
+
+def test_the_noise_assumed_by_default_is_the_shipped_daemons():
+    """Realistic by default: the offline reconstruction assumes the daemon's shipped estimator noise (an RTK-class
+    drone's), so a simulated flight's obs.csv under the simulator's default navigation errors is reconstructed
+    as the daemon would; 0 is the exact-navigation case."""
+    from onboard.app.config import EstimatorConfig
+    from onboard.app.reconstruct import build_parser
+
+    args = build_parser().parse_args(["in.csv", "-o", "out.csv"])
+    shipped = EstimatorConfig()
+    assert args.pixel_sigma == shipped.pixel_sigma_px
+    assert args.attitude_sigma_deg == shipped.attitude_white_sigma_deg > 0
+    assert args.attitude_bias_deg == shipped.attitude_bias_sigma_deg > 0
+    assert args.position_sigma_m == shipped.camera_position_white_sigma_m > 0
