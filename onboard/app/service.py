@@ -573,12 +573,14 @@ class OnboardService:
         with self._stats_lock:
             frames_in = self.frames_in
         rx = None
+        open_error = None
         if self.link is not None:
+            open_error = self.link.open_error
             try:
                 rx = int(self.link.status().messages_rx)
             except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
                 self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
-        self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx)
+        self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx, mavlink_open_error=open_error)
         self.watchdog.load(
             now,
             frames_dropped=self.frames_dropped,

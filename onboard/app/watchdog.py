@@ -185,8 +185,17 @@ class Watchdog:
 
     # ------------------------------------------------------------------ inputs
 
-    def step(self, now_s: float, *, frames_in: int | None = None, mavlink_rx: int | None = None) -> None:
-        """Update with the running counts of frames received and MAVLink messages, then check the timeouts."""
+    def step(
+        self,
+        now_s: float,
+        *,
+        frames_in: int | None = None,
+        mavlink_rx: int | None = None,
+        mavlink_open_error: str | None = None,
+    ) -> None:
+        """Update with the running counts of frames received and MAVLink messages, then check the timeouts.
+        ``mavlink_open_error``: why the MAVLink connection could not be opened (None: it is open), which the
+        ``no_mavlink`` warning then names instead of the far end."""
         if frames_in is not None and frames_in > self._frames_seen:
             self._frames_seen = frames_in
             self.frame_received(now_s)
@@ -202,6 +211,14 @@ class Watchdog:
             if now_s - last_s >= t:
                 what, where = _SILENT_INPUT[code]
                 ever = "since the last one" if seen else "since start"
+                if code == "no_mavlink" and mavlink_open_error:
+                    # nothing can arrive on a connection that is not open: say why it is not, not what to check far away
+                    where = (
+                        "'{mavlink_connection}' (mavlink.connection / --mavlink): it cannot be opened ("
+                        + mavlink_open_error.replace("{", "{{").replace("}", "}}")
+                        + "); for a port in use, another program (another daemon?) holds it; retried every "
+                        "mavlink.reopen_interval_s"
+                    )
                 self._raise(
                     code,
                     f"no {what} for {now_s - last_s:.0f} s ({ever}) on "

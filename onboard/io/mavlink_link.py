@@ -529,6 +529,8 @@ class MavlinkLink:
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
         self._next_open_s = -math.inf
+        #: why the connection could not be opened the last time it was tried (None: open, or not tried yet)
+        self.open_error: str | None = None
         self.state = LINK_WAITING
         self.autopilot_sysid: int | None = self.config.autopilot_sysid
         self.autopilot_mode: tuple[int, int, int] | None = (
@@ -568,9 +570,11 @@ class MavlinkLink:
                 )
                 self._stream_parser = new_parser(self._signing)
             log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
+            self.open_error = None
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
             self._transport = None
             self._next_open_s = now + self.config.reopen_interval_s
+            self.open_error = str(exc)
             self._counters.count("mavlink_open_failed", f"{ep.device}: {exc}")
 
     def close(self) -> None:

@@ -674,6 +674,8 @@ def test_a_second_link_on_a_port_another_holds_is_refused_and_counted_not_shared
         assert second.fileno() is None
         assert counter["mavlink_open_failed"] == 1
         assert f"mavlink_open_failed: udpin:127.0.0.1:{rig.port}: [Errno 98] Address already in use" in caplog.text
+        assert second.open_error == "[Errno 98] Address already in use"  # what the no_mavlink warning names
+        assert rig.link.open_error is None
         rig.heartbeats(2)
         assert rig.drive(lambda: rig.link.status().messages_rx >= 2)
     finally:

@@ -195,6 +195,7 @@ class _FakeGcs:
 
 class _FakeLink:
     autopilot_sysid = 7
+    open_error = None
 
     def status(self):
         return quiet_link_status("connected", autopilot_sysid=7, messages_rx=1)

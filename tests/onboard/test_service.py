@@ -647,6 +647,7 @@ def test_process_estimator_gives_the_inline_estimates_when_it_keeps_up():
 
 class _FakeLink:
     autopilot_sysid = 1
+    open_error = None  # MavlinkLink.open_error: the connection is open
 
     def __init__(self) -> None:
         self.rx = 0

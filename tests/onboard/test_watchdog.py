@@ -41,6 +41,16 @@ def test_no_frames_and_no_mavlink_warn_once_after_5_s(caplog):
     assert {w.code for w in wd.active} == {"no_frames", "no_mavlink"}
 
 
+def test_no_mavlink_on_a_connection_that_cannot_open_says_why_not_what_to_check_far_away(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        for i in range(60):
+            wd.step(100.0 + 0.1 * i, frames_in=0, mavlink_rx=0, mavlink_open_error="[Errno 98] Address already in use")
+    mav = next(m for m in _warnings(caplog) if m.startswith("no_mavlink"))
+    assert CONN in mav and "cannot be opened ([Errno 98] Address already in use)" in mav
+    assert "another program" in mav and "mavlink-router sends there" not in mav
+
+
 def test_inputs_clear_the_warnings_and_a_relapse_is_not_warned_again(caplog):
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
