@@ -271,6 +271,14 @@ def _run_config(args):
     if clash is not None:
         raise ConfigError(clash)
     endpoints = mavlink_endpoints(scenario, args.mavlink, vehicle)
+    if not args.no_render and not (
+        args.zenoh_connect or args.zenoh_listen or args.zenoh_config or args.zenoh_multicast_scouting
+    ):
+        # the run is otherwise silent about it: frames "published" to nobody, and the daemon only says no_frames
+        log.warning(
+            "no --zenoh-connect, --zenoh-listen or --zenoh-config: the IR frames go to a zenoh session no daemon can "
+            "reach (multicast scouting is off); e.g. --zenoh-connect tcp/127.0.0.1:7447, the shipped daemon's listener"
+        )
     start = args.start_time_utc if args.start_time_utc is not None else ("now" if rate.factor == 1.0 else None)
     return RunConfig(
         scenario=scenario,
