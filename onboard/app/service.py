@@ -434,6 +434,12 @@ class OnboardService:
         if changes != self._withheld_at:
             self._withheld_at = changes
             self.pipeline.withheld_because = tuple(w.code for w in self.watchdog.active if w.code in MISMATCH_WARNINGS)
+        withheld = self.pipeline.withheld_because
+        if not self.mount.gimballed and "gimbal_mismatch" not in withheld and self.link is not None:
+            # a gimbal reporting under a fixed mount: the watchdog names it at its next turn (2 Hz), but no frame
+            # in between may carry a direction made without the gimbal
+            if getattr(self.link, "gimbal_reports", 0) > 0:
+                self.pipeline.withheld_because = (*withheld, "gimbal_mismatch")
         try:
             track = with_utc(self.pipeline.process(frame, received_ns), self.utc.mapping)  # its UTC, once known
             now_s = self._clock()

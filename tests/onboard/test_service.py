@@ -682,6 +682,24 @@ def _quiet_service(overrides=None):
     return svc, clock
 
 
+def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction():
+    """The watchdog warns gimbal_mismatch at its 2 Hz turn; a frame processed before it must not carry a line of
+    sight made without the gimbal (a newcomer's fixed-mount daemon against a gimballed simulator published two)."""
+    from onboard.core.irframe import IrFrame
+
+    svc, clock = _quiet_service()
+    assert not svc.mount.gimballed and svc.pipeline.withheld_because == ()
+    frame = IrFrame(seq=0, time_boot_us=1000, pixels=np.zeros((512, 640), np.uint8))
+    svc._process(frame, clock.ns())
+    assert svc.pipeline.withheld_because == ()  # no gimbal reported: nothing withheld
+    svc.link.gimbal_reports = 1
+    svc._process(IrFrame(seq=1, time_boot_us=34_333, pixels=frame.pixels), clock.ns())
+    assert svc.pipeline.withheld_because == ("gimbal_mismatch",)
+    assert [w.code for w in svc.watchdog.active] == []  # before the watchdog's own turn
+    svc._watch(clock())
+    assert "gimbal_mismatch" in [w.code for w in svc.watchdog.active]
+
+
 def test_service_warns_once_about_no_frames_and_no_mavlink_naming_what_to_check(caplog):
     svc, clock = _quiet_service()
     svc.watchdog.restart(clock())
