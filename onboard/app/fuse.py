@@ -65,6 +65,7 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from onboard.app.cli_args import OneLineParser, above_zero, add_zenoh_options, nonnegative_float
+from onboard.app.logs import setup_logging
 from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
@@ -515,7 +516,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    setup_logging(args.log_level, "text")  # a service beside the daemons: their log lines, one parser for both
     noise = noise_models(args)
     config = FleetConfig()
     warm_up(config)

@@ -29,7 +29,9 @@ import logging
 import math
 import os
 import queue
+import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -64,7 +66,7 @@ NO_TRACK_HINT_S = 10.0  # one track per frame once the simulator runs; its start
 EXIT_OK = 0
 EXIT_CONFIG = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
-POLL_S = 0.5  # longest wait on the queue: the deadline and the no-track hint are checked this often
+POLL_S = 0.1  # longest wait on the queue: the deadline, Ctrl-C and the no-track hint are checked this often
 
 
 @dataclass
@@ -80,11 +82,13 @@ class WatchCounts:
     first_position_s: float | None = None
     first_observable_s: float | None = None
     bad: int = 0
+    fleet_tracks: int = 0  # of ``tracks``, the fusion's (which carry no line of sight)
 
     def add_fleet(self, obj: dict) -> None:
         """One ``irtrack.fleet_track/1`` (the fusion's output): a position always, a line of sight never, its time
         UTC (no boot time, so no "first at t")."""
         self.tracks += 1
+        self.fleet_tracks += 1
         if obj.get("lat_deg") is not None:
             self.with_position += 1
         if obj.get("observable"):
@@ -186,10 +190,13 @@ def _counts_text(counts: WatchCounts) -> str:
 
 def summary_line(counts: WatchCounts, seconds: float) -> str:
     """The closing line: how many tracks, with a line of sight, a position, observable, and when first."""
-    text = (
-        f"summary: {counts.tracks} tracks in {seconds:.1f} s, {counts.with_los} with line of sight, "
-        f"{counts.with_position} with position"
-    )
+    if counts.fleet_tracks and counts.fleet_tracks == counts.tracks:  # fused targets: positions, no line of sight
+        text = f"summary: {counts.tracks} fleet tracks in {seconds:.1f} s, {counts.with_position} with position"
+    else:
+        text = (
+            f"summary: {counts.tracks} tracks in {seconds:.1f} s, {counts.with_los} with line of sight, "
+            f"{counts.with_position} with position"
+        )
     if counts.first_position_s is not None:
         text += f" (first at t {counts.first_position_s:.1f} s)"
     text += f", {counts.observable} observable"
@@ -279,14 +286,16 @@ def _receive(
     out: TextIO,
     err: TextIO,
     hint: str,
+    stop: threading.Event | None = None,
 ) -> None:
-    """Print what arrives in ``inbox`` until ``seconds`` have passed (forever for 0); updates ``counts``."""
+    """Print what arrives in ``inbox`` until ``seconds`` have passed (forever for 0) or ``stop`` is set; updates
+    ``counts``."""
     start = time.monotonic()
     deadline = None if seconds == 0 else start + seconds
     hinted = False
     while True:
         now = time.monotonic()
-        if deadline is not None and now >= deadline:
+        if (deadline is not None and now >= deadline) or (stop is not None and stop.is_set()):
             return
         if not hinted and counts.tracks + counts.bad == 0 and now - start >= NO_TRACK_HINT_S:
             print(hint, file=err, flush=True)
@@ -341,7 +350,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"frame it receives; check that the simulator or camera is running, and the daemon too, with vehicle "
             f"{args.vehicle} and zenoh reachable at {_where(settings)}"
         )
-        _receive(inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint)
+        # Ctrl-C while receiving sets a flag instead of raising: a KeyboardInterrupt inside queue.get can leave its
+        # lock released twice, and the RuntimeError that follows escaped as a traceback instead of the one line
+        stop = threading.Event()
+        previous = signal.signal(signal.SIGINT, lambda _signum, _frame: stop.set())
+        try:
+            _receive(
+                inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint, stop=stop
+            )
+        finally:
+            signal.signal(signal.SIGINT, previous)
+        if stop.is_set():
+            print(interrupted_line(counts), file=info, flush=True)
+            return EXIT_INTERRUPTED
         session.close()
         session = None
         print(summary_line(counts, time.monotonic() - start), file=info, flush=True)

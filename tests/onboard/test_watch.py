@@ -9,6 +9,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -103,6 +104,9 @@ def test_counts_summary_and_interrupted_lines():
     assert interrupted_line(counts) == "interrupted: 4 tracks received, 2 with position, 1 observable"
     counts.bad = 2
     assert summary_line(counts, 1.0).endswith("; 2 payloads were not tracks")
+    fleet = WatchCounts()
+    fleet.add_fleet({"lat_deg": 32.0, "observable": True})  # the fusion's: no line of sight to count
+    assert summary_line(fleet, 40.0) == "summary: 1 fleet tracks in 40.0 s, 1 with position, 1 observable"
     assert summary_line(WatchCounts(), 0.5) == (
         "summary: 0 tracks in 0.5 s, 0 with line of sight, 0 with position, 0 observable; nothing arrived: is the "
         "daemon running, and zenoh connected to it?"
@@ -325,7 +329,17 @@ def test_the_fleet_key_shows_the_fusions_targets_one_line_each():
     for obs in (False, True):
         inbox.put(_fleet_payload(obs))
     counts, out, err = WatchCounts(), io.StringIO(), io.StringIO()
-    _receive(inbox, counts, seconds=0.6, as_json=False, out=out, err=err, hint="")
+    # until both are counted (a short deadline alone lost the second on a loaded machine), 10 s at most
+    done = threading.Event()
+
+    def stop_when_both_counted() -> None:
+        deadline = time.monotonic() + 10.0
+        while counts.tracks < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        done.set()
+
+    threading.Thread(target=stop_when_both_counted, daemon=True).start()
+    _receive(inbox, counts, seconds=10.0, as_json=False, out=out, err=err, hint="", stop=done)
     assert out.getvalue().count("target 3") == 2 and err.getvalue() == ""
     assert (counts.tracks, counts.with_position, counts.observable, counts.bad) == (2, 2, 1, 0)
 
