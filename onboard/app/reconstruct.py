@@ -517,7 +517,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--summary-json", metavar="S.json", help="write a JSON summary (observable, method, frames, diagnostics)"
     )
     p.add_argument(
-        "--method", choices=("map", "paper"), default="map", help="MAP estimator (default) or the paper's closed form"
+        "--method",
+        choices=("map", "paper"),
+        default="map",
+        help="MAP estimator (default) or the paper's closed form (no noise model: its sigmas are nan)",
     )
     p.add_argument(
         "--pixel-sigma",
