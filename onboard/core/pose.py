@@ -81,8 +81,8 @@ Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid
 ``shape``; quaternions also ``zero``, ``not_unit``.  Position also ``zero`` (lat = lon = 0: GPS
 dropout), ``out_of_range`` (e.g. INT32_MAX sentinels), ``alt_out_of_range``, ``jump`` (implied speed
 above ``max_speed_mps``), ``reset`` (a jump persisted: the stream restarts), ``velocity_invalid``
-(not three finite numbers, or a speed above ``max_speed_mps``: sample kept, velocity dropped), ``no_origin``.  Gimbal also ``time_reset``, ``reference_changed``,
-``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
+(not three finite numbers, or a speed above ``max_speed_mps``: sample kept, velocity dropped), ``no_origin``.
+Gimbal also ``time_reset``, ``reference_changed``, ``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
 position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
 with reason ``time_invalid``, ``no_origin`` or
 ``<stream>_empty|before_buffer|not_yet|gap|extrapolation_limit``; an extrapolated pose is counted as
