@@ -34,10 +34,12 @@ import math
 
 import numpy as np
 
+from onboard.estimation.map_estimator import MapConfig
+
 __all__ = ["OBSERVABLE_MAX_RANGE_SIGMA_RATIO", "coast_estimate"]
 
-#: the estimator's verdict threshold on the range sigma (``MapConfig.observability_max_sigma_range_ratio``)
-OBSERVABLE_MAX_RANGE_SIGMA_RATIO = 0.055
+#: the estimator's verdict threshold on the range sigma (the daemon's window keeps MapConfig's)
+OBSERVABLE_MAX_RANGE_SIGMA_RATIO = MapConfig().observability_max_sigma_range_ratio
 
 
 def coast_estimate(
