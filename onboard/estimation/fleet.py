@@ -674,6 +674,13 @@ def fleet_verdict(
         # the plane of its rays, which one line of sight's floor would not cover
         add, floor_m = range_floor(vc, np.array(los_u), np.array(los_sig), np.array(los_r))
         lone = len(sol.vehicles) < 2 and not sol.carried
+        if not lone and not sol.carried:
+            # cameras closer together than their bearings can tell apart at this range (two vehicles centimetres
+            # apart) cross their rays no better than one vehicle: its floor, not the collapsed pair's own
+            cams = np.array([newest[v].p_cam_ned_m for v in sol.vehicles])
+            baseline_m = float(np.max(np.linalg.norm(cams[:, None, :] - cams[None, :, :], axis=-1)))
+            sigma_rad = max(float(np.max(newest[v].sigma_cross_rad)) for v in sol.vehicles)
+            lone = baseline_m < 3.0 * sigma_rad * max(max(los_r), vc.min_range_m)
         for i, rng in enumerate(los_r):
             # one vehicle's own rays over a short window, or an estimate collapsed onto a camera: the range is
             # the weak position prior's to say

@@ -467,3 +467,22 @@ def test_two_vehicles_whose_rays_disagree_by_two_degrees_fail_the_residual_test_
     assert est.adequacy_p < FleetConfig().verdict.adequacy_p_min
     assert est.range_sigma_ratio < FleetConfig().verdict.observability_max_sigma_range_ratio  # not what refuses it
     assert not est.observable
+
+
+def test_two_vehicles_centimetres_apart_are_one_vehicle_and_their_covariance_holds_the_truth():
+    """Cameras 1 cm apart, 1 km from the target: their rays cross no better than one vehicle's, the pair collapses
+    towards the cameras (50-120 m against 1010 m) and its own covariance left the truth at Mahalanobis 14-50 on most
+    seeds. The lone vehicle's floor covers it: unobservable, the truth inside the 99.7 % ellipsoid."""
+    tgt = SynthTarget((1000.0, 50.0, -100.0), (5.0, 3.0, 0.0))
+    times = np.arange(0.0, 0.5, 1.0 / 30.0)
+    a = SynthVehicle("uav1", (0.0, -100.0, -100.0), (8.0, 0.0, 0.0))
+    b = SynthVehicle("uav2", (0.0, -99.99, -100.0), (8.0, 0.0, 0.0))
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        rays = [ray_of(measure(v, tgt, t, rng, 0.5e-3), v.name, t) for v in (a, b) for t in times]
+        t0 = float(times[-1])
+        sol = triangulate(rays, NoiseModel(), tgt.p_ned_m(t0) + rng.normal(0.0, 100.0, 3), FleetConfig())
+        est = fleet_verdict(sol, rays, FleetConfig())
+        e = est.p_ned_m - tgt.p_ned_m(est.t_s)
+        assert not est.observable
+        assert float(e @ np.linalg.solve(est.cov_p_ned_m2, e)) < chi2.ppf(0.997, 3)
