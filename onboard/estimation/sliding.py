@@ -496,7 +496,8 @@ class SlidingWindowEstimator:
     ) -> TrackEstimate | None:
         """Add one observation; returns the estimate at ``t_s`` (None until the window can be solved).
 
-        Raises InputError for a non-increasing time or non-finite values (the row is not added).
+        Raises InputError for a non-increasing time, non-finite values or a pixel more than an image's width or
+        height outside the image (the row is not added).
         """
         t = float(t_s)
         uv = np.asarray(uv_px, dtype=float).reshape(2)
@@ -504,6 +505,13 @@ class SlidingWindowEstimator:
         q = np.asarray(q_ned_from_cam, dtype=float).reshape(4)
         if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             raise InputError("SlidingWindowEstimator.add: non-finite observation")
+        w_px, h_px = intrinsics.width_px, intrinsics.height_px
+        if not (-w_px <= uv[0] <= 2 * w_px and -h_px <= uv[1] <= 2 * h_px):
+            # no camera sees there: a corrupt measurement, which one incremental step would have taken into the
+            # window's solution (a pixel at 2000 px on a 640 px sensor made observable estimates 0.4 x range off)
+            raise InputError(
+                f"SlidingWindowEstimator.add: pixel ({uv[0]:g}, {uv[1]:g}) is far outside the {w_px} x {h_px} image"
+            )
         try:
             q = check_unit_quat(q, "SlidingWindowEstimator.add: q_ned_from_cam")
         except FrameError as exc:

@@ -298,4 +298,7 @@ def test_sliding_window_rejects_time_going_backwards_without_losing_state():
         sw.add(0.5, obs.uv_px[1], K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1])
     with pytest.raises(InputError):
         sw.add(2.0, obs.uv_px[1], K, obs.p_cam_ned_m[1], [0.0, 0.0, 0.0, 0.0])
+    for uv in ((2000.0, 256.0), (320.0, -600.0), (1e4, 1e4)):  # no camera sees there: a corrupt measurement
+        with pytest.raises(InputError, match="far outside the 640 x 512 image"):
+            sw.add(2.0, uv, K, obs.p_cam_ned_m[1], obs.q_ned_from_cam[1])
     assert len(sw._t) == 1
