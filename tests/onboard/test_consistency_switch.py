@@ -165,7 +165,7 @@ def _racetrack_flight(seed: int, duration_s: float, config) -> tuple[dict, list[
     return sw.stats, beyond
 
 
-GUARDS_OFF = {"manoeuvre_cusum_threshold": 0.0, "selection_consistency_nsigma": 0.0}
+GUARDS_OFF = {"manoeuvre_cusum_threshold": 0.0, "selection_consistency_nsigma": 0.0, "innovation_gate_chi2": 0.0}
 
 
 def test_a_racetrack_turn_after_a_leg_is_not_published_confidently_at_the_wrong_range():
