@@ -624,7 +624,7 @@ def test_router_relays_daemon_simulator_and_ground(compose, container_config):
     sessions built from their shipped settings, a ground client; only ports are changed."""
     import zenoh
 
-    from onboard.io.zenoh_session import ZenohConfig, build_config, frame_key, status_key
+    from onboard.io.zenoh_session import build_config, config_from_options, frame_key, status_key
 
     port = free_tcp_port()
     local = f"tcp/127.0.0.1:{port}"
@@ -635,7 +635,7 @@ def test_router_relays_daemon_simulator_and_ground(compose, container_config):
         connect=tuple(local if ep == "tcp/127.0.0.1:7447" else ep for ep in container_config.zenoh.connect),
     )
     sim_cmd = compose["services"]["groundsim"]["command"]
-    sim_settings = ZenohConfig(
+    sim_settings = config_from_options(  # as groundsim run builds it from its options (gossip as zenoh's)
         connect=tuple(local if ep == "tcp/127.0.0.1:7447" else ep for ep in _opt(sim_cmd, "--zenoh-connect")),
         listen=tuple(_opt(sim_cmd, "--zenoh-listen")),
     )

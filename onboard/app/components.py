@@ -13,7 +13,7 @@ if TYPE_CHECKING:
     from onboard.core.counters import RejectCounter
     from onboard.io.camera_protocol import CameraProtocol
 
-__all__ = ["make_camera_protocol", "zenoh_where"]
+__all__ = ["make_camera_protocol", "zenoh_where", "zenoh_unreachable_hint"]
 
 
 def make_camera_protocol(
@@ -65,3 +65,18 @@ def zenoh_where(config: OnboardConfig) -> str:
     gossip = {True: "on", False: "off", None: "as the config file says"}[z.gossip_autoconnect]
     parts.append(f"dialing gossiped peers {gossip}")
     return "; ".join(parts)
+
+
+def zenoh_unreachable_hint(config: OnboardConfig) -> str | None:
+    """A warning for a session no peer that a router introduces can meet: it connects (to a router, say), listens
+    nowhere and dials no gossiped peer, and no config file may say otherwise.  A zenoh 1.10 router does not relay
+    between peers, so a camera or simulator connected to the same router never reaches it.  None when it can."""
+    z = config.zenoh
+    if not z.connect or z.listen or z.config_file is not None or z.gossip_autoconnect is not False:
+        return None
+    return (
+        f"zenoh: this peer connects to {', '.join(z.connect)} and listens nowhere, dialing no peer that gossip names "
+        "(zenoh.gossip_autoconnect false): if its frames come through a zenoh router from another peer, they can "
+        "never reach it; listen (zenoh.listen, e.g. tcp/127.0.0.1:0, which the router's gossip then names), or set "
+        "zenoh.gossip_autoconnect true, or run as a client of the router (zenoh.config_file)"
+    )

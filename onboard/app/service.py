@@ -56,7 +56,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
-from onboard.app.components import make_camera_protocol, zenoh_where
+from onboard.app.components import make_camera_protocol, zenoh_unreachable_hint, zenoh_where
 from onboard.app.config import OnboardConfig
 from onboard.app.cpu_load import CpuLoad
 from onboard.app.estimator_worker import ProcessEstimator, ThreadedEstimator, make_estimator_worker
@@ -258,6 +258,9 @@ class OnboardService:
             from onboard.io.gcs_link import GcsLink
 
             self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
+        hint = zenoh_unreachable_hint(cfg)
+        if hint is not None:
+            log.warning("%s", hint)
         self.session = open_session(
             cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD
         )

@@ -507,3 +507,19 @@ def test_check_refuses_a_hostile_yaml_file_in_one_line(tmp_path, capsys, text, w
     assert main(["--check", "--config", p]) == 2
     err = capsys.readouterr().err.strip()
     assert ONE_LINE.match(err) and err.startswith(f"{p}: {where}: expected {expected}, got "), err
+
+
+def test_a_peer_that_only_connects_and_dials_no_gossiped_peer_is_warned_it_may_meet_none():
+    """Connect endpoints, no listener, gossip dialing off, no zenoh file: a peer the router introduces can neither
+    reach the daemon nor be dialed by it (a zenoh 1.10 router does not relay between peers)."""
+    from onboard.app.components import zenoh_unreachable_hint
+
+    lone = build_config({"zenoh": {"connect": ["tcp/10.0.0.2:7447"]}})
+    hint = zenoh_unreachable_hint(lone)
+    assert hint is not None and "tcp/10.0.0.2:7447" in hint and "zenoh.listen" in hint
+    for zenoh in (
+        {"connect": ["tcp/10.0.0.2:7447"], "listen": ["tcp/127.0.0.1:0"]},
+        {"connect": ["tcp/10.0.0.2:7447"], "gossip_autoconnect": True},
+        {"connect": []},
+    ):
+        assert zenoh_unreachable_hint(build_config({"zenoh": zenoh})) is None
