@@ -237,7 +237,9 @@ class Watchdog:
                 "gimbal_mismatch",
                 f"the vehicle reports a gimbal ({gimbal_reports} GIMBAL_DEVICE_ATTITUDE_STATUS "
                 f"messages) but camera.mount.gimballed is false: the camera attitude ignores the gimbal and "
-                f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod",
+                f"3-D positions will be wrong; set camera.mount (gimballed, roll/pitch/yaw_deg) to the pod (if that "
+                f"gimbal carries another camera, set mavlink.gimbal_device_id to an id none of the vehicle's gimbals "
+                f"uses: only that device's reports are then checked)",
             )
         elif (
             gimballed

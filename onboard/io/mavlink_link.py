@@ -44,8 +44,9 @@ alone** with a fresh parser, so a truncated or garbage datagram costs only itsel
 (``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
 parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
 not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
-Every message that is not used is counted, by why; the ones that are normal traffic on a shared link (a ground
-station, a companion computer, a camera) at DEBUG, so that they show in the status's ``rejected`` without a
+Every message of the kinds the link uses that it drops is counted, by why (message types it has no use for, the
+autopilot's SYS_STATUS or VFR_HUD among them, are not); the ones that are normal traffic on a shared link (a
+ground station, a companion computer, a camera) at DEBUG, so that they show in the status's ``rejected`` without a
 log line at the default level:
 
 * ``mavlink_foreign_system`` (DEBUG): any message of a system other than the followed autopilot's, but for an
@@ -501,7 +502,8 @@ class MavlinkLink:
         self.gimballed = bool(gimballed)
         self._extra_destinations = extra_destinations
         #: GIMBAL_DEVICE_ATTITUDE_STATUS messages of the autopilot's system with an attitude (a finite unit
-        #: quaternion), of any gimbal, used or not (the watchdog's gimbal check)
+        #: quaternion), used or not (the watchdog's gimbal check): of any gimbal, or of ``gimbal_device_id``'s alone
+        #: when it is configured
         self.gimbal_reports = 0
         #: the gimbal followed (MavlinkConfig.gimbal_device_id's numbering); None until one is heard
         self.gimbal_device_id: int | None = config.gimbal_device_id
@@ -853,7 +855,11 @@ class MavlinkLink:
                 f"gimbal {device} (component {src_comp}): quaternion {q} is not a unit quaternion; report dropped",
             )
             return
-        self.gimbal_reports += 1  # the watchdog checks it against the configured mount
+        configured = self.config.gimbal_device_id
+        if configured is None or device == configured:
+            # the watchdog checks it against the configured mount; with the camera's gimbal named, another gimbal of
+            # the vehicle (a daylight camera's) says nothing about it
+            self.gimbal_reports += 1
         if not self.gimballed:
             return
         if self.gimbal_device_id is None:

@@ -680,3 +680,21 @@ def test_a_second_link_on_a_port_another_holds_is_refused_and_counted_not_shared
         assert rig.drive(lambda: rig.link.status().messages_rx >= 2)
     finally:
         second.close()
+
+
+@pytest.mark.parametrize("gimballed", [False, True])
+def test_with_the_cameras_gimbal_named_another_gimbals_reports_say_nothing_about_the_mount(gimballed):
+    """mavlink.gimbal_device_id set: only that device's reports count for the watchdog's gimbal check, so a
+    daylight camera's gimbal neither withholds a fixed IR pod's directions nor hides that the IR pod's gimbal is
+    silent; the named gimbal's reports still count."""
+    r = Rig(gimballed=gimballed, config=dataclasses.replace(UNPINNED, gimbal_device_id=2))
+    try:
+        r.connect()
+        before = r.link.messages_rx
+        r.ap.send(GimbalDeviceAttitudeStatus(1_000_000, (1.0, 0.0, 0.0, 0.0), 0, gimbal_device_id=1))
+        assert r.drive(lambda: r.link.messages_rx > before)
+        assert r.link.gimbal_reports == 0
+        r.ap.send(GimbalDeviceAttitudeStatus(1_020_000, (1.0, 0.0, 0.0, 0.0), 0, gimbal_device_id=2))
+        assert r.drive(lambda: r.link.gimbal_reports == 1)
+    finally:
+        r.close()
