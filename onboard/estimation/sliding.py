@@ -185,8 +185,7 @@ class SlidingConfig:
     selection_consistency_nsigma: _NonNegative = 3.0
     # a new bearing whose normalised innovation against the window's prediction exceeds this (chi-square, 2 dof)
     # is not taken into the solution by its incremental step and no estimate beside it is observable (an outlier,
-    # or the first frames of a change the CUSUM has yet to judge; 0: off).  1e-4 of clean bearings: none
-    # observable was lost on the reference scenarios
+    # or the first frames of a change the CUSUM has yet to judge; 0: off); 1e-4 of clean bearings
     innovation_gate_chi2: _NonNegative = BEARING_GATE_CHI2
 
     def __post_init__(self) -> None:
@@ -812,13 +811,14 @@ class SlidingWindowEstimator:
         # inversion lemma, from the factor the step needs anyway)
         gate = self.config.innovation_gate_chi2
         if gate > 0 and float(r @ r - g @ step) > gate:
-            # farther from the window's prediction than its noise and the window's own uncertainty allow: an outlier
-            # (one 20 px pixel kept estimates 'observable' 5.7 sigma off for 0.2 s) or the first frames of a change
-            # of motion, which the detector above judges.  Not taken into the solution by this step (the next full
-            # solve weighs it among the window's rows), and no estimate made beside it is called observable
+            # farther from the window's prediction than its noise and the window's own uncertainty allow: an outlier,
+            # which one step would pull the newest estimate towards while its covariance still says the window's
+            # few centimetres, or the first frames of a change of motion, which the detector above judges.  Not
+            # taken into the solution by this step (the next full solve weighs it among the window's rows), and no
+            # estimate made beside it is called observable
             self.stats["gated"] += 1
             self._since_full += 1
-            return self._estimate(prob, self._theta, t, H_window, demote=True)
+            return self._estimate(prob, theta, t, H_window, demote=True)
         theta = theta - step
         self._theta, self._H = theta, H
         self._since_full += 1
