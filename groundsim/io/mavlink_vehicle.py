@@ -78,10 +78,10 @@ Services (read on every poll):
   and one message now when we can produce it, DENIED otherwise; REQUEST_AUTOPILOT_CAPABILITIES and
   GET_HOME_POSITION as above; any other command -> UNSUPPORTED.
 
-Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in NED
-(gimbal axes as the mount's in :mod:`onboard.core.frames`: x optical axis, y right, z down), i.e.
+Gimbal: ``update_state(..., q_gimbal=q_ned_from_gimbal)`` takes the gimbal's attitude in the local level where
+the vehicle is, as the body's (``SimCore.vehicle_state``; :mod:`onboard.core.frames`, "Local level") (gimbal axes as the mount's in :mod:`onboard.core.frames`: x optical axis, y right, z down), i.e.
 ``q_ned_from_body (x) q_body_from_mount (x) q_mount_from_gimbal``.  MAVLink gimbal protocol v2
-frames: "earth frame" is NED, so q is sent as is; "vehicle frame" is NED turned by the vehicle's
+frames: "earth frame" is that local level, so q is sent as is; "vehicle frame" is it turned by the vehicle's
 yaw (roll and pitch still relative to the horizon), so q is sent as
 ``conj(q_yaw) (x) q_ned_from_gimbal`` with ``q_yaw = quat_from_euler(0, 0, yaw)``.  In both,
 ``delta_yaw`` = the vehicle yaw, the spec's ``q_earth = q_delta_yaw (x) q_vehicle``.
@@ -323,8 +323,9 @@ class VehicleState:
     """One truth sample of the observer, as the simulator knows it.
 
     time_boot_us: int, boot clock; lat_deg, lon_deg: WGS84; alt_amsl_m, alt_rel_m: metres;
-    v_ned_mps: (3,) NED; q_ned_from_body: (4,) w, x, y, z; body_rates_radps: (3,) FRD p, q, r;
-    heading_rad: yaw over ground, or NaN if unknown; q_ned_from_gimbal: (4,) or None.
+    v_ned_mps: (3,) NED and q_ned_from_body: (4,) w, x, y, z, both in the local level where the vehicle is (as an
+    autopilot reports them); body_rates_radps: (3,) FRD p, q, r; heading_rad: the heading (yaw), or NaN if unknown;
+    q_ned_from_gimbal: (4,) (the same local level) or None.
     """
 
     time_boot_us: int

@@ -333,7 +333,7 @@ def reported_state(state: dict, err: NavErrorSample | None) -> dict:
     ``state``: keyword arguments of ``MavlinkVehicle.update_state`` (``lat_deg``, ``lon_deg``,
     ``alt_amsl_m``, ``alt_rel_m``, ``v_ned_mps``, ``q_ned_from_body``, ``heading_rad``, ``q_gimbal``,
     ...).  Position: the true point moved by ``err.p_err_ned_m`` in the NED frame at that point
-    (WGS84); velocity + ``err.v_err_ned_mps``; attitudes (body and gimbal, both NED-referenced)
+    (WGS84); velocity + ``err.v_err_ned_mps``; attitudes (body and gimbal, both relative to the local level at the vehicle)
     pre-multiplied by ``q(err.att_err_ned_rad)``; heading shifted by the yaw change.  ``None`` or a
     zero error returns an unchanged copy.
     """

@@ -17,7 +17,7 @@ Local level
     longitude.  An autopilot measures gravity and north there, so its attitude (``ATTITUDE_QUATERNION``),
     its velocity (``GLOBAL_POSITION_INT`` vx, vy, vz) and an earth-frame gimbal attitude (#285) are relative
     to the local level, not to the origin's NED.  The two differ by the angle between the two normals, about
-    0.009 deg per km from the origin (a pixel of the default camera at 7.5 km);
+    0.009 deg per km from the origin (0.6 px of the default camera at 5 km, a pixel at 8.3 km);
     ``q_ned_from_level(lat_deg, lon_deg, origin)`` turns one into the other, and the pose buffer applies it
     to everything the autopilot reports (:mod:`onboard.core.pose`).  A caller that gives positions in NED
     (``PoseBuffer.add_position_ned``, a flat world such as a test's) gives its attitudes in that NED too.

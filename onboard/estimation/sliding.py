@@ -512,8 +512,8 @@ class SlidingWindowEstimator:
             raise InputError("SlidingWindowEstimator.add: non-finite observation")
         w_px, h_px = intrinsics.width_px, intrinsics.height_px
         if not (-w_px <= uv[0] <= 2 * w_px and -h_px <= uv[1] <= 2 * h_px):
-            # no camera sees there: a corrupt measurement, which one incremental step would have taken into the
-            # window's solution (a pixel at 2000 px on a 640 px sensor made observable estimates 0.4 x range off)
+            # no camera sees there: a corrupt measurement, which one incremental step would take into the window's
+            # solution while the estimate's covariance still says the window's few centimetres
             raise InputError(
                 f"SlidingWindowEstimator.add: pixel ({uv[0]:g}, {uv[1]:g}) is far outside the {w_px} x {h_px} image"
             )

@@ -74,7 +74,7 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   (:func:`video_stream_type`: ``rtp`` -> RTPUDP 1, ``mpegts`` -> MPEG_TS 3; common.xml, "URI gives
   the port number" for both), ``uri`` the UDP port the ground station listens on (QGC's VideoManager
   opens ``udp://0.0.0.0:<uri>`` as RTP H.264 for RTPUDP, ``mpegts://0.0.0.0:<uri>`` for MPEG_TS),
-  flags RUNNING | THERMAL, frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
+  flags RUNNING (not THERMAL: :class:`VideoStream`), frame rate, bitrate, resolution, ``hfov`` (deg) = ``2 atan(width / 2 fx)``,
   encoding H264.
 * CAMERA_TRACKING_IMAGE_STATUS (#275) and CAMERA_TRACKING_GEO_STATUS (#276) while tracking, at the
   intervals set by SET_MESSAGE_INTERVAL (defaults ``output.tracking_*_status_hz``); once when the

@@ -185,8 +185,8 @@ class FramePipeline:
     """Frame -> Track, one call per frame (see the module docstring).  Not thread-safe.
 
     ``config``: the daemon's :class:`OnboardConfig` (``OnboardConfig()`` for defaults).
-    ``pose_source``: has ``pose_at(time_boot_us)``; ``origin``: the local NED origin to report
-    (default: the pose's own origin).  ``tracker``: has ``update(pixels) -> TrackUpdate``.
+    ``pose_source``: has ``pose_at(time_boot_us)``; ``origin``: the local NED origin to report when
+    neither the frame's pose nor the pose source has one (a pose's own origin names its estimate).  ``tracker``: has ``update(pixels) -> TrackUpdate``.
     ``estimator``: the sliding-window interface, or None (2-D only).  ``counter``: where refusals
     are counted (default: the pose source's ``counter`` if it has one).  ``pose_wait``: called with
     the frame time before the pose lookup (the daemon waits there for lagging telemetry);
