@@ -353,13 +353,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         # Ctrl-C while receiving sets a flag instead of raising: a KeyboardInterrupt inside queue.get can leave its
         # lock released twice, and the RuntimeError that follows escaped as a traceback instead of the one line
         stop = threading.Event()
-        previous = signal.signal(signal.SIGINT, lambda _signum, _frame: stop.set())
+        # not where Ctrl-C is ignored (a shell without job control starts `... &` so) nor off the main thread
+        catch = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) not in (
+            signal.SIG_IGN,
+            None,
+        )
+        previous = signal.signal(signal.SIGINT, lambda _signum, _frame: stop.set()) if catch else None
         try:
             _receive(
                 inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint, stop=stop
             )
         finally:
-            signal.signal(signal.SIGINT, previous)
+            if catch:
+                signal.signal(signal.SIGINT, previous)
         if stop.is_set():
             print(interrupted_line(counts), file=info, flush=True)
             return EXIT_INTERRUPTED
