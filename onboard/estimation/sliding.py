@@ -819,11 +819,19 @@ class SlidingWindowEstimator:
             self.stats["gated"] += 1
             self._since_full += 1
             return self._estimate(prob, theta, t, H_window, demote=True)
-        theta = theta - step
-        self._theta, self._H = theta, H
+        new_theta = theta - step
+        est = self._estimate(prob, new_theta, t, H, chol=(ch, d))
+        bearing_ned = self._R[-1] @ np.array((xy[0], xy[1], 1.0))
+        if est.range_m < self.map.config.min_range_m or float((est.p_ned_m - self._p[-1]) @ bearing_ned) <= 0.0:
+            # the step collapsed the estimate onto the camera or through it, which no mode of the selection may do
+            # (min_range_m): kept out of the solution as a gated bearing is, until the next full solve
+            self.stats["gated"] += 1
+            self._since_full += 1
+            return self._estimate(prob, theta, t, H_window, demote=True)
+        self._theta, self._H = new_theta, H
         self._since_full += 1
         self.stats["incremental"] += 1
-        return self._estimate(prob, theta, t, H, chol=(ch, d))
+        return est
 
     def _shift(self, prob: WindowProblem) -> np.ndarray:
         """Carry the previous solution to this window's control span; extrapolate new controls."""
