@@ -308,6 +308,12 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
     if settings.gossip_autoconnect is not None:
         key = "scouting/gossip/autoconnect"
         _insert(config, key, ["router", "peer"] if settings.gossip_autoconnect else [], key)
+    if settings.config_file is None:
+        # zenoh keeps the shared-memory segments of peers that have gone away mapped for good (an open zenoh bug):
+        # every camera or simulator session that ended left the daemon its segments and their descriptors, a leak
+        # for a vehicle whose camera reconnects.  Every payload is copied out at once anyway; a config file may
+        # still turn it on
+        _insert(config, "transport/shared_memory/enabled", False, "transport/shared_memory/enabled")
 
     if settings.connect_timeout_s is not None:
         _insert(config, "connect/exit_on_failure", True, "connect/exit_on_failure")

@@ -64,3 +64,13 @@ def test_the_daemon_dials_no_peer_that_gossip_names_and_a_command_does():
 def test_the_defaults_daemon_off_commands_as_zenoh():
     assert ZenohConfig().gossip_autoconnect is False
     assert config_from_options(connect=("tcp/127.0.0.1:7447",)).gossip_autoconnect is None
+
+
+def test_shared_memory_is_off_unless_a_config_file_says(tmp_path):
+    """zenoh keeps a departed peer's shared-memory segments mapped: off in every session built from settings alone;
+    a zenoh config file keeps the say."""
+    cfg = build_config(ZenohConfig(listen=("tcp/127.0.0.1:0",)))
+    assert json.loads(cfg.get_json("transport/shared_memory/enabled")) is False
+    f = tmp_path / "z.json5"
+    f.write_text("{ transport: { shared_memory: { enabled: true } } }")
+    assert json.loads(build_config(ZenohConfig(config_file=str(f))).get_json("transport/shared_memory/enabled")) is True
