@@ -454,10 +454,16 @@ class ProcessEstimator:
     anything (a crash at start, or on an observation the rebuild replays) is replaced after a delay
     that starts at ``RESTART_BACKOFF_MIN_S`` and doubles each time (up to ``RESTART_BACKOFF_MAX_S``),
     so a crash loop cannot spawn a process per frame.
+
+    **A worker that hangs** (alive, answering nothing: stopped, deadlocked, spinning) would let the pipe to it fill
+    and the next row's write block the frame loop: a worker sent rows it has not answered for ``HUNG_S`` is killed
+    (counted ``estimator_hung``) and replaced as a dead one.  No selection or rebuild comes near it; a CPU quota
+    that starves it that long loses its state to a restore, no more.
     """
 
     RESTART_BACKOFF_MIN_S = 1.0
     RESTART_BACKOFF_MAX_S = 30.0
+    HUNG_S = 5.0
 
     def __init__(
         self,
@@ -530,6 +536,7 @@ class ProcessEstimator:
         self._cpu_base = self.worker_cpu_s
         self._started_s = self._clock()
         self._answered = False  # no result from this worker yet
+        self._unanswered_since_s: float | None = None  # the first row sent since the worker last answered
 
     def _alive(self) -> bool:
         proc = self._proc
@@ -660,6 +667,7 @@ class ProcessEstimator:
             est = unpack_estimate(packed)
             self.worker_cpu_s = self._cpu_base + cpu_s
             self._answered = True
+            self._unanswered_since_s = None
             if err is not None:
                 self._counter.count(*err)
             if epoch != self._epoch:
@@ -674,6 +682,7 @@ class ProcessEstimator:
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
+        self._kill_if_hung()
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
             self.late_results += 1
@@ -692,11 +701,30 @@ class ProcessEstimator:
         msg = row_message(self._epoch, args, self._intrinsics_index(args[2]))
         if not self._send(("add", self._epoch, t, args) if msg is None else msg):
             return self._extrapolate(t, p_cam_ned_m, args[1:])
+        if self._unanswered_since_s is None:
+            self._unanswered_since_s = self._clock()
         found, est = self._drain(t, self.result_wait_s)
         if found:
             return est
         self.late_results += 1
         return self._extrapolate(t, p_cam_ned_m, args[1:])
+
+    def _kill_if_hung(self) -> None:
+        """Kill a worker that answered none of the rows sent to it for ``HUNG_S`` (class docstring); the caller's
+        liveness check then replaces it."""
+        since = self._unanswered_since_s
+        if since is None or self._proc is None or self._clock() - since < self.HUNG_S:
+            return
+        self._drain()  # its answers may be waiting unread
+        if self._unanswered_since_s is None:
+            return
+        self._counter.count(
+            "estimator_hung",
+            f"estimator process answered nothing for {self._clock() - since:.1f} s; killed and replaced",
+        )
+        self._unanswered_since_s = None
+        self._proc.kill()  # SIGKILL: a stopped or spinning process ignores a polite request
+        self._proc.join(1.0)
 
     def predict(self, t_s: float, p_cam_ned_m=None):
         self._drain()
@@ -737,13 +765,19 @@ class ProcessEstimator:
         if proc is None or conn is None:
             return
         try:
-            _send_msg(conn, ("stop",))
+            writable = select.poll()
+            writable.register(conn.fileno(), select.POLLOUT)
+            if writable.poll(0):  # a hung worker's full pipe would block the stop: it is killed below instead
+                _send_msg(conn, ("stop",))
         except (OSError, ValueError):
             pass
         proc.join(timeout_s / 2)
         if proc.is_alive():
             proc.terminate()
-            proc.join(timeout_s / 2)
+            proc.join(timeout_s / 4)
+        if proc.is_alive():
+            proc.kill()  # a stopped process does not act on SIGTERM
+            proc.join(timeout_s / 4)
         conn.close()
         self._proc = None
 

@@ -212,3 +212,46 @@ def test_frames_the_worker_would_not_keep_are_answered_here_with_its_numbers(sce
         assert pe.carried == inline.stats["skipped"] - skipped_before_first > n // 4
     finally:
         pe.close()
+
+
+@pytest.mark.integration
+def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_frames(scene):
+    """A worker that is alive but answers nothing (SIGSTOP here) would let the pipe to it fill, after ~10 s of rows,
+    and the next write block the frame loop for as long as it hangs; answered nothing for HUNG_S, it is killed and
+    replaced, and the next rows are the new worker's.  close() ends a stopped worker too."""
+    K, truth, obs = scene
+    counter = LockedCounter(logger=logging.getLogger("onboard.rejects"))
+    now = [0.0]
+    pe = ProcessEstimator(
+        OnboardConfig(), counter, result_wait_s=0.05, clock=lambda: now[0]
+    )  # a stopped worker answers nothing
+    try:
+        for i in range(FRAMES_BEFORE_KILL):
+            _add(pe, obs, K, i)
+        hung_pid = pe.pid
+        assert hung_pid is not None
+        os.kill(hung_pid, signal.SIGSTOP)
+        i = FRAMES_BEFORE_KILL
+        t0 = time.monotonic()
+        while counter.counts.get("estimator_hung", 0) == 0 and i < len(obs.t_s) - 1:
+            now[0] += 0.2  # the daemon's clock, not the rows': a few rows reach HUNG_S
+            _add(pe, obs, K, i)
+            i += 1
+        assert counter["estimator_hung"] == 1 and time.monotonic() - t0 < 15.0  # ~HUNG_S of fake clock, not a block
+        assert now[0] >= pe.HUNG_S
+        deadline = time.monotonic() + 10.0
+        while pe.pid in (None, hung_pid) and time.monotonic() < deadline and i < len(obs.t_s) - 1:
+            now[0] += 1.0 / 30.0
+            _add(pe, obs, K, i)
+            i += 1
+        assert pe.pid not in (None, hung_pid) and counter["estimator_restart"] == 1
+        os.kill(pe.pid, signal.SIGSTOP)  # close() must not wait on a stopped worker's pipe
+        t1 = time.monotonic()
+        pe.close()
+        assert time.monotonic() - t1 < 3.0
+    finally:
+        pe.close()
+        try:
+            os.kill(hung_pid, signal.SIGKILL)
+        except (ProcessLookupError, UnboundLocalError):
+            pass
