@@ -7,7 +7,7 @@ answers with a :class:`TrackResult`, which becomes the COMMAND_ACK."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from onboard.core.errors import InputError
 
@@ -20,6 +20,10 @@ class TrackRequest:
 
     ``kind``: ``"point"`` (``u_px, v_px`` and ``radius_px``), ``"rectangle"`` (``rect_px`` =
     ``(x0, y0, x1, y1)``, top-left and bottom-right) or ``"stop"``.  ``request_id`` matches the answer.
+
+    One side decides it: the pipeline that applies it or the camera that gives up waiting, whichever
+    :meth:`claim` s it first (the two run on different threads); the other leaves it alone, so a ground station
+    told it was rejected never sees it carried out later.
     """
 
     request_id: int
@@ -28,6 +32,14 @@ class TrackRequest:
     v_px: float = math.nan
     radius_px: float = math.nan
     rect_px: tuple[float, float, float, float] | None = None
+    _unclaimed: list = field(default_factory=lambda: [True], init=False, repr=False, compare=False)
+
+    def claim(self) -> bool:
+        """True for the first caller only (``list.pop`` is one atomic step under the interpreter lock)."""
+        try:
+            return self._unclaimed.pop()
+        except IndexError:
+            return False
 
     def __post_init__(self) -> None:
         if self.kind not in ("point", "rectangle", "stop"):

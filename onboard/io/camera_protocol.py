@@ -767,6 +767,8 @@ class CameraProtocol:
         for rid in [r for r, p in self._superseded.items() if now_s >= p.deadline_s]:
             del self._superseded[rid]  # never decided: nothing to answer, nothing to forget later
         for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
+            if not self._pending[rid].request.claim():
+                continue  # the pipeline is applying it this moment: its result decides, on a later tick
             pend = self._pending.pop(rid)
             out += self._refuse(
                 pend.command,

@@ -303,6 +303,9 @@ class FramePipeline:
         upd = None
         while self._selections:
             req, on_done = self._selections.popleft()
+            if not req.claim():  # the camera gave up waiting and told the ground station so: not carried out
+                self.counter.count("selection_expired", f"request {req.request_id} ({req.kind}) answered as rejected")
+                continue
             result = None
             try:
                 if req.kind == "stop":

@@ -418,6 +418,15 @@ def test_a_request_nobody_decides_is_temporarily_rejected_after_the_timeout():
     out = proto.tick(11.0, None)
     assert _ack(out)["result"] == mav.MAV_RESULT_TEMPORARILY_REJECTED
     assert proto.complete(TrackResult(req.request_id, True)) == []  # too late: already answered
+    assert not req.claim()  # and the pipeline, finding it claimed, does not carry it out
+
+
+def test_a_request_the_pipeline_claimed_is_answered_by_its_result_not_the_timeout():
+    proto = _proto(track_request_timeout_s=1.0)
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.03), 10.0, 0)
+    assert req.claim()  # the pipeline is applying it as the timeout passes
+    assert not any(o.msg == "command_ack" for o in proto.tick(11.5, None))
+    assert _ack(proto.complete(TrackResult(req.request_id, True)))["result"] == mav.MAV_RESULT_ACCEPTED
 
 
 # --------------------------------------------------------------------------- #275 / #276 streams

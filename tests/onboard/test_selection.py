@@ -294,3 +294,21 @@ def test_276_only_for_observable_positions_through_the_camera():
     svc.camera_step(clock())
     geo = [o.fields for o in svc.gcs.sent if o.msg == "camera_tracking_geo_status"]
     assert geo and geo[-1]["h_acc"] == pytest.approx(math.sqrt(800.0)) and geo[-1]["dist"] == 130.0
+
+
+def test_a_request_the_camera_gave_up_on_is_not_carried_out_by_a_later_frame():
+    """The camera answers TEMPORARILY_REJECTED when no frame came within its timeout; the request must then not
+    be applied by the first frame that does come (a STOP seconds later left the target untracked for the whole
+    flight).  Whichever claims a request first decides it."""
+    pipe, _ = _pipeline("auto")
+    assert pipe.process(_ir(0)).state == "tracking"  # auto mode: the hot target from the first frame
+    req = TrackRequest(7, "stop")
+    results = []
+    pipe.request_selection(req, results.append)
+    assert req.claim()  # the camera's timeout took it first
+    tr = pipe.process(_ir(1))
+    assert tr.state == "tracking" and results == [] and pipe.counter["selection_expired"] == 1
+    other = TrackRequest(8, "stop")
+    pipe.request_selection(other, results.append)
+    assert pipe.process(_ir(2)).state == "searching" and results[-1].accepted
+    assert not other.claim()  # the pipeline took it: the camera's timeout leaves it alone
