@@ -24,6 +24,7 @@ from onboard.pipeline.frame_pipeline import make_estimator
 RESULT_WAIT_S = 30.0  # upper bound of one wait for the worker's own estimate (spawn + one model selection)
 JOIN_S = 10.0  # upper bound for a SIGKILLed child to be reaped
 FRAMES_BEFORE_KILL = 240  # 8 s at 30 Hz: the window holds estimates before the kill
+HUNG_FRAMES_BEFORE_STOP = 30  # a worker that has rows, answered: no estimate needed to judge a hang
 HONEST_SIGMAS = 4.0  # the rebuilt estimate is within this many reported sigma (sqrt trace P) of the truth
 
 
@@ -226,12 +227,12 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
         OnboardConfig(), counter, result_wait_s=0.05, clock=lambda: now[0]
     )  # a stopped worker answers nothing
     try:
-        for i in range(FRAMES_BEFORE_KILL):
+        for i in range(HUNG_FRAMES_BEFORE_STOP):
             _add(pe, obs, K, i)
         hung_pid = pe.pid
         assert hung_pid is not None
         os.kill(hung_pid, signal.SIGSTOP)
-        i = FRAMES_BEFORE_KILL
+        i = HUNG_FRAMES_BEFORE_STOP
         t0 = time.monotonic()
         while counter.counts.get("estimator_hung", 0) == 0 and i < len(obs.t_s) - 1:
             now[0] += 0.2  # the daemon's clock, not the rows': a few rows reach HUNG_S

@@ -58,7 +58,7 @@ def test_the_daemon_dials_no_peer_that_gossip_names_and_a_command_does():
     dialed_after_s = _d_dials_y_within(None, DIAL_WAIT_S)
     assert dialed_after_s is not None, "zenoh's default no longer dials gossiped peers: this test proves nothing"
     assert _d_dials_y_within(True, DIAL_WAIT_S) is not None
-    assert _d_dials_y_within(False, max(3.0 * dialed_after_s, 3.0)) is None
+    assert _d_dials_y_within(False, max(10.0 * dialed_after_s, 1.0)) is None
 
 
 def test_the_defaults_daemon_off_commands_as_zenoh():
