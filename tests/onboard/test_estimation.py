@@ -342,7 +342,7 @@ def test_a_hovering_camera_never_publishes_its_target_behind_it_or_on_it():
     from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat
 
     K = PinholeIntrinsics.vue_pro_640()
-    t = np.arange(900) / 30.0
+    t = np.arange(360) / 30.0  # the step through the camera came at 8.1 s
     cam = Cubic((0.0, 0.0, -60.0)).state(t).p_ned_m
     tgt = Cubic((150.0, -60.0, -90.0), (0.0, 5.0, 0.0)).state(t).p_ned_m
     rng_m = np.linalg.norm(tgt - cam, axis=1)
@@ -362,4 +362,4 @@ def test_a_hovering_camera_never_publishes_its_target_behind_it_or_on_it():
         published += 1
         assert not est.observable
         assert float((np.asarray(est.p_ned_m) - cam[i]) @ z[i]) > 0.0, f"behind the camera at {t[i]:.2f} s"
-    assert published > 200
+    assert published > 100
