@@ -697,6 +697,7 @@ class OnboardService:
             cpu_share=cpu_share,
             pipeline_cpu_share=pipeline_share,
             last_track=None if latest is None else latest[0],
+            last_track_age_s=None if latest is None else max(now - latest[1], 0.0),
             estimator=self.estimator_kind,
             queue_length=len(self.queue),
             queue_wait_ms=self.queue_wait_ms.summary(),

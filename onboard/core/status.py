@@ -122,6 +122,7 @@ STATUS_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
                 "has_position": {"type": "boolean"},
                 "observable": {"type": "boolean"},
                 "window_frames": {"type": "integer"},
+                "age_s": {"type": ["number", "null"], "description": "seconds since it was published"},
             },
             "description": "the latest track in short",
         },
@@ -227,6 +228,7 @@ def build_status(
     warnings: list[Mapping[str, str]] | tuple = (),
     withheld_because: tuple[str, ...] | list[str] = (),
     camera_time_offset: Mapping[str, Any] | None = None,
+    last_track_age_s: float | None = None,
 ) -> dict[str, Any]:
     """The ``irtrack.status/1`` object (published at 1 Hz on ``irtrack/<vehicle>/status``).
 
@@ -245,7 +247,8 @@ def build_status(
     ``pipeline_share`` = the pipeline thread's, ``cores`` = CPUs in the machine; the service adds
     ``gets_share``, ``throttled_share``, ``needs_share``, ``throttled_periods`` and ``quota_cores`` from
     ``/proc/self/stat`` and the cgroup's ``cpu.stat`` (:class:`onboard.app.cpu_load.CpuLoad`).  ``track``: the
-    latest track's state in short.  ``warnings``: the conditions active now that an operator must
+    latest track's state in short, with ``age_s`` how long ago it was published (a state that stopped with the
+    frames stays in this section: the age says so).  ``warnings``: the conditions active now that an operator must
     fix, each ``{code, message}`` with the message naming what to check (:mod:`onboard.app.watchdog`);
     empty when all is well.  ``geometry``: ``published`` (line of sight and 3-D positions go out) or
     ``withheld``, with ``withheld_because`` the warnings that withhold them (a configuration mismatch:
@@ -294,6 +297,7 @@ def build_status(
             "has_position": t.has_position,
             "observable": t.observable,
             "window_frames": t.window_frames,
+            "age_s": json_number(last_track_age_s),
         },
     }
 

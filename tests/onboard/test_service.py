@@ -900,3 +900,15 @@ def test_tracks_and_objects_carry_utc_once_system_time_maps_the_boot_clock():
     utc = svc.status(clock())["utc"]
     assert utc["state"] == "ok" and utc["source"] == "SYSTEM_TIME" and utc["samples"] == 3
     assert abs(utc["offset_us"] - unix0_us) <= 2 * utc["sigma_us"]
+
+
+def test_the_status_says_how_old_its_latest_track_is():
+    """After the frames stop, the status keeps the last track's state ('tracking'); its age says it is old."""
+    from onboard.core.track import Track
+
+    svc, clock = _quiet_service()
+    assert svc.status(clock())["track"] is None
+    svc.newest.value = (Track("uav1", 3, 1_100_000, "tracking", track_id=1), clock())
+    clock.t_s += 4.0
+    track = svc.status(clock())["track"]
+    assert track["state"] == "tracking" and track["age_s"] == pytest.approx(4.0)
