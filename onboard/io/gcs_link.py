@@ -57,7 +57,7 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.io.camera_protocol import CameraCommand, Outgoing
-from onboard.io.mavlink_link import MAX_DATAGRAM_PARSE_BYTES, UdpTransport, new_parser
+from onboard.io.mavlink_transport import MAX_DATAGRAM_PARSE_BYTES, UdpTransport, new_parser
 from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
 __all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]

@@ -77,11 +77,8 @@ through :func:`onboard.io.mavlink_wire.connect` (``MAVLINK20`` is neither read n
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import select
-import socket
 import time
 from collections import OrderedDict
 from collections.abc import Callable
@@ -100,6 +97,12 @@ from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, con
 from onboard.core.utc_clock import UtcClock
 from onboard.io.mavlink_fast import decode_telemetry
 from onboard.io.mavlink_signing import load_signing_key
+from onboard.io.mavlink_transport import (
+    MAX_DATAGRAM_PARSE_BYTES,
+    StreamTransport,
+    UdpTransport,
+    new_parser,
+)
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
     CameraTrackingGeoStatus,
@@ -297,132 +300,6 @@ class _Inflight:
 
 #: MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC
 _SIGNING_EPOCH_S = 1420070400
-#: a new signed stream may lag our signing clock by this much (pymavlink's rule), 10 us units
-_SIGNING_NEW_STREAM_LAG = 6_000_000
-_MAX_DATAGRAM_BYTES = 65535
-_STREAM_READ_BYTES = 4096
-#: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
-MAX_DATAGRAM_PARSE_BYTES = 16 * 280
-
-
-class _Parser(mavlink2.MAVLink):
-    """pymavlink's parser with the signature checked before the replay table is touched.
-
-    pymavlink's own ``check_signature`` records a packet's timestamp before it compares the
-    signature, so one packet with a wrong key and a far-future timestamp would make every genuine
-    packet of that stream look replayed.  Here an entry is only made for a verified packet, which
-    also bounds ``stream_timestamps`` to the genuine (link id, system, component) streams.
-    ``sig_reject`` names why the last signed packet was refused.
-    """
-
-    sig_reject = ""
-
-    def check_signature(self, msgbuf, srcSystem, srcComponent):  # noqa: N803 - pymavlink's signature
-        signing = self.signing
-        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
-        if digest != bytes(msgbuf[-6:]):
-            self.sig_reject = "mavlink_signature_bad"
-            return False
-        link_id = msgbuf[-13]
-        tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
-        timestamp = tlow + (thigh << 32)
-        key = (link_id, srcSystem, srcComponent)
-        last = signing.stream_timestamps.get(key)
-        if last is not None and timestamp <= last:
-            self.sig_reject = "mavlink_signature_replay"
-            return False
-        if last is None and timestamp + _SIGNING_NEW_STREAM_LAG < signing.timestamp:
-            self.sig_reject = "mavlink_signature_stale"
-            return False
-        signing.stream_timestamps[key] = timestamp
-        signing.timestamp = max(signing.timestamp, timestamp)
-        return True
-
-
-def new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:
-    p = _Parser(file, src_system, src_component)
-    p.robust_parsing = True
-    p.signing = signing
-    return p
-
-
-class UdpTransport:
-    """One UDP socket of our own.  ``udpin`` binds HOST:PORT and answers only the locked autopilot's
-    address (``peer``); ``udpout`` sends to its fixed HOST:PORT.  Each datagram is parsed alone."""
-
-    datagrams = True
-
-    def __init__(self, kind: str, host: str, port: int, extra: tuple[tuple[str, int], ...]) -> None:
-        self.kind = kind
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setblocking(False)
-        self.fixed: tuple[str, int] | None = None
-        try:
-            if kind == "udpin":
-                # a plain bind, no SO_REUSEADDR: with it a second daemon on the same port bound silently and the
-                # kernel handed each datagram to one of the two; without it the second one's open fails (counted
-                # mavlink_open_failed, retried; no_mavlink warns) while the first holds the port
-                self.sock.bind((host, port))
-            else:
-                self.fixed = (socket.gethostbyname(host), port)
-        except Exception:
-            self.sock.close()
-            raise
-        self.peer: tuple[str, int] | None = None
-        self.extra = extra
-
-    def fileno(self) -> int:
-        return self.sock.fileno()
-
-    def read(self) -> tuple[bytes, object] | None:
-        try:
-            data, addr = self.sock.recvfrom(_MAX_DATAGRAM_BYTES)
-        except (BlockingIOError, InterruptedError):
-            return None
-        except ConnectionRefusedError:  # ICMP port unreachable from an earlier send: not our input
-            return b"", None
-        return data, addr
-
-    def write(self, buf: bytes) -> None:
-        dest = self.fixed if self.fixed is not None else self.peer
-        if dest is not None:
-            self.sock.sendto(buf, dest)
-        for addr in self.extra:
-            self.sock.sendto(buf, addr)
-
-    def close(self) -> None:
-        self.sock.close()
-
-
-class _StreamTransport:
-    """Serial or TCP through pymavlink's port classes, used only for bytes (its message store is never
-    fed); one parser per stream, kept across reads."""
-
-    datagrams = False
-
-    def __init__(self, conn) -> None:
-        self.conn = conn
-
-    def fileno(self) -> int | None:
-        fd = getattr(self.conn, "fd", None)
-        return fd
-
-    def read(self) -> tuple[bytes, object] | None:
-        fd = self.fileno()
-        if fd is not None:
-            r, _, _ = select.select([fd], [], [], 0)
-            if not r:
-                return None
-        data = self.conn.recv(_STREAM_READ_BYTES)
-        if not data:
-            return None
-        return bytes(data), None
-
-    def write(self, buf: bytes) -> None:
-        self.conn.write(buf)
-
-    def close(self) -> None:
-        self.conn.close()
 
 
 class _Writer:
@@ -526,7 +403,7 @@ class MavlinkLink:
             self._signing.link_id = signing_link_id
             # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
             self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
-        self._transport: UdpTransport | _StreamTransport | None = None
+        self._transport: UdpTransport | StreamTransport | None = None
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
@@ -567,7 +444,7 @@ class MavlinkLink:
                 self._transport = UdpTransport(ep.kind, host, int(port), self._extra_destinations)
             else:
                 kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
-                self._transport = _StreamTransport(
+                self._transport = StreamTransport(
                     connect(ep, self.autopilot_sysid or 1, self.config.component_id, **kwargs)
                 )
                 self._stream_parser = new_parser(self._signing)
