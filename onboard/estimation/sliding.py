@@ -816,22 +816,25 @@ class SlidingWindowEstimator:
             # few centimetres, or the first frames of a change of motion, which the detector above judges.  Not
             # taken into the solution by this step (the next full solve weighs it among the window's rows), and no
             # estimate made beside it is called observable
-            self.stats["gated"] += 1
-            self._since_full += 1
-            return self._estimate(prob, theta, t, H_window, demote=True)
+            return self._gated(prob, theta, t, H_window)
         new_theta = theta - step
         est = self._estimate(prob, new_theta, t, H, chol=(ch, d))
         bearing_ned = self._R[-1] @ np.array((xy[0], xy[1], 1.0))
         if est.range_m < self.map.config.min_range_m or float((est.p_ned_m - self._p[-1]) @ bearing_ned) <= 0.0:
             # the step collapsed the estimate onto the camera or through it, which no mode of the selection may do
             # (min_range_m): kept out of the solution as a gated bearing is, until the next full solve
-            self.stats["gated"] += 1
-            self._since_full += 1
-            return self._estimate(prob, theta, t, H_window, demote=True)
+            return self._gated(prob, theta, t, H_window)
         self._theta, self._H = new_theta, H
         self._since_full += 1
         self.stats["incremental"] += 1
         return est
+
+    def _gated(self, prob: WindowProblem, theta: np.ndarray, t: float, H_window: np.ndarray) -> TrackEstimate:
+        """An incremental step not taken: the solution stays as it was, counted, and the frame's estimate from it is
+        not observable."""
+        self.stats["gated"] += 1
+        self._since_full += 1
+        return self._estimate(prob, theta, t, H_window, demote=True)
 
     def _shift(self, prob: WindowProblem) -> np.ndarray:
         """Carry the previous solution to this window's control span; extrapolate new controls."""
