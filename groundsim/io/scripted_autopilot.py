@@ -85,12 +85,15 @@ class ScriptedAutopilot:
     def attitude(self, t_us: int, q=None, omega_frd_rps=None) -> None:
         """#31 at ``t_us``: ``q`` (w, x, y, z) with ``omega_frd_rps`` (default zeros), or the scene's (turned into
         the local level where the observer is, as an autopilot reports it: :mod:`onboard.core.frames`)."""
+        from onboard.core.frames import quat_multiply, quat_normalize
         from onboard.io.mavlink_wire import AttitudeQuaternion
 
         if q is None:
             t_s = (t_us - self.scene.boot_us0) / 1e6
             p, _, q_nb = self.scene.body(t_s)
-            q, omega_frd_rps = self._level(p, q_nb), self.scene.body_rates_frd(t_s)
+            lat_deg, lon_deg, _ = self.scene.geodetic(p)
+            q = quat_normalize(quat_multiply(self._q_level_from_ned(lat_deg, lon_deg), q_nb))
+            omega_frd_rps = self.scene.body_rates_frd(t_s)
         w = (0.0, 0.0, 0.0) if omega_frd_rps is None else omega_frd_rps
         self.send(AttitudeQuaternion(int(t_us), tuple(float(c) for c in q), tuple(float(c) for c in w)))
 
@@ -98,26 +101,23 @@ class ScriptedAutopilot:
         self, t_us: int, lat_deg=None, lon_deg=None, alt_m=None, v_ned_mps=(0.0, 0.0, 0.0), alt_rel_m: float = 0.0
     ) -> None:
         """#33 at ``t_us``: the given WGS84 position, or the scene's (its altitude above the origin as ``alt_rel_m``)."""
+        from onboard.core.frames import quat_rotate
         from onboard.io.mavlink_wire import GlobalPositionInt
 
         if lat_deg is None:
             p, v_ned_mps, _ = self.scene.body((t_us - self.scene.boot_us0) / 1e6)
             lat_deg, lon_deg, alt_m = self.scene.geodetic(p)
             alt_rel_m = -float(p[2])
-            v_ned_mps = self._level(p, None, v_ned_mps)
+            v_ned_mps = quat_rotate(self._q_level_from_ned(lat_deg, lon_deg), v_ned_mps)
         self.send(
             GlobalPositionInt(int(t_us), lat_deg, lon_deg, alt_m, alt_rel_m, tuple(float(c) for c in v_ned_mps), 0.0)
         )
 
-    def _level(self, p_ned_m, q_ned_from_body, v_ned_mps=None):
-        """The scene's attitude (or, with ``v_ned_mps``, velocity) in the local level at ``p_ned_m``."""
-        from onboard.core.frames import q_ned_from_level, quat_conjugate, quat_multiply, quat_normalize, quat_rotate
+    def _q_level_from_ned(self, lat_deg: float, lon_deg: float):
+        """The turn from the scene's NED into the local level at (lat, lon), where an autopilot reports."""
+        from onboard.core.frames import q_ned_from_level, quat_conjugate
 
-        lat_deg, lon_deg, _ = self.scene.geodetic(p_ned_m)
-        q_level_from_ned = quat_conjugate(q_ned_from_level(lat_deg, lon_deg, self.scene.origin))
-        if v_ned_mps is not None:
-            return quat_rotate(q_level_from_ned, v_ned_mps)
-        return quat_normalize(quat_multiply(q_level_from_ned, q_ned_from_body))
+        return quat_conjugate(q_ned_from_level(lat_deg, lon_deg, self.scene.origin))
 
     def fly_paced(self, until_s: float, answer: bool = False) -> None:
         """The scene's observer in real time until ``until_s`` (``time.monotonic``): ATTITUDE_QUATERNION at
