@@ -127,22 +127,55 @@ class ChunkWriter:
     # ------------------------------------------------------------------ output
 
     def _write(self, buffers: Sequence) -> None:
-        """All of ``buffers``, in order, at the current position (``writev``, retried on a short write)."""
+        """All of ``buffers``, in order, at the current position (``writev``, retried on a short write).  A write
+        that fails part-way (a full disk: a short write, then ENOSPC) is undone -- the file cut back to where this
+        write began -- before the error is raised: the file always ends at a whole record, so it stays readable
+        (and :mod:`onboard.app.record_recover` completes it) whatever happens after."""
         bufs = [memoryview(b).cast("B") for b in buffers if len(memoryview(b).cast("B"))]
+        start = self.position
         i = 0
-        while i < len(bufs):
-            n = os.writev(self._fd, bufs[i : i + _IOV_MAX])
-            self.position += n
-            while i < len(bufs) and n >= bufs[i].nbytes:
-                n -= bufs[i].nbytes
-                i += 1
-            if n:
-                bufs[i] = bufs[i][n:]
+        try:
+            while i < len(bufs):
+                n = os.writev(self._fd, bufs[i : i + _IOV_MAX])
+                self.position += n
+                while i < len(bufs) and n >= bufs[i].nbytes:
+                    n -= bufs[i].nbytes
+                    i += 1
+                if n:
+                    bufs[i] = bufs[i][n:]
+        except OSError:
+            if self.position != start:
+                try:
+                    os.ftruncate(self._fd, start)
+                    os.lseek(self._fd, start, os.SEEK_SET)
+                    self.position = start
+                except OSError:
+                    pass  # position still says where the file ends
+            raise
 
     def _flush_small(self) -> None:
         if self._small:
-            data, self._small = bytes(self._small), bytearray()
-            self._write([data])
+            self._write([bytes(self._small)])
+            self._small = bytearray()  # kept until written: a failed write may be retried by finish()
+
+    def discard_chunk(self) -> dict[int, int]:
+        """Forget the chunk in progress (its messages will not be written: the disk refused it); returns its
+        message count per channel id, taken out of the summary's statistics too."""
+        lost: dict[int, int] = {cid: len(records) for cid, records in self._indices.items()}
+        st = self._stats
+        for cid, n in lost.items():
+            st.channel_message_counts[cid] -= n
+            if st.channel_message_counts[cid] <= 0:
+                del st.channel_message_counts[cid]
+            st.message_count -= n
+        # the statistics' time span shrinks to the chunks written
+        if self._chunk_indexes:
+            st.message_start_time = min(c.message_start_time for c in self._chunk_indexes)
+            st.message_end_time = max(c.message_end_time for c in self._chunk_indexes)
+        else:
+            st.message_start_time = st.message_end_time = 0
+        self._reset_chunk()
+        return lost
 
     # ------------------------------------------------------------------ the Writer's interface
 
@@ -276,7 +309,6 @@ class ChunkWriter:
     def _finalize_chunk(self) -> None:
         if self._n_messages == 0:
             return  # schemas and channels stay in the next chunk, as the package does
-        self._stats.chunk_count += 1
         pieces = self._chunk_buffers()
         uncompressed = self._count
         crc = 0
@@ -315,6 +347,7 @@ class ChunkWriter:
             MessageIndex(channel_id=cid, records=records).write(b)
         index_bytes = b.end()
         self._write([head, *body, index_bytes])
+        self._stats.chunk_count += 1
         self._chunk_indexes.append(
             ChunkIndex(
                 message_start_time=self._start_t,

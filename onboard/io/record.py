@@ -84,6 +84,11 @@ default), ``vehicle``, ``started_utc``, ``recorder`` (``onboard`` or ``groundsim
 ``FILE.2.mcap``, ...) past ``record.max_file_mb`` or ``record.max_file_s``; with
 ``record.max_files`` > 0 the oldest files beyond that many are deleted.  Every ``record.sync_mb`` written the
 file is synced to disk and its pages dropped from the page cache (:meth:`FlightRecorder._maybe_sync`).
+**Never fills the disk, never leaves a torn record**: with less than ``record.min_free_mb`` free where it records
+(checked at start, every ``record.flush_interval_s`` and at each rotation) the recorder finishes its file and stops;
+a write the disk refuses (ENOSPC, EIO) is cut back to the last whole record and stops it too, the file finished
+without the refused chunk.  Either way the flight goes on, later messages are dropped and counted, and the status's
+``record.stopped`` says why (None while recording).
 **Finished within its close's time**: :meth:`FlightRecorder.close` writes the backlog until a little before its
 timeout, drops and counts what is left then (``dropped_at_close``), and finishes the file (last chunk, summary,
 footer) in the writer thread: a shutdown bounded in time still leaves a complete file.
@@ -299,6 +304,16 @@ def free_recording_path(path: str) -> str:
     return f"{stem}-{n}.mcap"
 
 
+def free_disk_bytes(path: str) -> int | None:
+    """Bytes an unprivileged writer may still write on the file system holding ``path`` (its folder;
+    ``statvfs``'s ``f_bavail``), or None when that cannot be read."""
+    try:
+        st = os.statvfs(os.path.dirname(os.path.abspath(path)) or ".")
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
+
+
 # --------------------------------------------------------------------------- settings
 
 
@@ -318,6 +333,7 @@ class RecordConfig:
     compression: Annotated[Literal["none", "lz4", "zstd"], Text()] = "none"
     queue_mb: Annotated[float, Number(1.0, 4096.0)] = 64.0
     sync_mb: Annotated[float, Number(0.0, 4096.0)] = 8.0
+    min_free_mb: Annotated[float, Number(0.0, 1_000_000.0)] = 200.0
 
     @functools.cached_property
     def max_file_bytes(self) -> int:
@@ -334,6 +350,10 @@ class RecordConfig:
     @functools.cached_property
     def sync_bytes(self) -> int:
         return int(self.sync_mb * MB)
+
+    @functools.cached_property
+    def min_free_bytes(self) -> int:
+        return int(self.min_free_mb * MB)
 
 
 class RecordingPoseSource:
@@ -442,6 +462,10 @@ class FlightRecorder:
         self._json_schemas: dict[str, Mapping[str, Any]] = {**JSON_SCHEMAS, **(json_schemas or {})}
         self._counts: dict[str, int] = {}  # topic -> messages handed over (the sequence of counted channels)
         self.dropped_at_close = 0  # backlog not written by close's deadline (also in dropped)
+        #: why the recording stopped before close (free space under ``min_free_mb``, a write the disk refused); None
+        #: while it records.  Messages handed over after it are dropped and counted.
+        self.stopped: str | None = None
+        self._finish_ok = True  # the last file finished had its summary written
         self._write_until = math.inf  # time.monotonic() past which a closing writer drops the rest
 
     # ------------------------------------------------------------------ producers (any thread)
@@ -456,6 +480,10 @@ class FlightRecorder:
         numbered ``seq`` (None: the channel's count); False when dropped (counted) or closed."""
         with self._cond:
             if self._stop.is_set():
+                return False
+            if self.stopped is not None:
+                self.dropped += 1
+                self.dropped_by_topic[topic] += 1
                 return False
             if t_ns is None:
                 t_ns = self._clock_ns()  # under the lock: the queue's order is the stamps' order
@@ -551,6 +579,7 @@ class FlightRecorder:
             "write_errors": self.write_errors,
             "writer_cpu_s": round(self.writer_cpu_s, 3),
             "syncs": self.syncs,
+            "stopped": self.stopped,
         }
 
     # ------------------------------------------------------------------ life cycle
@@ -562,6 +591,11 @@ class FlightRecorder:
         if free != self.path:
             log.warning("record.path: %s holds an earlier recording, kept; this one is %s", self.path, free)
             self.path = free
+        reason = self._short_of_space()
+        if reason is not None:  # the flight goes on unrecorded: tracking is not held hostage by a full disk
+            self.stopped = reason
+            log.warning("recorder: not recording to %s: %s", self.path, reason)
+            return
         self._open(0)
         self._thread = threading.Thread(target=self._run, name="irtrack-recorder", daemon=True)
         self._thread.start()
@@ -607,6 +641,10 @@ class FlightRecorder:
                     break
                 try:
                     self._write(kind, topic, item, t_ns, seq)
+                except OSError as exc:  # the disk refused a write: nothing after it can be trusted to land
+                    self.write_errors += 1
+                    self._halt(f"a write failed ({exc.strerror or exc})", batch[i + 1 :], refused=True)
+                    break
                 except Exception as exc:  # noqa: BLE001 - the recorder must not die on one message
                     self.write_errors += 1
                     if self.write_errors == 1:
@@ -626,12 +664,61 @@ class FlightRecorder:
                     next_flush = now + s.flush_interval_s
                     if self._writer is not None:
                         self._writer.flush()
+                        reason = self._short_of_space()
+                        if reason is not None:
+                            self._halt(reason, [], refused=False)
                 self._maybe_sync()
                 self._maybe_rotate()
+            except OSError as exc:
+                self.write_errors += 1
+                self._halt(f"a write failed ({exc.strerror or exc})", [], refused=True)
             except Exception as exc:  # noqa: BLE001
                 self.write_errors += 1
                 log.warning("recorder: flush/rotate failed: %s: %s", type(exc).__name__, exc)
             self.writer_cpu_s += time.thread_time() - c0
+
+    def _short_of_space(self) -> str | None:
+        """Why not to write on (free space under ``record.min_free_mb`` where the recording goes), or None."""
+        floor = self.settings.min_free_bytes
+        if floor <= 0:
+            return None
+        free = free_disk_bytes(self.files[-1] if self.files else self.path)
+        if free is None or free >= floor:
+            return None
+        return f"{free / MB:.0f} MB free, under record.min_free_mb ({self.settings.min_free_mb:g})"
+
+    def _halt(self, reason: str, rest: list, refused: bool) -> None:
+        """Stop recording for good (writer thread): the queued messages and ``rest`` (the batch after the one being
+        written) are dropped and counted, the file is finished -- without the chunk in progress when the disk
+        ``refused`` it -- and every later message is dropped and counted (:meth:`_put`).  Said once."""
+        with self._cond:
+            if self.stopped is not None:
+                return
+            self.stopped = reason
+            rest = rest + list(self._q)
+            self._q.clear()
+            self._queued_bytes = 0
+            self.dropped += len(rest)
+            for _kind, topic, *_ in rest:
+                self.dropped_by_topic[topic] += 1
+        w = self._writer
+        if refused and w is not None:
+            topics = {cid: topic for topic, cid in self._channels.items()}
+            lost = w.discard_chunk()
+            with self._cond:
+                for cid, n in lost.items():
+                    self.messages_written -= n
+                    self.dropped += n
+                    self.dropped_by_topic[topics.get(cid, "?")] += n
+        path = self.files[-1] if self.files else self.path
+        self._finish()
+        log.warning(
+            "recorder: stopped recording: %s; %s ends there (the flight goes on; later messages are dropped and"
+            " counted, the status's record.stopped says why)%s",
+            reason,
+            path,
+            "" if self._finish_ok else "; it has no summary: python -m onboard.record_recover reads it whole",
+        )
 
     def _drop_at_close(self, rest: list) -> None:
         """The backlog left at close's deadline: dropped, counted, said once."""
@@ -680,13 +767,19 @@ class FlightRecorder:
         w, f = self._writer, self._file
         if w is None or f is None:
             return
+        self._finish_ok = False
         try:
             w.finish()
-            self._closed_bytes += w.position
-            f.close()
+            self._finish_ok = True
         except Exception as exc:  # noqa: BLE001
             self.write_errors += 1
             log.warning("recorder: cannot finish %s: %s", self.files[-1] if self.files else "?", exc)
+        finally:
+            self._closed_bytes += w.position
+            try:
+                f.close()
+            except OSError as exc:
+                log.warning("recorder: cannot close %s: %s", self.files[-1] if self.files else "?", exc)
         self._writer = self._file = None
         self.bytes_written = self._closed_bytes
 
@@ -718,6 +811,10 @@ class FlightRecorder:
         if size >= s.max_file_bytes or time.monotonic() - self._file_started_s >= s.max_file_s:
             index = self._index + 1
             self._finish()
+            reason = self._short_of_space()
+            if reason is not None:
+                self._halt(reason, [], refused=False)
+                return
             self._open(index)
 
     # encoding ---------------------------------------------------------
@@ -760,7 +857,11 @@ class FlightRecorder:
         if w is None:
             return
         t = self.log_time_ns(mono_ns)
-        w.add_message(self._channel(w, topic, schema), t, data, t, sequence)
+        try:
+            w.add_message(self._channel(w, topic, schema), t, data, t, sequence)
+        except OSError:  # taken into its chunk, whose write failed: counted as the chunk's others (_halt)
+            self.messages_written += 1
+            raise
         self.messages_written += 1
 
     def _add_json(self, topic: str, schema: str, obj: Any, mono_ns: int, seq: int) -> None:

@@ -1,0 +1,162 @@
+"""onboard.io.record on a disk that fills: the recording stops with a file that the `mcap` package's readers read
+(complete and indexed when the summary still fits, whole records up to the cut otherwise), every message handed over
+either written or counted as dropped, and the reason in the stats."""
+
+from __future__ import annotations
+
+import errno
+import os
+import time
+
+import numpy as np
+import pytest
+
+import onboard.io.mcap_chunks as mcap_chunks
+import onboard.io.record as record
+from onboard.app.record_recover import main as recover_main
+from onboard.app.record_recover import whole_length
+from onboard.core.irframe import IrFrame
+from onboard.io.record import FlightRecorder, RecordConfig
+
+mcap_reader = pytest.importorskip("mcap.reader")
+from mcap.exceptions import EndOfFile  # noqa: E402
+from mcap.records import Message  # noqa: E402
+from mcap.stream_reader import StreamReader  # noqa: E402
+
+FRAME_BYTES = 256 * 256
+REAL_WRITEV = os.writev
+
+
+def _frame(seq: int) -> IrFrame:
+    px = np.full((256, 256), seq % 251, dtype=np.uint8)
+    return IrFrame(seq, 1_000_000 + seq * 33_333, px)
+
+
+class Disk:
+    """A file system of ``capacity`` bytes for the recording's file (its size is what is used): a write that does
+    not fit writes what fits, and the next raises ENOSPC, as a real full disk does; ``frozen``: nothing more fits."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self.frozen = False
+        self.refused = 0
+
+    def writev(self, fd, bufs):
+        room = 0 if self.frozen else self.capacity - os.fstat(fd).st_size
+        want = sum(memoryview(b).nbytes for b in bufs)
+        if want <= room:
+            return REAL_WRITEV(fd, bufs)
+        if room <= 0:
+            self.refused += 1
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        first = memoryview(bufs[0]).cast("B")
+        return REAL_WRITEV(fd, [first[: min(room, first.nbytes)]])
+
+
+def _record_until_stopped(rec: FlightRecorder, n_max: int = 200) -> int:
+    handed = 0
+    for seq in range(n_max):
+        rec.on_frame(_frame(seq), time.monotonic_ns())
+        handed += 1
+        if rec.stopped is not None:
+            break
+        time.sleep(0.002)
+    else:
+        raise AssertionError("the recorder never stopped")
+    for seq in range(n_max, n_max + 5):  # after the stop: dropped and counted, never written
+        assert rec.on_frame(_frame(seq), time.monotonic_ns()) is False
+        handed += 1
+    rec.close()
+    return handed
+
+
+def _config(tmp_path, **kw) -> RecordConfig:
+    return RecordConfig(path=str(tmp_path / "f.mcap"), chunk_kb=256, flush_interval_s=0.05, **kw)
+
+
+def test_a_refused_write_finishes_the_file_without_the_chunk_it_tore(tmp_path, monkeypatch):
+    disk = Disk(capacity=900_000)  # three chunks of ~4 frames; the fourth is torn, the summary still fits
+    monkeypatch.setattr(mcap_chunks.os, "writev", disk.writev)
+    rec = FlightRecorder(_config(tmp_path, min_free_mb=0.0), vehicle="uav1")
+    rec.start()
+    handed = _record_until_stopped(rec)
+    assert disk.refused >= 1 and "write failed" in rec.stopped and rec.stats()["stopped"] == rec.stopped
+    assert rec.write_errors >= 1
+    # complete and indexed: the reader that reads the footer first opens it, and its statistics count what is there
+    with open(rec.files[-1], "rb") as f:
+        reader = mcap_reader.make_reader(f)
+        summary = reader.get_summary()
+        seqs = [m.sequence for _s, _c, m in reader.iter_messages()]
+    assert seqs == list(range(len(seqs))) and len(seqs) == rec.messages_written >= 8
+    stats = summary.statistics
+    assert stats.message_count == len(seqs) and stats.chunk_count == len(summary.chunk_indexes)
+    assert stats.message_end_time == max(c.message_end_time for c in summary.chunk_indexes)
+    # nothing lost silently
+    assert rec.messages_written + rec.dropped == handed
+    assert rec.dropped_by_topic[rec.frame_topic] == rec.dropped
+
+
+def test_a_disk_that_stays_full_leaves_whole_records_that_recover_reads(tmp_path, monkeypatch):
+    disk = Disk(capacity=900_000)
+    real = disk.writev
+
+    def writev(fd, bufs):
+        try:
+            return real(fd, bufs)
+        except OSError:
+            disk.frozen = True  # the truncation's bytes are taken by someone else at once
+            raise
+
+    monkeypatch.setattr(mcap_chunks.os, "writev", writev)
+    rec = FlightRecorder(_config(tmp_path, min_free_mb=0.0), vehicle="uav1")
+    rec.start()
+    handed = _record_until_stopped(rec)
+    assert "write failed" in rec.stopped and rec.messages_written + rec.dropped == handed
+    monkeypatch.setattr(mcap_chunks.os, "writev", REAL_WRITEV)
+    cut = rec.files[-1]
+    size = os.path.getsize(cut)
+    with open(cut, "rb") as f:  # no torn record: the file ends exactly where its last whole record does
+        assert whole_length(f, size) == (size, False)
+        f.seek(0)
+        messages = []
+        with pytest.raises(EndOfFile):  # how the streaming reader ends a file without its summary
+            for r in StreamReader(f, skip_magic=False).records:
+                messages += [r] if isinstance(r, Message) else []
+    assert [m.sequence for m in messages] == list(range(rec.messages_written))
+    whole = tmp_path / "whole.mcap"
+    assert recover_main([cut, str(whole)]) == 0
+    with open(whole, "rb") as f:
+        assert sum(1 for _ in mcap_reader.make_reader(f).iter_messages()) == rec.messages_written
+
+
+def test_free_space_under_the_floor_stops_the_recording_with_a_complete_file(tmp_path, monkeypatch):
+    free = {"bytes": 10**12}
+    monkeypatch.setattr(record, "free_disk_bytes", lambda path: free["bytes"])
+    rec = FlightRecorder(_config(tmp_path, min_free_mb=200.0), vehicle="uav1")
+    rec.start()
+    for seq in range(10):
+        rec.on_frame(_frame(seq), time.monotonic_ns())
+    free["bytes"] = 150 * 1_000_000
+    handed = 10 + _record_until_stopped(rec)
+    assert "150 MB free, under record.min_free_mb (200)" == rec.stopped and rec.write_errors == 0
+    with open(rec.files[-1], "rb") as f:
+        n = sum(1 for _ in mcap_reader.make_reader(f).iter_messages())
+    assert n == rec.messages_written >= 10 and rec.messages_written + rec.dropped == handed
+
+
+def test_no_room_at_start_records_nothing_and_says_so(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(record, "free_disk_bytes", lambda path: 5 * 1_000_000)
+    rec = FlightRecorder(_config(tmp_path), vehicle="uav1")
+    rec.start()
+    assert rec.on_frame(_frame(0), time.monotonic_ns()) is False
+    rec.close()
+    assert rec.files == [] and not os.listdir(tmp_path) and rec.dropped == 1
+    assert rec.stopped == "5 MB free, under record.min_free_mb (200)"
+    assert "not recording to" in caplog.text and "min_free_mb" in caplog.text
+
+
+def test_the_floor_is_read_from_the_recordings_file_system(tmp_path):
+    st = os.statvfs(tmp_path)
+    free = record.free_disk_bytes(str(tmp_path / "f.mcap"))
+    assert free is not None and abs(free - st.f_bavail * st.f_frsize) < 64 * 1024 * 1024
+    assert record.free_disk_bytes(str(tmp_path / "missing" / "f.mcap")) is None
