@@ -452,7 +452,7 @@ def main(argv=None) -> int:
         "--seeds",
         type=positive_int,
         default=50,
-        help="seeds per cell (default 50: the README table; the issue asks >= 10)",
+        help="seeds per cell (default 50: the tables of docs/performance.md; at least 10 for a median)",
     )
     ap.add_argument(
         "--scenarios",

@@ -17,8 +17,8 @@ a daemon that stopped; the fleet track goes on with the others, unobservable whe
 rejoins with its next line of sight that gates), ``clocks`` (each vehicle's latency floor off the fleet's
 median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsistent`` (the vehicles whose ``time_unix_us`` disagrees with the others' beyond
 ``--clock-tolerance-ms``: :class:`~onboard.io.fleet_wire.ClockConsistency`).  Counted on each change:
-``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle) and ``vehicle_back`` (INFO).  The zenoh options and their default (connect
-``tcp/127.0.0.1:7447``) are :mod:`onboard.app.watch`'s, i.e. the daemon's.
+``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle) and ``vehicle_back`` (INFO).  The zenoh options are :mod:`onboard.app.watch`'s (the daemon's names), and so is
+their default, which is not the daemon's: with none given it connects to ``tcp/127.0.0.1:7447``.
 
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
 every ray, then solves each touched target that is due once and publishes: due when every live vehicle's

@@ -84,7 +84,7 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   object's (half its box's larger side over the image width), NaN without a box: the command's own
   radius is the search area around the click, not the target.  ACTIVE | COASTING (8) while the
   tracker predicts.  #276 only for a position the estimator calls observable (unless
-  ``observable_only`` is off); ``camera_device_id`` 0 in both (common.xml: 0 = the sender is a
+  ``output.geo_status_unobservable`` is set: ``observable_only`` off); ``camera_device_id`` 0 in both (common.xml: 0 = the sender is a
   MAVLink camera, its component id identifies it).
 """
 
