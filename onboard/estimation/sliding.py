@@ -111,6 +111,12 @@ __all__ = [
 
 #: chi-square(2 dof) at 1e-4: a newer bearing farther than this from an estimate is not fused into it
 BEARING_GATE_CHI2 = 18.42
+#: a full solve leaves out the rows beyond the gate of the solution it starts from only while they are at most this
+#: share of the window: more means the starting solution is off (a change of motion, a selection due), not the rows
+MAX_EXCLUDED_SHARE = 0.25
+#: nor a run of more than this many of the newest rows: bearings that keep leaving the prediction are a change of the
+#: target's motion (a stop, a turn) which the solve must follow, not outliers (0.2 s at the 15 Hz the window keeps)
+MAX_EXCLUDED_EDGE_ROWS = 3
 #: one residual evaluation of the window problem (with its share of the normal equations) costs about as much
 #: as this many rows more: ~0.16 ms at 30-75 rows, 0.23 at 150, 0.44 at 300 (P1 RTK, 1 s knots, loaded
 #: development machine), i.e. a fixed part and one proportional to the rows; the selection's share of a
@@ -427,6 +433,7 @@ class SlidingWindowEstimator:
         self._prob: WindowProblem | None = None
         self._H: np.ndarray | None = None
         self._since_full = 0
+        self._excluded_t_s: np.ndarray = np.empty(0)  # the times of the rows the last full solve left out
         # per-frame covariances come from the chosen model's information, inflated like the batch
         # result's; model doubt is the 1 Hz selection's job (its observability verdict gates ours)
         self._cov_scale = self.map.config.sigma_inflation**2
@@ -441,6 +448,7 @@ class SlidingWindowEstimator:
             "inconsistent_selections": 0,
             "unsteady_selections": 0,
             "gated": 0,
+            "excluded": 0,
         }
 
     @property
@@ -620,6 +628,11 @@ class SlidingWindowEstimator:
     def _start_selection(self, t: float, full: bool) -> None:
         """Begin a model selection on the window as it is now (its rows are frozen for the selection)."""
         obs = self._observations()
+        if self._excluded_t_s.size and not self._manoeuvre_fired:
+            # the rows the last full solve found beyond the gate are left out of the selection too: an outlier
+            # among them made the selection's fit inadequate, and the window unobservable for as long as it stayed
+            # in it.  Not after a manoeuvre: the rows beyond the gate are then the new motion the selection is for
+            obs = obs.select(np.flatnonzero(~np.isin(obs.t_s, self._excluded_t_s)))
         warm = None
         if self._theta is not None and self._prob is not None and self._prior is not None:
             warm = self._shift(self.map.problem(obs, self._prior, self._grid))
@@ -751,6 +764,7 @@ class SlidingWindowEstimator:
         prob = self.map.problem(obs, self._prior, self._grid)
         theta = self._shift(prob)
         prob.set_measurement_weights(np.linalg.norm(prob.positions(theta) - obs.p_cam_ned_m, axis=1))
+        newest_out = self._exclude_outliers(prob, theta)
         sol = prob.solve(theta, max_iterations=iterations or self.config.iterations_per_frame, want_factor=False)
         theta = sol.theta
         if not math.isfinite(sol.cost) or prob.last_jacobian is None:
@@ -758,7 +772,34 @@ class SlidingWindowEstimator:
         self.stats["updates"] += 1
         self._H = prob.normal_matrix()  # at theta: the solve's last linearisation
         self._theta, self._first, self._prob, self._since_full = theta, prob.first, prob, 0
-        return self._estimate(prob, theta, t, self._H)
+        return self._estimate(prob, theta, t, self._H, demote=newest_out)
+
+    def _exclude_outliers(self, prob: WindowProblem, theta: np.ndarray) -> bool:
+        """Leave out of this full solve the bearings beyond the innovation gate of the solution it starts from (the
+        last one, carried to this window): the rows added since the last solve are tested against its prediction,
+        as the incremental step tests each, and a row the gate left out before is left out again for as long as
+        the solution does not come to it.  Without this a full solve weighed an outlier the incremental step had
+        gated -- or one that arrived on a full solve's own frame, never tested -- and at the window's newest edge,
+        where the spline bends freely, took it in: the estimates after it confidently off.  Only a few rows are
+        ever left out: when more than :data:`MAX_EXCLUDED_SHARE` of the window fail the gate the solution started
+        from is what is wrong (a selection is then due), and every row is kept.  True when the newest row is left
+        out (its estimate, a prediction beside it, is then not called observable, as a gated step's)."""
+        self._excluded_t_s = np.empty(0)
+        gate = self.config.innovation_gate_chi2
+        if gate <= 0 or self._manoeuvre_fired:
+            return False
+        chi2, valid = prob.measurement_chi2(theta)
+        out = chi2 > gate
+        edge_run = out.size - (int(np.flatnonzero(~out)[-1]) + 1 if not out.all() else 0)
+        if edge_run > MAX_EXCLUDED_EDGE_ROWS:  # the newest bearings all beyond the gate: the motion changed, keep them
+            out[out.size - edge_run :] = False
+        n = int(out.sum())
+        if not valid or n == 0 or n > MAX_EXCLUDED_SHARE * out.size:
+            return False
+        prob.exclude_measurements(out)
+        self._excluded_t_s = prob.obs.t_s[out]
+        self.stats["excluded"] += n
+        return bool(out[-1])
 
     def _knots(self) -> KnotGrid:
         """The knot grid, anchored by the first observation (EstimationError before it)."""

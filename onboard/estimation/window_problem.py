@@ -414,6 +414,23 @@ class WindowProblem:
         self.s = self.f / np.sqrt(var)  # (F, 2): normalised-coordinate residual -> standard units
         self._sT = np.ascontiguousarray(self.s.T)  # (the kernels' observation-last layout)
 
+    def measurement_chi2(self, theta: np.ndarray) -> tuple[np.ndarray, bool]:
+        """Each observation's squared normalised residual at ``theta`` (F,), its two image coordinates summed
+        (the weights of :meth:`set_measurement_weights`), and whether every predicted direction is in front of
+        the camera (:meth:`evaluate`'s flag).  Evaluates without a Jacobian: the linearisation
+        :meth:`normal_matrix` reads is untouched."""
+        r, valid = self.linearise(theta, jacobian=False)
+        m = r[: 2 * self.F].reshape(self.F, 2)
+        return np.einsum("fi,fi->f", m, m), bool(valid)
+
+    def exclude_measurements(self, mask) -> None:
+        """Leave the observations where ``mask`` (F,) is true out of the solve: weight zero, so they neither pull
+        the solution nor add information.  (Not for a problem whose evidence is wanted: that counts every row.)"""
+        s = self.s.copy()
+        s[np.asarray(mask, dtype=bool)] = 0.0
+        self.s = s
+        self._sT = np.ascontiguousarray(s.T)
+
     def positions(self, theta: np.ndarray) -> np.ndarray:
         c = theta[: self.nc].reshape(self.count, 3)
         return einsum("fm,fmk->fk", self.rows.w0, c[self.rows.index])

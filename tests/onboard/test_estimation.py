@@ -334,6 +334,46 @@ def test_a_bearing_far_from_the_windows_prediction_is_gated_and_its_estimate_not
     assert not none_gated and ungated_observable == clean_observable > 0
 
 
+def test_full_solves_and_selections_leave_out_bearings_beyond_the_gate():
+    """A 20 px outlier every second (0.3 px noise) on a weaving observer's observable 30 s flight.  The incremental
+    step gates one; a full solve on the outlier's own frame, or any later one, weighed it, and at the window's newest
+    edge, where the spline bends freely, took it in: observable estimates after it up to Mahalanobis 180, and the
+    selections' fit with it in the window inadequate (unobservable).  Full solves and selections now leave out the
+    rows beyond the gate of the solution they start from: no observable estimate beyond chi-square(3) 0.997, and the
+    window observable as on clean bearings."""
+    from groundsim.world.motion import Cubic
+    from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat
+
+    K = PinholeIntrinsics.vue_pro_640()
+    t = np.arange(900) / 30.0
+    cam = np.stack([8 * t, 40 * np.sin(2 * np.pi * t / 20), -60 + 0 * t], -1)
+    tgt = Cubic((150.0, -60.0, -90.0), (0.0, 5.0, 0.0)).state(t).p_ned_m
+    z = (tgt - cam) / np.linalg.norm(tgt - cam, axis=1, keepdims=True)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    R = np.stack([x, np.cross(z, x), z], axis=-1)  # columns: camera x, y, z in NED
+    uv = K.project(np.einsum("fji,fj->fi", R, tgt - cam)) + 0.3 * np.random.default_rng(0).standard_normal((t.size, 2))
+    uv[450::30] += (20.0, 0.0)
+    q = [quat_from_rotmat(r) for r in R]
+
+    def run(exclude: bool):
+        sw = SlidingWindowEstimator(noise=NoiseModel(pixel_sigma_px=0.3))
+        if not exclude:  # as before: every row in every full solve and selection
+            sw._exclude_outliers = lambda prob, theta: False  # type: ignore[method-assign]
+        m2 = []
+        for i in range(t.size):
+            est = sw.add(t[i], uv[i], K, cam[i], q[i])
+            if est is not None and est.observable:
+                e = est.p_ned_m - tgt[i]
+                m2.append(float(e @ np.linalg.solve(est.cov_p_ned_m2, e)))
+        return sw, np.array(m2)
+
+    sw, m2 = run(True)
+    assert sw.stats["excluded"] > 0 and m2.size > 700 and m2.max() < 14.16
+    _, m2_before = run(False)
+    assert m2_before.size < 400 and m2_before.max() > 14.16
+
+
 def test_a_hovering_camera_never_publishes_its_target_behind_it_or_on_it():
     """A camera hovering 60 m up, a target crossing 160 m away at 5 m/s: no parallax, no range.  An incremental step
     once carried the estimate 308 m through the camera, behind it; a step that puts it behind the camera or within
