@@ -244,6 +244,7 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 raise CsvInputError(f"{source} line {line}, column fx_px: focal length must be > 0, got {fx:g}")
             if fy <= 0:
                 raise CsvInputError(f"{source} line {line}, column fy_px: focal length must be > 0, got {fy:g}")
+            _check_on_image(vals, source, line)
             qn = math.sqrt(sum(v * v for v in vals[10:14]))
             if abs(qn - 1.0) > QUAT_NORM_TOL:
                 raise CsvInputError(
@@ -276,6 +277,19 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
         )
     except IrtrackError as e:  # every check above should have caught it first
         raise CsvInputError(f"{source}: {e}") from None
+
+
+def _check_on_image(vals: list[float], source: str, line: int) -> None:
+    """A pixel no camera sees (the daemon's bound: beyond one image width or height outside the image, the image
+    taken as twice the principal point, as the CSV has no size) is a corrupt row: one such row made a whole
+    reconstruction confidently wrong by a hundred metres."""
+    for i, c, name in ((1, 5, "u_px"), (2, 6, "v_px")):
+        size = 2.0 * vals[c]
+        if size > 0 and not -size <= vals[i] <= 2.0 * size:
+            raise CsvInputError(
+                f"{source} line {line}, column {name}: {vals[i]:g} is far outside the image (about"
+                f" {2 * vals[5]:.0f} x {2 * vals[6]:.0f} px from cx_px, cy_px): no camera sees there"
+            )
 
 
 def read_observations_csv(path) -> Observations:
@@ -688,6 +702,12 @@ def _run(args) -> int:
         print(f"error: {e}", file=sys.stderr)
         return EXIT_OUTPUT
     print(_report_line(args.output, len(rec.t_s), summary))
+    if not summary["converged"]:
+        print(
+            f"WARNING: {args.obs_csv}: the solve did not converge within its iterations: the positions in"
+            f" {args.output} and their sigmas may be off (the summary's converged: false)",
+            file=sys.stderr,
+        )
     if not summary["observable"]:
         # printed as the errors are, not logged: it is the run's verdict, whatever handlers the caller's logging has
         where = ""

@@ -286,6 +286,9 @@ BAD_TEXT_CASES = {
     "non-numeric": (lambda L: _set_cell(L, 8, "cx_px", "320px"), ["line 8, column cx_px", "not a number"]),
     "empty cell": (lambda L: _set_cell(L, 2, "t_s", " "), ["line 2, column t_s", "empty cell"]),
     "beyond bound": (lambda L: _set_cell(L, 4, "cam_n_m", "1e300"), ["line 4, column cam_n_m", "sanity bound"]),
+    # a pixel no camera sees (one such row made a reconstruction "observable" and 100 m off at 0.7 m sigma)
+    "pixel far left": (lambda L: _set_cell(L, 5, "u_px", "-5000"), ["line 5, column u_px", "far outside the image"]),
+    "pixel far below": (lambda L: _set_cell(L, 6, "v_px", "1e6"), ["line 6, column v_px", "far outside the image"]),
     "negative focal": (lambda L: _set_cell(L, 5, "fy_px", "-764.7"), ["line 5, column fy_px", "> 0"]),
     "zero focal": (lambda L: _set_cell(L, 5, "fx_px", "0"), ["line 5, column fx_px", "> 0"]),
     "non-unit quaternion": (lambda L: _scale_quat(L, 7, 1.01), ["line 7, column q_w..q_z", "quaternion norm 1.01"]),
