@@ -26,9 +26,22 @@ detection's contrast over its local threshold.  ``--primary-only``: only the pri
 in auto mode: the steady object nearest the image centre), for single-target benchmarks such as Anti-UAV.
 TrackEval (MOT Challenge 2-D) or the Anti-UAV toolkit score the file against the benchmark's truth.
 
+Frame numbers.  A video's frames are numbered as decoded, from 1.  In a folder whose frame names are all numbers
+(``000001.png``, ``17.png``: the MOT and Anti-UAV convention) the number in the name is the MOT frame, so a missing
+file leaves a gap rather than shifting every later frame against the benchmark's truth; names numbered from 0 are
+moved up by one (MOT counts from 1).  Gaps are warned about once (how many frames, the first gap), and two files
+with one number (``1.png`` and ``0001.png``) are refused.  When some name is not a number, frames are numbered by
+their sorted position from 1, which an INFO line says.
+
+Frames must be at least 16 x 16 pixels (the chain's smallest) and of one size: a folder or a video whose frame
+size changes is refused at the first frame that differs.  A video that decodes with errors (damage the decoder
+concealed) or to fewer frames than its container declares (a file cut short) is tracked as far as it decodes,
+with one warning saying how far.
+
 ``--encoding``: ``auto`` takes the frames as stored (the first frame's depth; all must match);
 ``mono8`` takes a 16-bit frame's high byte; ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate
-of a folder (default 30; a video's own rate otherwise).  A progress line goes to stderr every few seconds.
+of a folder (default 30; a video's own rate otherwise).  A progress line goes to stderr every few seconds;
+``--quiet`` drops it and the INFO lines.
 
 The tracks are written to a temporary file beside ``--out`` (created with the permissions a new file gets,
 ``0666`` less the umask) and renamed over it only when the run ends: a run that fails leaves the previous file as
@@ -36,11 +49,12 @@ it was (or none), never the tracks of the frames before the failure.  An interru
 it renames the tracks of the frames done (if any) into place, since they are valid MOT lines of a prefix of the
 input.
 ``--out`` must be a regular file or a new path (a folder, device or pipe is refused); through a symbolic link the
-file it points to is replaced, the link kept.
+file it points to is replaced, the link kept.  It must not be an input: the video, a frame of the input folder, or
+any image file in that folder (a later run would read it as a frame).
 
-Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth, an
-output that cannot be written -- in one line naming the file; 130 interrupted (the tracks of the frames done are
-in the output).
+Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth or
+too small, two frame files of one number, an output that cannot be written or naming an input -- in one line
+naming the file; 130 interrupted (the tracks of the frames done are in the output).
 """
 
 from __future__ import annotations
@@ -101,16 +115,19 @@ def _natural_key(name: str) -> list:
 @dataclass
 class FrameSource:
     """Where the frames come from: ``path`` (the video file or the frames' folder), ``kind`` ``video`` or
-    ``folder``, ``fps``, ``total`` (frames, None when the container does not say) and ``frames``: the iterator of
-    ``(name, pixels)`` -- the pixels 2-D uint8 or uint16, in the encoding asked for.  ``converted_from`` fills as
-    ``frames`` is read: the layouts (``colour``, ``colour+alpha``, ``grey+alpha``) of the frames turned to grey."""
+    ``folder``, ``fps``, ``total`` (frames, None when the container does not say), ``files`` (a folder's frame
+    files, in frame order; empty for a video) and ``frames``: the iterator of ``(MOT frame number, name,
+    pixels)`` -- the name the file's path (a video's: ``PATH frame K``), the pixels 2-D uint8 or uint16, in the
+    encoding asked for.  ``converted_from`` fills as ``frames`` is read: the layouts (``colour``,
+    ``colour+alpha``, ``grey+alpha``) of the frames turned to grey."""
 
     path: Path
     kind: str
     fps: float
     total: int | None
-    frames: Iterator[tuple[str, np.ndarray]]
+    frames: Iterator[tuple[int, str, np.ndarray]]
     converted_from: set[str] = field(default_factory=set)
+    files: list[Path] = field(default_factory=list)
 
 
 def _frame_files(folder: Path) -> list[Path]:
@@ -121,6 +138,47 @@ def _frame_files(folder: Path) -> list[Path]:
         )
     except OSError as exc:  # a folder that cannot be listed (permissions): one line, as for a frame
         raise InputError(f"{folder}: cannot list the folder: {exc.strerror or exc}") from None
+
+
+def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
+    """``files`` (sorted by name) in frame order and their MOT frame numbers (the module docstring's rules); logs
+    the numbering when it is not the names' own, and the gaps."""
+    if not all(re.fullmatch(r"[0-9]+", p.stem) for p in files):
+        example = next(p for p in files if not re.fullmatch(r"[0-9]+", p.stem))
+        log.info(
+            "%s: not every frame name is a number (%s): MOT frames are numbered by sorted position from 1",
+            folder,
+            example.name,
+        )
+        return files, list(range(1, len(files) + 1))
+    ordered = sorted(files, key=lambda p: int(p.stem))  # stable: names of one number stay in name order
+    for before, path in zip(ordered, ordered[1:]):
+        if int(before.stem) == int(path.stem):
+            raise InputError(
+                f"{path}: frame number {int(path.stem)} again ({before.name} has it): MOT frame numbers come "
+                f"from the names; remove or rename one"
+            )
+    shift = 1 if int(ordered[0].stem) == 0 else 0  # MOT frames count from 1
+    if shift:
+        log.info("%s: frames numbered from 0 (%s): MOT frame = the number in the name + 1", folder, ordered[0].name)
+    numbers = [int(p.stem) + shift for p in ordered]
+    missing = numbers[-1] - len(numbers)
+    if missing:
+        # the i-th frame (from 0) is MOT frame i + 1 up to the first gap
+        i = next(i for i, number in enumerate(numbers) if number != i + 1)
+        first, last = i + 1 - shift, numbers[i] - 1 - shift
+        gap = f"{first}" if first == last else f"{first} to {last}"
+        log.warning(
+            "%s: %d frame%s missing from the numbering up to %s, the first gap %s (before %s); MOT frames keep "
+            "the numbers in the names",
+            folder,
+            missing,
+            "" if missing == 1 else "s",
+            ordered[-1].name,
+            gap,
+            ordered[i].name,
+        )
+    return ordered, numbers
 
 
 def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
@@ -153,9 +211,11 @@ def _read_image(path: Path) -> tuple[np.ndarray, str | None]:
     return px, None
 
 
-def _folder_frames(files: list[Path], encoding: str, converted_from: set[str]) -> Iterator[tuple[str, np.ndarray]]:
+def _folder_frames(
+    files: list[Path], numbers: list[int], encoding: str, converted_from: set[str]
+) -> Iterator[tuple[int, str, np.ndarray]]:
     first: tuple[tuple[int, ...], np.dtype, Path] | None = None
-    for path in files:
+    for number, path in zip(numbers, files):
         px, layout = _read_image(path)
         if layout is not None:
             converted_from.add(layout)
@@ -171,7 +231,7 @@ def _folder_frames(files: list[Path], encoding: str, converted_from: set[str]) -
                 f"{path}: {8 * px.dtype.itemsize}-bit frame, the first ({first[2].name}) is "
                 f"{8 * first[1].itemsize}-bit: give --encoding mono8 or mono16 to convert"
             )
-        yield path.name, _convert(px, encoding, str(path))
+        yield number, str(path), _convert(px, encoding, str(path))
 
 
 def _av_reason(exc: Exception) -> str:
@@ -179,8 +239,9 @@ def _av_reason(exc: Exception) -> str:
     return getattr(exc, "strerror", None) or str(exc)
 
 
-def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterator[tuple[str, np.ndarray]]]:
+def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterator[tuple[int, str, np.ndarray]]]:
     import av
+    import av.logging
 
     try:
         container = av.open(str(path))
@@ -193,22 +254,68 @@ def _video_frames(path: Path, encoding: str) -> tuple[float, int | None, Iterato
     rate = stream.average_rate or stream.guessed_rate
     fps = float(rate) if rate else DEFAULT_FOLDER_FPS
     total = int(stream.frames) or None
+    # a container without a frame count (Matroska, MPEG-TS) says its duration, in AV_TIME_BASE units (us)
+    duration_s = container.duration / 1e6 if container.duration else None
     deep = any(c.bits > 8 for c in stream.format.components) if stream.format is not None else False
     wide = encoding == "mono16" or (encoding == "auto" and deep)
 
-    def frames() -> Iterator[tuple[str, np.ndarray]]:
-        k = 0
+    def frames() -> Iterator[tuple[int, str, np.ndarray]]:
+        k = corrupt = 0
+        first: tuple[int, ...] | None = None
+        # FFmpeg conceals damage and goes on, saying so only in its log, which PyAV drops unless a level is set:
+        # the log is turned on for the decoding, its lines captured (not printed) and its errors counted
+        level = av.logging.get_level()
+        errors_before = av.logging.get_last_error()[0]
+        av.logging.set_level(av.logging.ERROR)
         try:
-            for frame in container.decode(stream):
-                k += 1
-                px = frame.to_ndarray(format="gray16le" if wide else "gray")
-                yield f"{path.name} frame {k}", np.ascontiguousarray(px)
+            with av.logging.Capture(local=False) as logs:  # the decoder's threads log too
+                for frame in container.decode(stream):
+                    k += 1
+                    corrupt += bool(frame.is_corrupt)
+                    px = np.ascontiguousarray(frame.to_ndarray(format="gray16le" if wide else "gray"))
+                    if first is None:
+                        first = px.shape
+                    elif px.shape != first:  # as a folder's: the chain is sized by the first frame
+                        raise InputError(
+                            f"{path}: frame {k} is {px.shape[1]} x {px.shape[0]} px, the first is "
+                            f"{first[1]} x {first[0]}: all frames must have one size"
+                        )
+                    yield k, f"{path} frame {k}", px
         except av.error.FFmpegError as exc:
             raise InputError(f"{path}: frame {k + 1} cannot be decoded: {_av_reason(exc)}") from None
         finally:
+            av.logging.set_level(level)
             container.close()
+        errors = av.logging.get_last_error()[0] - errors_before
+        short = _short_by(k, total, duration_s, fps)
+        if short or errors or corrupt:
+            said = [short] if short else [f"decoded {k} frames"]
+            if errors:
+                first_error = next(
+                    (f"[{name}] {text.strip()}" for lvl, name, text in logs if lvl <= av.logging.ERROR), ""
+                )
+                said.append(f"{errors} decoder error{'s' if errors > 1 else ''} (the first: {first_error})")
+            if corrupt:
+                said.append(f"{corrupt} frame{'s' if corrupt > 1 else ''} marked corrupt")
+            log.warning(
+                "%s: %s: the file is damaged or cut short; tracks are of the frames decoded", path, "; ".join(said)
+            )
 
     return fps, total, frames()
+
+
+def _short_by(decoded: int, declared: int | None, duration_s: float | None, fps: float) -> str | None:
+    """What ``decoded`` frames fall short of, in words: the container's frame count ``declared`` (differing), or
+    the frames its ``duration_s`` at ``fps`` implies (fewer by more than one, the rounding of where a duration
+    ends); None when neither is known or they agree."""
+    if declared:
+        return None if decoded == declared else f"decoded {decoded} of {declared} frames declared"
+    if duration_s:
+        implied = round(duration_s * fps)
+        if decoded < implied - 1:
+            at = f"{duration_s:g} s at {fps:g} frames/s"
+            return f"decoded {decoded} of about {implied} frames its duration implies ({at})"
+    return None
 
 
 def open_frames(input_path: str, encoding: str = "auto", fps: float | None = None) -> FrameSource:
@@ -235,11 +342,11 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
         else:
             rate = DEFAULT_FOLDER_FPS if fps is None else fps
             converted_from: set[str] = set()
-            return FrameSource(
-                path, "folder", rate, len(files), _folder_frames(files, encoding, converted_from), converted_from
-            )
-    video_fps, total, frames = _video_frames(path, encoding)
-    return FrameSource(path, "video", video_fps if fps is None else fps, total, frames)
+            files, numbers = _numbered(path, files)
+            frames = _folder_frames(files, numbers, encoding, converted_from)
+            return FrameSource(path, "folder", rate, len(files), frames, converted_from, files)
+    video_fps, total, decoded = _video_frames(path, encoding)
+    return FrameSource(path, "video", video_fps if fps is None else fps, total, decoded)
 
 
 def mot_rows(frame_number: int, update, box_px: float | None = None, primary_only: bool = False) -> list[str]:
@@ -259,15 +366,22 @@ def mot_rows(frame_number: int, update, box_px: float | None = None, primary_onl
 
 
 def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsUpdate]]:
-    """``(frame number from 1, pixels, ObjectsUpdate)`` of each frame of ``frames`` (``(name, pixels)``) through a
-    fresh objects chain sized by the first frame; an unusable frame raises :class:`InputError` naming it."""
+    """``(MOT frame number, pixels, ObjectsUpdate)`` of each frame of ``frames`` (``(MOT frame number, name,
+    pixels)``) through a fresh objects chain sized by the first frame; an unusable frame raises
+    :class:`InputError` naming it."""
     from onboard.core.frames import PinholeIntrinsics
     from onboard.imaging.objects import ObjectTracker
+    from onboard.imaging.preprocess import MIN_FRAME_SIDE_PX
 
     tracker = None
-    for k, (name, px) in enumerate(frames, start=1):
+    for k, name, px in frames:
         if tracker is None:
             h, w = px.shape
+            if min(h, w) < MIN_FRAME_SIDE_PX:  # said here in the tool's words, with the path, not the chain's
+                raise InputError(
+                    f"{name}: frame of {w} x {h} px: frames must be at least {MIN_FRAME_SIDE_PX} x "
+                    f"{MIN_FRAME_SIDE_PX} px"
+                )
             K = PinholeIntrinsics(float(w), float(w), w / 2.0, h / 2.0, w, h)  # nominal: image space (docstring)
             # no attitude here (every frame in image space): its fits have no attitude error to allow for
             params = ObjectTracker.default_params(attitude_white_sigma_rad=0.0)
@@ -349,6 +463,25 @@ class _Replacement:
                 os.unlink(self.tmp)
 
 
+def _input_clash(out_path: str, src: FrameSource) -> str | None:
+    """Why ``--out`` cannot be ``out_path`` for the input ``src``, or None: it names the video or a frame file, or
+    it is an image file in the frames' folder (a later run would read the tracks as a frame).
+    ``same_file_clash`` has already refused a file given as INPUT; this covers what a folder INPUT resolves to."""
+    target = os.path.realpath(out_path)
+    if os.path.exists(target):
+        for path in [src.path] if src.kind == "video" else src.files:
+            with contextlib.suppress(OSError):
+                if os.path.samefile(target, path):
+                    return f"--out {out_path}: names the input {path}; give another file"
+    in_folder = src.kind == "folder" and os.path.dirname(target) == os.path.realpath(src.path)
+    if in_folder and Path(target).suffix.lower() in FRAME_SUFFIXES:
+        return (
+            f"--out {out_path}: an image file in the input folder {src.path}, which a later run would read as a "
+            f"frame; give another file"
+        )
+    return None
+
+
 # --------------------------------------------------------------------------- entry point
 
 
@@ -360,13 +493,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, help="frame rate (default: the video's; 30 for a folder)")
     p.add_argument("--box-px", type=float, help="write N x N boxes about the centres instead of the detected ones")
     p.add_argument("--primary-only", action="store_true", help="only the primary target (single-target benchmarks)")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--quiet", action="store_true", help="no progress line and no INFO lines")
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    # this tool's INFO lines say how frames were numbered; the chain's own stay at WARNING
+    log.setLevel(logging.WARNING if args.quiet else logging.INFO)
     if args.fps is not None and not (math.isfinite(args.fps) and args.fps > 0):
         print(f"--fps: expected a finite rate > 0, got {args.fps}", file=sys.stderr)
         return EXIT_INPUT
@@ -381,6 +516,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     out: _Replacement | None = None
     try:
         src = open_frames(args.input, args.encoding, args.fps)
+        clash = _input_clash(args.out, src)
+        if clash is not None:
+            raise InputError(clash)
         out = _Replacement(args.out)
         t0 = last = time.monotonic()
         ids: set[int] = set()
@@ -391,12 +529,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             out.writelines(rows)
             lines += len(rows)
             ids.update(o.object_id for o in upd.confirmed)
-            done = k
+            done += 1  # frames tracked: a folder's frame numbers may have gaps
             now = time.monotonic()
             if not args.quiet and now - last >= PROGRESS_EVERY_S:
                 last = now
-                of = f"/{src.total} ({100.0 * k / src.total:.0f} %)" if src.total else ""
-                print(f"track_video: frame {k}{of}, {k / (now - t0):.0f} frames/s, {len(ids)} ids", file=sys.stderr)
+                of = f"/{src.total} ({100.0 * done / src.total:.0f} %)" if src.total else ""
+                rate = done / (now - t0)
+                print(f"track_video: frame {done}{of}, {rate:.0f} frames/s, {len(ids)} ids", file=sys.stderr)
             if size is None:
                 size = f"{px.shape[1]} x {px.shape[0]} {'mono16' if px.dtype == np.uint16 else 'mono8'}"
         wall = time.monotonic() - t0

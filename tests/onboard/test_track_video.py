@@ -146,9 +146,10 @@ def test_encoding_is_taken_from_the_pngs_or_converted(tmp_path):
     seq.mkdir()
     cv2.imwrite(str(seq / "a.png"), _mono16(0))
     src = open_frames(str(seq))
-    name, px = next(src.frames)
-    assert name == "a.png" and px.dtype == np.uint16 and np.array_equal(px, _mono16(0))
-    _, px8 = next(open_frames(str(seq), "mono8").frames)
+    number, name, px = next(src.frames)
+    assert number == 1 and name == str(seq / "a.png")
+    assert px.dtype == np.uint16 and np.array_equal(px, _mono16(0))
+    _, _, px8 = next(open_frames(str(seq), "mono8").frames)
     assert px8.dtype == np.uint8 and np.array_equal(px8, (_mono16(0) >> 8).astype(np.uint8))
     assert src.fps == 30.0 and open_frames(str(seq), fps=9.0).fps == 9.0
 

@@ -1,0 +1,197 @@
+"""``python -m onboard.track_video`` on inputs that are not quite what a benchmark promises: a frame folder whose
+numbering has gaps, starts at 0, is not numeric or repeats a number; a video whose frame size changes, that was
+cut short or damaged; an ``--out`` that would overwrite an input; frames smaller than the chain takes.  Each
+input is a few tiny synthetic frames written here (OpenCV PNGs, PyAV videos); the command runs in process."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+import onboard.app.track_video as track_video
+from onboard.app.track_video import EXIT_INPUT, EXIT_OK, main, open_frames
+
+SIDE_PX = 32  # above the chain's 16 x 16 minimum, small enough to keep each test fast
+LOGGER = "onboard.app.track_video"
+
+
+def _noise(k: int, h_px: int = SIDE_PX, w_px: int = SIDE_PX) -> np.ndarray:
+    """Frame k: noise about a grey sky (nothing for the chain to confirm; these tests are about the input)."""
+    return np.random.default_rng(k).integers(40, 80, (h_px, w_px), dtype=np.uint8)
+
+
+def _folder(folder: Path, names: list[str], side_px: int = SIDE_PX) -> Path:
+    folder.mkdir()
+    for k, name in enumerate(names):
+        assert cv2.imwrite(str(folder / name), _noise(k, side_px, side_px))
+    return folder
+
+
+def _records(caplog, level: int) -> list[str]:
+    return [r.getMessage() for r in caplog.records if r.name == LOGGER and r.levelno == level]
+
+
+def _frame_numbers_written(monkeypatch, tmp_path: Path, folder: Path) -> list[int]:
+    """The MOT frame numbers main writes for ``folder``: one line per frame, whatever the chain confirms."""
+    monkeypatch.setattr(track_video, "mot_rows", lambda k, upd, box_px=None, primary_only=False: [f"{k}\n"])
+    out = tmp_path / "t.txt"
+    assert main([str(folder), "--out", str(out)]) == EXIT_OK
+    return [int(line) for line in out.read_text().splitlines()]
+
+
+# --------------------------------------------------------------------------- folder numbering
+
+
+def test_frame_numbers_come_from_the_names_and_a_gap_is_warned_once(tmp_path, monkeypatch, caplog):
+    names = [f"{n:06d}.png" for n in (1, 2, 5, 6, 8)]  # 3, 4 and 7 missing
+    seq = _folder(tmp_path / "seq", names)
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 5, 6, 8]
+    warned = _records(caplog, logging.WARNING)
+    assert len(warned) == 1, warned
+    assert warned[0].startswith(f"{seq}: 3 frames missing") and "the first gap 3 to 4 (before 000005.png)" in warned[0]
+
+
+def test_a_numbering_without_gaps_says_nothing(tmp_path, monkeypatch, caplog):
+    seq = _folder(tmp_path / "seq", [f"{n}.png" for n in (1, 2, 3)])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3]
+    assert _records(caplog, logging.WARNING) == [] and _records(caplog, logging.INFO) == []
+
+
+def test_names_numbered_from_0_are_moved_up_by_one(tmp_path, monkeypatch, caplog):
+    seq = _folder(tmp_path / "seq", ["000.png", "001.png", "003.png"])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 4]
+    assert any("numbered from 0 (000.png)" in m for m in _records(caplog, logging.INFO))
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "1 frame missing" in warned and "the first gap 2 (before 003.png)" in warned  # the names' numbers
+
+
+def test_names_that_are_not_all_numbers_are_numbered_by_position_and_said_once(tmp_path, monkeypatch, caplog):
+    seq = _folder(tmp_path / "seq", ["img2.png", "img10.png", "img1.png"])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3]
+    assert [m for m in _records(caplog, logging.INFO) if "position" in m] == [
+        f"{seq}: not every frame name is a number (img1.png): MOT frames are numbered by sorted position from 1"
+    ]
+
+
+def test_two_files_of_one_number_are_refused_naming_both(tmp_path, capsys):
+    seq = _folder(tmp_path / "seq", ["1.png", "0001.png", "2.png"])
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith(f"{seq / '1.png'}: frame number 1 again (0001.png has it)"), err
+    assert len(err.splitlines()) == 1 and not (tmp_path / "t.txt").exists()
+
+
+def test_frames_are_yielded_with_their_numbers_and_full_paths(tmp_path):
+    seq = _folder(tmp_path / "seq", ["000002.png", "000004.png"])
+    assert [(k, name) for k, name, _ in open_frames(str(seq)).frames] == [
+        (2, str(seq / "000002.png")),
+        (4, str(seq / "000004.png")),
+    ]
+
+
+def test_frames_smaller_than_the_chain_takes_are_refused_in_the_tools_words(tmp_path, capsys):
+    seq = _folder(tmp_path / "seq", ["000001.png", "000002.png"], side_px=8)
+    assert main([str(seq), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith(f"{seq / '000001.png'}: frame of 8 x 8 px: frames must be at least 16 x 16 px"), err
+
+
+# --------------------------------------------------------------------------- --out naming an input
+
+
+@pytest.mark.parametrize("case", ["a_frame", "a_new_image", "the_video_of_a_sequence"])
+def test_an_output_on_an_input_of_a_folder_is_refused(tmp_path, capsys, case):
+    seq = _folder(tmp_path / "seq", ["000001.png", "000002.png"])
+    before = (seq / "000001.png").read_bytes()
+    if case == "the_video_of_a_sequence":  # an Anti-UAV folder: the video read is IR.mp4 inside it
+        for p in list(seq.iterdir()):
+            p.unlink()
+        _write_video(seq / "IR.mp4", [_noise(k) for k in range(3)])
+        before = (seq / "IR.mp4").read_bytes()
+    out, said = {
+        "a_frame": (seq / "000001.png", f"names the input {seq / '000001.png'}"),
+        "a_new_image": (seq / "tracks.PNG", f"an image file in the input folder {seq}"),
+        "the_video_of_a_sequence": (seq / "IR.mp4", f"names the input {seq / 'IR.mp4'}"),
+    }[case]
+    assert main([str(seq), "--out", str(out), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err.startswith(f"--out {out}: {said}") and len(err.splitlines()) == 1, err
+    kept = seq / ("IR.mp4" if case == "the_video_of_a_sequence" else "000001.png")
+    assert kept.read_bytes() == before
+    assert case != "a_new_image" or not out.exists()
+
+
+def test_a_text_output_in_the_input_folder_is_allowed(tmp_path):
+    seq = _folder(tmp_path / "seq", ["000001.png", "000002.png"])
+    assert main([str(seq), "--out", str(seq / "tracks.txt"), "--quiet"]) == EXIT_OK
+
+
+# --------------------------------------------------------------------------- videos
+
+
+def _write_video(path: Path, frames: list[np.ndarray], options: dict[str, str] | None = None) -> Path:
+    av = pytest.importorskip("av")
+    c = av.open(str(path), mode="w")
+    s = c.add_stream("libx264", rate=30)
+    s.height, s.width = frames[0].shape
+    s.pix_fmt = "yuv420p"
+    s.options = {"preset": "ultrafast", **(options or {})}
+    for px in frames:
+        c.mux(s.encode(av.VideoFrame.from_ndarray(px, format="gray")))
+    c.mux(s.encode(None))
+    c.close()
+    return path
+
+
+def test_a_video_whose_frame_size_changes_is_refused_at_that_frame(tmp_path, capsys):
+    """Two MPEG-TS streams back to back (a stream can change its size there), as a folder of two sizes is."""
+    a = _write_video(tmp_path / "a.ts", [_noise(k) for k in range(3)])
+    b = _write_video(tmp_path / "b.ts", [_noise(k, SIDE_PX, 48) for k in range(3)])
+    ts = tmp_path / "ab.ts"
+    ts.write_bytes(a.read_bytes() + b.read_bytes())
+    out = tmp_path / "t.txt"
+    assert main([str(ts), "--out", str(out), "--quiet"]) == EXIT_INPUT
+    err = capsys.readouterr().err
+    assert err == (
+        f"{ts}: frame 4 is 48 x {SIDE_PX} px, the first is {SIDE_PX} x {SIDE_PX}: all frames must have one size; "
+        f"{out} was not created\n"
+    )
+
+
+@pytest.mark.parametrize("cut", [False, True], ids=["intact", "cut_in_half"])
+def test_a_video_cut_short_is_tracked_as_far_as_it_decodes_with_a_warning(tmp_path, caplog, capsys, cut):
+    """Matroska declares no frame count, only its duration (20 frames at 30 frames/s here)."""
+    mkv = _write_video(tmp_path / "v.mkv", [_noise(k) for k in range(20)])
+    if cut:
+        data = mkv.read_bytes()
+        mkv.write_bytes(data[: len(data) // 2])
+    assert main([str(mkv), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_OK
+    warned = _records(caplog, logging.WARNING)
+    if not cut:
+        assert warned == []
+        return
+    assert len(warned) == 1, warned
+    decoded = int(capsys.readouterr().out.split(": ")[1].split(" frames")[0])
+    assert 0 < decoded < 20
+    assert warned[0].startswith(f"{mkv}: decoded {decoded} of about 20 frames its duration implies"), warned
+
+
+def test_a_damaged_video_that_decodes_to_the_end_is_warned_about_once(tmp_path, caplog):
+    """Bytes flipped inside one frame's slice data (away from the length prefixes, so the decoder can go on):
+    FFmpeg conceals the damage and says so only in its log."""
+    av = pytest.importorskip("av")
+    mp4 = _write_video(tmp_path / "v.mp4", [_noise(k, 64, 64) for k in range(12)], {"movflags": "faststart"})
+    with av.open(str(mp4)) as c:
+        packets = [p for p in c.demux(video=0) if p.size]
+    victim = packets[len(packets) // 2]
+    data = bytearray(mp4.read_bytes())
+    middle = victim.pos + victim.size // 2
+    data[middle : middle + 16] = bytes(b ^ 0x5A for b in data[middle : middle + 16])
+    mp4.write_bytes(bytes(data))
+    assert main([str(mp4), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_OK
+    (warned,) = _records(caplog, logging.WARNING)
+    assert warned.startswith(f"{mp4}: decoded 12 frames; ") and "decoder error" in warned, warned
