@@ -8,6 +8,9 @@ Contract between the daemon and the probe (the Dockerfile's ``HEALTHCHECK`` runs
 * The file is ``$IRTRACK_HEALTH_FILE``, default ``/tmp/irtrack-alive``.  Only its modification time
   matters: it is empty, and the daemon refuses to start on a path that holds anything else
   (:func:`claim_health_file`), since it deletes the file when it stops.
+* The probe first checks that the path holds what the daemon writes there, an empty regular file: a
+  folder, a device or a file with content is something else that happens to be touched (``/tmp`` is, by
+  every process that writes into it), and its mtime proves nothing about the pipeline.
 * The probe reads the file's mtime and the wall clock (both ``CLOCK_REALTIME``, the only clock two
   processes share through a file) and calls the pipeline alive when
   ``-FUTURE_TOLERANCE_S <= now - mtime <= max_age_s`` (``max_age_s`` default 5 s).  An mtime more
@@ -35,6 +38,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NoReturn
 
+from onboard.app.output_files import file_kind
 from onboard.core.checks import is_finite_number, is_positive_number
 from onboard.core.errors import ConfigError
 
@@ -67,6 +71,7 @@ REASON_OK = "ok"
 REASON_MISSING = "missing"
 REASON_STALE = "stale"
 REASON_FUTURE = "future"
+REASON_FOREIGN = "foreign"
 
 
 @dataclass(frozen=True)
@@ -76,29 +81,41 @@ class Liveness:
     alive
         True when the file was touched within ``max_age_s``.
     reason
-        ``"ok"``, ``"missing"`` (no file / unreadable), ``"stale"`` (older than ``max_age_s``) or
-        ``"future"`` (mtime more than :data:`FUTURE_TOLERANCE_S` ahead: wall clock stepped back).
+        ``"ok"``, ``"missing"`` (no file / unreadable), ``"stale"`` (older than ``max_age_s``),
+        ``"future"`` (mtime more than :data:`FUTURE_TOLERANCE_S` ahead: wall clock stepped back) or
+        ``"foreign"`` (the path holds something the daemon does not write: a folder, a file with content).
     age_s
-        ``now - mtime`` in seconds (negative when the mtime is ahead), None when missing.
+        ``now - mtime`` in seconds (negative when the mtime is ahead), None when missing or foreign.
     max_age_s
         The limit used.
+    foreign
+        What the path holds instead of a liveness file (``"is a folder"``, ``"holds 10 bytes"``), exactly
+        when ``reason`` is ``"foreign"``; else None.
     """
 
     alive: bool
     reason: str
     age_s: float | None
     max_age_s: float
+    foreign: str | None = None
 
     def __post_init__(self) -> None:
-        if self.reason not in (REASON_OK, REASON_MISSING, REASON_STALE, REASON_FUTURE):
+        if self.reason not in (REASON_OK, REASON_MISSING, REASON_STALE, REASON_FUTURE, REASON_FOREIGN):
             raise ValueError(f"Liveness.reason: unknown reason {self.reason!r}")
         if self.alive != (self.reason == REASON_OK):
             raise ValueError(f"Liveness.alive={self.alive} contradicts reason {self.reason!r}")
-        if (self.age_s is None) != (self.reason == REASON_MISSING):
-            raise ValueError("Liveness.age_s must be None exactly when reason is 'missing'")
+        if (self.age_s is None) != (self.reason in (REASON_MISSING, REASON_FOREIGN)):
+            raise ValueError("Liveness.age_s must be None exactly when reason is 'missing' or 'foreign'")
+        if (self.foreign is None) == (self.reason == REASON_FOREIGN):
+            raise ValueError("Liveness.foreign must say what the path holds exactly when reason is 'foreign'")
 
     def describe(self, path: str) -> str:
         """One line for the health log."""
+        if self.foreign is not None:
+            return (
+                f"NOT alive: {path} {self.foreign}: the pipeline's liveness file is an empty regular file, so "
+                f"--file or ${HEALTH_FILE_ENV} names something else"
+            )
         if self.age_s is None:  # exactly when the file is missing (__post_init__)
             return f"NOT alive: {path} does not exist (the pipeline has not started or cannot write it)"
         if self.reason == REASON_OK:
@@ -144,14 +161,28 @@ def health_file_path(environ: Mapping[str, str] | None = None) -> str:
     return value
 
 
+def _not_a_liveness_file(st: os.stat_result) -> str | None:
+    """What ``st`` holds when it is not what :func:`mark_alive` makes (an empty regular file), else None."""
+    if not stat.S_ISREG(st.st_mode):
+        return f"is {file_kind(st.st_mode)}"
+    if st.st_size:
+        return f"holds {st.st_size} bytes"
+    return None
+
+
 def check_liveness(path: str, max_age_s: float = DEFAULT_MAX_AGE_S, now_s: float | None = None) -> Liveness:
-    """Stat ``path`` and judge it; ``now_s`` defaults to ``time.time()`` (wall clock, like mtimes)."""
+    """Stat ``path`` and judge it; ``now_s`` defaults to ``time.time()`` (wall clock, like mtimes).  A path that
+    holds anything but an empty regular file is ``"foreign"``: the daemon never writes anything else there, so its
+    mtime is some other writer's."""
     max_age_s = _check_max_age(max_age_s)
     try:
-        mtime_s: float | None = os.stat(path).st_mtime
+        st = os.stat(path)
     except OSError:
-        mtime_s = None
-    return judge_liveness(mtime_s, time.time() if now_s is None else now_s, max_age_s)
+        return judge_liveness(None, 0.0, max_age_s)
+    foreign = _not_a_liveness_file(st)
+    if foreign is not None:
+        return Liveness(False, REASON_FOREIGN, None, max_age_s, foreign)
+    return judge_liveness(st.st_mtime, time.time() if now_s is None else now_s, max_age_s)
 
 
 def claim_health_file(path: str, field: str = "output.health_file") -> None:

@@ -10,7 +10,8 @@
 Configuration: built-in defaults < ``--config`` file < ``IRTRACK_<SECTION>_<FIELD>`` environment
 variables < command-line options (each option overrides its config field; ``--zenoh-connect`` /
 ``--zenoh-listen`` given once or more replace the file's list).  ``--check`` validates and exits
-0; ``--print-config`` prints the effective configuration as YAML and exits.
+0: the values, and what the start would refuse on disk (the zenoh config file, a liveness path that is a
+folder or a file with content); ``--print-config`` prints the effective configuration as YAML and exits.
 
 Exit codes: 0 clean shutdown (SIGTERM / SIGINT / SIGHUP; Ctrl-C too, even while starting, without a
 traceback) or successful ``--check``; 2 invalid configuration or options, or a zenoh session that cannot
@@ -216,6 +217,17 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         except ZenohConfigError as exc:
             print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
             return EXIT_CONFIG
+        if config.output.health_file:
+            # the start's own check of the liveness path (a folder, a file with content): it depends on the disk,
+            # not on the configuration's values, so loading alone cannot see it
+            from onboard.app.health import claim_health_file
+            from onboard.core.errors import ConfigError
+
+            try:
+                claim_health_file(config.output.health_file)
+            except ConfigError as exc:
+                print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
+                return EXIT_CONFIG
         print(f"{args.config or '(defaults)'}: ok")
         return EXIT_OK
 
