@@ -37,7 +37,9 @@ Behaviour measured with eclipse-zenoh 1.10 (peer mode):
   but not zenoh's is refused when inserted into the config: raises :class:`ZenohConfigError`.  A
   well-formed but unresolvable host is accepted and retried.
 * A missing, unreadable, unknown-extension or invalid config file: :class:`ZenohConfigError`
-  naming the file.
+  naming the file.  So is one whose top level is not an object: zenoh reads a JSON5 list as its
+  configuration's fields in order (``[]`` as no setting at all, ``[1, 2]`` as a bad zenoh id), which
+  says nothing a user would recognise.
 
 All three errors are :class:`~onboard.core.errors.IrtrackError`; entry points print them on one line and
 exit with code 2.
@@ -257,6 +259,51 @@ def _file_list(config, key: str) -> list[str]:
     return [str(v) for v in value] if isinstance(value, list) else []
 
 
+#: JSON5 whitespace and comments before the top-level value (JSON5 whitespace is Unicode's, plus the BOM)
+_JSON5_LEADING_RE = re.compile(r"(?:[\s\ufeff]|//[^\n\r\u2028\u2029]*|/\*.*?\*/)*", re.DOTALL)
+#: what a JSON5 top-level value is, by how it starts; anything else (``{``, a syntax error) is zenoh's to judge
+_JSON5_STARTS = (
+    (re.compile(r"\["), "a list"),
+    (re.compile(r"[\"']"), "a string"),
+    (re.compile(r"[-+.0-9]|Infinity\b|NaN\b"), "a number"),
+    (re.compile(r"(?:true|false)\b"), "a boolean"),
+    (re.compile(r"null\b"), "null"),
+)
+
+
+def _top_level_kind(path: str) -> str | None:
+    """What the top level of the zenoh config file ``path`` is when it is plainly not an object (``"a list"`` ...),
+    else None: an object, or a file zenoh's own reader should judge (unreadable, not UTF-8, a syntax error, no value
+    at all, an extension it does not read)."""
+    ext = os.path.splitext(path)[1]  # as zenoh picks its reader: by the exact extension
+    if ext not in (".json", ".json5", ".yaml", ".yml"):
+        return None
+    try:
+        with open(path, "rb") as f:
+            text = f.read().decode("utf-8-sig")
+    except (OSError, UnicodeDecodeError):
+        return None
+    if ext in (".json", ".json5"):
+        leading = _JSON5_LEADING_RE.match(text)
+        rest = text[leading.end() :] if leading else text
+        return next((kind for start, kind in _JSON5_STARTS if start.match(rest)), None)
+    import yaml
+
+    try:
+        value = yaml.safe_load(text)
+    except yaml.YAMLError:
+        return None
+    if value is None or isinstance(value, dict):
+        return None
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, bool):
+        return "a boolean"
+    return "a number" if isinstance(value, int | float) else f"a {type(value).__name__}"
+
+
 def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
     """A ``zenoh.Config`` from ``settings`` (file first, then options on top).  No I/O but the file, whose
     errors name it after ``file_option`` (the daemon's ``zenoh.config_file``, a command's ``--zenoh-config``).
@@ -281,6 +328,12 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
                 else "no such file"
             )
             raise ZenohConfigError(f"{file_option} {path}: {what}")
+        kind = _top_level_kind(path)
+        if kind is not None:
+            raise ZenohConfigError(
+                f"{file_option} {path}: its top level is {kind}; expected an object of zenoh settings "
+                "(mode, connect, listen ...)"
+            )
         try:
             config = zenoh.Config.from_file(path)
         except zenoh.ZError as exc:
