@@ -7,18 +7,24 @@ and poses), and the replayed tracks are drawn with the eval report's plots
 truth when there is one (the simulator's recording of the same run, ``groundsim run --record``, as
 ``--truth``; else the flight's own ``/groundsim/truth`` channel, if any), and one frame.  The flight report
 belongs to the ground side: the onboard package never imports the simulator.
+
+A ``--truth`` recording that covers only part of the flight (cut short: the simulator killed, a disk full) still
+gives the errors of the frames it covers; one note says how much of the flight that is, and ``summary.json``'s
+``truth_covers`` records it (:class:`TruthCoverage`), so a median over the first second is not read as the flight's.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import os
 from collections.abc import Mapping
+from dataclasses import asdict, dataclass
 
 from groundsim.io.stop_signals import print_interrupted
 
-__all__ = ["add_report", "cmd_report", "flight_inputs"]
+__all__ = ["TruthCoverage", "add_report", "cmd_report", "flight_inputs", "truth_coverage", "truth_mismatch"]
 
 log = logging.getLogger(__name__)
 
@@ -119,6 +125,74 @@ def truth_mismatch(inputs: list, truth: list) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class TruthCoverage:
+    """How much of a flight a truth recording covers, matched as the report matches them (seq, time_boot_us).
+
+    frames, of_frames
+        The flight's frames (its replayed tracks) that have a truth row, and all of them.
+    with_3d, of_with_3d
+        The same for the frames with a 3-D estimate: the error plot and medians are over ``with_3d`` of them.
+    from_s, to_s
+        The first and last covered frame, seconds after the flight's first frame (the plots' time axis); None
+        when no frame is covered.
+    flight_s
+        The flight's last frame, seconds after its first.
+    cut_short
+        Where the truth file was cut (the MCAP reader's words), or None.
+    """
+
+    frames: int
+    of_frames: int
+    with_3d: int
+    of_with_3d: int
+    from_s: float | None
+    to_s: float | None
+    flight_s: float
+    cut_short: str | None
+
+    @property
+    def partial(self) -> bool:
+        return self.frames < self.of_frames or self.cut_short is not None
+
+    def note(self, truth_path: str) -> str:
+        """The one line that tells the reader of the report how much of the flight its errors cover."""
+        what = f"is cut short ({self.cut_short})" if self.cut_short is not None else "covers part of the flight"
+        if self.from_s is None:
+            span = "none of the flight's frames"
+        else:
+            span = (
+                f"{self.frames} of the flight's {self.of_frames} frames, t = {self.from_s:.1f}..{self.to_s:.1f} s "
+                f"of 0..{self.flight_s:.1f} s"
+            )
+        if self.with_3d:
+            errors = f"the errors are of the {self.with_3d} of {self.of_with_3d} frames with a 3-D estimate it covers"
+        else:
+            errors = f"it covers none of the {self.of_with_3d} frames with a 3-D estimate: the error plot is empty"
+        return f"note: --truth {truth_path} {what}: its truth covers {span}; {errors}"
+
+
+def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> TruthCoverage:
+    """:class:`TruthCoverage` of ``truth`` (``irtrack.truth/1`` rows) over the flight whose replayed ``tracks``
+    (``irtrack.track`` dicts in frame order, at least one) these are; ``cut_short`` the truth file's cut, if any."""
+    keys = {(int(r["seq"]), int(r["time_boot_us"])) for r in truth}
+    t0_us = int(tracks[0]["time_boot_us"])
+    covered_s = [
+        (int(tr["time_boot_us"]) - t0_us) / 1e6 for tr in tracks if (int(tr["seq"]), int(tr["time_boot_us"])) in keys
+    ]
+    estimated = [tr for tr in tracks if tr.get("ned_m") is not None]
+    return TruthCoverage(
+        frames=len(covered_s),
+        of_frames=len(tracks),
+        with_3d=sum((int(tr["seq"]), int(tr["time_boot_us"])) in keys for tr in estimated),
+        of_with_3d=len(estimated),
+        from_s=min(covered_s) if covered_s else None,
+        to_s=max(covered_s) if covered_s else None,
+        flight_s=(int(tracks[-1]["time_boot_us"]) - t0_us) / 1e6,
+        cut_short=cut_short,
+    )
+
+
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
@@ -135,22 +209,42 @@ def cmd_report(args) -> int:
         if rec.truncated:
             print(f"note: {args.mcap} is cut short ({rec.truncated}): the report covers it to its last chunk")
         truth = rec.truth
+        truth_cut = None
         if args.truth:
-            truth = load_recording(args.truth).truth
+            truth_rec = load_recording(args.truth)
+            truth, truth_cut = truth_rec.truth, truth_rec.truncated
             if not truth:
                 raise InputError(
                     f"--truth {args.truth}: no /groundsim/truth messages (groundsim run --record writes them)"
+                    + (f" before it was cut short ({truth_cut})" if truth_cut else "")
                 )
             why = truth_mismatch(rec.inputs, truth)
             if why is not None:
-                raise InputError(f"--truth {args.truth}: not the truth of {args.mcap}: {why}")
+                raise InputError(
+                    f"--truth {args.truth}: not the truth of {args.mcap}: {why}"
+                    + (f" (the file is cut short: {truth_cut})" if truth_cut else "")
+                )
         config = config_of(rec, args.config)
         res = replay(rec, config)
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)
         poses, frames = flight_inputs(rec)
+        coverage = truth_coverage(res.tracks, truth, truth_cut) if args.truth and res.tracks else None
+        if coverage is not None and not coverage.partial:
+            coverage = None
+        if coverage is not None:
+            print(coverage.note(args.truth))
         paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path))
+        if coverage is not None:
+            _add_to_summary(paths, {"truth_covers": asdict(coverage)})
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
         return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")
     print(f"report: {', '.join(str(p) for p in paths)}")
     return 0
+
+
+def _add_to_summary(paths: list, fields: dict) -> None:
+    """Add ``fields`` to the ``summary.json`` among the report's ``paths``: the flight report writes the summary of
+    what it drew; what the command knows of its inputs (a truth file's cut) is added beside it."""
+    summary = next(p for p in paths if p.name == "summary.json")
+    summary.write_text(json.dumps(json.loads(summary.read_text()) | fields, indent=1) + "\n")

@@ -395,8 +395,9 @@ def plot_errors(path, run, title: str = "") -> Path:
         ax.plot(t, e_not, color="tab:orange", lw=0.8, alpha=0.7, label=_lbl("error, not observable", e_not))
         ax.axhline(0.0, color="k", lw=0.5)
         ax.set_ylabel(f"{name} m")
-        finite = np.abs(ek[obs]) if obs.any() else np.abs(ek[has]) if has.any() else np.array([1.0])
-        lim = max(1.0, 3.0 * float(np.nanpercentile(finite, 95))) if finite.size else 1.0
+        shown = np.abs(ek[obs]) if obs.any() else np.abs(ek[has])
+        finite = shown[np.isfinite(shown)]  # none where no estimated frame has truth (a truth cut short)
+        lim = max(1.0, 3.0 * float(np.percentile(finite, 95))) if finite.size else 1.0
         ax.set_ylim(-lim, lim)
         _mark_clipped(ax, t, ek, lim, "m", "observable" if obs.any() else "estimated")
         ax.grid(True, alpha=0.3)
