@@ -16,16 +16,25 @@ end is left out (a chunk: the messages it held are lost).  A complete input is r
 The output is written to a temporary file beside ``OUT`` and renamed over it once finished
 (:mod:`onboard.app.output_files`): an interrupted recovery leaves no half-written ``OUT``.
 
+Damage is told from a cut (:func:`onboard.io.mcap_read.damage_at`): a file that ends with its footer was not cut;
+a record whose opcode no MCAP record has, or that fits in the file yet cannot be read, is damage; so is a chunk
+holding another record than a schema, channel or message, or one whose records run past it, or whose message
+indexes count other messages than it holds (:class:`onboard.io.mcap_read.ChunkIndexCheck`).  A damaged input is
+refused unless ``--skip-damaged``: then a finished file is recovered chunk by chunk through its summary's chunk
+index (a damaged chunk left out, the others kept), any other up to the damage, and each part left out is said on
+stderr (exit 3).
+
 Refused, with one line naming the file (exit 2): an input that cannot be read, is not MCAP (its first bytes are
-not the magic), is cut before its header record, or is damaged before its end (a record the reader cannot parse
-that the end of the file does not explain); ``OUT`` naming the input (the cut original is kept), a folder, a
-device or a pipe.  Exit 1: ``OUT`` cannot be written.  Exit 0: recovered, with one line on stdout saying what.
+not the magic), is cut before its header record, or is damaged (without ``--skip-damaged``); ``OUT`` naming the
+input (the cut original is kept), a folder, a device or a pipe.  Exit 1: ``OUT`` cannot be written.  Exit 0:
+recovered, with one line on stdout saying what; exit 3: recovered with damaged parts left out.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -36,12 +45,14 @@ from onboard.app.cli_args import OneLineParser
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError
 from onboard.io.mcap_chunks import MCAP_MAGIC, RECORD_HEAD
+from onboard.io.mcap_read import KNOWN_OPCODES, ChunkIndexCheck, chunk_records, damage_at, footer_intact
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
 
-EXIT_OK, EXIT_OUTPUT, EXIT_INPUT = 0, 1, 2
+EXIT_OK, EXIT_OUTPUT, EXIT_INPUT, EXIT_DROPPED = 0, 1, 2, 3
 _OPCODE_FOOTER = 0x02
 _OPCODE_DATA_END = 0x0F
+_SKIP_HINT = "; --skip-damaged recovers the rest"
 
 
 @dataclass(frozen=True)
@@ -57,19 +68,21 @@ class Recovered:
     whole_bytes: int
     size_bytes: int
     complete: bool
+    dropped: tuple[str, ...] = ()
 
 
 def whole_length(f: BinaryIO, size: int) -> tuple[int, bool]:
     """``(end, complete)``: the offset where the last whole record of the MCAP stream ``f`` (``size`` bytes,
     positioned anywhere) ends, walking each record's ``(opcode, length)`` from the header on; ``complete`` when it
-    ends with its footer and the closing magic (then ``end`` is ``size``).  A record whose length runs past the end
-    of the file is where the file was cut: ``end`` stops before it."""
+    ends with its footer and the closing magic (then ``end`` is ``size``).  The walk stops before a record whose
+    length runs past the end of the file or whose opcode no MCAP record has: where the file was cut, or damaged
+    (:func:`~onboard.io.mcap_read.damage_at` tells which)."""
     pos = len(MCAP_MAGIC)
     while pos + RECORD_HEAD.size <= size:
         f.seek(pos)
         opcode, length = RECORD_HEAD.unpack(f.read(RECORD_HEAD.size))
         end = pos + RECORD_HEAD.size + length
-        if end > size:
+        if end > size or (opcode not in KNOWN_OPCODES and opcode < 0x80):
             break
         if opcode == _OPCODE_FOOTER:
             f.seek(end)
@@ -82,54 +95,196 @@ def whole_length(f: BinaryIO, size: int) -> tuple[int, bool]:
 
 class _Prefix:
     """The first ``limit`` bytes of ``f`` as a stream (``read`` only): the reader sees a file that ends where the
-    last whole record does."""
+    last whole record does.  ``count``: the bytes read so far (where the next record starts, between two)."""
 
     def __init__(self, f: BinaryIO, limit: int) -> None:
         self._f, self._left = f, limit
+        self.count = 0
 
     def read(self, n: int = -1) -> bytes:
         if n < 0 or n > self._left:
             n = self._left
         data = self._f.read(n)
         self._left -= len(data)
+        self.count += len(data)
         return data
 
 
-def _records(records: Iterator[Any], src: str) -> Iterator[Any]:
-    """``records`` with each chunk's records in its place, a chunk checked whole first: every record in it must end
-    within it and the last at its end (the package's ``breakup_chunk`` reads a record whose length runs past the
-    chunk's end as one that holds the rest of the chunk, without an error: damage would lose messages unsaid)."""
-    from mcap.records import Chunk
-    from mcap.stream_reader import breakup_chunk, get_chunk_data_stream
+class _Damaged(Exception):
+    """A part of the input that cannot be read: ``what`` says which and why, ``at`` the byte it starts at."""
 
-    for record in records:
-        if not isinstance(record, Chunk):
-            yield record
-            continue
-        stream, size = get_chunk_data_stream(record)
-        pos = 0
-        while pos < size:
-            if pos + RECORD_HEAD.size > size:
-                length = -1
-            else:
-                stream.read1()
-                length = stream.read8()
-            if length < 0 or pos + RECORD_HEAD.size + length > size:
-                raise InputError(
-                    f"{src}: damaged: a record at byte {pos} of a chunk (log times {record.message_start_time} to "
-                    f"{record.message_end_time} ns) runs past the chunk's {size} bytes"
+    def __init__(self, what: str, at: int) -> None:
+        super().__init__(what)
+        self.what, self.at = what, at
+
+
+class _Output:
+    """The recovered file: the `mcap` package's writer, with the input's schema and channel ids mapped to its own."""
+
+    def __init__(self, out: BinaryIO, profile: str, library: str) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        self.writer = Writer(out, compression=CompressionType.NONE)
+        self.writer.start(profile=profile, library=library)
+        self.schema_ids: dict[int, int] = {0: 0}
+        self.channel_ids: dict[int, int] = {}
+        self.messages = self.metadata = self.attachments = 0
+
+    def add(self, record: Any) -> None:
+        from mcap.records import Attachment, Channel, Message, Metadata, Schema
+
+        w = self.writer
+        if isinstance(record, Schema):
+            if record.id not in self.schema_ids:
+                self.schema_ids[record.id] = w.register_schema(record.name, record.encoding, record.data)
+        elif isinstance(record, Channel):
+            if record.id not in self.channel_ids:
+                self.channel_ids[record.id] = w.register_channel(
+                    record.topic, record.message_encoding, self.schema_ids[record.schema_id], dict(record.metadata)
                 )
-            stream.read(length)
-            pos += RECORD_HEAD.size + length
-        yield from breakup_chunk(record, validate_crc=False)
+        elif isinstance(record, Message):
+            w.add_message(
+                self.channel_ids[record.channel_id], record.log_time, record.data, record.publish_time, record.sequence
+            )
+            self.messages += 1
+        elif isinstance(record, Metadata):
+            w.add_metadata(record.name, dict(record.metadata))
+            self.metadata += 1
+        elif isinstance(record, Attachment):
+            w.add_attachment(record.create_time, record.log_time, record.name, record.media_type, record.data)
+            self.attachments += 1
 
 
-def recover(src: str, dst_fd: int) -> Recovered:
-    """Stream ``src``'s whole records into a complete MCAP file written to the open descriptor ``dst_fd`` (closed
-    here).  Raises :class:`InputError` (one line naming ``src``) for an input it refuses (module docstring)."""
-    from mcap.records import Attachment, Channel, DataEnd, Header, Message, Metadata, Schema
+def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
+    """The whole records of ``f`` up to ``end`` as ``(byte, records)``: a top-level record alone, or a chunk's records
+    together once the message indexes after it have checked them (:class:`~onboard.io.mcap_read.ChunkIndexCheck`);
+    :class:`_Damaged` at the first part that cannot be read."""
+    from mcap.records import Chunk, Header, MessageIndex
     from mcap.stream_reader import StreamReader
-    from mcap.writer import CompressionType, Writer
+
+    prefix = _Prefix(f, end)
+    reader = StreamReader(prefix, emit_chunks=True).records  # type: ignore[arg-type]
+    check = ChunkIndexCheck(src)
+    pending: tuple[int, list] | None = None  # a chunk's records, held until its indexes are read
+    seen_header = False
+    while True:
+        at = prefix.count
+        try:
+            record = next(reader, None)
+            if record is None:
+                break
+            if isinstance(record, Header):
+                seen_header = True
+            elif not seen_header:
+                raise InputError(f"{src}: not a readable MCAP file (a {type(record).__name__} before its header)")
+            check.add(record, at)
+            if isinstance(record, Chunk):
+                records = chunk_records(record, f"{src}: the chunk at byte {at}")
+                check.chunk(records, at)
+        except InputError as exc:
+            if seen_header and "damaged" in str(exc):
+                what = str(exc).removeprefix(f"{src}: ").replace("damaged: ", "")
+                raise _Damaged(what, pending[0] if pending else at) from None
+            raise
+        except Exception as exc:  # noqa: BLE001 - whatever the reader raised inside the whole records
+            if type(exc).__name__ == "EndOfFile" and seen_header:
+                break  # the whole records end between two records: read to the last
+            raise _Damaged(f"the record at byte {at} cannot be read: {type(exc).__name__}: {exc}", at) from None
+        if isinstance(record, MessageIndex):
+            continue
+        if pending is not None:
+            yield pending
+            pending = None
+        if isinstance(record, Chunk):
+            pending = (at, records)
+        else:
+            yield at, [record]
+    if pending is not None:
+        yield pending
+
+
+def _indexed(f: BinaryIO, src: str, output: _Output, dropped: list[str]) -> None:
+    """Every chunk the summary indexes, each read and checked alone: one that cannot be read is left out and said in
+    ``dropped``, the others written; then the metadata and attachments it indexes.  For a finished file: its summary
+    says where every chunk is, so damage costs the chunks it hit, not the rest of the file."""
+    import io
+
+    from mcap.exceptions import EndOfFile
+    from mcap.reader import make_reader
+    from mcap.records import Chunk, MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    try:
+        f.seek(0)
+        summary = make_reader(f).get_summary()
+    except Exception as exc:  # noqa: BLE001 - a damaged summary: the caller falls back to the records before the damage
+        raise _Damaged(f"its summary cannot be read: {type(exc).__name__}: {exc}", 0) from None
+    if summary is None:
+        raise _Damaged("it has no summary", 0)
+    for sch in summary.schemas.values():
+        output.add(sch)
+    for ch in summary.channels.values():
+        output.add(ch)
+    chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
+    for k, ci in enumerate(chunks, start=1):
+        size = ci.chunk_length + ci.message_index_length
+        raw = os.pread(f.fileno(), size, ci.chunk_start_offset)
+        where = f"{src}: the chunk at byte {ci.chunk_start_offset}"
+        check = ChunkIndexCheck(where)
+        try:
+            stream = io.BytesIO(raw)
+            records: list = []
+            reader = StreamReader(stream, skip_magic=True, emit_chunks=True).records
+            with contextlib.suppress(EndOfFile):
+                for i in itertools.count():
+                    at = ci.chunk_start_offset + stream.tell()
+                    record = next(reader, None)
+                    if record is None:
+                        break
+                    if i == 0:
+                        if not isinstance(record, Chunk) or stream.tell() != ci.chunk_length:
+                            raise InputError(f"{where}: damaged: not the chunk its index says")
+                        records = chunk_records(record, where)
+                        check.chunk(records, ci.chunk_start_offset)
+                    elif isinstance(record, MessageIndex):
+                        check.add(record, at)
+            if len(raw) != size or not records and ci.message_index_offsets:
+                raise InputError(f"{where}: damaged: cut short")
+        except Exception as exc:  # noqa: BLE001 - whatever this chunk's bytes raise: it alone is left out
+            why = (
+                str(exc).removeprefix(f"{where}: ").replace("damaged: ", "")
+                if isinstance(exc, InputError)
+                else f"{type(exc).__name__}: {exc}"
+            )
+            dropped.append(
+                f"chunk {k} of {len(chunks)} at byte {ci.chunk_start_offset} (log times {ci.message_start_time} to "
+                f"{ci.message_end_time} ns) left out: {why}"
+            )
+            continue
+        for record in records:
+            output.add(record)
+    for mi in summary.metadata_indexes:
+        try:
+            output.add(
+                next(StreamReader(io.BytesIO(os.pread(f.fileno(), mi.length, mi.offset)), skip_magic=True).records)
+            )
+        except Exception as exc:  # noqa: BLE001
+            dropped.append(f"the metadata record {mi.name!r} at byte {mi.offset} left out: {type(exc).__name__}: {exc}")
+    for ai in summary.attachment_indexes:
+        try:
+            output.add(
+                next(StreamReader(io.BytesIO(os.pread(f.fileno(), ai.length, ai.offset)), skip_magic=True).records)
+            )
+        except Exception as exc:  # noqa: BLE001
+            dropped.append(f"the attachment {ai.name!r} at byte {ai.offset} left out: {type(exc).__name__}: {exc}")
+
+
+def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
+    """Stream ``src``'s whole records into a complete MCAP file written to the open descriptor ``dst_fd`` (closed
+    here).  Raises :class:`InputError` (one line naming ``src``) for an input it refuses (module docstring).  With
+    ``skip_damaged`` a damaged input is recovered but for its damage (``Recovered.dropped`` says what was left out):
+    a finished file chunk by chunk through its summary, any other up to the damage."""
+    from mcap.records import DataEnd, Header
 
     try:
         f = open(src, "rb")
@@ -143,66 +298,57 @@ def recover(src: str, dst_fd: int) -> Recovered:
             what = "the file is empty" if not head else f"it starts with {head!r}, not the MCAP magic"
             raise InputError(f"{src}: not an MCAP file ({what})")
         end, complete = whole_length(f, size)
+        damage = None if complete else damage_at(f, size, end)
+        if damage is not None and not skip_damaged:
+            raise InputError(f"{src}: damaged: {damage}{_SKIP_HINT}")
+        dropped: list[str] = []
+        output: _Output | None = None
         f.seek(0)
-        writer: Any = None
-        schema_ids: dict[int, int] = {0: 0}
-        channel_ids: dict[int, int] = {}
-        n_messages = n_metadata = n_attachments = 0
-        record: Any = None
+        header = None
         try:
-            for record in _records(StreamReader(_Prefix(f, end), emit_chunks=True).records, src):  # type: ignore[arg-type]
-                if isinstance(record, Header):
-                    writer = Writer(out, compression=CompressionType.NONE)
-                    writer.start(profile=record.profile, library=record.library)
+            for _at, records in _streamed(f, end, src):
+                if isinstance(records[0], Header):
+                    header = records[0]
+                    if skip_damaged and footer_intact(f, size):
+                        break  # a finished file: read chunk by chunk through its summary, below
+                    output = _Output(out, header.profile, header.library)
                     continue
-                if writer is None:
-                    raise InputError(f"{src}: not a readable MCAP file (a {type(record).__name__} before its header)")
-                if isinstance(record, DataEnd):
+                if isinstance(records[0], DataEnd):
                     break  # the summary section follows: the writer makes its own
-                if isinstance(record, Schema):
-                    if record.id not in schema_ids:
-                        schema_ids[record.id] = writer.register_schema(record.name, record.encoding, record.data)
-                elif isinstance(record, Channel):
-                    if record.id not in channel_ids:
-                        channel_ids[record.id] = writer.register_channel(
-                            record.topic, record.message_encoding, schema_ids[record.schema_id], dict(record.metadata)
-                        )
-                elif isinstance(record, Message):
-                    writer.add_message(
-                        channel_ids[record.channel_id],
-                        record.log_time,
-                        record.data,
-                        record.publish_time,
-                        record.sequence,
-                    )
-                    n_messages += 1
-                elif isinstance(record, Metadata):
-                    writer.add_metadata(record.name, dict(record.metadata))
-                    n_metadata += 1
-                elif isinstance(record, Attachment):
-                    writer.add_attachment(
-                        record.create_time, record.log_time, record.name, record.media_type, record.data
-                    )
-                    n_attachments += 1
+                assert output is not None
+                for record in records:
+                    output.add(record)
+        except _Damaged as exc:
+            if not skip_damaged:
+                raise InputError(f"{src}: damaged: {exc.what}{_SKIP_HINT}") from None
+            dropped.append(f"from byte {exc.at} to the end ({size - exc.at} bytes) left out: {exc.what}")
         except KeyError as exc:
-            what = "a message" if isinstance(record, Message) else "a channel"
             raise InputError(
-                f"{src}: not a readable MCAP file ({what} names {exc.args[0]!r}, which no earlier record defines)"
+                f"{src}: not a readable MCAP file (a record names {exc.args[0]!r}, which no earlier record defines)"
             ) from None
-        except InputError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - whatever the reader raised inside the whole records: damage
-            if type(exc).__name__ == "EndOfFile" and writer is not None:
-                pass  # the whole records end between two records: read to the last
-            else:
-                raise InputError(
-                    f"{src}: damaged: a record its reader cannot parse before the point the file was cut (byte "
-                    f"{end}): {type(exc).__name__}: {exc}"
-                ) from None
-        if writer is None:
+        if header is None:
             raise InputError(f"{src}: cut short before its header record ({size} bytes): nothing to recover")
-        writer.finish()
-    return Recovered(n_messages, len(channel_ids), len(schema_ids) - 1, n_metadata, n_attachments, end, size, complete)
+        if output is None:  # skip_damaged on a finished file
+            output = _Output(out, header.profile, header.library)
+            try:
+                _indexed(f, src, output, dropped)
+            except _Damaged as exc:
+                raise InputError(f"{src}: damaged: {exc.what}: nothing recovered") from None
+        elif damage is not None:
+            dropped.append(f"from byte {end} to the end ({size - end} bytes) left out: {damage}")
+        output.writer.finish()
+        complete = complete or footer_intact(f, size)
+    return Recovered(
+        output.messages,
+        len(output.channel_ids),
+        len(output.schema_ids) - 1,
+        output.metadata,
+        output.attachments,
+        end,
+        size,
+        complete,
+        tuple(dropped),
+    )
 
 
 # --------------------------------------------------------------------------- entry point
@@ -217,11 +363,17 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m onboard.record_recover",
         description="Rewrite an MCAP recording cut short (SIGKILL, power cut) as a complete, indexed file: every "
         "whole record kept, messages byte for byte.",
-        epilog="Exit 0 recovered, 2 the input refused (not MCAP, damaged, unreadable) or a bad OUT, 1 OUT cannot "
-        "be written.",
+        epilog="Exit 0 recovered, 3 recovered with damaged parts left out (--skip-damaged; each said on stderr), 2 "
+        "the input refused (not MCAP, damaged, unreadable) or a bad OUT, 1 OUT cannot be written.",
     )
     p.add_argument("input", metavar="IN.mcap", help="the recording cut short (python -m onboard --record ...)")
     p.add_argument("output", metavar="OUT.mcap", help="the complete file to write (written beside, then renamed)")
+    p.add_argument(
+        "--skip-damaged",
+        action="store_true",
+        help="recover a damaged input but for its damage: a finished file chunk by chunk (a damaged chunk left out), "
+        "any other up to the damage; what was left out is said on stderr (exit 3)",
+    )
     return p
 
 
@@ -255,7 +407,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: cannot write {args.output}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_OUTPUT
     try:
-        result = recover(args.input, fd)
+        result = recover(args.input, fd, skip_damaged=args.skip_damaged)
         os.replace(tmp, target)
     except InputError as exc:
         with contextlib.suppress(OSError):
@@ -273,8 +425,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         if r.complete
         else f"cut at byte {r.size_bytes}; its whole records end at byte {r.whole_bytes}"
     )
+    if r.dropped and r.complete:
+        cut = f"damaged ({r.size_bytes} bytes, with its footer)"
+    elif r.dropped:
+        cut = f"damaged or cut ({r.size_bytes} bytes); its readable records end at byte {r.whole_bytes}"
     print(
         f"{args.input}: {cut}; wrote {args.output}: {r.messages} messages on {r.channels} channels, "
         f"{r.schemas} schemas, {r.metadata} metadata records, {r.attachments} attachments"
     )
-    return EXIT_OK
+    for what in r.dropped:
+        print(f"warning: {args.input}: {what}", file=sys.stderr)
+    return EXIT_DROPPED if r.dropped else EXIT_OK

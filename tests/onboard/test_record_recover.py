@@ -187,7 +187,7 @@ def test_bad_input_is_refused_in_one_line_naming_the_file(tmp_path, capsys):
     struct.pack_into("<Q", data, first_record + 1, 2**40)
     damaged.write_bytes(bytes(data))
     line = _refused(capsys, [str(damaged), str(out)])
-    assert line.startswith(f"error: {damaged}: damaged: a record at byte 0 of a chunk (log times ")
+    assert line.startswith(f"error: {damaged}: damaged: the chunk at byte {start}: a record at byte 0 of a chunk (log ")
     assert (
         _refused(capsys, [str(full), str(full)])
         == f"error: OUT.mcap {full}: names the input IN.mcap ({full}); give another file (the cut original is kept)"
@@ -196,3 +196,64 @@ def test_bad_input_is_refused_in_one_line_naming_the_file(tmp_path, capsys):
     missing = tmp_path / "gone.mcap"
     assert _refused(capsys, [str(missing), str(out)]) == f"error: {missing}: cannot read: no such file"
     assert not out.exists() and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+
+
+def _chunk_messages(path, k: int) -> int:
+    """The messages of the ``k``-th chunk of a complete file (by its message indexes)."""
+    from mcap.records import MessageIndex
+    from mcap.stream_reader import StreamReader
+
+    start, length = _chunk_bounds(path)[k]
+    with open(path, "rb") as f:
+        f.seek(start + length)
+        n = 0
+        for rec in StreamReader(f, skip_magic=True).records:
+            if not isinstance(rec, MessageIndex):
+                break
+            n += len(rec.records)
+    return n
+
+
+def test_damage_in_a_finished_file_is_never_taken_for_a_cut_and_skip_damaged_keeps_every_other_chunk(tmp_path, capsys):
+    """One flipped bit in a finished recording: the chunk opcode of chunk k (the reader then took the rest of the file
+    for the record it became, and called the file cut there: replay read the first k chunks, exit 0), or the length of
+    a message that then took in the messages after it in its chunk and still ended at the chunk's end (nothing
+    noticed).  Both are damage, said naming the byte; --skip-damaged recovers every other chunk, exit 3."""
+    from onboard.app.replay import load_recording
+    from onboard.core.errors import InputError
+
+    full = tmp_path / "full.mcap"
+    _recording(full)
+    full_msgs, _, full_meta = _in_file_order(full)
+    k = len(_chunk_bounds(full)) // 2
+    start, length = _chunk_bounds(full)[k]
+    lost = _chunk_messages(full, k)
+    opcode = bytearray(full.read_bytes())
+    opcode[start] ^= 0x01  # chunk (0x06) -> message index (0x07)
+    swallow = bytearray(full.read_bytes())
+    # the chunk's first record (its records begin after the chunk's fixed fields and compression string)
+    comp_len_at = start + 1 + 8 + 8 + 8 + 8 + 4
+    (comp_len,) = struct.unpack_from("<I", swallow, comp_len_at)
+    records_at = comp_len_at + 4 + comp_len + 8
+    chunk_end = start + 1 + 8 + struct.unpack_from("<Q", swallow, start + 1)[0]
+    pos = records_at
+    while swallow[pos] != 0x05:  # the first message of the chunk: its length made to run to the chunk's end
+        pos += 9 + struct.unpack_from("<Q", swallow, pos + 1)[0]
+    struct.pack_into("<Q", swallow, pos + 1, chunk_end - pos - 9)
+    for name, data, says in (
+        ("opcode", opcode, f"the record at byte {start} cannot be read"),
+        ("swallow", swallow, f"the chunk at byte {start} holds 1 message on channel"),
+    ):
+        damaged, out = tmp_path / f"{name}.mcap", tmp_path / f"{name}-out.mcap"
+        damaged.write_bytes(bytes(data))
+        with pytest.raises(InputError, match="damaged") as err:
+            load_recording(str(damaged))
+        assert says in str(err.value)
+        assert main([str(damaged), str(out)]) == 2 and says in capsys.readouterr().err
+        assert main(["--skip-damaged", str(damaged), str(out)]) == 3
+        captured = capsys.readouterr()
+        assert f"chunk {k + 1} of " in captured.err and f"at byte {start}" in captured.err
+        msgs, _, meta = _in_file_order(out)
+        assert len(msgs) == len(full_msgs) - lost and meta == full_meta
+        kept = {m[3:6] + (m[0],) for m in msgs}  # (log time, publish time, sequence, topic)
+        assert kept <= {m[3:6] + (m[0],) for m in full_msgs}
