@@ -68,6 +68,7 @@ import json
 import logging
 import math
 import os
+import sys
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -850,10 +851,26 @@ def run_campaign(
 # --------------------------------------------------------------------------- command line
 
 
+def _all_failed(name: str, table_path) -> int:
+    """1, with one line on stderr naming the first error, when every run of the table failed (nothing came of the
+    campaign: a plug-in that cannot run, say), else 0.  Some failed runs are results, said in the table and report."""
+    import csv
+
+    if table_path is None or not os.path.isfile(table_path):
+        return 0
+    with open(table_path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    if not rows or any(r.get("status") != "failed" for r in rows):
+        return 0
+    print(
+        f"error: campaign {name}: every one of its {len(rows)} runs failed; the first: {rows[0].get('error', '?')}",
+        file=sys.stderr,
+    )
+    return 1
+
+
 def cmd_campaign(args) -> int:
     """``groundsim campaign SPEC``: validate, run what is missing, write table + report, print the summary."""
-    import sys
-
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG, load_base_config
 
     with quiet_run_logs("groundsim.evaluation.eval"):
@@ -900,4 +917,4 @@ def cmd_campaign(args) -> int:
                 file=sys.stderr,
             )
             return 130
-        return 0
+        return _all_failed(spec.name, res.files.get(TABLE_NAME))

@@ -185,3 +185,13 @@ def test_any_bytes_or_any_mistyped_figure_is_skipped_never_raised(tmp_path, good
     assert done == {good_row["run_id"]: good_row}
     assert bad == [i for i, g in enumerate(garbage, start=1) if g.strip()] + [len(garbage) + 2]
     assert read_log(p)[1] == len(bad)
+
+
+def test_a_campaign_whose_every_run_failed_exits_1_naming_the_first_error(tmp_path, capsys):
+    """A plug-in that is no estimator makes every run fail: the command said '1 run now (1 failed)' and exited 0."""
+    spec = _spec_file(tmp_path, "scenarios: [P1]\nnoise: [RTK]\nalgorithms: ['os:getcwd']\nduration_s: 1.0\n")
+    rc = cli_main(["campaign", str(spec), "--out", str(tmp_path / "out"), "--workers", "1", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 1 and "error: campaign spec: every one of its 1 runs failed; the first: " in err
+    ok = _spec_file(tmp_path)
+    assert cli_main(["campaign", str(ok), "--out", str(tmp_path / "ok"), "--workers", "1", "--no-progress"]) == 0
