@@ -22,6 +22,7 @@ The worker talks to the estimator through its public interface only: ``add``, ``
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import math
@@ -268,27 +269,43 @@ _LENGTH = struct.Struct("!i")  # Connection's framing: a signed big-endian lengt
 _LONG_MESSAGE = 0x7FFFFFFF  # longer: Connection's own long header (never, in practice)
 
 
-def _send_msg(conn: Connection, msg: tuple) -> None:
-    """``msg`` pickled, framed as ``Connection.send_bytes`` frames it, in one ``write`` on the pipe's descriptor:
-    ``send_bytes``'s Python layers (checks, a memoryview, the header) cost more than the row, twice a round trip."""
+def _framed(msg: tuple) -> bytes:
+    """``msg`` pickled and framed as ``Connection.send_bytes`` frames it (its length first; a long message's
+    header for one of 2 GiB or more)."""
     data = pickle.dumps(msg, _PICKLE_PROTOCOL)
     if len(data) >= _LONG_MESSAGE:
-        conn.send_bytes(data)
-        return
+        return _LENGTH.pack(-1) + struct.pack("!Q", len(data)) + data
+    return _LENGTH.pack(len(data)) + data
+
+
+def _send_msg(conn: Connection, msg: tuple) -> None:
+    """``msg`` framed (:func:`_framed`), written whole on the blocking pipe's descriptor, in one ``write`` but for
+    a long message: ``send_bytes``'s Python layers (checks, a memoryview, the header) cost more than the row,
+    twice a round trip.  The worker's side; the parent's never blocks (:meth:`ProcessEstimator._send`)."""
     fd = conn.fileno()  # OSError once closed, as send_bytes
-    buf = memoryview(_LENGTH.pack(len(data)) + data)
+    buf = memoryview(_framed(msg))
     while buf:  # a blocking pipe writes it all, but for a signal
         buf = buf[os.write(fd, buf) :]
 
 
+def _read_some(fd: int, n: int) -> bytes:
+    """Up to ``n`` bytes; on a non-blocking descriptor (the parent's end) it waits for them once a message has
+    begun, as a blocking one does."""
+    while True:
+        try:
+            return os.read(fd, n)
+        except BlockingIOError:
+            select.select([fd], [], [])
+
+
 def _read_exact(fd: int, n: int) -> bytes:
-    data = os.read(fd, n)
+    data = _read_some(fd, n)
     if len(data) == n:
         return data
     parts = [data]
     left = n - len(data)
     while data and left:  # a message longer than the pipe's buffer (a snapshot) comes in pieces
-        data = os.read(fd, left)
+        data = _read_some(fd, left)
         parts.append(data)
         left -= len(data)
     if left:
@@ -492,6 +509,7 @@ class ProcessEstimator:
         self._ctx = mp.get_context("forkserver")
         self._ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
         self._epoch = 0
+        self._out = bytearray()  # bytes for the worker the pipe has not taken yet (_send)
         self._latest: tuple[int, Any] | None = None  # (epoch, estimate)
         self.worker_cpu_s = 0.0
         self.late_results = 0
@@ -526,6 +544,10 @@ class ProcessEstimator:
         self._proc.start()
         child.close()
         self._conn = parent
+        # the parent never waits on the pipe: what it cannot take now waits in _out, written as it drains (a
+        # replacement's 0.9 MB snapshot held the frame loop for the new worker's whole start, 0.4 s, before)
+        os.set_blocking(parent.fileno(), False)
+        self._out = bytearray()
         self._intrinsics_sent: list = []  # the camera models this worker has, by index (_intrinsics_index)
         # Connection.poll and Process.is_alive build a selector on every call (~7 and ~16 us, the pipeline
         # thread's two checks per frame): one poll object each, made once per worker
@@ -588,15 +610,28 @@ class ProcessEstimator:
         return True
 
     def _send(self, msg: tuple) -> bool:
-        """``msg`` to the worker; False (counted) when the pipe is gone."""
+        """``msg`` to the worker, behind what is still waiting to go, never blocking; False (counted) when the pipe
+        is gone."""
         try:
             if self._conn is None:
                 raise OSError("no estimator process")
-            _send_msg(self._conn, msg)
+            self._out += _framed(msg)
+            self._flush_out()
         except (OSError, ValueError) as exc:
             self._counter.count("estimator_error", f"send to the estimator process: {exc}")
             return False
         return True
+
+    def _flush_out(self) -> None:
+        """Write what the pipe takes now of the bytes waiting for the worker (OSError when it is gone)."""
+        out = self._out
+        if not out or self._conn is None:
+            return
+        try:
+            n = os.write(self._conn.fileno(), out)
+        except BlockingIOError:
+            return
+        del out[:n]
 
     def _packed_window(self):
         """The window as arrays (about 80 B per row; the intrinsics, nearly always one object, once)."""
@@ -650,16 +685,29 @@ class ProcessEstimator:
         Returns (found, estimate) for ``until_t``."""
         if self._conn is None:
             return False, None
+        with contextlib.suppress(OSError):
+            self._flush_out()
         deadline = time.monotonic() + wait_s
         found, value = False, None
+        fd = self._conn.fileno()
         while True:
             left = deadline - time.monotonic() if until_t is not None and not found else 0.0
+            sending = bool(self._out)  # bytes still for the worker: written as it reads them, while waiting here
             try:  # milliseconds rounded up, as Connection.poll does
-                ready = bool(self._answers.poll(math.ceil(left * 1e3) if left > 0 else 0))
+                if sending:
+                    self._answers.modify(fd, select.POLLIN | select.POLLOUT)
+                events = self._answers.poll(math.ceil(left * 1e3) if left > 0 else 0)
+                if sending:
+                    self._answers.modify(fd, select.POLLIN)
             except (OSError, ValueError):
                 return found, value
-            if not ready:
+            if not events:
                 return found, value
+            if events[0][1] & select.POLLOUT:
+                with contextlib.suppress(OSError):
+                    self._flush_out()
+                if not events[0][1] & ~select.POLLOUT:  # writable only: no answer yet
+                    continue
             try:
                 epoch, t, packed, err, cpu_s, snapshot = _recv_msg(self._conn)
             except (OSError, EOFError):
@@ -747,10 +795,9 @@ class ProcessEstimator:
         self._snapshot = None
         if self._conn is None:
             return
-        try:
-            _send_msg(self._conn, ("reset",))
-        except (OSError, ValueError):
-            pass
+        with contextlib.suppress(OSError, ValueError):  # a dead worker is found and replaced by the next add
+            self._out += _framed(("reset",))
+            self._flush_out()
 
     def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
@@ -764,13 +811,9 @@ class ProcessEstimator:
         proc, conn = self._proc, self._conn
         if proc is None or conn is None:
             return
-        try:
-            writable = select.poll()
-            writable.register(conn.fileno(), select.POLLOUT)
-            if writable.poll(0):  # a hung worker's full pipe would block the stop: it is killed below instead
-                _send_msg(conn, ("stop",))
-        except (OSError, ValueError):
-            pass
+        with contextlib.suppress(OSError, ValueError):  # a hung worker's full pipe: it is killed below instead
+            self._out += _framed(("stop",))
+            self._flush_out()
         proc.join(timeout_s / 2)
         if proc.is_alive():
             proc.terminate()

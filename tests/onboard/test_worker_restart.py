@@ -256,3 +256,31 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
             os.kill(hung_pid, signal.SIGKILL)
         except (ProcessLookupError, UnboundLocalError):
             pass
+
+
+def test_the_frame_loop_never_waits_on_the_workers_pipe(scene):
+    """A message longer than the pipe takes (a replacement's snapshot, 0.6-0.9 MB) was written whole before the frame
+    went on: the frame loop waited for the new worker to start and read it (0.4-1.3 s).  What the pipe cannot take
+    now waits behind, written as the worker reads; the rows after it keep their order."""
+    import threading
+
+    K, _truth, obs = scene
+    pe = ProcessEstimator(OnboardConfig(), LockedCounter(logger=logging.getLogger("onboard.rejects")))
+    pid = pe.pid
+    assert pid is not None
+    os.kill(pid, signal.SIGSTOP)  # reads nothing
+    try:
+        sent = threading.Thread(target=pe._send, args=(("intrinsics", 99, b"x" * 2_000_000),), daemon=True)
+        sent.start()
+        sent.join(10.0)
+        assert not sent.is_alive()  # it returned, the worker stopped
+        assert len(pe._out) > 0  # what the pipe did not take waits
+        os.kill(pid, signal.SIGCONT)
+        _add(pe, obs, K, 0)  # the worker reads it all, then the row, in order
+        deadline = time.monotonic() + 10.0
+        while pe._out and time.monotonic() < deadline:
+            pe.predict(float(obs.t_s[0]))
+        assert not pe._out and pe._alive()
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        pe.close()
