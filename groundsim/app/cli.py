@@ -214,8 +214,8 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         "--guided",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="the vehicle heartbeats as ArduPilot in GUIDED and its observer flies its scripted motion until the"
-        " first velocity setpoint (SET_POSITION_TARGET_LOCAL_NED) arrives, then follows the setpoints (the daemon"
+        help="the vehicle heartbeats as ArduPilot, in LOITER until it has heard the companion (the pilot's hand-over),"
+        " then in GUIDED, and its observer flies its scripted motion until the first velocity setpoint (SET_POSITION_TARGET_LOCAL_NED) arrives, then follows the setpoints (the daemon"
         " sends none unless guidance.enabled); --no-guided: a generic autopilot that ignores them (default: guided)",
     )
     p.add_argument(

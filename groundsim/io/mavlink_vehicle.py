@@ -227,6 +227,8 @@ _BASE_MODE = (
 #: ArduCopter's GUIDED custom_mode: the mode the simulated vehicle reports with ``guided`` (what the daemon's
 #: ``guidance.accept_custom_mode`` expects by default)
 ARDUCOPTER_GUIDED_MODE = 4
+#: ArduCopter's LOITER custom_mode: the guided vehicle's mode until its pilot hands it over to the companion
+ARDUCOPTER_LOITER_MODE = 5
 
 
 class MavlinkConfigError(ConfigError):
@@ -389,9 +391,13 @@ class MavlinkVehicle:
         guided: bool = False,
         gnss_outage_us: tuple[int, int] | None = None,
     ) -> None:
-        # guided: heartbeat as ArduPilot in GUIDED and take velocity setpoints (SET_POSITION_TARGET_LOCAL_NED) for
-        # the flight (take_setpoints); otherwise they are counted and ignored
+        # guided: heartbeat as ArduPilot and take velocity setpoints (SET_POSITION_TARGET_LOCAL_NED) in GUIDED for
+        # the flight (take_setpoints); otherwise they are counted and ignored.  It reports LOITER until it has heard
+        # the companion's heartbeat and sent it one more LOITER heartbeat, then GUIDED: the pilot's hand-over, which
+        # the daemon's gate waits to see (a daemon that first sees GUIDED was not handed the vehicle)
         self.guided = bool(guided)
+        self._companion_heard = False
+        self._loiter_after_companion = 0
         self._setpoints: list[tuple[float, float, float]] = []
         for name, v in (("sysid", sysid), ("compid", compid)):
             if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 255:
@@ -563,12 +569,17 @@ class MavlinkVehicle:
             return 0
         try:
             if msg_id == MSG_HEARTBEAT and self.guided:
+                if self._companion_heard and self._loiter_after_companion < 1:
+                    self._loiter_after_companion += 1  # this LOITER one reaches the companion listening
+                    mode = ARDUCOPTER_LOITER_MODE
+                else:
+                    mode = ARDUCOPTER_GUIDED_MODE if self.in_guided else ARDUCOPTER_LOITER_MODE
                 mav.send(
                     Heartbeat(
                         mavlink2.MAV_TYPE_QUADROTOR,
                         mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA,
                         _BASE_MODE | mavlink2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
-                        ARDUCOPTER_GUIDED_MODE,
+                        mode,
                     ).to_message()
                 )
             elif msg_id == MSG_HEARTBEAT:
@@ -752,12 +763,22 @@ class MavlinkVehicle:
                     sent += self._on_param(msg, mtype)
                 elif mtype in ("MISSION_REQUEST_LIST", "MISSION_CLEAR_ALL"):
                     sent += self._on_mission(msg, mtype)
-                elif mtype == "SET_POSITION_TARGET_LOCAL_NED" and self.guided and self._for_us(msg):
+                elif mtype == "SET_POSITION_TARGET_LOCAL_NED" and self.in_guided and self._for_us(msg):
                     self._setpoints.append(SetPositionTargetLocalNed.from_message(msg).v_ned_mps)
+                elif mtype == "HEARTBEAT" and (msg.get_srcSystem(), msg.get_srcComponent()) != (
+                    self.sysid,
+                    self.compid,
+                ):
+                    self._companion_heard = True
             except Exception as exc:  # noqa: BLE001 - a malformed request must not stop the pump
                 self.counters["rx_handler_error"] += 1
                 self._log_limited("rx_handler_error", "mavlink: cannot handle %s: %s", mtype, exc)
         return sent
+
+    @property
+    def in_guided(self) -> bool:
+        """Reporting GUIDED (``guided``, handed over to the companion): the setpoints are taken."""
+        return self.guided and self._companion_heard and self._loiter_after_companion >= 1
 
     def take_setpoints(self) -> list[tuple[float, float, float]]:
         """The velocity setpoints (NED m/s) received since the last call, oldest first (``guided`` only)."""

@@ -62,13 +62,15 @@ class GuidanceTap:
         self._clock = clock
         self.gate = SetpointGate(config.guidance)
         self._pose: tuple[float, Any, Any] | None = None  # (clock when it came, vehicle p NED, v NED)
-        self._advice: tuple[float, Any] | None = None  # (clock until which it holds, v NED) of the newest advice
+        # (clock until which it holds, v NED, the track_id it was planned for) of the advice in force
+        self._advice: tuple[float, Any, int | None] | None = None
         self._next_setpoint_s = -math.inf
         self.setpoints_sent = 0
         self.setpoint_errors = 0
         self._last_state = self.gate.state
         self._publish: Any = None
-        self._slot: tuple[Any, Any] | None = None  # (track, pose), replaced whole by the pipeline thread
+        # (track, pose, clock at the frame), replaced whole by the pipeline thread
+        self._slot: tuple[Any, Any, float] | None = None
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -91,22 +93,30 @@ class GuidanceTap:
 
     def on_frame(self, frame: IrFrame, result: Any) -> None:  # an observers.FrameResult
         track, pose = result.track, result.pose
+        now = self._clock()
         if pose is not None and self.in_loop:  # the gate's altitude band has the planner's reference
             ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
             if ref_m is not None:
-                self._pose = (self._clock(), pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
+                # stamped when its newest measured position was, not now: a pose dead-reckoned through a GNSS
+                # outage is not a fresh one, and guidance.pose_timeout_s must see the outage
+                measured = now - max(int(pose.pos_extrapolated_us), 0) * 1e-6
+                self._pose = (measured, pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
+        advice = self._advice
+        if advice is not None and (track is None or not track.has_position or track.track_id != advice[2]):
+            self._advice = None  # the target it was planned for is lost or another one: no manoeuvre for it
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
             return
-        self._slot = (track, pose)
+        self._slot = (track, pose, now)
         self._wake.set()
 
     def on_status(self, data: bytes) -> None:
         pass
 
-    def step(self, track: Any, pose: Any) -> bytes | None:
-        """One update from a track and its frame's pose; the payload published (None: nothing advised)."""
+    def step(self, track: Any, pose: Any, frame_clock: float | None = None) -> bytes | None:
+        """One update from a track and its frame's pose (``frame_clock``: the tap's clock when the frame was taken,
+        from which the advice's validity counts; None: now); the payload published (None: nothing advised)."""
         ref_m = reference_alt_m(pose, self.altitude_reference, self.home_alt_amsl_m)
         if ref_m is None:  # a band above home, and the autopilot has not said where home is yet
             self.advisor.skipped["no_home"] = self.advisor.skipped.get("no_home", 0) + 1
@@ -127,9 +137,11 @@ class GuidanceTap:
             return None
         with self._lock:
             self.last_advice = advice
-        if not advice.recommended:
+        if not advice.recommended:  # a newer answer (observable, no manoeuvre helps): the one in force ends
+            self._advice = None
             return None
-        self._advice = (self._clock() + advice.valid_until_s - advice.t_s, advice.v_ned_mps)
+        start = self._clock() if frame_clock is None else frame_clock
+        self._advice = (start + advice.valid_until_s - advice.t_s, advice.v_ned_mps, track.track_id)
         payload = json.dumps(advice_to_json(advice, self.vehicle, track.time_boot_us, self.in_loop)).encode()
         if self._publish is not None:
             try:
@@ -160,12 +172,13 @@ class GuidanceTap:
 
     def _setpoint_step(self, now: float, link: Any) -> bool:
         connected = link is not None and getattr(link, "state", None) == "connected"
+        advice = self._advice
         decision = self.gate.step(
             now,
             link_connected=connected,
             mode=None if link is None else link.autopilot_mode,
             pose=self._pose,
-            advice=self._advice,
+            advice=None if advice is None else (advice[0], advice[1]),
         )
         if decision.state != self._last_state:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO

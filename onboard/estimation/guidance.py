@@ -142,6 +142,12 @@ class GuidanceConfig:
                 raise Invalid(name, "[min, max] with min < max, metres from the NED origin", [lo, hi])
         if self.sample_interval_s * 10 > self.horizon_s:
             raise Invalid("sample_interval_s", f"<= horizon_s / 10 ({self.horizon_s / 10:g})", self.sample_interval_s)
+        if self.valid_for_s > self.horizon_s:  # flown beyond what the planner looked at
+            raise Invalid(
+                "valid_for_s", f"<= horizon_s ({self.horizon_s:g}), the span the planner checked", self.valid_for_s
+            )
+        if self.enabled and not self.advise:  # the loop sends the advice: without it nothing would ever go out
+            raise Invalid("enabled", "false while guidance.advise is false (the loop sends the advice)", True)
 
     def speed_ok(self, v_ned_mps: np.ndarray, slack_mps: float = 1e-9) -> bool:
         """Whether a velocity keeps the speed (horizontal) and climb-rate limits."""
@@ -632,6 +638,8 @@ class GuidanceAdvisor:
 
 #: MAV_MODE_FLAG_SAFETY_ARMED (common.xml): the autopilot's motors are armed
 _MODE_FLAG_ARMED = 128
+#: after a stop while sending, zero-velocity setpoints for this long (then silence: the autopilot's own timeout)
+BRAKE_S = 1.0
 
 
 @dataclass(frozen=True)
@@ -654,10 +662,13 @@ class SetpointGate:
     Sends only while the link is connected, the heartbeat reports ``accept_autopilot`` / ``accept_custom_mode``
     (armed when ``require_armed``), the vehicle is inside the geofence box and the altitude band, not faster than
     ``max_speed_mps + speed_margin_mps``, its pose newer than ``pose_timeout_s`` and the advice still valid.  A limit
-    reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): setpoints resume
-    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The autopilot's
-    own failsafe handles a setpoint stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves
-    OFFBOARD): deploy/README.md.
+    reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
+    :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds where it is instead of flying the last
+    setpoint on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume
+    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  A gate that first
+    sees the autopilot already in the accepting mode (a daemon restarted in flight) starts stopped too: the hand-over
+    is the pilot's entering the mode while this daemon watches.  The autopilot's own failsafe handles a setpoint
+    stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
     """
 
     def __init__(self, config: GuidanceConfig) -> None:
@@ -665,6 +676,8 @@ class SetpointGate:
         self.state = "off" if not config.enabled else "waiting"
         self.why = "" if config.enabled else "guidance.enabled is false"
         self.stops: dict[str, int] = {}
+        self._mode_seen = False  # a heartbeat's mode seen since start (the first decides the hand-over)
+        self._brake_until_s = -math.inf
 
     def _accepting(self, mode: tuple[int, int, int] | None) -> bool:
         c = self.config
@@ -687,17 +700,21 @@ class SetpointGate:
         if not c.min_altitude_m <= alt <= c.max_altitude_m:
             return f"altitude: vehicle at {alt:.1f} m, band {c.min_altitude_m:g}..{c.max_altitude_m:g} m"
         speed = float(np.linalg.norm(v_ned_mps[:2]))
-        if (
-            speed > c.max_speed_mps + c.speed_margin_mps
-            or abs(float(v_ned_mps[2])) > c.max_climb_rate_mps + c.speed_margin_mps
+        if not (  # written so that a NaN (an unknown velocity) stops too
+            speed <= c.max_speed_mps + c.speed_margin_mps
+            and abs(float(v_ned_mps[2])) <= c.max_climb_rate_mps + c.speed_margin_mps
         ):
             return f"speed: vehicle at {speed:.1f} m/s horizontal, {float(v_ned_mps[2]):.1f} m/s down"
         return ""
 
-    def _stop(self, why: str) -> SetpointDecision:
+    def _stop(self, why: str, now_s: float | None = None) -> SetpointDecision:
+        """Latch ``stopped``; ``now_s`` given (a stop while sending, the link still up): brake from now."""
         self.state, self.why = "stopped", why
         kind = why.split(":", 1)[0]
         self.stops[kind] = self.stops.get(kind, 0) + 1
+        if now_s is not None:
+            self._brake_until_s = now_s + BRAKE_S
+            return SetpointDecision(True, np.zeros(3), self.state, why)
         return SetpointDecision(False, None, self.state, why)
 
     def step(
@@ -714,9 +731,16 @@ class SetpointGate:
         if not self.config.enabled:
             return SetpointDecision(False, None, "off", self.why)
         accepting = link_connected and self._accepting(mode)
+        if link_connected and mode is not None and not self._mode_seen:
+            self._mode_seen = True
+            if accepting:  # in the mode before this daemon saw it enter it: not handed over to this daemon
+                self._stop("handover: the autopilot was in the accepting mode when guidance started (a restart?)")
         if self.state == "stopped":
-            if link_connected and not self._accepting(mode):  # the pilot took the vehicle back: re-arm the gate
+            if link_connected and not accepting:  # the pilot took the vehicle back: re-arm the gate
+                self._brake_until_s = -math.inf
                 self.state, self.why = "not_accepting", "the autopilot left the accepting mode after a stop"
+            elif accepting and now_s < self._brake_until_s:
+                return SetpointDecision(True, np.zeros(3), self.state, self.why)
             return SetpointDecision(False, None, self.state, self.why)
         was_sending = self.state == "sending"
         if not link_connected:
@@ -731,19 +755,20 @@ class SetpointGate:
                 self.why = "the autopilot is not in the accepting mode"
             self.state = "not_accepting"
             return SetpointDecision(False, None, self.state, self.why)
+        brake = now_s if was_sending else None
         if pose is None or now_s - pose[0] > self.config.pose_timeout_s:
             if was_sending:
-                return self._stop("pose_lost: no vehicle pose for guidance.pose_timeout_s")
+                return self._stop("pose_lost: no measured vehicle position for guidance.pose_timeout_s", brake)
             self.state, self.why = "waiting", "no recent vehicle pose"
             return SetpointDecision(False, None, self.state, self.why)
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
         if limit:
-            return self._stop(limit)
+            return self._stop(limit, brake)
         if advice is None or now_s > advice[0]:
             self.state, self.why = "waiting", "no advice in force"
             return SetpointDecision(False, None, self.state, self.why)
         v = np.asarray(advice[1], dtype=float)
         if not self.config.speed_ok(v):  # the planner keeps the limits; the gate checks again, never trusts
-            return self._stop("speed: the advice is outside the speed limits")
+            return self._stop("speed: the advice is outside the speed limits", brake)
         self.state, self.why = "sending", ""
         return SetpointDecision(True, v.copy(), self.state, "")

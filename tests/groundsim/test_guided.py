@@ -56,7 +56,12 @@ def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
 def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoints():
     import time
 
-    from groundsim.io.mavlink_vehicle import ARDUCOPTER_GUIDED_MODE, MavlinkVehicle, open_mavlink2
+    from groundsim.io.mavlink_vehicle import (
+        ARDUCOPTER_GUIDED_MODE,
+        ARDUCOPTER_LOITER_MODE,
+        MavlinkVehicle,
+        open_mavlink2,
+    )
     from groundsim.io.ports import free_udp_port
     from onboard.io.mavlink_wire import SetPositionTargetLocalNed, mavlink2
 
@@ -70,18 +75,31 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
             vehicle.poll(0)
             hb = rx.recv_match(type="HEARTBEAT", blocking=False)
             time.sleep(0.002)
-        assert hb is not None
-        assert (hb.autopilot, hb.custom_mode) == (mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, ARDUCOPTER_GUIDED_MODE)
+        assert hb is not None  # LOITER until the pilot hands the vehicle over to the companion it has heard
+        assert (hb.autopilot, hb.custom_mode) == (mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, ARDUCOPTER_LOITER_MODE)
         assert hb.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
+        rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (7.0, 7.0, 7.0)).to_message())  # before: ignored
+        rx.mav.heartbeat_send(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        modes = []
+        now_us = 0
+        while ARDUCOPTER_GUIDED_MODE not in modes and time.monotonic() < deadline:
+            now_us += 100_000  # the vehicle's heartbeats are 1 s apart on its clock
+            vehicle.poll(now_us)
+            hb = rx.recv_match(type="HEARTBEAT", blocking=False)
+            if hb is not None:
+                modes.append(hb.custom_mode)
+            time.sleep(0.002)
+        assert modes[0] == ARDUCOPTER_LOITER_MODE and modes[-1] == ARDUCOPTER_GUIDED_MODE  # one LOITER heard first
+        assert vehicle.take_setpoints() == []
         rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (2.0, -3.0, 0.5)).to_message())
         rx.mav.send(SetPositionTargetLocalNed(1_000_000, 9, 1, (9.0, 9.0, 9.0)).to_message())  # another system's
         got: list = []
         while len(got) < 1 and time.monotonic() < deadline:
-            vehicle.poll(0)
+            vehicle.poll(now_us)
             got += vehicle.take_setpoints()
             time.sleep(0.002)
         for _ in range(20):  # the other system's setpoint, if it were taken, would come now
-            vehicle.poll(0)
+            vehicle.poll(now_us)
             got += vehicle.take_setpoints()
             time.sleep(0.002)
         assert got == [(2.0, -3.0, 0.5)]

@@ -3,6 +3,7 @@ helps, and the prediction agrees with the geometry (a straight observer gains no
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -260,12 +261,16 @@ def test_setpoint_gate_sends_only_in_the_accepting_mode_and_latches_a_stop_until
     assert step(1.0).send
     out = (0.0, np.array([150.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
     d = step(1.2, pose=out)
-    assert not d.send and d.state == "stopped" and d.why.startswith("geofence")
-    assert not step(1.4).send and gate.state == "stopped"  # latched, back inside or not
-    assert step(1.6, mode=LOITER).state == "not_accepting"  # the pilot took over: re-armed
-    assert step(1.8).send
-    d = step(2.0, link=False)
-    assert d.state == "stopped" and d.why.startswith("link_lost")
+    # stopped, latched: for BRAKE_S zero velocity (the vehicle holds instead of flying the last setpoint on until the
+    # autopilot's own timeout), then nothing
+    assert d.send and d.state == "stopped" and d.why.startswith("geofence") and not d.v_ned_mps.any()
+    d = step(1.4)
+    assert d.send and not d.v_ned_mps.any() and gate.state == "stopped"  # latched, back inside or not
+    assert not step(2.3).send and gate.state == "stopped"
+    assert step(2.4, mode=LOITER).state == "not_accepting"  # the pilot took over: re-armed
+    assert step(2.6).send
+    d = step(2.8, link=False)
+    assert not d.send and d.state == "stopped" and d.why.startswith("link_lost")
     assert gate.stops == {"geofence": 1, "link_lost": 1}
     off = SetpointGate(GuidanceConfig())
     assert off.step(0.0, link_connected=True, mode=GUIDED, pose=inside, advice=advice).state == "off"
@@ -301,7 +306,7 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     tap.setpoint_step(now[0] - 10.0, link)  # the link has told where home is (#33), before the first frame
     cam = np.array([0.0, 40.0, -60.0])
     body = SimpleNamespace(p_ned_m=cam, v_ned_mps=np.array([0.0, 8.0, 0.0]))
-    pose = SimpleNamespace(p_cam_ned_m=cam, body=body, origin=None)
+    pose = SimpleNamespace(p_cam_ned_m=cam, body=body, origin=None, pos_extrapolated_us=0)
     p = np.array([135.0, 50.0, -80.0])
     u = (p - cam) / np.linalg.norm(p - cam)
     cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
@@ -317,7 +322,7 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     tap.on_frame(None, FrameResult(0, True, pose, None, None))
     assert not tap.setpoint_step(now[0], link) and tap.status()["setpoints"]["why"] == "no advice in force"
     link.send_setpoint = None  # a broken link object: counted, never raised into the main loop
-    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
     assert not tap.setpoint_step(now[0] + 1.0, link) and tap.status()["setpoints"]["errors"] == 1
 
 
@@ -337,3 +342,116 @@ def test_the_altitude_band_is_above_home_by_default_so_it_holds_at_any_site_elev
     c = GuidanceConfig()
     assert c.altitude_ok(np.array([0.0, 0.0, -reference_alt_m(pose, "home", 488.0)]))
     assert not c.altitude_ok(np.array([0.0, 0.0, -reference_alt_m(pose, "amsl", 488.0)]))
+
+
+def test_a_gate_that_first_sees_the_accepting_mode_waits_for_the_pilot_to_hand_over():
+    """A daemon restarted in flight (a crash, the container's restart policy) found the autopilot still in GUIDED and
+    sent again 13.6 s later, with nobody's consent: its stop latch lived in the old process.  The hand-over is the
+    autopilot entering the mode while this daemon watches."""
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+
+    def step(now, mode):
+        return gate.step(now, link_connected=True, mode=mode, pose=(now, *pose[1:]), advice=advice)
+
+    assert gate.step(0.0, link_connected=False, mode=None, pose=pose, advice=advice).state == "waiting"
+    d = step(0.1, GUIDED)
+    assert not d.send and d.state == "stopped" and d.why.startswith("handover")
+    assert not step(0.5, GUIDED).send  # no brake either: this daemon never sent
+    assert step(0.6, LOITER).state == "not_accepting"
+    assert step(0.7, GUIDED).send
+    assert gate.stops == {"handover": 1}
+
+
+def test_an_unknown_vehicle_velocity_stops_the_setpoints():
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    advice = (10.0, np.array([3.0, 0.0, 0.0]))
+    assert gate.step(0.0, link_connected=True, mode=LOITER, pose=None, advice=advice).state == "not_accepting"
+    ok = (0.1, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    assert gate.step(0.1, link_connected=True, mode=GUIDED, pose=ok, advice=advice).send
+    nan = (0.2, np.array([0.0, 0.0, -60.0]), np.array([np.nan, 0.0, 0.0]))
+    d = gate.step(0.2, link_connected=True, mode=GUIDED, pose=nan, advice=advice)
+    assert d.state == "stopped" and d.why.startswith("speed") and not d.v_ned_mps.any()
+
+
+def _in_loop_tap(now):
+    from types import SimpleNamespace
+
+    from onboard.app.config import OnboardConfig
+    from onboard.app.guidance_tap import make_guidance_tap
+    from onboard.core.schema import build as build_cfg
+
+    tap = make_guidance_tap(build_cfg(OnboardConfig, {"guidance": {"enabled": True}}), clock=lambda: now[0])
+    sent: list = []
+    link = SimpleNamespace(
+        state="connected", autopilot_mode=LOITER, send_setpoint=lambda v: sent.append(v) or True, home_alt_amsl_m=0.0
+    )
+    tap.setpoint_step(now[0] - 10.0, link)
+    return tap, link, sent
+
+
+def _pose(extrapolated_us=0):
+    from types import SimpleNamespace
+
+    cam = np.array([0.0, 40.0, -60.0])
+    body = SimpleNamespace(p_ned_m=cam, v_ned_mps=np.array([0.0, 8.0, 0.0]))
+    return SimpleNamespace(p_cam_ned_m=cam, body=body, origin=None, pos_extrapolated_us=extrapolated_us)
+
+
+def test_a_pose_dead_reckoned_through_a_gnss_outage_is_not_fresh_for_the_gate():
+    """Through a 7 s position outage the frames kept a dead-reckoned pose, stamped when the frame came: the gate's
+    pose_timeout_s never fired and 28 setpoints went out on a position 40 m off.  The pose counts from its newest
+    measured position."""
+    from onboard.app.observers import FrameResult
+
+    now = [100.0]
+    tap, link, sent = _in_loop_tap(now)
+    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))
+    tap._advice = (now[0] + 3.0, np.array([1.0, 0.0, 0.0]), None)
+    link.autopilot_mode = GUIDED
+    assert tap.setpoint_step(now[0], link) and sent
+    now[0] += 0.5
+    tap.on_frame(None, FrameResult(0, True, _pose(extrapolated_us=1_500_000), None, None))  # 1.5 s of dead reckoning
+    assert tap.setpoint_step(now[0], link)  # the brake: zero velocity
+    assert not sent[-1].any() and tap.status()["setpoints"]["state"] == "stopped"
+    assert tap.status()["setpoints"]["why"].startswith("pose_lost")
+
+
+def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
+    """The advice in force was replaced only by a newer recommended one: after an 'observable' answer, a lost target
+    or a switch to another, the old manoeuvre kept going out for up to valid_for_s."""
+    from onboard.app.observers import FrameResult
+
+    now = [100.0]
+    tap, _link, _sent = _in_loop_tap(now)
+    p = np.array([135.0, 50.0, -80.0])
+    cam = _pose().p_cam_ned_m
+    u = (p - cam) / np.linalg.norm(p - cam)
+    cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
+    track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov)
+    assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
+    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))  # the target lost
+    assert tap._advice is None
+    assert tap.step(track, _pose(), now[0]) is None  # not due again yet: nothing planned, nothing in force
+    tap.advisor._next_us = 0
+    assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
+    other = dataclasses.replace(track, track_id=(track.track_id or 0) + 1)
+    tap.on_frame(None, FrameResult(0, True, _pose(), other, None))  # another target selected
+    assert tap._advice is None
+    tap.advisor._next_us = 0
+    assert tap.step(track, _pose(), now[0]) is not None
+    sharp = dataclasses.replace(track, cov_p_ned_m2=np.eye(3) * 0.01)  # observable with margin: no manoeuvre
+    tap.advisor._next_us = 0
+    assert tap.step(sharp, _pose(), now[0]) is None and tap._advice is None
+
+
+def test_guidance_config_refuses_an_advice_longer_than_its_plan_and_a_loop_without_advice():
+    with pytest.raises(Exception, match="valid_for_s"):
+        build(GuidanceConfig, {"valid_for_s": 10.0, "horizon_s": 6.0})
+    with pytest.raises(Exception, match="enabled"):
+        build(GuidanceConfig, {"enabled": True, "advise": False})
