@@ -203,24 +203,27 @@ def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
         yield pending
 
 
-def _indexed(f: BinaryIO, src: str, output: _Output, dropped: list[str]) -> None:
+def _summary(f: BinaryIO) -> Any:
+    """The file's summary (``mcap.reader``'s), or None when it has none or it cannot be read (damaged too)."""
+    from mcap.reader import make_reader
+
+    try:
+        f.seek(0)
+        return make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - a damaged summary: the records before the damage are read instead
+        return None
+
+
+def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list[str]) -> None:
     """Every chunk the summary indexes, each read and checked alone: one that cannot be read is left out and said in
     ``dropped``, the others written; then the metadata and attachments it indexes.  For a finished file: its summary
     says where every chunk is, so damage costs the chunks it hit, not the rest of the file."""
     import io
 
     from mcap.exceptions import EndOfFile
-    from mcap.reader import make_reader
     from mcap.records import Chunk, MessageIndex
     from mcap.stream_reader import StreamReader
 
-    try:
-        f.seek(0)
-        summary = make_reader(f).get_summary()
-    except Exception as exc:  # noqa: BLE001 - a damaged summary: the caller falls back to the records before the damage
-        raise _Damaged(f"its summary cannot be read: {type(exc).__name__}: {exc}", 0) from None
-    if summary is None:
-        raise _Damaged("it has no summary", 0)
     for sch in summary.schemas.values():
         output.add(sch)
     for ch in summary.channels.values():
@@ -303,13 +306,15 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
             raise InputError(f"{src}: damaged: {damage}{_SKIP_HINT}")
         dropped: list[str] = []
         output: _Output | None = None
+        # a finished file is recovered chunk by chunk through its summary's index (damage costs the chunks it hit)
+        summary = _summary(f) if skip_damaged and footer_intact(f, size) else None
         f.seek(0)
         header = None
         try:
             for _at, records in _streamed(f, end, src):
                 if isinstance(records[0], Header):
                     header = records[0]
-                    if skip_damaged and footer_intact(f, size):
+                    if summary is not None and summary.chunk_indexes:
                         break  # a finished file: read chunk by chunk through its summary, below
                     output = _Output(out, header.profile, header.library)
                     continue
@@ -330,10 +335,7 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
             raise InputError(f"{src}: cut short before its header record ({size} bytes): nothing to recover")
         if output is None:  # skip_damaged on a finished file
             output = _Output(out, header.profile, header.library)
-            try:
-                _indexed(f, src, output, dropped)
-            except _Damaged as exc:
-                raise InputError(f"{src}: damaged: {exc.what}: nothing recovered") from None
+            _indexed(f, src, summary, output, dropped)
         elif damage is not None:
             dropped.append(f"from byte {end} to the end ({size - end} bytes) left out: {damage}")
         output.writer.finish()
