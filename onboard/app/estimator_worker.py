@@ -295,7 +295,9 @@ def _read_some(fd: int, n: int) -> bytes:
         try:
             return os.read(fd, n)
         except BlockingIOError:
-            select.select([fd], [], [])
+            waiting = select.poll()  # (poll, not select: any descriptor number)
+            waiting.register(fd, select.POLLIN)
+            waiting.poll()
 
 
 def _read_exact(fd: int, n: int) -> bytes:
