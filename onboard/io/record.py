@@ -591,12 +591,13 @@ class FlightRecorder:
         if free != self.path:
             log.warning("record.path: %s holds an earlier recording, kept; this one is %s", self.path, free)
             self.path = free
+        self._open(0)  # first: a path that cannot be written is the caller's error, as ever
         reason = self._short_of_space()
         if reason is not None:  # the flight goes on unrecorded: tracking is not held hostage by a full disk
             self.stopped = reason
+            self._finish()  # a few kB: the configuration, no messages
             log.warning("recorder: not recording to %s: %s", self.path, reason)
             return
-        self._open(0)
         self._thread = threading.Thread(target=self._run, name="irtrack-recorder", daemon=True)
         self._thread.start()
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -150,7 +151,10 @@ def test_no_room_at_start_records_nothing_and_says_so(tmp_path, monkeypatch, cap
     rec.start()
     assert rec.on_frame(_frame(0), time.monotonic_ns()) is False
     rec.close()
-    assert rec.files == [] and not os.listdir(tmp_path) and rec.dropped == 1
+    assert rec.dropped == 1 and rec.messages_written == 0 and [Path(f).name for f in rec.files] == ["f.mcap"]
+    with open(rec.files[0], "rb") as f:  # finished at once: the configuration, no message
+        reader = mcap_reader.make_reader(f)
+        assert reader.get_summary().statistics.message_count == 0 and list(reader.iter_metadata())
     assert rec.stopped == "5 MB free, under record.min_free_mb (200)"
     assert "not recording to" in caplog.text and "min_free_mb" in caplog.text
 
