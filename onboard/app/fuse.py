@@ -229,6 +229,9 @@ class Fusion:
                 self.counter.count("no_origin", f"{key}: a line of sight without its origin cannot be placed")
             return
         t_s, source = self.clock.time_s(vehicle, track.time_boot_us, time_unix_us, arrival_unix_s)
+        # the instant its line of sight is of: the stamp minus the camera clock's compensated lateness (tens to
+        # hundreds of ms, a ray that far off in time pairs with the others' at the wrong place)
+        t_s -= track.compensated_us * 1e-6
         if t_s < arrival_unix_s - self.max_age_s:
             self.counter.count("stale", f"{key}: frame {arrival_unix_s - t_s:.3f} s old ({source} time)")
             return

@@ -577,6 +577,8 @@ def _matched(
 
 #: track keys a replay does not make: the daemon stamps UTC from the autopilot link's SYSTEM_TIME, not the pipeline
 UNREPLAYED_KEYS = frozenset({"time_unix_us", "time_unix_sigma_us"})
+#: keys added to the track after recordings that lack them were made, with the value their absence means
+_ABSENT_MEANS = {"compensated_us": 0}
 
 
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:
@@ -586,7 +588,13 @@ def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int
     pairs, unmatched = _matched(recorded, replayed)
     diffs = []
     for a, b in pairs:
-        names = tuple(sorted(k for k in (set(a) | set(b)) - UNREPLAYED_KEYS if a.get(k) != b.get(k)))
+        names = tuple(
+            sorted(
+                k
+                for k in (set(a) | set(b)) - UNREPLAYED_KEYS
+                if a.get(k, _ABSENT_MEANS.get(k)) != b.get(k, _ABSENT_MEANS.get(k))
+            )
+        )
         if not names:
             continue
         dp = duv = None

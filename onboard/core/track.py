@@ -17,8 +17,9 @@ seq                 integer                      the IR frame's sequence number
 time_boot_us        integer                      the frame's stamp, us on the autopilot boot clock: its
                                                  capture time unless the camera's clock runs late; then,
                                                  with ``time_offset.compensate``, the line of sight and the
-                                                 3-D fields are those of ``time_boot_us`` minus the status's
-                                                 ``camera_time_offset.compensated_ms`` (the stamp is kept so
+                                                 3-D fields are those of ``time_boot_us`` minus
+                                                 ``compensated_us`` (the status's
+                                                 ``camera_time_offset.compensated_ms``; the stamp is kept so
                                                  that track times never step back)
 track_id            integer >= 1 or null         current track (a new id = a new target association)
 state               string                       ``searching`` | ``tracking`` | ``coasting`` | ``lost``
@@ -58,6 +59,10 @@ time_unix_us        integer or null              (new, optional) ``time_boot_us`
                                                  :mod:`onboard.core.utc_clock`); null until that mapping exists
 time_unix_sigma_us  integer or null              (new, optional) 1-sigma of ``time_unix_us``, microseconds
                                                  (null: unknown; never set without ``time_unix_us``)
+compensated_us      integer                      (new, optional; 0 when absent) the camera clock's lateness
+                                                 compensated on this frame, us: the line of sight and the 3-D
+                                                 fields are those of ``time_boot_us`` (and ``time_unix_us``)
+                                                 minus this; 0 without compensation
 ==================  ===========================  ===================================================
 
 What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
@@ -119,6 +124,8 @@ __all__ = [
 TRACK_SCHEMA = "irtrack.track/2"
 READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same keys minus the /2 additions
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
+#: a camera clock compensated by more than this (a minute) is no clock the time-offset estimator reports
+MAX_COMPENSATED_US = 60_000_000
 
 _POSITION_FIELDS = ("lat_deg", "lon_deg", "alt_m", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
 _U64_MAX = 2**64 - 1
@@ -347,6 +354,7 @@ class Track:
     model: str | None = None
     time_unix_us: int | None = None
     time_unix_sigma_us: int | None = None
+    compensated_us: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.vehicle, str) or not self.vehicle:
@@ -447,6 +455,13 @@ class Track:
             unix_us, sigma_us = _utc_fields(self.time_unix_us, self.time_unix_sigma_us)
             setattr_(self, "time_unix_us", unix_us)
             setattr_(self, "time_unix_sigma_us", sigma_us)
+        c = self.compensated_us
+        if type(c) is not int:
+            if isinstance(c, bool) or not isinstance(c, (int, np.integer)) or abs(int(c)) > MAX_COMPENSATED_US:
+                raise InputError(f"Track.compensated_us must be an integer of microseconds, got {c!r}")
+            setattr_(self, "compensated_us", int(c))
+        elif abs(c) > MAX_COMPENSATED_US:
+            raise InputError(f"Track.compensated_us must be within +-{MAX_COMPENSATED_US} us, got {c!r}")
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
@@ -528,6 +543,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "model": track.model,
         "time_unix_us": track.time_unix_us,
         "time_unix_sigma_us": track.time_unix_sigma_us,
+        "compensated_us": track.compensated_us,
     }
 
 
@@ -617,6 +633,14 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
     ("model", {"type": ["string", "null"], "description": "the estimator's motion model"}),
     ("time_unix_us", {**_INT, "description": "time_boot_us in UTC, us since 1970; null until mapped"}),
     ("time_unix_sigma_us", {**_INT, "description": "1-sigma of time_unix_us, us"}),
+    (
+        "compensated_us",
+        {
+            "type": "integer",
+            "description": "camera clock lateness compensated on this frame, us: the line of sight and 3-D are of "
+            "time_boot_us (and time_unix_us) minus this",
+        },
+    ),
 )
 
 
@@ -710,4 +734,5 @@ def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         model=obj.get("model"),
         time_unix_us=obj.get("time_unix_us"),
         time_unix_sigma_us=obj.get("time_unix_sigma_us"),
+        compensated_us=obj.get("compensated_us", 0),
     )

@@ -235,6 +235,7 @@ class FramePipeline:
         self.frames_rejected = 0
         self.estimator_resets = 0
         self.last_track: Track | None = None
+        self._shift_us = 0  # the camera-clock compensation the current frame's pose was looked up with, us
         self._admission = FrameAdmission(
             int(config.input.time_reset_threshold_s * US_PER_S), config.input.sequence_restart_count
         )
@@ -382,12 +383,14 @@ class FramePipeline:
         if self.pose_wait is not None and self.pose_source is not None:
             waited_ns += self._timed_wait(self.pose_wait, t_us)
         stamp_pose = pose = None
+        self._shift_us = 0
         if self.pose_source is not None:
             try:
                 stamp_pose = pose = self.pose_source.pose_at(t_us)
                 shift_us = self._compensation_us()
                 if shift_us and stamp_pose is not None:  # looked up last: the pose the frame's 3-D is made with
                     pose = self.pose_source.pose_at(t_us - shift_us)
+                    self._shift_us = shift_us  # the track says so: its line of sight is of the stamp minus this
             except Exception as exc:  # noqa: BLE001 - a pose source bug costs this frame its 3-D only
                 self.counter.count("pose_error", f"{type(exc).__name__}: {exc}")
         # before anything made with the frame's pose: the first pose past a break must meet an empty window
@@ -733,6 +736,7 @@ class FramePipeline:
             pose_valid=pose is not None,
             los=None if withheld else self._line_of_sight(upd, pose),
             origin=origin,
+            compensated_us=self._shift_us if pose is not None else 0,
         )
         if est is None:
             if residual is not None:

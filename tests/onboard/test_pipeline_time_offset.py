@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from onboard.app.config import OnboardConfig
+from onboard.core.track import track_from_json, track_to_json
 from onboard.estimation.time_offset import TimeOffsetEstimate
 from tests.fakes import idle_status
 from tests.onboard.test_pipeline import Rig
@@ -75,6 +76,9 @@ def test_compensated_frames_get_the_pose_at_stamp_minus_offset_and_the_estimator
     assert los is not None
     np.testing.assert_allclose(los.p_cam_ned_m, rig.pose.pose_at(t_us - 40_000).p_cam_ned_m, atol=POS_TOL_M)
     assert not np.allclose(los.p_cam_ned_m, rig.pose.pose_at(t_us).p_cam_ned_m, atol=0.05)
+    # and the track says so, for a consumer that times it (the fleet fusion): its line of sight is of t_us - 40 ms
+    assert tracks[-1].compensated_us == 40_000 and track_from_json(track_to_json(tracks[-1])).compensated_us == 40_000
+    assert _rig(0.0)[0].step(0).compensated_us == 0
 
 
 def test_a_compensation_that_moves_restarts_the_estimator_a_small_drift_does_not():

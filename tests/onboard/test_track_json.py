@@ -16,7 +16,9 @@ from onboard.core.track import TRACK_SCHEMA, LineOfSight, Track, json_number, tr
 from tests.fakes import positioned_track
 
 #: the keys whose numbers are integers on the wire (json_number would write them as floats)
-INTEGER_KEYS = frozenset({"seq", "time_boot_us", "track_id", "window_frames", "time_unix_us", "time_unix_sigma_us"})
+INTEGER_KEYS = frozenset(
+    {"seq", "time_boot_us", "track_id", "window_frames", "time_unix_us", "time_unix_sigma_us", "compensated_us"}
+)
 
 
 def per_number(value, key: str = ""):
