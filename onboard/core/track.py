@@ -247,8 +247,8 @@ class LineOfSight:
         for name in ("sigma_azimuth_deg", "sigma_elevation_deg"):
             given = getattr(self, name)
             v = _finite(given, f"los.{name}")
-            if v < 0:
-                raise InputError(f"LineOfSight.{name} must be >= 0, got {v}")
+            if not 0 <= v <= SIGMA_AZ_CAP_DEG:  # a sigma beyond the circle is no direction at all
+                raise InputError(f"LineOfSight.{name} must be in [0, {SIGMA_AZ_CAP_DEG:g}] deg, got {v}")
             if v is not given:
                 object.__setattr__(self, name, v)
 
@@ -665,10 +665,20 @@ def track_to_bytes(track: Track) -> bytes:
 def track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
     """Parse and validate an ``irtrack.track/2`` (or ``/1``) message (dict, str or bytes) into a :class:`Track`.
 
-    Raises :class:`InputError` naming the offending key.  Extra keys are ignored (forward
-    compatibility within a version); ``sigma_*`` are derived and not read back, except the line of
-    sight's, which are read as sent.  A /1 message has no line of sight.
+    Raises :class:`InputError` naming the offending key, and only that, whatever the message holds (a field of
+    the wrong shape or type, nesting too deep for the parser: a bad message is the sender's, never the reader's
+    crash).  Extra keys are ignored (forward compatibility within a version); ``sigma_*`` are derived and not
+    read back, except the line of sight's, which are read as sent.  A /1 message has no line of sight.
     """
+    try:
+        return _track_from_json(obj)
+    except InputError:
+        raise
+    except (TypeError, ValueError, KeyError, IndexError, AttributeError, OverflowError, RecursionError) as exc:
+        raise InputError(f"track message: a field of the wrong type or shape ({type(exc).__name__}: {exc})") from None
+
+
+def _track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
     if isinstance(obj, (bytes, bytearray, str)):
         try:
             obj = json.loads(obj)

@@ -349,15 +349,19 @@ def test_a_restarted_daemons_unstamped_tracks_keep_the_utc_offset_its_stamped_on
 # --------------------------------------------------------------------------- the fleet's clocks and silent vehicles
 
 
-def run_three(fusion: Fusion, seconds: float, rng, clock_error_s: dict[str, float]) -> None:
-    """Three vehicles at 30 Hz; each frame arrives 5 ms + an exponential 4 ms (processing and link) after capture,
-    on the fusion's clock (true UTC); a vehicle's ``time_unix_us`` is off by ``clock_error_s[name]``."""
-    for k, t in enumerate(np.arange(0.0, seconds, 1 / 30)):
+def run_three(fusion: Fusion, seconds: float, rng, clock_error_s: dict[str, float], t0: float = 0.0) -> list:
+    """Three vehicles at 30 Hz from ``t0``; each frame arrives 5 ms + an exponential 4 ms (processing and link)
+    after capture, on the fusion's clock (true UTC); a vehicle's ``time_unix_us`` is off by ``clock_error_s[name]``.
+    Returns what the fusion published."""
+    out = []
+    first = int(round(t0 * 30))
+    for k, t in enumerate(np.arange(t0, t0 + seconds, 1 / 30), start=first):
         for v in (UAV1, UAV2, UAV3):
             arrival = T0_UNIX_S + t + 0.005 + rng.exponential(0.004)
             err = clock_error_s.get(v.name, 0.0)
             fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k, clock_error_s=err), arrival)
-        fusion.flush()
+        out += fusion.flush()
+    return out
 
 
 @pytest.mark.parametrize("error_ms", [20.0, -20.0])
@@ -371,6 +375,13 @@ def test_a_vehicle_whose_clock_is_20_ms_off_is_named_and_counted_once(error_ms):
     fusion.status(T0_UNIX_S + 2.0)
     assert fusion.counter["clock_inconsistent"] == 1  # counted when it starts, not on every status
     assert st["silent"] == [] and st["latency_floor_ms"]["uav1"] == pytest.approx(5.0, abs=1.0)
+    # and, named, its rays stay out although 20 ms is within the 0.1 s pairing window: they would pair at the wrong
+    # place with a time sigma of 0.3 ms
+    refused = fusion.counter["clock_off"]
+    out = run_three(fusion, 0.5, np.random.default_rng(12), {"uav3": error_ms / 1e3}, t0=2.0)
+    assert fusion.counter["clock_off"] > refused
+    fleet = [p for k, p in out if k == fleet_track_key()]
+    assert fleet and all(sorted(c["vehicle"] for c in p["vehicles"]) == ["uav1", "uav2"] for p in fleet[-5:])
 
 
 def test_consistent_clocks_are_not_named_and_two_vehicles_name_the_one_off_the_fusions_clock():
@@ -609,3 +620,27 @@ def test_a_late_camera_clock_compensated_by_the_daemon_is_fused_at_the_instant_o
     said = nees(True)
     assert len(said) == 30 and np.mean(said) < 6.0
     assert np.mean(nees(False)) > 16.3  # the same rays timed at their stamps: confidently off
+
+
+def test_a_malformed_message_is_counted_never_a_crash_and_a_refused_one_sets_no_fleet_frame():
+    """bbox 5, a ragged sigma, JSON nested past the parser's depth killed the fusion process (a TypeError,
+    ValueError or RecursionError where only InputError was caught); a sigma of 1e200 deg was taken; and the first
+    message heard set the fleet's frame even when it was refused (a stray origin at 0, 0 made every later camera
+    'far' for the life of the process)."""
+    fusion = new_fusion()
+    good = json.loads(payload_of(UAV1, 0.0, np.random.default_rng(0), 0))
+    bad = {
+        "bbox 5": {**good, "bbox": 5},
+        "ragged sigma": {**good, "sigma_vel_ned_mps": [1.0, [2.0]]},
+        "sigma 1e200 deg": {**good, "los_sigma_az_deg": 1e200},
+    }
+    for obj in bad.values():
+        fusion.receive("irtrack/uav1/track", json.dumps(obj).encode(), T0_UNIX_S + 0.01)
+    fusion.receive("irtrack/uav1/track", b"[" * 100_000 + b"]" * 100_000, T0_UNIX_S + 0.01)
+    assert fusion.counter["bad_track"] == 3 and fusion.counter["not_json"] == 1
+    stray = {**good, "vehicle": "uav3", "los_sigma_az_deg": 1e-9, "los_sigma_el_deg": 1e-9}
+    stray["origin"] = {"lat_deg": 0.0, "lon_deg": 0.0, "alt_m": 0.0}
+    fusion.receive("irtrack/uav3/track", json.dumps(stray).encode(), T0_UNIX_S + 0.01)
+    assert fusion.counter["sigma_below_floor"] == 1 and fusion.origin is None
+    out = run_pair(fusion, 1.0, np.random.default_rng(1))
+    assert fusion.origin == ORIGIN_1 and any(k == fleet_track_key() for k, _ in out)

@@ -68,8 +68,8 @@ def tracks(draw) -> Track:
             u_ned=(n / r, e / r, d / r),
             azimuth_deg=draw(st.floats(-180.0, 180.0)),
             elevation_deg=draw(st.floats(-90.0, 90.0)),
-            sigma_azimuth_deg=draw(positive),
-            sigma_elevation_deg=draw(positive),
+            sigma_azimuth_deg=draw(st.floats(0.0, 180.0)),  # a sigma beyond the circle is refused
+            sigma_elevation_deg=draw(st.floats(0.0, 180.0)),
             p_cam_ned_m=np.array(draw(st.tuples(finite, finite, finite))),
         )
     if with_pos:
