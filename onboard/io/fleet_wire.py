@@ -158,6 +158,10 @@ class TimedTrack:
 MAX_CAMERA_DISTANCE_M = 200_000.0
 
 
+#: how many of a stream's newest messages a repeat is recognised among (a few seconds at 30 Hz)
+RECENT_MESSAGES = 128
+
+
 @dataclass
 class _Stream:
     seq: int
@@ -165,6 +169,8 @@ class _Stream:
     anchor: tuple[float, np.ndarray] | None = None  # (t_s, camera) of the newest accepted camera
     candidate: tuple[float, np.ndarray] | None = None  # the newest refused one: the stream may have moved there
     anomalies: deque = field(default_factory=deque)  # arrival times, s
+    # the newest (seq, time_boot_us) pairs heard: one heard again is a repeat of that message, not a second stream
+    seen: deque = field(default_factory=lambda: deque(maxlen=RECENT_MESSAGES))
 
 
 class StreamCheck:
@@ -172,7 +178,8 @@ class StreamCheck:
 
     Step method :meth:`add` (one track's ``seq``, ``time_boot_us``, common time, camera in the fleet frame or
     None, arrival time on the fusion's clock) returns ``camera_far`` / ``camera_jump`` for a track whose camera
-    is not believable (refuse its ray) or None; :meth:`clashing` names the vehicles whose recent anomalies say
+    is not believable (refuse its ray), ``duplicate`` for a message heard already (one of the stream's last
+    :data:`RECENT_MESSAGES`: a redelivery or a replay, refused without counting against the name), or None; :meth:`clashing` names the vehicles whose recent anomalies say
     two vehicles share the name.  ``max_speed_mps``: the fastest vehicle, ``slack_m``: a navigation fix's jump
     allowed on top of it."""
 
@@ -204,9 +211,13 @@ class StreamCheck:
         st = self._streams.get(vehicle)
         if st is None:
             st = self._streams[vehicle] = _Stream(seq, time_boot_us)
+            st.seen.append((seq, time_boot_us))
             if p is not None:
                 st.anchor = (t_s, p)
             return None
+        if (seq, time_boot_us) in st.seen:
+            return "duplicate"
+        st.seen.append((seq, time_boot_us))
         anomaly = seq <= st.seq or time_boot_us < st.boot_us
         st.seq, st.boot_us = seq, time_boot_us
         verdict = None

@@ -644,3 +644,23 @@ def test_a_malformed_message_is_counted_never_a_crash_and_a_refused_one_sets_no_
     assert fusion.counter["sigma_below_floor"] == 1 and fusion.origin is None
     out = run_pair(fusion, 1.0, np.random.default_rng(1))
     assert fusion.origin == ORIGIN_1 and any(k == fleet_track_key() for k, _ in out)
+
+
+def test_a_message_heard_twice_or_replayed_is_a_duplicate_not_a_second_vehicle():
+    """Each repeated seq counted against the name: one redelivered or replayed message a second had a vehicle named
+    a name clash and withdrawn (63 rays kept out in the audit's run)."""
+    fusion, rng, replay, out = new_fusion(), np.random.default_rng(5), {}, []
+    for k, t in enumerate(np.arange(0.0, 5.0, 1 / 30)):
+        for v in (UAV1, UAV2):
+            payload = payload_of(v, t, rng, k)
+            fusion.receive(f"irtrack/{v.name}/track", payload, T0_UNIX_S + t + 0.005)
+            if v is UAV2:
+                replay[k] = payload
+                if k % 30 == 0:
+                    fusion.receive("irtrack/uav2/track", payload, T0_UNIX_S + t + 0.006)  # delivered twice
+                if k % 30 == 15 and k >= 15:
+                    fusion.receive("irtrack/uav2/track", replay[k - 15], T0_UNIX_S + t + 0.006)  # 0.5 s old again
+        out += fusion.flush()
+    assert fusion.counter["duplicate"] == 10 and "name_clash" not in fusion.counter.counts
+    last = [p for k, p in out if k == fleet_track_key()][-1]
+    assert sorted(c["vehicle"] for c in last["vehicles"]) == ["uav1", "uav2"]
