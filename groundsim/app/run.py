@@ -596,11 +596,12 @@ def run_fleet_loop(
                     frame = pending[n]
                     if leg.publisher is not None and frame.pixels is not None:
                         try:
-                            stamp = frame.time_boot_us
+                            stamp: int | None = frame.time_boot_us
                             if camera_clock is not None:
-                                stamp = camera_clock.stamp_us(stamp, frame.truth.t_s)
-                            leg.publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
-                            published += 1
+                                stamp = camera_clock.stamp_us(frame.time_boot_us, frame.truth.t_s)
+                            if stamp is not None:  # None: the camera clock puts it before boot, not sent
+                                leg.publisher.publish(IrFrame(frame.seq, stamp, frame.pixels))
+                                published += 1
                         except sink_errors as exc:
                             publish_errors(f"frame {frame.seq}: publish{' ' + leg.name if fleet else ''}", exc)
                     t1 = clock.now_s()

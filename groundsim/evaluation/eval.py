@@ -561,7 +561,8 @@ def run_lockstep(
         i = k * core.ticks_per_frame
         t_frame_us = core.time_boot_us(i)
         # a frame stamped late is looked up at its stamp: the daemon waits for that telemetry, so does the feed
-        late_us = 0 if clock is None else max(clock.stamp_us(t_frame_us, core.tick_time_s(i)) - t_frame_us, 0)
+        stamped = None if clock is None else clock.stamp_us(t_frame_us, core.tick_time_s(i))
+        late_us = 0 if stamped is None else max(stamped - t_frame_us, 0)
         feed.feed_for(i, t_frame_us + late_us)
         if feed.exhausted and buffer.lookup(t_frame_us).pose is None:
             # the simulation ends before a telemetry sample after this frame: the run's last frame or two
@@ -587,11 +588,15 @@ def run_lockstep(
         track = None
         if fr.pixels is not None:  # None: the camera model dropped the frame (its shutter was closed)
             stamp = fr.time_boot_us if clock is None else clock.stamp_us(fr.time_boot_us, tr.t_s)
-            try:
-                track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
-            except FrameRejected as exc:  # counted by the pipeline; the frame has no track
+            if stamp is None:  # an early camera clock's stamp before the autopilot's boot: not sent
                 rejected += 1
-                log.debug("frame %d rejected: %s", k, exc)
+                log.debug("frame %d stamped before the autopilot's boot by the camera clock: not sent", k)
+            else:
+                try:
+                    track = pipeline.process(IrFrame(fr.seq, stamp, fr.pixels))
+                except FrameRejected as exc:  # counted by the pipeline; the frame has no track
+                    rejected += 1
+                    log.debug("frame %d rejected: %s", k, exc)
         c.process_ms[k] = (time.perf_counter() - p0) * 1e3
         _, pose = source.take()
         if gd is not None and track is not None:

@@ -134,9 +134,12 @@ class CameraClockError:
                 raise ConfigError(f"--camera-time-offset-ms: {name} must be a finite number within 1e6, got {v!r}")
             object.__setattr__(self, name, float(v))
 
-    def stamp_us(self, time_boot_us: int, t_s: float) -> int:
-        """The stamp a frame captured at ``time_boot_us`` (scenario time ``t_s``) carries."""
-        return int(time_boot_us) + round(self.offset_ms * 1000.0 + self.drift_ppm * t_s)
+    def stamp_us(self, time_boot_us: int, t_s: float) -> int | None:
+        """The stamp a frame captured at ``time_boot_us`` (scenario time ``t_s``) carries; None when an early
+        camera clock would stamp it before the autopilot's boot (no boot-clock stamp says that: such a frame
+        is not sent, as a companion drops a frame it cannot place)."""
+        stamp = int(time_boot_us) + round(self.offset_ms * 1000.0 + self.drift_ppm * t_s)
+        return stamp if stamp >= 0 else None
 
 
 def parse_camera_time_offset(text: str) -> CameraClockError:

@@ -318,6 +318,8 @@ def test_camera_clock_error_stamps_frames_late_with_a_drift():
     assert c.stamp_us(1_000_000, 0.0) == 1_050_000
     assert c.stamp_us(101_000_000, 100.0) == 101_000_000 + 50_000 + 2_000  # 20 ppm of 100 s = 2 ms
     assert parse_camera_time_offset("-12.5").stamp_us(1_000_000, 5.0) == 987_500
+    # an early clock's stamp before the autopilot's boot is none (the lockstep eval crashed on it: a negative stamp)
+    assert parse_camera_time_offset("-1500").stamp_us(1_000_000, 1.0) is None
     for bad in ("", "x", "50:y", "inf"):
         with pytest.raises(ConfigError, match="--camera-time-offset-ms"):
             parse_camera_time_offset(bad)
