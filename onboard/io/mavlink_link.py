@@ -22,7 +22,9 @@ module decides what to do with them (MAVLink common, v2 framing):
   reports are counted (:attr:`MavlinkLink.gimbal_reports`) whatever the mount, for the watchdog.
 * ``TIMESYNC`` (#111): our requests carry ``ts1 = clock_ns()``; the autopilot component's answers feed
   :class:`ClockSync` (another component's, on its own clock, are counted ``timesync_foreign``; one
-  addressed to another requester is not ours); requests of the autopilot's system are answered with
+  addressed to another requester is not ours; one whose clock puts the newest attitude's ``time_boot_ms``
+  more than :data:`TIMESYNC_BOOT_SLACK_NS` from where it says, a UNIX epoch or microseconds, is counted
+  ``timesync_implausible`` and not used); requests of the autopilot's system are answered with
   ``tc1 = clock_ns()``.  Requests and replies name their target where the dialect has the fields.
 * ``GPS_RAW_INT`` (#24) of the autopilot (its default stream; not requested): fix type, satellites, DOPs and
   accuracies -> :class:`~onboard.core.gnss.GnssState` (``gnss``, the status's ``link.gnss``; the watchdog's
@@ -176,6 +178,9 @@ parse_connection = parse_endpoint
 
 #: TIMESYNC requests remembered for matching their answers (older ones are forgotten)
 MAX_OUTSTANDING_TIMESYNC = 16
+#: a TIMESYNC answer whose clock puts the autopilot's newest time_boot_ms further than this from where that
+#: message says it was is on another clock (common.xml allows a UNIX-epoch one) or in other units
+TIMESYNC_BOOT_SLACK_NS = 1_000_000_000
 #: MAVLink system and component ids
 ComponentId = Annotated[int, Integer(1, 255)]
 IntervalS = Annotated[float, Number(0.0, 60.0, lo_open=True)]
@@ -426,6 +431,7 @@ class MavlinkLink:
         self.rates_confirmed: set[int] = set()
         self.rates_refused: dict[int, int] = {}
         self._ts_outstanding: OrderedDict[int, None] = OrderedDict()
+        self._boot_seen: tuple[int, int] | None = None  # (our clock_ns, time_boot_us) of the newest attitude
         self._seen_reboots = pose_buffer.reboots
         self.messages_rx = 0
         self.link_losses = 0
@@ -625,6 +631,7 @@ class MavlinkLink:
         if mtype == "ATTITUDE_QUATERNION" and from_autopilot:
             att = AttitudeQuaternion.from_message(msg)
             self._pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
+            self._boot_seen = (int(self._clock_ns()), att.time_boot_us)
         elif mtype == "GLOBAL_POSITION_INT" and from_autopilot:
             pos = GlobalPositionInt.from_message(msg)
             stored = self._pose.add_position(pos.time_boot_us, pos.lat_deg, pos.lon_deg, pos.alt_amsl_m, pos.v_ned_mps)
@@ -782,7 +789,25 @@ class MavlinkLink:
             return
         if ts.ts1_ns in self._ts_outstanding:
             del self._ts_outstanding[ts.ts1_ns]
+            off_ns = self._timesync_off_boot_ns(ts.ts1_ns, ts.tc1_ns, now_ns)
+            if off_ns is not None:
+                self._counters.count(
+                    "timesync_implausible",
+                    f"TIMESYNC answers on a clock {off_ns / 1e9:+.3f} s from the autopilot's time_boot_ms: another "
+                    "epoch or other units (tc1 must be its boot time in ns); not used",
+                )
+                return
             self.clock_sync.add_exchange(ts.ts1_ns, ts.tc1_ns, now_ns)
+
+    def _timesync_off_boot_ns(self, ts1_ns: int, tc1_ns: int, now_ns: int) -> int | None:
+        """How far an exchange's remote clock is from the boot clock of the autopilot's newest attitude (received
+        within the last seconds), when that is beyond :data:`TIMESYNC_BOOT_SLACK_NS`; else None."""
+        seen = self._boot_seen
+        if seen is None or not 0 <= now_ns - seen[0] <= 5 * TIMESYNC_BOOT_SLACK_NS:
+            return None
+        mid_ns = ts1_ns + (now_ns - ts1_ns) // 2
+        off_ns = (seen[0] + tc1_ns - mid_ns) - seen[1] * 1000  # the exchange's boot time there minus the message's
+        return off_ns if abs(off_ns) > TIMESYNC_BOOT_SLACK_NS else None
 
     def _on_ack(self, msg, now: float) -> None:
         if msg.command != mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL or self._inflight is None:

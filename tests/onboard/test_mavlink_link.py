@@ -698,3 +698,23 @@ def test_with_the_cameras_gimbal_named_another_gimbals_reports_say_nothing_about
         assert r.drive(lambda: r.link.gimbal_reports == 1)
     finally:
         r.close()
+
+
+def test_a_timesync_answer_on_another_clock_or_in_other_units_is_refused(rig):
+    """An autopilot answering TIMESYNC in microseconds (or on the UNIX epoch, which common.xml allows) was taken:
+    the boot clock mapping came out 1000 times off, and with it the gimbal samples and latency it stamps."""
+    rig.connect()
+    assert rig.drive(lambda: rig.link.clock_sync.n_samples == 1)
+    real = rig.ap.boot_ns_now
+    rig.ap.attitude(real() // 1000, [1, 0, 0, 0])
+    assert rig.drive(lambda: rig.link._boot_seen is not None)
+    rig.ap.boot_ns_now = lambda: real() // 1000  # microseconds where nanoseconds are due
+    for k in range(2):
+        rig.clock.t_s += 1.0
+        rig.ap.attitude(real() // 1000, [1, 0, 0, 0])
+        assert rig.drive(lambda k=k: rig.counters["timesync_implausible"] == k + 1)
+    assert rig.link.clock_sync.n_samples == 1  # none of them used
+    rig.ap.boot_ns_now = real
+    rig.clock.t_s += 1.0
+    rig.ap.attitude(real() // 1000, [1, 0, 0, 0])
+    assert rig.drive(lambda: rig.link.clock_sync.n_samples == 2)
