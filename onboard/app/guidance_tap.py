@@ -102,8 +102,10 @@ class GuidanceTap:
                 measured = now - max(int(pose.pos_extrapolated_us), 0) * 1e-6
                 self._pose = (measured, pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
         advice = self._advice
-        if advice is not None and (track is None or not track.has_position or track.track_id != advice[2]):
-            self._advice = None  # the target it was planned for is lost or another one: no manoeuvre for it
+        if advice is not None and track is not None and (not track.has_position or track.track_id != advice[2]):
+            # the target it was planned for is lost or another one: no manoeuvre for it (a frame without a track,
+            # one refused, says nothing of the target)
+            self._advice = None
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):

@@ -435,7 +435,21 @@ def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
     cov = 4.0 * np.eye(3) + (0.5 * np.linalg.norm(p - cam)) ** 2 * np.outer(u, u)
     track = _track(5_000_000, p, (-3.0, -2.0, 0.0), cov)
     assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
-    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))  # the target lost
+    tap.on_frame(None, FrameResult(0, True, _pose(), None, None))  # a frame without a track says nothing
+    assert tap._advice is not None
+    lost = dataclasses.replace(
+        track,
+        p_ned_m=None,
+        lat_deg=None,
+        lon_deg=None,
+        alt_m=None,
+        v_ned_mps=None,
+        cov_p_ned_m2=None,
+        cov_v_ned_m2ps2=None,
+        range_m=None,
+        range_sigma_ratio=None,
+    )
+    tap.on_frame(None, FrameResult(0, True, _pose(), lost, None))  # the target lost: no position
     assert tap._advice is None
     assert tap.step(track, _pose(), now[0]) is None  # not due again yet: nothing planned, nothing in force
     tap.advisor._next_us = 0
