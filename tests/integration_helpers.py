@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -137,18 +138,43 @@ def lengthened_scenario(name: str, duration_s: float, out_dir) -> Path:
     return dst
 
 
-def run_pair(scenario: str, out_dir, *, rate: str = "1.0", seed: int = 0, nav_noise: str | None = None) -> PairRun:
+def run_pair(
+    scenario: str,
+    out_dir,
+    *,
+    rate: str = "1.0",
+    seed: int = 0,
+    nav_noise: str | None = None,
+    fly_when: threading.Event | None = None,
+    flown: threading.Event | None = None,
+) -> PairRun:
     """Run the scenario's whole duration through both processes; raise PairRunError on a child failure.
+
+    ``fly_when``: once its daemon is ready, the run waits for this event before it starts the simulator (the daemon
+    is watched meanwhile: its exit is a failure), so that the daemon's start overlaps other work.  ``flown``: set as
+    soon as the simulator has exited (before the drain, the stop and the truth read), or the run ended otherwise.
 
     A daemon that exits before it is ready is given one more try on fresh ports (the ports are free when
     picked, not necessarily when bound, on a machine shared with other test runs)."""
     try:
-        return _run_pair_once(scenario, Path(out_dir) / "try1", rate, seed, nav_noise)
-    except _DaemonExitedEarly:
-        return _run_pair_once(scenario, Path(out_dir) / "try2", rate, seed, nav_noise)
+        try:
+            return _run_pair_once(scenario, Path(out_dir) / "try1", rate, seed, nav_noise, fly_when, flown)
+        except _DaemonExitedEarly:
+            return _run_pair_once(scenario, Path(out_dir) / "try2", rate, seed, nav_noise, fly_when, flown)
+    finally:
+        if flown is not None:
+            flown.set()
 
 
-def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str | None = None) -> PairRun:
+def _run_pair_once(
+    scenario: str,
+    out_dir,
+    rate: str,
+    seed: int,
+    nav_noise: str | None = None,
+    fly_when: threading.Event | None = None,
+    flown: threading.Event | None = None,
+) -> PairRun:
     from groundsim.evaluation.demo import TrackStore, daemon_command, plan_demo
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
     from groundsim.world.truth import read_truth_csv
@@ -177,6 +203,8 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
                     f"the onboard daemon published no status within {DAEMON_READY_TIMEOUT_S:g} s:\n"
                     f"{log_tail(logs['daemon'])}"
                 )
+        while fly_when is not None and not fly_when.wait(0.1):
+            _raise_if_exited(daemon, logs["daemon"], "while it waited for its flight", PairRunError)
         sim0 = time.monotonic()
         sim = _start(sim_command_at_rate(plan, rate), logs["sim"], env)
         deadline = sim0 + plan.duration_s / factor + SIM_SETUP_ALLOWANCE_S
@@ -188,6 +216,8 @@ def _run_pair_once(scenario: str, out_dir, rate: str, seed: int, nav_noise: str 
                 )
             time.sleep(0.1)
         run.sim_wall_s = time.monotonic() - sim0
+        if flown is not None:
+            flown.set()
         if sim.returncode != 0:
             raise PairRunError(f"the simulator exited with code {sim.returncode}:\n{log_tail(logs['sim'])}")
         drain_tracks(store)  # let the daemon finish the last frames

@@ -521,7 +521,7 @@ def test_container_config_loads_with_compose_env(container_config, instructions)
     assert container_config.zenoh.multicast_scouting is False
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_daemon_accepts_the_container_config_as_the_image_runs_it(compose_env, instructions):
     """ENTRYPOINT + CMD with the mounted file's path swapped for the repository copy, compose's
     environment on top of the image's: ``--check`` validates and exits 0 without opening links."""

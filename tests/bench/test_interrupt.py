@@ -5,6 +5,7 @@ traceback from the benchmark, its pool workers or the suite, and no process left
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 
@@ -26,29 +27,52 @@ def _interrupted_lines(stderr: str) -> list[str]:
     return [line for line in stderr.splitlines() if line.startswith("interrupted:")]
 
 
-@pytest.mark.integration
-@pytest.mark.slow
-@pytest.mark.timeout(300)
-@pytest.mark.parametrize("group", [True, False], ids=["terminal", "suite-pid"])
-def test_ctrl_c_in_the_suite_names_what_finished_stopped_and_did_not_run(group):
+SUITE_CASES = {"terminal": True, "suite-pid": False}  # SIGINT to the suite's process group, or to its PID alone
+
+
+def _interrupt_the_suite(group: bool) -> dict:
+    """``bench flight imaging render``, SIGINT once bench.imaging is past its imports (bench.flight done): the
+    processes it had then (``kids``), its exit code, stdout and stderr, and those of ``kids`` still alive
+    ``GONE_TIMEOUT_S`` after its exit (``left``).  No ``rc`` when it had no child to interrupt.  Every process is
+    killed by PID at the end, whatever happened."""
     bench = _bench("bench", "flight", "imaging", "render")
     kids: set[int] = set()
     try:
-        # bench.flight done, bench.imaging past its imports
         bench.wait_for("onboard.imaging benchmark: ", READY_TIMEOUT_S)
         kids = descendants(bench.proc.pid)
-        assert kids, "bench.imaging runs in a process of its own"
+        if not kids:
+            return {"kids": kids}
         rc, out, err = bench.interrupt(group, EXIT_TIMEOUT_S)
-        assert rc == EXIT_INTERRUPTED, err
-        assert _interrupted_lines(err) == [
-            "interrupted: finished: flight; stopped part-way: imaging; not run: render;"
-            " the figures printed above are kept"
-        ], err
-        assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
-        assert "----- bench.imaging: " in out and "===== bench.render" not in out, out[-3000:]
-        assert not wait_gone(kids, GONE_TIMEOUT_S), "a benchmark outlived the interrupted suite"
+        return {"kids": kids, "rc": rc, "out": out, "err": err, "left": wait_gone(kids, GONE_TIMEOUT_S)}
     finally:
         kill_all([bench.proc.pid, *kids])
+
+
+@pytest.fixture(scope="module")
+def interrupted_suites():
+    """Both cases of the test below at once, each suite in a session of its own and interrupted as soon as it is
+    ready (one after the other, each case's bench.flight made the other wait): per case a future of
+    :func:`_interrupt_the_suite`'s result (its ``result()`` raises what the case raised)."""
+    pool = ThreadPoolExecutor(len(SUITE_CASES))
+    yield {case: pool.submit(_interrupt_the_suite, group) for case, group in SUITE_CASES.items()}
+    pool.shutdown(wait=True)  # each case kills its processes by PID whatever happens
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+@pytest.mark.parametrize("case", list(SUITE_CASES))
+def test_ctrl_c_in_the_suite_names_what_finished_stopped_and_did_not_run(case, interrupted_suites):
+    r = interrupted_suites[case].result()
+    assert r["kids"], "bench.imaging runs in a process of its own"
+    rc, out, err = r["rc"], r["out"], r["err"]
+    assert rc == EXIT_INTERRUPTED, err
+    assert _interrupted_lines(err) == [
+        "interrupted: finished: flight; stopped part-way: imaging; not run: render; the figures printed above are kept"
+    ], err
+    assert "Traceback" not in err and "KeyboardInterrupt" not in err, err
+    assert "----- bench.imaging: " in out and "===== bench.render" not in out, out[-3000:]
+    assert not r["left"], "a benchmark outlived the interrupted suite"
 
 
 @pytest.mark.integration

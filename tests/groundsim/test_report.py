@@ -10,16 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from tests.onboard.test_record_daemon import record_pair
-
 REPO = Path(__file__).resolve().parents[2]
 REPORT_TIMEOUT_S = 240.0
-RECORD_S = 4.0  # long enough for a track with 3-D estimates on P1, short to keep the suite quick
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory):
-    return record_pair(tmp_path_factory.mktemp("report"), duration_s=RECORD_S)
+def recorded(recorded_p1_flight):
+    """The session's recorded P1 flight (tests/conftest.py), which the recording and the replay tests read too: the
+    report only reads it."""
+    return recorded_p1_flight
 
 
 def _report(*args) -> subprocess.CompletedProcess:
@@ -34,7 +33,7 @@ def _report(*args) -> subprocess.CompletedProcess:
 
 @pytest.mark.integration
 @pytest.mark.slow
-def test_report_plots_a_recorded_flight_against_the_simulators_truth(recorded, tmp_path):
+def test_report_plots_a_recorded_flight_against_the_simulators_truth_then_none_of_them_without_it(recorded, tmp_path):
     out = tmp_path / "report"
     p = _report(recorded.daemon_mcap, "--truth", recorded.sim_mcap, "--out", out)
     assert p.returncode == 0, p.stderr[-3000:]
@@ -44,28 +43,19 @@ def test_report_plots_a_recorded_flight_against_the_simulators_truth(recorded, t
     summary = json.loads((out / "summary.json").read_text())
     assert summary["truth"] is True and summary["frames"] == len(recorded.tracks)
     assert summary["median_track_to_truth_px"] < 1.0  # truth matched frame by frame
-    p = _report(recorded.daemon_mcap, "--out", tmp_path / "no_truth")
+    # into the folder just filled, without truth this time: neither an error plot of its own (no truth, no error
+    # plot) nor the earlier one (a used folder keeps none of the earlier plots); both must hold for errors.png to go
+    p = _report(recorded.daemon_mcap, "--out", out)
     assert p.returncode == 0, p.stderr[-3000:]
-    assert not (tmp_path / "no_truth" / "errors.png").exists() and (tmp_path / "no_truth" / "trajectory.png").exists()
+    assert not (out / "errors.png").exists() and (out / "trajectory.png").exists()
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_report_of_a_file_that_is_not_a_daemon_recording_is_one_line_exit_2(tmp_path):
     bogus = tmp_path / "x.mcap"
     bogus.write_bytes(b"not an mcap file at all")
     p = _report(bogus, "--out", tmp_path / "r")
     assert p.returncode == 2 and p.stderr.count("\n") == 1 and "groundsim report: error:" in p.stderr, p.stderr
-
-
-@pytest.mark.integration
-@pytest.mark.slow
-def test_a_report_into_a_used_folder_leaves_none_of_the_earlier_plots(recorded, tmp_path):
-    out = tmp_path / "report"
-    assert _report(recorded.daemon_mcap, "--truth", recorded.sim_mcap, "--out", out).returncode == 0
-    assert (out / "errors.png").exists()
-    p = _report(recorded.daemon_mcap, "--out", out)  # no truth this time: no error plot, not the old one
-    assert p.returncode == 0, p.stderr[-3000:]
-    assert not (out / "errors.png").exists() and (out / "trajectory.png").exists()
 
 
 @pytest.mark.integration

@@ -727,7 +727,7 @@ def test_main_exits_2_with_one_line_for_a_bad_file(tmp_path, capsys):
     assert main([str(REPO / "config/scenarios/P1.yaml")]) == 0
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_module_entry_point_exit_code(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text("name: [\n")

@@ -472,7 +472,7 @@ def test_set_option_parses_yaml_values_and_refuses_unknown_paths():
         parse_set_option("estimator.window_s")
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 @pytest.mark.timeout(60)
 def test_daemon_exits_2_with_one_line_on_a_bad_config(tmp_path):
     p = write(tmp_path, "mavlink:\n  attitude_rate_hz: fast\n")

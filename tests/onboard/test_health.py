@@ -157,7 +157,7 @@ def test_bad_options_are_unhealthy_never_docker_reserved_2(args, needle, capsys)
     assert needle in out and "\n" not in out
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_probe_subprocess_fresh_stale_missing(tmp_path):
     """The HEALTHCHECK command itself, through IRTRACK_HEALTH_FILE as the image sets it."""
     path = tmp_path / "alive"
@@ -175,7 +175,7 @@ def test_probe_subprocess_fresh_stale_missing(tmp_path):
     assert _run_probe("--max-age-s", "60", env_file=str(path)).returncode == 0
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_probe_imports_only_the_standard_library():
     """The probe runs every few seconds on the drone: it must not drag numpy/zenoh/cv2 in."""
     code = (

@@ -136,7 +136,7 @@ def small_obs(p3_uneven):
 # --------------------------------------------------------------------------- round trips (subprocess)
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_map_round_trip_any_column_order_extra_column(p3_uneven, tmp_path):
     truth, obs = p3_uneven
     cols = tuple(reversed(OBS_COLUMNS))
@@ -161,7 +161,7 @@ def test_map_round_trip_any_column_order_extra_column(p3_uneven, tmp_path):
         assert k in s
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_paper_round_trip(p3_uneven, tmp_path):
     truth, obs = p3_uneven
     src = tmp_path / "obs.csv"
@@ -181,7 +181,7 @@ def test_paper_round_trip(p3_uneven, tmp_path):
     assert s["paper_solver"] == "banded_cholesky"
 
 
-@pytest.mark.integration
+@pytest.mark.subprocess
 def test_bad_input_in_a_real_process_is_one_line_exit_2(small_obs, tmp_path):
     text = obs_csv_text(small_obs).splitlines()
     text[4] = text[4].replace(text[4].split(",")[1], "abc", 1)

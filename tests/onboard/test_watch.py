@@ -231,20 +231,51 @@ def publish_samples(publisher: Publisher) -> list[bytes]:
     return payloads
 
 
-@pytest.mark.integration
-def test_the_watcher_prints_each_track_and_a_summary_then_exits_by_itself(publisher):
-    proc = start_watcher(publisher.endpoint, "--seconds", f"{WATCH_SECONDS:g}")
+@pytest.fixture(scope="module")
+def watched_for_seconds():
+    """The two ``--seconds`` runs of the tests below, at once (each sleeps through its WATCH_SECONDS, so one after the
+    other they cost twice): the text watcher and the ``--json`` one, each with a publisher of its own, which publishes
+    the samples (and, to the ``--json`` one, a payload that is not a track) once its watcher has subscribed.  Returns
+    per name (``"text"``, ``"json"``) the endpoint, the payloads published, the exit code, stdout and stderr."""
+    runs: dict[str, dict] = {}
     try:
-        assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
-        publish_samples(publisher)
-        out, err = proc.communicate(timeout=WATCH_SECONDS + EXIT_TIMEOUT_S)
+        for name, extra in (("text", ()), ("json", ("--json",))):
+            runs[name] = {"pub": Publisher()}
+            runs[name]["proc"] = start_watcher(runs[name]["pub"].endpoint, "--seconds", f"{WATCH_SECONDS:g}", *extra)
+        runs["text"]["payloads"] = (
+            publish_samples(runs["text"]["pub"]) if runs["text"]["pub"].wait_matched(START_TIMEOUT_S) else None
+        )
+        if runs["json"]["pub"].wait_matched(START_TIMEOUT_S):
+            runs["json"]["payloads"] = publish_samples(runs["json"]["pub"])
+            runs["json"]["pub"].put(b'{"schema": "something/else"}')
+        else:
+            runs["json"]["payloads"] = None
+        out = {}
+        for name, run in runs.items():
+            stdout, stderr = run["proc"].communicate(timeout=WATCH_SECONDS + EXIT_TIMEOUT_S)
+            out[name] = {
+                "endpoint": run["pub"].endpoint,
+                "payloads": run["payloads"],
+                "returncode": run["proc"].returncode,
+                "out": stdout,
+                "err": stderr,
+            }
     finally:
-        proc.kill()
-    assert proc.returncode == EXIT_OK, err
+        for run in runs.values():
+            if "proc" in run:
+                run["proc"].kill()
+            run["pub"].close()
+    return out
+
+
+@pytest.mark.integration
+def test_the_watcher_prints_each_track_and_a_summary_then_exits_by_itself(watched_for_seconds):
+    run = watched_for_seconds["text"]
+    assert run["payloads"] is not None, "the watcher never subscribed"
+    out, err = run["out"], run["err"]
+    assert run["returncode"] == EXIT_OK, err
     lines = out.splitlines()
-    assert (
-        lines[0] == f"watching irtrack/uav1/track on {publisher.endpoint} for {WATCH_SECONDS:g} s (Ctrl-C stops sooner)"
-    )
+    assert lines[0] == f"watching irtrack/uav1/track on {run['endpoint']} for {WATCH_SECONDS:g} s (Ctrl-C stops sooner)"
     assert lines[1:-1] == [format_track(t) for t in sample_tracks()]
     assert lines[-1].startswith("summary: 4 tracks in ")
     assert lines[-1].endswith(
@@ -254,16 +285,12 @@ def test_the_watcher_prints_each_track_and_a_summary_then_exits_by_itself(publis
 
 
 @pytest.mark.integration
-def test_json_prints_the_payloads_as_received(publisher):
-    proc = start_watcher(publisher.endpoint, "--seconds", f"{WATCH_SECONDS:g}", "--json")
-    try:
-        assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
-        payloads = publish_samples(publisher)
-        publisher.put(b'{"schema": "something/else"}')
-        out, err = proc.communicate(timeout=WATCH_SECONDS + EXIT_TIMEOUT_S)
-    finally:
-        proc.kill()
-    assert proc.returncode == EXIT_OK, err
+def test_json_prints_the_payloads_as_received(watched_for_seconds):
+    run = watched_for_seconds["json"]
+    payloads = run["payloads"]
+    assert payloads is not None, "the watcher never subscribed"
+    out, err = run["out"], run["err"]
+    assert run["returncode"] == EXIT_OK, err
     assert out.splitlines() == [p.decode() for p in payloads] + ['{"schema": "something/else"}']
     assert [json.loads(line)["seq"] for line in out.splitlines()[:4]] == [1, 2, 3, 4]
     info = err.splitlines()

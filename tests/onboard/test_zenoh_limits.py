@@ -13,7 +13,9 @@ from onboard.app.config import build_config
 from onboard.core.errors import ConfigError
 from onboard.io.zenoh_session import ZenohConfig, open_session
 
-pytestmark = [pytest.mark.integration, pytest.mark.timeout(60)]
+# the loopback sessions are ``integration``; the ``--check`` runs are short-lived children with no socket
+# (``subprocess``), the configuration checks in-process
+pytestmark = pytest.mark.timeout(60)
 
 LIMIT_BYTES = 1 << 20  # 1 MiB payloads allowed at the receiver
 WAIT_S = 5.0
@@ -22,6 +24,7 @@ WAIT_S = 5.0
 DELIVERY_WAIT_S = 30.0
 
 
+@pytest.mark.integration
 def test_the_transport_drops_a_message_over_the_receivers_limit():
     port = free_tcp_port()
     rx = open_session(ZenohConfig(listen=(f"tcp/127.0.0.1:{port}",)), max_payload_bytes=LIMIT_BYTES)
@@ -79,6 +82,7 @@ def test_bad_ports_fail_naming_the_field(section, value, field):
         build_config({section: value})
 
 
+@pytest.mark.subprocess
 def test_check_exits_2_naming_the_port_field(tmp_path):
     cfg = tmp_path / "bad.yaml"
     cfg.write_text("zenoh:\n  listen: [tcp/127.0.0.1:99999]\n")
@@ -89,6 +93,7 @@ def test_check_exits_2_naming_the_port_field(tmp_path):
     assert "zenoh.listen[0]" in r.stderr and "99999" in r.stderr
 
 
+@pytest.mark.subprocess
 @pytest.mark.parametrize("content", [None, "{ not json5"])
 def test_check_reads_the_zenoh_config_file_naming_its_field(tmp_path, content):
     zc = tmp_path / "zenoh.json5"
@@ -116,6 +121,7 @@ def test_a_zenoh_config_file_that_is_a_folder_is_called_one():
         build_config(ZenohConfig(config_file="/tmp"))
 
 
+@pytest.mark.integration
 def test_a_session_that_cannot_open_names_its_endpoints():
     from onboard.io.zenoh_session import ZenohSessionError
 
