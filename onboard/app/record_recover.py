@@ -266,20 +266,14 @@ def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list
             continue
         for record in records:
             output.add(record)
-    for mi in summary.metadata_indexes:
+    indexed = [("the metadata record", i) for i in summary.metadata_indexes]
+    indexed += [("the attachment", i) for i in summary.attachment_indexes]
+    for what, index in indexed:  # each record its index points at, read alone
         try:
-            output.add(
-                next(StreamReader(io.BytesIO(os.pread(f.fileno(), mi.length, mi.offset)), skip_magic=True).records)
-            )
-        except Exception as exc:  # noqa: BLE001
-            dropped.append(f"the metadata record {mi.name!r} at byte {mi.offset} left out: {type(exc).__name__}: {exc}")
-    for ai in summary.attachment_indexes:
-        try:
-            output.add(
-                next(StreamReader(io.BytesIO(os.pread(f.fileno(), ai.length, ai.offset)), skip_magic=True).records)
-            )
-        except Exception as exc:  # noqa: BLE001
-            dropped.append(f"the attachment {ai.name!r} at byte {ai.offset} left out: {type(exc).__name__}: {exc}")
+            raw = os.pread(f.fileno(), index.length, index.offset)
+            output.add(next(StreamReader(io.BytesIO(raw), skip_magic=True).records))
+        except Exception as exc:  # noqa: BLE001 - whatever these bytes raise: this record alone is left out
+            dropped.append(f"{what} {index.name!r} at byte {index.offset} left out: {type(exc).__name__}: {exc}")
 
 
 def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
