@@ -31,7 +31,8 @@ module decides what to do with them (MAVLink common, v2 framing):
   ``gnss_degraded``).  A fix type outside GPS_FIX_TYPE is counted (``gps_raw_fix_type``) and dropped.
 * ``SYSTEM_TIME`` (#2) of the autopilot (its default stream, about 1 Hz; not requested): ``time_boot_ms * 1000``
   and ``time_unix_usec`` feed :class:`~onboard.core.utc_clock.UtcClock` (boot clock -> UTC), reset with
-  :class:`ClockSync` on a reboot.
+  :class:`ClockSync` on a reboot; not seeded while a fresh GPS_RAW_INT reports no 3-D fix (``utc_without_fix``:
+  the autopilot's UTC is then an RTC's or a ground station's, seconds off without a word).
 
 Out: ``HEARTBEAT`` at 1 Hz as ``MAV_TYPE_ONBOARD_CONTROLLER`` / ``MAV_AUTOPILOT_INVALID`` from
 component 191 (``MAV_COMP_ID_ONBOARD_COMPUTER``) with the autopilot's system id;
@@ -178,6 +179,8 @@ parse_connection = parse_endpoint
 
 #: TIMESYNC requests remembered for matching their answers (older ones are forgotten)
 MAX_OUTSTANDING_TIMESYNC = 16
+#: a GPS_RAW_INT newer than this (s) says whether the receiver has a fix when SYSTEM_TIME would seed UTC
+UTC_FIX_FRESH_S = 5.0
 #: a TIMESYNC answer whose clock puts the autopilot's newest time_boot_ms further than this from where that
 #: message says it was is on another clock (common.xml allows a UNIX-epoch one) or in other units
 TIMESYNC_BOOT_SLACK_NS = 1_000_000_000
@@ -651,6 +654,21 @@ class MavlinkLink:
             self._on_timesync(Timesync.from_message(msg), src_comp, from_autopilot)
         elif mtype == "SYSTEM_TIME" and from_autopilot:
             st = SystemTime.from_message(msg)
+            gnss = self.gnss
+            if (
+                self.utc_clock.mapping is None
+                and gnss is not None
+                and now - gnss.received_s <= UTC_FIX_FRESH_S
+                and not gnss.has_3d_fix
+            ):
+                # before any GNSS fix an autopilot's UTC is an RTC's or a ground station's, seconds off without a
+                # word; the mapping is seeded from a fixed receiver's time only (once seeded, a step re-seeds it)
+                self._counters.count(
+                    "utc_without_fix",
+                    f"SYSTEM_TIME while GPS_RAW_INT reports {gnss.fix}: its UTC may be an unset or RTC clock; not used",
+                    level=logging.INFO,
+                )
+                return
             self.utc_clock.add_system_time(st.time_boot_us, st.time_unix_us)
         elif mtype == "COMMAND_ACK" and from_autopilot:
             self._on_ack(msg, now)

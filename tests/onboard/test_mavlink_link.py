@@ -718,3 +718,19 @@ def test_a_timesync_answer_on_another_clock_or_in_other_units_is_refused(rig):
     rig.clock.t_s += 1.0
     rig.ap.attitude(real() // 1000, [1, 0, 0, 0])
     assert rig.drive(lambda: rig.link.clock_sync.n_samples == 2)
+
+
+def test_utc_is_not_seeded_while_the_receiver_reports_no_fix(rig):
+    """Before a GNSS fix an autopilot's UTC is an RTC's or a ground station's (the time-handling audit: 2 s off
+    stamped every frame at a 0.34 ms sigma); the mapping waits for a fixed receiver, then seeds as before."""
+    rig.connect()
+    unix0_us = 1_800_000_000_000_000
+    rig.ap.send(GpsRawInt(5, mav.GPS_FIX_TYPE_NO_FIX))
+    for k in range(1, 4):
+        rig.ap.send(SystemTime(unix0_us + k * 1_000_000 + 700, k * 1_000_000 + 700))
+    assert rig.drive(lambda: rig.counters["utc_without_fix"] == 3)
+    assert rig.link.utc_clock.mapping is None
+    rig.ap.send(GpsRawInt(6, mav.GPS_FIX_TYPE_3D_FIX))
+    for k in range(4, 7):
+        rig.ap.send(SystemTime(unix0_us + k * 1_000_000 + 700, k * 1_000_000 + 700))
+    assert rig.drive(lambda: rig.link.utc_clock.mapping is not None and rig.link.utc_clock.mapping.n_samples == 3)
