@@ -104,6 +104,59 @@ log = logging.getLogger(__name__)
 FLEET_STATUS_SCHEMA = "irtrack.fleet_status/1"
 EXIT_OK, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 2, 130
 POLL_S = 0.1
+#: track messages waiting for the main loop at most (a 3-vehicle fleet at 30 Hz sends ~90 a second): beyond, a flood,
+#: the newest are dropped and counted (inbox_full) instead of growing memory without bound
+INBOX_MAX = 3000
+#: messages fused per turn of the main loop before it publishes what is due: a flood must not starve the output
+MAX_PER_TURN = 300
+
+
+class Inbox:
+    """The subscriber's track messages for the main loop (zenoh's threads put, the main loop takes): bounded at
+    ``maxsize``; what does not fit is dropped and counted, for the main loop to report (:meth:`take_dropped`)."""
+
+    def __init__(self, maxsize: int = INBOX_MAX) -> None:
+        self._q: queue.Queue = queue.Queue(maxsize)
+        self._lock = threading.Lock()
+        self._dropped = 0
+
+    def put(self, item: tuple) -> None:
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self._dropped += 1
+
+    def get(self, timeout_s: float | None = None) -> tuple | None:
+        """The next message, waiting up to ``timeout_s`` (None: not at all); None when there is none."""
+        try:
+            return self._q.get(timeout=timeout_s) if timeout_s else self._q.get_nowait()
+        except queue.Empty:
+            return None
+
+    def take_dropped(self) -> int:
+        with self._lock:
+            n, self._dropped = self._dropped, 0
+        return n
+
+
+def drain(inbox: Inbox, fusion: Fusion, first: tuple | None, limit: int = MAX_PER_TURN) -> int:
+    """Fuse ``first`` and what else waits, ``limit`` messages at most; returns how many were fused."""
+    n, item = 0, first
+    while item is not None:
+        fusion.receive(*item)
+        n += 1
+        if n >= limit:
+            break
+        item = inbox.get()
+    dropped = inbox.take_dropped()
+    if dropped:
+        fusion.counter.count(
+            "inbox_full", f"{dropped} track messages dropped: more than the fusion keeps up with", n=dropped
+        )
+    return n
+
+
 CLOCK_RECHECK_S = 0.1
 #: counted reasons that are events, not refused input: the status lists them under ``events``, the rest under
 #: ``rejected``
@@ -544,7 +597,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         settings = zenoh_config(args)
         session = open_session(settings)
-        inbox: queue.SimpleQueue = queue.SimpleQueue()
+        inbox = Inbox()
         session.declare_subscriber(
             TRACKS_KEY_EXPR, lambda s: inbox.put((str(s.key_expr), s.payload.to_bytes(), time.time()))
         )
@@ -561,17 +614,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            try:
-                item = inbox.get(timeout=POLL_S)
-            except queue.Empty:
-                item = None
+            item = inbox.get(POLL_S)
             idle = item is None
-            while item is not None:
-                fusion.receive(*item)
-                try:
-                    item = inbox.get_nowait()
-                except queue.Empty:
-                    item = None
+            drain(inbox, fusion, item)
             for key, payload in fusion.flush(force=idle):  # idle: whatever is pending, due or not
                 pub = publishers.get(key)
                 if pub is None:
