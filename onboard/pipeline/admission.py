@@ -12,7 +12,10 @@ what is wrong with it, so that a status reader can tell a sender problem from a 
   however late);
 * ``out_of_order``: before ``L`` with the sequence number going back too (an old frame delivered
   late);
-* ``time_ahead``: more than ``threshold_us`` after ``L`` (a stamp far in the future), unless the
+* ``time_ahead``: within ``threshold_us`` after ``L`` but more than ``AHEAD_OF_RATE_US`` past where the
+  stream's rate puts it and more than ``AHEAD_OF_TELEMETRY_US`` past the telemetry's newest time (one odd stamp:
+  taken, it would have the good frames after it refused until a run of them restarted the estimator); or more
+  than ``threshold_us`` after ``L`` (a stamp far in the future), unless the
   sequence number moved on with it: a frame within ``threshold_us`` of where the stream's own rate
   (its frames accepted since the last event, at least ``RATE_FRAMES``) puts its number is the next
   one after a gap, frames missing in between (dropped by the sender, the network, or the daemon's
@@ -69,6 +72,11 @@ APART_CONFIRM_US = 500_000
 RECENT_FRAMES = 128
 #: accepted frames (since the last event) the stream's rate is learnt from before a gap is told from a clock step
 RATE_FRAMES = 8
+#: a frame within the threshold of the last one but this far past where the stream's rate puts it ...
+AHEAD_OF_RATE_US = 100_000
+#: ... and this far past the telemetry's newest time is an odd stamp, not the next frame: taken as the stream's
+#: newest it would have the good frames after it refused as behind it, until a run of them restarts the estimator
+AHEAD_OF_TELEMETRY_US = 250_000
 
 
 @dataclass(frozen=True)
@@ -117,9 +125,16 @@ class FrameAdmission:
         self._recent_set.clear()
         self._run.clear()
 
+    def wants_reference(self, seq: int, t_us: int) -> bool:
+        """Whether :meth:`admit` reads the telemetry's newest time for this frame (the first, one more than
+        ``threshold_us`` from the last accepted, or one past where the stream's rate puts it): the caller looks it
+        up for those only."""
+        last_t = self.last_t_us
+        return last_t is None or abs(t_us - last_t) > self.threshold_us or self._ahead_of_rate(seq, t_us)
+
     def admit(self, seq: int, t_us: int, reference_us: int | None = None) -> Admission:
         """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any
-        (read for the first frame and for a frame more than ``threshold_us`` from the last accepted one)."""
+        (read when :meth:`wants_reference` says so)."""
         last_seq, last_t = self.last_seq, self.last_t_us
         thr = self.threshold_us
         if last_t is None or last_seq is None:  # the first frame (both are set together)
@@ -139,6 +154,16 @@ class FrameAdmission:
         seq_forward = _forward(seq, last_seq)
         if last_t < t_us <= last_t + thr:  # the usual frame: no message made for it
             if seq_forward:
+                if (
+                    reference_us is not None
+                    and t_us > reference_us + AHEAD_OF_TELEMETRY_US
+                    and self._ahead_of_rate(seq, t_us)
+                ):
+                    ahead = f"{(t_us - reference_us) / 1e6:+.3f} s from the telemetry"
+                    return self._candidate(
+                        seq, t_us, far=False, reason="time_ahead",
+                        message=f"frame seq {seq} at time_boot_us {t_us} is past the stream's rate and {ahead}",
+                    )  # fmt: skip
                 return self._accept(seq, t_us, "")
             return self._accept(
                 seq, t_us, "sequence_reset", f"seq {last_seq} -> {seq} while time moved forward: the sender restarted"
@@ -160,18 +185,27 @@ class FrameAdmission:
 
     # ------------------------------------------------------------------ internals
 
-    def _on_the_streams_rate(self, seq: int, t_us: int) -> bool:
-        """``t_us`` is within ``threshold_us`` of where the rate of the frames accepted since the last event puts
-        frame ``seq`` (from the oldest remembered one to the newest: their jitter averages out over the span)."""
+    def _ahead_of_rate(self, seq: int, t_us: int) -> bool:
+        """``t_us`` is more than ``AHEAD_OF_RATE_US`` past where the stream's rate (``RATE_FRAMES`` accepted since
+        the last event at least) puts frame ``seq``."""
+        expected_us = self._expected_us(seq)
+        return expected_us is not None and t_us - expected_us > AHEAD_OF_RATE_US
+
+    def _expected_us(self, seq: int) -> float | None:
         if len(self._recent) < RATE_FRAMES:
-            return False
+            return None
         seq0, t0 = self._recent[0]
         seq1, t1 = self._recent[-1]
         n = (seq1 - seq0) % SEQ_MOD
         if n == 0 or t1 <= t0:
-            return False
-        expected_us = t1 + (t1 - t0) / n * ((seq - seq1) % SEQ_MOD)
-        return abs(t_us - expected_us) <= self.threshold_us
+            return None
+        return t1 + (t1 - t0) / n * ((seq - seq1) % SEQ_MOD)
+
+    def _on_the_streams_rate(self, seq: int, t_us: int) -> bool:
+        """``t_us`` is within ``threshold_us`` of where the rate of the frames accepted since the last event puts
+        frame ``seq`` (from the oldest remembered one to the newest: their jitter averages out over the span)."""
+        expected_us = self._expected_us(seq)
+        return expected_us is not None and abs(t_us - expected_us) <= self.threshold_us
 
     def _candidate(
         self, seq: int, t_us: int, *, far: bool, reason: str, message: str, apart: bool = False

@@ -436,8 +436,7 @@ class FramePipeline:
     def _admit(self, frame: IrFrame) -> None:
         """Admit the frame or refuse it, counted under its reason (:mod:`onboard.pipeline.admission`)."""
         reference_us = None
-        last_t_us = self._admission.last_t_us
-        if last_t_us is None or abs(frame.time_boot_us - last_t_us) > self._admission.threshold_us:
+        if self._admission.wants_reference(frame.seq, frame.time_boot_us):
             newest = getattr(self.pose_source, "newest_time_boot_us", None)
             try:
                 reference_us = newest() if callable(newest) else None

@@ -159,3 +159,27 @@ def test_any_frames_missing_from_a_steady_stream_never_refuse_or_restart(period_
     for i, k in enumerate(ks):
         v = adm.admit((seq0 + k) % SEQ_MOD, 10**9 + k * period_us + jitter_us[i])
         assert (v.accepted, v.reason, v.restart) == (True, "", False), (k, v)
+
+
+def test_one_frame_stamped_within_the_threshold_ahead_of_the_stream_and_the_telemetry_is_one_odd_frame():
+    """A frame 0.9 s ahead (within the 1 s threshold) was taken as the stream's newest: the good frames after it
+    were refused as behind it until a run of them restarted the estimator (and its camera-clock compensation).  It
+    is refused now, the stream goes on; a frame after a short camera pause, in step with the telemetry, is taken."""
+    period_us = 33_333
+    adm = FrameAdmission(THRESHOLD_US, RESTART_COUNT)
+    for k in range(20):
+        t = 10**9 + k * period_us
+        assert adm.admit(k, t, reference_us=t - 20_000 if adm.wants_reference(k, t) else None).accepted
+    odd_t = 10**9 + 20 * period_us + 900_000
+    assert adm.wants_reference(20, odd_t)
+    odd = adm.admit(20, odd_t, reference_us=10**9 + 20 * period_us - 20_000)
+    assert (odd.accepted, odd.reason) == (False, "time_ahead")
+    for k in range(21, 30):
+        t = 10**9 + k * period_us
+        v = adm.admit(k, t, reference_us=t - 20_000 if adm.wants_reference(k, t) else None)
+        assert (v.accepted, v.reason, v.restart) == (True, "", False)
+    # a 0.6 s camera pause numbering on from where it stopped, the telemetry running on with it: the next frame
+    t = 10**9 + 29 * period_us + 600_000
+    assert adm.wants_reference(30, t)
+    v = adm.admit(30, t, reference_us=t - 20_000)
+    assert (v.accepted, v.reason, v.restart) == (True, "", False)
