@@ -236,9 +236,11 @@ class Fusion:
 
     def _clock_off(self, vehicle: str, now_unix_s: float) -> float | None:
         """How far ``vehicle``'s UTC is off the others' (s) when the clock check names it: its rays are timed wrong
-        by more than the tolerance while their time sigma says a fraction of a millisecond.  Beyond the pairing
-        window they could not pair; within it they pair at the wrong place, confidently (20 ms on a 25 m/s target:
-        9 % of the fused points beyond 3 sigma, 30 ms: half).  Either way they are kept out."""
+        by that much while their time sigma says a fraction of a millisecond.  Beyond the pairing window they could
+        not pair: kept out.  Within it they paired at the wrong place, confidently (20 ms on a 25 m/s target: 9 %
+        of the fused points beyond 3 sigma, 30 ms: half): their time sigma is widened to the deviation instead of
+        shutting the vehicle out, since the check also names a vehicle whose link is slower by more than the
+        tolerance (its latency floor, not its clock, differs), which would lose its rays for nothing."""
         # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
         if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
             self._clock_judged_at = now_unix_s
@@ -299,6 +301,10 @@ class Fusion:
         time_sigma_s = 0.0
         if source == "vehicle" and track.time_unix_sigma_us is not None:
             time_sigma_s = track.time_unix_sigma_us / 1e6
+        off = self._clock_off(vehicle, arrival_unix_s) if time_unix_us is not None else None
+        if off is not None and abs(off) <= self.tracker.config.pair_max_dt_s:
+            time_sigma_s = max(time_sigma_s, abs(off))  # named, within the pairing window: as uncertain as it is off
+            off = None
         try:
             ray = ray_from_track(TimedTrack(track, t_s, source, time_sigma_s), origin)
         except InputError as exc:
@@ -317,7 +323,6 @@ class Fusion:
         if not self._ray_plausible(key, ray):
             return
         if time_unix_us is not None:
-            off = self._clock_off(vehicle, arrival_unix_s)
             if off is not None:
                 self.counter.count("clock_off", f"{key}: its time_unix_us is {off:+.3f} s off the other vehicles'")
                 if vehicle not in self._clock_refused:  # what it sent before it was judged goes too
