@@ -45,7 +45,14 @@ from onboard.app.cli_args import OneLineParser
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError
 from onboard.io.mcap_chunks import MCAP_MAGIC, RECORD_HEAD
-from onboard.io.mcap_read import KNOWN_OPCODES, ChunkIndexCheck, chunk_records, damage_at, footer_intact
+from onboard.io.mcap_read import (
+    KNOWN_OPCODES,
+    ChunkIndexCheck,
+    chunk_records,
+    damage_at,
+    footer_intact,
+    record_overran,
+)
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
 
@@ -129,6 +136,9 @@ class _Output:
         self.schema_ids: dict[int, int] = {0: 0}
         self.channel_ids: dict[int, int] = {}
         self.messages = self.metadata = self.attachments = 0
+        # the summary's schemas and channels (a finished file's), for a message whose chunk did not declare them
+        self.summary_schemas: dict[int, Any] = {}
+        self.summary_channels: dict[int, Any] = {}
 
     def add(self, record: Any) -> None:
         from mcap.records import Attachment, Channel, Message, Metadata, Schema
@@ -143,6 +153,11 @@ class _Output:
                     record.topic, record.message_encoding, self.schema_ids[record.schema_id], dict(record.metadata)
                 )
         elif isinstance(record, Message):
+            if record.channel_id not in self.channel_ids and record.channel_id in self.summary_channels:
+                channel = self.summary_channels[record.channel_id]
+                if channel.schema_id not in self.schema_ids and channel.schema_id in self.summary_schemas:
+                    self.add(self.summary_schemas[channel.schema_id])
+                self.add(channel)  # KeyError when its schema is nowhere either: the caller says what it left out
             w.add_message(
                 self.channel_ids[record.channel_id], record.log_time, record.data, record.publish_time, record.sequence
             )
@@ -169,6 +184,7 @@ def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
     seen_header = False
     while True:
         at = prefix.count
+        index_failed = False
         try:
             record = next(reader, None)
             if record is None:
@@ -177,18 +193,30 @@ def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
                 seen_header = True
             elif not seen_header:
                 raise InputError(f"{src}: not a readable MCAP file (a {type(record).__name__} before its header)")
+            overran = record_overran(f, at, prefix.count)
+            if overran is not None:
+                raise InputError(f"{src}: damaged: {overran}")
+            index_failed = True
             check.add(record, at)
+            index_failed = False
             if isinstance(record, Chunk):
                 records = chunk_records(record, f"{src}: the chunk at byte {at}")
                 check.chunk(records, at)
         except InputError as exc:
             if seen_header and "damaged" in str(exc):
                 what = str(exc).removeprefix(f"{src}: ").replace("damaged: ", "")
+                if pending is not None and not index_failed:
+                    # the chunk held back is whole and its indexes so far agree: the damage is after it
+                    yield pending
+                    pending = None
                 raise _Damaged(what, pending[0] if pending else at) from None
             raise
         except Exception as exc:  # noqa: BLE001 - whatever the reader raised inside the whole records
             if type(exc).__name__ == "EndOfFile" and seen_header:
                 break  # the whole records end between two records: read to the last
+            if pending is not None:
+                yield pending
+                pending = None
             raise _Damaged(f"the record at byte {at} cannot be read: {type(exc).__name__}: {exc}", at) from None
         if isinstance(record, MessageIndex):
             continue
@@ -224,10 +252,9 @@ def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list
     from mcap.records import Chunk, MessageIndex
     from mcap.stream_reader import StreamReader
 
-    for sch in summary.schemas.values():
-        output.add(sch)
-    for ch in summary.channels.values():
-        output.add(ch)
+    # the chunks' own schema and channel records first; the summary's copies (damage there goes unnoticed by any
+    # reader) only for a channel no chunk declared
+    output.summary_schemas, output.summary_channels = dict(summary.schemas), dict(summary.channels)
     chunks = sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset)
     for k, ci in enumerate(chunks, start=1):
         size = ci.chunk_length + ci.message_index_length
@@ -264,8 +291,14 @@ def _indexed(f: BinaryIO, src: str, summary: Any, output: _Output, dropped: list
                 f"{ci.message_end_time} ns) left out: {why}"
             )
             continue
-        for record in records:
-            output.add(record)
+        try:
+            for record in records:
+                output.add(record)
+        except KeyError as exc:  # a channel or schema neither the chunk nor the summary declares
+            dropped.append(
+                f"chunk {k} of {len(chunks)} at byte {ci.chunk_start_offset}: the records from one naming id "
+                f"{exc.args[0]!r}, which neither it nor the summary declares, left out"
+            )
     indexed = [("the metadata record", i) for i in summary.metadata_indexes]
     indexed += [("the attachment", i) for i in summary.attachment_indexes]
     for what, index in indexed:  # each record its index points at, read alone

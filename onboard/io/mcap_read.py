@@ -24,6 +24,7 @@ __all__ = [
     "ChunkIndexCheck",
     "KNOWN_OPCODES",
     "read_recording",
+    "record_overran",
     "footer_intact",
     "damage_at",
     "chunk_records",
@@ -128,6 +129,22 @@ def damage_at(f, size: int, start: int) -> str | None:
         return f"the record at byte {start} has opcode {opcode:#04x}, which no MCAP record has"
     if start + RECORD_HEAD.size + length <= size:
         return f"the record at byte {start} ({length} bytes, within the file) cannot be read"
+    return None
+
+
+def record_overran(f, start: int, end: int) -> str | None:
+    """Why the record the reader read from ``start`` to ``end`` (positions of ``f``) is damaged, or None: it must end
+    where its own length says.  The `mcap` package reads a chunk's fields by their own lengths, so a chunk whose
+    data length was damaged is read on to the end of the file (a compressed chunk decompresses all the same),
+    which then looks like a cut."""
+    if start == 0:  # the first read takes the magic before the header record
+        start = len(MCAP_MAGIC)
+    head = os.pread(f.fileno(), RECORD_HEAD.size, start)
+    if len(head) < RECORD_HEAD.size:
+        return None
+    _opcode, length = RECORD_HEAD.unpack(head)
+    if end != start + RECORD_HEAD.size + length:
+        return f"the record at byte {start} says {length} bytes but its fields take {end - start - RECORD_HEAD.size}"
     return None
 
 
@@ -243,6 +260,9 @@ def read_recording(path: str) -> Iterator[RecordedMessage | dict]:
                 if top is None:
                     break
                 offsets: Iterator[int | None] = iter(())
+                overran = record_overran(f, start, f.tell())
+                if overran is not None:
+                    raise InputError(f"{path}: damaged: {overran}")
                 index_check.add(top, start)
                 if isinstance(top, Chunk):
                     if top.compression == "":

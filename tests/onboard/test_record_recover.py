@@ -258,3 +258,35 @@ def test_damage_in_a_finished_file_is_never_taken_for_a_cut_and_skip_damaged_kee
         assert len(msgs) == len(full_msgs) - lost and meta == full_meta
         kept = {m[3:6] + (m[0],) for m in msgs}  # (log time, publish time, sequence, topic)
         assert kept <= {m[3:6] + (m[0],) for m in full_msgs}
+
+
+def test_a_compressed_chunk_whose_data_length_is_damaged_is_damage_and_the_chunks_before_it_are_kept(tmp_path, capsys):
+    """The mcap reader reads a chunk's data by its own length field: a damaged one ran on to the end of a cut file,
+    the decompressor ignored the extra bytes, and the read stopped at the end: a cut, 'read to its last chunk'.  A
+    record must end where its own length says.  --skip-damaged keeps every chunk before it, the last one too."""
+    from onboard.app.replay import load_recording
+    from onboard.core.errors import InputError
+
+    full = tmp_path / "full.mcap"
+    rec = FlightRecorder(RecordConfig(path=str(full), chunk_kb=64, compression="lz4"), vehicle="uav1")
+    rec.start()
+    for i in range(60):
+        rec.on_frame(_frame(i, np.uint16), 1_000 + i)
+        rec.on_track(_track(_frame(i, np.uint16)))
+    rec.close()
+    chunks = _chunk_bounds(full)
+    k = len(chunks) // 2
+    start, _ = chunks[k]
+    before = sum(_chunk_messages(full, j) for j in range(k))
+    data = bytearray(full.read_bytes()[: chunks[-1][0] + 100])  # cut inside the last chunk: no footer
+    comp_len_at = start + 1 + 8 + 8 + 8 + 8 + 4
+    (comp_len,) = struct.unpack_from("<I", data, comp_len_at)
+    struct.pack_into("<Q", data, comp_len_at + 4 + comp_len, 10**6)  # the chunk's data length, past the cut
+    damaged, out = tmp_path / "d.mcap", tmp_path / "out.mcap"
+    damaged.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=f"the record at byte {start} says"):
+        load_recording(str(damaged))
+    assert main(["--skip-damaged", str(damaged), str(out)]) == 3
+    assert f"from byte {start} to the end" in capsys.readouterr().err
+    msgs, _, _ = _in_file_order(out)
+    assert len(msgs) == before > 0
