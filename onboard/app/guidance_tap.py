@@ -30,6 +30,9 @@ __all__ = ["GuidanceTap", "make_guidance_tap"]
 
 log = logging.getLogger(__name__)
 
+_LOST = object()  # the newest frame's track has no position: the target is lost
+_UNSEEN = object()  # no frame yet
+
 
 def _origin_alt_m(pose: Any) -> float:
     """The altitude (m AMSL) of the local NED origin a pose is in (0 when it carries none)."""
@@ -64,6 +67,8 @@ class GuidanceTap:
         self._pose: tuple[float, Any, Any] | None = None  # (clock when it came, vehicle p NED, v NED)
         # (clock until which it holds, v NED, the track_id it was planned for) of the advice in force
         self._advice: tuple[float, Any, int | None] | None = None
+        # the newest frame's target: its track_id while it has a position, _LOST without (_UNSEEN before any frame)
+        self._target: Any = _UNSEEN
         self._next_setpoint_s = -math.inf
         self.setpoints_sent = 0
         self.setpoint_errors = 0
@@ -101,11 +106,12 @@ class GuidanceTap:
                 # outage is not a fresh one, and guidance.pose_timeout_s must see the outage
                 measured = now - max(int(pose.pos_extrapolated_us), 0) * 1e-6
                 self._pose = (measured, pose.body.p_ned_m - [0.0, 0.0, ref_m], pose.body.v_ned_mps)
-        advice = self._advice
-        if advice is not None and track is not None and (not track.has_position or track.track_id != advice[2]):
-            # the target it was planned for is lost or another one: no manoeuvre for it (a frame without a track,
-            # one refused, says nothing of the target)
-            self._advice = None
+        if track is not None:  # (a frame without a track, one refused, says nothing of the target)
+            with self._lock:
+                self._target = track.track_id if track.has_position else _LOST
+                advice = self._advice
+                if advice is not None and advice[2] != self._target:
+                    self._advice = None  # the target it was planned for is lost or another one: no manoeuvre for it
         if track is None or pose is None or not track.has_position:
             return
         if not self.advisor.due(track.time_boot_us):
@@ -140,10 +146,13 @@ class GuidanceTap:
         with self._lock:
             self.last_advice = advice
         if not advice.recommended:  # a newer answer (observable, no manoeuvre helps): the one in force ends
-            self._advice = None
+            with self._lock:
+                self._advice = None
             return None
         start = self._clock() if frame_clock is None else frame_clock
-        self._advice = (start + advice.valid_until_s - advice.t_s, advice.v_ned_mps, track.track_id)
+        with self._lock:  # planned on an older frame: not if the target was lost or changed since
+            if self._target is _UNSEEN or track.track_id == self._target:
+                self._advice = (start + advice.valid_until_s - advice.t_s, advice.v_ned_mps, track.track_id)
         payload = json.dumps(advice_to_json(advice, self.vehicle, track.time_boot_us, self.in_loop)).encode()
         if self._publish is not None:
             try:

@@ -660,6 +660,7 @@ class FlightRecorder:
                 self.writer_cpu_s += time.thread_time() - c0
                 continue
             now = time.monotonic()
+            step = "flush"
             try:
                 if now >= next_flush:
                     next_flush = now + s.flush_interval_s
@@ -668,11 +669,16 @@ class FlightRecorder:
                         reason = self._short_of_space()
                         if reason is not None:
                             self._halt(reason, [], refused=False)
+                step = "sync"
                 self._maybe_sync()
+                step = "rotate"
                 self._maybe_rotate()
             except OSError as exc:
                 self.write_errors += 1
-                self._halt(f"a write failed ({exc.strerror or exc})", [], refused=True)
+                # a refused write leaves its chunk unwritten (cut back: discarded); a failed sync or rotation refused
+                # no chunk, and the one in progress is finished with the file if the disk takes it
+                self._halt(f"a {'write' if step == 'flush' else step} failed ({exc.strerror or exc})", [],
+                           refused=step == "flush")  # fmt: skip
             except Exception as exc:  # noqa: BLE001
                 self.write_errors += 1
                 log.warning("recorder: flush/rotate failed: %s: %s", type(exc).__name__, exc)

@@ -453,10 +453,14 @@ def test_a_newer_answer_or_another_target_ends_the_advice_in_force():
     assert tap._advice is None
     assert tap.step(track, _pose(), now[0]) is None  # not due again yet: nothing planned, nothing in force
     tap.advisor._next_us = 0
+    assert tap.step(track, _pose(), now[0]) is not None and tap._advice is None  # planned before the loss: not kept
+    tap.on_frame(None, FrameResult(0, True, _pose(), track, None))  # the target back
+    tap.advisor._next_us = 0
     assert tap.step(track, _pose(), now[0]) is not None and tap._advice is not None
     other = dataclasses.replace(track, track_id=(track.track_id or 0) + 1)
     tap.on_frame(None, FrameResult(0, True, _pose(), other, None))  # another target selected
     assert tap._advice is None
+    tap.on_frame(None, FrameResult(0, True, _pose(), track, None))
     tap.advisor._next_us = 0
     assert tap.step(track, _pose(), now[0]) is not None
     sharp = dataclasses.replace(track, cov_p_ned_m2=np.eye(3) * 0.01)  # observable with margin: no manoeuvre

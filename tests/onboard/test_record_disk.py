@@ -164,3 +164,20 @@ def test_the_floor_is_read_from_the_recordings_file_system(tmp_path):
     free = record.free_disk_bytes(str(tmp_path / "f.mcap"))
     assert free is not None and abs(free - st.f_bavail * st.f_frsize) < 64 * 1024 * 1024
     assert record.free_disk_bytes(str(tmp_path / "missing" / "f.mcap")) is None
+
+
+def test_a_failed_sync_stops_the_recording_without_discarding_what_no_write_refused(tmp_path, monkeypatch):
+    """fdatasync failing (EIO) stops the recording as a refused write does, but no chunk was refused: the one in
+    progress is finished with the file, not discarded."""
+
+    def eio(fd):
+        raise OSError(errno.EIO, os.strerror(errno.EIO))
+
+    monkeypatch.setattr(record.os, "fdatasync", eio)
+    rec = FlightRecorder(_config(tmp_path, min_free_mb=0.0, sync_mb=0.3), vehicle="uav1")
+    rec.start()
+    handed = _record_until_stopped(rec)
+    assert rec.stopped.startswith("a sync failed") and rec.messages_written + rec.dropped == handed
+    with open(rec.files[-1], "rb") as f:
+        n = sum(1 for _ in mcap_reader.make_reader(f).iter_messages())
+    assert n == rec.messages_written > 0
