@@ -301,6 +301,8 @@ class Fusion:
         time_sigma_s = 0.0
         if source == "vehicle" and track.time_unix_sigma_us is not None:
             time_sigma_s = track.time_unix_sigma_us / 1e6
+        elif source == "remembered":  # an old offset: its drift since (past --max-time-sigma-ms, refused)
+            time_sigma_s = self.clock.remembered_sigma_s(vehicle, track.time_boot_us)
         off = self._clock_off(vehicle, arrival_unix_s) if time_unix_us is not None else None
         if off is not None and abs(off) <= self.tracker.config.pair_max_dt_s:
             time_sigma_s = max(time_sigma_s, abs(off))  # named, within the pairing window: as uncertain as it is off

@@ -247,6 +247,10 @@ class StreamCheck:
         return sorted(self._clashing)
 
 
+#: how fast an autopilot's boot clock may drift against UTC (a crystal's tolerance; the audit measured 30 ppm)
+CLOCK_DRIFT_PPM = 50.0
+
+
 class CommonClock:
     """Puts each vehicle's frames on one clock, UTC seconds (module docstring, "Time").
 
@@ -259,6 +263,13 @@ class CommonClock:
         self._arrivals: dict[str, deque[tuple[float, float]]] = {}
         self._last_boot_s: dict[str, float] = {}
         self._stamped_offset_s: dict[str, float] = {}  # UTC - boot of each vehicle's latest stamped track
+        self._stamped_at_boot_s: dict[str, float] = {}  # the boot time of that track
+
+    def remembered_sigma_s(self, vehicle: str, time_boot_us: int) -> float:
+        """The 1-sigma of a ``remembered`` time: the vehicle's boot clock drifts against UTC since its last stamped
+        track (:data:`CLOCK_DRIFT_PPM`); 0 when there is none."""
+        at = self._stamped_at_boot_s.get(vehicle)
+        return 0.0 if at is None else abs(time_boot_us / 1e6 - at) * CLOCK_DRIFT_PPM * 1e-6
 
     def time_s(
         self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float
@@ -269,9 +280,11 @@ class CommonClock:
         if boot_s < self._last_boot_s.get(vehicle, -math.inf) - 1.0:  # the boot clock went back: a reboot
             hist.clear()
             self._stamped_offset_s.pop(vehicle, None)
+            self._stamped_at_boot_s.pop(vehicle, None)
         self._last_boot_s[vehicle] = boot_s
         if time_unix_us is not None:
             self._stamped_offset_s[vehicle] = time_unix_us / 1e6 - boot_s
+            self._stamped_at_boot_s[vehicle] = boot_s
             return time_unix_us / 1e6, "vehicle"
         if vehicle in self.offsets_s:
             return boot_s + self.offsets_s[vehicle], "configured"

@@ -20,6 +20,7 @@ from onboard.estimation.fleet import FleetConfig
 from onboard.estimation.fleet_tracker import FleetTracker
 from onboard.estimation.map_estimator import NoiseModel
 from onboard.io.fleet_wire import (
+    CLOCK_DRIFT_PPM,
     FLEET_TRACK_SCHEMA,
     ClockConsistency,
     CommonClock,
@@ -342,8 +343,12 @@ def test_a_restarted_daemons_unstamped_tracks_keep_the_utc_offset_its_stamped_on
     assert clock.time_s("uav1", 5_000_000, int((5.0 + utc_minus_boot_s) * 1e6), 0.0)[1] == "vehicle"
     t, src = clock.time_s("uav1", 9_000_000, None, 1_700_000_100.0)  # arrival says nothing like it: ignored
     assert (t, src) == (pytest.approx(9.0 + utc_minus_boot_s, abs=1e-6), "remembered")
+    # as uncertain as the boot clock may have drifted since (it was taken as exact: 18 ms after 10 min at 30 ppm)
+    assert clock.remembered_sigma_s("uav1", 9_000_000) == pytest.approx(4.0 * CLOCK_DRIFT_PPM * 1e-6)
+    assert clock.remembered_sigma_s("uav1", 605_000_000) == pytest.approx(0.030)
     t, src = clock.time_s("uav1", 2_000_000, None, 1_700_000_200.0)  # rebooted: back to the arrival estimate
     assert (t, src) == (pytest.approx(1_700_000_200.0), "arrival")
+    assert clock.remembered_sigma_s("uav1", 2_000_000) == 0.0
 
 
 # --------------------------------------------------------------------------- the fleet's clocks and silent vehicles
