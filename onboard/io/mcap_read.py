@@ -149,30 +149,44 @@ def record_overran(f, start: int, end: int) -> str | None:
 
 
 def chunk_records(chunk, where: str) -> list:
-    """The records of ``chunk`` (an ``mcap.records.Chunk``), checked whole first: each a schema, channel or message
-    (the only records a chunk holds) that ends within the chunk, the last at its end.  The package's
-    ``breakup_chunk`` skips a record of any other opcode and reads one whose length runs past the chunk's end as
-    holding the rest of it, both without an error: damage would lose messages unsaid.  :class:`InputError`
-    naming ``where`` (the file and the chunk) for damage."""
-    from mcap.stream_reader import breakup_chunk, get_chunk_data_stream
+    """The records of ``chunk`` (an ``mcap.records.Chunk``), read in one pass and checked as they are: each a
+    schema, channel or message (the only records a chunk holds) that ends where its length says, within the chunk.
+    The package's ``breakup_chunk`` skips a record of any other opcode and reads one whose length runs past the
+    chunk's end as holding the rest of it, both without an error: damage would lose messages unsaid.
+    :class:`InputError` naming ``where`` (the file and the chunk) for damage."""
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import get_chunk_data_stream
 
-    stream, size = get_chunk_data_stream(chunk)
-    pos = 0
-    while pos < size:
+    stream, size = get_chunk_data_stream(chunk, validate_crc=True)
+    records: list = []
+    while stream.count < size:
+        pos = stream.count
         if pos + RECORD_HEAD.size > size:
             raise InputError(f"{where}: damaged: {size - pos} bytes at byte {pos} of a chunk are not a whole record")
         opcode = stream.read1()
         length = stream.read8()
         if opcode not in _CHUNK_OPCODES:
             raise InputError(f"{where}: damaged: a record of opcode {opcode:#04x} at byte {pos} of a chunk")
-        if pos + RECORD_HEAD.size + length > size:
+        end = pos + RECORD_HEAD.size + length
+        if end > size:
             raise InputError(
                 f"{where}: damaged: a record at byte {pos} of a chunk (log times {chunk.message_start_time} to "
                 f"{chunk.message_end_time} ns) runs past the chunk's {size} bytes"
             )
-        stream.read(length)
-        pos += RECORD_HEAD.size + length
-    return breakup_chunk(chunk, validate_crc=True)
+        try:
+            if opcode == Opcode.MESSAGE:
+                records.append(Message.read(stream, length))
+            else:
+                records.append((Channel if opcode == Opcode.CHANNEL else Schema).read(stream))
+        except Exception as exc:  # noqa: BLE001 - whatever its fields raise: this record is damaged
+            raise InputError(
+                f"{where}: damaged: the record at byte {pos} of a chunk cannot be read: {type(exc).__name__}: {exc}"
+            ) from None
+        if stream.count != end:
+            raise InputError(
+                f"{where}: damaged: the record at byte {pos} of a chunk does not end where its length says"
+            )
+    return records
 
 
 class ChunkIndexCheck:
