@@ -333,8 +333,9 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
             raise InputError(f"{src}: damaged: {damage}{_SKIP_HINT}")
         dropped: list[str] = []
         output: _Output | None = None
+        finished = footer_intact(f, size)
         # a finished file is recovered chunk by chunk through its summary's index (damage costs the chunks it hit)
-        summary = _summary(f) if skip_damaged and footer_intact(f, size) else None
+        summary = _summary(f) if skip_damaged and finished else None
         f.seek(0)
         header = None
         try:
@@ -366,7 +367,7 @@ def recover(src: str, dst_fd: int, skip_damaged: bool = False) -> Recovered:
         elif damage is not None:
             dropped.append(f"from byte {end} to the end ({size - end} bytes) left out: {damage}")
         output.writer.finish()
-        complete = complete or footer_intact(f, size)
+        complete = complete or finished
     return Recovered(
         output.messages,
         len(output.channel_ids),
