@@ -481,17 +481,13 @@ class FlightRecorder:
         with self._cond:
             if self._stop.is_set():
                 return False
-            if self.stopped is not None:
-                self.dropped += 1
-                self.dropped_by_topic[topic] += 1
-                return False
             if t_ns is None:
                 t_ns = self._clock_ns()  # under the lock: the queue's order is the stamps' order
             if seq is None:
                 seq = self._counts.get(topic, 0)
                 self._counts[topic] = seq + 1  # a dropped message keeps its number: the gap shows the drop
-            if self._queued_bytes + nbytes > self.settings.queue_bytes:
-                self.dropped += 1
+            if self.stopped is not None or self._queued_bytes + nbytes > self.settings.queue_bytes:
+                self.dropped += 1  # (stopped: nothing is written any more)
                 self.dropped_by_topic[topic] += 1
                 return False
             self._queued_bytes += nbytes
@@ -705,9 +701,7 @@ class FlightRecorder:
             rest = rest + list(self._q)
             self._q.clear()
             self._queued_bytes = 0
-            self.dropped += len(rest)
-            for _kind, topic, *_ in rest:
-                self.dropped_by_topic[topic] += 1
+            self._count_dropped(rest)
         w = self._writer
         if refused and w is not None:
             topics = {cid: topic for topic, cid in self._channels.items()}
@@ -727,12 +721,16 @@ class FlightRecorder:
             "" if self._finish_ok else "; it has no summary: python -m onboard.record_recover reads it whole",
         )
 
+    def _count_dropped(self, items: list) -> None:
+        """Count queued items that will not be written, per topic (the caller holds the lock)."""
+        self.dropped += len(items)
+        for _kind, topic, *_ in items:
+            self.dropped_by_topic[topic] += 1
+
     def _drop_at_close(self, rest: list) -> None:
         """The backlog left at close's deadline: dropped, counted, said once."""
         with self._cond:
-            self.dropped += len(rest)
-            for _kind, topic, *_ in rest:
-                self.dropped_by_topic[topic] += 1
+            self._count_dropped(rest)
         self.dropped_at_close += len(rest)
         log.warning("recorder: %d queued messages not written by the shutdown's deadline: dropped (counted)", len(rest))
 
