@@ -511,7 +511,6 @@ class ProcessEstimator:
         self._ctx = mp.get_context("forkserver")
         self._ctx.set_forkserver_preload(FORKSERVER_PRELOAD)
         self._epoch = 0
-        self._out = bytearray()  # bytes for the worker the pipe has not taken yet (_send)
         self._latest: tuple[int, Any] | None = None  # (epoch, estimate)
         self.worker_cpu_s = 0.0
         self.late_results = 0
@@ -549,7 +548,7 @@ class ProcessEstimator:
         # the parent never waits on the pipe: what it cannot take now waits in _out, written as it drains (a
         # replacement's 0.9 MB snapshot held the frame loop for the new worker's whole start, 0.4 s, before)
         os.set_blocking(parent.fileno(), False)
-        self._out = bytearray()
+        self._out = bytearray()  # bytes for this worker the pipe has not taken yet (_send)
         self._intrinsics_sent: list = []  # the camera models this worker has, by index (_intrinsics_index)
         # Connection.poll and Process.is_alive build a selector on every call (~7 and ~16 us, the pipeline
         # thread's two checks per frame): one poll object each, made once per worker
@@ -615,14 +614,19 @@ class ProcessEstimator:
         """``msg`` to the worker, behind what is still waiting to go, never blocking; False (counted) when the pipe
         is gone."""
         try:
-            if self._conn is None:
-                raise OSError("no estimator process")
-            self._out += _framed(msg)
-            self._flush_out()
+            self._queue(msg)
         except (OSError, ValueError) as exc:
             self._counter.count("estimator_error", f"send to the estimator process: {exc}")
             return False
         return True
+
+    def _queue(self, msg: tuple) -> None:
+        """``msg`` behind what waits for the worker, and as much written as the pipe takes (OSError, ValueError:
+        the pipe is gone)."""
+        if self._conn is None:
+            raise OSError("no estimator process")
+        self._out += _framed(msg)
+        self._flush_out()
 
     def _flush_out(self) -> None:
         """Write what the pipe takes now of the bytes waiting for the worker (OSError when it is gone)."""
@@ -798,8 +802,7 @@ class ProcessEstimator:
         if self._conn is None:
             return
         with contextlib.suppress(OSError, ValueError):  # a dead worker is found and replaced by the next add
-            self._out += _framed(("reset",))
-            self._flush_out()
+            self._queue(("reset",))
 
     def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
@@ -814,8 +817,7 @@ class ProcessEstimator:
         if proc is None or conn is None:
             return
         with contextlib.suppress(OSError, ValueError):  # a hung worker's full pipe: it is killed below instead
-            self._out += _framed(("stop",))
-            self._flush_out()
+            self._queue(("stop",))
         proc.join(timeout_s / 2)
         if proc.is_alive():
             proc.terminate()
