@@ -262,14 +262,14 @@ class CommonClock:
         self.window_s = float(window_s)
         self._arrivals: dict[str, deque[tuple[float, float]]] = {}
         self._last_boot_s: dict[str, float] = {}
-        self._stamped_offset_s: dict[str, float] = {}  # UTC - boot of each vehicle's latest stamped track
-        self._stamped_at_boot_s: dict[str, float] = {}  # the boot time of that track
+        # (UTC - boot, boot time) of each vehicle's latest stamped track
+        self._stamped: dict[str, tuple[float, float]] = {}
 
     def remembered_sigma_s(self, vehicle: str, time_boot_us: int) -> float:
         """The 1-sigma of a ``remembered`` time: the vehicle's boot clock drifts against UTC since its last stamped
         track (:data:`CLOCK_DRIFT_PPM`); 0 when there is none."""
-        at = self._stamped_at_boot_s.get(vehicle)
-        return 0.0 if at is None else abs(time_boot_us / 1e6 - at) * CLOCK_DRIFT_PPM * 1e-6
+        stamped = self._stamped.get(vehicle)
+        return 0.0 if stamped is None else abs(time_boot_us / 1e6 - stamped[1]) * CLOCK_DRIFT_PPM * 1e-6
 
     def time_s(
         self, vehicle: str, time_boot_us: int, time_unix_us: int | None, arrival_unix_s: float
@@ -279,17 +279,15 @@ class CommonClock:
         hist = self._arrivals.setdefault(vehicle, deque())
         if boot_s < self._last_boot_s.get(vehicle, -math.inf) - 1.0:  # the boot clock went back: a reboot
             hist.clear()
-            self._stamped_offset_s.pop(vehicle, None)
-            self._stamped_at_boot_s.pop(vehicle, None)
+            self._stamped.pop(vehicle, None)
         self._last_boot_s[vehicle] = boot_s
         if time_unix_us is not None:
-            self._stamped_offset_s[vehicle] = time_unix_us / 1e6 - boot_s
-            self._stamped_at_boot_s[vehicle] = boot_s
+            self._stamped[vehicle] = (time_unix_us / 1e6 - boot_s, boot_s)
             return time_unix_us / 1e6, "vehicle"
         if vehicle in self.offsets_s:
             return boot_s + self.offsets_s[vehicle], "configured"
-        if vehicle in self._stamped_offset_s:
-            return boot_s + self._stamped_offset_s[vehicle], "remembered"
+        if vehicle in self._stamped:
+            return boot_s + self._stamped[vehicle][0], "remembered"
         hist.append((arrival_unix_s, arrival_unix_s - boot_s))
         while hist and hist[0][0] < arrival_unix_s - self.window_s:
             hist.popleft()
