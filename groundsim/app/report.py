@@ -16,7 +16,6 @@ gives the errors of the frames it covers; one note says how much of the flight t
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 from collections.abc import Mapping
@@ -177,14 +176,13 @@ def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> T
     (``irtrack.track`` dicts in frame order, at least one) these are; ``cut_short`` the truth file's cut, if any."""
     keys = {(int(r["seq"]), int(r["time_boot_us"])) for r in truth}
     t0_us = int(tracks[0]["time_boot_us"])
-    covered_s = [
-        (int(tr["time_boot_us"]) - t0_us) / 1e6 for tr in tracks if (int(tr["seq"]), int(tr["time_boot_us"])) in keys
-    ]
-    estimated = [tr for tr in tracks if tr.get("ned_m") is not None]
+    covered = [(int(tr["seq"]), int(tr["time_boot_us"])) in keys for tr in tracks]
+    covered_s = [(int(tr["time_boot_us"]) - t0_us) / 1e6 for tr, c in zip(tracks, covered) if c]
+    estimated = [c for tr, c in zip(tracks, covered) if tr.get("ned_m") is not None]
     return TruthCoverage(
         frames=len(covered_s),
         of_frames=len(tracks),
-        with_3d=sum((int(tr["seq"]), int(tr["time_boot_us"])) in keys for tr in estimated),
+        with_3d=sum(estimated),
         of_with_3d=len(estimated),
         from_s=min(covered_s) if covered_s else None,
         to_s=max(covered_s) if covered_s else None,
@@ -229,22 +227,13 @@ def cmd_report(args) -> int:
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)
         poses, frames = flight_inputs(rec)
         coverage = truth_coverage(res.tracks, truth, truth_cut) if args.truth and res.tracks else None
-        if coverage is not None and not coverage.partial:
-            coverage = None
-        if coverage is not None:
+        extra = None
+        if coverage is not None and coverage.partial:
             print(coverage.note(args.truth))
-        paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path))
-        if coverage is not None:
-            _add_to_summary(paths, {"truth_covers": asdict(coverage)})
+            extra = {"truth_covers": asdict(coverage)}
+        paths = write_flight_report(out, res.tracks, poses, frames, truth or None, os.path.basename(rec.path), extra)
     except KeyboardInterrupt:
         written = (set(out.glob("*")) - before) if out.is_dir() else set()
         return print_interrupted(f"partial report in {out} ({len(written)} files)" if written else "nothing written")
     print(f"report: {', '.join(str(p) for p in paths)}")
     return 0
-
-
-def _add_to_summary(paths: list, fields: dict) -> None:
-    """Add ``fields`` to the ``summary.json`` among the report's ``paths``: the flight report writes the summary of
-    what it drew; what the command knows of its inputs (a truth file's cut) is added beside it."""
-    summary = next(p for p in paths if p.name == "summary.json")
-    summary.write_text(json.dumps(json.loads(summary.read_text()) | fields, indent=1) + "\n")

@@ -88,9 +88,12 @@ def flight_run(tracks: list, poses: dict, truth: list | None, name: str) -> Flig
 REPORT_FILES = ("trajectory.png", "errors.png", "frame.png", "summary.json")
 
 
-def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth: list | None, name: str) -> list[Path]:
-    """Write the plots (module docstring); ``frames`` {(seq, t_us): pixels (H, W)} for the frame plot.
-    Returns the paths written."""
+def write_flight_report(
+    out_dir, tracks: list, poses: dict, frames: dict, truth: list | None, name: str, summary_extra: dict | None = None
+) -> list[Path]:
+    """Write the plots (module docstring); ``frames`` {(seq, t_us): pixels (H, W)} for the frame plot;
+    ``summary_extra``: what the caller knows of its inputs, written into ``summary.json`` beside what the report
+    drew.  Returns the paths written."""
     from groundsim.evaluation.report import plot_errors, plot_frame, plot_trajectory
 
     out = Path(out_dir)
@@ -156,7 +159,7 @@ def write_flight_report(out_dir, tracks: list, poses: dict, frames: dict, truth:
             )
         )
         summary["frame_seq"] = tr["seq"]
-    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    (out / "summary.json").write_text(json.dumps(summary | (summary_extra or {}), indent=1) + "\n")
     written.append(out / "summary.json")
     # an earlier report in the same folder (with truth, or with a frame) must not leave its plot beside this one
     for stale in set(REPORT_FILES) - {p.name for p in written}:
