@@ -102,7 +102,7 @@ import numpy as np
 from onboard.app.cli_args import OneLineParser, nonnegative_float
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
-from onboard.core.frames import QUAT_NORM_TOL
+from onboard.core.frames import QUAT_NORM_TOL, far_off_image
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
@@ -285,7 +285,7 @@ def _check_on_image(vals: list[float], source: str, line: int) -> None:
     reconstruction confidently wrong by a hundred metres."""
     for i, c, name in ((1, 5, "u_px"), (2, 6, "v_px")):
         size = 2.0 * vals[c]
-        if size > 0 and not -size <= vals[i] <= 2.0 * size:
+        if size > 0 and far_off_image(vals[i], size):
             raise CsvInputError(
                 f"{source} line {line}, column {name}: {vals[i]:g} is far outside the image (about"
                 f" {2 * vals[5]:.0f} x {2 * vals[6]:.0f} px from cx_px, cy_px): no camera sees there"

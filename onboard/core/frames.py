@@ -80,6 +80,7 @@ __all__ = [
     "GeodeticOrigin",
     "CameraMount",
     "PinholeIntrinsics",
+    "far_off_image",
     "FrameError",
     "ecef_from_geodetic",
     "geodetic_from_ecef",
@@ -622,6 +623,12 @@ UNDISTORT_TOLERANCE_PX = 0.01
 RAY_STEPS = 64
 #: Newton's undistortion stops when the model's residual is this small (normalised units: ~1e-10 px)
 NEWTON_DONE = 1e-13
+
+
+def far_off_image(coord_px: float, size_px: float) -> bool:
+    """Whether a pixel coordinate lies more than one image ``size_px`` (its width for u, height for v) outside the
+    image: no camera sees there, so it is a corrupt measurement (the estimators and the CSV readers refuse it)."""
+    return not -size_px <= coord_px <= 2.0 * size_px
 
 
 @dataclass(frozen=True)

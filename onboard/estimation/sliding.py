@@ -77,7 +77,7 @@ import numpy as np
 import scipy.linalg as sla
 
 from onboard.core.errors import InputError
-from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, rotmat_from_quat
+from onboard.core.frames import FrameError, PinholeIntrinsics, check_unit_quat, far_off_image, rotmat_from_quat
 from onboard.core.schema import NOT_A_KEY, Bool, Integer, Invalid, Number, config_dataclass
 from onboard.estimation.consistency import (
     ConsistencyMonitor,
@@ -519,7 +519,7 @@ class SlidingWindowEstimator:
         if not (math.isfinite(t) and np.all(np.isfinite(uv)) and np.all(np.isfinite(p)) and np.all(np.isfinite(q))):
             raise InputError("SlidingWindowEstimator.add: non-finite observation")
         w_px, h_px = intrinsics.width_px, intrinsics.height_px
-        if not (-w_px <= uv[0] <= 2 * w_px and -h_px <= uv[1] <= 2 * h_px):
+        if far_off_image(uv[0], w_px) or far_off_image(uv[1], h_px):
             # no camera sees there: a corrupt measurement, which one incremental step would take into the window's
             # solution while the estimate's covariance still says the window's few centimetres
             raise InputError(
