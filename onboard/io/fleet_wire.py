@@ -78,6 +78,7 @@ import numpy as np
 
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, geodetic_from_ned, ned_from_geodetic
+from onboard.core.recent import Recent
 from onboard.core.track import Track, json_number, track_from_json
 from onboard.estimation.fleet import FleetEstimate, Ray
 from onboard.io.zenoh_session import check_vehicle_name
@@ -170,7 +171,7 @@ class _Stream:
     candidate: tuple[float, np.ndarray] | None = None  # the newest refused one: the stream may have moved there
     anomalies: deque = field(default_factory=deque)  # arrival times, s
     # the newest (seq, time_boot_us) pairs heard: one heard again is a repeat of that message, not a second stream
-    seen: deque = field(default_factory=lambda: deque(maxlen=RECENT_MESSAGES))
+    seen: Recent = field(default_factory=lambda: Recent(RECENT_MESSAGES))
 
 
 class StreamCheck:
@@ -211,13 +212,13 @@ class StreamCheck:
         st = self._streams.get(vehicle)
         if st is None:
             st = self._streams[vehicle] = _Stream(seq, time_boot_us)
-            st.seen.append((seq, time_boot_us))
+            st.seen.add((seq, time_boot_us))
             if p is not None:
                 st.anchor = (t_s, p)
             return None
         if (seq, time_boot_us) in st.seen:
             return "duplicate"
-        st.seen.append((seq, time_boot_us))
+        st.seen.add((seq, time_boot_us))
         anomaly = seq <= st.seq or time_boot_us < st.boot_us
         st.seq, st.boot_us = seq, time_boot_us
         verdict = None

@@ -50,8 +50,9 @@ by.  Such a frame waits for a consistent run, as a clock step does.
 
 from __future__ import annotations
 
-import collections
 from dataclasses import dataclass
+
+from onboard.core.recent import Recent
 
 __all__ = [
     "SEQ_MOD",
@@ -113,8 +114,7 @@ class FrameAdmission:
         self.restart_count = int(restart_count)
         self.last_seq: int | None = None
         self.last_t_us: int | None = None
-        self._recent: collections.deque[tuple[int, int]] = collections.deque(maxlen=RECENT_FRAMES)
-        self._recent_set: dict[tuple[int, int], int] = {}  # how often each pair is in _recent
+        self._recent = Recent(RECENT_FRAMES)  # accepted (seq, t) pairs since the last event
         self._run: list[tuple[int, int]] = []  # (seq, t) of refused, mutually consistent frames
         self._run_far = False  # the run is far from the running clock (else: shortly before it)
 
@@ -122,7 +122,6 @@ class FrameAdmission:
         """Forget the stream."""
         self.last_seq = self.last_t_us = None
         self._recent.clear()
-        self._recent_set.clear()
         self._run.clear()
 
     def wants_reference(self, seq: int, t_us: int) -> bool:
@@ -149,7 +148,7 @@ class FrameAdmission:
                 reason="time_ahead" if step > 0 else "time_behind",
                 message=f"first frame seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the telemetry",
             )
-        if (seq, t_us) in self._recent_set:
+        if (seq, t_us) in self._recent:
             return Admission(False, "duplicate", f"frame seq {seq} (time_boot_us {t_us}) again")
         seq_forward = _forward(seq, last_seq)
         if last_t < t_us <= last_t + thr:  # the usual frame: no message made for it
@@ -240,18 +239,7 @@ class FrameAdmission:
         """Take the frame as the stream's newest; ``event`` names a step (module docstring), ``""`` none."""
         if event:  # a new clock or a new sequence: the old numbers say nothing about the new ones
             self._recent.clear()
-            self._recent_set.clear()
-        recent, counts = self._recent, self._recent_set
-        if len(recent) == recent.maxlen:
-            old = recent[0]
-            n = counts.get(old, 0) - 1
-            if n <= 0:
-                counts.pop(old, None)
-            else:
-                counts[old] = n
-        pair = (seq, t_us)
-        recent.append(pair)
-        counts[pair] = counts.get(pair, 0) + 1
+        self._recent.add((seq, t_us))
         self.last_seq, self.last_t_us = seq, t_us
         if self._run:
             self._run.clear()
