@@ -28,7 +28,12 @@ Refused samples (counted in the shared :class:`~onboard.core.counters.RejectCoun
 ``max_unix_us``, 2100, on; a boot time that is not an integer >= 0), ``utc_duplicate`` (the same boot time as the newest sample: a message
 repeated), ``utc_outlier`` (off the fit by more than ``jump_us`` plus 4 sigma), ``utc_step`` (``jump_count``
 consecutive outliers that agree with each other within ``jump_us``: UTC itself stepped, e.g. from an RTC
-guess to GNSS time; the estimate re-seeds from them).  A mapping older than ``max_age_us`` of boot time
+guess to GNSS time; the estimate re-seeds from them).  While outliers are pending (fewer than ``jump_count``),
+which clock is right is not known: an outlier may be a wild sample or the first of a step.  The published
+mapping keeps its offset but is *disputed*: its sigma takes the largest pending disagreement in quadrature, so
+that frames stamped then carry a sigma that covers either reading (a fleet fusion refuses them above its time
+bound) instead of the old offset's sub-millisecond sigma; the next agreeing sample or the re-seed ends the
+dispute.  A mapping older than ``max_age_us`` of boot time
 at the time asked is not used (:meth:`UtcMapping.at` returns None): never a made-up time.
 """
 
@@ -36,7 +41,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -125,6 +130,7 @@ class UtcMapping:
     skew_sigma: float
     max_age_us: int
     source: str = UTC_SOURCE_SYSTEM_TIME
+    disputed_us: float = 0.0  # the largest pending outlier's disagreement (module docstring); 0: none
 
     def offset_us(self, time_boot_us: float) -> float:
         """``UTC - boot`` at boot time ``time_boot_us`` (us)."""
@@ -138,7 +144,7 @@ class UtcMapping:
             var += self.resid_rms_us**2 * dt * dt / self.sxx_us2
         else:
             var += (self.skew_sigma * dt) ** 2
-        return math.sqrt(var)
+        return math.sqrt(var + self.disputed_us**2)
 
     def at(self, time_boot_us: int) -> tuple[int, int] | None:
         """``(time_unix_us, sigma_us)`` of boot time ``time_boot_us``; None when it is more than ``max_age_us``
@@ -158,6 +164,7 @@ class UtcMapping:
             "skew_ppm": round(self.skew * 1e6, 3) if self.skew_fitted else None,
             "samples": self.n_samples,
             "newest_boot_us": t,
+            "disputed_us": int(round(self.disputed_us)),
         }
 
 
@@ -177,18 +184,19 @@ class UtcClock:
         self.config = config if config is not None else UtcClockConfig()
         self.counter = counter if counter is not None else RejectCounter()
         self._window: JumpWindow[_Sample] = JumpWindow()
-        self.mapping: UtcMapping | None = None
+        self._fitted: UtcMapping | None = None  # the fit the gate tests against (never disputed)
+        self.mapping: UtcMapping | None = None  # what frames are stamped with: the fit, or it disputed
         self.steps = 0  # re-seeds on a UTC step
         self.resets = 0  # autopilot reboots (:meth:`reset`)
 
     def reset(self) -> None:
         """Forget every sample (the boot clock restarted: an autopilot reboot)."""
         self._window.clear()
-        self.mapping = None
+        self._fitted = self.mapping = None
         self.resets += 1
 
     def status(self) -> dict:
-        """``{state, source, offset_us, sigma_us, skew_ppm, samples, newest_boot_us, steps}``; state ``none``
+        """``{state, source, offset_us, sigma_us, skew_ppm, samples, newest_boot_us, disputed_us, steps}``; state ``none``
         (no mapping: its numbers null) or ``ok``."""
         m = self.mapping
         base = (
@@ -202,6 +210,7 @@ class UtcClock:
                 "skew_ppm": None,
                 "samples": len(self._window.samples),
                 "newest_boot_us": None,
+                "disputed_us": None,
             }
         )
         base["steps"] = self.steps
@@ -227,7 +236,7 @@ class UtcClock:
             self.counter.count("utc_duplicate", f"a second SYSTEM_TIME at time_boot_ms={boot // 1000}")
             return False
         s = _Sample(boot, unix - boot - BOOT_QUANTUM_US // 2)
-        m = self.mapping
+        m = self._fitted
         if m is not None:
             err = abs(s.offset_us - m.offset_us(boot))
             if err > cfg.jump_us + _GATE_SIGMAS * m.sigma_us(boot):
@@ -243,6 +252,10 @@ class UtcClock:
             run.clear()  # a lone wild sample, then another one elsewhere: no agreeing run
         if not self._window.reject(s, cfg.jump_count):
             self.counter.count("utc_outlier", f"SYSTEM_TIME off the UTC estimate by {err / 1000:.1f} ms")
+            fit = self._fitted
+            if fit is not None:
+                disputed = max(abs(o.offset_us - fit.offset_us(o.boot_us)) for o in self._window.outliers)
+                self.mapping = replace(fit, disputed_us=disputed)
             return False
         self.counter.count(
             "utc_step",
@@ -257,7 +270,7 @@ class UtcClock:
         samples = self._window.samples
         n = len(samples)
         if n < cfg.min_samples:
-            self.mapping = None
+            self._fitted = self.mapping = None
             return
         ref_b, ref_o = samples[0].boot_us, samples[0].offset_us
         x = np.array([p.boot_us - ref_b for p in samples], dtype=float)
@@ -272,7 +285,7 @@ class UtcClock:
         r = y - ym - b * (x - xm)
         dof = max(n - (2 if fitted else 1), 1)
         rms = max(math.sqrt(float(r @ r) / dof), _QUANT_SIGMA_US)
-        self.mapping = UtcMapping(
+        self._fitted = self.mapping = UtcMapping(
             t_mean_boot_us=ref_b + xm,
             offset_mean_us=ref_o + ym,
             skew=b,

@@ -115,7 +115,13 @@ def test_wild_samples_are_refused_counted_and_change_nothing(boot_us, unix_us, r
     before = clock.mapping
     assert clock.add_system_time(boot_us, unix_us) is False
     assert counter.counts == {reason: 1}
-    assert clock.mapping is before
+    if reason != "utc_outlier":
+        assert clock.mapping is before
+        return
+    # an outlier may be the first sample of a step: the offset stays, its sigma covers the disagreement
+    assert clock.mapping.offset_us(boot_us) == before.offset_us(boot_us)
+    assert 60_000 <= clock.mapping.at(boot_us)[1] < 61_000
+    assert clock.status()["disputed_us"] == pytest.approx(60_000, abs=1000)
 
 
 def test_a_utc_step_confirmed_by_agreeing_samples_reseeds_and_a_reboot_forgets():
@@ -125,13 +131,28 @@ def test_a_utc_step_confirmed_by_agreeing_samples_reseeds_and_a_reboot_forgets()
     step_us = 250_000  # e.g. an RTC guess replaced by GNSS time
     feed(clock, [11_000_000, 12_000_000], UNIX0_US + step_us)
     assert counter["utc_outlier"] == 2 and clock.steps == 0
-    assert clock.mapping.at(12_000_000)[0] == pytest.approx(12_000_000 + UNIX0_US, abs=2000)
+    # not yet known which clock is right: the old offset, with a sigma that covers the new one
+    t_unix, sigma = clock.mapping.at(12_000_000)
+    assert t_unix == pytest.approx(12_000_000 + UNIX0_US, abs=2000)
+    assert step_us <= sigma < step_us + 2000
     feed(clock, [13_000_000], UNIX0_US + step_us)
     assert counter["utc_step"] == 1 and clock.steps == 1
-    assert clock.mapping.at(13_500_000)[0] == pytest.approx(13_500_000 + UNIX0_US + step_us, abs=2000)
+    t_unix, sigma = clock.mapping.at(13_500_000)
+    assert t_unix == pytest.approx(13_500_000 + UNIX0_US + step_us, abs=2000)
+    assert sigma < 2000 and clock.status()["disputed_us"] == 0
     assert clock.status()["steps"] == 1
     clock.reset()
     assert clock.mapping is None and clock.resets == 1
+
+
+def test_an_agreeing_sample_after_a_wild_one_ends_the_dispute():
+    clock = UtcClock()
+    feed(clock, [k * 1_000_000 for k in range(1, 11)], UNIX0_US)
+    quiet = clock.mapping.at(11_000_000)[1]
+    assert clock.add_system_time(11_000_000, 11_000_000 + UNIX0_US + 2_000_000) is False  # 2 s off, alone
+    assert clock.mapping.at(11_000_000)[1] >= 2_000_000
+    assert clock.add_system_time(12_000_000, 12_000_000 + UNIX0_US) is True
+    assert clock.mapping.at(12_000_000)[1] <= quiet + 100
 
 
 def test_scattered_wild_samples_never_reseed():
