@@ -170,6 +170,7 @@ EVENTS = frozenset(
         "target_created",
         "target_dropped",
         "object_left",
+        "own_estimate_disagrees",
     }
 )
 

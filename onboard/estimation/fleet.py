@@ -120,11 +120,17 @@ __all__ = [
     "fleet_verdict",
     "carried_with_bearing",
     "ray_gate_chi2",
+    "OWN_ESTIMATE_GATE_CHI2",
+    "own_estimate_chi2",
+    "pair_covariance",
     "noise_for",
 ]
 
 #: chi-square(1 dof) at 1e-4: two rays whose closest approach is farther than this (in its sigmas) do not pair
 CLOSEST_APPROACH_GATE_CHI2 = 15.137
+#: chi-square(3 dof) at 1e-4: a vehicle's own observable position of its object farther than this (in the sigmas of
+#: both) from a fleet position is of another object
+OWN_ESTIMATE_GATE_CHI2 = 21.108
 #: no camera and attitude solution measures a bearing better than this (1 urad, 0.2 arcsec: a 640-pixel imager
 #: over a 1-degree field is 27 urad a pixel, a navigation-grade attitude ~50 urad); a smaller published sigma is
 #: a broken publisher, and its weight would be unbounded
@@ -193,7 +199,10 @@ class Ray:
     ``los_ned`` (3,): unit direction camera -> object, fleet NED.  ``sigma_az_rad`` / ``sigma_el_rad``: the
     1-sigma of its azimuth / elevation as published (white attitude noise and bias included).
     ``object_id``: the vehicle's own association (its track id).  ``time_sigma_s``: the 1-sigma of ``t_s``
-    (the vehicle's UTC mapping; 0: taken as exact, module docstring "Time").  Derived (not init): ``basis_ned`` (2, 3),
+    (the vehicle's UTC mapping; 0: taken as exact, module docstring "Time").  ``own_p_ned_m`` (3,) and
+    ``own_cov_ned_m2`` (3, 3), both or neither: the vehicle's own estimate of the object's position at ``t_s``,
+    fleet NED, where its estimator called it observable (the association's check that a fleet position is of the
+    object this vehicle sees, :func:`own_estimate_chi2`).  Derived (not init): ``basis_ned`` (2, 3),
     the rows ``e_az``, ``e_el`` across the ray, and ``sigma_cross_rad`` (2,), the angular sigma along them
     (``cos(el) sigma_az``, ``sigma_el``)."""
 
@@ -205,6 +214,8 @@ class Ray:
     sigma_az_rad: float
     sigma_el_rad: float
     time_sigma_s: float = 0.0
+    own_p_ned_m: np.ndarray | None = None
+    own_cov_ned_m2: np.ndarray | None = None
     basis_ned: np.ndarray = field(init=False, repr=False)
     sigma_cross_rad: np.ndarray = field(init=False, repr=False)
 
@@ -231,6 +242,7 @@ class Ray:
         if isinstance(ts, bool) or not isinstance(ts, (int, float, np.floating)) or not (math.isfinite(ts) and ts >= 0):
             raise InputError(f"Ray.time_sigma_s must be a finite number of seconds >= 0, got {ts!r}")
         object.__setattr__(self, "time_sigma_s", float(ts))
+        self._own_estimate()
         n, e, d = u.tolist()
         h = math.hypot(n, e)
         if h > 1e-9:
@@ -247,6 +259,25 @@ class Ray:
         cross.setflags(write=False)
         object.__setattr__(self, "basis_ned", basis)
         object.__setattr__(self, "sigma_cross_rad", cross)
+
+    def _own_estimate(self) -> None:
+        p, cov = self.own_p_ned_m, self.own_cov_ned_m2
+        if p is None and cov is None:
+            return
+        if p is None or cov is None:
+            raise InputError("Ray.own_p_ned_m and Ray.own_cov_ned_m2 go together: one was given without the other")
+        object.__setattr__(self, "own_p_ned_m", _vec3(p, "Ray.own_p_ned_m"))
+        try:
+            c = np.array(cov, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"Ray.own_cov_ned_m2 must be a 3 x 3 matrix of numbers, got {cov!r}") from None
+        if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+            raise InputError(f"Ray.own_cov_ned_m2 must be a finite 3 x 3 matrix, got {c.tolist()}")
+        c = 0.5 * (c + c.T)
+        if np.any(np.diag(c) < 0):
+            raise InputError(f"Ray.own_cov_ned_m2 has a negative variance: {np.diag(c).tolist()}")
+        c.setflags(write=False)
+        object.__setattr__(self, "own_cov_ned_m2", c)
 
 
 @dataclass(frozen=True)
@@ -727,6 +758,42 @@ def ray_gate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, noise
         return float(z @ np.linalg.solve(S, z))
     except np.linalg.LinAlgError:
         return math.inf
+
+
+def own_estimate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, v_ned_mps=None) -> float | None:
+    """The squared Mahalanobis distance (3 dof) between ``ray``'s own estimate of its object and a fleet position
+    ``p_ned_m`` (covariance ``cov_p_ned_m2``) at the ray's time; None when the ray carries no own estimate.
+
+    ``S = P_own + P`` (plus the target's motion over the ray's time sigma, with ``v_ned_mps`` when given).  The
+    two share this vehicle's bearings, so their difference varies less than ``S`` says: the test errs towards
+    keeping an object, never towards refusing one that is right.  What it sees that the ray gate cannot: two
+    vehicles on two objects whose rays cross, or a vehicle whose tracker moved to another object near the same
+    line of sight, are told apart by the range a manoeuvring vehicle has measured itself."""
+    if ray.own_p_ned_m is None or ray.own_cov_ned_m2 is None:
+        return None
+    d = ray.own_p_ned_m - np.asarray(p_ned_m, dtype=float)
+    S = ray.own_cov_ned_m2 + np.asarray(cov_p_ned_m2, dtype=float)
+    if v_ned_mps is not None and ray.time_sigma_s > 0:
+        v = np.asarray(v_ned_mps, dtype=float)
+        S = S + np.outer(v, v) * ray.time_sigma_s**2
+    try:
+        return float(d @ np.linalg.solve(S, d))
+    except np.linalg.LinAlgError:
+        return None  # no spread at all on either side: nothing to test against
+
+
+def pair_covariance(a: Ray, b: Ray, ca: ClosestApproach, noise_a: NoiseModel, noise_b: NoiseModel) -> np.ndarray:
+    """The covariance (3, 3) of the crossing point ``ca.midpoint_ned_m`` of rays ``a`` and ``b``: each ray's information
+    across itself at its range (``B^T diag(1 / ((r s_cross)^2 + s_cam^2)) B``), summed and inverted.  Along a
+    direction neither ray measures (near-parallel rays) the variance is left huge, so a test against it passes."""
+    info = np.zeros((3, 3))
+    for ray, r, noise in ((a, ca.range_a_m, noise_a), (b, ca.range_b_m, noise_b)):
+        w = 1.0 / ((r * ray.sigma_cross_rad) ** 2 + _camera_sigma_m(noise) ** 2)
+        info += ray.basis_ned.T @ (w[:, None] * ray.basis_ned)
+    vals, vecs = np.linalg.eigh(info)
+    top = float(vals[-1])
+    inv = np.where(vals > top * 1e-12, 1.0 / np.maximum(vals, 1e-300), 1e12)
+    return (vecs * inv) @ vecs.T
 
 
 def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, config: FleetConfig) -> Triangulation:

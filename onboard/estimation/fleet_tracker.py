@@ -10,7 +10,12 @@ there while its rays pass the target's gate: the Mahalanobis distance of the ray
 the target's estimate, chi-square 2 dof at 1e-4 (``BEARING_GATE_CHI2``).  An unassigned object joins the
 target it gates best with (never a target that has a live object of the same vehicle), else it pairs with
 another vehicle's unassigned object whose rays' closest approach (:func:`closest_approach`) is within the
-chi-square 1 dof gate at 1e-4 of its sigma, the one with the smallest normalised distance.  A vehicle whose
+chi-square 1 dof gate at 1e-4 of its sigma, the one with the smallest normalised distance.  A ray that carries
+its vehicle's own observable estimate of the object (:attr:`Ray.own_p_ned_m`) must also agree with the position
+it joins, pairs at or stays in (chi-square 3 dof at 1e-4, :func:`own_estimate_chi2`): the ray gate alone is as
+wide as a one-vehicle target's range and cannot tell two objects on one line of sight apart, nor two vehicles on
+two objects whose rays cross; a vehicle that has ranged its object itself can (counted ``own_estimate_disagrees``
+where it kept a ray out of a join or a pair; an object in a target leaves it, ``object_left``).  A vehicle whose
 newest ray is ``vehicle_timeout_s`` older than the target's newest leaves the solution (and comes back
 with its next ray that gates); objects silent for ``member_timeout_s`` leave the target; a target with no
 object left is dropped.
@@ -28,6 +33,7 @@ import numpy as np
 from onboard.core.counters import RejectCounter
 from onboard.estimation.fleet import (
     CLOSEST_APPROACH_GATE_CHI2,
+    OWN_ESTIMATE_GATE_CHI2,
     FleetConfig,
     FleetEstimate,
     Ray,
@@ -35,6 +41,8 @@ from onboard.estimation.fleet import (
     closest_approach,
     fleet_verdict,
     noise_for,
+    own_estimate_chi2,
+    pair_covariance,
     ray_gate_chi2,
     triangulate,
 )
@@ -139,9 +147,13 @@ class FleetTracker:
             if last is None:
                 return owner
             p, P = last.propagated(ray.t_s)
-            if ray_gate_chi2(ray, p, P, self._noise(ray.vehicle), last.v_ned_mps) <= BEARING_GATE_CHI2:
+            if ray_gate_chi2(ray, p, P, self._noise(ray.vehicle), last.v_ned_mps) > BEARING_GATE_CHI2:
+                why = "failed its target's gate"
+            elif self._own_disagrees(ray, p, P, last.v_ned_mps):
+                why = "its vehicle's own estimate disagrees with its target's"
+            else:
                 return owner
-            self._leave(key, "failed its target's gate")
+            self._leave(key, why)
             buf.clear()
             buf.append(ray)
         return self._associate(key, ray)
@@ -171,6 +183,11 @@ class FleetTracker:
             self._leave(key, "silent")
             del self._rays[key]
 
+    @staticmethod
+    def _own_disagrees(ray: Ray, p: np.ndarray, P: np.ndarray, v=None) -> bool:
+        c2 = own_estimate_chi2(ray, p, P, v)
+        return c2 is not None and c2 > OWN_ESTIMATE_GATE_CHI2
+
     def _live_vehicles(self, target: _Target, t_s: float) -> set[str]:
         return {
             v
@@ -191,8 +208,16 @@ class FleetTracker:
                 continue
             p, P = target.last.propagated(ray.t_s)
             c2 = ray_gate_chi2(ray, p, P, noise, target.last.v_ned_mps)
-            if c2 <= best_chi2:
-                best, best_chi2 = target, c2
+            if c2 > best_chi2:
+                continue
+            if self._own_disagrees(ray, p, P, target.last.v_ned_mps):
+                self.counter.count(
+                    "own_estimate_disagrees",
+                    f"{key[0]} object {key[1]} kept out of target {target.target_id}",
+                    level=10,
+                )
+                continue
+            best, best_chi2 = target, c2
         if best is not None:
             best.members.add(key)
             self._owner[key] = best.target_id
@@ -205,8 +230,17 @@ class FleetTracker:
             if abs(cand.t_s - ray.t_s) > cfg.pair_max_dt_s:
                 continue
             ca = closest_approach(ray, cand, noise, self._noise(other[0]), cfg.max_speed_mps)
-            if ca is not None and ca.chi2 <= pair_chi2:
-                partner, pair, pair_chi2 = other, ca, ca.chi2
+            if ca is None or ca.chi2 > pair_chi2:
+                continue
+            if ray.own_p_ned_m is not None or cand.own_p_ned_m is not None:
+                P = pair_covariance(ray, cand, ca, noise, self._noise(other[0]))
+                P += np.eye(3) * (cfg.max_speed_mps * abs(ray.t_s - cand.t_s)) ** 2  # the motion between the two
+                if self._own_disagrees(ray, ca.midpoint_ned_m, P) or self._own_disagrees(cand, ca.midpoint_ned_m, P):
+                    self.counter.count(
+                        "own_estimate_disagrees", f"{key[0]} object {key[1]} not paired with {other}", level=10
+                    )
+                    continue
+            partner, pair, pair_chi2 = other, ca, ca.chi2
         if partner is None or pair is None:
             return None
         tid = self._next_id

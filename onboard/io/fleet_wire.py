@@ -379,6 +379,14 @@ def ray_from_track(timed: TimedTrack, fleet_origin: GeodeticOrigin) -> Ray:
         raise InputError("track has no origin: its camera_ned_m cannot be placed")
     R, t = ned_transform(track.origin, fleet_origin)
     u = R @ np.asarray(los.u_ned)
+    own_p = own_cov = None
+    # the vehicle's own position of its object, where it ranged it itself: what tells two objects on crossing
+    # lines of sight apart (onboard.estimation.fleet_tracker)
+    if track.observable and track.p_ned_m is not None and track.cov_p_ned_m2 is not None:
+        p = np.asarray(track.p_ned_m, dtype=float)
+        cov = np.asarray(track.cov_p_ned_m2, dtype=float)
+        if p.shape == (3,) and cov.shape == (3, 3) and np.all(np.isfinite(p)) and np.all(np.isfinite(cov)):
+            own_p, own_cov = R @ p + t, R @ cov @ R.T
     return Ray(
         vehicle=track.vehicle,
         object_id=track.track_id or 0,
@@ -388,6 +396,8 @@ def ray_from_track(timed: TimedTrack, fleet_origin: GeodeticOrigin) -> Ray:
         sigma_az_rad=math.radians(los.sigma_azimuth_deg),
         sigma_el_rad=math.radians(los.sigma_elevation_deg),
         time_sigma_s=timed.time_sigma_s,
+        own_p_ned_m=own_p,
+        own_cov_ned_m2=own_cov,
     )
 
 

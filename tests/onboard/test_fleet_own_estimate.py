@@ -1,0 +1,151 @@
+"""The fleet's association checked against each vehicle's own observable estimate of its object: what the ray
+gates cannot tell apart (two vehicles on two objects whose rays cross; a vehicle whose tracker moved to another
+object on the same line of sight)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from onboard.core.counters import RejectCounter
+from onboard.core.errors import InputError
+from onboard.core.track import LineOfSight
+from onboard.estimation.fleet import (
+    OWN_ESTIMATE_GATE_CHI2,
+    FleetConfig,
+    Ray,
+    closest_approach,
+    own_estimate_chi2,
+    pair_covariance,
+)
+from onboard.estimation.fleet_tracker import FleetTracker
+from onboard.estimation.map_estimator import NoiseModel
+from onboard.io.fleet_wire import TimedTrack, ray_from_track
+from tests.fakes import positioned_track
+
+EXACT = NoiseModel()
+SIGMA_RAD = 0.5e-3
+# all at one altitude: the rays of uav1 on A and of uav2 on B cross at (400, 0, -100), a point neither sees
+UAV1, UAV2 = np.array([0.0, -150.0, -100.0]), np.array([0.0, 150.0, -100.0])
+A, B = np.array([800.0, 150.0, -100.0]), np.array([800.0, -150.0, -100.0])
+GHOST = np.array([400.0, 0.0, -100.0])
+OWN_COV = np.diag([25.0, 25.0, 25.0])  # 5 m: a manoeuvring vehicle that ranged its object itself
+
+
+def _ray(vehicle, cam, p, t_s, object_id=1, rng=None, own=None):
+    d = p - cam
+    u = d / np.linalg.norm(d)
+    if rng is not None:  # bearing noise across the ray
+        e1 = np.cross(u, [0.0, 0.0, 1.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(u, e1)
+        u = u + SIGMA_RAD * (rng.standard_normal() * e1 + rng.standard_normal() * e2)
+        u /= np.linalg.norm(u)
+    kw = {} if own is None else {"own_p_ned_m": own, "own_cov_ned_m2": OWN_COV}
+    return Ray(vehicle, object_id, t_s, cam, u, SIGMA_RAD, SIGMA_RAD, **kw)
+
+
+def _fly(tracker, uav1_sees, uav2_sees, own1=None, seconds=1.0, t0=0.0, rng_seed=1, id1=1):
+    rng = np.random.default_rng(rng_seed)
+    for t in np.arange(t0, t0 + seconds, 1 / 30):
+        tracker.add(_ray("uav1", UAV1, uav1_sees, t, id1, rng, own1))
+        tracker.add(_ray("uav2", UAV2, uav2_sees, t, 2, rng))
+        for tid in tracker.targets:
+            if tracker.due(tid):
+                tracker.solve(tid)
+
+
+def test_two_vehicles_on_two_objects_make_a_ghost_unless_one_has_ranged_its_own():
+    # the limit: bearings alone put the two at the point where their rays cross, observable
+    blind = FleetTracker(FleetConfig(), EXACT)
+    _fly(blind, A, B)
+    (tid,) = blind.targets
+    est = blind.solve(tid)
+    assert np.linalg.norm(est.p_ned_m - GHOST) < 5.0 and est.observable
+    # uav1 has ranged A itself: the crossing 420 m off what it measured is no position of its object
+    counter = RejectCounter()
+    told = FleetTracker(FleetConfig(), EXACT, counter)
+    _fly(told, A, B, own1=A + 3.0)
+    assert told.targets == ()
+    assert counter["own_estimate_disagrees"] >= 30  # every frame's pairing, kept out
+
+
+def test_a_vehicle_that_agrees_with_the_fleet_is_fused_as_before():
+    counter = RejectCounter()
+    tracker = FleetTracker(FleetConfig(), EXACT, counter)
+    _fly(tracker, A, A, own1=A + np.array([4.0, -3.0, 2.0]))
+    (tid,) = tracker.targets
+    est = tracker.solve(tid)
+    assert est.observable and np.linalg.norm(est.p_ned_m - A) < 3.0
+    assert counter["own_estimate_disagrees"] == 0 and counter["object_left"] == 0
+
+
+def test_an_object_whose_vehicle_ranged_another_thing_on_the_same_line_leaves_its_target():
+    counter = RejectCounter()
+    tracker = FleetTracker(FleetConfig(), EXACT, counter)
+    _fly(tracker, A, A, own1=A)
+    (tid,) = tracker.targets
+    assert ("uav1", 1) in tracker.members(tid)
+    # uav1's tracker moves, under the same id, to a bird on its line of sight to A, 420 m nearer: its ray is
+    # the same, which the ray gate passes; its own range is not
+    bird = UAV1 + 0.5 * (A - UAV1)
+    _fly(tracker, bird, A, own1=bird, seconds=0.2, t0=1.0)
+    assert ("uav1", 1) not in tracker.members(tid)
+    assert counter["object_left"] >= 1
+
+
+def test_the_own_estimate_test_is_chi_square_and_pair_covariance_holds_the_crossing():
+    p = A + np.array([3.0, 0.0, 0.0])
+    ray = _ray("uav1", UAV1, A, 0.0, own=p)
+    assert own_estimate_chi2(ray, A, np.zeros((3, 3))) == pytest.approx(9.0 / 25.0)
+    assert own_estimate_chi2(ray, A, np.eye(3) * 11.0) == pytest.approx(9.0 / 36.0)
+    assert own_estimate_chi2(_ray("uav1", UAV1, A, 0.0), A, np.eye(3)) is None
+    far = own_estimate_chi2(ray, A + np.array([0.0, 0.0, 30.0]), np.zeros((3, 3)))
+    assert far > OWN_ESTIMATE_GATE_CHI2
+    # the crossing's covariance: across each ray its range times the bearing sigma; near-parallel rays leave it huge
+    a, b = _ray("uav1", UAV1, A, 0.0), _ray("uav2", UAV2, A, 0.0)
+    ca = closest_approach(a, b, EXACT, EXACT)
+    P = pair_covariance(a, b, ca, EXACT, EXACT)
+    vertical = 1.0 / math.hypot(1.0 / (ca.range_a_m * SIGMA_RAD), 1.0 / (ca.range_b_m * SIGMA_RAD))
+    assert math.sqrt(P[2, 2]) == pytest.approx(vertical, rel=1e-6)  # level rays: both measure the vertical
+    along = (A - UAV1) / np.linalg.norm(A - UAV1)
+    sin_cross = float(np.linalg.norm(np.cross(a.los_ned, b.los_ned)))  # 21 deg between the rays
+    # along ray a, the crossing moves by ray b's cross-range error over the sine of their angle
+    assert math.sqrt(along @ P @ along) == pytest.approx(ca.range_b_m * SIGMA_RAD / sin_cross, rel=0.5)
+    near_parallel = _ray("uav2", UAV1 + np.array([0.0, 0.01, 0.0]), A + np.array([0.0, 0.0, 0.3]), 0.0)
+    ca2 = closest_approach(a, near_parallel, EXACT, EXACT)
+    if ca2 is not None:
+        assert along @ pair_covariance(a, near_parallel, ca2, EXACT, EXACT) @ along > 1e6
+
+
+@pytest.mark.parametrize(
+    "own, words",
+    [
+        (dict(own_p_ned_m=(1.0, 2.0, 3.0)), "go together"),
+        (dict(own_cov_ned_m2=np.eye(3)), "go together"),
+        (dict(own_p_ned_m=(1.0, 2.0, math.nan), own_cov_ned_m2=np.eye(3)), "own_p_ned_m"),
+        (dict(own_p_ned_m=(1.0, 2.0, 3.0), own_cov_ned_m2=np.eye(2)), "3 x 3"),
+        (dict(own_p_ned_m=(1.0, 2.0, 3.0), own_cov_ned_m2=-np.eye(3)), "negative variance"),
+        (dict(own_p_ned_m=(1.0, 2.0, 3.0), own_cov_ned_m2="x"), "own_cov_ned_m2"),
+    ],
+)
+def test_a_bad_own_estimate_names_its_field(own, words):
+    with pytest.raises(InputError, match=words):
+        Ray("uav1", 1, 0.0, (0, 0, 0), (1, 0, 0), 1e-3, 1e-3, **own)
+
+
+def test_a_track_brings_its_own_estimate_into_the_fleet_frame_only_where_observable():
+    los = LineOfSight((0.6, 0.0, -0.8), 0.0, 53.13, 0.1, 0.1, (20.0, 0.0, 0.0))
+    track = positioned_track(los=los)
+    ray = ray_from_track(TimedTrack(track, 1.0, "vehicle"), track.origin)
+    np.testing.assert_allclose(ray.own_p_ned_m, track.p_ned_m, atol=1e-9)
+    np.testing.assert_allclose(ray.own_cov_ned_m2, track.cov_p_ned_m2, atol=1e-9)
+    # a fleet frame 1 km east: the same point, 1 km west of it
+    east = type(track.origin)(track.origin.lat_deg, track.origin.lon_deg + 1000.0 / 94_500.0, track.origin.alt_m)
+    moved = ray_from_track(TimedTrack(track, 1.0, "vehicle"), east)
+    assert moved.own_p_ned_m[1] == pytest.approx(-1000.0, abs=15.0)
+    np.testing.assert_allclose(moved.own_p_ned_m - moved.p_cam_ned_m, ray.own_p_ned_m - ray.p_cam_ned_m, atol=0.05)
+    unobservable = positioned_track(los=los, observable=False)
+    assert ray_from_track(TimedTrack(unobservable, 1.0, "vehicle"), track.origin).own_p_ned_m is None
