@@ -412,17 +412,19 @@ def gnss_dropout_figures(r) -> dict | None:
 def format_gnss_dropout(runs: list) -> str:
     """One line per run: the GNSS dropout's figures (:func:`gnss_dropout_figures`)."""
     lines = ["GNSS dropout: frames in the window with the target in view, and what they got"]
-    lines.append(f"{'run':<14} {'frames':>6} {'los':>7} {'3-D':>7} {'>3sigma':>8} {'med err':>8} {'warned after':>13}")
+    lines.append(f"{'run':<20} {'frames':>6} {'los':>7} {'3-D':>7} {'>3sigma':>8} {'med err':>8} {'warned after':>13}")
     for r in runs:
         f = gnss_dropout_figures(r)
+        # the noise case in the name: one eval flies each seed once per case, and the rows must be told apart
+        name = f"{r.scenario} {r.nav_noise} s{r.seed}" if r.nav_noise else f"{r.scenario} s{r.seed}"
         if f is None or not f.get("frames"):
-            lines.append(f"{r.scenario + ' s' + str(r.seed):<14} {'no frames in the window' if f else 'no dropout'}")
+            lines.append(f"{name:<20} {'no frames in the window' if f else 'no dropout'}")
             continue
         b3 = "-" if f["beyond_3sigma"] is None else f"{100 * f['beyond_3sigma']:.1f} %"
         med = "-" if f["median_error_pct_range"] is None else f"{f['median_error_pct_range']:.2f} %"
         warned = "never" if math.isnan(f["warning_after_s"]) else f"{f['warning_after_s']:.2f} s"
         lines.append(
-            f"{r.scenario + ' s' + str(r.seed):<14} {f['frames']:>6} {100 * f['los']:>6.1f}% {100 * f['position']:>6.1f}%"
+            f"{name:<20} {f['frames']:>6} {100 * f['los']:>6.1f}% {100 * f['position']:>6.1f}%"
             f" {b3:>8} {med:>8} {warned:>13}"
         )
     return "\n".join(lines)

@@ -353,6 +353,9 @@ def test_gnss_dropout_figures_count_the_window_frames():
     assert f["position"] == pytest.approx(float((in_gap & r.has_estimate).sum()) / 10)
     assert gnss_dropout_figures(dataclasses.replace(r, gnss_window_s=None)) is None
     assert "warned after" in format_gnss_dropout([r])
+    # one eval flies a seed once per noise case: the rows say which
+    text = format_gnss_dropout([dataclasses.replace(r, nav_noise="RTK"), dataclasses.replace(r, nav_noise="exact")])
+    assert [line.split()[:3] for line in text.splitlines()[2:]] == [["A", "RTK", "s0"], ["A", "exact", "s0"]]
 
 
 @pytest.mark.parametrize("err_m, beyond", [(7.0, 1.0), (5.9, 0.0)])
