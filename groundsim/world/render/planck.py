@@ -1,6 +1,6 @@
 """Band radiometry of the simulated thermal camera: Planck's law over a band, and the grey map.
 
-Maths (Planck's law; the source paper's section 1, see ``/work/shared/PAPER.md``)::
+Maths (Planck's law; the source paper's section 1, see ``PAPER.md`` in the project's shared reference folder)::
 
     M(T) = integral_{lambda1}^{lambda2} C1 / (lambda^5 (exp(C2 / (lambda T)) - 1)) d lambda   [W m^-2]
     L(T) = M(T) / pi                                                                        [W m^-2 sr^-1]
