@@ -195,12 +195,11 @@ def claim_health_file(path: str, field: str = "output.health_file") -> None:
         return
     except OSError as exc:
         raise ConfigError(f"{field}: cannot check {path}: {exc.strerror or exc}") from None
-    if not stat.S_ISREG(st.st_mode):
-        raise ConfigError(f"{field}: {path} exists and is not a regular file; point {field} at a liveness file")
-    if st.st_size:
+    foreign = _not_a_liveness_file(st)
+    if foreign is not None:
         raise ConfigError(
-            f"{field}: {path} exists and holds {st.st_size} bytes: a liveness file is empty, and the daemon deletes "
-            f"it when it stops; point {field} at a file of its own"
+            f"{field}: {path} exists and {foreign}: a liveness file is an empty regular file, and the daemon "
+            f"deletes it when it stops; point {field} at a file of its own"
         )
 
 
@@ -208,8 +207,7 @@ def release_health_file(path: str) -> None:
     """Delete the liveness file when it is still an empty regular file (what :func:`mark_alive` makes); leave
     anything else (a file someone wrote into meanwhile) in place."""
     with contextlib.suppress(OSError):  # already gone: nothing claims the daemon alive
-        st = os.lstat(path)
-        if stat.S_ISREG(st.st_mode) and st.st_size == 0:
+        if _not_a_liveness_file(os.lstat(path)) is None:
             os.unlink(path)
 
 

@@ -197,7 +197,9 @@ def test_a_liveness_path_on_a_real_file_is_refused_and_left_alone(tmp_path):
     victim.write_text("important\n")
     with pytest.raises(ConfigError, match=r"output.health_file: .*flight-notes.txt exists and holds 10 bytes"):
         health.claim_health_file(str(victim))
-    with pytest.raises(ConfigError, match="not a regular file"):
+    with pytest.raises(
+        ConfigError, match=r"output.health_file: .* exists and is a folder: a liveness file is an empty"
+    ):
         health.claim_health_file(str(tmp_path))
     health.claim_health_file(str(tmp_path / "absent"))  # nothing there: fine
     stale = tmp_path / "alive"
