@@ -606,6 +606,7 @@ class OnboardService:
                 telemetry_since_s=self._first_telemetry_s,
             )
             self.watchdog.gnss(now, getattr(self.link, "gnss", None))
+            self.watchdog.utc(now, self.utc.mapping)
         video = next((t for t in self.taps if isinstance(t, VideoTap)), None)
         if video is not None and video.streamer is not None:
             vc = self.config.video

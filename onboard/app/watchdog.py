@@ -322,6 +322,20 @@ class Watchdog:
             f"receiver and its view of the sky",
         )
 
+    def utc(self, now_s: float, mapping) -> None:
+        """The UTC mapping frames are stamped with (an :class:`~onboard.core.utc_clock.UtcMapping`; None: none yet,
+        ignored): warned while it is disputed, a SYSTEM_TIME disagreeing with it and no step confirmed."""
+        if mapping is None or not mapping.disputed_us:
+            self._clear("utc_disputed")
+            return
+        self._raise(
+            "utc_disputed",
+            f"a SYSTEM_TIME (#2) disagrees with the UTC mapping by {mapping.disputed_us / 1000:.0f} ms: a wild sample or "
+            f"the first of a UTC step (or a leap second); until the next samples tell which, time_unix_us carries a "
+            f"sigma that covers both readings (a fleet fusion refuses it above its time bound); if it persists, "
+            f"check the autopilot's time source",
+        )
+
     def camera_time_offset(self, now_s: float, estimate, threshold_ms: float) -> None:
         """The camera clock's offset now (a :class:`~onboard.estimation.time_offset.TimeOffsetEstimate`, or None
         when the estimator is off: ignored) against ``threshold_ms``."""

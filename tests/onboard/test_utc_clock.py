@@ -179,3 +179,22 @@ def test_status_reports_the_offset_its_sigma_and_source():
 def test_bad_settings_name_the_field(field, value):
     with pytest.raises(ConfigError, match=field):
         UtcClockConfig(**{field: value})
+
+
+def test_the_watchdog_warns_while_the_mapping_is_disputed_and_clears_after():
+    from onboard.app.watchdog import Watchdog
+
+    wd = Watchdog(
+        started_s=0.0, frame_key="k", zenoh_where="w", mavlink_connection="udpin:0.0.0.0:1", camera_size_px=(1, 1)
+    )
+    clock = UtcClock()
+    wd.utc(0.0, clock.mapping)  # no mapping yet: nothing to say
+    feed(clock, [k * 1_000_000 for k in range(1, 11)], UNIX0_US)
+    wd.utc(10.0, clock.mapping)
+    assert wd.active == ()
+    clock.add_system_time(11_000_000, 11_000_000 + UNIX0_US + 1_000_000)  # 1 s off
+    wd.utc(11.0, clock.mapping)
+    assert [w.code for w in wd.active] == ["utc_disputed"] and "1000 ms" in wd.active[0].message
+    clock.add_system_time(12_000_000, 12_000_000 + UNIX0_US)  # the old clock was right
+    wd.utc(12.0, clock.mapping)
+    assert wd.active == ()
