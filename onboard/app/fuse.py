@@ -207,6 +207,7 @@ class Fusion:
         self._time_sources: dict[str, str] = {}
         self._origins: dict[str, GeodeticOrigin] = {}
         self._cameras: dict[str, np.ndarray] = {}
+        self._objects: dict[str, int] = {}  # each vehicle's newest object id (its track's track_id)
         self.clock_check = clock_check if clock_check is not None else ClockConsistency()
         self.silent_after_s = float(silent_after_s)
         self._last_arrival: dict[str, float] = {}  # fusion clock, UTC s: the vehicle's newest track of any kind
@@ -340,6 +341,12 @@ class Fusion:
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
         self.rays += 1
+        # a daemon's track is of one object at a time: a new id ends the last one's stay in its target at once
+        # (else a flickering id kept the vehicle 'live' in its old target, and its new object made a second one)
+        last_id = self._objects.get(vehicle)
+        if last_id is not None and last_id != ray.object_id:
+            self.tracker.retire(vehicle, last_id, f"its vehicle's track moved to object {ray.object_id}")
+        self._objects[vehicle] = ray.object_id
         tid = self.tracker.add(ray)
         if tid is not None:
             self._touched.add(tid)

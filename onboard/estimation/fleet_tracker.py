@@ -166,6 +166,15 @@ class FleetTracker:
             del self._rays[key]
         self._vehicle_newest_s.pop(vehicle, None)
 
+    def retire(self, vehicle: str, object_id: int, why: str) -> None:
+        """Take one object of ``vehicle`` out of its target and forget its rays: its vehicle has said it is done
+        with it (a daemon's track moved to another object id), so its target need not wait for its silence before
+        the vehicle's next object may join."""
+        key = (vehicle, object_id)
+        if key in self._rays:
+            self._leave(key, why)
+            del self._rays[key]
+
     def _leave(self, key: tuple[str, int], why: str) -> None:
         tid = self._owner.pop(key, None)
         if tid is None:

@@ -690,3 +690,27 @@ def test_a_flood_is_bounded_counted_and_never_starves_the_output():
     assert fusion.counter["inbox_full"] == 30  # 80 offered, 50 held
     assert drain(inbox, fusion, inbox.get(), limit=100) == 30 and inbox.get() is None
     assert fusion.counter["inbox_full"] == 30  # counted once
+
+
+def test_a_flickering_track_id_stays_one_fleet_target():
+    """A daemon's track is of one object at a time: when both vehicles' track ids flicker (a tracker that
+    re-acquires its aircraft under a new id), the aircraft stays one fleet target with both vehicles on every
+    frame, not two targets taking turns while each old id waits out its silence."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(5)
+    fleet = []
+    for k, t in enumerate(np.arange(0.0, 3.0, 1 / 30)):
+        for v, phase in ((UAV1, 0), (UAV2, 5)):
+            obj = _payload_dict(v, t, rng, k, track_id=1 + ((k + phase) // 10) % 2)
+            fusion.receive(f"irtrack/{v.name}/track", json.dumps(obj).encode(), T0_UNIX_S + t + 0.005)
+        fleet += [p for key, p in fusion.flush() if key == fleet_track_key()]
+    assert len(fleet) == 90 and {p["target_id"] for p in fleet} == {1}
+    assert all(p["observable"] and len(p["vehicles"]) == 2 for p in fleet)
+    nees = [
+        float(e @ np.linalg.solve(np.array(p["cov_ned_m2"]), e))
+        for p in fleet
+        for e in [np.array(p["ned_m"]) - truth_in(p)]
+    ]
+    assert np.mean(nees) < 4.0
+    events = fusion.status(T0_UNIX_S + 3.0)["events"]
+    assert events["target_created"] == 1 and events["object_left"] == 17  # each id change, once
