@@ -765,7 +765,11 @@ class CameraProtocol:
             )
             self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
         for rid in [r for r, p in self._superseded.items() if now_s >= p.deadline_s]:
-            del self._superseded[rid]  # never decided: nothing to answer, nothing to forget later
+            # never decided: claimed, so that frames that resume later cannot carry out a click the operator
+            # replaced (and whose replacement may be refused below); when the pipeline holds it this moment,
+            # its result decides (complete)
+            if self._superseded[rid].request.claim():
+                del self._superseded[rid]
         for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
             if not self._pending[rid].request.claim():
                 continue  # the pipeline is applying it this moment: its result decides, on a later tick

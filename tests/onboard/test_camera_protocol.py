@@ -347,15 +347,28 @@ def test_a_new_track_command_supersedes_the_pending_one_and_only_it_is_answered(
     assert proto.status()["counters"]["track_superseded"] == 1
 
 
-def test_a_superseded_request_nobody_decides_is_forgotten_without_an_ack():
+def test_a_superseded_request_nobody_decides_is_forgotten_without_an_ack_and_never_carried_out():
     proto = _proto(track_request_timeout_s=1.0)
-    proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 10.0, 0)
-    proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03), 10.5, 0)
+    _, first = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 10.0, 0)
+    _, second = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03), 10.5, 0)
     out = proto.tick(11.2, None)  # the first's deadline passed: nothing to say about it
     assert not any(o.msg == "command_ack" for o in out)
     acks = [o.fields for o in proto.tick(11.5, None) if o.msg == "command_ack"]
     assert [a["result"] for a in acks] == [mav.MAV_RESULT_TEMPORARILY_REJECTED]  # the second's, once
     assert proto._superseded == {} and proto.pending_requests() == 0
+    # frames resume: the pipeline, deciding its queue in order, may carry out neither (the operator was told the
+    # newer click was rejected; the older one, replaced, must not be what the tracker switches to)
+    assert not first.claim() and not second.claim()
+
+
+def test_a_superseded_request_the_pipeline_holds_at_its_deadline_is_decided_by_its_result():
+    proto = _proto(track_request_timeout_s=1.0)
+    _, first = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 10.0, 0)
+    proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03), 10.5, 0)
+    assert first.claim()  # the pipeline is applying it this moment
+    proto.tick(11.2, None)
+    assert proto.complete(TrackResult(first.request_id, True)) == []  # acted on, never answered
+    assert proto.status()["selection_mode"] == "point"
 
 
 def test_another_requester_or_another_command_does_not_supersede():
