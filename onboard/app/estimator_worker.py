@@ -124,8 +124,11 @@ class ThreadedEstimator:
         t = args[0]
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
-            if len(self._q) >= self._max_pending:
-                self._q.popleft()
+            # the oldest observation, never a queued reset or rebuild (it heads the queue it cleared): dropping
+            # one would add the new track's rows to the old window under the new epoch, unseen
+            oldest = next((i for i, item in enumerate(self._q) if item[0] == "add"), None)
+            if len(self._q) >= self._max_pending and oldest is not None:
+                del self._q[oldest]
                 self._counter.count(
                     "estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped"
                 )

@@ -271,6 +271,33 @@ def test_threaded_estimator_returns_its_own_result_when_fast_and_propagates_when
         te.close()
 
 
+def test_a_full_backlog_drops_observations_never_a_queued_reset():
+    """A starved worker: the old track's reset, then the new track's frames beyond the backlog. Dropping the
+    oldest item dropped the reset, and the new track's rows joined the old window under the new epoch."""
+    slow = _SlowEstimator()
+    counter = LockedCounter()
+    te = ThreadedEstimator(slow, counter, result_wait_s=0.0, max_pending=5)
+    try:
+        K = SyntheticScene().intrinsics
+        p, q = np.zeros(3), np.array([1.0, 0, 0, 0])
+        slow.gate.clear()
+        te.add(1.0, (1, 2), K, p, q)  # the worker takes it and blocks in it
+        deadline = time.monotonic() + WAIT_S
+        while te._q and time.monotonic() < deadline:
+            time.sleep(0.005)
+        te.reset()
+        for k in range(6):  # the new track's frames, more than the backlog holds
+            te.add(10.0 + k, (1, 2), K, p, q)
+        assert counter["estimator_backlog"] == 2
+        slow.gate.set()
+        deadline = time.monotonic() + WAIT_S
+        while len(slow.adds) < 5 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert slow.resets == 1 and slow.adds == [1.0, 12.0, 13.0, 14.0, 15.0]  # the oldest new rows dropped
+    finally:
+        te.close()
+
+
 # --------------------------------------------------------------------------- end to end
 
 
