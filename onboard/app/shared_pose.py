@@ -52,6 +52,11 @@ class SharedPoseBuffer:
         return self._buffer.reboots
 
     @property
+    def last_miss_reason(self) -> str | None:
+        """Why the last :meth:`pose_at` found no pose (the pipeline tells a GNSS outage past dead reckoning by it)."""
+        return self._buffer.last_miss_reason
+
+    @property
     def epoch(self) -> int:
         return self._buffer.epoch
 

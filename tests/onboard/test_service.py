@@ -207,6 +207,25 @@ def test_shared_pose_buffer_memoises_a_lookup_until_the_next_sample():
     assert fresh is not first and fresh.pose is not None and not fresh.pose.extrapolated  # now bracketed
 
 
+def test_the_daemons_pose_source_tells_the_pipeline_why_a_pose_is_missing():
+    """The pipeline tells a GNSS outage past dead reckoning (the gnss_dropout warning) by the pose source's
+    last_miss_reason; the daemon's source is the buffer behind SharedPoseBuffer and RecordingPoseSource, which
+    said None whatever the buffer knew."""
+    from onboard.core.frames import CameraMount, GeodeticOrigin
+    from onboard.io.record import RecordingPoseSource
+
+    buf = PoseBuffer(mount=CameraMount(), origin=GeodeticOrigin(32.0, 118.8, 50.0))
+    src = RecordingPoseSource(SharedPoseBuffer(buf))
+    for i in range(50):  # 0.5 s of attitude and position, then the position stops for 12 s
+        t = 1_000_000 + i * 10_000
+        buf.add_attitude(t, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+        buf.add_position(t, 32.0, 118.8, 100.0, (1.0, 0.0, 0.0))
+    for k in range(1, 1300):
+        buf.add_attitude(1_490_000 + k * 10_000, (1.0, 0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+    assert src.pose_at(1_490_000 + 12_000_000) is None
+    assert src.last_miss_reason == buf.last_miss_reason == "position_extrapolation_limit"
+
+
 class _SlowEstimator:
     """add() blocks on ``gate`` after the first call; returns an estimate at t with p = (t, 0, 0)."""
 
