@@ -839,11 +839,18 @@ class ObjectTracker:
         self.clear_primary()
         self._tracks = []
 
-    def select_point(self, u_px: float, v_px: float, radius_px: float) -> int | None:
+    def select_point(
+        self, u_px: float, v_px: float, radius_px: float, rect_px: tuple[float, float, float, float] | None = None
+    ) -> int | None:
         """Make the confirmed or coasting track nearest (u, v) within ``radius_px`` the primary; its id,
-        or None (the primary is then unchanged)."""
+        or None (the primary is then unchanged).  ``rect_px`` = (x0, y0, x1, y1): only a track whose centre lies
+        in it (an operator's box selects what is in the box)."""
         best, best_d = None, radius_px
         for t in self._tracks:
+            if rect_px is not None and not (
+                rect_px[0] <= t.uv[0] <= rect_px[2] and rect_px[1] <= t.uv[1] <= rect_px[3]
+            ):
+                continue
             d = math.hypot(t.uv[0] - u_px, t.uv[1] - v_px)
             if t.confirmed and d <= best_d:
                 best, best_d = t, d

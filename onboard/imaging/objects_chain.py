@@ -84,11 +84,11 @@ class ObjectChain:
             TrackState.COASTING, prim.u_px, prim.v_px, prim.bbox, None, False, prim.object_id, misses, out.frame_index
         )
 
-    def select_point(self, image: np.ndarray, u_px: float, v_px: float, radius_px: float):
-        """Update on ``image``, then make the object nearest (u, v) within ``radius_px`` the primary;
-        its TrackUpdate, or None (nothing there: the selection is unchanged)."""
+    def select_point(self, image: np.ndarray, u_px: float, v_px: float, radius_px: float, rect_px=None):
+        """Update on ``image``, then make the object nearest (u, v) within ``radius_px`` (and, given ``rect_px``,
+        inside that box) the primary; its TrackUpdate, or None (nothing there: the selection is unchanged)."""
         self.update(image, None)
-        sel = self.objects.select_point(u_px, v_px, radius_px)
+        sel = self.objects.select_point(u_px, v_px, radius_px, rect_px)
         if sel is None or self.last_objects is None:
             return None
         self.objects.mode = self.mode  # a selection ends a stop's hold
@@ -98,8 +98,11 @@ class ObjectChain:
         return self._track_update(self.last_objects)
 
     def select_rectangle(self, image: np.ndarray, rect_px: tuple[float, float, float, float]):
+        """The object whose centre lies in ``rect_px`` = (x0, y0, x1, y1), the one nearest its centre when several
+        do (the tracker's own choice of a point); None when none does."""
         x0, y0, x1, y1 = rect_px
-        return self.select_point(image, 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * math.hypot(x1 - x0, y1 - y0))
+        cx, cy, half_diagonal = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * math.hypot(x1 - x0, y1 - y0)
+        return self.select_point(image, cx, cy, half_diagonal, rect_px=(x0, y0, x1, y1))
 
     def stop(self) -> None:
         """Drop the selection and hold: no automatic choice until the next selection."""

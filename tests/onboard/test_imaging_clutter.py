@@ -315,6 +315,26 @@ def test_object_chain_reports_the_primary_as_the_track_and_a_new_id_on_a_change(
     assert upd.state in (TrackState.LOST, TrackState.SEARCHING) and upd.track_id is None
 
 
+def test_a_box_selects_only_an_object_inside_it():
+    """A box selects what is in it: the object nearest its centre was taken within half its diagonal, so a long
+    thin box beside an object (its centre close to the object, the object outside it) selected that object."""
+    from onboard.imaging.objects_chain import ObjectChain
+
+    rng = np.random.default_rng(9)
+    chain = ObjectChain(K)
+    for k in range(20):
+        near, far = _near_far(k)
+        upd = chain.update(_frame(rng, [near, far]), np.eye(3))
+    first = upd.track_id
+    x, y = far
+    beside = (x - 40.0, y - 8.0, x + 40.0, y - 3.0)  # 80 x 5 px, 3 px above the far object: its centre 5.5 px off
+    assert chain.select_rectangle(_frame(rng, [near, far]), beside) is None
+    assert chain.update(_frame(rng, [near, far])).track_id == first  # the selection unchanged
+    around = (x - 40.0, y - 8.0, x + 40.0, y + 3.0)
+    sel = chain.select_rectangle(_frame(rng, [near, far]), around)
+    assert sel is not None and sel.track_id != first
+
+
 def test_objects_message_carries_every_confirmed_object_as_json():
     import json
 
