@@ -578,7 +578,7 @@ def _matched(
 #: track keys a replay does not make: the daemon stamps UTC from the autopilot link's SYSTEM_TIME, not the pipeline
 UNREPLAYED_KEYS = frozenset({"time_unix_us", "time_unix_sigma_us"})
 #: keys added to the track after recordings that lack them were made, with the value their absence means
-_ABSENT_MEANS = {"compensated_us": 0}
+_ABSENT_MEANS = {"compensated_us": 0, "estimate_epoch": 0}
 
 
 def compare_tracks(recorded: list, replayed: list) -> tuple[list[FrameDiff], int, int]:

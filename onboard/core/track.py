@@ -63,6 +63,11 @@ compensated_us      integer                      (new, optional; 0 when absent) 
                                                  compensated on this frame, us: the line of sight and the 3-D
                                                  fields are those of ``time_boot_us`` (and ``time_unix_us``)
                                                  minus this; 0 without compensation
+estimate_epoch      integer >= 0                 (new, optional; 0 when absent) the 3-D estimator's restarts
+                                                 since the daemon started: a new value says the estimate
+                                                 started again and holds nothing from before (a change of
+                                                 selection or track, a pose discontinuity, an autopilot
+                                                 reboot; the reason is in the daemon's log)
 ==================  ===========================  ===================================================
 
 What changed from ``irtrack.track/1``: every key of /1 keeps its name, type and unit.  The meaning of
@@ -355,6 +360,7 @@ class Track:
     time_unix_us: int | None = None
     time_unix_sigma_us: int | None = None
     compensated_us: int = 0
+    estimate_epoch: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.vehicle, str) or not self.vehicle:
@@ -462,6 +468,11 @@ class Track:
             setattr_(self, "compensated_us", int(c))
         elif abs(c) > MAX_COMPENSATED_US:
             raise InputError(f"Track.compensated_us must be within +-{MAX_COMPENSATED_US} us, got {c!r}")
+        n = self.estimate_epoch
+        if type(n) is not int or not 0 <= n < 2**31:
+            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= int(n) < 2**31:
+                raise InputError(f"Track.estimate_epoch must be an integer in [0, 2**31), got {n!r}")
+            setattr_(self, "estimate_epoch", int(n))
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
@@ -544,6 +555,7 @@ def track_to_json(track: Track) -> dict[str, Any]:
         "time_unix_us": track.time_unix_us,
         "time_unix_sigma_us": track.time_unix_sigma_us,
         "compensated_us": track.compensated_us,
+        "estimate_epoch": track.estimate_epoch,
     }
 
 
@@ -639,6 +651,14 @@ TRACK_JSON_KEYS: tuple[tuple[str, dict[str, Any]], ...] = (
             "type": "integer",
             "description": "camera clock lateness compensated on this frame, us: the line of sight and 3-D are of "
             "time_boot_us (and time_unix_us) minus this",
+        },
+    ),
+    (
+        "estimate_epoch",
+        {
+            "type": "integer",
+            "minimum": 0,
+            "description": "the 3-D estimator's restarts since the daemon started: a new value, a new estimate",
         },
     ),
 )
@@ -745,4 +765,5 @@ def _track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         time_unix_us=obj.get("time_unix_us"),
         time_unix_sigma_us=obj.get("time_unix_sigma_us"),
         compensated_us=obj.get("compensated_us", 0),
+        estimate_epoch=obj.get("estimate_epoch", 0),
     )

@@ -478,7 +478,11 @@ class FramePipeline:
                 self._reset_estimator("no track")
             return None
         if tid != self._est_track_id:
-            if self._est_track_id is not None and self.config.estimator.reset_on_new_track:
+            # the objects chain's ids name objects: another id is another object, whatever reset_on_new_track says
+            # (the estimate is never silently handed to it); the single chain's new id may be its target re-found
+            if self._est_track_id is not None and (
+                self.config.estimator.reset_on_new_track or self.config.imaging.chain == "objects"
+            ):
                 self._reset_estimator(f"new track {tid}")
             self._est_track_id = tid
         t_s = t_us / US_PER_S
@@ -736,6 +740,7 @@ class FramePipeline:
             los=None if withheld else self._line_of_sight(upd, pose),
             origin=origin,
             compensated_us=self._shift_us if pose is not None else 0,
+            estimate_epoch=self.estimator_resets,  # the track says when its estimate started again
         )
         if est is None:
             if residual is not None:

@@ -75,6 +75,9 @@ def test_a_gnss_step_restarts_the_estimator_once_and_no_window_mixes_the_two_tra
 
     assert rig.counter["position_reset"] == 1 and rig.counter["estimator_pose_reset"] == 1
     assert rig.pipe.estimator_resets == 1 and [c[0] for c in est.calls].count("reset") == 1
+    # the tracks say when their estimate started again: one step from 0 to 1, never back
+    epochs = [t.estimate_epoch for t in before + after]
+    assert epochs[0] == 0 and epochs[-1] == 1 and epochs == sorted(epochs)
     assert not est.mixed
     # the estimate after the step is made of rows of the new track only, fewer than the frames since the start
     assert est.window and all(est.scene_side(t, p) for t, p in est.window)

@@ -161,12 +161,41 @@ def test_a_new_selection_restarts_the_estimate():
     cfg = build_config({"estimator": {"enabled": False, "reset_on_new_track": False}})
     est = _CountingEstimator()
     pipe = FramePipeline(cfg, _Pose(), TargetTracker(cfg.imaging), est)
-    for k in range(5):
-        pipe.process(_ir(k))
-    assert est.adds == 5 and est.resets == 0
+    before = [pipe.process(_ir(k)) for k in range(5)]
+    assert est.adds == 5 and est.resets == 0 and {t.estimate_epoch for t in before} == {0}
     pipe.request_selection(TrackRequest(1, "rectangle", rect_px=(400.0, 330.0, 500.0, 430.0)), lambda r: None)
     tr = pipe.process(_ir(5))
     assert est.resets == 1 and tr.track_id == 2  # reset although reset_on_new_track is off: the operator chose
+    assert tr.estimate_epoch == 1  # and the track says its estimate started again
+
+
+class _IdSequenceTracker:
+    """An image chain whose primary's id follows ``ids``, one per frame, centred, fit for 3-D."""
+
+    def __init__(self, ids) -> None:
+        self._ids = iter(ids)
+
+    def update(self, pixels, *args):
+        from onboard.imaging import TrackState
+        from onboard.imaging.detect import Detection
+        from onboard.imaging.tracker import TrackUpdate
+
+        det = Detection(320.0, 256.0, 4, 40.0, 160.0, (319, 255, 2, 2), 140.0, 20.0)
+        return TrackUpdate(
+            TrackState.TRACKING, 320.0, 256.0, (310.0, 246.0, 20.0, 20.0), det, True, next(self._ids), 0, 0
+        )
+
+
+@pytest.mark.parametrize("chain, resets", [("objects", 1), ("single", 0)])
+def test_the_objects_chain_never_hands_the_estimate_to_another_object(chain, resets):
+    """With reset_on_new_track off, the single chain's new id (its target re-found) keeps the estimate; the
+    objects chain's ids name objects, so its primary moving to another id restarts it and the track says so."""
+    cfg = build_config({"imaging": {"chain": chain}, "estimator": {"enabled": False, "reset_on_new_track": False}})
+    est = _CountingEstimator()
+    pipe = FramePipeline(cfg, _Pose(), _IdSequenceTracker([7] * 5 + [1] * 3), est)
+    tracks = [pipe.process(_ir(k)) for k in range(8)]
+    assert [t.track_id for t in tracks] == [7] * 5 + [1] * 3
+    assert est.resets == resets and tracks[-1].estimate_epoch == resets
 
 
 # --------------------------------------------------------------------------- service camera step

@@ -17,7 +17,16 @@ from tests.fakes import positioned_track
 
 #: the keys whose numbers are integers on the wire (json_number would write them as floats)
 INTEGER_KEYS = frozenset(
-    {"seq", "time_boot_us", "track_id", "window_frames", "time_unix_us", "time_unix_sigma_us", "compensated_us"}
+    {
+        "seq",
+        "time_boot_us",
+        "track_id",
+        "window_frames",
+        "time_unix_us",
+        "time_unix_sigma_us",
+        "compensated_us",
+        "estimate_epoch",
+    }
 )
 
 
