@@ -51,8 +51,9 @@ MAX_EVAL_RUNS = 1000
 
 def add_mot_scores(out: Path, seqs: list[str]) -> None:
     """TrackEval's scores of the MOT files (groundsim.evaluation.mot.score_mot) into report.json: a top-level
-    ``mot`` {SEQ: metrics} and each run row's ``mot``; printed one line a SEQ.  A scoring failure is logged
-    and leaves report.json as it was (the 3-D report does not depend on it)."""
+    ``mot`` {SEQ: metrics} and each run row's ``mot``; a table of them at the end of report.md; printed one line a
+    SEQ.  A scoring failure, or no TrackEval installed, is logged and leaves both reports as they were (the 3-D
+    report does not depend on it)."""
     import json
 
     from groundsim.evaluation.mot import score_mot, seq_name
@@ -65,6 +66,11 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
         log.warning("MOT scoring failed: %s: %s", type(exc).__name__, exc)
         return
     if not scores:
+        log.warning(
+            "MOT files written under %s, not scored: TrackEval is not installed (the dev extra installs it; "
+            "scripts/install.sh .venv sim,dev)",
+            Path(out) / "mot",
+        )
         return
     path = Path(out) / "report.json"
     report = json.loads(path.read_text(encoding="utf-8"))
@@ -74,6 +80,11 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
         if seq in scores:
             row["mot"] = scores[seq]
     path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
+    from groundsim.evaluation.report import format_mot_scores
+
+    with open(Path(out) / "report.md", "a", encoding="utf-8") as f:
+        f.write("\n## Multi-object tracking, TrackEval (MOT Challenge 2-D boxes under mot/)\n\n")
+        f.write(format_mot_scores(scores) + "\n")
     for seq, m in scores.items():
         print(
             f"MOT {seq}: HOTA {m['HOTA']:.3f} DetA {m['DetA']:.3f} AssA {m['AssA']:.3f} MOTA {m['MOTA']:.3f}"

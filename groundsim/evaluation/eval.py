@@ -373,6 +373,9 @@ class RunResult:
     guidance: dict | None = None
     mot_gt: str = ""  # gt.txt of every object (groundsim.evaluation.mot)
     mot_tracker: str = ""  # the pipeline's objects, MOT tracker lines
+    #: the run's perception figures (groundsim.evaluation.mot.PerceptionScore): Pd, false tracks a minute, id
+    #: switches, the selected target's Anti-UAV state accuracy
+    perception: dict = field(default_factory=dict)
     #: the GNSS dropout's window, scenario seconds [start, end) (None: none), and the scenario time the daemon's
     #: watchdog first named it (``gnss_dropout``) from the frames' poses (NaN: never)
     gnss_window_s: tuple[float, float] | None = None
@@ -482,7 +485,7 @@ def run_lockstep(
 
     Raises IrtrackError for a bad scenario/option; the caller decides whether a run may fail alone.
     """
-    from groundsim.evaluation.mot import gt_rows, tracker_rows
+    from groundsim.evaluation.mot import PerceptionScore, gt_rows, tracker_positions, tracker_rows
     from groundsim.world.sim import SimCore
     from onboard.core.irframe import IrFrame
     from onboard.core.pose import PoseBuffer
@@ -555,6 +558,7 @@ def run_lockstep(
     done_since = 0
     mot_gt: list[str] = []
     mot_tracker: list[str] = []
+    perception = PerceptionScore(scenario.frame_rate_hz)
 
     n_done = F
     for k in range(F):
@@ -636,6 +640,15 @@ def run_lockstep(
         mot_gt += gt_rows(k + 1, fr.labels, (tr.target_u_px, tr.target_v_px), bool(tr.target_visible))
         if track is not None:
             mot_tracker += tracker_rows(k + 1, getattr(pipeline.tracker, "last_objects", None), track)
+        perception.add(
+            [(o.object_id, o.u_px, o.v_px, o.visibility == "visible", o.contrast_netd) for o in fr.labels]
+            if fr.labels
+            else [(0, float(tr.target_u_px), float(tr.target_v_px), bool(tr.target_visible), None)],
+            {} if track is None else tracker_positions(getattr(pipeline.tracker, "last_objects", None), track),
+            None
+            if track is None or track.u_px is None or track.state not in ("tracking", "coasting")
+            else (track.u_px, track.v_px),
+        )
 
         if options.keep_frame and fr.pixels is not None and _better_frame(kept, k, F, track):
             kept = dict(
@@ -756,6 +769,7 @@ def run_lockstep(
         },
         mot_gt="".join(mot_gt),
         mot_tracker="".join(mot_tracker),
+        perception=perception.figures(),
         gnss_window_s=None if gd is None else (gd.start_s, gd.start_s + gd.duration_s),
         gnss_warning_t_s=gnss_warning_t_s,
         time_offset=None

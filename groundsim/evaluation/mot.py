@@ -8,7 +8,8 @@ Per run, ``SEQ = <scenario>-<nav>-s<seed>``::
     OUT/mot/seqmap.txt                  "name" then one SEQ a line (TrackEval's SEQMAP_FILE)
 
 Frames are numbered from 1 in both (frame k of the run is k + 1); x, y 1-based (MOT's convention).
-gt's 7th column is 1 for a visible object and 0 otherwise (occluded, out of frame); every object is class
+gt's 7th column is 1 for a visible object and 0 otherwise (occluded, out of frame: a row for every object with a
+place in the image plane, none for one behind the camera; TrackEval leaves the 0 rows out); every object is class
 1 (pedestrian, the class TrackEval evaluates): irtrack tracks every warm moving object.  Ids are the
 scene's object id + 1 (the target is 1); without a scene only the target, from the truth row.
 
@@ -24,9 +25,23 @@ import math
 import shutil
 from pathlib import Path
 
-__all__ = ["BOX_SIDE_PX", "gt_rows", "tracker_rows", "seq_name", "write_mot", "clear_mot"]
+__all__ = [
+    "BOX_SIDE_PX",
+    "gt_rows",
+    "tracker_rows",
+    "seq_name",
+    "write_mot",
+    "clear_mot",
+    "PerceptionScore",
+    "tracker_positions",
+]
 
 BOX_SIDE_PX = 6.0
+#: a tracked object within this of an object's true centre detects it (the perception issue's 3 px)
+MATCH_PX = 3.0
+#: objects count for the detection probability from this long after they first show, at this contrast and above
+SETTLE_S = 1.0
+MIN_CONTRAST_NETD = 3.0
 
 
 def _box(u: float, v: float) -> str:
@@ -40,12 +55,13 @@ def gt_rows(frame: int, labels, truth_uv=None, truth_visible: bool = False) -> l
     rows = []
     if labels:
         for o in labels:
-            if not (math.isfinite(o.u_px) and math.isfinite(o.v_px)) or o.visibility == "out_of_frame":
-                continue
+            if not (math.isfinite(o.u_px) and math.isfinite(o.v_px)):
+                continue  # behind the camera: nowhere in the image to put it
             vis = 1 if o.visibility == "visible" else 0
             rows.append(f"{frame},{int(o.object_id) + 1},{_box(o.u_px, o.v_px)},{vis},1,{float(vis):.1f}\n")
-    elif truth_uv is not None and all(math.isfinite(c) for c in truth_uv) and truth_visible:
-        rows.append(f"{frame},1,{_box(truth_uv[0], truth_uv[1])},1,1,1.0\n")
+    elif truth_uv is not None and all(math.isfinite(c) for c in truth_uv):
+        vis = 1 if truth_visible else 0
+        rows.append(f"{frame},1,{_box(truth_uv[0], truth_uv[1])},{vis},1,{float(vis):.1f}\n")
     return rows
 
 
@@ -166,3 +182,87 @@ def score_mot(out: Path, seqs: list[str], tracker: str = "irtrack") -> dict:
             IDF1=float(r["Identity"]["IDF1"]),
         )
     return out_rows
+
+
+def tracker_positions(objects=None, track=None) -> dict[int, tuple[float, float]]:
+    """``{id: (u, v)}`` of what :func:`tracker_rows` writes for one frame."""
+    if objects is not None:
+        return {int(o.object_id): (float(o.u_px), float(o.v_px)) for o in objects.confirmed}
+    if track is not None and track.state == "tracking" and track.u_px is not None and track.track_id is not None:
+        return {int(track.track_id): (float(track.u_px), float(track.v_px))}
+    return {}
+
+
+def _square_iou(a: tuple[float, float], b: tuple[float, float]) -> float:
+    """IoU of two ``BOX_SIDE_PX`` squares about centres ``a`` and ``b`` (the MOT files' boxes)."""
+    w = max(0.0, BOX_SIDE_PX - abs(a[0] - b[0])) * max(0.0, BOX_SIDE_PX - abs(a[1] - b[1]))
+    return w / (2.0 * BOX_SIDE_PX * BOX_SIDE_PX - w)
+
+
+class PerceptionScore:
+    """A run's perception figures, frame by frame (pure; the same definitions as ``bench.imaging --scene``):
+
+    * ``pd_pct``: of the frames where an object is visible at ``MIN_CONTRAST_NETD`` or more (any contrast without a
+      scene's labels), from ``SETTLE_S`` after it first showed, the share with a tracked object within ``MATCH_PX``;
+    * ``false_tracks_per_min``: tracked ids farther than ``MATCH_PX`` from every object (visible or not) on more than
+      half of their frames, per minute of flight;
+    * ``id_switches``: per object, changes of the tracked id matched to it (the nearest within ``MATCH_PX``);
+    * ``state_accuracy``: the Anti-UAV benchmarks' SA of the selected target (object 0): per frame the IoU of the
+      selected track's box with the target's (``BOX_SIDE_PX`` squares about the centres; 0 without a track) while
+      the target is visible, else 1 when no track is reported and 0 when one is; the mean over frames."""
+
+    def __init__(self, frame_rate_hz: float) -> None:
+        self.frame_rate_hz = float(frame_rate_hz)
+        self.frames = 0
+        self._first_visible: dict[int, int] = {}
+        self._counted = self._detected = 0
+        self._last_id: dict[int, int] = {}
+        self._switches = 0
+        self._track_frames: dict[int, list[int]] = {}  # id -> [frames, frames off every object]
+        self._sa_sum = 0.0
+
+    def add(self, objects, tracks: dict[int, tuple[float, float]], selected: tuple[float, float] | None) -> None:
+        """One frame: ``objects`` the truth, ``(object_id, u_px, v_px, visible, contrast_netd)`` each (contrast None:
+        unknown, counted); ``tracks`` the tracked objects ``{id: (u, v)}``; ``selected`` the selected target's
+        reported centre, or None when no track is reported."""
+        k = self.frames
+        self.frames += 1
+        known = [(u, v) for _, u, v, _, _ in objects if math.isfinite(u) and math.isfinite(v)]
+        for tid, (u, v) in tracks.items():
+            rec = self._track_frames.setdefault(tid, [0, 0])
+            rec[0] += 1
+            rec[1] += all(math.hypot(u - a, v - b) > MATCH_PX for a, b in known)
+        target_visible = None
+        for oid, u, v, visible, contrast in objects:
+            if oid == 0:
+                target_visible = (u, v) if visible else None
+            if not visible:
+                continue
+            first = self._first_visible.setdefault(oid, k)
+            best, best_d = None, MATCH_PX
+            for tid, (tu, tv) in tracks.items():
+                d = math.hypot(tu - u, tv - v)
+                if d <= best_d:
+                    best, best_d = tid, d
+            if best is not None:
+                if oid in self._last_id and self._last_id[oid] != best:
+                    self._switches += 1
+                self._last_id[oid] = best
+            if (contrast is None or contrast >= MIN_CONTRAST_NETD) and k >= first + SETTLE_S * self.frame_rate_hz:
+                self._counted += 1
+                self._detected += best is not None
+        if target_visible is not None:
+            self._sa_sum += 0.0 if selected is None else _square_iou(selected, target_visible)
+        else:
+            self._sa_sum += 1.0 if selected is None else 0.0
+
+    def figures(self) -> dict:
+        minutes = self.frames / self.frame_rate_hz / 60.0
+        false_tracks = sum(1 for n, off in self._track_frames.values() if off > 0.5 * n)
+        return {
+            "pd_pct": 100.0 * self._detected / self._counted if self._counted else None,
+            "pd_counted": self._counted,
+            "false_tracks_per_min": false_tracks / minutes if minutes else None,
+            "id_switches": self._switches,
+            "state_accuracy": self._sa_sum / self.frames if self.frames else None,
+        }

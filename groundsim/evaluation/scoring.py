@@ -129,6 +129,7 @@ def score_run(r) -> dict:
         "chain_centroid_sigma_px": r.chain_centroid_sigma_px,
     }
     out["closed_loop"] = closed_loop_figures(r)
+    out["perception"] = dict(getattr(r, "perception", None) or {})
     out["online_observable"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, obs)
     out["online_all"] = score_frames(r.truth_p_ned_m, r.est_p_ned_m, r.cam_p_ned_m, r.est_cov_ned_m2, has)
     out["perfect_observable"] = score_frames(

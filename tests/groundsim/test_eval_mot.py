@@ -25,12 +25,15 @@ def test_gt_rows_every_object_one_based_with_visibility_flag():
             _label(5, 1, 1, "out_of_frame"),
         ],
     )
-    assert [r.split(",")[:2] for r in rows] == [["3", "1"], ["3", "3"]]
+    # every object the image plane can place, visible (1) or not (0: occluded, out of frame); none behind the camera
+    assert [r.split(",")[:2] for r in rows] == [["3", "1"], ["3", "3"], ["3", "6"]]
+    assert [r.split(",")[6] for r in rows] == ["1", "0", "0"]
     f = rows[0].split(",")
     # MOT's 1-based left/top of a BOX_SIDE_PX square about the centre
     assert float(f[2]) == pytest.approx(10.0 - BOX_SIDE_PX / 2 + 1) and float(f[5]) == BOX_SIDE_PX
     assert f[6] == "1" and rows[1].split(",")[6] == "0"
-    assert gt_rows(1, (), (5.0, 6.0), True)[0].startswith("1,1,") and gt_rows(1, (), (5.0, 6.0), False) == []
+    assert gt_rows(1, (), (5.0, 6.0), True)[0].startswith("1,1,")
+    assert gt_rows(1, (), (5.0, 6.0), False)[0].split(",")[6] == "0" and gt_rows(1, (), (math.nan, 6.0), True) == []
 
 
 def test_tracker_rows_from_objects_or_the_single_track():
@@ -63,3 +66,30 @@ def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path):
     # one of two objects tracked perfectly, the other missed: DetA 0.5, AssA 1, HOTA sqrt(0.5)
     assert m["DetA"] == pytest.approx(0.5) and m["AssA"] == pytest.approx(1.0)
     assert m["HOTA"] == pytest.approx(math.sqrt(0.5)) and m["IDSW"] == 0
+
+
+def test_perception_score_pd_false_tracks_switches_and_state_accuracy():
+    from groundsim.evaluation.mot import PerceptionScore
+
+    ps = PerceptionScore(frame_rate_hz=10.0)  # 1 s settling = 10 frames
+    for k in range(40):
+        target = (0, 100.0 + k, 50.0, k < 30, 12.0)  # visible for 30 frames, then gone (out of frame, say)
+        faint = (1, 300.0, 200.0, True, 2.0)  # under 3 NETD: never counted
+        bird = (2, 400.0, 100.0, True, None)  # contrast unknown: counted
+        tracks = {}
+        if k < 30:
+            tracks[7 if k < 20 else 8] = (100.0 + k + 1.0, 50.0)  # on the target, 1 px off; its id changes once
+        if k % 2 == 0:
+            tracks[9] = (400.0, 102.0)  # the bird every other frame
+        tracks[11] = (10.0, 10.0)  # on nothing: a false track
+        selected = (100.0 + k + 1.0, 50.0) if k < 30 else (130.0, 50.0) if k < 35 else None
+        ps.add([target, faint, bird], tracks, selected)
+    f = ps.figures()
+    # counted after 1 s: the target frames 10-29 (20, all found), the bird frames 10-39 (30, 15 found)
+    assert f["pd_counted"] == 50 and f["pd_pct"] == pytest.approx(100.0 * 35 / 50)
+    assert f["false_tracks_per_min"] == pytest.approx(1 / (40 / 10 / 60))  # track 11 only, over 4 s
+    assert f["id_switches"] == 1
+    # SA: 30 visible frames at IoU(1 px shift of 6 px squares) = 30/42, 5 frames reporting a box on nothing (0),
+    # 5 frames with nothing reported while the target is absent (1)
+    iou = (5.0 * 6.0) / (2 * 36.0 - 30.0)
+    assert f["state_accuracy"] == pytest.approx((30 * iou + 0 + 5) / 40)
