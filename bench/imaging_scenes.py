@@ -83,7 +83,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from groundsim.evaluation.mot import gt_rows, score_mot, tracker_rows, write_mot
+from groundsim.evaluation.mot import gt_rows, nearest_within, score_mot, tracker_rows, write_mot
 
 MATCH_PX = 3.0
 DEFECT_PX = 2.0
@@ -385,11 +385,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                         and primary in tpos
                         and math.hypot(tpos[primary][0] - u, tpos[primary][1] - v) <= MATCH_PX
                     )
-            best, best_d = None, MATCH_PX
-            for tid, (tu, tv) in tpos.items():
-                d = math.hypot(tu - u, tv - v)
-                if d <= best_d:
-                    best, best_d = tid, d
+            best = nearest_within(tpos, u, v, MATCH_PX)
             if best is not None:
                 if oid in last_id and last_id[oid] != best:
                     switches[oid] = switches.get(oid, 0) + 1

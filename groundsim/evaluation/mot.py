@@ -34,6 +34,7 @@ __all__ = [
     "clear_mot",
     "PerceptionScore",
     "tracker_positions",
+    "nearest_within",
 ]
 
 BOX_SIDE_PX = 6.0
@@ -193,6 +194,18 @@ def tracker_positions(objects=None, track=None) -> dict[int, tuple[float, float]
     return {}
 
 
+def nearest_within(
+    tracks: dict[int, tuple[float, float]], u: float, v: float, radius_px: float = MATCH_PX
+) -> int | None:
+    """The id of the tracked object nearest (u, v) within ``radius_px``, or None: the match of every figure here."""
+    best, best_d = None, radius_px
+    for tid, (tu, tv) in tracks.items():
+        d = math.hypot(tu - u, tv - v)
+        if d <= best_d:
+            best, best_d = tid, d
+    return best
+
+
 def _square_iou(a: tuple[float, float], b: tuple[float, float]) -> float:
     """IoU of two ``BOX_SIDE_PX`` squares about centres ``a`` and ``b`` (the MOT files' boxes)."""
     w = max(0.0, BOX_SIDE_PX - abs(a[0] - b[0])) * max(0.0, BOX_SIDE_PX - abs(a[1] - b[1]))
@@ -239,11 +252,7 @@ class PerceptionScore:
             if not visible:
                 continue
             first = self._first_visible.setdefault(oid, k)
-            best, best_d = None, MATCH_PX
-            for tid, (tu, tv) in tracks.items():
-                d = math.hypot(tu - u, tv - v)
-                if d <= best_d:
-                    best, best_d = tid, d
+            best = nearest_within(tracks, u, v)
             if best is not None:
                 if oid in self._last_id and self._last_id[oid] != best:
                     self._switches += 1
