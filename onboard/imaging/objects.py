@@ -33,8 +33,9 @@ the longest-tracked within ``primary_radius_px`` of the principal point (else th
 gimbal points the camera at its target, so of the steady objects the target is the one the camera
 centres and holds; a fragment of terrain or cloud there is never confirmed, so never chosen; a track far
 off the axis is never chosen, even confirmed: no primary rather than a wrong one).  ``select_point`` (operator) selects the confirmed or coasting track nearest a pixel.  A
-change of the primary is reported (``primary_changed``) so a 3-D estimate is reset, never silently
-continued on another object.  The primary's centre is refined by
+change of the primary is reported (``primary_changed``) and is a change of the track's id, on which the pipeline
+resets the 3-D estimate (always with this chain: its ids name objects), never silently continued on another
+object.  The primary's centre is refined by
 :func:`onboard.imaging.detect.measure_blob` (the windowed sub-pixel centroid on the raw frame).
 
 Flat-field events: a frozen frame (identical to the previous one) measures nothing (tracks predicted,
