@@ -122,7 +122,7 @@ __all__ = [
     "ray_gate_chi2",
     "OWN_ESTIMATE_GATE_CHI2",
     "own_estimate_chi2",
-    "pair_covariance",
+    "pair_crossing",
     "noise_for",
 ]
 
@@ -766,7 +766,7 @@ def own_estimate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, v
 
     ``S = P_own + P`` (plus the target's motion over the ray's time sigma, with ``v_ned_mps`` when given).  The
     two share this vehicle's bearings, so their difference varies less than ``S`` says: the test errs towards
-    keeping an object, never towards refusing one that is right.  What it sees that the ray gate cannot: two
+    keeping an object.  What it sees that the ray gate cannot: two
     vehicles on two objects whose rays cross, or a vehicle whose tracker moved to another object near the same
     line of sight, are told apart by the range a manoeuvring vehicle has measured itself."""
     if ray.own_p_ned_m is None or ray.own_cov_ned_m2 is None:
@@ -782,18 +782,27 @@ def own_estimate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, v
         return None  # no spread at all on either side: nothing to test against
 
 
-def pair_covariance(a: Ray, b: Ray, ca: ClosestApproach, noise_a: NoiseModel, noise_b: NoiseModel) -> np.ndarray:
-    """The covariance (3, 3) of the crossing point ``ca.midpoint_ned_m`` of rays ``a`` and ``b``: each ray's information
-    across itself at its range (``B^T diag(1 / ((r s_cross)^2 + s_cam^2)) B``), summed and inverted.  Along a
-    direction neither ray measures (near-parallel rays) the variance is left huge, so a test against it passes."""
+def pair_crossing(
+    a: Ray, b: Ray, ca: ClosestApproach, noise_a: NoiseModel, noise_b: NoiseModel
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where rays ``a`` and ``b`` cross, weighted, and its covariance (3,), (3, 3): each ray's information across
+    itself at its range (``A = B^T diag(1 / ((r s_cross)^2 + s_cam^2)) B``), the point that minimises both rays'
+    weighted cross-range offsets (``(A_a + A_b) x = A_a c_a + A_b c_b``) and the inverse of the summed information.
+    Not ``ca.midpoint_ned_m``: halfway between the closest points carries half the far ray's cross-range error, which
+    this covariance does not hold when the ranges differ.  Along a direction neither ray measures (near-parallel
+    rays) the point is the midpoint's and the variance is left huge, so a test against it passes."""
     info = np.zeros((3, 3))
+    rhs = np.zeros(3)
     for ray, r, noise in ((a, ca.range_a_m, noise_a), (b, ca.range_b_m, noise_b)):
         w = 1.0 / ((r * ray.sigma_cross_rad) ** 2 + _camera_sigma_m(noise) ** 2)
-        info += ray.basis_ned.T @ (w[:, None] * ray.basis_ned)
+        A = ray.basis_ned.T @ (w[:, None] * ray.basis_ned)
+        info += A
+        rhs += A @ ray.p_cam_ned_m
     vals, vecs = np.linalg.eigh(info)
-    top = float(vals[-1])
-    inv = np.where(vals > top * 1e-12, 1.0 / np.maximum(vals, 1e-300), 1e12)
-    return (vecs * inv) @ vecs.T
+    ok = vals > float(vals[-1]) * 1e-12
+    inv = np.where(ok, 1.0 / np.maximum(vals, 1e-300), 0.0)
+    x = (vecs * inv) @ vecs.T @ rhs + (vecs * ~ok) @ vecs.T @ ca.midpoint_ned_m
+    return x, (vecs * np.where(ok, inv, 1e12)) @ vecs.T
 
 
 def carried_with_bearing(last: FleetEstimate, ray: Ray, noise: NoiseModel, config: FleetConfig) -> Triangulation:

@@ -42,7 +42,7 @@ from onboard.estimation.fleet import (
     fleet_verdict,
     noise_for,
     own_estimate_chi2,
-    pair_covariance,
+    pair_crossing,
     ray_gate_chi2,
     triangulate,
 )
@@ -242,9 +242,11 @@ class FleetTracker:
             if ca is None or ca.chi2 > pair_chi2:
                 continue
             if ray.own_p_ned_m is not None or cand.own_p_ned_m is not None:
-                P = pair_covariance(ray, cand, ca, noise, self._noise(other[0]))
-                P += np.eye(3) * (cfg.max_speed_mps * abs(ray.t_s - cand.t_s)) ** 2  # the motion between the two
-                if self._own_disagrees(ray, ca.midpoint_ned_m, P) or self._own_disagrees(cand, ca.midpoint_ned_m, P):
+                x, P = pair_crossing(ray, cand, ca, noise, self._noise(other[0]))
+                # the target's motion between the two rays and over their time sigmas, as closest_approach allows
+                dt2 = (ray.t_s - cand.t_s) ** 2 + ray.time_sigma_s**2 + cand.time_sigma_s**2
+                P += np.eye(3) * cfg.max_speed_mps**2 * dt2
+                if self._own_disagrees(ray, x, P) or self._own_disagrees(cand, x, P):
                     self.counter.count(
                         "own_estimate_disagrees", f"{key[0]} object {key[1]} not paired with {other}", level=10
                     )
