@@ -207,7 +207,7 @@ class Fusion:
         self._time_sources: dict[str, str] = {}
         self._origins: dict[str, GeodeticOrigin] = {}
         self._cameras: dict[str, np.ndarray] = {}
-        self._objects: dict[str, int] = {}  # each vehicle's newest object id (its track's track_id)
+        self._objects: dict[str, tuple[int, float]] = {}  # each vehicle's newest object id and its newest ray time
         self.clock_check = clock_check if clock_check is not None else ClockConsistency()
         self.silent_after_s = float(silent_after_s)
         self._last_arrival: dict[str, float] = {}  # fusion clock, UTC s: the vehicle's newest track of any kind
@@ -341,12 +341,16 @@ class Fusion:
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
         self.rays += 1
-        # a daemon's track is of one object at a time: a new id ends the last one's stay in its target at once
-        # (else a flickering id kept the vehicle 'live' in its old target, and its new object made a second one)
-        last_id = self._objects.get(vehicle)
-        if last_id is not None and last_id != ray.object_id:
-            self.tracker.retire(vehicle, last_id, f"its vehicle's track moved to object {ray.object_id}")
-        self._objects[vehicle] = ray.object_id
+        # a daemon's track is of one object at a time: a newer ray of a new id ends the last one's stay in its target
+        # at once (else a flickering id kept the vehicle 'live' in its old target, and its new object made a second
+        # one); a late ray of an object already ended is of no target any more
+        last = self._objects.get(vehicle)
+        if last is not None and last[0] != ray.object_id:
+            if ray.t_s < last[1]:
+                self.counter.count("ray_of_ended_object", f"{key}: object {ray.object_id}, late", level=logging.DEBUG)
+                return
+            self.tracker.retire(vehicle, last[0], f"its vehicle's track moved to object {ray.object_id}")
+        self._objects[vehicle] = (ray.object_id, max(ray.t_s, last[1] if last is not None else ray.t_s))
         tid = self.tracker.add(ray)
         if tid is not None:
             self._touched.add(tid)

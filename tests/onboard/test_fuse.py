@@ -714,3 +714,25 @@ def test_a_flickering_track_id_stays_one_fleet_target():
     assert np.mean(nees) < 4.0
     events = fusion.status(T0_UNIX_S + 3.0)["events"]
     assert events["target_created"] == 1 and events["object_left"] == 17  # each id change, once
+
+
+def test_a_late_message_of_a_vehicles_previous_id_does_not_evict_its_current_object():
+    """Retiring an object goes by the rays' times, not by arrival order: uav1's daemon moves to id 2 at 1 s and
+    its last id-1 frame reaches the fusion after the first id-2 frame (a reordering link)."""
+    fusion = new_fusion()
+    rng = np.random.default_rng(0)
+    held = None
+    for k, t in enumerate(np.arange(0.0, 2.0, 1 / 30)):
+        obj = _payload_dict(UAV1, t, rng, k, track_id=1 if t < 1.0 else 2)
+        if k == 29:
+            held = json.dumps(obj).encode()
+        else:
+            fusion.receive("irtrack/uav1/track", json.dumps(obj).encode(), T0_UNIX_S + t + 0.005)
+        if k == 31:
+            fusion.receive("irtrack/uav1/track", held, T0_UNIX_S + t + 0.006)
+        obj2 = _payload_dict(UAV2, t, rng, k, track_id=7)
+        fusion.receive("irtrack/uav2/track", json.dumps(obj2).encode(), T0_UNIX_S + t + 0.005)
+        fusion.flush()
+    (tid,) = fusion.tracker.targets
+    assert sorted(fusion.tracker.members(tid)) == [("uav1", 2), ("uav2", 7)]
+    assert fusion.counter["object_left"] == 1 and fusion.counter["ray_of_ended_object"] == 1
