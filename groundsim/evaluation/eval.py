@@ -648,6 +648,7 @@ def run_lockstep(
             None
             if track is None or track.u_px is None or track.state not in ("tracking", "coasting")
             else (track.u_px, track.v_px),
+            processed=track is not None,
         )
 
         if options.keep_frame and fr.pixels is not None and _better_frame(kept, k, F, track):

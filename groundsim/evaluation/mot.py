@@ -218,7 +218,7 @@ class PerceptionScore:
     * ``pd_pct``: of the frames where an object is visible at ``MIN_CONTRAST_NETD`` or more (any contrast without a
       scene's labels), from ``SETTLE_S`` after it first showed, the share with a tracked object within ``MATCH_PX``;
     * ``false_tracks_per_min``: tracked ids farther than ``MATCH_PX`` from every object (visible or not) on more than
-      half of their frames, per minute of flight;
+      half of their frames, per minute of the frames the pipeline processed;
     * ``id_switches``: per object, changes of the tracked id matched to it (the nearest within ``MATCH_PX``);
     * ``state_accuracy``: the Anti-UAV benchmarks' SA of the selected target (object 0): per frame the IoU of the
       selected track's box with the target's (``BOX_SIDE_PX`` squares about the centres; 0 without a track) while
@@ -227,6 +227,7 @@ class PerceptionScore:
     def __init__(self, frame_rate_hz: float) -> None:
         self.frame_rate_hz = float(frame_rate_hz)
         self.frames = 0
+        self.processed = 0
         self._first_visible: dict[int, int] = {}
         self._counted = self._detected = 0
         self._last_id: dict[int, int] = {}
@@ -234,12 +235,21 @@ class PerceptionScore:
         self._track_frames: dict[int, list[int]] = {}  # id -> [frames, frames off every object]
         self._sa_sum = 0.0
 
-    def add(self, objects, tracks: dict[int, tuple[float, float]], selected: tuple[float, float] | None) -> None:
+    def add(
+        self,
+        objects,
+        tracks: dict[int, tuple[float, float]],
+        selected: tuple[float, float] | None,
+        processed: bool = True,
+    ) -> None:
         """One frame: ``objects`` the truth, ``(object_id, u_px, v_px, visible, contrast_netd)`` each (contrast None:
         unknown, counted); ``tracks`` the tracked objects ``{id: (u, v)}``; ``selected`` the selected target's
-        reported centre, or None when no track is reported."""
+        reported centre, or None when no track is reported; ``processed``: the pipeline made a track of the frame
+        (a frame it refused reports nothing and tracks nothing: it counts for Pd and SA, not for the minutes of
+        false tracks)."""
         k = self.frames
         self.frames += 1
+        self.processed += bool(processed)
         known = [(u, v) for _, u, v, _, _ in objects if math.isfinite(u) and math.isfinite(v)]
         for tid, (u, v) in tracks.items():
             rec = self._track_frames.setdefault(tid, [0, 0])
@@ -266,7 +276,7 @@ class PerceptionScore:
             self._sa_sum += 1.0 if selected is None else 0.0
 
     def figures(self) -> dict:
-        minutes = self.frames / self.frame_rate_hz / 60.0
+        minutes = self.processed / self.frame_rate_hz / 60.0
         false_tracks = sum(1 for n, off in self._track_frames.values() if off > 0.5 * n)
         return {
             "pd_pct": 100.0 * self._detected / self._counted if self._counted else None,

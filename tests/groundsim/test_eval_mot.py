@@ -93,3 +93,13 @@ def test_perception_score_pd_false_tracks_switches_and_state_accuracy():
     # 5 frames with nothing reported while the target is absent (1)
     iou = (5.0 * 6.0) / (2 * 36.0 - 30.0)
     assert f["state_accuracy"] == pytest.approx((30 * iou + 0 + 5) / 40)
+
+
+def test_perception_score_counts_false_tracks_over_the_frames_processed():
+    from groundsim.evaluation.mot import PerceptionScore
+
+    ps = PerceptionScore(frame_rate_hz=10.0)
+    for k in range(20):
+        done = k < 10  # the second half refused by the pipeline: no track made
+        ps.add([(0, 100.0, 50.0, True, 12.0)], {3: (10.0, 10.0)} if done else {}, None, processed=done)
+    assert ps.figures()["false_tracks_per_min"] == pytest.approx(1 / (10 / 10 / 60))  # one false track in 1 s
