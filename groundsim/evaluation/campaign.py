@@ -465,6 +465,13 @@ def _run_closed_loop(job: Job) -> list[dict]:
         m.update(geometry_figures(job.scenario, params.seed, r.t_s - r.t_s[0]))
         b = s.get("batch") or {}
         bm = (b.get("pipeline") or {}).get("metrics") or {}
+        perception = s.get("perception") or {}
+        m.update(
+            pd_pct=perception.get("pd_pct"),
+            false_tracks_per_min=perception.get("false_tracks_per_min"),
+            id_switches=perception.get("id_switches"),
+            state_accuracy=perception.get("state_accuracy"),
+        )
         m.update(
             crb_rms_m=b.get("crb_rms_m"),
             crb_range_sigma_pct=math.nan,
