@@ -315,8 +315,7 @@ class OnboardService:
         return self._stop.is_set()
 
     def close(self, timeout_s: float = 1.0, deadline_s: float | None = None) -> None:
-        """Stop threads and close everything; bounded by about ``timeout_s`` (twice it when the pipeline thread is held
-        in a frame) plus zenoh's close.  ``deadline_s``
+        """Stop threads and close everything; bounded by about ``timeout_s`` plus zenoh's close.  ``deadline_s``
         (``time.monotonic()``): when everything must be closed by (the daemon's shutdown budget); the output
         taps, closed last, then get what is left of it (at least :data:`MIN_TAP_CLOSE_S`) instead of
         ``timeout_s``: the recorder writes its backlog for that long and finishes its file within it."""
@@ -327,9 +326,6 @@ class OnboardService:
             self._pipe_thread.join(timeout_s)
             if self._pipe_thread.is_alive():
                 log.warning("pipeline thread did not stop within %.1f s", timeout_s)
-                # its frame may be inside the estimator (a dead worker's replacement takes ~0.4 s): one more bounded
-                # wait before the estimator closes under it (the two share the worker's pipe, with no lock)
-                self._pipe_thread.join(timeout_s)
         if isinstance(self.estimator, (ThreadedEstimator, ProcessEstimator)):
             self.estimator.close(timeout_s / 2)
         for ent in (self._sub, self._track_pub, self._status_pub, self._objects_pub):
