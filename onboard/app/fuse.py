@@ -334,13 +334,6 @@ class Fusion:
                     self.tracker.withdraw(vehicle, "its clock is off")
                 return
             self._clock_refused.discard(vehicle)
-        if self.origin is None:
-            self.origin = origin
-            log.info("fleet origin: %s's, %s", vehicle, origin)
-        self._time_sources[vehicle] = source
-        self._origins[vehicle] = track.origin
-        self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
-        self.rays += 1
         # a daemon's track is of one object at a time: a newer ray of a new id ends the last one's stay in its target
         # at once (else a flickering id kept the vehicle 'live' in its old target, and its new object made a second
         # one); a late ray of an object already ended is of no target any more
@@ -351,6 +344,13 @@ class Fusion:
                 return
             self.tracker.retire(vehicle, last[0], f"its vehicle's track moved to object {ray.object_id}")
         self._objects[vehicle] = (ray.object_id, max(ray.t_s, last[1] if last is not None else ray.t_s))
+        if self.origin is None:
+            self.origin = origin
+            log.info("fleet origin: %s's, %s", vehicle, origin)
+        self._time_sources[vehicle] = source
+        self._origins[vehicle] = track.origin
+        self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
+        self.rays += 1
         tid = self.tracker.add(ray)
         if tid is not None:
             self._touched.add(tid)
