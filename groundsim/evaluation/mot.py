@@ -215,8 +215,9 @@ def _square_iou(a: tuple[float, float], b: tuple[float, float]) -> float:
 class PerceptionScore:
     """A run's perception figures, frame by frame (pure; the same definitions as ``bench.imaging --scene``):
 
-    * ``pd_pct``: of the frames where an object is visible at ``MIN_CONTRAST_NETD`` or more (any contrast without a
-      scene's labels), from ``SETTLE_S`` after it first showed, the share with a tracked object within ``MATCH_PX``;
+    * ``pd_pct``: of the processed frames where an object is visible at ``MIN_CONTRAST_NETD`` or more (any contrast
+      without a scene's labels), from ``SETTLE_S`` after it first showed, the share with a tracked object within
+      ``MATCH_PX``;
     * ``false_tracks_per_min``: tracked ids farther than ``MATCH_PX`` from every object (visible or not) on more than
       half of their frames, per minute of the frames the pipeline processed;
     * ``id_switches``: per object, changes of the tracked id matched to it (the nearest within ``MATCH_PX``);
@@ -245,8 +246,8 @@ class PerceptionScore:
         """One frame: ``objects`` the truth, ``(object_id, u_px, v_px, visible, contrast_netd)`` each (contrast None:
         unknown, counted); ``tracks`` the tracked objects ``{id: (u, v)}``; ``selected`` the selected target's
         reported centre, or None when no track is reported; ``processed``: the pipeline made a track of the frame
-        (a frame it refused reports nothing and tracks nothing: it counts for Pd and SA, not for the minutes of
-        false tracks)."""
+        (a frame it refused reports nothing and tracks nothing: it counts for SA, an empty report, and not for Pd,
+        id switches or the minutes of false tracks, as ``bench.imaging`` counts only the frames it ran the chain on)."""
         k = self.frames
         self.frames += 1
         self.processed += bool(processed)
@@ -262,6 +263,8 @@ class PerceptionScore:
             if not visible:
                 continue
             first = self._first_visible.setdefault(oid, k)
+            if not processed:
+                continue  # no track made of the frame: nothing detected or missed on it (bench.imaging skips it too)
             best = nearest_within(tracks, u, v)
             if best is not None:
                 if oid in self._last_id and self._last_id[oid] != best:

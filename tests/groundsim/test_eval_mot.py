@@ -102,4 +102,7 @@ def test_perception_score_counts_false_tracks_over_the_frames_processed():
     for k in range(20):
         done = k < 10  # the second half refused by the pipeline: no track made
         ps.add([(0, 100.0, 50.0, True, 12.0)], {3: (10.0, 10.0)} if done else {}, None, processed=done)
-    assert ps.figures()["false_tracks_per_min"] == pytest.approx(1 / (10 / 10 / 60))  # one false track in 1 s
+    f = ps.figures()
+    assert f["false_tracks_per_min"] == pytest.approx(1 / (10 / 10 / 60))  # one false track in 1 s
+    assert f["pd_counted"] == 0  # the target's frames after its first second were all refused: none counted
+    assert f["state_accuracy"] == pytest.approx(0.0)  # visible throughout, never a box reported
