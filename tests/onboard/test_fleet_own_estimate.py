@@ -14,6 +14,7 @@ from onboard.core.errors import InputError
 from onboard.core.track import LineOfSight
 from onboard.estimation.fleet import (
     OWN_ESTIMATE_GATE_CHI2,
+    ClosestApproach,
     FleetConfig,
     Ray,
     closest_approach,
@@ -115,10 +116,17 @@ def test_the_own_estimate_test_is_chi_square_and_the_crossing_is_weighted():
     sin_cross = float(np.linalg.norm(np.cross(a.los_ned, b.los_ned)))  # 21 deg between the rays
     # along ray a, the crossing moves by ray b's cross-range error over the sine of their angle
     assert math.sqrt(along @ P @ along) == pytest.approx(ca.range_b_m * SIGMA_RAD / sin_cross, rel=0.5)
-    near_parallel = _ray("uav2", UAV1 + np.array([0.0, 0.01, 0.0]), A + np.array([0.0, 0.0, 0.3]), 0.0)
-    ca2 = closest_approach(a, near_parallel, EXACT, EXACT)
-    if ca2 is not None:
-        assert along @ pair_crossing(a, near_parallel, ca2, EXACT, EXACT)[1] @ along > 1e6
+    # rays parallel to within nothing: along them neither measures; the point there is the closest points' midpoint
+    # and the variance is left huge, so an own estimate anywhere along them passes
+    c, d = (
+        _ray("uav1", UAV1, A, 0.0),
+        _ray("uav2", UAV1 + np.array([0.0, 10.0, 0.0]), A + np.array([0.0, 10.0, 0.0]), 0.0),
+    )
+    mid = UAV1 + np.array([400.0, 5.0, 0.0])
+    parallel = ClosestApproach(10.0, 1.0, 400.0, 400.0, mid, 100.0)
+    x2, P2 = pair_crossing(c, d, parallel, EXACT, EXACT)
+    along2 = c.los_ned
+    assert along2 @ P2 @ along2 > 1e11 and float(along2 @ (x2 - mid)) == pytest.approx(0.0, abs=1e-6)
 
 
 @pytest.mark.parametrize(
