@@ -80,7 +80,7 @@ def add_mot_scores(out: Path, seqs: list[str]) -> None:
         if seq in scores:
             row["mot"] = scores[seq]
     path.write_text(json.dumps(report, indent=1, allow_nan=False) + "\n", encoding="utf-8")
-    from groundsim.evaluation.report import format_mot_scores
+    from groundsim.evaluation.mot import format_mot_scores
 
     with open(Path(out) / "report.md", "a", encoding="utf-8") as f:
         f.write("\n## Multi-object tracking, TrackEval (MOT Challenge 2-D boxes under mot/)\n\n")

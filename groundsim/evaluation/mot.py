@@ -35,6 +35,8 @@ __all__ = [
     "PerceptionScore",
     "tracker_positions",
     "nearest_within",
+    "format_perception",
+    "format_mot_scores",
 ]
 
 BOX_SIDE_PX = 6.0
@@ -288,3 +290,46 @@ class PerceptionScore:
             "id_switches": self._switches,
             "state_accuracy": self._sa_sum / self.frames if self.frames else None,
         }
+
+
+def _table_head(head: str) -> list[str]:
+    # report.markdown_head's two lines; report imports this module, so this module does not import it back
+    return [head, "|" + "---|" * (head.count("|") - 1)]
+
+
+def format_perception(runs: list[dict]) -> str:
+    """The perception figures per (scenario, navigation case), one value per seed (the run rows' ``perception``,
+    :class:`groundsim.evaluation.mot.PerceptionScore`), with the perception issue's goals; HOTA and its parts are
+    TrackEval's, in the table :func:`format_mot_scores` adds when TrackEval is installed."""
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for row in runs:
+        if row.get("error") is None and row.get("perception"):
+            groups.setdefault((row["scenario"], row.get("nav_noise", "")), []).append(row)
+
+    def each(rows, key, fmt):
+        vals = [r["perception"].get(key) for r in rows]
+        return " / ".join("-" if v is None else fmt.format(v) for v in vals)
+
+    lines = _table_head(
+        "| scenario | navigation errors | seeds | Pd, visible objects >= 3 NETD after 1 s (>= 95 %) | "
+        "false tracks a minute (<= 1) | id switches | selected target's state accuracy (Anti-UAV SA) |"
+    )
+    for (name, nav), rows in groups.items():
+        seeds = " / ".join(str(r["seed"]) for r in rows)
+        lines.append(
+            f"| {name} | {nav or '-'} | {seeds} | {each(rows, 'pd_pct', '{:.1f} %')} | "
+            f"{each(rows, 'false_tracks_per_min', '{:.1f}')} | {each(rows, 'id_switches', '{:d}')} | "
+            f"{each(rows, 'state_accuracy', '{:.3f}')} |"
+        )
+    return "\n".join(lines)
+
+
+def format_mot_scores(scores: dict[str, dict]) -> str:
+    """TrackEval's figures per run (SEQ = ``<scenario>-<nav>-s<seed>``), a markdown table."""
+    lines = _table_head("| run | HOTA | DetA | AssA | MOTA | IDF1 | id switches (TrackEval) |")
+    for seq, m in scores.items():
+        lines.append(
+            f"| {seq} | {m['HOTA']:.3f} | {m['DetA']:.3f} | {m['AssA']:.3f} | {m['MOTA']:.3f} | {m['IDF1']:.3f} |"
+            f" {m['IDSW']} |"
+        )
+    return "\n".join(lines)

@@ -224,44 +224,6 @@ CLOSED_LOOP_GOALS = {
 }
 
 
-def format_perception(runs: list[dict]) -> str:
-    """The perception figures per (scenario, navigation case), one value per seed (the run rows' ``perception``,
-    :class:`groundsim.evaluation.mot.PerceptionScore`), with the perception issue's goals; HOTA and its parts are
-    TrackEval's, in the table :func:`format_mot_scores` adds when TrackEval is installed."""
-    groups: dict[tuple[str, str], list[dict]] = {}
-    for row in runs:
-        if row.get("error") is None and row.get("perception"):
-            groups.setdefault((row["scenario"], row.get("nav_noise", "")), []).append(row)
-
-    def each(rows, key, fmt):
-        vals = [r["perception"].get(key) for r in rows]
-        return " / ".join("-" if v is None else fmt.format(v) for v in vals)
-
-    lines = markdown_head(
-        "| scenario | navigation errors | seeds | Pd, visible objects >= 3 NETD after 1 s (>= 95 %) | "
-        "false tracks a minute (<= 1) | id switches | selected target's state accuracy (Anti-UAV SA) |"
-    )
-    for (name, nav), rows in groups.items():
-        seeds = " / ".join(str(r["seed"]) for r in rows)
-        lines.append(
-            f"| {name} | {nav or '-'} | {seeds} | {each(rows, 'pd_pct', '{:.1f} %')} | "
-            f"{each(rows, 'false_tracks_per_min', '{:.1f}')} | {each(rows, 'id_switches', '{:d}')} | "
-            f"{each(rows, 'state_accuracy', '{:.3f}')} |"
-        )
-    return "\n".join(lines)
-
-
-def format_mot_scores(scores: dict[str, dict]) -> str:
-    """TrackEval's figures per run (SEQ = ``<scenario>-<nav>-s<seed>``), a markdown table."""
-    lines = markdown_head("| run | HOTA | DetA | AssA | MOTA | IDF1 | id switches (TrackEval) |")
-    for seq, m in scores.items():
-        lines.append(
-            f"| {seq} | {m['HOTA']:.3f} | {m['DetA']:.3f} | {m['AssA']:.3f} | {m['MOTA']:.3f} | {m['IDF1']:.3f} |"
-            f" {m['IDSW']} |"
-        )
-    return "\n".join(lines)
-
-
 def format_closed_loop(summary: list[dict]) -> str:
     """The closed-loop figures per (scenario, navigation case), medians over seeds, with the goal
     beside each (:func:`groundsim.evaluation.eval.closed_loop_figures` defines them); under the table, after a
@@ -898,6 +860,8 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
         "track) against the scene's truth of every object; the MOT files TrackEval reads are under `mot/`, and its "
         "HOTA is in the table below when it is installed.\n"
     )
+    from groundsim.evaluation.mot import format_perception
+
     L.append(format_perception(report["runs"]))
     L.append("")
     L.append("## Reconstruction error beside the paper's Table 2\n")
