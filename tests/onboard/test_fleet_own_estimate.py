@@ -163,7 +163,7 @@ def test_a_track_brings_its_own_estimate_into_the_fleet_frame_only_where_observa
 @pytest.mark.parametrize("far_m", [200.0, 3000.0])
 def test_an_honest_own_estimate_passes_the_pairing_test_at_its_rate_whatever_the_ranges(far_m):
     """The crossing is the weighted one: halfway between the closest points carries half the far ray's error, which
-    the pairing covariance does not hold (a review's Monte Carlo: 42 % of honest pairs refused at 200 / 3000 m)."""
+    the pairing covariance does not hold, and honest pairs at unequal ranges would be refused far above the rate."""
     rng = np.random.default_rng(7)
     X = np.array([0.0, 0.0, -100.0])
     near_cam, far_cam = np.array([-200.0, 0.0, -100.0]), np.array([0.0, -far_m, -100.0])
