@@ -369,7 +369,12 @@ class Track:
         # tuple): a Track is made every frame from values of the right types, and the checks alone were a large
         # share of the pipeline thread's Python.  Same checks, same messages.
         setattr_ = object.__setattr__
-        for name, hi in (("seq", 2**32 - 1), ("time_boot_us", _U64_MAX), ("window_frames", 2**31)):
+        for name, hi in (
+            ("seq", 2**32 - 1),
+            ("time_boot_us", _U64_MAX),
+            ("window_frames", 2**31),
+            ("estimate_epoch", 2**31 - 1),
+        ):
             v = getattr(self, name)
             if type(v) is int and 0 <= v <= hi:
                 continue
@@ -468,11 +473,6 @@ class Track:
             setattr_(self, "compensated_us", int(c))
         elif abs(c) > MAX_COMPENSATED_US:
             raise InputError(f"Track.compensated_us must be within +-{MAX_COMPENSATED_US} us, got {c!r}")
-        n = self.estimate_epoch
-        if type(n) is not int or not 0 <= n < 2**31:
-            if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 0 <= int(n) < 2**31:
-                raise InputError(f"Track.estimate_epoch must be an integer in [0, 2**31), got {n!r}")
-            setattr_(self, "estimate_epoch", int(n))
 
     def with_time_unix(self, time_unix_us: int | None, time_unix_sigma_us: int | None) -> Track:
         """This track with its UTC stamp: the two fields checked as ``__post_init__`` checks them, every
