@@ -161,15 +161,14 @@ class FleetTracker:
     def withdraw(self, vehicle: str, why: str) -> None:
         """Take every object of ``vehicle`` out of its target and forget its rays (a name shared by two
         vehicles: none of its rays can be trusted to be the vehicle's own)."""
-        for key in [k for k in self._rays if k[0] == vehicle]:
-            self._leave(key, why)
-            del self._rays[key]
+        for _, object_id in [k for k in self._rays if k[0] == vehicle]:
+            self.retire(vehicle, object_id, why)
         self._vehicle_newest_s.pop(vehicle, None)
 
     def retire(self, vehicle: str, object_id: int, why: str) -> None:
-        """Take one object of ``vehicle`` out of its target and forget its rays: its vehicle has said it is done
-        with it (a daemon's track moved to another object id), so its target need not wait for its silence before
-        the vehicle's next object may join."""
+        """Take one object of ``vehicle`` out of its target and forget its rays: it went silent, its vehicle was
+        withdrawn, or its vehicle said it is done with it (a daemon's track moved to another object id, so its target
+        need not wait for its silence before the vehicle's next object may join)."""
         key = (vehicle, object_id)
         if key in self._rays:
             self._leave(key, why)
@@ -188,9 +187,8 @@ class FleetTracker:
 
     def _expire(self) -> None:
         cutoff = self.now_s - self.config.member_timeout_s
-        for key in [k for k, buf in self._rays.items() if not buf or buf[-1].t_s < cutoff]:
-            self._leave(key, "silent")
-            del self._rays[key]
+        for vehicle, object_id in [k for k, buf in self._rays.items() if not buf or buf[-1].t_s < cutoff]:
+            self.retire(vehicle, object_id, "silent")
 
     @staticmethod
     def _own_disagrees(ray: Ray, p: np.ndarray, P: np.ndarray, v=None) -> bool:
