@@ -83,14 +83,20 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 
-from groundsim.evaluation.mot import gt_rows, nearest_within, score_mot, tracker_rows, write_mot
+from groundsim.evaluation.mot import (
+    MATCH_PX,
+    MIN_CONTRAST_NETD,
+    SETTLE_S,
+    gt_rows,
+    nearest_within,
+    score_mot,
+    tracker_rows,
+    write_mot,
+)
 
-MATCH_PX = 3.0
 DEFECT_PX = 2.0
-MIN_CONTRAST_NETD = 3.0
 FAINT_GREY = 2.0  # a target's peak this close to the median about it is at the 8-bit grey's own step
 CAUSE_HALF_PX = 15  # the square about a target its point contrast is measured in (past the chain's border band)
-SETTLE_S = 1.0
 DEFAULT_CACHE = Path("/tmp/irtrack-scene-frames")
 LABEL_FIELDS = 7  # (object_id, cls, u_px, v_px, visibility, contrast_netd, warm); 6 before warm
 
@@ -385,7 +391,7 @@ def score(run: SceneRun, chain) -> dict[str, float]:
                         and primary in tpos
                         and math.hypot(tpos[primary][0] - u, tpos[primary][1] - v) <= MATCH_PX
                     )
-            best = nearest_within(tpos, u, v, MATCH_PX)
+            best = nearest_within(tpos, u, v)
             if best is not None:
                 if oid in last_id and last_id[oid] != best:
                     switches[oid] = switches.get(oid, 0) + 1

@@ -68,17 +68,23 @@ def gt_rows(frame: int, labels, truth_uv=None, truth_visible: bool = False) -> l
     return rows
 
 
+def _tracked(objects=None, track=None) -> list[tuple[int, float, float, float | None]]:
+    """``(id, u, v, score)`` of what the pipeline tracks on one frame: ``objects`` an ObjectsUpdate (its confirmed
+    objects), else ``track`` (a Track: itself while tracking; score None)."""
+    if objects is not None:
+        return [(o.object_id, o.u_px, o.v_px, o.score) for o in objects.confirmed]
+    if track is not None and track.state == "tracking" and track.u_px is not None and track.track_id is not None:
+        return [(track.track_id, track.u_px, track.v_px, None)]
+    return []
+
+
 def tracker_rows(frame: int, objects=None, track=None) -> list[str]:
     """Tracker lines of one frame: ``objects`` an ObjectsUpdate (its confirmed objects), else ``track``
     (a Track: one line while tracking)."""
-    if objects is not None:
-        return [
-            f"{frame},{o.object_id},{_box(o.u_px, o.v_px)},{max(o.score, 0.0):.3f},-1,-1,-1\n"
-            for o in objects.confirmed
-        ]
-    if track is not None and track.state == "tracking" and track.u_px is not None and track.track_id is not None:
-        return [f"{frame},{track.track_id},{_box(track.u_px, track.v_px)},1,-1,-1,-1\n"]
-    return []
+    return [
+        f"{frame},{i},{_box(u, v)},{'1' if score is None else f'{max(score, 0.0):.3f}'},-1,-1,-1\n"
+        for i, u, v, score in _tracked(objects, track)
+    ]
 
 
 def seq_name(scenario: str, nav: str, seed: int) -> str:
@@ -189,11 +195,7 @@ def score_mot(out: Path, seqs: list[str], tracker: str = "irtrack") -> dict:
 
 def tracker_positions(objects=None, track=None) -> dict[int, tuple[float, float]]:
     """``{id: (u, v)}`` of what :func:`tracker_rows` writes for one frame."""
-    if objects is not None:
-        return {int(o.object_id): (float(o.u_px), float(o.v_px)) for o in objects.confirmed}
-    if track is not None and track.state == "tracking" and track.u_px is not None and track.track_id is not None:
-        return {int(track.track_id): (float(track.u_px), float(track.v_px))}
-    return {}
+    return {int(i): (float(u), float(v)) for i, u, v, _ in _tracked(objects, track)}
 
 
 def nearest_within(
