@@ -124,14 +124,15 @@ class ThreadedEstimator:
         t = args[0]
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
-            # the oldest observation, never a queued reset or rebuild (it heads the queue it cleared): dropping
-            # one would add the new track's rows to the old window under the new epoch, unseen
-            oldest = next((i for i, item in enumerate(self._q) if item[0] == "add"), None)
-            if len(self._q) >= self._max_pending and oldest is not None:
-                del self._q[oldest]
-                self._counter.count(
-                    "estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped"
-                )
+            if len(self._q) >= self._max_pending:
+                # the oldest observation, never a queued reset or rebuild (it heads the queue it cleared): dropping
+                # one would add the new track's rows to the old window under the new epoch, unseen
+                oldest = next((i for i, item in enumerate(self._q) if item[0] == "add"), None)
+                if oldest is not None:
+                    del self._q[oldest]
+                    self._counter.count(
+                        "estimator_backlog", f"more than {self._max_pending} observations pending; oldest dropped"
+                    )
             epoch = self._epoch
             self._q.append(("add", epoch, t, args))
             self._cond.notify_all()
@@ -549,7 +550,7 @@ class ProcessEstimator:
         child.close()
         self._conn = parent
         # the parent never waits on the pipe: what it cannot take now waits in _out, written as it drains (a
-        # replacement's 0.9 MB snapshot held the frame loop for the new worker's whole start, 0.4 s, before)
+        # replacement's snapshot, near a megabyte, would otherwise hold the frame loop for the new worker's start)
         os.set_blocking(parent.fileno(), False)
         self._out = bytearray()  # bytes for this worker the pipe has not taken yet (_send)
         self._intrinsics_sent: list = []  # the camera models this worker has, by index (_intrinsics_index)
