@@ -239,10 +239,10 @@ class Fusion:
     def _clock_off(self, vehicle: str, now_unix_s: float) -> float | None:
         """How far ``vehicle``'s UTC is off the others' (s) when the clock check names it: its rays are timed wrong
         by that much while their time sigma says a fraction of a millisecond.  Beyond the pairing window they could
-        not pair: kept out.  Within it they paired at the wrong place, confidently (20 ms on a 25 m/s target: 9 %
-        of the fused points beyond 3 sigma, 30 ms: half): their time sigma is widened to the deviation instead of
-        shutting the vehicle out, since the check also names a vehicle whose link is slower by more than the
-        tolerance (its latency floor, not its clock, differs), which would lose its rays for nothing."""
+        not pair: kept out.  Within it they paired at the wrong place, confidently (docs/fleet.md gives the
+        figures): their time sigma is widened to the deviation instead of shutting the vehicle out, since the check
+        also names a vehicle whose link is slower by more than the tolerance (its latency floor, not its clock,
+        differs), which would lose its rays for nothing."""
         # the verdict moves with the check's 10 s window: judged again every CLOCK_RECHECK_S, not on every ray
         if not now_unix_s - self._clock_judged_at < CLOCK_RECHECK_S:
             self._clock_judged_at = now_unix_s

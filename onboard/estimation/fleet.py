@@ -766,9 +766,9 @@ def own_estimate_chi2(ray: Ray, p_ned_m: np.ndarray, cov_p_ned_m2: np.ndarray, v
 
     ``S = P_own + P`` (plus the target's motion over the ray's time sigma, with ``v_ned_mps`` when given).  The
     two share this vehicle's bearings, so their difference varies less than ``S`` says: the test errs towards
-    keeping an object.  What it sees that the ray gate cannot: two
-    vehicles on two objects whose rays cross, or a vehicle whose tracker moved to another object near the same
-    line of sight, are told apart by the range a manoeuvring vehicle has measured itself."""
+    keeping an object.  What it sees that the ray gate cannot: two vehicles on two objects whose rays cross, or a
+    vehicle whose tracker moved to another object near the same line of sight, are told apart by the range a
+    manoeuvring vehicle has measured itself."""
     if ray.own_p_ned_m is None or ray.own_cov_ned_m2 is None:
         return None
     d = ray.own_p_ned_m - np.asarray(p_ned_m, dtype=float)

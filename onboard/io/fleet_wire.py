@@ -248,7 +248,7 @@ class StreamCheck:
         return sorted(self._clashing)
 
 
-#: how fast an autopilot's boot clock may drift against UTC (a crystal's tolerance; the audit measured 30 ppm)
+#: how fast an autopilot's boot clock may drift against UTC (a crystal's tolerance, with margin)
 CLOCK_DRIFT_PPM = 50.0
 
 
