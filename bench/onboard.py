@@ -263,7 +263,7 @@ def _pct(a, q) -> float:
     return float(np.percentile(np.asarray(a, dtype=float), q)) if len(a) else math.nan
 
 
-def bench_processing(n_frames: int, paced: bool = False) -> None:
+def bench_processing(n_frames: int, paced: bool = False, chain: str | None = None) -> None:
     import cv2
 
     from onboard.app.config import OnboardConfig, build_config
@@ -315,8 +315,10 @@ def bench_processing(n_frames: int, paced: bool = False) -> None:
         t0 = time.perf_counter()
         decode_irframe(p)
         decode_ms.append((time.perf_counter() - t0) * 1e3)
-    cfg = OnboardConfig()
-    base, base_img, _, _, _, _, _ = run(build_config({"estimator": {"enabled": False}}), False)
+    imaging = {"chain": chain} if chain else {}
+    cfg = build_config({"imaging": imaging})
+    print(f"   imaging.chain {cfg.imaging.chain}")
+    base, base_img, _, _, _, _, _ = run(build_config({"imaging": imaging, "estimator": {"enabled": False}}), False)
     total, img, est, n_pos, rejects, last, cpu_ms = run(cfg, True)
     fps = 1000.0 / _pct(total, 50)
     print("   full chain (decode + filter + detect + track + pose + estimator):")
@@ -770,6 +772,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="also run the per-frame processing paced at 30 Hz (its CPU as in flight; use --frames 600 or more)",
     )
+    ap.add_argument(
+        "--chain",
+        choices=("objects", "single"),
+        help="imaging.chain of the daemon and of the per-frame processing (default: the daemon's, objects)",
+    )
     ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
     ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
@@ -790,8 +797,12 @@ def main(argv=None) -> int:
         return 0
     if not args.no_latency:
         # first, before this process pins itself to one core
-        print("loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz")
-        rows = [bench_latency(args.latency_s, lag) for lag in args.capture_lags_ms]
+        chain = ("--set", f"imaging.chain={args.chain}") if args.chain else ()
+        print(
+            "loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz,"
+            f" imaging.chain {args.chain or 'as configured (objects)'}"
+        )
+        rows = [bench_latency(args.latency_s, lag, extra_args=chain) for lag in args.capture_lags_ms]
         print("   summary, put -> track received (target p99 <= 15 ms at any capture lag; daemon CPU <= 0.10 s/s):")
         for r in rows:
             if r:
@@ -813,7 +824,7 @@ def main(argv=None) -> int:
         from bench.onboard_floor import bench_floor
 
         bench_floor(args.floor_s, _cpu_snapshot, SyntheticScene())
-    bench_processing(args.frames, args.paced)
+    bench_processing(args.frames, args.paced, args.chain)
     return 0
 
 

@@ -27,7 +27,7 @@ image chain and sliding-window estimator, frame by frame, deterministic):
 keeping the rest of the scene: what the second target costs, alone.
 
 Both go through the same daemon configuration: the shipped ``config/onboard.yaml`` with
-``imaging.chain: objects`` (``--chain single`` for the default chain, which locks clutter on C1-C4;
+``imaging.chain: objects``, the default (``--chain single`` for the one-blob chain, which locks clutter on C1-C4;
 docs/perception.md), the scenario's camera and unobservable positions published (as ``groundsim eval``).
 
 Per run and pooled over the seeds, per scene (definitions in :func:`run_figures` / :func:`pair_row`):

@@ -3,11 +3,13 @@ valid tracks and status documents to hand to the code that consumes them."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 
 from groundsim.io.scripted_autopilot import ScriptedAutopilot
+from onboard.app.config import OnboardConfig
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.status import build_status
 from onboard.core.track import Track
@@ -127,3 +129,15 @@ def idle_status(**fields) -> dict[str, Any]:
     )
     kw.update(fields)
     return build_status(**kw)
+
+
+def single_chain(config: OnboardConfig | None = None) -> OnboardConfig:
+    """``config`` (default: the built-in one) with ``imaging.chain: single``.
+
+    For tests of what surrounds the image chain (frame admission, clocks, the estimator hand-off, the
+    track's fields) that count frames from the first: the single chain tracks a target on the frame it
+    first sees it, while the default objects chain confirms an object over several frames first.  The
+    objects chain behind the same pipeline has its own tests (test_objects_output and the eval's).
+    """
+    config = config or OnboardConfig()
+    return dataclasses.replace(config, imaging=dataclasses.replace(config.imaging, chain="single"))

@@ -867,16 +867,17 @@ def _compare(rec: Recording, res: ReplayResult) -> int:
     worker = recorded_worker(rec)
     timed = worker is not None and worker != "inline"
     within = compare_within_sigma(rec.tracks, res.tracks) if timed or any(d.d_pos_m for d in diffs) else None
+    objects_differ = False
+    if rec.objects or res.objects:  # before the tracks' lines, whose summary stays the last line
+        n, same, left = compare_objects(rec.objects, res.objects)
+        print(f"compare: objects: {same}/{n} frames identical, {n - same} differ, {left} unmatched")
+        objects_differ = same < n or left > 0
     _print_compare(diffs, matched, unmatched, within, worker)
     if timed:  # its estimates depend on the worker's timing: only positions well beyond the recorded sigma count
         differs = unmatched > 0 or (within is not None and beyond_a_workers_sigma(within))
     else:
         differs = unmatched > 0 or bool(diffs)
-    if rec.objects or res.objects:
-        n, same, left = compare_objects(rec.objects, res.objects)
-        print(f"compare: objects: {same}/{n} frames identical, {n - same} differ, {left} unmatched")
-        differs = differs or same < n or left > 0
-    return EXIT_DIFFERENT if differs else EXIT_OK
+    return EXIT_DIFFERENT if differs or objects_differ else EXIT_OK
 
 
 def _check_writable(path: str) -> None:

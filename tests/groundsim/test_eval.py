@@ -61,7 +61,8 @@ TUM_ATOL_M = 1e-6  # TUM files keep micrometres
 TUM_ATOL_S = 1e-6  # and microseconds
 SCORE_RTOL = 1e-12  # scoring is exact arithmetic on known errors
 MAX_CENTROID_RMS_PX = 0.5  # the image chain on P1's bright target (measured ~0.05 px)
-MIN_MEASURED_FRACTION = 0.9  # frames with a valid centroid among frames with the target in view
+MIN_MEASURED_FRACTION = 0.9  # frames with a valid centroid among frames with the target in view, once confirmed
+CONFIRM_FRAMES = 12  # the default (objects) chain tracks an object once confirmed: 11 frames, 0.37 s at 30 Hz
 LOCKSTEP_DURATION_S = 1.5  # 45 frames: enough for the chain, short for the suite
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -563,12 +564,14 @@ def test_lockstep_run_goes_through_the_image_chain(lockstep_pair):
     assert np.all(np.isfinite(r.truth_p_ned_m)) and np.all(r.visible)
     assert r.pose_valid.all()
     measured = r.measurement_valid & r.visible
-    assert measured.sum() >= MIN_MEASURED_FRACTION * r.visible.sum()
+    first = int(np.argmax(measured))
+    assert measured.any() and first <= CONFIRM_FRAMES
+    assert measured[first:].sum() >= MIN_MEASURED_FRACTION * r.visible[first:].sum()
     d = r.uv_px[measured] - r.truth_uv_px[measured]
     assert math.sqrt(np.mean(np.sum(d**2, axis=1))) < MAX_CENTROID_RMS_PX
     assert set(np.unique(r.state)) <= {"tracking", "coasting", "searching", "lost"}
     s = score_run(r)
-    assert 0.0 <= s["continuity"] <= 1.0 and s["continuity_2d"] >= MIN_MEASURED_FRACTION
+    assert 0.0 <= s["continuity"] <= 1.0 and s["continuity_2d"] >= MIN_MEASURED_FRACTION * (F - first) / F
     assert r.frame is not None and r.frame["pixels"].shape == (512, 640)
     assert r.timing["pipeline_s"] > 0 and len(r.timing["process_ms"]) == F
 

@@ -19,7 +19,9 @@ from onboard.core.errors import ConfigError
 from onboard.core.frames import PinholeIntrinsics, quat_from_rotmat
 from onboard.pipeline.plugins import ESTIMATORS, TrajectoryEstimator, available, build, load_factory
 
-SHORT_S = 3.0  # a short lockstep run: enough frames (> 30) for every registered estimator to answer
+SHORT_S = (
+    4.0  # a short lockstep run: enough frames (> 30 after the chain confirms its object) for every estimator to answer
+)
 
 
 def _p1():

@@ -33,7 +33,7 @@ from onboard.estimation.sliding import TrackEstimate
 from onboard.io.mavlink_wire import geo_status_fields, image_status_fields
 from onboard.pipeline.admission import APART_CONFIRM_US
 from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_estimator, make_tracker
-from tests.fakes import idle_status, positioned_track
+from tests.fakes import idle_status, positioned_track, single_chain
 
 US = 1_000_000  # microseconds per second
 CENTROID_TOL_PX = 0.15  # blob sigma 1.5 px, amplitude 60, noise 1 grey: measured error ~0.03 px
@@ -122,11 +122,12 @@ class FakeEstimator:
 
 
 class Rig:
-    """Scene + pose buffer fed just ahead of each frame + pipeline."""
+    """Scene + pose buffer fed just ahead of each frame + pipeline; without a ``config``, the built-in one with
+    the single image chain (the tests here count frames from the first, :func:`tests.fakes.single_chain`)."""
 
     def __init__(self, estimator="fake", config: OnboardConfig | None = None, **fake_kw):
         self.scene = SyntheticScene()
-        self.config = config or OnboardConfig()
+        self.config = config if config is not None else single_chain()
         self.counter = RejectCounter(log_interval_s=60.0)
         self.pose = PoseBuffer(
             mount=self.scene.mount,
@@ -215,7 +216,7 @@ def test_unobservable_estimate_is_published_graded_unless_configured_off():
     j = track_to_json(rig.run(3)[-1])
     assert all(j[k] is not None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
     cfg = build_config({"output": {"unobservable_positions": False}})  # the irtrack.track/1 behaviour
-    rig = Rig(config=cfg, ready_after=1, observable=False)
+    rig = Rig(config=single_chain(cfg), ready_after=1, observable=False)
     j = track_to_json(rig.run(3)[-1])
     assert all(j[k] is None for k in POSITION_KEYS) and j["observable"] is False and j["window_frames"] == 3
 
@@ -489,11 +490,18 @@ def test_pose_wait_hook_is_called_with_the_capture_time_after_imaging():
     assert len(rig.pipe.pose_wait_ms) == 1 and len(rig.pipe.processing_ms) == 1
 
 
-def test_without_estimator_or_pose_source_the_pipeline_gives_2d_tracks():
+@pytest.mark.parametrize("config, first_tracked", [(single_chain(), 0), (OnboardConfig(), 11)])
+def test_without_estimator_or_pose_source_the_pipeline_gives_2d_tracks(config, first_tracked):
+    """The single chain tracks from the first frame, the default objects chain once its object is confirmed
+    (0.37 s at 30 Hz), pose or no pose."""
     scene = SyntheticScene()
-    pipe = FramePipeline(OnboardConfig(), None, make_tracker(OnboardConfig()), None)
-    tr = pipe.process(scene.frame(0))
-    assert tr.state == "tracking" and not tr.pose_valid and tr.origin is None and not tr.has_position
+    pipe = FramePipeline(config, None, make_tracker(config), None)
+    tracks = [pipe.process(scene.frame(k)) for k in range(first_tracked + 5)]
+    assert [tr.state for tr in tracks] == ["searching"] * first_tracked + ["tracking"] * 5
+    tr, k = tracks[-1], len(tracks) - 1
+    assert not tr.pose_valid and tr.origin is None and not tr.has_position
+    u_px, v_px = scene.uv((scene.t_us(k) - scene.boot_us0) / 1e6)
+    assert math.hypot(tr.u_px - u_px, tr.v_px - v_px) < 0.5
 
 
 # --------------------------------------------------------------------------- Track noun and JSON

@@ -182,6 +182,10 @@ def test_closed_loop_recording_has_every_channel_with_its_schema_and_counts(reco
         "irtrack/uav1/status": ("irtrack.status/1", "jsonschema", "json"),
         # the manoeuvres advised while the range was unobservable (guidance.advise), as published
         "irtrack/uav1/guidance": ("irtrack.guidance/1", "jsonschema", "json"),
+        # the default (objects) image chain's: every object, the pose it associated with, their overlay
+        "irtrack/uav1/objects": ("irtrack.objects/1", "jsonschema", "json"),
+        "/onboard/imaging_pose": ("irtrack.imaging_pose/1", "jsonschema", "json"),
+        "/onboard/object_annotations": ("foxglove.ImageAnnotations", "protobuf", "protobuf"),
     }
     sim = _messages(r.sim_mcap)
     sim_by: dict = {}
@@ -314,6 +318,9 @@ def test_every_json_message_conforms_to_the_schema_embedded_in_its_recording(rec
         "irtrack.frame_input/1",
         "irtrack.mavlink_raw/1",
         "irtrack.truth/1",
+        # the default (objects) image chain's
+        "irtrack.objects/1",
+        "irtrack.imaging_pose/1",
     }
 
 

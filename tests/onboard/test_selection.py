@@ -230,11 +230,12 @@ class _FakeLink:
         return quiet_link_status("connected", autopilot_sysid=7, messages_rx=1)
 
 
-def _service(mode="auto", gimballed=False):
+def _service(mode="auto", gimballed=False, chain="objects"):
     from onboard.app.service import OnboardService
 
     cfg = build_config(
         {
+            "imaging": {"chain": chain},
             "estimator": {"enabled": False},
             "output": {"health_file": None},
             "gcs": {"endpoints": ["udpout:127.0.0.1:14550"], "tracker_mode": mode},
@@ -273,16 +274,19 @@ def test_camera_information_names_the_gimbal_the_link_follows(gimballed, followe
     assert info["gimbal_device_id"] == expected
 
 
-def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
-    svc, clock = _service("operator")
+@pytest.mark.parametrize("chain, seen", [("single", 1), ("objects", 12)])
+def test_click_to_track_through_the_service_acked_after_the_pipeline_frame(chain, seen):
+    """``seen``: frames before the click; the objects chain selects only an object it has confirmed (11 frames)."""
+    svc, clock = _service("operator", chain=chain)
     svc.link = _FakeLink()
-    svc.pipeline.process(_ir(0))
+    for k in range(seen):
+        svc.pipeline.process(_ir(k))
     svc.gcs.inbox.append(
         CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (HOT[0] / W, HOT[1] / H, 20 / W, 0, 0, 0, 0), 255, 190)
     )
     svc.camera_step(clock())
     assert _acks(svc.gcs.sent) == []  # decided by the pipeline thread on its next frame
-    tr = svc.pipeline.process(_ir(1))
+    tr = svc.pipeline.process(_ir(seen))
     svc.newest.value = (tr, clock())
     clock.t_s += 0.01
     svc.camera_step(clock())
@@ -296,7 +300,7 @@ def test_click_to_track_through_the_service_acked_after_the_pipeline_frame():
     # a click on empty sky: FAILED, the status says why
     svc.gcs.inbox.append(CameraCommand(mav.MAV_CMD_CAMERA_TRACK_POINT, (0.5, 0.9, 20 / W, 0, 0, 0, 0), 255, 190))
     svc.camera_step(clock())
-    svc.pipeline.process(_ir(2))
+    svc.pipeline.process(_ir(seen + 1))
     svc.camera_step(clock())
     assert _acks(svc.gcs.sent)[-1]["result"] == mav.MAV_RESULT_FAILED
     assert "no warm object" in svc.status(clock())["camera"]["last_refusal"]

@@ -457,9 +457,16 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
                 tick()
 
         # 1. tracks flow, with the pose at capture time from the fake autopilot
-        run_until(lambda: sum(t.pose_valid for t in got_tracks) >= 20, 30, "20 tracks with a pose")
+        # (the objects chain confirms the target over its first 11 frames: "searching" until then, then "tracking")
+        run_until(
+            lambda: sum(t.pose_valid and t.state == "tracking" for t in got_tracks) >= 20, 30, "20 tracks with a pose"
+        )
         good = [t for t in got_tracks if t.pose_valid]
-        assert all(t.vehicle == "uav1" and t.state == "tracking" and t.track_id == 1 for t in good)
+        states = [t.state for t in good]
+        first = states.index("tracking")
+        assert first <= 11 and set(states[:first]) == {"searching"} and set(states[first:]) == {"tracking"}
+        good = [t for t in good if t.state == "tracking"]
+        assert all(t.vehicle == "uav1" and t.track_id == 1 for t in good)
         for t in good:
             truth = scene.uv((t.time_boot_us - scene.boot_us0) / 1e6)
             assert math.hypot(t.u_px - truth[0], t.v_px - truth[1]) < CENTROID_TOL_PX, (t.seq, t.u_px, t.v_px, truth)
