@@ -132,15 +132,19 @@ class SharedPoseBuffer:
         all once the newest samples can be extrapolated to the time: waiting would buy a bracket
         whose gain (a few thousandths of a degree, :mod:`onboard.core.pose`) is not worth the latency;
         it waits only for streams that cannot be extrapolated (no rates, no velocity, beyond the
-        horizon).  ``bracket``: wait for the samples that bracket the time even where the newest ones could
-        be extrapolated (the objects image chain's registration of frames, whose error an extrapolated
-        attitude's noise dominates: ``imaging.pose_wait_ms``)."""
+        horizon).  ``bracket``: wait for the rotation's samples (attitude, gimbal) that bracket the time even
+        where the newest ones could be extrapolated (the objects image chain's registration of frames, whose
+        error an extrapolated attitude's noise dominates: ``imaging.pose_wait_ms``); not for the position's,
+        which the rotation does not need and which come half as often."""
         deadline = clock() + max(timeout_s, 0.0)
         buf = self._buffer
         cheap = not buf.mount.gimballed  # newest_time_boot_us covers attitude and position only
         with self._cond:
             while True:
                 if bracket:
+                    newest = buf.newest_rotation_time_boot_us()
+                    if newest is not None and newest >= time_boot_us:  # decided: waiting cannot improve the rotation
+                        return buf.lookup(time_boot_us, True).pose is not None
                     plain = buf.lookup(time_boot_us)
                     left = deadline - clock()
                     if plain.pose is not None or not plain.retry or left <= 0:

@@ -300,6 +300,13 @@ class PoseBuffer:
             return None
         return min(self._att.t_us[-1], self._pos.t_us[-1])
 
+    def newest_rotation_time_boot_us(self) -> int | None:
+        """Latest time covered by the streams the camera's rotation is made of (attitude, and the gimbal's on a
+        gimballed mount), or None: a rotation looked up at or before it is interpolated, whatever the position."""
+        if not self._att.t_us or (self.mount.gimballed and not self._gim.t_us):
+            return None
+        return min(self._att.t_us[-1], self._gim.t_us[-1]) if self.mount.gimballed else self._att.t_us[-1]
+
     def sizes(self) -> dict[str, int]:
         return {"attitude": len(self._att.t_us), "position": len(self._pos.t_us), "gimbal": len(self._gim.t_us)}
 

@@ -79,6 +79,23 @@ def test_plain_wait_extrapolates_but_bracket_wait_waits_for_the_sample_after():
     assert pose.mode != "extrapolated" and pose.att_extrapolated_us == 0
 
 
+def test_bracket_wait_waits_for_the_attitude_only_not_the_slower_position():
+    """The chain's rotation is made of the attitude (and a gimbal's): the wait ends with the attitude sample after
+    the frame, while the position (25 Hz against 50) is still behind and extrapolated."""
+    t_frame = 110_000
+    shared = SharedPoseBuffer(filled(100_000))
+    clock = _Signal()
+    result: list[bool] = []
+    waiter = threading.Thread(target=lambda: result.append(shared.wait_for(t_frame, 2.0, clock, bracket=True)))
+    waiter.start()
+    assert clock.event.wait(JOIN_TIMEOUT_S)
+    shared.add_attitude(120_000, q_at(120_000), W_FRD_RPS)
+    waiter.join(1.0)  # well within the 2 s the wait would take for the position
+    assert not waiter.is_alive() and result == [True]
+    pose = shared.pose_at(t_frame)
+    assert pose.att_extrapolated_us == 0 and pose.mode == "extrapolated"  # the position's extrapolation
+
+
 def test_bracket_wait_does_not_wait_for_what_cannot_come():
     shared = SharedPoseBuffer(filled(100_000))
     # before the buffer's first sample: no later sample can bracket it, so it returns at once even with time left
