@@ -724,7 +724,8 @@ class PinholeIntrinsics:
 
         A lens model holds when each pixel has one ideal point the undistortion finds: along rays
         from the principal point to the image's corners and edge midpoints, the ideal radius grows with the
-        pixel's (no fold), and re-distorting the ideal point lands within ``tolerance_px`` of the pixel.  Strong
+        pixel's (no fold), and re-distorting the ideal point of each pixel on those rays and on the image's border
+        lands within ``tolerance_px`` of the pixel.  Strong
         or mistyped coefficients (a sign or decimal slip) fail one of the two and would turn every pixel near
         the edges into a confidently wrong bearing."""
         if not self.has_distortion:
@@ -732,18 +733,26 @@ class PinholeIntrinsics:
         t = np.linspace(1.0 / RAY_STEPS, 1.0, RAY_STEPS)[:, None]
         w, h = float(self.width_px), float(self.height_px)
         centre = np.array([self.cx_px, self.cy_px])
+        # every pixel of the border too: a tangential term breaks the rays' symmetry, and a strong model can fail
+        # on a few pixels beside a corner that the ray through the corner does not cross
+        us, vs = np.arange(0.0, w + 1.0), np.arange(0.0, h + 1.0)
+        border = np.concatenate(
+            [np.stack([us, np.zeros_like(us)], -1), np.stack([us, np.full_like(us, h)], -1)]
+            + [np.stack([np.zeros_like(vs), vs], -1), np.stack([np.full_like(vs, w), vs], -1)]
+        )
+        err = self._round_trip_px(border)
+        if (err > tolerance_px).any():
+            i = int(np.argmax(err > tolerance_px))
+            return f"pixel ({border[i, 0]:.0f}, {border[i, 1]:.0f}) does not undistort (off by {err[i]:.3g} px)"
         ends = [(0.0, 0.0), (w, 0.0), (w, h), (0.0, h), (w / 2, 0.0), (w, h / 2), (w / 2, h), (0.0, h / 2)]
         for end in ends:
             d = np.asarray(end) - centre
             if not d.any():
                 continue
             uv = centre + t * d
-            with np.errstate(over="ignore", invalid="ignore"):  # a diverging model is what this looks for
+            err = self._round_trip_px(uv)
+            with np.errstate(over="ignore", invalid="ignore"):
                 xy = self.normalized_from_pixel(uv)
-                back = self.distort_normalized(xy)
-            back_px = np.stack([self.fx_px * back[:, 0] + self.cx_px, self.fy_px * back[:, 1] + self.cy_px], axis=-1)
-            err = np.hypot(*(back_px - uv).T)
-            err = np.where(np.isfinite(err), err, np.inf)
             r = np.hypot(xy[:, 0], xy[:, 1])
             where = f"towards pixel ({end[0]:g}, {end[1]:g})"
             bad = err > tolerance_px
@@ -754,6 +763,15 @@ class PinholeIntrinsics:
                 i = int(np.argmax(np.diff(r) <= 0.0)) + 1
                 return f"the model folds {where}: pixel ({uv[i, 0]:.0f}, {uv[i, 1]:.0f}) maps back towards the centre"
         return None
+
+    def _round_trip_px(self, uv: np.ndarray) -> np.ndarray:
+        """How far (px) each of the pixels ``uv`` (n, 2) lands from itself once undistorted and distorted again
+        (inf where either diverges)."""
+        with np.errstate(over="ignore", invalid="ignore"):  # a diverging model is what the caller looks for
+            back = self.distort_normalized(self.normalized_from_pixel(uv))
+            back_px = np.stack([self.fx_px * back[:, 0] + self.cx_px, self.fy_px * back[:, 1] + self.cy_px], axis=-1)
+            err = np.hypot(*(back_px - uv).T)
+        return np.where(np.isfinite(err), err, np.inf)
 
     def project(self, p_cam_m) -> np.ndarray:
         """Camera-frame points (..., 3) -> pixels (..., 2).  Points with z <= 0 give NaN."""

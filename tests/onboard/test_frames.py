@@ -244,6 +244,17 @@ def test_every_pixel_of_a_lens_the_check_passes_undistorts(fx, k1, k2, p, k3, uv
                 assert "folds" in failure and not np.all(np.diff(r) > 0.0), failure
 
 
+def test_a_lens_that_fails_only_beside_a_corner_is_refused():
+    """Found by the property above: strong barrel with a tangential term, where the undistortion finds the wrong
+    ideal point for a few pixels along the border next to the (0, 0) corner (pixel (0, 1) came back 19 px away),
+    while every pixel on the rays through the corners and edge midpoints held."""
+    K = fr.PinholeIntrinsics(795.5, 795.5, 320.0, 256.0, 640, 512, (-0.544921875, 0.0, 0.01953125, 0.0, 0.0625))
+    failure = K.undistortion_failure()
+    assert failure is not None and "does not undistort" in failure
+    pixel = np.array([float(v) for v in failure.split("pixel (")[1].split(")")[0].split(", ")])
+    assert np.hypot(*(K.project(K.bearing_cam_from_pixel(pixel)) - pixel)) > 1.0
+
+
 def test_a_wide_thermal_lens_undistorts_to_its_corners():
     """fx 300 px on 640 x 512 (94 deg across) with a strong barrel: twenty of OpenCV's fixed-point steps leave the
     corner 6 px off; Newton's put the corner pixel's bearing back onto it."""
