@@ -474,7 +474,9 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     poses = _RecordedPose(counter)
     wall0 = time.perf_counter()
     proc = conn = None
-    if jobs == 2 and live is None and config.imaging.chain != "objects":
+    if jobs == 2 and config.imaging.chain == "objects":
+        log.warning("--jobs 2: the objects image chain needs each frame's pose, so it replays in one process")
+    elif jobs == 2 and live is None:
         proc, conn = _start_imaging_process(rec, config)
     tracker = make_tracker(config) if conn is None else _PipedTracker(conn)
     pipe = FramePipeline(config, poses, tracker, make_estimator(config), config.pose.geodetic_origin(), counter=counter)
@@ -729,7 +731,7 @@ def build_parser() -> argparse.ArgumentParser:
         choices=(1, 2),
         default=1,
         help="2: the tracker runs ahead in a second process, overlapping the estimator (same tracks; "
-        "needs fork and no --live-view; default: %(default)s)",
+        "needs fork, no --live-view and imaging.chain single; default: %(default)s)",
     )
     add_config_option(p, "configuration to replay with (default: the recording's)")
     add_set_option(p, "override a config field; repeatable")
