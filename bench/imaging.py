@@ -1,4 +1,6 @@
-"""Benchmark of the onboard image chain: frames/s of ``TargetTracker.update`` on one core.
+"""Benchmark of the single image chain (``imaging.chain: single``): frames/s of ``TargetTracker.update`` on one core.
+
+The daemon's default chain, ``objects``, is measured on rendered scenes by ``--scene`` (:mod:`bench.imaging_scenes`).
 
 ``python -m bench.imaging``  (optionally ``taskset -c 0 python -m bench.imaging``).  OpenCV is
 held to one thread (``cv2.setNumThreads(1)``).  Frames are synthetic 640 x 512 mono8 (and one
@@ -14,7 +16,7 @@ the image centre as under a pointing gimbal (+- 25 px, up to ~1.5 px/frame), NET
   FLIR Vue Pro settings, horizon in view) at 100-500 m: states, centre minus the projected body
   centre (mean, std) and the blob's contrast, for mono8 and mono16.
 
-The budget is >= 300 frames/s for the whole onboard chain, so about 2 ms here.  Numbers only:
+The budget is >= 300 frames/s for the whole onboard single chain, so about 2 ms here.  Numbers only:
 nothing asserts on time.
 """
 
@@ -142,7 +144,8 @@ def main() -> None:
         ("mono16, medium target (sigma 1.5 px, 80 grey8)", 80.0, 1.5, np.uint16),
     ]
     print(
-        f"onboard.imaging benchmark: {N_FRAMES} frames {W_PX}x{H_PX}, OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}"
+        f"onboard.imaging benchmark, the single chain (TargetTracker): {N_FRAMES} frames {W_PX}x{H_PX},"
+        f" OpenCV {cv2.__version__}, threads {cv2.getNumThreads()}"
     )
     print(f"budget: {BUDGET_MS:.2f} ms/frame for the whole onboard chain (>= 300 frames/s)\n")
     for name, amp, sigma, dtype in cases:

@@ -5,8 +5,8 @@
 (its own scene, camera model and flown poses; frames the camera dropped are skipped, as the daemon
 never receives them) and the frames are fed in lockstep to
 
-* ``tracker``: :class:`onboard.imaging.TargetTracker` as the daemon configures it (``ImagingParams()``,
-  ``tracker_mode`` auto): one track, reported while its state is ``tracking``;
+* ``tracker``: the single chain, :class:`onboard.imaging.TargetTracker` as the daemon configures it with
+  ``imaging.chain: single`` (``tracker_mode`` auto): one track, reported while its state is ``tracking``;
 * ``objects``: :class:`onboard.imaging.objects.ObjectTracker` (clutter-suppressed detection, every
   object a track; the camera's rotation from each frame's attitude as the telemetry reports it: the
   scenario's navigation errors, RTK by default, ``--nav-noise exact`` for the truth); its confirmed tracks
@@ -257,7 +257,7 @@ def load_cache(path: Path) -> tuple[list, list, np.ndarray] | None:
 
 
 class _TrackerChain:
-    """TargetTracker as the daemon builds it: one output, confirmed while ``tracking``."""
+    """TargetTracker as the daemon builds it with ``imaging.chain: single``: one output, confirmed while ``tracking``."""
 
     name = "tracker"
     stage_s = None  # not timed by stage
@@ -578,7 +578,12 @@ def main(argv: list[str]) -> None:
 
     ap = argparse.ArgumentParser(prog="python -m bench.imaging --scene", description=__doc__.splitlines()[0])
     ap.add_argument("--scene", nargs="+", required=True, help="scenario names (config/scenarios), e.g. C1 P2")
-    ap.add_argument("--chain", choices=(*CHAINS, "both"), default="both")
+    ap.add_argument(
+        "--chain",
+        choices=(*CHAINS, "both"),
+        default="both",
+        help="tracker: the single chain (imaging.chain single); objects: the daemon's default; both (default)",
+    )
     ap.add_argument(
         "--seed", type=int, nargs="+", default=[0], help="run seed(s) (default 0); several: a row each and a summary"
     )

@@ -16,7 +16,7 @@ from tests.process_helpers import descendants, kill_all, wait_gone
 
 pytestmark = pytest.mark.integration
 
-FLIGHT_S = 3.0  # F1's first seconds: both vehicles track from the first frames
+FLIGHT_S = 3.0  # F1's first seconds: both vehicles track from their chains' confirmation, ~0.4 s in
 FUSED_MAX_ERR_RATIO = 0.02  # 2 % of range: ~4x the issue's median goal, 30x below a lone vehicle's guess
 EXIT_TIMEOUT_S = 10.0
 

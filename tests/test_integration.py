@@ -37,8 +37,9 @@ Pacing: real time (``--rate 1.0``).  At 2x the daemon dropped up to 26 of 300 fr
 process fell more than ``estimator.max_extrapolation_s`` behind (P1: no 3-D position at all), which is a
 test of the machine rather than of the daemon.
 
-Wall time (:func:`flights`): the three comparison flights are flown at once: a pair of processes takes
-about half a core at real time, so three take 1.5 of the machine's two cores (measured with the machine
+Wall time (:func:`flights`): the three comparison flights are flown at once: a pair of processes took
+about half a core at real time with the single image chain (the objects chain, the default now, adds about 0.1
+of a core a daemon), so three take 1.5-1.8 of the machine's two cores (measured with the machine
 loaded by other work, load average 12: no frame dropped, about 50 s for the three instead of about 40 s
 each one after the other).  The RTK flight follows them, while the comparison tests compute their
 baselines (three noise draws per scenario, about 2 s of CPU each, one core): again about 1.5 cores.  All

@@ -739,12 +739,9 @@ def run_lockstep(
     )
     tracker = pipeline.tracker
     counters = dict(buffer.counter.counts)
-    counters.update(
-        frames_rejected=rejected,
-        estimator_resets=pipeline.estimator_resets,
-        kcf_reseeds=getattr(tracker, "kcf_reseeds", 0),
-        reacquisitions=getattr(tracker, "reacquisitions", 0),
-    )
+    counters.update(frames_rejected=rejected, estimator_resets=pipeline.estimator_resets)
+    # the single chain's own counters; the objects chain has none of them (a 0 would read as a measurement)
+    counters.update({k: getattr(tracker, k) for k in ("kcf_reseeds", "reacquisitions") if hasattr(tracker, k)})
     return RunResult(
         scenario=scenario.name,
         description=scenario.description,

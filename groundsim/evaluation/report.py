@@ -277,7 +277,7 @@ def closed_loop_notes(summary: list[dict]) -> list[str]:
                 f"- {r.get('label', r['scenario'])}: the image chain's centroids lie {sigma:.1f} px (RMS) from the "
                 "target's pixel: it followed something else (clutter, another object) for much of the flight, and "
                 "the perfect-centroid baseline, given that as its noise, is no yardstick. In clutter run the objects "
-                "chain, if it is not the one that ran: `imaging: {chain: objects}` in the --onboard-config file "
+                "chain (the default) if the run set `imaging: {chain: single}` in its --onboard-config file "
                 "(README, Perception in clutter)."
             )
     return notes

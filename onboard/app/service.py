@@ -10,7 +10,9 @@ Threads (nothing else runs concurrently):
   :class:`FrameQueue`; when full the *oldest* frame is dropped and counted (``dropped_queue``).
   It never blocks.  The output taps (:mod:`onboard.app.observers`) see each frame as received.
 * **pipeline thread**: pops frames, runs :meth:`FramePipeline.process` (admission,
-  imaging, pose at capture time -- waiting up to ``pose.wait_ms`` (a few ms) for telemetry that
+  imaging -- the objects chain first waits up to ``imaging.pose_wait_ms`` (40 ms) for the attitude sample after
+  the frame, to register it with an interpolated rotation --, pose at capture time -- waiting up to
+  ``pose.wait_ms`` (a few ms) for telemetry that
   brackets it, on a condition signalled by every new pose sample, then extrapolating the newest
   samples over a bounded horizon (:mod:`onboard.core.pose`) -- and the estimator), publishes the track JSON on
   ``irtrack/<vehicle>/track`` and hands each frame's outcome to the output taps, one call each

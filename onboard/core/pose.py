@@ -28,8 +28,10 @@ move the answer by at most that much.  Velocity: the reported velocities interpo
 
 Extrapolation (a frame newer than the telemetry)
 ------------------------------------------------
-A frame must not wait for the sample after it: the wait adds latency, and a wait short enough to
-keep the latency low still leaves many gimballed frames without a bracket.  :meth:`PoseBuffer.pose_at` (not :meth:`~PoseBuffer.lookup`,
+A frame's pose must not wait for the sample after it: the wait adds latency, and a wait short enough to
+keep the latency low still leaves many gimballed frames without a bracket.  (The objects image chain waits for
+the attitude sample after its frame before it registers the frame, ``imaging.pose_wait_ms``: its registration
+error is the rotation's, and an extrapolated attitude's noise dominates it; the 3-D's pose does not wait.)  :meth:`PoseBuffer.pose_at` (not :meth:`~PoseBuffer.lookup`,
 which stays interpolation-only so that a caller can wait for a bracket) extrapolates from the
 newest sample ``h = t - t_last`` ahead, within a bounded horizon per stream:
 

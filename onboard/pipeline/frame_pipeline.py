@@ -15,7 +15,7 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    ``frame_time_ahead``, ``frame_time_behind``) and costs only itself; a clock step, an autopilot
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
-2. Imaging: ``tracker.update(pixels)`` (:class:`~onboard.imaging.TargetTracker`); a chain that
+2. Imaging: ``tracker.update(pixels)`` (the single chain, :class:`~onboard.imaging.TargetTracker`); a chain that
    ``uses_pose`` (the objects chain) gets the camera's rotation at ``t`` and ``t`` itself (frames the daemon
    dropped are time its tracks must be predicted over), after the optional
    ``chain_pose_wait(t)`` hook (the daemon waits there for the telemetry that brackets ``t``,
@@ -134,7 +134,9 @@ class Estimator(Protocol):
 
 
 def make_tracker(config: Any):
-    """The image chain of ``config`` (a fresh :class:`~onboard.imaging.TargetTracker`, ``gcs.tracker_mode``)."""
+    """The image chain of ``config``, fresh, in ``gcs.tracker_mode``: an
+    :class:`~onboard.imaging.objects_chain.ObjectChain` (``imaging.chain: objects``, the default) or a
+    :class:`~onboard.imaging.TargetTracker` (``single``)."""
     from onboard.imaging import TargetTracker
 
     if config.imaging.chain == "objects":
@@ -324,7 +326,9 @@ class FramePipeline:
                         x0, y0, x1, y1 = req.rect_px
                         where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
                     if sel is None:
-                        result = TrackResult(req.request_id, False, f"no warm object {where} px")
+                        # the objects chain selects among the objects it has confirmed (tracked a few frames)
+                        what = "confirmed object" if self.config.imaging.chain == "objects" else "warm object"
+                        result = TrackResult(req.request_id, False, f"no {what} {where} px")
                     else:
                         upd = sel
                         self._reset_estimator(f"operator selection ({req.kind})")

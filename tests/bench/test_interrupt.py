@@ -38,7 +38,7 @@ def _interrupt_the_suite(group: bool) -> dict:
     bench = _bench("bench", "flight", "imaging", "render")
     kids: set[int] = set()
     try:
-        bench.wait_for("onboard.imaging benchmark: ", READY_TIMEOUT_S)
+        bench.wait_for("onboard.imaging benchmark, ", READY_TIMEOUT_S)
         kids = descendants(bench.proc.pid)
         if not kids:
             return {"kids": kids}

@@ -492,7 +492,7 @@ def test_a_chain_off_its_target_gets_a_note_under_the_closed_loop_table():
     ]
     notes = closed_loop_notes(rows)
     assert len(notes) == 1 and notes[0].startswith("- C3: the image chain's centroids lie 108.4 px (RMS)")
-    assert "imaging: {chain: objects}" in notes[0]
+    assert "objects chain (the default)" in notes[0] and "imaging: {chain: single}" in notes[0]
     assert closed_loop_notes(rows[1:]) == []
     # the table carries them: after its last row, a blank line, then the notes
     with_notes = format_closed_loop(rows).splitlines()
