@@ -1,8 +1,10 @@
 """Benchmark of the flight recorder (:mod:`onboard.io.record`): what recording costs per frame.
 
-``python -m bench.record [--frames N] [--compression none|lz4|zstd] [--sync-mb MB] [--dir DIR]``.  Frames are 640 x 512 mono8 with
+``python -m bench.record [--frames N] [--compression none|lz4|zstd] [--sync-mb MB] [--dir DIR] [--chain objects|single]``.  Frames are 640 x 512 mono8 with
 NETD-like noise (the simulator's noise does not compress much either) at 30 Hz worth of messages:
-per frame one RawImage, one frame_input with a pose, one track with a position, three MAVLink datagrams.
+per frame one RawImage, one frame_input with a pose, one track with a position, three MAVLink datagrams and, as
+the default objects image chain has the daemon record them, the pose the chain used and an objects message of
+three objects with its annotations (``--chain single``: without those two).
 Prints:
 
 * the caller's cost (what the daemon's zenoh and pipeline threads pay): the ``on_*`` calls of one
@@ -49,6 +51,33 @@ from onboard.io.record import FlightRecorder, RecordConfig  # noqa: E402
 ORIGIN = GeodeticOrigin(47.397742, 8.545594, 488.0)
 
 
+def _objects_message(frame: IrFrame) -> dict:
+    """An ``irtrack.objects/1`` message of three confirmed objects, the first the primary (as the objects chain's)."""
+    objects = [
+        {
+            "id": k + 1,
+            "state": "confirmed",
+            "u_px": 320.5 + 60.0 * k,
+            "v_px": 256.5 - 20.0 * k,
+            "box_px": [317.5 + 60.0 * k, 253.5 - 20.0 * k, 6.0, 6.0],
+            "los_ned": [0.8, 0.5, -0.3316625],
+            "los_sigma_rad": 0.0013,
+            "score": 4.2,
+            "primary": k == 0,
+        }
+        for k in range(3)
+    ]
+    return {
+        "schema": "irtrack.objects/1",
+        "time_boot_us": int(frame.time_boot_us),
+        "time_unix_us": None,
+        "time_unix_sigma_us": None,
+        "frame_index": int(frame.seq),
+        "primary_id": 1,
+        "objects": objects,
+    }
+
+
 def main(argv=None) -> int:
     ap = BenchParser(prog="python -m bench.record")
     ap.add_argument("--frames", type=positive_int, default=600)
@@ -59,6 +88,12 @@ def main(argv=None) -> int:
     )
     ap.add_argument(
         "--replay", type=existing_file, metavar="FILE.mcap", help="measure replay speed on this recording instead"
+    )
+    ap.add_argument(
+        "--chain",
+        default="objects",
+        choices=("objects", "single"),
+        help="the image chain whose messages the daemon records (default objects, the daemon's default)",
     )
     args = ap.parse_args(argv)
     if args.replay:
@@ -116,7 +151,11 @@ def main(argv=None) -> int:
             for _ in range(3):
                 rec.on_mavlink(dg, "autopilot", ("127.0.0.1", 14540))
             rec.on_frame(fr, t0)
-            rec.on_frame_input(fr, t0, True, pose)
+            if args.chain == "objects":
+                rec.on_frame_input(fr, t0, True, pose, imaging_pose=pose)
+                rec.on_objects(_objects_message(fr), fr.seq)
+            else:
+                rec.on_frame_input(fr, t0, True, pose)
             rec.on_track(track, payload)
             caller_cpu_us.append((time.thread_time_ns() - c0_ns) / 1e3)
             caller_us.append((time.perf_counter_ns() - t0) / 1e3)
@@ -131,7 +170,8 @@ def main(argv=None) -> int:
     writer_ms = rec.writer_cpu_s / args.frames * 1e3
     total_ms = writer_ms + caller_cpu.mean() / 1e3
     print(
-        f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, compression {args.compression}, sync every "
+        f"recorder, {args.frames} frames 640x512 mono8 at 30 Hz, {args.chain} chain's messages,"
+        f" compression {args.compression}, sync every "
         f"{args.sync_mb:g} MB ({rec.syncs} syncs), load {os.getloadavg()[0]:.1f}"
     )
     print(
