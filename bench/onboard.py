@@ -803,7 +803,7 @@ def main(argv=None) -> int:
     if args.scene:
         from bench.onboard_scene import bench_scene
 
-        bench_scene(args.scene, args.scene_s, _cpu_snapshot)
+        bench_scene(args.scene, args.scene_s, _cpu_snapshot, chain=args.chain or "objects")
         print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
         return 0
     if not args.no_latency:

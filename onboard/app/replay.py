@@ -273,6 +273,11 @@ def config_of(rec: Recording, config_path: str | None = None, overrides: dict | 
     if text is None:
         raise InputError(f"{rec.path}: no configuration in its metadata (not a daemon recording?); give --config")
     raw = yaml.safe_load(text)
+    imaging = raw.get("imaging") if isinstance(raw, dict) else None
+    if isinstance(imaging, dict) and "chain" not in imaging:
+        # the effective configuration names every field: one without imaging.chain was recorded before the
+        # field existed, by the single chain, which is what replays it (the default has changed since)
+        imaging["chain"] = "single"
     for p, (value, _src) in ov.items():
         node = raw
         keys = p.split(".")

@@ -127,15 +127,17 @@ class SharedPoseBuffer:
     ) -> bool:
         """Wait until a lookup at ``time_boot_us`` is decided by the data (the telemetry reaches that
         time, or a miss that waiting cannot fix) or ``timeout_s`` passed.  True when the telemetry
-        covers the time (``pose_at`` then answers; it may still be a gap), False otherwise (then
+        covers the time (``pose_at`` then answers; it may still be a gap; with ``bracket``, its position may be
+        extrapolated), False otherwise (then
         ``pose_at`` extrapolates within its horizon).  Never longer than ``timeout_s``, and not at
         all once the newest samples can be extrapolated to the time: waiting would buy a bracket
         whose gain (a few thousandths of a degree, :mod:`onboard.core.pose`) is not worth the latency;
         it waits only for streams that cannot be extrapolated (no rates, no velocity, beyond the
         horizon).  ``bracket``: wait for the rotation's samples (attitude, gimbal) that bracket the time even
         where the newest ones could be extrapolated (the objects image chain's registration of frames, whose
-        error an extrapolated attitude's noise dominates: ``imaging.pose_wait_ms``); not for the position's,
-        which the rotation does not need and which come half as often."""
+        error an extrapolated attitude's noise dominates: ``imaging.pose_wait_ms``); not for a bracket of the
+        position, which comes half as often and moves the rotation by microradians (the local level), only for
+        a position the look-up can use at all."""
         deadline = clock() + max(timeout_s, 0.0)
         buf = self._buffer
         cheap = not buf.mount.gimballed  # newest_time_boot_us covers attitude and position only
@@ -143,8 +145,11 @@ class SharedPoseBuffer:
             while True:
                 if bracket:
                     newest = buf.newest_rotation_time_boot_us()
-                    if newest is not None and newest >= time_boot_us:  # decided: waiting cannot improve the rotation
-                        return buf.lookup(time_boot_us, True).pose is not None
+                    if newest is not None and newest >= time_boot_us:
+                        # the rotation's samples bracket the time; the position may be extrapolated, but a look-up
+                        # needs one at all (the rotation is the pose's): wait on only while there is none yet
+                        if self._lookup(time_boot_us, True).pose is not None:
+                            return True
                     plain = buf.lookup(time_boot_us)
                     left = deadline - clock()
                     if plain.pose is not None or not plain.retry or left <= 0:

@@ -297,7 +297,7 @@ def test_closed_loop_mode_flies_the_variant_through_the_lockstep_pipeline(tmp_pa
     # the perception figures of the eval: P1's clean sky, its target held from its confirmation (11 frames, which
     # the state accuracy counts as misses)
     assert df["false_tracks_per_min"].eq(0).all() and df["id_switches"].eq(0).all()
-    assert df["state_accuracy"].between(0.75, 1.0).all() and df["pd_pct"].eq(100.0).all()
+    assert df["state_accuracy"].between(0.7, 1.0).all() and df["pd_pct"].eq(100.0).all()  # measured 0.80
     # the variant is the scaled one: 1.5 x the reference observer's commanded acceleration (RMS)
     a = df.set_index("manoeuvre_scale")["observer_accel_rms_mps2"]
     assert a[1.5] == pytest.approx(1.5 * a[1.0], rel=1e-9)

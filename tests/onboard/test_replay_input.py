@@ -289,6 +289,27 @@ def test_a_bad_set_on_a_recordings_configuration_names_the_option_not_the_file()
     assert config_of(rec, None, {"camera.intrinsics.fx_px": (400.0, "--set")}).camera.intrinsics.fx_px == 400.0
 
 
+def test_a_recording_from_before_the_chain_field_replays_with_the_single_chain_it_ran():
+    """A recording's configuration names every field; one without ``imaging.chain`` predates the field, when the
+    single chain was the only one: it replays with that chain, not today's default, unless told otherwise."""
+    import types
+
+    import yaml
+
+    from onboard.app.config import build_config, config_to_dict
+    from onboard.app.replay import config_of
+
+    def recording(drop_chain: bool):
+        raw = config_to_dict(build_config({}))
+        if drop_chain:
+            del raw["imaging"]["chain"]
+        return types.SimpleNamespace(path="F.mcap", metadata={"config_yaml": yaml.safe_dump(raw)})
+
+    assert config_of(recording(True)).imaging.chain == "single"
+    assert config_of(recording(False)).imaging.chain == "objects"  # recorded with the objects chain
+    assert config_of(recording(True), None, {"imaging.chain": ("objects", "--set")}).imaging.chain == "objects"
+
+
 # --------------------------------------------------------------------------- frames read from the file
 
 

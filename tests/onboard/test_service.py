@@ -464,7 +464,7 @@ def test_daemon_end_to_end(tmp_path, daemon_env):
         good = [t for t in got_tracks if t.pose_valid]
         states = [t.state for t in good]
         first = states.index("tracking")
-        assert first <= 11 and set(states[:first]) == {"searching"} and set(states[first:]) == {"tracking"}
+        assert first <= 11 and all(s == "searching" for s in states[:first]) and set(states[first:]) == {"tracking"}
         good = [t for t in good if t.state == "tracking"]
         assert all(t.vehicle == "uav1" and t.track_id == 1 for t in good)
         for t in good:

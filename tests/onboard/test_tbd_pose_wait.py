@@ -33,10 +33,10 @@ def q_at(t_us: int) -> np.ndarray:
     return quat_from_rotvec(W_FRD_RPS * t_us / US)
 
 
-def filled(until_us: int) -> PoseBuffer:
-    """Attitude (with body rates) and position at 50 Hz up to ``until_us``."""
+def filled(until_us: int, first_us: int = 0) -> PoseBuffer:
+    """Attitude (with body rates) and position at 50 Hz from ``first_us`` up to ``until_us``."""
     buf = PoseBuffer(origin=ORIGIN)
-    for t in range(0, until_us + 1, 20_000):
+    for t in range(first_us, until_us + 1, 20_000):
         buf.add_attitude(t, q_at(t), W_FRD_RPS)
         buf.add_position_ned(t, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
     return buf
@@ -86,14 +86,43 @@ def test_bracket_wait_waits_for_the_attitude_only_not_the_slower_position():
     shared = SharedPoseBuffer(filled(100_000))
     clock = _Signal()
     result: list[bool] = []
-    waiter = threading.Thread(target=lambda: result.append(shared.wait_for(t_frame, 2.0, clock, bracket=True)))
+    waiter = threading.Thread(target=lambda: result.append(shared.wait_for(t_frame, 60.0, clock, bracket=True)))
     waiter.start()
     assert clock.event.wait(JOIN_TIMEOUT_S)
     shared.add_attitude(120_000, q_at(120_000), W_FRD_RPS)
-    waiter.join(1.0)  # well within the 2 s the wait would take for the position
+    waiter.join(JOIN_TIMEOUT_S)  # the 60 s wait for the position would be a failure
     assert not waiter.is_alive() and result == [True]
     pose = shared.pose_at(t_frame)
     assert pose.att_extrapolated_us == 0 and pose.mode == "extrapolated"  # the position's extrapolation
+
+
+def test_bracket_wait_waits_on_for_a_position_the_look_up_cannot_extrapolate():
+    """The attitude after the frame is in, but the position has no velocity to extrapolate with: without a
+    position there is no rotation (the pose's), so the wait goes on until the position after the frame."""
+    buf = PoseBuffer(origin=ORIGIN)
+    for t in range(0, 100_001, 20_000):
+        buf.add_attitude(t, q_at(t), W_FRD_RPS)
+        buf.add_position_ned(t, [0.0, 0.0, -50.0])  # no velocity
+    shared = SharedPoseBuffer(buf)
+    t_frame = 110_000
+    shared.add_attitude(120_000, q_at(120_000), W_FRD_RPS)
+    assert shared.pose_at(t_frame) is None  # the position cannot be extrapolated
+    clock = _Signal()
+    result: list[bool] = []
+    waiter = threading.Thread(target=lambda: result.append(shared.wait_for(t_frame, 60.0, clock, bracket=True)))
+    waiter.start()
+    assert clock.event.wait(JOIN_TIMEOUT_S)
+    assert waiter.is_alive()
+    shared.add_position_ned(120_000, [0.0, 0.0, -50.0])
+    waiter.join(JOIN_TIMEOUT_S)
+    assert not waiter.is_alive() and result == [True] and shared.pose_at(t_frame) is not None
+
+
+def test_bracket_wait_does_not_wait_before_the_first_sample():
+    shared = SharedPoseBuffer(filled(100_000, first_us=40_000))
+    clock = _Signal()
+    assert shared.wait_for(20_000, 60.0, clock, bracket=True) is False  # a valid time no sample can bracket
+    assert clock.calls <= 2
 
 
 def test_bracket_wait_does_not_wait_for_what_cannot_come():
