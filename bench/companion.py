@@ -309,12 +309,30 @@ def overload_delay_s(log_text: str) -> tuple[float | None, float | None]:
     return (None if warned is None else warned - first_cause), first_cause - (first_line or first_cause)
 
 
+def _set_chain(path: Path, chain: str) -> None:
+    """Set ``imaging.chain`` in the daemon's generated configuration ``path`` (checked as the daemon reads it)."""
+    import yaml
+
+    from onboard.app.config import load_config
+
+    text = path.read_text(encoding="utf-8")
+    raw = yaml.safe_load(text)
+    raw.setdefault("imaging", {})["chain"] = chain
+    head = "".join(line + "\n" for line in text.splitlines() if line.startswith("#"))
+    path.write_text(
+        head + f"# bench.companion --chain {chain}\n" + yaml.safe_dump(raw, sort_keys=False), encoding="utf-8"
+    )
+    load_config(path, environ={})
+
+
 def run_row(args, quota: float | None, out_root: Path, say) -> dict:
     from groundsim.evaluation.demo import TruthTail, aligned_arrays, plan_demo, run_demo
 
     name = "unlimited" if quota is None else f"quota{quota:g}"
     with daemon_limit(quota, args.emulate, say) as limit:
         plan = plan_demo(args.scenario, args.duration, args.seed, out_root / name, args.config, args.nav_noise)
+        if args.chain is not None:
+            _set_chain(plan.onboard_config_path, args.chain)
         plan = dataclasses.replace(plan, daemon_prefix=limit.prefix)
         th0 = limit.throttled_s()
         wall0 = time.time()
@@ -375,6 +393,11 @@ def main(argv=None) -> int:
     ap.add_argument("--config", default=DEFAULT_CONFIG, help=f"the daemon's configuration (default {DEFAULT_CONFIG})")
     ap.add_argument("--out", default="out/companion", help="run directories (logs, tracks, truth)")
     ap.add_argument("--no-unlimited", action="store_true", help="skip the unconstrained row")
+    ap.add_argument(
+        "--chain",
+        choices=("objects", "single"),
+        help="the daemon's imaging.chain (default: the configuration's, objects): size cpus for the chain you fly",
+    )
     ap.add_argument("--emulate", action="store_true", help="emulate the quota even where a cgroup could be made")
     args = ap.parse_args(argv)
     if any(not (q > 0 and np.isfinite(q)) for q in args.cpu_quota):
@@ -389,7 +412,8 @@ def main(argv=None) -> int:
     load0 = os.getloadavg()[0]
     for q in quotas:
         say(
-            f"bench.companion: {args.scenario} {args.nav_noise} {args.duration:g} s, daemon {'unlimited' if q is None else f'quota {q:g} core'} ..."
+            f"bench.companion: {args.scenario} {args.nav_noise} {args.duration:g} s, daemon {'unlimited' if q is None else f'quota {q:g} core'},"
+            f" imaging.chain {args.chain or 'as configured'} ..."
         )
         try:
             row = run_row(args, q, Path(args.out), say)
