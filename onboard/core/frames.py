@@ -740,7 +740,7 @@ class PinholeIntrinsics:
             [np.stack([us, np.zeros_like(us)], -1), np.stack([us, np.full_like(us, h)], -1)]
             + [np.stack([np.zeros_like(vs), vs], -1), np.stack([np.full_like(vs, w), vs], -1)]
         )
-        err = self._round_trip_px(border)
+        err, _ = self._round_trip_px(border)
         if (err > tolerance_px).any():
             i = int(np.argmax(err > tolerance_px))
             return f"pixel ({border[i, 0]:.0f}, {border[i, 1]:.0f}) does not undistort (off by {err[i]:.3g} px)"
@@ -750,9 +750,7 @@ class PinholeIntrinsics:
             if not d.any():
                 continue
             uv = centre + t * d
-            err = self._round_trip_px(uv)
-            with np.errstate(over="ignore", invalid="ignore"):
-                xy = self.normalized_from_pixel(uv)
+            err, xy = self._round_trip_px(uv)
             r = np.hypot(xy[:, 0], xy[:, 1])
             where = f"towards pixel ({end[0]:g}, {end[1]:g})"
             bad = err > tolerance_px
@@ -764,14 +762,15 @@ class PinholeIntrinsics:
                 return f"the model folds {where}: pixel ({uv[i, 0]:.0f}, {uv[i, 1]:.0f}) maps back towards the centre"
         return None
 
-    def _round_trip_px(self, uv: np.ndarray) -> np.ndarray:
+    def _round_trip_px(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """How far (px) each of the pixels ``uv`` (n, 2) lands from itself once undistorted and distorted again
-        (inf where either diverges)."""
+        (inf where either diverges), and the ideal points (n, 2) the undistortion found."""
         with np.errstate(over="ignore", invalid="ignore"):  # a diverging model is what the caller looks for
-            back = self.distort_normalized(self.normalized_from_pixel(uv))
+            xy = self.normalized_from_pixel(uv)
+            back = self.distort_normalized(xy)
             back_px = np.stack([self.fx_px * back[:, 0] + self.cx_px, self.fy_px * back[:, 1] + self.cy_px], axis=-1)
             err = np.hypot(*(back_px - uv).T)
-        return np.where(np.isfinite(err), err, np.inf)
+        return np.where(np.isfinite(err), err, np.inf), xy
 
     def project(self, p_cam_m) -> np.ndarray:
         """Camera-frame points (..., 3) -> pixels (..., 2).  Points with z <= 0 give NaN."""
