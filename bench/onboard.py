@@ -432,6 +432,13 @@ def _cpu_snapshot(pid: int) -> tuple[float, float, dict[str, float], dict[str, i
 ASKS = {"single": (15.0, 0.10), "objects": (15.0, 0.25)}
 
 
+def _default_chain() -> str:
+    """The daemon's image chain when its configuration names none."""
+    from onboard.app.config import OnboardConfig
+
+    return OnboardConfig().imaging.chain
+
+
 def bench_latency(
     duration_s: float,
     capture_lag_ms: float,
@@ -803,12 +810,12 @@ def main(argv=None) -> int:
     if args.scene:
         from bench.onboard_scene import bench_scene
 
-        bench_scene(args.scene, args.scene_s, _cpu_snapshot, chain=args.chain or "objects")
+        bench_scene(args.scene, args.scene_s, _cpu_snapshot, chain=args.chain or _default_chain())
         print(f"   machine speed after: the fixed Python loop takes {machine_speed_ms():.1f} CPU ms")
         return 0
     if not args.no_latency:
         # first, before this process pins itself to one core
-        chain = args.chain or "objects"  # the daemon's default
+        chain = args.chain or _default_chain()
         extra = ("--set", f"imaging.chain={args.chain}") if args.chain else ()
         print(
             "loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz,"
