@@ -1,8 +1,9 @@
 r"""The objects chain's whole-frame passes compiled (numba), bit for bit the OpenCV and numpy formulations.
 
-:func:`contrast_and_cells` is the detector's main pass (below).  Two smaller ones: :func:`area_mean`, the background
+:func:`contrast_and_cells` is the detector's main pass (below).  Three smaller ones: :func:`area_mean`, the background
 motion's 4x smaller frames summed in integers from the kept frame (no float32 copy), and :func:`cell_extremes`, the
-two-level cap's cell maxima and minima in the frame's own dtype; both are exact by construction (integer arithmetic).
+two-level cap's cell maxima and minima in the frame's own dtype, both exact by construction (integer arithmetic); and
+:func:`defect_rate`, the defect map's update (eight-neighbour extremes, float32 arithmetic as numpy's).
 
 What it computes, for the usual detector (3 x 3 surround cells): the frame's 3 x 3 box mean, its point contrast
 (:func:`onboard.imaging.clutter.point_contrast`) and the noise estimate's cells
@@ -34,7 +35,7 @@ import numpy as np
 
 from onboard.core.jit import njit
 
-__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "fits", "warm"]
+__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "defect_rate", "fits", "warm"]
 
 _WARM = False
 
@@ -332,6 +333,87 @@ def cell_extremes(img: np.ndarray, factor: int) -> tuple[np.ndarray, np.ndarray]
     return hi, lo
 
 
+@njit(cache=True, nogil=True)
+def _outlier_extremes(img, i, j):
+    """The largest and the least of pixel (i, j)'s eight neighbours, edges replicated (a neighbour beyond the frame
+    is the nearest pixel inside it, the pixel itself included)."""
+    h, w = img.shape
+    hi = -np.inf
+    lo = np.inf
+    for di in (-1, 0, 1):
+        r = img[min(max(i + di, 0), h - 1)]
+        for dj in (-1, 0, 1):
+            if di == 0 and dj == 0:
+                continue
+            x = r[min(max(j + dj, 0), w - 1)]
+            hi = max(hi, x)
+            lo = min(lo, x)
+    return np.float32(hi), np.float32(lo)
+
+
+@njit(cache=True, nogil=True)
+def _defect_rate(img, s, decay, gain, level, rate, mask):
+    h, w = img.shape
+    for i in range(h):
+        up = img[max(i - 1, 0)]
+        row = img[i]
+        down = img[min(i + 1, h - 1)]
+        r = rate[i]
+        m = mask[i]
+        for j in range(0, w, max(w - 1, 1)):  # the edge columns (one when w is 1), their neighbours replicated
+            hi, lo = _outlier_extremes(img, i, j)
+            x = row[j]
+            v = r[j] * decay
+            if x > hi + s or x < lo - s:
+                v = v + gain
+            r[j] = v
+            m[j] = v >= level
+        for j in range(1, w - 1):
+            hi = max(
+                max(max(up[j - 1], up[j]), max(up[j + 1], row[j - 1])),
+                max(max(row[j + 1], down[j - 1]), max(down[j], down[j + 1])),
+            )
+            lo = min(
+                min(min(up[j - 1], up[j]), min(up[j + 1], row[j - 1])),
+                min(min(row[j + 1], down[j - 1]), min(down[j], down[j + 1])),
+            )
+            x = row[j]
+            outlier = (x > hi + s) | (x < lo - s)  # no short circuit: the loop then vectorises (a third less time)
+            v = r[j] * decay
+            v = v + gain if outlier else v
+            r[j] = v
+            m[j] = v >= level
+
+
+def defect_rate(
+    img: np.ndarray,
+    sigma: np.floating,
+    decay: np.floating,
+    gain: np.floating,
+    level: np.floating,
+    rate: np.ndarray,
+    mask: np.ndarray,
+) -> bool:
+    """One defect-map update in one pass, bit for bit :class:`onboard.imaging.clutter.DefectMap`'s numpy and OpenCV
+    formulation: a pixel is an outlier when it lies more than ``sigma`` above the largest or below the least of its
+    eight neighbours (edges replicated, float32 arithmetic as ``img > nmax + sigma``); ``rate`` (float32) becomes
+    ``rate * decay``, plus ``gain`` where the pixel is an outlier; ``mask`` (bool) ``rate >= level``.  The scalars
+    float32.  False, with nothing written, for arrays it does not take (the caller's formulation then runs)."""
+    if (
+        img.ndim != 2
+        or img.dtype != np.float32
+        or rate.dtype != np.float32
+        or mask.dtype != np.bool_
+        or rate.shape != img.shape
+        or mask.shape != img.shape
+        or not (img.flags.c_contiguous and rate.flags.c_contiguous and mask.flags.c_contiguous)
+        or min(img.shape) < 1
+    ):
+        return False
+    _defect_rate(img, np.float32(sigma), np.float32(decay), np.float32(gain), np.float32(level), rate, mask)
+    return True
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
     so that no frame pays it (the detector calls it at construction)."""
@@ -343,4 +425,6 @@ def warm() -> None:
     for dtype in (np.uint8, np.uint16):
         area_mean(np.zeros((16, 16), dtype), 4)
         cell_extremes(np.zeros((16, 16), dtype), 4)
+    one = np.float32(1.0)
+    defect_rate(img, one, one, one, one, np.zeros_like(img), np.zeros(img.shape, np.bool_))
     _WARM = True

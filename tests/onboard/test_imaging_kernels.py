@@ -225,3 +225,84 @@ def test_two_level_cap_the_same_with_the_compiled_cell_extremes(seed, h, w, fact
         assert compiled is None
     else:
         np.testing.assert_array_equal(compiled, formulated)
+
+
+def _formulated_defect_update(img, sigma, decay, gain, level, rate):
+    """DefectMap's numpy and OpenCV formulation of one update, on copies."""
+    from onboard.imaging.clutter import isolated_outliers
+
+    rate = rate.copy()
+    out = isolated_outliers(img, sigma)
+    rate *= decay
+    np.add(rate, gain, out=rate, where=out)
+    return rate, rate >= level
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    h=st.integers(1, 40),
+    w=st.integers(1, 50),
+    sigma=st.sampled_from([0.0, 0.5, 2.0, 6.0, 37.25]),
+    frames=st.integers(2, 40),
+    kind=st.sampled_from(["integer", "destriped", "wide"]),
+)
+@example(seed=0, h=512, w=640, sigma=6.0, frames=7, kind="destriped")  # the detector's frame
+@example(seed=3, h=1, w=1, sigma=0.0, frames=2, kind="integer")
+def test_defect_rate_is_the_formulation_bit_for_bit(seed, h, w, sigma, frames, kind):
+    """Outliers above and below, at the frame's edges and corners, with rates already decayed: the compiled update
+    writes the same rates and map as the eight-neighbour dilation and erosion and numpy's float32 arithmetic."""
+    rng = np.random.default_rng(seed)
+    img = _frame(seed, max(h, 1), max(w, 1), kind)[:h, :w].copy()
+    spikes = max(h * w // 20, 1)
+    img[rng.integers(0, h, spikes), rng.integers(0, w, spikes)] += rng.choice([-1, 1], spikes) * rng.uniform(
+        1, 80, spikes
+    ).astype(np.float32)
+    img[0, 0] += 90.0  # a corner pixel: its replicated neighbours include itself
+    img[-1, w // 2] -= 90.0
+    decay = np.float32(1.0 - 1.0 / frames)
+    gain = np.float32(1.0) - decay
+    level = np.float32(0.6) * np.float32(1.0 - decay**3)
+    rate = (rng.integers(0, 4, (h, w)) * gain).astype(np.float32)
+    want_rate, want_mask = _formulated_defect_update(img, sigma, decay, gain, level, rate)
+    mask = np.zeros((h, w), np.bool_)
+    assert kernels.defect_rate(img, np.float32(sigma), decay, gain, level, rate, mask)
+    np.testing.assert_array_equal(rate, want_rate)
+    np.testing.assert_array_equal(mask, want_mask)
+
+
+def test_defect_rate_leaves_what_it_does_not_take_untouched():
+    img, rate, mask = np.zeros((8, 9), np.float32), np.ones((8, 9), np.float32), np.zeros((8, 9), np.bool_)
+    one = np.float32(1.0)
+    assert not kernels.defect_rate(img.astype(np.float64), one, one, one, one, rate, mask)
+    assert not kernels.defect_rate(img, one, one, one, one, np.ones((8, 8), np.float32), mask)
+    assert not kernels.defect_rate(img[:, ::2], one, one, one, one, rate[:, ::2], mask[:, ::2])
+    assert not kernels.defect_rate(img, one, one, one, one, rate, mask.view(np.uint8))
+    assert (rate == 1.0).all() and not mask.any()
+
+
+def test_defect_map_the_same_with_the_compiled_update():
+    """A sequence of frames with hot, dead and blinking pixels: the map, the rates and the repaired frames are the same
+    whichever computes the update."""
+    from onboard.imaging.clutter import DefectMap
+
+    rng = np.random.default_rng(5)
+    compiled, formulated = DefectMap((48, 64), 6, 0.6), DefectMap((48, 64), 6, 0.6)
+    original = kernels.defect_rate
+    for k in range(14):
+        img = rng.normal(100.0, 2.0, (48, 64)).astype(np.float32)
+        img[10, 20] += 40.0  # hot
+        img[30, 40] -= 40.0  # dead
+        img[20, 63] -= 40.0  # dead at the edge, where a replicated neighbour is the pixel itself: never an outlier
+        if k % 3 == 0:
+            img[5, 5] += 40.0  # blinking: an outlier on a third of the frames
+        compiled.update(img, 6.0)
+        try:
+            kernels.defect_rate = lambda *_: False
+            formulated.update(img, 6.0)
+        finally:
+            kernels.defect_rate = original
+        np.testing.assert_array_equal(compiled._rate, formulated._rate)
+        np.testing.assert_array_equal(compiled.mask, formulated.mask)
+        np.testing.assert_array_equal(compiled.repair(img), formulated.repair(img))
+    assert compiled.mask[10, 20] and compiled.mask[30, 40] and not compiled.mask[5, 5] and not compiled.mask[20, 63]
