@@ -134,6 +134,10 @@ def _cells_row(row, box_row, work, out, factor):
     w = wc * factor
     for j in range(w):
         work[j] = abs(row[j] - box_row[j])
+    if factor == 4:  # written out, the same additions in the same order: one pass over the cells, half the time
+        for c in range(wc):
+            out[c] = (((out[c] + work[4 * c]) + work[4 * c + 1]) + work[4 * c + 2]) + work[4 * c + 3]
+        return
     by_cell = work[:w].reshape((wc, factor))
     for k in range(factor):
         col = by_cell[:, k]
