@@ -1,9 +1,10 @@
 r"""The objects chain's whole-frame passes compiled (numba), bit for bit the OpenCV and numpy formulations.
 
-:func:`contrast_and_cells` is the detector's main pass (below).  Three smaller ones: :func:`area_mean`, the background
+:func:`contrast_and_cells` is the detector's main pass (below).  Four smaller ones: :func:`area_mean`, the background
 motion's 4x smaller frames summed in integers from the kept frame (no float32 copy), and :func:`cell_extremes`, the
-two-level cap's cell maxima and minima in the frame's own dtype, both exact by construction (integer arithmetic); and
-:func:`defect_rate`, the defect map's update (eight-neighbour extremes, float32 arithmetic as numpy's).
+two-level cap's cell maxima and minima in the frame's own dtype, both exact by construction (integer arithmetic);
+:func:`defect_rate`, the defect map's update (eight-neighbour extremes, float32 arithmetic as numpy's); and
+:func:`minus_columns`, the frame as float32 less its column offsets.
 
 What it computes, for the usual detector (3 x 3 surround cells): the frame's 3 x 3 box mean, its point contrast
 (:func:`onboard.imaging.clutter.point_contrast`) and the noise estimate's cells
@@ -35,7 +36,7 @@ import numpy as np
 
 from onboard.core.jit import njit
 
-__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "defect_rate", "fits", "warm"]
+__all__ = ["area_mean", "cell_extremes", "contrast_and_cells", "defect_rate", "fits", "minus_columns", "warm"]
 
 _WARM = False
 
@@ -418,6 +419,36 @@ def defect_rate(
     return True
 
 
+@njit(cache=True, nogil=True)
+def _minus_columns(image, offsets, out):
+    h, w = image.shape
+    for i in range(h):
+        row = image[i]
+        o = out[i]
+        for j in range(w):
+            o[j] = np.float32(row[j]) - offsets[j]
+
+
+def minus_columns(image: np.ndarray, offsets: np.ndarray, out: np.ndarray) -> bool:
+    """``out[:] = image.astype(np.float32) - offsets[None, :]`` in one pass (numpy's cast, then its subtraction in
+    place, read and write the float32 frame twice), the same values: the cast of a uint8, uint16 or float32 grey is
+    exact and the subtraction one float32 rounding either way.  False, with nothing written, for arrays it does not
+    take (the caller's numpy then runs)."""
+    h, w = image.shape if image.ndim == 2 else (0, 0)
+    if (
+        image.ndim != 2
+        or image.dtype not in (np.uint8, np.uint16, np.float32)
+        or offsets.dtype != np.float32
+        or offsets.shape != (w,)
+        or out.dtype != np.float32
+        or out.shape != image.shape
+        or not (image.flags.c_contiguous and offsets.flags.c_contiguous and out.flags.c_contiguous)
+    ):
+        return False
+    _minus_columns(image, offsets, out)
+    return True
+
+
 def warm() -> None:
     """Compile (or load from the cache) the kernel for the float32 frames the detector passes: once per process,
     so that no frame pays it (the detector calls it at construction)."""
@@ -429,6 +460,8 @@ def warm() -> None:
     for dtype in (np.uint8, np.uint16):
         area_mean(np.zeros((16, 16), dtype), 4)
         cell_extremes(np.zeros((16, 16), dtype), 4)
+    for kind in (np.uint8, np.uint16, np.float32):
+        minus_columns(np.zeros((16, 16), kind), np.zeros(16, np.float32), np.empty((16, 16), np.float32))
     one = np.float32(1.0)
     defect_rate(img, one, one, one, one, np.zeros_like(img), np.zeros(img.shape, np.bool_))
     _WARM = True

@@ -306,3 +306,36 @@ def test_defect_map_the_same_with_the_compiled_update():
         np.testing.assert_array_equal(compiled.mask, formulated.mask)
         np.testing.assert_array_equal(compiled.repair(img), formulated.repair(img))
     assert compiled.mask[10, 20] and compiled.mask[30, 40] and not compiled.mask[5, 5] and not compiled.mask[20, 63]
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    h=st.integers(1, 30),
+    w=st.integers(1, 40),
+    dtype=st.sampled_from([np.uint8, np.uint16, np.float32]),
+)
+@example(seed=0, h=512, w=640, dtype=np.uint8)
+def test_minus_columns_is_numpys_cast_and_subtraction(seed, h, w, dtype):
+    rng = np.random.default_rng(seed)
+    if dtype == np.float32:
+        image = rng.normal(1000.0, 300.0, (h, w)).astype(np.float32)
+    else:
+        image = rng.integers(0, np.iinfo(dtype).max + 1, (h, w)).astype(dtype)
+    offsets = rng.uniform(-3.0, 3.0, w).astype(np.float32)
+    want = image.astype(np.float32)
+    np.subtract(want, offsets[None, :], out=want)
+    out = np.full((h, w), np.nan, np.float32)
+    assert kernels.minus_columns(image, offsets, out)
+    np.testing.assert_array_equal(out, want)
+
+
+def test_minus_columns_leaves_what_it_does_not_take():
+    out = np.zeros((4, 6), np.float32)
+    offsets = np.zeros(6, np.float32)
+    assert not kernels.minus_columns(np.ones((4, 6), np.float64), offsets, out)
+    assert not kernels.minus_columns(np.ones((4, 6), np.int16), offsets, out)
+    assert not kernels.minus_columns(np.ones((4, 12), np.uint8)[:, ::2], offsets, out)
+    assert not kernels.minus_columns(np.ones((4, 6), np.uint8), np.zeros(5, np.float32), out)
+    assert not kernels.minus_columns(np.ones((4, 6), np.uint8), offsets.astype(np.float64), out)
+    assert not (out != 0).any()
