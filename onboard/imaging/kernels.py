@@ -135,7 +135,7 @@ def _cells_row(row, box_row, work, out, factor):
     w = wc * factor
     for j in range(w):
         work[j] = abs(row[j] - box_row[j])
-    if factor == 4:  # written out, the same additions in the same order: one pass over the cells, half the time
+    if factor == 4:  # written out: the same additions in the same order, in one pass over the cells
         for c in range(wc):
             out[c] = (((out[c] + work[4 * c]) + work[4 * c + 1]) + work[4 * c + 2]) + work[4 * c + 3]
         return
@@ -383,7 +383,7 @@ def _defect_rate(img, s, decay, gain, level, rate, mask):
                 min(min(row[j + 1], down[j - 1]), min(down[j], down[j + 1])),
             )
             x = row[j]
-            outlier = (x > hi + s) | (x < lo - s)  # no short circuit: the loop then vectorises (a third less time)
+            outlier = (x > hi + s) | (x < lo - s)
             v = r[j] * decay
             v = v + gain if outlier else v
             r[j] = v
