@@ -1,7 +1,8 @@
 """``python -m onboard.track_video``: the objects image chain over anyone's video, MOT-format tracks out.
 
     python -m onboard.track_video INPUT --out tracks.txt [--encoding auto|mono8|mono16] [--fps HZ]
-                                  [--box-px N] [--primary-only] [--quiet]
+                                  [--box-px N] [--primary-only] [--primary-within-px R]
+                                  [--format mot|anti-uav] [--quiet]
 
 ``INPUT`` is one of:
 
@@ -10,8 +11,10 @@
 * a folder of frames: PNG (8- or 16-bit), TIFF, JPEG or BMP files, sorted by name (numbers in names by value:
   ``2.png`` before ``10.png``), read with OpenCV as stored (``IMREAD_UNCHANGED``: a 16-bit PNG stays 16-bit;
   colour frames, and grey frames with an alpha channel, are turned to grey, which the summary line says);
-* a sequence folder of a public tracking benchmark: MOT's (its ``img1/``, ``000001.jpg`` ...), Anti-UAV's (its
-  frames, or its ``IR.mp4`` / ``infrared.mp4`` with ``IR_label.json`` beside).
+* a sequence folder of a public tracking benchmark: MOT's (its ``img1/``, ``000001.jpg`` ..., and its
+  ``seqinfo.ini``, whose ``frameRate`` is the rate unless ``--fps`` says, and whose ``seqLength`` is checked
+  against the frames), Anti-UAV's (its frames, or its ``IR.mp4`` / ``infrared.mp4``, with ``IR_label.json`` /
+  ``infrared.json`` beside).
 
 Every frame goes through the daemon's ``imaging.chain: objects`` (:class:`onboard.imaging.objects.ObjectTracker`,
 its default parameters) without a pose: the camera is taken as still, so association is in image space (the
@@ -22,16 +25,26 @@ the MOT Challenge tracker format, one line per confirmed object measured on a fr
 
 ``frame`` from 1; ``x, y`` the box's top-left in MOT's 1-based pixels (the chain's box of the detection, or with
 ``--box-px N`` an N x N square about its centre, as ``groundsim eval`` writes for point targets); ``conf`` the
-detection's contrast over its local threshold.  ``--primary-only``: only the primary target (the chain's choice
-in auto mode: the steady object nearest the image centre), for single-target benchmarks such as Anti-UAV.
-TrackEval (MOT Challenge 2-D) or the Anti-UAV toolkit score the file against the benchmark's truth.
+detection's contrast over its local threshold.  TrackEval (MOT Challenge 2-D) and ``motmetrics`` read it.
 
-Frame numbers.  A video's frames are numbered as decoded, from 1.  In a folder whose frame names are all numbers
-(``000001.png``, ``17.png``: the MOT and Anti-UAV convention) the number in the name is the MOT frame, so a missing
-file leaves a gap rather than shifting every later frame against the benchmark's truth; names numbered from 0 are
-moved up by one (MOT counts from 1).  Gaps are warned about once (how many frames, the first gap), and two files
-with one number (``1.png`` and ``0001.png``) are refused.  When some name is not a number, frames are numbered by
-their sorted position from 1, which an INFO line says.
+``--primary-only``: only the primary target, the chain's choice in auto mode: the steady object nearest the image
+centre, and within ``--primary-within-px`` of it (default 0.15 of the frame's width: the daemon's 0.15 rad off
+the axis for a camera pointed at its target; give the half diagonal or more for footage whose target is anywhere).
+Frames whose confirmed objects are all farther have no line, which a warning at the end counts.
+``--format anti-uav`` writes the Anti-UAV toolkit's result instead (its ``eval`` reads it as a sequence's
+``.txt``): ``{"res": [...]}``, one entry per frame from 1 to the last, the primary's ``[x, y, w, h]`` in 0-based
+pixels (its ``gt_rect``'s) or ``[]`` where there is none (the toolkit's "absent"; a frame missing from a folder's
+numbering too).
+
+Frame numbers.  A video's frames are numbered as decoded, from 1.  In a folder whose frame names all end in a
+number behind one common prefix (``000001.png``, ``17.png``, ``frame_000001.png``, ``img0000001.jpg``: the MOT and
+Anti-UAV conventions, ffmpeg's ``frame_%06d``) the number is the MOT frame, so a missing file leaves a gap rather
+than shifting every later frame against the benchmark's truth; names numbered from 0 are moved up by one (MOT
+counts from 1).  Gaps are warned about once (how many frames, the first gap), and two files with one number
+(``1.png`` and ``0001.png``) are refused.  Otherwise frames are numbered by their sorted position from 1: an INFO
+line says so, a WARNING when most names are numbered (a stray image among the frames is tracked as one).
+Frame K is taken ``(K - 1) / fps`` seconds after the first, so the tracks are predicted over a gap as over frames
+the daemon drops; ``--fps`` (or the video's or ``seqinfo.ini``'s rate) sets that time.
 
 Frames must be at least 16 x 16 pixels (the chain's smallest) and of one size: a folder or a video whose frame
 size changes is refused at the first frame that differs.  A video that decodes with errors (damage the decoder
@@ -39,22 +52,23 @@ concealed) or to fewer frames than its container declares (a file cut short) is 
 with one warning saying how far.
 
 ``--encoding``: ``auto`` takes the frames as stored (the first frame's depth; all must match);
-``mono8`` takes a 16-bit frame's high byte; ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate
-of a folder (default 30; a video's own rate otherwise).  A progress line goes to stderr every few seconds;
+``mono8`` takes a 16-bit frame's high byte (of a 14-bit camera's grey, the 6 highest bits: a dim target's contrast
+may not survive it); ``mono16`` widens 8-bit frames unchanged.  ``--fps``: the frame rate (default: a video's own,
+a MOT sequence's ``seqinfo.ini``'s, else 30).  A progress line goes to stderr every few seconds;
 ``--quiet`` drops it and the INFO lines.
 
 The tracks are written to a temporary file beside ``--out`` (created with the permissions a new file gets,
 ``0666`` less the umask) and renamed over it only when the run ends: a run that fails leaves the previous file as
 it was (or none), never the tracks of the frames before the failure.  An interrupted run (Ctrl-C) is the exception:
 it renames the tracks of the frames done (if any) into place, since they are valid MOT lines of a prefix of the
-input.
+input; SIGTERM (a job's time limit, ``timeout``) is taken as Ctrl-C.
 ``--out`` must be a regular file or a new path (a folder, device or pipe is refused); through a symbolic link the
 file it points to is replaced, the link kept.  It must not be an input: the video, a frame of the input folder, or
 any image file in that folder (a later run would read it as a frame).
 
 Exit codes: 0 done; 2 bad input -- a missing path, a frame that cannot be read, frames of mixed size or depth or
 too small, two frame files of one number, an output that cannot be written or naming an input -- in one line
-naming the file; 130 interrupted (the tracks of the frames done are in the output).
+naming the file; 130 interrupted by Ctrl-C or SIGTERM (the tracks of the frames done are in the output).
 """
 
 from __future__ import annotations
@@ -65,10 +79,12 @@ single_thread_blas_env()  # the chain is single-threaded like the daemon's: befo
 
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
+import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
+import signal  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -105,6 +121,7 @@ VIDEO_NAMES = ("IR.mp4", "infrared.mp4")
 DEFAULT_FOLDER_FPS = 30.0
 PROGRESS_EVERY_S = 5.0
 ENCODINGS = ("auto", "mono8", "mono16")
+FORMATS = ("mot", "anti-uav")
 
 
 def _natural_key(name: str) -> list:
@@ -140,37 +157,58 @@ def _frame_files(folder: Path) -> list[Path]:
         raise InputError(f"{folder}: cannot list the folder: {exc.strerror or exc}") from None
 
 
+_NUMBERED = re.compile(r"(.*?)([0-9]+)")
+
+
 def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
     """``files`` (sorted by name) in frame order and their MOT frame numbers (the module docstring's rules); logs
     the numbering when it is not the names' own, and the gaps."""
-    if not all(re.fullmatch(r"[0-9]+", p.stem) for p in files):
-        example = next(p for p in files if not re.fullmatch(r"[0-9]+", p.stem))
-        log.info(
-            "%s: not every frame name is a number (%s): MOT frames are numbered by sorted position from 1",
+    parts = [_NUMBERED.fullmatch(p.stem) for p in files]
+    prefixes = {m.group(1) for m in parts if m is not None}
+    if None in parts or len(prefixes) != 1:
+        odd = next((p for p, m in zip(files, parts) if m is None), None)
+        if odd is None:  # numbered, but behind different prefixes
+            by_prefix = {m.group(1): p for p, m in zip(files, parts) if m is not None}
+            odd = next(iter(sorted(by_prefix.values(), key=lambda p: _natural_key(p.name))[1:]), files[0])
+        numbered = sum(m is not None for m in parts)
+        # most names numbered alike and one odd: a stray file (a cover image, a frame renamed) is more likely than
+        # a folder that means its sorted order
+        level = logging.WARNING if numbered * 2 > len(files) else logging.INFO
+        log.log(
+            level,
+            "%s: not every frame name is a number behind one prefix (%s): MOT frames are numbered by sorted "
+            "position from 1%s",
             folder,
-            example.name,
+            odd.name,
+            ", and it is tracked as a frame" if level == logging.WARNING else "",
         )
         return files, list(range(1, len(files) + 1))
-    ordered = sorted(files, key=lambda p: int(p.stem))  # stable: names of one number stay in name order
+
+    def number(p: Path) -> int:
+        m = _NUMBERED.fullmatch(p.stem)
+        assert m is not None  # every stem matched above
+        return int(m.group(2))
+
+    ordered = sorted(files, key=number)  # stable: names of one number stay in name order
     for before, path in zip(ordered, ordered[1:]):
-        if int(before.stem) == int(path.stem):
+        if number(before) == number(path):
             raise InputError(
-                f"{path}: frame number {int(path.stem)} again ({before.name} has it): MOT frame numbers come "
+                f"{path}: frame number {number(path)} again ({before.name} has it): MOT frame numbers come "
                 f"from the names; remove or rename one"
             )
-    shift = 1 if int(ordered[0].stem) == 0 else 0  # MOT frames count from 1
+    shift = 1 if number(ordered[0]) == 0 else 0  # MOT frames count from 1
     if shift:
         log.info("%s: frames numbered from 0 (%s): MOT frame = the number in the name + 1", folder, ordered[0].name)
-    numbers = [int(p.stem) + shift for p in ordered]
+    numbers = [number(p) + shift for p in ordered]
     missing = numbers[-1] - len(numbers)
     if missing:
         # the i-th frame (from 0) is MOT frame i + 1 up to the first gap
-        i = next(i for i, number in enumerate(numbers) if number != i + 1)
+        i = next(i for i, n in enumerate(numbers) if n != i + 1)
         first, last = i + 1 - shift, numbers[i] - 1 - shift
         gap = f"{first}" if first == last else f"{first} to {last}"
         log.warning(
             "%s: %d frame%s missing from the numbering up to %s, the first gap %s (before %s); MOT frames keep "
-            "the numbers in the names",
+            "the numbers in the names, and the tracks are predicted over the gaps",
             folder,
             missing,
             "" if missing == 1 else "s",
@@ -179,6 +217,38 @@ def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
             ordered[i].name,
         )
     return ordered, numbers
+
+
+def _seqinfo(folder: Path) -> tuple[float | None, int | None]:
+    """A MOT sequence's ``seqinfo.ini`` (in ``folder`` or, for its ``img1/``, the folder above): its ``frameRate``
+    and ``seqLength`` (None where absent or not a positive number; a warning names a value that is not)."""
+    import configparser
+
+    for path in (
+        (folder / "seqinfo.ini", folder.parent / "seqinfo.ini") if folder.name == "img1" else (folder / "seqinfo.ini",)
+    ):
+        if not path.is_file():
+            continue
+        parser = configparser.ConfigParser()
+        try:
+            parser.read(path, encoding="utf-8")
+        except (configparser.Error, OSError, UnicodeDecodeError) as exc:
+            log.warning("%s: not read (%s): its frame rate and length are not used", path, exc)
+            return None, None
+        values: dict[str, float | None] = {}
+        for key in ("frameRate", "seqLength"):
+            raw = parser.get("Sequence", key, fallback=None)
+            try:
+                v = None if raw is None else float(raw)
+            except ValueError:
+                v = None
+            if raw is not None and (v is None or not math.isfinite(v) or v <= 0):
+                log.warning("%s: [Sequence] %s = %r is not a number > 0: not used", path, key, raw)
+                v = None
+            values[key] = v
+        length = values["seqLength"]
+        return values["frameRate"], None if length is None else int(length)
+    return None, None
 
 
 def _convert(px: np.ndarray, encoding: str, where: str) -> np.ndarray:
@@ -340,13 +410,32 @@ def open_frames(input_path: str, encoding: str = "auto", fps: float | None = Non
                 )
             path = video
         else:
-            rate = DEFAULT_FOLDER_FPS if fps is None else fps
+            seq_rate, seq_length = _seqinfo(path)
+            rate = fps if fps is not None else seq_rate if seq_rate is not None else DEFAULT_FOLDER_FPS
             converted_from: set[str] = set()
             files, numbers = _numbered(path, files)
+            if seq_length is not None and (numbers[-1] != seq_length or len(numbers) != seq_length):
+                log.warning(
+                    "%s: seqinfo.ini's seqLength is %d, the folder holds %d frames numbered up to %d: the truth "
+                    "counts frames this run does not have, or the folder frames the truth does not",
+                    path,
+                    seq_length,
+                    len(numbers),
+                    numbers[-1],
+                )
             frames = _folder_frames(files, numbers, encoding, converted_from)
             return FrameSource(path, "folder", rate, len(files), frames, converted_from, files)
     video_fps, total, decoded = _video_frames(path, encoding)
     return FrameSource(path, "video", video_fps if fps is None else fps, total, decoded)
+
+
+def _box(o, box_px: float | None) -> tuple[float, float, float, float]:
+    """Object ``o``'s box ``(x, y, w, h)`` in the chain's pixels (pixel i spans [i, i + 1)): its detected box, or a
+    ``box_px`` square about its centre."""
+    if box_px is None:
+        x, y, w, h = o.bbox
+        return float(x), float(y), float(w), float(h)
+    return o.u_px - box_px / 2, o.v_px - box_px / 2, box_px, box_px
 
 
 def mot_rows(frame_number: int, update, box_px: float | None = None, primary_only: bool = False) -> list[str]:
@@ -357,18 +446,29 @@ def mot_rows(frame_number: int, update, box_px: float | None = None, primary_onl
     for o in update.confirmed:
         if primary_only and o.object_id != update.primary_id:
             continue
-        if box_px is None:
-            x, y, w, h = o.bbox
-        else:
-            x, y, w, h = o.u_px - box_px / 2, o.v_px - box_px / 2, box_px, box_px
+        x, y, w, h = _box(o, box_px)
         rows.append(f"{frame_number},{o.object_id},{x + 1:.3f},{y + 1:.3f},{w:.3f},{h:.3f},{o.score:.3f},-1,-1,-1\n")
     return rows
 
 
-def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsUpdate]]:
+def anti_uav_box(update, box_px: float | None = None) -> list[float]:
+    """The Anti-UAV toolkit's entry for one frame: the primary target's ``[x, y, w, h]`` (0-based pixels, the box's
+    top-left corner, as its ``gt_rect``), or ``[]`` when there is none (the toolkit's "target absent")."""
+    for o in update.confirmed:
+        if o.object_id == update.primary_id:
+            return [round(v, 3) for v in _box(o, box_px)]
+    return []
+
+
+def track_frames(
+    frames, fps: float, primary_within_px: float | None = None
+) -> Iterator[tuple[int, np.ndarray, ObjectsUpdate]]:
     """``(MOT frame number, pixels, ObjectsUpdate)`` of each frame of ``frames`` (``(MOT frame number, name,
     pixels)``) through a fresh objects chain sized by the first frame; an unusable frame raises
-    :class:`InputError` naming it."""
+    :class:`InputError` naming it.  Frame K is stamped ``(K - 1) / fps``: a gap in the numbering is time that
+    passed, over which the tracks are predicted as over frames a daemon dropped.  ``primary_within_px``: the
+    primary rule's radius about the image centre (None: the chain's, ``primary_max_off_axis_rad`` of the nominal
+    pinhole)."""
     from onboard.core.frames import PinholeIntrinsics
     from onboard.imaging.objects import ObjectTracker
     from onboard.imaging.preprocess import MIN_FRAME_SIDE_PX
@@ -383,14 +483,26 @@ def track_frames(frames, fps: float) -> Iterator[tuple[int, np.ndarray, ObjectsU
                     f"{MIN_FRAME_SIDE_PX} px"
                 )
             K = PinholeIntrinsics(float(w), float(w), w / 2.0, h / 2.0, w, h)  # nominal: image space (docstring)
+            changes: dict[str, float] = {"attitude_white_sigma_rad": 0.0}
             # no attitude here (every frame in image space): its fits have no attitude error to allow for
-            params = ObjectTracker.default_params(attitude_white_sigma_rad=0.0)
+            if primary_within_px is not None:
+                changes["primary_max_off_axis_rad"] = math.atan(primary_within_px / K.fx_px)
+            params = ObjectTracker.default_params(None, **changes)
             tracker = ObjectTracker(K, frame_rate_hz=fps, params=params)
         try:
-            upd = tracker.update(px, None)
+            upd = tracker.update(px, None, round((k - 1) * 1e6 / fps))
         except InputError as exc:
             raise InputError(f"{name}: {exc}") from None
         yield k, px, upd
+
+
+def primary_radius_px(width_px: int, primary_within_px: float | None = None) -> float:
+    """The primary rule's radius about the image centre, in pixels, for frames ``width_px`` wide."""
+    if primary_within_px is not None:
+        return primary_within_px
+    from onboard.imaging.objects import ObjectTracker
+
+    return width_px * math.tan(ObjectTracker.default_params().primary_max_off_axis_rad)
 
 
 # --------------------------------------------------------------------------- output
@@ -486,13 +598,38 @@ def _input_clash(out_path: str, src: FrameSource) -> str | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0].replace("``", ""))
     p.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a MOT / Anti-UAV sequence")
-    p.add_argument("--out", metavar="tracks.txt", required=True, help="the MOT-format tracks to write")
+    p.add_argument("--out", metavar="tracks.txt", required=True, help="the tracks to write (MOT lines, or --format's)")
     p.add_argument("--encoding", choices=ENCODINGS, default="auto", help="pixel depth (default: %(default)s)")
-    p.add_argument("--fps", type=float, help="frame rate (default: the video's; 30 for a folder)")
-    p.add_argument("--box-px", type=float, help="write N x N boxes about the centres instead of the detected ones")
-    p.add_argument("--primary-only", action="store_true", help="only the primary target (single-target benchmarks)")
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="frame rate: frame K is (K - 1) / fps s after the first (default: the video's; a MOT sequence's "
+        "seqinfo.ini; 30 for a folder)",
+    )
+    p.add_argument(
+        "--box-px", type=float, metavar="N", help="write N x N px boxes about the centres instead of the detected ones"
+    )
+    p.add_argument(
+        "--primary-only",
+        action="store_true",
+        help="only the primary target: the steady object nearest the image centre, within --primary-within-px",
+    )
+    p.add_argument(
+        "--primary-within-px",
+        type=float,
+        metavar="R",
+        help="the primary's farthest distance from the image centre (default: 0.15 of the width, the daemon's "
+        "0.15 rad off the axis, for a camera pointed at its target)",
+    )
+    p.add_argument(
+        "--format",
+        choices=FORMATS,
+        default="mot",
+        help="mot: MOT Challenge lines of every confirmed object; anti-uav: the Anti-UAV toolkit's JSON, "
+        '{"res": [[x, y, w, h] or [] for each frame]}, the primary target only (default: %(default)s)',
+    )
     p.add_argument("--quiet", action="store_true", help="no progress line and no INFO lines")
     return p
 
@@ -508,12 +645,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.box_px is not None and not (math.isfinite(args.box_px) and args.box_px > 0):
         print(f"--box-px: expected a finite side > 0, got {args.box_px}", file=sys.stderr)
         return EXIT_INPUT
+    if args.primary_within_px is not None and not (
+        math.isfinite(args.primary_within_px) and args.primary_within_px > 0
+    ):
+        print(f"--primary-within-px: expected a finite radius > 0, got {args.primary_within_px}", file=sys.stderr)
+        return EXIT_INPUT
+    primary_only = args.primary_only or args.format == "anti-uav"
     clash = same_file_clash([("--out", args.out)], [("INPUT", args.input)])
     if clash is not None:
         print(clash, file=sys.stderr)
         return EXIT_INPUT
     done = 0
     out: _Replacement | None = None
+    boxes: list[list[float]] = []  # --format anti-uav: one entry a frame, frame 1 first
+    try:
+        previous_term = signal.signal(signal.SIGTERM, _term_as_interrupt)
+    except ValueError:  # not the main thread (a caller's): SIGTERM keeps its handler
+        previous_term = None
     try:
         src = open_frames(args.input, args.encoding, args.fps)
         clash = _input_clash(args.out, src)
@@ -521,14 +669,26 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise InputError(clash)
         out = _Replacement(args.out)
         t0 = last = time.monotonic()
-        ids: set[int] = set()
+        ids: set[int] = set()  # confirmed
+        written: set[int] = set()
         lines = 0
+        no_primary = 0  # frames with confirmed objects and no primary among them
         size = None
-        for k, px, upd in track_frames(src.frames, src.fps):
-            rows = mot_rows(k, upd, args.box_px, args.primary_only)
-            out.writelines(rows)
-            lines += len(rows)
+        for k, px, upd in track_frames(src.frames, src.fps, args.primary_within_px):
+            if args.format == "anti-uav":
+                boxes.extend([] for _ in range(k - 1 - len(boxes)))  # frames missing from the numbering: absent
+                boxes.append(anti_uav_box(upd, args.box_px))
+                lines += bool(boxes[-1])
+            else:
+                rows = mot_rows(k, upd, args.box_px, primary_only)
+                out.writelines(rows)
+                lines += len(rows)
             ids.update(o.object_id for o in upd.confirmed)
+            if primary_only:
+                written.update(() if upd.primary_id is None else [upd.primary_id])
+                no_primary += bool(upd.confirmed) and upd.primary_id not in {o.object_id for o in upd.confirmed}
+            else:
+                written.update(o.object_id for o in upd.confirmed)
             done += 1  # frames tracked: a folder's frame numbers may have gaps
             now = time.monotonic()
             if not args.quiet and now - last >= PROGRESS_EVERY_S:
@@ -538,10 +698,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                 print(f"track_video: frame {done}{of}, {rate:.0f} frames/s, {len(ids)} ids", file=sys.stderr)
             if size is None:
                 size = f"{px.shape[1]} x {px.shape[0]} {'mono16' if px.dtype == np.uint16 else 'mono8'}"
+                size_px = (px.shape[1], px.shape[0])
         wall = time.monotonic() - t0
         if done == 0:
             raise InputError(f"{src.path}: no frames")
+        if args.format == "anti-uav":
+            out.writelines(_anti_uav_json(boxes))
         out.commit()
+        if primary_only and no_primary:
+            log.warning(
+                "%s: on %d of %d frames objects were confirmed but none was the primary, which must be within %.0f px "
+                "of the image centre (--primary-within-px): those frames have no %s",
+                src.path,
+                no_primary,
+                done,
+                primary_radius_px(int(size_px[0]), args.primary_within_px),
+                "box" if args.format == "anti-uav" else "line",
+            )
     except InputError as exc:
         if out is None:  # nothing created yet
             print(str(exc), file=sys.stderr)
@@ -551,16 +724,32 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"{exc}; {out.untouched}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
+        if args.format == "anti-uav" and out is not None and done:
+            with contextlib.suppress(OutputError):  # said by _interrupted's commit, which fails alike
+                out.writelines(_anti_uav_json(boxes))
         return _interrupted(out, done)
     finally:
         if out is not None:
             out.discard()
+        if previous_term is not None:
+            signal.signal(signal.SIGTERM, previous_term)
     converted = f"from {' and '.join(sorted(src.converted_from))}; " if src.converted_from else ""
     print(
-        f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids, "
-        f"{lines} lines in {args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
+        f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids "
+        f"confirmed, {len(written)} written, {lines} {'boxes' if args.format == 'anti-uav' else 'lines'} in "
+        f"{args.out} ({wall:.1f} s, {done / max(wall, 1e-9):.0f} frames/s)"
     )
     return EXIT_OK
+
+
+def _anti_uav_json(boxes: list[list[float]]) -> list[str]:
+    return [json.dumps({"res": boxes}, separators=(",", ":")), "\n"]
+
+
+def _term_as_interrupt(signum, frame) -> None:
+    """SIGTERM (a job's time limit, ``timeout``, ``kill``) ends the run as Ctrl-C does: the tracks of the frames
+    done into place, the temporary file gone."""
+    raise KeyboardInterrupt
 
 
 def _interrupted(out: _Replacement | None, done: int) -> int:

@@ -257,8 +257,8 @@ def test_ctrl_c_keeps_the_tracks_of_the_frames_done(tmp_path, capsys, monkeypatc
     out.write_text("previous\n")
     real = track_video.track_frames
 
-    def interrupted(frames, fps):
-        for k, item in enumerate(real(frames, fps)):
+    def interrupted(frames, fps, *rest):
+        for k, item in enumerate(real(frames, fps, *rest)):
             if k == after:
                 raise KeyboardInterrupt
             yield item
@@ -387,3 +387,112 @@ def test_a_folder_that_cannot_be_listed_is_one_line(tmp_path, monkeypatch, capsy
     assert track_video.main([str(folder), "--out", str(tmp_path / "t.txt")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"{folder}: cannot list the folder: Permission denied"]
+
+
+def _mot_folder(folder: Path, skip: range = range(0)) -> Path:
+    (folder / "img1").mkdir(parents=True)
+    for k in range(N_FRAMES):
+        if k + 1 not in skip:
+            cv2.imwrite(str(folder / "img1" / f"{k + 1:06d}.png"), _mono8(k))
+    return folder
+
+
+def _ids_by_object(rows, tol_px: float = CENTRE_TOL_PX) -> list[set[int]]:
+    """The ids matched to each truth object on the settled frames."""
+    ids_of: list[set[int]] = [set() for _ in _truth(0)]
+    for frame, oid, x, y, w, h, _ in rows:
+        if frame - 1 >= SETTLE_FRAMES:
+            u, v = x - 1 + w / 2, y - 1 + h / 2
+            d = [math.hypot(u - tu, v - tv) for tu, tv in _truth(frame - 1)]
+            assert min(d) <= tol_px, (frame, oid, u, v)
+            ids_of[int(np.argmin(d))].add(oid)
+    return ids_of
+
+
+def test_a_gap_in_the_numbering_is_time_the_tracks_are_predicted_over(tmp_path, caplog):
+    """Ten frames missing from a MOT folder: each object keeps its one id across the gap (its motion carried over
+    the frames' time), and the frames after it keep the names' numbers."""
+    seq = _mot_folder(tmp_path / "MOT-02", skip=range(20, 30))
+    out = tmp_path / "t.txt"
+    assert main([str(seq), "--out", str(out), "--quiet"]) == 0
+    rows = _read_mot(out)
+    assert not {r[0] for r in rows} & set(range(20, 30)) and max(r[0] for r in rows) == N_FRAMES
+    ids_of = _ids_by_object(rows)
+    assert all(len(ids) == 1 for ids in ids_of), ids_of
+    assert any(r[0] > 30 for r in rows) and len(set.union(*ids_of)) == 3
+
+
+def test_anti_uav_format_is_the_toolkits_json_one_entry_a_frame(tmp_path):
+    """``--format anti-uav``: ``{"res": [...]}`` with one entry per frame from 1 to the last (a frame missing from
+    the numbering an empty entry), the primary's 0-based ``[x, y, w, h]`` or ``[]``, as the Anti-UAV toolkit's
+    ``eval`` reads them (``len(pred) == 4`` a box, ``len(pred) in (0, 1)`` "absent")."""
+    import json
+
+    seq = _mot_folder(tmp_path / "MOT-03", skip=range(40, 41))
+    out = tmp_path / "res.json"
+    args = ["--quiet", "--format", "anti-uav", "--box-px", "6", "--primary-within-px", "200"]  # anywhere in frame
+    assert main([str(seq), "--out", str(out), *args]) == 0
+    res = json.loads(out.read_text())["res"]
+    assert len(res) == N_FRAMES and res[39] == [] and all(len(b) in (0, 4) for b in res)
+    boxed = [(k, b) for k, b in enumerate(res) if b]
+    assert boxed and all(k >= SETTLE_FRAMES - 4 for k, _ in boxed)  # none before the chain confirms
+    for k, (x, y, w, h) in boxed:
+        assert w == h == 6.0
+        u, v = x + w / 2, y + h / 2  # 0-based: the chain's own pixels
+        assert min(math.hypot(u - tu, v - tv) for tu, tv in _truth(k)) <= CENTRE_TOL_PX
+    assert sum(map(bool, res)) >= 0.8 * (N_FRAMES - SETTLE_FRAMES)
+
+
+def test_a_primary_that_never_comes_near_the_centre_is_warned_not_silent(tmp_path, capsys, caplog):
+    seq = _mot_folder(tmp_path / "MOT-04")
+    out = tmp_path / "t.txt"
+    assert main([str(seq), "--out", str(out), "--quiet", "--primary-only", "--primary-within-px", "1"]) == 0
+    assert out.read_text() == ""
+    (warned,) = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert "objects were confirmed but none was the primary, which must be within 1 px" in warned
+    assert "3 object ids confirmed, 0 written, 0 lines" in capsys.readouterr().out
+    wide = tmp_path / "wide.txt"
+    assert main([str(seq), "--out", str(wide), "--quiet", "--primary-only", "--primary-within-px", "200"]) == 0
+    assert len({r[1] for r in _read_mot(wide) if r[0] > SETTLE_FRAMES}) == 1
+
+
+def test_a_mot_sequences_seqinfo_gives_the_rate_and_its_length_is_checked(tmp_path, caplog):
+    (tmp_path / "MOT-05").mkdir()
+    seq = _small_seq(tmp_path / "MOT-05" / "img1", n=4).parent
+    (seq / "seqinfo.ini").write_text("[Sequence]\nname=MOT-05\nimDir=img1\nframeRate=14\nseqLength=5\nimExt=.png\n")
+    assert open_frames(str(seq)).fps == 14.0 and open_frames(str(seq / "img1")).fps == 14.0
+    assert open_frames(str(seq), fps=9.0).fps == 9.0  # --fps wins
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned and all("seqLength is 5, the folder holds 4 frames numbered up to 4" in m for m in warned)
+    (seq / "seqinfo.ini").write_text("[Sequence]\nframeRate=fast\n")
+    caplog.clear()
+    assert open_frames(str(seq)).fps == 30.0
+    assert any("frameRate = 'fast' is not a number > 0" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.parametrize("fmt", ["mot", "anti-uav"])
+def test_sigterm_ends_the_run_as_ctrl_c_does(tmp_path, capsys, monkeypatch, fmt):
+    """A job's time limit or ``timeout`` sends SIGTERM: the frames done are kept (an Anti-UAV result with their
+    entries), no temporary file is left, and the handler the caller had is back afterwards."""
+    import signal
+
+    seq = _small_seq(tmp_path / "seq", n=5)
+    out = tmp_path / "t.txt"
+    real = track_video.track_frames
+
+    def terminated(frames, fps, *rest):
+        for k, item in enumerate(real(frames, fps, *rest)):
+            if k == 2:
+                os.kill(os.getpid(), signal.SIGTERM)
+            yield item
+
+    monkeypatch.setattr(track_video, "track_frames", terminated)
+    before = signal.getsignal(signal.SIGTERM)
+    assert main([str(seq), "--out", str(out), "--quiet", "--format", fmt]) == track_video.EXIT_INTERRUPTED
+    assert capsys.readouterr().err == f"interrupted: 2 frames tracked; {out} holds their tracks\n"
+    assert out.exists() and _temporary_files(tmp_path) == []
+    if fmt == "anti-uav":
+        import json
+
+        assert json.loads(out.read_text()) == {"res": [[], []]}  # nothing confirmed in two frames
+    assert signal.getsignal(signal.SIGTERM) == before

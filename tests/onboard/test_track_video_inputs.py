@@ -70,11 +70,35 @@ def test_names_numbered_from_0_are_moved_up_by_one(tmp_path, monkeypatch, caplog
 
 
 def test_names_that_are_not_all_numbers_are_numbered_by_position_and_said_once(tmp_path, monkeypatch, caplog):
-    seq = _folder(tmp_path / "seq", ["img2.png", "img10.png", "img1.png"])
+    seq = _folder(tmp_path / "seq", ["b.png", "a.png", "c.png"])
     assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3]
     assert [m for m in _records(caplog, logging.INFO) if "position" in m] == [
-        f"{seq}: not every frame name is a number (img1.png): MOT frames are numbered by sorted position from 1"
+        f"{seq}: not every frame name is a number behind one prefix (a.png): MOT frames are numbered by sorted "
+        "position from 1"
     ]
+
+
+def test_names_with_a_prefix_are_numbered_by_their_number(tmp_path, monkeypatch, caplog):
+    """ffmpeg's ``frame_%06d``, ``img0000001.jpg``: the number behind the common prefix is the frame's, so a
+    missing file is a gap, not a shift of every later frame."""
+    seq = _folder(tmp_path / "seq", ["frame_000001.png", "frame_000002.png", "frame_000004.png", "frame_000010.png"])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 4, 10]
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "6 frames missing" in warned and "the first gap 3 (before frame_000004.png)" in warned
+
+
+def test_a_stray_file_in_a_numbered_folder_is_warned_about(tmp_path, monkeypatch, caplog):
+    seq = _folder(tmp_path / "seq", ["000001.png", "000002.png", "000003.png", "cover.png"])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3, 4]
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "(cover.png)" in warned and "by sorted position" in warned and "tracked as a frame" in warned
+
+
+def test_names_numbered_behind_different_prefixes_are_numbered_by_position(tmp_path, monkeypatch, caplog):
+    seq = _folder(tmp_path / "seq", ["a1.png", "a2.png", "b1.png"])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3]
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "(b1.png)" in warned
 
 
 def test_two_files_of_one_number_are_refused_naming_both(tmp_path, capsys):
