@@ -519,7 +519,13 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
         "--bit-depth", type=int, default=None, choices=(8, 16), help="PNG bit depth (default: the scenario's encoding)"
     )
     _duration_option(p, "simulated seconds per sequence (default: the scenario's)")
-    p.add_argument("--out", default="out/dataset", metavar="DIR", help="dataset directory (default: %(default)s)")
+    p.add_argument(
+        "--out",
+        default="out/dataset",
+        metavar="DIR",
+        help="dataset directory; a dataset there is replaced, refused if it has sequences this run does not make "
+        "(default: %(default)s)",
+    )
     _workers_option(p, "worker processes, one sequence each (default: min(2, CPUs))")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(handler=_cmd_dataset)
@@ -567,7 +573,11 @@ COMMANDS = (
     ("run", "fly, render and emit MAVLink + IR frames (+ truth CSV)", _add_run),
     ("eval", "closed loop in lockstep over scenarios and seeds; writes the evaluation report", _add_eval),
     ("demo", "simulator + onboard daemon on loopback with a live status line, then the error table", _add_demo),
-    ("dataset", "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT and/or COCO)", _add_dataset),
+    (
+        "dataset",
+        "export labelled IR sequences (PNG, labels, camera poses, 3-D truth; MOT, COCO, obs.csv)",
+        _add_dataset,
+    ),
     ("campaign", "sweep scenarios x geometry x noise x algorithms x seeds; resumable table + report", _add_campaign),
     ("report", "plots of a recorded flight (replayed), against the simulator's truth when given", add_report),
     ("scenes", "measure scenes (cloud cover, target contrast, clutter); labelled pictures", _add_scenes),

@@ -29,21 +29,27 @@ Labels (:func:`target_label`, pure):
 * ``u_px, v_px``: the target centre's projection at the TRUE camera pose (:func:`groundsim.world.render.truth_pixel`,
   the renderer's own projection): the sub-pixel centroid a perfect detector would report; NaN behind the camera;
 * box ``x_px, y_px, w_px, h_px``: the projected 8 corners of the target's body bounding box (the union of
-  ``scenario.ir.target_parts``), clipped to the image: a tight box for an oblique view is smaller;
+  ``scenario.ir.target_parts``) joined to the target as drawn (the pixels holding >= 10 % of its peak signal,
+  as the scene objects' boxes: the optics' blur spreads a far target's sub-pixel body over a few pixels, and a
+  detector's box on the blob must be able to match it), clipped to the image;
 * ``visibility``: clipped box area / unclipped box area (MOT's meaning: the visible fraction), 0 behind
   the camera or outside the image; ``in_image``: the centre is inside the image (``truth.target_visible``).
 
 A frame whose target is not in the image has no gt.txt line and no COCO annotation; labels.csv keeps it.
 gt.txt (MOT 1.1 ground truth): ``frame, id, bb_left, bb_top, bb_width, bb_height, consider, class,
 visibility`` with MOT's 1-based pixel coordinates (``bb_left = x_px + 1``), class 1 (the one class
-TrackEval's MOT reader evaluates; here: "the target"), consider 1.
+TrackEval's MOT reader evaluates; here: "the target"), consider 1, or 0 for an object behind a cloud (TrackEval
+leaves those rows out, as in ``groundsim eval``'s files).  ``DIR/seqmaps/irtrack-all.txt`` lists the sequences
+(TrackEval's ``SEQMAP_FILE``, with ``GT_FOLDER=DIR``, ``SKIP_SPLIT_FOL=True``).  A run into a folder that holds a
+dataset replaces the sequences it makes again whole (their files of formats not asked for go too, as does
+``coco.json`` when COCO is not asked for); it refuses a folder whose dataset has sequences it would not make.
 
 The scene's other objects (a scenario with a ``scene``: ``groundsim.world.render.scene.ObjectLabel``), when
 their box is in the image (visible or behind a cloud): MOT id and COCO ``track_id`` = object id + 1 (the
 target, object 0, keeps id 1 and its label above); box = the pixels holding >= 10 % of the object's peak
 signal; MOT class :data:`MOT_CLASSES` (other targets 1; birds, aircraft, glints classes of MOT17 that
 TrackEval neither evaluates nor treats as distractors, so a tracker's box on a bird is a false positive),
-visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
+consider and visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
 ``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the signal above the local background).
 A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
 continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
@@ -63,6 +69,7 @@ OpenCV's encoder at a fixed compression level; sequences are written in parallel
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import hashlib
@@ -115,6 +122,9 @@ MOT_CLASS = 1  # TrackEval's MotChallenge2DBox evaluates class 1 only ("pedestri
 MOT_CLASSES = {"target": MOT_CLASS, "aircraft": 3, "bird": 4, "glint": 5}
 COCO_CATEGORIES = {"target": TARGET_ID, "bird": 2, "aircraft": 3, "glint": 4}
 PNG_COMPRESSION = 3  # cv2.IMWRITE_PNG_COMPRESSION: fixed, so the bytes are a function of the pixels
+# a sequence's files that a format or a scene writes (removed before the sequence is written again)
+SEQUENCE_FORMAT_FILES = ("gt/gt.txt", "seqinfo.ini", "obs.csv", "truth.objects.csv")
+SEQMAP = "seqmaps/irtrack-all.txt"  # --format mot: TrackEval's SEQMAP_FILE, every sequence of the dataset
 PROGRESS_EVERY_FRAMES = 10
 
 LABEL_COLUMNS = (
@@ -170,6 +180,7 @@ class TargetLabel:
     h_px: float
     visibility: float
     in_image: bool
+    occluded: bool = False  # behind a cloud (a scene's label): MOT's consider 0
 
     def __post_init__(self) -> None:
         for name in ("x_px", "y_px", "w_px", "h_px", "visibility"):
@@ -193,11 +204,19 @@ def body_box_corners_frd_m(target_parts) -> np.ndarray:
 
 
 def target_label(
-    intrinsics, p_cam_ned_m, R_ned_from_cam, p_target_ned_m, R_ned_from_target_body, corners_frd_m
+    intrinsics,
+    p_cam_ned_m,
+    R_ned_from_cam,
+    p_target_ned_m,
+    R_ned_from_target_body,
+    corners_frd_m,
+    drawn_box_px: tuple[int, int, int, int] | None = None,
 ) -> TargetLabel:
     """The label of one frame at the true poses (pure; see the module docstring).
 
-    ``p_*`` (3,) NED metres; ``R_*`` (3, 3); ``corners_frd_m`` (8, 3) from :func:`body_box_corners_frd_m`.
+    ``p_*`` (3,) NED metres; ``R_*`` (3, 3); ``corners_frd_m`` (8, 3) from :func:`body_box_corners_frd_m`;
+    ``drawn_box_px``: the target as the renderer drew it (``SimFrame.target_box_px``: ``(x0, y0, x1, y1)``,
+    inside the image), joined to the body's projected box.
     """
     from groundsim.world.render import truth_pixel
 
@@ -213,6 +232,11 @@ def target_label(
     uv = intrinsics.project(corners_cam)
     x0, y0 = float(uv[:, 0].min()), float(uv[:, 1].min())
     x1, y1 = float(uv[:, 0].max()), float(uv[:, 1].max())
+    if drawn_box_px is not None:
+        # the optics' blur spreads a far target's sub-pixel body over a few pixels: the box a detector's box is
+        # compared with must hold them (a 2 x 0.8 px body box against its 4 x 3 px blob: IoU 0.13)
+        x0, y0 = min(x0, float(drawn_box_px[0])), min(y0, float(drawn_box_px[1]))
+        x1, y1 = max(x1, float(drawn_box_px[2])), max(y1, float(drawn_box_px[3]))
     area = (x1 - x0) * (y1 - y0)
     cx0, cy0, cx1, cy1 = max(x0, 0.0), max(y0, 0.0), min(x1, W), min(y1, H)
     if cx1 <= cx0 or cy1 <= cy0 or area <= 0.0:
@@ -280,7 +304,7 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
                     frame,
                     TARGET_ID,
                     f"{frame},{TARGET_ID},{lab.x_px + 1.0:.4f},{lab.y_px + 1.0:.4f},{lab.w_px:.4f},{lab.h_px:.4f},"
-                    f"1,{MOT_CLASS},{lab.visibility:.4f}\n",
+                    f"{0 if lab.occluded else 1},{MOT_CLASS},{lab.visibility:.4f}\n",
                 )
             )
     for frame, labs in objects:
@@ -289,13 +313,13 @@ def mot_gt_lines(labels: list[tuple[int, TargetLabel]], objects=(), intrinsics=N
             if box is None:
                 continue
             oid = int(o.object_id) + 1
-            vis = 1.0 if o.visibility == "visible" else 0.0
+            seen = o.visibility == "visible"
             rows.append(
                 (
                     frame,
                     oid,
                     f"{frame},{oid},{box[0] + 1.0:.4f},{box[1] + 1.0:.4f},{box[2]:.4f},{box[3]:.4f},"
-                    f"1,{MOT_CLASSES[o.cls]},{vis:.4f}\n",
+                    f"{int(seen)},{MOT_CLASSES[o.cls]},{float(seen):.4f}\n",
                 )
             )
     rows.sort(key=lambda r: (r[0], r[1]))
@@ -390,9 +414,14 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
     seq_dir = Path(out_dir) / name
     img_dir = seq_dir / "img1"
     img_dir.mkdir(parents=True, exist_ok=True)
-    # a run into the same folder before, longer or at another rate, must not leave frames beyond this one's
+    # a run into the same folder replaces the sequence: an earlier one's frames beyond this one's, and its files
+    # of formats not asked for now, must not stay beside this one's (a gt.txt of 150 frames next to 30 images)
     for old in img_dir.glob("*.png"):
         old.unlink()
+    for old in SEQUENCE_FORMAT_FILES:
+        (seq_dir / old).unlink(missing_ok=True)
+    with contextlib.suppress(OSError):  # gone when empty; a folder someone put files in stays
+        (seq_dir / "gt").rmdir()
     K = scenario.camera.intrinsics
     mount = scenario.camera.mount
     corners = body_box_corners_frd_m(scenario.ir.target_parts)
@@ -440,7 +469,10 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
                 [tr.target_n_m, tr.target_e_m, tr.target_d_m],
                 rotmat_from_quat(c.tgt_q_ned_from_body[j]),
                 corners,
+                fr.target_box_px,
             )
+            if any(o.object_id == 0 and o.visibility == "occluded" for o in fr.labels):
+                lab = dataclasses.replace(lab, occluded=True)
             labels.append((frame, lab, fr.time_boot_us))
             w_lab.writerow(
                 [
@@ -669,6 +701,37 @@ class DatasetInterrupted(KeyboardInterrupt):
         self.planned = planned
 
 
+def _nav_case_name(scenario, options: DatasetOptions) -> str:
+    """The navigation case a sequence of ``scenario`` is named after (as :class:`SimCore` resolves it)."""
+    from groundsim.world.nav_errors import resolve_nav_noise
+
+    nav = scenario.nav_noise if options.nav_noise is None else options.nav_noise
+    return resolve_nav_noise(nav).name if isinstance(nav, str) else nav.name
+
+
+def _replaceable(out: Path, names: set[str]) -> None:
+    """Refuse an ``out`` whose manifest lists sequences this run would not make again: rewritten, the manifest
+    would no longer list them while their files stayed (a dataset that says less than it holds).  The
+    sequences it makes again are replaced whole (:func:`export_sequence`)."""
+    path = out / "manifest.json"
+    if not path.is_file():
+        return
+    try:
+        earlier = {str(q["name"]) for q in json.loads(path.read_text(encoding="utf-8")).get("sequences", [])}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
+        raise ConfigError(
+            f"--out {out}: holds a manifest.json that is not a dataset's ({type(exc).__name__}: {exc}); give "
+            f"another --out"
+        ) from None
+    kept = sorted(earlier - names)
+    if kept:
+        shown = ", ".join(kept[:4]) + (f" and {len(kept) - 4} more" if len(kept) > 4 else "")
+        raise ConfigError(
+            f"--out {out}: holds a dataset with sequences this run does not make ({shown}); its manifest would no "
+            f"longer list them: give another --out, or remove the folder first"
+        )
+
+
 def _job(args) -> SequenceSummary:
     scenario, seed, out_dir, options = args
     return export_sequence(scenario, seed, out_dir, options, report_progress)
@@ -691,10 +754,12 @@ def export_dataset(
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
     out = make_out_dir(out_dir)
     jobs = [(sc, seed, out, options) for sc in scenarios for seed in seeds]
+    _replaceable(out, {sequence_name(sc.name, _nav_case_name(sc, options), seed) for sc, seed, *_ in jobs})
     total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
     bar = None
     if progress:
-        bar = progress_bar(total, "frame", f"dataset ({min(workers, len(jobs))} workers)")
+        n = min(workers, len(jobs))
+        bar = progress_bar(total, "frame", f"dataset ({n} worker{'s' if n > 1 else ''})")
     t0 = time.perf_counter()
     try:
         summaries = run_jobs(_job, jobs, min(workers, len(jobs)), None if bar is None else bar.update)
@@ -706,6 +771,19 @@ def export_dataset(
     if "coco" in options.formats:
         desc = f"irtrack dataset: {', '.join(sc.name for sc in scenarios)}; seeds {seeds}"
         (out / "coco.json").write_text(json.dumps(coco_document(summaries, desc), indent=1) + "\n", encoding="ascii")
+    elif (out / "coco.json").exists():  # an earlier run's, of frames this one replaced
+        (out / "coco.json").unlink()
+        log.warning(
+            "--out %s: the earlier dataset's coco.json removed (its frames are replaced; --format coco "
+            "makes this run's)",
+            out,
+        )
+    seqmap = out / SEQMAP
+    if "mot" in options.formats:
+        seqmap.parent.mkdir(exist_ok=True)
+        seqmap.write_text("name\n" + "".join(s.name + "\n" for s in summaries), encoding="ascii")
+    else:
+        seqmap.unlink(missing_ok=True)
     (out / "manifest.json").write_text(
         json.dumps(_manifest(scenarios, seeds, options, summaries), indent=2) + "\n", encoding="ascii"
     )

@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import logging
 import math
+import tempfile
 import time
 from pathlib import Path
 
@@ -78,6 +79,13 @@ def make_out_dir(path, option: str = "--out") -> Path:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise ConfigError(f"{option} {out}: cannot create the directory: {exc.strerror or exc}") from None
+    # a directory that exists but cannot be written (its mode, a read-only mount) is said here, in one line,
+    # rather than as a traceback from whichever file the command writes first
+    try:
+        with tempfile.TemporaryFile(dir=out):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"{option} {out}: cannot write in the directory: {exc.strerror or exc}") from None
     return out
 
 

@@ -463,7 +463,9 @@ class SimFrame:
     ``sensor_status`` (``ok`` / ``frozen`` / ``dropped``: the camera model's flat-field events; ``ok``
     without one).  The labels describe the image delivered: a frozen frame's are those of the image it
     repeats, a dropped frame's objects are ``occluded``; the truth row stays the frame's own time's.  Without
-    a scene ``labels`` is empty: the truth row holds the one target."""
+    a scene ``labels`` is empty: the truth row holds the one target.  ``target_box_px``: the target as drawn,
+    ``(x0, y0, x1, y1)`` of the pixels holding at least ``BOX_FRACTION`` of its peak signal (ends exclusive;
+    with a scene its label's box), None when it was not drawn."""
 
     seq: int
     time_boot_us: int
@@ -471,6 +473,7 @@ class SimFrame:
     truth: TruthRow
     labels: tuple = ()
     sensor_status: str = "ok"
+    target_box_px: tuple[int, int, int, int] | None = None
 
 
 def frame_count(duration_s: float, frame_rate_hz: float) -> int:
@@ -677,6 +680,7 @@ class SimCore:
         pixels = None
         labels: tuple = ()
         status = "ok"
+        target_box = None
         if self.render_enabled:
             renderer = self.renderer()
             t0 = time.perf_counter()
@@ -686,8 +690,10 @@ class SimCore:
                 if self.scene_enabled:
                     others = self.other_targets_at(i)
                     pixels, labels, status = self._render_scene(k, float(c.t_s[j]), p_cam, R_nc, p_t, R_nt, others)
+                    target_box = next((lab.box_px for lab in labels if lab.object_id == 0), None)
                 else:
                     pixels = renderer.render(p_cam, R_nc, p_t, R_nt, GROUND_D_M)
+                    target_box = renderer.last_target_box_px
             except InputError as exc:  # a frame that cannot be rendered is skipped, its truth row is kept
                 self.render_errors(f"frame {k}: render failed", exc)
             self.render_s += time.perf_counter() - t0
@@ -707,4 +713,4 @@ class SimCore:
             nav_error=self.nav_error(i),
             time_unix_us=self.time_unix_us(i),
         )
-        return SimFrame(k, t_us, pixels, row, labels, status)
+        return SimFrame(k, t_us, pixels, row, labels, status, target_box)

@@ -14,6 +14,7 @@ import pytest
 
 from groundsim.app.cli import main as cli_main
 from groundsim.evaluation.dataset import (
+    FORMATS,
     DatasetOptions,
     TargetLabel,
     body_box_corners_frd_m,
@@ -142,7 +143,9 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
     mot = tmp_path / "mot"
     mot.mkdir()
     (mot / "gt").symlink_to(out, target_is_directory=True)
-    (mot / "seqmap.txt").write_text("name\n" + "".join(f"{s.name}\n" for s in summaries))
+    # the dataset's own seqmap, as TrackEval takes it (SEQMAP_FILE), and the copy score_mot reads
+    assert (out / "seqmaps" / "irtrack-all.txt").read_text() == "name\n" + "".join(f"{s.name}\n" for s in summaries)
+    (mot / "seqmap.txt").write_text((out / "seqmaps" / "irtrack-all.txt").read_text())
     trk = mot / "trackers" / "gt_copy" / "data"
     trk.mkdir(parents=True)
     for s in summaries:  # a "tracker" that outputs the ground truth: TrackEval must score it perfect
@@ -153,7 +156,7 @@ def test_mot_layout_read_by_trackeval(dataset, tmp_path):
             "GT_FOLDER": str(out),
             "TRACKERS_FOLDER": str(mot / "trackers"),
             "SKIP_SPLIT_FOL": True,
-            "SEQMAP_FILE": str(mot / "seqmap.txt"),
+            "SEQMAP_FILE": str(out / "seqmaps" / "irtrack-all.txt"),
             "TRACKERS_TO_EVAL": ["gt_copy"],
             "PRINT_CONFIG": False,
         }
@@ -277,6 +280,72 @@ def test_a_shorter_run_into_the_same_folder_leaves_no_frame_of_the_longer_one(tm
     assert len(list(img1.glob("*.png"))) == 9
     export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
     assert sorted(p.name for p in img1.glob("*.png")) == ["000001.png", "000002.png", "000003.png"]
+
+
+def test_a_run_into_a_dataset_replaces_its_sequences_whole(tmp_path, caplog):
+    """Made again with other formats, a sequence keeps no file of the earlier run's formats (a gt.txt or an
+    obs.csv of other frames), nor the dataset a coco.json of the frames it replaced; the seqmap goes with MOT."""
+    export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.2, formats=FORMATS), progress=False)
+    seq = tmp_path / "P1-RTK-s0"
+    assert {"seqinfo.ini", "obs.csv"} <= {p.name for p in seq.iterdir()} and (tmp_path / "coco.json").exists()
+    export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1, formats=("obs",)), progress=False)
+    assert not (seq / "gt").exists() and not (seq / "seqinfo.ini").exists()
+    assert not (tmp_path / "coco.json").exists() and not (tmp_path / "seqmaps" / "irtrack-all.txt").exists()
+    assert any("coco.json removed" in r.getMessage() for r in caplog.records)
+    assert len((seq / "obs.csv").read_text().splitlines()) == 1 + 3  # this run's three frames
+    export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1, formats=("mot",)), progress=False)
+    assert not (seq / "obs.csv").exists() and (seq / "gt" / "gt.txt").exists()
+
+
+def test_a_dataset_with_sequences_this_run_does_not_make_is_refused(tmp_path):
+    export_dataset([_scenario()], [0, 1], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    before = _tree_digest(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        export_dataset([_scenario()], [1], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    assert str(err.value).startswith(
+        f"--out {tmp_path}: holds a dataset with sequences this run does not make (P1-RTK-s0)"
+    )
+    assert _tree_digest(tmp_path) == before  # nothing touched
+
+
+def test_an_out_folder_that_cannot_be_written_is_one_line(tmp_path, monkeypatch, capsys):
+    """A folder that exists but refuses files (its mode, a read-only mount; root passes the mode test, so the
+    refusal is simulated where the probe creates its file)."""
+    import tempfile
+
+    def refused(*_a, **_k):
+        raise PermissionError(13, "Permission denied")
+
+    monkeypatch.setattr(tempfile, "TemporaryFile", refused)
+    assert cli_main(["dataset", "--duration", "0.1", "--no-progress", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"groundsim dataset: error: --out {tmp_path}: cannot write in the directory: Permission denied"]
+
+
+def test_the_targets_box_holds_it_as_drawn_without_a_scene():
+    """P1 has no scene: the renderer's own box of the target it drew joins the body's projection in the label."""
+    from groundsim.world.sim import SimCore
+
+    sc = _scenario()
+    core = SimCore(sc, 0, 0.1, render=True)
+    corners = body_box_corners_frd_m(sc.ir.target_parts)
+    for k in range(core.frame_count):
+        fr = core.frame(k)
+        assert fr.target_box_px is not None
+        tr = fr.truth
+        args = (
+            sc.camera.intrinsics,
+            [tr.cam_n_m, tr.cam_e_m, tr.cam_d_m],
+            rotmat_from_quat([tr.q_ned_from_cam_w, tr.q_ned_from_cam_x, tr.q_ned_from_cam_y, tr.q_ned_from_cam_z]),
+            [tr.target_n_m, tr.target_e_m, tr.target_d_m],
+            rotmat_from_quat(core.flight.chunk_of(k * core.ticks_per_frame).tgt_q_ned_from_body[0]),
+            corners,
+        )
+        body, joined = target_label(*args), target_label(*args, fr.target_box_px)
+        x0, y0, x1, y1 = fr.target_box_px
+        assert joined.x_px <= min(body.x_px, x0) + 1e-9 and joined.y_px <= min(body.y_px, y0) + 1e-9
+        assert joined.x_px + joined.w_px >= max(x1, body.x_px + body.w_px) - 1e-9
+        assert joined.w_px * joined.h_px > 2.0 * body.w_px * body.h_px  # the blur, not the body, sets it at range
 
 
 def test_cli_negative_first_seed_names_its_option(capsys):

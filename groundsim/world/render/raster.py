@@ -94,6 +94,7 @@ from scipy.special import ndtr
 
 from groundsim.world.render.background import PyrUpImage, SceneBackground
 from groundsim.world.render.kernels import (
+    peak_box,
     quantise_grey,
     scale_offset,
     scale_offset_window,
@@ -106,6 +107,8 @@ from groundsim.world.render.planck import band_radiance, grey_full_scale, noise_
 from groundsim.world.render.settings import IrSettings
 from onboard.core.errors import InputError
 from onboard.core.frames import PinholeIntrinsics
+
+BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 
 __all__ = [
     "IrRenderer",
@@ -220,6 +223,10 @@ class IrRenderer:
         self._bg_row: np.ndarray | None = None
         self._mx = np.empty((self._H, self._W), dtype=np.float32)
         self.last_timing: RenderTiming | None = None
+        # the last frame's target as drawn: (x0, y0, x1, y1) of the pixels holding >= BOX_FRACTION of its peak
+        # signal (ends exclusive; None when not drawn), the box a detector's can match (a far target's body
+        # projects to under a pixel, its blur to a few)
+        self.last_target_box_px: tuple[int, int, int, int] | None = None
 
     # ------------------------------------------------------------------ setup
 
@@ -440,8 +447,14 @@ class IrRenderer:
         bg, reused, rebuilt = self._background(R_nc, height_m)
         t1 = time.perf_counter()
         roi = None
+        self.last_target_box_px = None
         if p_target_ned_m is not None:
             roi = self._target.delta(bg, p_cam, R_nc, p_t, R_nt)
+        if roi is not None:
+            peak, i0, i1, j0, j1, _ = peak_box(roi[2], 1.0, BOX_FRACTION)
+            if peak > 0.0:
+                rows, cols = roi[0], roi[1]
+                self.last_target_box_px = (cols.start + j0, rows.start + i0, cols.start + j1, rows.start + i1)
         t2 = time.perf_counter()
 
         n = self._H * self._W

@@ -82,7 +82,7 @@ from groundsim.world.render.kernels import (
 from groundsim.world.render.parts import TARGET_SPLAT_MAX_PX, PartRaster, project_in_front
 from groundsim.world.render.planck import band_radiance, band_radiance_derivative
 from groundsim.world.render.pyrup_kernels import composite_up, fold_maps_up, terrain_blend_up
-from groundsim.world.render.raster import IrRenderer
+from groundsim.world.render.raster import BOX_FRACTION, IrRenderer
 from groundsim.world.render.scene_config import SceneConfig
 from groundsim.world.render.settings import TargetPart
 from groundsim.world.render.textures import cloud_texture, terrain_texture
@@ -103,7 +103,6 @@ OCCLUDED_ALPHA = 0.5  # an object whose centre is behind a cloud at least this o
 # ... and whose contrast left through it is below this (NETD) is "occluded": a hot jet behind a thin cloud still
 # shows tens of NETD, plainly in the image, and a tracker that follows it must not be scored as a false track
 OCCLUDED_MAX_NETD = 3.0
-BOX_FRACTION = 0.1  # an object's box: pixels whose |signal| is at least this fraction of its peak
 FLAP_PHASES = 8  # a bird's wing span is drawn at one of this many pre-built spans
 DISTRACTOR_SUPERSAMPLE = 4  # sub-samples per pixel side for ray-cast distractors (the target keeps the renderer's)
 # rays for a splatted distractor's visible fractions, fewer than the target's parts.SPLAT_VISIBILITY_RAYS: a
