@@ -658,10 +658,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     done = 0
     out: _Replacement | None = None
     boxes: list[list[float]] = []  # --format anti-uav: one entry a frame, frame 1 first
+    previous_term = signal.getsignal(signal.SIGTERM)
     try:
-        previous_term = signal.signal(signal.SIGTERM, _term_as_interrupt)
+        signal.signal(signal.SIGTERM, _term_as_interrupt)
+        restore_term = True
     except ValueError:  # not the main thread (a caller's): SIGTERM keeps its handler
-        previous_term = None
+        restore_term = False
     try:
         src = open_frames(args.input, args.encoding, args.fps)
         clash = _input_clash(args.out, src)
@@ -731,8 +733,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if out is not None:
             out.discard()
-        if previous_term is not None:
-            signal.signal(signal.SIGTERM, previous_term)
+        if restore_term:  # None: a handler set outside Python, which SIG_DFL stands for best
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)
     converted = f"from {' and '.join(sorted(src.converted_from))}; " if src.converted_from else ""
     print(
         f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids "
