@@ -93,12 +93,11 @@ from groundsim.evaluation.campaign_spec import (
     load_spec,
 )
 from groundsim.evaluation.parallel import (
-    init_worker,
     limit_blas_threads,
-    mp_context,
     pool_workers,
     progress_bar,
     quiet_run_logs,
+    start_pool,
 )
 from groundsim.evaluation.report import make_out_dir
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
@@ -605,6 +604,13 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
     """Append rows to the log, one JSON line each, flushed and fsynced (a kill loses no finished run).
     An OSError (the log unwritable, the disk full) is a one-line ConfigError naming the file."""
     try:
+        with path.open("a+b") as f:
+            # a line cut short by a kill has no newline: ended here, so the row written next is a line of its
+            # own (glued onto the fragment it was lost with it, and reading the log skipped both)
+            if f.seek(0, os.SEEK_END) > 0:
+                f.seek(-1, os.SEEK_END)
+                if f.read(1) != b"\n":
+                    f.write(b"\n")
         with path.open("a", encoding="utf-8") as f:
             for row in rows:
                 f.write(json.dumps(row, sort_keys=True, allow_nan=False) + "\n")
@@ -753,27 +759,33 @@ def run_campaign(
     out.mkdir(parents=True, exist_ok=True)
     log_path = out / LOG_NAME
     check_outputs(out)
-    if fresh and log_path.exists():
-        log_path.unlink()
     planned = plan_runs(spec, onboard_digest)
     ids = [run_id(p) for p in planned]
-    done, bad = reusable_rows(log_path, ids)
-    if bad:  # said once: the log is read again below for the table, its skipped lines not repeated
-        log.warning("%s", _skipped_text(log_path, bad))
-    if retry_failed:
-        done = {k: v for k, v in done.items() if v.get("status") == "ok"}
-    pending = [p for p, i in zip(planned, ids) if i not in done]
-    reused = len(planned) - len(pending)
-    jobs = _jobs(spec, pending, base_config)
-    limit_blas_threads(1)
     client = None
-    if scheduler is not None:
+    if scheduler is not None:  # before --fresh removes anything: a wrong address or cluster changes nothing
         client = _cluster_client(scheduler)
         try:
             workers = check_workers(client, scheduler)
         except BaseException:
             client.close()
             raise
+    try:
+        if fresh and log_path.exists():
+            log_path.unlink()
+        done, bad = reusable_rows(log_path, ids)
+        if bad:  # said once: the log is read again below for the table, its skipped lines not repeated
+            log.warning("%s", _skipped_text(log_path, bad))
+        if retry_failed:
+            done = {k: v for k, v in done.items() if v.get("status") == "ok"}
+        pending = [p for p, i in zip(planned, ids) if i not in done]
+        reused = len(planned) - len(pending)
+        jobs = _jobs(spec, pending, base_config)
+    except BaseException:
+        if client is not None:
+            client.close()
+        raise
+    limit_blas_threads(1)
+    if client is not None:
         where = f"the cluster at {scheduler}"
     else:
         workers = max(1, min(workers, len(jobs))) if jobs else 1
@@ -811,7 +823,8 @@ def run_campaign(
         elif workers > 1:  # the same, on a local pool
             import concurrent.futures as cf
 
-            pool = mp_context(CAMPAIGN_PRELOAD).Pool(workers, initializer=init_worker)
+            # every worker started before Ctrl-C is taken (a half-started forkserver worker printed a traceback)
+            pool, _ = start_pool(workers, CAMPAIGN_PRELOAD, progress=False)
             futures = _pool_futures(pool, jobs)
             results = (f.result() for f in cf.as_completed(futures))
         else:

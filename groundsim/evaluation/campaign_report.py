@@ -268,6 +268,8 @@ def write_report(out: Path, spec: CampaignSpec, rows: list[dict], run_info: dict
     has_fig = plot_manoeuvre(out / FIGURE_NAME, mrows, GOOD_ERR_PCT, OBSERVABLE_AFTER_S)
     if has_fig:
         files[FIGURE_NAME] = out / FIGURE_NAME
+    else:  # an earlier sweep's figure beside this sweep's report would be read as this one's
+        (out / FIGURE_NAME).unlink(missing_ok=True)
     L = [f"# Campaign {spec.name}\n"]
     L.append(
         f"Spec `{spec.source}`: mode {spec.mode}, scenarios {', '.join(spec.scenarios)}, noise "

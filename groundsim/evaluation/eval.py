@@ -102,7 +102,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-DEFAULT_ONBOARD_CONFIG = Path("config/onboard.yaml")  # the daemon's shipped configuration (noise model included)
+# the daemon's shipped configuration (noise model included), found from this file as the shipped scenarios are: a
+# command run from another folder must use it too, not fall back to the built-in defaults without saying so
+DEFAULT_ONBOARD_CONFIG = Path(__file__).resolve().parents[2] / "config" / "onboard.yaml"
 DEFAULT_PIXEL_SIGMA_PX = 0.3  # perfect-centroid baseline noise when the chain measured no centroid (reference px0.3)
 ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ = 50.0, 25.0, 10.0  # MavlinkVehicle's default streams
 PROGRESS_EVERY_FRAMES = 10

@@ -23,6 +23,7 @@ __all__ = [
     "report_progress",
     "run_jobs",
     "run_pool",
+    "start_pool",
     "quiet_run_logs",
     "progress_bar",
     "bar_pacing",
@@ -93,8 +94,9 @@ def mp_context(preload: tuple[str, ...] = DEFAULT_PRELOAD):
     return ctx
 
 
-def init_worker(queue=None) -> None:
-    """A pool worker's set-up: SIGINT ignored, one BLAS and one OpenCV thread, progress to ``queue``."""
+def init_worker(queue=None, ready=None) -> None:
+    """A pool worker's set-up: SIGINT ignored, one BLAS and one OpenCV thread, progress to ``queue``; a 0 to
+    ``ready`` (or ``queue``) once started."""
     import signal
 
     global _progress
@@ -107,8 +109,9 @@ def init_worker(queue=None) -> None:
     except Exception:  # noqa: BLE001 - OpenCV threading is an optimisation only
         pass
     _progress = None if queue is None else queue.put
-    if queue is not None:
-        queue.put(0)  # started: no frames done yet (run_pool waits for this from every worker)
+    started = queue if ready is None else ready
+    if started is not None:
+        started.put(0)  # started: no frames done yet (start_pool waits for this from every worker)
 
 
 def report_progress(n: int) -> None:
@@ -137,18 +140,61 @@ def run_jobs(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
     return run_pool(job, jobs, workers, on_progress, preload)
 
 
-def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
-    """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (set up by
-    :func:`init_worker`); their results in the order of ``jobs``.  What the jobs report with
-    :func:`report_progress` is handed to ``on_progress`` as it arrives.  A worker's exception is re-raised
-    here after the pool is terminated; Ctrl-C terminates the pool and raises :class:`JobsInterrupted` (one
-    during the pool's start waits until its workers have started)."""
+def start_pool(workers: int, preload: tuple[str, ...] = DEFAULT_PRELOAD, progress: bool = True):
+    """``(pool, queue)``: ``workers`` fork-server processes, every one started (:func:`init_worker`) before this
+    returns; ``queue`` carries what the jobs report with :func:`report_progress` (None without ``progress``:
+    nothing is reported, so a caller that never drains a queue leaves none filling).  Ctrl-C during the start
+    is held until the workers have started, then raised as KeyboardInterrupt, the pool terminated."""
     import queue as queue_mod
     import signal
     import threading
     import time
 
     ctx = mp_context(preload)
+    pool = None
+    # Ctrl-C while the pool starts is held until every worker has started (init_worker's 0 on the queue), then
+    # raised: raised inside ctx.Pool it left workers half started, and a worker still unpickling its queue when
+    # this process had exited printed a traceback (the queue's semaphore was gone).  It is held by a Python
+    # handler that only notes it, not by blocking the signal in this thread: a signal blocked here is still
+    # taken by any other thread that had it unblocked (BLAS, OpenCV, a progress bar's), and Python then raises
+    # it in the main thread all the same.  signal.signal works in the main thread only; elsewhere the caller
+    # owns Ctrl-C.
+    held: list[int] = []
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
+    try:
+        try:
+            ready = ctx.Queue()
+            q = ready if progress else None
+            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q, ready))
+            t_end = time.monotonic() + POOL_START_TIMEOUT_S
+            started = 0
+            while started < workers and time.monotonic() < t_end:
+                try:
+                    started += ready.get(timeout=0.2) == 0
+                except queue_mod.Empty:
+                    pass
+        finally:
+            if main:  # None: a handler installed outside Python; Python's own is the nearest honest one
+                signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+        if held:
+            raise KeyboardInterrupt
+    except BaseException:
+        if pool is not None:
+            pool.terminate()
+            pool.join()
+        raise
+    return pool, q
+
+
+def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str, ...] = DEFAULT_PRELOAD) -> list:
+    """``job(j)`` for every ``j`` of ``jobs`` on ``workers`` fork-server processes (:func:`start_pool`); their
+    results in the order of ``jobs``.  What the jobs report with :func:`report_progress` is handed to
+    ``on_progress`` as it arrives.  A worker's exception is re-raised here after the pool is terminated; Ctrl-C
+    terminates the pool and raises :class:`JobsInterrupted` (one during the pool's start waits until its
+    workers have started)."""
+    import queue as queue_mod
+
     results: list = [None] * len(jobs)
     pool = None
 
@@ -161,32 +207,8 @@ def run_pool(job, jobs: list, workers: int, on_progress=None, preload: tuple[str
             on_progress(n)
         return True
 
-    # Ctrl-C while the pool starts is held until every worker has started (init_worker's 0 on the queue), then
-    # handled below: raised inside ctx.Pool it left workers half started, and a worker still unpickling its
-    # queue when this process had exited printed a traceback (the queue's semaphore was gone).  It is held by
-    # a Python handler that only notes it, not by blocking the signal in this thread: a signal blocked here is
-    # still taken by any other thread that had it unblocked (BLAS, OpenCV, a progress bar's), and Python then
-    # raises it in the main thread all the same.  signal.signal works in the main thread only; elsewhere the
-    # caller owns Ctrl-C.
-    held: list[int] = []
-    main = threading.current_thread() is threading.main_thread()
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum)) if main else None
     try:
-        try:
-            q = ctx.Queue()
-            pool = ctx.Pool(workers, initializer=init_worker, initargs=(q,))
-            t_end = time.monotonic() + POOL_START_TIMEOUT_S
-            started = 0
-            while started < workers and time.monotonic() < t_end:
-                try:
-                    started += q.get(timeout=0.2) == 0
-                except queue_mod.Empty:
-                    pass
-        finally:
-            if main:  # None: a handler installed outside Python; Python's own is the nearest honest one
-                signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
-        if held:
-            raise KeyboardInterrupt
+        pool, q = start_pool(workers, preload)
         pending = [pool.apply_async(job, (j,)) for j in jobs]
         left = set(range(len(jobs)))
         while left:

@@ -232,6 +232,48 @@ def test_a_torn_last_line_is_skipped_and_rows_round_trip(tmp_path):
     assert set(done) == {"a", "b"} and bad == 1 and done["a"]["x"] == 1.5
 
 
+def test_a_row_appended_after_a_torn_line_is_a_line_of_its_own(tmp_path):
+    """A kill mid-write leaves a fragment without its newline: the next run's row must not be glued onto it
+    (it was lost with it, and the table came out a run short)."""
+    p = tmp_path / LOG_NAME
+    append_rows(p, [{"run_id": "a", "x": 1.5}])
+    with p.open("a") as f:
+        f.write('{"run_id": "c", "x"')
+    append_rows(p, [{"run_id": "d", "x": 2.5}])
+    done, bad = read_log(p)
+    assert set(done) == {"a", "d"} and bad == 1 and done["d"]["x"] == 2.5
+    append_rows(p, [{"run_id": "e", "x": 3.5}])  # a log that ends well gets no blank line
+    assert p.read_text().count("\n\n") == 0 and set(read_log(p)[0]) == {"a", "d", "e"}
+
+
+def test_fresh_with_a_scheduler_that_does_not_answer_changes_nothing(tmp_path, monkeypatch):
+    import groundsim.evaluation.campaign as campaign
+
+    out = tmp_path / "out"
+    out.mkdir()
+    append_rows(out / LOG_NAME, [{"run_id": "a", "x": 1.5}])
+    before = (out / LOG_NAME).read_bytes()
+
+    def no_answer(scheduler):
+        raise ConfigError(f"--scheduler {scheduler}: no scheduler answered within 10 s")
+
+    monkeypatch.setattr(campaign, "_cluster_client", no_answer)
+    with pytest.raises(ConfigError, match="no scheduler answered"):
+        run_campaign(_spec(tmp_path), out, fresh=True, scheduler="tcp://127.0.0.1:1", progress=False)
+    assert (out / LOG_NAME).read_bytes() == before
+
+
+def test_a_figure_of_an_earlier_sweep_does_not_stay_beside_a_report_without_one(tmp_path, monkeypatch):
+    import groundsim.evaluation.campaign_plots as plots
+    from groundsim.evaluation.campaign_report import FIGURE_NAME, write_report
+
+    (tmp_path / FIGURE_NAME).write_bytes(b"an earlier sweep's figure")
+    monkeypatch.setattr(plots, "plot_manoeuvre", lambda *a, **k: False)
+    info = {"planned": 0, "reused": 0, "ran": 0, "failed": 0, "wall_s": 0.0, "workers": 1, "interrupted": False}
+    files = write_report(tmp_path, _spec(tmp_path), [], info)
+    assert FIGURE_NAME not in files and not (tmp_path / FIGURE_NAME).exists()
+
+
 @pytest.mark.slow
 @pytest.mark.multicore
 def test_pool_and_serial_give_identical_tables_and_a_rerun_reuses_everything(tmp_path):

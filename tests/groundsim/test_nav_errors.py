@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import socket
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -292,7 +293,8 @@ def test_eval_and_demo_default_to_rtk_and_the_shipped_daemon_config():
     from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
 
     assert EvalOptions().injected == InjectedErrors("RTK")
-    assert str(DEFAULT_ONBOARD_CONFIG) == "config/onboard.yaml"
+    repo = Path(__file__).resolve().parents[2]
+    assert DEFAULT_ONBOARD_CONFIG == repo / "config" / "onboard.yaml" and DEFAULT_ONBOARD_CONFIG.is_file()
     parser = cli.build_parser()
     assert parser.parse_args(["eval"]).nav_noise is None  # cmd_eval: None -> [DEFAULT_NAV_NOISE]
     assert parser.parse_args(["demo"]).onboard_config == "config/onboard.yaml"
