@@ -121,3 +121,49 @@ def test_a_truth_of_another_run_is_told_from_this_flights_by_where_the_camera_wa
     assert why is not None and why.startswith("its camera looked 10.0 deg away from")
     later = [{**row, "time_boot_us": row["time_boot_us"] + 7} for row in truth]
     assert truth_mismatch(inputs, later) == "none of the flight's 20 posed frames has a truth row at its capture time"
+
+
+def test_a_truth_whose_camera_is_within_a_few_degrees_is_told_apart_by_the_navigation_error_it_records():
+    """groundsim's truth rows record the attitude error the telemetry carried: put back on their camera, the
+    flight's own truth matches to interpolation (hundredths of a degree), and another run's camera turned 1.7 deg
+    (P1 against P1g in the audit: within the 5 deg a truth without that record is allowed) is refused."""
+    import math
+
+    import numpy as np
+
+    from groundsim.app.report import TRUTH_MATCH_NAV_MAX_DEG, truth_mismatch
+    from onboard.core.frames import GeodeticOrigin, geodetic_from_ned1, quat_from_rotvec, quat_multiply
+
+    def q_yaw(deg):
+        h = math.radians(deg) / 2
+        return np.array([math.cos(h), math.sin(h), 0.0, 0.0])
+
+    origin = GeodeticOrigin(32.0, 118.8, 10.0)
+    phi = np.radians([0.15, -0.1, 0.2])  # RTK-sized attitude error, NED
+    inputs, own, other = [], [], []
+    for k in range(20):
+        t_us = 1_000_000 + 33_333 * k
+        p = [5.0 * k, 2.0 * k, -100.0]
+        q_true = q_yaw(30.0 + 0.5 * k)
+        inputs.append(
+            {
+                "time_boot_us": t_us,
+                "pose": {
+                    "p_ned_m": p,
+                    "origin": vars(origin),
+                    "q_ned_from_cam": list(quat_multiply(quat_from_rotvec(phi), q_true)),
+                },
+            }
+        )
+        lat, lon, alt = geodetic_from_ned1(*p, origin)
+        row = {"time_boot_us": t_us, "observer_lat_deg": lat, "observer_lon_deg": lon, "observer_alt_m": alt}
+        row |= dict(zip(("nav_att_err_n_rad", "nav_att_err_e_rad", "nav_att_err_d_rad"), phi.tolist()))
+        keys = ("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z")
+        own.append(row | dict(zip(keys, q_true.tolist())))
+        other.append(row | dict(zip(keys, q_yaw(30.0 + 0.5 * k + 1.7).tolist())))
+    assert truth_mismatch(inputs, own) is None
+    why = truth_mismatch(inputs, other)
+    assert why is not None and why.startswith("its camera with the navigation error it records looked 1.7 deg away")
+    assert f"at most {TRUTH_MATCH_NAV_MAX_DEG:g} deg" in why
+    legacy = [{k: v for k, v in r.items() if not k.startswith("nav_att_err")} for r in other]
+    assert truth_mismatch(inputs, legacy) is None  # without the record: within the navigation errors' 5 deg
