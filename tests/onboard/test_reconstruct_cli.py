@@ -287,8 +287,10 @@ BAD_TEXT_CASES = {
     "empty cell": (lambda L: _set_cell(L, 2, "t_s", " "), ["line 2, column t_s", "empty cell"]),
     "beyond bound": (lambda L: _set_cell(L, 4, "cam_n_m", "1e300"), ["line 4, column cam_n_m", "sanity bound"]),
     # a pixel no camera sees (one such row made a reconstruction "observable" and 100 m off at 0.7 m sigma)
-    "pixel far left": (lambda L: _set_cell(L, 5, "u_px", "-5000"), ["line 5, column u_px", "far outside the image"]),
-    "pixel far below": (lambda L: _set_cell(L, 6, "v_px", "1e6"), ["line 6, column v_px", "far outside the image"]),
+    "pixel far left": (lambda L: _set_cell(L, 5, "u_px", "-5000"), ["line 5, column u_px", "outside the image"]),
+    "pixel far below": (lambda L: _set_cell(L, 6, "v_px", "1e6"), ["line 6, column v_px", "outside the image"]),
+    # just beyond the image's side (u 700 on a 640 px one): a 20 s flight 76 m off, the warning on its geometry
+    "pixel just beyond": (lambda L: _set_cell(L, 7, "u_px", "700"), ["line 7, column u_px", "outside the image"]),
     "negative focal": (lambda L: _set_cell(L, 5, "fy_px", "-764.7"), ["line 5, column fy_px", "> 0"]),
     "zero focal": (lambda L: _set_cell(L, 5, "fx_px", "0"), ["line 5, column fx_px", "> 0"]),
     "non-unit quaternion": (lambda L: _scale_quat(L, 7, 1.01), ["line 7, column q_w..q_z", "quaternion norm 1.01"]),
@@ -587,3 +589,38 @@ def test_the_noise_assumed_by_default_is_the_shipped_daemons():
     assert args.attitude_sigma_deg == shipped.attitude_white_sigma_deg > 0
     assert args.attitude_bias_deg == shipped.attitude_bias_sigma_deg > 0
     assert args.position_sigma_m == shipped.camera_position_white_sigma_m > 0
+
+
+@pytest.mark.parametrize("how", ["ctrl_c", "sigterm", "while_writing"])
+def test_an_interrupted_run_is_one_line_exit_130_and_writes_nothing(small_obs, tmp_path, monkeypatch, how):
+    """Ctrl-C or SIGTERM (a job's limit, ``timeout``) during the solve or the writing: one line, exit 130, no output
+    and no temporary file; the caller's SIGTERM handler back afterwards."""
+    import signal
+
+    obs_path = tmp_path / "obs.csv"
+    obs_path.write_text(obs_csv_text(small_obs))
+    out = tmp_path / "out.csv"
+
+    def stop(*_a, **_k):
+        if how == "sigterm":
+            os.kill(os.getpid(), signal.SIGTERM)
+        raise KeyboardInterrupt
+
+    if how == "while_writing":
+        real_fdopen = os.fdopen
+
+        def fdopen(fd, *a, **k):
+            f = real_fdopen(fd, *a, **k)
+            f.write = stop  # the first write of the first output
+            return f
+
+        monkeypatch.setattr(reconstruct_module.os, "fdopen", fdopen)
+    else:
+        monkeypatch.setattr(reconstruct_module, "reconstruct", stop)
+    before = signal.getsignal(signal.SIGTERM)
+    rc, err = run_main(obs_path, "-o", out, "--summary-json", tmp_path / "s.json")
+    assert rc == 130 and err.splitlines() == [
+        f"interrupted: no output written ({out} is as it was, or was not created)"
+    ]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["obs.csv"]
+    assert signal.getsignal(signal.SIGTERM) == before
