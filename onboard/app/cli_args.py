@@ -1,5 +1,6 @@
-"""What the command lines share: a parser whose usage mistakes are one line, the zenoh session's options, and the
-options that override the daemon's configuration (``--config``, ``--set``, ``--live-view``).
+"""What the command lines share: a parser whose usage mistakes are one line, the zenoh session's options, the
+options that override the daemon's configuration (``--config``, ``--set``, ``--live-view``), and SIGTERM taken as
+Ctrl-C by the tools that write files (:func:`sigterm_as_interrupt`).
 
 The daemon (``python -m onboard``), ``onboard.watch``, ``onboard.fuse``, ``onboard.reconstruct`` and
 ``groundsim`` all print a usage mistake as one line on stderr with exit code 2 (argparse's own code), not
@@ -9,8 +10,10 @@ argparse's usage block (house style: entry points turn known errors into one lin
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
-from collections.abc import Callable, Iterable
+import signal
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any, NoReturn
 
 __all__ = [
@@ -23,6 +26,7 @@ __all__ = [
     "config_overrides",
     "nonnegative_float",
     "above_zero",
+    "sigterm_as_interrupt",
 ]
 
 EXIT_USAGE = 2  # argparse's own exit code for a usage mistake
@@ -140,3 +144,24 @@ def config_overrides(
         if value is not None:
             out[path] = (value, option)
     return out
+
+
+def _raise_interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """While the block runs, SIGTERM (``timeout``, a job's time limit, ``kill``) raises KeyboardInterrupt as Ctrl-C
+    does, so a tool's Ctrl-C path (one line, its outputs whole or untouched, no temporary file left) serves both;
+    the handler before is put back after.  In a thread other than the main one (a caller's) SIGTERM is left alone."""
+    previous = signal.getsignal(signal.SIGTERM)
+    try:
+        signal.signal(signal.SIGTERM, _raise_interrupt)
+    except ValueError:  # not the main thread
+        yield
+        return
+    try:
+        yield
+    finally:  # None: a handler set outside Python, which SIG_DFL stands for best
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)

@@ -92,7 +92,6 @@ import json
 import logging
 import math
 import os
-import signal
 import sys
 import warnings
 from collections.abc import Callable
@@ -101,7 +100,7 @@ from pathlib import Path
 
 import numpy as np
 
-from onboard.app.cli_args import OneLineParser, nonnegative_float
+from onboard.app.cli_args import OneLineParser, nonnegative_float, sigterm_as_interrupt
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import QUAT_NORM_TOL, far_off_image
@@ -665,28 +664,15 @@ def main(argv=None) -> int:
             return int(e.code) if isinstance(e.code, int) else EXIT_INPUT
         root.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
         handler.setLevel(logging.DEBUG if args.verbose else logging.WARNING)
-        previous_term = signal.getsignal(signal.SIGTERM)
         try:
-            signal.signal(signal.SIGTERM, _term_as_interrupt)
-            restore_term = True
-        except ValueError:  # not the main thread (a caller's): SIGTERM keeps its handler
-            restore_term = False
-        try:
-            return _run(args)
+            with sigterm_as_interrupt():
+                return _run(args)
         except KeyboardInterrupt:
             print(f"interrupted: no output written ({args.output} is as it was, or was not created)", file=sys.stderr)
             return EXIT_INTERRUPTED
-        finally:
-            if restore_term:
-                signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)
     finally:
         root.removeHandler(handler)
         root.setLevel(old_level)
-
-
-def _term_as_interrupt(signum, frame) -> None:
-    """SIGTERM (``timeout``, a job's limit) ends the run as Ctrl-C does: one line, nothing half written."""
-    raise KeyboardInterrupt
 
 
 def _run(args) -> int:

@@ -84,7 +84,6 @@ import logging  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
 import re  # noqa: E402
-import signal  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -94,7 +93,7 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from onboard.app.cli_args import OneLineParser  # noqa: E402
+from onboard.app.cli_args import OneLineParser, sigterm_as_interrupt  # noqa: E402
 from onboard.app.output_files import create_beside, not_a_file, same_file_clash  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
@@ -635,6 +634,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """The command (the module docstring); SIGTERM is taken as Ctrl-C while it runs."""
+    with sigterm_as_interrupt():
+        return _main(argv)
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     # this tool's INFO lines say how frames were numbered; the chain's own stay at WARNING
@@ -658,12 +663,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     done = 0
     out: _Replacement | None = None
     boxes: list[list[float]] = []  # --format anti-uav: one entry a frame, frame 1 first
-    previous_term = signal.getsignal(signal.SIGTERM)
-    try:
-        signal.signal(signal.SIGTERM, _term_as_interrupt)
-        restore_term = True
-    except ValueError:  # not the main thread (a caller's): SIGTERM keeps its handler
-        restore_term = False
     try:
         src = open_frames(args.input, args.encoding, args.fps)
         clash = _input_clash(args.out, src)
@@ -733,8 +732,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if out is not None:
             out.discard()
-        if restore_term:  # None: a handler set outside Python, which SIG_DFL stands for best
-            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous_term is None else previous_term)
     converted = f"from {' and '.join(sorted(src.converted_from))}; " if src.converted_from else ""
     print(
         f"{src.path}: {done} frames of {size} ({converted}{src.kind}, {src.fps:g} frames/s) -> {len(ids)} object ids "
@@ -746,12 +743,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _anti_uav_json(boxes: list[list[float]]) -> list[str]:
     return [json.dumps({"res": boxes}, separators=(",", ":")), "\n"]
-
-
-def _term_as_interrupt(signum, frame) -> None:
-    """SIGTERM (a job's time limit, ``timeout``, ``kill``) ends the run as Ctrl-C does: the tracks of the frames
-    done into place, the temporary file gone."""
-    raise KeyboardInterrupt
 
 
 def _interrupted(out: _Replacement | None, done: int) -> int:
