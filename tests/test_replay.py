@@ -102,6 +102,11 @@ def test_a_workers_recording_differs_only_beyond_what_its_timing_explains():
     assert beyond_a_workers_sigma(SigmaComparison(691, 8, 4.1, 0, 3.0))
     assert beyond_a_workers_sigma(SigmaComparison(691, 1, 10.0, 0, 3.0))
     assert not beyond_a_workers_sigma(SigmaComparison(0, 0, 0.0, 0, 3.0))
+    # a replay that lost every position (or most) is not the recording, whatever the few it kept look like
+    assert beyond_a_workers_sigma(SigmaComparison(0, 0, 0.0, 379, 3.0))
+    assert beyond_a_workers_sigma(SigmaComparison(34, 0, 1.0, 345, 3.0))
+    assert not beyond_a_workers_sigma(SigmaComparison(378, 1, 4.2, 1, 3.0))  # a first estimate a frame apart
+    assert not beyond_a_workers_sigma(SigmaComparison(60, 0, 2.0, 3, 3.0))
 
 
 @pytest.mark.parametrize("content", [b"", b"not a recording at all\n", b"\x89MCA"], ids=["empty", "text", "cut"])

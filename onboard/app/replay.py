@@ -108,6 +108,10 @@ SIGMA_GATE = 3.0
 #: honesty rule's 1 %) and none beyond WORKER_GROSS_SIGMA (a chance of ~1e-7 a position)
 WORKER_BEYOND_SHARE = 0.01
 WORKER_GROSS_SIGMA = 6.0
+#: frames where only one of the two has a 3-D position: a worker's first estimate, or its first after a reset, may
+#: come a frame or two apart from a replay's; more than this many, or than WORKER_BEYOND_SHARE of the positions,
+#: is a replay that lost (or invented) positions, whatever the ones it kept look like
+WORKER_ONLY_ONE_MIN = 3
 
 
 @dataclass
@@ -626,8 +630,11 @@ class SigmaComparison:
 
 def beyond_a_workers_sigma(within: SigmaComparison) -> bool:
     """Whether a worker's recording and its replay differ by more than the worker's timing explains: more than
-    :data:`WORKER_BEYOND_SHARE` of the positions beyond the gate, or one beyond :data:`WORKER_GROSS_SIGMA`."""
-    return within.beyond > WORKER_BEYOND_SHARE * within.compared or within.max_sigma > WORKER_GROSS_SIGMA
+    :data:`WORKER_BEYOND_SHARE` of the positions beyond the gate, one beyond :data:`WORKER_GROSS_SIGMA`, or more
+    frames with a position in one of them only than :data:`WORKER_ONLY_ONE_MIN` and that share."""
+    positions = within.compared + within.position_only_one
+    only_one = within.position_only_one > max(WORKER_ONLY_ONE_MIN, WORKER_BEYOND_SHARE * positions)
+    return only_one or within.beyond > WORKER_BEYOND_SHARE * within.compared or within.max_sigma > WORKER_GROSS_SIGMA
 
 
 def compare_within_sigma(recorded: list, replayed: list, gate_sigma: float = SIGMA_GATE) -> SigmaComparison:
