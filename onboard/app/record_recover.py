@@ -14,10 +14,12 @@ chunks with the full summary (chunk, metadata and attachment indexes, statistics
 end is left out (a chunk: the messages it held are lost).  A complete input is rewritten the same way.
 
 The output is written to a temporary file beside ``OUT`` and renamed over it once finished
-(:mod:`onboard.app.output_files`): an interrupted recovery leaves no half-written ``OUT``.
+(:mod:`onboard.app.output_files`): an interrupted recovery (Ctrl-C, SIGTERM: one line, exit 130) leaves no
+half-written ``OUT`` and no temporary file.
 
 Damage is told from a cut (:func:`onboard.io.mcap_read.damage_at`): a file that ends with its footer was not cut;
-a record whose opcode no MCAP record has, or that fits in the file yet cannot be read, is damage; so is a chunk
+a record whose opcode no MCAP record has, or that fits in the file yet cannot be read, is damage (its structure:
+the recorder writes chunks without CRCs, so a flipped bit inside a message's data is not seen); so is a chunk
 holding another record than a schema, channel or message, or one whose records run past it, or whose message
 indexes count other messages than it holds (:class:`onboard.io.mcap_read.ChunkIndexCheck`).  A damaged input is
 refused unless ``--skip-damaged``: then a finished file is recovered chunk by chunk through its summary's chunk
@@ -41,7 +43,7 @@ from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any, BinaryIO
 
-from onboard.app.cli_args import OneLineParser
+from onboard.app.cli_args import OneLineParser, sigterm_as_interrupt
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError
 from onboard.io.mcap_chunks import MCAP_MAGIC, RECORD_HEAD
@@ -56,7 +58,7 @@ from onboard.io.mcap_read import (
 
 __all__ = ["Recovered", "whole_length", "recover", "build_parser", "main"]
 
-EXIT_OK, EXIT_OUTPUT, EXIT_INPUT, EXIT_DROPPED = 0, 1, 2, 3
+EXIT_OK, EXIT_OUTPUT, EXIT_INPUT, EXIT_DROPPED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 _OPCODE_FOOTER = 0x02
 _OPCODE_DATA_END = 0x0F
 _SKIP_HINT = "; --skip-damaged recovers the rest"
@@ -212,8 +214,10 @@ def _streamed(f: BinaryIO, end: int, src: str) -> Iterator[tuple[int, list]]:
                 raise _Damaged(what, pending[0] if pending else at) from None
             raise
         except Exception as exc:  # noqa: BLE001 - whatever the reader raised inside the whole records
-            if type(exc).__name__ == "EndOfFile" and seen_header:
-                break  # the whole records end between two records: read to the last
+            if type(exc).__name__ == "EndOfFile":
+                # the whole records end between two records: read to the last (none before the header: the file is
+                # cut inside it, which the caller says as such, not as damage)
+                break
             if pending is not None:
                 yield pending
                 pending = None
@@ -437,8 +441,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"error: cannot write {args.output}: {exc.strerror or exc}", file=sys.stderr)
         return EXIT_OUTPUT
     try:
-        result = recover(args.input, fd, skip_damaged=args.skip_damaged)
-        os.replace(tmp, target)
+        with sigterm_as_interrupt():
+            result = recover(args.input, fd, skip_damaged=args.skip_damaged)
+            os.replace(tmp, target)
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the half-written recovery goes, OUT stays as it was
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        print(f"interrupted: nothing written ({args.output} is as it was, or was not created)", file=sys.stderr)
+        return EXIT_INTERRUPTED
     except InputError as exc:
         with contextlib.suppress(OSError):
             os.unlink(tmp)

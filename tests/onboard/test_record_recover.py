@@ -290,3 +290,36 @@ def test_a_compressed_chunk_whose_data_length_is_damaged_is_damage_and_the_chunk
     assert f"from byte {start} to the end" in capsys.readouterr().err
     msgs, _, _ = _in_file_order(out)
     assert len(msgs) == before > 0
+
+
+@pytest.mark.parametrize("size", [8, 12, 30])
+def test_a_file_cut_inside_its_header_is_said_to_be_cut_not_damaged(tmp_path, capsys, size):
+    full, cut, out = tmp_path / "f.mcap", tmp_path / "c.mcap", tmp_path / "out.mcap"
+    _recording(full)
+    _cut(full, cut, size)
+    assert _refused(capsys, [str(cut), str(out)]) == (
+        f"error: {cut}: cut short before its header record ({size} bytes): nothing to recover"
+    )
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("signum", ["SIGINT", "SIGTERM"])
+def test_an_interrupted_recovery_leaves_no_temporary_file_and_says_so(tmp_path, capsys, monkeypatch, signum):
+    import signal
+
+    import onboard.app.record_recover as record_recover
+
+    full, out = tmp_path / "f.mcap", tmp_path / "out.mcap"
+    _recording(full)
+    out.write_bytes(b"an earlier recovery")
+
+    def stopped(*_a, **_k):
+        os.kill(os.getpid(), getattr(signal, signum))
+        raise AssertionError("the signal should have ended the recovery")
+
+    monkeypatch.setattr(record_recover, "recover", stopped)
+    before = signal.getsignal(signal.SIGTERM)
+    assert main([str(full), str(out)]) == 130
+    assert capsys.readouterr().err == f"interrupted: nothing written ({out} is as it was, or was not created)\n"
+    assert out.read_bytes() == b"an earlier recovery" and not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]
+    assert signal.getsignal(signal.SIGTERM) == before
