@@ -139,13 +139,13 @@ class WatchedCommand:
             self.proc.kill()
             self.proc.wait(5)
 
-    def interrupt(self, group: bool, exit_timeout_s: float) -> tuple[int, str, str]:
-        """SIGINT to the process group (a terminal's Ctrl-C; ``new_session`` needed) or to the command's PID
-        alone; waits up to ``exit_timeout_s`` for its exit; returns (exit code, stdout, stderr)."""
+    def interrupt(self, group: bool, exit_timeout_s: float, signum: int = signal.SIGINT) -> tuple[int, str, str]:
+        """SIGINT (or ``signum``) to the process group (a terminal's Ctrl-C; ``new_session`` needed) or to the
+        command's PID alone; waits up to ``exit_timeout_s`` for its exit; returns (exit code, stdout, stderr)."""
         if group:
-            os.killpg(self.proc.pid, signal.SIGINT)
+            os.killpg(self.proc.pid, signum)
         else:
-            self.proc.send_signal(signal.SIGINT)
+            self.proc.send_signal(signum)
         other = self._other.read() if self.proc.wait(exit_timeout_s) is not None else ""
         self._reader.join(5.0)
         watched = "".join(self.lines)

@@ -245,9 +245,13 @@ def test_a_worker_recording_is_compared_within_its_own_sigma_and_says_why(record
 @pytest.mark.integration
 @pytest.mark.slow
 @pytest.mark.timeout(120)
-def test_ctrl_c_stops_a_replay_in_one_line_with_what_was_written(recorded, tmp_path):
-    """SIGINT to the process group (a terminal's Ctrl-C; the tracker's process too, with --jobs 2): exit 130, one
-    line naming the frames replayed and the partial --out file, no traceback from either process."""
+@pytest.mark.parametrize("how", ["ctrl_c", "sigterm"])
+def test_ctrl_c_stops_a_replay_in_one_line_with_what_was_written(recorded, tmp_path, how):
+    """SIGINT to the process group (a terminal's Ctrl-C; the tracker's process too, with --jobs 2), or SIGTERM to the
+    replay (``timeout``, a job's limit): exit 130, one line naming the frames replayed and the partial --out file,
+    no traceback from either process."""
+    import signal
+
     out = tmp_path / "partial.jsonl"
     cmd = WatchedCommand(
         "onboard.replay",
@@ -266,7 +270,10 @@ def test_ctrl_c_stops_a_replay_in_one_line_with_what_was_written(recorded, tmp_p
         first = cmd.lines[0]  # the recording's summary: the replay starts next
         assert "frames taken by the pipeline" in first, first
         time.sleep(CTRL_C_AFTER_S)  # mid-replay: the 10 s flight replays in real time
-        returncode, _, err = cmd.interrupt(group=True, exit_timeout_s=30)
+        if how == "ctrl_c":
+            returncode, _, err = cmd.interrupt(group=True, exit_timeout_s=30)
+        else:
+            returncode, _, err = cmd.interrupt(group=False, exit_timeout_s=30, signum=signal.SIGTERM)
     finally:
         cmd.kill()
     assert returncode == 130, err

@@ -62,6 +62,7 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
+import re  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -74,6 +75,7 @@ from onboard.app.cli_args import (  # noqa: E402
     add_live_view_option,
     add_set_option,
     config_overrides,
+    sigterm_as_interrupt,
 )
 from onboard.app.output_files import same_file_clash  # noqa: E402
 from onboard.core.errors import InputError, IrtrackError  # noqa: E402
@@ -730,7 +732,7 @@ def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m onboard.replay",
-        description=__doc__.split("\n\n")[0],
+        description=re.sub(r":\w+:`([^`]*)`", r"\1", __doc__.split("\n\n")[0]).replace("``", ""),
         epilog=f"Exit 0 done (with --compare: no difference); {EXIT_CONFIG} an unreadable or damaged recording, an "
         f"output that cannot be written (checked before the replay) or a bad option; {EXIT_DIFFERENT} --compare found "
         f"a difference; {EXIT_INTERRUPTED} Ctrl-C.",
@@ -789,7 +791,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_CONFIG
     progress = _Progress()
     try:
-        return _run(args, progress)
+        with sigterm_as_interrupt():  # SIGTERM (timeout, a job's limit) ends it as Ctrl-C does
+            return _run(args, progress)
     except KeyboardInterrupt:  # outside the replay loop (which stops by itself): reading the file, writing, comparing
         print(f"interrupted: {progress.frames} frames replayed; {progress.written}", file=sys.stderr)
         return EXIT_INTERRUPTED
