@@ -816,6 +816,11 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
                 if rec.truncated
                 else no_frames_text(rec)
             )
+        if not rec.frames:  # the pipeline's inputs without their pixels: a replay would feed nothing and say zeros
+            raise InputError(
+                f"{args.mcap}: {len(rec.inputs)} frames taken by the pipeline and none of their images recorded "
+                "(record.frames: false, or every frame dropped by the recorder): nothing to replay"
+            )
         config = config_of(rec, args.config, overrides)
     except (OnboardConfigError, IrtrackError) as exc:
         print(str(exc), file=sys.stderr)

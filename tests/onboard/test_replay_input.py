@@ -405,3 +405,19 @@ def test_the_flight_report_reads_only_the_frame_it_draws(recording, monkeypatch)
     assert all(k in frames for k in keys) and ("nope", 0) not in frames and len(frames) == N_FRAMES
     assert reads == []
     assert frames[keys[3]].shape == (512, 640) and len(reads) == 1
+
+
+def test_a_recording_of_frame_inputs_without_their_images_is_refused(recording, tmp_path, capsys):
+    """record.frames: false keeps the pipeline's inputs but not the pixels: a replay would feed nothing and print
+    zeros with exit 0."""
+    from mcap.reader import make_reader
+
+    with open(recording, "rb") as f:
+        (frames,) = {c.topic for c in make_reader(f).get_summary().channels.values() if c.topic.endswith("/ir/frame")}
+    bare = tmp_path / "bare.mcap"
+    _without_topic(recording, bare, frames)
+    out = tmp_path / "oo.jsonl"
+    assert main([str(bare), "--config", str(CONFIG), "--out", str(out)]) == EXIT_CONFIG
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith(f"{bare}: ") and "none of their images recorded" in err[0]
+    assert not out.exists()
