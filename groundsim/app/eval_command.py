@@ -126,6 +126,7 @@ def cmd_eval(args) -> int:
     Ctrl-C (or SIGTERM) no longer stops the writing: the finished work is written, then the interrupted line
     says where."""
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from groundsim.world.sim import check_duration_s
 
     limit_blas_threads(1)
     with quiet_run_logs():  # per-track chatter would drown the progress bar
@@ -133,6 +134,12 @@ def cmd_eval(args) -> int:
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]
         refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios])
+        for sc in scenarios:  # eval flies one observer's pipeline: a fleet's other observers would be left out
+            if sc.is_fleet:
+                raise ConfigError(
+                    f"--scenario: {sc.name} has several observers ({', '.join(o.name for o in sc.observers)}); eval "
+                    "runs one pipeline for one observer: python -m bench.fleet measures a fleet"
+                )
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         workers = pool_workers(args.workers)
@@ -155,6 +162,11 @@ def cmd_eval(args) -> int:
         )
         for n in nav_noises[1:]:
             options.with_nav_noise(n)  # validates every name before anything runs
+        # the duration and what must fall within it, checked before --out is made (a refused run leaves nothing)
+        for sc in scenarios:
+            d = check_duration_s(args.duration, sc)
+            if options.injected.gnss_dropout is not None:
+                options.injected.gnss_dropout.check_within(d)
         base = load_base_config(args.onboard_config)
         source = args.onboard_config or (
             str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"

@@ -185,3 +185,23 @@ def test_too_many_runs_are_refused_naming_seeds(tmp_path, no_runs, argv):
     assert code == cli.EXIT_ERROR
     lines = _error_lines(err)
     assert len(lines) == 1 and lines[0].startswith("groundsim eval: error: --seeds: at most"), err
+
+
+@pytest.mark.parametrize(
+    ("extra", "needle"),
+    [
+        (["--scenario", "F1"], "--scenario: F1 has several observers"),
+        (["--scenario", "C1", "--gnss-dropout", "5:3"], "--gnss-dropout: expected a start before the run's end (1 s)"),
+        (["--scenario", "C1", "--duration=-1"], "--duration: expected a positive number of seconds"),
+    ],
+    ids=["fleet", "dropout_after_the_end", "negative_duration"],
+)
+def test_what_eval_cannot_run_is_refused_before_out_is_made(tmp_path, no_runs, extra, needle):
+    """A fleet scenario (eval flies one observer's pipeline: the others were left out without a word), a GNSS dropout
+    after the run's end, a bad duration: one line, and no --out folder left behind."""
+    out = tmp_path / "o"
+    code, _, err = _cli(["eval", *FAST, *extra, "--out", str(out)])
+    assert code == cli.EXIT_ERROR
+    lines = _error_lines(err)
+    assert len(lines) == 1 and lines[0].startswith("groundsim eval: error: ") and needle in lines[0], err
+    assert not out.exists()
