@@ -25,8 +25,9 @@ child processes (``/proc``: CPU seconds / wall seconds, 100 % = one core).
 
 At the end (the simulator finished, or Ctrl-C / SIGTERM): the daemon gets SIGTERM (SIGKILL after
 ``KILL_AFTER_S``), the table is printed and OUT gets ``report.json``, ``report.md``, ``tracks.jsonl``,
-``truth.tum`` / ``estimate.tum``, two plots and the children's logs.  Exit 0 after a clean run or a
-Ctrl-C; 1 when a child failed to start or died (its log tail is printed).
+``truth.tum`` / ``estimate.tum``, two plots and the children's logs.  Exit 0 after a clean run; 130 after
+Ctrl-C or SIGTERM (one line saying what was kept; the evaluation is not run); 1 when a child failed to start or
+died (its log tail is printed).
 """
 
 from __future__ import annotations
@@ -771,7 +772,7 @@ def cmd_demo(args) -> int:
         outcome = run_demo(plan, stop)
         report = outcome.files.get("report.md")
         kept = f"the live run's report in {report}" if report else "nothing written"
-        if signal.SIGINT in received:
+        if signal.SIGINT in received or signal.SIGTERM in received:  # a cut run is no success, whichever stopped it
             return print_interrupted(kept)
         if getattr(args, "with_eval", False) and not stop.is_set() and outcome.error is None:
             eval_dir = plan.out_dir / "eval"

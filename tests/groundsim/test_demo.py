@@ -394,3 +394,30 @@ def test_demo_runs_both_processes_and_stops_cleanly_on_sigint(tmp_path):
     assert (out / "truth.csv").is_file() and (out / "tracks.jsonl").stat().st_size > 0
     cfg = yaml.safe_load((out / "onboard.yaml").read_text())
     assert not Path(cfg["output"]["health_file"]).exists()  # the daemon removed its liveness file on exit
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["sigint", "sigterm"])
+def test_a_demo_stopped_by_a_signal_is_interrupted_not_a_success(tmp_path, monkeypatch, capsys, signum):
+    """SIGTERM (a job's limit, ``timeout``) cut the run short and skipped the evaluation, yet exited 0 without a
+    word: it is an interruption as Ctrl-C is (one line, 130)."""
+    import types
+
+    import groundsim.evaluation.demo as demo
+    from groundsim.app import cli
+
+    def stopped_run(plan, stop):
+        os.kill(os.getpid(), signum)  # as a terminal or a job's limit sends it mid-run
+        for _ in range(100):
+            if stop.is_set():
+                break
+            time.sleep(0.01)
+        return types.SimpleNamespace(files={}, error=None)
+
+    def never(*_a, **_k):
+        raise AssertionError("the evaluation ran after the run was cut short")
+
+    monkeypatch.setattr(demo, "run_demo", stopped_run)
+    monkeypatch.setattr(demo, "_quick_eval", never)
+    args = cli.build_parser().parse_args(["demo", "--duration", "5", "--out", str(tmp_path / "d")])
+    assert demo.cmd_demo(args) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == "interrupted: nothing written"
