@@ -290,20 +290,29 @@ def cmd_scenes(args) -> int:
     """The ``scenes`` command: one line of figures per scenario; pictures with ``--gallery``."""
     from groundsim.evaluation.parallel import quiet_run_logs
     from groundsim.evaluation.report import make_out_dir
+    from groundsim.io.stop_signals import print_interrupted
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 
-    quiet_run_logs()
     if args.no_stats and args.gallery is None:
         raise ConfigError("--no-stats: pictures only, so --gallery DIR is needed (else there is nothing to do)")
+    if args.no_stats and args.clutter:
+        raise ConfigError("--clutter: a figure of the measurement, which --no-stats leaves out; give one of them")
     names = [n for group in (args.scenario or [list(REFERENCE_SCENES)]) for n in group]
     # every file read before the first scene is measured: a typo in the last name fails at once, not minutes in
     scenarios = [load_scenario(resolve_scenario_path(name)) for name in names]
     if args.gallery is not None:
         make_out_dir(args.gallery, "--gallery")
-    for sc in scenarios:
-        if args.gallery is not None:
-            path = write_gallery(sc, args.gallery, args.seed)
-            print(f"{sc.name}: {path} ({path.stat().st_size / 1024:.0f} KB)")
-        if not args.no_stats:
-            print(measure_scene(sc, args.seed, args.every, clutter=args.clutter).line(), flush=True)
+    pictures: list[Path] = []
+    with quiet_run_logs():
+        try:
+            for sc in scenarios:
+                if args.gallery is not None:
+                    path = write_gallery(sc, args.gallery, args.seed)
+                    pictures.append(path)
+                    print(f"{sc.name}: {path} ({path.stat().st_size / 1024:.0f} KB)")
+                if not args.no_stats:
+                    print(measure_scene(sc, args.seed, args.every, clutter=args.clutter).line(), flush=True)
+        except KeyboardInterrupt:  # the pictures written so far are whole: said, not "nothing written"
+            kept = f"{len(pictures)} picture(s) written in {args.gallery}" if pictures else "nothing written"
+            return print_interrupted(kept)
     return 0

@@ -534,3 +534,23 @@ def test_scenes_command_refuses_nothing_to_do_a_bad_name_and_a_gallery_it_cannot
     (tmp_path / "afile").write_text("")
     assert main(["scenes", "--scenario", "C4", "--gallery", str(tmp_path / "afile" / "g")]) == 2
     assert f"--gallery {tmp_path / 'afile' / 'g'}: cannot create the directory" in capsys.readouterr().err
+    assert main(["scenes", "--scenario", "C4", "--no-stats", "--clutter", "--gallery", str(tmp_path)]) == 2
+    assert "--clutter: a figure of the measurement, which --no-stats leaves out" in capsys.readouterr().err
+
+
+def test_scenes_interrupted_after_a_picture_says_it_was_written(tmp_path, capsys, monkeypatch):
+    import groundsim.evaluation.scenes as scenes
+    from groundsim.app.cli import main
+
+    def picture(sc, folder, seed):
+        path = tmp_path / f"{sc.name}.png"
+        path.write_bytes(b"png")
+        return path
+
+    def ctrl_c(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(scenes, "write_gallery", picture)
+    monkeypatch.setattr(scenes, "measure_scene", ctrl_c)
+    assert main(["scenes", "--scenario", "C4", "C5", "--gallery", str(tmp_path)]) == 130
+    assert capsys.readouterr().err.strip().splitlines()[-1] == f"interrupted: 1 picture(s) written in {tmp_path}"
