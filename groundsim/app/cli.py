@@ -371,7 +371,8 @@ def _run_interrupted(received: list[int], config, report) -> int:
                 where = where.with_name(f"{where.stem}.<NAME>{where.suffix or '.csv'}")
             kept += f"; truth of those frames in {where}"
         if config.record_path is not None:
-            kept += f"; recording in {config.record_path}"
+            files = report.record_files or (str(config.record_path),)
+            kept += f"; recording in {', '.join(files)}"
     return print_interrupted(kept)
 
 

@@ -39,6 +39,7 @@ holds whole lines for every frame published, and :func:`run` closes the sockets.
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import logging
 import math
@@ -452,6 +453,7 @@ class RunReport:
     errors: dict = field(default_factory=dict)
     mavlink_counters: dict = field(default_factory=dict)
     frames_published: int = 0
+    record_files: tuple[str, ...] = ()  # --record: the files the recording is in (empty without --record)
 
     def line(self) -> str:
         s = (
@@ -771,7 +773,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
         on_start = utc_now if config.start_time_now else None
         if not fleet:
             leg = legs[0]
-            return run_loop(
+            report = run_loop(
                 leg.core,
                 config.rate,
                 mavlink=leg.mavlink,
@@ -782,9 +784,10 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 camera_clock=config.injected.camera_clock,
                 on_start=on_start,
             )
-        return run_fleet_loop(
-            legs, config.rate, stop=stop, clock=clock, camera_clock=config.injected.camera_clock, on_start=on_start
-        )
+        else:
+            report = run_fleet_loop(
+                legs, config.rate, stop=stop, clock=clock, camera_clock=config.injected.camera_clock, on_start=on_start
+            )
     finally:
         closers = [c for leg in legs for c in (leg.truth, leg.publisher, leg.mavlink)] + [session, recorder]
         for closer in closers:
@@ -793,6 +796,9 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                     closer.close()
                 except Exception as exc:  # noqa: BLE001 - closing must not mask the run's outcome
                     log.debug("close %s: %s", type(closer).__name__, exc)
+    if recorder is not None:  # where it went: another name when --record's held an earlier recording, or rotated
+        report = dataclasses.replace(report, record_files=tuple(map(str, recorder.files)) or (str(recorder.path),))
+    return report
 
 
 # --------------------------------------------------------------------------- --record (onboard.io.record)

@@ -98,3 +98,18 @@ def test_ctrl_c_in_run_says_how_many_frames_were_sent_and_exits_130(tmp_path):
         assert len(truth.read_text().splitlines()) == sent + 1  # the header and one row per frame sent
     finally:
         kill_all([cmd.proc.pid])
+
+
+def test_the_interrupted_line_names_the_recording_where_it_went(capsys):
+    """--record onto an earlier recording goes to another name (r-2.mcap): the line says that one, not the name
+    asked for, which holds the earlier recording."""
+    import signal as signal_module
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    from groundsim.app.cli import _run_interrupted
+
+    config = SimpleNamespace(truth_path=None, record_path=Path("r.mcap"), scenario=SimpleNamespace(is_fleet=False))
+    report = SimpleNamespace(frames=10, frames_total=30, record_files=("r-2.mcap",))
+    assert _run_interrupted([signal_module.SIGINT], config, report) == 130
+    assert capsys.readouterr().err == "interrupted: 10 of 30 frames sent; recording in r-2.mcap\n"
