@@ -6,6 +6,7 @@ before OUT is created."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import sys
 from dataclasses import dataclass, field
@@ -18,7 +19,9 @@ from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError
 
-__all__ = ["DEFAULT_DEMO_ONBOARD_CONFIG", "DemoPlan", "daemon_command", "plan_demo", "sim_command"]
+__all__ = ["DEFAULT_DEMO_ONBOARD_CONFIG", "DEMO_OUTPUTS", "DemoPlan", "daemon_command", "plan_demo", "sim_command"]
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -153,6 +156,7 @@ def plan_demo(
     if mount_as_configured:
         cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, mount=base.camera.mount))
     out = make_out_dir(out_dir)
+    _clear_earlier_demo(out)
     mav, zport = free_udp_port(), free_tcp_port()
     raw = config_to_dict(cfg)
     raw["mavlink"]["connection"] = f"udpin:127.0.0.1:{mav}"
@@ -182,6 +186,38 @@ def plan_demo(
         onboard_config_source=config_source,
         mount_as_configured=bool(mount_as_configured),
     )
+
+
+#: what a demo writes in OUT (its live run's files, the children's logs; ``eval/`` the evaluation's folder)
+DEMO_OUTPUTS = (
+    "report.json",
+    "report.md",
+    "tracks.jsonl",
+    "truth.csv",
+    "truth.tum",
+    "estimate.tum",
+    "trajectory.png",
+    "error.png",
+    "onboard.log",
+    "sim.log",
+)
+
+
+def _clear_earlier_demo(out: Path) -> None:
+    """An earlier demo's results in ``out`` go before this one starts: an interrupted run, or one without the
+    evaluation, must not leave them beside its own as if they were its (a report of another run, a stale eval/).
+    Only the demo's own file names (and an ``eval/`` holding an evaluation's report) are removed, and said."""
+    import shutil
+
+    gone = [name for name in DEMO_OUTPUTS if (out / name).is_file()]
+    for name in gone:
+        (out / name).unlink()
+    ev = out / "eval"
+    if ev.is_dir() and ((ev / "report.json").is_file() or (ev / "report.md").is_file()):
+        shutil.rmtree(ev)
+        gone.append("eval/")
+    if gone:
+        log.warning("%s held an earlier demo's results; removed: %s", out, ", ".join(gone))
 
 
 def daemon_command(plan: DemoPlan) -> list[str]:

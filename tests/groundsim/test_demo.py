@@ -421,3 +421,19 @@ def test_a_demo_stopped_by_a_signal_is_interrupted_not_a_success(tmp_path, monke
     args = cli.build_parser().parse_args(["demo", "--duration", "5", "--out", str(tmp_path / "d")])
     assert demo.cmd_demo(args) == 130
     assert capsys.readouterr().err.strip().splitlines()[-1] == "interrupted: nothing written"
+
+
+def test_an_earlier_demos_results_go_before_a_new_demo_starts(tmp_path, caplog):
+    """An interrupted demo, or one without the evaluation, left the earlier run's report, TUM files, plots and eval/
+    beside its own; a user's own files stay."""
+    from groundsim.evaluation.demo_plan import DEMO_OUTPUTS
+
+    for name in DEMO_OUTPUTS:
+        (tmp_path / name).write_text("an earlier run's\n")
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "eval" / "report.md").write_text("an earlier evaluation\n")
+    (tmp_path / "notes.txt").write_text("mine\n")
+    plan_demo("P1", 4.0, 0, tmp_path, None)
+    left = sorted(p.name for p in tmp_path.iterdir())
+    assert left == ["notes.txt", "onboard.yaml"], left
+    assert any("held an earlier demo's results; removed: report.json" in r.getMessage() for r in caplog.records)
