@@ -154,8 +154,12 @@ def _raise_interrupt(signum, frame) -> None:
 def sigterm_as_interrupt() -> Iterator[None]:
     """While the block runs, SIGTERM (``timeout``, a job's time limit, ``kill``) raises KeyboardInterrupt as Ctrl-C
     does, so a tool's Ctrl-C path (one line, its outputs whole or untouched, no temporary file left) serves both;
-    the handler before is put back after.  In a thread other than the main one (a caller's) SIGTERM is left alone."""
+    the handler before is put back after.  In a thread other than the main one (a caller's), or where SIGTERM is
+    ignored (a launcher's choice), it is left alone."""
     previous = signal.getsignal(signal.SIGTERM)
+    if previous is signal.SIG_IGN:  # a launcher that meant the tool to ignore SIGTERM: as Python leaves SIGINT
+        yield
+        return
     try:
         signal.signal(signal.SIGTERM, _raise_interrupt)
     except ValueError:  # not the main thread

@@ -29,7 +29,8 @@ stderr (exit 3).
 Refused, with one line naming the file (exit 2): an input that cannot be read, is not MCAP (its first bytes are
 not the magic), is cut before its header record, or is damaged (without ``--skip-damaged``); ``OUT`` naming the
 input (the cut original is kept), a folder, a device or a pipe.  Exit 1: ``OUT`` cannot be written.  Exit 0:
-recovered, with one line on stdout saying what; exit 3: recovered with damaged parts left out.
+recovered, with one line on stdout saying what; exit 3: recovered with damaged parts left out; exit 130:
+interrupted (Ctrl-C or SIGTERM), nothing written.
 """
 
 from __future__ import annotations

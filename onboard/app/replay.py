@@ -40,8 +40,8 @@ beyond ``SIGMA_GATE`` sigmas of the recorded covariance and any frame of objects
 Exit codes: 0 done (with ``--compare``: the replay is the recording's); 2 a file that is not a readable MCAP
 recording, a damaged message in one, a recording without frame inputs, an output file that cannot be written, or
 a bad option (one line; the outputs are checked before the replay, so one that cannot be written costs no replay
-and nothing is written); 3 ``--compare`` found a difference; 130 interrupted (Ctrl-C: one line saying how many
-frames were replayed and what was written).
+and nothing is written); 3 ``--compare`` found a difference; 130 interrupted (Ctrl-C or SIGTERM: one line saying
+how many frames were replayed and what was written).
 
 A file cut short (a killed daemon) is read up to its last complete chunk (the summary says so); one cut before its
 first message is refused.  A message that does not decode (JSON that does not parse or lacks a field replay reads,
@@ -113,7 +113,7 @@ WORKER_GROSS_SIGMA = 6.0
 #: frames where only one of the two has a 3-D position: a worker's first estimate, or its first after a reset, may
 #: come a frame or two apart from a replay's; more than this many, or than WORKER_BEYOND_SHARE of the positions,
 #: is a replay that lost (or invented) positions, whatever the ones it kept look like
-WORKER_ONLY_ONE_MIN = 3
+WORKER_ONLY_ONE_MAX_COUNT = 3
 
 
 @dataclass
@@ -415,10 +415,12 @@ class _PipedTracker:
 
 def _imaging_child(rec: Recording, config, conn) -> None:
     """Runs in the forked imaging process: the same admission and tracker over the same frames, no pose, no estimator.
-    A Ctrl-C reaches it with the parent (one process group): the parent stops it by closing the pipe."""
+    A Ctrl-C, or a SIGTERM to the group (``timeout``, a job's limit), reaches it with the parent: the parent stops
+    it by closing the pipe (the parent's SIGTERM-as-Ctrl-C handler, inherited by the fork, is the parent's alone)."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     from onboard.core.counters import RejectCounter
     from onboard.pipeline.frame_pipeline import FramePipeline, FrameRejected, make_tracker
 
@@ -633,9 +635,9 @@ class SigmaComparison:
 def beyond_a_workers_sigma(within: SigmaComparison) -> bool:
     """Whether a worker's recording and its replay differ by more than the worker's timing explains: more than
     :data:`WORKER_BEYOND_SHARE` of the positions beyond the gate, one beyond :data:`WORKER_GROSS_SIGMA`, or more
-    frames with a position in one of them only than :data:`WORKER_ONLY_ONE_MIN` and that share."""
+    frames with a position in one of them only than :data:`WORKER_ONLY_ONE_MAX_COUNT` and that share."""
     positions = within.compared + within.position_only_one
-    only_one = within.position_only_one > max(WORKER_ONLY_ONE_MIN, WORKER_BEYOND_SHARE * positions)
+    only_one = within.position_only_one > max(WORKER_ONLY_ONE_MAX_COUNT, WORKER_BEYOND_SHARE * positions)
     return only_one or within.beyond > WORKER_BEYOND_SHARE * within.compared or within.max_sigma > WORKER_GROSS_SIGMA
 
 
@@ -735,7 +737,7 @@ def build_parser() -> argparse.ArgumentParser:
         description=re.sub(r":\w+:`([^`]*)`", r"\1", __doc__.split("\n\n")[0]).replace("``", ""),
         epilog=f"Exit 0 done (with --compare: no difference); {EXIT_CONFIG} an unreadable or damaged recording, an "
         f"output that cannot be written (checked before the replay) or a bad option; {EXIT_DIFFERENT} --compare found "
-        f"a difference; {EXIT_INTERRUPTED} Ctrl-C.",
+        f"a difference; {EXIT_INTERRUPTED} Ctrl-C or SIGTERM.",
     )
     p.add_argument("mcap", metavar="FILE.mcap", help="a recording of python -m onboard --record")
     p.add_argument("--rate", choices=("max", "realtime"), default="max", help="pacing (default: %(default)s)")
