@@ -118,6 +118,9 @@ FRAME_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
 #: the video a benchmark's sequence folder holds instead of frames (Anti-UAV: IR.mp4, its 2021 edition infrared.mp4)
 VIDEO_NAMES = ("IR.mp4", "infrared.mp4")
 DEFAULT_FOLDER_FPS = 30.0
+#: a folder whose frame numbers step by more than this (median) is named by something else (times): numbered by
+#: position.  A benchmark's own numbering steps by 1; a subsampled one (every 10th frame kept) by a few
+MAX_NUMBER_STEP = 30
 PROGRESS_EVERY_S = 5.0
 ENCODINGS = ("auto", "mono8", "mono16")
 FORMATS = ("mot", "anti-uav")
@@ -189,6 +192,19 @@ def _numbered(folder: Path, files: list[Path]) -> tuple[list[Path], list[int]]:
         return int(m.group(2))
 
     ordered = sorted(files, key=number)  # stable: names of one number stay in name order
+    steps = np.diff([number(p) for p in ordered])
+    if len(steps) and float(np.median(steps)) > MAX_NUMBER_STEP:
+        # names that are times (ms or us since an epoch), not frame numbers: each step would be dozens of frame
+        # periods, and an Anti-UAV result padded to the last "frame" would not fit in memory
+        log.warning(
+            "%s: the numbers in the frame names step by a median %g (%s, %s ...): not frame numbers (times?): MOT "
+            "frames are numbered by sorted position from 1",
+            folder,
+            float(np.median(steps)),
+            ordered[0].name,
+            ordered[1].name,
+        )
+        return ordered, list(range(1, len(ordered) + 1))
     for before, path in zip(ordered, ordered[1:]):
         if number(before) == number(path):
             raise InputError(
@@ -663,6 +679,7 @@ def _main(argv: Sequence[str] | None) -> int:
     done = 0
     out: _Replacement | None = None
     boxes: list[list[float]] = []  # --format anti-uav: one entry a frame, frame 1 first
+    json_written = False
     try:
         src = open_frames(args.input, args.encoding, args.fps)
         clash = _input_clash(args.out, src)
@@ -704,12 +721,14 @@ def _main(argv: Sequence[str] | None) -> int:
         if done == 0:
             raise InputError(f"{src.path}: no frames")
         if args.format == "anti-uav":
+            json_written = True  # before the write: an interruption in it must not write the document again
             out.writelines(_anti_uav_json(boxes))
         out.commit()
         if primary_only and no_primary:
             log.warning(
-                "%s: on %d of %d frames objects were confirmed but none was the primary, which must be within %.0f px "
-                "of the image centre (--primary-within-px): those frames have no %s",
+                "%s: on %d of %d frames objects were confirmed but none was the primary: the primary is the steady "
+                "object nearest the image centre, confirmed over most of its frames and within %.0f px of the centre "
+                "(--primary-within-px widens that): those frames have no %s",
                 src.path,
                 no_primary,
                 done,
@@ -725,7 +744,7 @@ def _main(argv: Sequence[str] | None) -> int:
             print(f"{exc}; {out.untouched}", file=sys.stderr)
         return EXIT_INPUT
     except KeyboardInterrupt:
-        if args.format == "anti-uav" and out is not None and done:
+        if args.format == "anti-uav" and out is not None and done and not json_written and not out.committed:
             with contextlib.suppress(OutputError):  # said by _interrupted's commit, which fails alike
                 out.writelines(_anti_uav_json(boxes))
         return _interrupted(out, done)
@@ -753,7 +772,8 @@ def _interrupted(out: _Replacement | None, done: int) -> int:
         print(f"interrupted before the first frame was tracked: nothing written{kept}", file=sys.stderr)
         return EXIT_INTERRUPTED
     try:
-        out.commit()
+        if not out.committed:  # interrupted after the run's own commit (its closing words): the file is whole
+            out.commit()
     except OutputError as exc:
         print(f"interrupted after {done} frames; {exc}; {out.untouched}", file=sys.stderr)
     else:

@@ -219,3 +219,17 @@ def test_a_damaged_video_that_decodes_to_the_end_is_warned_about_once(tmp_path, 
     assert main([str(mp4), "--out", str(tmp_path / "t.txt"), "--quiet"]) == EXIT_OK
     (warned,) = _records(caplog, logging.WARNING)
     assert warned.startswith(f"{mp4}: decoded 12 frames; ") and "decoder error" in warned, warned
+
+
+def test_names_that_are_times_are_numbered_by_position_and_said(tmp_path, monkeypatch, caplog):
+    """Frames named by a clock (ms since an epoch: a step of ~33 a frame) are not frame numbers: taken as such, every
+    frame was a 30-frame gap to the tracker and an Anti-UAV result was padded to 1.7e12 entries."""
+    seq = _folder(tmp_path / "seq", [f"{1_700_000_000_000 + 33 * k}.png" for k in range(4)])
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 2, 3, 4]
+    (warned,) = _records(caplog, logging.WARNING)
+    assert "step by a median 33" in warned and "numbered by sorted position" in warned
+
+
+def test_a_subsampled_numbering_keeps_its_numbers(tmp_path, monkeypatch):
+    seq = _folder(tmp_path / "seq", [f"{n:06d}.png" for n in (1, 11, 21, 31)])  # every 10th frame kept
+    assert _frame_numbers_written(monkeypatch, tmp_path, seq) == [1, 11, 21, 31]
