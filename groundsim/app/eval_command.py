@@ -137,8 +137,9 @@ def cmd_eval(args) -> int:
         for sc in scenarios:  # eval flies one observer's pipeline: a fleet's other observers would be left out
             if sc.is_fleet:
                 raise ConfigError(
-                    f"--scenario: {sc.name} has several observers ({', '.join(o.name for o in sc.observers)}); eval "
-                    "runs one pipeline for one observer: python -m bench.fleet measures a fleet"
+                    f"--scenario: {sc.name} is a fleet scenario (its observers list: "
+                    f"{', '.join(o.name for o in sc.observers)}); eval runs one pipeline for one observer: "
+                    "python -m bench.fleet measures a fleet"
                 )
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")

@@ -469,7 +469,8 @@ def export_sequence(scenario, seed: int, out_dir, options: DatasetOptions, progr
                 [tr.target_n_m, tr.target_e_m, tr.target_d_m],
                 rotmat_from_quat(c.tgt_q_ned_from_body[j]),
                 corners,
-                fr.target_box_px,
+                # a frozen frame repeats an earlier image: its drawn box is where the target was then, not now
+                fr.target_box_px if fr.sensor_status != "frozen" else None,
             )
             if any(o.object_id == 0 and o.visibility == "occluded" for o in fr.labels):
                 lab = dataclasses.replace(lab, occluded=True)
@@ -748,6 +749,12 @@ def export_dataset(
     seeds = [int(s) for s in seeds]
     if not scenarios:
         raise ConfigError("--scenario: expected at least one scenario")
+    for sc in scenarios:  # a sequence is one observer's camera: a fleet's others would be left out without a word
+        if sc.is_fleet:
+            raise ConfigError(
+                f"--scenario: {sc.name} is a fleet scenario (its observers list: "
+                f"{', '.join(o.name for o in sc.observers)}); a dataset sequence is one observer's camera"
+            )
     if not seeds or min(seeds) < 0:
         raise ConfigError(f"--seeds: expected at least one seed >= 0, got {seeds}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:

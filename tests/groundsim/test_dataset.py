@@ -322,6 +322,12 @@ def test_an_out_folder_that_cannot_be_written_is_one_line(tmp_path, monkeypatch,
     assert err == [f"groundsim dataset: error: --out {tmp_path}: cannot write in the directory: Permission denied"]
 
 
+def _target_q(core, k: int):
+    i = k * core.ticks_per_frame
+    c = core.flight.chunk_of(i)
+    return c.tgt_q_ned_from_body[i - c.i0]
+
+
 def test_the_targets_box_holds_it_as_drawn_without_a_scene():
     """P1 has no scene: the renderer's own box of the target it drew joins the body's projection in the label."""
     from groundsim.world.sim import SimCore
@@ -338,7 +344,7 @@ def test_the_targets_box_holds_it_as_drawn_without_a_scene():
             [tr.cam_n_m, tr.cam_e_m, tr.cam_d_m],
             rotmat_from_quat([tr.q_ned_from_cam_w, tr.q_ned_from_cam_x, tr.q_ned_from_cam_y, tr.q_ned_from_cam_z]),
             [tr.target_n_m, tr.target_e_m, tr.target_d_m],
-            rotmat_from_quat(core.flight.chunk_of(k * core.ticks_per_frame).tgt_q_ned_from_body[0]),
+            rotmat_from_quat(_target_q(core, k)),
             corners,
         )
         body, joined = target_label(*args), target_label(*args, fr.target_box_px)
@@ -374,3 +380,9 @@ def test_obs_csv_is_reconstructs_input_and_it_reads_it(dataset, tmp_path, capsys
     assert reconstruct([str(seq / "obs.csv"), "-o", str(result)]) == 0, capsys.readouterr().err
     rows = _read_csv(result)
     assert len(rows["t_s"]) == len(obs["t_s"]) and np.all(np.isfinite(rows["n_m"]))
+
+
+def test_a_fleet_scenario_is_refused_naming_it(tmp_path):
+    with pytest.raises(ConfigError, match=r"^--scenario: F1 is a fleet scenario"):
+        export_dataset([_scenario("F1")], [0], tmp_path / "ds", DatasetOptions(duration_s=0.1), progress=False)
+    assert not (tmp_path / "ds").exists()

@@ -190,7 +190,7 @@ def test_too_many_runs_are_refused_naming_seeds(tmp_path, no_runs, argv):
 @pytest.mark.parametrize(
     ("extra", "needle"),
     [
-        (["--scenario", "F1"], "--scenario: F1 has several observers"),
+        (["--scenario", "F1"], "--scenario: F1 is a fleet scenario"),
         (["--scenario", "C1", "--gnss-dropout", "5:3"], "--gnss-dropout: expected a start before the run's end (1 s)"),
         (["--scenario", "C1", "--duration=-1"], "--duration: expected a positive number of seconds"),
     ],
