@@ -433,7 +433,14 @@ def test_an_earlier_demos_results_go_before_a_new_demo_starts(tmp_path, caplog):
     (tmp_path / "eval").mkdir()
     (tmp_path / "eval" / "report.md").write_text("an earlier evaluation\n")
     (tmp_path / "notes.txt").write_text("mine\n")
+    theirs = tmp_path / "not_a_demo"  # the same names in a folder no demo wrote: the user's, kept
+    theirs.mkdir()
+    (theirs / "report.md").write_text("my report\n")
+    plan_demo("P1", 4.0, 0, theirs, None)
+    assert (theirs / "report.md").read_text() == "my report\n"
+    plan_demo("P1", 4.0, 0, tmp_path / "first", None)  # an earlier demo's onboard.yaml marks the folder
+    (tmp_path / "onboard.yaml").write_text((tmp_path / "first" / "onboard.yaml").read_text())
     plan_demo("P1", 4.0, 0, tmp_path, None)
     left = sorted(p.name for p in tmp_path.iterdir())
-    assert left == ["notes.txt", "onboard.yaml"], left
+    assert left == ["first", "not_a_demo", "notes.txt", "onboard.yaml"], left
     assert any("held an earlier demo's results; removed: report.json" in r.getMessage() for r in caplog.records)
