@@ -15,7 +15,9 @@ Input (OBS.csv)
     ``cam_*_m`` the camera centre in a local NED frame (metres); ``q_*`` ``q_ned_from_cam``
     (Hamilton, w first) rotating camera-frame vectors (x right, y down, z forward) into NED,
     unit norm within ``onboard.core.frames.QUAT_NORM_TOL`` (renormalised).  See ``onboard.core.frames``.
-    Unknown extra columns are ignored, with one warning naming them.  Blank lines are skipped.
+    Optional: ``width_px,height_px``, the image's size, which then bounds each pixel exactly; without
+    them a pixel more than 15 % of a side outside the image (taken as twice the principal point) is
+    refused.  Unknown extra columns are ignored, with one warning naming them.  Blank lines are skipped.
     Cells may carry surrounding spaces.  Sanity bounds (anything beyond is an error, not an
     overflow later): ``|t_s| <= 1e9``, pixels and intrinsics within ``1e6`` px (focal lengths
     > 0), camera coordinates within ``1e7`` m.
@@ -103,7 +105,7 @@ import numpy as np
 from onboard.app.cli_args import OneLineParser, nonnegative_float, sigterm_as_interrupt
 from onboard.app.output_files import create_beside, output_target, same_file_clash
 from onboard.core.errors import InputError, IrtrackError
-from onboard.core.frames import QUAT_NORM_TOL, far_off_image
+from onboard.core.frames import QUAT_NORM_TOL
 from onboard.estimation.map_estimator import EstimationError, MapConfig, MapEstimator, MapResult, NoiseModel
 from onboard.estimation.observations import Observations
 from onboard.estimation.paper import PaperConfig, PaperEstimator, PaperResult
@@ -157,6 +159,8 @@ ABS_LIMITS = {
     "fy_px": 1e6,
     "cx_px": 1e6,
     "cy_px": 1e6,
+    "width_px": 1e6,
+    "height_px": 1e6,
     "cam_n_m": 1e7,
     "cam_e_m": 1e7,
     "cam_d_m": 1e7,
@@ -207,6 +211,7 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
     header: list[str] | None = None
     header_line = 0
     index: dict[str, int] = {}
+    size_index: list[int] | None = None
     rows: list[list[float]] = []
     lines: list[int] = []
     prev_line_num = 0
@@ -230,10 +235,11 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 if missing:
                     hint = " (is the file comma-separated?)" if len(header) == 1 else ""
                     raise CsvInputError(f"{source} line {line} (header): missing column(s) {', '.join(missing)}{hint}")
-                extra = [c for c in header if c not in OBS_COLUMNS]
+                extra = [c for c in header if c not in OBS_COLUMNS + SIZE_COLUMNS]
                 if extra:
                     log.warning("%s: ignoring unknown column(s) %s", source, ", ".join(repr(c) for c in extra))
                 index = {c: seen[c] for c in OBS_COLUMNS}
+                size_index = [seen[c] for c in SIZE_COLUMNS] if all(c in seen for c in SIZE_COLUMNS) else None
                 continue
             if len(record) != len(header):
                 raise CsvInputError(
@@ -245,7 +251,13 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
                 raise CsvInputError(f"{source} line {line}, column fx_px: focal length must be > 0, got {fx:g}")
             if fy <= 0:
                 raise CsvInputError(f"{source} line {line}, column fy_px: focal length must be > 0, got {fy:g}")
-            _check_on_image(vals, source, line)
+            size = None
+            if size_index is not None:
+                size = (
+                    _number(record[size_index[0]], source, line, SIZE_COLUMNS[0]),
+                    _number(record[size_index[1]], source, line, SIZE_COLUMNS[1]),
+                )
+            _check_on_image(vals, source, line, size)
             qn = math.sqrt(sum(v * v for v in vals[10:14]))
             if abs(qn - 1.0) > QUAT_NORM_TOL:
                 raise CsvInputError(
@@ -280,25 +292,38 @@ def parse_observations_csv(text: str, source: str = "<csv>") -> Observations:
         raise CsvInputError(f"{source}: {e}") from None
 
 
-#: how far outside the image a row's pixel may lie, as a share of the image's side: the image is taken as twice the
-#: principal point (the CSV has no size), which a calibrated camera's centre misses by a few per cent
-OFF_IMAGE_MARGIN = 0.05
+#: how far outside the image a row's pixel may lie, as a share of the image's side, when the CSV has no image size:
+#: the image is then taken as twice the principal point, which a calibrated camera's centre misses by a few per cent
+OFF_IMAGE_MARGIN = 0.15
+#: optional columns: the image's size, which then bounds a row's pixel exactly (for pixels measured on the image;
+#: a distorted camera's pixels undistorted, as ``groundsim dataset``'s obs.csv holds them, can lie past its edge)
+SIZE_COLUMNS = ("width_px", "height_px")
 
 
-def _check_on_image(vals: list[float], source: str, line: int) -> None:
+def _check_on_image(vals: list[float], source: str, line: int, size_px: tuple[float, float] | None = None) -> None:
     """A pixel outside the image is no camera's measurement: a corrupt row, refused.  One such row (u 700 px on a
     640 px image) made a 20 s reconstruction wrong by 76 m, its warning blaming the flight's geometry; the
-    estimator has no robust loss to shrug it off."""
-    for i, c, name in ((1, 5, "u_px"), (2, 6, "v_px")):
-        size = 2.0 * vals[c]
-        if size <= 0:
+    estimator has no robust loss to shrug it off.  With the image's size (``width_px``, ``height_px``) the bound
+    is the image itself; without it, the image taken as twice the principal point with ``OFF_IMAGE_MARGIN``."""
+    for k, (i, c, name) in enumerate(((1, 5, "u_px"), (2, 6, "v_px"))):
+        if size_px is not None:
+            side = size_px[k]
+            if side <= 0 or not 0.0 <= vals[i] <= side:
+                raise CsvInputError(
+                    f"{source} line {line}, column {name}: {vals[i]:g} is outside the image ({size_px[0]:g} x "
+                    f"{size_px[1]:g} px, its {SIZE_COLUMNS[k]}): not a pixel a camera measured"
+                )
             continue
-        margin = OFF_IMAGE_MARGIN * size
-        if far_off_image(vals[i], size) or not -margin <= vals[i] <= size + margin:
+        side = 2.0 * vals[c]
+        if side <= 0:
+            continue
+        margin = OFF_IMAGE_MARGIN * side
+        if not -margin <= vals[i] <= side + margin:
             raise CsvInputError(
                 f"{source} line {line}, column {name}: {vals[i]:g} is outside the image (about"
                 f" {2 * vals[5]:.0f} x {2 * vals[6]:.0f} px from cx_px, cy_px, {100 * OFF_IMAGE_MARGIN:g} % of a side"
-                f" allowed beyond): not a pixel a camera measured"
+                f" allowed beyond; columns {', '.join(SIZE_COLUMNS)} give the image's own size): not a pixel a camera"
+                " measured"
             )
 
 

@@ -289,8 +289,8 @@ BAD_TEXT_CASES = {
     # a pixel no camera sees (one such row made a reconstruction "observable" and 100 m off at 0.7 m sigma)
     "pixel far left": (lambda L: _set_cell(L, 5, "u_px", "-5000"), ["line 5, column u_px", "outside the image"]),
     "pixel far below": (lambda L: _set_cell(L, 6, "v_px", "1e6"), ["line 6, column v_px", "outside the image"]),
-    # just beyond the image's side (u 700 on a 640 px one): a 20 s flight 76 m off, the warning on its geometry
-    "pixel just beyond": (lambda L: _set_cell(L, 7, "u_px", "700"), ["line 7, column u_px", "outside the image"]),
+    # beyond the image (twice the principal point) by more than 15 % of its side: no camera measured it
+    "pixel beyond": (lambda L: _set_cell(L, 7, "u_px", "800"), ["line 7, column u_px", "outside the image"]),
     "negative focal": (lambda L: _set_cell(L, 5, "fy_px", "-764.7"), ["line 5, column fy_px", "> 0"]),
     "zero focal": (lambda L: _set_cell(L, 5, "fx_px", "0"), ["line 5, column fx_px", "> 0"]),
     "non-unit quaternion": (lambda L: _scale_quat(L, 7, 1.01), ["line 7, column q_w..q_z", "quaternion norm 1.01"]),
@@ -624,3 +624,21 @@ def test_an_interrupted_run_is_one_line_exit_130_and_writes_nothing(small_obs, t
     ]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["obs.csv"]
     assert signal.getsignal(signal.SIGTERM) == before
+
+
+def test_with_the_images_size_a_pixel_just_beyond_it_is_refused(small_obs, tmp_path):
+    """u 700 px on a 640 px image (one such row put a 20 s flight 76 m off, the warning on its geometry): with the
+    optional width_px, height_px columns the image bounds the pixel exactly; without them 15 % of a side is
+    allowed for a principal point off the centre."""
+    lines = obs_csv_text(small_obs, extra={"width_px": "640", "height_px": "512"}).splitlines()
+    cells = lines[7].split(",")
+    cells[OBS_COLUMNS.index("u_px")] = "700"
+    lines[7] = ",".join(cells)
+    path = tmp_path / "obs.csv"
+    path.write_text("\n".join(lines) + "\n")
+    rc, err = run_main(path, "-o", tmp_path / "out.csv")
+    assert rc == 2 and "line 8, column u_px: 700 is outside the image (640 x 512 px, its width_px)" in err, err
+    ok = "\n".join(obs_csv_text(small_obs, extra={"width_px": "640", "height_px": "512"}).splitlines()) + "\n"
+    path.write_text(ok)
+    rc, err = run_main(path, "-o", tmp_path / "out.csv")
+    assert rc == 0 and "unknown column" not in err, err
