@@ -126,7 +126,7 @@ def test_a_truth_of_another_run_is_told_from_this_flights_by_where_the_camera_wa
 def test_a_truth_whose_camera_is_within_a_few_degrees_is_told_apart_by_the_navigation_error_it_records():
     """groundsim's truth rows record the attitude error the telemetry carried: put back on their camera, the
     flight's own truth matches to interpolation (hundredths of a degree), and another run's camera turned 1.7 deg
-    (P1 against P1g in the audit: within the 5 deg a truth without that record is allowed) is refused."""
+    (a P1 flight against a P1g truth: within the 5 deg a truth without that record is allowed) is refused."""
     import math
 
     import numpy as np
@@ -134,7 +134,7 @@ def test_a_truth_whose_camera_is_within_a_few_degrees_is_told_apart_by_the_navig
     from groundsim.app.report import TRUTH_MATCH_NAV_MAX_DEG, truth_mismatch
     from onboard.core.frames import GeodeticOrigin, geodetic_from_ned1, quat_from_rotvec, quat_multiply
 
-    def q_yaw(deg):
+    def q_about_north(deg):
         h = math.radians(deg) / 2
         return np.array([math.cos(h), math.sin(h), 0.0, 0.0])
 
@@ -144,7 +144,7 @@ def test_a_truth_whose_camera_is_within_a_few_degrees_is_told_apart_by_the_navig
     for k in range(20):
         t_us = 1_000_000 + 33_333 * k
         p = [5.0 * k, 2.0 * k, -100.0]
-        q_true = q_yaw(30.0 + 0.5 * k)
+        q_true = q_about_north(30.0 + 0.5 * k)
         inputs.append(
             {
                 "time_boot_us": t_us,
@@ -160,7 +160,7 @@ def test_a_truth_whose_camera_is_within_a_few_degrees_is_told_apart_by_the_navig
         row |= dict(zip(("nav_att_err_n_rad", "nav_att_err_e_rad", "nav_att_err_d_rad"), phi.tolist()))
         keys = ("q_ned_from_cam_w", "q_ned_from_cam_x", "q_ned_from_cam_y", "q_ned_from_cam_z")
         own.append(row | dict(zip(keys, q_true.tolist())))
-        other.append(row | dict(zip(keys, q_yaw(30.0 + 0.5 * k + 1.7).tolist())))
+        other.append(row | dict(zip(keys, q_about_north(30.0 + 0.5 * k + 1.7).tolist())))
     assert truth_mismatch(inputs, own) is None
     why = truth_mismatch(inputs, other)
     assert why is not None and why.startswith("its camera with the navigation error it records looked 1.7 deg away")
