@@ -344,6 +344,9 @@ def _cmd_run(args) -> int:
     received: list[int] = []
     restore = install_stop_signals(stop, received)
     try:
+        from onboard.app.parent_watch import end_with_parent
+
+        end_with_parent()  # started by a demo: ends with it, even one killed outright (a SIGTERM, handled above)
         config = _run_config(args)
         if stop.is_set():
             return _run_interrupted(received, None, None)

@@ -429,8 +429,13 @@ def _pct(x):
 
 
 def _start(cmd: list[str], log_path: Path, env: dict) -> subprocess.Popen:
+    """A child of this demo, started from the main thread, which ends with it even if the demo is killed outright
+    (:mod:`onboard.app.parent_watch`: a SIGKILLed demo left its daemon and simulator holding their ports)."""
+    from onboard.app.parent_watch import PARENT_PID_ENV
+
     f = open(log_path, "wb")
     try:
+        env = {**env, PARENT_PID_ENV: str(os.getpid())}
         return subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
     finally:
         f.close()  # the child has its own descriptor

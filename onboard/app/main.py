@@ -184,6 +184,9 @@ def _run(args: argparse.Namespace) -> int:
     stop = _StopSignals()
     previous = {sig: signal.signal(sig, stop) for sig in stop.SIGNALS}
     try:
+        from onboard.app.parent_watch import end_with_parent
+
+        end_with_parent()  # started by a launcher that asked for it (groundsim demo): ends when that process does
         return _serve(args, stop)
     finally:
         for sig, handler in previous.items():
