@@ -52,6 +52,7 @@ cannot open (one line on stderr).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
@@ -559,12 +560,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--seconds", type=_positive, default=0.0, help="stop after S seconds (default 0: until a signal)")
     p.add_argument("--max-age-s", type=_above_zero, default=2.0, help="refuse frames older or newer than this, > 0 (2)")
-    p.add_argument("--status-interval-s", type=_positive, default=1.0, help="irtrack/fleet/status period (1)")
-    p.add_argument("--silent-after-s", type=_positive, default=1.0, help="a vehicle unheard this long is silent (1)")
+    p.add_argument(
+        "--status-interval-s", type=_positive, default=1.0, help="irtrack/fleet/status period (1; 0: the last only)"
+    )
+    p.add_argument(
+        "--silent-after-s", type=_above_zero, default=1.0, help="a vehicle unheard this long is silent, > 0 (1)"
+    )
     p.add_argument(
         "--clock-tolerance-ms", type=_positive, default=10.0, help="name a vehicle whose UTC is this far off (10)"
     )
-    p.add_argument("--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often")
+    p.add_argument(
+        "--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often (10)"
+    )
     p.add_argument("--attitude-bias-deg", type=_positive, default=0.1, help="attitude bias prior, 1 sigma (0.1)")
     p.add_argument("--camera-white-m", type=_above_zero, default=0.02, help="white camera-position noise, > 0 (0.02)")
     p.add_argument("--camera-offset-m", type=_positive, default=0.0, help="camera-position offset prior (0: none)")
@@ -595,6 +602,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:  # before the loop (imports, the estimators' warm-up): nothing was fused yet
+        print("interrupted while starting: nothing was fused", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _main(argv: Sequence[str] | None) -> int:
     args = build_parser().parse_args(argv)
     setup_logging(args.log_level, "text")  # a service beside the daemons: their log lines, one parser for both
     noise = noise_models(args)
@@ -613,6 +628,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     stop = threading.Event()
     session = None
+    status_pub = None
     try:
         settings = zenoh_config(args)
         session = open_session(settings)
@@ -650,7 +666,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
-    except KeyboardInterrupt:
+    except KeyboardInterrupt:  # the last status and the counts, as on SIGTERM, then 130
+        if status_pub is not None:
+            with contextlib.suppress(Exception):  # a session already closing: the log line still says it
+                status_pub.put(json.dumps(fusion.status(), separators=(",", ":")))
+            log.info("stopped: %s", json.dumps(fusion.status()))
         return EXIT_INTERRUPTED
     finally:
         if session is not None:

@@ -200,6 +200,7 @@ def test_its_own_output_and_other_vehicles_are_not_input():
         # zero refuses every line of sight: a window of no age or no clock uncertainty at all
         (["--max-age-s", "0"], "--max-age-s: expected a number > 0, got '0'"),
         (["--max-time-sigma-ms", "0"], "--max-time-sigma-ms: expected a number > 0, got '0'"),
+        (["--silent-after-s", "0"], "--silent-after-s: expected a number > 0, got '0'"),  # every vehicle silent
     ],
 )
 def test_bad_options_exit_2_on_one_line(argv, words, capsys):
@@ -736,3 +737,15 @@ def test_a_late_message_of_a_vehicles_previous_id_does_not_evict_its_current_obj
     (tid,) = fusion.tracker.targets
     assert sorted(fusion.tracker.members(tid)) == [("uav1", 2), ("uav2", 7)]
     assert fusion.counter["object_left"] == 1 and fusion.counter["ray_of_ended_object"] == 1
+
+
+def test_ctrl_c_while_starting_is_one_line_and_130(monkeypatch, capsys):
+    """Ctrl-C in the first second (imports, the estimators' warm-up) printed a traceback."""
+    import onboard.app.fuse as fuse
+
+    def interrupted(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(fuse, "warm_up", interrupted)
+    assert fuse.main(["--seconds", "1"]) == 130
+    assert capsys.readouterr().err == "interrupted while starting: nothing was fused\n"
