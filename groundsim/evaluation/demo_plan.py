@@ -143,6 +143,13 @@ def plan_demo(
     sc, sc_path, duration = _demo_scenario(scenario, duration_s)
     if gnss_dropout is not None:
         gnss_dropout.check_within(duration)
+    if onboard_config == DEFAULT_DEMO_ONBOARD_CONFIG and not Path(onboard_config).is_file():
+        # run from another folder: the shipped file of the installed tree, as eval and campaign take it, not the
+        # built-in defaults without a word
+        from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
+
+        if DEFAULT_ONBOARD_CONFIG.is_file():
+            onboard_config = str(DEFAULT_ONBOARD_CONFIG)
     if onboard_config is not None and Path(onboard_config).is_file():
         base = load_config(onboard_config, environ={})
         config_source = str(onboard_config)

@@ -444,3 +444,14 @@ def test_an_earlier_demos_results_go_before_a_new_demo_starts(tmp_path, caplog):
     left = sorted(p.name for p in tmp_path.iterdir())
     assert left == ["first", "not_a_demo", "notes.txt", "onboard.yaml"], left
     assert any("held an earlier demo's results; removed: report.json" in r.getMessage() for r in caplog.records)
+
+
+def test_the_default_onboard_config_is_the_shipped_file_from_any_folder(tmp_path, monkeypatch):
+    """Run from another folder, the default --onboard-config (config/onboard.yaml) silently became the built-in
+    defaults; it is the installed tree's file, as eval's and campaign's are."""
+    from groundsim.evaluation.demo_plan import DEFAULT_DEMO_ONBOARD_CONFIG
+    from groundsim.evaluation.eval import DEFAULT_ONBOARD_CONFIG
+
+    monkeypatch.chdir(tmp_path)
+    plan = plan_demo("P1", 4.0, 0, tmp_path / "d", DEFAULT_DEMO_ONBOARD_CONFIG)
+    assert plan.onboard_config_source == str(DEFAULT_ONBOARD_CONFIG)
