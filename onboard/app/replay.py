@@ -100,6 +100,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
+PROGRESS_EVERY_S = 5.0  # a progress line on stderr this often
 #: ``--compare`` found a difference; distinct from 1, which an unexpected error (a traceback) also gives
 EXIT_DIFFERENT = 3
 #: a replayed 3-D position is "within" the recorded one when their difference is at most this many sigmas of
@@ -775,6 +776,24 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 @dataclass
+class _ProgressLine:
+    """A line on stderr every ``PROGRESS_EVERY_S`` while the replay runs (an hour's flight replays for minutes):
+    tracks made of the frames taken, and the rate."""
+
+    def __init__(self, total: int) -> None:
+        self.total, self.done = total, 0
+        self.t0 = self.last = time.monotonic()
+
+    def __call__(self, _track: dict) -> None:
+        self.done += 1
+        now = time.monotonic()
+        if now - self.last >= PROGRESS_EVERY_S:
+            self.last = now
+            share = f" ({100.0 * self.done / self.total:.0f} %)" if self.total else ""
+            rate = self.done / max(now - self.t0, 1e-9)
+            print(f"replay: {self.done}/{self.total} frames{share}, {rate:.0f} frames/s", file=sys.stderr, flush=True)
+
+
 class _Progress:
     """How far a run got, for the line a Ctrl-C prints."""
 
@@ -846,7 +865,7 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
             )
             live.start()
             print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
-        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs)
+        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs, on_track=_ProgressLine(len(rec.inputs)))
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

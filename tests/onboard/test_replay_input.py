@@ -421,3 +421,17 @@ def test_a_recording_of_frame_inputs_without_their_images_is_refused(recording, 
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith(f"{bare}: ") and "none of their images recorded" in err[0]
     assert not out.exists()
+
+
+def test_a_long_replay_says_how_far_it_is_every_few_seconds(monkeypatch, capsys):
+    import onboard.app.replay as replay_module
+
+    clock = iter([100.0, 101.0, 106.0, 107.0, 112.5])
+    monkeypatch.setattr(replay_module.time, "monotonic", lambda: next(clock))
+    line = replay_module._ProgressLine(40)
+    for _ in range(4):
+        line({})
+    assert capsys.readouterr().err.splitlines() == [
+        "replay: 2/40 frames (5 %), 0 frames/s",
+        "replay: 4/40 frames (10 %), 0 frames/s",
+    ]
