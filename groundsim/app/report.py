@@ -207,7 +207,7 @@ def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
     from groundsim.evaluation.report import make_out_dir
-    from onboard.app.replay import config_of, load_recording, no_frames_text, replay
+    from onboard.app.replay import ReplayProgress, config_of, load_recording, no_frames_text, replay
     from onboard.core.errors import InputError
 
     out = make_out_dir(args.out)  # before the replay: a folder that cannot be made fails at once
@@ -235,7 +235,7 @@ def cmd_report(args) -> int:
                     + (f" (the file is cut short: {truth_cut})" if truth_cut else "")
                 )
         config = config_of(rec, args.config)
-        res = replay(rec, config)
+        res = replay(rec, config, on_track=ReplayProgress(len(rec.inputs)))  # a line every few seconds
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)
         poses, frames = flight_inputs(rec)
         coverage = truth_coverage(res.tracks, truth, truth_cut) if args.truth and res.tracks else None

@@ -88,6 +88,7 @@ __all__ = [
     "load_recording",
     "ReplayResult",
     "replay",
+    "ReplayProgress",
     "compare_tracks",
     "compare_within_sigma",
     "compare_objects",
@@ -776,7 +777,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 @dataclass
-class _ProgressLine:
+class ReplayProgress:
     """A line on stderr every ``PROGRESS_EVERY_S`` while the replay runs (an hour's flight replays for minutes):
     tracks made of the frames taken, and the rate."""
 
@@ -865,7 +866,7 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
             )
             live.start()
             print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
-        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs, on_track=_ProgressLine(len(rec.inputs)))
+        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs, on_track=ReplayProgress(len(rec.inputs)))
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

@@ -428,7 +428,7 @@ def test_a_long_replay_says_how_far_it_is_every_few_seconds(monkeypatch, capsys)
 
     clock = iter([100.0, 101.0, 106.0, 107.0, 112.5])
     monkeypatch.setattr(replay_module.time, "monotonic", lambda: next(clock))
-    line = replay_module._ProgressLine(40)
+    line = replay_module.ReplayProgress(40)
     for _ in range(4):
         line({})
     assert capsys.readouterr().err.splitlines() == [
