@@ -474,7 +474,7 @@ def _add_demo(p: argparse.ArgumentParser) -> None:
         p,
         "config/onboard.yaml",
         "the daemon's configuration, with the scenario's camera, mount and origin (default:"
-        " %(default)s, the shipped one; built-in defaults when absent)",
+        " %(default)s, the shipped one, found in the installed tree from any folder)",
     )
     _nav_noise_option(
         p,

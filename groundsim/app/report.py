@@ -235,7 +235,7 @@ def cmd_report(args) -> int:
                     + (f" (the file is cut short: {truth_cut})" if truth_cut else "")
                 )
         config = config_of(rec, args.config)
-        res = replay(rec, config, on_track=ReplayProgress(len(rec.inputs)))  # a line every few seconds
+        res = replay(rec, config, on_input=ReplayProgress(len(rec.inputs)))  # a line every few seconds
         log.info("replayed %d frames -> %d tracks in %.2f s", res.frames_fed, len(res.tracks), res.wall_s)
         poses, frames = flight_inputs(rec)
         coverage = truth_coverage(res.tracks, truth, truth_cut) if args.truth and res.tracks else None

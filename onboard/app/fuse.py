@@ -604,8 +604,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         return _main(argv)
-    except KeyboardInterrupt:  # before the loop (imports, the estimators' warm-up): nothing was fused yet
-        print("interrupted while starting: nothing was fused", file=sys.stderr)
+    except KeyboardInterrupt:  # before the loop (the estimators' warm-up) or while closing the session
+        print("interrupted: no fusion running yet, or its session closing", file=sys.stderr)
         return EXIT_INTERRUPTED
 
 
@@ -667,7 +667,9 @@ def _main(argv: Sequence[str] | None) -> int:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG
     except KeyboardInterrupt:  # the last status and the counts, as on SIGTERM, then 130
-        if status_pub is not None:
+        if status_pub is None:  # the session was still opening
+            print("interrupted while the zenoh session opened: nothing was fused", file=sys.stderr)
+        else:
             with contextlib.suppress(Exception):  # a session already closing: the log line still says it
                 status_pub.put(json.dumps(fusion.status(), separators=(",", ":")))
             log.info("stopped: %s", json.dumps(fusion.status()))

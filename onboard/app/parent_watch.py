@@ -9,13 +9,14 @@ itself, after ``exec`` (a ``preexec_fn`` would run between fork and exec, unsafe
 the parent may already be gone by then: that is checked once, after the request.
 
 Linux sends the signal when the *thread* that forked the child ends: launchers start their children from their
-main thread.  Elsewhere (no ``prctl``) nothing happens, as without the variable.
+main thread.  The variable is for the direct child (or one ``exec`` wrappers leave in its place): the child
+removes it from its own environment, so that a process it starts is not taken for an orphan.  Elsewhere (no
+``prctl``) nothing happens, as without the variable.
 """
 
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import logging
 import os
 import signal
@@ -36,6 +37,8 @@ def end_with_parent(environ: Mapping[str, str] = os.environ) -> bool:
     text = environ.get(PARENT_PID_ENV)
     if not text:
         return False
+    if environ is os.environ:  # for this process alone: a process it starts has another parent
+        os.environ.pop(PARENT_PID_ENV, None)
     try:
         parent = int(text)
     except ValueError:
@@ -56,6 +59,6 @@ def end_with_parent(environ: Mapping[str, str] = os.environ) -> bool:
 
 def _sigterm_on_parent_death() -> None:
     """``prctl(PR_SET_PDEATHSIG, SIGTERM)`` for this process; OSError when refused."""
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    libc = ctypes.CDLL(None, use_errno=True)  # the C library this process already has loaded
     if libc.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
         raise OSError(ctypes.get_errno(), os.strerror(ctypes.get_errno()))

@@ -101,7 +101,7 @@ __all__ = [
 log = logging.getLogger(__name__)
 
 EXIT_OK, EXIT_ERROR, EXIT_CONFIG, EXIT_INTERRUPTED = 0, 1, 2, 130
-PROGRESS_EVERY_S = 5.0  # a progress line on stderr this often
+PROGRESS_EVERY_S = 5.0  # a progress line on stderr this often: a long replay is never silent, a short one is
 #: ``--compare`` found a difference; distinct from 1, which an unexpected error (a traceback) also gives
 EXIT_DIFFERENT = 3
 #: a replayed 3-D position is "within" the recorded one when their difference is at most this many sigmas of
@@ -471,9 +471,12 @@ def _start_imaging_process(rec: Recording, config):
     return proc, recv_conn
 
 
-def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=None, jobs: int = 1) -> ReplayResult:
+def replay(
+    rec: Recording, config, *, rate: str = "max", on_track=None, live=None, jobs: int = 1, on_input=None
+) -> ReplayResult:
     """Feed ``rec``'s pipeline inputs through a new FramePipeline (inline estimator); see the module docstring.
     ``live``: an :class:`onboard.io.live_view.LiveView` shown each frame, its pose and track (never waited for).
+    ``on_input(n)``: called with the number of the recording's frame inputs taken so far, each one (progress).
     ``jobs=2``: the tracker runs ahead in a forked process (the same admission, the same frames, so the same
     updates; each frame's estimate is still made before the next frame's, in this process): the estimator and the
     imaging overlap on two cores, the tracks are the same (falls back to one process where fork is unsafe, and for
@@ -503,6 +506,8 @@ def replay(rec: Recording, config, *, rate: str = "max", on_track=None, live=Non
     interrupted = False
     try:
         for i, inp, frame in _frames_taken(rec):
+            if on_input is not None:
+                on_input(i + 1)
             if frame is None:
                 missing += 1
                 continue
@@ -776,25 +781,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-@dataclass
 class ReplayProgress:
     """A line on stderr every ``PROGRESS_EVERY_S`` while the replay runs (an hour's flight replays for minutes):
-    tracks made of the frames taken, and the rate."""
+    the frames taken so far (refused and missing ones included) of the recording's, and the rate."""
 
     def __init__(self, total: int) -> None:
         self.total, self.done = total, 0
-        self.t0 = self.last = time.monotonic()
+        self.t0_s = self.last_s = time.monotonic()
 
-    def __call__(self, _track: dict) -> None:
-        self.done += 1
-        now = time.monotonic()
-        if now - self.last >= PROGRESS_EVERY_S:
-            self.last = now
-            share = f" ({100.0 * self.done / self.total:.0f} %)" if self.total else ""
-            rate = self.done / max(now - self.t0, 1e-9)
-            print(f"replay: {self.done}/{self.total} frames{share}, {rate:.0f} frames/s", file=sys.stderr, flush=True)
+    def __call__(self, done: int) -> None:
+        self.done = done
+        now_s = time.monotonic()
+        if now_s - self.last_s >= PROGRESS_EVERY_S:
+            self.last_s = now_s
+            share = f" ({100.0 * done / self.total:.0f} %)" if self.total else ""
+            rate = done / max(now_s - self.t0_s, 1e-9)
+            print(f"replay: {done}/{self.total} frames{share}, {rate:.0f} frames/s", file=sys.stderr, flush=True)
 
 
+@dataclass
 class _Progress:
     """How far a run got, for the line a Ctrl-C prints."""
 
@@ -866,7 +871,7 @@ def _run(args: argparse.Namespace, progress: _Progress) -> int:
             )
             live.start()
             print(f"live view: ws://{live.settings.host}:{live.port}", flush=True)
-        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs, on_track=ReplayProgress(len(rec.inputs)))
+        res = replay(rec, config, rate=args.rate, live=live, jobs=args.jobs, on_input=ReplayProgress(len(rec.inputs)))
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

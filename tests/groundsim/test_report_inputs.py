@@ -80,7 +80,7 @@ def cut_truth_flight(monkeypatch, tmp_path):
     monkeypatch.setattr(replay_module, "load_recording", files.__getitem__)
     monkeypatch.setattr(replay_module, "config_of", lambda rec, path: None)
     monkeypatch.setattr(
-        replay_module, "replay", lambda rec, config: SimpleNamespace(tracks=tracks, frames_fed=FRAMES, wall_s=0.0)
+        replay_module, "replay", lambda rec, config, **_: SimpleNamespace(tracks=tracks, frames_fed=FRAMES, wall_s=0.0)
     )
     # the error plot is where a cut truth shows (numpy's warning came from its scale); the trajectory is not drawn
     monkeypatch.setattr(plots, "plot_trajectory", lambda path, run, title: path)

@@ -748,4 +748,4 @@ def test_ctrl_c_while_starting_is_one_line_and_130(monkeypatch, capsys):
 
     monkeypatch.setattr(fuse, "warm_up", interrupted)
     assert fuse.main(["--seconds", "1"]) == 130
-    assert capsys.readouterr().err == "interrupted while starting: nothing was fused\n"
+    assert capsys.readouterr().err == "interrupted: no fusion running yet, or its session closing\n"

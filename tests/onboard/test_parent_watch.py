@@ -17,10 +17,11 @@ from onboard.app.parent_watch import PARENT_PID_ENV, end_with_parent
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="prctl(PR_SET_PDEATHSIG) is Linux's")
 
 EXIT_WAIT_S = 10.0  # a guard against a hang, not a measured property
-# the child: SIGTERM ends it with code 7, so the test tells the parent-death signal from any other end
+# the child: its SIGTERM handler leaves a mark (argv[1]) before it exits, so the test tells the parent-death
+# signal from any other end
 CHILD = (
     "import signal, sys, time\n"
-    "signal.signal(signal.SIGTERM, lambda *a: sys.exit(7))\n"
+    "signal.signal(signal.SIGTERM, lambda *a: (open(sys.argv[1], 'w').write('SIGTERM'), sys.exit(7)))\n"
     "from onboard.app.parent_watch import end_with_parent\n"
     "print(end_with_parent(), flush=True)\n"
     "time.sleep(60)\n"
@@ -29,28 +30,31 @@ CHILD = (
 PARENT = (
     "import os, subprocess, sys, time\n"
     f"env = {{**os.environ, {PARENT_PID_ENV!r}: str(os.getpid())}}\n"
-    "child = subprocess.Popen([sys.executable, '-c', sys.argv[1]], env=env, stdout=subprocess.PIPE, text=True)\n"
+    "child = subprocess.Popen([sys.executable, '-c', sys.argv[1], sys.argv[2]], env=env, stdout=subprocess.PIPE,"
+    " text=True)\n"
     "print(child.pid, child.stdout.readline().strip(), flush=True)\n"
     "time.sleep(60)\n"
 )
 
 
-def _wait_gone(pid: int) -> int | None:
-    """The exit status of ``pid`` (not our child: read from /proc until it is gone), None while it runs."""
+def _gone(pid: int) -> bool:
+    """Whether ``pid`` (not our child: watched in /proc) ends within ``EXIT_WAIT_S``."""
     t_end = time.monotonic() + EXIT_WAIT_S
     while time.monotonic() < t_end:
         try:
             with open(f"/proc/{pid}/stat") as f:
                 if f.read().split()[2] == "Z":  # a zombie: ended, its parent gone before reaping
-                    return 0
+                    return True
         except FileNotFoundError:
-            return 0
+            return True
         time.sleep(0.05)
-    return None
+    return False
 
 
-def test_a_child_ends_when_its_parent_is_killed_outright():
-    parent = subprocess.Popen([sys.executable, "-c", PARENT, CHILD], stdout=subprocess.PIPE, text=True)
+@pytest.mark.subprocess
+def test_a_child_ends_when_its_parent_is_killed_outright(tmp_path):
+    mark = tmp_path / "sigterm"
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, CHILD, str(mark)], stdout=subprocess.PIPE, text=True)
     child_pid = None
     try:
         child_pid, arranged = parent.stdout.readline().split()
@@ -58,7 +62,8 @@ def test_a_child_ends_when_its_parent_is_killed_outright():
         assert arranged == "True"
         parent.kill()  # SIGKILL: none of the parent's clean-up runs
         parent.wait(EXIT_WAIT_S)
-        assert _wait_gone(child_pid) is not None, "the child outlived its killed parent"
+        assert _gone(child_pid), "the child outlived its killed parent"
+        assert mark.read_text() == "SIGTERM"  # ended by the signal it asked for, through its handler
     finally:
         if parent.poll() is None:
             parent.kill()
@@ -85,3 +90,14 @@ def test_a_parent_gone_before_the_request_stops_the_child_at_once(monkeypatch):
     monkeypatch.setattr(parent_watch, "_sigterm_on_parent_death", lambda: None)  # not on the test's own process
     assert end_with_parent({PARENT_PID_ENV: str(os.getppid() + 10**6)}) is True
     assert sent == [(os.getpid(), signal.SIGTERM)]
+
+
+def test_the_variable_is_for_the_direct_child_alone(monkeypatch):
+    """Removed from the child's own environment: a process the child starts (the daemon's, a simulator's) has
+    another parent and must not take itself for an orphan."""
+    import onboard.app.parent_watch as parent_watch
+
+    monkeypatch.setattr(parent_watch, "_sigterm_on_parent_death", lambda: None)
+    monkeypatch.setenv(PARENT_PID_ENV, str(os.getppid()))
+    assert end_with_parent() is True
+    assert PARENT_PID_ENV not in os.environ

@@ -429,8 +429,8 @@ def test_a_long_replay_says_how_far_it_is_every_few_seconds(monkeypatch, capsys)
     clock = iter([100.0, 101.0, 106.0, 107.0, 112.5])
     monkeypatch.setattr(replay_module.time, "monotonic", lambda: next(clock))
     line = replay_module.ReplayProgress(40)
-    for _ in range(4):
-        line({})
+    for n in range(1, 5):
+        line(n)
     assert capsys.readouterr().err.splitlines() == [
         "replay: 2/40 frames (5 %), 0 frames/s",
         "replay: 4/40 frames (10 %), 0 frames/s",
