@@ -426,7 +426,13 @@ def test_a_misspelt_section_is_an_error_too(name, hint):
 
 
 def test_the_tools_own_variables_are_not_taken_for_misspellings():
-    tools = ("IRTRACK_EXTRAS", "IRTRACK_FUZZ_EXAMPLES", "IRTRACK_NUMBA_CACHE_SEED", "IRTRACK_WRITE_GOLDEN")
+    tools = (
+        "IRTRACK_EXTRAS",
+        "IRTRACK_FUZZ_EXAMPLES",
+        "IRTRACK_NUMBA_CACHE_SEED",
+        "IRTRACK_PARENT_PID",
+        "IRTRACK_WRITE_GOLDEN",
+    )
     assert env_overrides(dict.fromkeys(tools, "1")) == {}
 
 
