@@ -547,6 +547,9 @@ class OnboardService:
                 next_status = max(next_status + cfg.output.status_interval_s, now)
             self._idle(turn_s, period, min(next_watch, next_status))
             turn_s = now = self._clock()
+        # the counts as the run ends, on the status key: whoever watches it (a ground station, a demo stopping the
+        # daemon) sees how the run ended, not the last periodic status up to an interval before it
+        self._publish_status(self._clock(), last_cpu)
 
     def _idle(self, turn_s: float, period_s: float, next_own_s: float) -> None:
         """Sleep until MAVLink input arrives (the autopilot link, the camera component's endpoints) or the next

@@ -965,3 +965,20 @@ def test_the_status_says_how_old_its_latest_track_is():
     clock.t_s += 4.0
     track = svc.status(clock())["track"]
     assert track["state"] == "tracking" and track["age_s"] == pytest.approx(4.0)
+
+
+def test_the_daemon_publishes_its_counts_once_more_as_it_stops():
+    """Whoever watches the status key (a ground station, a demo stopping the daemon) gets the counts the run ended
+    with, not the last periodic status up to an interval before: here the clock never reaches the first one."""
+    svc, clock = _quiet_service()
+    tap = _TapRecorder()
+    svc.taps.append(tap)
+    t = threading.Thread(target=svc.run)
+    t.start()
+    time.sleep(0.2)  # a few turns of the loop, the status interval never reached (the clock stands still)
+    assert tap.status_payloads == []
+    svc._stop.set()
+    t.join(10)
+    assert not t.is_alive()
+    (last,) = tap.status_payloads
+    assert json.loads(last)["schema"] == "irtrack.status/1"
