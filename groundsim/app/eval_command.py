@@ -19,8 +19,8 @@ from groundsim.evaluation.eval import (
     run_eval,
 )
 from groundsim.evaluation.mot import write_mot
+from groundsim.evaluation.out_dir import make_out_dir
 from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
-from groundsim.evaluation.report import make_out_dir
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors

@@ -206,7 +206,7 @@ def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> T
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
     from groundsim.evaluation.flight_report import write_flight_report
-    from groundsim.evaluation.report import make_out_dir
+    from groundsim.evaluation.out_dir import make_out_dir
     from onboard.app.replay import ReplayProgress, config_of, load_recording, no_frames_text, replay
     from onboard.core.errors import InputError
 

@@ -92,6 +92,7 @@ from groundsim.evaluation.campaign_spec import (
     derive_scenario,
     load_spec,
 )
+from groundsim.evaluation.out_dir import make_out_dir
 from groundsim.evaluation.parallel import (
     limit_blas_threads,
     pool_workers,
@@ -99,7 +100,6 @@ from groundsim.evaluation.parallel import (
     quiet_run_logs,
     start_pool,
 )
-from groundsim.evaluation.report import make_out_dir
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError

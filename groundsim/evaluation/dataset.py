@@ -83,6 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
+from groundsim.evaluation.out_dir import make_out_dir
 from groundsim.evaluation.parallel import (
     JobsInterrupted,
     pool_workers,
@@ -91,7 +92,6 @@ from groundsim.evaluation.parallel import (
     report_progress,
     run_jobs,
 )
-from groundsim.evaluation.report import make_out_dir
 from groundsim.io.stop_signals import print_interrupted
 from onboard.core.errors import ConfigError, InputError
 

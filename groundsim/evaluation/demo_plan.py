@@ -12,7 +12,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from groundsim.evaluation.report import make_out_dir
+from groundsim.evaluation.out_dir import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.world.nav_errors import GnssDropout, InjectedErrors, resolve_nav_noise
 from groundsim.world.scenario import DEFAULT_NAV_NOISE

@@ -26,13 +26,13 @@ from __future__ import annotations
 import json
 import logging
 import math
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from onboard.core.errors import ConfigError, InputError
+from groundsim.evaluation.out_dir import make_out_dir
+from onboard.core.errors import InputError
 
 __all__ = [
     "EVO_MAX_DIFF_S",
@@ -51,7 +51,6 @@ __all__ = [
     "plot_frame",
     "plot_performance",
     "json_ready",
-    "make_out_dir",
 ]
 
 log = logging.getLogger(__name__)
@@ -67,26 +66,6 @@ BASELINE_FAIL_PCT = 5.0  # a perfect-centroid baseline worse than this (err / ra
 PNG_DPI = 110
 EVAL_PLOTS = ("trajectory", "error", "frame")  # <label>_<plot>.png of write_eval_report
 EVAL_TUM_FILES = ("truth.tum", "estimate.tum", "estimate_perfect.tum")  # in <label>/seed<N>/
-
-
-def make_out_dir(path, option: str = "--out") -> Path:
-    """``option``'s directory, created (with its parents) if missing; a ConfigError naming ``option`` when it cannot
-    be."""
-    out = Path(path)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{option} {out}: a file, not a directory; give a directory (made if missing)")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise ConfigError(f"{option} {out}: cannot create the directory: {exc.strerror or exc}") from None
-    # a directory that exists but cannot be written (its mode, a read-only mount) is said here, in one line,
-    # rather than as a traceback from whichever file the command writes first
-    try:
-        with tempfile.TemporaryFile(dir=out):
-            pass
-    except OSError as exc:
-        raise ConfigError(f"{option} {out}: cannot write in the directory: {exc.strerror or exc}") from None
-    return out
 
 
 # --------------------------------------------------------------------------- TUM

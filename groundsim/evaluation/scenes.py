@@ -266,7 +266,7 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
     """``<out_dir>/<scenario>.png``: :func:`gallery_image` of the frame nearest ``t_s`` as the scenario outputs it."""
     import cv2
 
-    from groundsim.evaluation.report import make_out_dir
+    from groundsim.evaluation.out_dir import make_out_dir
     from groundsim.world.sim import SimCore
 
     core = SimCore(scenario, run_seed, render=True, flight_chunk_s=1.0)
@@ -288,8 +288,8 @@ def write_gallery(scenario, out_dir, run_seed: int = 0, t_s: float = GALLERY_FRA
 
 def cmd_scenes(args) -> int:
     """The ``scenes`` command: one line of figures per scenario; pictures with ``--gallery``."""
+    from groundsim.evaluation.out_dir import make_out_dir
     from groundsim.evaluation.parallel import quiet_run_logs
-    from groundsim.evaluation.report import make_out_dir
     from groundsim.io.stop_signals import print_interrupted
     from groundsim.world.scenario import load_scenario, resolve_scenario_path
 

@@ -147,7 +147,7 @@ def test_report_texts_state_the_default_of_unobservable_positions_truly():
 
 
 def test_an_out_directory_that_is_a_file_is_called_one(tmp_path):
-    from groundsim.evaluation.report import make_out_dir
+    from groundsim.evaluation.out_dir import make_out_dir
     from onboard.core.errors import ConfigError
 
     afile = tmp_path / "results.txt"
