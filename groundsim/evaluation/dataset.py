@@ -702,14 +702,6 @@ class DatasetInterrupted(KeyboardInterrupt):
         self.planned = planned
 
 
-def _nav_case_name(scenario, options: DatasetOptions) -> str:
-    """The navigation case a sequence of ``scenario`` is named after (as :class:`SimCore` resolves it)."""
-    from groundsim.world.nav_errors import resolve_nav_noise
-
-    nav = scenario.nav_noise if options.nav_noise is None else options.nav_noise
-    return resolve_nav_noise(nav).name if isinstance(nav, str) else nav.name
-
-
 def _replaceable(out: Path, names: set[str]) -> None:
     """Refuse an ``out`` whose manifest lists sequences this run would not make again: rewritten, the manifest
     would no longer list them while their files stayed (a dataset that says less than it holds).  The
@@ -761,7 +753,9 @@ def export_dataset(
         raise ConfigError(f"--workers: expected an integer >= 1, got {workers!r}")
     out = make_out_dir(out_dir)
     jobs = [(sc, seed, out, options) for sc in scenarios for seed in seeds]
-    _replaceable(out, {sequence_name(sc.name, _nav_case_name(sc, options), seed) for sc, seed, *_ in jobs})
+    from groundsim.world.nav_errors import run_nav_case
+
+    _replaceable(out, {sequence_name(sc.name, run_nav_case(sc, options.nav_noise).name, seed) for sc, seed, *_ in jobs})
     total = sum(frame_count(options.duration_s or sc.duration_s, sc.frame_rate_hz) for sc, *_ in jobs)
     bar = None
     if progress:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from groundsim.evaluation.out_dir import make_out_dir
 from groundsim.io.ports import free_tcp_port, free_udp_port
-from groundsim.world.nav_errors import GnssDropout, InjectedErrors, resolve_nav_noise
+from groundsim.world.nav_errors import GnssDropout, InjectedErrors, run_nav_case
 from groundsim.world.scenario import DEFAULT_NAV_NOISE
 from onboard.core.checks import is_positive_number
 from onboard.core.errors import ConfigError
@@ -158,7 +158,7 @@ def plan_demo(
     else:
         base = OnboardConfig()
         config_source = "(defaults)"
-    nav = resolve_nav_noise(sc.nav_noise if nav_noise is None else nav_noise).name
+    nav = run_nav_case(sc, nav_noise).name
     cfg = onboard_config_for(sc, base)
     if mount_as_configured:
         cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, mount=base.camera.mount))

@@ -65,6 +65,7 @@ __all__ = [
     "CameraClockError",
     "parse_camera_time_offset",
     "resolve_nav_noise",
+    "run_nav_case",
     "InjectedErrors",
     "reported_state",
 ]
@@ -269,6 +270,14 @@ def resolve_nav_noise(name: str, path=None, option: str = "--nav-noise"):
 def _option_number(x: float) -> str:
     """A float as an option's text that reads back to the same float (``8.0`` -> ``"8"``)."""
     return repr(float(x)).removesuffix(".0")
+
+
+def run_nav_case(scenario, nav_noise=None):
+    """The navigation-error case a run of ``scenario`` flies: ``nav_noise`` (a case, or its name in
+    ``config/noise_cases.yaml``), or the scenario's own when None.  The one rule for the simulator, the dataset's
+    sequence names and the demo's plan."""
+    nav = scenario.nav_noise if nav_noise is None else nav_noise
+    return resolve_nav_noise(nav) if isinstance(nav, str) else nav
 
 
 @dataclass(frozen=True)

@@ -507,7 +507,7 @@ class SimCore:
         nav_noise=None,
         start_time_unix_us: int | None = None,
     ) -> None:
-        from groundsim.world.nav_errors import NAV_ERROR_STREAM, NavErrorModel, resolve_nav_noise
+        from groundsim.world.nav_errors import NAV_ERROR_STREAM, NavErrorModel, run_nav_case
 
         if not isinstance(scenario, Scenario):
             raise ConfigError(f"SimCore: expected a Scenario, got {type(scenario).__name__}")
@@ -542,8 +542,7 @@ class SimCore:
         chunk_ticks = chunk_frames * self.ticks_per_frame
         self.flight = PairFlight(scenario, self.run_seed, self.times_s, chunk_ticks)
         self.gimballed = self.flight.gimballed
-        nav_noise = scenario.nav_noise if nav_noise is None else nav_noise
-        case = resolve_nav_noise(nav_noise) if isinstance(nav_noise, str) else nav_noise
+        case = run_nav_case(scenario, nav_noise)
         self.nav_noise = case
         self.nav_errors = NavErrorModel(case, scenario.rng(NAV_ERROR_STREAM, self.run_seed), self.times_s)
         self._renderer: IrRenderer | None = None
