@@ -134,13 +134,8 @@ def cmd_eval(args) -> int:
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]
         refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios])
-        for sc in scenarios:  # eval flies one observer's pipeline: a fleet's other observers would be left out
-            if sc.is_fleet:
-                raise ConfigError(
-                    f"--scenario: {sc.name} is a fleet scenario (its observers list: "
-                    f"{', '.join(o.name for o in sc.observers)}); eval runs one pipeline for one observer: "
-                    "python -m bench.fleet measures a fleet"
-                )
+        for sc in scenarios:
+            sc.refuse_fleet("eval runs one pipeline for one observer: python -m bench.fleet measures a fleet")
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         workers = pool_workers(args.workers)

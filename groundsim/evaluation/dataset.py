@@ -741,12 +741,8 @@ def export_dataset(
     seeds = [int(s) for s in seeds]
     if not scenarios:
         raise ConfigError("--scenario: expected at least one scenario")
-    for sc in scenarios:  # a sequence is one observer's camera: a fleet's others would be left out without a word
-        if sc.is_fleet:
-            raise ConfigError(
-                f"--scenario: {sc.name} is a fleet scenario (its observers list: "
-                f"{', '.join(o.name for o in sc.observers)}); a dataset sequence is one observer's camera"
-            )
+    for sc in scenarios:
+        sc.refuse_fleet("a dataset sequence is one observer's camera")
     if not seeds or min(seeds) < 0:
         raise ConfigError(f"--seeds: expected at least one seed >= 0, got {seeds}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:

@@ -334,6 +334,15 @@ class Scenario:
         """True for a scenario with an ``observers`` list (even of one)."""
         return bool(self.observers)
 
+    def refuse_fleet(self, why: str) -> None:
+        """A ConfigError naming ``--scenario`` when this is a fleet scenario, which a command that flies one
+        observer would fly as its first alone, without a word; ``why``: what needs one observer, and where to go."""
+        if self.is_fleet:
+            raise ConfigError(
+                f"--scenario: {self.name} is a fleet scenario (its observers list: "
+                f"{', '.join(o.name for o in self.observers)}); {why}"
+            )
+
     def observer_views(self) -> tuple[Scenario, ...]:
         """One single-observer scenario per observer of a fleet, in file order (``(self,)`` otherwise): the
         shared world and targets, the observer's path, camera, navigation errors, name and boot clock."""
