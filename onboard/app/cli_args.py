@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import re
 import signal
 from collections.abc import Callable, Iterable, Iterator
 from typing import Any, NoReturn
@@ -27,6 +28,7 @@ __all__ = [
     "nonnegative_float",
     "above_zero",
     "sigterm_as_interrupt",
+    "help_summary",
 ]
 
 EXIT_USAGE = 2  # argparse's own exit code for a usage mistake
@@ -169,3 +171,9 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
     finally:  # None: a handler set outside Python, which SIG_DFL stands for best
         signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
+def help_summary(docstring: str | None) -> str:
+    """A module docstring's first paragraph as ``--help`` shows it: reST markup (``code``, :mod:`name`) dropped."""
+    first = (docstring or "").split("\n\n")[0]
+    return re.sub(r":\w+:`([^`]*)`", r"\1", first).replace("``", "")

@@ -62,7 +62,6 @@ import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
 import os  # noqa: E402
-import re  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 from collections.abc import Iterator, Sequence  # noqa: E402
@@ -75,6 +74,7 @@ from onboard.app.cli_args import (  # noqa: E402
     add_live_view_option,
     add_set_option,
     config_overrides,
+    help_summary,
     sigterm_as_interrupt,
 )
 from onboard.app.output_files import same_file_clash  # noqa: E402
@@ -741,7 +741,7 @@ def _print_compare(diffs, matched: int, unmatched: int, within=None, worker=None
 def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(
         prog="python -m onboard.replay",
-        description=re.sub(r":\w+:`([^`]*)`", r"\1", __doc__.split("\n\n")[0]).replace("``", ""),
+        description=help_summary(__doc__),
         epilog=f"Exit 0 done (with --compare: no difference); {EXIT_CONFIG} an unreadable or damaged recording, an "
         f"output that cannot be written (checked before the replay) or a bad option; {EXIT_DIFFERENT} --compare found "
         f"a difference; {EXIT_INTERRUPTED} Ctrl-C or SIGTERM.",

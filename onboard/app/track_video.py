@@ -93,7 +93,7 @@ from typing import TYPE_CHECKING  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from onboard.app.cli_args import OneLineParser, sigterm_as_interrupt  # noqa: E402
+from onboard.app.cli_args import OneLineParser, help_summary, sigterm_as_interrupt  # noqa: E402
 from onboard.app.output_files import create_beside, not_a_file, same_file_clash  # noqa: E402
 from onboard.core.errors import InputError  # noqa: E402
 
@@ -613,7 +613,7 @@ def _input_clash(out_path: str, src: FrameSource) -> str | None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="python -m onboard.track_video", description=__doc__.split("\n\n")[0].replace("``", ""))
+    p = OneLineParser(prog="python -m onboard.track_video", description=help_summary(__doc__))
     p.add_argument("input", metavar="INPUT", help="a video file, a folder of frames, or a MOT / Anti-UAV sequence")
     p.add_argument("--out", metavar="tracks.txt", required=True, help="the tracks to write (MOT lines, or --format's)")
     p.add_argument("--encoding", choices=ENCODINGS, default="auto", help="pixel depth (default: %(default)s)")
