@@ -17,9 +17,10 @@ session connects to ``tcp/127.0.0.1:7447``, where the daemon of ``config/onboard
 multicast scouting off.  The watcher may start before the daemon: zenoh keeps retrying the connection.
 
 It stops after ``--seconds`` (0: until Ctrl-C), closes its session (an open zenoh session keeps a Python
-process alive) and prints what it received.  Exit codes: 0 after ``--seconds``; 130 on Ctrl-C, with the
-one line ``interrupted: N tracks received, ...``; 2 for invalid options or a session that cannot open (one
-line on stderr).
+process alive) and prints what it received.  Exit codes: 0 after ``--seconds`` with at least one track; 1
+after ``--seconds`` with none (so that a script checking the flow, ``onboard.watch --seconds 30 && ...``,
+sees a silent daemon as a failure); 130 on Ctrl-C, with the one line ``interrupted: N tracks received,
+...``; 2 for invalid options or a session that cannot open (one line on stderr).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ __all__ = [
     "DEFAULT_SECONDS",
     "NO_TRACK_HINT_S",
     "EXIT_OK",
+    "EXIT_NO_TRACK",
     "EXIT_CONFIG",
     "EXIT_INTERRUPTED",
     "WatchCounts",
@@ -64,6 +66,7 @@ DEFAULT_CONNECT = "tcp/127.0.0.1:7447"  # the zenoh listener of config/onboard_s
 DEFAULT_SECONDS = 30.0
 NO_TRACK_HINT_S = 10.0  # one track per frame once the simulator runs; its start-up takes seconds
 EXIT_OK = 0
+EXIT_NO_TRACK = 1
 EXIT_CONFIG = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
 POLL_S = 0.1  # longest wait on the queue: the deadline, Ctrl-C and the no-track hint are checked this often
@@ -372,7 +375,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         session.close()
         session = None
         print(summary_line(counts, time.monotonic() - start), file=info, flush=True)
-        return EXIT_OK
+        return EXIT_OK if counts.tracks else EXIT_NO_TRACK
     except IrtrackError as exc:
         print(str(exc), file=sys.stderr)
         return EXIT_CONFIG

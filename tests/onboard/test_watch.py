@@ -19,6 +19,7 @@ from onboard.app.watch import (
     DEFAULT_CONNECT,
     EXIT_CONFIG,
     EXIT_INTERRUPTED,
+    EXIT_NO_TRACK,
     EXIT_OK,
     WatchCounts,
     build_parser,
@@ -375,3 +376,19 @@ def test_a_summary_of_nothing_says_what_to_check():
     assert summary_line(WatchCounts(), 2.0).endswith(
         "; nothing arrived: is the daemon running, and zenoh connected to it?"
     )
+
+
+@pytest.mark.integration
+def test_nothing_received_exits_1_so_a_script_sees_a_silent_daemon(capsys):
+    """A watcher whose ``--seconds`` pass without a track (no daemon at the endpoint) exits 1, not 0: ``onboard.watch
+    --seconds 30 && ...`` must not pass a flow that published nothing."""
+    import socket
+
+    with socket.socket() as s:  # a loopback port nobody listens on: zenoh retries it quietly
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    code = main(["--seconds", "0.5", "--zenoh-connect", f"tcp/127.0.0.1:{port}"])
+    out = capsys.readouterr().out
+    assert code == EXIT_NO_TRACK, out
+    assert out.splitlines()[-1].startswith("summary: 0 tracks in ")
+    assert out.splitlines()[-1].endswith("nothing arrived: is the daemon running, and zenoh connected to it?")
