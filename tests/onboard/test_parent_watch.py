@@ -101,3 +101,78 @@ def test_the_variable_is_for_the_direct_child_alone(monkeypatch):
     monkeypatch.setenv(PARENT_PID_ENV, str(os.getppid()))
     assert end_with_parent() is True
     assert PARENT_PID_ENV not in os.environ
+
+
+# the launcher of the real commands below: starts argv[2:] with its own PID in the environment and the child's
+# output in the file argv[1] (a pipe would die with the launcher), says the child's PID, then waits to be killed
+LAUNCHER = (
+    "import os, subprocess, sys, time\n"
+    f"env = {{**os.environ, {PARENT_PID_ENV!r}: str(os.getpid())}}\n"
+    "log = open(sys.argv[1], 'w')\n"
+    "child = subprocess.Popen(sys.argv[2:], env=env, stdout=log, stderr=subprocess.STDOUT)\n"
+    "print(child.pid, flush=True)\n"
+    "time.sleep(120)\n"
+)
+START_TIMEOUT_S = 60.0  # imports and the first frames on a busy 2-core machine
+
+
+def _ends_with_its_killed_launcher(tmp_path, argv: list[str], ready: str) -> str:
+    """Start ``argv`` from a launcher that asks for it to end with it, wait for ``ready`` in its output, SIGKILL the
+    launcher and assert the command ends by itself; returns its output."""
+    out = tmp_path / "child.log"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("IRTRACK_")}
+    env.update(OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", PYTHONUNBUFFERED="1")
+    launcher = subprocess.Popen(
+        [sys.executable, "-c", LAUNCHER, str(out), *argv], stdout=subprocess.PIPE, text=True, env=env
+    )
+    child_pid = None
+    try:
+        child_pid = int(launcher.stdout.readline())
+        t_end = time.monotonic() + START_TIMEOUT_S
+        while ready not in out.read_text(errors="replace"):
+            assert time.monotonic() < t_end, f"never ready ({ready!r}):\n{out.read_text(errors='replace')[-3000:]}"
+            assert not _gone_now(child_pid), f"ended before the launcher:\n{out.read_text(errors='replace')[-3000:]}"
+            time.sleep(0.1)
+        launcher.kill()
+        launcher.wait(EXIT_WAIT_S)
+        assert _gone(child_pid), "outlived its killed launcher:\n" + out.read_text(errors="replace")[-3000:]
+        return out.read_text(errors="replace")
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+        if child_pid is not None:
+            try:
+                os.kill(child_pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
+def _gone_now(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split()[2] == "Z"
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.integration
+def test_the_daemon_ends_cleanly_when_its_launcher_is_killed(tmp_path):
+    """The daemon asks for it (a demo killed outright left it running, holding its ports): a clean stop by SIGTERM."""
+    from groundsim.io.ports import free_tcp_port, free_udp_port
+
+    argv = [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}"]
+    argv += ["--zenoh-connect", f"tcp/127.0.0.1:{free_tcp_port()}"]
+    log = _ends_with_its_killed_launcher(tmp_path, argv, "onboard service started")
+    assert "signal SIGTERM: shutting down" in log, log[-3000:]
+    assert "Traceback" not in log, log[-3000:]
+
+
+@pytest.mark.integration
+def test_the_simulator_ends_cleanly_when_its_launcher_is_killed(tmp_path):
+    from groundsim.io.ports import free_tcp_port
+
+    argv = [sys.executable, "-m", "groundsim", "run", "--scenario", "p1", "--duration", "30", "--rate", "realtime"]
+    argv += ["--no-render", "--mavlink", "udpout:127.0.0.1:9", "--zenoh-listen", f"tcp/127.0.0.1:{free_tcp_port()}"]
+    log = _ends_with_its_killed_launcher(tmp_path, argv, "/900, sim ")
+    assert "Traceback" not in log, log[-3000:]
