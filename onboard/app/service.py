@@ -259,7 +259,10 @@ class OnboardService:
         if self.camera is not None:
             from onboard.io.gcs_link import GcsLink
 
-            self.gcs = GcsLink(cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter)
+            # the camera signs and checks as the autopilot link does: unsigned, a click could move the tracked target
+            self.gcs = GcsLink(
+                cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter, signing_key=cfg.mavlink.signing_key()
+            )
         hint = zenoh_unreachable_hint(cfg)
         if hint is not None:
             log.warning("%s", hint)

@@ -19,6 +19,10 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   name (:func:`onboard.io.mavlink_wire.message_from_fields`): to the requester's endpoint and address
   when ``reply_to`` is set and known, else to every endpoint.  Send errors are counted
   (``gcs_tx_error``), never raised.
+* ``signing_key`` (the autopilot link's, ``mavlink.signing_key_file``): everything sent is signed and only
+  verified packets are taken, on every endpoint; refusals are counted ``gcs_unsigned``, ``gcs_v1_refused``,
+  ``gcs_signature_bad|replay|stale`` (:func:`onboard.io.mavlink_transport.signature_refusal`).  A refused
+  packet makes no ``udpin`` peer.
 
 ``udpin`` (anyone may send to the port, so who gets our output is decided here, not by pymavlink's
 ``mavudp``, which answers every address a datagram ever came from):
@@ -57,7 +61,13 @@ from pymavlink.dialects.v20 import common as mavlink2
 
 from onboard.core.errors import ConfigError, IrtrackError
 from onboard.io.camera_protocol import CameraCommand, Outgoing
-from onboard.io.mavlink_transport import MAX_DATAGRAM_PARSE_BYTES, UdpTransport, new_parser
+from onboard.io.mavlink_transport import (
+    MAX_DATAGRAM_PARSE_BYTES,
+    UdpTransport,
+    new_parser,
+    new_signing,
+    signature_refusal,
+)
 from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
 __all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]
@@ -86,13 +96,14 @@ class _UdpInEndpoint:
         count: Callable[..., None],
         peer_timeout_s: float,
         max_peers: int,
+        signing: mavlink2.MAVLinkSigning,
     ) -> None:
         _, host, port = device.split(":")
         self.device = device
         self._udp = UdpTransport("udpin", host, int(port), ())
         self.fd = self._udp.fileno()
         self._count = count
-        self._signing = mavlink2.MAVLinkSigning()  # no key: the camera endpoints are unsigned
+        self._signing = signing
         self.mav = new_parser(self._signing, self, 1, component_id)
         self.source_system = 1
         self.peer_timeout_s = peer_timeout_s
@@ -102,10 +113,10 @@ class _UdpInEndpoint:
         self._full_warned = False
         self._dest: Sequence[Address] = ()
 
-    def receive(self, now_s: float, max_datagrams: int) -> list[tuple[Any, Address]]:
-        """Every message parsed from up to ``max_datagrams`` waiting datagrams, with its source address
-        (BAD_DATA included, for the caller to count); valid ones make or refresh a peer."""
-        out: list[tuple[Any, Address]] = []
+    def receive(self, now_s: float, max_datagrams: int) -> list[tuple[Any, Address, str]]:
+        """Every message parsed from up to ``max_datagrams`` waiting datagrams, with its source address and why a
+        signed one was refused (BAD_DATA included, for the caller to count); valid ones make or refresh a peer."""
+        out: list[tuple[Any, Address, str]] = []
         for _ in range(max_datagrams):
             try:
                 got = self._udp.read()
@@ -127,7 +138,8 @@ class _UdpInEndpoint:
                     mtype = msg.get_type()
                     if mtype != "BAD_DATA" and not mtype.startswith("UNKNOWN_"):
                         self._heard(addr, now_s)
-                    out.append((msg, addr))
+                    out.append((msg, addr, parser.sig_reject))
+                    parser.sig_reject = ""
                     msg = parser.parse_char(b"")
             except Exception as exc:  # noqa: BLE001 - pymavlink raises on some garbage
                 self._count("gcs_rx_error", f"{type(exc).__name__}: {exc} (from {addr})")
@@ -206,7 +218,11 @@ class GcsLink:
         clock: Callable[[], float] = time.monotonic,
         peer_timeout_s: float = PEER_TIMEOUT_S,
         max_peers: int = MAX_PEERS,
+        signing_key: bytes | None = None,
+        signing_link_id: int = 0,
     ) -> None:
+        if signing_key is not None and (not isinstance(signing_key, bytes) or len(signing_key) != 32):
+            raise ConfigError(f"GcsLink.signing_key: expected 32 bytes, got {type(signing_key).__name__}")
         if isinstance(component_id, bool) or not isinstance(component_id, int) or not 1 <= component_id <= 255:
             raise ConfigError(f"gcs.component_id: expected an integer in 1..255, got {component_id!r}")
         if isinstance(peer_timeout_s, bool) or not isinstance(peer_timeout_s, int | float) or not peer_timeout_s > 0:
@@ -221,6 +237,8 @@ class GcsLink:
         self._clock = clock
         self._peer_timeout_s = float(peer_timeout_s)
         self._max_peers = max_peers
+        # one signing state for every endpoint: our packets' signing timestamps stay increasing across them
+        self._signing = new_signing(signing_key, signing_link_id)
         #: requester (system, component) -> (endpoint index, source address on udpin else None)
         self._route: OrderedDict[tuple[int, int], tuple[int, Address | None]] = OrderedDict()
         self.messages_rx = 0
@@ -236,8 +254,13 @@ class GcsLink:
     def _open(self, ep):
         try:
             if ep.kind == "udpin":
-                return _UdpInEndpoint(ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers)
-            return connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
+                return _UdpInEndpoint(
+                    ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers, self._signing
+                )
+            conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
+            # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
+            conn.mav = new_parser(self._signing, conn, 1, self.component_id)
+            return conn
         except Exception as exc:  # noqa: BLE001 - socket and serial errors of every kind
             raise GcsLinkError(
                 f"gcs.endpoints: cannot open {ep.device!r}: {getattr(exc, 'strerror', None) or exc}"
@@ -269,11 +292,12 @@ class GcsLink:
                 out.append([])
         return out
 
-    def _receive(self, conn, now_s: float, max_messages: int) -> list[tuple[Any, Address | None]]:
-        """The messages waiting on one endpoint, each with its source address (udpin) or None."""
+    def _receive(self, conn, now_s: float, max_messages: int) -> list[tuple[Any, Address | None, str]]:
+        """The messages waiting on one endpoint, each with its source address (udpin) or None, and why a signed
+        one was refused."""
         if isinstance(conn, _UdpInEndpoint):
             return list(conn.receive(now_s, max_messages))
-        out: list[tuple[Any, Address | None]] = []
+        out: list[tuple[Any, Address | None, str]] = []
         for _ in range(max_messages):
             try:
                 msg = conn.recv_msg()
@@ -282,7 +306,8 @@ class GcsLink:
                 break
             if msg is None:
                 break
-            out.append((msg, None))
+            out.append((msg, None, conn.mav.sig_reject))
+            conn.mav.sig_reject = ""
         return out
 
     def filenos(self) -> list[int]:
@@ -294,11 +319,15 @@ class GcsLink:
         out: list[CameraCommand] = []
         now_s = self._clock()
         for idx, conn in enumerate(self._conns):
-            for msg, addr in self._receive(conn, now_s, max_messages):
+            for msg, addr, sig_reject in self._receive(conn, now_s, max_messages):
                 self.messages_rx += 1
                 mtype = msg.get_type()
                 if mtype == "BAD_DATA":
-                    self._count("gcs_bad_data", str(getattr(msg, "reason", "")))
+                    refused = signature_refusal(msg, sig_reject, "gcs")
+                    if refused is not None:
+                        self._count(refused, "packet refused: MAVLink 2 signing is on")
+                    else:
+                        self._count("gcs_bad_data", str(getattr(msg, "reason", "")))
                     continue
                 if mtype not in ("COMMAND_LONG", "COMMAND_INT"):
                     continue

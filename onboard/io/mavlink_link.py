@@ -105,6 +105,8 @@ from onboard.io.mavlink_transport import (
     StreamTransport,
     UdpTransport,
     new_parser,
+    new_signing,
+    signature_refusal,
 )
 from onboard.io.mavlink_wire import (
     AttitudeQuaternion,
@@ -306,9 +308,6 @@ class _Inflight:
 
 # --------------------------------------------------------------------------- wire: parser and transports
 
-#: MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC
-_SIGNING_EPOCH_S = 1420070400
-
 
 class _Writer:
     """The ``file`` of the sending parser: whatever it packs goes to the transport (if open)."""
@@ -404,13 +403,7 @@ class MavlinkLink:
             rates.append((MSG_ID_GIMBAL_DEVICE_ATTITUDE_STATUS, config.gimbal_rate_hz))
         self.rate_plan: dict[int, int] = {mid: int(round(1e6 / hz)) for mid, hz in rates}
 
-        self._signing = mavlink2.MAVLinkSigning()
-        if signing_key is not None:
-            self._signing.secret_key = signing_key
-            self._signing.sign_outgoing = True
-            self._signing.link_id = signing_link_id
-            # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
-            self._signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
+        self._signing = new_signing(signing_key, signing_link_id)
         self._transport: UdpTransport | StreamTransport | None = None
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
@@ -601,10 +594,9 @@ class MavlinkLink:
         mtype = msg.get_type()
         if mtype == "BAD_DATA":
             reason = str(getattr(msg, "reason", ""))
-            if reason == "Invalid signature":
-                raw = bytes(getattr(msg, "data", b"")[:1])
-                name = sig_reject or ("mavlink_v1_refused" if raw == b"\xfe" else "mavlink_unsigned")
-                self._counters.count(name, "packet refused: MAVLink 2 signing is on")
+            refused = signature_refusal(msg, sig_reject, "mavlink")
+            if refused is not None:
+                self._counters.count(refused, "packet refused: MAVLink 2 signing is on")
             else:
                 self._counters.count("mavlink_bad_data", reason)
             return

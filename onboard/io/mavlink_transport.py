@@ -8,13 +8,23 @@ from __future__ import annotations
 import hashlib
 import select
 import socket
+import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
-__all__ = ["MAX_DATAGRAM_PARSE_BYTES", "StreamTransport", "UdpTransport", "new_parser"]
+__all__ = [
+    "MAX_DATAGRAM_PARSE_BYTES",
+    "StreamTransport",
+    "UdpTransport",
+    "new_parser",
+    "new_signing",
+    "signature_refusal",
+]
 
 #: a new signed stream may lag our signing clock by this much (pymavlink's rule), 10 us units
 _SIGNING_NEW_STREAM_LAG = 6_000_000
+#: MAVLink 2 signing timestamps count 10 us units since 2015-01-01 00:00:00 UTC
+_SIGNING_EPOCH_S = 1420070400
 _MAX_DATAGRAM_BYTES = 65535
 _STREAM_READ_BYTES = 4096
 #: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
@@ -37,7 +47,7 @@ class _Parser(mavlink2.MAVLink):
         signing = self.signing
         digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
         if digest != bytes(msgbuf[-6:]):
-            self.sig_reject = "mavlink_signature_bad"
+            self.sig_reject = "signature_bad"
             return False
         link_id = msgbuf[-13]
         tlow, thigh = self.mav_sign_unpacker.unpack(msgbuf[-12:-6])
@@ -45,14 +55,39 @@ class _Parser(mavlink2.MAVLink):
         key = (link_id, srcSystem, srcComponent)
         last = signing.stream_timestamps.get(key)
         if last is not None and timestamp <= last:
-            self.sig_reject = "mavlink_signature_replay"
+            self.sig_reject = "signature_replay"
             return False
         if last is None and timestamp + _SIGNING_NEW_STREAM_LAG < signing.timestamp:
-            self.sig_reject = "mavlink_signature_stale"
+            self.sig_reject = "signature_stale"
             return False
         signing.stream_timestamps[key] = timestamp
         signing.timestamp = max(signing.timestamp, timestamp)
         return True
+
+
+def new_signing(key: bytes | None, link_id: int = 0) -> mavlink2.MAVLinkSigning:
+    """The signing state of one link: with ``key`` (32 bytes) everything sent is signed with ``link_id`` and only
+    verified packets are accepted (:class:`_Parser`); None: unsigned, as MAVLink without signing."""
+    signing = mavlink2.MAVLinkSigning()
+    if key is not None:
+        signing.secret_key = key
+        signing.sign_outgoing = True
+        signing.link_id = link_id
+        # 10 us units since 2015-01-01 (MAVLink 2 signing): the wall clock, as the protocol asks
+        signing.timestamp = int(max(time.time() - _SIGNING_EPOCH_S, 0.0) * 100_000)
+    return signing
+
+
+def signature_refusal(msg, sig_reject: str, prefix: str) -> str | None:
+    """The counter name of a packet refused for its signature (``msg`` a BAD_DATA "Invalid signature"), else None:
+    ``<prefix>_`` + the parser's ``sig_reject`` (``signature_bad|replay|stale``), ``v1_refused`` for MAVLink 1,
+    ``unsigned`` for an unsigned MAVLink 2 packet."""
+    if msg.get_type() != "BAD_DATA" or str(getattr(msg, "reason", "")) != "Invalid signature":
+        return None
+    if sig_reject:
+        return f"{prefix}_{sig_reject}"
+    raw = bytes(getattr(msg, "data", b"")[:1])
+    return f"{prefix}_v1_refused" if raw == b"\xfe" else f"{prefix}_unsigned"
 
 
 def new_parser(signing, file=None, src_system: int = 0, src_component: int = 0) -> _Parser:

@@ -39,6 +39,7 @@ class Peer:
         self.addr = self.sock.getsockname()
         self.dest = ("127.0.0.1", port)
         self.mav = mav.MAVLink(None, srcSystem=sysid, srcComponent=compid)
+        self.key: bytes | None = None
         self.got: list = []
 
     def raw(self, data: bytes) -> None:
@@ -69,6 +70,7 @@ class Peer:
             n += 1
             parser = mav.MAVLink(None)
             parser.robust_parsing = True
+            parser.signing.secret_key = self.key  # with a key only verified packets count (``_signed``)
             self.got += [m for m in parser.parse_buffer(data) or [] if m.get_type() != "BAD_DATA"]
 
     def types(self, name: str) -> list:
@@ -291,3 +293,89 @@ def test_udpout_sends_to_its_address_whoever_else_speaks():
 def test_bad_peer_settings_are_refused(kw):
     with pytest.raises(ConfigError):
         GcsLink(["udpout:127.0.0.1:9"], 100, **kw)
+
+
+# --------------------------------------------------------------------------- MAVLink 2 signing
+
+KEY = bytes(range(32))
+OTHER_KEY = bytes(range(1, 33))
+
+
+def _sign_with(peer: Peer, key: bytes) -> Peer:
+    """``peer`` sends signed with ``key`` and keeps only what it receives verified with ``KEY``."""
+    peer.mav.signing.secret_key, peer.mav.signing.sign_outgoing, peer.mav.signing.link_id = key, True, 1
+    peer.mav.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+    peer.key = KEY
+    return peer
+
+
+@pytest.fixture
+def signed_rig():
+    r = Rig(signing_key=KEY)
+    yield r
+    r.close()
+
+
+def test_with_a_key_the_camera_answers_signed_commands_only_and_signs_its_answers(signed_rig):
+    """An unsigned or wrongly signed command (a click that would move the tracked target) is refused and counted,
+    makes no peer and gets no answer; a command signed with the key is answered, signed."""
+    rig = signed_rig
+    unsigned, wrong, good = rig.peer(), _sign_with(rig.peer(), OTHER_KEY), _sign_with(rig.peer(), KEY)
+    unsigned.request_camera_information()
+    wrong.request_camera_information()
+    assert rig.drive(lambda: sum(rig.counters.counts.get(k, 0) for k in ("gcs_unsigned", "gcs_signature_bad")) == 2)
+    assert rig.counters.counts["gcs_unsigned"] == 1 and rig.counters.counts["gcs_signature_bad"] == 1
+    assert rig.commands == [] and rig.link.peers() == [[]]
+    good.request_camera_information()
+    assert rig.drive(lambda: good.types("CAMERA_INFORMATION"))
+    assert [(m.get_type(), m._signed) for m in good.got] == [("COMMAND_ACK", True), ("CAMERA_INFORMATION", True)]
+    assert [c.command for c in rig.commands] == [mav.MAV_CMD_REQUEST_MESSAGE]
+    assert rig.link.peers() == [[good.addr]]
+    assert unsigned.got == [] and wrong.got == []
+
+
+def test_with_a_key_udpout_signs_what_it_sends_and_refuses_unsigned_commands():
+    port = free_udp_port()
+    listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    listener.bind(("127.0.0.1", port))
+    listener.settimeout(WAIT_S)
+    counters = RejectCounter()
+    link = GcsLink([f"udpout:127.0.0.1:{port}"], 100, counter=counters, signing_key=KEY)
+    try:
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"]
+        assert link.send(hb[0]) == 1
+        data, link_addr = listener.recvfrom(65535)
+        signed = mav.MAVLink(None)
+        signed.signing.secret_key = KEY
+        (msg,) = signed.parse_buffer(data)
+        assert msg.get_type() == "HEARTBEAT" and msg._signed and signed.signing.goodsig_count == 1
+        # an unsigned command back to the port the link sends from: refused, counted
+        cmd = mav.MAVLink_command_long_message(
+            SYSID, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
+        )
+        listener.sendto(bytes(cmd.pack(mav.MAVLink(None, srcSystem=GCS[0], srcComponent=GCS[1]))), link_addr)
+        deadline = time.monotonic() + WAIT_S
+        while counters.counts.get("gcs_unsigned", 0) == 0 and time.monotonic() < deadline:
+            assert link.poll() == []
+            time.sleep(0.01)
+        assert counters.counts.get("gcs_unsigned") == 1
+        # the same command signed with the key: taken
+        gcs = mav.MAVLink(None, srcSystem=GCS[0], srcComponent=GCS[1])
+        gcs.signing.secret_key, gcs.signing.sign_outgoing, gcs.signing.link_id = KEY, True, 1
+        gcs.signing.timestamp = int((time.time() - 1420070400) * 100_000)
+        listener.sendto(bytes(cmd.pack(gcs)), link_addr)
+        commands: list = []
+        deadline = time.monotonic() + WAIT_S
+        while not commands and time.monotonic() < deadline:
+            commands += link.poll()
+            time.sleep(0.01)
+        assert [c.command for c in commands] == [mav.MAV_CMD_REQUEST_MESSAGE]
+    finally:
+        link.close()
+        listener.close()
+
+
+def test_a_signing_key_of_the_wrong_size_is_refused():
+    with pytest.raises(ConfigError, match="signing_key"):
+        GcsLink(["udpout:127.0.0.1:9"], 100, signing_key=b"short")

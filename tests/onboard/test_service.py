@@ -982,3 +982,86 @@ def test_the_daemon_publishes_its_counts_once_more_as_it_stops():
     assert not t.is_alive()
     (last,) = tap.status_payloads
     assert json.loads(last)["schema"] == "irtrack.status/1"
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(90)
+def test_with_a_signing_key_the_daemons_camera_signs_and_takes_only_signed_commands(tmp_path, daemon_env):
+    """mavlink.signing_key_file signs the camera component's link too: its heartbeat reaches a ground station signed
+    with the key, and an unsigned command (which could move the tracked target) is refused and counted."""
+    import socket
+
+    from onboard.io.zenoh_session import ZenohConfig as _ZenohConfig
+    from onboard.io.zenoh_session import open_session, status_key
+
+    key = bytes(range(32))
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(key.hex())
+    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", gport))
+    gcs.setblocking(False)
+    d = Daemon(
+        ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
+         f"udpout:127.0.0.1:{gport}", "--set", f"mavlink.signing_key_file={key_file}", "--set",
+         "output.status_interval_s=0.5"],
+        daemon_env,
+    )  # fmt: skip
+    session = None
+    try:
+        assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
+        statuses: queue.Queue = queue.Queue()
+        session = open_session(_ZenohConfig(connect=(f"tcp/127.0.0.1:{zport}",)))
+        session.declare_subscriber(status_key(), lambda s: statuses.put(json.loads(s.payload.to_bytes())))
+        ap = FakeAutopilot(mport)
+        ap.conn.setup_signing(key, sign_outgoing=True, link_id=1)
+        verified = mav.MAVLink(None)
+        verified.robust_parsing = True
+        verified.signing.secret_key = key
+        camera: list = []  # (message, from) of component 100, verified with the key
+        daemon_addr = None
+        deadline = time.monotonic() + 30
+        while not camera:
+            assert time.monotonic() < deadline, "no signed camera heartbeat:\n" + "\n".join(d.lines[-30:])
+            assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
+            ap.heartbeat()
+            ap.pump()
+            time.sleep(0.1)
+            while True:
+                try:
+                    data, addr = gcs.recvfrom(65535)
+                except BlockingIOError:
+                    break
+                for m in verified.parse_buffer(data) or []:
+                    if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 100 and m._signed:
+                        camera.append(m)
+                        daemon_addr = addr
+        # an unsigned REQUEST_MESSAGE back to the camera: refused, counted in the status, never answered
+        cmd = mav.MAVLink_command_long_message(
+            1, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
+        )
+        gcs.sendto(bytes(cmd.pack(mav.MAVLink(None, srcSystem=255, srcComponent=190))), daemon_addr)
+        deadline = time.monotonic() + 20
+        refused = 0
+        while refused == 0:
+            assert time.monotonic() < deadline, "the unsigned command was not counted:\n" + "\n".join(d.lines[-30:])
+            ap.heartbeat()
+            ap.pump()
+            try:
+                refused = statuses.get(timeout=0.5).get("rejected", {}).get("gcs_unsigned", 0)
+            except queue.Empty:
+                pass
+        assert refused == 1
+        answers = []
+        while True:
+            try:
+                data, _ = gcs.recvfrom(65535)
+            except BlockingIOError:
+                break
+            answers += [m.get_type() for m in verified.parse_buffer(data) or []]
+        assert "COMMAND_ACK" not in answers and "CAMERA_INFORMATION" not in answers
+    finally:
+        if session is not None:
+            session.close()
+        d.stop()
+        gcs.close()
