@@ -50,6 +50,7 @@ def make_camera_protocol(
         observable_only=not o.geo_status_unobservable,
         heartbeat_interval_s=g.heartbeat_interval_s,
         track_request_timeout_s=g.track_request_timeout_s,
+        target_rendered=stream is not None and v.overlay,
         counter=counter,
     )
 

@@ -292,7 +292,8 @@ class GcsConfig:
     vendor_name: Annotated[str, Text()] = "irtrack"
     model_name: Annotated[str, Text()] = "IR tracker"
     pixel_pitch_um: Annotated[float, Number(0.0, 1000.0, lo_open=True)] = 17.0
-    heartbeat_interval_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
+    # QGC drops a camera silent for 5 s: a longer period would make it vanish between heartbeats
+    heartbeat_interval_s: Annotated[float, Number(0.0, 4.0, lo_open=True)] = 1.0
     tracker_mode: Annotated[Literal["auto", "operator"], Text()] = "auto"
     track_request_timeout_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
 

@@ -447,6 +447,8 @@ class CameraProtocol:
     heartbeat_interval_s: float = 1.0
     track_request_timeout_s: float = 1.0
     gimbal_device_id: int = 0
+    #: the video stream draws the tracked target (``video.overlay``): #275 says so (TARGET_DATA_RENDERED)
+    target_rendered: bool = False
     counter: RejectCounter | None = field(default=None, repr=False, compare=False)
     interval_s: dict[int, float | None] = field(init=False)
     counters: dict[str, int] = field(init=False, default_factory=dict)
@@ -537,8 +539,23 @@ class CameraProtocol:
         # the ACK first, then the message (common.xml: "the message is sent after the ACK"), both to the requester
         return [self._ack(command, MAV_RESULT_ACCEPTED, to)] + [replace(m, reply_to=to) for m in msgs]
 
+    @staticmethod
+    def _heartbeat() -> Outgoing:
+        return Outgoing(
+            "heartbeat",
+            dict(
+                type=MAV_TYPE_CAMERA,
+                autopilot=MAV_AUTOPILOT_INVALID,
+                base_mode=0,
+                custom_mode=0,
+                system_status=MAV_STATE_ACTIVE,
+            ),
+        )
+
     def _message(self, msg_id: int, index: float, time_boot_ms: int, track: Track | None) -> list[Outgoing] | None:
         ms = int(time_boot_ms) % 2**32
+        if msg_id == MSG_HEARTBEAT:  # sent every heartbeat_interval_s anyway: a request gets one now
+            return [self._heartbeat()]
         if msg_id == MSG_CAMERA_INFORMATION:
             info = camera_information(self.identity, ms, self.stream is not None, self.gimbal_device_id)
             return [Outgoing("camera_information", info)]
@@ -658,7 +675,7 @@ class CameraProtocol:
             return MAV_RESULT_DENIED, f"message {p1:g} is not one this camera streams"
         accepted, interval_s = requested_interval(p2, self._default_interval_s[msg_id], lambda us: us / 1e6)
         if not accepted:
-            return MAV_RESULT_DENIED, f"interval {p2:g} us is not -1, 0 or a positive interval"
+            return MAV_RESULT_DENIED, f"interval {p2:g} us is not -1, 0 or a positive interval of at most 2^31-1 us"
         if round(p2) > 0 and interval_s is not None and interval_s < MIN_TRACKING_STATUS_INTERVAL_S:
             if self.counter is not None:
                 self.counter.count(
@@ -751,18 +768,7 @@ class CameraProtocol:
         newest one, None when there is none or it is stale)."""
         out: list[Outgoing] = []
         if now_s >= self._next_hb_s:
-            out.append(
-                Outgoing(
-                    "heartbeat",
-                    dict(
-                        type=MAV_TYPE_CAMERA,
-                        autopilot=MAV_AUTOPILOT_INVALID,
-                        base_mode=0,
-                        custom_mode=0,
-                        system_status=MAV_STATE_ACTIVE,
-                    ),
-                )
-            )
+            out.append(self._heartbeat())
             self._next_hb_s = _next_due(self._next_hb_s, self.heartbeat_interval_s, now_s)
         for rid in [r for r, p in self._superseded.items() if now_s >= p.deadline_s]:
             # never decided: claimed, so that frames that resume later cannot carry out a click the operator
@@ -774,10 +780,11 @@ class CameraProtocol:
             if not self._pending[rid].request.claim():
                 continue  # the pipeline is applying it this moment: its result decides, on a later tick
             pend = self._pending.pop(rid)
+            what = "to stop tracking on" if pend.command == MAV_CMD_CAMERA_STOP_TRACKING else "to select on"
             out += self._refuse(
                 pend.command,
                 MAV_RESULT_TEMPORARILY_REJECTED,
-                "no frame to select on (no IR frames arriving)",
+                f"no frame {what} (no IR frames arriving)",
                 pend.requester,
             )
         tracking = track is not None and track.state in ("tracking", "coasting")
@@ -806,7 +813,7 @@ class CameraProtocol:
         mode = (
             self.selection_mode if self.selection_mode != CAMERA_TRACKING_MODE_NONE else CAMERA_TRACKING_MODE_RECTANGLE
         )
-        f = image_status_fields(track, self.width_px, self.height_px, mode=mode)
+        f = image_status_fields(track, self.width_px, self.height_px, mode=mode, rendered=self.target_rendered)
         return Outgoing(
             "camera_tracking_image_status", wire_fields(CameraTrackingImageStatus(**f, camera_device_id=0).to_message())
         )

@@ -117,6 +117,7 @@ __all__ = [
     "CAMERA_TRACKING_MODE_POINT",
     "CAMERA_TRACKING_MODE_RECTANGLE",
     "CAMERA_TRACKING_TARGET_DATA_IN_STATUS",
+    "CAMERA_TRACKING_TARGET_DATA_RENDERED",
     "image_status_fields",
     "geo_status_fields",
     "message_from_fields",
@@ -140,6 +141,7 @@ CAMERA_TRACKING_MODE_NONE = mavlink2.CAMERA_TRACKING_MODE_NONE  # 0
 CAMERA_TRACKING_MODE_POINT = mavlink2.CAMERA_TRACKING_MODE_POINT  # 1
 CAMERA_TRACKING_MODE_RECTANGLE = mavlink2.CAMERA_TRACKING_MODE_RECTANGLE  # 2
 CAMERA_TRACKING_TARGET_DATA_IN_STATUS = mavlink2.CAMERA_TRACKING_TARGET_DATA_IN_STATUS  # 4
+CAMERA_TRACKING_TARGET_DATA_RENDERED = mavlink2.CAMERA_TRACKING_TARGET_DATA_RENDERED  # 2
 FOLLOW_TARGET_CAP_POS = 1 << 0  # FOLLOW_TARGET.est_capabilities bit positions (common.xml)
 FOLLOW_TARGET_CAP_VEL = 1 << 1
 
@@ -631,8 +633,9 @@ def set_message_interval_message(
 def requested_interval(param2: float, default, from_us=lambda us: us) -> tuple[bool, Any]:
     """What a received MAV_CMD_SET_MESSAGE_INTERVAL asks with its ``param2`` (microseconds), as
     ``(accepted, interval)``: -1 stops the message (None), 0 restores ``default``, N > 0 is N us
-    (``from_us(N)``, in the caller's unit); NaN or below -1 is refused (False, None)."""
-    if not math.isfinite(param2) or param2 < -1:
+    (``from_us(N)``, in the caller's unit); NaN, below -1 or beyond an int32 (MESSAGE_INTERVAL.interval_us,
+    which must be able to report it: ~36 min) is refused (False, None)."""
+    if not math.isfinite(param2) or param2 < -1 or round(param2) > INT32_MAX:
         return False, None
     us = round(param2)
     if us == -1:
@@ -891,7 +894,9 @@ def _unit(x: float, size: float) -> float:
     return min(max(x / size, 0.0), 1.0)
 
 
-def image_status_fields(track, width_px: int, height_px: int, mode: int | None = None) -> dict[str, Any]:
+def image_status_fields(
+    track, width_px: int, height_px: int, mode: int | None = None, rendered: bool = False
+) -> dict[str, Any]:
     """Fields of :class:`CameraTrackingImageStatus` (#275) for a :class:`~onboard.core.track.Track` (None = idle).
 
     Normalised image coordinates: ``x = u_px / width_px``, ``y = v_px / height_px``, clipped to
@@ -901,7 +906,8 @@ def image_status_fields(track, width_px: int, height_px: int, mode: int | None =
     left, 1 is image right"; QGC draws a square of that half-side), NaN without a box; RECTANGLE fills
     ``rec_*`` from the box; the other mode's fields stay NaN (common.xml).  None: RECTANGLE with a box, POINT with only a
     centre.  A mode whose data the track lacks (RECTANGLE without a box) falls back to the other one;
-    NONE without either.
+    NONE without either.  ``target_data`` is IN_STATUS, plus RENDERED while a target is tracked when ``rendered``
+    (the video stream draws it).
     """
     nan = math.nan
     out = dict(
@@ -919,6 +925,8 @@ def image_status_fields(track, width_px: int, height_px: int, mode: int | None =
     if track is None or track.state in ("searching", "lost"):
         return out
     out["tracking_status"] = CAMERA_TRACKING_STATUS_FLAGS_ACTIVE
+    if rendered:
+        out["target_data"] |= CAMERA_TRACKING_TARGET_DATA_RENDERED
     if track.state == "coasting":
         out["tracking_status"] |= CAMERA_TRACKING_STATUS_FLAGS_COASTING
     if mode is None or mode == CAMERA_TRACKING_MODE_NONE:

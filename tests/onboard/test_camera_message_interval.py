@@ -67,3 +67,19 @@ def test_the_reply_packs_with_pymavlink_and_goes_to_the_requester():
     codec = mav.MAVLink(None, srcSystem=1, srcComponent=100)
     back = mav.MAVLink(None).parse_char(codec.message_interval_encode(**reply.fields).pack(codec))
     assert back.get_type() == "MESSAGE_INTERVAL" and (back.message_id, back.interval_us) == (275, 100_000)
+
+
+@pytest.mark.parametrize("interval_us", [2**31, 3e9])
+def test_an_interval_message_interval_cannot_report_is_denied_and_the_old_one_kept(interval_us):
+    """MESSAGE_INTERVAL.interval_us is an int32: an interval beyond it, once accepted, made every later report of it
+    fail to pack (and go unsent)."""
+    proto = _proto(image_status_hz=10.0)
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, interval_us), 1.0, 0)
+    assert _ack(out)["result"] == cp.MAV_RESULT_DENIED
+    assert _interval(proto, 275) == (cp.MAV_RESULT_ACCEPTED, {"message_id": 275, "interval_us": 100_000})
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 2**31 - 1), 1.0, 0)  # the longest it can say
+    assert _ack(out)["result"] == cp.MAV_RESULT_ACCEPTED
+    result, reply = _interval(proto, 275)
+    codec = mav.MAVLink(None, srcSystem=1, srcComponent=100)
+    codec.message_interval_encode(**reply).pack(codec)  # packs
+    assert reply["interval_us"] == 2**31 - 1

@@ -612,3 +612,50 @@ def test_an_interval_at_the_maximum_rate_or_slower_is_applied_as_asked_and_not_c
         assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
     assert counter.total == 0
     assert proto.message_interval_us(275) == 100_000  # 0: back to the configured 10 Hz
+
+
+def test_a_heartbeat_asked_for_is_sent_now():
+    """REQUEST_MESSAGE(HEARTBEAT): the camera sends heartbeats, so it answers one (it was DENIED, as a message this
+    camera does not send)."""
+    out, _ = _proto().handle(_cmd(cp.MAV_CMD_REQUEST_MESSAGE, 0), 0.0, 0)
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+    (hb,) = [o for o in out if o.msg == "heartbeat"]
+    assert hb.fields["type"] == mav.MAV_TYPE_CAMERA and hb.reply_to == GCS
+
+
+def test_the_status_says_the_target_is_drawn_in_the_video_only_when_it_is():
+    drawn = _proto(target_rendered=True)
+    img = [o.fields for o in drawn.tick(0.0, _track()) if o.msg == "camera_tracking_image_status"][0]
+    rendered = mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS | mav.CAMERA_TRACKING_TARGET_DATA_RENDERED
+    assert img["target_data"] == rendered
+    idle = [o.fields for o in drawn.tick(1.0, None) if o.msg == "camera_tracking_image_status"][0]
+    assert idle["target_data"] == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS  # nothing tracked: nothing drawn
+    plain = [o.fields for o in _proto().tick(0.0, _track()) if o.msg == "camera_tracking_image_status"][0]
+    assert plain["target_data"] == mav.CAMERA_TRACKING_TARGET_DATA_IN_STATUS
+
+
+@pytest.mark.parametrize(("overlay", "destination", "rendered"), [(True, "127.0.0.1:5600", True),
+                                                                   (False, "127.0.0.1:5600", False),
+                                                                   (True, None, False)])  # fmt: skip
+def test_the_daemon_says_rendered_when_its_video_draws_the_target(overlay, destination, rendered):
+    from onboard.app.components import make_camera_protocol
+    from onboard.app.config import build_config
+
+    cfg = build_config({"video": {"overlay": overlay, "destination": destination}})
+    assert make_camera_protocol(cfg, cfg.camera.pinhole()).target_rendered is rendered
+
+
+def test_a_stop_nobody_decides_says_it_is_the_stop_that_waited():
+    proto = _proto(track_request_timeout_s=1.0)
+    proto.handle(_cmd(cp.MAV_CMD_CAMERA_STOP_TRACKING), 10.0, 0)
+    out = proto.tick(11.0, None)
+    assert _ack(out)["result"] == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    assert "no frame to stop tracking on" in proto.status()["last_refusal"]
+
+
+def test_a_heartbeat_period_qgc_would_drop_the_camera_in_is_refused_naming_the_field():
+    from onboard.app.config import OnboardConfigError, build_config
+
+    assert build_config({"gcs": {"heartbeat_interval_s": 4.0}}).gcs.heartbeat_interval_s == 4.0
+    with pytest.raises(OnboardConfigError, match="gcs.heartbeat_interval_s"):
+        build_config({"gcs": {"heartbeat_interval_s": 6.0}})
