@@ -765,10 +765,14 @@ class MavlinkVehicle:
                     sent += self._on_mission(msg, mtype)
                 elif mtype == "SET_POSITION_TARGET_LOCAL_NED" and self.in_guided and self._for_us(msg):
                     self._setpoints.append(SetPositionTargetLocalNed.from_message(msg).v_ned_mps)
-                elif mtype == "HEARTBEAT" and (msg.get_srcSystem(), msg.get_srcComponent()) != (
-                    self.sysid,
-                    self.compid,
+                elif (
+                    mtype == "HEARTBEAT"
+                    and msg.type == mavlink2.MAV_TYPE_ONBOARD_CONTROLLER
+                    and msg.get_srcSystem() == self.sysid
+                    and msg.get_srcComponent() != self.compid
                 ):
+                    # the companion: an onboard controller of this vehicle; a ground station's heartbeat (another
+                    # system, MAV_TYPE_GCS) reaching the vehicle first must not hand it over
                     self._companion_heard = True
             except Exception as exc:  # noqa: BLE001 - a malformed request must not stop the pump
                 self.counters["rx_handler_error"] += 1
@@ -868,6 +872,8 @@ class MavlinkVehicle:
 
     def _set_message_interval(self, param1: float, param2: float) -> int:
         msg_id = self._message_id(param1)
+        if msg_id == MSG_HEARTBEAT:  # as PX4: every component heartbeats; switched off, the link would look lost
+            return mavlink2.MAV_RESULT_FAILED
         accepted, interval_us = requested_interval(param2, self._default_interval_us.get(msg_id))
         if msg_id is None or not accepted:
             return mavlink2.MAV_RESULT_DENIED

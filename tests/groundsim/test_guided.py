@@ -70,7 +70,7 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
     rx = open_mavlink2(f"udpin:127.0.0.1:{port}", 1, 191)  # the companion's side
     vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", guided=True)
     try:
-        deadline = time.monotonic() + 5.0
+        deadline = time.monotonic() + 10.0
         hb = None
         while hb is None and time.monotonic() < deadline:
             vehicle.poll(0)
@@ -80,9 +80,21 @@ def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoin
         assert (hb.autopilot, hb.custom_mode) == (mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA, ARDUCOPTER_LOITER_MODE)
         assert hb.base_mode & mavlink2.MAV_MODE_FLAG_SAFETY_ARMED
         rx.mav.send(SetPositionTargetLocalNed(1_000_000, 1, 1, (7.0, 7.0, 7.0)).to_message())  # before: ignored
-        rx.mav.heartbeat_send(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        # a ground station's heartbeat (another system, MAV_TYPE_GCS) reaching the vehicle first hands nothing over
+        gcs = mavlink2.MAVLink(None, srcSystem=255, srcComponent=190)
+        rx.write(gcs.heartbeat_encode(mavlink2.MAV_TYPE_GCS, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 4).pack(gcs))
         modes = []
         now_us = 0
+        while now_us < 3_000_000 and time.monotonic() < deadline:
+            now_us += 100_000
+            vehicle.poll(now_us)
+            hb = rx.recv_match(type="HEARTBEAT", blocking=False)
+            if hb is not None:
+                modes.append(hb.custom_mode)
+            time.sleep(0.002)
+        assert vehicle.counters["rx_HEARTBEAT"] == 1 and modes and set(modes) == {ARDUCOPTER_LOITER_MODE}, modes
+        rx.mav.heartbeat_send(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER, mavlink2.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        modes = []
         while ARDUCOPTER_GUIDED_MODE not in modes and time.monotonic() < deadline:
             now_us += 100_000  # the vehicle's heartbeats are 1 s apart on its clock
             vehicle.poll(now_us)

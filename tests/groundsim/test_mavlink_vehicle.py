@@ -690,3 +690,15 @@ def test_gps_raw_int_alt_ellipsoid_is_alt_plus_the_worlds_geoid_undulation():
     (pos,) = _of(got, "GLOBAL_POSITION_INT")
     assert gps.alt == pos.alt == round(ALT_AMSL_M * 1000)
     assert gps.alt_ellipsoid == gps.alt + round(GEOID_UNDULATION_M * 1000)
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("interval_us", [-1, 5_000_000])
+def test_the_heartbeat_cannot_be_switched_off_or_slowed(link, interval_us):
+    """As PX4: every component heartbeats; SET_MESSAGE_INTERVAL of HEARTBEAT is FAILED (accepted, -1 silenced the
+    vehicle: the daemon and every ground station took the link for lost)."""
+    rx, vehicle = link
+    _prime(rx, vehicle)
+    ack = _command(rx, vehicle, 0, 511, 0, interval_us)
+    assert ack.result == 4  # MAV_RESULT_FAILED
+    assert vehicle.message_interval_us(0) == 1_000_000
