@@ -409,10 +409,12 @@ class _UdpSink:
     send; counted in ``refused`` and that datagram sent once more, so that a ground station that has just
     opened its port gets whole pictures."""
 
+    send_buffer_bytes: int | None = None  # SO_SNDBUF of the socket, None: the system's
+
     def __init__(self, host: str, port: int) -> None:
-        infos = socket.getaddrinfo(host, port, 0, socket.SOCK_DGRAM)
-        family, _, _, _, self.addr = infos[0]
-        self.sock = socket.socket(family, socket.SOCK_DGRAM)
+        self.host, self.port = host, port
+        self.addr: tuple | None = None  # resolved at the first connect that can: DNS may come up after the daemon
+        self.sock: socket.socket | None = None
         self.datagrams = 0
         self.errors = 0
         self.refused = 0
@@ -421,10 +423,15 @@ class _UdpSink:
 
     def _connect(self) -> bool:
         try:
+            if self.sock is None:
+                family, _, _, _, self.addr = socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_DGRAM)[0]
+                self.sock = socket.socket(family, socket.SOCK_DGRAM)
+                if self.send_buffer_bytes is not None:
+                    self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
             self.sock.connect(self.addr)
-        except OSError as exc:
+        except OSError as exc:  # a name not resolved yet (socket.gaierror) too: a companion may boot before its DNS
             if self.errors == 0:
-                log.warning("video: cannot reach %s:%s yet (%s); retried at each datagram", *self.addr[:2], exc)
+                log.warning("video: cannot reach %s:%s yet (%s); retried at each datagram", self.host, self.port, exc)
             return False
         self.connected = True
         return True
@@ -447,15 +454,14 @@ class _UdpSink:
         self.errors += 1  # refused twice: a new ICMP error came back in between
 
     def close(self) -> None:
-        self.sock.close()
+        if self.sock is not None:
+            self.sock.close()
 
 
 class _UdpRtpSink(_UdpSink):
     """RTP packets -> one UDP datagram each."""
 
-    def __init__(self, host: str, port: int) -> None:
-        super().__init__(host, port)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, SEND_BUFFER_BYTES)
+    send_buffer_bytes = SEND_BUFFER_BYTES
 
     def flush(self) -> None:
         """Nothing buffered: each packet left as it was made."""

@@ -469,6 +469,33 @@ def test_a_destination_unreachable_at_start_fails_nothing_and_is_connected_at_a_
             sink.close()
 
 
+def test_a_name_not_resolvable_at_start_fails_nothing_and_is_resolved_at_a_later_send(monkeypatch):
+    """A companion booting before its DNS: the destination's name cannot be resolved when the daemon starts (this
+    raised socket.gaierror out of the daemon's start, a traceback); the datagram is counted and dropped, and a later
+    send resolves and connects."""
+    real = socket.getaddrinfo
+    fails = {"n": 2}  # the constructor's and the first send's
+
+    def not_yet(host, *args, **kw):
+        if host == "gcs.example" and fails["n"]:
+            fails["n"] -= 1
+            raise socket.gaierror(socket.EAI_NONAME, "Name or service not known")
+        return real("127.0.0.1" if host == "gcs.example" else host, *args, **kw)
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as rx:
+        rx.bind(("127.0.0.1", 0))
+        monkeypatch.setattr(socket, "getaddrinfo", not_yet)
+        sink = _UdpRtpSink("gcs.example", rx.getsockname()[1])
+        try:
+            sink.send(b"lost")
+            assert (sink.errors, sink.datagrams, sink.connected) == (1, 0, False)
+            sink.send(b"goes")
+            assert (sink.errors, sink.datagrams, sink.connected) == (1, 1, True)
+            assert _recv_all(rx, 1) == [b"goes"]
+        finally:
+            sink.close()
+
+
 def test_the_streamer_to_nobody_encodes_every_frame_and_counts_the_refusals():
     streamer = VideoStreamer(VideoConfig(destination=f"127.0.0.1:{_closed_port()}", queue_length=30), W, H)
     try:
