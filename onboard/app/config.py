@@ -137,7 +137,8 @@ class InputConfig:
     max_frame_bytes: Annotated[int, Integer(64, 1 << 31)] = 16 * 1024 * 1024
     queue_length: Annotated[int, Integer(1, 1000)] = 4
     sequence_restart_count: Annotated[int, Integer(1, 1000)] = 5
-    time_reset_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
+    # 1 ms at least: the pipeline counts it in whole microseconds, and a jump of less than a frame period is no reset
+    time_reset_threshold_s: Annotated[float, Number(0.001, 3600.0)] = 1.0
 
 
 #: Brown-Conrady coefficients k1, k2, p1, p2, k3 (OpenCV's order)
@@ -563,6 +564,8 @@ def load_config(
     """
     source = DEFAULT_SOURCE if path is None else os.fspath(path)
     raw: dict[str, Any] = {}
+    if path is not None and not source.strip():  # an unset $CFG: Path("") would be read as the folder "."
+        raise OnboardConfigError("--config", "(path)", "a YAML file path", repr(source))
     if path is not None:
         data = read_yaml(source, OnboardConfigError)
         if data is not None and not isinstance(data, Mapping):

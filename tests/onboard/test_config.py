@@ -272,7 +272,7 @@ BAD = [
     ("logging: {level: info}", "logging.level", "one of DEBUG, INFO", "'info'", "did you mean 'INFO'?"),
     ("gcs: {component_id: 1}", "gcs.component_id", "an integer in [100, 105]", "1", None),  # the autopilot's
     ("gcs: {component_id: 106}", "gcs.component_id", "an integer in [100, 105]", "106", None),  # not a camera's
-    ("input: {time_reset_threshold_s: 0}", "input.time_reset_threshold_s", "a number in (0, 3600]", "0", None),
+    ("input: {time_reset_threshold_s: 0}", "input.time_reset_threshold_s", "a number in [0.001, 3600]", "0", None),
     # 20 characters, 40 bytes in UTF-8: CAMERA_INFORMATION's field holds 32 bytes
     ("gcs: {vendor_name: ÄÖÜäöüßÄÖÜäöüßÄÖÜäöü}", "gcs.vendor_name", "at most 32 bytes", "ÄÖÜäöüß", None),
     ("gcs: {model_name: ÄÖÜäöüßÄÖÜäöüßÄÖÜäöü}", "gcs.model_name", "at most 32 bytes", "ÄÖÜäöüß", None),
@@ -296,6 +296,29 @@ def test_bad_file_gives_one_line_naming_file_field_and_expectation(tmp_path, tex
     if hint:
         assert msg.endswith(hint), msg
     assert ei.value.exit_code == 2 and isinstance(ei.value, ConfigError)
+
+
+def test_an_empty_config_path_is_refused_not_read_as_the_current_folder():
+    """``--config "$CFG"`` with CFG unset: it said ": (file): expected a file, got a directory"."""
+    for empty in ("", "  "):
+        with pytest.raises(OnboardConfigError, match=r"^--config: \(path\): expected a YAML file path, got '\s*'$"):
+            load_config(empty, environ={})
+
+
+@pytest.mark.parametrize("value", [9e-7, 1e-4])
+def test_a_time_reset_threshold_below_a_millisecond_is_refused(value):
+    """Below 1 us it passed the check and then stopped the daemon's start with a traceback (counted in whole us)."""
+    with pytest.raises(ConfigError, match="input.time_reset_threshold_s"):
+        build_config({"input": {"time_reset_threshold_s": value}})
+
+
+@pytest.mark.parametrize(
+    "endpoint", ["tcp/127.0.0.1:7447,tcp/127.0.0.1:7448", "tcp/127.0.0.1:7447 ", "tcp/a:1 tcp/b:2"]
+)
+def test_several_zenoh_endpoints_in_one_text_are_refused_naming_the_field(endpoint):
+    """A comma-separated list in one variable passed the port check and never connected, silently."""
+    with pytest.raises(ConfigError, match=r"zenoh.connect\[0\]: expected one zenoh endpoint"):
+        build_config({"zenoh": {"connect": [endpoint]}})
 
 
 def test_missing_file(tmp_path):
@@ -390,7 +413,7 @@ def test_a_lever_arm_of_kilometres_is_refused_naming_the_field():
 
 def test_the_edges_of_the_gcs_and_input_ranges_are_accepted():
     """The other side of the refusals in BAD: MAVLink camera ids 100 and 105 (MAV_COMP_ID_CAMERA..CAMERA6), a name of
-    exactly 32 bytes in 16 characters, any positive time reset threshold."""
+    exactly 32 bytes in 16 characters, a time reset threshold of 1 ms."""
     for cid in (100, 105):
         assert build_config({"gcs": {"component_id": cid}}).gcs.component_id == cid
     name = "ÄÖÜäöüßÄÖÜäöüßÄÖ"  # 16 characters, 32 bytes
