@@ -226,6 +226,7 @@ class OnboardService:
         from onboard.io.mavlink_link import MavlinkLink
         from onboard.io.zenoh_session import (
             DAEMON_CONFIG_FILE_FIELD,
+            DAEMON_CONNECT_TIMEOUT_FIELD,
             FRAME_ENCODING,
             GUIDANCE_ENCODING,
             OBJECTS_ENCODING,
@@ -267,7 +268,10 @@ class OnboardService:
         if hint is not None:
             log.warning("%s", hint)
         self.session = open_session(
-            cfg.zenoh, max_payload_bytes=cfg.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD
+            cfg.zenoh,
+            max_payload_bytes=cfg.input.max_frame_bytes,
+            file_option=DAEMON_CONFIG_FILE_FIELD,
+            timeout_option=DAEMON_CONNECT_TIMEOUT_FIELD,
         )
         self._track_pub = self.session.declare_publisher(
             track_key(cfg.vehicle),

@@ -229,6 +229,8 @@ _OPTION_OF_FIELD = {
 
 #: what the daemon's errors about its zenoh config file call it (its --zenoh-config option sets this field)
 DAEMON_CONFIG_FILE_FIELD = "zenoh.config_file"
+#: and its connect timeout (no option: a config key, as in the fleet's file)
+DAEMON_CONNECT_TIMEOUT_FIELD = "zenoh.connect_timeout_s"
 
 
 def config_from_options(**fields: Any) -> ZenohConfig:
@@ -381,9 +383,16 @@ def build_config(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
     return config
 
 
-def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None, file_option: str = "--zenoh-config"):
-    """Open a zenoh session for ``settings`` (``max_payload_bytes``, ``file_option`` as :func:`build_config`);
-    typed, one-line errors (see the module docstring)."""
+def open_session(
+    settings: ZenohConfig,
+    *,
+    max_payload_bytes: int | None = None,
+    file_option: str = "--zenoh-config",
+    timeout_option: str = "--zenoh-connect-timeout",
+):
+    """Open a zenoh session for ``settings`` (``max_payload_bytes``, ``file_option`` as :func:`build_config`;
+    ``timeout_option``: what sets ``connect_timeout_s`` in the caller, named when no peer came in time); typed,
+    one-line errors (see the module docstring)."""
     config = build_config(settings, max_payload_bytes=max_payload_bytes, file_option=file_option)
     try:
         session = zenoh.open(config)
@@ -397,7 +406,7 @@ def open_session(settings: ZenohConfig, *, max_payload_bytes: int | None = None,
             raise ZenohSessionError(
                 f"zenoh: no peer reachable at {', '.join(settings.connect) or 'the configured endpoints'}"
                 f" within {settings.connect_timeout_s:g} s: start it first (the daemon's or a router's listener), or"
-                " wait longer (--zenoh-connect-timeout)"
+                f" wait longer ({timeout_option})"
             ) from None
         endpoints = [f"listen {e}" for e in settings.listen] + [f"connect {e}" for e in settings.connect]
         if settings.config_file is not None:

@@ -1065,3 +1065,19 @@ def test_with_a_signing_key_the_daemons_camera_signs_and_takes_only_signed_comma
             session.close()
         d.stop()
         gcs.close()
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(60)
+def test_no_zenoh_peer_in_time_names_the_daemons_setting_not_an_option_it_lacks(daemon_env):
+    """The daemon has no --zenoh-connect-timeout (groundsim run has): its message names zenoh.connect_timeout_s."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "onboard", "--mavlink", f"udpin:127.0.0.1:{free_udp_port()}", "--zenoh-connect",
+         f"tcp/127.0.0.1:{free_tcp_port()}", "--set", "zenoh.connect_timeout_s=0.5", "--set", "output.health_file=null"],
+        cwd=REPO, env=daemon_env, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    last = proc.stderr.strip().splitlines()[-1]
+    assert last.startswith("zenoh: no peer reachable at tcp/127.0.0.1:") and last.endswith(
+        "or wait longer (zenoh.connect_timeout_s)"
+    ), last
