@@ -99,7 +99,7 @@ from onboard.core.pose_sink import PoseSink
 from onboard.core.schema import Integer, Invalid, Number, SchemaError, Text, config_dataclass, show
 from onboard.core.utc_clock import UtcClock
 from onboard.io.mavlink_fast import decode_telemetry
-from onboard.io.mavlink_signing import load_signing_key
+from onboard.io.mavlink_signing import SigningKeyError, load_signing_key
 from onboard.io.mavlink_transport import (
     MAX_DATAGRAM_PARSE_BYTES,
     StreamTransport,
@@ -265,13 +265,8 @@ class MavlinkConfig:
     def _read_signing_key(self) -> bytes | None:
         try:
             return load_signing_key(self.signing_key_file, self.signing_key_env)
-        except ConfigError as exc:
-            where, _, what = str(exc).partition(": ")
-            raise Invalid(
-                where.removeprefix("mavlink."),
-                "a readable MAVLink 2 signing key (64 hex digits, 32 raw bytes or a passphrase)",
-                got_text=what,
-            ) from None
+        except SigningKeyError as exc:
+            raise Invalid(exc.field.removeprefix("mavlink."), exc.expected, got_text=exc.got) from None
 
     def signing_key(self) -> bytes | None:
         """The MAVLink 2 signing key (reads ``signing_key_file`` or the ``signing_key_env`` variable), None = unsigned."""

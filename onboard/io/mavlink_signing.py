@@ -13,24 +13,34 @@ import re
 
 from onboard.core.errors import ConfigError
 
-__all__ = ["signing_key_from_text", "load_signing_key"]
+__all__ = ["SigningKeyError", "signing_key_from_text", "load_signing_key"]
+
+_KEY_FORMS = "32 raw bytes, 64 hex digits or a passphrase"
 
 
-def signing_key_from_text(text: str | bytes, field: str) -> bytes:
+class SigningKeyError(ConfigError):
+    """A key that cannot be had: ``field`` (``mavlink.signing_key_file`` / ``_env``), what was ``expected``, what was
+    ``got`` (where the key came from in it), for the config's one-line error to put together once."""
+
+    def __init__(self, field: str, expected: str, got: str) -> None:
+        super().__init__(f"{field}: expected {expected}, got {got}")
+        self.field, self.expected, self.got = field, expected, got
+
+
+def signing_key_from_text(text: str | bytes, field: str, where: str = "") -> bytes:
     """A 32-byte MAVLink 2 signing key from 64 hex digits, 32 raw bytes, or a passphrase (SHA-256 of it,
-    as MAVProxy's ``signing setup`` and QGroundControl derive it).  Raises :class:`ConfigError` naming ``field``."""
+    as MAVProxy's ``signing setup`` and QGroundControl derive it).  Raises :class:`SigningKeyError` naming ``field``;
+    ``where`` (" in FILE") ends what it says was got."""
     if isinstance(text, bytes):
         if len(text) == 32:
             return bytes(text)
         try:
             text = text.decode("utf-8")
         except UnicodeDecodeError:
-            raise ConfigError(
-                f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got {len(text)} undecodable bytes"
-            ) from None
+            raise SigningKeyError(field, _KEY_FORMS, f"{len(text)} undecodable bytes{where}") from None
     text = text.strip()
     if not text:
-        raise ConfigError(f"{field}: expected 32 raw bytes, 64 hex digits or a passphrase, got an empty key")
+        raise SigningKeyError(field, _KEY_FORMS, f"an empty key{where}")
     if re.fullmatch(r"[0-9a-fA-F]{64}", text):
         return bytes.fromhex(text)
     return hashlib.sha256(text.encode("utf-8")).digest()
@@ -41,18 +51,24 @@ def load_signing_key(key_file: str | None, key_env: str | None, environ=None) ->
     None when neither is set.  Reads the file or the environment: call it at the entry point."""
     environ = os.environ if environ is None else environ
     if key_file and key_env:
-        raise ConfigError("mavlink.signing_key_file: set either it or mavlink.signing_key_env, not both")
+        raise SigningKeyError(
+            "mavlink.signing_key_file", "it or mavlink.signing_key_env, not both", f"both ({key_file!r}, {key_env!r})"
+        )
     if key_file:
         try:
             with open(key_file, "rb") as fh:
                 data = fh.read(4096)
         except OSError as exc:
-            raise ConfigError(f"mavlink.signing_key_file: cannot read {key_file!r}: {exc.strerror or exc}") from None
+            raise SigningKeyError(
+                "mavlink.signing_key_file", "a readable key file", f"{key_file!r}: {exc.strerror or exc}"
+            ) from None
         return signing_key_from_text(
-            data if len(data) == 32 else data.strip(), f"mavlink.signing_key_file ({key_file})"
+            data if len(data) == 32 else data.strip(), "mavlink.signing_key_file", f" in {key_file!r}"
         )
     if key_env:
         if key_env not in environ:
-            raise ConfigError(f"mavlink.signing_key_env: environment variable {key_env!r} is not set")
-        return signing_key_from_text(environ[key_env], f"mavlink.signing_key_env ({key_env})")
+            raise SigningKeyError(
+                "mavlink.signing_key_env", "the name of a set environment variable", f"{key_env!r}, not set"
+            )
+        return signing_key_from_text(environ[key_env], "mavlink.signing_key_env", f" in ${key_env}")
     return None

@@ -330,3 +330,26 @@ def test_signing_key_sources_and_errors(tmp_path):
         build_config({"mavlink": {"signing_key_file": str(f)}})
     f.write_text(hexkey)
     assert build_config({"mavlink": {"signing_key_file": str(f)}}).mavlink.signing_key() == KEY
+
+
+def test_a_bad_signing_key_is_one_plain_line_naming_the_field_and_the_file(tmp_path):
+    """It read "mavlink.signing_key_file (PATH): expected a readable ... key, got expected 32 raw bytes ..., got an
+    empty key", the path inside the field's name (so the source was blamed as '(defaults) with --set')."""
+    from onboard.app.config import OnboardConfigError, load_config
+
+    empty = tmp_path / "empty.key"
+    empty.write_text("\n")
+    cases = {
+        (("mavlink.signing_key_file", (str(empty), "--set")),): (
+            f"--set: mavlink.signing_key_file: expected 32 raw bytes, 64 hex digits or a passphrase, got an empty key "
+            f"in '{empty}'"
+        ),
+        (("mavlink.signing_key_file", (str(empty), "--set")), ("mavlink.signing_key_env", ("K", "--set"))): (
+            f"--set: mavlink.signing_key_file: expected it or mavlink.signing_key_env, not both, got both ('{empty}', "
+            "'K')"
+        ),
+    }
+    for overrides, line in cases.items():
+        with pytest.raises(OnboardConfigError) as err:
+            load_config(None, dict(overrides), environ={})
+        assert str(err.value) == line
