@@ -187,7 +187,19 @@ def _run(args: argparse.Namespace) -> int:
         from onboard.app.parent_watch import end_with_parent
 
         end_with_parent()  # started by a launcher that asked for it (groundsim demo): ends when that process does
-        return _serve(args, stop)
+        try:
+            return _serve(args, stop)
+        except RuntimeError as exc:
+            # numba caches the compiled kernels as their modules are imported, and refuses to without a folder it
+            # may write: the operator's environment, said in one line
+            if "no locator available" not in str(exc):
+                raise
+            print(
+                f"numba: no writable cache for the compiled kernels ({exc}): set NUMBA_CACHE_DIR to a folder this "
+                "user may write (deploy/README.md, 'Start: the compiled kernels')",
+                file=sys.stderr,
+            )
+            return EXIT_CONFIG
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)

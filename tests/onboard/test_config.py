@@ -552,3 +552,25 @@ def test_a_peer_that_only_connects_and_dials_no_gossiped_peer_is_warned_it_may_m
         {"connect": []},
     ):
         assert zenoh_unreachable_hint(build_config({"zenoh": zenoh})) is None
+
+
+def test_no_writable_numba_cache_is_one_line_and_exit_2(monkeypatch, capsys):
+    """numba refuses to cache a kernel as its module is imported when no folder is writable (the image's read-only
+    tree with NUMBA_CACHE_DIR unset): a 30-line traceback even for --check; now one line naming NUMBA_CACHE_DIR."""
+    import onboard.app.main as daemon_main
+
+    def no_locator(*_a, **_k):
+        raise RuntimeError("cannot cache function 'linearise_measurements': no locator available for file 'k.py'")
+
+    monkeypatch.setattr(daemon_main, "_serve", no_locator)
+    assert daemon_main.main(["--check"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("numba: no writable cache for the compiled kernels (cannot cache")
+    assert "set NUMBA_CACHE_DIR to a folder this user may write" in err[0]
+
+    def other(*_a, **_k):
+        raise RuntimeError("something else")
+
+    monkeypatch.setattr(daemon_main, "_serve", other)
+    with pytest.raises(RuntimeError, match="something else"):  # any other error is not dressed up as this one
+        daemon_main.main(["--check"])
