@@ -423,12 +423,14 @@ class _UdpSink:
 
     def _connect(self) -> bool:
         try:
-            if self.sock is None:
-                family, _, _, _, self.addr = socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_DGRAM)[0]
-                self.sock = socket.socket(family, socket.SOCK_DGRAM)
+            sock, addr = self.sock, self.addr
+            if sock is None or addr is None:
+                family, _, _, _, addr = socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_DGRAM)[0]
+                sock = socket.socket(family, socket.SOCK_DGRAM)
                 if self.send_buffer_bytes is not None:
-                    self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
-            self.sock.connect(self.addr)
+                    sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
+                self.sock, self.addr = sock, addr
+            sock.connect(addr)
         except OSError as exc:  # a name not resolved yet (socket.gaierror) too: a companion may boot before its DNS
             if self.errors == 0:
                 log.warning("video: cannot reach %s:%s yet (%s); retried at each datagram", self.host, self.port, exc)
@@ -440,9 +442,11 @@ class _UdpSink:
         if not self.connected and not self._connect():
             self.errors += 1
             return
+        sock = self.sock
+        assert sock is not None  # connected: made by _connect
         for _ in range(2):
             try:
-                self.sock.send(datagram)
+                sock.send(datagram)
             except ConnectionRefusedError:
                 self.refused += 1
                 continue
