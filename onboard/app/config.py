@@ -386,6 +386,14 @@ class OnboardConfig:
     time_offset: TimeOffsetConfig = _section(TimeOffsetConfig)
     logging: LoggingConfig = _section(LoggingConfig)
 
+    def __post_init__(self) -> None:
+        # both act on the estimator's 3-D track only: without it they would be on and never act, silently
+        for section in ("follow", "guidance"):
+            if getattr(self, section).enabled and not self.estimator.enabled:
+                raise Invalid(
+                    f"{section}.enabled", "false while estimator.enabled is false (it acts on the 3-D track)", True
+                )
+
     def bearing_white_sigma_rad(self) -> float:
         """The white noise of one bearing the estimator assumes, 1 sigma per axis (rad):
         ``sqrt(attitude_white^2 + (pixel_sigma / f)^2)``, ``f = sqrt(fx fy)`` in pixels, the focal length the

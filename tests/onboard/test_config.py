@@ -574,3 +574,11 @@ def test_no_writable_numba_cache_is_one_line_and_exit_2(monkeypatch, capsys):
     monkeypatch.setattr(daemon_main, "_serve", other)
     with pytest.raises(RuntimeError, match="something else"):  # any other error is not dressed up as this one
         daemon_main.main(["--check"])
+
+
+@pytest.mark.parametrize("section", ["follow", "guidance"])
+def test_follow_or_guidance_on_without_the_estimator_is_refused(section):
+    """Both act on the 3-D track: with the estimator off they were accepted, on and never acting."""
+    with pytest.raises(ConfigError, match=rf"^\(defaults\): {section}.enabled: expected false while estimator.enabled"):
+        build_config({section: {"enabled": True}, "estimator": {"enabled": False}})
+    assert getattr(build_config({section: {"enabled": True}}), section).enabled

@@ -90,7 +90,7 @@ def _follow_service(enabled: bool):
 
     cfg = build_config(
         {
-            "estimator": {"enabled": False},
+            "estimator": {"worker": "inline"},  # follow acts on the 3-D track: never started here
             "output": {"health_file": None},
             "follow": {"enabled": enabled, "rate_hz": 2.0},
         }
