@@ -4,7 +4,8 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
 
 * ``GcsLink(endpoints, component_id)`` opens one connection per endpoint (``udpout:HOST:PORT`` --
   send to a ground station listening there, QGC's default is UDP 14550 --, ``udpin:HOST:PORT``,
-  ``tcp:HOST:PORT``, ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
+  ``tcp:HOST:PORT`` (a ground station not up yet is dialled again every :data:`TCP_REDIAL_S`, counted
+  ``gcs_open_failed``), ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
   MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
   are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`); ``udpin`` is our own socket
@@ -81,6 +82,8 @@ PEER_TIMEOUT_S = 5.0
 MAX_PEERS = 4
 #: requesters remembered for routing replies; the least recently heard is forgotten (ids are sender-chosen)
 _MAX_ROUTES = 64
+#: a ``tcp:`` ground station that refused the connection is dialled again this often (s), as the autopilot link is
+TCP_REDIAL_S = 2.0
 
 Address = tuple[str, int]
 
@@ -243,13 +246,41 @@ class GcsLink:
         self._route: OrderedDict[tuple[int, int], tuple[int, Address | None]] = OrderedDict()
         self.messages_rx = 0
         self.messages_tx = 0
-        self._conns: list[Any] = []
+        self._parsed = parsed
+        self._conns: list[Any] = []  # None: a tcp: endpoint not connected yet, dialled again at _redial_s[index]
+        self._redial_s: dict[int, float] = {}
         try:
-            for ep in parsed:
-                self._conns.append(self._open(ep))
+            self._conns = [None] * len(parsed)
+            for idx in range(len(parsed)):
+                self._dial(idx, self._clock(), first=True)
         except Exception:
             self.close()
             raise
+
+    def _dial(self, idx: int, now_s: float, first: bool = False) -> None:
+        """Open endpoint ``idx``.  A ``tcp:`` ground station may not be up yet (it starts after the vehicle): its
+        refusal is counted (``gcs_open_failed``) and it is dialled again every :data:`TCP_REDIAL_S`; any other
+        endpoint that cannot be opened (a port in use) raises :class:`GcsLinkError`, an operator's error."""
+        ep = self._parsed[idx]
+        try:
+            conn = self._open(ep)
+        except GcsLinkError as exc:
+            if ep.kind != "tcp":
+                raise
+            self._redial_s[idx] = now_s + TCP_REDIAL_S
+            self._count("gcs_open_failed", f"{exc}; dialled again every {TCP_REDIAL_S:g} s", logging.WARNING)
+            return
+        self._redial_s.pop(idx, None)
+        if self.system_id is not None:
+            conn.mav.srcSystem = conn.source_system = self.system_id
+        self._conns[idx] = conn
+        if not first:
+            log.info("gcs: connected to %s", ep.device)
+
+    def _redial(self, now_s: float) -> None:
+        for idx, at_s in list(self._redial_s.items()):
+            if now_s >= at_s:
+                self._dial(idx, now_s)
 
     def _open(self, ep):
         try:
@@ -257,7 +288,9 @@ class GcsLink:
                 return _UdpInEndpoint(
                     ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers, self._signing
                 )
-            conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
+            # tcp: no retries inside pymavlink (each slept 1 s and printed to stdout); _dial redials instead
+            kwargs = {} if ep.kind == "serial" else {"autoreconnect": True, "retries": 0}
+            conn = connect(ep, 1, self.component_id, **kwargs)
             # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
             conn.mav = new_parser(self._signing, conn, 1, self.component_id)
             return conn
@@ -272,6 +305,8 @@ class GcsLink:
             return
         self.system_id = int(sysid)
         for conn in self._conns:
+            if conn is None:
+                continue
             conn.mav.srcSystem = self.system_id
             conn.source_system = self.system_id
         log.info("camera component %d/%d on %s", self.system_id, self.component_id, ", ".join(self.endpoints))
@@ -318,7 +353,10 @@ class GcsLink:
         """Commands addressed to us, from every endpoint (never blocks, never raises)."""
         out: list[CameraCommand] = []
         now_s = self._clock()
+        self._redial(now_s)
         for idx, conn in enumerate(self._conns):
+            if conn is None:
+                continue
             for msg, addr, sig_reject in self._receive(conn, now_s, max_messages):
                 self.messages_rx += 1
                 mtype = msg.get_type()
@@ -362,6 +400,8 @@ class GcsLink:
         n = 0
         for idx, addr in targets:
             conn = self._conns[idx]
+            if conn is None:
+                continue  # a tcp: ground station not connected yet: nobody to send to
             try:
                 if isinstance(conn, _UdpInEndpoint):
                     if addr is None:
@@ -380,6 +420,8 @@ class GcsLink:
 
     def close(self) -> None:
         for conn in self._conns:
+            if conn is None:
+                continue
             try:
                 conn.close()
             except Exception:  # noqa: BLE001

@@ -379,3 +379,41 @@ def test_with_a_key_udpout_signs_what_it_sends_and_refuses_unsigned_commands():
 def test_a_signing_key_of_the_wrong_size_is_refused():
     with pytest.raises(ConfigError, match="signing_key"):
         GcsLink(["udpout:127.0.0.1:9"], 100, signing_key=b"short")
+
+
+def test_a_tcp_ground_station_not_up_yet_is_dialled_again_not_fatal(capsys):
+    """A ground station the camera dials over TCP may start after the vehicle: its refusal stopped the daemon's
+    start (exit 2, after pymavlink slept 3 s printing to stdout); it is counted and dialled again."""
+    from groundsim.io.ports import free_tcp_port
+    from onboard.io.gcs_link import TCP_REDIAL_S
+
+    port = free_tcp_port()
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    t0 = time.monotonic()
+    link = GcsLink([f"tcp:127.0.0.1:{port}"], 100, counter=counters, clock=clock)
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    try:
+        assert time.monotonic() - t0 < 1.0  # no retries slept inside pymavlink
+        assert counters.counts["gcs_open_failed"] == 1 and link.filenos() == []
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"][0]
+        assert link.send(hb) == 0  # nobody yet: nothing sent, nothing raised
+        server.bind(("127.0.0.1", port))
+        server.listen(1)
+        server.settimeout(WAIT_S)
+        clock.t_s += TCP_REDIAL_S / 2
+        link.poll()
+        assert link.filenos() == []  # not before its time
+        clock.t_s += TCP_REDIAL_S
+        link.poll()
+        peer, _ = server.accept()
+        with peer:
+            assert link.send(hb) == 1
+            peer.settimeout(WAIT_S)
+            (msg,) = mav.MAVLink(None).parse_buffer(peer.recv(65535))
+            assert msg.get_type() == "HEARTBEAT" and (msg.get_srcSystem(), msg.get_srcComponent()) == (SYSID, 100)
+        assert capsys.readouterr().out == ""
+    finally:
+        link.close()
+        server.close()
