@@ -16,6 +16,7 @@ from onboard.app.track_video import OutputError
 from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.irframe import IrFrameError
 from onboard.core.schema import SchemaError
+from onboard.io.mavlink_signing import SigningKeyError
 from onboard.pipeline.frame_pipeline import FrameRejected
 
 REPO = Path(__file__).resolve().parents[2]
@@ -30,6 +31,7 @@ ERRORS = [
     IrFrameError("short", "frame of 3 bytes: shorter than its header"),
     FrameRejected("dims_mismatch", "frame 640 x 480, expected 640 x 512"),
     OutputError("out/track.csv", "Permission denied"),
+    SigningKeyError("mavlink.signing_key_file", "a readable key file", "'/k': Permission denied"),
 ]
 
 
