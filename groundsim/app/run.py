@@ -731,6 +731,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 gimballed=core.gimballed,
                 guided=config.guided,
                 gnss_outage_us=outage,
+                gnss_accuracy=core.nav_noise.gnss_accuracy_m(),
                 unix_time_at_boot_us=reported_unix_at_boot_us(core, name),
             )
             if config.truth_path is not None:

@@ -33,8 +33,10 @@ SYS_STATUS (#1)                              1 Hz      gyro, accel, mag, baro, G
                                                        present/enabled/healthy; 4S battery volts,
                                                        current, remaining (linear drain from 100 %)
 EXTENDED_SYS_STATE (#245)                    1 Hz      landed_state IN_AIR
-GPS_RAW_INT (#24)                            5 Hz      3D fix, 14 satellites, the #33 position; inside
-                                                       ``gnss_outage_us`` no fix, 0 satellites (and no #33);
+GPS_RAW_INT (#24)                            5 Hz      3D fix (RTK fixed for an RTK navigation case), 14
+                                                       satellites, the #33 position, h_acc / v_acc of the
+                                                       case (``gnss_accuracy``); inside ``gnss_outage_us``
+                                                       no fix, 0 satellites, accuracies 0 = unknown (no #33);
                                                        alt_ellipsoid = alt + :data:`GEOID_UNDULATION_M`
 ATTITUDE (#30)                               10 Hz     roll, pitch, yaw of ``q_ned_from_body``, rates
 BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MAX), current, mAh used
@@ -390,7 +392,11 @@ class MavlinkVehicle:
         unix_time_at_boot_us: int | None = None,
         guided: bool = False,
         gnss_outage_us: tuple[int, int] | None = None,
+        gnss_accuracy: tuple[bool, float, float] = (False, 0.5, 0.8),
     ) -> None:
+        # gnss_accuracy: (RTK fix, horizontal and vertical 1-sigma, m) GPS_RAW_INT reports with a fix: the
+        # navigation case's (NoiseCase.gnss_accuracy_m); the default a plain GNSS fix's
+        self.gnss_rtk, self.gnss_h_acc_m, self.gnss_v_acc_m = bool(gnss_accuracy[0]), *map(float, gnss_accuracy[1:])
         # guided: heartbeat as ArduPilot and take velocity setpoints (SET_POSITION_TARGET_LOCAL_NED) in GUIDED for
         # the flight (take_setpoints); otherwise they are counted and ignored.  It reports LOITER until it has heard
         # the companion's heartbeat and sent it one more LOITER heartbeat, then GUIDED: the pilot's hand-over, which
@@ -660,9 +666,17 @@ class MavlinkVehicle:
             vel = min(round(math.hypot(vx, vy)), UINT16_MAX - 1)
             cog = round(math.degrees(math.atan2(vy, vx)) % 360.0 * 100.0) % 36000 if vel > 0 else UINT16_MAX
             no_fix = self._no_gnss(state.time_boot_us)
+            fix = mavlink2.GPS_FIX_TYPE_RTK_FIXED if self.gnss_rtk else mavlink2.GPS_FIX_TYPE_3D_FIX
+            # without a fix the uncertainty is unknown (0, as onboard.io.mavlink_wire.GpsRawInt reads it); the
+            # position is then not to be used, whatever it says
+            h_acc_mm, v_acc_mm = (
+                (0, 0)
+                if no_fix
+                else (round(self.gnss_h_acc_m * 1000.0), round(self.gnss_v_acc_m * 1000.0))
+            )
             mav.gps_raw_int_send(
                 self._unix_at_boot_us + state.time_boot_us,
-                mavlink2.GPS_FIX_TYPE_NO_FIX if no_fix else mavlink2.GPS_FIX_TYPE_3D_FIX,
+                mavlink2.GPS_FIX_TYPE_NO_FIX if no_fix else fix,
                 lat,
                 lon,
                 alt_mm,
@@ -672,8 +686,8 @@ class MavlinkVehicle:
                 cog,
                 0 if no_fix else 14,
                 alt_mm + round(GEOID_UNDULATION_M * 1000.0),
-                500,
-                800,
+                h_acc_mm,
+                v_acc_mm,
                 200,
                 0,
                 0,

@@ -17,6 +17,10 @@ from onboard.core.schema import NOT_A_KEY, NonNegativeFloat, SchemaError, Text, 
 __all__ = ["NoiseCase", "load_noise_cases", "noise_cases_from_dict", "noise_cases_path"]
 
 _CONFIG_DIR = Path(__file__).resolve().parents[2] / "config"
+#: per-axis white camera-position noise up to which a case is an RTK fix (centimetre-level, as RTK receivers give)
+RTK_WHITE_MAX_M = 0.05
+#: the least position uncertainty a receiver reports (an RTK fix says ~1 cm, never 0)
+GNSS_ACCURACY_FLOOR_M = 0.01
 
 
 @scenario_model
@@ -39,6 +43,17 @@ class NoiseCase:
     camera_position_white_sigma_m: NonNegativeFloat = 0.0
     camera_position_offset_m: NonNegativeFloat = 0.0
     camera_position_drift_mps: NonNegativeFloat = 0.0
+
+    def gnss_accuracy_m(self) -> tuple[bool, float, float]:
+        """What the vehicle's GNSS receiver reports of this case's camera-position error (GPS_RAW_INT): whether
+        it is an RTK fix (white noise of at most :data:`RTK_WHITE_MAX_M` per axis, no offset, no drift), and its
+        horizontal and vertical 1-sigma uncertainty, m: the white noise (horizontal over two axes) plus the
+        offset's size, at least :data:`GNSS_ACCURACY_FLOOR_M` (no receiver reports zero)."""
+        white, offset = self.camera_position_white_sigma_m, self.camera_position_offset_m
+        rtk = white <= RTK_WHITE_MAX_M and offset == 0.0 and self.camera_position_drift_mps == 0.0
+        h = max(math.sqrt(2.0) * white + offset, GNSS_ACCURACY_FLOOR_M)
+        v = max(white + offset, GNSS_ACCURACY_FLOOR_M)
+        return rtk, h, v
 
     @property
     def attitude_white_sigma_rad(self) -> float:

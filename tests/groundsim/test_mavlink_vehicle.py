@@ -632,9 +632,9 @@ def test_gnss_outage_withholds_global_position_and_reports_no_fix_while_attitude
 # ----------------------------------------------------------------------------- home, relative and ellipsoidal altitude
 
 
-def _captured_vehicle():
+def _captured_vehicle(**kw):
     """A vehicle whose writes are parsed in process (no datagram leaves): (vehicle, messages so far)."""
-    v = MavlinkVehicle("udpout:127.0.0.1:9", unix_time_at_boot_us=1_700_000_000_000_000)
+    v = MavlinkVehicle("udpout:127.0.0.1:9", unix_time_at_boot_us=1_700_000_000_000_000, **kw)
     parser = mavlink2.MAVLink(None)
     got: list = []
 
@@ -690,6 +690,39 @@ def test_gps_raw_int_alt_ellipsoid_is_alt_plus_the_worlds_geoid_undulation():
     (pos,) = _of(got, "GLOBAL_POSITION_INT")
     assert gps.alt == pos.alt == round(ALT_AMSL_M * 1000)
     assert gps.alt_ellipsoid == gps.alt + round(GEOID_UNDULATION_M * 1000)
+
+
+@pytest.mark.parametrize(
+    ("case", "fix", "h_mm", "v_mm"),
+    [("RTK", mavlink2.GPS_FIX_TYPE_RTK_FIXED, 28, 20), ("GNSS", mavlink2.GPS_FIX_TYPE_3D_FIX, 1500, 1500),
+     ("exact", mavlink2.GPS_FIX_TYPE_RTK_FIXED, 10, 10)],
+)  # fmt: skip
+def test_gps_raw_int_reports_the_navigation_cases_fix_and_accuracy(case, fix, h_mm, v_mm):
+    """It said a 3-D fix of 0.5 / 0.8 m whatever the case: an RTK case's 2 cm, a GNSS case's 1.5 m offset alike."""
+    from groundsim.world.noise_cases import load_noise_cases
+    from onboard.io.mavlink_wire import GpsRawInt
+
+    v, got = _captured_vehicle(gnss_accuracy=load_noise_cases()[case].gnss_accuracy_m())
+    try:
+        _state(v, 0)
+        v.poll(0)
+    finally:
+        v.close()
+    (gps,) = _of(got, "GPS_RAW_INT")
+    assert (gps.fix_type, gps.h_acc, gps.v_acc) == (fix, h_mm, v_mm)
+    read = GpsRawInt.from_message(gps)  # as the daemon reads it
+    assert (read.h_acc_m, read.v_acc_m) == (h_mm / 1000, v_mm / 1000)
+
+
+def test_gps_raw_int_without_a_fix_says_its_accuracy_is_unknown():
+    v, got = _captured_vehicle(gnss_outage_us=(0, 10_000_000))
+    try:
+        _state(v, 0)
+        v.poll(0)
+    finally:
+        v.close()
+    (gps,) = _of(got, "GPS_RAW_INT")
+    assert (gps.fix_type, gps.satellites_visible, gps.h_acc, gps.v_acc) == (mavlink2.GPS_FIX_TYPE_NO_FIX, 0, 0, 0)
 
 
 @pytest.mark.integration
