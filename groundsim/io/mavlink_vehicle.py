@@ -670,9 +670,7 @@ class MavlinkVehicle:
             # without a fix the uncertainty is unknown (0, as onboard.io.mavlink_wire.GpsRawInt reads it); the
             # position is then not to be used, whatever it says
             h_acc_mm, v_acc_mm = (
-                (0, 0)
-                if no_fix
-                else (round(self.gnss_h_acc_m * 1000.0), round(self.gnss_v_acc_m * 1000.0))
+                (0, 0) if no_fix else (round(self.gnss_h_acc_m * 1000.0), round(self.gnss_v_acc_m * 1000.0))
             )
             mav.gps_raw_int_send(
                 self._unix_at_boot_us + state.time_boot_us,
