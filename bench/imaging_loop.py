@@ -114,7 +114,7 @@ def score_run(r, scenario, defects: np.ndarray) -> dict:
 
 
 def main(argv: list[str]) -> None:
-    from bench.options import BenchParser, known_nav_noise, name_in, positive_int
+    from bench.options import BenchParser, known_nav_noise, name_in, nonnegative_number, positive_int
     from groundsim.evaluation.eval import EvalOptions, load_base_config, run_lockstep
     from groundsim.world.nav_errors import InjectedErrors
     from groundsim.world.scenario import load_scenario, reference_scenario_paths, scenarios_dir
@@ -132,6 +132,14 @@ def main(argv: list[str]) -> None:
         "--nav-noise", type=known_nav_noise, default="RTK", help="navigation-error case (config/noise_cases.yaml)"
     )
     ap.add_argument("--onboard-config", default=None, help="the daemon's configuration (default: the shipped one)")
+    ap.add_argument(
+        "--rotation-wait-ms",
+        type=nonnegative_number,
+        default=None,
+        help="frames sent at their capture instant: each waits at most this long for the samples that bracket its"
+        " rotation, else takes it extrapolated (the daemon's imaging.pose_wait_ms); default: every frame's"
+        " telemetry fed until it brackets the frame",
+    )
     a = ap.parse_args(argv)
     import dataclasses
 
@@ -149,7 +157,12 @@ def main(argv: list[str]) -> None:
         sc = load_scenario(scenarios_dir() / f"{name}.yaml")
         for seed in range(a.seeds):
             t0 = time.perf_counter()
-            r = run_lockstep(sc, seed, EvalOptions(batch=False, injected=InjectedErrors(a.nav_noise)), base)
+            opts = EvalOptions(
+                batch=False,
+                injected=InjectedErrors(a.nav_noise),
+                rotation_wait_us=None if a.rotation_wait_ms is None else round(a.rotation_wait_ms * 1000),
+            )
+            r = run_lockstep(sc, seed, opts, base)
             s = score_run(r, sc, defect_pixels(sc, seed))
             ffc = " ".join(f"{x:.2f}" for x in s["ffc_s"]) or "-"
             od = "-" if s["on_defect"] is None else str(s["on_defect"])

@@ -73,6 +73,7 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 import numpy as np  # noqa: E402
 
 from bench import machine_speed_ms, pacing_factor, pin_to_one_cpu, run_benchmark  # noqa: E402
+from bench.options import positive_float  # noqa: E402
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -445,6 +446,7 @@ def bench_latency(
     rate_hz: float = 30.0,
     extra_args: tuple[str, ...] = (),
     chain: str = "objects",
+    attitude_rate_hz: float = 50.0,
 ) -> dict:
     import queue
 
@@ -500,6 +502,7 @@ def bench_latency(
         status_at_start = None
         cpu_at_start = cpu_at_full = None
         lag_us = int(capture_lag_ms * 1000)
+        pos_every = max(round(attitude_rate_hz / 25.0), 1)
         while True:
             now = time.monotonic()
             ap.pump()
@@ -509,10 +512,10 @@ def bench_latency(
             if now >= next_tel:
                 t = ap.boot_us()
                 ap.attitude(t)
-                if tel_n % 2 == 0:
+                if tel_n % pos_every == 0:  # position at 25 Hz whatever the attitude's rate
                     ap.position(t)
                 tel_n += 1
-                next_tel += 0.02
+                next_tel += 1.0 / attitude_rate_hz
             if now >= next_frame:
                 # captured capture_lag_ms ago: stamped then, and showing the scene as it was then (the
                 # telemetry the daemon pairs it with is the vehicle's at that stamp)
@@ -795,6 +798,13 @@ def main(argv=None) -> int:
         choices=("objects", "single"),
         help="imaging.chain of the daemon and of the per-frame processing (default: the daemon's, objects)",
     )
+    ap.add_argument(
+        "--attitude-rate-hz",
+        type=positive_float,
+        default=50.0,
+        help="the fake autopilot's ATTITUDE_QUATERNION rate in the latency runs (default 50, what the daemon asks;"
+        " a frame sent at its capture waits up to one attitude period for its bracketing sample)",
+    )
     ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
     ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
@@ -817,11 +827,16 @@ def main(argv=None) -> int:
         # first, before this process pins itself to one core
         chain = args.chain or _default_chain()
         extra = ("--set", f"imaging.chain={args.chain}") if args.chain else ()
+        if args.attitude_rate_hz != 50.0:  # the daemon asks for what it gets (its pose horizons follow the rate)
+            extra += ("--set", f"mavlink.attitude_rate_hz={args.attitude_rate_hz:g}")
         print(
             "loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz,"
             f" imaging.chain {chain}{'' if args.chain else ' (the default)'}"
         )
-        rows = [bench_latency(args.latency_s, lag, extra_args=extra, chain=chain) for lag in args.capture_lags_ms]
+        rows = [
+            bench_latency(args.latency_s, lag, extra_args=extra, chain=chain, attitude_rate_hz=args.attitude_rate_hz)
+            for lag in args.capture_lags_ms
+        ]
         lat_ask, cpu_ask = ASKS[chain]
         print(
             f"   summary, put -> track received (target p99 <= {lat_ask:g} ms at any capture lag;"

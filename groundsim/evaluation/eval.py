@@ -138,6 +138,11 @@ class EvalOptions:
     #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
     #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
     guidance: bool = False
+    #: frames sent the instant they are captured, the daemon's wait for their rotation (``imaging.pose_wait_ms``):
+    #: each frame gets the telemetry up to its capture, then the samples that come within this many us until its
+    #: rotation is bracketed, else its rotation extrapolated; None: every frame's telemetry fed until it brackets
+    #: the frame (a camera whose frames arrive after their telemetry)
+    rotation_wait_us: int | None = None
 
     def __post_init__(self) -> None:
         d = self.duration_s
@@ -228,8 +233,12 @@ class TelemetryFeed:
         gimballed: bool,
         rates_hz: tuple[float, float, float] = (ATT_RATE_HZ, POS_RATE_HZ, GIMBAL_RATE_HZ),
         gnss_outage_us: tuple[int, int] | None = None,
+        body_rates: bool = False,
     ) -> None:
         self.core = core
+        #: feed the attitude's body rates, as the daemon's link gets them, so that a pose past the newest sample is
+        #: extrapolated as in the daemon (:meth:`feed_for_rotation`); off, a lookup waits for its bracket
+        self.body_rates = bool(body_rates)
         self.gnss_outage_us = gnss_outage_us
         self.pose = pose_buffer
         self.gimballed = gimballed
@@ -247,8 +256,9 @@ class TelemetryFeed:
     def feed_next(self) -> None:
         """Offer the next tick's state (streams due at that tick only), encoded and decoded by
         :mod:`onboard.io.mavlink_wire` as the MAVLink vehicle and the daemon's link do (packed and parsed:
-        the wire's quantisation).  The body and gimbal rates are not fed: the lockstep loop waits for the
-        bracketing sample instead of extrapolating (the benchmark's accuracy tables are defined so)."""
+        the wire's quantisation).  The body rates are fed only with ``body_rates`` (the gimbal's are NaN on the
+        simulated vehicle's wire anyway): the lockstep loop waits for the bracketing sample instead of
+        extrapolating (the benchmark's accuracy tables are defined so)."""
         from groundsim.world.nav_errors import reported_state
         from onboard.io.mavlink_wire import (
             AttitudeQuaternion,
@@ -274,7 +284,9 @@ class TelemetryFeed:
                         ).to_message()
                     )
                 )
-                self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body)
+                self.pose.add_attitude(
+                    att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps if self.body_rates else None
+                )
             elif name == "pos":
                 w = self.gnss_outage_us
                 if w is not None and w[0] <= now < w[1]:  # withheld, as MavlinkVehicle does in a GNSS dropout
@@ -315,6 +327,18 @@ class TelemetryFeed:
         while not self.exhausted and self.core.time_boot_us(self.next_tick) <= time_boot_us + FEED_LEAD_MAX_US:
             res = self.pose.lookup(time_boot_us)
             if res.pose is not None or not res.retry:
+                return
+            self.feed_next()
+
+    def feed_for_rotation(self, frame_tick: int, time_boot_us: int, wait_us: int) -> None:
+        """Feed through ``frame_tick`` (a frame sent at its capture: the telemetry up to it), then the samples
+        within ``wait_us`` after ``time_boot_us`` until the rotation's streams bracket it (the daemon's chain
+        waiting for them, ``imaging.pose_wait_ms``)."""
+        while self.next_tick <= frame_tick and not self.exhausted:
+            self.feed_next()
+        while not self.exhausted and self.core.time_boot_us(self.next_tick) <= time_boot_us + wait_us:
+            newest = self.pose.newest_rotation_time_boot_us()
+            if newest is not None and newest >= time_boot_us:
                 return
             self.feed_next()
 
@@ -525,6 +549,7 @@ def run_lockstep(
         core.gimballed,
         (m.attitude_rate_hz, m.position_rate_hz, m.gimbal_rate_hz),
         None if gd is None else gd.boot_window_us(core.boot_start_us),
+        body_rates=options.rotation_wait_us is not None,
     )
     gnss_warning_t_s = math.nan
     # the daemon's own checks (gnss_dropout, camera_time_offset), on the frames' time
@@ -569,7 +594,10 @@ def run_lockstep(
         # a frame stamped late is looked up at its stamp: the daemon waits for that telemetry, so does the feed
         stamped = None if clock is None else clock.stamp_us(t_frame_us, core.tick_time_s(i))
         late_us = 0 if stamped is None else max(stamped - t_frame_us, 0)
-        feed.feed_for(i, t_frame_us + late_us)
+        if options.rotation_wait_us is None:
+            feed.feed_for(i, t_frame_us + late_us)
+        else:
+            feed.feed_for_rotation(i, t_frame_us + late_us, options.rotation_wait_us)
         if feed.exhausted and buffer.lookup(t_frame_us).pose is None:
             # the simulation ends before a telemetry sample after this frame: the run's last frame or two
             # can have no pose in lockstep (nor in a real run that stops there); they are not processed

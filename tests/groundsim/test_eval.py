@@ -643,3 +643,20 @@ def test_eval_cli_rejects_bad_options_in_one_line(tmp_path, argv, needle):
     assert code == cli.EXIT_ERROR
     lines = [line for line in err.splitlines() if line.strip() and "INFO" not in line]
     assert len(lines) == 1 and lines[0].startswith("groundsim eval: error:") and needle in lines[0], err
+
+
+def test_frames_sent_at_capture_get_their_rotation_extrapolated_when_the_wait_is_short():
+    """rotation_wait_us (frames sent the instant they are captured, the daemon's imaging.pose_wait_ms): with no wait
+    every frame's pose is extrapolated past its newest samples with the attitude's body rates, as in the daemon
+    (without the rates, lockstep's own feed, a lookup past the newest sample found no pose at all); the default
+    feeds each frame's telemetry until it brackets the frame, and nothing is extrapolated."""
+    sc = load_scenario(P1)
+    counts = {}
+    for wait_us in (None, 0):
+        r = run_lockstep(
+            sc, 3, EvalOptions(duration_s=LOCKSTEP_DURATION_S, batch=False, keep_frame=False, rotation_wait_us=wait_us)
+        )
+        counts[wait_us] = r.counters
+        assert np.isfinite(r.uv_px).all(axis=1).sum() >= r.frames - 12  # tracked either way after its first 11 frames
+    assert counts[None].get("pose_extrapolated", 0) == 0
+    assert counts[0].get("pose_extrapolated", 0) >= 40 and counts[0].get("pose_attitude_not_yet", 0) == 0
