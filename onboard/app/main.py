@@ -205,6 +205,25 @@ def _run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
 
 
+def _start_problem(config) -> str | None:
+    """For ``--check``: a recording path the start could not write, a live view host it could not resolve (each
+    fails the start in one line; the configuration's values alone cannot tell)."""
+    import socket
+
+    from onboard.io.record import record_path_problem
+
+    if config.record.path:
+        problem = record_path_problem(config.record.path)
+        if problem is not None:
+            return f"record.path: cannot write {problem}"
+    if config.live_view.port is not None:
+        try:
+            socket.getaddrinfo(config.live_view.host, config.live_view.port, type=socket.SOCK_STREAM)
+        except OSError as exc:
+            return f"live_view.host: cannot resolve {config.live_view.host!r}: {exc.strerror or exc}"
+    return None
+
+
 def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
     from onboard.app.config import OnboardConfigError, config_to_dict, load_config
     from onboard.core.errors import IrtrackError
@@ -231,6 +250,10 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
             )
         except ZenohConfigError as exc:
             print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
+            return EXIT_CONFIG
+        problem = _start_problem(config)  # what the start would refuse that only the disk or the network knows
+        if problem is not None:
+            print(f"{args.config or '(defaults)'}: {problem}", file=sys.stderr)
             return EXIT_CONFIG
         if config.output.health_file:
             # the start's own check of the liveness path (a folder, a file with content): it depends on the disk,

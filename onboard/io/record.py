@@ -304,6 +304,28 @@ def free_recording_path(path: str) -> str:
     return f"{stem}-{n}.mcap"
 
 
+def record_path_problem(path: str) -> str | None:
+    """Why a recording could not be written at ``path`` (``--check``), or None: a folder there, or the nearest
+    existing folder above it (the recorder makes the rest) where a file cannot be made.  It makes one there and
+    removes it at once: permissions alone do not tell (root, a read-only or special file system)."""
+    import tempfile
+
+    p = os.path.abspath(path)
+    if os.path.isdir(p):
+        return f"{path} is a folder"
+    d = os.path.dirname(p)
+    while not os.path.lexists(d):
+        d = os.path.dirname(d)
+    if not os.path.isdir(d):
+        return f"{d} is not a folder"
+    try:
+        with tempfile.NamedTemporaryFile(dir=d, prefix=".irtrack-check-"):
+            pass
+    except OSError as exc:
+        return f"{d}: {exc.strerror or exc}"
+    return None
+
+
 def free_disk_bytes(path: str) -> int | None:
     """Bytes an unprivileged writer may still write on the file system holding ``path`` (its folder;
     ``statvfs``'s ``f_bavail``), or None when that cannot be read."""

@@ -582,3 +582,22 @@ def test_follow_or_guidance_on_without_the_estimator_is_refused(section):
     with pytest.raises(ConfigError, match=rf"^\(defaults\): {section}.enabled: expected false while estimator.enabled"):
         build_config({section: {"enabled": True}, "estimator": {"enabled": False}})
     assert getattr(build_config({section: {"enabled": True}}), section).enabled
+
+
+def test_check_refuses_what_the_start_would_a_recording_folder_it_cannot_write_or_a_live_view_host_unknown(
+    tmp_path, capsys
+):
+    """--check said ok, then the start exited 2: a recording under a file, a live view host that does not resolve."""
+    from onboard.app.main import main
+
+    blocker = tmp_path / "not-a-folder"
+    blocker.write_text("x")
+    assert main(["--check", "--record", str(blocker / "sub" / "f.mcap")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"(defaults): record.path: cannot write {blocker} is not a folder", err
+    assert main(["--check", "--live-view", "8765", "--set", "live_view.host=nonexistent.invalid"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("(defaults): live_view.host: cannot resolve 'nonexistent.invalid': "), err
+    # a recording in a folder still to be made is fine (the recorder makes it), and nothing is left behind
+    assert main(["--check", "--record", str(tmp_path / "new" / "f.mcap")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["not-a-folder"]
