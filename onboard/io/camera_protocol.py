@@ -41,7 +41,8 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
   A request for a message id we do not produce is DENIED; a malformed parameter (NaN, a point
   outside 0..1, a rectangle with no area) is DENIED; a tracking command for another camera id
   (param "target camera ID" not 0 nor our component id) is DENIED.  A tracking request that the
-  pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED.
+  pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED, but
+  a stop, which needs no frame: it is ACCEPTED then and carried out at the next frame.
   A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
 * Refusals in the daemon's reject counter (:class:`~onboard.core.counters.RejectCounter`, the status's
   ``rejected``; logged at INFO, once per reason and log interval): every answer DENIED
@@ -777,14 +778,21 @@ class CameraProtocol:
             if self._superseded[rid].request.claim():
                 del self._superseded[rid]
         for rid in [r for r, p in self._pending.items() if now_s >= p.deadline_s]:
+            if self._pending[rid].command == MAV_CMD_CAMERA_STOP_TRACKING:
+                # a stop needs no frame to be right: ACCEPTED now and left to the pipeline, which carries it out
+                # at the next frame (refused, the operator's stop was lost and the old selection came back with
+                # the frames); a newer selection still comes after it
+                pend = self._pending.pop(rid)
+                self._accepted(pend.request.kind)
+                out.append(self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester))
+                continue
             if not self._pending[rid].request.claim():
                 continue  # the pipeline is applying it this moment: its result decides, on a later tick
             pend = self._pending.pop(rid)
-            what = "to stop tracking on" if pend.command == MAV_CMD_CAMERA_STOP_TRACKING else "to select on"
             out += self._refuse(
                 pend.command,
                 MAV_RESULT_TEMPORARILY_REJECTED,
-                f"no frame {what} (no IR frames arriving)",
+                "no frame to select on (no IR frames arriving)",
                 pend.requester,
             )
         tracking = track is not None and track.state in ("tracking", "coasting")

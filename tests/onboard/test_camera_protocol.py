@@ -645,12 +645,20 @@ def test_the_daemon_says_rendered_when_its_video_draws_the_target(overlay, desti
     assert make_camera_protocol(cfg, cfg.camera.pinhole()).target_rendered is rendered
 
 
-def test_a_stop_nobody_decides_says_it_is_the_stop_that_waited():
+def test_a_stop_with_no_frames_is_accepted_at_the_timeout_and_carried_out_at_the_next_frame():
+    """A stop needs no frame to be right: it was TEMPORARILY_REJECTED ("no frame to select on") and dropped, so the
+    old selection came back with the frames."""
     proto = _proto(track_request_timeout_s=1.0)
-    proto.handle(_cmd(cp.MAV_CMD_CAMERA_STOP_TRACKING), 10.0, 0)
+    _, sel = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.5, 0.5, 0.03), 5.0, 0)
+    assert sel.claim() and proto.complete(TrackResult(sel.request_id, True))  # tracking a clicked object
+    assert proto.selection_mode == mav.CAMERA_TRACKING_MODE_POINT
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_STOP_TRACKING), 10.0, 0)
+    assert not any(o.msg == "command_ack" for o in proto.tick(10.9, None))
     out = proto.tick(11.0, None)
-    assert _ack(out)["result"] == mav.MAV_RESULT_TEMPORARILY_REJECTED
-    assert "no frame to stop tracking on" in proto.status()["last_refusal"]
+    assert _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED and not any(o.msg == "statustext" for o in out)
+    assert proto.selection_mode == mav.CAMERA_TRACKING_MODE_NONE
+    assert req.claim()  # still the pipeline's to carry out when frames come
+    assert proto.complete(TrackResult(req.request_id, True)) == []  # answered already: no second ACK
 
 
 def test_a_heartbeat_period_qgc_would_drop_the_camera_in_is_refused_naming_the_field():
