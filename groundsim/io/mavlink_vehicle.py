@@ -50,8 +50,9 @@ A ground station's other requests: PARAM_REQUEST_LIST -> PARAM_VALUE for each of
 :data:`DEFAULT_PARAMS` (REAL32), PARAM_REQUEST_READ (name or index) and PARAM_SET (stored, echoed);
 MISSION_REQUEST_LIST -> MISSION_COUNT 0 of the asked mission type (no mission, fence or rally);
 MISSION_CLEAR_ALL -> MISSION_ACK ACCEPTED; MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES -> AUTOPILOT_VERSION;
-MAV_CMD_GET_HOME_POSITION -> HOME_POSITION.  MAVSDK reads health, home, GPS and battery with no
-request DENIED (tested).
+MAV_CMD_GET_HOME_POSITION -> HOME_POSITION; MAV_CMD_GET_MESSAGE_INTERVAL and REQUEST_MESSAGE(244, param2 = id)
+-> MESSAGE_INTERVAL (-1: off, 0: not streamed); SET_MESSAGE_INTERVAL of HEARTBEAT is FAILED (as PX4).  MAVSDK reads
+health, home, GPS and battery with no request DENIED (tested).
 
 Navigation errors: ``update_state(..., nav_error=sample)`` reports the state with a
 :class:`groundsim.world.nav_errors.NavErrorSample` applied (attitude error on #31 and on #285's gimbal
@@ -862,8 +863,16 @@ class MavlinkVehicle:
         if msg.target_system not in (0, self.sysid) or msg.target_component not in (0, self.compid):
             return 0
         cmd = msg.command
+        interval_of = None  # a MESSAGE_INTERVAL to send after the ACK: (message id, interval us)
         if cmd == mavlink2.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = self._set_message_interval(msg.param1, msg.param2)
+        elif cmd == mavlink2.MAV_CMD_GET_MESSAGE_INTERVAL or (
+            cmd == mavlink2.MAV_CMD_REQUEST_MESSAGE and msg.param1 == mavlink2.MAVLINK_MSG_ID_MESSAGE_INTERVAL
+        ):
+            # the interval of param1 (GET) or param2 (REQUEST_MESSAGE 244), as PX4 answers both
+            asked = msg.param1 if cmd == mavlink2.MAV_CMD_GET_MESSAGE_INTERVAL else msg.param2
+            interval_of = self._interval_report(asked)
+            result = mavlink2.MAV_RESULT_DENIED if interval_of is None else mavlink2.MAV_RESULT_ACCEPTED
         elif cmd == mavlink2.MAV_CMD_REQUEST_MESSAGE:
             result = self._request_message(msg.param1)
         elif cmd == mavlink2.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
@@ -874,7 +883,21 @@ class MavlinkVehicle:
             result = mavlink2.MAV_RESULT_UNSUPPORTED
         self._conn.mav.send(command_ack_message(cmd, result, msg.get_srcSystem(), msg.get_srcComponent()))
         self.counters[_ACK_COUNTER.get(result, "ack_other")] += 1
-        return 1
+        if interval_of is None:
+            return 1
+        self._conn.mav.message_interval_send(*interval_of)
+        return 2
+
+    def _interval_report(self, param: float) -> tuple[int, int] | None:
+        """MESSAGE_INTERVAL's (message_id, interval_us) for a message id: -1 for a stream switched off, 0 for a
+        message not streamed (common.xml: "not available"); None for an id that is not a uint16."""
+        if not math.isfinite(param) or param != int(param) or not 0 <= param <= 0xFFFF:
+            return None
+        msg_id = int(param)
+        if msg_id not in self._interval_us:
+            return msg_id, 0
+        interval = self._interval_us[msg_id]
+        return msg_id, -1 if interval is None else int(interval)
 
     def _message_id(self, param: float) -> int | None:
         if not math.isfinite(param) or param != int(param):

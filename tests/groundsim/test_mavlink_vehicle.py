@@ -735,3 +735,26 @@ def test_the_heartbeat_cannot_be_switched_off_or_slowed(link, interval_us):
     ack = _command(rx, vehicle, 0, 511, 0, interval_us)
     assert ack.result == 4  # MAV_RESULT_FAILED
     assert vehicle.message_interval_us(0) == 1_000_000
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("via", ["get", "request"])
+def test_message_intervals_can_be_asked_as_a_px4_answers(link, via):
+    """GET_MESSAGE_INTERVAL (510) and REQUEST_MESSAGE(244, param2 = id): the ACK, then MESSAGE_INTERVAL with the
+    stream's interval (-1 off, 0 a message not streamed); both were refused (UNSUPPORTED, DENIED)."""
+    rx, vehicle = link
+    _prime(rx, vehicle)
+
+    def ask(msg_id: float):
+        if via == "get":
+            ack = _command(rx, vehicle, 0, 510, msg_id)
+        else:
+            ack = _command(rx, vehicle, 0, 512, 244, msg_id)
+        got = _of(_drain(rx, quiet_s=0.1), "MESSAGE_INTERVAL")
+        return ack.result, [(m.message_id, m.interval_us) for m in got]
+
+    assert ask(31) == (0, [(31, 20_000)])
+    assert _command(rx, vehicle, 0, 511, 33, -1).result == 0  # position off
+    assert ask(33) == (0, [(33, -1)])
+    assert ask(32) == (0, [(32, 0)])  # LOCAL_POSITION_NED: not streamed
+    assert ask(31.5) == (2, [])  # not a message id: DENIED, nothing sent
