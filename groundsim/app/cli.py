@@ -142,6 +142,13 @@ def _add_run(p: argparse.ArgumentParser) -> None:
         " NAME=CONN per observer (repeatable; an observer not named sends to udpout:127.0.0.1:<14540 + its index>)",
     )
     p.add_argument(
+        "--mavlink-signing-key",
+        default=None,
+        metavar="FILE",
+        help="MAVLink 2 signing: sign every message with the key in FILE and take only verified ones, as an autopilot"
+        " with signing on (64 hex digits, 32 raw bytes or a passphrase: the daemon's mavlink.signing_key_file)",
+    )
+    p.add_argument(
         "--vehicle",
         default=None,
         help=f"zenoh vehicle name: key irtrack/<vehicle>/ir/frame (default: {DEFAULT_VEHICLE}); a scenario of"
@@ -297,7 +304,20 @@ def _run_config(args):
         injected=InjectedErrors.from_options(args.nav_noise, args.gnss_dropout, args.camera_time_offset_ms),
         record_path=Path(args.record) if args.record else None,
         guided=bool(getattr(args, "guided", True)),
+        signing_key=_signing_key(getattr(args, "mavlink_signing_key", None)),
     )
+
+
+def _signing_key(path: str | None) -> bytes | None:
+    """The --mavlink-signing-key file's key, read as the daemon reads mavlink.signing_key_file."""
+    if path is None:
+        return None
+    from onboard.io.mavlink_signing import SigningKeyError, load_signing_key
+
+    try:
+        return load_signing_key(path, None)
+    except SigningKeyError as exc:
+        raise ConfigError(f"--mavlink-signing-key: expected {exc.expected}, got {exc.got}") from None
 
 
 def _single_threaded_opencv() -> None:

@@ -278,6 +278,8 @@ class RunConfig:
     # --start-time-utc now: t = 0 is put on the wall clock again when the loop starts (start-up took ~0.5 s, which
     # every vehicle's UTC then trailed the machine's clock by, and the fusion node's clock check measured)
     start_time_now: bool = False
+    #: --mavlink-signing-key: MAVLink 2 signing of every vehicle's link with this 32-byte key (None: unsigned)
+    signing_key: bytes | None = None
 
     def __post_init__(self) -> None:
         sc = self.scenario
@@ -732,6 +734,7 @@ def run(config: RunConfig, stop: threading.Event | None = None, clock=None) -> R
                 guided=config.guided,
                 gnss_outage_us=outage,
                 gnss_accuracy=core.nav_noise.gnss_accuracy_m(),
+                signing_key=config.signing_key,
                 unix_time_at_boot_us=reported_unix_at_boot_us(core, name),
             )
             if config.truth_path is not None:

@@ -122,6 +122,7 @@ from onboard.core.frames import (
     quat_multiply,
     quat_normalize,
 )
+from onboard.io.mavlink_transport import new_parser, new_signing, signature_refusal
 from onboard.io.mavlink_wire import (
     INT16_MAX,
     INT32_MAX,
@@ -394,6 +395,7 @@ class MavlinkVehicle:
         guided: bool = False,
         gnss_outage_us: tuple[int, int] | None = None,
         gnss_accuracy: tuple[bool, float, float] = (False, 0.5, 0.8),
+        signing_key: bytes | None = None,
     ) -> None:
         # gnss_accuracy: (RTK fix, horizontal and vertical 1-sigma, m) GPS_RAW_INT reports with a fix: the
         # navigation case's (NoiseCase.gnss_accuracy_m); the default a plain GNSS fix's
@@ -447,7 +449,11 @@ class MavlinkVehicle:
         self._last_log: dict[str, float] = {}
         self.counters: Counter[str] = Counter()
         self._conn = open_mavlink2(connection, sysid, compid)
-        log.info("mavlink vehicle %d/%d on %s", sysid, compid, connection)
+        if signing_key is not None:
+            # MAVLink 2 signing as an autopilot with a key (PX4, ArduPilot): everything sent signed, only verified
+            # packets taken (a refused one is counted, rx_unsigned ...); the daemon's parser, its replay rule
+            self._conn.mav = new_parser(new_signing(signing_key), self._conn, sysid, compid)
+        log.info("mavlink vehicle %d/%d on %s%s", sysid, compid, connection, " (signed)" if signing_key else "")
 
     def set_unix_time_at_boot_us(self, unix_time_at_boot_us: int) -> None:
         """UTC when the boot clock read 0 (SYSTEM_TIME, GPS_RAW_INT and HOME_POSITION's times), set again before
@@ -762,6 +768,13 @@ class MavlinkVehicle:
                 break
             mtype = msg.get_type()
             if mtype == "BAD_DATA":
+                refused = signature_refusal(msg, getattr(self._conn.mav, "sig_reject", ""), "rx")
+                if hasattr(self._conn.mav, "sig_reject"):
+                    self._conn.mav.sig_reject = ""
+                if refused is not None:  # signing on: rx_unsigned, rx_v1_refused, rx_signature_bad|replay|stale
+                    self.counters[refused] += 1
+                    self._log_limited(refused, "mavlink: packet refused (%s): MAVLink 2 signing is on", refused)
+                    continue
                 self.counters["rx_bad_data"] += 1
                 self._log_limited("rx_bad_data", "mavlink: undecodable bytes received")
                 continue

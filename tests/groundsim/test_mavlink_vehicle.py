@@ -19,7 +19,7 @@ from groundsim.io.mavlink_vehicle import (
     open_mavlink2,
 )
 from groundsim.io.ports import free_udp_port
-from onboard.core.errors import InputError, IrtrackError
+from onboard.core.errors import ConfigError, InputError, IrtrackError
 from onboard.core.frames import euler_from_quat, quat_from_euler, quat_multiply
 from onboard.io.mavlink_wire import mavlink2, parse_endpoint
 
@@ -758,3 +758,45 @@ def test_message_intervals_can_be_asked_as_a_px4_answers(link, via):
     assert ask(33) == (0, [(33, -1)])
     assert ask(32) == (0, [(32, 0)])  # LOCAL_POSITION_NED: not streamed
     assert ask(31.5) == (2, [])  # not a message id: DENIED, nothing sent
+
+
+@pytest.mark.integration
+def test_a_signing_key_signs_everything_the_vehicle_sends_and_it_takes_only_signed_commands(tmp_path):
+    """--mavlink-signing-key: the simulated autopilot with signing on, so that the daemon's signed link can be flown
+    against it.  Checked with pymavlink's own signature check (a parser holding the key)."""
+    from groundsim.app.cli import _signing_key
+
+    key_file = tmp_path / "k"
+    key_file.write_text("a passphrase\n")
+    key = _signing_key(str(key_file))
+    port = free_udp_port()
+    rx = open_mavlink2(f"udpin:127.0.0.1:{port}", GCS_SYS, GCS_COMP)
+    rx.setup_signing(key, sign_outgoing=False)  # pymavlink verifies what arrives; sends unsigned below
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", unix_time_at_boot_us=1_700_000_000_000_000, signing_key=key)
+    try:
+        _prime(rx, vehicle)
+        got = _drain(rx)
+        assert got and all(m._signed for m in got), [m.get_type() for m in got if not m._signed]
+        assert rx.mav.signing.goodsig_count >= len(got) and rx.mav.signing.badsig_count == 0
+        rx.mav.command_long_send(1, 1, 511, 0, 31, 100_000, 0, 0, 0, 0, 0)  # unsigned: refused
+        deadline = time.monotonic() + WAIT_S
+        while vehicle.counters["rx_unsigned"] == 0 and time.monotonic() < deadline:
+            vehicle.poll(0)
+            time.sleep(0.002)
+        assert vehicle.counters["rx_unsigned"] == 1 and vehicle.message_interval_us(31) == 20_000
+        rx.setup_signing(key, sign_outgoing=True)  # the same command signed: taken
+        ack = _command(rx, vehicle, 0, 511, 31, 100_000)
+        assert ack.result == 0 and ack._signed and vehicle.message_interval_us(31) == 100_000
+    finally:
+        vehicle.close()
+        rx.close()
+
+
+def test_a_bad_signing_key_file_is_one_line_naming_the_option(tmp_path):
+    from groundsim.app.cli import _signing_key
+
+    with pytest.raises(ConfigError, match=r"^--mavlink-signing-key: expected a readable key file, got '.*absent'"):
+        _signing_key(str(tmp_path / "absent"))
+    (tmp_path / "empty").write_text("")
+    with pytest.raises(ConfigError, match=r"^--mavlink-signing-key: expected 32 raw bytes, .*got an empty key in"):
+        _signing_key(str(tmp_path / "empty"))
