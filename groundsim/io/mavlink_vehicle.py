@@ -43,7 +43,8 @@ BATTERY_STATUS (#147)                        1 Hz      4 cells (others UINT16_MA
 HOME_POSITION (#242)                         0.2 Hz    the first state's lat/lon at the altitude its
                                                        relative altitude is measured from
                                                        (``alt_amsl_m - alt_rel_m``; and on request)
-AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | COMMAND_INT | PARAM_FLOAT
+AUTOPILOT_VERSION (#148)                     request   MAVLINK2 | MISSION_INT | COMMAND_INT | PARAM_ENCODE_C_CAST
+                                                       | SET_POSITION_TARGET_LOCAL_NED
 ===========================================  ========  =============================================
 
 A ground station's other requests: PARAM_REQUEST_LIST -> PARAM_VALUE for each of
@@ -189,11 +190,14 @@ _SENSORS = (
     | mavlink2.MAV_SYS_STATUS_AHRS
     | mavlink2.MAV_SYS_STATUS_SENSOR_BATTERY
 )
+# PARAM_ENCODE_C_CAST, not the deprecated PARAM_FLOAT it replaces (every parameter is a REAL32: the same bytes
+# either way); SET_POSITION_TARGET_LOCAL_NED: a guided vehicle takes velocity setpoints
 _CAPABILITIES = (
     mavlink2.MAV_PROTOCOL_CAPABILITY_MAVLINK2
     | mavlink2.MAV_PROTOCOL_CAPABILITY_MISSION_INT
     | mavlink2.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
-    | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+    | mavlink2.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED
 )
 #: geoid height above the WGS84 ellipsoid (m) in the simulated world: its positions are ellipsoidal heights
 #: (the NED frames of :mod:`onboard.core.frames`), reported as AMSL, so its geoid is the ellipsoid and GPS_RAW_INT's
