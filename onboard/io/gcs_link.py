@@ -278,9 +278,22 @@ class GcsLink:
             log.info("gcs: connected to %s", ep.device)
 
     def _redial(self, now_s: float) -> None:
+        for idx, conn in enumerate(self._conns):
+            if conn is not None and getattr(conn, "irtrack_lost", False):  # the ground station closed or reset it
+                self._count("gcs_link_lost", f"{self.endpoints[idx]}: closed by the ground station; dialled again")
+                self._close_one(conn)
+                self._conns[idx] = None
+                self._redial_s[idx] = now_s + TCP_REDIAL_S
         for idx, at_s in list(self._redial_s.items()):
             if now_s >= at_s:
                 self._dial(idx, now_s)
+
+    @staticmethod
+    def _close_one(conn) -> None:
+        try:
+            conn.close()
+        except Exception:  # noqa: BLE001 - a socket already gone
+            pass
 
     def _open(self, ep):
         try:
@@ -288,9 +301,14 @@ class GcsLink:
                 return _UdpInEndpoint(
                     ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers, self._signing
                 )
-            # tcp: no retries inside pymavlink (each slept 1 s and printed to stdout); _dial redials instead
-            kwargs = {} if ep.kind == "serial" else {"autoreconnect": True, "retries": 0}
-            conn = connect(ep, 1, self.component_id, **kwargs)
+            if ep.kind == "tcp":
+                # one attempt, no reconnection inside pymavlink (each retry slept 1 s, each reconnection attempt
+                # ran at every poll, both printing to stdout): a lost ground station is marked here, dropped by
+                # poll and send, and dialled again every TCP_REDIAL_S (_dial)
+                conn = connect(ep, 1, self.component_id, autoreconnect=False, retries=0)
+                conn.handle_eof = conn.handle_disconnect = lambda: setattr(conn, "irtrack_lost", True)
+            else:
+                conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
             # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
             conn.mav = new_parser(self._signing, conn, 1, self.component_id)
             return conn
@@ -400,8 +418,8 @@ class GcsLink:
         n = 0
         for idx, addr in targets:
             conn = self._conns[idx]
-            if conn is None:
-                continue  # a tcp: ground station not connected yet: nobody to send to
+            if conn is None or getattr(conn, "irtrack_lost", False):
+                continue  # a tcp: ground station not connected (yet, or again): nobody to send to
             try:
                 if isinstance(conn, _UdpInEndpoint):
                     if addr is None:
@@ -420,10 +438,7 @@ class GcsLink:
 
     def close(self) -> None:
         for conn in self._conns:
-            if conn is None:
-                continue
-            try:
-                conn.close()
-            except Exception:  # noqa: BLE001
-                pass
+            if conn is not None:
+                self._close_one(conn)
         self._conns = []
+        self._redial_s.clear()

@@ -413,6 +413,18 @@ def test_a_tcp_ground_station_not_up_yet_is_dialled_again_not_fatal(capsys):
             peer.settimeout(WAIT_S)
             (msg,) = mav.MAVLink(None).parse_buffer(peer.recv(65535))
             assert msg.get_type() == "HEARTBEAT" and (msg.get_srcSystem(), msg.get_srcComponent()) == (SYSID, 100)
+        # the ground station goes away: marked, dropped and dialled again every TCP_REDIAL_S, not at every poll
+        # (pymavlink's own reconnection tried at each one, printing "Attempting reconnect" to stdout)
+        for _ in range(20):
+            link.poll()
+            time.sleep(0.01)
+        link.poll()
+        assert counters.counts["gcs_link_lost"] == 1 and link.filenos() == [] and link.send(hb) == 0
+        clock.t_s += TCP_REDIAL_S
+        link.poll()
+        again, _ = server.accept()  # dialled again
+        with again:
+            assert link.send(hb) == 1
         assert capsys.readouterr().out == ""
     finally:
         link.close()
