@@ -88,6 +88,7 @@ AGC_SAMPLE_STEP = 4  # percentiles over every 4th pixel in each direction (1/16 
 Transport = Literal["rtp", "mpegts"]  # RTP/UDP (RFC 6184) or MPEG-TS/UDP (module docstring)
 TRANSPORTS: tuple[str, ...] = get_args(Transport)
 SEND_BUFFER_BYTES = 1 << 20  # an IDR (~40-110 kB at 640 x 512) leaves in one burst of datagrams
+RESOLVE_INTERVAL_S = 1.0  # a destination name not resolved yet is looked up at most this often (the encoder waits)
 
 
 def agc_limits(
@@ -419,21 +420,30 @@ class _UdpSink:
         self.errors = 0
         self.refused = 0
         self.connected = False
+        self._warned = False
+        self._next_resolve_s = -math.inf
         self._connect()
 
     def _connect(self) -> bool:
         try:
             sock, addr = self.sock, self.addr
             if sock is None or addr is None:
+                now_s = time.monotonic()
+                if now_s < self._next_resolve_s:
+                    return False  # a name is looked up again once a second, not for every datagram
+                self._next_resolve_s = now_s + RESOLVE_INTERVAL_S
                 family, _, _, _, addr = socket.getaddrinfo(self.host, self.port, 0, socket.SOCK_DGRAM)[0]
                 sock = socket.socket(family, socket.SOCK_DGRAM)
                 if self.send_buffer_bytes is not None:
                     sock.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, self.send_buffer_bytes)
                 self.sock, self.addr = sock, addr
             sock.connect(addr)
-        except OSError as exc:  # a name not resolved yet (socket.gaierror) too: a companion may boot before its DNS
-            if self.errors == 0:
-                log.warning("video: cannot reach %s:%s yet (%s); retried at each datagram", self.host, self.port, exc)
+        # a name not resolved yet (socket.gaierror) too: a companion may boot before its DNS; a malformed one
+        # (UnicodeError from the IDNA codec) is counted the same, never raised out of the daemon's start
+        except (OSError, UnicodeError) as exc:
+            if not self._warned:
+                self._warned = True
+                log.warning("video: cannot reach %s:%s yet (%s); retried as datagrams come", self.host, self.port, exc)
             return False
         self.connected = True
         return True

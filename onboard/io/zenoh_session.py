@@ -204,13 +204,17 @@ class ZenohConfig:
             for i, ep in enumerate(getattr(self, name)):
                 if "/" not in ep or not ep.split("/", 1)[1]:
                     raise Invalid(f"{name}[{i}]", "a zenoh endpoint <protocol>/<address>, e.g. tcp/127.0.0.1:7447", ep)
-                if any(c in ep for c in ", \t\n"):  # "tcp/a:1,tcp/b:2" passed the port check and never connected
-                    raise Invalid(
-                        f"{name}[{i}]", "one zenoh endpoint, without commas or spaces (a list for several)", ep
-                    )
                 proto, addr = ep.split("/", 1)
                 if proto in ("tcp", "udp", "tls", "quic", "ws"):
                     hostport = addr.split("?", 1)[0].split("#", 1)[0]
+                    # "tcp/a:1,tcp/b:2" passed the port check and never connected; a host has neither (a unix
+                    # socket's path, or the metadata and config after '?' and '#', may)
+                    if any(c in hostport for c in ", \t\n"):
+                        raise Invalid(
+                            f"{name}[{i}]",
+                            "one zenoh endpoint, its host without commas or spaces (a list for several)",
+                            ep,
+                        )
                     port = hostport.rsplit(":", 1)[1] if ":" in hostport else ""
                     if not port.isdigit() or int(port) > 65535:
                         raise Invalid(f"{name}[{i}]", f"a {proto} endpoint {proto}/HOST:PORT with PORT in 0..65535", ep)

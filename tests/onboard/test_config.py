@@ -321,6 +321,15 @@ def test_several_zenoh_endpoints_in_one_text_are_refused_naming_the_field(endpoi
         build_config({"zenoh": {"connect": [endpoint]}})
 
 
+@pytest.mark.parametrize(
+    "endpoint",
+    ["unixsock-stream//tmp/my dir/z.sock", "tls/h:7447#root_ca_certificate=/etc/my ca.pem", "tcp/10.0.0.1:7447?a=1,2"],
+)
+def test_commas_and_spaces_outside_a_host_are_zenohs_to_judge(endpoint):
+    """A unix socket's path and an endpoint's metadata or config may hold them (zenoh accepts such endpoints)."""
+    assert build_config({"zenoh": {"connect": [endpoint]}}).zenoh.connect == (endpoint,)
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(OnboardConfigError, match=r"nope\.yaml: \(file\): expected an existing file, got no such file$"):
         load_config(tmp_path / "nope.yaml", environ={})

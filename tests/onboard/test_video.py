@@ -487,13 +487,28 @@ def test_a_name_not_resolvable_at_start_fails_nothing_and_is_resolved_at_a_later
         monkeypatch.setattr(socket, "getaddrinfo", not_yet)
         sink = _UdpRtpSink("gcs.example", rx.getsockname()[1])
         try:
+            sink._next_resolve_s = -math.inf  # a second later
             sink.send(b"lost")
             assert (sink.errors, sink.datagrams, sink.connected) == (1, 0, False)
+            for _ in range(50):  # within the second: dropped, counted, the name not looked up again
+                sink.send(b"lost too")
+            assert fails["n"] == 0 and sink.errors == 51
+            sink._next_resolve_s = -math.inf  # a second later
             sink.send(b"goes")
-            assert (sink.errors, sink.datagrams, sink.connected) == (1, 1, True)
+            assert (sink.errors, sink.datagrams, sink.connected) == (51, 1, True)
             assert _recv_all(rx, 1) == [b"goes"]
         finally:
             sink.close()
+
+
+def test_a_malformed_destination_name_is_counted_not_raised():
+    """'x..y' passes the HOST:PORT check and makes the IDNA codec raise UnicodeError, which stopped the start."""
+    sink = _UdpTsSink("x..y", 5600)
+    try:
+        sink.send(b"\x47" * 188)
+        assert (sink.errors, sink.datagrams, sink.connected) == (1, 0, False)
+    finally:
+        sink.close()
 
 
 def test_the_streamer_to_nobody_encodes_every_frame_and_counts_the_refusals():
