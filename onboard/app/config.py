@@ -297,6 +297,9 @@ class GcsConfig:
     heartbeat_interval_s: Annotated[float, Number(0.0, 4.0, lo_open=True)] = 1.0
     tracker_mode: Annotated[Literal["auto", "operator"], Text()] = "auto"
     track_request_timeout_s: Annotated[float, Number(0.0, 60.0, lo_open=True)] = 1.0
+    # with mavlink.signing_key_file: the camera's endpoints signed too (false: unsigned, for a ground station
+    # reached over a link left unsigned; anyone there can then select the tracked target)
+    signed: Bool = True
 
     def __post_init__(self) -> None:
         for i, ep in enumerate(self.endpoints):

@@ -262,7 +262,10 @@ class OnboardService:
 
             # the camera signs and checks as the autopilot link does: unsigned, a click could move the tracked target
             self.gcs = GcsLink(
-                cfg.gcs.endpoints, cfg.gcs.component_id, counter=self.counter, signing_key=cfg.mavlink.signing_key()
+                cfg.gcs.endpoints,
+                cfg.gcs.component_id,
+                counter=self.counter,
+                signing_key=cfg.mavlink.signing_key() if cfg.gcs.signed else None,
             )
         hint = zenoh_unreachable_hint(cfg)
         if hint is not None:

@@ -226,6 +226,8 @@ class GcsLink:
     ) -> None:
         if signing_key is not None and (not isinstance(signing_key, bytes) or len(signing_key) != 32):
             raise ConfigError(f"GcsLink.signing_key: expected 32 bytes, got {type(signing_key).__name__}")
+        if isinstance(signing_link_id, bool) or not isinstance(signing_link_id, int) or not 0 <= signing_link_id <= 255:
+            raise ConfigError(f"GcsLink.signing_link_id: expected an integer in [0, 255], got {signing_link_id!r}")
         if isinstance(component_id, bool) or not isinstance(component_id, int) or not 1 <= component_id <= 255:
             raise ConfigError(f"gcs.component_id: expected an integer in 1..255, got {component_id!r}")
         if isinstance(peer_timeout_s, bool) or not isinstance(peer_timeout_s, int | float) or not peer_timeout_s > 0:

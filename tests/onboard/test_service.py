@@ -1081,3 +1081,60 @@ def test_no_zenoh_peer_in_time_names_the_daemons_setting_not_an_option_it_lacks(
     assert last.startswith("zenoh: no peer reachable at tcp/127.0.0.1:") and last.endswith(
         "or wait longer (zenoh.connect_timeout_s)"
     ), last
+
+
+@pytest.mark.integration
+@pytest.mark.timeout(90)
+def test_gcs_signed_false_leaves_the_camera_unsigned_beside_a_signed_autopilot_link(tmp_path, daemon_env):
+    """gcs.signed: false, for a ground station on a link left unsigned: the autopilot link stays signed, the camera's
+    heartbeat goes out unsigned and an unsigned command is answered."""
+    import socket
+
+    key = bytes(range(32))
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(key.hex())
+    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", gport))
+    gcs.setblocking(False)
+    d = Daemon(
+        ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
+         f"udpout:127.0.0.1:{gport}", "--set", f"mavlink.signing_key_file={key_file}", "--set", "gcs.signed=false"],
+        daemon_env,
+    )  # fmt: skip
+    try:
+        assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
+        ap = FakeAutopilot(mport)
+        ap.conn.setup_signing(key, sign_outgoing=True, link_id=1)  # the autopilot link: signed as before
+        plain = mav.MAVLink(None)
+        plain.robust_parsing = True
+        got: list = []
+        daemon_addr = None
+        deadline = time.monotonic() + 30
+        while not any(m.get_type() == "COMMAND_ACK" for m in got):
+            assert time.monotonic() < deadline, "no answer from the camera:\n" + "\n".join(d.lines[-30:])
+            assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
+            ap.heartbeat()
+            ap.pump()
+            time.sleep(0.1)
+            while True:
+                try:
+                    data, addr = gcs.recvfrom(65535)
+                except BlockingIOError:
+                    break
+                for m in plain.parse_buffer(data) or []:
+                    if m.get_srcComponent() == 100:
+                        got.append(m)
+                        if daemon_addr is None:
+                            daemon_addr = addr
+                            cmd = mav.MAVLink_command_long_message(
+                                1, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION,
+                                0, 0, 0, 0, 0, 0,
+                            )  # fmt: skip
+                            gcs.sendto(bytes(cmd.pack(mav.MAVLink(None, srcSystem=255, srcComponent=190))), addr)
+        assert got and not any(getattr(m, "_signed", False) for m in got)
+        (ack,) = [m for m in got if m.get_type() == "COMMAND_ACK"]
+        assert ack.result == mav.MAV_RESULT_ACCEPTED
+    finally:
+        d.stop()
+        gcs.close()
