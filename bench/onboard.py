@@ -512,7 +512,7 @@ def bench_latency(
             if now >= next_tel:
                 t = ap.boot_us()
                 ap.attitude(t)
-                if tel_n % pos_every == 0:  # position at 25 Hz whatever the attitude's rate
+                if tel_n % pos_every == 0:  # position at about 25 Hz (the attitude's rate over a whole number)
                     ap.position(t)
                 tel_n += 1
                 next_tel += 1.0 / attitude_rate_hz

@@ -576,7 +576,7 @@ def load_config(
     source = DEFAULT_SOURCE if path is None else os.fspath(path)
     raw: dict[str, Any] = {}
     if path is not None and not source.strip():  # an unset $CFG: Path("") would be read as the folder "."
-        raise OnboardConfigError("--config", "(path)", "a YAML file path", repr(source))
+        raise OnboardConfigError("(empty path)", "(file)", "a YAML file path", repr(source))
     if path is not None:
         data = read_yaml(source, OnboardConfigError)
         if data is not None and not isinstance(data, Mapping):

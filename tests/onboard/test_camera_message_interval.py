@@ -5,6 +5,7 @@ ACKed (common.xml)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mav
 
@@ -77,9 +78,13 @@ def test_an_interval_message_interval_cannot_report_is_denied_and_the_old_one_ke
     out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, interval_us), 1.0, 0)
     assert _ack(out)["result"] == cp.MAV_RESULT_DENIED
     assert _interval(proto, 275) == (cp.MAV_RESULT_ACCEPTED, {"message_id": 275, "interval_us": 100_000})
-    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, 2**31 - 1), 1.0, 0)  # the longest it can say
+    # COMMAND_LONG's params are float32: 2^31 - 1 arrives as 2^31 (refused above); the longest a ground station
+    # can ask is the float32 just below, 2147483392 us
+    longest = float(np.float32(2147483392.0))
+    assert longest < 2**31 - 1 and float(np.float32(2**31 - 1)) == 2**31
+    out, _ = proto.handle(_cmd(cp.MAV_CMD_SET_MESSAGE_INTERVAL, 275, longest), 1.0, 0)
     assert _ack(out)["result"] == cp.MAV_RESULT_ACCEPTED
     result, reply = _interval(proto, 275)
     codec = mav.MAVLink(None, srcSystem=1, srcComponent=100)
     codec.message_interval_encode(**reply).pack(codec)  # packs
-    assert reply["interval_us"] == 2**31 - 1
+    assert reply["interval_us"] == 2147483392

@@ -301,7 +301,9 @@ def test_bad_file_gives_one_line_naming_file_field_and_expectation(tmp_path, tex
 def test_an_empty_config_path_is_refused_not_read_as_the_current_folder():
     """``--config "$CFG"`` with CFG unset: it said ": (file): expected a file, got a directory"."""
     for empty in ("", "  "):
-        with pytest.raises(OnboardConfigError, match=r"^--config: \(path\): expected a YAML file path, got '\s*'$"):
+        with pytest.raises(
+            OnboardConfigError, match=r"^\(empty path\): \(file\): expected a YAML file path, got '\s*'$"
+        ):
             load_config(empty, environ={})
 
 

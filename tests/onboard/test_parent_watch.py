@@ -126,6 +126,7 @@ def _ends_with_its_killed_launcher(tmp_path, argv: list[str], ready: str) -> str
         [sys.executable, "-c", LAUNCHER, str(out), *argv], stdout=subprocess.PIPE, text=True, env=env
     )
     child_pid = None
+    gone = False
     try:
         child_pid = int(launcher.stdout.readline())
         t_end = time.monotonic() + START_TIMEOUT_S
@@ -136,12 +137,13 @@ def _ends_with_its_killed_launcher(tmp_path, argv: list[str], ready: str) -> str
         launcher.kill()
         launcher.wait(EXIT_WAIT_S)
         assert _gone(child_pid), "outlived its killed launcher:\n" + out.read_text(errors="replace")[-3000:]
+        gone = True
         return out.read_text(errors="replace")
     finally:
         if launcher.poll() is None:
             launcher.kill()
             launcher.wait()
-        if child_pid is not None:
+        if child_pid is not None and not gone:  # once gone, its PID may be another process's
             try:
                 os.kill(child_pid, signal.SIGKILL)
             except ProcessLookupError:
