@@ -383,7 +383,8 @@ class GcsLink:
                 if mtype == "BAD_DATA":
                     refused = signature_refusal(msg, sig_reject, "gcs")
                     if refused is not None:
-                        self._count(refused, "packet refused: MAVLink 2 signing is on")
+                        sender = f" (from {addr[0]}:{addr[1]})" if addr is not None else f" (on {self.endpoints[idx]})"
+                        self._count(refused, f"packet refused: MAVLink 2 signing is on{sender}")
                     else:
                         self._count("gcs_bad_data", str(getattr(msg, "reason", "")))
                     continue
