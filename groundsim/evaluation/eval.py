@@ -284,9 +284,10 @@ class TelemetryFeed:
                         ).to_message()
                     )
                 )
-                self.pose.add_attitude(
-                    att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps if self.body_rates else None
-                )
+                if self.body_rates:
+                    self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body, att.omega_frd_rps)
+                else:
+                    self.pose.add_attitude(att.time_boot_us, att.q_ned_from_body)
             elif name == "pos":
                 w = self.gnss_outage_us
                 if w is not None and w[0] <= now < w[1]:  # withheld, as MavlinkVehicle does in a GNSS dropout
