@@ -7,12 +7,16 @@ A mixin of the two pydantic section classes, which declare the fields (their bou
 
 from __future__ import annotations
 
+import math
 from typing import TYPE_CHECKING
 
 from onboard.core.frames import PinholeIntrinsics
 from onboard.core.schema import Invalid
 
-__all__ = ["PinholeSection"]
+__all__ = ["PinholeSection", "MAX_FOV_DEG", "MIN_PIXEL_ASPECT"]
+
+MAX_FOV_DEG = 170.0
+MIN_PIXEL_ASPECT = 0.5
 
 
 class PinholeSection:
@@ -31,6 +35,23 @@ class PinholeSection:
     CENTRE_EXPECT_SUFFIX = ""
 
     def __post_init__(self) -> None:
+        # a pinhole sees less than 180 deg, and no thermal lens near it; a focal length that wide is a unit slip
+        # (metres for pixels); pixels are square within a factor of two on any imager (fx/fy beyond: a typo)
+        for name, f, size in (("fx_px", self.fx_px, self.width_px), ("fy_px", self.fy_px, self.height_px)):
+            fov_deg = math.degrees(2.0 * math.atan(size / (2.0 * f)))
+            if fov_deg > MAX_FOV_DEG:
+                raise Invalid(
+                    name,
+                    f"a focal length giving a field of view under {MAX_FOV_DEG:g} deg (at least "
+                    f"{size / (2.0 * math.tan(math.radians(MAX_FOV_DEG / 2.0))):.3g} px for {size} px)",
+                    f,
+                )
+        if not MIN_PIXEL_ASPECT <= self.fx_px / self.fy_px <= 1.0 / MIN_PIXEL_ASPECT:
+            raise Invalid(
+                "fy_px",
+                f"within a factor {1.0 / MIN_PIXEL_ASPECT:g} of fx_px ({self.fx_px:g}): pixels are nearly square",
+                self.fy_px,
+            )
         for name, size in (("cx_px", self.width_px), ("cy_px", self.height_px)):
             v = getattr(self, name)
             if v is not None and not 0.0 <= v <= size:

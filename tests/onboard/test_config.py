@@ -612,3 +612,18 @@ def test_check_refuses_what_the_start_would_a_recording_folder_it_cannot_write_o
     # a recording in a folder still to be made is fine (the recorder makes it), and nothing is left behind
     assert main(["--check", "--record", str(tmp_path / "new" / "f.mcap")]) == 0
     assert sorted(p.name for p in tmp_path.iterdir()) == ["not-a-folder"]
+
+
+@pytest.mark.parametrize(
+    ("intrinsics", "field", "expected"),
+    [
+        ({"fx_px": 1e-9}, "fx_px", "a focal length giving a field of view under 170 deg (at least 28 px for 640 px)"),
+        ({"fy_px": 10.0}, "fy_px", "a focal length giving a field of view under 170 deg (at least 22.4 px for 512 px)"),
+        ({"fy_px": 300.0}, "fy_px", "within a factor 2 of fx_px"),
+    ],
+)
+def test_intrinsics_no_camera_has_are_refused_naming_the_field(intrinsics, field, expected):
+    """A focal length in metres (fx 1e-9: a 180 deg pinhole) or pixels four times taller than wide were accepted."""
+    with pytest.raises(ConfigError, match=rf"camera\.intrinsics\.{field}: expected {re.escape(expected)}"):
+        build_config({"camera": {"intrinsics": intrinsics}})
+    assert build_config({"camera": {"intrinsics": {"fx_px": 30.0, "fy_px": 30.0}}}).camera.intrinsics.fx_px == 30.0
