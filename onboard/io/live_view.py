@@ -27,8 +27,9 @@ topic                          schema                      what
 =============================  ==========================  ==============================================
 
 **Never stalls the pipeline**: every ``on_*`` call appends to a bounded queue and returns; a publisher
-thread encodes and hands the messages to the SDK (whose own per-client backlog drops the oldest data
-for a slow client).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
+thread encodes and hands the messages to the SDK (whose own per-client backlog, :data:`CLIENT_BACKLOG_MESSAGES`,
+drops the oldest data for a slow client; the SDK's default of 1024 messages held ~330 MB of frames for each client
+that stopped reading).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
 dropped and counted (:meth:`LiveView.stats`: ``dropped``, per kind).  Frames are only queued while a
 client subscribes to them.
 
@@ -83,6 +84,9 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
+#: messages the SDK holds for one client before it drops the oldest: a second of frames at 30 Hz (a viewer behind by
+#: more sees stale frames anyway), ~10 MB of 640 x 512 mono8 per client that stops reading
+CLIENT_BACKLOG_MESSAGES = 32
 SCENE_TOPIC = "/onboard/scene"
 ANNOTATIONS_TOPIC = "/onboard/annotations"
 TF_TOPIC = "/tf"
@@ -215,7 +219,11 @@ class LiveView:
         s = self.settings
         try:
             self._server = foxglove.start_server(
-                name=f"irtrack {self.vehicle}", host=s.host, port=self._bind_port, context=ctx
+                name=f"irtrack {self.vehicle}",
+                host=s.host,
+                port=self._bind_port,
+                context=ctx,
+                message_backlog_size=CLIENT_BACKLOG_MESSAGES,
             )
         except Exception as exc:  # noqa: BLE001 - the SDK raises its own error types for a bind failure
             raise InputError(f"live_view: cannot serve on {s.host}:{self._bind_port}: {exc}") from None

@@ -291,3 +291,44 @@ def test_daemon_live_view_serves_frames_and_tracks_of_a_closed_loop(tmp_path):
     tracks = [json.loads(m) for m in got["messages"][track_t]]
     assert all(t["schema"] == "irtrack.track/2" and t["vehicle"] == plan.vehicle for t in tracks)
     assert any(t["state"] == "tracking" for t in tracks)
+
+
+def test_a_client_that_stops_reading_is_held_to_a_small_backlog(monkeypatch):
+    """The SDK's default backlog, 1024 messages per client, held ~330 MB of 640 x 512 frames for each client that
+    stopped reading; the server is started with CLIENT_BACKLOG_MESSAGES."""
+    import foxglove
+
+    from onboard.io.live_view import CLIENT_BACKLOG_MESSAGES
+
+    seen = {}
+    real = foxglove.start_server
+
+    def spy(**kw):
+        seen.update(kw)
+        return real(**kw)
+
+    monkeypatch.setattr(foxglove, "start_server", spy)
+    lv = LiveView(LiveViewConfig(), port=0, vehicle="uav1")
+    lv.start()
+    try:
+        assert seen["message_backlog_size"] == CLIENT_BACKLOG_MESSAGES <= 64
+    finally:
+        lv.close()
+
+
+def test_the_sdks_per_message_client_errors_stay_out_of_the_daemons_log():
+    """One ERROR line per malformed client message (foxglove.websocket.*) let any local client write ~5 MB/s of log."""
+    import logging
+
+    from onboard.app.logs import setup_logging
+
+    root = logging.getLogger()
+    saved = (root.handlers[:], root.level)
+    try:
+        setup_logging("INFO", "text")
+        assert not logging.getLogger("foxglove.websocket.connected_client").isEnabledFor(logging.ERROR)
+        assert logging.getLogger("onboard.io.live_view").isEnabledFor(logging.INFO)
+    finally:
+        root.handlers[:] = saved[0]
+        root.setLevel(saved[1])
+        logging.getLogger("foxglove.websocket").setLevel(logging.NOTSET)
