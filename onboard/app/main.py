@@ -205,6 +205,21 @@ def _run(args: argparse.Namespace) -> int:
             signal.signal(sig, handler)
 
 
+def raise_open_files_limit() -> int | None:
+    """Raise this process's soft limit of open files to its hard limit and return it (None where it cannot be read).
+    The live view's server stops accepting for good once a burst of clients has used every descriptor (1024 by
+    default on Linux): the hard limit (often 2^20 in a container) leaves the daemon's own files room."""
+    try:
+        import resource
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        if hard != resource.RLIM_INFINITY and soft < hard:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        return resource.getrlimit(resource.RLIMIT_NOFILE)[0]
+    except (ImportError, OSError, ValueError):  # not POSIX, or refused: the limit as it is
+        return None
+
+
 def _start_problem(config) -> str | None:
     """For ``--check``: a recording path the start could not write, a live view host it could not resolve (each
     fails the start in one line; the configuration's values alone cannot tell)."""
@@ -271,6 +286,7 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
 
     setup_logging(config.logging.level, config.logging.format)
     sys.setswitchinterval(0.001)  # the pipeline, estimator and MAVLink threads share the GIL
+    raise_open_files_limit()
     import cv2
 
     cv2.setNumThreads(1)  # OpenCV's own pool would fight the pipeline for the cores

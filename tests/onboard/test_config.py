@@ -627,3 +627,19 @@ def test_intrinsics_no_camera_has_are_refused_naming_the_field(intrinsics, field
     with pytest.raises(ConfigError, match=rf"camera\.intrinsics\.{field}: expected {re.escape(expected)}"):
         build_config({"camera": {"intrinsics": intrinsics}})
     assert build_config({"camera": {"intrinsics": {"fx_px": 30.0, "fy_px": 30.0}}}).camera.intrinsics.fx_px == 30.0
+
+
+def test_the_daemon_raises_its_open_files_limit_to_the_hard_one():
+    """A burst of live-view clients using every descriptor (1024 by default) stopped its server for good."""
+    import resource
+
+    from onboard.app.main import raise_open_files_limit
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    try:
+        low = min(soft, 256) if hard == resource.RLIM_INFINITY else min(256, hard)
+        resource.setrlimit(resource.RLIMIT_NOFILE, (low, hard))
+        got = raise_open_files_limit()
+        assert got == (low if hard == resource.RLIM_INFINITY else hard)
+    finally:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (soft, hard))
