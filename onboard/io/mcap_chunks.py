@@ -106,6 +106,8 @@ class ChunkWriter:
         self._start_t = 0
         self._end_t = 0
         self._indices: dict[int, list] = {}  # channel id -> [(log time, offset in chunk)], first-seen order
+        self._chunk_schemas: list[int] = []  # schemas and channels whose records this chunk holds (first written)
+        self._chunk_channels: list[int] = []
 
     def _append(self, buf) -> None:
         n = len(buf) if isinstance(buf, (bytes, bytearray)) else memoryview(buf).nbytes
@@ -174,6 +176,14 @@ class ChunkWriter:
             st.message_end_time = max(c.message_end_time for c in self._chunk_indexes)
         else:
             st.message_start_time = st.message_end_time = 0
+        # a schema or channel whose one record was in this chunk is in no data section now: the summary must not
+        # list it either (MCAP: its Schema and Channel records duplicate the data section's)
+        for sid in self._chunk_schemas:
+            del self._schemas[sid]
+            st.schema_count -= 1
+        for cid in self._chunk_channels:
+            del self._channels[cid]
+            st.channel_count -= 1
         self._reset_chunk()
         return lost
 
@@ -197,6 +207,7 @@ class ChunkWriter:
         schema = Schema(id=sid, data=data, encoding=encoding, name=name)
         self._schemas[sid] = schema
         self._stats.schema_count += 1
+        self._chunk_schemas.append(sid)
         self._append(_record_bytes(schema))
         self._maybe_finalize_chunk()
         return sid
@@ -208,6 +219,7 @@ class ChunkWriter:
         )
         self._channels[cid] = channel
         self._stats.channel_count += 1
+        self._chunk_channels.append(cid)
         self._append(_record_bytes(channel))
         self._maybe_finalize_chunk()
         return cid

@@ -181,3 +181,38 @@ def test_a_failed_sync_stops_the_recording_without_discarding_what_no_write_refu
     with open(rec.files[-1], "rb") as f:
         n = sum(1 for _ in mcap_reader.make_reader(f).iter_messages())
     assert n == rec.messages_written > 0
+
+
+def test_a_discarded_chunk_takes_the_schema_and_channel_first_written_in_it_out_of_the_summary(tmp_path, monkeypatch):
+    """MCAP: the summary's Schema and Channel records duplicate the data section's.  A channel first registered in
+    the chunk the disk refused stayed in the summary (and its statistics) with no record in the data section."""
+    from mcap.records import Channel, Schema
+
+    path = tmp_path / "d.mcap"
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC)
+    try:
+        w = mcap_chunks.ChunkWriter(fd, chunk_size=1 << 20)
+        w.start(library="test")
+        s1 = w.register_schema("a", "jsonschema", b"{}")
+        c1 = w.register_channel("/a", "json", s1)
+        w.add_message(c1, 1, b"{}", 1)
+        w.flush()  # the first chunk: on disk
+        s2 = w.register_schema("b", "jsonschema", b"{}")
+        c2 = w.register_channel("/b", "json", s2)
+        w.add_message(c2, 2, b"{}", 2)
+        monkeypatch.setattr(mcap_chunks.os, "writev", lambda *_a: (_ for _ in ()).throw(OSError(errno.ENOSPC, "full")))
+        with pytest.raises(OSError):
+            w.flush()
+        assert w.discard_chunk() == {c2: 1}
+        monkeypatch.setattr(mcap_chunks.os, "writev", REAL_WRITEV)
+        w.finish()
+    finally:
+        os.close(fd)
+    with open(path, "rb") as f:
+        data_section = [r for r in StreamReader(f, skip_magic=False).records if isinstance(r, (Schema, Channel))]
+        f.seek(0)
+        summary = mcap_reader.make_reader(f).get_summary()
+    in_data = {(type(r).__name__, r.id) for r in data_section}
+    assert in_data == {("Schema", s1), ("Channel", c1)}
+    assert set(summary.schemas) == {s1} and set(summary.channels) == {c1}
+    assert (summary.statistics.schema_count, summary.statistics.channel_count) == (1, 1)
