@@ -327,7 +327,7 @@ def test_the_sdks_per_message_client_errors_stay_out_of_the_daemons_log():
     try:
         setup_logging("INFO", "text")
         assert not logging.getLogger("foxglove.websocket.connected_client").isEnabledFor(logging.ERROR)
-        assert logging.getLogger("onboard.io.live_view").isEnabledFor(logging.INFO)
+        assert logging.getLogger("foxglove.websocket").level == logging.CRITICAL and root.level == logging.INFO
     finally:
         root.handlers[:] = saved[0]
         root.setLevel(saved[1])
