@@ -28,8 +28,8 @@ topic                          schema                      what
 
 **Never stalls the pipeline**: every ``on_*`` call appends to a bounded queue and returns; a publisher
 thread encodes and hands the messages to the SDK (whose own per-client backlog, :data:`CLIENT_BACKLOG_MESSAGES`,
-drops the oldest data for a slow client; the SDK's default of 1024 messages held ~330 MB of frames for each client
-that stopped reading).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
+drops the oldest data for a slow client; the SDK's default, 1024 messages, is 1024 frames of 320 kB or more for each
+client that stops reading).  Past ``queue_length`` queued items, or with more than one frame queued, a new item is
 dropped and counted (:meth:`LiveView.stats`: ``dropped``, per kind).  Frames are only queued while a
 client subscribes to them.
 
