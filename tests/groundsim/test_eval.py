@@ -21,11 +21,9 @@ from hypothesis import strategies as st
 
 from groundsim.app import cli
 from groundsim.evaluation.eval import (
-    FEED_LEAD_MAX_US,
     EvalOptions,
     EvalResult,
     RunResult,
-    TelemetryFeed,
     onboard_config_for,
     run_eval,
     run_lockstep,
@@ -46,6 +44,7 @@ from groundsim.evaluation.scoring import (
     score_run,
     summarise,
 )
+from groundsim.evaluation.telemetry_feed import FEED_LEAD_MAX_US, TelemetryFeed
 from groundsim.world.scenario import load_scenario, scenarios_dir
 from onboard.app.config import OnboardConfig
 from onboard.core.errors import ConfigError, InputError

@@ -12,7 +12,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from groundsim.app import cli
-from groundsim.evaluation.eval import EvalOptions, TelemetryFeed
+from groundsim.evaluation.eval import EvalOptions
+from groundsim.evaluation.telemetry_feed import TelemetryFeed
 from groundsim.io.mavlink_vehicle import MSG_GIMBAL_DEVICE_ATTITUDE_STATUS, MavlinkVehicle
 from groundsim.world.nav_errors import (
     NAV_ERROR_STREAM,
