@@ -453,10 +453,9 @@ class MavlinkVehicle:
         self._last_log: dict[str, float] = {}
         self.counters: Counter[str] = Counter()
         self._conn = open_mavlink2(connection, sysid, compid)
-        if signing_key is not None:
-            # MAVLink 2 signing as an autopilot with a key (PX4, ArduPilot): everything sent signed, only verified
-            # packets taken (a refused one is counted, rx_unsigned ...); the daemon's parser, its replay rule
-            self._conn.mav = new_parser(new_signing(signing_key), self._conn, sysid, compid)
+        # the daemon's parser, signed or not: with a key (signing on, as PX4 or ArduPilot with a key) everything sent
+        # is signed and only verified packets are taken, a refused one counted (rx_unsigned ...), its replay rule
+        self._conn.mav = new_parser(new_signing(signing_key), self._conn, sysid, compid)
         log.info("mavlink vehicle %d/%d on %s%s", sysid, compid, connection, " (signed)" if signing_key else "")
 
     def set_unix_time_at_boot_us(self, unix_time_at_boot_us: int) -> None:
@@ -772,9 +771,8 @@ class MavlinkVehicle:
                 break
             mtype = msg.get_type()
             if mtype == "BAD_DATA":
-                refused = signature_refusal(msg, getattr(self._conn.mav, "sig_reject", ""), "rx")
-                if hasattr(self._conn.mav, "sig_reject"):
-                    self._conn.mav.sig_reject = ""
+                refused = signature_refusal(msg, self._conn.mav.sig_reject, "rx")
+                self._conn.mav.sig_reject = ""
                 if refused is not None:  # signing on: rx_unsigned, rx_v1_refused, rx_signature_bad|replay|stale
                     self.counters[refused] += 1
                     self._log_limited(refused, "mavlink: packet refused (%s): MAVLink 2 signing is on", refused)
