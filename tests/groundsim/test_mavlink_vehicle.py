@@ -647,6 +647,17 @@ def _captured_vehicle(**kw):
     return v, got
 
 
+def _first_poll(**kw) -> list:
+    """What a captured vehicle (:func:`_captured_vehicle` with ``kw``) sends at its first poll of one state."""
+    v, got = _captured_vehicle(**kw)
+    try:
+        _state(v, 0)
+        v.poll(0)
+    finally:
+        v.close()
+    return got
+
+
 def _request_home(v, now_us: int) -> None:
     msg = mavlink2.MAVLink_command_long_message(1, 1, mavlink2.MAV_CMD_GET_HOME_POSITION, 0, 0, 0, 0, 0, 0, 0, 0)
     v._on_command(mavlink2.MAVLink(None).parse_char(bytes(msg.pack(mavlink2.MAVLink(None, 255, 190)))))
@@ -680,12 +691,7 @@ def test_relative_alt_is_above_the_home_position_the_vehicle_reports():
 def test_gps_raw_int_alt_ellipsoid_is_alt_plus_the_worlds_geoid_undulation():
     from groundsim.io.mavlink_vehicle import GEOID_UNDULATION_M
 
-    v, got = _captured_vehicle()
-    try:
-        _state(v, 0)
-        v.poll(0)
-    finally:
-        v.close()
+    got = _first_poll()
     (gps,) = _of(got, "GPS_RAW_INT")
     (pos,) = _of(got, "GLOBAL_POSITION_INT")
     assert gps.alt == pos.alt == round(ALT_AMSL_M * 1000)
@@ -702,26 +708,14 @@ def test_gps_raw_int_reports_the_navigation_cases_fix_and_accuracy(case, fix, h_
     from groundsim.world.noise_cases import load_noise_cases
     from onboard.io.mavlink_wire import GpsRawInt
 
-    v, got = _captured_vehicle(gnss_accuracy=load_noise_cases()[case].gnss_accuracy_m())
-    try:
-        _state(v, 0)
-        v.poll(0)
-    finally:
-        v.close()
-    (gps,) = _of(got, "GPS_RAW_INT")
+    (gps,) = _of(_first_poll(gnss_accuracy=load_noise_cases()[case].gnss_accuracy_m()), "GPS_RAW_INT")
     assert (gps.fix_type, gps.h_acc, gps.v_acc) == (fix, h_mm, v_mm)
     read = GpsRawInt.from_message(gps)  # as the daemon reads it
     assert (read.h_acc_m, read.v_acc_m) == (h_mm / 1000, v_mm / 1000)
 
 
 def test_gps_raw_int_without_a_fix_says_its_accuracy_is_unknown():
-    v, got = _captured_vehicle(gnss_outage_us=(0, 10_000_000))
-    try:
-        _state(v, 0)
-        v.poll(0)
-    finally:
-        v.close()
-    (gps,) = _of(got, "GPS_RAW_INT")
+    (gps,) = _of(_first_poll(gnss_outage_us=(0, 10_000_000)), "GPS_RAW_INT")
     assert (gps.fix_type, gps.satellites_visible, gps.h_acc, gps.v_acc) == (mavlink2.GPS_FIX_TYPE_NO_FIX, 0, 0, 0)
 
 
