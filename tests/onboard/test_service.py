@@ -984,6 +984,43 @@ def test_the_daemon_publishes_its_counts_once_more_as_it_stops():
     assert json.loads(last)["schema"] == "irtrack.status/1"
 
 
+# REQUEST_MESSAGE(CAMERA_INFORMATION) to the camera (system 1, component 100), unsigned, from QGC's ids
+UNSIGNED_CAMERA_INFORMATION_REQUEST = bytes(
+    mav.MAVLink_command_long_message(
+        1, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
+    ).pack(mav.MAVLink(None, srcSystem=255, srcComponent=190))
+)
+
+
+def _camera_messages(gcs, parser, mtype: str | None = None, signed: bool = False, component: int | None = 100) -> list:
+    """(message, sender) of ``component`` (None: any) waiting on the ground station's socket, parsed by ``parser``
+    (of type ``mtype``, verified by the parser's key with ``signed``)."""
+    out = []
+    while True:
+        try:
+            data, addr = gcs.recvfrom(65535)
+        except BlockingIOError:
+            return out
+        for m in parser.parse_buffer(data) or []:
+            if m.get_type() == "BAD_DATA" or (mtype and m.get_type() != mtype):
+                continue
+            if component is not None and m.get_srcComponent() != component:
+                continue
+            if not signed or m._signed:
+                out.append((m, addr))
+
+
+def _serve_until(d: Daemon, ap, done, what: str, timeout_s: float = 30.0) -> None:
+    """Play the autopilot (heartbeat, its link's traffic) every 0.1 s until ``done()``; the daemon must live."""
+    deadline = time.monotonic() + timeout_s
+    while not done():
+        assert time.monotonic() < deadline, f"{what}:\n" + "\n".join(d.lines[-30:])
+        assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
+        ap.heartbeat()
+        ap.pump()
+        time.sleep(0.1)
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(90)
 def test_with_a_signing_key_the_daemons_camera_signs_and_takes_only_signed_commands(tmp_path, daemon_env):
@@ -1018,47 +1055,27 @@ def test_with_a_signing_key_the_daemons_camera_signs_and_takes_only_signed_comma
         verified = mav.MAVLink(None)
         verified.robust_parsing = True
         verified.signing.secret_key = key
-        camera: list = []  # (message, from) of component 100, verified with the key
-        daemon_addr = None
-        deadline = time.monotonic() + 30
-        while not camera:
-            assert time.monotonic() < deadline, "no signed camera heartbeat:\n" + "\n".join(d.lines[-30:])
-            assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
-            ap.heartbeat()
-            ap.pump()
-            time.sleep(0.1)
-            while True:
-                try:
-                    data, addr = gcs.recvfrom(65535)
-                except BlockingIOError:
-                    break
-                for m in verified.parse_buffer(data) or []:
-                    if m.get_type() == "HEARTBEAT" and m.get_srcComponent() == 100 and m._signed:
-                        camera.append(m)
-                        daemon_addr = addr
+        camera: list = []  # (heartbeat, sender) of component 100, verified with the key
+
+        def heard() -> bool:
+            camera.extend(_camera_messages(gcs, verified, "HEARTBEAT", signed=True))
+            return bool(camera)
+
+        _serve_until(d, ap, heard, "no signed camera heartbeat")
         # an unsigned REQUEST_MESSAGE back to the camera: refused, counted in the status, never answered
-        cmd = mav.MAVLink_command_long_message(
-            1, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION, 0, 0, 0, 0, 0, 0
-        )
-        gcs.sendto(bytes(cmd.pack(mav.MAVLink(None, srcSystem=255, srcComponent=190))), daemon_addr)
-        deadline = time.monotonic() + 20
-        refused = 0
-        while refused == 0:
-            assert time.monotonic() < deadline, "the unsigned command was not counted:\n" + "\n".join(d.lines[-30:])
-            ap.heartbeat()
-            ap.pump()
+        gcs.sendto(UNSIGNED_CAMERA_INFORMATION_REQUEST, camera[0][1])
+        refused = []
+
+        def counted() -> bool:
             try:
-                refused = statuses.get(timeout=0.5).get("rejected", {}).get("gcs_unsigned", 0)
+                refused.append(statuses.get(timeout=0.5).get("rejected", {}).get("gcs_unsigned", 0))
             except queue.Empty:
                 pass
-        assert refused == 1
-        answers = []
-        while True:
-            try:
-                data, _ = gcs.recvfrom(65535)
-            except BlockingIOError:
-                break
-            answers += [m.get_type() for m in verified.parse_buffer(data) or []]
+            return bool(refused) and refused[-1] > 0
+
+        _serve_until(d, ap, counted, "the unsigned command was not counted", timeout_s=20.0)
+        assert refused[-1] == 1
+        answers = [m.get_type() for m, _ in _camera_messages(gcs, verified, component=None)]
         assert "COMMAND_ACK" not in answers and "CAMERA_INFORMATION" not in answers
     finally:
         if session is not None:
@@ -1109,29 +1126,15 @@ def test_gcs_signed_false_leaves_the_camera_unsigned_beside_a_signed_autopilot_l
         plain = mav.MAVLink(None)
         plain.robust_parsing = True
         got: list = []
-        daemon_addr = None
-        deadline = time.monotonic() + 30
-        while not any(m.get_type() == "COMMAND_ACK" for m in got):
-            assert time.monotonic() < deadline, "no answer from the camera:\n" + "\n".join(d.lines[-30:])
-            assert d.proc.poll() is None, "daemon died:\n" + "\n".join(d.lines[-30:])
-            ap.heartbeat()
-            ap.pump()
-            time.sleep(0.1)
-            while True:
-                try:
-                    data, addr = gcs.recvfrom(65535)
-                except BlockingIOError:
-                    break
-                for m in plain.parse_buffer(data) or []:
-                    if m.get_srcComponent() == 100:
-                        got.append(m)
-                        if daemon_addr is None:
-                            daemon_addr = addr
-                            cmd = mav.MAVLink_command_long_message(
-                                1, 100, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_CAMERA_INFORMATION,
-                                0, 0, 0, 0, 0, 0,
-                            )  # fmt: skip
-                            gcs.sendto(bytes(cmd.pack(mav.MAVLink(None, srcSystem=255, srcComponent=190))), addr)
+
+        def answered() -> bool:
+            new = _camera_messages(gcs, plain)
+            if new and not got:  # the camera is there: ask it, unsigned
+                gcs.sendto(UNSIGNED_CAMERA_INFORMATION_REQUEST, new[0][1])
+            got.extend(m for m, _ in new)
+            return any(m.get_type() == "COMMAND_ACK" for m in got)
+
+        _serve_until(d, ap, answered, "no answer from the camera")
         assert got and not any(getattr(m, "_signed", False) for m in got)
         (ack,) = [m for m in got if m.get_type() == "COMMAND_ACK"]
         assert ack.result == mav.MAV_RESULT_ACCEPTED
