@@ -220,13 +220,22 @@ def raise_open_files_limit() -> int | None:
         return None
 
 
-def _start_problem(config) -> str | None:
-    """For ``--check``: a recording path the start could not write, a live view host it could not resolve (each
-    fails the start in one line; the configuration's values alone cannot tell)."""
+def _check_problem(config) -> str | None:
+    """For ``--check``, what the start would refuse that the configuration's values alone cannot tell, in one line
+    (None: nothing): the zenoh config file, read as the session would read it (no session is opened); a recording
+    path where no file can be made; a live view host that does not resolve; the liveness path (a folder, a file
+    with content: the start's own check)."""
     import socket
 
+    from onboard.app.health import claim_health_file
+    from onboard.core.errors import ConfigError
     from onboard.io.record import record_path_problem
+    from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
 
+    try:
+        build_config(config.zenoh, max_payload_bytes=config.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD)
+    except ZenohConfigError as exc:
+        return str(exc)
     if config.record.path:
         problem = record_path_problem(config.record.path)
         if problem is not None:
@@ -236,6 +245,11 @@ def _start_problem(config) -> str | None:
             socket.getaddrinfo(config.live_view.host, config.live_view.port, type=socket.SOCK_STREAM)
         except OSError as exc:
             return f"live_view.host: cannot resolve {config.live_view.host!r}: {exc.strerror or exc}"
+    if config.output.health_file:
+        try:
+            claim_health_file(config.output.health_file)
+        except ConfigError as exc:
+            return str(exc)
     return None
 
 
@@ -256,31 +270,10 @@ def _serve(args: argparse.Namespace, stop: _StopSignals) -> int:
         sys.stdout.write(yaml.safe_dump(config_to_dict(config), sort_keys=False))
         return EXIT_OK
     if args.check:
-        # the zenoh config file is read as the session would read it (no session is opened)
-        from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
-
-        try:
-            build_config(
-                config.zenoh, max_payload_bytes=config.input.max_frame_bytes, file_option=DAEMON_CONFIG_FILE_FIELD
-            )
-        except ZenohConfigError as exc:
-            print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
-            return EXIT_CONFIG
-        problem = _start_problem(config)  # what the start would refuse that only the disk or the network knows
+        problem = _check_problem(config)
         if problem is not None:
             print(f"{args.config or '(defaults)'}: {problem}", file=sys.stderr)
             return EXIT_CONFIG
-        if config.output.health_file:
-            # the start's own check of the liveness path (a folder, a file with content): it depends on the disk,
-            # not on the configuration's values, so loading alone cannot see it
-            from onboard.app.health import claim_health_file
-            from onboard.core.errors import ConfigError
-
-            try:
-                claim_health_file(config.output.health_file)
-            except ConfigError as exc:
-                print(f"{args.config or '(defaults)'}: {exc}", file=sys.stderr)
-                return EXIT_CONFIG
         print(f"{args.config or '(defaults)'}: ok")
         return EXIT_OK
 
