@@ -249,10 +249,10 @@ class GcsLink:
         self.messages_rx = 0
         self.messages_tx = 0
         self._parsed = parsed
-        self._conns: list[Any] = []  # None: a tcp: endpoint not connected yet, dialled again at _redial_s[index]
+        # None: a tcp: endpoint not connected (yet, or again), dialled at _redial_s[index]
+        self._conns: list[Any] = [None] * len(parsed)
         self._redial_s: dict[int, float] = {}
         try:
-            self._conns = [None] * len(parsed)
             for idx in range(len(parsed)):
                 self._dial(idx, self._clock(), first=True)
         except Exception:
