@@ -331,6 +331,10 @@ class ObjectTracker:
     # ------------------------------------------------------------------ step
 
     def update(self, image: np.ndarray, R_ned_from_cam=None, time_boot_us: int | None = None) -> ObjectsUpdate:
+        """One frame.  ``R_ned_from_cam``: the camera's rotation at the frame's capture, None (the camera taken as
+        still), or a function of no argument that returns either: it is called once, after the frame's detection,
+        which needs no pose, so a caller that must wait for the telemetry bracketing the capture waits while the
+        frame is being detected rather than before."""
         self.stages.start()
         image = check_frame(image)
         self._frame_index += 1
@@ -338,9 +342,8 @@ class ObjectTracker:
         self._last_time_us = time_boot_us
         for t in (t for t in self._tracks if 2 * t.dim_hits < t.hits):  # dropped frames (see tbd.frame_steps)
             t.los = unit_vector(t.los + (self.frame_steps - 1) * t.rate)
-        R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
-        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
-            raise InputError(f"R_ned_from_cam must be a finite 3 x 3 rotation, got shape {R.shape}")
+        if not callable(R_ned_from_cam):
+            R = self._rotation(R_ned_from_cam)  # refused before any of the frame's work
         # step_lsb is in 8-bit grey: a 16-bit frame's grey is 257 times finer (its noise alone moves the
         # median by more than 3 of its steps, and every frame would restart the defect map)
         step = self.clutter.step_lsb * (GREY16_PER_GREY8 if image.dtype == np.uint16 else 1.0)
@@ -348,6 +351,8 @@ class ObjectTracker:
         self._prev, self._prev_median = image, med
         self.stages.lap("frame event")
         if event == "frozen":
+            if callable(R_ned_from_cam):
+                R = self._rotation(R_ned_from_cam())
             self.frozen_frames += 1
             for t in self._tracks:  # time passes, nothing is measured: predict without counting a miss
                 t.los = unit_vector(t.los + t.rate)
@@ -360,6 +365,8 @@ class ObjectTracker:
             log.info("frame %d: offset step (flat-field correction); defect map restarted", self._frame_index)
             self.detector.restart()
         regular = self.detect(image)
+        if callable(R_ned_from_cam):
+            R = self._rotation(R_ned_from_cam())
         self._shift_predictions(regular, R)
         regular = self._deblended(regular, R)
         self.stages.lap("deblending")
@@ -379,6 +386,13 @@ class ObjectTracker:
         out = self._output(image, R, event, measured, changed)
         self.stages.lap("primary, output")
         return out
+
+    @staticmethod
+    def _rotation(R_ned_from_cam) -> np.ndarray:
+        R = np.eye(3) if R_ned_from_cam is None else np.asarray(R_ned_from_cam, dtype=np.float64)
+        if R.shape != (3, 3) or not np.all(np.isfinite(R)):
+            raise InputError(f"R_ned_from_cam must be a finite 3 x 3 rotation, got shape {R.shape}")
+        return R
 
     def _deblended(self, cands: list[PointCandidate], R: np.ndarray) -> list[PointCandidate]:
         """``cands`` with the points beside a bright confirmed track measured on the last frame that its light

@@ -23,7 +23,8 @@ class ObjectChain:
     selection is a new track id and the frame pipeline restarts the 3-D estimate and says so), every
     object in :attr:`last_objects`.  ``uses_pose``: the frame pipeline passes each frame's
     ``R_ned_from_cam`` to :meth:`update` (None when it has no pose yet: the last one is kept, the
-    camera taken as still since)."""
+    camera taken as still since), or a function that returns it once the frame's detection is done
+    (:meth:`ObjectTracker.update`)."""
 
     uses_pose = True
 
@@ -51,9 +52,20 @@ class ObjectChain:
         except InputError:
             self.rejected_frames += 1
             raise
-        if R_ned_from_cam is not None:
-            self._R = np.asarray(R_ned_from_cam, dtype=np.float64)
-        out = self.objects.update(image, self._R, time_boot_us)
+        if callable(R_ned_from_cam):
+            rotation = R_ned_from_cam
+
+            def kept_rotation():
+                R = rotation()
+                if R is not None:
+                    self._R = np.asarray(R, dtype=np.float64)
+                return self._R
+
+            out = self.objects.update(image, kept_rotation, time_boot_us)
+        else:
+            if R_ned_from_cam is not None:
+                self._R = np.asarray(R_ned_from_cam, dtype=np.float64)
+            out = self.objects.update(image, self._R, time_boot_us)
         self.last_objects = out
         return self._track_update(out)
 

@@ -16,11 +16,11 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
    (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
 2. Imaging: ``tracker.update(pixels)`` (the single chain, :class:`~onboard.imaging.TargetTracker`); a chain that
-   ``uses_pose`` (the objects chain) gets the camera's rotation at ``t`` and ``t`` itself (frames the daemon
-   dropped are time its tracks must be predicted over), after the optional
-   ``chain_pose_wait(t)`` hook (the daemon waits there for the telemetry that brackets ``t``,
-   ``imaging.pose_wait_ms``: the chain registers frames with it, and an extrapolated rotation's noise
-   costs a dim target its confirmation).
+   ``uses_pose`` (the objects chain) gets ``t`` (frames the daemon dropped are time its tracks must be predicted
+   over) and a function that returns the camera's rotation at ``t``, which it calls once it has detected the
+   frame's points: after the optional ``chain_pose_wait(t)`` hook (the daemon waits there for the telemetry that
+   brackets ``t``, ``imaging.pose_wait_ms``: the chain registers frames with it, and an extrapolated rotation's
+   noise costs a dim target its confirmation), so the wait overlaps the detection.
 3. Pose at ``t`` (after imaging, so that late telemetry has more time to arrive): the optional
    ``pose_wait(t)`` hook lets the daemon wait for telemetry that lags; then ``pose_source.pose_at(t)``
    (counted by the pose buffer when missing).  No pose: the frame still gets a 2-D track.
@@ -369,18 +369,25 @@ class FramePipeline:
 
         waited_ns = 0
         uses_pose = getattr(self.tracker, "uses_pose", False)
-        if self.chain_pose_wait is not None and not self._selections and uses_pose:
-            waited_ns = self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
+
+        def rotation():
+            # called by the chain once the frame is detected (which needs no pose): the wait for the telemetry
+            # that brackets the capture overlaps the detection instead of coming before it
+            nonlocal waited_ns
+            if self.chain_pose_wait is not None:
+                waited_ns += self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
+            return self._camera_rotation(frame.time_boot_us)
+
         i0 = self._clock_ns()
         try:
             upd = self._apply_selections(frame.pixels) if self._selections else None
             if upd is None and uses_pose:
-                upd = self.tracker.update(frame.pixels, self._camera_rotation(frame.time_boot_us), frame.time_boot_us)
+                upd = self.tracker.update(frame.pixels, rotation, frame.time_boot_us)
             elif upd is None:
                 upd = self.tracker.update(frame.pixels)
         except InputError as exc:
             self._refuse("image", f"tracker refused the frame: {exc}")
-        self.imaging_ms.add((self._clock_ns() - i0) / 1e6)
+        self.imaging_ms.add((self._clock_ns() - i0 - waited_ns) / 1e6)
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us

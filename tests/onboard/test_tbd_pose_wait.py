@@ -5,7 +5,8 @@ an extrapolated rotation (or none, and kept the last one), and track-before-dete
 tracks' motion fit carried that error (docs/perception.md, "C4 and C5 in the loop").  These tests pin the two
 hooks: :meth:`SharedPoseBuffer.wait_for` with ``bracket=True`` waits for the bracketing sample where the
 plain wait would extrapolate, and :class:`FramePipeline` calls ``chain_pose_wait`` before it looks up the
-chain's rotation, so the chain gets the sample that arrived during the wait.
+chain's rotation, so the chain gets the sample that arrived during the wait; the objects chain asks for that
+rotation only once it has detected the frame, so the wait overlaps the detection.
 """
 
 from __future__ import annotations
@@ -142,7 +143,7 @@ class _PoseChain:
         self.rotations: list = []
 
     def update(self, pixels, R_ned_from_cam=None, time_boot_us=None):
-        self.rotations.append(R_ned_from_cam)
+        self.rotations.append(R_ned_from_cam() if callable(R_ned_from_cam) else R_ned_from_cam)
         return TrackUpdate(TrackState.SEARCHING, None, None, None, None, False, None, None, len(self.rotations))
 
 
@@ -173,3 +174,30 @@ def test_pipeline_waits_before_the_chain_looks_its_rotation_up():
     assert np.allclose(R, rotmat_from_quat(pose.q_ned_from_cam), atol=ATOL_RAD)
     # what the chain got without the wait: 0.0075 rad (~6 px at 765 px) away
     assert not np.allclose(R, rotmat_from_quat(extrapolated.q_ned_from_cam), atol=1e-3)
+
+
+def test_the_objects_chain_detects_the_frame_before_the_wait():
+    # the detection needs no pose: a frame sent the instant it is captured is detected while the attitude
+    # sample after its capture is still on its way, not after it came
+    from onboard.pipeline.frame_pipeline import make_tracker
+
+    cfg = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    K = cfg.camera.intrinsics
+    chain = make_tracker(cfg)
+    buf = filled(100_000)
+    t_frame = 110_000
+    pixels = np.full((K.height_px, K.width_px), 20, np.uint8)
+    detected_at_wait: list[bool] = []
+
+    def arrive(t_us: int) -> None:
+        detected_at_wait.append(chain.objects.detector.clean is not None)
+        buf.add_attitude(120_000, q_at(120_000), W_FRD_RPS)
+        buf.add_position_ned(120_000, [0.0, 0.0, -50.0], [0.0, 0.0, 0.0])
+
+    pipe = FramePipeline(cfg, buf, chain, None, ORIGIN, chain_pose_wait=arrive)
+    pipe.process(IrFrame(0, t_frame, pixels))
+    assert detected_at_wait == [True]
+    # the rotation the chain kept is the bracketed one, looked up after the wait
+    pose = buf.pose_at(t_frame)
+    assert pose is not None and pose.mode != "extrapolated"
+    assert np.allclose(chain._R, rotmat_from_quat(pose.q_ned_from_cam), atol=ATOL_RAD)
