@@ -440,13 +440,20 @@ def _default_chain() -> str:
     return OnboardConfig().imaging.chain
 
 
+def _default_attitude_rate_hz() -> float:
+    """The ATTITUDE_QUATERNION rate the daemon asks for when its configuration names none."""
+    from onboard.app.config import OnboardConfig
+
+    return OnboardConfig().mavlink.attitude_rate_hz
+
+
 def bench_latency(
     duration_s: float,
     capture_lag_ms: float,
     rate_hz: float = 30.0,
     extra_args: tuple[str, ...] = (),
     chain: str = "objects",
-    attitude_rate_hz: float = 50.0,
+    attitude_rate_hz: float = 100.0,
 ) -> dict:
     import queue
 
@@ -801,9 +808,10 @@ def main(argv=None) -> int:
     ap.add_argument(
         "--attitude-rate-hz",
         type=positive_float,
-        default=50.0,
-        help="the fake autopilot's ATTITUDE_QUATERNION rate in the latency runs (default 50, what the daemon asks;"
-        " a frame sent at its capture waits up to one attitude period for its bracketing sample)",
+        default=None,
+        help="the fake autopilot's ATTITUDE_QUATERNION rate in the latency runs, which the daemon is then told to ask"
+        " for (default: what the daemon asks, 100; a frame sent at its capture waits up to one attitude period for"
+        " its bracketing sample)",
     )
     ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
     ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
@@ -827,14 +835,16 @@ def main(argv=None) -> int:
         # first, before this process pins itself to one core
         chain = args.chain or _default_chain()
         extra = ("--set", f"imaging.chain={args.chain}") if args.chain else ()
-        if args.attitude_rate_hz != 50.0:  # the daemon asks for what it gets (its pose horizons follow the rate)
+        attitude_rate_hz = args.attitude_rate_hz or _default_attitude_rate_hz()
+        if args.attitude_rate_hz is not None:  # the daemon asks for what it gets
             extra += ("--set", f"mavlink.attitude_rate_hz={args.attitude_rate_hz:g}")
         print(
             "loopback latency through `python -m onboard` (127.0.0.1, UDP MAVLink + zenoh TCP), 30 Hz,"
-            f" imaging.chain {chain}{'' if args.chain else ' (the default)'}"
+            f" imaging.chain {chain}{'' if args.chain else ' (the default)'}, attitude {attitude_rate_hz:g} Hz"
+            f"{'' if args.attitude_rate_hz else ' (the default)'}"
         )
         rows = [
-            bench_latency(args.latency_s, lag, extra_args=extra, chain=chain, attitude_rate_hz=args.attitude_rate_hz)
+            bench_latency(args.latency_s, lag, extra_args=extra, chain=chain, attitude_rate_hz=attitude_rate_hz)
             for lag in args.capture_lags_ms
         ]
         lat_ask, cpu_ask = ASKS[chain]

@@ -211,7 +211,10 @@ class MavlinkConfig:
     link's ``clock``; ids are MAVLink system/component ids.
 
     ``connection``: the autopilot endpoint; ``attitude_rate_hz`` / ``position_rate_hz`` /
-    ``gimbal_rate_hz``: the stream rates requested (#31, #33, #285 when the pod is gimballed).
+    ``gimbal_rate_hz``: the stream rates requested (#31, #33, #285 when the pod is gimballed).  Attitude at
+    100 Hz, as PX4 streams it on a companion link: the objects chain registers each frame with the attitude
+    samples that bracket its capture and waits for the later one, up to half as long as at 50 Hz.  An autopilot
+    that grants less only lengthens that wait (``imaging.pose_wait_ms`` bounds it).
 
     ``autopilot_sysid``: the system to follow.  None: lock onto a system whose ``autopilot_compid``
     heartbeats as an autopilot (MAV_TYPE not GCS/onboard/gimbal/camera/ADS-B, MAV_AUTOPILOT not INVALID)
@@ -231,7 +234,7 @@ class MavlinkConfig:
     """
 
     connection: Annotated[str, Text()] = DEFAULT_CONNECTION
-    attitude_rate_hz: RateHz = 50.0
+    attitude_rate_hz: RateHz = 100.0
     position_rate_hz: RateHz = 25.0
     gimbal_rate_hz: RateHz = 50.0
     heartbeat_interval_s: IntervalS = 1.0

@@ -139,7 +139,7 @@ def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
     assert rig.link.state == LINK_WAITING
     rig.connect()
     ap = rig.ap
-    assert sorted((mid, us) for mid, us, _ in ap.commands) == [(31, 20_000), (33, 40_000)]
+    assert sorted((mid, us) for mid, us, _ in ap.commands) == [(31, 10_000), (33, 40_000)]
     assert all(conf == 0 for *_, conf in ap.commands)
     # heartbeat as an onboard computer, with the autopilot's system id
     assert rig.drive(lambda: ap.got("HEARTBEAT"))
