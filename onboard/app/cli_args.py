@@ -26,6 +26,7 @@ __all__ = [
     "add_zenoh_options",
     "config_overrides",
     "nonnegative_float",
+    "number_in",
     "above_zero",
     "sigterm_as_interrupt",
     "help_summary",
@@ -71,6 +72,23 @@ def above_zero(parse: Callable[[str], float], zero: str) -> Callable[[str], floa
         return value
 
     return parse_above_zero
+
+
+def number_in(lo: float, hi: float, lo_open: bool = False) -> Callable[[str], float]:
+    """An argparse ``type``: a number in ``[lo, hi]`` (``(lo, hi]`` with ``lo_open``), refused otherwise with
+    ``expected a number in [lo, hi], got '<text>'`` (so a NaN, an infinity and 1e308 read as what they are)."""
+    span = f"{'(' if lo_open else '['}{lo:g}, {hi:g}]"
+
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            value = math.nan
+        if not (lo < value <= hi if lo_open else lo <= value <= hi):
+            raise argparse.ArgumentTypeError(f"expected a number in {span}, got {text!r}")
+        return value
+
+    return parse
 
 
 def add_zenoh_options(

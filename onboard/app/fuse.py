@@ -4,7 +4,8 @@
                            [--seconds S] [--max-age-s 2] [--status-interval-s 1]
                            [--attitude-bias-deg 0.1] [--camera-white-m 0.02] [--camera-offset-m 0]
                            [--vehicle-noise NAME:attitude_bias_deg=..,camera_white_m=..,camera_offset_m=..]...
-                           [--max-time-sigma-ms 50]
+                           [--max-time-sigma-ms 50] [--silent-after-s 1] [--clock-tolerance-ms 10]
+                           [--reject-log-interval-s 10] [--log-level INFO]
                            [--zenoh-connect ENDPOINT]... [--zenoh-listen ENDPOINT]... [--zenoh-config FILE]
                            [--zenoh-multicast-scouting | --no-zenoh-multicast-scouting]
 
@@ -17,7 +18,9 @@ a daemon that stopped; the fleet track goes on with the others, unobservable whe
 rejoins with its next line of sight that gates), ``clocks`` (each vehicle's latency floor off the fleet's
 median, ms; ``latency_floor_ms``: the floors themselves) and ``clock_inconsistent`` (the vehicles whose ``time_unix_us`` disagrees with the others' beyond
 ``--clock-tolerance-ms``: :class:`~onboard.io.fleet_wire.ClockConsistency`).  Counted on each change:
-``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle) and ``vehicle_back`` (INFO).  The zenoh options are :mod:`onboard.app.watch`'s (the daemon's names), and so is
+``vehicle_silent``, ``clock_inconsistent`` (WARNING, naming the vehicle), ``vehicle_back`` and, after
+``FORGET_AFTER_S`` (10 min) of silence, ``vehicle_forgotten`` (INFO: out of the status and the per-vehicle outputs).
+A vehicle is one once a track of it parses; ``MAX_VEHICLES`` (64) are kept at most.  The zenoh options are :mod:`onboard.app.watch`'s (the daemon's names), and so is
 their default, which is not the daemon's: with none given it connects to ``tcp/127.0.0.1:7447``.
 
 Threads: zenoh's callback only queues ``(key, payload, arrival time)``; one loop drains the queue, adds
@@ -26,15 +29,21 @@ frame of the newest camera period is in, or a vehicle is ``max_defer_s`` (50 ms)
 (:meth:`~onboard.estimation.fleet_tracker.FleetTracker.due`), or the queue has been idle for 0.1 s.  Eight vehicles
 at 30 Hz then cost one solve per period instead of about two, at no latency from the later frame.
 Bad input never stops it and never becomes a fused point: it is counted by reason and logged at most once
-per ``--reject-log-interval-s`` per reason: ``not_json``, ``bad_track`` (the schema's reader names the key),
+per ``--reject-log-interval-s`` per reason: ``bad_vehicle_name`` (a key chunk that is no daemon's vehicle name:
+no output key could carry it), ``not_json``, ``bad_track`` (the schema's reader names the key; an origin's
+altitude outside ``ORIGIN_ALT_RANGE_M`` too), ``too_many_vehicles``,
 ``bad_time_unix_us``, ``no_origin``, ``stale`` / ``future`` (common time more than ``--max-age-s`` before or
 after this machine's clock), ``camera_far`` / ``camera_jump`` (a camera no vehicle of the fleet can be at:
 :class:`~onboard.io.fleet_wire.StreamCheck`), ``time_sigma`` (``time_unix_sigma_us`` above
 ``--max-time-sigma-ms``), ``sigma_below_floor`` (a line-of-sight sigma below
 :data:`~onboard.estimation.fleet.MIN_BEARING_SIGMA_RAD`), ``clock_off`` (a vehicle the clock check names, off the
 others by more than the pairing window: its rays could not pair and would move a target), ``ray_name_clash``
-(DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``; ``no_line_of_sight`` (a
-track without a target) and the tracker's events are counted at DEBUG level.  The status lists refusals under
+(DEBUG: a vehicle name two vehicles share, below), ``ray_stale``, ``ray_out_of_order``, ``duplicate`` (a seq
+heard again: redelivered or replayed), ``inbox_full`` (a flood beyond ``INBOX_MAX``), ``receive_error`` (a message
+that failed in a way no check above names: counted, the loop goes on); ``no_line_of_sight`` (a track without a
+target), ``ray_of_ended_object`` (a late ray of an object its vehicle's track has left) and the tracker's events
+are counted at DEBUG level.  A frame refused as stale or future is no evidence about its vehicle's clock: the
+clock check (below) never sees it.  The status lists refusals under
 ``rejected`` and events (:data:`EVENTS`) under ``events``.
 
 Name clash: when the tracks under one name interleave two streams (``seq`` / ``time_boot_us`` back and forth,
@@ -65,12 +74,13 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from onboard.app.cli_args import OneLineParser, above_zero, add_zenoh_options, nonnegative_float
+from onboard.app.cli_args import OneLineParser, add_zenoh_options, nonnegative_float, number_in
 from onboard.app.logs import setup_logging
 from onboard.app.watch import ZENOH_CONNECT_HELP, zenoh_config
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError, IrtrackError
 from onboard.core.frames import GeodeticOrigin
+from onboard.core.track import ORIGIN_ALT_RANGE_M
 from onboard.estimation.fleet import (
     MIN_BEARING_SIGMA_RAD,
     FleetConfig,
@@ -84,6 +94,7 @@ from onboard.estimation.map_estimator import NoiseModel
 from onboard.io.fleet_wire import (
     FLEET_NAME,
     FLEET_TRACK_ENCODING,
+    MAX_CAMERA_DISTANCE_M,
     TRACKS_KEY_EXPR,
     ClockConsistency,
     CommonClock,
@@ -110,6 +121,17 @@ POLL_S = 0.1
 INBOX_MAX = 3000
 #: messages fused per turn of the main loop before it publishes what is due: a flood must not starve the output
 MAX_PER_TURN = 300
+#: vehicles the fusion keeps state for at most: a new name beyond them is refused (too_many_vehicles) rather than
+#: growing the status, the per-vehicle outputs and their publishers without bound
+MAX_VEHICLES = 64
+#: a vehicle silent this long is forgotten (vehicle_forgotten): out of the status and the per-vehicle outputs,
+#: its place free for another
+FORGET_AFTER_S = 600.0
+#: a fleet frame set by the first vehicle heard (no --origin) and shared by no other yet is given up once another
+#: vehicle's cameras have been refused as too far from it for this long (fleet_origin_moved) ...
+REANCHOR_AFTER_S = 3.0
+#: ... at most once in this long: two vehicles that far apart cannot be fused, and the frame must not flicker
+REANCHOR_HOLD_S = 30.0
 
 
 class Inbox:
@@ -145,7 +167,10 @@ def drain(inbox: Inbox, fusion: Fusion, first: tuple | None, limit: int = MAX_PE
     """Fuse ``first`` and what else waits, ``limit`` messages at most; returns how many were fused."""
     n, item = 0, first
     while item is not None:
-        fusion.receive(*item)
+        try:
+            fusion.receive(*item)
+        except Exception as exc:  # noqa: BLE001 - one message the checks missed must not end the fusion
+            fusion.counter.count("receive_error", f"{item[0]}: {type(exc).__name__}: {exc}")
         n += 1
         if n >= limit:
             break
@@ -165,6 +190,8 @@ EVENTS = frozenset(
     {
         "vehicle_silent",
         "vehicle_back",
+        "vehicle_forgotten",
+        "fleet_origin_moved",
         "clock_inconsistent",
         "name_clash",
         "name_clash_cleared",
@@ -220,6 +247,12 @@ class Fusion:
         self._clock_refused: set[str] = set()
         self._clock_judged_at = -math.inf
         self._clock_far: dict[str, float] = {}
+        # the fleet frame's provenance: the vehicle whose ray set it (None: configured, or none yet), and whether
+        # another vehicle's ray was accepted in it since (then it is the fleet's, and kept)
+        self._origin_vehicle: str | None = None
+        self._origin_shared = origin is not None
+        self._far_since: dict[str, float] = {}  # vehicles refused camera_far since, while the frame is not shared
+        self._reanchored_at = -math.inf
 
     def _check_clashes(self, now_unix_s: float) -> list[str]:
         clashing = self.stream_check.clashing(now_unix_s)
@@ -257,10 +290,11 @@ class Fusion:
         if vehicle is None or (self.vehicles is not None and vehicle not in self.vehicles):
             return  # the fusion's own output, or a vehicle not asked for
         self.received += 1
-        self._last_arrival[vehicle] = arrival_unix_s
-        if vehicle in self._silent:
-            self._silent.discard(vehicle)
-            self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO)
+        try:
+            check_vehicle_name(vehicle)
+        except IrtrackError as exc:  # zenoh keys take names no daemon sends and no output key can carry
+            self.counter.count("bad_vehicle_name", f"{key}: {exc}")
+            return
         try:
             obj = json.loads(payload)
         except (ValueError, UnicodeDecodeError, RecursionError) as exc:  # (RecursionError: nested too deep)
@@ -278,7 +312,11 @@ class Fusion:
         if track.vehicle != vehicle:
             self.counter.count("bad_track", f"{key}: vehicle {track.vehicle!r} on another vehicle's key")
             return
-        if time_unix_us is not None:  # every frame times the vehicle's clock, with a target or not
+        if not self._heard(vehicle, arrival_unix_s):
+            return
+        # every frame times the vehicle's clock, with a target or not; but not a stamp so far off that it is refused
+        # as stale or future below: one glitch would set the vehicle's latency floor for the check's whole window
+        if time_unix_us is not None and abs(time_unix_us / 1e6 - arrival_unix_s) <= self.max_age_s:
             self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
         if los is None or track.origin is None:
@@ -312,8 +350,8 @@ class Fusion:
             off = None
         try:
             ray = ray_from_track(TimedTrack(track, t_s, source, time_sigma_s), origin)
-        except InputError as exc:
-            self.counter.count("bad_track", f"{key}: {exc}")
+        except (InputError, ArithmeticError, ValueError, np.linalg.LinAlgError) as exc:
+            self.counter.count("bad_track", f"{key}: {type(exc).__name__}: {exc}")
             return
         implausible = self.stream_check.add(
             vehicle, track.seq, track.time_boot_us, t_s, ray.p_cam_ned_m, arrival_unix_s
@@ -324,6 +362,8 @@ class Fusion:
         if implausible is not None:
             where = np.round(ray.p_cam_ned_m, 1).tolist()
             self.counter.count(implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})")
+            if implausible == "camera_far":
+                self._reanchor_if_alone(vehicle, arrival_unix_s)
             return
         if not self._ray_plausible(key, ray):
             return
@@ -347,7 +387,11 @@ class Fusion:
         self._objects[vehicle] = (ray.object_id, max(ray.t_s, last[1] if last is not None else ray.t_s))
         if self.origin is None:
             self.origin = origin
+            self._origin_vehicle = vehicle
             log.info("fleet origin: %s's, %s", vehicle, origin)
+        elif vehicle != self._origin_vehicle:
+            self._origin_shared = True
+        self._far_since.pop(vehicle, None)
         self._time_sources[vehicle] = source
         self._origins[vehicle] = track.origin
         self._cameras[vehicle] = np.asarray(los.p_cam_ned_m)
@@ -355,6 +399,54 @@ class Fusion:
         tid = self.tracker.add(ray)
         if tid is not None:
             self._touched.add(tid)
+
+    def _heard(self, vehicle: str, arrival_unix_s: float) -> bool:
+        """Note a parsed track of ``vehicle`` (silent no more); False for a new vehicle beyond ``MAX_VEHICLES``."""
+        if vehicle not in self._last_arrival and len(self._last_arrival) >= MAX_VEHICLES:
+            self.counter.count("too_many_vehicles", f"{vehicle}: {MAX_VEHICLES} vehicles are fused at most")
+            return False
+        self._last_arrival[vehicle] = arrival_unix_s
+        if vehicle in self._silent:
+            self._silent.discard(vehicle)
+            self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO)
+        return True
+
+    def _reanchor_if_alone(self, vehicle: str, now_unix_s: float) -> None:
+        """Give up a fleet frame that only the vehicle which set it has been accepted in, once ``vehicle``'s cameras
+        have been too far from it for ``REANCHOR_AFTER_S``: the first vehicle heard may be the stray one (a
+        simulator on the fleet's network, a vehicle with a wrong position), and every real vehicle would then be
+        refused for the life of the process.  The next accepted line of sight sets the frame again."""
+        if self._origin_shared or self.origin is None or vehicle == self._origin_vehicle:
+            return
+        since = self._far_since.setdefault(vehicle, now_unix_s)
+        if now_unix_s - since < REANCHOR_AFTER_S or now_unix_s - self._reanchored_at < REANCHOR_HOLD_S:
+            return
+        old = self._origin_vehicle
+        self.counter.count(
+            "fleet_origin_moved",
+            f"the fleet frame was {old}'s origin {self.origin}, which no other vehicle has been placed near: {vehicle}'s "
+            f"cameras were over {MAX_CAMERA_DISTANCE_M / 1e3:.0f} km from it for {now_unix_s - since:.1f} s; the next "
+            "accepted line of sight sets it again (pin it with --origin, or name the fleet's vehicles with --vehicles)",
+        )
+        if old is not None:
+            self.tracker.withdraw(old, "the fleet frame moved")
+        for v in self._last_arrival:  # the streams' cameras are in the old frame
+            self.stream_check.forget(v)
+        self.origin, self._origin_vehicle = None, None
+        self._far_since.clear()
+        self._reanchored_at = now_unix_s
+
+    def _forget(self, now_unix_s: float) -> None:
+        """Drop what is kept for vehicles silent for ``FORGET_AFTER_S``."""
+        for v in [v for v, t in self._last_arrival.items() if now_unix_s - t > FORGET_AFTER_S]:
+            self.counter.count(
+                "vehicle_forgotten", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.0f} s", level=logging.INFO
+            )
+            for kept in (self._last_arrival, self._time_sources, self._origins, self._cameras, self._objects):
+                kept.pop(v, None)
+            self._silent.discard(v)
+            self.stream_check.forget(v)
+            self.clock_check.forget(v)
 
     def _ray_plausible(self, key: str, ray: Ray) -> bool:
         if ray.time_sigma_s > self.max_time_sigma_s:
@@ -401,6 +493,7 @@ class Fusion:
 
     def watch(self, now_unix_s: float) -> tuple[list[str], dict[str, float], list[str]]:
         """(silent vehicles, clock deviations s, clock-inconsistent vehicles) now; each change is counted."""
+        self._forget(now_unix_s)
         silent = {v for v, t in self._last_arrival.items() if now_unix_s - t > self.silent_after_s}
         for v in sorted(silent - self._silent):
             self.counter.count(
@@ -446,13 +539,18 @@ class Fusion:
 
 _positive = nonnegative_float("expected a number", "expected a number >= 0")
 
+# the noise a vehicle can have (degrees, metres): zero allowed for the nuisances a zero switches off, not for the
+# white noise; beyond the upper bounds no camera is placed at all, and the solve would overflow
+_attitude_bias_deg = number_in(0.0, 90.0)
+_camera_white_m = number_in(0.0, 1000.0, lo_open=True)
+_camera_offset_m = number_in(0.0, 1000.0)
 
-_above_zero = above_zero(_positive, "expected a number > 0")
-
-
-#: --vehicle-noise's keys (the global options' names and units) and the parser each value takes (zero allowed for
-#: the nuisances a zero switches off, not for the white noise)
-_NOISE_KEYS = {"attitude_bias_deg": _positive, "camera_white_m": _above_zero, "camera_offset_m": _positive}
+#: --vehicle-noise's keys (the global options' names and units) and the parser each value takes
+_NOISE_KEYS = {
+    "attitude_bias_deg": _attitude_bias_deg,
+    "camera_white_m": _camera_white_m,
+    "camera_offset_m": _camera_offset_m,
+}
 
 
 def _vehicle_noise(text: str) -> tuple[str, dict[str, float]]:
@@ -513,11 +611,15 @@ def warm_up(config: FleetConfig) -> None:
 def _origin(text: str) -> GeodeticOrigin:
     try:
         lat, lon, alt = (float(x) for x in text.split(","))
-        return GeodeticOrigin(lat, lon, alt)
+        origin = GeodeticOrigin(lat, lon, alt)
     except (ValueError, IrtrackError) as exc:
         raise argparse.ArgumentTypeError(
             f"expected LAT,LON,ALT (degrees, degrees, metres), got {text!r} ({exc})"
         ) from None
+    lo, hi = ORIGIN_ALT_RANGE_M
+    if not lo <= origin.alt_m <= hi:
+        raise argparse.ArgumentTypeError(f"expected LAT,LON,ALT with ALT in [{lo:g}, {hi:g}] m, got {text!r}")
+    return origin
 
 
 def _offset(text: str) -> tuple[str, float]:
@@ -559,22 +661,38 @@ def build_parser() -> argparse.ArgumentParser:
         help="UTC minus boot time of a vehicle whose tracks carry no time_unix_us (default: estimated from arrivals)",
     )
     p.add_argument("--seconds", type=_positive, default=0.0, help="stop after S seconds (default 0: until a signal)")
-    p.add_argument("--max-age-s", type=_above_zero, default=2.0, help="refuse frames older or newer than this, > 0 (2)")
+    p.add_argument(
+        "--max-age-s",
+        type=number_in(0.0, 3600.0, lo_open=True),
+        default=2.0,
+        help="refuse frames older or newer than this (2)",
+    )
     p.add_argument(
         "--status-interval-s", type=_positive, default=1.0, help="irtrack/fleet/status period (1; 0: the last only)"
     )
     p.add_argument(
-        "--silent-after-s", type=_above_zero, default=1.0, help="a vehicle unheard this long is silent, > 0 (1)"
+        "--silent-after-s",
+        type=number_in(0.0, 3600.0, lo_open=True),
+        default=1.0,
+        help="a vehicle unheard this long is silent (1)",
     )
     p.add_argument(
-        "--clock-tolerance-ms", type=_positive, default=10.0, help="name a vehicle whose UTC is this far off (10)"
+        # 0 would name every vehicle of a pair, one of them being always the later
+        "--clock-tolerance-ms",
+        type=number_in(0.0, 10_000.0, lo_open=True),
+        default=10.0,
+        help="name a vehicle whose UTC is this far off (10)",
     )
     p.add_argument(
         "--reject-log-interval-s", type=_positive, default=10.0, help="log each reason at most this often (10)"
     )
-    p.add_argument("--attitude-bias-deg", type=_positive, default=0.1, help="attitude bias prior, 1 sigma (0.1)")
-    p.add_argument("--camera-white-m", type=_above_zero, default=0.02, help="white camera-position noise, > 0 (0.02)")
-    p.add_argument("--camera-offset-m", type=_positive, default=0.0, help="camera-position offset prior (0: none)")
+    p.add_argument(
+        "--attitude-bias-deg", type=_attitude_bias_deg, default=0.1, help="attitude bias prior, 1 sigma (0.1)"
+    )
+    p.add_argument("--camera-white-m", type=_camera_white_m, default=0.02, help="white camera-position noise (0.02)")
+    p.add_argument(
+        "--camera-offset-m", type=_camera_offset_m, default=0.0, help="camera-position offset prior (0: none)"
+    )
     p.add_argument(
         "--vehicle-noise",
         type=_vehicle_noise,
@@ -586,9 +704,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--max-time-sigma-ms",
-        type=_above_zero,  # 0 would refuse every line of sight
+        type=number_in(0.001, 10_000.0),  # under a microsecond (the wire's unit) would refuse every line of sight
         default=50.0,
-        help="refuse lines of sight whose time_unix_sigma_us is larger, > 0 (50)",
+        help="refuse lines of sight whose time_unix_sigma_us is larger (50)",
     )
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     add_zenoh_options(

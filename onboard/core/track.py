@@ -131,6 +131,9 @@ READABLE_TRACK_SCHEMAS = ("irtrack.track/1", TRACK_SCHEMA)  # /1 has the same ke
 TRACK_STATES = ("searching", "tracking", "coasting", "lost")
 #: a camera clock compensated by more than this (a minute) is no clock the time-offset estimator reports
 MAX_COMPENSATED_US = 60_000_000
+#: the altitudes (WGS84, m) a vehicle's local origin can have: below the lowest land to above any balloon; a garbage
+#: altitude beyond them (1e200) makes no frame anyone can compute in
+ORIGIN_ALT_RANGE_M = (-1_000.0, 100_000.0)
 
 _POSITION_FIELDS = ("lat_deg", "lon_deg", "alt_m", "p_ned_m", "v_ned_mps", "cov_p_ned_m2", "range_m")
 _U64_MAX = 2**64 - 1
@@ -719,6 +722,9 @@ def _track_from_json(obj: Mapping[str, Any] | str | bytes) -> Track:
         origin = None if o is None else GeodeticOrigin(float(o["lat_deg"]), float(o["lon_deg"]), float(o["alt_m"]))
     except (TypeError, KeyError, ValueError) as exc:
         raise InputError(f"track message origin: expected {{lat_deg, lon_deg, alt_m}}, got {o!r} ({exc})") from None
+    if origin is not None and not ORIGIN_ALT_RANGE_M[0] <= origin.alt_m <= ORIGIN_ALT_RANGE_M[1]:
+        lo, hi = ORIGIN_ALT_RANGE_M
+        raise InputError(f"track message origin.alt_m: expected a number in [{lo:g}, {hi:g}] m, got {origin.alt_m!r}")
     cov = obj.get("cov_ned_m2")
     sig_v = obj.get("sigma_vel_ned_mps")
     cov_v = None if sig_v is None else np.diag(np.square(np.asarray(sig_v, dtype=float)))

@@ -15,7 +15,8 @@ Keys::
 ``observable`` (the verdict of :mod:`onboard.estimation.fleet`), ``vehicles``: one object per contributing
 vehicle ``{vehicle, time_unix_us (its newest line of sight), rays, range_m, range_sigma_ratio,
 time_source}``; the per-vehicle key adds ``vehicle`` (the addressee) and ``range_m`` (from its newest
-camera position, null if it did not contribute).
+camera position, null before it sent one; for a vehicle that did not contribute to this target that position
+can be older than the estimate).
 
 Time: every line of sight is put on one clock, UTC seconds (:class:`CommonClock`): the track's
 ``time_unix_us`` when it carries one (``time_source: vehicle``), else its ``time_boot_us`` plus a
@@ -203,6 +204,11 @@ class StreamCheck:
     def _near(self, a: tuple[float, np.ndarray], t_s: float, p: np.ndarray) -> bool:
         return float(np.linalg.norm(p - a[1])) <= self.max_speed_mps * abs(t_s - a[0]) + self.slack_m
 
+    def forget(self, vehicle: str) -> None:
+        """Drop what is kept of ``vehicle``'s stream (a vehicle long silent)."""
+        self._streams.pop(vehicle, None)
+        self._clashing.discard(vehicle)
+
     def add(
         self, vehicle: str, seq: int, time_boot_us: int, t_s: float, p_cam_ned_m, arrival_unix_s: float
     ) -> str | None:
@@ -319,6 +325,11 @@ class ClockConsistency:
         floor.append((arrival_unix_s, lag))
         self._arrivals.setdefault(vehicle, deque()).append(arrival_unix_s)
         self._trim(vehicle, arrival_unix_s)
+
+    def forget(self, vehicle: str) -> None:
+        """Drop ``vehicle``'s frames (a vehicle long silent)."""
+        self._floor.pop(vehicle, None)
+        self._arrivals.pop(vehicle, None)
 
     def _trim(self, vehicle: str, now_unix_s: float) -> None:
         cutoff = now_unix_s - self.window_s

@@ -188,19 +188,36 @@ def test_its_own_output_and_other_vehicles_are_not_input():
         (["--vehicles", "uav 1"], "vehicle name"),
         (["--origin", "32,118"], "LAT,LON,ALT"),
         (["--clock-offset", "uav1"], "NAME=SECONDS"),
-        (["--max-age-s", "-1"], ">= 0"),
-        (["--camera-white-m", "0"], "--camera-white-m: expected a number > 0"),
+        (["--max-age-s", "-1"], "--max-age-s: expected a number in (0, 3600], got '-1'"),
+        (["--max-age-s", "nan"], "--max-age-s: expected a number in (0, 3600], got 'nan'"),
+        (["--camera-white-m", "0"], "--camera-white-m: expected a number in (0, 1000]"),
         (["--attitude-bias-deg", "-0.1"], "--attitude-bias-deg"),
-        (["--vehicle-noise", "uav2:camera_white_m=0"], "--vehicle-noise: uav2: camera_white_m: expected a number > 0"),
+        (
+            ["--vehicle-noise", "uav2:camera_white_m=0"],
+            "--vehicle-noise: uav2: camera_white_m: expected a number in (0, 1000]",
+        ),
         (["--vehicle-noise", "uav2:attitude_bias_deg=-1"], "--vehicle-noise: uav2: attitude_bias_deg"),
         (["--vehicle-noise", "uav2:attitude_bias=0.5"], "--vehicle-noise: expected NAME:KEY=VALUE"),
         (["--vehicle-noise", "uav2"], "--vehicle-noise: expected NAME:KEY=VALUE"),
         (["--vehicle-noise", "fleet:camera_white_m=1"], "--vehicle-noise: expected NAME:KEY=VALUE"),
         (["--max-time-sigma-ms", "nan"], "--max-time-sigma-ms"),
         # zero refuses every line of sight: a window of no age or no clock uncertainty at all
-        (["--max-age-s", "0"], "--max-age-s: expected a number > 0, got '0'"),
-        (["--max-time-sigma-ms", "0"], "--max-time-sigma-ms: expected a number > 0, got '0'"),
-        (["--silent-after-s", "0"], "--silent-after-s: expected a number > 0, got '0'"),  # every vehicle silent
+        (["--max-age-s", "0"], "--max-age-s: expected a number in (0, 3600], got '0'"),
+        (["--max-time-sigma-ms", "0"], "--max-time-sigma-ms: expected a number in [0.001, 10000], got '0'"),
+        (["--max-time-sigma-ms", "1e-300"], "--max-time-sigma-ms: expected a number in [0.001, 10000]"),
+        (
+            ["--silent-after-s", "0"],
+            "--silent-after-s: expected a number in (0, 3600], got '0'",
+        ),  # every vehicle silent
+        # values no camera has: the solve overflowed on them
+        (["--attitude-bias-deg", "1e308"], "--attitude-bias-deg: expected a number in [0, 90], got '1e308'"),
+        (["--camera-offset-m", "1e200"], "--camera-offset-m: expected a number in [0, 1000], got '1e200'"),
+        (
+            ["--vehicle-noise", "uav2:camera_offset_m=1e200"],
+            "--vehicle-noise: uav2: camera_offset_m: expected a number",
+        ),
+        (["--origin", "0,0,1e300"], "ALT in [-1000, 100000] m"),
+        (["--clock-tolerance-ms", "0"], "--clock-tolerance-ms: expected a number in (0, 10000], got '0'"),
     ],
 )
 def test_bad_options_exit_2_on_one_line(argv, words, capsys):
@@ -656,6 +673,94 @@ def test_a_malformed_message_is_counted_never_a_crash_and_a_refused_one_sets_no_
     assert fusion.counter["sigma_below_floor"] == 1 and fusion.origin is None
     out = run_pair(fusion, 1.0, np.random.default_rng(1))
     assert fusion.origin == ORIGIN_1 and any(k == fleet_track_key() for k, _ in out)
+
+
+def test_a_key_no_daemon_sends_or_an_origin_no_frame_holds_is_counted_and_the_fusion_goes_on():
+    """A key chunk with a space (zenoh takes it) stopped the process at the next flush, which could not make that
+    vehicle's output key; an origin at 1e200 m failed the frame map's SVD with a LinAlgError nobody caught."""
+    fusion = new_fusion()
+    good = json.loads(payload_of(UAV1, 0.0, np.random.default_rng(0), 0))
+    fusion.receive("irtrack/uav 2/track", json.dumps({**good, "vehicle": "uav 2"}).encode(), T0_UNIX_S + 0.01)
+    high = {**good, "origin": {**good["origin"], "alt_m": 1e200}}
+    fusion.receive("irtrack/uav1/track", json.dumps(high).encode(), T0_UNIX_S + 0.01)
+    assert fusion.counter["bad_vehicle_name"] == 1 and fusion.counter["bad_track"] == 1
+    out = run_pair(fusion, 1.0, np.random.default_rng(1))
+    assert any(k == fleet_track_key() for k, _ in out) and fusion.origin == ORIGIN_1
+    assert fusion.status(T0_UNIX_S + 1.0)["silent"] == []
+
+
+def test_a_message_the_checks_miss_is_counted_by_drain_and_the_next_one_fused():
+    fusion = new_fusion()
+    calls = []
+
+    def receive(key, payload, arrival):
+        calls.append(key)
+        if len(calls) == 1:
+            raise ZeroDivisionError("a bug on one message")
+
+    fusion.receive = receive  # type: ignore[method-assign]
+    inbox = Inbox()
+    inbox.put(("irtrack/uav2/track", b"{}", T0_UNIX_S))
+    assert drain(inbox, fusion, ("irtrack/uav1/track", b"{}", T0_UNIX_S)) == 2
+    assert calls == ["irtrack/uav1/track", "irtrack/uav2/track"] and fusion.counter["receive_error"] == 1
+
+
+def test_one_frame_stamped_seconds_ahead_is_refused_alone_and_does_not_shut_its_vehicle_out():
+    """The clock check took the refused frame's stamp: its vehicle's latency floor became -5 s for the check's 10 s
+    window, the vehicle was named off the others' clock and its good rays refused (clock_off 300, the fleet track
+    unobservable for 10 s)."""
+    fusion, rng = new_fusion(), np.random.default_rng(3)
+
+    def glitch(k, obj):
+        if k == 40:
+            obj["time_unix_us"] += 5_000_000
+
+    out = run_pair_with(fusion, np.arange(0.0, 8.0, 1 / 30), rng, bad=glitch)
+    assert fusion.counter["future"] == 1 and "clock_off" not in fusion.counter.counts
+    late = [p for k, p in out if k == fleet_track_key() and p["time_unix_us"] / 1e6 - T0_UNIX_S > 3.0]
+    assert late and all(p["observable"] for p in late)
+
+
+def test_only_parsed_tracks_make_a_vehicle_and_a_long_silent_one_is_forgotten():
+    """5000 junk keys made 5000 'silent' vehicles in every status, kept for the life of the process."""
+    from onboard.app.fuse import FORGET_AFTER_S, MAX_VEHICLES
+
+    fusion = new_fusion()
+    for i in range(500):
+        fusion.receive(f"irtrack/junk{i}/track", b"x", T0_UNIX_S)
+    run_pair(fusion, 0.5, np.random.default_rng(2))
+    status = fusion.status(T0_UNIX_S + 5.0)
+    assert fusion.counter["not_json"] == 500 and status["silent"] == ["uav1", "uav2"]
+    good = json.loads(payload_of(UAV1, 0.4, np.random.default_rng(0), 99))
+    for i in range(MAX_VEHICLES + 5):
+        name = f"v{i}"
+        fusion.receive(f"irtrack/{name}/track", json.dumps({**good, "vehicle": name}).encode(), T0_UNIX_S + 0.45)
+    assert fusion.counter["too_many_vehicles"] == 7  # uav1 and uav2 hold two of the places
+    later = fusion.status(T0_UNIX_S + 1.0 + FORGET_AFTER_S)
+    assert later["silent"] == [] and later["vehicles"] == {} and fusion.counter["vehicle_forgotten"] == MAX_VEHICLES
+    run_pair_with(fusion, np.arange(FORGET_AFTER_S + 2.0, FORGET_AFTER_S + 3.0, 1 / 30), np.random.default_rng(4))
+    assert set(fusion.status(T0_UNIX_S + FORGET_AFTER_S + 3.0)["vehicles"]) == {"uav1", "uav2"}
+
+
+def test_a_stray_vehicle_heard_first_does_not_keep_the_fleet_frame_from_the_fleet():
+    """A well-formed track from a vehicle far from the others (a simulator on the fleet's network, a wrong position)
+    set the fleet frame when it came first, and every real vehicle's camera was refused as too far from it for the
+    life of the process: nothing was ever fused."""
+    from onboard.app.fuse import REANCHOR_AFTER_S
+
+    fusion, rng, out = new_fusion(), np.random.default_rng(6), []
+    for k, t in enumerate(np.arange(0.0, 8.0, 1 / 30)):
+        stray = json.loads(payload_of(UAV1, t, rng, k))
+        stray["vehicle"], stray["origin"] = "sim1", {"lat_deg": 0.0, "lon_deg": 0.0, "alt_m": 0.0}
+        fusion.receive("irtrack/sim1/track", json.dumps(stray).encode(), T0_UNIX_S + t + 0.004)
+        for v in (UAV1, UAV2):
+            fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005)
+        out += fusion.flush()
+    assert fusion.counter["fleet_origin_moved"] == 1 and fusion.origin in (ORIGIN_1, ORIGIN_2)
+    fused = [p for k, p in out if k == fleet_track_key()]
+    assert fused and min(p["time_unix_us"] / 1e6 - T0_UNIX_S for p in fused) > REANCHOR_AFTER_S
+    assert {c["vehicle"] for c in fused[-1]["vehicles"]} == {"uav1", "uav2"} and fused[-1]["observable"]
+    assert np.linalg.norm(np.array(fused[-1]["ned_m"]) - truth_in(fused[-1])) < 5.0
 
 
 def test_a_message_heard_twice_or_replayed_is_a_duplicate_not_a_second_vehicle():
