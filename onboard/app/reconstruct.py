@@ -64,8 +64,9 @@ determined, the camera must move across the line of sight.
 
 Exit codes and errors
     0 success; 2 the input or the arguments are rejected (among them an output path that exists
-    and is not a regular file, and -o and --summary-json naming one file), or the rows cannot be
-    reconstructed; 1 the outputs cannot be written, or an internal error; 130 interrupted (Ctrl-C or
+    and is not a regular file, one in a folder that is missing or cannot be written, tried before
+    the solve, and -o and --summary-json naming one file), or the rows cannot be reconstructed;
+    1 the outputs cannot be written after the solve after all, or an internal error; 130 interrupted (Ctrl-C or
     SIGTERM) before the outputs were renamed into place: nothing written.  An error prints
     exactly one line on stderr and no traceback (``-v`` logs the traceback of an internal error).
     Row-level errors name the line and the column: ``line N`` is the physical line number in the
@@ -625,7 +626,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _check_output_paths(outputs: list[tuple[str, str]]) -> None:
     """Refuse (:class:`InputError`) an output ``(option, path)`` that exists and is not a regular file, which the
-    rename would replace (a device such as ``/dev/null`` among them), and two options naming one file."""
+    rename would replace (a device such as ``/dev/null`` among them), one whose folder cannot take the temporary
+    file it is written through (tried here, before the solve: a long file's solve takes minutes, and a missing
+    folder found after it lost them), and two options naming one file."""
     seen: dict[str, str] = {}
     for option, path in outputs:
         target, refused = output_target(path)
@@ -634,6 +637,13 @@ def _check_output_paths(outputs: list[tuple[str, str]]) -> None:
         if target in seen:
             raise InputError(f"{seen[target]} and {option} name the same file {path}")
         seen[target] = option
+        try:
+            tmp, fd = create_beside(target)
+        except OSError as exc:
+            raise InputError(f"{option} {path}: cannot write there: {exc.strerror or exc}") from None
+        os.close(fd)
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
 
 
 class _OutputWriteError(Exception):

@@ -378,12 +378,19 @@ def test_bad_arguments_exit_2_one_line(small_obs, tmp_path, args, expected):
     assert rc == 2 and err.count("\n") == 1 and expected in err, err
 
 
-def test_unwritable_output_exit_1(small_obs, tmp_path):
+@pytest.mark.parametrize("option", ["-o", "--summary-json"])
+def test_an_output_in_a_missing_folder_is_refused_before_the_solve(small_obs, tmp_path, monkeypatch, option):
+    """Found after the solve, a missing folder cost the solve (minutes on a long file) and exited 1."""
     src = tmp_path / "obs.csv"
     src.write_text(obs_csv_text(small_obs))
-    out = tmp_path / "no_such_dir" / "out.csv"
-    rc, err = run_main(src, "-o", out)
-    assert rc == 1 and err == f"error: cannot write {out}: No such file or directory; no output written\n", err
+    bad = tmp_path / "no_such_dir" / "out.x"
+    good = tmp_path / ("s.json" if option == "-o" else "out.csv")
+    solved = []
+    monkeypatch.setattr(reconstruct_module, "reconstruct", lambda *a, **k: solved.append(1))
+    args = ("-o", bad, "--summary-json", good) if option == "-o" else ("-o", good, "--summary-json", bad)
+    rc, err = run_main(src, *args)
+    assert rc == 2 and err == f"error: {option} {bad}: cannot write there: No such file or directory\n", err
+    assert solved == [] and sorted(p.name for p in tmp_path.iterdir()) == ["obs.csv"]
 
 
 # --------------------------------------------------------------------------- outputs: atomic, both or neither
