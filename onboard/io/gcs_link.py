@@ -4,8 +4,9 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
 
 * ``GcsLink(endpoints, component_id)`` opens one connection per endpoint (``udpout:HOST:PORT`` --
   send to a ground station listening there, QGC's default is UDP 14550 --, ``udpin:HOST:PORT``,
-  ``tcp:HOST:PORT`` (a ground station not up yet is dialled again every :data:`TCP_REDIAL_S`, counted
-  ``gcs_open_failed``), ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
+  ``tcp:HOST:PORT`` (dialled without blocking: a ground station not up yet, or one that does not answer within
+  :data:`TCP_CONNECT_TIMEOUT_S`, is counted ``gcs_open_failed`` and dialled again every :data:`TCP_REDIAL_S`),
+  ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
   MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
   are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`); ``udpin`` is our own socket
@@ -51,8 +52,12 @@ radio gets the camera through a router (``deploy/README.md``: mavlink-router).
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
+import os
+import select
+import socket
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -69,7 +74,7 @@ from onboard.io.mavlink_transport import (
     new_signing,
     signature_refusal,
 )
-from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
+from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint, tcp_connected
 
 __all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]
 
@@ -83,7 +88,12 @@ MAX_PEERS = 4
 #: requesters remembered for routing replies; the least recently heard is forgotten (ids are sender-chosen)
 _MAX_ROUTES = 64
 #: a ``tcp:`` ground station that refused the connection is dialled again this often (s), as the autopilot link is
+#: reopened (``mavlink.reopen_interval_s``)
 TCP_REDIAL_S = 2.0
+#: a ``tcp:`` ground station that neither takes nor refuses the connection in this long (s; an address whose host
+#: drops the packets) is given up, counted, and dialled again at the next TCP_REDIAL_S: the connection is made
+#: without blocking, so the main loop (the autopilot link's telemetry among its work) never waits for it
+TCP_CONNECT_TIMEOUT_S = 5.0
 
 Address = tuple[str, int]
 
@@ -252,6 +262,7 @@ class GcsLink:
         # None: a tcp: endpoint not connected (yet, or again), dialled at _redial_s[index]
         self._conns: list[Any] = [None] * len(parsed)
         self._redial_s: dict[int, float] = {}
+        self._dialling: dict[int, tuple[socket.socket, float]] = {}  # tcp: connections under way, since when
         try:
             for idx in range(len(parsed)):
                 self._dial(idx, self._clock(), first=True)
@@ -264,20 +275,73 @@ class GcsLink:
         refusal is counted (``gcs_open_failed``) and it is dialled again every :data:`TCP_REDIAL_S`; any other
         endpoint that cannot be opened (a port in use) raises :class:`GcsLinkError`, an operator's error."""
         ep = self._parsed[idx]
-        try:
-            conn = self._open(ep)
-        except GcsLinkError as exc:
-            if ep.kind != "tcp":
-                raise
-            self._redial_s[idx] = now_s + TCP_REDIAL_S
-            self._count("gcs_open_failed", f"{exc}; dialled again every {TCP_REDIAL_S:g} s", logging.WARNING)
-            return
         self._redial_s.pop(idx, None)
+        if ep.kind == "tcp":
+            self._start_tcp(idx, now_s, first)
+            return
+        self._connected(idx, self._open(ep), first)
+
+    def _connected(self, idx: int, conn, first: bool) -> None:
         if self.system_id is not None:
             conn.mav.srcSystem = conn.source_system = self.system_id
         self._conns[idx] = conn
         if not first:
-            log.info("gcs: connected to %s", ep.device)
+            log.info("gcs: connected to %s", self._parsed[idx].device)
+
+    def _dial_failed(self, idx: int, now_s: float, why: str) -> None:
+        self._redial_s[idx] = now_s + TCP_REDIAL_S
+        self._count(
+            "gcs_open_failed",
+            f"gcs.endpoints: cannot open {self._parsed[idx].device!r}: {why}; dialled again every {TCP_REDIAL_S:g} s",
+            logging.WARNING,
+        )
+
+    def _start_tcp(self, idx: int, now_s: float, first: bool) -> None:
+        """Begin connecting ``tcp:`` endpoint ``idx`` without blocking; :meth:`_settle` finishes it."""
+        host, port = self._parsed[idx].device.split(":")[1:]
+        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        try:
+            sock.setblocking(False)
+            err = sock.connect_ex((host, int(port)))  # a host name is resolved here, blocking: give an address
+        except OSError as exc:
+            sock.close()
+            self._dial_failed(idx, now_s, exc.strerror or str(exc))
+            return
+        if err not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
+            sock.close()
+            self._dial_failed(idx, now_s, os.strerror(err))
+            return
+        self._dialling[idx] = (sock, now_s)
+        self._settle(now_s, first)  # on loopback the answer (accepted or refused) is already in
+
+    def _settle(self, now_s: float, first: bool = False) -> None:
+        """Finish the ``tcp:`` connections under way that have an answer; give up those past their time."""
+        for idx, (sock, since_s) in list(self._dialling.items()):
+            try:
+                if not select.select([], [sock], [], 0)[1]:
+                    if now_s - since_s < TCP_CONNECT_TIMEOUT_S:
+                        continue  # no answer yet
+                    why: str | None = f"no answer within {TCP_CONNECT_TIMEOUT_S:g} s"
+                else:
+                    err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                    why = os.strerror(err) if err else None
+            except (OSError, ValueError) as exc:
+                why = str(exc)
+            del self._dialling[idx]
+            if why is not None:
+                sock.close()
+                self._dial_failed(idx, now_s, why)
+                continue
+            try:
+                conn = tcp_connected(sock, self._parsed[idx], 1, self.component_id)
+                # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
+                conn.mav = new_parser(self._signing, conn, 1, self.component_id)
+            except Exception as exc:  # noqa: BLE001 - socket errors of every kind
+                sock.close()
+                self._dial_failed(idx, now_s, getattr(exc, "strerror", None) or str(exc))
+                continue
+            conn.handle_eof = conn.handle_disconnect = lambda c=conn: setattr(c, "irtrack_lost", True)
+            self._connected(idx, conn, first)
 
     def _redial(self, now_s: float) -> None:
         for idx, conn in enumerate(self._conns):
@@ -289,6 +353,7 @@ class GcsLink:
         for idx, at_s in list(self._redial_s.items()):
             if now_s >= at_s:
                 self._dial(idx, now_s)
+        self._settle(now_s)
 
     @staticmethod
     def _close_one(conn) -> None:
@@ -303,14 +368,7 @@ class GcsLink:
                 return _UdpInEndpoint(
                     ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers, self._signing
                 )
-            if ep.kind == "tcp":
-                # one attempt, no reconnection inside pymavlink (each retry slept 1 s, each reconnection attempt
-                # ran at every poll, both printing to stdout): a lost ground station is marked here, dropped by
-                # poll and send, and dialled again every TCP_REDIAL_S (_dial)
-                conn = connect(ep, 1, self.component_id, autoreconnect=False, retries=0)
-                conn.handle_eof = conn.handle_disconnect = lambda: setattr(conn, "irtrack_lost", True)
-            else:
-                conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
+            conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
             # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
             conn.mav = new_parser(self._signing, conn, 1, self.component_id)
             return conn
@@ -414,6 +472,8 @@ class GcsLink:
         """Send one message; returns on how many endpoints it was written."""
         if self.system_id is None:
             return 0
+        if self._dialling:
+            self._settle(self._clock())
         targets: list[tuple[int, Address | None]] = [(idx, None) for idx in range(len(self._conns))]
         if out.reply_to is not None and out.reply_to in self._route:
             targets = [self._route[out.reply_to]]
@@ -445,3 +505,6 @@ class GcsLink:
                 self._close_one(conn)
         self._conns = []
         self._redial_s.clear()
+        for sock, _ in self._dialling.values():
+            sock.close()
+        self._dialling.clear()

@@ -429,3 +429,48 @@ def test_a_tcp_ground_station_not_up_yet_is_dialled_again_not_fatal(capsys):
     finally:
         link.close()
         server.close()
+
+
+def test_a_tcp_ground_station_that_does_not_answer_never_blocks_the_loop():
+    """pymavlink connected in its constructor, blocking: against an address that drops the packets the daemon's
+    main loop (the autopilot's telemetry among its work) waited for the kernel to give up, minutes.  Here the
+    ground station's accept queue is full, so its host drops our connection's packets as such a host would."""
+    from onboard.io.gcs_link import TCP_CONNECT_TIMEOUT_S, TCP_REDIAL_S
+
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(0)
+    filler = socket.create_connection(server.getsockname(), timeout=WAIT_S)  # fills the queue, never accepted
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    t0 = time.monotonic()
+    link = GcsLink([f"tcp:127.0.0.1:{server.getsockname()[1]}"], 100, counter=counters, clock=clock)
+    try:
+        link.set_system_id(SYSID)
+        hb = [o for o in _proto().tick(0.0, None) if o.msg == "heartbeat"][0]
+        assert link.send(hb) == 0 and link.poll() == [] and link.filenos() == []
+        assert time.monotonic() - t0 < 1.0 and "gcs_open_failed" not in counters.counts  # under way, not waited for
+        clock.t_s += TCP_CONNECT_TIMEOUT_S
+        link.poll()
+        assert counters.counts["gcs_open_failed"] == 1 and link.filenos() == []
+        # the ground station takes connections again: the next dial gets through
+        first, _ = server.accept()
+        first.close()
+        filler.close()
+        server.settimeout(WAIT_S)
+        clock.t_s += TCP_REDIAL_S
+        deadline = time.monotonic() + WAIT_S
+        while not link.filenos() and time.monotonic() < deadline:
+            link.poll()
+            time.sleep(0.01)
+        peer, _ = server.accept()
+        with peer:
+            assert link.send(hb) == 1
+            peer.settimeout(WAIT_S)
+            (msg,) = mav.MAVLink(None).parse_buffer(peer.recv(65535))
+            assert msg.get_type() == "HEARTBEAT"
+        assert time.monotonic() - t0 < 2 * WAIT_S
+    finally:
+        link.close()
+        filler.close()
+        server.close()
