@@ -435,7 +435,12 @@ def _cmd_scenes(args) -> int:
 
 def _add_eval(p: argparse.ArgumentParser) -> None:
     _scenarios_and_seeds_options(p, "P1 P2 P3", 5, "run seeds 0..N-1 per scenario (default: %(default)s)")
-    p.add_argument("--out", default="out/eval", metavar="DIR", help="report directory (default: %(default)s)")
+    p.add_argument(
+        "--out",
+        default="out/eval",
+        metavar="DIR",
+        help="report directory: new, empty or an earlier eval's, whose report is replaced (default: %(default)s)",
+    )
     _workers_option(p, "worker processes (default: min(2, CPUs))")
     _duration_option(
         p, "simulated seconds per run (default: the scenario's duration_s; longer continues its scripted motions)"
@@ -547,8 +552,8 @@ def _add_dataset(p: argparse.ArgumentParser) -> None:
         "--out",
         default="out/dataset",
         metavar="DIR",
-        help="dataset directory; a dataset there is replaced, refused if it has sequences this run does not make "
-        "(default: %(default)s)",
+        help="dataset directory: new, empty or an earlier dataset's; a dataset there is replaced, refused if it has "
+        "sequences this run does not make (default: %(default)s)",
     )
     _workers_option(p, "worker processes, one sequence each (default: min(2, CPUs))")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -561,7 +566,8 @@ def _add_campaign(p: argparse.ArgumentParser) -> None:
         "--out",
         default=None,
         metavar="DIR",
-        help="results directory; finished runs found there are not redone (default: out/campaigns/<name>)",
+        help="results directory: new, empty or an earlier campaign's (its runs.jsonl), whose finished runs are not "
+        "redone (default: out/campaigns/<name>)",
     )
     _workers_option(p, "worker processes, 1 = in this process (default: the spec's workers, else min(2, CPUs))")
     p.add_argument(

@@ -19,8 +19,9 @@ from groundsim.evaluation.eval import (
     run_eval,
 )
 from groundsim.evaluation.mot import write_mot
-from groundsim.evaluation.out_dir import make_out_dir
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
+from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors
@@ -167,6 +168,9 @@ def cmd_eval(args) -> int:
         source = args.onboard_config or (
             str(DEFAULT_ONBOARD_CONFIG) if DEFAULT_ONBOARD_CONFIG.is_file() else "built-in defaults"
         )
+        # the report replaces an earlier eval's files by name, and its MOT files whole folders: a folder of
+        # anything else (a home folder, a TrackEval tree of the user's) is refused before it is touched
+        refuse_foreign_out(args.out, holds_eval_report, "groundsim eval", f"report.json of schema {SCHEMA}")
         out = make_out_dir(args.out)
         labels = [f"{sc.name}_{n}" for n in nav_noises for sc in scenarios] if len(nav_noises) > 1 else []
         check_out_paths(out, labels or [sc.name for sc in scenarios])

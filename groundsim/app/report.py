@@ -40,7 +40,12 @@ def add_report(p: argparse.ArgumentParser) -> None:
         help="the simulator's recording of the same run (groundsim run --record): its /groundsim/truth"
         " channel gives the error plot (default: the flight's own truth channel, if any)",
     )
-    p.add_argument("--out", default=DEFAULT_OUT, metavar="DIR", help="report directory (default: %(default)s)")
+    p.add_argument(
+        "--out",
+        default=DEFAULT_OUT,
+        metavar="DIR",
+        help="report directory: new, empty or an earlier report's, whose files are replaced (default: %(default)s)",
+    )
     p.add_argument(
         "--config",
         default=None,
@@ -205,11 +210,13 @@ def truth_coverage(tracks: list, truth: list, cut_short: str | None = None) -> T
 
 def cmd_report(args) -> int:
     """Replay the recording, draw the report; print the files written.  Ctrl-C: one line, exit 130."""
-    from groundsim.evaluation.flight_report import write_flight_report
-    from groundsim.evaluation.out_dir import make_out_dir
+    from groundsim.evaluation.flight_report import REPORT_SCHEMA, holds_flight_report, write_flight_report
+    from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
     from onboard.app.replay import ReplayProgress, config_of, load_recording, no_frames_text, replay
     from onboard.core.errors import InputError
 
+    # the report replaces an earlier one's plots and summary.json by name: only into a folder of its own
+    refuse_foreign_out(args.out, holds_flight_report, "groundsim report", f"summary.json of schema {REPORT_SCHEMA}")
     out = make_out_dir(args.out)  # before the replay: a folder that cannot be made fails at once
     before = set(out.glob("*"))
     try:

@@ -92,7 +92,7 @@ from groundsim.evaluation.campaign_spec import (
     derive_scenario,
     load_spec,
 )
-from groundsim.evaluation.out_dir import make_out_dir
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import (
     limit_blas_threads,
     pool_workers,
@@ -906,7 +906,11 @@ def cmd_campaign(args) -> int:
             cfg_path = DEFAULT_ONBOARD_CONFIG
         base = load_base_config(cfg_path)
         digest = _digest(Path(cfg_path).read_bytes()) if cfg_path is not None else "defaults"
-        out = make_out_dir(Path(args.out) if args.out else Path("out/campaigns") / spec.name)
+        out_path = Path(args.out) if args.out else Path("out/campaigns") / spec.name
+        # a campaign reads its folder's runs.jsonl as its own, removes it with --fresh and overwrites its table and
+        # report: a folder of anything else is refused before it is touched
+        refuse_foreign_out(out_path, lambda o: (o / LOG_NAME).is_file(), "groundsim campaign", LOG_NAME)
+        out = make_out_dir(out_path)
         res = run_campaign(
             spec,
             out,

@@ -83,7 +83,7 @@ from pathlib import Path
 
 import numpy as np
 
-from groundsim.evaluation.out_dir import make_out_dir
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import (
     JobsInterrupted,
     pool_workers,
@@ -708,9 +708,15 @@ def _replaceable(out: Path, names: set[str]) -> None:
     sequences it makes again are replaced whole (:func:`export_sequence`)."""
     path = out / "manifest.json"
     if not path.is_file():
+        # a run replaces files by name (coco.json, the seqmap, the sequences' files): without a manifest, only a new
+        # or empty folder, or one of sequences alone (a dataset interrupted before its manifest), is its own
+        refuse_foreign_out(out, _sequences_only, "groundsim dataset", f"manifest.json of schema {DATASET_SCHEMA}")
         return
     try:
-        earlier = {str(q["name"]) for q in json.loads(path.read_text(encoding="utf-8")).get("sequences", [])}
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        if doc.get("schema") != DATASET_SCHEMA:
+            raise ValueError(f"schema {doc.get('schema')!r}, not {DATASET_SCHEMA}")
+        earlier = {str(q["name"]) for q in doc.get("sequences", [])}
     except (OSError, ValueError, TypeError, KeyError, AttributeError) as exc:
         raise ConfigError(
             f"--out {out}: holds a manifest.json that is not a dataset's ({type(exc).__name__}: {exc}); give "
@@ -723,6 +729,11 @@ def _replaceable(out: Path, names: set[str]) -> None:
             f"--out {out}: holds a dataset with sequences this run does not make ({shown}); its manifest would no "
             f"longer list them: give another --out, or remove the folder first"
         )
+
+
+def _sequences_only(out: Path) -> bool:
+    """Whether every entry of ``out`` is a sequence's folder (it holds img1/): what an interrupted dataset leaves."""
+    return all(e.is_dir() and (e / "img1").is_dir() for e in out.iterdir())
 
 
 def _job(args) -> SequenceSummary:

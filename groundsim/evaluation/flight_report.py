@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FlightRun", "flight_run", "write_flight_report"]
+__all__ = ["REPORT_SCHEMA", "FlightRun", "flight_run", "holds_flight_report", "write_flight_report"]
 
 
 @dataclass(frozen=True)
@@ -86,6 +86,30 @@ def flight_run(tracks: list, poses: dict, truth: list | None, name: str) -> Flig
 
 #: every file :func:`write_flight_report` may write in its folder
 REPORT_FILES = ("trajectory.png", "errors.png", "frame.png", "summary.json")
+#: summary.json's ``schema``: what marks a folder as a flight report's
+REPORT_SCHEMA = "irtrack.flight_report/1"
+#: the keys of a summary.json written before it carried ``schema``
+_UNMARKED_SUMMARY_KEYS = frozenset({"frames", "with_3d", "observable", "truth"})
+
+
+def holds_flight_report(out_dir) -> bool:
+    """Whether ``out_dir`` holds an earlier :func:`write_flight_report`'s files, which the next one replaces: its
+    summary.json (``schema`` :data:`REPORT_SCHEMA`, or the keys of one written before the schema), or nothing but
+    files of its names (a report cut short before its summary.json)."""
+    out = Path(out_dir)
+    if (out / "summary.json").exists():
+        try:
+            summary = json.loads((out / "summary.json").read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return False
+        return isinstance(summary, dict) and (
+            summary.get("schema") == REPORT_SCHEMA
+            or ("schema" not in summary and _UNMARKED_SUMMARY_KEYS <= summary.keys())
+        )
+    try:  # summary.json is written last: without it, a report cut short holds its plots alone
+        return all(p.name in REPORT_FILES and p.is_file() and not p.is_symlink() for p in out.iterdir())
+    except OSError:
+        return False
 
 
 def write_flight_report(
@@ -107,6 +131,7 @@ def write_flight_report(
         )
     ]
     summary: dict = {
+        "schema": REPORT_SCHEMA,
         "frames": len(tracks),
         "with_3d": int(np.isfinite(run.est_p_ned_m).all(axis=1).sum()),
         "observable": int(run.observable.sum()),

@@ -2,17 +2,21 @@
 
 Every ``groundsim`` command that writes a folder (eval, demo, dataset, campaign, scenes, report) takes it from
 :func:`make_out_dir`, so a file in its place, a parent that cannot be made or a folder that refuses files is one
-line naming the option, before any run starts.
+line naming the option, before any run starts.  A command that replaces an earlier run's files in its folder
+(eval, dataset, campaign, report) first passes it to :func:`refuse_foreign_out`: it removes and overwrites files
+by name, which is safe only in a folder of its own.
 """
 
 from __future__ import annotations
 
+import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from onboard.core.errors import ConfigError
 
-__all__ = ["make_out_dir"]
+__all__ = ["holds_files", "make_out_dir", "refuse_foreign_out"]
 
 
 def make_out_dir(path, option: str = "--out") -> Path:
@@ -33,3 +37,29 @@ def make_out_dir(path, option: str = "--out") -> Path:
     except OSError as exc:
         raise ConfigError(f"{option} {out}: cannot write in the directory: {exc.strerror or exc}") from None
     return out
+
+
+def holds_files(path) -> bool:
+    """Whether the folder ``path`` holds anything but folders, at any depth (a symlink counts as a file and is not
+    followed).  Stops at the first one found, so a home folder is answered at once."""
+    try:
+        with os.scandir(path) as entries:
+            for entry in entries:
+                if not entry.is_dir(follow_symlinks=False) or holds_files(entry.path):
+                    return True
+    except OSError:  # unreadable: counted as holding files, so that nothing is written into it unseen
+        return True
+    return False
+
+
+def refuse_foreign_out(path, earlier: Callable[[Path], bool], what: str, mark: str, option: str = "--out") -> None:
+    """A ConfigError naming ``option`` when its folder holds files and not an earlier ``what``'s results
+    (``earlier(folder)`` false; ``mark`` says what ``earlier`` looks for).  A missing folder, or one holding only
+    empty folders (what an interrupted run that finished nothing leaves), passes."""
+    out = Path(path)
+    if not out.is_dir() or earlier(out) or not holds_files(out):
+        return
+    raise ConfigError(
+        f"{option} {out}: not empty and not an earlier {what}'s folder (no {mark}); {what} replaces an earlier "
+        f"run's files in its folder, so it writes only into a new or empty one or its own: give another {option}"
+    )

@@ -43,6 +43,7 @@ __all__ = [
     "ape_rmse_m",
     "write_eval_report",
     "clear_eval_report",
+    "holds_eval_report",
     "format_table2",
     "format_closed_loop",
     "closed_loop_notes",
@@ -606,17 +607,16 @@ def clear_eval_report(out_dir) -> None:
 
     Only this report's own names go: ``report.json``, ``report.md``, ``performance.png``, the files the earlier
     report.json lists, and for every label with a ``<label>/seed<N>/`` folder holding TUM files, those TUM files
-    and ``<label>_{trajectory,error,frame}.png``.  A folder left empty goes too; anything else stays.
+    and ``<label>_{trajectory,error,frame}.png``.  A folder left empty goes too; anything else stays.  Nothing goes
+    unless ``out_dir`` holds an earlier report (:func:`holds_eval_report`): those names in another folder are not
+    this report's to remove.
     """
     out = Path(out_dir)
-    if not out.is_dir():
+    earlier = _earlier_report(out)
+    if earlier is None:
         return
     names = {"report.json", "report.md", "performance.png"}
-    try:
-        earlier = json.loads((out / "report.json").read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        earlier = None
-    if isinstance(earlier, dict) and earlier.get("schema") == SCHEMA and isinstance(earlier.get("files"), dict):
+    if isinstance(earlier.get("files"), dict):
         # plain names only: a report.json edited by hand must not point this outside the folder
         names |= {f for f in earlier["files"].values() if isinstance(f, str) and f == Path(f).name}
     for seed_dir in sorted(out.glob("*/seed*")):
@@ -634,6 +634,20 @@ def clear_eval_report(out_dir) -> None:
         f = out / name
         if f.is_file() and not f.is_symlink():
             f.unlink()
+
+
+def _earlier_report(out: Path) -> dict | None:
+    """``out``'s report.json when an earlier :func:`write_eval_report` wrote it (its ``schema``), else None."""
+    try:
+        earlier = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return earlier if isinstance(earlier, dict) and earlier.get("schema") == SCHEMA else None
+
+
+def holds_eval_report(out_dir) -> bool:
+    """Whether ``out_dir`` holds an earlier eval's report: a report.json whose ``schema`` is :data:`SCHEMA`."""
+    return _earlier_report(Path(out_dir)) is not None
 
 
 def _remove_if_empty(d: Path) -> None:

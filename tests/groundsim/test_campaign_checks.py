@@ -195,3 +195,16 @@ def test_a_campaign_whose_every_run_failed_exits_1_naming_the_first_error(tmp_pa
     assert rc == 1 and "error: campaign spec: every one of its 1 runs failed; the first: " in err
     ok = _spec_file(tmp_path)
     assert cli_main(["campaign", str(ok), "--out", str(tmp_path / "ok"), "--workers", "1", "--no-progress"]) == 0
+
+
+def test_cli_a_folder_that_is_not_an_earlier_campaigns_is_refused_untouched(tmp_path, capsys):
+    """A campaign overwrites its folder's report.md and table and, with --fresh, removes its runs.jsonl: a folder
+    without a campaign's log (a home folder) is refused in one line before anything is written there."""
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "report.md").write_text("the user's\n")
+    spec = _spec_file(tmp_path)
+    assert cli_main(["campaign", str(spec), "--out", str(out), "--fresh", "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"--out {out}: not empty and not an earlier groundsim campaign's folder" in err, err
+    assert sorted(p.name for p in out.iterdir()) == ["report.md"] and (out / "report.md").read_text() == "the user's\n"

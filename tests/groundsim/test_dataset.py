@@ -386,3 +386,31 @@ def test_a_fleet_scenario_is_refused_naming_it(tmp_path):
     with pytest.raises(ConfigError, match=r"^--scenario: F1 is a fleet scenario"):
         export_dataset([_scenario("F1")], [0], tmp_path / "ds", DatasetOptions(duration_s=0.1), progress=False)
     assert not (tmp_path / "ds").exists()
+
+
+@pytest.mark.parametrize(
+    "manifest", [None, '{"name": "my web app"}\n'], ids=["no_manifest", "a_manifest_of_something_else"]
+)
+def test_a_folder_that_is_not_a_datasets_is_refused_untouched(tmp_path, manifest):
+    """A run removes coco.json and the seqmap it does not make and writes manifest.json: in a folder of the user's
+    (a home folder, their own COCO labels) it is refused in one line before any sequence is flown."""
+    (tmp_path / "coco.json").write_text('{"images": []}\n')
+    (tmp_path / "seqmaps").mkdir()
+    (tmp_path / "seqmaps" / "irtrack-all.txt").write_text("name\nmine\n")
+    if manifest is not None:
+        (tmp_path / "manifest.json").write_text(manifest)
+    before = _tree_digest(tmp_path)
+    with pytest.raises(ConfigError) as err:
+        export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1, formats=("obs",)), progress=False)
+    assert str(err.value).startswith(f"--out {tmp_path}: ") and "\n" not in str(err.value)
+    assert _tree_digest(tmp_path) == before
+
+
+def test_a_dataset_interrupted_before_its_manifest_is_taken_again(tmp_path):
+    """Ctrl-C leaves the finished sequences and no manifest: the same command is run into that folder again."""
+    summaries, _ = export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    for f in ("manifest.json", "seqmaps/irtrack-all.txt"):
+        (tmp_path / f).unlink()
+    (tmp_path / "seqmaps").rmdir()
+    export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
+    assert (tmp_path / "manifest.json").is_file() and (tmp_path / summaries[0].name / "img1").is_dir()

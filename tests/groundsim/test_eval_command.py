@@ -70,8 +70,15 @@ def test_every_run_failed_is_exit_1_in_one_line_without_mot_scoring(tmp_path, fa
     assert rep["interrupted"] is None and "error" in rep["runs"][0]
 
 
+def _earlier_report(out):
+    """The report.json an earlier eval leaves: what marks ``out`` as an eval's folder."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "report.json").write_text(json.dumps({"schema": report_module.SCHEMA, "files": {}}) + "\n")
+
+
 def _earlier_run_files(out):
     """What an earlier eval (P1 seeds 0-1, P2) left, and files of the user's beside them."""
+    _earlier_report(out)
     stale = [
         out / "P2_trajectory.png",
         out / "P2_error.png",
@@ -154,7 +161,7 @@ def test_duplicate_scenarios_are_refused_in_one_line(tmp_path, no_runs, scenario
 @pytest.mark.parametrize("taken", ["mot", "P1"])
 def test_an_output_path_taken_by_a_file_is_refused_before_the_runs(tmp_path, no_runs, taken):
     out = tmp_path / "o"
-    out.mkdir()
+    _earlier_report(out)
     (out / taken).write_text("a file\n")
     code, _, err = _cli(["eval", "--scenario", "P1", *FAST, "--out", str(out)])
     assert code == cli.EXIT_ERROR
@@ -205,3 +212,45 @@ def test_what_eval_cannot_run_is_refused_before_out_is_made(tmp_path, no_runs, e
     lines = _error_lines(err)
     assert len(lines) == 1 and lines[0].startswith("groundsim eval: error: ") and needle in lines[0], err
     assert not out.exists()
+
+
+def _users_folder(out):
+    """A folder of the user's: a TrackEval tree under mot/ and files named as the eval's own, no eval report."""
+    files = [
+        out / "report.md",
+        out / "performance.png",
+        out / "report.json",
+        out / "mot" / "gt" / "MOT17-02" / "gt" / "gt.txt",
+        out / "mot" / "trackers" / "irtrack" / "data" / "MOT17-02.txt",
+        out / "mot" / "seqmap.txt",
+        out / "P1" / "seed0" / "truth.tum",
+    ]
+    for f in files:
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_text("the user's\n")
+    return files
+
+
+def test_a_folder_that_is_not_an_earlier_evals_is_refused_untouched_before_the_runs(tmp_path, no_runs):
+    out = tmp_path / "o"
+    files = _users_folder(out)
+    code, _, err = _cli(["eval", "--scenario", "P1", *FAST, "--out", str(out)])
+    assert code == cli.EXIT_ERROR
+    lines = _error_lines(err)
+    assert len(lines) == 1 and lines[0].startswith(f"groundsim eval: error: --out {out}: not empty"), err
+    assert "not an earlier groundsim eval's folder" in lines[0] and "Traceback" not in err
+    assert all(f.read_text() == "the user's\n" for f in files)
+
+
+def test_the_report_writer_removes_nothing_from_a_folder_without_an_earlier_report(tmp_path):
+    files = _users_folder(tmp_path)
+    report_module.clear_eval_report(tmp_path)
+    assert all(f.read_text() == "the user's\n" for f in files)
+
+
+def test_a_folder_of_empty_folders_is_taken(tmp_path, failing_runs):
+    """What an eval interrupted before its first run finished leaves (an empty mot/): the next eval writes there."""
+    out = tmp_path / "o"
+    (out / "mot").mkdir(parents=True)
+    assert _cli(["eval", "--scenario", "P1", *FAST, "--out", str(out)])[0] == EXIT_FAILED
+    assert report_module.holds_eval_report(out)

@@ -1,0 +1,51 @@
+"""``groundsim report``'s folder: a folder that is not an earlier report's is refused untouched (the report
+replaces its plots and summary.json by name)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from groundsim.app import cli
+from groundsim.evaluation.flight_report import REPORT_FILES, REPORT_SCHEMA, holds_flight_report
+
+
+def _one_error_line(capsys) -> str:
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip() and "level=" not in line]
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_a_folder_that_is_not_an_earlier_reports_is_refused_untouched_before_the_replay(tmp_path, capsys):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "summary.json").write_text('{"my": "notes"}\n')
+    (out / "trajectory.png").write_bytes(b"the user's plot")
+    flight = tmp_path / "flight.mcap"
+    flight.write_bytes(b"not read: the folder is refused first")
+    assert cli.main(["report", str(flight), "--out", str(out)]) == cli.EXIT_ERROR
+    line = _one_error_line(capsys)
+    assert line.startswith(f"groundsim report: error: --out {out}: not empty and not an earlier groundsim report's")
+    assert (out / "summary.json").read_text() == '{"my": "notes"}\n'
+    assert (out / "trajectory.png").read_bytes() == b"the user's plot"
+
+
+@pytest.mark.parametrize(
+    ("files", "ours"),
+    [
+        ({}, True),
+        ({"summary.json": json.dumps({"schema": REPORT_SCHEMA, "frames": 3}), "notes.txt": "x"}, True),
+        ({"summary.json": json.dumps({"frames": 3, "with_3d": 1, "observable": 1, "truth": False})}, True),
+        ({"trajectory.png": "plot", "frame.png": "plot"}, True),
+        ({"summary.json": json.dumps({"schema": "something/1", "frames": 3})}, False),
+        ({"summary.json": "[]"}, False),
+        ({"trajectory.png": "plot", "notes.txt": "x"}, False),
+    ],
+    ids=["empty", "marked", "unmarked_older", "cut_short", "other_schema", "not_a_summary", "other_files"],
+)
+def test_an_earlier_report_is_told_by_its_summary_or_its_own_names_alone(tmp_path, files, ours):
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    assert set(files) <= set(REPORT_FILES) | {"notes.txt"}
+    assert holds_flight_report(tmp_path) is ours
