@@ -28,6 +28,8 @@ __all__ = ["TruthCoverage", "add_report", "cmd_report", "flight_inputs", "truth_
 log = logging.getLogger(__name__)
 
 DEFAULT_OUT = "out/report"
+DAEMON_RECORDER = "python -m onboard --record"  # what writes FLIGHT.mcap, as the recording reader's errors say
+SIM_RECORDER = "groundsim run --record"  # what writes --truth's file
 
 
 def add_report(p: argparse.ArgumentParser) -> None:
@@ -228,7 +230,11 @@ def cmd_report(args) -> int:
         truth = rec.truth
         truth_cut = None
         if args.truth:
-            truth_rec = load_recording(args.truth)
+            try:
+                truth_rec = load_recording(args.truth)
+            except InputError as exc:
+                # the reader's words fit the flight's file, the daemon's recording; --truth is the simulator's
+                raise InputError(f"--truth {str(exc).replace(DAEMON_RECORDER, SIM_RECORDER)}") from None
             truth, truth_cut = truth_rec.truth, truth_rec.truncated
             if not truth:
                 raise InputError(

@@ -1,12 +1,15 @@
-"""``groundsim report``'s folder: a folder that is not an earlier report's is refused untouched (the report
-replaces its plots and summary.json by name)."""
+"""``groundsim report``'s folder and its --truth file: a folder that is not an earlier report's is refused untouched
+(the report replaces its plots and summary.json by name), and a --truth file that is no recording is named as
+--truth, the simulator's recording, not as the daemon's."""
 
 from __future__ import annotations
 
 import json
+from types import SimpleNamespace
 
 import pytest
 
+import onboard.app.replay as replay_module
 from groundsim.app import cli
 from groundsim.evaluation.flight_report import REPORT_FILES, REPORT_SCHEMA, holds_flight_report
 
@@ -49,3 +52,20 @@ def test_an_earlier_report_is_told_by_its_summary_or_its_own_names_alone(tmp_pat
         (tmp_path / name).write_text(text)
     assert set(files) <= set(REPORT_FILES) | {"notes.txt"}
     assert holds_flight_report(tmp_path) is ours
+
+
+def test_a_truth_file_that_is_no_recording_is_named_as_truth_the_simulators(tmp_path, capsys, monkeypatch):
+    flight = tmp_path / "flight.mcap"
+    truth = tmp_path / "random.mcap"
+    truth.write_bytes(b"random bytes, no MCAP")
+    real = replay_module.load_recording
+
+    def load(path):  # the flight a daemon recording with frames; --truth read for real
+        return SimpleNamespace(inputs=[{}], truncated=None, truth=[]) if str(path) == str(flight) else real(path)
+
+    monkeypatch.setattr(replay_module, "load_recording", load)
+    code = cli.main(["report", str(flight), "--truth", str(truth), "--out", str(tmp_path / "r")])
+    assert code == cli.EXIT_ERROR
+    line = _one_error_line(capsys)
+    assert line.startswith(f"groundsim report: error: --truth {truth}: not an MCAP recording"), line
+    assert "groundsim run --record" in line and "onboard --record" not in line
