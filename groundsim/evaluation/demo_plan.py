@@ -153,6 +153,10 @@ def plan_demo(
     if onboard_config is not None and Path(onboard_config).is_file():
         base = load_config(onboard_config, environ={})
         config_source = str(onboard_config)
+    elif onboard_config is not None and Path(onboard_config).is_dir():
+        raise ConfigError(
+            f"--onboard-config {onboard_config}: a directory, not a file; give the daemon's configuration (a YAML file)"
+        )
     elif onboard_config is not None and onboard_config != DEFAULT_DEMO_ONBOARD_CONFIG:
         raise ConfigError(f"--onboard-config {onboard_config}: no such file")
     else:

@@ -82,6 +82,16 @@ def test_plan_keeps_a_long_enough_scenario_and_rejects_bad_options(tmp_path):
         plan_demo("P1", 4.0, 0, tmp_path, "nope.yaml")
 
 
+def test_an_onboard_config_that_is_a_directory_is_called_one_before_out_is_made(tmp_path):
+    out = tmp_path / "out"
+    with pytest.raises(ConfigError) as err:
+        plan_demo("P1", 4.0, 0, out, str(tmp_path))
+    assert str(err.value) == (
+        f"--onboard-config {tmp_path}: a directory, not a file; give the daemon's configuration (a YAML file)"
+    )
+    assert not out.exists()
+
+
 def test_a_duration_the_scenario_cannot_fly_is_refused_before_out_is_made(tmp_path):
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match=r"--duration: .*expected --duration at most 15\.4 s"):
