@@ -45,13 +45,14 @@ import numpy as np
 
 from groundsim.evaluation.proc_cpu import children_by_parent
 from onboard.core.cpu_accounting import parse_cgroup_cpu_stat, parse_proc_cgroup
-from onboard.core.errors import IrtrackError
+from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 CFS_PERIOD_US = 100_000
 EMULATION_POLL_S = 0.005
 DEFAULT_CONFIG = "deploy/onboard.container.yaml"
 OBSERVABLE_AFTER_S = 5.0
 CGROUP_ROOT = Path("/sys/fs/cgroup")
+EXIT_BAD_INPUT = 2  # an option or a file refused: the exit code of every irtrack command's bad input
 
 # the daemon's log lines (onboard/app/logs.py): text ``<ts> level=.. logger=.. msg="word: ..."`` or JSON
 _LOG_LINE = re.compile(r'^(\S+) level=\S+ logger=\S+ msg="(.*)"$')
@@ -329,10 +330,13 @@ def run_row(args, quota: float | None, out_root: Path, say) -> dict:
     from groundsim.evaluation.demo import TruthTail, aligned_arrays, plan_demo, run_demo
 
     name = "unlimited" if quota is None else f"quota{quota:g}"
+    # planned before the limit is made: a bad option is refused before a cgroup or an emulation starts
+    plan = plan_demo(
+        args.scenario, args.duration, args.seed, out_root / name, args.config, args.nav_noise, config_option="--config"
+    )
+    if args.chain is not None:
+        _set_chain(plan.onboard_config_path, args.chain)
     with daemon_limit(quota, args.emulate, say) as limit:
-        plan = plan_demo(args.scenario, args.duration, args.seed, out_root / name, args.config, args.nav_noise)
-        if args.chain is not None:
-            _set_chain(plan.onboard_config_path, args.chain)
         plan = dataclasses.replace(plan, daemon_prefix=limit.prefix)
         th0 = limit.throttled_s()
         wall0 = time.time()
@@ -354,6 +358,7 @@ def run_row(args, quota: float | None, out_root: Path, say) -> dict:
         error=outcome.error,
         status_cpu=(outcome.last_status or {}).get("cpu"),
         daemon_exit=outcome.daemon_exit,
+        wall_s=wall,
     )
     return row
 
@@ -383,6 +388,34 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def usable_cores() -> int:
+    """The cores this process may run on (its affinity, which ``taskset`` narrows), else the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def _quota_problem(quotas: list[float]) -> str | None:
+    """Why ``--cpu-quota`` cannot be measured here, or None.  A quota above the usable cores never throttles: its
+    row would be an unconstrained run labelled as a limited one, so it is refused rather than warned about in a
+    long run's output."""
+    if any(not (q > 0 and np.isfinite(q)) for q in quotas):
+        return f"--cpu-quota: expected positive numbers of cores, got {' '.join(f'{q:g}' for q in quotas)}"
+    cores = usable_cores()
+    over = [q for q in quotas if q > cores]
+    if over:
+        return (
+            f"--cpu-quota {' '.join(f'{q:g}' for q in over)}: more than the {cores} core(s) this process may use; "
+            f"such a quota never throttles the daemon, so its row would be an unconstrained run: expected at most {cores}"
+        )
+    return None
+
+
+def _row_name(q: float | None) -> str:
+    return "daemon unlimited" if q is None else f"daemon quota {q:g} core"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m bench.companion", description=__doc__.split("\n\n")[0])
     ap.add_argument("--cpu-quota", type=float, nargs="+", default=[0.5], help="cores (repeatable list; default 0.5)")
@@ -400,9 +433,10 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--emulate", action="store_true", help="emulate the quota even where a cgroup could be made")
     args = ap.parse_args(argv)
-    if any(not (q > 0 and np.isfinite(q)) for q in args.cpu_quota):
-        print(f"bench.companion: --cpu-quota must be positive numbers of cores, got {args.cpu_quota}", file=sys.stderr)
-        return 2
+    problem = _quota_problem(args.cpu_quota)
+    if problem is not None:
+        print(f"bench.companion: {problem}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
     def say(s: str) -> None:
         print(s, flush=True)
@@ -410,18 +444,23 @@ def main(argv=None) -> int:
     quotas: list[float | None] = ([] if args.no_unlimited else [None]) + list(args.cpu_quota)
     rows = []
     load0 = os.getloadavg()[0]
-    for q in quotas:
+    for i, q in enumerate(quotas, start=1):
         say(
-            f"bench.companion: {args.scenario} {args.nav_noise} {args.duration:g} s, daemon {'unlimited' if q is None else f'quota {q:g} core'},"
-            f" imaging.chain {args.chain or 'as configured'} ..."
+            f"bench.companion: row {i} of {len(quotas)}, {_row_name(q)}: {args.scenario} {args.nav_noise}"
+            f" {args.duration:g} s, imaging.chain {args.chain or 'as configured'} ..."
         )
         try:
             row = run_row(args, q, Path(args.out), say)
+        except (ConfigError, InputError) as exc:  # an option or a file of the user's: refused, as the CLIs do
+            print(f"bench.companion: {' '.join(str(exc).split())}", file=sys.stderr)
+            return EXIT_BAD_INPUT
         except IrtrackError as exc:
-            print(f"bench.companion: {exc}", file=sys.stderr)
+            print(f"bench.companion: {' '.join(str(exc).split())}", file=sys.stderr)
             return 1
-        if row["error"]:
-            say(f"  run problem: {row['error']}")
+        say(
+            f"bench.companion: row {i} of {len(quotas)}, {_row_name(q)}: done in {row['wall_s']:.1f} s,"
+            f" {row['tracks']} tracks of {row['frames']} frames{'; run problem: ' + row['error'] if row['error'] else ''}"
+        )
         rows.append(row)
     say("")
     say(format_table(rows))

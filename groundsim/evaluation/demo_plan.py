@@ -120,10 +120,12 @@ def plan_demo(
     mount_as_configured: bool = False,
     gnss_dropout: GnssDropout | None = None,
     live_view_port: int | None = None,
+    config_option: str = "--onboard-config",
 ) -> DemoPlan:
     """Load and check everything, then write OUT/onboard.yaml and pick the ports; a mistake raises
     ConfigError before OUT is created.  ``duration_s`` None: ``DEFAULT_DEMO_DURATION_S`` or as long as the
-    scenario can fly (:func:`_demo_scenario`).
+    scenario can fly (:func:`_demo_scenario`).  ``config_option``: the option that gave ``onboard_config``, which
+    its errors name (another front end of the demo calls it otherwise).
     ``nav_noise``: the simulator's navigation-error case (None: the scenario's, RTK by default);
     ``gnss_dropout``: one for the simulator to inject (None: none);
     ``mount_as_configured``: the daemon keeps the configuration's camera mount (gimballed or not, angles)
@@ -155,10 +157,10 @@ def plan_demo(
         config_source = str(onboard_config)
     elif onboard_config is not None and Path(onboard_config).is_dir():
         raise ConfigError(
-            f"--onboard-config {onboard_config}: a directory, not a file; give the daemon's configuration (a YAML file)"
+            f"{config_option} {onboard_config}: a directory, not a file; give the daemon's configuration (a YAML file)"
         )
     elif onboard_config is not None and onboard_config != DEFAULT_DEMO_ONBOARD_CONFIG:
-        raise ConfigError(f"--onboard-config {onboard_config}: no such file")
+        raise ConfigError(f"{config_option} {onboard_config}: no such file")
     else:
         base = OnboardConfig()
         config_source = "(defaults)"

@@ -92,6 +92,12 @@ def test_an_onboard_config_that_is_a_directory_is_called_one_before_out_is_made(
     assert not out.exists()
 
 
+def test_the_configuration_errors_name_the_option_the_caller_took_it_from(tmp_path):
+    """bench.companion takes the daemon's configuration as --config: its errors must not name --onboard-config."""
+    with pytest.raises(ConfigError, match=r"^--config nope\.yaml: no such file$"):
+        plan_demo("P1", 4.0, 0, tmp_path / "out", "nope.yaml", config_option="--config")
+
+
 def test_a_duration_the_scenario_cannot_fly_is_refused_before_out_is_made(tmp_path):
     out = tmp_path / "out"
     with pytest.raises(ConfigError, match=r"--duration: .*expected --duration at most 15\.4 s"):
