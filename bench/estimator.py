@@ -36,7 +36,7 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark, write_json  # noqa: E402
+from bench import output_file, run_benchmark, write_json  # noqa: E402
 from bench.options import BenchParser, choices_list, nonnegative_int, positive_int  # noqa: E402
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
@@ -475,7 +475,9 @@ def main(argv=None) -> int:
         default=0,
         help="only: does spreading the selection over frames cost CPU (N alternated pairs, spread vs at once)",
     )
-    ap.add_argument("--json", default=None)
+    ap.add_argument(
+        "--json", type=output_file, default=None, metavar="FILE", help="also write the figures as JSON here"
+    )
     args = ap.parse_args(argv)
     limit_blas_threads(1)
     if args.verdict:

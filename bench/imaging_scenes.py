@@ -573,11 +573,35 @@ MISS_CAUSES = (
 )
 
 
-def main(argv: list[str]) -> None:
+def _cache_dir(text: str) -> Path | None:
+    """``--cache``: the rendered frames' folder (made when the first frames are written), or None for ``''``.  A
+    file in its place, or a folder that takes no file, is refused when the command line is read rather than once
+    a whole scene has been rendered."""
     import argparse
 
-    ap = argparse.ArgumentParser(prog="python -m bench.imaging --scene", description=__doc__.splitlines()[0])
-    ap.add_argument("--scene", nargs="+", required=True, help="scenario names (config/scenarios), e.g. C1 P2")
+    from bench import cannot_write_in
+
+    if not text:
+        return None
+    why = cannot_write_in(text)
+    if why is not None:
+        raise argparse.ArgumentTypeError(why)
+    return Path(text)
+
+
+def main(argv: list[str]) -> None:
+    from bench.options import BenchParser, known_nav_noise, name_in, nonnegative_int, positive_float, positive_int
+    from groundsim.world.scenario import reference_scenario_paths
+
+    # every value is checked here, before anything is rendered (render_scene reads the shipped scenarios by name)
+    ap = BenchParser(prog="python -m bench.imaging --scene", description=__doc__.splitlines()[0])
+    ap.add_argument(
+        "--scene",
+        nargs="+",
+        required=True,
+        type=name_in(reference_scenario_paths, "scenario"),
+        help="scenario names (config/scenarios), e.g. C1 P2",
+    )
     ap.add_argument(
         "--chain",
         choices=(*CHAINS, "both"),
@@ -585,18 +609,29 @@ def main(argv: list[str]) -> None:
         help="tracker: the single chain (imaging.chain single); objects: the daemon's default; both (default)",
     )
     ap.add_argument(
-        "--seed", type=int, nargs="+", default=[0], help="run seed(s) (default 0); several: a row each and a summary"
+        "--seed",
+        type=nonnegative_int,
+        nargs="+",
+        default=[0],
+        help="run seed(s) (default 0); several: a row each and a summary",
     )
-    ap.add_argument("--frames", type=int, default=None, help="first N frames only (default: the whole scenario)")
+    ap.add_argument(
+        "--frames", type=positive_int, default=None, help="first N frames only (default: the whole scenario)"
+    )
     ap.add_argument(
         "--duration",
-        type=float,
+        type=positive_float,
         default=None,
         help="seconds flown instead of the scenario's (its motions continued, as groundsim eval --duration)",
     )
-    ap.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)")
     ap.add_argument(
-        "--repeat", type=int, default=1, help="run each chain N times; times per frame are the least over the runs"
+        "--cache", type=_cache_dir, default=DEFAULT_CACHE, help="rendered frames cache directory ('' = none)"
+    )
+    ap.add_argument(
+        "--repeat",
+        type=positive_int,
+        default=1,
+        help="run each chain N times; times per frame are the least over the runs",
     )
     ap.add_argument(
         "--encoding", choices=("mono8", "mono16"), default=None, help="render so instead of the scenario's ir.encoding"
@@ -609,6 +644,7 @@ def main(argv: list[str]) -> None:
     )
     ap.add_argument(
         "--nav-noise",
+        type=known_nav_noise,
         default=None,
         help="navigation-error case of the attitude the chains are given (config/noise_cases.yaml; default: the"
         " scenario's, RTK; exact: the truth)",
@@ -616,18 +652,7 @@ def main(argv: list[str]) -> None:
     ap.add_argument("--stages", action="store_true", help="objects chains: CPU ms by stage below each row")
     ap.add_argument("--misses", action="store_true", help="the target's missed frames below each row")
     a = ap.parse_args(argv)
-    if a.duration is not None and not (math.isfinite(a.duration) and a.duration > 0):
-        ap.error(f"--duration: expected seconds > 0, got {a.duration}")
-    if a.nav_noise is not None:
-        from groundsim.world.nav_errors import resolve_nav_noise
-        from onboard.core.errors import ConfigError
-
-        try:
-            resolve_nav_noise(a.nav_noise)
-        except ConfigError as e:
-            ap.error(str(e))
     cv2.setNumThreads(1)
-    cache = a.cache if str(a.cache) else None
     chains = ("tracker", "objects") if a.chain == "both" else (a.chain,)
     print(
         f"image chain over rendered scenes (seed {', '.join(map(str, a.seed))}); match {MATCH_PX:.0f} px, Pd over contrast >= "
@@ -644,7 +669,7 @@ def main(argv: list[str]) -> None:
     for name in a.scene:
         per_chain: dict[str, list[tuple[int, dict]]] = {c: [] for c in chains}
         for seed in a.seed:
-            run = render_scene(name, seed, a.frames, cache, a.encoding, a.terrain_resolution, a.duration, a.nav_noise)
+            run = render_scene(name, seed, a.frames, a.cache, a.encoding, a.terrain_resolution, a.duration, a.nav_noise)
             for c in chains:
                 s = score_repeated(run, CHAINS[c], a.repeat, a.stages)
                 per_chain[c].append((seed, s))

@@ -53,7 +53,6 @@ and every CPU figure with it).  :class:`SyntheticScene` is also a fixture of
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -73,7 +72,13 @@ if __name__ == "__main__":  # one BLAS thread, as the daemon; must precede the n
 import numpy as np  # noqa: E402
 
 from bench import machine_speed_ms, pacing_factor, pin_to_one_cpu, run_benchmark  # noqa: E402
-from bench.options import positive_float  # noqa: E402
+from bench.options import (  # noqa: E402
+    BenchParser,
+    known_scenario,
+    nonnegative_number,
+    positive_float,
+    positive_int,
+)
 from groundsim.io.ports import free_tcp_port, free_udp_port  # noqa: E402
 from onboard.core.frames import (  # noqa: E402
     CameraMount,
@@ -770,28 +775,52 @@ def bench_parts(duration_s: float, repeats: int) -> None:
         )
 
 
+def _scene_problem(scene: str, scene_s: float) -> str | None:
+    """Why ``--scene`` cannot be flown for ``--scene-s`` by :func:`bench.onboard_scene.bench_scene` (which plans
+    it as ``groundsim demo`` does: one observer, the scenario extended to the duration), or None.  Said with this
+    command's option names: the planner's own errors name ``--scenario`` and ``--duration``."""
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from groundsim.world.sim import check_duration_s, extend_scenario
+    from onboard.core.errors import ConfigError
+
+    sc = load_scenario(resolve_scenario_path(scene))  # known_scenario has read it: it loads
+    if sc.is_fleet:
+        return f"argument --scene: {sc.name} has several observers: expected a scenario of one (one daemon flies it)"
+    try:
+        extend_scenario(sc, check_duration_s(scene_s, sc))
+    except ConfigError as exc:
+        return f"argument --scene-s: {str(exc).removeprefix('--duration: ')}"
+    return None
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.onboard", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--frames", type=int, default=600, help="frames for the processing benchmark (default 600 = 20 s)")
-    ap.add_argument("--latency-s", type=float, default=20.0, help="seconds of 30 Hz frames timed through the daemon")
+    # every value is checked here, before the machine's speed is measured or a daemon started: an infinite or NaN
+    # duration would never end, a count of 0 or a negative lag would time nothing and print NaN
+    ap = BenchParser(prog="python -m bench.onboard", description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--frames", type=positive_int, default=600, help="frames for the processing benchmark (default 600 = 20 s)"
+    )
+    ap.add_argument(
+        "--latency-s", type=positive_float, default=20.0, help="seconds of 30 Hz frames timed through the daemon"
+    )
     ap.add_argument("--no-latency", action="store_true", help="skip the daemon loopback benchmark")
     ap.add_argument(
         "--capture-lags-ms",
-        type=float,
+        type=nonnegative_number,
         nargs="+",
         default=[0.0, 10.0, 25.0, 50.0],
         help="capture lags to time (frame stamped that long before it is sent), ms",
     )
     ap.add_argument(
         "--parts-s",
-        type=float,
+        type=nonnegative_number,
         default=0.0,
         help="also time two parts alone, paced (MAVLink in, estimator hand-off), this many seconds each",
     )
-    ap.add_argument("--parts-repeats", type=int, default=2, help="repeats of --parts-s")
+    ap.add_argument("--parts-repeats", type=positive_int, default=2, help="repeats of --parts-s")
     ap.add_argument(
         "--floor-s",
-        type=float,
+        type=nonnegative_number,
         default=0.0,
         help="also time the daemon's I/O with nothing done (bench.onboard_floor), this many seconds per case",
     )
@@ -813,9 +842,17 @@ def main(argv=None) -> int:
         " for (default: what the daemon asks, 100; a frame sent at its capture waits up to one attitude period for"
         " its bracketing sample)",
     )
-    ap.add_argument("--scene", help="instead: the daemon on this scenario flown by the simulator (bench.onboard_scene)")
-    ap.add_argument("--scene-s", type=float, default=30.0, help="seconds flown with --scene (default 30)")
+    ap.add_argument(
+        "--scene",
+        type=known_scenario,
+        help="instead: the daemon on this scenario (a shipped one's name or a file) flown by the simulator"
+        " (bench.onboard_scene)",
+    )
+    ap.add_argument("--scene-s", type=positive_float, default=30.0, help="seconds flown with --scene (default 30)")
     args = ap.parse_args(argv)
+    problem = _scene_problem(args.scene, args.scene_s) if args.scene else None
+    if problem is not None:
+        ap.error(problem)
     print(
         f"bench.onboard: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} (numbers vary with load);"
         f" machine speed: a fixed Python loop takes {machine_speed_ms():.1f} CPU ms (lower is faster)"

@@ -40,8 +40,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark  # noqa: E402
-from bench.options import BenchParser, existing_dir, existing_file, nonnegative_number, positive_int  # noqa: E402
+from bench import run_benchmark, writable_dir  # noqa: E402
+from bench.options import BenchParser, existing_file, nonnegative_number, positive_int  # noqa: E402
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
 from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
     ap.add_argument("--compression", default="none", choices=("none", "lz4", "zstd"))
     ap.add_argument("--sync-mb", type=nonnegative_number, default=8.0, help="record.sync_mb (0: never sync/drop pages)")
     ap.add_argument(
-        "--dir", type=existing_dir, default=None, help="where the file goes (default: a temporary directory)"
+        "--dir", type=writable_dir, default=None, help="where the file goes (default: a temporary directory)"
     )
     ap.add_argument(
         "--replay", type=existing_file, metavar="FILE.mcap", help="measure replay speed on this recording instead"

@@ -45,6 +45,7 @@ Numbers only; nothing asserts.  Timing is not measured here (``python -m bench.o
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import math
 import os
@@ -59,7 +60,7 @@ if __name__ == "__main__":  # one BLAS thread per process: must precede the nump
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark, write_json  # noqa: E402
+from bench import output_file, run_benchmark, write_json  # noqa: E402
 from bench.options import (  # noqa: E402
     BenchParser,
     json_runs,
@@ -409,6 +410,15 @@ def figures_from_json(runs: list[dict]) -> list[RunFigures]:
     return out
 
 
+def _runs_file(text: str) -> list[dict]:
+    """``--table-from``: the runs of a ``--json`` file (:func:`json_runs`), one at least: a file of none would print
+    an empty table and exit 0, as if it held results."""
+    runs = json_runs(text)
+    if not runs:
+        raise argparse.ArgumentTypeError(f"{text!r}: no runs in it")
+    return runs
+
+
 def _report(figures: list[RunFigures], names: list[str]) -> list[dict]:
     """Print one line per run and the per-scene table; the rows."""
     for f in figures:
@@ -451,10 +461,12 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--no-other-targets", action="store_true", help="fly every run without the scene's other_targets")
     ap.add_argument("--workers", type=positive_int, default=1, help="processes (default 1: the machine is shared)")
-    ap.add_argument("--json", default=None, help="also write the rows and runs as JSON here")
+    ap.add_argument(
+        "--json", type=output_file, default=None, metavar="FILE", help="also write the rows and runs as JSON here"
+    )
     ap.add_argument(
         "--table-from",
-        type=json_runs,
+        type=_runs_file,
         default=None,
         metavar="FILE",
         help="run nothing: print the runs and table of this --json file",
