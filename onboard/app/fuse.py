@@ -130,7 +130,8 @@ FORGET_AFTER_S = 600.0
 #: a fleet frame set by the first vehicle heard (no --origin) and shared by no other yet is given up once another
 #: vehicle's cameras have been refused as too far from it for this long (fleet_origin_moved) ...
 REANCHOR_AFTER_S = 3.0
-#: ... at most once in this long: two vehicles that far apart cannot be fused, and the frame must not flicker
+#: ... at most once in this long (and never back to a vehicle whose frame was given up): two vehicles that far apart
+#: cannot be fused, and the frame must not flicker
 REANCHOR_HOLD_S = 30.0
 
 
@@ -184,6 +185,8 @@ def drain(inbox: Inbox, fusion: Fusion, first: tuple | None, limit: int = MAX_PE
 
 
 CLOCK_RECHECK_S = 0.1
+#: the main loop judges silences (and forgets long-silent vehicles) this often, status messages or none
+WATCH_INTERVAL_S = 1.0
 #: counted reasons that are events, not refused input: the status lists them under ``events``, the rest under
 #: ``rejected``
 EVENTS = frozenset(
@@ -252,6 +255,10 @@ class Fusion:
         self._origin_vehicle: str | None = None
         self._origin_shared = origin is not None
         self._far_since: dict[str, float] = {}  # vehicles refused camera_far since, while the frame is not shared
+        self._frame_given_up: set[str] = set()  # vehicles whose frame was given up: they never move it again
+        self._off_window: dict[str, int] = {}  # stamps in a row beyond --max-age-s of their arrival, by vehicle
+        #: vehicles forgotten since the owner last looked (it drops what it keeps for them: their publishers)
+        self.forgotten: list[str] = []
         self._reanchored_at = -math.inf
 
     def _check_clashes(self, now_unix_s: float) -> list[str]:
@@ -314,10 +321,14 @@ class Fusion:
             return
         if not self._heard(vehicle, arrival_unix_s):
             return
-        # every frame times the vehicle's clock, with a target or not; but not a stamp so far off that it is refused
-        # as stale or future below: one glitch would set the vehicle's latency floor for the check's whole window
-        if time_unix_us is not None and abs(time_unix_us / 1e6 - arrival_unix_s) <= self.max_age_s:
-            self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
+        # every frame times the vehicle's clock, with a target or not; but not one stamp so far off that it is refused
+        # as stale or future below (one glitch set the vehicle's latency floor for the check's whole window): such
+        # stamps count from the second in a row, a clock that is off, which the check is there to name
+        if time_unix_us is not None:
+            off_window = abs(time_unix_us / 1e6 - arrival_unix_s) > self.max_age_s
+            run = self._off_window[vehicle] = self._off_window.get(vehicle, 0) + 1 if off_window else 0
+            if run != 1:
+                self.clock_check.add(vehicle, time_unix_us / 1e6, arrival_unix_s)
         los = track.los
         if los is None or track.origin is None:
             self.stream_check.add(vehicle, track.seq, track.time_boot_us, 0.0, None, arrival_unix_s)
@@ -363,7 +374,7 @@ class Fusion:
             where = np.round(ray.p_cam_ned_m, 1).tolist()
             self.counter.count(implausible, f"{key}: camera at {where} m in the fleet frame (seq {track.seq})")
             if implausible == "camera_far":
-                self._reanchor_if_alone(vehicle, arrival_unix_s)
+                self._reanchor_if_alone(vehicle, track.origin, arrival_unix_s)
             return
         if not self._ray_plausible(key, ray):
             return
@@ -411,12 +422,17 @@ class Fusion:
             self.counter.count("vehicle_back", f"{vehicle}: tracks again", level=logging.INFO)
         return True
 
-    def _reanchor_if_alone(self, vehicle: str, now_unix_s: float) -> None:
+    def _reanchor_if_alone(self, vehicle: str, origin: GeodeticOrigin, now_unix_s: float) -> None:
         """Give up a fleet frame that only the vehicle which set it has been accepted in, once ``vehicle``'s cameras
         have been too far from it for ``REANCHOR_AFTER_S``: the first vehicle heard may be the stray one (a
         simulator on the fleet's network, a vehicle with a wrong position), and every real vehicle would then be
-        refused for the life of the process.  The next accepted line of sight sets the frame again."""
+        refused for the life of the process.  ``vehicle``'s own ``origin`` becomes the frame, so the stray cannot
+        take it back by being heard first again; nor can a vehicle whose frame was given up ask for it again
+        (with one real vehicle and one stray, which is which cannot be told: the frame moves once, not back and
+        forth)."""
         if self._origin_shared or self.origin is None or vehicle == self._origin_vehicle:
+            return
+        if vehicle in self._frame_given_up:
             return
         since = self._far_since.setdefault(vehicle, now_unix_s)
         if now_unix_s - since < REANCHOR_AFTER_S or now_unix_s - self._reanchored_at < REANCHOR_HOLD_S:
@@ -425,14 +441,15 @@ class Fusion:
         self.counter.count(
             "fleet_origin_moved",
             f"the fleet frame was {old}'s origin {self.origin}, which no other vehicle has been placed near: {vehicle}'s "
-            f"cameras were over {MAX_CAMERA_DISTANCE_M / 1e3:.0f} km from it for {now_unix_s - since:.1f} s; the next "
-            "accepted line of sight sets it again (pin it with --origin, or name the fleet's vehicles with --vehicles)",
+            f"cameras were over {MAX_CAMERA_DISTANCE_M / 1e3:.0f} km from it for {now_unix_s - since:.1f} s; the frame "
+            f"is {vehicle}'s origin now (pin it with --origin, or name the fleet's vehicles with --vehicles)",
         )
         if old is not None:
             self.tracker.withdraw(old, "the fleet frame moved")
+            self._frame_given_up.add(old)
         for v in self._last_arrival:  # the streams' cameras are in the old frame
             self.stream_check.forget(v)
-        self.origin, self._origin_vehicle = None, None
+        self.origin, self._origin_vehicle = origin, vehicle
         self._far_since.clear()
         self._reanchored_at = now_unix_s
 
@@ -442,11 +459,24 @@ class Fusion:
             self.counter.count(
                 "vehicle_forgotten", f"{v}: no track for {now_unix_s - self._last_arrival[v]:.0f} s", level=logging.INFO
             )
-            for kept in (self._last_arrival, self._time_sources, self._origins, self._cameras, self._objects):
+            for kept in (
+                self._last_arrival,
+                self._time_sources,
+                self._origins,
+                self._cameras,
+                self._objects,
+                self._far_since,
+                self._clock_far,
+                self._off_window,
+            ):
                 kept.pop(v, None)
-            self._silent.discard(v)
+            for named in (self._silent, self._clock_refused, self._clock_flagged):
+                named.discard(v)
+            self.tracker.withdraw(v, "forgotten")
             self.stream_check.forget(v)
             self.clock_check.forget(v)
+            self.clock.forget(v)
+            self.forgotten.append(v)
 
     def _ray_plausible(self, key: str, ray: Ray) -> bool:
         if ray.time_sigma_s > self.max_time_sigma_s:
@@ -766,6 +796,7 @@ def _main(argv: Sequence[str] | None) -> int:
         log.info("fusing %s from %s on %s", which, TRACKS_KEY_EXPR, ", ".join(where) or "zenoh's defaults")
         deadline = None if args.seconds == 0 else time.monotonic() + args.seconds
         next_status = time.monotonic() + args.status_interval_s
+        next_watch = time.monotonic() + WATCH_INTERVAL_S
         while not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             item = inbox.get(POLL_S)
             idle = item is None
@@ -775,6 +806,15 @@ def _main(argv: Sequence[str] | None) -> int:
                 if pub is None:
                     pub = publishers[key] = session.declare_publisher(key, encoding=FLEET_TRACK_ENCODING)
                 pub.put(json.dumps(payload, separators=(",", ":"), allow_nan=False))  # type: ignore[attr-defined]
+            if time.monotonic() >= next_watch:  # silences and forgetting, whether or not a status is published
+                next_watch += WATCH_INTERVAL_S
+                fusion.watch(time.time())
+            for vehicle in fusion.forgotten:
+                pub = publishers.pop(vehicle_fleet_track_key(vehicle), None)
+                if pub is not None:
+                    with contextlib.suppress(Exception):  # a publisher already gone: nothing to release
+                        pub.undeclare()  # type: ignore[attr-defined]
+            fusion.forgotten.clear()
             if args.status_interval_s > 0 and time.monotonic() >= next_status:
                 next_status += args.status_interval_s
                 status_pub.put(json.dumps(fusion.status(), separators=(",", ":")))

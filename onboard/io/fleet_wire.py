@@ -272,6 +272,11 @@ class CommonClock:
         # (UTC - boot, boot time) of each vehicle's latest stamped track
         self._stamped: dict[str, tuple[float, float]] = {}
 
+    def forget(self, vehicle: str) -> None:
+        """Drop what is kept of ``vehicle``'s clock (a vehicle long silent; a configured offset stays)."""
+        for kept in (self._arrivals, self._last_boot_s, self._stamped):
+            kept.pop(vehicle, None)
+
     def remembered_sigma_s(self, vehicle: str, time_boot_us: int) -> float:
         """The 1-sigma of a ``remembered`` time: the vehicle's boot clock drifts against UTC since its last stamped
         track (:data:`CLOCK_DRIFT_PPM`); 0 when there is none."""

@@ -721,6 +721,19 @@ def test_one_frame_stamped_seconds_ahead_is_refused_alone_and_does_not_shut_its_
     assert late and all(p["observable"] for p in late)
 
 
+def test_a_clock_seconds_off_is_still_named_though_its_frames_are_refused():
+    """The clock check skips a single stamp beyond --max-age-s (a glitch), not a clock that is off: a vehicle whose
+    every stamp is 5 s ahead is still named (it was, before the glitch rule), its frames refused as future."""
+    fusion, rng = new_fusion(), np.random.default_rng(8)
+
+    def ahead(k, obj):
+        obj["time_unix_us"] += 5_000_000
+
+    run_pair_with(fusion, np.arange(0.0, 3.0, 1 / 30), rng, bad=ahead)
+    status = fusion.status(T0_UNIX_S + 3.0)
+    assert fusion.counter["future"] == 90 and "uav2" in status["clock_inconsistent"]
+
+
 def test_only_parsed_tracks_make_a_vehicle_and_a_long_silent_one_is_forgotten():
     """5000 junk keys made 5000 'silent' vehicles in every status, kept for the life of the process."""
     from onboard.app.fuse import FORGET_AFTER_S, MAX_VEHICLES
@@ -742,25 +755,49 @@ def test_only_parsed_tracks_make_a_vehicle_and_a_long_silent_one_is_forgotten():
     assert set(fusion.status(T0_UNIX_S + FORGET_AFTER_S + 3.0)["vehicles"]) == {"uav1", "uav2"}
 
 
-def test_a_stray_vehicle_heard_first_does_not_keep_the_fleet_frame_from_the_fleet():
+def _stray(t, rng, k) -> bytes:
+    """uav1's track as a vehicle named sim1 whose origin is 0, 0: a simulator far from the fleet."""
+    obj = json.loads(payload_of(UAV1, t, rng, k))
+    obj["vehicle"], obj["origin"] = "sim1", {"lat_deg": 0.0, "lon_deg": 0.0, "alt_m": 0.0}
+    return json.dumps(obj).encode()
+
+
+@pytest.mark.parametrize("stray_first", [True, False])
+def test_a_stray_vehicle_heard_first_does_not_keep_the_fleet_frame_from_the_fleet(stray_first):
     """A well-formed track from a vehicle far from the others (a simulator on the fleet's network, a wrong position)
     set the fleet frame when it came first, and every real vehicle's camera was refused as too far from it for the
-    life of the process: nothing was ever fused."""
+    life of the process: nothing was ever fused.  Received after the real vehicles in each period, the stray must
+    not take the frame back once it was given up."""
     from onboard.app.fuse import REANCHOR_AFTER_S
 
     fusion, rng, out = new_fusion(), np.random.default_rng(6), []
+    fusion.receive("irtrack/sim1/track", _stray(-0.01, rng, 0), T0_UNIX_S)  # the stray is heard first
     for k, t in enumerate(np.arange(0.0, 8.0, 1 / 30)):
-        stray = json.loads(payload_of(UAV1, t, rng, k))
-        stray["vehicle"], stray["origin"] = "sim1", {"lat_deg": 0.0, "lon_deg": 0.0, "alt_m": 0.0}
-        fusion.receive("irtrack/sim1/track", json.dumps(stray).encode(), T0_UNIX_S + t + 0.004)
+        if stray_first:
+            fusion.receive("irtrack/sim1/track", _stray(t, rng, k + 1), T0_UNIX_S + t + 0.004)
         for v in (UAV1, UAV2):
             fusion.receive(f"irtrack/{v.name}/track", payload_of(v, t, rng, k), T0_UNIX_S + t + 0.005)
+        if not stray_first:
+            fusion.receive("irtrack/sim1/track", _stray(t, rng, k + 1), T0_UNIX_S + t + 0.006)
         out += fusion.flush()
     assert fusion.counter["fleet_origin_moved"] == 1 and fusion.origin in (ORIGIN_1, ORIGIN_2)
     fused = [p for k, p in out if k == fleet_track_key()]
     assert fused and min(p["time_unix_us"] / 1e6 - T0_UNIX_S for p in fused) > REANCHOR_AFTER_S
     assert {c["vehicle"] for c in fused[-1]["vehicles"]} == {"uav1", "uav2"} and fused[-1]["observable"]
     assert np.linalg.norm(np.array(fused[-1]["ned_m"]) - truth_in(fused[-1])) < 5.0
+
+
+def test_with_one_real_vehicle_and_one_stray_the_frame_moves_once_not_back_and_forth():
+    """Which of two vehicles 200 km apart is the stray cannot be told; the frame moved every 30 s, each move
+    withdrawing the other's rays with a warning."""
+    from onboard.app.fuse import REANCHOR_HOLD_S
+
+    fusion, rng = new_fusion(), np.random.default_rng(7)
+    for k, t in enumerate(np.arange(0.0, 3 * REANCHOR_HOLD_S, 1 / 10)):
+        fusion.receive("irtrack/sim1/track", _stray(t, rng, k), T0_UNIX_S + t + 0.004)
+        fusion.receive("irtrack/uav1/track", payload_of(UAV1, t, rng, k), T0_UNIX_S + t + 0.005)
+        fusion.flush()
+    assert fusion.counter["fleet_origin_moved"] == 1 and fusion.origin == ORIGIN_1
 
 
 def test_a_message_heard_twice_or_replayed_is_a_duplicate_not_a_second_vehicle():
