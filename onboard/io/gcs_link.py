@@ -299,12 +299,14 @@ class GcsLink:
     def _start_tcp(self, idx: int, now_s: float, first: bool) -> None:
         """Begin connecting ``tcp:`` endpoint ``idx`` without blocking; :meth:`_settle` finishes it."""
         host, port = self._parsed[idx].device.split(":")[1:]
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        sock = None
         try:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # (out of descriptors: counted, dialled again)
             sock.setblocking(False)
             err = sock.connect_ex((host, int(port)))  # a host name is resolved here, blocking: give an address
         except OSError as exc:
-            sock.close()
+            if sock is not None:
+                sock.close()
             self._dial_failed(idx, now_s, exc.strerror or str(exc))
             return
         if err not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
@@ -318,7 +320,9 @@ class GcsLink:
         """Finish the ``tcp:`` connections under way that have an answer; give up those past their time."""
         for idx, (sock, since_s) in list(self._dialling.items()):
             try:
-                if not select.select([], [sock], [], 0)[1]:
+                poller = select.poll()  # not select.select: it refuses descriptors past 1024
+                poller.register(sock, select.POLLOUT)
+                if not poller.poll(0):
                     if now_s - since_s < TCP_CONNECT_TIMEOUT_S:
                         continue  # no answer yet
                     why: str | None = f"no answer within {TCP_CONNECT_TIMEOUT_S:g} s"

@@ -3,6 +3,7 @@ parsing, peer timeout and cap.  Loopback on 127.0.0.1 only, fake clock, bounded 
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import select
@@ -474,3 +475,24 @@ def test_a_tcp_ground_station_that_does_not_answer_never_blocks_the_loop():
         link.close()
         filler.close()
         server.close()
+
+
+def test_a_dial_without_a_free_descriptor_is_counted_and_tried_again(monkeypatch):
+    """socket() itself was outside the dial's error handling: out of descriptors, poll() (which never raises)
+    raised OSError into the daemon's main loop."""
+    import onboard.io.gcs_link as gcs_link_module
+    from onboard.io.gcs_link import TCP_REDIAL_S
+
+    def no_descriptor(*_a, **_k):
+        raise OSError(errno.EMFILE, os.strerror(errno.EMFILE))
+
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    monkeypatch.setattr(gcs_link_module.socket, "socket", no_descriptor)
+    link = GcsLink(["tcp:127.0.0.1:9"], 100, counter=counters, clock=clock)
+    try:
+        clock.t_s += TCP_REDIAL_S
+        assert link.poll() == [] and link.filenos() == []
+        assert counters.counts["gcs_open_failed"] == 2
+    finally:
+        link.close()
