@@ -16,7 +16,7 @@ import tempfile
 
 from groundsim.io.stop_signals import EXIT_INTERRUPTED, print_interrupted
 from onboard.app.cli_args import EXIT_USAGE  # a file an option names, refused once read, is a bad option value too
-from onboard.core.errors import IrtrackError
+from onboard.core.errors import ConfigError, InputError, IrtrackError
 
 #: set by ``python -m bench`` for the benchmarks it runs: the suite prints the one "interrupted" line
 SUITE_ENV = "BENCH_SUITE"
@@ -79,8 +79,9 @@ def run_benchmark(name: str, main, kept: str = "the figures printed above are ke
     """``main()`` of ``bench.<name>`` as a command: its exit code (None counts as 0).  The first SIGINT or
     SIGTERM raises KeyboardInterrupt in ``main`` (its ``finally`` blocks stop what it started); then
     ``interrupted: bench.<name> stopped part-way; <kept>`` on stderr (not under ``python -m bench``, which
-    says it for the whole suite) and the signal's exit code.  An :class:`IrtrackError` out of ``main`` (a
-    configuration or scenario file it refused) is ``bench.<name>: <message>`` on stderr and exit code 2."""
+    says it for the whole suite) and the signal's exit code.  An :class:`IrtrackError` out of ``main`` is
+    ``bench.<name>: <message>`` on stderr; exit code 2 for a refused input or configuration (a file, a value:
+    :class:`InputError`, :class:`ConfigError`), 1 for a failure part-way through a measurement."""
     received: list[int] = []
     pid = os.getpid()
 
@@ -108,7 +109,8 @@ def run_benchmark(name: str, main, kept: str = "the figures printed above are ke
         return EXIT_SIGNALLED[received[0] if received else signal.SIGINT]
     except IrtrackError as exc:  # its message names the file, the field and what was expected
         print(f"bench.{name}: {' '.join(str(exc).splitlines())}", file=sys.stderr)
-        return EXIT_USAGE
+        # a file or value refused is the caller's to fix (2); a failure part-way through a measurement is not
+        return EXIT_USAGE if isinstance(exc, InputError | ConfigError) else 1
     return int(rc or 0)
 
 

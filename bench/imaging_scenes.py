@@ -231,7 +231,7 @@ def reported_rotations(sc, seed: int, duration_s: float, R_true: np.ndarray, nav
     the simulated autopilot reports it with at that frame's tick, ``Exp(phi) R_true``
     (:mod:`groundsim.world.nav_errors`: the same ``phi`` moves the body's and an earth-frame gimbal's
     attitude, so the camera's too), from the run's own draws (``SimCore(sc, seed, duration_s).nav_errors``,
-    flown nowhere).  The daemon interpolates the 50 Hz telemetry to each frame's time instead: the same
+    flown nowhere).  The daemon interpolates its telemetry (attitude at 100 Hz) to each frame's time instead: the same
     bias, white noise of the same size.  An unknown case is a ConfigError naming the file and the names."""
     from groundsim.world.sim import SimCore
     from onboard.core.frames import quat_from_rotvec, rotmat_from_quat

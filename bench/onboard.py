@@ -6,7 +6,8 @@ Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:
 
 * Loopback latency through the real daemon (``python -m onboard`` as a subprocess on 127.0.0.1,
   default configuration: estimator in a worker process): a fake autopilot (pymavlink, UDP) sends
-  attitude (with the scene's body rates)/position at 50/25 Hz, a zenoh publisher sends 640 x 512
+  attitude (with the scene's body rates)/position at 100/25 Hz (``--attitude-rate-hz``: the daemon's default
+  otherwise), a zenoh publisher sends 640 x 512
   frames at 30 Hz; the time from the ``put`` of a frame to the arrival of its track message,
   p50/p90/p99/max, over ``--latency-s`` seconds after a 2 s settling time; once per
   ``--capture-lags-ms`` (default 0, 10, 25, 50): frames stamped that long before they are sent (a
@@ -36,7 +37,7 @@ Prints (with ``--scene``, only the daemon's CPU on that scenario's flight: :mod:
 * With ``--parts-s S``: two parts of the daemon alone, each paced as in flight for ``S`` seconds, CPU
   s per s from the thread and process clocks (``--parts-repeats`` times, alternating): the main loop's
   telemetry input (a thread in ``select`` on a :class:`MavlinkLink` that polls it, the fake autopilot
-  sending attitude / position at 50 / 25 Hz) and the estimator hand-off (a :class:`ProcessEstimator`
+  sending attitude / position at the daemon's default rates, 100 / 25 Hz) and the estimator hand-off (a :class:`ProcessEstimator`
   fed the scene at 30 Hz once its 20 s window is full: the caller thread's CPU, the worker process's,
   the frames answered late).  Smaller than the daemon's figures and steadier than them on a loaded
   machine: before/after figures of one part.

@@ -119,27 +119,34 @@ class ScriptedAutopilot:
 
         return quat_conjugate(q_ned_from_level(lat_deg, lon_deg, self.scene.origin))
 
-    def fly_paced(self, until_s: float, answer: bool = False) -> None:
+    def fly_paced(self, until_s: float, answer: bool = False, attitude_rate_hz: float | None = None) -> None:
         """The scene's observer in real time until ``until_s`` (``time.monotonic``): ATTITUDE_QUATERNION at
-        50 Hz and GLOBAL_POSITION_INT at 25 Hz, the rates the daemon asks PX4 for.  With ``answer`` it also
-        reads what came back (:meth:`pump`: the daemon's interval requests are answered) and sends a
-        HEARTBEAT a second, as an autopilot does; without, it only sends telemetry (a receiver that parses
-        nothing)."""
+        ``attitude_rate_hz`` (None: the rate the daemon asks for by default) and GLOBAL_POSITION_INT at 25 Hz (at
+        most the attitude's rate).  With ``answer`` it also reads what came back (:meth:`pump`: the daemon's
+        interval requests are answered) and sends a HEARTBEAT a second, as an autopilot does; without, it only
+        sends telemetry (a receiver that parses nothing)."""
         import time
 
+        if attitude_rate_hz is None:
+            from onboard.app.config import OnboardConfig
+
+            attitude_rate_hz = OnboardConfig().mavlink.attitude_rate_hz
+        period_s = 1.0 / attitude_rate_hz
+        pos_every = max(round(attitude_rate_hz / 25.0), 1)
+        heartbeat_every = max(round(attitude_rate_hz), 1)
         n, t0 = 0, time.monotonic()
         while time.monotonic() < until_s:
             if answer:
                 self.pump()
-                if n % 50 == 0:
+                if n % heartbeat_every == 0:
                     self.heartbeat()
             t_us = self.boot_us()
             self.attitude(t_us)
-            if n % 2 == 0:
+            if n % pos_every == 0:
                 self.position(t_us)
             n += 1
             # paced against the start, not the last wake-up, so that late wake-ups do not slow the rate
-            time.sleep(max(t0 + n * 0.02 - time.monotonic(), 0.0))
+            time.sleep(max(t0 + n * period_s - time.monotonic(), 0.0))
 
     def raw(self, data: bytes) -> None:
         self.conn.write(data)

@@ -1,4 +1,4 @@
-"""A fast path for the telemetry the daemon receives most: one unsigned MAVLink 2 ``ATTITUDE_QUATERNION`` (50 Hz)
+"""A fast path for the telemetry the daemon receives most: one unsigned MAVLink 2 ``ATTITUDE_QUATERNION`` (100 Hz)
 or ``GLOBAL_POSITION_INT`` (25 Hz) alone in a UDP datagram.
 
 pymavlink's parser costs ~22 us a datagram on the development machine (a parser object per datagram, its

@@ -120,3 +120,21 @@ def test_a_config_file_that_cannot_be_read_is_one_line_from_the_benchmark(outcom
     got = outcomes[1][k]
     line = _one_line(got)
     assert line.startswith(got["named"]) and got["also"] in line, line
+
+
+def test_a_failure_part_way_through_a_measurement_is_one_line_and_exit_1_not_bad_input(capsys):
+    """Every project error out of a benchmark was exit 2, as if the caller's input were wrong."""
+    from bench import run_benchmark
+    from onboard.core.errors import ConfigError
+    from onboard.estimation.map_estimator import EstimationError
+
+    def failing(exc):
+        def main():
+            raise exc
+
+        return main
+
+    assert run_benchmark("x", failing(EstimationError("solve diverged\nat step 3"))) == 1
+    assert capsys.readouterr().err == "bench.x: solve diverged at step 3\n"
+    assert run_benchmark("x", failing(ConfigError("f.yaml: a: expected a number"))) == 2
+    assert capsys.readouterr().err == "bench.x: f.yaml: a: expected a number\n"
