@@ -771,7 +771,9 @@ def run_campaign(
             raise
     try:
         if fresh and log_path.exists():
-            log_path.unlink()
+            # emptied, not removed: the folder stays a campaign's (refuse_foreign_out reads the log's presence),
+            # so the same command run again after an interruption before the first result still resumes it
+            log_path.write_bytes(b"")
         done, bad = reusable_rows(log_path, ids)
         if bad:  # said once: the log is read again below for the table, its skipped lines not repeated
             log.warning("%s", _skipped_text(log_path, bad))

@@ -263,6 +263,29 @@ def test_fresh_with_a_scheduler_that_does_not_answer_changes_nothing(tmp_path, m
     assert (out / LOG_NAME).read_bytes() == before
 
 
+def test_a_fresh_campaign_interrupted_before_its_first_result_resumes_with_the_same_command(tmp_path, monkeypatch):
+    """--fresh removed runs.jsonl, and it came back only with the first result: interrupted before, the folder held
+    the earlier campaign's report and table but no log, and the same command was refused as a foreign folder."""
+    import groundsim.evaluation.campaign as campaign
+
+    out = tmp_path / "out"
+    out.mkdir()
+    append_rows(out / LOG_NAME, [{"run_id": "a", "x": 1.5}])
+    (out / "report.md").write_text("the earlier campaign's\n")
+
+    def interrupted(*_a, **_k):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(campaign, "_jobs", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run_campaign(_spec(tmp_path), out, fresh=True, progress=False)
+    assert (out / LOG_NAME).read_bytes() == b""  # emptied: the earlier runs are not reused
+    spec_file = tmp_path / "spec.yaml"
+    spec_file.write_text("scenarios: [P1]\nnoise: [RTK]\nalgorithms: [paper]\nduration_s: 0.5\n")
+    # the folder check passes: the run is under way again (and interrupted again: 130), not refused (2)
+    assert cli_main(["campaign", str(spec_file), "--out", str(out), "--fresh", "--no-progress"]) == 130
+
+
 def test_a_figure_of_an_earlier_sweep_does_not_stay_beside_a_report_without_one(tmp_path, monkeypatch):
     import groundsim.evaluation.campaign_plots as plots
     from groundsim.evaluation.campaign_report import FIGURE_NAME, write_report
