@@ -45,8 +45,12 @@ class ObjectChain:
         self.rejected_frames = 0
         self._R: np.ndarray | None = None
         self._last_primary: int | None = None
+        self._consumed: tuple | None = None  # (frame, its update) a refused selection measured
 
     def update(self, image: np.ndarray, R_ned_from_cam: np.ndarray | None = None, time_boot_us: int | None = None):
+        consumed, self._consumed = self._consumed, None
+        if consumed is not None and consumed[0] is image:
+            return consumed[1]  # measured by a refused selection just now (select_point)
         try:
             image = check_frame(image)
         except InputError:
@@ -96,12 +100,26 @@ class ObjectChain:
             TrackState.COASTING, prim.u_px, prim.v_px, prim.bbox, None, False, prim.object_id, misses, out.frame_index
         )
 
-    def select_point(self, image: np.ndarray, u_px: float, v_px: float, radius_px: float, rect_px=None):
-        """Update on ``image``, then make the object nearest (u, v) within ``radius_px`` (and, given ``rect_px``,
-        inside that box) the primary; its TrackUpdate, or None (nothing there: the selection is unchanged)."""
-        self.update(image, None)
+    def select_point(
+        self,
+        image: np.ndarray,
+        u_px: float,
+        v_px: float,
+        radius_px: float,
+        rect_px=None,
+        R_ned_from_cam=None,
+        time_boot_us: int | None = None,
+    ):
+        """Update on ``image`` (with its rotation and capture time, as :meth:`update` takes them: without, the
+        tracks are predicted with the last frame's rotation, and an operator clicks while the gimbal slews), then
+        make the object nearest (u, v) within ``radius_px`` (and, given ``rect_px``, inside that box) the primary;
+        its TrackUpdate, or None (nothing there: the selection is unchanged)."""
+        upd = self.update(image, R_ned_from_cam, time_boot_us)
         sel = self.objects.select_point(u_px, v_px, radius_px, rect_px)
         if sel is None or self.last_objects is None:
+            # the caller then tracks the frame as usual (a refused selection leaves the single chain's tracker
+            # untouched): this frame is measured already, and measuring it again would read as a frozen frame
+            self._consumed = (image, upd)
             return None
         self.objects.mode = self.mode  # a selection ends a stop's hold
         # this frame measured the object already (before it was selected): reported from its track,
@@ -109,12 +127,18 @@ class ObjectChain:
         self.last_objects = dataclasses.replace(self.last_objects, primary_id=sel, primary=None, primary_changed=True)
         return self._track_update(self.last_objects)
 
-    def select_rectangle(self, image: np.ndarray, rect_px: tuple[float, float, float, float]):
+    def select_rectangle(
+        self,
+        image: np.ndarray,
+        rect_px: tuple[float, float, float, float],
+        R_ned_from_cam=None,
+        time_boot_us: int | None = None,
+    ):
         """The object whose centre lies in ``rect_px`` = (x0, y0, x1, y1), the one nearest its centre when several
         do (the tracker's own choice of a point); None when none does."""
         x0, y0, x1, y1 = rect_px
         cx, cy, half_diagonal = 0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * math.hypot(x1 - x0, y1 - y0)
-        return self.select_point(image, cx, cy, half_diagonal, rect_px=(x0, y0, x1, y1))
+        return self.select_point(image, cx, cy, half_diagonal, (x0, y0, x1, y1), R_ned_from_cam, time_boot_us)
 
     def stop(self) -> None:
         """Drop the selection and hold: no automatic choice until the next selection."""

@@ -299,8 +299,10 @@ class FramePipeline:
         """
         self._selections.append((request, on_done))
 
-    def _apply_selections(self, pixels):
-        """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target."""
+    def _apply_selections(self, pixels, pose_args: tuple = ()):
+        """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target.
+        ``pose_args``: the frame's rotation (a function, as :meth:`process` passes it) and capture time, for a
+        chain that ``uses_pose``."""
         from onboard.core.selection import TrackResult
 
         upd = None
@@ -319,10 +321,11 @@ class FramePipeline:
                     result = TrackResult(req.request_id, True)
                 else:
                     if req.kind == "point":
-                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px)
+                        extra = (None, *pose_args) if pose_args else ()  # (rect_px, rotation, time)
+                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px, *extra)
                         where = f"within {req.radius_px:.0f} px of ({req.u_px:.0f}, {req.v_px:.0f})"
                     else:
-                        sel = self.tracker.select_rectangle(pixels, req.rect_px)
+                        sel = self.tracker.select_rectangle(pixels, req.rect_px, *pose_args)
                         x0, y0, x1, y1 = req.rect_px
                         where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
                     if sel is None:
@@ -380,7 +383,8 @@ class FramePipeline:
 
         i0 = self._clock_ns()
         try:
-            upd = self._apply_selections(frame.pixels) if self._selections else None
+            pose_args = (rotation, frame.time_boot_us) if uses_pose else ()
+            upd = self._apply_selections(frame.pixels, pose_args) if self._selections else None
             if upd is None and uses_pose:
                 upd = self.tracker.update(frame.pixels, rotation, frame.time_boot_us)
             elif upd is None:

@@ -201,3 +201,38 @@ def test_the_objects_chain_detects_the_frame_before_the_wait():
     pose = buf.pose_at(t_frame)
     assert pose is not None and pose.mode != "extrapolated"
     assert np.allclose(chain._R, rotmat_from_quat(pose.q_ned_from_cam), atol=ATOL_RAD)
+
+
+def test_a_click_frame_is_tracked_with_its_own_rotation_and_time():
+    """The frame an operator's click was decided on updated the chain with no rotation and no capture time: its
+    tracks were predicted with the last frame's rotation (an operator clicks while the gimbal slews) and the
+    chain lost count of the time since; and a refused click's frame was measured twice, the second time as a
+    frozen frame (the tracks predicted a period that did not pass)."""
+    from onboard.core.selection import TrackRequest
+    from onboard.pipeline.frame_pipeline import make_tracker
+
+    cfg = build_config({"imaging": {"chain": "objects"}, "estimator": {"enabled": False}})
+    K = cfg.camera.intrinsics
+    chain = make_tracker(cfg)
+    buf = filled(200_000)
+    pipe = FramePipeline(cfg, buf, chain, None, ORIGIN)
+    rng = np.random.default_rng(0)
+
+    def frame_pixels():
+        return rng.integers(18, 23, (K.height_px, K.width_px), dtype=np.uint8)
+
+    pipe.process(IrFrame(0, 100_000, frame_pixels()))
+    for kind in ("point", "rectangle"):
+        results: list = []
+        request = (
+            TrackRequest(1, "point", u_px=320.0, v_px=256.0, radius_px=20.0)
+            if kind == "point"
+            else TrackRequest(2, "rectangle", rect_px=(300.0, 240.0, 340.0, 270.0))
+        )
+        t_us = 133_333 if kind == "point" else 166_667
+        pipe.request_selection(request, results.append)
+        pipe.process(IrFrame(1 if kind == "point" else 2, t_us, frame_pixels()))
+        assert len(results) == 1 and not results[0].accepted  # nothing confirmed there: refused, frame tracked
+        pose = buf.pose_at(t_us)
+        assert pose is not None and np.allclose(chain._R, rotmat_from_quat(pose.q_ned_from_cam), atol=ATOL_RAD)
+        assert chain.objects._last_time_us == t_us and chain.objects.frozen_frames == 0
