@@ -455,13 +455,26 @@ def warm() -> None:
     global _WARM
     if _WARM:
         return
-    img = np.zeros((16, 16), np.float32)
+
+    img = np.zeros((16, 16), np.float32)  # the detector's own float32 frame: always a writable array
     contrast_and_cells(img, 4, 2, 4, np.empty_like(img), np.empty_like(img), np.empty((4, 4), np.float32))
-    for dtype in (np.uint8, np.uint16):
-        area_mean(np.zeros((16, 16), dtype), 4)
-        cell_extremes(np.zeros((16, 16), dtype), 4)
-    for kind in (np.uint8, np.uint16, np.float32):
-        minus_columns(np.zeros((16, 16), kind), np.zeros(16, np.float32), np.empty((16, 16), np.float32))
     one = np.float32(1.0)
     defect_rate(img, one, one, one, one, np.zeros_like(img), np.zeros(img.shape, np.bool_))
+
+    def frames(dtype):
+        # the received frame itself, writable and read-only: numba compiles each kind apart, and the daemon's
+        # frames are read-only views of the received bytes (onboard.core.irframe), the lockstep's writable arrays;
+        # neither must compile on a first frame (0.5 s, several times that on a companion's core)
+        writable = np.zeros((16, 16), dtype)
+        read_only = writable.copy()
+        read_only.setflags(write=False)
+        return writable, read_only
+
+    for dtype in (np.uint8, np.uint16):
+        for frame in frames(dtype):
+            area_mean(frame, 4)
+            cell_extremes(frame, 4)
+    for kind in (np.uint8, np.uint16, np.float32):
+        for frame in frames(kind):
+            minus_columns(frame, np.zeros(16, np.float32), np.empty((16, 16), np.float32))
     _WARM = True

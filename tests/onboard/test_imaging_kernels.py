@@ -339,3 +339,41 @@ def test_minus_columns_leaves_what_it_does_not_take():
     assert not kernels.minus_columns(np.ones((4, 6), np.uint8), np.zeros(5, np.float32), out)
     assert not kernels.minus_columns(np.ones((4, 6), np.uint8), offsets.astype(np.float64), out)
     assert not (out != 0).any()
+
+
+_NO_FIRST_FRAME_COMPILE = r"""
+import numpy as np
+from onboard.app.config import build_config
+from onboard.core.irframe import IrFrame, decode_irframe, encode_irframe
+from onboard.imaging import kernels
+from onboard.pipeline.frame_pipeline import make_tracker
+
+cfg = build_config({"imaging": {"chain": "objects"}})
+K = cfg.camera.intrinsics
+chain = make_tracker(cfg)  # warms the kernels, as the daemon's start does
+dispatchers = [getattr(kernels, n) for n in dir(kernels) if hasattr(getattr(kernels, n), "signatures")]
+before = {d.__name__: len(d.signatures) for d in dispatchers}
+rng = np.random.default_rng(0)
+for dtype in (np.uint8, np.uint16):
+    for seq in range(3):
+        pixels = rng.integers(10, 30, (K.height_px, K.width_px)).astype(dtype)
+        frame = decode_irframe(encode_irframe(IrFrame(seq, 100_000 + 33_333 * seq, pixels)))
+        assert not frame.pixels.flags.writeable  # as the daemon receives it
+        chain.update(frame.pixels, None, frame.time_boot_us)
+after = {d.__name__: len(d.signatures) for d in dispatchers}
+print({n: (before[n], after[n]) for n in before if after[n] != before[n]})
+"""
+
+
+def test_no_kernel_compiles_on_the_daemons_first_frames():
+    """warm() compiled the kernels for writable arrays only; the daemon's frames are read-only views of the bytes
+    received, a type numba compiles apart: the first frames of a new install paid 0.46 s and 0.12 s of compiling
+    (a newcomer's first make demo dropped frames over it)."""
+    import subprocess
+    import sys
+
+    # a process of its own: no other test's frames compiled anything in it (a kernel loaded from numba's cache
+    # adds its signature as a compiled one does)
+    out = subprocess.run([sys.executable, "-c", _NO_FIRST_FRAME_COMPILE], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "{}", out.stdout
