@@ -538,3 +538,36 @@ def test_splat_is_left_to_the_ray_cast_for_a_near_object():
     p_t = target_at(INTR, CAMERA_P_NED_M, R_c, 320.0, 256.0, 20.0)
     bg = np.zeros((INTR.height_px, INTR.width_px), np.float32)
     assert splat.delta(bg, CAMERA_P_NED_M, R_c, p_t, np.eye(3))[3] > 1
+
+
+_NO_SPLAT_COMPILE_IN_FLIGHT = r"""
+import numpy as np
+from groundsim.world.render import splat_kernels as sk
+from groundsim.world.scenario import load_scenario, reference_scenario_paths
+from groundsim.world.sim import SimCore
+
+dispatchers = (sk.splat_moments, sk.splat_spot, sk.visible_fractions)
+core = SimCore(load_scenario(reference_scenario_paths()["P1"]), 0, 1.0, render=True)
+core.frame(0)  # the renderer built: its target's raster warms the splat
+before = [len(d.signatures) for d in dispatchers]
+r = core.renderer()
+R = np.eye(3)  # looking down NED: the target 3 km below, a fraction of a pixel across: the splat draws it
+r.render(np.zeros(3), R, np.array([0.0, 0.0, 3000.0]), R, altitude_ground_d_m=5000.0)
+scene_core = SimCore(load_scenario(reference_scenario_paths()["C3"]), 0, 1.0, render=True)
+for k in range(0, 30, 3):  # a scene's objects (birds, a second aircraft) drawn on its float32 image
+    scene_core.frame(k)
+print([len(d.signatures) - b for d, b in zip(dispatchers, before)])
+"""
+
+
+def test_the_splat_is_compiled_before_the_flight_not_when_the_target_first_shrinks():
+    """Compiled at first use, a new install's simulator stalled 4 s in real time 18.6 s into P1, when the target
+    first became a few pixels across; a process of its own (another test's render would have compiled them)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", _NO_SPLAT_COMPILE_IN_FLIGHT], capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[0, 0, 0]", out.stdout

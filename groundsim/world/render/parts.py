@@ -16,6 +16,8 @@ from groundsim.world.render.settings import IrSettings
 from groundsim.world.render.splat_kernels import splat_moments, splat_spot
 from onboard.core.frames import PinholeIntrinsics
 
+_SPLAT_WARM = False  # the splat's kernels compiled or loaded in this process (PartRaster._warm_splat)
+
 __all__ = ["PartRaster", "project_in_front", "NEAR_M", "TARGET_SPLAT_MAX_PX"]
 
 NEAR_M = 1e-3  # target bounding-box corners closer than this (camera z) -> whole-image ROI
@@ -122,6 +124,8 @@ class PartRaster:
             [[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])]
         )
         self._aperture_kept: dict[tuple[int, int, int, int], np.ndarray] = {}  # see _aperture
+        if self.splat_max_px > 0:
+            self._warm_splat()
 
     def delta(self, bg, p_cam, R_nc, p_t, R_nt, occluder: SceneBackground | None = None):
         """Object minus background (through PSF and pixel aperture) over the object's ROI, or None.
@@ -256,6 +260,19 @@ class PartRaster:
             w.flags.writeable = False
             self._aperture_kept[key] = w
         return w
+
+    def _warm_splat(self) -> None:
+        """Compile (or load from numba's cache) the splat's kernels now, once per process, for the backgrounds
+        they are drawn on: the renderer's (float32, a window of a larger array) and a scene's image (float32, C
+        order).  Compiled at their first use instead, a new install's simulator stalled 4 s in real time at the
+        moment the target first shrank to a few pixels (P1, 18.6 s into the flight)."""
+        global _SPLAT_WARM
+        if _SPLAT_WARM:
+            return
+        larger = np.zeros((self._H + 2, self._W + 2), np.float32)
+        for bg in (larger[1:-1, 1:-1], np.zeros((self._H, self._W), np.float32)):
+            self._splat(bg, [0.0, 0.0, 1.0e4], np.eye(3), np.eye(3), None)  # the object 10 km along the axis
+        _SPLAT_WARM = True
 
     def _splat(self, bg, t_c: list[float], R_nc, R_nt, occluder: SceneBackground | None):
         """:meth:`delta` of an object a few pixels across, without the ray cast: its radiance integral and
