@@ -20,7 +20,8 @@ It stops after ``--seconds`` (0: until Ctrl-C), closes its session (an open zeno
 process alive) and prints what it received.  Exit codes: 0 after ``--seconds`` with at least one track; 1
 after ``--seconds`` with none (so that a script checking the flow, ``onboard.watch --seconds 30 && ...``,
 sees a silent daemon as a failure); 130 on Ctrl-C, with the one line ``interrupted: N tracks received,
-...``; 2 for invalid options or a session that cannot open (one line on stderr).
+...``, and 143 with the same line on SIGTERM; 2 for invalid options or a session that cannot open (one line on
+stderr).
 """
 
 from __future__ import annotations
@@ -69,6 +70,7 @@ EXIT_OK = 0
 EXIT_NO_TRACK = 1
 EXIT_CONFIG = 2
 EXIT_INTERRUPTED = 130  # 128 + SIGINT, as a shell reports Ctrl-C
+EXIT_TERMINATED = 143  # 128 + SIGTERM
 POLL_S = 0.1  # longest wait on the queue: the deadline, Ctrl-C and the no-track hint are checked this often
 
 
@@ -353,25 +355,35 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"frame it receives; check that the simulator or camera is running, and the daemon too, with vehicle "
             f"{args.vehicle} and zenoh reachable at {_where(settings)}"
         )
-        # Ctrl-C while receiving sets a flag instead of raising: a KeyboardInterrupt inside queue.get can leave its
-        # lock released twice, and the RuntimeError that follows escaped as a traceback instead of the one line
+        # Ctrl-C (and SIGTERM: `timeout`, a job's limit, `kill`) while receiving sets a flag instead of raising: a
+        # KeyboardInterrupt inside queue.get can leave its lock released twice, and the RuntimeError that follows
+        # escaped as a traceback instead of the one line; SIGTERM had ended the process with no line at all
         stop = threading.Event()
-        # not where Ctrl-C is ignored (a shell without job control starts `... &` so) nor off the main thread
-        catch = threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) not in (
-            signal.SIG_IGN,
-            None,
-        )
-        previous = signal.signal(signal.SIGINT, lambda _signum, _frame: stop.set()) if catch else None
+        stopped_by: list[int] = []
+
+        def on_signal(signum, _frame) -> None:
+            stopped_by.append(signum)
+            stop.set()
+
+        # not where a signal is ignored (a shell without job control starts `... &` with Ctrl-C so) nor off the main
+        # thread
+        main = threading.current_thread() is threading.main_thread()
+        caught = [
+            sig
+            for sig in (signal.SIGINT, signal.SIGTERM)
+            if main and signal.getsignal(sig) not in (signal.SIG_IGN, None)
+        ]
+        previous = {sig: signal.signal(sig, on_signal) for sig in caught}
         try:
             _receive(
                 inbox, counts, seconds=args.seconds, as_json=args.json, out=out, err=sys.stderr, hint=hint, stop=stop
             )
         finally:
-            if catch:
-                signal.signal(signal.SIGINT, previous)
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
         if stop.is_set():
             print(interrupted_line(counts), file=info, flush=True)
-            return EXIT_INTERRUPTED
+            return EXIT_INTERRUPTED if stopped_by[0] == signal.SIGINT else EXIT_TERMINATED
         session.close()
         session = None
         print(summary_line(counts, time.monotonic() - start), file=info, flush=True)

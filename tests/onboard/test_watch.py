@@ -300,19 +300,21 @@ def test_json_prints_the_payloads_as_received(watched_for_seconds):
 
 
 @pytest.mark.integration
-def test_ctrl_c_exits_130_with_one_interrupted_line(publisher):
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, EXIT_INTERRUPTED), (signal.SIGTERM, 128 + signal.SIGTERM)])
+def test_ctrl_c_or_sigterm_exits_with_one_interrupted_line(publisher, sig, code):
+    """SIGTERM (`timeout`, `kill`) ended the watcher with no line at all, its counts lost."""
     proc = start_watcher(publisher.endpoint, "--seconds", "0")
     try:
         out = Lines(proc.stdout)
         assert publisher.wait_matched(START_TIMEOUT_S), "the watcher never subscribed"
         publish_samples(publisher)
         assert out.wait_for(lambda lines: sum(line.startswith("t ") for line in lines) == 4, EXIT_TIMEOUT_S)
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(EXIT_TIMEOUT_S)
+        proc.send_signal(sig)
+        exit_code = proc.wait(EXIT_TIMEOUT_S)
         err = proc.stderr.read()
     finally:
         proc.kill()
-    assert code == EXIT_INTERRUPTED, err
+    assert exit_code == code, err
     lines = out.join()
     assert lines[-1] == "interrupted: 4 tracks received, 2 with position, 1 observable"
     assert not any(line.startswith("summary") for line in lines)
