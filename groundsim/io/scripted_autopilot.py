@@ -119,18 +119,14 @@ class ScriptedAutopilot:
 
         return quat_conjugate(q_ned_from_level(lat_deg, lon_deg, self.scene.origin))
 
-    def fly_paced(self, until_s: float, answer: bool = False, attitude_rate_hz: float | None = None) -> None:
+    def fly_paced(self, until_s: float, answer: bool = False, attitude_rate_hz: float = 100.0) -> None:
         """The scene's observer in real time until ``until_s`` (``time.monotonic``): ATTITUDE_QUATERNION at
-        ``attitude_rate_hz`` (None: the rate the daemon asks for by default) and GLOBAL_POSITION_INT at 25 Hz (at
-        most the attitude's rate).  With ``answer`` it also reads what came back (:meth:`pump`: the daemon's
+        ``attitude_rate_hz`` (the daemon's default request, ``mavlink.attitude_rate_hz``, which a test holds this
+        default to) and GLOBAL_POSITION_INT at 25 Hz (at most the attitude's rate).  With ``answer`` it also reads what came back (:meth:`pump`: the daemon's
         interval requests are answered) and sends a HEARTBEAT a second, as an autopilot does; without, it only
         sends telemetry (a receiver that parses nothing)."""
         import time
 
-        if attitude_rate_hz is None:
-            from onboard.app.config import OnboardConfig
-
-            attitude_rate_hz = OnboardConfig().mavlink.attitude_rate_hz
         period_s = 1.0 / attitude_rate_hz
         pos_every = max(round(attitude_rate_hz / 25.0), 1)
         heartbeat_every = max(round(attitude_rate_hz), 1)

@@ -134,7 +134,15 @@ def test_a_failure_part_way_through_a_measurement_is_one_line_and_exit_1_not_bad
 
         return main
 
-    assert run_benchmark("x", failing(EstimationError("solve diverged\nat step 3"))) == 1
-    assert capsys.readouterr().err == "bench.x: solve diverged at step 3\n"
-    assert run_benchmark("x", failing(ConfigError("f.yaml: a: expected a number"))) == 2
-    assert capsys.readouterr().err == "bench.x: f.yaml: a: expected a number\n"
+    import signal
+
+    # run_benchmark is a command's whole life: it takes SIGINT and SIGTERM for good; this process goes on
+    kept = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert run_benchmark("x", failing(EstimationError("solve diverged\nat step 3"))) == 1
+        assert capsys.readouterr().err == "bench.x: solve diverged at step 3\n"
+        assert run_benchmark("x", failing(ConfigError("f.yaml: a: expected a number"))) == 2
+        assert capsys.readouterr().err == "bench.x: f.yaml: a: expected a number\n"
+    finally:
+        for sig, handler in kept.items():
+            signal.signal(sig, handler)

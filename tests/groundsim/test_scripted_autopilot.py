@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import socket
 import time
 
@@ -12,7 +13,7 @@ from onboard.io.mavlink_wire import parse_datagram
 FLIGHT_S = 0.15  # a few 50 Hz periods: the counts below hold for any number of them
 
 
-def _fly(answer: bool, attitude_rate_hz: float | None = 50.0) -> list[str]:
+def _fly(answer: bool, attitude_rate_hz: float = 50.0) -> list[str]:
     """The message types a receiver on 127.0.0.1 gets from ``fly_paced`` over ``FLIGHT_S``, in order."""
     rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     try:
@@ -54,8 +55,9 @@ def test_fly_paced_sends_the_attitude_at_the_rate_the_daemon_asks_for_by_default
     """Hard-wired to 50 Hz, the benchmarks' paced telemetry was half what the daemon asks an autopilot for."""
     from onboard.app.config import OnboardConfig
 
-    assert OnboardConfig().mavlink.attitude_rate_hz == 100.0
-    types = _fly(answer=False, attitude_rate_hz=None)
+    default = inspect.signature(ScriptedAutopilot.fly_paced).parameters["attitude_rate_hz"].default
+    assert default == OnboardConfig().mavlink.attitude_rate_hz == 100.0
+    types = _fly(answer=False, attitude_rate_hz=default)
     n_att = types.count("ATTITUDE_QUATERNION")
     assert n_att >= 10  # 0.15 s at 100 Hz: 15, less a late wake-up or two
     assert types.count("GLOBAL_POSITION_INT") == (n_att + 3) // 4  # 25 Hz: on every 4th attitude
