@@ -12,7 +12,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from groundsim.evaluation.out_dir import make_out_dir
+from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.io.ports import free_tcp_port, free_udp_port
 from groundsim.world.nav_errors import GnssDropout, InjectedErrors, run_nav_case
 from groundsim.world.scenario import DEFAULT_NAV_NOISE
@@ -168,6 +168,9 @@ def plan_demo(
     cfg = onboard_config_for(sc, base)
     if mount_as_configured:
         cfg = dataclasses.replace(cfg, camera=dataclasses.replace(cfg.camera, mount=base.camera.mount))
+    # a demo writes its onboard.yaml, report, truth, logs and plots by name: in a folder of anything else (a user's
+    # own onboard.yaml or report.md) it would replace them; an earlier demo's folder it clears first (below)
+    refuse_foreign_out(out_dir, _earlier_demo, "groundsim demo", "onboard.yaml of a demo")
     out = make_out_dir(out_dir)
     earlier = _earlier_demo(out)  # read before this demo's onboard.yaml replaces the earlier one's
     mav, zport = free_udp_port(), free_tcp_port()

@@ -453,11 +453,15 @@ def test_an_earlier_demos_results_go_before_a_new_demo_starts(tmp_path, caplog):
     (tmp_path / "eval").mkdir()
     (tmp_path / "eval" / "report.md").write_text("an earlier evaluation\n")
     (tmp_path / "notes.txt").write_text("mine\n")
-    theirs = tmp_path / "not_a_demo"  # the same names in a folder no demo wrote: the user's, kept
+    theirs = tmp_path / "not_a_demo"  # the same names in a folder no demo wrote: the user's, refused and kept
     theirs.mkdir()
     (theirs / "report.md").write_text("my report\n")
-    plan_demo("P1", 4.0, 0, theirs, None)
-    assert (theirs / "report.md").read_text() == "my report\n"
+    (theirs / "onboard.yaml").write_text("vehicle: mine\n")
+    with pytest.raises(ConfigError, match="not empty and not an earlier groundsim demo's folder"):
+        plan_demo("P1", 4.0, 0, theirs, None)  # the run would have written its own report.md and onboard.yaml there
+    assert (theirs / "report.md").read_text() == "my report\n" and (
+        theirs / "onboard.yaml"
+    ).read_text() == "vehicle: mine\n"
     plan_demo("P1", 4.0, 0, tmp_path / "first", None)  # an earlier demo's onboard.yaml marks the folder
     (tmp_path / "onboard.yaml").write_text((tmp_path / "first" / "onboard.yaml").read_text())
     plan_demo("P1", 4.0, 0, tmp_path, None)
