@@ -4,7 +4,9 @@ Each ``python -m bench.<name>`` ends with :func:`run_benchmark`: Ctrl-C (or SIGT
 own clean-up (its daemon, simulator or pool is stopped), and it prints one line ``interrupted: bench.<name>
 stopped part-way; <what was kept>`` and exits 130 (143 for SIGTERM).  ``python -m bench`` runs them in turn
 and prints that one line itself (:data:`SUITE_ENV` tells a benchmark so).  A file the run reads and refuses (a
-configuration, a scenario: the project's :class:`IrtrackError`) is one line ``bench.<name>: <why>``, exit code 2.
+configuration, a scenario: the project's :class:`InputError` or :class:`ConfigError`) is one line
+``bench.<name>: <why>``, exit code 2; any other :class:`IrtrackError` (a failure part-way through a measurement) is
+that line and exit code 1.
 """
 
 import argparse
@@ -12,7 +14,6 @@ import json
 import os
 import signal
 import sys
-import tempfile
 
 from groundsim.io.stop_signals import EXIT_INTERRUPTED, print_interrupted
 from onboard.app.cli_args import EXIT_USAGE  # a file an option names, refused once read, is a bad option value too
@@ -29,50 +30,6 @@ def write_json(path: str, document, **dump_options) -> None:
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
     with open(path, "w") as fh:
         json.dump(document, fh, **dump_options)
-
-
-def cannot_write_in(folder: str) -> str | None:
-    """Why no file can be made in ``folder``, made if missing (as :func:`write_json` makes it), or None: it can.
-    Nothing is made: a missing folder is judged by its nearest existing parent, which must be a folder that takes
-    a new file (a temporary one, gone at once; a file mode or a read-only mount says no only when tried)."""
-    probe = os.path.abspath(folder or ".")
-    while not os.path.lexists(probe):
-        probe = os.path.dirname(probe)
-    if not os.path.isdir(probe):
-        return f"{probe} is not a folder"
-    try:
-        with tempfile.TemporaryFile(dir=probe):
-            pass
-    except OSError as exc:
-        return f"cannot write in {probe}: {exc.strerror or exc}"
-    return None
-
-
-def output_file(text: str) -> str:
-    """An argparse ``type``: the path of a file a benchmark writes once its run is over (its ``--json``), tried
-    when the command line is read: a path found unwritable only at the end would lose the whole run's results."""
-    if not text:
-        raise argparse.ArgumentTypeError("expected the path of a file, got ''")
-    if os.path.isdir(text):
-        raise argparse.ArgumentTypeError(f"{text!r} is a folder: give the path of a file")
-    if os.path.exists(text):  # replaced, or a device such as /dev/stdout written through
-        if not os.access(text, os.W_OK):
-            raise argparse.ArgumentTypeError(f"cannot write {text!r}: permission denied")
-        return text
-    why = cannot_write_in(os.path.dirname(text))
-    if why is not None:
-        raise argparse.ArgumentTypeError(f"{text!r}: {why}")
-    return text
-
-
-def writable_dir(text: str) -> str:
-    """An argparse ``type``: an existing folder that takes a new file (``/proc`` exists and takes none)."""
-    from bench.options import existing_dir
-
-    why = cannot_write_in(existing_dir(text))
-    if why is not None:
-        raise argparse.ArgumentTypeError(why)
-    return text
 
 
 def run_benchmark(name: str, main, kept: str = "the figures printed above are kept") -> int:

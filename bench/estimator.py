@@ -36,8 +36,8 @@ single_thread_blas_env()
 
 import numpy as np  # noqa: E402
 
-from bench import output_file, run_benchmark, write_json  # noqa: E402
-from bench.options import BenchParser, choices_list, nonnegative_int, positive_int  # noqa: E402
+from bench import run_benchmark, write_json  # noqa: E402
+from bench.options import BenchParser, choices_list, nonnegative_int, output_file, positive_int  # noqa: E402
 from groundsim.evaluation.estimator_eval import format_table, format_verdict_table, run_cases, summarise, verdict_rows  # noqa: E402
 from groundsim.evaluation.parallel import limit_blas_threads  # noqa: E402
 from groundsim.evaluation.synth import estimator_noise_model, synthesize_scenario  # noqa: E402

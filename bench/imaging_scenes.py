@@ -579,7 +579,7 @@ def _cache_dir(text: str) -> Path | None:
     a whole scene has been rendered."""
     import argparse
 
-    from bench import cannot_write_in
+    from bench.options import cannot_write_in
 
     if not text:
         return None

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import tempfile
 from collections.abc import Callable, Iterable
 from typing import Any
 
@@ -19,6 +20,7 @@ from onboard.app.cli_args import OneLineParser, above_zero, nonnegative_float
 
 __all__ = [
     "BenchParser",
+    "cannot_write_in",
     "choices_list",
     "existing_dir",
     "existing_file",
@@ -29,8 +31,10 @@ __all__ = [
     "name_in",
     "nonnegative_int",
     "nonnegative_number",
+    "output_file",
     "positive_float",
     "positive_int",
+    "writable_dir",
 ]
 
 
@@ -82,6 +86,48 @@ def existing_dir(text: str) -> str:
     """The name of a directory that exists."""
     if not os.path.isdir(text):
         raise argparse.ArgumentTypeError(f"no such directory: {text!r}")
+    return text
+
+
+def cannot_write_in(folder: str) -> str | None:
+    """Why no file can be made in ``folder``, made if missing (as :func:`write_json` makes it), or None: it can.
+    Nothing is made: a missing folder is judged by its nearest existing parent, which must be a folder that takes
+    a new file (a temporary one, gone at once; a file mode or a read-only mount says no only when tried)."""
+    probe = os.path.abspath(folder or ".")
+    while not os.path.lexists(probe):
+        probe = os.path.dirname(probe)
+    if not os.path.isdir(probe):
+        return f"{probe} is not a folder"
+    try:
+        with tempfile.TemporaryFile(dir=probe):
+            pass
+    except OSError as exc:
+        return f"cannot write in {probe}: {exc.strerror or exc}"
+    return None
+
+
+def output_file(text: str) -> str:
+    """An argparse ``type``: the path of a file a benchmark writes once its run is over (its ``--json``), tried
+    when the command line is read: a path found unwritable only at the end would lose the whole run's results."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected the path of a file, got ''")
+    if os.path.isdir(text):
+        raise argparse.ArgumentTypeError(f"{text!r} is a folder: give the path of a file")
+    if os.path.exists(text):  # replaced, or a device such as /dev/stdout written through
+        if not os.access(text, os.W_OK):
+            raise argparse.ArgumentTypeError(f"cannot write {text!r}: permission denied")
+        return text
+    why = cannot_write_in(os.path.dirname(text))
+    if why is not None:
+        raise argparse.ArgumentTypeError(f"{text!r}: {why}")
+    return text
+
+
+def writable_dir(text: str) -> str:
+    """An argparse ``type``: an existing folder that takes a new file (``/proc`` exists and takes none)."""
+    why = cannot_write_in(existing_dir(text))
+    if why is not None:
+        raise argparse.ArgumentTypeError(why)
     return text
 
 

@@ -40,8 +40,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from bench import run_benchmark, writable_dir  # noqa: E402
-from bench.options import BenchParser, existing_file, nonnegative_number, positive_int  # noqa: E402
+from bench import run_benchmark  # noqa: E402
+from bench.options import BenchParser, existing_file, nonnegative_number, positive_int, writable_dir  # noqa: E402
 from onboard.core.frames import GeodeticOrigin  # noqa: E402
 from onboard.core.irframe import IrFrame  # noqa: E402
 from onboard.core.pose_types import PoseAt, PoseSample  # noqa: E402

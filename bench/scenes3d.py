@@ -60,13 +60,14 @@ if __name__ == "__main__":  # one BLAS thread per process: must precede the nump
 
 import numpy as np  # noqa: E402
 
-from bench import output_file, run_benchmark, write_json  # noqa: E402
+from bench import run_benchmark, write_json  # noqa: E402
 from bench.options import (  # noqa: E402
     BenchParser,
     json_runs,
     known_nav_noise,
     known_scenario,
     nonnegative_int,
+    output_file,
     positive_float,
     positive_int,
 )
