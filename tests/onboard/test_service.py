@@ -1021,29 +1021,39 @@ def _serve_until(d: Daemon, ap, done, what: str, timeout_s: float = 30.0) -> Non
         time.sleep(0.1)
 
 
+SIGNING_KEY = bytes(range(32))
+
+
+def _signed_daemon(tmp_path, daemon_env, *sets: str):
+    """A daemon with ``mavlink.signing_key_file`` (``SIGNING_KEY``), its camera on a ground station's UDP socket of
+    ours, and ``sets`` (``--set`` values): ``(daemon, that socket, mavlink port, zenoh port)``."""
+    import socket
+
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(SIGNING_KEY.hex())
+    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
+    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    gcs.bind(("127.0.0.1", gport))
+    gcs.setblocking(False)
+    options = [arg for value in sets for arg in ("--set", value)]
+    d = Daemon(
+        ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
+         f"udpout:127.0.0.1:{gport}", "--set", f"mavlink.signing_key_file={key_file}", *options],
+        daemon_env,
+    )  # fmt: skip
+    return d, gcs, mport, zport
+
+
 @pytest.mark.integration
 @pytest.mark.timeout(90)
 def test_with_a_signing_key_the_daemons_camera_signs_and_takes_only_signed_commands(tmp_path, daemon_env):
     """mavlink.signing_key_file signs the camera component's link too: its heartbeat reaches a ground station signed
     with the key, and an unsigned command (which could move the tracked target) is refused and counted."""
-    import socket
-
     from onboard.io.zenoh_session import ZenohConfig as _ZenohConfig
     from onboard.io.zenoh_session import open_session, status_key
 
-    key = bytes(range(32))
-    key_file = tmp_path / "mavlink.key"
-    key_file.write_text(key.hex())
-    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
-    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    gcs.bind(("127.0.0.1", gport))
-    gcs.setblocking(False)
-    d = Daemon(
-        ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
-         f"udpout:127.0.0.1:{gport}", "--set", f"mavlink.signing_key_file={key_file}", "--set",
-         "output.status_interval_s=0.5"],
-        daemon_env,
-    )  # fmt: skip
+    key = SIGNING_KEY
+    d, gcs, mport, zport = _signed_daemon(tmp_path, daemon_env, "output.status_interval_s=0.5")
     session = None
     try:
         assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
@@ -1105,20 +1115,8 @@ def test_no_zenoh_peer_in_time_names_the_daemons_setting_not_an_option_it_lacks(
 def test_gcs_signed_false_leaves_the_camera_unsigned_beside_a_signed_autopilot_link(tmp_path, daemon_env):
     """gcs.signed: false, for a ground station on a link left unsigned: the autopilot link stays signed, the camera's
     heartbeat goes out unsigned and an unsigned command is answered."""
-    import socket
-
-    key = bytes(range(32))
-    key_file = tmp_path / "mavlink.key"
-    key_file.write_text(key.hex())
-    mport, zport, gport = free_udp_port(), free_tcp_port(), free_udp_port()
-    gcs = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    gcs.bind(("127.0.0.1", gport))
-    gcs.setblocking(False)
-    d = Daemon(
-        ["--mavlink", f"udpin:127.0.0.1:{mport}", "--zenoh-listen", f"tcp/127.0.0.1:{zport}", "--gcs",
-         f"udpout:127.0.0.1:{gport}", "--set", f"mavlink.signing_key_file={key_file}", "--set", "gcs.signed=false"],
-        daemon_env,
-    )  # fmt: skip
+    key = SIGNING_KEY
+    d, gcs, mport, _ = _signed_daemon(tmp_path, daemon_env, "gcs.signed=false")
     try:
         assert d.started.wait(45), "daemon did not start:\n" + "\n".join(d.lines)
         ap = FakeAutopilot(mport)
