@@ -9,8 +9,8 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   ``tcpin:HOST:PORT``; parsed by :func:`onboard.io.mavlink_wire.parse_endpoint`),
   MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
-  are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`); ``udpin`` is our own socket
-  (below).
+  are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`; a ``tcp:`` one over a socket connected
+  here, :func:`onboard.io.mavlink_transport.tcp_connected`); ``udpin`` is our own socket (below).
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
@@ -73,8 +73,9 @@ from onboard.io.mavlink_transport import (
     new_parser,
     new_signing,
     signature_refusal,
+    tcp_connected,
 )
-from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint, tcp_connected
+from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
 __all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]
 

@@ -1,6 +1,7 @@
 """The autopilot link's transports and parser: one UDP socket of our own (each datagram parsed alone), serial or
-TCP through pymavlink's port classes (bytes only), and pymavlink's parser with the signature checked before its
-replay table is touched.  :mod:`onboard.io.mavlink_link` (the autopilot) and :mod:`onboard.io.gcs_link` (ground
+TCP through pymavlink's port classes (bytes only), a pymavlink TCP connection over a socket connected without
+blocking (:func:`tcp_connected`), and pymavlink's parser with the signature checked before its replay table is
+touched.  :mod:`onboard.io.mavlink_link` (the autopilot) and :mod:`onboard.io.gcs_link` (ground
 stations) use them."""
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import time
 
 from pymavlink.dialects.v20 import common as mavlink2
 
+from onboard.io.mavlink_wire import MavlinkEndpoint, use_mavlink2
+
 __all__ = [
     "MAX_DATAGRAM_PARSE_BYTES",
     "StreamTransport",
@@ -19,6 +22,7 @@ __all__ = [
     "new_parser",
     "new_signing",
     "signature_refusal",
+    "tcp_connected",
 ]
 
 #: a new signed stream may lag our signing clock by this much (pymavlink's rule), 10 us units
@@ -174,3 +178,22 @@ class StreamTransport:
 
     def close(self) -> None:
         self.conn.close()
+
+
+def tcp_connected(sock, endpoint: MavlinkEndpoint, src_system: int, src_component: int):
+    """A pymavlink TCP connection (MAVLink 2, :func:`use_mavlink2`) over ``sock``, a socket its owner has already
+    connected to ``endpoint``: pymavlink's own ``mavtcp`` connects in its constructor, blocking until the peer
+    answers or the kernel gives up (minutes against an address that drops the packets).  It never reconnects by
+    itself; losing the peer is its owner's to handle."""
+    from pymavlink import mavutil
+
+    class _Connected(mavutil.mavtcp):
+        def do_connect(self) -> None:
+            self.port = sock
+            self.port.setblocking(False)
+            mavutil.set_close_on_exec(self.port.fileno())
+            self.port.setsockopt(socket.SOL_TCP, socket.TCP_NODELAY, 1)
+
+    device = endpoint.device.split(":", 1)[1]  # "tcp:HOST:PORT" -> "HOST:PORT", as mavtcp takes it
+    conn = _Connected(device, autoreconnect=False, source_system=src_system, source_component=src_component, retries=0)
+    return use_mavlink2(conn, src_system, src_component)

@@ -182,27 +182,6 @@ def connect(endpoint: MavlinkEndpoint, src_system: int, src_component: int, **ma
     return use_mavlink2(mavutil.mavlink_connection(endpoint.device, **kwargs), src_system, src_component)
 
 
-def tcp_connected(sock, endpoint: MavlinkEndpoint, src_system: int, src_component: int):
-    """A pymavlink TCP connection (MAVLink 2, :func:`use_mavlink2`) over ``sock``, a socket its owner has already
-    connected to ``endpoint``: pymavlink's own ``mavtcp`` connects in its constructor, blocking until the peer
-    answers or the kernel gives up (minutes against an address that drops the packets).  It never reconnects by
-    itself; losing the peer is its owner's to handle."""
-    import socket
-
-    from pymavlink import mavutil
-
-    class _Connected(mavutil.mavtcp):
-        def do_connect(self) -> None:
-            self.port = sock
-            self.port.setblocking(False)
-            mavutil.set_close_on_exec(self.port.fileno())
-            self.port.setsockopt(socket.SOL_TCP, socket.TCP_NODELAY, 1)
-
-    device = endpoint.device.split(":", 1)[1]  # "tcp:HOST:PORT" -> "HOST:PORT", as mavtcp takes it
-    conn = _Connected(device, autoreconnect=False, source_system=src_system, source_component=src_component, retries=0)
-    return use_mavlink2(conn, src_system, src_component)
-
-
 def pack(msg, src_system: int = 1, src_component: int = 1, codec: mavlink2.MAVLink | None = None) -> bytes:
     """The MAVLink 2 bytes of ``msg`` (a fresh codec: sequence 0, unless ``codec`` is given)."""
     codec = codec if codec is not None else mavlink2_codec(None, src_system, src_component)
