@@ -56,20 +56,15 @@ class ObjectChain:
         except InputError:
             self.rejected_frames += 1
             raise
-        if callable(R_ned_from_cam):
-            rotation = R_ned_from_cam
 
-            def kept_rotation():
-                R = rotation()
-                if R is not None:
-                    self._R = np.asarray(R, dtype=np.float64)
-                return self._R
+        def kept(R):  # a rotation replaces the last one; None keeps it
+            if R is not None:
+                self._R = np.asarray(R, dtype=np.float64)
+            return self._R
 
-            out = self.objects.update(image, kept_rotation, time_boot_us)
-        else:
-            if R_ned_from_cam is not None:
-                self._R = np.asarray(R_ned_from_cam, dtype=np.float64)
-            out = self.objects.update(image, self._R, time_boot_us)
+        given = R_ned_from_cam
+        rotation = (lambda: kept(given())) if callable(given) else kept(given)
+        out = self.objects.update(image, rotation, time_boot_us)
         self.last_objects = out
         return self._track_update(out)
 

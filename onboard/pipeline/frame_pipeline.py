@@ -299,10 +299,10 @@ class FramePipeline:
         """
         self._selections.append((request, on_done))
 
-    def _apply_selections(self, pixels, pose_args: tuple = ()):
+    def _apply_selections(self, pixels, pose: dict | None = None):
         """Decide the queued requests on this frame; the frame's TrackUpdate when one selected a target.
-        ``pose_args``: the frame's rotation (a function, as :meth:`process` passes it) and capture time, for a
-        chain that ``uses_pose``."""
+        ``pose``: the frame's ``R_ned_from_cam`` (a function, as :meth:`process` passes it) and ``time_boot_us``,
+        for a chain that ``uses_pose``."""
         from onboard.core.selection import TrackResult
 
         upd = None
@@ -321,11 +321,10 @@ class FramePipeline:
                     result = TrackResult(req.request_id, True)
                 else:
                     if req.kind == "point":
-                        extra = (None, *pose_args) if pose_args else ()  # (rect_px, rotation, time)
-                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px, *extra)
+                        sel = self.tracker.select_point(pixels, req.u_px, req.v_px, req.radius_px, **(pose or {}))
                         where = f"within {req.radius_px:.0f} px of ({req.u_px:.0f}, {req.v_px:.0f})"
                     else:
-                        sel = self.tracker.select_rectangle(pixels, req.rect_px, *pose_args)
+                        sel = self.tracker.select_rectangle(pixels, req.rect_px, **(pose or {}))
                         x0, y0, x1, y1 = req.rect_px
                         where = f"in ({x0:.0f},{y0:.0f})-({x1:.0f},{y1:.0f})"
                     if sel is None:
@@ -383,8 +382,8 @@ class FramePipeline:
 
         i0 = self._clock_ns()
         try:
-            pose_args = (rotation, frame.time_boot_us) if uses_pose else ()
-            upd = self._apply_selections(frame.pixels, pose_args) if self._selections else None
+            chain_pose = {"R_ned_from_cam": rotation, "time_boot_us": frame.time_boot_us} if uses_pose else None
+            upd = self._apply_selections(frame.pixels, chain_pose) if self._selections else None
             if upd is None and uses_pose:
                 upd = self.tracker.update(frame.pixels, rotation, frame.time_boot_us)
             elif upd is None:
