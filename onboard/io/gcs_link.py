@@ -338,9 +338,7 @@ class GcsLink:
                 self._dial_failed(idx, now_s, why)
                 continue
             try:
-                conn = tcp_connected(sock, self._parsed[idx], 1, self.component_id)
-                # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
-                conn.mav = new_parser(self._signing, conn, 1, self.component_id)
+                conn = self._with_our_parser(tcp_connected(sock, self._parsed[idx], 1, self.component_id))
             except Exception as exc:  # noqa: BLE001 - socket errors of every kind
                 sock.close()
                 self._dial_failed(idx, now_s, getattr(exc, "strerror", None) or str(exc))
@@ -367,16 +365,20 @@ class GcsLink:
         except Exception:  # noqa: BLE001 - a socket already gone
             pass
 
+    def _with_our_parser(self, conn):
+        """``conn`` (a pymavlink connection) with our parser, the autopilot link's: signed output with a key, and only
+        verified packets taken in."""
+        conn.mav = new_parser(self._signing, conn, 1, self.component_id)
+        return conn
+
     def _open(self, ep):
         try:
             if ep.kind == "udpin":
                 return _UdpInEndpoint(
                     ep.device, self.component_id, self._count, self._peer_timeout_s, self._max_peers, self._signing
                 )
-            conn = connect(ep, 1, self.component_id, **({} if ep.kind == "serial" else {"autoreconnect": True}))
-            # our parser (the autopilot link's): signed output with a key, and only verified packets taken in
-            conn.mav = new_parser(self._signing, conn, 1, self.component_id)
-            return conn
+            options = {} if ep.kind == "serial" else {"autoreconnect": True}
+            return self._with_our_parser(connect(ep, 1, self.component_id, **options))
         except Exception as exc:  # noqa: BLE001 - socket and serial errors of every kind
             raise GcsLinkError(
                 f"gcs.endpoints: cannot open {ep.device!r}: {getattr(exc, 'strerror', None) or exc}"
