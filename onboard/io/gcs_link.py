@@ -10,7 +10,7 @@ The camera's protocol lives in :mod:`onboard.io.camera_protocol` (pure); this mo
   MAVLink 2, common dialect, with ``srcComponent = component_id`` and ``srcSystem`` the autopilot's
   system id once known (:meth:`GcsLink.set_system_id`; nothing is sent before).  ``udpout`` and TCP
   are pymavlink connections (:func:`onboard.io.mavlink_wire.connect`; a ``tcp:`` one over a socket connected
-  here, :func:`onboard.io.mavlink_transport.tcp_connected`); ``udpin`` is our own socket (below).
+  here, :class:`onboard.io.mavlink_transport.TcpDial`); ``udpin`` is our own socket (below).
 * :meth:`GcsLink.poll` reads every endpoint without blocking and returns the COMMAND_LONG /
   COMMAND_INT addressed to us (target system 0 or ours, target component 0 or ours) as
   :class:`~onboard.io.camera_protocol.CameraCommand` (with COMMAND_LONG's ``confirmation``, which tells a
@@ -52,12 +52,8 @@ radio gets the camera through a router (``deploy/README.md``: mavlink-router).
 
 from __future__ import annotations
 
-import errno
 import logging
 import math
-import os
-import select
-import socket
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -69,15 +65,17 @@ from onboard.core.errors import ConfigError, IrtrackError
 from onboard.io.camera_protocol import CameraCommand, Outgoing
 from onboard.io.mavlink_transport import (
     MAX_DATAGRAM_PARSE_BYTES,
+    TCP_CONNECT_TIMEOUT_S,
+    DialFailed,
+    TcpDial,
     UdpTransport,
     new_parser,
     new_signing,
     signature_refusal,
-    tcp_connected,
 )
 from onboard.io.mavlink_wire import connect, message_from_fields, parse_endpoint
 
-__all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS"]
+__all__ = ["GcsLink", "GcsLinkError", "PEER_TIMEOUT_S", "MAX_PEERS", "TCP_CONNECT_TIMEOUT_S"]
 
 log = logging.getLogger(__name__)
 
@@ -91,10 +89,6 @@ _MAX_ROUTES = 64
 #: a ``tcp:`` ground station that refused the connection is dialled again this often (s), as the autopilot link is
 #: reopened (``mavlink.reopen_interval_s``)
 TCP_REDIAL_S = 2.0
-#: a ``tcp:`` ground station that neither takes nor refuses the connection in this long (s; an address whose host
-#: drops the packets) is given up, counted, and dialled again at the next TCP_REDIAL_S: the connection is made
-#: without blocking, so the main loop (the autopilot link's telemetry among its work) never waits for it
-TCP_CONNECT_TIMEOUT_S = 5.0
 
 Address = tuple[str, int]
 
@@ -263,7 +257,7 @@ class GcsLink:
         # None: a tcp: endpoint not connected (yet, or again), dialled at _redial_s[index]
         self._conns: list[Any] = [None] * len(parsed)
         self._redial_s: dict[int, float] = {}
-        self._dialling: dict[int, tuple[socket.socket, float]] = {}  # tcp: connections under way, since when
+        self._dialling: dict[int, TcpDial] = {}  # tcp: connections under way
         try:
             for idx in range(len(parsed)):
                 self._dial(idx, self._clock(), first=True)
@@ -299,52 +293,25 @@ class GcsLink:
 
     def _start_tcp(self, idx: int, now_s: float, first: bool) -> None:
         """Begin connecting ``tcp:`` endpoint ``idx`` without blocking; :meth:`_settle` finishes it."""
-        host, port = self._parsed[idx].device.split(":")[1:]
-        sock = None
         try:
-            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # (out of descriptors: counted, dialled again)
-            sock.setblocking(False)
-            err = sock.connect_ex((host, int(port)))  # a host name is resolved here, blocking: give an address
-        except OSError as exc:
-            if sock is not None:
-                sock.close()
-            self._dial_failed(idx, now_s, exc.strerror or str(exc))
+            self._dialling[idx] = TcpDial(self._parsed[idx], now_s)
+        except DialFailed as exc:
+            self._dial_failed(idx, now_s, str(exc))
             return
-        if err not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
-            sock.close()
-            self._dial_failed(idx, now_s, os.strerror(err))
-            return
-        self._dialling[idx] = (sock, now_s)
         self._settle(now_s, first)  # on loopback the answer (accepted or refused) is already in
 
     def _settle(self, now_s: float, first: bool = False) -> None:
         """Finish the ``tcp:`` connections under way that have an answer; give up those past their time."""
-        for idx, (sock, since_s) in list(self._dialling.items()):
+        for idx, dial in list(self._dialling.items()):
             try:
-                poller = select.poll()  # not select.select: it refuses descriptors past 1024
-                poller.register(sock, select.POLLOUT)
-                if not poller.poll(0):
-                    if now_s - since_s < TCP_CONNECT_TIMEOUT_S:
-                        continue  # no answer yet
-                    why: str | None = f"no answer within {TCP_CONNECT_TIMEOUT_S:g} s"
-                else:
-                    err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
-                    why = os.strerror(err) if err else None
-            except (OSError, ValueError) as exc:
-                why = str(exc)
-            del self._dialling[idx]
-            if why is not None:
-                sock.close()
-                self._dial_failed(idx, now_s, why)
+                conn = dial.settle(now_s, 1, self.component_id)
+            except DialFailed as exc:
+                del self._dialling[idx]
+                self._dial_failed(idx, now_s, str(exc))
                 continue
-            try:
-                conn = self._with_our_parser(tcp_connected(sock, self._parsed[idx], 1, self.component_id))
-            except Exception as exc:  # noqa: BLE001 - socket errors of every kind
-                sock.close()
-                self._dial_failed(idx, now_s, getattr(exc, "strerror", None) or str(exc))
-                continue
-            conn.handle_eof = conn.handle_disconnect = lambda c=conn: setattr(c, "irtrack_lost", True)
-            self._connected(idx, conn, first)
+            if conn is not None:
+                del self._dialling[idx]
+                self._connected(idx, self._with_our_parser(conn), first)
 
     def _redial(self, now_s: float) -> None:
         for idx, conn in enumerate(self._conns):
@@ -512,6 +479,6 @@ class GcsLink:
                 self._close_one(conn)
         self._conns = []
         self._redial_s.clear()
-        for sock, _ in self._dialling.values():
-            sock.close()
+        for dial in self._dialling.values():
+            dial.close()
         self._dialling.clear()

@@ -45,7 +45,9 @@ asked.  The tracking statuses (#275, #276) go to ground stations (:mod:`onboard.
 Input (hostile links): UDP links use a socket of our own and parse **each datagram
 alone** with a fresh parser, so a truncated or garbage datagram costs only itself
 (``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
-parser per stream.  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
+parser per stream.  A ``tcp:`` autopilot is dialled without blocking (:class:`~onboard.io.mavlink_transport.TcpDial`:
+no answer within 5 s is ``mavlink_open_failed``), and its close or reset is counted ``mavlink_connection_lost`` and
+dialled again after ``reopen_interval_s`` (SITL restarts; pymavlink's own reconnection blocked in every read).  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
 not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
 Every message of the kinds the link uses that it drops is counted, by why (message types it has no use for, the
 autopilot's SYS_STATUS or VFR_HUD among them, are not); the ones that are normal traffic on a shared link (a
@@ -102,7 +104,9 @@ from onboard.io.mavlink_fast import decode_telemetry
 from onboard.io.mavlink_signing import SigningKeyError, load_signing_key
 from onboard.io.mavlink_transport import (
     MAX_DATAGRAM_PARSE_BYTES,
+    DialFailed,
     StreamTransport,
+    TcpDial,
     UdpTransport,
     new_parser,
     new_signing,
@@ -181,6 +185,9 @@ parse_connection = parse_endpoint
 
 #: TIMESYNC requests remembered for matching their answers (older ones are forgotten)
 MAX_OUTSTANDING_TIMESYNC = 16
+#: how often (s) a ``tcp:`` connection under way is looked at: a main loop that sleeps on the link's descriptor has
+#: none to sleep on until the autopilot answers
+DIAL_POLL_S = 0.02
 #: a GPS_RAW_INT newer than this (s) says whether the receiver has a fix when SYSTEM_TIME would seed UTC
 UTC_FIX_FRESH_S = 5.0
 #: a TIMESYNC answer whose clock puts the autopilot's newest time_boot_ms further than this from where that
@@ -403,6 +410,7 @@ class MavlinkLink:
 
         self._signing = new_signing(signing_key, signing_link_id)
         self._transport: UdpTransport | StreamTransport | None = None
+        self._dial: TcpDial | None = None  # a tcp: connection under way
         self._stream_parser = new_parser(self._signing)  # serial/TCP: one parser per stream (new on each open)
         self._mav = new_parser(self._signing, _Writer(self), self.config.autopilot_sysid or 1, self.config.component_id)
         self._candidates: dict[int, list] = {}  # unpinned lock: sysid -> [first_s, last_s, heartbeats]
@@ -437,26 +445,68 @@ class MavlinkLink:
         return float(self._clock())
 
     def _open(self, now: float) -> None:
+        """Open the connection; a ``tcp:`` one is begun without blocking and finished by :meth:`_settle_dial`."""
         ep = self.endpoint
         try:
             if ep.kind in ("udpin", "udpout"):
                 _, host, port = ep.device.split(":")
                 self._transport = UdpTransport(ep.kind, host, int(port), self._extra_destinations)
+            elif ep.kind == "tcp":
+                self._dial = TcpDial(ep, now)
+                self._settle_dial(now)  # on loopback the answer (accepted or refused) is already in
+                return
             else:
-                kwargs = dict(autoreconnect=True, retries=0, reconnect_delay=0.1) if ep.kind == "tcp" else {}
-                self._transport = StreamTransport(
-                    connect(ep, self.autopilot_sysid or 1, self.config.component_id, **kwargs)
-                )
+                self._transport = StreamTransport(connect(ep, self.autopilot_sysid or 1, self.config.component_id))
                 self._stream_parser = new_parser(self._signing)
-            log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
-            self.open_error = None
+            self._opened()
         except Exception as exc:  # noqa: BLE001 - any failure to open is retried, never fatal
-            self._transport = None
-            self._next_open_s = now + self.config.reopen_interval_s
-            self.open_error = str(exc)
-            self._counters.count("mavlink_open_failed", f"{ep.device}: {exc}")
+            self._open_failed(now, str(exc))
+
+    def _opened(self) -> None:
+        ep = self.endpoint
+        log.info("MAVLink %s open on %s%s", ep.kind, ep.device, " (signed)" if self._signing.secret_key else "")
+        self.open_error = None
+
+    def _open_failed(self, now: float, why: str) -> None:
+        self._transport = None
+        self._next_open_s = now + self.config.reopen_interval_s
+        self.open_error = why
+        self._counters.count("mavlink_open_failed", f"{self.endpoint.device}: {why}")
+
+    def _settle_dial(self, now: float) -> None:
+        """Finish a ``tcp:`` connection under way once the autopilot has answered, or count it failed (refused, or no
+        answer within :data:`~onboard.io.mavlink_transport.TCP_CONNECT_TIMEOUT_S`) and dial again after
+        ``reopen_interval_s``."""
+        dial = self._dial
+        if dial is None:
+            return
+        try:
+            conn = dial.settle(now, self.autopilot_sysid or 1, self.config.component_id)
+        except DialFailed as exc:
+            self._dial = None
+            self._open_failed(now, str(exc))
+            return
+        if conn is not None:
+            self._dial = None
+            self._transport = StreamTransport(conn)
+            self._stream_parser = new_parser(self._signing)
+            self._opened()
+
+    def _lost(self, now: float) -> None:
+        """The autopilot closed or reset the ``tcp:`` connection: closed here and dialled again after
+        ``reopen_interval_s`` (pymavlink would dial again at once, on every read, blocking)."""
+        self.close()
+        self._next_open_s = now + self.config.reopen_interval_s
+        self.open_error = "closed by the autopilot"
+        self._counters.count(
+            "mavlink_connection_lost",
+            f"{self.endpoint.device}: closed by the autopilot; dialled again every {self.config.reopen_interval_s:g} s",
+        )
 
     def close(self) -> None:
+        if self._dial is not None:
+            self._dial.close()
+            self._dial = None
         if self._transport is not None:
             try:
                 self._transport.close()
@@ -479,6 +529,8 @@ class MavlinkLink:
         scheduled): the next heartbeat out, heartbeat-timeout check, TIMESYNC request, rate-request
         retry or reopen.  For a caller that sleeps until input arrives (:meth:`fileno`) or this."""
         now = self._now()
+        if self._dial is not None:  # its answer is looked for by tick, not waited for on a descriptor
+            return DIAL_POLL_S
         if self._transport is None:
             return max(self._next_open_s - now, 0.0)
         cfg = self.config
@@ -535,7 +587,8 @@ class MavlinkLink:
             try:
                 got = self._transport.read()
             except Exception as exc:  # noqa: BLE001 - I/O errors are counted, never fatal
-                self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
+                if not getattr(self._transport, "lost", False):  # a reset tcp: connection is counted once, below
+                    self._counters.count("mavlink_recv_error", f"{type(exc).__name__}: {exc}")
                 break
             if got is None:
                 break
@@ -546,6 +599,10 @@ class MavlinkLink:
                 handled += self._feed(data, addr, now)
             elif addr is not None:  # a datagram with no bytes (None: the ICMP error of an earlier send, not input)
                 self._counters.count("mavlink_empty_datagram", f"from {addr}", level=logging.DEBUG)
+        transport = self._transport
+        if isinstance(transport, StreamTransport) and transport.lost:
+            self._lost(now)
+            return handled
         if self.state == LINK_CONNECTED:
             self._service_commands(now)
         return handled
@@ -855,7 +912,9 @@ class MavlinkLink:
         """Timers: heartbeat out, heartbeat timeout, rate-request retries, TIMESYNC requests, reopen."""
         now = self._now() if now is None else float(now)
         if self._transport is None:
-            if now >= self._next_open_s:
+            if self._dial is not None:
+                self._settle_dial(now)
+            elif now >= self._next_open_s:
                 self._open(now)
             return
         if (

@@ -1,12 +1,14 @@
 """The autopilot link's transports and parser: one UDP socket of our own (each datagram parsed alone), serial or
-TCP through pymavlink's port classes (bytes only), a pymavlink TCP connection over a socket connected without
-blocking (:func:`tcp_connected`), and pymavlink's parser with the signature checked before its replay table is
+TCP through pymavlink's port classes (bytes only), a ``tcp:`` connection made without blocking (:class:`TcpDial`)
+and a pymavlink TCP connection over its socket (:func:`tcp_connected`), and pymavlink's parser with the signature checked before its replay table is
 touched.  :mod:`onboard.io.mavlink_link` (the autopilot) and :mod:`onboard.io.gcs_link` (ground
 stations) use them."""
 
 from __future__ import annotations
 
+import errno
 import hashlib
+import os
 import select
 import socket
 import time
@@ -17,7 +19,10 @@ from onboard.io.mavlink_wire import MavlinkEndpoint, use_mavlink2
 
 __all__ = [
     "MAX_DATAGRAM_PARSE_BYTES",
+    "TCP_CONNECT_TIMEOUT_S",
+    "DialFailed",
     "StreamTransport",
+    "TcpDial",
     "UdpTransport",
     "new_parser",
     "new_signing",
@@ -33,6 +38,10 @@ _MAX_DATAGRAM_BYTES = 65535
 _STREAM_READ_BYTES = 4096
 #: larger UDP datagrams are dropped unparsed: 16 of the largest MAVLink 2 packets (280 bytes)
 MAX_DATAGRAM_PARSE_BYTES = 16 * 280
+#: a ``tcp:`` peer that neither takes nor refuses the connection in this long (s; an address whose host drops the
+#: packets) is given up, and its owner dials again later: the connection is made without blocking, so the daemon's
+#: main loop (the autopilot's telemetry, the ground stations, the status) never waits for it
+TCP_CONNECT_TIMEOUT_S = 5.0
 
 
 class _Parser(mavlink2.MAVLink):
@@ -176,15 +185,83 @@ class StreamTransport:
     def write(self, buf: bytes) -> None:
         self.conn.write(buf)
 
+    @property
+    def lost(self) -> bool:
+        """Whether the peer closed or reset a ``tcp:`` connection (:func:`tcp_connected`): its owner closes it and
+        dials again.  Never for serial."""
+        return bool(getattr(self.conn, "irtrack_lost", False))
+
     def close(self) -> None:
         self.conn.close()
+
+
+class DialFailed(Exception):
+    """A ``tcp:`` connection that could not be made; the text says why (refused, no answer, out of descriptors)."""
+
+
+class TcpDial:
+    """A ``tcp:`` connection to ``endpoint`` under way, begun at ``now_s`` without blocking: pymavlink's ``mavtcp``
+    connects in its constructor, blocking until the peer answers or the kernel gives up (two minutes against an
+    address that drops the packets), and reconnects inside ``recv`` and ``write`` in a loop of its own that prints to
+    stdout.  :meth:`settle` finishes it.  Raises :class:`DialFailed` when the connection cannot even be begun; a host
+    name is resolved here, blocking (give an address)."""
+
+    def __init__(self, endpoint: MavlinkEndpoint, now_s: float) -> None:
+        host, port = endpoint.device.split(":")[1:]
+        self.endpoint = endpoint
+        self.since_s = now_s
+        sock = None
+        try:
+            sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # (out of descriptors: DialFailed)
+            sock.setblocking(False)
+            err = sock.connect_ex((host, int(port)))
+        except OSError as exc:
+            if sock is not None:
+                sock.close()
+            raise DialFailed(exc.strerror or str(exc)) from exc
+        if err not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
+            sock.close()
+            raise DialFailed(os.strerror(err))
+        self.sock: socket.socket | None = sock
+
+    def settle(self, now_s: float, src_system: int, src_component: int):
+        """The pymavlink connection (:func:`tcp_connected`) once the peer has taken it, None while it has not
+        answered; :class:`DialFailed` (the socket closed) when it refused, or gave no answer within
+        :data:`TCP_CONNECT_TIMEOUT_S` of the start."""
+        sock = self.sock
+        if sock is None:
+            raise DialFailed("the connection was given up")
+        try:
+            poller = select.poll()  # not select.select: it refuses descriptors past 1024
+            poller.register(sock, select.POLLOUT)
+            if not poller.poll(0):
+                if now_s - self.since_s < TCP_CONNECT_TIMEOUT_S:
+                    return None  # no answer yet
+                why: str | None = f"no answer within {TCP_CONNECT_TIMEOUT_S:g} s"
+            else:
+                err = sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
+                why = os.strerror(err) if err else None
+            if why is None:
+                conn = tcp_connected(sock, self.endpoint, src_system, src_component)
+                self.sock = None  # the connection's now
+                return conn
+        except Exception as exc:  # noqa: BLE001 - socket errors of every kind
+            why = getattr(exc, "strerror", None) or str(exc)
+        self.close()
+        raise DialFailed(why)
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
 
 
 def tcp_connected(sock, endpoint: MavlinkEndpoint, src_system: int, src_component: int):
     """A pymavlink TCP connection (MAVLink 2, :func:`use_mavlink2`) over ``sock``, a socket its owner has already
     connected to ``endpoint``: pymavlink's own ``mavtcp`` connects in its constructor, blocking until the peer
     answers or the kernel gives up (minutes against an address that drops the packets).  It never reconnects by
-    itself; losing the peer is its owner's to handle."""
+    itself and prints nothing: the peer's close or reset marks it ``irtrack_lost`` (:attr:`StreamTransport.lost`),
+    for its owner to close and dial again."""
     from pymavlink import mavutil
 
     class _Connected(mavutil.mavtcp):
@@ -196,4 +273,5 @@ def tcp_connected(sock, endpoint: MavlinkEndpoint, src_system: int, src_componen
 
     device = endpoint.device.split(":", 1)[1]  # "tcp:HOST:PORT" -> "HOST:PORT", as mavtcp takes it
     conn = _Connected(device, autoreconnect=False, source_system=src_system, source_component=src_component, retries=0)
+    conn.handle_eof = conn.handle_disconnect = lambda: setattr(conn, "irtrack_lost", True)
     return use_mavlink2(conn, src_system, src_component)

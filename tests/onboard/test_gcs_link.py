@@ -480,7 +480,7 @@ def test_a_tcp_ground_station_that_does_not_answer_never_blocks_the_loop():
 def test_a_dial_without_a_free_descriptor_is_counted_and_tried_again(monkeypatch):
     """socket() itself was outside the dial's error handling: out of descriptors, poll() (which never raises)
     raised OSError into the daemon's main loop."""
-    import onboard.io.gcs_link as gcs_link_module
+    import onboard.io.mavlink_transport as transport_module
     from onboard.io.gcs_link import TCP_REDIAL_S
 
     def no_descriptor(*_a, **_k):
@@ -488,7 +488,7 @@ def test_a_dial_without_a_free_descriptor_is_counted_and_tried_again(monkeypatch
 
     clock = FakeClock()
     counters = RejectCounter(clock=clock)
-    monkeypatch.setattr(gcs_link_module.socket, "socket", no_descriptor)
+    monkeypatch.setattr(transport_module.socket, "socket", no_descriptor)
     link = GcsLink(["tcp:127.0.0.1:9"], 100, counter=counters, clock=clock)
     try:
         clock.t_s += TCP_REDIAL_S

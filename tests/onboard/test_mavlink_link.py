@@ -6,6 +6,7 @@ import dataclasses
 import logging
 import math
 import select
+import socket
 import time
 from typing import Any
 
@@ -632,6 +633,109 @@ def test_unopenable_connection_is_counted_and_retried():
     link.tick()
     assert counters["mavlink_open_failed"] == 2 and link.state == LINK_WAITING
     link.close()
+
+
+def _tcp_server() -> socket.socket:
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    server.settimeout(WAIT_S)
+    return server
+
+
+def _heartbeat_bytes() -> bytes:
+    codec = mav.MAVLink(None, srcSystem=AP_SYSID, srcComponent=1)
+    return bytes(codec.heartbeat_encode(mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_PX4, 0, 0, 0).pack(codec))
+
+
+def _poll_until(link: MavlinkLink, cond) -> bool:
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:
+        link.poll()
+        link.tick()
+        if cond():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def test_a_tcp_autopilot_that_closes_the_connection_is_dialled_again_after_the_reopen_interval(capsys):
+    """pymavlink's own reconnection dialled again inside every read, printing "Attempting reconnect" to stdout,
+    and its connection kept the closed socket's descriptor for the main loop's select (another file's once the
+    number was reused).  Now the loss is counted once, the link closed, and dialled again after reopen_interval_s."""
+    server = _tcp_server()
+    port = server.getsockname()[1]
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    config = dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{port}")
+    link = MavlinkLink(config, PoseBuffer(), counters, clock=clock)
+    try:
+        peer, _ = server.accept()
+        peer.sendall(_heartbeat_bytes())
+        assert _poll_until(link, lambda: link.messages_rx == 1) and link.fileno() is not None
+        peer.close()
+        server.close()  # the autopilot restarts: nobody listens for a while
+        assert _poll_until(link, lambda: counters["mavlink_connection_lost"] == 1)
+        for _ in range(20):  # not dialled at every poll
+            link.poll()
+            link.tick()
+        assert link.fileno() is None and link.open_error == "closed by the autopilot"
+        assert counters["mavlink_open_failed"] == 0 and counters["mavlink_recv_error"] == 0
+        server = socket.create_server(("127.0.0.1", port))
+        server.settimeout(WAIT_S)
+        clock.t_s += UNPINNED.reopen_interval_s
+        link.tick()
+        again, _ = server.accept()
+        with again:
+            again.sendall(_heartbeat_bytes())
+            assert _poll_until(link, lambda: link.messages_rx == 2)
+        assert link.open_error is None and counters["mavlink_connection_lost"] == 1
+        assert capsys.readouterr().out == ""
+    finally:
+        link.close()
+        server.close()
+
+
+def test_a_tcp_autopilot_that_does_not_answer_never_blocks_the_loop():
+    """pymavlink connected in its constructor, blocking: against an address that drops the packets the daemon's
+    start and then its main loop waited for the kernel to give up, two minutes.  Here the autopilot's accept queue
+    is full, so its host drops our connection's packets as such a host would."""
+    from onboard.io.mavlink_transport import TCP_CONNECT_TIMEOUT_S
+
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(0)
+    filler = socket.create_connection(server.getsockname(), timeout=WAIT_S)  # fills the queue, never accepted
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    config = dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{server.getsockname()[1]}")
+    t0 = time.monotonic()
+    link = MavlinkLink(config, PoseBuffer(), counters, clock=clock)
+    try:
+        assert link.poll() == 0 and link.fileno() is None and link.seconds_to_next_due() < 0.1
+        link.tick()
+        assert time.monotonic() - t0 < 1.0 and counters["mavlink_open_failed"] == 0  # under way, not waited for
+        clock.t_s += TCP_CONNECT_TIMEOUT_S
+        link.tick()
+        assert (
+            counters["mavlink_open_failed"] == 1 and link.open_error == f"no answer within {TCP_CONNECT_TIMEOUT_S:g} s"
+        )
+        # the autopilot takes connections again: the next dial gets through
+        first, _ = server.accept()
+        first.close()
+        filler.close()
+        server.settimeout(WAIT_S)
+        clock.t_s += config.reopen_interval_s
+        assert _poll_until(link, lambda: link.fileno() is not None)
+        peer, _ = server.accept()
+        with peer:
+            peer.sendall(_heartbeat_bytes())
+            assert _poll_until(link, lambda: link.messages_rx == 1)
+    finally:
+        link.close()
+        filler.close()
+        server.close()
 
 
 def test_gps_raw_int_is_decoded_into_the_gnss_state_and_a_bad_fix_type_counted(rig):
