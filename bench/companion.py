@@ -26,7 +26,6 @@ CPU figures are noisy on a shared machine: run a row twice before trusting a dif
 
 from __future__ import annotations
 
-import argparse
 import calendar
 import contextlib
 import dataclasses
@@ -417,12 +416,14 @@ def _row_name(q: float | None) -> str:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m bench.companion", description=__doc__.split("\n\n")[0])
+    from bench.options import BenchParser, known_nav_noise, known_scenario, nonnegative_int, positive_float
+
+    ap = BenchParser(prog="python -m bench.companion", description=__doc__.split("\n\n")[0])
     ap.add_argument("--cpu-quota", type=float, nargs="+", default=[0.5], help="cores (repeatable list; default 0.5)")
-    ap.add_argument("--scenario", default="P2")
-    ap.add_argument("--duration", type=float, default=20.0, help="simulated seconds (default 20)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--nav-noise", default="RTK")
+    ap.add_argument("--scenario", type=known_scenario, default="P2", help="scenario name or file (default P2)")
+    ap.add_argument("--duration", type=positive_float, default=20.0, help="simulated seconds (default 20)")
+    ap.add_argument("--seed", type=nonnegative_int, default=0)
+    ap.add_argument("--nav-noise", type=known_nav_noise, default="RTK", help="navigation-error case (default RTK)")
     ap.add_argument("--config", default=DEFAULT_CONFIG, help=f"the daemon's configuration (default {DEFAULT_CONFIG})")
     ap.add_argument("--out", default="out/companion", help="run directories (logs, tracks, truth)")
     ap.add_argument("--no-unlimited", action="store_true", help="skip the unconstrained row")
