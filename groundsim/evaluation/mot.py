@@ -21,6 +21,8 @@ a 2 px offset along one axis).  The tracker's objects: every confirmed object of
 
 from __future__ import annotations
 
+import contextlib
+import io
 import math
 import shutil
 from pathlib import Path
@@ -163,6 +165,7 @@ def score_mot(out: Path, seqs: list[str], tracker: str = "irtrack") -> dict:
     ds = trackeval.datasets.MotChallenge2DBox(cfg)
     ev = trackeval.Evaluator(
         dict(
+            LOG_ON_ERROR=None,  # its default appends to error_log.txt in its own package folder
             USE_PARALLEL=False,
             PRINT_RESULTS=False,
             PRINT_CONFIG=False,
@@ -178,7 +181,9 @@ def score_mot(out: Path, seqs: list[str], tracker: str = "irtrack") -> dict:
         trackeval.metrics.CLEAR(dict(PRINT_CONFIG=False)),
         trackeval.metrics.Identity(dict(PRINT_CONFIG=False)),
     ]
-    res, _ = ev.evaluate([ds], metrics)
+    # its banner ("Evaluating 1 tracker(s) on ...") goes to stdout whatever the options; ours are the printed lines
+    with contextlib.redirect_stdout(io.StringIO()):
+        res, _ = ev.evaluate([ds], metrics)
     out_rows = {}
     for seq in seqs:
         r = res["MotChallenge2DBox"][tracker][seq]["pedestrian"]

@@ -44,7 +44,7 @@ def test_tracker_rows_from_objects_or_the_single_track():
     assert tracker_rows(4, None, SimpleNamespace(state="coasting", u_px=1.0, v_px=1.0, track_id=2)) == []
 
 
-def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path):
+def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path, capsys):
     gt = "".join("".join(gt_rows(k, [_label(0, 100.0 + k, 50.0), _label(1, 200.0, 80.0 - k)])) for k in range(1, 31))
     objects = [
         SimpleNamespace(confirmed=(SimpleNamespace(object_id=5, u_px=100.0 + k, v_px=50.0, score=3.0),))
@@ -63,6 +63,7 @@ def test_write_mot_layout_and_trackeval_scores_a_perfect_tracker(tmp_path):
     from groundsim.evaluation.mot import score_mot
 
     m = score_mot(tmp_path, seqs)["C3-RTK-s2"]
+    assert capsys.readouterr().out == ""  # TrackEval's banner is not the command's output
     # one of two objects tracked perfectly, the other missed: DetA 0.5, AssA 1, HOTA sqrt(0.5)
     assert m["DetA"] == pytest.approx(0.5) and m["AssA"] == pytest.approx(1.0)
     assert m["HOTA"] == pytest.approx(math.sqrt(0.5)) and m["IDSW"] == 0
