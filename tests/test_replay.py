@@ -1,12 +1,13 @@
 """Replay: a closed-loop run (daemon with the inline estimator + simulator on 127.0.0.1, 10 s) recorded with
 --record, replayed by ``python -m onboard.replay`` (a real process): the tracks come back equal, field for field
 and bit for bit, to the ones the daemon published; a changed configuration shows as per-frame differences (the
-comparison can fail: exit 3); a recording of a worker estimator is compared within its own sigma, saying why; a file
+comparison can fail: exit 3); a recording of a worker estimator is compared within the two estimates' sigma, saying why; a file
 that is not a recording is refused in one line; Ctrl-C stops it in one line."""
 
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 import time
@@ -91,6 +92,18 @@ def test_compare_within_sigma_counts_the_positions_beyond_the_recorded_covarianc
     assert (res.compared, res.beyond, res.position_only_one) == (3, 1, 2)
     assert res.max_sigma == pytest.approx(4.0) and res.gate_sigma == 3.0
     assert compare_within_sigma(recorded, replayed, gate_sigma=2.0).beyond == 2
+
+
+def test_compare_within_sigma_takes_both_estimates_covariances():
+    """Two honest estimates of one target differ by their errors together: a replayed estimate that is itself
+    uncertain (another motion model chosen a frame apart, say) is not beyond the recorded one's sigma alone."""
+    small = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    large = [[99.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    recorded = [_track(1, [0.0, 0.0, 0.0], small), _track(2, [0.0, 0.0, 0.0], small)]
+    replayed = [_track(1, [20.0, 0.0, 0.0], large), _track(2, [0.0, 20.0, 0.0], large)]
+    res = compare_within_sigma(recorded, replayed)
+    # north: 20 m against sqrt(1 + 99) = 10 m, 2 sigma; east: 20 m against sqrt(2) m, 14.1 sigma
+    assert (res.compared, res.beyond) == (2, 1) and res.max_sigma == pytest.approx(20.0 / math.sqrt(2.0))
 
 
 def test_a_workers_recording_differs_only_beyond_what_its_timing_explains():
@@ -236,9 +249,11 @@ def test_a_worker_recording_is_compared_within_its_own_sigma_and_says_why(record
         and "only estimator.worker: inline recordings do" in ln
         for ln in lines
     ), p.stdout
-    assert f"compare: 3-D positions within 3 sigma of the recorded covariance: {n_3d - 1}/{n_3d}, 1 beyond (max 10" in (
-        p.stdout
-    )
+    # the replay's covariance is the recording's: 10 sigma of one is 10 / sqrt(2) of the two together
+    assert (
+        f"compare: 3-D positions within 3 sigma of the recorded and replayed covariances: {n_3d - 1}/{n_3d}, 1 beyond "
+        "(max 7.07" in p.stdout
+    ), p.stdout
     assert lines[-1].startswith(f"compare: {n - 2}/{n} frames identical, 2 differ"), lines[-1]
 
 
