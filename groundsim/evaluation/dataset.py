@@ -51,9 +51,14 @@ signal; MOT class :data:`MOT_CLASSES` (other targets 1; birds, aircraft, glints 
 TrackEval neither evaluates nor treats as distractors, so a tracker's box on a bird is a false positive),
 consider and visibility 1 (visible) or 0 (behind a cloud); COCO category :data:`COCO_CATEGORIES` with
 ``visibility_state``, ``contrast_netd`` (a magnitude) and ``warm`` (the signal above the local background).
+An object behind a cloud, the target included, is a COCO ``iscrowd`` 1 annotation (``visibility_state``
+``occluded``, keypoint flag 1): pycocotools' ``COCOeval`` ignores it, neither a miss nor, where a detection
+matches it, a false positive, as TrackEval leaves out the MOT rows with consider 0 (``COCOeval`` reads no other
+"ignore" field: it sets its own from ``iscrowd``).
 A frame the camera model dropped (its shutter closed, ``ffc.mode: dropped``) is written as an all-zero image.  COCO: boxes ``[x, y, w, h]`` in
 continuous 0-based pixels (and as a 4-corner polygon ``segmentation``), one keypoint ``[u, v, 2]`` = the sub-pixel centroid, plus ``track_id``,
-``visibility``, ``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
+``visibility`` (the target's), ``visibility_state`` (every annotation's: ``visible`` or ``occluded``),
+``centroid_px`` on each annotation and ``sequence``, ``frame_index``, ``time_boot_us`` on
 each image.
 
 Camera pose.  *True*: the flown camera (truth.csv ``cam_*``, ``q_ned_from_cam_*``).  *Measured*: what the
@@ -581,12 +586,13 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                         "category_id": TARGET_ID,
                         "bbox": [round(lab.x_px, 4), round(lab.y_px, 4), round(lab.w_px, 4), round(lab.h_px, 4)],
                         "area": round(lab.w_px * lab.h_px, 4),
-                        "iscrowd": 0,
+                        "iscrowd": int(lab.occluded),
                         "segmentation": [_box_polygon(lab)],
-                        "keypoints": [float(lab.u_px), float(lab.v_px), 2],
+                        "keypoints": [float(lab.u_px), float(lab.v_px), 1 if lab.occluded else 2],
                         "num_keypoints": 1,
                         "centroid_px": [float(lab.u_px), float(lab.v_px)],
                         "visibility": round(lab.visibility, 4),
+                        "visibility_state": "occluded" if lab.occluded else "visible",
                         "track_id": TARGET_ID,
                     }
                 )
@@ -602,7 +608,7 @@ def coco_document(summaries: list[SequenceSummary], description: str) -> dict:
                         "category_id": COCO_CATEGORIES[o.cls],
                         "bbox": [x, y, w, h],
                         "area": w * h,
-                        "iscrowd": 0,
+                        "iscrowd": int(o.visibility != "visible"),
                         "segmentation": [[x, y, x + w, y, x + w, y + h, x, y + h]],
                         "keypoints": [float(o.u_px), float(o.v_px), 2 if o.visibility == "visible" else 1],
                         "num_keypoints": 1,

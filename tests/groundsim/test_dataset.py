@@ -414,3 +414,53 @@ def test_a_dataset_interrupted_before_its_manifest_is_taken_again(tmp_path):
     (tmp_path / "seqmaps").rmdir()
     export_dataset([_scenario()], [0], tmp_path, DatasetOptions(duration_s=0.1), progress=False)
     assert (tmp_path / "manifest.json").is_file() and (tmp_path / summaries[0].name / "img1").is_dir()
+
+
+def test_coco_objects_behind_a_cloud_are_ignored_by_cocoeval_as_trackeval_leaves_them_out(tmp_path):
+    """An object behind a cloud (the target or another) was an ordinary COCO annotation, which pycocotools counted
+    as a miss of a detector that reports only what it can see, where the MOT files' consider 0 leaves it out: it is
+    now ``iscrowd`` 1 (the only "ignore" COCOeval reads), with ``visibility_state`` on every annotation."""
+    COCO = pytest.importorskip("pycocotools.coco").COCO
+    from pycocotools.cocoeval import COCOeval
+
+    from groundsim.evaluation.dataset import TARGET_ID, SequenceSummary, coco_document
+    from groundsim.world.render.scene import ObjectLabel
+
+    def target(frame: int, occluded: bool) -> tuple:
+        return (frame, TargetLabel(100.5, 80.5, 98.0, 78.0, 5.0, 5.0, 1.0, True, occluded), 1000 * frame)
+
+    def bird(frame: int, visibility: str) -> tuple:
+        return (frame, (ObjectLabel(3, "bird", 300.5, 200.5, (298, 198, 303, 203), visibility, 6.0, 500.0),))
+
+    summary = SequenceSummary(
+        "S-RTK-s0", "S", 0, "RTK", 4, 4, 640, 512, 30.0, 0.0,
+        labels=(target(1, False), target(2, True), target(3, False), target(4, False)),
+        objects=(bird(1, "visible"), bird(2, "visible"), bird(3, "occluded"), bird(4, "visible")),
+    )  # fmt: skip
+    doc = coco_document([summary], "test")
+    anns = doc["annotations"]
+    assert [(a["category_id"] == TARGET_ID, a["visibility_state"], a["iscrowd"], a["keypoints"][2]) for a in anns] == [
+        (True, "visible", 0, 2),
+        (False, "visible", 0, 2),
+        (True, "occluded", 1, 1),
+        (False, "visible", 0, 2),
+        (True, "visible", 0, 2),
+        (False, "occluded", 1, 1),
+        (True, "visible", 0, 2),
+        (False, "visible", 0, 2),
+    ]
+    path = tmp_path / "coco.json"
+    path.write_text(json.dumps(doc))
+    coco = COCO(str(path))
+    # a detector that finds every object it can see, and nothing behind the clouds: a perfect score
+    seen = [a for a in anns if a["visibility_state"] == "visible"]
+    dets = coco.loadRes(
+        [dict(image_id=a["image_id"], category_id=a["category_id"], bbox=a["bbox"], score=1.0) for a in seen]
+    )
+    ev = COCOeval(coco, dets, "bbox")
+    ev.params.areaRng = [[0.0, 1e10]]  # every box is "small" by COCO's areas; one range, all of them
+    ev.params.areaRngLbl = ["all"]
+    ev.evaluate()
+    ev.accumulate()
+    ev.summarize()
+    assert ev.stats[0] == pytest.approx(1.0)
