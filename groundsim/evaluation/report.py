@@ -681,13 +681,18 @@ def write_eval_report(out_dir, result, planned: int | None = None) -> dict:
         t = run.time_boot_us / 1e6
         write_tum(d / "truth.tum", t, run.truth_p_ned_m)
         obs = np.all(np.isfinite(run.est_p_ned_m), axis=1) & run.observable
-        write_tum(d / "estimate.tum", t[obs], run.est_p_ned_m[obs])
+        rows = write_tum(d / "estimate.tum", t[obs], run.est_p_ned_m[obs])
         bobs = np.all(np.isfinite(run.base_p_ned_m), axis=1) & run.base_observable
         write_tum(d / "estimate_perfect.tum", t[bobs], run.base_p_ned_m[bobs])
         tt, pt = read_tum(d / "truth.tum")
         te, pe = read_tum(d / "estimate.tum")
         rmse, n = ape_rmse_m(tt, pt, te, pe)
-        ape[f"{label}/seed{run.seed}"] = {"rmse_m": rmse, "matched": n, "dir": str(d.relative_to(out))}
+        ape[f"{label}/seed{run.seed}"] = {
+            "rmse_m": rmse,
+            "matched": n,
+            "estimate_poses": rows,
+            "dir": str(d.relative_to(out)),
+        }
 
     descriptions = {}
     tasks: list[tuple] = []  # (key, plot function name, path, args...)
@@ -977,7 +982,14 @@ def _markdown(report: dict, descriptions: dict, result) -> str:
         "`estimate_perfect.tum` (perfect-centroid baseline). Columns `timestamp tx ty tz qx qy qz qw`: boot-clock "
         "seconds, local NED metres about the scenario origin, identity attitude. Score one with evo:\n"
     )
-    first = next(iter(report["tum_ape"].items()), None)
+    # evo refuses a TUM file without poses ("must have 8 entries per row"): the example takes one that has some
+    first = next(((k, v) for k, v in report["tum_ape"].items() if v.get("estimate_poses", 1) > 0), None)
+    empty = [k for k, v in report["tum_ape"].items() if v.get("estimate_poses", 1) == 0]
+    if empty:
+        L.append(
+            f"No frame was observable in {', '.join(empty)}: `estimate.tum` there holds its header line only, which "
+            "evo refuses.\n"
+        )
     if first is not None:
         key, v = first
         L.append(f"    evo_ape tum {v['dir']}/truth.tum {v['dir']}/estimate.tum\n")

@@ -531,6 +531,24 @@ def test_write_eval_report_files_tables_and_ape(tmp_path):
     assert "![performance](performance.png)" in md and "evo_ape tum A/seed0/truth.tum A/seed0/estimate.tum" in md
 
 
+def test_a_run_with_no_observable_frame_is_named_and_not_the_evo_example(tmp_path):
+    """Its estimate.tum holds the header line only, which evo refuses with a message about the columns: the report
+    says which runs those are, and its evo command names a run whose file has poses."""
+    first = _synthetic_run("A", seed=0)
+    runs = [
+        dataclasses.replace(first, batch=None, frame=None, observable=np.zeros_like(first.observable)),
+        dataclasses.replace(_synthetic_run("A", seed=1), batch=None, frame=None),
+    ]
+    scores = [score_run(r) for r in runs]
+    write_eval_report(tmp_path, EvalResult(runs, scores, summarise(scores), 1.0, 1, EvalOptions(), "built-in"))
+    assert [ln for ln in (tmp_path / "A" / "seed0" / "estimate.tum").read_text().splitlines() if ln[:1] != "#"] == []
+    rep = json.loads((tmp_path / "report.json").read_text())
+    assert rep["tum_ape"]["A/seed0"]["estimate_poses"] == 0 < rep["tum_ape"]["A/seed1"]["estimate_poses"]
+    md = (tmp_path / "report.md").read_text()
+    assert "No frame was observable in A/seed0: `estimate.tum` there holds its header line only" in md
+    assert "evo_ape tum A/seed1/truth.tum A/seed1/estimate.tum" in md and "evo_ape tum A/seed0" not in md
+
+
 def test_an_interrupted_evals_report_says_it_is_partial(tmp_path):
     runs = [dataclasses.replace(_synthetic_run("A", seed=0), batch=None, frame=None)]
     scores = [score_run(r) for r in runs]
