@@ -144,7 +144,10 @@ def record_overran(f, start: int, end: int) -> str | None:
         return None
     _opcode, length = RECORD_HEAD.unpack(head)
     if end != start + RECORD_HEAD.size + length:
-        return f"the record at byte {start} says {length} bytes but its fields take {end - start - RECORD_HEAD.size}"
+        return (
+            f"the record at byte {start} cannot be read: it says {length} bytes but its fields take "
+            f"{end - start - RECORD_HEAD.size}"
+        )
     return None
 
 

@@ -284,7 +284,7 @@ def test_a_compressed_chunk_whose_data_length_is_damaged_is_damage_and_the_chunk
     struct.pack_into("<Q", data, comp_len_at + 4 + comp_len, 10**6)  # the chunk's data length, past the cut
     damaged, out = tmp_path / "d.mcap", tmp_path / "out.mcap"
     damaged.write_bytes(bytes(data))
-    with pytest.raises(InputError, match=f"the record at byte {start} says"):
+    with pytest.raises(InputError, match=f"the record at byte {start} cannot be read: it says"):
         load_recording(str(damaged))
     assert main(["--skip-damaged", str(damaged), str(out)]) == 3
     assert f"from byte {start} to the end" in capsys.readouterr().err
