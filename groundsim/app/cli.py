@@ -468,6 +468,13 @@ def _add_eval(p: argparse.ArgumentParser) -> None:
         help="trajectory estimator plug-in: a name registered under the irtrack.estimators entry point"
         " group (map, paper, rpekf, ...) or module:Attribute (default: the configuration's MAP estimator)",
     )
+    p.add_argument(
+        "--tracker",
+        default=None,
+        metavar="NAME",
+        help="image chain plug-in: a name registered under the irtrack.trackers entry point group (objects,"
+        " single, ...) or module:Attribute (default: the configuration's imaging.chain)",
+    )
     p.add_argument("--no-batch", action="store_true", help="skip the whole-flight MAP columns and the CRB")
     p.add_argument(
         "--guidance",

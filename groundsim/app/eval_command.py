@@ -155,6 +155,7 @@ def cmd_eval(args) -> int:
                 nav_noises[0], getattr(args, "gnss_dropout", None), getattr(args, "camera_time_offset_ms", None)
             ),
             estimator=getattr(args, "estimator", None),
+            tracker=getattr(args, "tracker", None),
             guidance=bool(getattr(args, "guidance", False)),
         )
         for n in nav_noises[1:]:
@@ -243,7 +244,8 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
         print(format_time_offset(result.runs))
     failed = sum(1 for s in result.scores if "error" in s)
     print(
-        f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}; "
+        f"\n{len(result.runs)} runs ({failed} failed) in {result.wall_s:.1f} s, estimator {options.estimator or 'map'}, "
+        f"image chain {', '.join(sorted({r.tracker for r in result.runs})) or options.tracker or '-'}; "
         f"report: {files['report.md']}"
     )
     sys.stdout.flush()

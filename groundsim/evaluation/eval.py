@@ -130,6 +130,9 @@ class EvalOptions:
     #: the trajectory estimator, a plug-in name (``onboard.pipeline.plugins``: an ``irtrack.estimators`` entry point or
     #: ``module:Attribute``); None = the daemon's own (the configuration's sliding-window MAP estimator)
     estimator: str | None = None
+    #: the image chain, a plug-in name (an ``irtrack.trackers`` entry point -- ``objects``, ``single`` -- or
+    #: ``module:Attribute``); None = the configuration's (``imaging.chain``)
+    tracker: str | None = None
     #: observer guidance in the loop: the simulated observer flies its scripted motion until the first advice of
     #: the configuration's ``guidance`` section, then follows the advice (``groundsim.world.guided``)
     guidance: bool = False
@@ -152,6 +155,10 @@ class EvalOptions:
             from onboard.pipeline.plugins import load_factory
 
             load_factory(self.estimator)  # an unknown name fails here, before any run
+        if self.tracker is not None:
+            from onboard.pipeline.plugins import TRACKERS, load_factory
+
+            load_factory(self.tracker, TRACKERS, "--tracker")
 
     def with_nav_noise(self, nav_noise: str | None) -> EvalOptions:
         """These options with another navigation-error case (the other injected errors kept)."""
@@ -259,6 +266,7 @@ class RunResult:
     baseline_pixel_sigma_px: float = math.nan
     chain_centroid_sigma_px: float = math.nan
     estimator: str = "map"  # EvalOptions.estimator: the plug-in that made est_* and base_* (batch columns stay MAP)
+    tracker: str = "objects"  # EvalOptions.tracker, or the configuration's imaging.chain when it names none
     #: with EvalOptions.guidance: advices followed, the first one's time from the first frame (s), manoeuvres, updates
     guidance: dict | None = None
     mot_gt: str = ""  # gt.txt of every object (groundsim.evaluation.mot)
@@ -401,9 +409,13 @@ def run_lockstep(
         from onboard.pipeline.plugins import build
 
         make_estimator = lambda c: build(options.estimator, c)  # noqa: E731
-    pipeline = FramePipeline(
-        cfg, source, make_tracker(cfg), make_estimator(cfg), scenario.origin, counter=buffer.counter
-    )
+    if options.tracker is not None:
+        from onboard.pipeline.plugins import TRACKERS, build
+
+        tracker = build(options.tracker, cfg, TRACKERS, "--tracker")
+    else:
+        tracker = make_tracker(cfg)
+    pipeline = FramePipeline(cfg, source, tracker, make_estimator(cfg), scenario.origin, counter=buffer.counter)
     baseline = make_estimator(cfg)
     m = cfg.mavlink
     gd = options.injected.gnss_dropout
@@ -650,6 +662,7 @@ def run_lockstep(
         baseline_pixel_sigma_px=base_sigma_px,
         chain_centroid_sigma_px=math.nan if chain_sigma_px is None else chain_sigma_px,
         estimator=options.estimator or "map",
+        tracker=options.tracker or cfg.imaging.chain,
         guidance=None
         if advisor is None
         else {

@@ -125,6 +125,7 @@ def score_run(r) -> dict:
         "frames": F,
         "nav_noise": r.nav_noise,
         "estimator": getattr(r, "estimator", "map"),
+        "tracker": getattr(r, "tracker", "objects"),
         "baseline_pixel_sigma_px": r.baseline_pixel_sigma_px,
         "chain_centroid_sigma_px": r.chain_centroid_sigma_px,
     }

@@ -1,7 +1,7 @@
 """Plug-in algorithms: the protocols a detector, a tracker and a trajectory estimator implement, and their discovery.
 
-Anyone's algorithm runs in irtrack's lockstep evaluation (``groundsim eval --estimator NAME``) and
-campaigns without a change to irtrack: write a class against the protocol below and either
+Anyone's algorithm runs in irtrack's lockstep evaluation (``groundsim eval --estimator NAME``, ``--tracker NAME``)
+and campaigns without a change to irtrack: write a class against the protocol below and either
 
 * register it as an entry point of your own package (``pyproject.toml``)::
 
@@ -16,9 +16,10 @@ campaigns without a change to irtrack: write a class against the protocol below 
 :class:`onboard.app.config.OnboardConfig` (camera, noise model, estimator settings): a class with a
 ``from_config(config)`` classmethod is built with it, any other class or function is called with
 ``config`` if it takes one argument, with nothing otherwise.  irtrack's own algorithms are registered
-the same way in its ``pyproject.toml`` (``map``: the sliding-window MAP estimator; ``paper``: the
+the same way in its ``pyproject.toml`` (estimators ``map``: the sliding-window MAP estimator; ``paper``: the
 paper's closed form over the same window; ``rpekf``: a range-parameterised EKF bank in
-:mod:`groundsim.evaluation.baselines.rpekf`, written only against this module).
+:mod:`groundsim.evaluation.baselines.rpekf`, written only against this module; trackers ``objects`` and
+``single``: the daemon's two image chains, whatever the configuration's ``imaging.chain`` says).
 
 Protocols (structural: no base class to inherit; ``isinstance`` checks work for the method names):
 
@@ -41,12 +42,18 @@ estimate with a non-finite position, velocity, covariance or range is not publis
 estimate yet.  An estimator that raises is logged and the frame goes on without 3-D.
 
 :class:`Tracker` -- ``update(pixels) -> TrackUpdate`` (:class:`onboard.imaging.TrackUpdate`): one IR
-frame (H, W) uint8/uint16 in, the target's centre, box and track state out.
+frame (H, W) uint8/uint16 in, the target's centre, box and track state out.  Only a ``TrackUpdate`` with
+``measurement_valid`` (a :class:`onboard.imaging.Detection` and its centre) reaches the estimator: the centre of a
+coasting box has no bearing worth reconstructing.  A tracker whose class says ``uses_pose = True`` is called
+``update(pixels, rotation, time_boot_us)`` instead, ``rotation()`` returning the frame's ``R_ned_from_cam`` (3, 3)
+(or None without a pose): the objects chain registers frames with it.  ``reset()``, when it has one, is called when
+the pipeline restarts (a clock reset).  ``groundsim eval --tracker NAME`` runs it in the daemon's pipeline in
+place of the configuration's chain; its track is scored as the selected target's (Pd, HOTA and the 3-D tables).
 
 :class:`Detector` -- ``detect(pixels) -> sequence of Detection`` (:class:`onboard.imaging.Detection`
 or any object with ``u_px``, ``v_px``, ``bbox``): candidate targets in one frame, no memory.
-Detectors and trackers are discovered and loaded by the same functions; the lockstep evaluation plugs
-in estimators (``--estimator``); feeding a detector or tracker into it is not wired yet.
+Detectors are discovered and loaded by the same functions; the lockstep evaluation plugs in estimators
+(``--estimator``) and trackers (``--tracker``); a detector alone has no track to score, and is not wired into it.
 """
 
 from __future__ import annotations
@@ -74,6 +81,8 @@ __all__ = [
     "load_factory",
     "build",
     "make_map_estimator",
+    "make_objects_tracker",
+    "make_single_tracker",
 ]
 
 log = logging.getLogger(__name__)
@@ -221,3 +230,21 @@ def make_map_estimator(config):
     if est is None:
         raise ConfigError("--estimator map: the configuration's estimator.enabled is false")
     return est
+
+
+def _tracker_of_chain(config, chain: str):
+    import dataclasses
+
+    from onboard.pipeline.frame_pipeline import make_tracker
+
+    return make_tracker(dataclasses.replace(config, imaging=dataclasses.replace(config.imaging, chain=chain)))
+
+
+def make_objects_tracker(config):
+    """``objects``: the daemon's default image chain (every object tracked, the primary selected by its rule)."""
+    return _tracker_of_chain(config, "objects")
+
+
+def make_single_tracker(config):
+    """``single``: the one-blob chain (top-hat, double threshold, KCF), for a clear sky."""
+    return _tracker_of_chain(config, "single")

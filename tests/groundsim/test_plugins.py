@@ -110,6 +110,68 @@ def test_bad_names_are_one_line_config_errors(tmp_path, monkeypatch, capsys):
     assert len(err) == 1 and "--estimator" in err[0]
 
 
+class BrightestPixel:
+    """A tracker plug-in written only against the protocol: the pixel of most local contrast (its 3 x 3 mean over
+    its 15 x 15 one) within 100 px of the image's centre, where a gimbal keeps its target; its 3 x 3 centroid."""
+
+    def __init__(self) -> None:
+        self.frames = 0
+
+    def update(self, pixels):
+        import cv2
+
+        from onboard.imaging import Detection, TrackUpdate
+        from onboard.imaging.tracker import TrackState
+
+        img = np.asarray(pixels, dtype=np.float32)
+        contrast = cv2.blur(img, (3, 3)) - cv2.blur(img, (15, 15))
+        i0, j0 = img.shape[0] // 2 - 100, img.shape[1] // 2 - 100
+        centre = contrast[i0 : i0 + 200, j0 : j0 + 200]
+        i, j = np.unravel_index(int(np.argmax(centre)), centre.shape)
+        i, j = i + i0, j + j0
+        win = img[i - 1 : i + 2, j - 1 : j + 2] - float(cv2.blur(img, (15, 15))[i, j])
+        win = np.clip(win, 0.0, None)
+        self.frames += 1
+        if win.sum() <= 0.0:
+            return TrackUpdate(TrackState.SEARCHING, None, None, None, None, False, None, None, self.frames - 1)
+        jj, ii = np.meshgrid(np.arange(j - 1, j + 2) + 0.5, np.arange(i - 1, i + 2) + 0.5)
+        u, v = float((win * jj).sum() / win.sum()), float((win * ii).sum() / win.sum())
+        det = Detection(u, v, 9, float(win.max()), float(win.sum()), (j - 1, i - 1, 3, 3), float(img.max()), 10.0)
+        return TrackUpdate(TrackState.TRACKING, u, v, (u - 3.0, v - 3.0, 6.0, 6.0), det, True, 1, 0, self.frames - 1)
+
+
+def test_our_two_image_chains_are_registered_trackers():
+    from onboard.imaging import TargetTracker
+    from onboard.imaging.objects_chain import ObjectChain
+    from onboard.pipeline.plugins import TRACKERS, Tracker
+
+    assert {"objects", "single"} <= set(available(TRACKERS))
+    assert isinstance(build("objects", OnboardConfig(), TRACKERS), ObjectChain)
+    assert isinstance(build("single", OnboardConfig(), TRACKERS), TargetTracker)
+    assert isinstance(build(f"{__name__}:BrightestPixel", OnboardConfig(), TRACKERS), Tracker)
+
+
+@pytest.mark.slow
+def test_a_tracker_plugin_runs_the_lockstep_eval_in_place_of_the_chain():
+    """``--tracker module:Attribute``: the plug-in's centroids go to the estimator and its track is scored; on P1's
+    clear sky the brightest pixel is the target, so it is on the target and the 3-D is published."""
+    opts = dict(duration_s=SHORT_S, batch=False, keep_frame=False)
+    r = run_lockstep(_p1(), 0, EvalOptions(**opts, tracker=f"{__name__}:BrightestPixel"))
+    s = score_run(r)
+    assert r.error is None and s["tracker"] == f"{__name__}:BrightestPixel" and s["estimator"] == "map"
+    assert s["perception"]["pd_pct"] > 90.0  # its track is within 3 px of the target
+    assert s["estimate_fraction"] > 0.3 and s["online_all"] is not None
+    assert score_run(run_lockstep(_p1(), 0, EvalOptions(**opts)))["tracker"] == "objects"  # the configuration's
+
+
+def test_an_unknown_tracker_is_a_one_line_error_before_any_run(capsys):
+    with pytest.raises(ConfigError, match="--tracker: expected a name registered under irtrack.trackers"):
+        EvalOptions(tracker="nope")
+    assert cli_main(["eval", "--tracker", "nope", "--seeds", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--tracker" in err[0]
+
+
 def _look_at_q(p_cam, p_tgt):
     z = p_tgt - p_cam
     z /= np.linalg.norm(z)
