@@ -30,11 +30,13 @@ input's units, pixel indices ``(row i, column j)``, the frames.py pixel centre o
    gimbal points, the threshold's noise is at most that of the window's quietest ``quiet_block_px`` square
    (:func:`quietest_block_noise`): a roof or a warmer field filling part of the window lifts the window's
    mean deviation (C2 seed 1: 3.5-4.1 grey thresholds over the fields its target crosses at 1-2 grey) but
-   not that of the ground beside it.  Floored at ``min_threshold_lsb`` (8-bit quantisation leaves a flat sky
-   noiseless).  Capped at ``two_level_cap_lsb`` where the ground quantises to two adjacent grey levels
-   (:func:`two_level_cap`): a sensor noise well under one level that straddles a level boundary
+   not that of the ground beside it.  Floored at ``min_threshold_lsb`` levels (8-bit quantisation leaves a
+   flat sky noiseless).  Capped at ``two_level_cap_lsb`` levels where the ground quantises to two adjacent
+   grey levels (:func:`two_level_cap`): a sensor noise well under one level that straddles a level boundary
    toggles pixels between the two, which the mean absolute deviation reads as ~0.45 grey of noise
-   (a 2.5 grey threshold), yet no contrast of pixels on two levels exceeds one level.
+   (a 2.5 grey threshold), yet no contrast of pixels on two levels exceeds one level.  A level is the
+   frame's own quantisation step (:func:`grey_level`): one grey of an 8-bit frame, 257 of an 8-bit frame
+   widened to 16 bits, so the two are thresholded alike.
 5. **Flat-field events** (:func:`frame_event`): a frame identical to the previous one is frozen (the
    shutter is closed: no measurement on it); a jump of the frame's median by more than
    ``step_lsb`` is an offset step (the defect and stripe statistics restart).
@@ -71,6 +73,8 @@ __all__ = [
     "MEDIAN_CELLS",
     "quietest_block_noise",
     "cfar_threshold",
+    "GREY16_PER_GREY8",
+    "grey_level",
     "two_level_cap",
     "point_candidates",
     "label_points",
@@ -83,6 +87,8 @@ __all__ = [
     "two_level_difference_cap",
 ]
 
+GREY16_PER_GREY8 = 257.0  # 65535 / 255: one 8-bit grey level widened to 16-bit full scale
+GREY_LEVEL_SAMPLE = 8  # grey_level reads every this many rows and columns first
 MEAN_ABS_TO_SIGMA = math.sqrt(math.pi / 2)  # 1.2533: a normal's sigma per unit of mean absolute deviation
 SPARSE_LABEL_MAX_PX = 256  # up to this many thresholded pixels are labelled among themselves
 SURROUND_STEP_PX = 0.5  # surround_residuals' grid of displacements
@@ -94,7 +100,9 @@ _DIRECTIONS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1,
 
 @dataclass(frozen=True)
 class ClutterParams:
-    """Knobs of the clutter-robust detector (lengths in pixels, grey in the input's units).
+    """Knobs of the clutter-robust detector (lengths in pixels, grey in the input's units, but the ``_lsb`` ones:
+    ``min_threshold_lsb`` and ``two_level_cap_lsb`` in levels of the frame's quantisation, :func:`grey_level`;
+    ``step_lsb`` in 8-bit grey).
 
     ``cell_px``: side of the centre and surround cells of the local contrast (odd); ``guard_px``:
     centre-to-surround distance (a target up to about ``2 * guard_px - cell_px`` wide is kept whole);
@@ -107,7 +115,7 @@ class ClutterParams:
     against (odd); ``defect_outlier_sigma``, ``defect_fraction``, ``defect_frames``: a pixel more than
     that many sigmas above or below all its neighbours on that fraction of ``defect_frames`` frames
     is a defect; ``step_lsb``: a frame median jump that is an offset step; ``two_level_cap_lsb``: the
-    threshold's cap where an integer frame's noise window lies on two adjacent grey levels (0: no cap),
+    threshold's cap where an integer frame's noise window lies on two adjacent levels (0: no cap),
     ``two_level_fraction``: the least fraction of the window's cells that must (:func:`two_level_cap`);
     ``quiet_block_px``: until the first primary, the CFAR threshold's noise near the optical axis is at most that
     of the quietest square of this side within the noise window (:func:`quietest_block_noise`; 0: the
@@ -497,6 +505,27 @@ def quietest_block_noise(cells: np.ndarray, window_cells: int, block_cells: int)
     return quiet * np.float32(MEAN_ABS_TO_SIGMA)
 
 
+def grey_level(image: np.ndarray) -> float:
+    """The grey of one quantisation level of ``image`` (its own units), the unit of the detector's floors and
+    caps (``ClutterParams.min_threshold_lsb``, ``two_level_cap_lsb``): 1 for an 8-bit (or a float) frame; for a
+    16-bit frame the greatest common divisor of its values' differences, at most ``GREY16_PER_GREY8``: 257 for
+    an 8-bit frame widened to full scale, 256 for one shifted by 8 bits, 16 for 12-bit counts left-aligned, 1
+    for native counts (the noise fills every level) and for a flat frame.  In single counts, a widened frame's
+    flat sky had its lone pixels a level up over a 0.8 count floor (points, where the 8-bit frame's 0.25 grey
+    of 2 x 2 contrast is under it), and its two-level ground was never capped (its levels are not adjacent
+    counts).  At most 257 because an 8-bit frame is one grey even when its values skip levels: the same frame
+    x 257 is then 257.  Every ``GREY_LEVEL_SAMPLE``-th row and column first: their divisor is a multiple of the
+    frame's, so a native frame is settled there."""
+    if image.dtype != np.uint16 or image.size == 0:
+        return 1.0
+    sample = image[::GREY_LEVEL_SAMPLE, ::GREY_LEVEL_SAMPLE]
+    # the differences from the least value (uint16: none negative); their divisor is every pair's
+    if int(np.gcd.reduce((sample - sample.min()).ravel())) == 1:
+        return 1.0
+    g = int(np.gcd.reduce((image - image.min()).ravel()))
+    return float(min(g, GREY16_PER_GREY8)) if g > 1 else 1.0
+
+
 def cfar_threshold(noise: np.ndarray, k_sigma: float, floor: float, cap: np.ndarray | None = None) -> np.ndarray:
     """``max(k_sigma * noise, floor)`` (float32), then at most ``cap`` (same shape; None: no cap)."""
     thr = np.maximum(noise * np.float32(k_sigma), np.float32(floor))
@@ -504,11 +533,12 @@ def cfar_threshold(noise: np.ndarray, k_sigma: float, floor: float, cap: np.ndar
 
 
 def two_level_cap(
-    image: np.ndarray, window_px: int, factor: int, cap_lsb: float, min_fraction: float
+    image: np.ndarray, window_px: int, factor: int, cap_lsb: float, min_fraction: float, level: float = 1.0
 ) -> np.ndarray | None:
     """Where the noise window of an integer frame lies on two adjacent grey levels, the most its point
-    contrast can owe to noise: ``cap_lsb``, elsewhere +inf (float32, on :func:`local_noise_coarse`'s
-    ``H // factor, W // factor`` grid; None for a float frame or ``cap_lsb`` 0).
+    contrast can owe to noise: ``cap_lsb`` levels, elsewhere +inf (float32, on :func:`local_noise_coarse`'s
+    ``H // factor, W // factor`` grid; None for a float frame or ``cap_lsb`` 0).  ``level``: the grey of one
+    level (:func:`grey_level`; 1: one count).
 
     A sensor noise well under one grey level on flat ground whose radiance sits near a level boundary
     toggles pixels between the two levels: the mean absolute deviation reads it as ~0.45 grey (sigma 0.13
@@ -548,14 +578,14 @@ def two_level_cap(
     k = noise_window_cells(window_px, factor)
     lowest = cv2.erode(np.ascontiguousarray(lo), np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
     # hi >= lo >= lowest, so the difference never saturates; 1 where two-level (uint8)
-    two = np.less_equal(cv2.subtract(np.ascontiguousarray(hi), lowest), 1).view(np.uint8)
+    two = np.less_equal(cv2.subtract(np.ascontiguousarray(hi), lowest), level).view(np.uint8)
     # the two-level cells of each window, counted exactly (k * k <= 255 here: the noise window's cells)
     if k * k > 255:
         share = cv2.blur(two.astype(np.float32), (k, k), borderType=cv2.BORDER_REPLICATE)
-        return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb), np.float32(np.inf))
+        return np.where(share >= np.float32(min_fraction), np.float32(cap_lsb * level), np.float32(np.inf))
     count = cv2.boxFilter(two, -1, (k, k), normalize=False, borderType=cv2.BORDER_REPLICATE)
     table = np.full(256, np.inf, np.float32)
-    table[math.ceil(min_fraction * k * k - 1e-9) :] = cap_lsb
+    table[math.ceil(min_fraction * k * k - 1e-9) :] = cap_lsb * level
     return cv2.LUT(count, table)
 
 
@@ -913,11 +943,14 @@ def two_level_difference_cap(
     cap_lsb: float,
     half_px: int = 8,
     min_fraction: float = 0.9,
+    level: float | None = None,
 ) -> float:
     """The most a :func:`background_difference` square's 2 x 2 means can owe to noise where both frames'
-    squares lie on two adjacent grey levels: ``cap_lsb`` (+inf elsewhere, for float frames or
-    ``cap_lsb`` 0).  Pixels on {L, L+1} differ by at most one level, and so do their bilinear
-    interpolations and 2 x 2 means; its own-sigma threshold there reads the toggling as noise (C2 seed 1,
+    squares lie on two adjacent grey levels: ``cap_lsb`` levels (+inf elsewhere, for float frames or
+    ``cap_lsb`` 0).  ``level``: the grey of one level (:func:`grey_level`), also for frames of whole levels
+    kept as float (the detector keeps a 16-bit frame as float32; a square off whole levels is never capped);
+    None: an integer frame's one count, and no cap for a float frame.  Pixels on {L, L+1} differ by at most
+    one level, and so do their bilinear interpolations and 2 x 2 means; its own-sigma threshold there reads the toggling as noise (C2 seed 1,
     flat ground, frames 50-100: sigma 0.3-0.57 grey, 5 sigmas over the target's 1.7-2.1 grey).  Judged
     on the ``2 half_px + 1`` squares (whole pixels) about ``uv_px`` in ``current`` and about ``uv_px``
     minus ``displacement_px`` (:func:`background_difference`'s) in ``previous``, the gate's
@@ -926,19 +959,26 @@ def two_level_difference_cap(
     cap (the 33 px square about C2 seed 1's target held a warm patch, 8 % of it, 10 px away).  Not within
     ``half_px`` of either frame's edge (C3 seed 1: a track leaving through the left edge, measured there
     once more with the cap)."""
-    if cap_lsb <= 0 or not (np.issubdtype(current.dtype, np.integer) and np.issubdtype(previous.dtype, np.integer)):
+    integer = np.issubdtype(current.dtype, np.integer) and np.issubdtype(previous.dtype, np.integer)
+    if cap_lsb <= 0 or (level is None and not integer):
         return math.inf
     for img, (u, v) in ((current, uv_px), (previous, (uv_px[0] - displacement_px[0], uv_px[1] - displacement_px[1]))):
         i, j = int(math.floor(v)), int(math.floor(u))
         if not (half_px <= i < img.shape[0] - half_px and half_px <= j < img.shape[1] - half_px):
             return math.inf  # the difference there reads replicated edge pixels: no easier threshold
         sq = img[i - half_px : i + half_px + 1, j - half_px : j + half_px + 1]
-        lo = int(sq.min())
-        counts = np.bincount((sq.ravel() - lo).astype(np.intp))
+        if integer and level in (None, 1.0):
+            steps = (sq.ravel() - int(sq.min())).astype(np.intp)
+        else:  # float32 holds a 16-bit frame's grey exactly, and the quotient of whole levels is whole
+            above = (sq.ravel() - sq.min()) / np.float64(level)
+            steps = above.astype(np.intp)
+            if not np.array_equal(steps, above):
+                return math.inf  # not on whole levels
+        counts = np.bincount(steps)
         pairs = counts[:-1] + counts[1:] if counts.size > 1 else counts
         if int(pairs.max()) < min_fraction * sq.size:
             return math.inf
-    return cap_lsb
+    return cap_lsb * (1.0 if level is None else level)
 
 
 def difference_peak(

@@ -51,7 +51,7 @@ import math
 import numpy as np
 
 from onboard.core.errors import InputError
-from onboard.imaging.clutter import ClutterParams, PointCandidate, frame_event, point_candidates
+from onboard.imaging.clutter import GREY16_PER_GREY8, ClutterParams, PointCandidate, frame_event, point_candidates
 from onboard.imaging.detect import Blob, Detection, measure_blob
 from onboard.imaging.objects_association import (
     COAST_FIT_MIN,
@@ -92,6 +92,7 @@ from onboard.imaging.preprocess import ImagingParams, check_frame
 from onboard.imaging.tbd import TbdParams, TrackBeforeDetect, frame_steps
 
 __all__ = [
+    "GREY16_PER_GREY8",
     "ObjectParams",
     "ObjectTrack",
     "ObjectsUpdate",
@@ -102,7 +103,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-GREY16_PER_GREY8 = 257.0  # 65535 / 255
 DIFFERENCE_SEARCH_MAX = 8  # points tried a frame by the background difference while there is no primary (0.2 ms each)
 # a track is carried by its surroundings when the median of its last this many tests says so (SURROUND_MATCH_RATIO)
 SURROUND_TESTS_KEPT = 15

@@ -31,6 +31,7 @@ from onboard.imaging.clutter import (
     cfar_threshold,
     column_offsets,
     difference_peak,
+    grey_level,
     median_window_noise,
     noise_cells,
     noise_window_cells,
@@ -81,9 +82,11 @@ class ObjectDetector:
     """See the module docstring.  ``intrinsics``: :class:`onboard.core.frames.PinholeIntrinsics`;
     ``params`` the tracker's (its windows: ``confirm_window``, ``defect_every``, ``background_frames``,
     ``textured_noise_ratio``); ``clutter`` the detector's.  After :meth:`detect`, ``contrast`` and
-    ``threshold`` hold the frame's point contrast and CFAR threshold (full size, grey) and ``clean`` the
-    frame with its fixed pattern handled (float32); after :meth:`background_motion`, ``background_pxpf``
-    the frame's dominant background motion (px/frame, None when not measured)."""
+    ``threshold`` hold the frame's point contrast and CFAR threshold (full size, grey), ``clean`` the
+    frame with its fixed pattern handled (float32) and ``level`` the grey of one of its quantisation levels
+    (:func:`onboard.imaging.clutter.grey_level`: the unit of the clutter parameters' floors and caps); after
+    :meth:`background_motion`, ``background_pxpf`` the frame's dominant background motion (px/frame, None when
+    not measured)."""
 
     def __init__(
         self, intrinsics, params: ObjectParams, clutter: ClutterParams, stages: StageTimes | None = None
@@ -93,6 +96,7 @@ class ObjectDetector:
         self.params = params
         self.clutter = clutter
         self.frame_index = -1  # the frame detect() saw last
+        self.level = 1.0  # the grey of one quantisation level of that frame
         self.acquiring = True  # no primary target chosen yet (the tracker's to say): the quiet-block noise applies
         self.contrast: np.ndarray | None = None  # the last frame's point contrast and CFAR threshold
         self.threshold: np.ndarray | None = None
@@ -132,6 +136,8 @@ class ObjectDetector:
         """Frame ``frame_index``'s point candidates (fixed pattern handled first; updates the defect map)."""
         self.frame_index = frame_index
         p = self.clutter
+        # the floors and caps are in levels, so that an 8-bit frame widened to 16 bits is thresholded as itself
+        level = self.level = grey_level(image)
         sc = self._scratch
         k = self.frame_index
         # a confirming track's surroundings are compared over its window (the raw frames: the fixed
@@ -163,7 +169,7 @@ class ObjectDetector:
             self._defects = DefectMap(img.shape, frames, p.defect_fraction, sc)
         if self.frame_index % self.params.defect_every == 0:
             # the outlier level from the previous frame's noise (the noise is measured after the repair)
-            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb)
+            sigma = max(p.defect_outlier_sigma * self._noise_median, 2.0 * p.min_threshold_lsb * level)
             self._defects.update(img, sigma)
         img = self._defects.repair(img, out=img)
         self.clean = img
@@ -196,7 +202,7 @@ class ObjectDetector:
             mean = self._quiet_noise(cells, mean, window_cells)
         if (self.frame_index + 1) % self.params.defect_every == 0:  # read by the next defect update only
             self._noise_median = float(np.median(self._noise))
-        cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction)
+        cap = two_level_cap(image, p.noise_window_px, NOISE_FACTOR, p.two_level_cap_lsb, p.two_level_fraction, level)
         noise = mean
         if p.median_noise_floor < 1.0:
             # the whole-frame threshold's: the median where an edge or a roof in part of the window lifts the mean
@@ -257,7 +263,7 @@ class ObjectDetector:
         (into ``dst`` when given)."""
         c = self.clutter
         h, w = shape
-        coarse = cfar_threshold(noise, c.threshold_sigma, c.min_threshold_lsb, cap)
+        coarse = cfar_threshold(noise, c.threshold_sigma, c.min_threshold_lsb * self.level, cap)
         return cv2.resize(coarse, (w, h), dst=dst, interpolation=cv2.INTER_LINEAR)
 
     def _quiet_noise(self, cells: np.ndarray, noise: np.ndarray, window_cells: int) -> np.ndarray:
@@ -515,14 +521,14 @@ class ObjectDetector:
             return None
         du, dv = puv[0] - p0[0] + bg[0] * DIFFERENCE_LAG, puv[1] - p0[1] + bg[1] * DIFFERENCE_LAG
         diff, moved = background_difference(self._recent[-1][1], old, puv, (du, dv), DIFFERENCE_HALF_PX)
-        cap = two_level_difference_cap(
-            self._recent[-1][1], old, puv, moved, DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
-        )
+        # the frames are this one's levels (a 16-bit frame kept as float32 still whole levels; the old one,
+        # were it another quantisation, is off them and left uncapped)
+        cap_lsb = DIFFERENCE_TWO_LEVEL_CAP * self.clutter.two_level_cap_lsb
+        cap = two_level_difference_cap(self._recent[-1][1], old, puv, moved, cap_lsb, level=self.level)
         # a tighter gate than the point's: the difference keeps residuals of sharp field edges a few px away
         near = (DIFFERENCE_NEAR_PX, DIFFERENCE_NEAR_SIGMA) if held else (0.0, math.inf)
-        return difference_peak(
-            diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, self.clutter.min_threshold_lsb, cap, *near
-        )
+        floor = self.clutter.min_threshold_lsb * self.level
+        return difference_peak(diff, puv, min(gate, DIFFERENCE_GATE_PX), DIFFERENCE_SIGMA, floor, cap, *near)
 
 
 def symmetric_deblend(
