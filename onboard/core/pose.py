@@ -82,7 +82,8 @@ Per stream, prefixed ``attitude_``, ``position_`` or ``gimbal_``: ``time_invalid
 (same time again), ``out_of_order`` (earlier by less than the reboot threshold), ``not_finite``,
 ``shape``; quaternions also ``zero``, ``not_unit``.  Position also ``zero`` (lat = lon = 0: GPS
 dropout), ``out_of_range`` (e.g. INT32_MAX sentinels), ``alt_out_of_range``, ``jump`` (implied speed
-above ``max_speed_mps``), ``reset`` (a jump persisted: the stream restarts), ``velocity_invalid``
+above ``max_speed_mps``, or a step the reported velocity does not explain: ``max_position_step_m``), ``reset``
+(a jump persisted: the stream restarts), ``velocity_invalid``
 (not three finite numbers, or a speed above ``max_speed_mps``: sample kept, velocity dropped), ``no_origin``.
 Gimbal also ``time_reset``, ``reference_changed``, ``reference_invalid``.  ``reboot``: time went back by more than the threshold on the attitude or
 position stream (all buffers cleared).  :meth:`PoseBuffer.pose_at` counts a miss as ``pose_<reason>``
@@ -558,7 +559,9 @@ class PoseBuffer:
 
     def _store_position(self, t: int, p, v, q_lv) -> bool:
         """Store ``p`` (3 floats, NED m), ``v`` (3 floats) and ``q_lv`` (``q_ned_from_level`` there, 4 floats) unless
-        ``p`` is a jump from the newest position."""
+        ``p`` is a jump from the newest position: a move faster than ``max_speed_mps``, or (within a position
+        bracket, both velocities known) a position off where the newest one and the two velocities put it by more
+        than :meth:`_velocity_miss` allows."""
         if self._pos.t_us:
             dt_s = (t - self._pos.t_us[-1]) / US_PER_S
             last = self._pos.values[-1]
@@ -568,21 +571,44 @@ class PoseBuffer:
             limit_m = self.config.max_speed_mps * dt_s
             if step_m > limit_m * (1.0 - 1e-9):  # a jump, or near enough that numpy's norm must decide
                 step_m = float(np.linalg.norm(np.array(p) - last[:3]))
-            if step_m > limit_m:
+            jump = f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms" if step_m > limit_m else self._velocity_miss(last, p, v, t)
+            if jump is not None:
                 self._jumps += 1
                 if self._jumps < self.config.jump_reset_count:
-                    self.counter.count("position_jump", f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms")
+                    self.counter.count("position_jump", jump)
                     return False
                 self.position_resets += 1
                 self.counter.count(
                     "position_reset",
-                    f"{self._jumps} consecutive jumps of {step_m:.1f} m; position stream restarted "
+                    f"{self._jumps} consecutive jumps ({jump}); position stream restarted "
                     f"(pose discontinuity {self.discontinuities}: 3-D estimates start again)",
                 )
                 self._pos.clear()
         self._jumps = 0
         self._pos.append(t, np.array((*p, *v, *q_lv)), self.config.window_us, MAX_SAMPLES)
         return True
+
+    def _velocity_miss(self, last: np.ndarray, p, v, t: int) -> str | None:
+        """Why ``p`` (at ``t``) is a jump from ``last`` (the newest sample's row) though no faster than
+        ``max_speed_mps``, or None: it lies farther than ``max_position_step_m`` (plus three sigmas of the velocities'
+        error and an unmodelled acceleration over the interval) from ``last``'s position moved by the two reported
+        velocities' mean over the interval, which is exact under a constant acceleration.  An autopilot reports its
+        estimate's position and velocity together, so a reset of that estimate (a GNSS jump, a switch of receiver) is
+        a position step its velocity does not share: at 25 Hz the speed test alone let any step under 8 m through at
+        once, and one under ~40 m after a few rejections had widened the interval, the stream carrying on across it
+        as if the camera had moved there.  Not judged past a position bracket (a gap: the speed test alone) or
+        without both velocities."""
+        c = self.config
+        dt_us = t - self._pos.t_us[-1]
+        if not 0 < dt_us <= c.pos_max_gap_us or not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
+            return None
+        dt_s = dt_us / US_PER_S
+        half = 0.5 * dt_s
+        miss_m = math.sqrt(sum((p[k] - (float(last[k]) + half * (float(last[3 + k]) + v[k]))) ** 2 for k in range(3)))
+        tolerance_m = c.max_position_step_m + 3.0 * extrapolation_sigma(dt_s, c.velocity_sigma_mps, c.accel_sigma_mps2)
+        if miss_m <= tolerance_m:
+            return None
+        return f"{miss_m:.1f} m off where the reported velocity puts it after {dt_s * 1e3:.0f} ms"
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
         """Store the gimbal attitude relative to the pod mount."""

@@ -91,7 +91,9 @@ class PoseConfig:
     samples agree with each other (each after the previous, by at most the threshold): then it is a clock
     step, backwards an autopilot reboot (buffers cleared, ``reboot``), forwards a gap
     (``<stream>_time_step``).  One bad stamp costs one sample.  ``max_speed_mps``: a position implying a faster move from the previous one
-    is a jump; ``jump_reset_count`` consecutive jumps restart the position stream.
+    is a jump; so is one farther than ``max_position_step_m`` (plus the velocity error and acceleration the
+    ``*_sigma_*`` fields allow) from where the previous one and the two reported velocities put it, within a
+    position bracket; ``jump_reset_count`` consecutive jumps restart the position stream.
     ``position_interp``: ``"hermite"`` (uses velocity) or ``"linear"``.  Extrapolation past the newest
     sample (the docstring of :mod:`onboard.core.pose`): :meth:`extrapolation_horizons`; the error model of
     :attr:`~onboard.core.pose.PoseAt.sigma_extrapolation_rad` / ``_m``: the ``*_sigma_*`` fields.
@@ -106,6 +108,7 @@ class PoseConfig:
     gimbal_max_gap_ms: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 300.0
     reboot_threshold_s: Annotated[float, Number(0.0, 3600.0, lo_open=True)] = 1.0
     max_speed_mps: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 200.0
+    max_position_step_m: Annotated[float, Number(0.0, 10000.0, lo_open=True)] = 1.0
     jump_reset_count: Annotated[int, Integer(1, 1000)] = 5
     keep_origin_on_reboot: Bool = True
     position_interp: Annotated[Literal["hermite", "linear"], Text()] = "hermite"

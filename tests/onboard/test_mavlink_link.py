@@ -171,8 +171,8 @@ def test_connects_heartbeats_requests_rates_and_fills_pose_buffer(rig):
     np.testing.assert_allclose(pose.body.q_ned_from_body, quat_multiply(q_lv, q), atol=ATOL_RAD)
     assert rig.counters.total == 0
     assert rig.link.home_alt_amsl_m == pytest.approx(ALT0 + 1.0, abs=ATOL_M)  # relative_alt 0: home is right here
-    # the next sample (10 m north at 1 s, 5 m higher) says its home is 5 m above the first one's
-    ap.position(2_100_000, LAT0 + 10.0 * dlat_per_m, LON0, ALT0 + 6.0, alt_rel_m=1.0)
+    # the next sample (on course, 11 m north at 1.1 s, 4 m below its home) says its home is 5 m above the first one's
+    ap.position(2_100_000, LAT0 + 11.0 * dlat_per_m, LON0, ALT0 + 1.0, (10.0, 0.0, 0.0), alt_rel_m=-4.0)
     assert rig.drive(lambda: abs(rig.link.home_alt_amsl_m - (ALT0 + 5.0)) < 1.0)
     assert rig.link.home_alt_amsl_m == pytest.approx(ALT0 + 5.0, abs=ATOL_M)  # alt - relative_alt
     # a GNSS dropout's #33 (lat = lon = 0, zero altitudes) is refused by the pose buffer: no home of 0 m from it

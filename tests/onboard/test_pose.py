@@ -378,6 +378,51 @@ def test_position_jump_rejected_then_stream_restarts_after_persisting():
     assert buf.sizes()["position"] == 1
 
 
+def _flown(buf: PoseBuffer, step_ned_m, t_step_s: float, accel_ned_mps2=(2.0, -1.0, 0.5), v0_ned_mps=(8.0, 3.0, -1.0)):
+    """3 s of 25 Hz positions and velocities of a steady acceleration, ``step_ned_m`` added from ``t_step_s`` on
+    (the autopilot's estimate reset: its velocity does not step); the counts."""
+    a, v0 = np.asarray(accel_ned_mps2), np.asarray(v0_ned_mps)
+    for k in range(75):
+        t_s = 0.04 * k
+        p = v0 * t_s + 0.5 * a * t_s * t_s + (np.asarray(step_ned_m) if t_s >= t_step_s else 0.0)
+        buf.add_position_ned(int(round(t_s * 1e6)), p.tolist(), (v0 + a * t_s).tolist())
+    return dict(buf.counter.counts)
+
+
+@pytest.mark.parametrize("step_m", [1.5, 6.0, 30.0])
+def test_a_position_step_the_velocity_does_not_share_restarts_the_stream(step_m):
+    """An estimate reset of a few metres at 25 Hz is slower than max_speed_mps (200 m/s is 8 m a sample): the speed
+    test took a 6 m step as motion at once, and a 30 m one after a few jumps had widened the interval, and the 3-D
+    went on across it, NEES in the hundreds to thousands.  Against the reported velocity it is a jump: refused
+    jump_reset_count - 1 times, then the stream restarts as a discontinuity (the estimate starts again)."""
+    buf = PoseBuffer(origin=ORIGIN)
+    counts = _flown(buf, [0.0, step_m, 0.0], 1.5)
+    n = buf.config.jump_reset_count
+    assert counts == {"position_jump": n - 1, "position_reset": 1}
+    assert buf.discontinuities == 1
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    accel=st.tuples(*[st.floats(-8.0, 8.0)] * 3),
+    v0=st.tuples(*[st.floats(-40.0, 40.0)] * 3),
+)
+def test_a_smooth_flight_is_never_a_jump(accel, v0):
+    """Positions and velocities of any steady acceleration up to 8 m/s^2 a component, at 25 Hz: no jump."""
+    buf = PoseBuffer(origin=ORIGIN)
+    assert _flown(buf, [0.0, 0.0, 0.0], 99.0, accel, v0) == {}
+
+
+def test_a_step_under_the_tolerance_or_across_a_gap_is_left_to_the_speed_test():
+    """0.5 m (GNSS noise an autopilot's estimate passes on) is under max_position_step_m; a step across a gap wider
+    than a position bracket is judged by the speed test alone (the velocities may have changed in between)."""
+    assert _flown(PoseBuffer(origin=ORIGIN), [0.5, 0.0, 0.0], 1.5) == {}
+    buf = PoseBuffer(origin=ORIGIN)
+    assert buf.add_position_ned(0, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])
+    assert buf.add_position_ned(400_000, [20.0, 0.0, 0.0], [0.0, 0.0, 0.0])  # 400 ms later, 50 m/s: kept
+    assert buf.counter.counts == {}
+
+
 STEP_NED_M = np.array([50.0, 0.0, 0.0])  # a GNSS jump: 50 m north in one 40 ms sample
 
 
@@ -446,7 +491,8 @@ def test_a_velocity_faster_than_any_position_may_move_is_dropped(add):
     for t in (20_000, 40_000, 60_000, 80_000 + 30_000):
         np.testing.assert_allclose(buf.pose_at(t).body.p_ned_m, [0, 0, 0], atol=ATOL_GEO_M)
     limit = PoseBuffer(origin=ORIGIN).config.max_speed_mps
-    assert buf.add_position_ned(200_000, [0, 0, 0], [limit, 0, 0])  # at the limit: kept
+    # at the limit: kept (the position where a steady acceleration to that speed puts it, not a jump)
+    assert buf.add_position_ned(200_000, [0.5 * 0.12 * limit, 0, 0], [limit, 0, 0])
     assert buf.counter.counts["position_velocity_invalid"] == 1
 
 
@@ -487,10 +533,12 @@ finite = st.floats(-1e3, 1e3, allow_nan=False)
 
 
 def no_jump_limit(**fields: Any) -> PoseConfig:
-    """A pose section whose speed limit (1e9 m/s) is past the section's ceiling (10 km/s), set past its
-    validation: these tests draw positions kilometres apart within milliseconds, and no move may be a jump."""
+    """A pose section whose speed limit (1e9 m/s) and velocity test (1e9 m) are past the section's ceilings (10
+    km/s, 10 km), set past its validation: these tests draw positions kilometres apart within milliseconds, with
+    velocities of their own, and no move may be a jump."""
     cfg = PoseConfig(**fields)
     object.__setattr__(cfg, "max_speed_mps", 1e9)
+    object.__setattr__(cfg, "max_position_step_m", 1e9)
     return cfg
 
 

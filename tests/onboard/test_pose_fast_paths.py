@@ -451,7 +451,8 @@ def test_a_step_at_the_speed_limit_is_judged_by_numpys_norm(factor):
 
 def test_geodetic_positions_are_stored_as_ned_from_geodetic_gives_them():
     bufs, logs = twin_buffers()
-    samples = [(47.3977 + 1e-5 * k, 8.5456 - 2e-5 * k, 488.0 + 0.3 * k, (1.1, -2.2, 0.3)) for k in range(20)]
+    # moves of a few centimetres a sample, as the velocity says within pose.max_position_step_m (no jump)
+    samples = [(47.3977 + 4e-7 * k, 8.5456 - 1.2e-6 * k, 488.0 - 0.012 * k, (1.1, -2.2, 0.3)) for k in range(20)]
     samples[5] = (math.nan, 8.5, 500.0, None)
     samples[7] = (0.0, 0.0, 500.0, None)
     samples[9] = (47.4, 8.5, 1e6, None)
@@ -476,9 +477,11 @@ def test_geodetic_positions_are_stored_as_ned_from_geodetic_gives_them():
 
 
 def _fill(buf: PoseBuffer, rng: np.random.Generator, att_rates: str, pos_v: str, gim_rates: str, reference) -> None:
-    """0.8 s of attitude and gimbal (50 Hz, jittered) and position (25 Hz, a random walk that starts at a
-    point with signed zeros; every fifth velocity unknown)."""
+    """0.8 s of attitude and gimbal (50 Hz, jittered) and position (25 Hz, from a point with signed zeros, moved
+    by the mean of each two velocities and up to 0.5 m more a sample, within pose.max_position_step_m: no jump;
+    every fifth velocity unknown)."""
     p = np.array([0.0, -0.0, 12.5])
+    v_prev = None
     # attitudes a vehicle and a gimbal can take 20 ms apart (random, up to ~6 deg a sample): a larger turn than the
     # rates allow is an attitude reset, which restarts the stream
     att = rng.uniform(-1.0, 1.0, 3)
@@ -496,8 +499,11 @@ def _fill(buf: PoseBuffer, rng: np.random.Generator, att_rates: str, pos_v: str,
         if k % 2 == 0:
             tp = 1_000_000 + 20_000 * k + 7_000
             v = None if pos_v == "none" or k % 10 == 4 else tuple(float(c) for c in rng.normal(0.0, 3.0, 3))
+            if k and v is not None and v_prev is not None:
+                p = p + 0.5 * 0.04 * (np.asarray(v_prev) + np.asarray(v))
             assert buf.add_position_ned(tp, p.tolist(), v)
-            p = p + rng.uniform(-4.0, 4.0, 3)  # < 7 m in 40 ms: no jump
+            p = p + rng.uniform(-0.25, 0.25, 3)
+            v_prev = v
 
 
 MOUNTS = {
