@@ -461,6 +461,7 @@ class OnboardService:
             self.watchdog.frame_size(now_s, frame.width_px, frame.height_px)
             self.watchdog.residual(now_s, track.residual_rms_norm)
             self.watchdog.navigation(now_s, self.pipeline.last_position_age_s)
+            self.watchdog.camera_clock(now_s, self.pipeline.clock_apart_s)
             self.watchdog.camera_time_offset(
                 now_s, self.pipeline.time_offset_estimate, self.config.time_offset.warn_threshold_ms
             )

@@ -57,6 +57,12 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     its sigma and whether the pose lookup compensates it.  Cleared by a confident estimate at or below the
     threshold; an estimate that is not confident (no target, a still camera) changes nothing.
 
+``camera_clock_apart``
+    The IR frames' stamps stand more than ``input.time_reset_threshold_s`` from the telemetry's newest sample since a
+    step of the camera's clock the telemetry did not share (:attr:`onboard.pipeline.frame_pipeline.FramePipeline.
+    clock_apart_s`): the frames get no pose, so no line of sight and no 3-D, until the two clocks agree again (the
+    first frame within the threshold clears it).  A pose at such a stamp would be seconds old or missing.
+
 ``video_rate``
     The H.264 stream's camera runs at a rate other than ``video.fps`` by more than ``VIDEO_RATE_TOLERANCE``
     (20 %), measured from the frames' capture times (:attr:`onboard.io.video.VideoStreamer.camera_rate_hz`):
@@ -361,6 +367,19 @@ class Watchdog:
             f"(> {threshold_ms:g} ms): lines of sight and 3-D positions made with the pose at the stamp are off by "
             f"the camera's rotation over that time; {done}; fix the camera's time stamping (capture time on the "
             f"autopilot's boot clock, the capture-to-stamp latency)",
+        )
+
+    def camera_clock(self, now_s: float, apart_s: float | None) -> None:
+        """The frames' clock against the telemetry's: ``apart_s`` how far the last frame's stamp stood from the
+        telemetry's newest sample while the two disagree, None when they agree (module docstring)."""
+        if apart_s is None:
+            self._clear("camera_clock_apart")
+            return
+        self._raise(
+            "camera_clock_apart",
+            f"IR frames are stamped {apart_s:+.1f} s from the autopilot's telemetry since a step of the camera's clock "
+            "the telemetry did not share: no line of sight and no 3-D until the two agree; check the camera's time "
+            "stamping (capture time on the autopilot's boot clock, through TIMESYNC)",
         )
 
     def residual(self, now_s: float, residual_rms_norm: float | None) -> None:

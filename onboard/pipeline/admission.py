@@ -42,6 +42,12 @@ find no pose at their stamps, so taking them at once gains nothing, while a shor
 burst and once for the good frames after it, and lose its window each time.  A step the telemetry shares
 (an autopilot reboot once its new telemetry is in) is confirmed by ``TIME_CONFIRM_FRAMES`` as before.
 
+Once such a step is taken the stream's clock stands apart from the telemetry's (:attr:`FrameAdmission.apart_us`):
+a frame stamped within the pose window of the telemetry (a camera clock stepped back 2 s) does find a pose at its
+stamp, the wrong one, seconds old, so the pipeline gives the frames no pose while the stream stands apart.  Every
+frame is held against the telemetry's newest time then; the first within ``threshold_us`` of it (the telemetry
+caught up: an autopilot reboot, or a camera clock set right) ends it.
+
 The first frame is accepted unless a telemetry time is known (``reference_us``, the pose buffer's
 newest sample) and the frame is more than ``threshold_us`` from it: a stream that starts with a
 stamp an hour ahead, or one at boot, would otherwise become the clock the good frames are judged
@@ -117,10 +123,14 @@ class FrameAdmission:
         self._recent = Recent(RECENT_FRAMES)  # accepted (seq, t) pairs since the last event
         self._run: list[tuple[int, int]] = []  # (seq, t) of refused, mutually consistent frames
         self._run_far = False  # the run is far from the running clock (else: shortly before it)
+        #: how far (us, frame stamp minus the telemetry's newest time) the stream's clock stands from the telemetry's
+        #: since a step the telemetry did not share (module docstring); None: they agree
+        self.apart_us: int | None = None
 
     def reset(self) -> None:
         """Forget the stream."""
         self.last_seq = self.last_t_us = None
+        self.apart_us = None
         self._recent.clear()
         self._run.clear()
 
@@ -129,11 +139,23 @@ class FrameAdmission:
         ``threshold_us`` from the last accepted, or one past where the stream's rate puts it): the caller looks it
         up for those only."""
         last_t = self.last_t_us
-        return last_t is None or abs(t_us - last_t) > self.threshold_us or self._ahead_of_rate(seq, t_us)
+        return (
+            last_t is None
+            or self.apart_us is not None
+            or abs(t_us - last_t) > self.threshold_us
+            or self._ahead_of_rate(seq, t_us)
+        )
 
     def admit(self, seq: int, t_us: int, reference_us: int | None = None) -> Admission:
         """Decide on the frame ``seq`` captured at ``t_us``; ``reference_us``: the newest telemetry time, if any
         (read when :meth:`wants_reference` says so)."""
+        verdict = self._admit(seq, t_us, reference_us)
+        if verdict.accepted and self.apart_us is not None and reference_us is not None:
+            apart_us = t_us - reference_us
+            self.apart_us = apart_us if abs(apart_us) > self.threshold_us else None
+        return verdict
+
+    def _admit(self, seq: int, t_us: int, reference_us: int | None) -> Admission:
         last_seq, last_t = self.last_seq, self.last_t_us
         thr = self.threshold_us
         if last_t is None or last_seq is None:  # the first frame (both are set together)
@@ -233,7 +255,10 @@ class FrameAdmission:
             if apart:
                 what += " (apart from the telemetry's clock too)"
         event = "time_reset" if far else "stream_restart"
-        return self._accept(seq, t_us, event, what, restart=True)
+        verdict = self._accept(seq, t_us, event, what, restart=True)
+        if apart:  # beyond the threshold until admit measures it against the telemetry, as it does frame by frame
+            self.apart_us = self.threshold_us + 1
+        return verdict
 
     def _accept(self, seq: int, t_us: int, event: str, message: str = "", restart: bool = False) -> Admission:
         """Take the frame as the stream's newest; ``event`` names a step (module docstring), ``""`` none."""

@@ -14,7 +14,9 @@ Steps of :meth:`FramePipeline.process` (time ``t = frame.time_boot_us``, boot cl
    counted under what is wrong with it (``frame_duplicate``, ``frame_out_of_order``,
    ``frame_time_ahead``, ``frame_time_behind``) and costs only itself; a clock step, an autopilot
    reboot or a sender restart is accepted once a run of mutually consistent frames confirms it
-   (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).
+   (``frame_time_reset``, ``frame_stream_restart``: the estimator restarts; ``frame_sequence_reset``).  After a
+   step the telemetry did not share, the frames get no pose (``pose_clock_apart``, :attr:`FramePipeline.clock_apart_s`)
+   until their stamps are within the threshold of the telemetry's again.
 2. Imaging: ``tracker.update(pixels)`` (the single chain, :class:`~onboard.imaging.TargetTracker`); a chain that
    ``uses_pose`` (the objects chain) gets ``t`` (frames the daemon dropped are time its tracks must be predicted
    over) and a function that returns the camera's rotation at ``t``, which it calls once it has detected the
@@ -250,6 +252,10 @@ class FramePipeline:
         #: how old the newest position sample was at the last frame's capture time (s; inf: past the dead-reckoning
         #: limit; None: no pose for another reason).  The daemon's watchdog names a GNSS dropout from it.
         self.last_position_age_s: float | None = None
+        #: how far (s) the last frame's stamp stood from the telemetry's newest sample while the stream's clock stands
+        #: apart from the telemetry's (:attr:`onboard.pipeline.admission.FrameAdmission.apart_us`: the frames get no
+        #: pose); None: the clocks agree.  The daemon's watchdog warns ``camera_clock_apart`` from it.
+        self.clock_apart_s: float | None = None
         #: warnings (``gimbal_mismatch``, ``camera_mismatch``) that withhold the line of sight and the 3-D position
         #: (the daemon sets them from its watchdog); the image fields still go out.  Set by another thread: read once
         #: per frame.
@@ -398,7 +404,16 @@ class FramePipeline:
             waited_ns += self._timed_wait(self.pose_wait, t_us)
         stamp_pose = pose = None
         self._shift_us = 0
-        if self.pose_source is not None:
+        apart_us = self._admission.apart_us
+        self.clock_apart_s = None if apart_us is None else apart_us / US_PER_S
+        if apart_us is not None:
+            self.counter.count(
+                "pose_clock_apart",
+                f"frame seq {frame.seq} is stamped {apart_us / US_PER_S:+.3f} s from the telemetry's newest sample, "
+                "since a step of the camera's clock the telemetry did not share: no pose (no line of sight, no 3-D) "
+                "until the two clocks agree",
+            )
+        elif self.pose_source is not None:
             try:
                 stamp_pose = pose = self.pose_source.pose_at(t_us)
                 shift_us = self._compensation_us()
@@ -432,7 +447,7 @@ class FramePipeline:
     def _camera_rotation(self, t_us: int):
         """R_ned_from_cam at ``t_us`` for an image chain that associates in bearing space (None without
         a pose yet: the chain keeps its last one); never waits for telemetry."""
-        if self.pose_source is None:
+        if self.pose_source is None or self._admission.apart_us is not None:
             return None
         try:
             pose = self.pose_source.pose_at(t_us - self._compensation_us())

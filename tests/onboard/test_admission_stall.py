@@ -81,13 +81,40 @@ def test_a_stamp_step_of_1_2_s_with_the_numbering_moving_by_one_is_a_clock_step(
     k = 10 + n_refused
     rig.feed_until(rig.scene.t_us(k) + 45_000)
     tr = rig.pipe.process(rig.scene.frame(k, time_boot_us=rig.scene.t_us(k) + step_us))
-    assert tr.seq == k and not tr.has_position  # its stamp is where the telemetry has not been yet
+    assert tr.seq == k and not tr.has_position  # its stamp is where the telemetry has not been yet: no pose
     assert rig.counter.counts == {
         "frame_time_ahead": n_refused,
         "frame_time_reset": 1,
-        "pose_attitude_gap": 1,
+        "pose_clock_apart": 1,
     }
     assert rig.pipe.estimator_resets == 1 and "reset" in _kinds(rig)
+    assert rig.pipe.clock_apart_s == pytest.approx(1.2, abs=0.1)
+
+
+def test_a_camera_clock_stepped_back_2_s_gets_no_pose_until_it_agrees_with_the_telemetry_again():
+    """The camera's clock steps back 2 s, the telemetry runs on at the true time: once confirmed, the frames' stamps
+    lie inside the pose window, where a lookup finds the poses of 2 s before (a helper's audit in the loop: lines of
+    sight 3.4-11.6 deg off against a claimed 0.115, published as measured).  They get no pose, so no line of sight and
+    no 3-D, counted, until a frame stamped within the threshold of the telemetry (the clock set right) ends it,
+    with no restart of the estimator."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    step_us = -2_000_000
+    accepted = []
+    for k in range(10, 40):
+        rig.feed_until(rig.scene.t_us(k) + 45_000)
+        try:
+            accepted.append(rig.pipe.process(rig.scene.frame(k, time_boot_us=rig.scene.t_us(k) + step_us)))
+        except FrameRejected as exc:
+            assert exc.reason == "time_behind" and not accepted
+    assert accepted and rig.counter["frame_time_reset"] == 1
+    assert all(t.los is None and not t.has_position for t in accepted)
+    assert rig.counter["pose_clock_apart"] == len(accepted) and rig.pipe.clock_apart_s == pytest.approx(-2.0, abs=0.1)
+    resets = rig.pipe.estimator_resets
+    rig.feed_until(rig.scene.t_us(40) + 45_000)
+    back = rig.pipe.process(rig.scene.frame(40))  # the camera's clock set right: in step with the telemetry
+    assert back.los is not None and rig.pipe.clock_apart_s is None
+    assert rig.pipe.estimator_resets == resets
 
 
 def test_a_camera_pause_with_the_telemetry_running_on_is_a_gap_not_a_clock_step():

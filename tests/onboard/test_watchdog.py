@@ -182,6 +182,20 @@ def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clear
     assert wd.active == ()
 
 
+def test_camera_clock_apart_warns_while_the_frames_clock_stands_apart_and_clears_when_they_agree(caplog):
+    wd = _wd()
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.camera_clock(1.0, None)
+        assert wd.active == ()
+        wd.camera_clock(2.0, -2.04)
+        wd.camera_clock(3.0, -2.01)  # still active: warned once
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("camera_clock_apart") and "-2.0 s from the autopilot's" in msgs[0]
+    assert [w.code for w in wd.active] == ["camera_clock_apart"] and "no line of sight" in wd.active[0].message
+    wd.camera_clock(4.0, None)
+    assert wd.active == ()
+
+
 def test_camera_time_offset_warns_on_a_significant_estimate_before_it_is_confident():
     wd = _wd()
     wd.camera_time_offset(1.0, _offset(50.0, 13.0, "estimating", blocks=2), 20.0)  # two blocks: sigma not trusted
