@@ -605,7 +605,13 @@ class OnboardService:
                 rx = int(self.link.status().messages_rx)
             except Exception as exc:  # noqa: BLE001 - a status snapshot must not stop the loop
                 self.counter.count("mavlink_loop_error", f"status: {type(exc).__name__}: {exc}")
-        self.watchdog.step(now, frames_in=frames_in, mavlink_rx=rx, mavlink_open_error=open_error)
+        self.watchdog.step(
+            now,
+            frames_in=frames_in,
+            mavlink_rx=rx,
+            mavlink_open_error=open_error,
+            rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
+        )
         self.watchdog.load(
             now,
             frames_dropped=self.frames_dropped,

@@ -105,6 +105,10 @@ class SharedPoseBuffer:
         with self._cond:
             return self._buffer.newest_time_boot_us()
 
+    def newest_rotation_time_boot_us(self) -> int | None:
+        with self._cond:
+            return self._buffer.newest_rotation_time_boot_us()
+
     def _lookup(self, time_boot_us: int, extrapolate: bool) -> PoseLookup:
         """PoseBuffer.lookup, memoised for the buffer's current version (call under the lock)."""
         m = self._memo

@@ -34,6 +34,13 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     cleared ``overload_clear_s`` (5 s) after the last; the message gives the counts, the CPU the daemon got
     and was refused, and what to do.
 
+``no_attitude``
+    The streams the camera's rotation is made of (ATTITUDE_QUATERNION #31, and GIMBAL_DEVICE_ATTITUDE_STATUS #285 on a
+    gimballed mount) have brought no new sample for ``ROTATION_SILENT_S`` (2 s) while MAVLink messages and IR frames
+    arrive (each within ``INPUTS_LIVE_S`` of the last; the silence counts from when both do): no frame gets a pose (each counted ``pose_attitude_*``), so no line of sight and no
+    3-D.  An autopilot that heartbeats but stopped streaming (a stream rate reset, a refused SET_MESSAGE_INTERVAL)
+    showed only in the counters.  Cleared by the next new sample.
+
 ``gnss_dropout``
     The position stream (GLOBAL_POSITION_INT #33) has been silent for more than ``nav_gap_s``
     (0.3 s: seven missed samples at 25 Hz) at a frame's capture time while attitude and frames go on:
@@ -96,6 +103,8 @@ RESIDUAL_PERSIST_S = 5.0
 RESIDUAL_MIN_SAMPLES = 10
 OVERLOAD_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
+ROTATION_SILENT_S = 2.0
+INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
 
 _log = logging.getLogger(__name__)
 
@@ -170,6 +179,8 @@ class Watchdog:
         self._log = logger or _log
         self._last_frame_s = float(started_s)
         self._last_mavlink_s = float(started_s)
+        self._rotation_newest_us: int | None = None
+        self._rotation_since_s = float(started_s)
         self._frames_seen = 0
         self._mavlink_seen = 0
         self._high_since_s: float | None = None
@@ -187,7 +198,7 @@ class Watchdog:
 
     def restart(self, now_s: float) -> None:
         """The inputs were (re)opened at ``now_s``: the input timeouts run from here."""
-        self._last_frame_s = self._last_mavlink_s = float(now_s)
+        self._last_frame_s = self._last_mavlink_s = self._rotation_since_s = float(now_s)
 
     # ------------------------------------------------------------------ inputs
 
@@ -198,10 +209,16 @@ class Watchdog:
         frames_in: int | None = None,
         mavlink_rx: int | None = None,
         mavlink_open_error: str | None = None,
+        rotation: tuple[int | None, bool] | None = None,
     ) -> None:
         """Update with the running counts of frames received and MAVLink messages, then check the timeouts.
         ``mavlink_open_error``: why the MAVLink connection could not be opened (None: it is open), which the
-        ``no_mavlink`` warning then names instead of the far end."""
+        ``no_mavlink`` warning then names instead of the far end.  ``rotation``: (the newest time the camera's
+        rotation streams cover, the pose buffer's, None while there is none; whether the mount is gimballed), for
+        ``no_attitude`` (None: not watched)."""
+        # the attitude's silence counts from when frames and MAVLink both arrive again, not through their own
+        if now_s - self._last_frame_s >= INPUTS_LIVE_S or now_s - self._last_mavlink_s >= INPUTS_LIVE_S:
+            self._rotation_since_s = max(self._rotation_since_s, float(now_s))
         if frames_in is not None and frames_in > self._frames_seen:
             self._frames_seen = frames_in
             self.frame_received(now_s)
@@ -209,6 +226,8 @@ class Watchdog:
             self._mavlink_seen = mavlink_rx
             self._last_mavlink_s = float(now_s)
             self._clear("no_mavlink")
+        if rotation is not None:
+            self._rotation(now_s, *rotation)
         t = self.input_timeout_s
         for code, last_s, seen in (
             ("no_frames", self._last_frame_s, self._frames_seen),
@@ -234,6 +253,28 @@ class Watchdog:
                         mavlink_connection=self.mavlink_connection,
                     ),
                 )
+
+    def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
+        if newest_us is not None and newest_us != self._rotation_newest_us:
+            self._rotation_newest_us = newest_us
+            self._rotation_since_s = float(now_s)
+            self._clear("no_attitude")
+            return
+        silent_s = now_s - self._rotation_since_s
+        if silent_s < ROTATION_SILENT_S or not self._frames_seen or not self._mavlink_seen:
+            return
+        streams = (
+            "ATTITUDE_QUATERNION (#31) or GIMBAL_DEVICE_ATTITUDE_STATUS (#285)"
+            if gimballed
+            else ("ATTITUDE_QUATERNION (#31)")
+        )
+        self._raise(
+            "no_attitude",
+            f"no new {streams} for {silent_s:.0f} s ({'since the last one' if newest_us is not None else 'since start'})"
+            " while MAVLink messages and IR frames arrive: no frame gets a pose, so no line of sight and no 3-D; check "
+            "the autopilot's message rates (the daemon asks for them with SET_MESSAGE_INTERVAL: the status's "
+            "link.rates_refused)",
+        )
 
     def gimbal(self, now_s: float, *, gimballed: bool, gimbal_reports: int, telemetry_since_s: float | None) -> None:
         """Check the mount against the vehicle: ``gimbal_reports`` #285 messages received so far,

@@ -182,6 +182,38 @@ def test_camera_time_offset_warns_when_confidently_above_the_threshold_and_clear
     assert wd.active == ()
 
 
+def test_no_attitude_while_frames_and_mavlink_arrive_warns_after_2_s_and_clears_on_the_next_sample(caplog):
+    """An autopilot that heartbeats but stopped streaming #31: only counted (pose_attitude_*) before.  The service
+    checks every 0.5 s."""
+    wd = _wd()
+    n = 0
+
+    def at(t_s: float, newest_us, gimballed: bool = False, frames: bool = True) -> list[str]:
+        nonlocal n
+        n += 1
+        wd.step(100.0 + t_s, frames_in=n if frames else None, mavlink_rx=n, rotation=(newest_us, gimballed))
+        return [w.code for w in wd.active]
+
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        assert [at(0.5 * k, 500_000 * k) for k in range(1, 5)] == [[]] * 4  # new samples: 0.5 .. 2.0 s
+        assert [at(0.5 * k, 2_000_000) for k in range(5, 8)] == [[]] * 3  # 0.5 .. 1.5 s without one
+        assert at(4.0, 2_000_000) == ["no_attitude"]  # 2 s
+        assert at(4.5, 2_000_000, gimballed=True) == ["no_attitude"]
+        assert at(5.0, 4_900_000) == []
+    msgs = _warnings(caplog)
+    assert len(msgs) == 1 and msgs[0].startswith("no_attitude") and "ATTITUDE_QUATERNION (#31) for 2 s" in msgs[0]
+    # never any (a gimballed pod): 2 s after frames and MAVLink arrive
+    wd2 = _wd()
+    for k in range(1, 6):
+        wd2.step(100.0 + 0.5 * k, frames_in=k, mavlink_rx=k, rotation=(None, True))
+    assert [w.code for w in wd2.active] == ["no_attitude"] and "(#285) for 2 s (since start)" in wd2.active[0].message
+    # frames silent: no_frames' business; the 2 s start again when they come back
+    wd3 = _wd()
+    for k in range(1, 12):
+        wd3.step(100.0 + 0.5 * k, frames_in=1 if k < 8 else k, mavlink_rx=k, rotation=(1, False))
+        assert "no_attitude" not in [w.code for w in wd3.active], k
+
+
 def test_camera_clock_apart_warns_while_the_frames_clock_stands_apart_and_clears_when_they_agree(caplog):
     wd = _wd()
     with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
