@@ -280,19 +280,27 @@ class _Chunk:
         return self.i0 + len(self.t_s)
 
 
+#: flight kept behind the newest tick flown (s): a lockstep feed reads telemetry up to 0.3 s past a frame (a GNSS
+#: dropout's bracket search, ``groundsim.evaluation.telemetry_feed.FEED_LEAD_MAX_US``) before it asks for the frame,
+#: which guided flight's 0.1 s chunks had dropped
+FLOWN_KEPT_S = 0.5
+
+
 class PairFlight:
     """Flies a scenario's observer and target with JSBSim on a time grid, ``chunk_ticks`` at a time.
 
     The same flight as :func:`groundsim.world.flight.fly_pair` on that grid (same vehicles, same order,
     same look-at rows; ``FlownVehicle.step_through`` does not depend on how calls are split).
-    :meth:`ensure` flies up to a tick; :meth:`chunk_of` returns the arrays holding a tick (the
-    two most recent chunks are kept, so memory does not grow with the duration).
+    :meth:`ensure` flies up to a tick; :meth:`chunk_of` returns the arrays holding a tick (the most recent
+    chunks, at least two and :data:`FLOWN_KEPT_S` of flight, are kept, so memory does not grow with the duration).
     """
 
     def __init__(self, scenario: Scenario, run_seed: int, times_s: np.ndarray, chunk_ticks: int) -> None:
         self.scenario = scenario
         self.times_s = np.asarray(times_s, dtype=float)
         self.chunk_ticks = max(1, int(chunk_ticks))
+        tick_s = float(self.times_s[1] - self.times_s[0]) if self.times_s.size > 1 else 1.0
+        self._kept_chunks = max(2, math.ceil(FLOWN_KEPT_S / (self.chunk_ticks * tick_s)) + 1)
         self.gimballed = scenario.camera.gimbal is not None
         self.observer_yaw_mode = "velocity" if self.gimballed else "target"
         # the scripted motion until a guided setpoint arrives (command_observer), then the setpoints
@@ -323,7 +331,7 @@ class PairFlight:
         for c in reversed(self._chunks):
             if c.i0 <= i < c.i1:
                 return c
-        raise IndexError(f"tick {i} was flown and dropped (only the two latest chunks are kept)")
+        raise IndexError(f"tick {i} was flown and dropped (only the latest {self._kept_chunks} chunks are kept)")
 
     def command_observer(self, t_s: float, v_ned_mps, valid_until_s: float | None = None) -> float:
         """A velocity setpoint for the observer (the GUIDED-like mode of :mod:`groundsim.world.guided`), in effect
@@ -378,7 +386,8 @@ class PairFlight:
             obs = self._observer.step_through(t, tgt.p_ned_m, tgt.v_ned_mps)
         else:
             obs = self._observer.step_through(t)
-        self._chunks = self._chunks[-1:] + [dataclasses.replace(self._derive(a, t, obs, tgt), others=others)]
+        kept = self._chunks[-(self._kept_chunks - 1) :]
+        self._chunks = kept + [dataclasses.replace(self._derive(a, t, obs, tgt), others=others)]
         self.flown_ticks = b
         self.flight_s += time.perf_counter() - t0
 

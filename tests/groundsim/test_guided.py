@@ -53,6 +53,22 @@ def test_eval_with_guidance_leaves_the_straight_line_after_the_first_advice():
     assert row.startswith("| H3 | ") and " | 1 | " in row
 
 
+@pytest.mark.slow
+def test_eval_with_guidance_through_a_gnss_dropout_keeps_the_frames_it_has_fed_past():
+    """In a GNSS dropout the lockstep feed looks up to 0.3 s past each frame for the position that brackets it;
+    guided flight flies in 0.1 s chunks and kept the latest two, so the frame's own tick had been dropped
+    (`groundsim eval --guidance --gnss-dropout 6:3`: IndexError "tick 716 was flown and dropped")."""
+    from groundsim.evaluation.eval import EvalOptions, run_lockstep
+    from groundsim.world.nav_errors import GnssDropout, InjectedErrors
+    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+
+    sc = load_scenario(resolve_scenario_path("H3"))
+    injected = InjectedErrors(gnss_dropout=GnssDropout(2.0, 1.0))
+    opts = EvalOptions(duration_s=4.0, batch=False, keep_frame=False, guidance=True, injected=injected)
+    r = run_lockstep(sc, 0, opts)
+    assert r.error is None and r.frames >= 115 and r.counters.get("position_resumed") == 1
+
+
 @pytest.mark.integration
 def test_guided_vehicle_reports_guided_and_takes_the_companions_velocity_setpoints():
     import time
