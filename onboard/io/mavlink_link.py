@@ -47,8 +47,8 @@ alone** with a fresh parser, so a truncated or garbage datagram costs only itsel
 (``mavlink_truncated``, ``mavlink_bad_data``) and never swallows the next one; serial/TCP keep one
 parser per stream.  A ``tcp:`` autopilot is dialled without blocking (:class:`~onboard.io.mavlink_transport.TcpDial`:
 no answer within 5 s is ``mavlink_open_failed``), and its close or reset is counted ``mavlink_connection_lost`` and
-dialled again after ``reopen_interval_s`` (SITL restarts; pymavlink's own reconnection blocked in every read).  Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is
-not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
+dialled again after ``reopen_interval_s`` (SITL restarts; pymavlink's own reconnection blocked in every read).
+Nothing is stored per message type (pymavlink's ``mavutil`` ``messages`` dict is not used): ids the common dialect lacks are dropped and counted (``mavlink_unknown_id``).
 Every message of the kinds the link uses that it drops is counted, by why (message types it has no use for, the
 autopilot's SYS_STATUS or VFR_HUD among them, are not); the ones that are normal traffic on a shared link (a
 ground station, a companion computer, a camera) at DEBUG, so that they show in the status's ``rejected`` without a

@@ -1,7 +1,7 @@
 """The autopilot link's transports and parser: one UDP socket of our own (each datagram parsed alone), serial or
 TCP through pymavlink's port classes (bytes only), a ``tcp:`` connection made without blocking (:class:`TcpDial`)
-and a pymavlink TCP connection over its socket (:func:`tcp_connected`), and pymavlink's parser with the signature checked before its replay table is
-touched.  :mod:`onboard.io.mavlink_link` (the autopilot) and :mod:`onboard.io.gcs_link` (ground
+and a pymavlink TCP connection over its socket (:func:`tcp_connected`), and pymavlink's parser with the signature
+checked before its replay table is touched.  :mod:`onboard.io.mavlink_link` (the autopilot) and :mod:`onboard.io.gcs_link` (ground
 stations) use them."""
 
 from __future__ import annotations
