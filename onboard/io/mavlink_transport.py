@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import errno
 import hashlib
+import ipaddress
 import os
 import select
 import socket
+import threading
 import time
+from concurrent.futures import Future, ThreadPoolExecutor
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -199,22 +202,54 @@ class DialFailed(Exception):
     """A ``tcp:`` connection that could not be made; the text says why (refused, no answer, out of descriptors)."""
 
 
+_resolver: ThreadPoolExecutor | None = None
+_resolving: dict[str, Future] = {}  # host name -> its lookup under way (one per name, however often it is dialled)
+_resolver_lock = threading.Lock()
+
+
+def _resolve(host: str) -> Future:
+    """The IPv4 address of ``host`` looked up on a thread of its own: ``getaddrinfo`` blocks for the resolver's
+    timeouts (seconds a try) where no name server answers, as on a vehicle off the network."""
+    global _resolver
+    with _resolver_lock:
+        pending = _resolving.get(host)
+        if pending is not None and not pending.done():
+            return pending
+        if _resolver is None:
+            _resolver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irtrack-resolve")
+        future = _resolver.submit(socket.getaddrinfo, host, None, socket.AF_INET, socket.SOCK_STREAM)
+        _resolving[host] = future
+        return future
+
+
 class TcpDial:
     """A ``tcp:`` connection to ``endpoint`` under way, begun at ``now_s`` without blocking: pymavlink's ``mavtcp``
     connects in its constructor, blocking until the peer answers or the kernel gives up (two minutes against an
     address that drops the packets), and reconnects inside ``recv`` and ``write`` in a loop of its own that prints to
-    stdout.  :meth:`settle` finishes it.  Raises :class:`DialFailed` when the connection cannot even be begun; a host
-    name is resolved here, blocking (give an address)."""
+    stdout.  :meth:`settle` finishes it.  A host name is looked up on a thread of its own first (:func:`_resolve`).
+    Raises :class:`DialFailed` when the connection cannot even be begun."""
 
     def __init__(self, endpoint: MavlinkEndpoint, now_s: float) -> None:
         host, port = endpoint.device.split(":")[1:]
         self.endpoint = endpoint
         self.since_s = now_s
+        self.port = int(port)
+        self.sock: socket.socket | None = None
+        self._lookup: Future | None = None
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            self._lookup = _resolve(host)
+            self.host = host
+            return
+        self._connect(host)
+
+    def _connect(self, address: str) -> None:
         sock = None
         try:
             sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)  # (out of descriptors: DialFailed)
             sock.setblocking(False)
-            err = sock.connect_ex((host, int(port)))
+            err = sock.connect_ex((address, self.port))
         except OSError as exc:
             if sock is not None:
                 sock.close()
@@ -222,12 +257,23 @@ class TcpDial:
         if err not in (0, errno.EINPROGRESS, errno.EWOULDBLOCK):
             sock.close()
             raise DialFailed(os.strerror(err))
-        self.sock: socket.socket | None = sock
+        self.sock = sock
 
     def settle(self, now_s: float, src_system: int, src_component: int):
         """The pymavlink connection (:func:`tcp_connected`) once the peer has taken it, None while it has not
-        answered; :class:`DialFailed` (the socket closed) when it refused, or gave no answer within
-        :data:`TCP_CONNECT_TIMEOUT_S` of the start."""
+        answered; :class:`DialFailed` (the socket closed) when its name has no address, when it refused, or when
+        it gave no answer within :data:`TCP_CONNECT_TIMEOUT_S` of the start."""
+        if self._lookup is not None:
+            if not self._lookup.done():
+                if now_s - self.since_s < TCP_CONNECT_TIMEOUT_S:
+                    return None
+                raise DialFailed(f"no address for {self.host!r} within {TCP_CONNECT_TIMEOUT_S:g} s")
+            lookup, self._lookup = self._lookup, None
+            try:
+                address = lookup.result()[0][4][0]
+            except (OSError, IndexError) as exc:
+                raise DialFailed(f"no address for {self.host!r}: {getattr(exc, 'strerror', None) or exc}") from exc
+            self._connect(address)
         sock = self.sock
         if sock is None:
             raise DialFailed("the connection was given up")
@@ -251,6 +297,7 @@ class TcpDial:
         raise DialFailed(why)
 
     def close(self) -> None:
+        self._lookup = None  # a lookup under way finishes on its thread; its answer is not used
         if self.sock is not None:
             self.sock.close()
             self.sock = None

@@ -738,6 +738,48 @@ def test_a_tcp_autopilot_that_does_not_answer_never_blocks_the_loop():
         server.close()
 
 
+def test_a_tcp_autopilot_named_by_host_is_looked_up_off_the_loop(monkeypatch):
+    """A host name was resolved inside connect, blocking the main loop for the resolver's timeouts where no name
+    server answers (a vehicle off the network), again at every redial: it is looked up on a thread of its own, the
+    link dialling once it has the address; a name without one is counted, not raised."""
+    import threading
+
+    import onboard.io.mavlink_transport as transport
+
+    server = _tcp_server()
+    port = server.getsockname()[1]
+    gate = threading.Event()
+    real = socket.getaddrinfo
+
+    def slow_resolver(host, *args):
+        assert gate.wait(WAIT_S)  # a name server that takes its time
+        return real("127.0.0.1" if host == "autopilot.local" else host, *args)
+
+    monkeypatch.setattr(transport.socket, "getaddrinfo", slow_resolver)
+    clock = FakeClock()
+    counters = RejectCounter(clock=clock)
+    link = MavlinkLink(dataclasses.replace(UNPINNED, connection=f"tcp:autopilot.local:{port}"), PoseBuffer(), counters)
+    try:
+        link.poll()
+        link.tick()
+        assert link.fileno() is None and counters.total == 0  # under way, the loop not held
+        gate.set()
+        assert _poll_until(link, lambda: link.fileno() is not None)
+        peer, _ = server.accept()
+        with peer:
+            peer.sendall(_heartbeat_bytes())
+            assert _poll_until(link, lambda: link.messages_rx == 1)
+    finally:
+        link.close()
+        server.close()
+    bad = MavlinkLink(dataclasses.replace(UNPINNED, connection="tcp:no-such-host.invalid:5760"), PoseBuffer(), counters)
+    try:
+        assert _poll_until(bad, lambda: counters["mavlink_open_failed"] == 1)
+        assert bad.open_error.startswith("no address for 'no-such-host.invalid'")
+    finally:
+        bad.close()
+
+
 def test_gps_raw_int_is_decoded_into_the_gnss_state_and_a_bad_fix_type_counted(rig):
     """GPS_RAW_INT of the autopilot (not requested: its default stream) sets ``link.gnss`` and the status's
     ``gnss``; another component's is ignored; a fix type outside GPS_FIX_TYPE is counted and dropped."""
