@@ -200,6 +200,23 @@ class GuidanceTap:
             return True
         return False
 
+    def halt(self, link: Any) -> bool:
+        """The daemon is stopping, its autopilot link still open: a zero-velocity setpoint when guidance was
+        commanding the vehicle (:meth:`SetpointGate.halt`), so that it does not fly the last one on until the
+        autopilot's timeout.  True when one was written; never raises."""
+        if not self.in_loop or link is None:
+            return False
+        try:
+            decision = self.gate.halt(self._clock())
+            if decision.send and decision.v_ned_mps is not None and link.send_setpoint(decision.v_ned_mps):
+                self.setpoints_sent += 1
+                log.info("guidance in the loop: stopped (shutdown: a zero-velocity setpoint sent)")
+                return True
+        except Exception as exc:  # noqa: BLE001 - the shutdown must go on
+            self.setpoint_errors += 1
+            self._log_failure_once("setpoint", "setpoint at shutdown", exc)
+        return False
+
     def _loop(self) -> None:
         while not self._stop.is_set():
             self._wake.wait(0.5)

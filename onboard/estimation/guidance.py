@@ -70,6 +70,12 @@ __all__ = [
 _V_EPS_MPS = 1e-3
 
 
+#: MAV_AUTOPILOT_PX4 (common.xml): its OFFBOARD mode needs a setpoint stream faster than PX4_MIN_SETPOINT_RATE_HZ, before
+#: it accepts the mode and for as long as it is in it (else it falls back to COM_OBL_RC_ACT)
+MAV_AUTOPILOT_PX4 = 12
+PX4_MIN_SETPOINT_RATE_HZ = 2.0
+
+
 @config_dataclass
 class GuidanceConfig:
     """The ``guidance`` section of the daemon's configuration (``config/onboard.yaml`` documents each field):
@@ -148,6 +154,13 @@ class GuidanceConfig:
             )
         if self.enabled and not self.advise:  # the loop sends the advice: without it nothing would ever go out
             raise Invalid("enabled", "false while guidance.advise is false (the loop sends the advice)", True)
+        if self.accept_autopilot == MAV_AUTOPILOT_PX4 and self.setpoint_rate_hz <= PX4_MIN_SETPOINT_RATE_HZ:
+            raise Invalid(
+                "setpoint_rate_hz",
+                f"> {PX4_MIN_SETPOINT_RATE_HZ:g} Hz for PX4 (accept_autopilot {MAV_AUTOPILOT_PX4}): OFFBOARD leaves the "
+                "mode when the stream is slower",
+                self.setpoint_rate_hz,
+            )
 
     def speed_ok(self, v_ned_mps: np.ndarray, slack_mps: float = 1e-9) -> bool:
         """Whether a velocity keeps the speed (horizontal) and climb-rate limits."""
@@ -156,6 +169,12 @@ class GuidanceConfig:
             self.min_speed_mps - slack_mps <= s <= self.max_speed_mps + slack_mps
             and abs(float(v_ned_mps[2])) <= self.max_climb_rate_mps + slack_mps
         )
+
+    def inside_geofence(self, p_ned_m: np.ndarray) -> bool:
+        """Whether every position (..., 3) is inside the geofence box (north, east about the NED origin)."""
+        p = np.asarray(p_ned_m, dtype=float)
+        (n0, n1), (e0, e1) = self.geofence_north_m, self.geofence_east_m
+        return bool(np.all((n0 <= p[..., 0]) & (p[..., 0] <= n1) & (e0 <= p[..., 1]) & (p[..., 1] <= e1)))
 
     def altitude_ok(self, p_ned_m: np.ndarray, slack_m: float = 1e-9) -> bool:
         """Whether every position (..., 3) is within the altitude band."""
@@ -390,13 +409,15 @@ class GuidancePlanner:
     def feasibility(
         self, name: str, v_sp: np.ndarray, p_obs: np.ndarray, p_tgt: np.ndarray, v_path: np.ndarray
     ) -> tuple[bool, str]:
-        """Whether a candidate keeps the limits: its setpoint, and along its predicted path (N, 3) the altitude band
-        and the target in view; ``why`` names the first limit broken."""
+        """Whether a candidate keeps the limits: its setpoint, and along its predicted path (N, 3) the altitude band,
+        the geofence box and the target in view; ``why`` names the first limit broken."""
         c = self.config
         if name != "hold" and not c.speed_ok(v_sp):
             return False, "speed"
         if not c.altitude_ok(p_obs):
             return False, "altitude"
+        if not c.inside_geofence(p_obs):  # the gate stops a vehicle outside it; never plan it out there
+            return False, "geofence"
         los = p_tgt - p_obs
         el = np.degrees(np.arctan2(-los[:, 2], np.hypot(los[:, 0], los[:, 1])))
         if np.any(el < c.los_elevation_min_deg) or np.any(el > c.los_elevation_max_deg):
@@ -638,15 +659,18 @@ class GuidanceAdvisor:
 
 #: MAV_MODE_FLAG_SAFETY_ARMED (common.xml): the autopilot's motors are armed
 _MODE_FLAG_ARMED = 128
-#: after a stop while sending, zero-velocity setpoints for this long (then silence: the autopilot's own timeout)
+#: after sending ends (a stop, the advice over, the daemon stopping), zero-velocity setpoints for this long (then
+#: silence: the autopilot's own timeout)
 BRAKE_S = 1.0
 
 
 @dataclass(frozen=True)
 class SetpointDecision:
     """What :meth:`SetpointGate.step` decided: ``send`` ``v_ned_mps`` (3,) now, or not; ``state`` (``off``,
-    ``waiting``: no valid advice, ``not_accepting``: the autopilot is not in the accepting mode, ``sending``,
-    ``stopped``: a limit was reached or the link lost while sending, latched) and ``why`` in words."""
+    ``waiting``: no valid advice (zero velocity for :data:`BRAKE_S` after one ended), ``not_accepting``: the autopilot
+    is not in the accepting mode, ``sending``, ``holding``: zero velocity between advices for PX4's OFFBOARD,
+    ``stopped``: a limit was reached, the link lost or the daemon stopping while commanding, latched) and ``why`` in
+    words."""
 
     send: bool
     v_ned_mps: np.ndarray | None
@@ -665,7 +689,10 @@ class SetpointGate:
     reached or the link lost while sending stops it (``stopped``, latched, ``why`` says which): for
     :data:`BRAKE_S` the setpoint is zero velocity (the vehicle holds where it is instead of flying the last
     setpoint on until the autopilot's timeout: 3 s, 36 m at 12 m/s on ArduCopter), then nothing; setpoints resume
-    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  A gate that first
+    only after the autopilot has left the accepting mode (the pilot took over) and re-entered it.  The advice ending
+    (expired, none in force, a target lost) brakes the same way, unlatched: the next advice is sent.  Where the
+    accepting autopilot is PX4, whose OFFBOARD mode needs the stream to go on, the setpoint between advices is zero
+    velocity at the setpoint rate (``holding``) instead.  :meth:`halt` brakes for a daemon that stops.  A gate that first
     sees the autopilot already in the accepting mode (a daemon restarted in flight) starts stopped too: the hand-over
     is the pilot's entering the mode while this daemon watches.  The autopilot's own failsafe handles a setpoint
     stream that stops (ArduPilot GUIDED holds after its velocity timeout, PX4 leaves OFFBOARD): deploy/README.md.
@@ -708,7 +735,7 @@ class SetpointGate:
         return ""
 
     def _stop(self, why: str, now_s: float | None = None) -> SetpointDecision:
-        """Latch ``stopped``; ``now_s`` given (a stop while sending, the link still up): brake from now."""
+        """Latch ``stopped``; ``now_s`` given (a stop while commanding the vehicle): brake from now."""
         self.state, self.why = "stopped", why
         kind = why.split(":", 1)[0]
         self.stops[kind] = self.stops.get(kind, 0) + 1
@@ -739,13 +766,15 @@ class SetpointGate:
             if link_connected and not accepting:  # the pilot took the vehicle back: re-arm the gate
                 self._brake_until_s = -math.inf
                 self.state, self.why = "not_accepting", "the autopilot left the accepting mode after a stop"
-            elif accepting and now_s < self._brake_until_s:
+            elif (accepting or not link_connected) and now_s < self._brake_until_s:
+                # without heartbeats the mode is unknown: zero velocity is harmless in any other mode
                 return SetpointDecision(True, np.zeros(3), self.state, self.why)
             return SetpointDecision(False, None, self.state, self.why)
-        was_sending = self.state == "sending"
+        # commanding the vehicle: sending an advice, or braking or holding after one
+        was_sending = self.state in ("sending", "holding") or now_s < self._brake_until_s
         if not link_connected:
             if was_sending:
-                return self._stop("link_lost: no autopilot heartbeat")
+                return self._stop("link_lost: no autopilot heartbeat", now_s)
             self.state, self.why = "waiting", "no autopilot link"
             return SetpointDecision(False, None, self.state, self.why)
         if not accepting:
@@ -754,6 +783,7 @@ class SetpointGate:
             else:
                 self.why = "the autopilot is not in the accepting mode"
             self.state = "not_accepting"
+            self._brake_until_s = -math.inf  # the pilot's: nothing more is sent
             return SetpointDecision(False, None, self.state, self.why)
         brake = now_s if was_sending else None
         if pose is None or now_s - pose[0] > self.config.pose_timeout_s:
@@ -764,11 +794,31 @@ class SetpointGate:
         limit = self._limit(np.asarray(pose[1], float), np.asarray(pose[2], float))
         if limit:
             return self._stop(limit, brake)
-        if advice is None or now_s > advice[0]:
+        if advice is None or not now_s <= advice[0]:  # (an expiry that is not a number is no advice)
+            if self.config.accept_autopilot == MAV_AUTOPILOT_PX4:
+                self.state, self.why = "holding", "no advice in force: zero velocity, the stream PX4's OFFBOARD needs"
+                return SetpointDecision(True, np.zeros(3), self.state, self.why)
+            if self.state == "sending":
+                self._brake_until_s = now_s + BRAKE_S
             self.state, self.why = "waiting", "no advice in force"
+            if now_s < self._brake_until_s:
+                return SetpointDecision(True, np.zeros(3), self.state, "no advice in force: braking")
             return SetpointDecision(False, None, self.state, self.why)
         v = np.asarray(advice[1], dtype=float)
         if not self.config.speed_ok(v):  # the planner keeps the limits; the gate checks again, never trusts
             return self._stop("speed: the advice is outside the speed limits", brake)
         self.state, self.why = "sending", ""
+        self._brake_until_s = -math.inf
         return SetpointDecision(True, v.copy(), self.state, "")
+
+    def halt(self, now_s: float) -> SetpointDecision:
+        """The daemon is stopping: zero velocity once when it was commanding the vehicle (sending, holding or
+        braking), so that the vehicle does not fly the last setpoint on until the autopilot's timeout; the gate
+        latches ``stopped``."""
+        if not self.config.enabled or self.state == "off":
+            return SetpointDecision(False, None, "off", self.why)
+        commanding = self.state in ("sending", "holding") or now_s < self._brake_until_s
+        self._brake_until_s = -math.inf
+        self.state, self.why = "stopped", "shutdown: the daemon stopped"
+        self.stops["shutdown"] = self.stops.get("shutdown", 0) + 1
+        return SetpointDecision(commanding, np.zeros(3) if commanding else None, self.state, self.why)

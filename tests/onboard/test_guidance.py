@@ -257,7 +257,10 @@ def test_setpoint_gate_sends_only_in_the_accepting_mode_and_latches_a_stop_until
     assert step(0.0, mode=LOITER).state == "not_accepting"
     d = step(0.1)
     assert d.send and d.state == "sending" and np.allclose(d.v_ned_mps, [3.0, 4.0, 0.0])
-    assert step(10.5).state == "waiting"  # the advice lapsed: nothing sent
+    d = step(10.5)
+    # the advice lapsed: zero velocity for BRAKE_S (not the last setpoint flown on until the autopilot's timeout)
+    assert d.send and d.state == "waiting" and not d.v_ned_mps.any() and d.why == "no advice in force: braking"
+    assert not step(11.6).send and gate.why == "no advice in force"  # then nothing
     assert step(1.0).send
     out = (0.0, np.array([150.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
     d = step(1.2, pose=out)
@@ -270,7 +273,8 @@ def test_setpoint_gate_sends_only_in_the_accepting_mode_and_latches_a_stop_until
     assert step(2.4, mode=LOITER).state == "not_accepting"  # the pilot took over: re-armed
     assert step(2.6).send
     d = step(2.8, link=False)
-    assert not d.send and d.state == "stopped" and d.why.startswith("link_lost")
+    # zero velocity too: without heartbeats the mode is unknown, and any other mode ignores the setpoint
+    assert d.send and not d.v_ned_mps.any() and d.state == "stopped" and d.why.startswith("link_lost")
     assert gate.stops == {"geofence": 1, "link_lost": 1}
     off = SetpointGate(GuidanceConfig())
     assert off.step(0.0, link_connected=True, mode=GUIDED, pose=inside, advice=advice).state == "off"
@@ -319,6 +323,9 @@ def test_tap_sends_the_advice_in_force_to_the_autopilot_only_through_the_gate():
     assert tap.setpoint_step(now[0], link) and len(sent) == 1
     assert not tap.setpoint_step(now[0] + 0.01, link)  # paced at setpoint_rate_hz
     now[0] += 5.0  # the advice (3 s) and the pose (1 s) are old now
+    tap.on_frame(None, FrameResult(0, True, pose, None, None))
+    assert tap.setpoint_step(now[0], link) and not sent[-1].any()  # the advice ended: braking
+    now[0] += 1.1
     tap.on_frame(None, FrameResult(0, True, pose, None, None))
     assert not tap.setpoint_step(now[0], link) and tap.status()["setpoints"]["why"] == "no advice in force"
     link.send_setpoint = None  # a broken link object: counted, never raised into the main loop
@@ -473,3 +480,77 @@ def test_guidance_config_refuses_an_advice_longer_than_its_plan_and_a_loop_witho
         build(GuidanceConfig, {"valid_for_s": 10.0, "horizon_s": 6.0})
     with pytest.raises(Exception, match="enabled"):
         build(GuidanceConfig, {"enabled": True, "advise": False})
+
+
+def test_the_daemon_stopping_while_commanding_sends_zero_velocity_once():
+    """SIGTERM while sending left the last setpoint running (ArduCopter flies it for its 3 s timeout): halt brakes."""
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.array([0.0, 5.0, 0.0]))
+    assert gate.step(0.0, link_connected=True, mode=LOITER, pose=pose, advice=None).state == "not_accepting"
+    assert gate.step(0.1, link_connected=True, mode=GUIDED, pose=pose, advice=(5.0, np.array([6.0, 0.0, 0.0]))).send
+    d = gate.halt(0.2)
+    assert d.send and not d.v_ned_mps.any() and d.state == "stopped" and gate.stops == {"shutdown": 1}
+    assert not gate.step(0.3, link_connected=True, mode=GUIDED, pose=pose, advice=(5.0, np.ones(3))).send  # latched
+    idle = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    assert not idle.halt(0.0).send  # never commanded: nothing to stop
+    assert not SetpointGate(GuidanceConfig()).halt(0.0).send  # guidance off
+
+
+def test_an_advice_whose_expiry_is_not_a_number_is_no_advice():
+    from onboard.estimation.guidance import SetpointGate
+
+    gate = SetpointGate(build(GuidanceConfig, {"enabled": True}))
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    gate.step(0.0, link_connected=True, mode=LOITER, pose=pose, advice=None)
+    d = gate.step(0.1, link_connected=True, mode=GUIDED, pose=pose, advice=(math.nan, np.array([6.0, 0.0, 0.0])))
+    assert not d.send and d.state == "waiting"
+
+
+def test_px4_offboard_holds_between_advices_and_needs_a_stream_over_2_hz():
+    """PX4 leaves OFFBOARD when the setpoint stream stops: between advices the gate sends zero velocity (holding)
+    instead of falling silent, and a configured rate of 2 Hz or less is refused."""
+    from onboard.estimation.guidance import SetpointGate
+
+    px4 = {"enabled": True, "accept_autopilot": 12, "accept_custom_mode": 393216}
+    with pytest.raises(SchemaError, match="setpoint_rate_hz"):
+        build(GuidanceConfig, {**px4, "setpoint_rate_hz": 2.0})
+    gate = SetpointGate(build(GuidanceConfig, px4))
+    offboard = (12, 129, 393216)
+    pose = (0.0, np.array([0.0, 0.0, -60.0]), np.zeros(3))
+    gate.step(0.0, link_connected=True, mode=(12, 129, 0), pose=pose, advice=None)
+    d = gate.step(0.25, link_connected=True, mode=offboard, pose=(0.25, *pose[1:]), advice=None)
+    assert d.send and d.state == "holding" and not d.v_ned_mps.any()
+    d = gate.step(0.5, link_connected=True, mode=offboard, pose=(0.5, *pose[1:]), advice=(3.0, np.array([6.0, 0, 0])))
+    assert d.send and d.state == "sending" and d.v_ned_mps[0] == 6.0
+    d = gate.step(3.5, link_connected=True, mode=offboard, pose=(3.5, *pose[1:]), advice=(3.0, np.array([6.0, 0, 0])))
+    assert d.send and d.state == "holding" and not d.v_ned_mps.any()
+    assert gate.halt(3.6).send  # holding is commanding: the daemon stopping says so
+
+
+def test_no_manoeuvre_is_planned_out_of_the_geofence(planner):
+    """10 m inside the box's north edge, flying north at 8 m/s: a turn's predicted path left the box (north 303 m
+    at 2 s, 308 m at 3 s) and was advised; the gate would stop the vehicle only once outside."""
+    cfg = planner.config
+    obs = ObserverState(0.0, np.array([290.0, 0.0, -60.0]), np.array([8.0, 0.0, 0.0]))
+    p = np.array([400.0, 150.0, -80.0])
+    r = float(np.linalg.norm(p - obs.p_ned_m))
+    u = (p - obs.p_ned_m) / r
+    tgt = TargetPosterior.from_track(
+        0.0,
+        p,
+        np.array([0.0, -3.0, 0.0]),
+        4 * np.eye(3) + (0.5 * r) ** 2 * np.outer(u, u),
+        (1, 1, 0.5),
+        obs.p_ned_m,
+        obs.v_ned_mps,
+    )
+    a = planner.advise(obs, tgt)
+    t = np.linspace(0.0, cfg.valid_for_s, 13)
+    for k in a.candidates:
+        path, _ = candidate_path(obs.p_ned_m, obs.v_ned_mps, k.v_ned_mps, cfg.max_accel_mps2, t)
+        assert not k.feasible or cfg.inside_geofence(path), k.name
+    if a.v_ned_mps is not None:
+        path, _ = candidate_path(obs.p_ned_m, obs.v_ned_mps, a.v_ned_mps, cfg.max_accel_mps2, t)
+        assert cfg.inside_geofence(path)

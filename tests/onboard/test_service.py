@@ -735,6 +735,23 @@ def _quiet_service(overrides=None):
     return svc, clock
 
 
+def test_a_daemon_stopping_while_guidance_commands_the_vehicle_sends_zero_velocity_before_the_link_closes():
+    """SIGTERM while sending setpoints left the last one flying (ArduCopter: for its 3 s timeout)."""
+    import types
+
+    svc, clock = _quiet_service({"guidance": {"enabled": True}, "estimator": {"enabled": True, "worker": "inline"}})
+    tap = next(t for t in svc.taps if hasattr(t, "halt"))
+    sent: list = []
+    order: list = []
+    svc.link.state, svc.link.autopilot_mode, svc.link.home_alt_amsl_m = "connected", (3, 129, 4), 0.0
+    svc.link.send_setpoint = lambda v: sent.append(np.asarray(v)) or order.append("setpoint") or True
+    svc.link.close = types.MethodType(lambda self: order.append("close"), svc.link)
+    tap.gate.state = "sending"  # commanding the vehicle as the daemon is told to stop
+    svc.close(timeout_s=0.5)
+    assert len(sent) == 1 and not sent[0].any() and order[:2] == ["setpoint", "close"]
+    assert tap.status()["setpoints"]["state"] == "stopped" and tap.gate.why.startswith("shutdown")
+
+
 def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction():
     """The watchdog warns gimbal_mismatch at its 2 Hz turn; a frame processed before it must not carry a line of
     sight made without the gimbal (a newcomer's fixed-mount daemon against a gimballed simulator published two)."""
