@@ -50,6 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
+from groundsim.world.guided import GUIDED_SETPOINT_TIMEOUT_S
 from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import Scenario
 from groundsim.world.sim import (
@@ -587,7 +588,8 @@ def run_fleet_loop(
                     vehicle.update_state(**c.vehicle_state(i), nav_error=c.nav_error(i))
                     vehicle.poll(c.time_boot_us(i))
                     for v_ned_mps in getattr(vehicle, "take_setpoints", list)():  # guided: the observer follows them
-                        c.flight.command_observer(c.tick_time_s(i), v_ned_mps)
+                        t_s = c.tick_time_s(i)
+                        c.flight.command_observer(t_s, v_ned_mps, t_s + GUIDED_SETPOINT_TIMEOUT_S)
                 except sink_errors as exc:
                     mavlink_errors(f"tick {i}: mavlink{' ' + leg.name if fleet else ''}", exc)
                 acc["mavlink"] += clock.now_s() - t0

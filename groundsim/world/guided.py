@@ -8,8 +8,10 @@ the law :func:`onboard.estimation.guidance.candidate_path` predicts with::
 
     v(t) = v_k + a e (t - t_k)   until |v - v_k| = |v_sp - v_k|,   then v_sp;   p its exact integral.
 
-Past ``valid_until_s`` without a newer setpoint the vehicle keeps the velocity it has (a setpoint stream that
-stops leaves it flying straight; the onboard side says when the advice lapses).  The JSBSim guidance of
+Past ``valid_until_s`` (None: never) without a newer setpoint the vehicle brakes to a hover at ``max_accel_mps2``, as
+ArduCopter's GUIDED mode does when velocity setpoints stop (``GUIDED_SETPOINT_TIMEOUT_S`` after the last, in the
+real-time flow) and as the daemon's own setpoint gate brakes when its advice ends (the lockstep eval passes the
+advice's expiry).  The JSBSim guidance of
 :class:`groundsim.world.flight.FlownVehicle` follows this reference like any scripted one
 (:meth:`FlownVehicle.reference_changed` after each setpoint).  Frames and units: local NED metres, m/s (see
 :mod:`onboard.core.frames`).
@@ -24,7 +26,10 @@ import numpy as np
 
 from groundsim.world.motion import KinematicState
 
-__all__ = ["GuidedLimits", "GuidedReference"]
+__all__ = ["GUIDED_SETPOINT_TIMEOUT_S", "GuidedLimits", "GuidedReference"]
+
+#: ArduCopter GUIDED: a velocity setpoint not followed by another within this long (s) ends in a stop (GUID_TIMEOUT)
+GUIDED_SETPOINT_TIMEOUT_S = 3.0
 
 
 @dataclass(frozen=True)
@@ -42,11 +47,12 @@ class GuidedReference:
     def __init__(self, base, limits: GuidedLimits | None = None) -> None:
         self.base = base
         self.limits = limits if limits is not None else GuidedLimits()
-        # segments: start time, position and velocity there, setpoint velocity
+        # segments: start time, position and velocity there, setpoint velocity, when it lapses (inf: never)
         self._t: list[float] = []
         self._p: list[np.ndarray] = []
         self._v: list[np.ndarray] = []
         self._sp: list[np.ndarray] = []
+        self._until: list[float] = []
         self.commands = 0
 
     @property
@@ -65,21 +71,37 @@ class GuidedReference:
         return v
 
     def command(self, t_s: float, v_ned_mps, valid_until_s: float | None = None) -> None:
-        """A velocity setpoint from ``t_s`` on (not before the last one's start)."""
+        """A velocity setpoint from ``t_s`` on (not before the last one's start), braked to a hover from
+        ``valid_until_s`` on unless a newer one comes first (None: held until then)."""
         v_sp = self.clamp(v_ned_mps)
         if not np.all(np.isfinite(v_sp)) or not math.isfinite(t_s):
             raise ValueError(f"setpoint must be finite, got t {t_s!r} v {v_ned_mps!r}")
         if self._t and t_s < self._t[-1]:
             raise ValueError(f"setpoint at {t_s} s goes back before the last one ({self._t[-1]} s)")
+        until = math.inf if valid_until_s is None else max(float(valid_until_s), float(t_s))
         st = self.state(np.array([t_s]))
         if self._t and t_s == self._t[-1]:  # replaces a setpoint given at the same instant
             self._sp[-1] = v_sp
+            self._until[-1] = until
         else:
             self._t.append(float(t_s))
             self._p.append(st.p_ned_m[0].copy())
             self._v.append(st.v_ned_mps[0].copy())
             self._sp.append(v_sp)
+            self._until.append(until)
         self.commands += 1
+
+    def _slew(self, p0: np.ndarray, v0: np.ndarray, vs: np.ndarray, dt: np.ndarray):
+        """Position, velocity and acceleration ``dt`` (n, 1) after ``(p0, v0)`` slewing to ``vs`` (module
+        docstring)."""
+        dv = vs - v0
+        n = float(np.linalg.norm(dv))
+        if n < 1e-9:
+            return p0 + v0 * dt, np.broadcast_to(v0, dt.shape[:1] + (3,)), np.zeros(dt.shape[:1] + (3,))
+        T = n / self.limits.max_accel_mps2
+        acc = dv / T
+        ts = np.minimum(dt, T)
+        return p0 + v0 * ts + 0.5 * acc * ts * ts + vs * (dt - ts), v0 + acc * ts, np.where(dt < T, acc, 0.0)
 
     def state(self, t_s) -> KinematicState:
         t = np.asarray(t_s, dtype=float)
@@ -92,20 +114,13 @@ class GuidedReference:
         v = np.asarray(base.v_ned_mps, dtype=float).reshape(-1, 3).copy()
         a = np.asarray(base.a_ned_mps2, dtype=float).reshape(-1, 3).copy()
         k = np.searchsorted(np.asarray(self._t), tf, side="right") - 1
-        amax = self.limits.max_accel_mps2
         for seg in np.unique(k[k >= 0]):
-            m = k == seg
-            dt = (tf[m] - self._t[seg])[:, None]
+            t0, until = self._t[seg], self._until[seg]
             p0, v0, vs = self._p[seg], self._v[seg], self._sp[seg]
-            dv = vs - v0
-            n = float(np.linalg.norm(dv))
-            if n < 1e-9:
-                p[m], v[m], a[m] = p0 + v0 * dt, v0, 0.0
-                continue
-            T = n / amax
-            acc = dv / T
-            ts = np.minimum(dt, T)
-            p[m] = p0 + v0 * ts + 0.5 * acc * ts * ts + vs * (dt - ts)
-            v[m] = v0 + acc * ts
-            a[m] = np.where(dt < T, acc, 0.0)
+            m = (k == seg) & (tf <= until)
+            p[m], v[m], a[m] = self._slew(p0, v0, vs, (tf[m] - t0)[:, None])
+            late = (k == seg) & (tf > until)
+            if late.any():  # lapsed: from the state there, a slew to a hover
+                pu, vu, _ = self._slew(p0, v0, vs, np.array([[until - t0]]))
+                p[late], v[late], a[late] = self._slew(pu[0], vu[0], np.zeros(3), (tf[late] - until)[:, None])
         return KinematicState(p.reshape(shape + (3,)), v.reshape(shape + (3,)), a.reshape(shape + (3,)))

@@ -18,7 +18,7 @@ def test_scripted_until_the_first_setpoint_then_continuous_slew_within_limits():
     t = np.linspace(0.0, 16.0, 1601)  # the slew of 18 m/s at 2 m/s^2 ends at 13 s
     before = ref.state(t)
     np.testing.assert_allclose(before.p_ned_m, base.state(t).p_ned_m, atol=ATOL_M)
-    ref.command(4.0, (0.0, -30.0, -5.0), valid_until_s=7.0)  # too fast, too steep: clamped
+    ref.command(4.0, (0.0, -30.0, -5.0))  # too fast, too steep: clamped; held (no expiry)
     st = ref.state(t)
     early = t < 4.0
     np.testing.assert_allclose(st.p_ned_m[early], before.p_ned_m[early], atol=ATOL_M)
@@ -30,6 +30,22 @@ def test_scripted_until_the_first_setpoint_then_continuous_slew_within_limits():
     assert ref.guided_since_s == 4.0
     with pytest.raises(ValueError, match="back"):
         ref.command(3.0, (0.0, 0.0, 0.0))
+
+
+def test_a_lapsed_setpoint_brakes_to_a_hover_unless_a_newer_one_comes_first():
+    """ArduCopter stops when velocity setpoints stop for GUID_TIMEOUT; the daemon's gate brakes when its advice ends:
+    the simulated vehicle kept the last velocity for ever, which hid a daemon that left it flying."""
+    from groundsim.world.guided import GUIDED_SETPOINT_TIMEOUT_S
+
+    base = Cubic((0.0, 0.0, -60.0), (0.0, 0.0, 0.0))
+    ref = GuidedReference(base, GuidedLimits(max_speed_mps=10.0, max_climb_rate_mps=1.0, max_accel_mps2=2.0))
+    ref.command(0.0, (8.0, 0.0, 0.0), valid_until_s=GUIDED_SETPOINT_TIMEOUT_S)
+    st = ref.state(np.array([3.0, 5.0, 7.0, 20.0]))
+    np.testing.assert_allclose(st.v_ned_mps[:, 0], [6.0, 2.0, 0.0, 0.0], atol=ATOL_M)  # 2 m/s^2 up, then down
+    np.testing.assert_allclose(st.p_ned_m[3], st.p_ned_m[2], atol=ATOL_M)  # hovering
+    ref.command(2.0, (8.0, 0.0, 0.0), valid_until_s=5.0)  # a newer setpoint before the lapse: the slew goes on
+    assert ref.state(np.array([4.0])).v_ned_mps[0, 0] == pytest.approx(8.0)
+    assert ref.state(np.array([6.0])).v_ned_mps[0, 0] == pytest.approx(6.0)
 
 
 @pytest.mark.slow
