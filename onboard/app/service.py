@@ -199,6 +199,8 @@ class OnboardService:
         self._pipeline_cpu_s = 0.0
         self._health_path = config.output.health_file
         self._health_failed = False
+        #: why the liveness file could not be touched the last time (None: it was, or there is none)
+        self.health_error: str | None = None
         self._started_s = clock()
         self.status_count = 0
         self._warnings_published = 0  # the watchdog's change count at the last status
@@ -517,10 +519,12 @@ class OnboardService:
 
             mark_alive(self._health_path)
             self._health_failed = False
+            self.health_error = None
         except OSError as exc:
             if not self._health_failed:
                 log.warning("cannot touch liveness file %s: %s", self._health_path, exc)
             self._health_failed = True
+            self.health_error = f"{self._health_path}: {exc.strerror or exc}"
 
     # ------------------------------------------------------------------ main thread
 
@@ -617,6 +621,12 @@ class OnboardService:
             mavlink_rx=rx,
             mavlink_open_error=open_error,
             rotation=(self.pose.newest_rotation_time_boot_us(), self.mount.gimballed),
+        )
+        self.watchdog.components(
+            now,
+            estimator_restarts=int(getattr(self.estimator, "restarts", 0)),
+            record=None if self.recorder is None else self.recorder.stats(),
+            health_error=self.health_error,
         )
         self.watchdog.load(
             now,

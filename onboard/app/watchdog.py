@@ -41,6 +41,22 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     3-D.  An autopilot that heartbeats but stopped streaming (a stream rate reset, a refused SET_MESSAGE_INTERVAL)
     showed only in the counters.  Cleared by the next new sample.
 
+``estimator_restarted``
+    The estimator's worker process died or hung and was replaced (``estimator.worker: process``): its window is
+    rebuilt from the parent's copy, and meanwhile 3-D is carried or withheld.  Raised at each replacement, cleared
+    ``ESTIMATOR_RESTART_CLEAR_S`` (30 s) after the last; the message counts them.  The status's ``rejected`` says
+    which (``estimator_restart``, ``estimator_hung``).
+
+``record_stopped``, ``record_file_lost``
+    The flight recording stopped (``record.stopped``: free space under ``record.min_free_mb``, a write the disk
+    refused; the flight goes on, later messages dropped), or a recording file was deleted or replaced while it was
+    written (``record.lost_files``: its messages are lost; the recording goes on in the next file).  Held while the
+    recorder says so, which is the rest of the run: the flight's record is incomplete.
+
+``health_file``
+    The liveness file (``output.health_file``) cannot be touched: an orchestrator's health check (``python -m
+    onboard.health``) then fails and may restart a daemon that works.  Cleared by the next touch that succeeds.
+
 ``gnss_dropout``
     The position stream (GLOBAL_POSITION_INT #33) has been silent for more than ``nav_gap_s``
     (0.3 s: seven missed samples at 25 Hz) at a frame's capture time while attitude and frames go on:
@@ -104,6 +120,7 @@ RESIDUAL_MIN_SAMPLES = 10
 OVERLOAD_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
+ESTIMATOR_RESTART_CLEAR_S = 30.0
 INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
 
 _log = logging.getLogger(__name__)
@@ -179,6 +196,8 @@ class Watchdog:
         self._log = logger or _log
         self._last_frame_s = float(started_s)
         self._last_mavlink_s = float(started_s)
+        self._estimator_restarts = 0
+        self._estimator_restart_s = -math.inf
         self._rotation_newest_us: int | None = None
         self._rotation_since_s = float(started_s)
         self._frames_seen = 0
@@ -253,6 +272,51 @@ class Watchdog:
                         mavlink_connection=self.mavlink_connection,
                     ),
                 )
+
+    def components(
+        self, now_s: float, *, estimator_restarts: int = 0, record: dict | None = None, health_error: str | None = None
+    ) -> None:
+        """The daemon's own parts: the estimator worker's replacements so far, the recorder's stats (``record``, its
+        ``stopped`` and ``lost_files``; None: not recording) and why the liveness file cannot be touched (None: it
+        can), for ``estimator_restarted``, ``record_stopped``, ``record_file_lost`` and ``health_file``."""
+        if estimator_restarts > self._estimator_restarts:
+            self._estimator_restarts = estimator_restarts
+            self._estimator_restart_s = float(now_s)
+            self._raise(
+                "estimator_restarted",
+                f"the estimator's worker process died or hung and was replaced ({estimator_restarts} since start; the "
+                "status's rejected: estimator_restart, estimator_hung; the log has each exit): its window is rebuilt, "
+                "3-D is carried or withheld meanwhile; if it repeats, check the companion's memory and the daemon's "
+                "log",
+            )
+        elif now_s - self._estimator_restart_s >= ESTIMATOR_RESTART_CLEAR_S:
+            self._clear("estimator_restarted")
+        stopped = None if record is None else record.get("stopped")
+        if not stopped:
+            self._clear("record_stopped")
+        else:
+            self._raise(
+                "record_stopped",
+                f"the flight recording stopped: {stopped}; the flight goes on, later messages are dropped and counted "
+                "(record.stopped)",
+            )
+        lost = [] if record is None else list(record.get("lost_files") or [])
+        if not lost:
+            self._clear("record_file_lost")
+        else:
+            self._raise(
+                "record_file_lost",
+                f"recording file(s) deleted or replaced while written, their messages lost: {', '.join(lost)}; the "
+                f"recording goes on in {record.get('current_file') if record else None}",
+            )
+        if health_error is None:
+            self._clear("health_file")
+        else:
+            self._raise(
+                "health_file",
+                f"cannot touch the liveness file: {health_error}; a health check (python -m onboard.health, the "
+                "container's HEALTHCHECK) fails and may restart this daemon; check output.health_file's folder",
+            )
 
     def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
         if newest_us is not None and newest_us != self._rotation_newest_us:

@@ -89,6 +89,9 @@ file is synced to disk and its pages dropped from the page cache (:meth:`FlightR
 a write the disk refuses (ENOSPC, EIO) is cut back to the last whole record and stops it too, the file finished
 without the refused chunk.  Either way the flight goes on, later messages are dropped and counted, and the status's
 ``record.stopped`` says why (None while recording).
+**A file deleted or replaced under it** (its link count 0, or its name now another file's; checked once a second)
+is given up, said once (``record.lost_files``), and the recording goes on in the next file (``FILE.N.mcap``):
+the messages written to the deleted one are lost, the later ones not.
 **Finished within its close's time**: :meth:`FlightRecorder.close` writes the backlog until a little before its
 timeout, drops and counts what is left then (``dropped_at_close``), and finishes the file (last chunk, summary,
 footer) in the writer thread: a shutdown bounded in time still leaves a complete file.
@@ -487,6 +490,9 @@ class FlightRecorder:
         #: why the recording stopped before close (free space under ``min_free_mb``, a write the disk refused); None
         #: while it records.  Messages handed over after it are dropped and counted.
         self.stopped: str | None = None
+        #: files deleted or replaced under the recorder while it wrote them (their messages are lost)
+        self.lost_files: list[str] = []
+        self._next_lost_check_s = 0.0
         self._finish_ok = True  # the last file finished had its summary written
         self._write_until = math.inf  # time.monotonic() past which a closing writer drops the rest
 
@@ -598,6 +604,7 @@ class FlightRecorder:
             "writer_cpu_s": round(self.writer_cpu_s, 3),
             "syncs": self.syncs,
             "stopped": self.stopped,
+            "lost_files": list(self.lost_files),
         }
 
     # ------------------------------------------------------------------ life cycle
@@ -829,8 +836,43 @@ class FlightRecorder:
         self._synced = pos
         self.syncs += 1
 
+    def _file_gone(self) -> bool:
+        """Whether the file being written was deleted, or its name given to another file, since it was opened
+        (checked at most once a second: an fstat and a stat)."""
+        now = time.monotonic()
+        if self._file is None or now < self._next_lost_check_s:
+            return False
+        self._next_lost_check_s = now + 1.0
+        try:
+            st = os.fstat(self._file.fileno())
+            if st.st_nlink == 0:
+                return True
+            named = os.stat(self.files[-1])
+        except FileNotFoundError:
+            return True
+        except OSError:  # another error (a permission changed): the writes will tell
+            return False
+        return (named.st_dev, named.st_ino) != (st.st_dev, st.st_ino)
+
     def _maybe_rotate(self) -> None:
         if self._writer is None:
+            return
+        if self._file_gone():
+            lost = self.files.pop()
+            self.lost_files.append(lost)
+            index = self._index + 1
+            self._finish()  # into the deleted file: its descriptor still takes the writes
+            reason = self._short_of_space()
+            if reason is not None:
+                self._halt(reason, [], refused=False)
+                return
+            self._open(index)
+            log.warning(
+                "recorder: %s was deleted or replaced while recording: the messages written to it are lost; "
+                "recording goes on in %s (the status's record.lost_files lists such files)",
+                lost,
+                self.files[-1],
+            )
             return
         s = self.settings
         size = self._writer.position

@@ -209,6 +209,41 @@ def test_rotation_by_size_keeps_max_files(tmp_path):
     assert seqs == sorted(seqs) and seqs[-1] == 29  # the newest files, whole and readable
 
 
+def test_a_recording_deleted_while_written_goes_on_in_the_next_file_and_says_so(tmp_path, caplog):
+    """A helper's audit deleted the file 10 s into a flight: the recorder wrote on into the unlinked file for the
+    rest of it, with record.stopped null and no log line, and the flight's recording was lost whole."""
+    import logging
+
+    path = tmp_path / "f.mcap"
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(path), flush_interval_s=0.05)), vehicle="uav1")
+    rec.start()
+
+    def write(i: int) -> None:
+        written = rec.messages_written
+        rec.on_frame(_frame(i), i)
+        deadline = time.monotonic() + 10.0
+        while rec.messages_written == written and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+    with caplog.at_level(logging.WARNING, logger="onboard.io.record"):
+        for i in range(3):
+            write(i)
+        os.unlink(path)  # someone tidies the folder mid-flight
+        deadline = time.monotonic() + 10.0
+        i = 3
+        while not rec.lost_files and time.monotonic() < deadline:
+            write(i)
+            i += 1
+        for j in range(i, i + 3):
+            write(j)
+    rec.close()
+    assert rec.lost_files == [str(path)] and rec.stats()["lost_files"] == [str(path)] and rec.stopped is None
+    assert rec.files == [str(tmp_path / "f.1.mcap")] and sorted(p.name for p in tmp_path.iterdir()) == ["f.1.mcap"]
+    seqs = [m.sequence for _, _c, m in _read_all(tmp_path / "f.1.mcap")]
+    assert seqs and seqs[-1] == i + 2  # the frames after the loss, in a complete file
+    assert sum("was deleted or replaced while recording" in r.getMessage() for r in caplog.records) == 1
+
+
 _CHILD = textwrap.dedent("""
     import sys, time
     sys.path.insert(0, {repo!r})

@@ -752,6 +752,19 @@ def test_a_daemon_stopping_while_guidance_commands_the_vehicle_sends_zero_veloci
     assert tap.status()["setpoints"]["state"] == "stopped" and tap.gate.why.startswith("shutdown")
 
 
+def test_a_liveness_file_that_cannot_be_touched_is_a_warning_in_the_status(tmp_path):
+    svc, clock = _quiet_service()
+    svc._health_path = str(tmp_path / "gone" / "alive")  # its folder removed under the daemon
+    svc._touch_health()
+    svc._watch(clock())
+    codes = [w["code"] for w in svc.status(clock())["warnings"]]
+    assert "health_file" in codes and svc.health_error.endswith("No such file or directory")
+    (tmp_path / "gone").mkdir()
+    svc._touch_health()
+    svc._watch(clock())
+    assert "health_file" not in [w["code"] for w in svc.status(clock())["warnings"]]
+
+
 def test_a_gimbal_under_a_fixed_mount_withholds_the_very_next_frames_direction():
     """The watchdog warns gimbal_mismatch at its 2 Hz turn; a frame processed before it must not carry a line of
     sight made without the gimbal (a newcomer's fixed-mount daemon against a gimballed simulator published two)."""

@@ -258,3 +258,30 @@ def test_video_rate_warns_once_when_the_camera_is_off_video_fps_and_clears_when_
         wd.video_rate(104.5, 60.0, 30.0, 2_000_000)  # a faster camera: over the budget, warned again (INFO)
         assert [x.code for x in wd.active] == ["video_rate"] and "2.00 x" in wd.active[0].message
     assert len([m for m in _warnings(caplog) if m.startswith("video_rate")]) == 1
+
+
+def test_the_daemons_own_parts_warn_estimator_restarts_a_stopped_or_lost_recording_and_the_liveness_file(caplog):
+    """A helper's failure-injection audit: a worker killed, a recording stopped on a full disk or deleted mid-flight,
+    the liveness file's folder removed; each showed only in counters or the log, the status's warnings empty."""
+    wd = _wd()
+    rec = {"stopped": None, "lost_files": [], "current_file": "/r/f.mcap"}
+    with caplog.at_level(logging.INFO, logger="onboard.app.watchdog"):
+        wd.components(100.0, estimator_restarts=0, record=rec, health_error=None)
+        assert wd.active == ()
+        wd.components(101.0, estimator_restarts=1, record=rec)
+        assert [w.code for w in wd.active] == ["estimator_restarted"] and "1 since start" in wd.active[0].message
+        wd.components(120.0, estimator_restarts=1, record=rec)
+        assert [w.code for w in wd.active] == ["estimator_restarted"]  # held 30 s after the last
+        wd.components(131.0, estimator_restarts=1, record=rec)
+        assert wd.active == ()
+        full = {**rec, "stopped": "120 MB free, under record.min_free_mb (200)"}
+        wd.components(132.0, record=full, health_error="/run/irtrack/alive: No such file or directory")
+        codes = sorted(w.code for w in wd.active)
+        assert codes == ["health_file", "record_stopped"]
+        assert "120 MB free" in wd.active[[w.code for w in wd.active].index("record_stopped")].message
+        lost = {**rec, "lost_files": ["/r/f.mcap"], "current_file": "/r/f.1.mcap"}
+        wd.components(133.0, record=lost)
+        codes = sorted(w.code for w in wd.active)
+        assert codes == ["record_file_lost"]  # the stop was another run's state here; the health file touched again
+        assert "/r/f.mcap" in wd.active[0].message and "goes on in /r/f.1.mcap" in wd.active[0].message
+    assert len(_warnings(caplog)) == 4  # each code logged once
