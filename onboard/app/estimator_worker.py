@@ -527,6 +527,9 @@ class ProcessEstimator:
         self._window_s = float(limits.window_s)
         self._min_spacing_s = float(getattr(limits, "min_spacing_s", 0.0))
         self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
+        self._gap_end_t = (
+            -math.inf
+        )  # the first frame after the latest gap in the frames longer than max_extrapolation_s
         self._snapshot = None  # (t_s, bytes): the worker's state, every SNAPSHOT_PERIOD_S
         self._backoff_s = 0.0
         self._next_start_s = -math.inf
@@ -740,12 +743,16 @@ class ProcessEstimator:
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
+        w = self._window
+        # frames stopped coming for longer than an estimate is carried (a camera or network outage): until an
+        # estimate made after it comes, the newest is old because nothing came, not because the daemon is behind
+        if w and t - w[-1][0] > self.max_extrapolation_s:
+            self._gap_end_t = t
         self._kill_if_hung()
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
             self.late_results += 1
             return self._extrapolate(t, p_cam_ned_m, args[1:])
-        w = self._window
         if w and 0.0 < t - w[-1][0] < self._min_spacing_s:
             # the worker would not keep this row and would answer with its estimate at the newest kept row
             # carried to t: when that answer is here, carry it here (same numbers, no round trip: half the
@@ -813,7 +820,15 @@ class ProcessEstimator:
         if latest is None or latest[0] != self._epoch:
             return None
         return _propagate(
-            latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise, self._map_config
+            latest[1],
+            t,
+            p_cam_ned_m,
+            self.max_extrapolation_s,
+            self._counter,
+            obs,
+            self._noise,
+            self._map_config,
+            after_gap=obs is not None and float(latest[1].t_s) < self._gap_end_t,
         )
 
     def close(self, timeout_s: float = 1.0) -> None:
@@ -853,8 +868,11 @@ def _propagate(
     obs=None,
     noise=None,
     map_config: MapConfig | None = None,
+    after_gap: bool = False,
 ):
-    """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s``.
+    """``est`` at ``t`` at constant velocity, None beyond ``max_extrapolation_s`` (a frame's position withheld then:
+    counted ``estimate_stale``, the daemon behind, or ``estimate_after_gap`` when the frames themselves had stopped
+    for longer, ``after_gap``: nothing to keep up with, so no sign of overload).
 
     ``obs`` (the frame's ``(uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)``, which ``est`` was solved
     without) with the estimator's ``noise`` model: the propagated position is corrected by the frame's own
@@ -865,7 +883,14 @@ def _propagate(
     (:func:`~onboard.estimation.sliding.range_floored`), as the estimator's own carried estimates do."""
     dt = t - float(est.t_s)
     if abs(dt) > max_extrapolation_s:
-        if obs is not None:  # a frame's own position withheld (not a query between frames): the daemon is behind
+        if obs is not None and after_gap:  # the first frames after an outage of the frames: not the daemon's lag
+            counter.count(
+                "estimate_after_gap",
+                f"newest estimate {dt:.2f} s older than the frame, the first after a gap in the frames: position "
+                "withheld until the estimator answers",
+                level=logging.INFO,
+            )
+        elif obs is not None:  # a frame's own position withheld (not a query between frames): the daemon is behind
             counter.count(
                 "estimate_stale",
                 f"newest estimate {dt:.2f} s older than the frame (estimator.max_extrapolation_s "

@@ -29,8 +29,8 @@ seconds, its own clock) and what it saw; tests feed it a fake clock.  Each condi
     of the camera is explained exactly by a target higher up), so this is checked on the messages.
 ``overload``
     Frames were dropped because the pipeline was behind, or a frame's position was withheld because the
-    newest estimate was older than ``estimator.max_extrapolation_s`` (``estimate_stale``): the daemon
-    does not get the CPU it needs.  Raised at the first check (every 0.5 s) that sees either count grow,
+    newest estimate was older than ``estimator.max_extrapolation_s`` (``estimate_stale``; not the first frames
+    after a gap in the frames themselves, ``estimate_after_gap``): the daemon does not get the CPU it needs.  Raised at the first check (every 0.5 s) that sees either count grow,
     cleared ``overload_clear_s`` (5 s) after the last; the message gives the counts, the CPU the daemon got
     and was refused, and what to do.
 

@@ -284,3 +284,25 @@ def test_the_frame_loop_never_waits_on_the_workers_pipe(scene):
     finally:
         os.kill(pid, signal.SIGCONT)
         pe.close()
+
+
+@pytest.mark.integration
+def test_positions_withheld_after_a_gap_in_the_frames_are_not_counted_as_the_daemon_behind(scene):
+    """A camera or network outage longer than estimator.max_extrapolation_s: the first frames after it find only an
+    estimate from before it, too old to carry, and their positions are withheld. Counted estimate_stale, they raised
+    `overload` ("the daemon does not get the CPU it needs") after an outage of the frames; now estimate_after_gap,
+    and frames late without a gap are still estimate_stale."""
+    K, truth, obs = scene
+    counter = LockedCounter()
+    pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=RESULT_WAIT_S)
+    try:
+        for i in range(FRAMES_BEFORE_KILL):
+            last = _add(pe, obs, K, i)
+        assert last is not None
+        pe.result_wait_s = 0.0  # never wait: what a frame gets is the newest estimate carried to it, or nothing
+        end = FRAMES_BEFORE_KILL - 1
+        gap = next(i for i in range(end, len(obs.t_s)) if obs.t_s[i] - obs.t_s[end] > pe.max_extrapolation_s + 0.5)
+        assert _add(pe, obs, K, gap) is None
+        assert counter["estimate_after_gap"] == 1 and counter["estimate_stale"] == 0
+    finally:
+        pe.close()
