@@ -66,7 +66,8 @@ in the shared :class:`~onboard.core.counters.RejectCounter`: ``frame_short``, ``
 ``frame_version``, ``frame_encoding``, ``frame_dims``, ``frame_size``, ``frame_too_large``,
 ``frame_field`` (decode, :mod:`onboard.core.irframe`), ``frame_dims_mismatch``, ``frame_duplicate``,
 ``frame_out_of_order``, ``frame_time_ahead``, ``frame_time_behind``, ``frame_image``.  Notable accepted
-events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``estimator_pose_reset``
+events: ``frame_time_reset``, ``frame_sequence_reset``, ``frame_stream_restart``, ``frame_encoding_changed`` (INFO: mono8
+and mono16 alternating, a camera's mode or a second publisher), ``estimator_pose_reset``
 (step 4).  Estimator problems never refuse a frame: they are counted as ``estimator_input`` /
 ``estimator_error`` and the frame gets no 3-D.
 """
@@ -256,6 +257,7 @@ class FramePipeline:
         #: apart from the telemetry's (:attr:`onboard.pipeline.admission.FrameAdmission.apart_us`: the frames get no
         #: pose); None: the clocks agree.  The daemon's watchdog warns ``camera_clock_apart`` from it.
         self.clock_apart_s: float | None = None
+        self._encoding: int | None = None  # the last accepted frame's (an IrFrame encoding code)
         #: warnings (``gimbal_mismatch``, ``camera_mismatch``) that withhold the line of sight and the 3-D position
         #: (the daemon sets them from its watchdog); the image fields still go out.  Set by another thread: read once
         #: per frame.
@@ -374,6 +376,16 @@ class FramePipeline:
                 f"{K.width_px} x {K.height_px} (camera.intrinsics)",
             )
         self._admit(frame)
+        encoding = frame.encoding
+        if encoding != self._encoding and self._encoding is not None:
+            # a camera switching modes, or a second publisher on the key: the image chain's statistics start again
+            self.counter.count(
+                "frame_encoding_changed",
+                f"frame seq {frame.seq} is {'mono8' if encoding == 1 else 'mono16'}, the stream's were "
+                f"{'mono8' if self._encoding == 1 else 'mono16'}",
+                level=logging.INFO,
+            )
+        self._encoding = encoding
 
         waited_ns = 0
         uses_pose = getattr(self.tracker, "uses_pose", False)

@@ -304,6 +304,19 @@ def test_frame_of_another_size_than_the_camera_is_refused():
     assert rig.counter.counts == {"frame_dims_mismatch": 1}
 
 
+def test_a_change_of_encoding_mid_stream_is_counted_once_per_change():
+    """A camera switching modes, or a second publisher on the frame key: the image chain's statistics start again
+    (an audit saw its flat-field correction restart twice), and nothing said so."""
+    rig = Rig()
+    rig.run(3)
+    k = 3
+    rig.feed_until(rig.scene.t_us(k) + 45_000)
+    wide = rig.scene.frame(k)
+    rig.pipe.process(IrFrame(seq=wide.seq, time_boot_us=wide.time_boot_us, pixels=wide.pixels.astype(np.uint16) * 257))
+    rig.step(4)
+    assert rig.counter.counts.get("frame_encoding_changed") == 2  # mono8 -> mono16 -> mono8
+
+
 def test_duplicate_and_out_of_order_frames_are_refused():
     rig = Rig(ready_after=100)
     for k in (0, 1, 3):
