@@ -492,9 +492,24 @@ class MavlinkLink:
             self._stream_parser = new_parser(self._signing)
             self._opened()
 
+    def _mark_lost(self) -> None:
+        """The link is lost (no heartbeat for ``heartbeat_timeout_s``, or its connection gone): what the autopilot
+        said of itself (its mode, the rates it confirmed, the TIMESYNC requests) no longer holds; its next heartbeat
+        connects it again."""
+        self.state = LINK_LOST
+        self.link_losses += 1
+        self.autopilot_mode = None
+        self._inflight = None
+        self._rate_queue.clear()
+        self.rates_confirmed.clear()
+        self._ts_outstanding.clear()
+
     def _lost(self, now: float) -> None:
-        """The autopilot closed or reset the ``tcp:`` connection: closed here and dialled again after
+        """The autopilot closed or reset the ``tcp:`` connection: the link is lost at once (nothing more can come
+        on it: a setpoint gate must not wait for the heartbeat timeout), closed here and dialled again after
         ``reopen_interval_s`` (pymavlink would dial again at once, on every read, blocking)."""
+        if self.state == LINK_CONNECTED:
+            self._mark_lost()
         self.close()
         self._next_open_s = now + self.config.reopen_interval_s
         self.open_error = "closed by the autopilot"
@@ -911,24 +926,19 @@ class MavlinkLink:
     def tick(self, now: float | None = None) -> None:
         """Timers: heartbeat out, heartbeat timeout, rate-request retries, TIMESYNC requests, reopen."""
         now = self._now() if now is None else float(now)
+        if (  # before the closed transport's return: a link whose connection is gone times out as well
+            self.state == LINK_CONNECTED
+            and self._last_hb_rx_s is not None  # connected: a heartbeat came
+            and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s
+        ):
+            self._mark_lost()
+            self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
         if self._transport is None:
             if self._dial is not None:
                 self._settle_dial(now)
             elif now >= self._next_open_s:
                 self._open(now)
             return
-        if (
-            self.state == LINK_CONNECTED
-            and self._last_hb_rx_s is not None  # connected: a heartbeat came
-            and now - self._last_hb_rx_s > self.config.heartbeat_timeout_s
-        ):
-            self.state = LINK_LOST
-            self.link_losses += 1
-            self._inflight = None
-            self._rate_queue.clear()
-            self.rates_confirmed.clear()
-            self._ts_outstanding.clear()
-            self._counters.count("autopilot_lost", f"no heartbeat for {now - self._last_hb_rx_s:.1f} s")
         if self.autopilot_sysid is not None and now - self._last_hb_tx_s >= self.config.heartbeat_interval_s:
             self._last_hb_tx_s = now
             self._send(

@@ -668,15 +668,18 @@ def test_a_tcp_autopilot_that_closes_the_connection_is_dialled_again_after_the_r
     port = server.getsockname()[1]
     clock = FakeClock()
     counters = RejectCounter(clock=clock)
-    config = dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{port}")
+    config = dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{port}", autopilot_sysid=AP_SYSID)
     link = MavlinkLink(config, PoseBuffer(), counters, clock=clock)
     try:
         peer, _ = server.accept()
         peer.sendall(_heartbeat_bytes())
         assert _poll_until(link, lambda: link.messages_rx == 1) and link.fileno() is not None
+        assert link.state == LINK_CONNECTED and link.autopilot_mode is not None
         peer.close()
         server.close()  # the autopilot restarts: nobody listens for a while
         assert _poll_until(link, lambda: counters["mavlink_connection_lost"] == 1)
+        # lost at once, its mode forgotten: a setpoint gate reading "connected" and the old GUIDED would send on
+        assert link.state == LINK_LOST and link.autopilot_mode is None and link.link_losses == 1
         for _ in range(20):  # not dialled at every poll
             link.poll()
             link.tick()
@@ -689,7 +692,7 @@ def test_a_tcp_autopilot_that_closes_the_connection_is_dialled_again_after_the_r
         again, _ = server.accept()
         with again:
             again.sendall(_heartbeat_bytes())
-            assert _poll_until(link, lambda: link.messages_rx == 2)
+            assert _poll_until(link, lambda: link.messages_rx == 2 and link.state == LINK_CONNECTED)
         assert link.open_error is None and counters["mavlink_connection_lost"] == 1
         assert capsys.readouterr().out == ""
     finally:
