@@ -273,6 +273,7 @@ class PoseBuffer:
         self._gim_ref: GimbalReference | None = None
         self._mount_cache: tuple[CameraMount, Vec3, Quat, Quat] | None = None
         self._jumps = 0
+        self._refused: tuple[int, np.ndarray] | None = None  # the newest refused position (t, p and v)
         self.reboots = 0
         self.position_resets = 0  # position streams restarted after a persisting jump (``position_reset``)
         self.attitude_resets = 0  # attitude or gimbal steps the reported rates cannot explain (``<stream>_reset``)
@@ -318,6 +319,7 @@ class PoseBuffer:
         for s in (self._att, self._pos, self._gim):
             s.clear()
         self._jumps = 0
+        self._refused = None
 
     # ------------------------------------------------------------------ time checks
 
@@ -571,8 +573,22 @@ class PoseBuffer:
             limit_m = self.config.max_speed_mps * dt_s
             if step_m > limit_m * (1.0 - 1e-9):  # a jump, or near enough that numpy's norm must decide
                 step_m = float(np.linalg.norm(np.array(p) - last[:3]))
-            jump = f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms" if step_m > limit_m else self._velocity_miss(last, p, v, t)
+            t_last = self._pos.t_us[-1]
+            jump = (
+                f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms"
+                if step_m > limit_m
+                else self._velocity_miss(last, t_last, p, v, t)
+            )
+            refused = self._refused
+            if jump is None and self._jumps and refused is not None and refused[0] < t:
+                # each refusal widened the interval to the newest kept sample, and the tolerances with it (at 5 Hz a
+                # 3 m step passed after one refusal): a sample that goes on from the refused ones, as their own
+                # velocities say, is the displaced track persisting, not the old one coming back
+                known = math.isfinite(v[0]) and math.isfinite(float(refused[1][3]))
+                if known and self._velocity_miss(refused[1], refused[0], p, v, t, past_gap=True) is None:
+                    jump = "on from the refused positions"
             if jump is not None:
+                self._refused = (t, np.array((*p, *v)))
                 self._jumps += 1
                 if self._jumps < self.config.jump_reset_count:
                     self.counter.count("position_jump", jump)
@@ -585,22 +601,25 @@ class PoseBuffer:
                 )
                 self._pos.clear()
         self._jumps = 0
+        self._refused = None
         self._pos.append(t, np.array((*p, *v, *q_lv)), self.config.window_us, MAX_SAMPLES)
         return True
 
-    def _velocity_miss(self, last: np.ndarray, p, v, t: int) -> str | None:
-        """Why ``p`` (at ``t``) is a jump from ``last`` (the newest sample's row) though no faster than
+    def _velocity_miss(self, last: np.ndarray, t_last: int, p, v, t: int, past_gap: bool = False) -> str | None:
+        """Why ``p`` (at ``t``) is a jump from ``last`` (a sample's row, at ``t_last``) though no faster than
         ``max_speed_mps``, or None: it lies farther than ``max_position_step_m`` (plus three sigmas of the velocities'
         error and an unmodelled acceleration over the interval) from ``last``'s position moved by the two reported
         velocities' mean over the interval, which is exact under a constant acceleration.  An autopilot reports its
         estimate's position and velocity together, so a reset of that estimate (a GNSS jump, a switch of receiver) is
         a position step its velocity does not share: at 25 Hz the speed test alone let any step under 8 m through at
         once, and one under ~40 m after a few rejections had widened the interval, the stream carrying on across it
-        as if the camera had moved there.  Not judged past a position bracket (a gap: the speed test alone) or
-        without both velocities."""
+        as if the camera had moved there.  Not judged past a position bracket (a gap: the speed test alone; unless
+        ``past_gap``) or without both velocities."""
         c = self.config
-        dt_us = t - self._pos.t_us[-1]
-        if not 0 < dt_us <= c.pos_max_gap_us or not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
+        dt_us = t - t_last
+        if not 0 < dt_us or (dt_us > c.pos_max_gap_us and not past_gap):
+            return None
+        if not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
             return None
         dt_s = dt_us / US_PER_S
         half = 0.5 * dt_s
