@@ -478,7 +478,11 @@ class FramePipeline:
         """Admit the frame or refuse it, counted under its reason (:mod:`onboard.pipeline.admission`)."""
         reference_us = None
         if self._admission.wants_reference(frame.seq, frame.time_boot_us):
-            newest = getattr(self.pose_source, "newest_time_boot_us", None)
+            # the attitude's newest time: it streams on through a GNSS dropout, where the newest time both attitude
+            # and position cover stands still, and a camera pausing there would seem to stand apart from it
+            newest = getattr(self.pose_source, "newest_rotation_time_boot_us", None) or getattr(
+                self.pose_source, "newest_time_boot_us", None
+            )
             try:
                 reference_us = newest() if callable(newest) else None
             except Exception:  # noqa: BLE001 - without a telemetry reference the first frame is taken as it is

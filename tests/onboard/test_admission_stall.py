@@ -91,6 +91,24 @@ def test_a_stamp_step_of_1_2_s_with_the_numbering_moving_by_one_is_a_clock_step(
     assert rig.pipe.clock_apart_s == pytest.approx(1.2, abs=0.1)
 
 
+def test_a_camera_pause_during_a_gnss_dropout_is_not_a_clock_standing_apart():
+    """The admission's telemetry reference was the newest time attitude and position both cover, which stands still
+    through a GNSS dropout: a camera pausing there (numbering on) seemed 1.5 s and more apart from the telemetry,
+    its frames had no pose until GNSS came back.  The attitude streams on: its newest time is the reference."""
+    rig = Rig(ready_after=3)
+    rig.run(10)
+    t_drop = rig.scene.t_us(10)
+    no_gnss = lambda t: t >= t_drop  # noqa: E731 - positions withheld from here on
+    n_pause = int(STALL_S * FRAME_RATE_HZ)
+    tracks = []
+    for i in range(20):
+        k = 10 + n_pause + i
+        rig.feed_until(rig.scene.t_us(k) + 45_000, skip_position=no_gnss)
+        tracks.append(rig.pipe.process(rig.scene.frame(k, seq=10 + i), 0))
+    assert rig.pipe.clock_apart_s is None and rig.counter["pose_clock_apart"] == 0
+    assert rig.counter["frame_time_reset"] == 0 and rig.pipe.estimator_resets == 0
+
+
 def test_a_camera_clock_stepped_back_2_s_gets_no_pose_until_it_agrees_with_the_telemetry_again():
     """The camera's clock steps back 2 s, the telemetry runs on at the true time: once confirmed, the frames' stamps
     lie inside the pose window, where a lookup finds the poses of 2 s before (a helper's audit in the loop: lines of
