@@ -114,6 +114,8 @@ class ThreadedEstimator:
         self._stop = threading.Event()
         self.worker_cpu_s = 0.0
         self.late_results = 0
+        self._last_add_t = -math.inf
+        self._gap_end_t = -math.inf  # the first frame after the latest gap in the frames (ProcessEstimator.add)
         self._thread = threading.Thread(target=self._run, name="irtrack-estimator", daemon=True)
         self._thread.start()
 
@@ -122,6 +124,9 @@ class ThreadedEstimator:
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
+        if t - self._last_add_t > self.max_extrapolation_s and math.isfinite(self._last_add_t):
+            self._gap_end_t = t  # as ProcessEstimator.add: after a gap in the frames, an old estimate is no overload
+        self._last_add_t = t
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
             if len(self._q) >= self._max_pending:
@@ -181,7 +186,15 @@ class ThreadedEstimator:
         if latest is None or latest[0] != self._epoch:
             return None
         return _propagate(
-            latest[1], t, p_cam_ned_m, self.max_extrapolation_s, self._counter, obs, self._noise, self._map_config
+            latest[1],
+            t,
+            p_cam_ned_m,
+            self.max_extrapolation_s,
+            self._counter,
+            obs,
+            self._noise,
+            self._map_config,
+            after_gap=obs is not None and float(latest[1].t_s) < self._gap_end_t,
         )
 
     # ------------------------------------------------------------------ worker

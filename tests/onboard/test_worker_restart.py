@@ -306,3 +306,32 @@ def test_positions_withheld_after_a_gap_in_the_frames_are_not_counted_as_the_dae
         assert counter["estimate_after_gap"] == 1 and counter["estimate_stale"] == 0
     finally:
         pe.close()
+
+
+def test_the_threaded_worker_counts_a_gap_in_the_frames_as_the_process_one_does():
+    """estimator.worker: thread: the first frame after an outage of the frames, its estimate still being made,
+    found only the estimate from before the outage: counted estimate_stale (overload) there too."""
+    import types
+
+    from onboard.app.estimator_worker import ThreadedEstimator
+    from onboard.core.counters import RejectCounter
+
+    class Slow:  # an estimator whose solve takes 30 ms (a model re-selection after the gap)
+        def add(self, t, *a):
+            time.sleep(0.03)
+            return types.SimpleNamespace(t_s=t, p_ned_m=np.zeros(3), v_ned_mps=np.zeros(3), cov_p_ned_m2=np.eye(3))
+
+        def reset(self):
+            pass
+
+    counter = RejectCounter()
+    te = ThreadedEstimator(Slow(), counter, result_wait_s=1.0, max_extrapolation_s=1.0)
+    q = np.array([1.0, 0.0, 0.0, 0.0])
+    try:
+        for i in range(5):
+            assert te.add(i * 0.04, (1.0, 1.0), None, np.zeros(3), q) is not None
+        te.result_wait_s = 0.002
+        assert te.add(8.0, (1.0, 1.0), None, np.zeros(3), q) is None  # 8 s after the last frame
+        assert counter["estimate_after_gap"] == 1 and counter["estimate_stale"] == 0
+    finally:
+        te.close()
