@@ -14,7 +14,7 @@ import select
 import socket
 import threading
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 
 from pymavlink.dialects.v20 import common as mavlink2
 
@@ -202,22 +202,27 @@ class DialFailed(Exception):
     """A ``tcp:`` connection that could not be made; the text says why (refused, no answer, out of descriptors)."""
 
 
-_resolver: ThreadPoolExecutor | None = None
 _resolving: dict[str, Future] = {}  # host name -> its lookup under way (one per name, however often it is dialled)
 _resolver_lock = threading.Lock()
 
 
 def _resolve(host: str) -> Future:
-    """The IPv4 address of ``host`` looked up on a thread of its own: ``getaddrinfo`` blocks for the resolver's
-    timeouts (seconds a try) where no name server answers, as on a vehicle off the network."""
-    global _resolver
+    """The IPv4 address of ``host`` looked up on a daemon thread of its own, one per name: ``getaddrinfo`` blocks
+    for the resolver's timeouts (seconds a try) where no name server answers, as on a vehicle off the network; a
+    pool's threads would be joined at exit (a stopping daemon held for them) and queue one name behind another."""
     with _resolver_lock:
         pending = _resolving.get(host)
         if pending is not None and not pending.done():
             return pending
-        if _resolver is None:
-            _resolver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="irtrack-resolve")
-        future = _resolver.submit(socket.getaddrinfo, host, None, socket.AF_INET, socket.SOCK_STREAM)
+        future: Future = Future()
+
+        def lookup() -> None:
+            try:
+                future.set_result(socket.getaddrinfo(host, None, socket.AF_INET, socket.SOCK_STREAM))
+            except BaseException as exc:  # noqa: BLE001 - handed to the dial, which names it
+                future.set_exception(exc)
+
+        threading.Thread(target=lookup, name="irtrack-resolve", daemon=True).start()
         _resolving[host] = future
         return future
 
@@ -271,7 +276,7 @@ class TcpDial:
             lookup, self._lookup = self._lookup, None
             try:
                 address = lookup.result()[0][4][0]
-            except (OSError, IndexError) as exc:
+            except Exception as exc:  # noqa: BLE001 - OSError, and a name the codec refuses (a label over 63 chars)
                 raise DialFailed(f"no address for {self.host!r}: {getattr(exc, 'strerror', None) or exc}") from exc
             self._connect(address)
         sock = self.sock

@@ -783,6 +783,28 @@ def test_a_tcp_autopilot_named_by_host_is_looked_up_off_the_loop(monkeypatch):
         bad.close()
 
 
+def test_a_name_lookup_under_way_does_not_hold_the_process_at_exit():
+    """The lookups ran on a pool's thread, which Python joins at exit: a daemon told to stop while a name server did
+    not answer stayed for the resolver's timeouts, past a container's stop timeout."""
+    import subprocess
+    import sys
+    import textwrap
+
+    script = textwrap.dedent("""
+        import socket, time
+        import onboard.io.mavlink_transport as t
+        from onboard.io.mavlink_wire import parse_endpoint
+        real = socket.getaddrinfo
+        def silent(host, *a):
+            time.sleep(30)  # a name server that does not answer
+            return real("127.0.0.1", *a)
+        t.socket.getaddrinfo = silent
+        t.TcpDial(parse_endpoint("tcp:autopilot.local:5760"), time.monotonic()).close()
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=20, check=False)
+    assert done.returncode == 0, done.stderr.decode()
+
+
 def test_gps_raw_int_is_decoded_into_the_gnss_state_and_a_bad_fix_type_counted(rig):
     """GPS_RAW_INT of the autopilot (not requested: its default stream) sets ``link.gnss`` and the status's
     ``gnss``; another component's is ignored; a fix type outside GPS_FIX_TYPE is counted and dropped."""
