@@ -89,9 +89,9 @@ file is synced to disk and its pages dropped from the page cache (:meth:`FlightR
 a write the disk refuses (ENOSPC, EIO) is cut back to the last whole record and stops it too, the file finished
 without the refused chunk.  Either way the flight goes on, later messages are dropped and counted, and the status's
 ``record.stopped`` says why (None while recording).
-**A file deleted or replaced under it** (its link count 0, or its name now another file's; checked once a second)
-is given up, said once (``record.lost_files``), and the recording goes on in the next file (``FILE.N.mcap``):
-the messages written to the deleted one are lost, the later ones not.
+**A file deleted or moved away under it** (its link count 0, or its name gone; checked once a second) is finished
+through its descriptor, said once, and the recording goes on in the next file (``FILE.N.mcap``): a moved file is
+complete where it went; a deleted one's messages are lost (``record.lost_files``), the later ones not.
 **Finished within its close's time**: :meth:`FlightRecorder.close` writes the backlog until a little before its
 timeout, drops and counts what is left then (``dropped_at_close``), and finishes the file (last chunk, summary,
 footer) in the writer thread: a shutdown bounded in time still leaves a complete file.
@@ -836,41 +836,44 @@ class FlightRecorder:
         self._synced = pos
         self.syncs += 1
 
-    def _file_gone(self) -> bool:
-        """Whether the file being written was deleted, or its name given to another file, since it was opened
-        (checked at most once a second: an fstat and a stat)."""
+    def _file_gone(self) -> str | None:
+        """``"deleted"`` when the file being written has no name left (its messages are lost), ``"moved"`` when its
+        name is gone but the file has another (finished through its descriptor, it is complete where it went), else
+        None; checked at most once a second (an fstat and a stat).  Inode numbers are not compared: an overlay file
+        system on older kernels gives different ones through the two calls."""
         now = time.monotonic()
         if self._file is None or now < self._next_lost_check_s:
-            return False
+            return None
         self._next_lost_check_s = now + 1.0
         try:
-            st = os.fstat(self._file.fileno())
-            if st.st_nlink == 0:
-                return True
-            named = os.stat(self.files[-1])
-        except FileNotFoundError:
-            return True
+            if os.fstat(self._file.fileno()).st_nlink == 0:
+                return "deleted"
+            return None if os.path.exists(self.files[-1]) else "moved"
         except OSError:  # another error (a permission changed): the writes will tell
-            return False
-        return (named.st_dev, named.st_ino) != (st.st_dev, st.st_ino)
+            return None
 
     def _maybe_rotate(self) -> None:
         if self._writer is None:
             return
-        if self._file_gone():
-            lost = self.files.pop()
-            self.lost_files.append(lost)
+        gone = self._file_gone()
+        if gone is not None:
             index = self._index + 1
-            self._finish()  # into the deleted file: its descriptor still takes the writes
+            self._finish()  # through its descriptor: a moved file is complete where it went, a deleted one is lost
+            name = self.files.pop()
+            if gone == "deleted":
+                self.lost_files.append(name)
             reason = self._short_of_space()
             if reason is not None:
                 self._halt(reason, [], refused=False)
                 return
             self._open(index)
             log.warning(
-                "recorder: %s was deleted or replaced while recording: the messages written to it are lost; "
-                "recording goes on in %s (the status's record.lost_files lists such files)",
-                lost,
+                "recorder: %s was %s while recording%s; recording goes on in %s",
+                name,
+                gone,
+                ": the messages written to it are lost (the status's record.lost_files)"
+                if gone == "deleted"
+                else " (finished where it went, whole)",
                 self.files[-1],
             )
             return

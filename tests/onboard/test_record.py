@@ -241,7 +241,32 @@ def test_a_recording_deleted_while_written_goes_on_in_the_next_file_and_says_so(
     assert rec.files == [str(tmp_path / "f.1.mcap")] and sorted(p.name for p in tmp_path.iterdir()) == ["f.1.mcap"]
     seqs = [m.sequence for _, _c, m in _read_all(tmp_path / "f.1.mcap")]
     assert seqs and seqs[-1] == i + 2  # the frames after the loss, in a complete file
-    assert sum("was deleted or replaced while recording" in r.getMessage() for r in caplog.records) == 1
+    assert sum("was deleted while recording" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_recording_moved_away_while_written_is_finished_where_it_went_and_not_called_lost(tmp_path):
+    path = tmp_path / "m.mcap"
+    moved = tmp_path / "kept" / "m-moved.mcap"
+    moved.parent.mkdir()
+    rec = FlightRecorder(below_floors(RecordConfig(path=str(path), flush_interval_s=0.05)), vehicle="uav1")
+    rec.start()
+    for i in range(3):
+        rec.on_frame(_frame(i), i)
+    deadline = time.monotonic() + 10.0
+    while rec.messages_written < 3 and time.monotonic() < deadline:
+        time.sleep(0.002)
+    os.rename(path, moved)  # an operator tidying the folder, the file still whole
+    i = 3
+    while rec.files == [str(path)] and time.monotonic() < deadline:
+        rec.on_frame(_frame(i), i)
+        i += 1
+        time.sleep(0.01)
+    rec.close()
+    assert rec.lost_files == [] and rec.files == [str(tmp_path / "m.1.mcap")]
+    first = [m.sequence for _, _c, m in _read_all(moved)]
+    assert first[:3] == [0, 1, 2]
+    with open(moved, "rb") as f:  # complete where it went: the indexed reader finds its summary
+        assert mcap_reader.make_reader(f).get_summary() is not None
 
 
 _CHILD = textwrap.dedent("""
