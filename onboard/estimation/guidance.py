@@ -814,11 +814,13 @@ class SetpointGate:
     def halt(self, now_s: float) -> SetpointDecision:
         """The daemon is stopping: zero velocity once when it was commanding the vehicle (sending, holding or
         braking), so that the vehicle does not fly the last setpoint on until the autopilot's timeout; the gate
-        latches ``stopped``."""
+        then latches ``stopped`` (counted once).  Not commanding: nothing sent, nothing changed."""
         if not self.config.enabled or self.state == "off":
             return SetpointDecision(False, None, "off", self.why)
         commanding = self.state in ("sending", "holding") or now_s < self._brake_until_s
         self._brake_until_s = -math.inf
+        if not commanding:
+            return SetpointDecision(False, None, self.state, self.why)
         self.state, self.why = "stopped", "shutdown: the daemon stopped"
         self.stops["shutdown"] = self.stops.get("shutdown", 0) + 1
-        return SetpointDecision(commanding, np.zeros(3) if commanding else None, self.state, self.why)
+        return SetpointDecision(True, np.zeros(3), self.state, self.why)

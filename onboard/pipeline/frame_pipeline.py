@@ -394,7 +394,7 @@ class FramePipeline:
             # called by the chain once the frame is detected (which needs no pose): the wait for the telemetry
             # that brackets the capture overlaps the detection instead of coming before it
             nonlocal waited_ns
-            if self.chain_pose_wait is not None:
+            if self.chain_pose_wait is not None and self._admission.apart_us is None:  # apart: no pose to wait for
                 waited_ns += self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
             return self._camera_rotation(frame.time_boot_us)
 
@@ -412,7 +412,7 @@ class FramePipeline:
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us
-        if self.pose_wait is not None and self.pose_source is not None:
+        if self.pose_wait is not None and self.pose_source is not None and self._admission.apart_us is None:
             waited_ns += self._timed_wait(self.pose_wait, t_us)
         stamp_pose = pose = None
         self._shift_us = 0

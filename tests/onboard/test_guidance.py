@@ -493,6 +493,7 @@ def test_the_daemon_stopping_while_commanding_sends_zero_velocity_once():
     d = gate.halt(0.2)
     assert d.send and not d.v_ned_mps.any() and d.state == "stopped" and gate.stops == {"shutdown": 1}
     assert not gate.step(0.3, link_connected=True, mode=GUIDED, pose=pose, advice=(5.0, np.ones(3))).send  # latched
+    assert not gate.halt(0.4).send and gate.stops == {"shutdown": 1}  # a second call: nothing more
     idle = SetpointGate(build(GuidanceConfig, {"enabled": True}))
     assert not idle.halt(0.0).send  # never commanded: nothing to stop
     assert not SetpointGate(GuidanceConfig()).halt(0.0).send  # guidance off
