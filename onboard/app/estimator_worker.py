@@ -81,7 +81,37 @@ FORKSERVER_PRELOAD = ["onboard.app.main", "onboard.app.estimator_worker", "onboa
 SNAPSHOT_PERIOD_S = 5.0
 
 
-class ThreadedEstimator:
+class _Carried:
+    """What both workers' callers share: the newest estimate of the current epoch carried to a frame's time
+    (:func:`_propagate`) when the worker's own answer is late, and the gap in the frames that makes an old one no
+    sign of overload (``_gap_end_t``)."""
+
+    _latest: Any
+    _epoch: int
+    max_extrapolation_s: float
+    _counter: Any
+    _noise: Any
+    _map_config: Any
+    _gap_end_t: float
+
+    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
+        latest = self._latest
+        if latest is None or latest[0] != self._epoch:
+            return None
+        return _propagate(
+            latest[1],
+            t,
+            p_cam_ned_m,
+            self.max_extrapolation_s,
+            self._counter,
+            obs,
+            self._noise,
+            self._map_config,
+            after_gap=obs is not None and float(latest[1].t_s) < self._gap_end_t,
+        )
+
+
+class ThreadedEstimator(_Carried):
     """The estimator interface (``add`` / ``predict`` / ``reset``) with the work in a worker thread.
 
     ``add`` queues the observation and waits up to ``result_wait_s`` for its estimate; if the
@@ -180,22 +210,6 @@ class ThreadedEstimator:
 
     def close(self, timeout_s: float = 1.0) -> None:
         stop_and_join(self._cond, self._stop, self._thread, timeout_s)
-
-    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
-        latest = self._latest
-        if latest is None or latest[0] != self._epoch:
-            return None
-        return _propagate(
-            latest[1],
-            t,
-            p_cam_ned_m,
-            self.max_extrapolation_s,
-            self._counter,
-            obs,
-            self._noise,
-            self._map_config,
-            after_gap=obs is not None and float(latest[1].t_s) < self._gap_end_t,
-        )
 
     # ------------------------------------------------------------------ worker
 
@@ -470,7 +484,7 @@ def _estimator_process_main(conn, config: OnboardConfig) -> None:
             return
 
 
-class ProcessEstimator:
+class ProcessEstimator(_Carried):
     """The estimator interface with the estimator in a child process (no GIL shared with the frames).
 
     Same contract as :class:`ThreadedEstimator`: ``add`` sends the observation and waits up to
@@ -827,22 +841,6 @@ class ProcessEstimator:
             return
         with contextlib.suppress(OSError, ValueError):  # a dead worker is found and replaced by the next add
             self._queue(("reset",))
-
-    def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
-        latest = self._latest
-        if latest is None or latest[0] != self._epoch:
-            return None
-        return _propagate(
-            latest[1],
-            t,
-            p_cam_ned_m,
-            self.max_extrapolation_s,
-            self._counter,
-            obs,
-            self._noise,
-            self._map_config,
-            after_gap=obs is not None and float(latest[1].t_s) < self._gap_end_t,
-        )
 
     def close(self, timeout_s: float = 1.0) -> None:
         proc, conn = self._proc, self._conn
