@@ -660,6 +660,15 @@ def _poll_until(link: MavlinkLink, cond) -> bool:
     return False
 
 
+def _connects_and_hears(link: MavlinkLink, server: socket.socket) -> None:
+    """The link's dial gets through to ``server``, and a heartbeat sent there is handled (its first message)."""
+    assert _poll_until(link, lambda: link.fileno() is not None)
+    peer, _ = server.accept()
+    with peer:
+        peer.sendall(_heartbeat_bytes())
+        assert _poll_until(link, lambda: link.messages_rx == 1)
+
+
 def test_a_tcp_autopilot_that_closes_the_connection_is_dialled_again_after_the_reopen_interval(capsys):
     """pymavlink's own reconnection dialled again inside every read, printing "Attempting reconnect" to stdout,
     and its connection kept the closed socket's descriptor for the main loop's select (another file's once the
@@ -730,11 +739,7 @@ def test_a_tcp_autopilot_that_does_not_answer_never_blocks_the_loop():
         filler.close()
         server.settimeout(WAIT_S)
         clock.t_s += config.reopen_interval_s
-        assert _poll_until(link, lambda: link.fileno() is not None)
-        peer, _ = server.accept()
-        with peer:
-            peer.sendall(_heartbeat_bytes())
-            assert _poll_until(link, lambda: link.messages_rx == 1)
+        _connects_and_hears(link, server)
     finally:
         link.close()
         filler.close()
@@ -767,11 +772,7 @@ def test_a_tcp_autopilot_named_by_host_is_looked_up_off_the_loop(monkeypatch):
         link.tick()
         assert link.fileno() is None and counters.total == 0  # under way, the loop not held
         gate.set()
-        assert _poll_until(link, lambda: link.fileno() is not None)
-        peer, _ = server.accept()
-        with peer:
-            peer.sendall(_heartbeat_bytes())
-            assert _poll_until(link, lambda: link.messages_rx == 1)
+        _connects_and_hears(link, server)
     finally:
         link.close()
         server.close()
