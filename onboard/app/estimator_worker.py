@@ -801,6 +801,13 @@ class ProcessEstimator(_Carried):
         self.late_results += 1
         return self._extrapolate(t, p_cam_ned_m, args[1:])
 
+    @property
+    def silent_s(self) -> float:
+        """How long the worker has answered none of the rows sent to it (s; 0 when it is up to date): a stopped or
+        stalled process, killed and replaced at ``HUNG_S``."""
+        since = self._unanswered_since_s
+        return 0.0 if since is None else max(self._clock() - since, 0.0)
+
     def _kill_if_hung(self) -> None:
         """Kill a worker that answered none of the rows sent to it for ``HUNG_S`` (class docstring); the caller's
         liveness check then replaces it."""

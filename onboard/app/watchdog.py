@@ -121,6 +121,7 @@ OVERLOAD_CLEAR_S = 5.0
 VIDEO_RATE_TOLERANCE = 0.2
 ROTATION_SILENT_S = 2.0
 ESTIMATOR_RESTART_CLEAR_S = 30.0
+ESTIMATOR_SILENT_S = 1.0  # a worker that has answered nothing this long is named as overload's cause
 INPUTS_LIVE_S = 1.0  # frames and MAVLink messages within this long count as arriving, for no_attitude
 
 _log = logging.getLogger(__name__)
@@ -512,9 +513,19 @@ class Watchdog:
                 f"(estimator.*_sigma_*) is too optimistic; 3-D positions are not to be trusted",
             )
 
-    def load(self, now_s: float, *, frames_dropped: int, estimates_stale: int, cpu_words: str = "") -> None:
+    def load(
+        self,
+        now_s: float,
+        *,
+        frames_dropped: int,
+        estimates_stale: int,
+        cpu_words: str = "",
+        estimator_silent_s: float = 0.0,
+    ) -> None:
         """Update with the running counts of frames dropped and positions withheld as too old;
-        ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``)."""
+        ``cpu_words``: the CPU the daemon got, in words, for the message (see ``overload``);
+        ``estimator_silent_s``: how long the estimator's worker process has answered nothing (the cause the message
+        names instead of the CPU when frames are not being dropped)."""
         counts = (int(frames_dropped), int(estimates_stale))
         last, self._load_counts = self._load_counts, counts
         if last is None:
@@ -529,13 +540,24 @@ class Watchdog:
                 self._load_seen[1] + max(counts[1] - last[1], 0),
             )
             since = now_s - (self._load_since_s if self._load_since_s is not None else now_s)
-            self._raise(
-                "overload",
-                f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old "
-                f"since the overload began {since:.1f} s ago: the daemon does not get the CPU it needs{cpu_words}; raise its "
-                "CPU limit (compose deploy.resources.limits.cpus, sized in deploy/README.md), lower the camera's "
-                "frame rate, or move other work off this computer",
+            seen = (
+                f"{self._load_seen[0]} frames dropped and {self._load_seen[1]} positions withheld as too old since the "
+                f"overload began {since:.1f} s ago"
             )
+            if counts[0] == last[0] and estimator_silent_s >= ESTIMATOR_SILENT_S:
+                # the frames keep up and the worker does not answer: a stopped or stalled process, not the CPU
+                self._raise(
+                    "overload",
+                    f"{seen}: the estimator's worker process has answered nothing for {estimator_silent_s:.1f} s (a "
+                    f"stopped or stalled process; it is killed and replaced after 5 s){cpu_words}",
+                )
+            else:
+                self._raise(
+                    "overload",
+                    f"{seen}: the daemon does not get the CPU it needs{cpu_words}; raise its CPU limit (compose "
+                    "deploy.resources.limits.cpus, sized in deploy/README.md), lower the camera's frame rate, or move "
+                    "other work off this computer",
+                )
         elif now_s - self._last_overload_s >= OVERLOAD_CLEAR_S:
             self._clear("overload")
 

@@ -189,3 +189,16 @@ def test_overload_raised_on_the_first_growth_and_cleared(caplog):
     assert not wd.active
     warned = [r for r in caplog.records if r.levelno == logging.WARNING]
     assert len(warned) == 1  # logged once
+
+
+def test_overload_names_a_silent_estimator_worker_instead_of_the_cpu(caplog):
+    """Positions withheld as too old while no frame is dropped and the worker has answered nothing for a while (a
+    stopped or stalled process): the message blamed the CPU (a failure-injection audit: SIGSTOP on the worker,
+    throttled share 0)."""
+    wd = _watchdog(caplog)
+    wd.load(0.0, frames_dropped=0, estimates_stale=0)
+    wd.load(0.5, frames_dropped=0, estimates_stale=4, cpu_words=" (it got 0.18 of a core)", estimator_silent_s=1.6)
+    (w,) = wd.active
+    assert "worker process has answered nothing for 1.6 s" in w.message and "cpus" not in w.message
+    wd.load(1.0, frames_dropped=2, estimates_stale=8, estimator_silent_s=2.1)  # frames dropped too: the CPU's words
+    assert "does not get the CPU it needs" in wd.active[0].message

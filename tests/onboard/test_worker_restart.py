@@ -234,10 +234,14 @@ def test_a_hung_worker_is_killed_and_replaced_before_its_pipe_can_block_the_fram
         os.kill(hung_pid, signal.SIGSTOP)
         i = HUNG_FRAMES_BEFORE_STOP
         t0 = time.monotonic()
+        silent = []
         while counter.counts.get("estimator_hung", 0) == 0 and i < len(obs.t_s) - 1:
             now[0] += 0.2  # the daemon's clock, not the rows': a few rows reach HUNG_S
+            silent.append(pe.silent_s)  # what the watchdog names as overload's cause meanwhile
             _add(pe, obs, K, i)
             i += 1
+        # up to date when stopped; from the first row it did not answer, the clock runs
+        assert silent[0] == 0.0 and silent[1] == pytest.approx(0.2) and max(silent) >= pe.HUNG_S - 0.2
         assert counter["estimator_hung"] == 1 and time.monotonic() - t0 < 15.0  # ~HUNG_S of fake clock, not a block
         assert now[0] >= pe.HUNG_S
         deadline = time.monotonic() + 10.0
