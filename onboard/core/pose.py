@@ -561,11 +561,10 @@ class PoseBuffer:
 
     def _store_position(self, t: int, p, v, q_lv) -> bool:
         """Store ``p`` (3 floats, NED m), ``v`` (3 floats) and ``q_lv`` (``q_ned_from_level`` there, 4 floats) unless
-        ``p`` is a jump from the newest position: a move faster than ``max_speed_mps``, or (within a position
-        bracket, both velocities known) a position off where the newest one and the two velocities put it by more
-        than :meth:`_velocity_miss` allows."""
+        ``p`` is a jump from the newest position: faster than ``max_speed_mps``, or :meth:`_velocity_miss`."""
         if self._pos.t_us:
-            dt_s = (t - self._pos.t_us[-1]) / US_PER_S
+            t_last = self._pos.t_us[-1]
+            dt_s = (t - t_last) / US_PER_S
             last = self._pos.values[-1]
             n0, e0, d0 = last[:3].tolist()
             dn, de, dd = p[0] - n0, p[1] - e0, p[2] - d0
@@ -573,7 +572,6 @@ class PoseBuffer:
             limit_m = self.config.max_speed_mps * dt_s
             if step_m > limit_m * (1.0 - 1e-9):  # a jump, or near enough that numpy's norm must decide
                 step_m = float(np.linalg.norm(np.array(p) - last[:3]))
-            t_last = self._pos.t_us[-1]
             jump = (
                 f"{step_m:.1f} m in {dt_s * 1e3:.0f} ms"
                 if step_m > limit_m
@@ -581,11 +579,10 @@ class PoseBuffer:
             )
             refused = self._refused
             if jump is None and self._jumps and refused is not None and refused[0] < t:
-                # each refusal widened the interval to the newest kept sample, and the tolerances with it (at 5 Hz a
-                # 3 m step passed after one refusal): a sample that goes on from the refused ones, as their own
-                # velocities say, is the displaced track persisting, not the old one coming back
-                known = math.isfinite(v[0]) and math.isfinite(float(refused[1][3]))
-                if known and self._velocity_miss(refused[1], refused[0], p, v, t, past_gap=True) is None:
+                # each refusal widens the interval to the newest kept sample, and the tolerances with it: a sample
+                # going on from the refused ones is the displaced track persisting, not the old one coming back
+                check = self._velocity_check(refused[1], refused[0], p, v, t)
+                if check is not None and check[0] <= check[1]:
                     jump = "on from the refused positions"
             if jump is not None:
                 self._refused = (t, np.array((*p, *v)))
@@ -605,29 +602,32 @@ class PoseBuffer:
         self._pos.append(t, np.array((*p, *v, *q_lv)), self.config.window_us, MAX_SAMPLES)
         return True
 
-    def _velocity_miss(self, last: np.ndarray, t_last: int, p, v, t: int, past_gap: bool = False) -> str | None:
+    def _velocity_miss(self, last: np.ndarray, t_last: int, p, v, t: int) -> str | None:
         """Why ``p`` (at ``t``) is a jump from ``last`` (a sample's row, at ``t_last``) though no faster than
-        ``max_speed_mps``, or None: it lies farther than ``max_position_step_m`` (plus three sigmas of the velocities'
-        error and an unmodelled acceleration over the interval) from ``last``'s position moved by the two reported
-        velocities' mean over the interval, which is exact under a constant acceleration.  An autopilot reports its
-        estimate's position and velocity together, so a reset of that estimate (a GNSS jump, a switch of receiver) is
-        a position step its velocity does not share: at 25 Hz the speed test alone let any step under 8 m through at
-        once, and one under ~40 m after a few rejections had widened the interval, the stream carrying on across it
-        as if the camera had moved there.  Not judged past a position bracket (a gap: the speed test alone; unless
-        ``past_gap``) or without both velocities."""
+        ``max_speed_mps`` (farther than :meth:`_velocity_check` allows), or None.  An autopilot reports its estimate's position
+        and velocity together, so a reset of that estimate (a GNSS jump, a switch of receiver) is a position step its
+        velocity does not share, which the speed test alone takes for motion.  Not judged past a position bracket (a
+        gap: the speed test alone)."""
+        if t - t_last > self.config.pos_max_gap_us:
+            return None
+        check = self._velocity_check(last, t_last, p, v, t)
+        if check is None or check[0] <= check[1]:
+            return None
+        return f"{check[0]:.1f} m off where the reported velocity puts it after {(t - t_last) / 1e3:.0f} ms"
+
+    def _velocity_check(self, last: np.ndarray, t_last: int, p, v, t: int) -> tuple[float, float] | None:
+        """``(miss_m, tolerance_m)``: how far ``p`` (at ``t``) lies from ``last``'s position (a sample's row, at
+        ``t_last``) moved by the two reported velocities' mean over the interval, which is exact under a constant
+        acceleration, and how far it may: ``max_position_step_m`` plus three sigmas of the velocities' error and an
+        unmodelled acceleration over the interval.  None without both velocities or a later time."""
         c = self.config
         dt_us = t - t_last
-        if not 0 < dt_us or (dt_us > c.pos_max_gap_us and not past_gap):
-            return None
-        if not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
+        if dt_us <= 0 or not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
             return None
         dt_s = dt_us / US_PER_S
         half = 0.5 * dt_s
         miss_m = math.sqrt(sum((p[k] - (float(last[k]) + half * (float(last[3 + k]) + v[k]))) ** 2 for k in range(3)))
-        tolerance_m = c.max_position_step_m + 3.0 * extrapolation_sigma(dt_s, c.velocity_sigma_mps, c.accel_sigma_mps2)
-        if miss_m <= tolerance_m:
-            return None
-        return f"{miss_m:.1f} m off where the reported velocity puts it after {dt_s * 1e3:.0f} ms"
+        return miss_m, c.max_position_step_m + 3.0 * extrapolation_sigma(dt_s, c.velocity_sigma_mps, c.accel_sigma_mps2)
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
         """Store the gimbal attitude relative to the pod mount."""
