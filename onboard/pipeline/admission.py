@@ -167,6 +167,7 @@ class FrameAdmission:
                 t_us,
                 far=True,
                 apart=True,
+                reference_us=reference_us,
                 reason="time_ahead" if step > 0 else "time_behind",
                 message=f"first frame seq {seq} at time_boot_us {t_us} is {step:+.3f} s from the telemetry",
             )
@@ -197,11 +198,27 @@ class FrameAdmission:
             ):
                 return self._accept(seq, t_us, "")
             apart = reference_us is not None and abs(t_us - reference_us) > thr
-            return self._candidate(seq, t_us, far=True, apart=apart, reason="time_ahead", message=f"frame {where}")
+            return self._candidate(
+                seq,
+                t_us,
+                far=True,
+                apart=apart,
+                reference_us=reference_us,
+                reason="time_ahead",
+                message=f"frame {where}",
+            )
         far = t_us < last_t - thr
         apart = far and reference_us is not None and abs(t_us - reference_us) > thr
         if seq_forward:
-            return self._candidate(seq, t_us, far=far, apart=apart, reason="time_behind", message=f"frame {where}")
+            return self._candidate(
+                seq,
+                t_us,
+                far=far,
+                apart=apart,
+                reference_us=reference_us,
+                reason="time_behind",
+                message=f"frame {where}",
+            )
         return self._candidate(seq, t_us, far=False, reason="out_of_order", message=f"frame {where}")
 
     # ------------------------------------------------------------------ internals
@@ -229,10 +246,18 @@ class FrameAdmission:
         return expected_us is not None and abs(t_us - expected_us) <= self.threshold_us
 
     def _candidate(
-        self, seq: int, t_us: int, *, far: bool, reason: str, message: str, apart: bool = False
+        self,
+        seq: int,
+        t_us: int,
+        *,
+        far: bool,
+        reason: str,
+        message: str,
+        apart: bool = False,
+        reference_us: int | None = None,
     ) -> Admission:
         """Refuse, unless this frame completes a consistent run (module docstring); ``apart``: the frame is far from
-        the telemetry's newest time as well."""
+        ``reference_us``, the telemetry's newest time, as well."""
         run = self._run
         if run and far == self._run_far and run[-1][1] < t_us <= run[-1][1] + self.threshold_us:
             if _forward(seq, run[-1][0]):
@@ -256,8 +281,8 @@ class FrameAdmission:
                 what += " (apart from the telemetry's clock too)"
         event = "time_reset" if far else "stream_restart"
         verdict = self._accept(seq, t_us, event, what, restart=True)
-        if apart:  # beyond the threshold until admit measures it against the telemetry, as it does frame by frame
-            self.apart_us = self.threshold_us + 1
+        if apart and reference_us is not None:  # admit follows it from here, frame by frame
+            self.apart_us = t_us - reference_us
         return verdict
 
     def _accept(self, seq: int, t_us: int, event: str, message: str = "", restart: bool = False) -> Admission:

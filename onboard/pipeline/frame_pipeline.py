@@ -86,7 +86,7 @@ import numpy as np
 from onboard.core.counters import RejectCounter
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin, PinholeIntrinsics, geodetic_from_ned, rotmat_from_quat
-from onboard.core.irframe import IrFrame, IrFrameError, decode_irframe
+from onboard.core.irframe import ENCODING_MONO8, ENCODING_MONO16, IrFrame, IrFrameError, decode_irframe
 from onboard.core.pose_types import PoseAt
 from onboard.core.status import RollingStats
 from onboard.core.track import LineOfSight, Track, line_of_sight_ned
@@ -376,13 +376,16 @@ class FramePipeline:
                 f"{K.width_px} x {K.height_px} (camera.intrinsics)",
             )
         self._admit(frame)
+        # while the stream's clock stands apart from the telemetry's, no pose: none is waited for or looked up
+        apart_us = self._admission.apart_us
+        self.clock_apart_s = None if apart_us is None else apart_us / US_PER_S
         encoding = frame.encoding
         if encoding != self._encoding and self._encoding is not None:
             # a camera switching modes, or a second publisher on the key: the image chain's statistics start again
+            names = {ENCODING_MONO8: "mono8", ENCODING_MONO16: "mono16"}
             self.counter.count(
                 "frame_encoding_changed",
-                f"frame seq {frame.seq} is {'mono8' if encoding == 1 else 'mono16'}, the stream's were "
-                f"{'mono8' if self._encoding == 1 else 'mono16'}",
+                f"frame seq {frame.seq} is {names[encoding]}, the stream's were {names[self._encoding]}",
                 level=logging.INFO,
             )
         self._encoding = encoding
@@ -394,7 +397,7 @@ class FramePipeline:
             # called by the chain once the frame is detected (which needs no pose): the wait for the telemetry
             # that brackets the capture overlaps the detection instead of coming before it
             nonlocal waited_ns
-            if self.chain_pose_wait is not None and self._admission.apart_us is None:  # apart: no pose to wait for
+            if self.chain_pose_wait is not None and apart_us is None:
                 waited_ns += self._timed_wait(self.chain_pose_wait, frame.time_boot_us - self._compensation_us())
             return self._camera_rotation(frame.time_boot_us)
 
@@ -412,12 +415,10 @@ class FramePipeline:
         state = upd.state.value if hasattr(upd.state, "value") else str(upd.state)
 
         t_us = frame.time_boot_us
-        if self.pose_wait is not None and self.pose_source is not None and self._admission.apart_us is None:
+        if self.pose_wait is not None and self.pose_source is not None and apart_us is None:
             waited_ns += self._timed_wait(self.pose_wait, t_us)
         stamp_pose = pose = None
         self._shift_us = 0
-        apart_us = self._admission.apart_us
-        self.clock_apart_s = None if apart_us is None else apart_us / US_PER_S
         if apart_us is not None:
             self.counter.count(
                 "pose_clock_apart",
