@@ -195,6 +195,10 @@ class GuidanceTap:
             level = logging.WARNING if decision.state == "stopped" else logging.INFO
             log.log(level, "guidance in the loop: %s%s", decision.state, f" ({decision.why})" if decision.why else "")
             self._last_state = decision.state
+        return self._send(decision, link)
+
+    def _send(self, decision, link: Any) -> bool:
+        """Write ``decision``'s setpoint when the gate said to send one; True when written."""
         if decision.send and decision.v_ned_mps is not None and link.send_setpoint(decision.v_ned_mps):
             self.setpoints_sent += 1
             return True
@@ -207,9 +211,7 @@ class GuidanceTap:
         if not self.in_loop or link is None:
             return False
         try:
-            decision = self.gate.halt(self._clock())
-            if decision.send and decision.v_ned_mps is not None and link.send_setpoint(decision.v_ned_mps):
-                self.setpoints_sent += 1
+            if self._send(self.gate.halt(self._clock()), link):
                 log.info("guidance in the loop: stopped (shutdown: a zero-velocity setpoint sent)")
                 return True
         except Exception as exc:  # noqa: BLE001 - the shutdown must go on

@@ -334,9 +334,8 @@ class OnboardService:
         taps, closed last, then get what is left of it (at least :data:`MIN_TAP_CLOSE_S`) instead of
         ``timeout_s``: the recorder writes its backlog for that long and finishes its file within it."""
         self._stop.set()
-        if (
-            self.link is not None
-        ):  # guidance commanding the vehicle: zero velocity first, not its last setpoint flown on
+        # guidance commanding the vehicle: zero velocity first, not its last setpoint flown on
+        if self.link is not None:
             for halt in (getattr(tap, "halt", None) for tap in self.taps):
                 if halt is not None:
                     halt(self.link)

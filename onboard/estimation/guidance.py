@@ -770,8 +770,7 @@ class SetpointGate:
                 # without heartbeats the mode is unknown: zero velocity is harmless in any other mode
                 return SetpointDecision(True, np.zeros(3), self.state, self.why)
             return SetpointDecision(False, None, self.state, self.why)
-        # commanding the vehicle: sending an advice, or braking or holding after one
-        was_sending = self.state in ("sending", "holding") or now_s < self._brake_until_s
+        was_sending = self._commanding(now_s)
         if not link_connected:
             if was_sending:
                 return self._stop("link_lost: no autopilot heartbeat", now_s)
@@ -817,10 +816,12 @@ class SetpointGate:
         then latches ``stopped`` (counted once).  Not commanding: nothing sent, nothing changed."""
         if not self.config.enabled or self.state == "off":
             return SetpointDecision(False, None, "off", self.why)
-        commanding = self.state in ("sending", "holding") or now_s < self._brake_until_s
-        self._brake_until_s = -math.inf
-        if not commanding:
+        if not self._commanding(now_s):
             return SetpointDecision(False, None, self.state, self.why)
-        self.state, self.why = "stopped", "shutdown: the daemon stopped"
-        self.stops["shutdown"] = self.stops.get("shutdown", 0) + 1
-        return SetpointDecision(True, np.zeros(3), self.state, self.why)
+        decision = self._stop("shutdown: the daemon stopped", now_s)
+        self._brake_until_s = -math.inf  # one setpoint: nothing follows a daemon that stops
+        return decision
+
+    def _commanding(self, now_s: float) -> bool:
+        """Whether the vehicle is being commanded: an advice sent, or zero velocity braking or holding after one."""
+        return self.state in ("sending", "holding") or now_s < self._brake_until_s
