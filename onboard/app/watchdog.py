@@ -292,32 +292,26 @@ class Watchdog:
             )
         elif now_s - self._estimator_restart_s >= ESTIMATOR_RESTART_CLEAR_S:
             self._clear("estimator_restarted")
-        stopped = None if record is None else record.get("stopped")
-        if not stopped:
-            self._clear("record_stopped")
-        else:
-            self._raise(
-                "record_stopped",
-                f"the flight recording stopped: {stopped}; the flight goes on, later messages are dropped and counted "
-                "(record.stopped)",
-            )
-        lost = [] if record is None else list(record.get("lost_files") or [])
-        if not lost:
-            self._clear("record_file_lost")
-        else:
-            self._raise(
-                "record_file_lost",
-                f"recording file(s) deleted or replaced while written, their messages lost: {', '.join(lost)}; the "
-                f"recording goes on in {record.get('current_file') if record else None}",
-            )
-        if health_error is None:
-            self._clear("health_file")
-        else:
-            self._raise(
-                "health_file",
-                f"cannot touch the liveness file: {health_error}; a health check (python -m onboard.health, the "
-                "container's HEALTHCHECK) fails and may restart this daemon; check output.health_file's folder",
-            )
+        record = record or {}
+        stopped, lost = record.get("stopped"), list(record.get("lost_files") or [])
+        self._hold(
+            "record_stopped",
+            stopped
+            and f"the flight recording stopped: {stopped}; the flight goes on, later messages are dropped and counted "
+            "(record.stopped)",
+        )
+        self._hold(
+            "record_file_lost",
+            lost
+            and f"recording file(s) deleted while written, their messages lost: {', '.join(lost)}; the recording goes "
+            f"on in {record.get('current_file')}",
+        )
+        self._hold(
+            "health_file",
+            health_error
+            and f"cannot touch the liveness file: {health_error}; a health check (python -m onboard.health, the "
+            "container's HEALTHCHECK) fails and may restart this daemon; check output.health_file's folder",
+        )
 
     def _rotation(self, now_s: float, newest_us: int | None, gimballed: bool) -> None:
         if newest_us is not None and newest_us != self._rotation_newest_us:
@@ -478,14 +472,12 @@ class Watchdog:
     def camera_clock(self, now_s: float, apart_s: float | None) -> None:
         """The frames' clock against the telemetry's: ``apart_s`` how far the last frame's stamp stood from the
         telemetry's newest sample while the two disagree, None when they agree (module docstring)."""
-        if apart_s is None:
-            self._clear("camera_clock_apart")
-            return
-        self._raise(
+        self._hold(
             "camera_clock_apart",
-            f"IR frames are stamped {apart_s:+.1f} s from the autopilot's telemetry since a step of the camera's clock "
-            "the telemetry did not share: no line of sight and no 3-D until the two agree; check the camera's time "
-            "stamping (capture time on the autopilot's boot clock, through TIMESYNC)",
+            apart_s is not None
+            and f"IR frames are stamped {apart_s:+.1f} s from the autopilot's telemetry since a step of the camera's "
+            "clock the telemetry did not share: no line of sight and no 3-D until the two agree; check the camera's "
+            "time stamping (capture time on the autopilot's boot clock, through TIMESYNC)",
         )
 
     def residual(self, now_s: float, residual_rms_norm: float | None) -> None:
@@ -586,6 +578,13 @@ class Watchdog:
             self._log.warning("%s: %s", code, message)
         else:
             self._log.info("%s again (warned before): %s", code, message)
+
+    def _hold(self, code: str, message: object) -> None:
+        """Raise ``code`` with ``message`` while the condition holds (a message), clear it when not (a falsy one)."""
+        if message:
+            self._raise(code, str(message))
+        else:
+            self._clear(code)
 
     def _clear(self, code: str) -> None:
         if code not in self._active:  # the usual case, several times a frame: no lock for nothing to clear
