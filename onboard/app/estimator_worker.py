@@ -92,7 +92,15 @@ class _Carried:
     _counter: Any
     _noise: Any
     _map_config: Any
-    _gap_end_t: float
+    #: the first frame after the latest gap in the frames longer than ``max_extrapolation_s`` (:meth:`_note_frame`)
+    _gap_end_t: float = -math.inf
+
+    def _note_frame(self, t: float, previous_t: float | None) -> None:
+        """A frame at ``t``, the one before it at ``previous_t`` (None: none): frames that stopped coming for longer
+        than an estimate is carried (a camera or network outage) make the newest estimate old because nothing came,
+        not because the daemon is behind, until an estimate made after them comes."""
+        if previous_t is not None and t - previous_t > self.max_extrapolation_s:
+            self._gap_end_t = t
 
     def _extrapolate(self, t: float, p_cam_ned_m, obs=None):
         latest = self._latest
@@ -144,8 +152,7 @@ class ThreadedEstimator(_Carried):
         self._stop = threading.Event()
         self.worker_cpu_s = 0.0
         self.late_results = 0
-        self._last_add_t = -math.inf
-        self._gap_end_t = -math.inf  # the first frame after the latest gap in the frames (ProcessEstimator.add)
+        self._last_add_t: float | None = None
         self._thread = threading.Thread(target=self._run, name="irtrack-estimator", daemon=True)
         self._thread.start()
 
@@ -154,8 +161,7 @@ class ThreadedEstimator(_Carried):
     def add(self, t_s: float, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam):
         args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
-        if t - self._last_add_t > self.max_extrapolation_s and math.isfinite(self._last_add_t):
-            self._gap_end_t = t  # as ProcessEstimator.add: after a gap in the frames, an old estimate is no overload
+        self._note_frame(t, self._last_add_t)
         self._last_add_t = t
         deadline = time.monotonic() + self.result_wait_s
         with self._cond:
@@ -554,9 +560,6 @@ class ProcessEstimator(_Carried):
         self._window_s = float(limits.window_s)
         self._min_spacing_s = float(getattr(limits, "min_spacing_s", 0.0))
         self._window: collections.deque = collections.deque(maxlen=int(limits.max_frames))  # observation args
-        self._gap_end_t = (
-            -math.inf
-        )  # the first frame after the latest gap in the frames longer than max_extrapolation_s
         self._snapshot = None  # (t_s, bytes): the worker's state, every SNAPSHOT_PERIOD_S
         self._backoff_s = 0.0
         self._next_start_s = -math.inf
@@ -771,10 +774,7 @@ class ProcessEstimator(_Carried):
         args = as_observation(t_s, uv_px, intrinsics, p_cam_ned_m, q_ned_from_cam)
         t = args[0]
         w = self._window
-        # frames stopped coming for longer than an estimate is carried (a camera or network outage): until an
-        # estimate made after it comes, the newest is old because nothing came, not because the daemon is behind
-        if w and t - w[-1][0] > self.max_extrapolation_s:
-            self._gap_end_t = t
+        self._note_frame(t, w[-1][0] if w else None)
         self._kill_if_hung()
         if not self._alive() and not self._replace_dead_worker():
             self._remember(args)  # kept for the replacement
