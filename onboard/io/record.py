@@ -857,37 +857,41 @@ class FlightRecorder:
             return
         gone = self._file_gone()
         if gone is not None:
-            index = self._index + 1
-            self._finish()  # through its descriptor: a moved file is complete where it went, a deleted one is lost
-            name = self.files.pop()
+            name = self.files[-1]
             if gone == "deleted":
                 self.lost_files.append(name)
-            reason = self._short_of_space()
-            if reason is not None:
-                self._halt(reason, [], refused=False)
-                return
-            self._open(index)
-            log.warning(
-                "recorder: %s was %s while recording%s; recording goes on in %s",
-                name,
-                gone,
-                ": the messages written to it are lost (the status's record.lost_files)"
-                if gone == "deleted"
-                else " (finished where it went, whole)",
-                self.files[-1],
-            )
+            # finished through its descriptor: a moved file is complete where it went, a deleted one is lost
+            if self._next_file(give_up=True):
+                log.warning(
+                    "recorder: %s was %s while recording%s; recording goes on in %s",
+                    name,
+                    gone,
+                    ": the messages written to it are lost (the status's record.lost_files)"
+                    if gone == "deleted"
+                    else " (finished where it went, whole)",
+                    self.files[-1],
+                )
             return
         s = self.settings
         size = self._writer.position
         self.bytes_written = self._closed_bytes + size
         if size >= s.max_file_bytes or time.monotonic() - self._file_started_s >= s.max_file_s:
-            index = self._index + 1
-            self._finish()
-            reason = self._short_of_space()
-            if reason is not None:
-                self._halt(reason, [], refused=False)
-                return
-            self._open(index)
+            self._next_file()
+
+    def _next_file(self, give_up: bool = False) -> bool:
+        """Finish the file being written and open the next (``FILE.N.mcap``), unless free space is short (the
+        recording stops there); ``give_up``: the finished file leaves :attr:`files` (deleted or moved away under the
+        recorder).  True when the next file is open."""
+        index = self._index + 1
+        self._finish()
+        if give_up:
+            self.files.pop()
+        reason = self._short_of_space()
+        if reason is not None:
+            self._halt(reason, [], refused=False)
+            return False
+        self._open(index)
+        return True
 
     # encoding ---------------------------------------------------------
 
