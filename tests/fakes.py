@@ -4,6 +4,7 @@ valid tracks and status documents to hand to the code that consumes them."""
 from __future__ import annotations
 
 import dataclasses
+import socket
 from typing import Any
 
 import numpy as np
@@ -141,3 +142,13 @@ def single_chain(config: OnboardConfig | None = None) -> OnboardConfig:
     """
     config = config or OnboardConfig()
     return dataclasses.replace(config, imaging=dataclasses.replace(config.imaging, chain="single"))
+
+
+def silent_tcp_server(wait_s: float) -> tuple[socket.socket, socket.socket]:
+    """(server, filler): a listening TCP socket on 127.0.0.1 whose accept queue a never-accepted connection fills,
+    so that its host drops the next connection's packets, as a host that does not answer would (the caller closes
+    both)."""
+    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    server.bind(("127.0.0.1", 0))
+    server.listen(0)
+    return server, socket.create_connection(server.getsockname(), timeout=wait_s)

@@ -18,7 +18,7 @@ from onboard.core.counters import RejectCounter
 from onboard.core.errors import ConfigError
 from onboard.io.camera_protocol import CameraCommand
 from onboard.io.gcs_link import MAX_PEERS, PEER_TIMEOUT_S, GcsLink
-from tests.fakes import FakeClock
+from tests.fakes import FakeClock, silent_tcp_server
 from tests.onboard.test_camera_protocol import _proto
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
@@ -438,10 +438,7 @@ def test_a_tcp_ground_station_that_does_not_answer_never_blocks_the_loop():
     ground station's accept queue is full, so its host drops our connection's packets as such a host would."""
     from onboard.io.gcs_link import TCP_CONNECT_TIMEOUT_S, TCP_REDIAL_S
 
-    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    server.bind(("127.0.0.1", 0))
-    server.listen(0)
-    filler = socket.create_connection(server.getsockname(), timeout=WAIT_S)  # fills the queue, never accepted
+    server, filler = silent_tcp_server(WAIT_S)
     clock = FakeClock()
     counters = RejectCounter(clock=clock)
     t0 = time.monotonic()

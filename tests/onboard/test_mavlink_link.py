@@ -42,7 +42,7 @@ from onboard.io.mavlink_wire import (
     pack,
     parse_endpoint,
 )
-from tests.fakes import FakeAutopilot, FakeClock
+from tests.fakes import FakeAutopilot, FakeClock, silent_tcp_server
 
 pytestmark = [pytest.mark.integration, pytest.mark.timeout(30)]
 
@@ -715,10 +715,7 @@ def test_a_tcp_autopilot_that_does_not_answer_never_blocks_the_loop():
     is full, so its host drops our connection's packets as such a host would."""
     from onboard.io.mavlink_transport import TCP_CONNECT_TIMEOUT_S
 
-    server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    server.bind(("127.0.0.1", 0))
-    server.listen(0)
-    filler = socket.create_connection(server.getsockname(), timeout=WAIT_S)  # fills the queue, never accepted
+    server, filler = silent_tcp_server(WAIT_S)
     clock = FakeClock()
     counters = RejectCounter(clock=clock)
     config = dataclasses.replace(UNPINNED, connection=f"tcp:127.0.0.1:{server.getsockname()[1]}")

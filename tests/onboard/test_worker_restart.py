@@ -48,6 +48,13 @@ def _kill(pe: ProcessEstimator) -> None:
     assert pe._proc.exitcode == -signal.SIGKILL
 
 
+def _fill_window(pe, obs, K) -> None:
+    """The first FRAMES_BEFORE_KILL observations added, the last one answered with an estimate."""
+    for i in range(FRAMES_BEFORE_KILL):
+        last = _add(pe, obs, K, i)
+    assert last is not None
+
+
 def _own_estimate(pe, obs, K, i):
     """add() observation i; returns (estimate, whether it was the worker's own result, not a propagation)."""
     late = pe.late_results
@@ -119,9 +126,7 @@ def test_while_the_worker_restarts_the_newest_estimate_is_propagated(scene):
     counter = LockedCounter()
     pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=RESULT_WAIT_S)
     try:
-        for i in range(FRAMES_BEFORE_KILL):
-            last = _add(pe, obs, K, i)
-        assert last is not None
+        _fill_window(pe, obs, K)
         pe.result_wait_s = 1.0 / 30.0  # now at most one frame period per observation, like a 30 Hz feed
         _kill(pe)
         first_own, propagated, none = None, 0, 0
@@ -300,9 +305,7 @@ def test_positions_withheld_after_a_gap_in_the_frames_are_not_counted_as_the_dae
     counter = LockedCounter()
     pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=RESULT_WAIT_S)
     try:
-        for i in range(FRAMES_BEFORE_KILL):
-            last = _add(pe, obs, K, i)
-        assert last is not None
+        _fill_window(pe, obs, K)
         pe.result_wait_s = 0.0  # never wait: what a frame gets is the newest estimate carried to it, or nothing
         end = FRAMES_BEFORE_KILL - 1
         gap = next(i for i in range(end, len(obs.t_s)) if obs.t_s[i] - obs.t_s[end] > pe.max_extrapolation_s + 0.5)
