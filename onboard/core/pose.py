@@ -140,7 +140,7 @@ from onboard.core.frames import (
     quat_slerp1,
     rotvec_from_quat1,
 )
-from onboard.core.pose_config import PoseConfig, extrapolation_sigma
+from onboard.core.pose_config import PoseConfig, extrapolation_sigma, position_step_check
 from onboard.core.pose_types import PoseAt, PoseLookup, PoseSample, check_time_us
 from onboard.core.sample_stream import SampleStream
 
@@ -616,18 +616,9 @@ class PoseBuffer:
         return f"{check[0]:.1f} m off where the reported velocity puts it after {(t - t_last) / 1e3:.0f} ms"
 
     def _velocity_check(self, last: np.ndarray, t_last: int, p, v, t: int) -> tuple[float, float] | None:
-        """``(miss_m, tolerance_m)``: how far ``p`` (at ``t``) lies from ``last``'s position (a sample's row, at
-        ``t_last``) moved by the two reported velocities' mean over the interval, which is exact under a constant
-        acceleration, and how far it may: ``max_position_step_m`` plus three sigmas of the velocities' error and an
-        unmodelled acceleration over the interval.  None without both velocities or a later time."""
-        c = self.config
-        dt_us = t - t_last
-        if dt_us <= 0 or not (math.isfinite(v[0]) and math.isfinite(float(last[3]))):
-            return None
-        dt_s = dt_us / US_PER_S
-        half = 0.5 * dt_s
-        miss_m = math.sqrt(sum((p[k] - (float(last[k]) + half * (float(last[3 + k]) + v[k]))) ** 2 for k in range(3)))
-        return miss_m, c.max_position_step_m + 3.0 * extrapolation_sigma(dt_s, c.velocity_sigma_mps, c.accel_sigma_mps2)
+        """:func:`~onboard.core.pose_config.position_step_check` of ``p``, ``v`` at ``t``: ``last``'s row at ``t_last``."""
+        last_p, last_v = last[:3].tolist(), last[3:6].tolist()
+        return position_step_check(self.config, (t - t_last) / US_PER_S, last_p, last_v, p, v)
 
     def add_gimbal(self, time_boot_us: int, q_mount_from_gimbal) -> bool:
         """Store the gimbal attitude relative to the pod mount."""

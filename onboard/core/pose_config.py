@@ -22,6 +22,7 @@ __all__ = [
     "ExtrapolationHorizons",
     "extrapolation_sigma",
     "attitude_horizon_us",
+    "position_step_check",
 ]
 
 US_PER_S = 1_000_000
@@ -34,6 +35,19 @@ def extrapolation_sigma(horizon_s: float, rate_sigma: float, accel_sigma: float)
     m/s and m/s^2)."""
     h = max(float(horizon_s), 0.0)
     return math.hypot(rate_sigma * h, 0.5 * accel_sigma * h * h)
+
+
+def position_step_check(config: PoseConfig, dt_s: float, p0, v0, p1, v1) -> tuple[float, float] | None:
+    """``(miss_m, tolerance_m)``: how far the position ``p1`` lies from ``p0`` moved ``dt_s`` later by the mean of the
+    reported velocities ``v0`` and ``v1`` (exact under a constant acceleration; NED m, m/s), and how far it may:
+    ``config.max_position_step_m`` plus three :func:`extrapolation_sigma` of the velocities' error and an unmodelled
+    acceleration over ``dt_s``.  None without both velocities (NaN: unknown) or for ``dt_s`` <= 0."""
+    if dt_s <= 0 or not (math.isfinite(v1[0]) and math.isfinite(v0[0])):
+        return None
+    half = 0.5 * dt_s
+    miss_m = math.sqrt(sum((p1[k] - (p0[k] + half * (v0[k] + v1[k]))) ** 2 for k in range(3)))
+    sigma_m = extrapolation_sigma(dt_s, config.velocity_sigma_mps, config.accel_sigma_mps2)
+    return miss_m, config.max_position_step_m + 3.0 * sigma_m
 
 
 def attitude_horizon_us(limit: float, rate_sigma: float, accel_sigma: float, cap_us: int) -> int:
