@@ -509,7 +509,9 @@ class ProcessEstimator(_Carried):
     ``max_extrapolation_s``), as when the worker is busy.  A worker that dies before it answered
     anything (a crash at start, or on an observation the rebuild replays) is replaced after a delay
     that starts at ``RESTART_BACKOFF_MIN_S`` and doubles each time (up to ``RESTART_BACKOFF_MAX_S``),
-    so a crash loop cannot spawn a process per frame.
+    so a crash loop cannot spawn a process per frame.  The replacement is spawned on a thread, so that a fork
+    server gone with the worker (it then imports the estimator's modules again: a second or more) never holds the
+    frames; a frame waits for it no longer than for its estimate (``result_wait_s``).
 
     **A worker that hangs** (alive, answering nothing: stopped, deadlocked, spinning) would let the pipe to it fill
     and the next row's write block the frame loop: a worker sent rows it has not answered for ``HUNG_S`` is killed
@@ -566,6 +568,8 @@ class ProcessEstimator(_Carried):
         self._started_s = -math.inf
         self._proc: BaseProcess | None = None
         self._conn: Connection | None = None
+        self._starting: tuple[threading.Thread, dict, float] | None = None  # a replacement being spawned
+        self._start_slow_counted = False
         self._start()
 
     @property
@@ -573,14 +577,68 @@ class ProcessEstimator(_Carried):
         """The worker's process id (None while there is none)."""
         return None if self._proc is None else self._proc.pid
 
-    def _start(self) -> None:
+    def _spawn(self) -> tuple[BaseProcess, Connection]:
+        """A new worker process and the parent's end of its pipe.  Blocks until the fork server has forked it:
+        milliseconds, unless the fork server has to be started again first (it imports the preload: a second or
+        more), which is why a replacement is spawned on a thread (:meth:`_begin_start`)."""
         parent, child = self._ctx.Pipe()
-        self._proc = self._ctx.Process(
+        proc = self._ctx.Process(
             target=_estimator_process_main, args=(child, self._config), name="irtrack-estimator", daemon=True
         )
-        _start_fork_server()
-        self._proc.start()
-        child.close()
+        try:
+            _start_fork_server()
+            proc.start()
+        except BaseException:
+            parent.close()
+            raise
+        finally:
+            child.close()
+        return proc, parent
+
+    def _begin_start(self) -> None:
+        """Spawn a replacement worker on a thread: the frame loop goes on (carried estimates) while a fork server
+        that died with the worker is started again, and adopts the worker when it is there (:meth:`_adopt_started`)."""
+        box: dict[str, Any] = {}
+
+        def run() -> None:
+            name_os_thread("irtrack-est-start")
+            try:
+                box["worker"] = self._spawn()
+            except Exception as exc:  # noqa: BLE001 - any failure to start is counted by the frame loop
+                box["error"] = exc
+
+        thread = threading.Thread(target=run, name="irtrack-estimator-start", daemon=True)
+        thread.start()
+        self._starting = (thread, box, self._clock())
+
+    def _adopt_started(self, wait_s: float) -> bool:
+        """Take the worker :meth:`_begin_start` spawned, waiting up to ``wait_s`` for it; False while it is not
+        there yet, or when it could not be started (counted; tried again after the crash back-off)."""
+        assert self._starting is not None
+        thread, box, since_s = self._starting
+        thread.join(wait_s)
+        if thread.is_alive():
+            if not self._start_slow_counted and self._clock() - since_s >= self.HUNG_S:
+                self._start_slow_counted = True
+                self._counter.count(
+                    "estimator_hung", f"estimator process not started after {self.HUNG_S:.0f} s (its fork server)"
+                )
+            return False
+        self._starting = None
+        self._start_slow_counted = False
+        if "error" in box:
+            self._counter.count("estimator_error", f"estimator process could not be started: {box['error']}")
+            self._backoff_s = min(max(2 * self._backoff_s, self.RESTART_BACKOFF_MIN_S), self.RESTART_BACKOFF_MAX_S)
+            self._next_start_s = self._clock() + self._backoff_s
+            return False
+        self._adopt(*box["worker"])
+        return True
+
+    def _start(self) -> None:
+        self._adopt(*self._spawn())
+
+    def _adopt(self, proc: BaseProcess, parent: Connection) -> None:
+        self._proc = proc
         self._conn = parent
         # the parent never waits on the pipe: what it cannot take now waits in _out, written as it drains (a
         # replacement's snapshot, near a megabyte, would otherwise hold the frame loop for the new worker's start)
@@ -612,7 +670,8 @@ class ProcessEstimator(_Carried):
         return proc.is_alive()  # reads the exit code
 
     def _replace_dead_worker(self) -> bool:
-        """Start a new worker with the window rebuilt; False while a crash loop's back-off lasts."""
+        """Start a new worker with the window rebuilt; False while a crash loop's back-off lasts or the new worker
+        is still being spawned."""
         now = self._clock()
         if self._proc is not None:  # just found dead: count it once, choose the back-off
             code = self._proc.exitcode
@@ -637,9 +696,14 @@ class ProcessEstimator(_Carried):
                 pass
             self._proc.join(0)
             self._proc, self._conn = None, None
-        if now < self._next_start_s:
+        if self._starting is None:
+            if now < self._next_start_s:
+                return False
+            self._begin_start()
+        # the frame's own wait for its estimate is also what it may wait for the new worker (the fork server
+        # alive, a start takes milliseconds)
+        if not self._adopt_started(self.result_wait_s):
             return False
-        self._start()
         if self._window:
             snap = self._snapshot
             if snap is not None and snap[0] < self._window[0][0]:
@@ -850,6 +914,16 @@ class ProcessEstimator(_Carried):
             self._queue(("reset",))
 
     def close(self, timeout_s: float = 1.0) -> None:
+        starting, self._starting = self._starting, None
+        if starting is not None:  # a replacement being spawned: stopped with the rest, never left running
+            starting[0].join(timeout_s / 2)
+            if "worker" in starting[1]:
+                if self._proc is None:
+                    self._adopt(*starting[1]["worker"])
+                else:
+                    proc, conn = starting[1]["worker"]
+                    conn.close()
+                    proc.kill()
         proc, conn = self._proc, self._conn
         if proc is None or conn is None:
             return

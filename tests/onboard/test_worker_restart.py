@@ -48,6 +48,13 @@ def _kill(pe: ProcessEstimator) -> None:
     assert pe._proc.exitcode == -signal.SIGKILL
 
 
+def _started(pe: ProcessEstimator) -> None:
+    """Wait (bounded) until the replacement being spawned is there for the next add to take."""
+    assert pe._starting is not None
+    pe._starting[0].join(JOIN_S)
+    assert not pe._starting[0].is_alive()
+
+
 def _fill_window(pe, obs, K) -> None:
     """The first FRAMES_BEFORE_KILL observations added, the last one answered with an estimate."""
     for i in range(FRAMES_BEFORE_KILL):
@@ -171,21 +178,87 @@ def test_a_crash_loop_backs_off_instead_of_spawning_a_process_per_frame(scene):
             assert _add(pe, obs, K, i) is None
         assert pe.pid is None and counter["estimator_restart"] == 1  # counted once per death, not per frame
         now[0] += ProcessEstimator.RESTART_BACKOFF_MIN_S
-        _add(pe, obs, K, 5)  # replaced; returns at once (result_wait_s = 0), nothing answered yet
+        _add(pe, obs, K, 5)  # the replacement is spawned; returns at once (result_wait_s = 0)
+        _started(pe)
+        _add(pe, obs, K, 6)  # taken by the next frame; nothing answered yet
         assert pe.pid is not None and pe.restarts == 1
         _kill(pe)  # dead before answering again: the back-off doubles
-        _add(pe, obs, K, 6)
+        _add(pe, obs, K, 7)
         assert pe.pid is None and pe.restarts == 2 and pe._backoff_s == 2 * ProcessEstimator.RESTART_BACKOFF_MIN_S
         now[0] += 2 * ProcessEstimator.RESTART_BACKOFF_MIN_S
         pe.result_wait_s = RESULT_WAIT_S
-        est, own = _own_estimate(pe, obs, K, 7)
-        assert pe.pid is not None and own and est is None  # the new worker answered (8 rows: no estimate yet)
-        _kill(pe)  # this one had answered: replaced on the next observation, no back-off
         est, own = _own_estimate(pe, obs, K, 8)
+        assert pe.pid is not None and own and est is None  # the new worker answered (9 rows: no estimate yet)
+        _kill(pe)  # this one had answered: replaced on the next observation, no back-off
+        est, own = _own_estimate(pe, obs, K, 9)
         assert pe.pid is not None and own and pe.restarts == 3 and pe._backoff_s == 0.0
         assert counter["estimator_restart"] == 3 and counter["estimator_error"] == 0
     finally:
         pe.close()
+
+
+def _kill_fork_server() -> None:
+    """SIGKILL the estimator workers' fork server and wait (bounded) until it is dead, unreaped: multiprocessing
+    reaps it itself when it finds it gone and starts another."""
+    from multiprocessing import forkserver
+
+    pid = forkserver._forkserver._forkserver_pid
+    assert pid is not None
+    os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + JOIN_S
+    while time.monotonic() < deadline:
+        with open(f"/proc/{pid}/stat") as f:
+            if f.read().rsplit(")", 1)[1].split()[0] == "Z":
+                return
+        time.sleep(0.01)
+    raise AssertionError(f"fork server {pid} still running {JOIN_S} s after SIGKILL")
+
+
+@pytest.mark.integration
+def test_a_fork_server_gone_with_the_worker_is_started_again_without_holding_the_frames(scene):
+    """When the fork server is gone too, the replacement waits for a new one, which imports the estimator's
+    modules first (a second or more of CPU).  That start runs on a thread: the frame that found the worker dead
+    returns at once with the newest estimate carried to it, and a later frame takes the new worker, which
+    restores the window and answers with its own estimate."""
+    K, truth, obs = scene
+    counter = LockedCounter()
+    pe = ProcessEstimator(OnboardConfig(), counter, result_wait_s=RESULT_WAIT_S)
+    try:
+        _fill_window(pe, obs, K)
+        _kill(pe)
+        _kill_fork_server()
+        pe.result_wait_s = 0.0
+        late = pe.late_results
+        est = _add(pe, obs, K, FRAMES_BEFORE_KILL)
+        assert pe.pid is None and pe._starting is not None and pe._starting[0].is_alive()
+        assert est is not None and pe.late_results == late + 1  # carried from the newest estimate
+        _started(pe)
+        pe.result_wait_s = RESULT_WAIT_S
+        est, own = _own_estimate(pe, obs, K, FRAMES_BEFORE_KILL + 1)
+        assert pe.pid is not None and own and est is not None
+        assert pe.restarts == 1 and counter["estimator_restart"] == 1 and counter["estimator_error"] == 0
+    finally:
+        pe.close()
+
+
+@pytest.mark.integration
+def test_close_while_a_replacement_is_being_started_leaves_no_worker_running(scene):
+    """close() during the replacement's start waits for it (bounded) and stops the worker it made."""
+    K, truth, obs = scene
+    now = [100.0]
+    pe = ProcessEstimator(OnboardConfig(), LockedCounter(), result_wait_s=0.0, clock=lambda: now[0])
+    _kill(pe)
+    _kill_fork_server()
+    _add(pe, obs, K, 0)  # it had not answered: the crash back-off first
+    now[0] += ProcessEstimator.RESTART_BACKOFF_MIN_S
+    _add(pe, obs, K, 1)
+    starting = pe._starting
+    assert starting is not None and starting[0].is_alive()
+    pe.close(timeout_s=2 * JOIN_S)
+    assert not starting[0].is_alive() and "worker" in starting[1]
+    proc = starting[1]["worker"][0]
+    proc.join(JOIN_S)
+    assert not proc.is_alive()
 
 
 @pytest.mark.integration
