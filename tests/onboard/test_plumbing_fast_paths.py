@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.app.estimator_worker import _recv_msg, _send_msg
+from onboard.app.estimator_wire import recv_msg, send_msg
 from onboard.core.errors import InputError
 from onboard.core.frames import GeodeticOrigin
 from onboard.core.status import RollingStats
@@ -146,15 +146,15 @@ def test_the_worker_pipe_framing_is_connections(size):
     a message longer than the pipe's buffer (a snapshot) included; a closed writer reads as EOFError."""
     a, b = mp.Pipe()
     msg = ("snapshot", 1.5, b"x" * size)
-    writer = threading.Thread(target=_send_msg, args=(a, msg))
+    writer = threading.Thread(target=send_msg, args=(a, msg))
     writer.start()
     assert pickle.loads(b.recv_bytes()) == msg
     writer.join()
     writer = threading.Thread(target=b.send_bytes, args=(pickle.dumps(msg),))
     writer.start()
-    assert _recv_msg(a) == msg
+    assert recv_msg(a) == msg
     writer.join()
     b.close()
     with pytest.raises(EOFError):
-        _recv_msg(a)
+        recv_msg(a)
     a.close()

@@ -10,7 +10,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from onboard.app.estimator_worker import as_observation, pack_estimate, row_args, row_message, unpack_estimate
+from onboard.app.estimator_wire import pack_estimate, row_args, row_message, unpack_estimate
+from onboard.app.estimator_worker import as_observation
 from onboard.core.frames import PinholeIntrinsics
 from onboard.estimation.sliding import TrackEstimate
 from onboard.estimation.window_problem import MotionPrior
