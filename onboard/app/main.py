@@ -229,7 +229,7 @@ def _check_problem(config) -> str | None:
 
     from onboard.app.health import claim_health_file
     from onboard.core.errors import ConfigError
-    from onboard.io.record import record_path_problem
+    from onboard.io.record_files import record_path_problem
     from onboard.io.zenoh_session import DAEMON_CONFIG_FILE_FIELD, ZenohConfigError, build_config
 
     try:

@@ -144,6 +144,7 @@ from onboard.io.foxglove_messages import (
     rawimage_pieces,
     truth_objects_annotations,
 )
+from onboard.io.record_files import free_disk_bytes, free_recording_path, rotated_path
 from onboard.io.worker_queue import stop_and_join
 
 if TYPE_CHECKING:
@@ -166,8 +167,6 @@ __all__ = [
     "RecordingPoseSource",
     "pose_to_json",
     "pose_from_json",
-    "rotated_path",
-    "free_recording_path",
     "mavlink_topic",
 ]
 
@@ -278,65 +277,6 @@ def _frozen(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
     return a
-
-
-def rotated_path(path: str, index: int) -> str:
-    """``FILE.mcap`` for index 0, ``FILE.<index>.mcap`` after it."""
-    if index == 0:
-        return path
-    stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
-    return f"{stem}.{index}.mcap"
-
-
-def free_recording_path(path: str) -> str:
-    """``path`` when neither it nor any of its rotated files (:func:`rotated_path`) exists, else the first of
-    ``FILE-1.mcap``, ``FILE-2.mcap`` ... that is free in the same way: a daemon restarted with the same
-    ``record.path`` (a container's restart policy) must not write over the flight it recorded before."""
-    import glob
-
-    stem = path[: -len(".mcap")] if path.endswith(".mcap") else path
-
-    def taken(s: str) -> bool:
-        return os.path.isfile(f"{s}.mcap") or bool(glob.glob(f"{glob.escape(s)}.[0-9]*.mcap"))
-
-    if not taken(stem) or (os.path.lexists(path) and not os.path.isfile(path)):  # a folder there: opening says so
-        return path
-    n = 1
-    while taken(f"{stem}-{n}"):
-        n += 1
-    return f"{stem}-{n}.mcap"
-
-
-def record_path_problem(path: str) -> str | None:
-    """Why a recording could not be written at ``path`` (``--check``), or None: a folder there, or the nearest
-    existing folder above it (the recorder makes the rest) where a file cannot be made.  It makes one there and
-    removes it at once: permissions alone do not tell (root, a read-only or special file system)."""
-    import tempfile
-
-    p = os.path.abspath(path)
-    if os.path.isdir(p):
-        return f"{path} is a folder"
-    d = os.path.dirname(p)
-    while not os.path.lexists(d):
-        d = os.path.dirname(d)
-    if not os.path.isdir(d):
-        return f"{d} is not a folder"
-    try:
-        with tempfile.NamedTemporaryFile(dir=d, prefix=".irtrack-check-"):
-            pass
-    except OSError as exc:
-        return f"{d}: {exc.strerror or exc}"
-    return None
-
-
-def free_disk_bytes(path: str) -> int | None:
-    """Bytes an unprivileged writer may still write on the file system holding ``path`` (its folder;
-    ``statvfs``'s ``f_bavail``), or None when that cannot be read."""
-    try:
-        st = os.statvfs(os.path.dirname(os.path.abspath(path)) or ".")
-    except OSError:
-        return None
-    return st.f_bavail * st.f_frsize
 
 
 # --------------------------------------------------------------------------- settings

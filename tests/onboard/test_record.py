@@ -24,11 +24,10 @@ from onboard.io.record import (
     FRAME_INPUT_TOPIC,
     FlightRecorder,
     RecordConfig,
-    free_recording_path,
     pose_from_json,
     pose_to_json,
-    rotated_path,
 )
+from onboard.io.record_files import free_recording_path, rotated_path
 
 mcap_reader = pytest.importorskip("mcap.reader")
 from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix  # noqa: E402
