@@ -13,7 +13,7 @@ The models are those of the one config system, :mod:`onboard.core.schema` (stric
 ``extra="forbid"``, one YAML loader, one error format).  Sections are declared where they are consumed
 and composed here, each the one declaration of its settings, which its component takes as is: ``pose``
 :class:`onboard.core.pose_config.PoseConfig` (the pose buffer's), ``mavlink``
-:class:`onboard.io.mavlink_link.MavlinkConfig` (the autopilot link's), ``zenoh``
+:class:`onboard.io.mavlink_config.MavlinkConfig` (the autopilot link's), ``zenoh``
 :class:`onboard.io.zenoh_session.ZenohConfig` (the session's), ``imaging``
 :class:`onboard.imaging.preprocess.ImagingParams`, ``record`` :class:`onboard.io.record.RecordConfig`,
 ``live_view`` :class:`onboard.io.live_view.LiveViewConfig`, ``video`` :class:`onboard.io.video.VideoConfig`; the
@@ -79,7 +79,7 @@ from onboard.estimation.window_problem import (
 )
 from onboard.imaging.preprocess import ImagingParams
 from onboard.io.live_view import LiveViewConfig
-from onboard.io.mavlink_link import MavlinkConfig, parse_connection
+from onboard.io.mavlink_config import MavlinkConfig, parse_connection
 from onboard.io.record import RecordConfig
 from onboard.io.video import VideoConfig
 from onboard.io.zenoh_session import ZenohConfig

@@ -2,7 +2,7 @@
 
 Every configuration object of irtrack -- the onboard daemon's sections (:mod:`onboard.app.config`
 composes them; each is the config its component takes: :class:`~onboard.core.pose.PoseConfig`,
-:class:`~onboard.io.mavlink_link.MavlinkConfig`, :class:`~onboard.io.record.RecordConfig` ...), the
+:class:`~onboard.io.mavlink_config.MavlinkConfig`, :class:`~onboard.io.record.RecordConfig` ...), the
 estimator's and the image chain's (:class:`~onboard.estimation.map_estimator.MapConfig`,
 :class:`~onboard.imaging.preprocess.ImagingParams` ...), the simulator's scenarios and noise cases
 (:mod:`groundsim.world.scenario`) -- is a :func:`config_dataclass`: a frozen pydantic dataclass in strict

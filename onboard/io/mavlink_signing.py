@@ -1,7 +1,7 @@
 """MAVLink 2 signing keys from the configuration: one 32-byte key from a file, an environment variable, 64 hex
 digits or a passphrase (SHA-256 of it, as MAVProxy's ``signing setup`` and QGroundControl derive it).
 
-Read at the entry point (:class:`~onboard.io.mavlink_link.MavlinkConfig`), never at import; errors are
+Read at the entry point (:class:`~onboard.io.mavlink_config.MavlinkConfig`), never at import; errors are
 :class:`~onboard.core.errors.ConfigError` naming the ``mavlink.*`` field.
 """
 
