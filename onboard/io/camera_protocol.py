@@ -65,6 +65,15 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
     to the same component is unanswered), so an ACK for it would be read as the new one's answer.
     The pipeline still decides it first (requests are applied in order on the next frame; the later
     selection wins), and its outcome still sets the selection mode of #275.
+* A tracking command once answered (ACCEPTED or FAILED by the pipeline, or at the timeout): a retransmission of
+  it (``confirmation`` > 0, the same seven parameters, the same requester) within :data:`RETRANSMISSION_WINDOW_S`
+  of the command's arrival gets the same COMMAND_ACK again and is not acted on again.  The sender resends because
+  no ACK reached it, and the command protocol wants a resent command to get the same result: acted on again, it
+  would be a new selection at a point the target has left, whose answer could contradict the first (FAILED while
+  the first's target is tracked).  Only the ACK is repeated, not a refusal's STATUSTEXT (the operator may have
+  read it already).  A first transmission (``confirmation`` 0) with the same parameters is a new command (the
+  operator clicked again), and so is a retransmission once a newer command of that id came from the requester
+  (the older one's ACK would be read as the newer one's answer).
 * CAMERA_INFORMATION: vendor/model, ``firmware_version``, focal length (mm) = ``fx_px x pixel
   pitch``, sensor size (mm) = resolution x pixel pitch, resolution (px), flags HAS_VIDEO_STREAM (when
   a stream is configured) | HAS_TRACKING_POINT | HAS_TRACKING_RECTANGLE | HAS_TRACKING_GEO_STATUS,
@@ -93,6 +102,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import OrderedDict
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -193,6 +203,14 @@ STATUSTEXT_MAX_CHARS = 50
 #: are not clamped.
 MAX_TRACKING_STATUS_HZ = 50.0
 MIN_TRACKING_STATUS_INTERVAL_S = 1.0 / MAX_TRACKING_STATUS_HZ
+#: how long (s) after a tracking command arrived its answer is given again to a retransmission of it.  A sender
+#: resends when no ACK came (the ACK may be the one lost): QGC sends a command at most 3 times, an ACK timeout
+#: apart (``Vehicle::_mavCommandMaxRetryCount``, ``_mavCommandAckTimeoutMSecs``, 1.2 to 3 s by version), so its
+#: last retransmission comes at most 6 s after the first; the rest is room for a slow link
+RETRANSMISSION_WINDOW_S = 10.0
+#: (requester, command) pairs whose answer is kept for a retransmission; the oldest is forgotten first (ids are
+#: sender-chosen)
+_MAX_DECIDED = 64
 _TRACK_COMMANDS = (MAV_CMD_CAMERA_TRACK_POINT, MAV_CMD_CAMERA_TRACK_RECTANGLE, MAV_CMD_CAMERA_STOP_TRACKING)
 #: ``counters`` key of each command we answer; every other command id shares ``cmd_unsupported``, so a
 #: sender cycling through ids cannot grow the status JSON (the id is 16 bits on COMMAND_LONG)
@@ -414,6 +432,17 @@ class _Pending:
     requester: tuple[int, int]
     deadline_s: float
     params: tuple[float, ...]
+    received_s: float
+
+
+@dataclass(frozen=True)
+class _Decided:
+    """A tracking command's answer, for a retransmission of it (module docstring)."""
+
+    params: tuple[float, ...]
+    result: int
+    reason: str
+    until_s: float
 
 
 def _same_params(a: tuple[float, ...], b: tuple[float, ...]) -> bool:
@@ -476,6 +505,8 @@ class CameraProtocol:
         self._pending: dict[int, _Pending] = {}
         #: requests superseded while the pipeline had them: no ACK, but their outcome still sets the mode
         self._superseded: dict[int, _Pending] = {}
+        #: (requester, command) -> the answer of its latest command, while a retransmission of it may come
+        self._decided: OrderedDict[tuple[tuple[int, int], int], _Decided] = OrderedDict()
         self._next_request_id = 1
         self._was_tracking = False
 
@@ -707,6 +738,12 @@ class CameraProtocol:
                 return [self._ack(c, MAV_RESULT_IN_PROGRESS, to, progress=PROGRESS_UNKNOWN)], None
             self._superseded[prev_id] = self._pending.pop(prev_id)  # module docstring: a new command
             self._count("track_superseded")
+        decided = self._decided.get((to, c))
+        if decided is not None and cmd.confirmation > 0 and now_s < decided.until_s and _same_params(decided.params, p):
+            # module docstring: its ACK was lost; the same answer again, not a second selection
+            self._count("track_retransmission")
+            return [self._ack(c, decided.result, to, reason=decided.reason)], None
+        self._decided.pop((to, c), None)  # a new command: an ACK of the older one would be read as its answer
         rid = self._next_request_id
         self._next_request_id += 1
         W, H = self.width_px, self.height_px
@@ -724,7 +761,7 @@ class CameraProtocol:
             req = TrackRequest(rid, "rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H))
         else:
             req = TrackRequest(rid, "stop")
-        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s, p)
+        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s, p, now_s)
         return [], req
 
     def complete(self, result: TrackResult) -> list[Outgoing]:
@@ -738,9 +775,20 @@ class CameraProtocol:
         if pend is None:
             return []  # expired already (ACKed TEMPORARILY_REJECTED)
         if not result.accepted:
-            return self._refuse(pend.command, MAV_RESULT_FAILED, result.reason or "refused", pend.requester)
+            reason = result.reason or "refused"
+            self._decide(pend, MAV_RESULT_FAILED, reason)
+            return self._refuse(pend.command, MAV_RESULT_FAILED, reason, pend.requester)
         self._accepted(pend.request.kind)
+        self._decide(pend, MAV_RESULT_ACCEPTED)
         return [self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester)]
+
+    def _decide(self, pend: _Pending, result: int, reason: str = "") -> None:
+        """Keep ``pend``'s answer for a retransmission of it (module docstring)."""
+        key = (pend.requester, pend.command)
+        self._decided.pop(key, None)
+        self._decided[key] = _Decided(pend.params, result, reason, pend.received_s + RETRANSMISSION_WINDOW_S)
+        while len(self._decided) > _MAX_DECIDED:
+            self._decided.popitem(last=False)
 
     def _accepted(self, kind: str) -> None:
         self.selection_mode = {
@@ -784,17 +832,15 @@ class CameraProtocol:
                 # the frames); a newer selection still comes after it
                 pend = self._pending.pop(rid)
                 self._accepted(pend.request.kind)
+                self._decide(pend, MAV_RESULT_ACCEPTED)
                 out.append(self._ack(pend.command, MAV_RESULT_ACCEPTED, pend.requester))
                 continue
             if not self._pending[rid].request.claim():
                 continue  # the pipeline is applying it this moment: its result decides, on a later tick
             pend = self._pending.pop(rid)
-            out += self._refuse(
-                pend.command,
-                MAV_RESULT_TEMPORARILY_REJECTED,
-                "no frame to select on (no IR frames arriving)",
-                pend.requester,
-            )
+            reason = "no frame to select on (no IR frames arriving)"
+            self._decide(pend, MAV_RESULT_TEMPORARILY_REJECTED, reason)
+            out += self._refuse(pend.command, MAV_RESULT_TEMPORARILY_REJECTED, reason, pend.requester)
         tracking = track is not None and track.state in ("tracking", "coasting")
         if not tracking:
             if self._was_tracking:  # one IDLE status: a ground station clears its box on it
@@ -872,7 +918,8 @@ class CameraProtocol:
         """For the status JSON: rates, selection mode, pending requests, the last refusal, counters.
 
         ``counters``: ``cmd_<name>`` per command we answer and ``cmd_unsupported`` for all others,
-        ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``, ``track_retransmission``, ``track_superseded``:
+        ``ack_<MAV_RESULT>``, ``track_<kind>_accepted``, ``track_retransmission`` (answered IN_PROGRESS while
+        pending, or the answer again once decided), ``track_superseded``:
         a bounded set of keys whatever is received."""
         return {
             "component_id": self.component_id,

@@ -323,6 +323,81 @@ def test_a_retransmission_while_pending_is_acted_on_once_and_answered_in_progres
 
 
 @pytest.mark.parametrize(
+    "accepted, reason, result",
+    [(True, None, mav.MAV_RESULT_ACCEPTED), (False, "no warm object there", mav.MAV_RESULT_FAILED)],
+)
+def test_a_retransmission_after_the_decision_gets_the_same_ack_again_and_no_new_request(accepted, reason, result):
+    """The ACK was lost: the sender resends (confirmation > 0, the same parameters) after its timeout.  The command
+    protocol asks for the same result again; acted on a second time, the resend would be a new selection at a
+    stale point, and its answer could contradict the first's (a FAILED while the first click's target is tracked)."""
+    proto = _proto()
+    params = (0.25, 0.5, 20 / W)
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *params), 1.0, 0)
+    first = proto.complete(TrackResult(req.request_id, accepted, reason))
+    assert _ack(first)["result"] == result
+    for confirmation, now_s in ((1, 2.2), (2, 3.4)):
+        out, again = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, *params, confirmation=confirmation), now_s, 0)
+        assert again is None and _names(out) == ["command_ack"]
+        ack = _ack(out)
+        assert (ack["command"], ack["result"], ack["progress"]) == (cp.MAV_CMD_CAMERA_TRACK_POINT, result, 0)
+        assert (ack["target_system"], ack["target_component"]) == GCS
+    assert proto.pending_requests() == 0
+    assert proto.status()["counters"]["track_retransmission"] == 2
+    assert proto.status()["selection_mode"] == ("point" if accepted else "none")
+
+
+@pytest.mark.parametrize(
+    "command, params, result",
+    [
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, (0.25, 0.5, 20 / W), mav.MAV_RESULT_TEMPORARILY_REJECTED),
+        (cp.MAV_CMD_CAMERA_STOP_TRACKING, (), mav.MAV_RESULT_ACCEPTED),
+    ],
+)
+def test_a_retransmission_after_the_timeouts_answer_gets_that_answer_again(command, params, result):
+    proto = _proto(track_request_timeout_s=1.0)
+    _, req = proto.handle(_cmd(command, *params), 10.0, 0)
+    assert _ack(proto.tick(11.0, None))["result"] == result
+    out, again = proto.handle(_cmd(command, *params, confirmation=1), 11.2, 0)
+    assert again is None and _ack(out)["result"] == result
+
+
+def test_after_the_decision_a_first_transmission_or_other_parameters_are_a_new_command():
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 1.0, 0)
+    proto.complete(TrackResult(req.request_id, True))
+    _, same_again = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 2.0, 0)  # clicked again
+    assert same_again is not None and same_again.request_id != req.request_id
+    proto.complete(TrackResult(same_again.request_id, True))
+    _, other = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03, confirmation=1), 3.0, 0)
+    assert other is not None
+    _, by_other = proto.handle(
+        _cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03, confirmation=1, src=(254, 190)), 3.0, 0
+    )
+    assert by_other is not None  # another requester's command, whatever its confirmation
+
+
+def test_a_retransmission_of_a_command_a_newer_one_replaced_is_not_answered_with_the_old_result():
+    """COMMAND_ACK names only the command id: once the sender has sent a newer command of that id, an ACK carrying the
+    older one's result would be read as the newer one's answer."""
+    proto = _proto()
+    _, first = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 1.0, 0)
+    proto.complete(TrackResult(first.request_id, True))
+    _, newer = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.75, 0.5, 0.03), 2.0, 0)
+    proto.complete(TrackResult(newer.request_id, False, "no warm object there"))
+    out, late = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03, confirmation=1), 2.5, 0)
+    assert late is not None and out == []  # not the first's ACCEPTED: a command of its own
+
+
+def test_a_retransmission_after_the_window_is_a_new_command():
+    proto = _proto()
+    _, req = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 1.0, 0)
+    proto.complete(TrackResult(req.request_id, True))
+    later = 1.0 + cp.RETRANSMISSION_WINDOW_S + 0.1
+    out, again = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03, confirmation=1), later, 0)
+    assert again is not None and out == []
+
+
+@pytest.mark.parametrize(
     "second, confirmation",
     [
         ((0.25, 0.5, 20 / W), 0),  # the same click again, as a new command (QGC gave up on the first)
