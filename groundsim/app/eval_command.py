@@ -25,14 +25,13 @@ from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
 from groundsim.io.stop_signals import install_stop_signals, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors
-from groundsim.world.scenario import DEFAULT_NAV_NOISE
+from groundsim.world.scenario import DEFAULT_NAV_NOISE, refuse_duplicate_scenarios
 from onboard.core.errors import ConfigError
 
 __all__ = [
     "cmd_eval",
     "add_mot_scores",
     "format_time_offset",
-    "refuse_duplicate_scenarios",
     "check_out_paths",
     "finish_despite_signals",
     "DEFAULT_EVAL_SCENARIOS",
@@ -134,7 +133,7 @@ def cmd_eval(args) -> int:
         names = [n for group in (args.scenario or [list(DEFAULT_EVAL_SCENARIOS)]) for n in group]
         paths = [resolve_scenario_path(n) for n in names]
         scenarios = [load_scenario(p) for p in paths]
-        refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios])
+        refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios], "one report row and one set of files")
         for sc in scenarios:
             sc.refuse_fleet("eval runs one pipeline for one observer: python -m bench.fleet measures a fleet")
         if isinstance(args.seeds, bool) or args.seeds < 1:
@@ -259,24 +258,6 @@ def _report(out: Path, result, options: EvalOptions, scenarios, cameras: dict, r
         )
         return EXIT_FAILED
     return 0
-
-
-def refuse_duplicate_scenarios(names: list[str], paths: list[Path], scenario_names: list[str]) -> None:
-    """A ConfigError naming --scenario when two entries are the same file or the same scenario name: the
-    runs, report rows and files are keyed by the name, so a second entry would repeat the first's runs (and
-    count them twice) or pool a different scenario into its row and overwrite its files."""
-    by_file: dict[Path, str] = {}
-    by_name: dict[str, str] = {}
-    for given, path, name in zip(names, paths, scenario_names):
-        key = Path(path).resolve()
-        if key in by_file:
-            raise ConfigError(f"--scenario: {by_file[key]} and {given} are the same file ({key}); give it once")
-        if name in by_name:
-            raise ConfigError(
-                f"--scenario: {by_name[name]} and {given} are both scenario {name!r} (their runs would share one"
-                " report row and one set of files); give each scenario its own name:"
-            )
-        by_file[key] = by_name[name] = given
 
 
 def check_out_paths(out: Path, labels: list[str]) -> None:

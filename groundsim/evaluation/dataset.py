@@ -760,6 +760,9 @@ def export_dataset(
         raise ConfigError("--scenario: expected at least one scenario")
     for sc in scenarios:
         sc.refuse_fleet("a dataset sequence is one observer's camera")
+    twice = sorted({sc.name for sc in scenarios if [s.name for s in scenarios].count(sc.name) > 1})
+    if twice:  # their sequences are one folder, written by two jobs at once
+        raise ConfigError(f"--scenario: {twice[0]} given twice (a sequence folder is named after the scenario)")
     if not seeds or min(seeds) < 0:
         raise ConfigError(f"--seeds: expected at least one seed >= 0, got {seeds}")
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
@@ -806,11 +809,13 @@ def export_dataset(
 
 def cmd_dataset(args) -> int:
     """The ``dataset`` command: export, print one line per sequence and the frames/s."""
-    from groundsim.world.scenario import load_scenario, resolve_scenario_path
+    from groundsim.world.scenario import load_scenario, refuse_duplicate_scenarios, resolve_scenario_path
 
     with quiet_run_logs("groundsim.world.truth"):
         names = [n for group in (args.scenario or [["P1"]]) for n in group]
-        scenarios = [load_scenario(resolve_scenario_path(n)) for n in names]
+        paths = [resolve_scenario_path(n) for n in names]
+        scenarios = [load_scenario(p) for p in paths]
+        refuse_duplicate_scenarios(names, paths, [sc.name for sc in scenarios], "one sequence folder per seed")
         if isinstance(args.seeds, bool) or args.seeds < 1:
             raise ConfigError(f"--seeds: expected an integer >= 1, got {args.seeds}")
         if args.seed0 < 0:

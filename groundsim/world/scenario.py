@@ -99,6 +99,7 @@ __all__ = [
     "scenario_from_dict",
     "reference_scenario_paths",
     "resolve_scenario_path",
+    "refuse_duplicate_scenarios",
     "scenarios_dir",
     "noise_cases_path",
     "load_noise_cases",
@@ -855,6 +856,26 @@ def resolve_scenario_path(text: str | Path) -> Path:
         "an existing file or one of the shipped scenarios " + ", ".join(shipped),
         got_text="no such file",
     )
+
+
+def refuse_duplicate_scenarios(
+    names: list[str], paths: list[Path], scenario_names: list[str], shared: str = "one set of files"
+) -> None:
+    """A ConfigError naming --scenario when two entries are the same file or the same scenario name: a command's
+    runs and files are keyed by the name, so a second entry would repeat the first's runs, or write a different
+    scenario into the first's files (``shared``: what the two would share, for the message)."""
+    by_file: dict[Path, str] = {}
+    by_name: dict[str, str] = {}
+    for given, path, name in zip(names, paths, scenario_names):
+        key = Path(path).resolve()
+        if key in by_file:
+            raise ConfigError(f"--scenario: {by_file[key]} and {given} are the same file ({key}); give it once")
+        if name in by_name:
+            raise ConfigError(
+                f"--scenario: {by_name[name]} and {given} are both scenario {name!r} (their runs would share"
+                f" {shared}); give each scenario its own name:"
+            )
+        by_file[key] = by_name[name] = given
 
 
 # --------------------------------------------------------------------------- entry point

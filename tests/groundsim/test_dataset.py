@@ -464,3 +464,21 @@ def test_coco_objects_behind_a_cloud_are_ignored_by_cocoeval_as_trackeval_leaves
     ev.accumulate()
     ev.summarize()
     assert ev.stats[0] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("second", ["P1", "COPY"], ids=["the_same_file", "another_file_of_the_same_name"])
+def test_two_scenarios_of_one_name_are_refused_before_out_is_made(tmp_path, capsys, second):
+    """Both would be written into one sequence folder at once (PNGs of two writers, rows of both in one CSV, the
+    sequence twice in the manifest): refused in one line naming --scenario, before --out is made."""
+    copy = tmp_path / "P1.yaml"
+    copy.write_text(reference_scenario_paths()["P1"].read_text())
+    out = tmp_path / "ds"
+    args = ["dataset", "--scenario", "P1", str(copy) if second == "COPY" else second, "--duration", "0.1"]
+    assert cli_main([*args, "--no-progress", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("groundsim dataset: error: --scenario: P1 and "), err
+    assert ("same file" if second == "P1" else "both scenario 'P1'") in err[0]
+    assert not out.exists()
+    with pytest.raises(ConfigError, match="^--scenario: P1 given twice"):  # the library's callers too
+        export_dataset([_scenario(), load_scenario(copy)], [0], out, DatasetOptions(duration_s=0.1), progress=False)
+    assert not out.exists()
