@@ -40,7 +40,9 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
 
   A request for a message id we do not produce is DENIED; a malformed parameter (NaN, a point
   outside 0..1, a rectangle with no area) is DENIED; a tracking command for another camera id
-  (param "target camera ID" not 0 nor our component id) is DENIED.  A tracking request that the
+  (param "target camera ID" not 0 nor our component id) is DENIED.  A DENIED tracking command changes
+  nothing else: a command of the same id waiting for the pipeline keeps its request and its ACK (the sender
+  hears both answers), and one already answered keeps its answer for a retransmission (below).  A tracking request that the
   pipeline does not answer within ``track_request_timeout_s`` (no frames) is TEMPORARILY_REJECTED, but
   a stop, which needs no frame: it is ACCEPTED then and carried out at the next frame.
   A refusal is also sent as STATUSTEXT (severity WARNING) naming the reason, which QGC shows.
@@ -58,8 +60,8 @@ What a ground station sees (MAVLink common.xml; QGroundControl's src/Camera disc
     again; it is answered IN_PROGRESS (progress unknown) at once, and the decision's ACK follows.  The
     sender's timeout was shorter than the decision: IN_PROGRESS tells it the command arrived and
     stops its retries (QGC restarts its timer and tries no more);
-  - any other (``confirmation`` 0, other parameters, or a COMMAND_INT, which has no confirmation
-    field) is a new command: it supersedes the waiting one and gets the ACK of what it does.  The
+  - any other that is not DENIED (``confirmation`` 0, other parameters, or a COMMAND_INT, which has no
+    confirmation field) is a new command: it supersedes the waiting one and gets the ACK of what it does.  The
     superseded one gets none: COMMAND_ACK names only the command id, and a sender that sends the
     same id again has given up on the first (QGC refuses to send a command while one of the same id
     to the same component is unanswered), so an ACK for it would be read as the new one's answer.
@@ -723,13 +725,9 @@ class CameraProtocol:
 
     def _track_command(self, cmd: CameraCommand, now_s: float) -> tuple[list[Outgoing], TrackRequest | None]:
         c, p, to = cmd.command, cmd.params, (cmd.src_system, cmd.src_component)
-        cam_param = {
-            MAV_CMD_CAMERA_TRACK_POINT: p[3],
-            MAV_CMD_CAMERA_TRACK_RECTANGLE: p[4],
-            MAV_CMD_CAMERA_STOP_TRACKING: p[0],
-        }[c]
-        if cam_param not in (0.0, float(self.component_id)):
-            return self._refuse(c, MAV_RESULT_DENIED, f"camera id {cam_param:g} is not this camera", to), None
+        fields, why = self._track_fields(c, p)
+        if fields is None:  # checked first: a refused command leaves the one waiting or answered alone
+            return self._refuse(c, MAV_RESULT_DENIED, why, to), None
         for prev_id, pend in list(self._pending.items()):
             if pend.command != c or pend.requester != to:
                 continue
@@ -746,23 +744,31 @@ class CameraProtocol:
         self._decided.pop((to, c), None)  # a new command: an ACK of the older one would be read as its answer
         rid = self._next_request_id
         self._next_request_id += 1
+        req = TrackRequest(rid, **fields)
+        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s, p, now_s)
+        return [], req
+
+    def _track_fields(self, c: int, p: tuple[float, ...]) -> tuple[dict[str, Any] | None, str]:
+        """A tracking command's :class:`TrackRequest` fields but the id, in pixels; None and why when it is DENIED."""
+        cam_param = {
+            MAV_CMD_CAMERA_TRACK_POINT: p[3],
+            MAV_CMD_CAMERA_TRACK_RECTANGLE: p[4],
+            MAV_CMD_CAMERA_STOP_TRACKING: p[0],
+        }[c]
+        if cam_param not in (0.0, float(self.component_id)):
+            return None, f"camera id {cam_param:g} is not this camera"
         W, H = self.width_px, self.height_px
         if c == MAV_CMD_CAMERA_TRACK_POINT:
             x, y, r = p[0], p[1], p[2]
             if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in (x, y, r)):
-                return self._refuse(c, MAV_RESULT_DENIED, f"point ({x:g}, {y:g}) radius {r:g} not in 0..1", to), None
-            req = TrackRequest(rid, "point", u_px=x * W, v_px=y * H, radius_px=max(r * W, 1.0))
-        elif c == MAV_CMD_CAMERA_TRACK_RECTANGLE:
+                return None, f"point ({x:g}, {y:g}) radius {r:g} not in 0..1"
+            return dict(kind="point", u_px=x * W, v_px=y * H, radius_px=max(r * W, 1.0)), ""
+        if c == MAV_CMD_CAMERA_TRACK_RECTANGLE:
             x0, y0, x1, y1 = p[0], p[1], p[2], p[3]
             if not all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in (x0, y0, x1, y1)) or x1 <= x0 or y1 <= y0:
-                return self._refuse(
-                    c, MAV_RESULT_DENIED, f"rectangle ({x0:g},{y0:g})-({x1:g},{y1:g}) invalid", to
-                ), None
-            req = TrackRequest(rid, "rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H))
-        else:
-            req = TrackRequest(rid, "stop")
-        self._pending[rid] = _Pending(req, c, to, now_s + self.track_request_timeout_s, p, now_s)
-        return [], req
+                return None, f"rectangle ({x0:g},{y0:g})-({x1:g},{y1:g}) invalid"
+            return dict(kind="rectangle", rect_px=(x0 * W, y0 * H, x1 * W, y1 * H)), ""
+        return dict(kind="stop"), ""
 
     def complete(self, result: TrackResult) -> list[Outgoing]:
         """The pipeline decided ``result.request_id``: its COMMAND_ACK (and a STATUSTEXT when refused)."""

@@ -422,6 +422,32 @@ def test_a_new_track_command_supersedes_the_pending_one_and_only_it_is_answered(
     assert proto.status()["counters"]["track_superseded"] == 1
 
 
+@pytest.mark.parametrize(
+    "command, bad",
+    [
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, (math.nan, 0.5, 20 / W)),
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, (1.5, 0.5, 20 / W)),
+        (cp.MAV_CMD_CAMERA_TRACK_POINT, (0.75, 0.5, 20 / W, 101)),  # another camera
+        (cp.MAV_CMD_CAMERA_TRACK_RECTANGLE, (0.6, 0.4, 0.4, 0.6)),  # no area
+    ],
+)
+def test_a_malformed_command_is_denied_and_leaves_the_pending_one_to_its_ack(command, bad):
+    """A malformed command changes nothing but gets its DENIED: the valid one waiting keeps its request and gets the
+    ACK of what the pipeline does with it (superseded, it would be applied and never answered)."""
+    proto = _proto()
+    good = (0.25, 0.5, 20 / W) if command == cp.MAV_CMD_CAMERA_TRACK_POINT else (0.4, 0.4, 0.6, 0.6)
+    _, req = proto.handle(_cmd(command, *good), 1.0, 0)
+    out, none = proto.handle(_cmd(command, *bad), 1.1, 0)
+    assert none is None and _ack(out)["result"] == mav.MAV_RESULT_DENIED
+    assert proto.pending_requests() == 1 and "track_superseded" not in proto.status()["counters"]
+    done = proto.complete(TrackResult(req.request_id, True))
+    assert (_ack(done)["command"], _ack(done)["result"]) == (command, mav.MAV_RESULT_ACCEPTED)
+    # nor does it make the decided one's retransmission a new command
+    out, again = proto.handle(_cmd(command, *bad), 1.5, 0)
+    out, again = proto.handle(_cmd(command, *good, confirmation=1), 2.2, 0)
+    assert again is None and _ack(out)["result"] == mav.MAV_RESULT_ACCEPTED
+
+
 def test_a_superseded_request_nobody_decides_is_forgotten_without_an_ack_and_never_carried_out():
     proto = _proto(track_request_timeout_s=1.0)
     _, first = proto.handle(_cmd(cp.MAV_CMD_CAMERA_TRACK_POINT, 0.25, 0.5, 0.03), 10.0, 0)
