@@ -3,11 +3,9 @@ line, the run, the report, TrackEval's scores of the MOT files, the tables print
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import signal
-import threading
 from pathlib import Path
 
 from groundsim.evaluation.eval import (
@@ -23,7 +21,7 @@ from groundsim.evaluation.out_dir import make_out_dir, refuse_foreign_out
 from groundsim.evaluation.parallel import limit_blas_threads, pool_workers, quiet_run_logs
 from groundsim.evaluation.report import SCHEMA, holds_eval_report
 from groundsim.evaluation.scoring import format_gnss_dropout
-from groundsim.io.stop_signals import install_stop_signals, print_interrupted
+from groundsim.io.stop_signals import finish_despite_signals, print_interrupted
 from groundsim.world.nav_errors import InjectedErrors
 from groundsim.world.scenario import DEFAULT_NAV_NOISE, refuse_duplicate_scenarios
 from onboard.core.errors import ConfigError
@@ -33,7 +31,6 @@ __all__ = [
     "add_mot_scores",
     "format_time_offset",
     "check_out_paths",
-    "finish_despite_signals",
     "DEFAULT_EVAL_SCENARIOS",
     "EXIT_FAILED",
     "MAX_EVAL_RUNS",
@@ -277,17 +274,3 @@ def _writing(out: Path, write, *args):
     except OSError as exc:
         where = f" {exc.filename}" if exc.filename else ""
         raise ConfigError(f"--out {out}: cannot write{where}: {exc.strerror or exc}") from None
-
-
-@contextlib.contextmanager
-def finish_despite_signals():
-    """While the block runs, SIGINT and SIGTERM are recorded (into the list it yields), not raised: the runs
-    are done and what is left is writing their results, which a Ctrl-C would otherwise throw away half-written."""
-    received: list[int] = []
-    restore = install_stop_signals(
-        threading.Event(), received, on_first=lambda name: log.warning("%s: writing the report first", name)
-    )
-    try:
-        yield received
-    finally:
-        restore()

@@ -62,6 +62,7 @@ A tqdm bar counts runs.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
@@ -100,6 +101,7 @@ from groundsim.evaluation.parallel import (
     quiet_run_logs,
     start_pool,
 )
+from groundsim.io.stop_signals import finish_despite_signals
 from groundsim.world.noise_cases import NoiseCase, load_noise_cases
 from groundsim.world.scenario import Scenario, load_scenario
 from onboard.core.errors import ConfigError
@@ -808,66 +810,73 @@ def run_campaign(
     t0 = time.perf_counter()
     pool = None
     futures: list = []
-    try:
-        if progress and pending:
-            bar = progress_bar(len(pending), "run", f"campaign {spec.name} ({workers} worker(s))")
-        if client is not None:  # submit every job, take them as they complete
-            import uuid
+    received: list[int] = []
+    with contextlib.ExitStack() as finishing:
+        try:
+            if progress and pending:
+                bar = progress_bar(len(pending), "run", f"campaign {spec.name} ({workers} worker(s))")
+            if client is not None:  # submit every job, take them as they complete
+                import uuid
 
-            from distributed import as_completed
+                from distributed import as_completed
 
-            batch = uuid.uuid4().hex[:8]
-            futures = [
-                client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
-                for k, j in enumerate(jobs)
-            ]
-            results = (f.result() for f in as_completed(futures, loop=client.loop))
-        elif workers > 1:  # the same, on a local pool
-            import concurrent.futures as cf
+                batch = uuid.uuid4().hex[:8]
+                futures = [
+                    client.submit(_remote_job, j, key=f"irtrack-{spec.name}-{batch}-{k}", pure=False)
+                    for k, j in enumerate(jobs)
+                ]
+                results = (f.result() for f in as_completed(futures, loop=client.loop))
+            elif workers > 1:  # the same, on a local pool
+                import concurrent.futures as cf
 
-            # every worker started before Ctrl-C is taken (a half-started forkserver worker printed a traceback)
-            pool, _ = start_pool(workers, CAMPAIGN_PRELOAD, progress=False)
-            futures = _pool_futures(pool, jobs)
-            results = (f.result() for f in cf.as_completed(futures))
-        else:
-            results = (run_job(j) for j in jobs)
-        for rows in results:
-            append_rows(log_path, rows)
-            ran += len(rows)
-            failed += sum(1 for r in rows if r.get("status") != "ok")
+                # every worker started before Ctrl-C is taken (a half-started forkserver worker printed a traceback)
+                pool, _ = start_pool(workers, CAMPAIGN_PRELOAD, progress=False)
+                futures = _pool_futures(pool, jobs)
+                results = (f.result() for f in cf.as_completed(futures))
+            else:
+                results = (run_job(j) for j in jobs)
+            for rows in results:
+                append_rows(log_path, rows)
+                ran += len(rows)
+                failed += sum(1 for r in rows if r.get("status") != "ok")
+                if bar is not None:
+                    bar.update(len(rows))
+                    bar.set_postfix_str(
+                        f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}"
+                    )
+            if pool is not None:
+                pool.close()
+                pool.join()
+                pool = None
+        except KeyboardInterrupt:
+            interrupted = True
+        finally:
+            # from here on a signal is noted, not raised: a second Ctrl-C (or a SIGTERM) had cut the table short
+            # and lost the finished runs' report; the runs it stops are already stopped
+            received = finishing.enter_context(finish_despite_signals("the table and the report"))
+            # interrupted or failed: drop what is still queued or running (its runs are redone on resume)
+            if pool is not None:
+                pool.terminate()
+                pool.join()
+            if client is not None:
+                try:
+                    if futures:
+                        client.cancel(futures)
+                finally:
+                    client.close()
             if bar is not None:
-                bar.update(len(rows))
-                bar.set_postfix_str(
-                    f"{rows[0]['scenario']} {rows[0]['geometry']} {rows[0]['noise']} seed {rows[0]['seed']}"
-                )
-        if pool is not None:
-            pool.close()
-            pool.join()
-            pool = None
-    except KeyboardInterrupt:
-        interrupted = True
-    finally:  # interrupted or failed: drop what is still queued or running (its runs are redone on resume)
-        if pool is not None:
-            pool.terminate()
-            pool.join()
-        if client is not None:
-            try:
-                if futures:
-                    client.cancel(futures)
-            finally:
-                client.close()
-        if bar is not None:
-            bar.close()
-    wall = time.perf_counter() - t0
-    done, _ = reusable_rows(log_path, ids)
-    rows = [done[i] for i in ids if i in done]
-    result = CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted)
-    try:
-        files = write_table(out, rows)
-        files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
-    except OSError as exc:
-        raise ConfigError(f"{out}: cannot write the table or the report: {exc}") from None
-    return dataclasses.replace(result, files=files)
+                bar.close()
+        wall = time.perf_counter() - t0
+        done, _ = reusable_rows(log_path, ids)
+        rows = [done[i] for i in ids if i in done]
+        result = CampaignResult(len(planned), reused, ran, failed, wall, workers, interrupted)
+        try:
+            files = write_table(out, rows)
+            files.update(write_report(out, spec, rows, dataclasses.asdict(result)))  # the report states these counts
+        except OSError as exc:
+            raise ConfigError(f"{out}: cannot write the table or the report: {exc}") from None
+    # a signal while writing stops the command as one during the runs would (the interrupted line, its exit code)
+    return dataclasses.replace(result, files=files, interrupted=interrupted or bool(received))
 
 
 # --------------------------------------------------------------------------- command line

@@ -3,17 +3,27 @@
 A long command installs :func:`install_stop_signals` so that Ctrl-C (or SIGTERM) sets a stop event its loop
 checks, instead of raising wherever the loop happens to be; when SIGINT ended it, the command prints
 :func:`print_interrupted`'s line, ``interrupted: <what was kept>``, and exits :data:`EXIT_INTERRUPTED`.
+
+The evaluation's commands (eval, dataset, campaign) stop by KeyboardInterrupt instead: their work is in pools
+and generators that Ctrl-C unwinds.  :func:`finish_despite_signals` holds SIGINT and SIGTERM while the work that
+is done is written.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import signal
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 
-__all__ = ["EXIT_INTERRUPTED", "install_stop_signals", "print_interrupted"]
+__all__ = [
+    "EXIT_INTERRUPTED",
+    "install_stop_signals",
+    "print_interrupted",
+    "finish_despite_signals",
+]
 
 log = logging.getLogger(__name__)
 
@@ -55,3 +65,18 @@ def print_interrupted(kept: str) -> int:
     """Print ``interrupted: <kept>`` on stderr; returns :data:`EXIT_INTERRUPTED`."""
     print(f"interrupted: {kept}", file=sys.stderr, flush=True)
     return EXIT_INTERRUPTED
+
+
+@contextlib.contextmanager
+def finish_despite_signals(what: str = "the report") -> Iterator[list[int]]:
+    """While the block runs, SIGINT and SIGTERM are recorded (into the list it yields), not raised: the runs
+    are done and what is left is writing their results, which a Ctrl-C would otherwise throw away half-written.
+    The first is announced as a warning, ``<SIGNAL>: writing <what> first``."""
+    received: list[int] = []
+    restore = install_stop_signals(
+        threading.Event(), received, on_first=lambda name: log.warning("%s: writing %s first", name, what)
+    )
+    try:
+        yield received
+    finally:
+        restore()
